@@ -1,0 +1,232 @@
+"""TOCABI facts in one place: joint order, groups, limits, initial pose, gains and names.
+
+Everything else in the package (simulator, environment, motion, transforms) reads its robot numbers from here, so a
+change of robot touches one file. Numbers follow the task specification (robot §1, reset §4, PD §6); angles are in
+radians, torques in N·m, masses in kg, lengths in m.
+
+Joint index ``j`` (0..32) maps to ``qpos[7 + j]`` and ``qvel[6 + j]``; the free base occupies ``qpos[0:7]``
+(position, then quaternion w, x, y, z) and ``qvel[0:6]`` (world linear velocity, then local angular velocity).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "JOINT_NAMES",
+    "ACTUATOR_NAMES",
+    "NUM_JOINTS",
+    "NUM_LEG_JOINTS",
+    "LEG_JOINT_IDS",
+    "UPPER_JOINT_IDS",
+    "TORQUE_LIMITS",
+    "LEG_TORQUE_LIMITS",
+    "INIT_JOINT_POS",
+    "INIT_BASE_POS",
+    "INIT_QPOS",
+    "UPPER_KP",
+    "UPPER_KV",
+    "LEG_KP",
+    "LEG_KV",
+    "NOMINAL_MASS",
+    "GRAVITY",
+    "FOOT_BODIES",
+    "FOOT_SITES",
+    "FOOT_FORCE_SENSORS",
+    "FOOT_TORQUE_SENSORS",
+    "BASE_BODY",
+    "NECK_BODY",
+    "PELVIS_IMU_SITE",
+    "GROUND_GEOM",
+    "GROUND_FORBIDDEN_BODIES",
+    "SELF_COLLISION_BODIES",
+    "RobotAssetError",
+    "asset_path",
+    "load_model",
+    "load_spec",
+    "validate_model",
+]
+
+NUM_JOINTS = 33
+NUM_LEG_JOINTS = 12
+
+#: Hinge joints in qpos order (spec §1.3).
+JOINT_NAMES: tuple[str, ...] = (
+    "L_HipYaw_Joint", "L_HipRoll_Joint", "L_HipPitch_Joint", "L_Knee_Joint", "L_AnklePitch_Joint", "L_AnkleRoll_Joint",
+    "R_HipYaw_Joint", "R_HipRoll_Joint", "R_HipPitch_Joint", "R_Knee_Joint", "R_AnklePitch_Joint", "R_AnkleRoll_Joint",
+    "Waist1_Joint", "Waist2_Joint", "Upperbody_Joint",
+    "L_Shoulder1_Joint", "L_Shoulder2_Joint", "L_Shoulder3_Joint", "L_Armlink_Joint",
+    "L_Elbow_Joint", "L_Forearm_Joint", "L_Wrist1_Joint", "L_Wrist2_Joint",
+    "Neck_Joint", "Head_Joint",
+    "R_Shoulder1_Joint", "R_Shoulder2_Joint", "R_Shoulder3_Joint", "R_Armlink_Joint",
+    "R_Elbow_Joint", "R_Forearm_Joint", "R_Wrist1_Joint", "R_Wrist2_Joint",
+)  # fmt: skip
+
+#: One actuator per joint, same order; named after the joint with ``_Motor``.
+ACTUATOR_NAMES: tuple[str, ...] = tuple(n.replace("_Joint", "_Motor") for n in JOINT_NAMES)
+
+LEG_JOINT_IDS: tuple[int, ...] = tuple(range(NUM_LEG_JOINTS))
+UPPER_JOINT_IDS: tuple[int, ...] = tuple(range(NUM_LEG_JOINTS, NUM_JOINTS))
+
+_ARM_LIMITS = (64.0, 64.0, 64.0, 64.0, 23.0, 23.0, 10.0, 10.0)
+#: Actuator torque limits [N·m] (spec §1.4), joint order.
+TORQUE_LIMITS: np.ndarray = np.array(
+    (333.0, 232.0, 263.0, 289.0, 222.0, 166.0) * 2 + (303.0,) * 3 + _ARM_LIMITS + (10.0, 10.0) + _ARM_LIMITS
+)
+LEG_TORQUE_LIMITS: np.ndarray = TORQUE_LIMITS[:NUM_LEG_JOINTS].copy()
+
+_LEG_INIT = (0.0, 0.0, -0.24, 0.6, -0.36, 0.0)
+#: Initial joint positions [rad] (spec §4): the nominal crouch, arms down, head straight.
+INIT_JOINT_POS: np.ndarray = np.array(
+    _LEG_INIT * 2
+    + (0.0, 0.0, 0.0)
+    + (0.3, 0.3, 1.5, -1.27, -1.0, 0.0, -1.0, 0.0)
+    + (0.0, 0.0)
+    + (-0.3, -0.3, -1.5, 1.27, 1.0, 0.0, 1.0, 0.0)
+)
+#: Initial base position [m]; the soles start ~1.3 mm above the ground.
+INIT_BASE_POS: np.ndarray = np.array((0.0, 0.0, 0.92983))
+#: Full initial qpos (40): base position, identity quaternion (w, x, y, z), joints.
+INIT_QPOS: np.ndarray = np.concatenate((INIT_BASE_POS, (1.0, 0.0, 0.0, 0.0), INIT_JOINT_POS))
+
+_ARM_KP = (400.0, 1000.0, 400.0, 400.0, 400.0, 400.0, 100.0, 100.0)
+_ARM_KV = (10.0, 28.0, 10.0, 10.0, 10.0, 10.0, 3.0, 3.0)
+#: Upper-body PD gains (21 joints, indices 12..32): Kp [N·m/rad], Kv [N·m·s/rad] (spec §6).
+UPPER_KP: np.ndarray = np.array((6000.0, 10000.0, 10000.0) + _ARM_KP + (100.0, 100.0) + _ARM_KP)
+UPPER_KV: np.ndarray = np.array((200.0, 100.0, 100.0) + _ARM_KV + (2.0, 2.0) + _ARM_KV)
+#: Leg PD gains of the reference robot controller (12 joints). The torque task does not use them; the PD control
+#: mode and the standing tests do.
+LEG_KP: np.ndarray = np.array((2000.0, 5000.0, 4000.0, 3700.0, 3200.0, 3200.0) * 2)
+LEG_KV: np.ndarray = np.array((15.0, 50.0, 20.0, 25.0, 24.0, 24.0) * 2)
+
+#: Total mass [kg] of the nominal robot (sum of body masses) and gravity [m/s²].
+NOMINAL_MASS = 104.48712
+GRAVITY = 9.81
+
+BASE_BODY = "base_link"
+NECK_BODY = "Neck_Link"
+PELVIS_IMU_SITE = "Pelvis_IMU"
+GROUND_GEOM = "ground"
+#: (left, right) in every pair below.
+FOOT_BODIES = ("L_Foot_Link", "R_Foot_Link")
+FOOT_SITES = ("LF_FT", "RF_FT")
+FOOT_FORCE_SENSORS = ("LF_Force_sensor", "RF_Force_sensor")
+FOOT_TORQUE_SENSORS = ("LF_Torque_sensor", "RF_Torque_sensor")
+
+_SIDE_LEG_UPPER = ("HipRoll", "HipCenter", "Thigh", "Knee")
+_SIDE_ARM = ("Shoulder1", "Shoulder2", "Shoulder3", "Armlink", "Elbow", "Forearm", "Wrist1", "Wrist2")
+#: Bodies whose contact with the ground ends an episode (spec §9.1.1). Feet, ankles, neck and head are allowed.
+GROUND_FORBIDDEN_BODIES: tuple[str, ...] = (
+    (BASE_BODY,)
+    + tuple(f"{s}_{b}_Link" for s in "LR" for b in _SIDE_LEG_UPPER)
+    + ("Waist1_Link", "Waist2_Link", "Upperbody_Link")
+    + tuple(f"{s}_{b}_Link" for s in "LR" for b in _SIDE_ARM)
+)
+#: Bodies whose mutual contact is a self collision (spec §9.1.2): the list above plus ankles and feet.
+SELF_COLLISION_BODIES: tuple[str, ...] = GROUND_FORBIDDEN_BODIES + tuple(
+    f"{s}_{b}_Link" for s in "LR" for b in ("AnkleCenter", "AnkleRoll", "Foot")
+)
+
+_ASSET_ENV = "TOCABI_TORCHRL_ASSETS"
+
+
+class RobotAssetError(RuntimeError):
+    """The robot model file is missing, malformed or lacks names the package relies on."""
+
+
+def _assets_root() -> Path:
+    """Folder holding ``tocabi/`` and ``motions/``.
+
+    Works from a source checkout (``<repo>/assets``) and from an installed wheel, where the assets are packaged as
+    ``tocabi_torchrl/_assets`` (see ``pyproject.toml``). ``$TOCABI_TORCHRL_ASSETS`` overrides both.
+    """
+    if os.environ.get(_ASSET_ENV):
+        return Path(os.environ[_ASSET_ENV])
+    here = Path(__file__).resolve().parent
+    for candidate in (here / "_assets", here.parent / "assets"):
+        if (candidate / "tocabi").is_dir():
+            return candidate
+    raise RobotAssetError(
+        f"cannot find the TOCABI assets next to {here} (looked for _assets/ and ../assets/); reinstall the package "
+        f"or set ${_ASSET_ENV} to the folder that contains tocabi/tocabi.xml"
+    )
+
+
+def asset_path(*parts: str) -> Path:
+    """Path of a shipped asset, e.g. ``asset_path("tocabi", "tocabi.xml")`` or ``asset_path("motions", ...)``."""
+    return _assets_root().joinpath(*parts)
+
+
+def _resolve_model_path(path: str | os.PathLike | None) -> Path:
+    p = Path(path) if path is not None else asset_path("tocabi", "tocabi.xml")
+    if not p.is_file():
+        raise RobotAssetError(f"robot model file not found: {p} (pass an existing MJCF path, or None for the default)")
+    return p
+
+
+def load_spec(path: str | os.PathLike | None = None) -> "mujoco.MjSpec":  # noqa: F821
+    """Parse the MJCF into a ``mujoco.MjSpec`` for scene edits (obstacles, extra sensors) before compiling."""
+    import mujoco
+
+    p = _resolve_model_path(path)
+    try:
+        return mujoco.MjSpec.from_file(str(p))
+    except Exception as err:  # mujoco raises ValueError with the parser message
+        raise RobotAssetError(f"cannot parse robot model {p}: {err}") from err
+
+
+def load_model(path: str | os.PathLike | None = None, validate: bool = True) -> "mujoco.MjModel":  # noqa: F821
+    """Compile the robot model (default: the shipped ``assets/tocabi/tocabi.xml``) and check its names."""
+    import mujoco
+
+    p = _resolve_model_path(path)
+    try:
+        model = mujoco.MjModel.from_xml_path(str(p))
+    except Exception as err:
+        raise RobotAssetError(f"cannot compile robot model {p}: {err}") from err
+    if validate:
+        validate_model(model, source=str(p))
+    return model
+
+
+@dataclass(frozen=True)
+class _Required:
+    kind: str  # a mujoco.mjtObj name suffix: "JOINT", "ACTUATOR", "SENSOR", "BODY", "SITE", "GEOM"
+    names: tuple[str, ...]
+
+
+def _required_names() -> tuple[_Required, ...]:
+    return (
+        _Required("JOINT", JOINT_NAMES),
+        _Required("ACTUATOR", ACTUATOR_NAMES),
+        _Required("SENSOR", FOOT_FORCE_SENSORS + FOOT_TORQUE_SENSORS),
+        _Required("BODY", (BASE_BODY, NECK_BODY) + FOOT_BODIES + SELF_COLLISION_BODIES),
+        _Required("SITE", FOOT_SITES),
+        _Required("GEOM", (GROUND_GEOM,)),
+    )
+
+
+def validate_model(model: "mujoco.MjModel", source: str = "model") -> None:  # noqa: F821
+    """Raise :class:`RobotAssetError` listing every expected name the model lacks, and check the joint order."""
+    import mujoco
+
+    missing: list[str] = []
+    for req in _required_names():
+        obj = getattr(mujoco.mjtObj, f"mjOBJ_{req.kind}")
+        missing += [f"{req.kind.lower()} {n!r}" for n in req.names if mujoco.mj_name2id(model, obj, n) < 0]
+    if missing:
+        raise RobotAssetError(f"{source} lacks {len(missing)} expected name(s): " + ", ".join(missing))
+    for j, name in enumerate(JOINT_NAMES):
+        jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if model.jnt_qposadr[jid] != 7 + j or model.jnt_dofadr[jid] != 6 + j:
+            raise RobotAssetError(
+                f"{source}: joint {name!r} sits at qpos {model.jnt_qposadr[jid]}, expected {7 + j} "
+                "(joints must follow robot.JOINT_NAMES after the free base)"
+            )
+        aid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, ACTUATOR_NAMES[j])
+        if aid != j:
+            raise RobotAssetError(f"{source}: actuator {ACTUATOR_NAMES[j]!r} has index {aid}, expected {j}")
