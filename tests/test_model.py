@@ -1,0 +1,195 @@
+"""The authored TOCABI model: structure, standing behaviour, parity with the reference robot, bad input."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from tocabi_torchrl import robot
+
+from reference_data import load_reference_model
+
+
+@pytest.fixture(scope="module")
+def model() -> mujoco.MjModel:
+    return robot.load_model()
+
+
+def _id(m, kind, name):
+    return mujoco.mj_name2id(m, getattr(mujoco.mjtObj, f"mjOBJ_{kind}"), name)
+
+
+def _foot_ids(m):
+    return [_id(m, "BODY", b) for b in robot.FOOT_BODIES]
+
+
+def test_structure(model):
+    assert (model.nq, model.nv, model.nu) == (40, 39, 33)
+    sensors = robot.FOOT_FORCE_SENSORS + robot.FOOT_TORQUE_SENSORS
+    assert sum(model.sensor_dim[_id(model, "SENSOR", s)] for s in sensors) == 12
+    assert model.body_mass.sum() == pytest.approx(104.487, rel=1e-4)
+    assert model.opt.timestep == 0.0005
+    assert model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER
+    assert model.opt.solver == mujoco.mjtSolver.mjSOL_NEWTON
+    assert model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
+    np.testing.assert_allclose(model.actuator_ctrlrange[:12, 1], robot.LEG_TORQUE_LIMITS)
+    np.testing.assert_allclose(model.actuator_forcerange[12:, 1], robot.TORQUE_LIMITS[12:])
+    np.testing.assert_allclose(model.actuator_gainprm[12:, 0], robot.UPPER_KP)
+    np.testing.assert_allclose(-model.actuator_biasprm[12:, 2], robot.UPPER_KV)
+    visual = (model.geom_contype == 0) & (model.geom_conaffinity == 0)
+    assert visual.sum() >= 20, "visual-only silhouette geoms are missing"
+
+
+def test_loads_into_mujoco_warp_on_cpu(model):
+    import mujoco_warp as mjw
+    import warp as wp
+
+    with wp.ScopedDevice("cpu"):
+        m = mjw.put_model(model)
+        d = mjw.make_data(model, nworld=2)
+    assert m.nq == 40 and m.nu == 33
+    assert d.qpos.shape == (2, 40) and d.sensordata.shape == (2, 12)
+
+
+def _hold_legs(m, d, target):
+    q, qd = d.qpos[7:19], d.qvel[6:18]
+    d.ctrl[:12] = robot.LEG_KP * (target - q) - robot.LEG_KV * qd
+
+
+def _init_state(m):
+    d = mujoco.MjData(m)
+    d.qpos[:] = robot.INIT_QPOS
+    d.ctrl[12:] = robot.INIT_JOINT_POS[12:]
+    mujoco.mj_forward(m, d)
+    return d
+
+
+def test_standing_two_seconds(model):
+    d = _init_state(model)
+    feet = _foot_ids(model)
+    ground = _id(model, "GEOM", robot.GROUND_GEOM)
+    z0 = d.qpos[2]
+    for _ in range(4000):  # 2 s at 2 kHz
+        _hold_legs(model, d, robot.INIT_JOINT_POS[:12])
+        mujoco.mj_step(model, d)
+    assert abs(d.qpos[2] - z0) < 0.02
+    touching = {model.geom_bodyid[c.geom[1 - i]] for c in d.contact[: d.ncon] for i in (0, 1) if c.geom[i] == ground}
+    assert set(feet) <= touching, "both feet must touch the ground"
+    fz = [d.sensor(s).data[2] for s in robot.FOOT_FORCE_SENSORS]
+    carried = (model.body_mass.sum() - sum(model.body_mass[f] for f in feet)) * robot.GRAVITY
+    assert -sum(fz) == pytest.approx(carried, rel=0.05)
+    assert all(f < 0 for f in fz), "a loaded foot reads a negative z force"
+
+
+# --- parity with the reference robot (skipped when ../shared/reference is absent) ---------------------------------
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return load_reference_model()
+
+
+def test_parity_joints_and_limits(model, reference):
+    for j, name in enumerate(robot.JOINT_NAMES):
+        a, b = _id(model, "JOINT", name), _id(reference, "JOINT", name)
+        assert b >= 0 and reference.jnt_qposadr[b] == 7 + j, f"{name} order differs"
+        np.testing.assert_allclose(model.jnt_axis[a], reference.jnt_axis[b], err_msg=name)
+        np.testing.assert_allclose(model.jnt_range[a], reference.jnt_range[b], err_msg=name)
+        da, db = model.jnt_dofadr[a], reference.jnt_dofadr[b]
+        for field in ("dof_armature", "dof_damping", "dof_frictionloss"):
+            assert getattr(model, field)[da] == getattr(reference, field)[db], f"{name} {field}"
+        ref_limit = reference.actuator_ctrlrange[_id(reference, "ACTUATOR", robot.ACTUATOR_NAMES[j]), 1]
+        assert robot.TORQUE_LIMITS[j] == ref_limit, f"{name} torque limit"
+
+
+def test_parity_bodies_and_inertias(model, reference):
+    assert model.nbody == reference.nbody
+    for i in range(1, reference.nbody):
+        name = reference.body(i).name
+        k = _id(model, "BODY", name)
+        assert k >= 0, f"body {name} missing"
+        for field in ("body_mass", "body_inertia", "body_ipos", "body_pos", "body_quat"):
+            np.testing.assert_allclose(getattr(model, field)[k], getattr(reference, field)[i], atol=1e-6,
+                                       err_msg=f"{name} {field}")
+        # The principal-axes frame is defined up to axis order/sign; compare the inertia tensors it produces.
+        def tensor(m, b):
+            rot = np.zeros(9)
+            mujoco.mju_quat2Mat(rot, m.body_iquat[b])
+            rot = rot.reshape(3, 3)
+            return rot @ np.diag(m.body_inertia[b]) @ rot.T
+        np.testing.assert_allclose(tensor(model, k), tensor(reference, i), atol=1e-6, err_msg=f"{name} inertia")
+
+
+def test_parity_foot_sites(model, reference):
+    rng = np.random.default_rng(0)
+    da, db = mujoco.MjData(model), mujoco.MjData(reference)
+    for _ in range(5):
+        q = robot.INIT_QPOS.copy()
+        q[:3] += rng.uniform(-0.5, 0.5, 3)
+        quat = rng.normal(size=4)
+        q[3:7] = quat / np.linalg.norm(quat)
+        q[7:] = rng.uniform(-1.0, 1.0, 33)
+        da.qpos[:], db.qpos[:] = q, q
+        mujoco.mj_kinematics(model, da)
+        mujoco.mj_kinematics(reference, db)
+        for site in robot.FOOT_SITES:
+            np.testing.assert_allclose(da.site(site).xpos, db.site(site).xpos, atol=1e-3)
+
+
+def test_parity_motion(model, reference):
+    """0.25 s of one fixed leg-torque sequence, upper body PD-held: both models move the same way."""
+    rng = np.random.default_rng(1)
+    steps = 62  # policy steps of 8 substeps: 0.248 s
+    amplitude = 0.15 * robot.LEG_TORQUE_LIMITS
+    torques = amplitude * np.sin(2 * np.pi * (np.arange(steps)[:, None] / 40 + rng.uniform(0, 1, 12)))
+    da = _init_state(model)
+    db = mujoco.MjData(reference)
+    db.qpos[:] = robot.INIT_QPOS
+    mujoco.mj_forward(reference, db)
+    q_up = robot.INIT_JOINT_POS[12:]
+    limits = robot.TORQUE_LIMITS[12:]
+    for k in range(steps):
+        for _ in range(8):
+            da.ctrl[:12] = torques[k]
+            db.ctrl[:12] = torques[k]
+            pd = robot.UPPER_KP * (q_up - db.qpos[19:]) - robot.UPPER_KV * db.qvel[18:]
+            db.ctrl[12:] = np.clip(pd, -limits, limits)
+            mujoco.mj_step(model, da)
+            mujoco.mj_step(reference, db)
+    assert np.abs(da.qpos[7:] - robot.INIT_JOINT_POS).max() > 0.01, "the sequence should move the legs"
+    np.testing.assert_allclose(da.qpos[7:], db.qpos[7:], atol=1e-3)
+
+
+# --- bad input ----------------------------------------------------------------------------------------------------
+
+
+def test_missing_asset_names_the_file(tmp_path):
+    missing = tmp_path / "nope.xml"
+    with pytest.raises(robot.RobotAssetError, match="nope.xml"):
+        robot.load_model(missing)
+    with pytest.raises(robot.RobotAssetError, match="nope.xml"):
+        robot.load_spec(missing)
+
+
+def test_malformed_asset_names_the_file(tmp_path):
+    bad = tmp_path / "broken.xml"
+    bad.write_text("<mujoco><worldbody><body></mujoco>")
+    with pytest.raises(robot.RobotAssetError, match="broken.xml"):
+        robot.load_model(bad)
+
+
+def test_missing_names_are_listed(tmp_path):
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    text = text.replace('name="L_Knee_Motor"', 'name="Knee_Motor_renamed"').replace(
+        '<force name="LF_Force_sensor" site="LF_FT"/>', "")
+    broken = tmp_path / "renamed.xml"
+    broken.write_text(text)
+    with pytest.raises(robot.RobotAssetError) as info:
+        robot.load_model(broken)
+    message = str(info.value)
+    assert "'L_Knee_Motor'" in message and "'LF_Force_sensor'" in message and "renamed.xml" in message
+
+
+def test_asset_path_exists():
+    assert robot.asset_path("tocabi", "tocabi.xml").is_file()
