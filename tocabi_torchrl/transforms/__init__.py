@@ -1,0 +1,84 @@
+"""TorchRL transforms that turn ``TocabiWalk``'s raw signals (docs/signals.md) into the policy input and the reward.
+
+One module per job:
+
+* :mod:`.phase`: :class:`PhaseEncoding` (sin/cos harmonics of the gait phase)
+* :mod:`.orientation`: quaternion math and :class:`BaseEulerAngles`
+* :mod:`.observation`: :class:`ObservationAssembly` of the per-step vector (37 values in the reference order)
+* :mod:`.normalize`: :class:`FixedNormalization` (reference statistics) and :class:`RunningNormalization`
+* :mod:`.history`: :class:`ObsActionHistory` with a :class:`HistoryLayout` (reference: 237-value input)
+* :mod:`.reward_terms`: one :class:`RewardTerm` per reference reward component; :mod:`.reward`: :class:`TaskReward`
+* :mod:`.presets`: :class:`TransformConfig`, :data:`PRESETS` and :func:`default_transforms`
+"""
+
+from tocabi_torchrl.transforms.history import REFERENCE_HISTORY, TOCABILAB_HISTORY, HistoryLayout, ObsActionHistory
+from tocabi_torchrl.transforms.normalize import (
+    REFERENCE_OBS_MEAN,
+    REFERENCE_OBS_VAR,
+    FixedNormalization,
+    RunningNormalization,
+)
+from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObservationAssembly, ObsComponent
+from tocabi_torchrl.transforms.orientation import BaseEulerAngles, quat_rotation_angle, quat_to_rpy
+from tocabi_torchrl.transforms.phase import PhaseEncoding
+from tocabi_torchrl.transforms.presets import PRESETS, TransformConfig, default_transforms, transform_config
+from tocabi_torchrl.transforms.reward import TaskReward
+from tocabi_torchrl.transforms.reward_terms import (
+    REFERENCE_TERMS,
+    BodyVelTracking,
+    CallableTerm,
+    ContactForce,
+    ContactForceDiff,
+    FootContactPattern,
+    ForceDiffThresholdPenalty,
+    ForceReference,
+    ForceThresholdPenalty,
+    JointAccRegulation,
+    JointPosTracking,
+    JointVelRegulation,
+    NeckOrientation,
+    RewardTerm,
+    TorqueDiffRegulation,
+    TorqueRegulation,
+    reference_terms,
+)
+
+__all__ = [
+    "PhaseEncoding",
+    "BaseEulerAngles",
+    "quat_to_rpy",
+    "quat_rotation_angle",
+    "ObsComponent",
+    "REFERENCE_OBS_LAYOUT",
+    "ObservationAssembly",
+    "REFERENCE_OBS_MEAN",
+    "REFERENCE_OBS_VAR",
+    "FixedNormalization",
+    "RunningNormalization",
+    "HistoryLayout",
+    "REFERENCE_HISTORY",
+    "TOCABILAB_HISTORY",
+    "ObsActionHistory",
+    "RewardTerm",
+    "CallableTerm",
+    "NeckOrientation",
+    "JointPosTracking",
+    "JointVelRegulation",
+    "BodyVelTracking",
+    "ContactForce",
+    "TorqueRegulation",
+    "TorqueDiffRegulation",
+    "JointAccRegulation",
+    "FootContactPattern",
+    "ContactForceDiff",
+    "ForceReference",
+    "ForceThresholdPenalty",
+    "ForceDiffThresholdPenalty",
+    "REFERENCE_TERMS",
+    "reference_terms",
+    "TaskReward",
+    "TransformConfig",
+    "PRESETS",
+    "transform_config",
+    "default_transforms",
+]

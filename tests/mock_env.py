@@ -1,0 +1,185 @@
+"""A stand-in for ``TocabiWalk`` for the transform tests: the exact keys, shapes and dtypes of docs/signals.md.
+
+Two modes:
+
+* ``"random"``: every signal is drawn fresh each step (plausible magnitudes), with an optional termination rate, to
+  exercise specs, resets and the reward under arbitrary data.
+* ``"counter"``: every float signal of env i after policy step k (k = ``episode_step``, 0 after a reset) equals
+  ``k + 100·i`` (the phase: ``(k + 100·i) / 1000``), so a test can read which step a value came from.
+
+``applied_action`` is the clipped action (zeros after a reset), ``episode_step`` counts steps since the env's last
+reset, ``truncated`` fires at ``max_episode_steps``. Partial resets (``"_reset"`` (N, 1) bool) redraw only the
+flagged envs and return the current state of the others, as the real env does. No host synchronisation.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from tocabi_torchrl import robot
+
+_FLOAT_SIGNALS = {
+    "joint_pos": (robot.NUM_JOINTS,),
+    "joint_vel": (robot.NUM_JOINTS,),
+    "base_pos": (3,),
+    "base_quat": (4,),
+    "base_lin_vel": (3,),
+    "base_ang_vel": (3,),
+    "neck_pos": (3,),
+    "neck_quat": (4,),
+    "foot_force": (2, 3),
+    "foot_torque": (2, 3),
+    "phase": (1,),
+    "ref_joint_pos": (robot.NUM_JOINTS,),
+    "ref_foot_force": (2,),
+    "command": (2,),
+    "leg_torque": (robot.NUM_LEG_JOINTS,),
+}
+NUM_ACTIONS = robot.NUM_LEG_JOINTS + 1
+
+
+class MockTocabiWalk(EnvBase):
+    """Batched mock env emitting the ``TocabiWalk`` signals (see the module doc)."""
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        num_envs: int = 4,
+        device: str | torch.device = "cpu",
+        mode: str = "random",
+        max_episode_steps: int = 8000,
+        terminate_prob: float = 0.0,
+        seed: int = 0,
+    ):
+        if mode not in ("random", "counter"):
+            raise ValueError(f"mode must be 'random' or 'counter', got {mode!r}")
+        super().__init__(device=device, batch_size=torch.Size([num_envs]))
+        self.num_envs = num_envs
+        self.mode = mode
+        self.max_episode_steps = max_episode_steps
+        self.terminate_prob = terminate_prob
+        self._gen = torch.Generator(device=self.device)
+        self._gen.manual_seed(seed)
+        self._state: TensorDict | None = None
+        self._env_offset = (100.0 * torch.arange(num_envs, device=self.device, dtype=torch.float32)).unsqueeze(-1)
+        self._make_specs()
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self) -> None:
+        n, dev = self.num_envs, self.device
+        obs = {k: Unbounded(shape=(n, *s), dtype=torch.float32, device=dev) for k, s in _FLOAT_SIGNALS.items()}
+        obs["foot_contact"] = Categorical(2, shape=(n, 2), dtype=torch.bool, device=dev)
+        obs["stance"] = Bounded(low=0, high=2, shape=(n, 1), dtype=torch.int64, device=dev)
+        obs["applied_action"] = Unbounded(shape=(n, NUM_ACTIONS), dtype=torch.float32, device=dev)
+        obs["episode_step"] = Bounded(
+            low=0, high=torch.iinfo(torch.int64).max, shape=(n, 1), dtype=torch.int64, device=dev
+        )
+        self.observation_spec = Composite(obs, shape=(n,), device=dev)
+        low = torch.tensor([-1.0] * robot.NUM_LEG_JOINTS + [0.0], device=dev).expand(n, NUM_ACTIONS)
+        self.action_spec = Bounded(low=low, high=torch.ones_like(low), shape=(n, NUM_ACTIONS), device=dev)
+        self.reward_spec = Unbounded(shape=(n, 1), dtype=torch.float32, device=dev)
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(n, 1), dtype=torch.bool, device=dev),
+            terminated=Categorical(2, shape=(n, 1), dtype=torch.bool, device=dev),
+            truncated=Categorical(2, shape=(n, 1), dtype=torch.bool, device=dev),
+            shape=(n,),
+            device=dev,
+        )
+
+    # ---------------------------------------------------------------- signals
+    def _rand(self, *shape) -> torch.Tensor:
+        return torch.rand((self.num_envs, *shape), generator=self._gen, device=self.device)
+
+    def _randn(self, *shape) -> torch.Tensor:
+        return torch.randn((self.num_envs, *shape), generator=self._gen, device=self.device)
+
+    def _signals(self, episode_step: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Float/int/bool signals for every env at ``episode_step`` (N, 1)."""
+        n = self.num_envs
+        if self.mode == "counter":
+            value = episode_step.to(torch.float32) + self._env_offset  # (N, 1)
+            out = {k: value.reshape(n, *([1] * len(s))).expand(n, *s).clone() for k, s in _FLOAT_SIGNALS.items()}
+            out["phase"] = value / 1000.0
+            out["foot_contact"] = torch.ones((n, 2), dtype=torch.bool, device=self.device)
+            out["stance"] = torch.zeros((n, 1), dtype=torch.int64, device=self.device)
+            return out
+        quat = torch.nn.functional.normalize(
+            torch.tensor([1.0, 0.0, 0.0, 0.0], device=self.device) + 0.2 * self._randn(4), dim=-1
+        )
+        neck_quat = torch.nn.functional.normalize(
+            torch.tensor([1.0, 0.0, 0.0, 0.0], device=self.device) + 0.2 * self._randn(4), dim=-1
+        )
+        force = 100.0 * self._randn(2, 3)
+        force[..., 2] = -600.0 * self._rand(2) - 50.0 * self._rand(2)
+        init = torch.as_tensor(robot.INIT_JOINT_POS, dtype=torch.float32, device=self.device)
+        return {
+            "joint_pos": init + 0.1 * self._randn(robot.NUM_JOINTS),
+            "joint_vel": self._randn(robot.NUM_JOINTS),
+            "base_pos": torch.tensor([0.0, 0.0, 0.93], device=self.device) + 0.05 * self._randn(3),
+            "base_quat": quat,
+            "base_lin_vel": 0.3 * self._randn(3),
+            "base_ang_vel": 0.3 * self._randn(3),
+            "neck_pos": torch.tensor([0.0, 0.0, 1.5], device=self.device) + 0.05 * self._randn(3),
+            "neck_quat": neck_quat,
+            "foot_force": force,
+            "foot_torque": 20.0 * self._randn(2, 3),
+            "phase": self._rand(1),
+            "ref_joint_pos": init + 0.1 * self._randn(robot.NUM_JOINTS),
+            "ref_foot_force": -1025.0 * self._rand(2),
+            "command": torch.stack((-0.2 + self._rand() * 1.0, -0.2 + self._rand() * 0.4), -1),
+            "leg_torque": 50.0 * self._randn(robot.NUM_LEG_JOINTS),
+            "foot_contact": self._rand(2) < 0.6,
+            "stance": torch.randint(0, 3, (n, 1), generator=self._gen, device=self.device),
+        }
+
+    # -------------------------------------------------------------- EnvBase
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        n, dev = self.num_envs, self.device
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        mask = torch.ones((n, 1), dtype=torch.bool, device=dev) if reset is None else reset.reshape(n, 1)
+        episode_step = torch.zeros((n, 1), dtype=torch.int64, device=dev)
+        fresh = self._signals(episode_step)
+        fresh["applied_action"] = torch.zeros((n, NUM_ACTIONS), device=dev)
+        fresh["episode_step"] = episode_step
+        fresh = TensorDict(fresh, batch_size=[n], device=dev)
+        if self._state is None:
+            self._state = fresh
+        else:
+            self._state = fresh.where(mask.squeeze(-1), self._state)  # flagged rows fresh, the others unchanged
+        out = self._state.clone()
+        false = torch.zeros((n, 1), dtype=torch.bool, device=dev)
+        out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        n, dev = self.num_envs, self.device
+        low, high = self.action_spec.space.low, self.action_spec.space.high
+        action = torch.maximum(torch.minimum(tensordict.get("action"), high), low)
+        episode_step = self._state.get("episode_step") + 1
+        sig = self._signals(episode_step)
+        sig["applied_action"] = action.to(torch.float32)
+        sig["episode_step"] = episode_step
+        self._state = TensorDict(sig, batch_size=[n], device=dev)
+        if self.mode == "random" and self.terminate_prob > 0:
+            terminated = self._rand(1) < self.terminate_prob
+        else:
+            terminated = torch.zeros((n, 1), dtype=torch.bool, device=dev)
+        truncated = episode_step >= self.max_episode_steps
+        out = self._state.clone()
+        out.update(
+            {
+                "reward": torch.zeros((n, 1), dtype=torch.float32, device=dev),
+                "terminated": terminated,
+                "truncated": truncated,
+                "done": terminated | truncated,
+            }
+        )
+        return out
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is not None:
+            self._gen.manual_seed(seed)

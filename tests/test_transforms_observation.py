@@ -1,0 +1,211 @@
+"""Phase encoding, Euler angles, the 37-value observation in spec order, and its normalisation."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from mock_env import MockTocabiWalk
+from torchrl.envs import Compose, TransformedEnv
+
+from tocabi_torchrl.transforms import (
+    REFERENCE_OBS_LAYOUT,
+    REFERENCE_OBS_MEAN,
+    REFERENCE_OBS_VAR,
+    BaseEulerAngles,
+    FixedNormalization,
+    ObservationAssembly,
+    ObsComponent,
+    PhaseEncoding,
+    RunningNormalization,
+    quat_rotation_angle,
+    quat_to_rpy,
+)
+
+REFERENCE_DIR = Path(__file__).resolve().parents[2] / "shared" / "reference"
+
+
+def _qmul(a, b):
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def _quat_from_rpy(roll, pitch, yaw):
+    """q = qz(yaw)·qy(pitch)·qx(roll), i.e. R = Rz·Ry·Rx (fixed X-Y-Z)."""
+    qx = (math.cos(roll / 2), math.sin(roll / 2), 0.0, 0.0)
+    qy = (math.cos(pitch / 2), 0.0, math.sin(pitch / 2), 0.0)
+    qz = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+    return _qmul(qz, _qmul(qy, qx))
+
+
+# ----------------------------------------------------------------------------------------------- phase, euler
+def test_phase_encoding_harmonics():
+    td = MockTocabiWalk(3).full_observation_spec.zero()
+    td["phase"] = torch.tensor([[0.0], [0.125], [0.75]])
+    out = PhaseEncoding(harmonics=3)(td)
+    s = math.sqrt(0.5)
+    torch.testing.assert_close(out["phase_sin"], torch.tensor([[0.0, 0.0, 0.0], [s, 1.0, s], [-1.0, 0.0, 1.0]]), atol=1e-6, rtol=0)
+    torch.testing.assert_close(out["phase_cos"], torch.tensor([[1.0, 1.0, 1.0], [s, 0.0, -s], [0.0, -1.0, 0.0]]), atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="harmonics"):
+        PhaseEncoding(harmonics=0)
+
+
+@pytest.mark.parametrize("rpy", [(0.1, -0.2, 0.3), (-2.5, 1.2, -3.0), (0.0, 0.0, 2.0), (3.0, -0.5, 0.0)])
+def test_quat_to_rpy_fixed_xyz(rpy):
+    q = torch.tensor([_quat_from_rpy(*rpy)], dtype=torch.float64)
+    torch.testing.assert_close(quat_to_rpy(q)[0], torch.tensor(rpy, dtype=torch.float64))
+    torch.testing.assert_close(quat_to_rpy(-q)[0], torch.tensor(rpy, dtype=torch.float64))  # same rotation
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_quat_to_rpy_gimbal_fallback(dtype):
+    # R = Ry(π/2)·Rx(0.3): at the lock the reference reports roll 0, yaw = atan2(-R01, R11) = -0.3.
+    q = torch.tensor([_qmul((math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0), (math.cos(0.15), math.sin(0.15), 0.0, 0.0))], dtype=dtype)
+    rpy = quat_to_rpy(q)[0]
+    torch.testing.assert_close(rpy, torch.tensor([0.0, math.pi / 2, -0.3], dtype=dtype), atol=1e-3, rtol=0)
+
+
+def test_quat_rotation_angle():
+    q = torch.tensor([[1.0, 0, 0, 0], [math.cos(0.5), math.sin(0.5), 0, 0], [-math.cos(0.5), 0, -math.sin(0.5), 0], [0.0, 0, 0, 1]])
+    torch.testing.assert_close(quat_rotation_angle(q).squeeze(-1), torch.tensor([0.0, 1.0, 1.0, math.pi]))
+
+
+# ------------------------------------------------------------------------------------------------ assembly
+def _constructed_state():
+    td = MockTocabiWalk(2).full_observation_spec.zero()
+    td["base_quat"][:] = torch.tensor(_quat_from_rpy(0.1, -0.2, 0.3), dtype=torch.float32)
+    td["joint_pos"][:] = 0.01 * torch.arange(33)
+    td["joint_vel"][:] = -0.1 * torch.arange(33)
+    td["phase"][:] = 0.125
+    td["command"][:] = torch.tensor([0.5, -0.1])
+    td["foot_force"][:] = torch.tensor([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    td["foot_torque"][:] = torch.tensor([[7.0, 8.0, 9.0], [10.0, 11.0, 12.0]])
+    return td
+
+
+def test_assembled_observation_matches_spec_order():
+    td = Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly())(_constructed_state())
+    obs = td["obs_step"]
+    assert obs.shape == (2, 37) and obs.dtype == torch.float32
+    s = math.sqrt(0.5)
+    expected = (
+        [0.1, -0.2, 0.3]  # 0-2 roll, pitch, yaw
+        + [0.01 * j for j in range(12)]  # 3-14 leg q
+        + [-0.1 * j for j in range(12)]  # 15-26 leg dq
+        + [s, s]  # 27-28 sin, cos
+        + [0.5, -0.1]  # 29-30 command
+        + [3.0, 6.0]  # 31-32 Fz_L, Fz_R
+        + [7.0, 10.0]  # 33-34 Mx_L, Mx_R
+        + [8.0, 11.0]  # 35-36 My_L, My_R
+    )
+    torch.testing.assert_close(obs, torch.tensor([expected, expected]), atol=2e-6, rtol=1e-5)
+
+
+def test_assembly_slices_and_custom_layout():
+    env = TransformedEnv(MockTocabiWalk(2), Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly()))
+    assert env.observation_spec["obs_step"].shape == (2, 37)
+    sl = env.transform[-1].slices
+    assert [sl[c.name] for c in REFERENCE_OBS_LAYOUT] == [
+        slice(0, 3), slice(3, 15), slice(15, 27), slice(27, 28), slice(28, 29), slice(29, 31), slice(31, 33),
+        slice(33, 35), slice(35, 37),
+    ]  # fmt: skip
+    layout = REFERENCE_OBS_LAYOUT + (ObsComponent("base_ang_vel", "base_ang_vel"),)
+    env = TransformedEnv(MockTocabiWalk(2), Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(layout)))
+    td = env.reset()
+    assert td["obs_step"].shape == (2, 40)
+    torch.testing.assert_close(td["obs_step"][:, 37:], td["base_ang_vel"])
+
+
+def test_assembly_errors():
+    with pytest.raises(TypeError, match="ints, slices"):
+        ObsComponent("bad", "joint_pos", ([0, 3],))
+    env = TransformedEnv(MockTocabiWalk(2), ObservationAssembly())
+    with pytest.raises(KeyError, match="BaseEulerAngles before ObservationAssembly"):
+        env.observation_spec
+    env = TransformedEnv(MockTocabiWalk(2), ObservationAssembly((ObsComponent("x", "command", (slice(None), 0)),)))
+    with pytest.raises(ValueError, match="does not fit"):
+        env.observation_spec
+
+
+# ----------------------------------------------------------------------------------------- normalisation
+def test_fixed_normalization_reference_statistics():
+    mean = torch.tensor(REFERENCE_OBS_MEAN)
+    std = torch.sqrt(torch.tensor(REFERENCE_OBS_VAR, dtype=torch.float64) + 1e-8).float()
+    # A few std values of the spec §7.1 table.
+    assert std[6].item() == pytest.approx(0.127275, abs=1e-6)
+    assert std[24].item() == pytest.approx(1.13143, abs=1e-5)
+    assert std[31].item() == pytest.approx(158.114, abs=1e-3)
+    assert std[33].item() == pytest.approx(30.0, abs=1e-6)
+    norm = FixedNormalization()
+    td = MockTocabiWalk(2).full_observation_spec.zero()
+    td["obs_step"] = torch.stack((mean, mean + 2 * std))
+    out = norm(td)["obs_step_norm"]
+    torch.testing.assert_close(out, torch.stack((torch.zeros(37), torch.full((37,), 2.0))))
+    clipped = FixedNormalization(clip=1.5)(td)["obs_step_norm"]
+    assert clipped.max().item() == 1.5
+
+
+@pytest.mark.skipif(not (REFERENCE_DIR / "obs_mean_fixed.txt").exists(), reason="reference files not present")
+def test_fixed_statistics_match_reference_files_to_7_digits():
+    def read(name):
+        return torch.tensor([float(x) for x in (REFERENCE_DIR / name).read_text().split()], dtype=torch.float64)
+
+    ref_mean, ref_var = read("obs_mean_fixed.txt"), read("obs_variance_fixed.txt")
+    ours_mean = torch.tensor(REFERENCE_OBS_MEAN, dtype=torch.float64)
+    ours_var = torch.tensor(REFERENCE_OBS_VAR, dtype=torch.float64)
+    torch.testing.assert_close(ours_mean, ref_mean, rtol=6e-7, atol=1e-12)
+    torch.testing.assert_close(ours_var, ref_var, rtol=6e-7, atol=1e-12)
+    # The normalised observation differs by < 1e-5 std for a typical observation.
+    x = ref_mean + torch.sqrt(ref_var)
+    ref_out = (x - ref_mean) / torch.sqrt(ref_var + 1e-8)
+    our_out = (x - ours_mean) / torch.sqrt(ours_var + 1e-8)
+    assert (ref_out - our_out).abs().max().item() < 1e-5
+
+
+def test_fixed_normalization_errors():
+    with pytest.raises(ValueError, match="equal lengths"):
+        FixedNormalization(mean=[0.0] * 3, var=[1.0] * 4)
+    env = TransformedEnv(MockTocabiWalk(2), FixedNormalization(in_key="command"))
+    with pytest.raises(ValueError, match="37 statistics but 'command' has 2"):
+        env.observation_spec
+
+
+def test_running_normalization_tracks_batch_statistics():
+    torch.manual_seed(0)
+    norm = RunningNormalization(dim=3, init_count=1e-6)
+    batches = [torch.randn(64, 3) * torch.tensor([1.0, 5.0, 0.1]) + torch.tensor([3.0, -2.0, 0.5]) for _ in range(5)]
+    for b in batches:
+        norm.update(b)
+    allx = torch.cat(batches).double()
+    torch.testing.assert_close(norm.mean, allx.mean(0), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(norm.var, allx.var(0, unbiased=False), rtol=1e-5, atol=1e-6)
+    assert norm.count.item() == pytest.approx(320, rel=1e-6)
+
+
+def test_running_normalization_in_env_updates_on_step_only_and_freezes():
+    env = TransformedEnv(
+        MockTocabiWalk(4),
+        Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(), RunningNormalization()),
+    )
+    norm = env.transform[-1]
+    assert norm.mean.shape == (0,)
+    env.observation_spec  # sizes the statistics from the spec
+    assert norm.mean.shape == (37,)
+    env.reset()
+    assert norm.count.item() == 1.0  # reset reads, does not update
+    td = env.rand_step(env.reset())
+    assert norm.count.item() == 5.0
+    torch.testing.assert_close(
+        td["next", "obs_step_norm"], ((td["next", "obs_step"].double() - norm.mean) / torch.sqrt(norm.var + 1e-8)).float()
+    )
+    norm.freeze()
+    env.rand_step(env.reset())
+    assert norm.count.item() == 5.0

@@ -1,0 +1,287 @@
+"""Each reward term against a hand computation (spec §8), and the TaskReward sum/keys/options."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from mock_env import MockTocabiWalk
+from tensordict import TensorDict
+from torchrl.envs import TransformedEnv
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.transforms import (
+    REFERENCE_TERMS,
+    BodyVelTracking,
+    CallableTerm,
+    ContactForce,
+    ContactForceDiff,
+    FootContactPattern,
+    ForceDiffThresholdPenalty,
+    ForceReference,
+    ForceThresholdPenalty,
+    JointAccRegulation,
+    JointPosTracking,
+    JointVelRegulation,
+    NeckOrientation,
+    TaskReward,
+    TorqueDiffRegulation,
+    TorqueRegulation,
+    reference_terms,
+)
+
+N = 3
+
+
+def _state() -> TensorDict:
+    """Neutral signals (zeros, identity quaternions) with the contract's keys, shapes and dtypes."""
+    td = MockTocabiWalk(N).full_observation_spec.zero()
+    td["base_quat"][..., 0] = 1.0
+    td["neck_quat"][..., 0] = 1.0
+    td["terminated"] = torch.zeros(N, 1, dtype=torch.bool)
+    return td
+
+
+def _pair() -> tuple[TensorDict, TensorDict]:
+    return _state(), _state()
+
+
+def _close(value: torch.Tensor, expected: list[float]) -> None:
+    assert value.shape == (N, 1)
+    assert value.dtype == torch.float32
+    torch.testing.assert_close(value.squeeze(-1), torch.tensor(expected, dtype=torch.float32), rtol=1e-5, atol=1e-7)
+
+
+def test_reference_term_set_and_weights():
+    assert list(REFERENCE_TERMS) == [
+        "orientation", "qpos", "qvel", "body_vel", "contact_force", "torque", "torque_diff", "qacc",
+        "foot_contact", "contact_force_diff", "force_ref", "force_threshold", "force_diff_threshold",
+    ]  # fmt: skip
+    weights = {t.name: t.weight for t in reference_terms()}
+    assert weights == {
+        "orientation": 0.3, "qpos": 0.35, "qvel": 0.05, "body_vel": 0.3, "contact_force": 0.1, "torque": 0.05,
+        "torque_diff": 0.6, "qacc": 0.05, "foot_contact": 0.2, "contact_force_diff": 0.2, "force_ref": 0.2,
+        "force_threshold": -0.08, "force_diff_threshold": -0.05,
+    }  # fmt: skip
+    # The positive terms' maxima add up to the reference's 2.4.
+    assert sum(w for w in weights.values() if w > 0) == pytest.approx(2.4)
+
+
+def test_orientation_uses_neck_rotation_angle():
+    td, nxt = _pair()
+    half = 0.05  # 0.1 rad about z (pure yaw still counts)
+    nxt["neck_quat"][0] = torch.tensor([math.cos(half), 0.0, 0.0, math.sin(half)])
+    # -q is the same rotation: pyquaternion's wrapped angle gives |θ| = 0.1 too.
+    nxt["neck_quat"][1] = -torch.tensor([math.cos(half), 0.0, 0.0, math.sin(half)])
+    # 0.6 rad about the axis (1, 2, 2)/3, quaternion not normalised (scaled by 2).
+    nxt["neck_quat"][2] = 2.0 * torch.tensor([math.cos(0.3), math.sin(0.3) / 3, 2 * math.sin(0.3) / 3, 2 * math.sin(0.3) / 3])
+    expected = [0.3 * math.exp(-13.2 * 0.1), 0.3 * math.exp(-13.2 * 0.1), 0.3 * math.exp(-13.2 * 0.6)]
+    _close(NeckOrientation()(td, nxt), expected)
+
+
+def test_qpos_squared_error_over_all_33_joints():
+    td, nxt = _pair()
+    nxt["ref_joint_pos"][0, 0] = 0.1
+    nxt["ref_joint_pos"][0, 32] = -0.1  # an upper-body joint counts too
+    nxt["joint_pos"][1] = 0.05  # 33 joints off by 0.05
+    _close(JointPosTracking()(td, nxt), [0.35 * math.exp(-4 * 0.02), 0.35 * math.exp(-4 * 33 * 0.0025), 0.35])
+
+
+def test_qvel_squared_norm():
+    td, nxt = _pair()
+    nxt["joint_vel"][0, 3] = 3.0
+    nxt["joint_vel"][0, 20] = 4.0
+    _close(JointVelRegulation()(td, nxt), [0.05 * math.exp(-0.01 * 25), 0.05, 0.05])
+
+
+def test_body_vel_compares_xy_with_command():
+    td, nxt = _pair()
+    nxt["base_lin_vel"][0] = torch.tensor([0.5, 0.1, 9.0])  # z is ignored
+    nxt["command"][0] = torch.tensor([0.2, -0.3])
+    nxt["command"][1] = torch.tensor([0.1, 0.0])
+    _close(BodyVelTracking()(td, nxt), [0.3 * math.exp(-3 * 0.25), 0.3 * math.exp(-3 * 0.01), 0.3])
+
+
+def test_contact_force_plain_3d_norms():
+    td, nxt = _pair()
+    nxt["foot_force"][0, 0] = torch.tensor([300.0, 400.0, 0.0])  # |F_L| = 500
+    nxt["foot_force"][0, 1] = torch.tensor([0.0, 0.0, -1000.0])  # |F_R| = 1000
+    _close(ContactForce()(td, nxt), [0.1 * math.exp(-0.0005 * 1500), 0.1, 0.1])
+
+
+def test_torque_scales_every_leg_action_by_333_plain_norm():
+    td, nxt = _pair()
+    nxt["applied_action"][0, 0] = 0.3
+    nxt["applied_action"][0, 11] = 0.4  # R_AnkleRoll (limit 166) is also scaled by 333
+    nxt["applied_action"][0, 12] = 1.0  # the phase action is not a torque
+    nxt["applied_action"][1, 12] = 1.0
+    _close(TorqueRegulation()(td, nxt), [0.05 * math.exp(-0.01 * 333 * 0.5), 0.05, 0.05])
+
+
+def test_torque_diff_uses_root_action_as_previous():
+    td, nxt = _pair()
+    td["applied_action"][0, 2] = 0.1
+    nxt["applied_action"][0, 2] = 0.4
+    td["applied_action"][1, 5] = 0.5  # same action at t and t+1: no change
+    nxt["applied_action"][1, 5] = 0.5
+    td["applied_action"][2, 12] = 0.0  # phase action change does not count
+    nxt["applied_action"][2, 12] = 1.0
+    _close(TorqueDiffRegulation()(td, nxt), [0.6 * math.exp(-0.01 * 333 * 0.3), 0.6, 0.6])
+
+
+def test_qacc_velocity_change_per_step_not_divided_by_dt():
+    td, nxt = _pair()
+    td["joint_vel"][0, 0] = 1.0
+    nxt["joint_vel"][0, 0] = 1.1
+    nxt["joint_vel"][0, 30] = 0.2
+    td["joint_vel"][1] = 2.0
+    nxt["joint_vel"][1] = 2.0
+    _close(JointAccRegulation()(td, nxt), [0.05 * math.exp(-20 * 0.05), 0.05, 0.05])
+
+
+@pytest.mark.parametrize(
+    "stance, left, right, paid",
+    [
+        (0, True, True, True), (0, True, False, False), (0, False, True, False), (0, False, False, False),
+        (1, False, True, True), (1, True, True, False), (1, True, False, False), (1, False, False, False),
+        (2, True, False, True), (2, True, True, False), (2, False, True, False), (2, False, False, False),
+    ],
+)  # fmt: skip
+def test_foot_contact_stance_pattern(stance, left, right, paid):
+    td, nxt = _pair()
+    nxt["stance"][:] = stance
+    nxt["foot_contact"][:] = torch.tensor([left, right])
+    _close(FootContactPattern()(td, nxt), [0.2 if paid else 0.0] * N)
+
+
+def test_contact_force_diff_plain_norms_of_jumps():
+    td, nxt = _pair()
+    td["foot_force"][0, 0] = torch.tensor([10.0, 0.0, -100.0])
+    nxt["foot_force"][0, 0] = torch.tensor([40.0, 40.0, -100.0])  # |ΔF_L| = 50
+    td["foot_force"][0, 1] = torch.tensor([0.0, 0.0, -500.0])
+    nxt["foot_force"][0, 1] = torch.tensor([0.0, 0.0, -530.0])  # |ΔF_R| = 30
+    _close(ContactForceDiff()(td, nxt), [0.2 * math.exp(-0.01 * 80), 0.2, 0.2])
+
+
+def test_force_ref_two_feet_point_one_each():
+    td, nxt = _pair()
+    nxt["foot_force"][0, :, 2] = torch.tensor([-900.0, -10.0])
+    nxt["ref_foot_force"][0] = torch.tensor([-1025.0, 0.0])
+    nxt["ref_foot_force"][1] = torch.tensor([-1025.0, 0.0])
+    expected0 = 0.1 * math.exp(-0.001 * 125) + 0.1 * math.exp(-0.001 * 10)
+    expected1 = 0.1 * math.exp(-0.001 * 1025) + 0.1
+    _close(ForceReference()(td, nxt), [expected0, expected1, 0.2])
+
+
+def test_force_threshold_penalty_at_1_4_mg():
+    threshold = 1.4 * robot.NOMINAL_MASS * robot.GRAVITY
+    assert threshold == pytest.approx(1435.026, abs=1e-3)
+    td, nxt = _pair()
+    nxt["foot_force"][0, :, 2] = torch.tensor([-1435.0, -100.0])  # just below: no penalty
+    nxt["foot_force"][1, :, 2] = torch.tensor([-100.0, -1435.1])  # right foot just above
+    nxt["foot_force"][2, :, 2] = torch.tensor([1436.0, 0.0])  # |F_z| counts either sign
+    _close(ForceThresholdPenalty()(td, nxt), [0.0, -0.08, -0.08])
+
+
+def test_force_diff_threshold_penalty_at_0_2_mg():
+    threshold = 0.2 * robot.NOMINAL_MASS * robot.GRAVITY
+    assert threshold == pytest.approx(205.004, abs=1e-3)
+    td, nxt = _pair()
+    td["foot_force"][..., 2] = -500.0
+    nxt["foot_force"][..., 2] = -500.0
+    nxt["foot_force"][0, 0, 2] = -705.0  # jump 205.0: below
+    nxt["foot_force"][1, 1, 2] = -705.1  # jump 205.1: above
+    nxt["foot_force"][2, 0, 2] = -294.8  # unloading jump of 205.2 also counts
+    nxt["foot_force"][2, 0, 0] = 1000.0  # x/y jumps do not count
+    _close(ForceDiffThresholdPenalty()(td, nxt), [0.0, -0.05, -0.05])
+
+
+# ------------------------------------------------------------------------------------------------ TaskReward
+def _reward_env(**kwargs) -> TransformedEnv:
+    terms = kwargs.pop("terms", reference_terms())
+    return TransformedEnv(MockTocabiWalk(N, **kwargs), TaskReward(terms))
+
+
+def test_task_reward_sums_terms_and_logs_each():
+    env = _reward_env()
+    ro = env.rollout(4)
+    terms = ro["next", "reward_terms"]
+    assert set(terms.keys()) == set(REFERENCE_TERMS)
+    total = sum(terms[n] for n in REFERENCE_TERMS)
+    torch.testing.assert_close(ro["next", "reward"], total)
+    # Every term equals the term applied to (root, next) of the same step.
+    for name, term in zip(REFERENCE_TERMS, reference_terms()):
+        torch.testing.assert_close(terms[name], term(ro.exclude("next"), ro["next"]), msg=name)
+    assert (ro["next", "reward"] <= 2.4 + 1e-6).all() and (ro["next", "reward"] >= -0.13 - 1e-6).all()
+    # Reset writes zeros for every term.
+    reset_td = env.reset()
+    assert all((reset_td["reward_terms", n] == 0).all() for n in REFERENCE_TERMS)
+
+
+def test_zero_reward_on_terminating_step_is_an_option():
+    env = _reward_env(terminate_prob=0.5, seed=1)
+    ro = env.rollout(6, break_when_any_done=False)
+    term = ro["next", "terminated"]
+    assert term.any() and (~term).any()
+    assert (ro["next", "reward"][term] == 0).all()
+    assert (ro["next", "reward"][~term] != 0).all()
+    for n in REFERENCE_TERMS:
+        assert (ro["next", "reward_terms", n][term] == 0).all()
+
+    env_keep = TransformedEnv(MockTocabiWalk(N, terminate_prob=0.5, seed=1), TaskReward(reference_terms(), zero_on_terminated=False))
+    ro_keep = env_keep.rollout(6, break_when_any_done=False)
+    torch.testing.assert_close(ro_keep["next", "terminated"], term)
+    assert (ro_keep["next", "reward"][term] != 0).all()
+
+
+def test_reweight_remove_and_add_terms():
+    def alive(td, next_td):
+        return torch.ones_like(next_td["reward"])
+
+    terms = [JointPosTracking(), CallableTerm("alive", alive, weight=0.25), BodyVelTracking()]
+    env = TransformedEnv(MockTocabiWalk(N), TaskReward(terms, weights={"qpos": 0.7}))
+    ro = env.rollout(3)
+    assert set(ro["next", "reward_terms"].keys()) == {"qpos", "alive", "body_vel"}
+    torch.testing.assert_close(ro["next", "reward_terms", "alive"], torch.full((N, 3, 1), 0.25))
+    torch.testing.assert_close(
+        ro["next", "reward_terms", "qpos"], 2.0 * JointPosTracking()(ro.exclude("next"), ro["next"])
+    )
+    assert terms[0].weight == 0.35  # the caller's term is not modified
+    # A plain named function is accepted as a weight-1 term.
+    env2 = TransformedEnv(MockTocabiWalk(N), TaskReward([alive]))
+    torch.testing.assert_close(env2.rollout(2)["next", "reward"], torch.ones(N, 2, 1))
+
+
+def test_task_reward_errors_name_the_problem():
+    with pytest.raises(KeyError, match="unknown term.*'qpoz'"):
+        TaskReward(reference_terms(), weights={"qpoz": 1.0})
+    with pytest.raises(ValueError, match="finite"):
+        TaskReward(reference_terms(), weights={"qpos": float("nan")})
+    with pytest.raises(ValueError, match="finite"):
+        TaskReward(reference_terms(), weights={"qpos": "big"})
+    with pytest.raises(ValueError, match="duplicate"):
+        TaskReward([JointPosTracking(), JointPosTracking()])
+    with pytest.raises(KeyError, match="known terms"):
+        reference_terms(("qpos", "nope"))
+    with pytest.raises(ValueError, match="CallableTerm"):
+        TaskReward([lambda td, nxt: nxt["reward"]])
+    with pytest.raises(ValueError, match="scale"):
+        JointPosTracking(scale=-1.0)
+    with pytest.raises(ValueError, match="torque_scale"):
+        TorqueRegulation(torque_scale=(333.0,) * 5)
+    bad = CallableTerm("wide", lambda td, nxt: torch.zeros(N, 2))
+    env = TransformedEnv(MockTocabiWalk(N), TaskReward([bad]))
+    with pytest.raises(ValueError, match="keepdim"):
+        env.rollout(1)
+    needs = CallableTerm("needs", lambda td, nxt: nxt["foot_slip"], next_keys=("foot_slip",))
+    with pytest.raises(KeyError, match="foot_slip"):
+        TransformedEnv(MockTocabiWalk(N), TaskReward([needs])).observation_spec
+
+
+def test_per_joint_torque_scale_option():
+    td, nxt = _pair()
+    nxt["applied_action"][0, 0] = 1.0
+    nxt["applied_action"][0, 5] = 1.0
+    term = TorqueRegulation(torque_scale=tuple(float(x) for x in robot.LEG_TORQUE_LIMITS))
+    _close(term(td, nxt), [0.05 * math.exp(-0.01 * math.hypot(333.0, 166.0)), 0.05, 0.05])

@@ -1,0 +1,212 @@
+"""Observation + action history: the policy input built from the last K observations and M past actions.
+
+Time convention: ``obs_τ`` is the observation after policy step τ (``obs_0`` after reset) and ``a_τ`` the action
+applied in step τ (``next["applied_action"]``, so ``a_0`` is the reset value, zeros). A :class:`HistoryLayout`
+selects observations ``obs_{τ - s·(K-1)}, …, obs_{τ - s}, obs_τ`` and actions
+``a_{τ+1 - s·M}, …, a_{τ+1 - s}``: action slot j holds the action the policy chose from the observation
+``s·(M - j)`` steps back, so each stored action is paired with an older stored observation. Layout of the output:
+all observations oldest → newest, then all actions oldest → newest.
+
+* Reference (spec §7.4, :data:`REFERENCE_HISTORY`, K=5, s=2, M=4): obs after τ−8, τ−6, τ−4, τ−2, τ and actions
+  a_{τ−7}, a_{τ−5}, a_{τ−3}, a_{τ−1}; the action just applied (a_τ) is not included. 5·37 + 4·13 = 237 values.
+* TocabiLab consecutive (:data:`TOCABILAB_HISTORY`, K=5, s=1, M=4): obs after τ−4 … τ and the last four applied
+  actions a_{τ−3} … a_τ (the "5 observations + 4 previous actions" of the TocabiLab report). Also 237 values.
+
+On reset, flagged envs have their whole history refilled with their first observation and their reset action, as
+the reference does; other envs are untouched. The buffers are rings with one shared write position (all envs step
+together), updated with ``torch.where`` and precomputed index tensors, so neither step nor reset reads device values
+on the host.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+from tocabi_torchrl.transforms._checks import check_positive_int, require_spec
+
+__all__ = ["HistoryLayout", "REFERENCE_HISTORY", "TOCABILAB_HISTORY", "ObsActionHistory"]
+
+
+@dataclass(frozen=True)
+class HistoryLayout:
+    """Which past observations and actions form the policy input.
+
+    Attributes:
+        num_obs: K >= 1 observations, ``stride`` policy steps apart, the newest being the current one.
+        stride: s >= 1 policy steps between stored entries.
+        num_actions: M >= 0 past actions (default K - 1), slot j holding ``a_{τ+1 - s·(M - j)}``.
+    """
+
+    num_obs: int = 5
+    stride: int = 2
+    num_actions: int | None = None
+
+    def __post_init__(self):
+        check_positive_int(self.num_obs, "HistoryLayout num_obs (K)", "use num_obs=1 for no observation history")
+        check_positive_int(self.stride, "HistoryLayout stride", "use stride=1 for consecutive steps")
+        if self.num_actions is None:
+            object.__setattr__(self, "num_actions", self.num_obs - 1)
+        m = self.num_actions
+        if isinstance(m, bool) or not isinstance(m, int) or m < 0:
+            raise ValueError(f"HistoryLayout num_actions must be an integer >= 0 (or None for num_obs - 1), got {m!r}")
+
+    @property
+    def obs_ages(self) -> tuple[int, ...]:
+        """Age in policy steps of each stored observation, oldest first (reference: 8, 6, 4, 2, 0)."""
+        return tuple(self.stride * (self.num_obs - 1 - i) for i in range(self.num_obs))
+
+    @property
+    def action_ages(self) -> tuple[int, ...]:
+        """Age of each stored action, oldest first; age 0 is the action just applied (reference: 7, 5, 3, 1)."""
+        return tuple(self.stride * (self.num_actions - j) - 1 for j in range(self.num_actions))
+
+    def size(self, obs_dim: int, action_dim: int) -> int:
+        """Length of the policy input: K·obs_dim + M·action_dim."""
+        return self.num_obs * obs_dim + self.num_actions * action_dim
+
+    def describe(self) -> list[str]:
+        """Human-readable content of each block, e.g. ``['obs[t-8]', …, 'action[t-1]']``."""
+        fmt = lambda a: "t" if a == 0 else f"t-{a}"  # noqa: E731
+        return [f"obs[{fmt(a)}]" for a in self.obs_ages] + [f"action[{fmt(a)}]" for a in self.action_ages]
+
+
+#: Reference layout (spec §7.4): 5 observations two steps apart + 4 raw actions, 237 values with 37/13.
+REFERENCE_HISTORY = HistoryLayout(num_obs=5, stride=2, num_actions=4)
+#: TocabiLab's consecutive layout: the last 5 observations + the last 4 applied actions, 237 values with 37/13.
+TOCABILAB_HISTORY = HistoryLayout(num_obs=5, stride=1, num_actions=4)
+
+
+class _Ring:
+    """(…, L, D) ring buffer with one write position shared by every env, plus per-position gather indices."""
+
+    def __init__(self, first: torch.Tensor, ages: tuple[int, ...]):
+        self.length = max(ages) + 1
+        self.buf = first.unsqueeze(-2).expand(*first.shape[:-1], self.length, first.shape[-1]).clone()
+        self.pos = 0  # slot of the newest entry: a host int, identical for all envs
+        # One index tensor per write position, built once, so a step never copies indices to the device.
+        self.gather = [
+            torch.tensor([(p - a) % self.length for a in ages], dtype=torch.long, device=first.device)
+            for p in range(self.length)
+        ]
+
+    def matches(self, x: torch.Tensor) -> bool:
+        return self.buf.shape[:-2] == x.shape[:-1] and self.buf.shape[-1] == x.shape[-1] and self.buf.device == x.device
+
+    def push(self, x: torch.Tensor) -> None:
+        self.pos = (self.pos + 1) % self.length
+        self.buf.select(-2, self.pos).copy_(x)
+
+    def refill(self, x: torch.Tensor, mask: torch.Tensor) -> None:
+        """Rows where ``mask`` (…, 1, 1) is True get every slot set to ``x`` (…, D); other rows keep theirs."""
+        self.buf.copy_(torch.where(mask, x.unsqueeze(-2), self.buf))
+
+    def read(self) -> torch.Tensor:
+        """(…, n·D): the entries at the layout's ages, oldest first."""
+        return torch.index_select(self.buf, -2, self.gather[self.pos]).flatten(-2)
+
+
+class ObsActionHistory(Transform):
+    """Stack the last observations and actions of a :class:`HistoryLayout` into the policy input.
+
+    Reads ``obs_key`` (num_envs, D) and ``action_key`` (num_envs, A) at reset and at every step; writes ``out_key``
+    (num_envs, K·D + M·A) float32. On reset it reads ``reset_key`` (num_envs, 1) bool from the reset input (absent:
+    every env resets) and refills only the flagged envs' history. Stateful: one instance per env.
+
+    Args:
+        layout: K, stride and M (default :data:`REFERENCE_HISTORY`).
+        obs_key: per-step observation, normally the normalised one.
+        action_key: raw action applied in the step (the reference stores raw clipped actions).
+        out_key: the policy input key.
+        reset_key: TorchRL's partial-reset mask key.
+    """
+
+    def __init__(
+        self,
+        layout: HistoryLayout = REFERENCE_HISTORY,
+        obs_key: NestedKey = "obs_step_norm",
+        action_key: NestedKey = "applied_action",
+        out_key: NestedKey = "observation",
+        reset_key: NestedKey = "_reset",
+    ):
+        if not isinstance(layout, HistoryLayout):
+            raise TypeError(f"ObsActionHistory layout must be a HistoryLayout, got {layout!r}")
+        in_keys = [obs_key, action_key] if layout.num_actions else [obs_key]
+        super().__init__(in_keys=in_keys, out_keys=[out_key])
+        self.layout = layout
+        self.obs_key, self.action_key, self.reset_key = obs_key, action_key, reset_key
+        self._obs: _Ring | None = None
+        self._act: _Ring | None = None
+
+    def _inputs(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor | None]:
+        obs = td.get(self.obs_key).to(torch.float32)
+        act = td.get(self.action_key).to(torch.float32) if self.layout.num_actions else None
+        return obs, act
+
+    def _output(self) -> torch.Tensor:
+        parts = [self._obs.read()]
+        if self._act is not None:
+            parts.append(self._act.read())
+        return torch.cat(parts, dim=-1)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        obs, act = self._inputs(tensordict_reset)
+        fresh = self._obs is None or not self._obs.matches(obs)
+        fresh = fresh or (act is not None and (self._act is None or not self._act.matches(act)))
+        if fresh:
+            # No usable history yet (first reset, or new batch size/device): every env starts from this observation.
+            self._obs = _Ring(obs, self.layout.obs_ages)
+            self._act = _Ring(act, self.layout.action_ages) if act is not None else None
+        else:
+            reset = tensordict.get(self.reset_key, None) if tensordict is not None else None
+            if reset is None:
+                mask = torch.ones((*obs.shape[:-1], 1, 1), dtype=torch.bool, device=obs.device)
+            else:
+                mask = reset.reshape(*obs.shape[:-1], 1, 1)
+            self._obs.refill(obs, mask)
+            if self._act is not None:
+                self._act.refill(act, mask)
+        tensordict_reset.set(self.out_keys[0], self._output())
+        return tensordict_reset
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        if self._obs is None:
+            raise RuntimeError("ObsActionHistory has no history yet: call env.reset() before env.step()")
+        obs, act = self._inputs(next_tensordict)
+        if not self._obs.matches(obs):
+            raise RuntimeError(
+                f"ObsActionHistory: {self.obs_key!r} has shape {tuple(obs.shape)} on {obs.device} but the history "
+                f"holds {tuple(self._obs.buf.shape[:-2])} x {self._obs.buf.shape[-1]} on {self._obs.buf.device}; "
+                "call env.reset() after changing the batch size or device"
+            )
+        self._obs.push(obs)
+        if self._act is not None:
+            self._act.push(act)
+        next_tensordict.set(self.out_keys[0], self._output())
+        return next_tensordict
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        obs_spec = require_spec(observation_spec, self.obs_key, self)
+        if len(obs_spec.shape) != len(observation_spec.shape) + 1:
+            raise ValueError(
+                f"ObsActionHistory expects {self.obs_key!r} of shape (num_envs, D), got {tuple(obs_spec.shape)}; "
+                "flatten it first (e.g. with ObservationAssembly)"
+            )
+        action_dim = 0
+        if self.layout.num_actions:
+            act_spec = require_spec(observation_spec, self.action_key, self)
+            if len(act_spec.shape) != len(observation_spec.shape) + 1:
+                raise ValueError(
+                    f"ObsActionHistory expects {self.action_key!r} of shape (num_envs, A), got {tuple(act_spec.shape)}"
+                )
+            action_dim = act_spec.shape[-1]
+        size = self.layout.size(obs_spec.shape[-1], action_dim)
+        observation_spec[self.out_keys[0]] = Unbounded(
+            shape=(*observation_spec.shape, size), dtype=torch.float32, device=observation_spec.device
+        )
+        return observation_spec

@@ -1,0 +1,237 @@
+"""Observation normalisation: the reference's fixed statistics (default) or running statistics (option).
+
+Both compute ``(x - mean) / sqrt(var + eps)`` per element, optionally clipped. The fixed statistics are those of the
+reference observation (spec §7.1 table), written here to 7 significant digits; at that precision they reproduce the
+reference's normalised observation to ~1e-6 relative.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+from tocabi_torchrl.transforms._checks import check_positive, require_spec
+
+__all__ = ["REFERENCE_OBS_MEAN", "REFERENCE_OBS_VAR", "FixedNormalization", "RunningNormalization"]
+
+_LEG_NAMES = ("HipYaw", "HipRoll", "HipPitch", "Knee", "AnklePitch", "AnkleRoll")
+
+#: Mean of the 37 reference observation entries (spec §7.1 order).
+REFERENCE_OBS_MEAN: tuple[float, ...] = (
+    # roll, pitch, yaw
+    5.713685e-05, 2.918405e-03, -1.289361e-04,
+    # q, left leg then right leg
+    3.085928e-04, 3.329158e-02, -2.840124e-01, 6.248943e-01, -3.402914e-01, -3.875068e-02,
+    8.130309e-03, -3.335870e-02, -2.943861e-01, 6.364560e-01, -3.412546e-01, 4.137892e-02,
+    # dq, left leg then right leg
+    5.741393e-04, -6.541084e-04, -1.414430e-02, 2.425730e-02, -1.653029e-02, -6.558039e-05,
+    6.991749e-05, -2.916816e-03, -1.556312e-02, 2.675701e-02, -1.815802e-02, 4.793702e-03,
+    # sin, cos of the phase
+    -1.007162e-02, -7.108355e-03,
+    # command vx, vy
+    1.484956e-01, 0.0,
+    # Fz_L, Fz_R, Mx_L, Mx_R, My_L, My_R
+    -500.0, -500.0, 0.0, 0.0, 0.0, 0.0,
+)  # fmt: skip
+
+#: Variance of the 37 reference observation entries (spec §7.1 order).
+REFERENCE_OBS_VAR: tuple[float, ...] = (
+    0.01, 0.01, 0.01,
+    0.01, 0.01, 1.144567e-02, 1.619902e-02, 1.029234e-02, 0.01,
+    0.01, 0.01, 1.319631e-02, 1.898347e-02, 1.017625e-02, 0.01,
+    1.819640e-02, 7.414944e-02, 3.447816e-01, 9.961943e-01, 4.273807e-01, 1.587944e-01,
+    1.890155e-02, 7.478288e-02, 4.259392e-01, 1.280129e+00, 4.722263e-01, 2.308447e-01,
+    4.315630e-01, 5.682851e-01,
+    3.710724e-02, 0.01,
+    25000.0, 25000.0, 900.0, 900.0, 900.0, 900.0,
+)  # fmt: skip
+
+
+def _check_stats(mean: Sequence[float], var: Sequence[float], owner: str) -> tuple[torch.Tensor, torch.Tensor]:
+    mean_t = torch.as_tensor(mean, dtype=torch.float64).flatten()
+    var_t = torch.as_tensor(var, dtype=torch.float64).flatten()
+    if mean_t.numel() != var_t.numel():
+        raise ValueError(f"{owner}: mean has {mean_t.numel()} values but var has {var_t.numel()}; pass equal lengths")
+    if not bool(torch.isfinite(mean_t).all()) or not bool(torch.isfinite(var_t).all()) or bool((var_t < 0).any()):
+        raise ValueError(f"{owner}: mean must be finite and var finite and >= 0")
+    return mean_t, var_t
+
+
+class _Normalization(Transform):
+    """Shared spec handling: ``out_key`` has the shape of ``in_key``, float32."""
+
+    def __init__(self, in_key: NestedKey, out_key: NestedKey, eps: float, clip: float | None):
+        super().__init__(in_keys=[in_key], out_keys=[out_key])
+        self.eps = check_positive(eps, f"{type(self).__name__} eps")
+        self.clip = None if clip is None else check_positive(clip, f"{type(self).__name__} clip")
+
+    def _num_stats(self) -> int:
+        raise NotImplementedError
+
+    def _normalize(self, x: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+        out = (x.to(torch.float32) - loc) / scale
+        if self.clip is not None:
+            out = out.clamp(-self.clip, self.clip)
+        return out
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return self._call(tensordict_reset)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        spec = require_spec(observation_spec, self.in_keys[0], self)
+        dim = spec.shape[-1] if len(spec.shape) else 0
+        if dim != self._num_stats():
+            raise ValueError(
+                f"{type(self).__name__} holds {self._num_stats()} statistics but {self.in_keys[0]!r} has {dim} values "
+                f"(shape {tuple(spec.shape)}); pass mean/var of length {dim} (e.g. after changing the observation "
+                "layout or the phase harmonics), or use normalization='running'"
+            )
+        observation_spec[self.out_keys[0]] = Unbounded(
+            shape=tuple(spec.shape), dtype=torch.float32, device=observation_spec.device
+        )
+        return observation_spec
+
+
+class FixedNormalization(_Normalization):
+    """``(x - mean) / sqrt(var + eps)`` with constant statistics; the reference's observation scaling by default.
+
+    Reads ``in_key`` (num_envs, D); writes ``out_key`` (num_envs, D) float32. No clipping unless ``clip`` is given
+    (the reference does not clip).
+
+    Args:
+        in_key, out_key: raw and normalised observation keys.
+        mean, var: D statistics each (default: :data:`REFERENCE_OBS_MEAN`, :data:`REFERENCE_OBS_VAR`).
+        eps: added to var before the square root (reference: 1e-8).
+        clip: optional symmetric clip of the output.
+    """
+
+    def __init__(
+        self,
+        in_key: NestedKey = "obs_step",
+        out_key: NestedKey = "obs_step_norm",
+        mean: Sequence[float] = REFERENCE_OBS_MEAN,
+        var: Sequence[float] = REFERENCE_OBS_VAR,
+        eps: float = 1e-8,
+        clip: float | None = None,
+    ):
+        super().__init__(in_key, out_key, eps, clip)
+        mean_t, var_t = _check_stats(mean, var, "FixedNormalization")
+        self.register_buffer("loc", mean_t.to(torch.float32))
+        # The std is formed in float64 from the given variance, then stored as float32.
+        self.register_buffer("scale", torch.sqrt(var_t + self.eps).to(torch.float32))
+
+    def _num_stats(self) -> int:
+        return self.loc.numel()
+
+    def _apply_transform(self, x: torch.Tensor) -> torch.Tensor:
+        return self._normalize(x, self.loc, self.scale)
+
+
+class RunningNormalization(_Normalization):
+    """``(x - mean) / sqrt(var + eps)`` with statistics accumulated over every env step (an option).
+
+    Each ``env.step`` folds the batch of new observations (all num_envs rows) into the running mean and variance
+    with the parallel (Chan) update, using device tensor ops only; resets read the statistics but do not update them.
+    Statistics are kept in float64 because they accumulate over 1e8+ samples, where float32 increments vanish.
+    Call :meth:`freeze` for evaluation. The statistics are buffers, saved in ``state_dict``.
+
+    Reads ``in_key`` (num_envs, D); writes ``out_key`` (num_envs, D) float32.
+
+    Args:
+        in_key, out_key: raw and normalised observation keys.
+        dim: D. Inferred from ``init_mean`` when given, else from the observation spec once attached to an env.
+        init_mean, init_var: starting statistics (e.g. the reference's); default 0 and 1.
+        init_count: weight of the starting statistics in samples (> 0).
+        eps, clip: as in :class:`FixedNormalization`.
+        frozen: start without updating.
+    """
+
+    def __init__(
+        self,
+        in_key: NestedKey = "obs_step",
+        out_key: NestedKey = "obs_step_norm",
+        dim: int | None = None,
+        init_mean: Sequence[float] | None = None,
+        init_var: Sequence[float] | None = None,
+        init_count: float = 1.0,
+        eps: float = 1e-8,
+        clip: float | None = None,
+        frozen: bool = False,
+    ):
+        super().__init__(in_key, out_key, eps, clip)
+        if init_mean is not None and dim is None:
+            dim = len(init_mean)
+        if dim is not None:
+            mean = [0.0] * dim if init_mean is None else init_mean
+            var = [1.0] * dim if init_var is None else init_var
+            mean_t, var_t = _check_stats(mean, var, "RunningNormalization")
+            if mean_t.numel() != dim:
+                raise ValueError(
+                    f"RunningNormalization: dim={dim} but the initial statistics have {mean_t.numel()} values"
+                )
+        else:
+            if init_var is not None:
+                raise ValueError("RunningNormalization: init_var given without init_mean; pass both")
+            # Sized from the observation spec when the transform is attached to an env.
+            mean_t, var_t = torch.zeros(0, dtype=torch.float64), torch.ones(0, dtype=torch.float64)
+        self.register_buffer("mean", mean_t)
+        self.register_buffer("var", var_t)
+        self.register_buffer("count", torch.tensor(check_positive(init_count, "RunningNormalization init_count")))
+        self.frozen = bool(frozen)
+
+    def freeze(self) -> RunningNormalization:
+        self.frozen = True
+        return self
+
+    def unfreeze(self) -> RunningNormalization:
+        self.frozen = False
+        return self
+
+    def _num_stats(self) -> int:
+        return self.mean.numel()
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        spec = require_spec(observation_spec, self.in_keys[0], self)
+        if self.mean.numel() == 0 and len(spec.shape):
+            dim = spec.shape[-1]
+            self.mean = torch.zeros(dim, dtype=torch.float64, device=self.mean.device)
+            self.var = torch.ones(dim, dtype=torch.float64, device=self.var.device)
+        return super().transform_observation_spec(observation_spec)
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        """Fold a batch (..., D) into the statistics (no host sync)."""
+        batch = x.detach().reshape(-1, x.shape[-1]).to(torch.float64)
+        n = float(batch.shape[0])
+        b_mean = batch.mean(0)
+        b_var = batch.var(0, unbiased=False)
+        total = self.count + n
+        delta = b_mean - self.mean
+        self.mean.add_(delta * (n / total))
+        m2 = self.var * self.count + b_var * n + delta.square() * (self.count * n / total)
+        self.var.copy_(m2 / total)
+        self.count.copy_(total)
+
+    def _loc_scale(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.mean.to(torch.float32), torch.sqrt(self.var + self.eps).to(torch.float32)
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        x = next_tensordict.get(self.in_keys[0])
+        loc, scale = self._loc_scale()
+        next_tensordict.set(self.out_keys[0], self._normalize(x, loc, scale))
+        return next_tensordict
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        if not self.frozen:
+            self.update(next_tensordict.get(self.in_keys[0]))
+        return self._call(next_tensordict)
+
+    def _apply_transform(self, x: torch.Tensor) -> torch.Tensor:  # used by forward() on stored data
+        loc, scale = self._loc_scale()
+        return self._normalize(x, loc, scale)
+

@@ -1,0 +1,183 @@
+"""Named transform presets and the builder of the default ``Compose`` that turns env signals into policy input and
+reward.
+
+The default chain (``default_transforms("reference")``), in order:
+
+1. :class:`PhaseEncoding`: ``phase`` -> ``phase_sin``, ``phase_cos`` (num_envs, harmonics)
+2. :class:`BaseEulerAngles`: ``base_quat`` -> ``base_rpy`` (num_envs, 3)
+3. :class:`ObservationAssembly`: signals -> ``obs_step`` (num_envs, 37), the reference order
+4. :class:`FixedNormalization` (or :class:`RunningNormalization`): ``obs_step`` -> ``obs_step_norm``
+5. :class:`ObsActionHistory`: ``obs_step_norm`` + ``applied_action`` -> ``observation`` (num_envs, 237)
+6. :class:`TaskReward`: ``reward`` (num_envs, 1) and ``("reward_terms", name)`` for the 13 reference terms
+7. ``StepCounter``: ``step_count`` and truncation at ``max_episode_steps`` (the env also truncates, at 8000 by
+   default; keep the two equal or let the smaller win)
+8. ``RewardSum``: ``episode_reward``, the running episode return
+
+Every stage is an ordinary TorchRL transform: build your own ``Compose`` from them, or change one field here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+
+from torchrl.envs.transforms import Compose, RewardSum, StepCounter, Transform
+
+from tocabi_torchrl.transforms._checks import check_positive_int
+from tocabi_torchrl.transforms.history import REFERENCE_HISTORY, TOCABILAB_HISTORY, HistoryLayout, ObsActionHistory
+from tocabi_torchrl.transforms.normalize import (
+    REFERENCE_OBS_MEAN,
+    REFERENCE_OBS_VAR,
+    FixedNormalization,
+    RunningNormalization,
+)
+from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObservationAssembly, ObsComponent
+from tocabi_torchrl.transforms.orientation import BaseEulerAngles
+from tocabi_torchrl.transforms.phase import PhaseEncoding
+from tocabi_torchrl.transforms.reward import TaskReward
+from tocabi_torchrl.transforms.reward_terms import REFERENCE_TERMS, RewardTerm, reference_terms
+
+__all__ = ["TransformConfig", "PRESETS", "transform_config", "default_transforms"]
+
+_NORMALIZATIONS = ("fixed", "running", "none")
+
+
+@dataclass(frozen=True)
+class TransformConfig:
+    """Everything :func:`default_transforms` builds, as plain values.
+
+    Attributes:
+        phase_harmonics: sin/cos harmonics of the phase (1 in the reference).
+        obs_layout: blocks of the per-step observation (:data:`REFERENCE_OBS_LAYOUT`: 37 values).
+        normalization: ``"fixed"`` (reference statistics or ``obs_mean``/``obs_var``), ``"running"`` (running
+            statistics, initialised from ``obs_mean``/``obs_var`` when given) or ``"none"``.
+        obs_mean, obs_var: statistics for the normalisation (default: the reference's, spec §7.1).
+        obs_clip: optional clip of the normalised observation (the reference has none).
+        history: observation + action history layout (:data:`REFERENCE_HISTORY`: 5 obs every 2 steps + 4 actions).
+        reward_terms: term names from :data:`REFERENCE_TERMS` and/or :class:`RewardTerm` instances / callables.
+        reward_weights: ``{term name: weight}`` overrides.
+        zero_reward_on_terminated: reward and terms are 0 on a terminating step (reference: on).
+        max_episode_steps: ``StepCounter`` truncation; ``None`` counts steps without truncating.
+        track_episode_return: add ``RewardSum`` (``episode_reward``).
+    """
+
+    phase_harmonics: int = 1
+    obs_layout: tuple[ObsComponent, ...] = REFERENCE_OBS_LAYOUT
+    normalization: str = "fixed"
+    obs_mean: Sequence[float] | None = None
+    obs_var: Sequence[float] | None = None
+    obs_clip: float | None = None
+    history: HistoryLayout = REFERENCE_HISTORY
+    reward_terms: tuple = tuple(REFERENCE_TERMS)
+    reward_weights: Mapping[str, float] = field(default_factory=dict)
+    zero_reward_on_terminated: bool = True
+    max_episode_steps: int | None = 8000
+    track_episode_return: bool = True
+
+    def __post_init__(self):
+        if self.normalization not in _NORMALIZATIONS:
+            raise ValueError(f"normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
+        if (self.obs_mean is None) != (self.obs_var is None):
+            raise ValueError("pass both obs_mean and obs_var, or neither (for the reference statistics)")
+        if not isinstance(self.history, HistoryLayout):
+            raise TypeError(
+                f"history must be a HistoryLayout, e.g. HistoryLayout(num_obs=5, stride=2), got {self.history!r}"
+            )
+        if self.max_episode_steps is not None:
+            check_positive_int(self.max_episode_steps, "max_episode_steps", "or None to only count steps")
+        check_positive_int(self.phase_harmonics, "phase_harmonics")
+        for t in self.reward_terms:
+            if isinstance(t, str) and t not in REFERENCE_TERMS:
+                raise KeyError(
+                    f"unknown reward term {t!r}; known terms: {list(REFERENCE_TERMS)} "
+                    "(pass a RewardTerm instance or a callable for your own term)"
+                )
+
+
+#: ``reference``: the reference task (spec §7-8). ``tocabilab``: the same, with TocabiLab's consecutive history
+#: (last 5 observations, last 4 applied actions).
+PRESETS: Mapping[str, TransformConfig] = MappingProxyType(
+    {
+        "reference": TransformConfig(),
+        "tocabilab": TransformConfig(history=TOCABILAB_HISTORY),
+    }
+)
+
+
+def transform_config(preset: str | TransformConfig = "reference", **overrides) -> TransformConfig:
+    """The preset's :class:`TransformConfig` with ``overrides`` (field names of :class:`TransformConfig`) applied."""
+    if isinstance(preset, TransformConfig):
+        base = preset
+    elif preset in PRESETS:
+        base = PRESETS[preset]
+    else:
+        raise KeyError(f"unknown transform preset {preset!r}; choose one of {list(PRESETS)} or pass a TransformConfig")
+    fields = {f.name for f in dataclasses.fields(TransformConfig)}
+    unknown = sorted(set(overrides) - fields)
+    if unknown:
+        raise TypeError(f"unknown transform option(s) {unknown}; valid options: {sorted(fields)}")
+    return dataclasses.replace(base, **overrides)
+
+
+def _normalization(cfg: TransformConfig) -> Transform | None:
+    if cfg.obs_mean is not None:
+        mean, var = cfg.obs_mean, cfg.obs_var
+    elif cfg.obs_layout == REFERENCE_OBS_LAYOUT and cfg.phase_harmonics == 1:
+        mean, var = REFERENCE_OBS_MEAN, REFERENCE_OBS_VAR
+    else:
+        mean = var = None  # a changed observation has no reference statistics
+    if cfg.normalization == "fixed":
+        if mean is None:
+            raise ValueError(
+                "normalization='fixed' needs obs_mean/obs_var for a changed observation layout or phase_harmonics; "
+                "pass them, or use normalization='running' or 'none'"
+            )
+        return FixedNormalization("obs_step", "obs_step_norm", mean=mean, var=var, clip=cfg.obs_clip)
+    if cfg.normalization == "running":
+        return RunningNormalization("obs_step", "obs_step_norm", init_mean=mean, init_var=var, clip=cfg.obs_clip)
+    return None
+
+
+def _reward_terms(cfg: TransformConfig) -> list[RewardTerm]:
+    return [reference_terms((t,))[0] if isinstance(t, str) else t for t in cfg.reward_terms]
+
+
+def default_transforms(preset: str | TransformConfig = "reference", **overrides) -> Compose:
+    """Build the default ``Compose`` for :class:`~tocabi_torchrl.envs.TocabiWalk` signals (see the module doc).
+
+    Args:
+        preset: ``"reference"`` (237-value input: 5 obs two steps apart + 4 actions), ``"tocabilab"`` (consecutive
+            history), or a :class:`TransformConfig`.
+        **overrides: :class:`TransformConfig` fields, e.g. ``history=HistoryLayout(num_obs=3, stride=1)``,
+            ``reward_weights={"qpos": 0.5}``, ``reward_terms=("qpos", "body_vel", my_term)``,
+            ``normalization="running"``.
+
+    Returns:
+        A fresh ``Compose`` (its history is stateful: use one per env).
+    """
+    cfg = transform_config(preset, **overrides)
+    stages: list[Transform] = [
+        PhaseEncoding("phase", ("phase_sin", "phase_cos"), harmonics=cfg.phase_harmonics),
+        BaseEulerAngles("base_quat", "base_rpy"),
+        ObservationAssembly(cfg.obs_layout, out_key="obs_step"),
+    ]
+    norm = _normalization(cfg)
+    if norm is not None:
+        stages.append(norm)
+    stages.append(
+        ObsActionHistory(
+            cfg.history,
+            obs_key="obs_step_norm" if norm is not None else "obs_step",
+            action_key="applied_action",
+            out_key="observation",
+        )
+    )
+    stages.append(
+        TaskReward(_reward_terms(cfg), weights=cfg.reward_weights, zero_on_terminated=cfg.zero_reward_on_terminated)
+    )
+    stages.append(StepCounter(max_steps=cfg.max_episode_steps))
+    if cfg.track_episode_return:
+        stages.append(RewardSum(in_keys=["reward"], out_keys=["episode_reward"]))
+    return Compose(*stages)

@@ -1,0 +1,147 @@
+"""The task reward: sum a chosen set of reward terms into ``reward`` and keep every term's value for logging."""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Mapping, Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+from tocabi_torchrl.transforms._checks import check_finite
+from tocabi_torchrl.transforms.reward_terms import CallableTerm, RewardTerm
+
+__all__ = ["TaskReward"]
+
+
+class TaskReward(Transform):
+    """``reward = Σ term(td, next_td)`` over the given terms, each value also written to ``(terms_key, name)``.
+
+    At every step, with ``td`` the root (time t) and ``next_td`` the step's output (time t+1):
+
+    * each term gives a (num_envs, 1) float32 value ``weight · kernel`` (see :mod:`.reward_terms`);
+    * if ``zero_on_terminated`` (the reference's behaviour), every term and the reward are 0 where
+      ``next_td[terminated_key]`` is True;
+    * ``next_td[reward_key]`` (num_envs, 1) is replaced by the sum, and ``next_td[(terms_key, name)]`` holds each
+      term's contribution, so the terms add up to the reward.
+
+    The per-term values are registered as observations (like :class:`~torchrl.envs.transforms.RewardSum`'s
+    ``episode_reward``) so that ``reward`` stays the env's single reward key; they are 0 after a reset.
+
+    Args:
+        terms: :class:`RewardTerm` instances, or functions ``fn(td, next_td) -> (num_envs, 1)`` (named after the
+            function, weight 1). Names must be unique.
+        weights: optional ``{name: weight}`` overriding the terms' weights (the terms are copied, not modified).
+        zero_on_terminated: zero reward and terms on terminating steps.
+        reward_key, terms_key, terminated_key: keys written/read.
+    """
+
+    def __init__(
+        self,
+        terms: Sequence[RewardTerm | Callable],
+        weights: Mapping[str, float] | None = None,
+        zero_on_terminated: bool = True,
+        reward_key: NestedKey = "reward",
+        terms_key: str = "reward_terms",
+        terminated_key: NestedKey = "terminated",
+    ):
+        terms = [self._as_term(t) for t in terms]
+        if not terms:
+            raise ValueError("TaskReward needs at least one reward term")
+        names = [t.name for t in terms]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"TaskReward: duplicate term names {dup}; give each term a unique name=...")
+        weights = dict(weights or {})
+        unknown = [n for n in weights if n not in names]
+        if unknown:
+            raise KeyError(f"TaskReward: weights given for unknown term(s) {unknown}; terms in use: {names}")
+        for i, t in enumerate(terms):
+            if t.name in weights:
+                t = copy.copy(t)
+                t.weight = check_finite(weights[t.name], f"weight of reward term {t.name!r}")
+                terms[i] = t
+        if not isinstance(terms_key, str):
+            raise TypeError(f"TaskReward terms_key must be a string, got {terms_key!r}")
+        in_keys = list(dict.fromkeys(k for t in terms for k in (*t.root_keys, *t.next_keys)))
+        out_keys = [reward_key] + [(terms_key, n) for n in names]
+        super().__init__(in_keys=in_keys, out_keys=out_keys)
+        self.terms: tuple[RewardTerm, ...] = tuple(terms)
+        self.zero_on_terminated = bool(zero_on_terminated)
+        self.reward_key, self.terms_key, self.terminated_key = reward_key, terms_key, terminated_key
+
+    @staticmethod
+    def _as_term(t) -> RewardTerm:
+        if isinstance(t, RewardTerm):
+            return t
+        if callable(t):
+            name = getattr(t, "__name__", None)
+            if not name or name == "<lambda>":
+                raise ValueError(
+                    f"TaskReward: cannot name the callable {t!r}; wrap it as CallableTerm(name, fn, weight)"
+                )
+            return CallableTerm(name=name, fn=t)
+        raise TypeError(f"TaskReward terms must be RewardTerm instances or callables, got {t!r}")
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(t.name for t in self.terms)
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        values = []
+        for t in self.terms:
+            v = t(tensordict, next_tensordict)
+            if v.shape != (*next_tensordict.batch_size, 1):
+                raise ValueError(
+                    f"reward term {t.name!r} returned shape {tuple(v.shape)}; it must return "
+                    f"{(*next_tensordict.batch_size, 1)} (use keepdim=True in reductions)"
+                )
+            values.append(v.to(torch.float32))
+        # One (num_envs, n_terms) tensor: a single where and a single sum; the per-term entries are views into it.
+        stacked = torch.cat(values, dim=-1)
+        if self.zero_on_terminated:
+            stacked = torch.where(next_tensordict.get(self.terminated_key), 0.0, stacked)
+        next_tensordict.set(self.reward_key, stacked.sum(-1, keepdim=True))
+        for i, name in enumerate(self.names):
+            next_tensordict.set((self.terms_key, name), stacked[..., i : i + 1])
+        return next_tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        zeros = torch.zeros(
+            (*tensordict_reset.batch_size, 1), dtype=torch.float32, device=tensordict_reset.device
+        )
+        for name in self.names:
+            tensordict_reset.set((self.terms_key, name), zeros.clone())
+        return tensordict_reset
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        available = set(observation_spec.keys(True, True))
+        for t in self.terms:
+            missing = [k for k in (*t.root_keys, *t.next_keys) if k not in available]
+            if missing:
+                raise KeyError(
+                    f"reward term {t.name!r} reads {missing}, which the environment does not provide; "
+                    "drop the term, or add the signal to the env (see docs/signals.md)"
+                )
+        batch = tuple(observation_spec.shape)
+        terms_spec = Composite(
+            {n: Unbounded(shape=(*batch, 1), dtype=torch.float32, device=observation_spec.device) for n in self.names},
+            shape=batch,
+            device=observation_spec.device,
+        )
+        observation_spec[self.terms_key] = terms_spec
+        return observation_spec
+
+    def transform_reward_spec(self, reward_spec: Composite) -> Composite:
+        if self.reward_key not in reward_spec.keys(True, True):
+            reward_spec[self.reward_key] = Unbounded(
+                shape=(*reward_spec.shape, 1), dtype=torch.float32, device=reward_spec.device
+            )
+        return reward_spec
+
+    def __repr__(self) -> str:
+        inner = ", ".join(f"{t.name}={t.weight:g}" for t in self.terms)
+        return f"{type(self).__name__}({inner}, zero_on_terminated={self.zero_on_terminated})"
