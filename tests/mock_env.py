@@ -66,7 +66,14 @@ class MockTocabiWalk(EnvBase):
         self._gen.manual_seed(seed)
         self._state: TensorDict | None = None
         self._env_offset = (100.0 * torch.arange(num_envs, device=self.device, dtype=torch.float32)).unsqueeze(-1)
+        # Constants are put on the device once: creating them from host data in a step would copy (and sync).
+        f32 = {"dtype": torch.float32, "device": self.device}
+        self._identity_quat = torch.tensor([1.0, 0.0, 0.0, 0.0], **f32)
+        self._init_joint_pos = torch.as_tensor(robot.INIT_JOINT_POS, **f32)
+        self._base_pos = torch.tensor([0.0, 0.0, 0.93], **f32)
+        self._neck_pos = torch.tensor([0.0, 0.0, 1.5], **f32)
         self._make_specs()
+        self._reset(None)  # the simulator has a state from construction on, like the real env
 
     # ------------------------------------------------------------------ specs
     def _make_specs(self) -> None:
@@ -107,23 +114,19 @@ class MockTocabiWalk(EnvBase):
             out["foot_contact"] = torch.ones((n, 2), dtype=torch.bool, device=self.device)
             out["stance"] = torch.zeros((n, 1), dtype=torch.int64, device=self.device)
             return out
-        quat = torch.nn.functional.normalize(
-            torch.tensor([1.0, 0.0, 0.0, 0.0], device=self.device) + 0.2 * self._randn(4), dim=-1
-        )
-        neck_quat = torch.nn.functional.normalize(
-            torch.tensor([1.0, 0.0, 0.0, 0.0], device=self.device) + 0.2 * self._randn(4), dim=-1
-        )
+        quat = torch.nn.functional.normalize(self._identity_quat + 0.2 * self._randn(4), dim=-1)
+        neck_quat = torch.nn.functional.normalize(self._identity_quat + 0.2 * self._randn(4), dim=-1)
         force = 100.0 * self._randn(2, 3)
         force[..., 2] = -600.0 * self._rand(2) - 50.0 * self._rand(2)
-        init = torch.as_tensor(robot.INIT_JOINT_POS, dtype=torch.float32, device=self.device)
+        init = self._init_joint_pos
         return {
             "joint_pos": init + 0.1 * self._randn(robot.NUM_JOINTS),
             "joint_vel": self._randn(robot.NUM_JOINTS),
-            "base_pos": torch.tensor([0.0, 0.0, 0.93], device=self.device) + 0.05 * self._randn(3),
+            "base_pos": self._base_pos + 0.05 * self._randn(3),
             "base_quat": quat,
             "base_lin_vel": 0.3 * self._randn(3),
             "base_ang_vel": 0.3 * self._randn(3),
-            "neck_pos": torch.tensor([0.0, 0.0, 1.5], device=self.device) + 0.05 * self._randn(3),
+            "neck_pos": self._neck_pos + 0.05 * self._randn(3),
             "neck_quat": neck_quat,
             "foot_force": force,
             "foot_torque": 20.0 * self._randn(2, 3),

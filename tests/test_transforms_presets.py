@@ -1,0 +1,196 @@
+"""The default Compose on the mock env: specs, the 237-value input end to end, options, and (GPU) no host syncs."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from mock_env import MockTocabiWalk
+from torch.utils._python_dispatch import TorchDispatchMode
+from torchrl.envs import TransformedEnv
+from torchrl.envs.utils import check_env_specs, step_mdp
+
+from tocabi_torchrl.transforms import (
+    PRESETS,
+    REFERENCE_OBS_LAYOUT,
+    REFERENCE_TERMS,
+    CallableTerm,
+    HistoryLayout,
+    JointPosTracking,
+    ObsComponent,
+    default_transforms,
+    transform_config,
+)
+
+N = 4
+
+
+def _env(preset="reference", device="cpu", env_kwargs=None, **overrides) -> TransformedEnv:
+    base = MockTocabiWalk(N, device=device, **(env_kwargs or {}))
+    return TransformedEnv(base, default_transforms(preset, **overrides))
+
+
+@pytest.mark.parametrize("preset", list(PRESETS))
+def test_check_env_specs(preset):
+    env = _env(preset, env_kwargs={"terminate_prob": 0.3})
+    check_env_specs(env, break_when_any_done="both")
+    spec = env.observation_spec
+    assert spec["observation"].shape == (N, 237)
+    assert spec["obs_step"].shape == spec["obs_step_norm"].shape == (N, 37)
+    assert set(spec["reward_terms"].keys()) == set(REFERENCE_TERMS)
+    assert spec["episode_reward"].shape == spec["step_count"].shape == (N, 1)
+
+
+@pytest.mark.parametrize("preset", list(PRESETS))
+def test_policy_input_is_the_history_of_normalised_observations_and_actions(preset):
+    layout = PRESETS[preset].history
+    env = _env(preset, env_kwargs={"terminate_prob": 0.15, "seed": 3})
+    ro = env.rollout(20, break_when_any_done=False)
+    # Rebuild each input from the rollout's own per-step data: obs[t] is ("next", obs_step_norm) at t, obs[-1]
+    # the reset one; after an env's reset its older entries are its first observation and zero actions.
+    for i in range(N):
+        obs_seq = [ro[i, 0]["obs_step_norm"]]
+        act_seq = [ro[i, 0]["applied_action"]]
+        for t in range(20):
+            if t > 0 and bool(ro[i, t - 1]["next", "done"]):
+                obs_seq, act_seq = [ro[i, t]["obs_step_norm"]], [ro[i, t]["applied_action"]]
+            obs_seq.append(ro[i, t]["next", "obs_step_norm"])
+            act_seq.append(ro[i, t]["next", "applied_action"])
+            tau = len(obs_seq) - 1
+            obs = [obs_seq[max(tau - a, 0)] for a in layout.obs_ages]
+            act = [act_seq[max(tau - a, 0)] for a in layout.action_ages]
+            torch.testing.assert_close(ro[i, t]["next", "observation"], torch.cat(obs + act), msg=f"env {i} t {t}")
+
+
+def test_episode_return_and_step_counter():
+    env = _env(max_episode_steps=3)
+    ro = env.rollout(5, break_when_any_done=False)
+    assert ro["next", "step_count"][0].squeeze(-1).tolist() == [1, 2, 3, 1, 2]
+    assert ro["next", "truncated"][0].squeeze(-1).tolist() == [False, False, True, False, False]
+    r = ro["next", "reward"][0].squeeze(-1)
+    torch.testing.assert_close(
+        ro["next", "episode_reward"][0].squeeze(-1), torch.stack((r[0], r[:2].sum(), r[:3].sum(), r[3], r[3:].sum()))
+    )
+
+
+def test_overrides_are_config_changes():
+    def alive(td, next_td):
+        return torch.ones_like(next_td["reward"])
+
+    env = _env(
+        reward_terms=("qpos", "body_vel", CallableTerm("alive", alive, weight=0.5)),
+        reward_weights={"qpos": 1.0},
+        history=HistoryLayout(num_obs=3, stride=1),
+        phase_harmonics=2,
+        obs_layout=REFERENCE_OBS_LAYOUT + (ObsComponent("base_ang_vel", "base_ang_vel"),),
+        normalization="running",
+        max_episode_steps=None,
+        track_episode_return=False,
+    )
+    check_env_specs(env)
+    spec = env.observation_spec
+    assert spec["obs_step"].shape == (N, 37 + 2 + 3)
+    assert spec["observation"].shape == (N, 3 * 42 + 2 * 13)
+    assert set(spec["reward_terms"].keys()) == {"qpos", "body_vel", "alive"}
+    assert "episode_reward" not in spec.keys()
+    ro = env.rollout(3)
+    terms = ro["next", "reward_terms"]
+    torch.testing.assert_close(ro["next", "reward"], terms["qpos"] + terms["body_vel"] + terms["alive"])
+    torch.testing.assert_close(terms["qpos"], JointPosTracking(weight=1.0)(ro.exclude("next"), ro["next"]))
+
+
+def test_preset_errors():
+    with pytest.raises(KeyError, match="unknown transform preset 'walk'"):
+        default_transforms("walk")
+    with pytest.raises(TypeError, match="unknown transform option.*'histroy'"):
+        default_transforms(histroy=None)
+    with pytest.raises(KeyError, match="unknown reward term 'qpoz'"):
+        default_transforms(reward_terms=("qpoz",))
+    with pytest.raises(ValueError, match="normalization must be one of"):
+        transform_config(normalization="vecnorm")
+    with pytest.raises(ValueError, match="max_episode_steps"):
+        transform_config(max_episode_steps=0)
+    with pytest.raises(ValueError, match="needs obs_mean/obs_var"):
+        default_transforms(phase_harmonics=2)
+    with pytest.raises(TypeError, match="HistoryLayout"):
+        transform_config(history=(5, 2))
+    with pytest.raises(ValueError, match="stride"):
+        transform_config(history=HistoryLayout(num_obs=5, stride=0))
+    assert transform_config("tocabilab").history.stride == 1
+    assert transform_config("reference").zero_reward_on_terminated
+
+
+def test_reset_returns_policy_input_without_stepping():
+    env = _env()
+    td = env.reset()
+    assert td["observation"].shape == (N, 237)
+    # Right after reset the history is five copies of the first normalised observation and four zero actions.
+    torch.testing.assert_close(td["observation"][:, :185], td["obs_step_norm"].repeat(1, 5))
+    assert (td["observation"][:, 185:] == 0).all()
+    td = env.step(step_mdp(env.rand_step(td)).set("action", env.action_spec.rand()))
+    assert td["next", "observation"].shape == (N, 237)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_transformed_step_has_no_host_sync():
+    # TODO(make_env): switch the mock for TocabiWalk once it exists.
+    env = _env(device="cuda", env_kwargs={"terminate_prob": 0.1})
+    td = env.reset()
+    action = env.action_spec.rand()
+    for _ in range(3):  # warm up: lazy allocations and first-call caches may sync
+        td = step_mdp(env.step(td.set("action", action)))
+    torch.cuda.synchronize()
+    try:
+        torch.cuda.set_sync_debug_mode("error")
+        for _ in range(5):
+            td = step_mdp(env.step(td.set("action", action)))
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    torch.cuda.synchronize()
+    assert td["observation"].shape == (N, 237)
+    assert td["observation"].device.type == "cuda"
+
+
+class _HostSyncOps(TorchDispatchMode):
+    """Records ops that synchronise with the host on CUDA (a CPU stand-in for set_sync_debug_mode): reading a value
+    (item/bool), data-dependent shapes (nonzero, boolean-mask indexing, masked_select, unique), and tensors made from
+    host data (lift_fresh: torch.tensor(list) inside the loop is a blocking host-to-device copy on CUDA)."""
+
+    OPS = {"_local_scalar_dense", "is_nonzero", "nonzero", "masked_select", "unique", "_unique2", "lift_fresh"}
+
+    def __init__(self):
+        super().__init__()
+        self.hits: list[str] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func.overloadpacket.__name__
+        bool_index = name in ("index", "index_put", "index_put_") and any(
+            isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else ())
+        )
+        if name in self.OPS or bool_index:
+            self.hits.append(name)
+        return func(*args, **(kwargs or {}))
+
+
+def test_step_and_transform_reset_issue_no_host_sync_ops_cpu_proxy():
+    x = torch.randn(8)
+    with _HostSyncOps() as probe:  # the detector sees what would sync on CUDA
+        x.sum().item()
+        x[x > 0]
+        torch.tensor([1.0, 2.0])
+    assert {"_local_scalar_dense", "lift_fresh"} <= set(probe.hits) and ("nonzero" in probe.hits or "index" in probe.hits)
+    env = _env(env_kwargs={"terminate_prob": 0.2})
+    td = env.reset()
+    action = env.action_spec.rand()
+    for _ in range(3):
+        td = step_mdp(env.step(td.set("action", action)))
+    with _HostSyncOps() as ops:
+        for _ in range(3):
+            td = step_mdp(env.step(td.set("action", action)))
+    assert ops.hits == []
+    # The transforms' own partial-reset path (TorchRL's reset bookkeeping around it is not ours).
+    td_in = td.clone().set("_reset", torch.tensor([[True], [False], [True], [False]]))
+    td_reset = env.base_env._reset(td_in)
+    with _HostSyncOps() as ops:
+        env.transform._reset(td_in, td_reset)
+    assert ops.hits == []
