@@ -1,0 +1,238 @@
+"""Motion file formats: loading, joint remapping, and validation errors that say what is wrong."""
+
+import json
+
+import numpy as np
+import pytest
+from reference_data import reference_file
+
+from tocabi_torchrl.robot import INIT_JOINT_POS, JOINT_NAMES
+from tocabi_torchrl.motion import (
+    MotionData,
+    MotionFormatError,
+    ReferenceMotion,
+    force_schedule,
+    load_motion,
+    load_npz,
+    load_txt,
+    save_npz,
+    stance_schedule,
+)
+from tocabi_torchrl.motion.io import NPZ_FORMAT
+
+ROWS = 12
+
+
+def table(rows: int = ROWS, rate: float = 2000.0, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = np.arange(rows) / rate
+    return np.column_stack([t, rng.normal(scale=0.3, size=(rows, 33)), -1025 * rng.random((rows, 2))])
+
+
+def write_txt(path, tab: np.ndarray, fmt: str = "%.16e") -> str:
+    np.savetxt(path, tab, fmt=fmt, delimiter="\t")
+    return str(path)
+
+
+def motion_data(rows: int = ROWS) -> MotionData:
+    tab = table(rows)
+    return MotionData(
+        joint_pos=tab[:, 1:34],
+        foot_force=force_schedule(rows, 4),
+        stance=stance_schedule(rows, 4),
+        sample_rate=2000.0,
+        init_rows=np.array([0, rows // 2]),
+        base_pos=np.zeros((rows, 3)),
+        meta={"generator": "test"},
+    )
+
+
+def npz_fields(**override):
+    d = motion_data()
+    fields = {
+        "format": np.array(NPZ_FORMAT),
+        "joint_names": np.array(JOINT_NAMES),
+        "joint_pos": d.joint_pos.astype(np.float32),
+        "foot_force": d.foot_force.astype(np.float32),
+        "stance": d.stance.astype(np.int8),
+        "sample_rate": np.array(2000.0),
+        "init_rows": d.init_rows,
+    }
+    fields.update(override)
+    return {k: v for k, v in fields.items() if v is not None}
+
+
+def write_npz(path, **override) -> str:
+    np.savez(path, **npz_fields(**override))
+    return str(path)
+
+
+# ------------------------------------------------------------------------------------------------------ text format
+def test_txt_loads_columns_and_layout(tmp_path):
+    tab = table()
+    data = load_txt(write_txt(tmp_path / "m.txt", tab))
+    np.testing.assert_array_equal(data.joint_pos, tab[:, 1:34])
+    np.testing.assert_array_equal(data.foot_force, tab[:, 34:])
+    assert data.sample_rate == 2000.0
+    assert data.init_rows.tolist() == [0, ROWS // 2]
+    # 12 rows = two 6-row steps, a third of each in double support: 2 rows.
+    np.testing.assert_array_equal(data.stance, stance_schedule(ROWS, 2))
+
+
+def test_txt_wrong_column_count(tmp_path):
+    path = tmp_path / "m.txt"
+    lines = write_txt(path, table()) and path.read_text().splitlines()
+    lines[1] = "\t".join(lines[1].split("\t")[:-1])  # line 2 loses its right foot force
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(MotionFormatError, match=r"line 2 has 35 columns, expected 36 \(time, 33 joint positions"):
+        load_txt(path)
+
+
+def test_txt_non_numeric(tmp_path):
+    path = tmp_path / "m.txt"
+    write_txt(path, table())
+    path.write_text(path.read_text().replace("e-01", "e-O1", 1))
+    with pytest.raises(MotionFormatError, match="line 1 is not numeric"):
+        load_txt(path)
+
+
+def test_txt_non_monotonic_time(tmp_path):
+    tab = table()
+    tab[5, 0] = tab[3, 0]
+    with pytest.raises(MotionFormatError, match=r"time is not strictly increasing at row 5"):
+        load_txt(write_txt(tmp_path / "m.txt", tab))
+
+
+def test_txt_non_uniform_time(tmp_path):
+    tab = table()
+    tab[7:, 0] += 0.0001  # a 0.6 ms step among 0.5 ms steps
+    with pytest.raises(MotionFormatError, match=r"time steps are not uniform: row 7 is 0.0006 s after row 6"):
+        load_txt(write_txt(tmp_path / "m.txt", tab))
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_txt_non_finite(tmp_path, bad):
+    tab = table()
+    tab[4, 5] = bad  # column 5 = joint 4
+    with pytest.raises(MotionFormatError, match=rf"non-finite value {bad} at row 4, column 5 \(L_AnklePitch_Joint\)"):
+        load_txt(write_txt(tmp_path / "m.txt", tab))
+
+
+@pytest.mark.parametrize("rows", [0, 1])
+def test_txt_fewer_than_two_rows(tmp_path, rows):
+    path = tmp_path / "m.txt"
+    write_txt(path, table(2)[:rows])
+    with pytest.raises(MotionFormatError, match=f"at least two rows .* got {rows}"):
+        load_txt(path)
+
+
+def test_txt_odd_rows_are_not_a_two_step_cycle(tmp_path):
+    with pytest.raises(MotionFormatError, match="11 rows do not form a two-step cycle"):
+        load_txt(write_txt(tmp_path / "m.txt", table(11)))
+
+
+def test_txt_printed_time_rounding_is_tolerated(tmp_path):
+    data = load_txt(write_txt(tmp_path / "m.txt", table(), fmt="%.7g"))
+    assert data.sample_rate == 2000.0
+
+
+# ----------------------------------------------------------------------------------------------------- npz format
+def test_npz_round_trip_is_float32_exact_and_byte_reproducible(tmp_path):
+    data = motion_data()
+    a, b = save_npz(tmp_path / "a.npz", data), save_npz(tmp_path / "b.npz", data)
+    assert a.read_bytes() == b.read_bytes()
+    back = load_npz(a)
+    np.testing.assert_array_equal(back.joint_pos, data.joint_pos.astype(np.float32))
+    np.testing.assert_array_equal(back.foot_force, data.foot_force.astype(np.float32))
+    np.testing.assert_array_equal(back.stance, data.stance)
+    assert back.sample_rate == 2000.0 and back.init_rows.tolist() == data.init_rows.tolist()
+    assert back.base_pos.shape == (ROWS, 3) and back.meta == {"generator": "test"}
+    with np.load(a) as raw:
+        assert raw["joint_pos"].dtype == np.float32 and str(raw["format"]) == NPZ_FORMAT
+
+
+def test_npz_other_joint_order_is_remapped(tmp_path):
+    perm = np.random.default_rng(1).permutation(33)
+    d = motion_data()
+    path = write_npz(tmp_path / "m.npz", joint_names=np.array(JOINT_NAMES)[perm], joint_pos=d.joint_pos[:, perm])
+    np.testing.assert_allclose(load_npz(path).joint_pos, d.joint_pos, atol=1e-6)
+
+
+def test_npz_foreign_joint_names_are_rejected(tmp_path):
+    names = list(JOINT_NAMES)
+    names[24] = "Jaw_Joint"
+    with pytest.raises(
+        MotionFormatError, match=r"joint names do not match the robot: unknown \['Jaw_Joint'\], missing \['Head_Joint'\]"
+    ):
+        load_npz(write_npz(tmp_path / "m.npz", joint_names=np.array(names)))
+
+
+def test_npz_duplicated_joint_names_are_rejected(tmp_path):
+    names = list(JOINT_NAMES)
+    names[1] = names[0]
+    with pytest.raises(MotionFormatError, match=r"duplicated \['L_HipYaw_Joint'\]"):
+        load_npz(write_npz(tmp_path / "m.npz", joint_names=np.array(names)))
+
+
+def test_npz_column_count_must_match_names(tmp_path):
+    d = motion_data()
+    with pytest.raises(MotionFormatError, match="joint_pos has 32 columns but joint_names lists 33 joints"):
+        load_npz(write_npz(tmp_path / "m.npz", joint_pos=d.joint_pos[:, :32]))
+
+
+@pytest.mark.parametrize(
+    "override,message",
+    [
+        ({"stance": None}, r"missing field\(s\) \['stance'\]"),
+        ({"format": np.array("other/9")}, "format 'other/9' is not supported"),
+        ({"joint_pos": np.zeros((1, 33), np.float32)}, "at least two rows"),
+        ({"foot_force": np.zeros((ROWS, 3), np.float32)}, r"foot_force has shape \(12, 3\), expected \(12, 2\)"),
+        ({"stance": np.full(ROWS, 5, np.int8)}, r"stance code 5 at row 0"),
+        ({"init_rows": np.array([0, 11])}, r"init_rows \[0, 11\] must be a non-empty list in \[0, 10\]"),
+        ({"sample_rate": np.array(-1.0)}, "sample_rate must be a positive"),
+    ],
+)
+def test_npz_validation_errors(tmp_path, override, message):
+    with pytest.raises(MotionFormatError, match=message):
+        load_npz(write_npz(tmp_path / "m.npz", **override))
+
+
+def test_npz_non_finite(tmp_path):
+    d = motion_data()
+    jp = d.joint_pos.astype(np.float32)
+    jp[3, 30] = np.nan
+    with pytest.raises(MotionFormatError, match=r"joint_pos: non-finite value nan at row 3, column 30 \(R_Forearm_Joint\)"):
+        load_npz(write_npz(tmp_path / "m.npz", joint_pos=jp))
+
+
+def test_unknown_suffix_and_missing_file(tmp_path):
+    with pytest.raises(MotionFormatError, match=r"unknown motion format '.csv'"):
+        load_motion(tmp_path / "m.csv")
+    with pytest.raises(MotionFormatError, match="motion file not found"):
+        load_motion(tmp_path / "absent.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(MotionFormatError, match="cannot read as .npz"):
+        load_npz(tmp_path / "junk.npz")
+
+
+def test_from_file_dispatches_on_suffix(tmp_path):
+    tab = table()
+    txt = ReferenceMotion.from_file(write_txt(tmp_path / "m.txt", tab))
+    npz = ReferenceMotion.from_file(save_npz(tmp_path / "m.npz", load_txt(tmp_path / "m.txt")))
+    for m in (txt, npz):
+        assert m.num_rows == ROWS and m.row_dt == 0.0005
+        np.testing.assert_allclose(m.joint_pos.numpy(), tab[:, 1:34], atol=1e-6)
+    assert txt.source.endswith("m.txt") and npz.source.endswith("m.npz")
+
+
+def test_shipped_motion_documents_its_generator():
+    data = load_npz(__import__("tocabi_torchrl.robot", fromlist=["x"]).asset_path("motions", "tocabi_walk.npz"))
+    assert data.meta["generator"] == "tocabi_torchrl.motion.gait"
+    assert json.loads(json.dumps(data.meta["config"]))["step_time"] == 0.9
+    np.testing.assert_allclose(data.joint_pos[:, 12:], np.tile(INIT_JOINT_POS[12:], (data.num_rows, 1)), atol=1e-7)
+
+
+def test_reference_txt_loads():
+    data = load_txt(reference_file("processed_data_tocabi_walk.txt"))
+    assert data.joint_pos.shape == (3600, 33) and data.sample_rate == 2000.0
+    np.testing.assert_allclose(data.joint_pos[:, 12:], np.tile(INIT_JOINT_POS[12:], (3600, 1)), atol=1e-12)

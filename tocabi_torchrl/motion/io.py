@@ -1,0 +1,292 @@
+"""Reading, checking and writing reference motions as host (numpy) arrays.
+
+Two formats are read; :func:`load_motion` picks one by the file suffix.
+
+**Reference text format** (``.txt``, spec §3.1): whitespace-separated, one row per sample at a uniform rate (2 kHz
+in the reference), 36 columns: time [s], the 33 joint positions [rad] in ``robot.JOINT_NAMES`` order, then the
+vertical foot-force references ``Fz_L, Fz_R`` [N] (sensor sign, loaded < 0). The file carries no stance pattern
+or start rows, so they follow the reference layout (:mod:`.schedule`): the stance pattern of spec §8 for a cycle of
+``R`` rows with ``dsp_fraction`` of each step in double support, and start rows ``0`` and ``R/2``.
+
+**Project format** (``.npz``, format ``tocabi_torchrl.motion/1``), written by :func:`save_npz`:
+
+=============== =========== ======= ===========================================================================
+field           shape       dtype   meaning
+=============== =========== ======= ===========================================================================
+``format``      ()          str     ``"tocabi_torchrl.motion/1"``
+``joint_names`` (J,)        str     joint of each ``joint_pos`` column; any order of ``robot.JOINT_NAMES``
+                                    (columns are remapped to the robot order on load; other names are rejected)
+``joint_pos``   (R, J)      float32 joint position targets [rad]; row ``r`` is at time ``r / sample_rate``
+``foot_force``  (R, 2)      float32 vertical foot-force references [N], [left, right], loaded < 0
+``stance``      (R,)        int8    expected contact: 0 double support, 1 right stance, 2 left stance
+``sample_rate`` ()          float64 rows per second [Hz] (2000 for the shipped cycle)
+``init_rows``   (K,)        int64   rows an episode may start at, each in [0, R−2]
+``base_pos``    (R, 3)      float32 optional: planned pelvis (``base_link``) position [m], world frame of the
+                                    cycle's first row; the pelvis is level and faces +x throughout
+``meta``        ()          str     optional: JSON with the generator and its parameters (informational)
+=============== =========== ======= ===========================================================================
+
+As in the reference, the cycle period is ``(R − 1) / sample_rate``: the last row is only the interpolation end
+point of row ``R − 2``, so a closed cycle has row ``R − 1`` equal to row 0. Every loader returns a validated
+:class:`MotionData` in robot joint order, or raises :class:`MotionFormatError` saying what is wrong and where.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from tocabi_torchrl.robot import JOINT_NAMES, NUM_JOINTS
+
+from .schedule import DOUBLE_SUPPORT, LEFT_STANCE, cycle_layout, stance_schedule
+
+__all__ = [
+    "NPZ_FORMAT",
+    "TXT_COLUMNS",
+    "MotionFormatError",
+    "MotionData",
+    "load_motion",
+    "load_txt",
+    "load_npz",
+    "save_npz",
+]
+
+NPZ_FORMAT = "tocabi_torchrl.motion/1"
+#: Columns of the reference text format: time, 33 joints, 2 foot forces.
+TXT_COLUMNS = 1 + NUM_JOINTS + 2
+_TXT_LAYOUT = "time, 33 joint positions, 2 foot forces"
+_REQUIRED_NPZ = ("format", "joint_names", "joint_pos", "foot_force", "stance", "sample_rate", "init_rows")
+# Relative spread of time steps tolerated as "uniform": text files print time with finite precision.
+_TIME_STEP_RTOL = 1e-3
+
+
+class MotionFormatError(ValueError):
+    """A motion file or array set is malformed; the message names the file, the field and the offending row."""
+
+
+@dataclass
+class MotionData:
+    """A reference motion as host arrays, joints in ``robot.JOINT_NAMES`` order (R rows).
+
+    Attributes:
+        joint_pos: (R, 33) joint position targets [rad].
+        foot_force: (R, 2) vertical foot-force references [N], [left, right], loaded < 0.
+        stance: (R,) int64 expected contact, 0 double support / 1 right stance / 2 left stance.
+        sample_rate: rows per second [Hz].
+        init_rows: (K,) int64 rows an episode may start at.
+        base_pos: optional (R, 3) planned pelvis position [m].
+        meta: free-form provenance (generator name and parameters, source file).
+    """
+
+    joint_pos: np.ndarray
+    foot_force: np.ndarray
+    stance: np.ndarray
+    sample_rate: float
+    init_rows: np.ndarray
+    base_pos: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def num_rows(self) -> int:
+        return int(self.joint_pos.shape[0])
+
+    def validate(self, source: str = "motion") -> "MotionData":
+        """Check shapes, finiteness, stance codes and start rows; return ``self`` or raise :class:`MotionFormatError`."""
+        jp, ff, st = np.asarray(self.joint_pos), np.asarray(self.foot_force), np.asarray(self.stance)
+        if jp.ndim != 2 or jp.shape[1] != NUM_JOINTS:
+            raise MotionFormatError(f"{source}: joint_pos has shape {jp.shape}, expected (rows, {NUM_JOINTS})")
+        rows = jp.shape[0]
+        if rows < 2:
+            raise MotionFormatError(f"{source}: a motion needs at least two rows (one interval), got {rows}")
+        if ff.shape != (rows, 2):
+            raise MotionFormatError(f"{source}: foot_force has shape {ff.shape}, expected ({rows}, 2)")
+        if st.shape != (rows,):
+            raise MotionFormatError(f"{source}: stance has shape {st.shape}, expected ({rows},)")
+        for name, arr, cols in (("joint_pos", jp, JOINT_NAMES), ("foot_force", ff, ("left", "right"))):
+            _check_finite(arr, f"{source}: {name}", cols)
+        if self.base_pos is not None:
+            bp = np.asarray(self.base_pos)
+            if bp.shape != (rows, 3):
+                raise MotionFormatError(f"{source}: base_pos has shape {bp.shape}, expected ({rows}, 3)")
+            _check_finite(bp, f"{source}: base_pos", ("x", "y", "z"))
+        bad = (st < DOUBLE_SUPPORT) | (st > LEFT_STANCE)
+        if bad.any():
+            r = int(np.argmax(bad))
+            raise MotionFormatError(f"{source}: stance code {st[r]} at row {r}; allowed 0 (double), 1 (right), 2 (left)")
+        if not (np.isfinite(self.sample_rate) and self.sample_rate > 0):
+            raise MotionFormatError(f"{source}: sample_rate must be a positive number of rows per second")
+        init = np.asarray(self.init_rows)
+        if init.ndim != 1 or init.size == 0 or (init < 0).any() or (init > rows - 2).any():
+            raise MotionFormatError(f"{source}: init_rows {init.tolist()} must be a non-empty list in [0, {rows - 2}]")
+        return self
+
+
+def _check_finite(arr: np.ndarray, what: str, columns) -> None:
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise MotionFormatError(f"{what}: non-finite value {arr[r, c]} at row {r}, column {c} ({columns[c]})")
+
+
+def load_motion(path: str | os.PathLike) -> MotionData:
+    """Load a ``.txt`` (reference format) or ``.npz`` (project format) motion."""
+    p = Path(path)
+    if p.suffix == ".npz":
+        return load_npz(p)
+    if p.suffix == ".txt":
+        return load_txt(p)
+    raise MotionFormatError(f"{p}: unknown motion format {p.suffix!r}; expected .txt (reference) or .npz (project)")
+
+
+def load_txt(path: str | os.PathLike, dsp_fraction: float = 1.0 / 3.0) -> MotionData:
+    """Read the reference text format (see the module docstring).
+
+    Args:
+        path: the text file.
+        dsp_fraction: share of each step spent in double support (1/3 in the reference: 0.3 s of 0.9 s); sets the
+            stance pattern, which the text format does not store.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise MotionFormatError(f"motion file not found: {p}")
+    rows: list[list[float]] = []
+    with p.open() as fh:
+        for line_no, line in enumerate(fh, start=1):
+            fields = line.split()
+            if not fields:
+                continue
+            if len(fields) != TXT_COLUMNS:
+                raise MotionFormatError(
+                    f"{p}: line {line_no} has {len(fields)} columns, expected {TXT_COLUMNS} ({_TXT_LAYOUT})"
+                )
+            try:
+                rows.append([float(x) for x in fields])
+            except ValueError as err:
+                raise MotionFormatError(f"{p}: line {line_no} is not numeric ({err})") from err
+    table = np.asarray(rows, dtype=np.float64).reshape(-1, TXT_COLUMNS)
+    if table.shape[0] < 2:
+        raise MotionFormatError(f"{p}: a motion needs at least two rows (one interval), got {table.shape[0]}")
+    _check_finite(table, str(p), ("time",) + JOINT_NAMES + ("Fz_left", "Fz_right"))
+    sample_rate = _sample_rate_of(table[:, 0], str(p))
+    num_rows = table.shape[0]
+    try:
+        dsp_rows = 2 * int(round(dsp_fraction * num_rows / 4))
+        stance = stance_schedule(num_rows, dsp_rows)
+        step_rows, _ = cycle_layout(num_rows, dsp_rows)
+    except ValueError as err:
+        raise MotionFormatError(f"{p}: {num_rows} rows do not form a two-step cycle: {err}") from err
+    return MotionData(
+        joint_pos=table[:, 1 : 1 + NUM_JOINTS],
+        foot_force=table[:, 1 + NUM_JOINTS :],
+        stance=stance,
+        sample_rate=sample_rate,
+        init_rows=np.array([0, step_rows], dtype=np.int64),
+        meta={"source": str(p), "format": "reference-txt"},
+    ).validate(str(p))
+
+
+def _sample_rate_of(time: np.ndarray, source: str) -> float:
+    """Rows per second of a strictly increasing, uniform time column; raise naming the first bad row otherwise."""
+    steps = np.diff(time)
+    if (steps <= 0).any():
+        r = int(np.argmax(steps <= 0)) + 1
+        raise MotionFormatError(
+            f"{source}: time is not strictly increasing at row {r} (t={time[r]!r} after t={time[r - 1]!r})"
+        )
+    typical = float(np.median(steps))  # the median names the odd step, where the mean would blame row 1
+    off = np.abs(steps - typical) > _TIME_STEP_RTOL * typical
+    if off.any():
+        r = int(np.argmax(off)) + 1
+        raise MotionFormatError(
+            f"{source}: time steps are not uniform: row {r} is {steps[r - 1]:.6g} s after row {r - 1}, "
+            f"expected {typical:.6g} s"
+        )
+    rate = (time.size - 1) / (time[-1] - time[0])
+    # Printed times carry rounding (1.7995/3599 is not exactly 0.0005); snap to a whole rate when that is the intent.
+    return float(round(rate)) if abs(rate - round(rate)) < 1e-6 * rate else float(rate)
+
+
+def load_npz(path: str | os.PathLike) -> MotionData:
+    """Read the project format (see the module docstring), remapping columns to ``robot.JOINT_NAMES`` order."""
+    p = Path(path)
+    if not p.is_file():
+        raise MotionFormatError(f"motion file not found: {p}")
+    try:
+        with np.load(p, allow_pickle=False) as npz:
+            fields = {k: npz[k] for k in npz.files}
+    except Exception as err:  # zip/pickle errors: not an npz we can read
+        raise MotionFormatError(f"{p}: cannot read as .npz ({err})") from err
+    missing = [k for k in _REQUIRED_NPZ if k not in fields]
+    if missing:
+        raise MotionFormatError(f"{p}: missing field(s) {missing}; a {NPZ_FORMAT} file has {list(_REQUIRED_NPZ)}")
+    fmt = str(fields["format"])
+    if fmt != NPZ_FORMAT:
+        raise MotionFormatError(f"{p}: format {fmt!r} is not supported; expected {NPZ_FORMAT!r}")
+    names = [str(n) for n in np.atleast_1d(fields["joint_names"])]
+    joint_pos = np.asarray(fields["joint_pos"], dtype=np.float64)
+    if joint_pos.ndim != 2 or joint_pos.shape[1] != len(names):
+        raise MotionFormatError(
+            f"{p}: joint_pos has {joint_pos.shape[-1] if joint_pos.ndim else 0} columns but joint_names lists "
+            f"{len(names)} joints"
+        )
+    joint_pos = joint_pos[:, _robot_order(names, str(p))]
+    meta = json.loads(str(fields["meta"])) if "meta" in fields else {}
+    return MotionData(
+        joint_pos=joint_pos,
+        foot_force=np.asarray(fields["foot_force"], dtype=np.float64),
+        stance=np.asarray(fields["stance"]).astype(np.int64),
+        sample_rate=float(fields["sample_rate"]),
+        init_rows=np.asarray(fields["init_rows"]).astype(np.int64).reshape(-1),
+        base_pos=np.asarray(fields["base_pos"], dtype=np.float64) if "base_pos" in fields else None,
+        meta=meta,
+    ).validate(str(p))
+
+
+def _robot_order(names: list[str], source: str) -> np.ndarray:
+    """Column permutation taking a file's joint order to ``robot.JOINT_NAMES``; reject any other joint set."""
+    unknown = [n for n in names if n not in JOINT_NAMES]
+    missing = [n for n in JOINT_NAMES if n not in names]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if unknown or missing or dupes:
+        raise MotionFormatError(
+            f"{source}: joint names do not match the robot: unknown {unknown}, missing {missing}, duplicated {dupes}"
+        )
+    return np.array([names.index(n) for n in JOINT_NAMES])
+
+
+def save_npz(path: str | os.PathLike, data: MotionData) -> Path:
+    """Write ``data`` in the project format (float32, compressed); return the path written."""
+    data.validate("save_npz")
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fields = {
+        "format": np.array(NPZ_FORMAT),
+        "joint_names": np.array(JOINT_NAMES),
+        "joint_pos": np.asarray(data.joint_pos, dtype=np.float32),
+        "foot_force": np.asarray(data.foot_force, dtype=np.float32),
+        "stance": np.asarray(data.stance, dtype=np.int8),
+        "sample_rate": np.array(float(data.sample_rate)),
+        "init_rows": np.asarray(data.init_rows, dtype=np.int64),
+        "meta": np.array(json.dumps(data.meta, sort_keys=True)),
+    }
+    if data.base_pos is not None:
+        fields["base_pos"] = np.asarray(data.base_pos, dtype=np.float32)
+    _write_npz(p, fields)
+    return p
+
+
+def _write_npz(path: Path, fields: dict[str, np.ndarray]) -> None:
+    """``np.savez_compressed`` with a fixed timestamp per member, so regenerating a motion gives identical bytes."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, arr in fields.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asanyarray(arr), allow_pickle=False)
+            zf.writestr(info, buf.getvalue())
