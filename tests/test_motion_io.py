@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from reference_data import reference_file
 
-from tocabi_torchrl.robot import INIT_JOINT_POS, JOINT_NAMES
+from tocabi_torchrl.robot import INIT_JOINT_POS, JOINT_NAMES, asset_path
 from tocabi_torchrl.motion import (
     MotionData,
     MotionFormatError,
@@ -162,7 +162,8 @@ def test_npz_foreign_joint_names_are_rejected(tmp_path):
     names = list(JOINT_NAMES)
     names[24] = "Jaw_Joint"
     with pytest.raises(
-        MotionFormatError, match=r"joint names do not match the robot: unknown \['Jaw_Joint'\], missing \['Head_Joint'\]"
+        MotionFormatError,
+        match=r"joint names do not match the robot: unknown \['Jaw_Joint'\], missing \['Head_Joint'\]",
     ):
         load_npz(write_npz(tmp_path / "m.npz", joint_names=np.array(names)))
 
@@ -201,7 +202,8 @@ def test_npz_non_finite(tmp_path):
     d = motion_data()
     jp = d.joint_pos.astype(np.float32)
     jp[3, 30] = np.nan
-    with pytest.raises(MotionFormatError, match=r"joint_pos: non-finite value nan at row 3, column 30 \(R_Forearm_Joint\)"):
+    message = r"joint_pos: non-finite value nan at row 3, column 30 \(R_Forearm_Joint\)"
+    with pytest.raises(MotionFormatError, match=message):
         load_npz(write_npz(tmp_path / "m.npz", joint_pos=jp))
 
 
@@ -226,7 +228,7 @@ def test_from_file_dispatches_on_suffix(tmp_path):
 
 
 def test_shipped_motion_documents_its_generator():
-    data = load_npz(__import__("tocabi_torchrl.robot", fromlist=["x"]).asset_path("motions", "tocabi_walk.npz"))
+    data = load_npz(asset_path("motions", "tocabi_walk.npz"))
     assert data.meta["generator"] == "tocabi_torchrl.motion.gait"
     assert json.loads(json.dumps(data.meta["config"]))["step_time"] == 0.9
     np.testing.assert_allclose(data.joint_pos[:, 12:], np.tile(INIT_JOINT_POS[12:], (data.num_rows, 1)), atol=1e-7)

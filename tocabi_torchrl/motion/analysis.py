@@ -143,7 +143,9 @@ def stance_foot_drift(model, joint_pos: np.ndarray, base_pos: np.ndarray, stance
     return out
 
 
-def self_contacts(model, joint_pos: np.ndarray, base_pos: np.ndarray, every: int = 1) -> list[tuple[int, str, str, float]]:
+def self_contacts(
+    model, joint_pos: np.ndarray, base_pos: np.ndarray, every: int = 1
+) -> list[tuple[int, str, str, float]]:
     """Penetrating pairs of collision geoms (ground excluded) along the cycle: ``(row, body1, body2, distance)``.
 
     Contacts come from MuJoCo's own collision pipeline, so the model's contype/conaffinity and parent-child

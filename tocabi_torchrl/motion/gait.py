@@ -97,11 +97,12 @@ class GaitConfig:
         return 2 * self.step_rows
 
     def validate(self) -> "GaitConfig":
-        if not 0.0 <= self.dsp_time < self.step_time:
-            raise ValueError(f"dsp_time {self.dsp_time} must lie in [0, step_time={self.step_time})")
+        """Return ``self``, or raise ``ValueError`` naming the first parameter that makes no gait."""
         for name in ("step_time", "step_width", "pelvis_height", "sample_rate"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if not 0.0 <= self.dsp_time < self.step_time:
+            raise ValueError(f"dsp_time {self.dsp_time} must lie in [0, step_time={self.step_time})")
         if self.swing_height < 0:
             raise ValueError(f"swing_height must be >= 0, got {self.swing_height}")
         return self

@@ -97,7 +97,7 @@ class MotionData:
         return int(self.joint_pos.shape[0])
 
     def validate(self, source: str = "motion") -> "MotionData":
-        """Check shapes, finiteness, stance codes and start rows; return ``self`` or raise :class:`MotionFormatError`."""
+        """Check shapes, finiteness, stance codes and start rows; return ``self``, else raise MotionFormatError."""
         jp, ff, st = np.asarray(self.joint_pos), np.asarray(self.foot_force), np.asarray(self.stance)
         if jp.ndim != 2 or jp.shape[1] != NUM_JOINTS:
             raise MotionFormatError(f"{source}: joint_pos has shape {jp.shape}, expected (rows, {NUM_JOINTS})")
@@ -118,7 +118,9 @@ class MotionData:
         bad = (st < DOUBLE_SUPPORT) | (st > LEFT_STANCE)
         if bad.any():
             r = int(np.argmax(bad))
-            raise MotionFormatError(f"{source}: stance code {st[r]} at row {r}; allowed 0 (double), 1 (right), 2 (left)")
+            raise MotionFormatError(
+                f"{source}: stance code {st[r]} at row {r}; allowed 0 (double), 1 (right), 2 (left)"
+            )
         if not (np.isfinite(self.sample_rate) and self.sample_rate > 0):
             raise MotionFormatError(f"{source}: sample_rate must be a positive number of rows per second")
         init = np.asarray(self.init_rows)

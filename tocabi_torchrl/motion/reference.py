@@ -20,7 +20,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 import torch
 
-from tocabi_torchrl.robot import NUM_JOINTS, asset_path
+from tocabi_torchrl.robot import asset_path
 
 from .io import MotionData, load_motion
 
@@ -111,10 +111,6 @@ class ReferenceMotion:
         """Cycle period T = (R − 1)·row_dt [s] (1.7995 s for the reference)."""
         return self.cycle_rows * self.row_dt
 
-    @property
-    def num_joints(self) -> int:
-        return NUM_JOINTS
-
     # ----------------------------------------------------------------------------------------------- lookups
     def _cycle_position(self, time: torch.Tensor) -> torch.Tensor:
         """(N,) float32 position in the cycle, in rows, in [0, R − 1): ``(t·rate) mod N`` clamped below N."""
@@ -145,7 +141,7 @@ class ReferenceMotion:
     def joint_targets(self, time: torch.Tensor, init_row: torch.Tensor) -> torch.Tensor:
         """Joint targets by the zero-velocity cubic between rows ``idx`` and ``idx + 1`` (spec §3.2).
 
-        ``q = q_idx + (q_{idx+1} − q_idx)(3s² − 2s³)`` with ``s`` the fraction of the way from row ``idx`` to the next.
+        ``q = q_idx + (q_{idx+1} − q_idx)(3s² − 2s³)``, ``s`` the fraction of the way from row ``idx`` to the next.
 
         Args:
             time: (num_envs,) float32 seconds since each env's reset.

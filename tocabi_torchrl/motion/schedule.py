@@ -41,7 +41,7 @@ REFERENCE_WEIGHT_FORCE: float = float(round(NOMINAL_MASS * GRAVITY))
 
 
 def smoothstep(s: np.ndarray) -> np.ndarray:
-    """Zero-velocity cubic ``3s² − 2s³`` on ``s`` clamped to [0, 1] (the reference's ``cubic`` helper, normalised)."""
+    """Zero-velocity cubic ``3s² − 2s³`` of ``s`` clamped to [0, 1] (the reference's ``cubic`` helper, normalised)."""
     s = np.clip(s, 0.0, 1.0)
     return s * s * (3.0 - 2.0 * s)
 
