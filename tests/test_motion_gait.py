@@ -100,6 +100,7 @@ def test_com_follows_the_lipm_plan(model):
     "field,value,message",
     [
         ("dsp_time", 0.9, "dsp_time 0.9 must lie in"),
+        ("dsp_time", 0.0, "dsp_time 0.0 must lie in"),
         ("step_time", -1.0, "step_time must be positive"),
         ("swing_height", -0.01, "swing_height must be >= 0"),
     ],

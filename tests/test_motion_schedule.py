@@ -90,7 +90,7 @@ def test_stance_schedule_counts():
     assert np.sum(stance == LEFT_STANCE) == 1201 + 2
 
 
-@pytest.mark.parametrize("rows,dsp", [(3601, 600), (3600, 601), (3600, 2000), (0, 0)])
+@pytest.mark.parametrize("rows,dsp", [(3601, 600), (3600, 601), (3600, 2000), (3600, 0), (0, 0)])
 def test_cycle_layout_rejects_impossible_layouts(rows, dsp):
     with pytest.raises(ValueError, match="rows"):
         cycle_layout(rows, dsp)

@@ -101,8 +101,10 @@ class GaitConfig:
         for name in ("step_time", "step_width", "pelvis_height", "sample_rate"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if not 0.0 <= self.dsp_time < self.step_time:
-            raise ValueError(f"dsp_time {self.dsp_time} must lie in [0, step_time={self.step_time})")
+        if not 0.0 < self.dsp_time < self.step_time or self.dsp_rows < 2:
+            raise ValueError(
+                f"dsp_time {self.dsp_time} must lie in (0, step_time={self.step_time}) and span two or more rows"
+            )
         if self.swing_height < 0:
             raise ValueError(f"swing_height must be >= 0, got {self.swing_height}")
         return self

@@ -30,7 +30,7 @@ __all__ = ["ReferenceMotion", "DEFAULT_MOTION"]
 DEFAULT_MOTION = ("motions", "tocabi_walk.npz")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # tensors have no single truth value; compare fields explicitly
 class ReferenceMotion:
     """A cyclic reference motion of R rows held as tensors on one device.
 

@@ -54,8 +54,9 @@ def cycle_layout(num_rows: int, dsp_rows: int) -> tuple[int, int]:
     if num_rows < 2 or num_rows % 2:
         raise ValueError(f"a two-step cycle needs an even number of rows >= 2, got {num_rows}")
     step_rows = num_rows // 2
-    if dsp_rows < 0 or dsp_rows > step_rows or dsp_rows % 2:
-        raise ValueError(f"double support must be an even number of rows in [0, {step_rows}], got {dsp_rows}")
+    # At least two rows: each double support has a half on either side of its middle row.
+    if dsp_rows < 2 or dsp_rows > step_rows or dsp_rows % 2:
+        raise ValueError(f"double support must be an even number of rows in [2, {step_rows}], got {dsp_rows}")
     return step_rows, dsp_rows // 2
 
 
@@ -69,7 +70,7 @@ def force_schedule(num_rows: int, dsp_rows: int, weight: float = REFERENCE_WEIGH
     step_rows, half = cycle_layout(num_rows, dsp_rows)
     f = -float(weight)
     k = np.arange(num_rows, dtype=np.float64)
-    d = float(max(dsp_rows, 1))  # a zero-length double support degenerates to a switch, not a division by zero
+    d = float(dsp_rows)
     left = np.empty(num_rows)
     # The loops of walk.m (1-based) shifted to 0-based rows; each row range is half-open here.
     a, b = half - 1, step_rows - half  # right single support: rows [H-1, S-H)
