@@ -52,8 +52,10 @@ def test_phase_encoding_harmonics():
     td["phase"] = torch.tensor([[0.0], [0.125], [0.75]])
     out = PhaseEncoding(harmonics=3)(td)
     s = math.sqrt(0.5)
-    torch.testing.assert_close(out["phase_sin"], torch.tensor([[0.0, 0.0, 0.0], [s, 1.0, s], [-1.0, 0.0, 1.0]]), atol=1e-6, rtol=0)
-    torch.testing.assert_close(out["phase_cos"], torch.tensor([[1.0, 1.0, 1.0], [s, 0.0, -s], [0.0, -1.0, 0.0]]), atol=1e-6, rtol=0)
+    sin = torch.tensor([[0.0, 0.0, 0.0], [s, 1.0, s], [-1.0, 0.0, 1.0]])
+    cos = torch.tensor([[1.0, 1.0, 1.0], [s, 0.0, -s], [0.0, -1.0, 0.0]])
+    torch.testing.assert_close(out["phase_sin"], sin, atol=1e-6, rtol=0)
+    torch.testing.assert_close(out["phase_cos"], cos, atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match="harmonics"):
         PhaseEncoding(harmonics=0)
 
@@ -68,13 +70,16 @@ def test_quat_to_rpy_fixed_xyz(rpy):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_quat_to_rpy_gimbal_fallback(dtype):
     # R = Ry(π/2)·Rx(0.3): at the lock the reference reports roll 0, yaw = atan2(-R01, R11) = -0.3.
-    q = torch.tensor([_qmul((math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0), (math.cos(0.15), math.sin(0.15), 0.0, 0.0))], dtype=dtype)
+    pitch90 = (math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0)
+    roll03 = (math.cos(0.15), math.sin(0.15), 0.0, 0.0)
+    q = torch.tensor([_qmul(pitch90, roll03)], dtype=dtype)
     rpy = quat_to_rpy(q)[0]
     torch.testing.assert_close(rpy, torch.tensor([0.0, math.pi / 2, -0.3], dtype=dtype), atol=1e-3, rtol=0)
 
 
 def test_quat_rotation_angle():
-    q = torch.tensor([[1.0, 0, 0, 0], [math.cos(0.5), math.sin(0.5), 0, 0], [-math.cos(0.5), 0, -math.sin(0.5), 0], [0.0, 0, 0, 1]])
+    c, s = math.cos(0.5), math.sin(0.5)
+    q = torch.tensor([[1.0, 0, 0, 0], [c, s, 0, 0], [-c, 0, -s, 0], [0.0, 0, 0, 1]])
     torch.testing.assert_close(quat_rotation_angle(q).squeeze(-1), torch.tensor([0.0, 1.0, 1.0, math.pi]))
 
 
@@ -204,8 +209,25 @@ def test_running_normalization_in_env_updates_on_step_only_and_freezes():
     td = env.rand_step(env.reset())
     assert norm.count.item() == 5.0
     torch.testing.assert_close(
-        td["next", "obs_step_norm"], ((td["next", "obs_step"].double() - norm.mean) / torch.sqrt(norm.var + 1e-8)).float()
+        td["next", "obs_step_norm"],
+        ((td["next", "obs_step"].double() - norm.mean) / torch.sqrt(norm.var + 1e-8)).float(),
     )
     norm.freeze()
     env.rand_step(env.reset())
     assert norm.count.item() == 5.0
+
+
+def test_running_normalization_masked_update():
+    torch.manual_seed(1)
+    norm = RunningNormalization(dim=2, init_count=1e-6)
+    x1, x2 = torch.randn(16, 2) * 3 + 1, torch.randn(16, 2) - 2
+    m1, m2 = torch.rand(16, 1) < 0.5, torch.rand(16, 1) < 0.5
+    norm.update(x1, m1)
+    norm.update(x2, m2)
+    sel = torch.cat((x1[m1.squeeze(-1)], x2[m2.squeeze(-1)])).double()
+    torch.testing.assert_close(norm.mean, sel.mean(0), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(norm.var, sel.var(0, unbiased=False), rtol=1e-5, atol=1e-6)
+    before = (norm.mean.clone(), norm.var.clone(), norm.count.clone())
+    norm.update(torch.randn(16, 2) * 100, torch.zeros(16, 1, dtype=torch.bool))  # nothing selected: no change
+    for a, b in zip(before, (norm.mean, norm.var, norm.count)):
+        torch.testing.assert_close(a, b)

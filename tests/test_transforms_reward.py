@@ -75,7 +75,8 @@ def test_orientation_uses_neck_rotation_angle():
     # -q is the same rotation: pyquaternion's wrapped angle gives |θ| = 0.1 too.
     nxt["neck_quat"][1] = -torch.tensor([math.cos(half), 0.0, 0.0, math.sin(half)])
     # 0.6 rad about the axis (1, 2, 2)/3, quaternion not normalised (scaled by 2).
-    nxt["neck_quat"][2] = 2.0 * torch.tensor([math.cos(0.3), math.sin(0.3) / 3, 2 * math.sin(0.3) / 3, 2 * math.sin(0.3) / 3])
+    s = math.sin(0.3) / 3
+    nxt["neck_quat"][2] = 2.0 * torch.tensor([math.cos(0.3), s, 2 * s, 2 * s])
     expected = [0.3 * math.exp(-13.2 * 0.1), 0.3 * math.exp(-13.2 * 0.1), 0.3 * math.exp(-13.2 * 0.6)]
     _close(NeckOrientation()(td, nxt), expected)
 
@@ -229,7 +230,9 @@ def test_zero_reward_on_terminating_step_is_an_option():
     for n in REFERENCE_TERMS:
         assert (ro["next", "reward_terms", n][term] == 0).all()
 
-    env_keep = TransformedEnv(MockTocabiWalk(N, terminate_prob=0.5, seed=1), TaskReward(reference_terms(), zero_on_terminated=False))
+    env_keep = TransformedEnv(
+        MockTocabiWalk(N, terminate_prob=0.5, seed=1), TaskReward(reference_terms(), zero_on_terminated=False)
+    )
     ro_keep = env_keep.rollout(6, break_when_any_done=False)
     torch.testing.assert_close(ro_keep["next", "terminated"], term)
     assert (ro_keep["next", "reward"][term] != 0).all()
@@ -285,3 +288,46 @@ def test_per_joint_torque_scale_option():
     nxt["applied_action"][0, 5] = 1.0
     term = TorqueRegulation(torque_scale=tuple(float(x) for x in robot.LEG_TORQUE_LIMITS))
     _close(term(td, nxt), [0.05 * math.exp(-0.01 * math.hypot(333.0, 166.0)), 0.05, 0.05])
+
+
+def test_wrong_signal_shape_is_reported_when_the_env_is_built():
+    from torchrl.data import Unbounded
+
+    class WrongForceShape(MockTocabiWalk):
+        def _make_specs(self):
+            super()._make_specs()
+            spec = self.observation_spec.clone()
+            spec["foot_force"] = Unbounded(shape=(N, 6))
+            self.observation_spec = spec
+
+    base = WrongForceShape(N)
+    env = TransformedEnv(base, TaskReward(reference_terms()))
+    with pytest.raises(ValueError, match=r"'foot_force' of shape \('num_envs', 2, 3\)"):
+        env.observation_spec
+
+
+def test_set_weight_changes_one_term_in_place():
+    tr = TaskReward(reference_terms())
+    env = TransformedEnv(MockTocabiWalk(N, seed=5), tr)
+    tr.set_weight("qpos", 0.0)
+    tr.set_weight("orientation", 0.6)
+    ro = env.rollout(2)
+    assert (ro["next", "reward_terms", "qpos"] == 0).all()
+    torch.testing.assert_close(
+        ro["next", "reward_terms", "orientation"], 2.0 * NeckOrientation()(ro.exclude("next"), ro["next"])
+    )
+    torch.testing.assert_close(ro["next", "reward"], sum(ro["next", "reward_terms", n] for n in REFERENCE_TERMS))
+    with pytest.raises(KeyError, match="no term 'qpoz'"):
+        tr.set_weight("qpoz", 1.0)
+
+
+@pytest.mark.slow
+def test_compiled_reward_matches_eager():
+    terms = [JointPosTracking(), FootContactPattern(), ForceDiffThresholdPenalty()]
+    eager = TransformedEnv(MockTocabiWalk(N, seed=7, terminate_prob=0.3), TaskReward(terms))
+    compiled = TransformedEnv(MockTocabiWalk(N, seed=7, terminate_prob=0.3), TaskReward(terms, compile=True))
+    ro_e = eager.rollout(3, break_when_any_done=False)
+    ro_c = compiled.rollout(3, break_when_any_done=False)
+    assert compiled.transform._compiled is not None
+    torch.testing.assert_close(ro_c["next", "reward"], ro_e["next", "reward"])
+    torch.testing.assert_close(ro_c["next", "reward_terms"], ro_e["next", "reward_terms"])

@@ -135,8 +135,9 @@ class FixedNormalization(_Normalization):
 class RunningNormalization(_Normalization):
     """``(x - mean) / sqrt(var + eps)`` with statistics accumulated over every env step (an option).
 
-    Each ``env.step`` folds the batch of new observations (all num_envs rows) into the running mean and variance
-    with the parallel (Chan) update, using device tensor ops only; resets read the statistics but do not update them.
+    Each ``env.step`` folds the batch of new observations (all num_envs rows, or those selected by ``mask_key``) into
+    the running mean and variance with the parallel (Chan) update, using device tensor ops only; resets read the
+    statistics but do not update them.
     Statistics are kept in float64 because they accumulate over 1e8+ samples, where float32 increments vanish.
     Call :meth:`freeze` for evaluation. The statistics are buffers, saved in ``state_dict``.
 
@@ -149,6 +150,9 @@ class RunningNormalization(_Normalization):
         init_count: weight of the starting statistics in samples (> 0).
         eps, clip: as in :class:`FixedNormalization`.
         frozen: start without updating.
+        mask_key: optional (num_envs, 1) bool key of the step output selecting the rows to learn from, e.g.
+            ``"terminated"`` with ``mask_invert=True`` to skip states of falling robots.
+        mask_invert: learn from the rows where ``mask_key`` is False instead.
     """
 
     def __init__(
@@ -162,6 +166,8 @@ class RunningNormalization(_Normalization):
         eps: float = 1e-8,
         clip: float | None = None,
         frozen: bool = False,
+        mask_key: NestedKey | None = None,
+        mask_invert: bool = False,
     ):
         super().__init__(in_key, out_key, eps, clip)
         if init_mean is not None and dim is None:
@@ -183,6 +189,7 @@ class RunningNormalization(_Normalization):
         self.register_buffer("var", var_t)
         self.register_buffer("count", torch.tensor(check_positive(init_count, "RunningNormalization init_count")))
         self.frozen = bool(frozen)
+        self.mask_key, self.mask_invert = mask_key, bool(mask_invert)
 
     def freeze(self) -> RunningNormalization:
         self.frozen = True
@@ -204,12 +211,20 @@ class RunningNormalization(_Normalization):
         return super().transform_observation_spec(observation_spec)
 
     @torch.no_grad()
-    def update(self, x: torch.Tensor) -> None:
-        """Fold a batch (..., D) into the statistics (no host sync)."""
+    def update(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> None:
+        """Fold a batch (..., D) into the statistics, only the rows where ``mask`` (..., 1) is True if given.
+
+        The number of rows used stays a device tensor, so a masked update needs no host sync; an all-False mask
+        leaves the statistics unchanged.
+        """
         batch = x.detach().reshape(-1, x.shape[-1]).to(torch.float64)
-        n = float(batch.shape[0])
-        b_mean = batch.mean(0)
-        b_var = batch.var(0, unbiased=False)
+        if mask is None:
+            w = torch.ones((batch.shape[0], 1), dtype=torch.float64, device=batch.device)
+        else:
+            w = mask.detach().reshape(-1, 1).to(torch.float64)
+        n = w.sum()
+        b_mean = (batch * w).sum(0) / n.clamp_min(1.0)
+        b_var = ((batch - b_mean).square() * w).sum(0) / n.clamp_min(1.0)
         total = self.count + n
         delta = b_mean - self.mean
         self.mean.add_(delta * (n / total))
@@ -228,7 +243,11 @@ class RunningNormalization(_Normalization):
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         if not self.frozen:
-            self.update(next_tensordict.get(self.in_keys[0]))
+            mask = None
+            if self.mask_key is not None:
+                mask = next_tensordict.get(self.mask_key)
+                mask = ~mask if self.mask_invert else mask
+            self.update(next_tensordict.get(self.in_keys[0]), mask)
         return self._call(next_tensordict)
 
     def _apply_transform(self, x: torch.Tensor) -> torch.Tensor:  # used by forward() on stored data

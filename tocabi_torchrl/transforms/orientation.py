@@ -6,6 +6,8 @@ uses only elementwise torch ops (no host synchronisation).
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
@@ -17,6 +19,30 @@ from tocabi_torchrl.transforms._checks import require_spec
 __all__ = ["quat_to_rpy", "quat_rotation_angle", "BaseEulerAngles"]
 
 
+# Rows: the 16 products q_a·q_b (a, b in w, x, y, z, row-major). Columns: |q|²·R for the seven rotation-matrix
+# entries the angles need, R00, R01, R10, R11, R20, R21, R22 (gym's quat2mat, using 1 = (ww + xx + yy + zz)/|q|²).
+_W, _X, _Y, _Z = range(4)
+_R_TERMS = (
+    {(_W, _W): 1, (_X, _X): 1, (_Y, _Y): -1, (_Z, _Z): -1},  # R00
+    {(_X, _Y): 2, (_W, _Z): -2},  # R01
+    {(_X, _Y): 2, (_W, _Z): 2},  # R10
+    {(_W, _W): 1, (_X, _X): -1, (_Y, _Y): 1, (_Z, _Z): -1},  # R11
+    {(_X, _Z): 2, (_W, _Y): -2},  # R20
+    {(_Y, _Z): 2, (_W, _X): 2},  # R21
+    {(_W, _W): 1, (_X, _X): -1, (_Y, _Y): -1, (_Z, _Z): 1},  # R22
+)
+
+
+@functools.lru_cache(maxsize=8)
+def _rotation_basis(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    # Built once per device: a tensor made from host data inside the step loop would be a blocking copy.
+    basis = torch.zeros(16, len(_R_TERMS), dtype=torch.float64)
+    for col, terms in enumerate(_R_TERMS):
+        for (a, b), c in terms.items():
+            basis[4 * a + b, col] = c
+    return basis.to(dtype=dtype, device=device)
+
+
 def quat_to_rpy(quat: torch.Tensor) -> torch.Tensor:
     """Fixed-XYZ (= ZYX roll-pitch-yaw) Euler angles of a (w, x, y, z) quaternion, spec §7.2.
 
@@ -26,30 +52,23 @@ def quat_to_rpy(quat: torch.Tensor) -> torch.Tensor:
     never branches on device values.
 
     Args:
-        quat: (..., 4) quaternion (w, x, y, z); need not be unit length (the matrix uses s = 2/|q|², as gym does).
+        quat: (..., 4) quaternion (w, x, y, z); need not be unit length (R is that of q/|q|, as in gym's quat2mat).
 
     Returns:
         (..., 3) [roll, pitch, yaw] in rad.
     """
     if quat.shape[-1] != 4:
         raise ValueError(f"quat_to_rpy expects (..., 4) quaternions (w, x, y, z), got shape {tuple(quat.shape)}")
-    w, x, y, z = quat.unbind(-1)
-    # gym's quat2mat scales by 2/|q|², so slightly non-unit quaternions still give a rotation matrix.
-    s = 2.0 / (w * w + x * x + y * y + z * z).clamp_min(torch.finfo(quat.dtype).tiny)
-    r00 = 1.0 - s * (y * y + z * z)
-    r01 = s * (x * y - w * z)
-    r10 = s * (x * y + w * z)
-    r11 = 1.0 - s * (x * x + z * z)
-    r20 = s * (x * z - w * y)
-    r21 = s * (y * z + w * x)
-    r22 = 1.0 - s * (x * x + y * y)
-    cy = torch.sqrt(r00 * r00 + r10 * r10)
+    # |q|²·R from one outer product and one matmul: few kernels, as this runs every step for every env. atan2 is
+    # scale-invariant, so the angles need no division by |q|²; only the gimbal threshold is scaled.
+    products = (quat.unsqueeze(-1) * quat.unsqueeze(-2)).flatten(-2)
+    r00, r01, r10, r11, r20, r21, r22 = (products @ _rotation_basis(quat.dtype, quat.device)).unbind(-1)
+    cy = torch.hypot(r00, r10)
+    angles = torch.atan2(torch.stack((r21, -r20, r10, -r01), -1), torch.stack((r22, cy, r00, r11), -1))
     # The reference uses float64's 4·eps; in float32 the rounding of cy near the lock is ~1e-7, so use this dtype's.
-    locked = cy <= 4.0 * torch.finfo(quat.dtype).eps
-    pitch = torch.atan2(-r20, cy)
-    roll = torch.where(locked, torch.zeros_like(cy), torch.atan2(r21, r22))
-    yaw = torch.where(locked, torch.atan2(-r01, r11), torch.atan2(r10, r00))
-    return torch.stack((roll, pitch, yaw), dim=-1)
+    locked = (cy <= 4.0 * torch.finfo(quat.dtype).eps * products[..., 0 :: 5].sum(-1)).unsqueeze(-1)
+    at_lock = torch.stack((torch.zeros_like(cy), angles[..., 1], angles[..., 3]), -1)
+    return torch.where(locked, at_lock, angles[..., :3])
 
 
 def quat_rotation_angle(quat: torch.Tensor) -> torch.Tensor:

@@ -59,6 +59,7 @@ class TransformConfig:
         reward_terms: term names from :data:`REFERENCE_TERMS` and/or :class:`RewardTerm` instances / callables.
         reward_weights: ``{term name: weight}`` overrides.
         zero_reward_on_terminated: reward and terms are 0 on a terminating step (reference: on).
+        compile_reward: ``torch.compile`` the reward terms into fused kernels (first step compiles).
         max_episode_steps: ``StepCounter`` truncation; ``None`` counts steps without truncating.
         track_episode_return: add ``RewardSum`` (``episode_reward``).
     """
@@ -71,12 +72,20 @@ class TransformConfig:
     obs_clip: float | None = None
     history: HistoryLayout = REFERENCE_HISTORY
     reward_terms: tuple = tuple(REFERENCE_TERMS)
-    reward_weights: Mapping[str, float] = field(default_factory=dict)
+    reward_weights: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
     zero_reward_on_terminated: bool = True
+    compile_reward: bool = False
     max_episode_steps: int | None = 8000
     track_episode_return: bool = True
 
     def __post_init__(self):
+        # Frozen copies, so that a preset cannot be changed through a config built from it.
+        object.__setattr__(self, "reward_weights", MappingProxyType(dict(self.reward_weights)))
+        object.__setattr__(self, "reward_terms", tuple(self.reward_terms))
+        object.__setattr__(self, "obs_layout", tuple(self.obs_layout))
+        for name in ("obs_mean", "obs_var"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
         if self.normalization not in _NORMALIZATIONS:
             raise ValueError(f"normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
         if (self.obs_mean is None) != (self.obs_var is None):
@@ -175,7 +184,12 @@ def default_transforms(preset: str | TransformConfig = "reference", **overrides)
         )
     )
     stages.append(
-        TaskReward(_reward_terms(cfg), weights=cfg.reward_weights, zero_on_terminated=cfg.zero_reward_on_terminated)
+        TaskReward(
+            _reward_terms(cfg),
+            weights=cfg.reward_weights,
+            zero_on_terminated=cfg.zero_reward_on_terminated,
+            compile=cfg.compile_reward,
+        )
     )
     stages.append(StepCounter(max_steps=cfg.max_episode_steps))
     if cfg.track_episode_return:

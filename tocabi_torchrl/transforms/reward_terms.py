@@ -44,6 +44,7 @@ __all__ = [
     "ForceThresholdPenalty",
     "ForceDiffThresholdPenalty",
     "REFERENCE_TERMS",
+    "SIGNAL_SHAPES",
     "reference_terms",
 ]
 
@@ -52,6 +53,23 @@ _BODY_WEIGHT = robot.NOMINAL_MASS * robot.GRAVITY
 #: The reference scales every leg action by the first joint's limit (333 N·m), not by its own limit (spec §13.10).
 _REFERENCE_TORQUE_SCALE = float(robot.LEG_TORQUE_LIMITS[0])
 _LEGS = slice(0, robot.NUM_LEG_JOINTS)
+
+#: Per-env shapes of the docs/signals.md signals the reference terms read, checked when the env is built.
+SIGNAL_SHAPES: MappingProxyType[str, tuple[int, ...]] = MappingProxyType(
+    {
+        "joint_pos": (robot.NUM_JOINTS,),
+        "joint_vel": (robot.NUM_JOINTS,),
+        "ref_joint_pos": (robot.NUM_JOINTS,),
+        "base_lin_vel": (3,),
+        "neck_quat": (4,),
+        "command": (2,),
+        "foot_force": (2, 3),
+        "ref_foot_force": (2,),
+        "foot_contact": (2,),
+        "stance": (1,),
+        "applied_action": (robot.NUM_LEG_JOINTS + 1,),
+    }
+)
 
 
 class RewardTerm:
