@@ -5,3 +5,15 @@ observation history, phase encoding and reward terms are TorchRL transforms; ``r
 """
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # Imported on first use: `import tocabi_torchrl` (e.g. for robot facts) should not load warp and torchrl.
+    if name == "make_env":
+        from .factory import make_env
+
+        return make_env
+    raise AttributeError(f"module 'tocabi_torchrl' has no attribute {name!r}")
+
+
+__all__ = ["make_env", "__version__"]

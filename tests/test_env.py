@@ -1,0 +1,299 @@
+"""TocabiWalk: specs, rollouts with resets, phase clock, commands, terminations, truncation, PD mode, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.envs import CommandConfig, TocabiWalk, TocabiWalkConfig, VelocityCommand
+from tocabi_torchrl.envs.termination import termination_flags
+from tocabi_torchrl.envs.tocabi_walk import quat_rotate_inverse
+
+N = 4
+
+
+@pytest.fixture(scope="module")
+def env():
+    return TocabiWalk(num_envs=N, device="cpu", seed=0)
+
+
+@pytest.fixture(scope="module")
+def pd_env():
+    # The robot controller's full gains: a stiff PD, so the gravity load leaves only a small tracking error.
+    return TocabiWalk(num_envs=2, device="cpu", seed=0, control_mode="pd", pd_kp=tuple(robot.LEG_KP),
+                      pd_kv=tuple(robot.LEG_KV))
+
+
+def _zero_action(e, phase_rate=0.0):
+    a = torch.zeros(e.num_envs, 13)
+    a[:, 12] = phase_rate
+    return TensorDict({"action": a}, batch_size=[e.num_envs])
+
+
+def test_specs_torque(env):
+    check_env_specs(env, seed=0)
+
+
+def test_specs_pd(pd_env):
+    check_env_specs(pd_env, seed=0)
+
+
+def test_initial_state(env):
+    td = env.reset()
+    torch.testing.assert_close(td["joint_pos"], torch.as_tensor(robot.INIT_JOINT_POS, dtype=torch.float32).expand(N, -1))
+    torch.testing.assert_close(td["base_pos"][:, 2], torch.full((N,), 0.92983))
+    assert torch.all(td["joint_vel"] == 0) and torch.all(td["applied_action"] == 0)
+    assert torch.all(td["episode_step"] == 0) and not td["done"].any()
+    assert set(env.init_row.tolist()) <= set(env.motion.init_rows.tolist())
+    vx, vy = td["command"].unbind(-1)
+    assert torch.all((vx >= 0.2) & (vx <= 0.7)) and torch.all(vy.abs() <= 0.2)
+    # The feet start just above the ground: no contact, (almost) no load on the F/T sensors.
+    assert not td["foot_contact"].any()
+    assert td["foot_force"].abs().max() < 60.0
+    torch.testing.assert_close(td["ref_joint_pos"], env.motion.joint_targets(torch.zeros(N), env.init_row))
+
+
+def test_phase_clock(env):
+    env.reset()
+    rows = env.motion.cycle_rows
+    start = env.init_row.clone()
+    rate = torch.tensor([0.0, 0.5, 1.0, 0.25])
+    a = torch.zeros(N, 13)
+    a[:, 12] = rate
+    for k in range(1, 6):
+        td = env.step(TensorDict({"action": a}, batch_size=[N]))["next"]
+        t = k * env.dt * (1.0 + rate)
+        expected = ((start + t / env.motion.row_dt) % rows) / rows
+        torch.testing.assert_close(td["phase"].squeeze(-1), expected.float(), atol=2e-5, rtol=0)
+    assert torch.all(td["episode_step"].squeeze(-1) == 5)
+    torch.testing.assert_close(td["applied_action"], a)
+
+
+def test_rollout_resets_only_fallen_worlds(env):
+    env.set_seed(3)
+    env.reset()
+    torch.manual_seed(0)
+    # Worlds 0-1 get full random torques and fall; worlds 2-3 get no leg torque and fall later (< 200 steps too).
+    roll = env.rollout(200, break_when_any_done=False)
+    done = roll["next", "done"].squeeze(-1)  # (N, T)
+    assert done.any(), "random torques should make some world fall within 0.8 s"
+    steps = roll["episode_step"].squeeze(-1)  # root: the state each action was applied to
+    for w in range(N):
+        for t in range(1, 200):
+            if done[w, t - 1]:
+                assert steps[w, t] == 0, "a done world restarts from a reset state"
+                torch.testing.assert_close(roll["joint_pos"][w, t],
+                                           torch.as_tensor(robot.INIT_JOINT_POS, dtype=torch.float32))
+            else:
+                assert steps[w, t] == steps[w, t - 1] + 1, "a running world keeps its episode"
+
+
+def test_masked_reset_touches_only_flagged(env):
+    env.reset()
+    for _ in range(5):
+        env.step(_zero_action(env))
+    before = env._observe()
+    mask = torch.tensor([True, False, True, False]).unsqueeze(-1)
+    # TorchRL fills the rows that are not reset from the input tensordict: pass the current one, as collectors do.
+    after = env.reset(before.clone().set("_reset", mask))
+    for key in ("joint_pos", "joint_vel", "base_pos", "foot_force", "command", "episode_step", "phase"):
+        assert torch.equal(after[key][1], before[key][1]) and torch.equal(after[key][3], before[key][3]), key
+    assert torch.all(after["episode_step"][[0, 2]] == 0)
+    assert not torch.equal(after["joint_vel"][0], before["joint_vel"][0])
+
+
+def test_truncation_with_short_episodes():
+    e = TocabiWalk(num_envs=2, device="cpu", seed=0, max_episode_steps=5)
+    e.reset()
+    for k in range(5):
+        out = e.step(_zero_action(e))["next"]
+        assert bool(out["truncated"].all()) == (k == 4)
+        assert not out["terminated"].any()
+    assert torch.equal(out["done"], out["truncated"])
+
+
+def test_neck_yaw_terminates(env):
+    """A standing robot turned 1.2 rad about z: only the neck-orientation condition fires."""
+    env.reset()
+    q = env.sim.qpos.clone()
+    q[0, 3:7] = torch.tensor([math.cos(0.6), 0.0, 0.0, math.sin(0.6)])
+    env.sim.reset(torch.tensor([True, False, False, False]), q, torch.zeros_like(env.sim.qvel),
+                  env.sim.ctrl.clone())
+    out = env.step(_zero_action(env))["next"]
+    assert out["terminated"].squeeze(-1).tolist() == [True, False, False, False]
+
+
+def test_termination_conditions_on_constructed_states():
+    n = 7
+    kwargs = dict(min_pelvis_height=0.6, min_neck_height=0.8, max_neck_angle=1.0)
+    pelvis = torch.full((n,), 0.92)
+    neck = torch.full((n,), 1.5)
+    quat = torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1)
+    forbidden = torch.zeros(n, dtype=torch.bool)
+    self_col = torch.zeros(n, dtype=torch.bool)
+    healthy = torch.ones(n, dtype=torch.bool)
+    pelvis[1] = 0.59
+    neck[2] = 0.79
+    quat[3] = torch.tensor([math.cos(0.51), math.sin(0.51), 0, 0])  # 1.02 rad roll
+    forbidden[4] = True
+    self_col[5] = True
+    healthy[6] = False
+    f = termination_flags(pelvis_height=pelvis, neck_height=neck, neck_quat=quat, forbidden_ground_contact=forbidden,
+                          self_collision=self_col, healthy=healthy, **kwargs)
+    assert f["any"].tolist() == [False] + [True] * 6
+    for name, row in [("pelvis_low", 1), ("neck_low", 2), ("neck_tilt", 3), ("forbidden_contact", 4),
+                      ("self_collision", 5), ("unhealthy", 6)]:
+        assert f[name].nonzero().flatten().tolist() == [row], name
+    quat[3] = torch.tensor([math.cos(0.49), math.sin(0.49), 0, 0])  # 0.98 rad: below the limit
+    f = termination_flags(pelvis_height=pelvis, neck_height=neck, neck_quat=quat, forbidden_ground_contact=forbidden,
+                          self_collision=self_col, healthy=healthy, **kwargs)
+    assert not f["neck_tilt"][3]
+
+
+def test_pd_mode_tracks_constant_target(pd_env):
+    pd_env.reset()
+    target = 0.2
+    a = torch.zeros(2, 13)
+    a[:, 3] = target  # left knee: nominal + 0.5 * 0.2 = 0.7 rad
+    for _ in range(60):
+        out = pd_env.step(TensorDict({"action": a}, batch_size=[2]))["next"]
+    knee = out["joint_pos"][:, 3]
+    expected = robot.INIT_JOINT_POS[3] + pd_env.cfg.pd_action_scale * target
+    assert torch.all((knee - expected).abs() < 0.03), knee
+    # The reported leg torque is the PD output, bounded by the limits.
+    assert torch.all(out["leg_torque"].abs() <= torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32) + 1e-3)
+
+
+def test_base_velocity_in_pelvis_frame():
+    q = torch.tensor([[math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]])  # 90° yaw
+    v = torch.tensor([[1.0, 0.0, 0.0]])
+    torch.testing.assert_close(quat_rotate_inverse(q, v), torch.tensor([[0.0, -1.0, 0.0]]), atol=1e-6, rtol=0)
+
+
+# --- command schedule -----------------------------------------------------------------------------------------
+
+
+def _command(cfg, n=512, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    c = VelocityCommand(cfg, n, torch.device("cpu"), g)
+    c.reset(torch.ones(n, dtype=torch.bool))
+    return c
+
+
+def test_command_tocabilab_preset():
+    cfg = CommandConfig(resample_every=10)
+    c = _command(cfg)
+    vx, vy = c.value.unbind(-1)
+    assert vx.min() >= 0.2 and vx.max() <= 0.7 and vy.abs().max() <= 0.2
+    first = c.value.clone()
+    for step in range(10):
+        c.update(torch.full((512,), step))
+        # Unchanged until step 9 (9 % 10 == 9), where the new command applies at once.
+        assert torch.equal(c.value, first) == (step < 9)
+    assert c.value[:, 0].min() >= 0.0 and c.value[:, 0].max() <= 0.7
+    assert c.value[:, 0].min() < 0.2, "re-samples use the full U(0, 0.7) range"
+
+
+def test_command_reference_ramp():
+    cfg = CommandConfig.reference()
+    cfg.resample_every = 5
+    c = _command(cfg, seed=1)
+    assert c.value[:, 0].min() >= -0.2 and c.value[:, 0].max() <= 0.8
+    s0 = c.value.clone()
+    c.update(torch.full((512,), 4))  # due (4 % 5 == 4): the ramp starts at position 0, value unchanged
+    torch.testing.assert_close(c.value, s0)
+    d, final = c.ramp_len.clone(), c.final.clone()
+    assert d.min() >= 1 and d.max() <= 249 and len(d.unique()) > 100
+    for _ in range(300):
+        c.update(torch.full((512,), 5))  # not due: the ramp only advances
+    # The reference's ramp stops one step short: at (D - 1) / D of the change (D = 1: no change at all).
+    expected = s0 + (final - s0) * ((d - 1).float() / d.float()).unsqueeze(-1)
+    torch.testing.assert_close(c.value, expected)
+
+
+def test_command_reference_ramp_survives_reset():
+    cfg = CommandConfig.reference()
+    c = _command(cfg, n=64, seed=2)
+    c.update(torch.full((64,), 1999))
+    pos = c.ramp_pos.clone()
+    c.reset(torch.ones(64, dtype=torch.bool))
+    assert torch.equal(c.ramp_pos, pos), "the reference keeps its ramp state across resets"
+    c2 = _command(CommandConfig(max_ramp_steps=50), n=64, seed=2)
+    c2.update(torch.full((64,), 1999))
+    c2.reset(torch.ones(64, dtype=torch.bool))
+    assert torch.equal(c2.ramp_pos, c2.ramp_len), "the default preset ends a ramp at reset"
+
+
+# --- bad input ------------------------------------------------------------------------------------------------
+
+
+def test_bad_actions(env):
+    env.reset()
+    with pytest.raises(ValueError, match=r"shape \(num_envs, 13\)"):
+        env._step(TensorDict({"action": torch.zeros(N, 12)}, batch_size=[N]))
+    with pytest.raises(TypeError, match="floating-point"):
+        env._step(TensorDict({"action": torch.zeros(N, 13, dtype=torch.int64)}, batch_size=[N]))
+    with pytest.raises(ValueError, match="move it with"):
+        env._step(TensorDict({"action": torch.zeros(N, 13, device="meta")}, batch_size=[N]))
+
+
+def test_nan_actions_act_as_zero(env):
+    env.reset()
+    a = torch.full((N, 13), float("nan"))
+    out = env.step(TensorDict({"action": a}, batch_size=[N]))["next"]
+    assert torch.all(out["applied_action"] == 0) and torch.all(out["leg_torque"] == 0)
+    assert torch.isfinite(out["joint_pos"]).all()
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        (dict(num_envs=0), ValueError, "num_envs"),
+        (dict(num_envs=-3), ValueError, "num_envs"),
+        (dict(num_envs=2, control_mode="velocity"), ValueError, "control_mode"),
+        (dict(num_envs=2, max_episode_steps=0), ValueError, "max_episode_steps"),
+        (dict(num_envs=2, min_pelvis_height=float("nan")), ValueError, "min_pelvis_height"),
+        (dict(num_envs=2, pd_kp=(1.0,) * 3), ValueError, "pd_kp"),
+        (dict(num_envs=2, not_an_option=1), TypeError, "not_an_option"),
+        (dict(num_envs=2, device="tpu"), ValueError, "device"),
+    ],
+)
+def test_bad_construction(kwargs, error, match):
+    kwargs.setdefault("device", "cpu")
+    with pytest.raises(error, match=match):
+        TocabiWalk(**kwargs)
+
+
+def test_bad_command_preset():
+    with pytest.raises(ValueError, match="unknown command preset"):
+        CommandConfig.preset("fast")
+    with pytest.raises(ValueError, match="vx_range"):
+        CommandConfig(vx_range=(0.5, 0.1)).validate()
+
+
+# --- GPU ------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_gpu_step_and_reset_never_sync():
+    e = TocabiWalk(num_envs=64, device="cuda", seed=0)
+    check_env_specs(e, seed=0)
+    td = e.reset()
+    action = torch.zeros(64, 13, device="cuda")
+    mask = (torch.arange(64, device="cuda") % 3 == 0).unsqueeze(-1)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(3):
+            td = e.step(td.set("action", action))["next"]
+        e.reset(td.clone().set("_reset", mask))
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    assert td["joint_pos"].device.type == "cuda"

@@ -1,0 +1,104 @@
+"""Velocity command (vx, vy) per env: sampling at reset and the every-2000-steps schedule, batched and sync-free."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["CommandConfig", "VelocityCommand"]
+
+
+@dataclass
+class CommandConfig:
+    """How the commanded pelvis-frame velocity [m/s] is drawn.
+
+    The defaults are the TocabiLab report's: vx ~ U(0, 0.7) with the first vx of an episode ~ U(0.2, 0.7),
+    vy ~ U(-0.2, 0.2), re-sampled every ``resample_every`` steps and applied at once. ``CommandConfig.reference()``
+    reproduces the reference code (spec §9.4): U(-0.2, 0.8) everywhere, and each re-sample ramps linearly over
+    D ~ randint(1, 250) steps, stopping at (D-1)/D of the change, with the ramp state surviving resets.
+    """
+
+    vx_range: tuple[float, float] = (0.0, 0.7)
+    vx_initial_range: tuple[float, float] = (0.2, 0.7)
+    vy_range: tuple[float, float] = (-0.2, 0.2)
+    resample_every: int = 2000
+    #: Ramp length D is drawn from randint(1, max_ramp_steps) (exclusive upper bound, like numpy); 1 = switch at once.
+    max_ramp_steps: int = 1
+    #: The reference never resets its ramp state, so a ramp in progress overwrites a new episode's first commands.
+    ramp_survives_reset: bool = False
+
+    @classmethod
+    def reference(cls) -> "CommandConfig":
+        return cls(vx_range=(-0.2, 0.8), vx_initial_range=(-0.2, 0.8), vy_range=(-0.2, 0.2),
+                   max_ramp_steps=250, ramp_survives_reset=True)
+
+    @classmethod
+    def preset(cls, name: str) -> "CommandConfig":
+        presets = {"tocabilab": cls, "reference": cls.reference}
+        if name not in presets:
+            raise ValueError(f"unknown command preset {name!r}; choose one of {sorted(presets)}")
+        return presets[name]()
+
+    def validate(self) -> None:
+        for field in ("vx_range", "vx_initial_range", "vy_range"):
+            lo, hi = getattr(self, field)
+            if not lo <= hi:
+                raise ValueError(f"CommandConfig.{field} must be (low, high) with low <= high, got {(lo, hi)}")
+        if self.resample_every < 1:
+            raise ValueError(f"CommandConfig.resample_every must be >= 1 step, got {self.resample_every}")
+        if self.max_ramp_steps < 1:
+            raise ValueError(f"CommandConfig.max_ramp_steps must be >= 1, got {self.max_ramp_steps}")
+
+
+class VelocityCommand:
+    """Command state of ``num_envs`` envs on one device.
+
+    Tensors: ``value`` (num_envs, 2) m/s, and the ramp state ``start``/``final`` (num_envs, 2), ``ramp_len`` and
+    ``ramp_pos`` (num_envs,) int64. Every update is a masked tensor op, so nothing reads device values on the host.
+    """
+
+    def __init__(self, cfg: CommandConfig, num_envs: int, device: torch.device, generator: torch.Generator):
+        cfg.validate()
+        self.cfg = cfg
+        self.gen = generator
+        zeros2 = torch.zeros(num_envs, 2, device=device)
+        self.value = zeros2.clone()
+        self.start = zeros2.clone()
+        self.final = zeros2.clone()
+        self.ramp_len = torch.ones(num_envs, dtype=torch.int64, device=device)
+        self.ramp_pos = torch.ones(num_envs, dtype=torch.int64, device=device)
+        lo = torch.tensor([cfg.vx_range[0], cfg.vy_range[0]], device=device)
+        hi = torch.tensor([cfg.vx_range[1], cfg.vy_range[1]], device=device)
+        lo0 = torch.tensor([cfg.vx_initial_range[0], cfg.vy_range[0]], device=device)
+        hi0 = torch.tensor([cfg.vx_initial_range[1], cfg.vy_range[1]], device=device)
+        self._range, self._initial_range = (lo, hi - lo), (lo0, hi0 - lo0)
+
+    def _sample(self, rng: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+        u = torch.rand(self.value.shape, device=self.value.device, generator=self.gen)
+        return rng[0] + rng[1] * u
+
+    def reset(self, mask: torch.Tensor) -> None:
+        """Draw a fresh command for the envs flagged in ``mask`` (num_envs,) bool."""
+        m = mask.unsqueeze(-1)
+        self.value = torch.where(m, self._sample(self._initial_range), self.value)
+        if not self.cfg.ramp_survives_reset:
+            self.ramp_pos = torch.where(mask, self.ramp_len, self.ramp_pos)
+
+    def update(self, episode_step: torch.Tensor) -> None:
+        """Advance the schedule before the physics of a step; ``episode_step`` (num_envs,) is the pre-step count."""
+        cfg = self.cfg
+        due = (episode_step % cfg.resample_every) == (cfg.resample_every - 1)
+        d = due.unsqueeze(-1)
+        self.start = torch.where(d, self.value, self.start)
+        self.final = torch.where(d, self._sample(self._range), self.final)
+        if cfg.max_ramp_steps > 1:
+            draw = torch.randint(1, cfg.max_ramp_steps, due.shape, device=due.device, generator=self.gen)
+            self.ramp_len = torch.where(due, draw, self.ramp_len)
+            self.ramp_pos = torch.where(due, torch.zeros_like(self.ramp_pos), self.ramp_pos)
+            ramping = self.ramp_pos < self.ramp_len
+            frac = (self.ramp_pos.float() / self.ramp_len.float()).unsqueeze(-1)
+            self.value = torch.where(ramping.unsqueeze(-1), self.start + (self.final - self.start) * frac, self.value)
+            self.ramp_pos = self.ramp_pos + ramping.long()
+        else:
+            self.value = torch.where(d, self.final, self.value)

@@ -1,0 +1,321 @@
+"""TocabiWalk: the batched, GPU-native TorchRL environment of the TOCABI walking task.
+
+N TOCABI worlds step at once in mujoco-warp on ``device``; every tensor this env reads or returns stays there. The
+env returns raw, physically named signals (``docs/signals.md``); the policy observation and the reward are composed
+from them by transforms (``tocabi_torchrl.transforms``, ``tocabi_torchrl.make_env``).
+
+One step (spec §11): clip the action; look the reference targets up at the pre-step phase clock; update the
+velocity command; write leg commands and upper-body targets into the simulator's controls; run the physics (one
+captured CUDA graph on GPU); advance the phase clock by dt·(1 + a13); evaluate terminations; return signals.
+"""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from .. import robot
+from ..motion import ReferenceMotion
+from ..sim import SimConfig, WarpSim
+from .command import VelocityCommand
+from .config import TocabiWalkConfig
+from .termination import termination_flags
+
+__all__ = ["TocabiWalk", "quat_rotate_inverse"]
+
+ACTION_DIM = robot.NUM_LEG_JOINTS + 1
+
+
+def quat_rotate_inverse(quat: torch.Tensor, vec: torch.Tensor) -> torch.Tensor:
+    """Rotate world vectors (..., 3) into the frame of (w, x, y, z) quaternions (..., 4): ``R(q)ᵀ · v``."""
+    w, u = quat[..., :1], quat[..., 1:]
+    t = 2.0 * torch.linalg.cross(u, vec, dim=-1)
+    return vec - w * t + torch.linalg.cross(u, t, dim=-1)
+
+
+def _pd_leg_spec(spec, cfg: TocabiWalkConfig):
+    """Turn the 12 leg torque motors into position servos (PD inside every physics substep)."""
+    for j in robot.LEG_JOINT_IDS:
+        act = spec.actuator(robot.ACTUATOR_NAMES[j])
+        limit = float(robot.TORQUE_LIMITS[j])
+        act.set_to_position(kp=float(cfg.pd_kp[j]), kv=float(cfg.pd_kv[j]))
+        act.ctrllimited = 0
+        act.forcelimited = 1
+        act.forcerange = [-limit, limit]
+    return spec
+
+
+class TocabiWalk(EnvBase):
+    """TOCABI walking task over ``num_envs`` mujoco-warp worlds.
+
+    Args:
+        num_envs: number of parallel worlds N (> 0).
+        device: ``"cuda"``, ``"cuda:K"`` or ``"cpu"`` (warp's CPU device: slow, for tests and debugging).
+        config: task constants (``TocabiWalkConfig``); keyword ``overrides`` replace single fields.
+        seed: seed of the env's own torch generator (initial phase, commands).
+
+    Action (N, 13): 12 leg commands in [-1, 1] (torques as a fraction of the limits, or PD targets, see the
+    config's ``control_mode``) and one phase-rate action in [0, 1]. Actions outside the bounds are clipped; NaN
+    entries are treated as 0 (checking for them would need a host synchronisation).
+
+    Output keys and units: ``docs/signals.md``. ``done``/``terminated``/``truncated`` are (N, 1) bool; the reward of
+    the bare env is 0 (the task reward is the ``TocabiReward`` transform). Resets follow TorchRL's ``"_reset"``
+    mask and touch only the flagged worlds, without host synchronisation.
+    """
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        num_envs: int = 4096,
+        device: str | torch.device = "cuda",
+        config: TocabiWalkConfig | None = None,
+        seed: int | None = None,
+        **overrides,
+    ):
+        if not isinstance(num_envs, int) or num_envs <= 0:
+            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+        try:
+            device = torch.device(device)
+        except (RuntimeError, TypeError) as err:
+            raise ValueError(f"unknown device {device!r}: use 'cuda', 'cuda:K' or 'cpu'") from err
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise RuntimeError("device 'cuda' requested but torch sees no CUDA GPU; pass device='cpu'")
+        if device.type not in ("cuda", "cpu"):
+            raise ValueError(f"unsupported device {device}: use 'cuda', 'cuda:K' or 'cpu'")
+        cfg = config if config is not None else TocabiWalkConfig()
+        if overrides:
+            unknown = set(overrides) - set(TocabiWalkConfig.__dataclass_fields__)
+            if unknown:
+                raise TypeError(f"unknown TocabiWalk option(s) {sorted(unknown)}; see TocabiWalkConfig")
+            cfg = TocabiWalkConfig(**{**cfg.__dict__, **overrides})
+        cfg.validate()
+        super().__init__(device=device, batch_size=torch.Size([num_envs]))
+        self.cfg = cfg
+        self.num_envs = num_envs
+
+        spec = robot.load_spec(cfg.model_path)
+        if cfg.control_mode == "pd":
+            spec = _pd_leg_spec(spec, cfg)
+        buffers = {k: v for k, v in (("nconmax", cfg.nconmax), ("njmax", cfg.njmax)) if v is not None}
+        self.sim = WarpSim(
+            SimConfig(num_worlds=num_envs, device=str(device), substeps=cfg.substeps, **buffers), model=spec
+        )
+        # What the actuators applied in the last substep (the PD mode reports it as the leg torque).
+        self._actuator_force = wp.to_torch(self.sim.wp_data.actuator_force)
+        self.dt = self.sim.mj_model.opt.timestep * cfg.substeps
+        self.motion = (ReferenceMotion.default() if cfg.motion is None else ReferenceMotion.from_file(cfg.motion))
+        self.motion = self.motion.to(device)
+
+        self.rng = torch.Generator(device=device)
+        self.rng.manual_seed(int(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item()))
+        self.command = VelocityCommand(cfg.command, num_envs, device, self.rng)
+        self._init_buffers()
+        self._make_specs()
+
+    # ------------------------------------------------------------------------------------------------ set-up
+    def _init_buffers(self) -> None:
+        n, dev, f32 = self.num_envs, self.device, torch.float32
+        self._init_qpos = torch.as_tensor(robot.INIT_QPOS, dtype=f32, device=dev)
+        self._init_qvel = torch.zeros(self.sim.mj_model.nv, dtype=f32, device=dev)
+        self._act_low = torch.tensor([-1.0] * robot.NUM_LEG_JOINTS + [0.0], device=dev)
+        self._act_high = torch.ones(ACTION_DIM, device=dev)
+        self._leg_limits = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=f32, device=dev)
+        leg_range = self.sim.mj_model.jnt_range[[self.sim.mj_model.joint(n_).id for n_ in robot.JOINT_NAMES[:12]]]
+        self._leg_range = torch.as_tensor(leg_range, dtype=f32, device=dev)
+        self._pd_nominal = torch.as_tensor(self.cfg.pd_nominal, dtype=f32, device=dev)
+        # Leg controls a reset world starts with: no torque, or the PD's nominal target.
+        self._reset_leg_ctrl = (torch.zeros_like(self._pd_nominal) if self.cfg.control_mode == "torque"
+                                else self._pd_nominal.clone())
+        self._init_rows = torch.as_tensor(self.motion.init_rows, dtype=torch.int64, device=dev)
+        # Task state, (num_envs, ...): phase clock [s] (kept modulo the motion period), its start row, step count.
+        self.time = torch.zeros(n, dtype=f32, device=dev)
+        self.init_row = torch.zeros(n, dtype=torch.int64, device=dev)
+        self.episode_step = torch.zeros(n, dtype=torch.int64, device=dev)
+        # Signals of the last step, kept so that a partial reset can return every env's current values.
+        self.applied_action = torch.zeros(n, ACTION_DIM, dtype=f32, device=dev)
+        self.leg_torque = torch.zeros(n, robot.NUM_LEG_JOINTS, dtype=f32, device=dev)
+        self.ref_joint_pos = torch.zeros(n, robot.NUM_JOINTS, dtype=f32, device=dev)
+        self.ref_foot_force = torch.zeros(n, 2, dtype=f32, device=dev)
+        self.stance = torch.zeros(n, dtype=torch.int64, device=dev)
+        self._all = torch.ones(n, dtype=torch.bool, device=dev)
+
+    def _make_specs(self) -> None:
+        n, dev = self.num_envs, self.device
+
+        def box(*shape, dtype=torch.float32):
+            return Unbounded(shape=(n, *shape), dtype=dtype, device=dev)
+
+        def flag(*shape):
+            return Categorical(2, shape=(n, *shape), dtype=torch.bool, device=dev)
+
+        self.observation_spec = Composite(
+            joint_pos=box(robot.NUM_JOINTS),
+            joint_vel=box(robot.NUM_JOINTS),
+            base_pos=box(3),
+            base_quat=box(4),
+            base_lin_vel=box(3),
+            base_ang_vel=box(3),
+            neck_pos=box(3),
+            neck_quat=box(4),
+            foot_force=box(2, 3),
+            foot_torque=box(2, 3),
+            foot_contact=flag(2),
+            phase=Bounded(0.0, 1.0, shape=(n, 1), device=dev),
+            ref_joint_pos=box(robot.NUM_JOINTS),
+            ref_foot_force=box(2),
+            stance=Categorical(3, shape=(n, 1), dtype=torch.int64, device=dev),
+            command=box(2),
+            applied_action=box(ACTION_DIM),
+            leg_torque=box(robot.NUM_LEG_JOINTS),
+            episode_step=box(1, dtype=torch.int64),
+            shape=(n,),
+            device=dev,
+        )
+        self.action_spec = Bounded(
+            low=self._act_low.expand(n, ACTION_DIM).clone(),
+            high=self._act_high.expand(n, ACTION_DIM).clone(),
+            shape=(n, ACTION_DIM),
+            device=dev,
+        )
+        self.reward_spec = Unbounded(shape=(n, 1), device=dev)
+        self.done_spec = Composite(done=flag(1), terminated=flag(1), truncated=flag(1), shape=(n,), device=dev)
+
+    # ------------------------------------------------------------------------------------------------ stepping
+    def _check_action(self, action: torch.Tensor) -> None:
+        # Metadata only: shape, dtype and device checks never read device values.
+        if action.shape != (self.num_envs, ACTION_DIM):
+            raise ValueError(
+                f"action must have shape (num_envs, {ACTION_DIM}) = ({self.num_envs}, {ACTION_DIM}), got "
+                f"{tuple(action.shape)}: 12 leg commands in [-1, 1] and one phase rate in [0, 1] per env"
+            )
+        if not action.is_floating_point():
+            raise TypeError(f"action must be a floating-point tensor (float32), got {action.dtype}")
+        if action.device != self.device:
+            raise ValueError(f"action is on {action.device} but the env runs on {self.device}; move it with .to()")
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action")
+        self._check_action(action)
+        a = torch.nan_to_num(action.to(torch.float32), nan=0.0).clamp(self._act_low, self._act_high)
+
+        # Reference at the pre-step clock: targets for the whole step, row for force reference and stance.
+        row = self.motion.row_index(self.time, self.init_row)
+        q_ref = self.motion.joint_targets(self.time, self.init_row)
+        self.command.update(self.episode_step)
+
+        if self.cfg.control_mode == "torque":
+            leg_cmd = a[:, : robot.NUM_LEG_JOINTS] * self._leg_limits
+        else:
+            target = self._pd_nominal + self.cfg.pd_action_scale * a[:, : robot.NUM_LEG_JOINTS]
+            leg_cmd = torch.maximum(torch.minimum(target, self._leg_range[:, 1]), self._leg_range[:, 0])
+        ctrl = self.sim.ctrl
+        ctrl[:, : robot.NUM_LEG_JOINTS] = leg_cmd
+        ctrl[:, robot.NUM_LEG_JOINTS :] = q_ref[:, robot.NUM_LEG_JOINTS :]
+        self.sim.step()
+
+        rate = 1.0 + self.cfg.phase_rate_gain * a[:, -1]
+        self.time = torch.remainder(self.time + self.dt * rate, self.motion.period)
+        self.episode_step = self.episode_step + 1
+        self.applied_action = a
+        self.leg_torque = leg_cmd if self.cfg.control_mode == "torque" else self._actuator_force[:, : robot.NUM_LEG_JOINTS].clone()
+        self.ref_joint_pos = q_ref
+        self.ref_foot_force = self.motion.force_reference(row)
+        self.stance = self.motion.stance_at(row)
+
+        sim, cfg = self.sim, self.cfg
+        flags = termination_flags(
+            pelvis_height=sim.base_pos[:, 2],
+            neck_height=sim.neck_pos[:, 2],
+            neck_quat=sim.neck_quat,
+            forbidden_ground_contact=sim.forbidden_ground_contact,
+            self_collision=sim.self_collision,
+            healthy=sim.healthy,
+            min_pelvis_height=cfg.min_pelvis_height,
+            min_neck_height=cfg.min_neck_height,
+            max_neck_angle=cfg.max_neck_angle,
+            use_forbidden_contact=cfg.terminate_on_forbidden_contact,
+            use_self_collision=cfg.terminate_on_self_collision,
+        )
+        terminated = flags["any"].unsqueeze(-1)
+        truncated = (self.episode_step >= cfg.max_episode_steps).unsqueeze(-1) & ~terminated
+        out = self._observe()
+        out.update(
+            {
+                "reward": torch.zeros(self.num_envs, 1, device=self.device),
+                "terminated": terminated,
+                "truncated": truncated,
+                "done": terminated | truncated,
+            }
+        )
+        return out
+
+    def _observe(self) -> TensorDict:
+        """Current signals of every env as fresh tensors (never views of simulator memory)."""
+        sim = self.sim
+        qpos, qvel = sim.qpos, sim.qvel
+        base_quat = qpos[:, 3:7].clone()
+        signals = {
+            "joint_pos": qpos[:, 7:].clone(),
+            "joint_vel": qvel[:, 6:].clone(),
+            "base_pos": qpos[:, :3].clone(),
+            "base_quat": base_quat,
+            "base_lin_vel": quat_rotate_inverse(base_quat, qvel[:, :3]),
+            "base_ang_vel": qvel[:, 3:6].clone(),
+            "neck_pos": sim.neck_pos.clone(),
+            "neck_quat": sim.neck_quat.clone(),
+            "foot_force": sim.foot_force.clone(),
+            "foot_torque": sim.foot_torque.clone(),
+            "foot_contact": sim.foot_contact.clone(),
+            "phase": self.motion.phase(self.time, self.init_row).unsqueeze(-1),
+            "ref_joint_pos": self.ref_joint_pos.clone(),
+            "ref_foot_force": self.ref_foot_force.clone(),
+            "stance": self.stance.unsqueeze(-1).clone(),
+            "command": self.command.value.clone(),
+            "applied_action": self.applied_action.clone(),
+            "leg_torque": self.leg_torque.clone(),
+            "episode_step": self.episode_step.unsqueeze(-1).clone(),
+        }
+        return TensorDict(signals, batch_size=self.batch_size, device=self.device)
+
+    # ------------------------------------------------------------------------------------------------ resets
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = self._all
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(self.num_envs).to(torch.bool)
+        pick = torch.randint(0, len(self._init_rows), (self.num_envs,), device=self.device, generator=self.rng)
+        self.init_row = torch.where(mask, self._init_rows[pick], self.init_row)
+        self.time = torch.where(mask, torch.zeros_like(self.time), self.time)
+        self.episode_step = torch.where(mask, torch.zeros_like(self.episode_step), self.episode_step)
+        m = mask.unsqueeze(-1)
+        self.applied_action = torch.where(m, torch.zeros_like(self.applied_action), self.applied_action)
+        self.leg_torque = torch.where(m, torch.zeros_like(self.leg_torque), self.leg_torque)
+        self.command.reset(mask)
+        # Upper-body servos start on the initial pose so the reset state's forward pass sees no PD transient.
+        row = self.motion.row_index(self.time, self.init_row)
+        self.ref_joint_pos = torch.where(m, self.motion.joint_targets(self.time, self.init_row), self.ref_joint_pos)
+        self.ref_foot_force = torch.where(m, self.motion.force_reference(row), self.ref_foot_force)
+        self.stance = torch.where(mask, self.motion.stance_at(row), self.stance)
+        ctrl = torch.cat((self._reset_leg_ctrl.expand(self.num_envs, -1), self.ref_joint_pos[:, 12:]), dim=-1)
+        self.sim.reset(mask, self._init_qpos, self._init_qvel, ctrl)
+        out = self._observe()
+        false = torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device)
+        out.update({"terminated": false, "truncated": false.clone(), "done": false.clone()})
+        return out
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is not None:
+            self.rng.manual_seed(int(seed))
+
+    @property
+    def period(self) -> float:
+        """Reference-motion cycle period [s]."""
+        return float(self.motion.period)
+
+    def __repr__(self) -> str:
+        return (f"TocabiWalk(num_envs={self.num_envs}, device={self.device}, control_mode="
+                f"{self.cfg.control_mode!r}, dt={self.dt:.4f} s, period={self.period:.4f} s)")
+

@@ -1,0 +1,47 @@
+"""``make_env``: the default ``TransformedEnv(TocabiWalk(...), Compose(...))`` of the walking task."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+from torchrl.envs import TransformedEnv
+
+from .envs import TocabiWalk, TocabiWalkConfig
+from .transforms import TransformConfig, default_transforms
+
+__all__ = ["make_env"]
+
+_TRANSFORM_FIELDS = {f.name for f in dataclasses.fields(TransformConfig)}
+
+
+def make_env(
+    num_envs: int = 4096,
+    device: str | torch.device = "cuda",
+    preset: str = "reference",
+    seed: int | None = None,
+    **overrides,
+) -> TransformedEnv:
+    """The walking task as the policy sees it: ``observation`` (num_envs, 237), ``reward`` (num_envs, 1),
+    ``("reward_terms", name)`` per term, ``step_count``, ``episode_reward`` and the env's raw signals.
+
+    Args:
+        num_envs, device, seed: see :class:`~tocabi_torchrl.envs.TocabiWalk`.
+        preset: transform preset (``"reference"``: 5 observations two steps apart + 4 actions, fixed reference
+            normalisation, the 13 reference reward terms, reward 0 on terminating steps; ``"tocabilab"``: the
+            consecutive history layout). See :data:`tocabi_torchrl.transforms.PRESETS`.
+        overrides: fields of :class:`~tocabi_torchrl.envs.TocabiWalkConfig` (e.g. ``control_mode="pd"``,
+            ``max_episode_steps=1000``) and of :class:`~tocabi_torchrl.transforms.TransformConfig`
+            (e.g. ``reward_weights={"qpos": 0.5}``, ``normalization="running"``); a name in neither raises.
+    """
+    env_fields = set(TocabiWalkConfig.__dataclass_fields__)
+    unknown = set(overrides) - env_fields - _TRANSFORM_FIELDS
+    if unknown:
+        raise TypeError(f"make_env got unknown option(s) {sorted(unknown)}; valid options are the fields of "
+                        "TocabiWalkConfig and TransformConfig")
+    env_kwargs = {k: v for k, v in overrides.items() if k in env_fields}
+    tf_kwargs = {k: v for k, v in overrides.items() if k in _TRANSFORM_FIELDS}
+    base = TocabiWalk(num_envs=num_envs, device=device, seed=seed, **env_kwargs)
+    # One truncation clock: the transforms' step counter follows the env's episode length.
+    tf_kwargs.setdefault("max_episode_steps", base.cfg.max_episode_steps)
+    return TransformedEnv(base, default_transforms(preset, **tf_kwargs))
