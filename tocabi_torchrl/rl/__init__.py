@@ -1,0 +1,17 @@
+"""PPO for TOCABI: actors (scheduled or learned std), critic, training loop, checkpoints, evaluation."""
+
+from .actors import GaussianHead, action_std, make_actor, set_action_std
+from .config import PRESETS, PPOConfig, parse_args, preset_config
+from .std_schedule import StdSchedule
+
+__all__ = [
+    "GaussianHead",
+    "make_actor",
+    "set_action_std",
+    "action_std",
+    "PPOConfig",
+    "PRESETS",
+    "preset_config",
+    "parse_args",
+    "StdSchedule",
+]

@@ -1,0 +1,131 @@
+"""PPO pieces: std schedule, actors, GAE with truncation vs termination, config errors, a tiny end-to-end run."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torchrl.objectives.value import GAE
+
+from tocabi_torchrl.rl import PPOConfig, StdSchedule, action_std, make_actor, parse_args, preset_config, set_action_std
+
+
+@pytest.mark.parametrize("progress_remaining, std", [(1.0, 0.1), (0.9, 0.09), (0.75, 0.075), (0.6, 0.06),
+                                                     (0.5, 0.05), (0.3, 0.05), (0.0, 0.05)])
+def test_reference_std_schedule(progress_remaining, std):
+    # std = 0.1·b + 0.05·(1 − b), b = 2P − 1 for P > 0.5 else 0 (spec §10.4), interpolated in std space.
+    assert StdSchedule()(progress_remaining) == pytest.approx(std, abs=1e-12)
+
+
+def test_std_schedule_is_not_log_linear():
+    # At P = 0.75 a log-space interpolation would give sqrt(0.1 · 0.05) = 0.0707.
+    assert StdSchedule()(0.75) != pytest.approx(math.sqrt(0.1 * 0.05), abs=1e-3)
+
+
+def test_scheduled_actor_std_is_set_not_learned():
+    actor = make_actor(237, 13, hidden=(32,), init_std=0.1)
+    td = actor(TensorDict({"observation": torch.randn(5, 237)}, batch_size=[5]))
+    torch.testing.assert_close(td["scale"], torch.full((5, 13), 0.1))
+    assert not any("log_std" in n for n, p in actor.named_parameters()), "scheduled std must not be a parameter"
+    set_action_std(actor, 0.05)
+    torch.testing.assert_close(action_std(actor), torch.full((13,), 0.05))
+    # The log-probability belongs to the unclipped sample.
+    td = actor(TensorDict({"observation": torch.randn(5, 237)}, batch_size=[5]))
+    dist = torch.distributions.Normal(td["loc"], td["scale"])
+    torch.testing.assert_close(td["action_log_prob"], dist.log_prob(td["action"]).sum(-1))
+
+
+def test_learned_std_actor_has_parameter():
+    actor = make_actor(10, 3, hidden=(8,), init_std=0.5, learn_std=True)
+    names = [n for n, _ in actor.named_parameters()]
+    assert any("log_std" in n for n in names)
+    torch.testing.assert_close(action_std(actor), torch.full((3,), 0.5))
+
+
+def test_gae_bootstraps_truncation_but_not_termination():
+    gamma, value = 0.9, 2.0
+    critic = TensorDictModule(lambda obs: torch.full((*obs.shape[:-1], 1), value), in_keys=["observation"],
+                              out_keys=["state_value"])
+    gae = GAE(gamma=gamma, lmbda=1.0, value_network=critic, average_gae=False)
+    obs = torch.zeros(2, 1, 3)
+    reward = torch.ones(2, 1, 1)
+    terminated = torch.tensor([True, False]).view(2, 1, 1)
+    truncated = torch.tensor([False, True]).view(2, 1, 1)
+    td = TensorDict(
+        {"observation": obs,
+         "next": {"observation": obs.clone(), "reward": reward, "terminated": terminated, "truncated": truncated,
+                  "done": terminated | truncated}},
+        batch_size=[2, 1],
+    )
+    gae(td)
+    adv = td["advantage"].flatten()
+    assert adv[0].item() == pytest.approx(1.0 - value)  # terminated: no bootstrap
+    assert adv[1].item() == pytest.approx(1.0 + gamma * value - value)  # timeout: bootstrap from the final state
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("num_envs", 0, "num_envs"), ("gamma", 1.5, "gamma"), ("lr", 0.0, "lr"), ("lr_schedule", "cosine", "lr_schedule"),
+    ("std_mode", "fixed", "std_mode"), ("loggers", ("csv", "mlflow"), "mlflow"), ("minibatch_size", 10**9, "rollout"),
+    ("activation", "gelu", "activation"), ("control_mode", "velocity", "control_mode"),
+])
+def test_bad_config_values(field, value, match):
+    with pytest.raises(ValueError, match=match):
+        preset_config("default", **{field: value})
+
+
+def test_unknown_preset_and_field():
+    with pytest.raises(ValueError, match="unknown preset"):
+        preset_config("fastest")
+    with pytest.raises(ValueError, match="unknown PPOConfig field"):
+        preset_config("default", learning_rate=1e-3)
+
+
+def test_command_line_overrides():
+    cfg, _ = parse_args(["--preset", "reference", "--num_envs", "16", "--actor_hidden", "64,32",
+                         "--eval_at_end", "false"])
+    assert cfg.preset == "reference" and cfg.num_envs == 16 and cfg.actor_hidden == (64, 32)
+    assert cfg.eval_at_end is False and cfg.minibatch_size == 128 and cfg.value_head_lr == 5e-4
+    with pytest.raises(SystemExit):
+        parse_args(["--num_envs", "many"])
+
+
+def test_help_lists_options(capsys):
+    with pytest.raises(SystemExit):
+        parse_args(["--help"])
+    text = capsys.readouterr().out
+    for option in ("--num_envs", "--lr_schedule", "--std_start", "--resume", "--max_minutes"):
+        assert option in text
+
+
+def test_two_tiny_iterations_write_a_loadable_checkpoint(tmp_path):
+    from tocabi_torchrl.rl.checkpoint import CheckpointError, load_checkpoint
+    from tocabi_torchrl.rl.trainer import build_agent, train
+
+    cfg = preset_config("cpu_smoke", device="cpu", num_envs=4, steps_per_env=8, minibatch_size=16,
+                        total_env_steps=64, run_dir=str(tmp_path), name="tiny", checkpoint_every=1,
+                        progress_bar=False, eval_at_end=False)
+    result = train(cfg)
+    assert result.iterations == 2 and result.env_steps == 64
+    run = tmp_path / "tiny"
+    assert (run / "checkpoints" / "iter_000002.pt").is_file()
+    rows = (run / "metrics.csv").read_text().strip().splitlines()
+    assert len(rows) == 3 and "reward_terms/qpos" in rows[0] and "kl" in rows[0]
+    assert json.loads((run / "config.json").read_text())["num_envs"] == 4
+    agent = build_agent(cfg, 237, 13, torch.device("cpu"))
+    state = load_checkpoint(run, agent)
+    assert state["iteration"] == 2
+    trained = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)["agent"]["actor"]
+    for key, value in agent.actor.state_dict().items():
+        torch.testing.assert_close(value, trained[key])
+    # Two iterations of the reference schedule over a 2-iteration run: std went 0.1 -> 0.075 -> 0.05.
+    torch.testing.assert_close(action_std(agent.actor), torch.full((13,), 0.05))
+    with pytest.raises(CheckpointError, match="not found"):
+        load_checkpoint(tmp_path / "missing", agent)
+    # Resume continues the iteration count.
+    cfg2 = preset_config("cpu_smoke", **{**cfg.to_dict(), "total_env_steps": 96,
+                                         "resume": str(run)})
+    assert train(cfg2).iterations == 3

@@ -1,0 +1,182 @@
+"""PPO training configuration: one typed dataclass, named presets, and command-line overrides generated from it."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["PPOConfig", "PRESETS", "preset_config", "parse_args", "LR_SCHEDULES", "STD_MODES"]
+
+LR_SCHEDULES = ("fixed", "linear", "adaptive")
+STD_MODES = ("scheduled", "learned")
+
+
+@dataclass
+class PPOConfig:
+    """Everything a PPO run needs. Units: steps are policy steps (4 ms each); times are wall-clock seconds.
+
+    The ``default`` preset is tuned for thousands of envs on one GPU (short rollouts, large mini-batches,
+    KL-adaptive learning rate, the reference's scheduled std); ``reference`` reproduces the reference training
+    (spec §10: 8 envs × 2048 steps, mini-batch 128, 3 epochs, 256-256 ReLU, LR 1e-5 → 2e-7 linear, value head at
+    5e-4, std 0.1 → 0.05, 120 M steps).
+    """
+
+    preset: str = "default"
+    name: str = "ppo_walk"
+    run_dir: str = "runs"
+    seed: int = 0
+    device: str = "auto"
+    # environment
+    num_envs: int = 4096
+    control_mode: str = "torque"
+    command_preset: str = "tocabilab"
+    transform_preset: str = "reference"
+    max_episode_steps: int = 8000
+    # rollout and budget
+    steps_per_env: int = 24
+    total_env_steps: int = 300_000_000
+    max_minutes: float = 0.0  # 0 = no wall-clock limit
+    # PPO update
+    epochs: int = 5
+    minibatch_size: int = 32768
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_epsilon: float = 0.2
+    entropy_coef: float = 0.0
+    value_coef: float = 1.0
+    value_loss: str = "l2"
+    max_grad_norm: float = 1.0
+    # learning rate
+    lr: float = 1e-3
+    lr_end: float = 1e-5
+    lr_schedule: str = "adaptive"
+    desired_kl: float = 0.01
+    value_head_lr: float = 0.0  # > 0: the value head gets its own constant LR (the reference's second optimizer)
+    adam_eps: float = 1e-8
+    # networks and exploration
+    actor_hidden: tuple[int, ...] = (400, 200, 100)
+    critic_hidden: tuple[int, ...] = (400, 200, 100)
+    activation: str = "elu"
+    value_out_gain: float = 1.0
+    std_mode: str = "scheduled"
+    std_start: float = 0.1
+    std_end: float = 0.05
+    std_hold: float = 0.5
+    # logging, checkpoints, evaluation
+    log_every: int = 1
+    checkpoint_every: int = 100
+    loggers: tuple[str, ...] = ("csv",)
+    resume: str = ""
+    eval_at_end: bool = True
+    eval_envs: int = 256
+    progress_bar: bool = True
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad field and the accepted values."""
+        from ..envs.config import CONTROL_MODES
+
+        positive = ("num_envs", "steps_per_env", "total_env_steps", "epochs", "minibatch_size", "max_episode_steps",
+                    "log_every", "checkpoint_every", "eval_envs")
+        for name in positive:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"PPOConfig.{name} must be a positive int, got {value!r}")
+        for name, low, high in (("gamma", 0.0, 1.0), ("gae_lambda", 0.0, 1.0), ("clip_epsilon", 0.0, 1.0)):
+            value = getattr(self, name)
+            if not low < value <= high:
+                raise ValueError(f"PPOConfig.{name} must be in ({low}, {high}], got {value!r}")
+        for name in ("lr", "std_start", "std_end", "desired_kl", "max_grad_norm", "adam_eps"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"PPOConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "max_minutes"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"PPOConfig.{name} must be >= 0, got {getattr(self, name)!r}")
+        choices = {"lr_schedule": LR_SCHEDULES, "std_mode": STD_MODES, "control_mode": CONTROL_MODES,
+                   "value_loss": ("l2", "smooth_l1", "l1"), "command_preset": ("tocabilab", "reference"),
+                   "activation": ("relu", "elu", "tanh", "silu")}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"PPOConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        bad = set(self.loggers) - {"csv", "tensorboard", "wandb"}
+        if bad:
+            raise ValueError(f"unknown logger(s) {sorted(bad)}; choose from csv, tensorboard, wandb")
+        if self.minibatch_size > self.num_envs * self.steps_per_env:
+            raise ValueError(
+                f"minibatch_size {self.minibatch_size} exceeds the rollout ({self.num_envs} envs × "
+                f"{self.steps_per_env} steps = {self.num_envs * self.steps_per_env}); lower it or collect more"
+            )
+
+    @property
+    def frames_per_batch(self) -> int:
+        return self.num_envs * self.steps_per_env
+
+    @property
+    def iterations(self) -> int:
+        return max(1, -(-self.total_env_steps // self.frames_per_batch))
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "reference": dict(
+        num_envs=8, steps_per_env=2048, minibatch_size=128, epochs=3, total_env_steps=120_000_000,
+        command_preset="reference", lr=1e-5, lr_end=2e-7, lr_schedule="linear", value_head_lr=5e-4,
+        adam_eps=1e-5, actor_hidden=(256, 256), critic_hidden=(256, 256), activation="relu", value_out_gain=0.01,
+        value_coef=0.5, value_loss="l2", max_grad_norm=0.5, std_start=0.1, std_end=0.05, std_hold=0.5,
+    ),
+    # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
+    "cpu_smoke": dict(num_envs=8, steps_per_env=16, minibatch_size=64, epochs=2, total_env_steps=8 * 16 * 3,
+                      checkpoint_every=1, eval_envs=4, actor_hidden=(64, 64), critic_hidden=(64, 64)),
+}
+
+
+def preset_config(name: str, /, **overrides) -> PPOConfig:
+    """The named preset with ``overrides`` applied (a ``preset`` key in ``overrides`` is ignored)."""
+    overrides.pop("preset", None)
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    unknown = set(overrides) - {f.name for f in dataclasses.fields(PPOConfig)}
+    if unknown:
+        raise ValueError(f"unknown PPOConfig field(s) {sorted(unknown)}")
+    cfg = PPOConfig(**{**PRESETS[name], **overrides, "preset": name})
+    cfg.validate()
+    return cfg
+
+
+def _parse_value(kind: Any, text: str):
+    if kind is bool or kind == "bool":
+        if text.lower() in ("1", "true", "yes", "on"):
+            return True
+        if text.lower() in ("0", "false", "no", "off"):
+            return False
+        raise argparse.ArgumentTypeError(f"expected true/false, got {text!r}")
+    return text
+
+
+def parse_args(argv: list[str] | None = None, description: str = "") -> tuple[PPOConfig, argparse.Namespace]:
+    """Build a :class:`PPOConfig` from ``--preset`` plus ``--field value`` overrides (every field is an option)."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    defaults = PPOConfig()
+    for f in dataclasses.fields(PPOConfig):
+        default = getattr(defaults, f.name)
+        kind = type(default)
+        if f.name == "preset":
+            parser.add_argument("--preset", default="default", choices=sorted(PRESETS), help="named configuration")
+        elif kind is tuple:
+            elem = type(default[0]) if default else str
+            parser.add_argument(f"--{f.name}", type=lambda s, e=elem: tuple(e(x) for x in s.split(",") if x),
+                                default=None, help=f"comma-separated (default {','.join(map(str, default))})")
+        elif kind is bool:
+            parser.add_argument(f"--{f.name}", type=lambda s: _parse_value(bool, s), default=None,
+                                help=f"true/false (default {default})")
+        else:
+            parser.add_argument(f"--{f.name}", type=kind, default=None, help=f"(default {default})")
+    args = parser.parse_args(argv)
+    overrides = {k: v for k, v in vars(args).items() if v is not None and k != "preset"}
+    return preset_config(args.preset, **overrides), args
+
+

@@ -1,0 +1,179 @@
+"""Evaluation of a walking policy: TocabiLab's gait experiment (command (0.5, 0) m/s for 8 s, deterministic policy).
+
+Writes ``summary.json`` (survival, forward distance, lateral drift, speed tracking error, knee RMS against the
+reference motion), ``knees.png`` (left/right knee over 6 s against the reference, TocabiLab figs 4.7-4.8) and a
+video of a few robots (``walk.mp4``, or ``walk.gif`` without an mp4 writer) rendered offscreen by MuJoCo.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+from .. import robot
+from .checkpoint import load_checkpoint
+from .config import PPOConfig
+from .trainer import build_agent, build_env, resolve_device
+
+__all__ = ["evaluate_policy", "evaluate_run"]
+
+KNEES = (robot.JOINT_NAMES.index("L_Knee_Joint"), robot.JOINT_NAMES.index("R_Knee_Joint"))
+
+
+def evaluate_policy(
+    actor,
+    cfg: PPOConfig,
+    out_dir: str | os.PathLike,
+    num_envs: int = 256,
+    device: str | torch.device = "cuda",
+    seconds: float = 8.0,
+    command: tuple[float, float] = (0.5, 0.0),
+    video_envs: int = 4,
+    env=None,
+) -> dict:
+    """Roll the deterministic policy out for ``seconds`` at a fixed command and write the summary, plot and video."""
+    from ..envs import CommandConfig
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    device = torch.device(device)
+    vx, vy = command
+    fixed = CommandConfig(vx_range=(vx, vx), vx_initial_range=(vx, vx), vy_range=(vy, vy))
+    if env is None:
+        env = build_env(cfg, device, num_envs=num_envs, command=fixed)
+    base = env.base_env
+    steps = int(round(seconds / base.dt))
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        start = td["base_pos"].clone()
+        alive = torch.ones(env.num_envs, dtype=torch.bool, device=device)
+        last_pos = start.clone()
+        knee_sq = torch.zeros(env.num_envs, device=device)
+        vel_err = torch.zeros(env.num_envs, device=device)
+        alive_steps = torch.zeros(env.num_envs, device=device)
+        trace_q, trace_ref, frames_qpos = [], [], []
+        video_every = max(1, int(round(1.0 / (30.0 * base.dt))))
+        for k in range(steps):
+            td = env.step(actor(td))
+            nxt = td["next"]
+            alive = alive & ~nxt["terminated"].squeeze(-1)
+            a = alive.float()
+            last_pos = torch.where(alive.unsqueeze(-1), nxt["base_pos"], last_pos)
+            knee_err = nxt["joint_pos"][:, KNEES] - nxt["ref_joint_pos"][:, KNEES]
+            knee_sq += a * knee_err.pow(2).mean(-1)
+            vel_err += a * (nxt["base_lin_vel"][:, 0] - vx).abs()
+            alive_steps += a
+            if k * base.dt < 6.0:
+                trace_q.append(nxt["joint_pos"][0, KNEES])
+                trace_ref.append(nxt["ref_joint_pos"][0, KNEES])
+            if k % video_every == 0:
+                frames_qpos.append(base.sim.qpos[:video_envs].clone())
+            # Fallen robots keep lying (no reset): `alive` already excludes them from every metric.
+            td = step_mdp(td)
+    n_alive = alive_steps.clamp_min(1)
+    dist = last_pos - start
+    summary = {
+        "command_mps": [vx, vy],
+        "seconds": seconds,
+        "num_envs": int(env.num_envs),
+        "survival": float(alive.float().mean()),
+        "forward_distance_m": float(dist[:, 0].mean()),
+        "forward_distance_survivors_m": float(dist[alive, 0].mean()) if alive.any() else 0.0,
+        "lateral_drift_m": float(dist[:, 1].abs().mean()),
+        "mean_speed_mps": float((dist[:, 0] / (alive_steps * base.dt).clamp_min(base.dt)).mean()),
+        "speed_tracking_error_mps": float((vel_err / n_alive).mean()),
+        "knee_rms_rad": float((knee_sq / n_alive).sqrt().mean()),
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    _plot_knees(torch.stack(trace_q).cpu().numpy(), torch.stack(trace_ref).cpu().numpy(), base.dt, out / "knees.png")
+    try:
+        summary["video"] = str(_render_video(base.sim.mj_model, torch.stack(frames_qpos).cpu().numpy(), 30, out))
+    except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless GPU machine)
+        summary["video"] = f"not rendered: {type(err).__name__}: {err}"
+        print(f"video skipped ({summary['video']}); set MUJOCO_GL=egl or osmesa on a headless machine")
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.arange(len(q)) * dt
+    fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    for i, (ax, side) in enumerate(zip(axes, ("left", "right"))):
+        ax.plot(t, ref[:, i], "k--", lw=1.2, label="reference")
+        ax.plot(t, q[:, i], lw=1.5, label="policy")
+        ax.set_ylabel(f"{side} knee [rad]")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right")
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle("Knee trajectories at command (0.5, 0) m/s, env 0")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480, height: int = 360) -> Path:
+    """Render (T, k, nq) joint states of k robots side by side (one camera each) into an mp4 or a gif."""
+    import imageio.v2 as imageio
+    import mujoco
+
+    data = mujoco.MjData(model)
+    renderer = mujoco.Renderer(model, height=height, width=width)
+    camera = mujoco.MjvCamera()
+    camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
+    camera.trackbodyid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, robot.BASE_BODY)
+    camera.distance, camera.elevation, camera.azimuth = 3.0, -15.0, 120.0
+    option = mujoco.MjvOption()
+    option.geomgroup[2] = 0  # hide the translucent collision geoms: show the silhouette
+    frames = []
+    for step in qpos:
+        tiles = []
+        for q in step:
+            data.qpos[:] = q
+            mujoco.mj_forward(model, data)
+            renderer.update_scene(data, camera, scene_option=option)
+            tiles.append(renderer.render())
+        frames.append(np.concatenate(tiles, axis=1))
+    renderer.close()
+    try:
+        path = out / "walk.mp4"
+        imageio.mimwrite(path, frames, fps=fps, macro_block_size=1)
+    except Exception:
+        path = out / "walk.gif"
+        imageio.mimwrite(path, frames[::2], duration=2.0 / fps)
+    imageio.imwrite(out / "walk_frame.png", frames[len(frames) // 2])
+    return path
+
+
+def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "auto", **kwargs) -> dict:
+    """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``<run folder>/eval/``."""
+    from .checkpoint import CheckpointError
+
+    path = Path(run)
+    ckpt = path if path.is_file() else path / "checkpoints" / "latest.pt"
+    if not ckpt.is_file():
+        raise CheckpointError(f"no checkpoint at {ckpt}: train first or pass a checkpoint file")
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    cfg = PPOConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in state["config"].items()})
+    dev = resolve_device(device)
+    env = build_env(cfg, dev, num_envs=num_envs, command=_fixed_command(kwargs.get("command", (0.5, 0.0))))
+    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], dev)
+    load_checkpoint(ckpt, agent, env=env, device=dev)
+    out_dir = (ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent) / "eval"
+    return evaluate_policy(agent.actor, cfg, out_dir, num_envs=num_envs, device=dev, env=env, **kwargs)
+
+
+def _fixed_command(command):
+    from ..envs import CommandConfig
+
+    vx, vy = command
+    return CommandConfig(vx_range=(vx, vx), vx_initial_range=(vx, vx), vy_range=(vy, vy))

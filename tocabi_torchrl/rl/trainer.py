@@ -1,0 +1,237 @@
+"""PPO on TorchRL: a collector on the env's device, GAE, ``ClipPPOLoss``, mini-batch epochs, LR and std schedules,
+logging and checkpoints. ``recipes/ppo_walk.py`` is a thin command line over :func:`train`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.envs import EnvBase
+from torchrl.modules import ProbabilisticActor, ValueOperator
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.value import GAE
+
+from .actors import action_std, make_actor, set_action_std
+from .checkpoint import load_checkpoint, save_checkpoint
+from .config import PPOConfig
+from .logging import RunLogger
+from .networks import make_mlp
+from .std_schedule import StdSchedule
+
+__all__ = ["Agent", "build_agent", "build_env", "train", "resolve_device", "TrainResult"]
+
+
+def resolve_device(name: str) -> torch.device:
+    """``"auto"`` -> the first CUDA GPU if torch sees one, else the CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(f"device {name!r} requested but torch sees no CUDA GPU; use --device cpu or auto")
+    return device
+
+
+@dataclass
+class Agent:
+    """The trainable parts of a PPO run."""
+
+    actor: ProbabilisticActor
+    critic: ValueOperator
+    std_schedule: StdSchedule | None
+
+    def state_dict(self) -> dict:
+        return {"actor": self.actor.state_dict(), "critic": self.critic.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+
+
+def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None, **env_overrides) -> EnvBase:
+    """``make_env`` with the run's task settings."""
+    from .. import make_env
+    from ..envs import CommandConfig
+
+    env_overrides.setdefault("command", CommandConfig.preset(cfg.command_preset))
+    return make_env(
+        num_envs or cfg.num_envs,
+        device,
+        preset=cfg.transform_preset,
+        seed=cfg.seed,
+        control_mode=cfg.control_mode,
+        max_episode_steps=cfg.max_episode_steps,
+        **env_overrides,
+    )
+
+
+def build_agent(cfg: PPOConfig, obs_dim: int, act_dim: int, device: torch.device) -> Agent:
+    actor = make_actor(obs_dim, act_dim, cfg.actor_hidden, cfg.activation, init_std=cfg.std_start,
+                       learn_std=cfg.std_mode == "learned").to(device)
+    critic = ValueOperator(make_mlp(obs_dim, cfg.critic_hidden, 1, cfg.activation, out_gain=cfg.value_out_gain),
+                           in_keys=["observation"]).to(device)
+    schedule = StdSchedule(cfg.std_start, cfg.std_end, cfg.std_hold) if cfg.std_mode == "scheduled" else None
+    return Agent(actor, critic, schedule)
+
+
+def _param_groups(agent: Agent, cfg: PPOConfig) -> list[dict]:
+    """One group for everything, or (reference) a second, constant-LR group for the value head alone."""
+    params = [p for p in list(agent.actor.parameters()) + list(agent.critic.parameters()) if p.requires_grad]
+    if cfg.value_head_lr <= 0:
+        return [{"params": params, "lr": cfg.lr, "name": "all"}]
+    head = list(agent.critic.module[-1].parameters())
+    head_ids = {id(p) for p in head}
+    rest = [p for p in params if id(p) not in head_ids]
+    return [{"params": rest, "lr": cfg.lr, "name": "policy"},
+            {"params": head, "lr": cfg.value_head_lr, "name": "value_head", "fixed": True}]
+
+
+@dataclass
+class TrainResult:
+    run_dir: Path
+    iterations: int
+    env_steps: int
+    wall_seconds: float
+    env_steps_per_second: float
+    last_metrics: dict
+
+
+def _episode_metrics(batch: TensorDictBase) -> dict[str, float]:
+    """Mean return and length of the episodes that ended in this batch (one host read per iteration)."""
+    done = batch["next", "done"].squeeze(-1)
+    n_done = done.sum()
+    out = {"episodes_finished": n_done}
+    if ("next", "episode_reward") in batch.keys(True):
+        ret = batch["next", "episode_reward"].squeeze(-1)
+        out["episode_return"] = (ret * done).sum() / n_done.clamp_min(1)
+    if ("next", "step_count") in batch.keys(True):
+        length = batch["next", "step_count"].squeeze(-1).float()
+        out["episode_length"] = (length * done).sum() / n_done.clamp_min(1)
+    out["terminated_frac"] = batch["next", "terminated"].float().mean()
+    out["reward"] = batch["next", "reward"].mean()
+    if ("next", "reward_terms") in batch.keys(True):
+        for key, value in batch["next", "reward_terms"].items():
+            out[f"reward_terms/{key}"] = value.mean()
+    values = torch.stack([torch.as_tensor(v, dtype=torch.float32, device=done.device) for v in out.values()])
+    return dict(zip(out.keys(), values.cpu().tolist()))
+
+
+def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
+    """Run PPO as configured; returns where the run was written and its throughput."""
+    cfg.validate()
+    device = resolve_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    env = env if env is not None else build_env(cfg, device)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    act_dim = env.action_spec.shape[-1]
+    agent = build_agent(cfg, obs_dim, act_dim, device)
+    optimizer = torch.optim.Adam(_param_groups(agent, cfg), eps=cfg.adam_eps)
+    run_dir = Path(cfg.run_dir) / cfg.name
+    start_iter, env_steps = 0, 0
+    if cfg.resume:
+        state = load_checkpoint(cfg.resume, agent, optimizer, env, device)
+        start_iter, env_steps = state["iteration"], state["env_steps"]
+        print(f"resumed from {cfg.resume} at iteration {start_iter} ({env_steps:,} env steps)")
+
+    advantage = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=agent.critic, average_gae=False)
+    loss_module = ClipPPOLoss(
+        agent.actor,
+        agent.critic,
+        clip_epsilon=cfg.clip_epsilon,
+        entropy_bonus=cfg.entropy_coef > 0,
+        entropy_coeff=cfg.entropy_coef if cfg.entropy_coef > 0 else None,
+        critic_coeff=cfg.value_coef,
+        loss_critic_type=cfg.value_loss,
+        normalize_advantage=True,
+    )
+    loss_module.set_keys(sample_log_prob="action_log_prob")
+
+    iterations = cfg.iterations
+    collector = Collector(
+        env,
+        agent.actor,
+        frames_per_batch=cfg.frames_per_batch,
+        total_frames=(iterations - start_iter) * cfg.frames_per_batch,
+        device=device,
+        storing_device=device,
+        auto_register_policy_transforms=False,  # the env already has every transform the policy reads
+    )
+    logger = RunLogger(run_dir, cfg, total_iterations=iterations, start_iteration=start_iter)
+    lr = optimizer.param_groups[0]["lr"]
+    t_start = time.perf_counter()
+    metrics: dict = {}
+    it = start_iter
+    try:
+        for it, batch in enumerate(collector, start=start_iter + 1):
+            t_collect = time.perf_counter()
+            env_steps += batch.numel()
+            progress_remaining = 1.0 - it / iterations
+            with torch.no_grad():
+                advantage(batch)
+            flat = batch.reshape(-1)
+            stats = _update(cfg, flat, loss_module, optimizer, agent)
+            if cfg.lr_schedule == "adaptive":
+                kl = stats["kl"]
+                if kl > 2.0 * cfg.desired_kl:
+                    lr = max(lr / 1.5, 1e-5)
+                elif kl < 0.5 * cfg.desired_kl:
+                    lr = min(lr * 1.5, 1e-2)
+            elif cfg.lr_schedule == "linear":
+                lr = cfg.lr_end + (cfg.lr - cfg.lr_end) * progress_remaining
+            for group in optimizer.param_groups:
+                if not group.get("fixed"):
+                    group["lr"] = lr
+            # The reference sets the next rollout's noise after each rollout from the progress made.
+            if agent.std_schedule is not None:
+                set_action_std(agent.actor, agent.std_schedule(progress_remaining))
+            collector.update_policy_weights_()
+            if it % cfg.log_every == 0 or it == iterations:
+                metrics = _episode_metrics(batch)
+                metrics.update(stats)
+                elapsed = time.perf_counter() - t_start
+                metrics.update(lr=lr, action_std=float(action_std(agent.actor).mean()), env_steps=env_steps,
+                               env_steps_per_s=(env_steps - start_iter * cfg.frames_per_batch) / elapsed,
+                               update_s=time.perf_counter() - t_collect, wall_s=elapsed)
+                logger.log(it, metrics)
+            if it % cfg.checkpoint_every == 0 or it == iterations:
+                save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg)
+            if cfg.max_minutes and time.perf_counter() - t_start > 60.0 * cfg.max_minutes:
+                print(f"stopping after {cfg.max_minutes} min (max_minutes)")
+                save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg)
+                break
+    finally:
+        collector.shutdown()
+        logger.close()
+    wall = time.perf_counter() - t_start
+    done_steps = env_steps - start_iter * cfg.frames_per_batch
+    return TrainResult(run_dir, it, env_steps, wall, done_steps / max(wall, 1e-9), metrics)
+
+
+def _update(cfg: PPOConfig, flat: TensorDictBase, loss_module: ClipPPOLoss, optimizer: torch.optim.Optimizer,
+            agent: Agent) -> dict[str, float]:
+    """``epochs`` passes of shuffled mini-batches over the rollout. Returns mean losses and KL (one host read)."""
+    n = flat.shape[0]
+    num_mb = max(1, n // cfg.minibatch_size)
+    params = [p for g in optimizer.param_groups for p in g["params"]]
+    sums = torch.zeros(4, device=flat.device)
+    for _ in range(cfg.epochs):
+        perm = torch.randperm(n, device=flat.device)
+        for k in range(num_mb):
+            mb = flat[perm[k * cfg.minibatch_size : (k + 1) * cfg.minibatch_size]]
+            losses = loss_module(mb)
+            total = losses["loss_objective"] + losses["loss_critic"]
+            if "loss_entropy" in losses.keys():
+                total = total + losses["loss_entropy"]
+            optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm)
+            optimizer.step()
+            sums += torch.stack([losses["loss_objective"].detach(), losses["loss_critic"].detach(),
+                                 losses["kl_approx"].detach(), losses["clip_fraction"].detach()])
+    mean = (sums / (cfg.epochs * num_mb)).tolist()
+    return {"loss_policy": mean[0], "loss_value": mean[1], "kl": mean[2], "clip_fraction": mean[3]}
+
