@@ -231,3 +231,27 @@ def test_running_normalization_masked_update():
     norm.update(torch.randn(16, 2) * 100, torch.zeros(16, 1, dtype=torch.bool))  # nothing selected: no change
     for a, b in zip(before, (norm.mean, norm.var, norm.count)):
         torch.testing.assert_close(a, b)
+
+
+def test_quat_to_rpy_matches_the_reference_formulas_on_random_quaternions():
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(500, 4)) * rng.uniform(0.5, 2.0, size=(500, 1))  # not unit length
+
+    def reference(qi):  # gym quat2mat, then spec §7.2
+        w, x, y, z = qi
+        s = 2.0 / (qi @ qi)
+        m = np.array(
+            [
+                [1 - s * (y * y + z * z), s * (x * y - w * z), s * (x * z + w * y)],
+                [s * (x * y + w * z), 1 - s * (x * x + z * z), s * (y * z - w * x)],
+                [s * (x * z - w * y), s * (y * z + w * x), 1 - s * (x * x + y * y)],
+            ]
+        )
+        cy = math.hypot(m[0, 0], m[1, 0])
+        return [math.atan2(m[2, 1], m[2, 2]), math.atan2(-m[2, 0], cy), math.atan2(m[1, 0], m[0, 0])]
+
+    expected = torch.tensor([reference(qi) for qi in q], dtype=torch.float64)
+    torch.testing.assert_close(quat_to_rpy(torch.tensor(q)), expected, rtol=0, atol=1e-9)
+    torch.testing.assert_close(quat_to_rpy(torch.tensor(q, dtype=torch.float32)), expected.float(), rtol=0, atol=2e-5)

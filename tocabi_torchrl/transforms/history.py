@@ -190,6 +190,13 @@ class ObsActionHistory(Transform):
         next_tensordict.set(self.out_keys[0], self._output())
         return next_tensordict
 
+    def __repr__(self) -> str:
+        lay = self.layout
+        return (
+            f"{type(self).__name__}(num_obs={lay.num_obs}, stride={lay.stride}, num_actions={lay.num_actions}, "
+            f"obs_key={self.obs_key!r}, action_key={self.action_key!r}, out_key={self.out_keys[0]!r})"
+        )
+
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         obs_spec = require_spec(observation_spec, self.obs_key, self)
         if len(obs_spec.shape) != len(observation_spec.shape) + 1:
