@@ -62,7 +62,7 @@ class TocabiWalk(EnvBase):
     entries are treated as 0 (checking for them would need a host synchronisation).
 
     Output keys and units: ``docs/signals.md``. ``done``/``terminated``/``truncated`` are (N, 1) bool; the reward of
-    the bare env is 0 (the task reward is the ``TocabiReward`` transform). Resets follow TorchRL's ``"_reset"``
+    the bare env is 0 (the task reward is the ``TaskReward`` transform). Resets follow TorchRL's ``"_reset"``
     mask and touch only the flagged worlds, without host synchronisation.
     """
 
