@@ -1,0 +1,333 @@
+"""WarpSim on warp's CPU device: zero-copy views, masked reset, contact signals, foot forces, health, errors.
+
+One module-scoped simulator of 4 worlds serves most tests (the first build compiles mujoco-warp's kernels, ~1 min on
+a cold cache); every test starts by resetting the worlds it uses.
+"""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import mujoco_warp as mjw
+import numpy as np
+import pytest
+import torch
+import warp as wp
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.sim import ContactSensorError, SimConfig, SimOverflowError, WarpSim
+from tocabi_torchrl.sim.kernel_cache import announce_compile_if_cold
+
+N = 4
+LEGS = slice(0, robot.NUM_LEG_JOINTS)
+UPPER = slice(robot.NUM_LEG_JOINTS, robot.NUM_JOINTS)
+
+
+@pytest.fixture(scope="module")
+def sim() -> WarpSim:
+    return WarpSim(SimConfig(num_worlds=N, device="cpu"))
+
+
+def _init_qpos(n: int = N) -> torch.Tensor:
+    return torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32).repeat(n, 1)
+
+
+def _upper_ctrl(n: int = N) -> torch.Tensor:
+    ctrl = torch.zeros(n, robot.NUM_JOINTS)
+    ctrl[:, UPPER] = torch.as_tensor(robot.INIT_JOINT_POS[UPPER], dtype=torch.float32)
+    return ctrl
+
+
+def _reset_standing(sim: WarpSim, mask: torch.Tensor | None = None) -> None:
+    mask = torch.ones(sim.num_worlds, dtype=torch.bool) if mask is None else mask
+    sim.reset(mask, _init_qpos(sim.num_worlds), torch.zeros(sim.nv), _upper_ctrl(sim.num_worlds))
+
+
+def _pd_hold(sim: WarpSim) -> None:
+    """Legs PD-held on the initial pose (torque written once per control step), upper body on its servo targets."""
+    kp = torch.as_tensor(robot.LEG_KP, dtype=torch.float32)
+    kv = torch.as_tensor(robot.LEG_KV, dtype=torch.float32)
+    q0 = torch.as_tensor(robot.INIT_JOINT_POS[LEGS], dtype=torch.float32)
+    sim.ctrl[:, LEGS] = kp * (q0 - sim.qpos[:, 7:19]) - kv * sim.qvel[:, 6:18]
+    sim.ctrl[:, UPPER] = _upper_ctrl(sim.num_worlds)[:, UPPER]
+
+
+def _quat(axis, angle) -> list[float]:
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    return [math.cos(angle / 2), *(math.sin(angle / 2) * axis)]
+
+
+def _scan_warp_contacts(sim: WarpSim) -> np.ndarray:
+    """(N, 4) counts of (left foot, right foot, forbidden ground, self) contacts in mujoco-warp's contact list."""
+    m, d = sim.mj_model, sim.wp_data
+    nacon = int(d.nacon.numpy()[0])
+    geoms, worlds = d.contact.geom.numpy()[:nacon], d.contact.worldid.numpy()[:nacon]
+    body = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n)  # noqa: E731
+    feet = [body(b) for b in robot.FOOT_BODIES]
+    forbidden = {body(b) for b in robot.GROUND_FORBIDDEN_BODIES}
+    self_bodies = {body(b) for b in robot.SELF_COLLISION_BODIES}
+    counts = np.zeros((sim.num_worlds, 4))
+    for (g1, g2), w in zip(geoms, worlds):
+        b1, b2 = m.geom_bodyid[g1], m.geom_bodyid[g2]
+        if 0 in (b1, b2):
+            other = b2 if b1 == 0 else b1
+            counts[w] += [other == feet[0], other == feet[1], other in forbidden, 0]
+        elif b1 in self_bodies and b2 in self_bodies:
+            counts[w, 3] += 1
+    return counts
+
+
+def _signal_counts(sim: WarpSim) -> np.ndarray:
+    lay = sim.contact_layout
+    return sim.contact_counts.numpy() @ lay.weights.T
+
+
+# ---------------------------------------------------------------------------------------------------- memory
+def test_views_alias_warp_memory(sim):
+    d = sim.wp_data
+    for view, arr in ((sim.qpos, d.qpos), (sim.qvel, d.qvel), (sim.ctrl, d.ctrl), (sim.sensordata, d.sensordata)):
+        assert view.data_ptr() == arr.ptr
+    assert sim.xpos.data_ptr() == d.xpos.ptr and sim.xquat.data_ptr() == d.xquat.ptr
+    assert sim.xpos.shape == (N, sim.mj_model.nbody, 3) and sim.xquat.shape == (N, sim.mj_model.nbody, 4)
+    # Writes through torch are what warp reads, and the reverse.
+    sim.ctrl[2, 5] = 12.5
+    assert d.ctrl.numpy()[2, 5] == 12.5
+    sim.ctrl[2, 5] = 0.0
+    # Derived views are windows into the same buffers, not copies.
+    sd_lo, sd_hi = sim.sensordata.data_ptr(), sim.sensordata.data_ptr() + sim.sensordata.numel() * 4
+    for v in (sim.foot_force, sim.foot_torque, sim.contact_counts):
+        assert sd_lo <= v.data_ptr() < sd_hi
+    fid = mujoco.mj_name2id(sim.mj_model, mujoco.mjtObj.mjOBJ_SENSOR, robot.FOOT_FORCE_SENSORS[1])
+    adr = sim.mj_model.sensor_adr[fid]
+    assert torch.equal(sim.foot_force[:, 1], sim.sensordata[:, adr : adr + 3])
+    base = mujoco.mj_name2id(sim.mj_model, mujoco.mjtObj.mjOBJ_BODY, robot.BASE_BODY)
+    assert sim.base_pos.data_ptr() == sim.xpos[:, base].data_ptr()
+    assert sim.healthy.dtype == torch.bool and sim.healthy.shape == (N,)
+    assert sim.foot_contact.shape == (N, 2) and sim.foot_contact.dtype == torch.bool
+
+
+def test_step_is_bit_identical_to_raw_mujoco_warp(sim):
+    """step() = substeps x mujoco_warp.step, with positions and sensors refreshed after the last one."""
+    _reset_standing(sim)
+    raw = mjw.make_data(sim.mj_model, nworld=N, nconmax=sim.config.nconmax, njmax=sim.config.njmax)
+    wp.copy(raw.qpos, sim.wp_data.qpos)
+    mjw.forward(sim.wp_model, raw)
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        ctrl = _upper_ctrl()
+        ctrl[:, LEGS] = torch.as_tensor(rng.uniform(-1, 1, (N, 12)) * robot.LEG_TORQUE_LIMITS, dtype=torch.float32)
+        sim.ctrl.copy_(ctrl)
+        raw.ctrl.assign(ctrl.numpy())
+        sim.step()
+        for _ in range(sim.config.substeps):
+            mjw.step(sim.wp_model, raw)
+    mjw.forward(sim.wp_model, raw)
+    assert np.array_equal(sim.qpos.numpy(), raw.qpos.numpy())
+    assert np.array_equal(sim.qvel.numpy(), raw.qvel.numpy())
+    assert np.array_equal(sim.sensordata.numpy(), raw.sensordata.numpy())
+    assert np.array_equal(sim.xpos.numpy(), raw.xpos.numpy())
+    assert np.allclose(sim.time.numpy(), 6 * sim.control_dt)
+
+
+# ----------------------------------------------------------------------------------------------------- reset
+def test_masked_reset_touches_only_flagged_worlds(sim):
+    _reset_standing(sim)
+    rng = np.random.default_rng(1)
+    for _ in range(5):  # make every world different
+        sim.ctrl[:, LEGS] = torch.as_tensor(rng.uniform(-0.3, 0.3, (N, 12)) * robot.LEG_TORQUE_LIMITS)
+        sim.step()
+    views = ("qpos", "qvel", "ctrl", "sensordata", "xpos", "xquat", "time", "foot_contact", "healthy", "overflow")
+    before = {k: getattr(sim, k).clone() for k in views}
+
+    mask = torch.tensor([True, False, True, False])
+    qpos = _init_qpos()
+    qpos[:, 0] = torch.arange(N, dtype=torch.float32)  # a distinct x per world: only flagged rows may be read
+    qvel = torch.zeros(N, sim.nv)
+    qvel[:, 6] = 0.25
+    ctrl = _upper_ctrl()
+    sim.reset(mask, qpos, qvel, ctrl)
+
+    for k in views:
+        assert torch.equal(getattr(sim, k)[~mask], before[k][~mask]), f"{k} changed in an untouched world"
+    assert torch.equal(sim.qpos[mask], qpos[mask])
+    assert torch.equal(sim.qvel[mask], qvel[mask])
+    assert torch.equal(sim.ctrl[mask], ctrl[mask])
+    assert torch.all(sim.time[mask] == 0)
+    # The forward pass ran for the reset worlds: the base body sits where qpos put it.
+    assert torch.allclose(sim.base_pos[mask], qpos[mask, :3], atol=1e-6)
+    # Row inputs broadcast, and ctrl defaults to zeros.
+    sim.reset(torch.tensor([False, True, False, False]), qpos[0], torch.zeros(sim.nv))
+    assert torch.equal(sim.qpos[1], qpos[0]) and torch.all(sim.ctrl[1] == 0)
+
+
+def test_reset_rejects_bad_arguments(sim):
+    mask, qpos, qvel = torch.ones(N, dtype=torch.bool), _init_qpos(), torch.zeros(N, sim.nv)
+    cases = [
+        ((mask[:3], qpos, qvel), ValueError, r"mask must have shape \(4,\)"),
+        ((mask.float(), qpos, qvel), ValueError, "mask must have dtype torch.bool"),
+        ((mask, qpos[:, :39], qvel), ValueError, r"qpos must have shape \(4, 40\) or \(40,\)"),
+        ((mask, qpos, qvel[:2]), ValueError, r"qvel must have shape \(4, 39\)"),
+        ((mask, qpos.long(), qvel), ValueError, "qpos must be a floating-point tensor"),
+        ((mask, qpos.numpy(), qvel), TypeError, "qpos must be a torch.Tensor"),
+    ]
+    for args, error, message in cases:
+        with pytest.raises(error, match=message):
+            sim.reset(*args)
+    with pytest.raises(ValueError, match=r"ctrl must have shape \(4, 33\)"):
+        sim.reset(mask, qpos, qvel, torch.zeros(N, 12))
+
+
+# -------------------------------------------------------------------------------------------------- contacts
+def test_standing_robot_feet_in_contact_and_forces_carry_the_weight(sim):
+    _reset_standing(sim)
+    assert not sim.foot_contact.any(), "the soles start 1.3 mm above the ground"
+    for _ in range(250):  # 1 s of PD standing
+        _pd_hold(sim)
+        sim.step()
+    assert sim.foot_contact.all()
+    assert not sim.forbidden_ground_contact.any() and not sim.self_collision.any()
+    assert sim.healthy.all()
+    assert torch.all((sim.base_pos[:, 2] > 0.9) & (sim.base_pos[:, 2] < 0.95))
+    # Each F/T site sits in its Foot_Link: the two sensors carry everything but the feet (spec §1.5).
+    m = sim.mj_model
+    feet = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, b) for b in robot.FOOT_BODIES]
+    weight_above = (m.body_subtreemass[0] - m.body_subtreemass[feet].sum()) * -m.opt.gravity[2]
+    fz = sim.foot_force[:, :, 2].sum(dim=1)
+    assert torch.all(fz < 0), "a loaded foot reads a negative z force"
+    assert torch.allclose(-fz, torch.full((N,), weight_above, dtype=torch.float32), rtol=0.05), (fz, weight_above)
+    assert torch.all(sim.foot_force[:, :, 2] < -0.3 * weight_above), "both feet carry load"
+    np.testing.assert_array_equal(_signal_counts(sim), _scan_warp_contacts(sim))
+
+    # A world reset into this standing state reads the same forces right away (reset runs a forward pass).
+    standing = (sim.qpos.clone(), sim.qvel.clone(), sim.ctrl.clone(), sim.foot_force.clone())
+    mask = torch.tensor([False, True, False, False])
+    sim.reset(mask, standing[0][0], standing[1][0], standing[2][0])
+    assert torch.allclose(sim.foot_force[1], standing[3][0], atol=0.5)
+    assert torch.equal(sim.foot_contact[1], torch.tensor([True, True]))
+
+
+def test_robot_dropped_on_its_back_reports_forbidden_contact(sim):
+    _reset_standing(sim)
+    qpos = _init_qpos()
+    qpos[0, 3:7] = torch.tensor(_quat((0, 1, 0), -math.pi / 2))  # face up: the pelvis back points down
+    qpos[0, 2] = 0.3
+    sim.reset(torch.tensor([True, False, False, False]), qpos, torch.zeros(sim.nv), _upper_ctrl())
+    assert not sim.forbidden_ground_contact[0]
+    landed = False
+    for _ in range(100):
+        _pd_hold(sim)
+        sim.step()
+        if sim.forbidden_ground_contact[0]:
+            landed = True
+            break
+    assert landed, "the pelvis never touched the ground"
+    assert not sim.forbidden_ground_contact[1:].any()
+    assert sim.healthy.all() and not sim.self_collision.any()
+    np.testing.assert_array_equal(_signal_counts(sim), _scan_warp_contacts(sim))
+
+
+def test_crossed_legs_report_self_collision(sim):
+    qpos = _init_qpos()
+    qpos[:, 2] = 2.0  # in the air: only the legs can touch
+    j = {n: 7 + i for i, n in enumerate(robot.JOINT_NAMES)}
+    qpos[2, j["L_HipRoll_Joint"]], qpos[2, j["R_HipRoll_Joint"]] = -0.25, 0.25  # legs swing across each other
+    sim.reset(torch.ones(N, dtype=torch.bool), qpos, torch.zeros(sim.nv), _upper_ctrl())
+    assert sim.self_collision.tolist() == [False, False, True, False]
+    assert not sim.forbidden_ground_contact.any() and not sim.foot_contact.any()
+    np.testing.assert_array_equal(_signal_counts(sim), _scan_warp_contacts(sim))
+    sim.step()  # stays flagged while the legs are crossed
+    assert bool(sim.self_collision[2])
+
+
+# ---------------------------------------------------------------------------------------------------- health
+def test_infinite_velocity_flags_only_that_world(sim):
+    _reset_standing(sim)
+    sim.qvel[2, 10] = float("inf")
+    _pd_hold(sim)
+    sim.ctrl[2].zero_()  # the PD of an infinite velocity is not the point here
+    sim.step()
+    assert sim.healthy.tolist() == [True, True, False, True]
+    sim.reset(torch.tensor([False, False, True, False]), _init_qpos(), torch.zeros(sim.nv), _upper_ctrl())
+    assert sim.healthy.all()
+    assert torch.isfinite(sim.qpos).all()
+
+
+def test_forward_refreshes_after_direct_writes(sim):
+    _reset_standing(sim)
+    sim.qpos[3, 2] = 1.5
+    sim.forward()
+    assert sim.base_pos[3, 2] == pytest.approx(1.5)
+    assert sim.neck_pos[3, 2] > sim.base_pos[3, 2]
+
+
+def test_constraint_overflow_marks_only_that_world_with_a_clear_error():
+    # After construction the worlds hold the model's default pose (straight legs, soles in the ground), which needs
+    # 57 constraint rows (33 friction-loss rows + contacts); a robot in the air needs 33.
+    sim = WarpSim(SimConfig(num_worlds=2, njmax=45))
+    assert not sim.healthy.any()
+    assert int(sim.overflow[0]) & int(mjw.OverflowType.NEFC)
+    qpos = _init_qpos(2)
+    qpos[0, 2] = 2.0
+    sim.reset(torch.tensor([True, False]), qpos, torch.zeros(sim.nv), _upper_ctrl(2))
+    assert sim.healthy.tolist() == [True, False]
+    with pytest.raises(SimOverflowError, match=r"1 world\(s\).*worlds 1;.*njmax=45.*NEFC.*raise SimConfig.njmax"):
+        sim.check_overflow()
+
+
+def test_contact_pool_overflow_marks_every_world_unhealthy():
+    # 16 pooled contacts per world: two robots lying on their backs need more.
+    sim = WarpSim(SimConfig(num_worlds=2, nconmax=16))
+    _reset_standing(sim)
+    assert sim.healthy.all()
+    sim.check_overflow()
+    qpos = _init_qpos(2)
+    qpos[:, 3:7] = torch.tensor(_quat((0, 1, 0), -math.pi / 2))
+    qpos[:, 2] = 0.05  # pelvis and feet on the ground
+    sim.reset(torch.ones(2, dtype=torch.bool), qpos, torch.zeros(sim.nv), _upper_ctrl(2))
+    # The pool is shared, so an overflow can drop any world's contacts: every world is flagged.
+    assert not sim.healthy.any()
+    assert int(sim.overflow[1]) & int(mjw.OverflowType.NARROWPHASE)
+    with pytest.raises(SimOverflowError, match=r"nconmax=16.*NARROWPHASE.*raise SimConfig.nconmax"):
+        sim.check_overflow()
+    _reset_standing(sim)
+    assert sim.healthy.all(), "a reset clears the flags once the contacts fit again"
+
+
+# ---------------------------------------------------------------------------------------------------- errors
+@pytest.mark.parametrize(
+    "config, message",
+    [
+        (SimConfig(num_worlds=0), "num_worlds must be a positive int"),
+        (SimConfig(num_worlds=-3), "num_worlds must be a positive int"),
+        (SimConfig(num_worlds=2.5), "num_worlds must be a positive int"),
+        (SimConfig(substeps=0), "substeps must be a positive int"),
+        (SimConfig(njmax=0), "njmax must be a positive int"),
+        (SimConfig(device="tpu"), "unknown device 'tpu'"),
+        (SimConfig(device="cuda:x"), "unknown device 'cuda:x'"),
+    ],
+)
+def test_bad_configuration_is_refused(config, message):
+    with pytest.raises(ValueError, match=message):
+        WarpSim(config)
+
+
+@pytest.mark.skipif(wp.is_cuda_available(), reason="checks the message on a machine without CUDA")
+def test_cuda_without_a_gpu_is_refused():
+    with pytest.raises(ValueError, match="no CUDA device"):
+        WarpSim(SimConfig(device="cuda:0"))
+
+
+def test_bad_model_is_refused():
+    with pytest.raises(ContactSensorError, match="add_contact_sensors"):
+        WarpSim(SimConfig(), model=robot.load_model())
+    with pytest.raises(TypeError, match="model must be"):
+        WarpSim(SimConfig(), model=42)
+
+
+def test_cold_kernel_cache_prints_one_line(tmp_path, capsys, monkeypatch):
+    device = wp.get_device("cpu")
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    assert announce_compile_if_cold(device)
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and "compiling mujoco-warp kernels" in out[0] and str(tmp_path) in out[0]

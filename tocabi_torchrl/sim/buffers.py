@@ -1,0 +1,27 @@
+"""Contact and constraint buffer sizes for TOCABI, and the measurement that chose them.
+
+mujoco-warp allocates fixed buffers: a contact pool shared by all worlds (``naconmax = nconmax * num_worlds``, which
+also bounds the broadphase candidate pairs) and ``njmax`` constraint rows per world. Too small and contacts or
+constraints are silently dropped (the backend flags the world unhealthy, see ``health``); too large costs memory and
+solver time. The defaults below come from ``python -m tocabi_torchrl.sim.measure_buffers``, which steps TOCABI through
+standing, falling, thrashing and tangled scenarios and records the per-substep peaks
+(results: ``docs/benchmarks/sim_buffers.md``).
+"""
+
+from __future__ import annotations
+
+__all__ = ["NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH"]
+
+#: Contacts per world, pooled over worlds (``naconmax = nconmax * num_worlds``). Measured in mujoco-warp, per substep:
+#: 8 per standing robot (4 per sole); one world peaks at 28 lying on its back, 41 after a hard fall on its front and
+#: 48 with tangled legs; the pool averaged at most 19 per world in any scenario and the broadphase at most 23 pairs.
+#: 48 holds even the worst single world in every world at once (2.5x the worst pooled average).
+NCONMAX = 48
+#: Constraint rows per world, a hard per-world limit: 33 friction-loss rows always, 3 per contact (elliptic cone,
+#: condim 3) and joint-limit rows. Measured peaks: 57 standing, 117 lying on the back, 156 after a hard fall on the
+#: front, 177 with tangled legs. 224 (a multiple of the solver's 16-row tile) leaves 1.27x over the worst case; the
+#: solver loops stop at the actual row count, so the margin costs memory (~0.7 GB at 16384 worlds), not time.
+NJMAX = 224
+#: Slots per contact sensor in mujoco-warp's matching pass. The ``found`` counts used here stay exact beyond it (only
+#: the CONTACT_MATCH flag is raised); 64 covers every contact of a fallen robot (at most 48 measured).
+CONTACT_SENSOR_MAXMATCH = 64

@@ -1,0 +1,65 @@
+"""Configuration of the physics backend (:class:`~tocabi_torchrl.sim.warp_backend.WarpSim`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .buffers import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX
+from .health import HEALTH_OVERFLOW_MASK
+
+__all__ = ["SimConfig", "NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH"]
+
+@dataclass
+class SimConfig:
+    """What to simulate and how.
+
+    Attributes:
+        num_worlds: number of parallel worlds N (>= 1).
+        device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
+        substeps: physics steps per :meth:`WarpSim.step` (8: 2 kHz physics, 250 Hz control for a 0.5 ms timestep).
+        nconmax: contacts per world (pooled over worlds), see :data:`NCONMAX`.
+        njmax: constraint rows per world, see :data:`NJMAX`.
+        contact_sensor_maxmatch: mujoco-warp contact-sensor slots, see :data:`CONTACT_SENSOR_MAXMATCH`.
+        solver_iterations, solver_ls_iterations, solver_tolerance: explicit overrides of the model's solver options;
+            ``None`` keeps what the model file says (the backend never changes physics on its own).
+        use_graph: capture step/reset/forward as warp graphs (CUDA graphs on GPU, warp's recorded replay on CPU);
+            ``False`` runs the same functions eagerly, for debugging.
+        sensors_every_substep: evaluate sensors in every substep as ``mujoco_warp.step`` does. Off by default:
+            only the values after the final forward pass are ever visible, so intermediate sensor work is wasted.
+        health_overflow_mask: ``mujoco_warp.OverflowType`` bits that make a world unhealthy (default: the buffer
+            overflows that silently drop contacts or constraints).
+        kernel_overflow_prints: let mujoco-warp kernels print their own overflow warnings (one line per world and
+            substep on the GPU, so off by default; use :meth:`WarpSim.check_overflow` instead).
+    """
+
+    num_worlds: int = 1
+    device: str = "cpu"
+    substeps: int = 8
+    nconmax: int = NCONMAX
+    njmax: int = NJMAX
+    contact_sensor_maxmatch: int = CONTACT_SENSOR_MAXMATCH
+    solver_iterations: int | None = None
+    solver_ls_iterations: int | None = None
+    solver_tolerance: float | None = None
+    use_graph: bool = True
+    sensors_every_substep: bool = False
+    health_overflow_mask: int = int(HEALTH_OVERFLOW_MASK)
+    kernel_overflow_prints: bool = False
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad field and what it should be."""
+
+        def positive_int(name: str) -> None:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise ValueError(f"SimConfig.{name} must be a positive int, got {v!r}")
+
+        for name in ("num_worlds", "substeps", "nconmax", "njmax", "contact_sensor_maxmatch"):
+            positive_int(name)
+        for name in ("solver_iterations", "solver_ls_iterations"):
+            if getattr(self, name) is not None:
+                positive_int(name)
+        if self.solver_tolerance is not None and not self.solver_tolerance >= 0.0:
+            raise ValueError(f"SimConfig.solver_tolerance must be >= 0, got {self.solver_tolerance!r}")
+        if not isinstance(self.device, str):
+            raise ValueError(f"SimConfig.device must be a string like 'cpu' or 'cuda:0', got {self.device!r}")

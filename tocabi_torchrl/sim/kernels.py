@@ -1,0 +1,103 @@
+"""Small warp kernels the backend launches inside its captured graphs (one thread per world).
+
+They are warp kernels rather than torch ops because torch cannot record into a graph that warp captures (and on the
+CPU, warp replays its own recording), so the derived signals are computed in the same graph as the physics.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from mujoco_warp import OverflowType
+
+__all__ = ["derive_signals", "write_reset_state", "copy_rows_where"]
+
+_NEFC = int(OverflowType.NEFC)
+_BROADPHASE = int(OverflowType.BROADPHASE)
+_NARROWPHASE = int(OverflowType.NARROWPHASE)
+
+
+@wp.kernel(enable_backward=False)
+def derive_signals(
+    qpos: wp.array2d(dtype=float),
+    qvel: wp.array2d(dtype=float),
+    sensordata: wp.array2d(dtype=float),
+    found_adr: wp.array(dtype=int),
+    weights: wp.array2d(dtype=float),
+    overflow: wp.array(dtype=int),
+    nefc: wp.array(dtype=int),
+    nacon: wp.array(dtype=int),
+    ncollision: wp.array(dtype=int),
+    njmax: int,
+    naconmax: int,
+    health_mask: int,
+    # outputs
+    signals_out: wp.array2d(dtype=wp.bool),
+    overflow_out: wp.array(dtype=int),
+    healthy_out: wp.array(dtype=wp.bool),
+):
+    """Contact signals (signed sums of contact counts > 0.5), the overflow bits and the health flag of one world.
+
+    ``overflow_out`` adds the buffer checks that mujoco-warp only records when it integrates, so an overflow in the
+    final forward pass of a step is visible after that step rather than one step later.
+    """
+    w = wp.tid()
+    for k in range(weights.shape[0]):
+        s = float(0.0)
+        for i in range(found_adr.shape[0]):
+            s += weights[k, i] * sensordata[w, found_adr[i]]
+        signals_out[w, k] = s > 0.5
+
+    bits = int(overflow[w])
+    if nefc[w] > njmax:
+        bits = bits | _NEFC
+    if ncollision[0] > naconmax:
+        bits = bits | _BROADPHASE
+    if nacon[0] > naconmax:
+        bits = bits | _NARROWPHASE
+    overflow_out[w] = bits
+
+    # A NaN or inf anywhere makes the sum non-finite.
+    total = float(0.0)
+    for i in range(qpos.shape[1]):
+        total += qpos[w, i] * 0.0
+    for i in range(qvel.shape[1]):
+        total += qvel[w, i] * 0.0
+    healthy_out[w] = wp.isfinite(total) and (bits & health_mask) == 0
+
+
+@wp.kernel(enable_backward=False)
+def write_reset_state(
+    mask: wp.array(dtype=wp.bool),
+    qpos_in: wp.array2d(dtype=float),
+    qvel_in: wp.array2d(dtype=float),
+    ctrl_in: wp.array2d(dtype=float),
+    qpos: wp.array2d(dtype=float),
+    qvel: wp.array2d(dtype=float),
+    ctrl: wp.array2d(dtype=float),
+):
+    """Copy the requested initial state into the flagged worlds (after ``mujoco_warp.reset_data`` cleared them)."""
+    w = wp.tid()
+    if not mask[w]:
+        return
+    for i in range(qpos.shape[1]):
+        qpos[w, i] = qpos_in[w, i]
+    for i in range(qvel.shape[1]):
+        qvel[w, i] = qvel_in[w, i]
+    for i in range(ctrl.shape[1]):
+        ctrl[w, i] = ctrl_in[w, i]
+
+
+@wp.kernel(enable_backward=False)
+def copy_rows_where(
+    mask: wp.array(dtype=wp.bool),
+    when: wp.bool,
+    src: wp.array2d(dtype=float),
+    dst: wp.array2d(dtype=float),
+):
+    """``dst[w] = src[w]`` for the worlds whose ``mask[w] == when``."""
+    w = wp.tid()
+    if mask[w] != when:
+        return
+    for i in range(src.shape[1]):
+        dst[w, i] = src[w, i]

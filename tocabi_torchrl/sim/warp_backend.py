@@ -1,0 +1,353 @@
+"""``WarpSim``: N TOCABI worlds in mujoco-warp, exposed as torch tensors that alias the warp arrays.
+
+One :meth:`WarpSim.step` is one control period: ``substeps`` physics steps, then a forward pass so that positions,
+sensors and contact signals describe the post-step state, then the derived flags (contacts, health). The whole sequence
+is one recorded graph (a CUDA graph on GPU) that never reads device values on the host. :meth:`WarpSim.reset` writes
+initial states into flagged worlds with a second recorded graph.
+
+The step reuses work: the forward pass at the end of a step leaves the position- and velocity-dependent quantities of
+the new state in ``Data``; only ``ctrl`` changes before the next step, so its first substep runs
+``mujoco_warp.step2`` (actuation, constraint solve, integration) instead of a full ``step``. The trajectory is
+bit-identical to calling ``mujoco_warp.step`` ``substeps`` times. Write ``qpos``/``qvel`` only through :meth:`reset`,
+or call :meth:`forward` after writing them directly.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import os
+
+import mujoco
+import mujoco_warp as mjw
+import numpy as np
+import torch
+import warp as wp
+
+from .. import robot
+from .config import SimConfig
+from .contacts import ContactLayout, add_contact_sensors, contact_layout
+from .graph import Recorded
+from .health import overflow_error
+from .kernel_cache import announce_compile_if_cold
+from .kernels import copy_rows_where, derive_signals, write_reset_state
+
+__all__ = ["WarpSim"]
+
+ModelSource = mujoco.MjModel | mujoco.MjSpec | str | os.PathLike | None
+
+
+def _resolve_device(name) -> wp.Device:
+    name = str(name)
+    if name != "cpu" and name != "cuda" and not (name.startswith("cuda:") and name[5:].isdigit()):
+        raise ValueError(f"unknown device {name!r}: use 'cpu', 'cuda' or 'cuda:N'")
+    wp.init()
+    if name.startswith("cuda") and not wp.is_cuda_available():
+        raise ValueError(f"device {name!r} requested but warp sees no CUDA device on this machine; use device='cpu'")
+    try:
+        return wp.get_device(name)
+    except Exception as err:  # warp raises a bare RuntimeError/ValueError for an out-of-range ordinal
+        raise ValueError(f"device {name!r} is not available ({err}); warp sees {wp.get_devices()}") from err
+
+
+def _compile(source: ModelSource) -> mujoco.MjModel:
+    """A private, compiled model with the contact sensors (the caller's spec or model is never modified)."""
+    if isinstance(source, mujoco.MjModel):
+        contact_layout(source)  # raises a clear error if the sensors are missing
+        return copy.deepcopy(source)
+    if isinstance(source, mujoco.MjSpec):
+        spec = source.copy()
+    elif source is None or isinstance(source, (str, os.PathLike)):
+        spec = robot.load_spec(source)
+    else:
+        raise TypeError(
+            f"model must be a mujoco.MjModel, a mujoco.MjSpec, an MJCF path or None (the shipped robot), "
+            f"got {type(source).__name__}"
+        )
+    add_contact_sensors(spec)
+    try:
+        return spec.compile()
+    except Exception as err:
+        raise ValueError(f"cannot compile the simulation model: {err}") from err
+
+
+def _without_sensors(m: mjw.Model) -> mjw.Model:
+    """A shallow copy of ``m`` whose steps skip sensor evaluation (same arrays, so the same physics)."""
+    opt = dataclasses.replace(m.opt, disableflags=int(m.opt.disableflags) | int(mjw.DisableBit.SENSOR))
+    return dataclasses.replace(m, opt=opt)
+
+
+class WarpSim:
+    """N worlds of one MuJoCo model stepped by mujoco-warp, with zero-copy torch views of the state.
+
+    Args:
+        config: :class:`SimConfig` (number of worlds, device, substeps, buffer sizes, solver overrides).
+        model: the scene: ``None`` for the shipped TOCABI (``robot.load_spec()``), an MJCF path, a ``mujoco.MjSpec``
+            (copied; the contact sensors are added to the copy) or a compiled ``mujoco.MjModel`` that already has
+            them (built with :func:`~tocabi_torchrl.sim.contacts.add_contact_sensors`).
+
+    Tensors (all on :attr:`device`, float32 unless stated, first dimension N = ``num_worlds``) are views of warp
+    memory: reading them copies nothing, writing ``ctrl`` is how actions reach the physics. They hold the state after
+    the last :meth:`step` / :meth:`reset` / :meth:`forward` and are overwritten by the next one, so clone what you keep.
+
+    ========================== ================ ===============================================================
+    name                       shape            meaning
+    ========================== ================ ===============================================================
+    qpos                       (N, nq=40)       base position [m], base quaternion (w, x, y, z), 33 joints [rad]
+    qvel                       (N, nv=39)       base linear (world) [m/s], angular (local) [rad/s], joints [rad/s]
+    ctrl                       (N, nu=33)       legs: torque [N·m]; upper body: position-actuator target [rad]
+    sensordata                 (N, nsensordata) every sensor of the model
+    xpos / xquat               (N, nbody, 3/4)  body frame origins [m] / orientations (w, x, y, z) in the world
+    base_pos / base_quat       (N, 3) / (N, 4)  ``robot.BASE_BODY`` pose (views of xpos / xquat)
+    neck_pos / neck_quat       (N, 3) / (N, 4)  ``robot.NECK_BODY`` pose
+    foot_force / foot_torque   (N, 2, 3)        foot F/T sensors [N] / [N·m], site frame, [left, right]
+    contact_counts             (N, k)           the ``found`` counts of the contact sensors (see contact_layout)
+    foot_contact               (N, 2) bool      a foot body touches a world-body geom, [left, right]
+    forbidden_ground_contact   (N,) bool        a ``robot.GROUND_FORBIDDEN_BODIES`` body touches the ground
+    self_collision             (N,) bool        two ``robot.SELF_COLLISION_BODIES`` bodies touch
+    healthy                    (N,) bool        finite qpos/qvel and no buffer overflow (``health_overflow_mask``)
+    overflow                   (N,) int32       mujoco-warp ``OverflowType`` bits (sticky until the world resets)
+    time                       (N,)             simulated time since the world's last reset [s]
+    ========================== ================ ===============================================================
+    """
+
+    def __init__(self, config: SimConfig | None = None, model: ModelSource = None):
+        cfg = copy.deepcopy(config) if config is not None else SimConfig()
+        cfg.validate()
+        self.config = cfg
+        self.wp_device = _resolve_device(cfg.device)
+        self.device = torch.device(wp.device_to_torch(self.wp_device))
+        self.num_worlds = n = cfg.num_worlds
+
+        mj = _compile(model)
+        if cfg.solver_iterations is not None:
+            mj.opt.iterations = cfg.solver_iterations
+        if cfg.solver_ls_iterations is not None:
+            mj.opt.ls_iterations = cfg.solver_ls_iterations
+        if cfg.solver_tolerance is not None:
+            mj.opt.tolerance = cfg.solver_tolerance
+        robot.validate_model(mj, source="simulation model")
+        self.mj_model = mj
+        self.contact_layout: ContactLayout = contact_layout(mj)
+        self.nq, self.nv, self.nu = mj.nq, mj.nv, mj.nu
+        self.physics_dt = float(mj.opt.timestep)
+        self.control_dt = self.physics_dt * cfg.substeps
+
+        announce_compile_if_cold(self.wp_device)
+        with wp.ScopedDevice(self.wp_device):
+            self.wp_model = mjw.put_model(mj)
+            self.wp_model.opt.contact_sensor_maxmatch = cfg.contact_sensor_maxmatch
+            self.wp_model.opt.warn_overflow = int(mjw.OverflowType.ALL) if cfg.kernel_overflow_prints else 0
+            self._substep_model = self.wp_model if cfg.sensors_every_substep else _without_sensors(self.wp_model)
+            self.wp_data = mjw.make_data(mj, nworld=n, nconmax=cfg.nconmax, njmax=cfg.njmax)
+            self._alloc_buffers(mj)
+        self._make_views(mj)
+
+        # Run everything once eagerly: it compiles the kernels (before any capture) and leaves a consistent state.
+        with wp.ScopedDevice(self.wp_device):
+            self._forward_fn()
+            self._step_fn()
+            self._reset_mask.fill_(True)
+            self._reset_qpos.assign(np.tile(mj.qpos0, (n, 1)).astype(np.float32))
+            self._reset_fn()
+            wp.synchronize_device(self.wp_device)
+        self._step_graph = Recorded(self._step_fn, self.wp_device, cfg.use_graph)
+        self._reset_graph = Recorded(self._reset_fn, self.wp_device, cfg.use_graph)
+        self._forward_graph = Recorded(self._forward_fn, self.wp_device, cfg.use_graph)
+
+    # ----------------------------------------------------------------------------------------------- construction
+    def _alloc_buffers(self, mj: mujoco.MjModel) -> None:
+        n, lay = self.num_worlds, self.contact_layout
+        self._found_adr = wp.array(lay.adr, dtype=int)
+        self._weights = wp.array(lay.weights.astype(np.float32), dtype=float)
+        self._signals = wp.zeros((n, lay.weights.shape[0]), dtype=wp.bool)
+        self._overflow = wp.zeros(n, dtype=int)
+        self._healthy = wp.zeros(n, dtype=wp.bool)
+        self._reset_mask = wp.zeros(n, dtype=wp.bool)
+        self._reset_qpos = wp.zeros((n, mj.nq), dtype=float)
+        self._reset_qvel = wp.zeros((n, mj.nv), dtype=float)
+        self._reset_ctrl = wp.zeros((n, mj.nu), dtype=float)
+        self._sensor_snapshot = wp.zeros((n, mj.nsensordata), dtype=float)
+
+    def _make_views(self, mj: mujoco.MjModel) -> None:
+        d, t = self.wp_data, wp.to_torch
+        self._qpos, self._qvel, self._ctrl = t(d.qpos), t(d.qvel), t(d.ctrl)
+        self._sensordata, self._time = t(d.sensordata), t(d.time)
+        self._xpos, self._xquat = t(d.xpos), t(d.xquat)
+        signals = t(self._signals)
+        self._foot_contact, self._forbidden, self._self_collision = signals[:, 0:2], signals[:, 2], signals[:, 3]
+        self._healthy_t, self._overflow_t = t(self._healthy), t(self._overflow)
+        self._reset_mask_t = t(self._reset_mask)
+        self._reset_qpos_t, self._reset_qvel_t = t(self._reset_qpos), t(self._reset_qvel)
+        self._reset_ctrl_t = t(self._reset_ctrl)
+
+        def body(name: str) -> int:
+            return mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_BODY, name)
+
+        self._base_pos, self._base_quat = self._xpos[:, body(robot.BASE_BODY)], self._xquat[:, body(robot.BASE_BODY)]
+        self._neck_pos, self._neck_quat = self._xpos[:, body(robot.NECK_BODY)], self._xquat[:, body(robot.NECK_BODY)]
+        self._foot_force = self._sensor_pair(mj, robot.FOOT_FORCE_SENSORS)
+        self._foot_torque = self._sensor_pair(mj, robot.FOOT_TORQUE_SENSORS)
+        adr = self.contact_layout.adr
+        contiguous = bool(np.all(np.diff(adr) == 1))
+        self._contact_counts = self._sensordata[:, adr[0] : adr[-1] + 1] if contiguous else None
+
+    def _sensor_pair(self, mj: mujoco.MjModel, names: tuple[str, str]) -> torch.Tensor:
+        """A (N, 2, 3) view of two 3-D sensors, [left, right], without copying."""
+        ids = [mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SENSOR, s) for s in names]
+        a, b = (int(mj.sensor_adr[i]) for i in ids)
+        if b <= a:
+            raise ValueError(f"sensors {names} must appear left before right in the model to be viewed as one tensor")
+        sd = self._sensordata
+        return sd.as_strided((self.num_worlds, 2, 3), (sd.stride(0), b - a, 1), sd.storage_offset() + a)
+
+    # --------------------------------------------------------------------------------------------- graph bodies
+    def _derive(self) -> None:
+        d = self.wp_data
+        wp.launch(
+            derive_signals,
+            dim=self.num_worlds,
+            inputs=[
+                d.qpos,
+                d.qvel,
+                d.sensordata,
+                self._found_adr,
+                self._weights,
+                d.overflow,
+                d.nefc,
+                d.nacon,
+                d.ncollision,
+                d.njmax,
+                d.naconmax,
+                int(self.config.health_overflow_mask),
+            ],
+            outputs=[self._signals, self._overflow, self._healthy],
+        )
+
+    def _step_fn(self) -> None:
+        m, d, ms = self.wp_model, self.wp_data, self._substep_model
+        mjw.step2(ms, d)  # position/velocity stages of this state were computed by the previous forward pass
+        for _ in range(self.config.substeps - 1):
+            mjw.step(ms, d)
+        mjw.forward(m, d)
+        self._derive()
+
+    def _reset_fn(self) -> None:
+        m, d, n, mask = self.wp_model, self.wp_data, self.num_worlds, self._reset_mask
+        # The forward pass below recomputes every world; restoring the untouched worlds' sensors keeps them
+        # bit-identical even where the GPU's contact order (atomics) would change the last bits of a force.
+        wp.launch(copy_rows_where, dim=n, inputs=[mask, False, d.sensordata, self._sensor_snapshot])
+        mjw.reset_data(m, d, reset=mask)
+        wp.launch(
+            write_reset_state,
+            dim=n,
+            inputs=[mask, self._reset_qpos, self._reset_qvel, self._reset_ctrl],
+            outputs=[d.qpos, d.qvel, d.ctrl],
+        )
+        mjw.forward(m, d)
+        wp.launch(copy_rows_where, dim=n, inputs=[mask, False, self._sensor_snapshot, d.sensordata])
+        self._derive()
+
+    def _forward_fn(self) -> None:
+        mjw.forward(self.wp_model, self.wp_data)
+        self._derive()
+
+    # ------------------------------------------------------------------------------------------------- public API
+    def step(self) -> None:
+        """Advance every world by one control period (``substeps`` physics steps) with the current ``ctrl``."""
+        self._step_graph()
+
+    def forward(self) -> None:
+        """Recompute positions, sensors and flags from the current qpos/qvel/ctrl (after writing them directly)."""
+        self._forward_graph()
+
+    def reset(
+        self,
+        mask: torch.Tensor,
+        qpos: torch.Tensor,
+        qvel: torch.Tensor,
+        ctrl: torch.Tensor | None = None,
+    ) -> None:
+        """Put the flagged worlds into the given state; the others stay bit-identical. Never syncs with the host.
+
+        Args:
+            mask: (N,) bool, True for the worlds to reset.
+            qpos: (N, nq) or (nq,) initial positions (only flagged rows are read).
+            qvel: (N, nv) or (nv,) initial velocities.
+            ctrl: (N, nu) or (nu,) controls to start with; zeros if ``None``.
+
+        Everything else of a flagged world is cleared as by ``mujoco_warp.reset_data`` (time, activations, warm
+        start, applied forces, overflow flags), then a forward pass fills positions, sensors and flags.
+        """
+        self._check_tensor("mask", mask, (self.num_worlds,), allow_row=False, dtype=torch.bool)
+        self._check_tensor("qpos", qpos, (self.num_worlds, self.nq))
+        self._check_tensor("qvel", qvel, (self.num_worlds, self.nv))
+        self._reset_mask_t.copy_(mask)
+        self._reset_qpos_t.copy_(qpos)
+        self._reset_qvel_t.copy_(qvel)
+        if ctrl is None:
+            self._reset_ctrl_t.zero_()
+        else:
+            self._check_tensor("ctrl", ctrl, (self.num_worlds, self.nu))
+            self._reset_ctrl_t.copy_(ctrl)
+        self._reset_graph()
+
+    def check_overflow(self) -> None:
+        """Raise :class:`~tocabi_torchrl.sim.health.SimOverflowError` if a world overflowed a buffer.
+
+        Reads the flags on the host (a sync), so call it outside the hot loop, e.g. every few hundred steps.
+        """
+        error = self._overflow_error()
+        if error is not None:
+            raise error
+
+    def _overflow_error(self):
+        bits = self._overflow_t.cpu().numpy()  # ordered after the graphs: they run on torch's current stream
+        return overflow_error(bits, self.config.health_overflow_mask, self.config.nconmax, self.config.njmax)
+
+    def _check_tensor(self, name, value, shape, allow_row: bool = True, dtype: torch.dtype | None = None) -> None:
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(f"reset: {name} must be a torch.Tensor on {self.device}, got {type(value).__name__}")
+        if value.device != self.device:
+            raise ValueError(f"reset: {name} is on {value.device}, the simulator on {self.device}; move it there first")
+        ok = tuple(value.shape) == shape or (allow_row and tuple(value.shape) == shape[1:])
+        if not ok:
+            want = f"{shape}" + (f" or {shape[1:]}" if allow_row else "")
+            raise ValueError(f"reset: {name} must have shape {want}, got {tuple(value.shape)}")
+        if dtype is not None and value.dtype != dtype:
+            raise ValueError(f"reset: {name} must have dtype {dtype}, got {value.dtype}")
+        if dtype is None and not value.is_floating_point():
+            raise ValueError(f"reset: {name} must be a floating-point tensor, got {value.dtype}")
+
+    # --------------------------------------------------------------------------------------------------- views
+    qpos = property(lambda self: self._qpos, doc="(N, nq) generalized positions.")
+    qvel = property(lambda self: self._qvel, doc="(N, nv) generalized velocities.")
+    ctrl = property(lambda self: self._ctrl, doc="(N, nu) actuator controls (write actions here).")
+    sensordata = property(lambda self: self._sensordata, doc="(N, nsensordata) all sensor values.")
+    time = property(lambda self: self._time, doc="(N,) simulated time since the world's reset [s].")
+    xpos = property(lambda self: self._xpos, doc="(N, nbody, 3) body origins in the world [m].")
+    xquat = property(lambda self: self._xquat, doc="(N, nbody, 4) body orientations (w, x, y, z).")
+    base_pos = property(lambda self: self._base_pos, doc="(N, 3) pelvis origin [m].")
+    base_quat = property(lambda self: self._base_quat, doc="(N, 4) pelvis orientation (w, x, y, z).")
+    neck_pos = property(lambda self: self._neck_pos, doc="(N, 3) Neck_Link origin [m].")
+    neck_quat = property(lambda self: self._neck_quat, doc="(N, 4) Neck_Link orientation (w, x, y, z).")
+    foot_force = property(lambda self: self._foot_force, doc="(N, 2, 3) foot F/T force, site frame [N], [L, R].")
+    foot_torque = property(lambda self: self._foot_torque, doc="(N, 2, 3) foot F/T torque, site frame [N·m].")
+    foot_contact = property(lambda self: self._foot_contact, doc="(N, 2) bool foot-ground contact, [L, R].")
+    forbidden_ground_contact = property(lambda self: self._forbidden, doc="(N,) bool forbidden ground contact.")
+    self_collision = property(lambda self: self._self_collision, doc="(N,) bool self collision.")
+    healthy = property(lambda self: self._healthy_t, doc="(N,) bool finite state and no buffer overflow.")
+    overflow = property(lambda self: self._overflow_t, doc="(N,) int32 mujoco-warp OverflowType bits.")
+
+    @property
+    def contact_counts(self) -> torch.Tensor:
+        """(N, k) contact-sensor counts, columns named by ``contact_layout.names``."""
+        if self._contact_counts is None:
+            raise ValueError("the contact sensors are not contiguous in sensordata; index sensordata[:, layout.adr]")
+        return self._contact_counts
+
+    def __repr__(self) -> str:
+        return (
+            f"WarpSim(num_worlds={self.num_worlds}, device={self.device}, substeps={self.config.substeps}, "
+            f"nconmax={self.config.nconmax}, njmax={self.config.njmax}, dt={self.physics_dt}x{self.config.substeps})"
+        )
