@@ -16,7 +16,7 @@ import torch
 import warp as wp
 
 from tocabi_torchrl import robot
-from tocabi_torchrl.sim import ContactSensorError, SimConfig, SimOverflowError, WarpSim
+from tocabi_torchrl.sim import ContactSensorError, SimConfig, SimOverflowError, WarpSim, add_contact_sensors
 from tocabi_torchrl.sim.kernel_cache import announce_compile_if_cold
 
 N = 4
@@ -122,6 +122,7 @@ def test_step_is_bit_identical_to_raw_mujoco_warp(sim):
         sim.step()
         for _ in range(sim.config.substeps):
             mjw.step(sim.wp_model, raw)
+    assert np.array_equal(sim.applied_actuator_force.numpy(), raw.actuator_force.numpy())
     mjw.forward(sim.wp_model, raw)
     assert np.array_equal(sim.qpos.numpy(), raw.qpos.numpy())
     assert np.array_equal(sim.qvel.numpy(), raw.qvel.numpy())
@@ -316,6 +317,16 @@ def test_bad_configuration_is_refused(config, message):
 def test_cuda_without_a_gpu_is_refused():
     with pytest.raises(ValueError, match="no CUDA device"):
         WarpSim(SimConfig(device="cuda:0"))
+
+
+def test_solver_overrides_are_explicit_and_leave_the_callers_model_alone():
+    model = add_contact_sensors(robot.load_spec()).compile()
+    sim = WarpSim(SimConfig(num_worlds=1, solver_iterations=7, solver_tolerance=1e-6), model=model)
+    assert sim.mj_model.opt.iterations == 7 and sim.wp_model.opt.iterations == 7
+    assert sim.mj_model.opt.tolerance == pytest.approx(1e-6)
+    assert model.opt.iterations == robot.load_model().opt.iterations, "the caller's model was modified"
+    plain = WarpSim(SimConfig(num_worlds=1), model=model)
+    assert plain.mj_model.opt.iterations == model.opt.iterations, "no override: the model file's solver settings"
 
 
 def test_bad_model_is_refused():

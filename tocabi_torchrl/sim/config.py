@@ -4,10 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
+
 from .buffers import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX
 from .health import HEALTH_OVERFLOW_MASK
 
 __all__ = ["SimConfig", "NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH"]
+
 
 @dataclass
 class SimConfig:
@@ -15,7 +18,7 @@ class SimConfig:
 
     Attributes:
         num_worlds: number of parallel worlds N (>= 1).
-        device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
+        device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"`` (or the equivalent ``torch.device``).
         substeps: physics steps per :meth:`WarpSim.step` (8: 2 kHz physics, 250 Hz control for a 0.5 ms timestep).
         nconmax: contacts per world (pooled over worlds), see :data:`NCONMAX`.
         njmax: constraint rows per world, see :data:`NJMAX`.
@@ -33,7 +36,7 @@ class SimConfig:
     """
 
     num_worlds: int = 1
-    device: str = "cpu"
+    device: str | torch.device = "cpu"
     substeps: int = 8
     nconmax: int = NCONMAX
     njmax: int = NJMAX
@@ -61,5 +64,5 @@ class SimConfig:
                 positive_int(name)
         if self.solver_tolerance is not None and not self.solver_tolerance >= 0.0:
             raise ValueError(f"SimConfig.solver_tolerance must be >= 0, got {self.solver_tolerance!r}")
-        if not isinstance(self.device, str):
+        if not isinstance(self.device, (str, torch.device)):
             raise ValueError(f"SimConfig.device must be a string like 'cpu' or 'cuda:0', got {self.device!r}")

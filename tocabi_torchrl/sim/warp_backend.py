@@ -107,6 +107,8 @@ class WarpSim:
     self_collision             (N,) bool        two ``robot.SELF_COLLISION_BODIES`` bodies touch
     healthy                    (N,) bool        finite qpos/qvel and no buffer overflow (``health_overflow_mask``)
     overflow                   (N,) int32       mujoco-warp ``OverflowType`` bits (sticky until the world resets)
+    applied_actuator_force     (N, nu)          actuator forces [N·m] applied in the last substep of the last step
+                                                (``wp_data.actuator_force`` holds the post-step forward pass's values)
     time                       (N,)             simulated time since the world's last reset [s]
     ========================== ================ ===============================================================
     """
@@ -168,6 +170,7 @@ class WarpSim:
         self._reset_qvel = wp.zeros((n, mj.nv), dtype=float)
         self._reset_ctrl = wp.zeros((n, mj.nu), dtype=float)
         self._sensor_snapshot = wp.zeros((n, mj.nsensordata), dtype=float)
+        self._applied_force = wp.zeros((n, mj.nu), dtype=float)
 
     def _make_views(self, mj: mujoco.MjModel) -> None:
         d, t = self.wp_data, wp.to_torch
@@ -180,6 +183,7 @@ class WarpSim:
         self._reset_mask_t = t(self._reset_mask)
         self._reset_qpos_t, self._reset_qvel_t = t(self._reset_qpos), t(self._reset_qvel)
         self._reset_ctrl_t = t(self._reset_ctrl)
+        self._applied_force_t = t(self._applied_force)
 
         def body(name: str) -> int:
             return mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_BODY, name)
@@ -229,6 +233,7 @@ class WarpSim:
         mjw.step2(ms, d)  # position/velocity stages of this state were computed by the previous forward pass
         for _ in range(self.config.substeps - 1):
             mjw.step(ms, d)
+        wp.copy(self._applied_force, d.actuator_force)  # the forward pass below overwrites it with post-step values
         mjw.forward(m, d)
         self._derive()
 
@@ -246,6 +251,8 @@ class WarpSim:
         )
         mjw.forward(m, d)
         wp.launch(copy_rows_where, dim=n, inputs=[mask, False, self._sensor_snapshot, d.sensordata])
+        # Nothing was applied yet in a reset world: report what its actuators would apply in the reset state.
+        wp.launch(copy_rows_where, dim=n, inputs=[mask, True, d.actuator_force, self._applied_force])
         self._derive()
 
     def _forward_fn(self) -> None:
@@ -338,6 +345,9 @@ class WarpSim:
     self_collision = property(lambda self: self._self_collision, doc="(N,) bool self collision.")
     healthy = property(lambda self: self._healthy_t, doc="(N,) bool finite state and no buffer overflow.")
     overflow = property(lambda self: self._overflow_t, doc="(N,) int32 mujoco-warp OverflowType bits.")
+    applied_actuator_force = property(
+        lambda self: self._applied_force_t, doc="(N, nu) actuator forces applied in the last substep [N·m]."
+    )
 
     @property
     def contact_counts(self) -> torch.Tensor:
