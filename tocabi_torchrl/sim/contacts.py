@@ -1,9 +1,9 @@
 """Contact signals from MuJoCo contact sensors: foot-ground, forbidden ground contact, self collision.
 
 MuJoCo's contact sensor (``mjSENS_CONTACT`` with ``data="found"``) counts the contacts whose two geoms match two
-criteria (a geom, a body, or a body's subtree). MuJoCo and mujoco-warp both evaluate it on the device, inside the
-physics step, so no Python code ever scans the global contact list. A count is a set operation, so the signals of
-spec §9.1 are written as signed sums of counts:
+criteria (a geom, a body, or a body's subtree). MuJoCo evaluates it inside the physics step (mujoco-warp on the
+device, for every world at once), so no Python code ever scans the global contact list. Counts add and subtract like
+sets, so the signals of spec §9.1 are signed sums of counts:
 
 * foot contact (per foot): ``found(world body, Foot_Link)``;
 * forbidden ground contact: ``found(world body, subtree(base))`` minus ``found(world body, subtree(a))`` for every
@@ -60,9 +60,6 @@ class _Criterion:
     @property
     def objtype(self) -> mujoco.mjtObj:
         return mujoco.mjtObj.mjOBJ_BODY if self.kind == "body" else mujoco.mjtObj.mjOBJ_XBODY
-
-    def __str__(self) -> str:
-        return f"{self.kind}:{self.name}"
 
 
 @dataclass(frozen=True)

@@ -25,12 +25,8 @@ def _compiled_modules(cache_dir: str, device: wp.Device) -> int:
             files = os.listdir(entry.path)
         except OSError:
             continue
-        if device.is_cpu:
-            hit = any(f.endswith(".o") for f in files)
-        else:
-            arch = f"sm{device.arch}"
-            hit = any(arch in f and f.endswith((".cubin", ".ptx")) for f in files)
-        count += hit
+        # CPU modules compile to .o; CUDA ones to .sm<arch>.cubin, or .ptx for a lower target arch.
+        count += any(f.endswith(".o" if device.is_cpu else (".cubin", ".ptx")) for f in files)
     return count
 
 
