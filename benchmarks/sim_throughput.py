@@ -135,7 +135,9 @@ class BackendStepper:
         )
         self.pd = _PdHold(self.sim.wp_device)
         with wp.ScopedDevice(self.sim.wp_device):
+            _sync(device)  # the reset above ran on torch's stream, this compile launch on warp's
             self.pd.launch(self.sim.wp_data)
+            wp.synchronize_device(self.sim.wp_device)
         self.pd_graph = Recorded(lambda: self.pd.launch(self.sim.wp_data), self.sim.wp_device)
 
     def __call__(self) -> None:
