@@ -12,7 +12,6 @@ captured CUDA graph on GPU); advance the phase clock by dt·(1 + a13); evaluate 
 from __future__ import annotations
 
 import torch
-import warp as wp
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
@@ -104,8 +103,6 @@ class TocabiWalk(EnvBase):
         self.sim = WarpSim(
             SimConfig(num_worlds=num_envs, device=str(device), substeps=cfg.substeps, **buffers), model=spec
         )
-        # What the actuators applied in the last substep (the PD mode reports it as the leg torque).
-        self._actuator_force = wp.to_torch(self.sim.wp_data.actuator_force)
         self.dt = self.sim.mj_model.opt.timestep * cfg.substeps
         self.motion = (ReferenceMotion.default() if cfg.motion is None else ReferenceMotion.from_file(cfg.motion))
         self.motion = self.motion.to(device)
@@ -221,7 +218,7 @@ class TocabiWalk(EnvBase):
         self.time = torch.remainder(self.time + self.dt * rate, self.motion.period)
         self.episode_step = self.episode_step + 1
         self.applied_action = a
-        self.leg_torque = leg_cmd if self.cfg.control_mode == "torque" else self._actuator_force[:, : robot.NUM_LEG_JOINTS].clone()
+        self.leg_torque = leg_cmd if self.cfg.control_mode == "torque" else self.sim.applied_actuator_force[:, : robot.NUM_LEG_JOINTS].clone()
         self.ref_joint_pos = q_ref
         self.ref_foot_force = self.motion.force_reference(row)
         self.stance = self.motion.stance_at(row)
