@@ -218,7 +218,8 @@ class TocabiWalk(EnvBase):
         self.time = torch.remainder(self.time + self.dt * rate, self.motion.period)
         self.episode_step = self.episode_step + 1
         self.applied_action = a
-        self.leg_torque = leg_cmd if self.cfg.control_mode == "torque" else self.sim.applied_actuator_force[:, : robot.NUM_LEG_JOINTS].clone()
+        applied = self.sim.applied_actuator_force[:, : robot.NUM_LEG_JOINTS]
+        self.leg_torque = leg_cmd if self.cfg.control_mode == "torque" else applied.clone()
         self.ref_joint_pos = q_ref
         self.ref_foot_force = self.motion.force_reference(row)
         self.stance = self.motion.stance_at(row)
