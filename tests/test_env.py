@@ -293,7 +293,33 @@ def test_gpu_step_and_reset_never_sync():
     try:
         for _ in range(3):
             td = e.step(td.set("action", action))["next"]
-        e.reset(td.clone().set("_reset", mask))
+        # The env's own masked reset; TorchRL's EnvBase.reset adds a `_reset.all()` merge check on top, which
+        # make_env's SyncFreeTransformedEnv replaces (tests/test_make_env.py).
+        e._reset(td.clone().set("_reset", mask))
+        e.reset()
     finally:
         torch.cuda.set_sync_debug_mode(0)
     assert td["joint_pos"].device.type == "cuda"
+
+
+def test_episode_random_numbers_depend_on_episode_not_call_order():
+    from tocabi_torchrl.envs.episode_random import episode_uniform
+
+    ids = torch.arange(4096)
+    first = episode_uniform(7, ids, torch.zeros(4096, dtype=torch.int64), stream=0, k=3)
+    again = episode_uniform(7, ids, torch.zeros(4096, dtype=torch.int64), stream=0, k=3)
+    assert torch.equal(first, again)
+    assert first.min() >= 0 and first.max() < 1 and abs(first.mean().item() - 0.5) < 0.02
+    later = episode_uniform(7, ids, torch.ones(4096, dtype=torch.int64), stream=0, k=3)
+    other_seed = episode_uniform(8, ids, torch.zeros(4096, dtype=torch.int64), stream=0, k=3)
+    assert (first != later).float().mean() > 0.99 and (first != other_seed).float().mean() > 0.99
+    # Extra resets of other envs (or no-op resets) leave an env's next episode unchanged.
+    e = TocabiWalk(num_envs=2, device="cpu", seed=11)
+    e.reset()
+    e._reset(TensorDict({"_reset": torch.tensor([[False], [True]])}, batch_size=[2]))
+    e._reset(TensorDict({"_reset": torch.tensor([[False], [False]])}, batch_size=[2]))
+    e._reset(TensorDict({"_reset": torch.tensor([[True], [False]])}, batch_size=[2]))
+    f = TocabiWalk(num_envs=2, device="cpu", seed=11)
+    f.reset()
+    f._reset(TensorDict({"_reset": torch.tensor([[True], [False]])}, batch_size=[2]))
+    assert torch.equal(e.command.value[0], f.command.value[0]) and e.init_row[0] == f.init_row[0]

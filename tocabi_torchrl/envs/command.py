@@ -78,10 +78,16 @@ class VelocityCommand:
         u = torch.rand(self.value.shape, device=self.value.device, generator=self.gen)
         return rng[0] + rng[1] * u
 
-    def reset(self, mask: torch.Tensor) -> None:
-        """Draw a fresh command for the envs flagged in ``mask`` (num_envs,) bool."""
+    def reset(self, mask: torch.Tensor, uniform: torch.Tensor | None = None) -> None:
+        """Draw a fresh command for the envs flagged in ``mask`` (num_envs,) bool.
+
+        ``uniform`` (num_envs, 2) in [0, 1) supplies the random numbers (the env passes per-episode ones); by default
+        they come from the generator.
+        """
         m = mask.unsqueeze(-1)
-        self.value = torch.where(m, self._sample(self._initial_range), self.value)
+        lo, span = self._initial_range
+        fresh = lo + span * uniform if uniform is not None else self._sample(self._initial_range)
+        self.value = torch.where(m, fresh, self.value)
         if not self.cfg.ramp_survives_reset:
             self.ramp_pos = torch.where(mask, self.ramp_len, self.ramp_pos)
 

@@ -21,6 +21,7 @@ from ..motion import ReferenceMotion
 from ..sim import SimConfig, WarpSim
 from .command import VelocityCommand
 from .config import TocabiWalkConfig
+from .episode_random import episode_uniform
 from .termination import termination_flags
 
 __all__ = ["TocabiWalk", "quat_rotate_inverse"]
@@ -107,8 +108,9 @@ class TocabiWalk(EnvBase):
         self.motion = (ReferenceMotion.default() if cfg.motion is None else ReferenceMotion.from_file(cfg.motion))
         self.motion = self.motion.to(device)
 
+        self._seed = int(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item())
         self.rng = torch.Generator(device=device)
-        self.rng.manual_seed(int(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item()))
+        self.rng.manual_seed(self._seed)
         self.command = VelocityCommand(cfg.command, num_envs, device, self.rng)
         self._init_buffers()
         self._make_specs()
@@ -139,6 +141,9 @@ class TocabiWalk(EnvBase):
         self.ref_foot_force = torch.zeros(n, 2, dtype=f32, device=dev)
         self.stance = torch.zeros(n, dtype=torch.int64, device=dev)
         self._all = torch.ones(n, dtype=torch.bool, device=dev)
+        # Episodes started per env: with the env index and the seed it keys the reset's random draws.
+        self._env_ids = torch.arange(n, dtype=torch.int64, device=dev)
+        self.episode_count = torch.zeros(n, dtype=torch.int64, device=dev)
 
     def _make_specs(self) -> None:
         n, dev = self.num_envs, self.device
@@ -284,14 +289,17 @@ class TocabiWalk(EnvBase):
         mask = self._all
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(self.num_envs).to(torch.bool)
-        pick = torch.randint(0, len(self._init_rows), (self.num_envs,), device=self.device, generator=self.rng)
+        # Random start row and first command from (seed, env, episode): identical whichever reset path runs.
+        u = episode_uniform(self._seed, self._env_ids, self.episode_count, stream=0, k=3)
+        self.episode_count = self.episode_count + mask.long()
+        pick = (u[:, 0] * len(self._init_rows)).long().clamp_(max=len(self._init_rows) - 1)
         self.init_row = torch.where(mask, self._init_rows[pick], self.init_row)
         self.time = torch.where(mask, torch.zeros_like(self.time), self.time)
         self.episode_step = torch.where(mask, torch.zeros_like(self.episode_step), self.episode_step)
         m = mask.unsqueeze(-1)
         self.applied_action = torch.where(m, torch.zeros_like(self.applied_action), self.applied_action)
         self.leg_torque = torch.where(m, torch.zeros_like(self.leg_torque), self.leg_torque)
-        self.command.reset(mask)
+        self.command.reset(mask, u[:, 1:3])
         # Upper-body servos start on the initial pose so the reset state's forward pass sees no PD transient.
         row = self.motion.row_index(self.time, self.init_row)
         self.ref_joint_pos = torch.where(m, self.motion.joint_targets(self.time, self.init_row), self.ref_joint_pos)
@@ -311,7 +319,8 @@ class TocabiWalk(EnvBase):
 
     def _set_seed(self, seed: int | None) -> None:
         if seed is not None:
-            self.rng.manual_seed(int(seed))
+            self._seed = int(seed)
+            self.rng.manual_seed(self._seed)
 
     @property
     def period(self) -> float:
