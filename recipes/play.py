@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import ctypes.util
 import os
 import sys
 
-if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY") and ctypes.util.find_library("EGL"):
     os.environ["MUJOCO_GL"] = "egl"  # headless: must be chosen before mujoco is imported
 
 from tocabi_torchrl.rl.evaluate import evaluate_run  # noqa: E402

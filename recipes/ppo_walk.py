@@ -13,10 +13,11 @@ the knee-trajectory plot and a video.
 
 from __future__ import annotations
 
+import ctypes.util
 import os
 import sys
 
-if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY") and ctypes.util.find_library("EGL"):
     os.environ["MUJOCO_GL"] = "egl"  # headless video of the final evaluation; chosen before mujoco is imported
 
 import torch  # noqa: E402

@@ -159,6 +159,7 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
         device=device,
         storing_device=device,
         auto_register_policy_transforms=False,  # the env already has every transform the policy reads
+        track_traj_ids=False,  # trajectory ids are unused here and cost a host read (done.any()) per step
     )
     logger = RunLogger(run_dir, cfg, total_iterations=iterations, start_iteration=start_iter)
     lr = optimizer.param_groups[0]["lr"]
