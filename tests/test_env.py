@@ -293,8 +293,8 @@ def test_gpu_step_and_reset_never_sync():
     try:
         for _ in range(3):
             td = e.step(td.set("action", action))["next"]
-        # The env's own masked reset; TorchRL's EnvBase.reset adds a `_reset.all()` merge check on top, which
-        # make_env's SyncFreeTransformedEnv replaces (tests/test_make_env.py).
+        # The env's own masked reset. TorchRL's EnvBase.reset adds a `_reset.all()` merge check on top (a framework
+        # host read outside this env); a full reset takes no such path.
         e._reset(td.clone().set("_reset", mask))
         e.reset()
     finally:
