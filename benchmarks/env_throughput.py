@@ -3,7 +3,8 @@
     python benchmarks/env_throughput.py --num_envs 1024 4096 16384 --steps 200
 
 For each env count, three numbers of policy steps per second (8 physics substeps each):
-  * raw: ``mujoco_warp.step`` × 8 in one CUDA graph with the legs PD-held (``sim_throughput.raw_policy_steps_per_second``)
+  * raw: ``mujoco_warp.step`` × 8 in one CUDA graph with the legs PD-held
+    (``sim_throughput.raw_policy_steps_per_second``)
   * env: ``TocabiWalk.step`` (torque mode), legs driven by the same PD hold of the initial pose computed in torch
   * make_env: the same through ``make_env``'s transforms (observation history, normalisation, 13 reward terms)
 and the ratios env/raw (target >= 0.9 at 4096) and the transforms' share of the env step (target <= 10 %).

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from tocabi_torchrl import robot
-from tocabi_torchrl.envs import CommandConfig, TocabiWalk, TocabiWalkConfig, VelocityCommand
+from tocabi_torchrl.envs import CommandConfig, TocabiWalk, VelocityCommand
 from tocabi_torchrl.envs.termination import termination_flags
 from tocabi_torchrl.envs.tocabi_walk import quat_rotate_inverse
 
@@ -46,7 +45,8 @@ def test_specs_pd(pd_env):
 
 def test_initial_state(env):
     td = env.reset()
-    torch.testing.assert_close(td["joint_pos"], torch.as_tensor(robot.INIT_JOINT_POS, dtype=torch.float32).expand(N, -1))
+    init = torch.as_tensor(robot.INIT_JOINT_POS, dtype=torch.float32)
+    torch.testing.assert_close(td["joint_pos"], init.expand(N, -1))
     torch.testing.assert_close(td["base_pos"][:, 2], torch.full((N,), 0.92983))
     assert torch.all(td["joint_vel"] == 0) and torch.all(td["applied_action"] == 0)
     assert torch.all(td["episode_step"] == 0) and not td["done"].any()

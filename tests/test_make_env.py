@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import pytest
 import torch
-from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from tocabi_torchrl import make_env

@@ -11,7 +11,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.objectives.value import GAE
 
-from tocabi_torchrl.rl import PPOConfig, StdSchedule, action_std, make_actor, parse_args, preset_config, set_action_std
+from tocabi_torchrl.rl import StdSchedule, action_std, make_actor, parse_args, preset_config, set_action_std
 
 
 @pytest.mark.parametrize("progress_remaining, std", [(1.0, 0.1), (0.9, 0.09), (0.75, 0.075), (0.6, 0.06),

@@ -69,7 +69,8 @@ def evaluate_policy(
             vel_err += a * (nxt["base_lin_vel"][:, 0] - vx).abs()
             alive_steps += a
             if k * base.dt < 6.0:
-                trace_q.append(nxt["joint_pos"][0, KNEES])
+                # After a fall the robot keeps lying there: blank its trace instead of plotting a fallen knee.
+                trace_q.append(torch.where(alive[0], nxt["joint_pos"][0, KNEES], torch.nan))
                 trace_ref.append(nxt["ref_joint_pos"][0, KNEES])
             if k % video_every == 0:
                 frames_qpos.append(base.sim.qpos[:video_envs].clone())
@@ -108,9 +109,12 @@ def _plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path) -> None:
 
     t = np.arange(len(q)) * dt
     fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    fell = np.flatnonzero(np.isnan(q[:, 0]))
     for i, (ax, side) in enumerate(zip(axes, ("left", "right"))):
         ax.plot(t, ref[:, i], "k--", lw=1.2, label="reference")
         ax.plot(t, q[:, i], lw=1.5, label="policy")
+        if fell.size:
+            ax.axvline(t[fell[0]], color="r", lw=1.0, label="episode terminated")
         ax.set_ylabel(f"{side} knee [rad]")
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right")
@@ -147,7 +151,8 @@ def _render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480
     try:
         path = out / "walk.mp4"
         imageio.mimwrite(path, frames, fps=fps, macro_block_size=1)
-    except Exception:
+    except Exception:  # no mp4 writer (imageio-ffmpeg, in the `viz` extra): fall back to a gif
+        path.unlink(missing_ok=True)
         path = out / "walk.gif"
         imageio.mimwrite(path, frames[::2], duration=2.0 / fps)
     imageio.imwrite(out / "walk_frame.png", frames[len(frames) // 2])

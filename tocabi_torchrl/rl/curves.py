@@ -1,0 +1,74 @@
+"""Training curves from a run's ``metrics.csv``: return and episode length, and every reward term (TocabiLab's
+figs 4.2-4.3 show the total and the imitation rewards).
+
+    python -m tocabi_torchrl.rl.curves runs/ppo_walk/metrics.csv docs/training/curves.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+__all__ = ["plot_curves"]
+
+IMITATION_TERMS = ("qpos", "orientation", "foot_contact", "force_ref")
+
+
+def _read(path: Path) -> dict[str, list[float]]:
+    with open(path) as f:
+        rows = [r for r in csv.DictReader(f) if r.get("iteration") not in (None, "", "iteration")]
+    if not rows:
+        raise ValueError(f"{path} holds no metric rows")
+    return {k: [float(r[k]) if r.get(k) not in (None, "") else float("nan") for r in rows] for k in rows[0]}
+
+
+def plot_curves(metrics_csv: str | Path, out_png: str | Path) -> Path:
+    """Plot episode return/length and the per-term rewards against env steps (millions)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    data = _read(Path(metrics_csv))
+    steps = [s / 1e6 for s in data["env_steps"]]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    axes[0].plot(steps, data["episode_return"], label="episode return")
+    axes[0].set_ylabel("episode return")
+    twin = axes[0].twinx()
+    twin.plot(steps, data["episode_length"], color="tab:orange", alpha=0.7, label="episode length")
+    twin.set_ylabel("episode length [steps]")
+    axes[0].set_title("Total reward (sum over an episode)")
+    axes[1].plot(steps, data["reward"], color="k", label="reward per step")
+    for term in IMITATION_TERMS:
+        key = f"reward_terms/{term}"
+        if key in data:
+            axes[1].plot(steps, data[key], label=term)
+    axes[1].set_title("Reward per step: total and imitation terms")
+    axes[1].legend(fontsize=8)
+    for key in data:
+        if key.startswith("reward_terms/") and key[13:] not in IMITATION_TERMS:
+            axes[2].plot(steps, data[key], label=key[13:])
+    axes[2].set_title("Reward per step: other terms")
+    axes[2].legend(fontsize=7, ncol=2)
+    for ax in axes:
+        ax.set_xlabel("env steps [millions]")
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description="Plot a run's training curves")
+    parser.add_argument("metrics_csv")
+    parser.add_argument("out_png")
+    args = parser.parse_args(argv)
+    print(plot_curves(args.metrics_csv, args.out_png))
+
+
+if __name__ == "__main__":
+    main()
