@@ -129,3 +129,23 @@ def test_two_tiny_iterations_write_a_loadable_checkpoint(tmp_path):
     cfg2 = preset_config("cpu_smoke", **{**cfg.to_dict(), "total_env_steps": 96,
                                          "resume": str(run)})
     assert train(cfg2).iterations == 3
+
+
+def test_evaluation_and_curves_from_a_tiny_run(tmp_path):
+    from tocabi_torchrl.rl.curves import plot_curves
+    from tocabi_torchrl.rl.evaluate import evaluate_run
+    from tocabi_torchrl.rl.trainer import train
+
+    cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=8,
+                        total_env_steps=16, run_dir=str(tmp_path), name="ev", progress_bar=False, eval_at_end=False)
+    train(cfg)
+    run = tmp_path / "ev"
+    summary = evaluate_run(run, num_envs=2, device="cpu", seconds=0.1, video_envs=1)
+    saved = json.loads((run / "eval" / "summary.json").read_text())
+    assert saved["num_envs"] == 2 and saved["command_mps"] == [0.5, 0.0] and saved["seconds"] == 0.1
+    for key in ("survival", "forward_distance_m", "lateral_drift_m", "speed_tracking_error_mps", "knee_rms_rad"):
+        assert math.isfinite(summary[key]), key
+    assert 0.0 <= summary["survival"] <= 1.0 and summary["knee_rms_rad"] >= 0.0
+    assert (run / "eval" / "knees.png").stat().st_size > 10_000
+    png = plot_curves(run / "metrics.csv", tmp_path / "curves.png")
+    assert png.stat().st_size > 10_000
