@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> None:
     if cfg.eval_at_end:
         from tocabi_torchrl.rl.evaluate import evaluate_run
 
-        summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device)
+        summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device, seconds=cfg.eval_seconds)
         print("evaluation:", {k: summary[k] for k in ("survival", "forward_distance_m", "lateral_drift_m",
                                                        "knee_rms_rad") if k in summary})
 

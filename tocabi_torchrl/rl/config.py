@@ -71,6 +71,7 @@ class PPOConfig:
     resume: str = ""
     eval_at_end: bool = True
     eval_envs: int = 256
+    eval_seconds: float = 8.0
     progress_bar: bool = True
 
     def validate(self) -> None:
@@ -90,6 +91,8 @@ class PPOConfig:
         for name in ("lr", "std_start", "std_end", "desired_kl", "max_grad_norm", "adam_eps"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"PPOConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        if not self.eval_seconds > 0:
+            raise ValueError(f"PPOConfig.eval_seconds must be > 0, got {self.eval_seconds!r}")
         for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "max_minutes"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"PPOConfig.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -130,7 +133,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     ),
     # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
     "cpu_smoke": dict(num_envs=8, steps_per_env=16, minibatch_size=64, epochs=2, total_env_steps=8 * 16 * 3,
-                      checkpoint_every=1, eval_envs=4, actor_hidden=(64, 64), critic_hidden=(64, 64)),
+                      checkpoint_every=1, eval_envs=2, eval_seconds=1.0, actor_hidden=(64, 64),
+                      critic_hidden=(64, 64)),
 }
 
 
