@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -26,6 +24,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from report import run_meta, write_report  # noqa: E402
 from sim_throughput import raw_policy_steps_per_second  # noqa: E402
 
 from tocabi_torchrl import make_env, robot  # noqa: E402
@@ -111,22 +110,16 @@ def main(argv=None) -> None:
     if not torch.cuda.is_available():
         raise SystemExit("env_throughput needs a CUDA GPU")
     results = [measure(n, args.steps) for n in args.num_envs]
-    meta = {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "python": platform.python_version(),
-            "command": "python benchmarks/env_throughput.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-            "date": time.strftime("%Y-%m-%d")}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "env_throughput.json").write_text(json.dumps({"meta": meta, "results": results}, indent=2))
-    lines = [f"# Environment throughput ({meta['gpu']})", "", f"Command: `{meta['command']}`", "",
-             "| envs | raw policy steps/s | TocabiWalk steps/s | env / raw | make_env steps/s | make_env / raw | "
-             "transforms' share of env step |", "|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in results:
-        lines.append(f"| {r['num_envs']} | {r['raw_policy_steps_per_s']:,.0f} | {r['env_steps_per_s']:,.0f} | "
-                     f"{r['env_over_raw']:.3f} | {r['make_env_steps_per_s']:,.0f} | {r['make_env_over_raw']:.3f} | "
-                     f"{100 * r['transform_share_of_env_step']:.1f} % |")
-    (out / "env_throughput.md").write_text("\n".join(lines) + "\n")
-    _plot(results, out / "env_throughput.png")
-    print("\n".join(lines))
+    text = write_report(
+        args.out, "env_throughput", "Environment throughput", run_meta("env_throughput.py", argv), results,
+        ["envs", "raw policy steps/s", "TocabiWalk steps/s", "env / raw", "make_env steps/s", "make_env / raw",
+         "transforms' share of env step"],
+        lambda r: [str(r["num_envs"]), f"{r['raw_policy_steps_per_s']:,.0f}", f"{r['env_steps_per_s']:,.0f}",
+                   f"{r['env_over_raw']:.3f}", f"{r['make_env_steps_per_s']:,.0f}", f"{r['make_env_over_raw']:.3f}",
+                   f"{100 * r['transform_share_of_env_step']:.1f} %"],
+    )
+    _plot(results, Path(args.out) / "env_throughput.png")
+    print(text)
 
 
 if __name__ == "__main__":

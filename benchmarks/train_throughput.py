@@ -12,10 +12,7 @@ Writes ``docs/benchmarks/train_throughput.{json,md}``.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -23,6 +20,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from report import run_meta, write_report  # noqa: E402
 from sim_throughput import raw_policy_steps_per_second  # noqa: E402
 
 from tocabi_torchrl.rl.config import preset_config  # noqa: E402
@@ -70,22 +68,15 @@ def main(argv=None) -> None:
     if not torch.cuda.is_available():
         raise SystemExit("train_throughput needs a CUDA GPU")
     results = [measure(n, args.iterations, args.warmup, args.raw_steps) for n in args.num_envs]
-    meta = {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "python": platform.python_version(),
-            "command": "python benchmarks/train_throughput.py " + " ".join(argv or sys.argv[1:]),
-            "date": time.strftime("%Y-%m-%d")}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "train_throughput.json").write_text(json.dumps({"meta": meta, "results": results}, indent=2))
-    lines = [f"# Training throughput ({meta['gpu']})", "", f"Command: `{meta['command']}`", "",
-             "| envs | train env-steps/s | raw mujoco-warp policy steps/s | train / raw | torch peak GiB | "
-             "device used GiB |", "|---:|---:|---:|---:|---:|---:|"]
-    for r in results:
-        lines.append(f"| {r['num_envs']} | {r['train_env_steps_per_s']:,.0f} | {r['raw_policy_steps_per_s']:,.0f} | "
-                     f"{r['ratio_train_over_raw']:.2f} | {r['torch_peak_allocated_gib']:.2f} | "
-                     f"{r['device_used_gib']:.2f} |")
-    (out / "train_throughput.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-
+    text = write_report(
+        args.out, "train_throughput", "Training throughput", run_meta("train_throughput.py", argv), results,
+        ["envs", "train env-steps/s", "raw mujoco-warp policy steps/s", "train / raw", "torch peak GiB",
+         "device used GiB"],
+        lambda r: [str(r["num_envs"]), f"{r['train_env_steps_per_s']:,.0f}", f"{r['raw_policy_steps_per_s']:,.0f}",
+                   f"{r['ratio_train_over_raw']:.2f}", f"{r['torch_peak_allocated_gib']:.2f}",
+                   f"{r['device_used_gib']:.2f}"],
+    )
+    print(text)
 
 if __name__ == "__main__":
     main()
