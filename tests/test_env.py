@@ -1,4 +1,5 @@
-"""TocabiWalk: specs, rollouts with resets, phase clock, commands, terminations, truncation, PD mode, bad input."""
+"""TocabiWalk on both physics backends: specs, rollouts with resets, phase clock, commands, terminations,
+truncation, PD mode, backend selection, bad input."""
 
 from __future__ import annotations
 
@@ -11,22 +12,30 @@ from torchrl.envs.utils import check_env_specs
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.envs import CommandConfig, TocabiWalk, VelocityCommand
+from tocabi_torchrl.envs.config import CPU_DEFAULT_BACKEND, resolve_backend
 from tocabi_torchrl.envs.termination import termination_flags
 from tocabi_torchrl.envs.tocabi_walk import quat_rotate_inverse
+from tocabi_torchrl.sim import MujocoSim
 
 N = 4
 
 
-@pytest.fixture(scope="module")
-def env():
-    return TocabiWalk(num_envs=N, device="cpu", seed=0)
+@pytest.fixture(scope="module", params=["warp", "mujoco"])
+def backend(request) -> str:
+    """Every env test runs on both physics backends: mujoco-warp's CPU device and C MuJoCo."""
+    return request.param
 
 
 @pytest.fixture(scope="module")
-def pd_env():
+def env(backend):
+    return TocabiWalk(num_envs=N, device="cpu", seed=0, backend=backend)
+
+
+@pytest.fixture(scope="module")
+def pd_env(backend):
     # The robot controller's full gains: a stiff PD, so the gravity load leaves only a small tracking error.
     return TocabiWalk(num_envs=2, device="cpu", seed=0, control_mode="pd", pd_kp=tuple(robot.LEG_KP),
-                      pd_kv=tuple(robot.LEG_KV))
+                      pd_kv=tuple(robot.LEG_KV), backend=backend)
 
 
 def _zero_action(e, phase_rate=0.0):
@@ -108,8 +117,8 @@ def test_masked_reset_touches_only_flagged(env):
     assert not torch.equal(after["joint_vel"][0], before["joint_vel"][0])
 
 
-def test_truncation_with_short_episodes():
-    e = TocabiWalk(num_envs=2, device="cpu", seed=0, max_episode_steps=5)
+def test_truncation_with_short_episodes(backend):
+    e = TocabiWalk(num_envs=2, device="cpu", seed=0, max_episode_steps=5, backend=backend)
     e.reset()
     for k in range(5):
         out = e.step(_zero_action(e))["next"]
@@ -262,12 +271,24 @@ def test_nan_actions_act_as_zero(env):
         (dict(num_envs=2, pd_kp=(1.0,) * 3), ValueError, "pd_kp"),
         (dict(num_envs=2, not_an_option=1), TypeError, "not_an_option"),
         (dict(num_envs=2, device="tpu"), ValueError, "device"),
+        (dict(num_envs=2, backend="bullet"), ValueError, "backend"),
+        (dict(num_envs=2, sim_threads=0), ValueError, "sim_threads"),
     ],
 )
 def test_bad_construction(kwargs, error, match):
     kwargs.setdefault("device", "cpu")
     with pytest.raises(error, match=match):
         TocabiWalk(**kwargs)
+
+
+def test_backend_selection():
+    assert resolve_backend("auto", "cpu") == CPU_DEFAULT_BACKEND == "mujoco"
+    assert resolve_backend("auto", "cuda:0") == "warp" and resolve_backend("warp", "cpu") == "warp"
+    with pytest.raises(ValueError, match="use device='cpu'"):
+        resolve_backend("mujoco", "cuda")
+    e = TocabiWalk(num_envs=3, device="cpu", seed=0, sim_threads=2)
+    assert e.backend == "mujoco" and isinstance(e.sim, MujocoSim) and e.sim.threads == 2
+    assert "backend='mujoco'" in repr(e)
 
 
 def test_bad_command_preset():

@@ -1,4 +1,4 @@
-"""make_env: the default transformed walking env on the real simulator."""
+"""make_env: the default transformed walking env on the real simulator, both physics backends."""
 
 from __future__ import annotations
 
@@ -10,9 +10,14 @@ from tocabi_torchrl import make_env
 from tocabi_torchrl.transforms import REFERENCE_TERMS
 
 
+@pytest.fixture(scope="module", params=["warp", "mujoco"])
+def backend(request) -> str:
+    return request.param
+
+
 @pytest.fixture(scope="module")
-def env():
-    return make_env(num_envs=3, device="cpu", seed=0)
+def env(backend):
+    return make_env(num_envs=3, device="cpu", seed=0, backend=backend)
 
 
 def test_check_env_specs(env):
@@ -33,10 +38,11 @@ def test_policy_input_reward_and_terms(env):
     assert ("next", "episode_reward") in td.keys(True)
 
 
-def test_overrides_reach_env_and_transforms():
+def test_overrides_reach_env_and_transforms(backend):
     e = make_env(num_envs=2, device="cpu", control_mode="pd", max_episode_steps=7,
-                 reward_weights={"qpos": 0.0})
+                 reward_weights={"qpos": 0.0}, backend=backend, sim_threads=1)
     assert e.base_env.cfg.control_mode == "pd" and e.base_env.cfg.max_episode_steps == 7
+    assert e.base_env.backend == backend
     td = e.rollout(7, break_when_any_done=False)
     assert torch.all(td["next", "reward_terms", "qpos"] == 0)
     assert td["next", "truncated"][:, -1].all()

@@ -1,7 +1,8 @@
 """WarpSim on warp's CPU device: zero-copy views, masked reset, contact signals, foot forces, health, errors.
 
 One module-scoped simulator of 4 worlds serves most tests (the first build compiles mujoco-warp's kernels, ~1 min on
-a cold cache); every test starts by resetting the worlds it uses.
+a cold cache); every test starts by resetting the worlds it uses. The interface tests (reset, contacts, health,
+forward) only use the public tensors, so ``test_sim_mujoco.py`` runs them against ``MujocoSim`` too.
 """
 
 from __future__ import annotations
@@ -16,7 +17,14 @@ import torch
 import warp as wp
 
 from tocabi_torchrl import robot
-from tocabi_torchrl.sim import ContactSensorError, SimConfig, SimOverflowError, WarpSim, add_contact_sensors
+from tocabi_torchrl.sim import (
+    ContactSensorError,
+    MujocoSim,
+    SimConfig,
+    SimOverflowError,
+    WarpSim,
+    add_contact_sensors,
+)
 from tocabi_torchrl.sim.kernel_cache import announce_compile_if_cold
 
 N = 4
@@ -58,11 +66,21 @@ def _quat(axis, angle) -> list[float]:
     return [math.cos(angle / 2), *(math.sin(angle / 2) * axis)]
 
 
-def _scan_warp_contacts(sim: WarpSim) -> np.ndarray:
-    """(N, 4) counts of (left foot, right foot, forbidden ground, self) contacts in mujoco-warp's contact list."""
-    m, d = sim.mj_model, sim.wp_data
+def _contact_geoms(sim) -> tuple[np.ndarray, np.ndarray]:
+    """(ncon, 2) geom pairs and (ncon,) world ids of every active contact, from either backend."""
+    if isinstance(sim, MujocoSim):
+        pairs = [(d.contact.geom[: d.ncon][d.contact.exclude[: d.ncon] == 0], w) for w, d in enumerate(sim.mj_data)]
+        geoms = np.concatenate([g for g, _ in pairs]).reshape(-1, 2)
+        return geoms, np.concatenate([np.full(len(g), w) for g, w in pairs]).astype(int)
+    d = sim.wp_data
     nacon = int(d.nacon.numpy()[0])
-    geoms, worlds = d.contact.geom.numpy()[:nacon], d.contact.worldid.numpy()[:nacon]
+    return d.contact.geom.numpy()[:nacon], d.contact.worldid.numpy()[:nacon]
+
+
+def _scan_contacts(sim) -> np.ndarray:
+    """(N, 4) counts of (left foot, right foot, forbidden ground, self) contacts in the engine's contact list."""
+    m = sim.mj_model
+    geoms, worlds = _contact_geoms(sim)
     body = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n)  # noqa: E731
     feet = [body(b) for b in robot.FOOT_BODIES]
     forbidden = {body(b) for b in robot.GROUND_FORBIDDEN_BODIES}
@@ -217,7 +235,7 @@ def test_standing_robot_feet_in_contact_and_forces_carry_the_weight(sim):
     assert torch.all(fz < 0), "a loaded foot reads a negative z force"
     assert torch.allclose(-fz, torch.full((N,), weight_above, dtype=torch.float32), rtol=0.05), (fz, weight_above)
     assert torch.all(sim.foot_force[:, :, 2] < -0.3 * weight_above), "both feet carry load"
-    np.testing.assert_array_equal(_signal_counts(sim), _scan_warp_contacts(sim))
+    np.testing.assert_array_equal(_signal_counts(sim), _scan_contacts(sim))
 
     # A world reset into this standing state reads the same forces right away (reset runs a forward pass).
     standing = (sim.qpos.clone(), sim.qvel.clone(), sim.ctrl.clone(), sim.foot_force.clone())
@@ -244,7 +262,7 @@ def test_robot_dropped_on_its_back_reports_forbidden_contact(sim):
     assert landed, "the pelvis never touched the ground"
     assert not sim.forbidden_ground_contact[1:].any()
     assert sim.healthy.all() and not sim.self_collision.any()
-    np.testing.assert_array_equal(_signal_counts(sim), _scan_warp_contacts(sim))
+    np.testing.assert_array_equal(_signal_counts(sim), _scan_contacts(sim))
 
 
 def test_crossed_legs_report_self_collision(sim):
@@ -255,7 +273,7 @@ def test_crossed_legs_report_self_collision(sim):
     sim.reset(torch.ones(N, dtype=torch.bool), qpos, torch.zeros(sim.nv), _upper_ctrl())
     assert sim.self_collision.tolist() == [False, False, True, False]
     assert not sim.forbidden_ground_contact.any() and not sim.foot_contact.any()
-    np.testing.assert_array_equal(_signal_counts(sim), _scan_warp_contacts(sim))
+    np.testing.assert_array_equal(_signal_counts(sim), _scan_contacts(sim))
     sim.step()  # stays flagged while the legs are crossed
     assert bool(sim.self_collision[2])
 

@@ -10,9 +10,28 @@ import numpy as np
 from .. import robot
 from .command import CommandConfig
 
-__all__ = ["TocabiWalkConfig", "CONTROL_MODES"]
+__all__ = ["TocabiWalkConfig", "CONTROL_MODES", "BACKENDS", "CPU_DEFAULT_BACKEND", "resolve_backend"]
 
 CONTROL_MODES = ("torque", "pd")
+#: Physics backends: mujoco-warp (``WarpSim``, GPU or warp's CPU device) or C MuJoCo on CPU threads (``MujocoSim``).
+BACKENDS = ("warp", "mujoco", "auto")
+#: ``backend="auto"`` on a CPU device. Measured by ``benchmarks/cpu_backends.py`` (docs/benchmarks/cpu_backends_*.md):
+#: on a 2-core machine C MuJoCo steps the bare env ~10-20x faster than mujoco-warp's CPU device at 8-96 envs, and
+#: needs no minute-long kernel compile.
+CPU_DEFAULT_BACKEND = "mujoco"
+
+
+def resolve_backend(backend: str, device) -> str:
+    """The backend that runs: ``"auto"`` is mujoco-warp on CUDA and :data:`CPU_DEFAULT_BACKEND` on the CPU."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
+    on_cuda = str(device).startswith("cuda")
+    if backend == "auto":
+        return "warp" if on_cuda else CPU_DEFAULT_BACKEND
+    if backend == "mujoco" and on_cuda:
+        raise ValueError("backend='mujoco' steps C MuJoCo on the CPU; use device='cpu' with it, or backend='warp' "
+                         "(or 'auto') on CUDA")
+    return backend
 
 
 @dataclass
@@ -53,6 +72,11 @@ class TocabiWalkConfig:
     #: Contact/constraint buffers per world for mujoco-warp (None = the backend's measured defaults).
     nconmax: int | None = None
     njmax: int | None = None
+    #: Physics backend: "warp" (mujoco-warp), "mujoco" (C MuJoCo on CPU threads, CPU only) or "auto" (warp on CUDA,
+    #: ``CPU_DEFAULT_BACKEND`` on the CPU).
+    backend: str = "auto"
+    #: CPU threads of the "mujoco" backend (None = every available core).
+    sim_threads: int | None = None
 
     @classmethod
     def reference(cls, **overrides) -> "TocabiWalkConfig":
@@ -77,4 +101,9 @@ class TocabiWalkConfig:
                 raise ValueError(f"TocabiWalkConfig.{name} needs {robot.NUM_LEG_JOINTS} values (one per leg joint)")
         if min(self.pd_kp) < 0 or min(self.pd_kv) < 0:
             raise ValueError("TocabiWalkConfig.pd_kp and pd_kv must be >= 0")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"unknown TocabiWalkConfig.backend {self.backend!r}; choose one of {BACKENDS}")
+        t = self.sim_threads
+        if t is not None and (isinstance(t, bool) or not isinstance(t, int) or t < 1):
+            raise ValueError(f"TocabiWalkConfig.sim_threads must be a positive int or None, got {t!r}")
         self.command.validate()

@@ -1,6 +1,7 @@
 """TocabiWalk: the batched, GPU-native TorchRL environment of the TOCABI walking task.
 
-N TOCABI worlds step at once in mujoco-warp on ``device``; every tensor this env reads or returns stays there. The
+N TOCABI worlds step at once in mujoco-warp on ``device`` (or, with ``backend="mujoco"``, in C MuJoCo on CPU
+threads); every tensor this env reads or returns stays on ``device``. The
 env returns raw, physically named signals (``docs/signals.md``); the policy observation and the reward are composed
 from them by transforms (``tocabi_torchrl.transforms``, ``tocabi_torchrl.make_env``).
 
@@ -18,9 +19,9 @@ from torchrl.envs import EnvBase
 
 from .. import robot
 from ..motion import ReferenceMotion
-from ..sim import SimConfig, WarpSim
+from ..sim import MujocoSim, SimConfig, WarpSim
 from .command import VelocityCommand
-from .config import TocabiWalkConfig
+from .config import TocabiWalkConfig, resolve_backend
 from .episode_random import episode_uniform
 from .termination import termination_flags
 
@@ -49,11 +50,13 @@ def _pd_leg_spec(spec, cfg: TocabiWalkConfig):
 
 
 class TocabiWalk(EnvBase):
-    """TOCABI walking task over ``num_envs`` mujoco-warp worlds.
+    """TOCABI walking task over ``num_envs`` simulated worlds (mujoco-warp or C MuJoCo).
 
     Args:
         num_envs: number of parallel worlds N (> 0).
-        device: ``"cuda"``, ``"cuda:K"`` or ``"cpu"`` (warp's CPU device: slow, for tests and debugging).
+        device: ``"cuda"``, ``"cuda:K"`` or ``"cpu"``. The physics backend is the config's ``backend``: ``"auto"``
+            (default) runs mujoco-warp on CUDA and C MuJoCo on the CPU (``envs.config.CPU_DEFAULT_BACKEND``, the
+            faster one there as measured); ``"warp"`` on the CPU is warp's CPU device (slow, compiles ~1 min).
         config: task constants (``TocabiWalkConfig``); keyword ``overrides`` replace single fields.
         seed: seed of the env's own torch generator (initial phase, commands).
 
@@ -100,10 +103,14 @@ class TocabiWalk(EnvBase):
         spec = robot.load_spec(cfg.model_path)
         if cfg.control_mode == "pd":
             spec = _pd_leg_spec(spec, cfg)
-        buffers = {k: v for k, v in (("nconmax", cfg.nconmax), ("njmax", cfg.njmax)) if v is not None}
-        self.sim = WarpSim(
-            SimConfig(num_worlds=num_envs, device=str(device), substeps=cfg.substeps, **buffers), model=spec
-        )
+        self.backend = resolve_backend(cfg.backend, device)
+        if self.backend == "warp":
+            buffers = {k: v for k, v in (("nconmax", cfg.nconmax), ("njmax", cfg.njmax)) if v is not None}
+            sim_cfg = SimConfig(num_worlds=num_envs, device=str(device), substeps=cfg.substeps, **buffers)
+            self.sim = WarpSim(sim_cfg, model=spec)
+        else:
+            sim_cfg = SimConfig(num_worlds=num_envs, device="cpu", substeps=cfg.substeps, threads=cfg.sim_threads)
+            self.sim = MujocoSim(sim_cfg, model=spec)
         self.dt = self.sim.mj_model.opt.timestep * cfg.substeps
         self.motion = (ReferenceMotion.default() if cfg.motion is None else ReferenceMotion.from_file(cfg.motion))
         self.motion = self.motion.to(device)
@@ -328,6 +335,6 @@ class TocabiWalk(EnvBase):
         return float(self.motion.period)
 
     def __repr__(self) -> str:
-        return (f"TocabiWalk(num_envs={self.num_envs}, device={self.device}, control_mode="
+        return (f"TocabiWalk(num_envs={self.num_envs}, device={self.device}, backend={self.backend!r}, control_mode="
                 f"{self.cfg.control_mode!r}, dt={self.dt:.4f} s, period={self.period:.4f} s)")
 

@@ -1,17 +1,23 @@
-"""The physics backend: mujoco-warp worlds, zero-copy torch views, recorded graphs, masked reset, contact signals.
+"""The physics backends: mujoco-warp worlds (GPU or CPU) or C MuJoCo on CPU threads, behind one tensor interface.
 
-``WarpSim(SimConfig(num_worlds=4096, device="cuda"))`` builds the shipped TOCABI; see ``warp_backend`` for the tensors
-it exposes, ``contacts`` for how contact signals come from MuJoCo contact sensors, ``config`` for the measured buffer
-sizes and ``health`` for overflow handling.
+``WarpSim(SimConfig(num_worlds=4096, device="cuda"))`` builds the shipped TOCABI in mujoco-warp; see ``warp_backend``
+for the tensors it exposes, ``contacts`` for how contact signals come from MuJoCo contact sensors, ``config`` for the
+measured buffer sizes and ``health`` for overflow handling. ``MujocoSim(SimConfig(num_worlds=32, threads=16))`` steps
+the same model with MuJoCo's C engine (``mujoco_backend``, health in ``mujoco_health``); ``views`` holds the interface
+both share.
 """
 
 from .config import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX, SimConfig
 from .contacts import ContactLayout, ContactSensorError, add_contact_sensors, contact_layout, has_contact_sensors
 from .health import HEALTH_OVERFLOW_MASK, SimOverflowError
+from .mujoco_backend import MujocoSim
+from .mujoco_health import MUJOCO_HEALTH_WARNINGS
 from .warp_backend import WarpSim
 
 __all__ = [
     "WarpSim",
+    "MujocoSim",
+    "MUJOCO_HEALTH_WARNINGS",
     "SimConfig",
     "NCONMAX",
     "NJMAX",

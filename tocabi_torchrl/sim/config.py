@@ -1,7 +1,8 @@
-"""Configuration of the physics backend (:class:`~tocabi_torchrl.sim.warp_backend.WarpSim`)."""
+"""Configuration of the physics backends (:class:`~tocabi_torchrl.sim.WarpSim`, :class:`~tocabi_torchrl.sim.MujocoSim`)."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import torch
@@ -9,7 +10,15 @@ import torch
 from .buffers import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX
 from .health import HEALTH_OVERFLOW_MASK
 
-__all__ = ["SimConfig", "NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH"]
+__all__ = ["SimConfig", "NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH", "available_cores"]
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (its affinity mask, which container limits shrink; else the machine's)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 @dataclass
@@ -33,6 +42,10 @@ class SimConfig:
             overflows that silently drop contacts or constraints).
         kernel_overflow_prints: let mujoco-warp kernels print their own overflow warnings (one line per world and
             substep on the GPU, so off by default; use :meth:`WarpSim.check_overflow` instead).
+        threads: CPU threads that step the worlds of :class:`MujocoSim` (``None``: every available core, see
+            :func:`available_cores`). Ignored by ``WarpSim``, as are ``MujocoSim``'s own limits: ``nconmax``,
+            ``njmax``, ``contact_sensor_maxmatch``, ``use_graph``, ``health_overflow_mask`` and
+            ``kernel_overflow_prints`` are mujoco-warp settings (C MuJoCo grows its buffers in the model's arena).
     """
 
     num_worlds: int = 1
@@ -48,6 +61,7 @@ class SimConfig:
     sensors_every_substep: bool = False
     health_overflow_mask: int = int(HEALTH_OVERFLOW_MASK)
     kernel_overflow_prints: bool = False
+    threads: int | None = None
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field and what it should be."""
@@ -59,10 +73,14 @@ class SimConfig:
 
         for name in ("num_worlds", "substeps", "nconmax", "njmax", "contact_sensor_maxmatch"):
             positive_int(name)
-        for name in ("solver_iterations", "solver_ls_iterations"):
+        for name in ("solver_iterations", "solver_ls_iterations", "threads"):
             if getattr(self, name) is not None:
                 positive_int(name)
         if self.solver_tolerance is not None and not self.solver_tolerance >= 0.0:
             raise ValueError(f"SimConfig.solver_tolerance must be >= 0, got {self.solver_tolerance!r}")
         if not isinstance(self.device, (str, torch.device)):
             raise ValueError(f"SimConfig.device must be a string like 'cpu' or 'cuda:0', got {self.device!r}")
+
+    def resolved_threads(self) -> int:
+        """``threads``, or every available core when it is ``None``."""
+        return self.threads if self.threads is not None else available_cores()

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import mujoco
 import numpy as np
+import torch
 
 from .. import robot
 
@@ -86,6 +87,15 @@ class ContactLayout:
     @property
     def count(self) -> int:
         return len(self.names)
+
+    def signals(self, sensordata: torch.Tensor) -> torch.Tensor:
+        """(N, 4) bool signals (rows of ``SIGNAL_NAMES``) from (N, nsensordata) sensor values, in torch.
+
+        The same sums as mujoco-warp's ``kernels.derive_signals``; counts are small integers, exact in float32.
+        """
+        found = sensordata[:, torch.as_tensor(self.adr, dtype=torch.int64, device=sensordata.device)]
+        weights = torch.as_tensor(self.weights, dtype=sensordata.dtype, device=sensordata.device)
+        return found @ weights.T > 0.5
 
     def describe(self) -> str:
         """One line per signal, e.g. ``self_collision = +self/all - self/neck_Link``."""

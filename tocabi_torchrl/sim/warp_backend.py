@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import os
 
 import mujoco
 import mujoco_warp as mjw
@@ -24,18 +23,16 @@ import numpy as np
 import torch
 import warp as wp
 
-from .. import robot
 from .config import SimConfig
-from .contacts import ContactLayout, add_contact_sensors, contact_layout
+from .contacts import ContactLayout, contact_layout
 from .graph import Recorded
 from .health import overflow_error
 from .kernel_cache import announce_compile_if_cold
 from .kernels import copy_rows_where, derive_signals, write_reset_state
+from .model import ModelSource, compile_model
+from .views import SimViews
 
 __all__ = ["WarpSim"]
-
-ModelSource = mujoco.MjModel | mujoco.MjSpec | str | os.PathLike | None
-
 
 def _resolve_device(name) -> wp.Device:
     name = str(name)
@@ -50,34 +47,13 @@ def _resolve_device(name) -> wp.Device:
         raise ValueError(f"device {name!r} is not available ({err}); warp sees {wp.get_devices()}") from err
 
 
-def _compile(source: ModelSource) -> mujoco.MjModel:
-    """A private, compiled model with the contact sensors (the caller's spec or model is never modified)."""
-    if isinstance(source, mujoco.MjModel):
-        contact_layout(source)  # raises a clear error if the sensors are missing
-        return copy.deepcopy(source)
-    if isinstance(source, mujoco.MjSpec):
-        spec = source.copy()
-    elif source is None or isinstance(source, (str, os.PathLike)):
-        spec = robot.load_spec(source)
-    else:
-        raise TypeError(
-            f"model must be a mujoco.MjModel, a mujoco.MjSpec, an MJCF path or None (the shipped robot), "
-            f"got {type(source).__name__}"
-        )
-    add_contact_sensors(spec)
-    try:
-        return spec.compile()
-    except Exception as err:
-        raise ValueError(f"cannot compile the simulation model: {err}") from err
-
-
 def _without_sensors(m: mjw.Model) -> mjw.Model:
     """A shallow copy of ``m`` whose steps skip sensor evaluation (same arrays, so the same physics)."""
     opt = dataclasses.replace(m.opt, disableflags=int(m.opt.disableflags) | int(mjw.DisableBit.SENSOR))
     return dataclasses.replace(m, opt=opt)
 
 
-class WarpSim:
+class WarpSim(SimViews):
     """N worlds of one MuJoCo model stepped by mujoco-warp, with zero-copy torch views of the state.
 
     Args:
@@ -121,14 +97,7 @@ class WarpSim:
         self.device = torch.device(wp.device_to_torch(self.wp_device))
         self.num_worlds = n = cfg.num_worlds
 
-        mj = _compile(model)
-        if cfg.solver_iterations is not None:
-            mj.opt.iterations = cfg.solver_iterations
-        if cfg.solver_ls_iterations is not None:
-            mj.opt.ls_iterations = cfg.solver_ls_iterations
-        if cfg.solver_tolerance is not None:
-            mj.opt.tolerance = cfg.solver_tolerance
-        robot.validate_model(mj, source="simulation model")
+        mj = compile_model(model, cfg)
         self.mj_model = mj
         self.contact_layout: ContactLayout = contact_layout(mj)
         self.nq, self.nv, self.nu = mj.nq, mj.nv, mj.nu
@@ -185,25 +154,7 @@ class WarpSim:
         self._reset_ctrl_t = t(self._reset_ctrl)
         self._applied_force_t = t(self._applied_force)
 
-        def body(name: str) -> int:
-            return mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_BODY, name)
-
-        self._base_pos, self._base_quat = self._xpos[:, body(robot.BASE_BODY)], self._xquat[:, body(robot.BASE_BODY)]
-        self._neck_pos, self._neck_quat = self._xpos[:, body(robot.NECK_BODY)], self._xquat[:, body(robot.NECK_BODY)]
-        self._foot_force = self._sensor_pair(mj, robot.FOOT_FORCE_SENSORS)
-        self._foot_torque = self._sensor_pair(mj, robot.FOOT_TORQUE_SENSORS)
-        adr = self.contact_layout.adr
-        contiguous = bool(np.all(np.diff(adr) == 1))
-        self._contact_counts = self._sensordata[:, adr[0] : adr[-1] + 1] if contiguous else None
-
-    def _sensor_pair(self, mj: mujoco.MjModel, names: tuple[str, str]) -> torch.Tensor:
-        """A (N, 2, 3) view of two 3-D sensors, [left, right], without copying."""
-        ids = [mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SENSOR, s) for s in names]
-        a, b = (int(mj.sensor_adr[i]) for i in ids)
-        if b <= a:
-            raise ValueError(f"sensors {names} must appear left before right in the model to be viewed as one tensor")
-        sd = self._sensordata
-        return sd.as_strided((self.num_worlds, 2, 3), (sd.stride(0), b - a, 1), sd.storage_offset() + a)
+        self._make_derived_views(mj)
 
     # --------------------------------------------------------------------------------------------- graph bodies
     def _derive(self) -> None:
@@ -286,16 +237,13 @@ class WarpSim:
         Everything else of a flagged world is cleared as by ``mujoco_warp.reset_data`` (time, activations, warm
         start, applied forces, overflow flags), then a forward pass fills positions, sensors and flags.
         """
-        self._check_tensor("mask", mask, (self.num_worlds,), allow_row=False, dtype=torch.bool)
-        self._check_tensor("qpos", qpos, (self.num_worlds, self.nq))
-        self._check_tensor("qvel", qvel, (self.num_worlds, self.nv))
+        self._check_reset_args(mask, qpos, qvel, ctrl)
         self._reset_mask_t.copy_(mask)
         self._reset_qpos_t.copy_(qpos)
         self._reset_qvel_t.copy_(qvel)
         if ctrl is None:
             self._reset_ctrl_t.zero_()
         else:
-            self._check_tensor("ctrl", ctrl, (self.num_worlds, self.nu))
             self._reset_ctrl_t.copy_(ctrl)
         self._reset_graph()
 
@@ -311,50 +259,6 @@ class WarpSim:
     def _overflow_error(self):
         bits = self._overflow_t.cpu().numpy()  # ordered after the graphs: they run on torch's current stream
         return overflow_error(bits, self.config.health_overflow_mask, self.config.nconmax, self.config.njmax)
-
-    def _check_tensor(self, name, value, shape, allow_row: bool = True, dtype: torch.dtype | None = None) -> None:
-        if not isinstance(value, torch.Tensor):
-            raise TypeError(f"reset: {name} must be a torch.Tensor on {self.device}, got {type(value).__name__}")
-        if value.device != self.device:
-            raise ValueError(f"reset: {name} is on {value.device}, the simulator on {self.device}; move it there first")
-        ok = tuple(value.shape) == shape or (allow_row and tuple(value.shape) == shape[1:])
-        if not ok:
-            want = f"{shape}" + (f" or {shape[1:]}" if allow_row else "")
-            raise ValueError(f"reset: {name} must have shape {want}, got {tuple(value.shape)}")
-        if dtype is not None and value.dtype != dtype:
-            raise ValueError(f"reset: {name} must have dtype {dtype}, got {value.dtype}")
-        if dtype is None and not value.is_floating_point():
-            raise ValueError(f"reset: {name} must be a floating-point tensor, got {value.dtype}")
-
-    # --------------------------------------------------------------------------------------------------- views
-    qpos = property(lambda self: self._qpos, doc="(N, nq) generalized positions.")
-    qvel = property(lambda self: self._qvel, doc="(N, nv) generalized velocities.")
-    ctrl = property(lambda self: self._ctrl, doc="(N, nu) actuator controls (write actions here).")
-    sensordata = property(lambda self: self._sensordata, doc="(N, nsensordata) all sensor values.")
-    time = property(lambda self: self._time, doc="(N,) simulated time since the world's reset [s].")
-    xpos = property(lambda self: self._xpos, doc="(N, nbody, 3) body origins in the world [m].")
-    xquat = property(lambda self: self._xquat, doc="(N, nbody, 4) body orientations (w, x, y, z).")
-    base_pos = property(lambda self: self._base_pos, doc="(N, 3) pelvis origin [m].")
-    base_quat = property(lambda self: self._base_quat, doc="(N, 4) pelvis orientation (w, x, y, z).")
-    neck_pos = property(lambda self: self._neck_pos, doc="(N, 3) Neck_Link origin [m].")
-    neck_quat = property(lambda self: self._neck_quat, doc="(N, 4) Neck_Link orientation (w, x, y, z).")
-    foot_force = property(lambda self: self._foot_force, doc="(N, 2, 3) foot F/T force, site frame [N], [L, R].")
-    foot_torque = property(lambda self: self._foot_torque, doc="(N, 2, 3) foot F/T torque, site frame [N·m].")
-    foot_contact = property(lambda self: self._foot_contact, doc="(N, 2) bool foot-ground contact, [L, R].")
-    forbidden_ground_contact = property(lambda self: self._forbidden, doc="(N,) bool forbidden ground contact.")
-    self_collision = property(lambda self: self._self_collision, doc="(N,) bool self collision.")
-    healthy = property(lambda self: self._healthy_t, doc="(N,) bool finite state and no buffer overflow.")
-    overflow = property(lambda self: self._overflow_t, doc="(N,) int32 mujoco-warp OverflowType bits.")
-    applied_actuator_force = property(
-        lambda self: self._applied_force_t, doc="(N, nu) actuator forces applied in the last substep [N·m]."
-    )
-
-    @property
-    def contact_counts(self) -> torch.Tensor:
-        """(N, k) contact-sensor counts, columns named by ``contact_layout.names``."""
-        if self._contact_counts is None:
-            raise ValueError("the contact sensors are not contiguous in sensordata; index sensordata[:, layout.adr]")
-        return self._contact_counts
 
     def __repr__(self) -> str:
         return (

@@ -1,0 +1,187 @@
+"""MujocoSim (C MuJoCo on CPU threads): the WarpSim interface, exact C stepping, threads, health, errors.
+
+The interface tests of ``test_sim.py`` (masked reset, contact signals against a scan of the contact list, foot F/T
+against the weight, health, forward after direct writes, reset argument errors) only read the public tensors; they are
+imported below and run here against this module's ``sim`` fixture, a MujocoSim of 4 worlds.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from test_sim import (  # noqa: F401  (imported tests run against this module's `sim` fixture)
+    LEGS,
+    N,
+    _init_qpos,
+    _pd_hold,
+    _reset_standing,
+    _upper_ctrl,
+    test_crossed_legs_report_self_collision,
+    test_forward_refreshes_after_direct_writes,
+    test_infinite_velocity_flags_only_that_world,
+    test_masked_reset_touches_only_flagged_worlds,
+    test_reset_rejects_bad_arguments,
+    test_robot_dropped_on_its_back_reports_forbidden_contact,
+    test_standing_robot_feet_in_contact_and_forces_carry_the_weight,
+)
+from tocabi_torchrl import robot
+from tocabi_torchrl.sim import MujocoSim, SimConfig, SimOverflowError, add_contact_sensors
+from tocabi_torchrl.sim.config import available_cores
+
+
+@pytest.fixture(scope="module")
+def sim() -> MujocoSim:
+    return MujocoSim(SimConfig(num_worlds=N, threads=2))
+
+
+def _random_legs(rng: np.random.Generator, n: int = N, scale: float = 1.0) -> torch.Tensor:
+    ctrl = _upper_ctrl(n)
+    ctrl[:, LEGS] = torch.as_tensor(rng.uniform(-scale, scale, (n, 12)) * robot.LEG_TORQUE_LIMITS, dtype=torch.float32)
+    return ctrl
+
+
+def test_views_have_the_warp_backends_shapes_and_dtypes(sim):
+    m = sim.mj_model
+    shapes = {
+        "qpos": (N, m.nq), "qvel": (N, m.nv), "ctrl": (N, m.nu), "sensordata": (N, m.nsensordata),
+        "xpos": (N, m.nbody, 3), "xquat": (N, m.nbody, 4), "base_pos": (N, 3), "base_quat": (N, 4),
+        "neck_pos": (N, 3), "neck_quat": (N, 4), "foot_force": (N, 2, 3), "foot_torque": (N, 2, 3),
+        "contact_counts": (N, sim.contact_layout.count), "time": (N,), "applied_actuator_force": (N, m.nu),
+    }
+    for name, shape in shapes.items():
+        t = getattr(sim, name)
+        assert t.shape == shape and t.dtype == torch.float32 and t.device.type == "cpu", name
+    for name, shape in {"foot_contact": (N, 2), "forbidden_ground_contact": (N,), "self_collision": (N,),
+                        "healthy": (N,)}.items():
+        assert getattr(sim, name).shape == shape and getattr(sim, name).dtype == torch.bool, name
+    assert sim.overflow.dtype == torch.int32 and sim.overflow.shape == (N,)
+    assert sim.device == torch.device("cpu") and sim.control_dt == pytest.approx(8 * sim.physics_dt)
+    # Derived tensors are windows into the primary buffers, as in WarpSim.
+    fid = mujoco.mj_name2id(sim.mj_model, mujoco.mjtObj.mjOBJ_SENSOR, robot.FOOT_FORCE_SENSORS[1])
+    adr = sim.mj_model.sensor_adr[fid]
+    assert torch.equal(sim.foot_force[:, 1], sim.sensordata[:, adr : adr + 3])
+    base = mujoco.mj_name2id(sim.mj_model, mujoco.mjtObj.mjOBJ_BODY, robot.BASE_BODY)
+    assert sim.base_pos.data_ptr() == sim.xpos[:, base].data_ptr()
+
+
+def test_step_is_mj_step_times_substeps_then_forward(sim):
+    """Float64 C stepping, published as float32: equal to raw mj_step x 8 + mj_forward cast to float32."""
+    _reset_standing(sim)
+    m = sim.mj_model
+    raw = [mujoco.MjData(m) for _ in range(N)]
+    for w, d in enumerate(raw):
+        d.qpos[:] = sim.qpos[w].numpy()  # the reset took these float32 values exactly
+        d.ctrl[:] = sim.ctrl[w].numpy()
+        mujoco.mj_forward(m, d)
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        ctrl = _random_legs(rng)
+        sim.ctrl.copy_(ctrl)
+        sim.step()
+        for w, d in enumerate(raw):
+            d.ctrl[:] = ctrl[w].numpy()
+            for _ in range(sim.config.substeps):
+                mujoco.mj_step(m, d)
+    applied = np.stack([d.actuator_force for d in raw])
+    for d in raw:
+        mujoco.mj_forward(m, d)
+    for name, field in (("qpos", "qpos"), ("qvel", "qvel"), ("sensordata", "sensordata"), ("xpos", "xpos")):
+        expected = torch.from_numpy(np.stack([getattr(d, field) for d in raw])).float()
+        assert torch.equal(getattr(sim, name), expected), name
+    assert torch.equal(sim.applied_actuator_force, torch.from_numpy(applied).float())
+    # The state inside each world stays float64 (no rounding to the float32 tensors between steps).
+    for w, d in enumerate(raw):
+        assert np.array_equal(sim.mj_data[w].qpos, d.qpos)
+    assert torch.allclose(sim.time, torch.full((N,), 6 * sim.control_dt))
+
+
+def test_reset_of_other_worlds_keeps_float64_state(sim):
+    """A masked reset neither rounds the untouched worlds to float32 nor changes their future."""
+    _reset_standing(sim)
+    rng = np.random.default_rng(2)
+    sim.ctrl.copy_(_random_legs(rng, scale=0.3))
+    sim.step()
+    before = [d.qpos.copy() for d in sim.mj_data]
+    sim.reset(torch.tensor([True, False, False, False]), _init_qpos(), torch.zeros(sim.nv), _upper_ctrl())
+    for w in (1, 2, 3):
+        assert np.array_equal(sim.mj_data[w].qpos, before[w])
+        assert not np.array_equal(sim.mj_data[w].qpos, sim.mj_data[w].qpos.astype(np.float32)), "float64 kept"
+
+
+def test_thread_count_does_not_change_results():
+    assert MujocoSim(SimConfig(num_worlds=3)).threads == min(available_cores(), 3)
+    sims = [MujocoSim(SimConfig(num_worlds=5, threads=t)) for t in (1, 2, 3)]
+    assert [s.threads for s in sims] == [1, 2, 3]
+    rng = np.random.default_rng(4)
+    for s in sims:
+        _reset_standing(s)
+    for k in range(4):
+        ctrl = _random_legs(rng, n=5, scale=0.5)
+        for s in sims:
+            s.ctrl.copy_(ctrl)
+            s.step()
+            s.reset(torch.tensor([k == 2, False, True, False, False]), _init_qpos(5), torch.zeros(s.nv), _upper_ctrl(5))
+    for name in ("qpos", "qvel", "sensordata", "foot_contact", "healthy"):
+        assert torch.equal(getattr(sims[0], name), getattr(sims[1], name)), name
+        assert torch.equal(getattr(sims[0], name), getattr(sims[2], name)), name
+    for s in sims:
+        s.close()
+
+
+def test_diverged_world_is_unhealthy_until_reset_with_a_clear_error(sim):
+    _reset_standing(sim)
+    sim.check_overflow()
+    sim.qvel[1, 10] = float("inf")
+    _pd_hold(sim)
+    sim.ctrl[1].zero_()
+    sim.step()
+    # C MuJoCo reset world 1 to the default pose itself: finite, but flagged through its warning counter.
+    assert torch.isfinite(sim.qpos).all()
+    assert sim.healthy.tolist() == [True, False, True, True]
+    assert int(sim.overflow[1]) & (1 << int(mujoco.mjtWarning.mjWARN_BADQVEL))
+    with pytest.raises(SimOverflowError, match=r"1 world\(s\).*worlds 1\).*mjWARN_BADQVEL"):
+        sim.check_overflow()
+    sim.step()
+    assert not sim.healthy[1], "the flag is sticky until the world is reset"
+    _reset_standing(sim, torch.tensor([False, True, False, False]))
+    assert sim.healthy.all()
+    sim.check_overflow()
+
+
+def test_sensors_every_substep_changes_nothing_visible(sim):
+    every = MujocoSim(SimConfig(num_worlds=N, threads=1, sensors_every_substep=True))
+    rng = np.random.default_rng(5)
+    for s in (sim, every):
+        _reset_standing(s)
+    for _ in range(3):
+        ctrl = _random_legs(rng, scale=0.3)
+        for s in (sim, every):
+            s.ctrl.copy_(ctrl)
+            s.step()
+    assert torch.equal(sim.sensordata, every.sensordata) and torch.equal(sim.qpos, every.qpos)
+
+
+@pytest.mark.parametrize(
+    "config, error, message",
+    [
+        (SimConfig(num_worlds=0), ValueError, "num_worlds must be a positive int"),
+        (SimConfig(threads=0), ValueError, "threads must be a positive int"),
+        (SimConfig(threads=1.5), ValueError, "threads must be a positive int"),
+        (SimConfig(device="cuda"), ValueError, "C engine on the CPU.*WarpSim"),
+        (SimConfig(device="tpu"), ValueError, "unknown device 'tpu'"),
+    ],
+)
+def test_bad_configuration_is_refused(config, error, message):
+    with pytest.raises(error, match=message):
+        MujocoSim(config)
+
+
+def test_models_and_solver_overrides_as_in_warp():
+    model = add_contact_sensors(robot.load_spec()).compile()
+    s = MujocoSim(SimConfig(num_worlds=1, solver_iterations=7), model=model)
+    assert s.mj_model.opt.iterations == 7 and model.opt.iterations != 7
+    with pytest.raises(ValueError, match="add_contact_sensors"):
+        MujocoSim(SimConfig(), model=robot.load_model())

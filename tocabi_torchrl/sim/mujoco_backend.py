@@ -1,0 +1,283 @@
+"""``MujocoSim``: N TOCABI worlds stepped by MuJoCo's C engine on CPU threads, behind ``WarpSim``'s interface.
+
+The CPU baseline (TocabiLab's comparison system ran C MuJoCo, one environment per core) and the reference the GPU
+engine is checked against (``tests/test_engine_parity.py``). Each world is one ``mujoco.MjData`` of the same compiled
+model (float64); a persistent thread pool steps contiguous chunks of worlds, and ``mujoco.mj_step`` releases the GIL,
+so the chunks run in parallel on ``SimConfig.threads`` cores.
+
+Precision and copies. The physics state stays float64 inside each ``MjData`` for the whole episode. The tensors the
+environment sees (same names, shapes and float32 dtype as ``WarpSim``'s, see its docstring) are float32 torch
+buffers: after every step / reset / forward the new state is gathered row by row into float64 staging arrays and
+cast into them in one vectorised copy per buffer; before every step ``ctrl`` is copied from its float32 tensor into
+each ``MjData``. Writing ``qpos``/``qvel`` directly (tests and debugging, as with ``WarpSim``) is supported: a world
+whose float32 state differs from what was last published gets it pushed back into its ``MjData`` (so that world, and
+only that world, is rounded to float32 once) and takes a full ``mj_step`` first, which re-checks the state.
+
+Step semantics match ``WarpSim``: one :meth:`step` is ``substeps`` physics steps (sensors off inside them, unless
+``SimConfig.sensors_every_substep``), the actuator forces of the last substep are kept, then ``mj_forward`` so that
+positions, sensors and contact signals describe the post-step state. Since that forward pass already computed the
+position and velocity stages of the new state, the next step's first substep is ``mj_step2``; the trajectory is
+bit-identical to ``mj_step`` × ``substeps`` (``tests/test_sim_mujoco.py``).
+
+Contact signals come from the same contact sensors and :class:`~tocabi_torchrl.sim.contacts.ContactLayout` sums as
+the warp backend. Health: finite qpos/qvel and none of :data:`~tocabi_torchrl.sim.mujoco_health.MUJOCO_HEALTH_WARNINGS`
+since the world's last reset (C MuJoCo resets a diverged world itself and says so only through its warnings).
+"""
+
+from __future__ import annotations
+
+import copy
+import weakref
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+
+import mujoco
+import numpy as np
+import torch
+
+from .config import SimConfig
+from .contacts import ContactLayout, contact_layout
+from .model import ModelSource, compile_model
+from .mujoco_health import MUJOCO_HEALTH_WARNINGS, warning_bits, warning_error
+from .views import SimViews
+
+__all__ = ["MujocoSim"]
+
+
+def _check_cpu(device) -> torch.device:
+    name = str(device)
+    if name == "cuda" or name.startswith("cuda:"):
+        raise ValueError(
+            f"MujocoSim runs MuJoCo's C engine on the CPU; got device {name!r}. Use device='cpu', or WarpSim "
+            "(backend='warp') for CUDA"
+        )
+    if name != "cpu":
+        raise ValueError(f"unknown device {name!r}: MujocoSim runs on 'cpu'")
+    return torch.device("cpu")
+
+
+class MujocoSim(SimViews):
+    """N worlds of one MuJoCo model stepped by C MuJoCo on CPU threads, with float32 torch tensors of the state.
+
+    Args:
+        config: :class:`SimConfig`; ``num_worlds``, ``substeps``, the solver overrides, ``sensors_every_substep`` and
+            ``threads`` apply (the mujoco-warp buffer settings do not, see :class:`SimConfig`). ``device`` must be
+            ``"cpu"``.
+        model: as for :class:`~tocabi_torchrl.sim.WarpSim`.
+
+    Tensors: the same names, shapes and dtypes as ``WarpSim`` (see its docstring), on the CPU. They are the
+    simulator's own buffers: writing ``ctrl`` is how actions reach the physics, and they are overwritten by the next
+    :meth:`step` / :meth:`reset` / :meth:`forward`, so clone what you keep. ``overflow`` holds ``1 << mjtWarning``
+    bits (``mujoco_health.warning_bits``) instead of mujoco-warp's ``OverflowType`` bits.
+    """
+
+    def __init__(self, config: SimConfig | None = None, model: ModelSource = None):
+        cfg = copy.deepcopy(config) if config is not None else SimConfig()
+        cfg.validate()
+        self.config = cfg
+        self.device = _check_cpu(cfg.device)
+        self.num_worlds = n = cfg.num_worlds
+        self.threads = min(cfg.resolved_threads(), n)
+
+        mj = compile_model(model, cfg)
+        self.mj_model = mj
+        self.contact_layout: ContactLayout = contact_layout(mj)
+        self.nq, self.nv, self.nu = mj.nq, mj.nv, mj.nu
+        self.physics_dt = float(mj.opt.timestep)
+        self.control_dt = self.physics_dt * cfg.substeps
+        # Substeps skip sensors (only the post-step forward pass's values are ever visible): same physics, less work.
+        self._substep_model = mj
+        if not cfg.sensors_every_substep:
+            self._substep_model = copy.deepcopy(mj)
+            self._substep_model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
+        self._data = [mujoco.MjData(mj) for _ in range(n)]
+        #: The ``MjData`` of each world (float64), for inspection; change state through reset/ctrl, not here.
+        self.mj_data: tuple[mujoco.MjData, ...] = tuple(self._data)
+        self._chunks = [c for c in np.array_split(np.arange(n), self.threads) if len(c)]
+        self._pool = None
+        if self.threads > 1:
+            self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="MujocoSim")
+            weakref.finalize(self, self._pool.shutdown, wait=False)
+        self._alloc_buffers(mj)
+        self._make_derived_views(mj)
+        self.reset(torch.ones(n, dtype=torch.bool), torch.as_tensor(mj.qpos0, dtype=torch.float32),
+                   torch.zeros(self.nv))
+
+    # ----------------------------------------------------------------------------------------------- construction
+    def _alloc_buffers(self, mj: mujoco.MjModel) -> None:
+        n, f32 = self.num_worlds, torch.float32
+        # float64 staging rows, filled by the worker threads (each writes only its own worlds' rows).
+        self._staged = {
+            "qpos": np.zeros((n, mj.nq)),
+            "qvel": np.zeros((n, mj.nv)),
+            "sensordata": np.zeros((n, mj.nsensordata)),
+            "xpos": np.zeros((n, mj.nbody, 3)),
+            "xquat": np.zeros((n, mj.nbody, 4)),
+            "time": np.zeros(n),
+            "applied_force": np.zeros((n, mj.nu)),
+        }
+        self._warnings = np.zeros((n, int(mujoco.mjtWarning.mjNWARNING)), dtype=np.int32)
+        # The float32 tensors the env sees, one per staging array.
+        self._qpos, self._qvel = torch.zeros(n, mj.nq, dtype=f32), torch.zeros(n, mj.nv, dtype=f32)
+        self._ctrl = torch.zeros(n, mj.nu, dtype=f32)
+        self._sensordata = torch.zeros(n, mj.nsensordata, dtype=f32)
+        self._xpos, self._xquat = torch.zeros(n, mj.nbody, 3, dtype=f32), torch.zeros(n, mj.nbody, 4, dtype=f32)
+        self._time = torch.zeros(n, dtype=f32)
+        self._applied_force_t = torch.zeros(n, mj.nu, dtype=f32)
+        self._published = {
+            "qpos": self._qpos,
+            "qvel": self._qvel,
+            "sensordata": self._sensordata,
+            "xpos": self._xpos,
+            "xquat": self._xquat,
+            "time": self._time,
+            "applied_force": self._applied_force_t,
+        }
+        # What was last published, to find worlds whose qpos/qvel were written directly.
+        self._shown_qpos, self._shown_qvel = self._qpos.clone(), self._qvel.clone()
+        signals = torch.zeros(n, len(self.contact_layout.weights), dtype=torch.bool)
+        self._foot_contact, self._forbidden, self._self_collision = signals[:, 0:2], signals[:, 2], signals[:, 3]
+        self._signals = signals
+        self._healthy_t = torch.zeros(n, dtype=torch.bool)
+        self._overflow_t = torch.zeros(n, dtype=torch.int32)
+
+    # ------------------------------------------------------------------------------------------- per-world work
+    def _gather(self, w: int, d: mujoco.MjData) -> None:
+        """Copy world ``w``'s post-step state into the float64 staging rows."""
+        s = self._staged
+        s["qpos"][w] = d.qpos
+        s["qvel"][w] = d.qvel
+        s["sensordata"][w] = d.sensordata
+        s["xpos"][w] = d.xpos
+        s["xquat"][w] = d.xquat
+        s["time"][w] = d.time
+        self._warnings[w] = d.warning.number
+
+    def _step_world(self, w: int, ctrl: np.ndarray, dirty: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        m, d = self._substep_model, self._data[w]
+        d.ctrl[:] = ctrl[w]
+        if dirty[w]:
+            # qpos/qvel were written directly: take them, and run a full step (it checks them and recomputes).
+            d.qpos[:], d.qvel[:] = qpos[w], qvel[w]
+            mujoco.mj_step(m, d)
+        else:
+            mujoco.mj_step2(m, d)  # the position/velocity stages were computed by the previous forward pass
+        for _ in range(self.config.substeps - 1):
+            mujoco.mj_step(m, d)
+        self._staged["applied_force"][w] = d.actuator_force  # the forward pass below overwrites it
+        mujoco.mj_forward(self.mj_model, d)
+        self._gather(w, d)
+
+    def _reset_world(self, w: int, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> None:
+        d = self._data[w]
+        mujoco.mj_resetData(self.mj_model, d)  # clears time, activations, warm start and warning counters
+        d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[w], qvel[w], ctrl[w]
+        mujoco.mj_forward(self.mj_model, d)
+        # Nothing was applied yet: report what the actuators would apply in the reset state (as WarpSim does).
+        self._staged["applied_force"][w] = d.actuator_force
+        self._gather(w, d)
+
+    def _forward_world(self, w: int, ctrl: np.ndarray, dirty: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        d = self._data[w]
+        d.ctrl[:] = ctrl[w]
+        if dirty[w]:
+            d.qpos[:], d.qvel[:] = qpos[w], qvel[w]
+        mujoco.mj_forward(self.mj_model, d)
+        self._gather(w, d)
+
+    def _run(self, fn: Callable[..., None], worlds: np.ndarray | None, *args) -> None:
+        """``fn(w, *args)`` for every world in ``worlds`` (all if ``None``), chunks of worlds in parallel threads."""
+        chunks = self._chunks if worlds is None else [c for c in np.array_split(worlds, self.threads) if len(c)]
+
+        def run_chunk(chunk: np.ndarray) -> None:
+            for w in chunk.tolist():
+                fn(w, *args)
+
+        if self._pool is None or len(chunks) < 2:
+            for c in chunks:
+                run_chunk(c)
+            return
+        for future in [self._pool.submit(run_chunk, c) for c in chunks]:
+            future.result()  # re-raises a worker's exception here
+
+    # ------------------------------------------------------------------------------------------ host <-> torch
+    def _dirty(self) -> np.ndarray:
+        """(N,) bool: worlds whose qpos/qvel tensors differ from what the simulator last published."""
+        changed = (self._qpos != self._shown_qpos).any(dim=1) | (self._qvel != self._shown_qvel).any(dim=1)
+        return changed.numpy()
+
+    def _publish(self, rows: np.ndarray | None = None) -> None:
+        """Cast the staged float64 rows (all, or ``rows``) into the float32 tensors, then derive flags."""
+        idx = None if rows is None else torch.from_numpy(rows)
+        for name, tensor in self._published.items():
+            staged = torch.from_numpy(self._staged[name])
+            if idx is None:
+                tensor.copy_(staged)
+            else:
+                tensor[idx] = staged[idx].to(tensor.dtype)
+        if idx is None:
+            self._shown_qpos.copy_(self._qpos)
+            self._shown_qvel.copy_(self._qvel)
+        else:  # other worlds keep any direct write pending, to be pushed by the next step or forward
+            self._shown_qpos[idx] = self._qpos[idx]
+            self._shown_qvel[idx] = self._qvel[idx]
+        self._signals.copy_(self.contact_layout.signals(self._sensordata))
+        self._overflow_t.copy_(torch.from_numpy(warning_bits(self._warnings)))
+        finite = torch.isfinite(self._qpos).all(dim=1) & torch.isfinite(self._qvel).all(dim=1)
+        self._healthy_t.copy_(finite & ((self._overflow_t & MUJOCO_HEALTH_WARNINGS) == 0))
+
+    def _host_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        return self._ctrl.numpy(), self._dirty(), self._qpos.numpy(), self._qvel.numpy()
+
+    # ------------------------------------------------------------------------------------------------- public API
+    def step(self) -> None:
+        """Advance every world by one control period (``substeps`` physics steps) with the current ``ctrl``."""
+        self._run(self._step_world, None, *self._host_inputs())
+        self._publish()
+
+    def forward(self) -> None:
+        """Recompute positions, sensors and flags from the current qpos/qvel/ctrl (after writing them directly)."""
+        self._run(self._forward_world, None, *self._host_inputs())
+        self._publish()
+
+    def reset(
+        self,
+        mask: torch.Tensor,
+        qpos: torch.Tensor,
+        qvel: torch.Tensor,
+        ctrl: torch.Tensor | None = None,
+    ) -> None:
+        """Put the flagged worlds into the given state; the others stay bit-identical (same contract as
+        :meth:`WarpSim.reset <tocabi_torchrl.sim.WarpSim.reset>`: (N,) bool mask, (N, nq)/(nq,) qpos, (N, nv)/(nv,)
+        qvel, optional (N, nu)/(nu,) ctrl, zeros if ``None``).
+
+        A flagged world is cleared by ``mj_resetData`` (time, activations, warm start, warning counters), takes the
+        given state, and a forward pass fills positions, sensors and flags.
+        """
+        self._check_reset_args(mask, qpos, qvel, ctrl)
+        n = self.num_worlds
+        rows = np.flatnonzero(mask.numpy())
+        ctrl = torch.zeros(self.nu) if ctrl is None else ctrl
+        qpos, qvel, ctrl = (x.to(torch.float32).expand(n, -1) for x in (qpos, qvel, ctrl))
+        idx = torch.from_numpy(rows)
+        self._ctrl[idx] = ctrl[idx]
+        self._run(self._reset_world, rows, qpos.numpy(), qvel.numpy(), ctrl.numpy())
+        self._publish(rows)
+
+    def check_overflow(self) -> None:
+        """Raise :class:`~tocabi_torchrl.sim.health.SimOverflowError` if a world raised a health warning."""
+        error = warning_error(self._overflow_t.numpy())
+        if error is not None:
+            raise error
+
+    def close(self) -> None:
+        """Stop the worker threads (also done when the simulator is garbage collected)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def __repr__(self) -> str:
+        return (
+            f"MujocoSim(num_worlds={self.num_worlds}, threads={self.threads}, substeps={self.config.substeps}, "
+            f"dt={self.physics_dt}x{self.config.substeps})"
+        )

@@ -1,0 +1,103 @@
+"""The tensor interface every physics backend exposes, and the checks of :meth:`reset`'s arguments.
+
+A backend (:class:`~tocabi_torchrl.sim.WarpSim`, :class:`~tocabi_torchrl.sim.MujocoSim`) fills the primary buffers
+(``_qpos``, ``_qvel``, ``_ctrl``, ``_sensordata``, ``_time``, ``_xpos``, ``_xquat``, the signal, health and applied
+force tensors) and calls :meth:`SimViews._make_derived_views`; this base class turns them into the public properties
+(the table in ``WarpSim``'s docstring), so the environment reads every backend the same way.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import torch
+
+from .. import robot
+
+__all__ = ["SimViews"]
+
+
+class SimViews:
+    """Public views shared by the backends; see :class:`~tocabi_torchrl.sim.WarpSim` for shapes and units."""
+
+    num_worlds: int
+    device: torch.device
+    nq: int
+    nv: int
+    nu: int
+
+    def _make_derived_views(self, mj: mujoco.MjModel) -> None:
+        """Body poses, foot F/T and contact counts as windows into the primary buffers (no copies)."""
+
+        def body(name: str) -> int:
+            return mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_BODY, name)
+
+        self._base_pos, self._base_quat = self._xpos[:, body(robot.BASE_BODY)], self._xquat[:, body(robot.BASE_BODY)]
+        self._neck_pos, self._neck_quat = self._xpos[:, body(robot.NECK_BODY)], self._xquat[:, body(robot.NECK_BODY)]
+        self._foot_force = self._sensor_pair(mj, robot.FOOT_FORCE_SENSORS)
+        self._foot_torque = self._sensor_pair(mj, robot.FOOT_TORQUE_SENSORS)
+        adr = self.contact_layout.adr
+        contiguous = bool(np.all(np.diff(adr) == 1))
+        self._contact_counts = self._sensordata[:, adr[0] : adr[-1] + 1] if contiguous else None
+
+    def _sensor_pair(self, mj: mujoco.MjModel, names: tuple[str, str]) -> torch.Tensor:
+        """A (N, 2, 3) view of two 3-D sensors, [left, right], without copying."""
+        ids = [mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SENSOR, s) for s in names]
+        a, b = (int(mj.sensor_adr[i]) for i in ids)
+        if b <= a:
+            raise ValueError(f"sensors {names} must appear left before right in the model to be viewed as one tensor")
+        sd = self._sensordata
+        return sd.as_strided((self.num_worlds, 2, 3), (sd.stride(0), b - a, 1), sd.storage_offset() + a)
+
+    # ------------------------------------------------------------------------------------------- reset arguments
+    def _check_reset_args(self, mask, qpos, qvel, ctrl) -> None:
+        """Raise a clear error for a wrong type, device, shape or dtype of :meth:`reset`'s arguments."""
+        self._check_tensor("mask", mask, (self.num_worlds,), allow_row=False, dtype=torch.bool)
+        self._check_tensor("qpos", qpos, (self.num_worlds, self.nq))
+        self._check_tensor("qvel", qvel, (self.num_worlds, self.nv))
+        if ctrl is not None:
+            self._check_tensor("ctrl", ctrl, (self.num_worlds, self.nu))
+
+    def _check_tensor(self, name, value, shape, allow_row: bool = True, dtype: torch.dtype | None = None) -> None:
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(f"reset: {name} must be a torch.Tensor on {self.device}, got {type(value).__name__}")
+        if value.device != self.device:
+            raise ValueError(f"reset: {name} is on {value.device}, the simulator on {self.device}; move it there first")
+        ok = tuple(value.shape) == shape or (allow_row and tuple(value.shape) == shape[1:])
+        if not ok:
+            want = f"{shape}" + (f" or {shape[1:]}" if allow_row else "")
+            raise ValueError(f"reset: {name} must have shape {want}, got {tuple(value.shape)}")
+        if dtype is not None and value.dtype != dtype:
+            raise ValueError(f"reset: {name} must have dtype {dtype}, got {value.dtype}")
+        if dtype is None and not value.is_floating_point():
+            raise ValueError(f"reset: {name} must be a floating-point tensor, got {value.dtype}")
+
+    # --------------------------------------------------------------------------------------------------- views
+    qpos = property(lambda self: self._qpos, doc="(N, nq) generalized positions.")
+    qvel = property(lambda self: self._qvel, doc="(N, nv) generalized velocities.")
+    ctrl = property(lambda self: self._ctrl, doc="(N, nu) actuator controls (write actions here).")
+    sensordata = property(lambda self: self._sensordata, doc="(N, nsensordata) all sensor values.")
+    time = property(lambda self: self._time, doc="(N,) simulated time since the world's reset [s].")
+    xpos = property(lambda self: self._xpos, doc="(N, nbody, 3) body origins in the world [m].")
+    xquat = property(lambda self: self._xquat, doc="(N, nbody, 4) body orientations (w, x, y, z).")
+    base_pos = property(lambda self: self._base_pos, doc="(N, 3) pelvis origin [m].")
+    base_quat = property(lambda self: self._base_quat, doc="(N, 4) pelvis orientation (w, x, y, z).")
+    neck_pos = property(lambda self: self._neck_pos, doc="(N, 3) Neck_Link origin [m].")
+    neck_quat = property(lambda self: self._neck_quat, doc="(N, 4) Neck_Link orientation (w, x, y, z).")
+    foot_force = property(lambda self: self._foot_force, doc="(N, 2, 3) foot F/T force, site frame [N], [L, R].")
+    foot_torque = property(lambda self: self._foot_torque, doc="(N, 2, 3) foot F/T torque, site frame [N·m].")
+    foot_contact = property(lambda self: self._foot_contact, doc="(N, 2) bool foot-ground contact, [L, R].")
+    forbidden_ground_contact = property(lambda self: self._forbidden, doc="(N,) bool forbidden ground contact.")
+    self_collision = property(lambda self: self._self_collision, doc="(N,) bool self collision.")
+    healthy = property(lambda self: self._healthy_t, doc="(N,) bool finite state and no buffer overflow.")
+    overflow = property(lambda self: self._overflow_t, doc="(N,) int32 backend overflow/warning bits.")
+    applied_actuator_force = property(
+        lambda self: self._applied_force_t, doc="(N, nu) actuator forces applied in the last substep [N·m]."
+    )
+
+    @property
+    def contact_counts(self) -> torch.Tensor:
+        """(N, k) contact-sensor counts, columns named by ``contact_layout.names``."""
+        if self._contact_counts is None:
+            raise ValueError("the contact sensors are not contiguous in sensordata; index sensordata[:, layout.adr]")
+        return self._contact_counts
