@@ -149,3 +149,19 @@ def test_evaluation_and_curves_from_a_tiny_run(tmp_path):
     assert (run / "eval" / "knees.png").stat().st_size > 10_000
     png = plot_curves(run / "metrics.csv", tmp_path / "curves.png")
     assert png.stat().st_size > 10_000
+
+
+def test_reference_preset_gives_the_value_head_its_own_constant_lr():
+    from tocabi_torchrl.rl.trainer import _param_groups, build_agent
+
+    cfg = preset_config("reference", device="cpu")
+    agent = build_agent(cfg, 237, 13, torch.device("cpu"))
+    groups = _param_groups(agent, cfg)
+    assert [g["name"] for g in groups] == ["policy", "value_head"]
+    head = groups[1]
+    assert head["lr"] == 5e-4 and head.get("fixed") and sum(p.numel() for p in head["params"]) == 256 + 1
+    # The reference's actor optimiser also trains the critic's hidden layers (spec §10.2).
+    policy_ids = {id(p) for p in groups[0]["params"]}
+    assert all(id(p) in policy_ids for p in agent.critic.module[0].parameters())
+    assert groups[0]["lr"] == 1e-5
+    assert len(_param_groups(agent, preset_config("default", device="cpu"))) == 1
