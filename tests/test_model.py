@@ -193,3 +193,12 @@ def test_missing_names_are_listed(tmp_path):
 
 def test_asset_path_exists():
     assert robot.asset_path("tocabi", "tocabi.xml").is_file()
+
+
+def test_assets_folder_override(tmp_path, monkeypatch):
+    import shutil
+
+    shutil.copytree(robot.asset_path("tocabi"), tmp_path / "tocabi")
+    monkeypatch.setenv("TOCABI_TORCHRL_ASSETS", str(tmp_path))
+    assert robot.asset_path("tocabi", "tocabi.xml") == tmp_path / "tocabi" / "tocabi.xml"
+    assert robot.load_model().nu == 33
