@@ -91,6 +91,14 @@ class RewardTerm:
     def __call__(self, td: TensorDictBase, next_td: TensorDictBase) -> torch.Tensor:
         return self.weight * self.kernel(td, next_td)
 
+    def __post_init__(self):
+        # Shared by every dataclass term: validate the name and weight, and the positive scales a term declares.
+        self._check()
+        if hasattr(self, "scale"):
+            self.scale = _scale(self.scale, f"{self.name} scale")
+        if hasattr(self, "torque_scale"):
+            self.torque_scale = _torque_scale(self.torque_scale, self.name)
+
     def _check(self) -> None:
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"{type(self).__name__}: name must be a non-empty string, got {self.name!r}")
@@ -136,10 +144,6 @@ class NeckOrientation(RewardTerm):
     scale: float = 13.2
     next_keys: tuple = field(default=("neck_quat",), init=False, repr=False)
 
-    def __post_init__(self):
-        self._check()
-        self.scale = _scale(self.scale, f"{self.name} scale")
-
     def kernel(self, td, next_td):
         return torch.exp(-self.scale * quat_rotation_angle(next_td.get("neck_quat")))
 
@@ -156,10 +160,6 @@ class JointPosTracking(RewardTerm):
     scale: float = 4.0
     next_keys: tuple = field(default=("joint_pos", "ref_joint_pos"), init=False, repr=False)
 
-    def __post_init__(self):
-        self._check()
-        self.scale = _scale(self.scale, f"{self.name} scale")
-
     def kernel(self, td, next_td):
         err = next_td.get("ref_joint_pos") - next_td.get("joint_pos")
         return torch.exp(-self.scale * err.square().sum(-1, keepdim=True))
@@ -173,10 +173,6 @@ class JointVelRegulation(RewardTerm):
     weight: float = 0.05
     scale: float = 0.01
     next_keys: tuple = field(default=("joint_vel",), init=False, repr=False)
-
-    def __post_init__(self):
-        self._check()
-        self.scale = _scale(self.scale, f"{self.name} scale")
 
     def kernel(self, td, next_td):
         return torch.exp(-self.scale * next_td.get("joint_vel").square().sum(-1, keepdim=True))
@@ -194,10 +190,6 @@ class BodyVelTracking(RewardTerm):
     scale: float = 3.0
     next_keys: tuple = field(default=("base_lin_vel", "command"), init=False, repr=False)
 
-    def __post_init__(self):
-        self._check()
-        self.scale = _scale(self.scale, f"{self.name} scale")
-
     def kernel(self, td, next_td):
         err = next_td.get("base_lin_vel")[..., :2] - next_td.get("command")
         return torch.exp(-self.scale * err.square().sum(-1, keepdim=True))
@@ -214,10 +206,6 @@ class ContactForce(RewardTerm):
     weight: float = 0.1
     scale: float = 0.0005
     next_keys: tuple = field(default=("foot_force",), init=False, repr=False)
-
-    def __post_init__(self):
-        self._check()
-        self.scale = _scale(self.scale, f"{self.name} scale")
 
     def kernel(self, td, next_td):
         norms = torch.linalg.vector_norm(next_td.get("foot_force"), dim=-1)  # (N, 2)
@@ -238,11 +226,6 @@ class TorqueRegulation(RewardTerm):
     torque_scale: float | tuple = _REFERENCE_TORQUE_SCALE
     next_keys: tuple = field(default=("applied_action",), init=False, repr=False)
 
-    def __post_init__(self):
-        self._check()
-        self.scale = _scale(self.scale, f"{self.name} scale")
-        self.torque_scale = _torque_scale(self.torque_scale, self.name)
-
     def kernel(self, td, next_td):
         tau = _apply_torque_scale(next_td.get("applied_action")[..., _LEGS], self.torque_scale)
         return torch.exp(-self.scale * torch.linalg.vector_norm(tau, dim=-1, keepdim=True))
@@ -261,11 +244,6 @@ class TorqueDiffRegulation(RewardTerm):
     torque_scale: float | tuple = _REFERENCE_TORQUE_SCALE
     root_keys: tuple = field(default=("applied_action",), init=False, repr=False)
     next_keys: tuple = field(default=("applied_action",), init=False, repr=False)
-
-    def __post_init__(self):
-        self._check()
-        self.scale = _scale(self.scale, f"{self.name} scale")
-        self.torque_scale = _torque_scale(self.torque_scale, self.name)
 
     def kernel(self, td, next_td):
         da = next_td.get("applied_action")[..., _LEGS] - td.get("applied_action")[..., _LEGS]
@@ -287,10 +265,6 @@ class JointAccRegulation(RewardTerm):
     root_keys: tuple = field(default=("joint_vel",), init=False, repr=False)
     next_keys: tuple = field(default=("joint_vel",), init=False, repr=False)
 
-    def __post_init__(self):
-        self._check()
-        self.scale = _scale(self.scale, f"{self.name} scale")
-
     def kernel(self, td, next_td):
         dv = next_td.get("joint_vel") - td.get("joint_vel")
         return torch.exp(-self.scale * dv.square().sum(-1, keepdim=True))
@@ -307,9 +281,6 @@ class FootContactPattern(RewardTerm):
     name: str = "foot_contact"
     weight: float = 0.2
     next_keys: tuple = field(default=("stance", "foot_contact"), init=False, repr=False)
-
-    def __post_init__(self):
-        self._check()
 
     def kernel(self, td, next_td):
         contact = next_td.get("foot_contact").to(torch.bool)
@@ -334,10 +305,6 @@ class ContactForceDiff(RewardTerm):
     root_keys: tuple = field(default=("foot_force",), init=False, repr=False)
     next_keys: tuple = field(default=("foot_force",), init=False, repr=False)
 
-    def __post_init__(self):
-        self._check()
-        self.scale = _scale(self.scale, f"{self.name} scale")
-
     def kernel(self, td, next_td):
         df = next_td.get("foot_force") - td.get("foot_force")
         return torch.exp(-self.scale * torch.linalg.vector_norm(df, dim=-1).sum(-1, keepdim=True))
@@ -359,8 +326,7 @@ class ForceReference(RewardTerm):
     next_keys: tuple = field(default=("foot_force", "ref_foot_force"), init=False, repr=False)
 
     def __post_init__(self):
-        self._check()
-        self.scale = _scale(self.scale, f"{self.name} scale")
+        super().__post_init__()
         self.weight_scale = check_finite(self.weight_scale, f"{self.name} weight_scale")
 
     def kernel(self, td, next_td):
@@ -383,7 +349,7 @@ class ForceThresholdPenalty(RewardTerm):
     next_keys: tuple = field(default=("foot_force",), init=False, repr=False)
 
     def __post_init__(self):
-        self._check()
+        super().__post_init__()
         self.factor = _scale(self.factor, f"{self.name} factor")
         self.body_weight = _scale(self.body_weight, f"{self.name} body_weight")
 
@@ -411,7 +377,7 @@ class ForceDiffThresholdPenalty(RewardTerm):
     next_keys: tuple = field(default=("foot_force",), init=False, repr=False)
 
     def __post_init__(self):
-        self._check()
+        super().__post_init__()
         self.factor = _scale(self.factor, f"{self.name} factor")
         self.body_weight = _scale(self.body_weight, f"{self.name} body_weight")
 
