@@ -11,11 +11,6 @@ from tocabi_torchrl import robot
 from reference_data import load_reference_model
 
 
-@pytest.fixture(scope="module")
-def model() -> mujoco.MjModel:
-    return robot.load_model()
-
-
 def _id(m, kind, name):
     return mujoco.mj_name2id(m, getattr(mujoco.mjtObj, f"mjOBJ_{kind}"), name)
 

@@ -14,14 +14,6 @@ LEG = slice(0, 12)
 
 
 @pytest.fixture(scope="module")
-def model():
-    try:
-        return robot.load_model()
-    except robot.RobotAssetError as err:
-        pytest.skip(f"robot model not available: {err}")
-
-
-@pytest.fixture(scope="module")
 def walk(model):
     return generate_walk(GaitConfig(), model)
 

@@ -9,14 +9,6 @@ from tocabi_torchrl.motion.kinematics import SIDES, LegGeometry, leg_fk, leg_ik,
 from tocabi_torchrl.motion.lipm import lipm_zmp, periodic_lipm_com
 
 
-@pytest.fixture(scope="module")
-def model():
-    try:
-        return robot.load_model()
-    except robot.RobotAssetError as err:
-        pytest.skip(f"robot model not available: {err}")
-
-
 def random_leg_angles(n: int, seed: int = 0) -> np.ndarray:
     """Angles around walking poses, knee bent (the IK returns the knee-forward branch)."""
     rng = np.random.default_rng(seed)
