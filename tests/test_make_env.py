@@ -67,3 +67,48 @@ def test_gpu_transformed_step_never_syncs():
         torch.cuda.set_sync_debug_mode(0)
     assert td["observation"].shape == (128, 237)
 
+
+
+def test_sync_free_resets_match_torchrl_resets():
+    """The sync-free reset path gives the same rollout as TorchRL's own (same seeds, falls and resets included)."""
+    torch.manual_seed(0)
+    actions = torch.rand(40, 3, 13) * 2 - 1
+    rollouts, carries = [], []
+    for sync_free in (False, True):
+        e = make_env(num_envs=3, device="cpu", seed=5, sync_free_resets=sync_free, max_episode_steps=15)
+        assert (type(e).__name__ == "SyncFreeResetEnv") == sync_free
+        td = e.reset()
+        steps, carry = [], []
+        for a in actions:
+            step, td = e.step_and_maybe_reset(td.set("action", a))
+            steps.append(step)
+            carry.append(td.exclude("action"))
+        rollouts.append(torch.stack(steps, dim=1))
+        carries.append(torch.stack(carry, dim=1))
+    a, b = rollouts
+    assert a["next", "truncated"].any() and a["next", "terminated"].any(), "the comparison must include both resets"
+    for key in (("next", "observation"), ("next", "reward"), ("next", "done"), ("next", "step_count"),
+                ("next", "episode_reward"), "observation", "episode_step", "step_count"):
+        torch.testing.assert_close(a[key], b[key], msg=str(key))
+    assert set(carries[0].keys(True, True)) == set(carries[1].keys(True, True))
+    for key in carries[0].keys(True, True):
+        torch.testing.assert_close(carries[0][key], carries[1][key], msg=str(key))
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_gpu_step_and_maybe_reset_never_syncs():
+    e = make_env(num_envs=128, device="cuda", seed=0, max_episode_steps=3)
+    td = e.reset()
+    action = torch.rand(128, 13, device="cuda") * 2 - 1  # random torques: some robots fall
+    for _ in range(2):  # warm-up: lazy initialisations may sync once
+        _, td = e.step_and_maybe_reset(td.set("action", action))
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(6):  # crosses the 3-step truncation: automatic, masked resets included
+            step, td = e.step_and_maybe_reset(td.set("action", action))
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    assert td["observation"].shape == (128, 237)
+    assert bool(step["next", "truncated"].any() or step["next", "terminated"].any())

@@ -71,6 +71,8 @@ def test_gae_bootstraps_truncation_but_not_termination():
     ("num_envs", 0, "num_envs"), ("gamma", 1.5, "gamma"), ("lr", 0.0, "lr"), ("lr_schedule", "cosine", "lr_schedule"),
     ("std_mode", "fixed", "std_mode"), ("loggers", ("csv", "mlflow"), "mlflow"), ("minibatch_size", 10**9, "rollout"),
     ("activation", "gelu", "activation"), ("control_mode", "velocity", "control_mode"),
+    ("pd_gains", "soft", "pd_gains"), ("pd_action_scale", 0.0, "pd_action_scale"),
+    ("reward_weights", ("body_vel",), "body_vel=0.9"), ("reward_weights", ("speed=1",), "unknown term"),
 ])
 def test_bad_config_values(field, value, match):
     with pytest.raises(ValueError, match=match):
@@ -86,7 +88,8 @@ def test_unknown_preset_and_field():
 
 def test_command_line_overrides():
     cfg, _ = parse_args(["--preset", "reference", "--num_envs", "16", "--actor_hidden", "64,32",
-                         "--eval_at_end", "false"])
+                         "--eval_at_end", "false", "--reward_weights", "body_vel=0.9,qpos=0.5"])
+    assert cfg.reward_weight_map() == {"body_vel": 0.9, "qpos": 0.5}
     assert cfg.preset == "reference" and cfg.num_envs == 16 and cfg.actor_hidden == (64, 32)
     assert cfg.eval_at_end is False and cfg.minibatch_size == 128 and cfg.value_head_lr == 5e-4
     with pytest.raises(SystemExit):

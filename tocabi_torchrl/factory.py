@@ -8,6 +8,7 @@ import torch
 from torchrl.envs import TransformedEnv
 
 from .envs import TocabiWalk, TocabiWalkConfig
+from .envs.autoreset import SyncFreeResetEnv
 from .transforms import TransformConfig, default_transforms
 
 __all__ = ["make_env"]
@@ -20,6 +21,7 @@ def make_env(
     device: str | torch.device = "cuda",
     preset: str = "reference",
     seed: int | None = None,
+    sync_free_resets: bool | None = None,
     **overrides,
 ) -> TransformedEnv:
     """The walking task as the policy sees it: ``observation`` (num_envs, 237), ``reward`` (num_envs, 1),
@@ -30,6 +32,8 @@ def make_env(
         preset: transform preset (``"reference"``: 5 observations two steps apart + 4 actions, fixed reference
             normalisation, the 13 reference reward terms, reward 0 on terminating steps; ``"tocabilab"``: the
             consecutive history layout). See :data:`tocabi_torchrl.transforms.PRESETS`.
+        sync_free_resets: return a :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`, whose
+            ``step_and_maybe_reset`` (the collectors' step) resets done envs without host reads (default: on CUDA).
         overrides: fields of :class:`~tocabi_torchrl.envs.TocabiWalkConfig` (e.g. ``control_mode="pd"``,
             ``max_episode_steps=1000``) and of :class:`~tocabi_torchrl.transforms.TransformConfig`
             (e.g. ``reward_weights={"qpos": 0.5}``, ``normalization="running"``); a name in neither raises.
@@ -44,4 +48,7 @@ def make_env(
     base = TocabiWalk(num_envs=num_envs, device=device, seed=seed, **env_kwargs)
     # One truncation clock: the transforms' step counter follows the env's episode length.
     tf_kwargs.setdefault("max_episode_steps", base.cfg.max_episode_steps)
-    return TransformedEnv(base, default_transforms(preset, **tf_kwargs))
+    if sync_free_resets is None:
+        sync_free_resets = base.device.type == "cuda"
+    cls = SyncFreeResetEnv if sync_free_resets else TransformedEnv
+    return cls(base, default_transforms(preset, **tf_kwargs))

@@ -12,7 +12,7 @@ from .command import CommandConfig
 
 __all__ = ["TocabiWalkConfig", "CONTROL_MODES", "BACKENDS", "CPU_DEFAULT_BACKEND", "resolve_backend"]
 
-CONTROL_MODES = ("torque", "pd")
+CONTROL_MODES = ("torque", "pd", "pd_reference")
 #: Physics backends: mujoco-warp (``WarpSim``, GPU or warp's CPU device) or C MuJoCo on CPU threads (``MujocoSim``).
 BACKENDS = ("warp", "mujoco", "auto")
 #: ``backend="auto"`` on a CPU device. Measured by ``benchmarks/cpu_backends.py`` (docs/benchmarks/cpu_backends_*.md):

@@ -101,7 +101,7 @@ class TocabiWalk(EnvBase):
         self.num_envs = num_envs
 
         spec = robot.load_spec(cfg.model_path)
-        if cfg.control_mode == "pd":
+        if cfg.control_mode != "torque":
             spec = _pd_leg_spec(spec, cfg)
         self.backend = resolve_backend(cfg.backend, device)
         if self.backend == "warp":
@@ -219,7 +219,8 @@ class TocabiWalk(EnvBase):
         if self.cfg.control_mode == "torque":
             leg_cmd = a[:, : robot.NUM_LEG_JOINTS] * self._leg_limits
         else:
-            target = self._pd_nominal + self.cfg.pd_action_scale * a[:, : robot.NUM_LEG_JOINTS]
+            center = self._pd_nominal if self.cfg.control_mode == "pd" else q_ref[:, : robot.NUM_LEG_JOINTS]
+            target = center + self.cfg.pd_action_scale * a[:, : robot.NUM_LEG_JOINTS]
             leg_cmd = torch.maximum(torch.minimum(target, self._leg_range[:, 1]), self._leg_range[:, 0])
         ctrl = self.sim.ctrl
         ctrl[:, : robot.NUM_LEG_JOINTS] = leg_cmd

@@ -34,6 +34,12 @@ class PPOConfig:
     command_preset: str = "tocabilab"
     transform_preset: str = "reference"
     max_episode_steps: int = 8000
+    #: PD gains of the "pd"/"pd_reference" leg servos: "tocabilab" (robot Kp/9, Kv/3) or "robot" (full Kp, Kv).
+    pd_gains: str = "tocabilab"
+    #: Residual range [rad] of the PD modes: target = center + pd_action_scale × action.
+    pd_action_scale: float = 0.5
+    #: Reward re-weighting, "term=weight" entries (e.g. body_vel=0.9); empty = the reference weights.
+    reward_weights: tuple[str, ...] = ()
     # rollout and budget
     steps_per_env: int = 24
     total_env_steps: int = 300_000_000
@@ -93,12 +99,15 @@ class PPOConfig:
                 raise ValueError(f"PPOConfig.{name} must be > 0, got {getattr(self, name)!r}")
         if not self.eval_seconds > 0:
             raise ValueError(f"PPOConfig.eval_seconds must be > 0, got {self.eval_seconds!r}")
+        self.reward_weight_map()  # raises on a malformed entry
+        if not self.pd_action_scale > 0:
+            raise ValueError(f"PPOConfig.pd_action_scale must be > 0, got {self.pd_action_scale!r}")
         for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "max_minutes"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"PPOConfig.{name} must be >= 0, got {getattr(self, name)!r}")
         choices = {"lr_schedule": LR_SCHEDULES, "std_mode": STD_MODES, "control_mode": CONTROL_MODES,
                    "value_loss": ("l2", "smooth_l1", "l1"), "command_preset": ("tocabilab", "reference"),
-                   "activation": ("relu", "elu", "tanh", "silu")}
+                   "activation": ("relu", "elu", "tanh", "silu"), "pd_gains": ("tocabilab", "robot")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"PPOConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
@@ -110,6 +119,24 @@ class PPOConfig:
                 f"minibatch_size {self.minibatch_size} exceeds the rollout ({self.num_envs} envs × "
                 f"{self.steps_per_env} steps = {self.num_envs * self.steps_per_env}); lower it or collect more"
             )
+
+    def reward_weight_map(self) -> dict[str, float]:
+        """``reward_weights`` as ``{term: weight}``; raises ``ValueError`` naming a malformed or unknown entry."""
+        from ..transforms.reward_terms import REFERENCE_TERMS
+
+        weights = {}
+        for entry in self.reward_weights:
+            name, sep, value = entry.partition("=")
+            try:
+                weight = float(value)
+            except ValueError:
+                weight = None
+            if not sep or weight is None:
+                raise ValueError(f"PPOConfig.reward_weights entry {entry!r} must look like 'body_vel=0.9'")
+            if name not in REFERENCE_TERMS:
+                raise ValueError(f"PPOConfig.reward_weights: unknown term {name!r}; known: {list(REFERENCE_TERMS)}")
+            weights[name] = weight
+        return weights
 
     @property
     def frames_per_batch(self) -> int:

@@ -58,6 +58,15 @@ def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None,
     from ..envs import CommandConfig
 
     env_overrides.setdefault("command", CommandConfig.preset(cfg.command_preset))
+    if cfg.control_mode != "torque":
+        from .. import robot
+
+        div_kp, div_kv = (9.0, 3.0) if cfg.pd_gains == "tocabilab" else (1.0, 1.0)
+        env_overrides.setdefault("pd_kp", tuple(robot.LEG_KP / div_kp))
+        env_overrides.setdefault("pd_kv", tuple(robot.LEG_KV / div_kv))
+        env_overrides.setdefault("pd_action_scale", cfg.pd_action_scale)
+    if cfg.reward_weights:
+        env_overrides.setdefault("reward_weights", cfg.reward_weight_map())
     return make_env(
         num_envs or cfg.num_envs,
         device,
