@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> None:
     if not torch.cuda.is_available() and cfg.device in ("auto", "cuda"):
         overrides = {k: v for k, v in vars(args).items() if v is not None and k not in ("preset", "device")}
         print("No CUDA GPU found: running the small CPU smoke configuration (preset 'cpu_smoke': 8 envs, "
-              "3 iterations) on warp's CPU device. Pass --device cpu with your own options to override.",
+              "3 iterations) on the CPU (C MuJoCo backend). Pass --device cpu with your own options to override.",
               flush=True)
         cfg = preset_config("cpu_smoke", **{**overrides, "device": "cpu"})
     print(f"training {cfg.name}: preset {cfg.preset}, {cfg.num_envs} envs, {cfg.iterations} iterations of "

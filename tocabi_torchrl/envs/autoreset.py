@@ -30,7 +30,8 @@ class SyncFreeResetEnv(TransformedEnv):
         done = tensordict_.get("done")  # (num_envs, 1) bool
         request = tensordict_.clone(False).set("_reset", done)
         reset = self._reset(request)
-        # Flagged rows take the reset data; the others keep the step's data (bit-identical).
-        merged = reset.exclude("_reset").where(done.reshape(self.batch_size), other=tensordict_, pad=0,
-                                                update_batch_size=True)
-        return tensordict, merged
+        # Flagged rows take the reset data; the others keep the step's data (bit-identical). Only keys present on
+        # both sides take part: `where(pad=...)` would build its pad value on the host (a sync per missing key).
+        keys = [k for k in reset.keys(True, True) if k != "_reset"]
+        merged = reset.select(*keys).where(done.reshape(self.batch_size), other=tensordict_.select(*keys))
+        return tensordict, tensordict_.update(merged)
