@@ -1,0 +1,235 @@
+"""The scaling suite (benchmarks/scaling.py, scaling_report.py) on the CPU: one real tiny measurement in its own
+process, the driver's resume and sweep logic with a fake launcher, and the report from synthetic results."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCH))
+
+import scaling
+import scaling_report
+
+# ------------------------------------------------------------------------------------------------ sizing
+
+
+@pytest.mark.parametrize("n, steps, minibatch", [(8, 256, 512), (32, 64, 512), (96, 24, 576), (4096, 24, 24576),
+                                                 (16384, 24, 32768), (65536, 24, 32768)])
+def test_ppo_sizing(n, steps, minibatch):
+    assert scaling.ppo_sizing(n) == (steps, minibatch)
+
+
+def test_every_default_count_is_a_valid_config():
+    """PPOConfig.validate() accepts the sizing at every env count the suite runs."""
+    for kind, backend, counts in scaling.PARTS.values():
+        if kind == "raw":
+            continue
+        for n in counts:
+            cfg = scaling.RunSpec(kind, backend, n).ppo_config()
+            assert cfg.minibatch_size <= cfg.frames_per_batch
+            assert cfg.frames_per_batch >= scaling.MIN_ROLLOUT
+            assert cfg.iterations * cfg.frames_per_batch >= cfg.total_env_steps
+
+
+def test_chunks_are_in_the_usage_text():
+    for chunk in scaling.CHUNKS:
+        assert chunk in scaling.__doc__
+
+
+def test_spec_round_trips_through_the_command_line():
+    spec = scaling.RunSpec("memory", "gpu", 2048, memory_iterations=4, hidden=(32, 16), raw_steps=50)
+    args = scaling.build_parser().parse_args(["--one", *spec.to_argv()])
+    again = scaling.RunSpec(args.kind, args.backend, args.num_envs[0], total_env_steps=args.total_env_steps,
+                            memory_iterations=args.memory_iterations, hidden=args.hidden,
+                            min_rollout=args.min_rollout, raw_steps=args.raw_steps, max_minutes=args.max_minutes,
+                            run_dir=args.run_dir)
+    assert again == spec
+    with pytest.raises(ValueError):
+        scaling.RunSpec("raw", "cpu", 8)
+
+
+# ------------------------------------------------------------------------------------------------ one real run
+
+
+def test_one_cpu_measurement_writes_a_sane_json(tmp_path):
+    """The --one measurement of the CPU backend, in its own process, at 4 envs with tiny networks."""
+    out = tmp_path / "time_cpu_0000004.json"
+    cmd = [sys.executable, str(BENCH / "scaling.py"), "--one", "--kind", "time", "--backend", "cpu", "--num_envs", "4",
+           "--total_env_steps", "192", "--min_rollout", "32", "--hidden", "16,16", "--out", str(out),
+           "--run_dir", str(tmp_path / "runs")]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    r = json.loads(out.read_text())
+    assert r["status"] == "ok" and r["num_envs"] == 4 and r["backend"] == "cpu"
+    assert r["config"]["steps_per_env"] == 24 and r["config"]["actor_hidden"] == [16, 16]
+    assert r["env_steps"] == 192 and r["iterations"] == 2
+    assert 0 < r["train_wall_s"] < r["total_wall_s"]
+    assert r["env_steps_per_s"] == pytest.approx(r["env_steps"] / r["train_wall_s"], rel=1e-6)
+    assert r["host"]["peak_rss_gib"] > 0.05
+    assert r["cpu"]["cores_used_mean"] > 0 and r["cpu"]["samples"] >= 2
+    assert r["meta"]["available_cores"] >= 1 and r["meta"]["versions"]["torch"]
+    assert "gpu" not in r
+
+
+# ------------------------------------------------------------------------------------------------ the driver
+
+
+class FakeLauncher:
+    """Writes a result with the status ``statuses`` gives an env count (default ok) and records the calls."""
+
+    def __init__(self, statuses: dict[int, str] | None = None):
+        self.statuses = statuses or {}
+        self.calls: list[str] = []
+
+    def __call__(self, spec, path, deadline, record_timeout):
+        self.calls.append(spec.name)
+        status = self.statuses.get(spec.num_envs, "ok")
+        scaling.write_json(path, {"kind": spec.kind, "backend": spec.backend, "num_envs": spec.num_envs,
+                                  "status": status})
+        return status
+
+
+def test_driver_skips_finished_measurements(tmp_path):
+    specs = scaling.plan(["cpu_time"], [8, 32, 96])
+    scaling.write_json(tmp_path / "time_cpu_0000032.json", {"status": "ok"})
+    scaling.write_json(tmp_path / "time_cpu_0000096.json", {"status": "partial"})
+    opts = scaling.DriveOptions(results=tmp_path, bundle=tmp_path / "out" / "bundle.json")
+    fake = FakeLauncher()
+    outcome = scaling.drive(specs, opts, fake)
+    assert fake.calls == ["time_cpu_0000008"]
+    assert outcome["time_cpu_0000032"] == "skipped (ok)"
+    bundle = json.loads((tmp_path / "out" / "bundle.json").read_text())["results"]
+    assert set(bundle) == {"time_cpu_0000008.json", "time_cpu_0000032.json", "time_cpu_0000096.json"}
+    # a second pass launches nothing; --redo partial repeats the partial one
+    again = FakeLauncher()
+    scaling.drive(specs, opts, again)
+    assert again.calls == []
+    opts.redo = ("partial",)
+    scaling.drive(specs, opts, again)
+    assert again.calls == ["time_cpu_0000096"]
+    # a bundle unpacks into an empty results folder
+    names = scaling.unpack_bundle(tmp_path / "out" / "bundle.json", tmp_path / "copy")
+    assert len(names) == 3 and scaling.load_status(tmp_path / "copy" / "time_cpu_0000008.json") == "ok"
+
+
+def test_memory_sweep_stops_at_the_first_count_that_does_not_fit(tmp_path):
+    specs = scaling.plan(["memory"], [256, 8, 64, 32, 128])
+    assert [s.num_envs for s in specs] == [8, 32, 64, 128, 256]
+    scaling.write_json(tmp_path / "time_gpu_0000032.json", {"status": "ok"})  # a time run already covers 32
+    fake = FakeLauncher({64: "oom"})
+    outcome = scaling.drive(specs, scaling.DriveOptions(results=tmp_path), fake)
+    assert fake.calls == ["memory_gpu_0000008", "memory_gpu_0000064"]
+    assert outcome["memory_gpu_0000128"] == "skipped (64 envs did not fit)"
+    assert outcome["memory_gpu_0000032"].startswith("skipped (the time run")
+
+
+def test_driver_stops_when_the_budget_is_spent(tmp_path):
+    fake = FakeLauncher()
+    outcome = scaling.drive(scaling.plan(["cpu_time"]), scaling.DriveOptions(results=tmp_path, budget_s=0.0), fake)
+    assert fake.calls == [] and outcome["time_cpu_0000096"] == "not started (budget)"
+    # enough for the first launch but not for a second time run: one measurement, then stop
+    fake = FakeLauncher()
+    scaling.drive(scaling.plan(["cpu_time"]), scaling.DriveOptions(results=tmp_path / "b", budget_s=100.0), fake)
+    assert fake.calls == ["time_cpu_0000096"]  # the quickest first
+
+
+def test_oom_text_is_recognised():
+    assert scaling._is_oom("torch.OutOfMemoryError: CUDA out of memory. Tried to allocate 2.00 GiB")
+    assert scaling._is_oom("RuntimeError: Warp error: Failed to allocate 1073741824 bytes on device 'cuda:0'")
+    assert not scaling._is_oom("ValueError: minibatch_size 512 exceeds the rollout")
+
+
+# ------------------------------------------------------------------------------------------------ the report
+
+
+def _record(kind, backend, n, status="ok", rate=None, rss=1.0, used=None, before=0.5, cores=1.5, raw=None):
+    r = {"kind": kind, "backend": backend, "num_envs": n, "status": status, "host": {"peak_rss_gib": rss},
+         "cpu": {"cores_used_mean": cores, "system_busy_cores_mean": cores + 0.1},
+         "meta": {"gpu": "Test GPU 80GB" if backend == "gpu" else None, "available_cores": 16, "cpu_model": "test",
+                  "date": "2026-01-01 00:00:00", "host": "h", "versions": {"torch": "x"}}}
+    if rate is not None:
+        steps = scaling.TARGET_ENV_STEPS
+        r.update(env_steps=steps, train_wall_s=steps / rate, total_wall_s=steps / rate + 20.0, env_steps_per_s=rate,
+                 config={"steps_per_env": scaling.ppo_sizing(n)[0], "minibatch_size": scaling.ppo_sizing(n)[1]})
+    if used is not None:
+        r["gpu"] = {"device_used_end_gib": used, "device_used_before_gib": before, "torch_peak_allocated_gib": used / 2,
+                    "torch_peak_reserved_gib": used / 1.5, "device_total_gib": 79.2}
+    if raw is not None:
+        r["raw_policy_steps_per_s"] = raw
+    return r
+
+
+def _write(folder: Path, records: list[dict]) -> None:
+    for r in records:
+        scaling.write_json(folder / f"{r['kind']}_{r['backend']}_{r['num_envs']:07d}.json", r)
+
+
+def _synthetic(gpu4096_over_cpu: float) -> list[dict]:
+    cpu_best = 5000.0
+    return [
+        _record("time", "cpu", 8, rate=2000.0, cores=3.0),
+        _record("time", "cpu", 96, rate=cpu_best, cores=12.0),
+        _record("time", "gpu", 1024, rate=60_000.0, used=3.0, rss=2.00),
+        _record("time", "gpu", 4096, rate=gpu4096_over_cpu * cpu_best, used=5.0, rss=2.05),
+        _record("memory", "gpu", 16384, rate=120_000.0, used=17.0, rss=2.10),
+        _record("memory", "gpu", 131072, status="oom"),
+        _record("raw", "gpu", 4096, raw=180_000.0),
+    ]
+
+
+def _check(records, name_start):
+    return next(c for c in scaling_report.checks(records) if c.name.startswith(name_start))
+
+
+def test_checks_pass_and_fail_from_the_numbers():
+    good, bad = _synthetic(20.0), _synthetic(5.0)
+    assert _check(good, "GPU training at 4,096 envs vs the CPU").passed is True
+    assert _check(good, "GPU training at 4,096 envs vs the CPU").value == pytest.approx(20.0)
+    assert _check(bad, "GPU training at 4,096 envs vs the CPU").passed is False
+    # 20 x 5,000 = 100,000 env-steps/s = 86x TocabiLab's 1,157: below the 100x target; 5x: far below
+    assert _check(good, "GPU training at 4,096 envs vs TocabiLab").passed is False
+    assert _check(good, "GPU training at 4,096 envs vs TocabiLab").value == pytest.approx(100_000 / 1157)
+    assert _check(_synthetic(30.0), "GPU training at 4,096 envs vs TocabiLab").passed is True
+    ram = _check(good, "Host RAM growth")
+    assert ram.value == pytest.approx(0.05) and ram.passed is True
+    per_env = scaling_report.gpu_memory_per_env(scaling_report.index(good))
+    # device use 3 / 5 / 17 GiB at 1,024 / 4,096 / 16,384 envs: (17 - 3) GiB over 15,360 envs
+    assert per_env["delta_1024_16384_mib_per_env"] == pytest.approx(14 * 1024 / 15360)
+    assert per_env["slope_mib_per_env"] > 0
+    assert scaling_report.largest_fit(scaling_report.index(good)) == (16384, 131072)
+
+
+def test_checks_without_numbers_are_not_measured():
+    records = [_record("time", "gpu", 4096, rate=1e5, used=5.0)]  # no CPU run, no 1,024/16,384
+    assert _check(records, "GPU training at 4,096 envs vs the CPU").passed is None
+    assert _check(records, "Host RAM growth").measured == scaling_report.NOT_MEASURED
+    assert _check(records, "GPU training at 4,096 envs vs TocabiLab").passed is False  # 86x
+
+
+def test_report_renders_markdown_json_and_figures(tmp_path):
+    results = tmp_path / "scaling"
+    _write(results, _synthetic(20.0))
+    text = scaling_report.write_report(results, tmp_path)
+    for name in ("scaling.md", "scaling.json", "scaling_time.png", "scaling_rate.png", "scaling_memory.png",
+                 "scaling_cpu.png"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    assert (tmp_path / "scaling.md").read_text() == text
+    assert "**pass**" in text and "**fail**" in text
+    assert "| GPU (mujoco-warp) | 8 |" in text and scaling_report.NOT_MEASURED in text  # 8 envs was not run
+    assert "| 131,072 | short run | oom |" in text
+    assert "raw_policy_steps_per_second" in text and "0.56" in text  # train/raw at 4096: 100,000 / 180,000
+    assert "eq. 5.1" in text and scaling.CHUNKS[0] in text
+    summary = json.loads((tmp_path / "scaling.json").read_text())
+    assert len(summary["results"]) == 7 and summary["meta"]["gpu"] == "Test GPU 80GB"
+    assert summary["host_ram_growth_1024_16384"] == pytest.approx(0.05)
+
+
+def test_report_with_no_results(tmp_path):
+    text = scaling_report.write_report(tmp_path / "empty", tmp_path)
+    assert text.count(scaling_report.NOT_MEASURED) > 10 and "**pass**" not in text
