@@ -18,17 +18,18 @@ exists is skipped (``--redo partial error`` repeats those statuses). A command s
 the GPU machine's 10-minute limit; rerun the same command to continue.
 
 On the GPU machine (1x H100, 16 cores), from the repository root, after the device set-up of
-``../shared/device/README.md`` (``export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1``), one command per call,
-in this order (estimated minutes per chunk; a fresh machine adds ~3-4 min of warp kernel compilation to the first
-GPU chunk unless the warp cache is restored):
+``../shared/device/README.md`` (``export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1``), one command per call, in
+this order, each with ``--bundle $OUT/scaling_bundle.json`` appended (estimated minutes; the first GPU chunk on a
+fresh machine adds ~3-4 min of warp kernel compilation unless the warp cache is restored; in a call that also runs
+the device install, add ``--budget_minutes 7``):
 
-    python3 benchmarks/scaling.py --part raw --bundle $OUT/scaling_bundle.json                          # ~2-5
-    python3 benchmarks/scaling.py --part gpu_time --num_envs 1024 4096 16384 65536 --bundle $OUT/scaling_bundle.json  # ~3-4
-    python3 benchmarks/scaling.py --part gpu_time --num_envs 96 32 --bundle $OUT/scaling_bundle.json    # ~3-5
-    python3 benchmarks/scaling.py --part gpu_time --num_envs 8 --bundle $OUT/scaling_bundle.json        # ~5-9
-    python3 benchmarks/scaling.py --part memory --bundle $OUT/scaling_bundle.json                       # ~5-8, twice
-    python3 benchmarks/scaling.py --part cpu_time --num_envs 96 32 --bundle $OUT/scaling_bundle.json    # ~5-9
-    python3 benchmarks/scaling.py --part cpu_time --num_envs 8 --bundle $OUT/scaling_bundle.json        # ~9
+    python3 benchmarks/scaling.py --part raw                                         # ~2-3
+    python3 benchmarks/scaling.py --part gpu_time --num_envs 1024 4096 16384 65536   # ~3-4
+    python3 benchmarks/scaling.py --part gpu_time --num_envs 96 32                   # ~3-5
+    python3 benchmarks/scaling.py --part gpu_time --num_envs 8                       # ~5-9
+    python3 benchmarks/scaling.py --part memory                                      # ~5-9, maybe twice
+    python3 benchmarks/scaling.py --part cpu_time --num_envs 96 32                   # ~5-9
+    python3 benchmarks/scaling.py --part cpu_time --num_envs 8                       # ~9 (may end partial)
 
 ``--bundle`` rewrites one JSON file holding every result after each measurement (the device tool returns at most
 8 files from $OUT). Back here, unpack it into the results folder (so that the next call's working tree carries it
@@ -643,7 +644,8 @@ def _brief(path: Path) -> str:
         return ""
     parts = []
     if r.get("env_steps_per_s"):
-        parts.append(f"{r['env_steps']:,} env-steps, {r['train_wall_s']:.1f} s, {r['env_steps_per_s']:,.0f} env-steps/s")
+        parts.append(f"{r['env_steps']:,} env-steps, {r['train_wall_s']:.1f} s, "
+                     f"{r['env_steps_per_s']:,.0f} env-steps/s")
     if r.get("raw_policy_steps_per_s"):
         parts.append(f"raw {r['raw_policy_steps_per_s']:,.0f} policy steps/s")
     if r.get("host"):

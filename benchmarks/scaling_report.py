@@ -97,6 +97,11 @@ def own_device_used(r: dict | None) -> float | None:
     return gpu["device_used_end_gib"] - gpu["device_used_before_gib"]
 
 
+def torch_peak(r: dict | None) -> float | None:
+    """Torch allocator peak [GiB]."""
+    return ((r or {}).get("gpu") or {}).get("torch_peak_allocated_gib")
+
+
 def peak_rss(r: dict | None) -> float | None:
     return ((r or {}).get("host") or {}).get("peak_rss_gib") if r else None
 
@@ -370,8 +375,8 @@ def plot_figures(idx: dict, out: Path) -> list[str]:
     for ref, marker in (("rsl_rl_96", "*"), ("sb3_cpu_8", "X")):
         r = TOCABILAB[ref]
         ax.plot([r["num_envs"]], [r["seconds"]], marker, markersize=11, label=r["label"])
-    ax.set(xscale="log", yscale="log", xlabel="parallel envs", ylabel=f"training time for {TARGET_ENV_STEPS:,} steps [s]",
-           title="(a) training time vs env count")
+    ax.set(xscale="log", yscale="log", xlabel="parallel envs",
+           ylabel=f"training time for {TARGET_ENV_STEPS:,} steps [s]", title="(a) training time vs env count")
     ax.grid(True, which="both", alpha=0.3)
     _legend(ax)
     save(fig, "scaling_time.png")
@@ -385,7 +390,8 @@ def plot_figures(idx: dict, out: Path) -> list[str]:
         if xs:
             ax.plot(xs, ys, style, label=label)
     ax.axhline(TOCABILAB_BEST_RATE, color="tab:red", ls=":", label="TocabiLab best (1,157)")
-    ax.set(xscale="log", yscale="log", xlabel="parallel envs", ylabel="env-steps/s", title="(b) throughput vs env count")
+    ax.set(xscale="log", yscale="log", xlabel="parallel envs", ylabel="env-steps/s",
+           title="(b) throughput vs env count")
     ax.grid(True, which="both", alpha=0.3)
     _legend(ax)
     save(fig, "scaling_rate.png")
@@ -402,8 +408,7 @@ def plot_figures(idx: dict, out: Path) -> list[str]:
     ax1.set(xscale="log", xlabel="parallel envs", ylabel="host RAM [GiB]", title="(c) host RAM")
     ax1.set_ylim(bottom=0)
     for label, getter, style in (("device in use (cudaMemGetInfo)", device_used, "o-"),
-                                 ("torch peak allocated", lambda r: (r.get("gpu") or {}).get("torch_peak_allocated_gib"),
-                                  "^--")):
+                                 ("torch peak allocated", torch_peak, "^--")):
         ys = [getter(memory_record(idx, n)) for n in ok]
         pts = [(n, y) for n, y in zip(ok, ys) if y is not None]
         if pts:
