@@ -527,9 +527,10 @@ def load_status(path: Path) -> str | None:
 
 
 def _sweep_blocked(spec: RunSpec, results: Path) -> int | None:
-    """For a memory run: the smallest smaller env count of the sweep that did not fit (then this one is skipped)."""
+    """For a memory run: the smallest smaller env count (memory or time run) that did not fit, else None."""
     failed = []
-    for path in results.glob(f"memory_{spec.backend}_*.json"):
+    paths = [*results.glob(f"memory_{spec.backend}_*.json"), *results.glob(f"time_{spec.backend}_*.json")]
+    for path in paths:
         n = int(path.stem.rsplit("_", 1)[1])
         if n < spec.num_envs and load_status(path) in ("oom", "error", "timeout"):
             failed.append(n)
@@ -744,3 +745,9 @@ def main(argv: Sequence[str] | None = None) -> dict | None:
 
 if __name__ == "__main__":
     main()
+    if "--one" in sys.argv:
+        # The result is written: skip interpreter teardown (CUDA, warp and collector clean-up can take long or
+        # hang), which the driver would otherwise wait for until the measurement's timeout.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)

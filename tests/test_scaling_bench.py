@@ -127,6 +127,12 @@ def test_memory_sweep_stops_at_the_first_count_that_does_not_fit(tmp_path):
     assert fake.calls == ["memory_gpu_0000008", "memory_gpu_0000064"]
     assert outcome["memory_gpu_0000128"] == "skipped (64 envs did not fit)"
     assert outcome["memory_gpu_0000032"].startswith("skipped (the time run")
+    # a time run that ran out of memory also ends the sweep above it
+    other = tmp_path / "other"
+    scaling.write_json(other / "time_gpu_0000064.json", {"status": "oom"})
+    fake = FakeLauncher()
+    scaling.drive(scaling.plan(["memory"], [32, 128]), scaling.DriveOptions(results=other), fake)
+    assert fake.calls == ["memory_gpu_0000032"]
 
 
 def test_driver_stops_when_the_budget_is_spent(tmp_path):
