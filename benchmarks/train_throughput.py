@@ -36,8 +36,9 @@ def measure(num_envs: int, iterations: int, warmup: int, raw_steps: int) -> dict
     torch.cuda.empty_cache()
     torch.cuda.reset_peak_memory_stats()
     base_used = _device_used_gib()
-    cfg = preset_config("default", num_envs=num_envs, total_env_steps=(warmup + iterations) * num_envs * 24,
-                        minibatch_size=min(32768, num_envs * 24 // 4), run_dir="/tmp/bench_runs",
+    steps = preset_config("default").steps_per_env
+    cfg = preset_config("default", num_envs=num_envs, total_env_steps=(warmup + iterations) * num_envs * steps,
+                        minibatch_size=min(49152, num_envs * steps // 4), run_dir="/tmp/bench_runs",
                         name=f"train_{num_envs}", checkpoint_every=10**6, progress_bar=False, eval_at_end=False,
                         log_every=1, device="cuda")
     result = train(cfg)
