@@ -31,12 +31,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seconds", type=float, default=8.0)
     parser.add_argument("--vx", type=float, default=0.5, help="commanded forward speed [m/s]")
     parser.add_argument("--vy", type=float, default=0.0, help="commanded lateral speed [m/s]")
+    parser.add_argument("--out", default=None, help="output folder (default: eval/ beside the checkpoint)")
     parser.add_argument("--video_envs", type=int, default=4, help="robots shown side by side in the video")
     args = parser.parse_args(argv)
     if args.num_envs < 1 or args.seconds <= 0:
         parser.error("--num_envs must be >= 1 and --seconds > 0")
     summary = evaluate_run(args.checkpoint, num_envs=args.num_envs, device=args.device, seconds=args.seconds,
-                           command=(args.vx, args.vy), video_envs=min(args.video_envs, args.num_envs))
+                           command=(args.vx, args.vy), video_envs=min(args.video_envs, args.num_envs), out_dir=args.out)
     print(json.dumps(summary, indent=2))
 
 

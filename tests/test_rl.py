@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import math
 
 import pytest
@@ -168,3 +169,19 @@ def test_reference_preset_gives_the_value_head_its_own_constant_lr():
     assert all(id(p) in policy_ids for p in agent.critic.module[0].parameters())
     assert groups[0]["lr"] == 1e-5
     assert len(_param_groups(agent, preset_config("default", device="cpu"))) == 1
+
+
+SHIPPED_POLICY = Path(__file__).resolve().parents[1] / "assets" / "policies" / "tocabi_walk_ppo.pt"
+
+
+@pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="shipped policy not present")
+def test_shipped_policy_walks_on_the_cpu_backend(tmp_path):
+    """The committed default-preset policy walks forward at 0.5 m/s on C MuJoCo (4 robots, 4 s)."""
+    from tocabi_torchrl.rl.evaluate import evaluate_run
+
+    summary = evaluate_run(SHIPPED_POLICY, num_envs=4, device="cpu", seconds=4.0, command=(0.5, 0.0), video_envs=0,
+                           out_dir=tmp_path)
+    assert summary["survival"] == 1.0
+    assert summary["forward_distance_m"] > 1.4  # 0.35 m/s or better
+    assert summary["lateral_drift_m"] < 0.3
+    assert summary["knee_rms_rad"] < 0.15

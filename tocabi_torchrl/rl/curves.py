@@ -32,11 +32,16 @@ def plot_curves(metrics_csv: str | Path, out_png: str | Path) -> Path:
 
     data = _read(Path(metrics_csv))
     steps = [s / 1e6 for s in data["env_steps"]]
+    # Return and length are means over the episodes that ended in the logged iteration: none ended -> no point
+    # (long episodes often outlast an iteration; older logs wrote 0 there).
+    finished = data.get("episodes_finished", [1.0] * len(steps))
+    ep = [(x, r, n) for x, r, n, f in zip(steps, data["episode_return"], data["episode_length"], finished) if f > 0]
+    ep_steps, ep_return, ep_length = (list(c) for c in zip(*ep)) if ep else ([], [], [])
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    axes[0].plot(steps, data["episode_return"], label="episode return")
+    axes[0].plot(ep_steps, ep_return, label="episode return")
     axes[0].set_ylabel("episode return")
     twin = axes[0].twinx()
-    twin.plot(steps, data["episode_length"], color="tab:orange", alpha=0.7, label="episode length")
+    twin.plot(ep_steps, ep_length, color="tab:orange", alpha=0.7, label="episode length")
     twin.set_ylabel("episode length [steps]")
     axes[0].set_title("Total reward (sum over an episode)")
     axes[1].plot(steps, data["reward"], color="k", label="reward per step")

@@ -159,8 +159,10 @@ def _render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480
     return path
 
 
-def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "auto", **kwargs) -> dict:
-    """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``<run folder>/eval/``."""
+def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "auto",
+                 out_dir: str | os.PathLike | None = None, **kwargs) -> dict:
+    """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``out_dir`` (default:
+    ``<run folder>/eval/``, or ``eval/`` beside a checkpoint file)."""
     from .checkpoint import CheckpointError
 
     path = Path(run)
@@ -173,7 +175,8 @@ def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "aut
     env = build_env(cfg, dev, num_envs=num_envs, command=_fixed_command(kwargs.get("command", (0.5, 0.0))))
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], dev)
     load_checkpoint(ckpt, agent, env=env, device=dev)
-    out_dir = (ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent) / "eval"
+    if out_dir is None:
+        out_dir = (ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent) / "eval"
     return evaluate_policy(agent.actor, cfg, out_dir, num_envs=num_envs, device=dev, env=env, **kwargs)
 
 

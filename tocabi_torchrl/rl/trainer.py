@@ -114,12 +114,14 @@ def _episode_metrics(batch: TensorDictBase) -> dict[str, float]:
     done = batch["next", "done"].squeeze(-1)
     n_done = done.sum()
     out = {"episodes_finished": n_done}
+    # NaN when no episode ended in this batch (long episodes outlast an iteration), so plots skip the point.
+    none = torch.where(n_done > 0, 1.0, torch.nan)
     if ("next", "episode_reward") in batch.keys(True):
         ret = batch["next", "episode_reward"].squeeze(-1)
-        out["episode_return"] = (ret * done).sum() / n_done.clamp_min(1)
+        out["episode_return"] = none * (ret * done).sum() / n_done.clamp_min(1)
     if ("next", "step_count") in batch.keys(True):
         length = batch["next", "step_count"].squeeze(-1).float()
-        out["episode_length"] = (length * done).sum() / n_done.clamp_min(1)
+        out["episode_length"] = none * (length * done).sum() / n_done.clamp_min(1)
     out["terminated_frac"] = batch["next", "terminated"].float().mean()
     out["reward"] = batch["next", "reward"].mean()
     if ("next", "reward_terms") in batch.keys(True):
