@@ -72,7 +72,7 @@ def evaluate_policy(
                 # After a fall the robot keeps lying there: blank its trace instead of plotting a fallen knee.
                 trace_q.append(torch.where(alive[0], nxt["joint_pos"][0, KNEES], torch.nan))
                 trace_ref.append(nxt["ref_joint_pos"][0, KNEES])
-            if k % video_every == 0:
+            if video_envs and k % video_every == 0:
                 frames_qpos.append(base.sim.qpos[:video_envs].clone())
             # Fallen robots keep lying (no reset): `alive` already excludes them from every metric.
             td = step_mdp(td)
@@ -92,11 +92,14 @@ def evaluate_policy(
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     _plot_knees(torch.stack(trace_q).cpu().numpy(), torch.stack(trace_ref).cpu().numpy(), base.dt, out / "knees.png")
-    try:
-        summary["video"] = str(_render_video(base.sim.mj_model, torch.stack(frames_qpos).cpu().numpy(), 30, out))
-    except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless GPU machine)
-        summary["video"] = f"not rendered: {type(err).__name__}: {err}"
-        print(f"video skipped ({summary['video']}); set MUJOCO_GL=egl or osmesa on a headless machine")
+    if video_envs < 1:
+        summary["video"] = "not requested (video_envs=0)"
+    else:
+        try:
+            summary["video"] = str(_render_video(base.sim.mj_model, torch.stack(frames_qpos).cpu().numpy(), 30, out))
+        except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless GPU machine)
+            summary["video"] = f"not rendered: {type(err).__name__}: {err}"
+            print(f"video skipped ({summary['video']}); set MUJOCO_GL=egl or osmesa on a headless machine")
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
