@@ -61,9 +61,9 @@ def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None,
     if cfg.control_mode != "torque":
         from .. import robot
 
-        div_kp, div_kv = (9.0, 3.0) if cfg.pd_gains == "tocabilab" else (1.0, 1.0)
-        env_overrides.setdefault("pd_kp", tuple(robot.LEG_KP / div_kp))
-        env_overrides.setdefault("pd_kv", tuple(robot.LEG_KV / div_kv))
+        if cfg.pd_gains == "robot":  # "tocabilab" gains (Kp/9, Kv/3) are TocabiWalkConfig's defaults
+            env_overrides.setdefault("pd_kp", tuple(robot.LEG_KP))
+            env_overrides.setdefault("pd_kv", tuple(robot.LEG_KV))
         env_overrides.setdefault("pd_action_scale", cfg.pd_action_scale)
     if cfg.reward_weights:
         env_overrides.setdefault("reward_weights", cfg.reward_weight_map())
@@ -115,13 +115,13 @@ def _episode_metrics(batch: TensorDictBase) -> dict[str, float]:
     n_done = done.sum()
     out = {"episodes_finished": n_done}
     # NaN when no episode ended in this batch (long episodes outlast an iteration), so plots skip the point.
-    none = torch.where(n_done > 0, 1.0, torch.nan)
+    nan_if_none = torch.where(n_done > 0, 1.0, torch.nan)
     if ("next", "episode_reward") in batch.keys(True):
         ret = batch["next", "episode_reward"].squeeze(-1)
-        out["episode_return"] = none * (ret * done).sum() / n_done.clamp_min(1)
+        out["episode_return"] = nan_if_none * (ret * done).sum() / n_done.clamp_min(1)
     if ("next", "step_count") in batch.keys(True):
         length = batch["next", "step_count"].squeeze(-1).float()
-        out["episode_length"] = none * (length * done).sum() / n_done.clamp_min(1)
+        out["episode_length"] = nan_if_none * (length * done).sum() / n_done.clamp_min(1)
     out["terminated_frac"] = batch["next", "terminated"].float().mean()
     out["reward"] = batch["next", "reward"].mean()
     if ("next", "reward_terms") in batch.keys(True):
