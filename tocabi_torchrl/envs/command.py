@@ -55,7 +55,8 @@ class VelocityCommand:
     """Command state of ``num_envs`` envs on one device.
 
     Tensors: ``value`` (num_envs, 2) m/s, and the ramp state ``start``/``final`` (num_envs, 2), ``ramp_len`` and
-    ``ramp_pos`` (num_envs,) int64. Every update is a masked tensor op, so nothing reads device values on the host.
+    ``ramp_pos`` (num_envs,) int64. Every update is a masked tensor op, so nothing reads device values on the host, and
+    every update writes in place, so a captured CUDA graph of the env's step keeps updating these same tensors.
     """
 
     def __init__(self, cfg: CommandConfig, num_envs: int, device: torch.device, generator: torch.Generator):
@@ -87,24 +88,25 @@ class VelocityCommand:
         m = mask.unsqueeze(-1)
         lo, span = self._initial_range
         fresh = lo + span * uniform if uniform is not None else self._sample(self._initial_range)
-        self.value = torch.where(m, fresh, self.value)
+        self.value.copy_(torch.where(m, fresh, self.value))
         if not self.cfg.ramp_survives_reset:
-            self.ramp_pos = torch.where(mask, self.ramp_len, self.ramp_pos)
+            self.ramp_pos.copy_(torch.where(mask, self.ramp_len, self.ramp_pos))
 
     def update(self, episode_step: torch.Tensor) -> None:
         """Advance the schedule before the physics of a step; ``episode_step`` (num_envs,) is the pre-step count."""
         cfg = self.cfg
         due = (episode_step % cfg.resample_every) == (cfg.resample_every - 1)
         d = due.unsqueeze(-1)
-        self.start = torch.where(d, self.value, self.start)
-        self.final = torch.where(d, self._sample(self._range), self.final)
+        self.start.copy_(torch.where(d, self.value, self.start))
+        self.final.copy_(torch.where(d, self._sample(self._range), self.final))
         if cfg.max_ramp_steps > 1:
             draw = torch.randint(1, cfg.max_ramp_steps, due.shape, device=due.device, generator=self.gen)
-            self.ramp_len = torch.where(due, draw, self.ramp_len)
-            self.ramp_pos = torch.where(due, torch.zeros_like(self.ramp_pos), self.ramp_pos)
+            self.ramp_len.copy_(torch.where(due, draw, self.ramp_len))
+            self.ramp_pos.masked_fill_(due, 0)
             ramping = self.ramp_pos < self.ramp_len
             frac = (self.ramp_pos.float() / self.ramp_len.float()).unsqueeze(-1)
-            self.value = torch.where(ramping.unsqueeze(-1), self.start + (self.final - self.start) * frac, self.value)
-            self.ramp_pos = self.ramp_pos + ramping.long()
+            ramped = self.start + (self.final - self.start) * frac
+            self.value.copy_(torch.where(ramping.unsqueeze(-1), ramped, self.value))
+            self.ramp_pos.add_(ramping.long())
         else:
-            self.value = torch.where(d, self.final, self.value)
+            self.value.copy_(torch.where(d, self.final, self.value))

@@ -227,15 +227,17 @@ class TocabiWalk(EnvBase):
         ctrl[:, robot.NUM_LEG_JOINTS :] = q_ref[:, robot.NUM_LEG_JOINTS :]
         self.sim.step()
 
+        # Task state is updated in place (never rebound): a captured CUDA graph of this step keeps writing to the
+        # same tensors on every replay (see envs.autoreset).
         rate = 1.0 + self.cfg.phase_rate_gain * a[:, -1]
-        self.time = torch.remainder(self.time + self.dt * rate, self.motion.period)
-        self.episode_step = self.episode_step + 1
-        self.applied_action = a
+        self.time.copy_(torch.remainder(self.time + self.dt * rate, self.motion.period))
+        self.episode_step.add_(1)
+        self.applied_action.copy_(a)
         applied = self.sim.applied_actuator_force[:, : robot.NUM_LEG_JOINTS]
-        self.leg_torque = leg_cmd if self.cfg.control_mode == "torque" else applied.clone()
-        self.ref_joint_pos = q_ref
-        self.ref_foot_force = self.motion.force_reference(row)
-        self.stance = self.motion.stance_at(row)
+        self.leg_torque.copy_(leg_cmd if self.cfg.control_mode == "torque" else applied)
+        self.ref_joint_pos.copy_(q_ref)
+        self.ref_foot_force.copy_(self.motion.force_reference(row))
+        self.stance.copy_(self.motion.stance_at(row))
 
         sim, cfg = self.sim, self.cfg
         flags = termination_flags(
@@ -299,20 +301,21 @@ class TocabiWalk(EnvBase):
             mask = tensordict.get("_reset").reshape(self.num_envs).to(torch.bool)
         # Random start row and first command from (seed, env, episode): identical whichever reset path runs.
         u = episode_uniform(self._seed, self._env_ids, self.episode_count, stream=0, k=3)
-        self.episode_count = self.episode_count + mask.long()
+        self.episode_count.add_(mask.long())
         pick = (u[:, 0] * len(self._init_rows)).long().clamp_(max=len(self._init_rows) - 1)
-        self.init_row = torch.where(mask, self._init_rows[pick], self.init_row)
-        self.time = torch.where(mask, torch.zeros_like(self.time), self.time)
-        self.episode_step = torch.where(mask, torch.zeros_like(self.episode_step), self.episode_step)
+        self.init_row.copy_(torch.where(mask, self._init_rows[pick], self.init_row))
+        self.time.masked_fill_(mask, 0.0)
+        self.episode_step.masked_fill_(mask, 0)
         m = mask.unsqueeze(-1)
-        self.applied_action = torch.where(m, torch.zeros_like(self.applied_action), self.applied_action)
-        self.leg_torque = torch.where(m, torch.zeros_like(self.leg_torque), self.leg_torque)
+        self.applied_action.masked_fill_(m, 0.0)
+        self.leg_torque.masked_fill_(m, 0.0)
         self.command.reset(mask, u[:, 1:3])
         # Upper-body servos start on the initial pose so the reset state's forward pass sees no PD transient.
         row = self.motion.row_index(self.time, self.init_row)
-        self.ref_joint_pos = torch.where(m, self.motion.joint_targets(self.time, self.init_row), self.ref_joint_pos)
-        self.ref_foot_force = torch.where(m, self.motion.force_reference(row), self.ref_foot_force)
-        self.stance = torch.where(mask, self.motion.stance_at(row), self.stance)
+        q_ref = self.motion.joint_targets(self.time, self.init_row)
+        self.ref_joint_pos.copy_(torch.where(m, q_ref, self.ref_joint_pos))
+        self.ref_foot_force.copy_(torch.where(m, self.motion.force_reference(row), self.ref_foot_force))
+        self.stance.copy_(torch.where(mask, self.motion.stance_at(row), self.stance))
         ctrl = torch.cat((self._reset_leg_ctrl.expand(self.num_envs, -1), self.ref_joint_pos[:, 12:]), dim=-1)
         self.sim.reset(mask, self._init_qpos, self._init_qvel, ctrl)
         out = self._observe()
@@ -329,6 +332,11 @@ class TocabiWalk(EnvBase):
         if seed is not None:
             self._seed = int(seed)
             self.rng.manual_seed(self._seed)
+
+    def cuda_graph_generators(self) -> list[torch.Generator]:
+        """The CUDA generators a step draws from besides torch's default one (command resampling), which a
+        captured step graph must advance on every replay."""
+        return [self.rng] if self.rng.device.type == "cuda" else []
 
     @property
     def period(self) -> float:

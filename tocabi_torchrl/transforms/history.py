@@ -83,24 +83,26 @@ TOCABILAB_HISTORY = HistoryLayout(num_obs=5, stride=1, num_actions=4)
 
 
 class _Ring:
-    """(…, L, D) ring buffer with one write position shared by every env, plus per-position gather indices."""
+    """(…, L, D) history ordered newest first: slot ``k`` holds the entry from ``k`` steps ago.
+
+    A push shifts every slot by one and writes slot 0. The positions read are fixed (the layout's ages), so no
+    host-side write position changes from step to step: the same launches are valid on every step, which lets a
+    captured CUDA graph of the env step replay them (a moving host index would be frozen at its capture value).
+    Shifting costs one copy of a (num_envs, L, D) buffer per step (a few MB at 4096 envs).
+    """
 
     def __init__(self, first: torch.Tensor, ages: tuple[int, ...]):
         self.length = max(ages) + 1
         self.buf = first.unsqueeze(-2).expand(*first.shape[:-1], self.length, first.shape[-1]).clone()
-        self.pos = 0  # slot of the newest entry: a host int, identical for all envs
-        # One index tensor per write position, built once, so a step never copies indices to the device.
-        self.gather = [
-            torch.tensor([(p - a) % self.length for a in ages], dtype=torch.long, device=first.device)
-            for p in range(self.length)
-        ]
+        # The layout lists ages oldest first, so reading them in order gives the output oldest first.
+        self.index = torch.tensor(list(ages), dtype=torch.long, device=first.device)
 
     def matches(self, x: torch.Tensor) -> bool:
         return self.buf.shape[:-2] == x.shape[:-1] and self.buf.shape[-1] == x.shape[-1] and self.buf.device == x.device
 
     def push(self, x: torch.Tensor) -> None:
-        self.pos = (self.pos + 1) % self.length
-        self.buf.select(-2, self.pos).copy_(x)
+        self.buf.copy_(torch.roll(self.buf, 1, dims=-2))
+        self.buf.select(-2, 0).copy_(x)
 
     def refill(self, x: torch.Tensor, mask: torch.Tensor) -> None:
         """Rows where ``mask`` (…, 1, 1) is True get every slot set to ``x`` (…, D); other rows keep theirs."""
@@ -108,7 +110,7 @@ class _Ring:
 
     def read(self) -> torch.Tensor:
         """(…, n·D): the entries at the layout's ages, oldest first."""
-        return torch.index_select(self.buf, -2, self.gather[self.pos]).flatten(-2)
+        return torch.index_select(self.buf, -2, self.index).flatten(-2)
 
 
 class ObsActionHistory(Transform):
