@@ -97,12 +97,14 @@ def test_sync_free_resets_match_torchrl_resets():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_gpu_step_and_maybe_reset_never_syncs():
-    e = make_env(num_envs=128, device="cuda", seed=0, max_episode_steps=3)
+@pytest.mark.parametrize("cuda_graph", [False, True])
+def test_gpu_step_and_maybe_reset_never_syncs(cuda_graph):
+    e = make_env(num_envs=128, device="cuda", seed=0, max_episode_steps=3, cuda_graph=cuda_graph)
     td = e.reset()
     action = torch.rand(128, 13, device="cuda") * 2 - 1  # random torques: some robots fall
-    for _ in range(2):  # warm-up: lazy initialisations may sync once
+    for _ in range(3):  # warm-up: lazy initialisations (and the graph capture) may sync once
         _, td = e.step_and_maybe_reset(td.set("action", action))
+    assert e.graph_captured == cuda_graph
     torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")
     try:
@@ -112,3 +114,75 @@ def test_gpu_step_and_maybe_reset_never_syncs():
         torch.cuda.set_sync_debug_mode(0)
     assert td["observation"].shape == (128, 237)
     assert bool(step["next", "truncated"].any() or step["next", "terminated"].any())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("preset", ["reference", "tocabilab"])
+def test_gpu_cuda_graph_step_matches_eager(preset):
+    # The captured step must keep every piece of state moving (phase clock, command ramps, history, step counter,
+    # episode draws): any state frozen at its capture value shows up as a difference within a few steps.
+    n, steps = 64, 40
+    kw = dict(num_envs=n, device="cuda", seed=3, max_episode_steps=7, preset=preset, control_mode="pd_reference")
+    eager, graphed = make_env(cuda_graph=False, **kw), make_env(cuda_graph=True, **kw)
+    gen = torch.Generator(device="cuda").manual_seed(0)
+    actions = [torch.rand(n, 13, device="cuda", generator=gen) * 2 - 1 for _ in range(steps)]
+    td_e, td_g = eager.reset(), graphed.reset()
+    kept, n_done = [], 0
+    for i, action in enumerate(actions):
+        out_e, td_e = eager.step_and_maybe_reset(td_e.set("action", action))
+        out_g, td_g = graphed.step_and_maybe_reset(td_g.set("action", action.clone()))
+        for key in ("observation", "reward", "done", "step_count", "episode_reward", "base_pos", "command"):
+            torch.testing.assert_close(out_g["next", key], out_e["next", key], rtol=1e-4, atol=1e-4,
+                                       msg=lambda m, i=i, key=key: f"step {i}, next {key}: {m}")
+            torch.testing.assert_close(td_g[key], td_e[key], rtol=1e-4, atol=1e-4,
+                                       msg=lambda m, i=i, key=key: f"step {i}, carry {key}: {m}")
+        kept.append((out_g["next", "observation"], out_g["next", "observation"].clone()))
+        n_done += int(out_e["next", "done"].sum())
+    assert graphed.graph_captured and not eager.graph_captured
+    assert n_done >= n * (steps // 7), "the 7-step truncation must have reset every env several times"
+    # Every step returned its own tensors: later replays did not overwrite earlier outputs.
+    for returned, copy in kept:
+        assert torch.equal(returned, copy)
+    # A new seed recaptures (the seed is a Python value frozen into the graph).
+    graphed.set_seed(5)
+    assert not graphed.graph_captured
+
+
+def test_cuda_graph_option_is_checked():
+    with pytest.raises(ValueError, match="needs a CUDA device"):
+        make_env(num_envs=2, device="cpu", cuda_graph=True)
+    env = make_env(num_envs=2, device="cpu", sync_free_resets=True)
+    assert not env.cuda_graph and not env.graph_captured  # CPU: the eager sync-free step
+    from tocabi_torchrl.envs.autoreset import SyncFreeResetEnv
+
+    with pytest.raises(ValueError, match="graph_warmup"):
+        SyncFreeResetEnv(env.base_env, cuda_graph=True, graph_warmup=0)
+
+
+def test_graph_wiring_matches_eager_on_cpu():
+    # The CUDA-graph path of SyncFreeResetEnv (warm-up count, key check, static input copy, fresh outputs, carry)
+    # with StepGraph's emulated replay: it must reproduce the eager sync-free path exactly, resets included.
+    kw = dict(num_envs=3, device="cpu", seed=2, sync_free_resets=True, max_episode_steps=5)
+    eager, wired = make_env(**kw), make_env(**kw)
+    wired._cuda_graph, wired._graph_emulate = True, True
+    gen = torch.Generator().manual_seed(0)
+    td_e, td_w = eager.reset(), wired.reset()
+    for i in range(14):
+        action = torch.rand(3, 13, generator=gen) * 2 - 1
+        out_e, td_e = eager.step_and_maybe_reset(td_e.set("action", action))
+        out_w, td_w = wired.step_and_maybe_reset(td_w.set("action", action.clone()))
+        assert wired.graph_captured == (i >= 2)  # two eager warm-up calls, then the graph path
+        assert set(out_w["next"].keys(True, True)) == set(out_e["next"].keys(True, True))
+        assert set(td_w.keys(True, True)) == set(td_e.keys(True, True))
+        for key in out_e["next"].keys(True, True):
+            torch.testing.assert_close(out_w["next", key], out_e["next", key], rtol=0, atol=0)
+        for key in td_e.keys(True, True):
+            torch.testing.assert_close(td_w[key], td_e[key], rtol=0, atol=0)
+    # Another key layout than the captured one runs eagerly, with a warning, and still steps correctly.
+    action = torch.rand(3, 13, generator=gen) * 2 - 1
+    out_e, td_e = eager.step_and_maybe_reset(td_e.set("action", action))
+    with pytest.warns(UserWarning, match="other keys"):
+        out_w, td_w = wired.step_and_maybe_reset(td_w.set("action", action.clone()).set("extra", torch.zeros(3)))
+    torch.testing.assert_close(out_w["next", "observation"], out_e["next", "observation"], rtol=0, atol=0)
+    wired.set_seed(7)
+    assert not wired.graph_captured

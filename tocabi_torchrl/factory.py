@@ -22,6 +22,7 @@ def make_env(
     preset: str = "reference",
     seed: int | None = None,
     sync_free_resets: bool | None = None,
+    cuda_graph: bool = False,
     **overrides,
 ) -> TransformedEnv:
     """The walking task as the policy sees it: ``observation`` (num_envs, 237), ``reward`` (num_envs, 1),
@@ -34,6 +35,10 @@ def make_env(
             consecutive history layout). See :data:`tocabi_torchrl.transforms.PRESETS`.
         sync_free_resets: return a :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`, whose
             ``step_and_maybe_reset`` (the collectors' step) resets done envs without host reads (default: on CUDA).
+        cuda_graph: capture that ``step_and_maybe_reset`` as one CUDA graph after two eager calls and replay it
+            (CUDA and ``sync_free_resets`` only). Off by default until its GPU tests have run on a GPU machine
+            (``tests/test_make_env.py``); see :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv` for what a
+            capture freezes.
         overrides: fields of :class:`~tocabi_torchrl.envs.TocabiWalkConfig` (e.g. ``control_mode="pd"``,
             ``max_episode_steps=1000``) and of :class:`~tocabi_torchrl.transforms.TransformConfig`
             (e.g. ``reward_weights={"qpos": 0.5}``, ``normalization="running"``); a name in neither raises.
@@ -45,10 +50,18 @@ def make_env(
                         "TocabiWalkConfig and TransformConfig")
     env_kwargs = {k: v for k, v in overrides.items() if k in env_fields}
     tf_kwargs = {k: v for k, v in overrides.items() if k in _TRANSFORM_FIELDS}
+    on_cuda = torch.device(device).type == "cuda"
+    if sync_free_resets is None:
+        sync_free_resets = on_cuda
+    if cuda_graph and not on_cuda:
+        raise ValueError(f"cuda_graph=True needs a CUDA device, got device={device!r}; pass cuda_graph=False")
+    if cuda_graph and not sync_free_resets:
+        raise ValueError("cuda_graph=True needs sync_free_resets=True: a step that reads device values on the host "
+                         "cannot be captured")
     base = TocabiWalk(num_envs=num_envs, device=device, seed=seed, **env_kwargs)
     # One truncation clock: the transforms' step counter follows the env's episode length.
     tf_kwargs.setdefault("max_episode_steps", base.cfg.max_episode_steps)
-    if sync_free_resets is None:
-        sync_free_resets = base.device.type == "cuda"
-    cls = SyncFreeResetEnv if sync_free_resets else TransformedEnv
-    return cls(base, default_transforms(preset, **tf_kwargs))
+    transforms = default_transforms(preset, **tf_kwargs)
+    if sync_free_resets:
+        return SyncFreeResetEnv(base, transforms, cuda_graph=cuda_graph)
+    return TransformedEnv(base, transforms)

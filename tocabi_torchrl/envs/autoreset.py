@@ -1,9 +1,14 @@
-"""A ``TransformedEnv`` whose automatic resets in ``step_and_maybe_reset`` never read device values on the host."""
+"""A ``TransformedEnv`` whose automatic resets in ``step_and_maybe_reset`` never read device values on the host,
+and whose whole step can run as one captured CUDA graph."""
 
 from __future__ import annotations
 
+import warnings
+
 from tensordict import TensorDictBase
 from torchrl.envs import TransformedEnv
+
+from .step_graph import StepGraph
 
 __all__ = ["SyncFreeResetEnv"]
 
@@ -17,14 +22,79 @@ class SyncFreeResetEnv(TransformedEnv):
     transform's ``_reset``, all of which only touch flagged rows with ``where``) and merges the flagged rows into the
     next-step data with ``where``: no host reads, so Python and kernel launches overlap the GPU work.
 
+    With ``cuda_graph=True`` (on a CUDA env) the step is then captured as one CUDA graph after ``graph_warmup`` eager
+    calls and replayed from there on (see :class:`~tocabi_torchrl.envs.step_graph.StepGraph`): the few hundred small
+    launches of the signals, transforms and reset become one, so the host no longer limits the step rate. The graph
+    freezes Python-side settings read during the step (config fields, the seed, ``RunningNormalization.frozen``,
+    reward weights): :meth:`set_seed` recaptures by itself; after changing anything else call
+    :meth:`invalidate_graph`. An input with other keys than the captured one runs eagerly (with a warning).
+
     Semantics equal the stock path: the ``"next"`` entries of a step keep the terminal/truncated data (GAE bootstraps
     from them), and the returned carry-over data hold the reset observation for done envs. The base env must build
-    all-False done flags on reset rows (``TocabiWalk`` does).
+    all-False done flags on reset rows (``TocabiWalk`` does) and update its state in place.
     """
+
+    def __init__(self, *args, cuda_graph: bool = False, graph_warmup: int = 2, **kwargs):
+        super().__init__(*args, **kwargs)
+        if isinstance(graph_warmup, bool) or not isinstance(graph_warmup, int) or graph_warmup < 1:
+            raise ValueError(f"graph_warmup must be an int >= 1 (eager calls before the capture), got {graph_warmup!r}")
+        self._cuda_graph = bool(cuda_graph)
+        self._graph_warmup = graph_warmup
+        self._step_graph: StepGraph | None = None
+        self._eager_calls = 0
+        self._warned_keys = False
+        # Tests without a GPU run the same wiring with StepGraph's emulated (uncaptured) replay.
+        self._graph_emulate = False
+
+    @property
+    def cuda_graph(self) -> bool:
+        """Whether ``step_and_maybe_reset`` is captured and replayed as a CUDA graph (CUDA envs only)."""
+        on_cuda = self.device is not None and self.device.type == "cuda"
+        return self._cuda_graph and (on_cuda or self._graph_emulate)
+
+    @property
+    def graph_captured(self) -> bool:
+        """Whether a captured step graph is ready to replay."""
+        return self._step_graph is not None
+
+    def invalidate_graph(self) -> None:
+        """Drop the captured step; the next calls run eagerly and capture again (after changing a Python setting)."""
+        self._step_graph = None
+        self._eager_calls = 0
+
+    def set_seed(self, *args, **kwargs):
+        self.invalidate_graph()  # the seed is a Python value the reset's random draws read
+        return super().set_seed(*args, **kwargs)
 
     def _step_and_maybe_reset(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
         if tensordict.device != self.device:
             tensordict = tensordict.to(self.device)
+        if not self.cuda_graph:
+            return self._eager_step_and_maybe_reset(tensordict)
+        graph = self._step_graph
+        if graph is not None:
+            if graph.accepts(tensordict):
+                check = getattr(self.base_env, "_check_action", None)
+                if check is not None:  # metadata only; the replay would fail with a less helpful message
+                    check(tensordict.get(self.action_key))
+                return graph(tensordict)
+            if not self._warned_keys:
+                self._warned_keys = True
+                warnings.warn(
+                    "SyncFreeResetEnv: step_and_maybe_reset got other keys than its CUDA graph was captured with; "
+                    "running this call eagerly (call invalidate_graph() to capture the new layout)",
+                    stacklevel=2,
+                )
+            return self._eager_step_and_maybe_reset(tensordict)
+        self._eager_calls += 1
+        if self._eager_calls <= self._graph_warmup:
+            return self._eager_step_and_maybe_reset(tensordict)
+        generators = getattr(self.base_env, "cuda_graph_generators", list)()
+        self._step_graph = StepGraph(self._eager_step_and_maybe_reset, tensordict, generators,
+                                     emulate=self._graph_emulate)
+        return self._step_graph(tensordict)  # the capture recorded the step; this replay runs it
+
+    def _eager_step_and_maybe_reset(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
         tensordict = self.step(tensordict)
         tensordict_ = self._step_mdp(tensordict)
         done = tensordict_.get("done")  # (num_envs, 1) bool

@@ -4,6 +4,9 @@ On CUDA the sequence becomes one CUDA graph. It is recorded on a private stream 
 stream) and replayed on PyTorch's *current* stream, so it is ordered with the torch ops around it without any host
 synchronisation. On CPU, warp (>= 1.19) records the launches and replays them from C++, which removes the Python cost
 of a few hundred launches per step; the recorded and the eager paths give bit-identical results.
+
+Called while PyTorch captures a CUDA graph on its current stream (``torch.cuda.graph``), the launches join that
+capture instead, so a larger graph (the env's whole step, see ``envs.autoreset``) can contain the physics.
 """
 
 from __future__ import annotations
@@ -84,10 +87,27 @@ class Recorded:
         self.graph = cap.graph
 
     def __call__(self) -> None:
-        if self.graph is None:
+        if self.device.is_cuda and torch.cuda.is_current_stream_capturing():
+            self._join_torch_capture()
+        elif self.graph is None:
             with wp.ScopedDevice(self.device), torch_stream_scope(self.device):
                 self.fn()
         elif self.device.is_cuda:
             wp.capture_launch(self.graph, stream=_current_warp_stream(self.device))
         else:
             wp.capture_launch(self.graph)
+
+    def _join_torch_capture(self) -> None:
+        """Record ``fn``'s launches into the CUDA graph PyTorch is capturing on its current stream.
+
+        A graph launch cannot be captured into another graph (and mujoco-warp's solver loop is a conditional node,
+        which CUDA refuses inside a child graph), so the launches run live inside PyTorch's capture, registered
+        with warp as an external capture so that warp's own conditional nodes and allocations join it.
+        """
+        stream = _current_warp_stream(self.device)
+        with _no_gc(), wp.ScopedDevice(self.device), wp.ScopedStream(stream, sync_enter=False):
+            wp.capture_begin(stream=stream, force_module_load=False, external=True)
+            try:
+                self.fn()
+            finally:
+                wp.capture_end(stream=stream)
