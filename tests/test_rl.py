@@ -185,3 +185,50 @@ def test_shipped_policy_walks_on_the_cpu_backend(tmp_path):
     assert summary["forward_distance_m"] > 1.4  # 0.35 m/s or better
     assert summary["lateral_drift_m"] < 0.3
     assert summary["knee_rms_rad"] < 0.15
+
+
+def test_training_env_stores_fewer_keys_with_the_same_dynamics():
+    # The lean training env drops env signals from its outputs; the transforms that read the previous step's
+    # signals (torque_diff, qacc, contact-force changes) must still see them, so rewards and observations match.
+    from tocabi_torchrl.rl.trainer import build_env, training_keys
+
+    cfg = preset_config("default", num_envs=3, minibatch_size=16, device="cpu", max_episode_steps=12)
+    device = torch.device("cpu")
+    full = build_env(cfg, device, sync_free_resets=True)
+    lean = build_env(cfg, device, sync_free_resets=True, for_training=True)
+    assert "foot_force" in training_keys(full) and "joint_vel" in training_keys(full)
+    gen = torch.Generator().manual_seed(1)
+    td_full, td_lean = full.reset(), lean.reset()
+    lean_keys = set(td_lean.keys(True, True))
+    assert "joint_pos" not in lean_keys and "base_pos" not in lean_keys and "observation" in lean_keys
+    nbytes = lambda td: sum(v.numel() * v.element_size() for v in td.values(True, True))  # noqa: E731
+    assert nbytes(td_lean) < 0.65 * nbytes(td_full)
+    for _ in range(20):  # past the 12-step truncation, so the masked reset path runs too
+        action = torch.rand(3, 13, generator=gen) * 2 - 1
+        out_full, td_full = full.step_and_maybe_reset(td_full.set("action", action))
+        out_lean, td_lean = lean.step_and_maybe_reset(td_lean.set("action", action.clone()))
+        for key in ("observation", "reward", "done", "step_count", "episode_reward", ("reward_terms", "torque_diff")):
+            torch.testing.assert_close(out_lean["next", key], out_full["next", key], rtol=0, atol=0)
+        torch.testing.assert_close(td_lean["observation"], td_full["observation"], rtol=0, atol=0)
+
+
+def test_chunked_gae_equals_unchunked():
+    # The trainer evaluates the critic in chunks along the env dim to bound GAE's memory; values must not change.
+    from tocabi_torchrl.rl.networks import make_mlp
+    from torchrl.modules import ValueOperator
+
+    torch.manual_seed(0)
+    critic = ValueOperator(make_mlp(6, (16, 8), 1, "elu"), in_keys=["observation"])
+    n, t = 10, 5
+    done = torch.rand(n, t, 1) < 0.2
+    batch = TensorDict({
+        "observation": torch.randn(n, t, 6),
+        "next": {"observation": torch.randn(n, t, 6), "reward": torch.randn(n, t, 1), "done": done,
+                 "terminated": done & (torch.rand(n, t, 1) < 0.5)},
+    }, batch_size=[n, t], names=[None, "time"])
+    plain = GAE(gamma=0.99, lmbda=0.95, value_network=critic, average_gae=False)
+    chunked = GAE(gamma=0.99, lmbda=0.95, value_network=critic, average_gae=False, value_chunk_size=3)
+    with torch.no_grad():
+        a, b = plain(batch.clone()), chunked(batch.clone())
+    for key in ("advantage", "value_target", "state_value"):
+        torch.testing.assert_close(b[key], a[key])

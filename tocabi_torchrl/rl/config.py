@@ -44,6 +44,12 @@ class PPOConfig:
     pd_action_scale: float = 0.5
     #: Reward re-weighting, "term=weight" entries (e.g. body_vel=0.9); empty = the reference weights.
     reward_weights: tuple[str, ...] = ("body_vel=0.9",)
+    #: On a GPU, capture the env's whole step (physics, signals, transforms, masked reset) as one CUDA graph
+    #: (opt-in until its GPU tests have run; see make_env).
+    cuda_graph: bool = False
+    #: Keep every env signal (joint_pos, base_pos, ...) in the training rollout; off: only what PPO and the logs
+    #: read (observation, reward, done flags, reward terms, episode counters), ~40 % less rollout memory.
+    store_env_signals: bool = False
     # rollout and budget
     steps_per_env: int = 48
     total_env_steps: int = 300_000_000
