@@ -41,11 +41,12 @@ and the next chunk skips what is done), then render the report (CPU is enough; n
 ``python3 benchmarks/scaling.py --part all`` runs raw, gpu_time, memory, cpu_time in that order within one budget;
 repeating it until it prints "nothing left to measure" also covers the suite.
 
-PPO sizing per env count N (same recipe otherwise: 400-200-100 ELU, 5 epochs, adaptive LR, scheduled std):
-``steps_per_env = max(24, ceil(2048 / N))`` (rsl_rl's 24 steps per env as TocabiLab ran it, but never a rollout
-under 2,048 transitions, so that 8 and 32 envs still get mini-batches worth an update: 8 envs x 256, 32 x 64) and
-``minibatch_size = min(32768, frames_per_batch // 4)``. The trainer rounds iterations up
-(``ceil(983,040 / frames_per_batch)``), so 96, 16,384 and 65,536 envs do more steps: the JSON has the steps done.
+PPO sizing per env count N (the recipe is the current default preset, see ``recipe``): the preset's 48 steps per env,
+but never a rollout under 2,048 transitions, so that 8 and 32 envs still get mini-batches worth an update
+(8 envs x 256, 32 x 64), and ``minibatch_size = min(preset's 49,152, frames_per_batch // 4)``. The trainer rounds
+iterations up (``ceil(983,040 / frames_per_batch)``), so most env counts do a few more steps: the JSON has the steps
+done. Each JSON stores the recipe it was trained with; a result of another recipe is stale: the driver measures it
+again (``--keep_stale`` to keep it) and the report leaves it out.
 """
 
 from __future__ import annotations
@@ -77,8 +78,10 @@ sys.path.insert(0, str(ROOT))
 
 TARGET_ENV_STEPS = 983_040  # TocabiLab's training budget: 4,096 envs x 24 steps x 10 iterations
 MIN_ROLLOUT = 2048
-BASE_STEPS_PER_ENV = 24
-MAX_MINIBATCH = 32768
+#: PPOConfig fields that are bookkeeping or sized per env count, not the training recipe (see ``recipe``).
+NOT_RECIPE = ("preset", "name", "run_dir", "seed", "device", "num_envs", "steps_per_env", "minibatch_size",
+              "total_env_steps", "max_minutes", "log_every", "checkpoint_every", "loggers", "resume", "eval_at_end",
+              "eval_envs", "eval_seconds", "progress_bar")
 DEFAULT_RESULTS = ROOT / "docs" / "benchmarks" / "scaling"
 DEFAULT_RUN_DIR = "/tmp/tocabi_scaling_runs"
 DEFAULT_LOG_DIR = "/tmp/tocabi_scaling_logs"
@@ -117,11 +120,34 @@ KILL_GRACE_S = 60.0  # past its deadline a measurement process is killed after t
 # --------------------------------------------------------------------------------------------- what one run is
 
 
+def _default_preset():
+    from tocabi_torchrl.rl.config import preset_config
+
+    return preset_config("default")
+
+
 def ppo_sizing(num_envs: int, min_rollout: int = MIN_ROLLOUT) -> tuple[int, int]:
-    """(steps_per_env, minibatch_size) for ``num_envs``: 24 steps per env, but a rollout of at least ``min_rollout``
-    transitions, and mini-batches of a quarter of the rollout capped at the default preset's 32,768."""
-    steps = max(BASE_STEPS_PER_ENV, math.ceil(min_rollout / num_envs))
-    return steps, max(1, min(MAX_MINIBATCH, num_envs * steps // 4))
+    """(steps_per_env, minibatch_size) for ``num_envs``: the default preset's steps per env, but a rollout of at
+    least ``min_rollout`` transitions, and mini-batches of a quarter of the rollout capped at the preset's size."""
+    base = _default_preset()
+    steps = max(base.steps_per_env, math.ceil(min_rollout / num_envs))
+    return steps, max(1, min(base.minibatch_size, num_envs * steps // 4))
+
+
+def recipe(cfg=None) -> dict:
+    """The training recipe of ``cfg`` (default: the current default preset): every PPOConfig field except the
+    bookkeeping and per-env-count sizing in ``NOT_RECIPE``, JSON-ready. A result measured with another recipe is
+    stale: the driver measures it again and the report leaves it out."""
+    cfg = cfg if cfg is not None else _default_preset()
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg).items() if k not in NOT_RECIPE}
+
+
+def is_stale(record: dict, current: dict | None = None) -> bool:
+    """Whether a time or memory result was trained with another recipe than ``current`` (raw results never are)."""
+    if record.get("kind") == "raw":
+        return False
+    current = current if current is not None else recipe()
+    return record.get("recipe") != current
 
 
 @dataclass
@@ -422,7 +448,7 @@ def measure_training(spec: RunSpec, deadline: float | None, sampler: Sampler) ->
     gpu_before = _start_cuda() if spec.backend == "gpu" else None
     cfg = spec.ppo_config()
     shutil.rmtree(Path(cfg.run_dir) / cfg.name, ignore_errors=True)  # metrics.csv appends: start clean
-    env = build_env(cfg, resolve_device(cfg.device))
+    env = build_env(cfg, resolve_device(cfg.device), for_training=True)
     if deadline is not None:
         left_min = (deadline - time.time() - STOP_MARGIN_S) / 60.0
         cfg.max_minutes = max(0.05, min(cfg.max_minutes or math.inf, left_min))
@@ -433,6 +459,7 @@ def measure_training(spec: RunSpec, deadline: float | None, sampler: Sampler) ->
                    "minibatch_size": cfg.minibatch_size, "epochs": cfg.epochs, "iterations_planned": cfg.iterations,
                    "total_env_steps_target": cfg.total_env_steps, "actor_hidden": list(cfg.actor_hidden),
                    "critic_hidden": list(cfg.critic_hidden), "max_minutes": cfg.max_minutes},
+        "recipe": recipe(cfg) if not spec.hidden else None,  # tiny test networks are never the current recipe
         "iterations": result.iterations,
         "env_steps": result.env_steps,
         "train_wall_s": result.wall_seconds,  # TocabiLab's timer: from finished set-up to the end
@@ -526,6 +553,13 @@ def load_status(path: Path) -> str | None:
         return None
 
 
+def _stale_file(path: Path) -> bool:
+    try:
+        return is_stale(json.loads(Path(path).read_text()))
+    except (OSError, ValueError):
+        return False
+
+
 def _sweep_blocked(spec: RunSpec, results: Path) -> int | None:
     """For a memory run: the smallest smaller env count (memory or time run) that did not fit, else None."""
     failed = []
@@ -591,6 +625,7 @@ class DriveOptions:
     redo: tuple[str, ...] = ()
     reuse_time_for_memory: bool = True
     bundle: Path | None = None
+    redo_stale: bool = True  # measure again what an older training recipe produced
 
 
 def drive(specs: Iterable[RunSpec], opts: DriveOptions, launcher: Launcher) -> dict[str, str]:
@@ -608,11 +643,13 @@ def drive(specs: Iterable[RunSpec], opts: DriveOptions, launcher: Launcher) -> d
         path = results / f"{spec.name}.json"
         status = load_status(path)
         if status is not None and status not in opts.redo:
-            outcome[spec.name] = f"skipped ({status})"
-            continue
+            if not (opts.redo_stale and _stale_file(path)):
+                outcome[spec.name] = f"skipped ({status})"
+                continue
+            print(f"[scaling] {spec.name}: measured with an older recipe, measuring again", flush=True)
         if spec.kind == "memory":
             time_path = results / f"time_{spec.backend}_{spec.num_envs:07d}.json"
-            if opts.reuse_time_for_memory and load_status(time_path) == "ok":
+            if opts.reuse_time_for_memory and load_status(time_path) == "ok" and not _stale_file(time_path):
                 outcome[spec.name] = "skipped (the time run has these numbers)"
                 continue
             blocked = _sweep_blocked(spec, results)
@@ -685,6 +722,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max_minutes", type=float, default=9.0, help="a training run's own clock limit")
     parser.add_argument("--redo", nargs="*", default=[], choices=STATUSES, help="measure these statuses again")
     parser.add_argument("--no_reuse", action="store_true", help="memory: also rerun env counts a time run covered")
+    parser.add_argument("--keep_stale", action="store_true",
+                        help="skip results trained with an older recipe instead of measuring them again")
     parser.add_argument("--bundle", default=None, help="one JSON file of every result (rewritten as results come)")
     parser.add_argument("--memory_iterations", type=int, default=3)
     parser.add_argument("--raw_steps", type=int, default=200)
@@ -725,7 +764,8 @@ def main(argv: Sequence[str] | None = None) -> dict | None:
     if specs:  # one budget for every part of this command
         part_command = "python3 benchmarks/scaling.py " + " ".join(argv)
         opts = DriveOptions(Path(args.results), 60.0 * args.budget_minutes, 60.0 * args.timeout_minutes,
-                            tuple(args.redo), not args.no_reuse, Path(args.bundle) if args.bundle else None)
+                            tuple(args.redo), not args.no_reuse, Path(args.bundle) if args.bundle else None,
+                            redo_stale=not args.keep_stale)
 
         def launcher(spec: RunSpec, path: Path, deadline: float, record_timeout: bool) -> str:
             return launch(spec, path, deadline, record_timeout, args.log_dir, part_command)

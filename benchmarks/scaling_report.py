@@ -50,7 +50,12 @@ E_DEFINITION = (
 
 
 def load_results(folder: Path) -> list[dict]:
-    """Every result file of ``folder`` (unreadable files are skipped with a note on stderr)."""
+    """Every result file of ``folder`` (unreadable files are skipped with a note on stderr). A time or memory result
+    trained with another recipe than the current default gets status ``stale`` (its own in ``measured_status``), so
+    no table, figure or check uses it."""
+    from scaling import is_stale, recipe
+
+    current = recipe()
     records = []
     for path in sorted(Path(folder).glob("*.json")):
         try:
@@ -59,6 +64,8 @@ def load_results(folder: Path) -> list[dict]:
             print(f"skipping {path}: {err}", file=sys.stderr)
             continue
         if {"kind", "backend", "num_envs", "status"} <= set(record):
+            if is_stale(record, current):
+                record = {**record, "measured_status": record["status"], "status": "stale"}
             records.append(record)
     return records
 
@@ -103,7 +110,9 @@ def torch_peak(r: dict | None) -> float | None:
 
 
 def peak_rss(r: dict | None) -> float | None:
-    return ((r or {}).get("host") or {}).get("peak_rss_gib") if r else None
+    if not r or r.get("status") == "stale":
+        return None
+    return (r.get("host") or {}).get("peak_rss_gib")
 
 
 def efficiency(r: dict | None) -> tuple[float | None, float | None]:
@@ -468,18 +477,31 @@ MEMORY_NOTE = (
     "reserved pool, so this is the peak), *nvidia-smi peak* the highest of samples taken every second; CPU cores "
     "busy = process CPU time ÷ training wall time (sampled every 0.5 s)."
 )
+def recipe_lines() -> list[str]:
+    """The first Method bullets: the recipe every current result was trained with, and the sizing per env count."""
+    from scaling import ppo_sizing, recipe
+
+    rec = recipe()
+    shown = ", ".join(f"{k}={v}" for k, v in rec.items())
+    sizes = []
+    for n in (8, 32, 96, 1024, 4096, 16384, 65536):
+        steps, minibatch = ppo_sizing(n)
+        iterations = -(-TARGET_ENV_STEPS // (n * steps))
+        sizes.append(f"{n:,} envs × {steps} steps (mini-batch {minibatch:,}, {iterations} it., "
+                     f"{iterations * n * steps:,} steps)")
+    return [
+        "- Same PPO recipe for every run, the current `preset_config(\"default\")` trained by "
+        "`tocabi_torchrl.rl.trainer.train` (training env with the lean rollout of `build_env(for_training=True)`, "
+        "no evaluation, no progress bar, one checkpoint at the end). Each result file stores the recipe it ran "
+        "with; one trained with another recipe is *stale*: left out here and measured again by the next run of "
+        f"its part. Recipe: {shown}.",
+        "- Per env count N: the preset's steps per env, but never a rollout below 2,048 transitions, and mini-batches "
+        "of a quarter of the rollout capped at the preset's; iterations = ceil(983,040 / rollout): "
+        + "; ".join(sizes) + ".",
+    ]
+
+
 METHOD = (
-    (
-        "- Same PPO recipe for every run: `preset_config(\"default\")` (400-200-100 ELU actor and critic, 5 epochs, "
-        "KL-adaptive LR, scheduled std 0.1 → 0.05, torque control, reference transforms), trained by "
-        "`tocabi_torchrl.rl.trainer.train` with no evaluation, no progress bar and one checkpoint at the end."
-    ),
-    (
-        "- Per env count N: `steps_per_env = max(24, ceil(2048 / N))` (rsl_rl's 24 steps per env, as TocabiLab "
-        "trained, but never a rollout below 2,048 transitions: 8 envs × 256 and 32 envs × 64 steps) and "
-        "`minibatch_size = min(32768, rollout / 4)`. Iterations = ceil(983,040 / rollout), so 96 envs do 983,808 "
-        "steps, 16,384 envs 1,179,648 and 65,536 envs 1,572,864 (one iteration)."
-    ),
     (
         "- CPU baseline: `device=\"cpu\"`, `backend=\"auto\"` = C MuJoCo on a thread pool over every available "
         "core; its process sees no GPU (`CUDA_VISIBLE_DEVICES=\"\"`), and torch's CPU threads run the policy and "
@@ -565,7 +587,7 @@ def render_markdown(records: list[dict], figures: list[str], results_dir: str) -
         _figure(figures, "scaling_cpu.png", "CPU utilisation vs env count"), "",
         "## Per-env cost", "", *_per_env_lines(idx), "",
         "## Efficiency E", "", E_DEFINITION, "",
-        "## Method", "", *METHOD,
+        "## Method", "", *recipe_lines(), *METHOD,
     ]
     return "\n".join(lines) + "\n"
 

@@ -19,10 +19,21 @@ import scaling_report
 # ------------------------------------------------------------------------------------------------ sizing
 
 
-@pytest.mark.parametrize("n, steps, minibatch", [(8, 256, 512), (32, 64, 512), (96, 24, 576), (4096, 24, 24576),
-                                                 (16384, 24, 32768), (65536, 24, 32768)])
+@pytest.mark.parametrize("n, steps, minibatch", [(8, 256, 512), (32, 64, 512), (96, 48, 1152), (4096, 48, 49152),
+                                                 (16384, 48, 49152), (65536, 48, 49152)])
 def test_ppo_sizing(n, steps, minibatch):
+    # The default preset's 48 steps and 49,152-frame mini-batches, but rollouts of at least 2,048 frames.
     assert scaling.ppo_sizing(n) == (steps, minibatch)
+
+
+def test_recipe_excludes_sizing_and_flags_other_recipes():
+    rec = scaling.recipe()
+    assert rec["control_mode"] == "pd_reference" and "num_envs" not in rec and "steps_per_env" not in rec
+    assert rec == scaling.recipe(scaling.RunSpec("time", "gpu", 4096).ppo_config())  # sizing is not the recipe
+    assert not scaling.is_stale({"kind": "time", "recipe": rec})
+    assert scaling.is_stale({"kind": "time", "recipe": {**rec, "gamma": 0.99}})
+    assert scaling.is_stale({"kind": "memory"})  # measured before recipes were recorded
+    assert not scaling.is_stale({"kind": "raw"})  # the raw ceiling has no training recipe
 
 
 def test_every_default_count_is_a_valid_config():
@@ -61,14 +72,15 @@ def test_one_cpu_measurement_writes_a_sane_json(tmp_path):
     """The --one measurement of the CPU backend, in its own process, at 4 envs with tiny networks."""
     out = tmp_path / "time_cpu_0000004.json"
     cmd = [sys.executable, str(BENCH / "scaling.py"), "--one", "--kind", "time", "--backend", "cpu", "--num_envs", "4",
-           "--total_env_steps", "192", "--min_rollout", "32", "--hidden", "16,16", "--out", str(out),
+           "--total_env_steps", "384", "--min_rollout", "32", "--hidden", "16,16", "--out", str(out),
            "--run_dir", str(tmp_path / "runs")]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     r = json.loads(out.read_text())
     assert r["status"] == "ok" and r["num_envs"] == 4 and r["backend"] == "cpu"
-    assert r["config"]["steps_per_env"] == 24 and r["config"]["actor_hidden"] == [16, 16]
-    assert r["env_steps"] == 192 and r["iterations"] == 2
+    assert r["config"]["steps_per_env"] == 48 and r["config"]["actor_hidden"] == [16, 16]
+    assert r["env_steps"] == 384 and r["iterations"] == 2
+    assert r["recipe"] is None  # tiny test networks: never taken for the current recipe
     assert 0 < r["train_wall_s"] < r["total_wall_s"]
     assert r["env_steps_per_s"] == pytest.approx(r["env_steps"] / r["train_wall_s"], rel=1e-6)
     assert r["host"]["peak_rss_gib"] > 0.05
@@ -91,14 +103,15 @@ class FakeLauncher:
         self.calls.append(spec.name)
         status = self.statuses.get(spec.num_envs, "ok")
         scaling.write_json(path, {"kind": spec.kind, "backend": spec.backend, "num_envs": spec.num_envs,
-                                  "status": status})
+                                  "status": status, "recipe": scaling.recipe(spec.ppo_config())})
         return status
 
 
 def test_driver_skips_finished_measurements(tmp_path):
     specs = scaling.plan(["cpu_time"], [8, 32, 96])
-    scaling.write_json(tmp_path / "time_cpu_0000032.json", {"status": "ok"})
-    scaling.write_json(tmp_path / "time_cpu_0000096.json", {"status": "partial"})
+    current = {"kind": "time", "recipe": scaling.recipe()}
+    scaling.write_json(tmp_path / "time_cpu_0000032.json", {"status": "ok", **current})
+    scaling.write_json(tmp_path / "time_cpu_0000096.json", {"status": "partial", **current})
     opts = scaling.DriveOptions(results=tmp_path, bundle=tmp_path / "out" / "bundle.json")
     fake = FakeLauncher()
     outcome = scaling.drive(specs, opts, fake)
@@ -113,6 +126,12 @@ def test_driver_skips_finished_measurements(tmp_path):
     opts.redo = ("partial",)
     scaling.drive(specs, opts, again)
     assert again.calls == ["time_cpu_0000096"]
+    # a result of an older recipe is measured again
+    opts.redo = ()
+    scaling.write_json(tmp_path / "time_cpu_0000032.json", {"status": "ok", "kind": "time", "recipe": {"gamma": 0.9}})
+    again = FakeLauncher()
+    scaling.drive(specs, opts, again)
+    assert again.calls == ["time_cpu_0000032"]
     # a bundle unpacks into an empty results folder
     names = scaling.unpack_bundle(tmp_path / "out" / "bundle.json", tmp_path / "copy")
     assert len(names) == 3 and scaling.load_status(tmp_path / "copy" / "time_cpu_0000008.json") == "ok"
@@ -121,7 +140,8 @@ def test_driver_skips_finished_measurements(tmp_path):
 def test_memory_sweep_stops_at_the_first_count_that_does_not_fit(tmp_path):
     specs = scaling.plan(["memory"], [256, 8, 64, 32, 128])
     assert [s.num_envs for s in specs] == [8, 32, 64, 128, 256]
-    scaling.write_json(tmp_path / "time_gpu_0000032.json", {"status": "ok"})  # a time run already covers 32
+    scaling.write_json(tmp_path / "time_gpu_0000032.json",  # a time run already covers 32
+                       {"status": "ok", "kind": "time", "recipe": scaling.recipe()})
     fake = FakeLauncher({64: "oom"})
     outcome = scaling.drive(specs, scaling.DriveOptions(results=tmp_path), fake)
     assert fake.calls == ["memory_gpu_0000008", "memory_gpu_0000064"]
@@ -159,6 +179,8 @@ def _record(kind, backend, n, status="ok", rate=None, rss=1.0, used=None, before
          "cpu": {"cores_used_mean": cores, "system_busy_cores_mean": cores + 0.1},
          "meta": {"gpu": "Test GPU 80GB" if backend == "gpu" else None, "available_cores": 16, "cpu_model": "test",
                   "date": "2026-01-01 00:00:00", "host": "h", "versions": {"torch": "x"}}}
+    if kind != "raw":
+        r["recipe"] = scaling.recipe()
     if rate is not None:
         steps = scaling.TARGET_ENV_STEPS
         r.update(env_steps=steps, train_wall_s=steps / rate, total_wall_s=steps / rate + 20.0, env_steps_per_s=rate,
@@ -239,3 +261,16 @@ def test_report_renders_markdown_json_and_figures(tmp_path):
 def test_report_with_no_results(tmp_path):
     text = scaling_report.write_report(tmp_path / "empty", tmp_path)
     assert text.count(scaling_report.NOT_MEASURED) > 10 and "**pass**" not in text
+
+
+def test_report_leaves_out_stale_results(tmp_path):
+    results = tmp_path / "scaling"
+    records = _synthetic(20.0)
+    records[3]["recipe"] = {**records[3]["recipe"], "gamma": 0.9}  # the 4,096-env GPU time run: older recipe
+    _write(results, records)
+    loaded = scaling_report.index(scaling_report.load_results(results))
+    assert loaded[("time", "gpu", 4096)]["status"] == "stale"
+    assert loaded[("time", "gpu", 4096)]["measured_status"] == "ok"
+    assert _check(list(loaded.values()), "GPU training at 4,096 envs vs the CPU").passed is None
+    text = scaling_report.write_report(results, tmp_path)
+    assert "| GPU (mujoco-warp) | 4,096 |" in text and "stale" in text
