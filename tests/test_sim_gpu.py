@@ -60,12 +60,18 @@ def test_step_and_reset_run_as_cuda_graphs_without_host_sync(sim):
     assert sim.healthy.all()
 
 
-def test_standing_on_the_gpu(sim):
-    qpos, qvel, ctrl, gains, q0 = _inputs(sim)
+def _stand(sim: WarpSim, steps: int):
+    """Reset every world to the initial pose and PD-hold it for ``steps`` control steps; returns ``_inputs``."""
+    qpos, qvel, ctrl, gains, q0 = inputs = _inputs(sim)
     sim.reset(torch.ones(N, dtype=torch.bool, device=sim.device), qpos, qvel, ctrl)
-    for _ in range(250):
+    for _ in range(steps):
         _pd_hold(sim, gains, q0)
         sim.step()
+    return inputs
+
+
+def test_standing_on_the_gpu(sim):
+    _stand(sim, 250)
     assert sim.foot_contact.all() and sim.healthy.all()
     assert not sim.forbidden_ground_contact.any() and not sim.self_collision.any()
     m = sim.mj_model
@@ -76,11 +82,7 @@ def test_standing_on_the_gpu(sim):
 
 
 def test_masked_reset_keeps_other_worlds_bit_identical_on_the_gpu(sim):
-    qpos, qvel, ctrl, gains, q0 = _inputs(sim)
-    sim.reset(torch.ones(N, dtype=torch.bool, device=sim.device), qpos, qvel, ctrl)
-    for _ in range(20):
-        _pd_hold(sim, gains, q0)
-        sim.step()
+    qpos, qvel, ctrl, _, _ = _stand(sim, 20)
     views = ("qpos", "qvel", "ctrl", "sensordata", "xpos", "xquat", "foot_contact", "healthy")
     before = {k: getattr(sim, k).clone() for k in views}
     mask = torch.arange(N, device=sim.device) % 2 == 1
