@@ -116,6 +116,7 @@ def test_gpu_step_and_maybe_reset_never_syncs(cuda_graph):
     assert bool(step["next", "truncated"].any() or step["next", "terminated"].any())
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("preset", ["reference", "tocabilab"])
 def test_gpu_cuda_graph_step_matches_eager(preset):
