@@ -353,6 +353,10 @@ def test_episode_random_numbers_depend_on_episode_not_call_order():
     later = episode_uniform(7, ids, torch.ones(4096, dtype=torch.int64), stream=0, k=3)
     other_seed = episode_uniform(8, ids, torch.zeros(4096, dtype=torch.int64), stream=0, k=3)
     assert (first != later).float().mean() > 0.99 and (first != other_seed).float().mean() > 0.99
+    # A seed held as a device tensor (what the env passes, so that a captured graph follows set_seed): same numbers.
+    for seed in (7, 2**31 + 5):
+        as_tensor = episode_uniform(torch.tensor(seed), ids, torch.zeros(4096, dtype=torch.int64), stream=0, k=3)
+        assert torch.equal(as_tensor, episode_uniform(seed, ids, torch.zeros(4096, dtype=torch.int64), stream=0, k=3))
     # Extra resets of other envs (or no-op resets) leave an env's next episode unchanged.
     e = TocabiWalk(num_envs=2, device="cpu", seed=11)
     e.reset()

@@ -118,40 +118,52 @@ def test_gpu_step_and_maybe_reset_never_syncs(cuda_graph):
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # a failed capture or an eager fallback fails the test
 @pytest.mark.parametrize("preset", ["reference", "tocabilab"])
 def test_gpu_cuda_graph_step_matches_eager(preset):
     # The captured step must keep every piece of state moving (phase clock, command ramps, history, step counter,
     # episode draws): any state frozen at its capture value shows up as a difference within a few steps.
-    n, steps = 64, 40
+    # Short and gentle (24 steps of small residuals: nobody falls), so that GPU contact-order noise between the two
+    # envs cannot grow into different episodes; the 7-step truncation still resets every env three times.
+    n, steps = 64, 24
     kw = dict(num_envs=n, device="cuda", seed=3, max_episode_steps=7, preset=preset, control_mode="pd_reference")
     eager, graphed = make_env(cuda_graph=False, **kw), make_env(cuda_graph=True, **kw)
     gen = torch.Generator(device="cuda").manual_seed(0)
-    actions = [torch.rand(n, 13, device="cuda", generator=gen) * 2 - 1 for _ in range(steps)]
+    actions = [(torch.rand(n, 13, device="cuda", generator=gen) * 2 - 1) * 0.3 for _ in range(steps)]
     td_e, td_g = eager.reset(), graphed.reset()
     kept, n_done = [], 0
     for i, action in enumerate(actions):
         out_e, td_e = eager.step_and_maybe_reset(td_e.set("action", action))
         out_g, td_g = graphed.step_and_maybe_reset(td_g.set("action", action.clone()))
         for key in ("observation", "reward", "done", "step_count", "episode_reward", "base_pos", "command"):
-            torch.testing.assert_close(out_g["next", key], out_e["next", key], rtol=1e-4, atol=1e-4,
+            torch.testing.assert_close(out_g["next", key], out_e["next", key], rtol=1e-3, atol=1e-3,
                                        msg=lambda m, i=i, key=key: f"step {i}, next {key}: {m}")
-            torch.testing.assert_close(td_g[key], td_e[key], rtol=1e-4, atol=1e-4,
+            torch.testing.assert_close(td_g[key], td_e[key], rtol=1e-3, atol=1e-3,
                                        msg=lambda m, i=i, key=key: f"step {i}, carry {key}: {m}")
         kept.append((out_g["next", "observation"], out_g["next", "observation"].clone()))
         n_done += int(out_e["next", "done"].sum())
     assert graphed.graph_captured and not eager.graph_captured
-    assert n_done >= n * (steps // 7), "the 7-step truncation must have reset every env several times"
+    assert n_done >= n * (steps // 7), "the 7-step truncation must have reset every env three times"
     # Every step returned its own tensors: later replays did not overwrite earlier outputs.
     for returned, copy in kept:
         assert torch.equal(returned, copy)
-    # A new seed recaptures (the seed is a Python value frozen into the graph).
+    # A new seed drops the graph; after the warm-up it is captured again and the episodes follow the new seed.
     graphed.set_seed(5)
+    eager.set_seed(5)
     assert not graphed.graph_captured
+    for action in actions[:10]:
+        out_e, td_e = eager.step_and_maybe_reset(td_e.set("action", action))
+        out_g, td_g = graphed.step_and_maybe_reset(td_g.set("action", action.clone()))
+        torch.testing.assert_close(td_g["command"], td_e["command"], rtol=1e-3, atol=1e-3)
+        torch.testing.assert_close(td_g["observation"], td_e["observation"], rtol=1e-3, atol=1e-3)
+    assert graphed.graph_captured
 
 
 def test_cuda_graph_option_is_checked():
     with pytest.raises(ValueError, match="needs a CUDA device"):
         make_env(num_envs=2, device="cpu", cuda_graph=True)
+    with pytest.raises(ValueError, match="do not combine"):
+        make_env(num_envs=2, device="cpu", cuda_graph=True, compile_reward=True)
     env = make_env(num_envs=2, device="cpu", sync_free_resets=True)
     assert not env.cuda_graph and not env.graph_captured  # CPU: the eager sync-free step
     from tocabi_torchrl.envs.autoreset import SyncFreeResetEnv

@@ -9,7 +9,7 @@ from torchrl.envs import TransformedEnv
 
 from .envs import TocabiWalk, TocabiWalkConfig
 from .envs.autoreset import SyncFreeResetEnv
-from .transforms import TransformConfig, default_transforms
+from .transforms import TransformConfig, default_transforms, transform_config
 
 __all__ = ["make_env"]
 
@@ -50,6 +50,9 @@ def make_env(
                         "TocabiWalkConfig and TransformConfig")
     env_kwargs = {k: v for k, v in overrides.items() if k in env_fields}
     tf_kwargs = {k: v for k, v in overrides.items() if k in _TRANSFORM_FIELDS}
+    if cuda_graph and transform_config(preset, **tf_kwargs).compile_reward:
+        raise ValueError("compile_reward=True and cuda_graph=True do not combine (a recompile inside the capture "
+                         "would break it); the CUDA graph already removes the launches torch.compile saves")
     on_cuda = torch.device(device).type == "cuda"
     if sync_free_resets is None:
         sync_free_resets = on_cuda

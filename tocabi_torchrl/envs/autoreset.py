@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import warnings
 
+import torch
 from tensordict import TensorDictBase
 from torchrl.envs import TransformedEnv
 
@@ -25,9 +26,10 @@ class SyncFreeResetEnv(TransformedEnv):
     With ``cuda_graph=True`` (on a CUDA env) the step is then captured as one CUDA graph after ``graph_warmup`` eager
     calls and replayed from there on (see :class:`~tocabi_torchrl.envs.step_graph.StepGraph`): the few hundred small
     launches of the signals, transforms and reset become one, so the host no longer limits the step rate. The graph
-    freezes Python-side settings read during the step (config fields, the seed, ``RunningNormalization.frozen``,
-    reward weights): :meth:`set_seed` recaptures by itself; after changing anything else call
-    :meth:`invalidate_graph`. An input with other keys than the captured one runs eagerly (with a warning).
+    freezes Python-side settings read during the step (config fields, ``RunningNormalization.frozen``): after
+    changing one call :meth:`invalidate_graph` (:meth:`set_seed` does so by itself; reward weights set with
+    ``TaskReward.set_weight`` live on the device and need nothing). If the capture fails, the env warns and stays
+    eager. An input with other keys than the captured one runs eagerly (with a warning).
 
     Semantics equal the stock path: the ``"next"`` entries of a step keep the terminal/truncated data (GAE bootstraps
     from them), and the returned carry-over data hold the reset observation for done envs. The base env must build
@@ -45,6 +47,7 @@ class SyncFreeResetEnv(TransformedEnv):
         self._warned_keys = False
         # Tests without a GPU run the same wiring with StepGraph's emulated (uncaptured) replay.
         self._graph_emulate = False
+        self._capture_stream = None
 
     @property
     def cuda_graph(self) -> bool:
@@ -63,7 +66,9 @@ class SyncFreeResetEnv(TransformedEnv):
         self._eager_calls = 0
 
     def set_seed(self, *args, **kwargs):
-        self.invalidate_graph()  # the seed is a Python value the reset's random draws read
+        # TocabiWalk keeps its seed on the device, which a graph follows; a base env that reads a Python seed
+        # during the step would not, so a new seed always means a new capture.
+        self.invalidate_graph()
         return super().set_seed(*args, **kwargs)
 
     def _step_and_maybe_reset(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
@@ -87,12 +92,32 @@ class SyncFreeResetEnv(TransformedEnv):
                 )
             return self._eager_step_and_maybe_reset(tensordict)
         self._eager_calls += 1
-        if self._eager_calls <= self._graph_warmup:
+        if self._eager_calls < self._graph_warmup or (self._eager_calls == self._graph_warmup and self._graph_emulate):
             return self._eager_step_and_maybe_reset(tensordict)
+        if self._eager_calls == self._graph_warmup:
+            return self._warmup_on_capture_stream(tensordict)
         generators = getattr(self.base_env, "cuda_graph_generators", list)()
-        self._step_graph = StepGraph(self._eager_step_and_maybe_reset, tensordict, generators,
-                                     emulate=self._graph_emulate)
+        try:
+            self._step_graph = StepGraph(self._eager_step_and_maybe_reset, tensordict, generators,
+                                         emulate=self._graph_emulate, stream=self._capture_stream)
+        except Exception as err:  # noqa: BLE001 - any capture failure: keep training, eagerly, and say why
+            self._cuda_graph = False
+            self._step_graph = None
+            warnings.warn(f"SyncFreeResetEnv: capturing the step as a CUDA graph failed ({type(err).__name__}: "
+                          f"{err}); running eagerly from now on", stacklevel=2)
+            return self._eager_step_and_maybe_reset(tensordict)
         return self._step_graph(tensordict)  # the capture recorded the step; this replay runs it
+
+    def _warmup_on_capture_stream(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
+        """The last warm-up call runs on the stream the capture will use (lazy per-stream set-up happens outside
+        the capture, as torch recommends)."""
+        current = torch.cuda.current_stream(self.device)
+        self._capture_stream = stream = torch.cuda.Stream(self.device)
+        stream.wait_stream(current)
+        with torch.cuda.stream(stream):
+            out = self._eager_step_and_maybe_reset(tensordict)
+        current.wait_stream(stream)
+        return out
 
     def _eager_step_and_maybe_reset(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
         tensordict = self.step(tensordict)

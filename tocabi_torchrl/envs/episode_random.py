@@ -23,8 +23,11 @@ def _mix(x: torch.Tensor) -> torch.Tensor:
     return x ^ (x >> 29)
 
 
-def episode_uniform(seed: int, env_ids: torch.Tensor, episode: torch.Tensor, stream: int, k: int) -> torch.Tensor:
-    """(num_envs, k) float32 uniforms in [0, 1) for each env's ``episode`` (num_envs,) int64 and a ``stream`` id."""
+def episode_uniform(seed: int | torch.Tensor, env_ids: torch.Tensor, episode: torch.Tensor, stream: int,
+                    k: int) -> torch.Tensor:
+    """(num_envs, k) float32 uniforms in [0, 1) for each env's ``episode`` (num_envs,) int64 and a ``stream`` id.
+
+    ``seed``: a Python int or a 0-d int64 tensor on the envs' device (same numbers either way)."""
     base = (env_ids.to(torch.int64) * 0x9E3779B1 + episode.to(torch.int64) * 0x85EBCA77 + (seed & 0xFFFFFFFF)) & _MASK
     lanes = torch.arange(k, dtype=torch.int64, device=env_ids.device) + (stream << 8)
     x = _mix(_mix(base.unsqueeze(-1) ^ (lanes * 0xC2B2AE3D)) + lanes)

@@ -7,6 +7,7 @@ whole step (physics, signals, transforms, masked reset) is a single launch.
 
 from __future__ import annotations
 
+import gc
 from collections.abc import Callable, Sequence
 
 import torch
@@ -39,13 +40,14 @@ class StepGraph:
         example: an input of the shape and keys the graph will take (its values are only copied).
         generators: CUDA ``torch.Generator`` objects the step draws from besides the default one; their offsets
             advance on every replay as in eager mode.
+        stream: the side stream to capture on (best the one the last eager warm-up call ran on); a new one if None.
         emulate: instead of capturing (CUDA only), call ``step_fn`` on the static inputs at every call and keep
             its outputs as the static outputs. Same bookkeeping and one step per call, no graph: this is how the
             wiring is tested without a GPU.
     """
 
     def __init__(self, step_fn: StepFn, example: TensorDictBase, generators: Sequence[torch.Generator] = (),
-                 emulate: bool = False):
+                 emulate: bool = False, stream: torch.cuda.Stream | None = None):
         device = example.device
         if not emulate and (device is None or device.type != "cuda"):
             raise ValueError(f"StepGraph captures CUDA work; the input tensordict is on {device}")
@@ -58,10 +60,18 @@ class StepGraph:
         self.graph = torch.cuda.CUDAGraph()
         for gen in generators:
             self.graph.register_generator_state(gen)
-        stream = torch.cuda.Stream(device)
+        stream = stream if stream is not None else torch.cuda.Stream(device)
         stream.wait_stream(torch.cuda.current_stream(device))
-        with torch.cuda.graph(self.graph, stream=stream):
-            out, carry = step_fn(self._static_in.copy())
+        # No garbage collection while capturing: freeing an unrelated warp array could call cudaFree, which a
+        # "global" capture forbids (torch.cuda.graph collects once before it starts).
+        gc_was_enabled = gc.isenabled()
+        gc.disable()
+        try:
+            with torch.cuda.graph(self.graph, stream=stream):
+                out, carry = step_fn(self._static_in.copy())
+        finally:
+            if gc_was_enabled:
+                gc.enable()
         torch.cuda.current_stream(device).wait_stream(stream)
         self._set_outputs(out, carry)
 

@@ -118,6 +118,8 @@ class TocabiWalk(EnvBase):
         self._seed = int(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item())
         self.rng = torch.Generator(device=device)
         self.rng.manual_seed(self._seed)
+        # The reset's per-episode draws read the seed from the device, so a captured step graph follows set_seed.
+        self._seed_t = torch.tensor(self._seed, dtype=torch.int64, device=device)
         self.command = VelocityCommand(cfg.command, num_envs, device, self.rng)
         self._init_buffers()
         self._make_specs()
@@ -300,7 +302,7 @@ class TocabiWalk(EnvBase):
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(self.num_envs).to(torch.bool)
         # Random start row and first command from (seed, env, episode): identical whichever reset path runs.
-        u = episode_uniform(self._seed, self._env_ids, self.episode_count, stream=0, k=3)
+        u = episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=0, k=3)
         self.episode_count.add_(mask.long())
         pick = (u[:, 0] * len(self._init_rows)).long().clamp_(max=len(self._init_rows) - 1)
         self.init_row.copy_(torch.where(mask, self._init_rows[pick], self.init_row))
@@ -332,6 +334,7 @@ class TocabiWalk(EnvBase):
         if seed is not None:
             self._seed = int(seed)
             self.rng.manual_seed(self._seed)
+            self._seed_t.fill_(self._seed)
 
     def cuda_graph_generators(self) -> list[torch.Generator]:
         """The CUDA generators a step draws from besides torch's default one (command resampling), which a

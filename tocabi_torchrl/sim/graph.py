@@ -33,6 +33,17 @@ def _current_warp_stream(device: wp.Device) -> wp.Stream:
     return stream
 
 
+def _capture_id(stream: wp.Stream) -> int | None:
+    """CUDA's id of the capture in progress on ``stream`` (0 when none; None where warp does not expose it: warp has
+    no public call for it, so this reads warp's runtime binding and skips the check if that ever moves)."""
+    try:
+        from warp._src.context import runtime
+
+        return int(runtime.core.wp_cuda_stream_get_capture_id(stream.cuda_stream))
+    except (ImportError, AttributeError):
+        return None
+
+
 def torch_stream_scope(device: wp.Device):
     """Context in which warp launches go to PyTorch's current stream (no-op on CPU)."""
     if not device.is_cuda:
@@ -64,6 +75,7 @@ class Recorded:
         self.fn = fn
         self.device = device
         self.graph = None
+        self._joined: list = []  # warp Graphs of the captures this object joined (see _join_torch_capture)
         if use_graph and device.is_cuda and not wp.is_mempool_enabled(device):
             print(
                 f"[tocabi_torchrl.sim] warp memory pool disabled on {device}: running without CUDA graphs (slower); "
@@ -105,9 +117,21 @@ class Recorded:
         with warp as an external capture so that warp's own conditional nodes and allocations join it.
         """
         stream = _current_warp_stream(self.device)
+        capture_id = _capture_id(stream)
         with _no_gc(), wp.ScopedDevice(self.device), wp.ScopedStream(stream, sync_enter=False):
-            wp.capture_begin(stream=stream, force_module_load=False, external=True)
+            # GLOBAL: warp pauses and resumes the capture around its conditional nodes; resume it in torch's mode.
+            wp.capture_begin(stream=stream, force_module_load=False, external=True,
+                             capture_mode=wp.CaptureMode.GLOBAL)
             try:
                 self.fn()
             finally:
-                wp.capture_end(stream=stream)
+                graph = wp.capture_end(stream=stream)
+        # The warp Graph holds the kernel modules the launches use: keep them loaded while the torch graph lives.
+        self._joined.append(graph)
+        if capture_id is not None and _capture_id(stream) != capture_id:
+            # torch routes the capture's allocations to the graph's private pool by this id: after a change, the
+            # torch ops recorded next would allocate outside it.
+            raise RuntimeError(
+                "warp's conditional nodes restarted PyTorch's CUDA graph capture under a new capture id; this "
+                "warp/torch combination cannot join the physics into a torch graph (use cuda_graph=False)"
+            )
