@@ -200,6 +200,9 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
         track_traj_ids=False,  # trajectory ids are unused here and cost a host read (done.any()) per step
         # Each batch is consumed before the next rollout starts: no defensive copy of the whole rollout.
         return_same_td=True,
+        # Env, policy and storage share one device, so there is nothing to synchronise; this also keeps the collector
+        # from moving the rollout (and, as its context outlives each yield, the update) to a side stream.
+        no_cuda_sync=True,
     )
     logger = RunLogger(run_dir, cfg, total_iterations=iterations, start_iteration=start_iter)
     lr = optimizer.param_groups[0]["lr"]
