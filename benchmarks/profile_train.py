@@ -3,8 +3,9 @@
     python benchmarks/profile_train.py --num_envs 4096
 
 Prints, per stage, wall ms per policy step (or per iteration) and host CPU ms per step, so one can tell whether the
-collection is GPU-bound (physics) or host-bound (Python and kernel launches while the host waits on ``done.any()``).
-Also writes a torch.profiler table of one collection iteration to ``--out`` when given.
+collection is GPU-bound (physics) or host-bound (Python and kernel launches, or the host waiting on ``done.any()``).
+Collection is timed with TorchRL's stock automatic reset, the sync-free one, and (on CUDA) the sync-free step captured
+as one CUDA graph. Also writes torch.profiler tables of one collection iteration of the last of these to ``--out``.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def main(argv=None) -> None:
     parser.add_argument("--num_envs", type=int, default=4096)
     parser.add_argument("--steps", type=int, default=48)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--control_mode", default="torque")
+    parser.add_argument("--control_mode", default=preset_config("default").control_mode)
     parser.add_argument("--out", default="")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
@@ -81,9 +82,11 @@ def main(argv=None) -> None:
     from torchrl.collectors import Collector
 
     batch = None
-    for sync_free in (False, True):
-        env = build_env(cfg, device, sync_free_resets=sync_free)
-        tag = "sync-free" if sync_free else "stock"
+    variants = [("stock", {"sync_free_resets": False}), ("sync-free", {"sync_free_resets": True})]
+    if device.type == "cuda":
+        variants.append(("graph", {"sync_free_resets": True, "cuda_graph": True}))
+    for tag, env_kw in variants:
+        env = build_env(cfg, device, **env_kw)
         state = {"td": env.reset()}
 
         def step_and_reset():
@@ -97,7 +100,7 @@ def main(argv=None) -> None:
         it = iter(collector)
         batch = next(it)
         report(f"collector iteration, 24 steps [{tag}]", *timed(lambda: next(it), 3, device, warmup=1), per="iter")
-        if args.out and sync_free:
+        if args.out and tag == variants[-1][0]:  # the profiler tables of the fastest path
             from torch.profiler import ProfilerActivity, profile
 
             acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
