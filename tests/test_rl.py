@@ -232,3 +232,32 @@ def test_chunked_gae_equals_unchunked():
         a, b = plain(batch.clone()), chunked(batch.clone())
     for key in ("advantage", "value_target", "state_value"):
         torch.testing.assert_close(b[key], a[key])
+
+
+@pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # no eager fallback for a changed key layout
+def test_collector_drives_the_graph_wiring_like_the_eager_env():
+    # A TorchRL Collector over the training env, once eager and once through SyncFreeResetEnv's graph path (with
+    # StepGraph's emulated replay, as no GPU is needed): the key layout must settle so the graph path is taken, and
+    # the collected batches must be identical.
+    from torchrl.collectors import Collector
+
+    from tocabi_torchrl.rl.trainer import build_agent, build_env
+
+    cfg = preset_config("default", num_envs=3, minibatch_size=16, device="cpu", steps_per_env=8, max_episode_steps=5)
+    device = torch.device("cpu")
+    batches = []
+    for wired in (False, True):
+        torch.manual_seed(0)
+        env = build_env(cfg, device, sync_free_resets=True, for_training=True)
+        env._cuda_graph = env._graph_emulate = wired
+        agent = build_agent(cfg, 237, 13, device)
+        collector = Collector(env, agent.actor, frames_per_batch=24, total_frames=72, device=device,
+                              storing_device=device, auto_register_policy_transforms=False, track_traj_ids=False,
+                              return_same_td=True, no_cuda_sync=True)
+        batches.append([b.clone() for b in collector])
+        collector.shutdown()
+        assert env.graph_captured == wired
+    for eager, graphed in zip(*batches):
+        assert set(graphed.keys(True, True)) == set(eager.keys(True, True))
+        for key in eager.keys(True, True):
+            torch.testing.assert_close(graphed[key], eager[key], rtol=0, atol=0, msg=lambda m, k=key: f"{k}: {m}")
