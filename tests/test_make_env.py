@@ -119,8 +119,8 @@ def test_gpu_step_and_maybe_reset_never_syncs(cuda_graph):
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # a failed capture or an eager fallback fails the test
-@pytest.mark.parametrize("preset", ["reference", "tocabilab"])
-def test_gpu_cuda_graph_step_matches_eager(preset):
+@pytest.mark.parametrize("preset, mode", [("reference", "joined"), ("tocabilab", "joined"), ("reference", "segmented")])
+def test_gpu_cuda_graph_step_matches_eager(preset, mode):
     # The captured step must keep every piece of state moving (phase clock, command ramps, history, step counter,
     # episode draws): any state frozen at its capture value shows up as a difference within a few steps.
     # Short and gentle (24 steps of small residuals: nobody falls), so that GPU contact-order noise between the two
@@ -128,6 +128,7 @@ def test_gpu_cuda_graph_step_matches_eager(preset):
     n, steps = 64, 24
     kw = dict(num_envs=n, device="cuda", seed=3, max_episode_steps=7, preset=preset, control_mode="pd_reference")
     eager, graphed = make_env(cuda_graph=False, **kw), make_env(cuda_graph=True, **kw)
+    graphed.graph_modes = (mode,)
     gen = torch.Generator(device="cuda").manual_seed(0)
     actions = [(torch.rand(n, 13, device="cuda", generator=gen) * 2 - 1) * 0.3 for _ in range(steps)]
     td_e, td_g = eager.reset(), graphed.reset()
@@ -142,7 +143,7 @@ def test_gpu_cuda_graph_step_matches_eager(preset):
                                        msg=lambda m, i=i, key=key: f"step {i}, carry {key}: {m}")
         kept.append((out_g["next", "observation"], out_g["next", "observation"].clone()))
         n_done += int(out_e["next", "done"].sum())
-    assert graphed.graph_captured and not eager.graph_captured
+    assert graphed.graph_captured and not eager.graph_captured and graphed._step_graph.mode == mode
     assert n_done >= n * (steps // 7), "the 7-step truncation must have reset every env three times"
     # Every step returned its own tensors: later replays did not overwrite earlier outputs.
     for returned, copy in kept:

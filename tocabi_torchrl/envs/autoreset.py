@@ -48,6 +48,8 @@ class SyncFreeResetEnv(TransformedEnv):
         # Tests without a GPU run the same wiring with StepGraph's emulated (uncaptured) replay.
         self._graph_emulate = False
         self._capture_stream = None
+        #: Capture modes tried in order (see StepGraph): one joined graph, else torch graphs cut around the physics.
+        self.graph_modes: tuple[str, ...] = ("joined", "segmented")
 
     @property
     def cuda_graph(self) -> bool:
@@ -97,14 +99,21 @@ class SyncFreeResetEnv(TransformedEnv):
         if self._eager_calls == self._graph_warmup:
             return self._warmup_on_capture_stream(tensordict)
         generators = getattr(self.base_env, "cuda_graph_generators", list)()
-        try:
-            self._step_graph = StepGraph(self._eager_step_and_maybe_reset, tensordict, generators,
-                                         emulate=self._graph_emulate, stream=self._capture_stream)
-        except Exception as err:  # noqa: BLE001 - any capture failure: keep training, eagerly, and say why
+        failures = []
+        for mode in self.graph_modes:
+            try:
+                self._step_graph = StepGraph(self._eager_step_and_maybe_reset, tensordict, generators,
+                                             emulate=self._graph_emulate, stream=self._capture_stream, mode=mode)
+                break
+            except Exception as err:  # noqa: BLE001 - any capture failure: try the next mode, say why
+                failures.append(f"{mode}: {type(err).__name__}: {err}")
+        if failures:
+            outcome = (f"using the {self._step_graph.mode!r} capture" if self._step_graph is not None
+                       else "running eagerly from now on")
+            warnings.warn(f"SyncFreeResetEnv: capturing the step as a CUDA graph failed ({'; '.join(failures)}); "
+                          f"{outcome}", stacklevel=2)
+        if self._step_graph is None:
             self._cuda_graph = False
-            self._step_graph = None
-            warnings.warn(f"SyncFreeResetEnv: capturing the step as a CUDA graph failed ({type(err).__name__}: "
-                          f"{err}); running eagerly from now on", stacklevel=2)
             return self._eager_step_and_maybe_reset(tensordict)
         return self._step_graph(tensordict)  # the capture recorded the step; this replay runs it
 

@@ -2,7 +2,8 @@
 
 An env step of the walking task is a few hundred small torch launches around one physics graph; launched one by one
 from Python, the host needs longer than the GPU needs to run them, so the GPU idles. Captured once and replayed, the
-whole step (physics, signals, transforms, masked reset) is a single launch.
+whole step (physics, signals, transforms, masked reset) is a single launch ("joined" mode), or five when the torch
+graphs are cut around the simulator's own step and reset graphs ("segmented" mode).
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+
+from ..sim.graph import SegmentedCapture
 
 __all__ = ["StepGraph"]
 
@@ -41,34 +44,49 @@ class StepGraph:
         generators: CUDA ``torch.Generator`` objects the step draws from besides the default one; their offsets
             advance on every replay as in eager mode.
         stream: the side stream to capture on (best the one the last eager warm-up call ran on); a new one if None.
+        mode: ``"joined"``: one torch CUDA graph, the physics recorded into it through warp's external capture
+            (:meth:`~tocabi_torchrl.sim.graph.Recorded._join_torch_capture`); ``"segmented"``: torch graphs cut
+            around the physics, whose own warp graphs are launched between them
+            (:class:`~tocabi_torchrl.sim.graph.SegmentedCapture`, a few launches per step, nothing nested).
         emulate: instead of capturing (CUDA only), call ``step_fn`` on the static inputs at every call and keep
             its outputs as the static outputs. Same bookkeeping and one step per call, no graph: this is how the
             wiring is tested without a GPU.
     """
 
     def __init__(self, step_fn: StepFn, example: TensorDictBase, generators: Sequence[torch.Generator] = (),
-                 emulate: bool = False, stream: torch.cuda.Stream | None = None):
+                 emulate: bool = False, stream: torch.cuda.Stream | None = None, mode: str = "joined"):
         device = example.device
         if not emulate and (device is None or device.type != "cuda"):
             raise ValueError(f"StepGraph captures CUDA work; the input tensordict is on {device}")
+        if mode not in ("joined", "segmented"):
+            raise ValueError(f"StepGraph mode must be 'joined' or 'segmented', got {mode!r}")
+        self.mode = mode
         self.keys = _sorted_keys(example)
         self._static_in = example.select(*self.keys).clone()
         self._in_leaves = [self._static_in.get(k) for k in self.keys]
-        self._step_fn, self.graph = step_fn, None
+        self._step_fn, self._replay = step_fn, None
         if emulate:
             return  # the outputs' layout is taken from the first call
-        self.graph = torch.cuda.CUDAGraph()
-        for gen in generators:
-            self.graph.register_generator_state(gen)
         stream = stream if stream is not None else torch.cuda.Stream(device)
         stream.wait_stream(torch.cuda.current_stream(device))
         # No garbage collection while capturing: freeing an unrelated warp array could call cudaFree, which a
         # "global" capture forbids (torch.cuda.graph collects once before it starts).
+        gc.collect()
         gc_was_enabled = gc.isenabled()
         gc.disable()
         try:
-            with torch.cuda.graph(self.graph, stream=stream):
-                out, carry = step_fn(self._static_in.copy())
+            if mode == "joined":
+                graph = torch.cuda.CUDAGraph()
+                for gen in generators:
+                    graph.register_generator_state(gen)
+                with torch.cuda.graph(graph, stream=stream):
+                    out, carry = step_fn(self._static_in.copy())
+                self._replay = graph.replay
+            else:
+                torch.cuda.synchronize(device)  # as torch.cuda.graph does before a capture
+                with SegmentedCapture(stream, generators) as segmented:
+                    out, carry = step_fn(self._static_in.copy())
+                self._replay = segmented.replay
         finally:
             if gc_was_enabled:
                 gc.enable()
@@ -95,8 +113,8 @@ class StepGraph:
 
     def __call__(self, td: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
         torch._foreach_copy_(self._in_leaves, [td.get(k) for k in self.keys])
-        if self.graph is not None:
-            self.graph.replay()
+        if self._replay is not None:
+            self._replay()
         else:
             out, carry = self._step_fn(self._static_in.copy())
             self._set_outputs(out, carry)  # these fresh outputs act as the static ones

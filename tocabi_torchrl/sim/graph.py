@@ -6,21 +6,27 @@ synchronisation. On CPU, warp (>= 1.19) records the launches and replays them fr
 of a few hundred launches per step; the recorded and the eager paths give bit-identical results.
 
 Called while PyTorch captures a CUDA graph on its current stream (``torch.cuda.graph``), the launches join that
-capture instead, so a larger graph (the env's whole step, see ``envs.autoreset``) can contain the physics.
+capture instead, so a larger graph (the env's whole step, see ``envs.autoreset``) can contain the physics. Called
+inside a :class:`SegmentedCapture`, the recorded graph is not nested at all: the torch capture is cut around it and
+the warp graph is launched between the torch graphs at replay.
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import gc
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 import warp as wp
 
-__all__ = ["Recorded", "torch_stream_scope"]
+__all__ = ["Recorded", "SegmentedCapture", "torch_stream_scope"]
 
 _STREAMS: dict[tuple[str, int], wp.Stream] = {}
+#: The SegmentedCapture in progress in this context, if any (set only inside its ``with`` block).
+_SEGMENTED: contextvars.ContextVar[SegmentedCapture | None] = contextvars.ContextVar("segmented_capture",
+                                                                                     default=None)
 
 
 def _current_warp_stream(device: wp.Device) -> wp.Stream:
@@ -99,7 +105,10 @@ class Recorded:
         self.graph = cap.graph
 
     def __call__(self) -> None:
-        if self.device.is_cuda and torch.cuda.is_current_stream_capturing():
+        segmented = _SEGMENTED.get()
+        if segmented is not None and self.device.is_cuda:
+            segmented.add_launch(self)  # called again at replay, outside any capture
+        elif self.device.is_cuda and torch.cuda.is_current_stream_capturing():
             self._join_torch_capture()
         elif self.graph is None:
             with wp.ScopedDevice(self.device), torch_stream_scope(self.device):
@@ -135,3 +144,68 @@ class Recorded:
                 "warp's conditional nodes restarted PyTorch's CUDA graph capture under a new capture id; this "
                 "warp/torch combination cannot join the physics into a torch graph (use cuda_graph=False)"
             )
+
+
+class SegmentedCapture:
+    """Capture torch work and :class:`Recorded` warp graphs as alternating torch CUDA graphs and warp graph launches.
+
+    Inside the ``with`` block, torch ops are captured into a torch CUDA graph on ``stream``; each call of a
+    :class:`Recorded` object ends that graph, is noted as a launch, and a new torch graph begins. :meth:`replay`
+    runs the pieces in order on the current stream: a handful of launches per step, and no warp graph is ever nested
+    in a torch one (the alternative to :meth:`Recorded._join_torch_capture`). The torch graphs share one memory pool
+    and are always replayed in capture order, so tensors made in one piece and read in a later one stay valid.
+
+    Args:
+        stream: a side stream to capture on (capture cannot use the default stream).
+        generators: custom CUDA generators the captured torch work draws from, registered with every piece.
+    """
+
+    def __init__(self, stream: torch.cuda.Stream, generators=()):
+        self.stream = stream
+        self.generators = tuple(generators)
+        self.pool = torch.cuda.graph_pool_handle()
+        self.pieces: list[Callable[[], None]] = []
+        self._graph: torch.cuda.CUDAGraph | None = None
+        self._token = None
+        self._stream_ctx = None
+
+    def _begin(self) -> None:
+        self._graph = torch.cuda.CUDAGraph()
+        for gen in self.generators:
+            self._graph.register_generator_state(gen)
+        self._graph.capture_begin(pool=self.pool, capture_error_mode="global")
+
+    def _end(self) -> None:
+        graph, self._graph = self._graph, None
+        graph.capture_end()
+        self.pieces.append(graph.replay)
+
+    def add_launch(self, launch: Callable[[], None]) -> None:
+        """Cut the torch capture here and replay ``launch()`` at this point."""
+        self._end()
+        self.pieces.append(launch)
+        self._begin()
+
+    def __enter__(self) -> SegmentedCapture:
+        self._stream_ctx = torch.cuda.stream(self.stream)
+        self._stream_ctx.__enter__()
+        self._token = _SEGMENTED.set(self)
+        self._begin()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            if self._graph is not None:
+                if exc_type is None:
+                    self._end()
+                else:
+                    with contextlib.suppress(Exception):  # the capture failed already; leave capture mode
+                        self._graph.capture_end()
+                    self._graph = None
+        finally:
+            _SEGMENTED.reset(self._token)
+            self._stream_ctx.__exit__(exc_type, exc, tb)
+
+    def replay(self) -> None:
+        for piece in self.pieces:
+            piece()
