@@ -8,6 +8,8 @@ For each env count, three numbers of policy steps per second (8 physics substeps
   * env: ``TocabiWalk.step`` (torque mode), legs driven by the same PD hold of the initial pose computed in torch
   * make_env: the same through ``make_env``'s transforms (observation history, normalisation, 13 reward terms)
 and the ratios env/raw (target >= 0.9 at 4096) and the transforms' share of the env step (target <= 10 %).
+Also the collectors' call, ``step_and_maybe_reset`` of the sync-free env (masked reset every step), eager and with
+the step captured as a CUDA graph (``cuda_graph=True``), as policy steps per second.
 Writes ``docs/benchmarks/env_throughput.{json,md,png}``.
 """
 
@@ -54,6 +56,33 @@ def time_env(env, steps: int, warmup: int = 10) -> float:
     return steps * env.batch_size[0] / (time.perf_counter() - t0)
 
 
+def time_autoreset(env, steps: int, warmup: int = 10) -> float:
+    """Policy steps per second of ``env.step_and_maybe_reset`` (what collectors call), same PD-hold actions."""
+    dev = env.device
+    kp, kv = (torch.as_tensor(x, dtype=torch.float32, device=dev) for x in (robot.LEG_KP, robot.LEG_KV))
+    q0 = torch.as_tensor(robot.INIT_JOINT_POS[:12], dtype=torch.float32, device=dev)
+    limits = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32, device=dev)
+    td = env.reset()
+    for k in range(warmup + steps):
+        if k == warmup:
+            torch.cuda.synchronize()
+            t0 = time.perf_counter()
+        _, td = env.step_and_maybe_reset(td.set("action", _pd_hold_action(td, kp, kv, q0, limits)))
+    torch.cuda.synchronize()
+    return steps * env.batch_size[0] / (time.perf_counter() - t0)
+
+
+def _autoreset_rate(n: int, steps: int, cuda_graph: bool) -> float:
+    env = make_env(num_envs=n, device="cuda", seed=0, max_episode_steps=10**6, cuda_graph=cuda_graph)
+    rate = time_autoreset(env, steps)
+    if cuda_graph and not env.graph_captured:
+        raise RuntimeError("the step was not captured as a CUDA graph (see the warning above)")
+    del env
+    gc.collect()
+    torch.cuda.empty_cache()
+    return rate
+
+
 def measure(n: int, steps: int) -> dict:
     raw = raw_policy_steps_per_second(n, steps)
     env = TocabiWalk(num_envs=n, device="cuda", seed=0, max_episode_steps=10**6)
@@ -67,9 +96,15 @@ def measure(n: int, steps: int) -> dict:
     del tenv
     gc.collect()
     torch.cuda.empty_cache()
+    sync_free = _autoreset_rate(n, steps, cuda_graph=False)
+    graphed = _autoreset_rate(n, steps, cuda_graph=True)
     return {
         "num_envs": n,
         "raw_policy_steps_per_s": raw,
+        "autoreset_steps_per_s": sync_free,
+        "autoreset_graph_steps_per_s": graphed,
+        "autoreset_over_raw": sync_free / raw,
+        "autoreset_graph_over_raw": graphed / raw,
         "env_steps_per_s": bare,
         "make_env_steps_per_s": transformed,
         "env_over_raw": bare / raw,
@@ -113,10 +148,11 @@ def main(argv=None) -> None:
     text = write_report(
         args.out, "env_throughput", "Environment throughput", run_meta("env_throughput.py", argv), results,
         ["envs", "raw policy steps/s", "TocabiWalk steps/s", "env / raw", "make_env steps/s", "make_env / raw",
-         "transforms' share of env step"],
+         "transforms' share of env step", "step_and_maybe_reset / raw (eager)", "(CUDA graph)"],
         lambda r: [str(r["num_envs"]), f"{r['raw_policy_steps_per_s']:,.0f}", f"{r['env_steps_per_s']:,.0f}",
                    f"{r['env_over_raw']:.3f}", f"{r['make_env_steps_per_s']:,.0f}", f"{r['make_env_over_raw']:.3f}",
-                   f"{100 * r['transform_share_of_env_step']:.1f} %"],
+                   f"{100 * r['transform_share_of_env_step']:.1f} %", f"{r['autoreset_over_raw']:.3f}",
+                   f"{r['autoreset_graph_over_raw']:.3f}"],
     )
     _plot(results, Path(args.out) / "env_throughput.png")
     print(text)
