@@ -40,8 +40,9 @@ def _pd_hold_action(td, kp, kv, q0, limits):
     return torch.cat((legs, torch.zeros_like(legs[:, :1])), dim=-1)
 
 
-def time_env(env, steps: int, warmup: int = 10) -> float:
-    """Policy steps per second of ``env.step`` (all envs) over ``steps`` steps after ``warmup``."""
+def _timed_loop(env, step, steps: int, warmup: int) -> float:
+    """Policy steps per second of ``td = step(td_with_action)`` over ``steps`` steps after ``warmup``; the action
+    is a PD hold of the initial pose computed from the current ``td``."""
     dev = env.device
     kp, kv = (torch.as_tensor(x, dtype=torch.float32, device=dev) for x in (robot.LEG_KP, robot.LEG_KV))
     q0 = torch.as_tensor(robot.INIT_JOINT_POS[:12], dtype=torch.float32, device=dev)
@@ -51,25 +52,19 @@ def time_env(env, steps: int, warmup: int = 10) -> float:
         if k == warmup:
             torch.cuda.synchronize()
             t0 = time.perf_counter()
-        td = env.step(td.set("action", _pd_hold_action(td, kp, kv, q0, limits)))["next"]
+        td = step(td.set("action", _pd_hold_action(td, kp, kv, q0, limits)))
     torch.cuda.synchronize()
     return steps * env.batch_size[0] / (time.perf_counter() - t0)
+
+
+def time_env(env, steps: int, warmup: int = 10) -> float:
+    """Policy steps per second of ``env.step`` (all envs)."""
+    return _timed_loop(env, lambda td: env.step(td)["next"], steps, warmup)
 
 
 def time_autoreset(env, steps: int, warmup: int = 10) -> float:
     """Policy steps per second of ``env.step_and_maybe_reset`` (what collectors call), same PD-hold actions."""
-    dev = env.device
-    kp, kv = (torch.as_tensor(x, dtype=torch.float32, device=dev) for x in (robot.LEG_KP, robot.LEG_KV))
-    q0 = torch.as_tensor(robot.INIT_JOINT_POS[:12], dtype=torch.float32, device=dev)
-    limits = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32, device=dev)
-    td = env.reset()
-    for k in range(warmup + steps):
-        if k == warmup:
-            torch.cuda.synchronize()
-            t0 = time.perf_counter()
-        _, td = env.step_and_maybe_reset(td.set("action", _pd_hold_action(td, kp, kv, q0, limits)))
-    torch.cuda.synchronize()
-    return steps * env.batch_size[0] / (time.perf_counter() - t0)
+    return _timed_loop(env, lambda td: env.step_and_maybe_reset(td)[1], steps, warmup)
 
 
 def _autoreset_rate(n: int, steps: int, cuda_graph: bool) -> float:
