@@ -94,7 +94,7 @@ class SyncFreeResetEnv(TransformedEnv):
                 )
             return self._eager_step_and_maybe_reset(tensordict)
         self._eager_calls += 1
-        if self._eager_calls < self._graph_warmup or (self._eager_calls == self._graph_warmup and self._graph_emulate):
+        if self._eager_calls < self._graph_warmup:
             return self._eager_step_and_maybe_reset(tensordict)
         if self._eager_calls == self._graph_warmup:
             return self._warmup_on_capture_stream(tensordict)
@@ -120,6 +120,8 @@ class SyncFreeResetEnv(TransformedEnv):
     def _warmup_on_capture_stream(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
         """The last warm-up call runs on the stream the capture will use (lazy per-stream set-up happens outside
         the capture, as torch recommends)."""
+        if self._graph_emulate:  # no CUDA: the emulated replay needs no stream
+            return self._eager_step_and_maybe_reset(tensordict)
         current = torch.cuda.current_stream(self.device)
         self._capture_stream = stream = torch.cuda.Stream(self.device)
         stream.wait_stream(current)

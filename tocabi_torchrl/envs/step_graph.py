@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from ..sim.graph import SegmentedCapture
+from ..sim.graph import SegmentedCapture, no_gc
 
 __all__ = ["StepGraph"]
 
@@ -72,9 +72,7 @@ class StepGraph:
         # No garbage collection while capturing: freeing an unrelated warp array could call cudaFree, which a
         # "global" capture forbids (torch.cuda.graph collects once before it starts).
         gc.collect()
-        gc_was_enabled = gc.isenabled()
-        gc.disable()
-        try:
+        with no_gc():
             if mode == "joined":
                 graph = torch.cuda.CUDAGraph()
                 for gen in generators:
@@ -87,9 +85,6 @@ class StepGraph:
                 with SegmentedCapture(stream, generators) as segmented:
                     out, carry = step_fn(self._static_in.copy())
                 self._replay = segmented.replay
-        finally:
-            if gc_was_enabled:
-                gc.enable()
         torch.cuda.current_stream(device).wait_stream(stream)
         self._set_outputs(out, carry)
 

@@ -57,7 +57,7 @@ def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None,
     """``make_env`` with the run's task settings.
 
     ``for_training``: unless ``cfg.store_env_signals``, the env's outputs are cut to what PPO, the logs and the
-    transforms' next step read (:func:`training_keys`), so the collector stores half as much per frame.
+    transforms' next step read (:func:`training_keys`), so the collector stores ~40 % less per frame.
     """
     from .. import make_env
     from ..envs import CommandConfig

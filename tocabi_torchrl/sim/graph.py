@@ -21,7 +21,7 @@ from collections.abc import Callable
 import torch
 import warp as wp
 
-__all__ = ["Recorded", "SegmentedCapture", "torch_stream_scope"]
+__all__ = ["Recorded", "SegmentedCapture", "no_gc", "torch_stream_scope"]
 
 _STREAMS: dict[tuple[str, int], wp.Stream] = {}
 #: The SegmentedCapture in progress in this context, if any (set only inside its ``with`` block).
@@ -58,7 +58,7 @@ def torch_stream_scope(device: wp.Device):
 
 
 @contextlib.contextmanager
-def _no_gc():
+def no_gc():
     # A garbage collection during capture could finalise an unrelated warp object and record its free into the graph.
     enabled = gc.isenabled()
     gc.disable()
@@ -93,7 +93,7 @@ class Recorded:
             self._capture()
 
     def _capture(self) -> None:
-        with _no_gc(), wp.ScopedDevice(self.device):
+        with no_gc(), wp.ScopedDevice(self.device):
             if self.device.is_cuda:
                 capture_stream = wp.Stream(self.device)
                 with wp.ScopedStream(capture_stream, sync_enter=False), wp.ScopedCapture(stream=capture_stream) as cap:
@@ -127,7 +127,7 @@ class Recorded:
         """
         stream = _current_warp_stream(self.device)
         capture_id = _capture_id(stream)
-        with _no_gc(), wp.ScopedDevice(self.device), wp.ScopedStream(stream, sync_enter=False):
+        with no_gc(), wp.ScopedDevice(self.device), wp.ScopedStream(stream, sync_enter=False):
             # GLOBAL: warp pauses and resumes the capture around its conditional nodes; resume it in torch's mode.
             wp.capture_begin(stream=stream, force_module_load=False, external=True,
                              capture_mode=wp.CaptureMode.GLOBAL)
