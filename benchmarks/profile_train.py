@@ -116,19 +116,49 @@ def main(argv=None) -> None:
                     prof.key_averages().table(sort_by="self_cuda_time_total", row_limit=40))
         collector.shutdown()
         del env
-    from torchrl.objectives.value import GAE
+    # The trainer's own path: its env (for_training), its collector and its update sizes, in states reached after a
+    # few rollouts of the untrained policy (falling and resetting robots), where physics costs more than standing.
     from torchrl.objectives import ClipPPOLoss
+    from torchrl.objectives.value import GAE
 
-    gae = GAE(gamma=0.99, lmbda=0.95, value_network=agent.critic, average_gae=False)
+    from tocabi_torchrl.rl.trainer import _loss_keys, make_collector
+
+    steps = preset_config("default").steps_per_env
+    tcfg = preset_config("default", num_envs=n, device=args.device, minibatch_size=min(49152, n * steps // 4),
+                         control_mode=args.control_mode)
+    env = build_env(tcfg, device, for_training=True)
+    collector = make_collector(tcfg, env, agent.actor, device)
+    it = iter(collector)
+    for _ in range(3):
+        next(it)
+    wall, cpu = timed(lambda: next(it), 2, device, warmup=0)
+    report(f"collector iteration [trainer], {steps} steps", wall / steps, cpu / steps)
+    carrier = collector._carrier  # the env state the collector stopped at
+
+    def step_and_reset_trainer():
+        nonlocal carrier
+        with torch.no_grad():
+            carrier.update(agent.actor(carrier))
+        _, carrier = env.step_and_maybe_reset(carrier)
+
+    report("policy + step_and_maybe_reset [trainer env]", *timed(step_and_reset_trainer, steps, device, warmup=0))
+    report("sim.step in these states", *timed(env.base_env.sim.step, steps, device, warmup=0))
+    batch = next(it)
+    gae = GAE(gamma=tcfg.gamma, lmbda=tcfg.gae_lambda, value_network=agent.critic, average_gae=False,
+              value_chunk_size=65536 // steps)
+    work = batch.clone(False)
     with torch.no_grad():
-        report("GAE", *timed(lambda: gae(batch), 3, device, warmup=1), per="iter")
+        report("GAE", *timed(lambda: gae(work), 3, device, warmup=1), per="iter")
     loss = ClipPPOLoss(agent.actor, agent.critic, clip_epsilon=0.2, normalize_advantage=True)
     loss.set_keys(sample_log_prob="action_log_prob")
-    opt = torch.optim.Adam(list(agent.actor.parameters()) + list(agent.critic.parameters()), lr=1e-4)
-    flat = batch.reshape(-1)
-    report("PPO update (5 epochs)", *timed(lambda: _update(cfg, flat, loss, opt, agent), 2, device, warmup=1),
-           per="iter")
-
+    opt = torch.optim.Adam(list(agent.actor.parameters()) + list(agent.critic.parameters()), lr=1e-4,
+                           fused=device.type == "cuda")
+    flat = work.select(*_loss_keys(loss, work)).reshape(-1)
+    for tf32 in (False, True):
+        torch.backends.cuda.matmul.allow_tf32 = tf32
+        report(f"PPO update ({tcfg.epochs} epochs x {flat.shape[0] // tcfg.minibatch_size} mini-batches, tf32={tf32})",
+               *timed(lambda: _update(tcfg, flat, loss, opt, agent), 2, device, warmup=1), per="iter")
+    collector.shutdown()
 
 if __name__ == "__main__":
     main()

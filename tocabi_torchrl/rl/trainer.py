@@ -154,6 +154,29 @@ def _episode_metrics(batch: TensorDictBase) -> dict[str, float]:
     return dict(zip(out.keys(), values.cpu().tolist()))
 
 
+def make_collector(cfg: PPOConfig, env: EnvBase, actor: torch.nn.Module, device: torch.device,
+                   total_frames: int = -1) -> Collector:
+    """The TorchRL collector of :func:`train`: ``cfg.frames_per_batch`` frames per batch, all on ``device``.
+
+    The batch it yields is its own buffer, overwritten by the next rollout: consume it (or clone it) first.
+    """
+    return Collector(
+        env,
+        actor,
+        frames_per_batch=cfg.frames_per_batch,
+        total_frames=total_frames,
+        device=device,
+        storing_device=device,
+        auto_register_policy_transforms=False,  # the env already has every transform the policy reads
+        track_traj_ids=False,  # trajectory ids are unused here and cost a host read (done.any()) per step
+        # Each batch is consumed before the next rollout starts: no defensive copy of the whole rollout.
+        return_same_td=True,
+        # Env, policy and storage share one device, so there is nothing to synchronise; this also keeps the collector
+        # from moving the rollout (and, as its context outlives each yield, the update) to a side stream.
+        no_cuda_sync=True,
+    )
+
+
 def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
     """Run PPO as configured; returns where the run was written and its throughput."""
     cfg.validate()
@@ -189,21 +212,7 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
     loss_module.set_keys(sample_log_prob="action_log_prob")
 
     iterations = cfg.iterations
-    collector = Collector(
-        env,
-        agent.actor,
-        frames_per_batch=cfg.frames_per_batch,
-        total_frames=(iterations - start_iter) * cfg.frames_per_batch,
-        device=device,
-        storing_device=device,
-        auto_register_policy_transforms=False,  # the env already has every transform the policy reads
-        track_traj_ids=False,  # trajectory ids are unused here and cost a host read (done.any()) per step
-        # Each batch is consumed before the next rollout starts: no defensive copy of the whole rollout.
-        return_same_td=True,
-        # Env, policy and storage share one device, so there is nothing to synchronise; this also keeps the collector
-        # from moving the rollout (and, as its context outlives each yield, the update) to a side stream.
-        no_cuda_sync=True,
-    )
+    collector = make_collector(cfg, env, agent.actor, device, (iterations - start_iter) * cfg.frames_per_batch)
     logger = RunLogger(run_dir, cfg, total_iterations=iterations, start_iteration=start_iter)
     lr = optimizer.param_groups[0]["lr"]
     t_start = time.perf_counter()
