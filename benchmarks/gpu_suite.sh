@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Runs on the GPU machine from the repo root: GPU tests, then the throughput benchmarks (results under docs/).
 # Usage: bash benchmarks/gpu_suite.sh [tests|sim|env|train|graph|profile|all]...   Logs go to $OUT (or /tmp) as well.
-# graph: training throughput with the env step captured as one CUDA graph (opt-in until measured).
+# graph: training throughput with the env step captured as one CUDA graph (opt-in: no measured gain).
 set -uo pipefail
 log=${OUT:-/tmp}
 export PYTHONUNBUFFERED=1
