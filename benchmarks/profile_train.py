@@ -6,6 +6,9 @@ Prints, per stage, wall ms per policy step (or per iteration) and host CPU ms pe
 collection is GPU-bound (physics) or host-bound (Python and kernel launches, or the host waiting on ``done.any()``).
 Collection is timed with TorchRL's stock automatic reset, the sync-free one, and (on CUDA) the sync-free step captured
 as one CUDA graph. Also writes torch.profiler tables of one collection iteration of the last of these to ``--out``.
+Last, the trainer's own path (``build_env(for_training=True)``, ``make_collector`` and the preset's mini-batch
+sizes) in the states reached after three rollouts: collector, policy + env step and bare physics per step, GAE, and
+the update with fp32 and with TF32 matmuls.
 """
 
 from __future__ import annotations
