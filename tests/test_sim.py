@@ -126,11 +126,18 @@ def test_views_alias_warp_memory(sim):
 
 
 def test_step_is_bit_identical_to_raw_mujoco_warp(sim):
-    """step() = substeps x mujoco_warp.step, with positions and sensors refreshed after the last one."""
+    """step() = substeps x mujoco_warp.step, then a forward pass (positions and sensors of the new state) whose
+    constraint solution warm-starts the next step."""
     _reset_standing(sim)
     raw = mjw.make_data(sim.mj_model, nworld=N, nconmax=sim.config.nconmax, njmax=sim.config.njmax)
     wp.copy(raw.qpos, sim.wp_data.qpos)
-    mjw.forward(sim.wp_model, raw)
+    wp.copy(raw.ctrl, sim.wp_data.ctrl)
+
+    def forward_and_warm_start():  # the backend's forward passes leave their solution as the solver's warm start
+        mjw.forward(sim.wp_model, raw)
+        wp.copy(raw.qacc_warmstart, raw.qacc)
+
+    forward_and_warm_start()
     rng = np.random.default_rng(0)
     for _ in range(6):
         ctrl = _upper_ctrl()
@@ -140,8 +147,9 @@ def test_step_is_bit_identical_to_raw_mujoco_warp(sim):
         sim.step()
         for _ in range(sim.config.substeps):
             mjw.step(sim.wp_model, raw)
-    assert np.array_equal(sim.applied_actuator_force.numpy(), raw.actuator_force.numpy())
-    mjw.forward(sim.wp_model, raw)
+        applied = raw.actuator_force.numpy().copy()  # on the CPU device .numpy() is a view
+        forward_and_warm_start()
+    assert np.array_equal(sim.applied_actuator_force.numpy(), applied)
     assert np.array_equal(sim.qpos.numpy(), raw.qpos.numpy())
     assert np.array_equal(sim.qvel.numpy(), raw.qvel.numpy())
     assert np.array_equal(sim.sensordata.numpy(), raw.sensordata.numpy())
@@ -166,6 +174,26 @@ def test_recorded_graphs_and_eager_calls_agree(sim):
             s_.reset(mask, _init_qpos(), torch.zeros(s_.nv), _upper_ctrl())
     for name in ("qpos", "qvel", "sensordata", "xpos", "foot_contact", "healthy", "applied_actuator_force"):
         assert torch.equal(getattr(sim, name), getattr(eager, name)), name
+
+
+def test_warm_start_is_the_solution_of_the_current_state(sim):
+    """After a step the solver's warm start is the post-step solution, so a masked reset's forward pass re-solves
+    the untouched worlds in one iteration (from the last substep's acceleration they took up to 5), and the
+    reset worlds keep their own solution as warm start for the next step."""
+    _reset_standing(sim)
+    rng = np.random.default_rng(7)
+    for _ in range(5):  # uneven contacts in every world
+        sim.ctrl[:, LEGS] = torch.as_tensor(rng.uniform(-0.3, 0.3, (N, 12)) * robot.LEG_TORQUE_LIMITS)
+        sim.step()
+    d = sim.wp_data
+    assert np.array_equal(d.qacc_warmstart.numpy(), d.qacc.numpy())
+    warm_before = d.qacc_warmstart.numpy().copy()
+    mask = torch.tensor([True, False, True, False])
+    sim.reset(mask, _init_qpos(), torch.zeros(sim.nv), _upper_ctrl())
+    untouched = (~mask).numpy()
+    assert np.all(d.solver_niter.numpy()[untouched] <= 1), d.solver_niter.numpy()
+    assert np.array_equal(d.qacc_warmstart.numpy()[untouched], warm_before[untouched])
+    assert np.array_equal(d.qacc_warmstart.numpy()[mask.numpy()], d.qacc.numpy()[mask.numpy()])
 
 
 # ----------------------------------------------------------------------------------------------------- reset

@@ -67,15 +67,22 @@ def test_views_have_the_warp_backends_shapes_and_dtypes(sim):
     assert sim.base_pos.data_ptr() == sim.xpos[:, base].data_ptr()
 
 
+def _forward_and_warm_start(m, d):
+    """mj_forward whose constraint solution warm-starts the next step, as the backend's forward passes do."""
+    mujoco.mj_forward(m, d)
+    d.qacc_warmstart[:] = d.qacc
+
+
 def test_step_is_mj_step_times_substeps_then_forward(sim):
-    """Float64 C stepping, published as float32: equal to raw mj_step x 8 + mj_forward cast to float32."""
+    """Float64 C stepping, published as float32: equal to raw mj_step x 8 + mj_forward cast to float32, each forward
+    pass's constraint solution warm-starting the next step."""
     _reset_standing(sim)
     m = sim.mj_model
     raw = [mujoco.MjData(m) for _ in range(N)]
     for w, d in enumerate(raw):
         d.qpos[:] = sim.qpos[w].numpy()  # the reset took these float32 values exactly
         d.ctrl[:] = sim.ctrl[w].numpy()
-        mujoco.mj_forward(m, d)
+        _forward_and_warm_start(m, d)
     rng = np.random.default_rng(0)
     for _ in range(6):
         ctrl = _random_legs(rng)
@@ -85,9 +92,9 @@ def test_step_is_mj_step_times_substeps_then_forward(sim):
             d.ctrl[:] = ctrl[w].numpy()
             for _ in range(sim.config.substeps):
                 mujoco.mj_step(m, d)
-    applied = np.stack([d.actuator_force for d in raw])
-    for d in raw:
-        mujoco.mj_forward(m, d)
+        applied = np.stack([d.actuator_force for d in raw])
+        for d in raw:
+            _forward_and_warm_start(m, d)
     for name, field in (("qpos", "qpos"), ("qvel", "qvel"), ("sensordata", "sensordata"), ("xpos", "xpos")):
         expected = torch.from_numpy(np.stack([getattr(d, field) for d in raw])).float()
         assert torch.equal(getattr(sim, name), expected), name

@@ -15,9 +15,10 @@ only that world, is rounded to float32 once) and takes a full ``mj_step`` first,
 
 Step semantics match ``WarpSim``: one :meth:`step` is ``substeps`` physics steps (sensors off inside them, unless
 ``SimConfig.sensors_every_substep``), the actuator forces of the last substep are kept, then ``mj_forward`` so that
-positions, sensors and contact signals describe the post-step state. Since that forward pass already computed the
-position and velocity stages of the new state, the next step's first substep is ``mj_step2``; the trajectory is
-bit-identical to ``mj_step`` × ``substeps`` (``tests/test_sim_mujoco.py``).
+positions, sensors and contact signals describe the post-step state, and its constraint solution becomes the solver's
+warm start. Since that forward pass already computed the position and velocity stages of the new state, the next
+step's first substep is ``mj_step2``; the trajectory is bit-identical to ``mj_step`` × ``substeps`` after such a
+forward pass (``tests/test_sim_mujoco.py``).
 
 Contact signals come from the same contact sensors and :class:`~tocabi_torchrl.sim.contacts.ContactLayout` sums as
 the warp backend. Health: finite qpos/qvel and none of :data:`~tocabi_torchrl.sim.mujoco_health.MUJOCO_HEALTH_WARNINGS`
@@ -165,14 +166,19 @@ class MujocoSim(SimViews):
         for _ in range(self.config.substeps - 1):
             mujoco.mj_step(m, d)
         self._staged["applied_force"][w] = d.actuator_force  # the forward pass below overwrites it
-        mujoco.mj_forward(self.mj_model, d)
+        self._forward_and_warm_start(d)
         self._gather(w, d)
+
+    def _forward_and_warm_start(self, d: mujoco.MjData) -> None:
+        """``mj_forward``, then its constraint solution warm-starts the next solve (as in ``WarpSim``)."""
+        mujoco.mj_forward(self.mj_model, d)
+        d.qacc_warmstart[:] = d.qacc
 
     def _reset_world(self, w: int, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> None:
         d = self._data[w]
         mujoco.mj_resetData(self.mj_model, d)  # clears time, activations, warm start and warning counters
         d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[w], qvel[w], ctrl[w]
-        mujoco.mj_forward(self.mj_model, d)
+        self._forward_and_warm_start(d)
         # Nothing was applied yet: report what the actuators would apply in the reset state (as WarpSim does).
         self._staged["applied_force"][w] = d.actuator_force
         self._gather(w, d)
@@ -182,7 +188,7 @@ class MujocoSim(SimViews):
         d.ctrl[:] = ctrl[w]
         if dirty[w]:
             d.qpos[:], d.qvel[:] = qpos[w], qvel[w]
-        mujoco.mj_forward(self.mj_model, d)
+        self._forward_and_warm_start(d)
         self._gather(w, d)
 
     def _run(self, fn: Callable[..., None], worlds: np.ndarray | None, *args) -> None:
