@@ -8,7 +8,7 @@ Collection is timed with TorchRL's stock automatic reset, the sync-free one, and
 as one CUDA graph. Also writes torch.profiler tables of one collection iteration of the last of these to ``--out``.
 Last, the trainer's own path (``build_env(for_training=True)``, ``make_collector`` and the preset's mini-batch
 sizes) in the states reached after three rollouts: collector, policy + env step and bare physics per step, GAE, and
-the update with fp32 and with TF32 matmuls.
+the update run eagerly and as a CUDA graph per mini-batch step.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from sim_throughput import raw_policy_steps_per_second  # noqa: E402
 
 from tocabi_torchrl.rl.config import preset_config  # noqa: E402
-from tocabi_torchrl.rl.trainer import _update, build_agent, build_env  # noqa: E402
+from tocabi_torchrl.rl.trainer import _update, build_agent, build_env, make_optimizer, make_update_step  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:
@@ -154,13 +154,13 @@ def main(argv=None) -> None:
         report("GAE", *timed(lambda: gae(work), 3, device, warmup=1), per="iter")
     loss = ClipPPOLoss(agent.actor, agent.critic, clip_epsilon=0.2, normalize_advantage=True)
     loss.set_keys(sample_log_prob="action_log_prob")
-    opt = torch.optim.Adam(list(agent.actor.parameters()) + list(agent.critic.parameters()), lr=1e-4,
-                           fused=device.type == "cuda")
     flat = work.select(*_loss_keys(loss, work)).reshape(-1)
-    for tf32 in (False, True):
-        torch.backends.cuda.matmul.allow_tf32 = tf32
-        report(f"PPO update ({tcfg.epochs} epochs x {flat.shape[0] // tcfg.minibatch_size} mini-batches, tf32={tf32})",
-               *timed(lambda: _update(tcfg, flat, loss, opt, agent), 2, device, warmup=1), per="iter")
+    for graph in (False, True):
+        gcfg = preset_config("default", num_envs=n, minibatch_size=tcfg.minibatch_size, update_graph=graph)
+        opt = make_optimizer(gcfg, agent, device)
+        step = make_update_step(gcfg, loss, opt, device)
+        report(f"PPO update ({tcfg.epochs} epochs x {flat.shape[0] // tcfg.minibatch_size} mini-batches, "
+               f"graph={step.use_graph})", *timed(lambda: _update(gcfg, flat, step), 2, device, warmup=1), per="iter")
     collector.shutdown()
 
 if __name__ == "__main__":

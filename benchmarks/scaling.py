@@ -81,7 +81,9 @@ MIN_ROLLOUT = 2048
 #: PPOConfig fields that are bookkeeping or sized per env count, not the training recipe (see ``recipe``).
 NOT_RECIPE = ("preset", "name", "run_dir", "seed", "device", "num_envs", "steps_per_env", "minibatch_size",
               "total_env_steps", "max_minutes", "log_every", "checkpoint_every", "loggers", "resume", "eval_at_end",
-              "eval_envs", "eval_seconds", "progress_bar")
+              "eval_envs", "eval_seconds", "progress_bar",
+              # How the update is launched (one CUDA graph per mini-batch step or eagerly), not what it computes.
+              "update_graph")
 DEFAULT_RESULTS = ROOT / "docs" / "benchmarks" / "scaling"
 DEFAULT_RUN_DIR = "/tmp/tocabi_scaling_runs"
 DEFAULT_LOG_DIR = "/tmp/tocabi_scaling_logs"

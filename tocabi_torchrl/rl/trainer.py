@@ -22,8 +22,10 @@ from .config import PPOConfig
 from .logging import RunLogger
 from .networks import make_mlp
 from .std_schedule import StdSchedule
+from .update_step import MinibatchStep, get_lr, make_capturable, make_capturable_adam, set_lr
 
-__all__ = ["Agent", "build_agent", "build_env", "training_keys", "train", "resolve_device", "TrainResult"]
+__all__ = ["Agent", "build_agent", "build_env", "make_collector", "make_loss", "make_optimizer", "training_keys", "train",
+           "resolve_device", "TrainResult"]
 
 
 def resolve_device(name: str) -> torch.device:
@@ -177,24 +179,28 @@ def make_collector(cfg: PPOConfig, env: EnvBase, actor: torch.nn.Module, device:
     )
 
 
-def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
-    """Run PPO as configured; returns where the run was written and its throughput."""
-    cfg.validate()
-    device = resolve_device(cfg.device)
-    torch.manual_seed(cfg.seed)
-    env = env if env is not None else build_env(cfg, device, for_training=True)
-    obs_dim = env.observation_spec["observation"].shape[-1]
-    act_dim = env.action_spec.shape[-1]
-    agent = build_agent(cfg, obs_dim, act_dim, device)
-    # Fused Adam: one kernel per step for all parameters instead of a handful per tensor (the update is launch-bound).
-    optimizer = torch.optim.Adam(_param_groups(agent, cfg), eps=cfg.adam_eps, fused=device.type == "cuda")
-    run_dir = Path(cfg.run_dir) / cfg.name
-    start_iter, env_steps = 0, 0
-    if cfg.resume:
-        state = load_checkpoint(cfg.resume, agent, optimizer, env, device)
-        start_iter, env_steps = state["iteration"], state["env_steps"]
-        print(f"resumed from {cfg.resume} at iteration {start_iter} ({env_steps:,} env steps)")
+def uses_update_graph(cfg: PPOConfig, device: torch.device) -> bool:
+    """Whether the PPO mini-batch steps are captured as a CUDA graph (``cfg.update_graph`` on a CUDA device)."""
+    return cfg.update_graph and device.type == "cuda"
 
+
+def make_optimizer(cfg: PPOConfig, agent: Agent, device: torch.device) -> torch.optim.Adam:
+    """Adam over the actor and critic (with the reference's separate value-head group when configured)."""
+    if uses_update_graph(cfg, device):
+        return make_capturable_adam(_param_groups(agent, cfg), cfg.adam_eps, device)
+    # Fused Adam: one kernel per step for all parameters instead of a handful per tensor (the update is launch-bound).
+    return torch.optim.Adam(_param_groups(agent, cfg), eps=cfg.adam_eps, fused=device.type == "cuda")
+
+
+def make_update_step(cfg: PPOConfig, loss_module: ClipPPOLoss, optimizer: torch.optim.Optimizer,
+                     device: torch.device) -> MinibatchStep:
+    """The mini-batch step of :func:`train` (a CUDA graph after a few eager steps when :func:`uses_update_graph`)."""
+    params = [p for g in optimizer.param_groups for p in g["params"]]
+    return MinibatchStep(loss_module, optimizer, params, cfg.max_grad_norm, use_graph=uses_update_graph(cfg, device))
+
+
+def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss, GAE]:
+    """The clipped PPO loss and the GAE value estimator of :func:`train`."""
     # The critic runs over the rollout in chunks of ~64k frames (along the env dim): unchunked, TorchRL stacks
     # observations and next observations and keeps (2 · frames, 400) activations, ~6 GB at 16384 envs.
     advantage = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=agent.critic, average_gae=False,
@@ -210,11 +216,35 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
         normalize_advantage=True,
     )
     loss_module.set_keys(sample_log_prob="action_log_prob")
+    return loss_module, advantage
+
+
+def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
+    """Run PPO as configured; returns where the run was written and its throughput."""
+    cfg.validate()
+    device = resolve_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    env = env if env is not None else build_env(cfg, device, for_training=True)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    act_dim = env.action_spec.shape[-1]
+    agent = build_agent(cfg, obs_dim, act_dim, device)
+    optimizer = make_optimizer(cfg, agent, device)
+    run_dir = Path(cfg.run_dir) / cfg.name
+    start_iter, env_steps = 0, 0
+    if cfg.resume:
+        state = load_checkpoint(cfg.resume, agent, optimizer, env, device)
+        if uses_update_graph(cfg, device):
+            make_capturable(optimizer, device)
+        start_iter, env_steps = state["iteration"], state["env_steps"]
+        print(f"resumed from {cfg.resume} at iteration {start_iter} ({env_steps:,} env steps)")
+
+    loss_module, advantage = make_loss(cfg, agent)
+    update_step = make_update_step(cfg, loss_module, optimizer, device)
 
     iterations = cfg.iterations
     collector = make_collector(cfg, env, agent.actor, device, (iterations - start_iter) * cfg.frames_per_batch)
     logger = RunLogger(run_dir, cfg, total_iterations=iterations, start_iteration=start_iter)
-    lr = optimizer.param_groups[0]["lr"]
+    lr = get_lr(optimizer.param_groups[0])
     t_start = time.perf_counter()
     metrics: dict = {}
     it = start_iter
@@ -229,7 +259,7 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
                 advantage(work)
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
             flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
-            stats = _update(cfg, flat, loss_module, optimizer, agent)
+            stats = _update(cfg, flat, update_step)
             if cfg.lr_schedule == "adaptive":
                 kl = stats["kl"]
                 if kl > 2.0 * cfg.desired_kl:
@@ -240,7 +270,7 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
                 lr = cfg.lr_end + (cfg.lr - cfg.lr_end) * progress_remaining
             for group in optimizer.param_groups:
                 if not group.get("fixed"):
-                    group["lr"] = lr
+                    set_lr(group, lr)
             # The reference sets the next rollout's noise after each rollout from the progress made.
             if agent.std_schedule is not None:
                 set_action_std(agent.actor, agent.std_schedule(progress_remaining))
@@ -277,27 +307,14 @@ def _loss_keys(loss_module: ClipPPOLoss, batch: TensorDictBase) -> list:
     return [k for k in wanted if k in present]
 
 
-def _update(cfg: PPOConfig, flat: TensorDictBase, loss_module: ClipPPOLoss, optimizer: torch.optim.Optimizer,
-            agent: Agent) -> dict[str, float]:
+def _update(cfg: PPOConfig, flat: TensorDictBase, step: MinibatchStep) -> dict[str, float]:
     """``epochs`` passes of shuffled mini-batches over the rollout. Returns mean losses and KL (one host read)."""
     n = flat.shape[0]
     num_mb = max(1, n // cfg.minibatch_size)
-    params = [p for g in optimizer.param_groups for p in g["params"]]
     sums = torch.zeros(4, device=flat.device)
     for _ in range(cfg.epochs):
         perm = torch.randperm(n, device=flat.device)
         for k in range(num_mb):
-            mb = flat[perm[k * cfg.minibatch_size : (k + 1) * cfg.minibatch_size]]
-            losses = loss_module(mb)
-            total = losses["loss_objective"] + losses["loss_critic"]
-            if "loss_entropy" in losses.keys():
-                total = total + losses["loss_entropy"]
-            optimizer.zero_grad(set_to_none=True)
-            total.backward()
-            torch.nn.utils.clip_grad_norm_(params, cfg.max_grad_norm)
-            optimizer.step()
-            sums += torch.stack([losses["loss_objective"].detach(), losses["loss_critic"].detach(),
-                                 losses["kl_approx"].detach(), losses["clip_fraction"].detach()])
+            sums += step(flat[perm[k * cfg.minibatch_size : (k + 1) * cfg.minibatch_size]])
     mean = (sums / (cfg.epochs * num_mb)).tolist()
     return {"loss_policy": mean[0], "loss_value": mean[1], "kl": mean[2], "clip_fraction": mean[3]}
-

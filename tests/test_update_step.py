@@ -1,0 +1,116 @@
+"""The PPO mini-batch step: eager, the static-buffer replay wiring (emulated on CPU), and on a GPU the captured CUDA
+graph against the eager step, without host synchronisation."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from tocabi_torchrl.rl import preset_config
+from tocabi_torchrl.rl.trainer import _update, build_agent, make_loss, make_optimizer, make_update_step
+from tocabi_torchrl.rl.update_step import MinibatchStep, get_lr, make_capturable, make_capturable_adam, set_lr
+
+OBS, ACT = 17, 5
+
+
+def _setup(device: str, update_graph: bool, seed: int = 0):
+    cfg = preset_config("default", num_envs=64, steps_per_env=8, minibatch_size=128, epochs=2,
+                        actor_hidden=(32, 16), critic_hidden=(32, 16), update_graph=update_graph, device=device)
+    torch.manual_seed(seed)
+    agent = build_agent(cfg, OBS, ACT, torch.device(device))
+    loss_module, _ = make_loss(cfg, agent)
+    optimizer = make_optimizer(cfg, agent, torch.device(device))
+    return cfg, agent, make_update_step(cfg, loss_module, optimizer, torch.device(device))
+
+
+def _rollout(n: int, device: str) -> TensorDict:
+    g = torch.Generator().manual_seed(1)
+    return TensorDict({
+        "observation": torch.randn(n, OBS, generator=g),
+        "action": torch.randn(n, ACT, generator=g),
+        "action_log_prob": -torch.rand(n, generator=g) * 5,
+        "advantage": torch.randn(n, 1, generator=g),
+        "value_target": torch.randn(n, 1, generator=g),
+        "state_value": torch.randn(n, 1, generator=g),
+    }, batch_size=[n]).to(device)
+
+
+def _params(agent) -> torch.Tensor:
+    return torch.cat([p.detach().flatten() for p in list(agent.actor.parameters()) + list(agent.critic.parameters())])
+
+
+def test_emulated_replay_wiring_matches_the_eager_step():
+    """Static buffers refilled in place give the same parameters as fresh mini-batches, step for step."""
+    cfg, eager_agent, eager = _setup("cpu", update_graph=False)
+    _, emu_agent, emu = _setup("cpu", update_graph=False)
+    emu.emulate = True
+    flat = _rollout(512, "cpu")
+    torch.manual_seed(3)
+    stats_eager = _update(cfg, flat, eager)
+    torch.manual_seed(3)
+    stats_emu = _update(cfg, flat, emu)
+    assert emu._static_mb is not None and emu._static_mb.batch_size == torch.Size([cfg.minibatch_size])
+    assert stats_eager == pytest.approx(stats_emu, rel=1e-6)
+    torch.testing.assert_close(_params(eager_agent), _params(emu_agent), rtol=0, atol=0)
+    assert not torch.equal(_params(eager_agent), _params(_setup("cpu", update_graph=False)[1])), "nothing trained"
+
+
+def test_update_graph_is_only_used_on_cuda():
+    _, _, step = _setup("cpu", update_graph=True)
+    assert not step.use_graph and not step.captured
+    assert all(not isinstance(g["lr"], torch.Tensor) for g in step.optimizer.param_groups)
+
+
+def test_learning_rate_helpers_and_capturable_reload():
+    w = torch.nn.Parameter(torch.zeros(3))
+    opt = torch.optim.Adam([{"params": [w], "lr": 1e-3}])
+    set_lr(opt.param_groups[0], 5e-4)
+    assert opt.param_groups[0]["lr"] == 5e-4 and get_lr(opt.param_groups[0]) == pytest.approx(5e-4)
+    tensor_opt = torch.optim.Adam([{"params": [w], "lr": torch.tensor(1e-3)}], capturable=False)
+    set_lr(tensor_opt.param_groups[0], 2e-4)
+    lr = tensor_opt.param_groups[0]["lr"]
+    assert isinstance(lr, torch.Tensor) and lr.item() == pytest.approx(2e-4)
+    # A checkpoint written by an eager run restores a float lr and capturable=False: made capturable again.
+    tensor_opt.load_state_dict(opt.state_dict())
+    assert not isinstance(tensor_opt.param_groups[0]["lr"], torch.Tensor)
+    make_capturable(tensor_opt, torch.device("cpu"))
+    group = tensor_opt.param_groups[0]
+    assert group["capturable"] and isinstance(group["lr"], torch.Tensor) and group["lr"].item() == pytest.approx(5e-4)
+
+
+def test_bad_warmup_is_refused():
+    with pytest.raises(ValueError, match="warmup"):
+        MinibatchStep(None, None, [], 1.0, warmup=0)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_captured_update_matches_eager_without_syncs():
+    """The CUDA-graph step computes what the eager step computes (capturable Adam keeps its bias corrections in
+    float32 on the device, so equal to float32 rounding), and replays without a host synchronisation."""
+    cfg, eager_agent, eager = _setup("cuda", update_graph=False)
+    _, graph_agent, graphed = _setup("cuda", update_graph=True)
+    assert graphed.use_graph and isinstance(graphed.optimizer.param_groups[0]["lr"], torch.Tensor)
+    flat = _rollout(512, "cuda")
+    for it in range(2):  # 16 steps: 3 eager warm-up steps, the capture, then replays
+        torch.manual_seed(10 + it)
+        stats_eager = _update(cfg, flat, eager)
+        torch.manual_seed(10 + it)
+        stats_graph = _update(cfg, flat, graphed)
+        assert stats_graph == pytest.approx(stats_eager, rel=1e-4, abs=1e-6)
+    mb = flat[torch.randperm(flat.shape[0], device="cuda")[: cfg.minibatch_size]]
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        graphed(mb)  # a replay: copies the mini-batch in and launches one graph, no host synchronisation
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    eager(mb)
+    assert graphed.captured
+    torch.testing.assert_close(_params(graph_agent), _params(eager_agent), rtol=1e-4, atol=1e-5)
+    for group in graphed.optimizer.param_groups:
+        set_lr(group, 0.0)  # a captured step reads the learning rate from the device: lr 0 must freeze it
+    before = _params(graph_agent).clone()
+    graphed(flat[: cfg.minibatch_size])
+    torch.testing.assert_close(_params(graph_agent), before, rtol=0, atol=0)

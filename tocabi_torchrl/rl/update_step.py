@@ -1,0 +1,152 @@
+"""One PPO mini-batch step (loss, backward, gradient clipping, optimiser step), optionally replayed as a CUDA graph.
+
+The update of a 4,096-env rollout is 20 mini-batch steps of ~300 small kernels each; run eagerly, the host's Python
+(TorchRL's loss, autograd, the optimiser) takes longer than the GPU work, so the GPU idles ~40 % of the update
+(``benchmarks/trainer_timeline.py``). Captured once as a CUDA graph, a step is one launch: the kernels are the same,
+only their launching changes.
+
+Capture rules this follows (``torch.cuda.graphs``): warm-up steps run on a side stream before the capture; the graph
+reads its mini-batch from static buffers (each step copies the next mini-batch in); gradients live in the graph's
+memory pool, so nothing outside may set them to ``None``; the optimiser is capturable with a tensor learning rate
+(:func:`make_capturable_adam`), which the trainer changes in place (:func:`set_lr`).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+from tensordict import TensorDictBase
+
+__all__ = ["MinibatchStep", "make_capturable_adam", "make_capturable", "set_lr", "get_lr"]
+
+#: The loss outputs averaged into the update's log line, in this order.
+STAT_KEYS = ("loss_objective", "loss_critic", "kl_approx", "clip_fraction")
+
+
+def make_capturable_adam(param_groups: list[dict], eps: float, device: torch.device) -> torch.optim.Adam:
+    """Fused Adam whose step can be captured in a CUDA graph: step counts and learning rates live on the device."""
+    groups = [{**g, "lr": torch.tensor(float(g["lr"]), device=device)} for g in param_groups]
+    return torch.optim.Adam(groups, eps=eps, fused=True, capturable=True)
+
+
+def make_capturable(optimizer: torch.optim.Optimizer, device: torch.device) -> None:
+    """Make a loaded optimiser capturable again: ``load_state_dict`` restores the saved groups' ``lr`` and
+    ``capturable`` (a float and False in a checkpoint written by an eager run)."""
+    for group in optimizer.param_groups:
+        group["capturable"] = True
+        if not isinstance(group["lr"], torch.Tensor):
+            group["lr"] = torch.tensor(float(group["lr"]), device=device)
+        else:
+            group["lr"] = group["lr"].to(device)
+
+
+def set_lr(group: dict, lr: float) -> None:
+    """Set a parameter group's learning rate, in place when it is a device tensor (read by a captured step)."""
+    if isinstance(group["lr"], torch.Tensor):
+        group["lr"].fill_(lr)
+    else:
+        group["lr"] = lr
+
+
+def get_lr(group: dict) -> float:
+    """A parameter group's learning rate as a float (a host read when it lives on the device)."""
+    lr = group["lr"]
+    return float(lr.item()) if isinstance(lr, torch.Tensor) else float(lr)
+
+
+class MinibatchStep:
+    """``step(mb)``: one optimiser step on the mini-batch ``mb``; returns the (4,) device tensor of
+    :data:`STAT_KEYS` for that step, valid until the next call.
+
+    Args:
+        loss_module: a TorchRL PPO loss (its outputs must include :data:`STAT_KEYS`; ``loss_entropy`` is added to the
+            total when present).
+        optimizer: the optimiser of ``params`` (capturable, see :func:`make_capturable_adam`, when ``use_graph``).
+        params: the parameters whose gradient norm is clipped to ``max_grad_norm``.
+        use_graph: capture the step as a CUDA graph after ``warmup`` eager steps (CUDA only). If the capture fails,
+            the step warns and stays eager.
+        emulate: run the static-buffer path without a capture (tests of the wiring on machines without CUDA).
+    """
+
+    def __init__(self, loss_module, optimizer: torch.optim.Optimizer, params: list[torch.Tensor],
+                 max_grad_norm: float, use_graph: bool = False, warmup: int = 3, emulate: bool = False):
+        if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 1:
+            raise ValueError(f"warmup must be an int >= 1 (eager steps before the capture), got {warmup!r}")
+        self.loss_module, self.optimizer, self.params = loss_module, optimizer, params
+        self.max_grad_norm = max_grad_norm
+        self.use_graph, self.warmup, self.emulate = use_graph, warmup, emulate
+        self._calls = 0
+        self._graph: torch.cuda.CUDAGraph | None = None
+        self._static_mb: TensorDictBase | None = None
+        self._static_stats: torch.Tensor | None = None
+        self._stream: torch.cuda.Stream | None = None
+
+    @property
+    def captured(self) -> bool:
+        """Whether the step now replays a captured CUDA graph."""
+        return self._graph is not None
+
+    def _compute(self, mb: TensorDictBase) -> torch.Tensor:
+        losses = self.loss_module(mb)
+        total = losses["loss_objective"] + losses["loss_critic"]
+        if "loss_entropy" in losses.keys():
+            total = total + losses["loss_entropy"]
+        total.backward()
+        torch.nn.utils.clip_grad_norm_(self.params, self.max_grad_norm)
+        self.optimizer.step()
+        return torch.stack([losses[k].detach() for k in STAT_KEYS])
+
+    def __call__(self, mb: TensorDictBase) -> torch.Tensor:
+        if self._graph is not None:
+            self._static_mb.update_(mb)
+            self._graph.replay()
+            return self._static_stats
+        if self.emulate:
+            return self._emulated(mb)
+        if not self.use_graph or not mb.device or mb.device.type != "cuda":
+            self.optimizer.zero_grad(set_to_none=True)
+            return self._compute(mb)
+        self._calls += 1
+        if self._calls <= self.warmup:
+            # Warm-up on the side stream the capture will use (lazy per-stream state is set up outside the capture).
+            if self._stream is None:
+                self._stream = torch.cuda.Stream(mb.device)
+            self._stream.wait_stream(torch.cuda.current_stream(mb.device))
+            with torch.cuda.stream(self._stream):
+                self.optimizer.zero_grad(set_to_none=True)
+                stats = self._compute(mb)
+            torch.cuda.current_stream(mb.device).wait_stream(self._stream)
+            return stats
+        try:
+            return self._capture(mb)
+        except Exception as err:  # noqa: BLE001 - any capture failure: warn and stay eager
+            self._graph, self._static_mb, self.use_graph = None, None, False
+            warnings.warn(f"MinibatchStep: capturing the PPO update as a CUDA graph failed ({type(err).__name__}: "
+                          f"{err}); running it eagerly", stacklevel=2)
+            self.optimizer.zero_grad(set_to_none=True)
+            return self._compute(mb)
+
+    def _capture(self, mb: TensorDictBase) -> torch.Tensor:
+        self._static_mb = mb.clone()
+        graph = torch.cuda.CUDAGraph()
+        # Gradients are allocated by the captured backward in the graph's pool; replays overwrite them.
+        self.optimizer.zero_grad(set_to_none=True)
+        torch.cuda.synchronize(mb.device)
+        with torch.cuda.graph(graph, stream=self._stream):
+            self._static_stats = self._compute(self._static_mb)
+        self._graph = graph
+        graph.replay()  # the capture recorded this mini-batch's step without running it
+        return self._static_stats
+
+    def _emulated(self, mb: TensorDictBase) -> torch.Tensor:
+        # The replay path without CUDA: static input buffers updated in place, gradients never set to None.
+        if self._static_mb is None:
+            self._static_mb = mb.clone()
+            self.optimizer.zero_grad(set_to_none=True)
+        else:
+            self._static_mb.update_(mb)
+            for p in self.params:
+                if p.grad is not None:
+                    p.grad = None  # eager autograd accumulates; the captured backward writes fresh gradients
+        return self._compute(self._static_mb)
