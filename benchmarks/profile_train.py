@@ -26,7 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from sim_throughput import raw_policy_steps_per_second  # noqa: E402
 
 from tocabi_torchrl.rl.config import preset_config  # noqa: E402
-from tocabi_torchrl.rl.trainer import _update, build_agent, build_env, make_optimizer, make_update_step  # noqa: E402
+from tocabi_torchrl.rl.trainer import (  # noqa: E402
+    _update, build_agent, build_env, make_loss, make_optimizer, make_update_step,
+)
 
 
 def _sync(device: torch.device) -> None:
@@ -121,7 +123,6 @@ def main(argv=None) -> None:
         del env
     # The trainer's own path: its env (for_training), its collector and its update sizes, in states reached after a
     # few rollouts of the untrained policy (falling and resetting robots), where physics costs more than standing.
-    from torchrl.objectives import ClipPPOLoss
     from torchrl.objectives.value import GAE
 
     from tocabi_torchrl.rl.trainer import _loss_keys, make_collector
@@ -152,15 +153,15 @@ def main(argv=None) -> None:
     work = batch.clone(False)
     with torch.no_grad():
         report("GAE", *timed(lambda: gae(work), 3, device, warmup=1), per="iter")
-    loss = ClipPPOLoss(agent.actor, agent.critic, clip_epsilon=0.2, normalize_advantage=True)
-    loss.set_keys(sample_log_prob="action_log_prob")
+    loss, _ = make_loss(tcfg, agent)  # the trainer's loss (no entropy bonus in the preset: capturable)
     flat = work.select(*_loss_keys(loss, work)).reshape(-1)
     for graph in (False, True):
         gcfg = preset_config("default", num_envs=n, minibatch_size=tcfg.minibatch_size, update_graph=graph)
         opt = make_optimizer(gcfg, agent, device)
         step = make_update_step(gcfg, loss, opt, device)
+        wall, cpu = timed(lambda: _update(gcfg, flat, step), 2, device, warmup=1)
         report(f"PPO update ({tcfg.epochs} epochs x {flat.shape[0] // tcfg.minibatch_size} mini-batches, "
-               f"graph={step.use_graph})", *timed(lambda: _update(gcfg, flat, step), 2, device, warmup=1), per="iter")
+               f"{'CUDA graph' if step.captured else 'eager'})", wall, cpu, per="iter")
     collector.shutdown()
 
 if __name__ == "__main__":

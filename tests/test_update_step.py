@@ -9,7 +9,7 @@ from tensordict import TensorDict
 
 from tocabi_torchrl.rl import preset_config
 from tocabi_torchrl.rl.trainer import _update, build_agent, make_loss, make_optimizer, make_update_step
-from tocabi_torchrl.rl.update_step import MinibatchStep, get_lr, make_capturable, make_capturable_adam, set_lr
+from tocabi_torchrl.rl.update_step import MinibatchStep, get_lr, optimizer_mode, restore_optimizer_mode, set_lr
 
 OBS, ACT = 17, 5
 
@@ -62,21 +62,49 @@ def test_update_graph_is_only_used_on_cuda():
     assert all(not isinstance(g["lr"], torch.Tensor) for g in step.optimizer.param_groups)
 
 
-def test_learning_rate_helpers_and_capturable_reload():
+def test_learning_rate_helpers():
     w = torch.nn.Parameter(torch.zeros(3))
     opt = torch.optim.Adam([{"params": [w], "lr": 1e-3}])
     set_lr(opt.param_groups[0], 5e-4)
     assert opt.param_groups[0]["lr"] == 5e-4 and get_lr(opt.param_groups[0]) == pytest.approx(5e-4)
-    tensor_opt = torch.optim.Adam([{"params": [w], "lr": torch.tensor(1e-3)}], capturable=False)
-    set_lr(tensor_opt.param_groups[0], 2e-4)
+    tensor_opt = torch.optim.Adam([{"params": [w], "lr": torch.tensor(1e-3)}])
     lr = tensor_opt.param_groups[0]["lr"]
-    assert isinstance(lr, torch.Tensor) and lr.item() == pytest.approx(2e-4)
-    # A checkpoint written by an eager run restores a float lr and capturable=False: made capturable again.
-    tensor_opt.load_state_dict(opt.state_dict())
-    assert not isinstance(tensor_opt.param_groups[0]["lr"], torch.Tensor)
-    make_capturable(tensor_opt, torch.device("cpu"))
-    group = tensor_opt.param_groups[0]
-    assert group["capturable"] and isinstance(group["lr"], torch.Tensor) and group["lr"].item() == pytest.approx(5e-4)
+    set_lr(tensor_opt.param_groups[0], 2e-4)
+    assert tensor_opt.param_groups[0]["lr"] is lr, "a captured step reads this tensor: it must not be rebound"
+    assert lr.item() == pytest.approx(2e-4) and get_lr(tensor_opt.param_groups[0]) == pytest.approx(2e-4)
+
+
+def _stepped_adam(**groups_kw) -> torch.optim.Adam:
+    w = torch.nn.Parameter(torch.ones(3))
+    opt = torch.optim.Adam([{"params": [w], **groups_kw}])
+    w.grad = torch.ones(3)
+    opt.step()
+    return opt
+
+
+def test_resume_across_update_modes_keeps_this_runs_mode():
+    """load_state_dict restores the saved groups' settings; a checkpoint of a captured GPU run (tensor lr,
+    capturable) must still resume eagerly on the CPU, and an eager checkpoint into a tensor-lr optimiser."""
+    captured_like = _stepped_adam(lr=1e-3).state_dict()
+    for g in captured_like["param_groups"]:
+        g.update(capturable=True, lr=torch.tensor(3e-4))
+    eager = _stepped_adam(lr=1e-3)
+    mode = optimizer_mode(eager)
+    eager.load_state_dict(captured_like)
+    with pytest.raises(Exception):  # what a resume did without restoring the mode
+        eager.step()
+    restore_optimizer_mode(eager, mode)
+    group = eager.param_groups[0]
+    assert not group["capturable"] and group["lr"] == pytest.approx(3e-4) and not isinstance(group["lr"], torch.Tensor)
+    eager.step()
+
+    tensor_lr = _stepped_adam(lr=torch.tensor(1e-3))
+    mode = optimizer_mode(tensor_lr)
+    tensor_lr.load_state_dict(_stepped_adam(lr=5e-4).state_dict())
+    restore_optimizer_mode(tensor_lr, mode)
+    lr = tensor_lr.param_groups[0]["lr"]
+    assert isinstance(lr, torch.Tensor) and lr.item() == pytest.approx(5e-4)
+    tensor_lr.step()
 
 
 def test_bad_warmup_is_refused():

@@ -66,7 +66,7 @@ class PPOConfig:
     max_grad_norm: float = 1.0
     #: On a GPU, capture each PPO mini-batch step (loss, backward, clipping, fused Adam) as one CUDA graph after 3
     #: eager steps: the same kernels in one launch instead of ~300 launched from Python (falls back to eager, with a
-    #: warning, if the capture fails).
+    #: warning, if the capture fails, e.g. with entropy_coef > 0, whose TorchRL entropy check reads the host).
     update_graph: bool = True
     # learning rate
     lr: float = 1e-3

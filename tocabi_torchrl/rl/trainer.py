@@ -22,7 +22,8 @@ from .config import PPOConfig
 from .logging import RunLogger
 from .networks import make_mlp
 from .std_schedule import StdSchedule
-from .update_step import MinibatchStep, get_lr, make_capturable, make_capturable_adam, set_lr
+from .update_step import (MinibatchStep, get_lr, make_capturable_adam, optimizer_mode, restore_optimizer_mode,
+                          set_lr)
 
 __all__ = ["Agent", "build_agent", "build_env", "make_collector", "make_loss", "make_optimizer", "training_keys", "train",
            "resolve_device", "TrainResult"]
@@ -232,9 +233,9 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
     run_dir = Path(cfg.run_dir) / cfg.name
     start_iter, env_steps = 0, 0
     if cfg.resume:
+        mode = optimizer_mode(optimizer)  # the checkpoint may come from another update mode or device
         state = load_checkpoint(cfg.resume, agent, optimizer, env, device)
-        if uses_update_graph(cfg, device):
-            make_capturable(optimizer, device)
+        restore_optimizer_mode(optimizer, mode)
         start_iter, env_steps = state["iteration"], state["env_steps"]
         print(f"resumed from {cfg.resume} at iteration {start_iter} ({env_steps:,} env steps)")
 

@@ -18,7 +18,7 @@ import warnings
 import torch
 from tensordict import TensorDictBase
 
-__all__ = ["MinibatchStep", "make_capturable_adam", "make_capturable", "set_lr", "get_lr"]
+__all__ = ["MinibatchStep", "make_capturable_adam", "optimizer_mode", "restore_optimizer_mode", "set_lr", "get_lr"]
 
 #: The loss outputs averaged into the update's log line, in this order.
 STAT_KEYS = ("loss_objective", "loss_critic", "kl_approx", "clip_fraction")
@@ -30,15 +30,29 @@ def make_capturable_adam(param_groups: list[dict], eps: float, device: torch.dev
     return torch.optim.Adam(groups, eps=eps, fused=True, capturable=True)
 
 
-def make_capturable(optimizer: torch.optim.Optimizer, device: torch.device) -> None:
-    """Make a loaded optimiser capturable again: ``load_state_dict`` restores the saved groups' ``lr`` and
-    ``capturable`` (a float and False in a checkpoint written by an eager run)."""
-    for group in optimizer.param_groups:
-        group["capturable"] = True
-        if not isinstance(group["lr"], torch.Tensor):
-            group["lr"] = torch.tensor(float(group["lr"]), device=device)
-        else:
-            group["lr"] = group["lr"].to(device)
+def optimizer_mode(optimizer: torch.optim.Optimizer) -> list[dict]:
+    """How each parameter group of ``optimizer`` runs (capturable, fused, foreach, tensor or float lr), to be
+    restored by :func:`restore_optimizer_mode` after ``load_state_dict``."""
+    keys = ("capturable", "fused", "foreach")
+    return [{**{k: g.get(k) for k in keys}, "lr_tensor": isinstance(g["lr"], torch.Tensor)}
+            for g in optimizer.param_groups]
+
+
+def restore_optimizer_mode(optimizer: torch.optim.Optimizer, mode: list[dict]) -> None:
+    """Undo what ``load_state_dict`` copied from a checkpoint of another mode: it restores every group setting as
+    saved (a captured run's tensor lr and ``capturable=True``, or an eager run's float lr), so a checkpoint written
+    on the GPU with ``update_graph`` would break an eager or CPU resume, and the reverse. The step counters move to
+    where this mode keeps them (the parameters' device when capturable or fused, else the CPU)."""
+    for group, m in zip(optimizer.param_groups, mode):
+        group.update({k: v for k, v in m.items() if k != "lr_tensor"})
+        lr = float(group["lr"].item()) if isinstance(group["lr"], torch.Tensor) else float(group["lr"])
+        device = group["params"][0].device
+        group["lr"] = torch.tensor(lr, device=device) if m["lr_tensor"] else lr
+        on_device = bool(m.get("capturable") or m.get("fused"))
+        for p in group["params"]:
+            state = optimizer.state.get(p, {})
+            if "step" in state:
+                state["step"] = state["step"].to(dtype=torch.float32, device=p.device if on_device else "cpu")
 
 
 def set_lr(group: dict, lr: float) -> None:
@@ -65,7 +79,8 @@ class MinibatchStep:
         optimizer: the optimiser of ``params`` (capturable, see :func:`make_capturable_adam`, when ``use_graph``).
         params: the parameters whose gradient norm is clipped to ``max_grad_norm``.
         use_graph: capture the step as a CUDA graph after ``warmup`` eager steps (CUDA only). If the capture fails,
-            the step warns and stays eager.
+            the step warns and stays eager. TorchRL's entropy bonus checks its value on the host, so a loss with
+            ``entropy_bonus=True`` (``entropy_coef > 0``) cannot be captured and runs eagerly.
         emulate: run the static-buffer path without a capture (tests of the wiring on machines without CUDA).
     """
 
@@ -140,13 +155,12 @@ class MinibatchStep:
         return self._static_stats
 
     def _emulated(self, mb: TensorDictBase) -> torch.Tensor:
-        # The replay path without CUDA: static input buffers updated in place, gradients never set to None.
+        # The replay's input path without CUDA: the step reads a static buffer that each call overwrites in place.
+        # (Eager autograd accumulates into existing gradients, so they are cleared here; the captured backward
+        # overwrites its own. Graph-only behaviour is covered by the GPU test.)
         if self._static_mb is None:
             self._static_mb = mb.clone()
-            self.optimizer.zero_grad(set_to_none=True)
         else:
             self._static_mb.update_(mb)
-            for p in self.params:
-                if p.grad is not None:
-                    p.grad = None  # eager autograd accumulates; the captured backward writes fresh gradients
+        self.optimizer.zero_grad(set_to_none=True)
         return self._compute(self._static_mb)

@@ -7,11 +7,12 @@ initial states into flagged worlds with a second recorded graph.
 
 The step reuses work: the forward pass at the end of a step leaves the position- and velocity-dependent quantities of
 the new state in ``Data``; only ``ctrl`` changes before the next step, so its first substep runs
-``mujoco_warp.step2`` (actuation, constraint solve, integration) instead of a full ``step``. After every step, reset
-and forward pass, each world's constraint-solver warm start (``qacc_warmstart``) is the solution of its current
-state, so a forward pass over unchanged worlds converges at once. The trajectory is bit-identical to calling
-``mujoco_warp.step`` ``substeps`` times after such a forward pass. Write ``qpos``/``qvel`` only through :meth:`reset`,
-or call :meth:`forward` after writing them directly.
+``mujoco_warp.step2`` (actuation, constraint solve, integration) instead of a full ``step``. A step's final forward
+pass, and every :meth:`forward`, leaves its constraint solution as the solver's warm start (``qacc_warmstart``); a
+reset sets it in the reset worlds only, so the forward pass over the untouched ones converges at once and their
+future stays bit-identical. The trajectory is bit-identical to calling ``mujoco_warp.step`` ``substeps`` times after
+such a forward pass. Write ``qpos``/``qvel`` only through :meth:`reset`, or call :meth:`forward` after writing them
+directly.
 """
 
 from __future__ import annotations
@@ -226,7 +227,11 @@ class WarpSim(SimViews):
         self._step_graph()
 
     def forward(self) -> None:
-        """Recompute positions, sensors and flags from the current qpos/qvel/ctrl (after writing them directly)."""
+        """Recompute positions, sensors and flags from the current qpos/qvel/ctrl (after writing them directly).
+
+        Its constraint solution becomes the solver's warm start, so an extra call on an unchanged state can move the
+        following steps in the last bits (C MuJoCo's solver is deterministic here; mujoco-warp's float32 one is not).
+        """
         self._forward_graph()
 
     def reset(
