@@ -25,8 +25,8 @@ from .std_schedule import StdSchedule
 from .update_step import (MinibatchStep, get_lr, make_capturable_adam, optimizer_mode, restore_optimizer_mode,
                           set_lr)
 
-__all__ = ["Agent", "build_agent", "build_env", "make_collector", "make_loss", "make_optimizer", "training_keys", "train",
-           "resolve_device", "TrainResult"]
+__all__ = ["Agent", "build_agent", "build_env", "make_collector", "make_loss", "make_optimizer", "make_update_step",
+           "uses_update_graph", "training_keys", "train", "resolve_device", "TrainResult"]
 
 
 def resolve_device(name: str) -> torch.device:

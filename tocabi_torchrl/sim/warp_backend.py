@@ -230,7 +230,8 @@ class WarpSim(SimViews):
         """Recompute positions, sensors and flags from the current qpos/qvel/ctrl (after writing them directly).
 
         Its constraint solution becomes the solver's warm start, so an extra call on an unchanged state can move the
-        following steps in the last bits (C MuJoCo's solver is deterministic here; mujoco-warp's float32 one is not).
+        following steps in the last float32 bits (re-solving from a converged solution need not return it exactly;
+        measured: 2e-9 in qpos after 6 steps).
         """
         self._forward_graph()
 
