@@ -144,6 +144,17 @@ def recipe(cfg=None) -> dict:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg).items() if k not in NOT_RECIPE}
 
 
+def spec_recipe(spec: RunSpec) -> dict | None:
+    """The recipe ``spec`` trains with; None for the raw ceiling and for tiny test networks (never the current one).
+
+    Every result of a training spec carries it, failures included, so that "98,304 envs ran out of memory" is
+    known to be about the current recipe.
+    """
+    if spec.kind == "raw" or spec.hidden:
+        return None
+    return recipe(spec.ppo_config())
+
+
 def is_stale(record: dict, current: dict | None = None) -> bool:
     """Whether a time or memory result was trained with another recipe than ``current`` (raw results never are)."""
     if record.get("kind") == "raw":
@@ -461,7 +472,6 @@ def measure_training(spec: RunSpec, deadline: float | None, sampler: Sampler) ->
                    "minibatch_size": cfg.minibatch_size, "epochs": cfg.epochs, "iterations_planned": cfg.iterations,
                    "total_env_steps_target": cfg.total_env_steps, "actor_hidden": list(cfg.actor_hidden),
                    "critic_hidden": list(cfg.critic_hidden), "max_minutes": cfg.max_minutes},
-        "recipe": recipe(cfg) if not spec.hidden else None,  # tiny test networks are never the current recipe
         "iterations": result.iterations,
         "env_steps": result.env_steps,
         "train_wall_s": result.wall_seconds,  # TocabiLab's timer: from finished set-up to the end
@@ -505,6 +515,8 @@ def run_one(spec: RunSpec, out_path: Path, deadline: float | None = None, comman
     sampler.start()
     record = {"schema": 1, **{k: v for k, v in asdict(spec).items() if k not in ("run_dir",)},
               "name": spec.name, "command": command, "part_command": os.environ.get("SCALING_PART_COMMAND", "")}
+    if spec.kind != "raw":
+        record["recipe"] = spec_recipe(spec)
     try:
         record.update(measure_raw(spec, sampler) if spec.kind == "raw" else measure_training(spec, deadline, sampler))
     except Exception as err:  # noqa: BLE001 - every failure is a result to record, OOM especially
@@ -601,7 +613,8 @@ def launch(spec: RunSpec, out_path: Path, deadline: float, record_timeout: bool,
         return "cut"
     status = "timeout" if rc is None else ("oom" if _is_oom(tail) else "error")
     write_json(out_path, {"schema": 1, **{k: v for k, v in asdict(spec).items() if k != "run_dir"}, "name": spec.name,
-                          "status": status, "returncode": rc, "error": tail, "command": " ".join(cmd[1:])})
+                          "status": status, "returncode": rc, "error": tail, "command": " ".join(cmd[1:]),
+                          "recipe": spec_recipe(spec)})
     return status
 
 

@@ -89,6 +89,28 @@ def test_one_cpu_measurement_writes_a_sane_json(tmp_path):
     assert "gpu" not in r
 
 
+def test_a_failed_measurement_keeps_its_recipe(tmp_path, monkeypatch):
+    """An out-of-memory result says which recipe ran out of memory, so the report counts it (not as stale)."""
+    def out_of_memory(spec, deadline, sampler):
+        raise RuntimeError("Graph launch error: Warp CUDA error 2: out of memory")
+
+    monkeypatch.setattr(scaling, "measure_training", out_of_memory)
+    spec = scaling.RunSpec("memory", "cpu", 8)
+    record = scaling.run_one(spec, tmp_path / f"{spec.name}.json")
+    assert record["status"] == "oom" and "out of memory" in record["error"]
+    assert record["recipe"] == scaling.recipe() and not scaling.is_stale(record)
+    assert json.loads((tmp_path / f"{spec.name}.json").read_text())["recipe"] == scaling.recipe()
+    # the report takes it as the count that did not fit
+    scaling.write_json(tmp_path / "memory_gpu_0000016.json", {**record, "backend": "gpu", "num_envs": 16})
+    scaling.write_json(tmp_path / "memory_gpu_0000008.json",
+                       {"kind": "memory", "backend": "gpu", "num_envs": 8, "status": "ok", "recipe": scaling.recipe()})
+    idx = scaling_report.index(scaling_report.load_results(tmp_path))
+    assert scaling_report.largest_fit(idx) == (8, 16)
+    # test networks and the raw ceiling never carry the current recipe
+    assert scaling.spec_recipe(scaling.RunSpec("time", "cpu", 8, hidden=(16,))) is None
+    assert scaling.spec_recipe(scaling.RunSpec("raw", "gpu", 8)) is None
+
+
 # ------------------------------------------------------------------------------------------------ the driver
 
 
