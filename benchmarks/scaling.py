@@ -5,7 +5,8 @@ Measures, with the same PPO recipe (``preset_config("default")`` trained by ``to
 * ``cpu_time``: training time for 983,040 env-steps on the classic-MuJoCo CPU backend (``device="cpu"``, every core),
   at 8, 32 and 96 envs;
 * ``gpu_time``: the same on mujoco-warp (``device="cuda"``) at 8, 32, 96, 1,024, 4,096, 16,384 and 65,536 envs;
-* ``memory``: short runs (3 PPO iterations) at 8, 16, 32, ... envs until one does not fit on the GPU: peak host RSS,
+* ``memory``: short runs (3 PPO iterations) at 8, 16, 32, ... envs until one does not fit on the GPU, then bisection
+  down to 8,192 envs between the largest count that fit and the smallest that did not: peak host RSS,
   GPU memory (torch allocator peak and the device-wide use), CPU utilisation;
 * ``raw``: the raw mujoco-warp ceiling of the same model (``sim_throughput.raw_policy_steps_per_second``);
 * ``report``: ``docs/benchmarks/scaling.{json,md}`` and four PNG figures (``benchmarks/scaling_report.py``).
@@ -26,10 +27,13 @@ the device install, add ``--budget_minutes 7``):
     python3 benchmarks/scaling.py --part raw                                         # ~2-3
     python3 benchmarks/scaling.py --part gpu_time --num_envs 1024 4096 16384 65536   # ~3-4
     python3 benchmarks/scaling.py --part gpu_time --num_envs 96 32                   # ~3-5
-    python3 benchmarks/scaling.py --part gpu_time --num_envs 8                       # ~5-9
-    python3 benchmarks/scaling.py --part memory                                      # ~5-9, maybe twice
-    python3 benchmarks/scaling.py --part cpu_time --num_envs 96 32                   # ~5-9
-    python3 benchmarks/scaling.py --part cpu_time --num_envs 8                       # ~9 (may end partial)
+    python3 benchmarks/scaling.py --part gpu_time --num_envs 8                       # ~9 (ends partial)
+    python3 benchmarks/scaling.py --part memory                                      # ~9, two or three times
+    python3 benchmarks/scaling.py --part cpu_time --num_envs 96 32                   # ~7 + ~9 (32 ends partial)
+    python3 benchmarks/scaling.py --part cpu_time --num_envs 8                       # ~9 (ends partial)
+
+(On an H100: 983,040 steps take ~26 min at 8 GPU envs, ~13 and ~28 min at 32 and 8 CPU envs; a partial run's
+rate is measured over the minutes it ran, and ``--max_minutes`` shortens it where device time is short.)
 
 ``--bundle`` rewrites one JSON file holding every result after each measurement (the device tool returns at most
 8 files from $OUT). Back here, unpack it into the results folder (so that the next call's working tree carries it
@@ -67,8 +71,8 @@ import socket
 import subprocess
 import sys
 import threading
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -115,6 +119,8 @@ STATUSES = ("ok", "partial", "oom", "error", "timeout")
 #: Lower-case fragments of the messages torch, CUDA and warp give when device memory runs out.
 OOM_MARKERS = ("out of memory", "outofmemory", "cuda_error_out_of_memory", "cudaerrormemoryallocation",
                "failed to allocate")
+#: The memory sweep bisects between the largest env count that fits and the smallest that does not, down to this.
+REFINE_STEP = 8192
 STOP_MARGIN_S = 30.0  # a training run stops this long before its deadline, to save, clean up and write its JSON
 KILL_GRACE_S = 60.0  # past its deadline a measurement process is killed after this long
 
@@ -559,6 +565,50 @@ def plan(parts: Sequence[str], num_envs: Sequence[int] | None = None, **spec_fie
     return specs
 
 
+def _result_counts(results: Path, backend: str) -> tuple[list[int], list[int]]:
+    """(env counts that trained, env counts that did not fit) among the current recipe's memory and time results."""
+    fit, failed = [], []
+    for path in [*Path(results).glob(f"memory_{backend}_*.json"), *Path(results).glob(f"time_{backend}_*.json")]:
+        status = load_status(path)
+        if _stale_file(path):
+            continue
+        n = int(path.stem.rsplit("_", 1)[1])
+        if status in ("ok", "partial"):
+            fit.append(n)
+        elif status in ("oom", "error", "timeout"):
+            failed.append(n)
+    return fit, failed
+
+
+def refine_count(results: Path, backend: str = "gpu", step: int = REFINE_STEP) -> int | None:
+    """The env count that halves the gap between the largest count that trained and the smallest larger one that
+    did not fit (a multiple of ``step``), None once the gap is ``step`` or less or nothing has failed yet."""
+    fit, failed = _result_counts(results, backend)
+    if not fit:
+        return None
+    largest = max(fit)
+    above = [n for n in failed if n > largest]
+    if not above or min(above) - largest <= step:
+        return None
+    mid = (largest + min(above)) // 2 // step * step
+    return mid if largest < mid < min(above) else None
+
+
+def with_refinement(specs: Sequence[RunSpec], results: Path) -> Iterator[RunSpec]:
+    """``specs``, and right after the last memory run, memory runs that narrow down the largest env count that fits
+    (bisection between the largest that trained and the smallest that did not, see :func:`refine_count`). Lazy:
+    each refinement is chosen from the results of the runs before it."""
+    last_memory = max((i for i, s in enumerate(specs) if s.kind == "memory"), default=None)
+    for i, spec in enumerate(specs):
+        yield spec
+        if i != last_memory:
+            continue
+        tried: set[int] = set()
+        while (n := refine_count(results, spec.backend)) is not None and n not in tried:
+            tried.add(n)  # a run the budget cut leaves no result: never offer the same count twice
+            yield replace(spec, num_envs=n)
+
+
 def load_status(path: Path) -> str | None:
     """Status of an existing result file, None when there is none (or it is unreadable)."""
     try:
@@ -576,13 +626,9 @@ def _stale_file(path: Path) -> bool:
 
 def _sweep_blocked(spec: RunSpec, results: Path) -> int | None:
     """For a memory run: the smallest smaller env count (memory or time run) that did not fit, else None."""
-    failed = []
-    paths = [*results.glob(f"memory_{spec.backend}_*.json"), *results.glob(f"time_{spec.backend}_*.json")]
-    for path in paths:
-        n = int(path.stem.rsplit("_", 1)[1])
-        if n < spec.num_envs and load_status(path) in ("oom", "error", "timeout"):
-            failed.append(n)
-    return min(failed) if failed else None
+    _, failed = _result_counts(results, spec.backend)
+    smaller = [n for n in failed if n < spec.num_envs]
+    return min(smaller) if smaller else None
 
 
 Launcher = Callable[[RunSpec, Path, float, bool], str]
@@ -785,7 +831,8 @@ def main(argv: Sequence[str] | None = None) -> dict | None:
         def launcher(spec: RunSpec, path: Path, deadline: float, record_timeout: bool) -> str:
             return launch(spec, path, deadline, record_timeout, args.log_dir, part_command)
 
-        outcome = drive(specs, opts, launcher)
+        runs = specs if args.num_envs else with_refinement(specs, Path(args.results))
+        outcome = drive(runs, opts, launcher)
         for name, status in outcome.items():
             print(f"  {name}: {status}", flush=True)
         if not any(v in ("not started (budget)", "cut") for v in outcome.values()):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -323,6 +324,26 @@ def cpu_rows(idx: dict) -> list[list[str]]:
     return rows
 
 
+def commands_run(records: list[dict]) -> list[tuple[str, str]]:
+    """(command, what it measured) for the commands that produced ``records`` (stale ones left out), in the order
+    they ran; ``--bundle PATH`` is left out of the command (it only says where the device run wrote its copy)."""
+    runs: dict[str, list[dict]] = {}
+    for r in records:
+        if r.get("status") == "stale":
+            continue
+        command = re.sub(r"\s--bundle\s+\S+", "", r.get("part_command") or r.get("command") or "").strip()
+        runs.setdefault(command or "(not recorded)", []).append(r)
+    out = []
+    for command, rs in sorted(runs.items(), key=lambda kv: min((r.get("meta") or {}).get("date", "") for r in kv[1])):
+        groups: dict[tuple[str, str], list[int]] = {}
+        for r in rs:
+            groups.setdefault((r["kind"], r["backend"]), []).append(int(r["num_envs"]))
+        what = "; ".join(f"{kind} {backend.upper()} at {', '.join(f'{n:,}' for n in sorted(ns))} envs"
+                         for (kind, backend), ns in groups.items())
+        out.append((command, what))
+    return out
+
+
 def collect_meta(records: list[dict]) -> dict:
     """The machines and software of the results (GPU run's metadata first), plus the commands that made them."""
     gpu_meta = next((r["meta"] for r in records if (r.get("meta") or {}).get("gpu")), None)
@@ -333,7 +354,8 @@ def collect_meta(records: list[dict]) -> dict:
             "available_cores": base.get("available_cores"), "host_ram_gib": base.get("host_ram_gib"),
             "versions": base.get("versions"), "python": base.get("python"), "hosts": sorted(
                 {r["meta"]["host"] for r in records if (r.get("meta") or {}).get("host")}),
-            "dates": [dates[0], dates[-1]] if dates else [], "commands": [*CHUNKS, REPORT_COMMAND]}
+            "dates": [dates[0], dates[-1]] if dates else [], "commands": [*CHUNKS, REPORT_COMMAND],
+            "commands_run": [{"command": c, "measured": w} for c, w in commands_run(records)]}
 
 
 # ------------------------------------------------------------------------------------------------ figures
@@ -471,8 +493,9 @@ RAW_NOTE = (
     "`mujoco_warp.step` × 8 on the same model), measured by `--part raw` on the same machine."
 )
 MEMORY_NOTE = (
-    "Measured by `--part memory` (3 PPO iterations per env count, up to the first that does not fit; env counts a "
-    "983,040-step run already measured are taken from it). Peak RSS is `ru_maxrss` of the measurement's own "
+    "Measured by `--part memory`: 3 PPO iterations per env count, doubling up to the first count that does not "
+    "fit, then bisecting between the largest that fit and that one down to 8,192 envs; an env count without a short "
+    "run takes its numbers from its 983,040-step run (*983k run*). Peak RSS is `ru_maxrss` of the measurement's own "
     "process; *device in use* is `cudaMemGetInfo` at the end of training with the env alive (torch keeps its "
     "reserved pool, so this is the peak), *nvidia-smi peak* the highest of samples taken every second; CPU cores "
     "busy = process CPU time ÷ training wall time (sampled every 0.5 s)."
@@ -587,7 +610,12 @@ def render_markdown(records: list[dict], figures: list[str], results_dir: str) -
         _figure(figures, "scaling_cpu.png", "CPU utilisation vs env count"), "",
         "## Per-env cost", "", *_per_env_lines(idx), "",
         "## Efficiency E", "", E_DEFINITION, "",
-        "## Method", "", *recipe_lines(), *METHOD,
+        "## Method", "", *recipe_lines(), *METHOD, "",
+        "## Commands that produced these results", "",
+        "On the GPU machine, from the repository root, each followed by `--part unpack` of its bundle here (the "
+        "budget and time-limit options size a command to the device's time left; a partial run's rate is "
+        "measured over the minutes it ran):", "",
+        *_table(["command", "measured"], [[f"`{c}`", w] for c, w in commands_run(records)] or [[NOT_MEASURED, ""]]),
     ]
     return "\n".join(lines) + "\n"
 

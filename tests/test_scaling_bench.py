@@ -171,10 +171,37 @@ def test_memory_sweep_stops_at_the_first_count_that_does_not_fit(tmp_path):
     assert outcome["memory_gpu_0000032"].startswith("skipped (the time run")
     # a time run that ran out of memory also ends the sweep above it
     other = tmp_path / "other"
-    scaling.write_json(other / "time_gpu_0000064.json", {"status": "oom"})
+    scaling.write_json(other / "time_gpu_0000064.json", {"status": "oom", "recipe": scaling.recipe()})
     fake = FakeLauncher()
     scaling.drive(scaling.plan(["memory"], [32, 128]), scaling.DriveOptions(results=other), fake)
     assert fake.calls == ["memory_gpu_0000032"]
+    # ... unless it ran with an older recipe
+    scaling.write_json(other / "time_gpu_0000064.json", {"status": "oom", "recipe": {"gamma": 0.9}})
+    fake = FakeLauncher()
+    scaling.drive(scaling.plan(["memory"], [128]), scaling.DriveOptions(results=other), fake)
+    assert fake.calls == ["memory_gpu_0000128"]
+
+
+def test_memory_sweep_bisects_to_the_largest_count_that_fits(tmp_path):
+    """65,536 fits and 98,304 does not: 81,920 and then 90,112 are tried; the gap then is one refinement step."""
+    fits = lambda n: n <= 90112  # noqa: E731 - the fake GPU's capacity
+    fake = FakeLauncher({n: ("ok" if fits(n) else "oom") for n in range(8192, 262145, 8192)})
+    specs = scaling.plan(["memory", "cpu_time"], None)
+    specs = [s for s in specs if s.kind != "memory" or s.num_envs >= 32768]  # keep the test's sweep short
+    scaling.drive(scaling.with_refinement(specs, tmp_path), scaling.DriveOptions(results=tmp_path), fake)
+    memory_calls = [c for c in fake.calls if c.startswith("memory")]
+    assert memory_calls == ["memory_gpu_0032768", "memory_gpu_0065536", "memory_gpu_0098304",
+                            "memory_gpu_0081920", "memory_gpu_0090112"]
+    assert fake.calls[len(memory_calls):] == ["time_cpu_0000096", "time_cpu_0000032", "time_cpu_0000008"]
+    assert scaling.refine_count(tmp_path) is None
+    # nothing failed yet, or only a count below every fit: no bisection
+    assert scaling.refine_count(tmp_path / "empty") is None
+    # a count the budget cut (no result) is not offered twice
+    cut = tmp_path / "cut"
+    scaling.write_json(cut / "memory_gpu_0065536.json", {"status": "ok", "recipe": scaling.recipe()})
+    scaling.write_json(cut / "memory_gpu_0131072.json", {"status": "oom", "recipe": scaling.recipe()})
+    offered = list(scaling.with_refinement(scaling.plan(["memory"], [65536]), cut))
+    assert [s.num_envs for s in offered] == [65536, 98304]
 
 
 def test_driver_stops_when_the_budget_is_spent(tmp_path):
@@ -277,6 +304,20 @@ def test_report_renders_markdown_json_and_figures(tmp_path):
     assert "eq. 5.1" in text and scaling.CHUNKS[0] in text
     summary = json.loads((tmp_path / "scaling.json").read_text())
     assert len(summary["results"]) == 7 and summary["meta"]["gpu"] == "Test GPU 80GB"
+    # the commands that ran, with what each measured, in the order they ran (no device bundle path)
+    records = _synthetic(20.0)
+    for i, r in enumerate(records):
+        r["meta"]["date"] = f"2026-01-01 00:00:{i:02d}"
+        r["part_command"] = f"python3 benchmarks/scaling.py --part {r['kind']} --bundle /root/out/b.json"
+    r["part_command"] = "python3 benchmarks/scaling.py --part time --num_envs 8"  # the raw one, last
+    ran = scaling_report.commands_run(records)
+    assert ran[0] == ("python3 benchmarks/scaling.py --part time",
+                      "time CPU at 8, 96 envs; time GPU at 1,024, 4,096 envs")
+    assert [c for c, _ in ran] == ["python3 benchmarks/scaling.py --part time",
+                                   "python3 benchmarks/scaling.py --part memory",
+                                   "python3 benchmarks/scaling.py --part time --num_envs 8"]
+    assert ran[1][1] == "memory GPU at 16,384, 131,072 envs" and ran[2][1] == "raw GPU at 4,096 envs"
+    assert "## Commands that produced these results" in text
     assert summary["host_ram_growth_1024_16384"] == pytest.approx(0.05)
 
 
