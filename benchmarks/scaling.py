@@ -6,7 +6,7 @@ Measures, with the same PPO recipe (``preset_config("default")`` trained by ``to
   at 8, 32 and 96 envs;
 * ``gpu_time``: the same on mujoco-warp (``device="cuda"``) at 8, 32, 96, 1,024, 4,096, 16,384 and 65,536 envs;
 * ``memory``: short runs (3 PPO iterations) at 8, 16, 32, ... envs until one does not fit on the GPU, then bisection
-  down to 8,192 envs between the largest count that fit and the smallest that did not: peak host RSS,
+  between the largest count that fit and the smallest that did not until the two are 8,192 envs apart: peak host RSS,
   GPU memory (torch allocator peak and the device-wide use), CPU utilisation;
 * ``raw``: the raw mujoco-warp ceiling of the same model (``sim_throughput.raw_policy_steps_per_second``);
 * ``report``: ``docs/benchmarks/scaling.{json,md}`` and four PNG figures (``benchmarks/scaling_report.py``).
@@ -113,9 +113,12 @@ CHUNKS = (
     "python3 benchmarks/scaling.py --part cpu_time --num_envs 8",
 )
 #: Seconds a command must have left to start a measurement of this kind (the first one of a command always starts).
-MIN_LAUNCH_S = {"time": 240.0, "memory": 60.0, "raw": 45.0}
+# The largest memory runs need ~100 s (90,112 envs: 95.5 s on the H100): one launched with less is cut short and
+# proves nothing about fitting, so it waits for the next command.
+MIN_LAUNCH_S = {"time": 240.0, "memory": 120.0, "raw": 45.0}
 #: Statuses a result can have; ``ok`` and ``partial`` carry a rate.
 STATUSES = ("ok", "partial", "oom", "error", "timeout")
+FAILED = ("oom", "error", "timeout")  # statuses of a run that did not train
 #: Lower-case fragments of the messages torch, CUDA and warp give when device memory runs out.
 OOM_MARKERS = ("out of memory", "outofmemory", "cuda_error_out_of_memory", "cudaerrormemoryallocation",
                "failed to allocate")
@@ -159,6 +162,15 @@ def spec_recipe(spec: RunSpec) -> dict | None:
     if spec.kind == "raw" or spec.hidden:
         return None
     return recipe(spec.ppo_config())
+
+
+def shows_fit(record: dict) -> bool:
+    """Whether a time or memory result proves that its env count trains: it finished (``ok``), or its deadline
+    stopped it (``partial``) after at least the iterations a memory run does. A memory run stopped earlier proves
+    nothing: out-of-memory can strike late (98,304 envs failed well into training)."""
+    if record.get("status") == "ok":
+        return True
+    return record.get("status") == "partial" and (record.get("iterations") or 0) >= record.get("memory_iterations", 3)
 
 
 def is_stale(record: dict, current: dict | None = None) -> bool:
@@ -435,14 +447,20 @@ def _gpu_memory(before_used: float | None) -> dict:
             "device_total_gib": total / GIB}
 
 
-def _steady_rate(csv_path: Path) -> float | None:
-    """Env-steps/s between the first and last logged iterations (excludes the first iteration's warm-up)."""
+def _metrics_rows(csv_path: Path) -> list[dict]:
+    """The logged iterations of a training run's ``metrics.csv`` ([] when it has none)."""
     import csv
 
-    if not csv_path.exists():
-        return None
-    with open(csv_path, newline="") as f:
-        rows = list(csv.DictReader(f))
+    try:
+        with open(csv_path, newline="") as f:
+            return list(csv.DictReader(f))
+    except OSError:
+        return []
+
+
+def _steady_rate(csv_path: Path) -> float | None:
+    """Env-steps/s between the first and last logged iterations (excludes the first iteration's warm-up)."""
+    rows = _metrics_rows(csv_path)
     if len(rows) < 2:
         return None
     steps = float(rows[-1]["env_steps"]) - float(rows[0]["env_steps"])
@@ -521,14 +539,16 @@ def run_one(spec: RunSpec, out_path: Path, deadline: float | None = None, comman
     sampler.start()
     record = {"schema": 1, **{k: v for k, v in asdict(spec).items() if k not in ("run_dir",)},
               "name": spec.name, "command": command, "part_command": os.environ.get("SCALING_PART_COMMAND", "")}
-    if spec.kind != "raw":
-        record["recipe"] = spec_recipe(spec)
     try:
+        if spec.kind != "raw":
+            record["recipe"] = spec_recipe(spec)
         record.update(measure_raw(spec, sampler) if spec.kind == "raw" else measure_training(spec, deadline, sampler))
     except Exception as err:  # noqa: BLE001 - every failure is a result to record, OOM especially
         sampler.stop()
         text = f"{type(err).__name__}: {err}"
         record.update(status="oom" if _is_oom(text) else "error", error=text[-2000:], cpu=sampler.summary())
+        if spec.kind != "raw":  # when it failed: at set-up (0) or after some iterations (memory runs log each one)
+            record["iterations_logged"] = len(_metrics_rows(Path(spec.run_dir) / spec.name / "metrics.csv"))
         if spec.backend == "gpu":
             try:
                 record["gpu"] = _gpu_memory(None)
@@ -566,23 +586,27 @@ def plan(parts: Sequence[str], num_envs: Sequence[int] | None = None, **spec_fie
 
 
 def _result_counts(results: Path, backend: str) -> tuple[list[int], list[int]]:
-    """(env counts that trained, env counts that did not fit) among the current recipe's memory and time results."""
+    """(env counts that trained, env counts that did not fit) among the current recipe's memory and time results;
+    a run stopped before it proved either (see :func:`shows_fit`) counts as neither."""
     fit, failed = [], []
     for path in [*Path(results).glob(f"memory_{backend}_*.json"), *Path(results).glob(f"time_{backend}_*.json")]:
-        status = load_status(path)
-        if _stale_file(path):
+        record = _read(path)
+        if record is None or is_stale(record):
             continue
         n = int(path.stem.rsplit("_", 1)[1])
-        if status in ("ok", "partial"):
+        if shows_fit(record):
             fit.append(n)
-        elif status in ("oom", "error", "timeout"):
+        elif record.get("status") in FAILED:
             failed.append(n)
     return fit, failed
 
 
 def refine_count(results: Path, backend: str = "gpu", step: int = REFINE_STEP) -> int | None:
-    """The env count that halves the gap between the largest count that trained and the smallest larger one that
-    did not fit (a multiple of ``step``), None once the gap is ``step`` or less or nothing has failed yet."""
+    """The next env count of the memory sweep's bisection: the multiple of ``step`` that halves the gap between the
+    largest count that trained and the smallest larger one that did not fit (current recipe's memory and time
+    results of ``backend``, see :func:`_result_counts`). None when nothing has trained yet, nothing above the largest
+    fit has failed, the gap is ``step`` or less, or no multiple of ``step`` lies strictly inside it. A failure below
+    the largest fit (a one-off error, say) does not bound the search."""
     fit, failed = _result_counts(results, backend)
     if not fit:
         return None
@@ -609,19 +633,22 @@ def with_refinement(specs: Sequence[RunSpec], results: Path) -> Iterator[RunSpec
             yield replace(spec, num_envs=n)
 
 
-def load_status(path: Path) -> str | None:
-    """Status of an existing result file, None when there is none (or it is unreadable)."""
+def _read(path: Path) -> dict | None:
+    """An existing result file, None when there is none (or it is unreadable)."""
     try:
-        return json.loads(Path(path).read_text()).get("status")
+        return json.loads(Path(path).read_text())
     except (OSError, ValueError):
         return None
 
 
+def load_status(path: Path) -> str | None:
+    """Status of an existing result file, None when there is none (or it is unreadable)."""
+    return (_read(path) or {}).get("status")
+
+
 def _stale_file(path: Path) -> bool:
-    try:
-        return is_stale(json.loads(Path(path).read_text()))
-    except (OSError, ValueError):
-        return False
+    record = _read(path)
+    return record is not None and is_stale(record)
 
 
 def _sweep_blocked(spec: RunSpec, results: Path) -> int | None:
@@ -660,7 +687,8 @@ def launch(spec: RunSpec, out_path: Path, deadline: float, record_timeout: bool,
     status = "timeout" if rc is None else ("oom" if _is_oom(tail) else "error")
     write_json(out_path, {"schema": 1, **{k: v for k, v in asdict(spec).items() if k != "run_dir"}, "name": spec.name,
                           "status": status, "returncode": rc, "error": tail, "command": " ".join(cmd[1:]),
-                          "recipe": spec_recipe(spec)})
+                          "part_command": part_command, "recipe": spec_recipe(spec),
+                          "meta": {"date": time.strftime("%Y-%m-%d %H:%M:%S")}})
     return status
 
 
@@ -703,6 +731,10 @@ def drive(specs: Iterable[RunSpec], opts: DriveOptions, launcher: Launcher) -> d
     for spec in specs:
         path = results / f"{spec.name}.json"
         status = load_status(path)
+        if spec.kind == "memory" and status == "partial" and not _stale_file(path):
+            # stopped before its iterations were done: it shows neither fit nor failure, so it is measured again
+            print(f"[scaling] {spec.name}: its last run was stopped early, measuring again", flush=True)
+            status = None
         if status is not None and status not in opts.redo:
             if not (opts.redo_stale and _stale_file(path)):
                 outcome[spec.name] = f"skipped ({status})"
@@ -774,7 +806,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--part", nargs="+", default=["all"],
                         choices=[*PARTS, "all", "report", "unpack"], help="what to do (several run in order)")
-    parser.add_argument("--num_envs", type=int, nargs="+", default=None, help="env counts (default: the part's)")
+    parser.add_argument("--num_envs", type=int, nargs="+", default=None, help="env counts (default: the part's; given counts also turn off the memory sweep's bisection)")
     parser.add_argument("--results", default=str(DEFAULT_RESULTS), help="folder of the per-measurement JSON files")
     parser.add_argument("--out", default=None, help="report: output folder (default: the results folder's parent); "
                                                     "--one: the result file")
@@ -784,7 +816,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--redo", nargs="*", default=[], choices=STATUSES, help="measure these statuses again")
     parser.add_argument("--no_reuse", action="store_true", help="memory: also rerun env counts a time run covered")
     parser.add_argument("--keep_stale", action="store_true",
-                        help="skip results trained with an older recipe instead of measuring them again")
+                        help="skip results trained with an older recipe instead of measuring them again (the report still "
+                             "leaves them out)")
     parser.add_argument("--bundle", default=None, help="one JSON file of every result (rewritten as results come)")
     parser.add_argument("--memory_iterations", type=int, default=3)
     parser.add_argument("--raw_steps", type=int, default=200)
@@ -831,6 +864,8 @@ def main(argv: Sequence[str] | None = None) -> dict | None:
         def launcher(spec: RunSpec, path: Path, deadline: float, record_timeout: bool) -> str:
             return launch(spec, path, deadline, record_timeout, args.log_dir, part_command)
 
+        # Only the default sweep bisects: given counts are a request for exactly those (a rerun of one count, say),
+        # and a bisection there would spend the call's device time on counts nobody asked for.
         runs = specs if args.num_envs else with_refinement(specs, Path(args.results))
         outcome = drive(runs, opts, launcher)
         for name, status in outcome.items():

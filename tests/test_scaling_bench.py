@@ -3,6 +3,7 @@ process, the driver's resume and sweep logic with a fake launcher, and the repor
 
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -91,13 +92,17 @@ def test_one_cpu_measurement_writes_a_sane_json(tmp_path):
 
 def test_a_failed_measurement_keeps_its_recipe(tmp_path, monkeypatch):
     """An out-of-memory result says which recipe ran out of memory, so the report counts it (not as stale)."""
-    def out_of_memory(spec, deadline, sampler):
+    def out_of_memory(spec, deadline, sampler):  # after two logged iterations, as 98,304 envs did on the H100
+        metrics = Path(spec.run_dir) / spec.name / "metrics.csv"
+        metrics.parent.mkdir(parents=True)
+        metrics.write_text("iteration,env_steps,wall_s\n1,100,1.0\n2,200,2.0\n")
         raise RuntimeError("Graph launch error: Warp CUDA error 2: out of memory")
 
     monkeypatch.setattr(scaling, "measure_training", out_of_memory)
-    spec = scaling.RunSpec("memory", "cpu", 8)
+    spec = scaling.RunSpec("memory", "cpu", 8, run_dir=str(tmp_path / "runs"))
     record = scaling.run_one(spec, tmp_path / f"{spec.name}.json")
     assert record["status"] == "oom" and "out of memory" in record["error"]
+    assert record["iterations_logged"] == 2  # it failed while training, not at set-up
     assert record["recipe"] == scaling.recipe() and not scaling.is_stale(record)
     assert json.loads((tmp_path / f"{spec.name}.json").read_text())["recipe"] == scaling.recipe()
     # the report takes it as the count that did not fit
@@ -109,6 +114,49 @@ def test_a_failed_measurement_keeps_its_recipe(tmp_path, monkeypatch):
     # test networks and the raw ceiling never carry the current recipe
     assert scaling.spec_recipe(scaling.RunSpec("time", "cpu", 8, hidden=(16,))) is None
     assert scaling.spec_recipe(scaling.RunSpec("raw", "gpu", 8)) is None
+
+
+class _FakeRun:
+    """Stands in for ``subprocess.run`` of a measurement process that dies before writing its JSON."""
+
+    def __init__(self, log_text: str = "", returncode: int | None = 1):
+        self.log_text, self.returncode, self.cmd = log_text, returncode, None
+
+    def __call__(self, cmd, stdout, **kwargs):
+        self.cmd = cmd
+        stdout.write(self.log_text)
+        if self.returncode is None:
+            raise subprocess.TimeoutExpired(cmd, kwargs["timeout"])
+        return subprocess.CompletedProcess(cmd, self.returncode)
+
+
+def test_launch_records_a_process_that_died_without_a_result(tmp_path, monkeypatch):
+    """A measurement process killed by the driver (no JSON of its own) still leaves a dated failure record with its
+    recipe and the command that launched it, so the report counts it and names that command."""
+    spec = scaling.RunSpec("memory", "gpu", 98304)
+    out = tmp_path / "results" / f"{spec.name}.json"
+    part = "python3 benchmarks/scaling.py --part memory --num_envs 98304 --bundle=/root/out/b.json"
+    fake = _FakeRun("iteration 1\nRuntimeError: CUDA error: out of memory\n", returncode=1)
+    monkeypatch.setattr(scaling.subprocess, "run", fake)
+    status = scaling.launch(spec, out, deadline=scaling.time.time() + 60, record_timeout=False,
+                            log_dir=str(tmp_path / "logs"), part_command=part)
+    assert status == "oom" and "--one" in fake.cmd
+    record = json.loads(out.read_text())
+    assert record["status"] == "oom" and "out of memory" in record["error"] and record["returncode"] == 1
+    assert record["recipe"] == scaling.recipe() and not scaling.is_stale(record)
+    assert record["part_command"] == part and record["meta"]["date"].startswith("20")
+    loaded = scaling_report.load_results(out.parent)
+    assert scaling_report.largest_fit(scaling_report.index(loaded)) == (None, 98304)
+    assert scaling_report.commands_run(loaded) == [("python3 benchmarks/scaling.py --part memory --num_envs 98304",
+                                                    "memory GPU at 98,304 envs")]
+    # any other death is an error
+    monkeypatch.setattr(scaling.subprocess, "run", _FakeRun("Segmentation fault\n", returncode=-11))
+    assert scaling.launch(spec, tmp_path / "e.json", scaling.time.time() + 60, False, str(tmp_path / "logs")) == "error"
+    # killed at its deadline: the measurement's own time limit is a result, the command's budget is not (rerun it)
+    monkeypatch.setattr(scaling.subprocess, "run", _FakeRun(returncode=None))
+    assert scaling.launch(spec, tmp_path / "t.json", scaling.time.time() + 60, True, str(tmp_path / "logs")) == "timeout"
+    assert scaling.launch(spec, tmp_path / "c.json", scaling.time.time() + 60, False, str(tmp_path / "logs")) == "cut"
+    assert not (tmp_path / "c.json").exists()
 
 
 # ------------------------------------------------------------------------------------------------ the driver
@@ -194,14 +242,46 @@ def test_memory_sweep_bisects_to_the_largest_count_that_fits(tmp_path):
                             "memory_gpu_0081920", "memory_gpu_0090112"]
     assert fake.calls[len(memory_calls):] == ["time_cpu_0000096", "time_cpu_0000032", "time_cpu_0000008"]
     assert scaling.refine_count(tmp_path) is None
-    # nothing failed yet, or only a count below every fit: no bisection
+    # nothing failed yet: no bisection
     assert scaling.refine_count(tmp_path / "empty") is None
+    # a failure below every fit does not bound the search, nor does an OOM of an older recipe above it
+    other = tmp_path / "other"
+    current, older = scaling.recipe(), {**scaling.recipe(), "gamma": 0.9}
+    scaling.write_json(other / "memory_gpu_0008192.json", {"kind": "memory", "status": "error", "recipe": current})
+    scaling.write_json(other / "memory_gpu_0065536.json", {"kind": "memory", "status": "ok", "recipe": current})
+    scaling.write_json(other / "memory_gpu_0081920.json", {"kind": "memory", "status": "oom", "recipe": older})
+    assert scaling.refine_count(other) is None
+    scaling.write_json(other / "time_gpu_0131072.json", {"kind": "time", "status": "oom", "recipe": current})
+    assert scaling.refine_count(other) == 98304
     # a count the budget cut (no result) is not offered twice
     cut = tmp_path / "cut"
     scaling.write_json(cut / "memory_gpu_0065536.json", {"status": "ok", "recipe": scaling.recipe()})
     scaling.write_json(cut / "memory_gpu_0131072.json", {"status": "oom", "recipe": scaling.recipe()})
-    offered = list(scaling.with_refinement(scaling.plan(["memory"], [65536]), cut))
+    offered = itertools.islice(scaling.with_refinement(scaling.plan(["memory"], [65536]), cut), 10)
     assert [s.num_envs for s in offered] == [65536, 98304]
+
+
+def test_a_memory_run_stopped_early_proves_nothing(tmp_path):
+    """Out-of-memory can strike late in training, so a memory run its deadline stopped before its iterations were
+    done is neither a fit nor a failure: the sweep bisects around it, the driver measures it again, the report does
+    not count it. A deadline-stopped time run that did more iterations than a memory run does count as a fit."""
+    current = scaling.recipe()
+    scaling.write_json(tmp_path / "memory_gpu_0065536.json", {"kind": "memory", "status": "ok", "recipe": current})
+    scaling.write_json(tmp_path / "memory_gpu_0131072.json", {"kind": "memory", "status": "oom", "recipe": current})
+    scaling.write_json(tmp_path / "memory_gpu_0098304.json", {"kind": "memory", "status": "partial", "iterations": 2,
+                                                               "memory_iterations": 3, "recipe": current})
+    assert scaling._result_counts(tmp_path, "gpu") == ([65536], [131072])
+    assert scaling.refine_count(tmp_path) == 98304
+    fake = FakeLauncher()
+    outcome = scaling.drive(scaling.plan(["memory"], [65536, 98304]), scaling.DriveOptions(results=tmp_path), fake)
+    assert fake.calls == ["memory_gpu_0098304"] and outcome["memory_gpu_0065536"] == "skipped (ok)"
+    assert scaling.refine_count(tmp_path) == 114688  # 98,304 fits now
+    # the report: partial memory runs are not fits; long partial time runs are
+    records = [_record("memory", "gpu", 1024, used=2.0), _record("memory", "gpu", 2048, status="partial", used=3.0),
+               {**_record("time", "gpu", 8, status="partial", rate=600.0), "iterations": 39, "memory_iterations": 3}]
+    idx = scaling_report.index(records)
+    assert scaling_report.largest_fit(idx) == (1024, None)
+    assert scaling.shows_fit(records[2]) and not scaling.shows_fit(records[1])
 
 
 def test_driver_stops_when_the_budget_is_spent(tmp_path):
@@ -309,13 +389,19 @@ def test_report_renders_markdown_json_and_figures(tmp_path):
     for i, r in enumerate(records):
         r["meta"]["date"] = f"2026-01-01 00:00:{i:02d}"
         r["part_command"] = f"python3 benchmarks/scaling.py --part {r['kind']} --bundle /root/out/b.json"
-    r["part_command"] = "python3 benchmarks/scaling.py --part time --num_envs 8"  # the raw one, last
-    ran = scaling_report.commands_run(records)
+    records[-1]["part_command"] = "python3 benchmarks/scaling.py --part time --num_envs 8"  # the raw one, last
+    stale = _record("memory", "gpu", 512)
+    stale.update(status="stale", part_command="python3 benchmarks/scaling.py --part memory --num_envs 512")
+    unrecorded = {**_record("memory", "gpu", 256), "part_command": "", "command": ""}
+    undated = {**_record("memory", "gpu", 128), "part_command": "python3 benchmarks/scaling.py --part memory --x"}
+    undated["meta"] = {}
+    ran = scaling_report.commands_run([undated, *records, stale, unrecorded])
     assert ran[0] == ("python3 benchmarks/scaling.py --part time",
                       "time CPU at 8, 96 envs; time GPU at 1,024, 4,096 envs")
     assert [c for c, _ in ran] == ["python3 benchmarks/scaling.py --part time",
                                    "python3 benchmarks/scaling.py --part memory",
-                                   "python3 benchmarks/scaling.py --part time --num_envs 8"]
+                                   "python3 benchmarks/scaling.py --part time --num_envs 8",
+                                   "python3 benchmarks/scaling.py --part memory --x"]  # undated: last
     assert ran[1][1] == "memory GPU at 16,384, 131,072 envs" and ran[2][1] == "raw GPU at 4,096 envs"
     assert "## Commands that produced these results" in text
     assert summary["host_ram_growth_1024_16384"] == pytest.approx(0.05)
