@@ -15,8 +15,12 @@ Every measurement runs in a fresh process (``--one``; peak RSS is monotonic in a
 into the results folder (default ``docs/benchmarks/scaling/``). The suite is resumable: a measurement whose JSON
 exists is skipped (``--redo partial error`` repeats those statuses). A command stops launching measurements when its
 ``--budget_minutes`` (default 9) runs low, a training run stops itself at its deadline through ``PPOConfig.max_minutes``
-(status ``partial``: the rate is measured, the time for 983,040 steps extrapolated), so every command ends inside
-the GPU machine's 10-minute limit; rerun the same command to continue.
+(status ``partial``: the rate is measured, the time for 983,040 steps extrapolated, and a checkpoint is saved), so
+every command ends inside the GPU machine's 10-minute limit; rerun the same command to continue. A partial time run
+trains on from its checkpoint (``<run_dir>/<name>/checkpoints/latest.pt``; ``--no_continue`` skips it instead,
+``--redo partial`` starts it over): the result then adds the segments up (steps, TocabiLab's training time, set-up)
+and lists each one under ``segments``. The run folder lives in ``--run_dir`` (default under /tmp, which survives
+between calls on a warm GPU machine); without its checkpoint a partial run is skipped with a note.
 
 On the GPU machine (1x H100, 16 cores), from the repository root, after the device set-up of
 ``../shared/device/README.md`` (``export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1``), one command per call, in
@@ -459,12 +463,19 @@ def _metrics_rows(csv_path: Path) -> list[dict]:
 
 
 def _steady_rate(csv_path: Path) -> float | None:
-    """Env-steps/s between the first and last logged iterations (excludes the first iteration's warm-up)."""
-    rows = _metrics_rows(csv_path)
-    if len(rows) < 2:
-        return None
-    steps = float(rows[-1]["env_steps"]) - float(rows[0]["env_steps"])
-    dt = float(rows[-1]["wall_s"]) - float(rows[0]["wall_s"])
+    """Env-steps/s between the first and last logged iterations of each training segment (excludes each segment's
+    first iteration, the warm-up). A resumed run appends its rows and its ``wall_s`` restarts from zero: that is
+    where a new segment begins."""
+    segments: list[list[dict]] = []
+    for row in _metrics_rows(csv_path):
+        if not segments or float(row["wall_s"]) < float(segments[-1][-1]["wall_s"]):
+            segments.append([])
+        segments[-1].append(row)
+    steps = dt = 0.0
+    for rows in segments:
+        if len(rows) >= 2:
+            steps += float(rows[-1]["env_steps"]) - float(rows[0]["env_steps"])
+            dt += float(rows[-1]["wall_s"]) - float(rows[0]["wall_s"])
     return steps / dt if dt > 0 else None
 
 
@@ -478,13 +489,38 @@ def _start_cuda() -> float:
     return (total - free) / GIB
 
 
-def measure_training(spec: RunSpec, deadline: float | None, sampler: Sampler) -> dict:
-    """Train ``spec`` with ``train(cfg, env)``; the env is built here so it stays alive for the memory reading."""
+def checkpoint_path(spec: RunSpec) -> Path:
+    """Where a training run of ``spec`` leaves its latest checkpoint (the trainer saves one when it stops)."""
+    return Path(spec.run_dir) / spec.name / "checkpoints" / "latest.pt"
+
+
+def _check_chain(spec: RunSpec, previous: dict) -> None:
+    """Refuse to continue ``previous`` from a checkpoint that is not where that result ended."""
+    import torch
+
+    path = checkpoint_path(spec)
+    if not path.is_file():
+        raise FileNotFoundError(f"no checkpoint at {path} to continue {spec.name} from")
+    steps = torch.load(path, map_location="cpu", weights_only=False).get("env_steps")
+    if steps != previous.get("env_steps"):
+        raise ValueError(f"the checkpoint {path} is at {steps} env-steps but the result at "
+                         f"{previous.get('env_steps')}: they do not chain (--redo partial measures from scratch)")
+
+
+def measure_training(spec: RunSpec, deadline: float | None, sampler: Sampler, previous: dict | None = None) -> dict:
+    """Train ``spec`` with ``train(cfg, env)``; the env is built here so it stays alive for the memory reading.
+    With ``previous`` (a partial result of ``spec``), training resumes from its checkpoint and the returned
+    numbers are of this segment alone (see :func:`merge_segments`)."""
     from tocabi_torchrl.rl.trainer import build_env, resolve_device, train
 
     gpu_before = _start_cuda() if spec.backend == "gpu" else None
     cfg = spec.ppo_config()
-    shutil.rmtree(Path(cfg.run_dir) / cfg.name, ignore_errors=True)  # metrics.csv appends: start clean
+    if previous is None:
+        shutil.rmtree(Path(cfg.run_dir) / cfg.name, ignore_errors=True)  # metrics.csv appends: start clean
+    else:
+        _check_chain(spec, previous)
+        cfg.resume = str(checkpoint_path(spec))
+    done_before = previous["env_steps"] if previous else 0
     env = build_env(cfg, resolve_device(cfg.device), for_training=True)
     if deadline is not None:
         left_min = (deadline - time.time() - STOP_MARGIN_S) / 60.0
@@ -497,7 +533,7 @@ def measure_training(spec: RunSpec, deadline: float | None, sampler: Sampler) ->
                    "total_env_steps_target": cfg.total_env_steps, "actor_hidden": list(cfg.actor_hidden),
                    "critic_hidden": list(cfg.critic_hidden), "max_minutes": cfg.max_minutes},
         "iterations": result.iterations,
-        "env_steps": result.env_steps,
+        "env_steps": result.env_steps - done_before,  # of this process (a resumed run counts on from its checkpoint)
         "train_wall_s": result.wall_seconds,  # TocabiLab's timer: from finished set-up to the end
         "total_wall_s": t_end - _T0,  # imports, CUDA, env (warp kernels), agent, collector included
         "setup_s": t_end - _T0 - result.wall_seconds,
@@ -524,9 +560,66 @@ def measure_raw(spec: RunSpec, sampler: Sampler) -> dict:
             "total_wall_s": time.perf_counter() - _T0, "cpu": sampler.summary(), "gpu": _gpu_memory(before)}
 
 
-def run_one(spec: RunSpec, out_path: Path, deadline: float | None = None, command: str = "") -> dict:
-    """Measure ``spec`` in this process and write its JSON; out-of-memory becomes status ``oom``, not a crash."""
+#: Per-segment numbers of a training run that resumed from checkpoints (TocabiLab's timer sums the segments).
+SEGMENT_KEYS = ("env_steps", "train_wall_s", "setup_s", "total_wall_s", "env_steps_per_s", "command", "part_command")
+
+
+def _segments(record: dict) -> list[dict]:
+    """The training segments of a time result: its own list, or the record itself as the only one."""
+    if record.get("segments"):
+        return [dict(seg) for seg in record["segments"]]
+    return [{**{k: record.get(k) for k in SEGMENT_KEYS}, "date": (record.get("meta") or {}).get("date")}]
+
+
+def _weighted_cpu(parts: list[dict]) -> dict:
+    """CPU use over several segments: means weighted by each segment's window, peaks as peaks."""
+    parts = [p for p in parts if p and p.get("window_s")]
+    if not parts:
+        return {}
+    window = sum(p["window_s"] for p in parts)
+    out = dict(parts[-1])
+    for key in ("cores_used_mean", "system_busy_cores_mean", "gpu_util_mean"):
+        values = [(p[key], p["window_s"]) for p in parts if p.get(key) is not None]
+        out[key] = sum(v * w for v, w in values) / sum(w for _, w in values) if values else None
+    for key in ("cores_used_max", "rss_peak_sampled_gib", "gpu_used_peak_gib"):
+        values = [p[key] for p in parts if p.get(key) is not None]
+        out[key] = max(values) if values else None
+    out.update(samples=sum(p.get("samples", 0) for p in parts), window_s=window)
+    return out
+
+
+def merge_segments(previous: dict, segment: dict) -> dict:
+    """One time result from ``previous`` (partial) and ``segment`` (the next process's training, resumed from the
+    checkpoint ``previous`` ended at). Steps, training time (TocabiLab's timer), set-up and total times add up; the
+    rate is all steps over all training time; CPU means are weighted by time; memory readings are the latest
+    segment's (the same env count and networks) with peaks over all. ``segments`` lists each process's own numbers."""
+    segments = _segments(previous) + _segments(segment)
+    merged = {**previous, **segment}
+    for key in ("env_steps", "train_wall_s", "setup_s", "total_wall_s"):
+        merged[key] = sum(seg[key] or 0 for seg in segments)
+    merged["env_steps_per_s"] = merged["env_steps"] / merged["train_wall_s"] if merged["train_wall_s"] else None
+    merged["cpu"] = _weighted_cpu([*previous.get("cpu_segments", [previous.get("cpu")]), segment.get("cpu")])
+    merged["cpu_segments"] = [*previous.get("cpu_segments", [previous.get("cpu")]), segment.get("cpu")]
+    merged["host"] = {"peak_rss_gib": max((r.get("host") or {}).get("peak_rss_gib") or 0 for r in (previous, segment))}
+    if previous.get("gpu") and segment.get("gpu"):
+        merged["gpu"] = {**segment["gpu"], **{k: max(previous["gpu"].get(k) or 0, segment["gpu"].get(k) or 0)
+                                              for k in ("torch_peak_allocated_gib", "torch_peak_reserved_gib")}}
+    merged["status"] = "ok" if merged["env_steps"] >= previous["total_env_steps"] else "partial"
+    merged["segments"] = segments
+    merged.pop("continue_failed", None)
+    return merged
+
+
+def run_one(spec: RunSpec, out_path: Path, deadline: float | None = None, command: str = "",
+            resume: bool = False) -> dict:
+    """Measure ``spec`` in this process and write its JSON; out-of-memory becomes status ``oom``, not a crash.
+    With ``resume``, the partial time result at ``out_path`` trains on from its checkpoint and the two are merged
+    (:func:`merge_segments`); if that fails, the partial result stays as it was, with the failure noted in it."""
     import torch
+
+    previous = _read(out_path) if resume else None
+    if resume and (spec.kind != "time" or previous is None or previous.get("status") != "partial"):
+        raise SystemExit(f"--continue needs a partial time result at {out_path}")
 
     if spec.backend == "gpu" and not torch.cuda.is_available():
         raise SystemExit("this measurement needs a CUDA GPU")
@@ -542,10 +635,16 @@ def run_one(spec: RunSpec, out_path: Path, deadline: float | None = None, comman
     try:
         if spec.kind != "raw":
             record["recipe"] = spec_recipe(spec)
-        record.update(measure_raw(spec, sampler) if spec.kind == "raw" else measure_training(spec, deadline, sampler))
+        record.update(measure_raw(spec, sampler) if spec.kind == "raw"
+                      else measure_training(spec, deadline, sampler, previous))
     except Exception as err:  # noqa: BLE001 - every failure is a result to record, OOM especially
         sampler.stop()
         text = f"{type(err).__name__}: {err}"
+        if previous is not None:  # the measured part stays; the failed continuation is noted, not a result
+            previous["continue_failed"] = {"error": text[-2000:], "command": command,
+                                           "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+            write_json(out_path, previous)
+            return previous
         record.update(status="oom" if _is_oom(text) else "error", error=text[-2000:], cpu=sampler.summary())
         if spec.kind != "raw":  # when it failed: at set-up (0) or after some iterations (memory runs log each one)
             record["iterations_logged"] = len(_metrics_rows(Path(spec.run_dir) / spec.name / "metrics.csv"))
@@ -556,6 +655,8 @@ def run_one(spec: RunSpec, out_path: Path, deadline: float | None = None, comman
                 record["gpu"] = {"error": f"{type(gpu_err).__name__}: {gpu_err}"}
     record["host"] = {"peak_rss_gib": peak_rss_bytes() / GIB}
     record["meta"] = collect_meta(spec.device)
+    if previous is not None:
+        record = merge_segments(previous, record)
     write_json(out_path, record)
     return record
 
@@ -658,15 +759,16 @@ def _sweep_blocked(spec: RunSpec, results: Path) -> int | None:
     return min(smaller) if smaller else None
 
 
-Launcher = Callable[[RunSpec, Path, float, bool], str]
+Launcher = Callable[[RunSpec, Path, float, bool, bool], str]
 
 
-def launch(spec: RunSpec, out_path: Path, deadline: float, record_timeout: bool, log_dir: str = DEFAULT_LOG_DIR,
-           part_command: str = "") -> str:
+def launch(spec: RunSpec, out_path: Path, deadline: float, record_timeout: bool, resume: bool = False,
+           log_dir: str = DEFAULT_LOG_DIR, part_command: str = "") -> str:
     """Run ``spec`` in a fresh process (``--one``) until ``deadline``; returns its status, or "cut" where the
-    command's budget (not the measurement's own timeout) killed it, which leaves no result so a rerun repeats it."""
+    command's budget (not the measurement's own timeout) killed it, which leaves no result so a rerun repeats it.
+    ``resume``: continue the partial time result at ``out_path`` from its checkpoint (``--continue``)."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--one", *spec.to_argv(), "--out", str(out_path),
-           "--deadline", f"{deadline:.1f}"]
+           "--deadline", f"{deadline:.1f}", *(["--continue"] if resume else [])]
     env = dict(os.environ, PYTHONUNBUFFERED="1", SCALING_PART_COMMAND=part_command)
     if spec.backend == "cpu":
         env["CUDA_VISIBLE_DEVICES"] = ""  # the CPU baseline: nothing of this process may touch the GPU
@@ -715,13 +817,15 @@ class DriveOptions:
     reuse_time_for_memory: bool = True
     bundle: Path | None = None
     redo_stale: bool = True  # measure again what an older training recipe produced
+    continue_partial: bool = True  # a partial time run trains on from its checkpoint (where there is one)
 
 
 def drive(specs: Iterable[RunSpec], opts: DriveOptions, launcher: Launcher) -> dict[str, str]:
     """Launch every measurement of ``specs`` that has no result yet, within the command's budget.
 
-    Returns {name: status or why it was skipped}. ``launcher(spec, out_path, deadline, record_timeout)`` measures
-    one spec (``launch`` in a subprocess; tests pass a fake).
+    Returns {name: status or why it was skipped}. ``launcher(spec, out_path, deadline, record_timeout, resume)``
+    measures one spec (``launch`` in a subprocess; tests pass a fake); ``resume`` continues a partial time run
+    from its checkpoint in ``spec.run_dir``.
     """
     results = Path(opts.results)
     results.mkdir(parents=True, exist_ok=True)
@@ -735,7 +839,12 @@ def drive(specs: Iterable[RunSpec], opts: DriveOptions, launcher: Launcher) -> d
             # stopped before its iterations were done: it shows neither fit nor failure, so it is measured again
             print(f"[scaling] {spec.name}: its last run was stopped early, measuring again", flush=True)
             status = None
-        if status is not None and status not in opts.redo:
+        resume = (spec.kind == "time" and status == "partial" and "partial" not in opts.redo
+                  and opts.continue_partial and not _stale_file(path))
+        if resume and not checkpoint_path(spec).is_file():
+            outcome[spec.name] = f"skipped (partial; no checkpoint at {checkpoint_path(spec)} to continue from)"
+            continue
+        if status is not None and status not in opts.redo and not resume:
             if not (opts.redo_stale and _stale_file(path)):
                 outcome[spec.name] = f"skipped ({status})"
                 continue
@@ -756,9 +865,10 @@ def drive(specs: Iterable[RunSpec], opts: DriveOptions, launcher: Launcher) -> d
             break
         own_deadline = time.time() + opts.timeout_s
         deadline = min(own_deadline, t_stop)
-        print(f"[scaling] {spec.name}: start ({left:.0f} s of budget left)", flush=True)
+        how = "continue from its checkpoint" if resume else "start"
+        print(f"[scaling] {spec.name}: {how} ({left:.0f} s of budget left)", flush=True)
         t0 = time.time()
-        status = launcher(spec, path, deadline, own_deadline <= t_stop)
+        status = launcher(spec, path, deadline, own_deadline <= t_stop, resume)
         launched += 1
         outcome[spec.name] = status
         print(f"[scaling] {spec.name}: {status} in {time.time() - t0:.0f} s {_brief(path)}", flush=True)
@@ -815,6 +925,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max_minutes", type=float, default=9.0, help="a training run's own clock limit")
     parser.add_argument("--redo", nargs="*", default=[], choices=STATUSES, help="measure these statuses again")
     parser.add_argument("--no_reuse", action="store_true", help="memory: also rerun env counts a time run covered")
+    parser.add_argument("--no_continue", action="store_true",
+                        help="skip partial time runs instead of training them on from their checkpoints")
     parser.add_argument("--keep_stale", action="store_true",
                         help="skip results trained with an older recipe instead of measuring them again (the report still "
                              "leaves them out)")
@@ -831,6 +943,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--kind", choices=("time", "memory", "raw"), help=argparse.SUPPRESS)
     parser.add_argument("--backend", choices=("cpu", "gpu"), help=argparse.SUPPRESS)
     parser.add_argument("--deadline", type=float, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--continue", dest="resume", action="store_true", help=argparse.SUPPRESS)
     return parser
 
 
@@ -844,7 +957,8 @@ def main(argv: Sequence[str] | None = None) -> dict | None:
         if not (args.kind and args.backend and args.num_envs and args.out):
             raise SystemExit("--one needs --kind, --backend, --num_envs N and --out FILE")
         spec = RunSpec(args.kind, args.backend, args.num_envs[0], **fields)
-        return run_one(spec, Path(args.out), args.deadline, "python3 benchmarks/scaling.py " + " ".join(argv))
+        return run_one(spec, Path(args.out), args.deadline, "python3 benchmarks/scaling.py " + " ".join(argv),
+                       resume=args.resume)
     parts = list(args.part)
     if "unpack" in parts:  # first: the measurements below then skip what the bundle holds
         if not args.bundle:
@@ -859,10 +973,10 @@ def main(argv: Sequence[str] | None = None) -> dict | None:
         part_command = "python3 benchmarks/scaling.py " + " ".join(argv)
         opts = DriveOptions(Path(args.results), 60.0 * args.budget_minutes, 60.0 * args.timeout_minutes,
                             tuple(args.redo), not args.no_reuse, Path(args.bundle) if args.bundle else None,
-                            redo_stale=not args.keep_stale)
+                            redo_stale=not args.keep_stale, continue_partial=not args.no_continue)
 
-        def launcher(spec: RunSpec, path: Path, deadline: float, record_timeout: bool) -> str:
-            return launch(spec, path, deadline, record_timeout, args.log_dir, part_command)
+        def launcher(spec: RunSpec, path: Path, deadline: float, record_timeout: bool, resume: bool) -> str:
+            return launch(spec, path, deadline, record_timeout, resume, args.log_dir, part_command)
 
         # Only the default sweep bisects: given counts are a request for exactly those (a rerun of one count, say),
         # and a bisection there would spend the call's device time on counts nobody asked for.

@@ -248,7 +248,9 @@ def _status(r: dict | None) -> str:
         return NOT_MEASURED
     status = r["status"]
     if status == "partial":
-        return f"partial ({r.get('env_steps', 0):,} steps, time extrapolated)"
+        status = f"partial ({r.get('env_steps', 0):,} steps, time extrapolated)"
+    if len(r.get("segments") or ()) > 1:  # trained across processes, resumed from checkpoints
+        status += f" ({len(r['segments'])} segments)"
     return status
 
 
@@ -331,20 +333,23 @@ def commands_run(records: list[dict]) -> list[tuple[str, str]]:
     """(command, what it measured) for the commands that produced ``records`` (stale ones and ones that name no
     command left out), in the order they ran (undated last); ``--bundle PATH`` is left out of the command (it only
     says where the device run wrote its copy)."""
-    runs: dict[str, list[dict]] = {}
+    runs: dict[str, list[tuple[dict, str | None]]] = {}
     for r in records:
         if r.get("status") == "stale":
             continue
-        command = re.sub(r"\s--bundle(?:=|\s+)\S+", "", r.get("part_command") or r.get("command") or "").strip()
-        if command:
-            runs.setdefault(command, []).append(r)
+        # a run trained in several segments (resumed from checkpoints) names each segment's command
+        for part in r.get("segments") or [{**r, "date": (r.get("meta") or {}).get("date")}]:
+            command = re.sub(r"\s--bundle(?:=|\s+)\S+", "", part.get("part_command") or part.get("command") or "")
+            if command.strip():
+                runs.setdefault(command.strip(), []).append((r, part.get("date")))
 
-    def first_run(rs: list[dict]) -> tuple[bool, str]:
-        dates = [d for r in rs if (d := (r.get("meta") or {}).get("date"))]
+    def first_run(entries: list[tuple[dict, str | None]]) -> tuple[bool, str]:
+        dates = [d for _, d in entries if d]
         return (not dates, min(dates, default=""))
 
     out = []
-    for command, rs in sorted(runs.items(), key=lambda kv: first_run(kv[1])):
+    for command, entries in sorted(runs.items(), key=lambda kv: first_run(kv[1])):
+        rs = [r for r, _ in entries]
         groups: dict[tuple[str, str], list[int]] = {}
         for r in rs:
             groups.setdefault((r["kind"], r["backend"]), []).append(int(r["num_envs"]))

@@ -90,9 +90,87 @@ def test_one_cpu_measurement_writes_a_sane_json(tmp_path):
     assert "gpu" not in r
 
 
+def test_a_partial_time_run_trains_on_from_its_checkpoint(tmp_path):
+    """A run its clock stopped after one of two iterations continues in a second process (--continue) from the
+    checkpoint it left; the result adds both segments up, as TocabiLab's timer would have counted one run."""
+    out = tmp_path / "time_cpu_0000004.json"
+    base = [sys.executable, str(BENCH / "scaling.py"), "--one", "--kind", "time", "--backend", "cpu", "--num_envs",
+            "4", "--total_env_steps", "384", "--min_rollout", "32", "--hidden", "16,16", "--out", str(out),
+            "--run_dir", str(tmp_path / "runs")]
+    first = subprocess.run([*base, "--max_minutes", "0.0001"], capture_output=True, text=True, timeout=120)
+    assert first.returncode == 0, first.stdout + first.stderr
+    r1 = json.loads(out.read_text())
+    assert r1["status"] == "partial" and r1["env_steps"] == 192 and r1["iterations"] == 1
+    spec = scaling.RunSpec("time", "cpu", 4, total_env_steps=384, min_rollout=32, hidden=(16, 16),
+                           run_dir=str(tmp_path / "runs"))
+    assert scaling.checkpoint_path(spec).is_file()
+    second = subprocess.run([*base, "--continue"], capture_output=True, text=True, timeout=120)
+    assert second.returncode == 0, second.stdout + second.stderr
+    assert "resumed from" in second.stdout
+    r2 = json.loads(out.read_text())
+    assert r2["status"] == "ok" and r2["env_steps"] == 384 and r2["iterations"] == 2
+    assert [seg["env_steps"] for seg in r2["segments"]] == [192, 192]
+    assert r2["train_wall_s"] == pytest.approx(r1["train_wall_s"] + r2["segments"][1]["train_wall_s"])
+    assert r2["env_steps_per_s"] == pytest.approx(384 / r2["train_wall_s"])
+    assert len(r2["cpu_segments"]) == 2 and r2["cpu"]["window_s"] > r1["cpu"]["window_s"]
+    # a finished run has nothing to continue
+    third = subprocess.run([*base, "--continue"], capture_output=True, text=True, timeout=120)
+    assert third.returncode != 0 and "needs a partial time result" in third.stderr
+
+
+def test_a_continuation_that_does_not_chain_keeps_the_partial_result(tmp_path, monkeypatch):
+    """A checkpoint that is not where the partial result ended (or none at all) is refused, and the partial result
+    stays as it was, with the failure noted."""
+    spec = scaling.RunSpec("time", "cpu", 4, run_dir=str(tmp_path / "runs"))
+    out = tmp_path / f"{spec.name}.json"
+    partial = {"kind": "time", "backend": "cpu", "num_envs": 4, "status": "partial", "env_steps": 192,
+               "total_env_steps": 384, "train_wall_s": 1.0, "recipe": scaling.recipe()}
+    scaling.write_json(out, partial)
+    record = scaling.run_one(spec, out, resume=True)
+    assert record["status"] == "partial" and record["env_steps"] == 192
+    assert "no checkpoint" in record["continue_failed"]["error"]
+    scaling.checkpoint_path(spec).parent.mkdir(parents=True)
+    import torch
+
+    torch.save({"env_steps": 96}, scaling.checkpoint_path(spec))
+    record = scaling.run_one(spec, out, resume=True)
+    assert "do not chain" in record["continue_failed"]["error"]
+    assert json.loads(out.read_text())["env_steps"] == 192
+
+
+def test_segments_merge_into_one_result():
+    def seg(steps, train, setup, cores, window, rss, date):
+        return {"kind": "time", "status": "partial", "total_env_steps": 300, "env_steps": steps, "iterations": 1,
+                "train_wall_s": train, "setup_s": setup, "total_wall_s": train + setup, "env_steps_per_s": steps / train,
+                "cpu": {"cores_used_mean": cores, "window_s": window, "samples": 3, "rss_peak_sampled_gib": rss},
+                "host": {"peak_rss_gib": rss}, "meta": {"date": date}, "part_command": f"cmd {date}"}
+
+    one = scaling.merge_segments(seg(100, 10.0, 5.0, 2.0, 10.0, 1.0, "d1"), seg(100, 30.0, 5.0, 4.0, 30.0, 1.5, "d2"))
+    assert one["env_steps"] == 200 and one["train_wall_s"] == 40.0 and one["setup_s"] == 10.0
+    assert one["env_steps_per_s"] == pytest.approx(5.0) and one["status"] == "partial"
+    assert one["cpu"]["cores_used_mean"] == pytest.approx((2.0 * 10 + 4.0 * 30) / 40) and one["cpu"]["samples"] == 6
+    assert one["host"]["peak_rss_gib"] == 1.5
+    two = scaling.merge_segments(one, seg(100, 20.0, 5.0, 1.0, 20.0, 1.2, "d3"))
+    assert two["status"] == "ok" and two["env_steps"] == 300 and two["train_wall_s"] == 60.0
+    assert [s["date"] for s in two["segments"]] == ["d1", "d2", "d3"]
+    assert two["cpu"]["cores_used_mean"] == pytest.approx((20 + 120 + 20) / 60)
+    # the report lists each segment's command
+    ran = scaling_report.commands_run([{**two, "backend": "cpu", "num_envs": 8}])
+    assert [c for c, _ in ran] == ["cmd d1", "cmd d2", "cmd d3"]
+    assert scaling_report._status(two) == "ok (3 segments)"
+
+
+def test_steady_rate_spans_resumed_segments(tmp_path):
+    csv_path = tmp_path / "metrics.csv"
+    # segment 1: 100 -> 300 steps in 2 s; segment 2 (wall_s restarts): 400 -> 700 in 3 s
+    csv_path.write_text("env_steps,wall_s\n100,1\n200,2\n300,3\n400,1\n550,2.5\n700,4\n")
+    assert scaling._steady_rate(csv_path) == pytest.approx(500 / 5)
+    assert scaling._steady_rate(tmp_path / "none.csv") is None
+
+
 def test_a_failed_measurement_keeps_its_recipe(tmp_path, monkeypatch):
     """An out-of-memory result says which recipe ran out of memory, so the report counts it (not as stale)."""
-    def out_of_memory(spec, deadline, sampler):  # after two logged iterations, as 98,304 envs did on the H100
+    def out_of_memory(spec, deadline, sampler, previous=None):  # after two logged iterations, as 98,304 envs did on the H100
         metrics = Path(spec.run_dir) / spec.name / "metrics.csv"
         metrics.parent.mkdir(parents=True)
         metrics.write_text("iteration,env_steps,wall_s\n1,100,1.0\n2,200,2.0\n")
@@ -138,7 +216,7 @@ def test_launch_records_a_process_that_died_without_a_result(tmp_path, monkeypat
     part = "python3 benchmarks/scaling.py --part memory --num_envs 98304 --bundle=/root/out/b.json"
     fake = _FakeRun("iteration 1\nRuntimeError: CUDA error: out of memory\n", returncode=1)
     monkeypatch.setattr(scaling.subprocess, "run", fake)
-    status = scaling.launch(spec, out, deadline=scaling.time.time() + 60, record_timeout=False,
+    status = scaling.launch(spec, out, deadline=scaling.time.time() + 60, record_timeout=False, resume=False,
                             log_dir=str(tmp_path / "logs"), part_command=part)
     assert status == "oom" and "--one" in fake.cmd
     record = json.loads(out.read_text())
@@ -151,11 +229,11 @@ def test_launch_records_a_process_that_died_without_a_result(tmp_path, monkeypat
                                                     "memory GPU at 98,304 envs")]
     # any other death is an error
     monkeypatch.setattr(scaling.subprocess, "run", _FakeRun("Segmentation fault\n", returncode=-11))
-    assert scaling.launch(spec, tmp_path / "e.json", scaling.time.time() + 60, False, str(tmp_path / "logs")) == "error"
+    assert scaling.launch(spec, tmp_path / "e.json", scaling.time.time() + 60, False, log_dir=str(tmp_path / "logs")) == "error"
     # killed at its deadline: the measurement's own time limit is a result, the command's budget is not (rerun it)
     monkeypatch.setattr(scaling.subprocess, "run", _FakeRun(returncode=None))
-    assert scaling.launch(spec, tmp_path / "t.json", scaling.time.time() + 60, True, str(tmp_path / "logs")) == "timeout"
-    assert scaling.launch(spec, tmp_path / "c.json", scaling.time.time() + 60, False, str(tmp_path / "logs")) == "cut"
+    assert scaling.launch(spec, tmp_path / "t.json", scaling.time.time() + 60, True, log_dir=str(tmp_path / "logs")) == "timeout"
+    assert scaling.launch(spec, tmp_path / "c.json", scaling.time.time() + 60, False, log_dir=str(tmp_path / "logs")) == "cut"
     assert not (tmp_path / "c.json").exists()
 
 
@@ -168,9 +246,12 @@ class FakeLauncher:
     def __init__(self, statuses: dict[int, str] | None = None):
         self.statuses = statuses or {}
         self.calls: list[str] = []
+        self.resumed: list[str] = []
 
-    def __call__(self, spec, path, deadline, record_timeout):
+    def __call__(self, spec, path, deadline, record_timeout, resume=False):
         self.calls.append(spec.name)
+        if resume:
+            self.resumed.append(spec.name)
         status = self.statuses.get(spec.num_envs, "ok")
         scaling.write_json(path, {"kind": spec.kind, "backend": spec.backend, "num_envs": spec.num_envs,
                                   "status": status, "recipe": scaling.recipe(spec.ppo_config())})
@@ -178,7 +259,7 @@ class FakeLauncher:
 
 
 def test_driver_skips_finished_measurements(tmp_path):
-    specs = scaling.plan(["cpu_time"], [8, 32, 96])
+    specs = scaling.plan(["cpu_time"], [8, 32, 96], run_dir=str(tmp_path / "runs"))
     current = {"kind": "time", "recipe": scaling.recipe()}
     scaling.write_json(tmp_path / "time_cpu_0000032.json", {"status": "ok", **current})
     scaling.write_json(tmp_path / "time_cpu_0000096.json", {"status": "partial", **current})
@@ -187,15 +268,28 @@ def test_driver_skips_finished_measurements(tmp_path):
     outcome = scaling.drive(specs, opts, fake)
     assert fake.calls == ["time_cpu_0000008"]
     assert outcome["time_cpu_0000032"] == "skipped (ok)"
+    assert outcome["time_cpu_0000096"].startswith("skipped (partial; no checkpoint at ")
     bundle = json.loads((tmp_path / "out" / "bundle.json").read_text())["results"]
     assert set(bundle) == {"time_cpu_0000008.json", "time_cpu_0000032.json", "time_cpu_0000096.json"}
-    # a second pass launches nothing; --redo partial repeats the partial one
+    # a second pass launches nothing; --redo partial repeats the partial one from scratch
     again = FakeLauncher()
     scaling.drive(specs, opts, again)
     assert again.calls == []
     opts.redo = ("partial",)
     scaling.drive(specs, opts, again)
-    assert again.calls == ["time_cpu_0000096"]
+    assert again.calls == ["time_cpu_0000096"] and again.resumed == []
+    # a partial run with a checkpoint trains on from it, unless told not to (--no_continue)
+    opts.redo = ()
+    scaling.write_json(tmp_path / "time_cpu_0000096.json", {"status": "partial", **current})
+    checkpoint = scaling.checkpoint_path(specs[-1])
+    checkpoint.parent.mkdir(parents=True)
+    checkpoint.write_bytes(b"x")
+    opts.continue_partial = False
+    again = FakeLauncher()
+    assert scaling.drive(specs, opts, again)["time_cpu_0000096"] == "skipped (partial)" and again.calls == []
+    opts.continue_partial = True
+    scaling.drive(specs, opts, again)
+    assert again.resumed == ["time_cpu_0000096"]
     # a result of an older recipe is measured again
     opts.redo = ()
     scaling.write_json(tmp_path / "time_cpu_0000032.json", {"status": "ok", "kind": "time", "recipe": {"gamma": 0.9}})
