@@ -30,14 +30,15 @@ the device install, add ``--budget_minutes 7``):
 
     python3 benchmarks/scaling.py --part raw                                         # ~2-3
     python3 benchmarks/scaling.py --part gpu_time --num_envs 1024 4096 16384 65536   # ~3-4
-    python3 benchmarks/scaling.py --part gpu_time --num_envs 96 32                   # ~3-5
-    python3 benchmarks/scaling.py --part gpu_time --num_envs 8                       # ~9 (ends partial)
+    python3 benchmarks/scaling.py --part gpu_time --num_envs 96 32                   # ~9, twice (32 continues)
+    python3 benchmarks/scaling.py --part gpu_time --num_envs 8                       # ~9, three times
     python3 benchmarks/scaling.py --part memory                                      # ~9, two or three times
-    python3 benchmarks/scaling.py --part cpu_time --num_envs 96 32                   # ~7 + ~9 (32 ends partial)
-    python3 benchmarks/scaling.py --part cpu_time --num_envs 8                       # ~9 (ends partial)
+    python3 benchmarks/scaling.py --part cpu_time --num_envs 96 32                   # ~9, three times
+    python3 benchmarks/scaling.py --part cpu_time --num_envs 8                       # ~9, four times
 
-(On an H100: 983,040 steps take ~26 min at 8 GPU envs, ~13 and ~28 min at 32 and 8 CPU envs; a partial run's
-rate is measured over the minutes it ran, and ``--max_minutes`` shortens it where device time is short.)
+(On an H100, 983,040 steps take ~6 and ~26 min of training at 32 and 8 GPU envs, ~12 and ~28 min at 32 and 8 CPU
+envs: each rerun of the chunk trains them on from their checkpoints on the same warm machine; a partial run's rate
+is measured over the minutes it ran, and ``--max_minutes`` shortens a segment where device time is short.)
 
 ``--bundle`` rewrites one JSON file holding every result after each measurement (the device tool returns at most
 8 files from $OUT). Back here, unpack it into the results folder (so that the next call's working tree carries it

@@ -501,7 +501,8 @@ TIME_NOTE = (
     f"construction with warp kernels loaded from the cache, graph capture). *s per {TARGET_ENV_STEPS:,}* is "
     f"{TARGET_ENV_STEPS:,} ÷ env-steps/s: the measured time where exactly {TARGET_ENV_STEPS:,} steps were done, pro "
     "rata where the trainer's whole iterations did more, and extrapolated where a run stopped at its time limit "
-    "(status *partial*). *vs TocabiLab* is env-steps/s ÷ TocabiLab's best 1,157 (983,040 ÷ 850 s). Steps/env and mini-batch per env count: see Method."
+    "(status *partial*). A run trained in *segments* (one process per command, each resuming from the checkpoint "
+    "the one before saved) adds up the segments' training times and set-ups; its JSON lists each. *vs TocabiLab* is env-steps/s ÷ TocabiLab's best 1,157 (983,040 ÷ 850 s). Steps/env and mini-batch per env count: see Method."
 )
 RAW_NOTE = (
     "Raw: `raw_policy_steps_per_second` of `benchmarks/sim_throughput.py` (one CUDA graph of a PD kernel and "
