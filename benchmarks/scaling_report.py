@@ -630,7 +630,8 @@ def render_markdown(records: list[dict], figures: list[str], results_dir: str) -
         "## Commands that produced these results", "",
         "On the GPU machine, from the repository root, each followed by `--part unpack` of its bundle here (the "
         "budget and time-limit options size a command to the device's time left; a partial run's rate is "
-        "measured over the minutes it ran):", "",
+        "measured over the minutes it ran; `--results /tmp/...` keeps the results outside the repository copy, which "
+        "each device call otherwise refreshes from here, so that back-to-back calls see each other's results):", "",
         *_table(["command", "measured"], [[f"`{c}`", w] for c, w in commands_run(records)] or [[NOT_MEASURED, ""]]),
     ]
     return "\n".join(lines) + "\n"
