@@ -118,8 +118,8 @@ CHUNKS = (
     "python3 benchmarks/scaling.py --part cpu_time --num_envs 8",
 )
 #: Seconds a command must have left to start a measurement of this kind (the first one of a command always starts).
-# The largest memory runs need ~100 s (90,112 envs: 95.5 s on the H100): one launched with less is cut short and
-# proves nothing about fitting, so it waits for the next command.
+# The largest memory runs need ~100 s (90,112 envs: 95.5 s on the H100): a second or later one launched with less
+# would be cut short and prove nothing about fitting, so it waits for the next command.
 MIN_LAUNCH_S = {"time": 240.0, "memory": 120.0, "raw": 45.0}
 #: Statuses a result can have; ``ok`` and ``partial`` carry a rate.
 STATUSES = ("ok", "partial", "oom", "error", "timeout")
@@ -463,21 +463,21 @@ def _metrics_rows(csv_path: Path) -> list[dict]:
         return []
 
 
-def _steady_rate(csv_path: Path) -> float | None:
-    """Env-steps/s between the first and last logged iterations of each training segment (excludes each segment's
-    first iteration, the warm-up). A resumed run appends its rows and its ``wall_s`` restarts from zero: that is
-    where a new segment begins."""
-    segments: list[list[dict]] = []
-    for row in _metrics_rows(csv_path):
-        if not segments or float(row["wall_s"]) < float(segments[-1][-1]["wall_s"]):
-            segments.append([])
-        segments[-1].append(row)
-    steps = dt = 0.0
-    for rows in segments:
-        if len(rows) >= 2:
-            steps += float(rows[-1]["env_steps"]) - float(rows[0]["env_steps"])
-            dt += float(rows[-1]["wall_s"]) - float(rows[0]["wall_s"])
-    return steps / dt if dt > 0 else None
+def _steady_window(rows: list[dict]) -> dict | None:
+    """Env-steps and seconds between the first and last of ``rows`` (logged iterations of one process: the window
+    leaves out its first iteration, the warm-up), None with fewer than two rows."""
+    if len(rows) < 2:
+        return None
+    dt = float(rows[-1]["wall_s"]) - float(rows[0]["wall_s"])
+    steps = float(rows[-1]["env_steps"]) - float(rows[0]["env_steps"])
+    return {"env_steps": steps, "wall_s": dt} if dt > 0 else None
+
+
+def _steady_rate(windows: Iterable[dict | None]) -> float | None:
+    """Env-steps/s over the steady windows of a run's segments."""
+    windows = [w for w in windows if w]
+    dt = sum(w["wall_s"] for w in windows)
+    return sum(w["env_steps"] for w in windows) / dt if dt > 0 else None
 
 
 def _start_cuda() -> float:
@@ -495,10 +495,20 @@ def checkpoint_path(spec: RunSpec) -> Path:
     return Path(spec.run_dir) / spec.name / "checkpoints" / "latest.pt"
 
 
-def _check_chain(spec: RunSpec, previous: dict) -> None:
-    """Refuse to continue ``previous`` from a checkpoint that is not where that result ended."""
+def _check_chain(spec: RunSpec, previous: dict, cfg) -> None:
+    """Refuse to continue ``previous`` with another sizing or recipe than it ran with (``cfg`` is this process's
+    config), or from a checkpoint that is not where that result ended."""
     import torch
 
+    was = previous.get("config") or {}
+    now = {"frames_per_batch": cfg.frames_per_batch, "total_env_steps_target": cfg.total_env_steps,
+           "actor_hidden": list(cfg.actor_hidden), "critic_hidden": list(cfg.critic_hidden)}
+    differ = {k: (was.get(k), v) for k, v in now.items() if was.get(k) != v}
+    if previous.get("recipe") != spec_recipe(spec):
+        differ["recipe"] = "another training recipe"
+    if differ:
+        raise ValueError(f"{spec.name} cannot continue with other settings than it started with: {differ} "
+                         "(--redo partial measures from scratch)")
     path = checkpoint_path(spec)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path} to continue {spec.name} from")
@@ -519,9 +529,11 @@ def measure_training(spec: RunSpec, deadline: float | None, sampler: Sampler, pr
     if previous is None:
         shutil.rmtree(Path(cfg.run_dir) / cfg.name, ignore_errors=True)  # metrics.csv appends: start clean
     else:
-        _check_chain(spec, previous)
+        _check_chain(spec, previous, cfg)
         cfg.resume = str(checkpoint_path(spec))
     done_before = previous["env_steps"] if previous else 0
+    metrics_csv = Path(cfg.run_dir) / cfg.name / "metrics.csv"
+    rows_before = len(_metrics_rows(metrics_csv))  # a resumed run appends its rows after the earlier segments'
     env = build_env(cfg, resolve_device(cfg.device), for_training=True)
     if deadline is not None:
         left_min = (deadline - time.time() - STOP_MARGIN_S) / 60.0
@@ -539,7 +551,8 @@ def measure_training(spec: RunSpec, deadline: float | None, sampler: Sampler, pr
         "total_wall_s": t_end - _T0,  # imports, CUDA, env (warp kernels), agent, collector included
         "setup_s": t_end - _T0 - result.wall_seconds,
         "env_steps_per_s": result.env_steps_per_second,
-        "steady_env_steps_per_s": _steady_rate(result.run_dir / "metrics.csv"),
+        "steady_window": (window := _steady_window(_metrics_rows(metrics_csv)[rows_before:])),
+        "steady_env_steps_per_s": _steady_rate([window]),
         "status": "ok" if result.env_steps >= cfg.total_env_steps else "partial",
     }
     sampler.stop()
@@ -562,7 +575,8 @@ def measure_raw(spec: RunSpec, sampler: Sampler) -> dict:
 
 
 #: Per-segment numbers of a training run that resumed from checkpoints (TocabiLab's timer sums the segments).
-SEGMENT_KEYS = ("env_steps", "train_wall_s", "setup_s", "total_wall_s", "env_steps_per_s", "command", "part_command")
+SEGMENT_KEYS = ("env_steps", "train_wall_s", "setup_s", "total_wall_s", "env_steps_per_s", "steady_window", "command",
+                "part_command")
 
 
 def _segments(record: dict) -> list[dict]:
@@ -599,6 +613,8 @@ def merge_segments(previous: dict, segment: dict) -> dict:
     for key in ("env_steps", "train_wall_s", "setup_s", "total_wall_s"):
         merged[key] = sum(seg[key] or 0 for seg in segments)
     merged["env_steps_per_s"] = merged["env_steps"] / merged["train_wall_s"] if merged["train_wall_s"] else None
+    merged["steady_env_steps_per_s"] = _steady_rate(seg.get("steady_window") for seg in segments)
+    merged.pop("steady_window", None)  # each segment keeps its own
     merged["cpu"] = _weighted_cpu([*previous.get("cpu_segments", [previous.get("cpu")]), segment.get("cpu")])
     merged["cpu_segments"] = [*previous.get("cpu_segments", [previous.get("cpu")]), segment.get("cpu")]
     merged["host"] = {"peak_rss_gib": max((r.get("host") or {}).get("peak_rss_gib") or 0 for r in (previous, segment))}
@@ -643,7 +659,7 @@ def run_one(spec: RunSpec, out_path: Path, deadline: float | None = None, comman
         text = f"{type(err).__name__}: {err}"
         if previous is not None:  # the measured part stays; the failed continuation is noted, not a result
             previous["continue_failed"] = {"error": text[-2000:], "command": command,
-                                           "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+                                           "date": time.strftime("%Y-%m-%d %H:%M:%S"), "time": time.time()}
             write_json(out_path, previous)
             return previous
         record.update(status="oom" if _is_oom(text) else "error", error=text[-2000:], cpu=sampler.summary())
@@ -775,24 +791,33 @@ def launch(spec: RunSpec, out_path: Path, deadline: float, record_timeout: bool,
         env["CUDA_VISIBLE_DEVICES"] = ""  # the CPU baseline: nothing of this process may touch the GPU
     log_path = Path(log_dir) / f"{spec.name}.log"
     log_path.parent.mkdir(parents=True, exist_ok=True)
+    before = _mtime(out_path)  # a result being measured again is still there: only a newer file is this run's
     with open(log_path, "w") as log:
         try:
             rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT),
                                 timeout=max(1.0, deadline - time.time() + KILL_GRACE_S), check=False).returncode
         except subprocess.TimeoutExpired:
             rc = None
-    status = load_status(out_path)
-    if status is not None:
-        return status
+    if _mtime(out_path) not in (None, before):
+        return load_status(out_path) or "error"
     tail = log_path.read_text(errors="replace")[-3000:] if log_path.exists() else ""
     if rc is None and not record_timeout:
         return "cut"
+    if resume:  # the partial result stays; what broke the continuation is in the log
+        return f"error (the continuation wrote nothing, see {log_path})"
     status = "timeout" if rc is None else ("oom" if _is_oom(tail) else "error")
     write_json(out_path, {"schema": 1, **{k: v for k, v in asdict(spec).items() if k != "run_dir"}, "name": spec.name,
                           "status": status, "returncode": rc, "error": tail, "command": " ".join(cmd[1:]),
                           "part_command": part_command, "recipe": spec_recipe(spec),
                           "meta": {"date": time.strftime("%Y-%m-%d %H:%M:%S")}})
     return status
+
+
+def _mtime(path: Path) -> int | None:
+    try:
+        return Path(path).stat().st_mtime_ns
+    except OSError:
+        return None
 
 
 def write_bundle(results: Path, bundle: Path) -> None:
@@ -845,6 +870,11 @@ def drive(specs: Iterable[RunSpec], opts: DriveOptions, launcher: Launcher) -> d
         if resume and not checkpoint_path(spec).is_file():
             outcome[spec.name] = f"skipped (partial; no checkpoint at {checkpoint_path(spec)} to continue from)"
             continue
+        failed = (_read(path) or {}).get("continue_failed") if resume else None
+        if failed and checkpoint_path(spec).stat().st_mtime <= failed.get("time", 0):
+            # the same checkpoint would fail the same way: wait for a new one, or --redo partial
+            outcome[spec.name] = f"skipped (partial; its last continuation failed: {failed['error'][:200]})"
+            continue
         if status is not None and status not in opts.redo and not resume:
             if not (opts.redo_stale and _stale_file(path)):
                 outcome[spec.name] = f"skipped ({status})"
@@ -894,8 +924,9 @@ def _brief(path: Path) -> str:
         parts.append(f"peak RSS {r['host']['peak_rss_gib']:.2f} GiB")
     if r.get("gpu"):
         parts.append(f"device used {r['gpu'].get('device_used_end_gib') or 0:.2f} GiB")
-    if r.get("error"):
-        parts.append(r["error"].strip().splitlines()[-1][:160])
+    for error in (r.get("error"), (r.get("continue_failed") or {}).get("error")):
+        if error:
+            parts.append(error.strip().splitlines()[-1][:160])
     return "(" + "; ".join(parts) + ")" if parts else ""
 
 

@@ -127,9 +127,12 @@ def efficiency(r: dict | None) -> tuple[float | None, float | None]:
 
 
 def memory_record(idx: dict, n: int) -> dict | None:
-    """The GPU memory numbers at ``n`` envs: the short memory run, else the 983,040-step run."""
-    r = idx.get(("memory", "gpu", n))
-    return r if r is not None else idx.get(("time", "gpu", n))
+    """The GPU memory numbers at ``n`` envs: the short memory run, else (or where the memory run was stopped before
+    it showed a fit and the time run did) the 983,040-step run."""
+    mem, run = idx.get(("memory", "gpu", n)), idx.get(("time", "gpu", n))
+    if mem is None or (run is not None and not shows_fit(mem) and shows_fit(run)):
+        return run
+    return mem
 
 
 def gpu_counts(idx: dict) -> list[int]:

@@ -118,24 +118,41 @@ def test_a_partial_time_run_trains_on_from_its_checkpoint(tmp_path):
     assert third.returncode != 0 and "needs a partial time result" in third.stderr
 
 
-def test_a_continuation_that_does_not_chain_keeps_the_partial_result(tmp_path, monkeypatch):
-    """A checkpoint that is not where the partial result ended (or none at all) is refused, and the partial result
-    stays as it was, with the failure noted."""
-    spec = scaling.RunSpec("time", "cpu", 4, run_dir=str(tmp_path / "runs"))
+def test_a_continuation_that_does_not_chain_keeps_the_partial_result(tmp_path):
+    """A continuation with other settings than the partial result ran with, without a checkpoint, or from a
+    checkpoint that is not where the result ended is refused; the partial result stays, with the failure noted."""
+    import torch
+
+    spec = scaling.RunSpec("time", "cpu", 4, total_env_steps=384, min_rollout=32, run_dir=str(tmp_path / "runs"))
+    cfg = spec.ppo_config()
     out = tmp_path / f"{spec.name}.json"
+    config = {"frames_per_batch": cfg.frames_per_batch, "total_env_steps_target": 384,
+              "actor_hidden": list(cfg.actor_hidden), "critic_hidden": list(cfg.critic_hidden)}
     partial = {"kind": "time", "backend": "cpu", "num_envs": 4, "status": "partial", "env_steps": 192,
-               "total_env_steps": 384, "train_wall_s": 1.0, "recipe": scaling.recipe()}
+               "total_env_steps": 384, "train_wall_s": 1.0, "recipe": scaling.recipe(), "config": config}
+    scaling.write_json(out, {**partial, "config": {**config, "frames_per_batch": 2048}})
+    record = scaling.run_one(spec, out, resume=True)
+    assert "other settings" in record["continue_failed"]["error"] and "frames_per_batch" in record["continue_failed"]["error"]
     scaling.write_json(out, partial)
     record = scaling.run_one(spec, out, resume=True)
     assert record["status"] == "partial" and record["env_steps"] == 192
     assert "no checkpoint" in record["continue_failed"]["error"]
     scaling.checkpoint_path(spec).parent.mkdir(parents=True)
-    import torch
-
     torch.save({"env_steps": 96}, scaling.checkpoint_path(spec))
     record = scaling.run_one(spec, out, resume=True)
     assert "do not chain" in record["continue_failed"]["error"]
-    assert json.loads(out.read_text())["env_steps"] == 192
+    assert {k: v for k, v in json.loads(out.read_text()).items() if k != "continue_failed"} == partial
+    # the driver does not retry the same checkpoint, and shows why; a newer checkpoint is tried
+    fake = FakeLauncher()
+    outcome = scaling.drive([spec], scaling.DriveOptions(results=tmp_path), fake)
+    assert fake.calls == [] and "its last continuation failed" in outcome[spec.name]
+    assert "is at 96 env-steps" in scaling._brief(out)
+    torch.save({"env_steps": 192}, scaling.checkpoint_path(spec))
+    failed = json.loads(out.read_text())
+    failed["continue_failed"]["time"] = scaling.checkpoint_path(spec).stat().st_mtime - 1.0
+    scaling.write_json(out, failed)
+    scaling.drive([spec], scaling.DriveOptions(results=tmp_path), fake)
+    assert fake.resumed == [spec.name]
 
 
 def test_segments_merge_into_one_result():
@@ -158,14 +175,34 @@ def test_segments_merge_into_one_result():
     ran = scaling_report.commands_run([{**two, "backend": "cpu", "num_envs": 8}])
     assert [c for c, _ in ran] == ["cmd d1", "cmd d2", "cmd d3"]
     assert scaling_report._status(two) == "ok (3 segments)"
+    assert scaling_report._status(one) == "partial (200 steps, time extrapolated) (2 segments)"
+    # steady windows add up; GPU peaks are peaks, the rest is the latest segment's reading
+    a, b = seg(100, 10.0, 5.0, 2.0, 10.0, 1.0, "d1"), seg(100, 30.0, 5.0, 4.0, 30.0, 1.5, "d2")
+    a.update(steady_window={"env_steps": 50.0, "wall_s": 5.0},
+             gpu={"torch_peak_allocated_gib": 3.0, "torch_peak_reserved_gib": 4.0, "device_used_end_gib": 6.0})
+    b.update(steady_window={"env_steps": 90.0, "wall_s": 15.0},
+             gpu={"torch_peak_allocated_gib": 2.0, "torch_peak_reserved_gib": 5.0, "device_used_end_gib": 5.5})
+    b["cpu"]["cores_used_max"] = None
+    merged = scaling.merge_segments(a, b)
+    assert merged["steady_env_steps_per_s"] == pytest.approx(140 / 20) and "steady_window" not in merged
+    assert merged["gpu"] == {"torch_peak_allocated_gib": 3.0, "torch_peak_reserved_gib": 5.0,
+                             "device_used_end_gib": 5.5}
+    assert merged["cpu"]["cores_used_max"] is None
+    assert scaling._weighted_cpu([None, {}, {"window_s": 0.0}]) == {}
 
 
 def test_steady_rate_spans_resumed_segments(tmp_path):
+    """Each process's steady window starts at its own first logged row (the merged rate never spans the gap
+    between two processes, even where a segment's clock does not restart below the one before)."""
     csv_path = tmp_path / "metrics.csv"
-    # segment 1: 100 -> 300 steps in 2 s; segment 2 (wall_s restarts): 400 -> 700 in 3 s
-    csv_path.write_text("env_steps,wall_s\n100,1\n200,2\n300,3\n400,1\n550,2.5\n700,4\n")
-    assert scaling._steady_rate(csv_path) == pytest.approx(500 / 5)
-    assert scaling._steady_rate(tmp_path / "none.csv") is None
+    # segment 1: 100 -> 300 steps in 2 s; segment 2 appended after it: 400 -> 700 in 3 s
+    csv_path.write_text("env_steps,wall_s\n100,1\n200,2\n300,3\n400,5\n550,6.5\n700,8\n")
+    rows = scaling._metrics_rows(csv_path)
+    first, second = scaling._steady_window(rows[:3]), scaling._steady_window(rows[3:])
+    assert first == {"env_steps": 200.0, "wall_s": 2.0} and second == {"env_steps": 300.0, "wall_s": 3.0}
+    assert scaling._steady_rate([first, None, second]) == pytest.approx(500 / 5)
+    assert scaling._steady_window(rows[:1]) is None and scaling._steady_rate([]) is None
+    assert scaling._metrics_rows(tmp_path / "none.csv") == []
 
 
 def test_a_failed_measurement_keeps_its_recipe(tmp_path, monkeypatch):
@@ -235,6 +272,32 @@ def test_launch_records_a_process_that_died_without_a_result(tmp_path, monkeypat
     assert scaling.launch(spec, tmp_path / "t.json", scaling.time.time() + 60, True, log_dir=str(tmp_path / "logs")) == "timeout"
     assert scaling.launch(spec, tmp_path / "c.json", scaling.time.time() + 60, False, log_dir=str(tmp_path / "logs")) == "cut"
     assert not (tmp_path / "c.json").exists()
+
+
+def test_launch_takes_only_a_result_its_own_process_wrote(tmp_path, monkeypatch):
+    """A count measured again (a partial memory run, --redo) still has its old result file while the new process
+    runs: a process that dies without writing must not pass the old status off as its own."""
+    logs = str(tmp_path / "logs")
+    spec = scaling.RunSpec("memory", "gpu", 98304)
+    out = tmp_path / f"{spec.name}.json"
+    old = {"kind": "memory", "backend": "gpu", "num_envs": 98304, "status": "partial", "recipe": scaling.recipe()}
+    scaling.write_json(out, old)
+    monkeypatch.setattr(scaling.subprocess, "run", _FakeRun("CUDA error: out of memory\n", returncode=-6))
+    assert scaling.launch(spec, out, scaling.time.time() + 60, False, log_dir=logs) == "oom"
+    assert json.loads(out.read_text())["status"] == "oom"
+    scaling.write_json(out, old)  # cut by the command's budget: no result, the old one stays for the rerun
+    monkeypatch.setattr(scaling.subprocess, "run", _FakeRun(returncode=None))
+    assert scaling.launch(spec, out, scaling.time.time() + 60, False, log_dir=logs) == "cut"
+    assert json.loads(out.read_text()) == old
+    # a continuation that died: the partial result stays as it was, the log says why
+    time_spec = scaling.RunSpec("time", "gpu", 8)
+    partial = tmp_path / f"{time_spec.name}.json"
+    scaling.write_json(partial, {**old, "kind": "time", "num_envs": 8})
+    crash = _FakeRun("Segmentation fault\n", returncode=-11)
+    monkeypatch.setattr(scaling.subprocess, "run", crash)
+    status = scaling.launch(time_spec, partial, scaling.time.time() + 60, False, resume=True, log_dir=logs)
+    assert status.startswith("error (the continuation wrote nothing") and "--continue" in crash.cmd
+    assert json.loads(partial.read_text())["status"] == "partial"
 
 
 # ------------------------------------------------------------------------------------------------ the driver
@@ -371,11 +434,16 @@ def test_a_memory_run_stopped_early_proves_nothing(tmp_path):
     assert fake.calls == ["memory_gpu_0098304"] and outcome["memory_gpu_0065536"] == "skipped (ok)"
     assert scaling.refine_count(tmp_path) == 114688  # 98,304 fits now
     # the report: partial memory runs are not fits; long partial time runs are
-    records = [_record("memory", "gpu", 1024, used=2.0), _record("memory", "gpu", 2048, status="partial", used=3.0),
+    records = [_record("memory", "gpu", 1024, used=2.0),
+               {**_record("memory", "gpu", 2048, status="partial", used=3.0), "iterations": 2, "memory_iterations": 3},
                {**_record("time", "gpu", 8, status="partial", rate=600.0), "iterations": 39, "memory_iterations": 3}]
     idx = scaling_report.index(records)
     assert scaling_report.largest_fit(idx) == (1024, None)
     assert scaling.shows_fit(records[2]) and not scaling.shows_fit(records[1])
+    # where a time run at that count finished, its numbers stand in for the memory run stopped early
+    idx[("time", "gpu", 2048)] = _record("time", "gpu", 2048, rate=80_000.0, used=3.1)
+    assert scaling_report.memory_record(idx, 2048)["kind"] == "time"
+    assert scaling_report.largest_fit(idx) == (2048, None)
 
 
 def test_driver_stops_when_the_budget_is_spent(tmp_path):
