@@ -615,8 +615,8 @@ def merge_segments(previous: dict, segment: dict) -> dict:
     merged["env_steps_per_s"] = merged["env_steps"] / merged["train_wall_s"] if merged["train_wall_s"] else None
     merged["steady_env_steps_per_s"] = _steady_rate(seg.get("steady_window") for seg in segments)
     merged.pop("steady_window", None)  # each segment keeps its own
-    merged["cpu"] = _weighted_cpu([*previous.get("cpu_segments", [previous.get("cpu")]), segment.get("cpu")])
     merged["cpu_segments"] = [*previous.get("cpu_segments", [previous.get("cpu")]), segment.get("cpu")]
+    merged["cpu"] = _weighted_cpu(merged["cpu_segments"])
     merged["host"] = {"peak_rss_gib": max((r.get("host") or {}).get("peak_rss_gib") or 0 for r in (previous, segment))}
     if previous.get("gpu") and segment.get("gpu"):
         merged["gpu"] = {**segment["gpu"], **{k: max(previous["gpu"].get(k) or 0, segment["gpu"].get(k) or 0)
