@@ -91,8 +91,9 @@ MIN_ROLLOUT = 2048
 NOT_RECIPE = ("preset", "name", "run_dir", "seed", "device", "num_envs", "steps_per_env", "minibatch_size",
               "total_env_steps", "max_minutes", "log_every", "checkpoint_every", "loggers", "resume", "eval_at_end",
               "eval_envs", "eval_seconds", "progress_bar",
-              # How the update is launched (one CUDA graph per mini-batch step or eagerly), not what it computes.
-              "update_graph")
+              # How the update and the env step are launched (CUDA graphs or eagerly), not what they compute; each
+              # result records its env-step mode instead (``env_graph_planned``, see ``is_stale``).
+              "update_graph", "cuda_graph")
 DEFAULT_RESULTS = ROOT / "docs" / "benchmarks" / "scaling"
 DEFAULT_RUN_DIR = "/tmp/tocabi_scaling_runs"
 DEFAULT_LOG_DIR = "/tmp/tocabi_scaling_logs"
@@ -178,12 +179,41 @@ def shows_fit(record: dict) -> bool:
     return record.get("status") == "partial" and (record.get("iterations") or 0) >= record.get("memory_iterations", 3)
 
 
+def _recipe_part(stored: dict | None) -> dict | None:
+    """A stored recipe without the fields that are not recipe now (older results recorded some of them)."""
+    return {k: v for k, v in stored.items() if k not in NOT_RECIPE} if isinstance(stored, dict) else stored
+
+
+def planned_env_graph(spec: RunSpec) -> bool:
+    """Whether the default preset captures the env step of ``spec``'s training (``PPOConfig.cuda_graph``)."""
+    import torch
+
+    from tocabi_torchrl.rl.trainer import uses_env_graph
+
+    return uses_env_graph(spec.ppo_config(), torch.device(spec.device), spec.num_envs)
+
+
+def _stored_env_graph(record: dict) -> bool:
+    """The env-step mode a result was measured with: its own record, or for results from before that was recorded,
+    the ``cuda_graph`` flag of their stored recipe (False then)."""
+    if "env_graph_planned" in record:
+        return bool(record["env_graph_planned"])
+    return str((record.get("recipe") or {}).get("cuda_graph")).lower() in ("true", "on")
+
+
 def is_stale(record: dict, current: dict | None = None) -> bool:
-    """Whether a time or memory result was trained with another recipe than ``current`` (raw results never are)."""
+    """Whether a time or memory result was trained with another recipe than ``current`` (raw results never are),
+    or with another env-step mode (CUDA graph or eager) than the default now picks for its backend and env count:
+    its speed would not describe what users run."""
     if record.get("kind") == "raw":
         return False
     current = current if current is not None else recipe()
-    return record.get("recipe") != current
+    if _recipe_part(record.get("recipe")) != current:
+        return True
+    if record.get("backend") not in ("cpu", "gpu") or not record.get("num_envs"):
+        return False  # every measured record names both; without them there is no mode to compare
+    spec = RunSpec("time", record["backend"], int(record["num_envs"]))
+    return _stored_env_graph(record) != planned_env_graph(spec)
 
 
 @dataclass
@@ -504,7 +534,7 @@ def _check_chain(spec: RunSpec, previous: dict, cfg) -> None:
     now = {"frames_per_batch": cfg.frames_per_batch, "total_env_steps_target": cfg.total_env_steps,
            "actor_hidden": list(cfg.actor_hidden), "critic_hidden": list(cfg.critic_hidden)}
     differ = {k: (was.get(k), v) for k, v in now.items() if was.get(k) != v}
-    if previous.get("recipe") != spec_recipe(spec):
+    if _recipe_part(previous.get("recipe")) != spec_recipe(spec) or _stored_env_graph(previous) != planned_env_graph(spec):
         differ["recipe"] = "another training recipe"
     if differ:
         raise ValueError(f"{spec.name} cannot continue with other settings than it started with: {differ} "
@@ -551,6 +581,7 @@ def measure_training(spec: RunSpec, deadline: float | None, sampler: Sampler, pr
         "total_wall_s": t_end - _T0,  # imports, CUDA, env (warp kernels), agent, collector included
         "setup_s": t_end - _T0 - result.wall_seconds,
         "env_steps_per_s": result.env_steps_per_second,
+        "env_graph": result.env_graph,  # whether the env step actually ran as a CUDA graph (a failed capture: no)
         "steady_window": (window := _steady_window(_metrics_rows(metrics_csv)[rows_before:])),
         "steady_env_steps_per_s": _steady_rate([window]),
         "status": "ok" if result.env_steps >= cfg.total_env_steps else "partial",
@@ -652,6 +683,7 @@ def run_one(spec: RunSpec, out_path: Path, deadline: float | None = None, comman
     try:
         if spec.kind != "raw":
             record["recipe"] = spec_recipe(spec)
+            record["env_graph_planned"] = planned_env_graph(spec)
         record.update(measure_raw(spec, sampler) if spec.kind == "raw"
                       else measure_training(spec, deadline, sampler, previous))
     except Exception as err:  # noqa: BLE001 - every failure is a result to record, OOM especially

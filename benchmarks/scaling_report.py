@@ -19,6 +19,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from scaling import CHUNKS, DEFAULT_RESULTS, FAILED, PARTS, ROOT, TARGET_ENV_STEPS, shows_fit
+from tocabi_torchrl.rl.config import ENV_GRAPH_AUTO_MAX_ENVS  # noqa: E402  (scaling puts the repo root on sys.path)
 
 REPORT_COMMAND = "python benchmarks/scaling.py --part report"
 NOT_MEASURED = "not measured"
@@ -257,13 +258,22 @@ def _status(r: dict | None) -> str:
     return status
 
 
+def env_step_mode(r: dict) -> str:
+    """How a GPU result's env step ran: one CUDA graph ("graph") or launched op by op ("eager"); "-" on the CPU."""
+    if r.get("backend") != "gpu":
+        return "-"
+    if "env_graph" in r:
+        return "graph" if r["env_graph"] else "eager"
+    return "eager" if str((r.get("recipe") or {}).get("cuda_graph")).lower() in ("false", "off") else NOT_MEASURED
+
+
 def time_rows(idx: dict, backend: str, counts: list[int]) -> list[list[str]]:
     rows = []
     system = "GPU (mujoco-warp)" if backend == "gpu" else "CPU (C MuJoCo)"
     for n in counts:
         r = idx.get(("time", backend, n))
         if r is None:
-            rows.append([system, f"{n:,}"] + ["-"] * 9 + [NOT_MEASURED])
+            rows.append([system, f"{n:,}"] + ["-"] * 10 + [NOT_MEASURED])
             continue
         cfg = r.get("config") or {}
         e_core, e_mem = efficiency(r)
@@ -271,7 +281,7 @@ def time_rows(idx: dict, backend: str, counts: list[int]) -> list[list[str]]:
         speedup = rate(r) / TOCABILAB_BEST_RATE if rate(r) else None  # the checks' ratio, to the same digit
         rows.append([
             system, f"{n:,}",
-            f"{cfg['steps_per_env']} / {cfg['minibatch_size']:,}" if cfg else NOT_MEASURED,
+            f"{cfg['steps_per_env']} / {cfg['minibatch_size']:,}" if cfg else NOT_MEASURED, env_step_mode(r),
             _f(r.get("env_steps") if rate(r) else None), _f(r.get("train_wall_s") if rate(r) else None, ",.1f"),
             _f(r.get("total_wall_s") if rate(r) else None, ",.1f"), _f(rate(r)), _f(t, ",.1f"),
             _f(speedup, ",.1f", "×"), _f(e_core, ",.0f"), _f(e_mem, ",.0f") if backend == "gpu" else "-",
@@ -284,7 +294,7 @@ def tocabilab_rows() -> list[list[str]]:
     rows = []
     for ref in TOCABILAB.values():
         sec = ref["seconds"]
-        rows.append([ref["label"], f"{ref['num_envs']}", "24 / -" if "rsl_rl" in ref["label"] else "-",
+        rows.append([ref["label"], f"{ref['num_envs']}", "24 / -" if "rsl_rl" in ref["label"] else "-", "-",
                      f"{TARGET_ENV_STEPS:,}" if sec else "-", _f(sec, ",.0f") if sec else ref.get("note", "-"), "-",
                      _f(TARGET_ENV_STEPS / sec) if sec else "-", _f(sec, ",.0f") if sec else "-",
                      _f(TARGET_ENV_STEPS / sec / TOCABILAB_BEST_RATE, ",.2f", "×") if sec else "-", "-", "-",
@@ -505,7 +515,9 @@ TIME_NOTE = (
     f"{TARGET_ENV_STEPS:,} ÷ env-steps/s: the measured time where exactly {TARGET_ENV_STEPS:,} steps were done, pro "
     "rata where the trainer's whole iterations did more, and extrapolated where a run stopped at its time limit "
     "(status *partial*). A run trained in *segments* (one process per command, each resuming from the checkpoint "
-    "the one before saved) adds up the segments' training times and set-ups; its JSON lists each. *vs TocabiLab* is env-steps/s ÷ TocabiLab's best 1,157 (983,040 ÷ 850 s). Steps/env and mini-batch per env count: see Method."
+    "the one before saved) adds up the segments' training times and set-ups; its JSON lists each. *Env step*: "
+    "whether the env's step (physics, signals, transforms, masked reset) ran as one captured CUDA graph, as the "
+    f"default `cuda_graph=\"auto\"` does up to {ENV_GRAPH_AUTO_MAX_ENVS:,} envs (launch-bound there), or eagerly. *vs TocabiLab* is env-steps/s ÷ TocabiLab's best 1,157 (983,040 ÷ 850 s). Steps/env and mini-batch per env count: see Method."
 )
 RAW_NOTE = (
     "Raw: `raw_policy_steps_per_second` of `benchmarks/sim_throughput.py` (one CUDA graph of a PD kernel and "
@@ -601,7 +613,7 @@ def render_markdown(records: list[dict], figures: list[str], results_dir: str) -
     gpu_ns = sorted({n for (k, b, n) in idx if k == "time" and b == "gpu"} | set(PART_COUNTS["gpu_time"]))
     cpu_ns = sorted({n for (k, b, n) in idx if k == "time" and b == "cpu"} | set(PART_COUNTS["cpu_time"]))
     result = {True: "**pass**", False: "**fail**", None: "-"}
-    time_header = ["system", "envs", "steps/env / mini-batch", "env-steps done", "training time [s]",
+    time_header = ["system", "envs", "steps/env / mini-batch", "env step", "env-steps done", "training time [s]",
                    "total incl. set-up [s]", "env-steps/s", f"s per {TARGET_ENV_STEPS:,}", "vs TocabiLab best",
                    "E_core", "E_mem", "status"]
     memory_header = ["envs", "source", "status", "peak RSS [GiB]", "torch peak alloc. [GiB]",

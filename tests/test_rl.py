@@ -74,6 +74,7 @@ def test_gae_bootstraps_truncation_but_not_termination():
     ("activation", "gelu", "activation"), ("control_mode", "velocity", "control_mode"),
     ("pd_gains", "soft", "pd_gains"), ("pd_action_scale", 0.0, "pd_action_scale"),
     ("reward_weights", ("body_vel",), "body_vel=0.9"), ("reward_weights", ("speed=1",), "unknown term"),
+    ("cuda_graph", "sometimes", "cuda_graph must be one of"),
 ])
 def test_bad_config_values(field, value, match):
     with pytest.raises(ValueError, match=match):
@@ -95,6 +96,43 @@ def test_command_line_overrides():
     assert cfg.eval_at_end is False and cfg.minibatch_size == 128 and cfg.value_head_lr == 5e-4
     with pytest.raises(SystemExit):
         parse_args(["--num_envs", "many"])
+
+
+@pytest.mark.parametrize("value, mode", [(True, "on"), (False, "off"), ("true", "on"), ("False", "off"),
+                                         ("auto", "auto"), ("on", "on"), ("off", "off")])
+def test_cuda_graph_reads_old_bool_configs_as_on_off(value, mode):
+    # Checkpoints and scripts from before "auto" carry a bool (or true/false on a command line).
+    assert preset_config("default", cuda_graph=value).cuda_graph == mode
+    assert parse_args(["--cuda_graph", str(value)])[0].cuda_graph == mode
+
+
+def test_env_graph_auto_captures_small_counts_on_the_gpu_only():
+    from tocabi_torchrl.rl.config import ENV_GRAPH_AUTO_MAX_ENVS
+    from tocabi_torchrl.rl.trainer import uses_env_graph
+
+    def config(num_envs, mode="auto"):
+        return preset_config("default", num_envs=num_envs, minibatch_size=64, cuda_graph=mode)
+
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    small, large = ENV_GRAPH_AUTO_MAX_ENVS, ENV_GRAPH_AUTO_MAX_ENVS + 1
+    assert uses_env_graph(config(small), cuda) and not uses_env_graph(config(small), cpu)
+    assert not uses_env_graph(config(small), cuda, num_envs=large)  # an explicit count wins over cfg.num_envs
+    assert not uses_env_graph(config(large), cuda)
+    assert uses_env_graph(config(large, "on"), cuda) and not uses_env_graph(config(large, "on"), cpu)
+    assert not uses_env_graph(config(small, "off"), cuda)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("num_envs, graphed", [(8, True), (1024, False)])
+def test_gpu_train_captures_the_env_step_when_auto_says_so(tmp_path, num_envs, graphed):
+    from tocabi_torchrl.rl.trainer import train
+
+    cfg = preset_config("default", num_envs=num_envs, steps_per_env=8, minibatch_size=16, total_env_steps=num_envs * 24,
+                        device="cuda", run_dir=str(tmp_path), eval_at_end=False, progress_bar=False,
+                        actor_hidden=(32,), critic_hidden=(32,))
+    result = train(cfg)
+    assert result.env_graph is graphed and result.env_steps == num_envs * 24
 
 
 def test_help_lists_options(capsys):

@@ -37,6 +37,26 @@ def test_recipe_excludes_sizing_and_flags_other_recipes():
     assert not scaling.is_stale({"kind": "raw"})  # the raw ceiling has no training recipe
 
 
+def test_a_result_of_another_env_step_mode_is_stale():
+    """The env-step mode (CUDA graph or eager) is not part of the recipe, but a result measured in another mode than
+    the default now picks for its backend and env count does not describe what users run."""
+    from tocabi_torchrl.rl.config import ENV_GRAPH_AUTO_MAX_ENVS
+
+    small, large = 8, ENV_GRAPH_AUTO_MAX_ENVS * 2
+    before = {**scaling.recipe(), "cuda_graph": False}  # results from before the mode was recorded
+
+    def result(backend, n, **extra):
+        return {"kind": "time", "backend": backend, "num_envs": n, "recipe": before, **extra}
+
+    assert scaling.planned_env_graph(scaling.RunSpec("time", "gpu", small))
+    assert not scaling.planned_env_graph(scaling.RunSpec("time", "gpu", large))
+    assert not scaling.planned_env_graph(scaling.RunSpec("time", "cpu", small))
+    assert scaling.is_stale(result("gpu", small))  # measured eager, the default now captures the step
+    assert not scaling.is_stale(result("gpu", large)) and not scaling.is_stale(result("cpu", small))
+    assert not scaling.is_stale(result("gpu", small, env_graph_planned=True))
+    assert scaling.is_stale(result("gpu", large, env_graph_planned=True))
+
+
 def test_every_default_count_is_a_valid_config():
     """PPOConfig.validate() accepts the sizing at every env count the suite runs."""
     for kind, backend, counts in scaling.PARTS.values():
@@ -221,9 +241,12 @@ def test_a_failed_measurement_keeps_its_recipe(tmp_path, monkeypatch):
     assert record["recipe"] == scaling.recipe() and not scaling.is_stale(record)
     assert json.loads((tmp_path / f"{spec.name}.json").read_text())["recipe"] == scaling.recipe()
     # the report takes it as the count that did not fit
-    scaling.write_json(tmp_path / "memory_gpu_0000016.json", {**record, "backend": "gpu", "num_envs": 16})
+    graphed = scaling.planned_env_graph(scaling.RunSpec("memory", "gpu", 8))  # the same for 16
+    scaling.write_json(tmp_path / "memory_gpu_0000016.json",
+                       {**record, "backend": "gpu", "num_envs": 16, "env_graph_planned": graphed})
     scaling.write_json(tmp_path / "memory_gpu_0000008.json",
-                       {"kind": "memory", "backend": "gpu", "num_envs": 8, "status": "ok", "recipe": scaling.recipe()})
+                       {"kind": "memory", "backend": "gpu", "num_envs": 8, "status": "ok", "recipe": scaling.recipe(),
+                        "env_graph_planned": graphed})
     idx = scaling_report.index(scaling_report.load_results(tmp_path))
     assert scaling_report.largest_fit(idx) == (8, 16)
     # test networks and the raw ceiling never carry the current recipe
@@ -317,7 +340,8 @@ class FakeLauncher:
             self.resumed.append(spec.name)
         status = self.statuses.get(spec.num_envs, "ok")
         scaling.write_json(path, {"kind": spec.kind, "backend": spec.backend, "num_envs": spec.num_envs,
-                                  "status": status, "recipe": scaling.recipe(spec.ppo_config())})
+                                  "status": status, "recipe": scaling.recipe(spec.ppo_config()),
+                                  "env_graph_planned": scaling.planned_env_graph(spec)})
         return status
 
 

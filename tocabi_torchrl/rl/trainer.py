@@ -18,7 +18,7 @@ from torchrl.objectives.value import GAE
 
 from .actors import action_std, make_actor, set_action_std
 from .checkpoint import load_checkpoint, save_checkpoint
-from .config import PPOConfig
+from .config import ENV_GRAPH_AUTO_MAX_ENVS, PPOConfig
 from .logging import RunLogger
 from .networks import make_mlp
 from .std_schedule import StdSchedule
@@ -26,7 +26,7 @@ from .update_step import (MinibatchStep, get_lr, make_capturable_adam, optimizer
                           set_lr)
 
 __all__ = ["Agent", "build_agent", "build_env", "make_collector", "make_loss", "make_optimizer", "make_update_step",
-           "uses_update_graph", "training_keys", "train", "resolve_device", "TrainResult"]
+           "uses_env_graph", "uses_update_graph", "training_keys", "train", "resolve_device", "TrainResult"]
 
 
 def resolve_device(name: str) -> torch.device:
@@ -75,10 +75,11 @@ def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None,
         env_overrides.setdefault("pd_action_scale", cfg.pd_action_scale)
     if cfg.reward_weights:
         env_overrides.setdefault("reward_weights", cfg.reward_weight_map())
+    num_envs = num_envs or cfg.num_envs
     if device.type == "cuda":
-        env_overrides.setdefault("cuda_graph", cfg.cuda_graph)
+        env_overrides.setdefault("cuda_graph", uses_env_graph(cfg, device, num_envs))
     env = make_env(
-        num_envs or cfg.num_envs,
+        num_envs,
         device,
         preset=cfg.transform_preset,
         seed=cfg.seed,
@@ -133,6 +134,8 @@ class TrainResult:
     wall_seconds: float
     env_steps_per_second: float
     last_metrics: dict
+    #: Whether the env step ran as a captured CUDA graph by the end (``cfg.cuda_graph``, see :func:`uses_env_graph`).
+    env_graph: bool = False
 
 
 def _episode_metrics(batch: TensorDictBase) -> dict[str, float]:
@@ -178,6 +181,14 @@ def make_collector(cfg: PPOConfig, env: EnvBase, actor: torch.nn.Module, device:
         # from moving the rollout (and, as its context outlives each yield, the update) to a side stream.
         no_cuda_sync=True,
     )
+
+
+def uses_env_graph(cfg: PPOConfig, device: torch.device, num_envs: int | None = None) -> bool:
+    """Whether :func:`build_env` captures the env step of ``num_envs`` envs (default ``cfg.num_envs``) as a CUDA
+    graph: ``cfg.cuda_graph`` "on", or "auto" with at most ``ENV_GRAPH_AUTO_MAX_ENVS`` envs; never off the GPU."""
+    if device.type != "cuda" or cfg.cuda_graph == "off":
+        return False
+    return cfg.cuda_graph == "on" or (num_envs or cfg.num_envs) <= ENV_GRAPH_AUTO_MAX_ENVS
 
 
 def uses_update_graph(cfg: PPOConfig, device: torch.device) -> bool:
@@ -291,11 +302,12 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
                 save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg)
                 break
     finally:
+        env_graph = bool(getattr(env, "graph_captured", False))
         collector.shutdown()
         logger.close()
     wall = time.perf_counter() - t_start
     done_steps = env_steps - start_iter * cfg.frames_per_batch
-    return TrainResult(run_dir, it, env_steps, wall, done_steps / max(wall, 1e-9), metrics)
+    return TrainResult(run_dir, it, env_steps, wall, done_steps / max(wall, 1e-9), metrics, env_graph)
 
 
 #: Frames per critic call in GAE (bounds its activation memory).
