@@ -128,7 +128,8 @@ def test_env_graph_auto_captures_small_counts_on_the_gpu_only():
 def test_gpu_train_captures_the_env_step_when_auto_says_so(tmp_path, num_envs, graphed):
     from tocabi_torchrl.rl.trainer import train
 
-    cfg = preset_config("default", num_envs=num_envs, steps_per_env=8, minibatch_size=16, total_env_steps=num_envs * 24,
+    cfg = preset_config("default", num_envs=num_envs, steps_per_env=8, minibatch_size=2 * num_envs,
+                        total_env_steps=num_envs * 24,
                         device="cuda", run_dir=str(tmp_path), eval_at_end=False, progress_bar=False,
                         actor_hidden=(32,), critic_hidden=(32,))
     result = train(cfg)

@@ -12,8 +12,9 @@ __all__ = ["PPOConfig", "PRESETS", "preset_config", "parse_args", "LR_SCHEDULES"
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
-#: Largest env count for which ``cuda_graph="auto"`` captures the env step (see ``PPOConfig.cuda_graph``).
-ENV_GRAPH_AUTO_MAX_ENVS = 512
+#: Largest env count for which ``cuda_graph="auto"`` captures the env step (see ``PPOConfig.cuda_graph``): the
+#: graph won at 96 envs and lost at 256 on an H100; 128 was not measured.
+ENV_GRAPH_AUTO_MAX_ENVS = 128
 STD_MODES = ("scheduled", "learned")
 
 
@@ -50,8 +51,8 @@ class PPOConfig:
     reward_weights: tuple[str, ...] = ("body_vel=0.9",)
     #: On a GPU, capture the training env's whole step (physics, signals, transforms, masked reset) as one CUDA
     #: graph: "on", "off", or "auto" = on up to ENV_GRAPH_AUTO_MAX_ENVS envs. Small counts are launch-bound, and the
-    #: graph trained 1.5-1.8x faster at 8-96 envs on an H100; from 1,024 envs the physics dominates and eager was
-    #: 3-4 % faster (docs/benchmarks/env_graph.md). What is learned is the same either way.
+    #: graph trained 1.5-1.8x faster at 8-96 envs on an H100; from 256 envs up eager was 3-6 % faster
+    #: (docs/benchmarks/env_graph.md). Both compute the same step (tests compare them).
     cuda_graph: str = "auto"
     #: Keep every env signal (joint_pos, base_pos, ...) in the training rollout; off: only what PPO and the logs
     #: read (observation, reward, done flags, reward terms, episode counters), ~40 % less rollout memory.
