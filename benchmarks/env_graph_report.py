@@ -54,8 +54,10 @@ def write(folder: Path, out: Path) -> str:
         "warm-up, 48 steps per env) with the env step captured as one CUDA graph (`--set cuda_graph=on`) and "
         "launched op by op (`off`). Each pair of runs came from one device command. Small env counts are bound by "
         "kernel launches, which the graph removes; from a few hundred envs on, the physics dominates and the "
-        "eager step was a few per cent faster. Hence the default `cuda_graph=\"auto\"`: captured up to "
-        f"{ENV_GRAPH_AUTO_MAX_ENVS:,} envs (`ENV_GRAPH_AUTO_MAX_ENVS`; 128 itself was not measured).",
+        "graph was a few per cent slower. Hence the default `cuda_graph=\"auto\"`: captured up to "
+        f"{ENV_GRAPH_AUTO_MAX_ENVS:,} envs (`ENV_GRAPH_AUTO_MAX_ENVS`). These are short runs (48 steps per env). In "
+        "the 983,040-step runs of [scaling.md](scaling.md), graph runs against earlier eager ones (other days and "
+        "leases) gave 1.76× at 8 envs (the eager rate extrapolated from a partial run), 1.31× at 32 and 1.49× at 96.",
         "",
         "| envs | graph env-steps/s | eager env-steps/s | graph / eager | raw mujoco-warp policy steps/s | date |",
         "|---:|---:|---:|---:|---:|---:|",

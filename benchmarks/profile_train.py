@@ -69,7 +69,7 @@ def main(argv=None) -> None:
     if device.type == "cuda":
         raw = raw_policy_steps_per_second(n, 100)
         report("raw mujoco-warp (ceiling)", n / raw * 1e3, float("nan"))
-    env = build_env(cfg, device, sync_free_resets=False)
+    env = build_env(cfg, device, sync_free_resets=False, cuda_graph=False)
     agent = build_agent(cfg, 237, 13, device)
     base = env.base_env
     td = env.reset()
@@ -87,7 +87,9 @@ def main(argv=None) -> None:
     from torchrl.collectors import Collector
 
     batch = None
-    variants = [("stock", {"sync_free_resets": False}), ("sync-free", {"sync_free_resets": True})]
+    # Explicit modes: the preset's cuda_graph="auto" would capture the sync-free step at small counts.
+    variants = [("stock", {"sync_free_resets": False, "cuda_graph": False}),
+                ("sync-free", {"sync_free_resets": True, "cuda_graph": False})]
     if device.type == "cuda":
         variants.append(("graph", {"sync_free_resets": True, "cuda_graph": True}))
     for tag, env_kw in variants:

@@ -188,7 +188,7 @@ def planned_env_graph(spec: RunSpec) -> bool:
     """Whether the default preset captures the env step of ``spec``'s training (``PPOConfig.cuda_graph``)."""
     import torch
 
-    from tocabi_torchrl.rl.trainer import uses_env_graph
+    from tocabi_torchrl.rl.config import uses_env_graph
 
     return uses_env_graph(spec.ppo_config(), torch.device(spec.device), spec.num_envs)
 
@@ -196,6 +196,8 @@ def planned_env_graph(spec: RunSpec) -> bool:
 def _stored_env_graph(record: dict) -> bool:
     """The env-step mode a result was measured with: its own record, or for results from before that was recorded,
     the ``cuda_graph`` flag of their stored recipe (False then)."""
+    if record.get("backend") != "gpu":
+        return False  # the CPU backend never captures its step
     if "env_graph_planned" in record:
         return bool(record["env_graph_planned"])
     return str((record.get("recipe") or {}).get("cuda_graph")).lower() in ("true", "on")
@@ -212,7 +214,10 @@ def is_stale(record: dict, current: dict | None = None) -> bool:
         return True
     if record.get("backend") not in ("cpu", "gpu") or not record.get("num_envs"):
         return False  # every measured record names both; without them there is no mode to compare
-    spec = RunSpec("time", record["backend"], int(record["num_envs"]))
+    try:
+        spec = RunSpec("time", record["backend"], int(record["num_envs"]))
+    except (TypeError, ValueError):
+        return True  # a malformed env count describes nothing the suite would measure now
     return _stored_env_graph(record) != planned_env_graph(spec)
 
 
@@ -534,8 +539,10 @@ def _check_chain(spec: RunSpec, previous: dict, cfg) -> None:
     now = {"frames_per_batch": cfg.frames_per_batch, "total_env_steps_target": cfg.total_env_steps,
            "actor_hidden": list(cfg.actor_hidden), "critic_hidden": list(cfg.critic_hidden)}
     differ = {k: (was.get(k), v) for k, v in now.items() if was.get(k) != v}
-    if _recipe_part(previous.get("recipe")) != spec_recipe(spec) or _stored_env_graph(previous) != planned_env_graph(spec):
+    if _recipe_part(previous.get("recipe")) != spec_recipe(spec):
         differ["recipe"] = "another training recipe"
+    if _stored_env_graph(previous) != planned_env_graph(spec):
+        differ["env step"] = "another env-step mode (CUDA graph vs eager)"
     if differ:
         raise ValueError(f"{spec.name} cannot continue with other settings than it started with: {differ} "
                          "(--redo partial measures from scratch)")
@@ -607,7 +614,7 @@ def measure_raw(spec: RunSpec, sampler: Sampler) -> dict:
 
 #: Per-segment numbers of a training run that resumed from checkpoints (TocabiLab's timer sums the segments).
 SEGMENT_KEYS = ("env_steps", "train_wall_s", "setup_s", "total_wall_s", "env_steps_per_s", "steady_window", "command",
-                "part_command")
+                "part_command", "env_graph")
 
 
 def _segments(record: dict) -> list[dict]:
@@ -645,6 +652,9 @@ def merge_segments(previous: dict, segment: dict) -> dict:
         merged[key] = sum(seg[key] or 0 for seg in segments)
     merged["env_steps_per_s"] = merged["env_steps"] / merged["train_wall_s"] if merged["train_wall_s"] else None
     merged["steady_env_steps_per_s"] = _steady_rate(seg.get("steady_window") for seg in segments)
+    modes = [seg["env_graph"] for seg in segments if seg.get("env_graph") is not None]  # None: not recorded then
+    if modes:  # "graph" only if every segment's step ran captured
+        merged["env_graph"] = all(modes)
     merged.pop("steady_window", None)  # each segment keeps its own
     merged["cpu_segments"] = [*previous.get("cpu_segments", [previous.get("cpu")]), segment.get("cpu")]
     merged["cpu"] = _weighted_cpu(merged["cpu_segments"])

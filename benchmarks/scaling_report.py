@@ -262,8 +262,9 @@ def env_step_mode(r: dict) -> str:
     """How a GPU result's env step ran: one CUDA graph ("graph") or launched op by op ("eager"); "-" on the CPU."""
     if r.get("backend") != "gpu":
         return "-"
-    if "env_graph" in r:
-        return "graph" if r["env_graph"] else "eager"
+    for key in ("env_graph", "env_graph_planned"):  # what ran; for a run that failed, what it was to run
+        if key in r:
+            return "graph" if r[key] else "eager"
     return "eager" if str((r.get("recipe") or {}).get("cuda_graph")).lower() in ("false", "off") else NOT_MEASURED
 
 

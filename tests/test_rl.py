@@ -99,7 +99,8 @@ def test_command_line_overrides():
 
 
 @pytest.mark.parametrize("value, mode", [(True, "on"), (False, "off"), ("true", "on"), ("False", "off"),
-                                         ("auto", "auto"), ("on", "on"), ("off", "off")])
+                                         ("auto", "auto"), ("on", "on"), ("off", "off"), ("yes", "on"),
+                                         ("no", "off"), (" ON ", "on"), ("Auto", "auto"), (1, "on"), (0, "off")])
 def test_cuda_graph_reads_old_bool_configs_as_on_off(value, mode):
     # Checkpoints and scripts from before "auto" carry a bool (or true/false on a command line).
     assert preset_config("default", cuda_graph=value).cuda_graph == mode
@@ -134,6 +135,37 @@ def test_gpu_train_captures_the_env_step_when_auto_says_so(tmp_path, num_envs, g
                         actor_hidden=(32,), critic_hidden=(32,))
     result = train(cfg)
     assert result.env_graph is graphed and result.env_steps == num_envs * 24
+
+
+def test_build_env_asks_make_env_for_the_graph_only_where_it_can_be_captured(monkeypatch):
+    # make_env is replaced by a recorder, so the CUDA decision is checked without a GPU.
+    import tocabi_torchrl
+    from tocabi_torchrl.rl.trainer import build_env
+
+    asked = []
+    monkeypatch.setattr(tocabi_torchrl, "make_env", lambda *args, **kwargs: asked.append(kwargs.get("cuda_graph")))
+    cuda = torch.device("cuda")
+    auto, on = (preset_config("default", num_envs=4, minibatch_size=16, cuda_graph=m) for m in ("auto", "on"))
+    build_env(auto, cuda)
+    build_env(auto, cuda, num_envs=4096)
+    build_env(auto, cuda, sync_free_resets=False)  # TorchRL's stock resets read the host: not capturable
+    build_env(auto, cuda, compile_reward=True)  # make_env refuses a compiled reward inside a capture
+    build_env(on, cuda, compile_reward=True)  # asked for explicitly: make_env says why it cannot
+    build_env(auto, cuda, cuda_graph=False)  # the caller's choice wins
+    build_env(auto, torch.device("cpu"))
+    assert asked == [True, False, False, False, True, False, None]
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_gpu_build_env_with_stock_resets_stays_eager():
+    # cuda_graph="auto" at a small count must not turn a stock-reset env (profiling, comparisons) into an error.
+    from tocabi_torchrl.rl.trainer import build_env
+
+    cfg = preset_config("default", num_envs=4, minibatch_size=16)
+    env = build_env(cfg, torch.device("cuda"), sync_free_resets=False)
+    assert not getattr(env, "cuda_graph", False)
+    assert build_env(cfg, torch.device("cuda")).cuda_graph
 
 
 def test_help_lists_options(capsys):

@@ -55,6 +55,19 @@ def test_a_result_of_another_env_step_mode_is_stale():
     assert not scaling.is_stale(result("gpu", large)) and not scaling.is_stale(result("cpu", small))
     assert not scaling.is_stale(result("gpu", small, env_graph_planned=True))
     assert scaling.is_stale(result("gpu", large, env_graph_planned=True))
+    # the CPU never captures its step, whatever an old record's flag says; a malformed count is never current
+    assert not scaling.is_stale({**result("cpu", small), "recipe": {**scaling.recipe(), "cuda_graph": True}})
+    assert scaling.is_stale(result("gpu", "many")) and scaling.is_stale(result("gpu", -1))
+
+
+def test_merged_segments_show_graph_only_if_every_segment_ran_captured():
+    base = {"kind": "time", "backend": "gpu", "num_envs": 8, "total_env_steps": 300, "env_steps": 100,
+            "train_wall_s": 1.0, "setup_s": 1.0, "total_wall_s": 2.0, "env_steps_per_s": 100.0, "status": "partial"}
+    first = scaling.merge_segments({**base, "env_graph": True}, {**base, "env_graph": False})
+    assert first["env_graph"] is False and [s["env_graph"] for s in first["segments"]] == [True, False]
+    assert scaling.merge_segments(first, {**base, "env_graph": True})["env_graph"] is False
+    legacy = scaling.merge_segments(base, {**base, "env_graph": True})  # the first segment predates the record
+    assert legacy["env_graph"] is True
 
 
 def test_every_default_count_is_a_valid_config():

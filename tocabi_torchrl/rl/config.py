@@ -8,12 +8,13 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = ["PPOConfig", "PRESETS", "preset_config", "parse_args", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
-           "ENV_GRAPH_AUTO_MAX_ENVS"]
+           "ENV_GRAPH_AUTO_MAX_ENVS", "uses_env_graph"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
+_GRAPH_ALIASES = {"true": "on", "yes": "on", "1": "on", "false": "off", "no": "off", "0": "off"}
 #: Largest env count for which ``cuda_graph="auto"`` captures the env step (see ``PPOConfig.cuda_graph``): the
-#: graph won at 96 envs and lost at 256 on an H100; 128 was not measured.
+#: graph won at 96 envs and lost at 256 on an H100 (128 only in short memory-sweep runs, see env_graph.md).
 ENV_GRAPH_AUTO_MAX_ENVS = 128
 STD_MODES = ("scheduled", "learned")
 
@@ -51,7 +52,7 @@ class PPOConfig:
     reward_weights: tuple[str, ...] = ("body_vel=0.9",)
     #: On a GPU, capture the training env's whole step (physics, signals, transforms, masked reset) as one CUDA
     #: graph: "on", "off", or "auto" = on up to ENV_GRAPH_AUTO_MAX_ENVS envs. Small counts are launch-bound, and the
-    #: graph trained 1.5-1.8x faster at 8-96 envs on an H100; from 256 envs up eager was 3-6 % faster
+    #: graph trained 1.5-1.8x faster at 8-96 envs on an H100 (short runs); from 256 envs up it was 3-6 % slower
     #: (docs/benchmarks/env_graph.md). Both compute the same step (tests compare them).
     cuda_graph: str = "auto"
     #: Keep every env signal (joint_pos, base_pos, ...) in the training rollout; off: only what PPO and the logs
@@ -102,10 +103,12 @@ class PPOConfig:
     progress_bar: bool = True
 
     def __post_init__(self) -> None:
-        # Configs and checkpoints written before "auto" existed hold a bool here; true/false also read as on/off.
+        # Configs and checkpoints written before "auto" existed hold a bool here, and the command line used to take
+        # true/false/yes/no/1/0: all of them still read as on/off; any case is accepted.
         value = self.cuda_graph
-        if isinstance(value, bool) or (isinstance(value, str) and value.lower() in ("true", "false", "1", "0")):
-            self.cuda_graph = "on" if str(value).lower() in ("true", "1") else "off"
+        if isinstance(value, (bool, int, str)):
+            text = str(value).strip().lower()
+            self.cuda_graph = _GRAPH_ALIASES.get(text, text)
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field and the accepted values."""
@@ -192,6 +195,15 @@ PRESETS: dict[str, dict[str, Any]] = {
                       checkpoint_every=1, eval_envs=2, eval_seconds=1.0, actor_hidden=(64, 64),
                       critic_hidden=(64, 64)),
 }
+
+
+def uses_env_graph(cfg: PPOConfig, device: Any, num_envs: int | None = None) -> bool:
+    """Whether the trainer captures the env step of ``num_envs`` envs (default ``cfg.num_envs``) on ``device`` (a
+    ``torch.device``) as a CUDA graph: ``cfg.cuda_graph`` "on", or "auto" with at most ``ENV_GRAPH_AUTO_MAX_ENVS``
+    envs; never off the GPU."""
+    if device.type != "cuda" or cfg.cuda_graph == "off":
+        return False
+    return cfg.cuda_graph == "on" or (num_envs or cfg.num_envs) <= ENV_GRAPH_AUTO_MAX_ENVS
 
 
 def preset_config(name: str, /, **overrides) -> PPOConfig:

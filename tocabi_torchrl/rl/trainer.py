@@ -18,7 +18,7 @@ from torchrl.objectives.value import GAE
 
 from .actors import action_std, make_actor, set_action_std
 from .checkpoint import load_checkpoint, save_checkpoint
-from .config import ENV_GRAPH_AUTO_MAX_ENVS, PPOConfig
+from .config import PPOConfig, uses_env_graph
 from .logging import RunLogger
 from .networks import make_mlp
 from .std_schedule import StdSchedule
@@ -77,7 +77,13 @@ def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None,
         env_overrides.setdefault("reward_weights", cfg.reward_weight_map())
     num_envs = num_envs or cfg.num_envs
     if device.type == "cuda":
-        env_overrides.setdefault("cuda_graph", uses_env_graph(cfg, device, num_envs))
+        graph = uses_env_graph(cfg, device, num_envs)
+        # "auto" only captures an env that can be captured: not one with TorchRL's stock (host-reading) resets or a
+        # compiled reward (profiling, comparisons); an explicit "on" lets make_env say why it cannot.
+        if cfg.cuda_graph == "auto" and (env_overrides.get("sync_free_resets") is False
+                                         or env_overrides.get("compile_reward")):
+            graph = False
+        env_overrides.setdefault("cuda_graph", graph)
     env = make_env(
         num_envs,
         device,
@@ -181,14 +187,6 @@ def make_collector(cfg: PPOConfig, env: EnvBase, actor: torch.nn.Module, device:
         # from moving the rollout (and, as its context outlives each yield, the update) to a side stream.
         no_cuda_sync=True,
     )
-
-
-def uses_env_graph(cfg: PPOConfig, device: torch.device, num_envs: int | None = None) -> bool:
-    """Whether :func:`build_env` captures the env step of ``num_envs`` envs (default ``cfg.num_envs``) as a CUDA
-    graph: ``cfg.cuda_graph`` "on", or "auto" with at most ``ENV_GRAPH_AUTO_MAX_ENVS`` envs; never off the GPU."""
-    if device.type != "cuda" or cfg.cuda_graph == "off":
-        return False
-    return cfg.cuda_graph == "on" or (num_envs or cfg.num_envs) <= ENV_GRAPH_AUTO_MAX_ENVS
 
 
 def uses_update_graph(cfg: PPOConfig, device: torch.device) -> bool:
