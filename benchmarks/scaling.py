@@ -193,7 +193,7 @@ def planned_env_graph(spec: RunSpec) -> bool:
     return uses_env_graph(spec.ppo_config(), torch.device(spec.device), spec.num_envs)
 
 
-def _stored_env_graph(record: dict) -> bool:
+def stored_env_graph(record: dict) -> bool:
     """The env-step mode a result was measured with: its own record, or for results from before that was recorded,
     the ``cuda_graph`` flag of their stored recipe (False then)."""
     if record.get("backend") != "gpu":
@@ -218,7 +218,7 @@ def is_stale(record: dict, current: dict | None = None) -> bool:
         spec = RunSpec("time", record["backend"], int(record["num_envs"]))
     except (TypeError, ValueError):
         return True  # a malformed env count describes nothing the suite would measure now
-    return _stored_env_graph(record) != planned_env_graph(spec)
+    return stored_env_graph(record) != planned_env_graph(spec)
 
 
 @dataclass
@@ -541,7 +541,7 @@ def _check_chain(spec: RunSpec, previous: dict, cfg) -> None:
     differ = {k: (was.get(k), v) for k, v in now.items() if was.get(k) != v}
     if _recipe_part(previous.get("recipe")) != spec_recipe(spec):
         differ["recipe"] = "another training recipe"
-    if _stored_env_graph(previous) != planned_env_graph(spec):
+    if stored_env_graph(previous) != planned_env_graph(spec):
         differ["env step"] = "another env-step mode (CUDA graph vs eager)"
     if differ:
         raise ValueError(f"{spec.name} cannot continue with other settings than it started with: {differ} "

@@ -259,13 +259,14 @@ def _status(r: dict | None) -> str:
 
 
 def env_step_mode(r: dict) -> str:
-    """How a GPU result's env step ran: one CUDA graph ("graph") or launched op by op ("eager"); "-" on the CPU."""
+    """How a GPU result's env step ran: one CUDA graph ("graph") or launched op by op ("eager"); "-" on the CPU.
+    A run that failed shows the mode it was to run in."""
+    from scaling import stored_env_graph
+
     if r.get("backend") != "gpu":
         return "-"
-    for key in ("env_graph", "env_graph_planned"):  # what ran; for a run that failed, what it was to run
-        if key in r:
-            return "graph" if r[key] else "eager"
-    return "eager" if str((r.get("recipe") or {}).get("cuda_graph")).lower() in ("false", "off") else NOT_MEASURED
+    ran = r["env_graph"] if "env_graph" in r else stored_env_graph(r)
+    return "graph" if ran else "eager"
 
 
 def time_rows(idx: dict, backend: str, counts: list[int]) -> list[list[str]]:
