@@ -36,11 +36,9 @@ def make_env(
         sync_free_resets: return a :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`, whose
             ``step_and_maybe_reset`` (the collectors' step) resets done envs without host reads (default: on CUDA).
         cuda_graph: capture that ``step_and_maybe_reset`` as one CUDA graph after two eager calls and replay it
-            (CUDA and ``sync_free_resets`` only). Off by default here; the trainer turns it on up to 128 envs
-            (``PPOConfig.cuda_graph="auto"``), where the step is launch-bound and training ran 1.5-1.8x faster on an
-            H100, while from 256 envs the physics dominates and the graph was 3-6 % slower
-            (``docs/benchmarks/env_graph.md``). See :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv` for what
-            a capture freezes.
+            (CUDA and ``sync_free_resets`` only). Off by default here; the trainer turns it on at small env counts,
+            where the step is launch-bound (``PPOConfig.cuda_graph``, measured in ``docs/benchmarks/env_graph.md``).
+            See :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv` for what a capture freezes.
         overrides: fields of :class:`~tocabi_torchrl.envs.TocabiWalkConfig` (e.g. ``control_mode="pd"``,
             ``max_episode_steps=1000``) and of :class:`~tocabi_torchrl.transforms.TransformConfig`
             (e.g. ``reward_weights={"qpos": 0.5}``, ``normalization="running"``); a name in neither raises.
