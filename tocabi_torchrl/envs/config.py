@@ -43,7 +43,8 @@ class TocabiWalkConfig:
       - ``"pd"`` (TocabiLab's position-based policy): action[:12] in [-1, 1] maps to a target angle
         ``pd_nominal + pd_action_scale × action`` clipped to the joint range, tracked in every physics substep by
         MuJoCo position servos with gains ``pd_kp``/``pd_kv``, force-limited to the torque limits.
-    The upper body is held at the reference pose by MuJoCo position servos in both modes.
+      - ``"pd_reference"``: as ``"pd"`` with the target centred on the reference walk instead of ``pd_nominal``.
+    The upper body is held at the reference pose by MuJoCo position servos in every mode.
     """
 
     control_mode: str = "torque"
@@ -67,6 +68,12 @@ class TocabiWalkConfig:
     pd_kv: tuple[float, ...] = tuple(robot.LEG_KV / 3.0)
     pd_action_scale: float = 0.5
     pd_nominal: tuple[float, ...] = tuple(robot.INIT_JOINT_POS[:12])
+    #: Torque mode only, a training aid: the leg torques get ``β·(pd_kp·(q_ref − q) − pd_kv·q̇)`` added (the reference
+    #: walk tracked by a PD at the policy rate, from the pre-step state), clipped with the policy's torque to the
+    #: limits. β is the env's device scalar ``assist_scale`` (:meth:`TocabiWalk.set_torque_assist`, 0 at build), so a
+    #: trainer can fade it without rebuilding or re-capturing; with β = 0 the step applies the policy's torque alone.
+    #: Adds the ``leg_assist`` signal (the full-scale assist over the torque limits, (num_envs, 12)).
+    torque_assist: bool = False
     #: Robot model path: None = the shipped assets/tocabi/tocabi.xml.
     model_path: str | os.PathLike | None = None
     #: Contact/constraint buffers per world for mujoco-warp (None = the backend's measured defaults).
@@ -99,6 +106,9 @@ class TocabiWalkConfig:
         for name in ("pd_kp", "pd_kv", "pd_nominal"):
             if len(getattr(self, name)) != robot.NUM_LEG_JOINTS:
                 raise ValueError(f"TocabiWalkConfig.{name} needs {robot.NUM_LEG_JOINTS} values (one per leg joint)")
+        if self.torque_assist and self.control_mode != "torque":
+            raise ValueError(f"TocabiWalkConfig.torque_assist needs control_mode='torque' (the PD modes already track "
+                             f"with servos), got control_mode={self.control_mode!r}")
         if min(self.pd_kp) < 0 or min(self.pd_kv) < 0:
             raise ValueError("TocabiWalkConfig.pd_kp and pd_kv must be >= 0")
         if self.backend not in BACKENDS:

@@ -135,6 +135,11 @@ class TocabiWalk(EnvBase):
         leg_range = self.sim.mj_model.jnt_range[[self.sim.mj_model.joint(n_).id for n_ in robot.JOINT_NAMES[:12]]]
         self._leg_range = torch.as_tensor(leg_range, dtype=f32, device=dev)
         self._pd_nominal = torch.as_tensor(self.cfg.pd_nominal, dtype=f32, device=dev)
+        self._pd_kp = torch.as_tensor(self.cfg.pd_kp, dtype=f32, device=dev)
+        self._pd_kv = torch.as_tensor(self.cfg.pd_kv, dtype=f32, device=dev)
+        #: β of the torque assist (config ``torque_assist``): a device scalar changed in place, so a captured step
+        #: graph follows it.
+        self.assist_scale = torch.zeros((), dtype=f32, device=dev)
         # Leg controls a reset world starts with: no torque, or the PD's nominal target.
         self._reset_leg_ctrl = (torch.zeros_like(self._pd_nominal) if self.cfg.control_mode == "torque"
                                 else self._pd_nominal.clone())
@@ -146,6 +151,7 @@ class TocabiWalk(EnvBase):
         # Signals of the last step, kept so that a partial reset can return every env's current values.
         self.applied_action = torch.zeros(n, ACTION_DIM, dtype=f32, device=dev)
         self.leg_torque = torch.zeros(n, robot.NUM_LEG_JOINTS, dtype=f32, device=dev)
+        self.leg_assist = torch.zeros(n, robot.NUM_LEG_JOINTS, dtype=f32, device=dev)
         self.ref_joint_pos = torch.zeros(n, robot.NUM_JOINTS, dtype=f32, device=dev)
         self.ref_foot_force = torch.zeros(n, 2, dtype=f32, device=dev)
         self.stance = torch.zeros(n, dtype=torch.int64, device=dev)
@@ -163,6 +169,7 @@ class TocabiWalk(EnvBase):
         def flag(*shape):
             return Categorical(2, shape=(n, *shape), dtype=torch.bool, device=dev)
 
+        assist = {"leg_assist": box(robot.NUM_LEG_JOINTS)} if self.cfg.torque_assist else {}
         self.observation_spec = Composite(
             joint_pos=box(robot.NUM_JOINTS),
             joint_vel=box(robot.NUM_JOINTS),
@@ -183,6 +190,7 @@ class TocabiWalk(EnvBase):
             applied_action=box(ACTION_DIM),
             leg_torque=box(robot.NUM_LEG_JOINTS),
             episode_step=box(1, dtype=torch.int64),
+            **assist,
             shape=(n,),
             device=dev,
         )
@@ -220,6 +228,8 @@ class TocabiWalk(EnvBase):
 
         if self.cfg.control_mode == "torque":
             leg_cmd = a[:, : robot.NUM_LEG_JOINTS] * self._leg_limits
+            if self.cfg.torque_assist:
+                leg_cmd = self._add_assist(leg_cmd, q_ref[:, : robot.NUM_LEG_JOINTS])
         else:
             center = self._pd_nominal if self.cfg.control_mode == "pd" else q_ref[:, : robot.NUM_LEG_JOINTS]
             target = center + self.cfg.pd_action_scale * a[:, : robot.NUM_LEG_JOINTS]
@@ -268,6 +278,23 @@ class TocabiWalk(EnvBase):
         )
         return out
 
+    def _add_assist(self, leg_cmd: torch.Tensor, leg_ref: torch.Tensor) -> torch.Tensor:
+        """Policy torques (num_envs, 12) [N·m] plus β × the reference-tracking PD of the pre-step state, clipped to
+        the limits; records the full-scale PD over the limits as ``leg_assist``."""
+        q = self.sim.qpos[:, 7 : 7 + robot.NUM_LEG_JOINTS]
+        qd = self.sim.qvel[:, 6 : 6 + robot.NUM_LEG_JOINTS]
+        self.leg_assist.copy_((self._pd_kp * (leg_ref - q) - self._pd_kv * qd) / self._leg_limits)
+        total = leg_cmd + self.assist_scale * self.leg_assist * self._leg_limits
+        return torch.maximum(torch.minimum(total, self._leg_limits), -self._leg_limits)
+
+    def set_torque_assist(self, scale: float) -> None:
+        """Set β of the torque assist (config ``torque_assist``) for the following steps; 0 = pure torque."""
+        if not self.cfg.torque_assist:
+            raise RuntimeError("set_torque_assist needs an env built with torque_assist=True (torque mode)")
+        if not 0.0 <= float(scale) <= 10.0:
+            raise ValueError(f"torque assist scale must be in [0, 10], got {scale!r}")
+        self.assist_scale.fill_(float(scale))
+
     def _observe(self) -> TensorDict:
         """Current signals of every env as fresh tensors (never views of simulator memory)."""
         sim = self.sim
@@ -294,6 +321,8 @@ class TocabiWalk(EnvBase):
             "leg_torque": self.leg_torque.clone(),
             "episode_step": self.episode_step.unsqueeze(-1).clone(),
         }
+        if self.cfg.torque_assist:
+            signals["leg_assist"] = self.leg_assist.clone()
         return TensorDict(signals, batch_size=self.batch_size, device=self.device)
 
     # ------------------------------------------------------------------------------------------------ resets
@@ -311,6 +340,7 @@ class TocabiWalk(EnvBase):
         m = mask.unsqueeze(-1)
         self.applied_action.masked_fill_(m, 0.0)
         self.leg_torque.masked_fill_(m, 0.0)
+        self.leg_assist.masked_fill_(m, 0.0)
         self.command.reset(mask, u[:, 1:3])
         # Upper-body servos start on the initial pose so the reset state's forward pass sees no PD transient.
         row = self.motion.row_index(self.time, self.init_row)
