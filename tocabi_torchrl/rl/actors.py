@@ -18,7 +18,7 @@ from torchrl.modules import IndependentNormal, ProbabilisticActor
 
 from .networks import make_mlp
 
-__all__ = ["GaussianHead", "make_actor", "set_action_std", "action_std"]
+__all__ = ["GaussianHead", "gaussian_head", "make_actor", "set_action_std", "action_std"]
 
 
 class GaussianHead(nn.Module):
@@ -69,7 +69,8 @@ def make_actor(
     )
 
 
-def _head(actor: ProbabilisticActor) -> GaussianHead:
+def gaussian_head(actor: ProbabilisticActor) -> GaussianHead:
+    """The actor's :class:`GaussianHead` (mean network and std)."""
     for m in actor.modules():
         if isinstance(m, GaussianHead):
             return m
@@ -78,11 +79,11 @@ def _head(actor: ProbabilisticActor) -> GaussianHead:
 
 def set_action_std(actor: ProbabilisticActor, std: float) -> None:
     """Set the (scheduled) std of every action dimension."""
-    head = _head(actor)
+    head = gaussian_head(actor)
     with torch.no_grad():
         head.log_std.fill_(math.log(std))
 
 
 def action_std(actor: ProbabilisticActor) -> torch.Tensor:
     """(act_dim,) current std."""
-    return _head(actor).log_std.detach().exp()
+    return gaussian_head(actor).log_std.detach().exp()

@@ -19,8 +19,10 @@ def _transform_state(env) -> dict:
     return transform.state_dict() if isinstance(transform, nn.Module) else {}
 
 
-def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimizer, env, cfg) -> Path:
-    """Write ``checkpoints/iter_XXXXXX.pt`` and refresh ``checkpoints/latest.pt`` under ``run_dir``."""
+def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimizer, env, cfg,
+                    train_seconds: float = 0.0, tag: str | None = None) -> Path:
+    """Write ``checkpoints/iter_XXXXXX.pt`` (or ``checkpoints/<tag>.pt``) and refresh ``checkpoints/latest.pt``
+    under ``run_dir``. ``train_seconds``: training wall-clock so far, summed over resumed segments."""
     folder = Path(run_dir) / "checkpoints"
     folder.mkdir(parents=True, exist_ok=True)
     state = {
@@ -30,8 +32,9 @@ def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimi
         "optimizer": optimizer.state_dict() if optimizer is not None else None,
         "transforms": _transform_state(env),
         "config": cfg.to_dict(),
+        "train_seconds": float(train_seconds),
     }
-    path = folder / f"iter_{iteration:06d}.pt"
+    path = folder / (f"{tag}.pt" if tag else f"iter_{iteration:06d}.pt")
     torch.save(state, path)
     torch.save(state, folder / "latest.pt")
     return path

@@ -48,6 +48,14 @@ class PPOConfig:
     pd_gains: str = "robot"
     #: Residual range [rad] of the PD modes: target = center + pd_action_scale × action.
     pd_action_scale: float = 0.5
+    #: Torque mode training aid (0 = off): β × a reference-tracking PD (``pd_gains``) is added to the policy's leg
+    #: torques. β starts at this value, holds until ``assist_fade_start`` env steps and falls linearly to 0 at
+    #: ``assist_fade_end``; during the fade a loss term (weight ``assist_absorb``) moves each removed slice of the PD
+    #: into the actor (rl/assist.py), so the run ends as a pure torque policy. Evaluations never use the assist.
+    torque_assist: float = 0.0
+    assist_fade_start: int = 0
+    assist_fade_end: int = 0
+    assist_absorb: float = 1.0
     #: Reward re-weighting, "term=weight" entries (e.g. body_vel=0.9); empty = the reference weights.
     reward_weights: tuple[str, ...] = ("body_vel=0.9",)
     #: On a GPU, capture the training env's whole step (physics, signals, transforms, masked reset) as one CUDA
@@ -95,6 +103,9 @@ class PPOConfig:
     # logging, checkpoints, evaluation
     log_every: int = 1
     checkpoint_every: int = 100
+    #: Also save ``checkpoints/wall_XXXXXs.pt`` whenever the training wall-clock (summed over resumed segments)
+    #: passes a multiple of this many minutes (0 = off); ``benchmarks/time_to_walk.py`` evaluates these.
+    checkpoint_minutes: float = 0.0
     loggers: tuple[str, ...] = ("csv",)
     resume: str = ""
     eval_at_end: bool = True
@@ -132,7 +143,17 @@ class PPOConfig:
         self.reward_weight_map()  # raises on a malformed entry
         if not self.pd_action_scale > 0:
             raise ValueError(f"PPOConfig.pd_action_scale must be > 0, got {self.pd_action_scale!r}")
-        for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "max_minutes"):
+        if self.torque_assist < 0 or self.assist_absorb < 0:
+            raise ValueError(f"PPOConfig.torque_assist and assist_absorb must be >= 0, got {self.torque_assist!r}, "
+                             f"{self.assist_absorb!r}")
+        if self.torque_assist > 0:
+            if self.control_mode != "torque":
+                raise ValueError(f"PPOConfig.torque_assist > 0 needs control_mode='torque', got "
+                                 f"{self.control_mode!r} (set torque_assist=0 for the PD modes)")
+            if not 0 <= self.assist_fade_start < self.assist_fade_end:
+                raise ValueError(f"PPOConfig.torque_assist > 0 needs 0 <= assist_fade_start < assist_fade_end (env "
+                                 f"steps), got {self.assist_fade_start}, {self.assist_fade_end}")
+        for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "max_minutes", "checkpoint_minutes"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"PPOConfig.{name} must be >= 0, got {getattr(self, name)!r}")
         choices = {"lr_schedule": LR_SCHEDULES, "std_mode": STD_MODES, "control_mode": CONTROL_MODES,
@@ -190,6 +211,12 @@ PRESETS: dict[str, dict[str, Any]] = {
         adam_eps=1e-5, actor_hidden=(256, 256), critic_hidden=(256, 256), activation="relu", value_out_gain=0.01,
         value_coef=0.5, value_loss="l2", max_grad_norm=0.5, std_start=0.1, std_end=0.05, std_hold=0.5,
     ),
+    # The reference's action space (12 normalised leg torques + phase rate) learned from scratch on one GPU: the
+    # default's PPO with a reference-tracking PD added to the policy's torques (the assist), held at full scale for
+    # 40 M steps, then faded out by 100 M while its share moves into the actor (rl/assist.py); the last 50 M steps
+    # train the pure torque policy. Without the assist, PPO at thousands of envs learned to stand (issue 19).
+    "torque": dict(control_mode="torque", torque_assist=1.0, assist_fade_start=40_000_000,
+                   assist_fade_end=100_000_000, total_env_steps=150_000_000),
     # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
     "cpu_smoke": dict(num_envs=8, steps_per_env=16, minibatch_size=64, epochs=2, total_env_steps=8 * 16 * 3,
                       checkpoint_every=1, eval_envs=2, eval_seconds=1.0, actor_hidden=(64, 64),

@@ -16,7 +16,8 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from .actors import action_std, make_actor, set_action_std
+from .actors import action_std, gaussian_head, make_actor, set_action_std
+from .assist import AssistAbsorbLoss, AssistSchedule
 from .checkpoint import load_checkpoint, save_checkpoint
 from .config import PPOConfig, uses_env_graph
 from .logging import RunLogger
@@ -66,12 +67,17 @@ def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None,
     from ..envs import CommandConfig
 
     env_overrides.setdefault("command", CommandConfig.preset(cfg.command_preset))
-    if cfg.control_mode != "torque":
+    # The torque assist is a training aid: only training envs get it (evaluations run the pure torque policy).
+    assist = for_training and cfg.torque_assist > 0
+    if assist:
+        env_overrides.setdefault("torque_assist", True)
+    if cfg.control_mode != "torque" or assist:
         from .. import robot
 
         if cfg.pd_gains == "robot":  # "tocabilab" gains (Kp/9, Kv/3) are TocabiWalkConfig's defaults
             env_overrides.setdefault("pd_kp", tuple(robot.LEG_KP))
             env_overrides.setdefault("pd_kv", tuple(robot.LEG_KV))
+    if cfg.control_mode != "torque":
         env_overrides.setdefault("pd_action_scale", cfg.pd_action_scale)
     if cfg.reward_weights:
         env_overrides.setdefault("reward_weights", cfg.reward_weight_map())
@@ -100,10 +106,11 @@ def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None,
 
 def training_keys(env: EnvBase) -> list:
     """Env outputs a training rollout needs: the policy input, the episode counters and per-term rewards that are
-    logged, and the signals a transform reads from the previous step (the reward terms' ``root_keys``).
+    logged, the torque assist (read by :class:`~tocabi_torchrl.rl.assist.AssistAbsorbLoss`) when the env has it,
+    and the signals a transform reads from the previous step (the reward terms' ``root_keys``).
     Reward and done flags are always kept."""
     leaves = list(env.observation_spec.keys(True, True))
-    keys = ["observation", "step_count", "episode_reward"]
+    keys = ["observation", "step_count", "episode_reward", "leg_assist"]
     keys += [k for k in leaves if isinstance(k, tuple) and k[0] == "reward_terms"]
     for t in getattr(env, "transform", []):
         for term in getattr(t, "terms", ()):
@@ -209,8 +216,9 @@ def make_update_step(cfg: PPOConfig, loss_module: ClipPPOLoss, optimizer: torch.
     return MinibatchStep(loss_module, optimizer, params, cfg.max_grad_norm, use_graph=uses_update_graph(cfg, device))
 
 
-def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss, GAE]:
-    """The clipped PPO loss and the GAE value estimator of :func:`train`."""
+def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbLoss, GAE]:
+    """The clipped PPO loss (wrapped in :class:`AssistAbsorbLoss` when ``cfg.torque_assist`` > 0) and the GAE value
+    estimator of :func:`train`."""
     # The critic runs over the rollout in chunks of ~64k frames (along the env dim): unchunked, TorchRL stacks
     # observations and next observations and keeps (2 · frames, 400) activations, ~6 GB at 16384 envs.
     advantage = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=agent.critic, average_gae=False,
@@ -226,6 +234,8 @@ def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss, GAE]:
         normalize_advantage=True,
     )
     loss_module.set_keys(sample_log_prob="action_log_prob")
+    if cfg.torque_assist > 0:
+        loss_module = AssistAbsorbLoss(loss_module, gaussian_head(agent.actor))
     return loss_module, advantage
 
 
@@ -240,16 +250,20 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
     agent = build_agent(cfg, obs_dim, act_dim, device)
     optimizer = make_optimizer(cfg, agent, device)
     run_dir = Path(cfg.run_dir) / cfg.name
-    start_iter, env_steps = 0, 0
+    start_iter, env_steps, prior_train_s = 0, 0, 0.0
     if cfg.resume:
         mode = optimizer_mode(optimizer)  # the checkpoint may come from another update mode or device
         state = load_checkpoint(cfg.resume, agent, optimizer, env, device)
         restore_optimizer_mode(optimizer, mode)
         start_iter, env_steps = state["iteration"], state["env_steps"]
+        prior_train_s = float(state.get("train_seconds", 0.0))
         print(f"resumed from {cfg.resume} at iteration {start_iter} ({env_steps:,} env steps)")
 
     loss_module, advantage = make_loss(cfg, agent)
     update_step = make_update_step(cfg, loss_module, optimizer, device)
+    assist = _assist_schedule(cfg)
+    if assist is not None:
+        env.base_env.set_torque_assist(assist(env_steps))
 
     iterations = cfg.iterations
     collector = make_collector(cfg, env, agent.actor, device, (iterations - start_iter) * cfg.frames_per_batch)
@@ -258,6 +272,8 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
     t_start = time.perf_counter()
     metrics: dict = {}
     it = start_iter
+    mark_s = 60.0 * cfg.checkpoint_minutes
+    next_mark = (int(prior_train_s // mark_s) + 1) * mark_s if mark_s else float("inf")
     try:
         for it, batch in enumerate(collector, start=start_iter + 1):
             t_collect = time.perf_counter()
@@ -269,7 +285,15 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
                 advantage(work)
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
             flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
+            if assist is not None:
+                # This rollout ran with β(steps before it); the next runs with β(now): the update absorbs the gap.
+                beta, beta_next = assist(env_steps - batch.numel()), assist(env_steps)
+                loss_module.delta.fill_(beta - beta_next)
+                loss_module.weight.fill_(cfg.assist_absorb if beta_next < beta else 0.0)
             stats = _update(cfg, flat, update_step)
+            if assist is not None:
+                env.base_env.set_torque_assist(beta_next)
+                stats["torque_assist"] = beta_next
             if cfg.lr_schedule == "adaptive":
                 kl = stats["kl"]
                 if kl > 2.0 * cfg.desired_kl:
@@ -285,19 +309,24 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
             if agent.std_schedule is not None:
                 set_action_std(agent.actor, agent.std_schedule(progress_remaining))
             collector.update_policy_weights_()
+            elapsed = time.perf_counter() - t_start
+            train_s = prior_train_s + elapsed
             if it % cfg.log_every == 0 or it == iterations:
                 metrics = _episode_metrics(batch)
                 metrics.update(stats)
-                elapsed = time.perf_counter() - t_start
                 metrics.update(lr=lr, action_std=float(action_std(agent.actor).mean()), env_steps=env_steps,
                                env_steps_per_s=(env_steps - start_iter * cfg.frames_per_batch) / elapsed,
-                               update_s=time.perf_counter() - t_collect, wall_s=elapsed)
+                               update_s=time.perf_counter() - t_collect, wall_s=elapsed, train_s=train_s)
                 logger.log(it, metrics)
+            if train_s >= next_mark:
+                save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s,
+                                tag=f"wall_{int(next_mark):05d}s")
+                next_mark = (int(train_s // mark_s) + 1) * mark_s
             if it % cfg.checkpoint_every == 0 or it == iterations:
-                save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg)
-            if cfg.max_minutes and time.perf_counter() - t_start > 60.0 * cfg.max_minutes:
+                save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s)
+            if cfg.max_minutes and elapsed > 60.0 * cfg.max_minutes:
                 print(f"stopping after {cfg.max_minutes} min (max_minutes)")
-                save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg)
+                save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s)
                 break
     finally:
         env_graph = bool(getattr(env, "graph_captured", False))
@@ -312,7 +341,14 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
 _VALUE_CHUNK_FRAMES = 65536
 
 
-def _loss_keys(loss_module: ClipPPOLoss, batch: TensorDictBase) -> list:
+def _assist_schedule(cfg: PPOConfig) -> AssistSchedule | None:
+    """β of the torque assist against env steps, or None when the run has no assist."""
+    if cfg.torque_assist <= 0:
+        return None
+    return AssistSchedule(cfg.torque_assist, cfg.assist_fade_start, cfg.assist_fade_end)
+
+
+def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBase) -> list:
     present = set(batch.keys(True, True))
     wanted = {*loss_module.in_keys, "advantage", "value_target", "state_value"}
     return [k for k in wanted if k in present]
@@ -322,10 +358,14 @@ def _update(cfg: PPOConfig, flat: TensorDictBase, step: MinibatchStep) -> dict[s
     """``epochs`` passes of shuffled mini-batches over the rollout. Returns mean losses and KL (one host read)."""
     n = flat.shape[0]
     num_mb = max(1, n // cfg.minibatch_size)
-    sums = torch.zeros(4, device=flat.device)
+    sums = 0.0
     for _ in range(cfg.epochs):
         perm = torch.randperm(n, device=flat.device)
         for k in range(num_mb):
-            sums += step(flat[perm[k * cfg.minibatch_size : (k + 1) * cfg.minibatch_size]])
+            sums = sums + step(flat[perm[k * cfg.minibatch_size : (k + 1) * cfg.minibatch_size]])
     mean = (sums / (cfg.epochs * num_mb)).tolist()
-    return {"loss_policy": mean[0], "loss_value": mean[1], "kl": mean[2], "clip_fraction": mean[3]}
+    return {_STAT_NAMES.get(k, k): v for k, v in zip(step.stat_keys, mean)}
+
+
+#: Log names of the update's loss outputs.
+_STAT_NAMES = {"loss_objective": "loss_policy", "loss_critic": "loss_value", "kl_approx": "kl"}

@@ -18,10 +18,12 @@ import warnings
 import torch
 from tensordict import TensorDictBase
 
-__all__ = ["MinibatchStep", "make_capturable_adam", "optimizer_mode", "restore_optimizer_mode", "set_lr", "get_lr"]
+__all__ = ["MinibatchStep", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam", "optimizer_mode", "restore_optimizer_mode", "set_lr", "get_lr"]
 
 #: The loss outputs averaged into the update's log line, in this order.
 STAT_KEYS = ("loss_objective", "loss_critic", "kl_approx", "clip_fraction")
+#: Further loss outputs logged when the loss module returns them (after :data:`STAT_KEYS`).
+EXTRA_STAT_KEYS = ("loss_absorb",)
 
 
 def make_capturable_adam(param_groups: list[dict], eps: float, device: torch.device) -> torch.optim.Adam:
@@ -70,12 +72,13 @@ def get_lr(group: dict) -> float:
 
 
 class MinibatchStep:
-    """``step(mb)``: one optimiser step on the mini-batch ``mb``; returns the (4,) device tensor of
-    :data:`STAT_KEYS` for that step, valid until the next call.
+    """``step(mb)``: one optimiser step on the mini-batch ``mb``; returns the device tensor of the losses named by
+    ``stat_keys`` (:data:`STAT_KEYS`, then those of :data:`EXTRA_STAT_KEYS` the loss returns) for that step, valid
+    until the next call.
 
     Args:
-        loss_module: a TorchRL PPO loss (its outputs must include :data:`STAT_KEYS`; ``loss_entropy`` is added to the
-            total when present).
+        loss_module: a TorchRL PPO loss (its outputs must include :data:`STAT_KEYS`); the minimised total is the sum
+            of its ``loss_*`` outputs.
         optimizer: the optimiser of ``params`` (capturable, see :func:`make_capturable_adam`, when ``use_graph``).
         params: the parameters whose gradient norm is clipped to ``max_grad_norm``.
         use_graph: capture the step as a CUDA graph after ``warmup`` eager steps (CUDA only). If the capture fails,
@@ -92,6 +95,7 @@ class MinibatchStep:
         self.max_grad_norm = max_grad_norm
         self.use_graph, self.warmup, self.emulate = use_graph, warmup, emulate
         self._calls = 0
+        self.stat_keys: tuple[str, ...] = STAT_KEYS
         self._graph: torch.cuda.CUDAGraph | None = None
         self._static_mb: TensorDictBase | None = None
         self._static_stats: torch.Tensor | None = None
@@ -104,13 +108,14 @@ class MinibatchStep:
 
     def _compute(self, mb: TensorDictBase) -> torch.Tensor:
         losses = self.loss_module(mb)
-        total = losses["loss_objective"] + losses["loss_critic"]
-        if "loss_entropy" in losses.keys():
-            total = total + losses["loss_entropy"]
+        # TorchRL's convention: the total is the sum of every "loss_*" output (objective, critic, entropy, extras).
+        names = [k for k in losses.keys() if isinstance(k, str) and k.startswith("loss_")]
+        total = sum(losses[k] for k in names)
         total.backward()
         torch.nn.utils.clip_grad_norm_(self.params, self.max_grad_norm)
         self.optimizer.step()
-        return torch.stack([losses[k].detach() for k in STAT_KEYS])
+        self.stat_keys = STAT_KEYS + tuple(k for k in EXTRA_STAT_KEYS if k in names)
+        return torch.stack([losses[k].detach() for k in self.stat_keys])
 
     def __call__(self, mb: TensorDictBase) -> torch.Tensor:
         if self._graph is not None:

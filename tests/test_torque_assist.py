@@ -1,0 +1,240 @@
+"""The torque preset's training aid: the env's torque assist, its fade schedule, the absorbing loss, the trainer's
+use of both, and the wall-clock checkpoints of time-to-walk runs."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.envs import TocabiWalk
+from tocabi_torchrl.rl import make_actor, preset_config
+from tocabi_torchrl.rl.actors import gaussian_head
+from tocabi_torchrl.rl.assist import AssistAbsorbLoss, AssistSchedule
+
+N = 3
+LIMITS = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32)
+
+
+@pytest.fixture(scope="module", params=["warp", "mujoco"])
+def assisted(request):
+    return TocabiWalk(num_envs=N, device="cpu", seed=0, backend=request.param, torque_assist=True,
+                      pd_kp=tuple(robot.LEG_KP), pd_kv=tuple(robot.LEG_KV))
+
+
+def _step(env, action):
+    return env.step(TensorDict({"action": action}, batch_size=[env.num_envs]))["next"]
+
+
+def test_assist_adds_the_reference_pd_of_the_pre_step_state(assisted):
+    env = assisted
+    env.reset()
+    torque = torch.zeros(N, 13)
+    for _ in range(5):  # leave the reset pose: nonzero errors and velocities
+        _step(env, torque)
+    q, qd = env.sim.qpos[:, 7:19].clone(), env.sim.qvel[:, 6:18].clone()
+    q_ref = env.motion.joint_targets(env.time, env.init_row)[:, :12]
+    pd = torch.as_tensor(robot.LEG_KP, dtype=torch.float32) * (q_ref - q) \
+        - torch.as_tensor(robot.LEG_KV, dtype=torch.float32) * qd
+    action = torch.zeros(N, 13)
+    action[:, :12] = 0.1
+    env.set_torque_assist(0.5)
+    out = _step(env, action)
+    torch.testing.assert_close(out["leg_assist"], pd / LIMITS, rtol=1e-4, atol=1e-5)
+    expected = torch.maximum(torch.minimum(0.1 * LIMITS + 0.5 * pd, LIMITS), -LIMITS)
+    torch.testing.assert_close(out["leg_torque"], expected, rtol=1e-4, atol=1e-3)
+    torch.testing.assert_close(env.sim.ctrl[:, :12], expected, rtol=1e-4, atol=1e-3)
+
+
+def test_assist_off_applies_the_policy_torque_alone(assisted):
+    env = assisted
+    env.reset()
+    env.set_torque_assist(0.0)
+    action = torch.zeros(N, 13)
+    action[:, :12] = torch.linspace(-0.5, 0.5, 12)
+    out = _step(env, action)
+    torch.testing.assert_close(out["leg_torque"], action[:, :12] * LIMITS)
+    assert out["leg_assist"].abs().sum() > 0  # still recorded for the loss, just not applied
+
+
+def test_assist_is_reset_with_the_world(assisted):
+    env = assisted
+    env.reset()
+    env.set_torque_assist(1.0)
+    before = _step(env, torch.zeros(N, 13))["leg_assist"]
+    reset = torch.tensor([True, False, False])
+    td = env.reset(TensorDict({"_reset": reset.unsqueeze(-1)}, batch_size=[N]))
+    assert torch.all(td["leg_assist"][0] == 0) and before[1:].abs().sum() > 0
+    torch.testing.assert_close(env.leg_assist[1:], before[1:])  # the other worlds keep their value
+
+
+def test_assist_needs_torque_mode_and_an_assisted_env():
+    with pytest.raises(ValueError, match="torque_assist needs control_mode='torque'"):
+        TocabiWalk(num_envs=1, device="cpu", backend="mujoco", control_mode="pd", torque_assist=True)
+    plain = TocabiWalk(num_envs=1, device="cpu", backend="mujoco")
+    assert "leg_assist" not in plain.observation_spec.keys()
+    with pytest.raises(RuntimeError, match="torque_assist=True"):
+        plain.set_torque_assist(1.0)
+
+
+def test_assist_schedule_holds_then_fades_to_zero():
+    s = AssistSchedule(1.0, fade_start=100, fade_end=300)
+    assert [s(x) for x in (0, 100, 200, 300, 10**9)] == [1.0, 1.0, 0.5, 0.0, 0.0]
+    with pytest.raises(ValueError, match="fade_start < fade_end"):
+        AssistSchedule(1.0, fade_start=300, fade_end=300)
+
+
+def test_absorb_loss_moves_the_mean_by_the_faded_assist():
+    torch.manual_seed(0)
+    actor = make_actor(6, 13, hidden=(64, 64), init_std=0.1)
+    head = gaussian_head(actor)
+
+    class NoPPO(torch.nn.Module):
+        in_keys = ["observation"]
+
+        def forward(self, td):
+            return TensorDict({}, batch_size=[])
+
+    loss = AssistAbsorbLoss(NoPPO(), head)
+    obs = torch.randn(256, 6)
+    with torch.no_grad():
+        loc0, scale = head(obs)
+    # Like the PD it stands for, the assist is a function of the state the actor sees.
+    assist = torch.tanh(obs @ torch.randn(6, 12) * 0.5)
+    td = TensorDict({"observation": obs, "loc": loc0, "scale": scale, "next": {"leg_assist": assist}},
+                    batch_size=[256])
+    loss.delta.fill_(0.2)
+    assert loss(td)["loss_absorb"].item() == 0.0  # weight 0: no pull
+    loss.weight.fill_(1.0)
+    opt = torch.optim.Adam(head.parameters(), lr=3e-3)
+    for _ in range(400):
+        opt.zero_grad()
+        loss(td)["loss_absorb"].backward()
+        opt.step()
+    with torch.no_grad():
+        loc1, _ = head(obs)
+    moved = loc1[:, :12] - loc0[:, :12]
+    # The mean moved by 0.2 × assist on the legs (to a few % of its size) and left the phase action alone.
+    assert (moved - 0.2 * assist).abs().mean() < 0.1 * (0.2 * assist).abs().mean()
+    assert (loc1[:, 12] - loc0[:, 12]).abs().mean() < 0.01
+
+
+@pytest.mark.parametrize("overrides, match", [
+    (dict(control_mode="pd_reference"), "needs control_mode='torque'"),
+    (dict(assist_fade_start=5, assist_fade_end=5), "assist_fade_start < assist_fade_end"),
+    (dict(torque_assist=-1.0), "torque_assist and assist_absorb must be >= 0"),
+])
+def test_torque_preset_rejects_bad_assist_settings(overrides, match):
+    with pytest.raises(ValueError, match=match):
+        preset_config("torque", **overrides)
+
+
+def test_torque_preset_is_the_reference_action_space_with_a_fading_assist():
+    cfg = preset_config("torque")
+    assert cfg.control_mode == "torque" and cfg.torque_assist == 1.0
+    assert 0 < cfg.assist_fade_start < cfg.assist_fade_end < cfg.total_env_steps
+    assert cfg.transform_preset == "reference"  # 13 reference reward terms, reference observation
+
+
+def test_training_fades_the_assist_and_evaluates_without_it(tmp_path):
+    from tocabi_torchrl.rl.trainer import build_env, train
+
+    n, steps = 4, 8
+    frames = n * steps
+    cfg = preset_config("torque", device="cpu", num_envs=n, steps_per_env=steps, minibatch_size=16, epochs=1,
+                        total_env_steps=4 * frames, assist_fade_start=frames, assist_fade_end=3 * frames,
+                        actor_hidden=(16,), critic_hidden=(16,), run_dir=str(tmp_path), name="t",
+                        eval_at_end=False, progress_bar=False, checkpoint_every=10, cuda_graph="off")
+    result = train(cfg)
+    with open(result.run_dir / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    # β of the next rollout after each iteration: still 1 after the first, halfway, zero, zero.
+    assert [float(r["torque_assist"]) for r in rows] == [1.0, 0.5, 0.0, 0.0]
+    absorb = [float(r["loss_absorb"]) for r in rows]
+    assert absorb[0] == 0.0 and absorb[1] > 0 and absorb[2] > 0 and absorb[3] == 0.0
+    assert build_env(cfg, torch.device("cpu"), num_envs=2).base_env.cfg.torque_assist is False
+    assert build_env(cfg, torch.device("cpu"), num_envs=2, for_training=True).base_env.cfg.torque_assist is True
+
+
+def test_wall_clock_checkpoints_carry_the_training_time(tmp_path, monkeypatch):
+    from tocabi_torchrl.rl import trainer
+
+    clock = iter(range(0, 10**6, 50))  # every perf_counter() call advances 50 s
+    monkeypatch.setattr(trainer.time, "perf_counter", lambda: float(next(clock)))
+    cfg = preset_config("cpu_smoke", device="cpu", run_dir=str(tmp_path), name="w", progress_bar=False,
+                        checkpoint_minutes=2.0, checkpoint_every=100, total_env_steps=8 * 16 * 4)
+    result = trainer.train(cfg)
+    folder = result.run_dir / "checkpoints"
+    walls = sorted(p.name for p in folder.glob("wall_*.pt"))
+    assert walls and all(name.endswith("s.pt") for name in walls)
+    states = [torch.load(folder / name, weights_only=False) for name in walls]
+    marks = [int(name[5:10]) for name in walls]
+    assert all(s["train_seconds"] >= m for s, m in zip(states, marks))
+    assert marks == sorted(set(marks)) and all(m % 120 == 0 for m in marks)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # a failed capture or an eager fallback fails the test
+def test_gpu_captured_assisted_step_follows_beta_and_never_syncs():
+    from tocabi_torchrl import make_env
+
+    n = 64
+    kw = dict(num_envs=n, device="cuda", seed=3, control_mode="torque", torque_assist=True,
+              pd_kp=tuple(robot.LEG_KP), pd_kv=tuple(robot.LEG_KV))
+    eager, graphed = make_env(cuda_graph=False, **kw), make_env(cuda_graph=True, **kw)
+    gen = torch.Generator(device="cuda").manual_seed(0)
+    td_e, td_g = eager.reset(), graphed.reset()
+    for i in range(12):
+        beta = 1.0 - i / 11  # changed between replays: the graph must read it from the device
+        eager.base_env.set_torque_assist(beta)
+        graphed.base_env.set_torque_assist(beta)
+        action = (torch.rand(n, 13, device="cuda", generator=gen) * 2 - 1) * 0.05
+        if i >= 3:
+            torch.cuda.set_sync_debug_mode("error")
+        try:
+            out_e, td_e = eager.step_and_maybe_reset(td_e.set("action", action))
+            out_g, td_g = graphed.step_and_maybe_reset(td_g.set("action", action.clone()))
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+        for key in ("leg_torque", "leg_assist", "observation", "reward"):
+            torch.testing.assert_close(out_g["next", key], out_e["next", key], rtol=1e-3, atol=1e-3,
+                                       msg=lambda m, i=i, key=key: f"step {i}, {key}: {m}")
+    assert graphed.graph_captured
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_gpu_torque_preset_trains_with_the_captured_absorbing_update(tmp_path):
+    from tocabi_torchrl.rl.trainer import train
+
+    n, steps = 512, 16
+    frames = n * steps
+    cfg = preset_config("torque", device="cuda", num_envs=n, steps_per_env=steps, minibatch_size=frames // 4,
+                        total_env_steps=5 * frames, assist_fade_start=frames, assist_fade_end=4 * frames,
+                        run_dir=str(tmp_path), name="g", eval_at_end=False, progress_bar=False)
+    with _no_capture_warning():  # the absorbing loss must be captured with the update, not fall back to eager
+        result = train(cfg)
+    with open(result.run_dir / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    betas = [float(r["torque_assist"]) for r in rows]
+    assert betas == pytest.approx([1.0, 2 / 3, 1 / 3, 0.0, 0.0])
+    absorb = [float(r["loss_absorb"]) for r in rows]
+    assert absorb[0] == 0.0 and all(a > 0 for a in absorb[1:4]) and absorb[4] == 0.0
+    assert all(torch.isfinite(torch.tensor([float(r["loss_policy"]), float(r["loss_value"])])).all() for r in rows)
+
+
+def _no_capture_warning():
+    import contextlib
+    import warnings
+
+    @contextlib.contextmanager
+    def ctx():
+        with warnings.catch_warnings():
+            warnings.filterwarnings("error", message="MinibatchStep: capturing")
+            yield
+
+    return ctx()
