@@ -3,14 +3,15 @@ training wall-clock points, and report the first training time (and env-step cou
 
     python benchmarks/time_to_walk.py train --preset torque --minutes 9.5   # resumes; repeat until the budget is used
     python benchmarks/time_to_walk.py eval --preset torque                  # gait tests of every wall-clock checkpoint
-    python benchmarks/time_to_walk.py report --records docs/benchmarks/time_to_walk/*.json
+    python benchmarks/time_to_walk.py report --runs docs/benchmarks/time_to_walk/torque ...
 
 ``train`` runs ``recipes/ppo_walk.py``'s trainer on ``runs/time_to_walk/<preset>`` with
 ``checkpoint_minutes=--every``, stopping when ``--budget_minutes`` of training wall-clock are used (summed over
 resumed calls, without evaluation or kernel compilation); the first call also measures raw mujoco-warp stepping of
 the same model at the same env count in the same process, for the train/raw ratio. ``eval`` runs the gait test of
 issue 19 on each ``wall_XXXXXs.pt``: 256 envs, 8 s, deterministic policy, standard resets, at (0.5, 0) m/s, and at
-(0.2, 0) and (0.7, 0.1) for checkpoints that pass the first. Both append to ``runs/time_to_walk/<preset>/record.json``.
+(0.2, 0) and (0.7, 0.1) for checkpoints that pass the first. ``train`` writes ``runs/time_to_walk/<preset>/train.json``
+and ``eval`` writes ``evals.json`` beside it (separate files: the two may run at once).
 ``report`` writes ``time_to_walk.{json,md,png}`` (survival and forward distance against training minutes) and,
 with ``--curves``, reward and imitation-reward curves of several runs against env steps.
 """
@@ -85,7 +86,7 @@ def train_part(args, argv) -> None:
     from tocabi_torchrl.rl.trainer import train
 
     run_dir = RUNS / args.preset
-    record_path = run_dir / "record.json"
+    record_path = run_dir / "train.json"
     record = _load(record_path)
     latest = run_dir / "checkpoints" / "latest.pt"
     prior_s = float(torch.load(latest, map_location="cpu", weights_only=False).get("train_seconds", 0.0)) \
@@ -124,14 +125,16 @@ def eval_part(args, argv) -> None:
     import torch
 
     run_dir = RUNS / args.preset
-    record_path = run_dir / "record.json"
+    record_path = run_dir / "evals.json"
     record = _load(record_path)
     evals = record.setdefault("evaluations", {})
     device = torch.device(args.device)
     envs, cfg = {}, None
     while True:
+        # Beside a running trainer, a file younger than a few seconds may still be being written.
+        settle = 5.0 if args.follow_pid else 0.0
         pending = [p for p in sorted((run_dir / "checkpoints").glob("wall_*.pt"))
-                   if p.stem not in evals and time.time() - p.stat().st_mtime > 5.0]  # skip files being written
+                   if p.stem not in evals and time.time() - p.stat().st_mtime >= settle]
         for ckpt in pending:
             cfg = _evaluate_checkpoint(ckpt, evals, envs, cfg, args, device)
             _save(record_path, record)
@@ -204,8 +207,17 @@ def first_walk(record: dict) -> dict | None:
             "iteration": first["iteration"]}
 
 
+def read_run(folder: Path) -> dict:
+    """A run's ``train.json`` and ``evals.json`` as one record (``time_to_walk`` recomputed from the evaluations)."""
+    record = {**_load(folder / "train.json"), **_load(folder / "evals.json")}
+    if not record:
+        raise SystemExit(f"{folder}: no train.json or evals.json (run the train and eval parts first)")
+    record["time_to_walk"] = first_walk(record)
+    return record
+
+
 def report_part(args, argv) -> None:
-    records = [json.loads(Path(p).read_text()) for p in args.records]
+    records = [read_run(Path(p)) for p in args.runs]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "time_to_walk.json").write_text(json.dumps({"command": _command_line(argv), "records": records},
@@ -324,8 +336,8 @@ def main(argv=None) -> None:
     e.add_argument("--device", default="cuda")
     e.add_argument("--follow_pid", type=int, default=0,
                    help="keep evaluating new checkpoints while this process (the trainer) runs")
-    r = sub.add_parser("report", help="tables and plots from the runs' record.json files")
-    r.add_argument("--records", nargs="+", required=True)
+    r = sub.add_parser("report", help="tables and plots from the runs' train.json and evals.json")
+    r.add_argument("--runs", nargs="+", required=True, help="run folders holding train.json / evals.json")
     r.add_argument("--curves", nargs="*", default=[], help="metrics.csv files to plot reward curves from")
     r.add_argument("--out", default="docs/benchmarks")
     args = parser.parse_args(argv)

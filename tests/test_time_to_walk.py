@@ -26,13 +26,13 @@ def test_time_to_walk_train_resume_eval_report(tmp_path):
     walls = sorted(p.stem for p in (run / "checkpoints").glob("wall_*.pt"))
     assert walls, "no wall-clock checkpoint was written"
     _run(tmp_path, "eval", "--preset", "cpu_smoke", "--device", "cpu", "--num_envs", "2", "--seconds", "0.1")
-    record = json.loads((run / "record.json").read_text())
+    record = {**json.loads((run / "train.json").read_text()), **json.loads((run / "evals.json").read_text())}
     assert sorted(record["evaluations"]) == walls and len(record["commands"]) == 2
     for entry in record["evaluations"].values():
         main = entry["commands"]["0.5,0.0"]
         assert 0.0 <= main["survival"] <= 1.0 and entry["walks"] is False  # 0.1 s cannot cover 2.6 m
     assert record["time_to_walk"] is None
-    text = _run(tmp_path, "report", "--records", str(run / "record.json"), "--curves", str(run / "metrics.csv"),
+    text = _run(tmp_path, "report", "--runs", str(run), "--curves", str(run / "metrics.csv"),
                 "--out", str(tmp_path / "docs"))
     assert "| cpu_smoke | cpu | not within" in text
     assert (tmp_path / "docs/time_to_walk.png").is_file() and (tmp_path / "docs/time_to_walk_curves.png").is_file()
