@@ -95,6 +95,10 @@ class PPOConfig:
     # logging, checkpoints, evaluation
     log_every: int = 1
     checkpoint_every: int = 100
+    #: Checkpoint retention: keep the newest ``checkpoint_keep_last`` iteration files (0 = keep all) and every file
+    #: whose iteration is a multiple of ``checkpoint_keep_every`` (0 = none more); ``latest.pt`` is always kept.
+    checkpoint_keep_last: int = 3
+    checkpoint_keep_every: int = 50
     loggers: tuple[str, ...] = ("csv",)
     resume: str = ""
     eval_at_end: bool = True
@@ -132,6 +136,10 @@ class PPOConfig:
         self.reward_weight_map()  # raises on a malformed entry
         if not self.pd_action_scale > 0:
             raise ValueError(f"PPOConfig.pd_action_scale must be > 0, got {self.pd_action_scale!r}")
+        for name in ("checkpoint_keep_last", "checkpoint_keep_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"PPOConfig.{name} must be an int >= 0, got {value!r}")
         for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "max_minutes"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"PPOConfig.{name} must be >= 0, got {getattr(self, name)!r}")

@@ -16,7 +16,7 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from .. import robot
-from .checkpoint import load_checkpoint
+from .checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint
 from .config import PPOConfig
 from .trainer import build_agent, build_env, resolve_device
 
@@ -166,18 +166,13 @@ def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "aut
                  out_dir: str | os.PathLike | None = None, **kwargs) -> dict:
     """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``out_dir`` (default:
     ``<run folder>/eval/``, or ``eval/`` beside a checkpoint file)."""
-    from .checkpoint import CheckpointError
-
-    path = Path(run)
-    ckpt = path if path.is_file() else path / "checkpoints" / "latest.pt"
-    if not ckpt.is_file():
-        raise CheckpointError(f"no checkpoint at {ckpt}: train first or pass a checkpoint file")
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)
-    cfg = PPOConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in state["config"].items()})
+    ckpt = checkpoint_file(run)
+    state = read_checkpoint(ckpt)
+    cfg = config_from_checkpoint(state, ckpt)
     dev = resolve_device(device)
     env = build_env(cfg, dev, num_envs=num_envs, command=_fixed_command(kwargs.get("command", (0.5, 0.0))))
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], dev)
-    load_checkpoint(ckpt, agent, env=env, device=dev)
+    apply_checkpoint(state, agent, env=env, path=ckpt)
     if out_dir is None:
         out_dir = (ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent) / "eval"
     return evaluate_policy(agent.actor, cfg, out_dir, num_envs=num_envs, device=dev, env=env, **kwargs)
