@@ -17,10 +17,11 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from .actors import action_std, make_actor, set_action_std
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import apply_checkpoint, save_checkpoint
 from .config import PPOConfig, uses_env_graph
-from .logging import RunLogger
+from .logging import RunLogger, require_loggers
 from .networks import make_mlp
+from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
 from .update_step import (MinibatchStep, get_lr, make_capturable_adam, optimizer_mode, restore_optimizer_mode,
                           set_lr)
@@ -142,6 +143,16 @@ class TrainResult:
     last_metrics: dict
     #: Whether the env step ran as a captured CUDA graph by the end (``cfg.cuda_graph``, see :func:`uses_env_graph`).
     env_graph: bool = False
+    #: The resumed run had already reached its budget: nothing was trained (see :func:`finished_result`).
+    already_finished: bool = False
+
+
+def finished_result(run: RunFolder, cfg: PPOConfig) -> TrainResult:
+    """Say that the resumed run is already done, and return its result without training."""
+    print(f"{run.resume_file}: the run is already finished (iteration {run.start_iteration} of {cfg.iterations}, "
+          f"{run.start_env_steps:,} env steps); nothing to train. Raise --total_env_steps to train it further.",
+          flush=True)
+    return TrainResult(run.path, run.start_iteration, run.start_env_steps, 0.0, 0.0, {}, already_finished=True)
 
 
 def _episode_metrics(batch: TensorDictBase) -> dict[str, float]:
@@ -232,6 +243,10 @@ def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss, GAE]:
 def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
     """Run PPO as configured; returns where the run was written and its throughput."""
     cfg.validate()
+    require_loggers(cfg.loggers)
+    run = open_run(cfg)  # refuses to overwrite an earlier run; reads and checks the resumed checkpoint
+    if run.start_iteration >= cfg.iterations:
+        return finished_result(run, cfg)
     device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
     env = env if env is not None else build_env(cfg, device, for_training=True)
@@ -239,14 +254,13 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
     act_dim = env.action_spec.shape[-1]
     agent = build_agent(cfg, obs_dim, act_dim, device)
     optimizer = make_optimizer(cfg, agent, device)
-    run_dir = Path(cfg.run_dir) / cfg.name
-    start_iter, env_steps = 0, 0
-    if cfg.resume:
+    run_dir = run.path
+    start_iter, env_steps = run.start_iteration, run.start_env_steps
+    if run.resume_state is not None:
         mode = optimizer_mode(optimizer)  # the checkpoint may come from another update mode or device
-        state = load_checkpoint(cfg.resume, agent, optimizer, env, device)
+        apply_checkpoint(run.resume_state, agent, optimizer, env, run.resume_file)
         restore_optimizer_mode(optimizer, mode)
-        start_iter, env_steps = state["iteration"], state["env_steps"]
-        print(f"resumed from {cfg.resume} at iteration {start_iter} ({env_steps:,} env steps)")
+        print(f"resumed from {run.resume_file} at iteration {start_iter} ({env_steps:,} env steps)")
 
     loss_module, advantage = make_loss(cfg, agent)
     update_step = make_update_step(cfg, loss_module, optimizer, device)
