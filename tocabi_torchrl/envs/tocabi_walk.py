@@ -37,6 +37,11 @@ def quat_rotate_inverse(quat: torch.Tensor, vec: torch.Tensor) -> torch.Tensor:
     return vec - w * t + torch.linalg.cross(u, t, dim=-1)
 
 
+def _finite(x: torch.Tensor) -> torch.Tensor:
+    """A copy of ``x`` with NaN and ±inf replaced by 0 (finite values unchanged; no host sync)."""
+    return torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+
+
 def _pd_leg_spec(spec, cfg: TocabiWalkConfig):
     """Turn the 12 leg torque motors into position servos (PD inside every physics substep)."""
     for j in robot.LEG_JOINT_IDS:
@@ -183,6 +188,7 @@ class TocabiWalk(EnvBase):
             applied_action=box(ACTION_DIM),
             leg_torque=box(robot.NUM_LEG_JOINTS),
             episode_step=box(1, dtype=torch.int64),
+            healthy=flag(1),
             shape=(n,),
             device=dev,
         )
@@ -269,9 +275,13 @@ class TocabiWalk(EnvBase):
         return out
 
     def _observe(self) -> TensorDict:
-        """Current signals of every env as fresh tensors (never views of simulator memory)."""
+        """Current signals of every env as fresh tensors (never views of simulator memory).
+
+        A world whose physics went non-finite (``healthy`` False; it terminates) reports 0 for every NaN/inf value,
+        so its terminal observation, and everything transforms compute from it, stays finite.
+        """
         sim = self.sim
-        qpos, qvel = sim.qpos, sim.qvel
+        qpos, qvel = _finite(sim.qpos), _finite(sim.qvel)
         base_quat = qpos[:, 3:7].clone()
         signals = {
             "joint_pos": qpos[:, 7:].clone(),
@@ -280,10 +290,10 @@ class TocabiWalk(EnvBase):
             "base_quat": base_quat,
             "base_lin_vel": quat_rotate_inverse(base_quat, qvel[:, :3]),
             "base_ang_vel": qvel[:, 3:6].clone(),
-            "neck_pos": sim.neck_pos.clone(),
-            "neck_quat": sim.neck_quat.clone(),
-            "foot_force": sim.foot_force.clone(),
-            "foot_torque": sim.foot_torque.clone(),
+            "neck_pos": _finite(sim.neck_pos),
+            "neck_quat": _finite(sim.neck_quat),
+            "foot_force": _finite(sim.foot_force),
+            "foot_torque": _finite(sim.foot_torque),
             "foot_contact": sim.foot_contact.clone(),
             "phase": self.motion.phase(self.time, self.init_row).unsqueeze(-1),
             "ref_joint_pos": self.ref_joint_pos.clone(),
@@ -291,8 +301,9 @@ class TocabiWalk(EnvBase):
             "stance": self.stance.unsqueeze(-1).clone(),
             "command": self.command.value.clone(),
             "applied_action": self.applied_action.clone(),
-            "leg_torque": self.leg_torque.clone(),
+            "leg_torque": _finite(self.leg_torque),
             "episode_step": self.episode_step.unsqueeze(-1).clone(),
+            "healthy": sim.healthy.unsqueeze(-1).clone(),
         }
         return TensorDict(signals, batch_size=self.batch_size, device=self.device)
 

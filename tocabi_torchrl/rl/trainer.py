@@ -21,6 +21,7 @@ from .checkpoint import apply_checkpoint, save_checkpoint
 from .config import PPOConfig, uses_env_graph
 from .logging import RunLogger, require_loggers
 from .networks import make_mlp
+from .rollout_guard import VALID_KEY, guard_rollout
 from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
 from .update_step import (MinibatchStep, get_lr, make_capturable_adam, optimizer_mode, restore_optimizer_mode,
@@ -237,6 +238,7 @@ def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss, GAE]:
         normalize_advantage=True,
     )
     loss_module.set_keys(sample_log_prob="action_log_prob")
+    loss_module.loss_mask_key = VALID_KEY  # see rollout_guard: broken frames add nothing to the losses
     return loss_module, advantage
 
 
@@ -279,6 +281,7 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
             progress_remaining = 1.0 - it / iterations
             # The collector reuses `batch` as its buffer (return_same_td): GAE's outputs go to a shallow copy.
             work = batch.clone(False)
+            guard_rollout(work)  # frames with NaN/inf or impossible actions are masked out of the loss
             with torch.no_grad():
                 advantage(work)
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
@@ -328,7 +331,7 @@ _VALUE_CHUNK_FRAMES = 65536
 
 def _loss_keys(loss_module: ClipPPOLoss, batch: TensorDictBase) -> list:
     present = set(batch.keys(True, True))
-    wanted = {*loss_module.in_keys, "advantage", "value_target", "state_value"}
+    wanted = {*loss_module.in_keys, "advantage", "value_target", "state_value", VALID_KEY}
     return [k for k in wanted if k in present]
 
 

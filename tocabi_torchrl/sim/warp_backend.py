@@ -84,7 +84,7 @@ class WarpSim(SimViews):
     foot_contact               (N, 2) bool      a foot body touches a world-body geom, [left, right]
     forbidden_ground_contact   (N,) bool        a ``robot.GROUND_FORBIDDEN_BODIES`` body touches the ground
     self_collision             (N,) bool        two ``robot.SELF_COLLISION_BODIES`` bodies touch
-    healthy                    (N,) bool        finite qpos/qvel and no buffer overflow (``health_overflow_mask``)
+    healthy                    (N,) bool        finite qpos/qvel/qacc/sensors, no overflow (``health_overflow_mask``)
     overflow                   (N,) int32       mujoco-warp ``OverflowType`` bits (sticky until the world resets)
     applied_actuator_force     (N, nu)          actuator forces [N·m] applied in the last substep of the last step
                                                 (``wp_data.actuator_force`` holds the post-step forward pass's values)
@@ -168,6 +168,7 @@ class WarpSim(SimViews):
             inputs=[
                 d.qpos,
                 d.qvel,
+                d.qacc,
                 d.sensordata,
                 self._found_adr,
                 self._weights,
