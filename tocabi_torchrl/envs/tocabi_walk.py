@@ -18,6 +18,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from .. import robot
+from ..device import check_device
 from ..motion import ReferenceMotion
 from ..sim import MujocoSim, SimConfig, WarpSim
 from .command import VelocityCommand
@@ -86,14 +87,7 @@ class TocabiWalk(EnvBase):
     ):
         if not isinstance(num_envs, int) or num_envs <= 0:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
-        try:
-            device = torch.device(device)
-        except (RuntimeError, TypeError) as err:
-            raise ValueError(f"unknown device {device!r}: use 'cuda', 'cuda:K' or 'cpu'") from err
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise RuntimeError("device 'cuda' requested but torch sees no CUDA GPU; pass device='cpu'")
-        if device.type not in ("cuda", "cpu"):
-            raise ValueError(f"unsupported device {device}: use 'cuda', 'cuda:K' or 'cpu'")
+        device = check_device(device)
         cfg = config if config is not None else TocabiWalkConfig()
         if overrides:
             unknown = set(overrides) - set(TocabiWalkConfig.__dataclass_fields__)

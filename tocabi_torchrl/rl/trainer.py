@@ -16,6 +16,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+from ..device import check_device
 from .actors import action_std, make_actor, set_action_std
 from .checkpoint import apply_checkpoint, save_checkpoint
 from .config import PPOConfig, uses_env_graph
@@ -35,10 +36,7 @@ def resolve_device(name: str) -> torch.device:
     """``"auto"`` -> the first CUDA GPU if torch sees one, else the CPU."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError(f"device {name!r} requested but torch sees no CUDA GPU; use --device cpu or auto")
-    return device
+    return check_device(name)
 
 
 @dataclass

@@ -39,6 +39,7 @@ import torch
 
 from .config import SimConfig
 from .contacts import ContactLayout, contact_layout
+from .memory import check_fits, mujoco_world_bytes
 from .model import ModelSource, compile_model
 from .mujoco_health import MUJOCO_HEALTH_WARNINGS, warning_bits, warning_error
 from .views import SimViews
@@ -82,6 +83,7 @@ class MujocoSim(SimViews):
         self.threads = min(cfg.resolved_threads(), n)
 
         mj = compile_model(model, cfg)
+        check_fits(n, mujoco_world_bytes(mj), self.device, "C MuJoCo")
         self.mj_model = mj
         self.contact_layout: ContactLayout = contact_layout(mj)
         self.nq, self.nv, self.nu = mj.nq, mj.nv, mj.nu

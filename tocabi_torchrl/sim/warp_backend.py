@@ -32,6 +32,7 @@ from .graph import Recorded
 from .health import overflow_error
 from .kernel_cache import announce_compile_if_cold
 from .kernels import copy_rows_where, derive_signals, write_reset_state
+from .memory import check_fits, warp_world_bytes
 from .model import ModelSource, compile_model
 from .views import SimViews
 
@@ -101,6 +102,7 @@ class WarpSim(SimViews):
         self.num_worlds = n = cfg.num_worlds
 
         mj = compile_model(model, cfg)
+        check_fits(n, warp_world_bytes(mj, cfg.nconmax, cfg.njmax), self.device, "mujoco-warp")
         self.mj_model = mj
         self.contact_layout: ContactLayout = contact_layout(mj)
         self.nq, self.nv, self.nu = mj.nq, mj.nv, mj.nu
