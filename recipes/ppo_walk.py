@@ -16,12 +16,14 @@ device options may be given again with other values.
 
 from __future__ import annotations
 
-import ctypes.util
-import os
 import sys
 
-if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY") and ctypes.util.find_library("EGL"):
-    os.environ["MUJOCO_GL"] = "egl"  # headless video of the final evaluation; chosen before mujoco is imported
+from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
+
+try:  # before mujoco is imported: headless video of the final evaluation
+    choose_gl_backend()
+except GLBackendError as gl_error:
+    sys.exit(f"error: {gl_error}")
 
 import torch  # noqa: E402
 

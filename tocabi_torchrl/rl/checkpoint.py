@@ -113,13 +113,17 @@ def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu")
 
 def _load_failure(path: Path, err: Exception) -> str:
     text = str(err)
-    if "Weights only load failed" in text or "weights_only" in text:
-        first = next((line for line in text.splitlines() if "GLOBAL" in line or "Unsupported" in line), "")
+    # weights_only refuses a pickled reference to a function or class ("Unsupported global: GLOBAL ..."); other
+    # unpickling failures ("Unsupported operand", bad zip) are files that are not pickles at all.
+    refused = next((line.strip() for line in text.splitlines() if "GLOBAL" in line), None)
+    if refused:
         return (f"refusing to load {path}: it holds Python objects other than tensors and plain containers, and "
-                f"loading those could run code from the file ({first.strip() or type(err).__name__}). Checkpoints "
-                "written by tocabi-torchrl never do; only load files you trust")
+                f"loading those could run code from the file ({refused}). Checkpoints written by tocabi-torchrl "
+                "never do; only load files you trust")
+    # torch's own text goes on to suggest weights_only=False, which is exactly what must not be done with this file.
+    detail = next((line.strip() for line in text.splitlines() if "Unsupported" in line), text.split(". ")[0])
     return (f"cannot read checkpoint {path}: not a complete torch checkpoint (truncated, corrupt or another kind of "
-            f"file): {type(err).__name__}: {text.splitlines()[0] if text else ''}")
+            f"file): {type(err).__name__}: {detail[:160]}")
 
 
 def _check_layout(state, path: Path) -> None:
