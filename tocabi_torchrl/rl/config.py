@@ -287,8 +287,9 @@ def parse_args(argv: list[str] | None = None, description: str = "") -> tuple[PP
     """Build a :class:`PPOConfig` from ``--preset`` plus ``--field value`` overrides (every field is an option).
 
     With ``--resume`` the config starts from the one saved in that run's checkpoint instead, and the explicit
-    options may only change the fields ``rl.options.RESUME_SAFE`` lists (:func:`~tocabi_torchrl.rl.resume.
-    resume_config` raises ``ValueError`` naming any other). In the namespace, options not given are None.
+    options may only change the fields ``rl.options.RESUME_SAFE`` lists (``rl.resume.resume_config`` raises
+    ``ValueError`` naming any other). In the namespace, options not given are None. ``recipes/ppo_walk.py`` uses
+    ``rl.launch.launch_config``, which also decides what runs on a machine without CUDA.
     """
     args = build_parser(description).parse_args(argv)
     overrides = {k: v for k, v in vars(args).items() if v is not None}
