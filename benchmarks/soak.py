@@ -15,13 +15,15 @@ second iteration to the end (host RSS growth is reported).
 
 ``kill_resume`` mode: ``recipes/ppo_walk.py`` in a subprocess, SIGKILLed at a random point of an iteration once two
 checkpoints exist; every checkpoint left must load, and ``--resume`` must go on at the next iteration with no
-repeated metrics rows. Writes ``<out>/soak.{json,md}``; exits 1 if a check fails.
+repeated metrics rows. Writes ``<out>/soak.{json,md}`` (a single ``--mode`` keeps the other mode's results from an
+earlier report there, so the two can run in separate 10-minute device calls); exits 1 if a check fails.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import math
 import os
 import random
@@ -296,6 +298,19 @@ def run_kill_resume(args) -> tuple[dict, list[dict]]:
     return details, checks
 
 
+def keep_other_modes(path: Path, modes: tuple[str, ...], meta: dict) -> list[dict]:
+    """The checks and details of the modes not run now from an earlier report at ``path`` (one mode per command
+    fits a 10-minute device call), so soak.json holds both."""
+    if not path.is_file():
+        return []
+    earlier = json.loads(path.read_text())
+    for mode in ("faults", "kill_resume"):
+        if mode not in modes and mode in earlier.get("meta", {}):
+            meta[mode] = earlier["meta"][mode]
+            meta[f"{mode}_command"] = earlier["meta"].get(f"{mode}_command", earlier["meta"].get("command"))
+    return [c for c in earlier.get("results", []) if c.get("mode") not in modes]
+
+
 def check(name: str, value, limit: str, ok: bool) -> dict:
     return {"check": name, "value": value, "limit": limit, "ok": bool(ok)}
 
@@ -320,20 +335,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=str(REPO / "docs" / "benchmarks"), help="where soak.{json,md} go")
     args = parser.parse_args(argv)
     meta = run_meta("soak.py", argv)
+    modes = ("faults", "kill_resume") if args.mode == "both" else (args.mode,)
+    earlier = keep_other_modes(Path(args.out) / "soak.json", modes, meta)
     checks = []
-    if args.mode in ("both", "faults"):
-        meta["faults"], found = run_faults(args)
-        checks += [{**c, "mode": "faults"} for c in found]
-    if args.mode in ("both", "kill_resume"):
-        meta["kill_resume"], found = run_kill_resume(args)
-        checks += [{**c, "mode": "kill_resume"} for c in found]
+    for mode, run in (("faults", run_faults), ("kill_resume", run_kill_resume)):
+        if mode in modes:
+            meta[mode], found = run(args)
+            meta[f"{mode}_command"] = meta["command"]
+            checks += [{**c, "mode": mode} for c in found]
     meta.update(preset=args.preset, num_envs=args.num_envs, device=args.device, minutes=args.minutes,
                 fault_every=args.fault_every, normalization=args.normalization)
     text = write_report(args.out, "soak", f"Soak: {args.num_envs:,} envs, preset {args.preset}, {args.device}", meta,
-                        checks, ("mode", "check", "value", "limit", "ok"),
+                        earlier + checks, ("mode", "check", "value", "limit", "ok"),
                         lambda c: (c["mode"], c["check"], str(c["value"]), c["limit"], "yes" if c["ok"] else "**NO**"))
     print(text)
-    return 0 if all(c["ok"] for c in checks) else 1
+    return 0 if all(c["ok"] for c in checks) else 1  # this command's checks
 
 
 if __name__ == "__main__":

@@ -25,3 +25,7 @@ def test_tiny_soak_on_the_cpu(tmp_path):
     kill = report["meta"]["kill_resume"]
     assert kill["killed"] and kill["metrics_iterations"][-1] == kill["last_checkpoint_iteration"] + 2
     assert (tmp_path / "out" / "soak.md").read_text().startswith("# Soak: 8 envs")
+    # One mode per command (a 10-minute device call each): the other mode's results stay in soak.json.
+    meta = {}
+    kept = soak.keep_other_modes(tmp_path / "out" / "soak.json", ("faults",), meta)
+    assert kept and {c["mode"] for c in kept} == {"kill_resume"} and meta["kill_resume"] == kill
