@@ -549,7 +549,7 @@ def _check_chain(spec: RunSpec, previous: dict, cfg) -> None:
     path = checkpoint_path(spec)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path} to continue {spec.name} from")
-    steps = torch.load(path, map_location="cpu", weights_only=False).get("env_steps")
+    steps = torch.load(path, map_location="cpu", weights_only=True).get("env_steps")  # tensors and plain data only
     if steps != previous.get("env_steps"):
         raise ValueError(f"the checkpoint {path} is at {steps} env-steps but the result at "
                          f"{previous.get('env_steps')}: they do not chain (--redo partial measures from scratch)")

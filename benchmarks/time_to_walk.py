@@ -82,6 +82,7 @@ def steady_rate(rows: list[dict], skip: int = 3) -> float | None:
 def train_part(args, argv) -> None:
     import torch
 
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint
     from tocabi_torchrl.rl.config import preset_config
     from tocabi_torchrl.rl.trainer import train
 
@@ -89,8 +90,7 @@ def train_part(args, argv) -> None:
     record_path = run_dir / "train.json"
     record = _load(record_path)
     latest = run_dir / "checkpoints" / "latest.pt"
-    prior_s = float(torch.load(latest, map_location="cpu", weights_only=False).get("train_seconds", 0.0)) \
-        if latest.is_file() else 0.0
+    prior_s = float(read_checkpoint(latest).get("train_seconds", 0.0)) if latest.is_file() else 0.0
     left_min = args.budget_minutes - prior_s / 60.0
     if left_min <= 0:
         print(f"{args.preset}: the {args.budget_minutes}-minute training budget is used ({prior_s:.0f} s); "
@@ -161,16 +161,13 @@ def _alive(pid: int) -> bool:
 
 def _evaluate_checkpoint(ckpt: Path, evals: dict, envs: dict, cfg, args, device):
     """Gait tests of one wall-clock checkpoint into ``evals[ckpt.stem]``; returns the run's config."""
-    import torch
-
-    from tocabi_torchrl.rl.checkpoint import load_checkpoint
-    from tocabi_torchrl.rl.config import PPOConfig
+    from tocabi_torchrl.rl.checkpoint import apply_checkpoint, config_from_checkpoint, read_checkpoint
     from tocabi_torchrl.rl.evaluate import _fixed_command, evaluate_policy
     from tocabi_torchrl.rl.trainer import build_agent, build_env
 
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    state = read_checkpoint(ckpt)
     if cfg is None:
-        cfg = PPOConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in state["config"].items()})
+        cfg = config_from_checkpoint(state, ckpt)
     entry = {"train_seconds": state["train_seconds"], "env_steps": state["env_steps"],
              "iteration": state["iteration"], "commands": {}}
     for command in (MAIN_COMMAND, *OTHER_COMMANDS):
@@ -181,10 +178,11 @@ def _evaluate_checkpoint(ckpt: Path, evals: dict, envs: dict, cfg, args, device)
         env = envs[command]
         agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1],
                             device)
-        load_checkpoint(ckpt, agent, env=env, device=device)
+        apply_checkpoint(state, agent, env=env, path=ckpt)
         out = ckpt.parent.parent / "eval" / ckpt.stem / f"{command[0]:.1f}_{command[1]:.1f}"
         summary = evaluate_policy(agent.actor, cfg, out, num_envs=args.num_envs, device=device,
-                                  seconds=args.seconds, command=command, video_envs=0, env=env)
+                                  seconds=args.seconds, command=command, video_envs=0, env=env,
+                                  progress=False)
         entry["commands"][f"{command[0]:.1f},{command[1]:.1f}"] = {k: v for k, v in summary.items()
                                                                     if isinstance(v, (int, float))}
     entry["walks"] = walks(entry)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import shutil
 import subprocess
 import sys
 import threading
@@ -69,6 +70,7 @@ def measure(num_envs: int, iterations: int, warmup: int, raw_steps: int, overrid
                         minibatch_size=min(49152, num_envs * steps // 4), run_dir="/tmp/bench_runs",
                         name=f"train_{num_envs}", checkpoint_every=10**6, progress_bar=False, eval_at_end=False,
                         log_every=1, device="cuda", **overrides)
+    shutil.rmtree(Path(cfg.run_dir) / cfg.name, ignore_errors=True)  # scratch: a re-measurement starts fresh
     with DevicePeak() as peak:
         result = train(cfg)
     with open(result.run_dir / "metrics.csv") as f:

@@ -3,41 +3,60 @@
     python recipes/play.py --checkpoint runs/ppo_walk                 # a run folder (uses checkpoints/latest.pt)
     python recipes/play.py --checkpoint runs/ppo_walk/checkpoints/iter_000500.pt --num_envs 64 --vx 0.3
 
-Writes <run>/eval/summary.json (survival, forward distance, lateral drift, speed tracking error, knee RMS against the
-reference motion), knees.png (left/right knee over 6 s against the reference) and walk.mp4 (a few robots, rendered
-offscreen; set MUJOCO_GL=egl on a headless GPU machine, osmesa on a headless CPU one).
+Writes summary.json (survival, forward distance, lateral drift, speed tracking error, knee RMS against the reference
+motion), knees.png (left/right knee over 6 s against the reference) and walk.mp4 (a few robots, rendered offscreen)
+to <run>/eval/, eval/ beside a checkpoint file, runs/eval/<name>/ for a policy shipped with the package, or --out.
+On a headless machine the video uses EGL (MUJOCO_GL=egl, chosen automatically when libEGL is present); osmesa works
+only with libOSMesa and PyOpenGL installed.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import ctypes.util
-import os
 import sys
 
-if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY") and ctypes.util.find_library("EGL"):
-    os.environ["MUJOCO_GL"] = "egl"  # headless: must be chosen before mujoco is imported
+from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
+
+try:  # before mujoco is imported
+    choose_gl_backend()
+except GLBackendError as gl_error:
+    sys.exit(f"error: {gl_error}")
 
 from tocabi_torchrl.rl.evaluate import evaluate_run  # noqa: E402
 
+#: (option, type, default, description): the command line, defaults shown once by build_parser.
+OPTIONS = (
+    ("--num_envs", int, 256, "robots simulated in the gait test"),
+    ("--device", str, "auto", "auto (CUDA if present, else cpu), cpu, cuda or cuda:N"),
+    ("--seconds", float, 8.0, "duration of the gait test [s]; at least one policy step (0.004)"),
+    ("--vx", float, 0.5, "commanded forward speed [m/s]"),
+    ("--vy", float, 0.0, "commanded lateral speed [m/s]"),
+    ("--out", str, None, "output folder (default: eval/ of the run, or runs/eval/<name>/ for a shipped policy)"),
+    ("--video_envs", int, 4, "robots shown side by side in the video; 0 = no video"),
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--checkpoint", required=True, help="run folder or checkpoint .pt file (required)")
+    for flag, kind, default, text in OPTIONS:
+        shown = "" if default is None else f" (default: {default})"
+        parser.add_argument(flag, type=kind, default=default, help=text + shown)
+    return parser
+
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--checkpoint", required=True, help="run folder or checkpoint .pt file")
-    parser.add_argument("--num_envs", type=int, default=256)
-    parser.add_argument("--device", default="auto")
-    parser.add_argument("--seconds", type=float, default=8.0)
-    parser.add_argument("--vx", type=float, default=0.5, help="commanded forward speed [m/s]")
-    parser.add_argument("--vy", type=float, default=0.0, help="commanded lateral speed [m/s]")
-    parser.add_argument("--out", default=None, help="output folder (default: eval/ beside the checkpoint)")
-    parser.add_argument("--video_envs", type=int, default=4, help="robots shown side by side in the video")
+    parser = build_parser()
     args = parser.parse_args(argv)
-    if args.num_envs < 1 or args.seconds <= 0:
-        parser.error("--num_envs must be >= 1 and --seconds > 0")
-    summary = evaluate_run(args.checkpoint, num_envs=args.num_envs, device=args.device, seconds=args.seconds,
-                           command=(args.vx, args.vy), video_envs=min(args.video_envs, args.num_envs), out_dir=args.out)
+    if args.num_envs < 1 or args.video_envs < 0:
+        parser.error("--num_envs must be >= 1 and --video_envs >= 0")
+    try:
+        summary = evaluate_run(args.checkpoint, num_envs=args.num_envs, device=args.device, seconds=args.seconds,
+                               command=(args.vx, args.vy), video_envs=min(args.video_envs, args.num_envs),
+                               out_dir=args.out)
+    except (ValueError, RuntimeError) as err:  # unreadable checkpoint, too short --seconds, unavailable device
+        sys.exit(f"error: {err}")
     print(json.dumps(summary, indent=2))
 
 

@@ -6,36 +6,49 @@
     python recipes/ppo_walk.py --resume runs/ppo_walk   # continue from runs/ppo_walk/checkpoints/latest.pt
     python recipes/ppo_walk.py --help               # every option
 
-Without CUDA it says so and runs the small ``cpu_smoke`` configuration (minutes on a laptop, learns nothing useful).
-Writes runs/<name>/: config.json, metrics.csv, checkpoints/, and (with --eval_at_end) eval/ with a summary JSON,
-the knee-trajectory plot and a video.
+Without CUDA and with --device auto (the default) it says so and runs the small ``cpu_smoke`` configuration (minutes
+on a laptop, learns nothing useful); an explicit --device cuda or GPU-sized --preset fails instead. Writes
+runs/<name>/: config.json, metrics.csv, checkpoints/, and (with --eval_at_end) eval/ with a summary JSON, the
+knee-trajectory plot and a video. An existing run folder is never overwritten: continue it with --resume, or give
+the new run another --name. --resume restores the saved run's options; only budget, logging, checkpoint, eval and
+device options may be given again with other values.
 """
 
 from __future__ import annotations
 
-import ctypes.util
-import os
 import sys
 
-if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY") and ctypes.util.find_library("EGL"):
-    os.environ["MUJOCO_GL"] = "egl"  # headless video of the final evaluation; chosen before mujoco is imported
+from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
+
+try:  # before mujoco is imported: headless video of the final evaluation
+    choose_gl_backend()
+except GLBackendError as gl_error:
+    sys.exit(f"error: {gl_error}")
 
 import torch  # noqa: E402
 
-from tocabi_torchrl.rl.config import parse_args, preset_config  # noqa: E402
-from tocabi_torchrl.rl.trainer import train  # noqa: E402
+from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
+from tocabi_torchrl.rl.logging import require_loggers  # noqa: E402
+from tocabi_torchrl.rl.run_dir import open_run  # noqa: E402
+from tocabi_torchrl.rl.trainer import finished_result, resolve_device, train  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> None:
-    cfg, args = parse_args(argv, description=__doc__.split("\n\n")[0])
-    if not torch.cuda.is_available() and cfg.device in ("auto", "cuda"):
-        overrides = {k: v for k, v in vars(args).items() if v is not None and k not in ("preset", "device")}
-        print("No CUDA GPU found: running the small CPU smoke configuration (preset 'cpu_smoke': 8 envs, "
-              "3 iterations) on the CPU (C MuJoCo backend). Pass --device cpu with your own options to override.",
-              flush=True)
-        cfg = preset_config("cpu_smoke", **{**overrides, "device": "cpu"})
-    print(f"training {cfg.name}: preset {cfg.preset}, {cfg.num_envs} envs, {cfg.iterations} iterations of "
-          f"{cfg.frames_per_batch:,} steps on {cfg.device}", flush=True)
+    # Everything that can stop the run before it starts is checked here and reported as one line (exit status 1):
+    # bad values, a request this machine cannot honour, an existing run folder, an unreadable or changed --resume.
+    try:
+        cfg, args, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0])
+        device = resolve_device(cfg.device)
+        require_loggers(cfg.loggers)
+        run = open_run(cfg)
+    except (ValueError, RuntimeError, ImportError) as err:
+        sys.exit(f"error: {err}")
+    if run.start_iteration >= cfg.iterations:
+        finished_result(run, cfg)  # says so; no training, no summary, no evaluation
+        return
+    if note:
+        print(note, flush=True)
+    print(banner(cfg, args, device), flush=True)
     result = train(cfg)
     print(f"done: {result.env_steps:,} env steps in {result.wall_seconds:.0f} s "
           f"({result.env_steps_per_second:,.0f} env-steps/s); run folder {result.run_dir}")

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import pytest
 
-from tocabi_torchrl import robot
+from tocabi_torchrl.render_gl import choose_gl_backend
+
+# Offscreen rendering as the recipes set it up (EGL on a headless machine), chosen before any test imports mujoco.
+choose_gl_backend()
+
+from tocabi_torchrl import robot  # noqa: E402
 
 
 @pytest.fixture(scope="session")

@@ -193,7 +193,7 @@ def test_two_tiny_iterations_write_a_loadable_checkpoint(tmp_path):
     agent = build_agent(cfg, 237, 13, torch.device("cpu"))
     state = load_checkpoint(run, agent)
     assert state["iteration"] == 2
-    trained = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)["agent"]["actor"]
+    trained = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)["agent"]["actor"]
     for key, value in agent.actor.state_dict().items():
         torch.testing.assert_close(value, trained[key])
     # Two iterations of the reference schedule over a 2-iteration run: std went 0.1 -> 0.075 -> 0.05.

@@ -170,7 +170,7 @@ def test_wall_clock_checkpoints_carry_the_training_time(tmp_path, monkeypatch):
     folder = result.run_dir / "checkpoints"
     walls = sorted(p.name for p in folder.glob("wall_*.pt"))
     assert walls and all(name.endswith("s.pt") for name in walls)
-    states = [torch.load(folder / name, weights_only=False) for name in walls]
+    states = [torch.load(folder / name, weights_only=True) for name in walls]
     marks = [int(name[5:10]) for name in walls]
     assert all(s["train_seconds"] >= m for s, m in zip(states, marks))
     assert marks == sorted(set(marks)) and all(m % 120 == 0 for m in marks)

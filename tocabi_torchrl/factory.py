@@ -7,6 +7,7 @@ import dataclasses
 import torch
 from torchrl.envs import TransformedEnv
 
+from .device import check_device
 from .envs import TocabiWalk, TocabiWalkConfig
 from .envs.autoreset import SyncFreeResetEnv
 from .transforms import TransformConfig, default_transforms, transform_config
@@ -43,6 +44,7 @@ def make_env(
             ``max_episode_steps=1000``) and of :class:`~tocabi_torchrl.transforms.TransformConfig`
             (e.g. ``reward_weights={"qpos": 0.5}``, ``normalization="running"``); a name in neither raises.
     """
+    device = check_device(device)  # before anything reads it: a bad name gets TocabiWalk's clear message
     env_fields = set(TocabiWalkConfig.__dataclass_fields__)
     unknown = set(overrides) - env_fields - _TRANSFORM_FIELDS
     if unknown:
@@ -53,11 +55,11 @@ def make_env(
     if cuda_graph and transform_config(preset, **tf_kwargs).compile_reward:
         raise ValueError("compile_reward=True and cuda_graph=True do not combine (a recompile inside the capture "
                          "would break it); the CUDA graph already removes the launches torch.compile saves")
-    on_cuda = torch.device(device).type == "cuda"
+    on_cuda = device.type == "cuda"
     if sync_free_resets is None:
         sync_free_resets = on_cuda
     if cuda_graph and not on_cuda:
-        raise ValueError(f"cuda_graph=True needs a CUDA device, got device={device!r}; pass cuda_graph=False")
+        raise ValueError(f"cuda_graph=True needs a CUDA device, got device={str(device)!r}; pass cuda_graph=False")
     if cuda_graph and not sync_free_resets:
         raise ValueError("cuda_graph=True needs sync_free_resets=True: a step that reads device values on the host "
                          "cannot be captured")

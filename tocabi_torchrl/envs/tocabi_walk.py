@@ -18,6 +18,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from .. import robot
+from ..device import check_device
 from ..motion import ReferenceMotion
 from ..sim import MujocoSim, SimConfig, WarpSim
 from .command import VelocityCommand
@@ -35,6 +36,11 @@ def quat_rotate_inverse(quat: torch.Tensor, vec: torch.Tensor) -> torch.Tensor:
     w, u = quat[..., :1], quat[..., 1:]
     t = 2.0 * torch.linalg.cross(u, vec, dim=-1)
     return vec - w * t + torch.linalg.cross(u, t, dim=-1)
+
+
+def _finite(x: torch.Tensor) -> torch.Tensor:
+    """A copy of ``x`` with NaN and ±inf replaced by 0 (finite values unchanged; no host sync)."""
+    return torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
 
 
 def _pd_leg_spec(spec, cfg: TocabiWalkConfig):
@@ -81,14 +87,7 @@ class TocabiWalk(EnvBase):
     ):
         if not isinstance(num_envs, int) or num_envs <= 0:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
-        try:
-            device = torch.device(device)
-        except (RuntimeError, TypeError) as err:
-            raise ValueError(f"unknown device {device!r}: use 'cuda', 'cuda:K' or 'cpu'") from err
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise RuntimeError("device 'cuda' requested but torch sees no CUDA GPU; pass device='cpu'")
-        if device.type not in ("cuda", "cpu"):
-            raise ValueError(f"unsupported device {device}: use 'cuda', 'cuda:K' or 'cpu'")
+        device = check_device(device)
         cfg = config if config is not None else TocabiWalkConfig()
         if overrides:
             unknown = set(overrides) - set(TocabiWalkConfig.__dataclass_fields__)
@@ -190,6 +189,7 @@ class TocabiWalk(EnvBase):
             applied_action=box(ACTION_DIM),
             leg_torque=box(robot.NUM_LEG_JOINTS),
             episode_step=box(1, dtype=torch.int64),
+            healthy=flag(1),
             **assist,
             shape=(n,),
             device=dev,
@@ -296,9 +296,13 @@ class TocabiWalk(EnvBase):
         self.assist_scale.fill_(float(scale))
 
     def _observe(self) -> TensorDict:
-        """Current signals of every env as fresh tensors (never views of simulator memory)."""
+        """Current signals of every env as fresh tensors (never views of simulator memory).
+
+        A world whose physics went non-finite (``healthy`` False; it terminates) reports 0 for every NaN/inf value,
+        so its terminal observation, and everything transforms compute from it, stays finite.
+        """
         sim = self.sim
-        qpos, qvel = sim.qpos, sim.qvel
+        qpos, qvel = _finite(sim.qpos), _finite(sim.qvel)
         base_quat = qpos[:, 3:7].clone()
         signals = {
             "joint_pos": qpos[:, 7:].clone(),
@@ -307,10 +311,10 @@ class TocabiWalk(EnvBase):
             "base_quat": base_quat,
             "base_lin_vel": quat_rotate_inverse(base_quat, qvel[:, :3]),
             "base_ang_vel": qvel[:, 3:6].clone(),
-            "neck_pos": sim.neck_pos.clone(),
-            "neck_quat": sim.neck_quat.clone(),
-            "foot_force": sim.foot_force.clone(),
-            "foot_torque": sim.foot_torque.clone(),
+            "neck_pos": _finite(sim.neck_pos),
+            "neck_quat": _finite(sim.neck_quat),
+            "foot_force": _finite(sim.foot_force),
+            "foot_torque": _finite(sim.foot_torque),
             "foot_contact": sim.foot_contact.clone(),
             "phase": self.motion.phase(self.time, self.init_row).unsqueeze(-1),
             "ref_joint_pos": self.ref_joint_pos.clone(),
@@ -318,11 +322,12 @@ class TocabiWalk(EnvBase):
             "stance": self.stance.unsqueeze(-1).clone(),
             "command": self.command.value.clone(),
             "applied_action": self.applied_action.clone(),
-            "leg_torque": self.leg_torque.clone(),
+            "leg_torque": _finite(self.leg_torque),
             "episode_step": self.episode_step.unsqueeze(-1).clone(),
+            "healthy": sim.healthy.unsqueeze(-1).clone(),
         }
         if self.cfg.torque_assist:
-            signals["leg_assist"] = self.leg_assist.clone()
+            signals["leg_assist"] = _finite(self.leg_assist)
         return TensorDict(signals, batch_size=self.batch_size, device=self.device)
 
     # ------------------------------------------------------------------------------------------------ resets

@@ -73,6 +73,13 @@ class AssistAbsorbLoss(nn.Module):
         legs = robot.NUM_LEG_JOINTS
         loc, _ = self.head(td["observation"])
         target = td["loc"][..., :legs] + self.delta * td["next", "leg_assist"]
-        z = (loc[..., :legs] - target) / td["scale"][..., :legs]
-        out["loss_absorb"] = self.weight * 0.5 * z.pow(2).sum(-1).mean()
+        kl = 0.5 * ((loc[..., :legs] - target) / td["scale"][..., :legs]).pow(2).sum(-1)
+        # Frames the rollout guard marked unusable (a faulted world) pull the actor nowhere, as in the PPO terms.
+        mask_key = getattr(self.ppo_loss, "loss_mask_key", None)
+        if mask_key is not None and mask_key in td.keys():
+            valid = td[mask_key].reshape(kl.shape)
+            kl = torch.where(valid, torch.nan_to_num(kl), 0.0).sum() / valid.sum().clamp_min(1)
+        else:
+            kl = kl.mean()
+        out["loss_absorb"] = self.weight * kl
         return out

@@ -1,31 +1,58 @@
-"""Checkpoints: policy, critic, optimiser, transform state (e.g. running normaliser) and config in one file."""
+"""Checkpoints: policy, critic, optimiser, transform state (e.g. running normaliser) and config in one file.
+
+Reading a file never runs code from it: :func:`read_checkpoint` is the one reader (training's ``--resume``,
+evaluation and ``recipes/play.py`` all use it); it loads with ``torch.load(weights_only=True)``, which accepts
+tensors and plain containers only, then checks the keys, the types and the config against :data:`SCHEMA_VERSION`.
+Anything that does not fit raises :class:`CheckpointError` naming the file and what is wrong. Checkpoints written
+before the schema was versioned (no ``schema_version``, e.g. the shipped ``assets/policies/tocabi_walk_ppo.pt``)
+read as version 0; config fields they lack take their defaults.
+
+Writing is atomic (:mod:`.atomic`): a crash leaves the previous ``latest.pt`` intact. Old ``iter_*.pt`` files are
+pruned after each save (``PPOConfig.checkpoint_keep_last`` / ``checkpoint_keep_every``).
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import io
+import os
+import re
 from pathlib import Path
 
 import torch
 from torch import nn
 
-__all__ = ["save_checkpoint", "load_checkpoint", "CheckpointError"]
+from .atomic import atomic_write_bytes
+from .config import PPOConfig
+
+__all__ = ["save_checkpoint", "load_checkpoint", "read_checkpoint", "apply_checkpoint", "checkpoint_file",
+           "config_from_checkpoint", "prune_checkpoints", "CheckpointError", "SCHEMA_VERSION"]
+
+#: Version of the checkpoint layout and config schema written by :func:`save_checkpoint`. Bump it when a change
+#: means older code would misread a new file; :func:`read_checkpoint` refuses files from a newer version.
+SCHEMA_VERSION = 1
+
+_ITER_FILE = re.compile(r"^iter_(\d+)\.pt$")
 
 
 class CheckpointError(RuntimeError):
     """A checkpoint is missing, unreadable or does not fit the agent it is loaded into."""
 
 
+# --------------------------------------------------------------------------------------------------------- writing
 def _transform_state(env) -> dict:
     transform = getattr(env, "transform", None)
     return transform.state_dict() if isinstance(transform, nn.Module) else {}
 
 
-def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimizer, env, cfg,
+def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimizer, env, cfg: PPOConfig,
                     train_seconds: float = 0.0, tag: str | None = None) -> Path:
-    """Write ``checkpoints/iter_XXXXXX.pt`` (or ``checkpoints/<tag>.pt``) and refresh ``checkpoints/latest.pt``
-    under ``run_dir``. ``train_seconds``: training wall-clock so far, summed over resumed segments."""
+    """Write ``checkpoints/iter_XXXXXX.pt`` (or ``checkpoints/<tag>.pt``) and ``checkpoints/latest.pt`` under
+    ``run_dir`` atomically, then prune old iteration files as ``cfg`` says (tagged files are kept). Returns the
+    file written. ``train_seconds``: training wall-clock so far, summed over resumed segments."""
     folder = Path(run_dir) / "checkpoints"
-    folder.mkdir(parents=True, exist_ok=True)
     state = {
+        "schema_version": SCHEMA_VERSION,
         "iteration": iteration,
         "env_steps": env_steps,
         "agent": agent.state_dict(),
@@ -34,29 +61,167 @@ def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimi
         "config": cfg.to_dict(),
         "train_seconds": float(train_seconds),
     }
-    path = folder / (f"{tag}.pt" if tag else f"iter_{iteration:06d}.pt")
-    torch.save(state, path)
-    torch.save(state, folder / "latest.pt")
+    buffer = io.BytesIO()
+    torch.save(state, buffer)  # serialised once, written twice
+    data = buffer.getvalue()
+    path = atomic_write_bytes(folder / (f"{tag}.pt" if tag else f"iter_{iteration:06d}.pt"), data)
+    atomic_write_bytes(folder / "latest.pt", data)
+    prune_checkpoints(folder, cfg.checkpoint_keep_last, cfg.checkpoint_keep_every)
     return path
 
 
-def load_checkpoint(path, agent, optimizer=None, env=None, device="cpu") -> dict:
-    """Load ``path`` into ``agent`` (and optimiser / env transforms when given); returns the raw state."""
+def prune_checkpoints(folder: str | os.PathLike, keep_last: int, keep_every: int) -> list[Path]:
+    """Delete ``iter_*.pt`` files in ``folder`` except the newest ``keep_last`` (0: keep every file) and those whose
+    iteration is a multiple of ``keep_every`` (0: none besides the newest). ``latest.pt`` is never touched.
+    Returns the deleted paths."""
+    if keep_last <= 0:
+        return []
+    found = sorted((int(m.group(1)), p) for p in Path(folder).glob("iter_*.pt") if (m := _ITER_FILE.match(p.name)))
+    newest = {it for it, _ in found[-keep_last:]}
+    removed = []
+    for it, path in found:
+        if it in newest or (keep_every > 0 and it % keep_every == 0):
+            continue
+        path.unlink(missing_ok=True)
+        removed.append(path)
+    return removed
+
+
+# --------------------------------------------------------------------------------------------------------- reading
+def checkpoint_file(path: str | os.PathLike) -> Path:
+    """The ``.pt`` file meant by ``path``: the file itself, or ``checkpoints/latest.pt`` of a run folder."""
     path = Path(path)
     if path.is_dir():
         path = path / "checkpoints" / "latest.pt" if (path / "checkpoints").is_dir() else path / "latest.pt"
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path} (pass a .pt file or a run folder with checkpoints/)")
+    return path
+
+
+def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu") -> dict:
+    """Load and check the checkpoint at ``path`` (a file or a run folder) without running code from it.
+
+    Returns the state dict with ``schema_version`` filled in (0 for files written before it existed). Raises
+    :class:`CheckpointError` naming the file for a missing, truncated, foreign or malformed file.
+    """
+    path = checkpoint_file(path)
     try:
-        state = torch.load(path, map_location=device, weights_only=False)
-    except Exception as err:
-        raise CheckpointError(f"cannot read checkpoint {path}: {err}") from err
+        state = torch.load(path, map_location=device, weights_only=True)
+    except Exception as err:  # noqa: BLE001 - whatever torch/pickle/zip raise for a bad file, say which file
+        raise CheckpointError(_load_failure(path, err)) from err
+    _check_layout(state, path)
+    state.setdefault("schema_version", 0)
+    return state
+
+
+def _load_failure(path: Path, err: Exception) -> str:
+    text = str(err)
+    # weights_only refuses a pickled reference to a function or class ("Unsupported global: GLOBAL ..."); other
+    # unpickling failures ("Unsupported operand", bad zip) are files that are not pickles at all.
+    refused = next((line.strip() for line in text.splitlines() if "GLOBAL" in line), None)
+    if refused:
+        return (f"refusing to load {path}: it holds Python objects other than tensors and plain containers, and "
+                f"loading those could run code from the file ({refused}). Checkpoints written by tocabi-torchrl "
+                "never do; only load files you trust")
+    # torch's own text goes on to suggest weights_only=False, which is exactly what must not be done with this file.
+    detail = next((line.strip() for line in text.splitlines() if "Unsupported" in line), text.split(". ")[0])
+    return (f"cannot read checkpoint {path}: not a complete torch checkpoint (truncated, corrupt or another kind of "
+            f"file): {type(err).__name__}: {detail[:160]}")
+
+
+def _check_layout(state, path: Path) -> None:
+    if not isinstance(state, dict):
+        raise CheckpointError(f"checkpoint {path} holds a {type(state).__name__}, not a tocabi-torchrl checkpoint")
+    version = state.get("schema_version", 0)
+    if isinstance(version, bool) or not isinstance(version, int) or version < 0:
+        raise CheckpointError(f"checkpoint {path}: schema_version must be an int >= 0, got {version!r}")
+    if version > SCHEMA_VERSION:
+        raise CheckpointError(f"checkpoint {path} has schema version {version}, newer than this tocabi-torchrl "
+                              f"reads ({SCHEMA_VERSION}); upgrade the package to load it")
+    expected = {"iteration": int, "env_steps": int, "agent": dict, "config": dict}
+    missing = [k for k in expected if k not in state]
+    if missing:
+        raise CheckpointError(f"checkpoint {path} lacks {missing}; it has {sorted(state)} (not a tocabi-torchrl "
+                              "training checkpoint?)")
+    for key, kind in expected.items():
+        if not isinstance(state[key], kind) or isinstance(state[key], bool):
+            raise CheckpointError(f"checkpoint {path}: {key!r} must be a {kind.__name__}, got "
+                                  f"{type(state[key]).__name__}")
+    for part in ("actor", "critic"):
+        _check_tensor_dict(state["agent"].get(part), f"agent.{part}", path)
+    if state.get("transforms"):
+        _check_tensor_dict(state["transforms"], "transforms", path)
+    if state.get("optimizer") is not None and not isinstance(state["optimizer"], dict):
+        raise CheckpointError(f"checkpoint {path}: 'optimizer' must be a dict or None")
+
+
+def _check_tensor_dict(value, name: str, path: Path) -> None:
+    if not isinstance(value, dict):
+        raise CheckpointError(f"checkpoint {path}: {name} must be a dict of tensors, got {type(value).__name__}")
+    bad = [k for k, v in value.items() if not isinstance(k, str) or not isinstance(v, torch.Tensor)]
+    if bad:
+        raise CheckpointError(f"checkpoint {path}: {name} entries {bad[:5]} are not named tensors")
+
+
+def config_from_checkpoint(state: dict, path: str | os.PathLike = "<checkpoint>") -> PPOConfig:
+    """The run's :class:`PPOConfig` as saved in ``state`` (fields it lacks take their defaults); raises
+    :class:`CheckpointError` for unknown fields or invalid values."""
+    saved = dict(state["config"])
+    known = {f.name for f in dataclasses.fields(PPOConfig)}
+    unknown = sorted(set(saved) - known)
+    if unknown:
+        raise CheckpointError(f"checkpoint {path}: config has unknown field(s) {unknown} (written by another version "
+                              "of tocabi-torchrl?)")
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()}
     try:
-        agent.load_state_dict(state["agent"])
-    except (KeyError, RuntimeError) as err:
-        raise CheckpointError(f"checkpoint {path} does not fit this agent (network sizes differ?): {err}") from err
+        cfg = PPOConfig(**values)
+        cfg.validate()
+    except (TypeError, ValueError) as err:
+        raise CheckpointError(f"checkpoint {path}: the saved config is invalid: {err}") from err
+    return cfg
+
+
+# --------------------------------------------------------------------------------------------------------- loading
+def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | os.PathLike = "<checkpoint>") -> None:
+    """Copy a :func:`read_checkpoint` state into ``agent`` (and the optimiser / env transforms when given), after
+    checking that every tensor fits; a mismatch raises :class:`CheckpointError` listing what differs."""
+    current = agent.state_dict()
+    for part in ("actor", "critic"):
+        _check_fits(state["agent"][part], current[part], f"agent's {part}", path,
+                    hint="the run's actor_hidden / critic_hidden / std_mode differ from this agent's?")
+    transform = getattr(env, "transform", None) if env is not None else None
+    saved_transforms = state.get("transforms") or {}
+    if saved_transforms and isinstance(transform, nn.Module):
+        mine = transform.state_dict()
+        _check_fits({k: v for k, v in saved_transforms.items() if k in mine}, mine, "env transforms", path,
+                    hint="another observation layout or normalisation?", allow_missing=True)
+    agent.load_state_dict(state["agent"])
     if optimizer is not None and state.get("optimizer"):
-        optimizer.load_state_dict(state["optimizer"])
-    if env is not None and state.get("transforms") and isinstance(getattr(env, "transform", None), nn.Module):
-        env.transform.load_state_dict(state["transforms"], strict=False)
+        try:
+            optimizer.load_state_dict(state["optimizer"])
+        except (KeyError, ValueError, RuntimeError) as err:
+            raise CheckpointError(f"checkpoint {path}: the optimiser state does not fit this optimiser ({err}); "
+                                  "value_head_lr differs?") from err
+    if saved_transforms and isinstance(transform, nn.Module):
+        transform.load_state_dict(saved_transforms, strict=False)
+
+
+def _check_fits(saved: dict, current: dict, what: str, path, hint: str, allow_missing: bool = False) -> None:
+    problems = []
+    if not allow_missing:
+        problems += [f"missing {k}" for k in current if k not in saved]
+        problems += [f"unexpected {k}" for k in saved if k not in current]
+    problems += [f"{k}: file {tuple(saved[k].shape)} vs {tuple(v.shape)}" for k, v in current.items()
+                 if k in saved and tuple(saved[k].shape) != tuple(v.shape)]
+    if problems:
+        shown = "; ".join(problems[:6]) + (f"; ... ({len(problems)} in all)" if len(problems) > 6 else "")
+        raise CheckpointError(f"checkpoint {path} does not fit this {what} ({hint}): {shown}")
+
+
+def load_checkpoint(path, agent, optimizer=None, env=None, device="cpu") -> dict:
+    """Read ``path`` (a ``.pt`` file or a run folder) with :func:`read_checkpoint` and load it into ``agent``
+    (and optimiser / env transforms when given); returns the state."""
+    file = checkpoint_file(path)
+    state = read_checkpoint(file, device)
+    apply_checkpoint(state, agent, optimizer, env, file)
     return state

@@ -17,6 +17,7 @@ _GRAPH_ALIASES = {"true": "on", "yes": "on", "1": "on", "false": "off", "no": "o
 #: graph won at 96 envs and lost at 256 on an H100 (128 only in short memory-sweep runs, see env_graph.md).
 ENV_GRAPH_AUTO_MAX_ENVS = 128
 STD_MODES = ("scheduled", "learned")
+LOGGERS = ("csv", "tensorboard", "wandb")
 
 
 @dataclass
@@ -103,6 +104,10 @@ class PPOConfig:
     # logging, checkpoints, evaluation
     log_every: int = 1
     checkpoint_every: int = 100
+    #: Checkpoint retention: keep the newest ``checkpoint_keep_last`` iteration files (0 = keep all) and every file
+    #: whose iteration is a multiple of ``checkpoint_keep_every`` (0 = none more); ``latest.pt`` is always kept.
+    checkpoint_keep_last: int = 3
+    checkpoint_keep_every: int = 50
     #: Also save ``checkpoints/wall_XXXXXs.pt`` whenever the training wall-clock (summed over resumed segments)
     #: passes a multiple of this many minutes (0 = off); ``benchmarks/time_to_walk.py`` evaluates these.
     checkpoint_minutes: float = 0.0
@@ -123,8 +128,6 @@ class PPOConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field and the accepted values."""
-        from ..envs.config import CONTROL_MODES
-
         positive = ("num_envs", "steps_per_env", "total_env_steps", "epochs", "minibatch_size", "max_episode_steps",
                     "log_every", "checkpoint_every", "eval_envs")
         for name in positive:
@@ -143,6 +146,10 @@ class PPOConfig:
         self.reward_weight_map()  # raises on a malformed entry
         if not self.pd_action_scale > 0:
             raise ValueError(f"PPOConfig.pd_action_scale must be > 0, got {self.pd_action_scale!r}")
+        for name in ("checkpoint_keep_last", "checkpoint_keep_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"PPOConfig.{name} must be an int >= 0, got {value!r}")
         if self.torque_assist < 0 or self.assist_absorb < 0:
             raise ValueError(f"PPOConfig.torque_assist and assist_absorb must be >= 0, got {self.torque_assist!r}, "
                              f"{self.assist_absorb!r}")
@@ -156,16 +163,12 @@ class PPOConfig:
         for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "max_minutes", "checkpoint_minutes"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"PPOConfig.{name} must be >= 0, got {getattr(self, name)!r}")
-        choices = {"lr_schedule": LR_SCHEDULES, "std_mode": STD_MODES, "control_mode": CONTROL_MODES,
-                   "value_loss": ("l2", "smooth_l1", "l1"), "command_preset": ("tocabilab", "reference"),
-                   "activation": ("relu", "elu", "tanh", "silu"), "pd_gains": ("tocabilab", "robot"),
-                   "cuda_graph": ENV_GRAPH_MODES}
-        for name, allowed in choices.items():
+        for name, allowed in field_choices().items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"PPOConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
-        bad = set(self.loggers) - {"csv", "tensorboard", "wandb"}
+        bad = set(self.loggers) - set(LOGGERS)
         if bad:
-            raise ValueError(f"unknown logger(s) {sorted(bad)}; choose from csv, tensorboard, wandb")
+            raise ValueError(f"unknown logger(s) {sorted(bad)}; choose from {', '.join(LOGGERS)}")
         if self.minibatch_size > self.num_envs * self.steps_per_env:
             raise ValueError(
                 f"minibatch_size {self.minibatch_size} exceeds the rollout ({self.num_envs} envs × "
@@ -224,6 +227,18 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+def field_choices() -> dict[str, tuple[str, ...]]:
+    """The allowed values of each PPOConfig field that takes one of a few names (checked by ``validate``, listed
+    by ``--help``)."""
+    from ..envs.config import CONTROL_MODES
+    from ..transforms.presets import PRESETS as TRANSFORM_PRESETS
+
+    return {"lr_schedule": LR_SCHEDULES, "std_mode": STD_MODES, "control_mode": CONTROL_MODES,
+            "value_loss": ("l2", "smooth_l1", "l1"), "command_preset": ("tocabilab", "reference"),
+            "transform_preset": tuple(TRANSFORM_PRESETS), "activation": ("relu", "elu", "tanh", "silu"),
+            "pd_gains": ("tocabilab", "robot"), "cuda_graph": ENV_GRAPH_MODES}
+
+
 def uses_env_graph(cfg: PPOConfig, device: Any, num_envs: int | None = None) -> bool:
     """Whether the trainer captures the env step of ``num_envs`` envs (default ``cfg.num_envs``) on ``device`` (a
     ``torch.device``) as a CUDA graph: ``cfg.cuda_graph`` "on", or "auto" with at most ``ENV_GRAPH_AUTO_MAX_ENVS``
@@ -256,26 +271,57 @@ def _parse_value(kind: Any, text: str):
     return text
 
 
-def parse_args(argv: list[str] | None = None, description: str = "") -> tuple[PPOConfig, argparse.Namespace]:
-    """Build a :class:`PPOConfig` from ``--preset`` plus ``--field value`` overrides (every field is an option)."""
-    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+def build_parser(description: str = "") -> argparse.ArgumentParser:
+    """The command line of :func:`parse_args`: ``--preset`` plus one option per PPOConfig field, each with its
+    one-line description (``rl.options.FIELD_HELP``), allowed values and default. Every default is None in the
+    namespace, so the options given explicitly are the ones that are not None."""
+    from .options import field_help
+
+    parser = argparse.ArgumentParser(
+        description=description,
+        epilog="Defaults are the 'default' preset's; another --preset changes some of them. With --resume the saved "
+               "run's options apply and only budget, logging, checkpoint, eval and device options may change.")
     defaults = PPOConfig()
+    choices = field_choices()
     for f in dataclasses.fields(PPOConfig):
         default = getattr(defaults, f.name)
         kind = type(default)
+        text = field_help(f.name)
         if f.name == "preset":
-            parser.add_argument("--preset", default="default", choices=sorted(PRESETS), help="named configuration")
+            parser.add_argument("--preset", default=None, choices=sorted(PRESETS),
+                                help=f"{text}; one of: {', '.join(sorted(PRESETS))} (default: {default})")
         elif kind is tuple:
             elem = type(default[0]) if default else str
+            allowed = f"any of {', '.join(LOGGERS)}, " if f.name == "loggers" else ""
+            shown = ",".join(map(str, default)) or "none"
             parser.add_argument(f"--{f.name}", type=lambda s, e=elem: tuple(e(x) for x in s.split(",") if x),
-                                default=None, help=f"comma-separated (default {','.join(map(str, default))})")
+                                default=None, metavar="A,B,...",
+                                help=f"{text}; {allowed}comma-separated (default: {shown})")
         elif kind is bool:
-            parser.add_argument(f"--{f.name}", type=lambda s: _parse_value(bool, s), default=None,
-                                help=f"true/false (default {default})")
+            parser.add_argument(f"--{f.name}", type=lambda s: _parse_value(bool, s), default=None, metavar="BOOL",
+                                help=f"{text}; true/false (default: {str(default).lower()})")
+        elif f.name in choices:
+            parser.add_argument(f"--{f.name}", type=kind, default=None, metavar="NAME",
+                                help=f"{text}; one of: {', '.join(choices[f.name])} (default: {default})")
         else:
-            parser.add_argument(f"--{f.name}", type=kind, default=None, help=f"(default {default})")
-    args = parser.parse_args(argv)
-    overrides = {k: v for k, v in vars(args).items() if v is not None and k != "preset"}
-    return preset_config(args.preset, **overrides), args
+            shown = "none" if default == "" else default
+            parser.add_argument(f"--{f.name}", type=kind, default=None, metavar=kind.__name__.upper(),
+                                help=f"{text} (default: {shown})")
+    return parser
 
 
+def parse_args(argv: list[str] | None = None, description: str = "") -> tuple[PPOConfig, argparse.Namespace]:
+    """Build a :class:`PPOConfig` from ``--preset`` plus ``--field value`` overrides (every field is an option).
+
+    With ``--resume`` the config starts from the one saved in that run's checkpoint instead, and the explicit
+    options may only change the fields ``rl.options.RESUME_SAFE`` lists (``rl.resume.resume_config`` raises
+    ``ValueError`` naming any other). In the namespace, options not given are None. ``recipes/ppo_walk.py`` uses
+    ``rl.launch.launch_config``, which also decides what runs on a machine without CUDA.
+    """
+    args = build_parser(description).parse_args(argv)
+    overrides = {k: v for k, v in vars(args).items() if v is not None}
+    if args.resume:
+        from .resume import resume_config
+
+        return resume_config(args.resume, overrides), args
+    return preset_config(args.preset or "default", **overrides), args

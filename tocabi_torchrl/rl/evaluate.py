@@ -2,7 +2,8 @@
 
 Writes ``summary.json`` (survival, forward distance, lateral drift, speed tracking error, knee RMS against the
 reference motion), ``knees.png`` (left/right knee over 6 s against the reference, TocabiLab figs 4.7-4.8) and a
-video of a few robots (``walk.mp4``, or ``walk.gif`` without an mp4 writer) rendered offscreen by MuJoCo.
+video of a few robots (``walk.mp4``, or ``walk.gif`` without an mp4 writer) rendered offscreen by MuJoCo. Both the
+rollout and the rendering show a progress bar (rendering takes minutes on a CPU).
 """
 
 from __future__ import annotations
@@ -14,13 +15,14 @@ from pathlib import Path
 import numpy as np
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+from tqdm.auto import tqdm
 
 from .. import robot
-from .checkpoint import load_checkpoint
+from .checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint
 from .config import PPOConfig
 from .trainer import build_agent, build_env, resolve_device
 
-__all__ = ["evaluate_policy", "evaluate_run"]
+__all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "policy_dt"]
 
 KNEES = (robot.JOINT_NAMES.index("L_Knee_Joint"), robot.JOINT_NAMES.index("R_Knee_Joint"))
 
@@ -35,19 +37,18 @@ def evaluate_policy(
     command: tuple[float, float] = (0.5, 0.0),
     video_envs: int = 4,
     env=None,
+    progress: bool = True,
 ) -> dict:
-    """Roll the deterministic policy out for ``seconds`` at a fixed command and write the summary, plot and video."""
-    from ..envs import CommandConfig
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    """Roll the deterministic policy out for ``seconds`` at a fixed command and write the summary, plot and video.
+    ``seconds`` must cover at least one policy step; ``progress`` shows bars for the rollout and the rendering."""
     device = torch.device(device)
     vx, vy = command
-    fixed = CommandConfig(vx_range=(vx, vx), vx_initial_range=(vx, vx), vy_range=(vy, vy))
     if env is None:
-        env = build_env(cfg, device, num_envs=num_envs, command=fixed)
+        env = build_env(cfg, device, num_envs=num_envs, command=_fixed_command(command))
     base = env.base_env
-    steps = int(round(seconds / base.dt))
+    steps = _policy_steps(seconds, base.dt)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
         start = td["base_pos"].clone()
@@ -58,7 +59,7 @@ def evaluate_policy(
         alive_steps = torch.zeros(env.num_envs, device=device)
         trace_q, trace_ref, frames_qpos = [], [], []
         video_every = max(1, int(round(1.0 / (30.0 * base.dt))))
-        for k in range(steps):
+        for k in tqdm(range(steps), desc="gait test", unit="step", disable=not progress, leave=False):
             td = env.step(actor(td))
             nxt = td["next"]
             alive = alive & ~nxt["terminated"].squeeze(-1)
@@ -91,20 +92,32 @@ def evaluate_policy(
         "knee_rms_rad": float((knee_sq / n_alive).sqrt().mean()),
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    _plot_knees(torch.stack(trace_q).cpu().numpy(), torch.stack(trace_ref).cpu().numpy(), base.dt, out / "knees.png")
+    _plot_knees(torch.stack(trace_q).cpu().numpy(), torch.stack(trace_ref).cpu().numpy(), base.dt, out / "knees.png",
+                command)
     if video_envs < 1:
         summary["video"] = "not requested (video_envs=0)"
     else:
         try:
-            summary["video"] = str(_render_video(base.sim.mj_model, torch.stack(frames_qpos).cpu().numpy(), 30, out))
-        except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless GPU machine)
+            summary["video"] = str(_render_video(base.sim.mj_model, torch.stack(frames_qpos).cpu().numpy(), 30, out,
+                                                 progress=progress))
+        except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless machine)
             summary["video"] = f"not rendered: {type(err).__name__}: {err}"
-            print(f"video skipped ({summary['video']}); set MUJOCO_GL=egl or osmesa on a headless machine")
+            print(f"video skipped ({summary['video']}); set MUJOCO_GL=egl on a headless machine (osmesa only with "
+                  "libOSMesa and PyOpenGL installed)")
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
 
-def _plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path) -> None:
+def _policy_steps(seconds: float, dt: float) -> int:
+    """Policy steps in ``seconds``; ``ValueError`` if that is less than one step."""
+    steps = int(round(seconds / dt))
+    if steps < 1:
+        raise ValueError(f"seconds={seconds:g} is shorter than one policy step ({dt * 1000:g} ms); pass at least "
+                         f"{dt:g}")
+    return steps
+
+
+def _plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path, command: tuple[float, float]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -122,13 +135,15 @@ def _plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path) -> None:
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right")
     axes[-1].set_xlabel("time [s]")
-    fig.suptitle("Knee trajectories at command (0.5, 0) m/s, env 0")
+    title = f"Knee trajectories at command ({command[0]:g}, {command[1]:g}) m/s, env 0"
+    fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, metadata={"Title": title})
     plt.close(fig)
 
 
-def _render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480, height: int = 360) -> Path:
+def _render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480, height: int = 360,
+                  progress: bool = True) -> Path:
     """Render (T, k, nq) joint states of k robots side by side (one camera each) into an mp4 or a gif."""
     import imageio.v2 as imageio
     import mujoco
@@ -142,7 +157,7 @@ def _render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480
     option = mujoco.MjvOption()
     option.geomgroup[2] = 0  # hide the translucent collision geoms: show the silhouette
     frames = []
-    for step in qpos:
+    for step in tqdm(qpos, desc="rendering video", unit="frame", disable=not progress, leave=False):
         tiles = []
         for q in step:
             data.qpos[:] = q
@@ -165,22 +180,35 @@ def _render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480
 def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "auto",
                  out_dir: str | os.PathLike | None = None, **kwargs) -> dict:
     """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``out_dir`` (default:
-    ``<run folder>/eval/``, or ``eval/`` beside a checkpoint file)."""
-    from .checkpoint import CheckpointError
-
-    path = Path(run)
-    ckpt = path if path.is_file() else path / "checkpoints" / "latest.pt"
-    if not ckpt.is_file():
-        raise CheckpointError(f"no checkpoint at {ckpt}: train first or pass a checkpoint file")
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)
-    cfg = PPOConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in state["config"].items()})
+    :func:`default_eval_dir`). Raises ``CheckpointError`` for a bad file and ``ValueError`` for ``seconds`` below
+    one policy step, before building anything."""
+    ckpt = checkpoint_file(run)
+    state = read_checkpoint(ckpt)
+    cfg = config_from_checkpoint(state, ckpt)
+    _policy_steps(kwargs.get("seconds", 8.0), policy_dt())
     dev = resolve_device(device)
     env = build_env(cfg, dev, num_envs=num_envs, command=_fixed_command(kwargs.get("command", (0.5, 0.0))))
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], dev)
-    load_checkpoint(ckpt, agent, env=env, device=dev)
+    apply_checkpoint(state, agent, env=env, path=ckpt)
     if out_dir is None:
-        out_dir = (ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent) / "eval"
+        out_dir = default_eval_dir(ckpt)
     return evaluate_policy(agent.actor, cfg, out_dir, num_envs=num_envs, device=dev, env=env, **kwargs)
+
+
+def default_eval_dir(ckpt: Path) -> Path:
+    """``<run folder>/eval/`` for a run's checkpoint, ``eval/`` beside any other file, and
+    ``runs/eval/<checkpoint stem>/`` for a policy shipped in the package's assets (never into the source tree)."""
+    ckpt = Path(ckpt)
+    if ckpt.resolve().is_relative_to(robot.asset_path().resolve()):
+        return Path(PPOConfig().run_dir) / "eval" / ckpt.stem
+    return (ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent) / "eval"
+
+
+def policy_dt() -> float:
+    """Seconds per policy step of the walking task (physics timestep × substeps)."""
+    from ..envs import TocabiWalkConfig
+
+    return float(robot.load_model().opt.timestep) * TocabiWalkConfig().substeps
 
 
 def _fixed_command(command):

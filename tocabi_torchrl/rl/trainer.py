@@ -16,12 +16,15 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+from ..device import check_device
 from .actors import action_std, gaussian_head, make_actor, set_action_std
 from .assist import AssistAbsorbLoss, AssistSchedule
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import apply_checkpoint, save_checkpoint
 from .config import PPOConfig, uses_env_graph
-from .logging import RunLogger
+from .logging import RunLogger, require_loggers
 from .networks import make_mlp
+from .rollout_guard import VALID_KEY, guard_rollout
+from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
 from .update_step import (MinibatchStep, get_lr, make_capturable_adam, optimizer_mode, restore_optimizer_mode,
                           set_lr)
@@ -34,10 +37,7 @@ def resolve_device(name: str) -> torch.device:
     """``"auto"`` -> the first CUDA GPU if torch sees one, else the CPU."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError(f"device {name!r} requested but torch sees no CUDA GPU; use --device cpu or auto")
-    return device
+    return check_device(name)
 
 
 @dataclass
@@ -149,6 +149,16 @@ class TrainResult:
     last_metrics: dict
     #: Whether the env step ran as a captured CUDA graph by the end (``cfg.cuda_graph``, see :func:`uses_env_graph`).
     env_graph: bool = False
+    #: The resumed run had already reached its budget: nothing was trained (see :func:`finished_result`).
+    already_finished: bool = False
+
+
+def finished_result(run: RunFolder, cfg: PPOConfig) -> TrainResult:
+    """Say that the resumed run is already done, and return its result without training."""
+    print(f"{run.resume_file}: the run is already finished (iteration {run.start_iteration} of {cfg.iterations}, "
+          f"{run.start_env_steps:,} env steps); nothing to train. Raise --total_env_steps to train it further.",
+          flush=True)
+    return TrainResult(run.path, run.start_iteration, run.start_env_steps, 0.0, 0.0, {}, already_finished=True)
 
 
 def _episode_metrics(batch: TensorDictBase) -> dict[str, float]:
@@ -234,6 +244,7 @@ def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbL
         normalize_advantage=True,
     )
     loss_module.set_keys(sample_log_prob="action_log_prob")
+    loss_module.loss_mask_key = VALID_KEY  # see rollout_guard: broken frames add nothing to the losses
     if cfg.torque_assist > 0:
         loss_module = AssistAbsorbLoss(loss_module, gaussian_head(agent.actor))
     return loss_module, advantage
@@ -242,6 +253,10 @@ def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbL
 def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
     """Run PPO as configured; returns where the run was written and its throughput."""
     cfg.validate()
+    require_loggers(cfg.loggers)
+    run = open_run(cfg)  # refuses to overwrite an earlier run; reads and checks the resumed checkpoint
+    if run.start_iteration >= cfg.iterations:
+        return finished_result(run, cfg)
     device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
     env = env if env is not None else build_env(cfg, device, for_training=True)
@@ -249,15 +264,14 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
     act_dim = env.action_spec.shape[-1]
     agent = build_agent(cfg, obs_dim, act_dim, device)
     optimizer = make_optimizer(cfg, agent, device)
-    run_dir = Path(cfg.run_dir) / cfg.name
-    start_iter, env_steps, prior_train_s = 0, 0, 0.0
-    if cfg.resume:
+    run_dir = run.path
+    start_iter, env_steps, prior_train_s = run.start_iteration, run.start_env_steps, 0.0
+    if run.resume_state is not None:
         mode = optimizer_mode(optimizer)  # the checkpoint may come from another update mode or device
-        state = load_checkpoint(cfg.resume, agent, optimizer, env, device)
+        apply_checkpoint(run.resume_state, agent, optimizer, env, run.resume_file)
         restore_optimizer_mode(optimizer, mode)
-        start_iter, env_steps = state["iteration"], state["env_steps"]
-        prior_train_s = float(state.get("train_seconds", 0.0))
-        print(f"resumed from {cfg.resume} at iteration {start_iter} ({env_steps:,} env steps)")
+        prior_train_s = float(run.resume_state.get("train_seconds", 0.0))
+        print(f"resumed from {run.resume_file} at iteration {start_iter} ({env_steps:,} env steps)")
 
     loss_module, advantage = make_loss(cfg, agent)
     update_step = make_update_step(cfg, loss_module, optimizer, device)
@@ -281,6 +295,7 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
             progress_remaining = 1.0 - it / iterations
             # The collector reuses `batch` as its buffer (return_same_td): GAE's outputs go to a shallow copy.
             work = batch.clone(False)
+            guard_rollout(work)  # frames with NaN/inf or impossible actions are masked out of the loss
             with torch.no_grad():
                 advantage(work)
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
@@ -350,7 +365,7 @@ def _assist_schedule(cfg: PPOConfig) -> AssistSchedule | None:
 
 def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBase) -> list:
     present = set(batch.keys(True, True))
-    wanted = {*loss_module.in_keys, "advantage", "value_target", "state_value"}
+    wanted = {*loss_module.in_keys, "advantage", "value_target", "state_value", VALID_KEY}
     return [k for k in wanted if k in present]
 
 

@@ -21,6 +21,7 @@ _NARROWPHASE = int(OverflowType.NARROWPHASE)
 def derive_signals(
     qpos: wp.array2d(dtype=float),
     qvel: wp.array2d(dtype=float),
+    qacc: wp.array2d(dtype=float),
     sensordata: wp.array2d(dtype=float),
     found_adr: wp.array(dtype=int),
     weights: wp.array2d(dtype=float),
@@ -36,7 +37,8 @@ def derive_signals(
     overflow_out: wp.array(dtype=int),
     healthy_out: wp.array(dtype=wp.bool),
 ):
-    """Contact signals (signed sums of contact counts > 0.5), the overflow bits and the health flag of one world.
+    """Contact signals (signed sums of contact counts > 0.5), the overflow bits and the health flag of one world
+(finite qpos, qvel, qacc and sensordata, and no overflow bit of ``health_mask``).
 
     ``overflow_out`` adds the buffer checks that mujoco-warp only records when it integrates, so an overflow in the
     final forward pass of a step is visible after that step rather than one step later.
@@ -57,12 +59,15 @@ def derive_signals(
         bits = bits | _NARROWPHASE
     overflow_out[w] = bits
 
-    # A NaN or inf anywhere makes the sum non-finite.
+    # A NaN or inf anywhere in the state, its acceleration or a sensor makes the sum non-finite (C MuJoCo resets such a
+    # world itself and warns; mujoco-warp keeps integrating it, so this flag is what stops it).
     total = float(0.0)
     for i in range(qpos.shape[1]):
         total += qpos[w, i] * 0.0
     for i in range(qvel.shape[1]):
-        total += qvel[w, i] * 0.0
+        total += qvel[w, i] * 0.0 + qacc[w, i] * 0.0
+    for i in range(sensordata.shape[1]):
+        total += sensordata[w, i] * 0.0
     healthy_out[w] = wp.isfinite(total) and (bits & health_mask) == 0
 
 

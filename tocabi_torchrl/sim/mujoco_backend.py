@@ -21,8 +21,9 @@ step's first substep is ``mj_step2``; the trajectory is bit-identical to ``mj_st
 forward pass (``tests/test_sim_mujoco.py``).
 
 Contact signals come from the same contact sensors and :class:`~tocabi_torchrl.sim.contacts.ContactLayout` sums as
-the warp backend. Health: finite qpos/qvel and none of :data:`~tocabi_torchrl.sim.mujoco_health.MUJOCO_HEALTH_WARNINGS`
-since the world's last reset (C MuJoCo resets a diverged world itself and says so only through its warnings).
+the warp backend. Health: finite qpos/qvel/sensordata and none of
+:data:`~tocabi_torchrl.sim.mujoco_health.MUJOCO_HEALTH_WARNINGS` since the world's last reset (C MuJoCo resets a
+diverged world, a non-finite qacc included, itself and says so only through its warnings).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ import torch
 
 from .config import SimConfig
 from .contacts import ContactLayout, contact_layout
+from .memory import check_fits, mujoco_world_bytes
 from .model import ModelSource, compile_model
 from .mujoco_health import MUJOCO_HEALTH_WARNINGS, warning_bits, warning_error
 from .views import SimViews
@@ -81,6 +83,7 @@ class MujocoSim(SimViews):
         self.threads = min(cfg.resolved_threads(), n)
 
         mj = compile_model(model, cfg)
+        check_fits(n, mujoco_world_bytes(mj), self.device, "C MuJoCo")
         self.mj_model = mj
         self.contact_layout: ContactLayout = contact_layout(mj)
         self.nq, self.nv, self.nu = mj.nq, mj.nv, mj.nu
@@ -229,7 +232,9 @@ class MujocoSim(SimViews):
             self._shown_qvel[idx] = self._qvel[idx]
         self._signals.copy_(self.contact_layout.signals(self._sensordata))
         self._overflow_t.copy_(torch.from_numpy(warning_bits(self._warnings)))
-        finite = torch.isfinite(self._qpos).all(dim=1) & torch.isfinite(self._qvel).all(dim=1)
+        # A non-finite qacc makes MuJoCo reset the world and warn (mjWARN_BADQACC), which the warning bits catch.
+        finite = (torch.isfinite(self._qpos).all(dim=1) & torch.isfinite(self._qvel).all(dim=1)
+                  & torch.isfinite(self._sensordata).all(dim=1))
         self._healthy_t.copy_(finite & ((self._overflow_t & MUJOCO_HEALTH_WARNINGS) == 0))
 
     def _host_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -32,6 +32,7 @@ from .graph import Recorded
 from .health import overflow_error
 from .kernel_cache import announce_compile_if_cold
 from .kernels import copy_rows_where, derive_signals, write_reset_state
+from .memory import check_fits, warp_world_bytes
 from .model import ModelSource, compile_model
 from .views import SimViews
 
@@ -84,7 +85,7 @@ class WarpSim(SimViews):
     foot_contact               (N, 2) bool      a foot body touches a world-body geom, [left, right]
     forbidden_ground_contact   (N,) bool        a ``robot.GROUND_FORBIDDEN_BODIES`` body touches the ground
     self_collision             (N,) bool        two ``robot.SELF_COLLISION_BODIES`` bodies touch
-    healthy                    (N,) bool        finite qpos/qvel and no buffer overflow (``health_overflow_mask``)
+    healthy                    (N,) bool        finite qpos/qvel/qacc/sensors, no overflow (``health_overflow_mask``)
     overflow                   (N,) int32       mujoco-warp ``OverflowType`` bits (sticky until the world resets)
     applied_actuator_force     (N, nu)          actuator forces [N·m] applied in the last substep of the last step
                                                 (``wp_data.actuator_force`` holds the post-step forward pass's values)
@@ -101,6 +102,7 @@ class WarpSim(SimViews):
         self.num_worlds = n = cfg.num_worlds
 
         mj = compile_model(model, cfg)
+        check_fits(n, warp_world_bytes(mj, cfg.nconmax, cfg.njmax), self.device, "mujoco-warp")
         self.mj_model = mj
         self.contact_layout: ContactLayout = contact_layout(mj)
         self.nq, self.nv, self.nu = mj.nq, mj.nv, mj.nu
@@ -168,6 +170,7 @@ class WarpSim(SimViews):
             inputs=[
                 d.qpos,
                 d.qvel,
+                d.qacc,
                 d.sensordata,
                 self._found_adr,
                 self._weights,

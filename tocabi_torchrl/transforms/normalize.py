@@ -137,7 +137,9 @@ class RunningNormalization(_Normalization):
 
     Each ``env.step`` folds the batch of new observations (all num_envs rows, or those selected by ``mask_key``) into
     the running mean and variance with the parallel (Chan) update, using device tensor ops only; resets read the
-    statistics but do not update them.
+    statistics but do not update them. Rows with a NaN/inf value, and rows of worlds whose ``health_key`` is False
+    (numerically broken physics, which terminates), are always left out, so one broken world cannot poison the
+    statistics every world is normalised with.
     Statistics are kept in float64 because they accumulate over 1e8+ samples, where float32 increments vanish.
     Call :meth:`freeze` for evaluation. The statistics are buffers, saved in ``state_dict``.
 
@@ -153,6 +155,8 @@ class RunningNormalization(_Normalization):
         mask_key: optional (num_envs, 1) bool key of the step output selecting the rows to learn from, e.g.
             ``"terminated"`` with ``mask_invert=True`` to skip states of falling robots.
         mask_invert: learn from the rows where ``mask_key`` is False instead.
+        health_key: (num_envs, 1) bool key of the step output, True where the world's physics is sound
+            (``TocabiWalk``'s ``healthy``); rows where it is False are left out. Ignored when the key is absent.
     """
 
     def __init__(
@@ -168,6 +172,7 @@ class RunningNormalization(_Normalization):
         frozen: bool = False,
         mask_key: NestedKey | None = None,
         mask_invert: bool = False,
+        health_key: NestedKey | None = "healthy",
     ):
         super().__init__(in_key, out_key, eps, clip)
         if init_mean is not None and dim is None:
@@ -190,6 +195,7 @@ class RunningNormalization(_Normalization):
         self.register_buffer("count", torch.tensor(check_positive(init_count, "RunningNormalization init_count")))
         self.frozen = bool(frozen)
         self.mask_key, self.mask_invert = mask_key, bool(mask_invert)
+        self.health_key = health_key
 
     def freeze(self) -> RunningNormalization:
         self.frozen = True
@@ -212,16 +218,18 @@ class RunningNormalization(_Normalization):
 
     @torch.no_grad()
     def update(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> None:
-        """Fold a batch (..., D) into the statistics, only the rows where ``mask`` (..., 1) is True if given.
+        """Fold a batch (..., D) into the statistics, only the finite rows where ``mask`` (..., 1) is True if given.
 
         The number of rows used stays a device tensor, so a masked update needs no host sync; an all-False mask
         leaves the statistics unchanged.
         """
         batch = x.detach().reshape(-1, x.shape[-1]).to(torch.float64)
-        if mask is None:
-            w = torch.ones((batch.shape[0], 1), dtype=torch.float64, device=batch.device)
-        else:
-            w = mask.detach().reshape(-1, 1).to(torch.float64)
+        keep = torch.isfinite(batch).all(-1, keepdim=True)
+        if mask is not None:
+            keep = keep & mask.detach().reshape(-1, 1).to(torch.bool)
+        # Left-out rows are zeroed, not only weighted 0: NaN · 0 is still NaN.
+        batch = torch.where(keep, batch, 0.0)
+        w = keep.to(torch.float64)
         n = w.sum()
         b_mean = (batch * w).sum(0) / n.clamp_min(1.0)
         b_var = ((batch - b_mean).square() * w).sum(0) / n.clamp_min(1.0)
@@ -247,6 +255,9 @@ class RunningNormalization(_Normalization):
             if self.mask_key is not None:
                 mask = next_tensordict.get(self.mask_key)
                 mask = ~mask if self.mask_invert else mask
+            healthy = next_tensordict.get(self.health_key, None) if self.health_key is not None else None
+            if healthy is not None:
+                mask = healthy if mask is None else mask & healthy
             self.update(next_tensordict.get(self.in_keys[0]), mask)
         return self._call(next_tensordict)
 

@@ -1,0 +1,140 @@
+"""Checkpoint files: no code runs on load, bad files give CheckpointError naming the file, atomic writes, retention."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from tocabi_torchrl.rl import preset_config
+from tocabi_torchrl.rl.checkpoint import (SCHEMA_VERSION, CheckpointError, config_from_checkpoint, load_checkpoint,
+                                          prune_checkpoints, read_checkpoint, save_checkpoint)
+from tocabi_torchrl.rl.trainer import build_agent, make_optimizer
+
+CPU = torch.device("cpu")
+SHIPPED_POLICY = Path(__file__).resolve().parents[1] / "assets" / "policies" / "tocabi_walk_ppo.pt"
+
+
+def _config(**overrides):
+    return preset_config("cpu_smoke", device="cpu", num_envs=4, minibatch_size=16, **overrides)
+
+
+def _saved_run(tmp_path: Path, iterations=(1,), **overrides) -> tuple[Path, object]:
+    cfg = _config(**overrides)
+    agent = build_agent(cfg, 237, 13, CPU)
+    optimizer = make_optimizer(cfg, agent, CPU)
+    for it in iterations:
+        save_checkpoint(tmp_path / "run", it, 64 * it, agent, optimizer, None, cfg)
+    return tmp_path / "run", agent
+
+
+class _RunsCode:
+    """Unpickling this object calls ``open(marker, "w")``: a stand-in for a shell command in a crafted file."""
+
+    def __init__(self, marker: Path):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return open, (self.marker, "w")
+
+
+def test_a_crafted_checkpoint_runs_no_code(tmp_path):
+    from tocabi_torchrl.rl.evaluate import evaluate_run
+
+    marker = tmp_path / "code_ran"
+    run, agent = _saved_run(tmp_path)
+    state = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)
+    state["iteration"] = _RunsCode(marker)
+    crafted = tmp_path / "crafted.pt"
+    torch.save(state, crafted)
+    with pytest.raises(CheckpointError, match=r"refusing to load .*crafted\.pt.*could run code"):
+        load_checkpoint(crafted, agent)
+    with pytest.raises(CheckpointError, match="crafted.pt"):
+        evaluate_run(crafted, num_envs=1, device="cpu")
+    assert not marker.exists(), "loading the checkpoint executed code from it"
+
+
+@pytest.mark.parametrize("kind", ["random", "truncated", "empty", "not_a_dict", "no_agent"])
+def test_unreadable_files_raise_checkpoint_error_naming_the_file(tmp_path, kind):
+    run, agent = _saved_run(tmp_path)
+    good = (run / "checkpoints" / "latest.pt").read_bytes()
+    bad = tmp_path / f"{kind}.pt"
+    if kind == "random":
+        bad.write_bytes(torch.randint(0, 256, (4096,), dtype=torch.uint8, generator=torch.Generator().manual_seed(0))
+                        .numpy().tobytes())
+    elif kind == "truncated":
+        bad.write_bytes(good[: len(good) // 2])
+    elif kind == "empty":
+        bad.write_bytes(b"")
+    elif kind == "not_a_dict":
+        torch.save([torch.zeros(3)], bad)
+    else:
+        state = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)
+        del state["agent"]
+        torch.save(state, bad)
+    with pytest.raises(CheckpointError, match=f"{kind}.pt"):
+        load_checkpoint(bad, agent)
+
+
+def test_saved_checkpoints_are_versioned_and_load_with_weights_only(tmp_path):
+    run, agent = _saved_run(tmp_path)
+    state = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)
+    assert state["schema_version"] == SCHEMA_VERSION
+    assert config_from_checkpoint(read_checkpoint(run)).num_envs == 4
+    state["schema_version"] = SCHEMA_VERSION + 1
+    torch.save(state, tmp_path / "future.pt")
+    with pytest.raises(CheckpointError, match="newer than this tocabi-torchrl reads"):
+        read_checkpoint(tmp_path / "future.pt")
+    state["schema_version"] = SCHEMA_VERSION
+    state["config"]["warp_speed"] = 9
+    torch.save(state, tmp_path / "alien.pt")
+    with pytest.raises(CheckpointError, match=r"alien\.pt: config has unknown field\(s\) \['warp_speed'\]"):
+        config_from_checkpoint(read_checkpoint(tmp_path / "alien.pt"), tmp_path / "alien.pt")
+
+
+@pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="shipped policy not present")
+def test_the_shipped_policy_predates_the_schema_and_still_loads():
+    state = read_checkpoint(SHIPPED_POLICY)
+    assert state["schema_version"] == 0
+    cfg = config_from_checkpoint(state, SHIPPED_POLICY)
+    assert cfg.actor_hidden == (400, 200, 100) and cfg.store_env_signals is False  # a field it predates
+    load_checkpoint(SHIPPED_POLICY, build_agent(cfg, 237, 13, CPU))
+
+
+def test_a_network_size_mismatch_names_the_tensors_not_a_state_dict(tmp_path):
+    run, _ = _saved_run(tmp_path)
+    other = build_agent(_config(actor_hidden=(32, 32)), 237, 13, CPU)
+    with pytest.raises(CheckpointError, match=r"does not fit this agent's actor .*mean_net.0.weight: file "
+                                              r"\(64, 237\) vs \(32, 237\)") as info:
+        load_checkpoint(run, other)
+    assert len(str(info.value)) < 800
+
+
+def test_checkpoint_writes_are_atomic(tmp_path, monkeypatch):
+    # A crash while latest.pt is being replaced must leave the previous latest.pt readable.
+    import tocabi_torchrl.rl.atomic as atomic
+
+    run, agent = _saved_run(tmp_path, iterations=(1,))
+    cfg = _config()
+    real_replace = atomic.os.replace
+
+    def crash_on_latest(src, dst):
+        if Path(dst).name == "latest.pt":
+            raise KeyboardInterrupt("killed mid-write")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", crash_on_latest)
+    with pytest.raises(KeyboardInterrupt):
+        save_checkpoint(run, 2, 128, agent, None, None, cfg)
+    monkeypatch.setattr(atomic.os, "replace", real_replace)
+    assert read_checkpoint(run)["iteration"] == 1
+    assert not list((run / "checkpoints").glob(".*.tmp")), "the failed write left its temporary file behind"
+
+
+def test_retention_keeps_the_last_k_and_every_mth(tmp_path):
+    run, _ = _saved_run(tmp_path, iterations=range(1, 13), checkpoint_keep_last=3, checkpoint_keep_every=5)
+    names = sorted(p.name for p in (run / "checkpoints").iterdir())
+    assert names == ["iter_000005.pt", "iter_000010.pt", "iter_000011.pt", "iter_000012.pt", "latest.pt"]
+    assert prune_checkpoints(run / "checkpoints", keep_last=0, keep_every=0) == []  # 0: keep everything
+    assert _config().checkpoint_keep_last == 3 and _config().checkpoint_keep_every == 50

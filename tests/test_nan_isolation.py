@@ -1,0 +1,130 @@
+"""NaN/inf stays in its world: the broken world terminates with finite outputs and resets; no normaliser statistic,
+observation, reward, or PPO update of any other world sees it (both physics backends)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from tocabi_torchrl import make_env
+from tocabi_torchrl.transforms import RunningNormalization
+
+N = 4
+
+
+def _running_norm(env) -> RunningNormalization:
+    return next(t for t in env.transform if isinstance(t, RunningNormalization))
+
+
+def _zero_step(env, td):
+    return env.step_and_maybe_reset(td.set("action", torch.zeros(N, 13)))
+
+
+@pytest.mark.parametrize("backend", ["warp", "mujoco"])
+def test_a_nan_world_terminates_resets_and_poisons_no_other_world(backend):
+    # The issue's repro: running normalisation, NaN into env 0's qvel, one step with zero actions.
+    env = make_env(num_envs=N, device="cpu", backend=backend, normalization="running", seed=0, sync_free_resets=True)
+    twin = make_env(num_envs=N, device="cpu", backend=backend, normalization="running", seed=0, sync_free_resets=True)
+    td, td_twin = env.reset(), twin.reset()
+    norm = _running_norm(env)
+    count = float(norm.count)
+    env.base_env.sim.qvel[0] = float("nan")
+    out, td = _zero_step(env, td)
+    out_twin, td_twin = _zero_step(twin, td_twin)
+    nxt = out["next"]
+    assert nxt["terminated"].flatten().tolist() == [True, False, False, False]
+    assert not nxt["healthy"][0] and nxt["healthy"][1:].all()
+    for key in ("observation", "obs_step", "reward", "episode_reward", "joint_pos", "base_pos", "foot_force"):
+        assert torch.isfinite(nxt[key]).all(), f"{key} is not finite (NaN world's terminal step included)"
+    assert nxt["reward"][0] == 0.0
+    # The other worlds' physics and signals are those of a run without the NaN.
+    torch.testing.assert_close(nxt["obs_step"][1:], out_twin["next", "obs_step"][1:], rtol=0, atol=0)
+    # The normaliser learned from the three healthy rows only, and its statistics stay finite.
+    assert float(norm.count) == count + N - 1
+    assert torch.isfinite(norm.mean).all() and torch.isfinite(norm.var).all()
+    # The broken world was reset in the same call; every world steps on with finite values.
+    assert td["step_count"][0] == 0 and torch.isfinite(td["observation"]).all()
+    out, td = _zero_step(env, td)
+    assert torch.isfinite(out["next", "observation"]).all() and out["next", "healthy"].all()
+    assert float(norm.count) == count + 2 * N - 1
+
+
+def test_the_warp_health_flag_covers_qacc_and_sensors():
+    import warp as wp
+
+    from tocabi_torchrl.sim.kernels import derive_signals
+
+    wp.init()
+    qacc = np.zeros((3, 2), np.float32)
+    qacc[1, 0] = np.inf
+    sensors = np.zeros((3, 4), np.float32)
+    sensors[2, 3] = np.nan
+    healthy = wp.zeros(3, dtype=wp.bool, device="cpu")
+    with wp.ScopedDevice("cpu"):
+        wp.launch(derive_signals, dim=3, inputs=[
+            wp.zeros((3, 2), dtype=float), wp.zeros((3, 2), dtype=float), wp.array(qacc, dtype=float),
+            wp.array(sensors, dtype=float), wp.zeros(1, dtype=int), wp.zeros((1, 1), dtype=float),
+            wp.zeros(3, dtype=int), wp.zeros(3, dtype=int), wp.zeros(1, dtype=int), wp.zeros(1, dtype=int), 10, 10, 0,
+        ], outputs=[wp.zeros((3, 1), dtype=wp.bool), wp.zeros(3, dtype=int), healthy])
+    assert healthy.numpy().tolist() == [True, False, False]
+
+
+def test_the_mujoco_health_flag_covers_sensors():
+    from tocabi_torchrl.sim import MujocoSim, SimConfig
+
+    sim = MujocoSim(SimConfig(num_worlds=3, device="cpu", threads=1))
+    sim._staged["sensordata"][1, 0] = math.inf
+    sim._publish()
+    assert sim.healthy.tolist() == [True, False, True]
+
+
+def test_running_normalisation_skips_non_finite_and_unhealthy_rows():
+    norm = RunningNormalization(dim=2, init_count=1.0)
+    x = torch.tensor([[1.0, 2.0], [math.nan, 0.0], [3.0, math.inf], [5.0, 6.0]])
+    healthy = torch.tensor([[True], [True], [True], [False]])
+    norm.update(x, healthy)
+    # Only row 0 is usable: mean moves from (0, 0) halfway to (1, 2) with count 1 + 1.
+    torch.testing.assert_close(norm.mean, torch.tensor([0.5, 1.0], dtype=torch.float64))
+    assert float(norm.count) == 2.0 and torch.isfinite(norm.var).all()
+
+
+def test_a_broken_frame_cannot_poison_the_ppo_update():
+    # A NaN action, a ±1e6 action written over the sampled one (a wrapped policy) and a NaN observation: those frames
+    # are masked out, and the losses, statistics and parameters stay finite.
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.rollout_guard import VALID_KEY, guard_rollout
+    from tocabi_torchrl.rl.trainer import _loss_keys, _update, build_agent, make_loss, make_optimizer, make_update_step
+
+    cfg = preset_config("cpu_smoke", device="cpu", num_envs=4, steps_per_env=8, minibatch_size=32, epochs=2)
+    cpu = torch.device("cpu")
+    torch.manual_seed(0)
+    agent = build_agent(cfg, 6, 13, cpu)
+    obs = torch.randn(4, 9, 6)
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):  # sampled as the collector does
+        td = agent.actor(TensorDict({"observation": obs[:, :-1].clone()}, batch_size=[4, 8]))
+    done = torch.zeros(4, 8, 1, dtype=torch.bool)
+    td["next"] = TensorDict({"observation": obs[:, 1:].clone(), "reward": torch.randn(4, 8, 1), "done": done,
+                             "terminated": done.clone(), "truncated": done.clone()}, batch_size=[4, 8])
+    td.refine_names(None, "time")
+    td["action"][0, 3, 2] = math.nan
+    td["action"][1, 5] = 1e6
+    td["observation"][2, 6, 0] = math.nan
+    optimizer = make_optimizer(cfg, agent, cpu)
+    loss_module, advantage = make_loss(cfg, agent)
+    valid = guard_rollout(td)
+    assert (~valid).nonzero().tolist() == [[0, 3], [1, 5], [2, 6]]
+    for key in ("action", "action_log_prob", "observation"):
+        assert torch.isfinite(td[key]).all(), key
+    with torch.no_grad():
+        advantage(td)
+    flat = td.select(*_loss_keys(loss_module, td)).reshape(-1)
+    assert VALID_KEY in flat.keys()
+    stats = _update(cfg, flat, make_update_step(cfg, loss_module, optimizer, cpu))
+    assert all(math.isfinite(v) for v in stats.values()), stats
+    for name, p in [*agent.actor.named_parameters(), *agent.critic.named_parameters()]:
+        assert torch.isfinite(p).all(), name

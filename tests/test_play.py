@@ -1,0 +1,91 @@
+"""recipes/play.py and evaluation: wrapped errors for bad files and too-short runs, outputs of a shipped policy outside
+the source tree, the plot titled with the command, progress while rolling out and rendering, a usable --help, and a
+clear message for an unusable MUJOCO_GL=osmesa."""
+
+from __future__ import annotations
+
+import ctypes.util
+import importlib.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from test_runs import recipe
+
+REPO = Path(__file__).resolve().parents[1]
+SHIPPED_POLICY = REPO / "assets" / "policies" / "tocabi_walk_ppo.pt"
+needs_policy = pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="shipped policy not present")
+
+
+@pytest.mark.parametrize("kind", ["random", "truncated"])
+def test_play_reports_an_unreadable_checkpoint_in_one_line(tmp_path, kind):
+    bad = tmp_path / f"{kind}.pt"
+    if kind == "random":
+        bad.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    else:
+        bad.write_bytes(SHIPPED_POLICY.read_bytes()[:5000] if SHIPPED_POLICY.is_file() else b"PK\x03\x04")
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", str(bad), "--num_envs", "1", "--device", "cpu"])
+    assert f"cannot read checkpoint {bad}" in str(info.value.code)
+
+
+@needs_policy
+def test_play_refuses_seconds_below_one_policy_step():
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--seconds", "0.001", "--device", "cpu"])
+    assert "seconds=0.001 is shorter than one policy step (4 ms)" in str(info.value.code)
+
+
+@needs_policy
+def test_a_shipped_policy_writes_outside_the_source_tree_and_titles_the_plot_with_the_command(
+        tmp_path, monkeypatch, capsys):
+    from PIL import Image
+
+    from tocabi_torchrl.rl.evaluate import evaluate_run
+
+    monkeypatch.chdir(tmp_path)
+    before = set(SHIPPED_POLICY.parent.iterdir())
+    evaluate_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.1, command=(0.3, 0.1), video_envs=0)
+    out = tmp_path / "runs" / "eval" / "tocabi_walk_ppo"
+    assert (out / "summary.json").is_file() and (out / "knees.png").is_file()
+    assert set(SHIPPED_POLICY.parent.iterdir()) == before, "evaluation wrote into the package's assets"
+    assert Image.open(out / "knees.png").text["Title"] == "Knee trajectories at command (0.3, 0.1) m/s, env 0"
+    assert "gait test" in capsys.readouterr().err  # the rollout's progress bar
+
+
+def test_rendering_shows_progress(tmp_path, capsys, model):
+    from tocabi_torchrl.rl.evaluate import _render_video
+
+    qpos = np.tile(model.qpos0, (3, 1, 1))
+    try:
+        _render_video(model, qpos, 30, tmp_path, width=64, height=48)
+    except Exception as err:  # noqa: BLE001 - no OpenGL backend on this machine
+        pytest.skip(f"no offscreen rendering here: {err}")
+    assert "rendering video" in capsys.readouterr().err
+
+
+def test_play_help_shows_every_default():
+    parser = recipe("play").build_parser()
+    for action in parser._actions:
+        if action.dest not in ("help", "checkpoint"):
+            assert action.help.count("(default:") == 1, action.dest
+
+
+def test_osmesa_is_checked_before_mujoco_loads():
+    from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
+
+    environ = {"MUJOCO_GL": "osmesa"}
+    if ctypes.util.find_library("OSMesa") and importlib.util.find_spec("OpenGL"):
+        assert choose_gl_backend(environ) == "osmesa"
+        return
+    with pytest.raises(GLBackendError, match="MUJOCO_GL=osmesa needs .*MUJOCO_GL=egl"):
+        choose_gl_backend(environ)
+    assert choose_gl_backend({}) in ("egl", None) and choose_gl_backend({"MUJOCO_GL": "egl"}) == "egl"
+    env = {**os.environ, "MUJOCO_GL": "osmesa", "PYTHONPATH": str(REPO)}
+    proc = subprocess.run([sys.executable, str(REPO / "recipes" / "play.py"), "--help"], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and "MUJOCO_GL=osmesa needs" in proc.stderr and "Traceback" not in proc.stderr

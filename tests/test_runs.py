@@ -1,0 +1,184 @@
+"""Runs a user can trust: no silent overwrite, --resume restores the saved run, explicit requests are honoured or
+refused, clear messages for missing loggers, progress shows '-' until an episode ends, --help describes every option."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from tocabi_torchrl.rl import parse_args, preset_config
+from tocabi_torchrl.rl.launch import LaunchError, banner, launch_config
+from tocabi_torchrl.rl.resume import ResumeConfigError
+from tocabi_torchrl.rl.run_dir import RunDirError
+from tocabi_torchrl.rl.trainer import train
+
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+TINY = dict(device="cpu", num_envs=2, steps_per_env=4, minibatch_size=8, total_env_steps=16, progress_bar=False,
+            eval_at_end=False, checkpoint_every=1)
+
+
+def recipe(name: str):
+    """Import ``recipes/<name>.py`` as a module (the recipes are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(f"recipe_{name}", RECIPES / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def tiny_args(tmp_path: Path, name: str = "run", **extra) -> list[str]:
+    options = {**TINY, "run_dir": str(tmp_path), "name": name, "preset": "cpu_smoke", **extra}
+    return [x for k, v in options.items() for x in (f"--{k}", str(v))]
+
+
+def iterations_logged(run: Path) -> list[int]:
+    with open(run / "metrics.csv", newline="") as f:
+        return [int(row["iteration"]) for row in csv.DictReader(f)]
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    """A 2-iteration cpu_smoke run written by the recipe (shared by the tests that only read or refuse it)."""
+    root = tmp_path_factory.mktemp("runs")
+    recipe("ppo_walk").main(tiny_args(root))
+    return root / "run"
+
+
+# ------------------------------------------------------------------------------------------ finding 3: no overwrite
+def test_rerunning_a_name_refuses_and_keeps_the_earlier_run(finished_run, capsys):
+    before = {p.name: p.stat().st_mtime_ns for p in (finished_run / "checkpoints").iterdir()}
+    config = (finished_run / "config.json").read_text()
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(tiny_args(finished_run.parent))
+    message = str(info.value.code)
+    assert "already holds a run" in message and f"--resume {finished_run}" in message and "--name" in message
+    assert {p.name: p.stat().st_mtime_ns for p in (finished_run / "checkpoints").iterdir()} == before
+    assert (finished_run / "config.json").read_text() == config
+    assert iterations_logged(finished_run) == [1, 2]
+    cfg = preset_config("cpu_smoke", **TINY, run_dir=str(finished_run.parent), name="run")
+    with pytest.raises(RunDirError, match="already holds a run"):
+        train(cfg)
+
+
+# ------------------------------------------------------------------------------------------- finding 6: --resume
+def test_resume_restores_the_saved_config(finished_run):
+    cfg, _ = parse_args(["--resume", str(finished_run)])
+    saved = preset_config("cpu_smoke", **TINY, run_dir=str(finished_run.parent), name="run")
+    assert cfg.num_envs == 2 and cfg.steps_per_env == 4 and cfg.actor_hidden == saved.actor_hidden
+    assert cfg.preset == "cpu_smoke" and cfg.resume == str(finished_run)
+    cfg, _ = parse_args(["--resume", str(finished_run), "--total_env_steps", "24", "--max_minutes", "1"])
+    assert cfg.total_env_steps == 24 and cfg.max_minutes == 1.0 and cfg.num_envs == 2
+
+
+@pytest.mark.parametrize("option, value, saved", [("lr", "0.5", "0.001"), ("control_mode", "torque", "'pd_reference'"),
+                                                  ("transform_preset", "tocabilab", "'reference'"),
+                                                  ("actor_hidden", "32,32", r"\(64, 64\)"),
+                                                  ("preset", "default", "'cpu_smoke'")])
+def test_resume_refuses_changed_settings_naming_them(finished_run, option, value, saved):
+    with pytest.raises(ResumeConfigError, match=rf"{option}: saved {saved}, given "):
+        parse_args(["--resume", str(finished_run), f"--{option}", value])
+
+
+def test_train_refuses_a_resume_with_other_network_sizes(finished_run):
+    cfg = preset_config("cpu_smoke", **{**TINY, "total_env_steps": 32}, run_dir=str(finished_run.parent), name="run",
+                        resume=str(finished_run), actor_hidden=(32, 32))
+    with pytest.raises(ResumeConfigError, match=r"actor_hidden: saved \(64, 64\), given \(32, 32\)"):
+        train(cfg)
+
+
+def test_resuming_a_finished_run_says_so(finished_run, capsys):
+    recipe("ppo_walk").main(["--resume", str(finished_run)])
+    out = capsys.readouterr().out
+    assert "already finished (iteration 2 of 2, 16 env steps)" in out
+    assert "env-steps/s" not in out and "done:" not in out
+    cfg, _ = parse_args(["--resume", str(finished_run)])
+    result = train(cfg)
+    assert result.already_finished and result.iterations == 2 and result.env_steps == 16
+
+
+def test_resume_continues_the_iterations_after_a_kill(tmp_path):
+    # Rows logged after the last checkpoint (a run killed between its log row and its checkpoint) are dropped, so
+    # the resumed run's rows continue the numbering without repeats.
+    recipe("ppo_walk").main(tiny_args(tmp_path, checkpoint_every=2, total_env_steps=24))
+    run = tmp_path / "run"
+    assert iterations_logged(run) == [1, 2, 3]
+    (run / "checkpoints" / "latest.pt").write_bytes((run / "checkpoints" / "iter_000002.pt").read_bytes())
+    recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "32"])
+    assert iterations_logged(run) == [1, 2, 3, 4]
+
+
+# ------------------------------------------------------------------------ finding 4: explicit requests are honoured
+def test_explicit_cuda_or_gpu_preset_without_cuda_is_refused(finished_run):
+    for argv, match in ((["--device", "cuda"], "--device cuda was requested but torch sees no CUDA GPU"),
+                        (["--preset", "reference"], "--preset reference is sized for a GPU"),
+                        (["--preset", "default", "--num_envs", "8"], "--device cpu"),
+                        (["--resume", str(finished_run), "--device", "cuda:0"], "no CUDA GPU")):
+        with pytest.raises(LaunchError, match=match):
+            launch_config(argv, cuda_available=False)
+    cfg, _, note = launch_config(["--preset", "reference", "--device", "cpu"], cuda_available=False)
+    assert cfg.preset == "reference" and cfg.device == "cpu" and note is None  # asked for explicitly: honoured
+    cfg, _, note = launch_config(["--preset", "reference"], cuda_available=True)
+    assert cfg.preset == "reference" and note is None
+
+
+def test_auto_falls_back_to_the_smoke_run_and_the_banner_says_what_runs():
+    smoke, args, note = launch_config(["--num_envs", "4", "--name", "mine"], cuda_available=False)
+    assert smoke.preset == "cpu_smoke" and smoke.device == "cpu" and smoke.num_envs == 4 and smoke.name == "mine"
+    assert "No CUDA GPU found" in note and "cpu_smoke" in note
+    line = banner(smoke, args, torch.device("cpu"))
+    assert "preset cpu_smoke, 4 envs" in line and "on cpu" in line and "num_envs=4" in line
+    assert f"{smoke.iterations:,} iterations of {smoke.frames_per_batch:,} env steps" in line
+    cfg, _, note = launch_config([], cuda_available=True)
+    assert cfg.preset == "default" and cfg.num_envs == 4096 and note is None
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the behaviour without CUDA")
+def test_recipe_exits_non_zero_on_an_impossible_device(tmp_path):
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(["--device", "cuda", "--run_dir", str(tmp_path)])
+    assert info.value.code != 0 and "no CUDA GPU" in str(info.value.code)
+    assert not (tmp_path / "ppo_walk").exists()
+
+
+# --------------------------------------------------------------------------------- finding 9: messages and --help
+@pytest.mark.skipif(importlib.util.find_spec("wandb") is not None, reason="wandb is installed")
+def test_missing_wandb_names_the_install_command(tmp_path):
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(tiny_args(tmp_path, loggers="csv,wandb"))
+    assert 'pip install "tocabi-torchrl[wandb]"' in str(info.value.code)
+    assert not (tmp_path / "run").exists()
+
+
+def test_log_lines_show_a_dash_until_an_episode_ends(tmp_path, capsys):
+    from tocabi_torchrl.rl.logging import RunLogger
+
+    logger = RunLogger(tmp_path, preset_config("cpu_smoke", progress_bar=False), total_iterations=3)
+    logger.log(1, {"episode_return": math.nan, "episode_length": math.nan, "env_steps_per_s": 10.0})
+    logger.log(2, {"episode_return": 12.34, "episode_length": 50.0, "env_steps_per_s": 10.0})
+    logger.log(3, {"episode_return": math.nan, "episode_length": math.nan, "env_steps_per_s": 10.0})
+    logger.close()
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("it 1: return - len -") and "nan" not in " ".join(lines)
+    assert lines[2].startswith("it 3: return 12.3 len 50")  # the last finished episodes' values
+
+
+def test_help_describes_every_option_once(capsys):
+    import dataclasses
+
+    from tocabi_torchrl.rl.config import PPOConfig, build_parser
+    from tocabi_torchrl.rl.options import FIELD_HELP
+
+    assert set(FIELD_HELP) == {f.name for f in dataclasses.fields(PPOConfig)}, "every field needs a help line"
+    with pytest.raises(SystemExit):
+        parse_args(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    helps = {a.dest: a.help for a in build_parser()._actions if a.dest != "help"}
+    for dest, line in helps.items():
+        assert line.count("(default:") == 1 and line.startswith(FIELD_HELP[dest]), dest
+        assert f"--{dest}" in text, dest
+    assert "one of: torque, pd, pd_reference" in helps["control_mode"]
+    assert "any of csv, tensorboard, wandb" in helps["loggers"] and "true/false" in helps["eval_at_end"]

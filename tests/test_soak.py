@@ -1,0 +1,31 @@
+"""benchmarks/soak.py at a tiny CPU size: faults stay in their worlds, training stays finite, a killed run resumes."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCH))
+
+import pytest  # noqa: E402
+import soak  # noqa: E402
+
+
+@pytest.mark.slow  # ~45 s on 2 cores: two training processes (one killed, one resumed) and a faulty training run
+def test_tiny_soak_on_the_cpu(tmp_path):
+    code = soak.main(["--num_envs", "8", "--minutes", "0.1", "--device", "cpu", "--fault_every", "40",
+                      "--out", str(tmp_path / "out"), "--run_dir", str(tmp_path / "runs")])
+    report = json.loads((tmp_path / "out" / "soak.json").read_text())
+    failed = [c for c in report["results"] if not c["ok"]]
+    assert code == 0 and not failed, failed
+    faults = report["meta"]["faults"]
+    assert faults["fault_events"] >= 1 and faults["monitor"]["nan_worlds"] == faults["fault_events"]
+    kill = report["meta"]["kill_resume"]
+    assert kill["killed"] and kill["metrics_iterations"][-1] == kill["last_checkpoint_iteration"] + 2
+    assert (tmp_path / "out" / "soak.md").read_text().startswith("# Soak: 8 envs")
+    # One mode per command (a 10-minute device call each): the other mode's results stay in soak.json.
+    meta = {}
+    kept = soak.keep_other_modes(tmp_path / "out" / "soak.json", ("faults",), meta)
+    assert kept and {c["mode"] for c in kept} == {"kill_resume"} and meta["kill_resume"] == kill

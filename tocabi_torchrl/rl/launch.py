@@ -1,0 +1,67 @@
+"""From a command line to the run that actually happens on this machine, and the banner that says so.
+
+Only ``--device auto`` with no ``--preset`` given may turn into something else than asked: without a CUDA GPU it runs
+the small ``cpu_smoke`` configuration (keeping the other options given), and the banner says so. An explicit request
+this machine cannot honour (``--device cuda`` without CUDA, a GPU-sized ``--preset`` or resumed run on ``auto``)
+raises :class:`LaunchError` with what to pass instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from .config import PPOConfig, build_parser, preset_config
+from .resume import resume_config
+
+__all__ = ["LaunchError", "CPU_SIZED_PRESETS", "launch_config", "banner"]
+
+#: Presets that run in minutes on a CPU; every other preset is sized for a GPU.
+CPU_SIZED_PRESETS = frozenset({"cpu_smoke"})
+
+
+class LaunchError(ValueError):
+    """An explicit request (device, preset) that this machine cannot honour."""
+
+
+def launch_config(argv: list[str] | None, cuda_available: bool,
+                  description: str = "") -> tuple[PPOConfig, argparse.Namespace, str | None]:
+    """Parse ``argv`` (see :func:`~tocabi_torchrl.rl.config.build_parser`) into the config to run on this machine.
+
+    Returns the config, the namespace (options not given are None) and, when the run differs from the request, a
+    note saying why. The fallback is decided before the config is built, so options sized for the smoke run (e.g.
+    ``--num_envs 4``) are checked against it rather than against the GPU preset.
+    """
+    args = build_parser(description).parse_args(argv)
+    overrides = {k: v for k, v in vars(args).items() if v is not None}
+    resumed = resume_config(args.resume, overrides) if args.resume else None
+    preset = resumed.preset if resumed else (args.preset or "default")
+    device = resumed.device if resumed else overrides.get("device", "auto")
+    note = None
+    if not cuda_available:
+        if device.startswith("cuda"):
+            raise LaunchError(f"--device {device} was requested but torch sees no CUDA GPU on this machine; pass "
+                              "--device cpu (or leave --device out for the small CPU smoke run)")
+        if device == "auto" and preset not in CPU_SIZED_PRESETS:
+            sized = preset_config(preset)
+            gpu_sized = f"sized for a GPU ({sized.num_envs:,} envs, {sized.total_env_steps:,} env steps)"
+            if resumed:
+                raise LaunchError(f"the resumed run {args.resume} uses preset {preset!r}, {gpu_sized}, and torch sees "
+                                  "no CUDA GPU; pass --device cpu to continue it on the CPU anyway")
+            if args.preset is not None:
+                raise LaunchError(f"--preset {preset} is {gpu_sized}, and torch sees no CUDA GPU; pass --device cpu "
+                                  f"to run it on the CPU anyway, or use --preset {min(CPU_SIZED_PRESETS)}")
+            preset, overrides["device"] = min(CPU_SIZED_PRESETS), "cpu"
+            note = (f"No CUDA GPU found and --device auto: running the small CPU smoke configuration (preset {preset})"
+                    " instead of the GPU-sized default; it proves the pipeline and learns nothing useful. Pass "
+                    "--device cpu to run the default preset on the CPU.")
+    return resumed or preset_config(preset, **overrides), args, note
+
+
+def banner(cfg: PPOConfig, args: argparse.Namespace, device) -> str:
+    """One line saying what will run: preset, size, budget, device and the options given on the command line."""
+    given = {k: v for k, v in vars(args).items() if v is not None and k != "preset"}
+    shown = ", ".join(f"{k}={','.join(map(str, v)) if isinstance(v, tuple) else v}" for k, v in given.items())
+    return (f"training {cfg.name}: preset {cfg.preset}, {cfg.num_envs:,} envs, {cfg.iterations:,} iterations of "
+            f"{cfg.frames_per_batch:,} env steps ({cfg.control_mode} control) on {device}"
+            + (f"; options given: {shown}" if shown else "")
+            + f"; run folder {cfg.run_dir}/{cfg.name}")

@@ -1,0 +1,65 @@
+"""``--resume``: continue a run with the config saved in its checkpoint.
+
+A resumed run is the same run: its networks, task, rewards and learning settings come from the checkpoint. Options
+given again may change only what :data:`~tocabi_torchrl.rl.options.RESUME_SAFE` lists (budget, logging, checkpoint
+cadence and retention, evaluation, device, graph and storage switches); any other difference is refused with a
+:class:`ResumeConfigError` naming the field, the saved value and the given one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint
+from .config import PPOConfig
+from .options import RESUME_SAFE
+
+__all__ = ["ResumeConfigError", "resume_config", "check_resume_config"]
+
+
+class ResumeConfigError(ValueError):
+    """A resumed run was given options that would change what the saved run is."""
+
+
+def _differences(saved: PPOConfig, given: dict) -> list[tuple[str, object, object]]:
+    out = []
+    for name, value in given.items():
+        if name in RESUME_SAFE:
+            continue
+        was = getattr(saved, name)
+        now = tuple(value) if isinstance(value, list) else value
+        if now != was:
+            out.append((name, was, now))
+    return out
+
+
+def _refuse(path, diffs: list[tuple[str, object, object]]) -> ResumeConfigError:
+    lines = "; ".join(f"{name}: saved {was!r}, given {now!r}" for name, was, now in diffs)
+    return ResumeConfigError(
+        f"cannot resume {path} with other settings than the run was trained with ({lines}). Drop these options to "
+        f"continue the run as saved, or start a new run with --name. On --resume only these may change: "
+        f"{', '.join(sorted(RESUME_SAFE - {'resume'}))}"
+    )
+
+
+def check_resume_config(saved: PPOConfig, given: PPOConfig, path: str | os.PathLike = "<checkpoint>") -> None:
+    """Raise :class:`ResumeConfigError` if ``given`` differs from ``saved`` in a field a resume may not change."""
+    diffs = _differences(saved, dataclasses.asdict(given))
+    if diffs:
+        raise _refuse(path, diffs)
+
+
+def resume_config(resume: str | os.PathLike, overrides: dict) -> PPOConfig:
+    """The config saved with ``resume`` (a run folder or checkpoint file) with the command line's explicit
+    ``overrides`` applied; ``overrides`` may hold ``preset`` (compared by name) and any PPOConfig field."""
+    path = checkpoint_file(resume)
+    saved = config_from_checkpoint(read_checkpoint(path), path)
+    diffs = _differences(saved, overrides)
+    if diffs:
+        raise _refuse(path, diffs)
+    merged = {**dataclasses.asdict(saved), **{k: v for k, v in overrides.items() if k in RESUME_SAFE}}
+    merged["resume"] = str(resume)
+    cfg = PPOConfig(**merged)
+    cfg.validate()
+    return cfg

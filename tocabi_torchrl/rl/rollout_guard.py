@@ -1,0 +1,59 @@
+"""Keep broken frames of a rollout out of the PPO update, so one bad world cannot poison every world's update.
+
+The env keeps its outputs finite (a world whose physics fails terminates, its signals are zeroed, see
+``TocabiWalk._observe``), but a frame can still be unusable: a non-finite observation or reward from a custom env or
+transform, or an action that is not a sample of the stored action distribution (a NaN action, or ±1e6 from a wrapped
+or broken policy). One such frame makes the loss of the whole mini-batch NaN (the advantage is normalised over the
+batch; the log-probability ratio of ±1e6 loses all float32 precision), and the next optimiser step writes NaN into
+every parameter.
+
+:func:`guard_rollout` marks each frame valid or not in ``VALID_KEY`` and makes the invalid frames harmless: finite
+observations and reward 0, the action replaced by the distribution's mean with its log-probability, so every loss
+term stays finite; the loss leaves them out through TorchRL's loss mask (``loss_module.loss_mask_key = VALID_KEY``).
+Masks and ``torch.where`` only: no host reads, no shapes that depend on the data.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDictBase
+
+__all__ = ["VALID_KEY", "MAX_SAMPLE_Z", "guard_rollout"]
+
+#: Key of the (…, 1) bool mask of usable frames written by :func:`guard_rollout`.
+VALID_KEY = "frame_valid"
+#: A stored action further than this many standard deviations from the stored mean is no sample of the stored
+#: Gaussian (probability far below 1e-500): it came from a fault, not from the policy's distribution.
+MAX_SAMPLE_Z = 50.0
+
+
+def _finite_rows(x: torch.Tensor, event_dims: int) -> torch.Tensor:
+    return torch.isfinite(x).flatten(-event_dims).all(-1) if event_dims else torch.isfinite(x)
+
+
+def guard_rollout(batch: TensorDictBase, action_key: str = "action", log_prob_key: str = "action_log_prob",
+                  loc_key: str = "loc", scale_key: str = "scale") -> torch.Tensor:
+    """Mark and neutralise unusable frames of ``batch`` (shape (num_envs, T), modified in place); returns the
+    (num_envs, T) bool mask of usable frames, also stored under :data:`VALID_KEY` as (num_envs, T, 1)."""
+    obs, next_obs = batch.get("observation"), batch.get(("next", "observation"))
+    reward = batch.get(("next", "reward"))
+    action, log_prob = batch.get(action_key), batch.get(log_prob_key)
+    valid = (_finite_rows(obs, 1) & _finite_rows(next_obs, 1) & _finite_rows(reward, 1) & _finite_rows(action, 1)
+             & torch.isfinite(log_prob))
+    loc, scale = batch.get(loc_key, None), batch.get(scale_key, None)
+    if loc is not None and scale is not None:
+        # NaN compares False, so a NaN action, mean or std fails this too.
+        valid = valid & ((action - loc).abs() <= MAX_SAMPLE_Z * scale).all(-1)
+        safe_loc = torch.nan_to_num(loc, nan=0.0, posinf=0.0, neginf=0.0)
+        log_prob_at_mean = (-torch.log(scale) - 0.5 * math.log(2.0 * math.pi)).sum(-1)
+    else:  # not a Gaussian actor of this package: a zero action with log-probability 0 keeps the terms finite
+        safe_loc, log_prob_at_mean = torch.zeros_like(action), torch.zeros_like(log_prob)
+    batch.set(action_key, torch.where(valid.unsqueeze(-1), action, safe_loc))
+    batch.set(log_prob_key, torch.where(valid, log_prob, torch.nan_to_num(log_prob_at_mean)))
+    batch.set("observation", torch.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0))
+    batch.set(("next", "observation"), torch.nan_to_num(next_obs, nan=0.0, posinf=0.0, neginf=0.0))
+    batch.set(("next", "reward"), torch.where(valid.unsqueeze(-1), reward, 0.0))
+    batch.set(VALID_KEY, valid.unsqueeze(-1))
+    return valid

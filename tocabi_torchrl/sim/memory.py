@@ -1,0 +1,92 @@
+"""An up-front memory check: refuse a world count that cannot fit before allocating it.
+
+Without it, ``num_envs=10**9`` on the CPU backend allocates ``MjData`` after ``MjData`` until the machine runs out of
+memory. Each backend estimates its bytes per world from the compiled model (:func:`warp_world_bytes`,
+:func:`mujoco_world_bytes`) and :func:`check_fits` compares ``num_worlds ×`` that with the memory available now
+(``/proc/meminfo``'s MemAvailable, or ``os.sysconf``, for the host; ``torch.cuda.mem_get_info`` on a GPU). The
+estimate covers the simulator alone (an env, transforms and a training rollout add more), so passing it does not
+promise that training fits; failing it means the worlds alone cannot.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import mujoco
+import torch
+
+__all__ = ["available_bytes", "check_fits", "mujoco_world_bytes", "warp_world_bytes", "MUJOCO_OVERHEAD"]
+
+#: Resident memory of a C MuJoCo world over the bytes its ``MjData`` uses (buffer, used arena and stack): the Python
+#: binding's arrays and the allocator. Measured for TOCABI: 636 kB RSS per ``MjData`` against 235 kB used (2.7×).
+MUJOCO_OVERHEAD = 3.0
+
+
+def available_bytes(device: torch.device) -> int | None:
+    """Memory that can still be allocated on ``device`` (host memory for the CPU), or ``None`` if unknown."""
+    if device.type == "cuda":
+        free, _total = torch.cuda.mem_get_info(device)
+        return int(free)
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:,.2f} GiB" if n >= 2**27 else f"{n / 2**20:,.1f} MiB"
+
+
+def check_fits(num_worlds: int, bytes_per_world: int, device: torch.device, what: str) -> None:
+    """Raise ``ValueError`` naming the estimate and the limit if ``num_worlds`` worlds cannot fit on ``device``."""
+    available = available_bytes(device)
+    need = num_worlds * bytes_per_world
+    if available is not None and need > available:
+        where = f"is free on {device}" if device.type == "cuda" else "of host memory is available"
+        raise ValueError(
+            f"{num_worlds:,} {what} worlds need about {_gib(need)} ({bytes_per_world / 1024:,.0f} KiB per world, "
+            f"estimated from the model) but only {_gib(available)} {where}; lower num_envs to at most "
+            f"{max(available // bytes_per_world, 0):,}")
+
+
+def mujoco_world_bytes(mj: mujoco.MjModel) -> int:
+    """Resident bytes of one C MuJoCo world of ``mj``: its ``MjData`` after a forward pass (buffer, used arena and
+    stack) times :data:`MUJOCO_OVERHEAD`, plus the backend's float64 staging and float32 tensors."""
+    probe = mujoco.MjData(mj)
+    mujoco.mj_forward(mj, probe)
+    used = probe.nbuffer + probe.maxuse_arena + probe.maxuse_stack
+    per_row = mj.nq + mj.nv + mj.nsensordata + 7 * mj.nbody + mj.nu + 1  # qpos, qvel, sensors, xpos+xquat, forces
+    return int(MUJOCO_OVERHEAD * used) + 12 * per_row + 4 * (mj.nq + mj.nv + mj.nu)
+
+
+def warp_world_bytes(mj: mujoco.MjModel, nconmax: int, njmax: int) -> int:
+    """Bytes of one mujoco-warp world of ``mj`` (every array of a one-world ``mujoco_warp.Data`` with these buffer
+    sizes, on the CPU, which allocates nothing on the GPU) plus the backend's own per-world buffers."""
+    import mujoco_warp as mjw
+    import warp as wp
+
+    with wp.ScopedDevice("cpu"):
+        data = mjw.make_data(mj, nworld=1, nconmax=nconmax, njmax=njmax)
+    own = 4 * (2 * mj.nq + 2 * mj.nv + 3 * mj.nu + mj.nsensordata + 8)  # reset, snapshot and signal buffers
+    return _array_bytes(data) + own
+
+
+def _array_bytes(obj) -> int:
+    import warp as wp
+
+    total = 0
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if isinstance(value, wp.array):
+            total += value.capacity
+        elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+            total += _array_bytes(value)
+    return total
