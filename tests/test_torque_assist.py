@@ -29,24 +29,27 @@ def _step(env, action):
     return env.step(TensorDict({"action": action}, batch_size=[env.num_envs]))["next"]
 
 
-def test_assist_adds_the_reference_pd_of_the_pre_step_state(assisted):
+def test_assist_morphs_position_residuals_into_torques(assisted):
     env = assisted
     env.reset()
-    torque = torch.zeros(N, 13)
     for _ in range(5):  # leave the reset pose: nonzero errors and velocities
-        _step(env, torque)
+        _step(env, torch.zeros(N, 13))
     q, qd = env.sim.qpos[:, 7:19].clone(), env.sim.qvel[:, 6:18].clone()
     q_ref = env.motion.joint_targets(env.time, env.init_row)[:, :12]
-    pd = torch.as_tensor(robot.LEG_KP, dtype=torch.float32) * (q_ref - q) \
-        - torch.as_tensor(robot.LEG_KV, dtype=torch.float32) * qd
+    kp, kv = torch.as_tensor(robot.LEG_KP, dtype=torch.float32), torch.as_tensor(robot.LEG_KV, dtype=torch.float32)
     action = torch.zeros(N, 13)
     action[:, :12] = 0.1
-    env.set_torque_assist(0.5)
+    beta, scale = 0.25, env.cfg.pd_action_scale
+    env.set_torque_assist(beta)
     out = _step(env, action)
-    torch.testing.assert_close(out["leg_assist"], pd / LIMITS, rtol=1e-4, atol=1e-5)
-    expected = torch.maximum(torch.minimum(0.1 * LIMITS + 0.5 * pd, LIMITS), -LIMITS)
+    # (1 − β) × the reference's torque action + β × the residual-PD preset's servo on q_ref + scale × action.
+    pd = kp * (q_ref + scale * 0.1 - q) - kv * qd
+    expected = torch.maximum(torch.minimum((1 - beta) * 0.1 * LIMITS + beta * pd, LIMITS), -LIMITS)
     torch.testing.assert_close(out["leg_torque"], expected, rtol=1e-4, atol=1e-3)
     torch.testing.assert_close(env.sim.ctrl[:, :12], expected, rtol=1e-4, atol=1e-3)
+    torch.testing.assert_close(out["leg_assist"], (kp * (q_ref - q) - kv * qd) / LIMITS, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(env.assist_gain(0.0), LIMITS)
+    torch.testing.assert_close(env.assist_gain(1.0), scale * kp)
 
 
 def test_assist_off_applies_the_policy_torque_alone(assisted):
@@ -87,18 +90,31 @@ def test_assist_schedule_holds_then_fades_to_zero():
         AssistSchedule(1.0, fade_start=300, fade_end=300)
 
 
-def test_absorb_loss_moves_the_mean_by_the_faded_assist():
+def test_absorb_target_applies_the_same_torque_at_the_next_beta():
+    # The closed form the loss pulls towards: the action a' with c(β')·a' + β'·P = c(β)·a + β·P for the PD part P.
+    env = TocabiWalk(num_envs=1, device="cpu", backend="mujoco", torque_assist=True, pd_kp=tuple(robot.LEG_KP),
+                     pd_kv=tuple(robot.LEG_KV))
+    beta, beta_next = 0.7, 0.6
+    a, assist = torch.linspace(-0.3, 0.3, 12), torch.linspace(0.5, -0.2, 12)
+    loss = AssistAbsorbLoss(_NoPPO(), gaussian_head(make_actor(6, 13, hidden=(8,))))
+    loss.set_step(env.assist_gain(beta), env.assist_gain(beta_next), beta - beta_next, env.leg_torque_limits, 1.0)
+    a_next = loss.ratio * a + loss.shift * assist
+    torque = env.assist_gain(beta) * a + beta * assist * LIMITS
+    torch.testing.assert_close(env.assist_gain(beta_next) * a_next + beta_next * assist * LIMITS, torque)
+
+
+class _NoPPO(torch.nn.Module):
+    in_keys = ("observation",)
+
+    def forward(self, td):
+        return TensorDict({}, batch_size=[])
+
+
+def test_absorb_loss_moves_the_mean_to_its_target():
     torch.manual_seed(0)
     actor = make_actor(6, 13, hidden=(64, 64), init_std=0.1)
     head = gaussian_head(actor)
-
-    class NoPPO(torch.nn.Module):
-        in_keys = ["observation"]
-
-        def forward(self, td):
-            return TensorDict({}, batch_size=[])
-
-    loss = AssistAbsorbLoss(NoPPO(), head)
+    loss = AssistAbsorbLoss(_NoPPO(), head)
     obs = torch.randn(256, 6)
     with torch.no_grad():
         loc0, scale = head(obs)
@@ -106,7 +122,8 @@ def test_absorb_loss_moves_the_mean_by_the_faded_assist():
     assist = torch.tanh(obs @ torch.randn(6, 12) * 0.5)
     td = TensorDict({"observation": obs, "loc": loc0, "scale": scale, "next": {"leg_assist": assist}},
                     batch_size=[256])
-    loss.delta.fill_(0.2)
+    gain_now, gain_next = torch.full((12,), 2.0), torch.full((12,), 1.0)
+    loss.set_step(gain_now, gain_next, 0.1, torch.full((12,), 2.0), weight=0.0)
     assert loss(td)["loss_absorb"].item() == 0.0  # weight 0: no pull
     loss.weight.fill_(1.0)
     opt = torch.optim.Adam(head.parameters(), lr=3e-3)
@@ -116,16 +133,18 @@ def test_absorb_loss_moves_the_mean_by_the_faded_assist():
         opt.step()
     with torch.no_grad():
         loc1, _ = head(obs)
-    moved = loc1[:, :12] - loc0[:, :12]
-    # The mean moved by 0.2 × assist on the legs (to a few % of its size) and left the phase action alone.
-    assert (moved - 0.2 * assist).abs().mean() < 0.1 * (0.2 * assist).abs().mean()
+    target = 2.0 * loc0[:, :12] + 0.2 * assist  # ratio 2, shift 0.1 × 2 / 1
+    moved, wanted = loc1[:, :12] - loc0[:, :12], target - loc0[:, :12]
+    # The mean reached its target on the legs (to a few % of the move) and left the phase action alone.
+    assert (moved - wanted).abs().mean() < 0.1 * wanted.abs().mean()
     assert (loc1[:, 12] - loc0[:, 12]).abs().mean() < 0.01
 
 
 @pytest.mark.parametrize("overrides, match", [
     (dict(control_mode="pd_reference"), "needs control_mode='torque'"),
     (dict(assist_fade_start=5, assist_fade_end=5), "assist_fade_start < assist_fade_end"),
-    (dict(torque_assist=-1.0), "torque_assist and assist_absorb must be >= 0"),
+    (dict(torque_assist=-1.0), "torque_assist must be in \\[0, 1\\]"),
+    (dict(torque_assist=1.5), "torque_assist must be in \\[0, 1\\]"),
 ])
 def test_torque_preset_rejects_bad_assist_settings(overrides, match):
     with pytest.raises(ValueError, match=match):

@@ -68,11 +68,13 @@ class TocabiWalkConfig:
     pd_kv: tuple[float, ...] = tuple(robot.LEG_KV / 3.0)
     pd_action_scale: float = 0.5
     pd_nominal: tuple[float, ...] = tuple(robot.INIT_JOINT_POS[:12])
-    #: Torque mode only, a training aid: the leg torques get ``β·(pd_kp·(q_ref − q) − pd_kv·q̇)`` added (the reference
-    #: walk tracked by a PD at the policy rate, from the pre-step state), clipped with the policy's torque to the
-    #: limits. β is the env's device scalar ``assist_scale`` (:meth:`TocabiWalk.set_torque_assist`, 0 at build), so a
-    #: trainer can fade it without rebuilding or re-capturing; with β = 0 the step applies the policy's torque alone.
-    #: Adds the ``leg_assist`` signal (the full-scale assist over the torque limits, (num_envs, 12)).
+    #: Torque mode only, a training aid that morphs the action space: the leg torque is
+    #: ``(1 − β)·a·limit + β·(pd_kp·(q_ref + pd_action_scale·a − q) − pd_kv·q̇)`` (clipped to the limits), so at β = 1
+    #: the 12 leg actions are position residuals around the reference walk tracked by a PD at the policy rate (the
+    #: ``pd_reference`` mode, which learns to walk), and at β = 0 they are the reference's normalised torques. β is
+    #: the env's device scalar ``assist_scale`` (:meth:`TocabiWalk.set_torque_assist`, 0 at build), so a trainer can
+    #: fade it without rebuilding or re-capturing. Adds the ``leg_assist`` signal: the action-independent part of the
+    #: PD, ``(pd_kp·(q_ref − q) − pd_kv·q̇) / limit`` (num_envs, 12), from the pre-step state.
     torque_assist: bool = False
     #: Robot model path: None = the shipped assets/tocabi/tocabi.xml.
     model_path: str | os.PathLike | None = None

@@ -229,7 +229,7 @@ class TocabiWalk(EnvBase):
         if self.cfg.control_mode == "torque":
             leg_cmd = a[:, : robot.NUM_LEG_JOINTS] * self._leg_limits
             if self.cfg.torque_assist:
-                leg_cmd = self._add_assist(leg_cmd, q_ref[:, : robot.NUM_LEG_JOINTS])
+                leg_cmd = self._assisted(a[:, : robot.NUM_LEG_JOINTS], q_ref[:, : robot.NUM_LEG_JOINTS])
         else:
             center = self._pd_nominal if self.cfg.control_mode == "pd" else q_ref[:, : robot.NUM_LEG_JOINTS]
             target = center + self.cfg.pd_action_scale * a[:, : robot.NUM_LEG_JOINTS]
@@ -278,21 +278,33 @@ class TocabiWalk(EnvBase):
         )
         return out
 
-    def _add_assist(self, leg_cmd: torch.Tensor, leg_ref: torch.Tensor) -> torch.Tensor:
-        """Policy torques (num_envs, 12) [N·m] plus β × the reference-tracking PD of the pre-step state, clipped to
-        the limits; records the full-scale PD over the limits as ``leg_assist``."""
+    def _assisted(self, a_leg: torch.Tensor, leg_ref: torch.Tensor) -> torch.Tensor:
+        """Leg torques (num_envs, 12) [N·m] of the assisted torque mode (``TocabiWalkConfig.torque_assist``):
+        ``(1 − β)·a·limit + β·PD(q_ref + pd_action_scale·a)`` from the pre-step state, clipped to the limits; records
+        the action-independent part of the PD over the limits as ``leg_assist``."""
         q = self.sim.qpos[:, 7 : 7 + robot.NUM_LEG_JOINTS]
         qd = self.sim.qvel[:, 6 : 6 + robot.NUM_LEG_JOINTS]
         self.leg_assist.copy_((self._pd_kp * (leg_ref - q) - self._pd_kv * qd) / self._leg_limits)
-        total = leg_cmd + self.assist_scale * self.leg_assist * self._leg_limits
+        beta = self.assist_scale
+        total = self.assist_gain(beta) * a_leg + beta * self.leg_assist * self._leg_limits
         return torch.maximum(torch.minimum(total, self._leg_limits), -self._leg_limits)
+
+    @property
+    def leg_torque_limits(self) -> torch.Tensor:
+        """(12,) N·m, the leg joints' torque limits on the env's device (the scale of a torque-mode action)."""
+        return self._leg_limits
+
+    def assist_gain(self, beta: float | torch.Tensor) -> torch.Tensor:
+        """(12,) N·m of leg torque per unit of leg action at assist scale ``beta``: ``(1 − β)·limit + β·pd_action_scale
+        ·pd_kp`` (the torque limit at β = 0, the PD's stiffness times the residual range at β = 1)."""
+        return (1.0 - beta) * self._leg_limits + beta * self.cfg.pd_action_scale * self._pd_kp
 
     def set_torque_assist(self, scale: float) -> None:
         """Set β of the torque assist (config ``torque_assist``) for the following steps; 0 = pure torque."""
         if not self.cfg.torque_assist:
             raise RuntimeError("set_torque_assist needs an env built with torque_assist=True (torque mode)")
-        if not 0.0 <= float(scale) <= 10.0:
-            raise ValueError(f"torque assist scale must be in [0, 10], got {scale!r}")
+        if not 0.0 <= float(scale) <= 1.0:
+            raise ValueError(f"torque assist scale must be in [0, 1], got {scale!r}")
         self.assist_scale.fill_(float(scale))
 
     def _observe(self) -> TensorDict:

@@ -1,13 +1,15 @@
-"""The torque assist of the ``torque`` preset: a reference-tracking PD added to the policy's leg torques during
-training, faded to zero, and the loss that moves each faded slice of it into the actor.
+"""The torque assist of the ``torque`` preset: the action space morphs from PD residuals (which learn to walk) to
+torques during training, and a loss moves each step of the morph into the actor.
 
 Why: a torque policy trained from scratch on thousands of envs settles on standing still (issue 19: 100 % survival,
-2 cm forward). With the assist at full scale (β = 1) the torque env behaves like the residual PD preset, which learns
-to walk in minutes. Fading β alone would ask PPO to rediscover, from the reward, the feedback the PD gave. Instead,
-when β falls from β_k to β_(k+1) between two rollouts, the missing torque ``(β_k − β_(k+1)) · leg_assist(s)`` is known
-for every state of the rollout, so the actor is pulled towards ``loc_k(s) + (β_k − β_(k+1)) · leg_assist(s)``: the
-applied torque, and with it the gait, stays the same while the PD's share moves into the network. At β = 0 the
-policy is a pure torque policy (the evaluation never uses the assist).
+2 cm forward). The assisted torque env (``TocabiWalkConfig.torque_assist``) applies
+``τ = c(β)·a + β·limit·leg_assist(s)`` with ``c(β) = (1 − β)·limit + β·pd_action_scale·pd_kp``: at β = 1 the leg
+actions are position residuals around the reference walk (the residual-PD preset, which learns to walk in minutes),
+at β = 0 the reference's normalised torques. When β falls from β_k to β_(k+1) between two rollouts, the action that
+applies the same torque in every state of the rollout is known in closed form:
+``a' = (c(β_k)·a + (β_k − β_(k+1))·limit·leg_assist(s)) / c(β_(k+1))``, so the actor is pulled towards
+``ratio·loc_k(s) + shift·leg_assist(s)``: the gait stays while the action space changes under it. At β = 0 the policy
+is a pure torque policy (the evaluation never uses the assist).
 """
 
 from __future__ import annotations
@@ -43,13 +45,14 @@ class AssistSchedule:
 
 
 class AssistAbsorbLoss(nn.Module):
-    """A PPO loss plus ``loss_absorb``, which moves the removed part of the assist into the actor's mean.
+    """A PPO loss plus ``loss_absorb``, which moves one step of the assist's fade into the actor's mean.
 
-    ``loss_absorb = weight · mean_s Σ_j (μ_θ(s)_j − loc_j − delta · leg_assist_j)² / (2 σ_j²)`` over the 12 leg
-    actions, i.e. the KL divergence from the Gaussian the actor should now be (the rollout's mean shifted by the
-    faded assist, same σ) to the current one. ``loc`` and σ (``scale``) are the rollout's, ``leg_assist`` the env's
-    signal of the step the action was taken in (``("next", "leg_assist")``). ``delta`` (β_k − β_(k+1)) and ``weight``
-    are device scalars the trainer sets in place before each update (a captured update step reads them).
+    ``loss_absorb = weight · mean_s Σ_j (μ_θ(s)_j − ratio_j·loc_j − shift_j·leg_assist_j)² / (2 σ_j²)`` over the 12
+    leg actions: the KL divergence from the Gaussian the actor should now be (the action that applies the rollout's
+    torque at the next β, same σ) to the current one. ``loc`` and σ (``scale``) are the rollout's, ``leg_assist`` the
+    env's signal of the step the action was taken in (``("next", "leg_assist")``). ``ratio``, ``shift`` (12,) and
+    ``weight`` are device buffers the trainer sets in place before each update (:meth:`set_step`; a captured update
+    step reads them). Frames the PPO loss masks out (its ``loss_mask_key``) are left out here too.
 
     Args:
         ppo_loss: the PPO loss (e.g. TorchRL's ``ClipPPOLoss``); its outputs are passed through.
@@ -61,8 +64,18 @@ class AssistAbsorbLoss(nn.Module):
         self.ppo_loss = ppo_loss
         self.head = head
         device = next(head.parameters()).device
-        self.register_buffer("delta", torch.zeros((), device=device))
+        legs = robot.NUM_LEG_JOINTS
+        self.register_buffer("ratio", torch.ones(legs, device=device))
+        self.register_buffer("shift", torch.zeros(legs, device=device))
         self.register_buffer("weight", torch.zeros((), device=device))
+
+    def set_step(self, gain_now: torch.Tensor, gain_next: torch.Tensor, beta_drop: float, limits: torch.Tensor,
+                 weight: float) -> None:
+        """Targets for an update between a rollout at gain ``gain_now`` and the next at ``gain_next`` ((12,) N·m per
+        unit action, ``TocabiWalk.assist_gain``), β falling by ``beta_drop``; ``weight`` 0 switches the term off."""
+        self.ratio.copy_(gain_now / gain_next)
+        self.shift.copy_(beta_drop * limits / gain_next)
+        self.weight.fill_(weight)
 
     @property
     def in_keys(self) -> list:
@@ -72,7 +85,7 @@ class AssistAbsorbLoss(nn.Module):
         out = self.ppo_loss(td)
         legs = robot.NUM_LEG_JOINTS
         loc, _ = self.head(td["observation"])
-        target = td["loc"][..., :legs] + self.delta * td["next", "leg_assist"]
+        target = self.ratio * td["loc"][..., :legs] + self.shift * td["next", "leg_assist"]
         kl = 0.5 * ((loc[..., :legs] - target) / td["scale"][..., :legs]).pow(2).sum(-1)
         # Frames the rollout guard marked unusable (a faulted world) pull the actor nowhere, as in the PPO terms.
         mask_key = getattr(self.ppo_loss, "loss_mask_key", None)

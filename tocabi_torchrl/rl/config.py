@@ -49,10 +49,11 @@ class PPOConfig:
     pd_gains: str = "robot"
     #: Residual range [rad] of the PD modes: target = center + pd_action_scale × action.
     pd_action_scale: float = 0.5
-    #: Torque mode training aid (0 = off): β × a reference-tracking PD (``pd_gains``) is added to the policy's leg
-    #: torques. β starts at this value, holds until ``assist_fade_start`` env steps and falls linearly to 0 at
-    #: ``assist_fade_end``; during the fade a loss term (weight ``assist_absorb``) moves each removed slice of the PD
-    #: into the actor (rl/assist.py), so the run ends as a pure torque policy. Evaluations never use the assist.
+    #: Torque mode training aid (0 = off): the leg actions morph from position residuals tracked by a PD
+    #: (``pd_gains``, ``pd_action_scale``) at β = 1 to torques at β = 0 (``TocabiWalkConfig.torque_assist``). β starts
+    #: at this value, holds until ``assist_fade_start`` env steps and falls linearly to 0 at ``assist_fade_end``;
+    #: during the fade a loss term (weight ``assist_absorb``) moves each step of the morph into the actor
+    #: (rl/assist.py), so the run ends as a pure torque policy. Evaluations never use the assist.
     torque_assist: float = 0.0
     assist_fade_start: int = 0
     assist_fade_end: int = 0
@@ -150,9 +151,9 @@ class PPOConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"PPOConfig.{name} must be an int >= 0, got {value!r}")
-        if self.torque_assist < 0 or self.assist_absorb < 0:
-            raise ValueError(f"PPOConfig.torque_assist and assist_absorb must be >= 0, got {self.torque_assist!r}, "
-                             f"{self.assist_absorb!r}")
+        if not 0 <= self.torque_assist <= 1 or self.assist_absorb < 0:
+            raise ValueError(f"PPOConfig.torque_assist must be in [0, 1] and assist_absorb >= 0, got "
+                             f"{self.torque_assist!r}, {self.assist_absorb!r}")
         if self.torque_assist > 0:
             if self.control_mode != "torque":
                 raise ValueError(f"PPOConfig.torque_assist > 0 needs control_mode='torque', got "
@@ -215,11 +216,12 @@ PRESETS: dict[str, dict[str, Any]] = {
         value_coef=0.5, value_loss="l2", max_grad_norm=0.5, std_start=0.1, std_end=0.05, std_hold=0.5,
     ),
     # The reference's action space (12 normalised leg torques + phase rate) learned from scratch on one GPU: the
-    # default's PPO with a reference-tracking PD added to the policy's torques (the assist), held at full scale for
-    # 40 M steps, then faded out by 100 M while its share moves into the actor (rl/assist.py); the last 50 M steps
-    # train the pure torque policy. Without the assist, PPO at thousands of envs learned to stand (issue 19).
-    "torque": dict(control_mode="torque", torque_assist=1.0, assist_fade_start=40_000_000,
-                   assist_fade_end=100_000_000, total_env_steps=150_000_000),
+    # default's PPO on an assisted torque env whose leg actions start as the residual-PD preset's position residuals
+    # (β = 1 for 50 M steps) and morph into torques by 110 M, a loss moving each step of the morph into the actor
+    # (rl/assist.py); the rest trains the pure torque policy. Without the assist, PPO at thousands of envs learned to
+    # stand (issue 19); with an assist that only added a PD to the policy's torques it did not walk (docs/training).
+    "torque": dict(control_mode="torque", torque_assist=1.0, assist_fade_start=50_000_000,
+                   assist_fade_end=110_000_000, total_env_steps=170_000_000),
     # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
     "cpu_smoke": dict(num_envs=8, steps_per_env=16, minibatch_size=64, epochs=2, total_env_steps=8 * 16 * 3,
                       checkpoint_every=1, eval_envs=2, eval_seconds=1.0, actor_hidden=(64, 64),

@@ -21,11 +21,11 @@ FIELD_HELP: dict[str, str] = {
     "max_episode_steps": "policy steps (4 ms) before an episode is truncated",
     "pd_gains": "leg servo gains of the PD modes: TocabiLab's (Kp/9, Kv/3) or the robot's",
     "pd_action_scale": "residual range of the PD modes [rad]: target = center + scale × action",
-    "torque_assist": "torque mode training aid: start scale of a reference-tracking PD added to the leg torques; "
-                     "0 = off",
+    "torque_assist": "torque mode training aid: start scale β in [0, 1] of the morph from PD residuals (β = 1) to "
+                     "torques (β = 0); 0 = off",
     "assist_fade_start": "env steps at which the torque assist starts to fade",
     "assist_fade_end": "env steps at which the torque assist reaches 0 (pure torque from there on)",
-    "assist_absorb": "weight of the loss that moves the faded assist into the actor",
+    "assist_absorb": "weight of the loss that moves each step of the morph into the actor",
     "reward_weights": "reward re-weighting as term=weight entries; empty = the reference weights",
     "cuda_graph": "capture the env step as one CUDA graph (auto: up to 128 envs)",
     "store_env_signals": "keep every env signal in the rollout (more memory; off keeps what PPO reads)",

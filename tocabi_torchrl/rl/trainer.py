@@ -77,7 +77,7 @@ def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None,
         if cfg.pd_gains == "robot":  # "tocabilab" gains (Kp/9, Kv/3) are TocabiWalkConfig's defaults
             env_overrides.setdefault("pd_kp", tuple(robot.LEG_KP))
             env_overrides.setdefault("pd_kv", tuple(robot.LEG_KV))
-    if cfg.control_mode != "torque":
+    if cfg.control_mode != "torque" or assist:
         env_overrides.setdefault("pd_action_scale", cfg.pd_action_scale)
     if cfg.reward_weights:
         env_overrides.setdefault("reward_weights", cfg.reward_weight_map())
@@ -303,8 +303,9 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
             if assist is not None:
                 # This rollout ran with β(steps before it); the next runs with β(now): the update absorbs the gap.
                 beta, beta_next = assist(env_steps - batch.numel()), assist(env_steps)
-                loss_module.delta.fill_(beta - beta_next)
-                loss_module.weight.fill_(cfg.assist_absorb if beta_next < beta else 0.0)
+                base = env.base_env
+                loss_module.set_step(base.assist_gain(beta), base.assist_gain(beta_next), beta - beta_next,
+                                     base.leg_torque_limits, cfg.assist_absorb if beta_next < beta else 0.0)
             stats = _update(cfg, flat, update_step)
             if assist is not None:
                 env.base_env.set_torque_assist(beta_next)
