@@ -272,6 +272,12 @@ def run_kill_resume(args) -> tuple[dict, list[dict]]:
     if killed:
         os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
+    if not killed:
+        # The training ended on its own before it could be killed (on the H100 once, 25 s in): say why, from its log.
+        log_tail = (run.parent / f"{name}.log").read_text()[-3000:]
+        return ({"killed": False, "exit_code": proc.returncode, "training_log_tail": log_tail},
+                [check("training process killed mid-run", f"exited by itself with code {proc.returncode}", "true",
+                       False)])
     corrupt = []
     for path in sorted(folder.glob("*.pt")) if folder.is_dir() else []:
         try:

@@ -29,3 +29,14 @@ def test_tiny_soak_on_the_cpu(tmp_path):
     meta = {}
     kept = soak.keep_other_modes(tmp_path / "out" / "soak.json", ("faults",), meta)
     assert kept and {c["mode"] for c in kept} == {"kill_resume"} and meta["kill_resume"] == kill
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="needs a machine without CUDA")
+def test_kill_resume_reports_a_training_that_died_by_itself(tmp_path):
+    # On a CPU-only machine --device cuda makes the trainer exit at once: the soak must say so, with its log.
+    code = soak.main(["--mode", "kill_resume", "--device", "cuda", "--num_envs", "8", "--out", str(tmp_path),
+                      "--run_dir", str(tmp_path / "runs")])
+    report = json.loads((tmp_path / "soak.json").read_text())
+    assert code == 1
+    assert report["results"][0]["value"] == "exited by itself with code 1"
+    assert "torch sees no CUDA GPU" in report["meta"]["kill_resume"]["training_log_tail"]
