@@ -4,6 +4,7 @@ use of both, and the wall-clock checkpoints of time-to-walk runs."""
 from __future__ import annotations
 
 import csv
+import math
 
 import pytest
 import torch
@@ -88,6 +89,18 @@ def test_assist_schedule_holds_then_fades_to_zero():
     assert [s(x) for x in (0, 100, 200, 300, 10**9)] == [1.0, 1.0, 0.5, 0.0, 0.0]
     with pytest.raises(ValueError, match="fade_start < fade_end"):
         AssistSchedule(1.0, fade_start=300, fade_end=300)
+    with pytest.raises(ValueError, match="gain_ratio"):
+        AssistSchedule(1.0, fade_start=0, fade_end=1, gain_ratio=0.5)
+
+
+def test_geometric_fade_shrinks_the_action_gain_by_the_same_factor_each_step():
+    r = 7.0
+    s = AssistSchedule(1.0, fade_start=0, fade_end=100, gain_ratio=r)
+    gain = [1.0 + s(x) * (r - 1.0) for x in range(0, 101, 10)]  # c(β) / c(0)
+    steps = [a / b for a, b in zip(gain, gain[1:])]
+    assert gain[0] == pytest.approx(r) and gain[-1] == pytest.approx(1.0)
+    assert steps == pytest.approx([r ** 0.1] * 10)
+    assert s(50) < 0.5  # β falls faster early, slower near 0 than a linear fade
 
 
 def test_absorb_target_applies_the_same_torque_at_the_next_beta():
@@ -170,10 +183,14 @@ def test_training_fades_the_assist_and_evaluates_without_it(tmp_path):
     result = train(cfg)
     with open(result.run_dir / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
-    # β of the next rollout after each iteration: still 1 after the first, halfway, zero, zero.
-    assert [float(r["torque_assist"]) for r in rows] == [1.0, 0.5, 0.0, 0.0]
-    absorb = [float(r["loss_absorb"]) for r in rows]
+    # β of the next rollout after each iteration: still 1 after the first, halfway through the (geometric) fade,
+    # zero, zero. The fade is geometric in the env's action gain: c(1)/c(0) is the legs' mean of 0.5 rad · Kp / limit.
+    r = math.exp(sum(math.log(0.5 * kp / lim) for kp, lim in zip(robot.LEG_KP, robot.LEG_TORQUE_LIMITS)) / 12)
+    assert [float(row["torque_assist"]) for row in rows] == pytest.approx([1.0, 1 / (math.sqrt(r) + 1), 0.0, 0.0])
+    absorb = [float(row["loss_absorb"]) for row in rows]
     assert absorb[0] == 0.0 and absorb[1] > 0 and absorb[2] > 0 and absorb[3] == 0.0
+    lr = [float(row["lr"]) for row in rows]
+    assert lr[1] == lr[0] and lr[2] == lr[0]  # held while the assist fades
     assert build_env(cfg, torch.device("cpu"), num_envs=2).base_env.cfg.torque_assist is False
     assert build_env(cfg, torch.device("cpu"), num_envs=2, for_training=True).base_env.cfg.torque_assist is True
 
@@ -240,7 +257,9 @@ def test_gpu_torque_preset_trains_with_the_captured_absorbing_update(tmp_path):
     with open(result.run_dir / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
     betas = [float(r["torque_assist"]) for r in rows]
-    assert betas == pytest.approx([1.0, 2 / 3, 1 / 3, 0.0, 0.0])
+    r = math.exp(sum(math.log(0.5 * kp / lim) for kp, lim in zip(robot.LEG_KP, robot.LEG_TORQUE_LIMITS)) / 12)
+    geometric = [(r ** (1 - u) - 1) / (r - 1) for u in (0, 1 / 3, 2 / 3, 1, 1)]
+    assert betas == pytest.approx(geometric, rel=1e-5)
     absorb = [float(r["loss_absorb"]) for r in rows]
     assert absorb[0] == 0.0 and all(a > 0 for a in absorb[1:4]) and absorb[4] == 0.0
     assert all(torch.isfinite(torch.tensor([float(r["loss_policy"]), float(r["loss_value"])])).all() for r in rows)

@@ -27,21 +27,33 @@ __all__ = ["AssistSchedule", "AssistAbsorbLoss"]
 
 @dataclass(frozen=True)
 class AssistSchedule:
-    """β of the torque assist against env steps: ``start`` until ``fade_start``, linear to 0 at ``fade_end``."""
+    """β of the torque assist against env steps: ``start`` until ``fade_start``, then down to 0 at ``fade_end``.
+
+    With ``gain_ratio`` r = c(1)/c(0) > 1 (the action gain at β = 1 over that at β = 0, ``TocabiWalk.assist_gain``)
+    the fade is geometric in the gain: c falls by the same factor in every step, i.e. ``β(u) = (r^(1−u) − 1)/(r − 1)``
+    at fade fraction u, so β falls fast while the PD still carries the gait and slowly near 0, where each step of β is
+    a large relative change of c. (A linear fade broke the gait in its last sixth on the H100: docs/training/torque.md.)
+    ``gain_ratio`` 1 fades β linearly.
+    """
 
     start: float
     fade_start: int
     fade_end: int
+    gain_ratio: float = 1.0
 
     def __post_init__(self):
         if not self.start >= 0:
             raise ValueError(f"AssistSchedule.start must be >= 0, got {self.start!r}")
         if not 0 <= self.fade_start < self.fade_end:
             raise ValueError(f"AssistSchedule needs 0 <= fade_start < fade_end, got {self.fade_start}, {self.fade_end}")
+        if not self.gain_ratio >= 1.0:
+            raise ValueError(f"AssistSchedule.gain_ratio must be >= 1, got {self.gain_ratio!r}")
 
     def __call__(self, env_steps: int) -> float:
-        frac = (env_steps - self.fade_start) / (self.fade_end - self.fade_start)
-        return self.start * (1.0 - min(max(frac, 0.0), 1.0))
+        u = min(max((env_steps - self.fade_start) / (self.fade_end - self.fade_start), 0.0), 1.0)
+        r = self.gain_ratio
+        frac = 1.0 - u if r == 1.0 else (r ** (1.0 - u) - 1.0) / (r - 1.0)
+        return self.start * frac
 
 
 class AssistAbsorbLoss(nn.Module):

@@ -51,7 +51,8 @@ class PPOConfig:
     pd_action_scale: float = 0.5
     #: Torque mode training aid (0 = off): the leg actions morph from position residuals tracked by a PD
     #: (``pd_gains``, ``pd_action_scale``) at β = 1 to torques at β = 0 (``TocabiWalkConfig.torque_assist``). β starts
-    #: at this value, holds until ``assist_fade_start`` env steps and falls linearly to 0 at ``assist_fade_end``;
+    #: at this value, holds until ``assist_fade_start`` env steps and falls to 0 at ``assist_fade_end`` (geometrically
+    #: in the action gain, with the adaptive learning rate held, see rl/assist.AssistSchedule);
     #: during the fade a loss term (weight ``assist_absorb``) moves each step of the morph into the actor
     #: (rl/assist.py), so the run ends as a pure torque policy. Evaluations never use the assist.
     torque_assist: float = 0.0
@@ -217,11 +218,11 @@ PRESETS: dict[str, dict[str, Any]] = {
     ),
     # The reference's action space (12 normalised leg torques + phase rate) learned from scratch on one GPU: the
     # default's PPO on an assisted torque env whose leg actions start as the residual-PD preset's position residuals
-    # (β = 1 for 50 M steps) and morph into torques by 110 M, a loss moving each step of the morph into the actor
-    # (rl/assist.py); the rest trains the pure torque policy. Without the assist, PPO at thousands of envs learned to
-    # stand (issue 19); with an assist that only added a PD to the policy's torques it did not walk (docs/training).
+    # (β = 1 for 50 M steps) and morph into torques by 110 M (geometric in the action gain, learning rate held), a
+    # loss moving each step of the morph into the actor (rl/assist.py); the rest trains the pure torque policy.
+    # Without the assist, PPO at thousands of envs learned to stand (issue 19); docs/training/torque.md has the runs.
     "torque": dict(control_mode="torque", torque_assist=1.0, assist_fade_start=50_000_000,
-                   assist_fade_end=110_000_000, total_env_steps=170_000_000),
+                   assist_fade_end=110_000_000, total_env_steps=200_000_000),
     # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
     "cpu_smoke": dict(num_envs=8, steps_per_env=16, minibatch_size=64, epochs=2, total_env_steps=8 * 16 * 3,
                       checkpoint_every=1, eval_envs=2, eval_seconds=1.0, actor_hidden=(64, 64),

@@ -275,7 +275,7 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
 
     loss_module, advantage = make_loss(cfg, agent)
     update_step = make_update_step(cfg, loss_module, optimizer, device)
-    assist = _assist_schedule(cfg)
+    assist = _assist_schedule(cfg, env)
     if assist is not None:
         env.base_env.set_torque_assist(assist(env_steps))
 
@@ -307,10 +307,15 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
                 loss_module.set_step(base.assist_gain(beta), base.assist_gain(beta_next), beta - beta_next,
                                      base.leg_torque_limits, cfg.assist_absorb if beta_next < beta else 0.0)
             stats = _update(cfg, flat, update_step)
+            fading = False
             if assist is not None:
                 env.base_env.set_torque_assist(beta_next)
                 stats["torque_assist"] = beta_next
-            if cfg.lr_schedule == "adaptive":
+                fading = beta_next < beta
+            # While the assist fades, the KL also measures the intended move to the next β's actions; the adaptive
+            # rule would read it as too large a step and starve the absorption (the LR fell to 1e-5 on the H100 and
+            # the gait broke), so the learning rate is held there.
+            if cfg.lr_schedule == "adaptive" and not fading:
                 kl = stats["kl"]
                 if kl > 2.0 * cfg.desired_kl:
                     lr = max(lr / 1.5, 1e-5)
@@ -357,11 +362,14 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
 _VALUE_CHUNK_FRAMES = 65536
 
 
-def _assist_schedule(cfg: PPOConfig) -> AssistSchedule | None:
-    """β of the torque assist against env steps, or None when the run has no assist."""
+def _assist_schedule(cfg: PPOConfig, env: EnvBase) -> AssistSchedule | None:
+    """β of the torque assist against env steps (geometric in the env's action gain), or None without an assist."""
     if cfg.torque_assist <= 0:
         return None
-    return AssistSchedule(cfg.torque_assist, cfg.assist_fade_start, cfg.assist_fade_end)
+    base = env.base_env
+    # One host read at start-up: the geometric mean over the legs of c(1)/c(0).
+    ratio = float((base.assist_gain(1.0) / base.assist_gain(0.0)).log().mean().exp())
+    return AssistSchedule(cfg.torque_assist, cfg.assist_fade_start, cfg.assist_fade_end, max(ratio, 1.0))
 
 
 def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBase) -> list:
