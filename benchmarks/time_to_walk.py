@@ -7,8 +7,9 @@ training wall-clock points, and report the first training time (and env-step cou
 
 ``train`` runs ``recipes/ppo_walk.py``'s trainer on ``runs/time_to_walk/<preset>`` with
 ``checkpoint_minutes=--every``, stopping when ``--budget_minutes`` of training wall-clock are used (summed over
-resumed calls, without evaluation or kernel compilation); the first call also measures raw mujoco-warp stepping of
-the same model at the same env count in the same process, for the train/raw ratio. ``eval`` runs the gait test of
+resumed calls, without evaluation or warp's kernel compilation, with the first iteration's CUDA-graph captures); the
+first call also measures raw mujoco-warp stepping of the same model at the same env count in the same process, for
+the train/raw ratio. ``eval`` runs the gait test of
 issue 19 on each ``wall_XXXXXs.pt``: 256 envs, 8 s, deterministic policy, standard resets, at (0.5, 0) m/s, and at
 (0.2, 0) and (0.7, 0.1) for checkpoints that pass the first. ``train`` writes ``runs/time_to_walk/<preset>/train.json``
 and ``eval`` writes ``evals.json`` beside it (separate files: the two may run at once).
@@ -54,9 +55,9 @@ def _load(path: Path) -> dict:
 
 
 def _save(path: Path, record: dict) -> None:
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(record, indent=2))
-    tmp.replace(path)
+    from tocabi_torchrl.rl.atomic import atomic_write_text
+
+    atomic_write_text(path, json.dumps(record, indent=2))
 
 
 def _command_line(argv) -> str:
@@ -100,7 +101,8 @@ def train_part(args, argv) -> None:
                         progress_bar=False, log_every=args.log_every, checkpoint_minutes=args.every,
                         max_minutes=min(args.minutes, left_min), resume=str(latest) if latest.is_file() else "")
     print(f"{args.preset}: training {'from ' + str(latest) if cfg.resume else 'from scratch'}, "
-          f"{prior_s / 60:.1f} of {args.budget_minutes} min used, this call up to {cfg.max_minutes:.1f} min", flush=True)
+          f"{prior_s / 60:.1f} of {args.budget_minutes} min used, this call up to {cfg.max_minutes:.1f} min",
+          flush=True)
     result = train(cfg)
     record.setdefault("preset", args.preset)
     record.setdefault("config", cfg.to_dict())
@@ -131,18 +133,17 @@ def eval_part(args, argv) -> None:
     device = torch.device(args.device)
     envs, cfg = {}, None
     while True:
-        # Beside a running trainer, a file younger than a few seconds may still be being written.
-        settle = 5.0 if args.follow_pid else 0.0
-        pending = [p for p in sorted((run_dir / "checkpoints").glob("wall_*.pt"))
-                   if p.stem not in evals and time.time() - p.stat().st_mtime >= settle]
+        # Checkpoints are written atomically (a dot-named temporary file, then a rename): a wall_*.pt is complete.
+        pending = [p for p in sorted((run_dir / "checkpoints").glob("wall_*.pt")) if p.stem not in evals]
         for ckpt in pending:
             cfg = _evaluate_checkpoint(ckpt, evals, envs, cfg, args, device)
             _save(record_path, record)
-        if not (args.follow_pid and _alive(args.follow_pid)):
-            if pending or not args.follow_pid:
-                break
-            args.follow_pid = 0  # the trainer has ended: one more pass for its last checkpoints
-        time.sleep(10.0)
+        if args.follow_pid and _alive(args.follow_pid):
+            time.sleep(10.0)
+        elif args.follow_pid:
+            args.follow_pid = 0  # the trainer has ended: one more pass for what it wrote last
+        else:
+            break
     record.setdefault("eval_commands", []).append(_command_line(argv))
     record["time_to_walk"] = first_walk(record)
     _save(record_path, record)
@@ -236,8 +237,9 @@ def report_part(args, argv) -> None:
     for r in records:
         lines += ["", f"## {r['preset']}", "", "Commands:", ""] + [f"- `{c}`" for c in
                                                                    r.get("commands", []) + r.get("eval_commands", [])]
-        lines += ["", "| checkpoint | minutes | env steps | survival | forward [m] | drift [m] | knee RMS [rad] | "
-                      "survival (0.2, 0) | survival (0.7, 0.1) | walks |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+        lines += ["", ("| checkpoint | minutes | env steps | survival | forward [m] | drift [m] | knee RMS [rad] | "
+                       "survival (0.2, 0) | survival (0.7, 0.1) | walks |"),
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
         for name, e in sorted(r.get("evaluations", {}).items()):
             c = e["commands"]
             m = c.get("0.5,0.0", {})

@@ -104,16 +104,32 @@ def test_geometric_fade_shrinks_the_action_gain_by_the_same_factor_each_step():
 
 
 def test_absorb_target_applies_the_same_torque_at_the_next_beta():
-    # The closed form the loss pulls towards: the action a' with c(β')·a' + β'·P = c(β)·a + β·P for the PD part P.
-    env = TocabiWalk(num_envs=1, device="cpu", backend="mujoco", torque_assist=True, pd_kp=tuple(robot.LEG_KP),
-                     pd_kv=tuple(robot.LEG_KV))
-    beta, beta_next = 0.7, 0.6
-    a, assist = torch.linspace(-0.3, 0.3, 12), torch.linspace(0.5, -0.2, 12)
-    loss = AssistAbsorbLoss(_NoPPO(), gaussian_head(make_actor(6, 13, hidden=(8,))))
-    loss.set_step(env.assist_gain(beta), env.assist_gain(beta_next), beta - beta_next, env.leg_torque_limits, 1.0)
-    a_next = loss.ratio * a + loss.shift * assist
-    torque = env.assist_gain(beta) * a + beta * assist * LIMITS
-    torch.testing.assert_close(env.assist_gain(beta_next) * a_next + beta_next * assist * LIMITS, torque)
+    # Two identical worlds: one steps an action at β, the other the loss's target action at the smaller β'. Where the
+    # target lies inside [-1, 1] the applied (limit-clipped) torques agree; actions beyond the box, and torques
+    # beyond the limits, are clipped as the env clips them.
+    kw = dict(num_envs=2, device="cpu", backend="mujoco", seed=1, torque_assist=True, pd_kp=tuple(robot.LEG_KP),
+              pd_kv=tuple(robot.LEG_KV))
+    at_beta, at_next = TocabiWalk(**kw), TocabiWalk(**kw)
+    beta, beta_next = 0.6, 0.5
+    for env in (at_beta, at_next):
+        env.reset()
+        env.set_torque_assist(beta)
+        for _ in range(5):
+            _step(env, torch.zeros(2, 13))
+    action = torch.zeros(2, 13)
+    action[0, :12] = torch.linspace(-0.06, 0.06, 12)
+    action[1, :12] = torch.tensor([1.5, -1.5] * 6)  # beyond the box: the env applies ±1
+    out = _step(at_beta, action)
+    loss = AssistAbsorbLoss(_NoPPO(), gaussian_head(make_actor(6, 13, hidden=(8,))), at_beta.leg_torque_limits)
+    loss.set_step(at_beta.assist_gain(beta), at_beta.assist_gain(beta_next), beta, beta_next, 1.0)
+    target = loss.target(action[:, :12], out["leg_assist"])
+    at_next.set_torque_assist(beta_next)
+    moved = torch.cat((target, action[:, 12:]), dim=-1)
+    torque_next = _step(at_next, moved)["leg_torque"]
+    inside = target.abs() < 1.0
+    assert inside[0].all()  # small actions: every target is reachable
+    torch.testing.assert_close(torque_next[inside], out["leg_torque"][inside], rtol=1e-4, atol=1e-2)
+    assert torch.all(target[~inside].abs() == 1.0)
 
 
 class _NoPPO(torch.nn.Module):
@@ -127,7 +143,7 @@ def test_absorb_loss_moves_the_mean_to_its_target():
     torch.manual_seed(0)
     actor = make_actor(6, 13, hidden=(64, 64), init_std=0.1)
     head = gaussian_head(actor)
-    loss = AssistAbsorbLoss(_NoPPO(), head)
+    loss = AssistAbsorbLoss(_NoPPO(), head, torch.full((12,), 2.0))
     obs = torch.randn(256, 6)
     with torch.no_grad():
         loc0, scale = head(obs)
@@ -136,7 +152,7 @@ def test_absorb_loss_moves_the_mean_to_its_target():
     td = TensorDict({"observation": obs, "loc": loc0, "scale": scale, "next": {"leg_assist": assist}},
                     batch_size=[256])
     gain_now, gain_next = torch.full((12,), 2.0), torch.full((12,), 1.0)
-    loss.set_step(gain_now, gain_next, 0.1, torch.full((12,), 2.0), weight=0.0)
+    loss.set_step(gain_now, gain_next, 0.2, 0.1, weight=0.0)
     assert loss(td)["loss_absorb"].item() == 0.0  # weight 0: no pull
     loss.weight.fill_(1.0)
     opt = torch.optim.Adam(head.parameters(), lr=3e-3)
@@ -146,7 +162,7 @@ def test_absorb_loss_moves_the_mean_to_its_target():
         opt.step()
     with torch.no_grad():
         loc1, _ = head(obs)
-    target = 2.0 * loc0[:, :12] + 0.2 * assist  # ratio 2, shift 0.1 × 2 / 1
+    target = 2.0 * loc0[:, :12] + 0.2 * assist  # (2·loc + 0.2·2·assist − 0.1·2·assist) / 1, nothing clipped
     moved, wanted = loc1[:, :12] - loc0[:, :12], target - loc0[:, :12]
     # The mean reached its target on the legs (to a few % of the move) and left the phase action alone.
     assert (moved - wanted).abs().mean() < 0.1 * wanted.abs().mean()
@@ -171,7 +187,7 @@ def test_torque_preset_is_the_reference_action_space_with_a_fading_assist():
     assert cfg.transform_preset == "reference"  # 13 reference reward terms, reference observation
 
 
-def test_training_fades_the_assist_and_evaluates_without_it(tmp_path):
+def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_path):
     from tocabi_torchrl.rl.trainer import build_env, train
 
     n, steps = 4, 8
@@ -183,10 +199,10 @@ def test_training_fades_the_assist_and_evaluates_without_it(tmp_path):
     result = train(cfg)
     with open(result.run_dir / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
-    # β of the next rollout after each iteration: still 1 after the first, halfway through the (geometric) fade,
-    # zero, zero. The fade is geometric in the env's action gain: c(1)/c(0) is the legs' mean of 0.5 rad · Kp / limit.
+    # β each rollout ran with: 1, 1 (the fade starts after one iteration), halfway through the (geometric) fade, 0.
+    # The fade is geometric in the env's action gain: c(1)/c(0) is the legs' mean of 0.5 rad · Kp / limit.
     r = math.exp(sum(math.log(0.5 * kp / lim) for kp, lim in zip(robot.LEG_KP, robot.LEG_TORQUE_LIMITS)) / 12)
-    assert [float(row["torque_assist"]) for row in rows] == pytest.approx([1.0, 1 / (math.sqrt(r) + 1), 0.0, 0.0])
+    assert [float(row["torque_assist"]) for row in rows] == pytest.approx([1.0, 1.0, 1 / (math.sqrt(r) + 1), 0.0])
     absorb = [float(row["loss_absorb"]) for row in rows]
     assert absorb[0] == 0.0 and absorb[1] > 0 and absorb[2] > 0 and absorb[3] == 0.0
     lr = [float(row["lr"]) for row in rows]
@@ -258,7 +274,7 @@ def test_gpu_torque_preset_trains_with_the_captured_absorbing_update(tmp_path):
         rows = list(csv.DictReader(f))
     betas = [float(r["torque_assist"]) for r in rows]
     r = math.exp(sum(math.log(0.5 * kp / lim) for kp, lim in zip(robot.LEG_KP, robot.LEG_TORQUE_LIMITS)) / 12)
-    geometric = [(r ** (1 - u) - 1) / (r - 1) for u in (0, 1 / 3, 2 / 3, 1, 1)]
+    geometric = [(r ** (1 - u) - 1) / (r - 1) for u in (0, 0, 1 / 3, 2 / 3, 1)]  # β each rollout ran with
     assert betas == pytest.approx(geometric, rel=1e-5)
     absorb = [float(r["loss_absorb"]) for r in rows]
     assert absorb[0] == 0.0 and all(a > 0 for a in absorb[1:4]) and absorb[4] == 0.0

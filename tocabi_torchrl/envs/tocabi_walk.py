@@ -139,6 +139,7 @@ class TocabiWalk(EnvBase):
         #: β of the torque assist (config ``torque_assist``): a device scalar changed in place, so a captured step
         #: graph follows it.
         self.assist_scale = torch.zeros((), dtype=f32, device=dev)
+        self._assist_gain = self.assist_gain(0.0).clone()  # (12,) N·m per unit action at assist_scale
         # Leg controls a reset world starts with: no torque, or the PD's nominal target.
         self._reset_leg_ctrl = (torch.zeros_like(self._pd_nominal) if self.cfg.control_mode == "torque"
                                 else self._pd_nominal.clone())
@@ -226,10 +227,10 @@ class TocabiWalk(EnvBase):
         q_ref = self.motion.joint_targets(self.time, self.init_row)
         self.command.update(self.episode_step)
 
-        if self.cfg.control_mode == "torque":
+        if self.cfg.torque_assist:
+            leg_cmd = self._assisted(a[:, : robot.NUM_LEG_JOINTS], q_ref[:, : robot.NUM_LEG_JOINTS])
+        elif self.cfg.control_mode == "torque":
             leg_cmd = a[:, : robot.NUM_LEG_JOINTS] * self._leg_limits
-            if self.cfg.torque_assist:
-                leg_cmd = self._assisted(a[:, : robot.NUM_LEG_JOINTS], q_ref[:, : robot.NUM_LEG_JOINTS])
         else:
             center = self._pd_nominal if self.cfg.control_mode == "pd" else q_ref[:, : robot.NUM_LEG_JOINTS]
             target = center + self.cfg.pd_action_scale * a[:, : robot.NUM_LEG_JOINTS]
@@ -285,8 +286,7 @@ class TocabiWalk(EnvBase):
         q = self.sim.qpos[:, 7 : 7 + robot.NUM_LEG_JOINTS]
         qd = self.sim.qvel[:, 6 : 6 + robot.NUM_LEG_JOINTS]
         self.leg_assist.copy_((self._pd_kp * (leg_ref - q) - self._pd_kv * qd) / self._leg_limits)
-        beta = self.assist_scale
-        total = self.assist_gain(beta) * a_leg + beta * self.leg_assist * self._leg_limits
+        total = self._assist_gain * a_leg + self.assist_scale * self.leg_assist * self._leg_limits
         return torch.maximum(torch.minimum(total, self._leg_limits), -self._leg_limits)
 
     @property
@@ -306,6 +306,7 @@ class TocabiWalk(EnvBase):
         if not 0.0 <= float(scale) <= 1.0:
             raise ValueError(f"torque assist scale must be in [0, 1], got {scale!r}")
         self.assist_scale.fill_(float(scale))
+        self._assist_gain.copy_(self.assist_gain(float(scale)))
 
     def _observe(self) -> TensorDict:
         """Current signals of every env as fresh tensors (never views of simulator memory).

@@ -7,8 +7,8 @@ Why: a torque policy trained from scratch on thousands of envs settles on standi
 actions are position residuals around the reference walk (the residual-PD preset, which learns to walk in minutes),
 at β = 0 the reference's normalised torques. When β falls from β_k to β_(k+1) between two rollouts, the action that
 applies the same torque in every state of the rollout is known in closed form:
-``a' = (c(β_k)·a + (β_k − β_(k+1))·limit·leg_assist(s)) / c(β_(k+1))``, so the actor is pulled towards
-``ratio·loc_k(s) + shift·leg_assist(s)``: the gait stays while the action space changes under it. At β = 0 the policy
+``a' = (c(β_k)·a + (β_k − β_(k+1))·limit·leg_assist(s)) / c(β_(k+1))`` (with the env's action and torque clipping),
+and the actor is pulled towards it: the gait stays while the action space changes under it. At β = 0 the policy
 is a pure torque policy (the evaluation never uses the assist).
 """
 
@@ -29,10 +29,12 @@ __all__ = ["AssistSchedule", "AssistAbsorbLoss"]
 class AssistSchedule:
     """β of the torque assist against env steps: ``start`` until ``fade_start``, then down to 0 at ``fade_end``.
 
-    With ``gain_ratio`` r = c(1)/c(0) > 1 (the action gain at β = 1 over that at β = 0, ``TocabiWalk.assist_gain``)
-    the fade is geometric in the gain: c falls by the same factor in every step, i.e. ``β(u) = (r^(1−u) − 1)/(r − 1)``
-    at fade fraction u, so β falls fast while the PD still carries the gait and slowly near 0, where each step of β is
-    a large relative change of c. (A linear fade broke the gait in its last sixth on the H100: docs/training/torque.md.)
+    With ``gain_ratio`` r = c(1)/c(0) > 1 (the action gain at β = 1 over that at β = 0, ``TocabiWalk.assist_gain``;
+    the trainer passes the legs' geometric mean, 6.9 with the robot's gains) the fade is geometric in the gain:
+    ``β(u) = start·(r^(1−u) − 1)/(r − 1)`` at fade fraction u, so (for start = 1) a leg with that ratio sees c fall by
+    the same factor in every step. β falls fast while the PD still carries the gait and slowly near 0, where each step
+    of β is a large relative change of c. (A linear fade broke the gait in its last sixth on the H100:
+    docs/training/torque.md.)
     ``gain_ratio`` 1 fades β linearly.
     """
 
@@ -59,35 +61,50 @@ class AssistSchedule:
 class AssistAbsorbLoss(nn.Module):
     """A PPO loss plus ``loss_absorb``, which moves one step of the assist's fade into the actor's mean.
 
-    ``loss_absorb = weight · mean_s Σ_j (μ_θ(s)_j − ratio_j·loc_j − shift_j·leg_assist_j)² / (2 σ_j²)`` over the 12
-    leg actions: the KL divergence from the Gaussian the actor should now be (the action that applies the rollout's
-    torque at the next β, same σ) to the current one. ``loc`` and σ (``scale``) are the rollout's, ``leg_assist`` the
-    env's signal of the step the action was taken in (``("next", "leg_assist")``). ``ratio``, ``shift`` (12,) and
-    ``weight`` are device buffers the trainer sets in place before each update (:meth:`set_step`; a captured update
-    step reads them). Frames the PPO loss masks out (its ``loss_mask_key``) are left out here too.
+    For each frame, the torque the rollout's mean applied at β is known: ``T = clip(c(β)·clip(loc) + β·limit·
+    leg_assist, ±limit)`` (actions are clipped to [-1, 1], torques to the limits, as the env does); the action that
+    applies ``T`` at the next β' is ``a' = clip((T − β'·limit·leg_assist) / c(β'), -1, 1)``. ``loss_absorb = weight ·
+    mean_s Σ_j (μ_θ(s)_j − a'_j)² / (2 σ_j²)`` over the 12 leg actions: the KL divergence from the Gaussian at a' (same
+    σ) to the current one. ``loc`` and σ (``scale``) are the rollout's, ``leg_assist`` the env's signal of the step the
+    action was taken in (``("next", "leg_assist")``). The gains, β, β' and ``weight`` are device buffers the trainer
+    sets in place before each update (:meth:`set_step`; a captured update step reads them). Frames the PPO loss masks
+    out (its ``loss_mask_key``) are left out here too.
 
     Args:
         ppo_loss: the PPO loss (e.g. TorchRL's ``ClipPPOLoss``); its outputs are passed through.
         head: the actor's :class:`~tocabi_torchrl.rl.actors.GaussianHead` (shares its parameters with the actor).
+        limits: (12,) N·m, the leg torque limits (``TocabiWalk.leg_torque_limits``).
     """
 
-    def __init__(self, ppo_loss: nn.Module, head: nn.Module):
+    def __init__(self, ppo_loss: nn.Module, head: nn.Module, limits: torch.Tensor):
         super().__init__()
         self.ppo_loss = ppo_loss
         self.head = head
         device = next(head.parameters()).device
-        legs = robot.NUM_LEG_JOINTS
-        self.register_buffer("ratio", torch.ones(legs, device=device))
-        self.register_buffer("shift", torch.zeros(legs, device=device))
+        self.register_buffer("limits", torch.as_tensor(limits, dtype=torch.float32, device=device).clone())
+        self.register_buffer("gain_now", self.limits.clone())
+        self.register_buffer("gain_next", self.limits.clone())
+        self.register_buffer("beta_now", torch.zeros((), device=device))
+        self.register_buffer("beta_next", torch.zeros((), device=device))
         self.register_buffer("weight", torch.zeros((), device=device))
 
-    def set_step(self, gain_now: torch.Tensor, gain_next: torch.Tensor, beta_drop: float, limits: torch.Tensor,
+    def set_step(self, gain_now: torch.Tensor, gain_next: torch.Tensor, beta_now: float, beta_next: float,
                  weight: float) -> None:
-        """Targets for an update between a rollout at gain ``gain_now`` and the next at ``gain_next`` ((12,) N·m per
-        unit action, ``TocabiWalk.assist_gain``), β falling by ``beta_drop``; ``weight`` 0 switches the term off."""
-        self.ratio.copy_(gain_now / gain_next)
-        self.shift.copy_(beta_drop * limits / gain_next)
+        """Targets for an update between a rollout at β = ``beta_now`` (action gain ``gain_now``, (12,) N·m per
+        unit action, ``TocabiWalk.assist_gain``) and the next at ``beta_next`` (``gain_next``); ``weight`` 0 switches
+        the term off."""
+        self.gain_now.copy_(gain_now)
+        self.gain_next.copy_(gain_next)
+        self.beta_now.fill_(beta_now)
+        self.beta_next.fill_(beta_next)
         self.weight.fill_(weight)
+
+    def target(self, loc: torch.Tensor, leg_assist: torch.Tensor) -> torch.Tensor:
+        """(…, 12) the action at β' that applies the torque the rollout's mean ``loc`` (…, 12) applied at β."""
+        assist = self.limits * leg_assist
+        torque = self.gain_now * loc.clamp(-1.0, 1.0) + self.beta_now * assist
+        torque = torch.maximum(torch.minimum(torque, self.limits), -self.limits)
+        return ((torque - self.beta_next * assist) / self.gain_next).clamp(-1.0, 1.0)
 
     @property
     def in_keys(self) -> list:
@@ -97,13 +114,15 @@ class AssistAbsorbLoss(nn.Module):
         out = self.ppo_loss(td)
         legs = robot.NUM_LEG_JOINTS
         loc, _ = self.head(td["observation"])
-        target = self.ratio * td["loc"][..., :legs] + self.shift * td["next", "leg_assist"]
-        kl = 0.5 * ((loc[..., :legs] - target) / td["scale"][..., :legs]).pow(2).sum(-1)
+        # NaN-free before squaring: a broken frame is masked below, but 0 × NaN would still reach the gradients.
+        target = torch.nan_to_num(self.target(td["loc"][..., :legs], td["next", "leg_assist"]))
+        scale = torch.nan_to_num(td["scale"][..., :legs], nan=1.0).clamp_min(1e-6)
+        kl = 0.5 * ((loc[..., :legs] - target) / scale).pow(2).sum(-1)
         # Frames the rollout guard marked unusable (a faulted world) pull the actor nowhere, as in the PPO terms.
         mask_key = getattr(self.ppo_loss, "loss_mask_key", None)
         if mask_key is not None and mask_key in td.keys():
             valid = td[mask_key].reshape(kl.shape)
-            kl = torch.where(valid, torch.nan_to_num(kl), 0.0).sum() / valid.sum().clamp_min(1)
+            kl = torch.where(valid, kl, 0.0).sum() / valid.sum().clamp_min(1)
         else:
             kl = kl.mean()
         out["loss_absorb"] = self.weight * kl

@@ -16,6 +16,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+from .. import robot
 from ..device import check_device
 from .actors import action_std, gaussian_head, make_actor, set_action_std
 from .assist import AssistAbsorbLoss, AssistSchedule
@@ -71,13 +72,10 @@ def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None,
     assist = for_training and cfg.torque_assist > 0
     if assist:
         env_overrides.setdefault("torque_assist", True)
-    if cfg.control_mode != "torque" or assist:
-        from .. import robot
-
+    if cfg.control_mode != "torque" or assist:  # a leg PD acts: the servos, or the assist's
         if cfg.pd_gains == "robot":  # "tocabilab" gains (Kp/9, Kv/3) are TocabiWalkConfig's defaults
             env_overrides.setdefault("pd_kp", tuple(robot.LEG_KP))
             env_overrides.setdefault("pd_kv", tuple(robot.LEG_KV))
-    if cfg.control_mode != "torque" or assist:
         env_overrides.setdefault("pd_action_scale", cfg.pd_action_scale)
     if cfg.reward_weights:
         env_overrides.setdefault("reward_weights", cfg.reward_weight_map())
@@ -246,7 +244,7 @@ def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbL
     loss_module.set_keys(sample_log_prob="action_log_prob")
     loss_module.loss_mask_key = VALID_KEY  # see rollout_guard: broken frames add nothing to the losses
     if cfg.torque_assist > 0:
-        loss_module = AssistAbsorbLoss(loss_module, gaussian_head(agent.actor))
+        loss_module = AssistAbsorbLoss(loss_module, gaussian_head(agent.actor), robot.LEG_TORQUE_LIMITS)
     return loss_module, advantage
 
 
@@ -304,13 +302,13 @@ def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
                 # This rollout ran with β(steps before it); the next runs with β(now): the update absorbs the gap.
                 beta, beta_next = assist(env_steps - batch.numel()), assist(env_steps)
                 base = env.base_env
-                loss_module.set_step(base.assist_gain(beta), base.assist_gain(beta_next), beta - beta_next,
-                                     base.leg_torque_limits, cfg.assist_absorb if beta_next < beta else 0.0)
+                loss_module.set_step(base.assist_gain(beta), base.assist_gain(beta_next), beta, beta_next,
+                                     cfg.assist_absorb if beta_next < beta else 0.0)
             stats = _update(cfg, flat, update_step)
             fading = False
             if assist is not None:
                 env.base_env.set_torque_assist(beta_next)
-                stats["torque_assist"] = beta_next
+                stats["torque_assist"] = beta  # the β this iteration's rollout (and its logged rewards) ran with
                 fading = beta_next < beta
             # While the assist fades, the KL also measures the intended move to the next β's actions; the adaptive
             # rule would read it as too large a step and starve the absorption (the LR fell to 1e-5 on the H100 and
@@ -382,11 +380,12 @@ def _update(cfg: PPOConfig, flat: TensorDictBase, step: MinibatchStep) -> dict[s
     """``epochs`` passes of shuffled mini-batches over the rollout. Returns mean losses and KL (one host read)."""
     n = flat.shape[0]
     num_mb = max(1, n // cfg.minibatch_size)
-    sums = 0.0
+    sums = None
     for _ in range(cfg.epochs):
         perm = torch.randperm(n, device=flat.device)
         for k in range(num_mb):
-            sums = sums + step(flat[perm[k * cfg.minibatch_size : (k + 1) * cfg.minibatch_size]])
+            stats = step(flat[perm[k * cfg.minibatch_size : (k + 1) * cfg.minibatch_size]])
+            sums = stats.clone() if sums is None else sums.add_(stats)
     mean = (sums / (cfg.epochs * num_mb)).tolist()
     return {_STAT_NAMES.get(k, k): v for k, v in zip(step.stat_keys, mean)}
 

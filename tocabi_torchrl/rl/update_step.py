@@ -18,7 +18,8 @@ import warnings
 import torch
 from tensordict import TensorDictBase
 
-__all__ = ["MinibatchStep", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam", "optimizer_mode", "restore_optimizer_mode", "set_lr", "get_lr"]
+__all__ = ["MinibatchStep", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam", "optimizer_mode",
+           "restore_optimizer_mode", "set_lr", "get_lr"]
 
 #: The loss outputs averaged into the update's log line, in this order.
 STAT_KEYS = ("loss_objective", "loss_critic", "kl_approx", "clip_fraction")
