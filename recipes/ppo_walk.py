@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> None:
     if note:
         print(note, flush=True)
     print(banner(cfg, args, device), flush=True)
-    result = train(cfg)
+    result = train(cfg, run=run)
     print(f"done: {result.env_steps:,} env steps in {result.wall_seconds:.0f} s "
           f"({result.env_steps_per_second:,.0f} env-steps/s); run folder {result.run_dir}")
     if cfg.eval_at_end:

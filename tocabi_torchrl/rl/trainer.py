@@ -248,11 +248,14 @@ def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbL
     return loss_module, advantage
 
 
-def train(cfg: PPOConfig, env: EnvBase | None = None) -> TrainResult:
-    """Run PPO as configured; returns where the run was written and its throughput."""
+def train(cfg: PPOConfig, env: EnvBase | None = None, run: RunFolder | None = None) -> TrainResult:
+    """Run PPO as configured; returns where the run was written and its throughput. ``run``: the run folder
+    :func:`~tocabi_torchrl.rl.run_dir.open_run` already opened for ``cfg`` (the recipe checks it before it starts),
+    so a resumed checkpoint is not read twice."""
     cfg.validate()
-    require_loggers(cfg.loggers)
-    run = open_run(cfg)  # refuses to overwrite an earlier run; reads and checks the resumed checkpoint
+    if run is None:
+        require_loggers(cfg.loggers)
+        run = open_run(cfg)  # refuses to overwrite an earlier run; reads and checks the resumed checkpoint
     if run.start_iteration >= cfg.iterations:
         return finished_result(run, cfg)
     device = resolve_device(cfg.device)
