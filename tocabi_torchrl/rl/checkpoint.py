@@ -123,7 +123,7 @@ def _load_failure(path: Path, err: Exception) -> str:
         return (f"refusing to load {path}: it holds Python objects other than tensors and plain containers, and "
                 f"loading those could run code from the file ({refused}). Checkpoints written by tocabi-torchrl "
                 "never do; only load files you trust")
-    # torch's own text goes on to suggest weights_only=False, which is exactly what must not be done with this file.
+    # torch's own message goes on to suggest turning weights_only off, which is exactly what must not be done here.
     detail = next((line.strip() for line in text.splitlines() if "Unsupported" in line), text.split(". ")[0])
     return (f"cannot read checkpoint {path}: not a complete torch checkpoint (truncated, corrupt or another kind of "
             f"file): {type(err).__name__}: {detail[:160]}")
