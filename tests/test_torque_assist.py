@@ -129,7 +129,44 @@ def test_absorb_target_applies_the_same_torque_at_the_next_beta():
     inside = target.abs() < 1.0
     assert inside[0].all()  # small actions: every target is reachable
     torch.testing.assert_close(torque_next[inside], out["leg_torque"][inside], rtol=1e-4, atol=1e-2)
-    assert torch.all(target[~inside].abs() == 1.0)
+    # Beyond the box the target stays on the action's side of it (the env applies the edge either way).
+    assert torch.all(target[~inside] * action[:, :12][~inside] >= 1.0)
+
+
+def _applied(loss, x, leg_assist, beta, gain):
+    # The env's leg torque at assist scale beta for actions x: actions clipped to the box, torques to the limits.
+    torque = gain * x.clamp(-1.0, 1.0) + beta * loss.limits * leg_assist
+    return torch.maximum(torch.minimum(torque, loss.limits), -loss.limits)
+
+
+def test_absorb_target_is_the_nearest_action_applying_the_same_torque():
+    # The step the H100 fade broke on (β 1 → 0.97 with the robot's gain ratio ~7): a PD asking for 3× the limit
+    # saturates the torque, and any action that keeps it saturated at β' is as good as the rollout's.
+    limits = torch.full((12,), 100.0)
+    loss = AssistAbsorbLoss(_NoPPO(), gaussian_head(make_actor(6, 13, hidden=(8,))), limits)
+    gain_now, gain_next = 7.0 * limits, 6.8 * limits
+    loss.set_step(gain_now, gain_next, 1.0, 0.97, 1.0)
+    loc = torch.zeros(1, 12)
+    saturated = torch.full((1, 12), 3.0)
+    torch.testing.assert_close(loss.target(loc, saturated), loc)  # no pull: still saturated at β'
+    # Random frames: the target applies the rollout's torque at β' wherever some action can, it is the rollout's
+    # own action whenever that already does, and otherwise it moves no further than to where it does.
+    g = torch.Generator().manual_seed(0)
+    loc = 1.5 * torch.randn(4096, 12, generator=g)
+    leg_assist = 2.0 * torch.randn(4096, 12, generator=g)
+    torque = _applied(loss, loc, leg_assist, 1.0, gain_now)
+    target = loss.target(loc, leg_assist)
+    torque_next = _applied(loss, target, leg_assist, 0.97, gain_next)
+    reachable = (_applied(loss, torch.full_like(loc, -1.0), leg_assist, 0.97, gain_next) <= torque) & (
+        torque <= _applied(loss, torch.ones_like(loc), leg_assist, 0.97, gain_next))
+    assert 0.2 < reachable.float().mean() < 1.0  # both cases occur
+    torch.testing.assert_close(torque_next[reachable], torque[reachable], rtol=1e-5, atol=1e-3)
+    same = _applied(loss, loc, leg_assist, 0.97, gain_next) == torque
+    assert same.float().mean() > 0.1 and torch.equal(target[same], loc[same])
+    # Nearest: half-way back towards loc the torque at β' is already different (for frames that moved).
+    moved = reachable & ~same & ((target - loc).abs() > 1e-4)
+    halfway = _applied(loss, (target + loc) / 2, leg_assist, 0.97, gain_next)
+    assert moved.any() and torch.all((halfway[moved] - torque[moved]).abs() > 0)
 
 
 class _NoPPO(torch.nn.Module):

@@ -62,8 +62,8 @@ class AssistAbsorbLoss(nn.Module):
     """A PPO loss plus ``loss_absorb``, which moves one step of the assist's fade into the actor's mean.
 
     For each frame, the torque the rollout's mean applied at β is known: ``T = clip(c(β)·clip(loc) + β·limit·
-    leg_assist, ±limit)`` (actions are clipped to [-1, 1], torques to the limits, as the env does); the action that
-    applies ``T`` at the next β' is ``a' = clip((T − β'·limit·leg_assist) / c(β'), -1, 1)``. ``loss_absorb = weight ·
+    leg_assist, ±limit)`` (actions are clipped to [-1, 1], torques to the limits, as the env does); the target a' is
+    the action nearest to ``loc`` that applies ``T`` at the next β' (:meth:`target`). ``loss_absorb = weight ·
     mean_s Σ_j (μ_θ(s)_j − a'_j)² / (2 σ_j²)`` over the 12 leg actions: the KL divergence from the Gaussian at a' (same
     σ) to the current one. ``loc`` and σ (``scale``) are the rollout's, ``leg_assist`` the env's signal of the step the
     action was taken in (``("next", "leg_assist")``). The gains, β, β' and ``weight`` are device buffers the trainer
@@ -100,11 +100,26 @@ class AssistAbsorbLoss(nn.Module):
         self.weight.fill_(weight)
 
     def target(self, loc: torch.Tensor, leg_assist: torch.Tensor) -> torch.Tensor:
-        """(…, 12) the action at β' that applies the torque the rollout's mean ``loc`` (…, 12) applied at β."""
-        assist = self.limits * leg_assist
+        """(…, 12) the action at β' nearest to the rollout's mean ``loc`` (…, 12) that applies the torque ``loc``
+        applied at β.
+
+        The env clips actions to [-1, 1] and torques to the limits, so a whole interval of actions may apply the same
+        torque: the target is ``loc`` projected onto that interval. A frame whose torque stays saturated at β' (or
+        whose action stays beyond the box) is not pulled at all; pulling it to the edge of saturation moved every
+        saturated frame at once and broke the gait as the fade began on the H100 (KL 0.87 in the first fading
+        update). Where no action applies the torque at β', the target is the box edge on its side."""
+        limits = self.limits
+        assist = limits * leg_assist
         torque = self.gain_now * loc.clamp(-1.0, 1.0) + self.beta_now * assist
-        torque = torch.maximum(torch.minimum(torque, self.limits), -self.limits)
-        return ((torque - self.beta_next * assist) / self.gain_next).clamp(-1.0, 1.0)
+        torque = torch.maximum(torch.minimum(torque, limits), -limits)
+        exact = (torque - self.beta_next * assist) / self.gain_next
+        # Every action below (above) the interval applies the same torque when the torque sits at its lower (upper)
+        # limit or when even the box edge does not reach it.
+        open_low = (torque <= -limits) | (exact <= -1.0)
+        open_high = (torque >= limits) | (exact >= 1.0)
+        low = torch.where(open_low, -torch.inf, exact.clamp(max=1.0))
+        high = torch.where(open_high, torch.inf, exact.clamp(min=-1.0))
+        return torch.minimum(torch.maximum(loc, low), high)
 
     @property
     def in_keys(self) -> list:
