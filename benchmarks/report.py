@@ -12,6 +12,17 @@ from pathlib import Path
 import torch
 
 
+def rss_bytes() -> int:
+    """Current resident set of this process (VmRSS), 0 where /proc is missing."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
 def run_meta(script: str, argv: Sequence[str] | None) -> dict:
     """Hardware, versions, date and the exact command line of this run."""
     args = list(argv) if argv is not None else sys.argv[1:]

@@ -85,6 +85,8 @@ ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(ROOT))
 
+from report import rss_bytes  # noqa: E402  (benchmarks/, put on the path above)
+
 TARGET_ENV_STEPS = 983_040  # TocabiLab's training budget: 4,096 envs x 24 steps x 10 iterations
 MIN_ROLLOUT = 2048
 #: PPOConfig fields that are bookkeeping or sized per env count, not the training recipe (see ``recipe``).
@@ -290,17 +292,6 @@ class RunSpec:
 # ----------------------------------------------------------------------------------------- host-side sampling
 
 
-def _rss_bytes() -> int:
-    """Current resident set of this process (VmRSS), 0 where /proc is missing."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
-
-
 def _system_cpu_ticks() -> tuple[int, int]:
     """(busy, total) clock ticks of all CPUs since boot, from the first line of /proc/stat."""
     try:
@@ -363,7 +354,7 @@ class Sampler(threading.Thread):
 
     def sample_now(self, with_gpu: bool = False) -> None:
         busy, total = _system_cpu_ticks()
-        row = {"t": time.perf_counter(), "rss": _rss_bytes(), "cpu_s": _process_cpu_s(), "sys_busy": busy,
+        row = {"t": time.perf_counter(), "rss": rss_bytes(), "cpu_s": _process_cpu_s(), "sys_busy": busy,
                "sys_total": total}
         if with_gpu and self.gpu is not None:
             q = self.gpu.query()

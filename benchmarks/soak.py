@@ -41,7 +41,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 sys.path.insert(0, str(REPO))
 
-from report import run_meta, write_report  # noqa: E402
+from report import rss_bytes, run_meta, write_report  # noqa: E402
 from tensordict.nn import TensorDictModuleBase  # noqa: E402
 from torchrl.envs.transforms import Transform  # noqa: E402
 
@@ -55,8 +55,7 @@ PUSH_DV = 10.0 * robot.GRAVITY * 0.004
 
 
 def rss_mib() -> float:
-    with open("/proc/self/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024
+    return rss_bytes() / 2**20
 
 
 def device_used_gib(device: torch.device) -> float | None:
