@@ -14,7 +14,7 @@ from tocabi_torchrl import robot
 from tocabi_torchrl.envs import TocabiWalk
 from tocabi_torchrl.rl import make_actor, preset_config
 from tocabi_torchrl.rl.actors import gaussian_head
-from tocabi_torchrl.rl.assist import AssistAbsorbLoss, AssistSchedule
+from tocabi_torchrl.rl.assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 
 N = 3
 LIMITS = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32)
@@ -51,6 +51,9 @@ def test_assist_morphs_position_residuals_into_torques(assisted):
     torch.testing.assert_close(out["leg_assist"], (kp * (q_ref - q) - kv * qd) / LIMITS, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(env.assist_gain(0.0), LIMITS)
     torch.testing.assert_close(env.assist_gain(1.0), scale * kp)
+    # History and torque rewards see the applied torque over the limits, whatever β made it; the phase is the action's.
+    torch.testing.assert_close(out["applied_action"][:, :12], expected / LIMITS, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out["applied_action"][:, 12], action[:, 12])
 
 
 def test_assist_off_applies_the_policy_torque_alone(assisted):
@@ -62,6 +65,38 @@ def test_assist_off_applies_the_policy_torque_alone(assisted):
     out = _step(env, action)
     torch.testing.assert_close(out["leg_torque"], action[:, :12] * LIMITS)
     assert out["leg_assist"].abs().sum() > 0  # still recorded for the loss, just not applied
+    torch.testing.assert_close(out["applied_action"], action)  # as in plain torque mode
+
+
+def test_equal_torques_at_two_betas_give_equal_observations_and_rewards():
+    # The morph changes what an action means and nothing else: two worlds in the same state, one at β = 0.6 and one
+    # at β = 0.3, given actions that apply the same torque, see the same next observation and reward.
+    from tocabi_torchrl import make_env
+
+    kw = dict(num_envs=2, device="cpu", backend="mujoco", seed=1, control_mode="torque", torque_assist=True,
+              pd_kp=tuple(robot.LEG_KP), pd_kv=tuple(robot.LEG_KV))
+    envs = [make_env(**kw), make_env(**kw)]
+    outs = []
+    for env in envs:  # the same start and the same four steps at β = 0.6
+        env.base_env.set_torque_assist(0.6)
+        td = env.reset()
+        for _ in range(4):
+            td = env.step(td.set("action", torch.zeros(2, 13)))["next"]
+        outs.append(td)
+    envs[1].base_env.set_torque_assist(0.3)
+    base = envs[0].base_env
+    action = torch.zeros(2, 13)
+    action[:, :12] = torch.linspace(-0.03, 0.03, 12)
+    loss = AssistAbsorbLoss(_NoPPO(), gaussian_head(make_actor(6, 13, hidden=(8,))), base.leg_torque_limits)
+    loss.set_step(base.assist_gain(0.6), base.assist_gain(0.3), 0.6, 0.3, 1.0)
+    first = envs[0].step(outs[0].set("action", action))["next"]
+    moved = action.clone()
+    moved[:, :12] = loss.target(action[:, :12], first["leg_assist"])
+    assert (moved[:, :12] - action[:, :12]).abs().max() > 1e-3  # a different action ...
+    second = envs[1].step(outs[1].set("action", moved))["next"]
+    torch.testing.assert_close(second["leg_torque"], first["leg_torque"], rtol=1e-4, atol=1e-2)  # ... same torque,
+    torch.testing.assert_close(second["observation"], first["observation"], rtol=1e-4, atol=1e-4)  # same input,
+    torch.testing.assert_close(second["reward"], first["reward"], rtol=1e-4, atol=1e-4)  # same reward
 
 
 def test_assist_is_reset_with_the_world(assisted):
@@ -224,15 +259,18 @@ def test_torque_preset_is_the_reference_action_space_with_a_fading_assist():
     assert cfg.transform_preset == "reference"  # 13 reference reward terms, reference observation
 
 
-def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_path):
+@pytest.mark.parametrize("target", ["teacher", "rollout"])
+def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_path, target):
     from tocabi_torchrl.rl.trainer import build_env, train
 
     n, steps = 4, 8
     frames = n * steps
     cfg = preset_config("torque", device="cpu", num_envs=n, steps_per_env=steps, minibatch_size=16, epochs=1,
                         total_env_steps=4 * frames, assist_fade_start=frames, assist_fade_end=3 * frames,
+                        assist_target=target, assist_anchor_decay=frames,
                         actor_hidden=(16,), critic_hidden=(16,), run_dir=str(tmp_path), name="t",
-                        eval_at_end=False, progress_bar=False, checkpoint_every=10, cuda_graph="off")
+                        eval_at_end=False, progress_bar=False, checkpoint_every=1, checkpoint_keep_last=0,
+                        cuda_graph="off")
     result = train(cfg)
     with open(result.run_dir / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
@@ -242,10 +280,67 @@ def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_pat
     assert [float(row["torque_assist"]) for row in rows] == pytest.approx([1.0, 1.0, 1 / (math.sqrt(r) + 1), 0.0])
     absorb = [float(row["loss_absorb"]) for row in rows]
     assert absorb[0] == 0.0 and absorb[1] > 0 and absorb[2] > 0 and absorb[3] == 0.0
+    # The teacher's pull ends anchor_decay steps after the fade (here at the last iteration).
+    assert [float(row["absorb_weight"]) for row in rows] == [0.0, 1.0, 1.0, 0.0]
     lr = [float(row["lr"]) for row in rows]
     assert lr[1] == lr[0] and lr[2] == lr[0]  # held while the assist fades
+    folder = result.run_dir / "checkpoints"
+    first, last = (torch.load(folder / f"iter_{i:06d}.pt", weights_only=True)["agent"] for i in (1, 4))
+    if target == "teacher":
+        # Taken as the fade began (after iteration 1), at β = 1, and kept: the actor then moved away from it.
+        assert not first["teacher"]["anchored"] and last["teacher"]["anchored"]
+        assert float(last["teacher"]["beta"]) == 1.0
+        key = next(k for k in last["teacher"] if k.startswith("mean_net") and k.endswith("weight"))
+        actor_key = next(k for k in last["actor"] if k.endswith(key))
+        assert not torch.equal(last["teacher"][key], last["actor"][actor_key])
+    else:
+        assert "teacher" not in last
     assert build_env(cfg, torch.device("cpu"), num_envs=2).base_env.cfg.torque_assist is False
     assert build_env(cfg, torch.device("cpu"), num_envs=2, for_training=True).base_env.cfg.torque_assist is True
+
+
+def test_teacher_target_is_the_action_applying_the_teacher_torque():
+    # The teacher (another network) acted at β = 1; the actor is pulled to the action that applies the teacher's
+    # torque at β', whatever the rollout's own action did.
+    torch.manual_seed(0)
+    limits = torch.full((12,), 100.0)
+    actor, other = make_actor(6, 13, hidden=(8,)), make_actor(6, 13, hidden=(8,))
+    teacher = AssistTeacher(gaussian_head(actor).mean_net, limits)
+    assert not teacher.anchored
+    teacher.anchor(gaussian_head(other).mean_net, 3.0 * limits, 1.0)
+    assert teacher.anchored and float(teacher.beta) == 1.0
+    obs = torch.randn(64, 6)
+    leg_assist = 0.3 * torch.randn(64, 12)
+    with torch.no_grad():
+        teacher_loc = gaussian_head(other).mean_net(obs)[:, :12]
+        own_loc = gaussian_head(actor).mean_net(obs)[:, :12]
+    expected = (3.0 * limits * teacher_loc.clamp(-1, 1) + limits * leg_assist).clamp(-100.0, 100.0)
+    torch.testing.assert_close(teacher.torque(obs, leg_assist, limits), expected)
+    loss = AssistAbsorbLoss(_NoPPO(), gaussian_head(actor), limits, teacher=teacher)
+    loss.set_step(2.0 * limits, 1.5 * limits, 0.5, 0.4, 1.0)
+    target = loss.target(own_loc, leg_assist, teacher.torque(obs, leg_assist, limits))
+    applied = (1.5 * limits * target.clamp(-1, 1) + 0.4 * limits * leg_assist).clamp(-100.0, 100.0)
+    inside = target.abs() < 1.0
+    assert inside.float().mean() > 0.5
+    torch.testing.assert_close(applied[inside], expected[inside], rtol=1e-5, atol=1e-3)
+    # The copy is frozen: the teacher's weights do not follow the network it was taken from.
+    with torch.no_grad():
+        for p in gaussian_head(other).mean_net.parameters():
+            p.add_(1.0)
+    torch.testing.assert_close(teacher.torque(obs, leg_assist, limits), expected)
+    assert not any(p.requires_grad for p in teacher.parameters())
+
+
+def test_teacher_weight_holds_through_the_fade_then_decays():
+    s = AssistSchedule(1.0, fade_start=100, fade_end=300, anchor_decay=100)
+    assert [s.teacher_weight(x) for x in (0, 100, 101, 300, 350, 400, 10**9)] == [0.0, 0.0, 1.0, 1.0, 0.5, 0.0, 0.0]
+    assert AssistSchedule(1.0, fade_start=0, fade_end=1).teacher_weight(2) == 0.0
+    with pytest.raises(ValueError, match="anchor_decay"):
+        AssistSchedule(1.0, fade_start=0, fade_end=1, anchor_decay=-1)
+    with pytest.raises(ValueError, match="assist_target"):
+        preset_config("torque", assist_target="teachr")
+    with pytest.raises(ValueError, match="assist_anchor_decay"):
+        preset_config("torque", assist_anchor_decay=-5)
 
 
 def test_wall_clock_checkpoints_carry_the_training_time(tmp_path, monkeypatch):
@@ -304,6 +399,7 @@ def test_gpu_torque_preset_trains_with_the_captured_absorbing_update(tmp_path):
     frames = n * steps
     cfg = preset_config("torque", device="cuda", num_envs=n, steps_per_env=steps, minibatch_size=frames // 4,
                         total_env_steps=5 * frames, assist_fade_start=frames, assist_fade_end=4 * frames,
+                        assist_anchor_decay=frames,
                         run_dir=str(tmp_path), name="g", eval_at_end=False, progress_bar=False)
     with _no_capture_warning():  # the absorbing loss must be captured with the update, not fall back to eager
         result = train(cfg)

@@ -74,7 +74,9 @@ class TocabiWalkConfig:
     #: ``pd_reference`` mode, which learns to walk), and at β = 0 they are the reference's normalised torques. β is
     #: the env's device scalar ``assist_scale`` (:meth:`TocabiWalk.set_torque_assist`, 0 at build), so a trainer can
     #: fade it without rebuilding or re-capturing. Adds the ``leg_assist`` signal: the action-independent part of the
-    #: PD, ``(pd_kp·(q_ref − q) − pd_kv·q̇) / limit`` (num_envs, 12), from the pre-step state.
+    #: PD, ``(pd_kp·(q_ref − q) − pd_kv·q̇) / limit`` (num_envs, 12), from the pre-step state. The leg entries of
+    #: ``applied_action`` (observation history, torque rewards) are the applied torque over the limits, the same at
+    #: every β for the same torques (at β = 0 they equal the action, as in plain torque mode).
     torque_assist: bool = False
     #: Robot model path: None = the shipped assets/tocabi/tocabi.xml.
     model_path: str | os.PathLike | None = None

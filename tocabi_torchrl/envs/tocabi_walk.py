@@ -246,6 +246,11 @@ class TocabiWalk(EnvBase):
         self.time.copy_(torch.remainder(self.time + self.dt * rate, self.motion.period))
         self.episode_step.add_(1)
         self.applied_action.copy_(a)
+        if self.cfg.torque_assist:
+            # The history and the torque rewards see the torque the legs got, over the limits: at β = 0 that is the
+            # action itself (the reference's a_raw), and at every β a policy that applies the same torques gets the
+            # same observations and rewards, so the morph changes the action's meaning and nothing else.
+            self.applied_action[:, : robot.NUM_LEG_JOINTS].copy_(leg_cmd / self._leg_limits)
         applied = self.sim.applied_actuator_force[:, : robot.NUM_LEG_JOINTS]
         self.leg_torque.copy_(leg_cmd if self.cfg.control_mode == "torque" else applied)
         self.ref_joint_pos.copy_(q_ref)

@@ -10,10 +10,19 @@ applies the same torque in every state of the rollout is known in closed form:
 ``a' = (c(β_k)·a + (β_k − β_(k+1))·limit·leg_assist(s)) / c(β_(k+1))`` (with the env's action and torque clipping),
 and the actor is pulled towards it: the gait stays while the action space changes under it. At β = 0 the policy
 is a pure torque policy (the evaluation never uses the assist).
+
+Two targets (``PPOConfig.assist_target``):
+- ``"rollout"``: the torque the rollout's own mean applied. It keeps what the actor does, so it only moves the
+  fade's small step of PD into the actor; on the H100 the gait held to β ≈ 0.1 and broke after
+  (docs/training/torque.md, runs 2 and 4).
+- ``"teacher"``: the torque a frozen copy of the actor taken as the fade starts (:class:`AssistTeacher`, the β = 1
+  policy plus its PD) applies in the same state: DAgger on the fading policy's own states, so the actor is taught
+  the PD's whole feedback where its own copy of it fails, not only the fade's last step of it.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import torch
@@ -22,7 +31,10 @@ from torch import nn
 
 from .. import robot
 
-__all__ = ["AssistSchedule", "AssistAbsorbLoss"]
+__all__ = ["AssistSchedule", "AssistAbsorbLoss", "AssistTeacher", "ASSIST_TARGETS", "applied_leg_torque"]
+
+#: What the absorbing loss copies into the actor (see the module docstring).
+ASSIST_TARGETS = ("rollout", "teacher")
 
 
 @dataclass(frozen=True)
@@ -42,6 +54,8 @@ class AssistSchedule:
     fade_start: int
     fade_end: int
     gain_ratio: float = 1.0
+    #: Env steps after ``fade_end`` over which the teacher's pull (``absorb_weight``) falls linearly to 0.
+    anchor_decay: int = 0
 
     def __post_init__(self):
         if not self.start >= 0:
@@ -50,12 +64,69 @@ class AssistSchedule:
             raise ValueError(f"AssistSchedule needs 0 <= fade_start < fade_end, got {self.fade_start}, {self.fade_end}")
         if not self.gain_ratio >= 1.0:
             raise ValueError(f"AssistSchedule.gain_ratio must be >= 1, got {self.gain_ratio!r}")
+        if not self.anchor_decay >= 0:
+            raise ValueError(f"AssistSchedule.anchor_decay must be >= 0, got {self.anchor_decay!r}")
 
     def __call__(self, env_steps: int) -> float:
         u = min(max((env_steps - self.fade_start) / (self.fade_end - self.fade_start), 0.0), 1.0)
         r = self.gain_ratio
         frac = 1.0 - u if r == 1.0 else (r ** (1.0 - u) - 1.0) / (r - 1.0)
         return self.start * frac
+
+    def teacher_weight(self, env_steps: int) -> float:
+        """Share (0-1) of the absorbing weight for the ``"teacher"`` target after ``env_steps``: 1 from the fade's
+        start to its end, then linearly to 0 over ``anchor_decay`` steps (0 before the fade: no teacher yet)."""
+        if env_steps <= self.fade_start:
+            return 0.0
+        if env_steps <= self.fade_end:
+            return 1.0
+        if self.anchor_decay <= 0:
+            return 0.0
+        return max(0.0, 1.0 - (env_steps - self.fade_end) / self.anchor_decay)
+
+
+def applied_leg_torque(loc: torch.Tensor, leg_assist: torch.Tensor, gain: torch.Tensor, beta: torch.Tensor,
+                       limits: torch.Tensor) -> torch.Tensor:
+    """(…, 12) N·m, the leg torque the assisted env applies for leg actions ``loc`` (…, 12) at assist scale
+    ``beta`` with action gain ``gain`` (12,) N·m: actions clipped to [-1, 1], torques to ±``limits`` (12,) N·m."""
+    torque = gain * loc.clamp(-1.0, 1.0) + beta * limits * leg_assist
+    return torch.maximum(torch.minimum(torque, limits), -limits)
+
+
+class AssistTeacher(nn.Module):
+    """A frozen copy of the actor's mean network, taken when the fade starts (:meth:`anchor`), with the β and action
+    gain it acted at; :meth:`torque` is the leg torque it (with its PD) would apply in a state.
+
+    Its state (weights, β, gain and whether it was taken) travels in checkpoints, so a resumed run keeps its teacher.
+    The weights are copied in place, so a captured update step that reads them sees the copy.
+    """
+
+    def __init__(self, mean_net: nn.Module, limits: torch.Tensor):
+        super().__init__()
+        self.mean_net = copy.deepcopy(mean_net).requires_grad_(False)
+        device = next(self.mean_net.parameters()).device
+        limits = torch.as_tensor(limits, dtype=torch.float32, device=device)
+        self.register_buffer("gain", limits.clone())
+        self.register_buffer("beta", torch.zeros((), device=device))
+        self.register_buffer("anchored", torch.zeros((), dtype=torch.bool, device=device))
+
+    @torch.no_grad()
+    def anchor(self, mean_net: nn.Module, gain: torch.Tensor, beta: float) -> None:
+        """Copy ``mean_net``'s weights (the actor as it acts at assist scale ``beta``, gain ``gain`` (12,) N·m)."""
+        for mine, theirs in zip(self.mean_net.parameters(), mean_net.parameters(), strict=True):
+            mine.copy_(theirs)
+        for mine, theirs in zip(self.mean_net.buffers(), mean_net.buffers(), strict=True):
+            mine.copy_(theirs)
+        self.gain.copy_(gain)
+        self.beta.fill_(beta)
+        self.anchored.fill_(True)
+
+    def torque(self, observation: torch.Tensor, leg_assist: torch.Tensor, limits: torch.Tensor) -> torch.Tensor:
+        """(…, 12) N·m the teacher's mean action applies in states ``observation`` (…, obs_dim) whose PD part is
+        ``leg_assist`` (…, 12)."""
+        with torch.no_grad():
+            loc = self.mean_net(observation)[..., : limits.shape[-1]]
+        return applied_leg_torque(loc, leg_assist, self.gain, self.beta, limits)
 
 
 class AssistAbsorbLoss(nn.Module):
@@ -70,16 +141,22 @@ class AssistAbsorbLoss(nn.Module):
     sets in place before each update (:meth:`set_step`; a captured update step reads them). Frames the PPO loss masks
     out (its ``loss_mask_key``) are left out here too.
 
+    With a ``teacher``, ``T`` is instead the torque the teacher applies in the frame's state
+    (:meth:`AssistTeacher.torque`): the actor is pulled towards the action that applies it at β'.
+
     Args:
         ppo_loss: the PPO loss (e.g. TorchRL's ``ClipPPOLoss``); its outputs are passed through.
         head: the actor's :class:`~tocabi_torchrl.rl.actors.GaussianHead` (shares its parameters with the actor).
         limits: (12,) N·m, the leg torque limits (``TocabiWalk.leg_torque_limits``).
+        teacher: the ``"teacher"`` target's :class:`AssistTeacher`, or None for the ``"rollout"`` target.
     """
 
-    def __init__(self, ppo_loss: nn.Module, head: nn.Module, limits: torch.Tensor):
+    def __init__(self, ppo_loss: nn.Module, head: nn.Module, limits: torch.Tensor,
+                 teacher: AssistTeacher | None = None):
         super().__init__()
         self.ppo_loss = ppo_loss
         self.head = head
+        self.teacher = teacher
         device = next(head.parameters()).device
         self.register_buffer("limits", torch.as_tensor(limits, dtype=torch.float32, device=device).clone())
         self.register_buffer("gain_now", self.limits.clone())
@@ -99,9 +176,9 @@ class AssistAbsorbLoss(nn.Module):
         self.beta_next.fill_(beta_next)
         self.weight.fill_(weight)
 
-    def target(self, loc: torch.Tensor, leg_assist: torch.Tensor) -> torch.Tensor:
-        """(…, 12) the action at β' nearest to the rollout's mean ``loc`` (…, 12) that applies the torque ``loc``
-        applied at β.
+    def target(self, loc: torch.Tensor, leg_assist: torch.Tensor, torque: torch.Tensor | None = None) -> torch.Tensor:
+        """(…, 12) the action at β' nearest to the rollout's mean ``loc`` (…, 12) that applies ``torque`` (…, 12)
+        N·m, by default the torque ``loc`` applied at β.
 
         The env clips actions to [-1, 1] and torques to the limits, so a whole interval of actions may apply the same
         torque: the target is ``loc`` projected onto that interval. A frame whose torque stays saturated at β' (or
@@ -110,8 +187,8 @@ class AssistAbsorbLoss(nn.Module):
         update). Where no action applies the torque at β', the target is the box edge on its side."""
         limits = self.limits
         assist = limits * leg_assist
-        torque = self.gain_now * loc.clamp(-1.0, 1.0) + self.beta_now * assist
-        torque = torch.maximum(torch.minimum(torque, limits), -limits)
+        if torque is None:
+            torque = applied_leg_torque(loc, leg_assist, self.gain_now, self.beta_now, limits)
         exact = (torque - self.beta_next * assist) / self.gain_next
         # Every action below (above) the interval applies the same torque when the torque sits at its lower (upper)
         # limit or when even the box edge does not reach it.
@@ -130,7 +207,9 @@ class AssistAbsorbLoss(nn.Module):
         legs = robot.NUM_LEG_JOINTS
         loc, _ = self.head(td["observation"])
         # NaN-free before squaring: a broken frame is masked below, but 0 × NaN would still reach the gradients.
-        target = torch.nan_to_num(self.target(td["loc"][..., :legs], td["next", "leg_assist"]))
+        leg_assist = td["next", "leg_assist"]
+        torque = None if self.teacher is None else self.teacher.torque(td["observation"], leg_assist, self.limits)
+        target = torch.nan_to_num(self.target(td["loc"][..., :legs], leg_assist, torque))
         scale = torch.nan_to_num(td["scale"][..., :legs], nan=1.0).clamp_min(1e-6)
         kl = 0.5 * ((loc[..., :legs] - target) / scale).pow(2).sum(-1)
         # Frames the rollout guard marked unusable (a faulted world) pull the actor nowhere, as in the PPO terms.

@@ -59,6 +59,12 @@ class PPOConfig:
     assist_fade_start: int = 0
     assist_fade_end: int = 0
     assist_absorb: float = 1.0
+    #: What the absorbing loss copies (rl/assist.py): "teacher", the torque of a frozen copy of the actor taken as
+    #: the fade starts, in the fading policy's own states (DAgger); or "rollout", the torque the rollout's own mean
+    #: applied (only the fade's step). With "teacher" the pull holds to ``assist_fade_end`` and then falls linearly
+    #: to 0 over ``assist_anchor_decay`` env steps.
+    assist_target: str = "teacher"
+    assist_anchor_decay: int = 0
     #: Reward re-weighting, "term=weight" entries (e.g. body_vel=0.9); empty = the reference weights.
     reward_weights: tuple[str, ...] = ("body_vel=0.9",)
     #: On a GPU, capture the training env's whole step (physics, signals, transforms, masked reset) as one CUDA
@@ -152,6 +158,10 @@ class PPOConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"PPOConfig.{name} must be an int >= 0, got {value!r}")
+        if isinstance(self.assist_anchor_decay, bool) or not isinstance(self.assist_anchor_decay, int) \
+                or self.assist_anchor_decay < 0:
+            raise ValueError(f"PPOConfig.assist_anchor_decay must be an int >= 0 (env steps), got "
+                             f"{self.assist_anchor_decay!r}")
         if not 0 <= self.torque_assist <= 1 or self.assist_absorb < 0:
             raise ValueError(f"PPOConfig.torque_assist must be in [0, 1] and assist_absorb >= 0, got "
                              f"{self.torque_assist!r}, {self.assist_absorb!r}")
@@ -221,8 +231,10 @@ PRESETS: dict[str, dict[str, Any]] = {
     # (β = 1 for 50 M steps) and morph into torques by 110 M (geometric in the action gain, learning rate held), a
     # loss moving each step of the morph into the actor (rl/assist.py); the rest trains the pure torque policy.
     # Without the assist, PPO at thousands of envs learned to stand (issue 19); docs/training/torque.md has the runs.
+    # The pull copies a frozen β = 1 teacher (DAgger) and fades out over 30 M steps after the fade.
     "torque": dict(control_mode="torque", torque_assist=1.0, assist_fade_start=50_000_000,
-                   assist_fade_end=110_000_000, total_env_steps=200_000_000),
+                   assist_fade_end=110_000_000, assist_target="teacher", assist_anchor_decay=30_000_000,
+                   total_env_steps=200_000_000),
     # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
     "cpu_smoke": dict(num_envs=8, steps_per_env=16, minibatch_size=64, epochs=2, total_env_steps=8 * 16 * 3,
                       checkpoint_every=1, eval_envs=2, eval_seconds=1.0, actor_hidden=(64, 64),
@@ -235,11 +247,13 @@ def field_choices() -> dict[str, tuple[str, ...]]:
     by ``--help``)."""
     from ..envs.config import CONTROL_MODES
     from ..transforms.presets import PRESETS as TRANSFORM_PRESETS
+    from .assist import ASSIST_TARGETS
 
     return {"lr_schedule": LR_SCHEDULES, "std_mode": STD_MODES, "control_mode": CONTROL_MODES,
             "value_loss": ("l2", "smooth_l1", "l1"), "command_preset": ("tocabilab", "reference"),
             "transform_preset": tuple(TRANSFORM_PRESETS), "activation": ("relu", "elu", "tanh", "silu"),
-            "pd_gains": ("tocabilab", "robot"), "cuda_graph": ENV_GRAPH_MODES}
+            "pd_gains": ("tocabilab", "robot"), "cuda_graph": ENV_GRAPH_MODES,
+            "assist_target": ASSIST_TARGETS}
 
 
 def uses_env_graph(cfg: PPOConfig, device: Any, num_envs: int | None = None) -> bool:

@@ -26,6 +26,9 @@ FIELD_HELP: dict[str, str] = {
     "assist_fade_start": "env steps at which the torque assist starts to fade",
     "assist_fade_end": "env steps at which the torque assist reaches 0 (pure torque from there on)",
     "assist_absorb": "weight of the loss that moves each step of the morph into the actor",
+    "assist_target": "what that loss copies: 'teacher' (the torque of a frozen copy of the actor taken as the fade "
+                     "starts, DAgger) or 'rollout' (the torque the rollout's own mean applied)",
+    "assist_anchor_decay": "env steps after assist_fade_end over which the teacher's pull falls to 0",
     "reward_weights": "reward re-weighting as term=weight entries; empty = the reference weights",
     "cuda_graph": "capture the env step as one CUDA graph (auto: up to 128 envs)",
     "store_env_signals": "keep every env signal in the rollout (more memory; off keeps what PPO reads)",

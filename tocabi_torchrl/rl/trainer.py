@@ -19,7 +19,7 @@ from torchrl.objectives.value import GAE
 from .. import robot
 from ..device import check_device
 from .actors import action_std, gaussian_head, make_actor, set_action_std
-from .assist import AssistAbsorbLoss, AssistSchedule
+from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 from .checkpoint import apply_checkpoint, save_checkpoint
 from .config import PPOConfig, uses_env_graph
 from .logging import RunLogger, require_loggers
@@ -48,13 +48,20 @@ class Agent:
     actor: ProbabilisticActor
     critic: ValueOperator
     std_schedule: StdSchedule | None
+    #: The torque assist's frozen teacher (``assist_target="teacher"``), saved with the run; not trained.
+    teacher: AssistTeacher | None = None
 
     def state_dict(self) -> dict:
-        return {"actor": self.actor.state_dict(), "critic": self.critic.state_dict()}
+        state = {"actor": self.actor.state_dict(), "critic": self.critic.state_dict()}
+        if self.teacher is not None:
+            state["teacher"] = self.teacher.state_dict()
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])
+        if self.teacher is not None and "teacher" in state:
+            self.teacher.load_state_dict(state["teacher"])
 
 
 def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None, for_training: bool = False,
@@ -122,7 +129,10 @@ def build_agent(cfg: PPOConfig, obs_dim: int, act_dim: int, device: torch.device
     critic = ValueOperator(make_mlp(obs_dim, cfg.critic_hidden, 1, cfg.activation, out_gain=cfg.value_out_gain),
                            in_keys=["observation"]).to(device)
     schedule = StdSchedule(cfg.std_start, cfg.std_end, cfg.std_hold) if cfg.std_mode == "scheduled" else None
-    return Agent(actor, critic, schedule)
+    teacher = None
+    if cfg.torque_assist > 0 and cfg.assist_target == "teacher":
+        teacher = AssistTeacher(gaussian_head(actor).mean_net, robot.LEG_TORQUE_LIMITS)
+    return Agent(actor, critic, schedule, teacher)
 
 
 def _param_groups(agent: Agent, cfg: PPOConfig) -> list[dict]:
@@ -244,7 +254,8 @@ def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbL
     loss_module.set_keys(sample_log_prob="action_log_prob")
     loss_module.loss_mask_key = VALID_KEY  # see rollout_guard: broken frames add nothing to the losses
     if cfg.torque_assist > 0:
-        loss_module = AssistAbsorbLoss(loss_module, gaussian_head(agent.actor), robot.LEG_TORQUE_LIMITS)
+        loss_module = AssistAbsorbLoss(loss_module, gaussian_head(agent.actor), robot.LEG_TORQUE_LIMITS,
+                                       teacher=agent.teacher)
     return loss_module, advantage
 
 
@@ -279,6 +290,8 @@ def train(cfg: PPOConfig, env: EnvBase | None = None, run: RunFolder | None = No
     assist = _assist_schedule(cfg, env)
     if assist is not None:
         env.base_env.set_torque_assist(assist(env_steps))
+    # One host read at start-up; from then on the trainer knows when it takes the teacher.
+    teacher_taken = agent.teacher is not None and bool(agent.teacher.anchored)
 
     iterations = cfg.iterations
     collector = make_collector(cfg, env, agent.actor, device, (iterations - start_iter) * cfg.frames_per_batch)
@@ -305,13 +318,21 @@ def train(cfg: PPOConfig, env: EnvBase | None = None, run: RunFolder | None = No
                 # This rollout ran with β(steps before it); the next runs with β(now): the update absorbs the gap.
                 beta, beta_next = assist(env_steps - batch.numel()), assist(env_steps)
                 base = env.base_env
-                loss_module.set_step(base.assist_gain(beta), base.assist_gain(beta_next), beta, beta_next,
-                                     cfg.assist_absorb if beta_next < beta else 0.0)
+                if agent.teacher is None:
+                    weight = cfg.assist_absorb if beta_next < beta else 0.0
+                else:
+                    if beta_next < beta and not teacher_taken:
+                        # The policy that walks with the full assist, as it is when the fade begins.
+                        agent.teacher.anchor(gaussian_head(agent.actor).mean_net, base.assist_gain(beta), beta)
+                        teacher_taken = True
+                    weight = cfg.assist_absorb * assist.teacher_weight(env_steps) if teacher_taken else 0.0
+                loss_module.set_step(base.assist_gain(beta), base.assist_gain(beta_next), beta, beta_next, weight)
             stats = _update(cfg, flat, update_step)
             fading = False
             if assist is not None:
                 env.base_env.set_torque_assist(beta_next)
                 stats["torque_assist"] = beta  # the β this iteration's rollout (and its logged rewards) ran with
+                stats["absorb_weight"] = weight
                 fading = beta_next < beta
             # While the assist fades, the KL also measures the intended move to the next β's actions; the adaptive
             # rule would read it as too large a step and starve the absorption (the LR fell to 1e-5 on the H100 and
@@ -370,7 +391,8 @@ def _assist_schedule(cfg: PPOConfig, env: EnvBase) -> AssistSchedule | None:
     base = env.base_env
     # One host read at start-up: the geometric mean over the legs of c(1)/c(0).
     ratio = float((base.assist_gain(1.0) / base.assist_gain(0.0)).log().mean().exp())
-    return AssistSchedule(cfg.torque_assist, cfg.assist_fade_start, cfg.assist_fade_end, max(ratio, 1.0))
+    return AssistSchedule(cfg.torque_assist, cfg.assist_fade_start, cfg.assist_fade_end, max(ratio, 1.0),
+                          anchor_decay=cfg.assist_anchor_decay)
 
 
 def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBase) -> list:
