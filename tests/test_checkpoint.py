@@ -138,3 +138,26 @@ def test_retention_keeps_the_last_k_and_every_mth(tmp_path):
     assert names == ["iter_000005.pt", "iter_000010.pt", "iter_000011.pt", "iter_000012.pt", "latest.pt"]
     assert prune_checkpoints(run / "checkpoints", keep_last=0, keep_every=0) == []  # 0: keep everything
     assert _config().checkpoint_keep_last == 3 and _config().checkpoint_keep_every == 50
+
+
+def test_policy_file_keeps_the_policy_and_drops_training_state(tmp_path):
+    from tocabi_torchrl.rl.checkpoint import write_policy_file
+
+    # A torque-preset run: its checkpoints also hold the assist's teacher.
+    run, agent = _saved_run(tmp_path, control_mode="torque", torque_assist=1.0, assist_fade_start=0,
+                            assist_fade_end=10, assist_target="teacher")
+    full = read_checkpoint(run)
+    assert "teacher" in full["agent"] and full["optimizer"] is not None
+    out = write_policy_file(run, tmp_path / "ship" / "policy.pt")
+    small = read_checkpoint(out)
+    assert small["optimizer"] is None and set(small["agent"]) == {"actor", "critic"}
+    assert small["config"] == full["config"] and small["env_steps"] == full["env_steps"]
+    for part in ("actor", "critic"):
+        for k, v in full["agent"][part].items():
+            assert torch.equal(small["agent"][part][k], v)
+    assert out.stat().st_size < (run / "checkpoints" / "latest.pt").stat().st_size
+    fresh = build_agent(config_from_checkpoint(small), 237, 13, CPU)
+    fresh.load_state_dict(small["agent"])  # loads without a teacher
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        write_policy_file(run, out)
+    write_policy_file(run, out, overwrite=True)

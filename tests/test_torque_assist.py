@@ -299,6 +299,25 @@ def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_pat
     assert build_env(cfg, torch.device("cpu"), num_envs=2, for_training=True).base_env.cfg.torque_assist is True
 
 
+def test_a_resumed_run_keeps_its_teacher(tmp_path):
+    from tocabi_torchrl.rl.trainer import train
+
+    n, steps = 4, 8
+    frames = n * steps
+    kw = dict(device="cpu", num_envs=n, steps_per_env=steps, minibatch_size=16, epochs=1,
+              assist_fade_start=frames, assist_fade_end=5 * frames, actor_hidden=(16,), critic_hidden=(16,),
+              run_dir=str(tmp_path), name="r", eval_at_end=False, progress_bar=False, checkpoint_every=1,
+              checkpoint_keep_last=0, cuda_graph="off")
+    first = train(preset_config("torque", total_env_steps=2 * frames, **kw))  # the teacher is taken in iteration 2
+    folder = first.run_dir / "checkpoints"
+    taken = torch.load(folder / "iter_000002.pt", weights_only=True)["agent"]["teacher"]
+    assert taken["anchored"]
+    train(preset_config("torque", total_env_steps=4 * frames, resume=str(folder / "latest.pt"), **kw))
+    kept = torch.load(folder / "iter_000004.pt", weights_only=True)["agent"]
+    for k, v in taken.items():
+        torch.testing.assert_close(kept["teacher"][k], v, rtol=0, atol=0)  # not taken again from the moved actor
+
+
 def test_teacher_target_is_the_action_applying_the_teacher_torque():
     # The teacher (another network) acted at β = 1; the actor is pulled to the action that applies the teacher's
     # torque at β', whatever the rollout's own action did.

@@ -25,7 +25,7 @@ from torch import nn
 from .atomic import atomic_write_bytes
 from .config import PPOConfig
 
-__all__ = ["save_checkpoint", "load_checkpoint", "read_checkpoint", "apply_checkpoint", "checkpoint_file",
+__all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_checkpoint", "apply_checkpoint", "checkpoint_file",
            "config_from_checkpoint", "prune_checkpoints", "CheckpointError", "SCHEMA_VERSION"]
 
 #: Version of the checkpoint layout and config schema written by :func:`save_checkpoint`. Bump it when a change
@@ -68,6 +68,22 @@ def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimi
     atomic_write_bytes(folder / "latest.pt", data)
     prune_checkpoints(folder, cfg.checkpoint_keep_last, cfg.checkpoint_keep_every)
     return path
+
+
+def write_policy_file(checkpoint: str | os.PathLike, out: str | os.PathLike, overwrite: bool = False) -> Path:
+    """Write the policy of ``checkpoint`` (a ``.pt`` file or a run folder) to ``out`` for shipping or deployment:
+    actor, critic, env-transform state and config, without the optimiser state or the torque assist's teacher
+    (training-only). The file is read with :func:`read_checkpoint` and written atomically; an existing
+    ``out`` raises ``FileExistsError`` unless ``overwrite``. Returns ``out``."""
+    state = read_checkpoint(checkpoint)
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} exists; pass overwrite=True to replace it")
+    policy = {**state, "optimizer": None,
+              "agent": {part: state["agent"][part] for part in ("actor", "critic")}}
+    buffer = io.BytesIO()
+    torch.save(policy, buffer)
+    return atomic_write_bytes(out, buffer.getvalue())
 
 
 def prune_checkpoints(folder: str | os.PathLike, keep_last: int, keep_every: int) -> list[Path]:
@@ -149,6 +165,8 @@ def _check_layout(state, path: Path) -> None:
                                   f"{type(state[key]).__name__}")
     for part in ("actor", "critic"):
         _check_tensor_dict(state["agent"].get(part), f"agent.{part}", path)
+    if "teacher" in state["agent"]:  # the torque assist's frozen teacher (rl/assist.py)
+        _check_tensor_dict(state["agent"]["teacher"], "agent.teacher", path)
     if state.get("transforms"):
         _check_tensor_dict(state["transforms"], "transforms", path)
     if state.get("optimizer") is not None and not isinstance(state["optimizer"], dict):
