@@ -332,3 +332,22 @@ def test_collector_drives_the_graph_wiring_like_the_eager_env():
         assert set(graphed.keys(True, True)) == set(eager.keys(True, True))
         for key in eager.keys(True, True):
             torch.testing.assert_close(graphed[key], eager[key], rtol=0, atol=0, msg=lambda m, k=key: f"{k}: {m}")
+
+
+def test_gait_test_stops_once_every_robot_has_fallen(tmp_path):
+    # An untrained torque policy applies almost no leg torque: every robot falls within the first second, and the
+    # 8 s test stops there with the same metrics (fallen robots count for nothing after their fall).
+    from tocabi_torchrl.rl.evaluate import evaluate_policy
+    from tocabi_torchrl.rl.trainer import build_agent, build_env
+
+    cfg = preset_config("cpu_smoke", device="cpu", control_mode="torque")
+    device = torch.device("cpu")
+    env = build_env(cfg, device, num_envs=2)
+    agent = build_agent(cfg, 237, 13, device)
+    calls = []
+    step = env.step
+    env.step = lambda td: calls.append(1) or step(td)
+    summary = evaluate_policy(agent.actor, cfg, tmp_path, num_envs=2, device=device, seconds=8.0, video_envs=0,
+                              env=env, progress=False)
+    assert summary["survival"] == 0.0 and summary["seconds"] == 8.0
+    assert 0 < len(calls) < 1000 and len(calls) % 50 == 0  # stopped at the first check after the last fall
