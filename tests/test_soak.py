@@ -15,7 +15,9 @@ import soak  # noqa: E402
 
 @pytest.mark.slow  # ~45 s on 2 cores: two training processes (one killed, one resumed) and a faulty training run
 def test_tiny_soak_on_the_cpu(tmp_path):
-    code = soak.main(["--num_envs", "8", "--minutes", "0.1", "--device", "cpu", "--fault_every", "40",
+    # 15 s: at 0.1 min a loaded 2-core machine finished only one rollout before the time limit, and the memory
+    # series needs two.
+    code = soak.main(["--num_envs", "8", "--minutes", "0.25", "--device", "cpu", "--fault_every", "40",
                       "--out", str(tmp_path / "out"), "--run_dir", str(tmp_path / "runs")])
     report = json.loads((tmp_path / "out" / "soak.json").read_text())
     failed = [c for c in report["results"] if not c["ok"]]
