@@ -54,7 +54,7 @@ class AssistSchedule:
     fade_start: int
     fade_end: int
     gain_ratio: float = 1.0
-    #: Env steps after ``fade_end`` over which the teacher's pull (``absorb_weight``) falls linearly to 0.
+    #: Env steps after ``fade_end`` over which the teacher's pull (:meth:`teacher_weight`) falls linearly to 0.
     anchor_decay: int = 0
 
     def __post_init__(self):

@@ -154,14 +154,10 @@ class PPOConfig:
         self.reward_weight_map()  # raises on a malformed entry
         if not self.pd_action_scale > 0:
             raise ValueError(f"PPOConfig.pd_action_scale must be > 0, got {self.pd_action_scale!r}")
-        for name in ("checkpoint_keep_last", "checkpoint_keep_every"):
+        for name in ("checkpoint_keep_last", "checkpoint_keep_every", "assist_anchor_decay"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"PPOConfig.{name} must be an int >= 0, got {value!r}")
-        if isinstance(self.assist_anchor_decay, bool) or not isinstance(self.assist_anchor_decay, int) \
-                or self.assist_anchor_decay < 0:
-            raise ValueError(f"PPOConfig.assist_anchor_decay must be an int >= 0 (env steps), got "
-                             f"{self.assist_anchor_decay!r}")
         if not 0 <= self.torque_assist <= 1 or self.assist_absorb < 0:
             raise ValueError(f"PPOConfig.torque_assist must be in [0, 1] and assist_absorb >= 0, got "
                              f"{self.torque_assist!r}, {self.assist_absorb!r}")
