@@ -23,6 +23,8 @@ __all__ = [
     "NUM_LEG_JOINTS",
     "LEG_JOINT_IDS",
     "UPPER_JOINT_IDS",
+    "LEGS",
+    "UPPER_BODY",
     "TORQUE_LIMITS",
     "LEG_TORQUE_LIMITS",
     "INIT_JOINT_POS",
@@ -71,6 +73,10 @@ ACTUATOR_NAMES: tuple[str, ...] = tuple(n.replace("_Joint", "_Motor") for n in J
 
 LEG_JOINT_IDS: tuple[int, ...] = tuple(range(NUM_LEG_JOINTS))
 UPPER_JOINT_IDS: tuple[int, ...] = tuple(range(NUM_LEG_JOINTS, NUM_JOINTS))
+#: The leg joints / the upper-body joints as one slice of a joint-ordered dimension (basic indexing: a view, and no
+#: index tensor to copy to the device).
+LEGS = slice(0, NUM_LEG_JOINTS)
+UPPER_BODY = slice(NUM_LEG_JOINTS, NUM_JOINTS)
 
 _ARM_LIMITS = (64.0, 64.0, 64.0, 64.0, 23.0, 23.0, 10.0, 10.0)
 #: Actuator torque limits [N·m] (spec §1.4), joint order.

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ..transforms.orientation import quat_rotation_angle
+from ..rotations import quat_rotation_angle
 
 __all__ = ["termination_flags"]
 

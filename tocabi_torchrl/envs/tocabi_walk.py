@@ -20,6 +20,7 @@ from torchrl.envs import EnvBase
 from .. import robot
 from ..device import check_device
 from ..motion import ReferenceMotion
+from ..rotations import quat_rotate_inverse
 from ..sim import MujocoSim, SimConfig, WarpSim
 from .command import VelocityCommand
 from .config import TocabiWalkConfig, resolve_backend
@@ -29,13 +30,6 @@ from .termination import termination_flags
 __all__ = ["TocabiWalk", "quat_rotate_inverse"]
 
 ACTION_DIM = robot.NUM_LEG_JOINTS + 1
-
-
-def quat_rotate_inverse(quat: torch.Tensor, vec: torch.Tensor) -> torch.Tensor:
-    """Rotate world vectors (..., 3) into the frame of (w, x, y, z) quaternions (..., 4): ``R(q)ᵀ · v``."""
-    w, u = quat[..., :1], quat[..., 1:]
-    t = 2.0 * torch.linalg.cross(u, vec, dim=-1)
-    return vec - w * t + torch.linalg.cross(u, t, dim=-1)
 
 
 def _finite(x: torch.Tensor) -> torch.Tensor:
@@ -131,7 +125,8 @@ class TocabiWalk(EnvBase):
         self._act_low = torch.tensor([-1.0] * robot.NUM_LEG_JOINTS + [0.0], device=dev)
         self._act_high = torch.ones(ACTION_DIM, device=dev)
         self._leg_limits = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=f32, device=dev)
-        leg_range = self.sim.mj_model.jnt_range[[self.sim.mj_model.joint(n_).id for n_ in robot.JOINT_NAMES[:12]]]
+        mj = self.sim.mj_model
+        leg_range = mj.jnt_range[[mj.joint(name).id for name in robot.JOINT_NAMES[robot.LEGS]]]
         self._leg_range = torch.as_tensor(leg_range, dtype=f32, device=dev)
         self._pd_nominal = torch.as_tensor(self.cfg.pd_nominal, dtype=f32, device=dev)
         self._pd_kp = torch.as_tensor(self.cfg.pd_kp, dtype=f32, device=dev)
@@ -228,16 +223,16 @@ class TocabiWalk(EnvBase):
         self.command.update(self.episode_step)
 
         if self.cfg.torque_assist:
-            leg_cmd = self._assisted(a[:, : robot.NUM_LEG_JOINTS], q_ref[:, : robot.NUM_LEG_JOINTS])
+            leg_cmd = self._assisted(a[:, robot.LEGS], q_ref[:, robot.LEGS])
         elif self.cfg.control_mode == "torque":
-            leg_cmd = a[:, : robot.NUM_LEG_JOINTS] * self._leg_limits
+            leg_cmd = a[:, robot.LEGS] * self._leg_limits
         else:
-            center = self._pd_nominal if self.cfg.control_mode == "pd" else q_ref[:, : robot.NUM_LEG_JOINTS]
-            target = center + self.cfg.pd_action_scale * a[:, : robot.NUM_LEG_JOINTS]
+            center = self._pd_nominal if self.cfg.control_mode == "pd" else q_ref[:, robot.LEGS]
+            target = center + self.cfg.pd_action_scale * a[:, robot.LEGS]
             leg_cmd = torch.maximum(torch.minimum(target, self._leg_range[:, 1]), self._leg_range[:, 0])
         ctrl = self.sim.ctrl
-        ctrl[:, : robot.NUM_LEG_JOINTS] = leg_cmd
-        ctrl[:, robot.NUM_LEG_JOINTS :] = q_ref[:, robot.NUM_LEG_JOINTS :]
+        ctrl[:, robot.LEGS] = leg_cmd
+        ctrl[:, robot.UPPER_BODY] = q_ref[:, robot.UPPER_BODY]
         self.sim.step()
 
         # Task state is updated in place (never rebound): a captured CUDA graph of this step keeps writing to the
@@ -250,8 +245,8 @@ class TocabiWalk(EnvBase):
             # The history and the torque rewards see the torque the legs got, over the limits: at β = 0 that is the
             # action itself (the reference's a_raw), and at every β a policy that applies the same torques gets the
             # same observations and rewards, so the morph changes the action's meaning and nothing else.
-            self.applied_action[:, : robot.NUM_LEG_JOINTS].copy_(leg_cmd / self._leg_limits)
-        applied = self.sim.applied_actuator_force[:, : robot.NUM_LEG_JOINTS]
+            self.applied_action[:, robot.LEGS].copy_(leg_cmd / self._leg_limits)
+        applied = self.sim.applied_actuator_force[:, robot.LEGS]
         self.leg_torque.copy_(leg_cmd if self.cfg.control_mode == "torque" else applied)
         self.ref_joint_pos.copy_(q_ref)
         self.ref_foot_force.copy_(self.motion.force_reference(row))
@@ -371,7 +366,8 @@ class TocabiWalk(EnvBase):
         self.ref_joint_pos.copy_(torch.where(m, q_ref, self.ref_joint_pos))
         self.ref_foot_force.copy_(torch.where(m, self.motion.force_reference(row), self.ref_foot_force))
         self.stance.copy_(torch.where(mask, self.motion.stance_at(row), self.stance))
-        ctrl = torch.cat((self._reset_leg_ctrl.expand(self.num_envs, -1), self.ref_joint_pos[:, 12:]), dim=-1)
+        upper = self.ref_joint_pos[:, robot.UPPER_BODY]
+        ctrl = torch.cat((self._reset_leg_ctrl.expand(self.num_envs, -1), upper), dim=-1)
         self.sim.reset(mask, self._init_qpos, self._init_qvel, ctrl)
         out = self._observe()
         false = torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device)

@@ -33,9 +33,3 @@ def make_mlp(in_dim: int, hidden: Sequence[int], out_dim: int, activation: str =
             nn.init.orthogonal_(layer.weight, gain=gain)
             nn.init.zeros_(layer.bias)
     return nn.Sequential(*layers)
-
-
-def count_parameters(module: nn.Module) -> int:
-    return sum(p.numel() for p in module.parameters() if p.requires_grad)
-
-

@@ -22,9 +22,6 @@ from .views import SimViews
 
 __all__ = ["ParityTrace", "engine_parity"]
 
-_LEGS = slice(0, robot.NUM_LEG_JOINTS)
-
-
 @dataclass
 class ParityTrace:
     """Per policy step k = 1..steps (arrays of length ``steps``).
@@ -52,8 +49,8 @@ class ParityTrace:
 def _pd_legs(sim: SimViews, perturbation: torch.Tensor) -> torch.Tensor:
     kp = torch.as_tensor(robot.LEG_KP, dtype=torch.float32)
     kv = torch.as_tensor(robot.LEG_KV, dtype=torch.float32)
-    q0 = torch.as_tensor(robot.INIT_JOINT_POS[_LEGS], dtype=torch.float32)
-    return kp * (q0 - sim.qpos[:, 7:19]) - kv * sim.qvel[:, 6:18] + perturbation
+    q0 = torch.as_tensor(robot.INIT_JOINT_POS[robot.LEGS], dtype=torch.float32)
+    return kp * (q0 - sim.qpos[:, 7:][:, robot.LEGS]) - kv * sim.qvel[:, 6:][:, robot.LEGS] + perturbation
 
 
 def engine_parity(
@@ -74,9 +71,10 @@ def engine_parity(
     sims = (MujocoSim(SimConfig(num_worlds=1, threads=1)), WarpSim(SimConfig(num_worlds=1, device=warp_device)))
     rng = np.random.default_rng(seed)
     limits = np.asarray(robot.LEG_TORQUE_LIMITS)
-    noise = torch.as_tensor(rng.uniform(-1, 1, (steps, 12)) * perturbation * limits, dtype=torch.float32)
+    draws = rng.uniform(-1, 1, (steps, robot.NUM_LEG_JOINTS))
+    noise = torch.as_tensor(draws * perturbation * limits, dtype=torch.float32)
     ctrl0 = torch.zeros(1, robot.NUM_JOINTS)
-    ctrl0[:, robot.NUM_LEG_JOINTS :] = torch.as_tensor(robot.INIT_JOINT_POS[robot.NUM_LEG_JOINTS :])
+    ctrl0[:, robot.UPPER_BODY] = torch.as_tensor(robot.INIT_JOINT_POS[robot.UPPER_BODY])
     qpos0 = torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32)
     qpos0[2] += drop
     rows: list[list] = [[] for _ in range(6)]
@@ -86,7 +84,7 @@ def engine_parity(
     for k in range(steps):
         for s in sims:
             legs = _pd_legs(_Host(s), noise[k : k + 1])
-            s.ctrl[:, _LEGS] = legs.to(s.device)
+            s.ctrl[:, robot.LEGS] = legs.to(s.device)
             s.step()
         c, w = (_Host(s) for s in sims)
         rows[0].append(float((w.qpos[0, 7:] - c.qpos[0, 7:]).abs().max()))

@@ -13,8 +13,8 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
-from torchrl.envs.transforms import Transform
 
+from tocabi_torchrl.transforms._base import CallOnReset
 from tocabi_torchrl.transforms._checks import check_positive, require_spec
 
 __all__ = ["REFERENCE_OBS_MEAN", "REFERENCE_OBS_VAR", "FixedNormalization", "RunningNormalization"]
@@ -62,7 +62,7 @@ def _check_stats(mean: Sequence[float], var: Sequence[float], owner: str) -> tup
     return mean_t, var_t
 
 
-class _Normalization(Transform):
+class _Normalization(CallOnReset):
     """Shared spec handling: ``out_key`` has the shape of ``in_key``, float32."""
 
     def __init__(self, in_key: NestedKey, out_key: NestedKey, eps: float, clip: float | None):
@@ -78,9 +78,6 @@ class _Normalization(Transform):
         if self.clip is not None:
             out = out.clamp(-self.clip, self.clip)
         return out
-
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        return self._call(tensordict_reset)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         spec = require_spec(observation_spec, self.in_keys[0], self)

@@ -12,14 +12,13 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
-from torchrl.envs.transforms import Transform
 
 from tocabi_torchrl import robot
+from tocabi_torchrl.transforms._base import CallOnReset
 from tocabi_torchrl.transforms._checks import require_spec
 
 __all__ = ["ObsComponent", "REFERENCE_OBS_LAYOUT", "ObservationAssembly"]
 
-_LEGS = slice(0, robot.NUM_LEG_JOINTS)
 _ALL = slice(None)
 
 
@@ -51,8 +50,8 @@ class ObsComponent:
 #: The reference per-step observation (spec §7.1): 3 + 12 + 12 + 1 + 1 + 2 + 2 + 2 + 2 = 37 values.
 REFERENCE_OBS_LAYOUT: tuple[ObsComponent, ...] = (
     ObsComponent("base_rpy", "base_rpy"),  # 0-2: roll, pitch, yaw of the pelvis
-    ObsComponent("leg_joint_pos", "joint_pos", (_LEGS,)),  # 3-14
-    ObsComponent("leg_joint_vel", "joint_vel", (_LEGS,)),  # 15-26
+    ObsComponent("leg_joint_pos", "joint_pos", (robot.LEGS,)),  # 3-14
+    ObsComponent("leg_joint_vel", "joint_vel", (robot.LEGS,)),  # 15-26
     ObsComponent("phase_sin", "phase_sin"),  # 27
     ObsComponent("phase_cos", "phase_cos"),  # 28
     ObsComponent("command", "command"),  # 29-30: vx, vy
@@ -62,7 +61,7 @@ REFERENCE_OBS_LAYOUT: tuple[ObsComponent, ...] = (
 )
 
 
-class ObservationAssembly(Transform):
+class ObservationAssembly(CallOnReset):
     """Concatenate the layout's blocks into one float32 vector.
 
     Reads every ``component.key``; writes ``out_key`` (num_envs, D) float32, D = sum of the block sizes (37 for
@@ -95,9 +94,6 @@ class ObservationAssembly(Transform):
         parts = [next_tensordict.get(c.key)[lead + c.index].flatten(nb).to(torch.float32) for c in self.layout]
         next_tensordict.set(self.out_keys[0], torch.cat(parts, dim=-1))
         return next_tensordict
-
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        return self._call(tensordict_reset)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Apply to stored data (e.g. a replay buffer sample), any batch shape."""

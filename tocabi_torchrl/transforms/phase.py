@@ -8,14 +8,14 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Bounded, Composite
-from torchrl.envs.transforms import Transform
 
+from tocabi_torchrl.transforms._base import CallOnReset
 from tocabi_torchrl.transforms._checks import check_positive_int, require_spec
 
 __all__ = ["PhaseEncoding"]
 
 
-class PhaseEncoding(Transform):
+class PhaseEncoding(CallOnReset):
     """Encode the gait phase as sin(2π·k·phase), cos(2π·k·phase) for k = 1..harmonics.
 
     Reads ``in_key`` (num_envs, 1), the observation phase in [0, 1) (spec §3.2, post-step time).
@@ -48,9 +48,6 @@ class PhaseEncoding(Transform):
         next_tensordict.set(self.out_keys[0], torch.sin(angle))
         next_tensordict.set(self.out_keys[1], torch.cos(angle))
         return next_tensordict
-
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        return self._call(tensordict_reset)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Apply to stored data (e.g. a replay buffer sample), any batch shape."""

@@ -52,7 +52,6 @@ __all__ = [
 _BODY_WEIGHT = robot.NOMINAL_MASS * robot.GRAVITY
 #: The reference scales every leg action by the first joint's limit (333 N·m), not by its own limit (spec §13.10).
 _REFERENCE_TORQUE_SCALE = float(robot.LEG_TORQUE_LIMITS[0])
-_LEGS = slice(0, robot.NUM_LEG_JOINTS)
 
 #: Per-env shapes of the docs/signals.md signals the reference terms read, checked when the env is built.
 SIGNAL_SHAPES: MappingProxyType[str, tuple[int, ...]] = MappingProxyType(
@@ -227,7 +226,7 @@ class TorqueRegulation(RewardTerm):
     next_keys: tuple = field(default=("applied_action",), init=False, repr=False)
 
     def kernel(self, td, next_td):
-        tau = _apply_torque_scale(next_td.get("applied_action")[..., _LEGS], self.torque_scale)
+        tau = _apply_torque_scale(next_td.get("applied_action")[..., robot.LEGS], self.torque_scale)
         return torch.exp(-self.scale * torch.linalg.vector_norm(tau, dim=-1, keepdim=True))
 
 
@@ -246,7 +245,7 @@ class TorqueDiffRegulation(RewardTerm):
     next_keys: tuple = field(default=("applied_action",), init=False, repr=False)
 
     def kernel(self, td, next_td):
-        da = next_td.get("applied_action")[..., _LEGS] - td.get("applied_action")[..., _LEGS]
+        da = next_td.get("applied_action")[..., robot.LEGS] - td.get("applied_action")[..., robot.LEGS]
         tau = _apply_torque_scale(da, self.torque_scale)
         return torch.exp(-self.scale * torch.linalg.vector_norm(tau, dim=-1, keepdim=True))
 
@@ -335,7 +334,35 @@ class ForceReference(RewardTerm):
 
 
 @dataclass
-class ForceThresholdPenalty(RewardTerm):
+class _FootForceThreshold(RewardTerm):
+    """The force penalties' shared kernel: 1 if either foot's vertical-force quantity (:meth:`vertical_force`,
+    (num_envs, 2) N) exceeds ``factor · body_weight`` in absolute value (strict inequality), else 0."""
+
+    name: str = ""
+    weight: float = 0.0
+    factor: float = 1.0
+    body_weight: float = _BODY_WEIGHT
+
+    def __post_init__(self):
+        super().__post_init__()
+        self.factor = _scale(self.factor, f"{self.name} factor")
+        self.body_weight = _scale(self.body_weight, f"{self.name} body_weight")
+
+    @property
+    def threshold(self) -> float:
+        """The force threshold [N]: ``factor · body_weight``."""
+        return self.factor * self.body_weight
+
+    def vertical_force(self, td: TensorDictBase, next_td: TensorDictBase) -> torch.Tensor:
+        raise NotImplementedError
+
+    def kernel(self, td, next_td):
+        over = self.vertical_force(td, next_td).abs() > self.threshold
+        return over.any(-1, keepdim=True).to(torch.float32)
+
+
+@dataclass
+class ForceThresholdPenalty(_FootForceThreshold):
     """Reference ``force_thres_penalty``: ``weight`` (−0.08) if ``|F_z,L|`` or ``|F_z,R|`` > factor · m · g.
 
     factor 1.4, m = ``robot.NOMINAL_MASS``, g = ``robot.GRAVITY`` (threshold ≈ 1435.0 N), strict inequality.
@@ -345,25 +372,14 @@ class ForceThresholdPenalty(RewardTerm):
     name: str = "force_threshold"
     weight: float = -0.08
     factor: float = 1.4
-    body_weight: float = _BODY_WEIGHT
     next_keys: tuple = field(default=("foot_force",), init=False, repr=False)
 
-    def __post_init__(self):
-        super().__post_init__()
-        self.factor = _scale(self.factor, f"{self.name} factor")
-        self.body_weight = _scale(self.body_weight, f"{self.name} body_weight")
-
-    @property
-    def threshold(self) -> float:
-        return self.factor * self.body_weight
-
-    def kernel(self, td, next_td):
-        over = next_td.get("foot_force")[..., 2].abs() > self.threshold
-        return over.any(-1, keepdim=True).to(torch.float32)
+    def vertical_force(self, td, next_td):
+        return next_td.get("foot_force")[..., 2]
 
 
 @dataclass
-class ForceDiffThresholdPenalty(RewardTerm):
+class ForceDiffThresholdPenalty(_FootForceThreshold):
     """Reference ``force_diff_thres_penalty``: ``weight`` (−0.05) if ``|ΔF_z|`` of either foot > factor · m · g.
 
     factor 0.2 (threshold ≈ 205.0 N), ΔF_z = ``next["foot_force"][..., 2] - td["foot_force"][..., 2]``, strict.
@@ -372,22 +388,11 @@ class ForceDiffThresholdPenalty(RewardTerm):
     name: str = "force_diff_threshold"
     weight: float = -0.05
     factor: float = 0.2
-    body_weight: float = _BODY_WEIGHT
     root_keys: tuple = field(default=("foot_force",), init=False, repr=False)
     next_keys: tuple = field(default=("foot_force",), init=False, repr=False)
 
-    def __post_init__(self):
-        super().__post_init__()
-        self.factor = _scale(self.factor, f"{self.name} factor")
-        self.body_weight = _scale(self.body_weight, f"{self.name} body_weight")
-
-    @property
-    def threshold(self) -> float:
-        return self.factor * self.body_weight
-
-    def kernel(self, td, next_td):
-        jump = (next_td.get("foot_force")[..., 2] - td.get("foot_force")[..., 2]).abs()
-        return (jump > self.threshold).any(-1, keepdim=True).to(torch.float32)
+    def vertical_force(self, td, next_td):
+        return next_td.get("foot_force")[..., 2] - td.get("foot_force")[..., 2]
 
 
 def _torque_scale(value, name: str) -> float | tuple[float, ...]:
