@@ -1,4 +1,7 @@
-"""A stand-in for ``TocabiWalk`` for the transform tests: the exact keys, shapes and dtypes of docs/signals.md.
+"""A stand-in for ``TocabiWalk`` for the transform tests: the keys, shapes, dtypes and specs of the signal table.
+
+The specs come from the same table as the env's (``tocabi_torchrl.signals``, the unconditional rows, or the
+``signals`` passed in), and every signal of the table is emitted: a signal added to the table appears here too.
 
 Two modes:
 
@@ -6,6 +9,9 @@ Two modes:
   exercise specs, resets and the reward under arbitrary data.
 * ``"counter"``: every float signal of env i after policy step k (k = ``episode_step``, 0 after a reset) equals
   ``k + 100·i`` (the phase: ``(k + 100·i) / 1000``), so a test can read which step a value came from.
+
+Signals without a hand-written draw below (a new row, ``healthy``) are generic: floats standard normal in
+``"random"`` mode and the counter in ``"counter"`` mode, flags True, integers 0.
 
 ``applied_action`` is the clipped action (zeros after a reset), ``episode_step`` counts steps since the env's last
 reset, ``truncated`` fires at ``max_episode_steps``. Partial resets (``"_reset"`` (N, 1) bool) redraw only the
@@ -16,29 +22,15 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.data import Bounded
 from torchrl.envs import EnvBase
 
 from tocabi_torchrl import robot
+from tocabi_torchrl.signals import EPISODE_FLAGS, REWARD, SIGNALS, SignalTable
 
-_FLOAT_SIGNALS = {
-    "joint_pos": (robot.NUM_JOINTS,),
-    "joint_vel": (robot.NUM_JOINTS,),
-    "base_pos": (3,),
-    "base_quat": (4,),
-    "base_lin_vel": (3,),
-    "base_ang_vel": (3,),
-    "neck_pos": (3,),
-    "neck_quat": (4,),
-    "foot_force": (2, 3),
-    "foot_torque": (2, 3),
-    "phase": (1,),
-    "ref_joint_pos": (robot.NUM_JOINTS,),
-    "ref_foot_force": (2,),
-    "command": (2,),
-    "leg_torque": (robot.NUM_LEG_JOINTS,),
-}
 NUM_ACTIONS = robot.NUM_LEG_JOINTS + 1
+#: Signals the mock keeps itself (set from the action and the step count), not drawn.
+_STATEFUL = ("applied_action", "episode_step")
 
 
 class MockTocabiWalk(EnvBase):
@@ -54,6 +46,7 @@ class MockTocabiWalk(EnvBase):
         max_episode_steps: int = 8000,
         terminate_prob: float = 0.0,
         seed: int = 0,
+        signals: SignalTable = SIGNALS,
     ):
         if mode not in ("random", "counter"):
             raise ValueError(f"mode must be 'random' or 'counter', got {mode!r}")
@@ -62,6 +55,7 @@ class MockTocabiWalk(EnvBase):
         self.mode = mode
         self.max_episode_steps = max_episode_steps
         self.terminate_prob = terminate_prob
+        self.signals = signals.enabled()
         self._gen = torch.Generator(device=self.device)
         self._gen.manual_seed(seed)
         self._state: TensorDict | None = None
@@ -78,24 +72,11 @@ class MockTocabiWalk(EnvBase):
     # ------------------------------------------------------------------ specs
     def _make_specs(self) -> None:
         n, dev = self.num_envs, self.device
-        obs = {k: Unbounded(shape=(n, *s), dtype=torch.float32, device=dev) for k, s in _FLOAT_SIGNALS.items()}
-        obs["foot_contact"] = Categorical(2, shape=(n, 2), dtype=torch.bool, device=dev)
-        obs["stance"] = Bounded(low=0, high=2, shape=(n, 1), dtype=torch.int64, device=dev)
-        obs["applied_action"] = Unbounded(shape=(n, NUM_ACTIONS), dtype=torch.float32, device=dev)
-        obs["episode_step"] = Bounded(
-            low=0, high=torch.iinfo(torch.int64).max, shape=(n, 1), dtype=torch.int64, device=dev
-        )
-        self.observation_spec = Composite(obs, shape=(n,), device=dev)
+        self.observation_spec = SignalTable(self.signals).composite(n, dev)
         low = torch.tensor([-1.0] * robot.NUM_LEG_JOINTS + [0.0], device=dev).expand(n, NUM_ACTIONS)
         self.action_spec = Bounded(low=low, high=torch.ones_like(low), shape=(n, NUM_ACTIONS), device=dev)
-        self.reward_spec = Unbounded(shape=(n, 1), dtype=torch.float32, device=dev)
-        self.done_spec = Composite(
-            done=Categorical(2, shape=(n, 1), dtype=torch.bool, device=dev),
-            terminated=Categorical(2, shape=(n, 1), dtype=torch.bool, device=dev),
-            truncated=Categorical(2, shape=(n, 1), dtype=torch.bool, device=dev),
-            shape=(n,),
-            device=dev,
-        )
+        self.reward_spec = REWARD.spec(n, dev)
+        self.done_spec = EPISODE_FLAGS.composite(n, dev)
 
     # ---------------------------------------------------------------- signals
     def _rand(self, *shape) -> torch.Tensor:
@@ -105,15 +86,37 @@ class MockTocabiWalk(EnvBase):
         return torch.randn((self.num_envs, *shape), generator=self._gen, device=self.device)
 
     def _signals(self, episode_step: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Float/int/bool signals for every env at ``episode_step`` (N, 1)."""
-        n = self.num_envs
+        """Every drawn signal of the table for every env at ``episode_step`` (N, 1), checked against the table."""
+        value = episode_step.to(torch.float32) + self._env_offset  # (N, 1), the counter
+        out = self._counter_signals(value) if self.mode == "counter" else self._random_signals()
+        for row in self.signals:
+            if row.name in _STATEFUL:
+                continue
+            if row.name not in out:
+                out[row.name] = self._generic(row, value)
+            got = out[row.name]
+            if tuple(got.shape) != (self.num_envs, *row.shape) or got.dtype != row.dtype:
+                raise AssertionError(f"mock draws {row.name!r} as {tuple(got.shape)} {got.dtype}, the table says "
+                                     f"{row.shape} {row.dtype}: update MockTocabiWalk._random_signals")
+        return out
+
+    def _generic(self, row, value: torch.Tensor) -> torch.Tensor:
+        """A signal without a hand-written draw: floats N(0, 1) (random) or the counter, flags True, ints 0."""
+        shape = (self.num_envs, *row.shape)
+        if row.dtype == torch.bool:
+            return torch.ones(shape, dtype=torch.bool, device=self.device)
+        if row.dtype != torch.float32:
+            return torch.zeros(shape, dtype=row.dtype, device=self.device)
         if self.mode == "counter":
-            value = episode_step.to(torch.float32) + self._env_offset  # (N, 1)
-            out = {k: value.reshape(n, *([1] * len(s))).expand(n, *s).clone() for k, s in _FLOAT_SIGNALS.items()}
-            out["phase"] = value / 1000.0
-            out["foot_contact"] = torch.ones((n, 2), dtype=torch.bool, device=self.device)
-            out["stance"] = torch.zeros((n, 1), dtype=torch.int64, device=self.device)
-            return out
+            return value.reshape(self.num_envs, *([1] * len(row.shape))).expand(shape).clone()
+        return self._randn(*row.shape)
+
+    def _counter_signals(self, value: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {"phase": value / 1000.0}  # the rest is generic: float signals are the counter itself
+
+    def _random_signals(self) -> dict[str, torch.Tensor]:
+        """Plausible magnitudes for the signals the transforms read (drawn in this fixed order)."""
+        n = self.num_envs
         quat = torch.nn.functional.normalize(self._identity_quat + 0.2 * self._randn(4), dim=-1)
         neck_quat = torch.nn.functional.normalize(self._identity_quat + 0.2 * self._randn(4), dim=-1)
         force = 100.0 * self._randn(2, 3)

@@ -15,6 +15,7 @@ FORBIDDEN = {
     "envs": ("transforms", "rl"),
     "sim": ("envs", "transforms", "rl"),
     "rotations": ("envs", "transforms", "rl", "sim"),
+    "signals": ("envs", "transforms", "rl", "sim"),
 }
 
 

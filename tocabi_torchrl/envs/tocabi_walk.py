@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.data import Bounded
 from torchrl.envs import EnvBase
 
 from .. import robot
 from ..device import check_device
 from ..motion import ReferenceMotion
 from ..rotations import quat_rotate_inverse
+from ..signals import EPISODE_FLAGS, REWARD, SIGNALS, SignalTable
 from ..sim import MujocoSim, SimConfig, WarpSim
 from .command import VelocityCommand
 from .config import TocabiWalkConfig, resolve_backend
@@ -70,6 +71,11 @@ class TocabiWalk(EnvBase):
     """
 
     batch_locked = True
+    #: The signals the env returns (docs/signals.md): its observation spec is made from this table, and
+    #: :meth:`_observe` must compute exactly its rows enabled by the config (checked when the env is built). A
+    #: subclass adds a signal with ``signal_table = SIGNALS.with_rows(Signal(...))`` and an ``_observe`` that
+    #: adds it to ``super()._observe()``.
+    signal_table: SignalTable = SIGNALS
 
     def __init__(
         self,
@@ -157,47 +163,39 @@ class TocabiWalk(EnvBase):
 
     def _make_specs(self) -> None:
         n, dev = self.num_envs, self.device
-
-        def box(*shape, dtype=torch.float32):
-            return Unbounded(shape=(n, *shape), dtype=dtype, device=dev)
-
-        def flag(*shape):
-            return Categorical(2, shape=(n, *shape), dtype=torch.bool, device=dev)
-
-        assist = {"leg_assist": box(robot.NUM_LEG_JOINTS)} if self.cfg.torque_assist else {}
-        self.observation_spec = Composite(
-            joint_pos=box(robot.NUM_JOINTS),
-            joint_vel=box(robot.NUM_JOINTS),
-            base_pos=box(3),
-            base_quat=box(4),
-            base_lin_vel=box(3),
-            base_ang_vel=box(3),
-            neck_pos=box(3),
-            neck_quat=box(4),
-            foot_force=box(2, 3),
-            foot_torque=box(2, 3),
-            foot_contact=flag(2),
-            phase=Bounded(0.0, 1.0, shape=(n, 1), device=dev),
-            ref_joint_pos=box(robot.NUM_JOINTS),
-            ref_foot_force=box(2),
-            stance=Categorical(3, shape=(n, 1), dtype=torch.int64, device=dev),
-            command=box(2),
-            applied_action=box(ACTION_DIM),
-            leg_torque=box(robot.NUM_LEG_JOINTS),
-            episode_step=box(1, dtype=torch.int64),
-            healthy=flag(1),
-            **assist,
-            shape=(n,),
-            device=dev,
-        )
+        self.observation_spec = self.signal_table.composite(n, dev, self.cfg)
         self.action_spec = Bounded(
             low=self._act_low.expand(n, ACTION_DIM).clone(),
             high=self._act_high.expand(n, ACTION_DIM).clone(),
             shape=(n, ACTION_DIM),
             device=dev,
         )
-        self.reward_spec = Unbounded(shape=(n, 1), device=dev)
-        self.done_spec = Composite(done=flag(1), terminated=flag(1), truncated=flag(1), shape=(n,), device=dev)
+        self.reward_spec = REWARD.spec(n, dev)
+        self.done_spec = EPISODE_FLAGS.composite(n, dev)
+        self._check_observe_matches_table()
+
+    def _check_observe_matches_table(self) -> None:
+        """Raise a clear error, once at construction, when :meth:`_observe` and the signal table disagree.
+
+        Compares keys, shapes and dtypes only (metadata: no host synchronisation).
+        """
+        got = self._observe()
+        rows = self.signal_table.enabled(self.cfg)
+        want = {row.name for row in rows}
+        extra, missing = sorted(set(got.keys()) - want), sorted(want - set(got.keys()))
+        if extra or missing:
+            raise KeyError(
+                f"{type(self).__name__}._observe returns {extra} that the signal table lacks, and lacks {missing} "
+                "that it lists; add a row to the table (tocabi_torchrl.signals.SIGNALS, or the class's signal_table) "
+                "for every signal _observe computes, and compute every row"
+            )
+        for row in rows:
+            value = got.get(row.name)
+            if tuple(value.shape) != (self.num_envs, *row.shape) or value.dtype != row.dtype:
+                raise ValueError(
+                    f"{type(self).__name__}._observe returns {row.name!r} as {tuple(value.shape)} {value.dtype}, "
+                    f"but the signal table says (num_envs, *{row.shape}) {row.dtype}; fix one of the two"
+                )
 
     # ------------------------------------------------------------------------------------------------ stepping
     def _check_action(self, action: torch.Tensor) -> None:

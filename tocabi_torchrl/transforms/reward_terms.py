@@ -24,6 +24,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
 from tocabi_torchrl import robot
+from tocabi_torchrl.signals import SIGNALS
 from tocabi_torchrl.transforms._checks import check_finite, check_positive
 from tocabi_torchrl.transforms.orientation import quat_rotation_angle
 
@@ -52,24 +53,6 @@ __all__ = [
 _BODY_WEIGHT = robot.NOMINAL_MASS * robot.GRAVITY
 #: The reference scales every leg action by the first joint's limit (333 N·m), not by its own limit (spec §13.10).
 _REFERENCE_TORQUE_SCALE = float(robot.LEG_TORQUE_LIMITS[0])
-
-#: Per-env shapes of the docs/signals.md signals the reference terms read, checked when the env is built.
-SIGNAL_SHAPES: MappingProxyType[str, tuple[int, ...]] = MappingProxyType(
-    {
-        "joint_pos": (robot.NUM_JOINTS,),
-        "joint_vel": (robot.NUM_JOINTS,),
-        "ref_joint_pos": (robot.NUM_JOINTS,),
-        "base_lin_vel": (3,),
-        "neck_quat": (4,),
-        "command": (2,),
-        "foot_force": (2, 3),
-        "ref_foot_force": (2,),
-        "foot_contact": (2,),
-        "stance": (1,),
-        "applied_action": (robot.NUM_LEG_JOINTS + 1,),
-    }
-)
-
 
 class RewardTerm:
     """Base class: ``term(td, next_td) = weight · kernel(td, next_td)``, shape (num_envs, 1) float32.
@@ -437,6 +420,17 @@ REFERENCE_TERMS: MappingProxyType[str, type[RewardTerm]] = MappingProxyType(
             ForceThresholdPenalty,
             ForceDiffThresholdPenalty,
         )
+    }
+)
+
+
+#: Per-env shapes of the signals the reference terms read, from the signal table (tocabi_torchrl.signals), checked
+#: when the env is built.
+SIGNAL_SHAPES: MappingProxyType[str, tuple[int, ...]] = MappingProxyType(
+    {
+        key: SIGNALS[key].shape
+        for term in REFERENCE_TERMS.values()
+        for key in (*term.root_keys, *term.next_keys)
     }
 )
 
