@@ -22,7 +22,7 @@ from ..device import check_device
 from ..motion import ReferenceMotion
 from ..rotations import quat_rotate_inverse
 from ..signals import EPISODE_FLAGS, REWARD, SIGNALS, SignalTable
-from ..sim import MujocoSim, SimConfig, WarpSim
+from ..sim import MujocoSim, SimBackend, SimConfig, WarpSim
 from .command import VelocityCommand
 from .config import TocabiWalkConfig, resolve_backend
 from .episode_random import episode_uniform
@@ -76,6 +76,8 @@ class TocabiWalk(EnvBase):
     #: subclass adds a signal with ``signal_table = SIGNALS.with_rows(Signal(...))`` and an ``_observe`` that
     #: adds it to ``super()._observe()``.
     signal_table: SignalTable = SIGNALS
+    #: The physics (``WarpSim`` or ``MujocoSim``), used only through the backend interface.
+    sim: SimBackend
 
     def __init__(
         self,

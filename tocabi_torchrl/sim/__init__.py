@@ -4,9 +4,10 @@
 for the tensors it exposes, ``contacts`` for how contact signals come from MuJoCo contact sensors, ``config`` for the
 measured buffer sizes and ``health`` for overflow handling. ``MujocoSim(SimConfig(num_worlds=32, threads=16))`` steps
 the same model with MuJoCo's C engine (``mujoco_backend``, health in ``mujoco_health``); ``views`` holds the interface
-both share.
+both share, and ``backend`` spells that interface out (``SimBackend``, ``check_backend``).
 """
 
+from .backend import SIM_TENSORS, SimBackend, check_backend
 from .config import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX, SimConfig
 from .contacts import ContactLayout, ContactSensorError, add_contact_sensors, contact_layout, has_contact_sensors
 from .health import HEALTH_OVERFLOW_MASK, SimOverflowError
@@ -17,6 +18,9 @@ from .warp_backend import WarpSim
 __all__ = [
     "WarpSim",
     "MujocoSim",
+    "SimBackend",
+    "SIM_TENSORS",
+    "check_backend",
     "MUJOCO_HEALTH_WARNINGS",
     "SimConfig",
     "NCONMAX",

@@ -3,10 +3,14 @@
 A backend (:class:`~tocabi_torchrl.sim.WarpSim`, :class:`~tocabi_torchrl.sim.MujocoSim`) fills the primary buffers
 (``_qpos``, ``_qvel``, ``_ctrl``, ``_sensordata``, ``_time``, ``_xpos``, ``_xquat``, the signal, health and applied
 force tensors) and calls :meth:`SimViews._make_derived_views`; this base class turns them into the public properties
-(the table in ``WarpSim``'s docstring), so the environment reads every backend the same way.
+(the table in ``WarpSim``'s docstring), so the environment reads every backend the same way. The interface itself
+(members, tensor shapes and dtypes) is :class:`~tocabi_torchrl.sim.backend.SimBackend`; the four methods every
+backend must write are abstract here, so a backend that lacks one cannot be instantiated.
 """
 
 from __future__ import annotations
+
+import abc
 
 import mujoco
 import numpy as np
@@ -17,8 +21,9 @@ from .. import robot
 __all__ = ["SimViews"]
 
 
-class SimViews:
-    """Public views shared by the backends; see :class:`~tocabi_torchrl.sim.WarpSim` for shapes and units."""
+class SimViews(abc.ABC):
+    """Public views shared by the backends; see :data:`~tocabi_torchrl.sim.backend.SIM_TENSORS` for shapes and
+    units."""
 
     num_worlds: int
     device: torch.device
@@ -48,6 +53,25 @@ class SimViews:
             raise ValueError(f"sensors {names} must appear left before right in the model to be viewed as one tensor")
         sd = self._sensordata
         return sd.as_strided((self.num_worlds, 2, 3), (sd.stride(0), b - a, 1), sd.storage_offset() + a)
+
+    # ------------------------------------------------------------------------------------------- backend methods
+    @abc.abstractmethod
+    def step(self) -> None:
+        """Advance every world by one control period (``substeps`` physics steps) with the current ``ctrl``."""
+
+    @abc.abstractmethod
+    def forward(self) -> None:
+        """Recompute positions, sensors and flags from the current qpos/qvel/ctrl."""
+
+    @abc.abstractmethod
+    def reset(
+        self, mask: torch.Tensor, qpos: torch.Tensor, qvel: torch.Tensor, ctrl: torch.Tensor | None = None
+    ) -> None:
+        """Put the flagged worlds into the given state; the others stay bit-identical."""
+
+    @abc.abstractmethod
+    def check_overflow(self) -> None:
+        """Raise :class:`~tocabi_torchrl.sim.health.SimOverflowError` if a world overflowed or warned."""
 
     # ------------------------------------------------------------------------------------------- reset arguments
     def _check_reset_args(self, mask, qpos, qvel, ctrl) -> None:
