@@ -3,7 +3,7 @@
 One module per job:
 
 * :mod:`.phase`: :class:`PhaseEncoding` (sin/cos harmonics of the gait phase)
-* :mod:`.orientation`: quaternion math and :class:`BaseEulerAngles`
+* :mod:`.orientation`: :class:`BaseEulerAngles` (the quaternion math is :mod:`tocabi_torchrl.rotations`)
 * :mod:`.observation`: :class:`ObservationAssembly` of the per-step vector (37 values in the reference order)
 * :mod:`.normalize`: :class:`FixedNormalization` (reference statistics) and :class:`RunningNormalization`
 * :mod:`.history`: :class:`ObsActionHistory` with a :class:`HistoryLayout` (reference: 237-value input)

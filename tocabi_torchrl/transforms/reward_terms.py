@@ -24,9 +24,9 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
 from tocabi_torchrl import robot
+from tocabi_torchrl.rotations import quat_rotation_angle
 from tocabi_torchrl.signals import SIGNALS
 from tocabi_torchrl.transforms._checks import check_finite, check_positive
-from tocabi_torchrl.transforms.orientation import quat_rotation_angle
 
 __all__ = [
     "RewardTerm",
