@@ -11,7 +11,7 @@ pairs of feet are [left, right].
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 
@@ -37,7 +37,8 @@ class Signal:
         meaning: one line for docs/signals.md (no ``|``, no line breaks).
         categories: for discrete signals, the number of values ``0 … categories − 1`` (bool flags: 2).
         bounds: ``(low, high)`` for a continuous signal with a known range (its spec is then ``Bounded``).
-        requires: the ``TocabiWalkConfig`` flag that turns the signal on (e.g. ``"torque_assist"``); ``None``: always.
+        requires: the name of the env option that turns the signal on (``"torque_assist"``; the env passes its
+            options' values as ``flags``, see ``TocabiWalk.signal_flags``); ``None``: always on.
     """
 
     name: str
@@ -81,9 +82,16 @@ class Signal:
             return Bounded(self.bounds[0], self.bounds[1], shape=shape, dtype=self.dtype, device=device)
         return Unbounded(shape=shape, dtype=self.dtype, device=device)
 
-    def enabled(self, config: object | None) -> bool:
-        """Whether an env with ``config`` returns this signal (``config=None``: only the unconditional ones)."""
-        return self.requires is None or (config is not None and bool(getattr(config, self.requires)))
+    def enabled(self, flags: Mapping[str, bool] | None = None) -> bool:
+        """Whether an env whose options are ``flags`` returns this signal (``None``: only unconditional ones)."""
+        if self.requires is None:
+            return True
+        if flags is None:
+            return False
+        if self.requires not in flags:
+            raise KeyError(f"signal {self.name!r} requires the option {self.requires!r}, which is not among the "
+                           f"env's signal flags {sorted(flags)}; add it to TocabiWalk.signal_flags")
+        return bool(flags[self.requires])
 
     @property
     def shape_text(self) -> str:
@@ -128,13 +136,15 @@ class SignalTable:
     def names(self) -> tuple[str, ...]:
         return tuple(self._by_name)
 
-    def enabled(self, config: object | None = None) -> tuple[Signal, ...]:
-        """The rows an env with ``config`` returns (``None``: the unconditional ones)."""
-        return tuple(row for row in self.rows if row.enabled(config))
+    def enabled(self, flags: Mapping[str, bool] | None = None) -> tuple[Signal, ...]:
+        """The rows an env whose options are ``flags`` returns (``None``: the unconditional ones)."""
+        return tuple(row for row in self.rows if row.enabled(flags))
 
-    def composite(self, num_envs: int, device: torch.device | str, config: object | None = None) -> Composite:
+    def composite(
+        self, num_envs: int, device: torch.device | str, flags: Mapping[str, bool] | None = None
+    ) -> Composite:
         """A ``Composite`` of the enabled rows' specs, batch ``(num_envs,)``."""
-        specs = {row.name: row.spec(num_envs, device) for row in self.enabled(config)}
+        specs = {row.name: row.spec(num_envs, device) for row in self.enabled(flags)}
         return Composite(specs, shape=(num_envs,), device=device)
 
     def __repr__(self) -> str:

@@ -165,7 +165,7 @@ class TocabiWalk(EnvBase):
 
     def _make_specs(self) -> None:
         n, dev = self.num_envs, self.device
-        self.observation_spec = self.signal_table.composite(n, dev, self.cfg)
+        self.observation_spec = self.signal_table.composite(n, dev, self.signal_flags())
         self.action_spec = Bounded(
             low=self._act_low.expand(n, ACTION_DIM).clone(),
             high=self._act_high.expand(n, ACTION_DIM).clone(),
@@ -176,13 +176,17 @@ class TocabiWalk(EnvBase):
         self.done_spec = EPISODE_FLAGS.composite(n, dev)
         self._check_observe_matches_table()
 
+    def signal_flags(self) -> dict[str, bool]:
+        """The options that turn the signal table's conditional rows on (``Signal.requires``)."""
+        return {"torque_assist": bool(self.cfg.torque_assist)}
+
     def _check_observe_matches_table(self) -> None:
         """Raise a clear error, once at construction, when :meth:`_observe` and the signal table disagree.
 
         Compares keys, shapes and dtypes only (metadata: no host synchronisation).
         """
         got = self._observe()
-        rows = self.signal_table.enabled(self.cfg)
+        rows = self.signal_table.enabled(self.signal_flags())
         want = {row.name for row in rows}
         extra, missing = sorted(set(got.keys()) - want), sorted(want - set(got.keys()))
         if extra or missing:
