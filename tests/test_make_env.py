@@ -41,7 +41,7 @@ def test_policy_input_reward_and_terms(env):
 def test_overrides_reach_env_and_transforms(backend):
     e = make_env(num_envs=2, device="cpu", control_mode="pd", max_episode_steps=7,
                  reward_weights={"qpos": 0.0}, backend=backend, sim_threads=1)
-    assert e.base_env.cfg.control_mode == "pd" and e.base_env.cfg.max_episode_steps == 7
+    assert e.base_env.cfg.control.mode == "pd" and e.base_env.cfg.task.max_episode_steps == 7
     assert e.base_env.backend == backend
     td = e.rollout(7, break_when_any_done=False)
     assert torch.all(td["next", "reward_terms", "qpos"] == 0)

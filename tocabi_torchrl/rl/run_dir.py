@@ -16,7 +16,7 @@ from pathlib import Path
 
 from .atomic import atomic_write_text, remove_stale_temp_files
 from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint
-from .config import PPOConfig
+from ..config import RunConfig
 from .resume import check_resume_config
 
 __all__ = ["RunDirError", "RunFolder", "open_run", "holds_run", "trim_metrics"]
@@ -50,7 +50,7 @@ def holds_run(folder: str | os.PathLike) -> bool:
     return any((Path(folder) / name).exists() for name in _RUN_FILES)
 
 
-def open_run(cfg: PPOConfig) -> RunFolder:
+def open_run(cfg: RunConfig) -> RunFolder:
     """Check that ``cfg`` may write to its run folder and, for ``cfg.resume``, read and check the checkpoint.
 
     Raises :class:`RunDirError` if a new run would overwrite an earlier one, and
