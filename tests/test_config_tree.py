@@ -12,8 +12,15 @@ from pathlib import Path
 import pytest
 
 from tocabi_torchrl import robot
-from tocabi_torchrl.config import (FLAT_PATHS, PRESETS, ConfigError, RunConfig, config_from_dict, preset_config,
-                                   preset_tree)
+from tocabi_torchrl.config import (
+    FLAT_PATHS,
+    PRESETS,
+    ConfigError,
+    RunConfig,
+    config_from_dict,
+    preset_config,
+    preset_tree,
+)
 from tocabi_torchrl.envs import TocabiWalkConfig
 from tocabi_torchrl.envs.config import ENV_FLAT_PATHS
 from tocabi_torchrl.rl.config import build_parser, parse_args
@@ -110,6 +117,10 @@ def test_bad_options_name_the_option_and_the_fix(capsys):
     assert "--ppo.epochs 'three'" in capsys.readouterr().err
     with pytest.raises(ConfigError, match=r"unknown config option\(s\) \['ppo.warp'\]"):
         config_from_dict({"ppo": {"warp": 1}})
+    with pytest.raises(ConfigError, match=r"section 'env' must be a TocabiWalkConfig .* e.g. 'env.num_envs'"):
+        preset_config("default", env=5)
+    with pytest.raises(ConfigError, match=r"did you mean \['gamma'\]"):
+        preset_config("default", gama=0.9)
 
 
 def test_tree_round_trips_through_json():

@@ -192,7 +192,7 @@ class RunConfig:
         """The tree as nested dicts of plain values (what checkpoints and ``config.json`` hold)."""
         return _tree_to_dict(self)
 
-    def validated(self) -> "RunConfig":
+    def validated(self) -> RunConfig:
         """``self`` after :meth:`validate` (for chaining)."""
         self.validate()
         return self

@@ -10,7 +10,6 @@ tuples of those (lists, as JSON and checkpoints return them, are read back as tu
 from __future__ import annotations
 
 import dataclasses
-import functools
 import os
 import types
 import typing
@@ -33,7 +32,6 @@ def _is_section(value: Any) -> bool:
     return dataclasses.is_dataclass(value) and not isinstance(value, type)
 
 
-@functools.lru_cache(maxsize=None)
 def _hints(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls)
 
@@ -87,6 +85,10 @@ def replace_paths(tree: Any, values: dict[str, Any]) -> Any:
         current = getattr(tree, head)
         if _is_section(current) and isinstance(value, dict):  # a section given as a dict (as to_dict writes it)
             direct[head] = from_dict(type(current), value, f"{head}.")
+        elif _is_section(current) and not isinstance(value, type(current)):
+            raise ConfigError(f"config section {head!r} must be a {type(current).__name__} or a dict of its options, "
+                              f"got {type(value).__name__}; to set one option give its path, e.g. "
+                              f"'{head}.{dataclasses.fields(current)[0].name}'")
     for head, sub in nested.items():
         direct[head] = replace_paths(direct.get(head, getattr(tree, head)), sub)
     return dataclasses.replace(tree, **direct)

@@ -190,13 +190,13 @@ class TocabiWalkConfig:
     control: ControlConfig = field(default_factory=ControlConfig)
 
     @classmethod
-    def reference(cls, **flat) -> "TocabiWalkConfig":
+    def reference(cls, **flat) -> TocabiWalkConfig:
         """The reference code's task: torque control and its command schedule (U(-0.2, 0.8) with the linear ramp);
         ``flat`` as in :meth:`with_flat`."""
         cfg = cls(command=CommandConfig.reference(), control=ControlConfig(mode="torque"))
         return cfg.with_flat(**flat)
 
-    def with_flat(self, **flat) -> "TocabiWalkConfig":
+    def with_flat(self, **flat) -> TocabiWalkConfig:
         """A copy with keyword overrides: flat names (``control_mode="pd"``, ``max_episode_steps=1000``, see
         :data:`ENV_FLAT_PATHS`), section names (``command=CommandConfig.reference()``) or ``num_envs``. Raises
         ``TypeError`` naming an unknown keyword."""

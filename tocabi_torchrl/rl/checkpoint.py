@@ -23,11 +23,11 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .atomic import atomic_write_bytes
 from ..config import ConfigError, RunConfig, config_from_dict
+from .atomic import atomic_write_bytes
 
 __all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_checkpoint", "apply_checkpoint", "checkpoint_file",
-           "config_from_checkpoint", "prune_checkpoints", "CheckpointError", "SCHEMA_VERSION"]
+           "config_from_checkpoint", "prune_checkpoints", "run_folder_of", "CheckpointError", "SCHEMA_VERSION"]
 
 #: Version of the checkpoint layout and config schema written by :func:`save_checkpoint`. Bump it when a change
 #: means older code would misread a new file; :func:`read_checkpoint` refuses files from a newer version.
@@ -113,6 +113,13 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path} (pass a .pt file or a run folder with checkpoints/)")
     return path
+
+
+def run_folder_of(checkpoint: str | os.PathLike) -> Path:
+    """The run folder a checkpoint file belongs to: ``<run>/`` for ``<run>/checkpoints/*.pt``, else the file's own
+    folder (the inverse of :func:`checkpoint_file` for a run folder)."""
+    file = Path(checkpoint)
+    return file.parent.parent if file.parent.name == "checkpoints" else file.parent
 
 
 def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu") -> dict:

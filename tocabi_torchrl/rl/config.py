@@ -7,8 +7,20 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from ..config import (ENV_GRAPH_MODES, FLAT_PATHS, LOGGERS, LR_SCHEDULES, PRESETS, STD_MODES, ConfigError, PPOConfig,
-                      RunConfig, field_choices, flat_to_paths, preset_config, preset_tree)
+from ..config import (
+    ENV_GRAPH_MODES,
+    FLAT_PATHS,
+    LOGGERS,
+    LR_SCHEDULES,
+    PRESETS,
+    STD_MODES,
+    ConfigError,
+    PPOConfig,
+    RunConfig,
+    field_choices,
+    preset_config,
+    preset_tree,
+)
 from ..tree import leaf_types, parse_leaf
 
 __all__ = ["PPOConfig", "RunConfig", "PRESETS", "preset_config", "preset_tree", "parse_args", "build_parser",

@@ -18,8 +18,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm.auto import tqdm
 
 from .. import robot
-from .checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint
 from ..config import RunConfig
+from .checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint, run_folder_of
 from .trainer import build_agent, build_env, resolve_device
 
 __all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "policy_dt"]
@@ -204,7 +204,7 @@ def default_eval_dir(ckpt: Path) -> Path:
     ckpt = Path(ckpt)
     if ckpt.resolve().is_relative_to(robot.asset_path().resolve()):
         return Path(RunConfig().run_dir) / "eval" / ckpt.stem
-    return (ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent) / "eval"
+    return run_folder_of(ckpt) / "eval"
 
 
 def policy_dt() -> float:
