@@ -18,6 +18,7 @@ from tocabi_torchrl.config import (
     ConfigError,
     RunConfig,
     config_from_dict,
+    flat_dict,
     preset_config,
     preset_tree,
 )
@@ -54,8 +55,9 @@ def test_preset_matches_the_flat_config_it_replaces(name):
             assert tree.env.control.pd_kp == pytest.approx(tuple(kp)), key
         else:
             assert _plain(get_path(tree, FLAT_PATHS[key])) == _plain(value), key
-    # Migrating the frozen flat dict gives the preset's tree, leaf by leaf.
+    # Migrating the frozen flat dict gives the preset's tree, leaf by leaf, and the flat view gives it back.
     assert to_dict(config_from_dict(FROZEN[name]["flat"])) == to_dict(tree)
+    assert _plain(flat_dict(tree)) == _plain(FROZEN[name]["flat"])
 
 
 @pytest.mark.parametrize("training", [False, True], ids=["eval_env", "training_env"])
@@ -146,3 +148,13 @@ def test_shipped_policies_migrate_from_the_flat_config(policy):
     assert cfg.env.control.pd_kp == pytest.approx(tuple(robot.LEG_KP))  # pd_gains="robot"
     # And a checkpoint written now stores the tree, which reads back unchanged.
     assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+
+
+def test_flat_names_of_before_the_tree_still_read_with_a_warning():
+    cfg = preset_config("cpu_smoke")
+    with pytest.warns(DeprecationWarning, match=r"read cfg.ppo.minibatch_size"):
+        assert cfg.minibatch_size == cfg.ppo.minibatch_size == 64
+    with pytest.raises(AttributeError, match=r"set cfg.env.num_envs"):
+        cfg.num_envs = 3
+    with pytest.raises(AttributeError, match="no attribute 'warp_speed'"):
+        cfg.warp_speed  # noqa: B018

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -35,8 +36,8 @@ from .tree import from_dict as _tree_from_dict
 from .tree import to_dict as _tree_to_dict
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "FLAT_PATHS", "flat_to_paths",
-           "config_from_dict", "to_dict", "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES", "LOGGERS",
-           "field_choices"]
+           "config_from_dict", "to_dict", "flat_dict", "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
+           "LOGGERS", "field_choices"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
@@ -177,6 +178,22 @@ class RunConfig:
     env: TocabiWalkConfig = field(default_factory=TocabiWalkConfig)
     transforms: TransformSettings = field(default_factory=TransformSettings)
     ppo: PPOConfig = field(default_factory=PPOConfig)
+
+    def __getattr__(self, name: str) -> Any:
+        # Only reached for names that are not attributes: the flat PPOConfig names of before the tree still read
+        # (with a DeprecationWarning naming the path), so that scripts written for it keep working while they move.
+        path = FLAT_PATHS.get(name)
+        if path is None or path == name or name in ("command_preset", "pd_gains"):
+            raise AttributeError(f"RunConfig has no attribute {name!r}")
+        warnings.warn(f"RunConfig.{name} is the flat name of before the config tree; read cfg.{path}",
+                      DeprecationWarning, stacklevel=2)
+        return _get(self, path)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name not in self.__dataclass_fields__ and name in FLAT_PATHS:
+            raise AttributeError(f"RunConfig has no option {name!r}: set cfg.{FLAT_PATHS[name]} (or build the config "
+                                 f"with preset_config(..., {name}=...))")
+        object.__setattr__(self, name, value)
 
     @property
     def frames_per_batch(self) -> int:
@@ -358,6 +375,18 @@ def flat_to_paths(values: Mapping[str, Any]) -> dict[str, Any]:
 def to_dict(cfg: RunConfig) -> dict[str, Any]:
     """``cfg`` as nested dicts of plain values."""
     return _tree_to_dict(cfg)
+
+
+def flat_dict(cfg: RunConfig) -> dict[str, Any]:
+    """``cfg`` as the flat ``PPOConfig`` dict of before the tree (the inverse of the migration), for comparing with
+    results recorded then. ``command_preset``/``pd_gains`` name the preset values the tree holds, or are ``None`` for
+    values no name stands for."""
+    out = {name: _get(cfg, path) for name, path in FLAT_PATHS.items() if name not in ("command_preset", "pd_gains")}
+    presets = {"tocabilab": CommandConfig(), "reference": CommandConfig.reference()}
+    out["command_preset"] = next((k for k, v in presets.items() if v == cfg.env.command), None)
+    gains = (tuple(cfg.env.control.pd_kp), tuple(cfg.env.control.pd_kv))
+    out["pd_gains"] = next((k for k, v in PD_GAINS.items() if v == gains), None)
+    return out
 
 
 def is_flat(data: Mapping[str, Any]) -> bool:
