@@ -2,9 +2,9 @@
 
     python recipes/ppo_walk.py                      # default preset: 4096 envs on the GPU
     python recipes/ppo_walk.py --preset reference   # the reference's hyper-parameters (8 envs, 120 M steps)
-    python recipes/ppo_walk.py --num_envs 8192 --max_minutes 20 --name walk8k
+    python recipes/ppo_walk.py --env.num_envs 8192 --ppo.lr 3e-4 --max_minutes 20 --name walk8k
     python recipes/ppo_walk.py --resume runs/ppo_walk   # continue from runs/ppo_walk/checkpoints/latest.pt
-    python recipes/ppo_walk.py --help               # every option
+    python recipes/ppo_walk.py --help               # every option (a dotted path of tocabi_torchrl/config.py)
 
 Without CUDA and with --device auto (the default) it says so and runs the small ``cpu_smoke`` configuration (minutes
 on a laptop, learns nothing useful); an explicit --device cuda or GPU-sized --preset fails instead. Writes

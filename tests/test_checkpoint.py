@@ -81,7 +81,7 @@ def test_saved_checkpoints_are_versioned_and_load_with_weights_only(tmp_path):
     run, agent = _saved_run(tmp_path)
     state = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)
     assert state["schema_version"] == SCHEMA_VERSION
-    assert config_from_checkpoint(read_checkpoint(run)).num_envs == 4
+    assert config_from_checkpoint(read_checkpoint(run)).env.num_envs == 4
     state["schema_version"] = SCHEMA_VERSION + 1
     torch.save(state, tmp_path / "future.pt")
     with pytest.raises(CheckpointError, match="newer than this tocabi-torchrl reads"):
@@ -98,7 +98,7 @@ def test_the_shipped_policy_predates_the_schema_and_still_loads():
     state = read_checkpoint(SHIPPED_POLICY)
     assert state["schema_version"] == 0
     cfg = config_from_checkpoint(state, SHIPPED_POLICY)
-    assert cfg.actor_hidden == (400, 200, 100) and cfg.store_env_signals is False  # a field it predates
+    assert cfg.ppo.actor_hidden == (400, 200, 100) and cfg.ppo.store_env_signals is False  # a field it predates
     load_checkpoint(SHIPPED_POLICY, build_agent(cfg, 237, 13, CPU))
 
 

@@ -28,7 +28,7 @@ def backend(request) -> str:
 
 @pytest.fixture(scope="module")
 def env(backend):
-    return TocabiWalk(num_envs=N, device="cpu", seed=0, backend=backend)
+    return TocabiWalk(num_envs=N, device="cpu", seed=0, backend=backend, control_mode="torque")
 
 
 @pytest.fixture(scope="module")
@@ -118,7 +118,7 @@ def test_masked_reset_touches_only_flagged(env):
 
 
 def test_truncation_with_short_episodes(backend):
-    e = TocabiWalk(num_envs=2, device="cpu", seed=0, max_episode_steps=5, backend=backend)
+    e = TocabiWalk(num_envs=2, device="cpu", seed=0, max_episode_steps=5, backend=backend, control_mode="torque")
     e.reset()
     for k in range(5):
         out = e.step(_zero_action(e))["next"]
@@ -173,7 +173,7 @@ def test_pd_mode_tracks_constant_target(pd_env):
     for _ in range(60):
         out = pd_env.step(TensorDict({"action": a}, batch_size=[2]))["next"]
     knee = out["joint_pos"][:, 3]
-    expected = robot.INIT_JOINT_POS[3] + pd_env.cfg.pd_action_scale * target
+    expected = robot.INIT_JOINT_POS[3] + pd_env.cfg.control.pd_action_scale * target
     assert torch.all((knee - expected).abs() < 0.03), knee
     # The reported leg torque is the PD output, bounded by the limits.
     assert torch.all(out["leg_torque"].abs() <= torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32) + 1e-3)
@@ -190,7 +190,7 @@ def test_pd_reference_mode_targets_the_reference_motion(backend):
         t0, row0 = e.time.clone(), e.init_row.clone()
         out = e.step(TensorDict({"action": a}, batch_size=[2]))["next"]
         q_ref = e.motion.joint_targets(t0, row0)[:, :12]
-        expected = torch.maximum(torch.minimum(q_ref + e.cfg.pd_action_scale * a[:, :12], e._leg_range[:, 1]),
+        expected = torch.maximum(torch.minimum(q_ref + e.cfg.control.pd_action_scale * a[:, :12], e._leg_range[:, 1]),
                                  e._leg_range[:, 0])
         torch.testing.assert_close(e.sim.ctrl[:, :12].float(), expected, atol=1e-6, rtol=0)
         torch.testing.assert_close(out["ref_joint_pos"][:, :12], q_ref)
@@ -305,7 +305,7 @@ def test_backend_selection():
     assert resolve_backend("auto", "cuda:0") == "warp" and resolve_backend("warp", "cpu") == "warp"
     with pytest.raises(ValueError, match="use device='cpu'"):
         resolve_backend("mujoco", "cuda")
-    e = TocabiWalk(num_envs=3, device="cpu", seed=0, sim_threads=2)
+    e = TocabiWalk(num_envs=3, device="cpu", seed=0, sim_threads=2, control_mode="torque")
     assert e.backend == "mujoco" and isinstance(e.sim, MujocoSim) and e.sim.threads == 2
     assert "backend='mujoco'" in repr(e)
 
@@ -323,7 +323,7 @@ def test_bad_command_preset():
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_gpu_step_and_reset_never_sync():
-    e = TocabiWalk(num_envs=64, device="cuda", seed=0)
+    e = TocabiWalk(num_envs=64, device="cuda", seed=0, control_mode="torque")
     check_env_specs(e, seed=0)
     td = e.reset()
     action = torch.zeros(64, 13, device="cuda")
@@ -358,12 +358,12 @@ def test_episode_random_numbers_depend_on_episode_not_call_order():
         as_tensor = episode_uniform(torch.tensor(seed), ids, torch.zeros(4096, dtype=torch.int64), stream=0, k=3)
         assert torch.equal(as_tensor, episode_uniform(seed, ids, torch.zeros(4096, dtype=torch.int64), stream=0, k=3))
     # Extra resets of other envs (or no-op resets) leave an env's next episode unchanged.
-    e = TocabiWalk(num_envs=2, device="cpu", seed=11)
+    e = TocabiWalk(num_envs=2, device="cpu", seed=11, control_mode="torque")
     e.reset()
     e._reset(TensorDict({"_reset": torch.tensor([[False], [True]])}, batch_size=[2]))
     e._reset(TensorDict({"_reset": torch.tensor([[False], [False]])}, batch_size=[2]))
     e._reset(TensorDict({"_reset": torch.tensor([[True], [False]])}, batch_size=[2]))
-    f = TocabiWalk(num_envs=2, device="cpu", seed=11)
+    f = TocabiWalk(num_envs=2, device="cpu", seed=11, control_mode="torque")
     f.reset()
     f._reset(TensorDict({"_reset": torch.tensor([[True], [False]])}, batch_size=[2]))
     assert torch.equal(e.command.value[0], f.command.value[0]) and e.init_row[0] == f.init_row[0]

@@ -41,7 +41,7 @@ def test_policy_input_reward_and_terms(env):
 def test_overrides_reach_env_and_transforms(backend):
     e = make_env(num_envs=2, device="cpu", control_mode="pd", max_episode_steps=7,
                  reward_weights={"qpos": 0.0}, backend=backend, sim_threads=1)
-    assert e.base_env.cfg.control_mode == "pd" and e.base_env.cfg.max_episode_steps == 7
+    assert e.base_env.cfg.control.mode == "pd" and e.base_env.cfg.task.max_episode_steps == 7
     assert e.base_env.backend == backend
     td = e.rollout(7, break_when_any_done=False)
     assert torch.all(td["next", "reward_terms", "qpos"] == 0)
@@ -53,7 +53,7 @@ def test_overrides_reach_env_and_transforms(backend):
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_gpu_transformed_step_never_syncs():
-    e = make_env(num_envs=128, device="cuda", seed=0)
+    e = make_env(num_envs=128, device="cuda", seed=0, control_mode="torque")
     td = e.reset()
     action = torch.zeros(128, 13, device="cuda")
     for _ in range(2):  # warm-up: lazy initialisations may sync once
@@ -99,7 +99,8 @@ def test_sync_free_resets_match_torchrl_resets():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("cuda_graph", [False, True])
 def test_gpu_step_and_maybe_reset_never_syncs(cuda_graph):
-    e = make_env(num_envs=128, device="cuda", seed=0, max_episode_steps=3, cuda_graph=cuda_graph)
+    e = make_env(num_envs=128, device="cuda", seed=0, max_episode_steps=3, cuda_graph=cuda_graph,
+                 control_mode="torque")
     td = e.reset()
     action = torch.rand(128, 13, device="cuda") * 2 - 1  # random torques: some robots fall
     for _ in range(3):  # warm-up: lazy initialisations (and the graph capture) may sync once

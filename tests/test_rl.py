@@ -91,9 +91,9 @@ def test_unknown_preset_and_field():
 def test_command_line_overrides():
     cfg, _ = parse_args(["--preset", "reference", "--num_envs", "16", "--actor_hidden", "64,32",
                          "--eval_at_end", "false", "--reward_weights", "body_vel=0.9,qpos=0.5"])
-    assert cfg.reward_weight_map() == {"body_vel": 0.9, "qpos": 0.5}
-    assert cfg.preset == "reference" and cfg.num_envs == 16 and cfg.actor_hidden == (64, 32)
-    assert cfg.eval_at_end is False and cfg.minibatch_size == 128 and cfg.value_head_lr == 5e-4
+    assert cfg.transforms.reward_weight_map() == {"body_vel": 0.9, "qpos": 0.5}
+    assert cfg.preset == "reference" and cfg.env.num_envs == 16 and cfg.ppo.actor_hidden == (64, 32)
+    assert cfg.eval_at_end is False and cfg.ppo.minibatch_size == 128 and cfg.ppo.value_head_lr == 5e-4
     with pytest.raises(SystemExit):
         parse_args(["--num_envs", "many"])
 
@@ -103,8 +103,9 @@ def test_command_line_overrides():
                                          ("no", "off"), (" ON ", "on"), ("Auto", "auto"), (1, "on"), (0, "off")])
 def test_cuda_graph_reads_old_bool_configs_as_on_off(value, mode):
     # Checkpoints and scripts from before "auto" carry a bool (or true/false on a command line).
-    assert preset_config("default", cuda_graph=value).cuda_graph == mode
-    assert parse_args(["--cuda_graph", str(value)])[0].cuda_graph == mode
+    assert preset_config("default", cuda_graph=value).ppo.cuda_graph == mode
+    assert parse_args(["--cuda_graph", str(value)])[0].ppo.cuda_graph == mode
+    assert parse_args(["--ppo.cuda_graph", str(value)])[0].ppo.cuda_graph == mode
 
 
 def test_env_graph_auto_captures_small_counts_on_the_gpu_only():
@@ -172,7 +173,7 @@ def test_help_lists_options(capsys):
     with pytest.raises(SystemExit):
         parse_args(["--help"])
     text = capsys.readouterr().out
-    for option in ("--num_envs", "--lr_schedule", "--std_start", "--resume", "--max_minutes"):
+    for option in ("--env.num_envs", "--ppo.lr_schedule", "--ppo.std_start", "--resume", "--max_minutes"):
         assert option in text
 
 
@@ -189,7 +190,7 @@ def test_two_tiny_iterations_write_a_loadable_checkpoint(tmp_path):
     assert (run / "checkpoints" / "iter_000002.pt").is_file()
     rows = (run / "metrics.csv").read_text().strip().splitlines()
     assert len(rows) == 3 and "reward_terms/qpos" in rows[0] and "kl" in rows[0]
-    assert json.loads((run / "config.json").read_text())["num_envs"] == 4
+    assert json.loads((run / "config.json").read_text())["env"]["num_envs"] == 4
     agent = build_agent(cfg, 237, 13, torch.device("cpu"))
     state = load_checkpoint(run, agent)
     assert state["iteration"] == 2
@@ -269,7 +270,7 @@ def test_shipped_torque_policy_walks_on_the_cpu_backend(tmp_path):
     from tocabi_torchrl.rl.evaluate import evaluate_run
 
     cfg = config_from_checkpoint(read_checkpoint(SHIPPED_TORQUE_POLICY))
-    assert cfg.control_mode == "torque" and cfg.preset == "torque"
+    assert cfg.env.control.mode == "torque" and cfg.preset == "torque"
     summary = evaluate_run(SHIPPED_TORQUE_POLICY, num_envs=4, device="cpu", seconds=4.0, command=(0.5, 0.0),
                            video_envs=0, out_dir=tmp_path, progress=False)
     assert summary["survival"] == 1.0

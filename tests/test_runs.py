@@ -68,10 +68,10 @@ def test_rerunning_a_name_refuses_and_keeps_the_earlier_run(finished_run, capsys
 def test_resume_restores_the_saved_config(finished_run):
     cfg, _ = parse_args(["--resume", str(finished_run)])
     saved = preset_config("cpu_smoke", **TINY, run_dir=str(finished_run.parent), name="run")
-    assert cfg.num_envs == 2 and cfg.steps_per_env == 4 and cfg.actor_hidden == saved.actor_hidden
+    assert cfg.env.num_envs == 2 and cfg.ppo.steps_per_env == 4 and cfg.ppo.actor_hidden == saved.ppo.actor_hidden
     assert cfg.preset == "cpu_smoke" and cfg.resume == str(finished_run)
     cfg, _ = parse_args(["--resume", str(finished_run), "--total_env_steps", "24", "--max_minutes", "1"])
-    assert cfg.total_env_steps == 24 and cfg.max_minutes == 1.0 and cfg.num_envs == 2
+    assert cfg.total_env_steps == 24 and cfg.max_minutes == 1.0 and cfg.env.num_envs == 2
 
 
 @pytest.mark.parametrize("option, value, saved", [("lr", "0.5", "0.001"), ("control_mode", "torque", "'pd_reference'"),
@@ -127,13 +127,13 @@ def test_explicit_cuda_or_gpu_preset_without_cuda_is_refused(finished_run):
 
 def test_auto_falls_back_to_the_smoke_run_and_the_banner_says_what_runs():
     smoke, args, note = launch_config(["--num_envs", "4", "--name", "mine"], cuda_available=False)
-    assert smoke.preset == "cpu_smoke" and smoke.device == "cpu" and smoke.num_envs == 4 and smoke.name == "mine"
+    assert smoke.preset == "cpu_smoke" and smoke.device == "cpu" and smoke.env.num_envs == 4 and smoke.name == "mine"
     assert "No CUDA GPU found" in note and "cpu_smoke" in note
     line = banner(smoke, args, torch.device("cpu"))
     assert "preset cpu_smoke, 4 envs" in line and "on cpu" in line and "num_envs=4" in line
     assert f"{smoke.iterations:,} iterations of {smoke.frames_per_batch:,} env steps" in line
     cfg, _, note = launch_config([], cuda_available=True)
-    assert cfg.preset == "default" and cfg.num_envs == 4096 and note is None
+    assert cfg.preset == "default" and cfg.env.num_envs == 4096 and note is None
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the behaviour without CUDA")
@@ -167,18 +167,20 @@ def test_log_lines_show_a_dash_until_an_episode_ends(tmp_path, capsys):
 
 
 def test_help_describes_every_option_once(capsys):
-    import dataclasses
+    import argparse
 
-    from tocabi_torchrl.rl.config import PPOConfig, build_parser
+    from tocabi_torchrl.rl.config import RunConfig, build_parser
     from tocabi_torchrl.rl.options import FIELD_HELP
+    from tocabi_torchrl.tree import leaf_paths
 
-    assert set(FIELD_HELP) == {f.name for f in dataclasses.fields(PPOConfig)}, "every field needs a help line"
+    assert set(FIELD_HELP) == set(leaf_paths(RunConfig())), "every option needs a help line"
     with pytest.raises(SystemExit):
         parse_args(["--help"])
     text = " ".join(capsys.readouterr().out.split())
-    helps = {a.dest: a.help for a in build_parser()._actions if a.dest != "help"}
+    helps = {a.option_strings[0][2:]: a.help for a in build_parser()._actions
+             if a.dest != "help" and a.help != argparse.SUPPRESS}  # hidden: the flat options of before the tree
     for dest, line in helps.items():
         assert line.count("(default:") == 1 and line.startswith(FIELD_HELP[dest]), dest
         assert f"--{dest}" in text, dest
-    assert "one of: torque, pd, pd_reference" in helps["control_mode"]
+    assert "one of: torque, pd, pd_reference" in helps["env.control.mode"]
     assert "any of csv, tensorboard, wandb" in helps["loggers"] and "true/false" in helps["eval_at_end"]

@@ -22,7 +22,7 @@ LIMITS = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32)
 
 @pytest.fixture(scope="module", params=["warp", "mujoco"])
 def assisted(request):
-    return TocabiWalk(num_envs=N, device="cpu", seed=0, backend=request.param, torque_assist=True,
+    return TocabiWalk(num_envs=N, device="cpu", seed=0, backend=request.param, control_mode="torque", torque_assist=True,
                       pd_kp=tuple(robot.LEG_KP), pd_kv=tuple(robot.LEG_KV))
 
 
@@ -40,7 +40,7 @@ def test_assist_morphs_position_residuals_into_torques(assisted):
     kp, kv = torch.as_tensor(robot.LEG_KP, dtype=torch.float32), torch.as_tensor(robot.LEG_KV, dtype=torch.float32)
     action = torch.zeros(N, 13)
     action[:, :12] = 0.1
-    beta, scale = 0.25, env.cfg.pd_action_scale
+    beta, scale = 0.25, env.cfg.control.pd_action_scale
     env.set_torque_assist(beta)
     out = _step(env, action)
     # (1 − β) × the reference's torque action + β × the residual-PD preset's servo on q_ref + scale × action.
@@ -142,7 +142,8 @@ def test_absorb_target_applies_the_same_torque_at_the_next_beta():
     # Two identical worlds: one steps an action at β, the other the loss's target action at the smaller β'. Where the
     # target lies inside [-1, 1] the applied (limit-clipped) torques agree; actions beyond the box, and torques
     # beyond the limits, are clipped as the env clips them.
-    kw = dict(num_envs=2, device="cpu", backend="mujoco", seed=1, torque_assist=True, pd_kp=tuple(robot.LEG_KP),
+    kw = dict(num_envs=2, device="cpu", backend="mujoco", seed=1, control_mode="torque", torque_assist=True,
+              pd_kp=tuple(robot.LEG_KP),
               pd_kv=tuple(robot.LEG_KV))
     at_beta, at_next = TocabiWalk(**kw), TocabiWalk(**kw)
     beta, beta_next = 0.6, 0.5
@@ -254,9 +255,9 @@ def test_torque_preset_rejects_bad_assist_settings(overrides, match):
 
 def test_torque_preset_is_the_reference_action_space_with_a_fading_assist():
     cfg = preset_config("torque")
-    assert cfg.control_mode == "torque" and cfg.torque_assist == 1.0
-    assert 0 < cfg.assist_fade_start < cfg.assist_fade_end < cfg.total_env_steps
-    assert cfg.transform_preset == "reference"  # 13 reference reward terms, reference observation
+    assert cfg.env.control.mode == "torque" and cfg.ppo.torque_assist == 1.0
+    assert 0 < cfg.ppo.assist_fade_start < cfg.ppo.assist_fade_end < cfg.total_env_steps
+    assert cfg.transforms.preset == "reference"  # 13 reference reward terms, reference observation
 
 
 @pytest.mark.parametrize("target", ["teacher", "rollout"])

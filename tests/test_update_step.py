@@ -50,7 +50,7 @@ def test_emulated_replay_wiring_matches_the_eager_step():
     stats_eager = _update(cfg, flat, eager)
     torch.manual_seed(3)
     stats_emu = _update(cfg, flat, emu)
-    assert emu._static_mb is not None and emu._static_mb.batch_size == torch.Size([cfg.minibatch_size])
+    assert emu._static_mb is not None and emu._static_mb.batch_size == torch.Size([cfg.ppo.minibatch_size])
     assert stats_eager == pytest.approx(stats_emu, rel=1e-6)
     torch.testing.assert_close(_params(eager_agent), _params(emu_agent), rtol=0, atol=0)
     assert not torch.equal(_params(eager_agent), _params(_setup("cpu", update_graph=False)[1])), "nothing trained"
@@ -127,7 +127,7 @@ def test_captured_update_matches_eager_without_syncs():
         torch.manual_seed(10 + it)
         stats_graph = _update(cfg, flat, graphed)
         assert stats_graph == pytest.approx(stats_eager, rel=1e-4, abs=1e-6)
-    mb = flat[torch.randperm(flat.shape[0], device="cuda")[: cfg.minibatch_size]]
+    mb = flat[torch.randperm(flat.shape[0], device="cuda")[: cfg.ppo.minibatch_size]]
     torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")
     try:
@@ -140,5 +140,5 @@ def test_captured_update_matches_eager_without_syncs():
     for group in graphed.optimizer.param_groups:
         set_lr(group, 0.0)  # a captured step reads the learning rate from the device: lr 0 must freeze it
     before = _params(graph_agent).clone()
-    graphed(flat[: cfg.minibatch_size])
+    graphed(flat[: cfg.ppo.minibatch_size])
     torch.testing.assert_close(_params(graph_agent), before, rtol=0, atol=0)

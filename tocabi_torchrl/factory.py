@@ -10,49 +10,66 @@ from torchrl.envs import TransformedEnv
 from .device import check_device
 from .envs import TocabiWalk, TocabiWalkConfig
 from .envs.autoreset import SyncFreeResetEnv
-from .transforms import TransformConfig, default_transforms, transform_config
+from .envs.config import ENV_FLAT_PATHS
+from .transforms import TransformConfig, TransformSettings, default_transforms
 
 __all__ = ["make_env"]
 
-_TRANSFORM_FIELDS = {f.name for f in dataclasses.fields(TransformConfig)}
+_TRANSFORM_FIELDS = {f.name for f in dataclasses.fields(TransformConfig)} - {"max_episode_steps"}
+_ENV_KEYWORDS = set(ENV_FLAT_PATHS) | {f.name for f in dataclasses.fields(TocabiWalkConfig)}
 
 
 def make_env(
-    num_envs: int = 4096,
+    num_envs: int | None = None,
     device: str | torch.device = "cuda",
-    preset: str = "reference",
+    preset: str | None = None,
     seed: int | None = None,
     sync_free_resets: bool | None = None,
     cuda_graph: bool = False,
+    *,
+    config: TocabiWalkConfig | None = None,
+    transforms: TransformSettings | None = None,
     **overrides,
 ) -> TransformedEnv:
     """The walking task as the policy sees it: ``observation`` (num_envs, 237), ``reward`` (num_envs, 1),
     ``("reward_terms", name)`` per term, ``step_count``, ``episode_reward`` and the env's raw signals.
 
+    With no arguments this is the task of the ``default`` training preset (the env and transform sections of
+    ``tocabi_torchrl.config.preset_tree("default")``), on CUDA.
+
     Args:
-        num_envs, device, seed: see :class:`~tocabi_torchrl.envs.TocabiWalk`.
-        preset: transform preset (``"reference"``: 5 observations two steps apart + 4 actions, fixed reference
-            normalisation, the 13 reference reward terms, reward 0 on terminating steps; ``"tocabilab"``: the
-            consecutive history layout). See :data:`tocabi_torchrl.transforms.PRESETS`.
+        num_envs: parallel worlds (default: ``config.num_envs``, 4096).
+        device, seed: see :class:`~tocabi_torchrl.envs.TocabiWalk`.
+        config: the env section (:class:`~tocabi_torchrl.envs.TocabiWalkConfig`; default: its defaults).
+        transforms: the transform section (:class:`~tocabi_torchrl.transforms.TransformSettings`; default: its
+            defaults: the reference observation and rewards with the velocity term tripled).
+        preset: transform history preset, replacing ``transforms.preset`` (``"reference"``: 5 observations two steps
+            apart + 4 actions; ``"tocabilab"``: the consecutive history). See :data:`tocabi_torchrl.transforms.PRESETS`.
         sync_free_resets: return a :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`, whose
             ``step_and_maybe_reset`` (the collectors' step) resets done envs without host reads (default: on CUDA).
         cuda_graph: capture that ``step_and_maybe_reset`` as one CUDA graph after two eager calls and replay it
             (CUDA and ``sync_free_resets`` only). Off by default here; the trainer turns it on at small env counts,
-            where the step is launch-bound (``PPOConfig.cuda_graph``, measured in ``docs/benchmarks/env_graph.md``).
+            where the step is launch-bound (``ppo.cuda_graph``, measured in ``docs/benchmarks/env_graph.md``).
             See :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv` for what a capture freezes.
-        overrides: fields of :class:`~tocabi_torchrl.envs.TocabiWalkConfig` (e.g. ``control_mode="pd"``,
-            ``max_episode_steps=1000``) and of :class:`~tocabi_torchrl.transforms.TransformConfig`
-            (e.g. ``reward_weights={"qpos": 0.5}``, ``normalization="running"``); a name in neither raises.
+        overrides: env options as flat names (e.g. ``control_mode="pd"``, ``max_episode_steps=1000``, see
+            ``envs.config.ENV_FLAT_PATHS``) or sections (``command=CommandConfig.reference()``), and fields of
+            :class:`~tocabi_torchrl.transforms.TransformConfig` (e.g. ``reward_weights={"qpos": 0.5}``,
+            ``normalization="running"``, ``history=HistoryLayout(...)``); a name in neither raises.
+
+    The env's ``task.max_episode_steps`` is the one truncation clock: the transforms' ``StepCounter`` only counts.
     """
     device = check_device(device)  # before anything reads it: a bad name gets TocabiWalk's clear message
-    env_fields = set(TocabiWalkConfig.__dataclass_fields__)
-    unknown = set(overrides) - env_fields - _TRANSFORM_FIELDS
+    unknown = set(overrides) - _ENV_KEYWORDS - _TRANSFORM_FIELDS
     if unknown:
-        raise TypeError(f"make_env got unknown option(s) {sorted(unknown)}; valid options are the fields of "
-                        "TocabiWalkConfig and TransformConfig")
-    env_kwargs = {k: v for k, v in overrides.items() if k in env_fields}
-    tf_kwargs = {k: v for k, v in overrides.items() if k in _TRANSFORM_FIELDS}
-    if cuda_graph and transform_config(preset, **tf_kwargs).compile_reward:
+        raise TypeError(f"make_env got unknown option(s) {sorted(unknown)}; valid options are the env's "
+                        f"{sorted(_ENV_KEYWORDS)} and TransformConfig's {sorted(_TRANSFORM_FIELDS)}")
+    env_kwargs = {k: v for k, v in overrides.items() if k in _ENV_KEYWORDS}
+    tf_kwargs = {k: v for k, v in overrides.items() if k not in _ENV_KEYWORDS}
+    settings = transforms if transforms is not None else TransformSettings()
+    if preset is not None:
+        settings = dataclasses.replace(settings, preset=preset)
+    tf_config = settings.transform_config(**tf_kwargs)
+    if cuda_graph and tf_config.compile_reward:
         raise ValueError("compile_reward=True and cuda_graph=True do not combine (a recompile inside the capture "
                          "would break it); the CUDA graph already removes the launches torch.compile saves")
     on_cuda = device.type == "cuda"
@@ -63,10 +80,8 @@ def make_env(
     if cuda_graph and not sync_free_resets:
         raise ValueError("cuda_graph=True needs sync_free_resets=True: a step that reads device values on the host "
                          "cannot be captured")
-    base = TocabiWalk(num_envs=num_envs, device=device, seed=seed, **env_kwargs)
-    # One truncation clock: the transforms' step counter follows the env's episode length.
-    tf_kwargs.setdefault("max_episode_steps", base.cfg.max_episode_steps)
-    transforms = default_transforms(preset, **tf_kwargs)
+    base = TocabiWalk(num_envs=num_envs, device=device, config=config, seed=seed, **env_kwargs)
+    transforms_ = default_transforms(tf_config)
     if sync_free_resets:
-        return SyncFreeResetEnv(base, transforms, cuda_graph=cuda_graph)
-    return TransformedEnv(base, transforms)
+        return SyncFreeResetEnv(base, transforms_, cuda_graph=cuda_graph)
+    return TransformedEnv(base, transforms_)

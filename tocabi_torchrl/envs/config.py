@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import os
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -10,7 +10,8 @@ import numpy as np
 from .. import robot
 from .command import CommandConfig
 
-__all__ = ["TocabiWalkConfig", "CONTROL_MODES", "BACKENDS", "CPU_DEFAULT_BACKEND", "resolve_backend"]
+__all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "PD_GAINS", "ENV_FLAT_PATHS",
+           "CONTROL_MODES", "BACKENDS", "CPU_DEFAULT_BACKEND", "resolve_backend"]
 
 CONTROL_MODES = ("torque", "pd", "pd_reference")
 #: Physics backends: mujoco-warp (``WarpSim``, GPU or warp's CPU device) or C MuJoCo on CPU threads (``MujocoSim``).
@@ -35,89 +36,190 @@ def resolve_backend(backend: str, device) -> str:
 
 
 @dataclass
-class TocabiWalkConfig:
-    """Task constants (spec §2-§9). Angles in rad, lengths in m, times in s unless a name says steps.
+class EnvSimConfig:
+    """How the env's worlds are simulated (``TocabiWalkConfig.sim``).
 
-    Control modes:
-      - ``"torque"`` (reference): leg torque = action[:12] × joint torque limit, held for all substeps.
-      - ``"pd"`` (TocabiLab's position-based policy): action[:12] in [-1, 1] maps to a target angle
-        ``pd_nominal + pd_action_scale × action`` clipped to the joint range, tracked in every physics substep by
-        MuJoCo position servos with gains ``pd_kp``/``pd_kv``, force-limited to the torque limits.
-      - ``"pd_reference"``: as ``"pd"`` with the target centred on the reference walk instead of ``pd_nominal``.
-    The upper body is held at the reference pose by MuJoCo position servos in every mode.
+    Attributes:
+        backend: ``"warp"`` (mujoco-warp), ``"mujoco"`` (C MuJoCo on CPU threads, CPU only) or ``"auto"`` (warp on
+            CUDA, :data:`CPU_DEFAULT_BACKEND` on the CPU).
+        substeps: physics substeps per policy step (0.5 ms each: 8 -> 250 Hz policy).
+        nconmax, njmax: contact/constraint buffers per world for mujoco-warp (None = the backend's measured defaults).
+        threads: CPU threads of the ``"mujoco"`` backend (None = every available core).
     """
 
-    control_mode: str = "torque"
-    #: Physics substeps per policy step (0.5 ms each: 8 -> 250 Hz policy).
+    backend: str = "auto"
     substeps: int = 8
-    #: Policy steps before truncation (8000 = 32 s).
+    nconmax: int | None = None
+    njmax: int | None = None
+    threads: int | None = None
+
+    def validate(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ValueError(f"unknown env.sim.backend {self.backend!r}; choose one of {BACKENDS}")
+        for name in ("substeps", "nconmax", "njmax", "threads"):
+            v = getattr(self, name)
+            if (v is not None or name == "substeps") and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                alias = " (sim_threads)" if name == "threads" else ""
+                raise ValueError(f"env.sim.{name}{alias} must be a positive int"
+                                 f"{'' if name == 'substeps' else ' or None'}, got {v!r}")
+
+
+@dataclass
+class TaskConfig:
+    """The episode: reference motion, phase clock, truncation and early termination (spec §9.1)
+    (``TocabiWalkConfig.task``). Angles in rad, lengths in m.
+
+    Attributes:
+        max_episode_steps: policy steps before truncation (8000 = 32 s). The env is the one truncation clock:
+            ``make_env``'s ``StepCounter`` only counts.
+        motion: reference motion; None = the shipped generated cycle, or a path to a ``.npz`` / reference ``.txt``.
+        model_path: robot model; None = the shipped assets/tocabi/tocabi.xml.
+        phase_rate_gain: phase clock t += dt × (1 + phase_rate_gain × action[12]) per step (reference 1: 1× to 2×).
+        min_pelvis_height, min_neck_height, max_neck_angle, terminate_on_forbidden_contact,
+            terminate_on_self_collision: the early-termination conditions.
+    """
+
     max_episode_steps: int = 8000
-    #: Reference motion: None = the shipped generated cycle; a path to a ``.npz`` or the reference ``.txt`` file.
-    motion: str | os.PathLike | None = None
-    #: Phase clock: t += dt × (1 + phase_rate_gain × action[12]) per step (reference gain 1: 1× to 2× speed).
+    motion: str | None = None
+    model_path: str | None = None
     phase_rate_gain: float = 1.0
-    command: CommandConfig = field(default_factory=CommandConfig)
-    # Early termination (spec §9.1).
     min_pelvis_height: float = 0.6
     min_neck_height: float = 0.8
     max_neck_angle: float = 1.0
     terminate_on_forbidden_contact: bool = True
     terminate_on_self_collision: bool = True
-    # PD control mode (TocabiLab divides the robot controller's Kp by 9 and Kv by 3).
-    pd_kp: tuple[float, ...] = tuple(robot.LEG_KP / 9.0)
-    pd_kv: tuple[float, ...] = tuple(robot.LEG_KV / 3.0)
-    pd_action_scale: float = 0.5
-    pd_nominal: tuple[float, ...] = tuple(robot.INIT_JOINT_POS[:12])
-    #: Torque mode only, a training aid that morphs the action space: the leg torque is
-    #: ``(1 − β)·a·limit + β·(pd_kp·(q_ref + pd_action_scale·a − q) − pd_kv·q̇)`` (clipped to the limits), so at β = 1
-    #: the 12 leg actions are position residuals around the reference walk tracked by a PD at the policy rate (the
-    #: ``pd_reference`` mode, which learns to walk), and at β = 0 they are the reference's normalised torques. β is
-    #: the env's device scalar ``assist_scale`` (:meth:`TocabiWalk.set_torque_assist`, 0 at build), so a trainer can
-    #: fade it without rebuilding or re-capturing. Adds the ``leg_assist`` signal: the action-independent part of the
-    #: PD, ``(pd_kp·(q_ref − q) − pd_kv·q̇) / limit`` (num_envs, 12), from the pre-step state. The leg entries of
-    #: ``applied_action`` (observation history, torque rewards) are the applied torque over the limits, the same at
-    #: every β for the same torques (at β = 0 they equal the action, as in plain torque mode).
-    torque_assist: bool = False
-    #: Robot model path: None = the shipped assets/tocabi/tocabi.xml.
-    model_path: str | os.PathLike | None = None
-    #: Contact/constraint buffers per world for mujoco-warp (None = the backend's measured defaults).
-    nconmax: int | None = None
-    njmax: int | None = None
-    #: Physics backend: "warp" (mujoco-warp), "mujoco" (C MuJoCo on CPU threads, CPU only) or "auto" (warp on CUDA,
-    #: ``CPU_DEFAULT_BACKEND`` on the CPU).
-    backend: str = "auto"
-    #: CPU threads of the "mujoco" backend (None = every available core).
-    sim_threads: int | None = None
-
-    @classmethod
-    def reference(cls, **overrides) -> "TocabiWalkConfig":
-        """The reference code's task: its command schedule (U(-0.2, 0.8) with the linear ramp)."""
-        overrides.setdefault("command", CommandConfig.reference())
-        return cls(**overrides)
 
     def validate(self) -> None:
-        if self.control_mode not in CONTROL_MODES:
-            raise ValueError(f"unknown control_mode {self.control_mode!r}; choose one of {CONTROL_MODES}")
-        for name in ("substeps", "max_episode_steps"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"TocabiWalkConfig.{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("min_pelvis_height", "min_neck_height", "max_neck_angle", "pd_action_scale"):
+        m = self.max_episode_steps
+        if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+            raise ValueError(f"env.task.max_episode_steps must be an int >= 1, got {m!r}")
+        for name in ("min_pelvis_height", "min_neck_height", "max_neck_angle"):
             value = float(getattr(self, name))
             if not np.isfinite(value) or value < 0:
-                raise ValueError(f"TocabiWalkConfig.{name} must be a finite number >= 0, got {value}")
+                raise ValueError(f"env.task.{name} must be a finite number >= 0, got {value}")
         if not 0 <= self.phase_rate_gain < 100:
-            raise ValueError(f"TocabiWalkConfig.phase_rate_gain must be in [0, 100), got {self.phase_rate_gain}")
+            raise ValueError(f"env.task.phase_rate_gain must be in [0, 100), got {self.phase_rate_gain}")
+
+
+#: The robot controller's leg gains, the PD modes' default (TocabiLab divides Kp by 9 and Kv by 3: ``"tocabilab"``).
+PD_GAINS = {"robot": (tuple(float(v) for v in robot.LEG_KP), tuple(float(v) for v in robot.LEG_KV)),
+            "tocabilab": (tuple(float(v) for v in robot.LEG_KP / 9.0), tuple(float(v) for v in robot.LEG_KV / 3.0))}
+
+
+@dataclass
+class ControlConfig:
+    """What the 12 leg actions command (``TocabiWalkConfig.control``).
+
+    Modes (``mode``):
+      - ``"torque"`` (reference): leg torque = action[:12] × joint torque limit, held for all substeps.
+      - ``"pd"`` (TocabiLab's position-based policy): action[:12] in [-1, 1] maps to a target angle
+        ``pd_nominal + pd_action_scale × action`` clipped to the joint range, tracked in every physics substep by
+        MuJoCo position servos with gains ``pd_kp``/``pd_kv``, force-limited to the torque limits.
+      - ``"pd_reference"`` (the default): as ``"pd"`` with the target centred on the reference walk.
+    The upper body is held at the reference pose by MuJoCo position servos in every mode. The gains default to the
+    robot controller's (:data:`PD_GAINS` ``"robot"``); in plain torque mode no PD acts and they are unused.
+
+    ``torque_assist`` (torque mode only) is a training aid that morphs the action space: the leg torque is
+    ``(1 − β)·a·limit + β·(pd_kp·(q_ref + pd_action_scale·a − q) − pd_kv·q̇)`` (clipped to the limits), so at β = 1
+    the 12 leg actions are position residuals around the reference walk tracked by a PD at the policy rate (the
+    ``pd_reference`` mode, which learns to walk), and at β = 0 they are the reference's normalised torques. β is
+    the env's device scalar ``assist_scale`` (:meth:`TocabiWalk.set_torque_assist`, 0 at build), so a trainer can
+    fade it without rebuilding or re-capturing. Adds the ``leg_assist`` signal: the action-independent part of the
+    PD, ``(pd_kp·(q_ref − q) − pd_kv·q̇) / limit`` (num_envs, 12), from the pre-step state. The leg entries of
+    ``applied_action`` (observation history, torque rewards) are the applied torque over the limits, the same at
+    every β for the same torques (at β = 0 they equal the action, as in plain torque mode).
+    """
+
+    mode: str = "pd_reference"
+    pd_kp: tuple[float, ...] = PD_GAINS["robot"][0]
+    pd_kv: tuple[float, ...] = PD_GAINS["robot"][1]
+    pd_action_scale: float = 0.5
+    pd_nominal: tuple[float, ...] = tuple(float(v) for v in robot.INIT_JOINT_POS[:12])
+    torque_assist: bool = False
+
+    def validate(self) -> None:
+        if self.mode not in CONTROL_MODES:
+            raise ValueError(f"unknown env.control.mode (control_mode) {self.mode!r}; choose one of {CONTROL_MODES}")
         for name in ("pd_kp", "pd_kv", "pd_nominal"):
             if len(getattr(self, name)) != robot.NUM_LEG_JOINTS:
-                raise ValueError(f"TocabiWalkConfig.{name} needs {robot.NUM_LEG_JOINTS} values (one per leg joint)")
-        if self.torque_assist and self.control_mode != "torque":
-            raise ValueError(f"TocabiWalkConfig.torque_assist needs control_mode='torque' (the PD modes already track "
-                             f"with servos), got control_mode={self.control_mode!r}")
+                raise ValueError(f"env.control.{name} needs {robot.NUM_LEG_JOINTS} values (one per leg joint), got "
+                                 f"{len(getattr(self, name))}")
         if min(self.pd_kp) < 0 or min(self.pd_kv) < 0:
-            raise ValueError("TocabiWalkConfig.pd_kp and pd_kv must be >= 0")
-        if self.backend not in BACKENDS:
-            raise ValueError(f"unknown TocabiWalkConfig.backend {self.backend!r}; choose one of {BACKENDS}")
-        t = self.sim_threads
-        if t is not None and (isinstance(t, bool) or not isinstance(t, int) or t < 1):
-            raise ValueError(f"TocabiWalkConfig.sim_threads must be a positive int or None, got {t!r}")
+            raise ValueError("env.control.pd_kp and pd_kv must be >= 0")
+        value = float(self.pd_action_scale)
+        if not np.isfinite(value) or value < 0:
+            raise ValueError(f"env.control.pd_action_scale must be a finite number >= 0, got {value}")
+        if self.torque_assist and self.mode != "torque":
+            raise ValueError(f"env.control.torque_assist needs control_mode='torque' (env.control.mode; the PD modes "
+                             f"already track with servos), got {self.mode!r}")
+
+
+#: The flat keyword names ``TocabiWalk(...)``/``make_env(...)`` accept (and ``TocabiWalkConfig`` had before it was
+#: split into sections) -> their path in the env tree.
+ENV_FLAT_PATHS = {
+    "control_mode": "control.mode", "pd_kp": "control.pd_kp", "pd_kv": "control.pd_kv",
+    "pd_action_scale": "control.pd_action_scale", "pd_nominal": "control.pd_nominal",
+    "torque_assist": "control.torque_assist",
+    "substeps": "sim.substeps", "nconmax": "sim.nconmax", "njmax": "sim.njmax", "backend": "sim.backend",
+    "sim_threads": "sim.threads",
+    **{name: f"task.{name}" for name in TaskConfig.__dataclass_fields__},
+}
+
+
+@dataclass
+class TocabiWalkConfig:
+    """The walking task's env config: one section per concern, every constant with its unit.
+
+    The defaults are the task of the ``default`` training preset (``recipes/ppo_walk.py``): residual PD control
+    around the reference walk with the robot's gains and TocabiLab's command schedule, so ``TocabiWalk()``,
+    ``make_env()`` and the recipe agree. ``TocabiWalkConfig.reference()`` is the reference code's task (torque control,
+    its command schedule).
+
+    Attributes:
+        num_envs: parallel worlds N (>= 1).
+        sim: :class:`EnvSimConfig` (backend, substeps, buffers, threads).
+        task: :class:`TaskConfig` (episode length, motion, terminations).
+        command: :class:`~tocabi_torchrl.envs.command.CommandConfig` (velocity command schedule).
+        control: :class:`ControlConfig` (what the leg actions command).
+    """
+
+    num_envs: int = 4096
+    sim: EnvSimConfig = field(default_factory=EnvSimConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+    command: CommandConfig = field(default_factory=CommandConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+
+    @classmethod
+    def reference(cls, **flat) -> TocabiWalkConfig:
+        """The reference code's task: torque control and its command schedule (U(-0.2, 0.8) with the linear ramp);
+        ``flat`` as in :meth:`with_flat`."""
+        cfg = cls(command=CommandConfig.reference(), control=ControlConfig(mode="torque"))
+        return cfg.with_flat(**flat)
+
+    def with_flat(self, **flat) -> TocabiWalkConfig:
+        """A copy with keyword overrides: flat names (``control_mode="pd"``, ``max_episode_steps=1000``, see
+        :data:`ENV_FLAT_PATHS`), section names (``command=CommandConfig.reference()``) or ``num_envs``. Raises
+        ``TypeError`` naming an unknown keyword."""
+        from ..tree import replace_paths
+
+        sections = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(flat) - set(ENV_FLAT_PATHS) - sections)
+        if unknown:
+            raise TypeError(f"unknown TocabiWalk option(s) {unknown}; use a section (num_envs, sim, task, command, "
+                            f"control) or one of {sorted(ENV_FLAT_PATHS)}")
+        return replace_paths(self, {ENV_FLAT_PATHS.get(k, k): v for k, v in flat.items()})
+
+    @property
+    def torque_assist(self) -> bool:
+        """``control.torque_assist``: whether the env has the assist (and its ``leg_assist`` signal)."""
+        return self.control.torque_assist
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad option (as its path, e.g. ``env.control.mode``) and the fix."""
+        n = self.num_envs
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ValueError(f"num_envs must be a positive int, got {n!r}")
+        self.sim.validate()
+        self.task.validate()
+        self.control.validate()
         self.command.validate()

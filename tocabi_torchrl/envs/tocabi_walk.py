@@ -24,7 +24,7 @@ from ..rotations import quat_rotate_inverse
 from ..signals import EPISODE_FLAGS, REWARD, SIGNALS, SignalTable
 from ..sim import MujocoSim, SimBackend, SimConfig, WarpSim
 from .command import VelocityCommand
-from .config import TocabiWalkConfig, resolve_backend
+from .config import ControlConfig, TocabiWalkConfig, resolve_backend
 from .episode_random import episode_uniform
 from .termination import termination_flags
 
@@ -38,12 +38,12 @@ def _finite(x: torch.Tensor) -> torch.Tensor:
     return torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-def _pd_leg_spec(spec, cfg: TocabiWalkConfig):
+def _pd_leg_spec(spec, control: ControlConfig):
     """Turn the 12 leg torque motors into position servos (PD inside every physics substep)."""
     for j in robot.LEG_JOINT_IDS:
         act = spec.actuator(robot.ACTUATOR_NAMES[j])
         limit = float(robot.TORQUE_LIMITS[j])
-        act.set_to_position(kp=float(cfg.pd_kp[j]), kv=float(cfg.pd_kv[j]))
+        act.set_to_position(kp=float(control.pd_kp[j]), kv=float(control.pd_kv[j]))
         act.ctrllimited = 0
         act.forcelimited = 1
         act.forcerange = [-limit, limit]
@@ -54,15 +54,18 @@ class TocabiWalk(EnvBase):
     """TOCABI walking task over ``num_envs`` simulated worlds (mujoco-warp or C MuJoCo).
 
     Args:
-        num_envs: number of parallel worlds N (> 0).
+        num_envs: number of parallel worlds N (> 0); None = the config's ``num_envs`` (4096).
         device: ``"cuda"``, ``"cuda:K"`` or ``"cpu"``. The physics backend is the config's ``backend``: ``"auto"``
             (default) runs mujoco-warp on CUDA and C MuJoCo on the CPU (``envs.config.CPU_DEFAULT_BACKEND``, the
             faster one there as measured); ``"warp"`` on the CPU is warp's CPU device (slow, compiles ~1 min).
-        config: task constants (``TocabiWalkConfig``); keyword ``overrides`` replace single fields.
+        config: the env config tree (``TocabiWalkConfig``: sim, task, command, control; default: the ``default``
+            training preset's task); keyword ``overrides`` replace single values by their flat names
+            (``control_mode="torque"``, ``max_episode_steps=1000``, see ``envs.config.ENV_FLAT_PATHS``) or whole
+            sections (``command=CommandConfig.reference()``).
         seed: seed of the env's own torch generator (initial phase, commands).
 
     Action (N, 13): 12 leg commands in [-1, 1] (torques as a fraction of the limits, or PD targets, see the
-    config's ``control_mode``) and one phase-rate action in [0, 1]. Actions outside the bounds are clipped; NaN
+    config's ``control.mode``) and one phase-rate action in [0, 1]. Actions outside the bounds are clipped; NaN
     entries are treated as 0 (checking for them would need a host synchronisation).
 
     Output keys and units: ``docs/signals.md``. ``done``/``terminated``/``truncated`` are (N, 1) bool; the reward of
@@ -81,39 +84,41 @@ class TocabiWalk(EnvBase):
 
     def __init__(
         self,
-        num_envs: int = 4096,
+        num_envs: int | None = None,
         device: str | torch.device = "cuda",
         config: TocabiWalkConfig | None = None,
         seed: int | None = None,
         **overrides,
     ):
-        if not isinstance(num_envs, int) or num_envs <= 0:
+        if num_envs is not None and (isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs <= 0):
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
         device = check_device(device)
         cfg = config if config is not None else TocabiWalkConfig()
+        if num_envs is not None:
+            overrides["num_envs"] = num_envs
         if overrides:
-            unknown = set(overrides) - set(TocabiWalkConfig.__dataclass_fields__)
-            if unknown:
-                raise TypeError(f"unknown TocabiWalk option(s) {sorted(unknown)}; see TocabiWalkConfig")
-            cfg = TocabiWalkConfig(**{**cfg.__dict__, **overrides})
+            cfg = cfg.with_flat(**overrides)
         cfg.validate()
+        num_envs = cfg.num_envs
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self.cfg = cfg
         self.num_envs = num_envs
+        control, sim = cfg.control, cfg.sim
 
-        spec = robot.load_spec(cfg.model_path)
-        if cfg.control_mode != "torque":
-            spec = _pd_leg_spec(spec, cfg)
-        self.backend = resolve_backend(cfg.backend, device)
+        spec = robot.load_spec(cfg.task.model_path)
+        if control.mode != "torque":
+            spec = _pd_leg_spec(spec, control)
+        self.backend = resolve_backend(sim.backend, device)
         if self.backend == "warp":
-            buffers = {k: v for k, v in (("nconmax", cfg.nconmax), ("njmax", cfg.njmax)) if v is not None}
-            sim_cfg = SimConfig(num_worlds=num_envs, device=str(device), substeps=cfg.substeps, **buffers)
+            buffers = {k: v for k, v in (("nconmax", sim.nconmax), ("njmax", sim.njmax)) if v is not None}
+            sim_cfg = SimConfig(num_worlds=num_envs, device=str(device), substeps=sim.substeps, **buffers)
             self.sim = WarpSim(sim_cfg, model=spec)
         else:
-            sim_cfg = SimConfig(num_worlds=num_envs, device="cpu", substeps=cfg.substeps, threads=cfg.sim_threads)
+            sim_cfg = SimConfig(num_worlds=num_envs, device="cpu", substeps=sim.substeps, threads=sim.threads)
             self.sim = MujocoSim(sim_cfg, model=spec)
-        self.dt = self.sim.mj_model.opt.timestep * cfg.substeps
-        self.motion = (ReferenceMotion.default() if cfg.motion is None else ReferenceMotion.from_file(cfg.motion))
+        self.dt = self.sim.mj_model.opt.timestep * sim.substeps
+        motion = cfg.task.motion
+        self.motion = ReferenceMotion.default() if motion is None else ReferenceMotion.from_file(motion)
         self.motion = self.motion.to(device)
 
         self._seed = int(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item())
@@ -136,15 +141,15 @@ class TocabiWalk(EnvBase):
         mj = self.sim.mj_model
         leg_range = mj.jnt_range[[mj.joint(name).id for name in robot.JOINT_NAMES[robot.LEGS]]]
         self._leg_range = torch.as_tensor(leg_range, dtype=f32, device=dev)
-        self._pd_nominal = torch.as_tensor(self.cfg.pd_nominal, dtype=f32, device=dev)
-        self._pd_kp = torch.as_tensor(self.cfg.pd_kp, dtype=f32, device=dev)
-        self._pd_kv = torch.as_tensor(self.cfg.pd_kv, dtype=f32, device=dev)
+        self._pd_nominal = torch.as_tensor(self.cfg.control.pd_nominal, dtype=f32, device=dev)
+        self._pd_kp = torch.as_tensor(self.cfg.control.pd_kp, dtype=f32, device=dev)
+        self._pd_kv = torch.as_tensor(self.cfg.control.pd_kv, dtype=f32, device=dev)
         #: β of the torque assist (config ``torque_assist``): a device scalar changed in place, so a captured step
         #: graph follows it.
         self.assist_scale = torch.zeros((), dtype=f32, device=dev)
         self._assist_gain = self.assist_gain(0.0).clone()  # (12,) N·m per unit action at assist_scale
         # Leg controls a reset world starts with: no torque, or the PD's nominal target.
-        self._reset_leg_ctrl = (torch.zeros_like(self._pd_nominal) if self.cfg.control_mode == "torque"
+        self._reset_leg_ctrl = (torch.zeros_like(self._pd_nominal) if self.cfg.control.mode == "torque"
                                 else self._pd_nominal.clone())
         self._init_rows = torch.as_tensor(self.motion.init_rows, dtype=torch.int64, device=dev)
         # Task state, (num_envs, ...): phase clock [s] (kept modulo the motion period), its start row, step count.
@@ -178,7 +183,7 @@ class TocabiWalk(EnvBase):
 
     def signal_flags(self) -> dict[str, bool]:
         """The options that turn the signal table's conditional rows on (``Signal.requires``)."""
-        return {"torque_assist": bool(self.cfg.torque_assist)}
+        return {"torque_assist": bool(self.cfg.control.torque_assist)}
 
     def _check_observe_matches_table(self) -> None:
         """Raise a clear error, once at construction, when :meth:`_observe` and the signal table disagree.
@@ -226,13 +231,13 @@ class TocabiWalk(EnvBase):
         q_ref = self.motion.joint_targets(self.time, self.init_row)
         self.command.update(self.episode_step)
 
-        if self.cfg.torque_assist:
+        if self.cfg.control.torque_assist:
             leg_cmd = self._assisted(a[:, robot.LEGS], q_ref[:, robot.LEGS])
-        elif self.cfg.control_mode == "torque":
+        elif self.cfg.control.mode == "torque":
             leg_cmd = a[:, robot.LEGS] * self._leg_limits
         else:
-            center = self._pd_nominal if self.cfg.control_mode == "pd" else q_ref[:, robot.LEGS]
-            target = center + self.cfg.pd_action_scale * a[:, robot.LEGS]
+            center = self._pd_nominal if self.cfg.control.mode == "pd" else q_ref[:, robot.LEGS]
+            target = center + self.cfg.control.pd_action_scale * a[:, robot.LEGS]
             leg_cmd = torch.maximum(torch.minimum(target, self._leg_range[:, 1]), self._leg_range[:, 0])
         ctrl = self.sim.ctrl
         ctrl[:, robot.LEGS] = leg_cmd
@@ -241,22 +246,22 @@ class TocabiWalk(EnvBase):
 
         # Task state is updated in place (never rebound): a captured CUDA graph of this step keeps writing to the
         # same tensors on every replay (see envs.autoreset).
-        rate = 1.0 + self.cfg.phase_rate_gain * a[:, -1]
+        rate = 1.0 + self.cfg.task.phase_rate_gain * a[:, -1]
         self.time.copy_(torch.remainder(self.time + self.dt * rate, self.motion.period))
         self.episode_step.add_(1)
         self.applied_action.copy_(a)
-        if self.cfg.torque_assist:
+        if self.cfg.control.torque_assist:
             # The history and the torque rewards see the torque the legs got, over the limits: at β = 0 that is the
             # action itself (the reference's a_raw), and at every β a policy that applies the same torques gets the
             # same observations and rewards, so the morph changes the action's meaning and nothing else.
             self.applied_action[:, robot.LEGS].copy_(leg_cmd / self._leg_limits)
         applied = self.sim.applied_actuator_force[:, robot.LEGS]
-        self.leg_torque.copy_(leg_cmd if self.cfg.control_mode == "torque" else applied)
+        self.leg_torque.copy_(leg_cmd if self.cfg.control.mode == "torque" else applied)
         self.ref_joint_pos.copy_(q_ref)
         self.ref_foot_force.copy_(self.motion.force_reference(row))
         self.stance.copy_(self.motion.stance_at(row))
 
-        sim, cfg = self.sim, self.cfg
+        sim, cfg = self.sim, self.cfg.task
         flags = termination_flags(
             pelvis_height=sim.base_pos[:, 2],
             neck_height=sim.neck_pos[:, 2],
@@ -301,11 +306,11 @@ class TocabiWalk(EnvBase):
     def assist_gain(self, beta: float | torch.Tensor) -> torch.Tensor:
         """(12,) N·m of leg torque per unit of leg action at assist scale ``beta``: ``(1 − β)·limit + β·pd_action_scale
         ·pd_kp`` (the torque limit at β = 0, the PD's stiffness times the residual range at β = 1)."""
-        return (1.0 - beta) * self._leg_limits + beta * self.cfg.pd_action_scale * self._pd_kp
+        return (1.0 - beta) * self._leg_limits + beta * self.cfg.control.pd_action_scale * self._pd_kp
 
     def set_torque_assist(self, scale: float) -> None:
         """Set β of the torque assist (config ``torque_assist``) for the following steps; 0 = pure torque."""
-        if not self.cfg.torque_assist:
+        if not self.cfg.control.torque_assist:
             raise RuntimeError("set_torque_assist needs an env built with torque_assist=True (torque mode)")
         if not 0.0 <= float(scale) <= 1.0:
             raise ValueError(f"torque assist scale must be in [0, 1], got {scale!r}")
@@ -343,7 +348,7 @@ class TocabiWalk(EnvBase):
             "episode_step": self.episode_step.unsqueeze(-1).clone(),
             "healthy": sim.healthy.unsqueeze(-1).clone(),
         }
-        if self.cfg.torque_assist:
+        if self.cfg.control.torque_assist:
             signals["leg_assist"] = _finite(self.leg_assist)
         return TensorDict(signals, batch_size=self.batch_size, device=self.device)
 
@@ -401,5 +406,5 @@ class TocabiWalk(EnvBase):
 
     def __repr__(self) -> str:
         return (f"TocabiWalk(num_envs={self.num_envs}, device={self.device}, backend={self.backend!r}, control_mode="
-                f"{self.cfg.control_mode!r}, dt={self.dt:.4f} s, period={self.period:.4f} s)")
+                f"{self.cfg.control.mode!r}, dt={self.dt:.4f} s, period={self.period:.4f} s)")
 

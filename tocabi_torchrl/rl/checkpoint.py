@@ -5,15 +5,16 @@ evaluation and ``recipes/play.py`` all use it); it loads with ``torch.load(weigh
 tensors and plain containers only, then checks the keys, the types and the config against :data:`SCHEMA_VERSION`.
 Anything that does not fit raises :class:`CheckpointError` naming the file and what is wrong. Checkpoints written
 before the schema was versioned (no ``schema_version``, e.g. the shipped ``assets/policies/tocabi_walk_ppo.pt``)
-read as version 0; config fields they lack take their defaults.
+read as version 0; config fields they lack take their defaults. Versions 0 and 1 hold the flat ``PPOConfig`` dict
+of before the run config tree; :func:`config_from_checkpoint` migrates it to the tree (``config.FLAT_PATHS``).
+Version 2 holds the tree (``RunConfig.to_dict()``).
 
 Writing is atomic (:mod:`.atomic`): a crash leaves the previous ``latest.pt`` intact. Old ``iter_*.pt`` files are
-pruned after each save (``PPOConfig.checkpoint_keep_last`` / ``checkpoint_keep_every``).
+pruned after each save (``RunConfig.checkpoint_keep_last`` / ``checkpoint_keep_every``).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import io
 import os
 import re
@@ -22,15 +23,15 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from ..config import ConfigError, RunConfig, config_from_dict
 from .atomic import atomic_write_bytes
-from .config import PPOConfig
 
 __all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_checkpoint", "apply_checkpoint", "checkpoint_file",
-           "config_from_checkpoint", "prune_checkpoints", "CheckpointError", "SCHEMA_VERSION"]
+           "config_from_checkpoint", "prune_checkpoints", "run_folder_of", "CheckpointError", "SCHEMA_VERSION"]
 
 #: Version of the checkpoint layout and config schema written by :func:`save_checkpoint`. Bump it when a change
 #: means older code would misread a new file; :func:`read_checkpoint` refuses files from a newer version.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 _ITER_FILE = re.compile(r"^iter_(\d+)\.pt$")
 
@@ -45,7 +46,7 @@ def _transform_state(env) -> dict:
     return transform.state_dict() if isinstance(transform, nn.Module) else {}
 
 
-def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimizer, env, cfg: PPOConfig,
+def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimizer, env, cfg: RunConfig,
                     train_seconds: float = 0.0, tag: str | None = None) -> Path:
     """Write ``checkpoints/iter_XXXXXX.pt`` (or ``checkpoints/<tag>.pt``) and ``checkpoints/latest.pt`` under
     ``run_dir`` atomically, then prune old iteration files as ``cfg`` says (tagged files are kept). Returns the
@@ -112,6 +113,13 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path} (pass a .pt file or a run folder with checkpoints/)")
     return path
+
+
+def run_folder_of(checkpoint: str | os.PathLike) -> Path:
+    """The run folder a checkpoint file belongs to: ``<run>/`` for ``<run>/checkpoints/*.pt``, else the file's own
+    folder (the inverse of :func:`checkpoint_file` for a run folder)."""
+    file = Path(checkpoint)
+    return file.parent.parent if file.parent.name == "checkpoints" else file.parent
 
 
 def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu") -> dict:
@@ -181,18 +189,21 @@ def _check_tensor_dict(value, name: str, path: Path) -> None:
         raise CheckpointError(f"checkpoint {path}: {name} entries {bad[:5]} are not named tensors")
 
 
-def config_from_checkpoint(state: dict, path: str | os.PathLike = "<checkpoint>") -> PPOConfig:
-    """The run's :class:`PPOConfig` as saved in ``state`` (fields it lacks take their defaults); raises
-    :class:`CheckpointError` for unknown fields or invalid values."""
-    saved = dict(state["config"])
-    known = {f.name for f in dataclasses.fields(PPOConfig)}
-    unknown = sorted(set(saved) - known)
-    if unknown:
-        raise CheckpointError(f"checkpoint {path}: config has unknown field(s) {unknown} (written by another version "
-                              "of tocabi-torchrl?)")
-    values = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()}
+def config_from_checkpoint(state: dict, path: str | os.PathLike = "<checkpoint>") -> RunConfig:
+    """The run's :class:`~tocabi_torchrl.config.RunConfig` as saved in ``state``: the tree (schema 2), or the flat
+    ``PPOConfig`` dict of older files migrated to it (fields it lacks take their defaults). Raises
+    :class:`CheckpointError` for unknown options or invalid values."""
     try:
-        cfg = PPOConfig(**values)
+        cfg = config_from_dict(state["config"])
+    except ConfigError as err:
+        if err.unknown:
+            raise CheckpointError(f"checkpoint {path}: config has unknown field(s) {err.unknown} (written by another "
+                                  f"version of tocabi-torchrl?)") from err
+        raise CheckpointError(f"checkpoint {path}: the saved config is invalid: {err}") from err
+    except (TypeError, ValueError) as err:
+        raise CheckpointError(f"checkpoint {path}: config has unknown option(s) or is invalid (written by another "
+                              f"version of tocabi-torchrl?): {err}") from err
+    try:
         cfg.validate()
     except (TypeError, ValueError) as err:
         raise CheckpointError(f"checkpoint {path}: the saved config is invalid: {err}") from err

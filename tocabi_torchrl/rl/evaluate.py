@@ -18,8 +18,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm.auto import tqdm
 
 from .. import robot
-from .checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint
-from .config import PPOConfig
+from ..config import RunConfig
+from .checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint, run_folder_of
 from .trainer import build_agent, build_env, resolve_device
 
 __all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "policy_dt"]
@@ -29,7 +29,7 @@ KNEES = (robot.JOINT_NAMES.index("L_Knee_Joint"), robot.JOINT_NAMES.index("R_Kne
 
 def evaluate_policy(
     actor,
-    cfg: PPOConfig,
+    cfg: RunConfig,
     out_dir: str | os.PathLike,
     num_envs: int = 256,
     device: str | torch.device = "cuda",
@@ -203,15 +203,15 @@ def default_eval_dir(ckpt: Path) -> Path:
     ``runs/eval/<checkpoint stem>/`` for a policy shipped in the package's assets (never into the source tree)."""
     ckpt = Path(ckpt)
     if ckpt.resolve().is_relative_to(robot.asset_path().resolve()):
-        return Path(PPOConfig().run_dir) / "eval" / ckpt.stem
-    return (ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent) / "eval"
+        return Path(RunConfig().run_dir) / "eval" / ckpt.stem
+    return run_folder_of(ckpt) / "eval"
 
 
 def policy_dt() -> float:
     """Seconds per policy step of the walking task (physics timestep × substeps)."""
     from ..envs import TocabiWalkConfig
 
-    return float(robot.load_model().opt.timestep) * TocabiWalkConfig().substeps
+    return float(robot.load_model().opt.timestep) * TocabiWalkConfig().sim.substeps
 
 
 def _fixed_command(command):

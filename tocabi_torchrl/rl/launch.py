@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import argparse
 
-from .config import PPOConfig, build_parser, preset_config
+from ..config import RunConfig
+from .config import build_parser, given_options, preset_config
 from .resume import resume_config
 
 __all__ = ["LaunchError", "CPU_SIZED_PRESETS", "launch_config", "banner"]
@@ -24,16 +25,17 @@ class LaunchError(ValueError):
 
 
 def launch_config(argv: list[str] | None, cuda_available: bool,
-                  description: str = "") -> tuple[PPOConfig, argparse.Namespace, str | None]:
+                  description: str = "") -> tuple[RunConfig, argparse.Namespace, str | None]:
     """Parse ``argv`` (see :func:`~tocabi_torchrl.rl.config.build_parser`) into the config to run on this machine.
 
     Returns the config, the namespace (options not given are None) and, when the run differs from the request, a
     note saying why. The fallback is decided before the config is built, so options sized for the smoke run (e.g.
-    ``--num_envs 4``) are checked against it rather than against the GPU preset.
+    ``--env.num_envs 4``) are checked against it rather than against the GPU preset.
     """
     args = build_parser(description).parse_args(argv)
-    overrides = {k: v for k, v in vars(args).items() if v is not None}
-    resumed = resume_config(args.resume, overrides) if args.resume else None
+    overrides = given_options(args)  # as given: a refused resume names the options as the user wrote them
+    resume = overrides.get("resume")
+    resumed = resume_config(resume, overrides) if resume else None
     preset = resumed.preset if resumed else (args.preset or "default")
     device = resumed.device if resumed else overrides.get("device", "auto")
     note = None
@@ -43,9 +45,9 @@ def launch_config(argv: list[str] | None, cuda_available: bool,
                               "--device cpu (or leave --device out for the small CPU smoke run)")
         if device == "auto" and preset not in CPU_SIZED_PRESETS:
             sized = preset_config(preset)
-            gpu_sized = f"sized for a GPU ({sized.num_envs:,} envs, {sized.total_env_steps:,} env steps)"
+            gpu_sized = f"sized for a GPU ({sized.env.num_envs:,} envs, {sized.total_env_steps:,} env steps)"
             if resumed:
-                raise LaunchError(f"the resumed run {args.resume} uses preset {preset!r}, {gpu_sized}, and torch sees "
+                raise LaunchError(f"the resumed run {resume} uses preset {preset!r}, {gpu_sized}, and torch sees "
                                   "no CUDA GPU; pass --device cpu to continue it on the CPU anyway")
             if args.preset is not None:
                 raise LaunchError(f"--preset {preset} is {gpu_sized}, and torch sees no CUDA GPU; pass --device cpu "
@@ -57,11 +59,11 @@ def launch_config(argv: list[str] | None, cuda_available: bool,
     return resumed or preset_config(preset, **overrides), args, note
 
 
-def banner(cfg: PPOConfig, args: argparse.Namespace, device) -> str:
+def banner(cfg: RunConfig, args: argparse.Namespace, device) -> str:
     """One line saying what will run: preset, size, budget, device and the options given on the command line."""
-    given = {k: v for k, v in vars(args).items() if v is not None and k != "preset"}
+    given = {k: v for k, v in given_options(args).items() if k != "preset"}
     shown = ", ".join(f"{k}={','.join(map(str, v)) if isinstance(v, tuple) else v}" for k, v in given.items())
-    return (f"training {cfg.name}: preset {cfg.preset}, {cfg.num_envs:,} envs, {cfg.iterations:,} iterations of "
-            f"{cfg.frames_per_batch:,} env steps ({cfg.control_mode} control) on {device}"
+    return (f"training {cfg.name}: preset {cfg.preset}, {cfg.env.num_envs:,} envs, {cfg.iterations:,} iterations of "
+            f"{cfg.frames_per_batch:,} env steps ({cfg.env.control.mode} control) on {device}"
             + (f"; options given: {shown}" if shown else "")
             + f"; run folder {cfg.run_dir}/{cfg.name}")

@@ -32,7 +32,7 @@ def require_loggers(loggers) -> None:
 
 
 def write_config(run_dir: str | os.PathLike, cfg) -> Path:
-    """Write ``config.json`` (the run's PPOConfig plus the checkpoint ``schema_version``) atomically."""
+    """Write ``config.json`` (the run's config tree plus the checkpoint ``schema_version``) atomically."""
     from .checkpoint import SCHEMA_VERSION
 
     return atomic_write_text(Path(run_dir) / "config.json",

@@ -1,64 +1,92 @@
-"""What each :class:`~tocabi_torchrl.rl.config.PPOConfig` field means on the command line, and which fields a resumed
-run may change. ``recipes/ppo_walk.py --help`` is built from :data:`FIELD_HELP` (with the allowed values of
-``PPOConfig.field_choices``), and ``--resume`` refuses changes to any field outside :data:`RESUME_SAFE`.
+"""What each option of the run config tree (:class:`~tocabi_torchrl.config.RunConfig`, by dotted path) means on the
+command line, and which options a resumed run may change. ``recipes/ppo_walk.py --help`` is built from
+:data:`FIELD_HELP` (with the allowed values of ``config.field_choices``), and ``--resume`` refuses changes to any
+option outside :data:`RESUME_SAFE`.
 """
 
 from __future__ import annotations
 
 __all__ = ["FIELD_HELP", "RESUME_SAFE", "field_help"]
 
-#: One line per PPOConfig field: what it sets and its unit. Allowed values and defaults are appended by the parser.
+#: One line per leaf of the run config tree (by path): what it sets and its unit. Allowed values and defaults are appended by the parser.
 FIELD_HELP: dict[str, str] = {
     "preset": "named configuration the other options start from",
     "name": "run folder name under run_dir; an existing run is never overwritten (--resume it or pick a new name)",
     "run_dir": "parent folder of the run folders",
     "seed": "seed of torch and of the env's random draws",
     "device": "auto (CUDA if present, else the small CPU smoke run), cpu, cuda or cuda:N",
-    "num_envs": "parallel simulated robots",
-    "control_mode": "what the 12 leg actions command",
-    "command_preset": "velocity-command schedule of the episodes",
-    "transform_preset": "observation history layout",
-    "max_episode_steps": "policy steps (4 ms) before an episode is truncated",
-    "pd_gains": "leg servo gains of the PD modes: TocabiLab's (Kp/9, Kv/3) or the robot's",
-    "pd_action_scale": "residual range of the PD modes [rad]: target = center + scale × action",
-    "torque_assist": "torque mode training aid: start scale β in [0, 1] of the morph from PD residuals (β = 1) to "
+    "env.num_envs": "parallel simulated robots",
+    "env.control.mode": "what the 12 leg actions command",
+    "transforms.preset": "observation history layout",
+    "env.task.max_episode_steps": "policy steps (4 ms) before an episode is truncated",
+    "env.control.pd_kp": "leg PD stiffness per joint [N·m/rad] (PD modes, torque assist); default: the robot's, "
+                         "TocabiLab used Kp/9",
+    "env.control.pd_kv": "leg PD damping per joint [N·m·s/rad]; default: the robot's, TocabiLab used Kv/3",
+    "env.control.pd_nominal": "centre of the 'pd' mode's leg targets [rad], one per leg joint",
+    "env.control.torque_assist": "give every env the torque assist (the trainer sets it on its training env when "
+                                 "ppo.torque_assist > 0)",
+    "env.sim.backend": "physics backend (auto: mujoco-warp on CUDA, C MuJoCo on the CPU)",
+    "env.sim.substeps": "physics substeps (0.5 ms) per policy step",
+    "env.sim.nconmax": "mujoco-warp contacts per world; none = the measured default",
+    "env.sim.njmax": "mujoco-warp constraint rows per world; none = the measured default",
+    "env.sim.threads": "CPU threads of the mujoco backend; none = every available core",
+    "env.task.motion": "reference motion (.npz or reference .txt); none = the shipped cycle",
+    "env.task.model_path": "robot model XML; none = the shipped TOCABI",
+    "env.task.phase_rate_gain": "phase clock speed-up per unit of the phase action",
+    "env.task.min_pelvis_height": "episode ends below this pelvis height [m]",
+    "env.task.min_neck_height": "episode ends below this neck height [m]",
+    "env.task.max_neck_angle": "episode ends beyond this neck tilt [rad]",
+    "env.task.terminate_on_forbidden_contact": "episode ends when a body other than the feet touches the ground",
+    "env.task.terminate_on_self_collision": "episode ends on a self-collision",
+    "env.command.vx_range": "forward command range low,high [m/s]",
+    "env.command.vx_initial_range": "forward command range of an episode's first command [m/s]",
+    "env.command.vy_range": "lateral command range low,high [m/s]",
+    "env.command.resample_every": "policy steps between command re-samples",
+    "env.command.max_ramp_steps": "commands ramp over randint(1, this) steps; 1 = switch at once",
+    "env.command.ramp_survives_reset": "a ramp in progress carries over into the next episode (the reference's quirk)",
+    "transforms.normalization": "observation normalisation",
+    "transforms.obs_clip": "clip of the normalised observation; none = no clip",
+    "transforms.zero_reward_on_terminated": "reward and terms are 0 on a terminating step",
+    "transforms.compile_reward": "torch.compile the reward terms (not with a captured env step)",
+    "env.control.pd_action_scale": "residual range of the PD modes [rad]: target = center + scale × action",
+    "ppo.torque_assist": "torque mode training aid: start scale β in [0, 1] of the morph from PD residuals (β = 1) to "
                      "torques (β = 0); 0 = off",
-    "assist_fade_start": "env steps at which the torque assist starts to fade",
-    "assist_fade_end": "env steps at which the torque assist reaches 0 (pure torque from there on)",
-    "assist_absorb": "weight of the loss that moves each step of the morph into the actor",
-    "assist_target": "what that loss copies: 'teacher' (the torque of a frozen copy of the actor taken as the fade "
+    "ppo.assist_fade_start": "env steps at which the torque assist starts to fade",
+    "ppo.assist_fade_end": "env steps at which the torque assist reaches 0 (pure torque from there on)",
+    "ppo.assist_absorb": "weight of the loss that moves each step of the morph into the actor",
+    "ppo.assist_target": "what that loss copies: 'teacher' (the torque of a frozen copy of the actor taken as the fade "
                      "starts, DAgger) or 'rollout' (the torque the rollout's own mean applied)",
-    "assist_anchor_decay": "env steps after assist_fade_end over which the teacher's pull falls to 0",
-    "reward_weights": "reward re-weighting as term=weight entries; empty = the reference weights",
-    "cuda_graph": "capture the env step as one CUDA graph (auto: up to 128 envs)",
-    "store_env_signals": "keep every env signal in the rollout (more memory; off keeps what PPO reads)",
-    "steps_per_env": "rollout length per env and iteration [policy steps]",
+    "ppo.assist_anchor_decay": "env steps after assist_fade_end over which the teacher's pull falls to 0",
+    "transforms.reward_weights": "reward re-weighting as term=weight entries; empty = the reference weights",
+    "ppo.cuda_graph": "capture the env step as one CUDA graph (auto: up to 128 envs)",
+    "ppo.store_env_signals": "keep every env signal in the rollout (more memory; off keeps what PPO reads)",
+    "ppo.steps_per_env": "rollout length per env and iteration [policy steps]",
     "total_env_steps": "training budget in env steps (all envs together)",
     "max_minutes": "wall-clock budget [min]; 0 = none",
-    "epochs": "passes over each rollout per update",
-    "minibatch_size": "frames per mini-batch",
-    "gamma": "discount factor per policy step",
-    "gae_lambda": "GAE lambda",
-    "clip_epsilon": "PPO ratio clip",
-    "entropy_coef": "entropy bonus weight; 0 = none",
-    "value_coef": "value loss weight",
-    "value_loss": "value loss function",
-    "max_grad_norm": "gradient norm clip",
-    "update_graph": "on a GPU, capture each mini-batch step as a CUDA graph",
-    "lr": "learning rate (start value of the schedule)",
-    "lr_end": "final learning rate of the linear schedule",
-    "lr_schedule": "learning-rate schedule (adaptive: from the KL to desired_kl)",
-    "desired_kl": "KL target of the adaptive schedule",
-    "value_head_lr": "constant learning rate of the value head; 0 = share the policy's",
-    "adam_eps": "Adam epsilon",
-    "actor_hidden": "hidden layer sizes of the policy network",
-    "critic_hidden": "hidden layer sizes of the value network",
-    "activation": "hidden-layer activation",
-    "value_out_gain": "init gain of the value output layer",
-    "std_mode": "action noise: scheduled (std_start -> std_end) or learned",
-    "std_start": "action std at the start",
-    "std_end": "action std at the end of the schedule",
-    "std_hold": "fraction of training still left when the scheduled std reaches std_end (held there after)",
+    "ppo.epochs": "passes over each rollout per update",
+    "ppo.minibatch_size": "frames per mini-batch",
+    "ppo.gamma": "discount factor per policy step",
+    "ppo.gae_lambda": "GAE lambda",
+    "ppo.clip_epsilon": "PPO ratio clip",
+    "ppo.entropy_coef": "entropy bonus weight; 0 = none",
+    "ppo.value_coef": "value loss weight",
+    "ppo.value_loss": "value loss function",
+    "ppo.max_grad_norm": "gradient norm clip",
+    "ppo.update_graph": "on a GPU, capture each mini-batch step as a CUDA graph",
+    "ppo.lr": "learning rate (start value of the schedule)",
+    "ppo.lr_end": "final learning rate of the linear schedule",
+    "ppo.lr_schedule": "learning-rate schedule (adaptive: from the KL to desired_kl)",
+    "ppo.desired_kl": "KL target of the adaptive schedule",
+    "ppo.value_head_lr": "constant learning rate of the value head; 0 = share the policy's",
+    "ppo.adam_eps": "Adam epsilon",
+    "ppo.actor_hidden": "hidden layer sizes of the policy network",
+    "ppo.critic_hidden": "hidden layer sizes of the value network",
+    "ppo.activation": "hidden-layer activation",
+    "ppo.value_out_gain": "init gain of the value output layer",
+    "ppo.std_mode": "action noise: scheduled (std_start -> std_end) or learned",
+    "ppo.std_start": "action std at the start",
+    "ppo.std_end": "action std at the end of the schedule",
+    "ppo.std_hold": "fraction of training still left when the scheduled std reaches std_end (held there after)",
     "log_every": "iterations between log rows",
     "checkpoint_every": "iterations between checkpoints",
     "checkpoint_keep_last": "newest checkpoints kept; 0 = keep all",
@@ -73,15 +101,17 @@ FIELD_HELP: dict[str, str] = {
     "progress_bar": "show a progress bar (else one line per log row)",
 }
 
-#: Fields a ``--resume`` may change: they set the budget, logging, checkpoints, evaluation, where it runs, or how
-#: the same computation is executed (graphs, stored signals). Every other field must equal the saved run's.
+#: Paths a ``--resume`` may change: they set the budget, logging, checkpoints, evaluation, where it runs, or how
+#: the same computation is executed (graphs, stored signals, CPU threads). Every other option must equal the saved
+#: run's.
 RESUME_SAFE = frozenset({
     "name", "run_dir", "device", "resume",
-    "total_env_steps", "max_minutes", "lr_end",
+    "total_env_steps", "max_minutes", "ppo.lr_end",
     "log_every", "loggers", "progress_bar",
     "checkpoint_every", "checkpoint_keep_last", "checkpoint_keep_every", "checkpoint_minutes",
     "eval_at_end", "eval_envs", "eval_seconds",
-    "cuda_graph", "update_graph", "store_env_signals",
+    "ppo.cuda_graph", "ppo.update_graph", "ppo.store_env_signals",
+    "env.sim.threads",
 })
 
 

@@ -8,11 +8,11 @@ cadence and retention, evaluation, device, graph and storage switches); any othe
 
 from __future__ import annotations
 
-import dataclasses
 import os
 
+from ..config import RunConfig, flat_to_paths
+from ..tree import get_path, leaf_paths, replace_paths
 from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint
-from .config import PPOConfig
 from .options import RESUME_SAFE
 
 __all__ = ["ResumeConfigError", "resume_config", "check_resume_config"]
@@ -22,15 +22,17 @@ class ResumeConfigError(ValueError):
     """A resumed run was given options that would change what the saved run is."""
 
 
-def _differences(saved: PPOConfig, given: dict) -> list[tuple[str, object, object]]:
+def _differences(saved: RunConfig, given: dict) -> list[tuple[str, object, object]]:
+    """``(option, saved value, given value)`` of each given option outside :data:`RESUME_SAFE` that differs; an
+    option is named as it was given (a dotted path, or a flat name of before the tree)."""
     out = []
     for name, value in given.items():
-        if name in RESUME_SAFE:
-            continue
-        was = getattr(saved, name)
-        now = tuple(value) if isinstance(value, list) else value
-        if now != was:
-            out.append((name, was, now))
+        for path, now in flat_to_paths({name: value}).items():
+            if path in RESUME_SAFE:
+                continue
+            was = get_path(saved, path)
+            if now != was:
+                out.append((name, was, now))
     return out
 
 
@@ -43,23 +45,21 @@ def _refuse(path, diffs: list[tuple[str, object, object]]) -> ResumeConfigError:
     )
 
 
-def check_resume_config(saved: PPOConfig, given: PPOConfig, path: str | os.PathLike = "<checkpoint>") -> None:
-    """Raise :class:`ResumeConfigError` if ``given`` differs from ``saved`` in a field a resume may not change."""
-    diffs = _differences(saved, dataclasses.asdict(given))
+def check_resume_config(saved: RunConfig, given: RunConfig, path: str | os.PathLike = "<checkpoint>") -> None:
+    """Raise :class:`ResumeConfigError` if ``given`` differs from ``saved`` in an option a resume may not change."""
+    diffs = _differences(saved, {p: get_path(given, p) for p in leaf_paths(given)})
     if diffs:
         raise _refuse(path, diffs)
 
 
-def resume_config(resume: str | os.PathLike, overrides: dict) -> PPOConfig:
+def resume_config(resume: str | os.PathLike, overrides: dict) -> RunConfig:
     """The config saved with ``resume`` (a run folder or checkpoint file) with the command line's explicit
-    ``overrides`` applied; ``overrides`` may hold ``preset`` (compared by name) and any PPOConfig field."""
+    ``overrides`` applied; ``overrides`` (dotted paths or the flat names of before the tree) may hold ``preset``
+    (compared by name) and any option."""
     path = checkpoint_file(resume)
     saved = config_from_checkpoint(read_checkpoint(path), path)
     diffs = _differences(saved, overrides)
     if diffs:
         raise _refuse(path, diffs)
-    merged = {**dataclasses.asdict(saved), **{k: v for k, v in overrides.items() if k in RESUME_SAFE}}
-    merged["resume"] = str(resume)
-    cfg = PPOConfig(**merged)
-    cfg.validate()
-    return cfg
+    safe = {k: v for k, v in flat_to_paths(overrides).items() if k in RESUME_SAFE}
+    return replace_paths(saved, {**safe, "resume": str(resume)}).validated()

@@ -14,9 +14,9 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..config import RunConfig
 from .atomic import atomic_write_text, remove_stale_temp_files
-from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint
-from .config import PPOConfig
+from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint, run_folder_of
 from .resume import check_resume_config
 
 __all__ = ["RunDirError", "RunFolder", "open_run", "holds_run", "trim_metrics"]
@@ -50,7 +50,7 @@ def holds_run(folder: str | os.PathLike) -> bool:
     return any((Path(folder) / name).exists() for name in _RUN_FILES)
 
 
-def open_run(cfg: PPOConfig) -> RunFolder:
+def open_run(cfg: RunConfig) -> RunFolder:
     """Check that ``cfg`` may write to its run folder and, for ``cfg.resume``, read and check the checkpoint.
 
     Raises :class:`RunDirError` if a new run would overwrite an earlier one, and
@@ -67,7 +67,7 @@ def open_run(cfg: PPOConfig) -> RunFolder:
     file = checkpoint_file(cfg.resume)
     state = read_checkpoint(file)
     check_resume_config(config_from_checkpoint(state, file), cfg, file)
-    source = file.parent.parent if file.parent.name == "checkpoints" else file.parent
+    source = run_folder_of(file)
     if holds_run(path) and source.resolve() != path.resolve():
         raise RunDirError(
             f"run folder {path} holds another run than the one resumed ({file}); resume into that run's own folder "

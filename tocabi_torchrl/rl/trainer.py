@@ -4,6 +4,7 @@ logging and checkpoints. ``recipes/ppo_walk.py`` is a thin command line over :fu
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +22,9 @@ from ..device import check_device
 from .actors import action_std, gaussian_head, make_actor, set_action_std
 from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 from .checkpoint import apply_checkpoint, save_checkpoint
-from .config import PPOConfig, uses_env_graph
+from ..config import RunConfig
+from ..envs.config import TocabiWalkConfig
+from .config import uses_env_graph
 from .logging import RunLogger, require_loggers
 from .networks import make_mlp
 from .rollout_guard import VALID_KEY, guard_rollout
@@ -30,7 +33,7 @@ from .std_schedule import StdSchedule
 from .update_step import (MinibatchStep, get_lr, make_capturable_adam, optimizer_mode, restore_optimizer_mode,
                           set_lr)
 
-__all__ = ["Agent", "build_agent", "build_env", "make_collector", "make_loss", "make_optimizer", "make_update_step",
+__all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer", "make_update_step",
            "uses_env_graph", "uses_update_graph", "training_keys", "train", "resolve_device", "TrainResult"]
 
 
@@ -64,47 +67,39 @@ class Agent:
             self.teacher.load_state_dict(state["teacher"])
 
 
-def build_env(cfg: PPOConfig, device: torch.device, num_envs: int | None = None, for_training: bool = False,
-              **env_overrides) -> EnvBase:
-    """``make_env`` with the run's task settings.
+def env_config(cfg: RunConfig, for_training: bool = False) -> TocabiWalkConfig:
+    """The env section the run's envs are built from: ``cfg.env``, with the torque assist switched on for a
+    training env when ``cfg.ppo.torque_assist`` > 0 (a training aid: evaluations run the pure torque policy)."""
+    env = cfg.env
+    if for_training and cfg.ppo.torque_assist > 0 and not env.control.torque_assist:
+        env = dataclasses.replace(env, control=dataclasses.replace(env.control, torque_assist=True))
+    return env
 
-    ``for_training``: unless ``cfg.store_env_signals``, the env's outputs are cut to what PPO, the logs and the
-    transforms' next step read (:func:`training_keys`), so the collector stores ~40 % less per frame.
+
+def build_env(cfg: RunConfig, device: torch.device, num_envs: int | None = None, for_training: bool = False,
+              **env_overrides) -> EnvBase:
+    """``make_env`` with the run's env and transform sections (:func:`env_config`) and seed.
+
+    ``num_envs`` replaces ``cfg.env.num_envs``; ``env_overrides`` are ``make_env`` keywords (e.g.
+    ``sync_free_resets``, ``cuda_graph``, ``command=...``). ``for_training``: unless ``cfg.ppo.store_env_signals``,
+    the env's outputs are cut to what PPO, the logs and the transforms' next step read (:func:`training_keys`), so
+    the collector stores ~40 % less per frame.
     """
     from .. import make_env
-    from ..envs import CommandConfig
 
-    env_overrides.setdefault("command", CommandConfig.preset(cfg.command_preset))
-    # The torque assist is a training aid: only training envs get it (evaluations run the pure torque policy).
-    assist = for_training and cfg.torque_assist > 0
-    if assist:
-        env_overrides.setdefault("torque_assist", True)
-    if cfg.control_mode != "torque" or assist:  # a leg PD acts: the servos, or the assist's
-        if cfg.pd_gains == "robot":  # "tocabilab" gains (Kp/9, Kv/3) are TocabiWalkConfig's defaults
-            env_overrides.setdefault("pd_kp", tuple(robot.LEG_KP))
-            env_overrides.setdefault("pd_kv", tuple(robot.LEG_KV))
-        env_overrides.setdefault("pd_action_scale", cfg.pd_action_scale)
-    if cfg.reward_weights:
-        env_overrides.setdefault("reward_weights", cfg.reward_weight_map())
-    num_envs = num_envs or cfg.num_envs
+    num_envs = num_envs or cfg.env.num_envs
     if device.type == "cuda":
         graph = uses_env_graph(cfg, device, num_envs)
         # "auto" only captures an env that can be captured: not one with TorchRL's stock (host-reading) resets or a
         # compiled reward (profiling, comparisons); an explicit "on" lets make_env say why it cannot.
-        if cfg.cuda_graph == "auto" and (env_overrides.get("sync_free_resets") is False
-                                         or env_overrides.get("compile_reward")):
+        if cfg.ppo.cuda_graph == "auto" and (env_overrides.get("sync_free_resets") is False
+                                             or env_overrides.get("compile_reward")
+                                             or cfg.transforms.compile_reward):
             graph = False
         env_overrides.setdefault("cuda_graph", graph)
-    env = make_env(
-        num_envs,
-        device,
-        preset=cfg.transform_preset,
-        seed=cfg.seed,
-        control_mode=cfg.control_mode,
-        max_episode_steps=cfg.max_episode_steps,
-        **env_overrides,
-    )
-    if for_training and not cfg.store_env_signals:
+    env = make_env(num_envs, device, seed=cfg.seed, config=env_config(cfg, for_training),
+                   transforms=cfg.transforms, **env_overrides)
+    if for_training and not cfg.ppo.store_env_signals:
         env.append_transform(SelectTransform(*training_keys(env)))
     return env
 
@@ -123,28 +118,31 @@ def training_keys(env: EnvBase) -> list:
     return [k for k in keys if k in leaves]
 
 
-def build_agent(cfg: PPOConfig, obs_dim: int, act_dim: int, device: torch.device) -> Agent:
-    actor = make_actor(obs_dim, act_dim, cfg.actor_hidden, cfg.activation, init_std=cfg.std_start,
-                       learn_std=cfg.std_mode == "learned").to(device)
-    critic = ValueOperator(make_mlp(obs_dim, cfg.critic_hidden, 1, cfg.activation, out_gain=cfg.value_out_gain),
+def build_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device) -> Agent:
+    """Actor, critic, std schedule and (torque assist with a teacher) the frozen teacher, as ``cfg.ppo`` says."""
+    ppo = cfg.ppo
+    actor = make_actor(obs_dim, act_dim, ppo.actor_hidden, ppo.activation, init_std=ppo.std_start,
+                       learn_std=ppo.std_mode == "learned").to(device)
+    critic = ValueOperator(make_mlp(obs_dim, ppo.critic_hidden, 1, ppo.activation, out_gain=ppo.value_out_gain),
                            in_keys=["observation"]).to(device)
-    schedule = StdSchedule(cfg.std_start, cfg.std_end, cfg.std_hold) if cfg.std_mode == "scheduled" else None
+    schedule = StdSchedule(ppo.std_start, ppo.std_end, ppo.std_hold) if ppo.std_mode == "scheduled" else None
     teacher = None
-    if cfg.torque_assist > 0 and cfg.assist_target == "teacher":
+    if ppo.torque_assist > 0 and ppo.assist_target == "teacher":
         teacher = AssistTeacher(gaussian_head(actor).mean_net, robot.LEG_TORQUE_LIMITS)
     return Agent(actor, critic, schedule, teacher)
 
 
-def _param_groups(agent: Agent, cfg: PPOConfig) -> list[dict]:
+def _param_groups(agent: Agent, cfg: RunConfig) -> list[dict]:
     """One group for everything, or (reference) a second, constant-LR group for the value head alone."""
     params = [p for p in list(agent.actor.parameters()) + list(agent.critic.parameters()) if p.requires_grad]
-    if cfg.value_head_lr <= 0:
-        return [{"params": params, "lr": cfg.lr, "name": "all"}]
+    lr, head_lr = cfg.ppo.lr, cfg.ppo.value_head_lr
+    if head_lr <= 0:
+        return [{"params": params, "lr": lr, "name": "all"}]
     head = list(agent.critic.module[-1].parameters())
     head_ids = {id(p) for p in head}
     rest = [p for p in params if id(p) not in head_ids]
-    return [{"params": rest, "lr": cfg.lr, "name": "policy"},
-            {"params": head, "lr": cfg.value_head_lr, "name": "value_head", "fixed": True}]
+    return [{"params": rest, "lr": lr, "name": "policy"},
+            {"params": head, "lr": head_lr, "name": "value_head", "fixed": True}]
 
 
 @dataclass
@@ -155,13 +153,13 @@ class TrainResult:
     wall_seconds: float
     env_steps_per_second: float
     last_metrics: dict
-    #: Whether the env step ran as a captured CUDA graph by the end (``cfg.cuda_graph``, see :func:`uses_env_graph`).
+    #: Whether the env step ran as a captured CUDA graph by the end (``cfg.ppo.cuda_graph``, see :func:`uses_env_graph`).
     env_graph: bool = False
     #: The resumed run had already reached its budget: nothing was trained (see :func:`finished_result`).
     already_finished: bool = False
 
 
-def finished_result(run: RunFolder, cfg: PPOConfig) -> TrainResult:
+def finished_result(run: RunFolder, cfg: RunConfig) -> TrainResult:
     """Say that the resumed run is already done, and return its result without training."""
     print(f"{run.resume_file}: the run is already finished (iteration {run.start_iteration} of {cfg.iterations}, "
           f"{run.start_env_steps:,} env steps); nothing to train. Raise --total_env_steps to train it further.",
@@ -191,7 +189,7 @@ def _episode_metrics(batch: TensorDictBase) -> dict[str, float]:
     return dict(zip(out.keys(), values.cpu().tolist()))
 
 
-def make_collector(cfg: PPOConfig, env: EnvBase, actor: torch.nn.Module, device: torch.device,
+def make_collector(cfg: RunConfig, env: EnvBase, actor: torch.nn.Module, device: torch.device,
                    total_frames: int = -1) -> Collector:
     """The TorchRL collector of :func:`train`: ``cfg.frames_per_batch`` frames per batch, all on ``device``.
 
@@ -214,52 +212,54 @@ def make_collector(cfg: PPOConfig, env: EnvBase, actor: torch.nn.Module, device:
     )
 
 
-def uses_update_graph(cfg: PPOConfig, device: torch.device) -> bool:
-    """Whether the PPO mini-batch steps are captured as a CUDA graph (``cfg.update_graph`` on a CUDA device)."""
-    return cfg.update_graph and device.type == "cuda"
+def uses_update_graph(cfg: RunConfig, device: torch.device) -> bool:
+    """Whether the PPO mini-batch steps are captured as a CUDA graph (``cfg.ppo.update_graph`` on a CUDA device)."""
+    return cfg.ppo.update_graph and device.type == "cuda"
 
 
-def make_optimizer(cfg: PPOConfig, agent: Agent, device: torch.device) -> torch.optim.Adam:
+def make_optimizer(cfg: RunConfig, agent: Agent, device: torch.device) -> torch.optim.Adam:
     """Adam over the actor and critic (with the reference's separate value-head group when configured)."""
     if uses_update_graph(cfg, device):
-        return make_capturable_adam(_param_groups(agent, cfg), cfg.adam_eps, device)
+        return make_capturable_adam(_param_groups(agent, cfg), cfg.ppo.adam_eps, device)
     # Fused Adam: one kernel per step for all parameters instead of a handful per tensor (the update is launch-bound).
-    return torch.optim.Adam(_param_groups(agent, cfg), eps=cfg.adam_eps, fused=device.type == "cuda")
+    return torch.optim.Adam(_param_groups(agent, cfg), eps=cfg.ppo.adam_eps, fused=device.type == "cuda")
 
 
-def make_update_step(cfg: PPOConfig, loss_module: ClipPPOLoss, optimizer: torch.optim.Optimizer,
+def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.optim.Optimizer,
                      device: torch.device) -> MinibatchStep:
     """The mini-batch step of :func:`train` (a CUDA graph after a few eager steps when :func:`uses_update_graph`)."""
     params = [p for g in optimizer.param_groups for p in g["params"]]
-    return MinibatchStep(loss_module, optimizer, params, cfg.max_grad_norm, use_graph=uses_update_graph(cfg, device))
+    return MinibatchStep(loss_module, optimizer, params, cfg.ppo.max_grad_norm,
+                         use_graph=uses_update_graph(cfg, device))
 
 
-def make_loss(cfg: PPOConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbLoss, GAE]:
-    """The clipped PPO loss (wrapped in :class:`AssistAbsorbLoss` when ``cfg.torque_assist`` > 0) and the GAE value
+def make_loss(cfg: RunConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbLoss, GAE]:
+    """The clipped PPO loss (wrapped in :class:`AssistAbsorbLoss` when ``cfg.ppo.torque_assist`` > 0) and the GAE value
     estimator of :func:`train`."""
     # The critic runs over the rollout in chunks of ~64k frames (along the env dim): unchunked, TorchRL stacks
     # observations and next observations and keeps (2 · frames, 400) activations, ~6 GB at 16384 envs.
-    advantage = GAE(gamma=cfg.gamma, lmbda=cfg.gae_lambda, value_network=agent.critic, average_gae=False,
-                    value_chunk_size=_VALUE_CHUNK_FRAMES // cfg.steps_per_env or 1)
+    ppo = cfg.ppo
+    advantage = GAE(gamma=ppo.gamma, lmbda=ppo.gae_lambda, value_network=agent.critic, average_gae=False,
+                    value_chunk_size=_VALUE_CHUNK_FRAMES // ppo.steps_per_env or 1)
     loss_module = ClipPPOLoss(
         agent.actor,
         agent.critic,
-        clip_epsilon=cfg.clip_epsilon,
-        entropy_bonus=cfg.entropy_coef > 0,
-        entropy_coeff=cfg.entropy_coef if cfg.entropy_coef > 0 else None,
-        critic_coeff=cfg.value_coef,
-        loss_critic_type=cfg.value_loss,
+        clip_epsilon=ppo.clip_epsilon,
+        entropy_bonus=ppo.entropy_coef > 0,
+        entropy_coeff=ppo.entropy_coef if ppo.entropy_coef > 0 else None,
+        critic_coeff=ppo.value_coef,
+        loss_critic_type=ppo.value_loss,
         normalize_advantage=True,
     )
     loss_module.set_keys(sample_log_prob="action_log_prob")
     loss_module.loss_mask_key = VALID_KEY  # see rollout_guard: broken frames add nothing to the losses
-    if cfg.torque_assist > 0:
+    if cfg.ppo.torque_assist > 0:
         loss_module = AssistAbsorbLoss(loss_module, gaussian_head(agent.actor), robot.LEG_TORQUE_LIMITS,
                                        teacher=agent.teacher)
     return loss_module, advantage
 
 
-def train(cfg: PPOConfig, env: EnvBase | None = None, run: RunFolder | None = None) -> TrainResult:
+def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = None) -> TrainResult:
     """Run PPO as configured; returns where the run was written and its throughput. ``run``: the run folder
     :func:`~tocabi_torchrl.rl.run_dir.open_run` already opened for ``cfg`` (the recipe checks it before it starts),
     so a resumed checkpoint is not read twice."""
@@ -285,6 +285,7 @@ def train(cfg: PPOConfig, env: EnvBase | None = None, run: RunFolder | None = No
         prior_train_s = float(run.resume_state.get("train_seconds", 0.0))
         print(f"resumed from {run.resume_file} at iteration {start_iter} ({env_steps:,} env steps)")
 
+    ppo = cfg.ppo
     loss_module, advantage = make_loss(cfg, agent)
     update_step = make_update_step(cfg, loss_module, optimizer, device)
     assist = _assist_schedule(cfg, env)
@@ -319,13 +320,13 @@ def train(cfg: PPOConfig, env: EnvBase | None = None, run: RunFolder | None = No
                 beta, beta_next = assist(env_steps - batch.numel()), assist(env_steps)
                 base = env.base_env
                 if agent.teacher is None:
-                    weight = cfg.assist_absorb if beta_next < beta else 0.0
+                    weight = ppo.assist_absorb if beta_next < beta else 0.0
                 else:
                     if beta_next < beta and not teacher_taken:
                         # The policy that walks with the full assist, as it is when the fade begins.
                         agent.teacher.anchor(gaussian_head(agent.actor).mean_net, base.assist_gain(beta), beta)
                         teacher_taken = True
-                    weight = cfg.assist_absorb * assist.teacher_weight(env_steps) if teacher_taken else 0.0
+                    weight = ppo.assist_absorb * assist.teacher_weight(env_steps) if teacher_taken else 0.0
                 loss_module.set_step(base.assist_gain(beta), base.assist_gain(beta_next), beta, beta_next, weight)
             stats = _update(cfg, flat, update_step)
             fading = False
@@ -337,14 +338,14 @@ def train(cfg: PPOConfig, env: EnvBase | None = None, run: RunFolder | None = No
             # While the assist fades, the KL also measures the intended move to the next β's actions; the adaptive
             # rule would read it as too large a step and starve the absorption (the LR fell to 1e-5 on the H100 and
             # the gait broke), so the learning rate is held there.
-            if cfg.lr_schedule == "adaptive" and not fading:
+            if ppo.lr_schedule == "adaptive" and not fading:
                 kl = stats["kl"]
-                if kl > 2.0 * cfg.desired_kl:
+                if kl > 2.0 * ppo.desired_kl:
                     lr = max(lr / 1.5, 1e-5)
-                elif kl < 0.5 * cfg.desired_kl:
+                elif kl < 0.5 * ppo.desired_kl:
                     lr = min(lr * 1.5, 1e-2)
-            elif cfg.lr_schedule == "linear":
-                lr = cfg.lr_end + (cfg.lr - cfg.lr_end) * progress_remaining
+            elif ppo.lr_schedule == "linear":
+                lr = ppo.lr_end + (ppo.lr - ppo.lr_end) * progress_remaining
             for group in optimizer.param_groups:
                 if not group.get("fixed"):
                     set_lr(group, lr)
@@ -384,15 +385,16 @@ def train(cfg: PPOConfig, env: EnvBase | None = None, run: RunFolder | None = No
 _VALUE_CHUNK_FRAMES = 65536
 
 
-def _assist_schedule(cfg: PPOConfig, env: EnvBase) -> AssistSchedule | None:
+def _assist_schedule(cfg: RunConfig, env: EnvBase) -> AssistSchedule | None:
     """β of the torque assist against env steps (geometric in the env's action gain), or None without an assist."""
-    if cfg.torque_assist <= 0:
+    ppo = cfg.ppo
+    if ppo.torque_assist <= 0:
         return None
     base = env.base_env
     # One host read at start-up: the geometric mean over the legs of c(1)/c(0).
     ratio = float((base.assist_gain(1.0) / base.assist_gain(0.0)).log().mean().exp())
-    return AssistSchedule(cfg.torque_assist, cfg.assist_fade_start, cfg.assist_fade_end, max(ratio, 1.0),
-                          anchor_decay=cfg.assist_anchor_decay)
+    return AssistSchedule(ppo.torque_assist, ppo.assist_fade_start, ppo.assist_fade_end, max(ratio, 1.0),
+                          anchor_decay=ppo.assist_anchor_decay)
 
 
 def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBase) -> list:
@@ -401,17 +403,17 @@ def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBas
     return [k for k in wanted if k in present]
 
 
-def _update(cfg: PPOConfig, flat: TensorDictBase, step: MinibatchStep) -> dict[str, float]:
+def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep) -> dict[str, float]:
     """``epochs`` passes of shuffled mini-batches over the rollout. Returns mean losses and KL (one host read)."""
-    n = flat.shape[0]
-    num_mb = max(1, n // cfg.minibatch_size)
+    n, mb, epochs = flat.shape[0], cfg.ppo.minibatch_size, cfg.ppo.epochs
+    num_mb = max(1, n // mb)
     sums = None
-    for _ in range(cfg.epochs):
+    for _ in range(epochs):
         perm = torch.randperm(n, device=flat.device)
         for k in range(num_mb):
-            stats = step(flat[perm[k * cfg.minibatch_size : (k + 1) * cfg.minibatch_size]])
+            stats = step(flat[perm[k * mb : (k + 1) * mb]])
             sums = stats.clone() if sums is None else sums.add_(stats)
-    mean = (sums / (cfg.epochs * num_mb)).tolist()
+    mean = (sums / (epochs * num_mb)).tolist()
     return {_STAT_NAMES.get(k, k): v for k, v in zip(step.stat_keys, mean)}
 
 

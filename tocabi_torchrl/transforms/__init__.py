@@ -21,7 +21,8 @@ from tocabi_torchrl.transforms.normalize import (
 from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObservationAssembly, ObsComponent
 from tocabi_torchrl.transforms.orientation import BaseEulerAngles, quat_rotation_angle, quat_to_rpy
 from tocabi_torchrl.transforms.phase import PhaseEncoding
-from tocabi_torchrl.transforms.presets import PRESETS, TransformConfig, default_transforms, transform_config
+from tocabi_torchrl.transforms.presets import (PRESETS, TransformConfig, TransformSettings, default_transforms,
+                                              transform_config)
 from tocabi_torchrl.transforms.reward import TaskReward
 from tocabi_torchrl.transforms.reward_terms import (
     REFERENCE_TERMS,
@@ -78,6 +79,7 @@ __all__ = [
     "reference_terms",
     "TaskReward",
     "TransformConfig",
+    "TransformSettings",
     "PRESETS",
     "transform_config",
     "default_transforms",

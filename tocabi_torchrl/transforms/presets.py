@@ -9,8 +9,8 @@ The default chain (``default_transforms("reference")``), in order:
 4. :class:`FixedNormalization` (or :class:`RunningNormalization`): ``obs_step`` -> ``obs_step_norm``
 5. :class:`ObsActionHistory`: ``obs_step_norm`` + ``applied_action`` -> ``observation`` (num_envs, 237)
 6. :class:`TaskReward`: ``reward`` (num_envs, 1) and ``("reward_terms", name)`` for the 13 reference terms
-7. ``StepCounter``: ``step_count`` and truncation at ``max_episode_steps`` (the env also truncates, at 8000 by
-   default; keep the two equal or let the smaller win)
+7. ``StepCounter``: ``step_count``, and truncation at ``max_episode_steps`` when it is set (``make_env`` leaves it
+   ``None``: there the env's ``task.max_episode_steps`` is the one truncation clock)
 8. ``RewardSum``: ``episode_reward``, the running episode return
 
 Every stage is an ordinary TorchRL transform: build your own ``Compose`` from them, or change one field here.
@@ -39,7 +39,7 @@ from tocabi_torchrl.transforms.phase import PhaseEncoding
 from tocabi_torchrl.transforms.reward import TaskReward
 from tocabi_torchrl.transforms.reward_terms import REFERENCE_TERMS, RewardTerm, reference_terms
 
-__all__ = ["TransformConfig", "PRESETS", "transform_config", "default_transforms"]
+__all__ = ["TransformConfig", "TransformSettings", "PRESETS", "transform_config", "default_transforms"]
 
 _NORMALIZATIONS = ("fixed", "running", "none")
 
@@ -128,6 +128,59 @@ def transform_config(preset: str | TransformConfig = "reference", **overrides) -
     if unknown:
         raise TypeError(f"unknown transform option(s) {unknown}; valid options: {sorted(fields)}")
     return dataclasses.replace(base, **overrides)
+
+
+@dataclass
+class TransformSettings:
+    """The transforms section of the run config tree (``RunConfig.transforms``): the :class:`TransformConfig`
+    choices that are plain values, so that they can be saved with a checkpoint and given on the command line.
+
+    Attributes:
+        preset: observation history layout, a name of :data:`PRESETS` (``"reference"`` or ``"tocabilab"``).
+        reward_weights: reward re-weighting as ``"term=weight"`` entries (``"body_vel=0.9"`` triples the
+            velocity-tracking term); empty = the reference weights.
+        normalization, obs_clip, zero_reward_on_terminated, compile_reward: as in :class:`TransformConfig`.
+    """
+
+    preset: str = "reference"
+    reward_weights: tuple[str, ...] = ("body_vel=0.9",)
+    normalization: str = "fixed"
+    obs_clip: float | None = None
+    zero_reward_on_terminated: bool = True
+    compile_reward: bool = False
+
+    def reward_weight_map(self) -> dict[str, float]:
+        """``reward_weights`` as ``{term: weight}``; raises ``ValueError`` naming a malformed or unknown entry."""
+        weights = {}
+        for entry in self.reward_weights:
+            name, sep, value = entry.partition("=")
+            try:
+                weight = float(value)
+            except ValueError:
+                weight = None
+            if not sep or weight is None:
+                raise ValueError(f"transforms.reward_weights entry {entry!r} must look like 'body_vel=0.9'")
+            if name not in REFERENCE_TERMS:
+                raise ValueError(f"transforms.reward_weights: unknown term {name!r}; known: {list(REFERENCE_TERMS)}")
+            weights[name] = weight
+        return weights
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad option and the accepted values."""
+        if self.preset not in PRESETS:
+            raise ValueError(f"unknown transforms.preset {self.preset!r}; choose one of {list(PRESETS)}")
+        if self.normalization not in _NORMALIZATIONS:
+            raise ValueError(f"transforms.normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
+        self.reward_weight_map()
+
+    def transform_config(self, **overrides) -> TransformConfig:
+        """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
+        ``max_episode_steps`` is ``None`` unless overridden: the env is the truncation clock."""
+        self.validate()
+        values = dict(normalization=self.normalization, obs_clip=self.obs_clip,
+                      zero_reward_on_terminated=self.zero_reward_on_terminated, compile_reward=self.compile_reward,
+                      reward_weights=self.reward_weight_map(), max_episode_steps=None)
+        return transform_config(self.preset, **{**values, **overrides})
 
 
 def _normalization(cfg: TransformConfig) -> Transform | None:

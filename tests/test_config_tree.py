@@ -1,0 +1,160 @@
+"""The run config tree: every preset resolves to the values it had before the tree (frozen in
+tests/data/presets_before_config_tree.json from the flat PPOConfig, ``build_env``'s env settings and transform
+options), env and recipe share their defaults, the command line is generated from the tree, and old flat configs
+migrate."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.config import (
+    FLAT_PATHS,
+    PRESETS,
+    ConfigError,
+    RunConfig,
+    config_from_dict,
+    flat_dict,
+    preset_config,
+    preset_tree,
+)
+from tocabi_torchrl.envs import TocabiWalkConfig
+from tocabi_torchrl.envs.config import ENV_FLAT_PATHS
+from tocabi_torchrl.rl.config import build_parser, parse_args
+from tocabi_torchrl.rl.trainer import env_config
+from tocabi_torchrl.transforms import PRESETS as TRANSFORM_PRESETS
+from tocabi_torchrl.transforms import TransformSettings
+from tocabi_torchrl.tree import get_path, leaf_paths, to_dict
+
+FROZEN = json.loads((Path(__file__).parent / "data" / "presets_before_config_tree.json").read_text())
+ASSETS = Path(__file__).resolve().parents[1] / "assets" / "policies"
+
+
+def _plain(value):
+    return json.loads(json.dumps(value, default=str))
+
+
+def test_every_preset_is_frozen():
+    assert set(PRESETS) == set(FROZEN)
+
+
+@pytest.mark.parametrize("name", sorted(FROZEN))
+def test_preset_matches_the_flat_config_it_replaces(name):
+    tree = preset_config(name)
+    for key, value in FROZEN[name]["flat"].items():
+        if key == "command_preset":
+            from tocabi_torchrl.envs import CommandConfig
+
+            assert tree.env.command == CommandConfig.preset(value), key
+        elif key == "pd_gains":
+            kp = robot.LEG_KP if value == "robot" else robot.LEG_KP / 9.0
+            assert tree.env.control.pd_kp == pytest.approx(tuple(kp)), key
+        else:
+            assert _plain(get_path(tree, FLAT_PATHS[key])) == _plain(value), key
+    # Migrating the frozen flat dict gives the preset's tree, leaf by leaf, and the flat view gives it back.
+    assert to_dict(config_from_dict(FROZEN[name]["flat"])) == to_dict(tree)
+    assert _plain(flat_dict(tree)) == _plain(FROZEN[name]["flat"])
+
+
+@pytest.mark.parametrize("training", [False, True], ids=["eval_env", "training_env"])
+@pytest.mark.parametrize("name", sorted(FROZEN))
+def test_preset_builds_the_env_and_transforms_it_built_before(name, training):
+    frozen = FROZEN[name]["training_env" if training else "env"]
+    cfg = preset_config(name)
+    env = env_config(cfg, for_training=training)
+    assert env.num_envs == frozen["num_envs"] and cfg.seed == frozen["seed"]
+    pd_acts = env.control.mode != "torque" or env.control.torque_assist
+    for key, value in frozen["task"].items():
+        if key in ("pd_kp", "pd_kv", "pd_action_scale") and not pd_acts:
+            continue  # no PD acts in plain torque mode: the old env kept Kp/9 there, unused
+        path = "command" if key == "command" else ENV_FLAT_PATHS[key]
+        got = get_path(env, path)
+        got = to_dict(got) if dataclasses.is_dataclass(got) else got
+        assert _plain(got) == pytest.approx(_plain(value)) if key in ("pd_kp", "pd_kv") else _plain(got) == _plain(value), key
+    tf = cfg.transforms.transform_config()
+    frozen_tf = frozen["transforms"]
+    assert TRANSFORM_PRESETS[cfg.transforms.preset].history == tf.history
+    assert cfg.transforms.preset == frozen_tf["history"]
+    assert dict(tf.reward_weights) == frozen_tf["reward_weights"]
+    for key in ("normalization", "zero_reward_on_terminated", "compile_reward", "phase_harmonics", "obs_clip",
+                "track_episode_return"):
+        assert getattr(tf, key) == frozen_tf[key], key
+    # One truncation clock: the env's episode length is the old StepCounter's, and the StepCounter only counts.
+    assert env.task.max_episode_steps == frozen_tf["max_episode_steps"] and tf.max_episode_steps is None
+
+
+def test_env_and_recipe_share_their_defaults():
+    default = preset_tree("default")
+    assert TocabiWalkConfig() == default.env and TransformSettings() == default.transforms
+    assert RunConfig() == dataclasses.replace(default, preset="default")
+
+
+def test_command_line_has_a_nested_option_per_leaf_and_keeps_the_flat_ones():
+    parser = build_parser()
+    options = parser._option_string_actions
+    assert all(f"--{p}" in options for p in leaf_paths(RunConfig()) if p != "preset")
+    cfg, _ = parse_args(["--preset", "cpu_smoke", "--ppo.lr", "3e-4", "--env.num_envs", "4",
+                         "--env.control.mode", "torque", "--env.command.vx_range", "0.1,0.3", "--ppo.minibatch_size",
+                         "16", "--env.task.motion", "none"])
+    assert (cfg.ppo.lr, cfg.env.num_envs, cfg.env.control.mode) == (3e-4, 4, "torque")
+    assert cfg.env.command.vx_range == (0.1, 0.3) and cfg.env.task.motion is None
+    old, _ = parse_args(["--preset", "cpu_smoke", "--lr", "3e-4", "--num_envs", "4", "--minibatch_size", "16",
+                         "--command_preset", "reference"])
+    assert (old.ppo.lr, old.env.num_envs, old.env.command.max_ramp_steps) == (3e-4, 4, 250)
+
+
+def test_bad_options_name_the_option_and_the_fix(capsys):
+    with pytest.raises(ConfigError, match=r"'ppo.lrr': ppo has no 'lrr'; it has \[.*'lr'"):
+        preset_config("default", **{"ppo.lrr": 1e-3})
+    with pytest.raises(ValueError, match=r"env.control.mode"):
+        preset_config("default", **{"env.control.mode": "position"})
+    with pytest.raises(ValueError, match=r"ppo.torque_assist > 0 needs control_mode='torque' \(env.control.mode\)"):
+        preset_config("default", **{"ppo.torque_assist": 0.5, "ppo.assist_fade_end": 10})
+    with pytest.raises(SystemExit):
+        parse_args(["--ppo.epochs", "three"])
+    assert "--ppo.epochs 'three'" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match=r"unknown config option\(s\) \['ppo.warp'\]"):
+        config_from_dict({"ppo": {"warp": 1}})
+    with pytest.raises(ConfigError, match=r"section 'env' must be a TocabiWalkConfig .* e.g. 'env.num_envs'"):
+        preset_config("default", env=5)
+    with pytest.raises(ConfigError, match=r"did you mean \['gamma'\]"):
+        preset_config("default", gama=0.9)
+
+
+def test_tree_round_trips_through_json():
+    cfg = preset_config("torque")
+    assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+
+
+@pytest.mark.parametrize("policy", ["tocabi_walk_ppo.pt", "tocabi_walk_torque.pt"])
+def test_shipped_policies_migrate_from_the_flat_config(policy):
+    path = ASSETS / policy
+    if not path.is_file():
+        pytest.skip("shipped policy not present")
+    from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint
+
+    state = read_checkpoint(path)
+    flat = state["config"]
+    assert "ppo" not in flat  # written before the tree
+    cfg = config_from_checkpoint(state, path)
+    assert cfg.env.num_envs == flat["num_envs"] and cfg.env.control.mode == flat["control_mode"]
+    assert cfg.ppo.actor_hidden == tuple(flat["actor_hidden"]) and cfg.preset == flat["preset"]
+    assert cfg.ppo.torque_assist == flat.get("torque_assist", 0.0)
+    assert cfg.transforms.reward_weights == tuple(flat["reward_weights"])
+    assert cfg.env.control.pd_kp == pytest.approx(tuple(robot.LEG_KP))  # pd_gains="robot"
+    # And a checkpoint written now stores the tree, which reads back unchanged.
+    assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+
+
+def test_flat_names_of_before_the_tree_still_read_with_a_warning():
+    cfg = preset_config("cpu_smoke")
+    with pytest.warns(DeprecationWarning, match=r"read cfg.ppo.minibatch_size"):
+        assert cfg.minibatch_size == cfg.ppo.minibatch_size == 64
+    with pytest.raises(AttributeError, match=r"set cfg.env.num_envs"):
+        cfg.num_envs = 3
+    with pytest.raises(AttributeError, match="no attribute 'warp_speed'"):
+        cfg.warp_speed  # noqa: B018

@@ -1,0 +1,404 @@
+"""The run config tree: one nested dataclass from which a training run, its env and its command line are built.
+
+::
+
+    RunConfig                      name, run_dir, seed, device, resume, budget, logging, checkpoints, evaluation
+    ├── env: TocabiWalkConfig      num_envs
+    │   ├── sim: EnvSimConfig      backend, substeps, contact buffers, threads
+    │   ├── task: TaskConfig       episode length (the one truncation clock), motion, terminations
+    │   ├── command: CommandConfig velocity-command schedule
+    │   └── control: ControlConfig control mode, PD gains and residual range
+    ├── transforms: TransformSettings   history layout, reward weights, normalisation
+    └── ppo: PPOConfig             rollout, PPO update, learning rate, networks, action std, torque assist, graphs
+
+Every value has one home (its dotted path, e.g. ``ppo.lr``, ``env.control.mode``) and one default; the defaults
+are the ``default`` preset, which is also what ``TocabiWalk()`` and ``make_env()`` build. Named presets
+(:data:`PRESETS`) change a few paths. The tree is saved with every checkpoint (:func:`to_dict`) and read back by
+:func:`config_from_dict`, which also migrates the flat ``PPOConfig`` dict that checkpoints written before the tree
+hold (:data:`FLAT_PATHS`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+from .envs.command import CommandConfig
+from .envs.config import CONTROL_MODES, PD_GAINS, TocabiWalkConfig
+from .transforms.presets import TransformSettings
+from .tree import ConfigError, leaf_paths, replace_paths
+from .tree import from_dict as _tree_from_dict
+from .tree import to_dict as _tree_to_dict
+
+__all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "FLAT_PATHS", "flat_to_paths",
+           "config_from_dict", "to_dict", "flat_dict", "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
+           "LOGGERS", "field_choices"]
+
+LR_SCHEDULES = ("fixed", "linear", "adaptive")
+ENV_GRAPH_MODES = ("auto", "on", "off")
+_GRAPH_ALIASES = {"true": "on", "yes": "on", "1": "on", "false": "off", "no": "off", "0": "off"}
+STD_MODES = ("scheduled", "learned")
+LOGGERS = ("csv", "tensorboard", "wandb")
+
+
+@dataclass
+class PPOConfig:
+    """The PPO section of :class:`RunConfig` (``ppo``): rollout, update, learning rate, networks, action noise, the
+    torque assist's schedule and how the training computation runs. Steps are policy steps (4 ms each).
+
+    The defaults (the ``default`` preset) are tuned for thousands of envs on one GPU: 48-step rollouts with gamma
+    0.995 (a 0.8 s horizon at 250 Hz), large mini-batches, a KL-adaptive learning rate and a scheduled std from 0.2
+    to 0.05 (docs/training/README.md).
+    """
+
+    # rollout
+    steps_per_env: int = 48
+    # PPO update
+    epochs: int = 5
+    minibatch_size: int = 49152
+    gamma: float = 0.995
+    gae_lambda: float = 0.95
+    clip_epsilon: float = 0.2
+    entropy_coef: float = 0.0
+    value_coef: float = 1.0
+    value_loss: str = "l2"
+    max_grad_norm: float = 1.0
+    # learning rate
+    lr: float = 1e-3
+    lr_end: float = 1e-5
+    lr_schedule: str = "adaptive"
+    desired_kl: float = 0.01
+    value_head_lr: float = 0.0  # > 0: the value head gets its own constant LR (the reference's second optimizer)
+    adam_eps: float = 1e-8
+    # networks and exploration
+    actor_hidden: tuple[int, ...] = (400, 200, 100)
+    critic_hidden: tuple[int, ...] = (400, 200, 100)
+    activation: str = "elu"
+    value_out_gain: float = 1.0
+    std_mode: str = "scheduled"
+    std_start: float = 0.2
+    std_end: float = 0.05
+    std_hold: float = 0.5
+    #: Torque mode training aid (0 = off): the training env gets ``env.control.torque_assist`` and its leg actions
+    #: morph from position residuals tracked by a PD (``env.control.pd_kp``/``pd_kv``/``pd_action_scale``) at β = 1
+    #: to torques at β = 0. β starts at this value, holds until ``assist_fade_start`` env steps and falls to 0 at
+    #: ``assist_fade_end`` (geometrically in the action gain, with the adaptive learning rate held, see
+    #: rl/assist.AssistSchedule); during the fade a loss term (weight ``assist_absorb``) moves each step of the morph
+    #: into the actor (rl/assist.py), so the run ends as a pure torque policy. Evaluations never use the assist.
+    torque_assist: float = 0.0
+    assist_fade_start: int = 0
+    assist_fade_end: int = 0
+    assist_absorb: float = 1.0
+    #: What the absorbing loss copies (rl/assist.py): "teacher", the torque of a frozen copy of the actor taken as
+    #: the fade starts, in the fading policy's own states (DAgger); or "rollout", the torque the rollout's own mean
+    #: applied (only the fade's step). With "teacher" the pull holds to ``assist_fade_end`` and then falls linearly
+    #: to 0 over ``assist_anchor_decay`` env steps.
+    assist_target: str = "teacher"
+    assist_anchor_decay: int = 0
+    #: On a GPU, capture the training env's whole step (physics, signals, transforms, masked reset) as one CUDA
+    #: graph: "on", "off", or "auto" = on up to ``rl.config.ENV_GRAPH_AUTO_MAX_ENVS`` envs. Small counts are
+    #: launch-bound, and the graph trained 1.5-1.8x faster at 8-96 envs on an H100 (short runs); from 256 envs up it
+    #: was 3-6 % slower (docs/benchmarks/env_graph.md). Both compute the same step (tests compare them).
+    cuda_graph: str = "auto"
+    #: On a GPU, capture each PPO mini-batch step (loss, backward, clipping, fused Adam) as one CUDA graph after 3
+    #: eager steps (falls back to eager, with a warning, if the capture fails, e.g. with entropy_coef > 0).
+    update_graph: bool = True
+    #: Keep every env signal (joint_pos, base_pos, ...) in the training rollout; off: only what PPO and the logs
+    #: read (observation, reward, done flags, reward terms, episode counters), ~40 % less rollout memory.
+    store_env_signals: bool = False
+
+    def __post_init__(self) -> None:
+        # Configs and checkpoints written before "auto" existed hold a bool here, and the command line used to take
+        # true/false/yes/no/1/0: all of them still read as on/off; any case is accepted.
+        value = self.cuda_graph
+        if isinstance(value, (bool, int, str)):
+            text = str(value).strip().lower()
+            self.cuda_graph = _GRAPH_ALIASES.get(text, text)
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad option (``ppo.NAME``) and the accepted values."""
+        for name in ("steps_per_env", "epochs", "minibatch_size"):
+            _check_int(self, name, 1, "ppo.")
+        for name, low, high in (("gamma", 0.0, 1.0), ("gae_lambda", 0.0, 1.0), ("clip_epsilon", 0.0, 1.0)):
+            value = getattr(self, name)
+            if not low < value <= high:
+                raise ValueError(f"ppo.{name} must be in ({low}, {high}], got {value!r}")
+        for name in ("lr", "std_start", "std_end", "desired_kl", "max_grad_norm", "adam_eps"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"ppo.{name} must be > 0, got {getattr(self, name)!r}")
+        _check_int(self, "assist_anchor_decay", 0, "ppo.")
+        if not 0 <= self.torque_assist <= 1 or self.assist_absorb < 0:
+            raise ValueError(f"ppo.torque_assist must be in [0, 1] and ppo.assist_absorb >= 0, got "
+                             f"{self.torque_assist!r}, {self.assist_absorb!r}")
+        if self.torque_assist > 0 and not 0 <= self.assist_fade_start < self.assist_fade_end:
+            raise ValueError(f"ppo.torque_assist > 0 needs 0 <= assist_fade_start < assist_fade_end (env "
+                             f"steps), got {self.assist_fade_start}, {self.assist_fade_end}")
+        for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"ppo.{name} must be >= 0, got {getattr(self, name)!r}")
+
+
+@dataclass
+class RunConfig:
+    """One training run: where it writes, its budget, logging, checkpoints and evaluation, and the ``env``,
+    ``transforms`` and ``ppo`` sections (see the module doc). Times are wall-clock; steps are env steps summed over
+    the envs unless a name says otherwise."""
+
+    preset: str = "default"
+    name: str = "ppo_walk"
+    run_dir: str = "runs"
+    seed: int = 0
+    device: str = "auto"
+    resume: str = ""
+    # budget
+    total_env_steps: int = 300_000_000
+    max_minutes: float = 0.0  # 0 = no wall-clock limit
+    # logging and checkpoints
+    log_every: int = 1
+    loggers: tuple[str, ...] = ("csv",)
+    progress_bar: bool = True
+    checkpoint_every: int = 100
+    #: Checkpoint retention: keep the newest ``checkpoint_keep_last`` iteration files (0 = keep all) and every file
+    #: whose iteration is a multiple of ``checkpoint_keep_every`` (0 = none more); ``latest.pt`` is always kept.
+    checkpoint_keep_last: int = 3
+    checkpoint_keep_every: int = 50
+    #: Also save ``checkpoints/wall_XXXXXs.pt`` whenever the training wall-clock (summed over resumed segments)
+    #: passes a multiple of this many minutes (0 = off).
+    checkpoint_minutes: float = 0.0
+    # evaluation at the end
+    eval_at_end: bool = True
+    eval_envs: int = 256
+    eval_seconds: float = 8.0
+    # sections
+    env: TocabiWalkConfig = field(default_factory=TocabiWalkConfig)
+    transforms: TransformSettings = field(default_factory=TransformSettings)
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+
+    def __getattr__(self, name: str) -> Any:
+        # Only reached for names that are not attributes: the flat PPOConfig names of before the tree still read
+        # (with a DeprecationWarning naming the path), so that scripts written for it keep working while they move.
+        path = FLAT_PATHS.get(name)
+        if path is None or path == name or name in ("command_preset", "pd_gains"):
+            raise AttributeError(f"RunConfig has no attribute {name!r}")
+        warnings.warn(f"RunConfig.{name} is the flat name of before the config tree; read cfg.{path}",
+                      DeprecationWarning, stacklevel=2)
+        return _get(self, path)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name not in self.__dataclass_fields__ and name in FLAT_PATHS:
+            raise AttributeError(f"RunConfig has no option {name!r}: set cfg.{FLAT_PATHS[name]} (or build the config "
+                                 f"with preset_config(..., {name}=...))")
+        object.__setattr__(self, name, value)
+
+    @property
+    def frames_per_batch(self) -> int:
+        """Env steps per rollout: ``env.num_envs × ppo.steps_per_env``."""
+        return self.env.num_envs * self.ppo.steps_per_env
+
+    @property
+    def iterations(self) -> int:
+        """Rollout + update iterations that ``total_env_steps`` asks for (at least 1)."""
+        return max(1, -(-self.total_env_steps // self.frames_per_batch))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The tree as nested dicts of plain values (what checkpoints and ``config.json`` hold)."""
+        return _tree_to_dict(self)
+
+    def validated(self) -> RunConfig:
+        """``self`` after :meth:`validate` (for chaining)."""
+        self.validate()
+        return self
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad option by its path (``ppo.lr``, ``env.control.mode``) and the
+        accepted values."""
+        for name in ("log_every", "checkpoint_every", "eval_envs", "total_env_steps"):
+            _check_int(self, name, 1)
+        for name in ("checkpoint_keep_last", "checkpoint_keep_every"):
+            _check_int(self, name, 0)
+        if not self.eval_seconds > 0:
+            raise ValueError(f"eval_seconds must be > 0, got {self.eval_seconds!r}")
+        for name in ("max_minutes", "checkpoint_minutes"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        bad = set(self.loggers) - set(LOGGERS)
+        if bad:
+            raise ValueError(f"unknown logger(s) {sorted(bad)}; choose from {', '.join(LOGGERS)}")
+        self.env.validate()
+        self.transforms.validate()
+        self.ppo.validate()
+        for path, allowed in field_choices().items():
+            value = _get(self, path)
+            if value not in allowed:
+                raise ValueError(f"{path} must be one of {allowed}, got {value!r}")
+        if not self.env.control.pd_action_scale > 0:
+            raise ValueError(f"env.control.pd_action_scale must be > 0, got {self.env.control.pd_action_scale!r}")
+        if self.ppo.torque_assist > 0 and self.env.control.mode != "torque":
+            raise ValueError(f"ppo.torque_assist > 0 needs control_mode='torque' (env.control.mode), got "
+                             f"{self.env.control.mode!r} (set ppo.torque_assist=0 for the PD modes)")
+        if self.ppo.minibatch_size > self.frames_per_batch:
+            raise ValueError(
+                f"ppo.minibatch_size {self.ppo.minibatch_size} exceeds the rollout ({self.env.num_envs} envs × "
+                f"{self.ppo.steps_per_env} steps = {self.frames_per_batch}); lower it or collect more")
+
+
+def _get(tree: Any, path: str) -> Any:
+    for name in path.split("."):
+        tree = getattr(tree, name)
+    return tree
+
+
+def _check_int(obj: Any, name: str, low: int, prefix: str = "") -> None:
+    value = getattr(obj, name)
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        kind = "a positive int" if low == 1 else f"an int >= {low}"
+        raise ValueError(f"{prefix}{name} must be {kind}, got {value!r}")
+
+
+def field_choices() -> dict[str, tuple[str, ...]]:
+    """The allowed values of each option that takes one of a few names (checked by ``validate``, listed by
+    ``--help``), by path."""
+    from .rl.assist import ASSIST_TARGETS
+    from .transforms.presets import PRESETS as TRANSFORM_PRESETS
+
+    return {"ppo.lr_schedule": LR_SCHEDULES, "ppo.std_mode": STD_MODES, "env.control.mode": CONTROL_MODES,
+            "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.preset": tuple(TRANSFORM_PRESETS),
+            "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
+            "ppo.assist_target": ASSIST_TARGETS, "env.sim.backend": ("warp", "mujoco", "auto")}
+
+
+# ---------------------------------------------------------------------------------------------------------- presets
+#: Named presets: the paths each one changes from the defaults (the ``default`` preset). :func:`preset_tree` builds
+#: the tree.
+PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
+    # Residual imitation (pd_reference: leg servos with the robot's gains track the reference walk plus the policy's
+    # correction), the velocity-tracking reward tripled (0.3 -> 0.9, so that following a 0.5 m/s command pays more
+    # than replaying the 0.13 m/s walk): the defaults. Chosen from three 7.5-minute H100 runs (docs/training/).
+    "default": MappingProxyType({}),
+    # The reference training (spec §10: 8 envs × 2048 steps, mini-batch 128, 3 epochs, 256-256 ReLU, LR 1e-5 -> 2e-7
+    # linear, value head at 5e-4, std 0.1 -> 0.05, 120 M steps), on the reference's task.
+    "reference": MappingProxyType({
+        "env.control.mode": "torque", "env.command": CommandConfig.reference(), "env.num_envs": 8,
+        "transforms.reward_weights": (), "total_env_steps": 120_000_000,
+        "ppo.gamma": 0.99, "ppo.steps_per_env": 2048, "ppo.minibatch_size": 128, "ppo.epochs": 3,
+        "ppo.lr": 1e-5, "ppo.lr_end": 2e-7, "ppo.lr_schedule": "linear", "ppo.value_head_lr": 5e-4,
+        "ppo.adam_eps": 1e-5, "ppo.actor_hidden": (256, 256), "ppo.critic_hidden": (256, 256),
+        "ppo.activation": "relu", "ppo.value_out_gain": 0.01, "ppo.value_coef": 0.5, "ppo.value_loss": "l2",
+        "ppo.max_grad_norm": 0.5, "ppo.std_start": 0.1, "ppo.std_end": 0.05, "ppo.std_hold": 0.5,
+    }),
+    # The reference's action space (12 normalised leg torques + phase rate) learned from scratch on one GPU: the
+    # default's PPO on an assisted torque env whose leg actions start as the residual-PD preset's position residuals
+    # (β = 1 for 50 M steps) and morph into torques by 110 M (geometric in the action gain, learning rate held), a
+    # loss moving each step of the morph into the actor (rl/assist.py); the rest trains the pure torque policy.
+    # Without the assist, PPO at thousands of envs learned to stand (issue 19); docs/training/torque.md has the runs.
+    # The pull copies a frozen β = 1 teacher (DAgger) and fades out over 30 M steps after the fade. Run 5 of
+    # docs/training/torque.md: walks at 24.0 min of training on an H100 (178.7 M steps). A teacher taken at 75 M
+    # (run 6) went faster (3.3-3.4 m in the 8 s test) but drifted 0.30-0.34 m, just past the limit, to its end.
+    "torque": MappingProxyType({
+        "env.control.mode": "torque", "ppo.torque_assist": 1.0, "ppo.assist_fade_start": 50_000_000,
+        "ppo.assist_fade_end": 110_000_000, "ppo.assist_target": "teacher", "ppo.assist_anchor_decay": 30_000_000,
+        "total_env_steps": 200_000_000,
+    }),
+    # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
+    "cpu_smoke": MappingProxyType({
+        "env.num_envs": 8, "ppo.steps_per_env": 16, "ppo.minibatch_size": 64, "ppo.epochs": 2,
+        "total_env_steps": 8 * 16 * 3, "checkpoint_every": 1, "eval_envs": 2, "eval_seconds": 1.0,
+        "ppo.actor_hidden": (64, 64), "ppo.critic_hidden": (64, 64),
+    }),
+})
+
+
+def preset_tree(name: str) -> RunConfig:
+    """The named preset as a tree (not validated: see :func:`preset_config`)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    return replace_paths(RunConfig(preset=name), dict(PRESETS[name]))
+
+
+def preset_config(name: str, /, **overrides) -> RunConfig:
+    """The named preset with ``overrides`` applied and validated. Keys are dotted paths (``**{"ppo.lr": 3e-4}``)
+    or the flat names of the ``PPOConfig`` before the tree (``num_envs=8``, see :data:`FLAT_PATHS`); a ``preset``
+    key is ignored. Raises :class:`ConfigError` naming an unknown key, ``ValueError`` for a bad value."""
+    overrides.pop("preset", None)
+    return replace_paths(preset_tree(name), flat_to_paths(overrides)).validated()
+
+
+# ------------------------------------------------------------------------------------------ the flat PPOConfig of old
+_TOP_LEVEL = ("preset", "name", "run_dir", "seed", "device", "resume", "total_env_steps", "max_minutes", "log_every",
+              "loggers", "progress_bar", "checkpoint_every", "checkpoint_keep_last", "checkpoint_keep_every",
+              "checkpoint_minutes", "eval_at_end", "eval_envs", "eval_seconds")
+
+#: Each field of the flat ``PPOConfig`` (before the tree; checkpoints up to schema version 1 store it) -> its path in
+#: the tree. ``command_preset`` and ``pd_gains`` were names for values and become those values (:func:`flat_to_paths`).
+FLAT_PATHS: Mapping[str, str] = MappingProxyType({
+    **{name: name for name in _TOP_LEVEL},
+    **{f.name: f"ppo.{f.name}" for f in dataclasses.fields(PPOConfig)},
+    "num_envs": "env.num_envs", "control_mode": "env.control.mode", "max_episode_steps": "env.task.max_episode_steps",
+    "pd_action_scale": "env.control.pd_action_scale", "command_preset": "env.command", "pd_gains": "env.control.pd_kp",
+    "transform_preset": "transforms.preset", "reward_weights": "transforms.reward_weights",
+})
+
+
+def flat_to_paths(values: Mapping[str, Any]) -> dict[str, Any]:
+    """``{flat PPOConfig name or dotted path: value}`` -> ``{dotted path: value}``. Raises :class:`ConfigError`
+    naming a key that is neither (with the nearest paths)."""
+    out: dict[str, Any] = {}
+    paths = set(leaf_paths(RunConfig()))
+    for key, value in values.items():
+        if key == "command_preset":
+            try:
+                out["env.command"] = CommandConfig.preset(value)
+            except ValueError as err:
+                raise ConfigError(f"command_preset: {err}") from None
+        elif key == "pd_gains":
+            if value not in PD_GAINS:
+                raise ConfigError(f"pd_gains must be one of {sorted(PD_GAINS)}, got {value!r}")
+            out["env.control.pd_kp"], out["env.control.pd_kv"] = PD_GAINS[value]
+        elif key in FLAT_PATHS:
+            out[FLAT_PATHS[key]] = tuple(value) if isinstance(value, list) else value
+        elif key in paths or key.split(".")[0] in ("env", "transforms", "ppo"):
+            out[key] = value  # a path, or a whole section; replace_paths names an unknown one
+        else:
+            near = sorted({p for p in paths if p.endswith("." + key)}
+                          | set(difflib.get_close_matches(key, sorted(paths | set(FLAT_PATHS)), n=3, cutoff=0.75)))
+            raise ConfigError(f"unknown PPOConfig field or config option {key!r}"
+                              + (f"; did you mean {near}?" if near else "; options are dotted paths such as 'ppo.lr', "
+                                 "'env.num_envs', 'env.control.mode' (see recipes/ppo_walk.py --help)"), unknown=[key])
+    return out
+
+
+def to_dict(cfg: RunConfig) -> dict[str, Any]:
+    """``cfg`` as nested dicts of plain values."""
+    return _tree_to_dict(cfg)
+
+
+def flat_dict(cfg: RunConfig) -> dict[str, Any]:
+    """``cfg`` as the flat ``PPOConfig`` dict of before the tree (the inverse of the migration), for comparing with
+    results recorded then. ``command_preset``/``pd_gains`` name the preset values the tree holds, or are ``None`` for
+    values no name stands for."""
+    out = {name: _get(cfg, path) for name, path in FLAT_PATHS.items() if name not in ("command_preset", "pd_gains")}
+    presets = {"tocabilab": CommandConfig(), "reference": CommandConfig.reference()}
+    out["command_preset"] = next((k for k, v in presets.items() if v == cfg.env.command), None)
+    gains = (tuple(cfg.env.control.pd_kp), tuple(cfg.env.control.pd_kv))
+    out["pd_gains"] = next((k for k, v in PD_GAINS.items() if v == gains), None)
+    return out
+
+
+def is_flat(data: Mapping[str, Any]) -> bool:
+    """Whether a saved config dict is the flat ``PPOConfig`` of before the tree (it has no ``ppo`` section)."""
+    return not isinstance(data.get("ppo"), Mapping)
+
+
+def config_from_dict(data: Mapping[str, Any]) -> RunConfig:
+    """The :class:`RunConfig` a checkpoint or ``config.json`` saved: the tree, or (older files) the flat ``PPOConfig``
+    dict, migrated path by path (its fields missing take their defaults, which the flat config shared with the
+    ``default`` preset). Not validated; raises :class:`ConfigError` naming an unknown key."""
+    data = {k: v for k, v in data.items() if k != "schema_version"}  # config.json carries it beside the fields
+    if is_flat(data):
+        return replace_paths(RunConfig(), flat_to_paths(data))
+    return _tree_from_dict(RunConfig, data)

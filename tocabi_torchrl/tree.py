@@ -1,0 +1,179 @@
+"""Nested dataclass trees as plain data: dotted paths to their leaves, conversion to and from dicts, and parsing a
+leaf's value from text. The run config (:mod:`tocabi_torchrl.config`) is such a tree; its command line, checkpoint
+entry and ``config.json`` are generated from it with these helpers.
+
+A *section* is a dataclass field whose value is itself a dataclass; every other field is a *leaf*, addressed by its
+dotted path (``"ppo.lr"``, ``"env.control.mode"``). Leaf values are plain data: numbers, strings, bools, ``None`` and
+tuples of those (lists, as JSON and checkpoints return them, are read back as tuples).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import types
+import typing
+from typing import Any
+
+__all__ = ["ConfigError", "leaf_paths", "leaf_types", "get_path", "replace_paths", "to_dict", "from_dict",
+           "parse_leaf"]
+
+
+class ConfigError(ValueError):
+    """An unknown option or a bad value in a config tree; the message names the option and the fix. ``unknown``
+    lists the unknown keys (dotted paths) when that is the problem."""
+
+    def __init__(self, message: str, unknown: list[str] | None = None):
+        super().__init__(message)
+        self.unknown = list(unknown or [])
+
+
+def _is_section(value: Any) -> bool:
+    return dataclasses.is_dataclass(value) and not isinstance(value, type)
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def leaf_paths(tree: Any, prefix: str = "") -> list[str]:
+    """Dotted paths of every leaf of ``tree`` (a dataclass instance), in field order."""
+    out = []
+    for f in dataclasses.fields(tree):
+        value = getattr(tree, f.name)
+        path = prefix + f.name
+        out += leaf_paths(value, path + ".") if _is_section(value) else [path]
+    return out
+
+
+def leaf_types(tree: Any) -> dict[str, Any]:
+    """``{dotted path: annotated type}`` of every leaf of ``tree``."""
+    out = {}
+    for path in leaf_paths(tree):
+        *parents, name = path.split(".")
+        owner = get_path(tree, ".".join(parents)) if parents else tree
+        out[path] = _hints(type(owner))[name]
+    return out
+
+
+def get_path(tree: Any, path: str) -> Any:
+    """The value at ``path`` (a leaf or a section); raises :class:`ConfigError` naming an unknown path."""
+    value = tree
+    for i, name in enumerate(path.split(".")):
+        if not _is_section(value) or name not in {f.name for f in dataclasses.fields(value)}:
+            where = ".".join(path.split(".")[:i]) or "the config"
+            known = [f.name for f in dataclasses.fields(value)] if _is_section(value) else []
+            raise ConfigError(f"unknown config option {path!r}: {where} has no {name!r}"
+                              + (f"; it has {known}" if known else ""), unknown=[path])
+        value = getattr(value, name)
+    return value
+
+
+def replace_paths(tree: Any, values: dict[str, Any]) -> Any:
+    """A copy of ``tree`` with each ``{dotted path: value}`` set (the tree itself is not changed). A path may name a
+    leaf or a whole section (a dataclass instance, or a dict as :func:`to_dict` writes it)."""
+    nested: dict[str, dict[str, Any]] = {}
+    direct: dict[str, Any] = {}
+    for path, value in values.items():
+        get_path(tree, path)  # raises for an unknown path
+        head, _, rest = path.partition(".")
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        else:
+            direct[head] = value
+    for head, value in list(direct.items()):
+        current = getattr(tree, head)
+        if _is_section(current) and isinstance(value, dict):  # a section given as a dict (as to_dict writes it)
+            direct[head] = from_dict(type(current), value, f"{head}.")
+        elif _is_section(current) and not isinstance(value, type(current)):
+            raise ConfigError(f"config section {head!r} must be a {type(current).__name__} or a dict of its options, "
+                              f"got {type(value).__name__}; to set one option give its path, e.g. "
+                              f"'{head}.{dataclasses.fields(current)[0].name}'")
+    for head, sub in nested.items():
+        direct[head] = replace_paths(direct.get(head, getattr(tree, head)), sub)
+    return dataclasses.replace(tree, **direct)
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    return value
+
+
+def to_dict(tree: Any) -> dict[str, Any]:
+    """``tree`` as nested dicts of plain values (tuples as lists), ready for JSON or ``torch.save``."""
+    out = {}
+    for f in dataclasses.fields(tree):
+        value = getattr(tree, f.name)
+        out[f.name] = to_dict(value) if _is_section(value) else _plain(value)
+    return out
+
+
+def _as_leaf(value: Any) -> Any:
+    return tuple(_as_leaf(v) for v in value) if isinstance(value, list) else value
+
+
+def from_dict(cls: type, data: dict[str, Any], where: str = "") -> Any:
+    """Build ``cls`` from nested dicts (as :func:`to_dict` writes them); fields missing from ``data`` keep their
+    defaults. Raises :class:`ConfigError` naming any unknown key."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"config section {where or cls.__name__!r} must be a mapping, got {type(data).__name__}")
+    default = cls()
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        paths = [where + k for k in unknown]
+        raise ConfigError(f"unknown config option(s) {paths}; {where or 'the top level'} knows {sorted(fields)}",
+                          unknown=paths)
+    values = {}
+    for name, value in data.items():
+        current = getattr(default, name)
+        if _is_section(current):
+            values[name] = from_dict(type(current), value, f"{where}{name}.")
+        else:
+            values[name] = _as_leaf(value)
+    return cls(**values)
+
+
+def _unwrap_optional(kind: Any) -> tuple[Any, bool]:
+    args = typing.get_args(kind)
+    if typing.get_origin(kind) in (typing.Union, types.UnionType) and type(None) in args:
+        rest = [a for a in args if a is not type(None)]
+        return rest[0], True
+    return kind, False
+
+
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+
+
+def _scalar(kind: Any, text: str) -> Any:
+    if kind is bool:
+        if text.lower() in _TRUE:
+            return True
+        if text.lower() in _FALSE:
+            return False
+        raise ValueError(f"expected true or false, got {text!r}")
+    if kind in (int, float):
+        return kind(text)
+    return text
+
+
+def parse_leaf(kind: Any, text: str) -> Any:
+    """A leaf's value from command-line ``text`` for its annotated type: ``int``, ``float``, ``bool`` (true/false),
+    ``str``, optional ones (``none`` -> ``None``) and tuples (comma-separated; empty text -> ``()``). Raises
+    ``ValueError`` for text that does not fit."""
+    kind, optional = _unwrap_optional(kind)
+    if optional and text.lower() == "none":
+        return None
+    if typing.get_origin(kind) is tuple:
+        args = typing.get_args(kind) or (str,)
+        elem = _unwrap_optional(args[0])[0]
+        items = tuple(_scalar(elem, t.strip()) for t in text.split(",") if t.strip())
+        if Ellipsis not in args and len(items) != len(args):
+            raise ValueError(f"expected {len(args)} comma-separated values, got {text!r}")
+        return items
+    if kind in (int, float, bool):
+        return _scalar(kind, text)
+    return text  # str, paths and anything else given as text
