@@ -3,7 +3,6 @@ refused, clear messages for missing loggers, progress shows '-' until an episode
 
 from __future__ import annotations
 
-import csv
 import importlib.util
 import math
 from pathlib import Path
@@ -12,6 +11,7 @@ import pytest
 import torch
 
 from tocabi_torchrl.rl import parse_args, preset_config
+from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.rl.launch import LaunchError, banner, launch_config
 from tocabi_torchrl.rl.resume import ResumeConfigError
 from tocabi_torchrl.rl.run_dir import RunDirError
@@ -36,8 +36,7 @@ def tiny_args(tmp_path: Path, name: str = "run", **extra) -> list[str]:
 
 
 def iterations_logged(run: Path) -> list[int]:
-    with open(run / "metrics.csv", newline="") as f:
-        return [int(row["iteration"]) for row in csv.DictReader(f)]
+    return [int(row["iteration"]) for row in read_metrics(run / "metrics.csv")]
 
 
 @pytest.fixture(scope="module")
