@@ -2,10 +2,9 @@
 
     python -m benchmarks.env_throughput --num_envs 1024 4096 16384 --steps 200
 
-Policy steps/s, legs PD-held on the initial pose (torque mode): raw mujoco-warp (``common.raw_stepper``), bare
-``TocabiWalk.step``, ``make_env``'s transformed step (observation history, normalisation, reward terms), and the
-collectors' ``step_and_maybe_reset`` eager and captured as a CUDA graph. Targets: env / raw >= 0.9 at 4096, the
-transforms' share of the env step <= 10 %.
+Policy steps/s, legs PD-held: raw mujoco-warp, bare ``TocabiWalk.step``, ``make_env``'s transformed step, and the
+collectors' ``step_and_maybe_reset`` eager and as a CUDA graph. Targets: env / raw >= 0.9 at 4096; transforms <= 10 %
+of the env step. On the CPU, ``--backend mujoco`` against ``--backend warp`` compares the two physics backends.
 """
 
 from __future__ import annotations
@@ -20,58 +19,49 @@ from . import common
 NAME = "env_throughput"
 
 
-def _rate(steps: int, device: str, transformed: bool, autoreset: bool = False, **kwargs) -> tuple[float, object]:
+def _rate(steps: int, transformed: bool, autoreset: bool = False, **kwargs) -> tuple[float, float]:
     from tocabi_torchrl import make_env
     from tocabi_torchrl.envs import TocabiWalk
 
-    build = make_env if transformed else TocabiWalk
-    env = build(device=device, seed=0, max_episode_steps=10**6, **kwargs)
+    env = (make_env if transformed else TocabiWalk)(seed=0, max_episode_steps=10**6, **kwargs)
     rate = common.env_rate(env, steps, autoreset=autoreset)
     if kwargs.get("cuda_graph") and not env.graph_captured:
         raise RuntimeError("the step was not captured as a CUDA graph (see the warning above)")
     upright = float((getattr(env, "base_env", env).sim.base_pos[:, 2] > 0.8).float().mean())
     del env
     gc.collect()
-    if device == "cuda":
-        torch.cuda.empty_cache()
+    torch.cuda.empty_cache()
     return rate, upright
 
 
-def measure(n: int, steps: int, raw_steps: int, device: str, backend: str = "auto") -> dict:
+def measure(n: int, steps: int, raw_steps: int, device: str, backend: str) -> dict:
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
-    bare, upright = _rate(steps, device, False, num_envs=n, backend=backend)
-    transformed, _ = _rate(steps, device, True, num_envs=n, backend=backend)
-    modes = (False, True) if device == "cuda" else (False,)  # the graph needs CUDA
-    auto = [_rate(steps, device, True, True, num_envs=n, backend=backend, cuda_graph=g)[0] for g in modes]
-    ratio = (lambda x: x / raw) if raw else (lambda x: None)
-    return {"num_envs": n, "raw_policy_steps_per_s": raw, "env_steps_per_s": bare, "make_env_steps_per_s": transformed,
-            "autoreset_steps_per_s": auto[0], "autoreset_graph_steps_per_s": auto[-1] if len(auto) > 1 else None,
-            "env_over_raw": ratio(bare), "make_env_over_raw": ratio(transformed), "autoreset_over_raw": ratio(auto[0]),
-            "autoreset_graph_over_raw": ratio(auto[1]) if len(auto) > 1 else None,
+    kw = {"num_envs": n, "device": device, "backend": backend}
+    (bare, upright), (transformed, _) = _rate(steps, False, **kw), _rate(steps, True, **kw)
+    auto = [_rate(steps, True, True, cuda_graph=g, **kw)[0] for g in ((False, True) if device == "cuda" else (False,))]
+    auto += [None] * (2 - len(auto))  # the graph needs CUDA
+    ratio = lambda x: x / raw if raw and x else None
+    return {"num_envs": n, "backend": backend, "raw_policy_steps_per_s": raw, "env_steps_per_s": bare,
+            "make_env_steps_per_s": transformed, "autoreset_steps_per_s": auto[0], "env_over_raw": ratio(bare),
+            "autoreset_graph_steps_per_s": auto[1], "make_env_over_raw": ratio(transformed),
+            "autoreset_over_raw": ratio(auto[0]), "autoreset_graph_over_raw": ratio(auto[1]),
             "transform_share_of_env_step": bare / transformed - 1.0, "upright_fraction_after_run": upright}
 
 
 def render(data: dict, out) -> str:
-    f3 = lambda x: common.fmt(x, ".3f")
-    rows = [(r["num_envs"], common.fmt(r["raw_policy_steps_per_s"]), common.fmt(r["env_steps_per_s"]),
-             f3(r["env_over_raw"]), common.fmt(r["make_env_steps_per_s"]), f3(r["make_env_over_raw"]),
-             f"{100 * r['transform_share_of_env_step']:.1f} %", f3(r["autoreset_over_raw"]),
-             f3(r["autoreset_graph_over_raw"])) for r in data["results"]]
-    plt = common.pyplot()
-    if plt is not None:
-        fig, ax = plt.subplots(figsize=(7, 4))
-        x = range(len(rows))
-        for i, (key, label) in enumerate((("raw_policy_steps_per_s", "raw mujoco-warp"),
-                                          ("env_steps_per_s", "TocabiWalk"), ("make_env_steps_per_s", "make_env"))):
-            ax.bar([k + (i - 1) * 0.27 for k in x], [(r[key] or 0) / 1e3 for r in data["results"]], 0.27, label=label)
-        ax.set_xticks(list(x), [str(r["num_envs"]) for r in data["results"]])
-        ax.set(xlabel="parallel envs", ylabel="policy steps/s (thousands)")
-        ax.legend()
-        common.save(fig, out / f"{NAME}.png")
+    res, f3 = data["results"], lambda x: common.fmt(x, ".3f")
+    n = [r["num_envs"] for r in res]
+    common.plot(out / f"{NAME}.png", [{"lines": {label: (n, [r[key] for r in res]) for key, label in (
+        ("raw_policy_steps_per_s", "raw mujoco-warp"), ("env_steps_per_s", "TocabiWalk"),
+        ("make_env_steps_per_s", "make_env")) if res[0][key]}, "xscale": "log", "xlabel": "parallel envs",
+        "ylabel": "policy steps/s"}])
     return common.page("Environment throughput", data, common.table(
         ("envs", "raw policy steps/s", "TocabiWalk steps/s", "env / raw", "make_env steps/s", "make_env / raw",
-         "transforms' share of env step", "step_and_maybe_reset / raw (eager)", "(CUDA graph)"), rows)
-        + f"\n\n![env throughput]({NAME}.png)")
+         "transforms' share of env step", "step_and_maybe_reset / raw (eager)", "(CUDA graph)"),
+        [(r["num_envs"], common.fmt(r["raw_policy_steps_per_s"]), common.fmt(r["env_steps_per_s"]),
+          f3(r["env_over_raw"]), common.fmt(r["make_env_steps_per_s"]), f3(r["make_env_over_raw"]),
+          f"{100 * r['transform_share_of_env_step']:.1f} %", f3(r["autoreset_over_raw"]),
+          f3(r["autoreset_graph_over_raw"])) for r in res]) + f"\n\n![env throughput]({NAME}.png)")
 
 
 def main(argv=None) -> None:
@@ -79,9 +69,8 @@ def main(argv=None) -> None:
     parser.add_argument("--num_envs", type=int, nargs="+", default=[1024, 4096, 16384])
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
-    parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run of the script")
-    parser.add_argument("--backend", default="auto", choices=("auto", "warp", "mujoco"),
-                        help="physics backend; on the CPU, mujoco (C MuJoCo threads) against warp compares the two")
+    parser.add_argument("--device", default="cuda", help="cuda, or cpu (a smoke run, or the CPU backends)")
+    parser.add_argument("--backend", default="auto", choices=("auto", "warp", "mujoco"), help="physics backend")
     parser.add_argument("--out", default=str(common.DOCS))
     args = parser.parse_args(argv)
     results = [measure(n, args.steps, args.raw_steps, args.device, args.backend) for n in args.num_envs]

@@ -1,48 +1,28 @@
-"""Re-render every committed benchmark report (markdown and plots) from its committed JSON.
-
-    python -m benchmarks.regenerate [--out DIR]     # default: in place, under docs/benchmarks
-
-``tests/test_benchmarks.py`` renders each into a temporary folder and compares the markdown with the committed one.
-"""
+"""``python -m benchmarks.regenerate``: re-render every committed report (markdown, plots) from its committed JSON."""
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
-from . import common, env_throughput, scaling, sim_throughput, soak, time_to_walk
-from . import train_throughput as train
+from . import common, env_throughput, scaling, soak, time_to_walk, train_throughput
 
-#: report page -> (its JSON, or results folder, under docs/benchmarks; render(data or folder, out) -> markdown)
-REPORTS = {
-    "sim_throughput.md": ("sim_throughput.json", sim_throughput.render),
-    "env_throughput.md": ("env_throughput.json", env_throughput.render),
-    "train_throughput.md": ("train_throughput.json", train.render),
-    "env_graph.md": ("env_graph", train.render_env_graph),
-    "scaling.md": ("scaling", scaling.render),
-    "soak.md": ("soak.json", soak.render),
-    "time_to_walk.md": ("time_to_walk.json", time_to_walk.render),
-}
+#: page under docs/benchmarks -> (its JSON file or results folder there, render(data or folder, out) -> markdown)
+REPORTS = {"env_throughput.md": ("env_throughput.json", env_throughput.render),
+           "train_throughput.md": ("train_throughput.json", train_throughput.render),
+           "scaling.md": ("scaling", scaling.render), "soak.md": ("soak.json", soak.render),
+           "time_to_walk.md": ("time_to_walk.json", time_to_walk.render)}
 
 
-def regenerate(page: str, docs: Path, out: Path) -> str:
+def regenerate(page: str, docs: Path = common.DOCS, out: Path = common.DOCS) -> str:
     """Render ``page`` from its source under ``docs`` into ``out`` (plots too); returns the markdown."""
-    source, render = REPORTS[page]
-    path = docs / source
+    path, render = docs / REPORTS[page][0], REPORTS[page][1]
     text = render(json.loads(path.read_text()) if path.suffix == ".json" else path, out)
     common.atomic_write_text(out / page, text)
     return text
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", default=str(common.DOCS))
-    args = parser.parse_args(argv)
-    for page in REPORTS:
-        regenerate(page, common.DOCS, Path(args.out))
-        print(f"rendered {Path(args.out) / page}")
-
-
 if __name__ == "__main__":
-    main()
+    for name in REPORTS:
+        regenerate(name)
+        print(f"rendered {common.DOCS / name}")

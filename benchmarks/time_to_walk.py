@@ -1,29 +1,26 @@
-"""Time to walk: train a preset from scratch, gait-test the checkpoints saved at fixed training wall-clock points,
-and report the first training time (and env-step count) at which the gait test passes.
+"""Time to walk: train a preset from scratch, gait-test its checkpoints saved every ``--every`` training minutes, and
+report the first training time (and env steps) at which the gait test passes.
 
     python -m benchmarks.time_to_walk train --preset torque --minutes 9.5   # resumes; repeat until the budget is used
     python -m benchmarks.time_to_walk eval --preset torque                  # gait tests of every wall-clock checkpoint
-    python -m benchmarks.time_to_walk report --runs runs/time_to_walk/torque ...
+    python -m benchmarks.time_to_walk report --runs runs/time_to_walk/torque ...   # time_to_walk.{json,md,png}
 
-``train`` trains on ``runs/time_to_walk/<preset>`` with a checkpoint every ``--every`` minutes of training until
-``--budget_minutes`` are used (summed over resumed calls; no evaluation or kernel compilation); the first call also
-measures raw mujoco-warp at the same env count in the same process. ``eval`` runs issue 19's gait test on each
-``wall_XXXXXs.pt`` (256 envs, 8 s, deterministic, at (0.5, 0) m/s, and at (0.2, 0) and (0.7, 0.1) for checkpoints that
-pass the first); ``train.json`` and ``evals.json`` are separate files, so the two parts may run at once. ``report``
-writes ``time_to_walk.{json,md,png}`` and, with ``--curves``, reward curves of several runs against env steps.
+``train`` trains ``runs/time_to_walk/<preset>`` until ``--budget_minutes`` of training are used (summed over resumed
+calls) and measures raw mujoco-warp at the same env count once. ``eval``: issue 19's gait test of each ``wall_*.pt``
+(256 envs, 8 s, at (0.5, 0) m/s, then (0.2, 0) and (0.7, 0.1)); it writes ``evals.json`` beside ``train.json``, so
+the two parts may run at once. ``report --curves`` also plots reward curves of several runs.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
 from pathlib import Path
 
-from tocabi_torchrl.rl.curves import read_metrics
+from tocabi_torchrl.rl.curves import read_metrics, steady_rate
 
 from . import common
 
@@ -31,7 +28,7 @@ MAIN_COMMAND = (0.5, 0.0)
 OTHER_COMMANDS = ((0.2, 0.0), (0.7, 0.1))
 CRITERIA = {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m": 0.3, "knee_rms_rad": 0.15}
 RUNS = Path("runs/time_to_walk")
-key = lambda c: f"{c[0]:.1f},{c[1]:.1f}"  # noqa: E731
+key = lambda c: f"{c[0]:.1f},{c[1]:.1f}"
 
 
 def passes_main(s: dict) -> bool:
@@ -67,15 +64,15 @@ def train_part(args, argv) -> None:
     cfg = common.config(args.preset, run_dir=str(RUNS), name=args.preset, device=args.device, eval_at_end=False,
                         progress_bar=False, log_every=args.log_every, checkpoint_minutes=args.every,
                         max_minutes=min(args.minutes, left_min), resume=str(latest) if latest.is_file() else "")
-    print(f"{args.preset}: training {'from ' + str(latest) if cfg.resume else 'from scratch'}, "
-          f"{prior_s / 60:.1f} of {args.budget_minutes} min used, this call up to {cfg.max_minutes:.1f} min", flush=True)
+    print(f"{args.preset}: training {'from ' + str(latest) if cfg.resume else 'from scratch'}, {prior_s / 60:.1f} of "
+          f"{args.budget_minutes} min used, this call up to {cfg.max_minutes:.1f} min", flush=True)
     result, rows = common.train(cfg)
     record.setdefault("preset", args.preset)
     record.setdefault("config", cfg.to_dict())
     record.setdefault("commands", []).append(_command(argv))
     record.update(gpu=common.meta("time_to_walk", argv, args.device)["gpu"] if args.device == "cuda" else "cpu",
                   env_steps=result.env_steps, train_seconds=prior_s + result.wall_seconds,
-                  train_env_steps_per_s=common.window_rate(rows, skip=3))
+                  train_env_steps_per_s=steady_rate(rows, skip=3))
     if "raw_policy_steps_per_s" not in record and args.raw_steps > 0 and args.device == "cuda":
         record["raw_policy_steps_per_s"] = common.raw_policy_steps_per_second(cfg.num_envs, args.raw_steps)
     if record.get("train_env_steps_per_s") and record.get("raw_policy_steps_per_s"):
@@ -88,11 +85,11 @@ def train_part(args, argv) -> None:
 def eval_part(args, argv) -> None:
     run_dir = RUNS / args.preset
     record = _load(run_dir / "evals.json")
-    evals, envs, cfg = record.setdefault("evaluations", {}), {}, None
+    evals, envs = record.setdefault("evaluations", {}), {}
     while True:
         # Checkpoints are written atomically (a temporary file, then a rename): a wall_*.pt is complete.
         for ckpt in [p for p in sorted((run_dir / "checkpoints").glob("wall_*.pt")) if p.stem not in evals]:
-            cfg = _evaluate(ckpt, evals, envs, cfg, args)
+            _evaluate(ckpt, evals, envs, args)
             common.write_json(run_dir / "evals.json", record)
         if args.follow_pid and _alive(args.follow_pid):
             time.sleep(10.0)
@@ -108,23 +105,21 @@ def eval_part(args, argv) -> None:
 
 def _alive(pid: int) -> bool:
     try:
-        os.kill(pid, 0)
+        return os.kill(pid, 0) is None  # signal 0: only whether the process exists
     except OSError:
         return False
-    return True
 
 
-def _evaluate(ckpt: Path, evals: dict, envs: dict, cfg, args):
-    """Gait tests of one wall-clock checkpoint into ``evals[ckpt.stem]``; returns the run's config."""
+def _evaluate(ckpt: Path, evals: dict, envs: dict, args) -> None:
+    """Gait tests of one wall-clock checkpoint into ``evals[ckpt.stem]``."""
     state = common.read_checkpoint(ckpt)
-    cfg = cfg or common.config_from_checkpoint(state, ckpt)
     entry = {"train_seconds": state["train_seconds"], "env_steps": state["env_steps"], "iteration": state["iteration"],
              "commands": {}}
     for command in (MAIN_COMMAND, *OTHER_COMMANDS):
         if command != MAIN_COMMAND and not passes_main(entry["commands"][key(MAIN_COMMAND)]):
             break
         out = ckpt.parent.parent / "eval" / ckpt.stem / f"{command[0]:.1f}_{command[1]:.1f}"
-        summary = common.gait_test(cfg, state, ckpt, command, out, args.num_envs, args.seconds, args.device, envs)
+        summary = common.gait_test(state, ckpt, command, out, args.num_envs, args.seconds, args.device, envs)
         entry["commands"][key(command)] = {k: v for k, v in summary.items() if isinstance(v, (int, float))}
     entry["walks"] = walks(entry)
     evals[ckpt.stem] = entry
@@ -132,7 +127,6 @@ def _evaluate(ckpt: Path, evals: dict, envs: dict, cfg, args):
     print(f"{ckpt.stem}: {entry['train_seconds'] / 60:5.1f} min, {entry['env_steps'] / 1e6:6.1f} M steps: survival "
           f"{m['survival']:.3f}, forward {m['forward_distance_m']:.2f} m, drift {m['lateral_drift_m']:.2f} m, knee RMS "
           f"{m['knee_rms_rad']:.3f} rad -> {'WALKS' if entry['walks'] else 'no'}", flush=True)
-    return cfg
 
 
 def first_walk(record: dict) -> dict | None:
@@ -154,71 +148,46 @@ def read_run(folder: Path) -> dict:
 
 
 def render(data: dict, out: Path) -> str:
-    records = data["records"]
-    num = lambda x: f"{x:,.0f}" if x else "-"  # noqa: E731
-    lines = ["# Time to walk (issue 19)", "",
-             "Training wall-clock (summed over resumed device calls; no evaluation, no kernel compilation) until a "
-             "checkpoint first passes the 8 s gait test on 256 envs: at (0.5, 0) m/s survival >= 95 %, forward >= "
-             "2.6 m, drift <= 0.3 m, knee RMS <= 0.15 rad; at (0.2, 0) and (0.7, 0.1) survival >= 95 %.", "",
-             "| preset | GPU | time to walk [min] | env steps then | training env-steps/s | raw mujoco-warp policy "
-             "steps/s (same run) | train / raw |", "|---|---|---:|---:|---:|---:|---:|"]
+    records, num = data["records"], lambda x, spec=",.0f": format(x, spec) if x else "-"
+    rows = [(r["preset"], r.get("gpu", "?"), f"{t['train_minutes']:.1f}" if (t := r.get("time_to_walk")) else
+             f"not within {r.get('train_seconds', 0) / 60:.1f} min", f"{t['env_steps'] / 1e6:.1f} M" if t else "-",
+             num(r.get("train_env_steps_per_s")), num(r.get("raw_policy_steps_per_s")), num(r.get("train_over_raw"),
+             ".2f")) for r in records]
+    text = ("# Time to walk (issue 19)\n\nTraining wall-clock (summed over resumed calls; no evaluation, no kernel "
+            "compilation) until a checkpoint first passes the 8 s gait test on 256 envs: at (0.5, 0) m/s survival >= "
+            "95 %, forward >= 2.6 m, drift <= 0.3 m, knee RMS <= 0.15 rad; at (0.2, 0) and (0.7, 0.1) survival >= 95 %."
+            "\n\n" + common.table(("preset", "GPU", "time to walk [min]", "env steps then", "training env-steps/s",
+                                   "raw mujoco-warp policy steps/s (same run)", "train / raw"), rows))
+    panels = [{"lines": {}, "vlines": [], "hlines": [(y, "pass")], "xlabel": "training minutes", "ylabel": label}
+              for y, label in ((100 * CRITERIA["survival"], "survival over 8 s at (0.5, 0) m/s [%]"),
+                               (CRITERIA["forward_distance_m"], "forward distance in 8 s [m]"))]
     for r in records:
-        ttw = r.get("time_to_walk")
-        lines.append("| {} | {} | {} | {} | {} | {} | {} |".format(
-            r["preset"], r.get("gpu", "?"), f"{ttw['train_minutes']:.1f}" if ttw else "not within "
-            f"{r.get('train_seconds', 0) / 60:.1f} min", f"{ttw['env_steps'] / 1e6:.1f} M" if ttw else "-",
-            num(r.get("train_env_steps_per_s")), num(r.get("raw_policy_steps_per_s")),
-            f"{r['train_over_raw']:.2f}" if r.get("train_over_raw") else "-"))
-    for r in records:
-        lines += ["", f"## {r['preset']}", "", "Commands:", ""]
-        lines += [f"- `{c}`" for c in r.get("commands", []) + r.get("eval_commands", [])]
-        lines += ["", "| checkpoint | minutes | env steps | survival | forward [m] | drift [m] | knee RMS [rad] | "
-                      "survival (0.2, 0) | survival (0.7, 0.1) | walks |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
-        for name, e in sorted(r.get("evaluations", {}).items()):
-            c, m = e["commands"], e["commands"].get("0.5,0.0", {})
-            other = [f"{c[k]['survival']:.3f}" if k in c else "-" for k in ("0.2,0.0", "0.7,0.1")]
-            lines.append(f"| {name} | {e['train_seconds'] / 60:.1f} | {e['env_steps'] / 1e6:.1f} M | "
-                         f"{m.get('survival', math.nan):.3f} | {m.get('forward_distance_m', math.nan):.2f} | "
-                         f"{m.get('lateral_drift_m', math.nan):.2f} | {m.get('knee_rms_rad', math.nan):.3f} | "
-                         f"{other[0]} | {other[1]} | {'yes' if e.get('walks') else 'no'} |")
-    plt = common.pyplot()
-    if plt is not None:
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-        for r in records:
-            pts = sorted((e["train_seconds"] / 60, e["commands"]["0.5,0.0"]) for e in r.get("evaluations", {}).values())
-            axes[0].plot([p[0] for p in pts], [100 * p[1]["survival"] for p in pts], "o-", label=r["preset"])
-            axes[1].plot([p[0] for p in pts], [p[1]["forward_distance_m"] for p in pts], "o-", label=r["preset"])
-            for ax in axes if r.get("time_to_walk") else ():
-                ax.axvline(r["time_to_walk"]["train_minutes"], ls=":", color=ax.lines[-1].get_color())
-        axes[0].axhline(100 * CRITERIA["survival"], color="k", lw=0.8, ls="--", label="pass")
-        axes[1].axhline(CRITERIA["forward_distance_m"], color="k", lw=0.8, ls="--", label="pass")
-        axes[0].set_ylabel("survival over 8 s at (0.5, 0) m/s [%]")
-        axes[1].set_ylabel("forward distance in 8 s [m]")
-        for ax in axes:
-            ax.set_xlabel("training wall-clock [min]")
-            ax.grid(alpha=0.3)
-            ax.legend()
-        fig.suptitle("Gait test of checkpoints against training time (dotted: first pass)")
-        common.save(fig, out / "time_to_walk.png")
-    return "\n".join(lines) + "\n"
+        evals = sorted(r.get("evaluations", {}).items())
+        text += f"\n\n## {r['preset']}\n\nCommands:\n\n" + "".join(
+            f"- `{c}`\n" for c in r.get("commands", []) + r.get("eval_commands", [])) + "\n" + common.table(
+            ("checkpoint", "minutes", "env steps", "survival", "forward [m]", "drift [m]", "knee RMS [rad]",
+             "survival (0.2, 0)", "survival (0.7, 0.1)", "walks"),
+            [(name, f"{e['train_seconds'] / 60:.1f}", f"{e['env_steps'] / 1e6:.1f} M", *(
+                f"{e['commands'][key(MAIN_COMMAND)][k]:{spec}}" for k, spec in (
+                    ("survival", ".3f"), ("forward_distance_m", ".2f"), ("lateral_drift_m", ".2f"),
+                    ("knee_rms_rad", ".3f"))), *(num(e["commands"].get(key(c), {}).get("survival"), ".3f")
+                                                 for c in OTHER_COMMANDS), "yes" if e.get("walks") else "no")
+             for name, e in evals])
+        for panel, k, scale in zip(panels, ("survival", "forward_distance_m"), (100, 1), strict=True):
+            panel["lines"][r["preset"]] = ([e["train_seconds"] / 60 for _, e in evals],
+                                           [scale * e["commands"][key(MAIN_COMMAND)][k] for _, e in evals])
+            panel["vlines"] += [r["time_to_walk"]["train_minutes"]] if r.get("time_to_walk") else []
+    common.plot(out / "time_to_walk.png", panels, "Gait test of checkpoints against training time (dotted: first pass)")
+    return text + "\n"
 
 
 def plot_curves(metrics: list[Path], path: Path) -> None:
     """Reward per step and the imitation (qpos) reward against env steps, one line per run (TocabiLab figs 4.2-4.3)."""
-    plt = common.pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for p in metrics:
-        rows = read_metrics(p)
-        steps = [int(r["env_steps"]) for r in rows]
-        axes[0].plot(steps, [float(r["reward"]) for r in rows], label=p.stem.replace("_metrics", ""))
-        axes[1].plot(steps, [float(r["reward_terms/qpos"]) for r in rows], label=p.stem.replace("_metrics", ""))
-    axes[0].set_ylabel("reward per step")
-    axes[1].set_ylabel("imitation reward per step (qpos term, max 0.35)")
-    for ax in axes:
-        ax.set(xscale="log", xlabel="env steps")
-        ax.grid(alpha=0.3, which="both")
-        ax.legend()
-    common.save(fig, path)
+    runs = {p.stem: read_metrics(p) for p in metrics}
+    common.plot(path, [{"lines": {name: ([int(r["env_steps"]) for r in rows], [float(r[column]) for r in rows])
+                                  for name, rows in runs.items()}, "xscale": "log", "xlabel": "env steps", "ylabel": y}
+                       for column, y in (("reward", "reward per step"),
+                                             ("reward_terms/qpos", "imitation reward per step (qpos term, max 0.35)"))])
 
 
 def report_part(args, argv) -> None:

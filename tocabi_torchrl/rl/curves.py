@@ -10,7 +10,7 @@ import argparse
 import csv
 from pathlib import Path
 
-__all__ = ["metric_columns", "plot_curves", "read_metrics"]
+__all__ = ["metric_columns", "plot_curves", "read_metrics", "steady_rate"]
 
 IMITATION_TERMS = ("qpos", "orientation", "foot_contact", "force_ref")
 
@@ -34,6 +34,21 @@ def metric_columns(path: str | Path) -> dict[str, list[float]]:
     if not rows:
         raise ValueError(f"{path} holds no metric rows (is it a run's metrics.csv, and has an iteration finished?)")
     return {k: [float(r[k]) if r.get(k) not in (None, "") else float("nan") for r in rows] for k in rows[0]}
+
+
+def steady_rate(rows: list[dict[str, str]], skip: int = 1) -> float | None:
+    """Env-steps/s from the ``skip``-th of ``read_metrics`` rows to the last, within the longest process segment
+    (``wall_s`` restarts when a run resumes), leaving out warm-up iterations; None with too few rows."""
+    segments: list[list[dict[str, str]]] = [[]]
+    for row in rows:
+        if segments[-1] and float(row["wall_s"]) < float(segments[-1][-1]["wall_s"]):
+            segments.append([])
+        segments[-1].append(row)
+    rows = max(segments, key=len)
+    if len(rows) <= skip + 1:
+        return None
+    a, b = rows[skip], rows[-1]
+    return (float(b["env_steps"]) - float(a["env_steps"])) / (float(b["wall_s"]) - float(a["wall_s"]))
 
 
 def plot_curves(metrics_csv: str | Path, out_png: str | Path) -> Path:
