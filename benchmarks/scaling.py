@@ -24,7 +24,6 @@ from . import common
 
 TARGET = 983_040  # TocabiLab's budget: 4,096 envs x 24 steps x 10 iterations
 TOCABILAB_BEST = TARGET / 850  # env-steps/s of TocabiLab's best run (Isaac Lab + rsl_rl, 96 envs)
-RESULTS = common.DOCS / "scaling"
 OOM = ("out of memory", "outofmemory", "cudaerrormemoryallocation", "failed to allocate")
 
 
@@ -39,6 +38,7 @@ def run(kind: str, backend: str, n: int, args) -> dict:
     batch = min(base.minibatch_size, n * steps // 4)
     rounds = 0 if kind == "raw" else 3 if kind == "memory" else math.ceil(TARGET / (n * steps))
     hidden = [f"actor_hidden={args.hidden}", f"critic_hidden={args.hidden}"] if args.hidden else []
+    meta, r = common.meta("scaling", None, "cpu"), {}  # no CUDA context in this driving process: the child names it
     try:
         r = common.run_child("train_throughput", [
             "--num_envs", str(n), "--iterations", str(max(rounds - 1, 0)), "--warmup", str(min(rounds, 1)),
@@ -55,8 +55,8 @@ def run(kind: str, backend: str, n: int, args) -> dict:
             if backend == "gpu" else None}
     except RuntimeError as err:
         record = {"status": "oom" if any(m in str(err).lower() for m in OOM) else "error", "error": str(err)[-3000:]}
-    record = {"kind": kind, "backend": backend, "num_envs": n, **record,
-              "meta": common.meta("scaling", None, "cuda" if backend == "gpu" else "cpu")}
+    meta["gpu"] = r.get("device_name", "?")
+    record = {"kind": kind, "backend": backend, "num_envs": n, **record, "meta": meta}
     common.write_json(path, record)
     print(f"{path.name}: {record['status']} {common.fmt(record.get('env_steps_per_s'))} env-steps/s", flush=True)
     return record
@@ -153,7 +153,7 @@ def main(argv=None) -> None:
     parser.add_argument("--max_minutes", type=float, default=9.0, help="a training run's own time limit")
     parser.add_argument("--redo", nargs="*", default=[], help="measure results of these statuses again")
     parser.add_argument("--hidden", default="", help="actor and critic sizes, e.g. 64,64 (default: the preset's)")
-    parser.add_argument("--results", default=str(RESULTS))
+    parser.add_argument("--results", default=str(common.DOCS / "scaling"))
     parser.add_argument("--run_dir", default="/tmp/tocabi_scaling_runs", help="scratch folder of the training runs")
     parser.add_argument("--report", action="store_true", help="render scaling.{md,png} beside --results")
     args = parser.parse_args(argv)

@@ -48,11 +48,7 @@ def _load(path: Path) -> dict:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
-def _command(argv) -> str:
-    return " ".join(["python -m benchmarks.time_to_walk", *argv])
-
-
-def train_part(args, argv) -> None:
+def train_part(args, command: str) -> None:
     run_dir = RUNS / args.preset
     record, latest = _load(run_dir / "train.json"), run_dir / "checkpoints" / "latest.pt"
     prior_s = float(common.read_checkpoint(latest).get("train_seconds", 0.0)) if latest.is_file() else 0.0
@@ -69,8 +65,8 @@ def train_part(args, argv) -> None:
     result, rows = common.train(cfg)
     record.setdefault("preset", args.preset)
     record.setdefault("config", cfg.to_dict())
-    record.setdefault("commands", []).append(_command(argv))
-    record.update(gpu=common.meta("time_to_walk", argv, args.device)["gpu"] if args.device == "cuda" else "cpu",
+    record.setdefault("commands", []).append(command)
+    record.update(gpu=common.meta("time_to_walk", [], args.device)["gpu"] if args.device == "cuda" else "cpu",
                   env_steps=result.env_steps, train_seconds=prior_s + result.wall_seconds,
                   train_env_steps_per_s=steady_rate(rows, skip=3))
     if "raw_policy_steps_per_s" not in record and args.raw_steps > 0 and args.device == "cuda":
@@ -82,7 +78,7 @@ def train_part(args, argv) -> None:
                                                  "raw_policy_steps_per_s", "train_over_raw")}), flush=True)
 
 
-def eval_part(args, argv) -> None:
+def eval_part(args, command: str) -> None:
     run_dir = RUNS / args.preset
     record = _load(run_dir / "evals.json")
     evals, envs = record.setdefault("evaluations", {}), {}
@@ -97,7 +93,7 @@ def eval_part(args, argv) -> None:
             args.follow_pid = 0  # the trainer has ended: one more pass for what it wrote last
         else:
             break
-    record.setdefault("eval_commands", []).append(_command(argv))
+    record.setdefault("eval_commands", []).append(command)
     record["time_to_walk"] = first_walk(record)
     common.write_json(run_dir / "evals.json", record)
     print("time to walk:", json.dumps(record["time_to_walk"]))
@@ -190,8 +186,8 @@ def plot_curves(metrics: list[Path], path: Path) -> None:
                                              ("reward_terms/qpos", "imitation reward per step (qpos term, max 0.35)"))])
 
 
-def report_part(args, argv) -> None:
-    data = {"command": _command(argv), "records": [read_run(Path(p)) for p in args.runs]}
+def report_part(args, command: str) -> None:
+    data = {"command": command, "records": [read_run(Path(p)) for p in args.runs]}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     text = common.publish(out, "time_to_walk", data, render)
@@ -224,7 +220,8 @@ def main(argv=None) -> None:
     r.add_argument("--out", default=str(common.DOCS))
     args = parser.parse_args(argv)
     t0 = time.time()
-    {"train": train_part, "eval": eval_part, "report": report_part}[args.part](args, argv)
+    command = " ".join(["python -m benchmarks.time_to_walk", *argv])
+    {"train": train_part, "eval": eval_part, "report": report_part}[args.part](args, command)
     print(f"[{args.part} took {time.time() - t0:.0f} s]")
 
 

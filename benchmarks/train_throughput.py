@@ -27,7 +27,8 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
     """One env count in this process: the steady rate after ``warmup`` iterations, the whole run's numbers, memory
     peaks, then the raw ceiling (only that with no iterations at all)."""
     steps, t_setup = overrides.get("steps_per_env", common.config("default").steps_per_env), time.perf_counter() - T0
-    record = {"num_envs": n, "overrides": overrides, "device_used_at_start_gib": common.device_used_gib(device)}
+    record = {"num_envs": n, "overrides": overrides, "device_used_at_start_gib": common.device_used_gib(device),
+              "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:
         cfg = common.config("default", **{"minibatch_size": min(49152, n * steps // 4), **overrides, "num_envs": n,
                                           "total_env_steps": (warmup + iterations) * n * steps, "run_dir": run_dir,
