@@ -372,3 +372,16 @@ def test_gait_test_stops_once_every_robot_has_fallen(tmp_path):
                               env=env, progress=False)
     assert summary["survival"] == 0.0 and summary["seconds"] == 8.0
     assert 0 < len(calls) < 1000 and len(calls) % 50 == 0  # stopped at the first check after the last fall
+
+
+def test_read_metrics_and_steady_rate(tmp_path):
+    from tocabi_torchrl.rl.curves import read_metrics, steady_rate
+
+    # A resumed run appends rows whose wall_s restarts: the rate comes from the longest segment, after its warm-up.
+    rows = [(1, 100, 1), (2, 200, 2), (4, 600, 3), (1, 700, 4), (3, 900, 5)]
+    path = tmp_path / "metrics.csv"
+    path.write_text("iteration,wall_s,env_steps\n" + "".join(f"{i},{w},{s}\n" for w, s, i in rows))
+    read = read_metrics(path)
+    assert [r["iteration"] for r in read] == ["1", "2", "3", "4", "5"] and read_metrics(tmp_path / "none.csv") == []
+    assert steady_rate(read, skip=1) == pytest.approx((600 - 200) / (4 - 2))
+    assert steady_rate(read[:2], skip=1) is None

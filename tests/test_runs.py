@@ -3,15 +3,21 @@ refused, clear messages for missing loggers, progress shows '-' until an episode
 
 from __future__ import annotations
 
-import csv
 import importlib.util
 import math
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 import torch
 
 from tocabi_torchrl.rl import parse_args, preset_config
+from tocabi_torchrl.rl.checkpoint import read_checkpoint
+from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.rl.launch import LaunchError, banner, launch_config
 from tocabi_torchrl.rl.resume import ResumeConfigError
 from tocabi_torchrl.rl.run_dir import RunDirError
@@ -36,8 +42,7 @@ def tiny_args(tmp_path: Path, name: str = "run", **extra) -> list[str]:
 
 
 def iterations_logged(run: Path) -> list[int]:
-    with open(run / "metrics.csv", newline="") as f:
-        return [int(row["iteration"]) for row in csv.DictReader(f)]
+    return [int(row["iteration"]) for row in read_metrics(run / "metrics.csv")]
 
 
 @pytest.fixture(scope="module")
@@ -109,6 +114,29 @@ def test_resume_continues_the_iterations_after_a_kill(tmp_path):
     (run / "checkpoints" / "latest.pt").write_bytes((run / "checkpoints" / "iter_000002.pt").read_bytes())
     recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "32"])
     assert iterations_logged(run) == [1, 2, 3, 4]
+
+
+@pytest.mark.slow  # two training processes
+def test_a_sigkilled_run_leaves_loadable_checkpoints_and_resumes_at_the_next_iteration(tmp_path):
+    # Issue 20 (formerly the soak's kill_resume mode): SIGKILL somewhere in an iteration once two checkpoints exist;
+    # every checkpoint left must load and --resume must go on at the next iteration, without repeated rows.
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (str(RECIPES.parent), os.getenv("PYTHONPATH"))))}
+    train = [sys.executable, str(RECIPES / "ppo_walk.py")]
+    run, deadline = tmp_path / "run", time.time() + 300
+    proc = subprocess.Popen([*train, *tiny_args(tmp_path, total_env_steps=10**9)], env=env, stdout=subprocess.DEVNULL)
+    while proc.poll() is None and time.time() < deadline and len(list(run.glob("checkpoints/iter_*.pt"))) < 2:
+        time.sleep(0.05)
+    time.sleep(0.2)  # somewhere in the next iteration
+    assert proc.poll() is None, "the training ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    for path in run.glob("checkpoints/*.pt"):
+        read_checkpoint(path)  # raises on a corrupt file
+    last = read_checkpoint(run)["iteration"]
+    resumed = subprocess.run([*train, "--resume", str(run), "--total_env_steps", str((last + 2) * 8)], env=env,
+                             capture_output=True, text=True, check=False)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert f"at iteration {last} " in resumed.stdout and iterations_logged(run) == list(range(1, last + 3))
 
 
 # ------------------------------------------------------------------------ finding 4: explicit requests are honoured

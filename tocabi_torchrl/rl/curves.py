@@ -10,17 +10,45 @@ import argparse
 import csv
 from pathlib import Path
 
-__all__ = ["plot_curves"]
+__all__ = ["metric_columns", "plot_curves", "read_metrics", "steady_rate"]
 
 IMITATION_TERMS = ("qpos", "orientation", "foot_contact", "force_ref")
 
 
-def _read(path: Path) -> dict[str, list[float]]:
-    with open(path) as f:
-        rows = [r for r in csv.DictReader(f) if r.get("iteration") not in (None, "", "iteration")]
+def read_metrics(path: str | Path) -> list[dict[str, str]]:
+    """The logged rows of a run's ``metrics.csv`` as dicts of strings, in file order; [] when the file is missing.
+
+    Repeated header lines (a resumed run's appended header, in older logs) are skipped. The one reader of metrics
+    files, so that a change of the log's format touches one place.
+    """
+    try:
+        with open(path, newline="") as f:
+            return [r for r in csv.DictReader(f) if r.get("iteration") not in (None, "", "iteration")]
+    except FileNotFoundError:
+        return []
+
+
+def metric_columns(path: str | Path) -> dict[str, list[float]]:
+    """``read_metrics`` as one float column per metric (empty cells are NaN); a clear error when nothing is logged."""
+    rows = read_metrics(path)
     if not rows:
-        raise ValueError(f"{path} holds no metric rows")
+        raise ValueError(f"{path} holds no metric rows (is it a run's metrics.csv, and has an iteration finished?)")
     return {k: [float(r[k]) if r.get(k) not in (None, "") else float("nan") for r in rows] for k in rows[0]}
+
+
+def steady_rate(rows: list[dict[str, str]], skip: int = 1) -> float | None:
+    """Env-steps/s from the ``skip``-th of ``read_metrics`` rows to the last, within the longest process segment
+    (``wall_s`` restarts when a run resumes), leaving out warm-up iterations; None with too few rows."""
+    segments: list[list[dict[str, str]]] = [[]]
+    for row in rows:
+        if segments[-1] and float(row["wall_s"]) < float(segments[-1][-1]["wall_s"]):
+            segments.append([])
+        segments[-1].append(row)
+    rows = max(segments, key=len)
+    if len(rows) <= skip + 1:
+        return None
+    a, b = rows[skip], rows[-1]
+    return (float(b["env_steps"]) - float(a["env_steps"])) / (float(b["wall_s"]) - float(a["wall_s"]))
 
 
 def plot_curves(metrics_csv: str | Path, out_png: str | Path) -> Path:
@@ -30,7 +58,7 @@ def plot_curves(metrics_csv: str | Path, out_png: str | Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    data = _read(Path(metrics_csv))
+    data = metric_columns(metrics_csv)
     steps = [s / 1e6 for s in data["env_steps"]]
     # Return and length are means over the episodes that ended in the logged iteration: none ended -> no point
     # (long episodes often outlast an iteration; older logs wrote 0 there).

@@ -1,0 +1,1 @@
+"""Benchmarks of tocabi-torchrl: run each as ``python -m benchmarks.<name>`` from the repository root."""

@@ -1,0 +1,295 @@
+"""What the benchmarks share: metadata, timing, the raw mujoco-warp ceiling, memory sampling, the library's training
+entry points (one place to adapt when they change), fresh-process runs and reports (``<name>.json`` holding
+``{"meta", "results"}``, ``<name>.md`` rendered from it, plots beside it; ``benchmarks.regenerate`` re-renders them).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import torch
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.rl.atomic import atomic_write_text
+from tocabi_torchrl.rl.curves import read_metrics
+
+GIB = 2**30
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "benchmarks"
+
+
+def meta(script: str, argv: Sequence[str] | None, on: str = "cuda", **extra) -> dict:
+    """The device this run measured ``on``, versions, date and the command line of this run."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    cuda = on.startswith("cuda") and torch.cuda.is_available()
+    return {"gpu": torch.cuda.get_device_name() if cuda else platform.processor() or platform.machine() or "cpu",
+            "torch": torch.__version__, "python": platform.python_version(), "date": time.strftime("%Y-%m-%d"),
+            "command": " ".join([f"python -m benchmarks.{script}", *args]), **extra}
+
+
+def per_second(step: Callable[[], object], steps: int, device: str | torch.device, warmup: int = 0) -> float:
+    """Calls of ``step`` per second over ``steps`` calls after ``warmup``, the device's queued work included."""
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+    for _ in range(warmup):
+        step()
+    sync()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step()
+    sync()
+    return steps / (time.perf_counter() - t0)
+
+
+def env_rate(env, steps: int, warmup: int = 10, autoreset: bool = False) -> float:
+    """Env-steps/s of ``env.step`` (or the collectors' ``step_and_maybe_reset``) with the legs PD-held on the initial
+    pose (torque-mode actions as fractions of the limits), so every benchmark steps the same standing robots."""
+    as_t = lambda x: torch.as_tensor(x, dtype=torch.float32, device=env.device)
+    kp, kv, limits, q0 = map(as_t, (robot.LEG_KP, robot.LEG_KV, robot.LEG_TORQUE_LIMITS, robot.INIT_JOINT_POS[:12]))
+    state = {"td": env.reset()}
+
+    def step() -> None:
+        td = state["td"]
+        legs = ((kp * (q0 - td["joint_pos"][:, :12]) - kv * td["joint_vel"][:, :12]) / limits).clamp(-1.0, 1.0)
+        td.set("action", torch.cat((legs, torch.zeros_like(legs[:, :1])), dim=-1))
+        state["td"] = env.step_and_maybe_reset(td)[1] if autoreset else env.step(td)["next"]
+
+    return env.batch_size[0] * per_second(step, steps, env.device, warmup)
+
+
+def raw_policy_steps_per_second(num_worlds: int, steps: int, device: str = "cuda", warmup: int = 20) -> float:
+    """The ceiling the other benchmarks divide by: policy steps/s of raw mujoco-warp on the backend's model and buffers,
+    a leg PD-hold kernel then ``mujoco_warp.step`` x 8 (every sensor, every substep), recorded as one graph."""
+    import mujoco_warp as mjw
+    import warp as wp
+
+    from tocabi_torchrl.sim import add_contact_sensors
+    from tocabi_torchrl.sim.buffers import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX
+    from tocabi_torchrl.sim.graph import Recorded
+
+    @wp.kernel(enable_backward=False)
+    def hold(qpos: wp.array2d(dtype=float), qvel: wp.array2d(dtype=float), q0: wp.array(dtype=float),
+             kp: wp.array(dtype=float), kv: wp.array(dtype=float), ctrl: wp.array2d(dtype=float)):
+        w, j = wp.tid()
+        ctrl[w, j] = kp[j] * (q0[j] - qpos[w, 7 + j]) - kv[j] * qvel[w, 6 + j]
+
+    mj, legs = add_contact_sensors(robot.load_spec()).compile(), robot.NUM_LEG_JOINTS
+    with wp.ScopedDevice(wp.get_device(device)):
+        m = mjw.put_model(mj)
+        m.opt.contact_sensor_maxmatch, m.opt.warn_overflow = CONTACT_SENSOR_MAXMATCH, 0  # the backend's settings
+        d = mjw.make_data(mj, nworld=num_worlds, nconmax=NCONMAX, njmax=NJMAX)
+        ctrl = torch.zeros(num_worlds, robot.NUM_JOINTS)
+        ctrl[:, legs:] = torch.as_tensor(robot.INIT_JOINT_POS[legs:])  # upper body on its servos
+        d.qpos.assign(torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32).repeat(num_worlds, 1).numpy())
+        d.ctrl.assign(ctrl.numpy())
+        mjw.forward(m, d)
+        consts = [wp.array(x[:legs].astype("float32"), dtype=float)
+                  for x in (robot.INIT_JOINT_POS, robot.LEG_KP, robot.LEG_KV)]
+
+        def body() -> None:
+            wp.launch(hold, dim=(num_worlds, legs), inputs=[d.qpos, d.qvel, *consts], outputs=[d.ctrl])
+            for _ in range(8):
+                mjw.step(m, d)
+
+        body()  # compile before recording
+        wp.synchronize_device()
+        return num_worlds * per_second(Recorded(body, wp.get_device(device)), steps, device, warmup)
+
+
+def device_used_gib(device: str | torch.device = "cuda") -> float | None:
+    """Device-wide memory in use (``cudaMemGetInfo``: warp's buffers and the CUDA context too); None on the CPU."""
+    if torch.device(device).type != "cuda":
+        return None
+    free, total = torch.cuda.mem_get_info(torch.device(device))
+    return (total - free) / GIB
+
+
+def rss_gib() -> float:
+    """This process's resident set now (0 where /proc is missing)."""
+    try:
+        return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / GIB
+    except OSError:
+        return 0.0
+
+
+def peaks() -> dict:
+    """Peak RSS of this process and the torch allocator's peaks (zeros without CUDA)."""
+    cuda = torch.cuda.is_available() and torch.cuda.is_initialized()
+    return {"peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / GIB,
+            "torch_peak_allocated_gib": torch.cuda.max_memory_allocated() / GIB if cuda else 0.0,
+            "torch_peak_reserved_gib": torch.cuda.max_memory_reserved() / GIB if cuda else 0.0}
+
+
+@contextlib.contextmanager
+def device_peak(device: str | torch.device = "cuda", every_s: float = 0.05):
+    """Yields ``{"gib": ...}``: the largest device memory in use (:func:`device_used_gib`), sampled every ``every_s``
+    while the block runs (None on the CPU)."""
+    peak, stop = {"gib": None}, threading.Event()
+
+    def sample() -> None:
+        used = device_used_gib(device)
+        peak["gib"] = None if used is None else max(peak["gib"] or 0.0, used)
+
+    def loop() -> None:
+        while not stop.wait(every_s):
+            sample()
+
+    thread = threading.Thread(target=loop, daemon=True)
+    sample()
+    thread.start()
+    try:
+        yield peak
+    finally:
+        stop.set()
+        thread.join()
+        sample()
+
+
+# The library's entry points: the only place the benchmarks touch its config, trainer and checkpoints.
+
+
+def config(preset: str = "default", **overrides):
+    """A training config of ``preset`` with ``overrides``."""
+    from tocabi_torchrl.rl.config import preset_config
+
+    return preset_config(preset, **overrides)
+
+
+def parse_overrides(items: Sequence[str]) -> dict:
+    """``FIELD=VALUE`` strings as typed config overrides (sizes comma-separated); an unknown field is named."""
+    from tocabi_torchrl.rl.config import PPOConfig, _parse_value
+
+    defaults, out = PPOConfig(), {}
+    for item in items:
+        field, _, value = item.partition("=")
+        if not hasattr(defaults, field):
+            raise SystemExit(f"--set {item}: the training config has no field {field!r}")
+        kind = type(getattr(defaults, field))
+        out[field] = (tuple(int(x) for x in value.split(",") if x) if kind is tuple
+                      else _parse_value(bool, value) if kind is bool else kind(value))
+    return out
+
+
+def train(cfg, env=None, wrap_policy: Callable | None = None):
+    """Train ``cfg``; returns the trainer's result and its logged metric rows. ``wrap_policy(policy)`` replaces the
+    collector's policy (the soak's fault injector), so that what it does to actions reaches PPO's rollout too."""
+    from tocabi_torchrl.rl import trainer
+
+    make_collector = trainer.make_collector
+    if wrap_policy is not None:  # train() builds its collector through this module attribute
+        trainer.make_collector = lambda c, e, actor, *a, **k: make_collector(c, e, wrap_policy(actor), *a, **k)
+    try:
+        result = trainer.train(cfg, env=env)
+    finally:
+        trainer.make_collector = make_collector
+    return result, read_metrics(result.run_dir / "metrics.csv")
+
+
+def build_env(cfg, **kwargs):
+    """The env of ``cfg`` on its device (``kwargs``: the trainer's ``build_env`` options)."""
+    from tocabi_torchrl.rl import trainer
+
+    return trainer.build_env(cfg, trainer.resolve_device(cfg.device), **kwargs)
+
+
+def read_checkpoint(path):
+    """A checkpoint (file or run folder) as a dict (loaded with ``weights_only=True``)."""
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint as read
+
+    return read(path)
+
+
+def gait_test(state: dict, path, command, out, num_envs: int, seconds: float, device: str, envs: dict) -> dict:
+    """The evaluation summary of checkpoint ``state`` at a fixed command; ``envs`` caches one env per command across
+    checkpoints (building one costs more than the test)."""
+    from tocabi_torchrl.rl import trainer
+    from tocabi_torchrl.rl.checkpoint import apply_checkpoint, config_from_checkpoint
+    from tocabi_torchrl.rl.evaluate import _fixed_command, evaluate_policy
+
+    cfg, device = config_from_checkpoint(state, path), torch.device(device)
+    if command not in envs:
+        envs[command] = trainer.build_env(cfg, device, num_envs=num_envs, command=_fixed_command(command))
+    env = envs[command]
+    agent = trainer.build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
+    apply_checkpoint(state, agent, env=env, path=path)
+    return evaluate_policy(agent.actor, cfg, out, num_envs=num_envs, device=device, seconds=seconds, command=command,
+                           video_envs=0, env=env, progress=False)
+
+
+def run_child(module: str, args: Sequence[str], env: dict | None = None) -> dict:
+    """``python -m benchmarks.<module> --child ARGS`` in a fresh process (its memory peaks are its own); the JSON of
+    its last ``RESULT <json>`` line, or an error carrying the output's tail."""
+    cmd = [sys.executable, "-m", f"benchmarks.{module}", "--child", *args]
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False, cwd=DOCS.parents[1],
+                          env={**os.environ, **(env or {})})
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+    if proc.returncode != 0 or not lines:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}{proc.stderr[-3000:]}")
+    return json.loads(lines[-1][len("RESULT "):])
+
+
+def table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    """A markdown table, columns right-aligned."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---:|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(map(str, r)) + " |" for r in rows])
+
+
+def page(title: str, data: dict, body: str) -> str:
+    """A report page: title with the device and date, the command that made it, then ``body``."""
+    m = data["meta"]
+    return f"# {title} ({m['gpu']}, {m['date']})\n\nCommand: `{m['command']}`\n\n{body.strip()}\n"
+
+
+def write_json(path: str | Path, data: dict) -> Path:
+    return atomic_write_text(Path(path), json.dumps(data, indent=2) + "\n")
+
+
+def publish(out: str | Path, name: str, data: dict, render: Callable[[dict, Path], str]) -> str:
+    """Write ``<out>/<name>.json`` and its page ``render(data, out)`` as ``<name>.md`` (atomically, saying where)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / f"{name}.json", data)
+    text = render(data, out)
+    atomic_write_text(out / f"{name}.md", text)
+    print(f"wrote {out / name}.json and .md", flush=True)
+    return text
+
+
+def plot(path: Path, panels: Sequence[dict], title: str = "") -> None:
+    """Line panels side by side, each ``{"lines": {label: (x, y)}, "hlines": [(y, label)], "vlines": [x], **axes}``
+    (``axes``: ``ax.set`` options such as ylabel, xscale); nothing where matplotlib is missing (plots are optional)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4), squeeze=False)
+    for ax, panel in zip(axes[0], panels, strict=True):
+        for label, (x, y) in panel.pop("lines").items():
+            ax.plot(x, y, "o-", ms=3, label=label)
+        for y, label in panel.pop("hlines", ()):
+            ax.axhline(y, color="k", ls="--", lw=0.8, label=label)
+        for x in panel.pop("vlines", ()):
+            ax.axvline(x, color="grey", ls=":", lw=0.8)
+        ax.set(**panel)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def fmt(x, spec: str = ",.0f", none: str = "-") -> str:
+    """``format(x, spec)``, or ``none`` for a missing value."""
+    return none if x is None else format(x, spec)

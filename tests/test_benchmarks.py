@@ -1,0 +1,90 @@
+"""The benchmark harness on the CPU: every committed report regenerates from its JSON, and every benchmark runs end
+to end at toy size (``--device cpu``); their GPU paths reuse the same helpers."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from benchmarks import common, env_throughput, regenerate, scaling, soak, train_throughput
+
+
+@pytest.mark.parametrize("page", sorted(regenerate.REPORTS))
+def test_committed_report_regenerates_from_its_json(page, tmp_path):
+    pytest.importorskip("matplotlib")
+    text = regenerate.regenerate(page, common.DOCS, tmp_path)
+    assert text == (common.DOCS / page).read_text(), f"{page} differs from what its JSON renders"
+    assert bool(list(tmp_path.glob("*.png"))) == (page != "train_throughput.md")  # the one page without a figure
+
+
+def test_unknown_override_is_named():
+    with pytest.raises(SystemExit, match="no field 'cuda_grpah'"):
+        common.parse_overrides(["cuda_grpah=on"])
+
+
+def test_env_throughput_smoke(tmp_path):
+    env_throughput.main(["--device", "cpu", "--num_envs", "2", "--steps", "3", "--raw_steps", "0", "--out",
+                         str(tmp_path)])
+    (r,) = json.loads((tmp_path / "env_throughput.json").read_text())["results"]
+    assert r["env_steps_per_s"] > 0 and r["make_env_steps_per_s"] > 0 and r["raw_policy_steps_per_s"] is None
+    assert "| 2 | - |" in (tmp_path / "env_throughput.md").read_text()
+
+
+def test_train_throughput_smoke_in_a_child_process(tmp_path):
+    train_throughput.main(["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1",
+                           "--raw_steps", "0", "--set", "steps_per_env=8", "actor_hidden=8,8", "--out", str(tmp_path),
+                           "--run_dir", str(tmp_path / "runs")])
+    (r,) = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
+    assert r["num_envs"] == 8 and r["train_env_steps_per_s"] > 0 and r["overrides"]["actor_hidden"] == [8, 8]
+
+
+@pytest.mark.slow
+def test_scaling_measures_in_a_child_process_and_reports(tmp_path):
+    args = ["--kind", "time", "--backend", "cpu", "--num_envs", "8", "--hidden", "8", "--max_minutes", "0.02",
+            "--results", str(tmp_path / "scaling"), "--run_dir", str(tmp_path / "runs")]
+    scaling.main(args)
+    first = json.loads((tmp_path / "scaling" / "time_cpu_0000008.json").read_text())
+    assert first["status"] == "partial" and 0 < first["env_steps"] < scaling.TARGET and first["host"]["peak_rss_gib"]
+    scaling.main(args)  # an existing result is kept unless its status is redone
+    assert json.loads((tmp_path / "scaling" / "time_cpu_0000008.json").read_text()) == first
+    scaling.main(["--report", "--results", str(tmp_path / "scaling")])
+    assert "| CPU (C MuJoCo) | 8 | 256 / 512 | - |" in (tmp_path / "scaling.md").read_text()
+
+
+@pytest.mark.slow  # a faulty training run of 15 s (two rollouts at least on a loaded 2-core machine)
+def test_tiny_soak_on_the_cpu(tmp_path):
+    code = soak.main(["--num_envs", "8", "--minutes", "0.25", "--device", "cpu", "--fault_every", "40",
+                      "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs")])
+    report = json.loads((tmp_path / "soak.json").read_text())
+    assert code == 0 and report["results"] and not [c for c in report["results"] if not c["ok"]]
+    faults = report["meta"]["faults"]
+    assert faults["fault_events"] >= 1 and faults["monitor"]["nan_worlds"] == faults["fault_events"]
+    assert [r["rollout"] for r in faults["memory_series"]] == list(range(1, len(faults["memory_series"]) + 1))
+    assert (tmp_path / "soak_memory.png").stat().st_size > 1000
+
+
+def test_time_to_walk_train_resume_eval_report(tmp_path):
+    def run(*args):
+        env = {**os.environ, "PYTHONPATH": str(common.DOCS.parents[1])}  # the run's cwd is a temporary folder
+        proc = subprocess.run([sys.executable, "-m", "benchmarks.time_to_walk", *args], cwd=tmp_path, text=True,
+                              capture_output=True, env=env, check=False)
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+        return proc.stdout
+
+    train = ["train", "--preset", "cpu_smoke", "--device", "cpu", "--every", "0.002", "--log_every", "1"]
+    run(*train, "--minutes", "0.004", "--budget_minutes", "1")
+    assert "training from runs/time_to_walk/cpu_smoke/checkpoints/latest.pt" in run(*train, "--budget_minutes", "1")
+    folder = tmp_path / "runs/time_to_walk/cpu_smoke"
+    walls = sorted(p.stem for p in (folder / "checkpoints").glob("wall_*.pt"))
+    run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--num_envs", "2", "--seconds", "0.1")
+    record = {**json.loads((folder / "train.json").read_text()), **json.loads((folder / "evals.json").read_text())}
+    assert walls and sorted(record["evaluations"]) == walls and len(record["commands"]) == 2
+    for entry in record["evaluations"].values():  # 0.1 s cannot cover 2.6 m
+        assert 0.0 <= entry["commands"]["0.5,0.0"]["survival"] <= 1.0 and entry["walks"] is False
+    text = run("report", "--runs", str(folder), "--curves", str(folder / "metrics.csv"), "--out", str(tmp_path / "d"))
+    assert record["time_to_walk"] is None and "| cpu_smoke | cpu | not within" in text
+    assert (tmp_path / "d/time_to_walk.png").is_file() and (tmp_path / "d/time_to_walk_curves.png").is_file()
