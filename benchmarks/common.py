@@ -164,17 +164,25 @@ def config(preset: str = "default", **overrides):
 
 
 def parse_overrides(items: Sequence[str]) -> dict:
-    """``FIELD=VALUE`` strings as typed config overrides (sizes comma-separated); an unknown field is named."""
-    from tocabi_torchrl.rl.config import PPOConfig, _parse_value
+    """``FIELD=VALUE`` strings (a dotted config path such as ``ppo.lr``, or a flat name such as ``num_envs``, which
+    :func:`config` and the recorded results key by) as typed overrides under the name given; an unknown field is
+    named."""
+    from tocabi_torchrl.config import FLAT_PATHS, RunConfig
+    from tocabi_torchrl.tree import leaf_types, parse_leaf
 
-    defaults, out = PPOConfig(), {}
+    kinds, out = leaf_types(RunConfig()), {}
     for item in items:
         field, _, value = item.partition("=")
-        if not hasattr(defaults, field):
+        if field in ("command_preset", "pd_gains"):  # names of values: the config resolves them
+            out[field] = value
+            continue
+        path = FLAT_PATHS.get(field, field)
+        if path not in kinds:
             raise SystemExit(f"--set {item}: the training config has no field {field!r}")
-        kind = type(getattr(defaults, field))
-        out[field] = (tuple(int(x) for x in value.split(",") if x) if kind is tuple
-                      else _parse_value(bool, value) if kind is bool else kind(value))
+        try:
+            out[field] = parse_leaf(kinds[path], value)
+        except ValueError as err:
+            raise SystemExit(f"--set {item}: {err}") from None
     return out
 
 

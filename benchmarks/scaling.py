@@ -34,8 +34,8 @@ def run(kind: str, backend: str, n: int, args) -> dict:
     if path.is_file() and (record := json.loads(path.read_text()))["status"] not in args.redo:
         return record
     base = common.config("default")
-    steps = max(base.steps_per_env, math.ceil(2048 / n))  # small counts: rollouts of at least 2,048 transitions
-    batch = min(base.minibatch_size, n * steps // 4)
+    steps = max(base.ppo.steps_per_env, math.ceil(2048 / n))  # small counts: rollouts of at least 2,048 transitions
+    batch = min(base.ppo.minibatch_size, n * steps // 4)
     rounds = 0 if kind == "raw" else 3 if kind == "memory" else math.ceil(TARGET / (n * steps))
     hidden = [f"actor_hidden={args.hidden}", f"critic_hidden={args.hidden}"] if args.hidden else []
     meta, r = common.meta("scaling", None, "cpu"), {}  # no CUDA context in this driving process: the child names it

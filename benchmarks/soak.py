@@ -118,12 +118,12 @@ def run_faults(args) -> tuple[dict, list[dict]]:
     base = common.config(args.preset)
     # cuda_graph off: the monitor keeps Python-side state in the env step, which a captured graph would freeze.
     cfg = common.config(args.preset, num_envs=args.num_envs, device=args.device, run_dir=args.run_dir, name="soak",
-                        minibatch_size=min(base.minibatch_size, max(args.num_envs * base.steps_per_env // 4, 1)),
+                        minibatch_size=min(base.ppo.minibatch_size, max(args.num_envs * base.ppo.steps_per_env // 4, 1)),
                         eval_at_end=False, progress_bar=False, total_env_steps=10**12, cuda_graph="off",
                         max_minutes=args.minutes, checkpoint_every=10**6)
     shutil.rmtree(Path(cfg.run_dir) / cfg.name, ignore_errors=True)  # the soak's own scratch run
     env = common.build_env(cfg, for_training=True, normalization=args.normalization)
-    env.append_transform(monitor := SoakMonitor(cfg.steps_per_env, env.device))
+    env.append_transform(monitor := SoakMonitor(cfg.ppo.steps_per_env, env.device))
 
     def wrap(actor):
         object.__setattr__(monitor, "injector", FaultInjector(actor, env.base_env.sim, args.fault_every, args.seed))

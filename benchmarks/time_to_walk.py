@@ -70,7 +70,7 @@ def train_part(args, command: str) -> None:
                   env_steps=result.env_steps, train_seconds=prior_s + result.wall_seconds,
                   train_env_steps_per_s=steady_rate(rows, skip=3))
     if "raw_policy_steps_per_s" not in record and args.raw_steps > 0 and args.device == "cuda":
-        record["raw_policy_steps_per_s"] = common.raw_policy_steps_per_second(cfg.num_envs, args.raw_steps)
+        record["raw_policy_steps_per_s"] = common.raw_policy_steps_per_second(cfg.env.num_envs, args.raw_steps)
     if record.get("train_env_steps_per_s") and record.get("raw_policy_steps_per_s"):
         record["train_over_raw"] = record["train_env_steps_per_s"] / record["raw_policy_steps_per_s"]
     common.write_json(run_dir / "train.json", record)
