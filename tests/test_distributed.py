@@ -149,3 +149,74 @@ def test_one_rank_helpers_are_no_ops():
     w.grad = torch.full((2,), 4.0)
     GradientAllReduce(info)([w])
     assert w.grad.tolist() == [4.0, 4.0]
+
+
+
+def _train_worker(rank: int, world: int, init_file: str, run_dir: str, out: dict) -> None:
+    import dataclasses
+
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.trainer import build_env, train
+
+    info = DistInfo(rank, world, rank)
+    init_distributed(info, torch.device("cpu"), init_method=f"file://{init_file}")
+    try:
+        cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
+                            total_env_steps=world * 2 * 8, run_dir=run_dir, name="dp", checkpoint_every=1,
+                            progress_bar=False, eval_at_end=False)
+        # Running statistics, so that their merge is part of the run (the presets use the reference's fixed ones).
+        env = build_env(dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info)), torch.device("cpu"),
+                        for_training=True, normalization="running")
+        result = train(cfg, env=env, dist_info=info)
+        norm = next(t for t in env.transform if isinstance(t, RunningNormalization))
+        params = _flat([*result.agent.actor.parameters(), *result.agent.critic.parameters()])
+        out[rank] = {"iterations": result.iterations, "env_steps": result.env_steps, "params": params,
+                     "norm": (norm.count.clone(), norm.mean.clone())}
+    finally:
+        dist.destroy_process_group()
+
+
+def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
+    out = mp.Manager().dict()
+    mp.spawn(_train_worker, args=(2, str(tmp_path / "init"), str(tmp_path), out), nprocs=2, join=True)
+    r0, r1 = out[0], out[1]
+    # 2 ranks x 2 envs x 4 steps = 16 env steps per iteration: 2 iterations for the 32-step budget.
+    assert r0["iterations"] == r1["iterations"] == 2 and r0["env_steps"] == r1["env_steps"] == 32
+    torch.testing.assert_close(r0["params"], r1["params"], rtol=0, atol=0)
+    assert r0["norm"][0].item() == r1["norm"][0].item() > 32  # both ranks' rows (plus the initial weight)
+    torch.testing.assert_close(r0["norm"][1], r1["norm"][1], rtol=0, atol=0)
+    run = tmp_path / "dp"
+    ckpt = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)
+    assert ckpt["env_steps"] == 32
+    rows = (run / "metrics.csv").read_text().strip().splitlines()
+    assert len(rows) == 3, "rank 0 alone logs: a header and one row per iteration"
+    assert sorted(p.name for p in run.iterdir()) == sorted(["checkpoints", "config.json", "metrics.csv"])
+
+    # The same run goes on with one rank: the 32 steps done are 4 of its 8-step iterations.
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.trainer import train
+
+    cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
+                        total_env_steps=48, run_dir=str(tmp_path), name="dp", checkpoint_every=1,
+                        progress_bar=False, eval_at_end=False, resume=str(run))
+    result = train(cfg)
+    assert result.iterations == 6 and result.env_steps == 48
+
+
+def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
+    """The command the README gives, on the CPU: rank 0 alone writes the run folder."""
+    import os
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    torchrun = shutil.which("torchrun") or pytest.skip("torchrun is not on PATH")
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "ppo_walk.py"
+    proc = subprocess.run(
+        [torchrun, "--standalone", "--nproc_per_node", "2", str(recipe), "--preset", "cpu_smoke", "--device", "cpu",
+         "--num_envs", "2", "--steps_per_env", "4", "--minibatch_size", "4", "--total_env_steps", "32",
+         "--run_dir", str(tmp_path), "--name", "dp", "--eval_at_end", "false", "--progress_bar", "false"],
+        capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "done on 2 ranks: 32 env steps" in proc.stdout
+    assert torch.load(tmp_path / "dp" / "checkpoints" / "latest.pt", weights_only=True)["env_steps"] == 32

@@ -24,7 +24,7 @@ import torch
 import torch.distributed as dist
 
 __all__ = ["DistInfo", "from_environment", "init_distributed", "shutdown", "rank_seed", "broadcast_module",
-           "GradientAllReduce", "all_reduce_mean", "RunningStatsSync"]
+           "GradientAllReduce", "all_reduce_mean", "agree", "RunningStatsSync"]
 
 
 @dataclass(frozen=True)
@@ -152,6 +152,19 @@ def all_reduce_mean(t: torch.Tensor, info: DistInfo) -> torch.Tensor:
         dist.all_reduce(t, op=dist.ReduceOp.SUM)
         t.div_(info.world_size)
     return t
+
+
+def agree(ok: bool, info: DistInfo, device: torch.device) -> bool:
+    """Whether ``ok`` holds on every rank (one small all-reduce; no exchange with one rank).
+
+    Used where ranks decide alone but must act together (stop on a time budget, give up on a bad run folder): a rank
+    that left the loop early would leave the others waiting in their next collective.
+    """
+    if not info.enabled:
+        return bool(ok)
+    flag = torch.tensor([1 if ok else 0], dtype=torch.int32, device=device)
+    dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+    return bool(flag.item())
 
 
 class RunningStatsSync:
