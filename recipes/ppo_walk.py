@@ -5,6 +5,7 @@
     python recipes/ppo_walk.py --env.num_envs 8192 --ppo.lr 3e-4 --max_minutes 20 --name walk8k
     python recipes/ppo_walk.py --resume runs/ppo_walk   # continue from runs/ppo_walk/checkpoints/latest.pt
     python recipes/ppo_walk.py --help               # every option (a dotted path of tocabi_torchrl/config.py)
+    torchrun --nproc_per_node 2 recipes/ppo_walk.py --name walk2gpu   # data-parallel, one process per GPU
 
 Without CUDA and with --device auto (the default) it says so and runs the small ``cpu_smoke`` configuration (minutes
 on a laptop, learns nothing useful); an explicit --device cuda or GPU-sized --preset fails instead. Writes
@@ -27,6 +28,7 @@ except GLBackendError as gl_error:
 
 import torch  # noqa: E402
 
+from tocabi_torchrl.rl.distributed import from_environment, shutdown  # noqa: E402
 from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
 from tocabi_torchrl.rl.logging import require_loggers  # noqa: E402
 from tocabi_torchrl.rl.run_dir import open_run  # noqa: E402
@@ -40,6 +42,23 @@ def main(argv: list[str] | None = None) -> None:
         cfg, args, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0])
         device = resolve_device(cfg.device)
         require_loggers(cfg.loggers)
+        dist_info = from_environment()  # torchrun's layout; one rank without it
+    except (ValueError, RuntimeError, ImportError) as err:
+        sys.exit(f"error: {err}")
+    if dist_info.enabled:
+        # Data-parallel: train() joins the process group, lets rank 0 alone check and write the run folder, and
+        # makes every rank stop if it cannot start.
+        try:
+            result = train(cfg, dist_info=dist_info)
+        except (ValueError, RuntimeError, ImportError) as err:
+            sys.exit(f"error (rank {dist_info.rank}): {err}")
+        finally:
+            shutdown(dist_info)
+        if dist_info.is_main:
+            print(f"done on {dist_info.world_size} ranks: {result.env_steps:,} env steps in "
+                  f"{result.wall_seconds:.0f} s; run folder {result.run_dir}")
+        return
+    try:
         run = open_run(cfg)
     except (ValueError, RuntimeError, ImportError) as err:
         sys.exit(f"error: {err}")

@@ -50,14 +50,23 @@ def holds_run(folder: str | os.PathLike) -> bool:
     return any((Path(folder) / name).exists() for name in _RUN_FILES)
 
 
-def open_run(cfg: RunConfig) -> RunFolder:
+def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
     """Check that ``cfg`` may write to its run folder and, for ``cfg.resume``, read and check the checkpoint.
 
     Raises :class:`RunDirError` if a new run would overwrite an earlier one, and
     :class:`~tocabi_torchrl.rl.checkpoint.CheckpointError` /
     :class:`~tocabi_torchrl.rl.resume.ResumeConfigError` for a bad checkpoint or a changed setting.
+    ``writer=False`` (the ranks of a data-parallel run other than rank 0, which write nothing): only read and check
+    the resumed checkpoint; the folder is rank 0's to check and tidy.
     """
     path = Path(cfg.run_dir) / cfg.name
+    if not writer:
+        if not cfg.resume:
+            return RunFolder(path)
+        file = checkpoint_file(cfg.resume)
+        state = read_checkpoint(file)
+        check_resume_config(config_from_checkpoint(state, file), cfg, file)
+        return RunFolder(path, state, file)
     if not cfg.resume:
         if holds_run(path):
             raise RunDirError(

@@ -25,6 +25,8 @@ from .checkpoint import apply_checkpoint, save_checkpoint
 from ..config import RunConfig
 from ..envs.config import TocabiWalkConfig
 from .config import uses_env_graph
+from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, all_reduce_mean, broadcast_module,
+                          from_environment, init_distributed, rank_seed)
 from .logging import RunLogger, require_loggers
 from .networks import make_mlp
 from .rollout_guard import VALID_KEY, guard_rollout
@@ -157,6 +159,8 @@ class TrainResult:
     env_graph: bool = False
     #: The resumed run had already reached its budget: nothing was trained (see :func:`finished_result`).
     already_finished: bool = False
+    #: The trained actor and critic (None when nothing was trained).
+    agent: Agent | None = None
 
 
 def finished_result(run: RunFolder, cfg: RunConfig) -> TrainResult:
@@ -167,8 +171,9 @@ def finished_result(run: RunFolder, cfg: RunConfig) -> TrainResult:
     return TrainResult(run.path, run.start_iteration, run.start_env_steps, 0.0, 0.0, {}, already_finished=True)
 
 
-def _episode_metrics(batch: TensorDictBase) -> dict[str, float]:
-    """Mean return and length of the episodes that ended in this batch (one host read per iteration)."""
+def _episode_metrics(batch: TensorDictBase, dist_info: DistInfo | None = None) -> dict[str, float]:
+    """Mean return and length of the episodes that ended in this batch (one host read per iteration); in a
+    data-parallel run, each value averaged over the ranks' batches."""
     done = batch["next", "done"].squeeze(-1)
     n_done = done.sum()
     out = {"episodes_finished": n_done}
@@ -186,6 +191,8 @@ def _episode_metrics(batch: TensorDictBase) -> dict[str, float]:
         for key, value in batch["next", "reward_terms"].items():
             out[f"reward_terms/{key}"] = value.mean()
     values = torch.stack([torch.as_tensor(v, dtype=torch.float32, device=done.device) for v in out.values()])
+    if dist_info is not None:
+        all_reduce_mean(values, dist_info)
     return dict(zip(out.keys(), values.cpu().tolist()))
 
 
@@ -226,11 +233,13 @@ def make_optimizer(cfg: RunConfig, agent: Agent, device: torch.device) -> torch.
 
 
 def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.optim.Optimizer,
-                     device: torch.device) -> MinibatchStep:
-    """The mini-batch step of :func:`train` (a CUDA graph after a few eager steps when :func:`uses_update_graph`)."""
+                     device: torch.device, dist_info: DistInfo | None = None) -> MinibatchStep:
+    """The mini-batch step of :func:`train` (a CUDA graph after a few eager steps when :func:`uses_update_graph`);
+    in a data-parallel run its gradients are averaged over the ranks before clipping."""
     params = [p for g in optimizer.param_groups for p in g["params"]]
+    sync = GradientAllReduce(dist_info) if dist_info is not None and dist_info.enabled else None
     return MinibatchStep(loss_module, optimizer, params, cfg.ppo.max_grad_norm,
-                         use_graph=uses_update_graph(cfg, device))
+                         use_graph=uses_update_graph(cfg, device), grad_sync=sync)
 
 
 def make_loss(cfg: RunConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbLoss, GAE]:
@@ -259,44 +268,73 @@ def make_loss(cfg: RunConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbL
     return loss_module, advantage
 
 
-def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = None) -> TrainResult:
+def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = None,
+          dist_info: DistInfo | None = None) -> TrainResult:
     """Run PPO as configured; returns where the run was written and its throughput. ``run``: the run folder
     :func:`~tocabi_torchrl.rl.run_dir.open_run` already opened for ``cfg`` (the recipe checks it before it starts),
-    so a resumed checkpoint is not read twice."""
+    so a resumed checkpoint is not read twice.
+
+    Data-parallel (``torchrun --nproc_per_node K``, read from the environment unless ``dist_info`` is given): every
+    rank trains ``cfg.env.num_envs`` worlds of its own (seed ``cfg.seed + rank``) on its own device, gradients, losses
+    and running observation statistics are averaged over the ranks (:mod:`~tocabi_torchrl.rl.distributed`), an
+    iteration is K rollouts (``cfg.total_env_steps`` counts all ranks' steps), and rank 0 alone logs and writes
+    checkpoints. A run resumes on any K: the iteration to continue from is derived from the env steps done.
+    """
     cfg.validate()
+    info = dist_info if dist_info is not None else from_environment()
+    device = init_distributed(info, resolve_device(cfg.device))
     if run is None:
-        require_loggers(cfg.loggers)
-        run = open_run(cfg)  # refuses to overwrite an earlier run; reads and checks the resumed checkpoint
-    if run.start_iteration >= cfg.iterations:
+        if info.is_main:
+            require_loggers(cfg.loggers)
+        # Rank 0 checks the folder (refusing to overwrite an earlier run); the others write nothing and only read the
+        # resumed checkpoint. Every rank learns whether rank 0 may go on, so none waits forever in a collective.
+        error = None
+        try:
+            run = open_run(cfg, writer=info.is_main)
+        except Exception as err:  # noqa: BLE001 - re-raised below, after the ranks agreed to stop
+            error = err
+        if not agree(error is None, info, device):
+            raise error if error is not None else RuntimeError("another rank could not open the run; see its error")
+    frames_per_iteration = cfg.frames_per_batch * info.world_size
+    iterations = max(1, -(-cfg.total_env_steps // frames_per_iteration))
+    if run.start_env_steps // frames_per_iteration >= iterations:
         return finished_result(run, cfg)
-    device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
+    if info.enabled:  # each rank its own worlds; rank 0 keeps the 1-rank run's seed
+        cfg = dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info))
     env = env if env is not None else build_env(cfg, device, for_training=True)
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim = env.action_spec.shape[-1]
     agent = build_agent(cfg, obs_dim, act_dim, device)
     optimizer = make_optimizer(cfg, agent, device)
     run_dir = run.path
-    start_iter, env_steps, prior_train_s = run.start_iteration, run.start_env_steps, 0.0
+    # Equal to the checkpoint's iteration on one rank; on another rank count, the same progress in env steps.
+    start_iter, env_steps, prior_train_s = run.start_env_steps // frames_per_iteration, run.start_env_steps, 0.0
     if run.resume_state is not None:
         mode = optimizer_mode(optimizer)  # the checkpoint may come from another update mode or device
         apply_checkpoint(run.resume_state, agent, optimizer, env, run.resume_file)
         restore_optimizer_mode(optimizer, mode)
         prior_train_s = float(run.resume_state.get("train_seconds", 0.0))
-        print(f"resumed from {run.resume_file} at iteration {start_iter} ({env_steps:,} env steps)")
+        if info.is_main:
+            print(f"resumed from {run.resume_file} at iteration {start_iter} ({env_steps:,} env steps)")
+    stats_sync = None
+    if info.enabled:
+        broadcast_module(agent.actor, info)
+        broadcast_module(agent.critic, info)
+        stats_sync = RunningStatsSync(getattr(env, "transform", []), info)
+        torch.manual_seed(rank_seed(cfg.seed, info))  # independent exploration noise and mini-batch order per rank
 
     ppo = cfg.ppo
     loss_module, advantage = make_loss(cfg, agent)
-    update_step = make_update_step(cfg, loss_module, optimizer, device)
+    update_step = make_update_step(cfg, loss_module, optimizer, device, info)
     assist = _assist_schedule(cfg, env)
     if assist is not None:
         env.base_env.set_torque_assist(assist(env_steps))
     # One host read at start-up; from then on the trainer knows when it takes the teacher.
     teacher_taken = agent.teacher is not None and bool(agent.teacher.anchored)
 
-    iterations = cfg.iterations
     collector = make_collector(cfg, env, agent.actor, device, (iterations - start_iter) * cfg.frames_per_batch)
-    logger = RunLogger(run_dir, cfg, total_iterations=iterations, start_iteration=start_iter)
+    logger = RunLogger(run_dir, cfg, total_iterations=iterations, start_iteration=start_iter) if info.is_main else None
     lr = get_lr(optimizer.param_groups[0])
     t_start = time.perf_counter()
     metrics: dict = {}
@@ -306,8 +344,10 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
     try:
         for it, batch in enumerate(collector, start=start_iter + 1):
             t_collect = time.perf_counter()
-            env_steps += batch.numel()
+            env_steps += batch.numel() * info.world_size
             progress_remaining = 1.0 - it / iterations
+            if stats_sync is not None:
+                stats_sync.sync()  # before the update: every rank's next rollout normalises alike
             # The collector reuses `batch` as its buffer (return_same_td): GAE's outputs go to a shallow copy.
             work = batch.clone(False)
             guard_rollout(work)  # frames with NaN/inf or impossible actions are masked out of the loss
@@ -317,7 +357,7 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
             flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
             if assist is not None:
                 # This rollout ran with β(steps before it); the next runs with β(now): the update absorbs the gap.
-                beta, beta_next = assist(env_steps - batch.numel()), assist(env_steps)
+                beta, beta_next = assist(env_steps - batch.numel() * info.world_size), assist(env_steps)
                 base = env.base_env
                 if agent.teacher is None:
                     weight = ppo.assist_absorb if beta_next < beta else 0.0
@@ -328,7 +368,7 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
                         teacher_taken = True
                     weight = ppo.assist_absorb * assist.teacher_weight(env_steps) if teacher_taken else 0.0
                 loss_module.set_step(base.assist_gain(beta), base.assist_gain(beta_next), beta, beta_next, weight)
-            stats = _update(cfg, flat, update_step)
+            stats = _update(cfg, flat, update_step, info)
             fading = False
             if assist is not None:
                 env.base_env.set_torque_assist(beta_next)
@@ -356,29 +396,35 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
             elapsed = time.perf_counter() - t_start
             train_s = prior_train_s + elapsed
             if it % cfg.log_every == 0 or it == iterations:
-                metrics = _episode_metrics(batch)
+                metrics = _episode_metrics(batch, info)
                 metrics.update(stats)
                 metrics.update(lr=lr, action_std=float(action_std(agent.actor).mean()), env_steps=env_steps,
-                               env_steps_per_s=(env_steps - start_iter * cfg.frames_per_batch) / elapsed,
+                               env_steps_per_s=(env_steps - run.start_env_steps) / elapsed,
                                update_s=time.perf_counter() - t_collect, wall_s=elapsed, train_s=train_s)
-                logger.log(it, metrics)
+                if logger is not None:
+                    logger.log(it, metrics)
+            # Checkpoints hold rank 0's state, which every rank shares (parameters, optimiser, statistics).
             if train_s >= next_mark:
-                save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s,
-                                tag=f"wall_{int(next_mark):05d}s")
+                if info.is_main:
+                    save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s,
+                                    tag=f"wall_{int(next_mark):05d}s")
                 next_mark = (int(train_s // mark_s) + 1) * mark_s
-            if it % cfg.checkpoint_every == 0 or it == iterations:
+            if (it % cfg.checkpoint_every == 0 or it == iterations) and info.is_main:
                 save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s)
-            if cfg.max_minutes and elapsed > 60.0 * cfg.max_minutes:
-                print(f"stopping after {cfg.max_minutes} min (max_minutes)")
-                save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s)
+            # Ranks' clocks differ: stop when any rank's time is up, all at the same iteration.
+            if cfg.max_minutes and not agree(elapsed <= 60.0 * cfg.max_minutes, info, device):
+                if info.is_main:
+                    print(f"stopping after {cfg.max_minutes} min (max_minutes)")
+                    save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s)
                 break
     finally:
         env_graph = bool(getattr(env, "graph_captured", False))
         collector.shutdown()
-        logger.close()
+        if logger is not None:
+            logger.close()
     wall = time.perf_counter() - t_start
-    done_steps = env_steps - start_iter * cfg.frames_per_batch
-    return TrainResult(run_dir, it, env_steps, wall, done_steps / max(wall, 1e-9), metrics, env_graph)
+    done_steps = env_steps - run.start_env_steps
+    return TrainResult(run_dir, it, env_steps, wall, done_steps / max(wall, 1e-9), metrics, env_graph, agent=agent)
 
 
 #: Frames per critic call in GAE (bounds its activation memory).
@@ -403,8 +449,10 @@ def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBas
     return [k for k in wanted if k in present]
 
 
-def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep) -> dict[str, float]:
-    """``epochs`` passes of shuffled mini-batches over the rollout. Returns mean losses and KL (one host read)."""
+def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep,
+            dist_info: DistInfo | None = None) -> dict[str, float]:
+    """``epochs`` passes of shuffled mini-batches over the rollout. Returns mean losses and KL (one host read),
+    averaged over the ranks in a data-parallel run, so that every rank adapts its learning rate alike."""
     n, mb, epochs = flat.shape[0], cfg.ppo.minibatch_size, cfg.ppo.epochs
     num_mb = max(1, n // mb)
     sums = None
@@ -413,7 +461,10 @@ def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep) -> dict[s
         for k in range(num_mb):
             stats = step(flat[perm[k * mb : (k + 1) * mb]])
             sums = stats.clone() if sums is None else sums.add_(stats)
-    mean = (sums / (epochs * num_mb)).tolist()
+    mean = sums / (epochs * num_mb)
+    if dist_info is not None:
+        all_reduce_mean(mean, dist_info)
+    mean = mean.tolist()
     return {_STAT_NAMES.get(k, k): v for k, v in zip(step.stat_keys, mean)}
 
 

@@ -86,15 +86,19 @@ class MinibatchStep:
             the step warns and stays eager. TorchRL's entropy bonus checks its value on the host, so a loss with
             ``entropy_bonus=True`` (``entropy_coef > 0``) cannot be captured and runs eagerly.
         emulate: run the static-buffer path without a capture (tests of the wiring on machines without CUDA).
+        grad_sync: called with ``params`` between ``backward`` and clipping, e.g.
+            :class:`~tocabi_torchrl.rl.distributed.GradientAllReduce` in a data-parallel run (captured with the step).
     """
 
     def __init__(self, loss_module, optimizer: torch.optim.Optimizer, params: list[torch.Tensor],
-                 max_grad_norm: float, use_graph: bool = False, warmup: int = 3, emulate: bool = False):
+                 max_grad_norm: float, use_graph: bool = False, warmup: int = 3, emulate: bool = False,
+                 grad_sync=None):
         if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 1:
             raise ValueError(f"warmup must be an int >= 1 (eager steps before the capture), got {warmup!r}")
         self.loss_module, self.optimizer, self.params = loss_module, optimizer, params
         self.max_grad_norm = max_grad_norm
         self.use_graph, self.warmup, self.emulate = use_graph, warmup, emulate
+        self.grad_sync = grad_sync
         self._calls = 0
         self.stat_keys: tuple[str, ...] = STAT_KEYS
         self._graph: torch.cuda.CUDAGraph | None = None
@@ -113,6 +117,8 @@ class MinibatchStep:
         names = [k for k in losses.keys() if isinstance(k, str) and k.startswith("loss_")]
         total = sum(losses[k] for k in names)
         total.backward()
+        if self.grad_sync is not None:
+            self.grad_sync(self.params)
         torch.nn.utils.clip_grad_norm_(self.params, self.max_grad_norm)
         self.optimizer.step()
         self.stat_keys = STAT_KEYS + tuple(k for k in EXTRA_STAT_KEYS if k in names)

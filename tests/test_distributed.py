@@ -1,0 +1,222 @@
+"""Data-parallel PPO pieces on 2 gloo ranks (CPU): averaged gradients equal the 1-rank gradient of the union of the
+ranks' mini-batches, so parameters stay identical across ranks and equal a 1-rank run over the same data; running
+observation statistics merge exactly; the torchrun layout is read and checked."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+from tensordict import TensorDict
+from torchrl.modules import ValueOperator
+from torchrl.objectives import ClipPPOLoss
+
+from tocabi_torchrl.rl.actors import make_actor
+from tocabi_torchrl.rl.distributed import (DistInfo, GradientAllReduce, RunningStatsSync, all_reduce_mean,
+                                           broadcast_module, from_environment, init_distributed, rank_seed)
+from tocabi_torchrl.rl.networks import make_mlp
+from tocabi_torchrl.rl.update_step import MinibatchStep
+from tocabi_torchrl.transforms.normalize import RunningNormalization
+
+pytestmark = pytest.mark.skipif(not dist.is_available() or not dist.is_gloo_available(),
+                                reason="torch.distributed with gloo is needed")
+
+OBS, ACT, ROWS, STEPS = 9, 4, 64, 3
+
+
+def _agent(seed: int):
+    torch.manual_seed(seed)
+    actor = make_actor(OBS, ACT, (32, 16), "elu", init_std=0.2, learn_std=False)
+    critic = ValueOperator(make_mlp(OBS, (32, 16), 1, "elu"), in_keys=["observation"])
+    # Mini-batch advantage normalisation would make each rank's loss depend on its half only: off, so that the mean
+    # of the ranks' losses is exactly the loss of the union.
+    loss = ClipPPOLoss(actor, critic, clip_epsilon=0.2, entropy_bonus=False, normalize_advantage=False)
+    loss.set_keys(sample_log_prob="action_log_prob")
+    params = [p for p in [*actor.parameters(), *critic.parameters()] if p.requires_grad]
+    return actor, critic, loss, params
+
+
+def _batch(rows: int) -> TensorDict:
+    g = torch.Generator().manual_seed(7)
+    return TensorDict({
+        "observation": torch.randn(rows, OBS, generator=g),
+        "action": torch.randn(rows, ACT, generator=g),
+        "action_log_prob": -torch.rand(rows, generator=g) * 4,
+        "advantage": torch.randn(rows, 1, generator=g),
+        "value_target": torch.randn(rows, 1, generator=g),
+        "state_value": torch.randn(rows, 1, generator=g),
+    }, batch_size=[rows])
+
+
+def _flat(params) -> torch.Tensor:
+    return torch.cat([p.detach().reshape(-1) for p in params])
+
+
+def _train_steps(rows: TensorDict, info: DistInfo, init_seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    actor, critic, loss, params = _agent(init_seed)
+    broadcast_module(actor, info)
+    broadcast_module(critic, info)
+    opt = torch.optim.Adam(params, lr=3e-3)
+    step = MinibatchStep(loss, opt, params, max_grad_norm=0.5, grad_sync=GradientAllReduce(info))
+    stats = torch.zeros(4)
+    for _ in range(STEPS):
+        stats += step(rows)
+    return _flat(params), all_reduce_mean(stats / STEPS, info)
+
+
+def _worker(rank: int, world: int, init_file: str, out: dict) -> None:
+    info = DistInfo(rank, world, rank)
+    init_distributed(info, torch.device("cpu"), init_method=f"file://{init_file}")
+    try:
+        full = _batch(ROWS)
+        half = full[rank * ROWS // world:(rank + 1) * ROWS // world]
+        # Different initial weights per rank: the broadcast must make them rank 0's.
+        params, stats = _train_steps(half, info, init_seed=100 + rank)
+        gathered = [torch.zeros_like(params) for _ in range(world)]
+        dist.all_gather(gathered, params)
+
+        # Running statistics: each rank folds in its own rows, then the sync merges them.
+        norm = RunningNormalization(dim=OBS, init_mean=[0.5] * OBS, init_var=[2.0] * OBS, init_count=10.0)
+        sync = RunningStatsSync([norm], info)
+        g = torch.Generator().manual_seed(11)
+        data = [torch.randn(30 + 7 * r, OBS, generator=g) * (1 + r) + r for r in range(world)]
+        norm.update(data[rank])
+        sync.sync()
+        norm.update(data[rank][:5] * 3)  # a second rollout: only what was added since the last sync is merged
+        sync.sync()
+        out[rank] = {"params": params, "all": torch.stack(gathered), "stats": stats,
+                     "norm": (norm.count.clone(), norm.mean.clone(), norm.var.clone()), "data": data}
+    finally:
+        dist.destroy_process_group()
+
+
+def _spawn_two(tmp_path) -> dict:
+    out = mp.Manager().dict()
+    mp.spawn(_worker, args=(2, str(tmp_path / "init"), out), nprocs=2, join=True)
+    return dict(out)
+
+
+@pytest.fixture(scope="module")
+def two_ranks(tmp_path_factory):
+    return _spawn_two(tmp_path_factory.mktemp("gloo"))
+
+
+def test_two_ranks_keep_identical_parameters(two_ranks):
+    torch.testing.assert_close(two_ranks[0]["all"][0], two_ranks[0]["all"][1], rtol=0, atol=0)
+    torch.testing.assert_close(two_ranks[0]["params"], two_ranks[1]["params"], rtol=0, atol=0)
+    start, _, _, params = _agent(100)
+    assert not torch.allclose(two_ranks[0]["params"], _flat(params)), "nothing trained"
+
+
+def test_two_ranks_equal_one_rank_on_the_union_of_their_minibatches(two_ranks):
+    one, stats = _train_steps(_batch(ROWS), DistInfo(), init_seed=100)
+    torch.testing.assert_close(two_ranks[0]["params"], one, rtol=1e-5, atol=1e-6)
+    # The mean of the ranks' mean losses is the loss of the union (equal halves): the logged stats agree too.
+    torch.testing.assert_close(two_ranks[0]["stats"][:2], stats[:2], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(two_ranks[0]["stats"], two_ranks[1]["stats"], rtol=0, atol=0)
+
+
+def test_running_statistics_merge_exactly(two_ranks):
+    data = two_ranks[0]["data"]
+    ref = RunningNormalization(dim=OBS, init_mean=[0.5] * OBS, init_var=[2.0] * OBS, init_count=10.0)
+    ref.update(torch.cat(data))
+    ref.update(torch.cat([d[:5] * 3 for d in data]))
+    for rank in (0, 1):
+        count, mean, var = two_ranks[rank]["norm"]
+        assert count.item() == pytest.approx(ref.count.item())
+        torch.testing.assert_close(mean, ref.mean, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(var, ref.var, rtol=1e-9, atol=1e-10)
+
+
+def test_torchrun_layout_is_read_and_checked():
+    assert from_environment({}) == DistInfo(0, 1, 0) and not DistInfo().enabled and DistInfo().is_main
+    info = from_environment({"RANK": "3", "WORLD_SIZE": "4", "LOCAL_RANK": "1"})
+    assert (info.rank, info.world_size, info.local_rank, info.enabled, info.is_main) == (3, 4, 1, True, False)
+    assert rank_seed(5, info) == 8 and rank_seed(5, DistInfo()) == 5
+    with pytest.raises(ValueError, match="RANK < WORLD_SIZE"):
+        from_environment({"RANK": "2", "WORLD_SIZE": "2"})
+    with pytest.raises(ValueError, match="WORLD_SIZE='two' is not an integer"):
+        from_environment({"WORLD_SIZE": "two"})
+
+
+def test_one_rank_helpers_are_no_ops():
+    info = DistInfo()
+    t = torch.tensor([1.0, 3.0])
+    assert all_reduce_mean(t, info) is t and t.tolist() == [1.0, 3.0]
+    assert init_distributed(info, torch.device("cpu")) == torch.device("cpu") and not dist.is_initialized()
+    w = torch.nn.Parameter(torch.ones(2))
+    w.grad = torch.full((2,), 4.0)
+    GradientAllReduce(info)([w])
+    assert w.grad.tolist() == [4.0, 4.0]
+
+
+
+def _train_worker(rank: int, world: int, init_file: str, run_dir: str, out: dict) -> None:
+    import dataclasses
+
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.trainer import build_env, train
+
+    info = DistInfo(rank, world, rank)
+    init_distributed(info, torch.device("cpu"), init_method=f"file://{init_file}")
+    try:
+        cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
+                            total_env_steps=world * 2 * 8, run_dir=run_dir, name="dp", checkpoint_every=1,
+                            progress_bar=False, eval_at_end=False)
+        # Running statistics, so that their merge is part of the run (the presets use the reference's fixed ones).
+        env = build_env(dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info)), torch.device("cpu"),
+                        for_training=True, normalization="running")
+        result = train(cfg, env=env, dist_info=info)
+        norm = next(t for t in env.transform if isinstance(t, RunningNormalization))
+        params = _flat([*result.agent.actor.parameters(), *result.agent.critic.parameters()])
+        out[rank] = {"iterations": result.iterations, "env_steps": result.env_steps, "params": params,
+                     "norm": (norm.count.clone(), norm.mean.clone())}
+    finally:
+        dist.destroy_process_group()
+
+
+def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
+    out = mp.Manager().dict()
+    mp.spawn(_train_worker, args=(2, str(tmp_path / "init"), str(tmp_path), out), nprocs=2, join=True)
+    r0, r1 = out[0], out[1]
+    # 2 ranks x 2 envs x 4 steps = 16 env steps per iteration: 2 iterations for the 32-step budget.
+    assert r0["iterations"] == r1["iterations"] == 2 and r0["env_steps"] == r1["env_steps"] == 32
+    torch.testing.assert_close(r0["params"], r1["params"], rtol=0, atol=0)
+    assert r0["norm"][0].item() == r1["norm"][0].item() > 32  # both ranks' rows (plus the initial weight)
+    torch.testing.assert_close(r0["norm"][1], r1["norm"][1], rtol=0, atol=0)
+    run = tmp_path / "dp"
+    ckpt = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)
+    assert ckpt["env_steps"] == 32
+    rows = (run / "metrics.csv").read_text().strip().splitlines()
+    assert len(rows) == 3, "rank 0 alone logs: a header and one row per iteration"
+    assert sorted(p.name for p in run.iterdir()) == sorted(["checkpoints", "config.json", "metrics.csv"])
+
+    # The same run goes on with one rank: the 32 steps done are 4 of its 8-step iterations.
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.trainer import train
+
+    cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
+                        total_env_steps=48, run_dir=str(tmp_path), name="dp", checkpoint_every=1,
+                        progress_bar=False, eval_at_end=False, resume=str(run))
+    result = train(cfg)
+    assert result.iterations == 6 and result.env_steps == 48
+
+
+def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
+    """The command the README gives, on the CPU: rank 0 alone writes the run folder."""
+    import os
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    torchrun = shutil.which("torchrun") or pytest.skip("torchrun is not on PATH")
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "ppo_walk.py"
+    proc = subprocess.run(
+        [torchrun, "--standalone", "--nproc_per_node", "2", str(recipe), "--preset", "cpu_smoke", "--device", "cpu",
+         "--num_envs", "2", "--steps_per_env", "4", "--minibatch_size", "4", "--total_env_steps", "32",
+         "--run_dir", str(tmp_path), "--name", "dp", "--eval_at_end", "false", "--progress_bar", "false"],
+        capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "done on 2 ranks: 32 env steps" in proc.stdout
+    assert torch.load(tmp_path / "dp" / "checkpoints" / "latest.pt", weights_only=True)["env_steps"] == 32
