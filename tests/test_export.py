@@ -12,16 +12,16 @@ import torch
 onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")
 
-from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp  # noqa: E402
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from tocabi_torchrl import robot  # noqa: E402
-from tocabi_torchrl.export import load_policy  # noqa: E402
-from tocabi_torchrl.export.__main__ import main as export_main  # noqa: E402
-from tocabi_torchrl.export.contract import config_sha256  # noqa: E402
-from tocabi_torchrl.export.onnx_export import DeterministicActor  # noqa: E402
-from tocabi_torchrl.rl.evaluate import _fixed_command  # noqa: E402
-from tocabi_torchrl.runtime import load_contract  # noqa: E402
-from tocabi_torchrl.transforms import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT  # noqa: E402
+from tocabi_torchrl import robot
+from tocabi_torchrl.export import load_policy
+from tocabi_torchrl.export.__main__ import main as export_main
+from tocabi_torchrl.export.contract import config_sha256
+from tocabi_torchrl.export.onnx_export import DeterministicActor
+from tocabi_torchrl.rl.evaluate import _fixed_command
+from tocabi_torchrl.runtime import load_contract
+from tocabi_torchrl.transforms import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT
 
 POLICIES = ("ppo", "torque")
 

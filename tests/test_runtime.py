@@ -15,10 +15,10 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
-from tocabi_torchrl import robot  # noqa: E402
-from tocabi_torchrl.runtime import ContractError, PolicyRuntime, RobotState, load_contract  # noqa: E402
+from reference_data import REFERENCE_DIR
 
-from reference_data import REFERENCE_DIR  # noqa: E402
+from tocabi_torchrl import robot
+from tocabi_torchrl.runtime import ContractError, PolicyRuntime, RobotState, load_contract
 
 POLICIES = ("ppo", "torque")
 #: Robots per side in the walking comparison (each its own 1e-6 perturbation of a chaotic gait).

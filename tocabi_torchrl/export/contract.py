@@ -17,7 +17,7 @@ from .. import __version__, robot
 from ..runtime.contract import CONTRACT_FORMAT, CONTRACT_VERSION, check_contract
 from ..runtime.motion import file_sha256
 
-__all__ = ["build_contract", "config_sha256", "sha256_bytes", "SIGNAL_DOCS"]
+__all__ = ["SIGNAL_DOCS", "build_contract", "config_sha256", "sha256_bytes"]
 
 _SIDES = ("left", "right")
 _AXES = ("x", "y", "z")

@@ -20,8 +20,17 @@ from torch import nn
 from ..rl.atomic import atomic_write_bytes, atomic_write_text
 from .contract import build_contract, sha256_bytes
 
-__all__ = ["LoadedPolicy", "load_policy", "DeterministicActor", "export_onnx", "export_policy", "ExportResult",
-           "ONNX_INPUT", "ONNX_OUTPUT", "ONNX_OPSET"]
+__all__ = [
+    "ONNX_INPUT",
+    "ONNX_OPSET",
+    "ONNX_OUTPUT",
+    "DeterministicActor",
+    "ExportResult",
+    "LoadedPolicy",
+    "export_onnx",
+    "export_policy",
+    "load_policy",
+]
 
 ONNX_INPUT = "observation"
 ONNX_OUTPUT = "action"

@@ -10,5 +10,13 @@ Nothing here imports torch or torchrl (``tests/test_runtime.py`` checks it in a 
 from .contract import CONTRACT_FORMAT, CONTRACT_VERSION, ContractError, check_contract, load_contract
 from .policy import Command, PolicyRuntime, RobotState
 
-__all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ContractError", "check_contract", "load_contract", "Command",
-           "PolicyRuntime", "RobotState"]
+__all__ = [
+           "CONTRACT_FORMAT",
+           "CONTRACT_VERSION",
+           "Command",
+           "ContractError",
+           "PolicyRuntime",
+           "RobotState",
+           "check_contract",
+           "load_contract",
+]

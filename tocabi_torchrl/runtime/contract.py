@@ -12,7 +12,7 @@ import json
 import os
 from pathlib import Path
 
-__all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "REQUIRED_KEYS", "ContractError", "load_contract", "check_contract"]
+__all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "REQUIRED_KEYS", "ContractError", "check_contract", "load_contract"]
 
 #: ``format`` field of every contract.
 CONTRACT_FORMAT = "tocabi_torchrl.policy_contract"

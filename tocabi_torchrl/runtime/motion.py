@@ -46,7 +46,7 @@ class RuntimeMotion:
         self.period = self.cycle_rows * self.row_dt
 
     @classmethod
-    def from_file(cls, path: str | os.PathLike, joint_names: list[str], sha256: str | None = None) -> "RuntimeMotion":
+    def from_file(cls, path: str | os.PathLike, joint_names: list[str], sha256: str | None = None) -> RuntimeMotion:
         """Load a ``.npz`` (project format) or ``.txt`` (reference format) motion; with ``sha256`` the file must
         have that hash (the contract's), else :class:`ContractError`."""
         path = Path(path)

@@ -23,7 +23,7 @@ import numpy as np
 
 from .policy import PolicyRuntime, RobotState
 
-__all__ = ["strip_meshes", "build_model", "Sim2SimResult", "run_sim2sim"]
+__all__ = ["Sim2SimResult", "build_model", "run_sim2sim", "strip_meshes"]
 
 
 def strip_meshes(path: str | os.PathLike) -> str:
@@ -95,7 +95,7 @@ class _Terminations:
     def __init__(self, model: mujoco.MjModel, contract: dict):
         from .. import robot  # numpy-only module: body lists
 
-        body = lambda n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n)  # noqa: E731
+        body = lambda n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n)
         self.base, self.neck = body(contract["robot"]["base_body"]), body(contract["robot"]["neck_body"])
         self.forbidden = {body(n) for n in robot.GROUND_FORBIDDEN_BODIES} - {-1}
         self.self_bodies = {body(n) for n in robot.SELF_COLLISION_BODIES} - {-1}

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["quat_to_rpy", "ObservationBuilder", "History"]
+__all__ = ["History", "ObservationBuilder", "quat_to_rpy"]
 
 
 def quat_to_rpy(quat: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ from .contract import ContractError, load_contract
 from .motion import RuntimeMotion, file_sha256
 from .observation import History, ObservationBuilder, quat_to_rpy
 
-__all__ = ["RobotState", "Command", "PolicyRuntime"]
+__all__ = ["Command", "PolicyRuntime", "RobotState"]
 
 _F32 = np.float32
 
