@@ -1,0 +1,65 @@
+"""Sim-to-sim: drive C MuJoCo TOCABI robots through an exported policy with the torch-free runtime.
+
+    python recipes/sim2sim.py --contract assets/policies/tocabi_walk_ppo.json
+    python recipes/sim2sim.py --contract assets/policies/tocabi_walk_torque.json --model reference --num_robots 8
+
+``--model authored`` (default) is assets/tocabi/tocabi.xml; ``reference`` is ../shared/reference/dyros_tocabi.xml
+(beside the repository) with its mesh geoms removed; any other value is an MJCF path. Prints the gait-test metrics
+of rl/evaluate.py (survival, forward distance, lateral drift, speed tracking error, knee RMS) as JSON. Needs
+numpy, mujoco and onnxruntime only (`pip install tocabi-torchrl[export]`); torch is never imported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from tocabi_torchrl.runtime import ContractError
+from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+REFERENCE_MODEL = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "dyros_tocabi.xml"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--contract", required=True, help="policy contract .json (the .onnx lies beside it)")
+    parser.add_argument("--model", default="authored", help="authored, reference, or an MJCF path (default: authored)")
+    parser.add_argument("--seconds", type=float, default=8.0, help="simulated time [s] (default: 8)")
+    parser.add_argument("--num_robots", type=int, default=4, help="robots, started at the motion's start rows in turn")
+    parser.add_argument("--vx", type=float, default=0.5, help="commanded forward speed [m/s] (default: 0.5)")
+    parser.add_argument("--vy", type=float, default=0.0, help="commanded lateral speed [m/s] (default: 0)")
+    parser.add_argument("--out", default=None, help="also write the metrics to this JSON file (never overwritten)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.num_robots < 1 or args.seconds <= 0:
+        parser.error("--num_robots must be >= 1 and --seconds > 0")
+    if args.out and Path(args.out).exists():
+        parser.error(f"--out {args.out} exists; choose another file")
+    model, strip = args.model, False
+    if model == "authored":
+        model = None
+    elif model == "reference":
+        if not REFERENCE_MODEL.is_file():
+            parser.error(f"the reference model is not at {REFERENCE_MODEL}")
+        model, strip = REFERENCE_MODEL, True
+    try:
+        result = run_sim2sim(args.contract, model, seconds=args.seconds, num_robots=args.num_robots,
+                             command=(args.vx, args.vy), remove_meshes=strip).as_dict()
+    except (ContractError, ValueError) as err:
+        sys.exit(f"error: {err}")
+    result["model"] = str(args.model)
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+    return result
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,129 @@
+"""ONNX export: the exported actor equals the torch actor, the contract holds the training objects' facts, every
+control mode exports, and the command line never overwrites silently. CPU only (C MuJoCo backend)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.export import load_policy
+from tocabi_torchrl.export.__main__ import main as export_main
+from tocabi_torchrl.export.contract import config_sha256
+from tocabi_torchrl.export.onnx_export import DeterministicActor
+from tocabi_torchrl.rl.evaluate import _fixed_command
+from tocabi_torchrl.runtime import load_contract
+from tocabi_torchrl.transforms import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT
+
+POLICIES = ("ppo", "torque")
+
+
+def _policy_file(name: str, suffix: str):
+    return robot.asset_path("policies", f"tocabi_walk_{name}{suffix}")
+
+
+def _recorded_observations(policy, steps: int) -> torch.Tensor:
+    """(num_envs * steps, obs_dim) policy inputs of a deterministic rollout of the TorchRL env."""
+    out = []
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = policy.env.reset()
+        for _ in range(steps):
+            out.append(td["observation"].clone())
+            td = step_mdp(policy.env.step(policy.agent.actor(td)))
+    return torch.cat(out)
+
+
+@pytest.mark.parametrize("name", POLICIES)
+def test_shipped_onnx_equals_torch_actor_on_random_and_recorded_observations(name):
+    """The shipped .onnx reproduces the checkpoint's deterministic actor within 1e-5 on 10k random and 10k
+    recorded observations, and its contract belongs to this checkpoint (config hash, ONNX hash)."""
+    policy = load_policy(_policy_file(name, ".pt"), num_envs=50, command=_fixed_command((0.5, 0.0)))
+    contract = load_contract(_policy_file(name, ".json"))
+    assert contract["training_config_sha256"] == config_sha256(policy.config_dict)
+    session = ort.InferenceSession(str(_policy_file(name, ".onnx")), providers=["CPUExecutionProvider"])
+    actor = DeterministicActor(policy.agent.actor).eval()
+    obs_dim = contract["policy"]["input_dim"]
+    gen = torch.Generator().manual_seed(0)
+    random_obs = 3.0 * torch.randn(10_000, obs_dim, generator=gen)
+    recorded = _recorded_observations(policy, steps=200)
+    assert recorded.shape == (10_000, obs_dim)
+    for obs in (random_obs, recorded):
+        with torch.no_grad():
+            expected = actor(obs).numpy()
+        got = session.run(None, {contract["policy"]["input_name"]: obs.numpy()})[0]
+        assert got.shape == expected.shape == (10_000, contract["action"]["dim"])
+        assert np.abs(got - expected).max() <= 1e-5
+
+
+def test_export_cli_writes_onnx_contract_torchscript_and_refuses_to_overwrite(tmp_path, capsys):
+    out = tmp_path / "walk.onnx"
+    export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(out), "--torchscript"])
+    onnx.checker.check_model(onnx.load(str(out)))
+    contract = load_contract(out.with_suffix(".json"))
+    scripted = torch.jit.load(str(out.with_suffix(".ts.pt")))
+    obs = torch.randn(7, contract["policy"]["input_dim"])
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    np.testing.assert_allclose(scripted(obs).detach().numpy(), session.run(None, {"observation": obs.numpy()})[0],
+                               atol=1e-5)
+
+    # The contract's facts are those of the objects that trained the policy.
+    obs_section = contract["observation"]
+    assert obs_section["step_dim"] == 37 and len(obs_section["entries"]) == 37
+    knee = robot.JOINT_NAMES.index("L_Knee_Joint")
+    assert obs_section["entries"][3 + knee]["name"] == "leg_joint_pos[L_Knee_Joint]"
+    assert [e["block"] for e in obs_section["entries"]][::12][:2] == [REFERENCE_OBS_LAYOUT[0].name,
+                                                                     REFERENCE_OBS_LAYOUT[1].name]
+    assert obs_section["history"]["obs_ages"] == list(REFERENCE_HISTORY.obs_ages)
+    assert obs_section["history"]["action_ages"] == list(REFERENCE_HISTORY.action_ages)
+    assert contract["policy"]["input_dim"] == 237
+    assert contract["action"]["control_mode"] == "pd_reference"
+    assert contract["action"]["leg"]["kind"] == "position" and contract["action"]["leg"]["center"] == "reference"
+    assert contract["action"]["leg"]["kp"] == pytest.approx(list(robot.LEG_KP))  # the run's pd_gains="robot"
+    assert contract["timing"] == {"physics_dt_s": 0.0005, "substeps": 8, "control_dt_s": pytest.approx(0.004),
+                                  "control_hz": pytest.approx(250.0)}
+    assert contract["reference_motion"]["name"] == "tocabi_walk.npz" and len(contract["reference_motion"]["sha256"]) == 64
+    # Everything written is plain JSON that a C++ controller can read.
+    json.dumps(contract)
+
+    with pytest.raises(SystemExit, match="exist"):
+        export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(out)])
+    export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(out), "--overwrite"])
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_every_control_mode_exports(tmp_path):
+    """A pd (nominal-centred) run and a torque run export with the leg rule of their mode."""
+    from tocabi_torchrl.rl.checkpoint import save_checkpoint
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.rl.trainer import build_agent, build_env
+
+    cfg = preset_config("default", control_mode="pd", num_envs=1, minibatch_size=48, actor_hidden=(16,),
+                        critic_hidden=(16,), device="cpu")
+    env = build_env(cfg, torch.device("cpu"), num_envs=1)
+    agent = build_agent(cfg, 237, 13, torch.device("cpu"))
+    ckpt = save_checkpoint(tmp_path / "run", 0, 0, agent, None, env, cfg)
+    export_main(["--checkpoint", str(ckpt), "--out", str(tmp_path / "pd.onnx")])
+    leg = load_contract(tmp_path / "pd.json")["action"]["leg"]
+    assert leg["kind"] == "position" and leg["center"] == "nominal"
+    assert leg["nominal"] == pytest.approx(list(env.base_env.cfg.control.pd_nominal))
+    assert leg["kp"] == pytest.approx(list(env.base_env.cfg.control.pd_kp))
+
+    torque = load_contract(_policy_file("torque", ".json"))["action"]["leg"]
+    assert torque["kind"] == "torque" and torque["torque_limits_nm"] == pytest.approx(list(robot.LEG_TORQUE_LIMITS))
+
+
+def test_export_refuses_a_non_onnx_output_and_a_bad_checkpoint(tmp_path):
+    with pytest.raises(SystemExit, match=r"\.onnx"):
+        export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(tmp_path / "x.bin")])
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(SystemExit, match="cannot read checkpoint"):
+        export_main(["--checkpoint", str(bad), "--out", str(tmp_path / "x.onnx")])

@@ -1,0 +1,10 @@
+"""Export a trained policy: ONNX (optionally TorchScript) plus the JSON I/O contract (``docs/export.md``).
+
+    python -m tocabi_torchrl.export --checkpoint RUN_DIR_OR_PT --out policy.onnx [--torchscript] [--overwrite]
+
+Needs the ``export`` extra (``onnx``); the runtime that runs the result is :mod:`tocabi_torchrl.runtime`.
+"""
+
+from .onnx_export import ExportResult, LoadedPolicy, export_policy, load_policy
+
+__all__ = ["ExportResult", "LoadedPolicy", "export_policy", "load_policy"]

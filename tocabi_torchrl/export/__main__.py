@@ -1,0 +1,30 @@
+"""``python -m tocabi_torchrl.export``: a checkpoint -> ONNX policy + JSON contract (+ TorchScript on request)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m tocabi_torchrl.export", description=__doc__)
+    parser.add_argument("--checkpoint", required=True, help="run folder or checkpoint .pt file")
+    parser.add_argument("--out", required=True, help="ONNX file to write; the contract goes beside it as .json")
+    parser.add_argument("--torchscript", action="store_true", help="also write a traced TorchScript module (.ts.pt)")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
+    from .onnx_export import export_policy
+
+    try:
+        result = export_policy(args.checkpoint, args.out, torchscript=args.torchscript, overwrite=args.overwrite)
+    except (FileExistsError, ValueError, RuntimeError) as err:  # CheckpointError is a RuntimeError
+        sys.exit(f"error: {err}")
+    print(f"wrote {result.onnx} and {result.contract}" + (f" and {result.torchscript}" if result.torchscript else ""))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

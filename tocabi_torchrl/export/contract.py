@@ -1,0 +1,198 @@
+"""Build the policy I/O contract from a loaded policy's env, transforms and config (``docs/export.md``).
+
+Every number comes from the objects that trained the policy: the env's config, simulator model and motion, and the
+transforms (layout, normalisation buffers, history layout), never from copies, so a change of observation or
+history shows up in the contract by itself. :mod:`tocabi_torchrl.runtime.contract` checks what this writes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__, robot
+from ..runtime.contract import CONTRACT_FORMAT, CONTRACT_VERSION, check_contract
+from ..runtime.motion import file_sha256
+
+__all__ = ["SIGNAL_DOCS", "build_contract", "config_sha256", "sha256_bytes"]
+
+_SIDES = ("left", "right")
+_AXES = ("x", "y", "z")
+
+#: Unit, frame and source of every signal the observation may read (docs/signals.md has the env's side).
+SIGNAL_DOCS: dict[str, dict[str, str]] = {
+    "base_rpy": {"unit": "rad", "frame": "world; fixed-XYZ (roll, pitch, yaw) of the base body (pelvis) quaternion, "
+                 "yaw = absolute heading", "source": "qpos[3:7] (w, x, y, z) -> Euler angles"},
+    "joint_pos": {"unit": "rad", "frame": "joint", "source": "qpos[7 + j], robot.joint_names order"},
+    "joint_vel": {"unit": "rad/s", "frame": "joint", "source": "qvel[6 + j], robot.joint_names order"},
+    "phase_sin": {"unit": "1", "frame": "-", "source": "sin(2*pi*k*phase), phase from the runtime's clock"},
+    "phase_cos": {"unit": "1", "frame": "-", "source": "cos(2*pi*k*phase), phase from the runtime's clock"},
+    "command": {"unit": "m/s", "frame": "pelvis heading frame (vx forward, vy left)", "source": "velocity command"},
+    "foot_force": {"unit": "N", "frame": "foot F/T sensor site frame; loaded foot: z < 0",
+                   "source": "robot.foot_force_sensors [left, right] x (x, y, z)"},
+    "foot_torque": {"unit": "N*m", "frame": "foot F/T sensor site frame",
+                    "source": "robot.foot_torque_sensors [left, right] x (x, y, z)"},
+}
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def config_sha256(config: dict) -> str:
+    """sha256 of the training config as canonical JSON (sorted keys, no spaces)."""
+    return sha256_bytes(json.dumps(config, sort_keys=True, separators=(",", ":"), default=list).encode())
+
+
+def _element_names(signal: str, shape: tuple[int, ...]) -> list[str]:
+    size = int(np.prod(shape)) if shape else 1
+    if signal in ("joint_pos", "joint_vel") and size == robot.NUM_JOINTS:
+        return list(robot.JOINT_NAMES)
+    if signal == "base_rpy":
+        return ["roll", "pitch", "yaw"]
+    if signal in ("phase_sin", "phase_cos"):
+        return [f"harmonic {k + 1}" for k in range(size)]
+    if signal == "command":
+        return ["vx", "vy"]
+    if signal in ("foot_force", "foot_torque") and shape == (2, 3):
+        return [f"{s} {a}" for s in _SIDES for a in _AXES]
+    return [str(i) for i in range(size)]
+
+
+def _find(transform, cls_name: str):
+    for t in transform:
+        if type(t).__name__ == cls_name:
+            return t
+    return None
+
+
+def _observation(env) -> dict:
+    transform = env.transform
+    assembly = _find(transform, "ObservationAssembly")
+    history = _find(transform, "ObsActionHistory")
+    phase = _find(transform, "PhaseEncoding")
+    if assembly is None or history is None or phase is None:
+        raise ValueError("the env's transforms lack ObservationAssembly, PhaseEncoding or ObsActionHistory; only the "
+                         "default transform chain (transforms.default_transforms) can be exported")
+    spec = env.observation_spec
+    entries, signals = [], {}
+    for comp in assembly.layout:
+        shape = tuple(spec[comp.key].shape[1:])  # without the batch dimension
+        elements = np.arange(int(np.prod(shape)) if shape else 1).reshape(shape)[comp.index].ravel()
+        names = _element_names(comp.key, shape)
+        signals.setdefault(comp.key, {"shape": list(shape), **SIGNAL_DOCS.get(comp.key, {})})
+        doc = SIGNAL_DOCS.get(comp.key, {})
+        for e in elements.tolist():
+            entries.append({"index": len(entries), "block": comp.name, "signal": comp.key, "element": int(e),
+                            "name": f"{comp.name}[{names[e]}]", "unit": doc.get("unit", "?"),
+                            "frame": doc.get("frame", "?")})
+    norm = _find(transform, "FixedNormalization")
+    if norm is not None:
+        normalization = {"kind": "fixed", "rule": "(raw - mean) / scale, then clip to +-clip when clip is set",
+                         "mean": norm.loc.tolist(), "scale": norm.scale.tolist(), "eps": norm.eps, "clip": norm.clip}
+    elif _find(transform, "RunningNormalization") is not None:
+        run = _find(transform, "RunningNormalization")
+        loc, scale = run._loc_scale()  # frozen at export: the checkpoint's statistics
+        normalization = {"kind": "running (frozen at export)", "rule": "(raw - mean) / scale, then clip",
+                         "mean": loc.tolist(), "scale": scale.tolist(), "eps": run.eps, "clip": run.clip}
+    else:
+        normalization = {"kind": "none", "rule": "identity", "mean": [0.0] * len(entries),
+                         "scale": [1.0] * len(entries), "eps": 0.0, "clip": None}
+    lay = history.layout
+    return {
+        "step_dim": len(entries),
+        "entries": entries,
+        "signals": signals,
+        "phase_harmonics": int(phase.harmonics),
+        "normalization": normalization,
+        "history": {
+            "num_obs": lay.num_obs, "stride": lay.stride, "num_actions": lay.num_actions,
+            "obs_ages": list(lay.obs_ages), "action_ages": list(lay.action_ages), "blocks": lay.describe(),
+            "order": "normalised observations at obs_ages (oldest first), then clipped applied actions at "
+                     "action_ages (oldest first); age in control periods, 0 = the current observation / the action "
+                     "just applied",
+            "reset": "every slot holds the first observation of the episode and the zero action",
+        },
+    }
+
+
+def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, output_name: str, opset: int) -> dict:
+    """The contract of a :class:`~tocabi_torchrl.export.onnx_export.LoadedPolicy` exported to ``onnx_file``."""
+    env = policy.env
+    base = env.base_env
+    cfg = base.cfg
+    model = base.sim.mj_model
+    n_leg = robot.NUM_LEG_JOINTS
+    leg_ids = [model.joint(n).id for n in robot.JOINT_NAMES[:n_leg]]
+    limits = [float(v) for v in robot.LEG_TORQUE_LIMITS]
+    if cfg.control.mode == "torque":
+        leg = {"kind": "torque", "torque_limits_nm": limits,
+               "rule": "tau[j] = action[j] * torque_limits_nm[j], held for every physics substep"}
+    else:
+        leg = {"kind": "position", "kp": [float(v) for v in cfg.control.pd_kp], "kv": [float(v) for v in cfg.control.pd_kv],
+               "action_scale": float(cfg.control.pd_action_scale), "torque_limits_nm": limits,
+               "joint_range": model.jnt_range[leg_ids].tolist(),
+               "center": "nominal" if cfg.control.mode == "pd" else "reference",
+               "rule": "target[j] = clip(center[j] + action_scale * action[j], joint_range[j]); tau = clip(kp*(target"
+                       " - q) - kv*qdot, +-torque_limits_nm) in every physics substep (a MuJoCo position servo)"}
+        if cfg.control.mode == "pd":
+            leg["nominal"] = [float(v) for v in cfg.control.pd_nominal]
+    act_spec = base.action_spec
+    motion = base.motion
+    motion_file = Path(motion.source)
+    observation = _observation(env)
+    contract = {
+        "format": CONTRACT_FORMAT,
+        "contract_version": CONTRACT_VERSION,
+        "package_version": __version__,
+        "training_config_sha256": config_sha256(policy.config_dict),
+        "training_config": policy.config_dict,
+        "checkpoint": {"file": policy.checkpoint.name, "iteration": policy.iteration, "env_steps": policy.env_steps},
+        "policy": {"onnx_file": onnx_file, "onnx_sha256": onnx_sha256, "opset": opset, "input_name": input_name,
+                   "output_name": output_name,
+                   "input_dim": int(env.observation_spec["observation"].shape[-1]),
+                   "output_dim": int(act_spec.shape[-1]),
+                   "output": "Gaussian mean (deterministic action), unclipped: clip to action.low/high before use"},
+        "robot": {
+            "joint_names": list(robot.JOINT_NAMES),
+            "leg_joint_names": list(robot.JOINT_NAMES[:n_leg]),
+            "upper_joint_names": list(robot.JOINT_NAMES[n_leg:]),
+            "actuator_names": list(robot.ACTUATOR_NAMES),
+            "initial_qpos": [float(v) for v in robot.INIT_QPOS],
+            "base_body": robot.BASE_BODY, "neck_body": robot.NECK_BODY,
+            "foot_force_sensors": list(robot.FOOT_FORCE_SENSORS),
+            "foot_torque_sensors": list(robot.FOOT_TORQUE_SENSORS),
+        },
+        "timing": {"physics_dt_s": float(model.opt.timestep), "substeps": int(cfg.sim.substeps),
+                   "control_dt_s": float(base.dt), "control_hz": 1.0 / float(base.dt)},
+        "action": {
+            "dim": int(act_spec.shape[-1]),
+            "low": act_spec.space.low[0].tolist(), "high": act_spec.space.high[0].tolist(),
+            "nan": "NaN entries count as 0",
+            "control_mode": cfg.control.mode,
+            "leg": leg,
+            "phase_rate": {"index": int(act_spec.shape[-1]) - 1, "gain": float(cfg.task.phase_rate_gain),
+                           "rule": "after each control period: t = (t + control_dt_s * (1 + gain * action[index])) "
+                                   "mod reference_motion.period_s"},
+        },
+        "upper_body": {"hold": "reference_motion joint targets at the period's start clock",
+                       "kp": [float(v) for v in robot.UPPER_KP], "kv": [float(v) for v in robot.UPPER_KV]},
+        "observation": observation,
+        "reference_motion": {
+            "name": motion_file.name, "sha256": file_sha256(motion_file), "rows": motion.num_rows,
+            "row_dt_s": float(motion.row_dt), "period_s": float(motion.period),
+            "init_rows": motion.init_rows.tolist(),
+            "interpolation": "zero-velocity cubic between rows: q = q[i] + (q[i+1] - q[i]) * (3s^2 - 2s^3)",
+            "phase": "((init_row + (t mod period) / row_dt) mod (rows - 1)) / (rows - 1)",
+        },
+        "termination": {"min_pelvis_height": float(cfg.task.min_pelvis_height),
+                        "min_neck_height": float(cfg.task.min_neck_height),
+                        "max_neck_angle": float(cfg.task.max_neck_angle),
+                        "forbidden_contact": bool(cfg.task.terminate_on_forbidden_contact),
+                        "self_collision": bool(cfg.task.terminate_on_self_collision)},
+    }
+    check_contract(contract, "exported contract")
+    return contract

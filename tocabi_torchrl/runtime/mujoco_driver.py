@@ -1,0 +1,238 @@
+"""Sim-to-sim: C MuJoCo TOCABI robots driven through :class:`PolicyRuntime`, with the gait-test metrics.
+
+Imports numpy, mujoco and the runtime only (no torch). The robot model is the authored ``assets/tocabi/tocabi.xml``
+or any MJCF with the contract's joint, actuator, body and sensor names, e.g. the reference ``dyros_tocabi.xml`` with
+its mesh geoms removed (:func:`strip_meshes`). Actuators are set up from the contract: leg motors stay motors in
+torque mode and become position servos with the contract's gains in the PD modes; upper-body motors (the reference
+model has no servos) become position servos with ``upper_body.kp``/``kv``, force-limited to their ctrlrange.
+
+Each control period repeats the training env's simulator step (``sim/mujoco_backend.py``): ``substeps`` × ``mj_step``
+with the command held, then ``mj_forward`` with its constraint solution kept as the next warm start. Terminations are
+the env's (``envs/termination.py``, ``sim/contacts.py``), found here from the contact list.
+"""
+
+from __future__ import annotations
+
+import os
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from .policy import PolicyRuntime, RobotState
+
+__all__ = ["Sim2SimResult", "build_model", "run_sim2sim", "strip_meshes"]
+
+
+def strip_meshes(path: str | os.PathLike) -> str:
+    """MJCF text of ``path`` without mesh assets and visual (``class="viz"`` or mesh) geoms, and without the
+    inertial ``quat`` that modern MuJoCo rejects beside ``fullinertia`` (the reference model's case; the spec says
+    meshes are visual only)."""
+    root = ET.parse(path).getroot()
+    compiler = root.find("compiler")
+    if compiler is not None:
+        compiler.attrib.pop("meshdir", None)
+    for parent in root.iter():
+        for child in list(parent):
+            if child.tag == "mesh" or (child.tag == "geom" and (child.get("class") == "viz" or "mesh" in child.attrib)):
+                parent.remove(child)
+            elif child.tag == "inertial" and "fullinertia" in child.attrib:
+                child.attrib.pop("quat", None)
+    return ET.tostring(root, encoding="unicode")
+
+
+def build_model(contract: dict, model_path: str | os.PathLike, remove_meshes: bool = False) -> mujoco.MjModel:
+    """Compile ``model_path`` with the actuators the contract's control mode needs (see the module docstring)."""
+    spec = (mujoco.MjSpec.from_string(strip_meshes(model_path)) if remove_meshes
+            else mujoco.MjSpec.from_file(str(model_path)))
+    rob, leg = contract["robot"], contract["action"]["leg"]
+    motors = [n.replace("_Joint", "_Motor") for n in rob["joint_names"]]
+    for i, name in enumerate(motors[: len(rob["leg_joint_names"])]):
+        act = spec.actuator(name)
+        if leg["kind"] == "position":
+            limit = float(leg["torque_limits_nm"][i])
+            act.set_to_position(kp=float(leg["kp"][i]), kv=float(leg["kv"][i]))
+            act.ctrllimited, act.forcelimited, act.forcerange = 0, 1, [-limit, limit]
+    upper = contract["upper_body"]
+    for i, name in enumerate(motors[len(rob["leg_joint_names"]) :]):
+        act = spec.actuator(name)
+        if act.gaintype == mujoco.mjtGain.mjGAIN_FIXED and act.biastype == mujoco.mjtBias.mjBIAS_NONE:  # a motor
+            limit = float(max(abs(act.ctrlrange[0]), abs(act.ctrlrange[1])))
+            act.set_to_position(kp=float(upper["kp"][i]), kv=float(upper["kv"][i]))
+            act.ctrllimited, act.forcelimited, act.forcerange = 0, 1, [-limit, limit]
+    model = spec.compile()
+    for j, name in enumerate(rob["joint_names"]):
+        jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if jid < 0 or model.jnt_qposadr[jid] != 7 + j or model.actuator(motors[j]).id != j:
+            raise ValueError(f"{model_path}: joint/actuator {name!r} is missing or out of the contract's order")
+    return model
+
+
+@dataclass
+class Sim2SimResult:
+    """Gait-test metrics (as ``rl/evaluate.py`` defines them) of a sim-to-sim run; distances in m."""
+
+    num_robots: int
+    seconds: float
+    survival: float
+    forward_distance_m: float
+    lateral_drift_m: float
+    mean_speed_mps: float
+    speed_tracking_error_mps: float
+    knee_rms_rad: float
+    per_robot_forward_m: list = field(default_factory=list)
+    alive: list = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+class _Terminations:
+    """The env's early-termination checks on one MjData (contact sets from the robot facts of ``robot.py``)."""
+
+    def __init__(self, model: mujoco.MjModel, contract: dict):
+        from .. import robot  # numpy-only module: body lists
+
+        body = lambda n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n)
+        self.base, self.neck = body(contract["robot"]["base_body"]), body(contract["robot"]["neck_body"])
+        self.forbidden = {body(n) for n in robot.GROUND_FORBIDDEN_BODIES} - {-1}
+        self.self_bodies = {body(n) for n in robot.SELF_COLLISION_BODIES} - {-1}
+        self.term = contract["termination"]
+
+    def __call__(self, m: mujoco.MjModel, d: mujoco.MjData) -> bool:
+        t = self.term
+        if d.xpos[self.base, 2] < t["min_pelvis_height"] or d.xpos[self.neck, 2] < t["min_neck_height"]:
+            return True
+        q = d.xquat[self.neck]
+        if 2.0 * np.arctan2(np.linalg.norm(q[1:]), abs(q[0])) > t["max_neck_angle"]:
+            return True
+        if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
+            return True
+        for c in d.contact[: d.ncon]:
+            b1, b2 = m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]
+            if t.get("forbidden_contact", True) and (b1 == 0 or b2 == 0) and (b1 + b2) in self.forbidden:
+                return True
+            if (t.get("self_collision", True) and b1 != 0 and b2 != 0 and b1 in self.self_bodies
+                    and b2 in self.self_bodies):
+                return True
+        return False
+
+
+def _state(m: mujoco.MjModel, datas: list, sensors: tuple[np.ndarray, np.ndarray]) -> RobotState:
+    qpos = np.stack([d.qpos for d in datas]).astype(np.float32)
+    qvel = np.stack([d.qvel for d in datas]).astype(np.float32)
+    sd = np.stack([d.sensordata for d in datas]).astype(np.float32)
+    force, torque = sensors
+    return RobotState(base_quat=qpos[:, 3:7], joint_pos=qpos[:, 7:], joint_vel=qvel[:, 6:],
+                      foot_force=sd[:, force], foot_torque=sd[:, torque])
+
+
+def _sensor_columns(m: mujoco.MjModel, names: list[str]) -> np.ndarray:
+    cols = []
+    for n in names:
+        sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SENSOR, n)
+        if sid < 0:
+            raise ValueError(f"the model has no sensor {n!r}, which the contract's observation reads")
+        cols.append(np.arange(m.sensor_adr[sid], m.sensor_adr[sid] + 3))
+    return np.stack(cols)  # (2, 3)
+
+
+def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike | None = None, seconds: float = 8.0,
+                num_robots: int = 4, command: tuple[float, float] = (0.5, 0.0), init_rows=None,
+                remove_meshes: bool = False, motion: str | os.PathLike | None = None, perturbation: float = 0.0,
+                seed: int = 0) -> Sim2SimResult:
+    """Drive ``num_robots`` C MuJoCo robots through the exported policy for ``seconds`` at ``command`` (vx, vy) m/s.
+
+    ``model_path``: MJCF (default: the shipped authored model); ``remove_meshes`` strips mesh geoms first (the
+    reference model). ``init_rows``: (num_robots,) start rows of the reference motion (default: the motion's start
+    rows in turn). A robot that meets a termination condition stops counting (as in the gait test) but keeps being
+    simulated.
+
+    ``perturbation`` > 0 offsets each robot's initial joint angles by N(0, perturbation²) rad (``seed``): a
+    walking gait is chaotic, so a 1e-6 rad offset (or the ~1e-6 difference between ONNX and torch arithmetic) gives
+    another sample of it, and averages over such robots are what two implementations can be compared on.
+    """
+    runtime = PolicyRuntime(contract_path, motion=motion)
+    c = runtime.contract
+    if model_path is None:
+        from ..robot import asset_path
+
+        model_path = asset_path("tocabi", "tocabi.xml")
+    m = build_model(c, Path(model_path), remove_meshes)
+    substeps = int(c["timing"]["substeps"])
+    if abs(m.opt.timestep * substeps - c["timing"]["control_dt_s"]) > 1e-9:
+        raise ValueError(f"{model_path}: timestep {m.opt.timestep} × {substeps} substeps is not the contract's "
+                         f"control period {c['timing']['control_dt_s']} s")
+    sensors = (_sensor_columns(m, c["robot"]["foot_force_sensors"]),
+               _sensor_columns(m, c["robot"]["foot_torque_sensors"]))
+    terminated = _Terminations(m, c)
+    n_leg = len(c["robot"]["leg_joint_names"])
+    knees = [c["robot"]["joint_names"].index(k) for k in ("L_Knee_Joint", "R_Knee_Joint")]
+    if init_rows is None:
+        rows = runtime.motion.init_rows
+        init_rows = rows[np.arange(num_robots) % len(rows)]
+    init_qpos = np.asarray(c["robot"]["initial_qpos"])
+    reset_leg = (np.zeros(n_leg) if c["action"]["leg"]["kind"] == "torque"
+                 else np.asarray(c["action"]["leg"].get("nominal", init_qpos[7 : 7 + n_leg])))
+
+    datas = [mujoco.MjData(m) for _ in range(num_robots)]
+    first_ref = runtime.motion.joint_targets(np.zeros(num_robots, np.float32), np.asarray(init_rows))
+    offsets = np.random.default_rng(seed).normal(0.0, perturbation, (num_robots, len(init_qpos) - 7))
+    for i, d in enumerate(datas):
+        d.qpos[:] = init_qpos
+        d.qpos[7:] += offsets[i]
+        d.ctrl[:n_leg] = reset_leg
+        d.ctrl[n_leg:] = first_ref[i, n_leg:]
+        mujoco.mj_forward(m, d)
+        d.qacc_warmstart[:] = d.qacc
+    cmd = runtime.reset(_state(m, datas, sensors), command, init_row=init_rows)
+    vx = float(command[0])
+    start = np.stack([d.qpos[:3].copy() for d in datas])
+    last = start.copy()
+    alive = np.ones(num_robots, dtype=bool)
+    knee_sq = np.zeros(num_robots)
+    vel_err = np.zeros(num_robots)
+    alive_steps = np.zeros(num_robots)
+    steps = int(round(seconds / c["timing"]["control_dt_s"]))
+    for _ in range(steps):
+        for i, d in enumerate(datas):
+            d.ctrl[:n_leg] = cmd.leg[i]
+            d.ctrl[n_leg:] = cmd.upper_targets[i]
+            for _ in range(substeps):
+                mujoco.mj_step(m, d)
+            mujoco.mj_forward(m, d)
+            d.qacc_warmstart[:] = d.qacc
+            if alive[i] and terminated(m, d):
+                alive[i] = False
+        state = _state(m, datas, sensors)
+        pos = np.stack([d.qpos[:3] for d in datas])
+        last = np.where(alive[:, None], pos, last)
+        a = alive.astype(np.float64)
+        knee_sq += a * ((state.joint_pos[:, knees] - cmd.reference[:, knees]) ** 2).mean(-1)
+        # base linear velocity in the base frame: R(q)ᵀ v
+        lin_vel = np.stack([_rotate_inverse(d.qpos[3:7], d.qvel[:3]) for d in datas])
+        vel_err += a * np.abs(lin_vel[:, 0] - vx)
+        alive_steps += a
+        cmd = runtime.step(state)
+    dt = float(c["timing"]["control_dt_s"])
+    dist = last - start
+    return Sim2SimResult(
+        num_robots=num_robots,
+        seconds=seconds,
+        survival=float(alive.mean()),
+        forward_distance_m=float(dist[:, 0].mean()),
+        lateral_drift_m=float(np.abs(dist[:, 1]).mean()),
+        mean_speed_mps=float((dist[:, 0] / np.maximum(alive_steps * dt, dt)).mean()),
+        speed_tracking_error_mps=float((vel_err / np.maximum(alive_steps, 1)).mean()),
+        knee_rms_rad=float(np.sqrt(knee_sq / np.maximum(alive_steps, 1)).mean()),
+        per_robot_forward_m=dist[:, 0].round(4).tolist(),
+        alive=alive.tolist(),
+    )
+
+
+def _rotate_inverse(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
+    out = np.empty(3)
+    mujoco.mju_rotVecQuat(out, vec, np.array([quat[0], -quat[1], -quat[2], -quat[3]]))
+    return out

@@ -1,0 +1,218 @@
+"""``PolicyRuntime``: run an exported policy from raw robot signals at the control rate, without torch.
+
+Per control period (4 ms, 250 Hz for the shipped policies) the caller passes the robot's state after the previous
+command was applied; the runtime advances its phase clock by the previous phase-rate action, builds the observation,
+pushes it into the history, runs the ONNX policy and returns the next leg commands and upper-body targets. The steps
+are those of ``TocabiWalk._step`` and the default transforms, in the same order (``docs/export.md``).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .contract import ContractError, load_contract
+from .motion import RuntimeMotion, file_sha256
+from .observation import History, ObservationBuilder, quat_to_rpy
+
+__all__ = ["Command", "PolicyRuntime", "RobotState"]
+
+_F32 = np.float32
+
+
+@dataclass
+class RobotState:
+    """Raw signals of N robots, float arrays; joints in the contract's ``robot.joint_names`` order.
+
+    Attributes:
+        base_quat: (N, 4) pelvis (base body) orientation in the world, (w, x, y, z).
+        joint_pos: (N, J) joint angles [rad].
+        joint_vel: (N, J) joint velocities [rad/s].
+        foot_force: (N, 2, 3) [left, right] foot F/T sensor forces [N] in the sensor site frame (loaded: z < 0).
+        foot_torque: (N, 2, 3) [left, right] foot F/T sensor torques [N·m] in the sensor site frame.
+    """
+
+    base_quat: np.ndarray
+    joint_pos: np.ndarray
+    joint_vel: np.ndarray
+    foot_force: np.ndarray
+    foot_torque: np.ndarray
+
+
+@dataclass
+class Command:
+    """What to apply for the next control period.
+
+    Attributes:
+        action: (N, A) float32 clipped policy action (the value the history stores).
+        leg: (N, L) float32 leg commands: torques [N·m] (``leg_kind == "torque"``) or target angles [rad] for a PD
+            with the contract's ``action.leg.kp``/``kv``, force-limited to ``torque_limits_nm`` (``"position"``).
+        leg_kind: ``"torque"`` or ``"position"``.
+        upper_targets: (N, U) float32 upper-body target angles [rad] for the upper-body PD.
+        reference: (N, J) float32 reference joint angles [rad] at this period's start (for logging/metrics).
+    """
+
+    action: np.ndarray
+    leg: np.ndarray
+    leg_kind: str
+    upper_targets: np.ndarray
+    reference: np.ndarray
+
+
+def _onnx_session(path: Path, threads: int):
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+
+
+class PolicyRuntime:
+    """An exported policy with its contract, its phase clock and its observation history for N robots.
+
+    Args:
+        contract: path of the contract JSON (the ONNX file is looked up beside it, as ``policy.onnx_file`` says).
+        motion: the reference motion file; default: the shipped motion of the name the contract gives. Its sha256
+            must match the contract's.
+        threads: onnxruntime intra-op threads.
+        check_onnx_hash: check the ONNX file against the contract's ``policy.onnx_sha256``.
+
+    Raises :class:`~tocabi_torchrl.runtime.contract.ContractError` for a bad contract, a missing or mismatched
+    ONNX file or motion, or a robot state with another joint count.
+    """
+
+    def __init__(self, contract: str | os.PathLike, motion: str | os.PathLike | None = None, threads: int = 1,
+                 check_onnx_hash: bool = True):
+        path = Path(contract)
+        self.contract = c = load_contract(path)
+        self.onnx_path = path.parent / c["policy"]["onnx_file"]
+        if not self.onnx_path.is_file():
+            raise ContractError(f"{path}: ONNX file {self.onnx_path} not found beside the contract")
+        if check_onnx_hash and c["policy"].get("onnx_sha256") not in (None, file_sha256(self.onnx_path)):
+            raise ContractError(f"{self.onnx_path} does not match the sha256 in {path}: the contract belongs to "
+                                "another export; re-export both together")
+        self.session = _onnx_session(self.onnx_path, threads)
+        inputs = self.session.get_inputs()
+        if inputs[0].name != c["policy"]["input_name"] or inputs[0].shape[-1] != c["policy"]["input_dim"]:
+            raise ContractError(f"{self.onnx_path}: input {inputs[0].name!r} {inputs[0].shape} does not match the "
+                                f"contract's {c['policy']['input_name']!r} of {c['policy']['input_dim']} values")
+        rob, act = c["robot"], c["action"]
+        self.joint_names = rob["joint_names"]
+        self.num_legs = len(rob["leg_joint_names"])
+        self.dt = _F32(c["timing"]["control_dt_s"])
+        self.low = np.asarray(act["low"], dtype=_F32)
+        self.high = np.asarray(act["high"], dtype=_F32)
+        self.rate_index = int(act["phase_rate"]["index"])
+        self.rate_gain = float(act["phase_rate"]["gain"])
+        self.mode = act["control_mode"]
+        leg = act["leg"]
+        self.leg_kind = leg["kind"]
+        self.torque_limits = np.asarray(leg["torque_limits_nm"], dtype=_F32)
+        if self.mode != "torque":
+            self.action_scale = _F32(leg["action_scale"])
+            rng = np.asarray(leg["joint_range"], dtype=_F32)
+            self.range_low, self.range_high = rng[:, 0], rng[:, 1]
+            self.nominal = np.asarray(leg.get("nominal", [0.0] * self.num_legs), dtype=_F32)
+        self.motion = self._load_motion(c["reference_motion"], motion)
+        self.observation = ObservationBuilder(c["observation"])
+        hist = c["observation"]["history"]
+        self.history = History(hist["obs_ages"], hist["action_ages"])
+        self.time: np.ndarray | None = None  # (N,) float32 phase clock [s], kept modulo the motion period
+        self.init_row: np.ndarray | None = None  # (N,) int64 start row of each robot
+        self.command: np.ndarray | None = None  # (N, 2) float32 velocity command [m/s]
+        self._pending: np.ndarray | None = None  # the action of the running period
+
+    def _load_motion(self, spec: dict, motion) -> RuntimeMotion:
+        if motion is None:
+            from ..robot import asset_path  # numpy-only module
+
+            motion = asset_path("motions", spec["name"])
+        return RuntimeMotion.from_file(motion, self.joint_names, spec["sha256"])
+
+    # --------------------------------------------------------------------------------------------- public API
+    @property
+    def num_robots(self) -> int:
+        return 0 if self.time is None else int(self.time.shape[0])
+
+    def reset(self, state: RobotState, command, init_row=None) -> Command:
+        """Start an episode for every robot from ``state`` (the initial pose): clock 0 at ``init_row`` (N,) (default:
+        the motion's first start row), history filled with this observation and zero actions. ``command`` (N, 2) or
+        (2,) is the velocity command [m/s] (vx, vy). Returns the command for the first period."""
+        n = self._check_state(state)
+        self.time = np.zeros(n, dtype=_F32)
+        rows = self.motion.init_rows[0] if init_row is None else init_row
+        self.init_row = np.broadcast_to(np.asarray(rows, dtype=np.int64), (n,)).copy()
+        self.set_command(command)
+        zeros = np.zeros((n, len(self.low)), dtype=_F32)
+        self.history.reset(self._observe(state), zeros)
+        return self._act()
+
+    def step(self, state: RobotState, command=None) -> Command:
+        """``state`` after one control period of the last command; returns the command for the next period.
+        ``command`` (optional) replaces the velocity command from this observation on."""
+        if self._pending is None:
+            raise RuntimeError("PolicyRuntime.step before reset: call reset(state, command) first")
+        self._check_state(state, self.num_robots)
+        if command is not None:
+            self.set_command(command)
+        rate = _F32(1.0) + _F32(self.rate_gain) * self._pending[:, self.rate_index]
+        self.time = np.remainder(self.time + self.dt * rate, _F32(self.motion.period)).astype(_F32)
+        self.history.push(self._observe(state), self._pending)
+        return self._act()
+
+    def set_command(self, command) -> None:
+        """Velocity command (vx, vy) [m/s], (N, 2) or (2,), used from the next observation on."""
+        n = self.num_robots
+        self.command = np.broadcast_to(np.asarray(command, dtype=_F32), (n, 2)).copy()
+
+    def policy_input(self) -> np.ndarray:
+        """(N, input_dim) float32: the current policy input (for tests and logging)."""
+        return self.history.read()
+
+    # --------------------------------------------------------------------------------------------- internals
+    def _check_state(self, state: RobotState, n: int | None = None) -> int:
+        j = len(self.joint_names)
+        shapes = {"base_quat": (4,), "joint_pos": (j,), "joint_vel": (j,), "foot_force": (2, 3),
+                  "foot_torque": (2, 3)}
+        count = np.shape(state.base_quat)[0] if n is None else n
+        for name, shape in shapes.items():
+            got = np.shape(getattr(state, name))
+            if got != (count, *shape):
+                raise ContractError(f"RobotState.{name} has shape {got}, expected {(count, *shape)}: the contract's "
+                                    f"robot has {j} joints ({self.joint_names[0]}, …) and this runtime runs {count} "
+                                    "robot(s)")
+        return count
+
+    def _observe(self, state: RobotState) -> np.ndarray:
+        phase = self.motion.phase(self.time, self.init_row)
+        sin, cos = self.observation.phase_features(phase)
+        signals = {
+            "base_rpy": quat_to_rpy(state.base_quat),
+            "joint_pos": state.joint_pos,
+            "joint_vel": state.joint_vel,
+            "phase_sin": sin,
+            "phase_cos": cos,
+            "command": self.command,
+            "foot_force": state.foot_force,
+            "foot_torque": state.foot_torque,
+        }
+        return self.observation.normalize(self.observation.raw(signals))
+
+    def _act(self) -> Command:
+        obs = self.history.read()
+        raw = self.session.run(None, {self.contract["policy"]["input_name"]: obs})[0]
+        action = np.clip(np.nan_to_num(raw.astype(_F32), nan=0.0), self.low, self.high)
+        self._pending = action
+        ref = self.motion.joint_targets(self.time, self.init_row)
+        a_leg = action[:, : self.num_legs]
+        if self.mode == "torque":
+            leg = a_leg * self.torque_limits
+        else:
+            center = self.nominal if self.mode == "pd" else ref[:, : self.num_legs]
+            leg = np.clip(center + self.action_scale * a_leg, self.range_low, self.range_high)
+        return Command(action=action, leg=leg.astype(_F32), leg_kind=self.leg_kind,
+                       upper_targets=ref[:, self.num_legs :], reference=ref)
