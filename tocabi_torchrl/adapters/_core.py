@@ -53,6 +53,10 @@ class TensorStepper:
         self.term_names = [k[1] for k in env.observation_spec.keys(True, True)
                            if isinstance(k, tuple) and k[0] == "reward_terms"]
         self._td: TensorDictBase | None = None
+        #: Called with no arguments after every step (the recipes' wall-clock checkpoints and time limit).
+        self.step_hooks: list = []
+        #: Env steps taken (num_envs per call), counted on the host.
+        self.env_steps = 0
 
     @property
     def observation(self) -> torch.Tensor:
@@ -78,7 +82,8 @@ class TensorStepper:
         terminated = nxt.get("terminated").reshape(self.num_envs)
         truncated = nxt.get("truncated").reshape(self.num_envs)
         terms = nxt.get("reward_terms", None)
-        return StepResult(
+        self.env_steps += self.num_envs
+        result = StepResult(
             obs=self._td.get(self.obs_key),
             final_obs=nxt.get(self.obs_key),
             reward=nxt.get("reward").reshape(self.num_envs),
@@ -89,6 +94,9 @@ class TensorStepper:
             episode_return=nxt.get("episode_reward").reshape(self.num_envs),
             episode_length=nxt.get("step_count").reshape(self.num_envs),
         )
+        for hook in self.step_hooks:
+            hook()
+        return result
 
     def close(self) -> None:
         if not self.env.is_closed:

@@ -47,9 +47,9 @@ class TocabiVectorEnv(VectorEnv):
     def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", numpy: bool = False,
                  preset: str = "default", **task):
         env, self.task_config = build_env(num_envs, device, preset=preset, **task)
-        self._stepper = TensorStepper(env)
-        self.num_envs = self._stepper.num_envs
-        self.device = self._stepper.device
+        self.stepper = TensorStepper(env)
+        self.num_envs = self.stepper.num_envs
+        self.device = self.stepper.device
         self.numpy = bool(numpy)
         self.single_observation_space = box_from_spec(env.observation_spec["observation"], batched=False)
         self.single_action_space = box_from_spec(env.action_spec, batched=False)
@@ -61,7 +61,7 @@ class TocabiVectorEnv(VectorEnv):
     @property
     def torchrl_env(self):
         """The wrapped TorchRL env."""
-        return self._stepper.env
+        return self.stepper.env
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         """Reset every env (``seed``: reseed first; an int, or a list whose first entry is used: the envs share
@@ -70,7 +70,7 @@ class TocabiVectorEnv(VectorEnv):
             raise ValueError(f"TocabiVectorEnv.reset takes no options, got {sorted(options)}")
         if isinstance(seed, (list, tuple)):
             seed = seed[0]
-        obs = self._stepper.reset(seed)
+        obs = self.stepper.reset(seed)
         return self._out(obs), {}
 
     def step(self, actions):
@@ -78,7 +78,7 @@ class TocabiVectorEnv(VectorEnv):
         action = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
         if action.shape != (self.num_envs, self.single_action_space.shape[0]):
             raise ValueError(f"actions must have shape {self.action_space.shape}, got {tuple(action.shape)}")
-        r = self._stepper.step(action)
+        r = self.stepper.step(action)
         return self._out(r.obs), self._out(r.reward), self._out(r.terminated), self._out(r.truncated), self._infos(r)
 
     def _infos(self, r: StepResult) -> dict[str, Any]:
@@ -96,7 +96,7 @@ class TocabiVectorEnv(VectorEnv):
         return x.cpu().numpy() if self.numpy else x
 
     def close_extras(self, **kwargs) -> None:
-        self._stepper.close()
+        self.stepper.close()
 
 
 def make_vector_env(num_envs: int = 4096, **kwargs) -> TocabiVectorEnv:

@@ -33,10 +33,10 @@ class TocabiRslRlEnv(VecEnv):
 
     def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", preset: str = "default", **task):
         env, self.task_config = build_env(num_envs, device, preset=preset, **task)
-        self._stepper = TensorStepper(env)
-        self.num_envs = self._stepper.num_envs
-        self.num_actions = self._stepper.action_dim
-        self.device = self._stepper.device
+        self.stepper = TensorStepper(env)
+        self.num_envs = self.stepper.num_envs
+        self.num_actions = self.stepper.action_dim
+        self.device = self.stepper.device
         self.max_episode_length = int(self.task_config.max_episode_steps)
         self.cfg = {"preset": preset, "num_envs": self.num_envs, "device": str(self.device),
                     "task": self.task_config.to_dict()}
@@ -44,7 +44,7 @@ class TocabiRslRlEnv(VecEnv):
     @property
     def episode_length_buf(self) -> torch.Tensor:
         """(num_envs,) int64: policy steps of each env's current episode (the env's own counter)."""
-        return self._stepper.env.base_env.episode_step
+        return self.stepper.env.base_env.episode_step
 
     @episode_length_buf.setter
     def episode_length_buf(self, value) -> None:
@@ -56,17 +56,17 @@ class TocabiRslRlEnv(VecEnv):
         return TensorDict({"policy": obs, "critic": obs}, batch_size=[self.num_envs], device=self.device)
 
     def get_observations(self) -> TensorDict:
-        return self._groups(self._stepper.observation)
+        return self._groups(self.stepper.observation)
 
     def reset(self) -> tuple[TensorDict, dict]:
         """Reset every env; returns the observation groups and empty extras."""
-        return self._groups(self._stepper.reset()), {}
+        return self._groups(self.stepper.reset()), {}
 
     def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
-        r = self._stepper.step(actions)
+        r = self.stepper.step(actions)
         log = {f"/reward/{k}": v.mean() for k, v in r.reward_terms.items()}
         extras = {"time_outs": r.truncated, "log": log}
         return self._groups(r.obs), r.reward, r.done.long(), extras
 
     def close(self) -> None:
-        self._stepper.close()
+        self.stepper.close()

@@ -37,18 +37,18 @@ class TocabiSB3VecEnv(VecEnv):
     def __init__(self, num_envs: int = 8, device: str | torch.device = "auto", preset: str = "default",
                  reward_terms_in_infos: bool = False, **task):
         env, self.task_config = build_env(num_envs, device, preset=preset, **task)
-        self._stepper = TensorStepper(env)
-        self.device = self._stepper.device
+        self.stepper = TensorStepper(env)
+        self.device = self.stepper.device
         self.reward_terms_in_infos = bool(reward_terms_in_infos)
         self.render_mode = None  # read by VecEnv.__init__
-        super().__init__(self._stepper.num_envs, box_from_spec(env.observation_spec["observation"], batched=False),
+        super().__init__(self.stepper.num_envs, box_from_spec(env.observation_spec["observation"], batched=False),
                          box_from_spec(env.action_spec, batched=False))
         self._actions: torch.Tensor | None = None
         self._start = time.time()
 
     def reset(self) -> np.ndarray:
         seed = next((s for s in self._seeds if s is not None), None)  # set by VecEnv.seed(); envs share one seed
-        obs = self._stepper.reset(seed)
+        obs = self.stepper.reset(seed)
         self._reset_seeds()
         self._reset_options()
         return obs.cpu().numpy()
@@ -63,7 +63,7 @@ class TocabiSB3VecEnv(VecEnv):
     def step_wait(self):
         if self._actions is None:
             raise RuntimeError("step_wait() called without step_async(actions)")
-        r = self._stepper.step(self._actions)
+        r = self.stepper.step(self._actions)
         self._actions = None
         obs, final_obs = r.obs.cpu().numpy(), r.final_obs.cpu().numpy()
         done, truncated = r.done.cpu().numpy(), r.truncated.cpu().numpy()
@@ -82,7 +82,7 @@ class TocabiSB3VecEnv(VecEnv):
         return obs, r.reward.cpu().numpy(), done, infos
 
     def close(self) -> None:
-        self._stepper.close()
+        self.stepper.close()
 
     # The single-process VecEnv API: one batched simulator, so attributes are the same for every env index.
     def _indices_list(self, indices) -> list[int]:

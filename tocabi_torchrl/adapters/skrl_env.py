@@ -34,15 +34,15 @@ class TocabiSkrlEnv(Wrapper):
 
     def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", preset: str = "default", **task):
         env, self.task_config = build_env(num_envs, device, preset=preset, **task)
-        self._stepper = TensorStepper(env)
+        self.stepper = TensorStepper(env)
         super().__init__(env)
-        self._device = self._stepper.device  # skrl's base reads `device` from the env; keep ours explicit
+        self._device = self.stepper.device  # skrl's base reads `device` from the env; keep ours explicit
         self._observation_space = box_from_spec(env.observation_spec["observation"], batched=False)
         self._action_space = box_from_spec(env.action_spec, batched=False)
 
     @property
     def num_envs(self) -> int:
-        return self._stepper.num_envs
+        return self.stepper.num_envs
 
     @property
     def observation_space(self):
@@ -58,10 +58,10 @@ class TocabiSkrlEnv(Wrapper):
 
     def reset(self) -> tuple[torch.Tensor, dict[str, Any]]:
         # skrl resets once at the start; the env resets finished episodes itself after that.
-        return self._stepper.reset(), {}
+        return self.stepper.reset(), {}
 
     def step(self, actions: torch.Tensor):
-        r = self._stepper.step(actions)
+        r = self.stepper.step(actions)
         infos = {"final_obs": r.final_obs, "_final_obs": r.done,
                  "episode": {f"Reward / {k}": v.mean() for k, v in r.reward_terms.items()}}
         return (r.obs, r.reward.unsqueeze(-1), r.terminated.unsqueeze(-1), r.truncated.unsqueeze(-1), infos)
@@ -73,4 +73,4 @@ class TocabiSkrlEnv(Wrapper):
         return None
 
     def close(self) -> None:
-        self._stepper.close()
+        self.stepper.close()
