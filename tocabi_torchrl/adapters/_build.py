@@ -21,13 +21,15 @@ def task_config(preset: str = "default", num_envs: int = 4096, **task) -> PPOCon
 
 
 def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "default",
-              for_training: bool = True, **task) -> tuple[EnvBase, PPOConfig]:
+              for_training: bool = True, env_options: dict | None = None, **task) -> tuple[EnvBase, PPOConfig]:
     """The walking task of ``preset`` over ``num_envs`` envs on ``device``, as a TorchRL env, and its config.
 
     The env is :func:`tocabi_torchrl.rl.trainer.build_env`'s: ``observation`` (num_envs, 237), ``reward``
     (num_envs, 1), ``terminated``/``truncated`` (num_envs, 1) bool, ``("reward_terms", name)`` (num_envs, 1) per
     reward term, ``episode_reward`` (num_envs, 1) and ``step_count`` (num_envs, 1). ``for_training`` drops the raw
-    signals nobody reads during training (the gait test builds its own env with them).
+    signals nobody reads during training (the gait test builds its own env with them). ``env_options``: fields of
+    :class:`~tocabi_torchrl.envs.TocabiWalkConfig` or the transform config beyond the preset's (``make_env``'s
+    options, e.g. ``{"min_pelvis_height": 0.7}``).
     """
     from ..rl.trainer import build_env as _trainer_env, resolve_device
 
@@ -35,4 +37,5 @@ def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
     cfg = task_config(preset, num_envs=num_envs, device=str(dev), **task)
-    return _trainer_env(cfg, dev, num_envs=num_envs, for_training=for_training), cfg
+    env = _trainer_env(cfg, dev, num_envs=num_envs, for_training=for_training, **(env_options or {}))
+    return env, cfg

@@ -45,8 +45,9 @@ class TocabiVectorEnv(VectorEnv):
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
     def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", numpy: bool = False,
-                 preset: str = "default", **task):
-        env, self.task_config = build_env(num_envs, device, preset=preset, **task)
+                 preset: str = "default",
+                 env_options: dict | None = None, **task):
+        env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
         self.stepper = TensorStepper(env)
         self.num_envs = self.stepper.num_envs
         self.device = self.stepper.device

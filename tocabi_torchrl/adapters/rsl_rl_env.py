@@ -31,8 +31,9 @@ class TocabiRslRlEnv(VecEnv):
     term (``"/reward/<term>"``), scalars on the device (rsl_rl's logger reads them once per iteration).
     """
 
-    def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", preset: str = "default", **task):
-        env, self.task_config = build_env(num_envs, device, preset=preset, **task)
+    def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", preset: str = "default",
+                 env_options: dict | None = None, **task):
+        env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
         self.stepper = TensorStepper(env)
         self.num_envs = self.stepper.num_envs
         self.num_actions = self.stepper.action_dim

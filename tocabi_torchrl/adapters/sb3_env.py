@@ -35,8 +35,8 @@ class TocabiSB3VecEnv(VecEnv):
     """
 
     def __init__(self, num_envs: int = 8, device: str | torch.device = "auto", preset: str = "default",
-                 reward_terms_in_infos: bool = False, **task):
-        env, self.task_config = build_env(num_envs, device, preset=preset, **task)
+                 reward_terms_in_infos: bool = False, env_options: dict | None = None, **task):
+        env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
         self.stepper = TensorStepper(env)
         self.device = self.stepper.device
         self.reward_terms_in_infos = bool(reward_terms_in_infos)

@@ -32,8 +32,9 @@ class TocabiSkrlEnv(Wrapper):
     reward term as a scalar tensor (``"Reward / <term>"``), which skrl's trainer logs.
     """
 
-    def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", preset: str = "default", **task):
-        env, self.task_config = build_env(num_envs, device, preset=preset, **task)
+    def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", preset: str = "default",
+                 env_options: dict | None = None, **task):
+        env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
         self.stepper = TensorStepper(env)
         super().__init__(env)
         self._device = self.stepper.device  # skrl's base reads `device` from the env; keep ours explicit
