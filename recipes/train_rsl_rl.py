@@ -95,7 +95,8 @@ def main(argv=None) -> dict:
     return result
 
 
-def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0) -> dict:
+def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0,
+             command: tuple[float, float] = (0.5, 0.0)) -> dict:
     """The gait test of a ``policy.pt`` this recipe wrote."""
     from tensordict import TensorDict
 
@@ -113,7 +114,7 @@ def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", se
         return actor.to(obs.device)(groups)
 
     return evaluate_actions(act, out_dir, preset=meta["preset"], num_envs=num_envs, device=device, seconds=seconds,
-                            task=meta["task"])
+                            command=command, task=meta["task"])
 
 
 if __name__ == "__main__":

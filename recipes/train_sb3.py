@@ -125,7 +125,8 @@ def main(argv=None) -> dict:
     return result
 
 
-def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0) -> dict:
+def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0,
+             command: tuple[float, float] = (0.5, 0.0)) -> dict:
     """The gait test of a ``policy.pt`` this recipe wrote: SB3's policy network rebuilt, its mean action used."""
     from tocabi_torchrl.adapters._versions import require
     from tocabi_torchrl.adapters.evaluate import evaluate_actions
@@ -148,7 +149,7 @@ def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", se
         return net.to(obs.device)._predict(obs, deterministic=True)
 
     return evaluate_actions(act, out_dir, preset=meta["preset"], num_envs=num_envs, device=device, seconds=seconds,
-                            task=meta["task"])
+                            command=command, task=meta["task"])
 
 
 if __name__ == "__main__":
