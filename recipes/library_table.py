@@ -90,9 +90,9 @@ def first_pass(library: str, snapshots: list[str], out: Path, args) -> dict | No
 def report(rows: list[dict], path: Path) -> None:
     from tocabi_torchrl.rl.atomic import atomic_write_text
 
-    lines = ["# Per-library table (issue 22)", "",
-             "Training env-steps/s (collection + update over training wall-clock) and the training time at which "
-             "the policy first passes the 8 s gait test (30-minute cap). Written by `recipes/library_table.py`.", "",
+    intro = ("Training env-steps/s (collection + update over training wall-clock) and the training time at which the "
+             "policy first passes the 8 s gait test (30-minute cap). Written by `recipes/library_table.py`.")
+    lines = ["# Per-library table (issue 22)", "", intro, "",
              "| library | version | preset | envs | env-steps/s | walks at (min) | device | command |",
              "|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: (r["preset"], r["library"], r["num_envs"])):

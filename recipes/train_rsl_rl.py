@@ -58,7 +58,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--hidden", type=lambda s: tuple(int(x) for x in s.split(",")), default=(400, 200, 100),
                         help="hidden layer sizes of actor and critic, comma-separated (default: 400,200,100)")
     args = parser.parse_args(argv)
-    from tocabi_torchrl.adapters import TocabiRslRlEnv  # checks the rsl-rl-lib version
+    # The adapter checks the installed rsl-rl-lib version before any of rsl_rl's own modules is imported.
+    from tocabi_torchrl.adapters import TocabiRslRlEnv  # isort: skip
     from rsl_rl.runners import OnPolicyRunner
 
     out = open_out_dir(args.out)

@@ -68,7 +68,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--hidden", type=lambda s: tuple(int(x) for x in s.split(",")), default=(400, 200, 100),
                         help="hidden layer sizes of actor and critic, comma-separated (default: 400,200,100)")
     args = parser.parse_args(argv)
-    from tocabi_torchrl.adapters import TocabiSkrlEnv  # checks the skrl version
+    # The adapter checks the installed skrl version before any of skrl's own modules is imported.
+    from tocabi_torchrl.adapters import TocabiSkrlEnv  # isort: skip
     from skrl.agents.torch.ppo import PPO, PPO_CFG
     from skrl.memories.torch import RandomMemory
     from skrl.resources.schedulers.torch import KLAdaptiveLR
@@ -121,10 +122,11 @@ def main(argv=None) -> dict:
 def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0,
              command: tuple[float, float] = (0.5, 0.0)) -> dict:
     """The gait test of a ``policy.pt`` this recipe wrote: skrl's policy model rebuilt, its mean action used."""
+    from torchrl.data import Bounded, Unbounded
+
     from tocabi_torchrl.adapters._versions import require
     from tocabi_torchrl.adapters.evaluate import evaluate_actions
     from tocabi_torchrl.adapters.spaces import box_from_spec
-    from torchrl.data import Bounded, Unbounded
 
     require("skrl")
     meta, state = load_policy(policy, "skrl")

@@ -73,13 +73,13 @@ def test_truncation_at_the_time_limit_resets_in_the_same_step(envs):
     for _ in range(2):
         obs, _, terminated, truncated, infos = envs.step(_zero(envs))
         assert not truncated.any() and not infos["_final_obs"].any() and not infos["_episode"].any()
-    obs, reward, terminated, truncated, infos = envs.step(_zero(envs))
+    obs, _, terminated, truncated, infos = envs.step(_zero(envs))
     assert truncated.all() and not terminated.any()
     assert infos["_final_obs"].all() and infos["_episode"].all()
     np.testing.assert_array_equal(infos["episode"]["l"], [3, 3])
     assert not np.allclose(infos["final_obs"], obs)  # the returned obs is the reset one, not the terminal one
     # A fresh episode: the next step is its first, not a dummy transition.
-    obs2, _, terminated, truncated, infos = envs.step(_zero(envs))
+    _, _, terminated, truncated, infos = envs.step(_zero(envs))
     assert not (terminated | truncated).any() and not infos["_episode"].any()
 
 
@@ -88,7 +88,7 @@ def test_termination_is_not_truncation_and_returns_the_episode():
     # limit: termination wins, and truncation stays False.
     env = TocabiVectorEnv(N, "cpu", numpy=False, max_episode_steps=1, env_options={"min_pelvis_height": 5.0})
     try:
-        first, _ = env.reset(seed=1)
+        env.reset(seed=1)
         obs, reward, terminated, truncated, infos = env.step(torch.zeros(N, 13))
         assert isinstance(obs, torch.Tensor) and obs.device == env.device
         assert terminated.all() and not truncated.any()

@@ -10,10 +10,10 @@ import torch
 
 pytest.importorskip("rsl_rl")
 
-from rsl_rl.env import VecEnv  # noqa: E402
+from recipe_runner import load_recipe
+from rsl_rl.env import VecEnv
 
-from recipe_runner import load_recipe  # noqa: E402
-from tocabi_torchrl.adapters import TocabiRslRlEnv  # noqa: E402
+from tocabi_torchrl.adapters import TocabiRslRlEnv
 
 N = 2
 

@@ -11,12 +11,12 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
-from stable_baselines3.common.utils import check_for_correct_spaces  # noqa: E402
-from stable_baselines3.common.vec_env import VecCheckNan, VecEnv, VecMonitor  # noqa: E402
+from recipe_runner import load_recipe
+from stable_baselines3.common.utils import check_for_correct_spaces
+from stable_baselines3.common.vec_env import VecCheckNan, VecEnv, VecMonitor
 
-from recipe_runner import load_recipe  # noqa: E402
-from tocabi_torchrl.adapters import TocabiSB3VecEnv  # noqa: E402
-from tocabi_torchrl.adapters.policy_file import load_policy  # noqa: E402
+from tocabi_torchrl.adapters import TocabiSB3VecEnv
+from tocabi_torchrl.adapters.policy_file import load_policy
 
 N = 2
 
@@ -49,7 +49,7 @@ def test_truncation_gives_terminal_observation_and_episode(env):
     zeros = np.zeros((N, 13), dtype=np.float32)
     obs, _, dones, infos = env.step(zeros)
     assert not dones.any() and "terminal_observation" not in infos[0]
-    obs, rewards, dones, infos = env.step(zeros)
+    obs, _, dones, infos = env.step(zeros)
     assert dones.all()
     for i, info in enumerate(infos):
         assert info["TimeLimit.truncated"] is True  # SB3's PPO bootstraps the value of truncated episodes

@@ -10,10 +10,10 @@ import torch
 
 pytest.importorskip("skrl")
 
-from skrl.envs.wrappers.torch.base import Wrapper  # noqa: E402
+from recipe_runner import load_recipe
+from skrl.envs.wrappers.torch.base import Wrapper
 
-from recipe_runner import load_recipe  # noqa: E402
-from tocabi_torchrl.adapters import TocabiSkrlEnv  # noqa: E402
+from tocabi_torchrl.adapters import TocabiSkrlEnv
 
 N = 2
 
@@ -24,12 +24,12 @@ def test_wrapper_interface_and_autoreset():
         assert isinstance(env, Wrapper)
         assert env.num_envs == N and env.observation_space.shape == (237,) and env.action_space.shape == (13,)
         assert env.state_space is None and env.state() is None
-        obs, info = env.reset()
+        obs, _ = env.reset()
         assert obs.shape == (N, 237) and obs.device == env.device
         obs, reward, terminated, truncated, infos = env.step(torch.zeros(N, 13))
         assert reward.shape == terminated.shape == truncated.shape == (N, 1)
         assert not (terminated | truncated).any()
-        assert set(infos["episode"]) == {f"Reward / {k}" for k in env.stepper.term_names}
+        assert set(infos["log"]) == {f"Reward / {k}" for k in env.stepper.term_names}
         obs, reward, terminated, truncated, infos = env.step(torch.zeros(N, 13))
         assert truncated.all() and not terminated.any() and infos["_final_obs"].all()
         assert not torch.equal(infos["final_obs"], obs)

@@ -24,8 +24,17 @@ import gymnasium as _gymnasium
 from ._build import build_env, task_config
 from ._versions import SUPPORTED, LibraryVersionError
 
-__all__ = ["build_env", "task_config", "SUPPORTED", "LibraryVersionError", "TocabiVectorEnv", "TocabiRslRlEnv",
-           "TocabiSB3VecEnv", "TocabiSkrlEnv", "ENV_ID"]
+__all__ = [
+    "ENV_ID",
+    "SUPPORTED",
+    "LibraryVersionError",
+    "TocabiRslRlEnv",
+    "TocabiSB3VecEnv",
+    "TocabiSkrlEnv",
+    "TocabiVectorEnv",
+    "build_env",
+    "task_config",
+]
 
 ENV_ID = "TocabiWalk-v0"
 

@@ -31,7 +31,8 @@ def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "
     :class:`~tocabi_torchrl.envs.TocabiWalkConfig` or the transform config beyond the preset's (``make_env``'s
     options, e.g. ``{"min_pelvis_height": 0.7}``).
     """
-    from ..rl.trainer import build_env as _trainer_env, resolve_device
+    from ..rl.trainer import build_env as _trainer_env
+    from ..rl.trainer import resolve_device
 
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")

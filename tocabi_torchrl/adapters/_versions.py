@@ -45,7 +45,7 @@ def version_in_range(version: str, low: str, high: str) -> bool:
     """Whether ``low <= version < high`` by numeric release parts (pre-release tags are ignored)."""
     v, lo, hi = _parse(version), _parse(low), _parse(high)
     width = max(len(v), len(lo), len(hi))
-    pad = lambda t: t + (0,) * (width - len(t))  # noqa: E731
+    pad = lambda t: t + (0,) * (width - len(t))
     return pad(lo) <= pad(v) < pad(hi)
 
 

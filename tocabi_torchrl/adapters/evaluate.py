@@ -4,7 +4,7 @@ any library, given as a function from observations to deterministic actions."""
 from __future__ import annotations
 
 import os
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 
@@ -12,7 +12,7 @@ from ..rl.evaluate import evaluate_policy
 from ..rl.trainer import resolve_device
 from ._build import task_config
 
-__all__ = ["evaluate_actions", "gait_passes", "GAIT_CRITERIA"]
+__all__ = ["GAIT_CRITERIA", "evaluate_actions", "gait_passes"]
 
 #: Pass thresholds of the gait test at (0.5, 0) m/s (the same as ``benchmarks/time_to_walk.CRITERIA``, issue 19).
 GAIT_CRITERIA = {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m": 0.3, "knee_rms_rad": 0.15}

@@ -17,7 +17,7 @@ import torch
 
 from ..rl.atomic import atomic_write_bytes
 
-__all__ = ["save_policy", "load_policy", "PolicyFileError", "FORMAT"]
+__all__ = ["FORMAT", "PolicyFileError", "load_policy", "save_policy"]
 
 FORMAT = "tocabi_torchrl.adapters.policy/1"
 

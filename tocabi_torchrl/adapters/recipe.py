@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..rl.atomic import atomic_write_text
 
-__all__ = ["base_parser", "open_out_dir", "write_json", "TrainingClock", "TimeUp"]
+__all__ = ["TimeUp", "TrainingClock", "base_parser", "open_out_dir", "write_json"]
 
 
 def base_parser(description: str, num_envs: int, iterations: int) -> argparse.ArgumentParser:

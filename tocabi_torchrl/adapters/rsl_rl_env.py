@@ -13,10 +13,10 @@ from tensordict import TensorDict
 from ._versions import require
 
 require("rsl_rl")
-from rsl_rl.env import VecEnv  # noqa: E402
+from rsl_rl.env import VecEnv
 
-from ._build import build_env  # noqa: E402
-from ._core import TensorStepper  # noqa: E402
+from ._build import build_env
+from ._core import TensorStepper
 
 __all__ = ["TocabiRslRlEnv"]
 

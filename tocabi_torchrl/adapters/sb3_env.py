@@ -18,11 +18,11 @@ import torch
 from ._versions import require
 
 require("stable_baselines3")
-from stable_baselines3.common.vec_env import VecEnv  # noqa: E402
+from stable_baselines3.common.vec_env import VecEnv
 
-from ._build import build_env  # noqa: E402
-from ._core import TensorStepper  # noqa: E402
-from .spaces import box_from_spec  # noqa: E402
+from ._build import build_env
+from ._core import TensorStepper
+from .spaces import box_from_spec
 
 __all__ = ["TocabiSB3VecEnv"]
 
