@@ -96,13 +96,12 @@ def main(argv=None) -> dict:
     return result
 
 
-def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0,
-             command: tuple[float, float] = (0.5, 0.0)) -> dict:
-    """The gait test of a ``policy.pt`` this recipe wrote."""
+def load_actor(policy: str):
+    """``(meta, act)`` for a ``policy.pt`` this recipe wrote: rsl_rl's actor rebuilt from the metadata, and ``act``
+    its deterministic output (the Gaussian mean) for (num_envs, 237) observations on any device."""
     from tensordict import TensorDict
 
     from tocabi_torchrl.adapters._versions import require
-    from tocabi_torchrl.adapters.evaluate import evaluate_actions
 
     require("rsl_rl")
     meta, state = load_policy(policy, "rsl_rl")
@@ -110,10 +109,19 @@ def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", se
     actor.load_state_dict(state)
     actor.eval()
 
-    def act(obs):  # the actor's mean: rsl_rl's deterministic output
+    def act(obs):  # the env clips the mean to the action bounds
         groups = TensorDict({"policy": obs, "critic": obs}, batch_size=obs.shape[:1])
         return actor.to(obs.device)(groups)
 
+    return meta, act
+
+
+def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0,
+             command: tuple[float, float] = (0.5, 0.0)) -> dict:
+    """The 8 s gait test of a ``policy.pt`` this recipe wrote."""
+    from tocabi_torchrl.adapters.evaluate import evaluate_actions
+
+    meta, act = load_actor(policy)
     return evaluate_actions(act, out_dir, preset=meta["preset"], num_envs=num_envs, device=device, seconds=seconds,
                             command=command, task=meta["task"])
 

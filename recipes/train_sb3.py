@@ -98,6 +98,8 @@ def main(argv=None) -> dict:
         device=str(env.device), verbose=1)
     meta = {"preset": args.preset, "task": {"seed": args.seed}, "hidden": list(args.hidden),
             "num_envs": args.num_envs, "library_version": metadata.version("stable-baselines3"),
+            "obs_dim": env.observation_space.shape[0], "action_low": env.action_space.low.tolist(),
+            "action_high": env.action_space.high.tolist(),
             "host_copies_per_step": "observation (num_envs, 237), reward, done flags to the host; actions back"}
 
     def save(path):
@@ -125,29 +127,35 @@ def main(argv=None) -> dict:
     return result
 
 
-def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0,
-             command: tuple[float, float] = (0.5, 0.0)) -> dict:
-    """The gait test of a ``policy.pt`` this recipe wrote: SB3's policy network rebuilt, its mean action used."""
+def load_actor(policy: str):
+    """``(meta, act)`` for a ``policy.pt`` this recipe wrote: SB3's policy network rebuilt from the metadata, and
+    ``act`` its Gaussian mean (SB3's deterministic action) for (num_envs, 237) observations on any device."""
+    from gymnasium import spaces
+
     from tocabi_torchrl.adapters._versions import require
-    from tocabi_torchrl.adapters.evaluate import evaluate_actions
-    from tocabi_torchrl.adapters.spaces import box_from_spec
 
     require("stable_baselines3")
     from stable_baselines3.common.policies import ActorCriticPolicy
-    from torchrl.data import Bounded, Unbounded
 
     meta, state = load_policy(policy, "sb3")
-    obs_dim = state["mlp_extractor.policy_net.0.weight"].shape[1]
-    low = torch.tensor([[-1.0] * 12 + [0.0]])
-    obs_space = box_from_spec(Unbounded(shape=(1, obs_dim)), batched=False)
-    act_space = box_from_spec(Bounded(low=low, high=torch.ones(1, 13), shape=(1, 13)), batched=False)
-    net = ActorCriticPolicy(obs_space, act_space, lr_schedule=lambda _: 0.0, **policy_kwargs(tuple(meta["hidden"])))
+    obs_space = spaces.Box(-float("inf"), float("inf"), (meta["obs_dim"],))
+    act_space = spaces.Box(torch.tensor(meta["action_low"]).numpy(), torch.tensor(meta["action_high"]).numpy())
+    net = ActorCriticPolicy(obs_space, act_space, lr_schedule=LinearLR(0.0, 0.0), **policy_kwargs(tuple(meta["hidden"])))
     net.load_state_dict(state)
     net.eval()
 
-    def act(obs):  # the Gaussian mean (SB3's deterministic action); the env clips it to the bounds
+    def act(obs):  # the env clips the mean to the action bounds, as SB3's predict() would
         return net.to(obs.device)._predict(obs, deterministic=True)
 
+    return meta, act
+
+
+def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0,
+             command: tuple[float, float] = (0.5, 0.0)) -> dict:
+    """The 8 s gait test of a ``policy.pt`` this recipe wrote."""
+    from tocabi_torchrl.adapters.evaluate import evaluate_actions
+
+    meta, act = load_actor(policy)
     return evaluate_actions(act, out_dir, preset=meta["preset"], num_envs=num_envs, device=device, seconds=seconds,
                             command=command, task=meta["task"])
 

@@ -93,7 +93,9 @@ def main(argv=None) -> dict:
     trainer = SequentialTrainer(env=env, agents=agent, cfg={"timesteps": args.iterations * args.rollouts,
                                                             "headless": True, "close_environment_at_exit": False})
     meta = {"preset": args.preset, "task": {"seed": args.seed}, "hidden": list(args.hidden),
-            "num_envs": args.num_envs, "library_version": metadata.version("skrl")}
+            "num_envs": args.num_envs, "library_version": metadata.version("skrl"),
+            "obs_dim": env.observation_space.shape[0], "action_low": env.action_space.low.tolist(),
+            "action_high": env.action_space.high.tolist()}
 
     def save(path):
         save_policy(path, "skrl", models["policy"].state_dict(),
@@ -119,29 +121,34 @@ def main(argv=None) -> dict:
     return result
 
 
-def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0,
-             command: tuple[float, float] = (0.5, 0.0)) -> dict:
-    """The gait test of a ``policy.pt`` this recipe wrote: skrl's policy model rebuilt, its mean action used."""
-    from torchrl.data import Bounded, Unbounded
+def load_actor(policy: str):
+    """``(meta, act)`` for a ``policy.pt`` this recipe wrote: skrl's policy model rebuilt from the metadata, and
+    ``act`` its Gaussian mean (skrl's ``"mean_actions"``) for (num_envs, 237) observations on any device."""
+    from gymnasium import spaces
 
     from tocabi_torchrl.adapters._versions import require
-    from tocabi_torchrl.adapters.evaluate import evaluate_actions
-    from tocabi_torchrl.adapters.spaces import box_from_spec
 
     require("skrl")
     meta, state = load_policy(policy, "skrl")
-    obs_dim = state["net.0.weight"].shape[1]
-    low = torch.tensor([[-1.0] * 12 + [0.0]])
-    obs_space = box_from_spec(Unbounded(shape=(1, obs_dim)), batched=False)
-    act_space = box_from_spec(Bounded(low=low, high=torch.ones(1, 13), shape=(1, 13)), batched=False)
+    obs_space = spaces.Box(-float("inf"), float("inf"), (meta["obs_dim"],))
+    act_space = spaces.Box(torch.tensor(meta["action_low"]).numpy(), torch.tensor(meta["action_high"]).numpy())
     net = make_models(obs_space, act_space, "cpu", tuple(meta["hidden"]))["policy"]
     net.load_state_dict(state)
     net.eval()
 
-    def act(obs):  # the Gaussian mean (skrl's "mean_actions"); the env clips it to the bounds
+    def act(obs):  # the env clips the mean to the action bounds
         net.to(obs.device)
         return net.act({"observations": obs}, role="policy")[1]["mean_actions"]
 
+    return meta, act
+
+
+def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0,
+             command: tuple[float, float] = (0.5, 0.0)) -> dict:
+    """The 8 s gait test of a ``policy.pt`` this recipe wrote."""
+    from tocabi_torchrl.adapters.evaluate import evaluate_actions
+
+    meta, act = load_actor(policy)
     return evaluate_actions(act, out_dir, preset=meta["preset"], num_envs=num_envs, device=device, seconds=seconds,
                             command=command, task=meta["task"])
 

@@ -12,8 +12,10 @@ pytest.importorskip("rsl_rl")
 
 from recipe_runner import load_recipe
 from rsl_rl.env import VecEnv
+from tensordict import TensorDict
 
 from tocabi_torchrl.adapters import TocabiRslRlEnv
+from tocabi_torchrl.adapters.policy_file import load_policy
 
 N = 2
 
@@ -61,5 +63,15 @@ def test_recipe_trains_two_iterations_and_gait_tests(tmp_path):
     summary = json.loads((out / "eval" / "summary.json").read_text())
     assert summary["num_envs"] == 2 and 0.0 <= summary["survival"] <= 1.0
     assert result["eval"]["passes"] is False  # 2 tiny iterations do not walk
+    # The gait test ran the trained actor: the policy file holds rsl_rl's own final actor weights, and the rebuilt
+    # actor gives rsl_rl's deterministic action.
+    own = torch.load(out / "rsl_rl" / "model_1.pt", map_location="cpu", weights_only=True)["actor_state_dict"]
+    meta, act = recipe.load_actor(out / "policy.pt")
+    _, state = load_policy(out / "policy.pt", "rsl_rl")
+    assert own.keys() == state.keys() and all(torch.equal(own[k], state[k]) for k in own)
+    obs = torch.randn(3, 237)
+    actor = recipe.make_actor(237, 13, meta["train_cfg"])
+    actor.load_state_dict(own)
+    torch.testing.assert_close(act(obs), actor(TensorDict({"policy": obs, "critic": obs}, batch_size=[3])))
     with pytest.raises(SystemExit, match="exists"):
         recipe.main(["--out", str(out), "--device", "cpu"])

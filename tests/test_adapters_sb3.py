@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 pytest.importorskip("stable_baselines3")
 
@@ -76,5 +77,11 @@ def test_recipe_trains_two_iterations_with_the_reference_schedule(tmp_path):
     _, state = load_policy(out / "policy.pt", "sb3")
     # The scheduled std: halfway through (2 of 2 rollouts done = progress 0) it sits at the end value 0.05.
     np.testing.assert_allclose(state["log_std"].numpy(), math.log(0.05), rtol=1e-6)
-    # SB3's LR schedule is saved as a class (not a lambda), so the zip holds no closure.
     assert recipe.LinearLR(1e-5, 2e-7)(0.5) == pytest.approx(5.1e-6)
+    # The gait test ran SB3's own trained policy: the rebuilt network's mean action is that of SB3's saved model
+    # (our own zip, written above; the schedules are replaced so that nothing of the recipe is unpickled).
+    model = recipe.reference_ppo_class().load(out / "sb3_model.zip", device="cpu",
+                     custom_objects={"learning_rate": 0.0, "lr_schedule": recipe.LinearLR(0.0, 0.0)})
+    _, act = recipe.load_actor(out / "policy.pt")
+    obs = torch.randn(3, 237)
+    torch.testing.assert_close(act(obs), model.policy._predict(obs, deterministic=True))

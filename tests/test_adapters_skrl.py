@@ -45,8 +45,12 @@ def test_recipe_trains_two_iterations_and_gait_tests(tmp_path):
     assert result["train"]["env_steps"] == 2 * 2 * 4
     summary = json.loads((out / "eval" / "summary.json").read_text())
     assert summary["num_envs"] == 2 and "passes" in result["eval"]
-    # The gait test ran the trained network: its mean actions are the saved policy's.
+    # The gait test's actor is the saved policy network: its action is the network's output (the Gaussian mean).
     from tocabi_torchrl.adapters.policy_file import load_policy
 
     _, state = load_policy(out / "policy.pt", "skrl")
     assert state["net.0.weight"].shape == (16, 237)
+    _, act = recipe.load_actor(out / "policy.pt")
+    obs = torch.randn(3, 237)
+    hidden = torch.nn.functional.elu(obs @ state["net.0.weight"].T + state["net.0.bias"])
+    torch.testing.assert_close(act(obs), hidden @ state["net.2.weight"].T + state["net.2.bias"])
