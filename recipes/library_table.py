@@ -38,7 +38,7 @@ def train(library: str, num_envs: int, out: Path, args) -> dict:
     common = ["--max_minutes", str(args.max_minutes), "--checkpoint_minutes", str(args.checkpoint_minutes)]
     if library == "torchrl":
         cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--preset", args.preset, "--num_envs",
-               str(num_envs), "--run_dir", str(out.parent), "--name", out.name, "--eval_at_end", "false",
+               str(num_envs), "--minibatch_size", str(min(49152, 48 * num_envs)), "--run_dir", str(out.parent), "--name", out.name, "--eval_at_end", "false",
                "--progress_bar", "false", "--device", args.device, *common]
     else:
         cmd = [sys.executable, str(ROOT / f"recipes/train_{library}.py"), "--out", str(out), "--num_envs",

@@ -106,3 +106,11 @@ def test_bad_actions_and_options_are_refused(envs):
         envs.step(np.zeros((N, 12), dtype=np.float32))
     with pytest.raises(ValueError, match="takes no options"):
         envs.reset(options={"x": 1})
+
+
+def test_make_vec_imports_the_adapters_itself_with_the_module_prefix():
+    env = gymnasium.make_vec("tocabi_torchrl.adapters:TocabiWalk-v0", num_envs=1, device="cpu")
+    try:
+        assert isinstance(env.unwrapped, TocabiVectorEnv) and env.num_envs == 1
+    finally:
+        env.close()
