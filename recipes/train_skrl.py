@@ -1,0 +1,157 @@
+"""Train the walking task with skrl's PPO (skrl 2.x, torch) and its ``SequentialTrainer``, then run the 8 s gait
+test.
+
+    pip install -e ".[skrl]"
+    python recipes/train_skrl.py --out runs/skrl                      # 4,096 envs on a GPU
+    python recipes/train_skrl.py --out /tmp/k --device cpu --num_envs 4 --iterations 2 --rollouts 8 --hidden 32
+
+skrl is this project's fourth library rather than rl_games: it is pure PyTorch on gymnasium spaces and takes the
+env's device tensors as they are, where rl_games builds on the unmaintained ``gym`` package and its own env
+registry. Hyper-parameters mirror the TorchRL ``default`` preset (48-step rollouts, 5 epochs, mini-batches of
+49,152 at 4,096 envs, gamma 0.995, lambda 0.95, KL-adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks,
+time-limit bootstrapping); the std is learned from 0.2. Writes skrl's own logs and checkpoints under <out>/skrl,
+the policy as <out>/policy.pt (tensors only) and the gait test under <out>/eval/.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from importlib import metadata
+
+import torch
+from torch import nn
+
+from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
+from tocabi_torchrl.adapters.recipe import TimeUp, TrainingClock, base_parser, open_out_dir, write_json
+
+
+def _mlp(inputs: int, hidden: tuple[int, ...], outputs: int) -> nn.Sequential:
+    layers, width = [], inputs
+    for h in hidden:
+        layers += [nn.Linear(width, h), nn.ELU()]
+        width = h
+    return nn.Sequential(*layers, nn.Linear(width, outputs))
+
+
+def make_models(observation_space, action_space, device, hidden: tuple[int, ...], init_std: float = 0.2) -> dict:
+    """skrl models: a Gaussian policy with a state-independent learned std and a value network."""
+    from skrl.models.torch import DeterministicMixin, GaussianMixin, Model
+
+    obs_dim, act_dim = observation_space.shape[0], action_space.shape[0]
+
+    class Policy(GaussianMixin, Model):
+        def __init__(self):
+            Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
+            GaussianMixin.__init__(self, clip_actions=False, clip_log_std=True, min_log_std=-20.0, max_log_std=2.0)
+            self.net = _mlp(obs_dim, hidden, act_dim)
+            self.log_std_parameter = nn.Parameter(torch.full((act_dim,), math.log(init_std)))
+
+        def compute(self, inputs, role=""):
+            return self.net(inputs["observations"]), {"log_std": self.log_std_parameter}
+
+    class Value(DeterministicMixin, Model):
+        def __init__(self):
+            Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
+            DeterministicMixin.__init__(self, clip_actions=False)
+            self.net = _mlp(obs_dim, hidden, 1)
+
+        def compute(self, inputs, role=""):
+            return self.net(inputs["observations"]), {}
+
+    return {"policy": Policy().to(device), "value": Value().to(device)}
+
+
+def main(argv=None) -> dict:
+    parser = base_parser(__doc__.split("\n\n")[0], num_envs=4096, iterations=1500)
+    parser.add_argument("--rollouts", type=int, default=48, help="rollout length per env (default: 48)")
+    parser.add_argument("--hidden", type=lambda s: tuple(int(x) for x in s.split(",")), default=(400, 200, 100),
+                        help="hidden layer sizes of actor and critic, comma-separated (default: 400,200,100)")
+    args = parser.parse_args(argv)
+    # The adapter checks the installed skrl version before any of skrl's own modules is imported.
+    from tocabi_torchrl.adapters import TocabiSkrlEnv  # isort: skip
+    from skrl.agents.torch.ppo import PPO, PPO_CFG
+    from skrl.memories.torch import RandomMemory
+    from skrl.resources.schedulers.torch import KLAdaptiveLR
+    from skrl.trainers.torch import SequentialTrainer
+    from skrl.utils import set_seed
+
+    out = open_out_dir(args.out)
+    set_seed(args.seed)
+    env = TocabiSkrlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed)
+    models = make_models(env.observation_space, env.action_space, env.device, args.hidden)
+    cfg = PPO_CFG(
+        rollouts=args.rollouts, learning_epochs=5, mini_batches=max(1, args.num_envs * args.rollouts // 49152),
+        discount_factor=0.995, gae_lambda=0.95, learning_rate=1e-3, learning_rate_scheduler=KLAdaptiveLR,
+        learning_rate_scheduler_kwargs={"kl_threshold": 0.01}, grad_norm_clip=1.0, ratio_clip=0.2, value_clip=0.2,
+        entropy_loss_scale=0.0, value_loss_scale=1.0, time_limit_bootstrap=True,
+        experiment={"directory": str(out / "skrl"), "experiment_name": "ppo", "write_interval": args.rollouts,
+                    "checkpoint_interval": 100 * args.rollouts})
+    memory = RandomMemory(memory_size=args.rollouts, num_envs=env.num_envs, device=env.device)
+    agent = PPO(models=models, memory=memory, observation_space=env.observation_space,
+                action_space=env.action_space, device=env.device, cfg=cfg)
+    trainer = SequentialTrainer(env=env, agents=agent, cfg={"timesteps": args.iterations * args.rollouts,
+                                                            "headless": True, "close_environment_at_exit": False})
+    meta = {"preset": args.preset, "task": {"seed": args.seed}, "hidden": list(args.hidden),
+            "num_envs": args.num_envs, "library_version": metadata.version("skrl"),
+            "obs_dim": env.observation_space.shape[0], "action_low": env.action_space.low.tolist(),
+            "action_high": env.action_space.high.tolist()}
+
+    def save(path):
+        save_policy(path, "skrl", models["policy"].state_dict(),
+                    {**meta, "env_steps": env.stepper.env_steps, "train_seconds": clock.elapsed})
+
+    clock = TrainingClock(out, save, args.max_minutes, args.checkpoint_minutes)
+    env.stepper.step_hooks.append(clock)
+    try:
+        trainer.train()
+    except TimeUp as stop:
+        print(f"skrl: {stop}")
+    meta.update(env_steps=env.stepper.env_steps, train_seconds=clock.elapsed,
+                env_steps_per_s=env.stepper.env_steps / clock.elapsed, snapshots=clock.snapshots)
+    env.stepper.step_hooks.clear()
+    save(out / "policy.pt")
+    result = {"train": meta}
+    if args.eval_envs > 0:
+        result["eval"] = evaluate(out / "policy.pt", out / "eval", args.eval_envs, args.device, args.eval_seconds)
+    write_json(out / "result.json", result)
+    env.close()
+    print(f"skrl: {meta['env_steps']} env steps in {meta['train_seconds']:.1f} s; gait test: "
+          f"{result.get('eval', 'skipped')}")
+    return result
+
+
+def load_actor(policy: str):
+    """``(meta, act)`` for a ``policy.pt`` this recipe wrote: skrl's policy model rebuilt from the metadata, and
+    ``act`` its Gaussian mean (skrl's ``"mean_actions"``) for (num_envs, 237) observations on any device."""
+    from gymnasium import spaces
+
+    from tocabi_torchrl.adapters._versions import require
+
+    require("skrl")
+    meta, state = load_policy(policy, "skrl")
+    obs_space = spaces.Box(-float("inf"), float("inf"), (meta["obs_dim"],))
+    act_space = spaces.Box(torch.tensor(meta["action_low"]).numpy(), torch.tensor(meta["action_high"]).numpy())
+    net = make_models(obs_space, act_space, "cpu", tuple(meta["hidden"]))["policy"]
+    net.load_state_dict(state)
+    net.eval()
+
+    def act(obs):  # the env clips the mean to the action bounds
+        net.to(obs.device)
+        return net.act({"observations": obs}, role="policy")[1]["mean_actions"]
+
+    return meta, act
+
+
+def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0,
+             command: tuple[float, float] = (0.5, 0.0)) -> dict:
+    """The 8 s gait test of a ``policy.pt`` this recipe wrote."""
+    from tocabi_torchrl.adapters.evaluate import evaluate_actions
+
+    meta, act = load_actor(policy)
+    return evaluate_actions(act, out_dir, preset=meta["preset"], num_envs=num_envs, device=device, seconds=seconds,
+                            command=command, task=meta["task"])
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

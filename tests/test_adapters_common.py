@@ -1,0 +1,99 @@
+"""What every adapter shares, without any RL library installed: version ranges, the policy file, the recipes'
+output folder rule."""
+
+from __future__ import annotations
+
+import importlib.metadata
+
+import pytest
+import torch
+
+from tocabi_torchrl.adapters import _versions
+from tocabi_torchrl.adapters._versions import LibraryVersionError, require, version_in_range
+from tocabi_torchrl.adapters.policy_file import PolicyFileError, load_policy, save_policy
+from tocabi_torchrl.adapters.recipe import TimeUp, TrainingClock, open_out_dir
+
+
+def test_version_ranges():
+    assert version_in_range("5.5.1", "5.0", "6.0")
+    assert version_in_range("5.0", "5.0", "6.0")
+    assert not version_in_range("6.0.0", "5.0", "6.0")
+    assert not version_in_range("4.9.9", "5.0", "6.0")
+    assert version_in_range("2.1.1rc1", "2.0", "3.0")
+
+
+@pytest.mark.parametrize("module", ["rsl_rl", "stable_baselines3", "skrl"])
+def test_a_version_outside_the_range_fails_naming_the_range(monkeypatch, module):
+    dist, low, high, extra = _versions.SUPPORTED[module]
+    real = importlib.metadata.version
+    monkeypatch.setattr(importlib.metadata, "version", lambda name: "1.0.0" if name == dist else real(name))
+    with pytest.raises(LibraryVersionError) as err:
+        require(module)
+    message = str(err.value)
+    assert f"{dist} 1.0.0 is installed" in message and f"{dist}>={low},<{high}" in message
+    assert f"tocabi-torchrl[{extra}]" in message
+
+
+def test_a_missing_library_says_how_to_install_it(monkeypatch):
+    def missing(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", missing)
+    with pytest.raises(LibraryVersionError, match=r"rsl-rl-lib is not installed.*rsl-rl-lib>=5.0,<6.0"):
+        require("rsl_rl")
+
+
+def test_the_adapter_import_itself_checks_the_version(monkeypatch):
+    # Importing a library adapter (what the recipes do) runs the check before the library is used.
+    import sys
+
+    real = importlib.metadata.version
+    monkeypatch.setattr(importlib.metadata, "version",
+                        lambda name: "9.0" if name == "stable-baselines3" else real(name))
+    monkeypatch.delitem(sys.modules, "tocabi_torchrl.adapters.sb3_env", raising=False)
+    with pytest.raises(LibraryVersionError, match=r"stable-baselines3>=2.3,<3.0"):
+        from tocabi_torchrl.adapters import TocabiSB3VecEnv  # noqa: F401
+
+
+def test_policy_file_round_trip_and_refusals(tmp_path):
+    state = {"w": torch.arange(6.0).reshape(2, 3)}
+    path = save_policy(tmp_path / "policy.pt", "sb3", state, {"hidden": [4]})
+    meta, loaded = load_policy(path, "sb3")
+    assert meta == {"hidden": [4]} and torch.equal(loaded["w"], state["w"])
+    with pytest.raises(FileExistsError, match="never overwritten"):
+        save_policy(path, "sb3", state, {})
+    with pytest.raises(PolicyFileError, match="holds a sb3 policy, not a skrl one"):
+        load_policy(path, "skrl")
+    (tmp_path / "other.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(PolicyFileError, match="not a readable policy file"):
+        load_policy(tmp_path / "other.pt", "sb3")
+
+
+class _Payload:
+    """Anything that needs code to unpickle."""
+
+
+def test_pickled_objects_are_refused(tmp_path):
+    torch.save({"format": "x", "obj": _Payload()}, tmp_path / "evil.pt")
+    with pytest.raises(PolicyFileError, match="not a readable policy file"):
+        load_policy(tmp_path / "evil.pt", "sb3")
+
+
+def test_recipes_never_reuse_an_output_folder(tmp_path):
+    open_out_dir(tmp_path / "run")
+    with pytest.raises(SystemExit, match="exists"):
+        open_out_dir(tmp_path / "run")
+
+
+def test_training_clock_saves_snapshots_and_stops(tmp_path):
+    saved = []
+    clock = TrainingClock(tmp_path, saved.append, max_minutes=1.0, checkpoint_minutes=0.5)
+    clock()
+    assert saved == []
+    clock.start -= 31.0
+    clock()
+    assert [p.name for p in saved] == ["wall_00030s.pt"]
+    clock.start -= 30.0
+    with pytest.raises(TimeUp, match="max_minutes 1"):
+        clock()
+    assert [p.name for p in saved] == ["wall_00030s.pt", "wall_00060s.pt"]

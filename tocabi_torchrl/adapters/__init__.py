@@ -1,0 +1,59 @@
+"""The walking task for other RL libraries: gymnasium, rsl_rl, Stable-Baselines3 and skrl.
+
+Every adapter builds the same TorchRL env (:func:`build_env`) and steps it through one shared core
+(``_core.TensorStepper``): same observations, rewards, terminations and resets as the TorchRL trainer.
+
+=========================  =======================================  ====================================
+adapter                    library interface                        data
+=========================  =======================================  ====================================
+``TocabiVectorEnv``        ``gymnasium.vector.VectorEnv`` (1.x)     torch on the env's device, or numpy
+``TocabiRslRlEnv``         ``rsl_rl.env.VecEnv`` (rsl-rl-lib 5.x)   TensorDict on the device, zero-copy
+``TocabiSB3VecEnv``        SB3 ``VecEnv`` (stable-baselines3 2.x)   numpy on the host
+``TocabiSkrlEnv``          skrl ``Wrapper`` (skrl 2.x)              torch on the env's device
+=========================  =======================================  ====================================
+
+Importing this package registers ``TocabiWalk-v0`` with gymnasium (``gymnasium.make_vec("TocabiWalk-v0",
+num_envs=...)``); the library adapters import their library only when used, and check its version
+(``_versions.SUPPORTED``). ``docs/adapters.md`` has the details.
+"""
+
+from __future__ import annotations
+
+import gymnasium as _gymnasium
+
+from ._build import build_env, task_config
+from ._versions import SUPPORTED, LibraryVersionError
+
+__all__ = [
+    "ENV_ID",
+    "SUPPORTED",
+    "LibraryVersionError",
+    "TocabiRslRlEnv",
+    "TocabiSB3VecEnv",
+    "TocabiSkrlEnv",
+    "TocabiVectorEnv",
+    "build_env",
+    "task_config",
+]
+
+ENV_ID = "TocabiWalk-v0"
+
+_LAZY = {
+    "TocabiVectorEnv": "gymnasium_env",
+    "TocabiRslRlEnv": "rsl_rl_env",
+    "TocabiSB3VecEnv": "sb3_env",
+    "TocabiSkrlEnv": "skrl_env",
+}
+
+
+def __getattr__(name):
+    # Each library adapter imports (and version-checks) its library: load it only when asked for.
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+if ENV_ID not in _gymnasium.registry:
+    _gymnasium.register(ENV_ID, vector_entry_point="tocabi_torchrl.adapters.gymnasium_env:make_vector_env")

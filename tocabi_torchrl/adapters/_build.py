@@ -1,0 +1,43 @@
+"""The one place the adapters build the walking task: every adapter, recipe and evaluation goes through
+:func:`build_env`, so a change in how the task is configured is made here once."""
+
+from __future__ import annotations
+
+import torch
+from torchrl.envs import EnvBase
+
+from ..config import RunConfig, preset_config
+
+__all__ = ["build_env", "task_config"]
+
+
+def task_config(preset: str = "default", num_envs: int = 4096, **task) -> RunConfig:
+    """The run config of a training preset (its ``env`` and ``transforms`` sections are the task: control mode, PD
+    gains, commands, reward weights, episode length) for ``num_envs`` envs. ``task``: options of
+    :func:`tocabi_torchrl.config.preset_config` (dotted paths or flat names, e.g. ``seed=1``,
+    ``control_mode="torque"``); the ``ppo`` section is ignored by the adapters, whose library trains."""
+    # The adapters never use the ppo section's update: shrink the mini-batch so a few envs validate.
+    task.setdefault("minibatch_size", 1)
+    return preset_config(preset, num_envs=num_envs, **task)
+
+
+def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "default",
+              for_training: bool = True, env_options: dict | None = None, **task) -> tuple[EnvBase, RunConfig]:
+    """The walking task of ``preset`` over ``num_envs`` envs on ``device``, as a TorchRL env, and its config.
+
+    The env is :func:`tocabi_torchrl.rl.trainer.build_env`'s: ``observation`` (num_envs, 237), ``reward``
+    (num_envs, 1), ``terminated``/``truncated`` (num_envs, 1) bool, ``("reward_terms", name)`` (num_envs, 1) per
+    reward term, ``episode_reward`` (num_envs, 1) and ``step_count`` (num_envs, 1). ``for_training`` drops the raw
+    signals nobody reads during training (the gait test builds its own env with them). ``env_options``: fields of
+    :class:`~tocabi_torchrl.envs.TocabiWalkConfig` or the transform config beyond the preset's (``make_env``'s
+    options, e.g. ``{"min_pelvis_height": 0.7}``).
+    """
+    from ..rl.trainer import build_env as _trainer_env
+    from ..rl.trainer import resolve_device
+
+    if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+        raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+    dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
+    cfg = task_config(preset, num_envs=num_envs, device=str(dev), **task)
+    env = _trainer_env(cfg, dev, num_envs=num_envs, for_training=for_training, **(env_options or {}))
+    return env, cfg

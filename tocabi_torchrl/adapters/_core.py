@@ -1,0 +1,108 @@
+"""The batched step every adapter shares: a TorchRL env driven with plain tensors, resetting finished envs in the
+same call (TorchRL's ``step_and_maybe_reset``), with the terminal observation kept apart.
+
+Everything stays on the env's device; the adapters convert (or not) for their library.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+
+__all__ = ["StepResult", "TensorStepper"]
+
+
+@dataclass
+class StepResult:
+    """One batched step, every tensor on the env's device.
+
+    ``obs`` (num_envs, obs_dim): the observation to act on next (a reset one where the episode ended);
+    ``final_obs`` (num_envs, obs_dim): the last observation of the episode that ended (rows where ``done``; the
+    other rows equal ``obs``); ``reward`` (num_envs,) float32; ``terminated``/``truncated``/``done`` (num_envs,)
+    bool, truncation (the episode's time limit) never overlapping termination (a fall); ``reward_terms``
+    {name: (num_envs,)} the weighted reward terms summing to ``reward``; ``episode_return`` (num_envs,) and
+    ``episode_length`` (num_envs,) int64: the return and length [policy steps] of the episode that ended (rows
+    where ``done``; elsewhere the running values).
+    """
+
+    obs: torch.Tensor
+    final_obs: torch.Tensor
+    reward: torch.Tensor
+    terminated: torch.Tensor
+    truncated: torch.Tensor
+    done: torch.Tensor
+    reward_terms: dict[str, torch.Tensor]
+    episode_return: torch.Tensor
+    episode_length: torch.Tensor
+
+
+class TensorStepper:
+    """Drives a TorchRL env of the walking task (:func:`tocabi_torchrl.adapters._build.build_env`) with action
+    tensors. ``reset()`` resets all envs; ``step(action)`` steps all and resets the finished ones at once."""
+
+    def __init__(self, env: EnvBase, obs_key: str = "observation"):
+        self.env = env
+        self.obs_key = obs_key
+        self.num_envs = int(env.batch_size[0])
+        self.device = env.device
+        self.obs_dim = int(env.observation_spec[obs_key].shape[-1])
+        self.action_dim = int(env.action_spec.shape[-1])
+        self.term_names = [k[1] for k in env.observation_spec.keys(True, True)
+                           if isinstance(k, tuple) and k[0] == "reward_terms"]
+        self._td: TensorDictBase | None = None
+        #: Called with no arguments after every step (the recipes' wall-clock checkpoints and time limit).
+        self.step_hooks: list = []
+        #: Env steps taken (num_envs per call), counted on the host.
+        self.env_steps = 0
+
+    @property
+    def observation(self) -> torch.Tensor:
+        """(num_envs, obs_dim): the observation to act on next; resets all envs on first use."""
+        if self._td is None:
+            self.reset()
+        return self._td.get(self.obs_key)
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        """Reset every env (reseeding first when ``seed`` is given); returns the observation (num_envs, obs_dim)."""
+        if seed is not None:
+            self.env.set_seed(int(seed))
+            # The env keys each episode's random start on (seed, env, episode number): restart the numbering so that
+            # reset(seed=s) repeats the same episodes, as gymnasium expects of a seeded reset.
+            counter = getattr(self.env.base_env, "episode_count", None)
+            if counter is not None:
+                counter.zero_()
+        self._td = self.env.reset()
+        return self._td.get(self.obs_key)
+
+    def step(self, action: torch.Tensor) -> StepResult:
+        """Step every env with ``action`` (num_envs, action_dim) on the env's device, then reset finished envs."""
+        if self._td is None:
+            self.reset()
+        td = self._td.set("action", action)
+        td, self._td = self.env.step_and_maybe_reset(td)
+        nxt = td.get("next")
+        terminated = nxt.get("terminated").reshape(self.num_envs)
+        truncated = nxt.get("truncated").reshape(self.num_envs)
+        terms = nxt.get("reward_terms", None)
+        self.env_steps += self.num_envs
+        result = StepResult(
+            obs=self._td.get(self.obs_key),
+            final_obs=nxt.get(self.obs_key),
+            reward=nxt.get("reward").reshape(self.num_envs),
+            terminated=terminated,
+            truncated=truncated & ~terminated,
+            done=terminated | truncated,
+            reward_terms={} if terms is None else {k: terms.get(k).reshape(self.num_envs) for k in self.term_names},
+            episode_return=nxt.get("episode_reward").reshape(self.num_envs),
+            episode_length=nxt.get("step_count").reshape(self.num_envs),
+        )
+        for hook in self.step_hooks:
+            hook()
+        return result
+
+    def close(self) -> None:
+        if not self.env.is_closed:
+            self.env.close()

@@ -1,0 +1,44 @@
+"""The 8 s gait test of ``recipes/play.py`` (:func:`tocabi_torchrl.rl.evaluate.evaluate_policy`) for a policy of
+any library, given as a function from observations to deterministic actions."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+
+import torch
+
+from ..rl.evaluate import evaluate_policy
+from ..rl.trainer import resolve_device
+from ._build import task_config
+
+__all__ = ["GAIT_CRITERIA", "evaluate_actions", "gait_passes"]
+
+#: Pass thresholds of the gait test at (0.5, 0) m/s (the same as ``benchmarks/time_to_walk.CRITERIA``, issue 19).
+GAIT_CRITERIA = {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m": 0.3, "knee_rms_rad": 0.15}
+
+
+def gait_passes(summary: dict) -> bool:
+    """Whether a gait-test summary meets every :data:`GAIT_CRITERIA` threshold."""
+    c = GAIT_CRITERIA
+    return (summary["survival"] >= c["survival"] and summary["forward_distance_m"] >= c["forward_distance_m"]
+            and summary["lateral_drift_m"] <= c["lateral_drift_m"] and summary["knee_rms_rad"] <= c["knee_rms_rad"])
+
+
+def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str | os.PathLike,
+                     preset: str = "default", num_envs: int = 256, device: str | torch.device = "auto",
+                     seconds: float = 8.0, command: tuple[float, float] = (0.5, 0.0), video_envs: int = 0,
+                     progress: bool = False, task: dict | None = None) -> dict:
+    """Run the gait test on ``act``: (num_envs, 237) observations -> (num_envs, 13) actions on the same device,
+    deterministic (the policy's mean). ``preset``/``task`` must be the ones the policy trained on. Writes
+    ``summary.json`` and ``knees.png`` to ``out_dir`` and returns the summary with ``"passes"`` added."""
+    dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
+    cfg = task_config(preset, num_envs=num_envs, **(task or {}))
+
+    def actor(td):
+        return td.set("action", act(td.get("observation")))
+
+    summary = evaluate_policy(actor, cfg, out_dir, num_envs=num_envs, device=dev, seconds=seconds, command=command,
+                              video_envs=video_envs, progress=progress)
+    summary["passes"] = gait_passes(summary)
+    return summary

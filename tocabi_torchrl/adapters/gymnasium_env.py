@@ -1,0 +1,108 @@
+"""A ``gymnasium.vector.VectorEnv`` over the walking task (gymnasium 1.x), registered as ``TocabiWalk-v0``.
+
+    import gymnasium, tocabi_torchrl.adapters
+    envs = gymnasium.make_vec("TocabiWalk-v0", num_envs=4096, device="cuda")
+
+Autoreset mode: ``AutoresetMode.SAME_STEP`` (``metadata["autoreset_mode"]``). An env whose episode ends in a
+``step`` is reset inside that same call: the returned observation is the reset one, and the episode's last
+observation is in ``infos["final_obs"]`` (rows flagged by ``infos["_final_obs"]``). That is TorchRL's
+``step_and_maybe_reset``, so no step is spent on a dummy transition.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from gymnasium.vector import AutoresetMode, VectorEnv
+
+from ._build import build_env
+from ._core import StepResult, TensorStepper
+from .spaces import box_from_spec
+
+__all__ = ["TocabiVectorEnv", "make_vector_env"]
+
+
+class TocabiVectorEnv(VectorEnv):
+    """The walking task as a gymnasium vector env of ``num_envs`` robots on ``device``.
+
+    Args:
+        num_envs: robots simulated at once.
+        device: ``"cpu"``, ``"cuda"``, ``"cuda:K"`` or ``"auto"``.
+        numpy: return numpy arrays on the host (for numpy-based libraries and gymnasium's checks); by default
+            every returned array is a torch tensor on ``device`` and actions may be tensors there too.
+        preset: the task preset (control mode, gains, commands, rewards) of
+            :data:`tocabi_torchrl.rl.config.PRESETS`; ``task``: single fields of it (e.g. ``seed=1``).
+
+    ``step`` returns ``obs`` (num_envs, 237) float32, ``reward`` (num_envs,) float32, ``terminated`` and
+    ``truncated`` (num_envs,) bool (a fall vs. the episode time limit; never both), and ``infos`` with:
+    ``"reward_terms"`` {name: (num_envs,)} the 13 weighted terms summing to the reward; ``"final_obs"`` and
+    ``"_final_obs"`` (see the module docstring); ``"episode"`` {``"r"``: return, ``"l"``: length [steps]}
+    (num_envs,) for the envs whose episode ended, flagged by ``"_episode"`` (the layout of gymnasium's
+    ``RecordEpisodeStatistics``).
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+
+    def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", numpy: bool = False,
+                 preset: str = "default",
+                 env_options: dict | None = None, **task):
+        env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
+        self.stepper = TensorStepper(env)
+        self.num_envs = self.stepper.num_envs
+        self.device = self.stepper.device
+        self.numpy = bool(numpy)
+        self.single_observation_space = box_from_spec(env.observation_spec["observation"], batched=False)
+        self.single_action_space = box_from_spec(env.action_spec, batched=False)
+        self.observation_space = box_from_spec(env.observation_spec["observation"], batched=True)
+        self.action_space = box_from_spec(env.action_spec, batched=True)
+        self.render_mode = None
+        self.closed = False
+
+    @property
+    def torchrl_env(self):
+        """The wrapped TorchRL env."""
+        return self.stepper.env
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Reset every env (``seed``: reseed first; an int, or a list whose first entry is used: the envs share
+        one generator and draw their episodes from (seed, env index)). Returns ``(obs, infos)``."""
+        if options:
+            raise ValueError(f"TocabiVectorEnv.reset takes no options, got {sorted(options)}")
+        if isinstance(seed, (list, tuple)):
+            seed = seed[0]
+        obs = self.stepper.reset(seed)
+        return self._out(obs), {}
+
+    def step(self, actions):
+        """Step every env with ``actions`` (num_envs, 13): a tensor or an array; see the class docstring."""
+        action = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
+        if action.shape != (self.num_envs, self.single_action_space.shape[0]):
+            raise ValueError(f"actions must have shape {self.action_space.shape}, got {tuple(action.shape)}")
+        r = self.stepper.step(action)
+        return self._out(r.obs), self._out(r.reward), self._out(r.terminated), self._out(r.truncated), self._infos(r)
+
+    def _infos(self, r: StepResult) -> dict[str, Any]:
+        done = self._out(r.done)
+        return {
+            "reward_terms": {k: self._out(v) for k, v in r.reward_terms.items()},
+            "final_obs": self._out(r.final_obs),
+            "_final_obs": done,
+            "episode": {"r": self._out(r.episode_return), "l": self._out(r.episode_length)},
+            "_episode": done,
+        }
+
+    def _out(self, x: torch.Tensor):
+        # Fresh tensors from the env each step (never views of its state), so handing them out is safe.
+        return x.cpu().numpy() if self.numpy else x
+
+    def close_extras(self, **kwargs) -> None:
+        self.stepper.close()
+
+
+def make_vector_env(num_envs: int = 4096, **kwargs) -> TocabiVectorEnv:
+    """gymnasium's ``vector_entry_point`` for ``TocabiWalk-v0``; ``kwargs`` go to :class:`TocabiVectorEnv`."""
+    kwargs.pop("render_mode", None)
+    kwargs.pop("vectorization_mode", None)
+    return TocabiVectorEnv(num_envs=num_envs, **kwargs)
+

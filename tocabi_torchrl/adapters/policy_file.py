@@ -1,0 +1,56 @@
+"""One safe file format for the policies the library recipes train: ``policy.pt``.
+
+A library's own checkpoint can need unpickling to load (SB3's zip stores cloudpickled objects, rsl_rl's runner
+loads with ``weights_only=False``), so the recipes also write this file: plain tensors and JSON-able metadata,
+written atomically, read back with ``torch.load(weights_only=True)`` (no code runs on load). The evaluation
+rebuilds the library's network from ``meta`` and loads ``state_dict`` into it.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from pathlib import Path
+
+import torch
+
+from ..rl.atomic import atomic_write_bytes
+
+__all__ = ["FORMAT", "PolicyFileError", "load_policy", "save_policy"]
+
+FORMAT = "tocabi_torchrl.adapters.policy/1"
+
+
+class PolicyFileError(ValueError):
+    """A policy file is missing, unreadable or not in :data:`FORMAT`."""
+
+
+def save_policy(path: str | os.PathLike, library: str, state_dict: dict, meta: dict) -> Path:
+    """Write ``state_dict`` (tensors) and ``meta`` (JSON-able: preset, task options, network sizes) atomically;
+    refuses to replace an existing file."""
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(f"{path} exists; choose another output folder (policies are never overwritten)")
+    payload = {"format": FORMAT, "library": library, "meta": json.dumps(meta),
+               "state_dict": {k: v.detach().cpu() for k, v in state_dict.items()}}
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    return atomic_write_bytes(path, buffer.getvalue())
+
+
+def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
+    """``(meta, state_dict)`` of a :func:`save_policy` file trained with ``library``; raises
+    :class:`PolicyFileError` naming what is wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise PolicyFileError(f"no policy file at {path}; the recipes write <out>/policy.pt")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # corrupt, truncated or a pickle that needs code: refuse it
+        raise PolicyFileError(f"{path} is not a readable policy file ({type(err).__name__}: {err})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise PolicyFileError(f"{path} is not a {FORMAT} file")
+    if payload["library"] != library:
+        raise PolicyFileError(f"{path} holds a {payload['library']} policy, not a {library} one")
+    return json.loads(payload["meta"]), payload["state_dict"]

@@ -1,0 +1,108 @@
+"""Stable-Baselines3's ``VecEnv`` (stable-baselines3 2.x) over the walking task: numpy arrays on the host.
+
+SB3 runs its policy on numpy observations, so every step copies the observation (num_envs × 237 float32), the
+rewards and the done flags from the env's device to the host and the actions back: on a GPU that is two copies
+and one synchronisation per step (the per-library table states it). ``infos`` follow SB3's conventions:
+``"terminal_observation"`` and ``"TimeLimit.truncated"`` for envs whose episode ended (SB3's PPO bootstraps the
+truncated ones) and ``"episode"`` {``"r"``, ``"l"``, ``"t"``}, which SB3's logger reads (``rollout/ep_rew_mean``).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from ._versions import require
+
+require("stable_baselines3")
+from stable_baselines3.common.vec_env import VecEnv
+
+from ._build import build_env
+from ._core import TensorStepper
+from .spaces import box_from_spec
+
+__all__ = ["TocabiSB3VecEnv"]
+
+
+class TocabiSB3VecEnv(VecEnv):
+    """The walking task as an SB3 ``VecEnv`` of ``num_envs`` robots simulated on ``device``.
+
+    ``reward_terms_in_infos``: also put each env's weighted reward terms {name: float} in its info dict every step
+    (off by default: num_envs dicts of 13 floats per step cost more than the step on a GPU).
+    """
+
+    def __init__(self, num_envs: int = 8, device: str | torch.device = "auto", preset: str = "default",
+                 reward_terms_in_infos: bool = False, env_options: dict | None = None, **task):
+        env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
+        self.stepper = TensorStepper(env)
+        self.device = self.stepper.device
+        self.reward_terms_in_infos = bool(reward_terms_in_infos)
+        self.render_mode = None  # read by VecEnv.__init__
+        super().__init__(self.stepper.num_envs, box_from_spec(env.observation_spec["observation"], batched=False),
+                         box_from_spec(env.action_spec, batched=False))
+        self._actions: torch.Tensor | None = None
+        self._start = time.time()
+
+    def reset(self) -> np.ndarray:
+        seed = next((s for s in self._seeds if s is not None), None)  # set by VecEnv.seed(); envs share one seed
+        obs = self.stepper.reset(seed)
+        self._reset_seeds()
+        self._reset_options()
+        return obs.cpu().numpy()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        action = torch.as_tensor(np.asarray(actions, dtype=np.float32), device=self.device)
+        if action.shape != (self.num_envs, self.action_space.shape[0]):
+            raise ValueError(f"actions must have shape ({self.num_envs}, {self.action_space.shape[0]}), got "
+                             f"{tuple(action.shape)}")
+        self._actions = action
+
+    def step_wait(self):
+        if self._actions is None:
+            raise RuntimeError("step_wait() called without step_async(actions)")
+        r = self.stepper.step(self._actions)
+        self._actions = None
+        obs, final_obs = r.obs.cpu().numpy(), r.final_obs.cpu().numpy()
+        done, truncated = r.done.cpu().numpy(), r.truncated.cpu().numpy()
+        infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        if self.reward_terms_in_infos:
+            terms = {k: v.cpu().numpy() for k, v in r.reward_terms.items()}
+            for i, info in enumerate(infos):
+                info["reward_terms"] = {k: float(v[i]) for k, v in terms.items()}
+        if done.any():
+            ret, length = r.episode_return.cpu().numpy(), r.episode_length.cpu().numpy()
+            elapsed = round(time.time() - self._start, 6)
+            for i in np.flatnonzero(done):
+                infos[i]["terminal_observation"] = final_obs[i]
+                infos[i]["TimeLimit.truncated"] = bool(truncated[i])
+                infos[i]["episode"] = {"r": float(ret[i]), "l": int(length[i]), "t": elapsed}
+        return obs, r.reward.cpu().numpy(), done, infos
+
+    def close(self) -> None:
+        self.stepper.close()
+
+    # The single-process VecEnv API: one batched simulator, so attributes are the same for every env index.
+    def _indices_list(self, indices) -> list[int]:
+        if indices is None:
+            return list(range(self.num_envs))
+        return [indices] if isinstance(indices, int) else list(indices)
+
+    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+        value = getattr(self, attr_name)
+        return [value for _ in self._indices_list(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        setattr(self, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
+        result = getattr(self, method_name)(*method_args, **method_kwargs)
+        return [result for _ in self._indices_list(indices)]
+
+    def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
+        return [False for _ in self._indices_list(indices)]
+
+    def get_images(self):
+        raise NotImplementedError("TocabiSB3VecEnv does not render; use recipes/play.py for a video")
