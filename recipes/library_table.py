@@ -67,7 +67,7 @@ def gait(library: str, snapshot: str, out: Path, args, command) -> dict:
     spec = importlib.util.spec_from_file_location(f"train_{library}", ROOT / f"recipes/train_{library}.py")
     recipe = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(recipe)
-    return recipe.evaluate(snapshot, out, args.eval_envs, args.device, 8.0, command=command)
+    return recipe.evaluate(snapshot, out, num_envs=args.eval_envs, device=args.device, seconds=8.0, command=command)
 
 
 def first_pass(library: str, snapshots: list[str], out: Path, args) -> dict | None:

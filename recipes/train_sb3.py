@@ -119,7 +119,8 @@ def main(argv=None) -> dict:
     model.save(out / "sb3_model.zip")
     result = {"train": meta}
     if args.eval_envs > 0:
-        result["eval"] = evaluate(out / "policy.pt", out / "eval", args.eval_envs, args.device, args.eval_seconds)
+        result["eval"] = evaluate(out / "policy.pt", out / "eval", num_envs=args.eval_envs, device=args.device,
+                                  seconds=args.eval_seconds)
     write_json(out / "result.json", result)
     env.close()
     print(f"sb3: {meta['env_steps']} env steps in {meta['train_seconds']:.1f} s; gait test: "
@@ -150,14 +151,12 @@ def load_actor(policy: str):
     return meta, act
 
 
-def evaluate(policy: str, out_dir, num_envs: int = 256, device: str = "auto", seconds: float = 8.0,
-             command: tuple[float, float] = (0.5, 0.0)) -> dict:
-    """The 8 s gait test of a ``policy.pt`` this recipe wrote."""
-    from tocabi_torchrl.adapters.evaluate import evaluate_actions
+def evaluate(policy: str, out_dir, **options) -> dict:
+    """The 8 s gait test of a ``policy.pt`` this recipe wrote (``options``: those of
+    :func:`tocabi_torchrl.adapters.evaluate.evaluate_policy_file`)."""
+    from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 
-    meta, act = load_actor(policy)
-    return evaluate_actions(act, out_dir, preset=meta["preset"], num_envs=num_envs, device=device, seconds=seconds,
-                            command=command, task=meta["task"])
+    return evaluate_policy_file(load_actor, policy, out_dir, **options)
 
 
 if __name__ == "__main__":

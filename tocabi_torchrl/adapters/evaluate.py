@@ -12,7 +12,7 @@ from ..rl.evaluate import evaluate_policy
 from ..rl.trainer import resolve_device
 from ._build import task_config
 
-__all__ = ["GAIT_CRITERIA", "evaluate_actions", "gait_passes"]
+__all__ = ["GAIT_CRITERIA", "evaluate_actions", "evaluate_policy_file", "gait_passes"]
 
 #: Pass thresholds of the gait test at (0.5, 0) m/s (the same as ``benchmarks/time_to_walk.CRITERIA``, issue 19).
 GAIT_CRITERIA = {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m": 0.3, "knee_rms_rad": 0.15}
@@ -42,3 +42,12 @@ def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str |
                               video_envs=video_envs, progress=progress)
     summary["passes"] = gait_passes(summary)
     return summary
+
+
+def evaluate_policy_file(load_actor, policy: str, out_dir, num_envs: int = 256, device: str | torch.device = "auto",
+                         seconds: float = 8.0, command: tuple[float, float] = (0.5, 0.0)) -> dict:
+    """The 8 s gait test of a recipe's ``policy.pt``: ``load_actor(policy)`` (the recipe's loader) gives its metadata
+    (preset, task) and a deterministic ``act(obs) -> action``, which :func:`evaluate_actions` runs."""
+    meta, act = load_actor(policy)
+    return evaluate_actions(act, out_dir, preset=meta["preset"], num_envs=num_envs, device=device, seconds=seconds,
+                            command=command, task=meta["task"])
