@@ -106,10 +106,8 @@ def raw_policy_steps_per_second(num_worlds: int, steps: int, device: str = "cuda
 
 def device_used_gib(device: str | torch.device = "cuda") -> float | None:
     """Device-wide memory in use (``cudaMemGetInfo``: warp's buffers and the CUDA context too); None on the CPU."""
-    if torch.device(device).type != "cuda":
-        return None
-    free, total = torch.cuda.mem_get_info(torch.device(device))
-    return (total - free) / GIB
+    info = torch.cuda.mem_get_info(torch.device(device)) if torch.device(device).type == "cuda" else None
+    return None if info is None else (info[1] - info[0]) / GIB
 
 
 def rss_gib() -> float:
@@ -164,19 +162,15 @@ def config(preset: str = "default", **overrides):
 
 
 def parse_overrides(items: Sequence[str]) -> dict:
-    """``FIELD=VALUE`` strings (a dotted config path such as ``ppo.lr``, or a flat name such as ``num_envs``, which
-    :func:`config` and the recorded results key by) as typed overrides under the name given; an unknown field is
-    named."""
+    """``FIELD=VALUE`` strings (a flat name such as ``num_envs``, or a path such as ``ppo.lr``) typed by the config
+    tree, keyed as given; an unknown field is named."""
     from tocabi_torchrl.config import FLAT_PATHS, RunConfig
     from tocabi_torchrl.tree import leaf_types, parse_leaf
 
-    kinds, out = leaf_types(RunConfig()), {}
+    kinds, out = {**leaf_types(RunConfig()), "command_preset": str, "pd_gains": str}, {}  # these two name values
     for item in items:
         field, _, value = item.partition("=")
-        if field in ("command_preset", "pd_gains"):  # names of values: the config resolves them
-            out[field] = value
-            continue
-        path = FLAT_PATHS.get(field, field)
+        path = field if field in kinds else FLAT_PATHS.get(field, field)
         if path not in kinds:
             raise SystemExit(f"--set {item}: the training config has no field {field!r}")
         try:

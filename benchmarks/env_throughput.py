@@ -23,7 +23,7 @@ def _rate(steps: int, transformed: bool, autoreset: bool = False, **kwargs) -> t
     from tocabi_torchrl import make_env
     from tocabi_torchrl.envs import TocabiWalk
 
-    env = (make_env if transformed else TocabiWalk)(seed=0, max_episode_steps=10**6, **kwargs)
+    env = (make_env if transformed else TocabiWalk)(seed=0, max_episode_steps=10**6, control_mode="torque", **kwargs)
     rate = common.env_rate(env, steps, autoreset=autoreset)
     if kwargs.get("cuda_graph") and not env.graph_captured:
         raise RuntimeError("the step was not captured as a CUDA graph (see the warning above)")
