@@ -58,11 +58,11 @@ def test_a_shipped_policy_writes_outside_the_source_tree_and_titles_the_plot_wit
 
 
 def test_rendering_shows_progress(tmp_path, capsys, model):
-    from tocabi_torchrl.rl.evaluate import _render_video
+    from tocabi_torchrl.rl.eval_video import render_video
 
     qpos = np.tile(model.qpos0, (3, 1, 1))
     try:
-        _render_video(model, qpos, 30, tmp_path, width=64, height=48)
+        render_video(model, qpos, 30, tmp_path, width=64, height=48)
     except Exception as err:  # noqa: BLE001 - no OpenGL backend on this machine
         pytest.skip(f"no offscreen rendering here: {err}")
     assert "rendering video" in capsys.readouterr().err

@@ -3,7 +3,8 @@
 Writes ``summary.json`` (survival, forward distance, lateral drift, speed tracking error, knee RMS against the
 reference motion), ``knees.png`` (left/right knee over 6 s against the reference, TocabiLab figs 4.7-4.8) and a
 video of a few robots (``walk.mp4``, or ``walk.gif`` without an mp4 writer) rendered offscreen by MuJoCo. Both the
-rollout and the rendering show a progress bar (rendering takes minutes on a CPU).
+rollout and the rendering show a progress bar (rendering takes minutes on a CPU). This module runs the rollout and
+computes the metrics; the figure is :mod:`.eval_plots`'s and the video :mod:`.eval_video`'s.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ import json
 import os
 from pathlib import Path
 
-import numpy as np
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm.auto import tqdm
@@ -20,6 +20,8 @@ from tqdm.auto import tqdm
 from .. import robot
 from ..config import RunConfig
 from .checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint, run_folder_of
+from .eval_plots import plot_knees
+from .eval_video import render_video
 from .trainer import build_agent, build_env, resolve_device
 
 __all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "policy_dt"]
@@ -95,13 +97,13 @@ def evaluate_policy(
         "knee_rms_rad": float((knee_sq / n_alive).sqrt().mean()),
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    _plot_knees(torch.stack(trace_q).cpu().numpy(), torch.stack(trace_ref).cpu().numpy(), base.dt, out / "knees.png",
+    plot_knees(torch.stack(trace_q).cpu().numpy(), torch.stack(trace_ref).cpu().numpy(), base.dt, out / "knees.png",
                 command)
     if video_envs < 1:
         summary["video"] = "not requested (video_envs=0)"
     else:
         try:
-            summary["video"] = str(_render_video(base.sim.mj_model, torch.stack(frames_qpos).cpu().numpy(), 30, out,
+            summary["video"] = str(render_video(base.sim.mj_model, torch.stack(frames_qpos).cpu().numpy(), 30, out,
                                                  progress=progress))
         except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless machine)
             summary["video"] = f"not rendered: {type(err).__name__}: {err}"
@@ -118,66 +120,6 @@ def _policy_steps(seconds: float, dt: float) -> int:
         raise ValueError(f"seconds={seconds:g} is shorter than one policy step ({dt * 1000:g} ms); pass at least "
                          f"{dt:g}")
     return steps
-
-
-def _plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path, command: tuple[float, float]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    t = np.arange(len(q)) * dt
-    fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
-    fell = np.flatnonzero(np.isnan(q[:, 0]))
-    for i, (ax, side) in enumerate(zip(axes, ("left", "right"))):
-        ax.plot(t, ref[:, i], "k--", lw=1.2, label="reference")
-        ax.plot(t, q[:, i], lw=1.5, label="policy")
-        if fell.size:
-            ax.axvline(t[fell[0]], color="r", lw=1.0, label="episode terminated")
-        ax.set_ylabel(f"{side} knee [rad]")
-        ax.grid(alpha=0.3)
-    axes[0].legend(loc="upper right")
-    axes[-1].set_xlabel("time [s]")
-    title = f"Knee trajectories at command ({command[0]:g}, {command[1]:g}) m/s, env 0"
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120, metadata={"Title": title})
-    plt.close(fig)
-
-
-def _render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480, height: int = 360,
-                  progress: bool = True) -> Path:
-    """Render (T, k, nq) joint states of k robots side by side (one camera each) into an mp4 or a gif."""
-    import imageio.v2 as imageio
-    import mujoco
-
-    data = mujoco.MjData(model)
-    renderer = mujoco.Renderer(model, height=height, width=width)
-    camera = mujoco.MjvCamera()
-    camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
-    camera.trackbodyid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, robot.BASE_BODY)
-    camera.distance, camera.elevation, camera.azimuth = 3.0, -15.0, 120.0
-    option = mujoco.MjvOption()
-    option.geomgroup[2] = 0  # hide the translucent collision geoms: show the silhouette
-    frames = []
-    for step in tqdm(qpos, desc="rendering video", unit="frame", disable=not progress, leave=False):
-        tiles = []
-        for q in step:
-            data.qpos[:] = q
-            mujoco.mj_forward(model, data)
-            renderer.update_scene(data, camera, scene_option=option)
-            tiles.append(renderer.render())
-        frames.append(np.concatenate(tiles, axis=1))
-    renderer.close()
-    try:
-        path = out / "walk.mp4"
-        imageio.mimwrite(path, frames, fps=fps, macro_block_size=1)
-    except Exception:  # no mp4 writer (imageio-ffmpeg, in the `viz` extra): fall back to a gif
-        path.unlink(missing_ok=True)
-        path = out / "walk.gif"
-        imageio.mimwrite(path, frames[::2], duration=2.0 / fps)
-    imageio.imwrite(out / "walk_frame.png", frames[len(frames) // 2])
-    return path
 
 
 def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "auto",
