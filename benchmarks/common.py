@@ -163,18 +163,19 @@ def config(preset: str = "default", **overrides):
 
 def parse_overrides(items: Sequence[str]) -> dict:
     """``FIELD=VALUE`` strings (a flat name such as ``num_envs``, or a path such as ``ppo.lr``) typed by the config
-    tree, keyed as given; an unknown field is named."""
+    tree, keyed by the flat name where one exists (the scripts and recorded results use them); unknown ones named."""
     from tocabi_torchrl.config import FLAT_PATHS, RunConfig
     from tocabi_torchrl.tree import leaf_types, parse_leaf
 
     kinds, out = {**leaf_types(RunConfig()), "command_preset": str, "pd_gains": str}, {}  # these two name values
+    flat = {path: name for name, path in FLAT_PATHS.items() if name not in ("command_preset", "pd_gains")}
     for item in items:
         field, _, value = item.partition("=")
         path = field if field in kinds else FLAT_PATHS.get(field, field)
         if path not in kinds:
             raise SystemExit(f"--set {item}: the training config has no field {field!r}")
         try:
-            out[field] = parse_leaf(kinds[path], value)
+            out[flat.get(path, field)] = parse_leaf(kinds[path], value)
         except ValueError as err:
             raise SystemExit(f"--set {item}: {err}") from None
     return out

@@ -8,10 +8,9 @@ from pathlib import Path
 from . import common, env_throughput, scaling, soak, time_to_walk, train_throughput
 
 #: page under docs/benchmarks -> (its JSON file or results folder there, render(data or folder, out) -> markdown)
-REPORTS = {"env_throughput.md": ("env_throughput.json", env_throughput.render),
+REPORTS = {"env_throughput.md": ("env_throughput.json", env_throughput.render), "soak.md": ("soak.json", soak.render),
            "train_throughput.md": ("train_throughput.json", train_throughput.render),
-           "scaling.md": ("scaling", scaling.render), "soak.md": ("soak.json", soak.render),
-           "time_to_walk.md": ("time_to_walk.json", time_to_walk.render)}
+           "scaling.md": ("scaling", scaling.render), "time_to_walk.md": ("time_to_walk.json", time_to_walk.render)}
 
 
 def regenerate(page: str, docs: Path = common.DOCS, out: Path = common.DOCS) -> str:

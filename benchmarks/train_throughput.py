@@ -26,7 +26,7 @@ T0 = time.perf_counter()  # a run's set-up time counts from here (torch is impor
 def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str, overrides: dict) -> dict:
     """One env count in this process: the steady rate after ``warmup`` iterations, the whole run's numbers, memory
     peaks, then the raw ceiling (only that with no iterations at all)."""
-    steps, t_setup = overrides.get("steps_per_env", common.config("default").ppo.steps_per_env), time.perf_counter() - T0
+    steps, t_setup = overrides.get("steps_per_env", common.config().ppo.steps_per_env), time.perf_counter() - T0
     record = {"num_envs": n, "overrides": overrides, "device_used_at_start_gib": common.device_used_gib(device),
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:

@@ -62,7 +62,8 @@ def main(argv: list[str] | None = None) -> None:
         run = open_run(cfg)
     except (ValueError, RuntimeError, ImportError) as err:
         sys.exit(f"error: {err}")
-    if run.start_iteration >= cfg.iterations:
+    # In env steps, as train() counts: a run saved by K data-parallel ranks counts K rollouts per iteration.
+    if run.start_env_steps // cfg.frames_per_batch >= cfg.iterations:
         finished_result(run, cfg)  # says so; no training, no summary, no evaluation
         return
     if note:

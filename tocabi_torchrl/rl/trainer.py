@@ -35,8 +35,9 @@ from .std_schedule import StdSchedule
 from .update_step import (MinibatchStep, get_lr, make_capturable_adam, optimizer_mode, restore_optimizer_mode,
                           set_lr)
 
-__all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer", "make_update_step",
-           "uses_env_graph", "uses_update_graph", "training_keys", "train", "resolve_device", "TrainResult"]
+__all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer",
+           "make_update_step", "uses_env_graph", "uses_update_graph", "training_keys", "train", "resolve_device",
+           "TrainResult"]
 
 
 def resolve_device(name: str) -> torch.device:
@@ -155,7 +156,7 @@ class TrainResult:
     wall_seconds: float
     env_steps_per_second: float
     last_metrics: dict
-    #: Whether the env step ran as a captured CUDA graph by the end (``cfg.ppo.cuda_graph``, see :func:`uses_env_graph`).
+    #: Whether the env step ran as a captured CUDA graph by the end (``cfg.ppo.cuda_graph``; :func:`uses_env_graph`).
     env_graph: bool = False
     #: The resumed run had already reached its budget: nothing was trained (see :func:`finished_result`).
     already_finished: bool = False
@@ -284,12 +285,12 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
     info = dist_info if dist_info is not None else from_environment()
     device = init_distributed(info, resolve_device(cfg.device))
     if run is None:
-        if info.is_main:
-            require_loggers(cfg.loggers)
-        # Rank 0 checks the folder (refusing to overwrite an earlier run); the others write nothing and only read the
-        # resumed checkpoint. Every rank learns whether rank 0 may go on, so none waits forever in a collective.
+        # Rank 0 checks the loggers and the folder (refusing to overwrite an earlier run); the others write nothing and
+        # only read the resumed checkpoint. Every rank learns whether rank 0 may go on, so none waits in a collective.
         error = None
         try:
+            if info.is_main:
+                require_loggers(cfg.loggers)
             run = open_run(cfg, writer=info.is_main)
         except Exception as err:  # noqa: BLE001 - re-raised below, after the ranks agreed to stop
             error = err
@@ -322,7 +323,7 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
         broadcast_module(agent.actor, info)
         broadcast_module(agent.critic, info)
         stats_sync = RunningStatsSync(getattr(env, "transform", []), info)
-        torch.manual_seed(rank_seed(cfg.seed, info))  # independent exploration noise and mini-batch order per rank
+        torch.manual_seed(cfg.seed)  # this rank's seed (set above): its own exploration noise and mini-batch order
 
     ppo = cfg.ppo
     loss_module, advantage = make_loss(cfg, agent)
