@@ -16,12 +16,14 @@ only your own), the policy as <out>/policy.pt (tensors only) and the gait test u
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 from importlib import metadata
 
 import torch
 
+from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
 from tocabi_torchrl.adapters.recipe import TimeUp, TrainingClock, base_parser, open_out_dir, write_json
 from tocabi_torchrl.rl.std_schedule import StdSchedule
@@ -141,7 +143,8 @@ def load_actor(policy: str):
     meta, state = load_policy(policy, "sb3")
     obs_space = spaces.Box(-float("inf"), float("inf"), (meta["obs_dim"],))
     act_space = spaces.Box(torch.tensor(meta["action_low"]).numpy(), torch.tensor(meta["action_high"]).numpy())
-    net = ActorCriticPolicy(obs_space, act_space, lr_schedule=LinearLR(0.0, 0.0), **policy_kwargs(tuple(meta["hidden"])))
+    net = ActorCriticPolicy(obs_space, act_space, lr_schedule=LinearLR(0.0, 0.0),
+                            **policy_kwargs(tuple(meta["hidden"])))
     net.load_state_dict(state)
     net.eval()
 
@@ -151,12 +154,8 @@ def load_actor(policy: str):
     return meta, act
 
 
-def evaluate(policy: str, out_dir, **options) -> dict:
-    """The 8 s gait test of a ``policy.pt`` this recipe wrote (``options``: those of
-    :func:`tocabi_torchrl.adapters.evaluate.evaluate_policy_file`)."""
-    from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
-
-    return evaluate_policy_file(load_actor, policy, out_dir, **options)
+#: ``evaluate(policy, out_dir, **options)``: the 8 s gait test of a ``policy.pt`` this recipe wrote.
+evaluate = functools.partial(evaluate_policy_file, load_actor)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ the policy as <out>/policy.pt (tensors only) and the gait test under <out>/eval/
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 from importlib import metadata
@@ -22,6 +23,7 @@ from importlib import metadata
 import torch
 from torch import nn
 
+from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
 from tocabi_torchrl.adapters.recipe import TimeUp, TrainingClock, base_parser, open_out_dir, write_json
 
@@ -144,12 +146,8 @@ def load_actor(policy: str):
     return meta, act
 
 
-def evaluate(policy: str, out_dir, **options) -> dict:
-    """The 8 s gait test of a ``policy.pt`` this recipe wrote (``options``: those of
-    :func:`tocabi_torchrl.adapters.evaluate.evaluate_policy_file`)."""
-    from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
-
-    return evaluate_policy_file(load_actor, policy, out_dir, **options)
+#: ``evaluate(policy, out_dir, **options)``: the 8 s gait test of a ``policy.pt`` this recipe wrote.
+evaluate = functools.partial(evaluate_policy_file, load_actor)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,9 @@
 """One safe file format for the policies the library recipes train: ``policy.pt``.
 
-A library's own checkpoint can need unpickling to load (SB3's zip stores cloudpickled objects, rsl_rl's runner
-loads with ``weights_only=False``), so the recipes also write this file: plain tensors and JSON-able metadata,
-written atomically, read back with ``torch.load(weights_only=True)`` (no code runs on load). The evaluation
-rebuilds the library's network from ``meta`` and loads ``state_dict`` into it.
+A library's own checkpoint can need unpickling to load (SB3's zip stores cloudpickled objects, and rsl_rl's runner
+unpickles its own file), which this package never does, so the recipes also write this file: plain tensors and
+JSON-able metadata, written atomically, read back with ``torch.load(weights_only=True)`` (no code runs on load).
+The evaluation rebuilds the library's network from ``meta`` and loads ``state_dict`` into it.
 """
 
 from __future__ import annotations
