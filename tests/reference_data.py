@@ -5,7 +5,6 @@ The project never copies these files; tests read them in place and skip when the
 
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
@@ -22,19 +21,13 @@ def reference_file(name: str) -> Path:
 
 
 def load_reference_model():
-    """Compile the reference robot in modern MuJoCo.
+    """Compile the reference robot in modern MuJoCo, as the sim-to-sim runtime does (``runtime.strip_meshes``).
 
     Mesh geoms and assets are removed (visual only, and some meshes are missing upstream) and so are the two
     inertial ``quat`` attributes that modern MuJoCo rejects beside ``fullinertia`` (MuJoCo 2.1 ignored them).
     """
     import mujoco
 
-    root = ET.parse(reference_file("dyros_tocabi.xml")).getroot()
-    root.find("compiler").attrib.pop("meshdir", None)
-    for parent in root.iter():
-        for child in list(parent):
-            if child.tag == "mesh" or (child.tag == "geom" and (child.get("class") == "viz" or "mesh" in child.attrib)):
-                parent.remove(child)
-            elif child.tag == "inertial" and "fullinertia" in child.attrib:
-                child.attrib.pop("quat", None)
-    return mujoco.MjModel.from_xml_string(ET.tostring(root, encoding="unicode"))
+    from tocabi_torchrl.runtime.mujoco_driver import strip_meshes
+
+    return mujoco.MjModel.from_xml_string(strip_meshes(reference_file("dyros_tocabi.xml")))
