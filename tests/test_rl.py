@@ -8,6 +8,7 @@ import math
 
 import pytest
 import torch
+from graph_emulation import EmulatedCapture
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.objectives.value import GAE
@@ -109,8 +110,10 @@ def test_cuda_graph_reads_old_bool_configs_as_on_off(value, mode):
 
 
 def test_env_graph_auto_captures_small_counts_on_the_gpu_only():
-    from tocabi_torchrl.rl.config import ENV_GRAPH_AUTO_MAX_ENVS
-    from tocabi_torchrl.rl.trainer import uses_env_graph
+    from tocabi_torchrl.cuda_graphs import ENV_GRAPH_AUTO_MAX_ENVS, plan_graphs
+
+    def uses_env_graph(cfg, device, num_envs=None):
+        return plan_graphs(cfg, device, num_envs).env_step
 
     def config(num_envs, mode="auto"):
         return preset_config("default", num_envs=num_envs, minibatch_size=64, cuda_graph=mode)
@@ -329,7 +332,7 @@ def test_chunked_gae_equals_unchunked():
 @pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # no eager fallback for a changed key layout
 def test_collector_drives_the_graph_wiring_like_the_eager_env():
     # A TorchRL Collector over the training env, once eager and once through SyncFreeResetEnv's graph path (with
-    # StepGraph's emulated replay, as no GPU is needed): the key layout must settle so the graph path is taken, and
+    # an emulated capture, as no GPU is needed): the key layout must settle so the graph path is taken, and
     # the collected batches must be identical.
     from torchrl.collectors import Collector
 
@@ -341,7 +344,7 @@ def test_collector_drives_the_graph_wiring_like_the_eager_env():
     for wired in (False, True):
         torch.manual_seed(0)
         env = build_env(cfg, device, sync_free_resets=True, for_training=True)
-        env._cuda_graph = env._graph_emulate = wired
+        env.set_cuda_graph(wired, capturer=EmulatedCapture())
         agent = build_agent(cfg, 237, 13, device)
         collector = Collector(env, agent.actor, frames_per_batch=24, total_frames=72, device=device,
                               storing_device=device, auto_register_policy_transforms=False, track_traj_ids=False,

@@ -399,6 +399,11 @@ class TocabiWalk(EnvBase):
         captured step graph must advance on every replay."""
         return [self.rng] if self.rng.device.type == "cuda" else []
 
+    def recorded_graphs(self) -> list:
+        """The simulator's recorded physics graphs a step launches, which a captured step graph must hold
+        (:func:`tocabi_torchrl.cuda_graphs.capture_graph`)."""
+        return self.sim.recorded_graphs()
+
     @property
     def period(self) -> float:
         """Reference-motion cycle period [s]."""

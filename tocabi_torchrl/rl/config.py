@@ -1,4 +1,4 @@
-"""PPO training configuration: the run config tree (:mod:`tocabi_torchrl.config`), the env-graph decision, and the
+"""PPO training configuration: the run config tree (:mod:`tocabi_torchrl.config`) and the
 command line generated from the tree (one ``--path.to.option`` per leaf, e.g. ``--ppo.lr 3e-4``,
 ``--env.num_envs 8192``, ``--env.control.mode torque``)."""
 
@@ -24,21 +24,7 @@ from ..config import (
 from ..tree import leaf_types, parse_leaf
 
 __all__ = ["PPOConfig", "RunConfig", "PRESETS", "preset_config", "preset_tree", "parse_args", "build_parser",
-           "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES", "ENV_GRAPH_AUTO_MAX_ENVS", "uses_env_graph", "LOGGERS",
-           "field_choices", "ConfigError"]
-
-#: Largest env count for which ``ppo.cuda_graph="auto"`` captures the env step (see ``PPOConfig.cuda_graph``): the
-#: graph won at 96 envs and lost at 256 on an H100 (128 only in short memory-sweep runs, see env_graph.md).
-ENV_GRAPH_AUTO_MAX_ENVS = 128
-
-
-def uses_env_graph(cfg: RunConfig, device: Any, num_envs: int | None = None) -> bool:
-    """Whether the trainer captures the env step of ``num_envs`` envs (default ``cfg.env.num_envs``) on ``device`` (a
-    ``torch.device``) as a CUDA graph: ``cfg.ppo.cuda_graph`` "on", or "auto" with at most ``ENV_GRAPH_AUTO_MAX_ENVS``
-    envs; never off the GPU."""
-    if device.type != "cuda" or cfg.ppo.cuda_graph == "off":
-        return False
-    return cfg.ppo.cuda_graph == "on" or (num_envs or cfg.env.num_envs) <= ENV_GRAPH_AUTO_MAX_ENVS
+           "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES", "LOGGERS", "field_choices", "ConfigError"]
 
 
 class _LeafAction(argparse.Action):

@@ -73,6 +73,12 @@ class SimViews(abc.ABC):
     def check_overflow(self) -> None:
         """Raise :class:`~tocabi_torchrl.sim.health.SimOverflowError` if a world overflowed or warned."""
 
+    def recorded_graphs(self) -> list:
+        """The :class:`~tocabi_torchrl.sim.graph.Recorded` graphs that :meth:`step`, :meth:`forward` and :meth:`reset`
+        launch: a torch CUDA graph capturing them must hold them (:func:`tocabi_torchrl.cuda_graphs.capture_graph`).
+        Empty on a backend without such graphs."""
+        return []
+
     # ------------------------------------------------------------------------------------------- reset arguments
     def _check_reset_args(self, mask, qpos, qvel, ctrl) -> None:
         """Raise a clear error for a wrong type, device, shape or dtype of :meth:`reset`'s arguments."""

@@ -225,6 +225,9 @@ class WarpSim(SimViews):
         self._derive()
 
     # ------------------------------------------------------------------------------------------------- public API
+    def recorded_graphs(self) -> list[Recorded]:
+        return [self._step_graph, self._reset_graph, self._forward_graph]
+
     def step(self) -> None:
         """Advance every world by one control period (``substeps`` physics steps) with the current ``ctrl``."""
         self._step_graph()
