@@ -53,9 +53,12 @@ SIM_TENSORS: tuple[SimTensor, ...] = (
     SimTensor("foot_force", ("N", 2, 3), _F32, "foot F/T force, site frame [N], [left, right]"),
     SimTensor("foot_torque", ("N", 2, 3), _F32, "foot F/T torque, site frame [N·m], [left, right]"),
     SimTensor("contact_counts", ("N", "ncontact"), _F32, "contact-sensor counts (columns: contact_layout.names)"),
-    SimTensor("foot_contact", ("N", 2), _BOOL, "a foot touches the ground, [left, right]"),
-    SimTensor("forbidden_ground_contact", ("N",), _BOOL, "a robot.GROUND_FORBIDDEN_BODIES body touches the ground"),
+    SimTensor("foot_contact", ("N", 2), _BOOL, "a foot touches the ground or an obstacle, [left, right]"),
+    SimTensor("forbidden_ground_contact", ("N",), _BOOL,
+              "a robot.GROUND_FORBIDDEN_BODIES body touches the ground or a scene body (obstacle)"),
     SimTensor("self_collision", ("N",), _BOOL, "two robot.SELF_COLLISION_BODIES bodies touch"),
+    SimTensor("obstacle_contact", ("N", 2), _BOOL,
+              "a foot touches a scene body outside the robot other than the world body (an obstacle), [left, right]"),
     SimTensor("healthy", ("N",), _BOOL, "finite state and no buffer overflow or health warning"),
     SimTensor("overflow", ("N",), torch.int32, "backend overflow/warning bits (sticky until the world resets)"),
     SimTensor("applied_actuator_force", ("N", "nu"), _F32, "actuator forces applied in the last substep [N·m]"),
@@ -102,6 +105,7 @@ class SimBackend(Protocol):
     foot_contact: torch.Tensor
     forbidden_ground_contact: torch.Tensor
     self_collision: torch.Tensor
+    obstacle_contact: torch.Tensor
     healthy: torch.Tensor
     overflow: torch.Tensor
     applied_actuator_force: torch.Tensor
