@@ -64,6 +64,9 @@ def _items(item: type, value: Any, where: str) -> Any:
                 v = from_dict(item, v, f"{where}[{i}].")
             except (TypeError, ValueError) as err:
                 raise ConfigError(f"{where}[{i}]: {err}", unknown=getattr(err, "unknown", None)) from None
+        elif not isinstance(v, item):
+            raise ConfigError(f"{where}[{i}] must be a {item.__name__} or a dict of its fields "
+                              f"{[f.name for f in dataclasses.fields(item)]}, got {v!r}")
         out.append(v)
     return tuple(out)
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import mujoco
+import numpy as np
 import torch
 
 from .config import SimConfig
@@ -66,7 +67,7 @@ SIM_TENSORS: tuple[SimTensor, ...] = (
 
 #: The plain attributes and the methods of the interface (the tensors are :data:`SIM_TENSORS`).
 _ATTRIBUTES = ("config", "num_worlds", "device", "nq", "nv", "nu", "mj_model", "contact_layout", "physics_dt",
-               "control_dt")
+               "control_dt", "world_mocap_pos")
 _METHODS = ("step", "forward", "reset", "check_overflow")
 
 
@@ -87,6 +88,9 @@ class SimBackend(Protocol):
     contact_layout: ContactLayout
     physics_dt: float  #: [s] one physics step
     control_dt: float  #: [s] one :meth:`step`, ``substeps`` physics steps
+    #: (N, nmocap, 3) float64 mocap-body positions [m] each world starts and resets with (the constructor's
+    #: ``mocap_pos``: the env's obstacles), or ``None`` where every world keeps the model's
+    world_mocap_pos: np.ndarray | None
 
     qpos: torch.Tensor
     qvel: torch.Tensor
