@@ -212,11 +212,12 @@ class BoxObstacle:
         robot's initial pose (``robot.INIT_QPOS``; found from the model, ``model_path`` or the shipped one: sole centre
         at (0.100, 0.1025) m), shifted ``lateral`` [m] to the left (+y). ``length`` (x) and ``width`` (y) in m; the
         default 0.6 m width spans both feet's tracks (a box only the left foot meets needs width < 0.2 m).
-        ``jitter``: see :attr:`jitter`."""
+        ``jitter``: see :attr:`jitter`. The centre is rounded to 0.1 mm (readable configs)."""
         from .obstacles import initial_sole_centre
 
         x, y = initial_sole_centre(0, model_path)[:2]
-        return cls(size=(length, width, height), pos=(x + float(distance), y + float(lateral)), jitter=jitter)
+        pos = (round(float(x) + float(distance), 4), round(float(y) + float(lateral), 4))
+        return cls(size=(length, width, height), pos=pos, jitter=jitter)
 
     @property
     def half_size(self) -> tuple[float, float, float]:
