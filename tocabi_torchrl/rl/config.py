@@ -5,6 +5,8 @@ command line generated from the tree (one ``--path.to.option`` per leaf, e.g. ``
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 from typing import Any
 
 from ..config import (
@@ -21,7 +23,7 @@ from ..config import (
     preset_config,
     preset_tree,
 )
-from ..tree import leaf_types, parse_leaf
+from ..tree import item_type, leaf_types, parse_leaf
 
 __all__ = ["PPOConfig", "RunConfig", "PRESETS", "preset_config", "preset_tree", "parse_args", "build_parser",
            "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES", "LOGGERS", "field_choices", "ConfigError"]
@@ -64,6 +66,8 @@ class _LegacyAction(argparse.Action):
 
 
 def _shown(value: Any) -> str:
+    if isinstance(value, tuple) and value and dataclasses.is_dataclass(value[0]):
+        return json.dumps([dataclasses.asdict(v) for v in value])
     if isinstance(value, tuple):
         return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value) or "none"
     if value is None or value == "":
@@ -101,9 +105,12 @@ def build_parser(description: str = "") -> argparse.ArgumentParser:
             text += f"; any of {', '.join(LOGGERS)}, comma-separated"
         elif isinstance(default, bool):
             text += "; true/false"
+        elif item_type(kind) is not None:
+            text += f"; a JSON list of {item_type(kind).__name__} objects"
         elif isinstance(default, tuple):
             text += "; comma-separated"
-        metavar = "BOOL" if isinstance(default, bool) else "A,B,..." if isinstance(default, tuple) else "VALUE"
+        metavar = ("BOOL" if isinstance(default, bool) else "JSON" if item_type(kind) is not None
+                   else "A,B,..." if isinstance(default, tuple) else "VALUE")
         parser.add_argument(f"--{path}", action=_LeafAction, path=path, kind=kind, dest=f"leaf:{path}",
                             default=None, metavar=metavar, help=f"{text} (default: {_shown(default)})")
     for name, path in FLAT_PATHS.items():
