@@ -362,6 +362,8 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
                     weight = ppo.assist_absorb * assist.teacher_weight(env_steps) if teacher_taken else 0.0
                 loss_module.set_step(base.assist_gain(beta), base.assist_gain(beta_next), beta, beta_next, weight)
             stats = _update(cfg, flat, update_step, info)
+            # Nothing of this rollout's copy outlives its update: the next rollout is collected without it.
+            del work, flat
             fading = False
             if assist is not None:
                 env.base_env.set_torque_assist(beta_next)
