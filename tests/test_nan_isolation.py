@@ -116,8 +116,11 @@ def test_a_broken_frame_cannot_poison_the_ppo_update():
     td["observation"][2, 6, 0] = math.nan
     optimizer = make_optimizer(cfg, agent, cpu)
     loss_module, advantage = make_loss(cfg, agent)
+    observations = (td["observation"], td["next", "observation"])
     valid = guard_rollout(td)
     assert (~valid).nonzero().tolist() == [[0, 3], [1, 5], [2, 6]]
+    # Cleaned in place: a copy of the rollout's observations would stay alive into the next iteration (memory).
+    assert td["observation"] is observations[0] and td["next", "observation"] is observations[1]
     for key in ("action", "action_log_prob", "observation"):
         assert torch.isfinite(td[key]).all(), key
     with torch.no_grad():
