@@ -193,7 +193,7 @@ def train(cfg, env=None, wrap_policy: Callable | None = None):
         result = trainer.train(cfg, env=env)
     finally:
         trainer.make_collector = make_collector
-    return result, read_metrics(result.run_dir / "metrics.csv")
+    return result, read_metrics(result.run_dir)
 
 
 def build_env(cfg, **kwargs):

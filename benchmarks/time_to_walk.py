@@ -180,7 +180,7 @@ def render(data: dict, out: Path) -> str:
 def plot_curves(metrics: list[Path], path: Path) -> None:
     """Reward per step and the imitation (qpos) reward against env steps, one line per run (TocabiLab figs 4.2-4.3)."""
     runs = {p.stem: read_metrics(p) for p in metrics}
-    common.plot(path, [{"lines": {name: ([int(r["env_steps"]) for r in rows], [float(r[column]) for r in rows])
+    common.plot(path, [{"lines": {name: ([int(float(r["env_steps"])) for r in rows], [float(r[column]) for r in rows])
                                   for name, rows in runs.items()}, "xscale": "log", "xlabel": "env steps", "ylabel": y}
                        for column, y in (("reward", "reward per step"),
                                              ("reward_terms/qpos", "imitation reward per step (qpos term, max 0.35)"))])
@@ -216,7 +216,8 @@ def main(argv=None) -> None:
     e.add_argument("--follow_pid", type=int, default=0, help="keep evaluating while this process (the trainer) runs")
     r = sub.add_parser("report", help="tables and plots from the runs' train.json and evals.json")
     r.add_argument("--runs", nargs="+", required=True, help="run folders holding train.json / evals.json")
-    r.add_argument("--curves", nargs="*", default=[], help="metrics.csv files to plot reward curves from")
+    r.add_argument("--curves", nargs="*", default=[],
+                   help="run folders or metrics.csv files to plot the reward curves of")
     r.add_argument("--out", default=str(common.DOCS))
     args = parser.parse_args(argv)
     t0 = time.time()

@@ -20,7 +20,6 @@ This script lives in recipes/ while benchmarks/ is being rewritten; it belongs b
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import subprocess
 import sys
@@ -47,8 +46,9 @@ def train(library: str, num_envs: int, out: Path, args) -> dict:
     print("+", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
     if library == "torchrl":
-        rows = list(csv.DictReader((out / "metrics.csv").open()))
-        last = rows[-1]
+        from tocabi_torchrl.rl.curves import read_metrics
+
+        last = read_metrics(out)[-1]
         snaps = sorted(str(p) for p in (out / "checkpoints").glob("wall_*.pt"))
         return {"env_steps": int(float(last["env_steps"])), "train_seconds": float(last["wall_s"]),
                 "env_steps_per_s": float(last["env_steps_per_s"]), "snapshots": snaps}

@@ -9,10 +9,10 @@
 
 Without CUDA and with --device auto (the default) it says so and runs the small ``cpu_smoke`` configuration (minutes
 on a laptop, learns nothing useful); an explicit --device cuda or GPU-sized --preset fails instead. Writes
-runs/<name>/: config.json, metrics.csv, checkpoints/, and (with --eval_at_end) eval/ with a summary JSON, the
-knee-trajectory plot and a video. An existing run folder is never overwritten: continue it with --resume, or give
-the new run another --name. --resume restores the saved run's options; only budget, logging, checkpoint, eval and
-device options may be given again with other values.
+runs/<name>/: config.json, metrics/ (torchrl's CSV logger: one file per metric), checkpoints/, and (with
+--eval_at_end) eval/ with a summary JSON, the knee-trajectory plot and a video. An existing run folder is never
+overwritten: continue it with --resume, or give the new run another --name. --resume restores the saved run's
+options; only budget, logging, checkpoint, eval and device options may be given again with other values.
 """
 
 from __future__ import annotations

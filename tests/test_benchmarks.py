@@ -85,6 +85,6 @@ def test_time_to_walk_train_resume_eval_report(tmp_path):
     assert walls and sorted(record["evaluations"]) == walls and len(record["commands"]) == 2
     for entry in record["evaluations"].values():  # 0.1 s cannot cover 2.6 m
         assert 0.0 <= entry["commands"]["0.5,0.0"]["survival"] <= 1.0 and entry["walks"] is False
-    text = run("report", "--runs", str(folder), "--curves", str(folder / "metrics.csv"), "--out", str(tmp_path / "d"))
+    text = run("report", "--runs", str(folder), "--curves", str(folder), "--out", str(tmp_path / "d"))
     assert record["time_to_walk"] is None and "| cpu_smoke | cpu | not within" in text
     assert (tmp_path / "d/time_to_walk.png").is_file() and (tmp_path / "d/time_to_walk_curves.png").is_file()

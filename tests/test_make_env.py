@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from graph_emulation import EmulatedCapture
 from torchrl.envs.utils import check_env_specs
 
 from tocabi_torchrl import make_env
@@ -178,10 +179,10 @@ def test_cuda_graph_option_is_checked():
 
 def test_graph_wiring_matches_eager_on_cpu():
     # The CUDA-graph path of SyncFreeResetEnv (warm-up count, key check, static input copy, fresh outputs, carry)
-    # with StepGraph's emulated replay: it must reproduce the eager sync-free path exactly, resets included.
+    # with an emulated capture: it must reproduce the eager sync-free path exactly, resets included.
     kw = dict(num_envs=3, device="cpu", seed=2, sync_free_resets=True, max_episode_steps=5)
     eager, wired = make_env(**kw), make_env(**kw)
-    wired._cuda_graph, wired._graph_emulate = True, True
+    wired.set_cuda_graph(True, capturer=EmulatedCapture())
     gen = torch.Generator().manual_seed(0)
     td_e, td_w = eager.reset(), wired.reset()
     for i in range(14):

@@ -8,11 +8,13 @@ import math
 
 import pytest
 import torch
+from graph_emulation import EmulatedCapture
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.objectives.value import GAE
 
 from tocabi_torchrl.rl import StdSchedule, action_std, make_actor, parse_args, preset_config, set_action_std
+from tocabi_torchrl.rl.curves import read_metrics
 
 
 @pytest.mark.parametrize("progress_remaining, std", [(1.0, 0.1), (0.9, 0.09), (0.75, 0.075), (0.6, 0.06),
@@ -109,8 +111,10 @@ def test_cuda_graph_reads_old_bool_configs_as_on_off(value, mode):
 
 
 def test_env_graph_auto_captures_small_counts_on_the_gpu_only():
-    from tocabi_torchrl.rl.config import ENV_GRAPH_AUTO_MAX_ENVS
-    from tocabi_torchrl.rl.trainer import uses_env_graph
+    from tocabi_torchrl.cuda_graphs import ENV_GRAPH_AUTO_MAX_ENVS, plan_graphs
+
+    def uses_env_graph(cfg, device, num_envs=None):
+        return plan_graphs(cfg, device, num_envs).env_step
 
     def config(num_envs, mode="auto"):
         return preset_config("default", num_envs=num_envs, minibatch_size=64, cuda_graph=mode)
@@ -188,8 +192,8 @@ def test_two_tiny_iterations_write_a_loadable_checkpoint(tmp_path):
     assert result.iterations == 2 and result.env_steps == 64
     run = tmp_path / "tiny"
     assert (run / "checkpoints" / "iter_000002.pt").is_file()
-    rows = (run / "metrics.csv").read_text().strip().splitlines()
-    assert len(rows) == 3 and "reward_terms/qpos" in rows[0] and "kl" in rows[0]
+    rows = read_metrics(run)  # torchrl's CSVLogger: one file per metric under run/metrics/scalars
+    assert len(rows) == 2 and "reward_terms/qpos" in rows[0] and "kl" in rows[0]
     assert json.loads((run / "config.json").read_text())["env"]["num_envs"] == 4
     agent = build_agent(cfg, 237, 13, torch.device("cpu"))
     state = load_checkpoint(run, agent)
@@ -223,7 +227,7 @@ def test_evaluation_and_curves_from_a_tiny_run(tmp_path):
         assert math.isfinite(summary[key]), key
     assert 0.0 <= summary["survival"] <= 1.0 and summary["knee_rms_rad"] >= 0.0
     assert (run / "eval" / "knees.png").stat().st_size > 10_000
-    png = plot_curves(run / "metrics.csv", tmp_path / "curves.png")
+    png = plot_curves(run, tmp_path / "curves.png")
     assert png.stat().st_size > 10_000
 
 
@@ -329,7 +333,7 @@ def test_chunked_gae_equals_unchunked():
 @pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # no eager fallback for a changed key layout
 def test_collector_drives_the_graph_wiring_like_the_eager_env():
     # A TorchRL Collector over the training env, once eager and once through SyncFreeResetEnv's graph path (with
-    # StepGraph's emulated replay, as no GPU is needed): the key layout must settle so the graph path is taken, and
+    # an emulated capture, as no GPU is needed): the key layout must settle so the graph path is taken, and
     # the collected batches must be identical.
     from torchrl.collectors import Collector
 
@@ -341,7 +345,7 @@ def test_collector_drives_the_graph_wiring_like_the_eager_env():
     for wired in (False, True):
         torch.manual_seed(0)
         env = build_env(cfg, device, sync_free_resets=True, for_training=True)
-        env._cuda_graph = env._graph_emulate = wired
+        env.set_cuda_graph(wired, capturer=EmulatedCapture())
         agent = build_agent(cfg, 237, 13, device)
         collector = Collector(env, agent.actor, frames_per_batch=24, total_frames=72, device=device,
                               storing_device=device, auto_register_policy_transforms=False, track_traj_ids=False,

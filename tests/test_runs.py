@@ -42,7 +42,7 @@ def tiny_args(tmp_path: Path, name: str = "run", **extra) -> list[str]:
 
 
 def iterations_logged(run: Path) -> list[int]:
-    return [int(row["iteration"]) for row in read_metrics(run / "metrics.csv")]
+    return [int(row["iteration"]) for row in read_metrics(run)]
 
 
 @pytest.fixture(scope="module")

@@ -104,3 +104,11 @@ def test_graph_follows_the_current_torch_stream(sim):
         z = sim.base_pos[:, 2].clone()
     torch.cuda.current_stream(sim.device).wait_stream(side)
     assert torch.allclose(z, torch.full_like(z, 3.0))
+
+
+def test_recorded_graph_refuses_a_capture_that_does_not_hold_it(sim):
+    """Inside a torch capture the physics must be held by cuda_graphs.capture_graph (joined or segmented), never
+    launched as a nested graph by accident. Last in this module: the refused capture leaves an empty graph."""
+    graph = torch.cuda.CUDAGraph()
+    with pytest.raises(RuntimeError, match="does not hold it"), torch.cuda.graph(graph):
+        sim.step()

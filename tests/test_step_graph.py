@@ -1,4 +1,4 @@
-"""StepGraph bookkeeping (static inputs, fresh outputs, aliasing), on CPU through its emulated replay.
+"""StepGraph bookkeeping (static inputs, fresh outputs, aliasing), on CPU through an emulated capture.
 
 The CUDA capture itself is covered by the GPU tests in test_make_env.py.
 """
@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from graph_emulation import EmulatedCapture
 from tensordict import TensorDict
 
 from tocabi_torchrl.envs.step_graph import StepGraph
@@ -30,9 +31,9 @@ def _input(seed):
 
 
 def test_replay_matches_the_eager_step_and_returns_fresh_tensors():
-    graph = StepGraph(_step, _input(0), emulate=True)
+    graph = StepGraph(_step, _input(0), capturer=EmulatedCapture())
     outputs = []
-    for seed in range(1, 5):
+    for seed in range(5):  # the first call takes the capture's input, as SyncFreeResetEnv's first replay does
         td = _input(seed)
         want_td, want_carry = _step(td.clone())
         got_td, got_carry = graph(td)
@@ -50,7 +51,7 @@ def test_replay_matches_the_eager_step_and_returns_fresh_tensors():
 
 
 def test_accepts_only_the_captured_keys():
-    graph = StepGraph(_step, _input(0), emulate=True)
+    graph = StepGraph(_step, _input(0), capturer=EmulatedCapture())
     assert graph.accepts(_input(1))
     assert not graph.accepts(_input(1).set("extra", torch.zeros(4)))
     assert not graph.accepts(_input(1).exclude("action"))

@@ -273,7 +273,7 @@ def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_pat
                         eval_at_end=False, progress_bar=False, checkpoint_every=1, checkpoint_keep_last=0,
                         cuda_graph="off")
     result = train(cfg)
-    rows = read_metrics(result.run_dir / "metrics.csv")
+    rows = read_metrics(result.run_dir)
     # β each rollout ran with: 1, 1 (the fade starts after one iteration), halfway through the (geometric) fade, 0.
     # The fade is geometric in the env's action gain: c(1)/c(0) is the legs' mean of 0.5 rad · Kp / limit.
     r = math.exp(sum(math.log(0.5 * kp / lim) for kp, lim in zip(robot.LEG_KP, robot.LEG_TORQUE_LIMITS)) / 12)
@@ -422,7 +422,7 @@ def test_gpu_torque_preset_trains_with_the_captured_absorbing_update(tmp_path):
                         run_dir=str(tmp_path), name="g", eval_at_end=False, progress_bar=False)
     with _no_capture_warning():  # the absorbing loss must be captured with the update, not fall back to eager
         result = train(cfg)
-    rows = read_metrics(result.run_dir / "metrics.csv")
+    rows = read_metrics(result.run_dir)
     betas = [float(r["torque_assist"]) for r in rows]
     r = math.exp(sum(math.log(0.5 * kp / lim) for kp, lim in zip(robot.LEG_KP, robot.LEG_TORQUE_LIMITS)) / 12)
     geometric = [(r ** (1 - u) - 1) / (r - 1) for u in (0, 0, 1 / 3, 2 / 3, 1)]  # β each rollout ran with

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from graph_emulation import EmulatedCapture
 from tensordict import TensorDict
 
 from tocabi_torchrl.rl import preset_config
@@ -43,14 +44,15 @@ def _params(agent) -> torch.Tensor:
 def test_emulated_replay_wiring_matches_the_eager_step():
     """Static buffers refilled in place give the same parameters as fresh mini-batches, step for step."""
     cfg, eager_agent, eager = _setup("cpu", update_graph=False)
-    _, emu_agent, emu = _setup("cpu", update_graph=False)
-    emu.emulate = True
+    _, emu_agent, plain = _setup("cpu", update_graph=False)
+    emu = MinibatchStep(plain.loss_module, plain.optimizer, plain.params, plain.max_grad_norm, use_graph=True,
+                        capturer=EmulatedCapture())
     flat = _rollout(512, "cpu")
     torch.manual_seed(3)
     stats_eager = _update(cfg, flat, eager)
     torch.manual_seed(3)
     stats_emu = _update(cfg, flat, emu)
-    assert emu._static_mb is not None and emu._static_mb.batch_size == torch.Size([cfg.ppo.minibatch_size])
+    assert emu.captured and emu._capture.capturer.captures == ["joined"]
     assert stats_eager == pytest.approx(stats_emu, rel=1e-6)
     torch.testing.assert_close(_params(eager_agent), _params(emu_agent), rtol=0, atol=0)
     assert not torch.equal(_params(eager_agent), _params(_setup("cpu", update_graph=False)[1])), "nothing trained"

@@ -101,7 +101,7 @@ class PPOConfig:
     assist_target: str = "teacher"
     assist_anchor_decay: int = 0
     #: On a GPU, capture the training env's whole step (physics, signals, transforms, masked reset) as one CUDA
-    #: graph: "on", "off", or "auto" = on up to ``rl.config.ENV_GRAPH_AUTO_MAX_ENVS`` envs. Small counts are
+    #: graph: "on", "off", or "auto" = on up to ``cuda_graphs.ENV_GRAPH_AUTO_MAX_ENVS`` envs. Small counts are
     #: launch-bound, and the graph trained 1.5-1.8x faster at 8-96 envs on an H100 (short runs); from 256 envs up it
     #: was 3-6 % slower (docs/benchmarks/env_graph.md). Both compute the same step (tests compare them).
     cuda_graph: str = "auto"

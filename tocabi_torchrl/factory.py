@@ -7,6 +7,7 @@ import dataclasses
 import torch
 from torchrl.envs import TransformedEnv
 
+from .cuda_graphs import env_graph_blockers
 from .device import check_device
 from .envs import TocabiWalk, TocabiWalkConfig
 from .envs.autoreset import SyncFreeResetEnv
@@ -69,17 +70,11 @@ def make_env(
     if preset is not None:
         settings = dataclasses.replace(settings, preset=preset)
     tf_config = settings.transform_config(**tf_kwargs)
-    if cuda_graph and tf_config.compile_reward:
-        raise ValueError("compile_reward=True and cuda_graph=True do not combine (a recompile inside the capture "
-                         "would break it); the CUDA graph already removes the launches torch.compile saves")
-    on_cuda = device.type == "cuda"
     if sync_free_resets is None:
-        sync_free_resets = on_cuda
-    if cuda_graph and not on_cuda:
-        raise ValueError(f"cuda_graph=True needs a CUDA device, got device={str(device)!r}; pass cuda_graph=False")
-    if cuda_graph and not sync_free_resets:
-        raise ValueError("cuda_graph=True needs sync_free_resets=True: a step that reads device values on the host "
-                         "cannot be captured")
+        sync_free_resets = device.type == "cuda"
+    blockers = env_graph_blockers(device, sync_free_resets, tf_config.compile_reward) if cuda_graph else []
+    if blockers:
+        raise ValueError("; ".join(blockers))
     base = TocabiWalk(num_envs=num_envs, device=device, config=config, seed=seed, **env_kwargs)
     transforms_ = default_transforms(tf_config)
     if sync_free_resets:

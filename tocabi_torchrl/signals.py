@@ -37,8 +37,9 @@ class Signal:
         meaning: one line for docs/signals.md (no ``|``, no line breaks).
         categories: for discrete signals, the number of values ``0 … categories − 1`` (bool flags: 2).
         bounds: ``(low, high)`` for a continuous signal with a known range (its spec is then ``Bounded``).
-        requires: the name of the env option that turns the signal on (``"torque_assist"``, ``"model_based"``; the
-            env passes its options' values as ``flags``, see ``TocabiWalk.signal_flags``); ``None``: always on.
+        requires: the name of the env option that turns the signal on (``"torque_assist"``, ``"model_based"``,
+            ``"obstacles"``; the env passes its options' values as ``flags``, see ``TocabiWalk.signal_flags``);
+            ``None``: always on.
     """
 
     name: str
@@ -168,7 +169,7 @@ SIGNALS = SignalTable((
     Signal("foot_force", (2, 3), _F32, "N",
            "foot F/T sensor force in its site frame, [left, right]; z < 0 when loaded"),
     Signal("foot_torque", (2, 3), _F32, "N·m", "foot F/T sensor torque about the site, site frame, [left, right]"),
-    Signal("foot_contact", (2,), _BOOL, "", "a `Foot_Link` geom touches the ground, [left, right]"),
+    Signal("foot_contact", (2,), _BOOL, "", "a `Foot_Link` geom touches the ground or an obstacle, [left, right]"),
     Signal("phase", (1,), _F32, "", "observation phase in [0, 1) at the post-step time (spec §3.2)", bounds=(0.0, 1.0)),
     Signal("ref_joint_pos", (_J,), _F32, "rad",
            "reference targets used during the step that produced this state (pre-step time)"),
@@ -197,6 +198,9 @@ SIGNALS = SignalTable((
            "only in `model_based` mode: the feed-forward torque τ_ff = M_LL·(q̈_ref + ω²·(q_ref − q) + 2ζω·(q̇_ref − "
            "q̇)) + c_L of that step, from the pre-step state (before the residual and the clip)",
            requires="model_based"),
+    Signal("obstacle_contact", (2,), _BOOL, "",
+           "only with `env.scene.obstacles`: a `Foot_Link` geom touches an obstacle box, [left, right] (also counted "
+           "in `foot_contact`)", requires="obstacles"),
 ))  # fmt: skip
 
 #: The env's done flags (its ``done_spec``), in spec order.

@@ -4,19 +4,22 @@ entry and ``config.json`` are generated from it with these helpers.
 
 A *section* is a dataclass field whose value is itself a dataclass; every other field is a *leaf*, addressed by its
 dotted path (``"ppo.lr"``, ``"env.control.mode"``). Leaf values are plain data: numbers, strings, bools, ``None`` and
-tuples of those (lists, as JSON and checkpoints return them, are read back as tuples).
+tuples of those (lists, as JSON and checkpoints return them, are read back as tuples), or a tuple of small dataclass
+*items* (a leaf annotated ``tuple[Item, ...]``, e.g. ``env.scene.obstacles``), written as a list of dicts and given on
+the command line as JSON.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import types
 import typing
 from typing import Any
 
 __all__ = ["ConfigError", "leaf_paths", "leaf_types", "get_path", "replace_paths", "to_dict", "from_dict",
-           "parse_leaf"]
+           "parse_leaf", "item_type"]
 
 
 class ConfigError(ValueError):
@@ -34,6 +37,38 @@ def _is_section(value: Any) -> bool:
 
 def _hints(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls)
+
+
+def item_type(kind: Any) -> type | None:
+    """The dataclass ``Item`` of a leaf annotated ``tuple[Item, ...]`` (optionally ``| None``), else ``None``."""
+    kind = _unwrap_optional(kind)[0]
+    if typing.get_origin(kind) is not tuple:
+        return None
+    args = [a for a in typing.get_args(kind) if a is not Ellipsis]
+    if args and dataclasses.is_dataclass(args[0]) and isinstance(args[0], type):
+        return args[0]
+    return None
+
+
+def _items(item: type, value: Any, where: str) -> Any:
+    """A tuple-of-items leaf's value with every dict (as :func:`to_dict` writes an item) built into ``item``."""
+    if isinstance(value, (dict, item)):  # one item
+        value = [value]
+    if not isinstance(value, (list, tuple)):
+        raise ConfigError(f"config option {where!r} takes a list of {item.__name__} (or of dicts of its fields), "
+                          f"got {type(value).__name__}")
+    out = []
+    for i, v in enumerate(value):
+        if isinstance(v, dict):
+            try:
+                v = from_dict(item, v, f"{where}[{i}].")
+            except (TypeError, ValueError) as err:
+                raise ConfigError(f"{where}[{i}]: {err}", unknown=getattr(err, "unknown", None)) from None
+        elif not isinstance(v, item):
+            raise ConfigError(f"{where}[{i}] must be a {item.__name__} or a dict of its fields "
+                              f"{[f.name for f in dataclasses.fields(item)]}, got {v!r}")
+        out.append(v)
+    return tuple(out)
 
 
 def leaf_paths(tree: Any, prefix: str = "") -> list[str]:
@@ -83,7 +118,10 @@ def replace_paths(tree: Any, values: dict[str, Any]) -> Any:
             direct[head] = value
     for head, value in list(direct.items()):
         current = getattr(tree, head)
-        if _is_section(current) and isinstance(value, dict):  # a section given as a dict (as to_dict writes it)
+        item = item_type(_hints(type(tree))[head])
+        if item is not None:
+            direct[head] = _items(item, value, head)
+        elif _is_section(current) and isinstance(value, dict):  # a section given as a dict (as to_dict writes it)
             direct[head] = from_dict(type(current), value, f"{head}.")
         elif _is_section(current) and not isinstance(value, type(current)):
             raise ConfigError(f"config section {head!r} must be a {type(current).__name__} or a dict of its options, "
@@ -95,6 +133,8 @@ def replace_paths(tree: Any, values: dict[str, Any]) -> Any:
 
 
 def _plain(value: Any) -> Any:
+    if _is_section(value):  # an item of a tuple-of-items leaf
+        return to_dict(value)
     if isinstance(value, (list, tuple)):
         return [_plain(v) for v in value]
     if isinstance(value, os.PathLike):
@@ -128,10 +168,14 @@ def from_dict(cls: type, data: dict[str, Any], where: str = "") -> Any:
         raise ConfigError(f"unknown config option(s) {paths}; {where or 'the top level'} knows {sorted(fields)}",
                           unknown=paths)
     values = {}
+    hints = _hints(cls)
     for name, value in data.items():
         current = getattr(default, name)
+        item = item_type(hints[name])
         if _is_section(current):
             values[name] = from_dict(type(current), value, f"{where}{name}.")
+        elif item is not None:
+            values[name] = _items(item, value, f"{where}{name}")
         else:
             values[name] = _as_leaf(value)
     return cls(**values)
@@ -162,11 +206,22 @@ def _scalar(kind: Any, text: str) -> Any:
 
 def parse_leaf(kind: Any, text: str) -> Any:
     """A leaf's value from command-line ``text`` for its annotated type: ``int``, ``float``, ``bool`` (true/false),
-    ``str``, optional ones (``none`` -> ``None``) and tuples (comma-separated; empty text -> ``()``). Raises
-    ``ValueError`` for text that does not fit."""
+    ``str``, optional ones (``none`` -> ``None``), tuples (comma-separated; empty text -> ``()``) and tuples of
+    dataclass items (JSON: a list of objects of the item's fields, or one object; ``none`` or empty -> ``()``).
+    Raises ``ValueError`` for text that does not fit."""
     kind, optional = _unwrap_optional(kind)
     if optional and text.lower() == "none":
         return None
+    item = item_type(kind)
+    if item is not None:
+        if text.strip().lower() in ("", "none", "[]"):
+            return ()
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"expected JSON, a list of {item.__name__} objects such as "
+                             f"{json.dumps([to_dict(item())])}: {err}") from None
+        return _items(item, [data] if isinstance(data, dict) else data, item.__name__)
     if typing.get_origin(kind) is tuple:
         args = typing.get_args(kind) or (str,)
         elem = _unwrap_optional(args[0])[0]

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import warnings
 
-import torch
 from tensordict import TensorDictBase
 from torchrl.envs import TransformedEnv
 
+from ..cuda_graphs import CAPTURE_MODES, CUDA_GRAPHS, Capturer, WarmCapture
 from .step_graph import StepGraph
 
 __all__ = ["SyncFreeResetEnv"]
@@ -24,8 +24,10 @@ class SyncFreeResetEnv(TransformedEnv):
     next-step data with ``where``: no host reads, so Python and kernel launches overlap the GPU work.
 
     With ``cuda_graph=True`` (on a CUDA env) the step is then captured as one CUDA graph after ``graph_warmup`` eager
-    calls and replayed from there on (see :class:`~tocabi_torchrl.envs.step_graph.StepGraph`): the few hundred small
-    launches of the signals, transforms and reset become one, so the host no longer limits the step rate. The graph
+    calls and replayed from there on (:class:`~tocabi_torchrl.cuda_graphs.WarmCapture` over
+    :class:`~tocabi_torchrl.envs.step_graph.StepGraph`, capture modes tried in the order of ``graph_modes``): the few
+    hundred small launches of the signals, transforms and reset become one, so the host no longer limits the step
+    rate. The graph
     freezes Python-side settings read during the step (config fields, ``RunningNormalization.frozen``): after
     changing one call :meth:`invalidate_graph` (:meth:`set_seed` does so by itself; reward weights set with
     ``TaskReward.set_weight`` live on the device and need nothing). If the capture fails, the env warns and stays
@@ -36,36 +38,42 @@ class SyncFreeResetEnv(TransformedEnv):
     all-False done flags on reset rows (``TocabiWalk`` does) and update its state in place.
     """
 
-    def __init__(self, *args, cuda_graph: bool = False, graph_warmup: int = 2, **kwargs):
+    def __init__(self, *args, cuda_graph: bool = False, graph_warmup: int = 2, capturer: Capturer = CUDA_GRAPHS,
+                 **kwargs):
         super().__init__(*args, **kwargs)
-        if isinstance(graph_warmup, bool) or not isinstance(graph_warmup, int) or graph_warmup < 1:
-            raise ValueError(f"graph_warmup must be an int >= 1 (eager calls before the capture), got {graph_warmup!r}")
-        self._cuda_graph = bool(cuda_graph)
-        self._graph_warmup = graph_warmup
-        self._step_graph: StepGraph | None = None
-        self._eager_calls = 0
         self._warned_keys = False
-        # Tests without a GPU run the same wiring with StepGraph's emulated (uncaptured) replay.
-        self._graph_emulate = False
-        self._capture_stream = None
         #: Capture modes tried in order (see StepGraph): one joined graph, else torch graphs cut around the physics.
-        self.graph_modes: tuple[str, ...] = ("joined", "segmented")
+        self.graph_modes: tuple[str, ...] = CAPTURE_MODES
+        self._capture = WarmCapture("SyncFreeResetEnv", "the step", self._eager_step_and_maybe_reset,
+                                    self._build_step_graph, warmup=graph_warmup, capturer=capturer,
+                                    warmup_option="graph_warmup")
+        self._cuda_graph = bool(cuda_graph)
 
     @property
     def cuda_graph(self) -> bool:
         """Whether ``step_and_maybe_reset`` is captured and replayed as a CUDA graph (CUDA envs only)."""
-        on_cuda = self.device is not None and self.device.type == "cuda"
-        return self._cuda_graph and (on_cuda or self._graph_emulate)
+        return self._cuda_graph and not self._capture.gave_up and self._capture.capturer.supports(self.device)
+
+    def set_cuda_graph(self, enabled: bool, capturer: Capturer | None = None) -> None:
+        """Turn the captured step on or off (dropping any capture); ``capturer`` replaces how it is captured."""
+        if capturer is not None:
+            self._capture.capturer = capturer
+        self._cuda_graph = bool(enabled)
+        self.invalidate_graph()
+        self._capture.gave_up = False
 
     @property
     def graph_captured(self) -> bool:
         """Whether a captured step graph is ready to replay."""
-        return self._step_graph is not None
+        return self._capture.captured
+
+    @property
+    def _step_graph(self) -> StepGraph | None:
+        return self._capture.replayer
 
     def invalidate_graph(self) -> None:
         """Drop the captured step; the next calls run eagerly and capture again (after changing a Python setting)."""
-        self._step_graph = None
-        self._eager_calls = 0
+        self._capture.reset()
 
     def set_seed(self, *args, **kwargs):
         # TocabiWalk keeps its seed on the device, which a graph follows; a base env that reads a Python seed
@@ -78,7 +86,7 @@ class SyncFreeResetEnv(TransformedEnv):
             tensordict = tensordict.to(self.device)
         if not self.cuda_graph:
             return self._eager_step_and_maybe_reset(tensordict)
-        graph = self._step_graph
+        graph = self._capture.replayer
         if graph is not None:
             if graph.accepts(tensordict):
                 check = getattr(self.base_env, "_check_action", None)
@@ -93,42 +101,14 @@ class SyncFreeResetEnv(TransformedEnv):
                     stacklevel=2,
                 )
             return self._eager_step_and_maybe_reset(tensordict)
-        self._eager_calls += 1
-        if self._eager_calls < self._graph_warmup:
-            return self._eager_step_and_maybe_reset(tensordict)
-        if self._eager_calls == self._graph_warmup:
-            return self._warmup_on_capture_stream(tensordict)
-        generators = getattr(self.base_env, "cuda_graph_generators", list)()
-        failures = []
-        for mode in self.graph_modes:
-            try:
-                self._step_graph = StepGraph(self._eager_step_and_maybe_reset, tensordict, generators,
-                                             emulate=self._graph_emulate, stream=self._capture_stream, mode=mode)
-                break
-            except Exception as err:  # noqa: BLE001 - any capture failure: try the next mode, say why
-                failures.append(f"{mode}: {type(err).__name__}: {err}")
-        if failures:
-            outcome = (f"using the {self._step_graph.mode!r} capture" if self._step_graph is not None
-                       else "running eagerly from now on")
-            warnings.warn(f"SyncFreeResetEnv: capturing the step as a CUDA graph failed ({'; '.join(failures)}); "
-                          f"{outcome}", stacklevel=2)
-        if self._step_graph is None:
-            self._cuda_graph = False
-            return self._eager_step_and_maybe_reset(tensordict)
-        return self._step_graph(tensordict)  # the capture recorded the step; this replay runs it
+        self._capture.modes = self.graph_modes
+        return self._capture.run(self.device, tensordict)
 
-    def _warmup_on_capture_stream(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
-        """The last warm-up call runs on the stream the capture will use (lazy per-stream set-up happens outside
-        the capture, as torch recommends)."""
-        if self._graph_emulate:  # no CUDA: the emulated replay needs no stream
-            return self._eager_step_and_maybe_reset(tensordict)
-        current = torch.cuda.current_stream(self.device)
-        self._capture_stream = stream = torch.cuda.Stream(self.device)
-        stream.wait_stream(current)
-        with torch.cuda.stream(stream):
-            out = self._eager_step_and_maybe_reset(tensordict)
-        current.wait_stream(stream)
-        return out
+    def _build_step_graph(self, args, stream, mode: str) -> StepGraph:
+        base = self.base_env
+        return StepGraph(self._eager_step_and_maybe_reset, args[0], getattr(base, "cuda_graph_generators", list)(),
+                         stream=stream, mode=mode, recorded=getattr(base, "recorded_graphs", list)(),
+                         capturer=self._capture.capturer)
 
     def _eager_step_and_maybe_reset(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
         tensordict = self.step(tensordict)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -10,8 +11,9 @@ import numpy as np
 from .. import robot
 from .command import CommandConfig
 
-__all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "PD_GAINS", "ENV_FLAT_PATHS",
-           "CONTROL_MODES", "TORQUE_MODES", "MB_OMEGA", "BACKENDS", "CPU_DEFAULT_BACKEND", "resolve_backend"]
+__all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "SceneConfig", "BoxObstacle", "PD_GAINS",
+           "ENV_FLAT_PATHS", "CONTROL_MODES", "TORQUE_MODES", "MB_OMEGA", "BACKENDS", "CPU_DEFAULT_BACKEND",
+           "resolve_backend"]
 
 CONTROL_MODES = ("torque", "pd", "pd_reference", "model_based")
 #: The modes whose leg actuators are torque motors (the env computes the torque); the others make them MuJoCo
@@ -196,6 +198,104 @@ class ControlConfig:
                              f"the reference's velocity/acceleration differences), got {window!r}")
 
 
+def _floats(value, n: int, what: str) -> tuple[float, ...]:
+    """``value`` as a tuple of ``n`` finite floats, or a ``ValueError`` naming ``what``."""
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be {n} numbers, got {value!r}") from None
+    if len(out) != n:
+        raise ValueError(f"{what} must be {n} numbers, got {len(out)}: {value!r}")
+    if not all(math.isfinite(v) for v in out):
+        raise ValueError(f"{what} must be finite, got {out}")
+    return out
+
+
+@dataclass(frozen=True)
+class BoxObstacle:
+    """A box resting on the ground (its bottom face at z = 0), axis-aligned with the world, added to the scene at
+    build time (``TocabiWalkConfig.scene.obstacles``). Lengths in m, world frame (x forward, y left, z up; the robot
+    starts with its pelvis at x = y = 0 facing +x).
+
+    The box is a static, collidable body of the scene (a MuJoCo mocap body named ``obstacle_<k>`` with one box
+    geom of the same name, k its index in ``scene.obstacles``). Contacts with it count like contacts with the
+    ground: a foot on it is foot contact (``foot_contact``, and ``obstacle_contact``), any body of
+    ``robot.GROUND_FORBIDDEN_BODIES`` touching it is forbidden contact (termination).
+
+    Attributes:
+        size: full length (x), width (y) and height (z) [m], each > 0.
+        pos: (x, y) of the box centre [m] (its z centre is ``size[2] / 2``). The default (0.7, 0.1025) is 0.6 m
+            ahead of the left sole's centre in the initial pose (:meth:`ahead_of_left_foot`).
+        jitter: (x, y) half-ranges [m], >= 0, of a uniform per-world offset of ``pos``: world i's box is centred at
+            ``pos + U(-jitter, jitter)``, drawn once per world when the env is built, from the env's ``seed`` (the
+            same seed, world count and obstacles give the same positions; a reset keeps them, and ``set_seed`` after
+            the build does not move them). ``TocabiWalk.obstacle_pos`` holds every world's box centres.
+    """
+
+    size: tuple[float, float, float] = (0.3, 0.6, 0.012)
+    pos: tuple[float, float] = (0.7, 0.1025)
+    jitter: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self):
+        size = _floats(self.size, 3, "BoxObstacle.size (length, width, height in m)")
+        if min(size) <= 0:
+            raise ValueError(f"BoxObstacle.size (length, width, height in m) must be > 0, got {size}")
+        jitter = _floats(self.jitter, 2, "BoxObstacle.jitter (x, y half-ranges in m)")
+        if min(jitter) < 0:
+            raise ValueError(f"BoxObstacle.jitter (x, y half-ranges in m) must be >= 0, got {jitter}")
+        object.__setattr__(self, "size", size)
+        object.__setattr__(self, "pos", _floats(self.pos, 2, "BoxObstacle.pos (x, y of the centre in m)"))
+        object.__setattr__(self, "jitter", jitter)
+
+    @classmethod
+    def ahead_of_left_foot(cls, height: float, distance: float = 0.6, length: float = 0.3, width: float = 0.6,
+                           jitter: tuple[float, float] = (0.0, 0.0), lateral: float = 0.0,
+                           model_path: str | None = None) -> BoxObstacle:
+        """A box ``height`` [m] high whose centre is ``distance`` [m] ahead (+x) of the left sole's centre in the
+        robot's initial pose (``robot.INIT_QPOS``; found from the model, ``model_path`` or the shipped one: sole centre
+        at (0.100, 0.1025) m), shifted ``lateral`` [m] to the left (+y). ``length`` (x) and ``width`` (y) in m; the
+        default 0.6 m width spans both feet's tracks (a box only the left foot meets needs width < 0.2 m).
+        ``jitter``: see :attr:`jitter`. The centre is rounded to 0.1 mm (readable configs)."""
+        from .obstacles import initial_sole_centre
+
+        x, y = initial_sole_centre(0, model_path)[:2]
+        pos = (round(float(x) + float(distance), 4), round(float(y) + float(lateral), 4))
+        return cls(size=(length, width, height), pos=pos, jitter=jitter)
+
+    @property
+    def half_size(self) -> tuple[float, float, float]:
+        """Half length, width, height [m] (MuJoCo's box ``size``)."""
+        return tuple(v / 2 for v in self.size)
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming a bad value (the values are already checked when the box is made)."""
+        type(self)(self.size, self.pos, self.jitter)
+
+
+@dataclass
+class SceneConfig:
+    """What the robot's world holds besides the ground plane (``TocabiWalkConfig.scene``).
+
+    Attributes:
+        obstacles: :class:`BoxObstacle` boxes, added to the model at build time on every backend (none: the model
+            is the plain robot scene, compiled exactly as without this section). On the command line a JSON list,
+            e.g. ``--env.scene.obstacles '[{"size": [0.3, 0.6, 0.012], "pos": [0.7, 0.1], "jitter": [0.05, 0.05]}]'``.
+    """
+
+    obstacles: tuple[BoxObstacle, ...] = ()
+
+    def validate(self) -> None:
+        if not isinstance(self.obstacles, tuple):
+            raise ValueError(f"env.scene.obstacles must be a tuple of BoxObstacle, got {type(self.obstacles).__name__}")
+        for k, box in enumerate(self.obstacles):
+            if not isinstance(box, BoxObstacle):
+                raise ValueError(f"env.scene.obstacles[{k}] must be a BoxObstacle, got {type(box).__name__}")
+            try:
+                box.validate()
+            except ValueError as err:
+                raise ValueError(f"env.scene.obstacles[{k}]: {err}") from None
+
+
 #: The flat keyword names ``TocabiWalk(...)``/``make_env(...)`` accept (and ``TocabiWalkConfig`` had before it was
 #: split into sections) -> their path in the env tree.
 ENV_FLAT_PATHS = {
@@ -204,7 +304,7 @@ ENV_FLAT_PATHS = {
     "torque_assist": "control.torque_assist", "mb_omega": "control.mb_omega", "mb_zeta": "control.mb_zeta",
     "mb_ref_window": "control.mb_ref_window",
     "substeps": "sim.substeps", "nconmax": "sim.nconmax", "njmax": "sim.njmax", "backend": "sim.backend",
-    "sim_threads": "sim.threads",
+    "sim_threads": "sim.threads", "obstacles": "scene.obstacles",
     **{name: f"task.{name}" for name in TaskConfig.__dataclass_fields__},
 }
 
@@ -224,6 +324,7 @@ class TocabiWalkConfig:
         task: :class:`TaskConfig` (episode length, motion, terminations).
         command: :class:`~tocabi_torchrl.envs.command.CommandConfig` (velocity command schedule).
         control: :class:`ControlConfig` (what the leg actions command).
+        scene: :class:`SceneConfig` (obstacles on the ground).
     """
 
     num_envs: int = 4096
@@ -231,6 +332,7 @@ class TocabiWalkConfig:
     task: TaskConfig = field(default_factory=TaskConfig)
     command: CommandConfig = field(default_factory=CommandConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
 
     @classmethod
     def reference(cls, **flat) -> TocabiWalkConfig:
@@ -249,7 +351,7 @@ class TocabiWalkConfig:
         unknown = sorted(set(flat) - set(ENV_FLAT_PATHS) - sections)
         if unknown:
             raise TypeError(f"unknown TocabiWalk option(s) {unknown}; use a section (num_envs, sim, task, command, "
-                            f"control) or one of {sorted(ENV_FLAT_PATHS)}")
+                            f"control, scene) or one of {sorted(ENV_FLAT_PATHS)}")
         return replace_paths(self, {ENV_FLAT_PATHS.get(k, k): v for k, v in flat.items()})
 
     @property
@@ -266,3 +368,4 @@ class TocabiWalkConfig:
         self.task.validate()
         self.control.validate()
         self.command.validate()
+        self.scene.validate()

@@ -8,13 +8,12 @@ graphs are cut around the simulator's own step and reset graphs ("segmented" mod
 
 from __future__ import annotations
 
-import gc
 from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from ..sim.graph import SegmentedCapture, no_gc
+from ..cuda_graphs import CUDA_GRAPHS, Capturer
 
 __all__ = ["StepGraph"]
 
@@ -41,51 +40,23 @@ class StepGraph:
     Args:
         step_fn: the eager step (``SyncFreeResetEnv._eager_step_and_maybe_reset``).
         example: an input of the shape and keys the graph will take (its values are only copied).
-        generators: CUDA ``torch.Generator`` objects the step draws from besides the default one; their offsets
-            advance on every replay as in eager mode.
-        stream: the side stream to capture on (best the one the last eager warm-up call ran on); a new one if None.
-        mode: ``"joined"``: one torch CUDA graph, the physics recorded into it through warp's external capture
-            (:meth:`~tocabi_torchrl.sim.graph.Recorded._join_torch_capture`); ``"segmented"``: torch graphs cut
-            around the physics, whose own warp graphs are launched between them
-            (:class:`~tocabi_torchrl.sim.graph.SegmentedCapture`, a few launches per step, nothing nested).
-        emulate: instead of capturing (CUDA only), call ``step_fn`` on the static inputs at every call and keep
-            its outputs as the static outputs. Same bookkeeping and one step per call, no graph: this is how the
-            wiring is tested without a GPU.
+        generators: CUDA ``torch.Generator`` objects the step draws from besides the default one.
+        stream: the side stream to capture on (best the one the warm-up calls ran on); a new one if None.
+        mode: a capture mode of :func:`~tocabi_torchrl.cuda_graphs.capture_graph` ("joined" or "segmented").
+        recorded: the simulator's recorded physics graphs the step calls.
+        capturer: how to capture (:data:`~tocabi_torchrl.cuda_graphs.CUDA_GRAPHS`).
     """
 
     def __init__(self, step_fn: StepFn, example: TensorDictBase, generators: Sequence[torch.Generator] = (),
-                 emulate: bool = False, stream: torch.cuda.Stream | None = None, mode: str = "joined"):
-        device = example.device
-        if not emulate and (device is None or device.type != "cuda"):
-            raise ValueError(f"StepGraph captures CUDA work; the input tensordict is on {device}")
-        if mode not in ("joined", "segmented"):
-            raise ValueError(f"StepGraph mode must be 'joined' or 'segmented', got {mode!r}")
+                 stream: torch.cuda.Stream | None = None, mode: str = "joined", recorded: Sequence = (),
+                 capturer: Capturer = CUDA_GRAPHS):
         self.mode = mode
         self.keys = _sorted_keys(example)
         self._static_in = example.select(*self.keys).clone()
         self._in_leaves = [self._static_in.get(k) for k in self.keys]
-        self._step_fn, self._replay = step_fn, None
-        if emulate:
-            return  # the outputs' layout is taken from the first call
-        stream = stream if stream is not None else torch.cuda.Stream(device)
-        stream.wait_stream(torch.cuda.current_stream(device))
-        # No garbage collection while capturing: freeing an unrelated warp array could call cudaFree, which a
-        # "global" capture forbids (torch.cuda.graph collects once before it starts).
-        gc.collect()
-        with no_gc():
-            if mode == "joined":
-                graph = torch.cuda.CUDAGraph()
-                for gen in generators:
-                    graph.register_generator_state(gen)
-                with torch.cuda.graph(graph, stream=stream):
-                    out, carry = step_fn(self._static_in.copy())
-                self._replay = graph.replay
-            else:
-                torch.cuda.synchronize(device)  # as torch.cuda.graph does before a capture
-                with SegmentedCapture(stream, generators) as segmented:
-                    out, carry = step_fn(self._static_in.copy())
-                self._replay = segmented.replay
-        torch.cuda.current_stream(device).wait_stream(stream)
+        self._replay, (out, carry) = capturer.capture(lambda: step_fn(self._static_in.copy()), device=example.device,
+                                                      stream=stream, generators=generators, mode=mode,
+                                                      recorded=recorded)
         self._set_outputs(out, carry)
 
     def _set_outputs(self, out: TensorDictBase, carry: TensorDictBase) -> None:
@@ -108,11 +79,7 @@ class StepGraph:
 
     def __call__(self, td: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
         torch._foreach_copy_(self._in_leaves, [td.get(k) for k in self.keys])
-        if self._replay is not None:
-            self._replay()
-        else:
-            out, carry = self._step_fn(self._static_in.copy())
-            self._set_outputs(out, carry)  # these fresh outputs act as the static ones
+        self._replay()
         fresh = [torch.empty_like(t) for t in self._unique]
         torch._foreach_copy_(fresh, self._unique)
         pick = lambda leaves: [fresh[self._slot[id(t)]] for t in leaves]  # noqa: E731

@@ -27,6 +27,7 @@ from .command import VelocityCommand
 from .config import TORQUE_MODES, ControlConfig, TocabiWalkConfig, resolve_backend
 from .episode_random import episode_uniform
 from .model_based import ComputedTorque
+from .obstacles import add_obstacles, world_obstacle_centres
 from .termination import termination_flags
 
 __all__ = ["TocabiWalk", "quat_rotate_inverse"]
@@ -63,7 +64,8 @@ class TocabiWalk(EnvBase):
             training preset's task); keyword ``overrides`` replace single values by their flat names
             (``control_mode="torque"``, ``max_episode_steps=1000``, see ``envs.config.ENV_FLAT_PATHS``) or whole
             sections (``command=CommandConfig.reference()``).
-        seed: seed of the env's own torch generator (initial phase, commands).
+        seed: seed of the env's own torch generator (initial phase, commands) and of the obstacles' per-world jitter
+            (drawn once, at build: see ``BoxObstacle.jitter``); None = a random seed.
 
     Action (N, 13): 12 leg commands in [-1, 1] (torques as a fraction of the limits, or PD targets, see the
     config's ``control.mode``) and one phase-rate action in [0, 1]. Actions outside the bounds are clipped; NaN
@@ -106,23 +108,29 @@ class TocabiWalk(EnvBase):
         self.num_envs = num_envs
         control, sim = cfg.control, cfg.sim
 
+        self._seed = int(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item())
         spec = robot.load_spec(cfg.task.model_path)
         if control.mode not in TORQUE_MODES:
             spec = _pd_leg_spec(spec, control)
+        obstacles = cfg.scene.obstacles
+        centres = world_obstacle_centres(obstacles, num_envs, self._seed)
+        mocap = dict(zip(add_obstacles(spec, obstacles), centres.transpose(1, 0, 2)))
+        #: (num_envs, K, 3) float32 centre [m] of each world's K obstacle boxes (``cfg.scene.obstacles`` order,
+        #: jitter included; the bottom face at z = 0), fixed at build.
+        self.obstacle_pos = torch.as_tensor(centres, dtype=torch.float32, device=device)
         self.backend = resolve_backend(sim.backend, device)
         if self.backend == "warp":
             buffers = {k: v for k, v in (("nconmax", sim.nconmax), ("njmax", sim.njmax)) if v is not None}
             sim_cfg = SimConfig(num_worlds=num_envs, device=str(device), substeps=sim.substeps, **buffers)
-            self.sim = WarpSim(sim_cfg, model=spec)
+            self.sim = WarpSim(sim_cfg, model=spec, mocap_pos=mocap)
         else:
             sim_cfg = SimConfig(num_worlds=num_envs, device="cpu", substeps=sim.substeps, threads=sim.threads)
-            self.sim = MujocoSim(sim_cfg, model=spec)
+            self.sim = MujocoSim(sim_cfg, model=spec, mocap_pos=mocap)
         self.dt = self.sim.mj_model.opt.timestep * sim.substeps
         motion = cfg.task.motion
         self.motion = ReferenceMotion.default() if motion is None else ReferenceMotion.from_file(motion)
         self.motion = self.motion.to(device)
 
-        self._seed = int(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item())
         self.rng = torch.Generator(device=device)
         self.rng.manual_seed(self._seed)
         # The reset's per-episode draws read the seed from the device, so a captured step graph follows set_seed.
@@ -189,7 +197,7 @@ class TocabiWalk(EnvBase):
     def signal_flags(self) -> dict[str, bool]:
         """The options that turn the signal table's conditional rows on (``Signal.requires``)."""
         return {"torque_assist": bool(self.cfg.control.torque_assist),
-                "model_based": self.cfg.control.mode == "model_based"}
+                "model_based": self.cfg.control.mode == "model_based", "obstacles": bool(self.cfg.scene.obstacles)}
 
     def _check_observe_matches_table(self) -> None:
         """Raise a clear error, once at construction, when :meth:`_observe` and the signal table disagree.
@@ -370,6 +378,8 @@ class TocabiWalk(EnvBase):
             signals["leg_assist"] = _finite(self.leg_assist)
         if self.computed_torque is not None:
             signals["leg_feedforward"] = _finite(self.leg_feedforward)
+        if self.cfg.scene.obstacles:
+            signals["obstacle_contact"] = sim.obstacle_contact.clone()
         return TensorDict(signals, batch_size=self.batch_size, device=self.device)
 
     # ------------------------------------------------------------------------------------------------ resets
@@ -419,6 +429,11 @@ class TocabiWalk(EnvBase):
         """The CUDA generators a step draws from besides torch's default one (command resampling), which a
         captured step graph must advance on every replay."""
         return [self.rng] if self.rng.device.type == "cuda" else []
+
+    def recorded_graphs(self) -> list:
+        """The simulator's recorded physics graphs a step launches, which a captured step graph must hold
+        (:func:`tocabi_torchrl.cuda_graphs.capture_graph`)."""
+        return self.sim.recorded_graphs()
 
     @property
     def period(self) -> float:

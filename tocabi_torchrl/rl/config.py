@@ -1,10 +1,12 @@
-"""PPO training configuration: the run config tree (:mod:`tocabi_torchrl.config`), the env-graph decision, and the
+"""PPO training configuration: the run config tree (:mod:`tocabi_torchrl.config`) and the
 command line generated from the tree (one ``--path.to.option`` per leaf, e.g. ``--ppo.lr 3e-4``,
 ``--env.num_envs 8192``, ``--env.control.mode torque``)."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
 from typing import Any
 
 from ..config import (
@@ -21,24 +23,10 @@ from ..config import (
     preset_config,
     preset_tree,
 )
-from ..tree import leaf_types, parse_leaf
+from ..tree import item_type, leaf_types, parse_leaf
 
 __all__ = ["PPOConfig", "RunConfig", "PRESETS", "preset_config", "preset_tree", "parse_args", "build_parser",
-           "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES", "ENV_GRAPH_AUTO_MAX_ENVS", "uses_env_graph", "LOGGERS",
-           "field_choices", "ConfigError"]
-
-#: Largest env count for which ``ppo.cuda_graph="auto"`` captures the env step (see ``PPOConfig.cuda_graph``): the
-#: graph won at 96 envs and lost at 256 on an H100 (128 only in short memory-sweep runs, see env_graph.md).
-ENV_GRAPH_AUTO_MAX_ENVS = 128
-
-
-def uses_env_graph(cfg: RunConfig, device: Any, num_envs: int | None = None) -> bool:
-    """Whether the trainer captures the env step of ``num_envs`` envs (default ``cfg.env.num_envs``) on ``device`` (a
-    ``torch.device``) as a CUDA graph: ``cfg.ppo.cuda_graph`` "on", or "auto" with at most ``ENV_GRAPH_AUTO_MAX_ENVS``
-    envs; never off the GPU."""
-    if device.type != "cuda" or cfg.ppo.cuda_graph == "off":
-        return False
-    return cfg.ppo.cuda_graph == "on" or (num_envs or cfg.env.num_envs) <= ENV_GRAPH_AUTO_MAX_ENVS
+           "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES", "LOGGERS", "field_choices", "ConfigError"]
 
 
 class _LeafAction(argparse.Action):
@@ -78,6 +66,8 @@ class _LegacyAction(argparse.Action):
 
 
 def _shown(value: Any) -> str:
+    if isinstance(value, tuple) and value and dataclasses.is_dataclass(value[0]):
+        return json.dumps([dataclasses.asdict(v) for v in value])
     if isinstance(value, tuple):
         return ",".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value) or "none"
     if value is None or value == "":
@@ -115,9 +105,12 @@ def build_parser(description: str = "") -> argparse.ArgumentParser:
             text += f"; any of {', '.join(LOGGERS)}, comma-separated"
         elif isinstance(default, bool):
             text += "; true/false"
+        elif item_type(kind) is not None:
+            text += f"; a JSON list of {item_type(kind).__name__} objects"
         elif isinstance(default, tuple):
             text += "; comma-separated"
-        metavar = "BOOL" if isinstance(default, bool) else "A,B,..." if isinstance(default, tuple) else "VALUE"
+        metavar = ("BOOL" if isinstance(default, bool) else "JSON" if item_type(kind) is not None
+                   else "A,B,..." if isinstance(default, tuple) else "VALUE")
         parser.add_argument(f"--{path}", action=_LeafAction, path=path, kind=kind, dest=f"leaf:{path}",
                             default=None, metavar=metavar, help=f"{text} (default: {_shown(default)})")
     for name, path in FLAT_PATHS.items():

@@ -1,39 +1,33 @@
-"""Training curves from a run's ``metrics.csv``: return and episode length, and every reward term (TocabiLab's
-figs 4.2-4.3 show the total and the imitation rewards).
+"""Training curves from a run's metrics: return and episode length, and every reward term (TocabiLab's figs 4.2-4.3
+show the total and the imitation rewards).
 
-    python -m tocabi_torchrl.rl.curves runs/ppo_walk/metrics.csv docs/training/curves.png
+    python -m tocabi_torchrl.rl.curves runs/ppo_walk docs/training/curves.png
+    python -m tocabi_torchrl.rl.curves docs/training/walk_metrics.csv docs/training/walk_curves.png
+
+The metrics are read by :func:`~tocabi_torchrl.rl.metrics_files.read_metrics` (re-exported here): a run folder, its
+``metrics/`` folder (torchrl's ``CSVLogger``) or an older run's wide ``metrics.csv``.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
+
+from .metrics_files import read_metrics
 
 __all__ = ["metric_columns", "plot_curves", "read_metrics", "steady_rate"]
 
 IMITATION_TERMS = ("qpos", "orientation", "foot_contact", "force_ref")
 
 
-def read_metrics(path: str | Path) -> list[dict[str, str]]:
-    """The logged rows of a run's ``metrics.csv`` as dicts of strings, in file order; [] when the file is missing.
-
-    Repeated header lines (a resumed run's appended header, in older logs) are skipped. The one reader of metrics
-    files, so that a change of the log's format touches one place.
-    """
-    try:
-        with open(path, newline="") as f:
-            return [r for r in csv.DictReader(f) if r.get("iteration") not in (None, "", "iteration")]
-    except FileNotFoundError:
-        return []
-
-
 def metric_columns(path: str | Path) -> dict[str, list[float]]:
     """``read_metrics`` as one float column per metric (empty cells are NaN); a clear error when nothing is logged."""
     rows = read_metrics(path)
     if not rows:
-        raise ValueError(f"{path} holds no metric rows (is it a run's metrics.csv, and has an iteration finished?)")
-    return {k: [float(r[k]) if r.get(k) not in (None, "") else float("nan") for r in rows] for k in rows[0]}
+        raise ValueError(f"{path} holds no metric rows (is it a run folder or a metrics file, and has an iteration "
+                         f"finished?)")
+    names = dict.fromkeys(k for r in rows for k in r)  # every metric, in first-seen order
+    return {k: [float(r[k]) if r.get(k) not in (None, "") else float("nan") for r in rows] for k in names}
 
 
 def steady_rate(rows: list[dict[str, str]], skip: int = 1) -> float | None:
@@ -51,14 +45,15 @@ def steady_rate(rows: list[dict[str, str]], skip: int = 1) -> float | None:
     return (float(b["env_steps"]) - float(a["env_steps"])) / (float(b["wall_s"]) - float(a["wall_s"]))
 
 
-def plot_curves(metrics_csv: str | Path, out_png: str | Path) -> Path:
-    """Plot episode return/length and the per-term rewards against env steps (millions)."""
+def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
+    """Plot episode return/length and the per-term rewards against env steps (millions); ``metrics``: what
+    :func:`read_metrics` reads (a run folder or a metrics file)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    data = metric_columns(metrics_csv)
+    data = metric_columns(metrics)
     steps = [s / 1e6 for s in data["env_steps"]]
     # Return and length are means over the episodes that ended in the logged iteration: none ended -> no point
     # (long episodes often outlast an iteration; older logs wrote 0 there).
@@ -97,10 +92,10 @@ def plot_curves(metrics_csv: str | Path, out_png: str | Path) -> Path:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description="Plot a run's training curves")
-    parser.add_argument("metrics_csv")
+    parser.add_argument("metrics", help="a run folder, its metrics/ folder, or a wide metrics.csv")
     parser.add_argument("out_png")
     args = parser.parse_args(argv)
-    print(plot_curves(args.metrics_csv, args.out_png))
+    print(plot_curves(args.metrics, args.out_png))
 
 
 if __name__ == "__main__":

@@ -13,8 +13,11 @@ __all__ = ["render_video"]
 
 
 def render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480, height: int = 360,
-                  progress: bool = True) -> Path:
-    """Render (T, k, nq) joint states of k robots side by side (one camera each) into an mp4 or a gif."""
+                  progress: bool = True, mocap_pos: np.ndarray | None = None) -> Path:
+    """Render (T, k, nq) joint states of k robots side by side (one camera each) into an mp4 or a gif.
+
+    ``mocap_pos``: (k, nmocap, 3) positions [m] of the model's mocap bodies in each robot's world (the obstacles of a
+    jittered scene, ``sim.world_mocap_pos``); ``None`` shows them where the model puts them."""
     import imageio.v2 as imageio
     import mujoco
 
@@ -29,8 +32,10 @@ def render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480,
     frames = []
     for step in tqdm(qpos, desc="rendering video", unit="frame", disable=not progress, leave=False):
         tiles = []
-        for q in step:
+        for i, q in enumerate(step):
             data.qpos[:] = q
+            if mocap_pos is not None:
+                data.mocap_pos[:] = mocap_pos[i]
             mujoco.mj_forward(model, data)
             renderer.update_scene(data, camera, scene_option=option)
             tiles.append(renderer.render())

@@ -103,8 +103,10 @@ def evaluate_policy(
         summary["video"] = "not requested (video_envs=0)"
     else:
         try:
+            mocap = base.sim.world_mocap_pos  # each world's obstacle positions, if the scene has any
             summary["video"] = str(render_video(base.sim.mj_model, torch.stack(frames_qpos).cpu().numpy(), 30, out,
-                                                 progress=progress))
+                                                 progress=progress,
+                                                 mocap_pos=None if mocap is None else mocap[:video_envs]))
         except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless machine)
             summary["video"] = f"not rendered: {type(err).__name__}: {err}"
             print(f"video skipped ({summary['video']}); set MUJOCO_GL=egl on a headless machine (osmesa only with "

@@ -1,8 +1,26 @@
-"""Run logging: CSV under ``runs/<name>/`` (always, works offline), TensorBoard and wandb on request, a progress bar."""
+"""Run logging: torchrl's loggers behind one object (:class:`RunLogger`), and the progress shown while training.
+
+Each logged iteration's metrics go to :mod:`torchrl.record.loggers` instances, ``step`` = the iteration, all with
+``log_dir`` = the run folder:
+
+- ``CSVLogger`` (exp_name ``metrics``), always, whatever ``--loggers`` says: it needs no package and no network, and
+  the package's own tools read it (curves, benchmarks, the resume's cut back to the checkpoint). It writes one file
+  per scalar, ``<run>/metrics/scalars/<name>.csv`` with ``iteration,value`` lines, opened for appending, so a
+  resumed run continues the same files (:func:`~tocabi_torchrl.rl.run_dir.open_run` first drops what was logged
+  after the checkpoint). Read them with :func:`~tocabi_torchrl.rl.metrics_files.read_metrics`, the one reader.
+- ``TensorboardLogger`` (exp_name ``tensorboard``) on ``--loggers tensorboard``: event files in
+  ``<run>/tensorboard/``; a resumed run adds a new event file beside the earlier ones.
+- ``WandbLogger`` on ``--loggers wandb``: project ``tocabi-torchrl``, the run's name and config, files in
+  ``<run>/wandb/``. Offline (``mode="offline"`` passed to ``wandb.init``, not the process-wide ``WANDB_MODE`` that
+  torchrl's ``offline=True`` sets) unless ``WANDB_API_KEY`` is set. The W&B run id is kept in
+  ``<run>/wandb_run_id``, so a resumed run goes on in the same W&B run.
+
+A requested logger whose package is missing is refused before the run starts (:func:`require_loggers`), with the
+command that installs it. In a data-parallel run only rank 0 makes a :class:`RunLogger` (the trainer's choice).
+"""
 
 from __future__ import annotations
 
-import csv
 import importlib.util
 import json
 import math
@@ -10,14 +28,19 @@ import os
 from pathlib import Path
 
 from .atomic import atomic_write_text
+from .metrics_files import METRICS_DIR
 
-__all__ = ["RunLogger", "require_loggers", "write_config"]
+__all__ = ["RunLogger", "make_loggers", "require_loggers", "write_config"]
 
 #: The package each optional logger imports, and how to install it.
 _LOGGER_PACKAGES = {
     "wandb": ("wandb", 'pip install "tocabi-torchrl[wandb]"'),
     "tensorboard": ("tensorboard", "pip install tensorboard"),
 }
+#: The W&B project of the runs.
+WANDB_PROJECT = "tocabi-torchrl"
+#: The file in a run folder that keeps its W&B run id.
+WANDB_ID_FILE = "wandb_run_id"
 
 
 def require_loggers(loggers) -> None:
@@ -39,68 +62,65 @@ def write_config(run_dir: str | os.PathLike, cfg) -> Path:
                              json.dumps({"schema_version": SCHEMA_VERSION, **cfg.to_dict()}, indent=2, default=str))
 
 
+def make_loggers(run_dir: str | os.PathLike, cfg) -> dict:
+    """The torchrl loggers of a run folder, by name: ``csv`` always, then those of ``cfg.loggers`` (see the module
+    docstring for where each writes). Checks the packages first (:func:`require_loggers`)."""
+    from torchrl.record.loggers import CSVLogger
+
+    require_loggers(cfg.loggers)
+    run_dir = Path(run_dir)
+    loggers = {"csv": CSVLogger(exp_name=METRICS_DIR, log_dir=str(run_dir))}
+    if "tensorboard" in cfg.loggers:
+        from torchrl.record.loggers import TensorboardLogger
+
+        loggers["tensorboard"] = TensorboardLogger(exp_name="tensorboard", log_dir=str(run_dir))
+    if "wandb" in cfg.loggers:
+        loggers["wandb"] = _wandb_logger(run_dir, cfg)
+    return loggers
+
+
+def _wandb_logger(run_dir: Path, cfg):
+    from torchrl.record.loggers import WandbLogger
+
+    id_file = run_dir / WANDB_ID_FILE
+    run_id = id_file.read_text().strip() if id_file.is_file() else None
+    mode = "online" if os.environ.get("WANDB_API_KEY") else "offline"
+    logger = WandbLogger(exp_name=cfg.name, log_dir=str(run_dir), project=WANDB_PROJECT, id=run_id, mode=mode,
+                         config=cfg.to_dict())
+    if run_id is None:
+        atomic_write_text(id_file, f"{logger.experiment.id}\n")
+    return logger
+
+
 def _shown(value, fmt: str) -> str:
     """``value`` formatted, or ``-`` while it is unknown (NaN: no episode has ended yet)."""
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, fmt)
 
 
 class RunLogger:
-    """Writes one row of metrics per logged iteration to ``metrics.csv`` (columns fixed by the first row, or by the
-    existing file when a run is resumed) and forwards the same numbers to TensorBoard / wandb when ``cfg.loggers``
-    asks for them."""
+    """The trainer's one logging object: writes ``config.json``, sends each logged iteration's metrics to every
+    torchrl logger of :func:`make_loggers` (``self.loggers``) and shows the progress (a bar, or one line per
+    logged iteration)."""
 
-    def __init__(self, run_dir: Path, cfg, total_iterations: int, start_iteration: int = 0):
-        require_loggers(cfg.loggers)
+    def __init__(self, run_dir: str | os.PathLike, cfg, total_iterations: int, start_iteration: int = 0):
+        require_loggers(cfg.loggers)  # before anything is written
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         write_config(self.run_dir, cfg)
-        self.csv_path = self.run_dir / "metrics.csv"
-        self._file = None
-        self._writer = None
-        self._columns: list[str] | None = None
-        self._tb = None
-        self._wandb = None
+        self.loggers = make_loggers(self.run_dir, cfg)
         # Episodes outlast several iterations: the bar shows the last finished episodes' numbers until new ones end.
         self._last_episode = {"episode_return": None, "episode_length": None}
-        if "tensorboard" in cfg.loggers:
-            from torch.utils.tensorboard import SummaryWriter
-
-            self._tb = SummaryWriter(str(self.run_dir / "tensorboard"))
-        if "wandb" in cfg.loggers:
-            import wandb
-
-            mode = "online" if os.environ.get("WANDB_API_KEY") else "offline"
-            self._wandb = wandb.init(project="tocabi-torchrl", name=cfg.name, config=cfg.to_dict(),
-                                     dir=str(self.run_dir), mode=mode)
         self._bar = None
         if cfg.progress_bar:
             from tqdm.auto import tqdm
 
             self._bar = tqdm(total=total_iterations, initial=start_iteration, unit="it", dynamic_ncols=True)
 
-    def _open_csv(self, row: dict) -> None:
-        columns = list(row)
-        existing = self.csv_path.exists() and self.csv_path.stat().st_size > 0
-        if existing:  # a resumed run continues the file under its header
-            with open(self.csv_path, newline="") as f:
-                columns = next(csv.reader(f), None) or columns
-        self._file = open(self.csv_path, "a", newline="")
-        self._columns = columns
-        self._writer = csv.DictWriter(self._file, fieldnames=self._columns, extrasaction="ignore")
-        if not existing:
-            self._writer.writeheader()
-
     def log(self, iteration: int, metrics: dict) -> None:
-        row = {"iteration": iteration, **metrics}
-        if self._writer is None:
-            self._open_csv(row)
-        self._writer.writerow(row)
-        self._file.flush()
-        if self._tb is not None:
-            for key, value in metrics.items():
-                self._tb.add_scalar(key, value, iteration)
-        if self._wandb is not None:
-            self._wandb.log(row, step=iteration)
+        """Log ``metrics`` (name -> number) at ``iteration`` to every logger, then show the progress."""
+        for logger in self.loggers.values():
+            # One call per iteration: CSV and TensorBoard log each scalar (log_scalar), W&B one history row.
+            logger.log_metrics(metrics, step=iteration)
         for key in self._last_episode:
             value = metrics.get(key)
             if value is not None and not math.isnan(value):
@@ -116,11 +136,11 @@ class RunLogger:
                   flush=True)
 
     def close(self) -> None:
-        if self._file is not None:
-            self._file.close()
-        if self._tb is not None:
-            self._tb.close()
-        if self._wandb is not None:
-            self._wandb.finish()
+        """Flush and close every logger (and the bar)."""
+        for logger in self.loggers.values():
+            logger.close()
+        # torchrl's CSV experiment has no close of its own: its files would stay open until it is collected.
+        for file in self.loggers["csv"].experiment.files.values():
+            file.close()
         if self._bar is not None:
             self._bar.close()

@@ -41,8 +41,12 @@ FIELD_HELP: dict[str, str] = {
     "env.task.min_pelvis_height": "episode ends below this pelvis height [m]",
     "env.task.min_neck_height": "episode ends below this neck height [m]",
     "env.task.max_neck_angle": "episode ends beyond this neck tilt [rad]",
-    "env.task.terminate_on_forbidden_contact": "episode ends when a body other than the feet touches the ground",
+    "env.task.terminate_on_forbidden_contact": "episode ends when a body other than the feet touches the ground or "
+                                               "an obstacle",
     "env.task.terminate_on_self_collision": "episode ends on a self-collision",
+    "env.scene.obstacles": 'boxes on the ground [m]: size (length, width, height), pos (x, y of the centre), jitter '
+                           '(x, y half-ranges of a per-world uniform offset), e.g. \'[{"size": [0.3, 0.6, 0.012], '
+                           '"pos": [0.7, 0.1025], "jitter": [0.05, 0.05]}]\'; none = no obstacles',
     "env.command.vx_range": "forward command range low,high [m/s]",
     "env.command.vx_initial_range": "forward command range of an episode's first command [m/s]",
     "env.command.vy_range": "lateral command range low,high [m/s]",
@@ -97,7 +101,7 @@ FIELD_HELP: dict[str, str] = {
     "checkpoint_keep_last": "newest checkpoints kept; 0 = keep all",
     "checkpoint_keep_every": "also keep checkpoints of iterations that are multiples of this; 0 = none",
     "checkpoint_minutes": "also save checkpoints/wall_XXXXXs.pt every this many minutes of training; 0 = none",
-    "loggers": "where metrics go besides the progress bar",
+    "loggers": "where metrics go besides the progress bar; csv (runs/<name>/metrics/) is always written",
     "resume": "run folder or checkpoint to continue; its saved options apply, only budget/logging/eval/device "
               "options may be changed",
     "eval_at_end": "run the gait test (eval/) when training ends",

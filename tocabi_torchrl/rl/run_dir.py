@@ -1,27 +1,27 @@
 """The run folder ``<run_dir>/<name>/``: never silently overwritten, continued only by ``--resume``.
 
-A new run refuses a folder that already holds a run (``config.json``, ``metrics.csv`` or ``checkpoints/``) and says
-how to go on: ``--resume`` it, or pick another ``--name``. A resumed run writes into its own folder (or a new one) and
-cuts ``metrics.csv`` back to the checkpoint's iteration, so rows logged after the last checkpoint by a run that was
+A new run refuses a folder that already holds a run (``config.json``, ``metrics/``, an older run's ``metrics.csv`` or
+``checkpoints/``) and says how to go on: ``--resume`` it, or pick another ``--name``. A resumed run writes into its own
+folder (or a new one) and cuts its metrics files back to the checkpoint's iteration
+(:func:`~tocabi_torchrl.rl.metrics_files.trim_metrics`), so rows logged after the last checkpoint by a run that was
 killed are not followed by a second set with the same iteration numbers.
 """
 
 from __future__ import annotations
 
-import csv
-import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 from ..config import RunConfig
-from .atomic import atomic_write_text, remove_stale_temp_files
+from .atomic import remove_stale_temp_files
 from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint, run_folder_of
+from .metrics_files import LEGACY_CSV, METRICS_DIR, trim_metrics
 from .resume import check_resume_config
 
 __all__ = ["RunDirError", "RunFolder", "open_run", "holds_run", "trim_metrics"]
 
-_RUN_FILES = ("config.json", "metrics.csv", "checkpoints")
+_RUN_FILES = ("config.json", METRICS_DIR, LEGACY_CSV, "checkpoints")
 
 
 class RunDirError(RuntimeError):
@@ -82,32 +82,5 @@ def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
             f"run folder {path} holds another run than the one resumed ({file}); resume into that run's own folder "
             f"(--name {source.name} --run_dir {source.parent}) or into a new one (--name NEW)")
     remove_stale_temp_files(path / "checkpoints")
-    trim_metrics(path / "metrics.csv", state["iteration"])
+    trim_metrics(path, state["iteration"])
     return RunFolder(path, state, file)
-
-
-def trim_metrics(csv_path: str | os.PathLike, last_iteration: int) -> int:
-    """Drop the rows of ``metrics.csv`` logged after ``last_iteration`` (atomically); returns how many were dropped."""
-    csv_path = Path(csv_path)
-    if not csv_path.is_file():
-        return 0
-    with open(csv_path, newline="") as f:
-        rows = list(csv.reader(f))
-    if len(rows) < 2 or "iteration" not in rows[0]:
-        return 0
-    col = rows[0].index("iteration")
-    # A row cut short by a kill has fewer fields than the header: it goes too.
-    keep = [rows[0]] + [r for r in rows[1:] if len(r) == len(rows[0]) and _int(r[col]) <= last_iteration]
-    dropped = len(rows) - len(keep)
-    if dropped:
-        out = io.StringIO()
-        csv.writer(out).writerows(keep)
-        atomic_write_text(csv_path, out.getvalue())
-    return dropped
-
-
-def _int(text: str) -> int:
-    try:
-        return int(float(text))
-    except ValueError:
-        return 0

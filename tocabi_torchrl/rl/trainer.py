@@ -18,13 +18,13 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from .. import robot
+from ..cuda_graphs import plan_graphs
 from ..device import check_device
 from .actors import action_std, gaussian_head, make_actor, set_action_std
 from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 from .checkpoint import apply_checkpoint, save_checkpoint
 from ..config import RunConfig
 from ..envs.config import TocabiWalkConfig
-from .config import uses_env_graph
 from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, all_reduce_mean, broadcast_module,
                           from_environment, init_distributed, rank_seed)
 from .logging import RunLogger, require_loggers
@@ -36,7 +36,7 @@ from .update_step import (MinibatchStep, get_lr, make_capturable_adam, optimizer
                           set_lr)
 
 __all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer",
-           "make_update_step", "uses_env_graph", "uses_update_graph", "training_keys", "train", "resolve_device",
+           "make_update_step", "training_keys", "train", "resolve_device",
            "TrainResult"]
 
 
@@ -92,14 +92,9 @@ def build_env(cfg: RunConfig, device: torch.device, num_envs: int | None = None,
 
     num_envs = num_envs or cfg.env.num_envs
     if device.type == "cuda":
-        graph = uses_env_graph(cfg, device, num_envs)
-        # "auto" only captures an env that can be captured: not one with TorchRL's stock (host-reading) resets or a
-        # compiled reward (profiling, comparisons); an explicit "on" lets make_env say why it cannot.
-        if cfg.ppo.cuda_graph == "auto" and (env_overrides.get("sync_free_resets") is False
-                                             or env_overrides.get("compile_reward")
-                                             or cfg.transforms.compile_reward):
-            graph = False
-        env_overrides.setdefault("cuda_graph", graph)
+        plan = plan_graphs(cfg, device, num_envs, sync_free_resets=env_overrides.get("sync_free_resets") is not False,
+                           compile_reward=bool(env_overrides.get("compile_reward")))
+        env_overrides.setdefault("cuda_graph", plan.env_step)
     env = make_env(num_envs, device, seed=cfg.seed, config=env_config(cfg, for_training),
                    transforms=cfg.transforms, **env_overrides)
     if for_training and not cfg.ppo.store_env_signals:
@@ -156,7 +151,8 @@ class TrainResult:
     wall_seconds: float
     env_steps_per_second: float
     last_metrics: dict
-    #: Whether the env step ran as a captured CUDA graph by the end (``cfg.ppo.cuda_graph``; :func:`uses_env_graph`).
+    #: Whether the env step ran as a captured CUDA graph by the end (``cfg.ppo.cuda_graph``;
+    #: :func:`~tocabi_torchrl.cuda_graphs.plan_graphs`).
     env_graph: bool = False
     #: The resumed run had already reached its budget: nothing was trained (see :func:`finished_result`).
     already_finished: bool = False
@@ -220,14 +216,9 @@ def make_collector(cfg: RunConfig, env: EnvBase, actor: torch.nn.Module, device:
     )
 
 
-def uses_update_graph(cfg: RunConfig, device: torch.device) -> bool:
-    """Whether the PPO mini-batch steps are captured as a CUDA graph (``cfg.ppo.update_graph`` on a CUDA device)."""
-    return cfg.ppo.update_graph and device.type == "cuda"
-
-
 def make_optimizer(cfg: RunConfig, agent: Agent, device: torch.device) -> torch.optim.Adam:
     """Adam over the actor and critic (with the reference's separate value-head group when configured)."""
-    if uses_update_graph(cfg, device):
+    if plan_graphs(cfg, device).update:
         return make_capturable_adam(_param_groups(agent, cfg), cfg.ppo.adam_eps, device)
     # Fused Adam: one kernel per step for all parameters instead of a handful per tensor (the update is launch-bound).
     return torch.optim.Adam(_param_groups(agent, cfg), eps=cfg.ppo.adam_eps, fused=device.type == "cuda")
@@ -235,12 +226,13 @@ def make_optimizer(cfg: RunConfig, agent: Agent, device: torch.device) -> torch.
 
 def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.optim.Optimizer,
                      device: torch.device, dist_info: DistInfo | None = None) -> MinibatchStep:
-    """The mini-batch step of :func:`train` (a CUDA graph after a few eager steps when :func:`uses_update_graph`);
+    """The mini-batch step of :func:`train` (a CUDA graph after a few eager steps when
+    :func:`~tocabi_torchrl.cuda_graphs.plan_graphs` says so);
     in a data-parallel run its gradients are averaged over the ranks before clipping."""
     params = [p for g in optimizer.param_groups for p in g["params"]]
     sync = GradientAllReduce(dist_info) if dist_info is not None and dist_info.enabled else None
     return MinibatchStep(loss_module, optimizer, params, cfg.ppo.max_grad_norm,
-                         use_graph=uses_update_graph(cfg, device), grad_sync=sync)
+                         use_graph=plan_graphs(cfg, device).update, grad_sync=sync)
 
 
 def make_loss(cfg: RunConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbLoss, GAE]:

@@ -5,18 +5,18 @@ The update of a 4,096-env rollout is 20 mini-batch steps of ~300 small kernels e
 (``benchmarks/trainer_timeline.py``). Captured once as a CUDA graph, a step is one launch: the kernels are the same,
 only their launching changes.
 
-Capture rules this follows (``torch.cuda.graphs``): warm-up steps run on a side stream before the capture; the graph
-reads its mini-batch from static buffers (each step copies the next mini-batch in); gradients live in the graph's
-memory pool, so nothing outside may set them to ``None``; the optimiser is capturable with a tensor learning rate
-(:func:`make_capturable_adam`), which the trainer changes in place (:func:`set_lr`).
+Warm-up, capture and fallback are :class:`tocabi_torchrl.cuda_graphs.WarmCapture`'s, as for the env step. What this
+step adds: the graph reads its mini-batch from static buffers (each step copies the next mini-batch in); gradients
+live in the graph's memory pool, so nothing outside may set them to ``None``; the optimiser is capturable with a
+tensor learning rate (:func:`make_capturable_adam`), which the trainer changes in place (:func:`set_lr`).
 """
 
 from __future__ import annotations
 
-import warnings
-
 import torch
 from tensordict import TensorDictBase
+
+from ..cuda_graphs import CUDA_GRAPHS, Capturer, WarmCapture
 
 __all__ = ["MinibatchStep", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam", "optimizer_mode",
            "restore_optimizer_mode", "set_lr", "get_lr"]
@@ -82,36 +82,35 @@ class MinibatchStep:
             of its ``loss_*`` outputs.
         optimizer: the optimiser of ``params`` (capturable, see :func:`make_capturable_adam`, when ``use_graph``).
         params: the parameters whose gradient norm is clipped to ``max_grad_norm``.
-        use_graph: capture the step as a CUDA graph after ``warmup`` eager steps (CUDA only). If the capture fails,
-            the step warns and stays eager. TorchRL's entropy bonus checks its value on the host, so a loss with
-            ``entropy_bonus=True`` (``entropy_coef > 0``) cannot be captured and runs eagerly.
-        emulate: run the static-buffer path without a capture (tests of the wiring on machines without CUDA).
+        use_graph: capture the step as a CUDA graph after ``warmup`` eager steps (where ``capturer`` supports the
+            mini-batch's device: CUDA). If the capture fails, the step warns and stays eager. TorchRL's entropy bonus
+            checks its value on the host, so a loss with ``entropy_bonus=True`` (``entropy_coef > 0``) cannot be
+            captured and runs eagerly.
         grad_sync: called with ``params`` between ``backward`` and clipping, e.g.
             :class:`~tocabi_torchrl.rl.distributed.GradientAllReduce` in a data-parallel run (captured with the step).
+        capturer: how to capture (:data:`~tocabi_torchrl.cuda_graphs.CUDA_GRAPHS`).
     """
 
     def __init__(self, loss_module, optimizer: torch.optim.Optimizer, params: list[torch.Tensor],
-                 max_grad_norm: float, use_graph: bool = False, warmup: int = 3, emulate: bool = False,
-                 grad_sync=None):
-        if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 1:
-            raise ValueError(f"warmup must be an int >= 1 (eager steps before the capture), got {warmup!r}")
+                 max_grad_norm: float, use_graph: bool = False, warmup: int = 3, grad_sync=None,
+                 capturer: Capturer = CUDA_GRAPHS):
         self.loss_module, self.optimizer, self.params = loss_module, optimizer, params
         self.max_grad_norm = max_grad_norm
-        self.use_graph, self.warmup, self.emulate = use_graph, warmup, emulate
+        self.use_graph = use_graph
         self.grad_sync = grad_sync
-        self._calls = 0
         self.stat_keys: tuple[str, ...] = STAT_KEYS
-        self._graph: torch.cuda.CUDAGraph | None = None
-        self._static_mb: TensorDictBase | None = None
-        self._static_stats: torch.Tensor | None = None
-        self._stream: torch.cuda.Stream | None = None
+        self._capture = WarmCapture("MinibatchStep", "the PPO update", self._compute, self._build, warmup=warmup,
+                                    capturer=capturer)
 
     @property
     def captured(self) -> bool:
         """Whether the step now replays a captured CUDA graph."""
-        return self._graph is not None
+        return self._capture.captured
 
     def _compute(self, mb: TensorDictBase) -> torch.Tensor:
+        # Set to None, not zeroed: the first backward (the capture's, when captured) allocates them, in the graph's
+        # pool; a replay overwrites its own, so inside a graph this is a no-op after the capture.
+        self.optimizer.zero_grad(set_to_none=True)
         losses = self.loss_module(mb)
         # TorchRL's convention: the total is the sum of every "loss_*" output (objective, critic, entropy, extras).
         names = [k for k in losses.keys() if isinstance(k, str) and k.startswith("loss_")]
@@ -125,54 +124,19 @@ class MinibatchStep:
         return torch.stack([losses[k].detach() for k in self.stat_keys])
 
     def __call__(self, mb: TensorDictBase) -> torch.Tensor:
-        if self._graph is not None:
-            self._static_mb.update_(mb)
-            self._graph.replay()
-            return self._static_stats
-        if self.emulate:
-            return self._emulated(mb)
-        if not self.use_graph or not mb.device or mb.device.type != "cuda":
-            self.optimizer.zero_grad(set_to_none=True)
+        if not self.use_graph or self._capture.gave_up or not self._capture.capturer.supports(mb.device):
             return self._compute(mb)
-        self._calls += 1
-        if self._calls <= self.warmup:
-            # Warm-up on the side stream the capture will use (lazy per-stream state is set up outside the capture).
-            if self._stream is None:
-                self._stream = torch.cuda.Stream(mb.device)
-            self._stream.wait_stream(torch.cuda.current_stream(mb.device))
-            with torch.cuda.stream(self._stream):
-                self.optimizer.zero_grad(set_to_none=True)
-                stats = self._compute(mb)
-            torch.cuda.current_stream(mb.device).wait_stream(self._stream)
+        return self._capture.run(mb.device, mb)
+
+    def _build(self, args, stream, mode: str):
+        static_mb = args[0].clone()
+        self.optimizer.zero_grad(set_to_none=True)  # gradients are allocated by the captured backward, in its pool
+        replay, stats = self._capture.capturer.capture(lambda: self._compute(static_mb), device=static_mb.device,
+                                                       stream=stream, mode=mode)
+
+        def step(mb: TensorDictBase) -> torch.Tensor:
+            static_mb.update_(mb)
+            replay()
             return stats
-        try:
-            return self._capture(mb)
-        except Exception as err:  # noqa: BLE001 - any capture failure: warn and stay eager
-            self._graph, self._static_mb, self.use_graph = None, None, False
-            warnings.warn(f"MinibatchStep: capturing the PPO update as a CUDA graph failed ({type(err).__name__}: "
-                          f"{err}); running it eagerly", stacklevel=2)
-            self.optimizer.zero_grad(set_to_none=True)
-            return self._compute(mb)
 
-    def _capture(self, mb: TensorDictBase) -> torch.Tensor:
-        self._static_mb = mb.clone()
-        graph = torch.cuda.CUDAGraph()
-        # Gradients are allocated by the captured backward in the graph's pool; replays overwrite them.
-        self.optimizer.zero_grad(set_to_none=True)
-        torch.cuda.synchronize(mb.device)
-        with torch.cuda.graph(graph, stream=self._stream):
-            self._static_stats = self._compute(self._static_mb)
-        self._graph = graph
-        graph.replay()  # the capture recorded this mini-batch's step without running it
-        return self._static_stats
-
-    def _emulated(self, mb: TensorDictBase) -> torch.Tensor:
-        # The replay's input path without CUDA: the step reads a static buffer that each call overwrites in place.
-        # (Eager autograd accumulates into existing gradients, so they are cleared here; the captured backward
-        # overwrites its own. Graph-only behaviour is covered by the GPU test.)
-        if self._static_mb is None:
-            self._static_mb = mb.clone()
-        else:
-            self._static_mb.update_(mb)
-        self.optimizer.zero_grad(set_to_none=True)
-        return self._compute(self._static_mb)
+        return step

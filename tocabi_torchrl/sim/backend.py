@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import mujoco
+import numpy as np
 import torch
 
 from .config import SimConfig
@@ -54,9 +55,12 @@ SIM_TENSORS: tuple[SimTensor, ...] = (
     SimTensor("foot_force", ("N", 2, 3), _F32, "foot F/T force, site frame [N], [left, right]"),
     SimTensor("foot_torque", ("N", 2, 3), _F32, "foot F/T torque, site frame [N·m], [left, right]"),
     SimTensor("contact_counts", ("N", "ncontact"), _F32, "contact-sensor counts (columns: contact_layout.names)"),
-    SimTensor("foot_contact", ("N", 2), _BOOL, "a foot touches the ground, [left, right]"),
-    SimTensor("forbidden_ground_contact", ("N",), _BOOL, "a robot.GROUND_FORBIDDEN_BODIES body touches the ground"),
+    SimTensor("foot_contact", ("N", 2), _BOOL, "a foot touches the ground or an obstacle, [left, right]"),
+    SimTensor("forbidden_ground_contact", ("N",), _BOOL,
+              "a robot.GROUND_FORBIDDEN_BODIES body touches the ground or a scene body (obstacle)"),
     SimTensor("self_collision", ("N",), _BOOL, "two robot.SELF_COLLISION_BODIES bodies touch"),
+    SimTensor("obstacle_contact", ("N", 2), _BOOL,
+              "a foot touches a scene body outside the robot other than the world body (an obstacle), [left, right]"),
     SimTensor("healthy", ("N",), _BOOL, "finite state and no buffer overflow or health warning"),
     SimTensor("overflow", ("N",), torch.int32, "backend overflow/warning bits (sticky until the world resets)"),
     SimTensor("applied_actuator_force", ("N", "nu"), _F32, "actuator forces applied in the last substep [N·m]"),
@@ -69,7 +73,7 @@ SIM_TENSORS: tuple[SimTensor, ...] = (
 
 #: The plain attributes and the methods of the interface (the tensors are :data:`SIM_TENSORS`).
 _ATTRIBUTES = ("config", "num_worlds", "device", "nq", "nv", "nu", "mj_model", "contact_layout", "physics_dt",
-               "control_dt")
+               "control_dt", "world_mocap_pos")
 _METHODS = ("step", "forward", "reset", "check_overflow")
 
 
@@ -90,6 +94,9 @@ class SimBackend(Protocol):
     contact_layout: ContactLayout
     physics_dt: float  #: [s] one physics step
     control_dt: float  #: [s] one :meth:`step`, ``substeps`` physics steps
+    #: (N, nmocap, 3) float64 mocap-body positions [m] each world starts and resets with (the constructor's
+    #: ``mocap_pos``: the env's obstacles), or ``None`` where every world keeps the model's
+    world_mocap_pos: np.ndarray | None
 
     qpos: torch.Tensor
     qvel: torch.Tensor
@@ -108,6 +115,7 @@ class SimBackend(Protocol):
     foot_contact: torch.Tensor
     forbidden_ground_contact: torch.Tensor
     self_collision: torch.Tensor
+    obstacle_contact: torch.Tensor
     healthy: torch.Tensor
     overflow: torch.Tensor
     applied_actuator_force: torch.Tensor

@@ -12,8 +12,13 @@ sets, so the signals of spec §9.1 are signed sums of counts:
   that involve a body outside ``robot.SELF_COLLISION_BODIES`` (the neck subtree), with inclusion-exclusion for
   contacts between two such subtrees.
 
-"Ground" is every geom attached to the world body (spec §9.1: "the world body (id 0)"). The allowed subtrees are not
-written by hand: they are derived from ``robot.GROUND_FORBIDDEN_BODIES`` / ``robot.SELF_COLLISION_BODIES`` and the
+"Ground" is every geom attached to the world body (spec §9.1: "the world body (id 0)"), and also every body of the
+scene outside the robot: each subtree that hangs from the world body beside the robot's (obstacles, see
+``envs.obstacles``). Each such *scene root* gets the same three ground sensors (per foot, whole robot) and the allowed
+subtrees' ones, and the signals add its counts to the world body's, so a foot on an obstacle is foot contact and a
+forbidden body on it is forbidden ground contact. A model with scene roots has two more signal rows,
+``SCENE_SIGNAL_NAMES``: a foot touches a scene body (the env's ``obstacle_contact``). A model without them gets
+exactly the sensors and rows it had before scene roots were counted. The allowed subtrees are not written by hand: they are derived from ``robot.GROUND_FORBIDDEN_BODIES`` / ``robot.SELF_COLLISION_BODIES`` and the
 model's body tree, so the two lists stay the single source of truth.
 
 ``found`` counts every matching contact, also beyond ``Option.contact_sensor_maxmatch`` (that limit only bounds the
@@ -33,17 +38,21 @@ from .. import robot
 __all__ = [
     "CONTACT_SENSOR_PREFIX",
     "SIGNAL_NAMES",
+    "SCENE_SIGNAL_NAMES",
     "ContactLayout",
     "ContactSensorError",
     "add_contact_sensors",
     "contact_layout",
     "has_contact_sensors",
+    "scene_roots",
 ]
 
 #: Every sensor added here is named ``CONTACT_SENSOR_PREFIX + ...``; the layout is recovered from these names.
 CONTACT_SENSOR_PREFIX = "tocabi_contact/"
 #: Rows of the signal matrix: ``foot_contact`` (left, right), ``forbidden_ground_contact``, ``self_collision``.
 SIGNAL_NAMES = ("foot_ground_left", "foot_ground_right", "forbidden_ground", "self_collision")
+#: The two rows a model with scene roots (obstacles) adds after ``SIGNAL_NAMES``: a foot touches a scene body.
+SCENE_SIGNAL_NAMES = ("foot_scene_left", "foot_scene_right")
 
 _WORLD = "world"
 _FOUND = 1 << int(mujoco.mjtConDataField.mjCONDATA_FOUND)
@@ -77,7 +86,8 @@ class ContactLayout:
     Attributes:
         names: sensor names, in sensordata order (``count`` of them).
         adr: (count,) int, sensordata column of each sensor's ``found`` value.
-        weights: (4, count) float; signal ``k`` of a world is ``weights[k] @ found > 0.5`` (rows: ``SIGNAL_NAMES``).
+        weights: (rows, count) float; signal ``k`` of a world is ``weights[k] @ found > 0.5`` (rows:
+            :attr:`signal_names`: ``SIGNAL_NAMES``, then ``SCENE_SIGNAL_NAMES`` in a model with scene roots).
     """
 
     names: tuple[str, ...]
@@ -88,8 +98,13 @@ class ContactLayout:
     def count(self) -> int:
         return len(self.names)
 
+    @property
+    def signal_names(self) -> tuple[str, ...]:
+        """Names of the weight rows (4, or 6 with scene roots)."""
+        return (SIGNAL_NAMES + SCENE_SIGNAL_NAMES)[: len(self.weights)]
+
     def signals(self, sensordata: torch.Tensor) -> torch.Tensor:
-        """(N, 4) bool signals (rows of ``SIGNAL_NAMES``) from (N, nsensordata) sensor values, in torch.
+        """(N, rows) bool signals (rows of :attr:`signal_names`) from (N, nsensordata) sensor values, in torch.
 
         The same sums as mujoco-warp's ``kernels.derive_signals``; counts are small integers, exact in float32.
         """
@@ -100,7 +115,7 @@ class ContactLayout:
     def describe(self) -> str:
         """One line per signal, e.g. ``self_collision = +self/all - self/neck_Link``."""
         lines = []
-        for k, sig in enumerate(SIGNAL_NAMES):
+        for k, sig in enumerate(self.signal_names):
             terms = [
                 f"{'+' if w > 0 else '-'}{'' if abs(w) == 1 else abs(w)}{n.removeprefix(CONTACT_SENSOR_PREFIX)}"
                 for w, n in zip(self.weights[k], self.names)
@@ -154,8 +169,15 @@ def _excluded_subtrees(tree: dict[str, str | None], robot_bodies: set[str], incl
     return roots
 
 
+def scene_roots(tree: dict[str, str | None]) -> list[str]:
+    """The bodies hanging from the world body whose subtrees do not hold the robot (obstacles), sorted by name."""
+    return sorted(b for b, parent in tree.items()
+                  if parent == _WORLD and robot.BASE_BODY not in _subtree(tree, b))
+
+
 def _plan(tree: dict[str, str | None]) -> tuple[list[_Sensor], np.ndarray]:
-    """The sensors to add and the (4, count) signal weights, derived from ``robot``'s body lists and the body tree."""
+    """The sensors to add and the (rows, count) signal weights, derived from ``robot``'s body lists and the body
+    tree."""
     missing = [b for b in (robot.BASE_BODY,) + robot.FOOT_BODIES + robot.SELF_COLLISION_BODIES if b not in tree]
     if missing:
         raise ContactSensorError(f"the model lacks robot bodies {missing} needed for the contact sensors")
@@ -173,13 +195,15 @@ def _plan(tree: dict[str, str | None]) -> tuple[list[_Sensor], np.ndarray]:
         _Sensor(f"{p}ground/all", ground, whole),
         _Sensor(f"{p}self/all", whole, whole),
     ]
+    scene = scene_roots(tree)
     rows: list[dict[str, float]] = [
         {sensors[0].name: 1.0},
         {sensors[1].name: 1.0},
         {sensors[2].name: 1.0},
         {sensors[3].name: 1.0},
-    ]
-    for root in _excluded_subtrees(tree, robot_bodies, set(robot.GROUND_FORBIDDEN_BODIES)):
+    ] + [{} for _ in SCENE_SIGNAL_NAMES if scene]
+    allowed = _excluded_subtrees(tree, robot_bodies, set(robot.GROUND_FORBIDDEN_BODIES))
+    for root in allowed:
         s = _Sensor(f"{p}ground/{root}", ground, _Criterion("subtree", root))
         sensors.append(s)
         rows[2][s.name] = -1.0
@@ -195,6 +219,22 @@ def _plan(tree: dict[str, str | None]) -> tuple[list[_Sensor], np.ndarray]:
             s = _Sensor(f"{p}self/{a}+{b}", _Criterion("subtree", a), _Criterion("subtree", b))
             sensors.append(s)
             rows[3][s.name] = 1.0
+    for body in scene:
+        # The same ground sums over this scene body's subtree; its foot counts also feed the scene rows.
+        where = _Criterion("subtree", body)
+        feet = [_Sensor(f"{p}scene:{body}/foot_{side}", where, _Criterion("body", foot))
+                for side, foot in zip(("left", "right"), robot.FOOT_BODIES)]
+        sensors += feet
+        for k, s in enumerate(feet):
+            rows[k][s.name] = 1.0
+            rows[len(SIGNAL_NAMES) + k][s.name] = 1.0
+        s = _Sensor(f"{p}scene:{body}/all", where, whole)
+        sensors.append(s)
+        rows[2][s.name] = 1.0
+        for root in allowed:
+            s = _Sensor(f"{p}scene:{body}/{root}", where, _Criterion("subtree", root))
+            sensors.append(s)
+            rows[2][s.name] = -1.0
     weights = np.array([[row.get(s.name, 0.0) for s in sensors] for row in rows])
     return sensors, weights
 

@@ -5,38 +5,22 @@ stream) and replayed on PyTorch's *current* stream, so it is ordered with the to
 synchronisation. On CPU, warp (>= 1.19) records the launches and replays them from C++, which removes the Python cost
 of a few hundred launches per step; the recorded and the eager paths give bit-identical results.
 
-Called while PyTorch captures a CUDA graph on its current stream (``torch.cuda.graph``), the launches join that
-capture instead, so a larger graph (the env's whole step, see ``envs.autoreset``) can contain the physics. Called
-inside a :class:`SegmentedCapture`, the recorded graph is not nested at all: the torch capture is cut around it and
-the warp graph is launched between the torch graphs at replay.
+A larger torch CUDA graph (the env's whole step, :mod:`tocabi_torchrl.cuda_graphs`) can contain these recordings in
+one of two ways, chosen by the capture that registers them (:class:`JoinedCapture`, :class:`SegmentedCapture`): the
+launches join torch's capture, or the torch capture is cut around the recorded graph, which is launched between the
+torch graphs at replay. A :class:`Recorded` object only behaves differently while such a capture holds it.
 """
 
 from __future__ import annotations
 
 import contextlib
-import contextvars
 import gc
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 import warp as wp
 
-__all__ = ["Recorded", "SegmentedCapture", "no_gc", "torch_stream_scope"]
-
-_STREAMS: dict[tuple[str, int], wp.Stream] = {}
-#: The SegmentedCapture in progress in this context, if any (set only inside its ``with`` block).
-_SEGMENTED: contextvars.ContextVar[SegmentedCapture | None] = contextvars.ContextVar("segmented_capture",
-                                                                                     default=None)
-
-
-def _current_warp_stream(device: wp.Device) -> wp.Stream:
-    """Warp's view of PyTorch's current stream on ``device`` (cached: wrapping registers the handle with warp)."""
-    ts = torch.cuda.current_stream(wp.device_to_torch(device))
-    key = (str(device), int(ts.cuda_stream))
-    stream = _STREAMS.get(key)
-    if stream is None:
-        stream = _STREAMS[key] = wp.stream_from_torch(ts)
-    return stream
+__all__ = ["Recorded", "JoinedCapture", "SegmentedCapture", "no_gc"]
 
 
 def _capture_id(stream: wp.Stream) -> int | None:
@@ -48,13 +32,6 @@ def _capture_id(stream: wp.Stream) -> int | None:
         return int(runtime.core.wp_cuda_stream_get_capture_id(stream.cuda_stream))
     except (ImportError, AttributeError):
         return None
-
-
-def torch_stream_scope(device: wp.Device):
-    """Context in which warp launches go to PyTorch's current stream (no-op on CPU)."""
-    if not device.is_cuda:
-        return contextlib.nullcontext()
-    return wp.ScopedStream(_current_warp_stream(device), sync_enter=False)
 
 
 @contextlib.contextmanager
@@ -74,14 +51,18 @@ class Recorded:
 
     ``fn`` must not branch on device values; whatever it reads is read at replay time from the same arrays.
     With ``use_graph=False`` (or a CUDA device without warp's memory pool, which graph-captured allocations need)
-    calling runs ``fn`` eagerly instead.
+    calling runs ``fn`` eagerly instead. While a :class:`JoinedCapture` or :class:`SegmentedCapture` holds the object,
+    a call is handed to that capture.
     """
 
     def __init__(self, fn: Callable[[], None], device: wp.Device, use_graph: bool = True):
         self.fn = fn
         self.device = device
         self.graph = None
+        #: The capture this object is registered with (set only inside that capture's ``with`` block).
+        self.held_by: JoinedCapture | SegmentedCapture | None = None
         self._joined: list = []  # warp Graphs of the captures this object joined (see _join_torch_capture)
+        self._streams: dict[int, wp.Stream] = {}  # torch stream handle -> warp's wrapper of it
         if use_graph and device.is_cuda and not wp.is_mempool_enabled(device):
             print(
                 f"[tocabi_torchrl.sim] warp memory pool disabled on {device}: running without CUDA graphs (slower); "
@@ -91,6 +72,15 @@ class Recorded:
             use_graph = False
         if use_graph:
             self._capture()
+
+    def _torch_stream(self) -> wp.Stream:
+        """Warp's view of PyTorch's current stream (cached: wrapping registers the handle with warp)."""
+        ts = torch.cuda.current_stream(wp.device_to_torch(self.device))
+        key = int(ts.cuda_stream)
+        stream = self._streams.get(key)
+        if stream is None:
+            stream = self._streams[key] = wp.stream_from_torch(ts)
+        return stream
 
     def _capture(self) -> None:
         with no_gc(), wp.ScopedDevice(self.device):
@@ -105,16 +95,25 @@ class Recorded:
         self.graph = cap.graph
 
     def __call__(self) -> None:
-        segmented = _SEGMENTED.get()
-        if segmented is not None and self.device.is_cuda:
-            segmented.add_launch(self)  # called again at replay, outside any capture
-        elif self.device.is_cuda and torch.cuda.is_current_stream_capturing():
-            self._join_torch_capture()
-        elif self.graph is None:
-            with wp.ScopedDevice(self.device), torch_stream_scope(self.device):
+        if self.held_by is not None:
+            self.held_by.launch(self)
+            return
+        if self.device.is_cuda and torch.cuda.is_current_stream_capturing():
+            raise RuntimeError(
+                "a recorded physics graph was called inside a torch CUDA graph capture that does not hold it; capture "
+                "through tocabi_torchrl.cuda_graphs.capture_graph(..., recorded=...) so it joins or cuts the capture"
+            )
+        self.replay()
+
+    def replay(self) -> None:
+        """Run the recording (or ``fn`` eagerly without one) on PyTorch's current stream."""
+        if self.graph is None:
+            with wp.ScopedDevice(self.device), contextlib.ExitStack() as scope:
+                if self.device.is_cuda:
+                    scope.enter_context(wp.ScopedStream(self._torch_stream(), sync_enter=False))
                 self.fn()
         elif self.device.is_cuda:
-            wp.capture_launch(self.graph, stream=_current_warp_stream(self.device))
+            wp.capture_launch(self.graph, stream=self._torch_stream())
         else:
             wp.capture_launch(self.graph)
 
@@ -125,7 +124,7 @@ class Recorded:
         which CUDA refuses inside a child graph), so the launches run live inside PyTorch's capture, registered
         with warp as an external capture so that warp's own conditional nodes and allocations join it.
         """
-        stream = _current_warp_stream(self.device)
+        stream = self._torch_stream()
         capture_id = _capture_id(stream)
         with no_gc(), wp.ScopedDevice(self.device), wp.ScopedStream(stream, sync_enter=False):
             # GLOBAL: warp pauses and resumes the capture around its conditional nodes; resume it in torch's mode.
@@ -146,27 +145,65 @@ class Recorded:
             )
 
 
-class SegmentedCapture:
-    """Capture torch work and :class:`Recorded` warp graphs as alternating torch CUDA graphs and warp graph launches.
+class _Holding:
+    """Registers itself with the given :class:`Recorded` objects for the duration of its ``with`` block."""
 
-    Inside the ``with`` block, torch ops are captured into a torch CUDA graph on ``stream``; each call of a
+    def __init__(self, recorded: Sequence[Recorded]):
+        self.recorded = tuple(recorded)
+
+    def _hold(self) -> None:
+        for r in self.recorded:
+            if r.held_by is not None:
+                raise RuntimeError("a recorded physics graph is already held by another capture")
+            r.held_by = self
+
+    def _release(self) -> None:
+        for r in self.recorded:
+            if r.held_by is self:
+                r.held_by = None
+
+    def launch(self, recorded: Recorded) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+
+class JoinedCapture(_Holding):
+    """While torch captures a CUDA graph on its current stream (``torch.cuda.graph``), the held recordings' launches
+    are recorded into that graph (:meth:`Recorded._join_torch_capture`): one graph, one launch per replay."""
+
+    def __enter__(self) -> JoinedCapture:
+        self._hold()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._release()
+
+    def launch(self, recorded: Recorded) -> None:
+        recorded._join_torch_capture()
+
+
+class SegmentedCapture(_Holding):
+    """Capture torch work and the held :class:`Recorded` warp graphs as alternating torch CUDA graphs and warp graph
+    launches.
+
+    Inside the ``with`` block, torch ops are captured into a torch CUDA graph on ``stream``; each call of a held
     :class:`Recorded` object ends that graph, is noted as a launch, and a new torch graph begins. :meth:`replay`
     runs the pieces in order on the current stream: a handful of launches per step, and no warp graph is ever nested
-    in a torch one (the alternative to :meth:`Recorded._join_torch_capture`). The torch graphs share one memory pool
-    and are always replayed in capture order, so tensors made in one piece and read in a later one stay valid.
+    in a torch one (the alternative to :class:`JoinedCapture`). The torch graphs share one memory pool and are always
+    replayed in capture order, so tensors made in one piece and read in a later one stay valid.
 
     Args:
         stream: a side stream to capture on (capture cannot use the default stream).
         generators: custom CUDA generators the captured torch work draws from, registered with every piece.
+        recorded: the recordings whose calls cut the capture.
     """
 
-    def __init__(self, stream: torch.cuda.Stream, generators=()):
+    def __init__(self, stream: torch.cuda.Stream, generators=(), recorded: Sequence[Recorded] = ()):
+        super().__init__(recorded)
         self.stream = stream
         self.generators = tuple(generators)
         self.pool = torch.cuda.graph_pool_handle()
         self.pieces: list[Callable[[], None]] = []
         self._graph: torch.cuda.CUDAGraph | None = None
-        self._token = None
         self._stream_ctx = None
 
     def _begin(self) -> None:
@@ -180,16 +217,16 @@ class SegmentedCapture:
         graph.capture_end()
         self.pieces.append(graph.replay)
 
-    def add_launch(self, launch: Callable[[], None]) -> None:
-        """Cut the torch capture here and replay ``launch()`` at this point."""
+    def launch(self, recorded: Recorded) -> None:
+        """Cut the torch capture here and replay ``recorded`` at this point."""
         self._end()
-        self.pieces.append(launch)
+        self.pieces.append(recorded.replay)
         self._begin()
 
     def __enter__(self) -> SegmentedCapture:
         self._stream_ctx = torch.cuda.stream(self.stream)
         self._stream_ctx.__enter__()
-        self._token = _SEGMENTED.set(self)
+        self._hold()
         self._begin()
         return self
 
@@ -203,7 +240,7 @@ class SegmentedCapture:
                         self._graph.capture_end()
                     self._graph = None
         finally:
-            _SEGMENTED.reset(self._token)
+            self._release()
             self._stream_ctx.__exit__(exc_type, exc, tb)
 
     def replay(self) -> None:

@@ -42,7 +42,7 @@ from .contacts import ContactLayout, contact_layout
 from .memory import check_fits, mujoco_world_bytes
 from .model import ModelSource, compile_model
 from .mujoco_health import MUJOCO_HEALTH_WARNINGS, warning_bits, warning_error
-from .views import SimViews
+from .views import MocapPositions, SimViews, world_mocap_pos
 
 __all__ = ["MujocoSim"]
 
@@ -66,7 +66,8 @@ class MujocoSim(SimViews):
         config: :class:`SimConfig`; ``num_worlds``, ``substeps``, the solver overrides, ``sensors_every_substep`` and
             ``threads`` apply (the mujoco-warp buffer settings do not, see :class:`SimConfig`). ``device`` must be
             ``"cpu"``.
-        model: as for :class:`~tocabi_torchrl.sim.WarpSim`.
+        model, mocap_pos: as for :class:`~tocabi_torchrl.sim.WarpSim` (the per-world mocap positions live in each
+            world's ``MjData``, so every world shares the one compiled model).
 
     Tensors: the same names, shapes and dtypes as ``WarpSim`` (see its docstring), on the CPU. They are the
     simulator's own buffers: writing ``ctrl`` is how actions reach the physics, and they are overwritten by the next
@@ -74,7 +75,8 @@ class MujocoSim(SimViews):
     bits (``mujoco_health.warning_bits``) instead of mujoco-warp's ``OverflowType`` bits.
     """
 
-    def __init__(self, config: SimConfig | None = None, model: ModelSource = None):
+    def __init__(self, config: SimConfig | None = None, model: ModelSource = None,
+                 mocap_pos: MocapPositions | None = None):
         cfg = copy.deepcopy(config) if config is not None else SimConfig()
         cfg.validate()
         self.config = cfg
@@ -86,6 +88,8 @@ class MujocoSim(SimViews):
         check_fits(n, mujoco_world_bytes(mj), self.device, "C MuJoCo")
         self.mj_model = mj
         self.contact_layout: ContactLayout = contact_layout(mj)
+        #: (N, nmocap, 3) float64 mocap positions each world starts and resets with, or None (the model's).
+        self.world_mocap_pos = world_mocap_pos(mj, n, mocap_pos)
         self.nq, self.nv, self.nu = mj.nq, mj.nv, mj.nu
         self.physics_dt = float(mj.opt.timestep)
         self.control_dt = self.physics_dt * cfg.substeps
@@ -145,7 +149,7 @@ class MujocoSim(SimViews):
         # What was last published, to find worlds whose qpos/qvel were written directly.
         self._shown_qpos, self._shown_qvel = self._qpos.clone(), self._qvel.clone()
         signals = torch.zeros(n, len(self.contact_layout.weights), dtype=torch.bool)
-        self._foot_contact, self._forbidden, self._self_collision = signals[:, 0:2], signals[:, 2], signals[:, 3]
+        self._signal_views(signals)
         self._signals = signals
         self._healthy_t = torch.zeros(n, dtype=torch.bool)
         self._overflow_t = torch.zeros(n, dtype=torch.int32)
@@ -187,6 +191,8 @@ class MujocoSim(SimViews):
     def _reset_world(self, w: int, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> None:
         d = self._data[w]
         mujoco.mj_resetData(self.mj_model, d)  # clears time, activations, warm start and warning counters
+        if self.world_mocap_pos is not None:  # mj_resetData put the model's mocap positions back
+            d.mocap_pos[:] = self.world_mocap_pos[w]
         d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[w], qvel[w], ctrl[w]
         self._forward_and_warm_start(d)
         # Nothing was applied yet: report what the actuators would apply in the reset state (as WarpSim does).

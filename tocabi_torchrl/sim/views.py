@@ -12,6 +12,7 @@ backend that lacks one cannot be instantiated.
 from __future__ import annotations
 
 import abc
+from collections.abc import Mapping
 
 import mujoco
 import numpy as np
@@ -19,7 +20,34 @@ import torch
 
 from .. import robot
 
-__all__ = ["SimViews"]
+__all__ = ["SimViews", "MocapPositions"]
+
+#: Per-world positions of mocap bodies: ``{body name: (N, 3) positions [m]}`` (numpy or torch, any float dtype).
+MocapPositions = Mapping[str, object]
+
+
+def world_mocap_pos(mj: mujoco.MjModel, num_worlds: int, mocap_pos: MocapPositions | None) -> np.ndarray | None:
+    """(N, nmocap, 3) float64 mocap positions of every world: the model's ``body_pos`` of each mocap body, replaced
+    by ``mocap_pos[name]`` for the bodies it names; ``None`` when ``mocap_pos`` is empty or ``None`` (the worlds keep
+    the model's positions). Raises ``ValueError`` for a name that is not a mocap body or a bad array."""
+    if not mocap_pos:
+        return None
+    bodies = np.flatnonzero(mj.body_mocapid >= 0)
+    by_mocap = np.empty(mj.nmocap, dtype=np.int64)
+    by_mocap[mj.body_mocapid[bodies]] = bodies
+    out = np.tile(mj.body_pos[by_mocap].astype(np.float64), (num_worlds, 1, 1))
+    for name, value in mocap_pos.items():
+        b = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_BODY, name)
+        if b < 0 or mj.body_mocapid[b] < 0:
+            raise ValueError(f"mocap_pos names {name!r}, which is not a mocap body of the model")
+        if isinstance(value, torch.Tensor):
+            value = value.detach().cpu().numpy()
+        value = np.asarray(value, dtype=np.float64)
+        if value.shape != (num_worlds, 3) or not np.isfinite(value).all():
+            raise ValueError(f"mocap_pos[{name!r}] must be ({num_worlds}, 3) finite positions [m], one row per world, "
+                             f"got shape {value.shape}")
+        out[:, mj.body_mocapid[b]] = value
+    return out
 
 
 class SimViews(abc.ABC):
@@ -45,6 +73,14 @@ class SimViews(abc.ABC):
         adr = self.contact_layout.adr
         contiguous = bool(np.all(np.diff(adr) == 1))
         self._contact_counts = self._sensordata[:, adr[0] : adr[-1] + 1] if contiguous else None
+
+    def _signal_views(self, signals: torch.Tensor) -> None:
+        """The flag views of the (N, rows) contact-signal tensor (rows: ``contact_layout.signal_names``)."""
+        self._foot_contact, self._forbidden, self._self_collision = signals[:, 0:2], signals[:, 2], signals[:, 3]
+        if signals.shape[1] > 4:
+            self._obstacle_contact = signals[:, 4:6]
+        else:  # no scene bodies besides the ground: never touched
+            self._obstacle_contact = torch.zeros(self.num_worlds, 2, dtype=torch.bool, device=signals.device)
 
     def _sensor_pair(self, mj: mujoco.MjModel, names: tuple[str, str]) -> torch.Tensor:
         """A (N, 2, 3) view of two 3-D sensors, [left, right], without copying."""
@@ -73,6 +109,12 @@ class SimViews(abc.ABC):
     @abc.abstractmethod
     def check_overflow(self) -> None:
         """Raise :class:`~tocabi_torchrl.sim.health.SimOverflowError` if a world overflowed or warned."""
+
+    def recorded_graphs(self) -> list:
+        """The :class:`~tocabi_torchrl.sim.graph.Recorded` graphs that :meth:`step`, :meth:`forward` and :meth:`reset`
+        launch: a torch CUDA graph capturing them must hold them (:func:`tocabi_torchrl.cuda_graphs.capture_graph`).
+        Empty on a backend without such graphs."""
+        return []
 
     # ------------------------------------------------------------------------------------------- reset arguments
     def _check_reset_args(self, mask, qpos, qvel, ctrl) -> None:
@@ -112,8 +154,11 @@ class SimViews(abc.ABC):
     foot_force = property(lambda self: self._foot_force, doc="(N, 2, 3) foot F/T force, site frame [N], [L, R].")
     foot_torque = property(lambda self: self._foot_torque, doc="(N, 2, 3) foot F/T torque, site frame [N·m].")
     foot_contact = property(lambda self: self._foot_contact, doc="(N, 2) bool foot-ground contact, [L, R].")
-    forbidden_ground_contact = property(lambda self: self._forbidden, doc="(N,) bool forbidden ground contact.")
+    forbidden_ground_contact = property(lambda self: self._forbidden,
+                                        doc="(N,) bool forbidden contact with the ground or a scene body.")
     self_collision = property(lambda self: self._self_collision, doc="(N,) bool self collision.")
+    obstacle_contact = property(lambda self: self._obstacle_contact,
+                                doc="(N, 2) bool foot touches a scene body other than the ground plane, [L, R].")
     healthy = property(lambda self: self._healthy_t, doc="(N,) bool finite state and no buffer overflow.")
     overflow = property(lambda self: self._overflow_t, doc="(N,) int32 backend overflow/warning bits.")
     applied_actuator_force = property(

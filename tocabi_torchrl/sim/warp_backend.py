@@ -34,7 +34,7 @@ from .kernel_cache import announce_compile_if_cold
 from .kernels import copy_rows_where, derive_signals, write_reset_state
 from .memory import check_fits, warp_world_bytes
 from .model import ModelSource, compile_model
-from .views import SimViews
+from .views import MocapPositions, SimViews, world_mocap_pos
 
 __all__ = ["WarpSim"]
 
@@ -65,6 +65,10 @@ class WarpSim(SimViews):
         model: the scene: ``None`` for the shipped TOCABI (``robot.load_spec()``), an MJCF path, a ``mujoco.MjSpec``
             (copied; the contact sensors are added to the copy) or a compiled ``mujoco.MjModel`` that already has
             them (built with :func:`~tocabi_torchrl.sim.contacts.add_contact_sensors`).
+        mocap_pos: per-world positions of the model's mocap bodies, ``{body name: (N, 3) [m]}`` (e.g. the env's
+            obstacles); each world starts with them and gets them back on every reset (mujoco-warp's ``reset_data``
+            would put the model's ``body_pos`` back). Bodies not named, and every body when ``None``, keep the
+            model's position. :attr:`world_mocap_pos` holds the result, (N, nmocap, 3) float64, or ``None``.
 
     Tensors (all on :attr:`device`, float32 unless stated, first dimension N = ``num_worlds``) are views of warp
     memory: reading them copies nothing, writing ``ctrl`` is how actions reach the physics. They hold the state after
@@ -84,7 +88,10 @@ class WarpSim(SimViews):
     contact_counts             (N, k)           the ``found`` counts of the contact sensors (see contact_layout)
     foot_contact               (N, 2) bool      a foot body touches a world-body geom, [left, right]
     forbidden_ground_contact   (N,) bool        a ``robot.GROUND_FORBIDDEN_BODIES`` body touches the ground
+                                                (or a scene body outside the robot: an obstacle)
     self_collision             (N,) bool        two ``robot.SELF_COLLISION_BODIES`` bodies touch
+    obstacle_contact           (N, 2) bool      a foot body touches a scene body other than the world body
+                                                (an obstacle), [left, right]; False without one
     healthy                    (N,) bool        finite qpos/qvel/qacc/sensors, no overflow (``health_overflow_mask``)
     overflow                   (N,) int32       mujoco-warp ``OverflowType`` bits (sticky until the world resets)
     applied_actuator_force     (N, nu)          actuator forces [N·m] applied in the last substep of the last step
@@ -97,7 +104,8 @@ class WarpSim(SimViews):
     ========================== ================ ===============================================================
     """
 
-    def __init__(self, config: SimConfig | None = None, model: ModelSource = None):
+    def __init__(self, config: SimConfig | None = None, model: ModelSource = None,
+                 mocap_pos: MocapPositions | None = None):
         cfg = copy.deepcopy(config) if config is not None else SimConfig()
         cfg.validate()
         self.config = cfg
@@ -109,6 +117,7 @@ class WarpSim(SimViews):
         check_fits(n, warp_world_bytes(mj, cfg.nconmax, cfg.njmax), self.device, "mujoco-warp")
         self.mj_model = mj
         self.contact_layout: ContactLayout = contact_layout(mj)
+        self.world_mocap_pos = world_mocap_pos(mj, n, mocap_pos)
         self.nq, self.nv, self.nu = mj.nq, mj.nv, mj.nu
         self.physics_dt = float(mj.opt.timestep)
         self.control_dt = self.physics_dt * cfg.substeps
@@ -149,14 +158,17 @@ class WarpSim(SimViews):
         self._reset_ctrl = wp.zeros((n, mj.nu), dtype=float)
         self._sensor_snapshot = wp.zeros((n, mj.nsensordata), dtype=float)
         self._applied_force = wp.zeros((n, mj.nu), dtype=float)
+        self._mocap_pos = None  # each world's mocap positions, put back after reset_data
+        if self.world_mocap_pos is not None:
+            self._mocap_pos = wp.array(self.world_mocap_pos.astype(np.float32), dtype=wp.vec3)
+            wp.copy(self.wp_data.mocap_pos, self._mocap_pos)
 
     def _make_views(self, mj: mujoco.MjModel) -> None:
         d, t = self.wp_data, wp.to_torch
         self._qpos, self._qvel, self._ctrl = t(d.qpos), t(d.qvel), t(d.ctrl)
         self._sensordata, self._time = t(d.sensordata), t(d.time)
         self._xpos, self._xquat = t(d.xpos), t(d.xquat)
-        signals = t(self._signals)
-        self._foot_contact, self._forbidden, self._self_collision = signals[:, 0:2], signals[:, 2], signals[:, 3]
+        self._signal_views(t(self._signals))
         self._healthy_t, self._overflow_t = t(self._healthy), t(self._overflow)
         self._reset_mask_t = t(self._reset_mask)
         self._reset_qpos_t, self._reset_qvel_t = t(self._reset_qpos), t(self._reset_qvel)
@@ -208,6 +220,8 @@ class WarpSim(SimViews):
         # bit-identical even where the GPU's contact order (atomics) would change the last bits of a force.
         wp.launch(copy_rows_where, dim=n, inputs=[mask, False, d.sensordata, self._sensor_snapshot])
         mjw.reset_data(m, d, reset=mask)
+        if self._mocap_pos is not None:  # reset_data put the model's positions back in the reset worlds
+            wp.copy(d.mocap_pos, self._mocap_pos)
         wp.launch(
             write_reset_state,
             dim=n,
@@ -232,6 +246,9 @@ class WarpSim(SimViews):
         self._derive()
 
     # ------------------------------------------------------------------------------------------------- public API
+    def recorded_graphs(self) -> list[Recorded]:
+        return [self._step_graph, self._reset_graph, self._forward_graph]
+
     def step(self) -> None:
         """Advance every world by one control period (``substeps`` physics steps) with the current ``ctrl``."""
         self._step_graph()

@@ -1,0 +1,173 @@
+"""Run logging through torchrl's loggers: the CSV layout a run writes and the one reader of it (with the older wide
+``metrics.csv``), resume appending without lost or repeated rows, TensorBoard and W&B (offline) when installed, and
+the clear error when a requested logger's package is missing."""
+
+from __future__ import annotations
+
+import importlib.machinery
+import importlib.util
+import os
+import sys
+import types
+
+import pytest
+from torchrl.record.loggers import CSVLogger, Logger
+
+from tocabi_torchrl.rl import logging as run_logging
+from tocabi_torchrl.rl import preset_config
+from tocabi_torchrl.rl.curves import read_metrics
+from tocabi_torchrl.rl.metrics_files import trim_metrics
+from tocabi_torchrl.rl.trainer import train
+
+TINY = {"device": "cpu", "num_envs": 2, "steps_per_env": 4, "minibatch_size": 8, "total_env_steps": 16,
+        "progress_bar": False, "eval_at_end": False, "checkpoint_every": 1}
+
+
+def tiny(tmp_path, **extra):
+    return preset_config("cpu_smoke", **{**TINY, "run_dir": str(tmp_path), "name": "run", **extra})
+
+
+def scalar_lines(run, name):
+    return (run / "metrics" / "scalars" / f"{name}.csv").read_text().splitlines()
+
+
+def test_a_run_logs_through_torchrl_csv_logger_and_resume_appends(tmp_path):
+    train(tiny(tmp_path))
+    run = tmp_path / "run"
+    # torchrl's CSVLogger layout: one headerless `iteration,value` file per scalar (a '/' in the name: a folder).
+    assert [line.split(",")[0] for line in scalar_lines(run, "kl")] == ["1", "2"]
+    assert [line.split(",")[0] for line in scalar_lines(run, "reward_terms/qpos")] == ["1", "2"]
+    first = read_metrics(run)
+    assert [r["iteration"] for r in first] == ["1", "2"] and [float(r["env_steps"]) for r in first] == [8, 16]
+    assert read_metrics(run / "metrics") == first  # the logger's own folder reads the same
+    # Resume: the same files go on, the earlier rows untouched, none repeated.
+    train(preset_config("cpu_smoke", **{**tiny(tmp_path).to_dict(), "total_env_steps": 32, "resume": str(run)}))
+    rows = read_metrics(run)
+    assert [r["iteration"] for r in rows] == ["1", "2", "3", "4"] and rows[:2] == first
+    assert [float(r["env_steps"]) for r in rows] == [8, 16, 24, 32]
+    assert len(scalar_lines(run, "kl")) == 4
+
+
+def test_the_loggers_are_torchrl_loggers(tmp_path):
+    loggers = run_logging.make_loggers(tmp_path, tiny(tmp_path))
+    assert list(loggers) == ["csv"] and isinstance(loggers["csv"], CSVLogger)
+    assert all(isinstance(logger, Logger) for logger in loggers.values())
+    # csv is written even when --loggers leaves it out: the package's own tools read it.
+    assert list(run_logging.make_loggers(tmp_path, tiny(tmp_path, loggers=()))) == ["csv"]
+
+
+def test_read_metrics_joins_scalar_files_and_reads_older_wide_files(tmp_path):
+    scalars = tmp_path / "run" / "metrics" / "scalars"
+    (scalars / "reward_terms").mkdir(parents=True)
+    (scalars / "env_steps.csv").write_text("3,30.0\n4,40.0\n5,5")  # the last line cut short by a kill: not read
+    (scalars / "reward_terms" / "qpos.csv").write_text("4,0.25\n")
+    # An older run, resumed since: its wide file's rows come first, then the per-scalar ones.
+    (tmp_path / "run" / "metrics.csv").write_text("iteration,env_steps\n1,10\n2,20\n")
+    rows = read_metrics(tmp_path / "run")
+    assert rows == [{"iteration": "1", "env_steps": "10"}, {"iteration": "2", "env_steps": "20"},
+                    {"iteration": "3", "env_steps": "30.0", "reward_terms/qpos": ""},
+                    {"iteration": "4", "env_steps": "40.0", "reward_terms/qpos": "0.25"}]
+    assert read_metrics(tmp_path / "run" / "metrics.csv") == rows[:2]
+    assert read_metrics(tmp_path / "nothing") == []
+
+
+def test_trim_cuts_both_layouts_back_to_the_checkpoint(tmp_path):
+    scalars = tmp_path / "metrics" / "scalars"
+    scalars.mkdir(parents=True)
+    (scalars / "kl.csv").write_text("1,0.1\n2,0.2\n3,0.3\n4,0.")  # 3 logged after the checkpoint, 4 cut short
+    (tmp_path / "metrics.csv").write_text("iteration,kl\n1,0.1\n2,0.2\n3,0.3\n")
+    assert trim_metrics(tmp_path, 2) == 3
+    assert (scalars / "kl.csv").read_text() == "1,0.1\n2,0.2\n"
+    assert [r["iteration"] for r in read_metrics(tmp_path)] == ["1", "2", "1", "2"]
+    assert trim_metrics(tmp_path, 2) == 0
+
+
+@pytest.mark.parametrize("name, install", [("tensorboard", "pip install tensorboard"),
+                                           ("wandb", 'pip install "tocabi-torchrl[wandb]"')])
+def test_a_missing_logger_package_is_refused_before_anything_is_written(tmp_path, monkeypatch, name, install):
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda module, *a: None if module == name else
+                        find_spec(module, *a))
+    cfg = tiny(tmp_path, loggers=("csv", name))
+    with pytest.raises(ModuleNotFoundError, match=f"--loggers {name} needs the '{name}' package") as info:
+        run_logging.RunLogger(tmp_path / "run", cfg, total_iterations=2)
+    assert install in str(info.value)
+    with pytest.raises(ModuleNotFoundError, match=install.replace("[", r"\[")):
+        train(cfg)
+    assert not (tmp_path / "run").exists()
+
+
+def test_tensorboard_writes_event_files(tmp_path):
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    logger = run_logging.RunLogger(tmp_path, tiny(tmp_path, loggers=("csv", "tensorboard")), total_iterations=2)
+    logger.log(1, {"kl": 0.5, "reward_terms/qpos": 0.25})
+    logger.log(2, {"kl": 0.25, "reward_terms/qpos": 0.5})
+    logger.close()
+    assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
+    events = EventAccumulator(str(tmp_path / "tensorboard")).Reload()
+    assert [(e.step, e.value) for e in events.Scalars("kl")] == [(1, 0.5), (2, 0.25)]
+    assert [r["kl"] for r in read_metrics(tmp_path)] == ["0.5", "0.25"]
+
+
+def test_wandb_logs_offline_and_a_resume_continues_its_run(tmp_path, monkeypatch):
+    pytest.importorskip("wandb")
+    monkeypatch.delenv("WANDB_API_KEY", raising=False)
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    cfg = tiny(tmp_path, loggers=("csv", "wandb"))
+    logger = run_logging.RunLogger(tmp_path, cfg, total_iterations=2)
+    run_id = logger.loggers["wandb"].experiment.id
+    logger.log(1, {"kl": 0.5})
+    logger.close()
+    assert (tmp_path / "wandb_run_id").read_text().strip() == run_id
+    assert list((tmp_path / "wandb").glob("offline-run-*"))
+    logger = run_logging.RunLogger(tmp_path, cfg, total_iterations=2, start_iteration=1)
+    assert logger.loggers["wandb"].experiment.id == run_id
+    logger.log(2, {"kl": 0.25})
+    logger.close()
+
+
+class _StandInRun:
+    """What torchrl's WandbLogger uses of a ``wandb`` run."""
+
+    def __init__(self, **kwargs):
+        self.kwargs, self.id, self.logged, self.finished = kwargs, kwargs.get("id") or "new-id", [], False
+        self.config = types.SimpleNamespace(update=lambda *a, **k: None)
+
+    def define_metric(self, *args, **kwargs):
+        pass
+
+    def log(self, payload, **kwargs):
+        self.logged.append(payload)
+
+    def finish(self):
+        self.finished = True
+
+
+def test_wandb_wiring_with_a_stand_in_package(tmp_path, monkeypatch):
+    # Whether or not wandb is installed: how the run is opened, fed and continued.
+    import torchrl.record.loggers.wandb as torchrl_wandb
+
+    runs = []
+    stand_in = types.ModuleType("wandb")
+    stand_in.__spec__ = importlib.machinery.ModuleSpec("wandb", None)
+    stand_in.init = lambda **kwargs: runs.append(_StandInRun(**kwargs)) or runs[-1]
+    monkeypatch.setitem(sys.modules, "wandb", stand_in)
+    monkeypatch.setattr(torchrl_wandb, "_has_wandb", True)
+    monkeypatch.delenv("WANDB_API_KEY", raising=False)
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    cfg = tiny(tmp_path, loggers=("wandb",), name="walk")
+    logger = run_logging.RunLogger(tmp_path, cfg, total_iterations=2)
+    logger.log(1, {"kl": 0.5, "reward_terms/qpos": 0.25})
+    logger.close()
+    opened = runs[0].kwargs
+    assert opened["mode"] == "offline" and opened["project"] == "tocabi-torchrl" and opened["name"] == "walk"
+    assert opened["dir"] == str(tmp_path) and opened["config"] == cfg.to_dict() and opened["id"] is None
+    assert "WANDB_MODE" not in os.environ  # offline for this run, not for the process
+    # One history row per iteration, each metric group with its step (the iteration).
+    assert runs[0].logged == [{"kl": 0.5, "step": 1, "reward_terms/qpos": 0.25, "reward_terms/step": 1}]
+    assert runs[0].finished and (tmp_path / "wandb_run_id").read_text() == "new-id\n"
+    assert [r["kl"] for r in read_metrics(tmp_path)] == ["0.5"]  # and the CSV, always
+    run_logging.RunLogger(tmp_path, cfg, total_iterations=2, start_iteration=1).close()
+    assert runs[1].kwargs["id"] == "new-id" and runs[1].kwargs["resume"] == "allow"

@@ -1,0 +1,97 @@
+"""Box obstacles of the env's scene (``TocabiWalkConfig.scene.obstacles``): how they enter the model and where each
+world's boxes stand.
+
+Each :class:`~tocabi_torchrl.envs.config.BoxObstacle` becomes a mocap body ``obstacle_<k>`` (a child of the world body
+without degrees of freedom: static for the physics) holding one box geom of the same name, added to the ``MjSpec``
+before the backend compiles it. A mocap body, not a geom on the world body, because its position lives in each
+world's data (``mocap_pos``) rather than in the shared model: every world can have its own box position with one
+compiled model on both backends, and nothing precomputed from the model (bounding volumes, the static geoms'
+placement) goes stale. The backends put each world's positions in at build and after every reset
+(``WarpSim``/``MujocoSim``'s ``mocap_pos`` argument). MuJoCo generates no contacts between the box and the ground
+or another box (neither has degrees of freedom), and the contact sensors count every body outside the robot as
+ground (``sim.contacts``), so an obstacle terminates and counts as foot contact exactly like the ground.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import mujoco
+import numpy as np
+
+from .. import robot
+from .config import BoxObstacle
+
+__all__ = ["OBSTACLE_PREFIX", "obstacle_names", "add_obstacles", "world_obstacle_centres", "initial_sole_centre"]
+
+#: Body and geom name of obstacle k: ``OBSTACLE_PREFIX + str(k)``.
+OBSTACLE_PREFIX = "obstacle_"
+#: Stream tag of the per-world jitter draws (mixed with the env seed), so they never coincide with other draws.
+_JITTER_STREAM = 0x0B57AC1E
+_RGBA = (0.55, 0.45, 0.3, 1.0)
+
+
+def obstacle_names(count: int) -> tuple[str, ...]:
+    """``("obstacle_0", ..., "obstacle_<count-1>")``: the body (and geom) names of ``count`` obstacles."""
+    return tuple(f"{OBSTACLE_PREFIX}{k}" for k in range(count))
+
+
+def add_obstacles(spec: mujoco.MjSpec, obstacles: Sequence[BoxObstacle]) -> tuple[str, ...]:
+    """Add each box to ``spec`` in place at its nominal (unjittered) position as a mocap body holding one box geom
+    (collides with the robot like the robot's own collision geoms: contype = conaffinity = 1, the model's default
+    friction); returns the body names. No obstacles: ``spec`` is left untouched."""
+    names = obstacle_names(len(obstacles))
+    for name, box in zip(names, obstacles):
+        if spec.body(name) is not None or spec.geom(name) is not None:
+            raise ValueError(f"the model already has a body or geom named {name!r}; obstacle names are reserved")
+        x, y = box.pos
+        hx, hy, hz = box.half_size
+        body = spec.worldbody.add_body(name=name, mocap=True, pos=[x, y, hz])
+        body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=[hx, hy, hz], contype=1, conaffinity=1,
+                      rgba=list(_RGBA))
+    return names
+
+
+def world_obstacle_centres(obstacles: Sequence[BoxObstacle], num_worlds: int, seed: int) -> np.ndarray:
+    """(num_worlds, K, 3) float64 box centres [m] of every world: ``(pos + U(-jitter, jitter), height / 2)``.
+
+    One draw of ``(num_worlds, K, 2)`` uniforms from a generator keyed by ``seed`` (any int) and a fixed stream tag,
+    so the positions depend only on the seed, the world count and the boxes, never on the device or the backend.
+    """
+    k = len(obstacles)
+    out = np.zeros((num_worlds, k, 3))
+    if k == 0:
+        return out
+    rng = np.random.default_rng([int(seed) % 2**64, _JITTER_STREAM])
+    u = rng.uniform(-1.0, 1.0, size=(num_worlds, k, 2))
+    pos = np.array([box.pos for box in obstacles], dtype=np.float64)
+    jitter = np.array([box.jitter for box in obstacles], dtype=np.float64)
+    out[..., :2] = pos + u * jitter
+    out[..., 2] = [box.half_size[2] for box in obstacles]
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _sole_centres(model_path: str | None) -> np.ndarray:
+    model = robot.load_model(model_path)
+    data = mujoco.MjData(model)
+    data.qpos[:] = robot.INIT_QPOS
+    mujoco.mj_kinematics(model, data)
+    out = []
+    for foot in robot.FOOT_BODIES:
+        b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, foot)
+        soles = [g for g in range(model.ngeom) if model.geom_bodyid[g] == b and model.geom_contype[g]
+                 and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
+        if not soles:
+            raise robot.RobotAssetError(f"{foot} has no collision box (its sole) in the robot model")
+        sole = max(soles, key=lambda g: float(np.prod(model.geom_size[g])))
+        out.append(data.geom_xpos[sole].copy())
+    return np.array(out)
+
+
+def initial_sole_centre(foot: int = 0, model_path: str | None = None) -> np.ndarray:
+    """(3,) world position [m] of a sole's centre (the foot's largest collision box) in the robot's initial pose
+    (``robot.INIT_QPOS``); ``foot`` 0 = left, 1 = right; ``model_path`` None = the shipped model. The left sole's
+    centre of the shipped model is (0.0999, 0.1025, 0.0148)."""
+    return _sole_centres(None if model_path is None else str(model_path))[foot].copy()
