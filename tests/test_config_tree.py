@@ -38,8 +38,12 @@ def _plain(value):
     return json.loads(json.dumps(value, default=str))
 
 
+#: Presets added after the tree, so without a flat config of before it to match (their own tests build them).
+ADDED_AFTER_THE_TREE = {"model_based"}
+
+
 def test_every_preset_is_frozen():
-    assert set(PRESETS) == set(FROZEN)
+    assert set(PRESETS) == set(FROZEN) | ADDED_AFTER_THE_TREE
 
 
 @pytest.mark.parametrize("name", sorted(FROZEN))

@@ -139,10 +139,11 @@ def test_conditional_signal_follows_the_config():
     row = SIGNALS["leg_assist"]
     assert row.requires == "torque_assist"
     assert not row.enabled(None) and "leg_assist" not in [r.name for r in SIGNALS.enabled()]
-    assert not row.enabled({"torque_assist": False}) and SIGNALS.enabled({"torque_assist": True, "obstacles": False})[-1] is row
-    assert _env().signal_flags() == {"torque_assist": False, "obstacles": False}
+    assisted_flags = {"torque_assist": True, "model_based": False, "obstacles": False}
+    assert not row.enabled({"torque_assist": False}) and SIGNALS.enabled(assisted_flags)[-1] is row
+    assert _env().signal_flags() == {"torque_assist": False, "model_based": False, "obstacles": False}
     assisted = _env(torque_assist=True, control_mode="torque")
-    assert assisted.signal_flags() == {"torque_assist": True, "obstacles": False}
+    assert assisted.signal_flags() == assisted_flags
     assert list(assisted.observation_spec.keys())[-1] == "leg_assist"
     assert assisted.reset()["leg_assist"].shape == (N, robot.NUM_LEG_JOINTS)
     with pytest.raises(KeyError, match="requires the option 'torque_assist'"):

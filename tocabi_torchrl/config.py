@@ -304,6 +304,16 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "ppo.assist_fade_end": 110_000_000, "ppo.assist_target": "teacher", "ppo.assist_anchor_decay": 30_000_000,
         "total_env_steps": 200_000_000,
     }),
+    # Residual torque on a computed-torque law (env.control.mode "model_based", envs/model_based.py): the 12 leg
+    # actions add limit·a to τ_ff = M_LL·(q̈_ref + ω²·(q_ref − q) + 2ζω·(q̇_ref − q̇)) + c_L from the simulator's own
+    # inertia and bias forces. The default's PPO, unchanged: that recipe trains the residual PD at 4,096 envs in
+    # minutes, and the torque preset's runs learned on it too; what changes is only what an action means, and the
+    # law at a = 0 tracks the walk like the robot's PD (the default ω match its Kp at the initial pose) and stands
+    # longer than pd_reference at a = 0 (docs/training/model_based.md). No torque assist: the feed-forward law is
+    # itself the prior, and never fades. The budget is the torque preset's; the H100 run is pending.
+    "model_based": MappingProxyType({
+        "env.control.mode": "model_based", "total_env_steps": 200_000_000,
+    }),
     # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
     "cpu_smoke": MappingProxyType({
         "env.num_envs": 8, "ppo.steps_per_env": 16, "ppo.minibatch_size": 64, "ppo.epochs": 2,

@@ -37,8 +37,9 @@ class Signal:
         meaning: one line for docs/signals.md (no ``|``, no line breaks).
         categories: for discrete signals, the number of values ``0 … categories − 1`` (bool flags: 2).
         bounds: ``(low, high)`` for a continuous signal with a known range (its spec is then ``Bounded``).
-        requires: the name of the env option that turns the signal on (``"torque_assist"``, ``"obstacles"``; the env
-            passes its options' values as ``flags``, see ``TocabiWalk.signal_flags``); ``None``: always on.
+        requires: the name of the env option that turns the signal on (``"torque_assist"``, ``"model_based"``,
+            ``"obstacles"``; the env passes its options' values as ``flags``, see ``TocabiWalk.signal_flags``);
+            ``None``: always on.
     """
 
     name: str
@@ -179,10 +180,12 @@ SIGNALS = SignalTable((
     Signal("command", (2,), _F32, "m/s", "commanded (vx, vy) in the pelvis frame, after this step's schedule update"),
     Signal("applied_action", (_LEG + 1,), _F32, "",
            "raw clipped action applied in the step that produced this state (zeros after a reset); with "
-           "`torque_assist`, the 12 leg entries are the applied torque over the limits (equal to the action at β = 0)"),
+           "`torque_assist` or in `model_based` mode, the 12 leg entries are the applied torque over the limits "
+           "(with `torque_assist`, equal to the action at β = 0)"),
     Signal("leg_torque", (_LEG,), _F32, "N·m",
            "leg torques commanded in that step (torque mode: action × limit; with `torque_assist=True`: "
-           "(1 − β)·limit·a + β·PD(q_ref + pd_action_scale·a), clipped to the limits; PD mode: the PD output)"),
+           "(1 − β)·limit·a + β·PD(q_ref + pd_action_scale·a), clipped to the limits; model_based mode: "
+           "τ_ff + limit·a, clipped to the limits; PD mode: the PD output)"),
     Signal("episode_step", (1,), _I64, "", "policy steps since the env's last reset"),
     Signal("healthy", (1,), _BOOL, "",
            "the world's physics is numerically sound: finite qpos, qvel, qacc (warp) and sensors, no dropped "
@@ -191,6 +194,10 @@ SIGNALS = SignalTable((
            "only with `torque_assist=True`: the action-independent part of the assist's PD, "
            "`(pd_kp·(q_ref − q) − pd_kv·q̇) / limit`, from the pre-step state, as a fraction of each joint's torque "
            "limit", requires="torque_assist"),
+    Signal("leg_feedforward", (_LEG,), _F32, "N·m",
+           "only in `model_based` mode: the feed-forward torque τ_ff = M_LL·(q̈_ref + ω²·(q_ref − q) + 2ζω·(q̇_ref − "
+           "q̇)) + c_L of that step, from the pre-step state (before the residual and the clip)",
+           requires="model_based"),
     Signal("obstacle_contact", (2,), _BOOL, "",
            "only with `env.scene.obstacles`: a `Foot_Link` geom touches an obstacle box, [left, right] (also counted "
            "in `foot_contact`)", requires="obstacles"),

@@ -12,9 +12,13 @@ from .. import robot
 from .command import CommandConfig
 
 __all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "SceneConfig", "BoxObstacle", "PD_GAINS",
-           "ENV_FLAT_PATHS", "CONTROL_MODES", "BACKENDS", "CPU_DEFAULT_BACKEND", "resolve_backend"]
+           "ENV_FLAT_PATHS", "CONTROL_MODES", "TORQUE_MODES", "MB_OMEGA", "BACKENDS", "CPU_DEFAULT_BACKEND",
+           "resolve_backend"]
 
-CONTROL_MODES = ("torque", "pd", "pd_reference")
+CONTROL_MODES = ("torque", "pd", "pd_reference", "model_based")
+#: The modes whose leg actuators are torque motors (the env computes the torque); the others make them MuJoCo
+#: position servos.
+TORQUE_MODES = ("torque", "model_based")
 #: Physics backends: mujoco-warp (``WarpSim``, GPU or warp's CPU device) or C MuJoCo on CPU threads (``MujocoSim``).
 BACKENDS = ("warp", "mujoco", "auto")
 #: ``backend="auto"`` on a CPU device. Measured by ``benchmarks/cpu_backends.py`` (docs/benchmarks/cpu_backends_*.md):
@@ -106,6 +110,14 @@ class TaskConfig:
 PD_GAINS = {"robot": (tuple(float(v) for v in robot.LEG_KP), tuple(float(v) for v in robot.LEG_KV)),
             "tocabilab": (tuple(float(v) for v in robot.LEG_KP / 9.0), tuple(float(v) for v in robot.LEG_KV / 3.0))}
 
+#: The ``model_based`` mode's default natural frequencies [rad/s], per leg joint: ``sqrt(LEG_KP / M_jj)`` with M_jj
+#: the diagonal of the shipped model's leg inertia (armature included) at the initial pose, rounded. So at the
+#: initial pose each joint's stiffness ``M_jj·ω²`` is the robot controller's Kp, the PD that tracks the reference in
+#: the other modes (``tests/test_model_based.py`` recomputes them). With ``mb_zeta`` 0.7 (the default; a second-order
+#: loop's least tracking error, and the 250 Hz hold keeps it at 0.70, see ``envs.model_based``), the law at zero
+#: action tracked and survived best of the gains tried on the CPU (docs/training/model_based.md).
+MB_OMEGA: tuple[float, ...] = (41.0, 29.0, 25.0, 38.0, 52.0, 89.0) * 2
+
 
 @dataclass
 class ControlConfig:
@@ -117,8 +129,18 @@ class ControlConfig:
         ``pd_nominal + pd_action_scale × action`` clipped to the joint range, tracked in every physics substep by
         MuJoCo position servos with gains ``pd_kp``/``pd_kv``, force-limited to the torque limits.
       - ``"pd_reference"`` (the default): as ``"pd"`` with the target centred on the reference walk.
+      - ``"model_based"``: leg torque = ``clip(τ_ff + limit·action[:12], ±limit)``, a residual torque on top of a
+        computed-torque law that tracks the reference walk from the simulator's own dynamics,
+        ``τ_ff = M_LL(q)·(q̈_ref + Kp·(q_ref − q) + Kd·(q̇_ref − q̇)) + c_L(q, q̇)`` with ``Kp = ω²``,
+        ``Kd = 2ζω`` (``mb_omega`` [rad/s], ``mb_zeta``, per leg joint), computed from the pre-step state and held
+        for the step like a torque action (:class:`~tocabi_torchrl.envs.model_based.ComputedTorque` says where each
+        term comes from and why the base coupling and contact forces are left to the policy). ``mb_ref_window`` [s]
+        is the half-width of the central differences that give q̇_ref and q̈_ref.
     The upper body is held at the reference pose by MuJoCo position servos in every mode. The gains default to the
-    robot controller's (:data:`PD_GAINS` ``"robot"``); in plain torque mode no PD acts and they are unused.
+    robot controller's (:data:`PD_GAINS` ``"robot"``); in the torque modes no PD acts and they are unused. In
+    ``model_based`` mode the leg entries of ``applied_action`` (observation history, torque rewards) and
+    ``leg_torque`` are the applied torque (over the limits / in N·m), as with ``torque_assist``; the ``leg_feedforward``
+    signal is τ_ff.
 
     ``torque_assist`` (torque mode only) is a training aid that morphs the action space: the leg torque is
     ``(1 − β)·a·limit + β·(pd_kp·(q_ref + pd_action_scale·a − q) − pd_kv·q̇)`` (clipped to the limits), so at β = 1
@@ -137,6 +159,9 @@ class ControlConfig:
     pd_action_scale: float = 0.5
     pd_nominal: tuple[float, ...] = tuple(float(v) for v in robot.INIT_JOINT_POS[:12])
     torque_assist: bool = False
+    mb_omega: tuple[float, ...] = MB_OMEGA
+    mb_zeta: tuple[float, ...] = (0.7,) * robot.NUM_LEG_JOINTS
+    mb_ref_window: float = 0.008
 
     def validate(self) -> None:
         if self.mode not in CONTROL_MODES:
@@ -153,6 +178,24 @@ class ControlConfig:
         if self.torque_assist and self.mode != "torque":
             raise ValueError(f"env.control.torque_assist needs control_mode='torque' (env.control.mode; the PD modes "
                              f"already track with servos), got {self.mode!r}")
+        for name, unit in (("mb_omega", "rad/s"), ("mb_zeta", "")):
+            values = getattr(self, name)
+            if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):
+                raise ValueError(f"env.control.{name} needs {robot.NUM_LEG_JOINTS} numbers (one per leg joint), got "
+                                 f"{values!r}")
+            if len(values) != robot.NUM_LEG_JOINTS:
+                raise ValueError(f"env.control.{name} needs {robot.NUM_LEG_JOINTS} values (one per leg joint), got "
+                                 f"{len(values)}")
+            bad = [(robot.JOINT_NAMES[j], v) for j, v in enumerate(values)
+                   if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0]
+            if bad:
+                what = "natural frequency [rad/s]" if name == "mb_omega" else "damping ratio"
+                raise ValueError(f"env.control.{name}: every leg joint's {what} must be a finite number >= 0; got "
+                                 + ", ".join(f"{joint}={v!r}" for joint, v in bad))
+        window = self.mb_ref_window
+        if isinstance(window, bool) or not isinstance(window, (int, float)) or not np.isfinite(window) or window <= 0:
+            raise ValueError(f"env.control.mb_ref_window must be a finite number of seconds > 0 (the half-width of "
+                             f"the reference's velocity/acceleration differences), got {window!r}")
 
 
 def _floats(value, n: int, what: str) -> tuple[float, ...]:
@@ -258,7 +301,8 @@ class SceneConfig:
 ENV_FLAT_PATHS = {
     "control_mode": "control.mode", "pd_kp": "control.pd_kp", "pd_kv": "control.pd_kv",
     "pd_action_scale": "control.pd_action_scale", "pd_nominal": "control.pd_nominal",
-    "torque_assist": "control.torque_assist",
+    "torque_assist": "control.torque_assist", "mb_omega": "control.mb_omega", "mb_zeta": "control.mb_zeta",
+    "mb_ref_window": "control.mb_ref_window",
     "substeps": "sim.substeps", "nconmax": "sim.nconmax", "njmax": "sim.njmax", "backend": "sim.backend",
     "sim_threads": "sim.threads", "obstacles": "scene.obstacles",
     **{name: f"task.{name}" for name in TaskConfig.__dataclass_fields__},

@@ -24,8 +24,9 @@ from ..rotations import quat_rotate_inverse
 from ..signals import EPISODE_FLAGS, REWARD, SIGNALS, SignalTable
 from ..sim import MujocoSim, SimBackend, SimConfig, WarpSim
 from .command import VelocityCommand
-from .config import ControlConfig, TocabiWalkConfig, resolve_backend
+from .config import TORQUE_MODES, ControlConfig, TocabiWalkConfig, resolve_backend
 from .episode_random import episode_uniform
+from .model_based import ComputedTorque
 from .obstacles import add_obstacles, world_obstacle_centres
 from .termination import termination_flags
 
@@ -109,7 +110,7 @@ class TocabiWalk(EnvBase):
 
         self._seed = int(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item())
         spec = robot.load_spec(cfg.task.model_path)
-        if control.mode != "torque":
+        if control.mode not in TORQUE_MODES:
             spec = _pd_leg_spec(spec, control)
         obstacles = cfg.scene.obstacles
         centres = world_obstacle_centres(obstacles, num_envs, self._seed)
@@ -135,6 +136,9 @@ class TocabiWalk(EnvBase):
         # The reset's per-episode draws read the seed from the device, so a captured step graph follows set_seed.
         self._seed_t = torch.tensor(self._seed, dtype=torch.int64, device=device)
         self.command = VelocityCommand(cfg.command, num_envs, device, self.rng)
+        #: The model_based mode's feed-forward law (None in the other modes).
+        self.computed_torque = (ComputedTorque(control, self.motion, self.sim.mj_model, num_envs, device, self.dt)
+                                if control.mode == "model_based" else None)
         self._init_buffers()
         self._make_specs()
 
@@ -157,7 +161,7 @@ class TocabiWalk(EnvBase):
         self.assist_scale = torch.zeros((), dtype=f32, device=dev)
         self._assist_gain = self.assist_gain(0.0).clone()  # (12,) N·m per unit action at assist_scale
         # Leg controls a reset world starts with: no torque, or the PD's nominal target.
-        self._reset_leg_ctrl = (torch.zeros_like(self._pd_nominal) if self.cfg.control.mode == "torque"
+        self._reset_leg_ctrl = (torch.zeros_like(self._pd_nominal) if self.cfg.control.mode in TORQUE_MODES
                                 else self._pd_nominal.clone())
         self._init_rows = torch.as_tensor(self.motion.init_rows, dtype=torch.int64, device=dev)
         # Task state, (num_envs, ...): phase clock [s] (kept modulo the motion period), its start row, step count.
@@ -168,6 +172,7 @@ class TocabiWalk(EnvBase):
         self.applied_action = torch.zeros(n, ACTION_DIM, dtype=f32, device=dev)
         self.leg_torque = torch.zeros(n, robot.NUM_LEG_JOINTS, dtype=f32, device=dev)
         self.leg_assist = torch.zeros(n, robot.NUM_LEG_JOINTS, dtype=f32, device=dev)
+        self.leg_feedforward = torch.zeros(n, robot.NUM_LEG_JOINTS, dtype=f32, device=dev)
         self.ref_joint_pos = torch.zeros(n, robot.NUM_JOINTS, dtype=f32, device=dev)
         self.ref_foot_force = torch.zeros(n, 2, dtype=f32, device=dev)
         self.stance = torch.zeros(n, dtype=torch.int64, device=dev)
@@ -191,7 +196,8 @@ class TocabiWalk(EnvBase):
 
     def signal_flags(self) -> dict[str, bool]:
         """The options that turn the signal table's conditional rows on (``Signal.requires``)."""
-        return {"torque_assist": bool(self.cfg.control.torque_assist), "obstacles": bool(self.cfg.scene.obstacles)}
+        return {"torque_assist": bool(self.cfg.control.torque_assist),
+                "model_based": self.cfg.control.mode == "model_based", "obstacles": bool(self.cfg.scene.obstacles)}
 
     def _check_observe_matches_table(self) -> None:
         """Raise a clear error, once at construction, when :meth:`_observe` and the signal table disagree.
@@ -238,9 +244,12 @@ class TocabiWalk(EnvBase):
         row = self.motion.row_index(self.time, self.init_row)
         q_ref = self.motion.joint_targets(self.time, self.init_row)
         self.command.update(self.episode_step)
+        rate = 1.0 + self.cfg.task.phase_rate_gain * a[:, -1]
 
         if self.cfg.control.torque_assist:
             leg_cmd = self._assisted(a[:, robot.LEGS], q_ref[:, robot.LEGS])
+        elif self.computed_torque is not None:
+            leg_cmd = self._model_based(a[:, robot.LEGS], q_ref[:, robot.LEGS], rate)
         elif self.cfg.control.mode == "torque":
             leg_cmd = a[:, robot.LEGS] * self._leg_limits
         else:
@@ -254,17 +263,17 @@ class TocabiWalk(EnvBase):
 
         # Task state is updated in place (never rebound): a captured CUDA graph of this step keeps writing to the
         # same tensors on every replay (see envs.autoreset).
-        rate = 1.0 + self.cfg.task.phase_rate_gain * a[:, -1]
         self.time.copy_(torch.remainder(self.time + self.dt * rate, self.motion.period))
         self.episode_step.add_(1)
         self.applied_action.copy_(a)
-        if self.cfg.control.torque_assist:
+        if self.cfg.control.torque_assist or self.computed_torque is not None:
             # The history and the torque rewards see the torque the legs got, over the limits: at β = 0 that is the
             # action itself (the reference's a_raw), and at every β a policy that applies the same torques gets the
-            # same observations and rewards, so the morph changes the action's meaning and nothing else.
+            # same observations and rewards, so the morph changes the action's meaning and nothing else. In
+            # model_based mode likewise: the feed-forward torque plus the residual, as torque mode would see it.
             self.applied_action[:, robot.LEGS].copy_(leg_cmd / self._leg_limits)
         applied = self.sim.applied_actuator_force[:, robot.LEGS]
-        self.leg_torque.copy_(leg_cmd if self.cfg.control.mode == "torque" else applied)
+        self.leg_torque.copy_(leg_cmd if self.cfg.control.mode in TORQUE_MODES else applied)
         self.ref_joint_pos.copy_(q_ref)
         self.ref_foot_force.copy_(self.motion.force_reference(row))
         self.stance.copy_(self.motion.stance_at(row))
@@ -304,6 +313,15 @@ class TocabiWalk(EnvBase):
         qd = self.sim.qvel[:, 6 : 6 + robot.NUM_LEG_JOINTS]
         self.leg_assist.copy_((self._pd_kp * (leg_ref - q) - self._pd_kv * qd) / self._leg_limits)
         total = self._assist_gain * a_leg + self.assist_scale * self.leg_assist * self._leg_limits
+        return torch.maximum(torch.minimum(total, self._leg_limits), -self._leg_limits)
+
+    def _model_based(self, a_leg: torch.Tensor, leg_ref: torch.Tensor, rate: torch.Tensor) -> torch.Tensor:
+        """Leg torques (num_envs, 12) [N·m] of the ``model_based`` mode: ``clip(τ_ff + limit·a, ±limit)`` with τ_ff
+        the computed-torque law from the pre-step state (:class:`~tocabi_torchrl.envs.model_based.ComputedTorque`),
+        recorded as ``leg_feedforward``."""
+        tau_ff = self.computed_torque(self.sim, leg_ref, self.time, self.init_row, rate)
+        self.leg_feedforward.copy_(tau_ff)
+        total = tau_ff + self._leg_limits * a_leg
         return torch.maximum(torch.minimum(total, self._leg_limits), -self._leg_limits)
 
     @property
@@ -358,6 +376,8 @@ class TocabiWalk(EnvBase):
         }
         if self.cfg.control.torque_assist:
             signals["leg_assist"] = _finite(self.leg_assist)
+        if self.computed_torque is not None:
+            signals["leg_feedforward"] = _finite(self.leg_feedforward)
         if self.cfg.scene.obstacles:
             signals["obstacle_contact"] = sim.obstacle_contact.clone()
         return TensorDict(signals, batch_size=self.batch_size, device=self.device)
@@ -378,6 +398,7 @@ class TocabiWalk(EnvBase):
         self.applied_action.masked_fill_(m, 0.0)
         self.leg_torque.masked_fill_(m, 0.0)
         self.leg_assist.masked_fill_(m, 0.0)
+        self.leg_feedforward.masked_fill_(m, 0.0)
         self.command.reset(mask, u[:, 1:3])
         # Upper-body servos start on the initial pose so the reset state's forward pass sees no PD transient.
         row = self.motion.row_index(self.time, self.init_row)

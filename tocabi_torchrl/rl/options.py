@@ -25,6 +25,11 @@ FIELD_HELP: dict[str, str] = {
     "env.control.pd_nominal": "centre of the 'pd' mode's leg targets [rad], one per leg joint",
     "env.control.torque_assist": "give every env the torque assist (the trainer sets it on its training env when "
                                  "ppo.torque_assist > 0)",
+    "env.control.mb_omega": "model_based mode: natural frequency of each leg joint's computed-torque loop [rad/s] "
+                            "(Kp = ω²); default: the robot's Kp at the initial pose",
+    "env.control.mb_zeta": "model_based mode: damping ratio of each leg joint's loop (Kd = 2ζω)",
+    "env.control.mb_ref_window": "model_based mode: half-width of the central differences that give the reference's "
+                                 "velocity and acceleration [s]",
     "env.sim.backend": "physics backend (auto: mujoco-warp on CUDA, C MuJoCo on the CPU)",
     "env.sim.substeps": "physics substeps (0.5 ms) per policy step",
     "env.sim.nconmax": "mujoco-warp contacts per world; none = the measured default",

@@ -28,7 +28,8 @@ __all__ = ["SimBackend", "SimTensor", "SIM_TENSORS", "check_backend"]
 @dataclass(frozen=True)
 class SimTensor:
     """One tensor of the interface: ``shape`` in named sizes (``"N"`` worlds, ``"nq"``, ``"nv"``, ``"nu"``,
-    ``"nbody"``, ``"nsensordata"``, ``"ncontact"`` contact sensors) and ints."""
+    ``"nbody"``, ``"nsensordata"``, ``"ncontact"`` contact sensors, ``"nC"`` non-zeros of the inertia matrix) and
+    ints."""
 
     name: str
     shape: tuple[str | int, ...]
@@ -63,6 +64,11 @@ SIM_TENSORS: tuple[SimTensor, ...] = (
     SimTensor("healthy", ("N",), _BOOL, "finite state and no buffer overflow or health warning"),
     SimTensor("overflow", ("N",), torch.int32, "backend overflow/warning bits (sticky until the world resets)"),
     SimTensor("applied_actuator_force", ("N", "nu"), _F32, "actuator forces applied in the last substep [N·m]"),
+    SimTensor("mass_matrix", ("N", "nC"), _F32, "joint-space inertia M(q) of the current state (armature included) "
+              "in MuJoCo's sparse layout: lower triangle, rows by mj_model.M_rowadr/M_rownnz, columns M_colind "
+              "(sim.inertia.dense_block reads a dense block of it)"),
+    SimTensor("qfrc_bias", ("N", "nv"), _F32, "bias force c(q, q̇) of the current state: gravity, Coriolis and "
+              "centrifugal [N, N·m] (M·q̈ + c = applied + passive + constraint forces)"),
 )
 
 #: The plain attributes and the methods of the interface (the tensors are :data:`SIM_TENSORS`).
@@ -113,6 +119,8 @@ class SimBackend(Protocol):
     healthy: torch.Tensor
     overflow: torch.Tensor
     applied_actuator_force: torch.Tensor
+    mass_matrix: torch.Tensor
+    qfrc_bias: torch.Tensor
 
     def step(self) -> None:
         """Advance every world by one control period with the current ``ctrl``; no host synchronisation on GPU."""
@@ -137,7 +145,7 @@ class SimBackend(Protocol):
 def _sizes(sim) -> dict[str, int]:
     mj = sim.mj_model
     return {"N": sim.num_worlds, "nq": sim.nq, "nv": sim.nv, "nu": sim.nu, "nbody": mj.nbody,
-            "nsensordata": mj.nsensordata, "ncontact": len(sim.contact_layout.adr)}
+            "nsensordata": mj.nsensordata, "ncontact": len(sim.contact_layout.adr), "nC": mj.nC}
 
 
 def check_backend(sim: object) -> None:

@@ -123,6 +123,8 @@ class MujocoSim(SimViews):
             "xquat": np.zeros((n, mj.nbody, 4)),
             "time": np.zeros(n),
             "applied_force": np.zeros((n, mj.nu)),
+            "mass_matrix": np.zeros((n, mj.nC)),
+            "qfrc_bias": np.zeros((n, mj.nv)),
         }
         self._warnings = np.zeros((n, int(mujoco.mjtWarning.mjNWARNING)), dtype=np.int32)
         # The float32 tensors the env sees, one per staging array.
@@ -132,6 +134,7 @@ class MujocoSim(SimViews):
         self._xpos, self._xquat = torch.zeros(n, mj.nbody, 3, dtype=f32), torch.zeros(n, mj.nbody, 4, dtype=f32)
         self._time = torch.zeros(n, dtype=f32)
         self._applied_force_t = torch.zeros(n, mj.nu, dtype=f32)
+        self._mass_matrix, self._qfrc_bias = torch.zeros(n, mj.nC, dtype=f32), torch.zeros(n, mj.nv, dtype=f32)
         self._published = {
             "qpos": self._qpos,
             "qvel": self._qvel,
@@ -140,6 +143,8 @@ class MujocoSim(SimViews):
             "xquat": self._xquat,
             "time": self._time,
             "applied_force": self._applied_force_t,
+            "mass_matrix": self._mass_matrix,
+            "qfrc_bias": self._qfrc_bias,
         }
         # What was last published, to find worlds whose qpos/qvel were written directly.
         self._shown_qpos, self._shown_qvel = self._qpos.clone(), self._qvel.clone()
@@ -159,6 +164,8 @@ class MujocoSim(SimViews):
         s["xpos"][w] = d.xpos
         s["xquat"][w] = d.xquat
         s["time"][w] = d.time
+        s["mass_matrix"][w] = d.M  # MjData.M: mj_forward's sparse (CSR) inertia, the layout of mujoco-warp's Data.M
+        s["qfrc_bias"][w] = d.qfrc_bias
         self._warnings[w] = d.warning.number
 
     def _step_world(self, w: int, ctrl: np.ndarray, dirty: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:

@@ -2,10 +2,11 @@
 
 A backend (:class:`~tocabi_torchrl.sim.WarpSim`, :class:`~tocabi_torchrl.sim.MujocoSim`) fills the primary buffers
 (``_qpos``, ``_qvel``, ``_ctrl``, ``_sensordata``, ``_time``, ``_xpos``, ``_xquat``, the signal, health and applied
-force tensors) and calls :meth:`SimViews._make_derived_views`; this base class turns them into the public properties
-(the table in ``WarpSim``'s docstring), so the environment reads every backend the same way. The interface itself
-(members, tensor shapes and dtypes) is :class:`~tocabi_torchrl.sim.backend.SimBackend`; the four methods every
-backend must write are abstract here, so a backend that lacks one cannot be instantiated.
+force tensors, ``_mass_matrix``, ``_qfrc_bias``) and calls :meth:`SimViews._make_derived_views`; this base class
+turns them into the public properties (the table in ``WarpSim``'s docstring), so the environment reads every backend
+the same way. The interface itself (members, tensor shapes and dtypes) is
+:class:`~tocabi_torchrl.sim.backend.SimBackend`; the four methods every backend must write are abstract here, so a
+backend that lacks one cannot be instantiated.
 """
 
 from __future__ import annotations
@@ -163,6 +164,11 @@ class SimViews(abc.ABC):
     applied_actuator_force = property(
         lambda self: self._applied_force_t, doc="(N, nu) actuator forces applied in the last substep [N·m]."
     )
+    mass_matrix = property(
+        lambda self: self._mass_matrix,
+        doc="(N, nC) joint-space inertia M(q) of the current state, MuJoCo's sparse lower-triangle (CSR) layout.",
+    )
+    qfrc_bias = property(lambda self: self._qfrc_bias, doc="(N, nv) bias force c(q, q̇): gravity, Coriolis [N·m].")
 
     @property
     def contact_counts(self) -> torch.Tensor:

@@ -96,6 +96,10 @@ class WarpSim(SimViews):
     overflow                   (N,) int32       mujoco-warp ``OverflowType`` bits (sticky until the world resets)
     applied_actuator_force     (N, nu)          actuator forces [N·m] applied in the last substep of the last step
                                                 (``wp_data.actuator_force`` holds the post-step forward pass's values)
+    mass_matrix                (N, nC=396)      joint-space inertia M(q) of the current state (``wp_data.M``: MuJoCo's
+                                                sparse lower triangle, rows ``mj_model.M_rowadr``/``M_rownnz``,
+                                                columns ``M_colind``)
+    qfrc_bias                  (N, nv)          bias force c(q, q̇) of the current state (``wp_data.qfrc_bias``)
     time                       (N,)             simulated time since the world's last reset [s]
     ========================== ================ ===============================================================
     """
@@ -170,6 +174,9 @@ class WarpSim(SimViews):
         self._reset_qpos_t, self._reset_qvel_t = t(self._reset_qpos), t(self._reset_qvel)
         self._reset_ctrl_t = t(self._reset_ctrl)
         self._applied_force_t = t(self._applied_force)
+        # The joint-space inertia and bias force of the last forward pass (mujoco-warp's Data.M is MuJoCo's sparse
+        # CSR layout, (nworld, nC), whatever the model's opt.jacobian: dense factorisation blocks live in qLD).
+        self._mass_matrix, self._qfrc_bias = t(d.M), t(d.qfrc_bias)
 
         self._make_derived_views(mj)
 
