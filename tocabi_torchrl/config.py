@@ -307,10 +307,10 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # Residual torque on a computed-torque law (env.control.mode "model_based", envs/model_based.py): the 12 leg
     # actions add limit·a to τ_ff = M_LL·(q̈_ref + ω²·(q_ref − q) + 2ζω·(q̇_ref − q̇)) + c_L from the simulator's own
     # inertia and bias forces. The default's PPO, unchanged: that recipe trains the residual PD at 4,096 envs in
-    # minutes, and the torque preset's runs learned on it too; what changes is only what an action means, and the
-    # law at a = 0 tracks the walk like the robot's PD (the default ω match its Kp at the initial pose) and stands
-    # longer than pd_reference at a = 0 (docs/training/model_based.md). No torque assist: the feed-forward law is
-    # itself the prior, and never fades. The budget is the torque preset's; the H100 run is pending.
+    # minutes, and the torque preset's runs learned on it too. Only what an action means changes: at a = 0 the law
+    # tracks the walk like the robot's PD (the default ω give its Kp at the initial pose) and stands longer than
+    # pd_reference does at a = 0 (docs/training/model_based.md). No torque assist: the feed-forward law is itself
+    # the prior, and never fades. The budget is the torque preset's; the H100 run is pending.
     "model_based": MappingProxyType({
         "env.control.mode": "model_based", "total_env_steps": 200_000_000,
     }),
