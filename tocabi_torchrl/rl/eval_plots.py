@@ -91,12 +91,13 @@ def plot_knee_comparison(traces: dict[str, tuple[np.ndarray, np.ndarray]], dt: f
 
 def plot_joint_torques(traces: dict[str, np.ndarray], dt: float, path: Path, joints: tuple[str, ...],
                        title: str, t0: dict[str, float] | None = None, xlabel: str = "time [s]",
-                       limits: np.ndarray | None = None) -> Path:
+                       limits: np.ndarray | None = None, mark_zero: bool = False) -> Path:
     """Joint torques [N·m] over time, one panel per joint (3 rows: hip pitch, knee, ankle pitch; columns: left,
     right for the six :data:`~tocabi_torchrl.rl.gait_record.CRITICAL_JOINTS`), one line per controller.
 
     ``traces``: label -> (T, len(joints)) torques, step k at time (k + 1)·dt − ``t0[label]`` (default 0);
-    ``limits``: (len(joints),) torque limits drawn as grey lines. Saved to ``path``."""
+    ``limits``: (len(joints),) torque limits drawn as grey lines; ``mark_zero``: a black line at t = 0 (e.g. the
+    first contact with an obstacle). Saved to ``path``."""
     plt = _pyplot()
     cols = 2 if len(joints) % 2 == 0 else 1
     rows = len(joints) // cols
@@ -108,6 +109,8 @@ def plot_joint_torques(traces: dict[str, np.ndarray], dt: float, path: Path, joi
             for i, (label, tau) in enumerate(traces.items()):
                 t = (np.arange(len(tau)) + 1) * dt - (t0 or {}).get(label, 0.0)
                 ax.plot(t, tau[:, j], color=f"C{i}", lw=1.1, label=label)
+            if mark_zero:
+                ax.axvline(0.0, color="k", lw=0.8)
             if limits is not None:
                 for sign in (-1, 1):
                     ax.axhline(sign * limits[j], color="0.6", lw=0.8, ls=":")

@@ -209,7 +209,8 @@ class GaitRecord:
     """Every policy step of a recorded rollout (T steps, N envs); tensors on the env's device until :meth:`cpu`.
 
     Step ``k`` holds the state after the ``k``-th policy step, at time ``(k + 1)·dt``. ``alive[k]`` is False from
-    the step on which the env terminated.
+    the step on which the env terminated. An env with obstacles (``env.scene.obstacles``) adds their per-world
+    positions and the feet's contact with them.
     """
 
     dt: float
@@ -231,6 +232,11 @@ class GaitRecord:
     sole_half_size: np.ndarray  #: (2, 3) half sizes of the sole boxes [m]
     metrics: dict = field(default_factory=dict)  #: :meth:`GaitMetrics.summary`
     per_env: dict = field(default_factory=dict)  #: :meth:`GaitMetrics.per_env`
+    period: float = float("nan")  #: [s] the reference motion's cycle (two steps)
+    #: (T, N, 2) bool, a foot touches an obstacle box (the env's ``obstacle_contact`` signal), when the env has one
+    obstacle_contact: torch.Tensor | None = None
+    #: (N, K, 3) centres of each world's obstacle boxes [m] (the env's ``obstacle_pos``), when the env has them
+    obstacle_pos: torch.Tensor | None = None
 
     @property
     def steps(self) -> int:
@@ -290,6 +296,8 @@ def record_rollout(actor, env, seconds: float = 8.0, command: tuple[float, float
     termination_qpos = torch.full_like(sim.qpos, float("nan"))
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
+        if "obstacle_contact" in td.keys():
+            rec["obstacle_contact"] = empty(2, dtype=torch.bool)
         metrics = GaitMetrics(td["base_pos"], command, dt)
         snapshots, snapshot_times = [sim.qpos.clone()], [0.0]
         for k in tqdm(range(steps), desc=desc, unit="step", disable=not progress, leave=False):
@@ -309,6 +317,8 @@ def record_rollout(actor, env, seconds: float = 8.0, command: tuple[float, float
             conj = feet_q * torch.tensor([1.0, -1.0, -1.0, -1.0], device=device)
             rec["sole_pos"][k] = sim.xpos[:, foot_ids] + quat_rotate_inverse(conj, sole_centre.expand(n, 2, 3))
             rec["foot_contact"][k] = nxt["foot_contact"]
+            if "obstacle_contact" in rec:
+                rec["obstacle_contact"][k] = nxt["obstacle_contact"]
             rec["alive"][k] = alive
             if k in snap_steps:
                 snapshots.append(sim.qpos.clone())
@@ -320,7 +330,8 @@ def record_rollout(actor, env, seconds: float = 8.0, command: tuple[float, float
                       control_mode=base.cfg.control.mode, start_pos=metrics.start, termination_step=termination_step,
                       snapshot_times=snapshot_times, snapshots=torch.stack(snapshots),
                       termination_qpos=termination_qpos, sole_half_size=half, metrics=metrics.summary(seconds),
-                      per_env=metrics.per_env(), **rec)
+                      per_env=metrics.per_env(), period=float(base.period),
+                      obstacle_pos=getattr(base, "obstacle_pos", None), **rec)
 
 
 # ------------------------------------------------------------------------------------------------ torque metrics
