@@ -167,11 +167,12 @@ def run_one(controller, height_mm, args, device) -> dict:
         trace = {"torque": rec.leg_torque[s0:end, env][:, list(CRITICAL)].numpy(), "t0": (first - s0 + 1) * rec.dt,
                  "env": env}
     examples = {}
+    mocap = getattr(policy.env.base_env.sim, "world_mocap_pos", None)  # (N, nmocap, 3) per-world boxes, or None
     for kind, want in (("pass", True), ("fail", False)):
         env = pick_example(outcome, want)
         if env is not None:
             examples[kind] = frame_states(rec, outcome, env)
-            examples[kind]["centre"] = centres[env].numpy()
+            examples[kind]["mocap_pos"] = None if mocap is None else mocap[env]
     return {"row": row, "trace": trace, "examples": examples, "dt": rec.dt,
             "model": policy.env.base_env.sim.mj_model, "virtual": virtual}
 
@@ -208,13 +209,10 @@ def render_examples(result: dict, label: str, height_mm: float, args, out) -> li
     """Frame strips of the pass and fail examples of one controller at one height; returns the files written."""
     written = []
     model = result["model"]
-    mocap = None
-    if not result["virtual"]:
-        mocap = model.body("obstacle_0").mocapid[0]
     for kind, ex in result["examples"].items():
-        def place(data, centre=ex["centre"]):
-            if mocap is not None:
-                data.mocap_pos[mocap] = centre
+        def place(data, mocap_pos=ex["mocap_pos"]):  # this robot's box, where its world had it
+            if mocap_pos is not None:
+                data.mocap_pos[:] = mocap_pos
 
         stills = render_stills(model, ex["qpos"], CAMERA_POS, width=args.frame_width, height=args.frame_height,
                                setup=place, fovy=args.fovy)

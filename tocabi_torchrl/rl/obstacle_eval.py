@@ -165,12 +165,15 @@ def analyse_obstacle(record: GaitRecord, centre: torch.Tensor, size, virtual: bo
 
 
 def pick_example(outcome: ObstacleOutcome, want_pass: bool) -> int | None:
-    """A robot to show: the first that passed (survived and crossed the box) or the first that failed on the obstacle
-    (else the first that failed at all); None if there is none."""
+    """A robot to show: the first that passed (survived), preferring one that crossed the box, then one that reached
+    it; or the first that failed on the obstacle, else the first that failed at all. None if there is none."""
     if want_pass:
-        pool = outcome.passed & outcome.crossed
+        pools = (outcome.passed & outcome.crossed, outcome.passed & outcome.reached, outcome.passed)
     else:
-        pool = outcome.failed_on_obstacle if bool(outcome.failed_on_obstacle.any()) else ~outcome.passed
-    idx = np.flatnonzero(pool.numpy())
-    return int(idx[0]) if idx.size else None
+        pools = (outcome.failed_on_obstacle, ~outcome.passed)
+    for pool in pools:
+        idx = np.flatnonzero(pool.numpy())
+        if idx.size:
+            return int(idx[0])
+    return None
 
