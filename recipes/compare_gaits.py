@@ -43,7 +43,7 @@ from tocabi_torchrl.rl.checkpoint import CheckpointError  # noqa: E402
 from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_knee_comparison  # noqa: E402
 from tocabi_torchrl.rl.eval_video import CAMERA_POS, label_image, render_stills, render_timelapse, save_strip  # noqa: E402
 from tocabi_torchrl.rl.experiments import (  # noqa: E402
-    ExperimentOutputError, parse_controllers, prepare_out_dir, slug, write_table)
+    ExperimentOutputError, display_path, parse_controllers, prepare_out_dir, slug, write_table)
 from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout, torque_stats  # noqa: E402
 from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
 
@@ -99,7 +99,7 @@ def run_controller(controller, args, device, index, total) -> dict:
     rec = record_rollout(policy.actor, policy.env, args.seconds, (args.vx, args.vy), snapshot_every=args.frame_every,
                          desc=controller.label).cpu()
     every, critical = torque_stats(rec), torque_stats(rec, joints=CRITICAL)
-    row = {"controller": controller.label, "checkpoint": str(controller.path), "control_mode": rec.control_mode,
+    row = {"controller": controller.label, "checkpoint": display_path(controller.path), "control_mode": rec.control_mode,
            **rec.metrics,
            "mean_abs_torque_Nm": float(every["mean_abs"].nanmean()),
            "torque_smoothness_Nm_per_step": float(every["smoothness"].nanmean()),

@@ -45,7 +45,7 @@ from tocabi_torchrl.rl.checkpoint import CheckpointError  # noqa: E402
 from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_vs_height  # noqa: E402
 from tocabi_torchrl.rl.eval_video import CAMERA_POS, label_image, render_stills, save_strip  # noqa: E402
 from tocabi_torchrl.rl.experiments import (  # noqa: E402
-    ExperimentOutputError, parse_controllers, prepare_out_dir, slug, write_table)
+    ExperimentOutputError, display_path, parse_controllers, prepare_out_dir, slug, write_table)
 from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout  # noqa: E402
 from tocabi_torchrl.rl.obstacle_eval import analyse_obstacle, pick_example  # noqa: E402
 from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
@@ -148,7 +148,7 @@ def run_one(controller, height_mm, args, device) -> dict:
     size = (box.size[0], box.size[1], 0.0 if virtual else box.size[2])
     centres = box_centres(policy, box, virtual)
     outcome = analyse_obstacle(rec, centres, size, virtual=virtual, steps=args.steps_on_obstacle)
-    row = {"controller": controller.label, "checkpoint": str(controller.path), "control_mode": rec.control_mode,
+    row = {"controller": controller.label, "checkpoint": display_path(controller.path), "control_mode": rec.control_mode,
            "height_mm": height_mm, "box_size_m": list(size), "box_nominal_pos_m": list(box.pos),
            **outcome.summary}
     row["peak_torque_on_obstacle_per_joint_Nm"] = dict(zip(CRITICAL_JOINTS,

@@ -13,8 +13,8 @@ from pathlib import Path
 
 from .. import robot
 
-__all__ = ["Controller", "ExperimentOutputError", "SHIPPED_POLICIES", "parse_controllers", "prepare_out_dir",
-           "slug", "write_table"]
+__all__ = ["Controller", "ExperimentOutputError", "SHIPPED_POLICIES", "display_path", "parse_controllers",
+           "prepare_out_dir", "slug", "write_table"]
 
 #: The two policies shipped with the package, the experiments' default controllers: label -> file name.
 SHIPPED_POLICIES = {"PD (pd_reference)": "tocabi_walk_ppo.pt", "torque": "tocabi_walk_torque.pt"}
@@ -49,6 +49,16 @@ def parse_controllers(values: list[str] | None) -> list[Controller]:
     if len(set(labels)) != len(labels):
         raise ValueError(f"controller labels must differ, got {labels}; name them with LABEL=PATH")
     return out
+
+
+def display_path(path: str | os.PathLike) -> str:
+    """``path`` relative to the working directory when it lies below it (tables stay readable on another
+    machine), else as given."""
+    path = Path(path)
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
 
 
 def slug(label: str) -> str:
