@@ -282,6 +282,7 @@ def record_rollout(actor, env, seconds: float = 8.0, command: tuple[float, float
     centre_np, half = sole_geometry(sim.mj_model)
     sole_centre = torch.as_tensor(centre_np, dtype=torch.float32, device=device)
     foot_ids = [sim.mj_model.body(name).id for name in robot.FOOT_BODIES]
+    conjugate = torch.tensor([1.0, -1.0, -1.0, -1.0], device=device)  # made once: no host copy inside the loop
     snap_steps = {}
     if snapshot_every:
         for j in range(1, int(np.floor(seconds / snapshot_every + 1e-9)) + 1):
@@ -314,8 +315,8 @@ def record_rollout(actor, env, seconds: float = 8.0, command: tuple[float, float
             rec["base_pos"][k] = nxt["base_pos"]
             feet_q = sim.xquat[:, foot_ids]
             # body frame -> world: rotate by the quaternion (the inverse rotation of its conjugate)
-            conj = feet_q * torch.tensor([1.0, -1.0, -1.0, -1.0], device=device)
-            rec["sole_pos"][k] = sim.xpos[:, foot_ids] + quat_rotate_inverse(conj, sole_centre.expand(n, 2, 3))
+            rec["sole_pos"][k] = sim.xpos[:, foot_ids] + quat_rotate_inverse(feet_q * conjugate,
+                                                                              sole_centre.expand(n, 2, 3))
             rec["foot_contact"][k] = nxt["foot_contact"]
             if "obstacle_contact" in rec:
                 rec["obstacle_contact"][k] = nxt["obstacle_contact"]
