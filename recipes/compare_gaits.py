@@ -99,7 +99,8 @@ def run_controller(controller, args, device, index, total) -> dict:
     rec = record_rollout(policy.actor, policy.env, args.seconds, (args.vx, args.vy), snapshot_every=args.frame_every,
                          desc=controller.label).cpu()
     every, critical = torque_stats(rec), torque_stats(rec, joints=CRITICAL)
-    row = {"controller": controller.label, "checkpoint": display_path(controller.path), "control_mode": rec.control_mode,
+    row = {"controller": controller.label, "checkpoint": display_path(controller.path),
+           "control_mode": rec.control_mode,
            **rec.metrics,
            "mean_abs_torque_Nm": float(every["mean_abs"].nanmean()),
            "torque_smoothness_Nm_per_step": float(every["smoothness"].nanmean()),

@@ -87,8 +87,9 @@ NOTES = [
     "lateral deviation after: |pelvis y at the last alive step - pelvis y when the pelvis passed the box centre|, "
     "over the robots whose pelvis passed it.",
     "3 steps: from the first foot contact with the box until the third footfall after it (a footfall: a foot "
-    "touching down after >= 0.2 s in the air, the end of a swing). peak abs torque: max |tau| over that window and the hip-pitch, knee "
-    "and ankle-pitch joints of both legs; torque variation: mean |tau_k - tau_(k-1)| per 4 ms policy step there.",
+    "touching down after >= 0.2 s in the air, the end of a swing). peak abs torque: max |tau| over that window "
+    "and the hip-pitch, knee and ankle-pitch joints of both legs; torque variation: mean |tau_k - tau_(k-1)| per "
+    "4 ms policy step there.",
     "tau: the applied actuator torque (PD modes: the position servos' actuator_force in the step's last physics "
     "substep; torque mode: the commanded torque).",
     "Contact with the box: the env's obstacle_contact signal; at height 0 (no box) the sole's footprint over the "
@@ -148,7 +149,8 @@ def run_one(controller, height_mm, args, device) -> dict:
     size = (box.size[0], box.size[1], 0.0 if virtual else box.size[2])
     centres = box_centres(policy, box, virtual)
     outcome = analyse_obstacle(rec, centres, size, virtual=virtual, steps=args.steps_on_obstacle)
-    row = {"controller": controller.label, "checkpoint": display_path(controller.path), "control_mode": rec.control_mode,
+    row = {"controller": controller.label, "checkpoint": display_path(controller.path),
+           "control_mode": rec.control_mode,
            "height_mm": height_mm, "box_size_m": list(size), "box_nominal_pos_m": list(box.pos),
            **outcome.summary}
     row["peak_torque_on_obstacle_per_joint_Nm"] = dict(zip(CRITICAL_JOINTS,
@@ -259,7 +261,8 @@ def main(argv: list[str] | None = None) -> dict:
         rows += [res["row"] for res in results.values()]
         traces = {label: res["trace"] for label, res in results.items() if res["trace"] is not None}
         if traces:
-            plot_joint_torques({label: tr["torque"] for label, tr in traces.items()}, results[controllers[0].label]["dt"],
+            dt = results[controllers[0].label]["dt"]
+            plot_joint_torques({label: tr["torque"] for label, tr in traces.items()}, dt,
                                out / f"torques_{height:g}mm.png", CRITICAL_JOINTS,
                                f"Torques over the first {args.steps_on_obstacle} steps on a {height:g} mm box "
                                f"(robots {', '.join(str(tr['env']) for tr in traces.values())})",

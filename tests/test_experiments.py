@@ -171,7 +171,8 @@ def test_obstacle_analysis_classifies_robots():
     assert out.reached.tolist() == [True, True, False] and out.crossed.tolist() == [True, False, False]
     assert out.first_contact[0] > 0 and out.first_contact[2] == -1
     assert out.lateral_after[0] == pytest.approx(0.2 * (1 - 0.7 / 1.5), abs=0.01) and torch.isnan(out.lateral_after[2])
-    assert out.summary["pass_rate"] == pytest.approx(1 / 3) and out.summary["failed_on_obstacle_rate"] == pytest.approx(1 / 3)
+    assert out.summary["pass_rate"] == pytest.approx(1 / 3)
+    assert out.summary["failed_on_obstacle_rate"] == pytest.approx(1 / 3)
     assert pick_example(out, True) == 0 and pick_example(out, False) == 1
     # the env's own contact signal wins over the geometry when there is a real box
     signal = torch.zeros(t, n, 2, dtype=torch.bool)
@@ -232,7 +233,8 @@ def test_recorded_rollout_reports_the_gait_test_numbers(tmp_path):
     rec = record_rollout(second.actor, second.env, seconds=0.2, snapshot_every=0.1, progress=False)
     assert {k: v for k, v in summary.items() if k != "video"} == rec.metrics
     assert rec.leg_torque.shape == (50, 2, 12) and torch.isfinite(rec.leg_torque).all()
-    assert rec.snapshot_times == pytest.approx([0.0, 0.1, 0.2]) and rec.snapshots.shape == (3, 2, second.env.base_env.sim.nq)
+    assert rec.snapshot_times == pytest.approx([0.0, 0.1, 0.2])
+    assert rec.snapshots.shape == (3, 2, second.env.base_env.sim.nq)
     torch.testing.assert_close(rec.snapshots[-1], second.env.base_env.sim.qpos)
 
 
@@ -296,7 +298,8 @@ def test_obstacle_test_end_to_end(tmp_path):
     assert rows[0]["contact_source"] == "sole geometry" and rows[1]["contact_source"] == "obstacle_contact signal"
     for row in rows:
         assert 0.0 <= row["pass_rate"] <= 1.0 and row["num_envs"] == 2
-        assert row["pass_rate"] + row["failed_on_obstacle_rate"] + row["failed_before_obstacle_rate"] == pytest.approx(1)
+        shares = row["pass_rate"] + row["failed_on_obstacle_rate"] + row["failed_before_obstacle_rate"]
+        assert shares == pytest.approx(1)
         assert row["reached_rate"] == 1.0  # 2 s at 0.5 m/s reaches a box 0.6 m ahead
         peak = row["peak_torque_on_obstacle_Nm"]
         assert peak is None or 0 < peak <= robot.LEG_TORQUE_LIMITS.max() + 1e-3

@@ -8,8 +8,9 @@ Definitions, per robot (env):
   sole's lowest point is within ``contact_margin`` (1 cm) of the box top. The first such step is the **first
   contact**.
 * **a step**: one footfall: a foot touching down (ground or box) after at least ``min_air_s`` (0.2 s) in the air,
-  i.e. at the end of a swing (a landing foot bounces: gaps of up to ~60 ms in its contact are not steps). **The first 3 steps on the obstacle** run from the first contact until the third footfall
-  after it (or the end of the robot's episode).
+  i.e. at the end of a swing (a landing foot bounces: gaps of up to ~60 ms in its contact are not steps). **The first
+  3 steps on the obstacle** run from the first contact until the third footfall after it (or the end of the robot's
+  episode).
 * **reached**: a sole's front edge got past the box's near edge (x) while the robot was up; **crossed**: both
   soles' rear edges got past the box's far edge while up.
 * **pass**: the robot survived the whole episode (no termination). **failed on the obstacle** (TocabiLab's failure):
