@@ -1,4 +1,6 @@
-"""The gait test's figure: knee trajectories against the reference (``knees.png``)."""
+"""Figures of the evaluations: the gait test's knee trajectories against the reference (``knees.png``), and the
+experiment recipes' knee comparison, joint torques and obstacle-height curves (``recipes/compare_gaits.py``,
+``recipes/obstacle_test.py``)."""
 
 from __future__ import annotations
 
@@ -6,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_knees"]
+__all__ = ["plot_joint_torques", "plot_knee_comparison", "plot_knees", "plot_vs_height"]
 
 
 def plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path, command: tuple[float, float]) -> None:
@@ -34,3 +36,112 @@ def plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path, command: t
     fig.tight_layout()
     fig.savefig(path, dpi=120, metadata={"Title": title})
     plt.close(fig)
+
+
+# ------------------------------------------------------------------------------------------------ experiment figures
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_knee_comparison(traces: dict[str, tuple[np.ndarray, np.ndarray]], dt: float, out_dir: Path,
+                         command: tuple[float, float], stem: str = "knee") -> list[Path]:
+    """One figure per knee (``<stem>_left.png``, ``<stem>_right.png``): every controller's knee angle [rad] of env 0
+    and the reference, over time (TocabiLab figs 4.7-4.8, several controllers on one axis).
+
+    ``traces``: label -> ((T, 2) knee angles, NaN after a termination; (T, 2) the reference of that rollout). Each
+    rollout has its own reference (the phase action speeds its clock up), so the references are drawn once, in black,
+    when they agree within 1 mrad, and else dashed in each controller's colour. A mark shows where an env 0
+    terminated. Returns the two paths."""
+    plt = _pyplot()
+    refs = [ref for _, ref in traces.values()]
+    shared = all(r.shape == refs[0].shape and np.allclose(r, refs[0], atol=1e-3) for r in refs)
+    paths = []
+    for i, side in enumerate(("left", "right")):
+        fig, ax = plt.subplots(figsize=(9, 3.6))
+        for j, (label, (q, ref)) in enumerate(traces.items()):
+            color = f"C{j}"
+            t = (np.arange(len(q)) + 1) * dt
+            ax.plot(t, q[:, i], color=color, lw=1.5, label=label)
+            if not shared:
+                ax.plot(t, ref[:, i], color=color, ls="--", lw=1.0, label=f"{label}: reference")
+            fell = np.flatnonzero(np.isnan(q[:, i]))
+            if fell.size:
+                ax.axvline(t[fell[0]], color=color, ls=":", lw=1.0, label=f"{label}: terminated")
+        if shared and refs:
+            t = (np.arange(len(refs[0])) + 1) * dt
+            ax.plot(t, refs[0][:, i], "k--", lw=1.2, label="reference")
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel(f"{side} knee [rad]")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize=8)
+        title = f"{side.capitalize()} knee at command ({command[0]:g}, {command[1]:g}) m/s, env 0"
+        ax.set_title(title)
+        fig.tight_layout()
+        path = Path(out_dir) / f"{stem}_{side}.png"
+        fig.savefig(path, dpi=120, metadata={"Title": title})
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def plot_joint_torques(traces: dict[str, np.ndarray], dt: float, path: Path, joints: tuple[str, ...],
+                       title: str, t0: dict[str, float] | None = None, xlabel: str = "time [s]",
+                       limits: np.ndarray | None = None, mark_zero: bool = False) -> Path:
+    """Joint torques [N·m] over time, one panel per joint (3 rows: hip pitch, knee, ankle pitch; columns: left,
+    right for the six :data:`~tocabi_torchrl.rl.gait_record.CRITICAL_JOINTS`), one line per controller.
+
+    ``traces``: label -> (T, len(joints)) torques, step k at time (k + 1)·dt − ``t0[label]`` (default 0);
+    ``limits``: (len(joints),) torque limits drawn as grey lines; ``mark_zero``: a black line at t = 0 (e.g. the
+    first contact with an obstacle). Saved to ``path``."""
+    plt = _pyplot()
+    cols = 2 if len(joints) % 2 == 0 else 1
+    rows = len(joints) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 2.2 * rows + 0.6), sharex=True, squeeze=False)
+    for c in range(cols):
+        for r in range(rows):
+            ax = axes[r, c]
+            j = c * rows + r
+            for i, (label, tau) in enumerate(traces.items()):
+                t = (np.arange(len(tau)) + 1) * dt - (t0 or {}).get(label, 0.0)
+                ax.plot(t, tau[:, j], color=f"C{i}", lw=1.1, label=label)
+            if mark_zero:
+                ax.axvline(0.0, color="k", lw=0.8)
+            if limits is not None:
+                for sign in (-1, 1):
+                    ax.axhline(sign * limits[j], color="0.6", lw=0.8, ls=":")
+            ax.set_title(joints[j].replace("_Joint", ""), fontsize=9)
+            ax.grid(alpha=0.3)
+            if c == 0:
+                ax.set_ylabel("torque [N·m]")
+            if r == rows - 1:
+                ax.set_xlabel(xlabel)
+    axes[0, 0].legend(loc="upper right", fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120, metadata={"Title": title})
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_vs_height(rows: list[dict], key: str, ylabel: str, path: Path, title: str) -> Path:
+    """One line per controller of ``row[key]`` against ``row["height_mm"]`` (rows of the obstacle table)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 3.8))
+    for i, label in enumerate(dict.fromkeys(row["controller"] for row in rows)):
+        mine = sorted((row["height_mm"], row[key]) for row in rows if row["controller"] == label)
+        x, y = zip(*mine)
+        ax.plot(x, [np.nan if v is None else v for v in y], "o-", color=f"C{i}", label=label)
+    ax.set_xlabel("obstacle height [mm]")
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120, metadata={"Title": title})
+    plt.close(fig)
+    return Path(path)

@@ -1,4 +1,6 @@
-"""The gait test's video: a few robots' recorded joint states rendered offscreen by MuJoCo, side by side."""
+"""Rendering of recorded joint states, offscreen by MuJoCo: the gait test's video (a few robots side by side, a
+camera tracking each) and the experiments' still frames and time-lapse images from a fixed camera position
+(TocabiLab's camera at (2, 6, 2.5) m, looking at the pelvis)."""
 
 from __future__ import annotations
 
@@ -9,7 +11,11 @@ from tqdm.auto import tqdm
 
 from .. import robot
 
-__all__ = ["render_video"]
+__all__ = ["CAMERA_POS", "free_camera", "label_image", "render_stills", "render_timelapse", "render_video",
+           "save_strip"]
+
+#: TocabiLab's camera for the gait figures [m], world frame: to the robot's left, ahead of the start, above.
+CAMERA_POS = (2.0, 6.0, 2.5)
 
 
 def render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480, height: int = 360,
@@ -50,3 +56,120 @@ def render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480,
         imageio.mimwrite(path, frames[::2], duration=2.0 / fps)
     imageio.imwrite(out / "walk_frame.png", frames[len(frames) // 2])
     return path
+
+
+def free_camera(position, lookat):
+    """A MuJoCo free camera at ``position`` (3,) [m] looking at ``lookat`` (3,) [m] (world frame)."""
+    import mujoco
+
+    position, lookat = np.asarray(position, dtype=float), np.asarray(lookat, dtype=float)
+    view = lookat - position
+    distance = float(np.linalg.norm(view))
+    if distance < 1e-6:
+        raise ValueError("the camera position and the point it looks at coincide")
+    camera = mujoco.MjvCamera()
+    camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+    camera.lookat[:] = lookat
+    camera.distance = distance
+    camera.azimuth = float(np.degrees(np.arctan2(view[1], view[0])))
+    camera.elevation = float(np.degrees(np.arcsin(view[2] / distance)))
+    return camera
+
+
+def _silhouette_option():
+    import mujoco
+
+    option = mujoco.MjvOption()
+    option.geomgroup[2] = 0  # hide the translucent collision geoms: show the silhouette
+    return option
+
+
+def render_stills(model, qpos: np.ndarray, camera_pos=CAMERA_POS, lookat=None, width: int = 480,
+                  height: int = 360, setup=None, fovy: float | None = None) -> list[np.ndarray]:
+    """One (height, width, 3) uint8 image per joint state of (k, nq) ``qpos``, from a free camera at
+    ``camera_pos`` looking at ``lookat`` (default: each frame's pelvis). ``setup(data)``: called on the
+    ``MjData`` before each frame (e.g. to place a per-world obstacle); ``fovy``: the vertical field of view [deg]
+    (default: the model's, 45)."""
+    import mujoco
+
+    data = mujoco.MjData(model)
+    renderer = mujoco.Renderer(model, height=height, width=width)
+    option = _silhouette_option()
+    images = []
+    saved_fovy = float(model.vis.global_.fovy)
+    try:
+        if fovy is not None:
+            model.vis.global_.fovy = fovy
+        for q in np.atleast_2d(qpos):
+            data.qpos[:] = q
+            if setup is not None:
+                setup(data)
+            mujoco.mj_forward(model, data)
+            camera = free_camera(camera_pos, q[:3] if lookat is None else lookat)
+            renderer.update_scene(data, camera, scene_option=option)
+            images.append(renderer.render().copy())
+    finally:
+        model.vis.global_.fovy = saved_fovy
+        renderer.close()
+    return images
+
+
+def render_timelapse(model, qpos: np.ndarray, camera_pos=CAMERA_POS, lookat=None, width: int = 960,
+                     height: int = 480, setup=None, fovy: float | None = None) -> np.ndarray:
+    """One image with the robot drawn at every joint state of (k, nq) ``qpos`` (a time-lapse), from a free camera at
+    ``camera_pos`` looking at ``lookat`` (default: the middle of the pelvis positions); ``setup``, ``fovy``: as
+    :func:`render_stills`."""
+    import mujoco
+
+    qpos = np.atleast_2d(qpos)
+    data = mujoco.MjData(model)
+    renderer = mujoco.Renderer(model, height=height, width=width, max_geom=max(10000, 2 * model.ngeom * len(qpos)))
+    option = _silhouette_option()
+    if lookat is None:
+        lookat = 0.5 * (qpos[:, :3].min(0) + qpos[:, :3].max(0))
+    camera = free_camera(camera_pos, lookat)
+    saved_fovy = float(model.vis.global_.fovy)
+    try:
+        if fovy is not None:
+            model.vis.global_.fovy = fovy
+        data.qpos[:] = qpos[0]
+        if setup is not None:
+            setup(data)
+        mujoco.mj_forward(model, data)
+        renderer.update_scene(data, camera, scene_option=option)
+        perturb = mujoco.MjvPerturb()
+        for q in qpos[1:]:
+            data.qpos[:] = q
+            mujoco.mj_forward(model, data)
+            # the robot's geoms only: the floor and any obstacle are already in the scene
+            mujoco.mjv_addGeoms(model, data, option, perturb, mujoco.mjtCatBit.mjCAT_DYNAMIC, renderer.scene)
+        image = renderer.render().copy()
+    finally:
+        model.vis.global_.fovy = saved_fovy
+        renderer.close()
+    return image
+
+
+def label_image(image: np.ndarray, text: str) -> np.ndarray:
+    """``image`` with ``text`` written in its top-left corner (black on a white box)."""
+    from PIL import Image, ImageDraw
+
+    picture = Image.fromarray(image)
+    draw = ImageDraw.Draw(picture)
+    box = draw.textbbox((6, 4), text)
+    draw.rectangle((box[0] - 3, box[1] - 2, box[2] + 3, box[3] + 2), fill=(255, 255, 255))
+    draw.text((6, 4), text, fill=(0, 0, 0))
+    return np.asarray(picture)
+
+
+def save_strip(images: list[np.ndarray], path: Path) -> Path:
+    """Write images of one size side by side (one row) to ``path``; a list of rows (lists) stacks the rows,
+    padding short rows with white."""
+    import imageio.v2 as imageio
+
+    rows = images if images and isinstance(images[0], list) else [images]
+    width = max(len(row) for row in rows)
+    blank = np.full_like(rows[0][0], 255)
+    strip = np.concatenate([np.concatenate(row + [blank] * (width - len(row)), axis=1) for row in rows], axis=0)
+    imageio.imwrite(path, strip)
+    return Path(path)

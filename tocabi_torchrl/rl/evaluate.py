@@ -4,7 +4,8 @@ Writes ``summary.json`` (survival, forward distance, lateral drift, speed tracki
 reference motion), ``knees.png`` (left/right knee over 6 s against the reference, TocabiLab figs 4.7-4.8) and a
 video of a few robots (``walk.mp4``, or ``walk.gif`` without an mp4 writer) rendered offscreen by MuJoCo. Both the
 rollout and the rendering show a progress bar (rendering takes minutes on a CPU). This module runs the rollout and
-computes the metrics; the figure is :mod:`.eval_plots`'s and the video :mod:`.eval_video`'s.
+computes the metrics (:class:`.gait_record.GaitMetrics`, shared with the experiment recipes); the figure is
+:mod:`.eval_plots`'s and the video :mod:`.eval_video`'s.
 """
 
 from __future__ import annotations
@@ -19,14 +20,13 @@ from tqdm.auto import tqdm
 
 from .. import robot
 from ..config import RunConfig
-from .checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint, run_folder_of
+from .checkpoint import checkpoint_file, read_checkpoint, run_folder_of
 from .eval_plots import plot_knees
 from .eval_video import render_video
-from .trainer import build_agent, build_env, resolve_device
+from .gait_record import KNEES, GaitMetrics, fixed_command, load_policy, policy_steps
+from .trainer import build_env, resolve_device
 
 __all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "policy_dt"]
-
-KNEES = (robot.JOINT_NAMES.index("L_Knee_Joint"), robot.JOINT_NAMES.index("R_Knee_Joint"))
 
 
 def evaluate_policy(
@@ -44,33 +44,21 @@ def evaluate_policy(
     """Roll the deterministic policy out for ``seconds`` at a fixed command and write the summary, plot and video.
     ``seconds`` must cover at least one policy step; ``progress`` shows bars for the rollout and the rendering."""
     device = torch.device(device)
-    vx, vy = command
     if env is None:
-        env = build_env(cfg, device, num_envs=num_envs, command=_fixed_command(command))
+        env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
     base = env.base_env
-    steps = _policy_steps(seconds, base.dt)
+    steps = policy_steps(seconds, base.dt)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
-        start = td["base_pos"].clone()
-        alive = torch.ones(env.num_envs, dtype=torch.bool, device=device)
-        last_pos = start.clone()
-        knee_sq = torch.zeros(env.num_envs, device=device)
-        vel_err = torch.zeros(env.num_envs, device=device)
-        alive_steps = torch.zeros(env.num_envs, device=device)
+        metrics = GaitMetrics(td["base_pos"], command, base.dt)
         trace_q, trace_ref, frames_qpos = [], [], []
         video_every = max(1, int(round(1.0 / (30.0 * base.dt))))
         for k in tqdm(range(steps), desc="gait test", unit="step", disable=not progress, leave=False):
             td = env.step(actor(td))
             nxt = td["next"]
-            alive = alive & ~nxt["terminated"].squeeze(-1)
-            a = alive.float()
-            last_pos = torch.where(alive.unsqueeze(-1), nxt["base_pos"], last_pos)
-            knee_err = nxt["joint_pos"][:, KNEES] - nxt["ref_joint_pos"][:, KNEES]
-            knee_sq += a * knee_err.pow(2).mean(-1)
-            vel_err += a * (nxt["base_lin_vel"][:, 0] - vx).abs()
-            alive_steps += a
+            alive = metrics.update(nxt)
             if k * base.dt < 6.0:
                 # After a fall the robot keeps lying there: blank its trace instead of plotting a fallen knee.
                 trace_q.append(torch.where(alive[0], nxt["joint_pos"][0, KNEES], torch.nan))
@@ -82,20 +70,7 @@ def evaluate_policy(
             # Once every robot has fallen no metric can change: stop (a host read every 50 steps only).
             if video_envs < 1 and k % 50 == 49 and not bool(alive.any()):
                 break
-    n_alive = alive_steps.clamp_min(1)
-    dist = last_pos - start
-    summary = {
-        "command_mps": [vx, vy],
-        "seconds": seconds,
-        "num_envs": int(env.num_envs),
-        "survival": float(alive.float().mean()),
-        "forward_distance_m": float(dist[:, 0].mean()),
-        "forward_distance_survivors_m": float(dist[alive, 0].mean()) if alive.any() else 0.0,
-        "lateral_drift_m": float(dist[:, 1].abs().mean()),
-        "mean_speed_mps": float((dist[:, 0] / (alive_steps * base.dt).clamp_min(base.dt)).mean()),
-        "speed_tracking_error_mps": float((vel_err / n_alive).mean()),
-        "knee_rms_rad": float((knee_sq / n_alive).sqrt().mean()),
-    }
+    summary = metrics.summary(seconds)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     plot_knees(torch.stack(trace_q).cpu().numpy(), torch.stack(trace_ref).cpu().numpy(), base.dt, out / "knees.png",
                 command)
@@ -115,15 +90,6 @@ def evaluate_policy(
     return summary
 
 
-def _policy_steps(seconds: float, dt: float) -> int:
-    """Policy steps in ``seconds``; ``ValueError`` if that is less than one step."""
-    steps = int(round(seconds / dt))
-    if steps < 1:
-        raise ValueError(f"seconds={seconds:g} is shorter than one policy step ({dt * 1000:g} ms); pass at least "
-                         f"{dt:g}")
-    return steps
-
-
 def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "auto",
                  out_dir: str | os.PathLike | None = None, **kwargs) -> dict:
     """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``out_dir`` (default:
@@ -131,15 +97,13 @@ def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "aut
     one policy step, before building anything."""
     ckpt = checkpoint_file(run)
     state = read_checkpoint(ckpt)
-    cfg = config_from_checkpoint(state, ckpt)
-    _policy_steps(kwargs.get("seconds", 8.0), policy_dt())
-    dev = resolve_device(device)
-    env = build_env(cfg, dev, num_envs=num_envs, command=_fixed_command(kwargs.get("command", (0.5, 0.0))))
-    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], dev)
-    apply_checkpoint(state, agent, env=env, path=ckpt)
+    policy_steps(kwargs.get("seconds", 8.0), policy_dt())
+    policy = load_policy(ckpt, num_envs, resolve_device(device), command=kwargs.get("command", (0.5, 0.0)),
+                         state=state)
     if out_dir is None:
         out_dir = default_eval_dir(ckpt)
-    return evaluate_policy(agent.actor, cfg, out_dir, num_envs=num_envs, device=dev, env=env, **kwargs)
+    return evaluate_policy(policy.actor, policy.cfg, out_dir, num_envs=num_envs, device=policy.env.device,
+                           env=policy.env, **kwargs)
 
 
 def default_eval_dir(ckpt: Path) -> Path:
@@ -158,8 +122,6 @@ def policy_dt() -> float:
     return float(robot.load_model().opt.timestep) * TocabiWalkConfig().sim.substeps
 
 
-def _fixed_command(command):
-    from ..envs import CommandConfig
-
-    vx, vy = command
-    return CommandConfig(vx_range=(vx, vx), vx_initial_range=(vx, vx), vy_range=(vy, vy))
+#: Kept for the callers of before :mod:`.gait_record` (tests, benchmarks).
+_fixed_command = fixed_command
+_policy_steps = policy_steps

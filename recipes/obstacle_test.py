@@ -1,0 +1,307 @@
+"""Obstacle test (TocabiLab's experiment 3): a thin box on the path, no perception, command (0.5, 0) m/s for 8 s.
+
+    python recipes/obstacle_test.py                                   # shipped policies, 0/5/12/20 mm, then +10 mm
+    python recipes/obstacle_test.py --policy PD=runs/ppo_walk --policy torque=runs/torque --num_envs 1024
+    python recipes/obstacle_test.py --heights_mm 0,12 --step_mm 0 --device cpu --num_envs 16
+
+Each controller (``--policy LABEL=PATH``; default: the shipped PD-residual and torque policies) walks into a box
+``--box_length`` x ``--box_width`` m, centred ``--distance`` m ahead of the left sole's start position, in
+``--num_envs`` robots whose box is moved by a uniform ±``--jitter`` m (x and y) per robot. Heights: ``--heights_mm``,
+then ``--step_mm`` higher each time until every controller's pass rate is below ``--fail_below``, at most
+``--max_mm``. Height 0 is the plain ground (no box); its "obstacle" metrics use the box's footprint. Definitions of
+pass, failure on the obstacle, reached/crossed, the first 3 steps on the obstacle and the torque metrics:
+``tocabi_torchrl/rl/obstacle_eval.py`` (also in the table's notes). Written to ``--out`` (an existing, non-empty
+folder is refused unless ``--overwrite``):
+
+    table.md, table.json        one row per controller and height
+    pass_rate.png, lateral_deviation.png, peak_torque.png   those values against the height, one line per controller
+    torques_<h>mm.png           hip-pitch, knee, ankle-pitch torques of one robot per controller over its first 3 steps
+                                on the obstacle (t = 0: its first contact)
+    frames_<label>_<h>mm_pass.png, ..._fail.png   one robot that passed and one that failed, from the camera at
+                                (2, 6, 2.5) m: start, first contact, +1 s, +2 s, end (or termination)
+
+Needs the env's obstacles (``env.scene.obstacles``, ``BoxObstacle``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+
+from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
+
+try:  # before mujoco is imported
+    choose_gl_backend()
+except GLBackendError as gl_error:
+    sys.exit(f"error: {gl_error}")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from tocabi_torchrl import robot  # noqa: E402
+from tocabi_torchrl.rl.checkpoint import CheckpointError  # noqa: E402
+from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_vs_height  # noqa: E402
+from tocabi_torchrl.rl.eval_video import CAMERA_POS, label_image, render_stills, save_strip  # noqa: E402
+from tocabi_torchrl.rl.experiments import (  # noqa: E402
+    ExperimentOutputError, display_path, parse_controllers, prepare_out_dir, slug, write_table)
+from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout  # noqa: E402
+from tocabi_torchrl.rl.obstacle_eval import analyse_obstacle, pick_example  # noqa: E402
+from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
+
+#: (option, type, default, description): the command line, defaults shown once by build_parser.
+OPTIONS = (
+    ("--num_envs", int, 256, "robots per controller and height"),
+    ("--device", str, "auto", "auto (CUDA if present, else cpu), cpu, cuda or cuda:N"),
+    ("--seconds", float, 8.0, "episode length [s]; pass = no termination within it"),
+    ("--vx", float, 0.5, "commanded forward speed [m/s]"),
+    ("--vy", float, 0.0, "commanded lateral speed [m/s]"),
+    ("--heights_mm", str, "0,5,12,20", "box heights [mm], comma-separated; 0 = no box"),
+    ("--step_mm", float, 10.0, "then higher by this until every controller fails (0: only --heights_mm)"),
+    ("--max_mm", float, 60.0, "cap of the heights tried"),
+    ("--fail_below", float, 0.5, "a controller fails a height when its pass rate is below this"),
+    ("--distance", float, 0.6, "box centre ahead of the left sole's start position [m]"),
+    ("--box_length", float, 0.3, "box length along x [m]"),
+    ("--box_width", float, 0.6, "box width along y [m] (0.6 spans both feet's tracks)"),
+    ("--jitter", float, 0.05, "half-range of the per-robot uniform box offset in x and y [m]"),
+    ("--steps_on_obstacle", int, 3, "footfalls from the first contact that the torque window covers"),
+    ("--frame_width", int, 480, "frame width [px]"),
+    ("--frame_height", int, 360, "frame height [px]"),
+    ("--fovy", float, 25.0, "the camera's vertical field of view [deg] (MuJoCo's default: 45)"),
+    ("--out", str, "runs/experiments/obstacle_test", "output folder"),
+)
+
+COLUMNS = {"controller": "controller", "height_mm": "height [mm]", "num_envs": "robots", "pass_rate": "pass",
+           "failed_on_obstacle_rate": "failed on obstacle", "failed_before_obstacle_rate": "failed before it",
+           "stepped_on_rate": "stepped on", "reached_rate": "reached", "crossed_rate": "crossed",
+           "lateral_deviation_after_m": "lateral deviation after [m]",
+           "peak_torque_on_obstacle_Nm": "peak abs torque, 3 steps [N·m]",
+           "torque_variation_on_obstacle_Nm_per_step": "torque variation, 3 steps [N·m/step]"}
+NOTES = [
+    "Shares of robots, or means over them. pass: no termination within the episode. failed on obstacle "
+    "(TocabiLab's failure): terminated after its first contact with the box; failed before it: terminated without "
+    "having touched it. stepped on: a foot touched the box.",
+    "reached: a sole's front edge got past the box's near edge; crossed: both soles' rear edges got past its far "
+    "edge (while the robot was up).",
+    "lateral deviation after: |pelvis y at the last alive step - pelvis y when the pelvis passed the box centre|, "
+    "over the robots whose pelvis passed it.",
+    "3 steps: from the first foot contact with the box until the third footfall after it (a footfall: a foot "
+    "touching down after >= 0.2 s in the air, the end of a swing). peak abs torque: max |tau| over that window "
+    "and the hip-pitch, knee and ankle-pitch joints of both legs; torque variation: mean |tau_k - tau_(k-1)| per "
+    "4 ms policy step there.",
+    "tau: the applied actuator torque (PD modes: the position servos' actuator_force in the step's last physics "
+    "substep; torque mode: the commanded torque).",
+    "Contact with the box: the env's obstacle_contact signal; at height 0 (no box) the sole's footprint over the "
+    "box's footprint within 1 cm of the ground.",
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--policy", action="append", metavar="[LABEL=]PATH",
+                        help="a controller: checkpoint .pt or run folder, optionally labelled; repeat for each "
+                             "(default: the two shipped policies)")
+    for flag, kind, default, text in OPTIONS:
+        parser.add_argument(flag, type=kind, default=default, help=f"{text} (default: {default})")
+    parser.add_argument("--overwrite", action="store_true", help="replace the results in an existing --out folder")
+    return parser
+
+
+def make_box(args, height_mm: float):
+    """The box of ``height_mm`` (the env feature's ``BoxObstacle``), and whether it is only a footprint (0 mm)."""
+    from tocabi_torchrl.envs.config import BoxObstacle
+
+    virtual = height_mm <= 0
+    box = BoxObstacle.ahead_of_left_foot(0.001 if virtual else height_mm / 1000.0, distance=args.distance,
+                                         length=args.box_length, width=args.box_width,
+                                         jitter=(args.jitter, args.jitter))
+    return box, virtual
+
+
+def with_box(box, virtual: bool):
+    """The env-config edit that puts ``box`` into the scene (none for a virtual box)."""
+    from tocabi_torchrl.envs.config import SceneConfig
+
+    def edit(env_cfg):
+        return env_cfg if virtual else dataclasses.replace(env_cfg, scene=SceneConfig(obstacles=(box,)))
+
+    return edit
+
+
+def box_centres(policy, box, virtual: bool) -> torch.Tensor:
+    """(N, 3) the box centre of every robot: the env's own, or (no box) the jittered positions it would have."""
+    base = policy.env.base_env
+    if not virtual:
+        return base.obstacle_pos[:, 0].cpu()
+    from tocabi_torchrl.envs.obstacles import world_obstacle_centres
+
+    return torch.as_tensor(world_obstacle_centres((box,), base.num_envs, policy.cfg.seed)[:, 0], dtype=torch.float32)
+
+
+def run_one(controller, height_mm, args, device) -> dict:
+    """One controller at one height: rollout, analysis, the example robots' frames and torque traces."""
+    box, virtual = make_box(args, height_mm)
+    policy = load_policy(controller.path, args.num_envs, device, command=(args.vx, args.vy),
+                         edit_env=with_box(box, virtual))
+    rec = record_rollout(policy.actor, policy.env, args.seconds, (args.vx, args.vy), snapshot_every=0.5,
+                         desc=f"{controller.label}, {height_mm:g} mm").cpu()
+    size = (box.size[0], box.size[1], 0.0 if virtual else box.size[2])
+    centres = box_centres(policy, box, virtual)
+    outcome = analyse_obstacle(rec, centres, size, virtual=virtual, steps=args.steps_on_obstacle)
+    row = {"controller": controller.label, "checkpoint": display_path(controller.path),
+           "control_mode": rec.control_mode,
+           "height_mm": height_mm, "box_size_m": list(size), "box_nominal_pos_m": list(box.pos),
+           **outcome.summary}
+    row["peak_torque_on_obstacle_per_joint_Nm"] = dict(zip(CRITICAL_JOINTS,
+                                                           row["peak_torque_on_obstacle_per_joint_Nm"]))
+    print(f"   {controller.label}, {height_mm:g} mm: pass {row['pass_rate']:.2f}, failed on obstacle "
+          f"{row['failed_on_obstacle_rate']:.2f}, crossed {row['crossed_rate']:.2f}, lateral deviation after "
+          f"{row['lateral_deviation_after_m']:.3f} m", flush=True)
+    # torque trace of one robot that touched the box: 0.5 s before its first contact to the end of its window
+    trace = None
+    touched = np.flatnonzero(outcome.first_contact.numpy() >= 0)
+    if touched.size:
+        env = int(touched[0])
+        first = int(outcome.first_contact[env])
+        s0 = max(0, first - int(round(0.5 / rec.dt)))
+        end = int(np.flatnonzero(outcome.window[:, env].numpy())[-1]) + 1
+        trace = {"torque": rec.leg_torque[s0:end, env][:, list(CRITICAL)].numpy(), "t0": (first - s0 + 1) * rec.dt,
+                 "env": env}
+    examples = {}
+    mocap = getattr(policy.env.base_env.sim, "world_mocap_pos", None)  # (N, nmocap, 3) per-world boxes, or None
+    for kind, want in (("pass", True), ("fail", False)):
+        env = pick_example(outcome, want)
+        if env is not None:
+            examples[kind] = frame_states(rec, outcome, env)
+            examples[kind]["mocap_pos"] = None if mocap is None else mocap[env]
+    return {"row": row, "trace": trace, "examples": examples, "dt": rec.dt,
+            "model": policy.env.base_env.sim.mj_model, "virtual": virtual}
+
+
+def frame_states(rec, outcome, env: int) -> dict:
+    """Joint states of ``env`` to draw: start, first contact, +1 s, +2 s, and the end or its termination."""
+    times = np.asarray(rec.snapshot_times)
+    first = int(outcome.first_contact[env])
+    term = int(rec.termination_step[env])
+    end_t = (term + 1) * rec.dt if term >= 0 else rec.seconds
+    picks = [(0.0, "start")]
+    if first >= 0:
+        t_contact = (first + 1) * rec.dt
+        for extra, name in ((0.0, "first contact"), (1.0, "contact + 1 s"), (2.0, "contact + 2 s")):
+            t = t_contact + extra
+            if t < end_t:
+                picks.append((t, name))
+    states, labels = [], []
+    for t, name in picks:
+        j = int(np.searchsorted(times, t - 1e-9))  # the first snapshot at or after t
+        if j < len(times) and times[j] < end_t:
+            states.append(rec.snapshots[j, env].numpy())
+            labels.append(f"{name}, t = {times[j]:g} s")
+    if term >= 0:
+        states.append(rec.termination_qpos[env].numpy())
+        labels.append(f"terminated, t = {end_t:.2f} s")
+    else:
+        states.append(rec.snapshots[-1, env].numpy())
+        labels.append(f"end, t = {rec.snapshot_times[-1]:g} s")
+    return {"qpos": np.stack(states), "labels": labels, "env": env}
+
+
+def render_examples(result: dict, label: str, height_mm: float, args, out) -> list[str]:
+    """Frame strips of the pass and fail examples of one controller at one height; returns the files written."""
+    written = []
+    model = result["model"]
+    for kind, ex in result["examples"].items():
+        def place(data, mocap_pos=ex["mocap_pos"]):  # this robot's box, where its world had it
+            if mocap_pos is not None:
+                data.mocap_pos[:] = mocap_pos
+
+        stills = render_stills(model, ex["qpos"], CAMERA_POS, width=args.frame_width, height=args.frame_height,
+                               setup=place, fovy=args.fovy)
+        stills = [label_image(im, f"{label}, {height_mm:g} mm, robot {ex['env']} ({kind}): {text}")
+                  for im, text in zip(stills, ex["labels"])]
+        path = out / f"frames_{slug(label)}_{height_mm:g}mm_{kind}.png"
+        save_strip(stills, path)
+        written.append(path.name)
+    return written
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        heights = sorted({float(h) for h in args.heights_mm.split(",") if h.strip()})
+    except ValueError:
+        parser.error(f"--heights_mm takes comma-separated numbers, got {args.heights_mm!r}")
+    if args.num_envs < 1 or args.seconds <= 0 or not heights or min(heights) < 0 or args.step_mm < 0:
+        parser.error("--num_envs must be >= 1, --seconds > 0, --heights_mm non-empty and >= 0, --step_mm >= 0")
+    try:
+        from tocabi_torchrl.envs.config import BoxObstacle, SceneConfig  # noqa: F401
+    except ImportError:
+        sys.exit("error: this recipe needs the env's obstacles (tocabi_torchrl.envs.config.BoxObstacle, "
+                 "env.scene.obstacles), which this version of the package lacks")
+    try:
+        controllers = parse_controllers(args.policy)
+        device = resolve_device(args.device)
+        out = prepare_out_dir(args.out, args.overwrite)
+    except (ValueError, RuntimeError, ExperimentOutputError) as err:
+        sys.exit(f"error: {err}")
+    rows, frames, stop = [], [], "the heights listed in --heights_mm"
+    i = 0
+    while i < len(heights):
+        height = heights[i]
+        print(f"[height {height:g} mm] {len(controllers)} controllers x {args.num_envs} robots x {args.seconds:g} s "
+              f"on {device}", flush=True)
+        results = {}
+        for controller in controllers:
+            try:
+                results[controller.label] = run_one(controller, height, args, device)
+            except (CheckpointError, ValueError) as err:
+                sys.exit(f"error: {controller.label}: {err}")
+        rows += [res["row"] for res in results.values()]
+        traces = {label: res["trace"] for label, res in results.items() if res["trace"] is not None}
+        if traces:
+            dt = results[controllers[0].label]["dt"]
+            plot_joint_torques({label: tr["torque"] for label, tr in traces.items()}, dt,
+                               out / f"torques_{height:g}mm.png", CRITICAL_JOINTS,
+                               f"Torques over the first {args.steps_on_obstacle} steps on a {height:g} mm box "
+                               f"(robots {', '.join(str(tr['env']) for tr in traces.values())})",
+                               t0={label: tr["t0"] for label, tr in traces.items()},
+                               xlabel="time from the first contact [s]",
+                               limits=robot.LEG_TORQUE_LIMITS[list(CRITICAL)], mark_zero=True)
+        try:
+            for label, res in results.items():
+                frames += render_examples(res, label, height, args, out)
+        except Exception as err:  # noqa: BLE001 - rendering needs an OpenGL backend (MUJOCO_GL=egl when headless)
+            frames.append(f"not rendered: {type(err).__name__}: {err}")
+            print(f"frames skipped ({type(err).__name__}: {err}); set MUJOCO_GL=egl on a headless machine")
+        i += 1
+        if i == len(heights) and args.step_mm > 0:
+            failing = all(res["row"]["pass_rate"] < args.fail_below for res in results.values())
+            nxt = round(height + args.step_mm, 6)
+            if failing:
+                stop = f"every controller's pass rate fell below {args.fail_below:g} at {height:g} mm"
+            elif nxt > args.max_mm:
+                stop = f"the cap --max_mm {args.max_mm:g} (not every controller failed)"
+            else:
+                heights.append(nxt)
+    plot_vs_height(rows, "pass_rate", "pass rate", out / "pass_rate.png", "Pass rate (no termination in the episode)")
+    plot_vs_height(rows, "lateral_deviation_after_m", "lateral deviation after the box [m]",
+                   out / "lateral_deviation.png", "Lateral deviation after the obstacle")
+    plot_vs_height(rows, "peak_torque_on_obstacle_Nm", "peak |torque| [N·m]", out / "peak_torque.png",
+                   f"Peak torque over the first {args.steps_on_obstacle} steps on the obstacle")
+    meta = {"experiment": "obstacle test (TocabiLab experiment 3)", "command_mps": [args.vx, args.vy],
+            "seconds": args.seconds, "num_envs": args.num_envs, "device": str(device), "heights_mm": heights,
+            "stopped_after": stop, "box_length_m": args.box_length, "box_width_m": args.box_width,
+            "distance_ahead_of_left_sole_m": args.distance, "jitter_m": args.jitter, "frames": frames,
+            "argv": sys.argv[1:] if argv is None else argv, "torch": torch.__version__}
+    write_table(rows, COLUMNS, out, title=f"Obstacle test at ({args.vx:g}, {args.vy:g}) m/s, {args.seconds:g} s, "
+                f"{args.num_envs} robots per controller and height, {device}", notes=NOTES, meta=meta)
+    print(f"wrote {out}/: table.md, table.json, pass_rate.png, lateral_deviation.png, peak_torque.png, "
+          f"torques_<h>mm.png, {len([f for f in frames if f.endswith('.png')])} frame strips; stopped after {stop}")
+    print(json.dumps([{k: row[k] for k in COLUMNS} for row in rows], indent=2))
+    return {"out": str(out), "rows": rows, "frames": frames, "heights_mm": heights, "stopped_after": stop}
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

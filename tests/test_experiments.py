@@ -1,0 +1,321 @@
+"""Issue 23's experiment recipes and their library: the applied-torque read-out against the simulator's own fields,
+the recorded rollout and its metrics (the gait test's numbers), the obstacle analysis' definitions on made-up
+records, the fixed camera, the no-overwrite rule, and both recipes end to end on tiny settings (C MuJoCo on the
+CPU). The obstacle recipe needs the env's obstacles (``BoxObstacle``); without them its tests skip."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from recipe_runner import load_recipe
+from tocabi_torchrl import robot
+from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, GaitRecord, applied_leg_torque, torque_stats
+
+REPO = Path(__file__).resolve().parents[1]
+PD_POLICY = REPO / "assets" / "policies" / "tocabi_walk_ppo.pt"
+TORQUE_POLICY = REPO / "assets" / "policies" / "tocabi_walk_torque.pt"
+needs_policies = pytest.mark.skipif(not (PD_POLICY.is_file() and TORQUE_POLICY.is_file()),
+                                    reason="shipped policies not present")
+try:
+    from tocabi_torchrl.envs.config import BoxObstacle  # noqa: F401
+
+    HAS_OBSTACLES = True
+except ImportError:
+    HAS_OBSTACLES = False
+needs_obstacles = pytest.mark.skipif(not HAS_OBSTACLES, reason="the env has no obstacles (BoxObstacle) yet")
+
+
+# ------------------------------------------------------------------------------------------------ torque read-out
+def _env(mode: str):
+    from tocabi_torchrl.envs import TocabiWalk
+
+    return TocabiWalk(num_envs=2, device="cpu", control_mode=mode, backend="mujoco", sim_threads=1, seed=0)
+
+
+def _mujoco_actuator_force(env, qpos, qvel, ctrl) -> np.ndarray:
+    """The legs' actuator_force of C MuJoCo's own forward pass on (qpos, qvel, ctrl), outside the env."""
+    model = env.sim.mj_model
+    data = mujoco.MjData(model)
+    data.qpos[:], data.qvel[:], data.ctrl[:] = qpos, qvel, ctrl
+    mujoco.mj_forward(model, data)
+    return data.actuator_force[robot.LEGS].copy()
+
+
+def test_applied_torque_is_the_servo_force_in_pd_mode():
+    env = _env("pd_reference")
+    env.reset()
+    # a known state: knees and hips away from their servo targets, moving
+    qpos = torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32).repeat(2, 1)
+    qvel = torch.zeros(2, env.sim.nv)
+    legs = slice(7, 7 + robot.NUM_LEG_JOINTS)
+    qpos[:, legs] += torch.linspace(-0.05, 0.05, 12)
+    qvel[:, 6:18] = torch.linspace(0.3, -0.3, 12)
+    ctrl = env.sim.ctrl.clone()
+    ctrl[:, robot.LEGS] = torch.as_tensor(robot.INIT_JOINT_POS[:12], dtype=torch.float32) + 0.02
+    env.sim.reset(torch.ones(2, dtype=torch.bool), qpos, qvel, ctrl)
+    got = applied_leg_torque(env)
+    assert got.shape == (2, 12) and got.dtype == torch.float32
+    # the simulator's own field, C MuJoCo's forward pass outside the env, and the servo law all agree
+    torch.testing.assert_close(got, env.sim.applied_actuator_force[:, robot.LEGS])
+    mj = _mujoco_actuator_force(env, qpos[0].double().numpy(), qvel[0].double().numpy(), ctrl[0].double().numpy())
+    np.testing.assert_allclose(got[0].numpy(), mj, rtol=1e-4, atol=1e-3)
+    kp, kv = np.array(env.cfg.control.pd_kp), np.array(env.cfg.control.pd_kv)
+    law = kp * (ctrl[0, :12].numpy() - qpos[0, legs].numpy()) - kv * qvel[0, 6:18].numpy()
+    np.testing.assert_allclose(got[0].numpy(), np.clip(law, -robot.LEG_TORQUE_LIMITS, robot.LEG_TORQUE_LIMITS),
+                               rtol=1e-4, atol=1e-2)
+    assert got[0].abs().max() > 10  # the state is far enough from the targets to matter
+    # after a step it is the env's own leg_torque signal
+    td = env.step(env.reset().set("action", torch.full((2, 13), 0.3)))
+    torch.testing.assert_close(applied_leg_torque(env), td["next", "leg_torque"])
+    torch.testing.assert_close(applied_leg_torque(env), env.sim.applied_actuator_force[:, robot.LEGS])
+
+
+def test_applied_torque_is_the_commanded_torque_in_torque_mode():
+    env = _env("torque")
+    td = env.reset()
+    action = torch.linspace(-0.9, 0.9, 13).repeat(2, 1)
+    action[:, 12] = 0.5
+    td = env.step(td.set("action", action))
+    got = applied_leg_torque(env)
+    want = action[:, :12] * torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32)
+    torch.testing.assert_close(got, want)
+    torch.testing.assert_close(got, env.sim.ctrl[:, robot.LEGS])
+    torch.testing.assert_close(got, td["next", "leg_torque"])
+    # the motors apply it unchanged (gear 1, within the limits): the simulator's actuator force is the same
+    torch.testing.assert_close(got, env.sim.applied_actuator_force[:, robot.LEGS], rtol=1e-5, atol=1e-3)
+    state = env.sim.qpos[0].double().numpy(), env.sim.qvel[0].double().numpy(), env.sim.ctrl[0].double().numpy()
+    np.testing.assert_allclose(_mujoco_actuator_force(env, *state), want[0].numpy(), rtol=1e-5, atol=1e-3)
+
+
+# ------------------------------------------------------------------------------------------------ made-up records
+def _record(tau: torch.Tensor, alive: torch.Tensor, **extra) -> GaitRecord:
+    t, n = alive.shape
+    zeros = torch.zeros(t, n, 12)
+    base = dict(dt=0.004, command=(0.5, 0.0), seconds=t * 0.004, control_mode="torque", joint_pos=zeros,
+                ref_joint_pos=zeros, leg_torque=tau, base_pos=torch.zeros(t, n, 3), sole_pos=torch.zeros(t, n, 2, 3),
+                foot_contact=torch.ones(t, n, 2, dtype=torch.bool), alive=alive, start_pos=torch.zeros(n, 3),
+                termination_step=torch.full((n,), -1), snapshot_times=[0.0], snapshots=torch.zeros(1, n, 40),
+                termination_qpos=torch.full((n, 40), float("nan")),
+                sole_half_size=np.array([[0.15, 0.085, 0.0135]] * 2))
+    base.update(extra)
+    return GaitRecord(**base)
+
+
+def test_torque_stats_follow_their_definitions():
+    t = 6
+    tau = torch.zeros(t, 2, 12)
+    tau[:, 0, :] = torch.tensor([0.0, 2.0, -2.0, 4.0, 4.0, 100.0]).view(-1, 1)  # env 0: falls at step 5
+    tau[:, 1, 3] = torch.arange(t, dtype=torch.float32) * 12  # env 1: one joint ramps 12 N·m per step
+    alive = torch.ones(t, 2, dtype=torch.bool)
+    alive[5:, 0] = False
+    stats = torque_stats(_record(tau, alive))
+    assert stats["mean_abs"][0] == pytest.approx(12 / 5)  # steps 0-4, every joint
+    assert stats["smoothness"][0] == pytest.approx((2 + 4 + 6 + 0) / 4)  # the 4 alive pairs
+    assert stats["smoothness"][1] == pytest.approx(12 / 12)  # one of 12 joints changes by 12 per step
+    assert stats["peak"].shape == (2, 12) and stats["peak"][0, 0] == 4.0  # the fallen step's 100 is left out
+    window = torch.zeros(t, 2, dtype=torch.bool)
+    window[2:4] = True
+    inside = torque_stats(_record(tau, alive), joints=CRITICAL, window=window)
+    assert inside["smoothness"][0] == pytest.approx(6.0) and inside["mean_abs"][0] == pytest.approx(3.0)
+    assert torch.isnan(torque_stats(_record(tau, alive), window=torch.zeros(t, 2, dtype=torch.bool))["mean_abs"]).all()
+
+
+def test_footfalls_count_swings_not_bounces_and_the_window_spans_three():
+    from tocabi_torchrl.rl.obstacle_eval import footfalls, step_window
+
+    contact = torch.ones(60, 1, 2, dtype=torch.bool)
+    contact[5:20, 0, 0] = False  # left swing, 15 steps: a footfall at 20
+    contact[22:24, 0, 0] = False  # a 2-step bounce: not a footfall
+    contact[25:40, 0, 1] = False  # right swing: a footfall at 40
+    contact[42:55, 0, 0] = False  # left again: 55
+    falls = footfalls(contact, min_air_steps=10)
+    assert torch.nonzero(falls[:, 0]).flatten().tolist() == [20, 40, 55]
+    alive = torch.ones(60, 1, dtype=torch.bool)
+    window = step_window(torch.tensor([20]), falls, alive, steps=2)  # from the first contact to the 2nd footfall after
+    assert torch.nonzero(window[:, 0]).flatten().tolist() == list(range(20, 55))
+    assert not step_window(torch.tensor([-1]), falls, alive).any()
+    alive[30:] = False
+    assert torch.nonzero(step_window(torch.tensor([20]), falls, alive)[:, 0]).flatten().tolist() == list(range(20, 30))
+
+
+def test_obstacle_analysis_classifies_robots():
+    from tocabi_torchrl.rl.obstacle_eval import analyse_obstacle, pick_example
+
+    t, n = 100, 3
+    alive = torch.ones(t, n, dtype=torch.bool)
+    alive[60:, 1] = False  # robot 1 falls at step 60, after stepping on the box
+    alive[10:, 2] = False  # robot 2 falls at step 10, before reaching it
+    x = torch.linspace(0.0, 1.5, t).view(-1, 1).expand(t, n)
+    sole = torch.zeros(t, n, 2, 3)
+    sole[..., 0] = x.unsqueeze(-1) + torch.tensor([0.1, -0.1])  # left sole ahead
+    sole[..., 1] = torch.tensor([0.1, -0.1])
+    sole[..., 2] = 0.03  # above a 12 mm box's top by 4 mm (the sole's half height is 13.5 mm)
+    base = torch.zeros(t, n, 3)
+    base[..., 0] = x
+    base[..., 1] = torch.linspace(0, 0.2, t).view(-1, 1)
+    rec = _record(torch.randn(t, n, 12), alive, sole_pos=sole, base_pos=base,
+                  termination_step=torch.tensor([-1, 60, 10]), per_env={"lateral_m": base[-1, :, 1],
+                                                                       "forward_m": base[-1, :, 0]})
+    centre = torch.tensor([[0.7, 0.0, 0.006]] * n)
+    out = analyse_obstacle(rec, centre, (0.3, 0.6, 0.012))
+    assert out.contact_source == "sole geometry"
+    assert out.passed.tolist() == [True, False, False]
+    assert out.failed_on_obstacle.tolist() == [False, True, False]
+    assert out.failed_before.tolist() == [False, False, True]
+    assert out.reached.tolist() == [True, True, False] and out.crossed.tolist() == [True, False, False]
+    assert out.first_contact[0] > 0 and out.first_contact[2] == -1
+    assert out.lateral_after[0] == pytest.approx(0.2 * (1 - 0.7 / 1.5), abs=0.01) and torch.isnan(out.lateral_after[2])
+    assert out.summary["pass_rate"] == pytest.approx(1 / 3)
+    assert out.summary["failed_on_obstacle_rate"] == pytest.approx(1 / 3)
+    assert pick_example(out, True) == 0 and pick_example(out, False) == 1
+    # the env's own contact signal wins over the geometry when there is a real box
+    signal = torch.zeros(t, n, 2, dtype=torch.bool)
+    signal[50, 0, 0] = True
+    out = analyse_obstacle(_record(rec.leg_torque, alive, sole_pos=sole, base_pos=base, obstacle_contact=signal,
+                                   termination_step=rec.termination_step), centre, (0.3, 0.6, 0.012))
+    assert out.contact_source == "obstacle_contact signal" and out.first_contact.tolist() == [50, -1, -1]
+
+
+# ------------------------------------------------------------------------------------------------ camera, files
+def test_free_camera_sits_where_asked(model):
+    from tocabi_torchrl.rl.eval_video import CAMERA_POS, free_camera
+
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    scene = mujoco.MjvScene(model, maxgeom=1000)
+    lookat = np.array([0.3, -0.1, 0.9])
+    mujoco.mjv_updateScene(model, data, mujoco.MjvOption(), None, free_camera(CAMERA_POS, lookat),
+                           mujoco.mjtCatBit.mjCAT_ALL, scene)
+    eye = np.mean([scene.camera[i].pos for i in range(2)], axis=0)
+    np.testing.assert_allclose(eye, CAMERA_POS, atol=1e-4)
+    forward = np.array(scene.camera[0].forward)
+    np.testing.assert_allclose(forward, (lookat - eye) / np.linalg.norm(lookat - eye), atol=1e-4)
+
+
+def test_output_folders_are_never_overwritten_silently(tmp_path):
+    from tocabi_torchrl.rl.experiments import ExperimentOutputError, parse_controllers, prepare_out_dir
+
+    assert prepare_out_dir(tmp_path / "new").is_dir()
+    assert prepare_out_dir(tmp_path / "new").is_dir()  # empty: fine
+    (tmp_path / "new" / "table.md").write_text("earlier results")
+    with pytest.raises(ExperimentOutputError, match="not overwritten"):
+        prepare_out_dir(tmp_path / "new")
+    prepare_out_dir(tmp_path / "new", overwrite=True)
+    labels = [c.label for c in parse_controllers(["a=x.pt", "runs/b/checkpoints/latest.pt", "runs/c"])]
+    assert labels == ["a", "b", "c"] and len(parse_controllers(None)) == 2
+    with pytest.raises(ValueError, match="labels must differ"):
+        parse_controllers(["a=x.pt", "a=y.pt"])
+    # the recipe refuses before rolling anything out
+    stale = tmp_path / "stale"
+    stale.mkdir()
+    (stale / "table.json").write_text("{}")
+    with pytest.raises(SystemExit) as info:
+        load_recipe("compare_gaits").main(["--device", "cpu", "--out", str(stale)])
+    assert "not overwritten" in str(info.value.code) and (stale / "table.json").read_text() == "{}"
+
+
+# ------------------------------------------------------------------------------------------------ end to end
+@needs_policies
+def test_recorded_rollout_reports_the_gait_test_numbers(tmp_path):
+    from tocabi_torchrl.rl.evaluate import evaluate_policy
+    from tocabi_torchrl.rl.gait_record import load_policy, record_rollout
+
+    first = load_policy(TORQUE_POLICY, 2, torch.device("cpu"))
+    summary = evaluate_policy(first.actor, first.cfg, tmp_path, device="cpu", env=first.env, seconds=0.2,
+                              video_envs=0, progress=False)
+    second = load_policy(TORQUE_POLICY, 2, torch.device("cpu"))
+    rec = record_rollout(second.actor, second.env, seconds=0.2, snapshot_every=0.1, progress=False)
+    assert {k: v for k, v in summary.items() if k != "video"} == rec.metrics
+    assert rec.leg_torque.shape == (50, 2, 12) and torch.isfinite(rec.leg_torque).all()
+    assert rec.snapshot_times == pytest.approx([0.0, 0.1, 0.2])
+    assert rec.snapshots.shape == (3, 2, second.env.base_env.sim.nq)
+    torch.testing.assert_close(rec.snapshots[-1], second.env.base_env.sim.qpos)
+
+
+def _images_or_skip(table: dict, paths: list[Path], size: tuple[int, int]):
+    from PIL import Image
+
+    if str(table["meta"]["frames"]).startswith("not rendered"):
+        pytest.skip(f"no offscreen rendering here: {table['meta']['frames']}")
+    for path in paths:
+        with Image.open(path) as image:
+            assert image.size == size, path
+
+
+@needs_policies
+def test_compare_gaits_end_to_end(tmp_path):
+    out = tmp_path / "gaits"
+    out.mkdir()
+    (out / "old.txt").write_text("replaced with --overwrite")
+    result = load_recipe("compare_gaits").main([
+        "--device", "cpu", "--num_envs", "2", "--seconds", "1.0", "--frame_every", "0.5", "--knee_seconds", "0.8",
+        "--torque_seconds", "0.4", "--frame_width", "96", "--frame_height", "64", "--out", str(out), "--overwrite"])
+    table = json.loads((out / "table.json").read_text())
+    assert [row["controller"] for row in table["rows"]] == ["PD (pd_reference)", "torque"]
+    assert [row["control_mode"] for row in table["rows"]] == ["pd_reference", "torque"]
+    md = (out / "table.md").read_text()
+    assert "| PD (pd_reference) | pd_reference | 2 |" in md and "| torque | torque | 2 |" in md
+    assert "torque smoothness" in md and "pending" not in md
+    for row in table["rows"]:
+        for key in ("survival", "forward_distance_m", "lateral_drift_m", "knee_rms_rad", "mean_abs_torque_Nm",
+                    "torque_smoothness_Nm_per_step"):
+            assert isinstance(row[key], float) and np.isfinite(row[key]), key
+        assert 0 < row["mean_abs_torque_Nm"] < 300 and row["torque_smoothness_Nm_per_step"] > 0
+    traces = np.load(out / "traces.npz")
+    for slug in ("PD_pd_reference", "torque"):
+        torque = traces[f"{slug}__leg_torque"]
+        assert torque.shape == (250, 12) and np.isfinite(torque).all()
+        assert np.abs(torque).max() <= robot.LEG_TORQUE_LIMITS.max() + 1e-3
+        assert traces[f"{slug}__knee"].shape == (200, 2)
+    assert list(traces["critical_joints"]) == list(CRITICAL_JOINTS)
+    for name in ("knee_left.png", "knee_right.png", "torques.png"):
+        assert (out / name).stat().st_size > 10_000, name
+    assert result["rows"] == table["rows"] or len(result["rows"]) == 2
+    _images_or_skip(table, [out / "frames_PD_pd_reference.png", out / "frames_torque.png"], (3 * 96, 64))
+    _images_or_skip(table, [out / "frames.png"], (3 * 96, 2 * 64))
+    _images_or_skip(table, [out / "timelapse_torque.png"], (2 * 96, 64))
+
+
+@needs_policies
+@needs_obstacles
+def test_obstacle_test_end_to_end(tmp_path):
+    out = tmp_path / "obstacles"
+    # heights 0 (no box) then 12 mm: --fail_below 0 never counts a failure, so the escalation goes on to the cap
+    result = load_recipe("obstacle_test").main([
+        "--policy", f"torque={TORQUE_POLICY}", "--device", "cpu", "--num_envs", "2", "--seconds", "2.0",
+        "--heights_mm", "0", "--step_mm", "12", "--max_mm", "12", "--fail_below", "0", "--frame_width", "96",
+        "--frame_height", "64", "--out", str(out)])
+    assert result["heights_mm"] == [0.0, 12.0] and "cap" in result["stopped_after"]
+    table = json.loads((out / "table.json").read_text())
+    rows = table["rows"]
+    assert [(row["controller"], row["height_mm"]) for row in rows] == [("torque", 0.0), ("torque", 12.0)]
+    assert rows[0]["contact_source"] == "sole geometry" and rows[1]["contact_source"] == "obstacle_contact signal"
+    for row in rows:
+        assert 0.0 <= row["pass_rate"] <= 1.0 and row["num_envs"] == 2
+        shares = row["pass_rate"] + row["failed_on_obstacle_rate"] + row["failed_before_obstacle_rate"]
+        assert shares == pytest.approx(1)
+        assert row["reached_rate"] == 1.0  # 2 s at 0.5 m/s reaches a box 0.6 m ahead
+        peak = row["peak_torque_on_obstacle_Nm"]
+        assert peak is None or 0 < peak <= robot.LEG_TORQUE_LIMITS.max() + 1e-3
+    md = (out / "table.md").read_text()
+    assert "| torque | 0 | 2 |" in md and "| torque | 12 | 2 |" in md
+    for name in ("pass_rate.png", "lateral_deviation.png", "peak_torque.png"):
+        assert (out / name).is_file(), name
+    assert any(out.glob("torques_*mm.png"))
+    strips = sorted(out.glob("frames_torque_*mm_*.png"))
+    if not str(table["meta"]["frames"]).startswith("not rendered"):
+        assert strips
+    from PIL import Image
+
+    for path in strips:
+        with Image.open(path) as image:
+            assert image.size[1] == 64 and image.size[0] % 96 == 0 and image.size[0] >= 2 * 96
+    with pytest.raises(SystemExit) as info:  # the same folder again: refused
+        load_recipe("obstacle_test").main(["--device", "cpu", "--out", str(out)])
+    assert "not overwritten" in str(info.value.code)
