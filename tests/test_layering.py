@@ -1,5 +1,6 @@
 """Package layering, read from the source's import statements: the env and the physics never depend on the
-transforms or the trainer, so they can be used (and tested) without them."""
+transforms or the trainer, so they can be used (and tested) without them; and no module imports itself through
+others (no import cycle in the package or the benchmarks)."""
 
 from __future__ import annotations
 
@@ -19,12 +20,24 @@ FORBIDDEN = {
 }
 
 
-def imported_modules(path: Path, root: Path = PACKAGE) -> set[str]:
-    """Absolute names of the modules ``path`` (a file under the package folder ``root``) imports, relative imports
-    resolved against its package, ``from M import x`` counted as both ``M`` and ``M.x``."""
-    package = ["tocabi_torchrl", *path.relative_to(root).parent.parts]
+def _imports(tree: ast.AST):
+    """Every import statement of ``tree``, in functions too, except those under ``if TYPE_CHECKING:`` (never run)."""
+    for node in ast.iter_child_nodes(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            yield from (n for branch in node.orelse for n in [branch, *_imports(branch)]
+                        if isinstance(n, (ast.Import, ast.ImportFrom)))
+            continue
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            yield node
+        yield from _imports(node)
+
+
+def imported_modules(path: Path, root: Path = PACKAGE, name: str = "tocabi_torchrl") -> set[str]:
+    """Absolute names of the modules ``path`` (a file under the package folder ``root``, named ``name``) imports,
+    relative imports resolved against its package, ``from M import x`` counted as both ``M`` and ``M.x``."""
+    package = [name, *path.relative_to(root).parent.parts]
     names = set()
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+    for node in _imports(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -65,3 +78,48 @@ def test_no_forbidden_imports(part):
                 if name == f"tocabi_torchrl.{banned}" or name.startswith(f"tocabi_torchrl.{banned}."):
                     bad.append(f"{path.relative_to(PACKAGE)} imports {name}")
     assert not bad, f"tocabi_torchrl.{part} must not import {FORBIDDEN[part]}:\n" + "\n".join(bad)
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """module -> the repository modules it imports, for the package and the benchmarks (``from P import m`` is an
+    edge to ``P.m`` when that is a module, else to ``P``)."""
+    repo = PACKAGE.parent
+    files = {}
+    for top in ("tocabi_torchrl", "benchmarks"):
+        for path in sorted((repo / top).rglob("*.py")):
+            parts = path.relative_to(repo).with_suffix("").parts
+            files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    graph = {}
+    for module, path in files.items():
+        top = module.split(".")[0]
+        targets = set()
+        for name in imported_modules(path, repo / top, top):
+            while name and name not in files:  # an imported name inside a module: the module
+                name = name.rpartition(".")[0]
+            if name and not any(other.startswith(name + ".") and other in files
+                                for other in imported_modules(path, repo / top, top)):
+                targets.add(name)
+        graph[module] = targets - {module}
+    return graph
+
+
+def test_no_import_cycles():
+    graph = _module_graph()
+    assert "tocabi_torchrl.envs.tocabi_walk" in graph and "benchmarks.common" in graph
+    cycles, state, stack = [], {}, []
+
+    def visit(module):
+        state[module] = "open"
+        stack.append(module)
+        for target in sorted(graph[module]):
+            if state.get(target) == "open":
+                cycles.append(" -> ".join(stack[stack.index(target):] + [target]))
+            elif target not in state:
+                visit(target)
+        stack.pop()
+        state[module] = "done"
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module)
+    assert not cycles, "import cycles (imports inside functions count too):\n" + "\n".join(cycles)

@@ -16,12 +16,15 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
 
 from .. import robot
-from .config import BoxObstacle
+
+if TYPE_CHECKING:  # config.py builds boxes with this module's sole position: only the annotations need the class
+    from .config import BoxObstacle
 
 __all__ = ["OBSTACLE_PREFIX", "obstacle_names", "add_obstacles", "world_obstacle_centres", "initial_sole_centre"]
 
