@@ -32,19 +32,23 @@ def _imports(tree: ast.AST):
         yield from _imports(node)
 
 
+def _statement_modules(node: ast.Import | ast.ImportFrom, package: list[str]) -> tuple[str, list[str]]:
+    """``(module, [module.name, ...])`` of one import statement, relative imports resolved against ``package``."""
+    if isinstance(node, ast.Import):
+        return "", [alias.name for alias in node.names]
+    base = package[: len(package) - node.level + 1] if node.level else []
+    module = ".".join([*base, *(node.module.split(".") if node.module else [])])
+    return module, [f"{module}.{alias.name}" for alias in node.names]
+
+
 def imported_modules(path: Path, root: Path = PACKAGE, name: str = "tocabi_torchrl") -> set[str]:
     """Absolute names of the modules ``path`` (a file under the package folder ``root``, named ``name``) imports,
     relative imports resolved against its package, ``from M import x`` counted as both ``M`` and ``M.x``."""
     package = [name, *path.relative_to(root).parent.parts]
     names = set()
     for node in _imports(ast.parse(path.read_text(), filename=str(path))):
-        if isinstance(node, ast.Import):
-            names.update(alias.name for alias in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            base = package[: len(package) - node.level + 1] if node.level else []
-            module = ".".join([*base, *(node.module.split(".") if node.module else [])])
-            names.add(module)
-            names.update(f"{module}.{alias.name}" for alias in node.names)
+        module, targets = _statement_modules(node, package)
+        names.update([module, *targets] if module else targets)
     return names
 
 
@@ -81,25 +85,30 @@ def test_no_forbidden_imports(part):
 
 
 def _module_graph() -> dict[str, set[str]]:
-    """module -> the repository modules it imports, for the package and the benchmarks (``from P import m`` is an
-    edge to ``P.m`` when that is a module, else to ``P``)."""
+    """module -> the repository modules it imports, for the package and the benchmarks, statement by statement:
+    ``from P import x`` is an edge to ``P.x`` when that is a module, else to ``P`` (whose ``__init__`` runs)."""
     repo = PACKAGE.parent
     files = {}
     for top in ("tocabi_torchrl", "benchmarks"):
         for path in sorted((repo / top).rglob("*.py")):
             parts = path.relative_to(repo).with_suffix("").parts
             files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+
+    def owner(name: str) -> str:  # the module that defines ``name`` ("" outside the repository)
+        while name and name not in files:
+            name = name.rpartition(".")[0]
+        return name
+
     graph = {}
     for module, path in files.items():
         top = module.split(".")[0]
+        package = [top, *path.relative_to(repo / top).parent.parts]
         targets = set()
-        for name in imported_modules(path, repo / top, top):
-            while name and name not in files:  # an imported name inside a module: the module
-                name = name.rpartition(".")[0]
-            if name and not any(other.startswith(name + ".") and other in files
-                                for other in imported_modules(path, repo / top, top)):
-                targets.add(name)
-        graph[module] = targets - {module}
+        for node in _imports(ast.parse(path.read_text(), filename=str(path))):
+            base, names = _statement_modules(node, package)
+            for name in names:
+                targets.add(name if name in files else owner(base or name))
+        graph[module] = targets - {module, ""}
     return graph
 
 

@@ -46,8 +46,9 @@ def parse_controllers(values: list[str] | None) -> list[Controller]:
             label = p.parent.parent.name if p.parent.name == "checkpoints" else (p.stem if p.suffix else p.name)
         out.append(Controller(label.strip(), Path(path)))
     labels = [c.label for c in out]
-    if len(set(labels)) != len(labels):
-        raise ValueError(f"controller labels must differ, got {labels}; name them with LABEL=PATH")
+    if len(set(labels)) != len(labels) or len({slug(label) for label in labels}) != len(labels):
+        raise ValueError(f"controller labels must differ (also as file names: {[slug(x) for x in labels]}), got "
+                         f"{labels}; name them with LABEL=PATH")
     return out
 
 

@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 
 from .. import robot
 from ..config import RunConfig
+from ..envs.config import TORQUE_MODES
 from ..rotations import quat_rotate_inverse
 
 __all__ = ["GaitMetrics", "GaitRecord", "LoadedPolicy", "record_rollout", "applied_leg_torque", "torque_stats",
@@ -59,7 +60,7 @@ def applied_leg_torque(env) -> torch.Tensor:
     """
     base = getattr(env, "base_env", env)
     sim = base.sim
-    field_ = sim.ctrl if base.cfg.control.mode == "torque" else sim.applied_actuator_force
+    field_ = sim.ctrl if base.cfg.control.mode in TORQUE_MODES else sim.applied_actuator_force
     return torch.nan_to_num(field_[:, robot.LEGS], nan=0.0, posinf=0.0, neginf=0.0).clone()
 
 

@@ -136,11 +136,13 @@ class RunLogger:
                   flush=True)
 
     def close(self) -> None:
-        """Flush and close every logger (and the bar)."""
-        for logger in self.loggers.values():
-            logger.close()
-        # torchrl's CSV experiment has no close of its own: its files would stay open until it is collected.
-        for file in self.loggers["csv"].experiment.files.values():
-            file.close()
-        if self._bar is not None:
-            self._bar.close()
+        """Flush and close every logger (and the bar); the CSV files and the bar are closed even if a logger fails."""
+        try:
+            for logger in self.loggers.values():
+                logger.close()
+        finally:
+            # torchrl's CSV experiment has no close of its own: its files would stay open until it is collected.
+            for file in self.loggers["csv"].experiment.files.values():
+                file.close()
+            if self._bar is not None:
+                self._bar.close()

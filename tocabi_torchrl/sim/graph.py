@@ -152,9 +152,9 @@ class _Holding:
         self.recorded = tuple(recorded)
 
     def _hold(self) -> None:
+        if any(r.held_by is not None for r in self.recorded):
+            raise RuntimeError("a recorded physics graph is already held by another capture")
         for r in self.recorded:
-            if r.held_by is not None:
-                raise RuntimeError("a recorded physics graph is already held by another capture")
             r.held_by = self
 
     def _release(self) -> None:
@@ -226,8 +226,13 @@ class SegmentedCapture(_Holding):
     def __enter__(self) -> SegmentedCapture:
         self._stream_ctx = torch.cuda.stream(self.stream)
         self._stream_ctx.__enter__()
-        self._hold()
-        self._begin()
+        try:
+            self._hold()
+            self._begin()
+        except BaseException as err:  # no __exit__ follows a failed __enter__: undo here, so eager calls still work
+            self._release()
+            self._stream_ctx.__exit__(type(err), err, err.__traceback__)
+            raise
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
