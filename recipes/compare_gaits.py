@@ -87,7 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "(default: the two shipped policies)")
     for flag, kind, default, text in OPTIONS:
         parser.add_argument(flag, type=kind, default=default, help=f"{text} (default: {default})")
-    parser.add_argument("--overwrite", action="store_true", help="replace the results in an existing --out folder")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into an existing --out folder (files of the same name are replaced, others stay)")
     return parser
 
 

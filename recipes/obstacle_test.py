@@ -104,7 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "(default: the two shipped policies)")
     for flag, kind, default, text in OPTIONS:
         parser.add_argument(flag, type=kind, default=default, help=f"{text} (default: {default})")
-    parser.add_argument("--overwrite", action="store_true", help="replace the results in an existing --out folder")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into an existing --out folder (files of the same name are replaced, others stay)")
     return parser
 
 
@@ -136,7 +137,7 @@ def box_centres(policy, box, virtual: bool) -> torch.Tensor:
         return base.obstacle_pos[:, 0].cpu()
     from tocabi_torchrl.envs.obstacles import world_obstacle_centres
 
-    return torch.as_tensor(world_obstacle_centres((box,), base.num_envs, policy.cfg.seed)[:, 0], dtype=torch.float32)
+    return torch.as_tensor(world_obstacle_centres((box,), base.num_envs, base.scene_seed)[:, 0], dtype=torch.float32)
 
 
 def run_one(controller, height_mm, args, device) -> dict:

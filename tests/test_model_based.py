@@ -246,6 +246,11 @@ def test_gains_too_high_for_the_250_hz_hold_are_refused_when_the_env_is_built():
         TocabiWalk(num_envs=1, device="cpu", backend="mujoco", control_mode="model_based", mb_omega=tuple(omega))
 
 
+def test_a_reference_window_wider_than_half_the_cycle_is_refused_in_seconds():
+    with pytest.raises(ValueError, match=r"env.control.mb_ref_window 1 s is longer .* use at most 0.899 s"):
+        TocabiWalk(num_envs=1, device="cpu", backend="mujoco", control_mode="model_based", mb_ref_window=1.0)
+
+
 def test_preset_round_trips_through_the_tree_a_tiny_run_and_its_checkpoint(tmp_path, capsys):
     from tocabi_torchrl.export.__main__ import main as export_main
     from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint

@@ -108,6 +108,10 @@ class ComputedTorque:
         self.block = DenseBlock(mj_model, dofs, num_worlds=num_envs, device=device)
         self.motion = motion
         half_width = max(1, int(round(float(control.mb_ref_window) / motion.row_dt)))
+        widest = motion.cycle_rows // 2 - 1
+        if half_width > widest:
+            raise ValueError(f"env.control.mb_ref_window {control.mb_ref_window:g} s is longer than half the reference "
+                             f"cycle allows; use at most {widest * motion.row_dt:g} s (the default is 0.008 s)")
         vel, acc = motion.joint_derivatives(half_width)
         self.ref_vel, self.ref_acc = vel[:, robot.LEGS].contiguous(), acc[:, robot.LEGS].contiguous()
         self.half_width = half_width

@@ -113,7 +113,9 @@ class TocabiWalk(EnvBase):
         if control.mode not in TORQUE_MODES:
             spec = _pd_leg_spec(spec, control)
         obstacles = cfg.scene.obstacles
-        centres = world_obstacle_centres(obstacles, num_envs, self._seed)
+        #: The seed the obstacles' per-world offsets were drawn from (the build seed: ``set_seed`` does not move them).
+        self.scene_seed = self._seed
+        centres = world_obstacle_centres(obstacles, num_envs, self.scene_seed)
         mocap = dict(zip(add_obstacles(spec, obstacles), centres.transpose(1, 0, 2)))
         #: (num_envs, K, 3) float32 centre [m] of each world's K obstacle boxes (``cfg.scene.obstacles`` order,
         #: jitter included; the bottom face at z = 0), fixed at build.

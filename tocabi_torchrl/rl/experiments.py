@@ -69,7 +69,8 @@ def slug(label: str) -> str:
 
 def prepare_out_dir(path: str | os.PathLike, overwrite: bool = False) -> Path:
     """Create ``path``; an existing folder that is not empty is refused (:class:`ExperimentOutputError`) unless
-    ``overwrite``, so results are never replaced silently."""
+    ``overwrite``, so results are never replaced silently. With ``overwrite`` the run writes into the folder: its own
+    files replace those of the same name, and any other file there is left alone (nothing is deleted)."""
     path = Path(path)
     if path.exists() and (not path.is_dir() or any(path.iterdir())) and not overwrite:
         raise ExperimentOutputError(f"{path} already holds results; they are not overwritten. Choose another --out, "
