@@ -21,20 +21,15 @@ import time
 from pathlib import Path
 
 from tocabi_torchrl.rl.curves import read_metrics, steady_rate
+from tocabi_torchrl.rl.evaluate import GAIT_CRITERIA as CRITERIA
+from tocabi_torchrl.rl.evaluate import gait_passes as passes_main
 
 from . import common
 
 MAIN_COMMAND = (0.5, 0.0)
 OTHER_COMMANDS = ((0.2, 0.0), (0.7, 0.1))
-CRITERIA = {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m": 0.3, "knee_rms_rad": 0.15}
 RUNS = Path("runs/time_to_walk")
 key = lambda c: f"{c[0]:.1f},{c[1]:.1f}"
-
-
-def passes_main(s: dict) -> bool:
-    """Whether a gait-test summary at (0.5, 0) meets every criterion of :data:`CRITERIA`."""
-    return (s["survival"] >= CRITERIA["survival"] and s["forward_distance_m"] >= CRITERIA["forward_distance_m"]
-            and s["lateral_drift_m"] <= CRITERIA["lateral_drift_m"] and s["knee_rms_rad"] <= CRITERIA["knee_rms_rad"])
 
 
 def walks(evaluation: dict) -> bool:

@@ -8,21 +8,13 @@ from collections.abc import Callable
 
 import torch
 
-from ..rl.evaluate import evaluate_policy
+from ..rl.evaluate import GAIT_CRITERIA, evaluate_policy, gait_passes
 from ..rl.trainer import resolve_device
 from ._build import task_config
 
 __all__ = ["GAIT_CRITERIA", "evaluate_actions", "evaluate_policy_file", "gait_passes"]
 
-#: Pass thresholds of the gait test at (0.5, 0) m/s (the same as ``benchmarks/time_to_walk.CRITERIA``, issue 19).
-GAIT_CRITERIA = {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m": 0.3, "knee_rms_rad": 0.15}
-
-
-def gait_passes(summary: dict) -> bool:
-    """Whether a gait-test summary meets every :data:`GAIT_CRITERIA` threshold."""
-    c = GAIT_CRITERIA
-    return (summary["survival"] >= c["survival"] and summary["forward_distance_m"] >= c["forward_distance_m"]
-            and summary["lateral_drift_m"] <= c["lateral_drift_m"] and summary["knee_rms_rad"] <= c["knee_rms_rad"])
+# GAIT_CRITERIA and gait_passes are the gait test's own (tocabi_torchrl.rl.evaluate), re-exported here.
 
 
 def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str | os.PathLike,

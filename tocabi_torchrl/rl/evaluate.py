@@ -26,7 +26,18 @@ from .eval_video import render_video
 from .gait_record import KNEES, GaitMetrics, fixed_command, load_policy, policy_steps
 from .trainer import build_env, resolve_device
 
-__all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "policy_dt"]
+__all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "policy_dt", "GAIT_CRITERIA", "gait_passes"]
+
+#: Pass thresholds of the gait test at (0.5, 0) m/s (issue 19): a policy walks when its summary meets all of them
+#: (and, in the time-to-walk benchmark, keeps ``survival`` at (0.2, 0) and (0.7, 0.1) too).
+GAIT_CRITERIA = {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m": 0.3, "knee_rms_rad": 0.15}
+
+
+def gait_passes(summary: dict) -> bool:
+    """Whether a gait-test summary (:func:`evaluate_policy`'s) meets every :data:`GAIT_CRITERIA` threshold."""
+    c = GAIT_CRITERIA
+    return (summary["survival"] >= c["survival"] and summary["forward_distance_m"] >= c["forward_distance_m"]
+            and summary["lateral_drift_m"] <= c["lateral_drift_m"] and summary["knee_rms_rad"] <= c["knee_rms_rad"])
 
 
 def evaluate_policy(
