@@ -122,7 +122,7 @@ def analyse_obstacle(record: GaitRecord, centre: torch.Tensor, size, virtual: bo
     term = rec.termination_step
     terminated = term >= 0
     passed = ~terminated
-    failed_on = terminated & has & (first <= term)
+    failed_on = terminated & has  # a contact needs the robot alive, so it came before the termination
     failed_before = terminated & ~failed_on
 
     pelvis_x = rec.base_pos[..., 0]

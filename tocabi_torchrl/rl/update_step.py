@@ -130,7 +130,6 @@ class MinibatchStep:
 
     def _build(self, args, stream, mode: str):
         static_mb = args[0].clone()
-        self.optimizer.zero_grad(set_to_none=True)  # gradients are allocated by the captured backward, in its pool
         replay, stats = self._capture.capturer.capture(lambda: self._compute(static_mb), device=static_mb.device,
                                                        stream=stream, mode=mode)
 
