@@ -145,6 +145,25 @@ def test_residual_adds_limit_times_action_and_the_sum_is_clipped(env):
     assert (out["applied_action"][:, LEGS].abs() <= 1.0 + 1e-6).all()
 
 
+def test_residual_gain_scales_each_joints_action():
+    """g = env.control.mb_residual_gain: clip(τ_ff + g·a, ±limit), g per joint, here a few N·m so nothing clips."""
+    gain = tuple(float(v) for v in np.arange(1, 13))
+    e = TocabiWalk(num_envs=N, device="cpu", seed=0, backend="mujoco", control_mode="model_based",
+                   mb_residual_gain=gain, max_episode_steps=10**6)
+    lim = torch.as_tensor(LIMITS, dtype=torch.float32)
+    _hold(e)
+    ff = _step(e, torch.zeros(N, 13))["leg_feedforward"]
+    _hold(e)
+    action = torch.zeros(N, 13)
+    action[:, :12] = torch.tensor([1.0, -0.5] * 6)
+    out = _step(e, action)
+    torch.testing.assert_close(out["leg_feedforward"], ff)
+    expected = (ff + torch.tensor(gain) * action[:, :12]).clamp(-lim, lim)
+    assert (expected.abs() < lim).all()  # the gains are small: no joint saturates, so g is seen exactly
+    torch.testing.assert_close(e.sim.ctrl[:, LEGS], expected, rtol=1e-5, atol=1e-3)
+    torch.testing.assert_close(out["applied_action"][:, LEGS], expected / lim, rtol=1e-5, atol=1e-5)
+
+
 def test_zero_action_walk_stays_finite_and_resets_clear_the_feedforward(env):
     env.reset()
     for _ in range(10):
@@ -231,6 +250,9 @@ def test_reference_derivatives_are_the_motions_own_and_survive_an_open_seam():
     (dict(mb_zeta=(float("nan"),) + (0.7,) * 11), r"mb_zeta: every leg joint's damping ratio .* L_HipYaw_Joint=nan"),
     (dict(mb_omega="fast"), r"env.control.mb_omega needs 12 numbers"),
     (dict(mb_ref_window=0.0), r"env.control.mb_ref_window must be a finite number of seconds > 0"),
+    (dict(mb_residual_gain=(100.0,) * 12 + (1.0,)), r"env.control.mb_residual_gain needs 12 values"),
+    (dict(mb_residual_gain=(100.0,) * 2 + (-5.0,) + (100.0,) * 9),
+     r"mb_residual_gain: every leg joint's residual gain \[N·m per action unit\] .* L_HipPitch_Joint=-5.0"),
 ])
 def test_bad_gains_are_named(change, match):
     with pytest.raises(ValueError, match=match):
@@ -259,6 +281,9 @@ def test_preset_round_trips_through_the_tree_a_tiny_run_and_its_checkpoint(tmp_p
 
     cfg = preset_config("model_based")
     assert cfg.env.control.mode == "model_based" and cfg.ppo.torque_assist == 0.0
+    # The preset's residual has the PD-residual modes' authority: 0.5 rad of the robot's Kp per action unit.
+    assert cfg.env.control.mb_residual_gain == tuple(0.5 * float(k) for k in robot.LEG_KP)
+    assert ControlConfig().mb_residual_gain == tuple(LIMITS)
     assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
     parsed, _ = parse_args(["--preset", "model_based", "--env.control.mb_zeta", ",".join(["1.0"] * 12),
                             "--env.control.mb_ref_window", "0.004"])

@@ -29,7 +29,7 @@ from types import MappingProxyType
 from typing import Any
 
 from .envs.command import CommandConfig
-from .envs.config import CONTROL_MODES, PD_GAINS, TocabiWalkConfig
+from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig
 from .transforms.presets import TransformSettings
 from .tree import ConfigError, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
@@ -305,17 +305,16 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "total_env_steps": 200_000_000,
     }),
     # Residual torque on a computed-torque law (env.control.mode "model_based", envs/model_based.py): the 12 leg
-    # actions add limit·a to τ_ff = M_LL·(q̈_ref + ω²·(q_ref − q) + 2ζω·(q̇_ref − q̇)) + c_L from the simulator's own
-    # inertia and bias forces. The default's PPO, unchanged: that recipe trains the residual PD at 4,096 envs in
-    # minutes, and the torque preset's runs learned on it too. Only what an action means changes: at a = 0 the law
-    # tracks the walk like the robot's PD (the default ω give its Kp at the initial pose) and stands longer than
-    # pd_reference does at a = 0 (docs/training/model_based.md). No torque assist: the feed-forward law is itself
-    # the prior, and never fades. The budget is the torque preset's. The exploration std starts at 0.1 (the
-    # reference's schedule), not the default's 0.2: H100 run 1 with 0.2 (docs/training/model_based.md) lost its
-    # episode length while the std was high and its adaptive LR sank to 4e-5; it did not walk in 24 minutes.
+    # actions add g·a to τ_ff = M_LL·(q̈_ref + ω²·(q_ref − q) + 2ζω·(q̇_ref − q̇)) + c_L from the simulator's own
+    # inertia and bias forces. The default's PPO, unchanged; no torque assist: the feed-forward law is itself the
+    # prior, and never fades. The budget is the torque preset's. The residual gain g is the PD-residual modes'
+    # authority (0.5 rad × the robot's Kp, 3-11× the torque limits), the action space the default preset and the
+    # torque preset's β = 1 phase learn to walk in: with g = the limits, H100 run 1 (std 0.2 -> 0.05) did not walk in
+    # its 24 minutes and run 2 (std 0.1 -> 0.05, less exploration still) fell within 8 s at every checkpoint
+    # (docs/training/model_based.md).
     "model_based": MappingProxyType({
-        "env.control.mode": "model_based", "total_env_steps": 200_000_000,
-        "ppo.std_start": 0.1, "ppo.std_end": 0.05,
+        "env.control.mode": "model_based", "env.control.mb_residual_gain": MB_RESIDUAL_GAIN_PD,
+        "total_env_steps": 200_000_000,
     }),
     # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
     "cpu_smoke": MappingProxyType({

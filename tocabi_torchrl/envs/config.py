@@ -118,6 +118,11 @@ PD_GAINS = {"robot": (tuple(float(v) for v in robot.LEG_KP), tuple(float(v) for 
 #: action tracked and survived best of the gains tried on the CPU (docs/training/model_based.md).
 MB_OMEGA: tuple[float, ...] = (41.0, 29.0, 25.0, 38.0, 52.0, 89.0) * 2
 
+#: A ``model_based`` residual gain [N·m per action unit], per leg joint, with the authority of the PD-residual modes:
+#: ``pd_action_scale`` (0.5 rad) × the robot's Kp, the torque one action unit moves a ``pd_reference`` servo (and the
+#: assisted torque mode at β = 1) by. 3-11× the torque limits, so |a| ≳ 0.1-0.3 saturates a joint, as it does there.
+MB_RESIDUAL_GAIN_PD: tuple[float, ...] = tuple(0.5 * float(v) for v in robot.LEG_KP)
+
 
 @dataclass
 class ControlConfig:
@@ -129,13 +134,15 @@ class ControlConfig:
         ``pd_nominal + pd_action_scale × action`` clipped to the joint range, tracked in every physics substep by
         MuJoCo position servos with gains ``pd_kp``/``pd_kv``, force-limited to the torque limits.
       - ``"pd_reference"`` (the default): as ``"pd"`` with the target centred on the reference walk.
-      - ``"model_based"``: leg torque = ``clip(τ_ff + limit·action[:12], ±limit)``, a residual torque on top of a
+      - ``"model_based"``: leg torque = ``clip(τ_ff + g·action[:12], ±limit)``, a residual torque on top of a
         computed-torque law that tracks the reference walk from the simulator's own dynamics,
         ``τ_ff = M_LL(q)·(q̈_ref + Kp·(q_ref − q) + Kd·(q̇_ref − q̇)) + c_L(q, q̇)`` with ``Kp = ω²``,
         ``Kd = 2ζω`` (``mb_omega`` [rad/s], ``mb_zeta``, per leg joint), computed from the pre-step state and held
         for the step like a torque action (:class:`~tocabi_torchrl.envs.model_based.ComputedTorque` says where each
         term comes from and why the base coupling and contact forces are left to the policy). ``mb_ref_window`` [s]
-        is the half-width of the central differences that give q̇_ref and q̈_ref.
+        is the half-width of the central differences that give q̇_ref and q̈_ref. ``mb_residual_gain`` is g [N·m
+        per action unit], per leg joint: by default the torque limits (as in torque mode); the ``model_based``
+        preset gives it the PD-residual modes' authority, :data:`MB_RESIDUAL_GAIN_PD`.
     The upper body is held at the reference pose by MuJoCo position servos in every mode. The gains default to the
     robot controller's (:data:`PD_GAINS` ``"robot"``); in the torque modes no PD acts and they are unused. In
     ``model_based`` mode the leg entries of ``applied_action`` (observation history, torque rewards) and
@@ -162,6 +169,7 @@ class ControlConfig:
     mb_omega: tuple[float, ...] = MB_OMEGA
     mb_zeta: tuple[float, ...] = (0.7,) * robot.NUM_LEG_JOINTS
     mb_ref_window: float = 0.008
+    mb_residual_gain: tuple[float, ...] = tuple(float(v) for v in robot.LEG_TORQUE_LIMITS)
 
     def validate(self) -> None:
         if self.mode not in CONTROL_MODES:
@@ -178,7 +186,7 @@ class ControlConfig:
         if self.torque_assist and self.mode != "torque":
             raise ValueError(f"env.control.torque_assist needs control_mode='torque' (env.control.mode; the PD modes "
                              f"already track with servos), got {self.mode!r}")
-        for name, unit in (("mb_omega", "rad/s"), ("mb_zeta", "")):
+        for name in ("mb_omega", "mb_zeta", "mb_residual_gain"):
             values = getattr(self, name)
             if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):
                 raise ValueError(f"env.control.{name} needs {robot.NUM_LEG_JOINTS} numbers (one per leg joint), got "
@@ -189,7 +197,8 @@ class ControlConfig:
             bad = [(robot.JOINT_NAMES[j], v) for j, v in enumerate(values)
                    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0]
             if bad:
-                what = "natural frequency [rad/s]" if name == "mb_omega" else "damping ratio"
+                what = {"mb_omega": "natural frequency [rad/s]", "mb_zeta": "damping ratio",
+                        "mb_residual_gain": "residual gain [N·m per action unit]"}[name]
                 raise ValueError(f"env.control.{name}: every leg joint's {what} must be a finite number >= 0; got "
                                  + ", ".join(f"{joint}={v!r}" for joint, v in bad))
         window = self.mb_ref_window
@@ -302,7 +311,7 @@ ENV_FLAT_PATHS = {
     "control_mode": "control.mode", "pd_kp": "control.pd_kp", "pd_kv": "control.pd_kv",
     "pd_action_scale": "control.pd_action_scale", "pd_nominal": "control.pd_nominal",
     "torque_assist": "control.torque_assist", "mb_omega": "control.mb_omega", "mb_zeta": "control.mb_zeta",
-    "mb_ref_window": "control.mb_ref_window",
+    "mb_ref_window": "control.mb_ref_window", "mb_residual_gain": "control.mb_residual_gain",
     "substeps": "sim.substeps", "nconmax": "sim.nconmax", "njmax": "sim.njmax", "backend": "sim.backend",
     "sim_threads": "sim.threads", "obstacles": "scene.obstacles",
     **{name: f"task.{name}" for name in TaskConfig.__dataclass_fields__},

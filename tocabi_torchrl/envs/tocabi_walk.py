@@ -158,6 +158,7 @@ class TocabiWalk(EnvBase):
         self._pd_nominal = torch.as_tensor(self.cfg.control.pd_nominal, dtype=f32, device=dev)
         self._pd_kp = torch.as_tensor(self.cfg.control.pd_kp, dtype=f32, device=dev)
         self._pd_kv = torch.as_tensor(self.cfg.control.pd_kv, dtype=f32, device=dev)
+        self._mb_gain = torch.as_tensor(self.cfg.control.mb_residual_gain, dtype=f32, device=dev)
         #: β of the torque assist (config ``torque_assist``): a device scalar changed in place, so a captured step
         #: graph follows it.
         self.assist_scale = torch.zeros((), dtype=f32, device=dev)
@@ -318,12 +319,12 @@ class TocabiWalk(EnvBase):
         return torch.maximum(torch.minimum(total, self._leg_limits), -self._leg_limits)
 
     def _model_based(self, a_leg: torch.Tensor, leg_ref: torch.Tensor, rate: torch.Tensor) -> torch.Tensor:
-        """Leg torques (num_envs, 12) [N·m] of the ``model_based`` mode: ``clip(τ_ff + limit·a, ±limit)`` with τ_ff
+        """Leg torques (num_envs, 12) [N·m] of the ``model_based`` mode: ``clip(τ_ff + g·a, ±limit)`` with τ_ff
         the computed-torque law from the pre-step state (:class:`~tocabi_torchrl.envs.model_based.ComputedTorque`),
-        recorded as ``leg_feedforward``."""
+        recorded as ``leg_feedforward``, and g = ``control.mb_residual_gain`` [N·m per action unit]."""
         tau_ff = self.computed_torque(self.sim, leg_ref, self.time, self.init_row, rate)
         self.leg_feedforward.copy_(tau_ff)
-        total = tau_ff + self._leg_limits * a_leg
+        total = tau_ff + self._mb_gain * a_leg
         return torch.maximum(torch.minimum(total, self._leg_limits), -self._leg_limits)
 
     @property

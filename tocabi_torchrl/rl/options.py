@@ -28,6 +28,8 @@ FIELD_HELP: dict[str, str] = {
     "env.control.mb_omega": "model_based mode: natural frequency of each leg joint's computed-torque loop [rad/s] "
                             "(Kp = ω²); default: the robot's Kp at the initial pose",
     "env.control.mb_zeta": "model_based mode: damping ratio of each leg joint's loop (Kd = 2ζω)",
+    "env.control.mb_residual_gain": "model_based mode: leg torque per unit of leg action [N·m], per joint; default: "
+                                    "the torque limits (the model_based preset: 0.5 rad × the robot's Kp)",
     "env.control.mb_ref_window": "model_based mode: half-width of the central differences that give the reference's "
                                  "velocity and acceleration [s]",
     "env.sim.backend": "physics backend (auto: mujoco-warp on CUDA, C MuJoCo on the CPU)",

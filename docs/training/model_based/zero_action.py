@@ -25,21 +25,23 @@ def run(noise, steps, n, **kw):
     return {"mean_steps_alive": life.mean().item(), "min_steps_alive": life.min().item(),
             "survived_all_steps": alive.float().mean().item(), "mean_abs_leg_error_rad": float(np.mean(err))}
 
-W = np.array(MB_OMEGA)
-cases = [("pd_reference", dict(control_mode="pd_reference"))]
-cases += [(f"model_based omega x{s:g}, zeta {z:g}", dict(control_mode="model_based", mb_omega=tuple(W * s), mb_zeta=(z,) * 12))
-          for s, z in [(0.5, 1.0), (0.7, 0.7), (1, 1.0), (1, 0.7), (1.5, 1.0), (1.5, 0.7)]]
-settings = [{"residual_std": 0.0, "steps": 2500, "num_envs": 16}, {"residual_std": 0.05, "steps": 1500, "num_envs": 32}]
-results = []
-for st in settings:
-    for name, kw in cases:
-        t0 = time.time()
-        r = run(st["residual_std"], st["steps"], st["num_envs"], **kw)
-        results.append({"case": name, **st, **r})
-        print(results[-1], f"{time.time() - t0:.0f}s", flush=True)
-commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-doc = {"what": "model_based law vs pd_reference with the leg actions at 0 (or N(0, std) per step), phase action 0; "
-               "C MuJoCo on the CPU, TocabiWalk(seed=0), default command schedule, episodes never truncated; "
-               "mean |q_leg - q_ref| over the robots still alive",
-       "omega_default_rad_s": list(MB_OMEGA), "commit": commit, "results": results}
-open(sys.argv[1], "w").write(json.dumps(doc, indent=1) + "\n")
+
+if __name__ == "__main__":
+    W = np.array(MB_OMEGA)
+    cases = [("pd_reference", dict(control_mode="pd_reference"))]
+    cases += [(f"model_based omega x{s:g}, zeta {z:g}", dict(control_mode="model_based", mb_omega=tuple(W * s), mb_zeta=(z,) * 12))
+              for s, z in [(0.5, 1.0), (0.7, 0.7), (1, 1.0), (1, 0.7), (1.5, 1.0), (1.5, 0.7)]]
+    settings = [{"residual_std": 0.0, "steps": 2500, "num_envs": 16}, {"residual_std": 0.05, "steps": 1500, "num_envs": 32}]
+    results = []
+    for st in settings:
+        for name, kw in cases:
+            t0 = time.time()
+            r = run(st["residual_std"], st["steps"], st["num_envs"], **kw)
+            results.append({"case": name, **st, **r})
+            print(results[-1], f"{time.time() - t0:.0f}s", flush=True)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    doc = {"what": "model_based law vs pd_reference with the leg actions at 0 (or N(0, std) per step), phase action 0; "
+                   "C MuJoCo on the CPU, TocabiWalk(seed=0), default command schedule, episodes never truncated; "
+                   "mean |q_leg - q_ref| over the robots still alive",
+           "omega_default_rad_s": list(MB_OMEGA), "commit": commit, "results": results}
+    open(sys.argv[1], "w").write(json.dumps(doc, indent=1) + "\n")
