@@ -185,7 +185,7 @@ SIGNALS = SignalTable((
     Signal("leg_torque", (_LEG,), _F32, "N·m",
            "leg torques commanded in that step (torque mode: action × limit; with `torque_assist=True`: "
            "(1 − β)·limit·a + β·PD(q_ref + pd_action_scale·a), clipped to the limits; model_based mode: "
-           "τ_ff + limit·a, clipped to the limits; PD mode: the PD output)"),
+           "τ_ff + g·a (g = mb_residual_gain), clipped to the limits; PD mode: the PD output)"),
     Signal("episode_step", (1,), _I64, "", "policy steps since the env's last reset"),
     Signal("healthy", (1,), _BOOL, "",
            "the world's physics is numerically sound: finite qpos, qvel, qacc (warp) and sensors, no dropped "

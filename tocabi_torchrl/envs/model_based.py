@@ -4,7 +4,7 @@ own dynamics, batched on the device and free of host synchronisation (it runs in
 The law (per env, the 12 leg joints L, from the pre-step state)::
 
     τ_ff = M_LL(q) · (q̈_ref + Kp·(q_ref − q) + Kd·(q̇_ref − q̇)) + c_L(q, q̇)        Kp = ω², Kd = 2ζω
-    τ    = clip(τ_ff + limit · a[:12], ±limit)                                       (the policy's residual)
+    τ    = clip(τ_ff + g · a[:12], ±limit)       (the policy's residual; g = ``control.mb_residual_gain``)
 
 Where each term comes from:
 
@@ -28,7 +28,7 @@ Why this law. The robot is torque controlled and the simulator knows its dynamic
 prior is the textbook computed-torque (inverse dynamics) controller: for a leg in the air it makes the reference
 walk the solution of the closed loop, and it compensates the leg's own gravity and velocity forces, which a plain PD
 (the ``torque_assist`` PD, the position servos of the PD modes) leaves as a tracking error. What it leaves out, on
-purpose, goes to the residual ``limit·a``, i.e. to the policy:
+purpose, goes to the residual ``g·a``, i.e. to the policy:
 
 - **The floating-base coupling** ``M_LB·a_base`` (the legs' share of the pelvis's acceleration). The base
   acceleration is not measured before the step and depends on the contact forces of the same step; estimating it
