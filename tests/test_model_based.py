@@ -12,13 +12,14 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from captured_vs_eager import assert_captured_equals_eager
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.config import config_from_dict, preset_config
 from tocabi_torchrl.envs import TocabiWalk
-from tocabi_torchrl.envs.config import MB_OMEGA, ControlConfig
+from tocabi_torchrl.envs.config import MB_OMEGA, MB_RESIDUAL_GAIN_PD, ControlConfig
 from tocabi_torchrl.envs.model_based import sampled_loop_radius
 from tocabi_torchrl.motion import ReferenceMotion
 from tocabi_torchrl.sim.inertia import DenseBlock, csr_block_index
@@ -310,23 +311,6 @@ def test_preset_round_trips_through_the_tree_a_tiny_run_and_its_checkpoint(tmp_p
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # a failed capture or an eager fallback fails the test
 def test_gpu_captured_model_based_step_equals_eager_and_never_syncs():
-    from tocabi_torchrl import make_env
-
-    n = 64
-    kw = dict(num_envs=n, device="cuda", seed=3, control_mode="model_based")
-    eager, graphed = make_env(cuda_graph=False, **kw), make_env(cuda_graph=True, **kw)
-    gen = torch.Generator(device="cuda").manual_seed(0)
-    td_e, td_g = eager.reset(), graphed.reset()
-    for i in range(12):
-        action = (torch.rand(n, 13, device="cuda", generator=gen) * 2 - 1) * 0.05
-        if i >= 3:
-            torch.cuda.set_sync_debug_mode("error")
-        try:
-            out_e, td_e = eager.step_and_maybe_reset(td_e.set("action", action))
-            out_g, td_g = graphed.step_and_maybe_reset(td_g.set("action", action.clone()))
-        finally:
-            torch.cuda.set_sync_debug_mode(0)
-        for key in ("leg_torque", "leg_feedforward", "observation", "reward"):
-            torch.testing.assert_close(out_g["next", key], out_e["next", key], rtol=1e-3, atol=1e-3,
-                                       msg=lambda m, i=i, key=key: f"step {i}, {key}: {m}")
-    assert graphed.graph_captured
+    assert_captured_equals_eager(dict(num_envs=64, device="cuda", seed=3, control_mode="model_based",
+                                      mb_residual_gain=MB_RESIDUAL_GAIN_PD),
+                                 ("leg_torque", "leg_feedforward", "observation", "reward"))

@@ -7,6 +7,7 @@ import math
 
 import pytest
 import torch
+from captured_vs_eager import assert_captured_equals_eager
 from tensordict import TensorDict
 
 from tocabi_torchrl import robot
@@ -383,30 +384,14 @@ def test_wall_clock_checkpoints_carry_the_training_time(tmp_path, monkeypatch):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # a failed capture or an eager fallback fails the test
 def test_gpu_captured_assisted_step_follows_beta_and_never_syncs():
-    from tocabi_torchrl import make_env
-
-    n = 64
-    kw = dict(num_envs=n, device="cuda", seed=3, control_mode="torque", torque_assist=True,
-              pd_kp=tuple(robot.LEG_KP), pd_kv=tuple(robot.LEG_KV))
-    eager, graphed = make_env(cuda_graph=False, **kw), make_env(cuda_graph=True, **kw)
-    gen = torch.Generator(device="cuda").manual_seed(0)
-    td_e, td_g = eager.reset(), graphed.reset()
-    for i in range(12):
+    def set_beta(i, eager, graphed):
         beta = 1.0 - i / 11  # changed between replays: the graph must read it from the device
         eager.base_env.set_torque_assist(beta)
         graphed.base_env.set_torque_assist(beta)
-        action = (torch.rand(n, 13, device="cuda", generator=gen) * 2 - 1) * 0.05
-        if i >= 3:
-            torch.cuda.set_sync_debug_mode("error")
-        try:
-            out_e, td_e = eager.step_and_maybe_reset(td_e.set("action", action))
-            out_g, td_g = graphed.step_and_maybe_reset(td_g.set("action", action.clone()))
-        finally:
-            torch.cuda.set_sync_debug_mode(0)
-        for key in ("leg_torque", "leg_assist", "observation", "reward"):
-            torch.testing.assert_close(out_g["next", key], out_e["next", key], rtol=1e-3, atol=1e-3,
-                                       msg=lambda m, i=i, key=key: f"step {i}, {key}: {m}")
-    assert graphed.graph_captured
+
+    assert_captured_equals_eager(dict(num_envs=64, device="cuda", seed=3, control_mode="torque", torque_assist=True,
+                                      pd_kp=tuple(robot.LEG_KP), pd_kv=tuple(robot.LEG_KV)),
+                                 ("leg_torque", "leg_assist", "observation", "reward"), before_step=set_beta)
 
 
 @pytest.mark.gpu
