@@ -17,6 +17,7 @@ from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.rl.distributed import (DistInfo, GradientAllReduce, RunningStatsSync, all_reduce_mean,
                                            broadcast_module, from_environment, init_distributed, rank_seed)
 from tocabi_torchrl.rl.networks import make_mlp
+from tocabi_torchrl.rl.trainer import _episode_metrics
 from tocabi_torchrl.rl.update_step import MinibatchStep
 from tocabi_torchrl.transforms.normalize import RunningNormalization
 
@@ -87,9 +88,24 @@ def _worker(rank: int, world: int, init_file: str, out: dict) -> None:
         norm.update(data[rank][:5] * 3)  # a second rollout: only what was added since the last sync is merged
         sync.sync()
         out[rank] = {"params": params, "all": torch.stack(gathered), "stats": stats,
-                     "norm": (norm.count.clone(), norm.mean.clone(), norm.var.clone()), "data": data}
+                     "norm": (norm.count.clone(), norm.mean.clone(), norm.var.clone()), "data": data,
+                     "episodes": _episode_metrics(_rollout(rank), info)}
     finally:
         dist.destroy_process_group()
+
+
+def _rollout(rank: int) -> TensorDict:
+    """A (4 envs, 5 steps) batch whose ranks finish different numbers of episodes (rank 0: 1, rank 1: 3)."""
+    done = torch.zeros(4, 5, 1, dtype=torch.bool)
+    done[0, 2] = True
+    if rank == 1:
+        done[1, 4] = done[2, 0] = True
+    g = torch.Generator().manual_seed(rank)
+    nxt = {"done": done, "terminated": done.clone(), "reward": torch.rand(4, 5, 1, generator=g),
+           "episode_reward": torch.rand(4, 5, 1, generator=g) * 100 * (rank + 1),
+           "step_count": torch.randint(1, 1000, (4, 5, 1), generator=g),
+           "reward_terms": TensorDict({"qpos": torch.rand(4, 5, generator=g)}, batch_size=[4, 5])}
+    return TensorDict({"next": TensorDict(nxt, batch_size=[4, 5])}, batch_size=[4, 5])
 
 
 def _spawn_two(tmp_path) -> dict:
@@ -128,6 +144,21 @@ def test_running_statistics_merge_exactly(two_ranks):
         assert count.item() == pytest.approx(ref.count.item())
         torch.testing.assert_close(mean, ref.mean, rtol=1e-10, atol=1e-10)
         torch.testing.assert_close(var, ref.var, rtol=1e-9, atol=1e-10)
+
+
+def test_episode_statistics_weigh_each_ranks_episodes(two_ranks):
+    """Merged over 2 ranks that finished 1 and 3 episodes: the values of the union of both batches (4 episodes),
+    not the mean of the two ranks' means."""
+    union = _episode_metrics(torch.cat([_rollout(0), _rollout(1)], dim=0))
+    assert union["episodes_finished"] == 4
+    for rank in (0, 1):
+        merged = two_ranks[rank]["episodes"]
+        assert merged.keys() == union.keys()
+        for key, value in union.items():
+            assert merged[key] == pytest.approx(value, rel=1e-6), key
+    alone = [_episode_metrics(_rollout(r)) for r in (0, 1)]
+    naive = (alone[0]["episode_return"] + alone[1]["episode_return"]) / 2
+    assert union["episode_return"] != pytest.approx(naive, rel=1e-3)  # the data makes the weighting matter
 
 
 def test_torchrun_layout_is_read_and_checked():

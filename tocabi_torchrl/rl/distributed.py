@@ -6,7 +6,8 @@ is kept identical here:
 - parameters: broadcast from rank 0 once (:func:`broadcast_module`), then every mini-batch step applies the same
   averaged gradient (:class:`GradientAllReduce`, run between ``backward`` and gradient clipping, so clipping and Adam
   see the gradient of the mean loss over all ranks' mini-batches);
-- the logged losses and the KL that drives the adaptive learning rate: averaged (:func:`all_reduce_mean`);
+- the logged losses and the KL that drives the adaptive learning rate: averaged (:func:`all_reduce_mean`); the
+  episode statistics: summed over the ranks' finished episodes, then divided (:func:`all_reduce_sum`);
 - running observation statistics: merged after each rollout (:class:`RunningStatsSync`);
 - the std and LR schedules: functions of the iteration, which every rank counts alike.
 
@@ -24,7 +25,7 @@ import torch
 import torch.distributed as dist
 
 __all__ = ["DistInfo", "from_environment", "init_distributed", "shutdown", "rank_seed", "broadcast_module",
-           "GradientAllReduce", "all_reduce_mean", "agree", "RunningStatsSync"]
+           "GradientAllReduce", "all_reduce_mean", "all_reduce_sum", "agree", "RunningStatsSync"]
 
 
 @dataclass(frozen=True)
@@ -151,6 +152,13 @@ def all_reduce_mean(t: torch.Tensor, info: DistInfo) -> torch.Tensor:
     if info.enabled:
         dist.all_reduce(t, op=dist.ReduceOp.SUM)
         t.div_(info.world_size)
+    return t
+
+
+def all_reduce_sum(t: torch.Tensor, info: DistInfo) -> torch.Tensor:
+    """``t`` summed over the ranks, in place (returned for chaining); unchanged with one rank."""
+    if info.enabled:
+        dist.all_reduce(t, op=dist.ReduceOp.SUM)
     return t
 
 

@@ -25,8 +25,8 @@ from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 from .checkpoint import apply_checkpoint, save_checkpoint
 from ..config import RunConfig
 from ..envs.config import TocabiWalkConfig
-from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, all_reduce_mean, broadcast_module,
-                          from_environment, init_distributed, rank_seed)
+from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, all_reduce_mean, all_reduce_sum,
+                          broadcast_module, from_environment, init_distributed, rank_seed)
 from .logging import RunLogger, require_loggers
 from .networks import make_mlp
 from .rollout_guard import VALID_KEY, guard_rollout
@@ -169,28 +169,30 @@ def finished_result(run: RunFolder, cfg: RunConfig) -> TrainResult:
 
 
 def _episode_metrics(batch: TensorDictBase, dist_info: DistInfo | None = None) -> dict[str, float]:
-    """Mean return and length of the episodes that ended in this batch (one host read per iteration); in a
-    data-parallel run, each value averaged over the ranks' batches."""
+    """Mean return and length of the episodes that ended in this batch, their count, and per-step means (one host
+    read per iteration). In a data-parallel run the episode values are over every rank's finished episodes (sums
+    merged, then divided: a rank that finished more episodes weighs more) and ``episodes_finished`` is their total;
+    the per-step means are averaged over the ranks (equal batch sizes, so that is exact)."""
     done = batch["next", "done"].squeeze(-1)
-    n_done = done.sum()
-    out = {"episodes_finished": n_done}
-    # NaN when no episode ended in this batch (long episodes outlast an iteration), so plots skip the point.
-    nan_if_none = torch.where(n_done > 0, 1.0, torch.nan)
+    sums = {"episodes_finished": done.sum()}
     if ("next", "episode_reward") in batch.keys(True):
-        ret = batch["next", "episode_reward"].squeeze(-1)
-        out["episode_return"] = nan_if_none * (ret * done).sum() / n_done.clamp_min(1)
+        sums["episode_return"] = (batch["next", "episode_reward"].squeeze(-1) * done).sum()
     if ("next", "step_count") in batch.keys(True):
-        length = batch["next", "step_count"].squeeze(-1).float()
-        out["episode_length"] = nan_if_none * (length * done).sum() / n_done.clamp_min(1)
-    out["terminated_frac"] = batch["next", "terminated"].float().mean()
-    out["reward"] = batch["next", "reward"].mean()
+        sums["episode_length"] = (batch["next", "step_count"].squeeze(-1).float() * done).sum()
+    means = {"terminated_frac": batch["next", "terminated"].float().mean(), "reward": batch["next", "reward"].mean()}
     if ("next", "reward_terms") in batch.keys(True):
         for key, value in batch["next", "reward_terms"].items():
-            out[f"reward_terms/{key}"] = value.mean()
-    values = torch.stack([torch.as_tensor(v, dtype=torch.float32, device=done.device) for v in out.values()])
+            means[f"reward_terms/{key}"] = value.mean()
+    as_f32 = lambda values: torch.stack([v.to(torch.float32) for v in values])  # noqa: E731
+    summed, averaged = as_f32(sums.values()), as_f32(means.values())
     if dist_info is not None:
-        all_reduce_mean(values, dist_info)
-    return dict(zip(out.keys(), values.cpu().tolist()))
+        all_reduce_sum(summed, dist_info)
+        all_reduce_mean(averaged, dist_info)
+    count = summed[0]
+    # NaN when no episode ended (long episodes outlast an iteration), so plots skip the point.
+    per_episode = torch.where(count > 0, summed[1:] / count.clamp_min(1), torch.nan)
+    values = torch.cat([count.unsqueeze(0), per_episode, averaged]).cpu().tolist()
+    return dict(zip([*sums, *means], values))
 
 
 def make_collector(cfg: RunConfig, env: EnvBase, actor: torch.nn.Module, device: torch.device,
