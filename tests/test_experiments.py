@@ -1,7 +1,8 @@
 """Issue 23's experiment recipes and their library: the applied-torque read-out against the simulator's own fields,
 the recorded rollout and its metrics (the gait test's numbers), the obstacle analysis' definitions on made-up
-records, the fixed camera, the no-overwrite rule, and both recipes end to end on tiny settings (C MuJoCo on the
-CPU). The obstacle recipe needs the env's obstacles (``BoxObstacle``); without them its tests skip."""
+records, the fixed camera, the no-overwrite rule, rendering at most until its first failure, and both recipes end to
+end on tiny settings (C MuJoCo on the CPU). The obstacle recipe needs the env's obstacles (``BoxObstacle``); without
+them its tests skip."""
 
 from __future__ import annotations
 
@@ -320,3 +321,59 @@ def test_obstacle_test_end_to_end(tmp_path):
     with pytest.raises(SystemExit) as info:  # the same folder again: refused
         load_recipe("obstacle_test").main(["--device", "cpu", "--out", str(out)])
     assert "not overwritten" in str(info.value.code)
+
+
+# ------------------------------------------------------------------------------------------------ rendering
+def test_compare_gaits_skips_frames_when_rendering_is_off(tmp_path, monkeypatch):
+    recipe = load_recipe("compare_gaits")
+    monkeypatch.setattr(recipe, "rendering_unavailable", lambda: "no OpenGL here; install libegl1")
+    monkeypatch.setattr(recipe, "render_stills", lambda *a, **k: pytest.fail("rendering was tried"))
+    args = recipe.build_parser().parse_args([])
+    assert recipe.render_frames({"x": {}}, args, tmp_path) == "not rendered: no OpenGL here; install libegl1"
+
+
+def test_render_functions_give_up_after_the_first_failure(model, monkeypatch, tmp_path):
+    from tocabi_torchrl.rl import eval_video
+
+    monkeypatch.setattr(eval_video, "_failure", None)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)  # rendering is not off by the settings: it is tried
+    calls = []
+
+    def broken(*args, **kwargs):
+        calls.append(1)
+        raise RuntimeError("glfw init failed")
+
+    monkeypatch.setattr(mujoco, "Renderer", broken)
+    assert eval_video.rendering_unavailable() is None
+    with pytest.raises(RuntimeError, match="glfw init failed"):
+        eval_video.render_stills(model, model.qpos0[None])
+    for render in (lambda: eval_video.render_stills(model, model.qpos0[None]),
+                   lambda: eval_video.render_timelapse(model, model.qpos0[None]),
+                   lambda: eval_video.render_video(model, model.qpos0[None, None], 30, tmp_path)):
+        with pytest.raises(eval_video.RenderingUnavailable, match=r"earlier render .*glfw init failed"):
+            render()
+    assert len(calls) == 1 and "glfw init failed" in eval_video.rendering_unavailable()
+    assert eval_video.render_stills.__doc__.startswith("One (height, width, 3)")  # the wrapper keeps the docs
+
+
+def test_no_display_and_no_egl_turn_rendering_off_with_the_fix(monkeypatch):
+    import ctypes.util
+    import platform
+
+    from tocabi_torchrl import render_gl
+
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: None)  # no libEGL, no libOSMesa
+    monkeypatch.setattr(platform, "system", lambda: "Linux")
+    environ = {}
+    assert render_gl.choose_gl_backend(environ) == "disable" and environ == {"MUJOCO_GL": "disable"}
+    reason = render_gl.offscreen_unavailable(environ)
+    assert "no display and no EGL library" in reason and "libegl1" in reason and "MUJOCO_GL=osmesa" in reason
+    assert render_gl.offscreen_unavailable({"MUJOCO_GL": "off", "DISPLAY": ":0"}).startswith("MUJOCO_GL=off turns")
+    for environ in ({"DISPLAY": ":0"}, {"WAYLAND_DISPLAY": "wayland-0"}):  # a desktop: MuJoCo's default (GLFW)
+        assert render_gl.choose_gl_backend(environ) is None and render_gl.offscreen_unavailable(environ) is None
+    monkeypatch.setattr(platform, "system", lambda: "Darwin")  # macOS: MuJoCo's CGL needs no display variable
+    assert render_gl.choose_gl_backend({}) is None
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: "libEGL.so.1" if name == "EGL" else None)
+    monkeypatch.setattr(platform, "system", lambda: "Linux")
+    environ = {}
+    assert render_gl.choose_gl_backend(environ) == "egl" and render_gl.offscreen_unavailable(environ) is None
