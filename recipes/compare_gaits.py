@@ -28,7 +28,7 @@ import argparse
 import json
 import sys
 
-from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
+from tocabi_torchrl.render_gl import NO_GL_FIX, GLBackendError, choose_gl_backend
 
 try:  # before mujoco is imported
     choose_gl_backend()
@@ -41,7 +41,8 @@ import torch  # noqa: E402
 from tocabi_torchrl import robot  # noqa: E402
 from tocabi_torchrl.rl.checkpoint import CheckpointError  # noqa: E402
 from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_knee_comparison  # noqa: E402
-from tocabi_torchrl.rl.eval_video import CAMERA_POS, label_image, render_stills, render_timelapse, save_strip  # noqa: E402
+from tocabi_torchrl.rl.eval_video import (  # noqa: E402
+    CAMERA_POS, label_image, render_stills, render_timelapse, rendering_unavailable, save_strip)
 from tocabi_torchrl.rl.experiments import (  # noqa: E402
     ExperimentOutputError, display_path, parse_controllers, prepare_out_dir, slug, write_table)
 from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout, torque_stats  # noqa: E402
@@ -117,7 +118,12 @@ def run_controller(controller, args, device, index, total) -> dict:
 
 
 def render_frames(results: dict, args, out) -> str:
-    """Frame strips, their composite and time-lapse images of robot 0; returns what was written (or why not)."""
+    """Frame strips, their composite and time-lapse images of robot 0; returns what was written (or why not). The
+    first failure ends the rendering: MuJoCo is not asked again (a failed GLFW start can abort the process)."""
+    reason = rendering_unavailable()  # MUJOCO_GL turns OpenGL off, or an earlier render in this process failed
+    if reason:
+        print(f"frames skipped: {reason}")
+        return f"not rendered: {reason}"
     rows = []
     try:
         for label, res in results.items():
@@ -132,7 +138,7 @@ def render_frames(results: dict, args, out) -> str:
             rows.append(stills)
         save_strip(rows, out / "frames.png")
     except Exception as err:  # noqa: BLE001 - rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless machine)
-        print(f"frames skipped ({type(err).__name__}: {err}); set MUJOCO_GL=egl on a headless machine")
+        print(f"frames skipped ({type(err).__name__}: {err}); on a headless machine: {NO_GL_FIX}")
         return f"not rendered: {type(err).__name__}: {err}"
     return "frames.png, frames_<label>.png, timelapse_<label>.png"
 

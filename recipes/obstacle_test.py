@@ -11,14 +11,23 @@ then ``--step_mm`` higher each time until every controller's pass rate is below 
 ``--max_mm``. Height 0 is the plain ground (no box); its "obstacle" metrics use the box's footprint. Definitions of
 pass, failure on the obstacle, reached/crossed, the first 3 steps on the obstacle and the torque metrics:
 ``tocabi_torchrl/rl/obstacle_eval.py`` (also in the table's notes). Written to ``--out`` (an existing, non-empty
-folder is refused unless ``--overwrite``):
+folder is refused unless ``--overwrite`` or ``--resume``):
 
-    table.md, table.json        one row per controller and height
+    table.md, table.json        one row per controller and height, rewritten (atomically) after every controller
+                                and height, so a run stopped midway keeps what it measured
     pass_rate.png, lateral_deviation.png, peak_torque.png   those values against the height, one line per controller
     torques_<h>mm.png           hip-pitch, knee, ankle-pitch torques of one robot per controller over its first 3 steps
-                                on the obstacle (t = 0: its first contact)
+                                on the obstacle (t = 0: its first contact); trace_<label>_<h>mm.npz: that trace
     frames_<label>_<h>mm_pass.png, ..._fail.png   one robot that passed and one that failed, from the camera at
                                 (2, 6, 2.5) m: start, first contact, +1 s, +2 s, end (or termination)
+
+``--resume`` continues a run in ``--out`` (one cut short, or split over several calls: repeat the same command with
+``--resume`` until it ends): the rows of its table.json stay, only the (controller, height) pairs missing there are
+measured, and the escalation and the pass-rate, lateral-deviation and peak-torque plots use every row. It is refused
+when that table was made with other settings (those that change a row: ``--num_envs``, ``--seconds``, ``--vx``,
+``--vy``, ``--distance``, ``--box_length``, ``--box_width``, ``--jitter``, ``--steps_on_obstacle``, and each label's
+checkpoint). Without a table.json in ``--out`` it starts from scratch there. ``--overwrite`` ignores an earlier table:
+its rows are replaced by this run's.
 
 Needs the env's obstacles (``env.scene.obstacles``, ``BoxObstacle``).
 """
@@ -27,10 +36,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import io
 import json
 import sys
 
-from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
+from tocabi_torchrl.render_gl import NO_GL_FIX, GLBackendError, choose_gl_backend
 
 try:  # before mujoco is imported
     choose_gl_backend()
@@ -43,9 +53,11 @@ import torch  # noqa: E402
 from tocabi_torchrl import robot  # noqa: E402
 from tocabi_torchrl.rl.checkpoint import CheckpointError  # noqa: E402
 from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_vs_height  # noqa: E402
-from tocabi_torchrl.rl.eval_video import CAMERA_POS, label_image, render_stills, save_strip  # noqa: E402
+from tocabi_torchrl.rl.eval_video import (  # noqa: E402
+    CAMERA_POS, label_image, render_stills, rendering_unavailable, save_strip)
 from tocabi_torchrl.rl.experiments import (  # noqa: E402
-    ExperimentOutputError, display_path, parse_controllers, prepare_out_dir, slug, write_table)
+    ExperimentOutputError, checkpoint_record, display_path, earlier_table, parse_controllers, prepare_out_dir, slug,
+    write_atomic, write_table)
 from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout  # noqa: E402
 from tocabi_torchrl.rl.obstacle_eval import analyse_obstacle, pick_example  # noqa: E402
 from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
@@ -71,6 +83,9 @@ OPTIONS = (
     ("--fovy", float, 25.0, "the camera's vertical field of view [deg] (MuJoCo's default: 45)"),
     ("--out", str, "runs/experiments/obstacle_test", "output folder"),
 )
+#: The options that change what a row measures: a run is resumed only with the values its table was made with.
+SETTINGS = ("num_envs", "seconds", "vx", "vy", "distance", "box_length", "box_width", "jitter", "steps_on_obstacle")
+EXPERIMENT = "obstacle test (TocabiLab experiment 3)"
 
 COLUMNS = {"controller": "controller", "height_mm": "height [mm]", "num_envs": "robots", "pass_rate": "pass",
            "failed_on_obstacle_rate": "failed on obstacle", "failed_before_obstacle_rate": "failed before it",
@@ -105,7 +120,14 @@ def build_parser() -> argparse.ArgumentParser:
     for flag, kind, default, text in OPTIONS:
         parser.add_argument(flag, type=kind, default=default, help=f"{text} (default: {default})")
     parser.add_argument("--overwrite", action="store_true",
-                        help="write into an existing --out folder (files of the same name are replaced, others stay)")
+                        help="write into an existing --out folder, ignoring any earlier table there: its rows are "
+                             "replaced by this run's, files of the same name are replaced, others stay")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in --out: keep its table.json's rows, measure only the (controller, "
+                             "height) pairs missing there, redraw the plots from all rows (frames and torque traces "
+                             "of earlier heights stay). Refused if that table was made with other "
+                             f"--{', --'.join(SETTINGS)} or another checkpoint under a label; without a table.json "
+                             "there it starts from scratch in that folder")
     return parser
 
 
@@ -227,6 +249,36 @@ def render_examples(result: dict, label: str, height_mm: float, args, out) -> li
     return written
 
 
+def save_trace(trace: dict | None, dt: float, path) -> None:
+    """The torque trace drawn into torques_<h>mm.png, kept as a file so that a resumed run can redraw that figure
+    with the controllers it adds (none: no robot touched the box)."""
+    if trace is None:
+        path.unlink(missing_ok=True)
+        return
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, torque=trace["torque"], t0=trace["t0"], env=trace["env"], dt=dt)
+    write_atomic(path, buffer.getvalue())
+
+
+def plot_torques(out, height_mm: float, controllers, args) -> None:
+    """torques_<h>mm.png from the saved traces of every controller at this height, measured now or earlier."""
+    traces, dt = {}, None
+    for controller in controllers:
+        path = out / f"trace_{slug(controller.label)}_{height_mm:g}mm.npz"
+        if path.is_file():
+            with np.load(path) as saved:
+                traces[controller.label] = {"torque": saved["torque"], "t0": float(saved["t0"]),
+                                            "env": int(saved["env"])}
+                dt = float(saved["dt"])
+    if not traces:
+        return
+    plot_joint_torques({label: tr["torque"] for label, tr in traces.items()}, dt, out / f"torques_{height_mm:g}mm.png",
+                       CRITICAL_JOINTS, f"Torques over the first {args.steps_on_obstacle} steps on a {height_mm:g} mm "
+                       f"box (robots {', '.join(str(tr['env']) for tr in traces.values())})",
+                       t0={label: tr["t0"] for label, tr in traces.items()}, xlabel="time from the first contact [s]",
+                       limits=robot.LEG_TORQUE_LIMITS[list(CRITICAL)], mark_zero=True)
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -236,51 +288,82 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--heights_mm takes comma-separated numbers, got {args.heights_mm!r}")
     if args.num_envs < 1 or args.seconds <= 0 or not heights or min(heights) < 0 or args.step_mm < 0:
         parser.error("--num_envs must be >= 1, --seconds > 0, --heights_mm non-empty and >= 0, --step_mm >= 0")
+    if args.resume and args.overwrite:
+        parser.error("--resume keeps the earlier table's rows, --overwrite replaces them: pass one of them")
     try:
         from tocabi_torchrl.envs.config import BoxObstacle, SceneConfig  # noqa: F401
     except ImportError:
         sys.exit("error: this recipe needs the env's obstacles (tocabi_torchrl.envs.config.BoxObstacle, "
                  "env.scene.obstacles), which this version of the package lacks")
+    settings = {f"--{name}": getattr(args, name) for name in SETTINGS}
     try:
         controllers = parse_controllers(args.policy)
         device = resolve_device(args.device)
-        out = prepare_out_dir(args.out, args.overwrite)
+        checkpoints = {controller.label: checkpoint_record(controller) for controller in controllers}
+        out = prepare_out_dir(args.out, args.overwrite, resume=args.resume)
+        rows, earlier = earlier_table(out, EXPERIMENT, settings, checkpoints) if args.resume else ([], {})
     except (ValueError, RuntimeError, ExperimentOutputError) as err:
         sys.exit(f"error: {err}")
-    rows, frames, stop = [], [], "the heights listed in --heights_mm"
-    i = 0
+    order = {controller.label: i for i, controller in enumerate(controllers)}
+    done = {(row["controller"], round(row["height_mm"], 6)) for row in rows}
+    if rows:
+        print(f"resuming {out}/table.json: {len(rows)} rows kept, at "
+              f"{', '.join(f'{h:g}' for h in sorted({h for _, h in done}))} mm")
+    frames = list(earlier.get("frames", []))
+    this_call = {"argv": sys.argv[1:] if argv is None else list(argv), "device": str(device),
+                 "torch": torch.__version__, "measured": []}
+    no_frames = rendering_unavailable()  # why nothing is rendered (also after the first failure), or None
+    if no_frames:
+        print(f"frames skipped: {no_frames}")
+
+    def save_table(stop: str | None) -> None:
+        """table.md and table.json with every row so far; ``stop`` None: the run is still going."""
+        rows.sort(key=lambda row: (row["height_mm"], order[row["controller"]]))
+        calls = earlier.get("calls", []) + ([this_call] if this_call["measured"] else [])
+        devices = ", ".join(dict.fromkeys(call["device"] for call in calls)) or str(device)
+        meta = {"experiment": EXPERIMENT, "command_mps": [args.vx, args.vy], "seconds": args.seconds,
+                "num_envs": args.num_envs, "heights_mm": sorted({row["height_mm"] for row in rows}),
+                "complete": stop is not None, "stopped_after": stop or "in progress (continue it with --resume)",
+                "box_length_m": args.box_length, "box_width_m": args.box_width,
+                "distance_ahead_of_left_sole_m": args.distance, "jitter_m": args.jitter, "frames": frames,
+                "settings": settings, "checkpoints": checkpoints, "calls": calls}
+        write_table(rows, COLUMNS, out, notes=NOTES, meta=meta,
+                    title=f"Obstacle test at ({args.vx:g}, {args.vy:g}) m/s, {args.seconds:g} s, {args.num_envs} "
+                    f"robots per controller and height, {devices}")
+
+    stop, i = "the heights listed in --heights_mm", 0
     while i < len(heights):
         height = heights[i]
-        print(f"[height {height:g} mm] {len(controllers)} controllers x {args.num_envs} robots x {args.seconds:g} s "
-              f"on {device}", flush=True)
-        results = {}
-        for controller in controllers:
+        todo = [controller for controller in controllers if (controller.label, round(height, 6)) not in done]
+        print(f"[height {height:g} mm] {len(todo)} of {len(controllers)} controllers to measure"
+              + (f" x {args.num_envs} robots x {args.seconds:g} s on {device}" if todo else
+                 " (all in the earlier table)"), flush=True)
+        for controller in todo:
             try:
-                results[controller.label] = run_one(controller, height, args, device)
+                result = run_one(controller, height, args, device)
             except (CheckpointError, ValueError) as err:
                 sys.exit(f"error: {controller.label}: {err}")
-        rows += [res["row"] for res in results.values()]
-        traces = {label: res["trace"] for label, res in results.items() if res["trace"] is not None}
-        if traces:
-            dt = results[controllers[0].label]["dt"]
-            plot_joint_torques({label: tr["torque"] for label, tr in traces.items()}, dt,
-                               out / f"torques_{height:g}mm.png", CRITICAL_JOINTS,
-                               f"Torques over the first {args.steps_on_obstacle} steps on a {height:g} mm box "
-                               f"(robots {', '.join(str(tr['env']) for tr in traces.values())})",
-                               t0={label: tr["t0"] for label, tr in traces.items()},
-                               xlabel="time from the first contact [s]",
-                               limits=robot.LEG_TORQUE_LIMITS[list(CRITICAL)], mark_zero=True)
-        try:
-            for label, res in results.items():
-                frames += render_examples(res, label, height, args, out)
-        except Exception as err:  # noqa: BLE001 - rendering needs an OpenGL backend (MUJOCO_GL=egl when headless)
-            frames.append(f"not rendered: {type(err).__name__}: {err}")
-            print(f"frames skipped ({type(err).__name__}: {err}); set MUJOCO_GL=egl on a headless machine")
+            rows.append(result["row"])
+            this_call["measured"].append([controller.label, height])
+            save_trace(result["trace"], result["dt"], out / f"trace_{slug(controller.label)}_{height:g}mm.npz")
+            if no_frames:
+                frames.append(f"not rendered: {controller.label}, {height:g} mm: {no_frames}")
+            else:
+                try:
+                    frames += render_examples(result, controller.label, height, args, out)
+                except Exception as err:  # noqa: BLE001 - no OpenGL backend; MuJoCo is not asked again (it can abort)
+                    no_frames = f"{type(err).__name__}: {err}"
+                    frames.append(f"not rendered: {controller.label}, {height:g} mm: {no_frames}")
+                    print(f"frames skipped from here on ({no_frames}); rendering is not tried again in this run. On "
+                          f"a headless machine: {NO_GL_FIX}")
+            save_table(None)
+        if todo:
+            plot_torques(out, height, controllers, args)
         i += 1
         if i == len(heights) and args.step_mm > 0:
-            failing = all(res["row"]["pass_rate"] < args.fail_below for res in results.values())
+            at_height = [row for row in rows if round(row["height_mm"], 6) == round(height, 6)]
             nxt = round(height + args.step_mm, 6)
-            if failing:
+            if all(row["pass_rate"] < args.fail_below for row in at_height):
                 stop = f"every controller's pass rate fell below {args.fail_below:g} at {height:g} mm"
             elif nxt > args.max_mm:
                 stop = f"the cap --max_mm {args.max_mm:g} (not every controller failed)"
@@ -291,17 +374,13 @@ def main(argv: list[str] | None = None) -> dict:
                    out / "lateral_deviation.png", "Lateral deviation after the obstacle")
     plot_vs_height(rows, "peak_torque_on_obstacle_Nm", "peak |torque| [N·m]", out / "peak_torque.png",
                    f"Peak torque over the first {args.steps_on_obstacle} steps on the obstacle")
-    meta = {"experiment": "obstacle test (TocabiLab experiment 3)", "command_mps": [args.vx, args.vy],
-            "seconds": args.seconds, "num_envs": args.num_envs, "device": str(device), "heights_mm": heights,
-            "stopped_after": stop, "box_length_m": args.box_length, "box_width_m": args.box_width,
-            "distance_ahead_of_left_sole_m": args.distance, "jitter_m": args.jitter, "frames": frames,
-            "argv": sys.argv[1:] if argv is None else argv, "torch": torch.__version__}
-    write_table(rows, COLUMNS, out, title=f"Obstacle test at ({args.vx:g}, {args.vy:g}) m/s, {args.seconds:g} s, "
-                f"{args.num_envs} robots per controller and height, {device}", notes=NOTES, meta=meta)
-    print(f"wrote {out}/: table.md, table.json, pass_rate.png, lateral_deviation.png, peak_torque.png, "
-          f"torques_<h>mm.png, {len([f for f in frames if f.endswith('.png')])} frame strips; stopped after {stop}")
+    save_table(stop)
+    print(f"wrote {out}/: table.md, table.json ({len(this_call['measured'])} of {len(rows)} rows measured now), "
+          f"pass_rate.png, lateral_deviation.png, peak_torque.png, torques_<h>mm.png, "
+          f"{len([f for f in frames if f.endswith('.png')])} frame strips; stopped after {stop}")
     print(json.dumps([{k: row[k] for k in COLUMNS} for row in rows], indent=2))
-    return {"out": str(out), "rows": rows, "frames": frames, "heights_mm": heights, "stopped_after": stop}
+    return {"out": str(out), "rows": rows, "frames": frames, "heights_mm": heights, "stopped_after": stop,
+            "measured": [tuple(pair) for pair in this_call["measured"]]}
 
 
 if __name__ == "__main__":

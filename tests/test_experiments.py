@@ -1,11 +1,13 @@
 """Issue 23's experiment recipes and their library: the applied-torque read-out against the simulator's own fields,
 the recorded rollout and its metrics (the gait test's numbers), the obstacle analysis' definitions on made-up
-records, the fixed camera, the no-overwrite rule, and both recipes end to end on tiny settings (C MuJoCo on the
-CPU). The obstacle recipe needs the env's obstacles (``BoxObstacle``); without them its tests skip."""
+records, the fixed camera, the no-overwrite rule, resuming an obstacle run, rendering at most until its first
+failure, and both recipes end to end on tiny settings (C MuJoCo on the CPU). The obstacle recipe needs the env's
+obstacles (``BoxObstacle``); without them its tests skip."""
 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import mujoco
@@ -310,7 +312,7 @@ def test_obstacle_test_end_to_end(tmp_path):
         assert (out / name).is_file(), name
     assert any(out.glob("torques_*mm.png"))
     strips = sorted(out.glob("frames_torque_*mm_*.png"))
-    if not str(table["meta"]["frames"]).startswith("not rendered"):
+    if not any(entry.startswith("not rendered") for entry in table["meta"]["frames"]):
         assert strips
     from PIL import Image
 
@@ -320,3 +322,215 @@ def test_obstacle_test_end_to_end(tmp_path):
     with pytest.raises(SystemExit) as info:  # the same folder again: refused
         load_recipe("obstacle_test").main(["--device", "cpu", "--out", str(out)])
     assert "not overwritten" in str(info.value.code)
+
+
+# ------------------------------------------------------------------------------------------------ resuming
+def _tiny_obstacle_run(out: Path, heights: str, *extra: str) -> list[str]:
+    """The cheapest obstacle run that exercises the recipe: one robot, 0.2 s (it does not reach the box), tiny
+    frames, only the listed heights."""
+    return ["--policy", f"torque={TORQUE_POLICY}", "--device", "cpu", "--num_envs", "1", "--seconds", "0.2",
+            "--heights_mm", heights, "--step_mm", "0", "--frame_width", "48", "--frame_height", "32",
+            "--out", str(out), *extra]
+
+
+class _Killed(BaseException):
+    """Stands for the run being killed (a timeout): nothing in the recipe catches it."""
+
+
+def _counting(recipe, monkeypatch, stop_at: float | None = None) -> list[tuple[str, float]]:
+    """Wrap the recipe's run_one: record every (label, height) it measures; at ``stop_at`` mm act like a kill."""
+    measured, run_one = [], getattr(recipe.run_one, "original", recipe.run_one)  # not an earlier wrapper
+
+    def counted(controller, height_mm, args, device):
+        if height_mm == stop_at:
+            raise _Killed(f"killed at {height_mm:g} mm")
+        measured.append((controller.label, height_mm))
+        return run_one(controller, height_mm, args, device)
+
+    counted.original = run_one
+    monkeypatch.setattr(recipe, "run_one", counted)
+    return measured
+
+
+@needs_policies
+@needs_obstacles
+def test_obstacle_test_resumes_only_the_missing_pairs(tmp_path, monkeypatch):
+    recipe = load_recipe("obstacle_test")
+    monkeypatch.setattr(recipe, "rendering_unavailable", lambda: "not needed here")  # frames: another test's
+    out = tmp_path / "obstacles"
+    measured = _counting(recipe, monkeypatch)
+    recipe.main(_tiny_obstacle_run(out, "0"))
+    assert measured == [("torque", 0.0)]
+    first = json.loads((out / "table.json").read_text())
+    assert first["meta"]["complete"] and first["meta"]["settings"]["--num_envs"] == 1
+    # a second call, killed at 20 mm: the 0 mm row is kept, 12 mm measured and already written
+    measured = _counting(recipe, monkeypatch, stop_at=20.0)
+    with pytest.raises(_Killed):
+        recipe.main(_tiny_obstacle_run(out, "0,12,20", "--resume"))
+    assert measured == [("torque", 12.0)]
+    killed = json.loads((out / "table.json").read_text())
+    assert [(r["controller"], r["height_mm"]) for r in killed["rows"]] == [("torque", 0.0), ("torque", 12.0)]
+    assert killed["rows"][0] == first["rows"][0] and not killed["meta"]["complete"]
+    assert not list(out.glob(".*.tmp"))  # written atomically: no temporary file left
+    # the third call measures only 20 mm and draws the plots from every row
+    plotted = []
+    monkeypatch.setattr(recipe, "plot_vs_height", lambda rows, key, *a, **k: plotted.append((key, list(rows))))
+    measured = _counting(recipe, monkeypatch)
+    result = recipe.main(_tiny_obstacle_run(out, "0,12,20", "--resume"))
+    assert measured == [("torque", 20.0)] and result["measured"] == [("torque", 20.0)]
+    table = json.loads((out / "table.json").read_text())
+    assert [r["height_mm"] for r in table["rows"]] == [0.0, 12.0, 20.0] and table["meta"]["complete"]
+    assert table["rows"][:2] == killed["rows"]
+    assert [[h for _, h in call["measured"]] for call in table["meta"]["calls"]] == [[0.0], [12.0], [20.0]]
+    assert {key for key, _ in plotted} == {"pass_rate", "lateral_deviation_after_m", "peak_torque_on_obstacle_Nm"}
+    assert all([r["height_mm"] for r in rows] == [0.0, 12.0, 20.0] for _, rows in plotted)
+    md = (out / "table.md").read_text()
+    assert all(f"| torque | {h} | 1 |" in md for h in (0, 12, 20))
+    # the escalation reads the earlier rows: every pass rate is below 1.1 at 20 mm, so it stops without a rollout
+    measured = _counting(recipe, monkeypatch)
+    result = recipe.main(_tiny_obstacle_run(out, "0,20", "--resume", "--step_mm", "10", "--fail_below", "1.1"))
+    assert measured == [] and result["stopped_after"].endswith("below 1.1 at 20 mm")
+    assert len(json.loads((out / "table.json").read_text())["rows"]) == 3
+    # other settings, or another checkpoint under the same label, are refused before anything runs
+    before = (out / "table.json").read_text()
+    for flag, value, named in (("--num_envs", "2", "--num_envs 1 there, 2 here"),
+                               ("--seconds", "0.4", "--seconds 0.2 there, 0.4 here"),
+                               ("--jitter", "0", "--jitter 0.05 there, 0.0 here")):
+        with pytest.raises(SystemExit) as info:
+            recipe.main(_tiny_obstacle_run(out, "0", "--resume", flag, value))
+        assert named in str(info.value.code) and "Rerun with the earlier values" in str(info.value.code)
+    argv = _tiny_obstacle_run(out, "0", "--resume")
+    argv[1] = f"torque={PD_POLICY}"
+    with pytest.raises(SystemExit) as info:
+        recipe.main(argv)
+    assert "controller 'torque': checkpoint" in str(info.value.code) and "another label" in str(info.value.code)
+    argv[1] = f"pd={PD_POLICY}"  # a new label is fine in itself, but the earlier 'torque' rows need their controller
+    with pytest.raises(SystemExit) as info:
+        recipe.main(argv)
+    assert "['torque'] measured there are not named here" in str(info.value.code)
+    with pytest.raises(SystemExit) as info:
+        recipe.main(_tiny_obstacle_run(out, "0", "--resume", "--overwrite"))
+    assert info.value.code == 2  # a usage error: "--resume keeps the earlier table's rows, --overwrite replaces them"
+    assert (out / "table.json").read_text() == before and measured == []
+
+
+def test_earlier_table_checks_what_it_was_made_with(tmp_path):
+    from tocabi_torchrl.rl.experiments import (
+        Controller,
+        ExperimentOutputError,
+        checkpoint_record,
+        earlier_table,
+        write_table,
+    )
+
+    assert earlier_table(tmp_path, "exp", {"--n": 1}, {}) == ([], {})  # nothing to resume: start afresh
+    ckpt = tmp_path / "a.pt"
+    ckpt.write_bytes(b"weights")
+    record = checkpoint_record(Controller("a", ckpt))
+    assert record["sha256"] and record["file"] == str(ckpt.resolve())
+    rows = [{"controller": "a", "height_mm": 0.0, "pass_rate": float("nan")}]
+    meta = {"experiment": "exp", "settings": {"--n": 1, "--s": 0.5}, "checkpoints": {"a": record}}
+    write_table(rows, {"controller": "c"}, tmp_path, meta=meta)
+    got_rows, got_meta = earlier_table(tmp_path, "exp", {"--n": 1, "--s": 0.5}, {"a": record})
+    assert got_rows == [{"controller": "a", "height_mm": 0.0, "pass_rate": None}] and got_meta == meta
+    b = checkpoint_record(Controller("b", ckpt))
+    assert earlier_table(tmp_path, "exp", {"--n": 1, "--s": 0.5}, {"a": record, "b": b})[0]  # a new label: fine
+    refusals = {
+        "--n 1 there, 2 here; --s 0.5 there, 1 here": ("exp", {"--n": 2, "--s": 1}, {"a": record}),
+        "not of 'other'": ("other", {"--n": 1}, {"a": record}),
+        "['a'] measured there are not named here": ("exp", {"--n": 1, "--s": 0.5}, {}),
+    }
+    ckpt.write_bytes(b"retrained")  # the same path, other contents
+    refusals["another contents (sha256)"] = ("exp", {"--n": 1, "--s": 0.5}, {"a": checkpoint_record(
+        Controller("a", ckpt))})
+    for message, call in refusals.items():
+        with pytest.raises(ExperimentOutputError, match=re.escape(message)):
+            earlier_table(tmp_path, *call)
+    write_table(rows, {"controller": "c"}, tmp_path, meta={"experiment": "exp"})
+    with pytest.raises(ExperimentOutputError, match="does not record the settings"):
+        earlier_table(tmp_path, "exp", {"--n": 1}, {"a": record})
+    (tmp_path / "table.json").write_text("{ cut short")
+    with pytest.raises(ExperimentOutputError, match="not a readable results table"):
+        earlier_table(tmp_path, "exp", {"--n": 1}, {"a": record})
+
+
+# ------------------------------------------------------------------------------------------------ rendering
+@needs_policies
+@needs_obstacles
+def test_obstacle_test_tries_rendering_only_once(tmp_path, monkeypatch, capsys):
+    from tocabi_torchrl.rl import eval_video
+
+    monkeypatch.setattr(eval_video, "_failure", None)  # this process' rendering state, restored afterwards
+    recipe = load_recipe("obstacle_test")
+    monkeypatch.setattr(recipe, "rendering_unavailable", lambda: None)  # as on a machine that may render
+    calls = []
+
+    def broken(*args, **kwargs):  # like a GLFW start without a display; a second try could abort the process
+        calls.append(1)
+        raise RuntimeError("gladLoadGL error")
+
+    monkeypatch.setattr(recipe, "render_stills", broken)
+    result = recipe.main(_tiny_obstacle_run(tmp_path / "obstacles", "0,12"))
+    assert len(calls) == 1 and len(result["rows"]) == 2
+    assert result["frames"] == ["not rendered: torque, 0 mm: RuntimeError: gladLoadGL error",
+                                "not rendered: torque, 12 mm: RuntimeError: gladLoadGL error"]
+    assert capsys.readouterr().out.count("frames skipped") == 1
+    # rendering that is off from the start (MUJOCO_GL=disable: no display, no EGL) is not tried at all
+    monkeypatch.setattr(recipe, "rendering_unavailable", lambda: "no OpenGL here; install libegl1")
+    result = recipe.main(_tiny_obstacle_run(tmp_path / "off", "0"))
+    assert len(calls) == 1 and result["frames"] == ["not rendered: torque, 0 mm: no OpenGL here; install libegl1"]
+
+
+def test_compare_gaits_skips_frames_when_rendering_is_off(tmp_path, monkeypatch):
+    recipe = load_recipe("compare_gaits")
+    monkeypatch.setattr(recipe, "rendering_unavailable", lambda: "no OpenGL here; install libegl1")
+    monkeypatch.setattr(recipe, "render_stills", lambda *a, **k: pytest.fail("rendering was tried"))
+    args = recipe.build_parser().parse_args([])
+    assert recipe.render_frames({"x": {}}, args, tmp_path) == "not rendered: no OpenGL here; install libegl1"
+
+
+def test_render_functions_give_up_after_the_first_failure(model, monkeypatch, tmp_path):
+    from tocabi_torchrl.rl import eval_video
+
+    monkeypatch.setattr(eval_video, "_failure", None)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)  # rendering is not off by the settings: it is tried
+    calls = []
+
+    def broken(*args, **kwargs):
+        calls.append(1)
+        raise RuntimeError("glfw init failed")
+
+    monkeypatch.setattr(mujoco, "Renderer", broken)
+    assert eval_video.rendering_unavailable() is None
+    with pytest.raises(RuntimeError, match="glfw init failed"):
+        eval_video.render_stills(model, model.qpos0[None])
+    for render in (lambda: eval_video.render_stills(model, model.qpos0[None]),
+                   lambda: eval_video.render_timelapse(model, model.qpos0[None]),
+                   lambda: eval_video.render_video(model, model.qpos0[None, None], 30, tmp_path)):
+        with pytest.raises(eval_video.RenderingUnavailable, match=r"earlier render .*glfw init failed"):
+            render()
+    assert len(calls) == 1 and "glfw init failed" in eval_video.rendering_unavailable()
+    assert eval_video.render_stills.__doc__.startswith("One (height, width, 3)")  # the wrapper keeps the docs
+
+
+def test_no_display_and_no_egl_turn_rendering_off_with_the_fix(monkeypatch):
+    import ctypes.util
+    import platform
+
+    from tocabi_torchrl import render_gl
+
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: None)  # no libEGL, no libOSMesa
+    monkeypatch.setattr(platform, "system", lambda: "Linux")
+    environ = {}
+    assert render_gl.choose_gl_backend(environ) == "disable" and environ == {"MUJOCO_GL": "disable"}
+    reason = render_gl.offscreen_unavailable(environ)
+    assert "no display and no EGL library" in reason and "libegl1" in reason and "MUJOCO_GL=osmesa" in reason
+    assert render_gl.offscreen_unavailable({"MUJOCO_GL": "off", "DISPLAY": ":0"}).startswith("MUJOCO_GL=off turns")
+    for environ in ({"DISPLAY": ":0"}, {"WAYLAND_DISPLAY": "wayland-0"}):  # a desktop: MuJoCo's default (GLFW)
+        assert render_gl.choose_gl_backend(environ) is None and render_gl.offscreen_unavailable(environ) is None
+    monkeypatch.setattr(platform, "system", lambda: "Darwin")  # macOS: MuJoCo's CGL needs no display variable
+    assert render_gl.choose_gl_backend({}) is None
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: "libEGL.so.1" if name == "EGL" else None)
+    monkeypatch.setattr(platform, "system", lambda: "Linux")
+    environ = {}
+    assert render_gl.choose_gl_backend(environ) == "egl" and render_gl.offscreen_unavailable(environ) is None

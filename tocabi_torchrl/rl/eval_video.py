@@ -1,23 +1,64 @@
 """Rendering of recorded joint states, offscreen by MuJoCo: the gait test's video (a few robots side by side, a
 camera tracking each) and the experiments' still frames and time-lapse images from a fixed camera position
-(TocabiLab's camera at (2, 6, 2.5) m, looking at the pelvis)."""
+(TocabiLab's camera at (2, 6, 2.5) m, looking at the pelvis).
+
+MuJoCo is asked to render at most until its first failure in a process: after that every render function raises
+:class:`RenderingUnavailable` at once (a failed GLFW start, MuJoCo's default without ``MUJOCO_GL``, can abort the
+whole process when tried again), and so it does when ``MUJOCO_GL`` turns OpenGL off
+(:func:`~tocabi_torchrl.render_gl.choose_gl_backend` on a machine without a display or EGL).
+:func:`rendering_unavailable` says so before trying."""
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from .. import robot
+from ..render_gl import offscreen_unavailable
 
-__all__ = ["CAMERA_POS", "free_camera", "label_image", "render_stills", "render_timelapse", "render_video",
-           "save_strip"]
+__all__ = ["CAMERA_POS", "RenderingUnavailable", "free_camera", "label_image", "render_stills", "render_timelapse",
+           "render_video", "rendering_unavailable", "save_strip"]
 
 #: TocabiLab's camera for the gait figures [m], world frame: to the robot's left, ahead of the start, above.
 CAMERA_POS = (2.0, 6.0, 2.5)
 
+#: The first rendering failure in this process ("<type>: <message>"); MuJoCo is not asked again after it.
+_failure: str | None = None
 
+
+class RenderingUnavailable(RuntimeError):
+    """Nothing is rendered in this process: ``MUJOCO_GL`` turns OpenGL off, or an earlier render failed."""
+
+
+def rendering_unavailable() -> str | None:
+    """Why the render functions would refuse in this process (with the fix where known), or ``None``: they try."""
+    if _failure is not None:
+        return f"an earlier render in this process failed ({_failure}); MuJoCo is not asked again"
+    return offscreen_unavailable()
+
+
+def _guarded(render):
+    """``render`` refusing when :func:`rendering_unavailable`, and remembering its first failure (let through)."""
+
+    @functools.wraps(render)
+    def guarded(*args, **kwargs):
+        global _failure
+        reason = rendering_unavailable()
+        if reason is not None:
+            raise RenderingUnavailable(reason)
+        try:
+            return render(*args, **kwargs)
+        except Exception as err:
+            _failure = f"{type(err).__name__}: {err}"
+            raise
+
+    return guarded
+
+
+@_guarded
 def render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480, height: int = 360,
                   progress: bool = True, mocap_pos: np.ndarray | None = None) -> Path:
     """Render (T, k, nq) joint states of k robots side by side (one camera each) into an mp4 or a gif.
@@ -84,6 +125,7 @@ def _silhouette_option():
     return option
 
 
+@_guarded
 def render_stills(model, qpos: np.ndarray, camera_pos=CAMERA_POS, lookat=None, width: int = 480,
                   height: int = 360, setup=None, fovy: float | None = None) -> list[np.ndarray]:
     """One (height, width, 3) uint8 image per joint state of (k, nq) ``qpos``, from a free camera at
@@ -114,6 +156,7 @@ def render_stills(model, qpos: np.ndarray, camera_pos=CAMERA_POS, lookat=None, w
     return images
 
 
+@_guarded
 def render_timelapse(model, qpos: np.ndarray, camera_pos=CAMERA_POS, lookat=None, width: int = 960,
                      height: int = 480, setup=None, fovy: float | None = None) -> np.ndarray:
     """One image with the robot drawn at every joint state of (k, nq) ``qpos`` (a time-lapse), from a free camera at
@@ -173,3 +216,4 @@ def save_strip(images: list[np.ndarray], path: Path) -> Path:
     strip = np.concatenate([np.concatenate(row + [blank] * (width - len(row)), axis=1) for row in rows], axis=0)
     imageio.imwrite(path, strip)
     return Path(path)
+

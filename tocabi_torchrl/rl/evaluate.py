@@ -20,6 +20,7 @@ from tqdm.auto import tqdm
 
 from .. import robot
 from ..config import RunConfig
+from ..render_gl import NO_GL_FIX
 from .checkpoint import checkpoint_file, read_checkpoint, run_folder_of
 from .eval_plots import plot_knees
 from .eval_video import render_video
@@ -95,8 +96,7 @@ def evaluate_policy(
                                                  mocap_pos=None if mocap is None else mocap[:video_envs]))
         except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless machine)
             summary["video"] = f"not rendered: {type(err).__name__}: {err}"
-            print(f"video skipped ({summary['video']}); set MUJOCO_GL=egl on a headless machine (osmesa only with "
-                  "libOSMesa and PyOpenGL installed)")
+            print(f"video skipped ({summary['video']}); on a headless machine: {NO_GL_FIX}")
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 

@@ -1,9 +1,11 @@
 """What the experiment recipes (``recipes/compare_gaits.py``, ``recipes/obstacle_test.py``) share besides the rollout
 (:mod:`.gait_record`), the figures (:mod:`.eval_plots`) and the frames (:mod:`.eval_video`): the controllers named
-on the command line, the output folder's no-overwrite rule, and the table written as markdown and JSON."""
+on the command line, the output folder's no-overwrite rule, the table written as markdown and JSON, and resuming a
+run from its table."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -13,8 +15,8 @@ from pathlib import Path
 
 from .. import robot
 
-__all__ = ["Controller", "ExperimentOutputError", "SHIPPED_POLICIES", "display_path", "parse_controllers",
-           "prepare_out_dir", "slug", "write_table"]
+__all__ = ["Controller", "ExperimentOutputError", "SHIPPED_POLICIES", "checkpoint_record", "display_path",
+           "earlier_table", "parse_controllers", "prepare_out_dir", "slug", "write_atomic", "write_table"]
 
 #: The two policies shipped with the package, the experiments' default controllers: label -> file name.
 SHIPPED_POLICIES = {"PD (pd_reference)": "tocabi_walk_ppo.pt", "torque": "tocabi_walk_torque.pt"}
@@ -67,12 +69,15 @@ def slug(label: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", label).strip("_") or "controller"
 
 
-def prepare_out_dir(path: str | os.PathLike, overwrite: bool = False) -> Path:
+def prepare_out_dir(path: str | os.PathLike, overwrite: bool = False, resume: bool = False) -> Path:
     """Create ``path``; an existing folder that is not empty is refused (:class:`ExperimentOutputError`) unless
-    ``overwrite``, so results are never replaced silently. With ``overwrite`` the run writes into the folder: its own
-    files replace those of the same name, and any other file there is left alone (nothing is deleted)."""
+    ``overwrite`` or ``resume``, so results are never replaced silently. With either the run writes into the folder:
+    its own files replace those of the same name, and any other file there is left alone (nothing is deleted); with
+    ``resume`` the caller keeps the earlier table's rows (:func:`earlier_table`)."""
     path = Path(path)
-    if path.exists() and (not path.is_dir() or any(path.iterdir())) and not overwrite:
+    if path.exists() and not path.is_dir():
+        raise ExperimentOutputError(f"{path} is a file, not a folder; choose another --out")
+    if path.exists() and any(path.iterdir()) and not (overwrite or resume):
         raise ExperimentOutputError(f"{path} already holds results; they are not overwritten. Choose another --out, "
                                     "or pass --overwrite to replace them")
     path.mkdir(parents=True, exist_ok=True)
@@ -111,8 +116,86 @@ def write_table(rows: list[dict], columns: dict[str, str], out_dir: Path, stem: 
     lines += ["| " + " | ".join(_cell(row.get(key)) for key in columns) + " |" for row in rows]
     if notes:
         lines += [""] + [f"- {note}" for note in notes]
-    md = out_dir / f"{stem}.md"
-    md.write_text("\n".join(lines) + "\n")
-    js = out_dir / f"{stem}.json"
-    js.write_text(json.dumps(_clean({"meta": meta or {}, "columns": columns, "rows": rows}), indent=2) + "\n")
+    md = write_atomic(out_dir / f"{stem}.md", "\n".join(lines) + "\n")
+    js = write_atomic(out_dir / f"{stem}.json",
+                      json.dumps(_clean({"meta": meta or {}, "columns": columns, "rows": rows}), indent=2) + "\n")
     return md, js
+
+
+def write_atomic(path: str | os.PathLike, data: str | bytes) -> Path:
+    """Write ``data`` to a temporary file next to ``path``, then rename it over ``path``: a run killed meanwhile
+    leaves the earlier file whole (and at most a ``.<name>.tmp`` beside it)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    if isinstance(data, bytes):
+        tmp.write_bytes(data)
+    else:
+        tmp.write_text(data)
+    os.replace(tmp, path)
+    return path
+
+
+# ------------------------------------------------------------------------------------------------------ resuming
+def checkpoint_record(controller: Controller) -> dict:
+    """What identifies a controller's checkpoint across calls: ``path`` as the tables show it, the ``file`` it
+    resolves to (a run folder's ``latest.pt``) and that file's ``sha256`` (``None`` while it does not exist)."""
+    from .checkpoint import CheckpointError, checkpoint_file
+
+    try:
+        file = checkpoint_file(controller.path)
+    except CheckpointError:
+        return {"path": display_path(controller.path), "file": None, "sha256": None}
+    digest = hashlib.sha256()
+    with open(file, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return {"path": display_path(controller.path), "file": str(file.resolve()), "sha256": digest.hexdigest()}
+
+
+def _same_checkpoint(earlier: dict, now: dict) -> bool:
+    """Same path (as shown, or resolved: the run may be resumed from another working directory or machine) and,
+    where both are known, the same contents."""
+    same_path = earlier.get("path") == now["path"] or (now["file"] is not None and earlier.get("file") == now["file"])
+    same_bytes = None in (earlier.get("sha256"), now["sha256"]) or earlier.get("sha256") == now["sha256"]
+    return same_path and same_bytes
+
+
+def earlier_table(out_dir: str | os.PathLike, experiment: str, settings: dict, checkpoints: dict[str, dict],
+                  stem: str = "table") -> tuple[list[dict], dict]:
+    """The rows and meta of ``<out_dir>/<stem>.json`` written by an earlier run of ``experiment`` that this run may
+    continue; ``([], {})`` when there is none. Its ``meta`` must hold the ``"experiment"``, the ``"settings"``
+    (option -> value: every one that changes what a row measures) and the ``"checkpoints"`` (controller label ->
+    :func:`checkpoint_record`) it was made with. Raises :class:`ExperimentOutputError` naming every setting that
+    differs and the fix: a table of another experiment, an unreadable one, other settings, a label whose checkpoint
+    differs, or a controller with rows there that this run does not name."""
+    path = Path(out_dir) / f"{stem}.json"
+    if not path.is_file():
+        return [], {}
+    fix = "choose another --out, or pass --overwrite instead of --resume to replace its rows"
+    try:
+        table = json.loads(path.read_text())
+        meta, rows = table["meta"], table["rows"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise ExperimentOutputError(f"cannot resume from {path}: not a readable results table ({err}); {fix}") from err
+    if meta.get("experiment") != experiment:
+        raise ExperimentOutputError(f"cannot resume from {path}: it holds the results of "
+                                    f"{meta.get('experiment')!r}, not of {experiment!r}; {fix}")
+    if "settings" not in meta or "checkpoints" not in meta:
+        raise ExperimentOutputError(f"cannot resume from {path}: it does not record the settings it was made with "
+                                    f"(an earlier version of the recipe), so they cannot be checked; {fix}")
+    problems = [f"{key} {meta['settings'].get(key, 'unset')} there, {value} here" for key, value in settings.items()
+                if meta["settings"].get(key) != value]
+    for label, now in checkpoints.items():
+        before = meta["checkpoints"].get(label)
+        if before is not None and not _same_checkpoint(before, now):
+            what = "contents (sha256)" if before.get("path") == now["path"] else "path"
+            problems.append(f"controller {label!r}: checkpoint {before.get('path')} there, {now['path']} here "
+                            f"(another {what}; give it another label, or the earlier checkpoint)")
+    missing = list(dict.fromkeys(row["controller"] for row in rows if row["controller"] not in checkpoints))
+    if missing:
+        problems.append(f"controllers {missing} measured there are not named here (name them again with "
+                        "--policy LABEL=PATH)")
+    if problems:
+        raise ExperimentOutputError(f"cannot resume from {path}: it was made with other settings: "
+                                    f"{'; '.join(problems)}. Rerun with the earlier values to resume it, or {fix}")
+    return rows, meta
