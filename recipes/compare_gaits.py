@@ -42,9 +42,21 @@ from tocabi_torchrl import robot  # noqa: E402
 from tocabi_torchrl.rl.checkpoint import CheckpointError  # noqa: E402
 from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_knee_comparison  # noqa: E402
 from tocabi_torchrl.rl.eval_video import (  # noqa: E402
-    CAMERA_POS, label_image, render_stills, render_timelapse, rendering_unavailable, save_strip)
+    CAMERA_POS,
+    label_image,
+    render_stills,
+    render_timelapse,
+    rendering_unavailable,
+    save_strip,
+)
 from tocabi_torchrl.rl.experiments import (  # noqa: E402
-    ExperimentOutputError, display_path, parse_controllers, prepare_out_dir, slug, write_table)
+    ExperimentOutputError,
+    display_path,
+    parse_controllers,
+    prepare_out_dir,
+    slug,
+    write_table,
+)
 from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout, torque_stats  # noqa: E402
 from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
 

@@ -53,11 +53,18 @@ import torch  # noqa: E402
 from tocabi_torchrl import robot  # noqa: E402
 from tocabi_torchrl.rl.checkpoint import CheckpointError  # noqa: E402
 from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_vs_height  # noqa: E402
-from tocabi_torchrl.rl.eval_video import (  # noqa: E402
-    CAMERA_POS, label_image, render_stills, rendering_unavailable, save_strip)
+from tocabi_torchrl.rl.eval_video import CAMERA_POS, label_image, render_stills, rendering_unavailable, save_strip  # noqa: E402
 from tocabi_torchrl.rl.experiments import (  # noqa: E402
-    ExperimentOutputError, checkpoint_record, display_path, earlier_table, parse_controllers, prepare_out_dir, slug,
-    write_atomic, write_table)
+    ExperimentOutputError,
+    checkpoint_record,
+    display_path,
+    earlier_table,
+    parse_controllers,
+    prepare_out_dir,
+    slug,
+    write_atomic,
+    write_table,
+)
 from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout  # noqa: E402
 from tocabi_torchrl.rl.obstacle_eval import analyse_obstacle, pick_example  # noqa: E402
 from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
