@@ -311,6 +311,9 @@ def main(argv: list[str] | None = None) -> dict:
         rows, earlier = earlier_table(out, EXPERIMENT, settings, checkpoints) if args.resume else ([], {})
     except (ValueError, RuntimeError, ExperimentOutputError) as err:
         sys.exit(f"error: {err}")
+    for label, record in checkpoints.items():  # a checkpoint gone since: keep the earlier call's record of it
+        if record["sha256"] is None and label in earlier.get("checkpoints", {}):
+            checkpoints[label] = earlier["checkpoints"][label]
     order = {controller.label: i for i, controller in enumerate(controllers)}
     done = {(row["controller"], round(row["height_mm"], 6)) for row in rows}
     if rows:
@@ -364,8 +367,9 @@ def main(argv: list[str] | None = None) -> dict:
                     print(f"frames skipped from here on ({no_frames}); rendering is not tried again in this run. On "
                           f"a headless machine: {NO_GL_FIX}")
             save_table(None)
-        if todo:
-            plot_torques(out, height, controllers, args)
+        # Redrawn at every height, measured now or not: a run killed after a row was saved but before this plot
+        # would otherwise leave the figure without that controller.
+        plot_torques(out, height, controllers, args)
         i += 1
         if i == len(heights) and args.step_mm > 0:
             at_height = [row for row in rows if round(row["height_mm"], 6) == round(height, 6)]

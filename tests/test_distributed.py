@@ -89,16 +89,18 @@ def _worker(rank: int, world: int, init_file: str, out: dict) -> None:
         sync.sync()
         out[rank] = {"params": params, "all": torch.stack(gathered), "stats": stats,
                      "norm": (norm.count.clone(), norm.mean.clone(), norm.var.clone()), "data": data,
-                     "episodes": _episode_metrics(_rollout(rank), info)}
+                     "episodes": _episode_metrics(_rollout(rank), info),
+                     "episodes_rank0_none": _episode_metrics(_rollout(rank, finish=rank == 1), info)}
     finally:
         dist.destroy_process_group()
 
 
-def _rollout(rank: int) -> TensorDict:
-    """A (4 envs, 5 steps) batch whose ranks finish different numbers of episodes (rank 0: 1, rank 1: 3)."""
+def _rollout(rank: int, finish: bool = True) -> TensorDict:
+    """A (4 envs, 5 steps) batch whose ranks finish different numbers of episodes (rank 0: 1, rank 1: 3; none
+    with ``finish`` False)."""
     done = torch.zeros(4, 5, 1, dtype=torch.bool)
-    done[0, 2] = True
-    if rank == 1:
+    done[0, 2] = finish
+    if rank == 1 and finish:
         done[1, 4] = done[2, 0] = True
     g = torch.Generator().manual_seed(rank)
     nxt = {"done": done, "terminated": done.clone(), "reward": torch.rand(4, 5, 1, generator=g),
@@ -156,6 +158,13 @@ def test_episode_statistics_weigh_each_ranks_episodes(two_ranks):
         assert merged.keys() == union.keys()
         for key, value in union.items():
             assert merged[key] == pytest.approx(value, rel=1e-6), key
+    # A rank that finished no episode adds nothing (before: its NaN made the merged value NaN).
+    only_rank1 = _episode_metrics(_rollout(1))
+    for rank in (0, 1):
+        merged = two_ranks[rank]["episodes_rank0_none"]
+        assert merged["episodes_finished"] == 3
+        assert merged["episode_return"] == pytest.approx(only_rank1["episode_return"], rel=1e-6)
+        assert merged["episode_length"] == pytest.approx(only_rank1["episode_length"], rel=1e-6)
     alone = [_episode_metrics(_rollout(r)) for r in (0, 1)]
     naive = (alone[0]["episode_return"] + alone[1]["episode_return"]) / 2
     assert union["episode_return"] != pytest.approx(naive, rel=1e-3)  # the data makes the weighting matter

@@ -337,12 +337,14 @@ class _Killed(BaseException):
     """Stands for the run being killed (a timeout): nothing in the recipe catches it."""
 
 
-def _counting(recipe, monkeypatch, stop_at: float | None = None) -> list[tuple[str, float]]:
-    """Wrap the recipe's run_one: record every (label, height) it measures; at ``stop_at`` mm act like a kill."""
+def _counting(recipe, monkeypatch, stop_at: float | None = None, stop_label: str | None = None
+              ) -> list[tuple[str, float]]:
+    """Wrap the recipe's run_one: record every (label, height) it measures; at ``stop_at`` mm (for ``stop_label``
+    only, if given) act like a kill."""
     measured, run_one = [], getattr(recipe.run_one, "original", recipe.run_one)  # not an earlier wrapper
 
     def counted(controller, height_mm, args, device):
-        if height_mm == stop_at:
+        if height_mm == stop_at and stop_label in (None, controller.label):
             raise _Killed(f"killed at {height_mm:g} mm")
         measured.append((controller.label, height_mm))
         return run_one(controller, height_mm, args, device)
@@ -350,6 +352,38 @@ def _counting(recipe, monkeypatch, stop_at: float | None = None) -> list[tuple[s
     counted.original = run_one
     monkeypatch.setattr(recipe, "run_one", counted)
     return measured
+
+
+@needs_policies
+@needs_obstacles
+def test_obstacle_resume_measures_the_controller_a_kill_left_out_and_redraws_the_height(tmp_path, monkeypatch):
+    """Killed between two controllers at one height, the resume measures only the second; killed after both rows
+    were saved but before the height's torque figure, the resume measures nothing and still draws the figure."""
+    recipe = load_recipe("obstacle_test")
+    monkeypatch.setattr(recipe, "rendering_unavailable", lambda: "not needed here")
+    out = tmp_path / "obstacles"
+    both = ["--policy", f"PD={PD_POLICY}"]
+    measured = _counting(recipe, monkeypatch, stop_at=12.0, stop_label="PD")
+    with pytest.raises(_Killed):
+        recipe.main(_tiny_obstacle_run(out, "12", *both))
+    assert measured == [("torque", 12.0)]
+
+    def killed_while_plotting(out_dir, height_mm, controllers, args):
+        raise _Killed("killed while drawing the torque figure")
+
+    monkeypatch.setattr(recipe, "plot_torques", killed_while_plotting)
+    measured = _counting(recipe, monkeypatch)
+    with pytest.raises(_Killed):
+        recipe.main(_tiny_obstacle_run(out, "12", *both, "--resume"))
+    assert measured == [("PD", 12.0)]
+    rows = json.loads((out / "table.json").read_text())["rows"]
+    assert sorted(r["controller"] for r in rows) == ["PD", "torque"]
+    drawn = []
+    monkeypatch.setattr(recipe, "plot_torques", lambda out_dir, height_mm, controllers, args: drawn.append(
+        (height_mm, [c.label for c in controllers])))
+    measured = _counting(recipe, monkeypatch)
+    recipe.main(_tiny_obstacle_run(out, "12", *both, "--resume"))
+    assert measured == [] and drawn == [(12.0, ["torque", "PD"])]
 
 
 @needs_policies
@@ -534,3 +568,5 @@ def test_no_display_and_no_egl_turn_rendering_off_with_the_fix(monkeypatch):
     monkeypatch.setattr(platform, "system", lambda: "Linux")
     environ = {}
     assert render_gl.choose_gl_backend(environ) == "egl" and render_gl.offscreen_unavailable(environ) is None
+    environ = {"WAYLAND_DISPLAY": "wayland-0"}  # no X display: EGL, as before the no-EGL case existed
+    assert render_gl.choose_gl_backend(environ) == "egl" and environ["MUJOCO_GL"] == "egl"

@@ -46,12 +46,12 @@ def choose_gl_backend(environ: MutableMapping[str, str] | None = None) -> str | 
     environ = os.environ if environ is None else environ
     chosen = environ.get("MUJOCO_GL")
     if not chosen:
-        if _has_display(environ):
-            return None
-        if ctypes.util.find_library("EGL"):
+        if not environ.get("DISPLAY") and ctypes.util.find_library("EGL"):
             environ["MUJOCO_GL"] = "egl"
             return "egl"
-        if platform.system() == "Linux":  # MuJoCo would pick GLFW, which needs a display (macOS: CGL, fine)
+        if _has_display(environ):
+            return None
+        if platform.system() == "Linux":  # no display, no EGL: MuJoCo would pick GLFW (macOS: CGL, fine)
             environ["MUJOCO_GL"] = "disable"
             return "disable"
         return None

@@ -96,7 +96,8 @@ def evaluate_policy(
                                                  mocap_pos=None if mocap is None else mocap[:video_envs]))
         except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless machine)
             summary["video"] = f"not rendered: {type(err).__name__}: {err}"
-            print(f"video skipped ({summary['video']}); on a headless machine: {NO_GL_FIX}")
+            fix = "" if NO_GL_FIX in str(err) else f"; on a headless machine: {NO_GL_FIX}"  # said once
+            print(f"video skipped ({summary['video']}){fix}")
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 

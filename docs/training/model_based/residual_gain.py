@@ -4,13 +4,16 @@ PD-residual modes' authority (0.5 rad × the robot's Kp), beside pd_reference un
 Wrote residual_gain.json (docs/training/model_based.md), ~4 min on 2 cores:
 ``PYTHONPATH=. python docs/training/model_based/residual_gain.py docs/training/model_based/residual_gain.json``
 """
-import json, subprocess, sys
+import json
+import subprocess
+import sys
 from tocabi_torchrl.envs.config import MB_RESIDUAL_GAIN_PD
 from zero_action import run  # this folder's script: same rollout, same seeds
 
 cases = [("pd_reference", dict(control_mode="pd_reference")),
          ("model_based, g = torque limits", dict(control_mode="model_based")),
-         ("model_based, g = 0.5 rad x robot Kp", dict(control_mode="model_based", mb_residual_gain=MB_RESIDUAL_GAIN_PD))]
+         ("model_based, g = 0.5 rad x robot Kp",
+          dict(control_mode="model_based", mb_residual_gain=MB_RESIDUAL_GAIN_PD))]
 results = []
 for std in (0.05, 0.2):
     for name, kw in cases:
