@@ -97,3 +97,27 @@ def test_training_clock_saves_snapshots_and_stops(tmp_path):
     with pytest.raises(TimeUp, match="max_minutes 1"):
         clock()
     assert [p.name for p in saved] == ["wall_00030s.pt", "wall_00060s.pt"]
+
+
+def test_training_clock_resumes_with_cumulative_time(tmp_path):
+    from tocabi_torchrl.adapters.recipe import keep_previous, read_resume, write_resume
+
+    saved = []
+    clock = TrainingClock(tmp_path, saved.append, max_minutes=2.0, checkpoint_minutes=0.5, offset=70.0,
+                          snapshots=["earlier.pt"])
+    assert clock.elapsed >= 70.0 and not clock.time_up
+    clock.start -= 21.0  # 91 s in total: the next snapshot is the one at 90 s, not at 30 s
+    clock()
+    assert [p.name for p in saved] == ["wall_00090s.pt"] and clock.snapshots[0] == "earlier.pt"
+    frozen = clock.freeze()
+    assert clock.elapsed == frozen
+    write_resume(tmp_path, b"x", {"calls": 1, "env_steps": 8})
+    assert read_resume(tmp_path) == {"calls": 1, "env_steps": 8, "state": "resume/state_call1.pt"}
+    with pytest.raises(FileExistsError, match="never overwritten"):
+        write_resume(tmp_path, b"y", {"calls": 1})
+    (tmp_path / "policy.pt").write_text("1")
+    assert keep_previous(tmp_path / "policy.pt", "call1") == tmp_path / "policy.pt"
+    assert (tmp_path / "policy_call1.pt").read_text() == "1" and not (tmp_path / "policy.pt").exists()
+    assert open_out_dir(tmp_path, resume=True) == tmp_path
+    with pytest.raises(SystemExit, match="resume.json"):
+        open_out_dir(tmp_path / "missing", resume=True)
