@@ -1,20 +1,34 @@
 """The per-library table (issue 22): for each RL library, training env-steps/s on the walking task and the training
-wall-clock at which its policy first passes the 8 s gait test (30-minute cap). Meant for one H100.
+time at which its policy first passes the 8 s gait test (30-minute cap). Meant for one H100.
 
-    python recipes/library_table.py --libraries torchrl,rsl_rl,skrl --num_envs 4096
+    python recipes/library_table.py --libraries torchrl,rsl_rl,skrl --num_envs 4096      # all in one call
     python recipes/library_table.py --libraries sb3 --num_envs 8,256,1024
     python recipes/library_table.py --report                 # rebuild the table from the saved rows only
 
 Each library trains in its own process through its recipe (``recipes/ppo_walk.py`` for TorchRL,
-``recipes/train_<library>.py`` otherwise) with ``--max_minutes`` (default 30) and a policy snapshot every
-``--checkpoint_minutes`` of training wall-clock; then the snapshots are gait-tested in time order (256 robots, 8 s,
-at (0.5, 0) m/s against the thresholds of ``adapters.evaluate.GAIT_CRITERIA``, and survival >= 95 % at (0.2, 0) and
-(0.7, 0.1)) until one passes. Rows accumulate in ``--json`` (one per library, env count and preset; a rerun replaces
-its row) and ``--md`` is rewritten from all of them. The env-steps/s are whole training (collection + update)
-divided by training wall-clock; SB3's include its host copies (observations, rewards, done flags to the host and
-the actions back every step).
+``recipes/train_<library>.py`` otherwise) with a policy snapshot every ``--checkpoint_minutes`` of training time;
+then the snapshots are gait-tested in time order (256 robots, 8 s, at (0.5, 0) m/s against the thresholds of
+``adapters.evaluate.GAIT_CRITERIA``, and survival >= 95 % at (0.2, 0) and (0.7, 0.1)) until one passes. Rows
+accumulate in ``--json`` (one per library, env count and preset) and ``--md`` is rewritten from all of them. The
+env-steps/s are whole training (collection + update) divided by training time; SB3's include its host copies
+(observations, rewards, done flags to the host and the actions back every step).
 
-This script lives in recipes/ while benchmarks/ is being rewritten; it belongs beside benchmarks/time_to_walk.py.
+Split over calls (a GPU machine that runs one command for at most 10 minutes): ``--minutes M`` trains each listed
+row at most M more minutes, continuing the row's own run (``--resume`` of its recipe: the library's own checkpoint,
+with the training seconds, env steps and iterations summed over calls), never past ``--max_minutes`` in total; the
+snapshots are named by cumulative training seconds, so the time to walk is in cumulative training minutes. At the
+end of a call the row's untested snapshots are gait-tested (``--eval_minutes`` bounds that; ``--no_eval`` leaves
+it to a later ``--eval_only`` call). A row is ``final`` once a snapshot walks, or the cap is reached and every
+snapshot is tested; later calls leave a final row alone (``--new`` starts it over in a new run folder). What a
+resumed call does not carry over (env state, random-number state, the rollout in progress) is in each row's
+notes. One H100, 10-minute commands, one row (repeat each line until the row says ``"status": "final"``):
+
+    python recipes/library_table.py --libraries rsl_rl --num_envs 4096 --minutes 7 --eval_minutes 1.5
+    python recipes/library_table.py --libraries rsl_rl --num_envs 4096 --eval_only --eval_minutes 8
+
+The row's run folder (``--runs``) and ``--json`` must survive between calls (the same machine, or copied out and
+back). This script lives in recipes/ while benchmarks/ is being rewritten; it belongs beside
+benchmarks/time_to_walk.py.
 """
 
 from __future__ import annotations
@@ -114,12 +128,16 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
     from tocabi_torchrl.adapters.evaluate import GAIT_CRITERIA, gait_passes
 
     tested = row.setdefault("tested", {})
+    deadline = time.monotonic() + 60.0 * args.eval_minutes if args.eval_minutes > 0 else float("inf")
     for snap in sorted(row["snapshots"], key=snapshot_seconds):
         name = Path(snap).stem
         if row.get("walk") is not None:
             return
         if name in tested:
             continue
+        if time.monotonic() >= deadline:
+            print(f"{library} {row['num_envs']}: --eval_minutes spent; the next call goes on from {name}")
+            return
         main = gait(library, snap, out / "gait" / name / "0.5_0.0", args, MAIN)
         entry = {"minutes": snapshot_seconds(snap) / 60.0, "main_passes": bool(gait_passes(main)), "passes": False}
         if entry["main_passes"]:
@@ -142,8 +160,8 @@ def report(rows: list[dict], path: Path) -> None:
     intro = ("Training env-steps/s (collection + update over training wall-clock) and the training time at which the "
              "policy first passes the 8 s gait test (30-minute cap). Written by `recipes/library_table.py`.")
     lines = ["# Per-library table (issue 22)", "", intro, "",
-             "| library | version | preset | envs | env-steps/s | walks at (min) | trained (min) | calls | device | "
-             "commands |",
+             ("| library | version | preset | envs | env-steps/s | walks at (min) | trained (min) | calls | device | "
+              "commands |"),
              "|---|---|---|---|---|---|---|---|---|---|"]
     notes = {}
     for r in sorted(rows, key=lambda r: (r["preset"], r["library"], r["num_envs"])):
@@ -160,8 +178,8 @@ def report(rows: list[dict], path: Path) -> None:
         if r.get("notes"):
             notes[r["library"]] = r["notes"]
     if notes:
-        lines += ["", "Training split over calls (`--minutes`): the time to walk is in cumulative training minutes. "
-                  "What a resumed call carries over:", ""]
+        lines += ["", ("Training split over calls (`--minutes`): the time to walk is in cumulative training minutes. "
+                       "What a resumed call carries over:"), ""]
         lines += [f"- {lib}: {text}" for lib, text in sorted(notes.items())]
     atomic_write_text(path, "\n".join(lines) + "\n")
 
@@ -182,6 +200,9 @@ def main(argv=None) -> None:
     parser.add_argument("--checkpoint_minutes", type=float, default=1.0, help="snapshot period [min] (default: 1)")
     parser.add_argument("--eval_envs", type=int, default=256)
     parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
+    parser.add_argument("--eval_minutes", type=float, default=0.0,
+                        help="start no new snapshot's gait test after this many minutes of testing in this call "
+                             "(0 = test all); the next call goes on where this one stopped")
     parser.add_argument("--no_eval", action="store_true", help="train only; gait-test later with --eval_only")
     parser.add_argument("--eval_only", action="store_true",
                         help="no training: gait-test the snapshots of the listed rows not tested yet")
@@ -198,7 +219,7 @@ def main(argv=None) -> None:
         parser.error("--no_eval and --eval_only exclude each other")
     json_path, md_path = ROOT / args.json, ROOT / args.md
     rows = json.loads(json_path.read_text()) if json_path.is_file() else []
-    command = " ".join(["python recipes/library_table.py", *(sys.argv[1:] if argv is None else argv)])
+    command = shlex.join(["python", "recipes/library_table.py", *(sys.argv[1:] if argv is None else argv)])
     if not args.report:
         from importlib import metadata
 
@@ -243,18 +264,19 @@ def main(argv=None) -> None:
                 if not args.eval_only and left > 0 and row.get("walk") is None:
                     budget = min(60.0 * args.minutes, left) if args.minutes > 0 else left
                     trained = train(library, n, out, args, used, budget)
-                    if trained["train_seconds"] <= used:  # the recipe had nothing left to train (its iterations)
-                        row["cap_minutes_reached_early"] = True
+                    if trained["train_seconds"] <= used:  # nothing left to train: the recipe's own iteration or env-step budget ended before the cap
+                        row["recipe_budget_done"] = True
                     row.update(env_steps=int(trained["env_steps"]), train_seconds=float(trained["train_seconds"]),
                                env_steps_per_s=float(trained["env_steps_per_s"]), snapshots=trained["snapshots"],
-                               calls=trained.get("calls", len(row["commands"])),
+                               calls=trained.get("calls", row.get("calls", 0) + 1),
                                notes=trained.get("resume_notes", ""),
                                device=torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu")
                     args.save_rows()
                 if not args.no_eval:
                     gait_test_snapshots(library, row, out, args)
-                # Final: a snapshot walks, or the cap is reached (within a second) and every snapshot is tested.
-                capped = row["train_seconds"] >= cap_s - 1.0 or row.get("cap_minutes_reached_early", False)
+                # Final: a snapshot walks, or the cap is reached (within 1 %: ppo_walk stops at an iteration's end
+                # by its own clock, which also counts its start-up) and every snapshot is tested.
+                capped = row["train_seconds"] >= 0.99 * cap_s or row.get("recipe_budget_done", False)
                 untested = [s for s in row["snapshots"] if Path(s).stem not in row.get("tested", {})]
                 if row.get("walk") is not None or (capped and not untested):
                     row["status"] = "final"

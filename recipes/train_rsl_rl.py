@@ -29,8 +29,16 @@ import torch
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
-from tocabi_torchrl.adapters.recipe import (TimeUp, TrainingClock, base_parser, keep_previous, open_out_dir,
-                                            read_resume, write_json, write_resume)
+from tocabi_torchrl.adapters.recipe import (
+    TimeUp,
+    TrainingClock,
+    base_parser,
+    keep_previous,
+    open_out_dir,
+    read_resume,
+    write_json,
+    write_resume,
+)
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
 RESUME_NOTES = ("resumes actor, critic, Adam state, adaptive learning rate and iteration count (rsl_rl's "

@@ -32,8 +32,16 @@ import torch
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
-from tocabi_torchrl.adapters.recipe import (TimeUp, TrainingClock, base_parser, keep_previous, open_out_dir,
-                                            read_resume, write_json, write_resume)
+from tocabi_torchrl.adapters.recipe import (
+    TimeUp,
+    TrainingClock,
+    base_parser,
+    keep_previous,
+    open_out_dir,
+    read_resume,
+    write_json,
+    write_resume,
+)
 from tocabi_torchrl.rl.std_schedule import StdSchedule
 
 #: Reference learning rates (spec §10.2): the policy's schedule ends and the value head's constant rate.

@@ -32,8 +32,16 @@ from torch import nn
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
-from tocabi_torchrl.adapters.recipe import (TimeUp, TrainingClock, base_parser, keep_previous, open_out_dir,
-                                            read_resume, write_json, write_resume)
+from tocabi_torchrl.adapters.recipe import (
+    TimeUp,
+    TrainingClock,
+    base_parser,
+    keep_previous,
+    open_out_dir,
+    read_resume,
+    write_json,
+    write_resume,
+)
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
 RESUME_NOTES = ("resumes skrl's agent checkpoint (agent.save/agent.load): policy with its learned std, value and Adam "

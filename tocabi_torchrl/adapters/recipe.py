@@ -17,8 +17,16 @@ from pathlib import Path
 
 from ..rl.atomic import atomic_write_text
 
-__all__ = ["TimeUp", "TrainingClock", "base_parser", "open_out_dir", "read_resume", "write_json", "write_resume",
-           "keep_previous"]
+__all__ = [
+    "TimeUp",
+    "TrainingClock",
+    "base_parser",
+    "keep_previous",
+    "open_out_dir",
+    "read_resume",
+    "write_json",
+    "write_resume",
+]
 
 
 def base_parser(description: str, num_envs: int, iterations: int) -> argparse.ArgumentParser:
