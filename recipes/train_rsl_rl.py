@@ -33,6 +33,7 @@ from tocabi_torchrl.adapters.recipe import (
     TimeUp,
     TrainingClock,
     base_parser,
+    fresh_dir,
     keep_previous,
     open_out_dir,
     read_resume,
@@ -98,7 +99,7 @@ def main(argv=None) -> dict:
                          f"{prior['settings']}, given {settings}")
     calls = int(prior.get("calls", 0))
     # Each call logs to its own folder: rsl_rl's model_<it>.pt and event files of earlier calls stay as they were.
-    runner = OnPolicyRunner(env, cfg, log_dir=str(out / ("rsl_rl" if calls == 0 else f"rsl_rl_call{calls + 1}")),
+    runner = OnPolicyRunner(env, cfg, log_dir=str(out / "rsl_rl" if calls == 0 else fresh_dir(out / f"rsl_rl_call{calls + 1}")),
                             device=str(env.device))
     done_before = int(prior.get("iterations", 0))
     if prior:

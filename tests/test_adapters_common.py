@@ -121,3 +121,21 @@ def test_training_clock_resumes_with_cumulative_time(tmp_path):
     assert open_out_dir(tmp_path, resume=True) == tmp_path
     with pytest.raises(SystemExit, match="resume.json"):
         open_out_dir(tmp_path / "missing", resume=True)
+
+
+def test_a_snapshot_left_by_a_killed_call_is_kept_aside(tmp_path):
+    # A call killed after a snapshot but before its resume state: the next call (same offset) writes that snapshot
+    # again; the orphan is renamed, not overwritten, and the save does not fail.
+    from tocabi_torchrl.adapters.recipe import fresh_dir
+
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "wall_00030s.pt").write_text("killed call")
+    saved = []
+    clock = TrainingClock(tmp_path, saved.append, checkpoint_minutes=0.5)
+    clock.start -= 31.0
+    clock()
+    assert [p.name for p in saved] == ["wall_00030s.pt"]
+    assert (tmp_path / "checkpoints" / "wall_00030s_unresumed0.pt").read_text() == "killed call"
+    assert fresh_dir(tmp_path / "logs") == tmp_path / "logs"
+    (tmp_path / "logs").mkdir()
+    assert fresh_dir(tmp_path / "logs") == tmp_path / "logs_2"

@@ -21,6 +21,7 @@ __all__ = [
     "TimeUp",
     "TrainingClock",
     "base_parser",
+    "fresh_dir",
     "keep_previous",
     "open_out_dir",
     "read_resume",
@@ -100,6 +101,15 @@ def keep_previous(path: Path, tag: str) -> Path:
     return path
 
 
+def fresh_dir(path: Path) -> Path:
+    """``path``, or ``path_2``, ``path_3``, ... if taken (a log folder a killed call left): never shared."""
+    path, k = Path(path), 2
+    candidate = path
+    while candidate.exists():
+        candidate, k = path.with_name(f"{path.name}_{k}"), k + 1
+    return candidate
+
+
 class TimeUp(Exception):
     """Raised from inside a library's training loop when the recipe's ``--max_minutes`` are spent."""
 
@@ -146,6 +156,8 @@ class TrainingClock:
         elapsed = self.elapsed
         if self.every > 0 and elapsed >= self.next:
             path = self.out / "checkpoints" / f"wall_{int(self.next):05d}s.pt"
+            if path.exists():  # left by a call killed before it saved its resume state: keep it aside
+                keep_previous(path, f"unresumed{len(list(path.parent.glob(path.stem + '_unresumed*')))}")
             self.save(path)
             self.snapshots.append(str(path))
             self.next += self.every
