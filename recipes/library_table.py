@@ -1,26 +1,41 @@
 """The per-library table (issue 22): for each RL library, training env-steps/s on the walking task and the training
-wall-clock at which its policy first passes the 8 s gait test (30-minute cap). Meant for one H100.
+time at which its policy first passes the 8 s gait test (30-minute cap). Meant for one H100.
 
-    python recipes/library_table.py --libraries torchrl,rsl_rl,skrl --num_envs 4096
+    python recipes/library_table.py --libraries torchrl,rsl_rl,skrl --num_envs 4096      # all in one call
     python recipes/library_table.py --libraries sb3 --num_envs 8,256,1024
     python recipes/library_table.py --report                 # rebuild the table from the saved rows only
 
 Each library trains in its own process through its recipe (``recipes/ppo_walk.py`` for TorchRL,
-``recipes/train_<library>.py`` otherwise) with ``--max_minutes`` (default 30) and a policy snapshot every
-``--checkpoint_minutes`` of training wall-clock; then the snapshots are gait-tested in time order (256 robots, 8 s,
-at (0.5, 0) m/s against the thresholds of ``adapters.evaluate.GAIT_CRITERIA``, and survival >= 95 % at (0.2, 0) and
-(0.7, 0.1)) until one passes. Rows accumulate in ``--json`` (one per library, env count and preset; a rerun replaces
-its row) and ``--md`` is rewritten from all of them. The env-steps/s are whole training (collection + update)
-divided by training wall-clock; SB3's include its host copies (observations, rewards, done flags to the host and
-the actions back every step).
+``recipes/train_<library>.py`` otherwise) with a policy snapshot every ``--checkpoint_minutes`` of training time;
+then the snapshots are gait-tested in time order (256 robots, 8 s, at (0.5, 0) m/s against the thresholds of
+``adapters.evaluate.GAIT_CRITERIA``, and survival >= 95 % at (0.2, 0) and (0.7, 0.1)) until one passes. Rows
+accumulate in ``--json`` (one per library, env count and preset) and ``--md`` is rewritten from all of them. The
+env-steps/s are whole training (collection + update) divided by training time; SB3's include its host copies
+(observations, rewards, done flags to the host and the actions back every step).
 
-This script lives in recipes/ while benchmarks/ is being rewritten; it belongs beside benchmarks/time_to_walk.py.
+Split over calls (a GPU machine that runs one command for at most 10 minutes): ``--minutes M`` trains each listed
+row at most M more minutes, continuing the row's own run (``--resume`` of its recipe: the library's own checkpoint,
+with the training seconds, env steps and iterations summed over calls), never past ``--max_minutes`` in total; the
+snapshots are named by cumulative training seconds, so the time to walk is in cumulative training minutes. At the
+end of a call the row's untested snapshots are gait-tested (``--eval_minutes`` bounds that; ``--no_eval`` leaves
+it to a later ``--eval_only`` call). A row is ``final`` once a snapshot walks, or the cap is reached and every
+snapshot is tested; later calls leave a final row alone (``--new`` starts it over in a new run folder). What a
+resumed call does not carry over (env state, random-number state, the rollout in progress) is in each row's
+notes. One H100, 10-minute commands, one row (repeat each line until the row says ``"status": "final"``):
+
+    python recipes/library_table.py --libraries rsl_rl --num_envs 4096 --minutes 7 --eval_minutes 1.5
+    python recipes/library_table.py --libraries rsl_rl --num_envs 4096 --eval_only --eval_minutes 8
+
+The row's run folder (``--runs``) and ``--json`` must survive between calls (the same machine, or copied out and
+back). This script lives in recipes/ while benchmarks/ is being rewritten; it belongs beside
+benchmarks/time_to_walk.py.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import subprocess
 import sys
 import time
@@ -30,29 +45,66 @@ ROOT = Path(__file__).resolve().parent.parent
 MAIN = (0.5, 0.0)
 OTHERS = ((0.2, 0.0), (0.7, 0.1))
 LIBRARIES = ("torchrl", "rsl_rl", "skrl", "sb3")
+#: What a resumed TorchRL call carries over (ppo_walk --resume restores the whole trainer state).
+TORCHRL_NOTES = ("resumes recipes/ppo_walk.py's checkpoint (--resume): networks, optimizer, LR and std schedule "
+                 "positions, observation statistics and counters; each call starts its envs from a reset")
 
 
-def train(library: str, num_envs: int, out: Path, args) -> dict:
-    """Train one library in a subprocess; returns {env_steps, train_seconds, env_steps_per_s, snapshots}."""
-    common = ["--max_minutes", str(args.max_minutes), "--checkpoint_minutes", str(args.checkpoint_minutes)]
+def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s: float) -> dict:
+    """Train one library in a subprocess for up to ``budget_s`` more seconds of training, continuing the run in
+    ``out`` when it has ``used_s`` > 0 seconds already; returns its cumulative {env_steps, train_seconds,
+    env_steps_per_s, snapshots, calls, resume_notes}."""
+    resume = run_used_seconds(library, out) is not None
+    extra = shlex.split(args.recipe_args)
     if library == "torchrl":
-        cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--preset", args.preset, "--num_envs",
-               str(num_envs), "--minibatch_size", str(min(49152, 48 * num_envs)), "--run_dir", str(out.parent), "--name", out.name, "--eval_at_end", "false",
-               "--progress_bar", "false", "--device", args.device, *common]
+        # ppo_walk's --max_minutes is this call's; its checkpoints and snapshot names carry the summed train time.
+        common = ["--max_minutes", f"{budget_s / 60.0:.6g}", "--checkpoint_minutes", str(args.checkpoint_minutes),
+                  "--eval_at_end", "false", "--progress_bar", "false", "--device", args.device,
+                  "--run_dir", str(out.parent), "--name", out.name]
+        if resume:
+            cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--resume",
+                   str(out / "checkpoints" / "latest.pt"), *common]
+        else:
+            cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--preset", args.preset, "--num_envs",
+                   str(num_envs), "--minibatch_size", str(min(49152, 48 * num_envs)), *common]
     else:
+        # The library recipes' --max_minutes caps the training time summed over --resume calls.
         cmd = [sys.executable, str(ROOT / f"recipes/train_{library}.py"), "--out", str(out), "--num_envs",
                str(num_envs), "--preset", args.preset, "--device", args.device, "--eval_envs", "0",
-               "--iterations", "1000000", *common]
+               "--iterations", "1000000", "--max_minutes", f"{(used_s + budget_s) / 60.0:.6g}",
+               "--checkpoint_minutes", str(args.checkpoint_minutes), *(["--resume"] if resume else [])]
+    cmd += extra
     print("+", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
     if library == "torchrl":
-        from tocabi_torchrl.rl.curves import read_metrics
+        from tocabi_torchrl.rl.checkpoint import read_checkpoint
 
-        last = read_metrics(out)[-1]
+        state = read_checkpoint(out / "checkpoints" / "latest.pt")
+        steps, seconds = int(state["env_steps"]), float(state["train_seconds"])
         snaps = sorted(str(p) for p in (out / "checkpoints").glob("wall_*.pt"))
-        return {"env_steps": int(float(last["env_steps"])), "train_seconds": float(last["wall_s"]),
-                "env_steps_per_s": float(last["env_steps_per_s"]), "snapshots": snaps}
+        return {"env_steps": steps, "train_seconds": seconds, "env_steps_per_s": steps / max(seconds, 1e-9),
+                "snapshots": snaps, "resume_notes": TORCHRL_NOTES}
     return json.loads((out / "result.json").read_text())["train"]
+
+
+def run_used_seconds(library: str, out: Path) -> float | None:
+    """Training seconds the run in ``out`` has saved (what its next call resumes from); None if it has nothing to
+    resume. Read from the run, not the row: a call killed after the recipe saved but before the row was written
+    loses nothing."""
+    if library == "torchrl":
+        latest = out / "checkpoints" / "latest.pt"
+        if not latest.is_file():
+            return None
+        from tocabi_torchrl.rl.checkpoint import read_checkpoint
+
+        return float(read_checkpoint(latest).get("train_seconds", 0.0))
+    state = out / "resume.json"
+    return float(json.loads(state.read_text())["train_seconds"]) if state.is_file() else None
+
+
+def snapshot_seconds(snapshot: str) -> float:
+    """Cumulative training seconds of a ``wall_XXXXXs.pt`` snapshot (every library names them so)."""
+    return float(Path(snapshot).stem.split("_")[1].rstrip("s"))
 
 
 def gait(library: str, snapshot: str, out: Path, args, command) -> dict:
@@ -61,30 +113,45 @@ def gait(library: str, snapshot: str, out: Path, args, command) -> dict:
         from tocabi_torchrl.rl.evaluate import evaluate_run
 
         return evaluate_run(snapshot, num_envs=args.eval_envs, device=args.device, out_dir=out, command=command,
-                            video_envs=0, progress=False)
+                            video_envs=0, progress=False, seconds=args.eval_seconds)
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(f"train_{library}", ROOT / f"recipes/train_{library}.py")
     recipe = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(recipe)
-    return recipe.evaluate(snapshot, out, num_envs=args.eval_envs, device=args.device, seconds=8.0, command=command)
+    return recipe.evaluate(snapshot, out, num_envs=args.eval_envs, device=args.device, seconds=args.eval_seconds, command=command)
 
 
-def first_pass(library: str, snapshots: list[str], out: Path, args) -> dict | None:
-    """The earliest snapshot passing the whole gait test, with its summaries; None if none passes."""
+def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
+    """Gait-test the row's snapshots not tested yet, in training-time order, until one passes; records each in
+    ``row["tested"]`` (by snapshot name) and the first pass in ``row["walk"]``/``row["walks_minutes"]``."""
     from tocabi_torchrl.adapters.evaluate import GAIT_CRITERIA, gait_passes
 
-    for snap in snapshots:
+    tested = row.setdefault("tested", {})
+    deadline = time.monotonic() + 60.0 * args.eval_minutes if args.eval_minutes > 0 else float("inf")
+    for snap in sorted(row["snapshots"], key=snapshot_seconds):
         name = Path(snap).stem
-        main = gait(library, snap, out / "gait" / name / "0.5_0.0", args, MAIN)
-        if not gait_passes(main):
+        if row.get("walk") is not None:
+            return
+        if name in tested:
             continue
-        others = {f"{c[0]}_{c[1]}": gait(library, snap, out / "gait" / name / f"{c[0]}_{c[1]}", args, c)
-                  for c in OTHERS}
-        if all(s["survival"] >= GAIT_CRITERIA["survival"] for s in others.values()):
-            return {"snapshot": snap, "minutes": int(name.split("_")[1].rstrip("s")) / 60.0, "main": main,
-                    "others": {k: v["survival"] for k, v in others.items()}}
-    return None
+        if time.monotonic() >= deadline:
+            print(f"{library} {row['num_envs']}: --eval_minutes spent; the next call goes on from {name}")
+            return
+        main = gait(library, snap, out / "gait" / name / "0.5_0.0", args, MAIN)
+        entry = {"minutes": snapshot_seconds(snap) / 60.0, "main_passes": bool(gait_passes(main)), "passes": False}
+        if entry["main_passes"]:
+            others = {f"{c[0]}_{c[1]}": gait(library, snap, out / "gait" / name / f"{c[0]}_{c[1]}", args, c)
+                      for c in OTHERS}
+            entry["others"] = {k: v["survival"] for k, v in others.items()}
+            entry["passes"] = all(s["survival"] >= GAIT_CRITERIA["survival"] for s in others.values())
+            if entry["passes"]:
+                row["walk"] = {"snapshot": snap, "minutes": entry["minutes"], "main": main,
+                               "others": entry["others"]}
+                row["walks_minutes"] = entry["minutes"]
+        tested[name] = entry
+        # Saved after every snapshot: a call killed mid-test repeats only the snapshot it was testing.
+        args.save_rows()
 
 
 def report(rows: list[dict], path: Path) -> None:
@@ -93,12 +160,27 @@ def report(rows: list[dict], path: Path) -> None:
     intro = ("Training env-steps/s (collection + update over training wall-clock) and the training time at which the "
              "policy first passes the 8 s gait test (30-minute cap). Written by `recipes/library_table.py`.")
     lines = ["# Per-library table (issue 22)", "", intro, "",
-             "| library | version | preset | envs | env-steps/s | walks at (min) | device | command |",
-             "|---|---|---|---|---|---|---|---|"]
+             ("| library | version | preset | envs | env-steps/s | walks at (min) | trained (min) | calls | device | "
+              "commands |"),
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    notes = {}
     for r in sorted(rows, key=lambda r: (r["preset"], r["library"], r["num_envs"])):
-        walks = f"{r['walks_minutes']:.1f}" if r.get("walks_minutes") is not None else f"no (≤ {r['cap_minutes']:g})"
+        if r.get("walks_minutes") is not None:
+            walks = f"{r['walks_minutes']:.1f}"
+        elif r.get("status", "final") == "final":
+            walks = f"no (≤ {r['cap_minutes']:g})"
+        else:
+            walks = "pending (training or untested snapshots)"
+        commands = r.get("commands") or [r.get("command", "")]
         lines.append(f"| {r['library']} | {r.get('version', '')} | {r['preset']} | {r['num_envs']:,} | "
-                     f"{r['env_steps_per_s']:,.0f} | {walks} | {r['device']} | `{r['command']}` |")
+                     f"{r['env_steps_per_s']:,.0f} | {walks} | {r.get('train_seconds', 0) / 60:.1f} | "
+                     f"{r.get('calls', 1)} | {r['device']} | {'; '.join(f'`{c}`' for c in commands)} |")
+        if r.get("notes"):
+            notes[r["library"]] = r["notes"]
+    if notes:
+        lines += ["", ("Training split over calls (`--minutes`): the time to walk is in cumulative training minutes. "
+                       "What a resumed call carries over:"), ""]
+        lines += [f"- {lib}: {text}" for lib, text in sorted(notes.items())]
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
@@ -109,42 +191,98 @@ def main(argv=None) -> None:
     parser.add_argument("--num_envs", default="4096", help="comma-separated env counts (default: 4096)")
     parser.add_argument("--preset", default="default", help="task preset (default; torque once it exists)")
     parser.add_argument("--device", default="cuda")
-    parser.add_argument("--max_minutes", type=float, default=30.0, help="training cap [min] (default: 30)")
+    parser.add_argument("--max_minutes", type=float, default=30.0,
+                        help="training cap of a row [min], summed over calls (default: 30)")
+    parser.add_argument("--minutes", type=float, default=0.0,
+                        help="train each listed row at most this many more minutes in this call, continuing its "
+                             "run (0 = up to --max_minutes); a row is final once a snapshot walks or the cap is "
+                             "reached")
     parser.add_argument("--checkpoint_minutes", type=float, default=1.0, help="snapshot period [min] (default: 1)")
     parser.add_argument("--eval_envs", type=int, default=256)
-    parser.add_argument("--runs", default="runs/library_table", help="training runs go here (must be new per row)")
+    parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
+    parser.add_argument("--eval_minutes", type=float, default=0.0,
+                        help="start no new snapshot's gait test after this many minutes of testing in this call "
+                             "(0 = test all); the next call goes on where this one stopped")
+    parser.add_argument("--no_eval", action="store_true", help="train only; gait-test later with --eval_only")
+    parser.add_argument("--eval_only", action="store_true",
+                        help="no training: gait-test the snapshots of the listed rows not tested yet")
+    parser.add_argument("--new", action="store_true",
+                        help="start the listed rows anew in new run folders (their old runs are kept on disk)")
+    parser.add_argument("--recipe_args", default="",
+                        help="extra options for the library recipes, e.g. '--hidden 16' for a smoke test")
+    parser.add_argument("--runs", default="runs/library_table", help="training runs go here (one folder per row)")
     parser.add_argument("--json", default="docs/adapters_table.json")
     parser.add_argument("--md", default="docs/adapters_table.md")
     parser.add_argument("--report", action="store_true", help="only rewrite --md from --json")
     args = parser.parse_args(argv)
+    if args.no_eval and args.eval_only:
+        parser.error("--no_eval and --eval_only exclude each other")
     json_path, md_path = ROOT / args.json, ROOT / args.md
     rows = json.loads(json_path.read_text()) if json_path.is_file() else []
+    command = shlex.join(["python", "recipes/library_table.py", *(sys.argv[1:] if argv is None else argv)])
     if not args.report:
         from importlib import metadata
 
+        import torch
+
         from tocabi_torchrl.rl.atomic import atomic_write_text
 
+        args.save_rows = lambda: atomic_write_text(json_path, json.dumps(rows, indent=2))
         dists = {"torchrl": "torchrl", "rsl_rl": "rsl-rl-lib", "skrl": "skrl", "sb3": "stable-baselines3"}
+        cap_s = 60.0 * args.max_minutes
         for library in args.libraries.split(","):
             if library not in LIBRARIES:
                 parser.error(f"unknown library {library!r}; choose from {', '.join(LIBRARIES)}")
             for n in (int(x) for x in args.num_envs.split(",")):
-                out = ROOT / args.runs / f"{library}_{args.preset}_{n}_{time.strftime('%Y%m%d_%H%M%S')}"
-                trained = train(library, n, out, args)
-                walked = first_pass(library, trained["snapshots"], out, args)
-                import torch
-
-                row = {"library": library, "version": metadata.version(dists[library]), "preset": args.preset,
-                       "num_envs": n, "env_steps_per_s": trained["env_steps_per_s"],
-                       "env_steps": trained["env_steps"], "train_seconds": trained["train_seconds"],
-                       "walks_minutes": walked["minutes"] if walked else None, "walk": walked,
-                       "cap_minutes": args.max_minutes, "run": str(out),
-                       "device": torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu",
-                       "command": " ".join(["python recipes/library_table.py", *(argv or sys.argv[1:])])}
-                rows = [r for r in rows if (r["library"], r["preset"], r["num_envs"]) != (library, args.preset, n)]
-                rows.append(row)
-                atomic_write_text(json_path, json.dumps(rows, indent=2))
-                print(json.dumps({k: row[k] for k in ("library", "num_envs", "env_steps_per_s", "walks_minutes")}))
+                key = (library, args.preset, n)
+                row = next((r for r in rows if (r["library"], r["preset"], r["num_envs"]) == key), None)
+                if row is not None and (args.new or "status" not in row):  # "status": rows of before resuming
+                    rows.remove(row)
+                    row = None
+                if row is None:
+                    if args.eval_only:
+                        print(f"{library} {args.preset} {n}: no row to gait-test; train it first")
+                        continue
+                    stamp = time.strftime("%Y%m%d_%H%M%S")
+                    row = {"library": library, "version": metadata.version(dists[library]), "preset": args.preset,
+                           "num_envs": n, "status": "training", "run": str(ROOT / args.runs / f"{library}_"
+                                                                              f"{args.preset}_{n}_{stamp}"),
+                           "env_steps": 0, "train_seconds": 0.0, "env_steps_per_s": 0.0, "snapshots": [],
+                           "tested": {}, "walks_minutes": None, "walk": None, "cap_minutes": args.max_minutes,
+                           "device": None, "commands": [], "notes": ""}
+                    rows.append(row)
+                if row["status"] == "final":
+                    print(f"{library} {args.preset} {n}: final ({row['run']}); pass --new to train it anew")
+                    continue
+                if row["cap_minutes"] != args.max_minutes:
+                    parser.error(f"{library} {args.preset} {n} trains to a {row['cap_minutes']:g}-minute cap, not "
+                                 f"{args.max_minutes:g}; give that --max_minutes or --new")
+                out = Path(row["run"])
+                row["commands"].append(command)
+                used = run_used_seconds(library, out) or 0.0
+                left = cap_s - used
+                if not args.eval_only and left > 0 and row.get("walk") is None:
+                    budget = min(60.0 * args.minutes, left) if args.minutes > 0 else left
+                    trained = train(library, n, out, args, used, budget)
+                    if trained["train_seconds"] <= used:  # nothing left to train: the recipe's own iteration or env-step budget ended before the cap
+                        row["recipe_budget_done"] = True
+                    row.update(env_steps=int(trained["env_steps"]), train_seconds=float(trained["train_seconds"]),
+                               env_steps_per_s=float(trained["env_steps_per_s"]), snapshots=trained["snapshots"],
+                               calls=trained.get("calls", row.get("calls", 0) + 1),
+                               notes=trained.get("resume_notes", ""),
+                               device=torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu")
+                    args.save_rows()
+                if not args.no_eval:
+                    gait_test_snapshots(library, row, out, args)
+                # Final: a snapshot walks, or the cap is reached (within 1 %: ppo_walk stops at an iteration's end
+                # by its own clock, which also counts its start-up) and every snapshot is tested.
+                capped = row["train_seconds"] >= 0.99 * cap_s or row.get("recipe_budget_done", False)
+                untested = [s for s in row["snapshots"] if Path(s).stem not in row.get("tested", {})]
+                if row.get("walk") is not None or (capped and not untested):
+                    row["status"] = "final"
+                args.save_rows()
+                print(json.dumps({k: row[k] for k in ("library", "num_envs", "status", "train_seconds",
+                                                      "env_steps_per_s", "walks_minutes")}))
     report(rows, md_path)
 
 

@@ -9,11 +9,19 @@ The hyper-parameters mirror the TorchRL ``default`` preset (48 steps per env, 5 
 rsl_rl learns it (starting at 0.2) where the preset schedules it. Writes rsl_rl's own logs and model_*.pt under
 <out>/rsl_rl, the policy as <out>/policy.pt (tensors only, tocabi_torchrl.adapters.policy_file) and the gait test
 under <out>/eval/.
+
+A run can be split over several calls: ``--resume`` continues the run in ``--out`` from the state its previous call
+saved (see ``tocabi_torchrl.adapters.recipe``), with ``--max_minutes`` the cap on the total training time:
+
+    python recipes/train_rsl_rl.py --out runs/r --max_minutes 9 --eval_envs 0
+    python recipes/train_rsl_rl.py --out runs/r --max_minutes 18 --eval_envs 0 --resume    # 9 more minutes
 """
 
 from __future__ import annotations
 
 import functools
+import io
+import json
 import sys
 from importlib import metadata
 
@@ -21,7 +29,23 @@ import torch
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
-from tocabi_torchrl.adapters.recipe import TimeUp, TrainingClock, base_parser, open_out_dir, write_json
+from tocabi_torchrl.adapters.recipe import (
+    TimeUp,
+    TrainingClock,
+    base_parser,
+    fresh_dir,
+    keep_previous,
+    open_out_dir,
+    read_resume,
+    write_json,
+    write_resume,
+)
+
+#: What a resumed call does not carry over (also in the per-library table's notes).
+RESUME_NOTES = ("resumes actor, critic, Adam state, adaptive learning rate and iteration count (rsl_rl's "
+                "OnPolicyRunner.load); not the env state (every call starts from a reset), the random-number state "
+                "(reseeded with seed + call index) or rsl_rl's logger buffers; the rollout in progress when a call's "
+                "time is up is discarded")
 
 
 def train_cfg(args) -> dict:
@@ -64,38 +88,80 @@ def main(argv=None) -> dict:
     from tocabi_torchrl.adapters import TocabiRslRlEnv  # isort: skip
     from rsl_rl.runners import OnPolicyRunner
 
-    out = open_out_dir(args.out)
-    torch.manual_seed(args.seed)
-    env = TocabiRslRlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed)
+    out = open_out_dir(args.out, args.resume)
+    prior = read_resume(out) if args.resume else {}
+    torch.manual_seed(args.seed + int(prior.get("calls", 0)))  # a resumed call draws other exploration noise
+    env = TocabiRslRlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + int(prior.get("calls", 0)))
     cfg = train_cfg(args)
-    runner = OnPolicyRunner(env, cfg, log_dir=str(out / "rsl_rl"), device=str(env.device))
+    settings = json.loads(json.dumps({"train_cfg": cfg, "num_envs": args.num_envs, "preset": args.preset}))
+    if prior and prior["settings"] != settings:
+        raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
+                         f"{prior['settings']}, given {settings}")
+    calls = int(prior.get("calls", 0))
+    # Each call logs to its own folder: rsl_rl's model_<it>.pt and event files of earlier calls stay as they were.
+    runner = OnPolicyRunner(env, cfg, log_dir=str(out / "rsl_rl" if calls == 0 else fresh_dir(out / f"rsl_rl_call{calls + 1}")),
+                            device=str(env.device))
+    done_before = int(prior.get("iterations", 0))
+    if prior:
+        # rsl_rl's own load: actor, critic, optimizer (with the adaptive learning rate in its param groups) and the
+        # iteration counter, which we set to the number of completed updates so the next one gets a new index.
+        runner.load(str(out / prior["state"]), map_location=str(env.device))
+        runner.current_learning_iteration = done_before
+    updates = [0]
+    update = runner.alg.update
+
+    def counted_update(*a, **k):
+        result = update(*a, **k)
+        updates[0] += 1
+        return result
+
+    runner.alg.update = counted_update
     meta = {"preset": args.preset, "task": {"seed": args.seed}, "train_cfg": cfg, "num_envs": args.num_envs,
             "obs_dim": env.stepper.obs_dim, "num_actions": env.num_actions,
             "library_version": metadata.version("rsl-rl-lib")}
+    env_steps_before = int(prior.get("env_steps", 0))
+
+    def env_steps():
+        return env_steps_before + env.stepper.env_steps
 
     def save(path):
         save_policy(path, "rsl_rl", runner.alg.get_policy().state_dict(),
-                    {**meta, "env_steps": env.stepper.env_steps, "train_seconds": clock.elapsed})
+                    {**meta, "env_steps": env_steps(), "train_seconds": clock.elapsed})
 
-    clock = TrainingClock(out, save, args.max_minutes, args.checkpoint_minutes)
+    clock = TrainingClock(out, save, args.max_minutes, args.checkpoint_minutes,
+                          offset=float(prior.get("train_seconds", 0.0)), snapshots=prior.get("snapshots"))
     env.stepper.step_hooks.append(clock)
+    left = args.iterations - done_before
     try:
-        runner.learn(args.iterations)
+        if clock.time_up or left <= 0:
+            print(f"rsl_rl: nothing left to train ({clock.elapsed:.0f} s, {done_before} iterations done)")
+        else:
+            runner.learn(left)
     except TimeUp as stop:
         print(f"rsl_rl: {stop}")
-    meta.update(env_steps=env.stepper.env_steps, train_seconds=clock.elapsed,
-                env_steps_per_s=env.stepper.env_steps / clock.elapsed, snapshots=clock.snapshots)
     env.stepper.step_hooks.clear()
-    save(out / "policy.pt")
-    seconds = meta["train_seconds"]
-    done = meta["env_steps"] // (args.num_envs * args.steps_per_env)
+    seconds = clock.freeze()
+    iterations = done_before + updates[0]
+    meta.update(env_steps=env_steps(), train_seconds=seconds, env_steps_per_s=env_steps() / max(seconds, 1e-9),
+                snapshots=clock.snapshots, iterations=iterations, calls=calls + 1,
+                resume_notes=RESUME_NOTES)
+    runner.current_learning_iteration = iterations
+    saved = runner.alg.save()
+    saved.update(iter=iterations, infos=None)
+    buffer = io.BytesIO()
+    torch.save(saved, buffer)  # rsl_rl's checkpoint format (what OnPolicyRunner.save writes), written atomically
+    write_resume(out, buffer.getvalue(), {"settings": settings, **{k: meta[k] for k in (
+        "env_steps", "train_seconds", "iterations", "snapshots", "calls")}})
+    save(keep_previous(out / "policy.pt", f"call{calls}"))
+    done = meta["iterations"]
     result = {"train": meta}
     if args.eval_envs > 0:
-        result["eval"] = evaluate(out / "policy.pt", out / "eval", num_envs=args.eval_envs, device=args.device,
+        eval_dir = keep_previous(out / "eval", f"call{calls}")
+        result["eval"] = evaluate(out / "policy.pt", eval_dir, num_envs=args.eval_envs, device=args.device,
                                   seconds=args.eval_seconds)
     write_json(out / "result.json", result)
     env.close()
-    print(f"rsl_rl: {done} full rollouts in {seconds:.1f} s; gait test: {result.get('eval', 'skipped')}")
+    print(f"rsl_rl: {done} PPO iterations in {seconds:.1f} s of training; gait test: {result.get('eval', 'skipped')}")
     return result
 
 

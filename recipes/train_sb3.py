@@ -12,11 +12,18 @@ the scheduled (not learned) std: 0.1 -> 0.05 over the first half of training, th
 SB3 keeps numpy arrays on the host: each step copies observations and rewards off the env's device (stated in the
 per-library table). Writes SB3's own zip (<out>/sb3_model.zip: loading it unpickles SB3's saved objects, so load
 only your own), the policy as <out>/policy.pt (tensors only) and the gait test under <out>/eval/.
+
+``--resume`` continues the run in ``--out`` from SB3's zip of its previous call (``--max_minutes`` caps the total
+training time over all calls; ``--iterations`` must stay the same, as it sets where the LR and std schedules are):
+
+    python recipes/train_sb3.py --out runs/s --max_minutes 9 --eval_envs 0
+    python recipes/train_sb3.py --out runs/s --max_minutes 18 --eval_envs 0 --resume     # 9 more minutes
 """
 
 from __future__ import annotations
 
 import functools
+import io
 import math
 import sys
 from importlib import metadata
@@ -25,12 +32,26 @@ import torch
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
-from tocabi_torchrl.adapters.recipe import TimeUp, TrainingClock, base_parser, open_out_dir, write_json
+from tocabi_torchrl.adapters.recipe import (
+    TimeUp,
+    TrainingClock,
+    base_parser,
+    keep_previous,
+    open_out_dir,
+    read_resume,
+    write_json,
+    write_resume,
+)
 from tocabi_torchrl.rl.std_schedule import StdSchedule
 
 #: Reference learning rates (spec §10.2): the policy's schedule ends and the value head's constant rate.
 LR_START, LR_END, VALUE_HEAD_LR = 1e-5, 2e-7, 5e-4
 STD = StdSchedule(start=0.1, end=0.05, hold=0.5)
+#: What a resumed call does not carry over (also in the per-library table's notes).
+RESUME_NOTES = ("resumes SB3's saved model (PPO.load): policy, Adam state of both parameter groups, num_timesteps and "
+                "_n_updates, so the LR and std schedules continue where the last completed update left them; not the "
+                "env state (every call starts from a reset), the random-number state (reseeded with seed + call "
+                "index) or the rollout in progress when a call's time is up (discarded; its steps and seconds count)")
 
 
 class LinearLR:
@@ -91,37 +112,72 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     from tocabi_torchrl.adapters import TocabiSB3VecEnv  # checks the stable-baselines3 version
 
-    out = open_out_dir(args.out)
-    env = TocabiSB3VecEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed)
-    model = reference_ppo_class()(
-        "MlpPolicy", env, learning_rate=LinearLR(LR_START, LR_END), n_steps=args.n_steps,
-        batch_size=args.batch_size, n_epochs=args.epochs, gamma=0.99, gae_lambda=0.95, clip_range=0.2,
-        ent_coef=0.0, vf_coef=0.5, max_grad_norm=0.5, policy_kwargs=policy_kwargs(args.hidden), seed=args.seed,
-        device=str(env.device), verbose=1)
+    out = open_out_dir(args.out, args.resume)
+    prior = read_resume(out) if args.resume else {}
+    calls = int(prior.get("calls", 0))
+    settings = {"num_envs": args.num_envs, "preset": args.preset, "hidden": list(args.hidden), "n_steps": args.n_steps,
+                "batch_size": args.batch_size, "epochs": args.epochs, "iterations": args.iterations, "seed": args.seed}
+    if prior and prior["settings"] != settings:
+        raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
+                         f"{prior['settings']}, given {settings} (--iterations too: it sets the LR and std schedules)")
+    env = TocabiSB3VecEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + calls)
+    total = args.iterations * args.n_steps * args.num_envs
+    if prior:
+        # SB3's own load (the zip its save wrote): policy, both Adam parameter groups, num_timesteps and _n_updates;
+        # the schedules are given anew (nothing of this recipe is unpickled) and read their position from
+        # num_timesteps / _total_timesteps, which learn(reset_num_timesteps=False) keeps at the first call's total.
+        model = reference_ppo_class().load(out / prior["state"], env=env, device=str(env.device),
+                                           custom_objects={"learning_rate": LinearLR(LR_START, LR_END),
+                                                           "lr_schedule": LinearLR(LR_START, LR_END)})
+        model.set_random_seed(args.seed + calls)  # load reseeds with the first call's seed: draw other noise
+    else:
+        model = reference_ppo_class()(
+            "MlpPolicy", env, learning_rate=LinearLR(LR_START, LR_END), n_steps=args.n_steps,
+            batch_size=args.batch_size, n_epochs=args.epochs, gamma=0.99, gae_lambda=0.95, clip_range=0.2,
+            ent_coef=0.0, vf_coef=0.5, max_grad_norm=0.5, policy_kwargs=policy_kwargs(args.hidden), seed=args.seed,
+            device=str(env.device), verbose=1)
     meta = {"preset": args.preset, "task": {"seed": args.seed}, "hidden": list(args.hidden),
             "num_envs": args.num_envs, "library_version": metadata.version("stable-baselines3"),
             "obs_dim": env.observation_space.shape[0], "action_low": env.action_space.low.tolist(),
             "action_high": env.action_space.high.tolist(),
             "host_copies_per_step": "observation (num_envs, 237), reward, done flags to the host; actions back"}
+    env_steps_before = int(prior.get("env_steps", 0))
+
+    def env_steps():
+        return env_steps_before + env.stepper.env_steps
 
     def save(path):
         save_policy(path, "sb3", model.policy.state_dict(),
-                    {**meta, "env_steps": env.stepper.env_steps, "train_seconds": clock.elapsed})
+                    {**meta, "env_steps": env_steps(), "train_seconds": clock.elapsed})
 
-    clock = TrainingClock(out, save, args.max_minutes, args.checkpoint_minutes)
+    clock = TrainingClock(out, save, args.max_minutes, args.checkpoint_minutes,
+                          offset=float(prior.get("train_seconds", 0.0)), snapshots=prior.get("snapshots"))
     env.stepper.step_hooks.append(clock)
+    left = total - int(model.num_timesteps)
     try:
-        model.learn(total_timesteps=args.iterations * args.n_steps * args.num_envs)
+        if clock.time_up or left <= 0:
+            print(f"sb3: nothing left to train ({clock.elapsed:.0f} s, {model.num_timesteps} timesteps done)")
+        else:
+            model.learn(total_timesteps=left, reset_num_timesteps=not prior)
     except TimeUp as stop:
         print(f"sb3: {stop}")
-    meta.update(env_steps=env.stepper.env_steps, train_seconds=clock.elapsed,
-                env_steps_per_s=env.stepper.env_steps / clock.elapsed, snapshots=clock.snapshots)
+        # The rollout in progress is discarded: SB3 counted its steps in num_timesteps, which sets the schedules'
+        # position; take them back so that the next call's schedules continue from the last update.
+        model.num_timesteps = int(model._n_updates // args.epochs) * args.n_steps * args.num_envs
     env.stepper.step_hooks.clear()
-    save(out / "policy.pt")
-    model.save(out / "sb3_model.zip")
+    seconds = clock.freeze()
+    meta.update(env_steps=env_steps(), train_seconds=seconds, env_steps_per_s=env_steps() / max(seconds, 1e-9),
+                snapshots=clock.snapshots, iterations=int(model._n_updates // args.epochs), calls=calls + 1,
+                sb3_num_timesteps=int(model.num_timesteps), resume_notes=RESUME_NOTES)
+    buffer = io.BytesIO()
+    model.save(buffer)  # SB3's own zip, written atomically as a new file
+    write_resume(out, buffer.getvalue(), {"settings": settings, **{k: meta[k] for k in (
+        "env_steps", "train_seconds", "iterations", "snapshots", "calls")}})
+    save(keep_previous(out / "policy.pt", f"call{calls}"))
+    keep_previous(out / "sb3_model.zip", f"call{calls}").write_bytes(buffer.getvalue())
     result = {"train": meta}
     if args.eval_envs > 0:
-        result["eval"] = evaluate(out / "policy.pt", out / "eval", num_envs=args.eval_envs, device=args.device,
+        result["eval"] = evaluate(out / "policy.pt", keep_previous(out / "eval", f"call{calls}"), num_envs=args.eval_envs, device=args.device,
                                   seconds=args.eval_seconds)
     write_json(out / "result.json", result)
     env.close()

@@ -11,11 +11,18 @@ registry. Hyper-parameters mirror the TorchRL ``default`` preset (48-step rollou
 49,152 at 4,096 envs, gamma 0.995, lambda 0.95, KL-adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks,
 time-limit bootstrapping); the std is learned from 0.2. Writes skrl's own logs and checkpoints under <out>/skrl,
 the policy as <out>/policy.pt (tensors only) and the gait test under <out>/eval/.
+
+``--resume`` continues the run in ``--out`` from skrl's agent checkpoint of its previous call (``--max_minutes``
+caps the total training time over all calls):
+
+    python recipes/train_skrl.py --out runs/k --max_minutes 9 --eval_envs 0
+    python recipes/train_skrl.py --out runs/k --max_minutes 18 --eval_envs 0 --resume    # 9 more minutes
 """
 
 from __future__ import annotations
 
 import functools
+import io
 import math
 import sys
 from importlib import metadata
@@ -25,7 +32,24 @@ from torch import nn
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
-from tocabi_torchrl.adapters.recipe import TimeUp, TrainingClock, base_parser, open_out_dir, write_json
+from tocabi_torchrl.adapters.recipe import (
+    TimeUp,
+    TrainingClock,
+    base_parser,
+    fresh_dir,
+    keep_previous,
+    open_out_dir,
+    read_resume,
+    write_json,
+    write_resume,
+)
+
+#: What a resumed call does not carry over (also in the per-library table's notes).
+RESUME_NOTES = ("resumes skrl's agent checkpoint (agent.save/agent.load): policy with its learned std, value and Adam "
+                "state, whose param groups hold the KL-adaptive learning rate; skrl's trainer timestep restarts at 0 "
+                "each call (it only names skrl's logs and checkpoints, kept per call); not the env state (every call "
+                "starts from a reset), the random-number state (reseeded with seed + call index) or the rollout in "
+                "progress when a call's time is up (discarded; its steps and seconds count)")
 
 
 def _mlp(inputs: int, hidden: tuple[int, ...], outputs: int) -> nn.Sequential:
@@ -78,44 +102,81 @@ def main(argv=None) -> dict:
     from skrl.trainers.torch import SequentialTrainer
     from skrl.utils import set_seed
 
-    out = open_out_dir(args.out)
-    set_seed(args.seed)
-    env = TocabiSkrlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed)
+    out = open_out_dir(args.out, args.resume)
+    prior = read_resume(out) if args.resume else {}
+    calls = int(prior.get("calls", 0))
+    settings = {"num_envs": args.num_envs, "preset": args.preset, "hidden": list(args.hidden),
+                "rollouts": args.rollouts, "seed": args.seed}
+    if prior and prior["settings"] != settings:
+        raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
+                         f"{prior['settings']}, given {settings}")
+    set_seed(args.seed + calls)  # a resumed call draws other exploration noise
+    env = TocabiSkrlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + calls)
     models = make_models(env.observation_space, env.action_space, env.device, args.hidden)
     cfg = PPO_CFG(
         rollouts=args.rollouts, learning_epochs=5, mini_batches=max(1, args.num_envs * args.rollouts // 49152),
         discount_factor=0.995, gae_lambda=0.95, learning_rate=1e-3, learning_rate_scheduler=KLAdaptiveLR,
         learning_rate_scheduler_kwargs={"kl_threshold": 0.01}, grad_norm_clip=1.0, ratio_clip=0.2, value_clip=0.2,
         entropy_loss_scale=0.0, value_loss_scale=1.0, time_limit_bootstrap=True,
-        experiment={"directory": str(out / "skrl"), "experiment_name": "ppo", "write_interval": args.rollouts,
-                    "checkpoint_interval": 100 * args.rollouts})
+        # Each call writes skrl's logs and checkpoints to its own experiment folder: skrl names its checkpoints by
+        # the call's own timestep, which restarts at 0, so a shared folder would overwrite the earlier call's.
+        experiment={"directory": str(out / "skrl"), "experiment_name": "ppo" if calls == 0 else fresh_dir(out / "skrl" / f"ppo_call{calls + 1}").name,
+                    "write_interval": args.rollouts, "checkpoint_interval": 100 * args.rollouts})
     memory = RandomMemory(memory_size=args.rollouts, num_envs=env.num_envs, device=env.device)
     agent = PPO(models=models, memory=memory, observation_space=env.observation_space,
                 action_space=env.action_space, device=env.device, cfg=cfg)
-    trainer = SequentialTrainer(env=env, agents=agent, cfg={"timesteps": args.iterations * args.rollouts,
+    done_before = int(prior.get("iterations", 0))
+    if prior:
+        # skrl's own load of its own save: policy (with its learned std), value and Adam, whose param groups hold
+        # the KL-adaptive learning rate; the scheduler keeps no other state.
+        agent.load(str(out / prior["state"]))
+    updates = [0]
+    update = agent.update
+
+    def counted_update(*a, **k):
+        update(*a, **k)
+        updates[0] += 1
+
+    agent.update = counted_update
+    left = args.iterations - done_before
+    trainer = SequentialTrainer(env=env, agents=agent, cfg={"timesteps": max(left, 0) * args.rollouts,
                                                             "headless": True, "close_environment_at_exit": False})
     meta = {"preset": args.preset, "task": {"seed": args.seed}, "hidden": list(args.hidden),
             "num_envs": args.num_envs, "library_version": metadata.version("skrl"),
             "obs_dim": env.observation_space.shape[0], "action_low": env.action_space.low.tolist(),
             "action_high": env.action_space.high.tolist()}
+    env_steps_before = int(prior.get("env_steps", 0))
+
+    def env_steps():
+        return env_steps_before + env.stepper.env_steps
 
     def save(path):
         save_policy(path, "skrl", models["policy"].state_dict(),
-                    {**meta, "env_steps": env.stepper.env_steps, "train_seconds": clock.elapsed})
+                    {**meta, "env_steps": env_steps(), "train_seconds": clock.elapsed})
 
-    clock = TrainingClock(out, save, args.max_minutes, args.checkpoint_minutes)
+    clock = TrainingClock(out, save, args.max_minutes, args.checkpoint_minutes,
+                          offset=float(prior.get("train_seconds", 0.0)), snapshots=prior.get("snapshots"))
     env.stepper.step_hooks.append(clock)
     try:
-        trainer.train()
+        if clock.time_up or left <= 0:
+            print(f"skrl: nothing left to train ({clock.elapsed:.0f} s, {done_before} iterations done)")
+        else:
+            trainer.train()
     except TimeUp as stop:
         print(f"skrl: {stop}")
-    meta.update(env_steps=env.stepper.env_steps, train_seconds=clock.elapsed,
-                env_steps_per_s=env.stepper.env_steps / clock.elapsed, snapshots=clock.snapshots)
     env.stepper.step_hooks.clear()
-    save(out / "policy.pt")
+    seconds = clock.freeze()
+    meta.update(env_steps=env_steps(), train_seconds=seconds, env_steps_per_s=env_steps() / max(seconds, 1e-9),
+                snapshots=clock.snapshots, iterations=done_before + updates[0], calls=calls + 1,
+                resume_notes=RESUME_NOTES)
+    buffer = io.BytesIO()
+    agent.save(buffer)  # skrl's own checkpoint (its checkpoint_modules), written atomically as a new file
+    write_resume(out, buffer.getvalue(), {"settings": settings, **{k: meta[k] for k in (
+        "env_steps", "train_seconds", "iterations", "snapshots", "calls")}})
+    save(keep_previous(out / "policy.pt", f"call{calls}"))
     result = {"train": meta}
     if args.eval_envs > 0:
-        result["eval"] = evaluate(out / "policy.pt", out / "eval", num_envs=args.eval_envs, device=args.device,
+        result["eval"] = evaluate(out / "policy.pt", keep_previous(out / "eval", f"call{calls}"), num_envs=args.eval_envs, device=args.device,
                                   seconds=args.eval_seconds)
     write_json(out / "result.json", result)
     env.close()

@@ -97,3 +97,45 @@ def test_training_clock_saves_snapshots_and_stops(tmp_path):
     with pytest.raises(TimeUp, match="max_minutes 1"):
         clock()
     assert [p.name for p in saved] == ["wall_00030s.pt", "wall_00060s.pt"]
+
+
+def test_training_clock_resumes_with_cumulative_time(tmp_path):
+    from tocabi_torchrl.adapters.recipe import keep_previous, read_resume, write_resume
+
+    saved = []
+    clock = TrainingClock(tmp_path, saved.append, max_minutes=2.0, checkpoint_minutes=0.5, offset=70.0,
+                          snapshots=["earlier.pt"])
+    assert clock.elapsed >= 70.0 and not clock.time_up
+    clock.start -= 21.0  # 91 s in total: the next snapshot is the one at 90 s, not at 30 s
+    clock()
+    assert [p.name for p in saved] == ["wall_00090s.pt"] and clock.snapshots[0] == "earlier.pt"
+    frozen = clock.freeze()
+    assert clock.elapsed == frozen
+    write_resume(tmp_path, b"x", {"calls": 1, "env_steps": 8})
+    assert read_resume(tmp_path) == {"calls": 1, "env_steps": 8, "state": "resume/state_call1.pt"}
+    with pytest.raises(FileExistsError, match="never overwritten"):
+        write_resume(tmp_path, b"y", {"calls": 1})
+    (tmp_path / "policy.pt").write_text("1")
+    assert keep_previous(tmp_path / "policy.pt", "call1") == tmp_path / "policy.pt"
+    assert (tmp_path / "policy_call1.pt").read_text() == "1" and not (tmp_path / "policy.pt").exists()
+    assert open_out_dir(tmp_path, resume=True) == tmp_path
+    with pytest.raises(SystemExit, match="resume.json"):
+        open_out_dir(tmp_path / "missing", resume=True)
+
+
+def test_a_snapshot_left_by_a_killed_call_is_kept_aside(tmp_path):
+    # A call killed after a snapshot but before its resume state: the next call (same offset) writes that snapshot
+    # again; the orphan is renamed, not overwritten, and the save does not fail.
+    from tocabi_torchrl.adapters.recipe import fresh_dir
+
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "wall_00030s.pt").write_text("killed call")
+    saved = []
+    clock = TrainingClock(tmp_path, saved.append, checkpoint_minutes=0.5)
+    clock.start -= 31.0
+    clock()
+    assert [p.name for p in saved] == ["wall_00030s.pt"]
+    assert (tmp_path / "checkpoints" / "wall_00030s_unresumed0.pt").read_text() == "killed call"
+    assert fresh_dir(tmp_path / "logs") == tmp_path / "logs"
+    (tmp_path / "logs").mkdir()
+    assert fresh_dir(tmp_path / "logs") == tmp_path / "logs_2"

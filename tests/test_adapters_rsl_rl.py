@@ -75,3 +75,46 @@ def test_recipe_trains_two_iterations_and_gait_tests(tmp_path):
     torch.testing.assert_close(act(obs), actor(TensorDict({"policy": obs, "critic": obs}, batch_size=[3])))
     with pytest.raises(SystemExit, match="exists"):
         recipe.main(["--out", str(out), "--device", "cpu"])
+
+
+def test_recipe_resumes_the_same_run(tmp_path):
+    # One iteration, then a resumed call for one more: counters are cumulative and the second call starts from the
+    # first call's weights and Adam state (rsl_rl's own load), not from a fresh initialisation.
+    recipe = load_recipe("train_rsl_rl")
+    out = tmp_path / "run"
+    small = ["--out", str(out), "--device", "cpu", "--num_envs", "2", "--steps_per_env", "4", "--hidden", "16",
+             "--eval_envs", "0"]
+    first = recipe.main([*small, "--iterations", "1"])["train"]
+    assert (first["iterations"], first["env_steps"], first["calls"]) == (1, 8, 1)
+    state = torch.load(out / "resume" / "state_call1.pt", map_location="cpu", weights_only=False)
+    _, policy1 = load_policy(out / "policy.pt", "rsl_rl")
+    seen = {}
+    from rsl_rl.runners import OnPolicyRunner
+
+    real_load = OnPolicyRunner.load
+
+    def spy(self, path, *a, **k):
+        infos = real_load(self, path, *a, **k)
+        seen["actor"] = {k: v.clone() for k, v in self.alg.get_policy().state_dict().items()}
+        seen["adam_steps"] = [float(s["step"]) for s in self.alg.optimizer.state_dict()["state"].values()]
+        return infos
+
+    OnPolicyRunner.load = spy
+    try:
+        second = recipe.main([*small, "--iterations", "2", "--resume"])["train"]
+    finally:
+        OnPolicyRunner.load = real_load
+    assert (second["iterations"], second["env_steps"], second["calls"]) == (2, 16, 2)
+    assert second["train_seconds"] > first["train_seconds"]
+    assert all(torch.equal(seen["actor"][k], policy1[k]) for k in policy1)  # continued, not re-initialised
+    saved_steps = [float(s["step"]) for s in state["optimizer_state_dict"]["state"].values()]
+    assert seen["adam_steps"] == saved_steps and saved_steps[0] > 0  # Adam's state carried over
+    _, policy2 = load_policy(out / "policy.pt", "rsl_rl")
+    assert not all(torch.equal(policy2[k], policy1[k]) for k in policy1)  # trained on
+    assert (out / "policy_call1.pt").is_file() and (out / "resume" / "state_call2.pt").is_file()
+    assert torch.load(out / "resume" / "state_call2.pt", weights_only=False)["iter"] == 2 and state["iter"] == 1
+    # Nothing left: a third call within the same --iterations trains nothing and keeps the counters.
+    third = recipe.main([*small, "--iterations", "2", "--resume"])["train"]
+    assert (third["iterations"], third["env_steps"]) == (2, 16)
+    with pytest.raises(SystemExit, match="other settings"):
+        recipe.main([*small[:-4], "--hidden", "8", "--eval_envs", "0", "--iterations", "3", "--resume"])

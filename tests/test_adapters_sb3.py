@@ -85,3 +85,46 @@ def test_recipe_trains_two_iterations_with_the_reference_schedule(tmp_path):
     _, act = recipe.load_actor(out / "policy.pt")
     obs = torch.randn(3, 237)
     torch.testing.assert_close(act(obs), model.policy._predict(obs, deterministic=True))
+
+
+def test_recipe_resumes_the_same_run_and_its_schedules(tmp_path):
+    # The first call's time is up after one of two iterations; a resumed call trains the second: counters are
+    # cumulative, the second call starts from the first call's weights and Adam state, and the schedules' position
+    # (progress remaining, which sets the LR and the std) is what one uninterrupted call would have had.
+    from tocabi_torchrl.adapters.recipe import TimeUp
+
+    recipe = load_recipe("train_sb3")
+    out = tmp_path / "run"
+    small = ["--out", str(out), "--device", "cpu", "--num_envs", "2", "--n_steps", "4", "--batch_size", "4",
+             "--hidden", "16", "--eval_envs", "0", "--iterations", "2"]
+    ref, seen = recipe.reference_ppo_class(), {"progress": [], "calls": 0}
+
+    class Spied(ref):
+        def learn(self, *a, **k):
+            seen["calls"] += 1
+            seen["policy"] = {n: v.clone() for n, v in self.policy.state_dict().items()}
+            seen["adam"] = [float(s["step"]) for s in self.policy.optimizer.state_dict()["state"].values()]
+            return super().learn(*a, **k)
+
+        def train(self):
+            seen["progress"].append(self._current_progress_remaining)
+            super().train()
+            if seen["calls"] == 1:
+                raise TimeUp("time is up after the first iteration")
+
+    recipe.reference_ppo_class = lambda: Spied
+    first = recipe.main(small)["train"]
+    assert (first["iterations"], first["env_steps"], first["calls"]) == (1, 8, 1)
+    _, policy1 = load_policy(out / "policy.pt", "sb3")
+    second = recipe.main([*small, "--resume"])["train"]
+    assert (second["iterations"], second["env_steps"], second["calls"]) == (2, 16, 2)
+    assert second["train_seconds"] > first["train_seconds"] and second["sb3_num_timesteps"] == 16
+    assert seen["progress"] == [0.5, 0.0]  # as in one call of two iterations
+    assert all(torch.equal(seen["policy"][k], policy1[k]) for k in policy1)  # continued, not re-initialised
+    assert seen["adam"] and all(s == 3 * 2 for s in seen["adam"])  # the first call's 3 epochs x 2 mini-batches
+    _, policy2 = load_policy(out / "policy.pt", "sb3")
+    np.testing.assert_allclose(policy2["log_std"].numpy(), math.log(0.05), rtol=1e-6)
+    assert not all(torch.equal(policy2[k], policy1[k]) for k in policy1)
+    assert (out / "policy_call1.pt").is_file() and (out / "sb3_model_call1.zip").is_file()
+    with pytest.raises(SystemExit, match="other settings"):
+        recipe.main([*small[:-1], "3", "--resume"])

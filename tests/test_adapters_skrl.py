@@ -54,3 +54,39 @@ def test_recipe_trains_two_iterations_and_gait_tests(tmp_path):
     obs = torch.randn(3, 237)
     hidden = torch.nn.functional.elu(obs @ state["net.0.weight"].T + state["net.0.bias"])
     torch.testing.assert_close(act(obs), hidden @ state["net.2.weight"].T + state["net.2.bias"])
+
+
+def test_recipe_resumes_the_same_run(tmp_path):
+    # One iteration, then a resumed call for one more: counters are cumulative and the second call starts from the
+    # first call's weights and Adam state (skrl's agent.load), not from a fresh initialisation.
+    from skrl.agents.torch.ppo import PPO
+
+    from tocabi_torchrl.adapters.policy_file import load_policy
+
+    recipe = load_recipe("train_skrl")
+    out = tmp_path / "run"
+    small = ["--out", str(out), "--device", "cpu", "--num_envs", "2", "--rollouts", "4", "--hidden", "16",
+             "--eval_envs", "0"]
+    first = recipe.main([*small, "--iterations", "1"])["train"]
+    assert (first["iterations"], first["env_steps"], first["calls"]) == (1, 8, 1)
+    _, policy1 = load_policy(out / "policy.pt", "skrl")
+    saved = torch.load(out / "resume" / "state_call1.pt", map_location="cpu", weights_only=False)
+    seen, real_load = {}, PPO.load
+
+    def spy(self, path):
+        real_load(self, path)
+        seen["policy"] = {k: v.clone() for k, v in self.policy.state_dict().items()}
+        seen["adam"] = [float(s["step"]) for s in self.optimizer.state_dict()["state"].values()]
+
+    PPO.load = spy
+    try:
+        second = recipe.main([*small, "--iterations", "2", "--resume"])["train"]
+    finally:
+        PPO.load = real_load
+    assert (second["iterations"], second["env_steps"], second["calls"]) == (2, 16, 2)
+    assert second["train_seconds"] > first["train_seconds"]
+    assert all(torch.equal(seen["policy"][k], policy1[k]) for k in policy1)  # continued, not re-initialised
+    assert seen["adam"] == [float(s["step"]) for s in saved["optimizer"]["state"].values()] and seen["adam"][0] > 0
+    _, policy2 = load_policy(out / "policy.pt", "skrl")
+    assert not all(torch.equal(policy2[k], policy1[k]) for k in policy1)
+    assert (out / "policy_call1.pt").is_file() and (out / "skrl" / "ppo_call2").is_dir()

@@ -1,4 +1,13 @@
-"""What the library recipes (``recipes/train_<library>.py``) share: their common options and the output folder."""
+"""What the library recipes (``recipes/train_<library>.py``) share: their common options, the output folder, the
+training clock and the resume state (``--resume``).
+
+A run can be trained over several calls (a GPU machine that runs one command for at most 10 minutes): each call
+ends by writing the library's own training state as a new file ``<out>/resume/state_call<k>.pt`` and then,
+atomically, ``<out>/resume.json``, which names that file and carries the cumulative counters (env steps, training
+seconds, PPO iterations, snapshots). ``--resume`` continues from there; ``--max_minutes`` is then the cap on the
+*total* training time over all calls. The rollout in progress when a call's time is up is discarded (its env steps
+and seconds still count: they were spent), and every call starts its envs from a reset.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +17,17 @@ from pathlib import Path
 
 from ..rl.atomic import atomic_write_text
 
-__all__ = ["TimeUp", "TrainingClock", "base_parser", "open_out_dir", "write_json"]
+__all__ = [
+    "TimeUp",
+    "TrainingClock",
+    "base_parser",
+    "fresh_dir",
+    "keep_previous",
+    "open_out_dir",
+    "read_resume",
+    "write_json",
+    "write_resume",
+]
 
 
 def base_parser(description: str, num_envs: int, iterations: int) -> argparse.ArgumentParser:
@@ -19,20 +38,28 @@ def base_parser(description: str, num_envs: int, iterations: int) -> argparse.Ar
     parser.add_argument("--iterations", type=int, default=iterations,
                         help=f"PPO iterations (rollout + update) to train (default: {iterations})")
     parser.add_argument("--max_minutes", type=float, default=0.0,
-                        help="stop after this many minutes of training (0 = no limit)")
+                        help="stop after this many minutes of training, summed over --resume calls (0 = no limit)")
     parser.add_argument("--checkpoint_minutes", type=float, default=0.0,
                         help="also save the policy every this many minutes of training (0 = off)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the env and the library (default: 0)")
     parser.add_argument("--preset", default="default", help="task preset of tocabi_torchrl.rl.config (default: default)")
     parser.add_argument("--out", required=True, help="output folder; must not exist yet (runs are never overwritten)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in --out (from its resume.json) instead of starting a new one; the "
+                             "task and network options must be the ones it started with")
     parser.add_argument("--eval_envs", type=int, default=256, help="robots in the final 8 s gait test (0 = skip it)")
     parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
     return parser
 
 
-def open_out_dir(path: str) -> Path:
-    """Create the run's output folder; ``SystemExit`` with a message if it exists (an earlier run is kept)."""
+def open_out_dir(path: str, resume: bool = False) -> Path:
+    """Create the run's output folder; ``SystemExit`` with a message if it exists (an earlier run is kept). With
+    ``resume`` the folder must exist and hold ``resume.json`` (a run this recipe wrote)."""
     out = Path(path)
+    if resume:
+        if not (out / "resume.json").is_file():
+            raise SystemExit(f"error: --resume needs {out / 'resume.json'} (written at the end of every call)")
+        return out
     if out.exists():
         raise SystemExit(f"error: {out} exists; pass another --out (an earlier run is never overwritten)")
     out.mkdir(parents=True)
@@ -43,6 +70,46 @@ def write_json(path: Path, data: dict) -> None:
     atomic_write_text(path, json.dumps(data, indent=2))
 
 
+def read_resume(out: Path) -> dict:
+    """The counters of ``<out>/resume.json``: ``env_steps``, ``train_seconds``, ``iterations``, ``snapshots``,
+    ``calls``, ``state`` (the library state file, relative to ``out``) and ``library`` options to check."""
+    return json.loads((Path(out) / "resume.json").read_text())
+
+
+def write_resume(out: Path, state: bytes, counters: dict) -> Path:
+    """Write the library's training state ``state`` as a new file (never replacing one) and then ``resume.json``
+    naming it, both atomically: a call killed in between leaves the previous resume point intact."""
+    from ..rl.atomic import atomic_write_bytes
+
+    path = Path(out) / "resume" / f"state_call{int(counters['calls'])}.pt"
+    if path.exists():
+        raise FileExistsError(f"{path} exists; a resume state is never overwritten")
+    atomic_write_bytes(path, state)
+    write_json(Path(out) / "resume.json", {**counters, "state": str(path.relative_to(out))})
+    return path
+
+
+def keep_previous(path: Path, tag: str) -> Path:
+    """Before a resumed call writes ``path`` again (``policy.pt``, ``eval/``), rename the earlier one to
+    ``<stem>_<tag><suffix>`` so that nothing a previous call wrote is overwritten; returns the free ``path``."""
+    path = Path(path)
+    if path.exists():
+        kept = path.with_name(f"{path.stem}_{tag}{path.suffix}")
+        if kept.exists():
+            raise FileExistsError(f"{kept} exists; refusing to overwrite an earlier call's output")
+        path.rename(kept)
+    return path
+
+
+def fresh_dir(path: Path) -> Path:
+    """``path``, or ``path_2``, ``path_3``, ... if taken (a log folder a killed call left): never shared."""
+    path, k = Path(path), 2
+    candidate = path
+    while candidate.exists():
+        candidate, k = path.with_name(f"{path.name}_{k}"), k + 1
+    return candidate
+
+
 class TimeUp(Exception):
     """Raised from inside a library's training loop when the recipe's ``--max_minutes`` are spent."""
 
@@ -50,28 +117,47 @@ class TimeUp(Exception):
 class TrainingClock:
     """A step hook (``TensorStepper.step_hooks``) that saves the policy at every ``checkpoint_minutes`` of training
     wall-clock (``<out>/checkpoints/wall_XXXXXs.pt``, what the per-library table gait-tests) and raises
-    :class:`TimeUp` after ``max_minutes`` (0 = off for either). ``save(path)`` writes the current policy."""
+    :class:`TimeUp` after ``max_minutes`` (0 = off for either). ``save(path)`` writes the current policy.
 
-    def __init__(self, out: Path, save, max_minutes: float = 0.0, checkpoint_minutes: float = 0.0):
+    ``offset``: training seconds of earlier calls of a resumed run; :attr:`elapsed`, the snapshot names and the
+    limit are then cumulative (a resumed run's first snapshot is the next multiple of ``checkpoint_minutes``)."""
+
+    def __init__(self, out: Path, save, max_minutes: float = 0.0, checkpoint_minutes: float = 0.0,
+                 offset: float = 0.0, snapshots: list[str] | None = None):
+        import math
         import time
 
         self._time = time.perf_counter
         self.start = self._time()
+        self.offset = float(offset)
         self.out, self.save = Path(out), save
         self.limit = 60.0 * max_minutes
         self.every = 60.0 * checkpoint_minutes
-        self.next = self.every
-        self.snapshots: list[str] = []
+        self.next = (math.floor(self.offset / self.every) + 1) * self.every if self.every > 0 else 0.0
+        self.snapshots: list[str] = list(snapshots or [])
 
     @property
     def elapsed(self) -> float:
-        """Seconds since the clock started."""
-        return self._time() - self.start
+        """Training seconds: those of earlier calls plus those since this clock started."""
+        return self.offset + self._time() - self.start
+
+    def freeze(self) -> float:
+        """Stop the clock (training is over; saving and testing are not training time); returns :attr:`elapsed`."""
+        now = self.elapsed
+        self.offset, self._time = now, (lambda: self.start)
+        return now
+
+    @property
+    def time_up(self) -> bool:
+        """Whether ``max_minutes`` are already spent (a resumed run that has nothing left to train)."""
+        return self.limit > 0 and self.elapsed >= self.limit
 
     def __call__(self) -> None:
         elapsed = self.elapsed
         if self.every > 0 and elapsed >= self.next:
             path = self.out / "checkpoints" / f"wall_{int(self.next):05d}s.pt"
+            if path.exists():  # left by a call killed before it saved its resume state: keep it aside
+                keep_previous(path, f"unresumed{len(list(path.parent.glob(path.stem + '_unresumed*')))}")
             self.save(path)
             self.snapshots.append(str(path))
             self.next += self.every
