@@ -4,6 +4,7 @@ output folder rule."""
 from __future__ import annotations
 
 import importlib.metadata
+import json
 
 import pytest
 import torch
@@ -11,7 +12,7 @@ import torch
 from tocabi_torchrl.adapters import _versions
 from tocabi_torchrl.adapters._versions import LibraryVersionError, require, version_in_range
 from tocabi_torchrl.adapters.policy_file import PolicyFileError, load_policy, save_policy
-from tocabi_torchrl.adapters.recipe import TimeUp, TrainingClock, open_out_dir
+from tocabi_torchrl.adapters.recipe import TimeUp, TrainingClock, open_out_dir, read_resume, write_resume
 
 
 def test_version_ranges():
@@ -83,6 +84,19 @@ def test_recipes_never_reuse_an_output_folder(tmp_path):
     open_out_dir(tmp_path / "run")
     with pytest.raises(SystemExit, match="exists"):
         open_out_dir(tmp_path / "run")
+
+
+def test_resume_loads_only_a_state_the_recipe_wrote(tmp_path):
+    # The libraries' loaders unpickle the state file, so resume.json may only name one inside <out>/resume/.
+    out = tmp_path / "run"
+    out.mkdir()
+    written = write_resume(out, b"state bytes", {"calls": 1, "env_steps": 8})
+    assert read_resume(out)["state"] == "resume/state_call1.pt" and written.read_bytes() == b"state bytes"
+    (tmp_path / "crafted.pt").write_bytes(b"not ours")
+    for state in ("../crafted.pt", str(tmp_path / "crafted.pt"), "resume/missing.pt"):
+        (out / "resume.json").write_text(json.dumps({"calls": 1, "state": state}))
+        with pytest.raises(SystemExit, match="a resume loads only a state this recipe wrote"):
+            read_resume(out)
 
 
 def test_training_clock_saves_snapshots_and_stops(tmp_path):

@@ -72,8 +72,18 @@ def write_json(path: Path, data: dict) -> None:
 
 def read_resume(out: Path) -> dict:
     """The counters of ``<out>/resume.json``: ``env_steps``, ``train_seconds``, ``iterations``, ``snapshots``,
-    ``calls``, ``state`` (the library state file, relative to ``out``) and ``library`` options to check."""
-    return json.loads((Path(out) / "resume.json").read_text())
+    ``calls``, ``state`` (the library state file, relative to ``out``) and ``library`` options to check.
+
+    The libraries' own loaders unpickle that state file, so it must be one this recipe wrote: ``state`` has to name
+    an existing file inside ``<out>/resume/``, or ``SystemExit`` says so (a resume.json pointing elsewhere is
+    refused before anything is loaded)."""
+    out = Path(out)
+    prior = json.loads((out / "resume.json").read_text())
+    state = (out / str(prior.get("state", ""))).resolve()
+    if state.parent != (out / "resume").resolve() or not state.is_file():
+        raise SystemExit(f"error: {out / 'resume.json'} names {prior.get('state')!r} as its state file; a resume loads only "
+                         f"a state this recipe wrote into {out / 'resume'}/ (start a new --out instead)")
+    return prior
 
 
 def write_resume(out: Path, state: bytes, counters: dict) -> Path:
