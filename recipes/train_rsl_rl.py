@@ -159,7 +159,7 @@ def main(argv=None) -> dict:
         eval_dir = keep_previous(out / "eval", f"call{calls}")
         result["eval"] = evaluate(out / "policy.pt", eval_dir, num_envs=args.eval_envs, device=args.device,
                                   seconds=args.eval_seconds)
-    write_json(out / "result.json", result)
+    write_json(keep_previous(out / "result.json", f"call{calls}"), result)
     env.close()
     print(f"rsl_rl: {done} PPO iterations in {seconds:.1f} s of training; gait test: {result.get('eval', 'skipped')}")
     return result

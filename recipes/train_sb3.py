@@ -179,7 +179,7 @@ def main(argv=None) -> dict:
     if args.eval_envs > 0:
         result["eval"] = evaluate(out / "policy.pt", keep_previous(out / "eval", f"call{calls}"), num_envs=args.eval_envs, device=args.device,
                                   seconds=args.eval_seconds)
-    write_json(out / "result.json", result)
+    write_json(keep_previous(out / "result.json", f"call{calls}"), result)
     env.close()
     print(f"sb3: {meta['env_steps']} env steps in {meta['train_seconds']:.1f} s; gait test: "
           f"{result.get('eval', 'skipped')}")

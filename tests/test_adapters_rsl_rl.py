@@ -106,6 +106,10 @@ def test_recipe_resumes_the_same_run(tmp_path):
         OnPolicyRunner.load = real_load
     assert (second["iterations"], second["env_steps"], second["calls"]) == (2, 16, 2)
     assert second["train_seconds"] > first["train_seconds"]
+    # nothing of the first call is overwritten: its result and policy are kept aside under the call's name
+    assert json.loads((out / "result_call1.json").read_text())["train"]["calls"] == 1
+    assert json.loads((out / "result.json").read_text())["train"]["calls"] == 2
+    assert (out / "policy_call1.pt").is_file()
     assert all(torch.equal(seen["actor"][k], policy1[k]) for k in policy1)  # continued, not re-initialised
     saved_steps = [float(s["step"]) for s in state["optimizer_state_dict"]["state"].values()]
     assert seen["adam_steps"] == saved_steps and saved_steps[0] > 0  # Adam's state carried over
