@@ -89,7 +89,7 @@ def main(argv=None) -> dict:
     from rsl_rl.runners import OnPolicyRunner
 
     out = open_out_dir(args.out, args.resume)
-    prior = read_resume(out) if args.resume else {}
+    prior = read_resume(out, torch_state=True) if args.resume else {}
     torch.manual_seed(args.seed + int(prior.get("calls", 0)))  # a resumed call draws other exploration noise
     env = TocabiRslRlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + int(prior.get("calls", 0)))
     cfg = train_cfg(args)

@@ -103,7 +103,7 @@ def main(argv=None) -> dict:
     from skrl.utils import set_seed
 
     out = open_out_dir(args.out, args.resume)
-    prior = read_resume(out) if args.resume else {}
+    prior = read_resume(out, torch_state=True) if args.resume else {}
     calls = int(prior.get("calls", 0))
     settings = {"num_envs": args.num_envs, "preset": args.preset, "hidden": list(args.hidden),
                 "rollouts": args.rollouts, "seed": args.seed}

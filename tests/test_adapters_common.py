@@ -97,6 +97,13 @@ def test_resume_loads_only_a_state_the_recipe_wrote(tmp_path):
         (out / "resume.json").write_text(json.dumps({"calls": 1, "state": state}))
         with pytest.raises(SystemExit, match="a resume loads only a state this recipe wrote"):
             read_resume(out)
+    # a torch state must hold tensors only: a pickled object in it is refused before the library's loader sees it
+    torch.save({"iter": 1, "weights": torch.zeros(2)}, out / "resume" / "state_call1.pt")
+    (out / "resume.json").write_text(json.dumps({"calls": 1, "state": "resume/state_call1.pt"}))
+    assert read_resume(out, torch_state=True)["calls"] == 1
+    torch.save({"iter": 1, "object": TimeUp("pickled")}, out / "resume" / "state_call1.pt")
+    with pytest.raises(SystemExit, match="does not load as tensors only"):
+        read_resume(out, torch_state=True)
 
 
 def test_training_clock_saves_snapshots_and_stops(tmp_path):

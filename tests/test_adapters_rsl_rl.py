@@ -86,7 +86,7 @@ def test_recipe_resumes_the_same_run(tmp_path):
              "--eval_envs", "0"]
     first = recipe.main([*small, "--iterations", "1"])["train"]
     assert (first["iterations"], first["env_steps"], first["calls"]) == (1, 8, 1)
-    state = torch.load(out / "resume" / "state_call1.pt", map_location="cpu", weights_only=False)
+    state = torch.load(out / "resume" / "state_call1.pt", map_location="cpu", weights_only=True)
     _, policy1 = load_policy(out / "policy.pt", "rsl_rl")
     seen = {}
     from rsl_rl.runners import OnPolicyRunner
@@ -116,7 +116,7 @@ def test_recipe_resumes_the_same_run(tmp_path):
     _, policy2 = load_policy(out / "policy.pt", "rsl_rl")
     assert not all(torch.equal(policy2[k], policy1[k]) for k in policy1)  # trained on
     assert (out / "policy_call1.pt").is_file() and (out / "resume" / "state_call2.pt").is_file()
-    assert torch.load(out / "resume" / "state_call2.pt", weights_only=False)["iter"] == 2 and state["iter"] == 1
+    assert torch.load(out / "resume" / "state_call2.pt", weights_only=True)["iter"] == 2 and state["iter"] == 1
     # Nothing left: a third call within the same --iterations trains nothing and keeps the counters.
     third = recipe.main([*small, "--iterations", "2", "--resume"])["train"]
     assert (third["iterations"], third["env_steps"]) == (2, 16)

@@ -70,7 +70,7 @@ def test_recipe_resumes_the_same_run(tmp_path):
     first = recipe.main([*small, "--iterations", "1"])["train"]
     assert (first["iterations"], first["env_steps"], first["calls"]) == (1, 8, 1)
     _, policy1 = load_policy(out / "policy.pt", "skrl")
-    saved = torch.load(out / "resume" / "state_call1.pt", map_location="cpu", weights_only=False)
+    saved = torch.load(out / "resume" / "state_call1.pt", map_location="cpu", weights_only=True)
     seen, real_load = {}, PPO.load
 
     def spy(self, path):

@@ -70,19 +70,29 @@ def write_json(path: Path, data: dict) -> None:
     atomic_write_text(path, json.dumps(data, indent=2))
 
 
-def read_resume(out: Path) -> dict:
+def read_resume(out: Path, torch_state: bool = False) -> dict:
     """The counters of ``<out>/resume.json``: ``env_steps``, ``train_seconds``, ``iterations``, ``snapshots``,
     ``calls``, ``state`` (the library state file, relative to ``out``) and ``library`` options to check.
 
     The libraries' own loaders unpickle that state file, so it must be one this recipe wrote: ``state`` has to name
     an existing file inside ``<out>/resume/``, or ``SystemExit`` says so (a resume.json pointing elsewhere is
-    refused before anything is loaded)."""
+    refused before anything is loaded). ``torch_state``: the file is a torch checkpoint (rsl_rl's, skrl's), and it
+    must load with ``torch.load(weights_only=True)`` (tensors and plain containers only), so the library's own
+    unpickling loader then meets nothing that could run code."""
     out = Path(out)
     prior = json.loads((out / "resume.json").read_text())
     state = (out / str(prior.get("state", ""))).resolve()
     if state.parent != (out / "resume").resolve() or not state.is_file():
         raise SystemExit(f"error: {out / 'resume.json'} names {prior.get('state')!r} as its state file; a resume loads only "
                          f"a state this recipe wrote into {out / 'resume'}/ (start a new --out instead)")
+    if torch_state:
+        import torch
+
+        try:
+            torch.load(state, map_location="cpu", weights_only=True)
+        except Exception as err:  # noqa: BLE001 - any refusal means the file is not what this recipe wrote
+            raise SystemExit(f"error: {state} does not load as tensors only ({type(err).__name__}: {err}); a resume "
+                             "never unpickles other objects (start a new --out instead)") from err
     return prior
 
 
