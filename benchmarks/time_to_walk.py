@@ -4,11 +4,14 @@ report the first training time (and env steps) at which the gait test passes.
     python -m benchmarks.time_to_walk train --preset torque --minutes 9.5   # resumes; repeat until the budget is used
     python -m benchmarks.time_to_walk eval --preset torque                  # gait tests of every wall-clock checkpoint
     python -m benchmarks.time_to_walk report --runs runs/time_to_walk/torque ...   # time_to_walk.{json,md,png}
+    torchrun --standalone --nproc_per_node 2 -m benchmarks.time_to_walk train --preset default --name default_2gpu
 
 ``train`` trains ``runs/time_to_walk/<preset>`` until ``--budget_minutes`` of training are used (summed over resumed
 calls) and measures raw mujoco-warp at the same env count once. ``eval``: issue 19's gait test of each ``wall_*.pt``
 (256 envs, 8 s, at (0.5, 0) m/s, then (0.2, 0) and (0.7, 0.1)); it writes ``evals.json`` beside ``train.json``, so
-the two parts may run at once. ``report --curves`` also plots reward curves of several runs.
+the two parts may run at once. ``report --curves`` also plots reward curves of several runs. Under torchrun the
+``train`` part is data-parallel (each rank ``num_envs`` worlds on its own GPU, ``rl/distributed.py``); rank 0 writes
+``train.json`` and measures raw mujoco-warp on one GPU, so ``train_over_raw`` divides by ranks x raw.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import time
 from pathlib import Path
 
 from tocabi_torchrl.rl.curves import read_metrics, steady_rate
+from tocabi_torchrl.rl.distributed import from_environment, shutdown
 from tocabi_torchrl.rl.evaluate import GAIT_CRITERIA as CRITERIA
 from tocabi_torchrl.rl.evaluate import gait_passes as passes_main
 
@@ -44,21 +48,34 @@ def _load(path: Path) -> dict:
 
 
 def train_part(args, command: str) -> None:
-    run_dir = RUNS / args.preset
+    run_dir, info = RUNS / args.name, from_environment()
     record, latest = _load(run_dir / "train.json"), run_dir / "checkpoints" / "latest.pt"
     prior_s = float(common.read_checkpoint(latest).get("train_seconds", 0.0)) if latest.is_file() else 0.0
     left_min = args.budget_minutes - prior_s / 60.0
-    if left_min <= 0:
+    if left_min <= 0:  # every rank reads the same checkpoint, so all stop here alike
         print(f"{args.preset}: the {args.budget_minutes}-minute training budget is used ({prior_s:.0f} s); "
               "run the eval part")
         return
-    cfg = common.config(args.preset, run_dir=str(RUNS), name=args.preset, device=args.device, eval_at_end=False,
+    cfg = common.config(args.preset, run_dir=str(RUNS), name=args.name, device=args.device, eval_at_end=False,
                         progress_bar=False, log_every=args.log_every, checkpoint_minutes=args.every,
                         max_minutes=min(args.minutes, left_min), resume=str(latest) if latest.is_file() else "")
-    print(f"{args.preset}: training {'from ' + str(latest) if cfg.resume else 'from scratch'}, {prior_s / 60:.1f} of "
-          f"{args.budget_minutes} min used, this call up to {cfg.max_minutes:.1f} min", flush=True)
+    if info.is_main:
+        print(f"{args.name}: training {'from ' + str(latest) if cfg.resume else 'from scratch'} on {info.world_size} "
+              f"rank(s), {prior_s / 60:.1f} of {args.budget_minutes} min used, this call up to {cfg.max_minutes:.1f} "
+              "min", flush=True)
+    if info.enabled:  # what launched this call, as it must be repeated
+        command = command.replace("python -m", f"torchrun --standalone --nproc_per_node {info.world_size} -m", 1)
     result, rows = common.train(cfg)
+    shutdown(info)
+    if not info.is_main:  # rank 0 logged the rows and keeps the record
+        return
     record.setdefault("preset", args.preset)
+    if args.name != args.preset:
+        record.setdefault("name", args.name)
+    record.setdefault("gpus", info.world_size)
+    if record["gpus"] != info.world_size:
+        print(f"note: this call ran {info.world_size} rank(s), the run's record says {record['gpus']}; the rate and "
+              "ratio below are this call's", flush=True)
     record.setdefault("config", cfg.to_dict())
     record.setdefault("commands", []).append(command)
     record.update(gpu=common.meta("time_to_walk", [], args.device)["gpu"] if args.device == "cuda" else "cpu",
@@ -67,14 +84,14 @@ def train_part(args, command: str) -> None:
     if "raw_policy_steps_per_s" not in record and args.raw_steps > 0 and args.device == "cuda":
         record["raw_policy_steps_per_s"] = common.raw_policy_steps_per_second(cfg.env.num_envs, args.raw_steps)
     if record.get("train_env_steps_per_s") and record.get("raw_policy_steps_per_s"):
-        record["train_over_raw"] = record["train_env_steps_per_s"] / record["raw_policy_steps_per_s"]
+        record["train_over_raw"] = record["train_env_steps_per_s"] / (record["gpus"] * record["raw_policy_steps_per_s"])
     common.write_json(run_dir / "train.json", record)
     print(json.dumps({k: record.get(k) for k in ("env_steps", "train_seconds", "train_env_steps_per_s",
                                                  "raw_policy_steps_per_s", "train_over_raw")}), flush=True)
 
 
 def eval_part(args, command: str) -> None:
-    run_dir = RUNS / args.preset
+    run_dir = RUNS / args.name
     record = _load(run_dir / "evals.json")
     evals, envs = record.setdefault("evaluations", {}), {}
     while True:
@@ -138,9 +155,18 @@ def read_run(folder: Path) -> dict:
     return {**record, "time_to_walk": first_walk(record)}
 
 
+def _label(r: dict) -> str:
+    """A run's name in the report: its preset, or its folder name where that differs (a 2-GPU run of a preset)."""
+    return r.get("name", r["preset"])
+
+
+def _gpus(r: dict) -> str:
+    return f"{r['gpus']} x {r.get('gpu', '?')}" if r.get("gpus", 1) > 1 else r.get("gpu", "?")
+
+
 def render(data: dict, out: Path) -> str:
     records, num = data["records"], lambda x, spec=",.0f": format(x, spec) if x else "-"
-    rows = [(r["preset"], r.get("gpu", "?"), f"{t['train_minutes']:.1f}" if (t := r.get("time_to_walk")) else
+    rows = [(_label(r), _gpus(r), f"{t['train_minutes']:.1f}" if (t := r.get("time_to_walk")) else
              f"not within {r.get('train_seconds', 0) / 60:.1f} min", f"{t['env_steps'] / 1e6:.1f} M" if t else "-",
              num(r.get("train_env_steps_per_s")), num(r.get("raw_policy_steps_per_s")), num(r.get("train_over_raw"),
              ".2f")) for r in records]
@@ -154,7 +180,7 @@ def render(data: dict, out: Path) -> str:
                                (CRITERIA["forward_distance_m"], "forward distance in 8 s [m]"))]
     for r in records:
         evals = sorted(r.get("evaluations", {}).items())
-        text += f"\n\n## {r['preset']}\n\nCommands:\n\n" + "".join(
+        text += f"\n\n## {_label(r)}\n\nCommands:\n\n" + "".join(
             f"- `{c}`\n" for c in r.get("commands", []) + r.get("eval_commands", [])) + "\n" + common.table(
             ("checkpoint", "minutes", "env steps", "survival", "forward [m]", "drift [m]", "knee RMS [rad]",
              "survival (0.2, 0)", "survival (0.7, 0.1)", "walks"),
@@ -165,7 +191,7 @@ def render(data: dict, out: Path) -> str:
                                                  for c in OTHER_COMMANDS), "yes" if e.get("walks") else "no")
              for name, e in evals])
         for panel, k, scale in zip(panels, ("survival", "forward_distance_m"), (100, 1), strict=True):
-            panel["lines"][r["preset"]] = ([e["train_seconds"] / 60 for _, e in evals],
+            panel["lines"][_label(r)] = ([e["train_seconds"] / 60 for _, e in evals],
                                            [scale * e["commands"][key(MAIN_COMMAND)][k] for _, e in evals])
             panel["vlines"] += [r["time_to_walk"]["train_minutes"]] if r.get("time_to_walk") else []
     common.plot(out / "time_to_walk.png", panels, "Gait test of checkpoints against training time (dotted: first pass)")
@@ -197,6 +223,7 @@ def main(argv=None) -> None:
     sub = parser.add_subparsers(dest="part", required=True)
     t = sub.add_parser("train", help="train (or resume) a preset for up to --minutes")
     t.add_argument("--preset", default="torque")
+    t.add_argument("--name", default=None, help="the run's folder under runs/time_to_walk (default: the preset)")
     t.add_argument("--minutes", type=float, default=9.0, help="training minutes in this call")
     t.add_argument("--budget_minutes", type=float, default=30.0, help="training minutes in all (summed over calls)")
     t.add_argument("--every", type=float, default=2.0, help="minutes between evaluated checkpoints (0: none)")
@@ -205,6 +232,7 @@ def main(argv=None) -> None:
     t.add_argument("--device", default="cuda", help="cuda (the benchmark) or cpu (a smoke test of the script)")
     e = sub.add_parser("eval", help="gait tests of every wall-clock checkpoint of a preset's run")
     e.add_argument("--preset", default="torque")
+    e.add_argument("--name", default=None, help="the run's folder under runs/time_to_walk (default: the preset)")
     e.add_argument("--num_envs", type=int, default=256)
     e.add_argument("--seconds", type=float, default=8.0)
     e.add_argument("--device", default="cuda")
@@ -215,6 +243,8 @@ def main(argv=None) -> None:
                    help="run folders or metrics.csv files to plot the reward curves of")
     r.add_argument("--out", default=str(common.DOCS))
     args = parser.parse_args(argv)
+    if args.part != "report" and args.name is None:
+        args.name = args.preset
     t0 = time.time()
     command = " ".join(["python -m benchmarks.time_to_walk", *argv])
     {"train": train_part, "eval": eval_part, "report": report_part}[args.part](args, command)

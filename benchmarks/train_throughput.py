@@ -1,9 +1,13 @@
 """Training throughput (collection + PPO update) against raw mujoco-warp stepping of the same model, same process.
 
     python -m benchmarks.train_throughput --num_envs 4096 16384 --iterations 10   # --set cuda_graph=off: ablations
+    python -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --name multi_gpu   # data-parallel scaling
 
 Each env count in a fresh process: ``--iterations`` PPO iterations of the default preset after ``--warmup``, then the
 raw ceiling; memory: the allocator's peaks and the device-wide peak in use (warp's buffers and the CUDA context too).
+With ``--nproc K`` the process is K data-parallel ranks under torchrun, each with ``--num_envs`` worlds on its own GPU
+(``rl/distributed.py``); rank 0 reports the rate of all ranks together, its own GPU's memory and, after training, the
+raw ceiling of one GPU, so ``train / raw`` divides by K x raw and the speed-up is against the 1-rank row of the run.
 """
 
 from __future__ import annotations
@@ -15,7 +19,10 @@ import shutil
 import time
 from pathlib import Path
 
+import torch
+
 from tocabi_torchrl.rl.curves import steady_rate
+from tocabi_torchrl.rl.distributed import from_environment, shutdown
 
 from . import common
 
@@ -23,40 +30,65 @@ NAME = "train_throughput"
 T0 = time.perf_counter()  # a run's set-up time counts from here (torch is imported by then)
 
 
-def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str, overrides: dict) -> dict:
-    """One env count in this process: the steady rate after ``warmup`` iterations, the whole run's numbers, memory
-    peaks, then the raw ceiling (only that with no iterations at all)."""
+def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str,
+            overrides: dict) -> dict | None:
+    """One env count in this process (one rank of a torchrun run): the steady rate after ``warmup`` iterations, the
+    whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0."""
     steps, t_setup = overrides.get("steps_per_env", common.config().ppo.steps_per_env), time.perf_counter() - T0
-    record = {"num_envs": n, "overrides": overrides, "device_used_at_start_gib": common.device_used_gib(device),
+    info = from_environment()
+    if info.enabled and device == "cuda":  # this rank's GPU, before anything touches cuda:0
+        device = f"cuda:{info.local_rank}"
+        torch.cuda.set_device(device)
+    record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides,
+              "device_used_at_start_gib": common.device_used_gib(device),
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:
         cfg = common.config("default", **{"minibatch_size": min(49152, n * steps // 4), **overrides, "num_envs": n,
                                           "total_env_steps": (warmup + iterations) * n * steps, "run_dir": run_dir,
                                           "name": f"train_{n}", "checkpoint_every": 10**9, "progress_bar": False,
-                                          "eval_at_end": False, "log_every": 1, "device": device})
-        shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)  # the benchmark's own scratch run: start afresh
+                                          "eval_at_end": False, "log_every": 1, "device": device.split(":")[0]})
+        if info.is_main:  # the benchmark's own scratch run: start afresh
+            shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
         cpu0 = os.times()
         with common.device_peak(device) as peak:
             result, rows = common.train(cfg)
+        if not info.is_main:  # rank 0 logged the rows and reports for every rank
+            shutdown(info)
+            return None
         cpu1, wall = os.times(), result.wall_seconds
         record.update(common.peaks(), train_env_steps_per_s=steady_rate(rows, max(warmup - 1, 0)),
                       device_peak_used_gib=peak["gib"], update_s_last=float(rows[-1]["update_s"]),
                       env_steps=result.env_steps, iterations=result.iterations, train_wall_s=wall, setup_s=t_setup,
                       env_graph=result.env_graph, status="ok" if result.env_steps >= cfg.total_env_steps else "partial",
                       cores_used_mean=(cpu1.user + cpu1.system - cpu0.user - cpu0.system) / wall)
+    shutdown(info)
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
     rate = record.get("train_env_steps_per_s")
-    return {**record, "raw_policy_steps_per_s": raw, "ratio_train_over_raw": rate / raw if raw and rate else None}
+    return {**record, "raw_policy_steps_per_s": raw,
+            "ratio_train_over_raw": rate / (info.world_size * raw) if raw and rate else None}
+
+
+def _speedup(r: dict, results: list[dict]) -> str:
+    """``r``'s rate over the 1-GPU row of the same env count and overrides in the same run ("-" without one)."""
+    one = [o for o in results if o.get("gpus", 1) == 1 and o["num_envs"] == r["num_envs"]
+           and o["overrides"] == r["overrides"] and o.get("train_env_steps_per_s")]
+    return common.fmt(r["train_env_steps_per_s"] / one[0]["train_env_steps_per_s"] if one else None, ".2f")
 
 
 def render(data: dict, out) -> str:
+    results = data["results"]
+    # The GPU columns only where a run had several ranks (the 1-GPU pages keep their layout).
+    multi = any(r.get("gpus", 1) > 1 for r in results)
+    gpus = lambda r: (r.get("gpus", 1), _speedup(r, results)) if multi else ()
     return common.page("Training throughput", data, common.table(
-        ("envs", "train env-steps/s", "raw mujoco-warp policy steps/s", "train / raw", "torch peak alloc GiB",
-         "torch peak reserved GiB", "device peak used GiB"),
-        [(r["num_envs"], common.fmt(r["train_env_steps_per_s"]), common.fmt(r["raw_policy_steps_per_s"]),
+        (*(("GPUs", "speed-up over 1 GPU") if multi else ()), "envs" + (" per GPU" if multi else ""),
+         "train env-steps/s", "raw mujoco-warp policy steps/s" + (" (one GPU)" if multi else ""),
+         "train / raw" + (" (GPUs x raw)" if multi else ""), "torch peak alloc GiB", "torch peak reserved GiB",
+         "device peak used GiB"),
+        [(*gpus(r), r["num_envs"], common.fmt(r["train_env_steps_per_s"]), common.fmt(r["raw_policy_steps_per_s"]),
           common.fmt(r["ratio_train_over_raw"], ".2f"), f"{r['torch_peak_allocated_gib']:.2f}",
           f"{r['torch_peak_reserved_gib']:.2f}", common.fmt(r["device_peak_used_gib"], ".2f"))
-         for r in data["results"]]))
+         for r in results]))
 
 
 def main(argv=None) -> None:
@@ -70,17 +102,23 @@ def main(argv=None) -> None:
     parser.add_argument("--run_dir", default="/tmp/tocabi_bench_runs", help="scratch folder of the training runs")
     parser.add_argument("--out", default=str(common.DOCS))
     parser.add_argument("--name", default=NAME)
+    parser.add_argument("--nproc", type=int, nargs="+", default=[1],
+                        help="data-parallel ranks (GPUs) per measurement; each K > 1 runs under torchrun")
     parser.add_argument("--child", action="store_true", help="measure one env count in this process (internal)")
     args = parser.parse_args(argv)
     overrides = common.parse_overrides(args.set)
     if args.child:
         record = measure(args.num_envs[0], args.iterations, args.warmup, args.raw_steps, args.device, args.run_dir,
                          overrides)
-        print("RESULT " + json.dumps(record), flush=True)  # what common.run_child reads
+        if record is not None:  # rank 0 of a torchrun run reports for all ranks
+            print("RESULT " + json.dumps(record), flush=True)  # what common.run_child reads
         return
     options = ["--iterations", str(args.iterations), "--warmup", str(args.warmup), "--raw_steps", str(args.raw_steps),
                "--device", args.device, "--run_dir", f"{args.run_dir}/{args.name}", "--set", *args.set]
-    results = [common.run_child(NAME, ["--num_envs", str(n), *options]) for n in args.num_envs]
+    if min(args.nproc) < 1:
+        parser.error(f"--nproc takes rank counts >= 1, not {args.nproc}")
+    results = [common.run_child(NAME, ["--num_envs", str(n), *options], nproc=k) for k in args.nproc
+               for n in args.num_envs]
     print(common.publish(args.out, args.name, {"meta": common.meta(NAME, argv, args.device), "results": results},
                          render))
 
