@@ -11,6 +11,7 @@ from . import common, env_throughput, scaling, soak, time_to_walk, train_through
 REPORTS = {"env_throughput.md": ("env_throughput.json", env_throughput.render), "soak.md": ("soak.json", soak.render),
            "train_throughput.md": ("train_throughput.json", train_throughput.render),
            "train_throughput_16k_memfix.md": ("train_throughput_16k_memfix.json", train_throughput.render),
+           "multi_gpu.md": ("multi_gpu.json", train_throughput.render),
            "scaling.md": ("scaling", scaling.render), "time_to_walk.md": ("time_to_walk.json", time_to_walk.render)}
 
 

@@ -66,8 +66,8 @@ def train_part(args, command: str) -> None:
     if info.enabled:  # what launched this call, as it must be repeated
         command = command.replace("python -m", f"torchrun --standalone --nproc_per_node {info.world_size} -m", 1)
     result, rows = common.train(cfg)
-    shutdown(info)
     if not info.is_main:  # rank 0 logged the rows and keeps the record
+        shutdown(info)
         return
     record.setdefault("preset", args.preset)
     if args.name != args.preset:
@@ -88,6 +88,7 @@ def train_part(args, command: str) -> None:
     common.write_json(run_dir / "train.json", record)
     print(json.dumps({k: record.get(k) for k in ("env_steps", "train_seconds", "train_env_steps_per_s",
                                                  "raw_policy_steps_per_s", "train_over_raw")}), flush=True)
+    shutdown(info)  # after the last output: on NCCL the rank's process ends here
 
 
 def eval_part(args, command: str) -> None:
@@ -173,7 +174,8 @@ def render(data: dict, out: Path) -> str:
     text = ("# Time to walk (issue 19)\n\nTraining wall-clock (summed over resumed calls; no evaluation, no kernel "
             "compilation) until a checkpoint first passes the 8 s gait test on 256 envs: at (0.5, 0) m/s survival >= "
             "95 %, forward >= 2.6 m, drift <= 0.3 m, knee RMS <= 0.15 rad; at (0.2, 0) and (0.7, 0.1) survival >= 95 %."
-            "\n\n" + common.table(("preset", "GPU", "time to walk [min]", "env steps then", "training env-steps/s",
+            + (" A run on K GPUs (data-parallel, K x the envs) reports one GPU's raw rate and divides by K x raw."
+               if any(r.get("gpus", 1) > 1 for r in records) else "") + "\n\n" + common.table(("preset", "GPU", "time to walk [min]", "env steps then", "training env-steps/s",
                                    "raw mujoco-warp policy steps/s (same run)", "train / raw"), rows))
     panels = [{"lines": {}, "vlines": [], "hlines": [(y, "pass")], "xlabel": "training minutes", "ylabel": label}
               for y, label in ((100 * CRITERIA["survival"], "survival over 8 s at (0.5, 0) m/s [%]"),

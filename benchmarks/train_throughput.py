@@ -44,7 +44,8 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:
         cfg = common.config("default", **{"minibatch_size": min(49152, n * steps // 4), **overrides, "num_envs": n,
-                                          "total_env_steps": (warmup + iterations) * n * steps, "run_dir": run_dir,
+                                          "total_env_steps": (warmup + iterations) * n * steps * info.world_size,
+                                          "run_dir": run_dir,
                                           "name": f"train_{n}", "checkpoint_every": 10**9, "progress_bar": False,
                                           "eval_at_end": False, "log_every": 1, "device": device.split(":")[0]})
         if info.is_main:  # the benchmark's own scratch run: start afresh
@@ -53,7 +54,6 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
         with common.device_peak(device) as peak:
             result, rows = common.train(cfg)
         if not info.is_main:  # rank 0 logged the rows and reports for every rank
-            shutdown(info)
             return None
         cpu1, wall = os.times(), result.wall_seconds
         record.update(common.peaks(), train_env_steps_per_s=steady_rate(rows, max(warmup - 1, 0)),
@@ -61,7 +61,6 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                       env_steps=result.env_steps, iterations=result.iterations, train_wall_s=wall, setup_s=t_setup,
                       env_graph=result.env_graph, status="ok" if result.env_steps >= cfg.total_env_steps else "partial",
                       cores_used_mean=(cpu1.user + cpu1.system - cpu0.user - cpu0.system) / wall)
-    shutdown(info)
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
     rate = record.get("train_env_steps_per_s")
     return {**record, "raw_policy_steps_per_s": raw,
@@ -112,6 +111,7 @@ def main(argv=None) -> None:
                          overrides)
         if record is not None:  # rank 0 of a torchrun run reports for all ranks
             print("RESULT " + json.dumps(record), flush=True)  # what common.run_child reads
+        shutdown(from_environment())  # after the last output: on NCCL the rank's process ends here
         return
     options = ["--iterations", str(args.iterations), "--warmup", str(args.warmup), "--raw_steps", str(args.raw_steps),
                "--device", args.device, "--run_dir", f"{args.run_dir}/{args.name}", "--set", *args.set]

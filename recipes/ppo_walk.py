@@ -51,12 +51,13 @@ def main(argv: list[str] | None = None) -> None:
         try:
             result = train(cfg, dist_info=dist_info)
         except (ValueError, RuntimeError, ImportError) as err:
-            sys.exit(f"error (rank {dist_info.rank}): {err}")
-        finally:
-            shutdown(dist_info)
+            print(f"error (rank {dist_info.rank}): {err}", file=sys.stderr)
+            shutdown(dist_info, code=1)  # on NCCL the process ends here
+            sys.exit(1)
         if dist_info.is_main:
             print(f"done on {dist_info.world_size} ranks: {result.env_steps:,} env steps in "
                   f"{result.wall_seconds:.0f} s; run folder {result.run_dir}")
+        shutdown(dist_info)
         return
     try:
         run = open_run(cfg)

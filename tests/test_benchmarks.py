@@ -35,12 +35,17 @@ def test_env_throughput_smoke(tmp_path):
     assert "| 2 | - |" in (tmp_path / "env_throughput.md").read_text()
 
 
-def test_train_throughput_smoke_in_a_child_process(tmp_path):
-    train_throughput.main(["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1",
-                           "--raw_steps", "0", "--set", "steps_per_env=8", "actor_hidden=8,8", "--out", str(tmp_path),
-                           "--run_dir", str(tmp_path / "runs")])
-    (r,) = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
-    assert r["num_envs"] == 8 and r["train_env_steps_per_s"] > 0 and r["overrides"]["actor_hidden"] == [8, 8]
+def test_train_throughput_smoke_in_a_child_process_and_on_two_ranks(tmp_path):
+    train_throughput.main(["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--nproc", "1",
+                           "2", "--raw_steps", "0", "--set", "steps_per_env=8", "actor_hidden=8,8", "--out",
+                           str(tmp_path), "--run_dir", str(tmp_path / "runs")])
+    one, two = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
+    for r, k in ((one, 1), (two, 2)):
+        assert r["num_envs"] == 8 and r["train_env_steps_per_s"] > 0 and r["overrides"]["actor_hidden"] == [8, 8]
+        # 3 iterations of K x 8 envs x 8 steps: torchrun's K gloo ranks, counted together by rank 0
+        assert r["gpus"] == k and r["iterations"] == 3 and r["env_steps"] == 3 * k * 64
+    speedup = two["train_env_steps_per_s"] / one["train_env_steps_per_s"]
+    assert f"| 2 | {speedup:.2f} | 8 |" in (tmp_path / "train_throughput.md").read_text()
 
 
 @pytest.mark.slow
@@ -89,3 +94,17 @@ def test_time_to_walk_train_resume_eval_report(tmp_path):
     text = run("report", "--runs", str(folder), "--curves", str(folder), "--out", str(tmp_path / "d"))
     assert record["time_to_walk"] is None and "| cpu_smoke | cpu | not within" in text
     assert (tmp_path / "d/time_to_walk.png").is_file() and (tmp_path / "d/time_to_walk_curves.png").is_file()
+
+
+def test_time_to_walk_trains_on_two_ranks_under_torchrun(tmp_path):
+    """The 2-GPU command of docs/distributed.md on gloo ranks: rank 0 alone keeps the named run's record."""
+    env = {**os.environ, "PYTHONPATH": str(common.DOCS.parents[1])}
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", "-m",
+                           "benchmarks.time_to_walk", "train", "--preset", "cpu_smoke", "--name", "smoke_2gpu",
+                           "--device", "cpu", "--minutes", "0.004", "--every", "0", "--log_every", "1"],
+                          cwd=tmp_path, text=True, capture_output=True, env=env, check=False, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    record = json.loads((tmp_path / "runs/time_to_walk/smoke_2gpu/train.json").read_text())
+    assert (record["preset"], record["name"], record["gpus"]) == ("cpu_smoke", "smoke_2gpu", 2)
+    assert record["commands"][0].startswith("torchrun --standalone --nproc_per_node 2 -m benchmarks.time_to_walk")
+    assert record["env_steps"] % (2 * 8 * 16) == 0 and proc.stdout.count("training from scratch on 2 rank(s)") == 1

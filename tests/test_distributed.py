@@ -14,8 +14,9 @@ from torchrl.objectives import ClipPPOLoss
 
 from tocabi_torchrl.rl.actors import make_actor
 from tocabi_torchrl.rl.curves import read_metrics
+from tocabi_torchrl.rl import distributed
 from tocabi_torchrl.rl.distributed import (DistInfo, GradientAllReduce, RunningStatsSync, all_reduce_mean,
-                                           broadcast_module, from_environment, init_distributed, rank_seed)
+                                           broadcast_module, from_environment, init_distributed, rank_seed, shutdown)
 from tocabi_torchrl.rl.networks import make_mlp
 from tocabi_torchrl.rl.trainer import _episode_metrics
 from tocabi_torchrl.rl.update_step import MinibatchStep
@@ -191,6 +192,24 @@ def test_one_rank_helpers_are_no_ops():
     GradientAllReduce(info)([w])
     assert w.grad.tolist() == [4.0, 4.0]
 
+
+
+def test_shutdown_destroys_a_gloo_group_and_ends_an_nccl_rank_without_teardown(tmp_path, monkeypatch):
+    info = DistInfo(0, 2, 0)
+    shutdown(DistInfo())  # one rank: nothing to leave
+    dist.init_process_group("gloo", rank=0, world_size=1, init_method=f"file://{tmp_path / 'init'}")
+    try:
+        ended = []
+        monkeypatch.setattr(distributed.os, "_exit", lambda code: ended.append(code))
+        monkeypatch.setattr(distributed.dist, "get_backend", lambda: "nccl")
+        shutdown(info, code=3)  # NCCL: the process would end here, the group left as it is (pytorch#115388)
+        assert ended == [3] and dist.is_initialized()
+        monkeypatch.undo()
+        shutdown(info)  # gloo: destroyed, and the call returns
+        assert not dist.is_initialized()
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
 
 
 def _train_worker(rank: int, world: int, init_file: str, run_dir: str, out: dict) -> None:

@@ -18,6 +18,7 @@ runs with every helper here a no-op.
 from __future__ import annotations
 
 import os
+import sys
 from dataclasses import dataclass
 from typing import Iterable, Mapping
 
@@ -97,10 +98,23 @@ def init_distributed(info: DistInfo, device: torch.device, init_method: str | No
     return device
 
 
-def shutdown(info: DistInfo) -> None:
-    """Leave the process group (after the last collective)."""
-    if info.enabled and dist.is_initialized():
+def shutdown(info: DistInfo, code: int = 0) -> None:
+    """End this rank's part after its last collective and its last output.
+
+    gloo (the CPU): the process group is destroyed and the call returns. NCCL: ``destroy_process_group``, and the
+    group's teardown at interpreter exit too, can wait for ever once CUDA graphs captured the group's collectives
+    (pytorch/pytorch#115388); on an H100 pair it hung after the captured update's all-reduce. The trainer has closed
+    its loggers and written its checkpoints atomically by then, so the process ends here, with exit status ``code``,
+    without the teardown. A single-rank run is left as it is.
+    """
+    if not info.enabled or not dist.is_initialized():
+        return
+    if dist.get_backend() != "nccl":
         dist.destroy_process_group()
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def rank_seed(seed: int, info: DistInfo) -> int:
