@@ -547,6 +547,33 @@ def test_render_functions_give_up_after_the_first_failure(model, monkeypatch, tm
     assert eval_video.render_stills.__doc__.startswith("One (height, width, 3)")  # the wrapper keeps the docs
 
 
+def test_a_failure_outside_opengl_leaves_rendering_on(model, monkeypatch):
+    from tocabi_torchrl.rl import eval_video
+
+    monkeypatch.setattr(eval_video, "_failure", None)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+
+    class Renderer:  # an OpenGL side that works
+        def __init__(self, model, height, width, **kwargs):
+            self.shape = (height, width, 3)
+
+        def update_scene(self, *args, **kwargs):
+            pass
+
+        def render(self):
+            return np.zeros(self.shape, np.uint8)
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(mujoco, "Renderer", Renderer)
+    q = model.qpos0[None]
+    with pytest.raises(ValueError, match="coincide"):  # a camera looking at itself: the caller's mistake
+        eval_video.render_stills(model, q, camera_pos=q[0, :3], lookat=q[0, :3])
+    assert eval_video.rendering_unavailable() is None
+    assert eval_video.render_stills(model, q)[0].shape == (360, 480, 3)
+
+
 def test_no_display_and_no_egl_turn_rendering_off_with_the_fix(monkeypatch):
     import ctypes.util
     import platform

@@ -2,9 +2,10 @@
 camera tracking each) and the experiments' still frames and time-lapse images from a fixed camera position
 (TocabiLab's camera at (2, 6, 2.5) m, looking at the pelvis).
 
-MuJoCo is asked to render at most until its first failure in a process: after that every render function raises
-:class:`RenderingUnavailable` at once (a failed GLFW start, MuJoCo's default without ``MUJOCO_GL``, can abort the
-whole process when tried again), and so it does when ``MUJOCO_GL`` turns OpenGL off
+MuJoCo is asked to render at most until its first OpenGL failure in a process (a renderer that cannot start or
+render): after that every render function raises :class:`RenderingUnavailable` at once (a failed GLFW start, MuJoCo's
+default without ``MUJOCO_GL``, can abort the whole process when tried again), and so it does when ``MUJOCO_GL`` turns
+OpenGL off
 (:func:`~tocabi_torchrl.render_gl.choose_gl_backend` on a machine without a display or EGL).
 :func:`rendering_unavailable` says so before trying."""
 
@@ -25,7 +26,7 @@ __all__ = ["CAMERA_POS", "RenderingUnavailable", "free_camera", "label_image", "
 #: TocabiLab's camera for the gait figures [m], world frame: to the robot's left, ahead of the start, above.
 CAMERA_POS = (2.0, 6.0, 2.5)
 
-#: The first rendering failure in this process ("<type>: <message>"); MuJoCo is not asked again after it.
+#: The first OpenGL failure in this process ("<type>: <message>"); MuJoCo is not asked to render again after it.
 _failure: str | None = None
 
 
@@ -41,21 +42,28 @@ def rendering_unavailable() -> str | None:
 
 
 def _guarded(render):
-    """``render`` refusing when :func:`rendering_unavailable`, and remembering its first failure (let through)."""
+    """``render`` refusing at once when :func:`rendering_unavailable`."""
 
     @functools.wraps(render)
     def guarded(*args, **kwargs):
-        global _failure
         reason = rendering_unavailable()
         if reason is not None:
             raise RenderingUnavailable(reason)
-        try:
-            return render(*args, **kwargs)
-        except Exception as err:
-            _failure = f"{type(err).__name__}: {err}"
-            raise
+        return render(*args, **kwargs)
 
     return guarded
+
+
+def _gl(call, *args, **kwargs):
+    """``call(*args, **kwargs)`` on MuJoCo's OpenGL side (starting a renderer, or its ``render``), remembering its
+    failure (let through). Failures elsewhere (a bad camera, a callback, the video writer) leave rendering on: they
+    say nothing about OpenGL, and the next call with good arguments renders."""
+    global _failure
+    try:
+        return call(*args, **kwargs)
+    except Exception as err:
+        _failure = f"{type(err).__name__}: {err}"
+        raise
 
 
 @_guarded
@@ -69,7 +77,7 @@ def render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480,
     import mujoco
 
     data = mujoco.MjData(model)
-    renderer = mujoco.Renderer(model, height=height, width=width)
+    renderer = _gl(mujoco.Renderer, model, height=height, width=width)
     camera = mujoco.MjvCamera()
     camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
     camera.trackbodyid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, robot.BASE_BODY)
@@ -85,7 +93,7 @@ def render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480,
                 data.mocap_pos[:] = mocap_pos[i]
             mujoco.mj_forward(model, data)
             renderer.update_scene(data, camera, scene_option=option)
-            tiles.append(renderer.render())
+            tiles.append(_gl(renderer.render))
         frames.append(np.concatenate(tiles, axis=1))
     renderer.close()
     try:
@@ -135,7 +143,7 @@ def render_stills(model, qpos: np.ndarray, camera_pos=CAMERA_POS, lookat=None, w
     import mujoco
 
     data = mujoco.MjData(model)
-    renderer = mujoco.Renderer(model, height=height, width=width)
+    renderer = _gl(mujoco.Renderer, model, height=height, width=width)
     option = _silhouette_option()
     images = []
     saved_fovy = float(model.vis.global_.fovy)
@@ -149,7 +157,7 @@ def render_stills(model, qpos: np.ndarray, camera_pos=CAMERA_POS, lookat=None, w
             mujoco.mj_forward(model, data)
             camera = free_camera(camera_pos, q[:3] if lookat is None else lookat)
             renderer.update_scene(data, camera, scene_option=option)
-            images.append(renderer.render().copy())
+            images.append(_gl(renderer.render).copy())
     finally:
         model.vis.global_.fovy = saved_fovy
         renderer.close()
@@ -166,7 +174,8 @@ def render_timelapse(model, qpos: np.ndarray, camera_pos=CAMERA_POS, lookat=None
 
     qpos = np.atleast_2d(qpos)
     data = mujoco.MjData(model)
-    renderer = mujoco.Renderer(model, height=height, width=width, max_geom=max(10000, 2 * model.ngeom * len(qpos)))
+    renderer = _gl(mujoco.Renderer, model, height=height, width=width,
+                   max_geom=max(10000, 2 * model.ngeom * len(qpos)))
     option = _silhouette_option()
     if lookat is None:
         lookat = 0.5 * (qpos[:, :3].min(0) + qpos[:, :3].max(0))
@@ -186,7 +195,7 @@ def render_timelapse(model, qpos: np.ndarray, camera_pos=CAMERA_POS, lookat=None
             mujoco.mj_forward(model, data)
             # the robot's geoms only: the floor and any obstacle are already in the scene
             mujoco.mjv_addGeoms(model, data, option, perturb, mujoco.mjtCatBit.mjCAT_DYNAMIC, renderer.scene)
-        image = renderer.render().copy()
+        image = _gl(renderer.render).copy()
     finally:
         model.vis.global_.fovy = saved_fovy
         renderer.close()
