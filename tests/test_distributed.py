@@ -279,3 +279,25 @@ def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "done on 2 ranks: 32 env steps" in proc.stdout
     assert torch.load(tmp_path / "dp" / "checkpoints" / "latest.pt", weights_only=True)["env_steps"] == 32
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available() or torch.cuda.device_count() < 2, reason="needs 2 GPUs")
+def test_torchrun_trains_on_two_gpus_with_nccl_and_ends(tmp_path):
+    """NCCL between two GPUs, the all-reduce captured in the update graph: the recipe trains, rank 0 writes the run,
+    and both ranks end (destroy_process_group after such a capture hung on an H100 pair: pytorch#115388)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "ppo_walk.py"
+    proc = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", str(recipe),
+         "--preset", "cpu_smoke", "--device", "cuda", "--num_envs", "64", "--steps_per_env", "8", "--minibatch_size",
+         "256", "--total_env_steps", str(2 * 2 * 64 * 8), "--update_graph", "true", "--run_dir", str(tmp_path),
+         "--name", "dp", "--eval_at_end", "false", "--progress_bar", "false"],
+        capture_output=True, text=True, timeout=900, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert f"done on 2 ranks: {2 * 2 * 64 * 8:,} env steps" in proc.stdout
+    assert torch.load(tmp_path / "dp" / "checkpoints" / "latest.pt", weights_only=True)["env_steps"] == 2 * 2 * 64 * 8
