@@ -9,8 +9,11 @@ for part in "${@:-all}"; do
     env|all) python3 -m benchmarks.env_throughput --num_envs 1024 4096 16384 2>&1 | tee "$log/env.log" | tail -12 ;;&
     train|all) python3 -m benchmarks.train_throughput --num_envs 4096 16384 2>&1 | tee "$log/train.log" | tail -8 ;;&
     graph) python3 -m benchmarks.train_throughput --set cuda_graph=on --name train_throughput_graph 2>&1 | tail -8 ;;
-    multi) python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --name multi_gpu 2>&1 | tail -8
-           python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 2 --set update_graph=false \
-             --name multi_gpu_eager_update 2>&1 | tail -8 ;;
+    multi) python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --name multi_gpu 2>&1 \
+             | tee "$log/multi.log" | tail -8
+           python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --set update_graph=false \
+             --name multi_gpu_eager_update 2>&1 | tee -a "$log/multi.log" | tail -8
+           python3 -m pytest -q -p no:cacheprovider tests/test_distributed.py -k two_gpus 2>&1 | tee -a "$log/multi.log" \
+             | tail -3 ;;
   esac
 done

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 from tocabi_torchrl.rl.curves import read_metrics, steady_rate
-from tocabi_torchrl.rl.distributed import from_environment, shutdown
+from tocabi_torchrl.rl.distributed import DistInfo, ending, from_environment
 from tocabi_torchrl.rl.evaluate import GAIT_CRITERIA as CRITERIA
 from tocabi_torchrl.rl.evaluate import gait_passes as passes_main
 
@@ -53,9 +53,14 @@ def train_part(args, command: str) -> None:
     prior_s = float(common.read_checkpoint(latest).get("train_seconds", 0.0)) if latest.is_file() else 0.0
     left_min = args.budget_minutes - prior_s / 60.0
     if left_min <= 0:  # every rank reads the same checkpoint, so all stop here alike
-        print(f"{args.preset}: the {args.budget_minutes}-minute training budget is used ({prior_s:.0f} s); "
-              "run the eval part")
+        if info.is_main:
+            print(f"{args.name}: the {args.budget_minutes}-minute training budget is used ({prior_s:.0f} s); "
+                  "run the eval part")
         return
+    if record.get("gpus", info.world_size) != info.world_size:  # its rate and ratio are per rank count
+        raise ValueError(f"{args.name} was trained on {record['gpus']} rank(s) so far, this call has "
+                         f"{info.world_size}: continue it with {record['gpus']} (torchrun --nproc_per_node), or start "
+                         "another run with --name")
     cfg = common.config(args.preset, run_dir=str(RUNS), name=args.name, device=args.device, eval_at_end=False,
                         progress_bar=False, log_every=args.log_every, checkpoint_minutes=args.every,
                         max_minutes=min(args.minutes, left_min), resume=str(latest) if latest.is_file() else "")
@@ -67,15 +72,11 @@ def train_part(args, command: str) -> None:
         command = command.replace("python -m", f"torchrun --standalone --nproc_per_node {info.world_size} -m", 1)
     result, rows = common.train(cfg)
     if not info.is_main:  # rank 0 logged the rows and keeps the record
-        shutdown(info)
         return
     record.setdefault("preset", args.preset)
     if args.name != args.preset:
         record.setdefault("name", args.name)
     record.setdefault("gpus", info.world_size)
-    if record["gpus"] != info.world_size:
-        print(f"note: this call ran {info.world_size} rank(s), the run's record says {record['gpus']}; the rate and "
-              "ratio below are this call's", flush=True)
     record.setdefault("config", cfg.to_dict())
     record.setdefault("commands", []).append(command)
     record.update(gpu=common.meta("time_to_walk", [], args.device)["gpu"] if args.device == "cuda" else "cpu",
@@ -88,7 +89,6 @@ def train_part(args, command: str) -> None:
     common.write_json(run_dir / "train.json", record)
     print(json.dumps({k: record.get(k) for k in ("env_steps", "train_seconds", "train_env_steps_per_s",
                                                  "raw_policy_steps_per_s", "train_over_raw")}), flush=True)
-    shutdown(info)  # after the last output: on NCCL the rank's process ends here
 
 
 def eval_part(args, command: str) -> None:
@@ -175,8 +175,9 @@ def render(data: dict, out: Path) -> str:
             "compilation) until a checkpoint first passes the 8 s gait test on 256 envs: at (0.5, 0) m/s survival >= "
             "95 %, forward >= 2.6 m, drift <= 0.3 m, knee RMS <= 0.15 rad; at (0.2, 0) and (0.7, 0.1) survival >= 95 %."
             + (" A run on K GPUs (data-parallel, K x the envs) reports one GPU's raw rate and divides by K x raw."
-               if any(r.get("gpus", 1) > 1 for r in records) else "") + "\n\n" + common.table(("preset", "GPU", "time to walk [min]", "env steps then", "training env-steps/s",
-                                   "raw mujoco-warp policy steps/s (same run)", "train / raw"), rows))
+               if any(r.get("gpus", 1) > 1 for r in records) else "") + "\n\n"
+            + common.table(("run", "GPU", "time to walk [min]", "env steps then", "training env-steps/s",
+                            "raw mujoco-warp policy steps/s (same run)", "train / raw"), rows))
     panels = [{"lines": {}, "vlines": [], "hlines": [(y, "pass")], "xlabel": "training minutes", "ylabel": label}
               for y, label in ((100 * CRITERIA["survival"], "survival over 8 s at (0.5, 0) m/s [%]"),
                                (CRITERIA["forward_distance_m"], "forward distance in 8 s [m]"))]
@@ -249,8 +250,14 @@ def main(argv=None) -> None:
         args.name = args.preset
     t0 = time.time()
     command = " ".join(["python -m benchmarks.time_to_walk", *argv])
-    {"train": train_part, "eval": eval_part, "report": report_part}[args.part](args, command)
-    print(f"[{args.part} took {time.time() - t0:.0f} s]")
+    info = from_environment() if args.part == "train" else DistInfo()  # only training runs data-parallel
+    try:
+        with ending(info, expected=(ValueError,)):  # every rank ends, also on a failure (NCCL: the process, here)
+            {"train": train_part, "eval": eval_part, "report": report_part}[args.part](args, command)
+            if info.is_main:
+                print(f"[{args.part} took {time.time() - t0:.0f} s]", flush=True)
+    except ValueError as err:
+        sys.exit(1 if info.enabled else f"error: {err}")  # ending() has said it on each rank
 
 
 if __name__ == "__main__":

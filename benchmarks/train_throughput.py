@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from tocabi_torchrl.rl.curves import steady_rate
-from tocabi_torchrl.rl.distributed import from_environment, shutdown
+from tocabi_torchrl.rl.distributed import ending, from_environment
 
 from . import common
 
@@ -37,6 +37,9 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
     steps, t_setup = overrides.get("steps_per_env", common.config().ppo.steps_per_env), time.perf_counter() - T0
     info = from_environment()
     if info.enabled and device == "cuda":  # this rank's GPU, before anything touches cuda:0
+        if info.local_rank >= torch.cuda.device_count():
+            raise RuntimeError(f"rank {info.rank} wants cuda:{info.local_rank} but this host has "
+                               f"{torch.cuda.device_count()} GPU(s): use --nproc <= the GPU count")
         device = f"cuda:{info.local_rank}"
         torch.cuda.set_device(device)
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides,
@@ -107,18 +110,22 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     overrides = common.parse_overrides(args.set)
     if args.child:
-        record = measure(args.num_envs[0], args.iterations, args.warmup, args.raw_steps, args.device, args.run_dir,
-                         overrides)
-        if record is not None:  # rank 0 of a torchrun run reports for all ranks
-            print("RESULT " + json.dumps(record), flush=True)  # what common.run_child reads
-        shutdown(from_environment())  # after the last output: on NCCL the rank's process ends here
+        with ending(from_environment()):  # every rank ends, also on a failure (NCCL: the process, here)
+            record = measure(args.num_envs[0], args.iterations, args.warmup, args.raw_steps, args.device,
+                             args.run_dir, overrides)
+            if record is not None:  # rank 0 of a torchrun run reports for all ranks
+                print("RESULT " + json.dumps(record), flush=True)  # what common.run_child reads
         return
     options = ["--iterations", str(args.iterations), "--warmup", str(args.warmup), "--raw_steps", str(args.raw_steps),
                "--device", args.device, "--run_dir", f"{args.run_dir}/{args.name}", "--set", *args.set]
     if min(args.nproc) < 1:
         parser.error(f"--nproc takes rank counts >= 1, not {args.nproc}")
-    results = [common.run_child(NAME, ["--num_envs", str(n), *options], nproc=k) for k in args.nproc
-               for n in args.num_envs]
+    if max(args.nproc) > 1 and not args.iterations + args.warmup:
+        parser.error("--nproc > 1 measures training: give --iterations or --warmup > 0")
+    # With several rank counts every child starts under torchrun, the 1-rank one too, so that they share its
+    # settings (it sets OMP_NUM_THREADS=1, for one).
+    results = [common.run_child(NAME, ["--num_envs", str(n), *options], nproc=k, torchrun=max(args.nproc) > 1)
+               for k in args.nproc for n in args.num_envs]
     print(common.publish(args.out, args.name, {"meta": common.meta(NAME, argv, args.device), "results": results},
                          render))
 

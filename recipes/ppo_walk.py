@@ -28,7 +28,7 @@ except GLBackendError as gl_error:
 
 import torch  # noqa: E402
 
-from tocabi_torchrl.rl.distributed import from_environment, shutdown  # noqa: E402
+from tocabi_torchrl.rl.distributed import ending, from_environment  # noqa: E402
 from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
 from tocabi_torchrl.rl.logging import require_loggers  # noqa: E402
 from tocabi_torchrl.rl.run_dir import open_run  # noqa: E402
@@ -48,16 +48,17 @@ def main(argv: list[str] | None = None) -> None:
     if dist_info.enabled:
         # Data-parallel: train() joins the process group, lets rank 0 alone check and write the run folder, and
         # makes every rank stop if it cannot start.
+        expected = (ValueError, RuntimeError, ImportError)
         try:
-            result = train(cfg, dist_info=dist_info)
-        except (ValueError, RuntimeError, ImportError) as err:
-            print(f"error (rank {dist_info.rank}): {err}", file=sys.stderr)
-            shutdown(dist_info, code=1)  # on NCCL the process ends here
-            sys.exit(1)
-        if dist_info.is_main:
-            print(f"done on {dist_info.world_size} ranks: {result.env_steps:,} env steps in "
-                  f"{result.wall_seconds:.0f} s; run folder {result.run_dir}")
-        shutdown(dist_info)
+            # Any failure ends every rank (an NCCL rank left waiting would never time out); on NCCL the process
+            # ends inside ending(), after the last output.
+            with ending(dist_info, expected):
+                result = train(cfg, dist_info=dist_info)
+                if dist_info.is_main:
+                    print(f"done on {dist_info.world_size} ranks: {result.env_steps:,} env steps in "
+                          f"{result.wall_seconds:.0f} s; run folder {result.run_dir}")
+        except expected:
+            sys.exit(1)  # ending() has said why
         return
     try:
         run = open_run(cfg)

@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 from benchmarks import common, env_throughput, regenerate, scaling, soak, train_throughput
 
@@ -107,4 +108,11 @@ def test_time_to_walk_trains_on_two_ranks_under_torchrun(tmp_path):
     record = json.loads((tmp_path / "runs/time_to_walk/smoke_2gpu/train.json").read_text())
     assert (record["preset"], record["name"], record["gpus"]) == ("cpu_smoke", "smoke_2gpu", 2)
     assert record["commands"][0].startswith("torchrun --standalone --nproc_per_node 2 -m benchmarks.time_to_walk")
-    assert record["env_steps"] % (2 * 8 * 16) == 0 and proc.stdout.count("training from scratch on 2 rank(s)") == 1
+    latest = torch.load(tmp_path / "runs/time_to_walk/smoke_2gpu/checkpoints/latest.pt", weights_only=True)
+    assert record["env_steps"] == latest["env_steps"] == 2 * 8 * 16 * latest["iteration"]  # both ranks' steps
+    assert proc.stdout.count("training from scratch on 2 rank(s)") == 1 and proc.stdout.count("[train took") == 1
+    # A run is continued on the rank count it was trained on (its rate and ratio are per rank count).
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.time_to_walk", "train", "--preset", "cpu_smoke", "--name",
+                           "smoke_2gpu", "--device", "cpu", "--minutes", "0.004"], cwd=tmp_path, text=True,
+                          capture_output=True, env=env, check=False, timeout=600)
+    assert proc.returncode == 1 and "was trained on 2 rank(s) so far, this call has 1" in proc.stderr

@@ -279,6 +279,12 @@ def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "done on 2 ranks: 32 env steps" in proc.stdout
     assert torch.load(tmp_path / "dp" / "checkpoints" / "latest.pt", weights_only=True)["env_steps"] == 32
+    # The same command again: rank 0 refuses the existing run, and both ranks end with a one-line error each.
+    proc = subprocess.run(proc.args, capture_output=True, text=True, timeout=600, env={**os.environ,
+                          "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
+    assert proc.returncode != 0 and 'ppo_walk.py", line' not in proc.stderr  # no rank's traceback
+    assert "error (rank 0): run folder" in proc.stderr and "already holds a run" in proc.stderr
+    assert "error (rank 1): another rank could not open the run" in proc.stderr
 
 
 @pytest.mark.gpu
@@ -299,5 +305,6 @@ def test_torchrun_trains_on_two_gpus_with_nccl_and_ends(tmp_path):
          "--name", "dp", "--eval_at_end", "false", "--progress_bar", "false"],
         capture_output=True, text=True, timeout=900, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "as a CUDA graph failed" not in proc.stderr  # the all-reduce really ran inside the captured update
     assert f"done on 2 ranks: {2 * 2 * 64 * 8:,} env steps" in proc.stdout
     assert torch.load(tmp_path / "dp" / "checkpoints" / "latest.pt", weights_only=True)["env_steps"] == 2 * 2 * 64 * 8

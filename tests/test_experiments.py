@@ -572,6 +572,38 @@ def test_a_failure_outside_opengl_leaves_rendering_on(model, monkeypatch):
         eval_video.render_stills(model, q, camera_pos=q[0, :3], lookat=q[0, :3])
     assert eval_video.rendering_unavailable() is None
     assert eval_video.render_stills(model, q)[0].shape == (360, 480, 3)
+    monkeypatch.undo()  # MuJoCo's own renderer refuses an image beyond its offscreen buffer, before any OpenGL
+    monkeypatch.setattr(eval_video, "_failure", None)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    with pytest.raises(ValueError):
+        eval_video.render_stills(model, q, width=int(model.vis.global_.offwidth) + 1)
+    assert eval_video._failure is None
+
+
+def test_an_opengl_render_failure_is_remembered(model, monkeypatch):
+    from tocabi_torchrl.rl import eval_video
+
+    monkeypatch.setattr(eval_video, "_failure", None)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    closed = []
+
+    class Renderer:  # starts, then fails to draw
+        def __init__(self, model, height, width, **kwargs):
+            pass
+
+        def update_scene(self, *args, **kwargs):
+            pass
+
+        def render(self):
+            raise RuntimeError("eglMakeCurrent failed")
+
+        def close(self):
+            closed.append(1)
+
+    monkeypatch.setattr(mujoco, "Renderer", Renderer)
+    with pytest.raises(RuntimeError, match="eglMakeCurrent"):
+        eval_video.render_video(model, model.qpos0[None, None], 30, Path("unused"), progress=False)
+    assert closed == [1] and "eglMakeCurrent failed" in eval_video.rendering_unavailable()
 
 
 def test_no_display_and_no_egl_turn_rendering_off_with_the_fix(monkeypatch):

@@ -17,15 +17,17 @@ runs with every helper here a no-op.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
+import traceback
 from dataclasses import dataclass
 from typing import Iterable, Mapping
 
 import torch
 import torch.distributed as dist
 
-__all__ = ["DistInfo", "from_environment", "init_distributed", "shutdown", "rank_seed", "broadcast_module",
+__all__ = ["DistInfo", "from_environment", "init_distributed", "shutdown", "ending", "rank_seed", "broadcast_module",
            "GradientAllReduce", "all_reduce_mean", "all_reduce_sum", "agree", "RunningStatsSync"]
 
 
@@ -109,12 +111,37 @@ def shutdown(info: DistInfo, code: int = 0) -> None:
     """
     if not info.enabled or not dist.is_initialized():
         return
-    if dist.get_backend() != "nccl":
+    if "nccl" not in str(dist.get_backend()):  # also a mixed "cpu:gloo,cuda:nccl" group
         dist.destroy_process_group()
         return
-    sys.stdout.flush()
-    sys.stderr.flush()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed or broken pipe must not bring back the hanging teardown
+            pass
     os._exit(code)
+
+
+@contextlib.contextmanager
+def ending(info: DistInfo, expected: tuple[type[BaseException], ...] = ()):
+    """Run a data-parallel rank's work, then :func:`shutdown`; on any exception, say it and end the rank with exit
+    status 1 (an NCCL rank would otherwise wait for ever in the teardown, and its peers in their next collective,
+    which no watchdog times out once it is captured in a graph). ``expected`` exceptions are said in one line
+    (``error (rank R): ...``), others with their traceback; with gloo the exception then goes on. One rank: nothing
+    is added."""
+    try:
+        yield
+    except BaseException as err:
+        if not info.enabled:
+            raise
+        if isinstance(err, expected):
+            print(f"error (rank {info.rank}): {err}", file=sys.stderr)
+        else:
+            print(f"error (rank {info.rank}):", file=sys.stderr)
+            traceback.print_exc()
+        shutdown(info, code=1)
+        raise  # gloo: shutdown returned
+    shutdown(info)
 
 
 def rank_seed(seed: int, info: DistInfo) -> int:

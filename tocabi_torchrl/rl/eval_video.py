@@ -57,10 +57,14 @@ def _guarded(render):
 def _gl(call, *args, **kwargs):
     """``call(*args, **kwargs)`` on MuJoCo's OpenGL side (starting a renderer, or its ``render``), remembering its
     failure (let through). Failures elsewhere (a bad camera, a callback, the video writer) leave rendering on: they
-    say nothing about OpenGL, and the next call with good arguments renders."""
+    say nothing about OpenGL, and the next call with good arguments renders; so does MuJoCo's own refusal of bad
+    arguments (a ``ValueError`` or ``TypeError``, e.g. an image larger than the model's offscreen buffer), raised
+    before any OpenGL context exists."""
     global _failure
     try:
         return call(*args, **kwargs)
+    except (ValueError, TypeError):
+        raise
     except Exception as err:
         _failure = f"{type(err).__name__}: {err}"
         raise
@@ -85,17 +89,19 @@ def render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480,
     option = mujoco.MjvOption()
     option.geomgroup[2] = 0  # hide the translucent collision geoms: show the silhouette
     frames = []
-    for step in tqdm(qpos, desc="rendering video", unit="frame", disable=not progress, leave=False):
-        tiles = []
-        for i, q in enumerate(step):
-            data.qpos[:] = q
-            if mocap_pos is not None:
-                data.mocap_pos[:] = mocap_pos[i]
-            mujoco.mj_forward(model, data)
-            renderer.update_scene(data, camera, scene_option=option)
-            tiles.append(_gl(renderer.render))
-        frames.append(np.concatenate(tiles, axis=1))
-    renderer.close()
+    try:
+        for step in tqdm(qpos, desc="rendering video", unit="frame", disable=not progress, leave=False):
+            tiles = []
+            for i, q in enumerate(step):
+                data.qpos[:] = q
+                if mocap_pos is not None:
+                    data.mocap_pos[:] = mocap_pos[i]
+                mujoco.mj_forward(model, data)
+                renderer.update_scene(data, camera, scene_option=option)
+                tiles.append(_gl(renderer.render))
+            frames.append(np.concatenate(tiles, axis=1))
+    finally:  # its OpenGL context goes too when a frame fails: rendering may go on in this process
+        renderer.close()
     try:
         path = out / "walk.mp4"
         imageio.mimwrite(path, frames, fps=fps, macro_block_size=1)
