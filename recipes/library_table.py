@@ -103,7 +103,8 @@ def run_used_seconds(library: str, out: Path) -> float | None:
 
 
 def snapshot_seconds(snapshot: str) -> float:
-    """Cumulative training seconds of a ``wall_XXXXXs.pt`` snapshot (every library names them so)."""
+    """Cumulative training seconds of a ``wall_XXXXXs.pt`` snapshot (every library names them so: the mark rounded
+    to whole seconds, ``config.wall_tag``)."""
     return float(Path(snapshot).stem.split("_")[1].rstrip("s"))
 
 
@@ -197,7 +198,8 @@ def main(argv=None) -> None:
                         help="train each listed row at most this many more minutes in this call, continuing its "
                              "run (0 = up to --max_minutes); a row is final once a snapshot walks or the cap is "
                              "reached")
-    parser.add_argument("--checkpoint_minutes", type=float, default=1.0, help="snapshot period [min] (default: 1)")
+    parser.add_argument("--checkpoint_minutes", type=float, default=1.0,
+                        help="snapshot period [min], at least 1/60: the snapshots are named by whole seconds (default: 1)")
     parser.add_argument("--eval_envs", type=int, default=256)
     parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
     parser.add_argument("--eval_minutes", type=float, default=0.0,
@@ -217,6 +219,13 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.no_eval and args.eval_only:
         parser.error("--no_eval and --eval_only exclude each other")
+    if not args.report:
+        from tocabi_torchrl.config import check_snapshot_minutes
+
+        try:  # before any training: a period under 1 s could give two snapshots one name
+            check_snapshot_minutes(args.checkpoint_minutes, "--checkpoint_minutes")
+        except ValueError as err:
+            parser.error(str(err))
     json_path, md_path = ROOT / args.json, ROOT / args.md
     rows = json.loads(json_path.read_text()) if json_path.is_file() else []
     command = shlex.join(["python", "recipes/library_table.py", *(sys.argv[1:] if argv is None else argv)])

@@ -6,18 +6,27 @@ from __future__ import annotations
 import json
 
 import pytest
-
-pytest.importorskip("rsl_rl")
-
 from recipe_runner import load_recipe
 
 
+def files(tmp_path) -> list[str]:
+    """The table's run folder, json and md under ``tmp_path``."""
+    return ["--runs", str(tmp_path / "runs"), "--json", str(tmp_path / "table.json"), "--md", str(tmp_path / "table.md")]
+
+
+def test_a_snapshot_period_under_a_second_is_refused(tmp_path, capsys):
+    table = load_recipe("library_table")
+    with pytest.raises(SystemExit):
+        table.main(["--libraries", "torchrl", "--device", "cpu", "--checkpoint_minutes", "0.01", *files(tmp_path)])
+    assert "named by whole seconds" in capsys.readouterr().err and not (tmp_path / "table.json").exists()
+
+
 def test_a_second_minutes_call_continues_the_same_row(tmp_path):
+    pytest.importorskip("rsl_rl")
     table = load_recipe("library_table")
     common = ["--libraries", "rsl_rl", "--num_envs", "2", "--device", "cpu", "--max_minutes", "0.06",
               "--checkpoint_minutes", str(1 / 60), "--eval_envs", "2", "--eval_seconds", "0.05",
-              "--recipe_args", "--steps_per_env 4 --hidden 16", "--runs", str(tmp_path / "runs"),
-              "--json", str(tmp_path / "table.json"), "--md", str(tmp_path / "table.md")]
+              "--recipe_args", "--steps_per_env 4 --hidden 16", *files(tmp_path)]
     table.main([*common, "--minutes", "0.025", "--no_eval"])
     [row] = json.loads((tmp_path / "table.json").read_text())
     assert row["status"] == "training" and row["calls"] == 1 and row["tested"] == {}
