@@ -55,8 +55,10 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
     ``out`` when it has ``used_s`` > 0 seconds already; returns its cumulative {env_steps, train_seconds,
     env_steps_per_s, snapshots, calls, resume_notes}."""
     resume = run_used_seconds(library, out) is not None
-    extra = shlex.split(args.recipe_args)
     if library == "torchrl":
+        if args.recipe_args:  # ppo_walk's options are other ones, and on --resume it takes only a few again
+            print(f"torchrl: --recipe_args {args.recipe_args!r} is for the rsl_rl, skrl and sb3 recipes; "
+                  "recipes/ppo_walk.py does not get it", flush=True)
         # ppo_walk's --max_minutes is this call's; its checkpoints and snapshot names carry the summed train time.
         common = ["--max_minutes", f"{budget_s / 60.0:.6g}", "--checkpoint_minutes", str(args.checkpoint_minutes),
                   "--eval_at_end", "false", "--progress_bar", "false", "--device", args.device,
@@ -72,8 +74,8 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
         cmd = [sys.executable, str(ROOT / f"recipes/train_{library}.py"), "--out", str(out), "--num_envs",
                str(num_envs), "--preset", args.preset, "--device", args.device, "--eval_envs", "0",
                "--iterations", "1000000", "--max_minutes", f"{(used_s + budget_s) / 60.0:.6g}",
-               "--checkpoint_minutes", str(args.checkpoint_minutes), *(["--resume"] if resume else [])]
-    cmd += extra
+               "--checkpoint_minutes", str(args.checkpoint_minutes), *(["--resume"] if resume else []),
+               *shlex.split(args.recipe_args)]
     print("+", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
     if library == "torchrl":
@@ -211,7 +213,8 @@ def main(argv=None) -> None:
     parser.add_argument("--new", action="store_true",
                         help="start the listed rows anew in new run folders (their old runs are kept on disk)")
     parser.add_argument("--recipe_args", default="",
-                        help="extra options for the library recipes, e.g. '--hidden 16' for a smoke test")
+                        help="extra options for the rsl_rl, skrl and sb3 recipes (recipes/train_<library>.py), e.g. "
+                             "'--hidden 16' for a smoke test; not passed to recipes/ppo_walk.py (torchrl rows)")
     parser.add_argument("--runs", default="runs/library_table", help="training runs go here (one folder per row)")
     parser.add_argument("--json", default="docs/adapters_table.json")
     parser.add_argument("--md", default="docs/adapters_table.md")

@@ -3,15 +3,104 @@ training time and env steps), the gait tests run on the snapshots, and a final r
 
 from __future__ import annotations
 
+import argparse
 import json
+import subprocess
+from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from recipe_runner import load_recipe
+
+from tocabi_torchrl.config import preset_config, wall_tag
+
+#: A gait-test summary that fails every threshold.
+FALLS = {"survival": 0.0, "forward_distance_m": 0.0, "lateral_drift_m": 1.0, "knee_rms_rad": 1.0}
 
 
 def files(tmp_path) -> list[str]:
     """The table's run folder, json and md under ``tmp_path``."""
     return ["--runs", str(tmp_path / "runs"), "--json", str(tmp_path / "table.json"), "--md", str(tmp_path / "table.md")]
+
+
+def rows(tmp_path) -> list[dict]:
+    return json.loads((tmp_path / "table.json").read_text())
+
+
+class FakePpoWalk:
+    """Stands in for ``recipes/ppo_walk.py`` as the table runs it, in training seconds instead of wall-clock: each
+    call trains iterations of ``iteration_s`` seconds and 96 env steps until its ``--max_minutes`` are spent (then
+    ends the iteration, as the trainer does) or its ``total_env_steps`` are done, saving ``wall_XXXXXs.pt`` at the
+    ``--checkpoint_minutes`` marks with ``latest.pt`` after each. Checkpoints are JSON (see ``torchrl_table``)."""
+
+    def __init__(self, total_env_steps: int = 10**9, iteration_s: float = 0.25):
+        self.commands: list[list[str]] = []
+        self.iteration_s = iteration_s
+        self.cfg = preset_config("default", **{"env.num_envs": 2, "ppo.steps_per_env": 48, "ppo.minibatch_size": 96,
+                                               "total_env_steps": total_env_steps})
+
+    def __call__(self, cmd, check=True, cwd=None):
+        self.commands.append(cmd)
+        parser = argparse.ArgumentParser()
+        for option in ("--resume", "--run_dir", "--name"):
+            parser.add_argument(option)
+        for option in ("--max_minutes", "--checkpoint_minutes"):
+            parser.add_argument(option, type=float)
+        opts, _ = parser.parse_known_args(cmd[2:])
+        if opts.resume:
+            run = Path(opts.resume).parent.parent
+            state = json.loads(Path(opts.resume).read_text())
+        else:
+            run = Path(opts.run_dir) / opts.name
+            if run.exists():  # ppo_walk never writes into an existing run folder
+                raise subprocess.CalledProcessError(1, cmd)
+            (run / "checkpoints").mkdir(parents=True)
+            state = {"iteration": 0, "env_steps": 0, "train_seconds": 0.0, "config": self.cfg.to_dict()}
+        save = lambda name: (run / "checkpoints" / name).write_text(json.dumps(state))  # noqa: E731
+        start, mark = state["train_seconds"], 60.0 * opts.checkpoint_minutes
+        next_mark = (int(start // mark) + 1) * mark
+        while state["iteration"] < self.cfg.iterations and state["train_seconds"] - start <= 60.0 * opts.max_minutes:
+            state = {**state, "iteration": state["iteration"] + 1, "env_steps": state["env_steps"] + 96,
+                     "train_seconds": state["train_seconds"] + self.iteration_s}
+            if state["train_seconds"] >= next_mark:
+                save(f"{wall_tag(next_mark)}.pt")
+                save("latest.pt")
+                next_mark = (int(state["train_seconds"] // mark) + 1) * mark
+        save("latest.pt")
+
+
+@pytest.fixture
+def torchrl_table(monkeypatch):
+    """The table with ``recipes/ppo_walk.py`` faked (``table.ppo_walk``, a :class:`FakePpoWalk`), checkpoints read as
+    JSON, and a gait test that always falls and records what it tested (``table.tested``: snapshot names)."""
+    table = load_recipe("library_table")
+    table.ppo_walk, table.tested = FakePpoWalk(), []
+    monkeypatch.setattr(table, "subprocess", SimpleNamespace(run=lambda *a, **k: table.ppo_walk(*a, **k)))
+    monkeypatch.setattr("tocabi_torchrl.rl.checkpoint.read_checkpoint",
+                        lambda path, device="cpu": json.loads(Path(path).read_text()))
+
+    def gait(library, snapshot, out, args, command):
+        table.tested.append(Path(snapshot).name)
+        return FALLS
+
+    monkeypatch.setattr(table, "gait", gait)
+    return table
+
+
+def torchrl_args(tmp_path, *more) -> list[str]:
+    """A torchrl row at 2 envs with a 10 s cap and a snapshot every second."""
+    return ["--libraries", "torchrl", "--num_envs", "2", "--device", "cpu", "--max_minutes", str(10 / 60),
+            "--checkpoint_minutes", str(1 / 60), *files(tmp_path), *more]
+
+
+def test_recipe_args_go_to_the_library_recipes_only(torchrl_table, tmp_path, capsys):
+    torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(2 / 60), "--recipe_args", "--hidden 16"))
+    [cmd] = torchrl_table.ppo_walk.commands
+    assert cmd[1].endswith("ppo_walk.py") and "--hidden" not in cmd
+    assert "--recipe_args '--hidden 16' is for the rsl_rl, skrl and sb3 recipes" in capsys.readouterr().out
+    [row] = rows(tmp_path)
+    assert row["calls"] == 1 and row["train_seconds"] >= 2.0
+    assert torchrl_table.tested == ["wall_00001s.pt", "wall_00002s.pt"]
 
 
 def test_a_snapshot_period_under_a_second_is_refused(tmp_path, capsys):
