@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shlex
 import subprocess
 import sys
@@ -64,6 +65,10 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
                   "--eval_at_end", "false", "--progress_bar", "false", "--device", args.device,
                   "--run_dir", str(out.parent), "--name", out.name]
         if resume:
+            from tocabi_torchrl.rl.checkpoint import read_checkpoint
+
+            # Before ppo_walk writes those names again: it would replace a killed call's orphan without a word.
+            torchrl_snapshots(out, float(read_checkpoint(out / "checkpoints" / "latest.pt")["train_seconds"]))
             cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--resume",
                    str(out / "checkpoints" / "latest.pt"), *common]
         else:
@@ -83,10 +88,35 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
 
         state = read_checkpoint(out / "checkpoints" / "latest.pt")
         steps, seconds = int(state["env_steps"]), float(state["train_seconds"])
-        snaps = sorted(str(p) for p in (out / "checkpoints").glob("wall_*.pt"))
         return {"env_steps": steps, "train_seconds": seconds, "env_steps_per_s": steps / max(seconds, 1e-9),
-                "snapshots": snaps, "resume_notes": TORCHRL_NOTES}
+                "snapshots": torchrl_snapshots(out, seconds), "resume_notes": TORCHRL_NOTES}
     return json.loads((out / "result.json").read_text())["train"]
+
+
+def torchrl_snapshots(out: Path, latest_seconds: float) -> list[str]:
+    """The ``wall_XXXXXs.pt`` snapshots of the TorchRL run in ``out`` that its ``latest.pt`` (at ``latest_seconds``
+    of training) accounts for, in time order. The trainer writes each snapshot and then ``latest.pt``: a call killed
+    in between leaves one trained past the resume point, which the next call retrains differently. Such an orphan is
+    not the row's training, so it is renamed ``wall_XXXXXs_unresumed<k>.pt`` (as the library recipes do) and never
+    gait-tested; the renaming is printed."""
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint
+
+    kept = []
+    for path in sorted((out / "checkpoints").glob("wall_*.pt"), key=lambda p: p.name):
+        if not re.fullmatch(r"wall_\d+s", path.stem):
+            continue  # set aside earlier
+        # Names are rounded seconds: only one within half a second of the resume point can be past it.
+        if (snapshot_seconds(str(path)) >= latest_seconds - 0.5
+                and float(read_checkpoint(path)["train_seconds"]) > latest_seconds):
+            k = 0
+            while (aside := path.with_name(f"{path.stem}_unresumed{k}.pt")).exists():
+                k += 1
+            path.rename(aside)
+            print(f"torchrl: {path.name} was trained past the run's resume point ({latest_seconds:.1f} s) by a call "
+                  f"that was killed; kept as {aside.name}, not gait-tested")
+            continue
+        kept.append(str(path))
+    return kept
 
 
 def run_used_seconds(library: str, out: Path) -> float | None:

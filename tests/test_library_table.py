@@ -138,3 +138,22 @@ def test_a_second_minutes_call_continues_the_same_row(tmp_path):
     assert "OnPolicyRunner.load" in row["notes"] and "no (≤ 0.06)" in (tmp_path / "table.md").read_text()
     table.main([*common, "--minutes", "0.025"])  # a final row is left as it is
     assert json.loads((tmp_path / "table.json").read_text()) == [row]
+
+
+def test_a_killed_calls_orphan_snapshot_is_kept_aside_and_not_gait_tested(torchrl_table, tmp_path, capsys):
+    torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(3 / 60), "--no_eval"))
+    [row] = rows(tmp_path)
+    checkpoints = Path(row["run"]) / "checkpoints"
+    resume_s = json.loads((checkpoints / "latest.pt").read_text())["train_seconds"]
+    # A call killed after writing the 4 s snapshot but before latest.pt: trained past the resume point.
+    orphan = {**json.loads((checkpoints / "latest.pt").read_text()), "train_seconds": 4.0}
+    (checkpoints / "wall_00004s.pt").write_text(json.dumps(orphan))
+    torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(0.5 / 60)))  # resumes, stops short of 4 s, tests
+    [row] = rows(tmp_path)
+    assert resume_s < row["train_seconds"] < 4.0
+    assert torchrl_table.tested == ["wall_00001s.pt", "wall_00002s.pt", "wall_00003s.pt"]
+    assert [Path(p).name for p in row["snapshots"]] == torchrl_table.tested
+    assert json.loads((checkpoints / "wall_00004s_unresumed0.pt").read_text()) == orphan
+    assert "wall_00004s.pt was trained past the run's resume point" in capsys.readouterr().out
+    torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(1 / 60)))  # reaches 4 s: its own snapshot, tested
+    assert torchrl_table.tested[3] == "wall_00004s.pt" and (checkpoints / "wall_00004s_unresumed0.pt").is_file()
