@@ -18,8 +18,8 @@ row at most M more minutes, continuing the row's own run (``--resume`` of its re
 with the training seconds, env steps and iterations summed over calls), never past ``--max_minutes`` in total; the
 snapshots are named by cumulative training seconds, so the time to walk is in cumulative training minutes. At the
 end of a call the row's untested snapshots are gait-tested (``--eval_minutes`` bounds that; ``--no_eval`` leaves
-it to a later ``--eval_only`` call). A row is ``final`` once a snapshot walks, or the cap is reached and every
-snapshot is tested; later calls leave a final row alone (``--new`` starts it over in a new run folder). What a
+it to a later ``--eval_only`` call). A row is ``final`` once a snapshot walks, or the cap is reached (or, before
+it, the recipe's own iteration budget, by the iterations it reports) and every snapshot is tested; later calls leave a final row alone (``--new`` starts it over in a new run folder). What a
 resumed call does not carry over (env state, random-number state, the rollout in progress) is in each row's
 notes. One H100, 10-minute commands, one row (repeat each line until the row says ``"status": "final"``):
 
@@ -54,7 +54,9 @@ TORCHRL_NOTES = ("resumes recipes/ppo_walk.py's checkpoint (--resume): networks,
 def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s: float) -> dict:
     """Train one library in a subprocess for up to ``budget_s`` more seconds of training, continuing the run in
     ``out`` when it has ``used_s`` > 0 seconds already; returns its cumulative {env_steps, train_seconds,
-    env_steps_per_s, snapshots, calls, resume_notes}."""
+    env_steps_per_s, snapshots, calls, resume_notes} and ``budget_done``: whether the recipe's own iteration budget
+    is used, from the iterations or env steps it reports (its clock, frozen a few ms after the last step, reports
+    more seconds even for a call that had nothing left to train)."""
     resume = run_used_seconds(library, out) is not None
     if library == "torchrl":
         if args.recipe_args:  # ppo_walk's options are other ones, and on --resume it takes only a few again
@@ -84,13 +86,18 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
     print("+", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
     if library == "torchrl":
-        from tocabi_torchrl.rl.checkpoint import read_checkpoint
+        from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint
 
-        state = read_checkpoint(out / "checkpoints" / "latest.pt")
+        latest = out / "checkpoints" / "latest.pt"
+        state = read_checkpoint(latest)
+        cfg = config_from_checkpoint(state, latest)
         steps, seconds = int(state["env_steps"]), float(state["train_seconds"])
         return {"env_steps": steps, "train_seconds": seconds, "env_steps_per_s": steps / max(seconds, 1e-9),
-                "snapshots": torchrl_snapshots(out, seconds), "resume_notes": TORCHRL_NOTES}
-    return json.loads((out / "result.json").read_text())["train"]
+                "snapshots": torchrl_snapshots(out, seconds), "resume_notes": TORCHRL_NOTES,
+                "budget_done": steps // cfg.frames_per_batch >= cfg.iterations}  # ppo_walk's own 'finished' test
+    trained = json.loads((out / "result.json").read_text())["train"]
+    trained["budget_done"] = int(trained["iterations"]) >= int(trained.get("iterations_budget", sys.maxsize))
+    return trained
 
 
 def torchrl_snapshots(out: Path, latest_seconds: float) -> list[str]:
@@ -303,11 +310,12 @@ def main(argv=None) -> None:
                 row["commands"].append(command)
                 used = run_used_seconds(library, out) or 0.0
                 left = cap_s - used
-                if not args.eval_only and left > 0 and row.get("walk") is None:
+                if not args.eval_only and left > 0 and row.get("walk") is None and not row.get("recipe_budget_done"):
                     budget = min(60.0 * args.minutes, left) if args.minutes > 0 else left
                     trained = train(library, n, out, args, used, budget)
-                    if trained["train_seconds"] <= used:  # nothing left to train: the recipe's own iteration or env-step budget ended before the cap
+                    if trained["budget_done"]:  # before the cap: nothing is left for later calls to train
                         row["recipe_budget_done"] = True
+                        print(f"{library} {args.preset} {n}: the recipe's own iteration budget is used")
                     row.update(env_steps=int(trained["env_steps"]), train_seconds=float(trained["train_seconds"]),
                                env_steps_per_s=float(trained["env_steps_per_s"]), snapshots=trained["snapshots"],
                                calls=trained.get("calls", row.get("calls", 0) + 1),
@@ -317,7 +325,8 @@ def main(argv=None) -> None:
                 if not args.no_eval:
                     gait_test_snapshots(library, row, out, args)
                 # Final: a snapshot walks, or the cap is reached (within 1 %: ppo_walk stops at an iteration's end
-                # by its own clock, which also counts its start-up) and every snapshot is tested.
+                # by its own clock, which also counts its start-up) or the recipe's budget is used, and every
+                # snapshot is tested.
                 capped = row["train_seconds"] >= 0.99 * cap_s or row.get("recipe_budget_done", False)
                 untested = [s for s in row["snapshots"] if Path(s).stem not in row.get("tested", {})]
                 if row.get("walk") is not None or (capped and not untested):

@@ -157,3 +157,27 @@ def test_a_killed_calls_orphan_snapshot_is_kept_aside_and_not_gait_tested(torchr
     assert "wall_00004s.pt was trained past the run's resume point" in capsys.readouterr().out
     torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(1 / 60)))  # reaches 4 s: its own snapshot, tested
     assert torchrl_table.tested[3] == "wall_00004s.pt" and (checkpoints / "wall_00004s_unresumed0.pt").is_file()
+
+
+def test_a_row_whose_recipe_budget_ends_before_the_cap_turns_final(torchrl_table, tmp_path):
+    torchrl_table.ppo_walk = FakePpoWalk(total_env_steps=4 * 96)  # 4 iterations: 1 s of the 10 s cap
+    torchrl_table.main(torchrl_args(tmp_path))
+    [row] = rows(tmp_path)
+    assert row["status"] == "final" and row["recipe_budget_done"] and row["env_steps"] == 4 * 96
+    assert torchrl_table.tested == ["wall_00001s.pt"] and len(torchrl_table.ppo_walk.commands) == 1
+    torchrl_table.main(torchrl_args(tmp_path))  # final: no more recipe calls
+    assert rows(tmp_path) == [row] and len(torchrl_table.ppo_walk.commands) == 1
+
+
+def test_a_library_recipe_reports_its_used_budget(tmp_path):
+    # The recipe's frozen clock reports a few ms more than it trained; its iteration count tells the budget is used.
+    pytest.importorskip("rsl_rl")
+    table = load_recipe("library_table")
+    args = ["--libraries", "rsl_rl", "--num_envs", "2", "--device", "cpu", "--max_minutes", "1", "--checkpoint_minutes",
+            "1", "--recipe_args", "--steps_per_env 4 --hidden 16 --iterations 1", *files(tmp_path)]
+    table.main(args)
+    [row] = rows(tmp_path)
+    assert row["status"] == "final" and row["recipe_budget_done"] and row["calls"] == 1
+    assert "no (≤ 1)" in (tmp_path / "table.md").read_text()
+    table.main(args)  # left alone: the recipe is not started again
+    assert rows(tmp_path) == [row]
