@@ -17,11 +17,13 @@ Split over calls (a GPU machine that runs one command for at most 10 minutes): `
 row at most M more minutes, continuing the row's own run (``--resume`` of its recipe: the library's own checkpoint,
 with the training seconds, env steps and iterations summed over calls), never past ``--max_minutes`` in total; the
 snapshots are named by cumulative training seconds, so the time to walk is in cumulative training minutes. At the
-end of a call the row's untested snapshots are gait-tested (``--eval_minutes`` bounds that; ``--no_eval`` leaves
-it to a later ``--eval_only`` call). A row is ``final`` once a snapshot walks, or the cap is reached (or, before
-it, the recipe's own iteration budget, by the iterations it reports) and every snapshot is tested; later calls leave a final row alone (``--new`` starts it over in a new run folder). What a
-resumed call does not carry over (env state, random-number state, the rollout in progress) is in each row's
-notes. One H100, 10-minute commands, one row (repeat each line until the row says ``"status": "final"``):
+end of a call the row's untested snapshots are gait-tested (``--eval_minutes`` bounds that; ``--no_eval`` leaves it
+to a later ``--eval_only`` call). A row is ``final`` once a snapshot walks, or the cap is reached (or, before it,
+the recipe's own iteration budget, by the iterations it reports) and every snapshot is tested; later calls leave a
+final row alone (``--new`` starts it over in a new run folder). A row written before rows were resumable (one call
+each) is kept, as a final row. What a resumed call does not carry over (env state, random-number state, the rollout
+in progress) is in each row's notes. One H100, 10-minute commands, one row (repeat each line until the row says
+``"status": "final"``):
 
     python recipes/library_table.py --libraries rsl_rl --num_envs 4096 --minutes 7 --eval_minutes 1.5
     python recipes/library_table.py --libraries rsl_rl --num_envs 4096 --eval_only --eval_minutes 8
@@ -194,6 +196,21 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
         args.save_rows()
 
 
+def upgrade_old_row(row: dict) -> bool:
+    """Bring a row written before rows were resumable (it has no ``status``) to the current format, keeping every
+    field it has; True if it was one. Such a row is a whole run: one call trained it to its cap, then gait-tested its
+    snapshots in time order until one passed (its ``walk``), so it is final. It recorded neither its snapshots nor
+    which were tested; those are in its run folder."""
+    if "status" in row:
+        return False
+    for key, value in {"status": "final", "calls": 1, "commands": [row["command"]] if row.get("command") else [],
+                       "snapshots": [], "tested": {}, "notes": "",
+                       "upgraded_from": "a row of before resumable rows (one call; snapshots and gait tests in its "
+                                        "run folder only)"}.items():
+        row.setdefault(key, value)
+    return True
+
+
 def report(rows: list[dict], path: Path) -> None:
     from tocabi_torchrl.rl.atomic import atomic_write_text
 
@@ -238,7 +255,8 @@ def main(argv=None) -> None:
                              "run (0 = up to --max_minutes); a row is final once a snapshot walks or the cap is "
                              "reached")
     parser.add_argument("--checkpoint_minutes", type=float, default=1.0,
-                        help="snapshot period [min], at least 1/60: the snapshots are named by whole seconds (default: 1)")
+                        help="snapshot period [min], at least 1/60: the snapshots are named by whole seconds "
+                             "(default: 1)")
     parser.add_argument("--eval_envs", type=int, default=256)
     parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
     parser.add_argument("--eval_minutes", type=float, default=0.0,
@@ -285,9 +303,13 @@ def main(argv=None) -> None:
             for n in (int(x) for x in args.num_envs.split(",")):
                 key = (library, args.preset, n)
                 row = next((r for r in rows if (r["library"], r["preset"], r["num_envs"]) == key), None)
-                if row is not None and (args.new or "status" not in row):  # "status": rows of before resuming
+                if row is not None and args.new:
                     rows.remove(row)
                     row = None
+                if row is not None and upgrade_old_row(row):
+                    print(f"{library} {args.preset} {n}: a row of before resumable rows (trained and gait-tested in "
+                          "one call), kept as a final row of the current format")
+                    args.save_rows()
                 if row is None:
                     if args.eval_only:
                         print(f"{library} {args.preset} {n}: no row to gait-test; train it first")

@@ -20,7 +20,8 @@ FALLS = {"survival": 0.0, "forward_distance_m": 0.0, "lateral_drift_m": 1.0, "kn
 
 def files(tmp_path) -> list[str]:
     """The table's run folder, json and md under ``tmp_path``."""
-    return ["--runs", str(tmp_path / "runs"), "--json", str(tmp_path / "table.json"), "--md", str(tmp_path / "table.md")]
+    return ["--runs", str(tmp_path / "runs"), "--json", str(tmp_path / "table.json"),
+            "--md", str(tmp_path / "table.md")]
 
 
 def rows(tmp_path) -> list[dict]:
@@ -181,3 +182,18 @@ def test_a_library_recipe_reports_its_used_budget(tmp_path):
     assert "no (≤ 1)" in (tmp_path / "table.md").read_text()
     table.main(args)  # left alone: the recipe is not started again
     assert rows(tmp_path) == [row]
+
+
+def test_eval_only_keeps_and_upgrades_a_row_of_before_resumable_rows(tmp_path, capsys):
+    old = {"library": "rsl_rl", "version": "5.5.1", "preset": "default", "num_envs": 4096, "env_steps_per_s": 250000.0,
+           "env_steps": 450000000, "train_seconds": 1800.0, "walks_minutes": 12.0,
+           "walk": {"snapshot": "runs/r/checkpoints/wall_00720s.pt", "minutes": 12.0, "main": {}, "others": {}},
+           "cap_minutes": 30.0, "run": str(tmp_path / "runs" / "r"), "device": "NVIDIA H100 80GB HBM3",
+           "command": "python recipes/library_table.py --libraries rsl_rl"}  # the format of before --minutes
+    (tmp_path / "table.json").write_text(json.dumps([old]))
+    table = load_recipe("library_table")
+    table.main(["--libraries", "rsl_rl", "--num_envs", "4096", "--device", "cpu", "--eval_only", *files(tmp_path)])
+    [row] = rows(tmp_path)
+    assert {k: row[k] for k in old} == old and row["status"] == "final" and row["commands"] == [old["command"]]
+    assert "kept as a final row" in capsys.readouterr().out
+    assert "| rsl_rl | 5.5.1 | default | 4,096 | 250,000 | 12.0 | 30.0 | 1 |" in (tmp_path / "table.md").read_text()
