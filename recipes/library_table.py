@@ -196,6 +196,30 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
         args.save_rows()
 
 
+def start_over_if_killed_first(row: dict, out: Path, args) -> None:
+    """For a row whose run in ``out`` has no resume point (``resume.json``; TorchRL: ``checkpoints/latest.pt``).
+    If no call of the row completed, its first call was killed before the recipe saved one: nothing in ``out`` can
+    be resumed and the row records nothing of it, so ``out`` is renamed ``<run>_killed<k>`` (kept, not deleted),
+    the rename is printed and recorded in ``row["set_aside"]``, and the row trains anew in ``out``. A row that
+    records completed calls has lost its run: ``SystemExit`` saying so, with ``--new`` as the fix."""
+    what = "checkpoints/latest.pt" if row["library"] == "torchrl" else "resume.json"
+    name = f"{row['library']} {row['preset']} {row['num_envs']}"
+    if row.get("calls", 0) > 0:
+        raise SystemExit(f"error: {name}: its run folder {out} has no resume point ({what}) although the row records "
+                         f"{row['calls']} training call(s); put the run folder back, or pass --new to train the row "
+                         "anew in a new run folder (the old folder is left as it is)")
+    if not out.exists():
+        return
+    k = 1
+    while (aside := out.with_name(f"{out.name}_killed{k}")).exists():
+        k += 1
+    out.rename(aside)
+    row.setdefault("set_aside", []).append(str(aside))
+    args.save_rows()
+    print(f"{name}: {out} has no resume point ({what}): the row's first call was killed before its recipe saved "
+          f"one. Kept that folder as {aside}; training the row anew in {out}", flush=True)
+
+
 def upgrade_old_row(row: dict) -> bool:
     """Bring a row written before rows were resumable (it has no ``status``) to the current format, keeping every
     field it has; True if it was one. Such a row is a whole run: one call trained it to its cap, then gait-tested its
@@ -320,7 +344,7 @@ def main(argv=None) -> None:
                                                                               f"{args.preset}_{n}_{stamp}"),
                            "env_steps": 0, "train_seconds": 0.0, "env_steps_per_s": 0.0, "snapshots": [],
                            "tested": {}, "walks_minutes": None, "walk": None, "cap_minutes": args.max_minutes,
-                           "device": None, "commands": [], "notes": ""}
+                           "device": None, "commands": [], "notes": "", "calls": 0}
                     rows.append(row)
                 if row["status"] == "final":
                     print(f"{library} {args.preset} {n}: final ({row['run']}); pass --new to train it anew")
@@ -330,7 +354,12 @@ def main(argv=None) -> None:
                                  f"{args.max_minutes:g}; give that --max_minutes or --new")
                 out = Path(row["run"])
                 row["commands"].append(command)
-                used = run_used_seconds(library, out) or 0.0
+                # Saved before training: a call killed from here on still leaves the row and its run on record.
+                args.save_rows()
+                used = run_used_seconds(library, out)
+                if used is None and not args.eval_only:
+                    start_over_if_killed_first(row, out, args)
+                used = used or 0.0
                 left = cap_s - used
                 if not args.eval_only and left > 0 and row.get("walk") is None and not row.get("recipe_budget_done"):
                     budget = min(60.0 * args.minutes, left) if args.minutes > 0 else left

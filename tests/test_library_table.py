@@ -197,3 +197,30 @@ def test_eval_only_keeps_and_upgrades_a_row_of_before_resumable_rows(tmp_path, c
     assert {k: row[k] for k in old} == old and row["status"] == "final" and row["commands"] == [old["command"]]
     assert "kept as a final row" in capsys.readouterr().out
     assert "| rsl_rl | 5.5.1 | default | 4,096 | 250,000 | 12.0 | 30.0 | 1 |" in (tmp_path / "table.md").read_text()
+
+
+def test_a_killed_first_call_is_set_aside_and_the_next_call_starts_over(torchrl_table, tmp_path, capsys):
+    def killed(cmd, check=True, cwd=None):  # ppo_walk made its run folder; the call died before a checkpoint
+        run = Path(cmd[cmd.index("--run_dir") + 1]) / cmd[cmd.index("--name") + 1]
+        run.mkdir(parents=True)
+        (run / "config.json").write_text("{}")
+        raise KeyboardInterrupt
+
+    args = torchrl_args(tmp_path, "--minutes", str(2 / 60), "--no_eval")
+    torchrl_table.ppo_walk = killed
+    with pytest.raises(KeyboardInterrupt):
+        torchrl_table.main(args)
+    [row] = rows(tmp_path)  # on record, though no call completed
+    run = Path(row["run"])
+    assert row["status"] == "training" and row["calls"] == 0 and (run / "config.json").is_file()
+    torchrl_table.ppo_walk = FakePpoWalk()
+    torchrl_table.main(args)  # nothing to resume and nothing recorded: the folder is kept aside, the row starts over
+    [row] = rows(tmp_path)
+    assert row["run"] == str(run) and row["calls"] == 1 and row["set_aside"] == [f"{run}_killed1"]
+    assert (Path(f"{run}_killed1") / "config.json").read_text() == "{}" and (run / "checkpoints" / "latest.pt").is_file()
+    assert f"Kept that folder as {run}_killed1" in capsys.readouterr().out
+    # A row with completed calls whose run lost its resume point is not started over: the error names the fix.
+    (run / "checkpoints" / "latest.pt").rename(run / "latest.pt.moved")
+    with pytest.raises(SystemExit, match=r"no resume point \(checkpoints/latest.pt\) .* pass --new"):
+        torchrl_table.main(args)
+    assert (run / "latest.pt.moved").is_file() and rows(tmp_path)[0]["calls"] == 1
