@@ -197,11 +197,11 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
 
 
 def start_over_if_killed_first(row: dict, out: Path, args) -> None:
-    """For a row whose run in ``out`` has no resume point (``resume.json``; TorchRL: ``checkpoints/latest.pt``).
-    If no call of the row completed, its first call was killed before the recipe saved one: nothing in ``out`` can
-    be resumed and the row records nothing of it, so ``out`` is renamed ``<run>_killed<k>`` (kept, not deleted),
-    the rename is printed and recorded in ``row["set_aside"]``, and the row trains anew in ``out``. A row that
-    records completed calls has lost its run: ``SystemExit`` saying so, with ``--new`` as the fix."""
+    """For a row whose run in ``out`` has no resume point (``resume.json``; TorchRL: ``checkpoints/latest.pt``). If
+    no call of the row completed, its first call was killed (or failed) before the recipe saved one: nothing in
+    ``out`` can be resumed and the row records nothing of it, so ``out`` is renamed ``<run>_killed<k>`` (kept, not
+    deleted), the rename is printed and recorded in ``row["set_aside"]``, and the row trains anew in ``out``. A row
+    that records completed calls has lost its run: ``SystemExit`` saying so, with ``--new`` as the fix."""
     what = "checkpoints/latest.pt" if row["library"] == "torchrl" else "resume.json"
     name = f"{row['library']} {row['preset']} {row['num_envs']}"
     if row.get("calls", 0) > 0:
@@ -216,8 +216,8 @@ def start_over_if_killed_first(row: dict, out: Path, args) -> None:
     out.rename(aside)
     row.setdefault("set_aside", []).append(str(aside))
     args.save_rows()
-    print(f"{name}: {out} has no resume point ({what}): the row's first call was killed before its recipe saved "
-          f"one. Kept that folder as {aside}; training the row anew in {out}", flush=True)
+    print(f"{name}: {out} has no resume point ({what}): the row's first call ended (killed or failed) before its "
+          f"recipe saved one. Kept that folder as {aside}; training the row anew in {out}", flush=True)
 
 
 def upgrade_old_row(row: dict) -> bool:

@@ -238,7 +238,8 @@ def test_a_killed_first_call_is_set_aside_and_the_next_call_starts_over(torchrl_
     torchrl_table.main(args)  # nothing to resume and nothing recorded: the folder is kept aside, the row starts over
     [row] = rows(tmp_path)
     assert row["run"] == str(run) and row["calls"] == 1 and row["set_aside"] == [f"{run}_killed1"]
-    assert (Path(f"{run}_killed1") / "config.json").read_text() == "{}" and (run / "checkpoints" / "latest.pt").is_file()
+    assert (Path(f"{run}_killed1") / "config.json").read_text() == "{}"
+    assert (run / "checkpoints" / "latest.pt").is_file()
     assert f"Kept that folder as {run}_killed1" in capsys.readouterr().out
     # A row with completed calls whose run lost its resume point is not started over: the error names the fix.
     (run / "checkpoints" / "latest.pt").rename(run / "latest.pt.moved")
