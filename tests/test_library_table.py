@@ -1,5 +1,7 @@
 """recipes/library_table.py split over calls: a second ``--minutes`` call continues the same row and run (cumulative
-training time and env steps), the gait tests run on the snapshots, and a final row is left alone (CPU, tiny)."""
+training time and env steps), the gait tests run on the snapshots, and a final row is left alone (rsl_rl on the CPU,
+tiny). The other tests fake ``recipes/ppo_walk.py`` (:class:`FakePpoWalk`) and the gait test, so they need no RL
+library and take no training time: recipe budgets, orphan snapshots, killed first calls, old rows, --recipe_args."""
 
 from __future__ import annotations
 
