@@ -69,10 +69,8 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
                   "--eval_at_end", "false", "--progress_bar", "false", "--device", args.device,
                   "--run_dir", str(out.parent), "--name", out.name]
         if resume:
-            from tocabi_torchrl.rl.checkpoint import read_checkpoint
-
             # Before ppo_walk writes those names again: it would replace a killed call's orphan without a word.
-            torchrl_snapshots(out, float(read_checkpoint(out / "checkpoints" / "latest.pt")["train_seconds"]))
+            torchrl_snapshots(out, float(read_torchrl_state(out / "checkpoints" / "latest.pt")["train_seconds"]))
             cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--resume",
                    str(out / "checkpoints" / "latest.pt"), *common]
         else:
@@ -88,10 +86,10 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
     print("+", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
     if library == "torchrl":
-        from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint
+        from tocabi_torchrl.rl.checkpoint import config_from_checkpoint
 
         latest = out / "checkpoints" / "latest.pt"
-        state = read_checkpoint(latest)
+        state = read_torchrl_state(latest)
         cfg = config_from_checkpoint(state, latest)
         steps, seconds = int(state["env_steps"]), float(state["train_seconds"])
         return {"env_steps": steps, "train_seconds": seconds, "env_steps_per_s": steps / max(seconds, 1e-9),
@@ -102,21 +100,27 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
     return trained
 
 
+def read_torchrl_state(path: Path) -> dict:
+    """A TorchRL checkpoint's state, as ``rl.checkpoint.read_checkpoint`` reads it (tensors only, checked); the
+    table's one reader of them, which its tests replace."""
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint
+
+    return read_checkpoint(path)
+
+
 def torchrl_snapshots(out: Path, latest_seconds: float) -> list[str]:
     """The ``wall_XXXXXs.pt`` snapshots of the TorchRL run in ``out`` that its ``latest.pt`` (at ``latest_seconds``
     of training) accounts for, in time order. The trainer writes each snapshot and then ``latest.pt``: a call killed
     in between leaves one trained past the resume point, which the next call retrains differently. Such an orphan is
     not the row's training, so it is renamed ``wall_XXXXXs_unresumed<k>.pt`` (as the library recipes do) and never
     gait-tested; the renaming is printed."""
-    from tocabi_torchrl.rl.checkpoint import read_checkpoint
-
     kept = []
     for path in sorted((out / "checkpoints").glob("wall_*.pt"), key=lambda p: p.name):
         if not re.fullmatch(r"wall_\d+s", path.stem):
             continue  # set aside earlier
         # Names are rounded seconds: only one within half a second of the resume point can be past it.
         if (snapshot_seconds(str(path)) >= latest_seconds - 0.5
-                and float(read_checkpoint(path)["train_seconds"]) > latest_seconds):
+                and float(read_torchrl_state(path)["train_seconds"]) > latest_seconds):
             k = 0
             while (aside := path.with_name(f"{path.stem}_unresumed{k}.pt")).exists():
                 k += 1
@@ -136,9 +140,7 @@ def run_used_seconds(library: str, out: Path) -> float | None:
         latest = out / "checkpoints" / "latest.pt"
         if not latest.is_file():
             return None
-        from tocabi_torchrl.rl.checkpoint import read_checkpoint
-
-        return float(read_checkpoint(latest).get("train_seconds", 0.0))
+        return float(read_torchrl_state(latest).get("train_seconds", 0.0))
     state = out / "resume.json"
     return float(json.loads(state.read_text())["train_seconds"]) if state.is_file() else None
 

@@ -79,8 +79,7 @@ def torchrl_table(monkeypatch):
     table = load_recipe("library_table")
     table.ppo_walk, table.tested = FakePpoWalk(), []
     monkeypatch.setattr(table, "subprocess", SimpleNamespace(run=lambda *a, **k: table.ppo_walk(*a, **k)))
-    monkeypatch.setattr("tocabi_torchrl.rl.checkpoint.read_checkpoint",
-                        lambda path, device="cpu": json.loads(Path(path).read_text()))
+    monkeypatch.setattr(table, "read_torchrl_state", lambda path: json.loads(Path(path).read_text()))
 
     def gait(library, snapshot, out, args, command):
         table.tested.append(Path(snapshot).name)
