@@ -17,11 +17,13 @@ Split over calls (a GPU machine that runs one command for at most 10 minutes): `
 row at most M more minutes, continuing the row's own run (``--resume`` of its recipe: the library's own checkpoint,
 with the training seconds, env steps and iterations summed over calls), never past ``--max_minutes`` in total; the
 snapshots are named by cumulative training seconds, so the time to walk is in cumulative training minutes. At the
-end of a call the row's untested snapshots are gait-tested (``--eval_minutes`` bounds that; ``--no_eval`` leaves
-it to a later ``--eval_only`` call). A row is ``final`` once a snapshot walks, or the cap is reached and every
-snapshot is tested; later calls leave a final row alone (``--new`` starts it over in a new run folder). What a
-resumed call does not carry over (env state, random-number state, the rollout in progress) is in each row's
-notes. One H100, 10-minute commands, one row (repeat each line until the row says ``"status": "final"``):
+end of a call the row's untested snapshots are gait-tested (``--eval_minutes`` bounds that; ``--no_eval`` leaves it
+to a later ``--eval_only`` call). A row is ``final`` once a snapshot walks, or the cap is reached (or, before it,
+the recipe's own iteration budget, by the iterations it reports) and every snapshot is tested; later calls leave a
+final row alone (``--new`` starts it over in a new run folder). A row written before rows were resumable (one call
+each) is kept, as a final row. What a resumed call does not carry over (env state, random-number state, the rollout
+in progress) is in each row's notes. One H100, 10-minute commands, one row (repeat each line until the row says
+``"status": "final"``):
 
     python recipes/library_table.py --libraries rsl_rl --num_envs 4096 --minutes 7 --eval_minutes 1.5
     python recipes/library_table.py --libraries rsl_rl --num_envs 4096 --eval_only --eval_minutes 8
@@ -35,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shlex
 import subprocess
 import sys
@@ -53,15 +56,21 @@ TORCHRL_NOTES = ("resumes recipes/ppo_walk.py's checkpoint (--resume): networks,
 def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s: float) -> dict:
     """Train one library in a subprocess for up to ``budget_s`` more seconds of training, continuing the run in
     ``out`` when it has ``used_s`` > 0 seconds already; returns its cumulative {env_steps, train_seconds,
-    env_steps_per_s, snapshots, calls, resume_notes}."""
+    env_steps_per_s, snapshots, calls, resume_notes} and ``budget_done``: whether the recipe's own iteration budget
+    is used, from the iterations or env steps it reports (its clock, frozen a few ms after the last step, reports
+    more seconds even for a call that had nothing left to train)."""
     resume = run_used_seconds(library, out) is not None
-    extra = shlex.split(args.recipe_args)
     if library == "torchrl":
+        if args.recipe_args:  # ppo_walk's options are other ones, and on --resume it takes only a few again
+            print(f"torchrl: --recipe_args {args.recipe_args!r} is for the rsl_rl, skrl and sb3 recipes; "
+                  "recipes/ppo_walk.py does not get it", flush=True)
         # ppo_walk's --max_minutes is this call's; its checkpoints and snapshot names carry the summed train time.
         common = ["--max_minutes", f"{budget_s / 60.0:.6g}", "--checkpoint_minutes", str(args.checkpoint_minutes),
                   "--eval_at_end", "false", "--progress_bar", "false", "--device", args.device,
                   "--run_dir", str(out.parent), "--name", out.name]
         if resume:
+            # Before ppo_walk writes those names again: it would replace a killed call's orphan without a word.
+            torchrl_snapshots(out, float(read_torchrl_state(out / "checkpoints" / "latest.pt")["train_seconds"]))
             cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--resume",
                    str(out / "checkpoints" / "latest.pt"), *common]
         else:
@@ -72,19 +81,55 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
         cmd = [sys.executable, str(ROOT / f"recipes/train_{library}.py"), "--out", str(out), "--num_envs",
                str(num_envs), "--preset", args.preset, "--device", args.device, "--eval_envs", "0",
                "--iterations", "1000000", "--max_minutes", f"{(used_s + budget_s) / 60.0:.6g}",
-               "--checkpoint_minutes", str(args.checkpoint_minutes), *(["--resume"] if resume else [])]
-    cmd += extra
+               "--checkpoint_minutes", str(args.checkpoint_minutes), *(["--resume"] if resume else []),
+               *shlex.split(args.recipe_args)]
     print("+", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
     if library == "torchrl":
-        from tocabi_torchrl.rl.checkpoint import read_checkpoint
+        from tocabi_torchrl.rl.checkpoint import config_from_checkpoint
 
-        state = read_checkpoint(out / "checkpoints" / "latest.pt")
+        latest = out / "checkpoints" / "latest.pt"
+        state = read_torchrl_state(latest)
+        cfg = config_from_checkpoint(state, latest)
         steps, seconds = int(state["env_steps"]), float(state["train_seconds"])
-        snaps = sorted(str(p) for p in (out / "checkpoints").glob("wall_*.pt"))
         return {"env_steps": steps, "train_seconds": seconds, "env_steps_per_s": steps / max(seconds, 1e-9),
-                "snapshots": snaps, "resume_notes": TORCHRL_NOTES}
-    return json.loads((out / "result.json").read_text())["train"]
+                "snapshots": torchrl_snapshots(out, seconds), "resume_notes": TORCHRL_NOTES,
+                "budget_done": steps // cfg.frames_per_batch >= cfg.iterations}  # ppo_walk's own 'finished' test
+    trained = json.loads((out / "result.json").read_text())["train"]
+    trained["budget_done"] = int(trained["iterations"]) >= int(trained.get("iterations_budget", sys.maxsize))
+    return trained
+
+
+def read_torchrl_state(path: Path) -> dict:
+    """A TorchRL checkpoint's state, as ``rl.checkpoint.read_checkpoint`` reads it (tensors only, checked); the
+    table's one reader of them, which its tests replace."""
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint
+
+    return read_checkpoint(path)
+
+
+def torchrl_snapshots(out: Path, latest_seconds: float) -> list[str]:
+    """The ``wall_XXXXXs.pt`` snapshots of the TorchRL run in ``out`` that its ``latest.pt`` (at ``latest_seconds``
+    of training) accounts for, in time order. The trainer writes each snapshot and then ``latest.pt``: a call killed
+    in between leaves one trained past the resume point, which the next call retrains differently. Such an orphan is
+    not the row's training, so it is renamed ``wall_XXXXXs_unresumed<k>.pt`` (as the library recipes do) and never
+    gait-tested; the renaming is printed."""
+    kept = []
+    for path in sorted((out / "checkpoints").glob("wall_*.pt"), key=lambda p: p.name):
+        if not re.fullmatch(r"wall_\d+s", path.stem):
+            continue  # set aside earlier
+        # Names are rounded seconds: only one within half a second of the resume point can be past it.
+        if (snapshot_seconds(str(path)) >= latest_seconds - 0.5
+                and float(read_torchrl_state(path)["train_seconds"]) > latest_seconds):
+            k = 0
+            while (aside := path.with_name(f"{path.stem}_unresumed{k}.pt")).exists():
+                k += 1
+            path.rename(aside)
+            print(f"torchrl: {path.name} was trained past the run's resume point ({latest_seconds:.1f} s) by a call "
+                  f"that was killed; kept as {aside.name}, not gait-tested")
+            continue
+        kept.append(str(path))
+    return kept
 
 
 def run_used_seconds(library: str, out: Path) -> float | None:
@@ -95,15 +140,14 @@ def run_used_seconds(library: str, out: Path) -> float | None:
         latest = out / "checkpoints" / "latest.pt"
         if not latest.is_file():
             return None
-        from tocabi_torchrl.rl.checkpoint import read_checkpoint
-
-        return float(read_checkpoint(latest).get("train_seconds", 0.0))
+        return float(read_torchrl_state(latest).get("train_seconds", 0.0))
     state = out / "resume.json"
     return float(json.loads(state.read_text())["train_seconds"]) if state.is_file() else None
 
 
 def snapshot_seconds(snapshot: str) -> float:
-    """Cumulative training seconds of a ``wall_XXXXXs.pt`` snapshot (every library names them so)."""
+    """Cumulative training seconds of a ``wall_XXXXXs.pt`` snapshot (every library names them so: the mark rounded
+    to whole seconds, ``config.wall_tag``)."""
     return float(Path(snapshot).stem.split("_")[1].rstrip("s"))
 
 
@@ -154,6 +198,45 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
         args.save_rows()
 
 
+def start_over_if_killed_first(row: dict, out: Path, args) -> None:
+    """For a row whose run in ``out`` has no resume point (``resume.json``; TorchRL: ``checkpoints/latest.pt``). If
+    no call of the row completed, its first call was killed (or failed) before the recipe saved one: nothing in
+    ``out`` can be resumed and the row records nothing of it, so ``out`` is renamed ``<run>_killed<k>`` (kept, not
+    deleted), the rename is printed and recorded in ``row["set_aside"]``, and the row trains anew in ``out``. A row
+    that records completed calls has lost its run: ``SystemExit`` saying so, with ``--new`` as the fix."""
+    what = "checkpoints/latest.pt" if row["library"] == "torchrl" else "resume.json"
+    name = f"{row['library']} {row['preset']} {row['num_envs']}"
+    if row.get("calls", 0) > 0:
+        raise SystemExit(f"error: {name}: its run folder {out} has no resume point ({what}) although the row records "
+                         f"{row['calls']} training call(s); put the run folder back, or pass --new to train the row "
+                         "anew in a new run folder (the old folder is left as it is)")
+    if not out.exists():
+        return
+    k = 1
+    while (aside := out.with_name(f"{out.name}_killed{k}")).exists():
+        k += 1
+    out.rename(aside)
+    row.setdefault("set_aside", []).append(str(aside))
+    args.save_rows()
+    print(f"{name}: {out} has no resume point ({what}): the row's first call ended (killed or failed) before its "
+          f"recipe saved one. Kept that folder as {aside}; training the row anew in {out}", flush=True)
+
+
+def upgrade_old_row(row: dict) -> bool:
+    """Bring a row written before rows were resumable (it has no ``status``) to the current format, keeping every
+    field it has; True if it was one. Such a row is a whole run: one call trained it to its cap, then gait-tested its
+    snapshots in time order until one passed (its ``walk``), so it is final. It recorded neither its snapshots nor
+    which were tested; those are in its run folder."""
+    if "status" in row:
+        return False
+    for key, value in {"status": "final", "calls": 1, "commands": [row["command"]] if row.get("command") else [],
+                       "snapshots": [], "tested": {}, "notes": "",
+                       "upgraded_from": "a row of before resumable rows (one call; snapshots and gait tests in its "
+                                        "run folder only)"}.items():
+        row.setdefault(key, value)
+    return True
+
+
 def report(rows: list[dict], path: Path) -> None:
     from tocabi_torchrl.rl.atomic import atomic_write_text
 
@@ -197,7 +280,9 @@ def main(argv=None) -> None:
                         help="train each listed row at most this many more minutes in this call, continuing its "
                              "run (0 = up to --max_minutes); a row is final once a snapshot walks or the cap is "
                              "reached")
-    parser.add_argument("--checkpoint_minutes", type=float, default=1.0, help="snapshot period [min] (default: 1)")
+    parser.add_argument("--checkpoint_minutes", type=float, default=1.0,
+                        help="snapshot period [min], at least 1/60: the snapshots are named by whole seconds "
+                             "(default: 1)")
     parser.add_argument("--eval_envs", type=int, default=256)
     parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
     parser.add_argument("--eval_minutes", type=float, default=0.0,
@@ -209,7 +294,8 @@ def main(argv=None) -> None:
     parser.add_argument("--new", action="store_true",
                         help="start the listed rows anew in new run folders (their old runs are kept on disk)")
     parser.add_argument("--recipe_args", default="",
-                        help="extra options for the library recipes, e.g. '--hidden 16' for a smoke test")
+                        help="extra options for the rsl_rl, skrl and sb3 recipes (recipes/train_<library>.py), e.g. "
+                             "'--hidden 16' for a smoke test; not passed to recipes/ppo_walk.py (torchrl rows)")
     parser.add_argument("--runs", default="runs/library_table", help="training runs go here (one folder per row)")
     parser.add_argument("--json", default="docs/adapters_table.json")
     parser.add_argument("--md", default="docs/adapters_table.md")
@@ -217,6 +303,13 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.no_eval and args.eval_only:
         parser.error("--no_eval and --eval_only exclude each other")
+    if not args.report:
+        from tocabi_torchrl.config import check_snapshot_minutes
+
+        try:  # before any training: a period under 1 s could give two snapshots one name
+            check_snapshot_minutes(args.checkpoint_minutes, "--checkpoint_minutes")
+        except ValueError as err:
+            parser.error(str(err))
     json_path, md_path = ROOT / args.json, ROOT / args.md
     rows = json.loads(json_path.read_text()) if json_path.is_file() else []
     command = shlex.join(["python", "recipes/library_table.py", *(sys.argv[1:] if argv is None else argv)])
@@ -236,9 +329,13 @@ def main(argv=None) -> None:
             for n in (int(x) for x in args.num_envs.split(",")):
                 key = (library, args.preset, n)
                 row = next((r for r in rows if (r["library"], r["preset"], r["num_envs"]) == key), None)
-                if row is not None and (args.new or "status" not in row):  # "status": rows of before resuming
+                if row is not None and args.new:
                     rows.remove(row)
                     row = None
+                if row is not None and upgrade_old_row(row):
+                    print(f"{library} {args.preset} {n}: a row of before resumable rows (trained and gait-tested in "
+                          "one call), kept as a final row of the current format")
+                    args.save_rows()
                 if row is None:
                     if args.eval_only:
                         print(f"{library} {args.preset} {n}: no row to gait-test; train it first")
@@ -249,7 +346,7 @@ def main(argv=None) -> None:
                                                                               f"{args.preset}_{n}_{stamp}"),
                            "env_steps": 0, "train_seconds": 0.0, "env_steps_per_s": 0.0, "snapshots": [],
                            "tested": {}, "walks_minutes": None, "walk": None, "cap_minutes": args.max_minutes,
-                           "device": None, "commands": [], "notes": ""}
+                           "device": None, "commands": [], "notes": "", "calls": 0}
                     rows.append(row)
                 if row["status"] == "final":
                     print(f"{library} {args.preset} {n}: final ({row['run']}); pass --new to train it anew")
@@ -259,13 +356,19 @@ def main(argv=None) -> None:
                                  f"{args.max_minutes:g}; give that --max_minutes or --new")
                 out = Path(row["run"])
                 row["commands"].append(command)
-                used = run_used_seconds(library, out) or 0.0
+                # Saved before training: a call killed from here on still leaves the row and its run on record.
+                args.save_rows()
+                used = run_used_seconds(library, out)
+                if used is None and not args.eval_only:
+                    start_over_if_killed_first(row, out, args)
+                used = used or 0.0
                 left = cap_s - used
-                if not args.eval_only and left > 0 and row.get("walk") is None:
+                if not args.eval_only and left > 0 and row.get("walk") is None and not row.get("recipe_budget_done"):
                     budget = min(60.0 * args.minutes, left) if args.minutes > 0 else left
                     trained = train(library, n, out, args, used, budget)
-                    if trained["train_seconds"] <= used:  # nothing left to train: the recipe's own iteration or env-step budget ended before the cap
+                    if trained["budget_done"]:  # before the cap: nothing is left for later calls to train
                         row["recipe_budget_done"] = True
+                        print(f"{library} {args.preset} {n}: the recipe's own iteration budget is used")
                     row.update(env_steps=int(trained["env_steps"]), train_seconds=float(trained["train_seconds"]),
                                env_steps_per_s=float(trained["env_steps_per_s"]), snapshots=trained["snapshots"],
                                calls=trained.get("calls", row.get("calls", 0) + 1),
@@ -275,7 +378,8 @@ def main(argv=None) -> None:
                 if not args.no_eval:
                     gait_test_snapshots(library, row, out, args)
                 # Final: a snapshot walks, or the cap is reached (within 1 %: ppo_walk stops at an iteration's end
-                # by its own clock, which also counts its start-up) and every snapshot is tested.
+                # by its own clock, which also counts its start-up) or the recipe's budget is used, and every
+                # snapshot is tested.
                 capped = row["train_seconds"] >= 0.99 * cap_s or row.get("recipe_budget_done", False)
                 untested = [s for s in row["snapshots"] if Path(s).stem not in row.get("tested", {})]
                 if row.get("walk") is not None or (capped and not untested):

@@ -144,7 +144,8 @@ def main(argv=None) -> dict:
     iterations = done_before + updates[0]
     meta.update(env_steps=env_steps(), train_seconds=seconds, env_steps_per_s=env_steps() / max(seconds, 1e-9),
                 snapshots=clock.snapshots, iterations=iterations, calls=calls + 1,
-                resume_notes=RESUME_NOTES)
+                resume_notes=RESUME_NOTES,
+                iterations_budget=args.iterations)  # the table tells a used budget by this, not the clock
     runner.current_learning_iteration = iterations
     saved = runner.alg.save()
     saved.update(iter=iterations, infos=None)

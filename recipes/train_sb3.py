@@ -168,7 +168,8 @@ def main(argv=None) -> dict:
     seconds = clock.freeze()
     meta.update(env_steps=env_steps(), train_seconds=seconds, env_steps_per_s=env_steps() / max(seconds, 1e-9),
                 snapshots=clock.snapshots, iterations=int(model._n_updates // args.epochs), calls=calls + 1,
-                sb3_num_timesteps=int(model.num_timesteps), resume_notes=RESUME_NOTES)
+                sb3_num_timesteps=int(model.num_timesteps), resume_notes=RESUME_NOTES,
+                iterations_budget=args.iterations)  # the table tells a used budget by this, not the clock
     buffer = io.BytesIO()
     model.save(buffer)  # SB3's own zip, written atomically as a new file
     write_resume(out, buffer.getvalue(), {"settings": settings, **{k: meta[k] for k in (

@@ -168,7 +168,8 @@ def main(argv=None) -> dict:
     seconds = clock.freeze()
     meta.update(env_steps=env_steps(), train_seconds=seconds, env_steps_per_s=env_steps() / max(seconds, 1e-9),
                 snapshots=clock.snapshots, iterations=done_before + updates[0], calls=calls + 1,
-                resume_notes=RESUME_NOTES)
+                resume_notes=RESUME_NOTES,
+                iterations_budget=args.iterations)  # the table tells a used budget by this, not the clock
     buffer = io.BytesIO()
     agent.save(buffer)  # skrl's own checkpoint (its checkpoint_modules), written atomically as a new file
     write_resume(out, buffer.getvalue(), {"settings": settings, **{k: meta[k] for k in (

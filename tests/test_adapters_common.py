@@ -120,6 +120,26 @@ def test_training_clock_saves_snapshots_and_stops(tmp_path):
     assert [p.name for p in saved] == ["wall_00030s.pt", "wall_00060s.pt"]
 
 
+def test_snapshot_names_are_rounded_seconds_and_never_shared(tmp_path):
+    # A 1 s period that floating point makes a hair shorter: truncating named its marks 0, 1, 2 s (wall_00000s
+    # first); rounded, they are 1, 2, 3 s
+    saved = []
+    clock = TrainingClock(tmp_path, saved.append, checkpoint_minutes=(1 - 1e-12) / 60)
+    for _ in range(3):
+        clock.start -= 1.0
+        clock()
+    assert [p.name for p in saved] == ["wall_00001s.pt", "wall_00002s.pt", "wall_00003s.pt"]
+    # under 1 s, two marks could round to one name: refused before training, naming the smallest period
+    with pytest.raises(ValueError, match=r"0.6 s; snapshots are named by whole seconds .* at least 0.0166667"):
+        TrainingClock(tmp_path, saved.append, checkpoint_minutes=0.01)
+    # and a name already recorded for this run is never reused silently
+    clock = TrainingClock(tmp_path, saved.append, checkpoint_minutes=1 / 60, offset=0.2,
+                          snapshots=[str(tmp_path / "checkpoints" / "wall_00001s.pt")])
+    clock.start -= 1.0
+    with pytest.raises(RuntimeError, match="already one of this run's snapshots"):
+        clock()
+
+
 def test_training_clock_resumes_with_cumulative_time(tmp_path):
     from tocabi_torchrl.adapters.recipe import keep_previous, read_resume, write_resume
 

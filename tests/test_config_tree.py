@@ -118,6 +118,9 @@ def test_bad_options_name_the_option_and_the_fix(capsys):
         preset_config("default", **{"env.control.mode": "position"})
     with pytest.raises(ValueError, match=r"ppo.torque_assist > 0 needs control_mode='torque' \(env.control.mode\)"):
         preset_config("default", **{"ppo.torque_assist": 0.5, "ppo.assist_fade_end": 10})
+    with pytest.raises(ValueError, match=r"checkpoint_minutes 0.01 is a snapshot period of 0.6 s"):
+        preset_config("default", checkpoint_minutes=0.01)  # wall_XXXXXs names are whole seconds
+    assert preset_config("default", checkpoint_minutes=1 / 60).checkpoint_minutes == 1 / 60
     with pytest.raises(SystemExit):
         parse_args(["--ppo.epochs", "three"])
     assert "--ppo.epochs 'three'" in capsys.readouterr().err

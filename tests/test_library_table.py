@@ -1,42 +1,249 @@
 """recipes/library_table.py split over calls: a second ``--minutes`` call continues the same row and run (cumulative
-training time and env steps), the gait tests run on the snapshots, and a final row is left alone (CPU, tiny)."""
+training time and env steps), the gait tests run on the snapshots, and a final row is left alone (rsl_rl on the CPU,
+tiny). The other tests fake ``recipes/ppo_walk.py`` (:class:`FakePpoWalk`) and the gait test, so they need no RL
+library and take no training time: recipe budgets, orphan snapshots, killed first calls, old rows, --recipe_args."""
 
 from __future__ import annotations
 
+import argparse
 import json
+import subprocess
+from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
-
-pytest.importorskip("rsl_rl")
-
 from recipe_runner import load_recipe
 
+from tocabi_torchrl.config import preset_config, wall_tag
 
-def test_a_second_minutes_call_continues_the_same_row(tmp_path):
+#: A gait-test summary that fails every threshold.
+FALLS = {"survival": 0.0, "forward_distance_m": 0.0, "lateral_drift_m": 1.0, "knee_rms_rad": 1.0}
+
+
+def files(tmp_path) -> list[str]:
+    """The table's run folder, json and md under ``tmp_path``."""
+    return ["--runs", str(tmp_path / "runs"), "--json", str(tmp_path / "table.json"),
+            "--md", str(tmp_path / "table.md")]
+
+
+def rows(tmp_path) -> list[dict]:
+    return json.loads((tmp_path / "table.json").read_text())
+
+
+class FakePpoWalk:
+    """Stands in for ``recipes/ppo_walk.py`` as the table runs it, in training seconds instead of wall-clock: each
+    call trains iterations of ``iteration_s`` seconds and 96 env steps until its ``--max_minutes`` are spent (then
+    ends the iteration, as the trainer does) or its ``total_env_steps`` are done, saving ``wall_XXXXXs.pt`` at the
+    ``--checkpoint_minutes`` marks with ``latest.pt`` after each. Checkpoints are JSON (see ``torchrl_table``)."""
+
+    def __init__(self, total_env_steps: int = 10**9, iteration_s: float = 0.25):
+        self.commands: list[list[str]] = []
+        self.iteration_s = iteration_s
+        self.cfg = preset_config("default", **{"env.num_envs": 2, "ppo.steps_per_env": 48, "ppo.minibatch_size": 96,
+                                               "total_env_steps": total_env_steps})
+
+    def __call__(self, cmd, check=True, cwd=None):
+        self.commands.append(cmd)
+        parser = argparse.ArgumentParser()
+        for option in ("--resume", "--run_dir", "--name"):
+            parser.add_argument(option)
+        for option in ("--max_minutes", "--checkpoint_minutes"):
+            parser.add_argument(option, type=float)
+        opts, _ = parser.parse_known_args(cmd[2:])
+        if opts.resume:
+            run = Path(opts.resume).parent.parent
+            state = json.loads(Path(opts.resume).read_text())
+        else:
+            run = Path(opts.run_dir) / opts.name
+            if run.exists():  # ppo_walk never writes into an existing run folder
+                raise subprocess.CalledProcessError(1, cmd)
+            (run / "checkpoints").mkdir(parents=True)
+            state = {"iteration": 0, "env_steps": 0, "train_seconds": 0.0, "config": self.cfg.to_dict()}
+        save = lambda name: (run / "checkpoints" / name).write_text(json.dumps(state))  # noqa: E731
+        start, mark = state["train_seconds"], 60.0 * opts.checkpoint_minutes
+        next_mark = (int(start // mark) + 1) * mark
+        while state["iteration"] < self.cfg.iterations and state["train_seconds"] - start <= 60.0 * opts.max_minutes:
+            state = {**state, "iteration": state["iteration"] + 1, "env_steps": state["env_steps"] + 96,
+                     "train_seconds": state["train_seconds"] + self.iteration_s}
+            if state["train_seconds"] >= next_mark:
+                save(f"{wall_tag(next_mark)}.pt")
+                save("latest.pt")
+                next_mark = (int(state["train_seconds"] // mark) + 1) * mark
+        save("latest.pt")
+
+
+@pytest.fixture
+def torchrl_table(monkeypatch):
+    """The table with ``recipes/ppo_walk.py`` faked (``table.ppo_walk``, a :class:`FakePpoWalk`), checkpoints read as
+    JSON, and a gait test that always falls and records what it tested (``table.tested``: snapshot names)."""
     table = load_recipe("library_table")
+    table.ppo_walk, table.tested = FakePpoWalk(), []
+    monkeypatch.setattr(table, "subprocess", SimpleNamespace(run=lambda *a, **k: table.ppo_walk(*a, **k)))
+    monkeypatch.setattr(table, "read_torchrl_state", lambda path: json.loads(Path(path).read_text()))
+
+    def gait(library, snapshot, out, args, command):
+        table.tested.append(Path(snapshot).name)
+        return FALLS
+
+    monkeypatch.setattr(table, "gait", gait)
+    return table
+
+
+def torchrl_args(tmp_path, *more) -> list[str]:
+    """A torchrl row at 2 envs with a 10 s cap and a snapshot every second."""
+    return ["--libraries", "torchrl", "--num_envs", "2", "--device", "cpu", "--max_minutes", str(10 / 60),
+            "--checkpoint_minutes", str(1 / 60), *files(tmp_path), *more]
+
+
+def test_recipe_args_go_to_the_library_recipes_only(torchrl_table, tmp_path, capsys):
+    torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(2 / 60), "--recipe_args", "--hidden 16"))
+    [cmd] = torchrl_table.ppo_walk.commands
+    assert cmd[1].endswith("ppo_walk.py") and "--hidden" not in cmd
+    assert "--recipe_args '--hidden 16' is for the rsl_rl, skrl and sb3 recipes" in capsys.readouterr().out
+    [row] = rows(tmp_path)
+    assert row["calls"] == 1 and row["train_seconds"] >= 2.0
+    assert torchrl_table.tested == ["wall_00001s.pt", "wall_00002s.pt"]
+
+
+def test_a_snapshot_period_under_a_second_is_refused(tmp_path, capsys):
+    table = load_recipe("library_table")
+    with pytest.raises(SystemExit):
+        table.main(["--libraries", "torchrl", "--device", "cpu", "--checkpoint_minutes", "0.01", *files(tmp_path)])
+    assert "named by whole seconds" in capsys.readouterr().err and not (tmp_path / "table.json").exists()
+
+
+def test_a_second_minutes_call_continues_the_same_row(tmp_path, capsys):
+    # Only what the table decides is asserted, never how long a call took (a loaded 2-core machine may stall a
+    # step): whether a call trains, the --max_minutes it gives the recipe (whose clock stops at or past it), the
+    # counters' growth, the snapshot names and their order.
+    pytest.importorskip("rsl_rl")
+    table = load_recipe("library_table")
+    cap_s, minutes = 60 * 0.06, 0.025
     common = ["--libraries", "rsl_rl", "--num_envs", "2", "--device", "cpu", "--max_minutes", "0.06",
-              "--checkpoint_minutes", str(1 / 60), "--eval_envs", "2", "--eval_seconds", "0.05",
-              "--recipe_args", "--steps_per_env 4 --hidden 16", "--runs", str(tmp_path / "runs"),
-              "--json", str(tmp_path / "table.json"), "--md", str(tmp_path / "table.md")]
-    table.main([*common, "--minutes", "0.025", "--no_eval"])
-    [row] = json.loads((tmp_path / "table.json").read_text())
-    assert row["status"] == "training" and row["calls"] == 1 and row["tested"] == {}
-    first_s, first_steps, run = row["train_seconds"], row["env_steps"], row["run"]
-    assert 1.5 <= first_s < 3.0 and first_steps > 0 and len(row["snapshots"]) >= 1
+              "--checkpoint_minutes", str(1 / 60), "--eval_envs", "2", "--eval_seconds", "0.05", "--minutes",
+              str(minutes), "--recipe_args", "--steps_per_env 4 --hidden 16", *files(tmp_path)]
+
+    def call(*more) -> dict:
+        before = rows(tmp_path)[0] if (tmp_path / "table.json").is_file() else {
+            "calls": 0, "train_seconds": 0.0, "env_steps": 0, "snapshots": []}
+        table.main([*common, *more])
+        [row] = rows(tmp_path)
+        printed = capsys.readouterr().out
+        if before["train_seconds"] < cap_s:  # trains: at most --minutes more, never past the cap
+            limit = f"{(before['train_seconds'] + min(60 * minutes, cap_s - before['train_seconds'])) / 60:.6g}"
+            assert f"--max_minutes {limit} " in printed and row["calls"] == before["calls"] + 1
+            assert row["train_seconds"] >= 60 * float(limit) and row["env_steps"] >= before["env_steps"]
+        else:
+            assert "--max_minutes" not in printed
+            assert [row[k] for k in ("calls", "train_seconds", "env_steps")] == [
+                before[k] for k in ("calls", "train_seconds", "env_steps")]
+        # Earlier snapshots kept as they were; new ones after them, named by cumulative whole training seconds.
+        assert row["snapshots"][: len(before["snapshots"])] == before["snapshots"]
+        seconds = [table.snapshot_seconds(s) for s in row["snapshots"]]
+        assert seconds == sorted(set(seconds)) and all(s == round(s) for s in seconds)
+        new = seconds[len(before["snapshots"]):]
+        assert all(before["train_seconds"] - 0.5 < s <= row["train_seconds"] + 0.5 for s in new)
+        return row
+
+    row = call("--no_eval")
+    assert row["status"] == "training" and row["calls"] == 1 and row["tested"] == {} and row["env_steps"] > 0
+    assert table.snapshot_seconds(row["snapshots"][0]) == 1.0  # trained >= 1.5 s: the 1 s mark was passed
     assert "pending" in (tmp_path / "table.md").read_text()
+    run = row["run"]
 
-    table.main([*common, "--minutes", "0.025", "--no_eval"])  # continues: same run folder, cumulative counters
-    [row] = json.loads((tmp_path / "table.json").read_text())
-    assert row["run"] == run and row["calls"] == 2 and row["status"] == "training"
-    assert row["train_seconds"] >= first_s + 1.5 and row["env_steps"] > first_steps
-    seconds = [table.snapshot_seconds(s) for s in row["snapshots"]]
-    assert seconds == sorted(seconds) and len(set(seconds)) == len(seconds) and seconds[-1] > first_s
+    row = call("--no_eval")  # continues (call() checks it trained): same run folder, cumulative counters
+    assert row["run"] == run and row["status"] == "training"
 
-    table.main([*common, "--minutes", "0.025"])  # the last 0.6 s of the cap, then the gait tests: final
-    [row] = json.loads((tmp_path / "table.json").read_text())
-    assert row["run"] == run and row["calls"] == 3 and row["status"] == "final"
-    assert row["train_seconds"] >= 0.99 * 60 * 0.06 and row["walks_minutes"] is None
+    row = call()  # the rest of the cap (if any is left), then the gait tests: final
+    assert row["run"] == run and row["status"] == "final" and row["walks_minutes"] is None
+    assert row["train_seconds"] >= 0.99 * cap_s
     assert set(row["tested"]) == {p.rsplit("/", 1)[1][:-3] for p in row["snapshots"]}
     assert "OnPolicyRunner.load" in row["notes"] and "no (≤ 0.06)" in (tmp_path / "table.md").read_text()
-    table.main([*common, "--minutes", "0.025"])  # a final row is left as it is
-    assert json.loads((tmp_path / "table.json").read_text()) == [row]
+    table.main(common)  # a final row is left as it is
+    assert rows(tmp_path) == [row]
+
+
+def test_a_killed_calls_orphan_snapshot_is_kept_aside_and_not_gait_tested(torchrl_table, tmp_path, capsys):
+    torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(3 / 60), "--no_eval"))
+    [row] = rows(tmp_path)
+    checkpoints = Path(row["run"]) / "checkpoints"
+    resume_s = json.loads((checkpoints / "latest.pt").read_text())["train_seconds"]
+    # A call killed after writing the 4 s snapshot but before latest.pt: trained past the resume point.
+    orphan = {**json.loads((checkpoints / "latest.pt").read_text()), "train_seconds": 4.0}
+    (checkpoints / "wall_00004s.pt").write_text(json.dumps(orphan))
+    torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(0.5 / 60)))  # resumes, stops short of 4 s, tests
+    [row] = rows(tmp_path)
+    assert resume_s < row["train_seconds"] < 4.0
+    assert torchrl_table.tested == ["wall_00001s.pt", "wall_00002s.pt", "wall_00003s.pt"]
+    assert [Path(p).name for p in row["snapshots"]] == torchrl_table.tested
+    assert json.loads((checkpoints / "wall_00004s_unresumed0.pt").read_text()) == orphan
+    assert "wall_00004s.pt was trained past the run's resume point" in capsys.readouterr().out
+    torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(1 / 60)))  # reaches 4 s: its own snapshot, tested
+    assert torchrl_table.tested[3] == "wall_00004s.pt" and (checkpoints / "wall_00004s_unresumed0.pt").is_file()
+
+
+def test_a_row_whose_recipe_budget_ends_before_the_cap_turns_final(torchrl_table, tmp_path):
+    torchrl_table.ppo_walk = FakePpoWalk(total_env_steps=4 * 96)  # 4 iterations: 1 s of the 10 s cap
+    torchrl_table.main(torchrl_args(tmp_path))
+    [row] = rows(tmp_path)
+    assert row["status"] == "final" and row["recipe_budget_done"] and row["env_steps"] == 4 * 96
+    assert torchrl_table.tested == ["wall_00001s.pt"] and len(torchrl_table.ppo_walk.commands) == 1
+    torchrl_table.main(torchrl_args(tmp_path))  # final: no more recipe calls
+    assert rows(tmp_path) == [row] and len(torchrl_table.ppo_walk.commands) == 1
+
+
+def test_a_library_recipe_reports_its_used_budget(tmp_path):
+    # The recipe's frozen clock reports a few ms more than it trained; its iteration count tells the budget is used.
+    pytest.importorskip("rsl_rl")
+    table = load_recipe("library_table")
+    args = ["--libraries", "rsl_rl", "--num_envs", "2", "--device", "cpu", "--max_minutes", "1", "--checkpoint_minutes",
+            "1", "--recipe_args", "--steps_per_env 4 --hidden 16 --iterations 1", *files(tmp_path)]
+    table.main(args)
+    [row] = rows(tmp_path)
+    assert row["status"] == "final" and row["recipe_budget_done"] and row["calls"] == 1
+    assert "no (≤ 1)" in (tmp_path / "table.md").read_text()
+    table.main(args)  # left alone: the recipe is not started again
+    assert rows(tmp_path) == [row]
+
+
+def test_eval_only_keeps_and_upgrades_a_row_of_before_resumable_rows(tmp_path, capsys):
+    old = {"library": "rsl_rl", "version": "5.5.1", "preset": "default", "num_envs": 4096, "env_steps_per_s": 250000.0,
+           "env_steps": 450000000, "train_seconds": 1800.0, "walks_minutes": 12.0,
+           "walk": {"snapshot": "runs/r/checkpoints/wall_00720s.pt", "minutes": 12.0, "main": {}, "others": {}},
+           "cap_minutes": 30.0, "run": str(tmp_path / "runs" / "r"), "device": "NVIDIA H100 80GB HBM3",
+           "command": "python recipes/library_table.py --libraries rsl_rl"}  # the format of before --minutes
+    (tmp_path / "table.json").write_text(json.dumps([old]))
+    table = load_recipe("library_table")
+    table.main(["--libraries", "rsl_rl", "--num_envs", "4096", "--device", "cpu", "--eval_only", *files(tmp_path)])
+    [row] = rows(tmp_path)
+    assert {k: row[k] for k in old} == old and row["status"] == "final" and row["commands"] == [old["command"]]
+    assert "kept as a final row" in capsys.readouterr().out
+    assert "| rsl_rl | 5.5.1 | default | 4,096 | 250,000 | 12.0 | 30.0 | 1 |" in (tmp_path / "table.md").read_text()
+
+
+def test_a_killed_first_call_is_set_aside_and_the_next_call_starts_over(torchrl_table, tmp_path, capsys):
+    def killed(cmd, check=True, cwd=None):  # ppo_walk made its run folder; the call died before a checkpoint
+        run = Path(cmd[cmd.index("--run_dir") + 1]) / cmd[cmd.index("--name") + 1]
+        run.mkdir(parents=True)
+        (run / "config.json").write_text("{}")
+        raise KeyboardInterrupt
+
+    args = torchrl_args(tmp_path, "--minutes", str(2 / 60), "--no_eval")
+    torchrl_table.ppo_walk = killed
+    with pytest.raises(KeyboardInterrupt):
+        torchrl_table.main(args)
+    [row] = rows(tmp_path)  # on record, though no call completed
+    run = Path(row["run"])
+    assert row["status"] == "training" and row["calls"] == 0 and (run / "config.json").is_file()
+    torchrl_table.ppo_walk = FakePpoWalk()
+    torchrl_table.main(args)  # nothing to resume and nothing recorded: the folder is kept aside, the row starts over
+    [row] = rows(tmp_path)
+    assert row["run"] == str(run) and row["calls"] == 1 and row["set_aside"] == [f"{run}_killed1"]
+    assert (Path(f"{run}_killed1") / "config.json").read_text() == "{}"
+    assert (run / "checkpoints" / "latest.pt").is_file()
+    assert f"Kept that folder as {run}_killed1" in capsys.readouterr().out
+    # A row with completed calls whose run lost its resume point is not started over: the error names the fix.
+    (run / "checkpoints" / "latest.pt").rename(run / "latest.pt.moved")
+    with pytest.raises(SystemExit, match=r"no resume point \(checkpoints/latest.pt\) .* pass --new"):
+        torchrl_table.main(args)
+    assert (run / "latest.pt.moved").is_file() and rows(tmp_path)[0]["calls"] == 1

@@ -37,13 +37,30 @@ from .tree import to_dict as _tree_to_dict
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "FLAT_PATHS", "flat_to_paths",
            "config_from_dict", "to_dict", "flat_dict", "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
-           "LOGGERS", "field_choices"]
+           "LOGGERS", "field_choices", "wall_tag", "check_snapshot_minutes"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
 _GRAPH_ALIASES = {"true": "on", "yes": "on", "1": "on", "false": "off", "no": "off", "0": "off"}
 STD_MODES = ("scheduled", "learned")
 LOGGERS = ("csv", "tensorboard", "wandb")
+
+
+def wall_tag(seconds: float) -> str:
+    """Name (without ``.pt``) of the wall-clock snapshot at ``seconds`` of training, the trainer's and the library
+    recipes' alike: rounded, not truncated, so that a 1 s period that floating point makes a hair shorter still
+    names its marks 1, 2, 3 s and not 0, 1, 2 s."""
+    return f"wall_{round(seconds):05d}s"
+
+
+def check_snapshot_minutes(minutes: float, name: str = "checkpoint_minutes") -> None:
+    """``ValueError`` unless ``minutes`` is 0 (no snapshots) or at least 1/60 (1 s): :func:`wall_tag` names are
+    whole seconds, so marks less than a second apart could get one name and one snapshot would replace the other."""
+    if not minutes >= 0:
+        raise ValueError(f"{name} must be >= 0, got {minutes!r}")
+    if 0 < minutes and 60.0 * minutes < 1.0 - 1e-9:
+        raise ValueError(f"{name} {minutes:g} is a snapshot period of {60.0 * minutes:.3g} s; snapshots are named by "
+                         f"whole seconds (wall_XXXXXs.pt), so give 0 (none) or at least {1 / 60:.6g} (1 s)")
 
 
 @dataclass
@@ -168,7 +185,7 @@ class RunConfig:
     checkpoint_keep_last: int = 3
     checkpoint_keep_every: int = 50
     #: Also save ``checkpoints/wall_XXXXXs.pt`` whenever the training wall-clock (summed over resumed segments)
-    #: passes a multiple of this many minutes (0 = off).
+    #: passes a multiple of this many minutes (0 = off; else at least 1/60: :func:`wall_tag` names whole seconds).
     checkpoint_minutes: float = 0.0
     # evaluation at the end
     eval_at_end: bool = True
@@ -223,9 +240,9 @@ class RunConfig:
             _check_int(self, name, 0)
         if not self.eval_seconds > 0:
             raise ValueError(f"eval_seconds must be > 0, got {self.eval_seconds!r}")
-        for name in ("max_minutes", "checkpoint_minutes"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if not self.max_minutes >= 0:
+            raise ValueError(f"max_minutes must be >= 0, got {self.max_minutes!r}")
+        check_snapshot_minutes(self.checkpoint_minutes)
         bad = set(self.loggers) - set(LOGGERS)
         if bad:
             raise ValueError(f"unknown logger(s) {sorted(bad)}; choose from {', '.join(LOGGERS)}")

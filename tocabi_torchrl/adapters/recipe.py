@@ -15,6 +15,7 @@ import argparse
 import json
 from pathlib import Path
 
+from ..config import check_snapshot_minutes, wall_tag
 from ..rl.atomic import atomic_write_text
 
 __all__ = [
@@ -137,7 +138,8 @@ class TimeUp(Exception):
 class TrainingClock:
     """A step hook (``TensorStepper.step_hooks``) that saves the policy at every ``checkpoint_minutes`` of training
     wall-clock (``<out>/checkpoints/wall_XXXXXs.pt``, what the per-library table gait-tests) and raises
-    :class:`TimeUp` after ``max_minutes`` (0 = off for either). ``save(path)`` writes the current policy.
+    :class:`TimeUp` after ``max_minutes`` (0 = off for either). ``save(path)`` writes the current policy. The names
+    are whole seconds (``config.wall_tag``), so a ``checkpoint_minutes`` under 1/60 (1 s) is a ``ValueError``.
 
     ``offset``: training seconds of earlier calls of a resumed run; :attr:`elapsed`, the snapshot names and the
     limit are then cumulative (a resumed run's first snapshot is the next multiple of ``checkpoint_minutes``)."""
@@ -151,6 +153,7 @@ class TrainingClock:
         self.start = self._time()
         self.offset = float(offset)
         self.out, self.save = Path(out), save
+        check_snapshot_minutes(checkpoint_minutes)
         self.limit = 60.0 * max_minutes
         self.every = 60.0 * checkpoint_minutes
         self.next = (math.floor(self.offset / self.every) + 1) * self.every if self.every > 0 else 0.0
@@ -175,7 +178,10 @@ class TrainingClock:
     def __call__(self) -> None:
         elapsed = self.elapsed
         if self.every > 0 and elapsed >= self.next:
-            path = self.out / "checkpoints" / f"wall_{int(self.next):05d}s.pt"
+            path = self.out / "checkpoints" / f"{wall_tag(self.next)}.pt"
+            if str(path) in self.snapshots:  # check_snapshot_minutes rules this out; never let one replace another
+                raise RuntimeError(f"{path} is already one of this run's snapshots; the mark at {self.next:g} s "
+                                   "would replace it (snapshot period under 1 s?)")
             if path.exists():  # left by a call killed before it saved its resume state: keep it aside
                 keep_previous(path, f"unresumed{len(list(path.parent.glob(path.stem + '_unresumed*')))}")
             self.save(path)

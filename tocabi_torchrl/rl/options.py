@@ -102,7 +102,8 @@ FIELD_HELP: dict[str, str] = {
     "checkpoint_every": "iterations between checkpoints",
     "checkpoint_keep_last": "newest checkpoints kept; 0 = keep all",
     "checkpoint_keep_every": "also keep checkpoints of iterations that are multiples of this; 0 = none",
-    "checkpoint_minutes": "also save checkpoints/wall_XXXXXs.pt every this many minutes of training; 0 = none",
+    "checkpoint_minutes": "also save checkpoints/wall_XXXXXs.pt every this many minutes of training; 0 = none, "
+                          "else at least 1/60 (the names are whole seconds)",
     "loggers": "where metrics go besides the progress bar; csv (runs/<name>/metrics/) is always written",
     "resume": "run folder or checkpoint to continue; its saved options apply, only budget/logging/eval/device "
               "options may be changed",

@@ -23,7 +23,7 @@ from ..device import check_device
 from .actors import action_std, gaussian_head, make_actor, set_action_std
 from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 from .checkpoint import apply_checkpoint, save_checkpoint
-from ..config import RunConfig
+from ..config import RunConfig, wall_tag
 from ..envs.config import TocabiWalkConfig
 from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, all_reduce_mean, all_reduce_sum,
                           broadcast_module, from_environment, init_distributed, rank_seed)
@@ -404,7 +404,7 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
             if train_s >= next_mark:
                 if info.is_main:
                     save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s,
-                                    tag=f"wall_{int(next_mark):05d}s")
+                                    tag=wall_tag(next_mark))
                 next_mark = (int(train_s // mark_s) + 1) * mark_s
             if (it % cfg.checkpoint_every == 0 or it == iterations) and info.is_main:
                 save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s)
