@@ -7,7 +7,8 @@ report the first training time (and env steps) at which the gait test passes.
     torchrun --standalone --nproc_per_node 2 -m benchmarks.time_to_walk train --preset default --name default_2gpu
 
 ``train`` trains ``runs/time_to_walk/<preset>`` until ``--budget_minutes`` of training are used (summed over resumed
-calls) and measures raw mujoco-warp at the same env count once. ``eval``: issue 19's gait test of each ``wall_*.pt``
+calls) and measures raw mujoco-warp at the same env count once; ``--set FIELD=VALUE`` overrides the preset (kept in
+``train.json``; a run continues only with the same overrides). ``eval``: issue 19's gait test of each ``wall_*.pt``
 (256 envs, 8 s, at (0.5, 0) m/s, then (0.2, 0) and (0.7, 0.1)); it writes ``evals.json`` beside ``train.json``, so
 the two parts may run at once. ``report --curves`` also plots reward curves of several runs. Under torchrun the
 ``train`` part is data-parallel (each rank ``num_envs`` worlds on its own GPU, ``rl/distributed.py``); rank 0 writes
@@ -47,6 +48,10 @@ def _load(path: Path) -> dict:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
+def _as_set(overrides: dict) -> str:
+    return " ".join(f"{k}={v}" for k, v in overrides.items()) or "(none)"
+
+
 def train_part(args, command: str) -> None:
     run_dir, info = RUNS / args.name, from_environment()
     record, latest = _load(run_dir / "train.json"), run_dir / "checkpoints" / "latest.pt"
@@ -61,9 +66,15 @@ def train_part(args, command: str) -> None:
         raise ValueError(f"{args.name} was trained on {record['gpus']} rank(s) so far, this call has "
                          f"{info.world_size}: continue it with {record['gpus']} (torchrun --nproc_per_node), or start "
                          "another run with --name")
-    cfg = common.config(args.preset, run_dir=str(RUNS), name=args.name, device=args.device, eval_at_end=False,
-                        progress_bar=False, log_every=args.log_every, checkpoint_minutes=args.every,
-                        max_minutes=min(args.minutes, left_min), resume=str(latest) if latest.is_file() else "")
+    overrides = common.parse_overrides(args.set)
+    recorded = json.loads(json.dumps(overrides))  # as train.json keeps it (tuples become lists)
+    if record.get("overrides", recorded) != recorded:  # one run trains one config from scratch to the end
+        raise ValueError(f"{args.name} was trained with --set {_as_set(record['overrides'])} so far, this call has "
+                         f"--set {_as_set(overrides)}: continue it with the same, or start another run with --name")
+    cfg = common.config(args.preset, **{**overrides, "run_dir": str(RUNS), "name": args.name, "device": args.device,
+                                        "eval_at_end": False, "progress_bar": False, "log_every": args.log_every,
+                                        "checkpoint_minutes": args.every, "max_minutes": min(args.minutes, left_min),
+                                        "resume": str(latest) if latest.is_file() else ""})
     if info.is_main:
         print(f"{args.name}: training {'from ' + str(latest) if cfg.resume else 'from scratch'} on {info.world_size} "
               f"rank(s), {prior_s / 60:.1f} of {args.budget_minutes} min used, this call up to {cfg.max_minutes:.1f} "
@@ -77,6 +88,7 @@ def train_part(args, command: str) -> None:
     if args.name != args.preset:
         record.setdefault("name", args.name)
     record.setdefault("gpus", info.world_size)
+    record.setdefault("overrides", recorded)
     record.setdefault("config", cfg.to_dict())
     record.setdefault("commands", []).append(command)
     record.update(gpu=common.meta("time_to_walk", [], args.device)["gpu"] if args.device == "cuda" else "cpu",
@@ -233,6 +245,8 @@ def main(argv=None) -> None:
     t.add_argument("--log_every", type=int, default=5)
     t.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
     t.add_argument("--device", default="cuda", help="cuda (the benchmark) or cpu (a smoke test of the script)")
+    t.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="config overrides on top of the preset (ablations); a run continues only with the same ones")
     e = sub.add_parser("eval", help="gait tests of every wall-clock checkpoint of a preset's run")
     e.add_argument("--preset", default="torque")
     e.add_argument("--name", default=None, help="the run's folder under runs/time_to_walk (default: the preset)")

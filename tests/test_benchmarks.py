@@ -75,21 +75,27 @@ def test_tiny_soak_on_the_cpu(tmp_path):
 
 
 def test_time_to_walk_train_resume_eval_report(tmp_path):
-    def run(*args):
+    def run(*args, code=0):
         env = {**os.environ, "PYTHONPATH": str(common.DOCS.parents[1])}  # the run's cwd is a temporary folder
         proc = subprocess.run([sys.executable, "-m", "benchmarks.time_to_walk", *args], cwd=tmp_path, text=True,
                               capture_output=True, env=env, check=False)
-        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-        return proc.stdout
+        assert proc.returncode == code, proc.stdout[-3000:] + proc.stderr[-3000:]
+        return proc.stdout + proc.stderr
 
-    train = ["train", "--preset", "cpu_smoke", "--device", "cpu", "--every", "0.002", "--log_every", "1"]
-    run(*train, "--minutes", "0.004", "--budget_minutes", "1")
+    # 20 iterations (~2.5 s on a CPU) pass a 1 s snapshot mark; the first call stops at 1.8 s, the second resumes
+    train = ["train", "--preset", "cpu_smoke", "--device", "cpu", "--every", "0.017", "--log_every", "1",
+             "--set", f"total_env_steps={8 * 16 * 20}"]
+    run(*train, "--minutes", "0.03", "--budget_minutes", "1")
     assert "training from runs/time_to_walk/cpu_smoke/checkpoints/latest.pt" in run(*train, "--budget_minutes", "1")
     folder = tmp_path / "runs/time_to_walk/cpu_smoke"
     walls = sorted(p.stem for p in (folder / "checkpoints").glob("wall_*.pt"))
     run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--num_envs", "2", "--seconds", "0.1")
     record = {**json.loads((folder / "train.json").read_text()), **json.loads((folder / "evals.json").read_text())}
     assert walls and sorted(record["evaluations"]) == walls and len(record["commands"]) == 2
+    assert record["overrides"] == {"total_env_steps": 8 * 16 * 20}
+    # Continuing it with other overrides would mix two configs in one time-to-walk record.
+    assert "trained with --set total_env_steps=2560 so far, this call has --set (none)" in run(
+        "train", "--preset", "cpu_smoke", "--device", "cpu", "--every", "0", code=1)
     for entry in record["evaluations"].values():  # 0.1 s cannot cover 2.6 m
         assert 0.0 <= entry["commands"]["0.5,0.0"]["survival"] <= 1.0 and entry["walks"] is False
     text = run("report", "--runs", str(folder), "--curves", str(folder), "--out", str(tmp_path / "d"))
