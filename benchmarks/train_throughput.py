@@ -4,10 +4,8 @@
     python -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --name multi_gpu   # data-parallel scaling
 
 Each env count in a fresh process: ``--iterations`` PPO iterations of the default preset after ``--warmup``, then the
-raw ceiling; memory: the allocator's peaks and the device-wide peak in use (warp's buffers and the CUDA context too).
-With ``--nproc K`` the process is K data-parallel ranks under torchrun, each with ``--num_envs`` worlds on its own GPU
-(``rl/distributed.py``); rank 0 reports the rate of all ranks together, its own GPU's memory and, after training, the
-raw ceiling of one GPU, so ``train / raw`` divides by K x raw and the speed-up is against the 1-rank row of the run.
+raw ceiling. ``--nproc K``: K torchrun ranks of ``--num_envs`` worlds each, one per GPU; rank 0 reports all ranks'
+rate, its own GPU's memory and one GPU's raw ceiling (``train / raw`` divides by K x raw). See docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -22,7 +20,7 @@ from pathlib import Path
 import torch
 
 from tocabi_torchrl.rl.curves import steady_rate
-from tocabi_torchrl.rl.distributed import ending, from_environment
+from tocabi_torchrl.rl.distributed import ending, from_environment, init_distributed
 
 from . import common
 
@@ -36,21 +34,16 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
     whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0."""
     steps, t_setup = overrides.get("steps_per_env", common.config().ppo.steps_per_env), time.perf_counter() - T0
     info = from_environment()
-    if info.enabled and device == "cuda":  # this rank's GPU, before anything touches cuda:0
-        if info.local_rank >= torch.cuda.device_count():
-            raise RuntimeError(f"rank {info.rank} wants cuda:{info.local_rank} but this host has "
-                               f"{torch.cuda.device_count()} GPU(s): use --nproc <= the GPU count")
-        device = f"cuda:{info.local_rank}"
-        torch.cuda.set_device(device)
+    device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides,
               "device_used_at_start_gib": common.device_used_gib(device),
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:
         cfg = common.config("default", **{"minibatch_size": min(49152, n * steps // 4), **overrides, "num_envs": n,
                                           "total_env_steps": (warmup + iterations) * n * steps * info.world_size,
-                                          "run_dir": run_dir,
-                                          "name": f"train_{n}", "checkpoint_every": 10**9, "progress_bar": False,
-                                          "eval_at_end": False, "log_every": 1, "device": device.split(":")[0]})
+                                          "run_dir": run_dir, "name": f"train_{n}", "checkpoint_every": 10**9,
+                                          "progress_bar": False, "eval_at_end": False, "log_every": 1,
+                                          "device": device.split(":")[0]})
         if info.is_main:  # the benchmark's own scratch run: start afresh
             shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
         cpu0 = os.times()
