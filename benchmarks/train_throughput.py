@@ -32,7 +32,8 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
             overrides: dict) -> dict | None:
     """One env count in this process (one rank of a torchrun run): the steady rate after ``warmup`` iterations, the
     whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0."""
-    steps, t_setup = overrides.get("steps_per_env", common.config().ppo.steps_per_env), time.perf_counter() - T0
+    t_setup = time.perf_counter() - T0
+    steps = overrides.get("steps_per_env", common.config("default").ppo.steps_per_env)
     info = from_environment()
     device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides,
