@@ -124,23 +124,15 @@ def rss_gib() -> float:
         return 0.0
 
 
-def peaks() -> dict:
-    """Peak RSS of this process and the torch allocator's peaks (zeros without CUDA)."""
-    cuda = torch.cuda.is_available() and torch.cuda.is_initialized()
-    return {"peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / GIB,
-            "torch_peak_allocated_gib": torch.cuda.max_memory_allocated() / GIB if cuda else 0.0,
-            "torch_peak_reserved_gib": torch.cuda.max_memory_reserved() / GIB if cuda else 0.0}
-
-
 @contextlib.contextmanager
-def device_peak(device: str | torch.device = "cuda", every_s: float = 0.05):
-    """Yields ``{"gib": ...}``: the largest device memory in use (:func:`device_used_gib`), sampled every ``every_s``
-    while the block runs (None on the CPU)."""
-    peak, stop = {"gib": None}, threading.Event()
+def memory_peaks(device: str | torch.device = "cuda", every_s: float = 0.05):
+    """Yields a dict that holds, after the block, the peaks of the device memory in use (:func:`device_used_gib`,
+    sampled every ``every_s``; None on the CPU), of this process's RSS and of the torch allocator (zeros without CUDA)."""
+    peak, stop = {"device_peak_used_gib": None}, threading.Event()
 
     def sample() -> None:
         used = device_used_gib(device)
-        peak["gib"] = None if used is None else max(peak["gib"] or 0.0, used)
+        peak["device_peak_used_gib"] = None if used is None else max(peak["device_peak_used_gib"] or 0.0, used)
 
     def loop() -> None:
         while not stop.wait(every_s):
@@ -155,6 +147,10 @@ def device_peak(device: str | torch.device = "cuda", every_s: float = 0.05):
         stop.set()
         thread.join()
         sample()
+        cuda = torch.cuda.is_available() and torch.cuda.is_initialized()
+        peak.update(peak_rss_gib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / GIB,
+                    torch_peak_allocated_gib=torch.cuda.max_memory_allocated() / GIB if cuda else 0.0,
+                    torch_peak_reserved_gib=torch.cuda.max_memory_reserved() / GIB if cuda else 0.0)
 
 
 # The library's entry points: the only place the benchmarks touch its config, trainer and checkpoints.
@@ -245,8 +241,7 @@ def write_json(path: str | Path, data: dict) -> Path:
 def publish(out: str | Path, name: str, data: dict, render: Callable[[dict, Path], str]) -> str:
     """Write ``<out>/<name>.json`` and its page ``render(data, out)`` as ``<name>.md`` (atomically, saying where)."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / f"{name}.json", data)
+    write_json(out / f"{name}.json", data)  # (making the folder)
     text = render(data, out)
     atomic_write_text(out / f"{name}.md", text)
     print(f"wrote {out / name}.json and .md", flush=True)

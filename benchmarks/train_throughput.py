@@ -48,15 +48,15 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
         if info.is_main:  # the benchmark's own scratch run: start afresh
             shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
         cpu0 = os.times()
-        with common.device_peak(device) as peak:
+        with common.memory_peaks(device) as peaks:
             result, rows = common.train(cfg)
         if not info.is_main:  # rank 0 logged the rows and reports for every rank
             return None
         cpu1, wall = os.times(), result.wall_seconds
-        record.update(common.peaks(), train_env_steps_per_s=steady_rate(rows, max(warmup - 1, 0)),
-                      device_peak_used_gib=peak["gib"], update_s_last=float(rows[-1]["update_s"]),
-                      env_steps=result.env_steps, iterations=result.iterations, train_wall_s=wall, setup_s=t_setup,
-                      env_graph=result.env_graph, status="ok" if result.env_steps >= cfg.total_env_steps else "partial",
+        record.update(peaks, train_env_steps_per_s=steady_rate(rows, max(warmup - 1, 0)), env_steps=result.env_steps,
+                      update_s_last=float(rows[-1]["update_s"]), iterations=result.iterations, train_wall_s=wall,
+                      setup_s=t_setup, env_graph=result.env_graph,
+                      status="ok" if result.env_steps >= cfg.total_env_steps else "partial",
                       cores_used_mean=(cpu1.user + cpu1.system - cpu0.user - cpu0.system) / wall)
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
     rate = record.get("train_env_steps_per_s")
