@@ -6,11 +6,9 @@ report the first training time (and env steps) at which the gait test passes.
     python -m benchmarks.time_to_walk report --runs runs/time_to_walk/torque ...   # time_to_walk.{json,md,png}
     torchrun --standalone --nproc_per_node 2 -m benchmarks.time_to_walk train --preset default --name default_2gpu
 
-``train`` resumes ``runs/time_to_walk/<name>`` (default: the preset) until ``--budget_minutes`` of training are used,
-on one GPU or data-parallel under torchrun (rank 0 writes ``train.json`` with raw mujoco-warp of one GPU, so
-``train_over_raw`` divides by ranks x raw); a run continues only on its rank count and with its ``--set`` overrides.
-``eval`` writes the gait tests (issue 19) of each ``wall_*.pt`` to ``evals.json`` beside it, so the two parts may run
-at once. See docs/benchmarks.md and docs/distributed.md.
+``train`` resumes ``runs/time_to_walk/<name>`` until ``--budget_minutes`` of training are used, data-parallel under
+torchrun (rank 0 writes ``train.json``; ``train_over_raw`` divides by ranks x one GPU's raw rate). ``eval`` writes the
+gait tests of each ``wall_*.pt`` to ``evals.json`` beside it, so both parts may run at once. More: docs/benchmarks.md.
 """
 
 from __future__ import annotations
