@@ -126,8 +126,8 @@ def rss_gib() -> float:
 
 @contextlib.contextmanager
 def memory_peaks(device: str | torch.device = "cuda", every_s: float = 0.05):
-    """Yields a dict that holds, after the block, the peaks of the device memory in use (:func:`device_used_gib`,
-    sampled every ``every_s``; None on the CPU), of this process's RSS and of the torch allocator (zeros without CUDA)."""
+    """Yields a dict holding, after the block, the peaks of the device memory in use (:func:`device_used_gib`, sampled
+    every ``every_s``; None on the CPU), of this process's RSS and of the torch allocator (zeros without CUDA)."""
     peak, stop = {"device_peak_used_gib": None}, threading.Event()
 
     def sample() -> None:
