@@ -206,13 +206,11 @@ def gait_test(state: dict, path, command, out, num_envs: int, seconds: float, de
                            video_envs=0, env=env, progress=False)
 
 
-def run_child(module: str, args: Sequence[str], env: dict | None = None, nproc: int = 1,
-              torchrun: bool = False) -> dict:
-    """``python -m benchmarks.<module> --child ARGS`` in a fresh process (its memory peaks are its own), or in
-    ``nproc`` data-parallel ranks under torchrun (rank 0 reports; ``torchrun``: under it with one rank too); the JSON
-    of its last ``RESULT <json>`` line, or an error carrying the output's tail."""
-    launch = ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)]
-    launch = launch if nproc > 1 or torchrun else []
+def run_child(module: str, args: Sequence[str], env: dict | None = None, nproc: int | None = None) -> dict:
+    """``python -m benchmarks.<module> --child ARGS`` in a fresh process (its memory peaks are its own), or under
+    torchrun as ``nproc`` data-parallel ranks (rank 0 reports); the JSON of its last ``RESULT <json>`` line, or an
+    error carrying the output's tail."""
+    launch = [] if nproc is None else ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)]
     cmd = [sys.executable, *launch, "-m", f"benchmarks.{module}", "--child", *args]
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False, cwd=DOCS.parents[1],
                           env={**os.environ, **(env or {})})

@@ -116,9 +116,9 @@ def main(argv=None) -> None:
         parser.error(f"--nproc takes rank counts >= 1, not {args.nproc}")
     if max(args.nproc) > 1 and not args.iterations + args.warmup:
         parser.error("--nproc > 1 measures training: give --iterations or --warmup > 0")
-    # With several rank counts every child starts under torchrun, the 1-rank one too, so that they share its
+    # Where any K > 1, every child starts under torchrun, the 1-rank one too, so that they share its
     # settings (it sets OMP_NUM_THREADS=1, for one).
-    results = [common.run_child(NAME, ["--num_envs", str(n), *options], nproc=k, torchrun=max(args.nproc) > 1)
+    results = [common.run_child(NAME, ["--num_envs", str(n), *options], nproc=k if max(args.nproc) > 1 else None)
                for k in args.nproc for n in args.num_envs]
     print(common.publish(args.out, args.name, {"meta": common.meta(NAME, argv, args.device), "results": results},
                          render))
