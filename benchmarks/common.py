@@ -20,8 +20,14 @@ from pathlib import Path
 import torch
 
 from tocabi_torchrl import robot
+from tocabi_torchrl.config import FLAT_PATHS, RunConfig
+from tocabi_torchrl.rl import checkpoint, trainer
 from tocabi_torchrl.rl.atomic import atomic_write_text
+from tocabi_torchrl.rl.config import preset_config
 from tocabi_torchrl.rl.curves import read_metrics
+from tocabi_torchrl.rl.evaluate import evaluate_policy
+from tocabi_torchrl.rl.gait_record import fixed_command
+from tocabi_torchrl.tree import leaf_types, parse_leaf
 
 GIB = 2**30
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "benchmarks"
@@ -118,23 +124,15 @@ def rss_gib() -> float:
         return 0.0
 
 
-def peaks() -> dict:
-    """Peak RSS of this process and the torch allocator's peaks (zeros without CUDA)."""
-    cuda = torch.cuda.is_available() and torch.cuda.is_initialized()
-    return {"peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / GIB,
-            "torch_peak_allocated_gib": torch.cuda.max_memory_allocated() / GIB if cuda else 0.0,
-            "torch_peak_reserved_gib": torch.cuda.max_memory_reserved() / GIB if cuda else 0.0}
-
-
 @contextlib.contextmanager
-def device_peak(device: str | torch.device = "cuda", every_s: float = 0.05):
-    """Yields ``{"gib": ...}``: the largest device memory in use (:func:`device_used_gib`), sampled every ``every_s``
-    while the block runs (None on the CPU)."""
-    peak, stop = {"gib": None}, threading.Event()
+def memory_peaks(device: str | torch.device = "cuda", every_s: float = 0.05):
+    """Yields a dict holding, after the block, the peaks of the device memory in use (:func:`device_used_gib`, sampled
+    every ``every_s``; None on the CPU), of this process's RSS and of the torch allocator (zeros without CUDA)."""
+    peak, stop = {"device_peak_used_gib": None}, threading.Event()
 
     def sample() -> None:
         used = device_used_gib(device)
-        peak["gib"] = None if used is None else max(peak["gib"] or 0.0, used)
+        peak["device_peak_used_gib"] = None if used is None else max(peak["device_peak_used_gib"] or 0.0, used)
 
     def loop() -> None:
         while not stop.wait(every_s):
@@ -149,24 +147,20 @@ def device_peak(device: str | torch.device = "cuda", every_s: float = 0.05):
         stop.set()
         thread.join()
         sample()
+        cuda = torch.cuda.is_available() and torch.cuda.is_initialized()
+        peak.update(peak_rss_gib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / GIB,
+                    torch_peak_allocated_gib=torch.cuda.max_memory_allocated() / GIB if cuda else 0.0,
+                    torch_peak_reserved_gib=torch.cuda.max_memory_reserved() / GIB if cuda else 0.0)
 
 
 # The library's entry points: the only place the benchmarks touch its config, trainer and checkpoints.
-
-
-def config(preset: str = "default", **overrides):
-    """A training config of ``preset`` with ``overrides``."""
-    from tocabi_torchrl.rl.config import preset_config
-
-    return preset_config(preset, **overrides)
+config = preset_config  # config(preset, **overrides): a training config
+read_checkpoint = checkpoint.read_checkpoint  # a checkpoint (file or run folder) as a dict, loaded weights-only
 
 
 def parse_overrides(items: Sequence[str]) -> dict:
     """``FIELD=VALUE`` strings (a flat name such as ``num_envs``, or a path such as ``ppo.lr``) typed by the config
     tree, keyed by the flat name where one exists (the scripts and recorded results use them); unknown ones named."""
-    from tocabi_torchrl.config import FLAT_PATHS, RunConfig
-    from tocabi_torchrl.tree import leaf_types, parse_leaf
-
     kinds, out = {**leaf_types(RunConfig()), "command_preset": str, "pd_gains": str}, {}  # these two name values
     flat = {path: name for name, path in FLAT_PATHS.items() if name not in ("command_preset", "pd_gains")}
     for item in items:
@@ -184,8 +178,6 @@ def parse_overrides(items: Sequence[str]) -> dict:
 def train(cfg, env=None, wrap_policy: Callable | None = None):
     """Train ``cfg``; returns the trainer's result and its logged metric rows. ``wrap_policy(policy)`` replaces the
     collector's policy (the soak's fault injector), so that what it does to actions reaches PPO's rollout too."""
-    from tocabi_torchrl.rl import trainer
-
     make_collector = trainer.make_collector
     if wrap_policy is not None:  # train() builds its collector through this module attribute
         trainer.make_collector = lambda c, e, actor, *a, **k: make_collector(c, e, wrap_policy(actor), *a, **k)
@@ -198,42 +190,27 @@ def train(cfg, env=None, wrap_policy: Callable | None = None):
 
 def build_env(cfg, **kwargs):
     """The env of ``cfg`` on its device (``kwargs``: the trainer's ``build_env`` options)."""
-    from tocabi_torchrl.rl import trainer
-
     return trainer.build_env(cfg, trainer.resolve_device(cfg.device), **kwargs)
-
-
-def read_checkpoint(path):
-    """A checkpoint (file or run folder) as a dict (loaded with ``weights_only=True``)."""
-    from tocabi_torchrl.rl.checkpoint import read_checkpoint as read
-
-    return read(path)
 
 
 def gait_test(state: dict, path, command, out, num_envs: int, seconds: float, device: str, envs: dict) -> dict:
     """The evaluation summary of checkpoint ``state`` at a fixed command; ``envs`` caches one env per command across
     checkpoints (building one costs more than the test)."""
-    from tocabi_torchrl.rl import trainer
-    from tocabi_torchrl.rl.checkpoint import apply_checkpoint, config_from_checkpoint
-    from tocabi_torchrl.rl.evaluate import _fixed_command, evaluate_policy
-
-    cfg, device = config_from_checkpoint(state, path), torch.device(device)
+    cfg, device = checkpoint.config_from_checkpoint(state, path), torch.device(device)
     if command not in envs:
-        envs[command] = trainer.build_env(cfg, device, num_envs=num_envs, command=_fixed_command(command))
+        envs[command] = trainer.build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
     env = envs[command]
     agent = trainer.build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
-    apply_checkpoint(state, agent, env=env, path=path)
+    checkpoint.apply_checkpoint(state, agent, env=env, path=path)
     return evaluate_policy(agent.actor, cfg, out, num_envs=num_envs, device=device, seconds=seconds, command=command,
                            video_envs=0, env=env, progress=False)
 
 
-def run_child(module: str, args: Sequence[str], env: dict | None = None, nproc: int = 1,
-              torchrun: bool = False) -> dict:
-    """``python -m benchmarks.<module> --child ARGS`` in a fresh process (its memory peaks are its own), or in
-    ``nproc`` data-parallel ranks under torchrun (rank 0 reports; ``torchrun``: under it with one rank too); the JSON
-    of its last ``RESULT <json>`` line, or an error carrying the output's tail."""
-    launch = ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)]
-    launch = launch if nproc > 1 or torchrun else []
+def run_child(module: str, args: Sequence[str], env: dict | None = None, nproc: int | None = None) -> dict:
+    """``python -m benchmarks.<module> --child ARGS`` in a fresh process (its memory peaks are its own), or under
+    torchrun as ``nproc`` data-parallel ranks (rank 0 reports); the JSON of its last ``RESULT <json>`` line, or an
+    error carrying the output's tail."""
+    launch = [] if nproc is None else ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)]
     cmd = [sys.executable, *launch, "-m", f"benchmarks.{module}", "--child", *args]
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False, cwd=DOCS.parents[1],
                           env={**os.environ, **(env or {})})
@@ -262,8 +239,7 @@ def write_json(path: str | Path, data: dict) -> Path:
 def publish(out: str | Path, name: str, data: dict, render: Callable[[dict, Path], str]) -> str:
     """Write ``<out>/<name>.json`` and its page ``render(data, out)`` as ``<name>.md`` (atomically, saying where)."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / f"{name}.json", data)
+    write_json(out / f"{name}.json", data)  # (making the folder)
     text = render(data, out)
     atomic_write_text(out / f"{name}.md", text)
     print(f"wrote {out / name}.json and .md", flush=True)

@@ -6,11 +6,10 @@
     python -m benchmarks.scaling --kind memory --num_envs 8 16 32 ... 65536 98304      # 3 iterations each
     python -m benchmarks.scaling --report                                              # scaling.{md,png}
 
-Each measurement runs in a fresh process (its memory peaks are its own) and writes
-``<results>/<kind>_<backend>_<envs:07d>.json``; an existing result is skipped unless its status is in ``--redo``, and
-a memory sweep stops at the first count that runs out of device memory. ``--max_minutes`` caps a training run (status
-*partial*: rate measured, time extrapolated). Same recipe everywhere: the default preset with a rollout of at least
-2,048 transitions and mini-batches of a quarter of it (capped at the preset's).
+Each measurement runs in a fresh ``train_throughput`` process and writes ``<results>/<kind>_<backend>_<envs:07d>.json``
+(kept unless its status is in ``--redo``); a memory sweep stops at the first count that runs out of device memory.
+Same recipe everywhere: the default preset, rollouts of at least 2,048 transitions, mini-batches of a quarter of one
+(capped at the preset's). See docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -18,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 from pathlib import Path
 
 from . import common
@@ -79,18 +79,19 @@ def render(folder: Path, out: Path) -> str:
                    "850", "-", f"{TOCABILAB_BEST:,.0f}", "850", "1.0×", "reported"),
                   ("TocabiLab: CPU MuJoCo + SB3 (reported; failed at 96 envs)", 8, "-", "-", f"{TARGET:,}", "1,535",
                    "-", f"{TARGET / 1535:,.0f}", "1,535", f"{TARGET / 1535 / TOCABILAB_BEST:.2f}×", "reported")]
-    trained = {n: r for n, r in get("time", "gpu")}
+    trained = dict(get("time", "gpu"))
     # A count with a 983,040-step run takes its numbers from it (the short runs at those counts are older, eager ones).
     mem = {**{n: (r, "short run") for n, r in get("memory", "gpu")}, **{n: (r, "983k run") for n, r in trained.items()}}
-    device = lambda r: (r.get("gpu") or {}).get("device_peak_used_gib", (r.get("gpu") or {}).get("device_used_end_gib"))
-    mem_rows = [(f"{n:,}", src, r["status"], common.fmt(r.get("host", {}).get("peak_rss_gib"), ".2f"),
-                 common.fmt((r.get("gpu") or {}).get("torch_peak_allocated_gib"), ".2f"),
-                 common.fmt((r.get("gpu") or {}).get("torch_peak_reserved_gib"), ".2f"), common.fmt(device(r), ".2f"),
-                 common.fmt(r.get("cpu", {}).get("cores_used_mean"), ".2f"),
+    gpu = lambda r, k: (r.get("gpu") or {}).get(k)
+    device = lambda r: (r.get("gpu") or {}).get("device_peak_used_gib", gpu(r, "device_used_end_gib"))  # or older
+    mem_rows = [(f"{n:,}", src, r["status"], *(common.fmt(x, ".2f") for x in (
+                    r.get("host", {}).get("peak_rss_gib"), gpu(r, "torch_peak_allocated_gib"),
+                    gpu(r, "torch_peak_reserved_gib"), device(r), r.get("cpu", {}).get("cores_used_mean"))),
                  common.fmt(r.get("env_steps_per_s") if r["status"] == "ok" else None, ",.0f", "not measured"))
                 for n, (r, src) in sorted(mem.items())]
-    fit = [(n, device(r)) for n, (r, _) in sorted(mem.items()) if n >= 1024 and r["status"] == "ok" and device(r)]
-    slope = _slope(fit)
+    used = [(n, device(r)) for n, (r, _) in sorted(mem.items()) if r["status"] == "ok" and device(r)]
+    fit = [(n, gib) for n, gib in used if n >= 1024]
+    slope = statistics.linear_regression(*zip(*fit, strict=True)).slope if len(fit) > 1 else None  # GiB per env
     cpu_best = max((r["env_steps_per_s"] for _, r in get("time", "cpu")), default=None)
     gpu4k = trained.get(4096, {}).get("env_steps_per_s")
     rss = {n: r["host"]["peak_rss_gib"] for n, (r, _) in mem.items() if r.get("host")}
@@ -102,7 +103,7 @@ def render(folder: Path, out: Path) -> str:
                   for name, target, v in checks]
     check_rows.append(("Host RAM growth from 1,024 to 16,384 envs", "< 10 %", common.fmt(growth, ".1f") + " %",
                        "**pass**" if growth is not None and growth < 10 else "fail"))
-    _plot(get, raw, [(n, device(r)) for n, (r, _) in sorted(mem.items()) if r['status'] == 'ok' and device(r)], out)
+    _plot(get, raw, used, out)
     m = {**trained.get(4096, next(iter(rec.values())))["meta"], "date": max(r["meta"]["date"] for r in rec.values())}
     return (f"# Efficiency and scalability: TocabiLab's chapter 5 on our system ({m['gpu']})\n\n"
             f"From the result files in `scaling/` (one fresh process each, measured up to {m['date']}); regenerate "
@@ -123,14 +124,6 @@ def render(folder: Path, out: Path) -> str:
                 ("envs", "source", "status", "peak RSS [GiB]", "torch peak alloc. [GiB]", "torch peak reserved [GiB]",
                  "device in use [GiB]", "CPU cores busy", "env-steps/s"), mem_rows)
             + "\n\n![training time, rate and memory vs env count](scaling.png)\n")
-
-
-def _slope(points: list[tuple[int, float]]) -> float | None:
-    """Least-squares GiB per env of ``(envs, GiB)`` points."""
-    if len(points) < 2:
-        return None
-    mx, my = (sum(p[i] for p in points) / len(points) for i in (0, 1))
-    return sum((x - mx) * (y - my) for x, y in points) / sum((x - mx) ** 2 for x, _ in points)
 
 
 def _plot(get, raw, fit, out: Path) -> None:

@@ -6,13 +6,9 @@ report the first training time (and env steps) at which the gait test passes.
     python -m benchmarks.time_to_walk report --runs runs/time_to_walk/torque ...   # time_to_walk.{json,md,png}
     torchrun --standalone --nproc_per_node 2 -m benchmarks.time_to_walk train --preset default --name default_2gpu
 
-``train`` trains ``runs/time_to_walk/<preset>`` until ``--budget_minutes`` of training are used (summed over resumed
-calls) and measures raw mujoco-warp at the same env count once; ``--set FIELD=VALUE`` overrides the preset (kept in
-``train.json``; a run continues only with the same overrides). ``eval``: issue 19's gait test of each ``wall_*.pt``
-(256 envs, 8 s, at (0.5, 0) m/s, then (0.2, 0) and (0.7, 0.1)); it writes ``evals.json`` beside ``train.json``, so
-the two parts may run at once. ``report --curves`` also plots reward curves of several runs. Under torchrun the
-``train`` part is data-parallel (each rank ``num_envs`` worlds on its own GPU, ``rl/distributed.py``); rank 0 writes
-``train.json`` and measures raw mujoco-warp on one GPU, so ``train_over_raw`` divides by ranks x raw.
+``train`` resumes ``runs/time_to_walk/<name>`` until ``--budget_minutes`` of training are used, data-parallel under
+torchrun (rank 0 writes ``train.json``; ``train_over_raw`` divides by ranks x one GPU's raw rate). ``eval`` writes the
+gait tests of each ``wall_*.pt`` to ``evals.json`` beside it, so both parts may run at once. More: docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -84,13 +80,10 @@ def train_part(args, command: str) -> None:
     result, rows = common.train(cfg)
     if not info.is_main:  # rank 0 logged the rows and keeps the record
         return
-    record.setdefault("preset", args.preset)
-    if args.name != args.preset:
-        record.setdefault("name", args.name)
-    record.setdefault("gpus", info.world_size)
-    record.setdefault("overrides", recorded)
-    record.setdefault("config", cfg.to_dict())
-    record.setdefault("commands", []).append(command)
+    named = {"name": args.name} if args.name != args.preset else {}  # a run in its preset's folder is named by it
+    record = {"preset": args.preset, **named, "gpus": info.world_size, "overrides": recorded, "config": cfg.to_dict(),
+              "commands": [], **record}  # what the first call recorded stays
+    record["commands"].append(command)
     record.update(gpu=common.meta("time_to_walk", [], args.device)["gpu"] if args.device == "cuda" else "cpu",
                   env_steps=result.env_steps, train_seconds=prior_s + result.wall_seconds,
                   train_env_steps_per_s=steady_rate(rows, skip=3))
@@ -153,11 +146,9 @@ def _evaluate(ckpt: Path, evals: dict, envs: dict, args) -> None:
 def first_walk(record: dict) -> dict | None:
     """The earliest checkpoint (by training time) that passes the gait test, or None."""
     passing = [e for e in record.get("evaluations", {}).values() if e.get("walks")]
-    if not passing:
-        return None
-    first = min(passing, key=lambda e: e["train_seconds"])
-    return {"train_minutes": first["train_seconds"] / 60.0, "env_steps": first["env_steps"],
-            "iteration": first["iteration"]}
+    first = min(passing, key=lambda e: e["train_seconds"], default=None)
+    return None if first is None else {"train_minutes": first["train_seconds"] / 60.0, "env_steps": first["env_steps"],
+                                       "iteration": first["iteration"]}
 
 
 def read_run(folder: Path) -> dict:
@@ -224,11 +215,9 @@ def plot_curves(metrics: list[Path], path: Path) -> None:
 
 def report_part(args, command: str) -> None:
     data = {"command": command, "records": [read_run(Path(p)) for p in args.runs]}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    text = common.publish(out, "time_to_walk", data, render)
+    text = common.publish(args.out, "time_to_walk", data, render)  # it makes --out
     if args.curves:
-        plot_curves([Path(p) for p in args.curves], out / "time_to_walk_curves.png")
+        plot_curves([Path(p) for p in args.curves], Path(args.out) / "time_to_walk_curves.png")
     print(text)
 
 
@@ -236,23 +225,21 @@ def main(argv=None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="part", required=True)
-    t = sub.add_parser("train", help="train (or resume) a preset for up to --minutes")
-    t.add_argument("--preset", default="torque")
-    t.add_argument("--name", default=None, help="the run's folder under runs/time_to_walk (default: the preset)")
+    run = argparse.ArgumentParser(add_help=False)  # which run, where: the train and eval parts take them alike
+    run.add_argument("--preset", default="torque")
+    run.add_argument("--name", default=None, help="the run's folder under runs/time_to_walk (default: the preset)")
+    run.add_argument("--device", default="cuda", help="cuda, or cpu (a smoke test; eval beside a GPU trainer)")
+    t = sub.add_parser("train", parents=[run], help="train (or resume) a preset for up to --minutes")
     t.add_argument("--minutes", type=float, default=9.0, help="training minutes in this call")
     t.add_argument("--budget_minutes", type=float, default=30.0, help="training minutes in all (summed over calls)")
     t.add_argument("--every", type=float, default=2.0, help="minutes between evaluated checkpoints (0: none)")
     t.add_argument("--log_every", type=int, default=5)
     t.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
-    t.add_argument("--device", default="cuda", help="cuda (the benchmark) or cpu (a smoke test of the script)")
     t.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                    help="config overrides on top of the preset (ablations); a run continues only with the same ones")
-    e = sub.add_parser("eval", help="gait tests of every wall-clock checkpoint of a preset's run")
-    e.add_argument("--preset", default="torque")
-    e.add_argument("--name", default=None, help="the run's folder under runs/time_to_walk (default: the preset)")
+    e = sub.add_parser("eval", parents=[run], help="gait tests of every wall-clock checkpoint of a preset's run")
     e.add_argument("--num_envs", type=int, default=256)
     e.add_argument("--seconds", type=float, default=8.0)
-    e.add_argument("--device", default="cuda")
     e.add_argument("--follow_pid", type=int, default=0, help="keep evaluating while this process (the trainer) runs")
     r = sub.add_parser("report", help="tables and plots from the runs' train.json and evals.json")
     r.add_argument("--runs", nargs="+", required=True, help="run folders holding train.json / evals.json")

@@ -4,10 +4,8 @@
     python -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --name multi_gpu   # data-parallel scaling
 
 Each env count in a fresh process: ``--iterations`` PPO iterations of the default preset after ``--warmup``, then the
-raw ceiling; memory: the allocator's peaks and the device-wide peak in use (warp's buffers and the CUDA context too).
-With ``--nproc K`` the process is K data-parallel ranks under torchrun, each with ``--num_envs`` worlds on its own GPU
-(``rl/distributed.py``); rank 0 reports the rate of all ranks together, its own GPU's memory and, after training, the
-raw ceiling of one GPU, so ``train / raw`` divides by K x raw and the speed-up is against the 1-rank row of the run.
+raw ceiling. ``--nproc K``: K torchrun ranks of ``--num_envs`` worlds each, one per GPU; rank 0 reports all ranks'
+rate, its own GPU's memory and one GPU's raw ceiling (``train / raw`` divides by K x raw). See docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -22,7 +20,7 @@ from pathlib import Path
 import torch
 
 from tocabi_torchrl.rl.curves import steady_rate
-from tocabi_torchrl.rl.distributed import ending, from_environment
+from tocabi_torchrl.rl.distributed import ending, from_environment, init_distributed
 
 from . import common
 
@@ -34,35 +32,31 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
             overrides: dict) -> dict | None:
     """One env count in this process (one rank of a torchrun run): the steady rate after ``warmup`` iterations, the
     whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0."""
-    steps, t_setup = overrides.get("steps_per_env", common.config().ppo.steps_per_env), time.perf_counter() - T0
+    t_setup = time.perf_counter() - T0
+    steps = overrides.get("steps_per_env", common.config("default").ppo.steps_per_env)
     info = from_environment()
-    if info.enabled and device == "cuda":  # this rank's GPU, before anything touches cuda:0
-        if info.local_rank >= torch.cuda.device_count():
-            raise RuntimeError(f"rank {info.rank} wants cuda:{info.local_rank} but this host has "
-                               f"{torch.cuda.device_count()} GPU(s): use --nproc <= the GPU count")
-        device = f"cuda:{info.local_rank}"
-        torch.cuda.set_device(device)
+    device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides,
               "device_used_at_start_gib": common.device_used_gib(device),
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:
         cfg = common.config("default", **{"minibatch_size": min(49152, n * steps // 4), **overrides, "num_envs": n,
                                           "total_env_steps": (warmup + iterations) * n * steps * info.world_size,
-                                          "run_dir": run_dir,
-                                          "name": f"train_{n}", "checkpoint_every": 10**9, "progress_bar": False,
-                                          "eval_at_end": False, "log_every": 1, "device": device.split(":")[0]})
+                                          "run_dir": run_dir, "name": f"train_{n}", "checkpoint_every": 10**9,
+                                          "progress_bar": False, "eval_at_end": False, "log_every": 1,
+                                          "device": device.split(":")[0]})
         if info.is_main:  # the benchmark's own scratch run: start afresh
             shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
         cpu0 = os.times()
-        with common.device_peak(device) as peak:
+        with common.memory_peaks(device) as peaks:
             result, rows = common.train(cfg)
         if not info.is_main:  # rank 0 logged the rows and reports for every rank
             return None
         cpu1, wall = os.times(), result.wall_seconds
-        record.update(common.peaks(), train_env_steps_per_s=steady_rate(rows, max(warmup - 1, 0)),
-                      device_peak_used_gib=peak["gib"], update_s_last=float(rows[-1]["update_s"]),
-                      env_steps=result.env_steps, iterations=result.iterations, train_wall_s=wall, setup_s=t_setup,
-                      env_graph=result.env_graph, status="ok" if result.env_steps >= cfg.total_env_steps else "partial",
+        record.update(peaks, train_env_steps_per_s=steady_rate(rows, max(warmup - 1, 0)), env_steps=result.env_steps,
+                      update_s_last=float(rows[-1]["update_s"]), iterations=result.iterations, train_wall_s=wall,
+                      setup_s=t_setup, env_graph=result.env_graph,
+                      status="ok" if result.env_steps >= cfg.total_env_steps else "partial",
                       cores_used_mean=(cpu1.user + cpu1.system - cpu0.user - cpu0.system) / wall)
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
     rate = record.get("train_env_steps_per_s")
@@ -122,9 +116,9 @@ def main(argv=None) -> None:
         parser.error(f"--nproc takes rank counts >= 1, not {args.nproc}")
     if max(args.nproc) > 1 and not args.iterations + args.warmup:
         parser.error("--nproc > 1 measures training: give --iterations or --warmup > 0")
-    # With several rank counts every child starts under torchrun, the 1-rank one too, so that they share its
+    # Where any K > 1, every child starts under torchrun, the 1-rank one too, so that they share its
     # settings (it sets OMP_NUM_THREADS=1, for one).
-    results = [common.run_child(NAME, ["--num_envs", str(n), *options], nproc=k, torchrun=max(args.nproc) > 1)
+    results = [common.run_child(NAME, ["--num_envs", str(n), *options], nproc=k if max(args.nproc) > 1 else None)
                for k in args.nproc for n in args.num_envs]
     print(common.publish(args.out, args.name, {"meta": common.meta(NAME, argv, args.device), "results": results},
                          render))

@@ -3,6 +3,7 @@ to end at toy size (``--device cpu``); their GPU paths reuse the same helpers.""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import subprocess
@@ -74,14 +75,18 @@ def test_tiny_soak_on_the_cpu(tmp_path):
     assert (tmp_path / "soak_memory.png").stat().st_size > 1000
 
 
-def test_time_to_walk_train_resume_eval_report(tmp_path):
-    def run(*args, code=0):
-        env = {**os.environ, "PYTHONPATH": str(common.DOCS.parents[1])}  # the run's cwd is a temporary folder
-        proc = subprocess.run([sys.executable, "-m", "benchmarks.time_to_walk", *args], cwd=tmp_path, text=True,
-                              capture_output=True, env=env, check=False)
-        assert proc.returncode == code, proc.stdout[-3000:] + proc.stderr[-3000:]
-        return proc.stdout + proc.stderr
+def _time_to_walk(cwd, *args, code=0, nproc=0) -> str:
+    """``python -m benchmarks.time_to_walk ARGS`` in ``cwd`` (under torchrun with ``nproc`` ranks): its output."""
+    launch = ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)] if nproc else []
+    env = {**os.environ, "PYTHONPATH": str(common.DOCS.parents[1])}  # the run's cwd is a temporary folder
+    proc = subprocess.run([sys.executable, *launch, "-m", "benchmarks.time_to_walk", *args], cwd=cwd, text=True,
+                          capture_output=True, env=env, check=False, timeout=600)
+    assert proc.returncode == code, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc.stdout + proc.stderr
 
+
+def test_time_to_walk_train_resume_eval_report(tmp_path):
+    run = functools.partial(_time_to_walk, tmp_path)
     # 20 iterations (~2.5 s on a CPU) pass a 1 s snapshot mark; the first call stops at 1.8 s, the second resumes
     train = ["train", "--preset", "cpu_smoke", "--device", "cpu", "--every", "0.017", "--log_every", "1",
              "--set", f"total_env_steps={8 * 16 * 20}"]
@@ -105,20 +110,13 @@ def test_time_to_walk_train_resume_eval_report(tmp_path):
 
 def test_time_to_walk_trains_on_two_ranks_under_torchrun(tmp_path):
     """The 2-GPU command of docs/distributed.md on gloo ranks: rank 0 alone keeps the named run's record."""
-    env = {**os.environ, "PYTHONPATH": str(common.DOCS.parents[1])}
-    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", "-m",
-                           "benchmarks.time_to_walk", "train", "--preset", "cpu_smoke", "--name", "smoke_2gpu",
-                           "--device", "cpu", "--minutes", "0.004", "--every", "0", "--log_every", "1"],
-                          cwd=tmp_path, text=True, capture_output=True, env=env, check=False, timeout=600)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    train = ["train", "--preset", "cpu_smoke", "--name", "smoke_2gpu", "--device", "cpu", "--minutes", "0.004"]
+    out = _time_to_walk(tmp_path, *train, "--every", "0", "--log_every", "1", nproc=2)
     record = json.loads((tmp_path / "runs/time_to_walk/smoke_2gpu/train.json").read_text())
     assert (record["preset"], record["name"], record["gpus"]) == ("cpu_smoke", "smoke_2gpu", 2)
     assert record["commands"][0].startswith("torchrun --standalone --nproc_per_node 2 -m benchmarks.time_to_walk")
     latest = torch.load(tmp_path / "runs/time_to_walk/smoke_2gpu/checkpoints/latest.pt", weights_only=True)
     assert record["env_steps"] == latest["env_steps"] == 2 * 8 * 16 * latest["iteration"]  # both ranks' steps
-    assert proc.stdout.count("training from scratch on 2 rank(s)") == 1 and proc.stdout.count("[train took") == 1
+    assert out.count("training from scratch on 2 rank(s)") == 1 and out.count("[train took") == 1
     # A run is continued on the rank count it was trained on (its rate and ratio are per rank count).
-    proc = subprocess.run([sys.executable, "-m", "benchmarks.time_to_walk", "train", "--preset", "cpu_smoke", "--name",
-                           "smoke_2gpu", "--device", "cpu", "--minutes", "0.004"], cwd=tmp_path, text=True,
-                          capture_output=True, env=env, check=False, timeout=600)
-    assert proc.returncode == 1 and "was trained on 2 rank(s) so far, this call has 1" in proc.stderr
+    assert "was trained on 2 rank(s) so far, this call has 1" in _time_to_walk(tmp_path, *train, code=1)
