@@ -53,9 +53,13 @@ def test_stand_ins_replace_only_missing_modules(monkeypatch):
     for name in mjlab_peer.STAND_INS:
         monkeypatch.delitem(sys.modules, name, raising=False)
     missing = {name for name in mjlab_peer.STAND_INS if importlib.util.find_spec(name) is None}
-    assert set(mjlab_peer.install_stand_ins()) == missing
-    if "wandb" in missing:
-        assert sys.modules["wandb"].run is None  # what the G1 runner's save() reads
+    try:
+        assert set(mjlab_peer.install_stand_ins()) == missing
+        if "wandb" in missing:
+            assert sys.modules["wandb"].run is None  # what the G1 runner's save() reads
+    finally:  # a stand-in left in sys.modules (no __spec__) breaks find_spec for the tests after this one
+        for name in missing:
+            sys.modules.pop(name, None)
 
 
 def test_nothing_at_module_level_imports_mjlab_or_our_package():
