@@ -222,7 +222,7 @@ def _train_worker(rank: int, world: int, init_file: str, run_dir: str, out: dict
     init_distributed(info, torch.device("cpu"), init_method=f"file://{init_file}")
     try:
         cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
-                            total_env_steps=world * 2 * 8, run_dir=run_dir, name="dp", checkpoint_every=1,
+                            total_env_steps=world * 2 * 16, run_dir=run_dir, name="dp", checkpoint_every=1,
                             progress_bar=False, eval_at_end=False)
         # Running statistics, so that their merge is part of the run (the presets use the reference's fixed ones).
         env = build_env(dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info)), torch.device("cpu"),
@@ -240,26 +240,36 @@ def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
     out = mp.Manager().dict()
     mp.spawn(_train_worker, args=(2, str(tmp_path / "init"), str(tmp_path), out), nprocs=2, join=True)
     r0, r1 = out[0], out[1]
-    # 2 ranks x 2 envs x 4 steps = 16 env steps per iteration: 2 iterations for the 32-step budget.
-    assert r0["iterations"] == r1["iterations"] == 2 and r0["env_steps"] == r1["env_steps"] == 32
+    # 2 ranks x 2 envs x 4 steps = 16 env steps per iteration: 4 iterations for the 64-step budget.
+    assert r0["iterations"] == r1["iterations"] == 4 and r0["env_steps"] == r1["env_steps"] == 64
     torch.testing.assert_close(r0["params"], r1["params"], rtol=0, atol=0)
-    assert r0["norm"][0].item() == r1["norm"][0].item() > 32  # both ranks' rows (plus the initial weight)
+    assert r0["norm"][0].item() == r1["norm"][0].item() > 64  # both ranks' rows (plus the initial weight)
     torch.testing.assert_close(r0["norm"][1], r1["norm"][1], rtol=0, atol=0)
     run = tmp_path / "dp"
     ckpt = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)
-    assert ckpt["env_steps"] == 32
-    assert len(read_metrics(run)) == 2, "rank 0 alone logs: one row per iteration"
+    assert ckpt["env_steps"] == 64
+    rows = read_metrics(run)
+    assert len(rows) == 4, "rank 0 alone logs: one row per iteration"
     assert sorted(p.name for p in run.iterdir()) == sorted(["checkpoints", "config.json", "metrics"])
 
-    # The same run goes on with one rank: the 32 steps done are 4 of its 8-step iterations.
     from tocabi_torchrl.rl import preset_config
     from tocabi_torchrl.rl.trainer import train
 
+    # With the budget scaled by the rank count (docs/distributed.md), the scheduled std falls per update exactly as in
+    # a 1-rank run of the unscaled budget.
+    one = train(preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
+                              total_env_steps=32, run_dir=str(tmp_path), name="one", checkpoint_every=1,
+                              progress_bar=False, eval_at_end=False))
+    assert one.iterations == 4
+    stds = [[float(r["action_std"]) for r in read_metrics(folder)] for folder in (run, tmp_path / "one")]
+    assert stds[0] == stds[1] and len(set(stds[0])) > 1, stds  # and it does fall
+
+    # The same run goes on with one rank: the 64 steps done are 8 of its 8-step iterations.
     cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
-                        total_env_steps=48, run_dir=str(tmp_path), name="dp", checkpoint_every=1,
+                        total_env_steps=80, run_dir=str(tmp_path), name="dp", checkpoint_every=1,
                         progress_bar=False, eval_at_end=False, resume=str(run))
     result = train(cfg)
-    assert result.iterations == 6 and result.env_steps == 48
+    assert result.iterations == 10 and result.env_steps == 80
 
 
 def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
