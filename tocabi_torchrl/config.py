@@ -30,6 +30,7 @@ from typing import Any
 
 from .envs.command import CommandConfig
 from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig
+from .sim.config import RESET_PASSES
 from .transforms.presets import TransformSettings
 from .tree import ConfigError, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
@@ -286,7 +287,8 @@ def field_choices() -> dict[str, tuple[str, ...]]:
     return {"ppo.lr_schedule": LR_SCHEDULES, "ppo.std_mode": STD_MODES, "env.control.mode": CONTROL_MODES,
             "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.preset": tuple(TRANSFORM_PRESETS),
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
-            "ppo.assist_target": ASSIST_TARGETS, "env.sim.backend": ("warp", "mujoco", "auto")}
+            "ppo.assist_target": ASSIST_TARGETS, "env.sim.backend": ("warp", "mujoco", "auto"),
+            "env.sim.reset_pass": RESET_PASSES}
 
 
 # ---------------------------------------------------------------------------------------------------------- presets

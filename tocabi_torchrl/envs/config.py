@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import robot
+from ..sim.config import RESET_PASSES
 from .command import CommandConfig
 
 __all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "SceneConfig", "BoxObstacle", "PD_GAINS",
@@ -50,6 +51,10 @@ class EnvSimConfig:
         substeps: physics substeps per policy step (0.5 ms each: 8 -> 250 Hz policy).
         nconmax, njmax: contact/constraint buffers per world for mujoco-warp (None = the backend's measured defaults).
         threads: CPU threads of the ``"mujoco"`` backend (None = every available core).
+        reset_pass: what a mujoco-warp reset computes over all worlds (``SimConfig.reset_pass``): ``"full"``
+            (default) a full forward pass; ``"reduced"`` only the position and velocity stages, with the rest of
+            each start state (one per start row of the reference motion, registered when the env is built) taken
+            from a table. The ``"mujoco"`` backend ignores it (its reset computes the reset worlds only).
     """
 
     backend: str = "auto"
@@ -57,10 +62,13 @@ class EnvSimConfig:
     nconmax: int | None = None
     njmax: int | None = None
     threads: int | None = None
+    reset_pass: str = "full"
 
     def validate(self) -> None:
         if self.backend not in BACKENDS:
             raise ValueError(f"unknown env.sim.backend {self.backend!r}; choose one of {BACKENDS}")
+        if self.reset_pass not in RESET_PASSES:
+            raise ValueError(f"unknown env.sim.reset_pass {self.reset_pass!r}; choose one of {RESET_PASSES}")
         for name in ("substeps", "nconmax", "njmax", "threads"):
             v = getattr(self, name)
             if (v is not None or name == "substeps") and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
@@ -313,7 +321,7 @@ ENV_FLAT_PATHS = {
     "torque_assist": "control.torque_assist", "mb_omega": "control.mb_omega", "mb_zeta": "control.mb_zeta",
     "mb_ref_window": "control.mb_ref_window", "mb_residual_gain": "control.mb_residual_gain",
     "substeps": "sim.substeps", "nconmax": "sim.nconmax", "njmax": "sim.njmax", "backend": "sim.backend",
-    "sim_threads": "sim.threads", "obstacles": "scene.obstacles",
+    "sim_threads": "sim.threads", "reset_pass": "sim.reset_pass", "obstacles": "scene.obstacles",
     **{name: f"task.{name}" for name in TaskConfig.__dataclass_fields__},
 }
 

@@ -123,7 +123,8 @@ class TocabiWalk(EnvBase):
         self.backend = resolve_backend(sim.backend, device)
         if self.backend == "warp":
             buffers = {k: v for k, v in (("nconmax", sim.nconmax), ("njmax", sim.njmax)) if v is not None}
-            sim_cfg = SimConfig(num_worlds=num_envs, device=str(device), substeps=sim.substeps, **buffers)
+            sim_cfg = SimConfig(num_worlds=num_envs, device=str(device), substeps=sim.substeps,
+                                reset_pass=sim.reset_pass, **buffers)
             self.sim = WarpSim(sim_cfg, model=spec, mocap_pos=mocap)
         else:
             sim_cfg = SimConfig(num_worlds=num_envs, device="cpu", substeps=sim.substeps, threads=sim.threads)
@@ -142,6 +143,11 @@ class TocabiWalk(EnvBase):
         self.computed_torque = (ComputedTorque(control, self.motion, self.sim.mj_model, num_envs, device, self.dt)
                                 if control.mode == "model_based" else None)
         self._init_buffers()
+        #: The reduced reset pass (``env.sim.reset_pass="reduced"``, mujoco-warp only): the start states, one per
+        #: start row of the reference motion, are registered with the simulator here.
+        self._reduced_reset = self.backend == "warp" and sim.reset_pass == "reduced"
+        if self._reduced_reset:
+            self._register_start_states()
         self._make_specs()
 
     # ------------------------------------------------------------------------------------------------ set-up
@@ -183,6 +189,14 @@ class TocabiWalk(EnvBase):
         # Episodes started per env: with the env index and the seed it keys the reset's random draws.
         self._env_ids = torch.arange(n, dtype=torch.int64, device=dev)
         self.episode_count = torch.zeros(n, dtype=torch.int64, device=dev)
+
+    def _register_start_states(self) -> None:
+        """Register with the simulator the start state of each start row, as :meth:`_reset` builds it: the initial
+        pose at rest, leg controls ``_reset_leg_ctrl``, upper-body targets of the reference at the row's time 0."""
+        k = len(self._init_rows)
+        q_ref = self.motion.joint_targets(torch.zeros(k, dtype=torch.float32, device=self.device), self._init_rows)
+        ctrl = torch.cat((self._reset_leg_ctrl.expand(k, -1), q_ref[:, robot.UPPER_BODY]), dim=-1)
+        self.sim.register_start_states(self._init_qpos.expand(k, -1), self._init_qvel.expand(k, -1), ctrl)
 
     def _make_specs(self) -> None:
         n, dev = self.num_envs, self.device
@@ -409,9 +423,12 @@ class TocabiWalk(EnvBase):
         self.ref_joint_pos.copy_(torch.where(m, q_ref, self.ref_joint_pos))
         self.ref_foot_force.copy_(torch.where(m, self.motion.force_reference(row), self.ref_foot_force))
         self.stance.copy_(torch.where(mask, self.motion.stance_at(row), self.stance))
-        upper = self.ref_joint_pos[:, robot.UPPER_BODY]
-        ctrl = torch.cat((self._reset_leg_ctrl.expand(self.num_envs, -1), upper), dim=-1)
-        self.sim.reset(mask, self._init_qpos, self._init_qvel, ctrl)
+        if self._reduced_reset:  # the same start state, registered as row `pick` (see _register_start_states)
+            self.sim.reset_to_start(mask, pick)
+        else:
+            upper = self.ref_joint_pos[:, robot.UPPER_BODY]
+            ctrl = torch.cat((self._reset_leg_ctrl.expand(self.num_envs, -1), upper), dim=-1)
+            self.sim.reset(mask, self._init_qpos, self._init_qvel, ctrl)
         out = self._observe()
         false = torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device)
         out.update({"terminated": false, "truncated": false.clone(), "done": false.clone()})

@@ -8,7 +8,7 @@ both share, and ``backend`` spells that interface out (``SimBackend``, ``check_b
 """
 
 from .backend import SIM_TENSORS, SimBackend, check_backend
-from .config import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX, SimConfig
+from .config import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX, RESET_PASSES, SimConfig
 from .contacts import ContactLayout, ContactSensorError, add_contact_sensors, contact_layout, has_contact_sensors
 from .health import HEALTH_OVERFLOW_MASK, SimOverflowError
 from .mujoco_backend import MujocoSim
@@ -23,6 +23,7 @@ __all__ = [
     "check_backend",
     "MUJOCO_HEALTH_WARNINGS",
     "SimConfig",
+    "RESET_PASSES",
     "NCONMAX",
     "NJMAX",
     "CONTACT_SENSOR_MAXMATCH",

@@ -10,7 +10,10 @@ import torch
 from .buffers import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX
 from .health import HEALTH_OVERFLOW_MASK
 
-__all__ = ["SimConfig", "NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH", "available_cores"]
+__all__ = ["SimConfig", "NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH", "RESET_PASSES", "available_cores"]
+
+#: ``SimConfig.reset_pass`` values: the full forward pass, or the reduced one for registered start states.
+RESET_PASSES = ("full", "reduced")
 
 
 def available_cores() -> int:
@@ -42,10 +45,20 @@ class SimConfig:
             overflows that silently drop contacts or constraints).
         kernel_overflow_prints: let mujoco-warp kernels print their own overflow warnings (one line per world and
             substep on the GPU, so off by default; use :meth:`WarpSim.check_overflow` instead).
+        reset_pass: what :class:`WarpSim`'s reset computes over all worlds (issue 25). ``"full"`` (default): a full
+            ``mujoco_warp.forward``, whatever the reset states. ``"reduced"``: for states registered in advance with
+            :meth:`WarpSim.register_start_states` and reset with :meth:`WarpSim.reset_to_start`, only the position
+            and velocity stages (``fwd_position``, ``fwd_velocity``: kinematics, inertia and its factorisation,
+            collision, constraints, bias forces) run over all worlds; the reset worlds get the sensors, ``qacc``
+            (also their warm start), actuator forces and solver overflow bits of their start state from a table
+            that a full pass filled at registration (per world and start state, so per-world obstacles are
+            included). Nothing else that a step reads comes from the skipped stages, so the trajectories match the
+            full pass. :meth:`WarpSim.reset` with arbitrary states always runs the full pass.
         threads: CPU threads that step the worlds of :class:`MujocoSim` (``None``: every available core, see
             :func:`available_cores`). Ignored by ``WarpSim``, as are ``MujocoSim``'s own limits: ``nconmax``,
-            ``njmax``, ``contact_sensor_maxmatch``, ``use_graph``, ``health_overflow_mask`` and
-            ``kernel_overflow_prints`` are mujoco-warp settings (C MuJoCo grows its buffers in the model's arena).
+            ``njmax``, ``contact_sensor_maxmatch``, ``use_graph``, ``health_overflow_mask``,
+            ``kernel_overflow_prints`` and ``reset_pass`` are mujoco-warp settings (C MuJoCo grows its buffers in the
+            model's arena).
     """
 
     num_worlds: int = 1
@@ -62,6 +75,7 @@ class SimConfig:
     health_overflow_mask: int = int(HEALTH_OVERFLOW_MASK)
     kernel_overflow_prints: bool = False
     threads: int | None = None
+    reset_pass: str = "full"
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field and what it should be."""
@@ -78,6 +92,8 @@ class SimConfig:
                 positive_int(name)
         if self.solver_tolerance is not None and not self.solver_tolerance >= 0.0:
             raise ValueError(f"SimConfig.solver_tolerance must be >= 0, got {self.solver_tolerance!r}")
+        if self.reset_pass not in RESET_PASSES:
+            raise ValueError(f"SimConfig.reset_pass must be one of {RESET_PASSES}, got {self.reset_pass!r}")
         if not isinstance(self.device, (str, torch.device)):
             raise ValueError(f"SimConfig.device must be a string like 'cpu' or 'cuda:0', got {self.device!r}")
 

@@ -10,7 +10,7 @@ import warp as wp
 
 from mujoco_warp import OverflowType
 
-__all__ = ["derive_signals", "write_reset_state", "copy_rows_where"]
+__all__ = ["derive_signals", "write_reset_state", "copy_rows_where", "copy_start_rows", "or_start_overflow"]
 
 _NEFC = int(OverflowType.NEFC)
 _BROADPHASE = int(OverflowType.BROADPHASE)
@@ -106,3 +106,32 @@ def copy_rows_where(
         return
     for i in range(src.shape[1]):
         dst[w, i] = src[w, i]
+
+
+@wp.kernel(enable_backward=False)
+def copy_start_rows(
+    mask: wp.array(dtype=wp.bool),
+    index: wp.array(dtype=wp.int32),
+    table: wp.array3d(dtype=float),
+    dst: wp.array2d(dtype=float),
+):
+    """``dst[w] = table[index[w], w]`` for the flagged worlds: a registered start state's precomputed values."""
+    w = wp.tid()
+    if not mask[w]:
+        return
+    r = index[w]
+    for i in range(dst.shape[1]):
+        dst[w, i] = table[r, w, i]
+
+
+@wp.kernel(enable_backward=False)
+def or_start_overflow(
+    mask: wp.array(dtype=wp.bool),
+    index: wp.array(dtype=wp.int32),
+    table: wp.array2d(dtype=int),
+    overflow: wp.array(dtype=int),
+):
+    """Add to the flagged worlds' overflow bits those the skipped stages set in their start state's full pass."""
+    w = wp.tid()
+    if mask[w]:
+        overflow[w] = overflow[w] | table[index[w], w]

@@ -31,7 +31,7 @@ from .contacts import ContactLayout, contact_layout
 from .graph import Recorded
 from .health import overflow_error
 from .kernel_cache import announce_compile_if_cold
-from .kernels import copy_rows_where, derive_signals, write_reset_state
+from .kernels import copy_rows_where, copy_start_rows, derive_signals, or_start_overflow, write_reset_state
 from .memory import check_fits, warp_world_bytes
 from .model import ModelSource, compile_model
 from .views import MocapPositions, SimViews, world_mocap_pos
@@ -55,6 +55,23 @@ def _without_sensors(m: mjw.Model) -> mjw.Model:
     """A shallow copy of ``m`` whose steps skip sensor evaluation (same arrays, so the same physics)."""
     opt = dataclasses.replace(m.opt, disableflags=int(m.opt.disableflags) | int(mjw.DisableBit.SENSOR))
     return dataclasses.replace(m, opt=opt)
+
+
+@dataclasses.dataclass
+class _StartStates:
+    """Registered start states (rows) and, per row and world, what the full reset pass computed for them."""
+
+    qpos: torch.Tensor  # (K, nq)
+    qvel: torch.Tensor  # (K, nv)
+    ctrl: torch.Tensor  # (K, nu)
+    num: int
+    index: wp.array  # (N,) int32: the row each world resets to
+    index_t: torch.Tensor | None
+    sensordata: wp.array  # (K, N, nsensordata)
+    qacc: wp.array  # (K, N, nv)
+    actuator_force: wp.array  # (K, N, nu)
+    overflow: wp.array  # (K, N) int32
+    tables: dict  # the torch tensors the warp arrays above alias (kept alive with them)
 
 
 class WarpSim(SimViews):
@@ -143,6 +160,8 @@ class WarpSim(SimViews):
         self._step_graph = Recorded(self._step_fn, self.wp_device, cfg.use_graph)
         self._reset_graph = Recorded(self._reset_fn, self.wp_device, cfg.use_graph)
         self._forward_graph = Recorded(self._forward_fn, self.wp_device, cfg.use_graph)
+        self._start_states: _StartStates | None = None  # reset_pass="reduced": see register_start_states
+        self._start_reset_graph: Recorded | None = None
 
     # ----------------------------------------------------------------------------------------------- construction
     def _alloc_buffers(self, mj: mujoco.MjModel) -> None:
@@ -245,9 +264,37 @@ class WarpSim(SimViews):
         wp.copy(self.wp_data.qacc_warmstart, self.wp_data.qacc)
         self._derive()
 
+    def _reset_to_start_fn(self) -> None:
+        """The ``reset_pass="reduced"`` reset (see :meth:`register_start_states`): no sensor, actuation, acceleration
+        or solver stage over all worlds; the reset worlds get those results from the start-state table."""
+        m, d, n, mask, s = self.wp_model, self.wp_data, self.num_worlds, self._reset_mask, self._start_states
+        mjw.reset_data(m, d, reset=mask)
+        if self._mocap_pos is not None:
+            wp.copy(d.mocap_pos, self._mocap_pos)
+        wp.launch(
+            write_reset_state,
+            dim=n,
+            inputs=[mask, self._reset_qpos, self._reset_qvel, self._reset_ctrl],
+            outputs=[d.qpos, d.qvel, d.ctrl],
+        )
+        # What the next step's step2 reads besides its own stages: kinematics, com, inertia and its factorisation
+        # (forward factorises in its acceleration stage, step2 does not), contacts, constraint rows, bias forces.
+        # The untouched worlds keep their sensors, qacc, actuator forces and warm start from the step's forward pass.
+        mjw.fwd_position(m, d, factorize=True)
+        mjw.fwd_velocity(m, d)
+        idx = s.index
+        wp.launch(copy_start_rows, dim=n, inputs=[mask, idx, s.sensordata, d.sensordata])
+        wp.launch(copy_start_rows, dim=n, inputs=[mask, idx, s.qacc, d.qacc])
+        wp.launch(copy_start_rows, dim=n, inputs=[mask, idx, s.qacc, d.qacc_warmstart])
+        wp.launch(copy_start_rows, dim=n, inputs=[mask, idx, s.actuator_force, d.actuator_force])
+        wp.launch(copy_start_rows, dim=n, inputs=[mask, idx, s.actuator_force, self._applied_force])
+        wp.launch(or_start_overflow, dim=n, inputs=[mask, idx, s.overflow, d.overflow])
+        self._derive()
+
     # ------------------------------------------------------------------------------------------------- public API
     def recorded_graphs(self) -> list[Recorded]:
-        return [self._step_graph, self._reset_graph, self._forward_graph]
+        graphs = [self._step_graph, self._reset_graph, self._forward_graph]
+        return graphs if self._start_reset_graph is None else [*graphs, self._start_reset_graph]
 
     def step(self) -> None:
         """Advance every world by one control period (``substeps`` physics steps) with the current ``ctrl``."""
@@ -289,6 +336,90 @@ class WarpSim(SimViews):
         else:
             self._reset_ctrl_t.copy_(ctrl)
         self._reset_graph()
+
+    def register_start_states(self, qpos: torch.Tensor, qvel: torch.Tensor, ctrl: torch.Tensor) -> None:
+        """Register the K start states :meth:`reset_to_start` may reset to (``reset_pass="reduced"`` only).
+
+        Args:
+            qpos, qvel, ctrl: (K, nq), (K, nv), (K, nu) float32 tensors on :attr:`device`, start state k in row k.
+
+        Runs the full reset of :meth:`reset` once per start state over all worlds (each with its own mocap
+        positions) and keeps, per state and world, what the reduced reset does not compute: the sensors, ``qacc``
+        (the warm start), the actuator forces and the overflow bits. Call it before the first :meth:`reset_to_start`
+        and before capturing a graph that resets; it overwrites every world's state (leaving start state 0) and
+        syncs with the host. The table holds for this simulator's model and mocap positions, which never change.
+        """
+        if self.config.reset_pass != "reduced":
+            raise ValueError(f"register_start_states needs SimConfig.reset_pass='reduced' (this simulator has "
+                             f"{self.config.reset_pass!r}); with 'full', reset to any state with reset()")
+        m = self.wp_model
+        unsupported = int(m.opt.enableflags) & int(mjw.EnableBit.ENERGY | mjw.EnableBit.SLEEP)
+        if unsupported or m.opt.integrator == mjw.IntegratorType.DISCRETE:
+            raise ValueError("reset_pass='reduced' does not reproduce the energy, sleep or discrete-integrator "
+                             "stages of the full pass; use reset_pass='full' with this model")
+        for name, value, width in (("qpos", qpos, self.nq), ("qvel", qvel, self.nv), ("ctrl", ctrl, self.nu)):
+            if (not isinstance(value, torch.Tensor) or value.dim() != 2 or value.shape[0] < 1
+                    or value.shape[1] != width or value.shape[0] != qpos.shape[0] or value.device != self.device):
+                raise ValueError(f"register_start_states: {name} must be a (K, {width}) tensor on {self.device}, "
+                                 f"K >= 1 rows like qpos, got {getattr(value, 'shape', type(value).__name__)}")
+        k, n, d = qpos.shape[0], self.num_worlds, self.wp_data
+        dev, f32 = self.device, torch.float32
+        qpos, qvel, ctrl = (v.to(f32).contiguous().clone() for v in (qpos, qvel, ctrl))
+        table = {"sensordata": torch.zeros(k, n, self.mj_model.nsensordata, dtype=f32, device=dev),
+                 "qacc": torch.zeros(k, n, self.nv, dtype=f32, device=dev),
+                 "actuator_force": torch.zeros(k, n, self.nu, dtype=f32, device=dev),
+                 "overflow": torch.zeros(k, n, dtype=torch.int32, device=dev)}
+        t = wp.to_torch
+        with wp.ScopedDevice(self.wp_device):
+            for r in range(k):  # the full reset, eagerly, of every world into start state r
+                self._reset_mask_t.fill_(True)
+                self._reset_qpos_t.copy_(qpos[r])
+                self._reset_qvel_t.copy_(qvel[r])
+                self._reset_ctrl_t.copy_(ctrl[r])
+                wp.synchronize_device(self.wp_device)
+                self._reset_fn()
+                wp.synchronize_device(self.wp_device)
+                for name in ("sensordata", "qacc", "actuator_force", "overflow"):
+                    table[name][r].copy_(t(getattr(d, name)))
+            self._start_states = _StartStates(
+                qpos=qpos, qvel=qvel, ctrl=ctrl, num=k,
+                index=wp.zeros(n, dtype=wp.int32), index_t=None,
+                **{name: wp.from_torch(v) for name, v in table.items()}, tables=table,
+            )
+            self._start_states.index_t = t(self._start_states.index)
+            # Compile and run the reduced reset once (all worlds into start state 0), then record it.
+            self._fill_start_reset(torch.ones(n, dtype=torch.bool, device=dev), torch.zeros(n, dtype=torch.int64,
+                                                                                            device=dev))
+            wp.synchronize_device(self.wp_device)
+            self._reset_to_start_fn()
+            wp.synchronize_device(self.wp_device)
+        self._start_reset_graph = Recorded(self._reset_to_start_fn, self.wp_device, self.config.use_graph)
+
+    def _fill_start_reset(self, mask: torch.Tensor, index: torch.Tensor) -> None:
+        s = self._start_states
+        rows = index.clamp(0, s.num - 1)  # an index out of range would read outside the table
+        self._reset_mask_t.copy_(mask)
+        s.index_t.copy_(rows)
+        self._reset_qpos_t.copy_(s.qpos.index_select(0, rows))
+        self._reset_qvel_t.copy_(s.qvel.index_select(0, rows))
+        self._reset_ctrl_t.copy_(s.ctrl.index_select(0, rows))
+
+    def reset_to_start(self, mask: torch.Tensor, index: torch.Tensor) -> None:
+        """Put each flagged world into registered start state ``index[w]`` with the reduced reset pass (see
+        :meth:`register_start_states`); the others stay bit-identical. Never syncs with the host.
+
+        Args:
+            mask: (N,) bool, True for the worlds to reset.
+            index: (N,) int64 row of the registered states for each world (only flagged rows are read; values
+                outside [0, K) are clamped).
+        """
+        if self._start_states is None:
+            raise RuntimeError("reset_to_start needs register_start_states(...) first (SimConfig.reset_pass="
+                               "'reduced'); reset() resets to any state with the full pass")
+        self._check_tensor("mask", mask, (self.num_worlds,), allow_row=False, dtype=torch.bool)
+        self._check_tensor("index", index, (self.num_worlds,), allow_row=False, dtype=torch.int64)
+        self._fill_start_reset(mask, index)
+        self._start_reset_graph()
 
     def check_overflow(self) -> None:
         """Raise :class:`~tocabi_torchrl.sim.health.SimOverflowError` if a world overflowed a buffer.

@@ -1,0 +1,207 @@
+"""``reset_pass="reduced"`` (issue 25) against the default full reset pass, on mujoco-warp's CPU device.
+
+The reduced pass runs only the position and velocity stages over all worlds and copies the rest of a registered start
+state from a table; everything the sim and the env return, and the trajectories after resets (worlds reset
+mid-episode beside worlds that continue, a start state with foot contacts), must be bit-identical to the full pass.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import warp as wp
+from tensordict import TensorDict
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.envs.config import EnvSimConfig
+from tocabi_torchrl.sim import SimConfig, WarpSim
+
+
+def _warp_cpu() -> bool:
+    try:
+        wp.init()
+        return wp.get_device("cpu") is not None
+    except (RuntimeError, ValueError):
+        return False
+
+
+pytestmark = pytest.mark.skipif(not _warp_cpu(), reason="warp's CPU device is unavailable")
+
+N = 4
+#: What the sim exposes (views) plus the solver's warm start, which decides the next steps.
+SIM_KEYS = ("qpos", "qvel", "ctrl", "sensordata", "xpos", "xquat", "foot_force", "foot_torque", "contact_counts",
+            "foot_contact", "forbidden_ground_contact", "self_collision", "obstacle_contact", "healthy", "overflow",
+            "applied_actuator_force", "mass_matrix", "qfrc_bias", "time")
+
+
+def _assert_sims_equal(a: WarpSim, b: WarpSim, when: str) -> None:
+    for key in SIM_KEYS:
+        x, y = getattr(a, key), getattr(b, key)
+        assert torch.equal(x, y), f"{when}: sim.{key} differs, max {(x.double() - y.double()).abs().max().item()}"
+    x, y = wp.to_torch(a.wp_data.qacc_warmstart), wp.to_torch(b.wp_data.qacc_warmstart)
+    assert torch.equal(x, y), f"{when}: qacc_warmstart differs"
+
+
+def _assert_tds_equal(a: TensorDict, b: TensorDict, when: str) -> None:
+    assert set(a.keys(True, True)) == set(b.keys(True, True)), when
+    for key in a.keys(True, True):
+        assert torch.equal(a[key], b[key]), f"{when}: {key} differs"
+
+
+# ------------------------------------------------------------------------------------------------ config and API
+def test_config_values():
+    SimConfig(reset_pass="reduced").validate()
+    EnvSimConfig(reset_pass="reduced").validate()
+    with pytest.raises(ValueError, match="reset_pass"):
+        SimConfig(reset_pass="fast").validate()
+    with pytest.raises(ValueError, match="env.sim.reset_pass"):
+        EnvSimConfig(reset_pass="fast").validate()
+    assert SimConfig().reset_pass == "full" and EnvSimConfig().reset_pass == "full"
+
+
+def test_override_path():
+    from benchmarks.common import parse_overrides
+    from tocabi_torchrl.config import field_choices
+
+    assert parse_overrides(["env.sim.reset_pass=reduced"]) == {"env.sim.reset_pass": "reduced"}
+    assert field_choices()["env.sim.reset_pass"] == ("full", "reduced")
+
+
+@pytest.fixture(scope="module")
+def start_states():
+    """Three start states: standing at rest (feet 1.3 mm above the ground), lowered 3 mm into foot contact with random
+    controls, and moving (joint velocities) with random controls."""
+    g = torch.Generator().manual_seed(3)
+    qpos = torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32).repeat(3, 1)
+    qpos[1, 2] -= 0.003
+    qvel = torch.zeros(3, 39)
+    qvel[2, 6:] = 0.5 * torch.randn(33, generator=g)
+    ctrl = torch.zeros(3, 33)
+    ctrl[1:, robot.LEGS] = 40.0 * (2 * torch.rand(2, 12, generator=g) - 1)  # leg torques [N·m]
+    ctrl[:, robot.UPPER_BODY] = qpos[:, 7:][:, robot.UPPER_BODY] + 0.05 * torch.randn(3, 21, generator=g)
+    return qpos, qvel, ctrl
+
+
+@pytest.fixture(scope="module")
+def sims(start_states):
+    full = WarpSim(SimConfig(num_worlds=N, device="cpu"))
+    reduced = WarpSim(SimConfig(num_worlds=N, device="cpu", reset_pass="reduced"))
+    reduced.register_start_states(*start_states)
+    return full, reduced
+
+
+def test_api_errors(start_states, sims):
+    full, _ = sims
+    with pytest.raises(ValueError, match="reset_pass='reduced'"):
+        full.register_start_states(*start_states)
+    fresh = WarpSim(SimConfig(num_worlds=1, device="cpu", reset_pass="reduced"))
+    with pytest.raises(RuntimeError, match="register_start_states"):
+        fresh.reset_to_start(torch.ones(1, dtype=torch.bool), torch.zeros(1, dtype=torch.int64))
+    with pytest.raises(ValueError, match=r"\(K, 40\)"):
+        fresh.register_start_states(start_states[0][:, :10], start_states[1], start_states[2])
+
+
+def test_sim_reduced_matches_full(start_states, sims):
+    """Resets of all worlds, then of some mid-trajectory, to each start state: every view, the warm start and the
+    following steps are bit-identical to the full pass (and a start state has its feet in contact)."""
+    full, reduced = sims
+    qpos, qvel, ctrl = start_states
+    g = torch.Generator().manual_seed(5)
+
+    def reset(mask, index):
+        full.reset(mask, qpos[index], qvel[index], ctrl[index])
+        reduced.reset_to_start(mask, index)
+
+    def steps(k, when):
+        for t in range(k):
+            u = torch.zeros(N, 33)
+            u[:, robot.LEGS] = 60.0 * (2 * torch.rand(N, 12, generator=g) - 1)
+            u[:, robot.UPPER_BODY] = qpos[0, 7:][robot.UPPER_BODY] + 0.1 * torch.randn(N, 21, generator=g)
+            full.ctrl.copy_(u)
+            reduced.ctrl.copy_(u)
+            full.step()
+            reduced.step()
+            _assert_sims_equal(full, reduced, f"{when}, step {t}")
+
+    reset(torch.ones(N, dtype=torch.bool), torch.tensor([0, 1, 2, 1]))
+    _assert_sims_equal(full, reduced, "reset of all worlds")
+    assert bool(full.foot_contact[1].all()) and bool(full.foot_force[1].abs().sum() > 0)  # contacts at the start
+    assert not bool(full.foot_contact[0].any())
+    steps(3, "after the first reset")
+    for mask, index in (([True, False, False, True], [1, 0, 0, 2]), ([False, True, True, False], [0, 2, 1, 0])):
+        before = reduced.qpos.clone()
+        reset(torch.tensor(mask), torch.tensor(index))
+        _assert_sims_equal(full, reduced, f"partial reset {mask}")
+        keep = ~torch.tensor(mask)
+        assert torch.equal(reduced.qpos[keep], before[keep])
+        steps(4, f"after partial reset {mask}")
+
+
+def test_sim_per_world_obstacles(start_states):
+    """The table is per world: a box under the feet in worlds 0 and 2 only (contact at the start there), the same
+    start states everywhere; the reduced pass matches the full one in every world."""
+    from tocabi_torchrl.envs.config import BoxObstacle
+    from tocabi_torchrl.envs.obstacles import add_obstacles
+
+    spec = robot.load_spec()
+    (name,) = add_obstacles(spec, [BoxObstacle(size=(0.5, 0.6, 0.004), pos=(0.0, 0.0))])
+    centres = torch.tensor([[0.0, 0.0, 0.002], [3.0, 0.0, 0.002]]).repeat(2, 1).numpy()  # worlds 0, 2: under the feet
+    qpos, qvel, ctrl = start_states
+    full = WarpSim(SimConfig(num_worlds=N, device="cpu"), model=spec, mocap_pos={name: centres})
+    reduced = WarpSim(SimConfig(num_worlds=N, device="cpu", reset_pass="reduced"), model=spec,
+                      mocap_pos={name: centres})
+    reduced.register_start_states(qpos, qvel, ctrl)
+    index = torch.tensor([0, 0, 2, 2])
+    for mask in ([True] * N, [True, True, False, False], [False, True, True, True]):
+        mask = torch.tensor(mask)
+        full.reset(mask, qpos[index], qvel[index], ctrl[index])
+        reduced.reset_to_start(mask, index)
+        _assert_sims_equal(full, reduced, f"reset {mask.tolist()}")
+        assert full.obstacle_contact[[0, 2]].any(-1).all() and not full.obstacle_contact[[1, 3]].any()
+        for t in range(2):
+            full.step()
+            reduced.step()
+            _assert_sims_equal(full, reduced, f"step {t} after reset {mask.tolist()}")
+
+
+# ------------------------------------------------------------------------------------------------------ the env
+@pytest.fixture(scope="module")
+def envs():
+    from tocabi_torchrl import make_env
+
+    def build(reset_pass):
+        # Torque mode and a 6-step truncation: the sync-free step resets worlds itself, out of phase after the
+        # explicit partial reset below.
+        return make_env(num_envs=N, device="cpu", seed=0, sync_free_resets=True, backend="warp",
+                        control_mode="torque", max_episode_steps=6, reset_pass=reset_pass)
+
+    return build("full"), build("reduced")
+
+
+def test_env_reduced_matches_full(envs):
+    """Observations, rewards and their terms, done flags and every signal of the transformed env, through resets
+    of all worlds, an explicit partial reset mid-episode and the sync-free step's own resets, are bit-identical."""
+    full, reduced = envs
+    assert reduced.base_env.sim.config.reset_pass == "reduced" and full.base_env.sim.config.reset_pass == "full"
+    td_f, td_r = full.reset(), reduced.reset()
+    _assert_tds_equal(td_f, td_r, "reset")
+    g = torch.Generator().manual_seed(7)
+    partial_autoresets = 0
+    for t in range(14):
+        a = 2 * torch.rand(N, 13, generator=g) - 1
+        a[:, 12] = a[:, 12].abs()
+        td_f["action"], td_r["action"] = a.clone(), a.clone()
+        out_f, td_f = full.step_and_maybe_reset(td_f)
+        out_r, td_r = reduced.step_and_maybe_reset(td_r)
+        _assert_tds_equal(out_f, out_r, f"step {t}")
+        _assert_tds_equal(td_f, td_r, f"step {t}, after the sync-free resets")
+        _assert_sims_equal(full.base_env.sim, reduced.base_env.sim, f"step {t}")
+        done = out_f["next", "done"].squeeze(-1)
+        partial_autoresets += int(bool(done.any()) and not bool(done.all()))
+        if t == 2:  # worlds 0 and 2 restart mid-episode; 1 and 3 go on
+            mask = torch.tensor([True, False, True, False]).unsqueeze(-1)
+            td_f = full.reset(td_f.set("_reset", mask.clone()))
+            td_r = reduced.reset(td_r.set("_reset", mask.clone()))
+            _assert_tds_equal(td_f, td_r, "partial reset")
+            _assert_sims_equal(full.base_env.sim, reduced.base_env.sim, "partial reset")
+    assert partial_autoresets >= 2  # the step reset some worlds while others went on
