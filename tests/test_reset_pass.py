@@ -205,3 +205,14 @@ def test_env_reduced_matches_full(envs):
             _assert_tds_equal(td_f, td_r, "partial reset")
             _assert_sims_equal(full.base_env.sim, reduced.base_env.sim, "partial reset")
     assert partial_autoresets >= 2  # the step reset some worlds while others went on
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # a failed capture or an eager fallback fails the test
+def test_gpu_reduced_pass_is_captured_and_never_syncs():
+    """On the GPU the reduced reset graph is recorded inside the env's captured step, replays like the eager step
+    and reads nothing on the host; a 6-step truncation makes the step reset worlds itself."""
+    from captured_vs_eager import assert_captured_equals_eager
+
+    assert_captured_equals_eager(dict(num_envs=64, device="cuda", seed=3, control_mode="torque", max_episode_steps=6,
+                                      reset_pass="reduced"), ("observation", "reward", "done"))
