@@ -207,6 +207,7 @@ def test_env_reduced_matches_full(envs):
     assert partial_autoresets >= 2  # the step reset some worlds while others went on
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # a failed capture or an eager fallback fails the test
 def test_gpu_reduced_pass_is_captured_and_never_syncs():
