@@ -37,6 +37,8 @@ FIELD_HELP: dict[str, str] = {
     "env.sim.nconmax": "mujoco-warp contacts per world; none = the measured default",
     "env.sim.njmax": "mujoco-warp constraint rows per world; none = the measured default",
     "env.sim.threads": "CPU threads of the mujoco backend; none = every available core",
+    "env.sim.reset_pass": "mujoco-warp reset: full forward pass, or reduced (position and velocity stages plus a "
+                          "start-state table; the same result)",
     "env.task.motion": "reference motion (.npz or reference .txt); none = the shipped cycle",
     "env.task.model_path": "robot model XML; none = the shipped TOCABI",
     "env.task.phase_rate_gain": "phase clock speed-up per unit of the phase action",
@@ -123,7 +125,7 @@ RESUME_SAFE = frozenset({
     "checkpoint_every", "checkpoint_keep_last", "checkpoint_keep_every", "checkpoint_minutes",
     "eval_at_end", "eval_envs", "eval_seconds",
     "ppo.cuda_graph", "ppo.update_graph", "ppo.store_env_signals",
-    "env.sim.threads",
+    "env.sim.threads", "env.sim.reset_pass",
 })
 
 
