@@ -348,10 +348,23 @@ class WarpSim(SimViews):
         (the warm start), the actuator forces and the overflow bits. Call it before the first :meth:`reset_to_start`
         and before capturing a graph that resets; it overwrites every world's state (leaving start state 0) and
         syncs with the host. The table holds for this simulator's model and mocap positions, which never change.
+        Once only: a graph captured after it reads the table's memory, so replacing the table could free what the
+        graph still reads.
+
+        Right after a reduced reset, the reset worlds' constraint and acceleration by-products (``qfrc_actuator``,
+        ``qfrc_smooth``, ``qacc_smooth``, ``qfrc_constraint``, ``cacc``, ``cfrc_int``/``cfrc_ext``, the ``efc``
+        forces and states) are not those of the start state: nothing here reads them, and the next step recomputes
+        them. The untouched worlds keep the step's ``qacc``, which the full pass re-solves from their warm start: the
+        two agree within the solver's tolerance (up to ~0.007 in the CPU tests), feed nothing (the warm start and every
+        trajectory are bit-identical), and only the health flag's finiteness check reads ``qacc``. Read only the
+        views of :class:`WarpSim` after a reset.
         """
         if self.config.reset_pass != "reduced":
             raise ValueError(f"register_start_states needs SimConfig.reset_pass='reduced' (this simulator has "
                              f"{self.config.reset_pass!r}); with 'full', reset to any state with reset()")
+        if getattr(self, "_start_states", None) is not None:
+            raise ValueError("register_start_states was called already: a graph captured since may read the table, "
+                             "so it is not replaced; build another simulator for other start states")
         m = self.wp_model
         unsupported = int(m.opt.enableflags) & int(mjw.EnableBit.ENERGY | mjw.EnableBit.SLEEP)
         if unsupported or m.opt.integrator == mjw.IntegratorType.DISCRETE:
