@@ -67,6 +67,7 @@ class _StartStates:
     num: int
     index: wp.array  # (N,) int32: the row each world resets to
     index_t: torch.Tensor | None
+    rows: torch.Tensor  # (N,) int64: the clamped rows, refilled in place on every reset (no allocation)
     sensordata: wp.array  # (K, N, nsensordata)
     qacc: wp.array  # (K, N, nv)
     actuator_force: wp.array  # (K, N, nu)
@@ -396,7 +397,7 @@ class WarpSim(SimViews):
                     table[name][r].copy_(t(getattr(d, name)))
             self._start_states = _StartStates(
                 qpos=qpos, qvel=qvel, ctrl=ctrl, num=k,
-                index=wp.zeros(n, dtype=wp.int32), index_t=None,
+                index=wp.zeros(n, dtype=wp.int32), index_t=None, rows=torch.zeros(n, dtype=torch.int64, device=dev),
                 **{name: wp.from_torch(v) for name, v in table.items()}, tables=table,
             )
             self._start_states.index_t = t(self._start_states.index)
@@ -409,13 +410,14 @@ class WarpSim(SimViews):
         self._start_reset_graph = Recorded(self._reset_to_start_fn, self.wp_device, self.config.use_graph)
 
     def _fill_start_reset(self, mask: torch.Tensor, index: torch.Tensor) -> None:
+        # Every reset of the sync-free step comes here: into preallocated buffers only.
         s = self._start_states
-        rows = index.clamp(0, s.num - 1)  # an index out of range would read outside the table
+        rows = torch.clamp(index, 0, s.num - 1, out=s.rows)  # an index out of range would read outside the table
         self._reset_mask_t.copy_(mask)
         s.index_t.copy_(rows)
-        self._reset_qpos_t.copy_(s.qpos.index_select(0, rows))
-        self._reset_qvel_t.copy_(s.qvel.index_select(0, rows))
-        self._reset_ctrl_t.copy_(s.ctrl.index_select(0, rows))
+        torch.index_select(s.qpos, 0, rows, out=self._reset_qpos_t)
+        torch.index_select(s.qvel, 0, rows, out=self._reset_qvel_t)
+        torch.index_select(s.ctrl, 0, rows, out=self._reset_ctrl_t)
 
     def reset_to_start(self, mask: torch.Tensor, index: torch.Tensor) -> None:
         """Put each flagged world into registered start state ``index[w]`` with the reduced reset pass (see
