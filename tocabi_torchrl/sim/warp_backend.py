@@ -66,7 +66,7 @@ class _StartStates:
     ctrl: torch.Tensor  # (K, nu)
     num: int
     index: wp.array  # (N,) int32: the row each world resets to
-    index_t: torch.Tensor | None
+    index_t: torch.Tensor  # its torch view, which the host side fills
     rows: torch.Tensor  # (N,) int64: the clamped rows, refilled in place on every reset (no allocation)
     sensordata: wp.array  # (K, N, nsensordata)
     qacc: wp.array  # (K, N, nv)
@@ -234,20 +234,26 @@ class WarpSim(SimViews):
         wp.copy(d.qacc_warmstart, d.qacc)  # see _reset_fn: the solution of this state warm-starts what follows
         self._derive()
 
-    def _reset_fn(self) -> None:
-        m, d, n, mask = self.wp_model, self.wp_data, self.num_worlds, self._reset_mask
-        # The forward pass below recomputes every world; restoring the untouched worlds' sensors keeps them
-        # bit-identical even where the GPU's contact order (atomics) would change the last bits of a force.
-        wp.launch(copy_rows_where, dim=n, inputs=[mask, False, d.sensordata, self._sensor_snapshot])
+    def _write_reset_state(self) -> None:
+        """Clear the flagged worlds as ``mujoco_warp.reset_data`` does and write their reset qpos, qvel and ctrl (both
+        reset passes)."""
+        m, d, mask = self.wp_model, self.wp_data, self._reset_mask
         mjw.reset_data(m, d, reset=mask)
         if self._mocap_pos is not None:  # reset_data put the model's positions back in the reset worlds
             wp.copy(d.mocap_pos, self._mocap_pos)
         wp.launch(
             write_reset_state,
-            dim=n,
+            dim=self.num_worlds,
             inputs=[mask, self._reset_qpos, self._reset_qvel, self._reset_ctrl],
             outputs=[d.qpos, d.qvel, d.ctrl],
         )
+
+    def _reset_fn(self) -> None:
+        m, d, n, mask = self.wp_model, self.wp_data, self.num_worlds, self._reset_mask
+        # The forward pass below recomputes every world; restoring the untouched worlds' sensors keeps them
+        # bit-identical even where the GPU's contact order (atomics) would change the last bits of a force.
+        wp.launch(copy_rows_where, dim=n, inputs=[mask, False, d.sensordata, self._sensor_snapshot])
+        self._write_reset_state()
         # Warm start: mujoco-warp's Newton solver starts a world from qacc_warmstart and iterates until the slowest
         # world converges. The step leaves each world's warm start at the solution of its current state, so the
         # untouched worlds converge here in one iteration instead of re-solving from the last substep's
@@ -269,15 +275,7 @@ class WarpSim(SimViews):
         """The ``reset_pass="reduced"`` reset (see :meth:`register_start_states`): no sensor, actuation, acceleration
         or solver stage over all worlds; the reset worlds get those results from the start-state table."""
         m, d, n, mask, s = self.wp_model, self.wp_data, self.num_worlds, self._reset_mask, self._start_states
-        mjw.reset_data(m, d, reset=mask)
-        if self._mocap_pos is not None:
-            wp.copy(d.mocap_pos, self._mocap_pos)
-        wp.launch(
-            write_reset_state,
-            dim=n,
-            inputs=[mask, self._reset_qpos, self._reset_qvel, self._reset_ctrl],
-            outputs=[d.qpos, d.qvel, d.ctrl],
-        )
+        self._write_reset_state()
         # What the next step's step2 reads besides its own stages: kinematics, com, inertia and its factorisation
         # (forward factorises in its acceleration stage, step2 does not), contacts, constraint rows, bias forces.
         # The untouched worlds keep their sensors, qacc, actuator forces and warm start from the step's forward pass.
@@ -363,7 +361,7 @@ class WarpSim(SimViews):
         if self.config.reset_pass != "reduced":
             raise ValueError(f"register_start_states needs SimConfig.reset_pass='reduced' (this simulator has "
                              f"{self.config.reset_pass!r}); with 'full', reset to any state with reset()")
-        if getattr(self, "_start_states", None) is not None:
+        if self._start_states is not None:
             raise ValueError("register_start_states was called already: a graph captured since may read the table, "
                              "so it is not replaced; build another simulator for other start states")
         m = self.wp_model
@@ -395,12 +393,12 @@ class WarpSim(SimViews):
                 wp.synchronize_device(self.wp_device)
                 for name in ("sensordata", "qacc", "actuator_force", "overflow"):
                     table[name][r].copy_(t(getattr(d, name)))
+            index = wp.zeros(n, dtype=wp.int32)
             self._start_states = _StartStates(
-                qpos=qpos, qvel=qvel, ctrl=ctrl, num=k,
-                index=wp.zeros(n, dtype=wp.int32), index_t=None, rows=torch.zeros(n, dtype=torch.int64, device=dev),
+                qpos=qpos, qvel=qvel, ctrl=ctrl, num=k, index=index, index_t=t(index),
+                rows=torch.zeros(n, dtype=torch.int64, device=dev),
                 **{name: wp.from_torch(v) for name, v in table.items()}, tables=table,
             )
-            self._start_states.index_t = t(self._start_states.index)
             # Compile and run the reduced reset once (all worlds into start state 0), then record it.
             self._fill_start_reset(torch.ones(n, dtype=torch.bool, device=dev), torch.zeros(n, dtype=torch.int64,
                                                                                             device=dev))
