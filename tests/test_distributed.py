@@ -9,6 +9,7 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 from tensordict import TensorDict
+from torch.nn.parallel import DistributedDataParallel
 from torchrl.modules import ValueOperator
 from torchrl.objectives import ClipPPOLoss
 
@@ -18,7 +19,8 @@ from tocabi_torchrl.rl import distributed
 from tocabi_torchrl.rl.distributed import (DistInfo, GradientAllReduce, RunningStatsSync, all_reduce_mean,
                                            broadcast_module, from_environment, init_distributed, rank_seed, shutdown)
 from tocabi_torchrl.rl.networks import make_mlp
-from tocabi_torchrl.rl.trainer import _episode_metrics
+from tocabi_torchrl.config import RunConfig
+from tocabi_torchrl.rl.trainer import _episode_metrics, make_update_step
 from tocabi_torchrl.rl.update_step import MinibatchStep
 from tocabi_torchrl.transforms.normalize import RunningNormalization
 
@@ -56,12 +58,20 @@ def _flat(params) -> torch.Tensor:
     return torch.cat([p.detach().reshape(-1) for p in params])
 
 
-def _train_steps(rows: TensorDict, info: DistInfo, init_seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _train_steps(rows: TensorDict, info: DistInfo, init_seed: int,
+                 grad_sync: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     actor, critic, loss, params = _agent(init_seed)
     broadcast_module(actor, info)
     broadcast_module(critic, info)
     opt = torch.optim.Adam(params, lr=3e-3)
-    step = MinibatchStep(loss, opt, params, max_grad_norm=0.5, grad_sync=GradientAllReduce(info))
+    if grad_sync is None:
+        step = MinibatchStep(loss, opt, params, max_grad_norm=0.5, grad_sync=GradientAllReduce(info))
+    else:  # as train() builds it from the config
+        cfg = RunConfig()
+        cfg.ppo.max_grad_norm, cfg.ppo.grad_sync, cfg.ppo.update_graph = 0.5, grad_sync, False
+        cfg.validate()
+        step = make_update_step(cfg, loss, opt, torch.device("cpu"), info)
+        assert step.grad_sync is None and isinstance(step.loss_module, DistributedDataParallel), "DDP not used"
     stats = torch.zeros(4)
     for _ in range(STEPS):
         stats += step(rows)
@@ -76,6 +86,7 @@ def _worker(rank: int, world: int, init_file: str, out: dict) -> None:
         half = full[rank * ROWS // world:(rank + 1) * ROWS // world]
         # Different initial weights per rank: the broadcast must make them rank 0's.
         params, stats = _train_steps(half, info, init_seed=100 + rank)
+        params_ddp, _ = _train_steps(half, info, init_seed=100 + rank, grad_sync="ddp")
         gathered = [torch.zeros_like(params) for _ in range(world)]
         dist.all_gather(gathered, params)
 
@@ -88,7 +99,7 @@ def _worker(rank: int, world: int, init_file: str, out: dict) -> None:
         sync.sync()
         norm.update(data[rank][:5] * 3)  # a second rollout: only what was added since the last sync is merged
         sync.sync()
-        out[rank] = {"params": params, "all": torch.stack(gathered), "stats": stats,
+        out[rank] = {"params": params, "params_ddp": params_ddp, "all": torch.stack(gathered), "stats": stats,
                      "norm": (norm.count.clone(), norm.mean.clone(), norm.var.clone()), "data": data,
                      "episodes": _episode_metrics(_rollout(rank), info),
                      "episodes_rank0_none": _episode_metrics(_rollout(rank, finish=rank == 1), info)}
@@ -135,6 +146,30 @@ def test_two_ranks_equal_one_rank_on_the_union_of_their_minibatches(two_ranks):
     # The mean of the ranks' mean losses is the loss of the union (equal halves): the logged stats agree too.
     torch.testing.assert_close(two_ranks[0]["stats"][:2], stats[:2], rtol=1e-4, atol=1e-6)
     torch.testing.assert_close(two_ranks[0]["stats"], two_ranks[1]["stats"], rtol=0, atol=0)
+
+
+def test_ddp_around_the_loss_averages_gradients_as_the_all_reduce_does(two_ranks):
+    """ppo.grad_sync=ddp (DistributedDataParallel around the TorchRL loss, eager): the same parameters on both ranks,
+    equal to the captured-all-reduce path's after the same mini-batch steps."""
+    torch.testing.assert_close(two_ranks[0]["params_ddp"], two_ranks[1]["params_ddp"], rtol=0, atol=0)
+    torch.testing.assert_close(two_ranks[0]["params_ddp"], two_ranks[0]["params"], rtol=1e-6, atol=1e-7)
+
+
+def test_ddp_is_refused_with_a_captured_update_and_unknown_syncs_are_named():
+    cfg = RunConfig()
+    cfg.ppo.grad_sync = "ddp"
+    with pytest.raises(ValueError, match="set ppo.update_graph=false"):
+        cfg.validate()
+    cfg.ppo.update_graph = False
+    cfg.validate()
+    cfg.ppo.grad_sync = "horovod"
+    with pytest.raises(ValueError, match="grad_sync.*allreduce.*ddp"):
+        cfg.validate()
+    # One rank: the loss is not wrapped and nothing is exchanged, whatever the option says.
+    cfg.ppo.grad_sync = "ddp"
+    _, _, loss, params = _agent(0)
+    step = make_update_step(cfg, loss, torch.optim.Adam(params), torch.device("cpu"), DistInfo())
+    assert step.loss_module is loss and step.grad_sync is None
 
 
 def test_running_statistics_merge_exactly(two_ranks):
@@ -299,9 +334,11 @@ def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available() or torch.cuda.device_count() < 2, reason="needs 2 GPUs")
-def test_torchrun_trains_on_two_gpus_with_nccl_and_ends(tmp_path):
-    """NCCL between two GPUs, the all-reduce captured in the update graph: the recipe trains, rank 0 writes the run,
-    and both ranks end (destroy_process_group after such a capture hung on an H100 pair: pytorch#115388)."""
+@pytest.mark.parametrize("grad_sync", ["allreduce", "ddp"])
+def test_torchrun_trains_on_two_gpus_with_nccl_and_ends(tmp_path, grad_sync):
+    """NCCL between two GPUs, the all-reduce captured in the update graph (or DDP around the loss, eager): the recipe
+    trains, rank 0 writes the run, and both ranks end (destroy_process_group after such a capture hung on an H100
+    pair: pytorch#115388)."""
     import os
     import subprocess
     import sys
@@ -311,7 +348,8 @@ def test_torchrun_trains_on_two_gpus_with_nccl_and_ends(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", str(recipe),
          "--preset", "cpu_smoke", "--device", "cuda", "--num_envs", "64", "--steps_per_env", "8", "--minibatch_size",
-         "256", "--total_env_steps", str(2 * 2 * 64 * 8), "--update_graph", "true", "--run_dir", str(tmp_path),
+         "256", "--total_env_steps", str(2 * 2 * 64 * 8), "--update_graph", str(grad_sync == "allreduce").lower(),
+         "--grad_sync", grad_sync, "--run_dir", str(tmp_path),
          "--name", "dp", "--eval_at_end", "false", "--progress_bar", "false"],
         capture_output=True, text=True, timeout=900, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

@@ -42,6 +42,8 @@ __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", 
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
+#: How a data-parallel run averages the ranks' gradients (``ppo.grad_sync``).
+GRAD_SYNCS = ("allreduce", "ddp")
 _GRAPH_ALIASES = {"true": "on", "yes": "on", "1": "on", "false": "off", "no": "off", "0": "off"}
 STD_MODES = ("scheduled", "learned")
 LOGGERS = ("csv", "tensorboard", "wandb")
@@ -126,6 +128,12 @@ class PPOConfig:
     #: On a GPU, capture each PPO mini-batch step (loss, backward, clipping, fused Adam) as one CUDA graph after 3
     #: eager steps (falls back to eager, with a warning, if the capture fails, e.g. with entropy_coef > 0).
     update_graph: bool = True
+    #: Data-parallel runs (torchrun, several ranks): how the ranks' gradients are averaged before clipping.
+    #: "allreduce": one all-reduce of one flat buffer after backward, captured with the update step; "ddp": torch's
+    #: DistributedDataParallel around the loss (bucketed all-reduces that overlap backward), which cannot be captured,
+    #: so it needs ``update_graph`` false. Both give every rank the same mean gradient (tests/test_distributed.py).
+    #: No effect on one rank.
+    grad_sync: str = "allreduce"
     #: Keep every env signal (joint_pos, base_pos, ...) in the training rollout; off: only what PPO and the logs
     #: read (observation, reward, done flags, reward terms, episode counters), ~40 % less rollout memory.
     store_env_signals: bool = False
@@ -156,6 +164,9 @@ class PPOConfig:
         if self.torque_assist > 0 and not 0 <= self.assist_fade_start < self.assist_fade_end:
             raise ValueError(f"ppo.torque_assist > 0 needs 0 <= assist_fade_start < assist_fade_end (env "
                              f"steps), got {self.assist_fade_start}, {self.assist_fade_end}")
+        if self.grad_sync == "ddp" and self.update_graph:
+            raise ValueError("ppo.grad_sync=ddp runs the update step eagerly (DDP's gradient hooks cannot be captured "
+                             "in a CUDA graph): set ppo.update_graph=false as well")
         for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"ppo.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -288,7 +299,7 @@ def field_choices() -> dict[str, tuple[str, ...]]:
             "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.preset": tuple(TRANSFORM_PRESETS),
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
             "ppo.assist_target": ASSIST_TARGETS, "env.sim.backend": ("warp", "mujoco", "auto"),
-            "env.sim.reset_pass": RESET_PASSES}
+            "env.sim.reset_pass": RESET_PASSES, "ppo.grad_sync": GRAD_SYNCS}
 
 
 # ---------------------------------------------------------------------------------------------------------- presets

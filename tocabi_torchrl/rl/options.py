@@ -86,6 +86,7 @@ FIELD_HELP: dict[str, str] = {
     "ppo.value_loss": "value loss function",
     "ppo.max_grad_norm": "gradient norm clip",
     "ppo.update_graph": "on a GPU, capture each mini-batch step as a CUDA graph",
+    "ppo.grad_sync": "several ranks: average gradients with one captured all-reduce, or DDP (needs update_graph false)",
     "ppo.lr": "learning rate (start value of the schedule)",
     "ppo.lr_end": "final learning rate of the linear schedule",
     "ppo.lr_schedule": "learning-rate schedule (adaptive: from the KL to desired_kl)",
@@ -124,7 +125,7 @@ RESUME_SAFE = frozenset({
     "log_every", "loggers", "progress_bar",
     "checkpoint_every", "checkpoint_keep_last", "checkpoint_keep_every", "checkpoint_minutes",
     "eval_at_end", "eval_envs", "eval_seconds",
-    "ppo.cuda_graph", "ppo.update_graph", "ppo.store_env_signals",
+    "ppo.cuda_graph", "ppo.update_graph", "ppo.grad_sync", "ppo.store_env_signals",
     "env.sim.threads", "env.sim.reset_pass",
 })
 

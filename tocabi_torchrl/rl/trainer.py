@@ -11,6 +11,7 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
+from torch.nn.parallel import DistributedDataParallel
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, SelectTransform
 from torchrl.modules import ProbabilisticActor, ValueOperator
@@ -230,10 +231,19 @@ def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.
                      device: torch.device, dist_info: DistInfo | None = None) -> MinibatchStep:
     """The mini-batch step of :func:`train` (a CUDA graph after a few eager steps when
     :func:`~tocabi_torchrl.cuda_graphs.plan_graphs` says so);
-    in a data-parallel run its gradients are averaged over the ranks before clipping."""
+    in a data-parallel run its gradients are averaged over the ranks before clipping (``cfg.ppo.grad_sync``: one
+    all-reduce inside the step, or DDP around the loss)."""
     params = [p for g in optimizer.param_groups for p in g["params"]]
-    sync = GradientAllReduce(dist_info) if dist_info is not None and dist_info.enabled else None
-    return MinibatchStep(loss_module, optimizer, params, cfg.ppo.max_grad_norm,
+    sync, step_loss = None, loss_module
+    if dist_info is not None and dist_info.enabled:
+        if cfg.ppo.grad_sync == "ddp":
+            # The ranks' parameters are equal already (broadcast from rank 0); the loss holds no buffer that training
+            # changes (the running observation statistics live in the env's transforms, synced on their own).
+            ids = [device.index] if device.type == "cuda" else None
+            step_loss = DistributedDataParallel(loss_module, device_ids=ids, broadcast_buffers=False)
+        else:
+            sync = GradientAllReduce(dist_info)
+    return MinibatchStep(step_loss, optimizer, params, cfg.ppo.max_grad_norm,
                          use_graph=plan_graphs(cfg, device).update, grad_sync=sync)
 
 
