@@ -15,7 +15,7 @@ for part in "${@:-all}"; do
              | tee "$log/multi.log" | tail -8
            python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --set update_graph=false \
              --name multi_gpu_eager_update 2>&1 | tee -a "$log/multi.log" | tail -8
-           python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --set update_graph=false grad_sync=ddp \
+           python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --set update_graph=false ppo.grad_sync=ddp \
              --name multi_gpu_ddp 2>&1 | tee -a "$log/multi.log" | tail -8
            python3 -m pytest -q -p no:cacheprovider tests/test_distributed.py -k two_gpus 2>&1 | tee -a "$log/multi.log" \
              | tail -3 ;;

@@ -349,7 +349,7 @@ def test_torchrun_trains_on_two_gpus_with_nccl_and_ends(tmp_path, grad_sync):
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", str(recipe),
          "--preset", "cpu_smoke", "--device", "cuda", "--num_envs", "64", "--steps_per_env", "8", "--minibatch_size",
          "256", "--total_env_steps", str(2 * 2 * 64 * 8), "--update_graph", str(grad_sync == "allreduce").lower(),
-         "--grad_sync", grad_sync, "--run_dir", str(tmp_path),
+         "--ppo.grad_sync", grad_sync, "--run_dir", str(tmp_path),
          "--name", "dp", "--eval_at_end", "false", "--progress_bar", "false"],
         capture_output=True, text=True, timeout=900, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

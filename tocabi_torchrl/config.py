@@ -379,7 +379,8 @@ _TOP_LEVEL = ("preset", "name", "run_dir", "seed", "device", "resume", "total_en
 #: the tree. ``command_preset`` and ``pd_gains`` were names for values and become those values (:func:`flat_to_paths`).
 FLAT_PATHS: Mapping[str, str] = MappingProxyType({
     **{name: name for name in _TOP_LEVEL},
-    **{f.name: f"ppo.{f.name}" for f in dataclasses.fields(PPOConfig)},
+    # PPO options added after the tree have no flat name: the flat names stand for the flat config of before it.
+    **{f.name: f"ppo.{f.name}" for f in dataclasses.fields(PPOConfig) if f.name not in ("grad_sync",)},
     "num_envs": "env.num_envs", "control_mode": "env.control.mode", "max_episode_steps": "env.task.max_episode_steps",
     "pd_action_scale": "env.control.pd_action_scale", "command_preset": "env.command", "pd_gains": "env.control.pd_kp",
     "transform_preset": "transforms.preset", "reward_weights": "transforms.reward_weights",
