@@ -29,7 +29,9 @@ in progress) is in each row's notes. One H100, 10-minute commands, one row (repe
     python recipes/library_table.py --libraries rsl_rl --num_envs 4096 --eval_only --eval_minutes 8
 
 The row's run folder (``--runs``) and ``--json`` must survive between calls (the same machine, or copied out and
-back). This script lives in recipes/ while benchmarks/ is being rewritten; it belongs beside
+back). Calls for different rows may run at the same time, one per GPU (``CUDA_VISIBLE_DEVICES=0 python
+recipes/library_table.py ... & CUDA_VISIBLE_DEVICES=1 python recipes/library_table.py ...``): each writes only its
+own rows into ``--json``, under a file lock. This script lives in recipes/ while benchmarks/ is being rewritten; it belongs beside
 benchmarks/time_to_walk.py.
 """
 
@@ -237,6 +239,29 @@ def upgrade_old_row(row: dict) -> bool:
     return True
 
 
+def row_key(row: dict) -> tuple:
+    return row["library"], row["preset"], row["num_envs"]
+
+
+def save_rows(json_path: Path, rows: list[dict], mine: set[tuple]) -> list[dict]:
+    """Write this call's rows (keys in ``mine``) into ``json_path``, keeping every other row as the file has it now,
+    and return the merged rows. The file is read and written under an exclusive lock, so that calls running at once
+    (one row per GPU, e.g. ``CUDA_VISIBLE_DEVICES=1``) do not drop each other's rows."""
+    import fcntl
+
+    from tocabi_torchrl.rl.atomic import atomic_write_text
+
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(json_path.with_name(json_path.name + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        on_disk = json.loads(json_path.read_text()) if json_path.is_file() else []
+        ours = {row_key(r): r for r in rows if row_key(r) in mine}
+        merged = [ours.pop(row_key(r), r) if row_key(r) in mine else r for r in on_disk]
+        merged += [r for r in rows if row_key(r) in ours]  # this call's new rows, in its order
+        atomic_write_text(json_path, json.dumps(merged, indent=2))
+    return merged
+
+
 def report(rows: list[dict], path: Path) -> None:
     from tocabi_torchrl.rl.atomic import atomic_write_text
 
@@ -318,9 +343,8 @@ def main(argv=None) -> None:
 
         import torch
 
-        from tocabi_torchrl.rl.atomic import atomic_write_text
-
-        args.save_rows = lambda: atomic_write_text(json_path, json.dumps(rows, indent=2))
+        mine: set[tuple] = set()  # the rows this call handles; the others may belong to a call running beside it
+        args.save_rows = lambda: save_rows(json_path, rows, mine)
         dists = {"torchrl": "torchrl", "rsl_rl": "rsl-rl-lib", "skrl": "skrl", "sb3": "stable-baselines3"}
         cap_s = 60.0 * args.max_minutes
         for library in args.libraries.split(","):
@@ -328,7 +352,8 @@ def main(argv=None) -> None:
                 parser.error(f"unknown library {library!r}; choose from {', '.join(LIBRARIES)}")
             for n in (int(x) for x in args.num_envs.split(",")):
                 key = (library, args.preset, n)
-                row = next((r for r in rows if (r["library"], r["preset"], r["num_envs"]) == key), None)
+                mine.add(key)
+                row = next((r for r in rows if row_key(r) == key), None)
                 if row is not None and args.new:
                     rows.remove(row)
                     row = None
@@ -387,6 +412,7 @@ def main(argv=None) -> None:
                 args.save_rows()
                 print(json.dumps({k: row[k] for k in ("library", "num_envs", "status", "train_seconds",
                                                       "env_steps_per_s", "walks_minutes")}))
+        rows = args.save_rows()  # with the rows of calls that ran beside this one
     report(rows, md_path)
 
 

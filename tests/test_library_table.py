@@ -247,3 +247,26 @@ def test_a_killed_first_call_is_set_aside_and_the_next_call_starts_over(torchrl_
     with pytest.raises(SystemExit, match=r"no resume point \(checkpoints/latest.pt\) .* pass --new"):
         torchrl_table.main(args)
     assert (run / "latest.pt.moved").is_file() and rows(tmp_path)[0]["calls"] == 1
+
+
+def test_calls_running_side_by_side_keep_each_others_rows(tmp_path):
+    """Two calls on two GPUs share one --json: each writes only its own rows, and a stale copy of the other call's
+    row (read when it started) is never written back over the newer one."""
+    table = load_recipe("library_table")
+    path = tmp_path / "table.json"
+    rsl, skrl = ("rsl_rl", "default", 4096), ("skrl", "default", 4096)
+
+    def row(key, status):
+        return {"library": key[0], "preset": key[1], "num_envs": key[2], "status": status}
+
+    ours = [row(rsl, "training")]
+    table.save_rows(path, ours, {rsl})
+    theirs = [row(rsl, "training"), row(skrl, "training")]  # the second call read the file after the first saved
+    table.save_rows(path, theirs, {skrl})
+    ours[0]["status"] = "final"
+    merged = table.save_rows(path, ours, {rsl})
+    assert [(r["library"], r["status"]) for r in merged] == [("rsl_rl", "final"), ("skrl", "training")]
+    theirs[1]["status"] = "final"  # theirs still holds the stale "training" copy of the rsl_rl row
+    merged = table.save_rows(path, theirs, {skrl})
+    assert [(r["library"], r["status"]) for r in merged] == [("rsl_rl", "final"), ("skrl", "final")]
+    assert json.loads(path.read_text()) == merged
