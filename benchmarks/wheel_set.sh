@@ -6,16 +6,17 @@
 #   bash benchmarks/wheel_set.sh <set> install   there, in the call carrying the last folder (earlier calls copy theirs
 #                                                to /tmp/<set>_wheels), after our own two staging calls
 # Sets: mjlab (mjlab's own pins, mujoco 3.11 where we use 4.0: installed apart, into /tmp/mjlab_site, with our warp
-# linked in) and adapters (the RL libraries of tocabi_torchrl.adapters and what they import beyond our staged set:
-# installed into our /tmp/site).
+# linked in) and adapters (the RL libraries of tocabi_torchrl.adapters and what they import beyond our staged set,
+# into /tmp/adapters_site, last on PYTHONPATH after /tmp/site and the repository, so that its general packages do not
+# shadow what other runs on that machine import).
 set -euo pipefail
 set_name=${1:-} action=${2:-}
 case "$set_name" in
-mjlab) site=/tmp/mjlab_site
+mjlab) site=/tmp/mjlab_site path=/tmp/mjlab_site
        check="import mujoco_warp, rsl_rl, torch, warp, importlib.metadata as m
 print('mjlab site:', *(f'{d} {m.version(d)}' for d in ('mjlab', 'mujoco-warp', 'rsl-rl-lib')), 'warp', warp.__version__,
       'cuda', torch.cuda.is_available())" ;;
-adapters) site=/tmp/site
+adapters) site=/tmp/adapters_site path=/tmp/site:$PWD:/tmp/adapters_site
           check="import rsl_rl, skrl, stable_baselines3, tocabi_torchrl.adapters, importlib.metadata as m
 print('adapters:', *(f'{d} {m.version(d)}' for d in ('rsl-rl-lib', 'skrl', 'stable-baselines3')))" ;;
 *) echo "usage: bash benchmarks/wheel_set.sh mjlab|adapters stage|install" >&2; exit 2 ;;
@@ -47,11 +48,11 @@ install)
   [ -d /tmp/site/warp ] || { echo "wheel_set.sh: no /tmp/site/warp: make our two staging calls first" >&2; exit 3; }
   tmp=$(mktemp -d) && mkdir -p "$site"
   # mujoco-warp 3.11 asks for warp-lang>=1.14: mjlab's set runs on our staged warp 1.19.0.
-  [ "$site" = /tmp/site ] || ln -sfn /tmp/site/warp "$site/warp"
+  [ "$set_name" = mjlab ] && ln -sfn /tmp/site/warp "$site/warp"
   for i in $(seq "$n"); do cat "$parts/wheels.tar.$i-of-$n"; done | tar xf - -C "$tmp"
   python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target "$site" "$tmp"/*.whl 2>&1 \
     | grep -vi warning || true
   rm -rf "$tmp"
-  PYTHONPATH=$site:$PWD python3 -c "$check" ;;
+  PYTHONPATH=$path python3 -c "$check" ;;
 *) echo "usage: bash benchmarks/wheel_set.sh mjlab|adapters stage|install" >&2; exit 2 ;;
 esac

@@ -243,10 +243,11 @@ def row_key(row: dict) -> tuple:
     return row["library"], row["preset"], row["num_envs"]
 
 
-def save_rows(json_path: Path, rows: list[dict], mine: set[tuple]) -> list[dict]:
+def save_rows(json_path: Path, rows: list[dict], mine: set[tuple], md_path: Path | None = None) -> list[dict]:
     """Write this call's rows (keys in ``mine``) into ``json_path``, keeping every other row as the file has it now,
-    and return the merged rows. The file is read and written under an exclusive lock, so that calls running at once
-    (one row per GPU, e.g. ``CUDA_VISIBLE_DEVICES=1``) do not drop each other's rows."""
+    and return the merged rows (also rendered into ``md_path`` when given). The files are read and written under an
+    exclusive lock (``<json>.lock``, ignored by git), so that calls running at once (one row per GPU, e.g.
+    ``CUDA_VISIBLE_DEVICES=1``) do not drop each other's rows."""
     import fcntl
 
     from tocabi_torchrl.rl.atomic import atomic_write_text
@@ -259,6 +260,8 @@ def save_rows(json_path: Path, rows: list[dict], mine: set[tuple]) -> list[dict]
         merged = [ours.pop(row_key(r), r) if row_key(r) in mine else r for r in on_disk]
         merged += [r for r in rows if row_key(r) in ours]  # this call's new rows, in its order
         atomic_write_text(json_path, json.dumps(merged, indent=2))
+        if md_path is not None:
+            report(merged, md_path)
     return merged
 
 
@@ -412,8 +415,9 @@ def main(argv=None) -> None:
                 args.save_rows()
                 print(json.dumps({k: row[k] for k in ("library", "num_envs", "status", "train_seconds",
                                                       "env_steps_per_s", "walks_minutes")}))
-        rows = args.save_rows()  # with the rows of calls that ran beside this one
-    report(rows, md_path)
+        save_rows(json_path, rows, mine, md_path)  # the table: with the rows of calls that ran beside this one
+    else:
+        report(rows, md_path)
 
 
 if __name__ == "__main__":

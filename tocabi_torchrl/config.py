@@ -132,7 +132,8 @@ class PPOConfig:
     #: "allreduce": one all-reduce of one flat buffer after backward, captured with the update step; "ddp": torch's
     #: DistributedDataParallel around the loss (bucketed all-reduces that overlap backward), which cannot be captured,
     #: so it needs ``update_graph`` false. Both give every rank the same mean gradient (tests/test_distributed.py).
-    #: No effect on one rank.
+    #: On one rank nothing is exchanged either way (the update_graph rule still applies, so a config means the
+    #: same on any rank count).
     grad_sync: str = "allreduce"
     #: Keep every env signal (joint_pos, base_pos, ...) in the training rollout; off: only what PPO and the logs
     #: read (observation, reward, done flags, reward terms, episode counters), ~40 % less rollout memory.

@@ -237,8 +237,9 @@ def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.
     sync, step_loss = None, loss_module
     if dist_info is not None and dist_info.enabled:
         if cfg.ppo.grad_sync == "ddp":
-            # The ranks' parameters are equal already (broadcast from rank 0); the loss holds no buffer that training
-            # changes (the running observation statistics live in the env's transforms, synced on their own).
+            # The ranks' parameters are equal already (broadcast from rank 0). No buffer broadcast: the loss's buffers
+            # (the assist's schedule and teacher) are set alike on every rank from the global step count and equal
+            # weights, and the running observation statistics live in the env's transforms, synced on their own.
             ids = [device.index] if device.type == "cuda" else None
             step_loss = DistributedDataParallel(loss_module, device_ids=ids, broadcast_buffers=False)
         else:
