@@ -332,6 +332,27 @@ def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
     assert "error (rank 1): another rank could not open the run" in proc.stderr
 
 
+def test_torchrun_trains_the_recipe_with_ddp_on_two_gloo_ranks(tmp_path):
+    """--ppo.grad_sync ddp from the command line to the trainer: two ranks train and end, rank 0 writes the run."""
+    import os
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    torchrun = shutil.which("torchrun") or pytest.skip("torchrun is not on PATH")
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "ppo_walk.py"
+    proc = subprocess.run(
+        [torchrun, "--standalone", "--nproc_per_node", "2", str(recipe), "--preset", "cpu_smoke", "--device", "cpu",
+         "--num_envs", "2", "--steps_per_env", "4", "--minibatch_size", "4", "--total_env_steps", "32",
+         "--ppo.grad_sync", "ddp", "--update_graph", "false", "--run_dir", str(tmp_path), "--name", "ddp",
+         "--eval_at_end", "false", "--progress_bar", "false"],
+        capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "done on 2 ranks: 32 env steps" in proc.stdout
+    saved = torch.load(tmp_path / "ddp" / "checkpoints" / "latest.pt", weights_only=True)
+    assert saved["env_steps"] == 32 and saved["config"]["ppo"]["grad_sync"] == "ddp"
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available() or torch.cuda.device_count() < 2, reason="needs 2 GPUs")
 @pytest.mark.parametrize("grad_sync", ["allreduce", "ddp"])

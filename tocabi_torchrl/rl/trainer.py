@@ -5,6 +5,7 @@ logging and checkpoints. ``recipes/ppo_walk.py`` is a thin command line over :fu
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -241,7 +242,10 @@ def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.
             # (the assist's schedule and teacher) are set alike on every rank from the global step count and equal
             # weights, and the running observation statistics live in the env's transforms, synced on their own.
             ids = [device.index] if device.type == "cuda" else None
-            step_loss = DistributedDataParallel(loss_module, device_ids=ids, broadcast_buffers=False)
+            # torch 2.13 renamed the option (and warns on the old name); older releases only know the old one.
+            no_sync = ("forward_sync_buffers" if "forward_sync_buffers" in
+                       inspect.signature(DistributedDataParallel).parameters else "broadcast_buffers")
+            step_loss = DistributedDataParallel(loss_module, device_ids=ids, **{no_sync: False})
         else:
             sync = GradientAllReduce(dist_info)
     return MinibatchStep(step_loss, optimizer, params, cfg.ppo.max_grad_norm,
