@@ -5,6 +5,8 @@
 Policy steps/s, legs PD-held: raw mujoco-warp, bare ``TocabiWalk.step``, ``make_env``'s transformed step, and the
 collectors' ``step_and_maybe_reset`` eager and as a CUDA graph. Targets: env / raw >= 0.9 at 4096; transforms <= 10 %
 of the env step. On the CPU, ``--backend mujoco`` against ``--backend warp`` compares the two physics backends.
+``--reset_pass reduced --name env_throughput_reduced`` measures the reduced reset pass (only the collectors' rows
+reset worlds) beside the committed full-pass report.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ import argparse
 import gc
 
 import torch
+
+from tocabi_torchrl.sim import RESET_PASSES
 
 from . import common
 
@@ -34,14 +38,14 @@ def _rate(steps: int, transformed: bool, autoreset: bool = False, **kwargs) -> t
     return rate, upright
 
 
-def measure(n: int, steps: int, raw_steps: int, device: str, backend: str) -> dict:
+def measure(n: int, steps: int, raw_steps: int, device: str, backend: str, reset_pass: str = "full") -> dict:
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
-    kw = {"num_envs": n, "device": device, "backend": backend}
+    kw = {"num_envs": n, "device": device, "backend": backend, "reset_pass": reset_pass}
     (bare, upright), (transformed, _) = _rate(steps, False, **kw), _rate(steps, True, **kw)
     auto = [_rate(steps, True, True, cuda_graph=g, **kw)[0] for g in ((False, True) if device == "cuda" else (False,))]
     auto += [None] * (2 - len(auto))  # the graph needs CUDA
     ratio = lambda x: x / raw if raw and x else None
-    return {"num_envs": n, "backend": backend, "raw_policy_steps_per_s": raw, "env_steps_per_s": bare,
+    return {"num_envs": n, "backend": backend, "reset_pass": reset_pass, "raw_policy_steps_per_s": raw, "env_steps_per_s": bare,
             "make_env_steps_per_s": transformed, "autoreset_steps_per_s": auto[0], "env_over_raw": ratio(bare),
             "autoreset_graph_steps_per_s": auto[1], "make_env_over_raw": ratio(transformed),
             "autoreset_over_raw": ratio(auto[0]), "autoreset_graph_over_raw": ratio(auto[1]),
@@ -51,7 +55,8 @@ def measure(n: int, steps: int, raw_steps: int, device: str, backend: str) -> di
 def render(data: dict, out) -> str:
     res, f3 = data["results"], lambda x: common.fmt(x, ".3f")
     n = [r["num_envs"] for r in res]
-    common.plot(out / f"{NAME}.png", [{"lines": {label: (n, [r[key] for r in res]) for key, label in (
+    name = data["meta"].get("name", NAME)
+    common.plot(out / f"{name}.png", [{"lines": {label: (n, [r[key] for r in res]) for key, label in (
         ("raw_policy_steps_per_s", "raw mujoco-warp"), ("env_steps_per_s", "TocabiWalk"),
         ("make_env_steps_per_s", "make_env")) if res[0][key]}, "xscale": "log", "xlabel": "parallel envs",
         "ylabel": "policy steps/s"}])
@@ -61,7 +66,7 @@ def render(data: dict, out) -> str:
         [(r["num_envs"], common.fmt(r["raw_policy_steps_per_s"]), common.fmt(r["env_steps_per_s"]),
           f3(r["env_over_raw"]), common.fmt(r["make_env_steps_per_s"]), f3(r["make_env_over_raw"]),
           f"{100 * r['transform_share_of_env_step']:.1f} %", f3(r["autoreset_over_raw"]),
-          f3(r["autoreset_graph_over_raw"])) for r in res]) + f"\n\n![env throughput]({NAME}.png)")
+          f3(r["autoreset_graph_over_raw"])) for r in res]) + f"\n\n![env throughput]({name}.png)")
 
 
 def main(argv=None) -> None:
@@ -71,10 +76,13 @@ def main(argv=None) -> None:
     parser.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
     parser.add_argument("--device", default="cuda", help="cuda, or cpu (a smoke run, or the CPU backends)")
     parser.add_argument("--backend", default="auto", choices=("auto", "warp", "mujoco"), help="physics backend")
+    parser.add_argument("--reset_pass", default="full", choices=RESET_PASSES, help="env.sim.reset_pass of the envs")
+    parser.add_argument("--name", default=NAME, help="report name (<out>/<name>.json, .md, .png)")
     parser.add_argument("--out", default=str(common.DOCS))
     args = parser.parse_args(argv)
-    results = [measure(n, args.steps, args.raw_steps, args.device, args.backend) for n in args.num_envs]
-    print(common.publish(args.out, NAME, {"meta": common.meta(NAME, argv, args.device), "results": results}, render))
+    results = [measure(n, args.steps, args.raw_steps, args.device, args.backend, args.reset_pass) for n in args.num_envs]
+    data = {"meta": common.meta(NAME, argv, args.device, name=args.name), "results": results}
+    print(common.publish(args.out, args.name, data, render))
 
 
 if __name__ == "__main__":

@@ -10,7 +10,9 @@ for part in "${@:-all}"; do
     train|all) python3 -m benchmarks.train_throughput --num_envs 4096 16384 2>&1 | tee "$log/train.log" | tail -8 ;;&
     graph) python3 -m benchmarks.train_throughput --set cuda_graph=on --name train_throughput_graph 2>&1 | tail -8 ;;
     resetpass) for pass in full reduced; do python3 -m benchmarks.train_throughput --num_envs 4096 \
-                 --set env.sim.reset_pass=$pass --name reset_pass_$pass 2>&1 | tee -a "$log/resetpass.log" | tail -4; done ;;
+                 --set env.sim.reset_pass=$pass --name reset_pass_$pass 2>&1 | tee -a "$log/resetpass.log" | tail -4
+               python3 -m benchmarks.env_throughput --num_envs 4096 --reset_pass $pass --name env_reset_pass_$pass 2>&1 \
+                 | tee -a "$log/resetpass.log" | tail -4; done ;;
     multi) python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --name multi_gpu 2>&1 \
              | tee "$log/multi.log" | tail -8
            python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --set update_graph=false \

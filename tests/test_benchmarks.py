@@ -35,6 +35,12 @@ def test_env_throughput_smoke(tmp_path):
     (r,) = json.loads((tmp_path / "env_throughput.json").read_text())["results"]
     assert r["env_steps_per_s"] > 0 and r["make_env_steps_per_s"] > 0 and r["raw_policy_steps_per_s"] is None
     assert "| 2 | - |" in (tmp_path / "env_throughput.md").read_text()
+    # The reset-pass A/B writes its own report beside it (warp's CPU device: the reduced pass is warp's).
+    env_throughput.main(["--device", "cpu", "--backend", "warp", "--num_envs", "2", "--steps", "3", "--raw_steps",
+                         "0", "--reset_pass", "reduced", "--name", "env_reduced", "--out", str(tmp_path)])
+    (r,) = json.loads((tmp_path / "env_reduced.json").read_text())["results"]
+    assert r["reset_pass"] == "reduced" and r["autoreset_steps_per_s"] > 0
+    assert "env_reduced.png" in (tmp_path / "env_reduced.md").read_text()
 
 
 def test_train_throughput_smoke_in_a_child_process_and_on_two_ranks(tmp_path):
