@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU tests, then the throughput benchmarks (results under docs/benchmarks), from the repository root of a GPU machine.
-# Usage: bash benchmarks/gpu_suite.sh [tests|env|train|graph|resetpass|multi|all]...   (multi: 2 GPUs, not in all)   Logs go to $LOG_DIR (default /tmp) as well.
+# Usage: bash benchmarks/gpu_suite.sh [tests|env|train|graph|tf32|resetpass|multi|all]...   (multi: 2 GPUs, not in all)   Logs go to $LOG_DIR (default /tmp) as well.
 set -uo pipefail
 log=${LOG_DIR:-/tmp}
 for part in "${@:-all}"; do
@@ -9,6 +9,8 @@ for part in "${@:-all}"; do
     env|all) python3 -m benchmarks.env_throughput --num_envs 1024 4096 16384 2>&1 | tee "$log/env.log" | tail -12 ;;&
     train|all) python3 -m benchmarks.train_throughput --num_envs 4096 16384 2>&1 | tee "$log/train.log" | tail -8 ;;&
     graph) python3 -m benchmarks.train_throughput --set cuda_graph=on --name train_throughput_graph 2>&1 | tail -8 ;;
+    tf32) python3 -m benchmarks.train_throughput --num_envs 4096 16384 --set ppo.matmul_precision=high \
+            --name train_throughput_tf32 2>&1 | tee "$log/tf32.log" | tail -8 ;;
     resetpass) for pass in full reduced; do python3 -m benchmarks.train_throughput --num_envs 4096 \
                  --set env.sim.reset_pass=$pass --name reset_pass_$pass 2>&1 | tee -a "$log/resetpass.log" | tail -4
                python3 -m benchmarks.env_throughput --num_envs 4096 --reset_pass $pass --name env_reset_pass_$pass 2>&1 \

@@ -144,3 +144,23 @@ def test_captured_update_matches_eager_without_syncs():
     before = _params(graph_agent).clone()
     graphed(flat[: cfg.ppo.minibatch_size])
     torch.testing.assert_close(_params(graph_agent), before, rtol=0, atol=0)
+
+
+def test_the_run_trains_at_its_matmul_precision_and_puts_the_setting_back(monkeypatch):
+    """ppo.matmul_precision is torch's process-wide setting inside train() only; bad values are refused by name."""
+    from tocabi_torchrl.rl import trainer
+
+    seen = []
+    monkeypatch.setattr(trainer, "_train", lambda *args: seen.append(torch.get_float32_matmul_precision()) or "done")
+    before = torch.get_float32_matmul_precision()
+    cfg = preset_config("cpu_smoke")
+    cfg.ppo.matmul_precision = "high"
+    assert trainer.train(cfg) == "done" and seen == ["high"]
+    assert torch.get_float32_matmul_precision() == before
+    monkeypatch.setattr(trainer, "_train", lambda *args: (_ for _ in ()).throw(RuntimeError("boom")))
+    with pytest.raises(RuntimeError, match="boom"):
+        trainer.train(cfg)
+    assert torch.get_float32_matmul_precision() == before  # also after a failed run
+    cfg.ppo.matmul_precision = "medium"
+    with pytest.raises(ValueError, match="ppo.matmul_precision must be one of"):
+        trainer.train(cfg)

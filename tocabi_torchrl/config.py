@@ -44,6 +44,8 @@ LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
 #: How a data-parallel run averages the ranks' gradients (``ppo.grad_sync``).
 GRAD_SYNCS = ("allreduce", "ddp")
+#: torch's float32 matrix-product precisions a run may train with (``ppo.matmul_precision``).
+MATMUL_PRECISIONS = ("highest", "high")
 _GRAPH_ALIASES = {"true": "on", "yes": "on", "1": "on", "false": "off", "no": "off", "0": "off"}
 STD_MODES = ("scheduled", "learned")
 LOGGERS = ("csv", "tensorboard", "wandb")
@@ -135,6 +137,11 @@ class PPOConfig:
     #: On one rank nothing is exchanged either way (the update_graph rule still applies, so a config means the
     #: same on any rank count).
     grad_sync: str = "allreduce"
+    #: float32 matrix products while training (torch.set_float32_matmul_precision, set for the run and restored
+    #: after it): "highest" (full float32) or "high" (TF32 tensor cores where the GPU has them, a 10-bit mantissa;
+    #: the update's and GAE's network passes are matmul-bound, ~115 GFLOP per default mini-batch step). It applies
+    #: to every torch product in the process, the env's transforms included; C MuJoCo and mujoco-warp are untouched.
+    matmul_precision: str = "highest"
     #: Keep every env signal (joint_pos, base_pos, ...) in the training rollout; off: only what PPO and the logs
     #: read (observation, reward, done flags, reward terms, episode counters), ~40 % less rollout memory.
     store_env_signals: bool = False
@@ -300,7 +307,8 @@ def field_choices() -> dict[str, tuple[str, ...]]:
             "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.preset": tuple(TRANSFORM_PRESETS),
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
             "ppo.assist_target": ASSIST_TARGETS, "env.sim.backend": ("warp", "mujoco", "auto"),
-            "env.sim.reset_pass": RESET_PASSES, "ppo.grad_sync": GRAD_SYNCS}
+            "env.sim.reset_pass": RESET_PASSES, "ppo.grad_sync": GRAD_SYNCS,
+            "ppo.matmul_precision": MATMUL_PRECISIONS}
 
 
 # ---------------------------------------------------------------------------------------------------------- presets
@@ -381,7 +389,7 @@ _TOP_LEVEL = ("preset", "name", "run_dir", "seed", "device", "resume", "total_en
 FLAT_PATHS: Mapping[str, str] = MappingProxyType({
     **{name: name for name in _TOP_LEVEL},
     # PPO options added after the tree have no flat name: the flat names stand for the flat config of before it.
-    **{f.name: f"ppo.{f.name}" for f in dataclasses.fields(PPOConfig) if f.name not in ("grad_sync",)},
+    **{f.name: f"ppo.{f.name}" for f in dataclasses.fields(PPOConfig) if f.name not in ("grad_sync", "matmul_precision")},
     "num_envs": "env.num_envs", "control_mode": "env.control.mode", "max_episode_steps": "env.task.max_episode_steps",
     "pd_action_scale": "env.control.pd_action_scale", "command_preset": "env.command", "pd_gains": "env.control.pd_kp",
     "transform_preset": "transforms.preset", "reward_weights": "transforms.reward_weights",

@@ -86,6 +86,7 @@ FIELD_HELP: dict[str, str] = {
     "ppo.value_loss": "value loss function",
     "ppo.max_grad_norm": "gradient norm clip",
     "ppo.update_graph": "on a GPU, capture each mini-batch step as a CUDA graph",
+    "ppo.matmul_precision": "float32 matrix products while training: highest (float32) or high (TF32 on GPUs)",
     "ppo.grad_sync": "several ranks: average gradients with one captured all-reduce, or DDP (needs update_graph false)",
     "ppo.lr": "learning rate (start value of the schedule)",
     "ppo.lr_end": "final learning rate of the linear schedule",

@@ -4,6 +4,7 @@ logging and checkpoints. ``recipes/ppo_walk.py`` is a thin command line over :fu
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import inspect
 import time
@@ -38,7 +39,7 @@ from .update_step import (MinibatchStep, get_lr, make_capturable_adam, optimizer
                           set_lr)
 
 __all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer",
-           "make_update_step", "training_keys", "train", "resolve_device",
+           "make_update_step", "training_keys", "train", "resolve_device", "float32_matmul_precision",
            "TrainResult"]
 
 
@@ -278,6 +279,18 @@ def make_loss(cfg: RunConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbL
     return loss_module, advantage
 
 
+@contextlib.contextmanager
+def float32_matmul_precision(precision: str):
+    """torch's float32 matrix-product precision set to ``precision`` inside the block and restored after it (the
+    setting is process-wide; a captured CUDA graph keeps the kernels chosen when it was captured)."""
+    before = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision(precision)
+    try:
+        yield
+    finally:
+        torch.set_float32_matmul_precision(before)
+
+
 def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = None,
           dist_info: DistInfo | None = None) -> TrainResult:
     """Run PPO as configured; returns where the run was written and its throughput. ``run``: the run folder
@@ -291,6 +304,11 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
     checkpoints. A run resumes on any K: the iteration to continue from is derived from the env steps done.
     """
     cfg.validate()
+    with float32_matmul_precision(cfg.ppo.matmul_precision):
+        return _train(cfg, env, run, dist_info)
+
+
+def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info: DistInfo | None) -> TrainResult:
     info = dist_info if dist_info is not None else from_environment()
     device = init_distributed(info, resolve_device(cfg.device))
     if run is None:
