@@ -45,7 +45,8 @@ def measure(n: int, steps: int, raw_steps: int, device: str, backend: str, reset
     auto = [_rate(steps, True, True, cuda_graph=g, **kw)[0] for g in ((False, True) if device == "cuda" else (False,))]
     auto += [None] * (2 - len(auto))  # the graph needs CUDA
     ratio = lambda x: x / raw if raw and x else None
-    return {"num_envs": n, "backend": backend, "reset_pass": reset_pass, "raw_policy_steps_per_s": raw, "env_steps_per_s": bare,
+    return {"num_envs": n, "backend": backend, "reset_pass": reset_pass, "raw_policy_steps_per_s": raw,
+            "env_steps_per_s": bare,
             "make_env_steps_per_s": transformed, "autoreset_steps_per_s": auto[0], "env_over_raw": ratio(bare),
             "autoreset_graph_steps_per_s": auto[1], "make_env_over_raw": ratio(transformed),
             "autoreset_over_raw": ratio(auto[0]), "autoreset_graph_over_raw": ratio(auto[1]),
@@ -80,7 +81,8 @@ def main(argv=None) -> None:
     parser.add_argument("--name", default=NAME, help="report name (<out>/<name>.json, .md, .png)")
     parser.add_argument("--out", default=str(common.DOCS))
     args = parser.parse_args(argv)
-    results = [measure(n, args.steps, args.raw_steps, args.device, args.backend, args.reset_pass) for n in args.num_envs]
+    results = [measure(n, args.steps, args.raw_steps, args.device, args.backend, args.reset_pass)
+               for n in args.num_envs]
     data = {"meta": common.meta(NAME, argv, args.device, name=args.name), "results": results}
     print(common.publish(args.out, args.name, data, render))
 

@@ -31,8 +31,8 @@ in progress) is in each row's notes. One H100, 10-minute commands, one row (repe
 The row's run folder (``--runs``) and ``--json`` must survive between calls (the same machine, or copied out and
 back). Calls for different rows may run at the same time, one per GPU (``CUDA_VISIBLE_DEVICES=0 python
 recipes/library_table.py ... & CUDA_VISIBLE_DEVICES=1 python recipes/library_table.py ...``): each writes only its
-own rows into ``--json``, under a file lock. This script lives in recipes/ while benchmarks/ is being rewritten; it belongs beside
-benchmarks/time_to_walk.py.
+own rows into ``--json``, under a file lock. This script lives in recipes/ while benchmarks/ is being rewritten; it
+belongs beside benchmarks/time_to_walk.py.
 """
 
 from __future__ import annotations

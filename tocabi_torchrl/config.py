@@ -384,12 +384,14 @@ _TOP_LEVEL = ("preset", "name", "run_dir", "seed", "device", "resume", "total_en
               "loggers", "progress_bar", "checkpoint_every", "checkpoint_keep_last", "checkpoint_keep_every",
               "checkpoint_minutes", "eval_at_end", "eval_envs", "eval_seconds")
 
+#: PPO options added after the tree: they have no flat name.
+_PPO_AFTER_THE_TREE = ("grad_sync", "matmul_precision")
 #: Each field of the flat ``PPOConfig`` (before the tree; checkpoints up to schema version 1 store it) -> its path in
 #: the tree. ``command_preset`` and ``pd_gains`` were names for values and become those values (:func:`flat_to_paths`).
 FLAT_PATHS: Mapping[str, str] = MappingProxyType({
     **{name: name for name in _TOP_LEVEL},
     # PPO options added after the tree have no flat name: the flat names stand for the flat config of before it.
-    **{f.name: f"ppo.{f.name}" for f in dataclasses.fields(PPOConfig) if f.name not in ("grad_sync", "matmul_precision")},
+    **{f.name: f"ppo.{f.name}" for f in dataclasses.fields(PPOConfig) if f.name not in _PPO_AFTER_THE_TREE},
     "num_envs": "env.num_envs", "control_mode": "env.control.mode", "max_episode_steps": "env.task.max_episode_steps",
     "pd_action_scale": "env.control.pd_action_scale", "command_preset": "env.command", "pd_gains": "env.control.pd_kp",
     "transform_preset": "transforms.preset", "reward_weights": "transforms.reward_weights",
