@@ -307,8 +307,8 @@ def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
     assert result.iterations == 10 and result.env_steps == 80
 
 
-def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
-    """The command the README gives, on the CPU: rank 0 alone writes the run folder."""
+def _torchrun_recipe(tmp_path, name: str, *options: str):
+    """``torchrun --nproc_per_node 2 recipes/ppo_walk.py`` on the CPU: a 32-step cpu_smoke run named ``name``."""
     import os
     import shutil
     import subprocess
@@ -316,17 +316,21 @@ def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
 
     torchrun = shutil.which("torchrun") or pytest.skip("torchrun is not on PATH")
     recipe = Path(__file__).resolve().parents[1] / "recipes" / "ppo_walk.py"
-    proc = subprocess.run(
+    return subprocess.run(
         [torchrun, "--standalone", "--nproc_per_node", "2", str(recipe), "--preset", "cpu_smoke", "--device", "cpu",
-         "--num_envs", "2", "--steps_per_env", "4", "--minibatch_size", "4", "--total_env_steps", "32",
-         "--run_dir", str(tmp_path), "--name", "dp", "--eval_at_end", "false", "--progress_bar", "false"],
+         "--num_envs", "2", "--steps_per_env", "4", "--minibatch_size", "4", "--total_env_steps", "32", *options,
+         "--run_dir", str(tmp_path), "--name", name, "--eval_at_end", "false", "--progress_bar", "false"],
         capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
+
+
+def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
+    """The command the README gives, on the CPU: rank 0 alone writes the run folder."""
+    proc = _torchrun_recipe(tmp_path, "dp")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "done on 2 ranks: 32 env steps" in proc.stdout
     assert torch.load(tmp_path / "dp" / "checkpoints" / "latest.pt", weights_only=True)["env_steps"] == 32
     # The same command again: rank 0 refuses the existing run, and both ranks end with a one-line error each.
-    proc = subprocess.run(proc.args, capture_output=True, text=True, timeout=600, env={**os.environ,
-                          "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
+    proc = _torchrun_recipe(tmp_path, "dp")
     assert proc.returncode != 0 and 'ppo_walk.py", line' not in proc.stderr  # no rank's traceback
     assert "error (rank 0): run folder" in proc.stderr and "already holds a run" in proc.stderr
     assert "error (rank 1): another rank could not open the run" in proc.stderr
@@ -334,19 +338,7 @@ def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
 
 def test_torchrun_trains_the_recipe_with_ddp_on_two_gloo_ranks(tmp_path):
     """--ppo.grad_sync ddp from the command line to the trainer: two ranks train and end, rank 0 writes the run."""
-    import os
-    import shutil
-    import subprocess
-    from pathlib import Path
-
-    torchrun = shutil.which("torchrun") or pytest.skip("torchrun is not on PATH")
-    recipe = Path(__file__).resolve().parents[1] / "recipes" / "ppo_walk.py"
-    proc = subprocess.run(
-        [torchrun, "--standalone", "--nproc_per_node", "2", str(recipe), "--preset", "cpu_smoke", "--device", "cpu",
-         "--num_envs", "2", "--steps_per_env", "4", "--minibatch_size", "4", "--total_env_steps", "32",
-         "--ppo.grad_sync", "ddp", "--update_graph", "false", "--run_dir", str(tmp_path), "--name", "ddp",
-         "--eval_at_end", "false", "--progress_bar", "false"],
-        capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
+    proc = _torchrun_recipe(tmp_path, "ddp", "--ppo.grad_sync", "ddp", "--update_graph", "false")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "done on 2 ranks: 32 env steps" in proc.stdout
     saved = torch.load(tmp_path / "ddp" / "checkpoints" / "latest.pt", weights_only=True)
