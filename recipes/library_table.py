@@ -171,6 +171,8 @@ def gait(library: str, snapshot: str, out: Path, args, command) -> dict:
 def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
     """Gait-test the row's snapshots not tested yet, in training-time order, until one passes; records each in
     ``row["tested"]`` (by snapshot name) and the first pass in ``row["walk"]``/``row["walks_minutes"]``."""
+    import torch
+
     from tocabi_torchrl.adapters.evaluate import GAIT_CRITERIA, gait_passes
 
     tested = row.setdefault("tested", {})
@@ -185,7 +187,10 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
             print(f"{library} {row['num_envs']}: --eval_minutes spent; the next call goes on from {name}")
             return
         main = gait(library, snap, out / "gait" / name / "0.5_0.0", args, MAIN)
-        entry = {"minutes": snapshot_seconds(snap) / 60.0, "main_passes": bool(gait_passes(main)), "passes": False}
+        # Where the test ran: a later --eval_only call may test on another machine (the test is the same).
+        where = torch.cuda.get_device_name() if args.device.startswith("cuda") and torch.cuda.is_available() else "cpu"
+        entry = {"minutes": snapshot_seconds(snap) / 60.0, "main_passes": bool(gait_passes(main)), "passes": False,
+                 "device": where}
         if entry["main_passes"]:
             others = {f"{c[0]}_{c[1]}": gait(library, snap, out / "gait" / name / f"{c[0]}_{c[1]}", args, c)
                       for c in OTHERS}

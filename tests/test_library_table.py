@@ -158,6 +158,7 @@ def test_a_second_minutes_call_continues_the_same_row(tmp_path, capsys):
     assert row["run"] == run and row["status"] == "final" and row["walks_minutes"] is None
     assert row["train_seconds"] >= 0.99 * cap_s
     assert set(row["tested"]) == {p.rsplit("/", 1)[1][:-3] for p in row["snapshots"]}
+    assert {e["device"] for e in row["tested"].values()} == {"cpu"}  # where each gait test ran
     assert "OnPolicyRunner.load" in row["notes"] and "no (≤ 0.06)" in (tmp_path / "table.md").read_text()
     table.main(common)  # a final row is left as it is
     assert rows(tmp_path) == [row]
