@@ -5,7 +5,8 @@
     python recipes/train_rsl_rl.py --out /tmp/r --device cpu --num_envs 4 --iterations 2 --steps_per_env 8 --hidden 32
 
 The hyper-parameters mirror the TorchRL ``default`` preset (48 steps per env, 5 epochs, 4 mini-batches of 49,152 at
-4,096 envs, gamma 0.995, lambda 0.95, adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks) except the std:
+4,096 envs, gamma 0.995, lambda 0.95, adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks, initialised as
+the preset's: orthogonal, action-mean gain 0.01) except the std:
 rsl_rl learns it (starting at 0.2) where the preset schedules it. Writes rsl_rl's own logs and model_*.pt under
 <out>/rsl_rl, the policy as <out>/policy.pt (tensors only, tocabi_torchrl.adapters.policy_file) and the gait test
 under <out>/eval/.
@@ -40,6 +41,11 @@ from tocabi_torchrl.adapters.recipe import (
     write_json,
     write_resume,
 )
+from tocabi_torchrl.config import preset_config
+from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, init_orthogonal
+
+#: How the networks are initialised (recorded in the run's settings: a run started otherwise is not resumed with it).
+INIT = "orthogonal, gain sqrt(2) hidden, 0.01 action mean, the preset's value_out_gain value head, biases 0"
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
 RESUME_NOTES = ("resumes actor, critic, Adam state, adaptive learning rate and iteration count (rsl_rl's "
@@ -93,7 +99,8 @@ def main(argv=None) -> dict:
     torch.manual_seed(args.seed + int(prior.get("calls", 0)))  # a resumed call draws other exploration noise
     env = TocabiRslRlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + int(prior.get("calls", 0)))
     cfg = train_cfg(args)
-    settings = json.loads(json.dumps({"train_cfg": cfg, "num_envs": args.num_envs, "preset": args.preset}))
+    settings = json.loads(json.dumps({"train_cfg": cfg, "num_envs": args.num_envs, "preset": args.preset,
+                                      "init": INIT}))
     if prior and prior["settings"] != settings:
         raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
                          f"{prior['settings']}, given {settings}")
@@ -101,6 +108,10 @@ def main(argv=None) -> dict:
     # Each call logs to its own folder: rsl_rl's model_<it>.pt and event files of earlier calls stay as they were.
     runner = OnPolicyRunner(env, cfg, log_dir=str(out / "rsl_rl" if calls == 0 else fresh_dir(out / f"rsl_rl_call{calls + 1}")),
                             device=str(env.device))
+    # The preset's own networks start so (spec §10.3), rsl_rl's would not: PyTorch's default init gives first action
+    # means far from 0, and the first rollouts fall instead of replaying the reference (a resumed call loads weights).
+    init_orthogonal(runner.alg.actor.mlp, ACTION_OUT_GAIN)
+    init_orthogonal(runner.alg.critic.mlp, preset_config(args.preset).ppo.value_out_gain)
     done_before = int(prior.get("iterations", 0))
     if prior:
         # rsl_rl's own load: actor, critic, optimizer (with the adaptive learning rate in its param groups) and the

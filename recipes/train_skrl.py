@@ -8,8 +8,8 @@ test.
 skrl is this project's fourth library rather than rl_games: it is pure PyTorch on gymnasium spaces and takes the
 env's device tensors as they are, where rl_games builds on the unmaintained ``gym`` package and its own env
 registry. Hyper-parameters mirror the TorchRL ``default`` preset (48-step rollouts, 5 epochs, mini-batches of
-49,152 at 4,096 envs, gamma 0.995, lambda 0.95, KL-adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks,
-time-limit bootstrapping); the std is learned from 0.2. Writes skrl's own logs and checkpoints under <out>/skrl,
+49,152 at 4,096 envs, gamma 0.995, lambda 0.95, KL-adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks
+initialised as the preset's, time-limit bootstrapping); the std is learned from 0.2. Writes skrl's own logs and checkpoints under <out>/skrl,
 the policy as <out>/policy.pt (tensors only) and the gait test under <out>/eval/.
 
 ``--resume`` continues the run in ``--out`` from skrl's agent checkpoint of its previous call (``--max_minutes``
@@ -43,6 +43,8 @@ from tocabi_torchrl.adapters.recipe import (
     write_json,
     write_resume,
 )
+from tocabi_torchrl.config import preset_config
+from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, init_orthogonal
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
 RESUME_NOTES = ("resumes skrl's agent checkpoint (agent.save/agent.load): policy with its learned std, value and Adam "
@@ -52,16 +54,19 @@ RESUME_NOTES = ("resumes skrl's agent checkpoint (agent.save/agent.load): policy
                 "progress when a call's time is up (discarded; its steps and seconds count)")
 
 
-def _mlp(inputs: int, hidden: tuple[int, ...], outputs: int) -> nn.Sequential:
+def _mlp(inputs: int, hidden: tuple[int, ...], outputs: int, out_gain: float) -> nn.Sequential:
     layers, width = [], inputs
     for h in hidden:
         layers += [nn.Linear(width, h), nn.ELU()]
         width = h
-    return nn.Sequential(*layers, nn.Linear(width, outputs))
+    # The preset's initialisation (spec §10.3): with PyTorch's default one the first action means are far from 0.
+    return init_orthogonal(nn.Sequential(*layers, nn.Linear(width, outputs)), out_gain)
 
 
-def make_models(observation_space, action_space, device, hidden: tuple[int, ...], init_std: float = 0.2) -> dict:
-    """skrl models: a Gaussian policy with a state-independent learned std and a value network."""
+def make_models(observation_space, action_space, device, hidden: tuple[int, ...], init_std: float = 0.2,
+                value_out_gain: float = 1.0) -> dict:
+    """skrl models: a Gaussian policy with a state-independent learned std and a value network, initialised as the
+    preset's networks (orthogonal, action-mean gain :data:`ACTION_OUT_GAIN`, value head ``value_out_gain``)."""
     from skrl.models.torch import DeterministicMixin, GaussianMixin, Model
 
     obs_dim, act_dim = observation_space.shape[0], action_space.shape[0]
@@ -70,7 +75,7 @@ def make_models(observation_space, action_space, device, hidden: tuple[int, ...]
         def __init__(self):
             Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
             GaussianMixin.__init__(self, clip_actions=False, clip_log_std=True, min_log_std=-20.0, max_log_std=2.0)
-            self.net = _mlp(obs_dim, hidden, act_dim)
+            self.net = _mlp(obs_dim, hidden, act_dim, ACTION_OUT_GAIN)
             self.log_std_parameter = nn.Parameter(torch.full((act_dim,), math.log(init_std)))
 
         def compute(self, inputs, role=""):
@@ -80,7 +85,7 @@ def make_models(observation_space, action_space, device, hidden: tuple[int, ...]
         def __init__(self):
             Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
             DeterministicMixin.__init__(self, clip_actions=False)
-            self.net = _mlp(obs_dim, hidden, 1)
+            self.net = _mlp(obs_dim, hidden, 1, value_out_gain)
 
         def compute(self, inputs, role=""):
             return self.net(inputs["observations"]), {}
@@ -106,13 +111,14 @@ def main(argv=None) -> dict:
     prior = read_resume(out, torch_state=True) if args.resume else {}
     calls = int(prior.get("calls", 0))
     settings = {"num_envs": args.num_envs, "preset": args.preset, "hidden": list(args.hidden),
-                "rollouts": args.rollouts, "seed": args.seed}
+                "rollouts": args.rollouts, "seed": args.seed, "init": "orthogonal, the preset's gains"}
     if prior and prior["settings"] != settings:
         raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
                          f"{prior['settings']}, given {settings}")
     set_seed(args.seed + calls)  # a resumed call draws other exploration noise
     env = TocabiSkrlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + calls)
-    models = make_models(env.observation_space, env.action_space, env.device, args.hidden)
+    models = make_models(env.observation_space, env.action_space, env.device, args.hidden,
+                         value_out_gain=preset_config(args.preset).ppo.value_out_gain)
     cfg = PPO_CFG(
         rollouts=args.rollouts, learning_epochs=5, mini_batches=max(1, args.num_envs * args.rollouts // 49152),
         discount_factor=0.995, gae_lambda=0.95, learning_rate=1e-3, learning_rate_scheduler=KLAdaptiveLR,

@@ -122,3 +122,41 @@ def test_recipe_resumes_the_same_run(tmp_path):
     assert (third["iterations"], third["env_steps"]) == (2, 16)
     with pytest.raises(SystemExit, match="other settings"):
         recipe.main([*small[:-4], "--hidden", "8", "--eval_envs", "0", "--iterations", "3", "--resume"])
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_recipe_starts_from_the_presets_initialisation(tmp_path):
+    # rsl_rl's own init (PyTorch's default) gives first action means far from 0, and the first rollouts fall instead
+    # of replaying the reference; the recipe initialises the networks as the preset's (spec §10.3) before learning.
+    recipe = load_recipe("train_rsl_rl")
+    from rsl_rl.runners import OnPolicyRunner
+
+    seen = {}
+    real_learn = OnPolicyRunner.learn
+
+    def spy(self, *a, **k):
+        seen["actor"] = [m for m in self.alg.actor.mlp.modules() if isinstance(m, torch.nn.Linear)]
+        seen["critic"] = [m for m in self.alg.critic.mlp.modules() if isinstance(m, torch.nn.Linear)]
+        seen["mean"] = self.alg.actor(TensorDict({"policy": torch.randn(64, 237), "critic": torch.randn(64, 237)},
+                                                 batch_size=[64])).detach()
+        raise _Stop  # before any update changes the weights
+
+    OnPolicyRunner.learn = spy
+    try:
+        with pytest.raises(_Stop):
+            recipe.main(["--out", str(tmp_path / "run"), "--device", "cpu", "--num_envs", "2", "--steps_per_env", "4",
+                         "--eval_envs", "0", "--iterations", "1"])
+    finally:
+        OnPolicyRunner.learn = real_learn
+    for layers, out_gain in ((seen["actor"], 0.01), (seen["critic"], 1.0)):  # the default preset's value_out_gain
+        assert len(layers) == 4 and all(torch.count_nonzero(m.bias) == 0 for m in layers)
+        for m in layers:  # orthogonal: the rows (fewer than the columns here) are orthonormal times the gain
+            gain = out_gain if m is layers[-1] else 2 ** 0.5
+            w = m.weight.detach()
+            rows = min(w.shape)
+            gram = w @ w.T if w.shape[0] <= w.shape[1] else w.T @ w
+            torch.testing.assert_close(gram, gain ** 2 * torch.eye(rows), atol=1e-4 * max(gain ** 2, 1), rtol=0)
+    assert seen["mean"].abs().max() < 0.1  # first actions ~0 (PyTorch's init gives ~0.1-1 here)

@@ -90,3 +90,20 @@ def test_recipe_resumes_the_same_run(tmp_path):
     _, policy2 = load_policy(out / "policy.pt", "skrl")
     assert not all(torch.equal(policy2[k], policy1[k]) for k in policy1)
     assert (out / "policy_call1.pt").is_file() and (out / "skrl" / "ppo_call2").is_dir()
+
+
+def test_models_start_from_the_presets_initialisation():
+    # As the preset's networks (spec §10.3): first action means ~0, value head of gain value_out_gain, biases 0.
+    import gymnasium
+
+    recipe = load_recipe("train_skrl")
+    obs_space = gymnasium.spaces.Box(-float("inf"), float("inf"), (237,))
+    act_space = gymnasium.spaces.Box(-1.0, 1.0, (13,))
+    torch.manual_seed(0)
+    models = recipe.make_models(obs_space, act_space, "cpu", (400, 200, 100), value_out_gain=0.5)
+    for net, out_gain in ((models["policy"].net, 0.01), (models["value"].net, 0.5)):
+        layers = [m for m in net if isinstance(m, torch.nn.Linear)]
+        assert all(torch.count_nonzero(m.bias) == 0 for m in layers)
+        last = layers[-1].weight.detach()
+        torch.testing.assert_close(last @ last.T, out_gain ** 2 * torch.eye(last.shape[0]), atol=1e-5, rtol=0)
+    assert models["policy"].net(torch.randn(64, 237)).abs().max() < 0.1

@@ -16,7 +16,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import IndependentNormal, ProbabilisticActor
 
-from .networks import make_mlp
+from .networks import ACTION_OUT_GAIN, make_mlp
 
 __all__ = ["GaussianHead", "gaussian_head", "make_actor", "set_action_std", "action_std"]
 
@@ -57,7 +57,8 @@ def make_actor(
     """Gaussian policy over ``obs_key`` (see the module docstring)."""
     if not init_std > 0:
         raise ValueError(f"init_std must be > 0, got {init_std}")
-    head = GaussianHead(make_mlp(obs_dim, hidden, act_dim, activation, out_gain=0.01), act_dim, init_std, learn_std)
+    head = GaussianHead(make_mlp(obs_dim, hidden, act_dim, activation, out_gain=ACTION_OUT_GAIN), act_dim, init_std,
+                        learn_std)
     module = TensorDictModule(head, in_keys=[obs_key], out_keys=["loc", "scale"])
     return ProbabilisticActor(
         module,

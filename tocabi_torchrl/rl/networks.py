@@ -7,13 +7,29 @@ from collections.abc import Sequence
 
 from torch import nn
 
-__all__ = ["ACTIVATIONS", "make_mlp"]
+__all__ = ["ACTIVATIONS", "ACTION_OUT_GAIN", "init_orthogonal", "make_mlp"]
 
 ACTIVATIONS = {"relu": nn.ReLU, "elu": nn.ELU, "tanh": nn.Tanh, "silu": nn.SiLU}
+#: Init gain of the action-mean output layer: first actions ~0, so the first rollouts replay the reference closely.
+ACTION_OUT_GAIN = 0.01
 
 
-def make_mlp(in_dim: int, hidden: Sequence[int], out_dim: int, activation: str = "relu", out_gain: float = 0.01
-             ) -> nn.Sequential:
+def init_orthogonal(mlp: nn.Module, out_gain: float) -> nn.Module:
+    """Initialise ``mlp``'s ``nn.Linear`` layers in place, in module order: orthogonal weights with gain √2, the last
+    layer with ``out_gain``, all biases 0 (the reference's initialisation, spec §10.3). Returns ``mlp``.
+
+    Also used on other libraries' networks (rsl_rl's and skrl's recipes) so that they start like this package's."""
+    linears = [m for m in mlp.modules() if isinstance(m, nn.Linear)]
+    if not linears:
+        raise ValueError(f"init_orthogonal: {type(mlp).__name__} has no nn.Linear layer")
+    for layer in linears:
+        nn.init.orthogonal_(layer.weight, gain=out_gain if layer is linears[-1] else math.sqrt(2.0))
+        nn.init.zeros_(layer.bias)
+    return mlp
+
+
+def make_mlp(in_dim: int, hidden: Sequence[int], out_dim: int, activation: str = "relu",
+             out_gain: float = ACTION_OUT_GAIN) -> nn.Sequential:
     """``in_dim -> hidden... -> out_dim`` MLP; hidden layers orthogonal with gain √2, the output layer ``out_gain``.
 
     The reference initialises both the action mean and the value heads with gain 0.01 and all biases with 0.
@@ -27,9 +43,4 @@ def make_mlp(in_dim: int, hidden: Sequence[int], out_dim: int, activation: str =
     for a, b in zip(sizes[:-1], sizes[1:]):
         layers += [nn.Linear(a, b), ACTIVATIONS[activation]()]
     layers.append(nn.Linear(sizes[-1], out_dim))
-    for layer in layers:
-        if isinstance(layer, nn.Linear):
-            gain = out_gain if layer is layers[-1] else math.sqrt(2.0)
-            nn.init.orthogonal_(layer.weight, gain=gain)
-            nn.init.zeros_(layer.bias)
-    return nn.Sequential(*layers)
+    return init_orthogonal(nn.Sequential(*layers), out_gain)
