@@ -188,7 +188,8 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
             return
         main = gait(library, snap, out / "gait" / name / "0.5_0.0", args, MAIN)
         # Where the test ran: a later --eval_only call may test on another machine (the test is the same).
-        where = torch.cuda.get_device_name() if args.device.startswith("cuda") and torch.cuda.is_available() else "cpu"
+        cuda = args.device.startswith("cuda") and torch.cuda.is_available()
+        where = torch.cuda.get_device_name(torch.device(args.device)) if cuda else "cpu"
         entry = {"minutes": snapshot_seconds(snap) / 60.0, "main_passes": bool(gait_passes(main)), "passes": False,
                  "device": where}
         if entry["main_passes"]:

@@ -9,8 +9,8 @@ skrl is this project's fourth library rather than rl_games: it is pure PyTorch o
 env's device tensors as they are, where rl_games builds on the unmaintained ``gym`` package and its own env
 registry. Hyper-parameters mirror the TorchRL ``default`` preset (48-step rollouts, 5 epochs, mini-batches of
 49,152 at 4,096 envs, gamma 0.995, lambda 0.95, KL-adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks
-initialised as the preset's, time-limit bootstrapping); the std is learned from 0.2. Writes skrl's own logs and checkpoints under <out>/skrl,
-the policy as <out>/policy.pt (tensors only) and the gait test under <out>/eval/.
+initialised as the preset's, time-limit bootstrapping); the std is learned from 0.2. Writes skrl's own logs and
+checkpoints under <out>/skrl, the policy as <out>/policy.pt (tensors only) and the gait test under <out>/eval/.
 
 ``--resume`` continues the run in ``--out`` from skrl's agent checkpoint of its previous call (``--max_minutes``
 caps the total training time over all calls):
@@ -45,6 +45,9 @@ from tocabi_torchrl.adapters.recipe import (
 )
 from tocabi_torchrl.config import preset_config
 from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, init_orthogonal
+
+#: How the networks are initialised (recorded in the run's settings: a run started otherwise is not resumed with it).
+INIT = "orthogonal, gain sqrt(2) hidden, 0.01 action mean, the preset's value_out_gain value head, biases 0"
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
 RESUME_NOTES = ("resumes skrl's agent checkpoint (agent.save/agent.load): policy with its learned std, value and Adam "
@@ -111,7 +114,7 @@ def main(argv=None) -> dict:
     prior = read_resume(out, torch_state=True) if args.resume else {}
     calls = int(prior.get("calls", 0))
     settings = {"num_envs": args.num_envs, "preset": args.preset, "hidden": list(args.hidden),
-                "rollouts": args.rollouts, "seed": args.seed, "init": "orthogonal, the preset's gains"}
+                "rollouts": args.rollouts, "seed": args.seed, "init": INIT}
     if prior and prior["settings"] != settings:
         raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
                          f"{prior['settings']}, given {settings}")

@@ -93,17 +93,22 @@ def test_recipe_resumes_the_same_run(tmp_path):
 
     real_load = OnPolicyRunner.load
 
+    real_learn = OnPolicyRunner.learn
+
     def spy(self, path, *a, **k):
         infos = real_load(self, path, *a, **k)
-        seen["actor"] = {k: v.clone() for k, v in self.alg.get_policy().state_dict().items()}
         seen["adam_steps"] = [float(s["step"]) for s in self.alg.optimizer.state_dict()["state"].values()]
         return infos
 
-    OnPolicyRunner.load = spy
+    def spy_learn(self, *a, **k):  # the weights the second call trains from, after all of its set-up
+        seen["actor"] = {k: v.clone() for k, v in self.alg.get_policy().state_dict().items()}
+        return real_learn(self, *a, **k)
+
+    OnPolicyRunner.load, OnPolicyRunner.learn = spy, spy_learn
     try:
         second = recipe.main([*small, "--iterations", "2", "--resume"])["train"]
     finally:
-        OnPolicyRunner.load = real_load
+        OnPolicyRunner.load, OnPolicyRunner.learn = real_load, real_learn
     assert (second["iterations"], second["env_steps"], second["calls"]) == (2, 16, 2)
     assert second["train_seconds"] > first["train_seconds"]
     # nothing of the first call is overwritten: its result and policy are kept aside under the call's name
@@ -128,35 +133,34 @@ class _Stop(Exception):
     pass
 
 
-def test_recipe_starts_from_the_presets_initialisation(tmp_path):
-    # rsl_rl's own init (PyTorch's default) gives first action means far from 0, and the first rollouts fall instead
-    # of replaying the reference; the recipe initialises the networks as the preset's (spec §10.3) before learning.
-    recipe = load_recipe("train_rsl_rl")
+@pytest.mark.parametrize("preset", ["default", "reference"])  # value heads of gain 1.0 and 0.01
+def test_recipe_starts_from_the_presets_initialisation(tmp_path, monkeypatch, preset):
+    # rsl_rl's own init (PyTorch's default) gives first action means far from 0; the recipe initialises the networks
+    # as the preset's (spec §10.3) before learning: orthogonal, action mean 0.01, the preset's value_out_gain.
     from rsl_rl.runners import OnPolicyRunner
 
+    from tocabi_torchrl.config import preset_config
+
+    recipe = load_recipe("train_rsl_rl")
     seen = {}
-    real_learn = OnPolicyRunner.learn
 
     def spy(self, *a, **k):
         seen["actor"] = [m for m in self.alg.actor.mlp.modules() if isinstance(m, torch.nn.Linear)]
         seen["critic"] = [m for m in self.alg.critic.mlp.modules() if isinstance(m, torch.nn.Linear)]
-        seen["mean"] = self.alg.actor(TensorDict({"policy": torch.randn(64, 237), "critic": torch.randn(64, 237)},
-                                                 batch_size=[64])).detach()
+        obs = torch.randn(64, seen["actor"][0].in_features)
+        seen["mean"] = self.alg.actor(TensorDict({"policy": obs, "critic": obs}, batch_size=[64])).detach()
         raise _Stop  # before any update changes the weights
 
-    OnPolicyRunner.learn = spy
-    try:
-        with pytest.raises(_Stop):
-            recipe.main(["--out", str(tmp_path / "run"), "--device", "cpu", "--num_envs", "2", "--steps_per_env", "4",
-                         "--eval_envs", "0", "--iterations", "1"])
-    finally:
-        OnPolicyRunner.learn = real_learn
-    for layers, out_gain in ((seen["actor"], 0.01), (seen["critic"], 1.0)):  # the default preset's value_out_gain
+    monkeypatch.setattr(OnPolicyRunner, "learn", spy)
+    with pytest.raises(_Stop):
+        recipe.main(["--out", str(tmp_path / "run"), "--device", "cpu", "--num_envs", "2", "--steps_per_env", "4",
+                     "--eval_envs", "0", "--iterations", "1", "--preset", preset])
+    value_gain = preset_config(preset).ppo.value_out_gain
+    for layers, out_gain in ((seen["actor"], 0.01), (seen["critic"], value_gain)):
         assert len(layers) == 4 and all(torch.count_nonzero(m.bias) == 0 for m in layers)
-        for m in layers:  # orthogonal: the rows (fewer than the columns here) are orthonormal times the gain
+        for m in layers:  # orthogonal: the rows (or columns, whichever are fewer) are orthonormal times the gain
             gain = out_gain if m is layers[-1] else 2 ** 0.5
             w = m.weight.detach()
-            rows = min(w.shape)
             gram = w @ w.T if w.shape[0] <= w.shape[1] else w.T @ w
-            torch.testing.assert_close(gram, gain ** 2 * torch.eye(rows), atol=1e-4 * max(gain ** 2, 1), rtol=0)
-    assert seen["mean"].abs().max() < 0.1  # first actions ~0 (PyTorch's init gives ~0.1-1 here)
+            torch.testing.assert_close(gram, gain ** 2 * torch.eye(min(w.shape)), atol=1e-4 * max(gain ** 2, 1), rtol=0)
+    assert seen["mean"].abs().max() < 0.1  # first actions ~0 (PyTorch's init gives ~0.2 on average here)

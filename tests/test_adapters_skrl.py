@@ -92,18 +92,35 @@ def test_recipe_resumes_the_same_run(tmp_path):
     assert (out / "policy_call1.pt").is_file() and (out / "skrl" / "ppo_call2").is_dir()
 
 
-def test_models_start_from_the_presets_initialisation():
-    # As the preset's networks (spec §10.3): first action means ~0, value head of gain value_out_gain, biases 0.
-    import gymnasium
+class _Stop(Exception):
+    pass
+
+
+def test_models_start_from_the_presets_initialisation(tmp_path, monkeypatch):
+    # As the preset's networks (spec §10.3): orthogonal, hidden gain √2, first action means ~0, the value head of the
+    # preset's value_out_gain (the reference preset's 0.01 here, not the default 1.0), biases 0.
+    from tocabi_torchrl.config import preset_config
 
     recipe = load_recipe("train_skrl")
-    obs_space = gymnasium.spaces.Box(-float("inf"), float("inf"), (237,))
-    act_space = gymnasium.spaces.Box(-1.0, 1.0, (13,))
-    torch.manual_seed(0)
-    models = recipe.make_models(obs_space, act_space, "cpu", (400, 200, 100), value_out_gain=0.5)
-    for net, out_gain in ((models["policy"].net, 0.01), (models["value"].net, 0.5)):
+    built = {}
+    make_models = recipe.make_models
+
+    def spy(*a, **k):
+        built.update(make_models(*a, **k))
+        raise _Stop  # the models as main() builds them, before any update
+
+    monkeypatch.setattr(recipe, "make_models", spy)
+    with pytest.raises(_Stop):
+        recipe.main(["--out", str(tmp_path / "run"), "--device", "cpu", "--num_envs", "2", "--rollouts", "4",
+                     "--eval_envs", "0", "--iterations", "1", "--preset", "reference"])
+    value_gain = preset_config("reference").ppo.value_out_gain
+    for net, out_gain in ((built["policy"].net, 0.01), (built["value"].net, value_gain)):
         layers = [m for m in net if isinstance(m, torch.nn.Linear)]
-        assert all(torch.count_nonzero(m.bias) == 0 for m in layers)
-        last = layers[-1].weight.detach()
-        torch.testing.assert_close(last @ last.T, out_gain ** 2 * torch.eye(last.shape[0]), atol=1e-5, rtol=0)
-    assert models["policy"].net(torch.randn(64, 237)).abs().max() < 0.1
+        assert len(layers) == 4 and all(torch.count_nonzero(m.bias) == 0 for m in layers)
+        for m in layers:
+            gain = out_gain if m is layers[-1] else 2 ** 0.5
+            w = m.weight.detach()
+            gram = w @ w.T if w.shape[0] <= w.shape[1] else w.T @ w
+            torch.testing.assert_close(gram, gain ** 2 * torch.eye(min(w.shape)), atol=1e-4 * max(gain ** 2, 1), rtol=0)
+    obs = torch.randn(64, layers[0].in_features)
+    assert built["policy"].net(obs).abs().max() < 0.1

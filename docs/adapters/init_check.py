@@ -27,6 +27,7 @@ for label in ("pytorch_default", "preset_orthogonal"):
     actor = recipe.make_actor(env.stepper.obs_dim, env.num_actions, cfg)
     if label == "preset_orthogonal":
         init_orthogonal(actor.mlp, ACTION_OUT_GAIN)
+    torch.manual_seed(1)  # the same exploration noise for both inits (init_orthogonal draws random numbers too)
     obs, fell, mean_abs = env.get_observations(), torch.zeros(NUM_ENVS, dtype=torch.bool), 0.0
     for _ in range(STEPS):
         with torch.no_grad():
@@ -38,4 +39,5 @@ for label in ("pytorch_default", "preset_orthogonal"):
     print(label, results[label], flush=True)
 out = {"num_envs": NUM_ENVS, "steps": STEPS, "std": STD, "results": results}
 if len(sys.argv) > 1:
-    open(sys.argv[1], "w").write(json.dumps(out, indent=2) + "\n")
+    with open(sys.argv[1], "w") as f:
+        f.write(json.dumps(out, indent=2) + "\n")

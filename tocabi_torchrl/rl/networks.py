@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 from torch import nn
 
-__all__ = ["ACTIVATIONS", "ACTION_OUT_GAIN", "init_orthogonal", "make_mlp"]
+__all__ = ["ACTION_OUT_GAIN", "ACTIVATIONS", "init_orthogonal", "make_mlp"]
 
 ACTIVATIONS = {"relu": nn.ReLU, "elu": nn.ELU, "tanh": nn.Tanh, "silu": nn.SiLU}
 #: Init gain of the action-mean output layer: first actions ~0, so the first rollouts replay the reference closely.
@@ -24,7 +24,8 @@ def init_orthogonal(mlp: nn.Module, out_gain: float) -> nn.Module:
         raise ValueError(f"init_orthogonal: {type(mlp).__name__} has no nn.Linear layer")
     for layer in linears:
         nn.init.orthogonal_(layer.weight, gain=out_gain if layer is linears[-1] else math.sqrt(2.0))
-        nn.init.zeros_(layer.bias)
+        if layer.bias is not None:
+            nn.init.zeros_(layer.bias)
     return mlp
 
 
