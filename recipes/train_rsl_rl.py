@@ -42,10 +42,7 @@ from tocabi_torchrl.adapters.recipe import (
     write_resume,
 )
 from tocabi_torchrl.config import preset_config
-from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, init_orthogonal
-
-#: How the networks are initialised (recorded in the run's settings: a run started otherwise is not resumed with it).
-INIT = "orthogonal, gain sqrt(2) hidden, 0.01 action mean, the preset's value_out_gain value head, biases 0"
+from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, INIT_SETTING, init_orthogonal
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
 RESUME_NOTES = ("resumes actor, critic, Adam state, adaptive learning rate and iteration count (rsl_rl's "
@@ -100,7 +97,7 @@ def main(argv=None) -> dict:
     env = TocabiRslRlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + int(prior.get("calls", 0)))
     cfg = train_cfg(args)
     settings = json.loads(json.dumps({"train_cfg": cfg, "num_envs": args.num_envs, "preset": args.preset,
-                                      "init": INIT}))
+                                      "init": INIT_SETTING}))
     if prior and prior["settings"] != settings:
         raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
                          f"{prior['settings']}, given {settings}")

@@ -44,10 +44,7 @@ from tocabi_torchrl.adapters.recipe import (
     write_resume,
 )
 from tocabi_torchrl.config import preset_config
-from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, init_orthogonal
-
-#: How the networks are initialised (recorded in the run's settings: a run started otherwise is not resumed with it).
-INIT = "orthogonal, gain sqrt(2) hidden, 0.01 action mean, the preset's value_out_gain value head, biases 0"
+from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, INIT_SETTING, make_mlp
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
 RESUME_NOTES = ("resumes skrl's agent checkpoint (agent.save/agent.load): policy with its learned std, value and Adam "
@@ -55,15 +52,6 @@ RESUME_NOTES = ("resumes skrl's agent checkpoint (agent.save/agent.load): policy
                 "each call (it only names skrl's logs and checkpoints, kept per call); not the env state (every call "
                 "starts from a reset), the random-number state (reseeded with seed + call index) or the rollout in "
                 "progress when a call's time is up (discarded; its steps and seconds count)")
-
-
-def _mlp(inputs: int, hidden: tuple[int, ...], outputs: int, out_gain: float) -> nn.Sequential:
-    layers, width = [], inputs
-    for h in hidden:
-        layers += [nn.Linear(width, h), nn.ELU()]
-        width = h
-    # The preset's initialisation (spec §10.3): with PyTorch's default one the first action means are far from 0.
-    return init_orthogonal(nn.Sequential(*layers, nn.Linear(width, outputs)), out_gain)
 
 
 def make_models(observation_space, action_space, device, hidden: tuple[int, ...], init_std: float = 0.2,
@@ -78,7 +66,7 @@ def make_models(observation_space, action_space, device, hidden: tuple[int, ...]
         def __init__(self):
             Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
             GaussianMixin.__init__(self, clip_actions=False, clip_log_std=True, min_log_std=-20.0, max_log_std=2.0)
-            self.net = _mlp(obs_dim, hidden, act_dim, ACTION_OUT_GAIN)
+            self.net = make_mlp(obs_dim, hidden, act_dim, "elu", ACTION_OUT_GAIN)
             self.log_std_parameter = nn.Parameter(torch.full((act_dim,), math.log(init_std)))
 
         def compute(self, inputs, role=""):
@@ -88,7 +76,7 @@ def make_models(observation_space, action_space, device, hidden: tuple[int, ...]
         def __init__(self):
             Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
             DeterministicMixin.__init__(self, clip_actions=False)
-            self.net = _mlp(obs_dim, hidden, 1, value_out_gain)
+            self.net = make_mlp(obs_dim, hidden, 1, "elu", value_out_gain)
 
         def compute(self, inputs, role=""):
             return self.net(inputs["observations"]), {}
@@ -114,7 +102,7 @@ def main(argv=None) -> dict:
     prior = read_resume(out, torch_state=True) if args.resume else {}
     calls = int(prior.get("calls", 0))
     settings = {"num_envs": args.num_envs, "preset": args.preset, "hidden": list(args.hidden),
-                "rollouts": args.rollouts, "seed": args.seed, "init": INIT}
+                "rollouts": args.rollouts, "seed": args.seed, "init": INIT_SETTING}
     if prior and prior["settings"] != settings:
         raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
                          f"{prior['settings']}, given {settings}")

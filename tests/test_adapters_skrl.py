@@ -10,7 +10,7 @@ import torch
 
 pytest.importorskip("skrl")
 
-from recipe_runner import load_recipe
+from recipe_runner import assert_preset_init, load_recipe
 from skrl.envs.wrappers.torch.base import Wrapper
 
 from tocabi_torchrl.adapters import TocabiSkrlEnv
@@ -114,13 +114,7 @@ def test_models_start_from_the_presets_initialisation(tmp_path, monkeypatch):
         recipe.main(["--out", str(tmp_path / "run"), "--device", "cpu", "--num_envs", "2", "--rollouts", "4",
                      "--eval_envs", "0", "--iterations", "1", "--preset", "reference"])
     value_gain = preset_config("reference").ppo.value_out_gain
-    for net, out_gain in ((built["policy"].net, 0.01), (built["value"].net, value_gain)):
-        layers = [m for m in net if isinstance(m, torch.nn.Linear)]
-        assert len(layers) == 4 and all(torch.count_nonzero(m.bias) == 0 for m in layers)
-        for m in layers:
-            gain = out_gain if m is layers[-1] else 2 ** 0.5
-            w = m.weight.detach()
-            gram = w @ w.T if w.shape[0] <= w.shape[1] else w.T @ w
-            torch.testing.assert_close(gram, gain ** 2 * torch.eye(min(w.shape)), atol=1e-4 * max(gain ** 2, 1), rtol=0)
-    obs = torch.randn(64, layers[0].in_features)
+    assert_preset_init(built["policy"].net, 0.01)
+    assert_preset_init(built["value"].net, value_gain)
+    obs = torch.randn(64, built["policy"].net[0].in_features)
     assert built["policy"].net(obs).abs().max() < 0.1

@@ -7,11 +7,14 @@ from collections.abc import Sequence
 
 from torch import nn
 
-__all__ = ["ACTION_OUT_GAIN", "ACTIVATIONS", "init_orthogonal", "make_mlp"]
+__all__ = ["ACTION_OUT_GAIN", "ACTIVATIONS", "INIT_SETTING", "init_orthogonal", "make_mlp"]
 
 ACTIVATIONS = {"relu": nn.ReLU, "elu": nn.ELU, "tanh": nn.Tanh, "silu": nn.SiLU}
 #: Init gain of the action-mean output layer: first actions ~0, so the first rollouts replay the reference closely.
 ACTION_OUT_GAIN = 0.01
+#: :func:`init_orthogonal` with these gains, in words: the other libraries' recipes record it in their run settings, so
+#: a run started with another initialisation is not resumed by them.
+INIT_SETTING = "orthogonal, gain sqrt(2) hidden, 0.01 action mean, the preset's value_out_gain value head, biases 0"
 
 
 def init_orthogonal(mlp: nn.Module, out_gain: float) -> nn.Module:
