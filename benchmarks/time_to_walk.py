@@ -127,7 +127,9 @@ def _alive(pid: int) -> bool:
 def _evaluate(ckpt: Path, evals: dict, envs: dict, args) -> None:
     """Gait tests of one wall-clock checkpoint into ``evals[ckpt.stem]``."""
     state = common.read_checkpoint(ckpt)
+    # Where the test ran: C MuJoCo and mujoco-warp agree closely, not exactly (drift near its limit can differ).
     entry = {"train_seconds": state["train_seconds"], "env_steps": state["env_steps"], "iteration": state["iteration"],
+             "device": common.meta("time_to_walk", [], args.device)["gpu"] if args.device == "cuda" else "cpu",
              "commands": {}}
     for command in (MAIN_COMMAND, *OTHER_COMMANDS):
         if command != MAIN_COMMAND and not passes_main(entry["commands"][key(MAIN_COMMAND)]):
@@ -189,12 +191,13 @@ def render(data: dict, out: Path) -> str:
         text += f"\n\n## {_label(r)}\n\nCommands:\n\n" + "".join(
             f"- `{c}`\n" for c in r.get("commands", []) + r.get("eval_commands", [])) + "\n" + common.table(
             ("checkpoint", "minutes", "env steps", "survival", "forward [m]", "drift [m]", "knee RMS [rad]",
-             "survival (0.2, 0)", "survival (0.7, 0.1)", "walks"),
+             "survival (0.2, 0)", "survival (0.7, 0.1)", "walks", "tested on"),
             [(name, f"{e['train_seconds'] / 60:.1f}", f"{e['env_steps'] / 1e6:.1f} M", *(
                 f"{e['commands'][key(MAIN_COMMAND)][k]:{spec}}" for k, spec in (
                     ("survival", ".3f"), ("forward_distance_m", ".2f"), ("lateral_drift_m", ".2f"),
                     ("knee_rms_rad", ".3f"))), *(num(e["commands"].get(key(c), {}).get("survival"), ".3f")
-                                                 for c in OTHER_COMMANDS), "yes" if e.get("walks") else "no")
+                                                 for c in OTHER_COMMANDS), "yes" if e.get("walks") else "no",
+             e.get("device", "-"))
              for name, e in evals])
         for panel, k, scale in zip(panels, ("survival", "forward_distance_m"), (100, 1), strict=True):
             panel["lines"][_label(r)] = ([e["train_seconds"] / 60 for _, e in evals],

@@ -109,8 +109,10 @@ def test_time_to_walk_train_resume_eval_report(tmp_path):
         "train", "--preset", "cpu_smoke", "--device", "cpu", "--every", "0", code=1)
     for entry in record["evaluations"].values():  # 0.1 s cannot cover 2.6 m
         assert 0.0 <= entry["commands"]["0.5,0.0"]["survival"] <= 1.0 and entry["walks"] is False
+        assert entry["device"] == "cpu"
     text = run("report", "--runs", str(folder), "--curves", str(folder), "--out", str(tmp_path / "d"))
     assert record["time_to_walk"] is None and "| cpu_smoke | cpu | not within" in text
+    assert "| no | cpu |" in text  # each checkpoint's row says where it was tested
     assert (tmp_path / "d/time_to_walk.png").is_file() and (tmp_path / "d/time_to_walk_curves.png").is_file()
 
 
