@@ -1,12 +1,12 @@
 """Gait comparison (TocabiLab's experiment 2): controllers walk side by side at (0.5, 0) m/s for 8 s.
 
-    python recipes/compare_gaits.py                                    # the two shipped policies, 256 robots each
+    python recipes/compare_gaits.py                                    # the three shipped policies, 256 robots each
     python recipes/compare_gaits.py --policy PD=runs/ppo_walk --policy torque=runs/torque/checkpoints/latest.pt
     python recipes/compare_gaits.py --device cpu --num_envs 16 --out docs/experiments/compare_gaits_cpu16
 
-Each controller (``--policy LABEL=PATH``, a .pt file or a run folder; default: the shipped PD-residual and torque
-policies) runs its deterministic policy in ``--num_envs`` robots. The table averages over every robot; the frames
-and trajectories are robot 0's. Written to ``--out`` (an existing, non-empty folder is refused unless
+Each controller (``--policy LABEL=PATH``, a .pt file or a run folder; default: the shipped PD-residual, torque
+and model-based policies) runs its deterministic policy in ``--num_envs`` robots. The table averages over every
+robot; the frames and trajectories are robot 0's. Written to ``--out`` (an existing, non-empty folder is refused unless
 ``--overwrite``):
 
     table.md, table.json    survival, forward distance, lateral drift, knee RMS against the reference, mean |tau|,
@@ -97,7 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--policy", action="append", metavar="[LABEL=]PATH",
                         help="a controller: checkpoint .pt or run folder, optionally labelled; repeat for each "
-                             "(default: the two shipped policies)")
+                             "(default: the three shipped policies: PD, torque, model_based)")
     for flag, kind, default, text in OPTIONS:
         parser.add_argument(flag, type=kind, default=default, help=f"{text} (default: {default})")
     parser.add_argument("--overwrite", action="store_true",

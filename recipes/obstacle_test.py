@@ -4,8 +4,8 @@
     python recipes/obstacle_test.py --policy PD=runs/ppo_walk --policy torque=runs/torque --num_envs 1024
     python recipes/obstacle_test.py --heights_mm 0,12 --step_mm 0 --device cpu --num_envs 16
 
-Each controller (``--policy LABEL=PATH``; default: the shipped PD-residual and torque policies) walks into a box
-``--box_length`` x ``--box_width`` m, centred ``--distance`` m ahead of the left sole's start position, in
+Each controller (``--policy LABEL=PATH``; default: the shipped PD-residual, torque and model-based policies) walks
+into a box ``--box_length`` x ``--box_width`` m, centred ``--distance`` m ahead of the left sole's start position, in
 ``--num_envs`` robots whose box is moved by a uniform ±``--jitter`` m (x and y) per robot. Heights: ``--heights_mm``,
 then ``--step_mm`` higher each time until every controller's pass rate is below ``--fail_below``, at most
 ``--max_mm``. Height 0 is the plain ground (no box); its "obstacle" metrics use the box's footprint. Definitions of
@@ -123,7 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--policy", action="append", metavar="[LABEL=]PATH",
                         help="a controller: checkpoint .pt or run folder, optionally labelled; repeat for each "
-                             "(default: the two shipped policies)")
+                             "(default: the three shipped policies: PD, torque, model_based)")
     for flag, kind, default, text in OPTIONS:
         parser.add_argument(flag, type=kind, default=default, help=f"{text} (default: {default})")
     parser.add_argument("--overwrite", action="store_true",

@@ -211,7 +211,7 @@ def test_output_folders_are_never_overwritten_silently(tmp_path):
         prepare_out_dir(tmp_path / "new")
     prepare_out_dir(tmp_path / "new", overwrite=True)
     labels = [c.label for c in parse_controllers(["a=x.pt", "runs/b/checkpoints/latest.pt", "runs/c"])]
-    assert labels == ["a", "b", "c"] and len(parse_controllers(None)) == 2
+    assert labels == ["a", "b", "c"] and len(parse_controllers(None)) == 3
     with pytest.raises(ValueError, match="labels must differ"):
         parse_controllers(["a=x.pt", "a=y.pt"])
     # the recipe refuses before rolling anything out
@@ -260,10 +260,11 @@ def test_compare_gaits_end_to_end(tmp_path):
         "--device", "cpu", "--num_envs", "2", "--seconds", "1.0", "--frame_every", "0.5", "--knee_seconds", "0.8",
         "--torque_seconds", "0.4", "--frame_width", "96", "--frame_height", "64", "--out", str(out), "--overwrite"])
     table = json.loads((out / "table.json").read_text())
-    assert [row["controller"] for row in table["rows"]] == ["PD (pd_reference)", "torque"]
-    assert [row["control_mode"] for row in table["rows"]] == ["pd_reference", "torque"]
+    assert [row["controller"] for row in table["rows"]] == ["PD (pd_reference)", "torque", "model_based"]
+    assert [row["control_mode"] for row in table["rows"]] == ["pd_reference", "torque", "model_based"]
     md = (out / "table.md").read_text()
     assert "| PD (pd_reference) | pd_reference | 2 |" in md and "| torque | torque | 2 |" in md
+    assert "| model_based | model_based | 2 |" in md
     assert "torque smoothness" in md and "pending" not in md
     for row in table["rows"]:
         for key in ("survival", "forward_distance_m", "lateral_drift_m", "knee_rms_rad", "mean_abs_torque_Nm",
@@ -271,7 +272,7 @@ def test_compare_gaits_end_to_end(tmp_path):
             assert isinstance(row[key], float) and np.isfinite(row[key]), key
         assert 0 < row["mean_abs_torque_Nm"] < 300 and row["torque_smoothness_Nm_per_step"] > 0
     traces = np.load(out / "traces.npz")
-    for slug in ("PD_pd_reference", "torque"):
+    for slug in ("PD_pd_reference", "torque", "model_based"):
         torque = traces[f"{slug}__leg_torque"]
         assert torque.shape == (250, 12) and np.isfinite(torque).all()
         assert np.abs(torque).max() <= robot.LEG_TORQUE_LIMITS.max() + 1e-3
@@ -281,8 +282,9 @@ def test_compare_gaits_end_to_end(tmp_path):
         assert (out / name).stat().st_size > 10_000, name
     # the returned rows are what table.json holds (compared through JSON: tuples become lists there)
     assert json.loads(json.dumps(result["rows"])) == table["rows"]
-    _images_or_skip(table, [out / "frames_PD_pd_reference.png", out / "frames_torque.png"], (3 * 96, 64))
-    _images_or_skip(table, [out / "frames.png"], (3 * 96, 2 * 64))
+    _images_or_skip(table, [out / f"frames_{slug}.png" for slug in ("PD_pd_reference", "torque", "model_based")],
+                    (3 * 96, 64))
+    _images_or_skip(table, [out / "frames.png"], (3 * 96, 3 * 64))
     _images_or_skip(table, [out / "timelapse_torque.png"], (2 * 96, 64))
 
 

@@ -18,8 +18,9 @@ from .. import robot
 __all__ = ["Controller", "ExperimentOutputError", "SHIPPED_POLICIES", "checkpoint_record", "display_path",
            "earlier_table", "parse_controllers", "prepare_out_dir", "slug", "write_atomic", "write_table"]
 
-#: The two policies shipped with the package, the experiments' default controllers: label -> file name.
-SHIPPED_POLICIES = {"PD (pd_reference)": "tocabi_walk_ppo.pt", "torque": "tocabi_walk_torque.pt"}
+#: The policies shipped with the package, the experiments' default controllers: label -> file name.
+SHIPPED_POLICIES = {"PD (pd_reference)": "tocabi_walk_ppo.pt", "torque": "tocabi_walk_torque.pt",
+                    "model_based": "tocabi_walk_model_based.pt"}
 
 
 class ExperimentOutputError(RuntimeError):
