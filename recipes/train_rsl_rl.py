@@ -6,8 +6,8 @@
 
 The hyper-parameters mirror the TorchRL ``default`` preset (48 steps per env, 5 epochs, 4 mini-batches of 49,152 at
 4,096 envs, gamma 0.995, lambda 0.95, adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks, initialised as
-the preset's: orthogonal, action-mean gain 0.01) except the std:
-rsl_rl learns it (starting at 0.2) where the preset schedules it. Writes rsl_rl's own logs and model_*.pt under
+the preset's: orthogonal, action-mean gain 0.01, plain L2 value loss) except the std: rsl_rl learns it (starting at
+0.2) where the preset schedules it. Writes rsl_rl's own logs and model_*.pt under
 <out>/rsl_rl, the policy as <out>/policy.pt (tensors only, tocabi_torchrl.adapters.policy_file) and the gait test
 under <out>/eval/.
 
@@ -64,7 +64,11 @@ def train_cfg(args) -> dict:
         "algorithm": {"class_name": "PPO", "num_learning_epochs": 5, "num_mini_batches": max(1, frames // 49152),
                       "clip_param": 0.2, "gamma": 0.995, "lam": 0.95, "value_loss_coef": 1.0, "entropy_coef": 0.0,
                       "learning_rate": 1e-3, "max_grad_norm": 1.0, "schedule": "adaptive", "desired_kl": 0.01,
-                      "use_clipped_value_loss": True},
+                      # The preset's critic loss is plain L2 (ClipPPOLoss without clip_value). Clipped, each value
+                      # could move only +-0.2 from its rollout value per update, on returns of O(100), and at the
+                      # ~1e-4 learning rate rsl_rl's per-mini-batch KL rule settles at here the critic lagged behind
+                      # (docs/adapters.md, "Second GPU row").
+                      "use_clipped_value_loss": False},
         "actor": {"class_name": "MLPModel", "hidden_dims": hidden, "activation": "elu",
                   "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": 0.2}},
         "critic": {"class_name": "MLPModel", "hidden_dims": hidden, "activation": "elu"},

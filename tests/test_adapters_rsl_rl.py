@@ -146,6 +146,7 @@ def test_recipe_starts_from_the_presets_initialisation(tmp_path, monkeypatch, pr
 
     def spy(self, *a, **k):
         seen["actor"], seen["critic"] = self.alg.actor.mlp, self.alg.critic.mlp
+        seen["clipped_value_loss"] = self.alg.use_clipped_value_loss
         obs = torch.randn(64, self.alg.actor.mlp[0].in_features)
         seen["mean"] = self.alg.actor(TensorDict({"policy": obs, "critic": obs}, batch_size=[64])).detach()
         raise _Stop  # before any update changes the weights
@@ -158,3 +159,5 @@ def test_recipe_starts_from_the_presets_initialisation(tmp_path, monkeypatch, pr
     assert_preset_init(seen["actor"], 0.01)
     assert_preset_init(seen["critic"], value_gain)
     assert seen["mean"].abs().max() < 0.1  # first actions ~0 (PyTorch's init gives ~0.2 on average here)
+    # The preset's value loss is plain L2 (no clip_value); a clipped one lagged behind the returns on the GPU.
+    assert preset_config(preset).ppo.value_loss == "l2" and seen["clipped_value_loss"] is False
