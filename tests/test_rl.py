@@ -263,40 +263,22 @@ def test_shipped_policy_walks_on_the_cpu_backend(tmp_path):
     assert summary["knee_rms_rad"] < 0.15
 
 
-SHIPPED_TORQUE_POLICY = SHIPPED_POLICY.parent / "tocabi_walk_torque.pt"
-
-
-@pytest.mark.skipif(not SHIPPED_TORQUE_POLICY.is_file(), reason="shipped torque policy not present")
-def test_shipped_torque_policy_walks_on_the_cpu_backend(tmp_path):
-    """The committed torque-preset policy (12 leg torques + phase rate, no PD on the legs) walks forward at 0.5 m/s
-    on C MuJoCo (4 robots, 4 s)."""
+@pytest.mark.parametrize("name, mode", [("tocabi_walk_torque.pt", "torque"),
+                                        ("tocabi_walk_model_based.pt", "model_based")])
+def test_shipped_torque_level_policies_walk_on_the_cpu_backend(tmp_path, name, mode):
+    """The committed torque-preset policy (12 leg torques + phase rate, no PD on the legs) and model_based-preset
+    policy (12 residual leg torques on the computed-torque law + phase rate) walk forward at 0.5 m/s on C MuJoCo
+    (4 robots, 4 s)."""
     from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint
     from tocabi_torchrl.rl.evaluate import evaluate_run
 
-    cfg = config_from_checkpoint(read_checkpoint(SHIPPED_TORQUE_POLICY))
-    assert cfg.env.control.mode == "torque" and cfg.preset == "torque"
-    summary = evaluate_run(SHIPPED_TORQUE_POLICY, num_envs=4, device="cpu", seconds=4.0, command=(0.5, 0.0),
-                           video_envs=0, out_dir=tmp_path, progress=False)
-    assert summary["survival"] == 1.0
-    assert summary["forward_distance_m"] > 1.4  # 0.35 m/s or better
-    assert summary["lateral_drift_m"] < 0.3
-    assert summary["knee_rms_rad"] < 0.15
-
-
-SHIPPED_MODEL_BASED_POLICY = SHIPPED_POLICY.parent / "tocabi_walk_model_based.pt"
-
-
-@pytest.mark.skipif(not SHIPPED_MODEL_BASED_POLICY.is_file(), reason="shipped model-based policy not present")
-def test_shipped_model_based_policy_walks_on_the_cpu_backend(tmp_path):
-    """The committed model_based-preset policy (12 residual leg torques on the computed-torque law + phase rate)
-    walks forward at 0.5 m/s on C MuJoCo (4 robots, 4 s)."""
-    from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint
-    from tocabi_torchrl.rl.evaluate import evaluate_run
-
-    cfg = config_from_checkpoint(read_checkpoint(SHIPPED_MODEL_BASED_POLICY))
-    assert cfg.env.control.mode == "model_based" and cfg.preset == "model_based"
-    summary = evaluate_run(SHIPPED_MODEL_BASED_POLICY, num_envs=4, device="cpu", seconds=4.0, command=(0.5, 0.0),
-                           video_envs=0, out_dir=tmp_path, progress=False)
+    path = SHIPPED_POLICY.parent / name
+    if not path.is_file():
+        pytest.skip(f"shipped policy {name} not present")
+    cfg = config_from_checkpoint(read_checkpoint(path))
+    assert cfg.env.control.mode == mode and cfg.preset == mode
+    summary = evaluate_run(path, num_envs=4, device="cpu", seconds=4.0, command=(0.5, 0.0), video_envs=0,
+                           out_dir=tmp_path, progress=False)
     assert summary["survival"] == 1.0
     assert summary["forward_distance_m"] > 1.4  # 0.35 m/s or better
     assert summary["lateral_drift_m"] < 0.3
