@@ -116,6 +116,17 @@ def test_time_to_walk_train_resume_eval_report(tmp_path):
     assert (tmp_path / "d/time_to_walk.png").is_file() and (tmp_path / "d/time_to_walk_curves.png").is_file()
 
 
+def test_time_to_walk_names_the_gpu_of_any_cuda_device_string(monkeypatch):
+    import torch
+
+    from benchmarks.time_to_walk import tested_on
+
+    seen = []
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda dev: seen.append(dev) or f"GPU {dev.index}")
+    assert tested_on("cpu") == "cpu" and not seen
+    assert tested_on("cuda:1") == "GPU 1" and tested_on("cuda") == "GPU None"
+
+
 def test_time_to_walk_trains_on_two_ranks_under_torchrun(tmp_path):
     """The 2-GPU command of docs/distributed.md on gloo ranks: rank 0 alone keeps the named run's record."""
     train = ["train", "--preset", "cpu_smoke", "--name", "smoke_2gpu", "--device", "cpu", "--minutes", "0.004"]

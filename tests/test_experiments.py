@@ -23,7 +23,8 @@ from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, GaitRecord,
 REPO = Path(__file__).resolve().parents[1]
 PD_POLICY = REPO / "assets" / "policies" / "tocabi_walk_ppo.pt"
 TORQUE_POLICY = REPO / "assets" / "policies" / "tocabi_walk_torque.pt"
-needs_policies = pytest.mark.skipif(not (PD_POLICY.is_file() and TORQUE_POLICY.is_file()),
+MODEL_BASED_POLICY = REPO / "assets" / "policies" / "tocabi_walk_model_based.pt"
+needs_policies = pytest.mark.skipif(not all(p.is_file() for p in (PD_POLICY, TORQUE_POLICY, MODEL_BASED_POLICY)),
                                     reason="shipped policies not present")
 try:
     from tocabi_torchrl.envs.config import BoxObstacle  # noqa: F401
@@ -211,7 +212,10 @@ def test_output_folders_are_never_overwritten_silently(tmp_path):
         prepare_out_dir(tmp_path / "new")
     prepare_out_dir(tmp_path / "new", overwrite=True)
     labels = [c.label for c in parse_controllers(["a=x.pt", "runs/b/checkpoints/latest.pt", "runs/c"])]
-    assert labels == ["a", "b", "c"] and len(parse_controllers(None)) == 3
+    assert labels == ["a", "b", "c"]
+    shipped = parse_controllers(None)  # the defaults: every shipped policy, each file present
+    assert [c.label for c in shipped] == ["PD (pd_reference)", "torque", "model_based"]
+    assert all(c.path.is_file() for c in shipped)
     with pytest.raises(ValueError, match="labels must differ"):
         parse_controllers(["a=x.pt", "a=y.pt"])
     # the recipe refuses before rolling anything out
