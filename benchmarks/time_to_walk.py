@@ -20,12 +20,11 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-
 from tocabi_torchrl.rl.curves import read_metrics, steady_rate
 from tocabi_torchrl.rl.distributed import DistInfo, ending, from_environment
 from tocabi_torchrl.rl.evaluate import GAIT_CRITERIA as CRITERIA
 from tocabi_torchrl.rl.evaluate import gait_passes as passes_main
+from tocabi_torchrl.rl.evaluate import tested_on
 
 from . import common
 
@@ -129,8 +128,6 @@ def _alive(pid: int) -> bool:
 def _evaluate(ckpt: Path, evals: dict, envs: dict, args) -> None:
     """Gait tests of one wall-clock checkpoint into ``evals[ckpt.stem]``."""
     state = common.read_checkpoint(ckpt)
-    # Where the test ran: C MuJoCo and mujoco-warp agree closely, not step for step over 8 s (drift near its limit
-    # can differ).
     entry = {"train_seconds": state["train_seconds"], "env_steps": state["env_steps"], "iteration": state["iteration"],
              "device": tested_on(args.device), "commands": {}}
     for command in (MAIN_COMMAND, *OTHER_COMMANDS):
@@ -145,12 +142,6 @@ def _evaluate(ckpt: Path, evals: dict, envs: dict, args) -> None:
     print(f"{ckpt.stem}: {entry['train_seconds'] / 60:5.1f} min, {entry['env_steps'] / 1e6:6.1f} M steps: survival "
           f"{m['survival']:.3f}, forward {m['forward_distance_m']:.2f} m, drift {m['lateral_drift_m']:.2f} m, knee RMS "
           f"{m['knee_rms_rad']:.3f} rad -> {'WALKS' if entry['walks'] else 'no'}", flush=True)
-
-
-def tested_on(device: str) -> str:
-    """The name of the GPU that ``device`` ("cuda", "cuda:1", ...) is, or "cpu"."""
-    dev = torch.device(device)
-    return torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"
 
 
 def first_walk(record: dict) -> dict | None:

@@ -171,9 +171,8 @@ def gait(library: str, snapshot: str, out: Path, args, command) -> dict:
 def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
     """Gait-test the row's snapshots not tested yet, in training-time order, until one passes; records each in
     ``row["tested"]`` (by snapshot name) and the first pass in ``row["walk"]``/``row["walks_minutes"]``."""
-    import torch
-
     from tocabi_torchrl.adapters.evaluate import GAIT_CRITERIA, gait_passes
+    from tocabi_torchrl.rl.evaluate import tested_on
 
     tested = row.setdefault("tested", {})
     deadline = time.monotonic() + 60.0 * args.eval_minutes if args.eval_minutes > 0 else float("inf")
@@ -188,10 +187,8 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
             return
         main = gait(library, snap, out / "gait" / name / "0.5_0.0", args, MAIN)
         # Where the test ran: a later --eval_only call may test on another machine (the test is the same).
-        cuda = args.device.startswith("cuda") and torch.cuda.is_available()
-        where = torch.cuda.get_device_name(torch.device(args.device)) if cuda else "cpu"
         entry = {"minutes": snapshot_seconds(snap) / 60.0, "main_passes": bool(gait_passes(main)), "passes": False,
-                 "device": where}
+                 "device": tested_on(args.device)}
         if entry["main_passes"]:
             others = {f"{c[0]}_{c[1]}": gait(library, snap, out / "gait" / name / f"{c[0]}_{c[1]}", args, c)
                       for c in OTHERS}

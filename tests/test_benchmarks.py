@@ -119,7 +119,7 @@ def test_time_to_walk_train_resume_eval_report(tmp_path):
 def test_time_to_walk_names_the_gpu_of_any_cuda_device_string(monkeypatch):
     import torch
 
-    from benchmarks.time_to_walk import tested_on
+    from tocabi_torchrl.rl.evaluate import tested_on  # what time_to_walk and the library table record
 
     seen = []
     monkeypatch.setattr(torch.cuda, "get_device_name", lambda dev: seen.append(dev) or f"GPU {dev.index}")

@@ -27,7 +27,8 @@ from .eval_video import render_video
 from .gait_record import KNEES, GaitMetrics, fixed_command, load_policy, policy_steps
 from .trainer import build_env, resolve_device
 
-__all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "policy_dt", "GAIT_CRITERIA", "gait_passes"]
+__all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "policy_dt", "GAIT_CRITERIA", "gait_passes",
+           "tested_on"]
 
 #: Pass thresholds of the gait test at (0.5, 0) m/s (issue 19): a policy walks when its summary meets all of them
 #: (and, in the time-to-walk benchmark, keeps ``survival`` at (0.2, 0) and (0.7, 0.1) too).
@@ -39,6 +40,14 @@ def gait_passes(summary: dict) -> bool:
     c = GAIT_CRITERIA
     return (summary["survival"] >= c["survival"] and summary["forward_distance_m"] >= c["forward_distance_m"]
             and summary["lateral_drift_m"] <= c["lateral_drift_m"] and summary["knee_rms_rad"] <= c["knee_rms_rad"])
+
+
+def tested_on(device: str | torch.device) -> str:
+    """Where a gait test on ``device`` runs, for its record: the GPU's name for "cuda", "cuda:1", ("auto" on a GPU
+    machine), else "cpu". C MuJoCo and mujoco-warp agree closely, not step for step over 8 s, so a drift near its
+    limit can differ."""
+    dev = resolve_device(device) if device == "auto" else torch.device(device)
+    return torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"
 
 
 def evaluate_policy(
