@@ -216,6 +216,7 @@ def render(data: dict, out=None) -> str:
     notes = [f"Both sides ran on {m['gpu']} on {m['date']}." if same else
              f"**Not one run**: mjlab on {m['gpu']} ({m['date']}), ours on {om['gpu']} ({om['date']}): compare the "
              "train / raw ratios, not the rates.",
+             *([data["context"]] if data.get("context") else []),
              f"Our command: `{om['command']}`.",
              "mjlab's set: " + ", ".join(f"{k} {v}" for k, v in m["versions"].items())
              + f"; stand-ins: {', '.join(m['stand_ins']) or 'none'}.",
