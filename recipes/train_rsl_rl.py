@@ -6,8 +6,10 @@
 
 The hyper-parameters mirror the TorchRL ``default`` preset (48 steps per env, 5 epochs, 4 mini-batches of 49,152 at
 4,096 envs, gamma 0.995, lambda 0.95, adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks, initialised as
-the preset's: orthogonal, action-mean gain 0.01, plain L2 value loss) except the std: rsl_rl learns it (starting at
-0.2) where the preset schedules it. Writes rsl_rl's own logs and model_*.pt under
+the preset's: orthogonal, action-mean gain 0.01, plain L2 value loss), and so does the std by default
+(``--std scheduled``): the preset's schedule (from 0.2 down to 0.05 over the first half of the preset's env-step
+budget, then 0.05), set after each update from the env steps trained, not learned. ``--std learned`` is rsl_rl's own way (a learned std
+starting at 0.2); on one H200 it fell to 0.03 and the policy had not walked after 22 minutes (docs/adapters.md). Writes rsl_rl's own logs and model_*.pt under
 <out>/rsl_rl, the policy as <out>/policy.pt (tensors only, tocabi_torchrl.adapters.policy_file) and the gait test
 under <out>/eval/.
 
@@ -43,6 +45,7 @@ from tocabi_torchrl.adapters.recipe import (
 )
 from tocabi_torchrl.config import preset_config
 from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, INIT_SETTING, init_orthogonal
+from tocabi_torchrl.rl.std_schedule import StdSchedule
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
 RESUME_NOTES = ("resumes actor, critic, Adam state, adaptive learning rate and iteration count (rsl_rl's "
@@ -70,9 +73,25 @@ def train_cfg(args) -> dict:
                       # (docs/adapters.md, "Second GPU row").
                       "use_clipped_value_loss": False},
         "actor": {"class_name": "MLPModel", "hidden_dims": hidden, "activation": "elu",
-                  "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": 0.2}},
+                  "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": std_schedule(args)(1.0),
+                                       "learn_std": args.std == "learned"}},
         "critic": {"class_name": "MLPModel", "hidden_dims": hidden, "activation": "elu"},
     }
+
+
+def std_schedule(args) -> StdSchedule:
+    """The preset's action-std schedule (``ppo.std_start``/``std_end``/``std_hold``), by progress through its
+    ``total_env_steps``; with ``--std learned`` only its start (the learned std's initial value) is used."""
+    ppo = preset_config(args.preset).ppo
+    return StdSchedule(ppo.std_start, ppo.std_end, ppo.std_hold)
+
+
+def set_scheduled_std(runner, args, env_steps: int) -> float:
+    """Set the actor's (fixed) std for the next rollout from the env steps trained so far; returns it."""
+    total = preset_config(args.preset).total_env_steps
+    std = std_schedule(args)(1.0 - env_steps / total)
+    runner.alg.actor.distribution.std_param.data.fill_(std)
+    return std
 
 
 def make_actor(obs_dim: int, num_actions: int, cfg: dict):
@@ -88,6 +107,9 @@ def make_actor(obs_dim: int, num_actions: int, cfg: dict):
 def main(argv=None) -> dict:
     parser = base_parser(__doc__.split("\n\n")[0], num_envs=4096, iterations=1500)
     parser.add_argument("--steps_per_env", type=int, default=48, help="rollout length per env (default: 48)")
+    parser.add_argument("--std", choices=("scheduled", "learned"), default="scheduled",
+                        help="action std: the preset's schedule, set after each update (default), or learned by "
+                             "rsl_rl from the schedule's start")
     parser.add_argument("--hidden", type=lambda s: tuple(int(x) for x in s.split(",")), default=(400, 200, 100),
                         help="hidden layer sizes of actor and critic, comma-separated (default: 400,200,100)")
     args = parser.parse_args(argv)
@@ -125,6 +147,8 @@ def main(argv=None) -> dict:
     def counted_update(*a, **k):
         result = update(*a, **k)
         updates[0] += 1
+        if args.std == "scheduled":  # the next rollout's noise, from the progress made (as the preset's trainer)
+            set_scheduled_std(runner, args, env_steps())
         return result
 
     runner.alg.update = counted_update
@@ -135,6 +159,9 @@ def main(argv=None) -> dict:
 
     def env_steps():
         return env_steps_before + env.stepper.env_steps
+
+    if args.std == "scheduled":  # a resumed call goes on where the schedule was
+        set_scheduled_std(runner, args, env_steps())
 
     def save(path):
         save_policy(path, "rsl_rl", runner.alg.get_policy().state_dict(),

@@ -161,3 +161,35 @@ def test_recipe_starts_from_the_presets_initialisation(tmp_path, monkeypatch, pr
     assert seen["mean"].abs().max() < 0.1  # first actions ~0 (PyTorch's init gives ~0.2 on average here)
     # The preset's value loss is plain L2 (no clip_value); a clipped one lagged behind the returns on the GPU.
     assert preset_config(preset).ppo.value_loss == "l2" and seen["clipped_value_loss"] is False
+
+
+@pytest.mark.parametrize("std", ["scheduled", "learned"])
+def test_recipe_std_follows_the_presets_schedule_or_is_learned(tmp_path, monkeypatch, std):
+    # cpu_smoke's budget is 384 env steps: two iterations of 2 envs x 48 steps reach half of it, where the preset's
+    # schedule (0.2 -> 0.05 over the first half) ends. Each rollout's std is read as its update starts.
+    from rsl_rl.algorithms import PPO
+
+    recipe = load_recipe("train_rsl_rl")
+    seen = []
+    real_update = PPO.update
+
+    def spy(self, *a, **k):
+        param = self.actor.distribution.std_param
+        seen.append((param.detach().clone(), param.requires_grad))
+        return real_update(self, *a, **k)
+
+    monkeypatch.setattr(PPO, "update", spy)
+    out = tmp_path / "run"
+    recipe.main(["--out", str(out), "--device", "cpu", "--num_envs", "2", "--steps_per_env", "48", "--hidden", "16",
+                 "--eval_envs", "0", "--iterations", "2", "--preset", "cpu_smoke", "--std", std])
+    final = torch.load(out / "resume" / "state_call1.pt", weights_only=True)["actor_state_dict"]["distribution.std_param"]
+    (first, grad1), (second, grad2) = seen
+    torch.testing.assert_close(first, torch.full((13,), 0.2))  # the schedule's start, both ways
+    if std == "scheduled":
+        assert not grad1 and not grad2
+        torch.testing.assert_close(second, torch.full((13,), 0.125))  # a quarter through: halfway from 0.2 to 0.05
+        torch.testing.assert_close(final, torch.full((13,), 0.05))
+    else:
+        assert grad1 and grad2
+        assert not torch.equal(second, first) and not torch.equal(final, second)  # moved by the updates
+        assert not torch.allclose(second, torch.full((13,), 0.125))
