@@ -66,7 +66,8 @@ def train_cfg(args) -> dict:
         "logger": "tensorboard",
         "algorithm": {"class_name": "PPO", "num_learning_epochs": 5, "num_mini_batches": max(1, frames // 49152),
                       "clip_param": 0.2, "gamma": 0.995, "lam": 0.95, "value_loss_coef": 1.0, "entropy_coef": 0.0,
-                      "learning_rate": 1e-3, "max_grad_norm": 1.0, "schedule": "adaptive", "desired_kl": 0.01,
+                      "learning_rate": args.learning_rate, "max_grad_norm": 1.0, "schedule": args.lr_schedule,
+                      "desired_kl": 0.01,
                       # The preset's critic loss is plain L2 (ClipPPOLoss without clip_value). Clipped, each value
                       # could move only +-0.2 from its rollout value per update, on returns of O(100), and at the
                       # ~1e-4 learning rate rsl_rl's per-mini-batch KL rule settles at here the critic lagged behind
@@ -107,6 +108,11 @@ def make_actor(obs_dim: int, num_actions: int, cfg: dict):
 def main(argv=None) -> dict:
     parser = base_parser(__doc__.split("\n\n")[0], num_envs=4096, iterations=1500)
     parser.add_argument("--steps_per_env", type=int, default=48, help="rollout length per env (default: 48)")
+    parser.add_argument("--learning_rate", type=float, default=1e-3,
+                        help="Adam's learning rate: the start of the adaptive schedule, or the fixed rate (default: 1e-3)")
+    parser.add_argument("--lr_schedule", choices=("adaptive", "fixed"), default="adaptive",
+                        help="rsl_rl's schedule: adaptive (from the KL to 0.01, checked every mini-batch; default) or "
+                             "fixed (docs/adapters.md on why rsl_rl's rule may starve the critic here)")
     parser.add_argument("--std", choices=("scheduled", "learned"), default="scheduled",
                         help="action std: the preset's schedule, set after each update (default), or learned by "
                              "rsl_rl from the schedule's start")
