@@ -66,7 +66,9 @@ def train_cfg(args) -> dict:
         "logger": "tensorboard",
         "algorithm": {"class_name": "PPO", "num_learning_epochs": 5, "num_mini_batches": max(1, frames // 49152),
                       "clip_param": 0.2, "gamma": 0.995, "lam": 0.95, "value_loss_coef": 1.0, "entropy_coef": 0.0,
-                      "learning_rate": args.learning_rate, "max_grad_norm": 1.0, "schedule": args.lr_schedule,
+                      "learning_rate": args.learning_rate, "max_grad_norm": 1.0,
+                      # per_iteration runs rsl_rl's adaptive code for its KL values only (PerIterationLR)
+                      "schedule": "fixed" if args.lr_schedule == "fixed" else "adaptive",
                       "desired_kl": 0.01,
                       # The preset's critic loss is plain L2 (ClipPPOLoss without clip_value). Clipped, each value
                       # could move only +-0.2 from its rollout value per update, on returns of O(100), and at the
@@ -95,6 +97,37 @@ def set_scheduled_std(runner, args, env_steps: int) -> float:
     return std
 
 
+class PerIterationLR:
+    """The ``default`` preset's learning-rate rule on rsl_rl's PPO (``--lr_schedule per_iteration``): once per
+    iteration, from the mean over the update's mini-batches of the KL to the rollout policy (each measured before its
+    mini-batch's step, as rsl_rl measures it), the rate is divided by 1.5 above 2 x 0.01 and multiplied by 1.5 below
+    0.01 / 2, within [1e-5, 1e-2] (``rl.trainer``'s rule). rsl_rl's own per-mini-batch rule is kept from acting by
+    handing it a zero KL, which it leaves alone."""
+
+    def __init__(self, alg):
+        self.alg, self.kls = alg, []
+        measure = alg.actor.get_kl_divergence
+
+        def recorded(old, new):
+            kl = measure(old, new)
+            self.kls.append(kl.mean())  # a device tensor: read once per iteration, in step()
+            return torch.zeros_like(kl)
+
+        alg.actor.get_kl_divergence = recorded
+
+    def step(self) -> None:
+        kl = float(torch.stack(self.kls).mean()) if self.kls else 0.0
+        self.kls.clear()
+        lr = self.alg.learning_rate
+        if kl > 2.0 * self.alg.desired_kl:
+            lr = max(lr / 1.5, 1e-5)
+        elif kl < 0.5 * self.alg.desired_kl:
+            lr = min(lr * 1.5, 1e-2)
+        self.alg.learning_rate = lr
+        for group in self.alg.optimizer.param_groups:
+            group["lr"] = lr
+
+
 def make_actor(obs_dim: int, num_actions: int, cfg: dict):
     """rsl_rl's actor network (as its runner builds it) for the adapter's observation groups."""
     from rsl_rl.models import MLPModel
@@ -110,9 +143,10 @@ def main(argv=None) -> dict:
     parser.add_argument("--steps_per_env", type=int, default=48, help="rollout length per env (default: 48)")
     parser.add_argument("--learning_rate", type=float, default=1e-3,
                         help="Adam's learning rate: the start of the adaptive schedule, or the fixed rate (default: 1e-3)")
-    parser.add_argument("--lr_schedule", choices=("adaptive", "fixed"), default="adaptive",
-                        help="rsl_rl's schedule: adaptive (from the KL to 0.01, checked every mini-batch; default) or "
-                             "fixed (docs/adapters.md on why rsl_rl's rule may starve the critic here)")
+    parser.add_argument("--lr_schedule", choices=("adaptive", "fixed", "per_iteration"), default="adaptive",
+                        help="adaptive: rsl_rl's rule (from the KL to 0.01, checked before every mini-batch step; "
+                             "default); fixed; per_iteration: the preset's rule (the update's mean KL, once per "
+                             "iteration). docs/adapters.md on why rsl_rl's rule may starve the critic here")
     parser.add_argument("--std", choices=("scheduled", "learned"), default="scheduled",
                         help="action std: the preset's schedule, set after each update (default), or learned by "
                              "rsl_rl from the schedule's start")
@@ -128,7 +162,8 @@ def main(argv=None) -> dict:
     torch.manual_seed(args.seed + int(prior.get("calls", 0)))  # a resumed call draws other exploration noise
     env = TocabiRslRlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + int(prior.get("calls", 0)))
     cfg = train_cfg(args)
-    settings = json.loads(json.dumps({"train_cfg": cfg, "num_envs": args.num_envs, "preset": args.preset,
+    settings = json.loads(json.dumps({"train_cfg": cfg, "lr_rule": args.lr_schedule, "num_envs": args.num_envs,
+                                      "preset": args.preset,
                                       "init": INIT_SETTING}))
     if prior and prior["settings"] != settings:
         raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
@@ -150,9 +185,13 @@ def main(argv=None) -> dict:
     updates = [0]
     update = runner.alg.update
 
+    per_iteration = PerIterationLR(runner.alg) if args.lr_schedule == "per_iteration" else None
+
     def counted_update(*a, **k):
         result = update(*a, **k)
         updates[0] += 1
+        if per_iteration is not None:
+            per_iteration.step()
         if args.std == "scheduled":  # the next rollout's noise, from the progress made (as the preset's trainer)
             set_scheduled_std(runner, args, env_steps())
         return result

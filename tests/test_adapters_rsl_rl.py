@@ -209,3 +209,31 @@ def test_recipe_fixed_learning_rate_stays(tmp_path):
         lrs[schedule] = {g["lr"] for g in state["optimizer_state_dict"]["param_groups"]}
     assert lrs["fixed"] == {5e-3}
     assert lrs["adaptive"] != {5e-3}  # a large first step: its KL rule lowers the rate
+
+
+@pytest.mark.parametrize("start", [5e-3, 1e-5])  # a large first step (the rate falls) and a tiny one (it rises)
+def test_recipe_per_iteration_rule_is_the_presets(tmp_path, monkeypatch, start):
+    # --lr_schedule per_iteration: rsl_rl's per-mini-batch rule is silenced and the preset's rule acts once per
+    # iteration on the update's mean KL (5 epochs x 1 mini-batch here, each KL measured before its step).
+    recipe = load_recipe("train_rsl_rl")
+    seen = []
+    real_step = recipe.PerIterationLR.step
+
+    def spy(self):
+        kls = [float(k) for k in self.kls]
+        before = self.alg.learning_rate
+        real_step(self)
+        seen.append((kls, before, self.alg.learning_rate, {g["lr"] for g in self.alg.optimizer.param_groups}))
+
+    monkeypatch.setattr(recipe.PerIterationLR, "step", spy)
+    recipe.main(["--out", str(tmp_path / "run"), "--device", "cpu", "--num_envs", "2", "--steps_per_env", "8",
+                 "--hidden", "16", "--eval_envs", "0", "--iterations", "2", "--learning_rate", str(start),
+                 "--lr_schedule", "per_iteration"])
+    assert len(seen) == 2
+    assert seen[0][1] == start  # rsl_rl's own rule did not move it during the first update
+    for kls, before, after, groups in seen:
+        assert len(kls) == 5 and kls[0] == 0.0  # the first mini-batch is measured before any step
+        kl = sum(kls) / len(kls)
+        expected = max(before / 1.5, 1e-5) if kl > 0.02 else min(before * 1.5, 1e-2) if kl < 0.005 else before
+        assert after == pytest.approx(expected) and groups == {after}
+    assert seen[0][2] != start  # the cases are chosen so that the rule acts
