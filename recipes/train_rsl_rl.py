@@ -48,10 +48,10 @@ from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, INIT_SETTING, init_ortho
 from tocabi_torchrl.rl.std_schedule import StdSchedule
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
-RESUME_NOTES = ("resumes actor, critic, Adam state, adaptive learning rate and iteration count (rsl_rl's "
-                "OnPolicyRunner.load); not the env state (every call starts from a reset), the random-number state "
-                "(reseeded with seed + call index) or rsl_rl's logger buffers; the rollout in progress when a call's "
-                "time is up is discarded")
+RESUME_NOTES = ("resumes actor (with the scheduled std as the last update set it), critic, Adam state, learning "
+                "rate and iteration count (rsl_rl's OnPolicyRunner.load); not the env state (every call starts from a "
+                "reset), the random-number state (reseeded with seed + call index) or rsl_rl's logger buffers; the "
+                "rollout in progress when a call's time is up is discarded")
 
 
 def train_cfg(args) -> dict:
@@ -92,7 +92,8 @@ def std_schedule(args) -> StdSchedule:
 def set_scheduled_std(runner, args, env_steps: int) -> float:
     """Set the actor's (fixed) std for the next rollout from the env steps trained so far; returns it."""
     total = preset_config(args.preset).total_env_steps
-    std = std_schedule(args)(1.0 - env_steps / total)
+    # All GPUs' steps, as the preset's trainer counts them (rsl_rl runs multi-GPU under torchrun by itself).
+    std = std_schedule(args)(1.0 - env_steps * runner.alg.gpu_world_size / total)
     runner.alg.actor.distribution.std_param.data.fill_(std)
     return std
 
@@ -105,6 +106,8 @@ class PerIterationLR:
     handing it a zero KL, which it leaves alone."""
 
     def __init__(self, alg):
+        if alg.is_multi_gpu:  # rsl_rl reduces its KL over the GPUs; this rule does not, so their rates would part
+            raise SystemExit("error: --lr_schedule per_iteration runs on one GPU; use adaptive or fixed under torchrun")
         self.alg, self.kls = alg, []
         measure = alg.actor.get_kl_divergence
 
@@ -204,9 +207,6 @@ def main(argv=None) -> dict:
 
     def env_steps():
         return env_steps_before + env.stepper.env_steps
-
-    if args.std == "scheduled":  # a resumed call goes on where the schedule was
-        set_scheduled_std(runner, args, env_steps())
 
     def save(path):
         save_policy(path, "rsl_rl", runner.alg.get_policy().state_dict(),
