@@ -12,7 +12,7 @@ import sys
 import pytest
 import torch
 
-from benchmarks import common, env_throughput, mjlab_peer, regenerate, scaling, soak, train_throughput
+from benchmarks import common, device_out, env_throughput, mjlab_peer, regenerate, scaling, soak, train_throughput
 
 
 @pytest.mark.parametrize("page", sorted(regenerate.REPORTS))
@@ -140,3 +140,34 @@ def test_time_to_walk_trains_on_two_ranks_under_torchrun(tmp_path):
     assert out.count("training from scratch on 2 rank(s)") == 1 and out.count("[train took") == 1
     # A run is continued on the rank count it was trained on (its rate and ratio are per rank count).
     assert "was trained on 2 rank(s) so far, this call has 1" in _time_to_walk(tmp_path, *train, code=1)
+
+
+def test_device_out_packs_within_the_limits_and_lists_the_rest(tmp_path, monkeypatch):
+    import random
+    import tarfile
+    from pathlib import Path
+
+    monkeypatch.chdir(tmp_path)
+    rng = random.Random(0)
+    sizes = {"rows/table.json": 2_000, "logs/a.log": 300_000, "logs/b.log": 400_000, "runs/r/snap_1.pt": 600_000,
+             "runs/r/snap_2.pt": 650_000, "runs/r/big.pt": 1_500_000, "runs/r/resume/old.pt": 5_000}
+    for name, size in sizes.items():
+        Path(name).parent.mkdir(parents=True, exist_ok=True)
+        Path(name).write_bytes(rng.randbytes(size))
+    parts, left = device_out.main(["out", "rows/table.json", "logs", "runs", "--part_mib", "1", "--budget_mib", "2",
+                                   "--max_files", "3", "--skip", "*/resume/*"])
+    tars = sorted(Path("out").glob("part_*.tar"))
+    assert len(tars) == len(parts) <= 2 and all(t.stat().st_size <= 2**20 for t in tars)
+    assert sum(t.stat().st_size for t in tars) <= 2 * 2**20
+    packed = [str(p) for part in parts for p in part]
+    # the most important path first; each file once; the skipped one nowhere; the rest listed as left behind
+    assert packed[0] == "rows/table.json" and "runs/r/resume/old.pt" not in packed + [str(p) for p in left]
+    assert sorted(packed + [str(p) for p in left]) == sorted(n for n in sizes if "resume" not in n)
+    assert "runs/r/big.pt" in map(str, left)  # larger than a part
+    manifest = (Path("out") / "manifest.txt").read_text()
+    assert all(str(p) in manifest.split("left behind")[1] for p in left)
+    for tar_path in tars:  # each tar extracts on its own, byte for byte
+        with tarfile.open(tar_path) as tar:
+            tar.extractall(tmp_path / "back", filter="data")
+    for name in packed:
+        assert (tmp_path / "back" / name).read_bytes() == Path(name).read_bytes()
