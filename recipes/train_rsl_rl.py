@@ -8,8 +8,9 @@ The hyper-parameters mirror the TorchRL ``default`` preset (48 steps per env, 5 
 4,096 envs, gamma 0.995, lambda 0.95, adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks, initialised as
 the preset's: orthogonal, action-mean gain 0.01, plain L2 value loss), and so does the std by default
 (``--std scheduled``): the preset's schedule (from 0.2 down to 0.05 over the first half of the preset's env-step
-budget, then 0.05), set after each update from the env steps trained, not learned. ``--std learned`` is rsl_rl's own way (a learned std
-starting at 0.2); on one H200 it fell to 0.03 and the policy had not walked after 22 minutes (docs/adapters.md). Writes rsl_rl's own logs and model_*.pt under
+budget, then 0.05), set after each update from the env steps trained, not learned. ``--std learned`` is rsl_rl's
+own way (a learned std starting at 0.2); on one H200 it fell to 0.03 and the policy had not walked after 22 minutes
+(docs/adapters.md). Writes rsl_rl's own logs and model_*.pt under
 <out>/rsl_rl, the policy as <out>/policy.pt (tensors only, tocabi_torchrl.adapters.policy_file) and the gait test
 under <out>/eval/.
 
@@ -46,6 +47,7 @@ from tocabi_torchrl.adapters.recipe import (
 from tocabi_torchrl.config import preset_config
 from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, INIT_SETTING, init_orthogonal
 from tocabi_torchrl.rl.std_schedule import StdSchedule
+from tocabi_torchrl.rl.update_step import adapt_lr
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
 RESUME_NOTES = ("resumes actor (with the scheduled std as the last update set it), critic, Adam state, learning "
@@ -89,21 +91,24 @@ def std_schedule(args) -> StdSchedule:
     return StdSchedule(ppo.std_start, ppo.std_end, ppo.std_hold)
 
 
-def set_scheduled_std(runner, args, env_steps: int) -> float:
-    """Set the actor's (fixed) std for the next rollout from the env steps trained so far; returns it."""
-    total = preset_config(args.preset).total_env_steps
+def scheduled_std_setter(runner, args):
+    """``set(env_steps)``: the actor's (fixed) std for the next rollout, from the env steps trained so far."""
+    schedule, total = std_schedule(args), preset_config(args.preset).total_env_steps
     # All GPUs' steps, as the preset's trainer counts them (rsl_rl runs multi-GPU under torchrun by itself).
-    std = std_schedule(args)(1.0 - env_steps * runner.alg.gpu_world_size / total)
-    runner.alg.actor.distribution.std_param.data.fill_(std)
-    return std
+    scale = runner.alg.gpu_world_size / total
+    std_param = runner.alg.actor.distribution.std_param
+
+    def set_std(env_steps: int) -> None:
+        std_param.data.fill_(schedule(1.0 - env_steps * scale))
+
+    return set_std
 
 
 class PerIterationLR:
     """The ``default`` preset's learning-rate rule on rsl_rl's PPO (``--lr_schedule per_iteration``): once per
-    iteration, from the mean over the update's mini-batches of the KL to the rollout policy (each measured before its
-    mini-batch's step, as rsl_rl measures it), the rate is divided by 1.5 above 2 x 0.01 and multiplied by 1.5 below
-    0.01 / 2, within [1e-5, 1e-2] (``rl.trainer``'s rule). rsl_rl's own per-mini-batch rule is kept from acting by
-    handing it a zero KL, which it leaves alone."""
+    iteration, :func:`~tocabi_torchrl.rl.update_step.adapt_lr` (the trainer's rule) on the mean over the update's
+    mini-batches of the KL to the rollout policy, each measured before its mini-batch's step, as rsl_rl measures it.
+    rsl_rl's own per-mini-batch rule is kept from acting by handing it a zero KL, which it leaves alone."""
 
     def __init__(self, alg):
         if alg.is_multi_gpu:  # rsl_rl reduces its KL over the GPUs; this rule does not, so their rates would part
@@ -121,12 +126,7 @@ class PerIterationLR:
     def step(self) -> None:
         kl = float(torch.stack(self.kls).mean()) if self.kls else 0.0
         self.kls.clear()
-        lr = self.alg.learning_rate
-        if kl > 2.0 * self.alg.desired_kl:
-            lr = max(lr / 1.5, 1e-5)
-        elif kl < 0.5 * self.alg.desired_kl:
-            lr = min(lr * 1.5, 1e-2)
-        self.alg.learning_rate = lr
+        lr = self.alg.learning_rate = adapt_lr(self.alg.learning_rate, kl, self.alg.desired_kl)
         for group in self.alg.optimizer.param_groups:
             group["lr"] = lr
 
@@ -145,7 +145,8 @@ def main(argv=None) -> dict:
     parser = base_parser(__doc__.split("\n\n")[0], num_envs=4096, iterations=1500)
     parser.add_argument("--steps_per_env", type=int, default=48, help="rollout length per env (default: 48)")
     parser.add_argument("--learning_rate", type=float, default=1e-3,
-                        help="Adam's learning rate: the start of the adaptive schedule, or the fixed rate (default: 1e-3)")
+                        help="Adam's learning rate: the start of the adaptive schedules, or the fixed rate "
+                             "(default: 1e-3)")
     parser.add_argument("--lr_schedule", choices=("adaptive", "fixed", "per_iteration"), default="adaptive",
                         help="adaptive: rsl_rl's rule (from the KL to 0.01, checked before every mini-batch step; "
                              "default); fixed; per_iteration: the preset's rule (the update's mean KL, once per "
@@ -166,8 +167,7 @@ def main(argv=None) -> dict:
     env = TocabiRslRlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + int(prior.get("calls", 0)))
     cfg = train_cfg(args)
     settings = json.loads(json.dumps({"train_cfg": cfg, "lr_rule": args.lr_schedule, "num_envs": args.num_envs,
-                                      "preset": args.preset,
-                                      "init": INIT_SETTING}))
+                                      "preset": args.preset, "init": INIT_SETTING}))
     if prior and prior["settings"] != settings:
         raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
                          f"{prior['settings']}, given {settings}")
@@ -189,14 +189,15 @@ def main(argv=None) -> dict:
     update = runner.alg.update
 
     per_iteration = PerIterationLR(runner.alg) if args.lr_schedule == "per_iteration" else None
+    set_std = scheduled_std_setter(runner, args) if args.std == "scheduled" else None
 
     def counted_update(*a, **k):
         result = update(*a, **k)
         updates[0] += 1
         if per_iteration is not None:
             per_iteration.step()
-        if args.std == "scheduled":  # the next rollout's noise, from the progress made (as the preset's trainer)
-            set_scheduled_std(runner, args, env_steps())
+        if set_std is not None:  # the next rollout's noise, from the progress made (as the preset's trainer)
+            set_std(env_steps())
         return result
 
     runner.alg.update = counted_update

@@ -163,13 +163,10 @@ def test_recipe_starts_from_the_presets_initialisation(tmp_path, monkeypatch, pr
     assert preset_config(preset).ppo.value_loss == "l2" and seen["clipped_value_loss"] is False
 
 
-@pytest.mark.parametrize("std", ["scheduled", "learned"])
-def test_recipe_std_follows_the_presets_schedule_or_is_learned(tmp_path, monkeypatch, std):
-    # cpu_smoke's budget is 384 env steps: two iterations of 2 envs x 48 steps reach half of it, where the preset's
-    # schedule (0.2 -> 0.05 over the first half) ends. Each rollout's std is read as its update starts.
+def record_rollout_std(monkeypatch) -> list:
+    """(std, requires_grad) of the actor as each rsl_rl update starts: the std its rollout was drawn with."""
     from rsl_rl.algorithms import PPO
 
-    recipe = load_recipe("train_rsl_rl")
     seen = []
     real_update = PPO.update
 
@@ -179,10 +176,20 @@ def test_recipe_std_follows_the_presets_schedule_or_is_learned(tmp_path, monkeyp
         return real_update(self, *a, **k)
 
     monkeypatch.setattr(PPO, "update", spy)
+    return seen
+
+
+@pytest.mark.parametrize("std", ["scheduled", "learned"])
+def test_recipe_std_follows_the_presets_schedule_or_is_learned(tmp_path, monkeypatch, std):
+    # cpu_smoke's budget is 384 env steps: two iterations of 2 envs x 48 steps reach half of it, where the preset's
+    # schedule (0.2 -> 0.05 over the first half) ends. Each rollout's std is read as its update starts.
+    recipe = load_recipe("train_rsl_rl")
+    seen = record_rollout_std(monkeypatch)
     out = tmp_path / "run"
     recipe.main(["--out", str(out), "--device", "cpu", "--num_envs", "2", "--steps_per_env", "48", "--hidden", "16",
                  "--eval_envs", "0", "--iterations", "2", "--preset", "cpu_smoke", "--std", std])
-    final = torch.load(out / "resume" / "state_call1.pt", weights_only=True)["actor_state_dict"]["distribution.std_param"]
+    saved = torch.load(out / "resume" / "state_call1.pt", weights_only=True)
+    final = saved["actor_state_dict"]["distribution.std_param"]
     (first, grad1), (second, grad2) = seen
     torch.testing.assert_close(first, torch.full((13,), 0.2))  # the schedule's start, both ways
     if std == "scheduled":
@@ -243,21 +250,12 @@ def test_recipe_per_iteration_rule_is_the_presets(tmp_path, monkeypatch, start):
 def test_recipe_scheduled_std_continues_on_resume(tmp_path, monkeypatch):
     # One iteration (96 of cpu_smoke's 384 env steps), then a resumed call: its rollout's std is the schedule's at
     # 96 steps (0.125, set after the first update and restored with the actor), not the start (0.2).
-    from rsl_rl.algorithms import PPO
-
     recipe = load_recipe("train_rsl_rl")
-    seen = []
-    real_update = PPO.update
-
-    def spy(self, *a, **k):
-        seen.append(self.actor.distribution.std_param.detach().clone())
-        return real_update(self, *a, **k)
-
-    monkeypatch.setattr(PPO, "update", spy)
+    seen = record_rollout_std(monkeypatch)
     small = ["--out", str(tmp_path / "run"), "--device", "cpu", "--num_envs", "2", "--steps_per_env", "48",
              "--hidden", "16", "--eval_envs", "0", "--preset", "cpu_smoke"]
     recipe.main([*small, "--iterations", "1"])
     recipe.main([*small, "--iterations", "2", "--resume"])
     assert len(seen) == 2
-    torch.testing.assert_close(seen[0], torch.full((13,), 0.2))
-    torch.testing.assert_close(seen[1], torch.full((13,), 0.125))
+    torch.testing.assert_close(seen[0][0], torch.full((13,), 0.2))
+    torch.testing.assert_close(seen[1][0], torch.full((13,), 0.125))

@@ -391,3 +391,14 @@ def test_read_metrics_and_steady_rate(tmp_path):
     assert [r["iteration"] for r in read] == ["1", "2", "3", "4", "5"] and read_metrics(tmp_path / "none.csv") == []
     assert steady_rate(read, skip=1) == pytest.approx((600 - 200) / (4 - 2))
     assert steady_rate(read[:2], skip=1) is None
+
+
+def test_adaptive_learning_rate_rule():
+    # The trainer's KL-adaptive rule (shared with the rsl_rl recipe's --lr_schedule per_iteration): /1.5 above twice
+    # the target, x1.5 below half of it, unchanged between, within [1e-5, 1e-2].
+    from tocabi_torchrl.rl.update_step import adapt_lr
+
+    assert adapt_lr(1e-3, 0.021, 0.01) == pytest.approx(1e-3 / 1.5)
+    assert adapt_lr(1e-3, 0.0049, 0.01) == pytest.approx(1.5e-3)
+    assert adapt_lr(1e-3, 0.01, 0.01) == 1e-3
+    assert adapt_lr(1.2e-5, 1.0, 0.01) == 1e-5 and adapt_lr(9e-3, 0.0, 0.01) == 1e-2

@@ -35,8 +35,8 @@ from .networks import make_mlp
 from .rollout_guard import VALID_KEY, guard_rollout
 from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
-from .update_step import (MinibatchStep, get_lr, make_capturable_adam, optimizer_mode, restore_optimizer_mode,
-                          set_lr)
+from .update_step import (MinibatchStep, adapt_lr, get_lr, make_capturable_adam, optimizer_mode,
+                          restore_optimizer_mode, set_lr)
 
 __all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer",
            "make_update_step", "training_keys", "train", "resolve_device", "float32_matmul_precision",
@@ -409,11 +409,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
             # rule would read it as too large a step and starve the absorption (the LR fell to 1e-5 on the H100 and
             # the gait broke), so the learning rate is held there.
             if ppo.lr_schedule == "adaptive" and not fading:
-                kl = stats["kl"]
-                if kl > 2.0 * ppo.desired_kl:
-                    lr = max(lr / 1.5, 1e-5)
-                elif kl < 0.5 * ppo.desired_kl:
-                    lr = min(lr * 1.5, 1e-2)
+                lr = adapt_lr(lr, stats["kl"], ppo.desired_kl)
             elif ppo.lr_schedule == "linear":
                 lr = ppo.lr_end + (ppo.lr - ppo.lr_end) * progress_remaining
             for group in optimizer.param_groups:

@@ -19,7 +19,7 @@ from tensordict import TensorDictBase
 from ..cuda_graphs import CUDA_GRAPHS, Capturer, WarmCapture
 
 __all__ = ["MinibatchStep", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam", "optimizer_mode",
-           "restore_optimizer_mode", "set_lr", "get_lr"]
+           "restore_optimizer_mode", "set_lr", "get_lr", "adapt_lr"]
 
 #: The loss outputs averaged into the update's log line, in this order.
 STAT_KEYS = ("loss_objective", "loss_critic", "kl_approx", "clip_fraction")
@@ -64,6 +64,17 @@ def set_lr(group: dict, lr: float) -> None:
         group["lr"].fill_(lr)
     else:
         group["lr"] = lr
+
+
+def adapt_lr(lr: float, kl: float, desired_kl: float) -> float:
+    """The KL-adaptive learning-rate rule of the ``adaptive`` schedule, applied once per iteration: the rate divided
+    by 1.5 when the update's KL is above twice ``desired_kl``, multiplied by 1.5 when below half of it, within
+    [1e-5, 1e-2]."""
+    if kl > 2.0 * desired_kl:
+        return max(lr / 1.5, 1e-5)
+    if kl < 0.5 * desired_kl:
+        return min(lr * 1.5, 1e-2)
+    return lr
 
 
 def get_lr(group: dict) -> float:
