@@ -108,11 +108,10 @@ class PerIterationLR:
     """The ``default`` preset's learning-rate rule on rsl_rl's PPO (``--lr_schedule per_iteration``): once per
     iteration, :func:`~tocabi_torchrl.rl.update_step.adapt_lr` (the trainer's rule) on the mean over the update's
     mini-batches of the KL to the rollout policy, each measured before its mini-batch's step, as rsl_rl measures it.
-    rsl_rl's own per-mini-batch rule is kept from acting by handing it a zero KL, which it leaves alone."""
+    rsl_rl's own per-mini-batch rule is kept from acting by handing it a zero KL, which it leaves alone. Under
+    torchrun the mean is averaged over the GPUs (as rsl_rl averages its KL), so every GPU sets the same rate."""
 
     def __init__(self, alg):
-        if alg.is_multi_gpu:  # rsl_rl reduces its KL over the GPUs; this rule does not, so their rates would part
-            raise SystemExit("error: --lr_schedule per_iteration runs on one GPU; use adaptive or fixed under torchrun")
         self.alg, self.kls = alg, []
         measure = alg.actor.get_kl_divergence
 
@@ -124,9 +123,12 @@ class PerIterationLR:
         alg.actor.get_kl_divergence = recorded
 
     def step(self) -> None:
-        kl = float(torch.stack(self.kls).mean()) if self.kls else 0.0
+        kl = torch.stack(self.kls).mean() if self.kls else torch.zeros((), device=self.alg.device)
         self.kls.clear()
-        lr = self.alg.learning_rate = adapt_lr(self.alg.learning_rate, kl, self.alg.desired_kl)
+        if self.alg.is_multi_gpu:  # every rank calls step() after the same update: the collective lines up
+            torch.distributed.all_reduce(kl, op=torch.distributed.ReduceOp.SUM)
+            kl = kl / self.alg.gpu_world_size
+        lr = self.alg.learning_rate = adapt_lr(self.alg.learning_rate, float(kl), self.alg.desired_kl)
         for group in self.alg.optimizer.param_groups:
             group["lr"] = lr
 

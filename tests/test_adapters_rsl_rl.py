@@ -259,3 +259,42 @@ def test_recipe_scheduled_std_continues_on_resume(tmp_path, monkeypatch):
     assert len(seen) == 2
     torch.testing.assert_close(seen[0][0], torch.full((13,), 0.2))
     torch.testing.assert_close(seen[1][0], torch.full((13,), 0.125))
+
+
+def _per_iteration_rank(rank: int, world: int, init: str, out) -> None:
+    """One gloo rank of a PerIterationLR over a stand-in of rsl_rl's PPO: rank r measures the KLs r+1 and 3(r+1)."""
+    from types import SimpleNamespace
+
+    import torch.distributed as dist
+
+    dist.init_process_group("gloo", rank=rank, world_size=world, init_method=f"file://{init}")
+    try:
+        recipe = load_recipe("train_rsl_rl")
+        kl = 0.01 * (rank + 1)
+        actor = SimpleNamespace(get_kl_divergence=lambda old, new: torch.full((4,), new))
+        optimizer = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=1e-3)
+        alg = SimpleNamespace(actor=actor, optimizer=optimizer, learning_rate=1e-3, desired_kl=0.01,
+                              device=torch.device("cpu"), is_multi_gpu=True, gpu_world_size=world)
+        rule = recipe.PerIterationLR(alg)
+        silenced = [float(alg.actor.get_kl_divergence(None, k).sum()) for k in (kl, 3 * kl)]
+        rule.step()
+        out[rank] = (silenced, alg.learning_rate, [g["lr"] for g in optimizer.param_groups])
+    finally:
+        dist.destroy_process_group()
+
+
+def test_per_iteration_rule_averages_the_kl_over_gpus(tmp_path):
+    # Under torchrun every GPU must set the same rate: the rule reads the mean KL of all ranks' mini-batches.
+    # Rank 0 alone (mean 0.02: rate held) and rank 1 alone (0.04 > 2 x 0.01: rate falls) would part; the mean
+    # over both (0.03) lowers both rates alike.
+    import torch.distributed as dist
+    import torch.multiprocessing as mp
+
+    if not dist.is_available() or not dist.is_gloo_available():
+        pytest.skip("torch.distributed with gloo is needed")
+    out = mp.Manager().dict()
+    mp.spawn(_per_iteration_rank, args=(2, str(tmp_path / "init"), out), nprocs=2, join=True)
+    for rank in (0, 1):
+        silenced, lr, groups = out[rank]
+        assert silenced == [0.0, 0.0]  # rsl_rl's own rule sees no KL
+        assert lr == pytest.approx(1e-3 / 1.5) and groups == [lr]
