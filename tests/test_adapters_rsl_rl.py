@@ -220,8 +220,9 @@ def test_recipe_fixed_learning_rate_stays(tmp_path):
 
 @pytest.mark.parametrize("start", [5e-3, 1e-5])  # a large first step (the rate falls) and a tiny one (it rises)
 def test_recipe_per_iteration_rule_is_the_presets(tmp_path, monkeypatch, start):
-    # --lr_schedule per_iteration: rsl_rl's per-mini-batch rule is silenced and the preset's rule acts once per
-    # iteration on the update's mean KL (5 epochs x 1 mini-batch here, each KL measured before its step).
+    # The recipe's default (--lr_schedule per_iteration): rsl_rl's per-mini-batch rule is silenced and the preset's
+    # rule acts once per iteration on the update's mean KL (5 epochs x 1 mini-batch here, each KL measured before
+    # its step).
     recipe = load_recipe("train_rsl_rl")
     seen = []
     real_step = recipe.PerIterationLR.step
@@ -234,8 +235,7 @@ def test_recipe_per_iteration_rule_is_the_presets(tmp_path, monkeypatch, start):
 
     monkeypatch.setattr(recipe.PerIterationLR, "step", spy)
     recipe.main(["--out", str(tmp_path / "run"), "--device", "cpu", "--num_envs", "2", "--steps_per_env", "8",
-                 "--hidden", "16", "--eval_envs", "0", "--iterations", "2", "--learning_rate", str(start),
-                 "--lr_schedule", "per_iteration"])
+                 "--hidden", "16", "--eval_envs", "0", "--iterations", "2", "--learning_rate", str(start)])
     assert len(seen) == 2
     assert seen[0][1] == start  # rsl_rl's own rule did not move it during the first update
     for kls, before, after, groups in seen:
