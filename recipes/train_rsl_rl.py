@@ -9,12 +9,11 @@ The hyper-parameters mirror the TorchRL ``default`` preset (48 steps per env, 5 
 gain 0.01, plain L2 value loss), and so do the learning rate and the std by default. The rate starts at 1e-3 and
 follows the preset's KL rule (``--lr_schedule per_iteration``: towards a KL of 0.01, on the update's mean KL, once per
 iteration); rsl_rl's own rule (``adaptive``: the same target, checked before every mini-batch step) held it near 1e-4,
-the critic lagged and three rows on one H200 did not walk in 22 minutes, while this rule walked (docs/adapters.md).
-The std by default
-(``--std scheduled``): the preset's schedule (from 0.2 down to 0.05 over the first half of the preset's env-step
-budget, then 0.05), set after each update from the env steps trained, not learned. ``--std learned`` is rsl_rl's
-own way (a learned std starting at 0.2); on one H200 it fell to 0.03 and the policy had not walked after 22 minutes
-(docs/adapters.md). Writes rsl_rl's own logs and model_*.pt under
+the critic lagged and three rows of up to 22 minutes on one H200 did not walk, while this rule walked at 10
+(docs/adapters.md). The std by default (``--std scheduled``): the preset's schedule (from 0.2 down to 0.05 over the
+first half of the preset's env-step budget, then 0.05), set after each update from the env steps trained, not
+learned. ``--std learned`` is rsl_rl's own way (a learned std starting at 0.2); on one H200 it fell to 0.03 and the
+policy had not walked after 22 minutes (docs/adapters.md). Writes rsl_rl's own logs and model_*.pt under
 <out>/rsl_rl, the policy as <out>/policy.pt (tensors only, tocabi_torchrl.adapters.policy_file) and the gait test
 under <out>/eval/.
 
