@@ -134,6 +134,32 @@ def torchrl_snapshots(out: Path, latest_seconds: float) -> list[str]:
     return kept
 
 
+def add_end_snapshot(library: str, row: dict, out: Path) -> bool:
+    """For a row whose recipe's own budget ended before the cap: the policy training ended with (TorchRL:
+    ``latest.pt``; the library recipes: ``policy.pt``) becomes the snapshot ``wall_XXXXXs.pt`` at the row's training
+    seconds, so it is gait-tested like the marks every ``--checkpoint_minutes`` (the end falls between two marks, and
+    is what the run hands a user). Returns whether it added one to ``row["snapshots"]``; False when the row needs
+    none (a mark within half a second of the end, or the budget not used) or when the run's last policy is not
+    here (printed)."""
+    from tocabi_torchrl.config import wall_tag
+    from tocabi_torchrl.rl.atomic import atomic_write_bytes
+
+    if not row.get("recipe_budget_done"):
+        return False
+    end = out / "checkpoints" / f"{wall_tag(row['train_seconds'])}.pt"
+    if any(Path(s).name == end.name for s in row["snapshots"]):
+        return False
+    if not end.exists():
+        source = out / "checkpoints" / "latest.pt" if library == "torchrl" else out / "policy.pt"
+        if not source.is_file():
+            print(f"{library} {row['preset']} {row['num_envs']}: its last policy ({source}) is not here; the policy "
+                  "its training ended with is not gait-tested")
+            return False
+        atomic_write_bytes(end, source.read_bytes())
+    row["snapshots"].append(str(end))
+    return True
+
+
 def run_used_seconds(library: str, out: Path) -> float | None:
     """Training seconds the run in ``out`` has saved (what its next call resumes from); None if it has nothing to
     resume. Read from the run, not the row: a call killed after the recipe saved but before the row was written
@@ -379,6 +405,12 @@ def main(argv=None) -> None:
                            "tested": {}, "walks_minutes": None, "walk": None, "cap_minutes": args.max_minutes,
                            "device": None, "commands": [], "notes": "", "calls": 0}
                     rows.append(row)
+                if row["status"] == "final" and row.get("walk") is None and add_end_snapshot(library, row, Path(row["run"])):
+                    # Final before the table tested where a recipe's budget ended: that policy is tested now.
+                    row["status"] = "training"
+                    print(f"{library} {args.preset} {n}: its recipe's budget ended at {row['train_seconds'] / 60:.1f} "
+                          "min, between two snapshots; that last policy is gait-tested too, so the row is open again")
+                    args.save_rows()
                 if row["status"] == "final":
                     print(f"{library} {args.preset} {n}: final ({row['run']}); pass --new to train it anew")
                     continue
@@ -405,6 +437,7 @@ def main(argv=None) -> None:
                                calls=trained.get("calls", row.get("calls", 0) + 1),
                                notes=trained.get("resume_notes", ""),
                                device=torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu")
+                    add_end_snapshot(library, row, out)
                     args.save_rows()
                 if not args.no_eval:
                     gait_test_snapshots(library, row, out, args)

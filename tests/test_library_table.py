@@ -59,7 +59,7 @@ class FakePpoWalk:
                 raise subprocess.CalledProcessError(1, cmd)
             (run / "checkpoints").mkdir(parents=True)
             state = {"iteration": 0, "env_steps": 0, "train_seconds": 0.0, "config": self.cfg.to_dict()}
-        save = lambda name: (run / "checkpoints" / name).write_text(json.dumps(state))  # noqa: E731
+        save = lambda name: (run / "checkpoints" / name).write_text(json.dumps(state))
         start, mark = state["train_seconds"], 60.0 * opts.checkpoint_minutes
         next_mark = (int(start // mark) + 1) * mark
         while state["iteration"] < self.cfg.iterations and state["train_seconds"] - start <= 60.0 * opts.max_minutes:
@@ -191,6 +191,33 @@ def test_a_row_whose_recipe_budget_ends_before_the_cap_turns_final(torchrl_table
     assert torchrl_table.tested == ["wall_00001s.pt"] and len(torchrl_table.ppo_walk.commands) == 1
     torchrl_table.main(torchrl_args(tmp_path))  # final: no more recipe calls
     assert rows(tmp_path) == [row] and len(torchrl_table.ppo_walk.commands) == 1
+
+
+def test_the_policy_a_recipe_budget_ended_with_is_tested_too(torchrl_table, tmp_path, capsys):
+    # 7 iterations of 0.25 s: the budget ends at 1.75 s, between the marks at 1 and 2 s. The policy training ended
+    # with (latest.pt) is the snapshot wall_00002s.pt (whole seconds, rounded) and is tested after the 1 s mark.
+    torchrl_table.ppo_walk = FakePpoWalk(total_env_steps=7 * 96)
+    torchrl_table.main(torchrl_args(tmp_path))
+    [row] = rows(tmp_path)
+    checkpoints = Path(row["run"]) / "checkpoints"
+    assert row["status"] == "final" and row["recipe_budget_done"] and row["train_seconds"] == 1.75
+    assert torchrl_table.tested == ["wall_00001s.pt", "wall_00002s.pt"]
+    assert (checkpoints / "wall_00002s.pt").read_text() == (checkpoints / "latest.pt").read_text()
+    assert [Path(p).name for p in row["snapshots"]] == torchrl_table.tested
+    # A row made final before the table tested that policy (as rows of earlier versions were) is opened again,
+    # tests it, and is final again; the end snapshot is written from latest.pt if missing.
+    (checkpoints / "wall_00002s.pt").unlink()
+    row.update(snapshots=row["snapshots"][:1], tested={"wall_00001s": row["tested"]["wall_00001s"]})
+    (tmp_path / "table.json").write_text(json.dumps([row]))
+    torchrl_table.tested.clear()
+    capsys.readouterr()
+    torchrl_table.main(torchrl_args(tmp_path, "--eval_only"))
+    assert "that last policy is gait-tested too, so the row is open again" in capsys.readouterr().out
+    [again] = rows(tmp_path)
+    assert torchrl_table.tested == ["wall_00002s.pt"] and again["status"] == "final"
+    assert set(again["tested"]) == {"wall_00001s", "wall_00002s"} and len(torchrl_table.ppo_walk.commands) == 1
+    torchrl_table.main(torchrl_args(tmp_path, "--eval_only"))  # nothing more to test: left alone
+    assert torchrl_table.tested == ["wall_00002s.pt"] and rows(tmp_path) == [again]
 
 
 def test_a_library_recipe_reports_its_used_budget(tmp_path):
