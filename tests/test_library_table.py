@@ -298,3 +298,24 @@ def test_calls_running_side_by_side_keep_each_others_rows(tmp_path):
     merged = table.save_rows(path, theirs, {skrl})
     assert [(r["library"], r["status"]) for r in merged] == [("rsl_rl", "final"), ("skrl", "final")]
     assert json.loads(path.read_text()) == merged
+
+
+def test_the_rsl_rl_rows_figure_draws_from_the_committed_csvs(tmp_path):
+    # docs/adapters/rsl_rl_rows.py reads three committed per-iteration CSVs (two rsl_rl rows, the preset's run);
+    # a CSV without the columns it plots is refused by name.
+    pytest.importorskip("matplotlib")
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "docs/adapters/rsl_rl_rows.py"
+    spec = importlib.util.spec_from_file_location("rsl_rl_rows", path)
+    figure = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(figure)
+    for csv_path, *columns in figure.ROWS.values():
+        iterations, *series = figure.read(csv_path, tuple(columns))
+        assert iterations == sorted(iterations) and iterations[0] >= 1  # counted from 1 (the preset logs every 5th)
+        assert len(iterations) > 100 and all(len(s) == len(iterations) for s in series)
+    out = figure.main(tmp_path / "rows.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    (tmp_path / "bad.csv").write_text("iteration,qpos\n1,0.3\n")
+    with pytest.raises(SystemExit, match="bad.csv has no rows with all of"):
+        figure.read(tmp_path / "bad.csv", ("iteration", "value_loss"))
