@@ -405,8 +405,9 @@ def main(argv=None) -> None:
                            "tested": {}, "walks_minutes": None, "walk": None, "cap_minutes": args.max_minutes,
                            "device": None, "commands": [], "notes": "", "calls": 0}
                     rows.append(row)
-                if row["status"] == "final" and row.get("walk") is None and add_end_snapshot(library, row, Path(row["run"])):
-                    # Final before the table tested where a recipe's budget ended: that policy is tested now.
+                # A row made final before the table tested where a recipe's budget ended: that policy is tested now.
+                reopen = row["status"] == "final" and row.get("walk") is None
+                if reopen and add_end_snapshot(library, row, Path(row["run"])):
                     row["status"] = "training"
                     print(f"{library} {args.preset} {n}: its recipe's budget ended at {row['train_seconds'] / 60:.1f} "
                           "min, between two snapshots; that last policy is gait-tested too, so the row is open again")

@@ -154,7 +154,7 @@ def main(argv=None) -> dict:
                              "(default: 1e-3)")
     parser.add_argument("--lr_schedule", choices=("per_iteration", "adaptive", "fixed"), default="per_iteration",
                         help="per_iteration: the preset's rule (towards a KL of 0.01, on the update's mean KL, once "
-                             "per iteration; default: walked at 8 training minutes on one H200); adaptive: rsl_rl's "
+                             "per iteration; default: walked at 10 training minutes on one H200); adaptive: rsl_rl's "
                              "own rule (the same target, checked before every mini-batch step: it held the rate near "
                              "1e-4 and three rows did not walk); fixed. docs/adapters.md has the rows")
     parser.add_argument("--std", choices=("scheduled", "learned"), default="scheduled",
