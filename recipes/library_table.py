@@ -19,8 +19,9 @@ with the training seconds, env steps and iterations summed over calls), never pa
 snapshots are named by cumulative training seconds, so the time to walk is in cumulative training minutes. At the
 end of a call the row's untested snapshots are gait-tested (``--eval_minutes`` bounds that; ``--no_eval`` leaves it
 to a later ``--eval_only`` call). A row is ``final`` once a snapshot walks, or the cap is reached (or, before it,
-the recipe's own iteration budget, by the iterations it reports) and every snapshot is tested; later calls leave a
-final row alone (``--new`` starts it over in a new run folder). A row written before rows were resumable (one call
+the recipe's own iteration budget, by the iterations it reports, with the policy it ended with among the
+snapshots) and every snapshot is tested; later calls leave a final row alone (``--new`` starts it over in a new run
+folder), except to test the last policy of a row whose budget ended before this table tested it. A row written before rows were resumable (one call
 each) is kept, as a final row. What a resumed call does not carry over (env state, random-number state, the rollout
 in progress) is in each row's notes. One H100, 10-minute commands, one row (repeat each line until the row says
 ``"status": "final"``):
@@ -134,20 +135,31 @@ def torchrl_snapshots(out: Path, latest_seconds: float) -> list[str]:
     return kept
 
 
-def add_end_snapshot(library: str, row: dict, out: Path) -> bool:
-    """For a row whose recipe's own budget ended before the cap: the policy training ended with (TorchRL:
-    ``latest.pt``; the library recipes: ``policy.pt``) becomes the snapshot ``wall_XXXXXs.pt`` at the row's training
-    seconds, so it is gait-tested like the marks every ``--checkpoint_minutes`` (the end falls between two marks, and
-    is what the run hands a user). Returns whether it added one to ``row["snapshots"]``; False when the row needs
-    none (a mark within half a second of the end, or the budget not used) or when the run's last policy is not
-    here (printed)."""
+def end_snapshot(row: dict, out: Path) -> Path | None:
+    """For a row whose recipe's own budget ended before the cap, the snapshot ``wall_XXXXXs.pt`` at the row's
+    training seconds that :func:`add_end_snapshot` would add; None when the budget is not used, or when a snapshot of
+    that name is listed or already tested (a mark within half a second of the end: the same policy but for at most
+    one iteration). Writes nothing."""
     from tocabi_torchrl.config import wall_tag
-    from tocabi_torchrl.rl.atomic import atomic_write_bytes
 
     if not row.get("recipe_budget_done"):
-        return False
+        return None
     end = out / "checkpoints" / f"{wall_tag(row['train_seconds'])}.pt"
-    if any(Path(s).name == end.name for s in row["snapshots"]):
+    if end.stem in row.get("tested", {}) or any(Path(s).name == end.name for s in row.get("snapshots", [])):
+        return None
+    return end
+
+
+def add_end_snapshot(library: str, row: dict, out: Path) -> bool:
+    """The policy a run ended with when its recipe's own budget ended before the cap (TorchRL: ``latest.pt``; the
+    library recipes: ``policy.pt``) becomes the snapshot :func:`end_snapshot` names, so it is gait-tested like the
+    marks every ``--checkpoint_minutes`` (the end falls between two marks, and is what the run hands a user).
+    Returns whether it added one to ``row["snapshots"]``; False when the row needs none or when the run's last
+    policy is not here (printed)."""
+    from tocabi_torchrl.rl.atomic import atomic_write_bytes
+
+    end = end_snapshot(row, out)
+    if end is None:
         return False
     if not end.exists():
         source = out / "checkpoints" / "latest.pt" if library == "torchrl" else out / "policy.pt"
@@ -156,7 +168,7 @@ def add_end_snapshot(library: str, row: dict, out: Path) -> bool:
                   "its training ended with is not gait-tested")
             return False
         atomic_write_bytes(end, source.read_bytes())
-    row["snapshots"].append(str(end))
+    row.setdefault("snapshots", []).append(str(end))
     return True
 
 
@@ -405,8 +417,12 @@ def main(argv=None) -> None:
                            "tested": {}, "walks_minutes": None, "walk": None, "cap_minutes": args.max_minutes,
                            "device": None, "commands": [], "notes": "", "calls": 0}
                     rows.append(row)
-                # A row made final before the table tested where a recipe's budget ended: that policy is tested now.
-                reopen = row["status"] == "final" and row.get("walk") is None
+                # A row made final before the table tested where a recipe's budget ended: that policy is tested now
+                # (the cap is checked first, so that a refused call leaves the row as it was).
+                reopen = row["status"] == "final" and row.get("walk") is None and end_snapshot(row, Path(row["run"]))
+                if (row["status"] != "final" or reopen) and row["cap_minutes"] != args.max_minutes:
+                    parser.error(f"{library} {args.preset} {n} trains to a {row['cap_minutes']:g}-minute cap, not "
+                                 f"{args.max_minutes:g}; give that --max_minutes or --new")
                 if reopen and add_end_snapshot(library, row, Path(row["run"])):
                     row["status"] = "training"
                     print(f"{library} {args.preset} {n}: its recipe's budget ended at {row['train_seconds'] / 60:.1f} "
@@ -415,15 +431,12 @@ def main(argv=None) -> None:
                 if row["status"] == "final":
                     print(f"{library} {args.preset} {n}: final ({row['run']}); pass --new to train it anew")
                     continue
-                if row["cap_minutes"] != args.max_minutes:
-                    parser.error(f"{library} {args.preset} {n} trains to a {row['cap_minutes']:g}-minute cap, not "
-                                 f"{args.max_minutes:g}; give that --max_minutes or --new")
                 out = Path(row["run"])
                 row["commands"].append(command)
                 # Saved before training: a call killed from here on still leaves the row and its run on record.
                 args.save_rows()
                 used = run_used_seconds(library, out)
-                if used is None and not args.eval_only:
+                if used is None and not args.eval_only and not row.get("recipe_budget_done"):  # none trains again
                     start_over_if_killed_first(row, out, args)
                 used = used or 0.0
                 left = cap_s - used

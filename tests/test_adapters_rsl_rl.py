@@ -292,9 +292,11 @@ def test_per_iteration_rule_averages_the_kl_over_gpus(tmp_path):
 
     if not dist.is_available() or not dist.is_gloo_available():
         pytest.skip("torch.distributed with gloo is needed")
-    out = mp.Manager().dict()
-    mp.spawn(_per_iteration_rank, args=(2, str(tmp_path / "init"), out), nprocs=2, join=True)
+    with mp.Manager() as manager:
+        out = manager.dict()
+        mp.spawn(_per_iteration_rank, args=(2, str(tmp_path / "init"), out), nprocs=2, join=True)
+        results = dict(out)
     for rank in (0, 1):
-        silenced, lr, groups = out[rank]
+        silenced, lr, groups = results[rank]
         assert silenced == [0.0, 0.0]  # rsl_rl's own rule sees no KL
         assert lr == pytest.approx(1e-3 / 1.5) and groups == [lr]

@@ -220,6 +220,42 @@ def test_the_policy_a_recipe_budget_ended_with_is_tested_too(torchrl_table, tmp_
     assert torchrl_table.tested == ["wall_00002s.pt"] and rows(tmp_path) == [again]
 
 
+def test_the_end_snapshot_of_a_library_recipe_and_its_name_clashes(tmp_path, capsys):
+    # The library recipes' last policy is policy.pt; the end snapshot is named by the row's training seconds, and a
+    # mark of that name that is listed or already tested (within half a second of the end) is not replaced.
+    table = load_recipe("library_table")
+    out = tmp_path / "run"
+    (out / "checkpoints").mkdir(parents=True)
+    (out / "policy.pt").write_bytes(b"last policy")
+    row = {"library": "rsl_rl", "preset": "default", "num_envs": 2, "recipe_budget_done": True,
+           "train_seconds": 75.4, "snapshots": [str(out / "checkpoints" / "wall_00060s.pt")], "tested": {}}
+    assert table.end_snapshot(row, out) == out / "checkpoints" / "wall_00075s.pt"
+    assert table.add_end_snapshot("rsl_rl", row, out)
+    assert (out / "checkpoints" / "wall_00075s.pt").read_bytes() == b"last policy"
+    assert row["snapshots"][-1] == str(out / "checkpoints" / "wall_00075s.pt")
+    assert not table.add_end_snapshot("rsl_rl", row, out)  # listed now: once only
+    tested_mark = {**row, "train_seconds": 60.3, "snapshots": [], "tested": {"wall_00060s": {}}}
+    assert table.end_snapshot(tested_mark, out) is None and not table.add_end_snapshot("rsl_rl", tested_mark, out)
+    assert table.end_snapshot({**row, "recipe_budget_done": False, "train_seconds": 90.0}, out) is None
+    (out / "policy.pt").unlink()
+    missing = {**row, "train_seconds": 99.0, "snapshots": []}
+    assert not table.add_end_snapshot("rsl_rl", missing, out) and missing["snapshots"] == []
+    assert "its last policy" in capsys.readouterr().out and not (out / "checkpoints" / "wall_00099s.pt").exists()
+
+
+def test_a_final_row_is_not_opened_again_by_a_call_with_another_cap(torchrl_table, tmp_path):
+    torchrl_table.ppo_walk = FakePpoWalk(total_env_steps=7 * 96)
+    torchrl_table.main(torchrl_args(tmp_path))
+    [row] = rows(tmp_path)
+    checkpoints = Path(row["run"]) / "checkpoints"
+    (checkpoints / "wall_00002s.pt").unlink()  # as a row of before the end snapshot
+    row.update(snapshots=row["snapshots"][:1], tested={"wall_00001s": row["tested"]["wall_00001s"]})
+    (tmp_path / "table.json").write_text(json.dumps([row]))
+    with pytest.raises(SystemExit):
+        torchrl_table.main([*torchrl_args(tmp_path, "--eval_only"), "--max_minutes", "1"])
+    assert rows(tmp_path) == [row] and not (checkpoints / "wall_00002s.pt").exists()  # left as it was
+
+
 def test_a_library_recipe_reports_its_used_budget(tmp_path):
     # The recipe's frozen clock reports a few ms more than it trained; its iteration count tells the budget is used.
     pytest.importorskip("rsl_rl")
