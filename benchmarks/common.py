@@ -71,9 +71,10 @@ def env_rate(env, steps: int, warmup: int = 10, autoreset: bool = False) -> floa
     return env.batch_size[0] * per_second(step, steps, env.device, warmup)
 
 
-def raw_policy_steps_per_second(num_worlds: int, steps: int, device: str = "cuda", warmup: int = 20) -> float:
-    """The ceiling the other benchmarks divide by: policy steps/s of raw mujoco-warp on the backend's model and buffers,
-    a leg PD-hold kernel then ``mujoco_warp.step`` x 8 (every sensor, every substep), recorded as one graph."""
+def raw_policy_step(num_worlds: int, device: str = "cuda") -> Callable[[], None]:
+    """One raw mujoco-warp policy step of ``num_worlds`` worlds on the backend's model and buffers, a leg PD-hold
+    kernel then ``mujoco_warp.step`` x 8 (every sensor, every substep), recorded as one graph (compiled and warmed
+    once); calling it replays the graph on PyTorch's current stream."""
     import mujoco_warp as mjw
     import warp as wp
 
@@ -107,7 +108,12 @@ def raw_policy_steps_per_second(num_worlds: int, steps: int, device: str = "cuda
 
         body()  # compile before recording
         wp.synchronize_device()
-        return num_worlds * per_second(Recorded(body, wp.get_device(device)), steps, device, warmup)
+        return Recorded(body, wp.get_device(device))
+
+
+def raw_policy_steps_per_second(num_worlds: int, steps: int, device: str = "cuda", warmup: int = 20) -> float:
+    """The ceiling the other benchmarks divide by: policy steps/s of :func:`raw_policy_step`."""
+    return num_worlds * per_second(raw_policy_step(num_worlds, device), steps, device, warmup)
 
 
 def device_used_gib(device: str | torch.device = "cuda") -> float | None:

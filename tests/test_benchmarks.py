@@ -12,7 +12,17 @@ import sys
 import pytest
 import torch
 
-from benchmarks import common, device_out, env_throughput, mjlab_peer, regenerate, scaling, soak, train_throughput
+from benchmarks import (
+    common,
+    device_out,
+    env_throughput,
+    mjlab_peer,
+    overlap_probe,
+    regenerate,
+    scaling,
+    soak,
+    train_throughput,
+)
 
 
 @pytest.mark.parametrize("page", sorted(regenerate.REPORTS))
@@ -42,6 +52,25 @@ def test_env_throughput_smoke(tmp_path):
     (r,) = json.loads((tmp_path / "env_reduced.json").read_text())["results"]
     assert r["reset_pass"] == "reduced" and r["autoreset_steps_per_s"] > 0
     assert "env_reduced.png" in (tmp_path / "env_reduced.md").read_text()
+
+
+def test_overlap_probe_runs_on_the_cpu_and_its_update_trains(tmp_path):
+    # The probe's GPU question (two CUDA streams) has no CPU answer; on the CPU it runs serially end to end.
+    data = overlap_probe.main(["--device", "cpu", "--num_envs", "2", "--repeats", "1", "--out", str(tmp_path)])
+    (r,) = data["results"]
+    assert r["policy_steps"] == 48 and r["update_steps"] == 5  # 5 epochs x one mini-batch of 2 x 48 frames
+    assert min(r["physics_s"], r["update_s"], r["both_s"]) > 0
+    assert r["hidden"] == pytest.approx((r["physics_s"] + r["update_s"] - r["both_s"]) / r["update_s"])
+    assert "| 2 | 48 | 5 |" in (tmp_path / "overlap_probe.md").read_text()
+    step, steps, params = overlap_probe.update_stand_in("default", 64, "cpu")
+    assert steps == 5 and overlap_probe.update_stand_in("default", 4096, "cpu")[1] == 20  # 5 epochs x 4 of 49,152
+    before = [p.detach().clone() for p in params]
+    step()
+    assert all(not torch.equal(b, p) for b, p in zip(before, params))  # every layer of both networks moved
+    if torch.cuda.is_available():
+        return
+    with pytest.raises(SystemExit):
+        overlap_probe.main(["--num_envs", "2", "--out", str(tmp_path)])  # cuda asked, none here: named, not a trace
 
 
 def test_train_throughput_smoke_in_a_child_process_and_on_two_ranks(tmp_path):
