@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
+from tocabi_torchrl.rl.atomic import atomic_write_text
 from tocabi_torchrl.rl.gait_record import GaitMetrics, load_policy, policy_steps
 
 LIMIT_M = 0.3
@@ -68,7 +69,7 @@ def main(argv=None) -> dict:
     used = sys.argv[1:] if argv is None else argv
     data = {"command": "PYTHONPATH=. python docs/training/drift_spread.py " + " ".join(used),
             "settings": {k: v for k, v in vars(args).items() if k not in ("checkpoints", "out")}, "results": results}
-    args.out.write_text(json.dumps(data, indent=2) + "\n")
+    atomic_write_text(args.out, json.dumps(data, indent=2) + "\n")
     return data
 
 
