@@ -21,6 +21,7 @@ from benchmarks import (
     regenerate,
     scaling,
     soak,
+    step_timeline,
     train_throughput,
 )
 
@@ -71,6 +72,30 @@ def test_overlap_probe_runs_on_the_cpu_and_its_update_trains(tmp_path):
         return
     with pytest.raises(SystemExit):
         overlap_probe.main(["--num_envs", "2", "--out", str(tmp_path)])  # cuda asked, none here: named, not a trace
+
+
+def test_step_timeline_marks_every_phase_of_the_real_trainer(tmp_path, monkeypatch):
+    # Off CUDA the marks are host clocks. The env is made sync-free, as GPU training's is, so that its masked reset
+    # runs every step and every phase is marked.
+    from tocabi_torchrl.rl import trainer
+
+    originals = {k: getattr(trainer, k) for k in ("make_collector", "make_loss", "guard_rollout", "_update")}
+    build_env = trainer.build_env
+    monkeypatch.setattr(trainer, "build_env",
+                        lambda cfg, device, **kw: build_env(cfg, device, **{"sync_free_resets": True, **kw}))
+    args = ["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--raw_steps", "0",
+            "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs"), "--set", "steps_per_env=8", "actor_hidden=8,8"]
+    data = step_timeline.main(args)
+    (r,) = data["results"]
+    ms = r["ms_per_policy_step"]
+    assert list(ms) == [*step_timeline.STEP_PHASES, *step_timeline.ITERATION_PHASES]
+    assert all(v > 0 for v in ms.values()), ms  # each phase was marked, in the window of the 2 timed iterations
+    assert r["step_ms"] == pytest.approx(sum(ms.values()))
+    assert r["train_env_steps_per_s"] == pytest.approx(8e3 / r["step_ms"])
+    assert "| masked reset |" in (tmp_path / "step_timeline.md").read_text()
+    assert {k: getattr(trainer, k) for k in originals} == originals  # the trainer is itself again
+    with pytest.raises(SystemExit, match="cuda_graph"):  # a captured step has no points to mark: named, not run
+        step_timeline.main([*args, "cuda_graph=on"])
 
 
 def test_train_throughput_smoke_in_a_child_process_and_on_two_ranks(tmp_path):

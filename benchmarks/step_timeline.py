@@ -1,0 +1,208 @@
+"""Where a training iteration's GPU time goes, phase by phase, in one run of the real trainer (issue 25).
+
+    python -m benchmarks.step_timeline --num_envs 4096 --iterations 3     # GPU; docs/benchmarks/step_timeline.*
+    python -m benchmarks.step_timeline --num_envs 4096 --set env.sim.reset_pass=reduced --name step_timeline_reduced
+
+``trainer.train`` runs the default preset as it always does; only marks are added, by wrapping what it calls (the
+actor, the env's step and reset, the simulator's step, the rollout guard, GAE and the update). A mark is a CUDA
+event recorded on the stream, so nothing waits: the time between two marks is the GPU time of the work queued
+between them, idle gaps included where the host lagged. At 4,096 envs the physics fills the GPU (the overlap probe,
+docs/benchmarks.md), so these intervals add up to the iteration and say what each phase costs the training rate.
+
+Phases per policy step: the policy's forward; the collector's work between policy and env; the env before the physics
+(action checks, controls); the physics (``sim.step``: 8 substeps and the step's forward pass); signals, rewards,
+transforms and ``step_mdp``; the masked reset (every step, all worlds, in the sync-free env of GPU training); the
+reset's merge; the collector's storage until the next step. Per
+iteration: the rollout guard and copy, GAE, the mini-batch selection, the PPO update, and the iteration's end (learning
+rate, std, metrics, logging). Reported in ms per policy step of all envs (iteration phases divided by the rollout
+length), beside raw mujoco-warp's policy step measured in the same process. The env step is timed eagerly
+(``ppo.cuda_graph`` off, as "auto" is from 256 envs on): a captured step has no points to mark. Off CUDA the marks are
+host clocks (a smoke run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import shutil
+import time
+from pathlib import Path
+
+import torch
+
+from tocabi_torchrl.rl import trainer
+
+from . import common
+
+NAME = "step_timeline"
+#: Phases in the order they occur; a mark starts its phase, which lasts until the next mark.
+STEP_PHASES = ("policy forward", "collector between policy and env", "env before the physics", "physics (sim.step)",
+               "signals, rewards, transforms, step_mdp", "masked reset", "reset merge", "collector storage")
+ITERATION_PHASES = ("rollout guard and copy", "GAE", "mini-batch key selection", "PPO update",
+                    "iteration end (LR, std, metrics, logging)")
+
+
+class Timeline:
+    """Marks on the device's queue (CUDA events, or host clocks off CUDA); ``collecting`` gates the per-step marks,
+    which the actor's hooks would otherwise also set inside the update (the loss calls the actor)."""
+
+    def __init__(self, device: torch.device):
+        self.cuda = device.type == "cuda"
+        self.marks: list[tuple[str, object]] = []
+        self.iteration_ends: list[int] = []  # index of each "iteration end" mark
+        self.collecting = True
+
+    def mark(self, phase: str) -> None:
+        if self.cuda and torch.cuda.is_current_stream_capturing():
+            return  # a graph being captured (the update step) takes no timing events
+        if self.cuda:
+            event = torch.cuda.Event(enable_timing=True)
+            event.record()
+            self.marks.append((phase, event))
+        else:
+            self.marks.append((phase, time.perf_counter()))
+
+    def step_mark(self, phase: str) -> None:
+        if self.collecting:
+            self.mark(phase)
+
+    def window(self, first: int, last: int) -> dict[str, float]:
+        """Milliseconds per phase from iteration ``first``'s end mark to iteration ``last``'s (0-based)."""
+        if self.cuda:
+            torch.cuda.synchronize()
+        lo, hi = self.iteration_ends[first], self.iteration_ends[last]
+        totals: dict[str, float] = {}
+        for (phase, a), (_, b) in zip(self.marks[lo:hi], self.marks[lo + 1:hi + 1]):
+            ms = a.elapsed_time(b) if self.cuda else 1e3 * (b - a)
+            totals[phase] = totals.get(phase, 0.0) + ms
+        return totals
+
+
+def _wrap(obj, name: str, before: callable, after: callable) -> None:
+    """Replace the bound method ``obj.name`` on this instance by one that calls ``before()`` and ``after()`` around it."""
+    inner = getattr(obj, name)
+
+    def wrapped(*args, **kwargs):
+        before()
+        out = inner(*args, **kwargs)
+        after()
+        return out
+
+    setattr(obj, name, wrapped)
+
+
+@contextlib.contextmanager
+def marked_trainer(timeline: Timeline):
+    """``trainer``'s functions with marks around them (restored on exit)."""
+    saved = {k: getattr(trainer, k) for k in ("make_collector", "make_loss", "guard_rollout", "_update")}
+    mark = {phase: (lambda p=phase: timeline.step_mark(p)) for phase in STEP_PHASES}
+    policy, between, env_in, physics, signals, reset, merge, storage = STEP_PHASES
+
+    def make_collector(cfg, env, actor, *args, **kwargs):
+        actor.register_forward_pre_hook(lambda *_: mark[policy]())
+        actor.register_forward_hook(lambda *_: mark[between]())
+        _wrap(env, "step_and_maybe_reset", mark[env_in], mark[storage])
+        _wrap(env.base_env.sim, "step", mark[physics], mark[signals])
+        # Sync-free envs reset every step (masked); others only when an episode ended, where their phase shows it.
+        _wrap(env, "_reset", mark[reset], mark[merge])
+        return saved["make_collector"](cfg, env, actor, *args, **kwargs)
+
+    def make_loss(cfg, agent):
+        loss_module, advantage = saved["make_loss"](cfg, agent)
+        _wrap(advantage, "forward", lambda: timeline.mark(ITERATION_PHASES[1]),
+              lambda: timeline.mark(ITERATION_PHASES[2]))
+        return loss_module, advantage
+
+    def guard_rollout(*args, **kwargs):
+        timeline.collecting = False  # the rollout is in: what follows is the iteration's own work
+        timeline.mark(ITERATION_PHASES[0])
+        return saved["guard_rollout"](*args, **kwargs)
+
+    def update(*args, **kwargs):
+        timeline.mark(ITERATION_PHASES[3])
+        stats = saved["_update"](*args, **kwargs)  # ends with a host read of the losses
+        timeline.iteration_ends.append(len(timeline.marks))
+        timeline.mark(ITERATION_PHASES[4])
+        timeline.collecting = True
+        return stats
+
+    for name, fn in (("make_collector", make_collector), ("make_loss", make_loss), ("guard_rollout", guard_rollout),
+                     ("_update", update)):
+        setattr(trainer, name, fn)
+    try:
+        yield
+    finally:
+        for name, fn in saved.items():
+            setattr(trainer, name, fn)
+
+
+def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str, overrides: dict) -> dict:
+    """One env count: ``warmup`` iterations, then the phases of ``iterations`` more, then the raw ceiling."""
+    if overrides.get("cuda_graph", "off") != "off":
+        raise SystemExit("step_timeline marks the eager env step: leave ppo.cuda_graph at off (a captured step has no "
+                         "points to mark; 'auto' is off from 256 envs on anyway)")
+    steps = overrides.get("steps_per_env", common.config("default").ppo.steps_per_env)
+    cfg = common.config("default", **{"minibatch_size": min(49152, n * steps // 4), **overrides, "num_envs": n,
+                                      "cuda_graph": "off",
+                                      "total_env_steps": (warmup + iterations) * n * steps, "run_dir": run_dir,
+                                      "name": f"timeline_{n}", "checkpoint_every": 10**9, "progress_bar": False,
+                                      "eval_at_end": False, "log_every": 1, "device": device})
+    shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)  # the benchmark's own scratch run
+    timeline = Timeline(trainer.resolve_device(device))
+    with marked_trainer(timeline):
+        common.train(cfg)
+    steps = cfg.ppo.steps_per_env
+    totals = timeline.window(warmup - 1, warmup - 1 + iterations)
+    per_step = {phase: ms / (iterations * steps) for phase, ms in totals.items()}
+    step_ms = sum(per_step.values())
+    raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
+    raw_ms = 1e3 * n / raw if raw else None
+    return {"num_envs": n, "iterations": iterations, "warmup": warmup, "steps_per_env": steps, "overrides": overrides,
+            "ms_per_policy_step": {p: per_step.get(p, 0.0) for p in (*STEP_PHASES, *ITERATION_PHASES)},
+            "step_ms": step_ms, "train_env_steps_per_s": 1e3 * n / step_ms,
+            "raw_policy_steps_per_s": raw, "raw_step_ms": raw_ms,
+            "ratio_train_over_raw": raw_ms / step_ms if raw_ms else None}
+
+
+def render(data: dict, out) -> str:
+    parts = []
+    for r in data["results"]:
+        ms, total, raw = r["ms_per_policy_step"], r["step_ms"], r["raw_step_ms"]
+        rows = [(phase, f"{v:.3f}", f"{100 * v / total:.1f} %") for phase, v in ms.items()]
+        rows.append(("**all** (train env-steps/s: " + common.fmt(r["train_env_steps_per_s"]) + ")", f"{total:.3f}",
+                     "100 %"))
+        if raw:
+            label = f"raw mujoco-warp policy step (same process), train / raw = {r['ratio_train_over_raw']:.3f}"
+            rows.append((label, f"{raw:.3f}", f"{100 * raw / total:.1f} %"))
+        parts.append(f"### {r['num_envs']:,} envs, {r['iterations']} iterations of {r['steps_per_env']} steps after "
+                     f"{r['warmup']} warm-up, overrides {r['overrides'] or 'none'}\n\n"
+                     + common.table(("phase", "ms per policy step", "share"), rows))
+    return common.page("Phases of a training iteration", data, "\n\n".join(parts))
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096])
+    parser.add_argument("--iterations", type=int, default=3)
+    parser.add_argument("--warmup", type=int, default=3, help="untimed iterations first (at least 1)")
+    parser.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="config overrides (ablations)")
+    parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run (host clocks)")
+    parser.add_argument("--run_dir", default="/tmp/tocabi_bench_runs/step_timeline")
+    parser.add_argument("--out", default=str(common.DOCS))
+    parser.add_argument("--name", default=NAME)
+    args = parser.parse_args(argv)
+    if args.warmup < 1 or args.iterations < 1:
+        parser.error("--warmup and --iterations must be >= 1 (the window starts at a warm-up iteration's end)")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        parser.error("no CUDA device here; pass --device cpu for a smoke run")
+    overrides = common.parse_overrides(args.set)
+    results = [measure(n, args.iterations, args.warmup, args.raw_steps, args.device, args.run_dir, overrides)
+               for n in args.num_envs]
+    data = {"meta": common.meta(NAME, argv, args.device, name=args.name), "results": results}
+    print(common.publish(args.out, args.name, data, render))
+    return data
+
+
+if __name__ == "__main__":
+    main()
