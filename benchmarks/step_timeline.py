@@ -4,19 +4,23 @@
     python -m benchmarks.step_timeline --num_envs 4096 --set env.sim.reset_pass=reduced --name step_timeline_reduced
 
 ``trainer.train`` runs the default preset as it always does; only marks are added, by wrapping what it calls (the
-actor, the env's step and reset, the simulator's step, the rollout guard, GAE and the update). A mark is a CUDA
-event recorded on the stream, so nothing waits: the time between two marks is the GPU time of the work queued
-between them, idle gaps included where the host lagged. At 4,096 envs the physics fills the GPU (the overlap probe,
-docs/benchmarks.md), so these intervals add up to the iteration and say what each phase costs the training rate.
+actor, the env's step and reset, the simulator's step, the rollout guard, GAE and the update), and removed after.
+A mark is a CUDA event recorded on the stream, so nothing waits: the time between two marks is the GPU time of the
+work queued between them, idle gaps included where the host lagged. The intervals tile the timed iterations, so
+they add up to them. Where the GPU is the bottleneck (at 4,096 envs the physics fills it: the overlap probe,
+docs/benchmarks.md), each phase's share is what it costs the training rate; where the host is, a phase's interval
+also holds the host's lag, and the ~10 event records per step add a little host time of their own.
 
 Phases per policy step: the policy's forward; the collector's work between policy and env; the env before the physics
 (action checks, controls); the physics (``sim.step``: 8 substeps and the step's forward pass); signals, rewards,
 transforms and ``step_mdp``; the masked reset (every step, all worlds, in the sync-free env of GPU training); the
-reset's merge; the collector's storage until the next step. Per
-iteration: the rollout guard and copy, GAE, the mini-batch selection, the PPO update, and the iteration's end (learning
-rate, std, metrics, logging). Reported in ms per policy step of all envs (iteration phases divided by the rollout
-length), beside raw mujoco-warp's policy step measured in the same process. The env step is timed eagerly
-(``ppo.cuda_graph`` off, as "auto" is from 256 envs on): a captured step has no points to mark. Off CUDA the marks are
+reset's merge; the collector's storage until the next step (the last step's also holds the end of the rollout: the
+collector's stacking, the trainer's shallow copy and, on several ranks, the statistics sync). Per iteration: the
+rollout guard; GAE; the selection of the loss's keys and the flattening (and the torque assist's bookkeeping); the
+PPO update (mini-batch gathers included); the iteration's end (learning rate, std, metrics, logging). Reported in ms
+per policy step of all envs (iteration phases divided by the rollout length), beside raw mujoco-warp's policy step
+measured in the same process. The env step must run eagerly: a captured step (``ppo.cuda_graph`` "on", or "auto" at
+up to ``cuda_graphs.ENV_GRAPH_AUTO_MAX_ENVS`` envs) has no points to mark and is refused. Off CUDA the marks are
 host clocks (a smoke run).
 """
 
@@ -30,15 +34,13 @@ from pathlib import Path
 
 import torch
 
-from tocabi_torchrl.rl import trainer
-
 from . import common
 
 NAME = "step_timeline"
 #: Phases in the order they occur; a mark starts its phase, which lasts until the next mark.
 STEP_PHASES = ("policy forward", "collector between policy and env", "env before the physics", "physics (sim.step)",
                "signals, rewards, transforms, step_mdp", "masked reset", "reset merge", "collector storage")
-ITERATION_PHASES = ("rollout guard and copy", "GAE", "mini-batch key selection", "PPO update",
+ITERATION_PHASES = ("rollout guard", "GAE", "loss keys and flattening", "PPO update",
                     "iteration end (LR, std, metrics, logging)")
 
 
@@ -78,9 +80,10 @@ class Timeline:
         return totals
 
 
-def _wrap(obj, name: str, before: callable, after: callable) -> None:
-    """Replace the bound method ``obj.name`` on this instance by one that calls ``before()`` and ``after()`` around it."""
-    inner = getattr(obj, name)
+def _wrap(obj, name: str, before, after, undo: list) -> None:
+    """Replace the method ``obj.name`` on this instance by one that calls ``before()`` and ``after()`` around it;
+    appends to ``undo`` what puts the original back."""
+    inner, own = getattr(obj, name), name in vars(obj)
 
     def wrapped(*args, **kwargs):
         before()
@@ -89,28 +92,32 @@ def _wrap(obj, name: str, before: callable, after: callable) -> None:
         return out
 
     setattr(obj, name, wrapped)
+    undo.append(lambda: setattr(obj, name, inner) if own else delattr(obj, name))
 
 
 @contextlib.contextmanager
 def marked_trainer(timeline: Timeline):
-    """``trainer``'s functions with marks around them (restored on exit)."""
+    """The trainer's functions, and the env, simulator, actor and GAE it builds, with marks around them; all put
+    back on exit, also after an error."""
+    trainer = common.trainer
     saved = {k: getattr(trainer, k) for k in ("make_collector", "make_loss", "guard_rollout", "_update")}
+    undo: list = []
     mark = {phase: (lambda p=phase: timeline.step_mark(p)) for phase in STEP_PHASES}
     policy, between, env_in, physics, signals, reset, merge, storage = STEP_PHASES
 
     def make_collector(cfg, env, actor, *args, **kwargs):
-        actor.register_forward_pre_hook(lambda *_: mark[policy]())
-        actor.register_forward_hook(lambda *_: mark[between]())
-        _wrap(env, "step_and_maybe_reset", mark[env_in], mark[storage])
-        _wrap(env.base_env.sim, "step", mark[physics], mark[signals])
+        undo.append(actor.register_forward_pre_hook(lambda *_: mark[policy]()).remove)
+        undo.append(actor.register_forward_hook(lambda *_: mark[between]()).remove)
+        _wrap(env, "step_and_maybe_reset", mark[env_in], mark[storage], undo)
+        _wrap(env.base_env.sim, "step", mark[physics], mark[signals], undo)
         # Sync-free envs reset every step (masked); others only when an episode ended, where their phase shows it.
-        _wrap(env, "_reset", mark[reset], mark[merge])
+        _wrap(env, "_reset", mark[reset], mark[merge], undo)
         return saved["make_collector"](cfg, env, actor, *args, **kwargs)
 
     def make_loss(cfg, agent):
         loss_module, advantage = saved["make_loss"](cfg, agent)
         _wrap(advantage, "forward", lambda: timeline.mark(ITERATION_PHASES[1]),
-              lambda: timeline.mark(ITERATION_PHASES[2]))
+              lambda: timeline.mark(ITERATION_PHASES[2]), undo)
         return loss_module, advantage
 
     def guard_rollout(*args, **kwargs):
@@ -134,25 +141,30 @@ def marked_trainer(timeline: Timeline):
     finally:
         for name, fn in saved.items():
             setattr(trainer, name, fn)
+        for put_back in reversed(undo):
+            put_back()
 
 
 def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str, overrides: dict) -> dict:
     """One env count: ``warmup`` iterations, then the phases of ``iterations`` more, then the raw ceiling."""
-    if overrides.get("cuda_graph", "off") != "off":
-        raise SystemExit("step_timeline marks the eager env step: leave ppo.cuda_graph at off (a captured step has no "
-                         "points to mark; 'auto' is off from 256 envs on anyway)")
     steps = overrides.get("steps_per_env", common.config("default").ppo.steps_per_env)
     cfg = common.config("default", **{"minibatch_size": min(49152, n * steps // 4), **overrides, "num_envs": n,
-                                      "cuda_graph": "off",
                                       "total_env_steps": (warmup + iterations) * n * steps, "run_dir": run_dir,
                                       "name": f"timeline_{n}", "checkpoint_every": 10**9, "progress_bar": False,
                                       "eval_at_end": False, "log_every": 1, "device": device})
+    at = common.trainer.resolve_device(device)
+    if cfg.ppo.cuda_graph == "on" or common.trainer.plan_graphs(cfg, at, n).env_step:
+        raise SystemExit(f"step_timeline marks the eager env step, and ppo.cuda_graph={cfg.ppo.cuda_graph!r} captures "
+                         f"it at {n} envs (a captured step has no points to mark): pass --set cuda_graph=off")
     shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)  # the benchmark's own scratch run
-    timeline = Timeline(trainer.resolve_device(device))
+    timeline = Timeline(at)
     with marked_trainer(timeline):
         common.train(cfg)
     steps = cfg.ppo.steps_per_env
     totals = timeline.window(warmup - 1, warmup - 1 + iterations)
+    for phase in (*STEP_PHASES, *ITERATION_PHASES):
+        if phase not in totals:  # e.g. no episode ended in an env that resets only then; never in GPU training
+            print(f"step_timeline: no mark of phase {phase!r} in the timed iterations; it is reported as 0", flush=True)
     per_step = {phase: ms / (iterations * steps) for phase, ms in totals.items()}
     step_ms = sum(per_step.values())
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None

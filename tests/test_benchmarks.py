@@ -98,6 +98,40 @@ def test_step_timeline_marks_every_phase_of_the_real_trainer(tmp_path, monkeypat
         step_timeline.main([*args, "cuda_graph=on"])
 
 
+def test_step_timeline_puts_back_every_wrapper_and_hook_also_after_an_error(monkeypatch):
+    from types import SimpleNamespace
+
+    from tocabi_torchrl.rl import trainer
+
+    class Env:  # the three methods the timeline wraps, on a class like the real env's
+        def step_and_maybe_reset(self, td):
+            return td
+
+        def _reset(self, td):
+            return td
+
+    sim = SimpleNamespace(step=lambda: None)  # an instance attribute, as a wrapper may find one
+    env, actor = Env(), torch.nn.Linear(2, 2)
+    env.base_env = SimpleNamespace(sim=sim)
+    inner_step = sim.step
+    monkeypatch.setattr(trainer, "make_collector", lambda cfg, env, actor, *a, **k: "collector")
+    timeline = step_timeline.Timeline(torch.device("cpu"))
+    with pytest.raises(RuntimeError, match="midway"):
+        with step_timeline.marked_trainer(timeline):
+            assert trainer.make_collector(None, env, actor) == "collector"
+            env.step_and_maybe_reset(None), actor(torch.zeros(2)), sim.step(), env._reset(None)
+            assert [phase for phase, _ in timeline.marks] == [
+                "env before the physics", "collector storage", "policy forward", "collector between policy and env",
+                "physics (sim.step)", "signals, rewards, transforms, step_mdp", "masked reset", "reset merge"]
+            raise RuntimeError("midway")
+    assert trainer.make_collector(None, env, actor) == "collector"  # the trainer's own function again
+    assert "step_and_maybe_reset" not in vars(env) and "_reset" not in vars(env) and sim.step is inner_step
+    assert not actor._forward_hooks and not actor._forward_pre_hooks
+    n = len(timeline.marks)
+    env.step_and_maybe_reset(None), actor(torch.zeros(2)), sim.step(), env._reset(None)
+    assert len(timeline.marks) == n  # nothing marks any more
+
+
 def test_train_throughput_smoke_in_a_child_process_and_on_two_ranks(tmp_path):
     train_throughput.main(["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--nproc", "1",
                            "2", "--raw_steps", "0", "--set", "steps_per_env=8", "actor_hidden=8,8", "--out",
