@@ -39,6 +39,7 @@ belongs beside benchmarks/time_to_walk.py.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import re
 import shlex
@@ -206,9 +207,27 @@ def gait(library: str, snapshot: str, out: Path, args, command) -> dict:
     return recipe.evaluate(snapshot, out, num_envs=args.eval_envs, device=args.device, seconds=args.eval_seconds, command=command)
 
 
+def gait_once(library: str, snap: str, out: Path, args, done: dict, deadline: float,
+              command: tuple[float, float]) -> dict | None:
+    """The gait-test summary of ``snap`` at ``command``: from ``done`` (command tag -> summary), or tested now,
+    added to ``done`` and saved with the rows; None if it is not in ``done`` and ``deadline`` (monotonic) is past."""
+    tag = f"{command[0]}_{command[1]}"
+    if tag not in done:
+        if time.monotonic() >= deadline:
+            return None
+        done[tag] = gait(library, snap, out / "gait" / Path(snap).stem / tag, args, command)
+        args.save_rows()  # a call killed during the next command keeps this one
+    return done[tag]
+
+
 def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
     """Gait-test the row's snapshots not tested yet, in training-time order, until one passes; records each in
-    ``row["tested"]`` (by snapshot name) and the first pass in ``row["walk"]``/``row["walks_minutes"]``."""
+    ``row["tested"]`` (by snapshot name) and the first pass in ``row["walk"]``/``row["walks_minutes"]``.
+
+    A snapshot fails at its first failing command: the two other commands run only after the main one passes, and
+    the second only if the first kept its robots up. Each finished command is saved at once (``row["testing"]``,
+    until its snapshot is decided), so that a call that ends mid-snapshot (killed, or ``--eval_minutes`` spent)
+    leaves it to the next call, which runs only the commands still missing."""
     from tocabi_torchrl.adapters.evaluate import GAIT_CRITERIA, gait_passes
     from tocabi_torchrl.rl.evaluate import tested_on
 
@@ -220,24 +239,41 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
             return
         if name in tested:
             continue
-        if time.monotonic() >= deadline:
-            print(f"{library} {row['num_envs']}: --eval_minutes spent; the next call goes on from {name}")
-            return
-        main = gait(library, snap, out / "gait" / name / "0.5_0.0", args, MAIN)
+        done = row.setdefault("testing", {}).setdefault(name, {})  # command tag -> summary, this snapshot's so far
+        run = functools.partial(gait_once, library, snap, out, args, done, deadline)
+        main = run(MAIN)
         # Where the test ran: a later --eval_only call may test on another machine (the test is the same).
-        entry = {"minutes": snapshot_seconds(snap) / 60.0, "main_passes": bool(gait_passes(main)), "passes": False,
-                 "device": tested_on(args.device)}
+        entry = {"minutes": snapshot_seconds(snap) / 60.0, "main_passes": main is not None and bool(gait_passes(main)),
+                 "passes": False, "device": tested_on(args.device)}
         if entry["main_passes"]:
-            others = {f"{c[0]}_{c[1]}": gait(library, snap, out / "gait" / name / f"{c[0]}_{c[1]}", args, c)
-                      for c in OTHERS}
-            entry["others"] = {k: v["survival"] for k, v in others.items()}
-            entry["passes"] = all(s["survival"] >= GAIT_CRITERIA["survival"] for s in others.values())
+            others = {}
+            for command in OTHERS:
+                summary = run(command)
+                if summary is None:
+                    break
+                others[f"{command[0]}_{command[1]}"] = summary["survival"]
+                if summary["survival"] < GAIT_CRITERIA["survival"]:
+                    break  # the snapshot fails here; the commands after it cannot change that
+            else:
+                entry["passes"] = True
+            if summary is not None:
+                entry["others"] = others
             if entry["passes"]:
-                row["walk"] = {"snapshot": snap, "minutes": entry["minutes"], "main": main,
-                               "others": entry["others"]}
+                row["walk"] = {"snapshot": snap, "minutes": entry["minutes"], "main": main, "others": others}
                 row["walks_minutes"] = entry["minutes"]
+        if main is None or (entry["main_passes"] and summary is None):
+            print(f"{library} {row['num_envs']}: --eval_minutes spent; the next call goes on from {name}")
+            if not done:
+                del row["testing"][name]
+            if not row["testing"]:
+                del row["testing"]
+            args.save_rows()
+            return
         tested[name] = entry
-        # Saved after every snapshot: a call killed mid-test repeats only the snapshot it was testing.
+        del row["testing"][name]
+        if not row["testing"]:
+            del row["testing"]
+        # Saved after every snapshot: a call killed mid-test repeats only the commands it had not finished.
         args.save_rows()
 
 
@@ -355,8 +391,8 @@ def main(argv=None) -> None:
     parser.add_argument("--eval_envs", type=int, default=256)
     parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
     parser.add_argument("--eval_minutes", type=float, default=0.0,
-                        help="start no new snapshot's gait test after this many minutes of testing in this call "
-                             "(0 = test all); the next call goes on where this one stopped")
+                        help="start no new gait test (one snapshot at one command) after this many minutes of "
+                             "testing in this call (0 = test all); the next call goes on where this one stopped")
     parser.add_argument("--no_eval", action="store_true", help="train only; gait-test later with --eval_only")
     parser.add_argument("--eval_only", action="store_true",
                         help="no training: gait-test the snapshots of the listed rows not tested yet")

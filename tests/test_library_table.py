@@ -355,3 +355,47 @@ def test_the_rsl_rl_rows_figure_draws_from_the_committed_csvs(tmp_path):
     (tmp_path / "bad.csv").write_text("iteration,qpos\n1,0.3\n")
     with pytest.raises(SystemExit, match="bad.csv has no rows with all of"):
         figure.read(tmp_path / "bad.csv", ("iteration", "value_loss"))
+
+
+#: A gait-test summary that passes every threshold.
+WALKS = {"survival": 1.0, "forward_distance_m": 3.5, "lateral_drift_m": 0.1, "knee_rms_rad": 0.05}
+
+
+def test_a_snapshot_fails_at_its_first_failing_command_and_the_rest_are_not_run(torchrl_table, tmp_path):
+    runs = []
+
+    def gait(library, snapshot, out, args, command):  # passes at (0.5, 0), falls at (0.2, 0)
+        runs.append((Path(snapshot).stem, command))
+        return WALKS if command == (0.5, 0.0) else {**WALKS, "survival": 0.9}
+
+    torchrl_table.gait = gait
+    torchrl_table.main(torchrl_args(tmp_path, "--max_minutes", str(2 / 60)))
+    [row] = rows(tmp_path)
+    assert runs == [("wall_00001s", (0.5, 0.0)), ("wall_00001s", (0.2, 0.0)),  # (0.7, 0.1) of neither is run
+                    ("wall_00002s", (0.5, 0.0)), ("wall_00002s", (0.2, 0.0))]
+    assert row["tested"]["wall_00001s"]["others"] == {"0.2_0.0": 0.9} and not row["tested"]["wall_00001s"]["passes"]
+    assert row["walk"] is None and row["status"] == "final" and "testing" not in row
+
+
+def test_a_call_that_ends_mid_snapshot_leaves_only_its_missing_commands_to_the_next(torchrl_table, tmp_path):
+    torchrl_table.main(torchrl_args(tmp_path, "--max_minutes", str(1 / 60), "--no_eval"))
+    runs = []
+
+    def gait(library, snapshot, out, args, command):  # every command passes; the call is killed in the third
+        if len(runs) == 2:
+            raise KeyboardInterrupt
+        runs.append(command)
+        return WALKS
+
+    torchrl_table.gait = gait
+    with pytest.raises(KeyboardInterrupt):
+        torchrl_table.main(torchrl_args(tmp_path, "--max_minutes", str(1 / 60), "--eval_only"))
+    [row] = rows(tmp_path)
+    assert set(row["testing"]["wall_00001s"]) == {"0.5_0.0", "0.2_0.0"} and "wall_00001s" not in row["tested"]
+    runs.clear()
+    runs.append(None)  # the next call's gait test is not killed (three runs in all)
+    torchrl_table.main(torchrl_args(tmp_path, "--max_minutes", str(1 / 60), "--eval_only"))
+    [row] = rows(tmp_path)
+    assert runs == [None, (0.7, 0.1)]  # only the command the killed call had not finished
+    assert row["walks_minutes"] == pytest.approx(1 / 60) and row["status"] == "final" and "testing" not in row
+    assert row["walk"]["others"] == {"0.2_0.0": 1.0, "0.7_0.1": 1.0} and row["walk"]["main"] == WALKS
