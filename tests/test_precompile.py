@@ -1,5 +1,5 @@
-"""tocabi_torchrl.sim.precompile: the simulator's CUDA kernels compile for a GPU architecture on this CPU-only machine,
-into the folders a GPU run looks for (warp names them by module and hash, the same on any machine)."""
+"""tocabi_torchrl.precompile: the simulator's CUDA kernels compile for a GPU architecture on this CPU-only machine,
+into the folders a GPU run looks for (warp names them by module and hash, block size included, on any machine)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ import pytest
 
 wp = pytest.importorskip("warp")
 
-from tocabi_torchrl.sim import kernels, precompile
+from tocabi_torchrl import precompile
+from tocabi_torchrl.sim import kernels
 
 
 def _warp_cpu() -> bool:
@@ -18,34 +19,43 @@ def _warp_cpu() -> bool:
         return False
 
 
-def test_a_module_compiles_for_sm90_into_the_folder_a_gpu_run_reads(tmp_path):
+def test_a_module_compiles_for_sm90_at_each_block_size_into_the_folders_a_gpu_run_reads(tmp_path):
     module = wp.get_module(kernels.__name__)
+    default = module.options["block_dim"]
     said = []
-    outcome = precompile.compile_modules({module.name: module}, arch=90, out=tmp_path, progress=said.append)
+    outcome = precompile.compile_modules({module.name: (module, {32, default})}, arch=90, out=tmp_path,
+                                         progress=said.append)
     assert outcome == {module.name: "compiled"} and said and module.name in said[0]
-    name = module.get_module_identifier()  # wp_<module>_<first 7 hex of its hash>: what a GPU run loads
-    assert name.startswith(f"wp_{module.name}_")
-    assert (tmp_path / name / f"{name}.sm90.cubin").stat().st_size > 1000 and (tmp_path / name / f"{name}.meta").is_file()
+    assert module.options["block_dim"] == default  # put back
+    names = set()
+    for size in (32, default):
+        module.options["block_dim"] = size
+        names.add(name := module.get_module_identifier())  # wp_<module>_<7 hex of its hash>: what a GPU run loads
+        module.options["block_dim"] = default
+        folder = tmp_path / name
+        # CUBIN where the driver is older than warp's toolkit; PTX, at warp's PTX target (sm_75 here), where not.
+        assert (folder / f"{name}.sm90.cubin").stat().st_size > 1000 and (folder / f"{name}.meta").is_file()
+        assert list(folder.glob(f"{name}.sm*.ptx"))
+    assert len(names) == 2  # the block size is part of the name
 
 
-def test_function_only_modules_are_not_failures_and_a_failure_is_reported_not_raised(tmp_path):
-    import mujoco_warp  # noqa: F401 - registers its modules
-
-    functions_only = wp.get_module("mujoco_warp._src.math")  # functions, compiled into the modules that call them
-    broken = wp.get_module(kernels.__name__)
-    outcome = precompile.compile_modules({"math": functions_only, "bad arch": broken}, arch=1, out=tmp_path,
-                                         progress=lambda line: None)
-    assert outcome["math"] == "no kernels"
-    assert outcome["bad arch"].startswith("failed: ")  # sm_1 does not exist: named, and the other module still ran
+def test_a_failure_is_reported_per_module_not_raised(tmp_path):
+    module = wp.get_module(kernels.__name__)
+    default = module.options["block_dim"]
+    outcome = precompile.compile_modules({"bad arch": (module, {64})}, arch=1, out=tmp_path, progress=print)
+    assert outcome["bad arch"].startswith("failed: ") and module.options["block_dim"] == default
     with pytest.raises(SystemExit):
-        precompile.main(["--arch", "7"])  # not a compute capability: refused before anything is built
+        precompile.main(["--arch", "7"])  # no NVRTC target: refused by name before anything is built
 
 
 @pytest.mark.skipif(not _warp_cpu(), reason="warp's CPU device is unavailable")
-def test_the_walking_env_registers_the_modules_a_gpu_run_compiles():
-    modules = precompile.collect_modules()
-    # The costliest on an H100 host's first run (docs/benchmarks.md): the collision kernels, forward, smooth, and ours.
-    for name in ("mujoco_warp._src.forward", "mujoco_warp._src.smooth", "mujoco_warp._src.sensor",
-                 kernels.__name__):
-        assert name in modules
-    assert sum(name.startswith("ccd_kernel_builder") for name in modules) >= 3
+def test_the_walking_env_launches_the_modules_a_gpu_run_compiles_at_their_block_sizes():
+    launches = precompile.collect_launches()
+    # Among the costliest of an H100 host's first run: the collision kernels, forward, smooth, sensors; and ours.
+    for name in ("mujoco_warp._src.forward", "mujoco_warp._src.smooth", "mujoco_warp._src.sensor", kernels.__name__):
+        assert name in launches
+    ccd = [sizes for name, (_, sizes) in launches.items() if name.startswith("ccd_kernel_builder")]
+    assert len(ccd) >= 3 and all(64 in sizes for sizes in ccd)
+    # Tiled kernels ask for their own block sizes, which name other binaries than the module default's.
+    assert any(len(sizes) > 1 for _, sizes in launches.values())
+    assert wp.launch.__name__ == "launch" and "noting" not in wp.launch.__qualname__  # warp's own again
