@@ -242,39 +242,39 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
         done = row.setdefault("testing", {}).setdefault(name, {})  # command tag -> summary, this snapshot's so far
         run = functools.partial(gait_once, library, snap, out, args, done, deadline)
         main = run(MAIN)
-        # Where the test ran: a later --eval_only call may test on another machine (the test is the same).
+        # Where the deciding command ran (earlier commands may have run in an earlier call, on another machine: the
+        # test is the same).
         entry = {"minutes": snapshot_seconds(snap) / 60.0, "main_passes": main is not None and bool(gait_passes(main)),
                  "passes": False, "device": tested_on(args.device)}
+        unfinished = main is None
         if entry["main_passes"]:
             others = {}
             for command in OTHERS:
                 summary = run(command)
                 if summary is None:
+                    unfinished = True
                     break
                 others[f"{command[0]}_{command[1]}"] = summary["survival"]
                 if summary["survival"] < GAIT_CRITERIA["survival"]:
                     break  # the snapshot fails here; the commands after it cannot change that
             else:
                 entry["passes"] = True
-            if summary is not None:
-                entry["others"] = others
+            entry["others"] = others
             if entry["passes"]:
                 row["walk"] = {"snapshot": snap, "minutes": entry["minutes"], "main": main, "others": others}
                 row["walks_minutes"] = entry["minutes"]
-        if main is None or (entry["main_passes"] and summary is None):
+        if unfinished:
             print(f"{library} {row['num_envs']}: --eval_minutes spent; the next call goes on from {name}")
-            if not done:
-                del row["testing"][name]
-            if not row["testing"]:
-                del row["testing"]
-            args.save_rows()
-            return
-        tested[name] = entry
-        del row["testing"][name]
+        else:
+            tested[name] = entry
+        if not done or not unfinished:  # decided, or nothing of it run: nothing to keep for the next call
+            del row["testing"][name]
         if not row["testing"]:
             del row["testing"]
         # Saved after every snapshot: a call killed mid-test repeats only the commands it had not finished.
         args.save_rows()
+        if unfinished:
+            return
 
 
 def start_over_if_killed_first(row: dict, out: Path, args) -> None:

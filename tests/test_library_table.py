@@ -399,3 +399,28 @@ def test_a_call_that_ends_mid_snapshot_leaves_only_its_missing_commands_to_the_n
     assert runs == [None, (0.7, 0.1)]  # only the command the killed call had not finished
     assert row["walks_minutes"] == pytest.approx(1 / 60) and row["status"] == "final" and "testing" not in row
     assert row["walk"]["others"] == {"0.2_0.0": 1.0, "0.7_0.1": 1.0} and row["walk"]["main"] == WALKS
+
+
+def test_eval_minutes_spent_between_commands_keeps_the_finished_ones_for_the_next_call(torchrl_table, tmp_path,
+                                                                                      monkeypatch, capsys):
+    import time
+
+    torchrl_table.main(torchrl_args(tmp_path, "--max_minutes", str(1 / 60), "--no_eval"))
+    clock, runs = {"now": 0.0}, []
+
+    def gait(library, snapshot, out, args, command):  # every command passes and takes a minute of the clock
+        runs.append(command)
+        clock["now"] += 60.0
+        return WALKS
+
+    torchrl_table.gait = gait
+    monkeypatch.setattr(torchrl_table, "time", SimpleNamespace(monotonic=lambda: clock["now"], strftime=time.strftime))
+    torchrl_table.main(torchrl_args(tmp_path, "--max_minutes", str(1 / 60), "--eval_only", "--eval_minutes", "1.5"))
+    [row] = rows(tmp_path)
+    assert runs == [(0.5, 0.0), (0.2, 0.0)]  # the third would start after the 1.5 minutes
+    assert set(row["testing"]["wall_00001s"]) == {"0.5_0.0", "0.2_0.0"} and row["status"] != "final"
+    assert "--eval_minutes spent; the next call goes on from wall_00001s" in capsys.readouterr().out
+    clock["now"] = 0.0
+    torchrl_table.main(torchrl_args(tmp_path, "--max_minutes", str(1 / 60), "--eval_only", "--eval_minutes", "1.5"))
+    [row] = rows(tmp_path)
+    assert runs[2:] == [(0.7, 0.1)] and row["walks_minutes"] == pytest.approx(1 / 60) and "testing" not in row
