@@ -7,16 +7,10 @@ import pytest
 
 wp = pytest.importorskip("warp")
 
+from warp_cpu import warp_cpu_available
+
 from tocabi_torchrl import precompile
 from tocabi_torchrl.sim import kernels
-
-
-def _warp_cpu() -> bool:
-    try:
-        wp.init()
-        return wp.get_device("cpu") is not None
-    except (RuntimeError, ValueError):
-        return False
 
 
 def test_a_module_compiles_for_sm90_at_each_block_size_into_the_folders_a_gpu_run_reads(tmp_path):
@@ -48,7 +42,7 @@ def test_a_failure_is_reported_per_module_not_raised(tmp_path):
         precompile.main(["--arch", "7"])  # no NVRTC target: refused by name before anything is built
 
 
-@pytest.mark.skipif(not _warp_cpu(), reason="warp's CPU device is unavailable")
+@pytest.mark.skipif(not warp_cpu_available(), reason="warp's CPU device is unavailable")
 def test_the_walking_env_launches_the_modules_a_gpu_run_compiles_at_their_block_sizes():
     launches = precompile.collect_launches()
     # Among the costliest of an H100 host's first run: the collision kernels, forward, smooth, sensors; and ours.

@@ -11,21 +11,13 @@ import pytest
 import torch
 import warp as wp
 from tensordict import TensorDict
+from warp_cpu import warp_cpu_available
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.envs.config import EnvSimConfig
 from tocabi_torchrl.sim import SimConfig, WarpSim
 
-
-def _warp_cpu() -> bool:
-    try:
-        wp.init()
-        return wp.get_device("cpu") is not None
-    except (RuntimeError, ValueError):
-        return False
-
-
-pytestmark = pytest.mark.skipif(not _warp_cpu(), reason="warp's CPU device is unavailable")
+pytestmark = pytest.mark.skipif(not warp_cpu_available(), reason="warp's CPU device is unavailable")
 
 N = 4
 #: What the sim exposes (views) plus the solver's warm start, which decides the next steps.
