@@ -161,6 +161,17 @@ def memory_peaks(device: str | torch.device = "cuda", every_s: float = 0.05):
 
 # The library's entry points: the only place the benchmarks touch its config, trainer and checkpoints.
 config = preset_config  # config(preset, **overrides): a training config
+
+
+def run_config(n: int, iterations: int, overrides: dict, run_dir: str, name: str, device: str, ranks: int = 1):
+    """The default preset as the throughput benchmarks train it: ``n`` envs per rank for ``iterations`` PPO
+    iterations in all (``ranks`` ranks), a mini-batch of at most a quarter of a rollout, every iteration logged, no
+    checkpoint, progress bar or closing evaluation; ``overrides`` (flat names or paths) on top."""
+    steps = overrides.get("steps_per_env", config("default").ppo.steps_per_env)
+    return config("default", **{"minibatch_size": min(49152, n * steps // 4), **overrides, "num_envs": n,
+                                "total_env_steps": iterations * n * steps * ranks, "run_dir": run_dir, "name": name,
+                                "checkpoint_every": 10**9, "progress_bar": False, "eval_at_end": False,
+                                "log_every": 1, "device": device})
 read_checkpoint = checkpoint.read_checkpoint  # a checkpoint (file or run folder) as a dict, loaded weights-only
 
 

@@ -147,11 +147,7 @@ def marked_trainer(timeline: Timeline):
 
 def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str, overrides: dict) -> dict:
     """One env count: ``warmup`` iterations, then the phases of ``iterations`` more, then the raw ceiling."""
-    steps = overrides.get("steps_per_env", common.config("default").ppo.steps_per_env)
-    cfg = common.config("default", **{"minibatch_size": min(49152, n * steps // 4), **overrides, "num_envs": n,
-                                      "total_env_steps": (warmup + iterations) * n * steps, "run_dir": run_dir,
-                                      "name": f"timeline_{n}", "checkpoint_every": 10**9, "progress_bar": False,
-                                      "eval_at_end": False, "log_every": 1, "device": device})
+    cfg = common.run_config(n, warmup + iterations, overrides, run_dir, f"timeline_{n}", device)
     at = common.trainer.resolve_device(device)
     if cfg.ppo.cuda_graph == "on" or common.trainer.plan_graphs(cfg, at, n).env_step:
         raise SystemExit(f"step_timeline marks the eager env step, and ppo.cuda_graph={cfg.ppo.cuda_graph!r} captures "

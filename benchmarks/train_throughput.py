@@ -33,18 +33,14 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
     """One env count in this process (one rank of a torchrun run): the steady rate after ``warmup`` iterations, the
     whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0."""
     t_setup = time.perf_counter() - T0
-    steps = overrides.get("steps_per_env", common.config("default").ppo.steps_per_env)
     info = from_environment()
     device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides,
               "device_used_at_start_gib": common.device_used_gib(device),
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:
-        cfg = common.config("default", **{"minibatch_size": min(49152, n * steps // 4), **overrides, "num_envs": n,
-                                          "total_env_steps": (warmup + iterations) * n * steps * info.world_size,
-                                          "run_dir": run_dir, "name": f"train_{n}", "checkpoint_every": 10**9,
-                                          "progress_bar": False, "eval_at_end": False, "log_every": 1,
-                                          "device": device.split(":")[0]})
+        cfg = common.run_config(n, warmup + iterations, overrides, run_dir, f"train_{n}", device.split(":")[0],
+                                info.world_size)
         if info.is_main:  # the benchmark's own scratch run: start afresh
             shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
         cpu0 = os.times()
