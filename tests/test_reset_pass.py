@@ -51,7 +51,8 @@ def test_config_values():
         SimConfig(reset_pass="fast").validate()
     with pytest.raises(ValueError, match="env.sim.reset_pass"):
         EnvSimConfig(reset_pass="fast").validate()
-    assert SimConfig().reset_pass == "full" and EnvSimConfig().reset_pass == "full"
+    # The env registers its start states, so it can default to the reduced pass; a bare simulator cannot.
+    assert SimConfig().reset_pass == "full" and EnvSimConfig().reset_pass == "reduced"
 
 
 def test_override_path():

@@ -51,10 +51,12 @@ class EnvSimConfig:
         substeps: physics substeps per policy step (0.5 ms each: 8 -> 250 Hz policy).
         nconmax, njmax: contact/constraint buffers per world for mujoco-warp (None = the backend's measured defaults).
         threads: CPU threads of the ``"mujoco"`` backend (None = every available core).
-        reset_pass: what a mujoco-warp reset computes over all worlds (``SimConfig.reset_pass``): ``"full"``
-            (default) a full forward pass; ``"reduced"`` only the position and velocity stages, with the rest of
-            each start state (one per start row of the reference motion, registered when the env is built) taken
-            from a table. The ``"mujoco"`` backend ignores it (its reset computes the reset worlds only).
+        reset_pass: what a mujoco-warp reset computes over all worlds (``SimConfig.reset_pass``): ``"reduced"``
+            (default) only the position and velocity stages, with the rest of each start state (one per start row
+            of the reference motion, registered when the env is built) taken from a table, bit-identical to the
+            full pass in every trajectory and ~1 ms a step cheaper at 4,096 envs (docs/benchmarks.md, issue 25);
+            ``"full"`` a full forward pass. The ``"mujoco"`` backend ignores it (its reset computes the reset
+            worlds only).
     """
 
     backend: str = "auto"
@@ -62,7 +64,7 @@ class EnvSimConfig:
     nconmax: int | None = None
     njmax: int | None = None
     threads: int | None = None
-    reset_pass: str = "full"
+    reset_pass: str = "reduced"
 
     def validate(self) -> None:
         if self.backend not in BACKENDS:
