@@ -74,7 +74,7 @@ def env_rate(env, steps: int, warmup: int = 10, autoreset: bool = False) -> floa
 def raw_policy_step(num_worlds: int, device: str = "cuda") -> Callable[[], None]:
     """One raw mujoco-warp policy step of ``num_worlds`` worlds on the backend's model and buffers, a leg PD-hold
     kernel then ``mujoco_warp.step`` x 8 (every sensor, every substep), recorded as one graph (compiled and warmed
-    once); calling it replays the graph on PyTorch's current stream."""
+    once); calling it replays the graph on PyTorch's current stream. Its ``wp_data`` is the worlds' warp ``Data``."""
     import mujoco_warp as mjw
     import warp as wp
 
@@ -108,7 +108,9 @@ def raw_policy_step(num_worlds: int, device: str = "cuda") -> Callable[[], None]
 
         body()  # compile before recording
         wp.synchronize_device()
-        return Recorded(body, wp.get_device(device))
+        step = Recorded(body, wp.get_device(device))
+        step.wp_data = d  # what the step writes, for benchmarks that read the solver's counts (solver_load)
+        return step
 
 
 def raw_policy_steps_per_second(num_worlds: int, steps: int, device: str = "cuda", warmup: int = 20) -> float:
@@ -203,6 +205,21 @@ def train(cfg, env=None, wrap_policy: Callable | None = None):
     finally:
         trainer.make_collector = make_collector
     return result, read_metrics(result.run_dir)
+
+
+def wrap_method(obj, name: str, before, after, undo: list) -> None:
+    """Replace the method ``obj.name`` on this instance by one that calls ``before()`` and ``after()`` around it;
+    appends to ``undo`` what puts the original back."""
+    inner, own = getattr(obj, name), name in vars(obj)
+
+    def wrapped(*args, **kwargs):
+        before()
+        out = inner(*args, **kwargs)
+        after()
+        return out
+
+    setattr(obj, name, wrapped)
+    undo.append(lambda: setattr(obj, name, inner) if own else delattr(obj, name))
 
 
 def build_env(cfg, **kwargs):

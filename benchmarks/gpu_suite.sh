@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU tests, then the throughput benchmarks (results under docs/benchmarks), from the repository root of a GPU machine.
-# Usage: bash benchmarks/gpu_suite.sh [tests|env|train|graph|tf32|resetpass|overlap|timeline|multi|all]...   (multi: 2 GPUs, not in all)   Logs go to $LOG_DIR (default /tmp) as well.
+# Usage: bash benchmarks/gpu_suite.sh [tests|env|train|graph|tf32|resetpass|overlap|timeline|solver|multi|all]...   (multi: 2 GPUs, not in all)   Logs go to $LOG_DIR (default /tmp) as well.
 set -uo pipefail
 log=${LOG_DIR:-/tmp}
 for part in "${@:-all}"; do
@@ -19,6 +19,7 @@ for part in "${@:-all}"; do
     timeline) python3 -m benchmarks.step_timeline --num_envs 4096 16384 2>&1 | tee "$log/timeline.log" | tail -40
               python3 -m benchmarks.step_timeline --num_envs 4096 16384 --set env.sim.reset_pass=reduced \
                 ppo.matmul_precision=high --name step_timeline_levers 2>&1 | tee -a "$log/timeline.log" | tail -40 ;;
+    solver) python3 -m benchmarks.solver_load --num_envs 4096 16384 2>&1 | tee "$log/solver.log" | tail -12 ;;
     multi) python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --name multi_gpu 2>&1 \
              | tee "$log/multi.log" | tail -8
            python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --set update_graph=false \

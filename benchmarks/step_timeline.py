@@ -80,21 +80,6 @@ class Timeline:
         return totals
 
 
-def _wrap(obj, name: str, before, after, undo: list) -> None:
-    """Replace the method ``obj.name`` on this instance by one that calls ``before()`` and ``after()`` around it;
-    appends to ``undo`` what puts the original back."""
-    inner, own = getattr(obj, name), name in vars(obj)
-
-    def wrapped(*args, **kwargs):
-        before()
-        out = inner(*args, **kwargs)
-        after()
-        return out
-
-    setattr(obj, name, wrapped)
-    undo.append(lambda: setattr(obj, name, inner) if own else delattr(obj, name))
-
-
 @contextlib.contextmanager
 def marked_trainer(timeline: Timeline):
     """The trainer's functions, and the env, simulator, actor and GAE it builds, with marks around them; all put
@@ -108,15 +93,15 @@ def marked_trainer(timeline: Timeline):
     def make_collector(cfg, env, actor, *args, **kwargs):
         undo.append(actor.register_forward_pre_hook(lambda *_: mark[policy]()).remove)
         undo.append(actor.register_forward_hook(lambda *_: mark[between]()).remove)
-        _wrap(env, "step_and_maybe_reset", mark[env_in], mark[storage], undo)
-        _wrap(env.base_env.sim, "step", mark[physics], mark[signals], undo)
+        common.wrap_method(env, "step_and_maybe_reset", mark[env_in], mark[storage], undo)
+        common.wrap_method(env.base_env.sim, "step", mark[physics], mark[signals], undo)
         # Sync-free envs reset every step (masked); others only when an episode ended, where their phase shows it.
-        _wrap(env, "_reset", mark[reset], mark[merge], undo)
+        common.wrap_method(env, "_reset", mark[reset], mark[merge], undo)
         return saved["make_collector"](cfg, env, actor, *args, **kwargs)
 
     def make_loss(cfg, agent):
         loss_module, advantage = saved["make_loss"](cfg, agent)
-        _wrap(advantage, "forward", lambda: timeline.mark(ITERATION_PHASES[1]),
+        common.wrap_method(advantage, "forward", lambda: timeline.mark(ITERATION_PHASES[1]),
               lambda: timeline.mark(ITERATION_PHASES[2]), undo)
         return loss_module, advantage
 

@@ -21,6 +21,7 @@ from benchmarks import (
     regenerate,
     scaling,
     soak,
+    solver_load,
     step_timeline,
     train_throughput,
 )
@@ -98,6 +99,30 @@ def test_step_timeline_marks_every_phase_of_the_real_trainer(tmp_path, monkeypat
         step_timeline.main([*args, "cuda_graph=on"])
 
 
+def test_solver_load_counts_the_trainer_and_the_raw_ceiling_on_warps_cpu(tmp_path):
+    from warp_cpu import warp_cpu_available
+
+    from tocabi_torchrl.rl import trainer
+
+    if not warp_cpu_available():
+        pytest.skip("warp's CPU device is not available here")
+    originals = {k: getattr(trainer, k) for k in ("make_collector", "_update")}
+    args = ["--device", "cpu", "--num_envs", "4", "--iterations", "1", "--warmup", "1", "--raw_steps", "3",
+            "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs"), "--set", "steps_per_env=6", "actor_hidden=8,8"]
+    (r,) = solver_load.main(args)["results"]
+    train, raw = r["training"], r["standing (raw ceiling)"]
+    assert r["overrides"]["env.sim.backend"] == "warp"  # the counts are mujoco-warp's, also on the CPU
+    assert train["steps"] == 6 and raw["steps"] == 3  # the timed iteration's steps only, not the warm-up's
+    for s in (train, raw):
+        assert s["ms_per_policy_step"] > 0 and 1 <= s["niter_mean"] <= s["niter_max_over_worlds"] <= s["niter_max_seen"]
+        assert s["constraint_rows_per_world"] > 0 and s["contacts_per_world"] >= 0
+    assert raw["niter_max_seen"] == 1  # standing still under the PD hold: the warm start is already the solution
+    assert r["physics_ratio_standing_over_training"] == pytest.approx(raw["ms_per_policy_step"]
+                                                                       / train["ms_per_policy_step"])
+    assert "| standing (raw ceiling) |" in (tmp_path / "solver_load.md").read_text()
+    assert {k: getattr(trainer, k) for k in originals} == originals  # the trainer is itself again
+
+
 def test_step_timeline_puts_back_every_wrapper_and_hook_also_after_an_error(monkeypatch):
     from types import SimpleNamespace
 
@@ -116,14 +141,13 @@ def test_step_timeline_puts_back_every_wrapper_and_hook_also_after_an_error(monk
     inner_step = sim.step
     monkeypatch.setattr(trainer, "make_collector", lambda cfg, env, actor, *a, **k: "collector")
     timeline = step_timeline.Timeline(torch.device("cpu"))
-    with pytest.raises(RuntimeError, match="midway"):
-        with step_timeline.marked_trainer(timeline):
-            assert trainer.make_collector(None, env, actor) == "collector"
-            env.step_and_maybe_reset(None), actor(torch.zeros(2)), sim.step(), env._reset(None)
-            assert [phase for phase, _ in timeline.marks] == [
-                "env before the physics", "collector storage", "policy forward", "collector between policy and env",
-                "physics (sim.step)", "signals, rewards, transforms, step_mdp", "masked reset", "reset merge"]
-            raise RuntimeError("midway")
+    with pytest.raises(RuntimeError, match="midway"), step_timeline.marked_trainer(timeline):
+        assert trainer.make_collector(None, env, actor) == "collector"
+        env.step_and_maybe_reset(None), actor(torch.zeros(2)), sim.step(), env._reset(None)
+        assert [phase for phase, _ in timeline.marks] == [
+            "env before the physics", "collector storage", "policy forward", "collector between policy and env",
+            "physics (sim.step)", "signals, rewards, transforms, step_mdp", "masked reset", "reset merge"]
+        raise RuntimeError("midway")
     assert trainer.make_collector(None, env, actor) == "collector"  # the trainer's own function again
     assert "step_and_maybe_reset" not in vars(env) and "_reset" not in vars(env) and sim.step is inner_step
     assert not actor._forward_hooks and not actor._forward_pre_hooks

@@ -1,0 +1,186 @@
+"""How much physics a training step asks for, against the raw ceiling's standing robots (issue 25).
+
+    python -m benchmarks.solver_load --num_envs 4096            # GPU: docs/benchmarks/solver_load.{json,md}
+    python -m benchmarks.solver_load --device cpu --num_envs 16 --iterations 1 --raw_steps 8   # warp's CPU device
+
+The train / raw ratio divides by raw mujoco-warp stepping robots that stand still under a PD hold
+(``common.raw_policy_step``). Training steps other states: robots that step, stumble and fall under an exploring
+policy. mujoco-warp's Newton solver iterates every world until the slowest one converges (``wp.capture_while`` on
+the count of unconverged worlds), and its constraint rows follow the contacts, so the same 8 substeps can cost more
+there. This measures both workloads in one process on the same model: for the real trainer (default preset, from
+scratch, ``--warmup`` untimed iterations, then ``--iterations`` timed) the simulator's step, and for the raw ceiling
+its recorded step. Per policy step: its time (CUDA events around the step, so nothing waits; host clocks off CUDA),
+and after it, over all worlds: the largest and the mean solver iteration count of the last solve (the raw step's
+last substep; the env step's closing forward pass, warm-started like a substep), the mean number of constraint rows
+and of contacts. The counts are copied on the device after each step and read once at the end. The trainer's step
+runs eagerly (its physics is one recorded graph either way); a captured env step has no points to mark and is refused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import shutil
+import time
+from pathlib import Path
+
+import torch
+
+from . import common
+
+NAME = "solver_load"
+#: What is recorded after each step, per world (warp ``Data`` fields), and how each is summarised.
+FIELDS = ("solver_niter", "nefc")
+
+
+class Recorder:
+    """Times steps (CUDA events, or host clocks off CUDA) and copies the per-world counts after each, on the device;
+    ``on`` gates the recording (the trainer's warm-up iterations are not recorded)."""
+
+    def __init__(self, device: torch.device):
+        self.cuda = device.type == "cuda"
+        self.on = True
+        self.spans: list[tuple[object, object]] = []
+        self.counts: dict[str, list[torch.Tensor]] = {name: [] for name in (*FIELDS, "nacon")}
+        self._start = None
+
+    def before(self) -> None:
+        if not self.on:
+            return
+        if self.cuda:
+            self._start = torch.cuda.Event(enable_timing=True)
+            self._start.record()
+        else:
+            self._start = time.perf_counter()
+
+    def after(self, data) -> None:
+        if not self.on:
+            return
+        if self.cuda:
+            end = torch.cuda.Event(enable_timing=True)
+            end.record()
+        else:
+            end = time.perf_counter()
+        self.spans.append((self._start, end))
+        import warp as wp
+
+        for name in self.counts:  # device copies after the end mark: not part of the timed step
+            self.counts[name].append(wp.to_torch(getattr(data, name)).clone())
+
+    def summary(self, num_worlds: int) -> dict:
+        if self.cuda:
+            torch.cuda.synchronize()
+        ms = [a.elapsed_time(b) if self.cuda else 1e3 * (b - a) for a, b in self.spans]
+        niter = torch.stack(self.counts["solver_niter"]).float()  # (steps, num_worlds)
+        return {"steps": len(ms), "ms_per_policy_step": sum(ms) / len(ms),
+                "niter_max_over_worlds": niter.max(dim=1).values.mean().item(), "niter_mean": niter.mean().item(),
+                "niter_max_seen": niter.max().item(),
+                "constraint_rows_per_world": torch.stack(self.counts["nefc"]).float().mean().item(),
+                "contacts_per_world": torch.stack(self.counts["nacon"]).float().mean().item() / num_worlds}
+
+
+@contextlib.contextmanager
+def recorded_trainer(recorder: Recorder, warmup: int):
+    """The trainer with the simulator's step wrapped by ``recorder`` from the end of iteration ``warmup`` on; all put
+    back on exit, also after an error."""
+    trainer = common.trainer
+    saved = {k: getattr(trainer, k) for k in ("make_collector", "_update")}
+    done = {"iterations": 0}
+    undo: list = []
+    recorder.on = warmup == 0
+
+    def make_collector(cfg, env, actor, *args, **kwargs):
+        sim = env.base_env.sim
+        common.wrap_method(sim, "step", recorder.before, lambda: recorder.after(sim.wp_data), undo)
+        return saved["make_collector"](cfg, env, actor, *args, **kwargs)
+
+    def update(*args, **kwargs):
+        recorder.on = False  # the update's own work is not a policy step
+        stats = saved["_update"](*args, **kwargs)
+        done["iterations"] += 1
+        recorder.on = done["iterations"] >= warmup
+        return stats
+
+    trainer.make_collector, trainer._update = make_collector, update
+    try:
+        yield
+    finally:
+        for name, fn in saved.items():
+            setattr(trainer, name, fn)
+        for put_back in reversed(undo):
+            put_back()
+
+
+def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str, overrides: dict) -> dict:
+    """One env count: the trainer's physics over ``iterations`` after ``warmup``, then the raw ceiling's."""
+    cfg = common.run_config(n, warmup + iterations, overrides, run_dir, f"solver_load_{n}", device)
+    at = common.trainer.resolve_device(device)
+    if cfg.ppo.cuda_graph == "on" or common.trainer.plan_graphs(cfg, at, n).env_step:
+        raise SystemExit(f"solver_load marks the eager env step, and ppo.cuda_graph={cfg.ppo.cuda_graph!r} captures it "
+                         f"at {n} envs: pass --set cuda_graph=off")
+    if cfg.env.sim.backend == "mujoco" or (cfg.env.sim.backend == "auto" and at.type != "cuda"):
+        overrides = {**overrides, "env.sim.backend": "warp"}  # the counts are mujoco-warp's, on either device
+        cfg = common.run_config(n, warmup + iterations, overrides, run_dir, f"solver_load_{n}", device)
+    shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)  # the benchmark's own scratch run
+    training = Recorder(at)
+    with recorded_trainer(training, warmup):
+        common.train(cfg)
+    raw_step = common.raw_policy_step(n, device)
+    standing = Recorder(at)
+    for _ in range(raw_steps):
+        standing.before()
+        raw_step()
+        standing.after(raw_step.wp_data)
+    result = {"num_envs": n, "iterations": iterations, "warmup": warmup, "overrides": overrides,
+              "training": training.summary(n), "standing (raw ceiling)": standing.summary(n)}
+    result["physics_ratio_standing_over_training"] = (result["standing (raw ceiling)"]["ms_per_policy_step"]
+                                                      / result["training"]["ms_per_policy_step"])
+    return result
+
+
+def render(data: dict, out) -> str:
+    parts = []
+    for r in data["results"]:
+        rows = []
+        for label in ("training", "standing (raw ceiling)"):
+            s = r[label]
+            rows.append((label, s["steps"], f"{s['ms_per_policy_step']:.3f}", f"{s['niter_max_over_worlds']:.2f}",
+                         f"{s['niter_mean']:.2f}", f"{s['niter_max_seen']:.0f}", f"{s['constraint_rows_per_world']:.1f}",
+                         f"{s['contacts_per_world']:.1f}"))
+        parts.append(f"### {r['num_envs']:,} envs ({r['iterations']} training iterations after {r['warmup']} warm-up, "
+                     f"overrides {r['overrides'] or 'none'})\n\n"
+                     + common.table(("workload", "policy steps", "physics ms per policy step",
+                                     "solver iterations, slowest world (mean over steps)", "mean over worlds",
+                                     "most seen", "constraint rows per world", "contacts per world"), rows)
+                     + f"\n\nStanding / training physics time: **{r['physics_ratio_standing_over_training']:.3f}** "
+                       "(the highest train / raw ratio this env count allows if everything but the physics cost "
+                       "nothing).")
+    return common.page("Physics load of training against the raw ceiling", data, "\n\n".join(parts))
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096])
+    parser.add_argument("--iterations", type=int, default=3)
+    parser.add_argument("--warmup", type=int, default=3, help="unrecorded training iterations first")
+    parser.add_argument("--raw_steps", type=int, default=200, help="raw standing policy steps recorded")
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="config overrides")
+    parser.add_argument("--device", default="cuda", help="cuda, or cpu (warp's CPU device; host clocks)")
+    parser.add_argument("--run_dir", default="/tmp/tocabi_bench_runs/solver_load")
+    parser.add_argument("--out", default=str(common.DOCS))
+    parser.add_argument("--name", default=NAME)
+    args = parser.parse_args(argv)
+    if args.warmup < 0 or args.iterations < 1 or args.raw_steps < 1:
+        parser.error("--warmup must be >= 0, --iterations and --raw_steps >= 1")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        parser.error("no CUDA device here; pass --device cpu (warp's CPU device)")
+    overrides = common.parse_overrides(args.set)
+    results = [measure(n, args.iterations, args.warmup, args.raw_steps, args.device, args.run_dir, overrides)
+               for n in args.num_envs]
+    data = {"meta": common.meta(NAME, argv, args.device, name=args.name), "results": results}
+    print(common.publish(args.out, args.name, data, render))
+    return data
+
+
+if __name__ == "__main__":
+    main()
