@@ -227,7 +227,8 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
     A snapshot fails at its first failing command: the two other commands run only after the main one passes, and
     the second only if the first kept its robots up. Each finished command is saved at once (``row["testing"]``,
     until its snapshot is decided), so that a call that ends mid-snapshot (killed, or ``--eval_minutes`` spent)
-    leaves it to the next call, which runs only the commands still missing."""
+    leaves it to the next call, which runs only the commands still missing. A snapshot file that is missing stops
+    the row's tests there (named), since the first pass could lie behind it."""
     from tocabi_torchrl.adapters.evaluate import GAIT_CRITERIA, gait_passes
     from tocabi_torchrl.rl.evaluate import tested_on
 
@@ -239,6 +240,10 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
             return
         if name in tested:
             continue
+        if not Path(snap).is_file():  # e.g. left on the machine that trained the row
+            print(f"{library} {row['num_envs']}: snapshot {snap} is missing; without it the later snapshots cannot "
+                  "show when the row first walks, so its gait tests stop here (copy the file back to go on)")
+            return
         done = row.setdefault("testing", {}).setdefault(name, {})  # command tag -> summary, this snapshot's so far
         run = functools.partial(gait_once, library, snap, out, args, done, deadline)
         main = run(MAIN)

@@ -424,3 +424,16 @@ def test_eval_minutes_spent_between_commands_keeps_the_finished_ones_for_the_nex
     torchrl_table.main(torchrl_args(tmp_path, "--max_minutes", str(1 / 60), "--eval_only", "--eval_minutes", "1.5"))
     [row] = rows(tmp_path)
     assert runs[2:] == [(0.7, 0.1)] and row["walks_minutes"] == pytest.approx(1 / 60) and "testing" not in row
+
+
+def test_a_missing_snapshot_stops_the_rows_gait_tests_there_and_says_so(torchrl_table, tmp_path, capsys):
+    torchrl_table.main(torchrl_args(tmp_path, "--max_minutes", str(3 / 60), "--no_eval"))
+    [row] = rows(tmp_path)
+    gone = [s for s in row["snapshots"] if Path(s).name == "wall_00002s.pt"]
+    assert len(row["snapshots"]) == 3 and len(gone) == 1
+    Path(gone[0]).unlink()  # as when a call's packing left it on the GPU machine
+    torchrl_table.main(torchrl_args(tmp_path, "--max_minutes", str(3 / 60), "--eval_only"))
+    [row] = rows(tmp_path)
+    assert torchrl_table.tested == ["wall_00001s.pt"]  # not the 3 s one after the gap
+    assert set(row["tested"]) == {"wall_00001s"} and row["status"] != "final" and "testing" not in row
+    assert f"snapshot {gone[0]} is missing" in capsys.readouterr().out
