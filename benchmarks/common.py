@@ -5,11 +5,13 @@ entry points (one place to adapt when they change), fresh-process runs and repor
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import json
 import os
 import platform
 import resource
+import shutil
 import subprocess
 import sys
 import threading
@@ -220,6 +222,66 @@ def wrap_method(obj, name: str, before, after, undo: list) -> None:
 
     setattr(obj, name, wrapped)
     undo.append(lambda: setattr(obj, name, inner) if own else delattr(obj, name))
+
+
+def eager_step_config(script: str, n: int, iterations: int, overrides: dict, run_dir: str, name: str, device: str):
+    """``run_config`` for a benchmark that marks the trainer's eager env step, and the device it runs on. Refuses
+    (naming the fix) a config whose env step would be captured, which has no points to mark, and clears the
+    benchmark's scratch run folder."""
+    cfg = run_config(n, iterations, overrides, run_dir, name, device)
+    at = trainer.resolve_device(device)
+    if cfg.ppo.cuda_graph == "on" or trainer.plan_graphs(cfg, at, n).env_step:
+        raise SystemExit(f"{script} marks the eager env step, and ppo.cuda_graph={cfg.ppo.cuda_graph!r} captures it at "
+                         f"{n} envs (a captured step has no points to mark): pass --set cuda_graph=off")
+    shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
+    return cfg, at
+
+
+@contextlib.contextmanager
+def trainer_patched(replacements: dict, undo: list):
+    """The trainer module's functions ``replacements`` (name -> function) in place while the block runs; on exit,
+    also after an error, the originals are back and ``undo``'s callables have run, last first (what the
+    replacements wrapped or hooked on the objects the trainer built)."""
+    saved = {name: getattr(trainer, name) for name in replacements}
+    for name, fn in replacements.items():
+        setattr(trainer, name, fn)
+    try:
+        yield
+    finally:
+        for name, fn in saved.items():
+            setattr(trainer, name, fn)
+        for put_back in reversed(undo):
+            put_back()
+
+
+def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Callable, *, min_warmup: int,
+                      min_raw_steps: int, device_help: str) -> dict:
+    """The command line of the benchmarks that run the real trainer at each ``--num_envs`` and raw mujoco-warp in the
+    same process (step_timeline, solver_load): parses ``argv``, calls ``measure(n, iterations, warmup, raw_steps,
+    device, run_dir, overrides)`` per env count, publishes ``<out>/<name>.{json,md}`` and returns the data."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096])
+    parser.add_argument("--iterations", type=int, default=3, help="training iterations measured")
+    parser.add_argument("--warmup", type=int, default=3, help=f"training iterations first, not measured (>= {min_warmup})")
+    parser.add_argument("--raw_steps", type=int, default=200,
+                        help=f"raw mujoco-warp policy steps measured (>= {min_raw_steps}"
+                             + ("; 0 skips them)" if min_raw_steps == 0 else ")"))
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="config overrides (ablations)")
+    parser.add_argument("--device", default="cuda", help=device_help)
+    parser.add_argument("--run_dir", default=f"/tmp/tocabi_bench_runs/{name}")
+    parser.add_argument("--out", default=str(DOCS))
+    parser.add_argument("--name", default=name)
+    args = parser.parse_args(argv)
+    if args.warmup < min_warmup or args.iterations < 1 or args.raw_steps < min_raw_steps:
+        parser.error(f"--warmup must be >= {min_warmup}, --iterations >= 1 and --raw_steps >= {min_raw_steps}")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        parser.error(f"no CUDA device here; pass --device cpu ({device_help})")
+    overrides = parse_overrides(args.set)
+    results = [measure(n, args.iterations, args.warmup, args.raw_steps, args.device, args.run_dir, overrides)
+               for n in args.num_envs]
+    data = {"meta": meta(name, argv, args.device, name=args.name), "results": results}
+    print(publish(args.out, args.name, data, render))
+    return data
 
 
 def build_env(cfg, **kwargs):

@@ -18,11 +18,8 @@ runs eagerly (its physics is one recorded graph either way); a captured env step
 
 from __future__ import annotations
 
-import argparse
 import contextlib
-import shutil
 import time
-from pathlib import Path
 
 import torch
 
@@ -101,27 +98,14 @@ def recorded_trainer(recorder: Recorder, warmup: int):
         recorder.on = done["iterations"] >= warmup
         return stats
 
-    trainer.make_collector, trainer._update = make_collector, update
-    try:
+    with common.trainer_patched({"make_collector": make_collector, "_update": update}, undo):
         yield
-    finally:
-        for name, fn in saved.items():
-            setattr(trainer, name, fn)
-        for put_back in reversed(undo):
-            put_back()
 
 
 def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str, overrides: dict) -> dict:
     """One env count: the trainer's physics over ``iterations`` after ``warmup``, then the raw ceiling's."""
-    cfg = common.run_config(n, warmup + iterations, overrides, run_dir, f"solver_load_{n}", device)
-    at = common.trainer.resolve_device(device)
-    if cfg.ppo.cuda_graph == "on" or common.trainer.plan_graphs(cfg, at, n).env_step:
-        raise SystemExit(f"solver_load marks the eager env step, and ppo.cuda_graph={cfg.ppo.cuda_graph!r} captures it "
-                         f"at {n} envs: pass --set cuda_graph=off")
-    if cfg.env.sim.backend == "mujoco" or (cfg.env.sim.backend == "auto" and at.type != "cuda"):
-        overrides = {**overrides, "env.sim.backend": "warp"}  # the counts are mujoco-warp's, on either device
-        cfg = common.run_config(n, warmup + iterations, overrides, run_dir, f"solver_load_{n}", device)
-    shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)  # the benchmark's own scratch run
+    overrides = {**overrides, "env.sim.backend": "warp"}  # the counts are mujoco-warp's, on either device
+    cfg, at = common.eager_step_config(NAME, n, warmup + iterations, overrides, run_dir, f"solver_load_{n}", device)
     training = Recorder(at)
     with recorded_trainer(training, warmup):
         common.train(cfg)
@@ -159,27 +143,8 @@ def render(data: dict, out) -> str:
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096])
-    parser.add_argument("--iterations", type=int, default=3)
-    parser.add_argument("--warmup", type=int, default=3, help="unrecorded training iterations first")
-    parser.add_argument("--raw_steps", type=int, default=200, help="raw standing policy steps recorded")
-    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="config overrides")
-    parser.add_argument("--device", default="cuda", help="cuda, or cpu (warp's CPU device; host clocks)")
-    parser.add_argument("--run_dir", default="/tmp/tocabi_bench_runs/solver_load")
-    parser.add_argument("--out", default=str(common.DOCS))
-    parser.add_argument("--name", default=NAME)
-    args = parser.parse_args(argv)
-    if args.warmup < 0 or args.iterations < 1 or args.raw_steps < 1:
-        parser.error("--warmup must be >= 0, --iterations and --raw_steps >= 1")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        parser.error("no CUDA device here; pass --device cpu (warp's CPU device)")
-    overrides = common.parse_overrides(args.set)
-    results = [measure(n, args.iterations, args.warmup, args.raw_steps, args.device, args.run_dir, overrides)
-               for n in args.num_envs]
-    data = {"meta": common.meta(NAME, argv, args.device, name=args.name), "results": results}
-    print(common.publish(args.out, args.name, data, render))
-    return data
+    return common.trainer_benchmark(argv, NAME, __doc__, measure, render, min_warmup=0, min_raw_steps=1,
+                                    device_help="cuda, or cpu: warp's CPU device, host clocks")
 
 
 if __name__ == "__main__":

@@ -26,11 +26,8 @@ host clocks (a smoke run).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
-import shutil
 import time
-from pathlib import Path
 
 import torch
 
@@ -118,26 +115,14 @@ def marked_trainer(timeline: Timeline):
         timeline.collecting = True
         return stats
 
-    for name, fn in (("make_collector", make_collector), ("make_loss", make_loss), ("guard_rollout", guard_rollout),
-                     ("_update", update)):
-        setattr(trainer, name, fn)
-    try:
+    with common.trainer_patched({"make_collector": make_collector, "make_loss": make_loss,
+                                 "guard_rollout": guard_rollout, "_update": update}, undo):
         yield
-    finally:
-        for name, fn in saved.items():
-            setattr(trainer, name, fn)
-        for put_back in reversed(undo):
-            put_back()
 
 
 def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str, overrides: dict) -> dict:
     """One env count: ``warmup`` iterations, then the phases of ``iterations`` more, then the raw ceiling."""
-    cfg = common.run_config(n, warmup + iterations, overrides, run_dir, f"timeline_{n}", device)
-    at = common.trainer.resolve_device(device)
-    if cfg.ppo.cuda_graph == "on" or common.trainer.plan_graphs(cfg, at, n).env_step:
-        raise SystemExit(f"step_timeline marks the eager env step, and ppo.cuda_graph={cfg.ppo.cuda_graph!r} captures "
-                         f"it at {n} envs (a captured step has no points to mark): pass --set cuda_graph=off")
-    shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)  # the benchmark's own scratch run
+    cfg, at = common.eager_step_config(NAME, n, warmup + iterations, overrides, run_dir, f"timeline_{n}", device)
     timeline = Timeline(at)
     with marked_trainer(timeline):
         common.train(cfg)
@@ -174,27 +159,8 @@ def render(data: dict, out) -> str:
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096])
-    parser.add_argument("--iterations", type=int, default=3)
-    parser.add_argument("--warmup", type=int, default=3, help="untimed iterations first (at least 1)")
-    parser.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
-    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="config overrides (ablations)")
-    parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run (host clocks)")
-    parser.add_argument("--run_dir", default="/tmp/tocabi_bench_runs/step_timeline")
-    parser.add_argument("--out", default=str(common.DOCS))
-    parser.add_argument("--name", default=NAME)
-    args = parser.parse_args(argv)
-    if args.warmup < 1 or args.iterations < 1:
-        parser.error("--warmup and --iterations must be >= 1 (the window starts at a warm-up iteration's end)")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        parser.error("no CUDA device here; pass --device cpu for a smoke run")
-    overrides = common.parse_overrides(args.set)
-    results = [measure(n, args.iterations, args.warmup, args.raw_steps, args.device, args.run_dir, overrides)
-               for n in args.num_envs]
-    data = {"meta": common.meta(NAME, argv, args.device, name=args.name), "results": results}
-    print(common.publish(args.out, args.name, data, render))
-    return data
+    return common.trainer_benchmark(argv, NAME, __doc__, measure, render, min_warmup=1, min_raw_steps=0,
+                                    device_help="cuda, or cpu for a smoke run (host clocks)")
 
 
 if __name__ == "__main__":
