@@ -13,8 +13,9 @@ also holds the host's lag, and the ~10 event records per step add a little host 
 
 Phases per policy step: the policy's forward; the collector's work between policy and env; the env before the physics
 (action checks, controls); the physics (``sim.step``: 8 substeps and the step's forward pass); signals, rewards,
-transforms and ``step_mdp``; the masked reset (every step, all worlds, in the sync-free env of GPU training); the
-reset's merge; the collector's storage until the next step (the last step's also holds the end of the rollout: the
+transforms and ``step_mdp``; the masked reset (every step, all worlds, in the sync-free env of GPU training) in
+three parts: the env's bookkeeping up to the simulator's reset, the simulator's reset (full or reduced pass) and the
+observation after it; the reset's merge; the collector's storage until the next step (the last step's also holds the end of the rollout: the
 collector's stacking, the trainer's shallow copy and, on several ranks, the statistics sync). Per iteration: the
 rollout guard; GAE; the selection of the loss's keys and the flattening (and the torque assist's bookkeeping); the
 PPO update (mini-batch gathers included); the iteration's end (learning rate, std, metrics, logging). Reported in ms
@@ -36,7 +37,8 @@ from . import common
 NAME = "step_timeline"
 #: Phases in the order they occur; a mark starts its phase, which lasts until the next mark.
 STEP_PHASES = ("policy forward", "collector between policy and env", "env before the physics", "physics (sim.step)",
-               "signals, rewards, transforms, step_mdp", "masked reset", "reset merge", "collector storage")
+               "signals, rewards, transforms, step_mdp", "masked reset: env before the simulator",
+               "masked reset: simulator", "masked reset: observation", "reset merge", "collector storage")
 ITERATION_PHASES = ("rollout guard", "GAE", "loss keys and flattening", "PPO update",
                     "iteration end (LR, std, metrics, logging)")
 
@@ -85,7 +87,7 @@ def marked_trainer(timeline: Timeline):
     saved = {k: getattr(trainer, k) for k in ("make_collector", "make_loss", "guard_rollout", "_update")}
     undo: list = []
     mark = {phase: (lambda p=phase: timeline.step_mark(p)) for phase in STEP_PHASES}
-    policy, between, env_in, physics, signals, reset, merge, storage = STEP_PHASES
+    policy, between, env_in, physics, signals, reset, reset_sim, reset_obs, merge, storage = STEP_PHASES
 
     def make_collector(cfg, env, actor, *args, **kwargs):
         undo.append(actor.register_forward_pre_hook(lambda *_: mark[policy]()).remove)
@@ -94,6 +96,9 @@ def marked_trainer(timeline: Timeline):
         common.wrap_method(env.base_env.sim, "step", mark[physics], mark[signals], undo)
         # Sync-free envs reset every step (masked); others only when an episode ended, where their phase shows it.
         common.wrap_method(env, "_reset", mark[reset], mark[merge], undo)
+        for name in ("reset", "reset_to_start"):  # the full pass, or the reduced one: whichever the env calls
+            if hasattr(env.base_env.sim, name):
+                common.wrap_method(env.base_env.sim, name, mark[reset_sim], mark[reset_obs], undo)
         return saved["make_collector"](cfg, env, actor, *args, **kwargs)
 
     def make_loss(cfg, agent):

@@ -93,7 +93,7 @@ def test_step_timeline_marks_every_phase_of_the_real_trainer(tmp_path, monkeypat
     assert all(v > 0 for v in ms.values()), ms  # each phase was marked, in the window of the 2 timed iterations
     assert r["step_ms"] == pytest.approx(sum(ms.values()))
     assert r["train_env_steps_per_s"] == pytest.approx(8e3 / r["step_ms"])
-    assert "| masked reset |" in (tmp_path / "step_timeline.md").read_text()
+    assert "| masked reset: simulator |" in (tmp_path / "step_timeline.md").read_text()
     assert {k: getattr(trainer, k) for k in originals} == originals  # the trainer is itself again
     with pytest.raises(SystemExit, match="cuda_graph"):  # a captured step has no points to mark: named, not run
         step_timeline.main([*args, "cuda_graph=on"])
@@ -135,21 +135,23 @@ def test_step_timeline_puts_back_every_wrapper_and_hook_also_after_an_error(monk
         def _reset(self, td):
             return td
 
-    sim = SimpleNamespace(step=lambda: None)  # an instance attribute, as a wrapper may find one
+    sim = SimpleNamespace(step=lambda: None, reset_to_start=lambda: None)  # instance attributes, as a wrapper may find
     env, actor = Env(), torch.nn.Linear(2, 2)
     env.base_env = SimpleNamespace(sim=sim)
-    inner_step = sim.step
+    inner_step, inner_reset = sim.step, sim.reset_to_start
     monkeypatch.setattr(trainer, "make_collector", lambda cfg, env, actor, *a, **k: "collector")
     timeline = step_timeline.Timeline(torch.device("cpu"))
     with pytest.raises(RuntimeError, match="midway"), step_timeline.marked_trainer(timeline):
         assert trainer.make_collector(None, env, actor) == "collector"
-        env.step_and_maybe_reset(None), actor(torch.zeros(2)), sim.step(), env._reset(None)
+        env.step_and_maybe_reset(None), actor(torch.zeros(2)), sim.step(), env._reset(None), sim.reset_to_start()
         assert [phase for phase, _ in timeline.marks] == [
             "env before the physics", "collector storage", "policy forward", "collector between policy and env",
-            "physics (sim.step)", "signals, rewards, transforms, step_mdp", "masked reset", "reset merge"]
+            "physics (sim.step)", "signals, rewards, transforms, step_mdp", "masked reset: env before the simulator",
+            "reset merge", "masked reset: simulator", "masked reset: observation"]
         raise RuntimeError("midway")
     assert trainer.make_collector(None, env, actor) == "collector"  # the trainer's own function again
     assert "step_and_maybe_reset" not in vars(env) and "_reset" not in vars(env) and sim.step is inner_step
+    assert sim.reset_to_start is inner_reset
     assert not actor._forward_hooks and not actor._forward_pre_hooks
     n = len(timeline.marks)
     env.step_and_maybe_reset(None), actor(torch.zeros(2)), sim.step(), env._reset(None)
