@@ -32,6 +32,8 @@ from tocabi_torchrl.rl.gait_record import fixed_command
 from tocabi_torchrl.tree import leaf_types, parse_leaf
 
 GIB = 2**30
+#: Raw policy steps run before the ceiling is measured (the robots settle onto the floor first).
+RAW_WARMUP = 20
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "benchmarks"
 
 
@@ -115,7 +117,7 @@ def raw_policy_step(num_worlds: int, device: str = "cuda") -> Callable[[], None]
         return step
 
 
-def raw_policy_steps_per_second(num_worlds: int, steps: int, device: str = "cuda", warmup: int = 20) -> float:
+def raw_policy_steps_per_second(num_worlds: int, steps: int, device: str = "cuda", warmup: int = RAW_WARMUP) -> float:
     """The ceiling the other benchmarks divide by: policy steps/s of :func:`raw_policy_step`."""
     return num_worlds * per_second(raw_policy_step(num_worlds, device), steps, device, warmup)
 

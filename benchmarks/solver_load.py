@@ -9,11 +9,12 @@ policy. mujoco-warp's Newton solver iterates every world until the slowest one c
 the count of unconverged worlds), and its constraint rows follow the contacts, so the same 8 substeps can cost more
 there. This measures both workloads in one process on the same model: for the real trainer (default preset, from
 scratch, ``--warmup`` untimed iterations, then ``--iterations`` timed) the simulator's step, and for the raw ceiling
-its recorded step. Per policy step: its time (CUDA events around the step, so nothing waits; host clocks off CUDA),
-and after it, over all worlds: the largest and the mean solver iteration count of the last solve (the raw step's
-last substep; the env step's closing forward pass, warm-started like a substep), the mean number of constraint rows
-and of contacts. The counts are copied on the device after each step and read once at the end. The trainer's step
-runs eagerly (its physics is one recorded graph either way); a captured env step has no points to mark and is refused.
+its recorded step (after the ceiling's own settling steps, ``common.RAW_WARMUP``). Per policy step: its time (CUDA
+events around the step, so nothing waits; host clocks off CUDA), and after it, over all worlds: the largest and the
+mean solver iteration count of the last solve (the raw step's last substep; the env step's closing forward pass,
+warm-started like a substep), the mean number of constraint rows and of contacts. The counts are copied on the
+device after each step and read once at the end. The trainer's step runs eagerly (its physics is one recorded graph
+either way); a captured env step has no points to mark and is refused.
 """
 
 from __future__ import annotations
@@ -110,6 +111,8 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
     with recorded_trainer(training, warmup):
         common.train(cfg)
     raw_step = common.raw_policy_step(n, device)
+    for _ in range(common.RAW_WARMUP):  # as the ceiling's own rate is measured: after the robots have settled
+        raw_step()
     standing = Recorder(at)
     for _ in range(raw_steps):
         standing.before()
