@@ -1,4 +1,4 @@
-"""``reset_pass="reduced"`` (issue 25) against the default full reset pass, on mujoco-warp's CPU device.
+"""``reset_pass="reduced"`` (issue 25, the env's default) against the full reset pass, on mujoco-warp's CPU device.
 
 The reduced pass runs only the position and velocity stages over all worlds and copies the rest of a registered start
 state from a table; everything the sim and the env return, and the trajectories after resets (worlds reset
@@ -6,6 +6,8 @@ mid-episode beside worlds that continue, a start state with foot contacts), must
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 import torch
@@ -53,6 +55,18 @@ def test_config_values():
         EnvSimConfig(reset_pass="fast").validate()
     # The env registers its start states, so it can default to the reduced pass; a bare simulator cannot.
     assert SimConfig().reset_pass == "full" and EnvSimConfig().reset_pass == "reduced"
+
+
+def test_a_saved_config_without_the_field_keeps_the_full_pass_it_trained_with():
+    from tocabi_torchrl.config import RunConfig, config_from_dict
+    from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint
+
+    tree = RunConfig().to_dict()
+    assert config_from_dict(tree).env.sim.reset_pass == "reduced"  # saved with the field: kept
+    del tree["env"]["sim"]["reset_pass"]
+    assert config_from_dict(tree).env.sim.reset_pass == "full"  # saved before the field existed
+    shipped = Path(__file__).resolve().parents[1] / "assets/policies/tocabi_walk_ppo.pt"  # a flat config, older
+    assert config_from_checkpoint(read_checkpoint(shipped), shipped).env.sim.reset_pass == "full"
 
 
 def test_override_path():

@@ -36,9 +36,26 @@ from .tree import ConfigError, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
 from .tree import to_dict as _tree_to_dict
 
-__all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "FLAT_PATHS", "flat_to_paths",
-           "config_from_dict", "to_dict", "flat_dict", "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
-           "LOGGERS", "field_choices", "wall_tag", "check_snapshot_minutes"]
+__all__ = [
+    "ENV_GRAPH_MODES",
+    "FLAT_PATHS",
+    "LOGGERS",
+    "LR_SCHEDULES",
+    "PRESETS",
+    "STD_MODES",
+    "ConfigError",
+    "PPOConfig",
+    "RunConfig",
+    "check_snapshot_minutes",
+    "config_from_dict",
+    "field_choices",
+    "flat_dict",
+    "flat_to_paths",
+    "preset_config",
+    "preset_tree",
+    "to_dict",
+    "wall_tag",
+]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
@@ -448,11 +465,30 @@ def is_flat(data: Mapping[str, Any]) -> bool:
     return not isinstance(data.get("ppo"), Mapping)
 
 
+#: Fields whose default changed after files were saved without them: such a file gets the value it ran with, not
+#: today's default (the reduced reset pass became the env's default on 2026-11-28; every file without the field ran
+#: the full pass).
+LEGACY_VALUES: Mapping[str, Any] = MappingProxyType({"env.sim.reset_pass": "full"})
+
+
 def config_from_dict(data: Mapping[str, Any]) -> RunConfig:
     """The :class:`RunConfig` a checkpoint or ``config.json`` saved: the tree, or (older files) the flat ``PPOConfig``
     dict, migrated path by path (its fields missing take their defaults, which the flat config shared with the
-    ``default`` preset). Not validated; raises :class:`ConfigError` naming an unknown key."""
+    ``default`` preset, except :data:`LEGACY_VALUES`). Not validated; raises :class:`ConfigError` naming an unknown
+    key."""
     data = {k: v for k, v in data.items() if k != "schema_version"}  # config.json carries it beside the fields
     if is_flat(data):
-        return replace_paths(RunConfig(), flat_to_paths(data))
-    return _tree_from_dict(RunConfig, data)
+        cfg, saved = replace_paths(RunConfig(), flat_to_paths(data)), set(flat_to_paths(data))
+    else:
+        cfg, saved = _tree_from_dict(RunConfig, data), {path for path in LEGACY_VALUES if _has_path(data, path)}
+    missing = {path: value for path, value in LEGACY_VALUES.items() if path not in saved}
+    return replace_paths(cfg, missing) if missing else cfg
+
+
+def _has_path(tree: Mapping[str, Any], path: str) -> bool:
+    """Whether the nested dict ``tree`` holds the dotted ``path``."""
+    for key in path.split("."):
+        if not isinstance(tree, Mapping) or key not in tree:
+            return False
+        tree = tree[key]
+    return True
