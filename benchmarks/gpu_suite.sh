@@ -17,8 +17,8 @@ for part in "${@:-all}"; do
                  | tee -a "$log/resetpass.log" | tail -4; done ;;
     overlap) python3 -m benchmarks.overlap_probe --num_envs 4096 16384 2>&1 | tee "$log/overlap.log" | tail -6 ;;
     timeline) python3 -m benchmarks.step_timeline --num_envs 4096 16384 2>&1 | tee "$log/timeline.log" | tail -40
-              python3 -m benchmarks.step_timeline --num_envs 4096 16384 --set env.sim.reset_pass=reduced \
-                ppo.matmul_precision=high --name step_timeline_levers 2>&1 | tee -a "$log/timeline.log" | tail -40 ;;
+              python3 -m benchmarks.step_timeline --num_envs 4096 16384 --set ppo.matmul_precision=high \
+                --name step_timeline_tf32 2>&1 | tee -a "$log/timeline.log" | tail -40 ;;
     solver) python3 -m benchmarks.solver_load --num_envs 4096 16384 2>&1 | tee "$log/solver.log" | tail -12 ;;
     multi) python3 -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --name multi_gpu 2>&1 \
              | tee "$log/multi.log" | tail -8

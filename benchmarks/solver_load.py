@@ -27,7 +27,7 @@ import torch
 from . import common
 
 NAME = "solver_load"
-#: What is recorded after each step, per world (warp ``Data`` fields), and how each is summarised.
+#: The per-world warp ``Data`` fields recorded after each step (``nacon``, a count over all worlds, is recorded too).
 FIELDS = ("solver_niter", "nefc")
 
 

@@ -8,19 +8,25 @@
 #
 #   S=$(date +%s) END=580 bash benchmarks/table_call.sh torchrl@0 skrl@1        # from the repository root
 #
-# S: the call's start (epoch seconds); END: seconds it may run. Optional: NEW=1 starts the rows anew (--new);
-# PRESET (default); TABLE (runs/library_table/h100.json: the json must stay on the host between calls, so it lives
-# under the ignored runs/), seeded from SEED (docs/adapters_table_h100.json) when missing; NUM_ENVS (4096);
-# LOGS (/tmp/table_logs); PACK (30 s kept for packing); DRY_RUN=1 prints the commands instead of running them.
+# S: the call's start (epoch seconds); END: seconds it may run. Each row keeps 75 s (TorchRL: ppo_walk's clock starts
+# after its ~40 s set-up) or 65 s (the library recipes) for its start-up and end. Optional: NEW=1 starts the rows
+# anew (--new); PRESET (default); RUNS (runs/library_table: the rows' run folders); TABLE ($RUNS/h100.json: the json
+# must stay on the host between calls, so it lives under the ignored runs/), seeded from SEED
+# (docs/adapters_table_h100.json) when missing; NUM_ENVS (4096); LOGS (/tmp/table_logs); PACK (30 s kept for
+# packing); DRY_RUN=1 prints the commands (with the GPU each row gets) instead of running them.
 set -uo pipefail
 : "${S:?S=<call start, epoch seconds>}" "${END:?END=<seconds this call may run>}"
-TABLE=${TABLE:-runs/library_table/h100.json} SEED=${SEED:-docs/adapters_table_h100.json} PRESET=${PRESET:-default}
+RUNS=${RUNS:-runs/library_table} SEED=${SEED:-docs/adapters_table_h100.json} PRESET=${PRESET:-default}
+TABLE=${TABLE:-$RUNS/h100.json}
 NUM_ENVS=${NUM_ENVS:-4096} LOGS=${LOGS:-/tmp/table_logs} PACK=${PACK:-30} OUT=${OUT:-/tmp/out}
 [ $# -ge 1 ] || { echo "usage: S=... END=... bash benchmarks/table_call.sh LIBRARY@GPU..." >&2; exit 2; }
-run() { if [ -n "${DRY_RUN:-}" ]; then echo "+ $*"; else "$@"; fi; }
+for row in "$@"; do  # all rows checked before any starts
+  [[ $row =~ ^[a-z_0-9]+@[0-9]+$ ]] || { echo "table_call.sh: a row is LIBRARY@GPU (GPU a number), got '$row'" >&2; exit 2; }
+done
+run() { if [ -n "${DRY_RUN:-}" ]; then echo "+ CUDA_VISIBLE_DEVICES=${CUDA_VISIBLE_DEVICES:-} $*"; else "$@"; fi; }
 left() { echo $(( END - $(date +%s) + S )); }
 say() { echo "[$(( $(date +%s) - S )) s] $*" | tee -a "$LOGS/driver.log"; }
-mkdir -p "$LOGS" "$(dirname "$TABLE")"
+mkdir -p "$LOGS" "$RUNS" "$(dirname "$TABLE")"
 [ -f "$TABLE" ] || { [ -f "$SEED" ] && cp "$SEED" "$TABLE"; }
 marker=$(mktemp) && touch -d "@$S" "$marker"   # snapshots newer than the call's start are this call's
 
@@ -31,19 +37,18 @@ train_row() {  # library gpu: train until KEEP + PACK seconds before the end (pp
   if ! python3 -c "import sys; sys.exit(0 if $m >= 0.5 else 1)"; then say "gpu$gpu $lib: no time left"; return; fi
   say "gpu$gpu $lib: --minutes $m (timeout $((l - PACK)) s)"
   CUDA_VISIBLE_DEVICES=$gpu run timeout $((l - PACK)) python3 recipes/library_table.py --json "$TABLE" \
-    --md "${TABLE%.json}.md" --checkpoint_minutes 2 --no_eval --minutes "$m" --libraries "$lib" \
+    --md "${TABLE%.json}.md" --runs "$RUNS" --checkpoint_minutes 2 --no_eval --minutes "$m" --libraries "$lib" \
     --num_envs "$NUM_ENVS" --preset "$PRESET" ${NEW:+--new} >> "$LOGS/$lib.log" 2>&1
   say "gpu$gpu $lib: rc $?"
 }
 
 for row in "$@"; do
-  case $row in *@*) ;; *) echo "table_call.sh: a row is LIBRARY@GPU, got '$row'" >&2; exit 2 ;; esac
   train_row "${row%@*}" "${row#*@}" &
 done
 wait
 say "packing"
 run python3 benchmarks/device_out.py "$OUT" "$TABLE" "${TABLE%.json}.md" "$LOGS" \
-  $(find "$(dirname "$TABLE")" -name 'wall_*.pt' -newer "$marker" | sort) "$(dirname "$TABLE")" \
+  $(find "$RUNS" -name 'wall_*.pt' -newer "$marker" | sort) "$RUNS" \
   --skip '*/skrl/*/checkpoints/*' --skip '*/checkpoints/iter_*.pt' --skip "*/$(basename "$TABLE").lock"
 rm -f "$marker"
 say "done"

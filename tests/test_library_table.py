@@ -441,7 +441,8 @@ def test_a_missing_snapshot_stops_the_rows_gait_tests_there_and_says_so(torchrl_
 
 def test_the_gpu_call_script_trains_each_row_on_its_gpu_and_packs_the_calls_snapshots_first(tmp_path):
     """benchmarks/table_call.sh (dry run): one library_table call per row, on its GPU, for the call's time left less
-    what it keeps; the pack lists the table, the logs, then only the snapshots newer than the call's start."""
+    what it keeps; the pack lists the table, the logs, then only the snapshots newer than the call's start; a bad row
+    stops the call before any row starts."""
     import os
     import time
 
@@ -451,26 +452,30 @@ def test_the_gpu_call_script_trains_each_row_on_its_gpu_and_packs_the_calls_snap
     old, new = (runs / "torchrl_x" / "checkpoints" / f"wall_0{k}s.pt" for k in (120, 240))
     old.write_text("old"), new.write_text("new")
     start = int(time.time())
-    os.utime(old, (start - 100, start - 100))
+    os.utime(old, (start - 100, start - 100))  # written before the call started
+    os.utime(new, (start + 1, start + 1))  # written by the call
     seed = tmp_path / "seed.json"
     seed.write_text("[]")
-    env = {**os.environ, "S": str(start), "END": "600", "DRY_RUN": "1", "TABLE": str(runs / "t.json"),
+    env = {**os.environ, "S": str(start), "END": "600", "DRY_RUN": "1", "RUNS": str(runs), "TABLE": str(runs / "t.json"),
            "SEED": str(seed), "LOGS": str(tmp_path / "logs"), "OUT": str(tmp_path / "out"), "NEW": "1"}
     proc = subprocess.run(["bash", "benchmarks/table_call.sh", "torchrl@0", "skrl@1"], cwd=root, env=env,
                           capture_output=True, text=True, check=True)
     logs = (tmp_path / "logs" / "torchrl.log").read_text() + (tmp_path / "logs" / "skrl.log").read_text()
     assert (runs / "t.json").read_text() == "[]"  # seeded
-    for lib, keep in (("torchrl", 75), ("skrl", 65)):
+    for lib, keep, gpu in (("torchrl", 75, 0), ("skrl", 65, 1)):
         [line] = [ln for ln in logs.splitlines() if f"--libraries {lib}" in ln]
+        assert line.startswith(f"+ CUDA_VISIBLE_DEVICES={gpu} timeout ") and f"--runs {runs}" in line
         minutes = float(line.split("--minutes ")[1].split()[0])
         assert abs(minutes - (600 - keep - 30) / 60) <= 0.05  # the time left, less what it keeps and the packing
         assert "--no_eval" in line and "--new" in line and f"--json {runs / 't.json'}" in line
-    driver = (tmp_path / "logs" / "driver.log").read_text()
-    assert "gpu0 torchrl: --minutes" in driver and "gpu1 skrl: --minutes" in driver
     [pack] = [ln for ln in proc.stdout.splitlines() if "device_out.py" in ln]
     listed = pack.split()
     assert str(new) in listed and str(old) not in listed  # only this call's snapshot ahead of the rest
     assert listed.index(str(new)) < listed.index(str(runs)) and "*/checkpoints/iter_*.pt" in pack
-    bad = subprocess.run(["bash", "benchmarks/table_call.sh", "torchrl"], cwd=root, env=env, capture_output=True,
-                         text=True, check=False)
-    assert bad.returncode == 2 and "LIBRARY@GPU" in bad.stderr
+    for rows in (["torchrl"], ["skrl@1", "torchrl@"]):  # checked before any row starts
+        (tmp_path / "logs" / "skrl.log").unlink()
+        (tmp_path / "logs" / "skrl.log").touch()
+        bad = subprocess.run(["bash", "benchmarks/table_call.sh", *rows], cwd=root, env=env, capture_output=True,
+                             text=True, check=False)
+        assert bad.returncode == 2 and "LIBRARY@GPU" in bad.stderr
+        assert (tmp_path / "logs" / "skrl.log").read_text() == ""

@@ -54,9 +54,9 @@ class EnvSimConfig:
         reset_pass: what a mujoco-warp reset computes over all worlds (``SimConfig.reset_pass``): ``"reduced"``
             (default) only the position and velocity stages, with the rest of each start state (one per start row
             of the reference motion, registered when the env is built) taken from a table, bit-identical to the
-            full pass in every trajectory and ~1 ms a step cheaper at 4,096 envs (docs/benchmarks.md, issue 25);
-            ``"full"`` a full forward pass. The ``"mujoco"`` backend ignores it (its reset computes the reset
-            worlds only).
+            full pass in every trajectory on warp's CPU device and ~1 ms a step cheaper at 4,096 envs on an H100
+            (docs/benchmarks.md, issue 25); ``"full"`` a full forward pass. The ``"mujoco"`` backend ignores it
+            (its reset computes the reset worlds only).
     """
 
     backend: str = "auto"
