@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One time-limited call of the per-library table on a GPU host (docs/adapters.md, "Split over 10-minute calls"): each
-# row LIBRARY@GPU trains on its own GPU until KEEP seconds plus the packing before the call's end (recipes/
+# row LIBRARY@GPU trains on its own GPU until what it keeps (below) plus the packing before the call's end (recipes/
 # library_table.py --no_eval --minutes), then the call packs into $OUT what must come back, most important first: the
 # table, the logs, the snapshots this call wrote (~4.5 MB each), then the rest of the runs without the libraries' own
 # checkpoints, which nothing reads (benchmarks/device_out.py). Gait-test the snapshots afterwards where they land
@@ -30,7 +30,7 @@ mkdir -p "$LOGS" "$RUNS" "$(dirname "$TABLE")"
 [ -f "$TABLE" ] || { [ -f "$SEED" ] && cp "$SEED" "$TABLE"; }
 marker=$(mktemp) && touch -d "@$S" "$marker"   # snapshots newer than the call's start are this call's
 
-train_row() {  # library gpu: train until KEEP + PACK seconds before the end (ppo_walk's clock starts after its set-up)
+train_row() {  # library gpu: train until keep + PACK seconds before the end (ppo_walk's clock starts after its set-up)
   local lib=$1 gpu=$2 keep=65 l m
   [ "$lib" = torchrl ] && keep=75
   l=$(left) m=$(python3 -c "print(round(($l - $keep - $PACK) / 60, 2))")

@@ -136,7 +136,7 @@ def test_step_timeline_puts_back_every_wrapper_and_hook_also_after_an_error(monk
         def _reset(self, td):
             return td
 
-    sim = SimpleNamespace(step=lambda: None, reset_to_start=lambda: None)  # instance attributes, as a wrapper may find
+    sim = SimpleNamespace(step=lambda: None, reset_to_start=lambda: None)  # instance attributes, as wrappers find
     env, actor = Env(), torch.nn.Linear(2, 2)
     env.base_env = SimpleNamespace(sim=sim)
     inner_step, inner_reset = sim.step, sim.reset_to_start
@@ -155,7 +155,7 @@ def test_step_timeline_puts_back_every_wrapper_and_hook_also_after_an_error(monk
     assert sim.reset_to_start is inner_reset
     assert not actor._forward_hooks and not actor._forward_pre_hooks
     n = len(timeline.marks)
-    env.step_and_maybe_reset(None), actor(torch.zeros(2)), sim.step(), env._reset(None)
+    env.step_and_maybe_reset(None), actor(torch.zeros(2)), sim.step(), env._reset(None), sim.reset_to_start()
     assert len(timeline.marks) == n  # nothing marks any more
 
 

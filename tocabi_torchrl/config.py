@@ -36,26 +36,9 @@ from .tree import ConfigError, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
 from .tree import to_dict as _tree_to_dict
 
-__all__ = [
-    "ENV_GRAPH_MODES",
-    "FLAT_PATHS",
-    "LOGGERS",
-    "LR_SCHEDULES",
-    "PRESETS",
-    "STD_MODES",
-    "ConfigError",
-    "PPOConfig",
-    "RunConfig",
-    "check_snapshot_minutes",
-    "config_from_dict",
-    "field_choices",
-    "flat_dict",
-    "flat_to_paths",
-    "preset_config",
-    "preset_tree",
-    "to_dict",
-    "wall_tag",
-]
+__all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "FLAT_PATHS", "flat_to_paths",
+           "config_from_dict", "to_dict", "flat_dict", "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
+           "LOGGERS", "field_choices", "wall_tag", "check_snapshot_minutes", "LEGACY_VALUES"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
@@ -478,7 +461,8 @@ def config_from_dict(data: Mapping[str, Any]) -> RunConfig:
     key."""
     data = {k: v for k, v in data.items() if k != "schema_version"}  # config.json carries it beside the fields
     if is_flat(data):
-        cfg, saved = replace_paths(RunConfig(), flat_to_paths(data)), set(flat_to_paths(data))
+        paths = flat_to_paths(data)
+        cfg, saved = replace_paths(RunConfig(), paths), set(paths)
     else:
         cfg, saved = _tree_from_dict(RunConfig, data), {path for path in LEGACY_VALUES if _has_path(data, path)}
     missing = {path: value for path, value in LEGACY_VALUES.items() if path not in saved}
