@@ -440,42 +440,51 @@ def test_a_missing_snapshot_stops_the_rows_gait_tests_there_and_says_so(torchrl_
 
 
 def test_the_gpu_call_script_trains_each_row_on_its_gpu_and_packs_the_calls_snapshots_first(tmp_path):
-    """benchmarks/table_call.sh (dry run): one library_table call per row, on its GPU, for the call's time left less
-    what it keeps; the pack lists the table, the logs, then only the snapshots newer than the call's start; a bad row
-    stops the call before any row starts."""
+    """benchmarks/table_call.sh (dry run): one library_table call per row (LIBRARY[:PRESET[:ENVS]]@GPU), on its GPU,
+    for the call's time left less what it keeps; the pack lists the table, the logs, then only the snapshots newer
+    than the call's start, then the resume states this call wrote, then the rest; a bad row stops the call before any
+    row starts."""
     import os
     import time
 
     root = Path(__file__).resolve().parents[1]
     runs = tmp_path / "runs"
     (runs / "torchrl_x" / "checkpoints").mkdir(parents=True)
+    (runs / "sb3_x" / "resume").mkdir(parents=True)
     old, new = (runs / "torchrl_x" / "checkpoints" / f"wall_0{k}s.pt" for k in (120, 240))
-    old.write_text("old"), new.write_text("new")
+    old_state, new_state = (runs / "sb3_x" / "resume" / f"state_call{k}.pt" for k in (1, 2))
+    latest = runs / "torchrl_x" / "checkpoints" / "latest.pt"
     start = int(time.time())
-    os.utime(old, (start - 100, start - 100))  # written before the call started
-    os.utime(new, (start + 1, start + 1))  # written by the call
+    for path, when in ((old, -100), (new, 1), (old_state, -100), (new_state, 1), (latest, 1)):
+        path.write_text(path.name)
+        os.utime(path, (start + when, start + when))  # written before the call started, or by it
     seed = tmp_path / "seed.json"
     seed.write_text("[]")
     env = {**os.environ, "S": str(start), "END": "600", "DRY_RUN": "1", "RUNS": str(runs), "TABLE": str(runs / "t.json"),
            "SEED": str(seed), "LOGS": str(tmp_path / "logs"), "OUT": str(tmp_path / "out"), "NEW": "1"}
-    proc = subprocess.run(["bash", "benchmarks/table_call.sh", "torchrl@0", "skrl@1"], cwd=root, env=env,
+    rows = ["torchrl@0", "skrl:torque@1", "sb3:default:256@3"]
+    proc = subprocess.run(["bash", "benchmarks/table_call.sh", *rows], cwd=root, env=env,
                           capture_output=True, text=True, check=True)
-    logs = (tmp_path / "logs" / "torchrl.log").read_text() + (tmp_path / "logs" / "skrl.log").read_text()
     assert (runs / "t.json").read_text() == "[]"  # seeded
-    for lib, keep, gpu in (("torchrl", 75, 0), ("skrl", 65, 1)):
-        [line] = [ln for ln in logs.splitlines() if f"--libraries {lib}" in ln]
+    for lib, preset, envs, keep, gpu in (("torchrl", "default", 4096, 75, 0), ("skrl", "torque", 4096, 65, 1),
+                                         ("sb3", "default", 256, 65, 3)):
+        [line] = (tmp_path / "logs" / f"{lib}_{preset}_{envs}.log").read_text().splitlines()
         assert line.startswith(f"+ CUDA_VISIBLE_DEVICES={gpu} timeout ") and f"--runs {runs}" in line
+        assert f"--libraries {lib} " in line and f"--num_envs {envs} " in line and f"--preset {preset} " in line
         minutes = float(line.split("--minutes ")[1].split()[0])
         assert abs(minutes - (600 - keep - 30) / 60) <= 0.05  # the time left, less what it keeps and the packing
         assert "--no_eval" in line and "--new" in line and f"--json {runs / 't.json'}" in line
     [pack] = [ln for ln in proc.stdout.splitlines() if "device_out.py" in ln]
     listed = pack.split()
-    assert str(new) in listed and str(old) not in listed  # only this call's snapshot ahead of the rest
-    assert listed.index(str(new)) < listed.index(str(runs)) and "*/checkpoints/iter_*.pt" in pack
-    for rows in (["torchrl"], ["skrl@1", "torchrl@"]):  # checked before any row starts
-        (tmp_path / "logs" / "skrl.log").unlink()
-        (tmp_path / "logs" / "skrl.log").touch()
-        bad = subprocess.run(["bash", "benchmarks/table_call.sh", *rows], cwd=root, env=env, capture_output=True,
-                             text=True, check=False)
-        assert bad.returncode == 2 and "LIBRARY@GPU" in bad.stderr
-        assert (tmp_path / "logs" / "skrl.log").read_text() == ""
+    for gone in (old, old_state):  # written before this call: only in the rest
+        assert str(gone) not in listed
+    # this call's snapshot, then its resume states, ahead of the rest
+    assert listed.index(str(new)) < listed.index(str(new_state)) < listed.index(str(runs))
+    assert listed.index(str(latest)) < listed.index(str(runs)) and "*/checkpoints/iter_*.pt" in pack
+    log = tmp_path / "logs" / "skrl_torque_4096.log"
+    for bad_rows in (["torchrl"], ["skrl@1", "torchrl@"], ["sb3:default:many@1"], ["sb3:x:1:2@0"]):
+        log.write_text("")  # checked before any row starts
+        bad = subprocess.run(["bash", "benchmarks/table_call.sh", "skrl:torque@1", *bad_rows], cwd=root, env=env,
+                             capture_output=True, text=True, check=False)
+        assert bad.returncode == 2 and "LIBRARY[:PRESET[:ENVS]]@GPU" in bad.stderr
+        assert log.read_text() == ""
