@@ -14,7 +14,8 @@
 # go on in a later session only from them (copy its run folder back, and carry it).
 #
 # S: the call's start (epoch seconds); END: seconds it may run. Each row keeps 75 s (TorchRL: ppo_walk's clock starts
-# after its ~40 s set-up) or 65 s (the library recipes) for its start-up and end. Optional: NEW=1 starts the rows
+# after its ~40 s set-up), 140 s (SB3: at 256 envs one PPO update, ~70 s on an H100, runs past the time cap before
+# the clock can stop it) or 65 s (rsl_rl, skrl) for its start-up and end. Optional: NEW=1 starts the rows
 # anew (--new); PRESET (default); RUNS (runs/library_table: the rows' run folders); TABLE ($RUNS/h100.json: the json
 # must stay on the host between calls, so it lives under the ignored runs/), seeded from SEED
 # (docs/adapters_table_h100.json) when missing; NUM_ENVS (4096); LOGS (/tmp/table_logs); PACK (30 s kept for
@@ -39,6 +40,7 @@ marker=$(mktemp) && touch -d "@$S" "$marker"   # snapshots newer than the call's
 train_row() {  # library preset envs gpu: train until keep + PACK seconds before the end (ppo_walk's clock starts after its set-up)
   local lib=$1 preset=$2 envs=$3 gpu=$4 keep=65 l m name
   [ "$lib" = torchrl ] && keep=75
+  [ "$lib" = sb3 ] && keep=140  # SB3's clock stops it at the next env step, after an update that can take ~70 s
   name="gpu$gpu $lib $preset $envs"
   l=$(left) m=$(python3 -c "print(round(($l - $keep - $PACK) / 60, 2))")
   if ! python3 -c "import sys; sys.exit(0 if $m >= 0.5 else 1)"; then say "$name: no time left"; return; fi

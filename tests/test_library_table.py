@@ -467,7 +467,7 @@ def test_the_gpu_call_script_trains_each_row_on_its_gpu_and_packs_the_calls_snap
                           capture_output=True, text=True, check=True)
     assert (runs / "t.json").read_text() == "[]"  # seeded
     for lib, preset, envs, keep, gpu in (("torchrl", "default", 4096, 75, 0), ("skrl", "torque", 4096, 65, 1),
-                                         ("sb3", "default", 256, 65, 3)):
+                                         ("sb3", "default", 256, 140, 3)):
         [line] = (tmp_path / "logs" / f"{lib}_{preset}_{envs}.log").read_text().splitlines()
         assert line.startswith(f"+ CUDA_VISIBLE_DEVICES={gpu} timeout ") and f"--runs {runs}" in line
         assert f"--libraries {lib} " in line and f"--num_envs {envs} " in line and f"--preset {preset} " in line
