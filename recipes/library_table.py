@@ -358,15 +358,18 @@ def report(rows: list[dict], path: Path) -> None:
              "|---|---|---|---|---|---|---|---|---|---|"]
     notes = {}
     for r in sorted(rows, key=lambda r: (r["preset"], r["library"], r["num_envs"])):
+        rate = f"{r['env_steps_per_s']:,.0f}"
         if r.get("walks_minutes") is not None:
             walks = f"{r['walks_minutes']:.1f}"
         elif r.get("status", "final") == "final":
             walks = f"no (≤ {r['cap_minutes']:g})"
+        elif not r.get("train_seconds"):  # every call so far was stopped before its recipe saved
+            rate, walks = "-", "not trained yet (no call has finished)"
         else:
             walks = "pending (training or untested snapshots)"
         commands = r.get("commands") or [r.get("command", "")]
         lines.append(f"| {r['library']} | {r.get('version', '')} | {r['preset']} | {r['num_envs']:,} | "
-                     f"{r['env_steps_per_s']:,.0f} | {walks} | {r.get('train_seconds', 0) / 60:.1f} | "
+                     f"{rate} | {walks} | {r.get('train_seconds', 0) / 60:.1f} | "
                      f"{r.get('calls', 1)} | {r['device']} | {'; '.join(f'`{c}`' for c in commands)} |")
         if r.get("notes"):
             notes[r["library"]] = r["notes"]

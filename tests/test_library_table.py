@@ -299,6 +299,9 @@ def test_a_killed_first_call_is_set_aside_and_the_next_call_starts_over(torchrl_
     [row] = rows(tmp_path)  # on record, though no call completed
     run = Path(row["run"])
     assert row["status"] == "training" and row["calls"] == 0 and (run / "config.json").is_file()
+    torchrl_table.report([row], tmp_path / "table.md")  # no rate of 0 env-steps/s for a row that never trained
+    assert (f"| torchrl | {row['version']} | default | 2 | - | not trained yet (no call has finished) | 0.0 | 0 |"
+            in (tmp_path / "table.md").read_text())
     torchrl_table.ppo_walk = FakePpoWalk()
     torchrl_table.main(args)  # nothing to resume and nothing recorded: the folder is kept aside, the row starts over
     [row] = rows(tmp_path)
