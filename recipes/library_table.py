@@ -370,7 +370,7 @@ def report(rows: list[dict], path: Path) -> None:
         commands = r.get("commands") or [r.get("command", "")]
         lines.append(f"| {r['library']} | {r.get('version', '')} | {r['preset']} | {r['num_envs']:,} | "
                      f"{rate} | {walks} | {r.get('train_seconds', 0) / 60:.1f} | "
-                     f"{r.get('calls', 1)} | {r['device']} | {'; '.join(f'`{c}`' for c in commands)} |")
+                     f"{r.get('calls', 1)} | {r['device'] or '-'} | {'; '.join(f'`{c}`' for c in commands)} |")
         if r.get("notes"):
             notes[r["library"]] = r["notes"]
     if notes:
@@ -490,8 +490,16 @@ def main(argv=None) -> None:
                     if trained["budget_done"]:  # before the cap: nothing is left for later calls to train
                         row["recipe_budget_done"] = True
                         print(f"{library} {args.preset} {n}: the recipe's own iteration budget is used")
+                    snapshots = trained["snapshots"]
+                    if library == "torchrl":
+                        # ppo_walk's snapshots are read from its folder, which holds only this call's when the run
+                        # was carried to another machine with its latest.pt alone (benchmarks/table_carry.py): the
+                        # earlier ones the row lists, up to the resume point, stay listed (and their gait tests due).
+                        earlier = [s for s in row.get("snapshots", [])
+                                   if snapshot_seconds(s) <= used + 0.5 and s not in snapshots]
+                        snapshots = sorted(earlier + snapshots, key=snapshot_seconds)
                     row.update(env_steps=int(trained["env_steps"]), train_seconds=float(trained["train_seconds"]),
-                               env_steps_per_s=float(trained["env_steps_per_s"]), snapshots=trained["snapshots"],
+                               env_steps_per_s=float(trained["env_steps_per_s"]), snapshots=snapshots,
                                calls=trained.get("calls", row.get("calls", 0) + 1),
                                notes=trained.get("resume_notes", ""),
                                device=torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu")

@@ -183,6 +183,25 @@ def test_a_killed_calls_orphan_snapshot_is_kept_aside_and_not_gait_tested(torchr
     assert torchrl_table.tested[3] == "wall_00004s.pt" and (checkpoints / "wall_00004s_unresumed0.pt").is_file()
 
 
+def test_a_torchrl_row_carried_with_its_latest_pt_alone_keeps_its_earlier_snapshots(torchrl_table, tmp_path,
+                                                                                       capsys):
+    """benchmarks/table_carry.py moves a TorchRL run to another machine as ``latest.pt`` alone: the row still lists
+    the snapshots of its earlier calls, so the first pass cannot be decided without them."""
+    torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(3 / 60), "--no_eval"))
+    [row] = rows(tmp_path)
+    checkpoints = Path(row["run"]) / "checkpoints"
+    earlier = [Path(p).name for p in row["snapshots"]]
+    assert earlier == ["wall_00001s.pt", "wall_00002s.pt", "wall_00003s.pt"]
+    for path in checkpoints.glob("wall_*.pt"):
+        path.unlink()  # left on the other machine
+    torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(2 / 60), "--no_eval"))
+    [row] = rows(tmp_path)
+    names = [Path(p).name for p in row["snapshots"]]
+    assert names[:3] == earlier and names[3:] == ["wall_00004s.pt", "wall_00005s.pt"]
+    torchrl_table.main(torchrl_args(tmp_path, "--eval_only"))
+    assert torchrl_table.tested == [] and "wall_00001s.pt is missing" in capsys.readouterr().out
+
+
 def test_a_row_whose_recipe_budget_ends_before_the_cap_turns_final(torchrl_table, tmp_path):
     torchrl_table.ppo_walk = FakePpoWalk(total_env_steps=4 * 96)  # 4 iterations: 1 s of the 10 s cap
     torchrl_table.main(torchrl_args(tmp_path))
@@ -443,10 +462,10 @@ def test_a_missing_snapshot_stops_the_rows_gait_tests_there_and_says_so(torchrl_
 
 
 def test_the_gpu_call_script_trains_each_row_on_its_gpu_and_packs_the_calls_snapshots_first(tmp_path):
-    """benchmarks/table_call.sh (dry run): one library_table call per row (LIBRARY[:PRESET[:ENVS]]@GPU), on its GPU,
-    for the call's time left less what it keeps; the pack lists the table, the logs, then only the snapshots newer
-    than the call's start, then the resume states this call wrote, then the rest; a bad row stops the call before any
-    row starts."""
+    """benchmarks/table_call.sh (dry run): one library_table call per row (LIBRARY[:PRESET[:ENVS]][+new]@GPU), on
+    its GPU, for the call's time left less what it keeps, anew only where asked; the pack lists the table, the logs,
+    then only the resume states newer than the call's start, then its snapshots, then the rest; a bad row, or two rows
+    on one GPU, stop the call before any row starts."""
     import os
     import time
 
@@ -464,30 +483,33 @@ def test_the_gpu_call_script_trains_each_row_on_its_gpu_and_packs_the_calls_snap
     seed = tmp_path / "seed.json"
     seed.write_text("[]")
     env = {**os.environ, "S": str(start), "END": "600", "DRY_RUN": "1", "RUNS": str(runs), "TABLE": str(runs / "t.json"),
-           "SEED": str(seed), "LOGS": str(tmp_path / "logs"), "OUT": str(tmp_path / "out"), "NEW": "1"}
-    rows = ["torchrl@0", "skrl:torque@1", "sb3:default:256@3"]
+           "SEED": str(seed), "LOGS": str(tmp_path / "logs"), "OUT": str(tmp_path / "out")}
+    rows = ["torchrl@0", "skrl:torque@1", "sb3:default:256+new@3"]
     proc = subprocess.run(["bash", "benchmarks/table_call.sh", *rows], cwd=root, env=env,
                           capture_output=True, text=True, check=True)
     assert (runs / "t.json").read_text() == "[]"  # seeded
     for lib, preset, envs, keep, gpu in (("torchrl", "default", 4096, 75, 0), ("skrl", "torque", 4096, 65, 1),
-                                         ("sb3", "default", 256, 140, 3)):
+                                         ("sb3", "default", 256, 160, 3)):
         [line] = (tmp_path / "logs" / f"{lib}_{preset}_{envs}.log").read_text().splitlines()
         assert line.startswith(f"+ CUDA_VISIBLE_DEVICES={gpu} timeout ") and f"--runs {runs}" in line
-        assert f"--libraries {lib} " in line and f"--num_envs {envs} " in line and f"--preset {preset} " in line
+        words = line.split()
+        for option, value in (("--libraries", lib), ("--num_envs", str(envs)), ("--preset", preset)):
+            assert words[words.index(option) + 1] == value
         minutes = float(line.split("--minutes ")[1].split()[0])
         assert abs(minutes - (600 - keep - 30) / 60) <= 0.05  # the time left, less what it keeps and the packing
-        assert "--no_eval" in line and "--new" in line and f"--json {runs / 't.json'}" in line
+        assert "--no_eval" in line and ("--new" in line) == (lib == "sb3") and f"--json {runs / 't.json'}" in line
     [pack] = [ln for ln in proc.stdout.splitlines() if "device_out.py" in ln]
     listed = pack.split()
     for gone in (old, old_state):  # written before this call: only in the rest
         assert str(gone) not in listed
-    # this call's snapshot, then its resume states, ahead of the rest
-    assert listed.index(str(new)) < listed.index(str(new_state)) < listed.index(str(runs))
+    # this call's resume states, then its snapshot, ahead of the rest
+    assert listed.index(str(new_state)) < listed.index(str(new)) < listed.index(str(runs))
     assert listed.index(str(latest)) < listed.index(str(runs)) and "*/checkpoints/iter_*.pt" in pack
     log = tmp_path / "logs" / "skrl_torque_4096.log"
-    for bad_rows in (["torchrl"], ["skrl@1", "torchrl@"], ["sb3:default:many@1"], ["sb3:x:1:2@0"]):
+    for bad_rows in (["torchrl"], ["skrl@2", "torchrl@"], ["sb3:default:many@2"], ["sb3:x:1:2@0"], ["sb3+old@2"],
+                     ["rsl_rl:torque@1"]):
         log.write_text("")  # checked before any row starts
         bad = subprocess.run(["bash", "benchmarks/table_call.sh", "skrl:torque@1", *bad_rows], cwd=root, env=env,
                              capture_output=True, text=True, check=False)
-        assert bad.returncode == 2 and "LIBRARY[:PRESET[:ENVS]]@GPU" in bad.stderr
+        assert bad.returncode == 2 and "LIBRARY[:PRESET[:ENVS]][+new]@GPU" in bad.stderr
         assert log.read_text() == ""

@@ -47,12 +47,20 @@ def test_refuses_what_it_cannot_carry_before_copying_anything(tmp_path, monkeypa
         ("runs/library_table/missing",): "no such file or run folder",
         (str(tmp_path / rsl),): "relative to the repository root",
     }
+    for out in (".", "runs", str(rsl)):  # would delete what it carries
+        with pytest.raises(SystemExit, match="holds what it would carry"):
+            table_carry.main([str(rsl), "--out", out, "--replace"])
+        assert (rsl / "resume.json").is_file()
     for args, message in cases.items():
         with pytest.raises(SystemExit, match=message):
             table_carry.main([str(rsl), *args, "--out", "carry"])
         assert not Path("carry").exists()
     with pytest.raises(SystemExit, match="over --max_mib"):
         table_carry.main([str(rsl), "--out", "carry", "--max_mib", "1e-9"])
+    (rsl / "resume.json").write_text("{")
+    with pytest.raises(SystemExit, match="not a resume point its recipe wrote"):
+        table_carry.main([str(rsl), "--out", "carry"])
+    (rsl / "resume.json").write_text(json.dumps({"calls": 1, "state": "resume/state_call1.pt"}))
     os.remove(rsl / "resume/state_call1.pt")
     with pytest.raises(SystemExit, match="which is not there"):
         table_carry.main([str(rsl), "--out", "carry"])
