@@ -112,10 +112,15 @@ def test_a_snapshot_period_under_a_second_is_refused(tmp_path, capsys):
     assert "named by whole seconds" in capsys.readouterr().err and not (tmp_path / "table.json").exists()
 
 
-def test_a_second_minutes_call_continues_the_same_row(tmp_path, capsys):
+def test_a_second_minutes_call_continues_the_same_row(tmp_path, capsys, monkeypatch):
     # Only what the table decides is asserted, never how long a call took (a loaded 2-core machine may stall a
     # step): whether a call trains, the --max_minutes it gives the recipe (whose clock stops at or past it), the
-    # counters' growth, the snapshot names and their order.
+    # counters' growth, the snapshot names and their order. The second call runs on "another machine": a run folder
+    # holding only what benchmarks/table_carry.py gathers.
+    import shutil
+
+    from benchmarks import table_carry
+
     pytest.importorskip("rsl_rl")
     table = load_recipe("library_table")
     cap_s, minutes = 60 * 0.06, 0.025
@@ -151,8 +156,16 @@ def test_a_second_minutes_call_continues_the_same_row(tmp_path, capsys):
     assert "pending" in (tmp_path / "table.md").read_text()
     run = row["run"]
 
+    monkeypatch.chdir(tmp_path)  # table_carry takes paths relative to the root the device call shares
+    here = tmp_path / "here"
+    shutil.copytree(run, here)  # the snapshots stay here, for the gait tests
+    table_carry.main(["table.json", str(Path(run).relative_to(tmp_path)), "--out", "carry"])
+    shutil.rmtree(run)
+    shutil.copytree(tmp_path / "carry", tmp_path, dirs_exist_ok=True)  # the fresh machine: the carried files only
+    assert not list(Path(run).glob("checkpoints/wall_*.pt")) and not (Path(run) / "policy.pt").exists()
     row = call("--no_eval")  # continues (call() checks it trained): same run folder, cumulative counters
-    assert row["run"] == run and row["status"] == "training"
+    assert row["run"] == run and row["status"] == "training" and row["calls"] == 2
+    shutil.copytree(here / "checkpoints", Path(run) / "checkpoints", dirs_exist_ok=True)  # back here: call 1 snapshots
 
     row = call()  # the rest of the cap (if any is left), then the gait tests: final
     assert row["run"] == run and row["status"] == "final" and row["walks_minutes"] is None
