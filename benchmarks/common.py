@@ -211,6 +211,20 @@ def train(cfg, env=None, wrap_policy: Callable | None = None):
     return result, read_metrics(result.run_dir)
 
 
+def stamp(cuda: bool):
+    """A point in time on the device's queue: a recorded CUDA event (nothing waits), or the host clock off CUDA."""
+    if not cuda:
+        return time.perf_counter()
+    event = torch.cuda.Event(enable_timing=True)
+    event.record()
+    return event
+
+
+def elapsed_ms(start, end, cuda: bool) -> float:
+    """Milliseconds between two :func:`stamp` marks (CUDA events must have completed: synchronize first)."""
+    return start.elapsed_time(end) if cuda else 1e3 * (end - start)
+
+
 def wrap_method(obj, name: str, before, after, undo: list) -> None:
     """Replace the method ``obj.name`` on this instance by one that calls ``before()`` and ``after()`` around it;
     appends to ``undo`` what puts the original back."""

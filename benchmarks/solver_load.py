@@ -20,7 +20,6 @@ either way); a captured env step has no points to mark and is refused.
 from __future__ import annotations
 
 import contextlib
-import time
 
 import torch
 
@@ -43,23 +42,13 @@ class Recorder:
         self._start = None
 
     def before(self) -> None:
-        if not self.on:
-            return
-        if self.cuda:
-            self._start = torch.cuda.Event(enable_timing=True)
-            self._start.record()
-        else:
-            self._start = time.perf_counter()
+        if self.on:
+            self._start = common.stamp(self.cuda)
 
     def after(self, data) -> None:
         if not self.on:
             return
-        if self.cuda:
-            end = torch.cuda.Event(enable_timing=True)
-            end.record()
-        else:
-            end = time.perf_counter()
-        self.spans.append((self._start, end))
+        self.spans.append((self._start, common.stamp(self.cuda)))
         import warp as wp
 
         for name in self.counts:  # device copies after the end mark: not part of the timed step
@@ -68,7 +57,7 @@ class Recorder:
     def summary(self, num_worlds: int) -> dict:
         if self.cuda:
             torch.cuda.synchronize()
-        ms = [a.elapsed_time(b) if self.cuda else 1e3 * (b - a) for a, b in self.spans]
+        ms = [common.elapsed_ms(a, b, self.cuda) for a, b in self.spans]
         niter = torch.stack(self.counts["solver_niter"]).float()  # (steps, num_worlds)
         return {"steps": len(ms), "ms_per_policy_step": sum(ms) / len(ms),
                 "niter_max_over_worlds": niter.max(dim=1).values.mean().item(), "niter_mean": niter.mean().item(),

@@ -1,7 +1,7 @@
 """Where a training iteration's GPU time goes, phase by phase, in one run of the real trainer (issue 25).
 
     python -m benchmarks.step_timeline --num_envs 4096 --iterations 3     # GPU; docs/benchmarks/step_timeline.*
-    python -m benchmarks.step_timeline --num_envs 4096 --set env.sim.reset_pass=reduced --name step_timeline_reduced
+    python -m benchmarks.step_timeline --num_envs 4096 --set env.sim.reset_pass=full --name step_timeline_full
 
 ``trainer.train`` runs the default preset as it always does; only marks are added, by wrapping what it calls (the
 actor, the env's step and reset, the simulator's step, the rollout guard, GAE and the update), and removed after.
@@ -28,7 +28,6 @@ host clocks (a smoke run).
 from __future__ import annotations
 
 import contextlib
-import time
 
 import torch
 
@@ -56,12 +55,7 @@ class Timeline:
     def mark(self, phase: str) -> None:
         if self.cuda and torch.cuda.is_current_stream_capturing():
             return  # a graph being captured (the update step) takes no timing events
-        if self.cuda:
-            event = torch.cuda.Event(enable_timing=True)
-            event.record()
-            self.marks.append((phase, event))
-        else:
-            self.marks.append((phase, time.perf_counter()))
+        self.marks.append((phase, common.stamp(self.cuda)))
 
     def step_mark(self, phase: str) -> None:
         if self.collecting:
@@ -74,8 +68,7 @@ class Timeline:
         lo, hi = self.iteration_ends[first], self.iteration_ends[last]
         totals: dict[str, float] = {}
         for (phase, a), (_, b) in zip(self.marks[lo:hi], self.marks[lo + 1:hi + 1]):
-            ms = a.elapsed_time(b) if self.cuda else 1e3 * (b - a)
-            totals[phase] = totals.get(phase, 0.0) + ms
+            totals[phase] = totals.get(phase, 0.0) + common.elapsed_ms(a, b, self.cuda)
         return totals
 
 
@@ -104,7 +97,7 @@ def marked_trainer(timeline: Timeline):
     def make_loss(cfg, agent):
         loss_module, advantage = saved["make_loss"](cfg, agent)
         common.wrap_method(advantage, "forward", lambda: timeline.mark(ITERATION_PHASES[1]),
-              lambda: timeline.mark(ITERATION_PHASES[2]), undo)
+                           lambda: timeline.mark(ITERATION_PHASES[2]), undo)
         return loss_module, advantage
 
     def guard_rollout(*args, **kwargs):
