@@ -6,6 +6,7 @@ library and take no training time: recipe budgets, orphan snapshots, killed firs
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import subprocess
 from pathlib import Path
@@ -390,6 +391,37 @@ def test_the_rsl_rl_rows_figure_draws_from_the_committed_csvs(tmp_path):
     (tmp_path / "bad.csv").write_text("iteration,qpos\n1,0.3\n")
     with pytest.raises(SystemExit, match="bad.csv has no rows with all of"):
         figure.read(tmp_path / "bad.csv", ("iteration", "value_loss"))
+
+
+def test_rsl_rl_console_logs_become_one_csv_row_per_iteration(tmp_path):
+    # docs/adapters/rsl_rl_log_csv.py: rsl_rl's iteration blocks over two calls of one row (the second resumes the
+    # iteration count, its "Total steps" restarts); a value not printed stays empty; a log without blocks is refused.
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "docs/adapters/rsl_rl_log_csv.py"
+    spec = importlib.util.spec_from_file_location("rsl_rl_log_csv", path)
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+
+    def block(it, steps, length=None):
+        lines = [f"\x1b[1m   Learning iteration {it}/1000000   \x1b[0m", f"   Total steps: {steps} ",
+                 "   Steps per second: 90000 ", "   Mean value loss: 6.4451", "   Mean reward: -3.5",
+                 "   /reward/qpos: 0.0351", "   /reward/body_vel: 0.5832", "   Mean action std: 0.05",
+                 "   Time elapsed: 0:07:35"]
+        return lines + ([f"   Mean episode length: {length}"] if length else [])
+
+    log = ["+ python3 recipes/train_rsl_rl.py --out r", *block(0, 196608), *block(1, 393216, 41.5),
+           "rsl_rl: --max_minutes 2 reached", "+ python3 recipes/train_rsl_rl.py --out r", *block(2, 196608, 4314.96)]
+    (tmp_path / "r.log").write_text("\n".join(log) + "\n")
+    assert tool.main([str(tmp_path / "r.log"), str(tmp_path / "r.csv")]) == 0
+    rows = list(csv.DictReader((tmp_path / "r.csv").open()))
+    assert [(r["iteration"], r["call"], r["call_steps"]) for r in rows] == [
+        ("0", "1", "196608"), ("1", "1", "393216"), ("2", "2", "196608")]
+    assert [r["episode_length"] for r in rows] == ["", "41.5", "4314.96"]
+    assert rows[2]["episode_reward"] == "-3.5" and rows[2]["qpos"] == "0.0351" and rows[2]["value_loss"] == "6.4451"
+    (tmp_path / "other.log").write_text("no blocks here\n")
+    assert tool.main([str(tmp_path / "other.log"), str(tmp_path / "o.csv")]) == 1
+    assert not (tmp_path / "o.csv").exists()
 
 
 #: A gait-test summary that passes every threshold.
