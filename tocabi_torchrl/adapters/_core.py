@@ -68,12 +68,9 @@ class TensorStepper:
     def reset(self, seed: int | None = None) -> torch.Tensor:
         """Reset every env (reseeding first when ``seed`` is given); returns the observation (num_envs, obs_dim)."""
         if seed is not None:
+            # TocabiWalk restarts its episode numbering on set_seed, so reset(seed=s) repeats the same episodes, as
+            # gymnasium expects of a seeded reset.
             self.env.set_seed(int(seed))
-            # The env keys each episode's random start on (seed, env, episode number): restart the numbering so that
-            # reset(seed=s) repeats the same episodes, as gymnasium expects of a seeded reset.
-            counter = getattr(self.env.base_env, "episode_count", None)
-            if counter is not None:
-                counter.zero_()
         self._td = self.env.reset()
         return self._td.get(self.obs_key)
 

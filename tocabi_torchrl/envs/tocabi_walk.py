@@ -444,6 +444,9 @@ class TocabiWalk(EnvBase):
             self._seed = int(seed)
             self.rng.manual_seed(self._seed)
             self._seed_t.fill_(self._seed)
+            # Start rows and first commands are keyed on (seed, env, episode number): restart the numbering so that
+            # set_seed(s) followed by reset() repeats the same episodes.
+            self.episode_count.zero_()
 
     def cuda_graph_generators(self) -> list[torch.Generator]:
         """The CUDA generators a step draws from besides torch's default one (command resampling), which a
