@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -130,6 +131,25 @@ def test_checkpoint_writes_are_atomic(tmp_path, monkeypatch):
     monkeypatch.setattr(atomic.os, "replace", real_replace)
     assert read_checkpoint(run)["iteration"] == 1
     assert not list((run / "checkpoints").glob(".*.tmp")), "the failed write left its temporary file behind"
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX permission bits")
+def test_atomic_writes_get_the_permissions_of_a_plain_write(tmp_path):
+    # mkstemp creates files 0o600; a checkpoint, export or config must be readable as open(path, "w") would leave it
+    # (0o666 less the umask), and a rewritten file keeps the mode its owner gave it.
+    from tocabi_torchrl.rl.atomic import atomic_write_text
+
+    old = os.umask(0o022)
+    try:
+        new = atomic_write_text(tmp_path / "new.json", "{}")
+        assert new.stat().st_mode & 0o777 == 0o644
+        os.umask(0o077)
+        assert atomic_write_text(tmp_path / "private.json", "{}").stat().st_mode & 0o777 == 0o600
+    finally:
+        os.umask(old)
+    new.chmod(0o640)
+    assert atomic_write_text(new, '{"a": 1}').stat().st_mode & 0o777 == 0o640
+    assert new.read_text() == '{"a": 1}'
 
 
 def test_retention_keeps_the_last_k_and_every_mth(tmp_path):

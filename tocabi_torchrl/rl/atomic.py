@@ -2,7 +2,9 @@
 
 The data go to a temporary file in the target's own folder (so ``os.replace`` is a rename on one file system), are
 flushed and fsynced, then renamed over the target; the folder is fsynced so that the rename itself survives a power
-cut. A crash mid-write leaves at most a ``*.tmp`` file, which :func:`remove_stale_temp_files` clears.
+cut. A crash mid-write leaves at most a ``*.tmp`` file, which :func:`remove_stale_temp_files` clears. The file gets
+the permissions a plain ``open(path, "w")`` would give it: the target's own when it exists, else 0o666 less the umask
+(``mkstemp`` alone would leave every checkpoint, export and config readable by its owner only).
 """
 
 from __future__ import annotations
@@ -21,12 +23,14 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically (temp file in the same folder, fsync, ``os.replace``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    mode = _mode_for(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMP_SUFFIX)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -49,6 +53,16 @@ def remove_stale_temp_files(folder: str | os.PathLike) -> list[Path]:
     for p in stale:
         p.unlink(missing_ok=True)
     return stale
+
+
+def _mode_for(path: Path) -> int:
+    """Permission bits for a new version of ``path``: the existing file's, else 0o666 less the process umask."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except FileNotFoundError:
+        umask = os.umask(0)  # the umask can only be read by setting it; put it straight back
+        os.umask(umask)
+        return 0o666 & ~umask
 
 
 def _fsync_dir(folder: Path) -> None:
