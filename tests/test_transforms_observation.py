@@ -217,6 +217,22 @@ def test_running_normalization_in_env_updates_on_step_only_and_freezes():
     assert norm.count.item() == 5.0
 
 
+def test_running_normalization_sizes_itself_from_the_first_observation():
+    # An env whose observation spec nobody read before the first reset (e.g. a changed layout, for which there are
+    # no reference statistics to start from) must still normalize: the first observation sizes the statistics.
+    env = TransformedEnv(
+        MockTocabiWalk(4),
+        Compose(PhaseEncoding(harmonics=2), BaseEulerAngles(), ObservationAssembly(), RunningNormalization()),
+    )
+    norm = env.transform[-1]
+    td = env.rand_step(env.reset())
+    dim = td["next", "obs_step"].shape[-1]
+    assert norm.mean.shape == (dim,) and norm.var.shape == (dim,) and norm.count.item() == 5.0
+    assert torch.isfinite(td["next", "obs_step_norm"]).all()
+    assert env.observation_spec["obs_step_norm"].shape[-1] == dim  # reading the spec later keeps the statistics
+    assert norm.count.item() == 5.0 and norm.mean.shape == (dim,)
+
+
 def test_running_normalization_masked_update():
     torch.manual_seed(1)
     norm = RunningNormalization(dim=2, init_count=1e-6)

@@ -195,10 +195,12 @@ class RunningNormalization(_Normalization):
         self.health_key = health_key
 
     def freeze(self) -> RunningNormalization:
+        """Stop updating the statistics (evaluation, export); returns ``self``."""
         self.frozen = True
         return self
 
     def unfreeze(self) -> RunningNormalization:
+        """Update the statistics from every step again; returns ``self``."""
         self.frozen = False
         return self
 
@@ -207,11 +209,16 @@ class RunningNormalization(_Normalization):
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         spec = require_spec(observation_spec, self.in_keys[0], self)
-        if self.mean.numel() == 0 and len(spec.shape):
-            dim = spec.shape[-1]
+        if len(spec.shape):
+            self._size_stats(spec.shape[-1])
+        return super().transform_observation_spec(observation_spec)
+
+    def _size_stats(self, dim: int) -> None:
+        """Give unsized statistics (no ``dim`` or initial values) ``dim`` entries: mean 0, variance 1. A reset or
+        step can come before anything reads the env's observation spec, so the first observation sizes them too."""
+        if self.mean.numel() == 0:
             self.mean = torch.zeros(dim, dtype=torch.float64, device=self.mean.device)
             self.var = torch.ones(dim, dtype=torch.float64, device=self.var.device)
-        return super().transform_observation_spec(observation_spec)
 
     @torch.no_grad()
     def update(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> None:
@@ -220,6 +227,7 @@ class RunningNormalization(_Normalization):
         The number of rows used stays a device tensor, so a masked update needs no host sync; an all-False mask
         leaves the statistics unchanged.
         """
+        self._size_stats(x.shape[-1])
         batch = x.detach().reshape(-1, x.shape[-1]).to(torch.float64)
         keep = torch.isfinite(batch).all(-1, keepdim=True)
         if mask is not None:
@@ -242,6 +250,7 @@ class RunningNormalization(_Normalization):
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         x = next_tensordict.get(self.in_keys[0])
+        self._size_stats(x.shape[-1])
         loc, scale = self._loc_scale()
         next_tensordict.set(self.out_keys[0], self._normalize(x, loc, scale))
         return next_tensordict
@@ -259,6 +268,7 @@ class RunningNormalization(_Normalization):
         return self._call(next_tensordict)
 
     def _apply_transform(self, x: torch.Tensor) -> torch.Tensor:  # used by forward() on stored data
+        self._size_stats(x.shape[-1])
         loc, scale = self._loc_scale()
         return self._normalize(x, loc, scale)
 
