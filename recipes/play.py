@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
@@ -51,6 +52,10 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.num_envs < 1 or args.video_envs < 0:
         parser.error("--num_envs must be >= 1 and --video_envs >= 0")
+    if not 0 < args.seconds < math.inf:
+        parser.error(f"--seconds must be a finite number of seconds > 0, got {args.seconds}")
+    if not (math.isfinite(args.vx) and math.isfinite(args.vy)):
+        parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
     try:
         summary = evaluate_run(args.checkpoint, num_envs=args.num_envs, device=args.device, seconds=args.seconds,
                                command=(args.vx, args.vy), video_envs=min(args.video_envs, args.num_envs),

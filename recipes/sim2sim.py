@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -37,8 +38,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> dict:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.num_robots < 1 or args.seconds <= 0:
-        parser.error("--num_robots must be >= 1 and --seconds > 0")
+    if args.num_robots < 1:
+        parser.error(f"--num_robots must be >= 1, got {args.num_robots}")
+    if not 0 < args.seconds < math.inf:
+        parser.error(f"--seconds must be a finite number of seconds > 0, got {args.seconds}")
+    if not (math.isfinite(args.vx) and math.isfinite(args.vy)):
+        parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
     if args.out and Path(args.out).exists():
         parser.error(f"--out {args.out} exists; choose another file")
     model, strip = args.model, False

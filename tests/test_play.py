@@ -40,6 +40,31 @@ def test_play_refuses_seconds_below_one_policy_step():
     assert "seconds=0.001 is shorter than one policy step (4 ms)" in str(info.value.code)
 
 
+@pytest.mark.parametrize("name", ["play", "sim2sim"])
+@pytest.mark.parametrize("flags, message", [
+    (["--seconds", "nan"], "--seconds must be a finite number"),
+    (["--seconds", "inf"], "--seconds must be a finite number"),
+    (["--vx", "nan"], "--vx and --vy must be finite speeds"),
+    (["--vy=-inf"], "--vx and --vy must be finite speeds"),
+])
+def test_play_and_sim2sim_refuse_non_finite_lengths_and_speeds_by_flag(name, flags, message, capsys):
+    # Checked before any file is read: NaN seconds used to surface as "cannot convert float NaN to integer", inf as
+    # an OverflowError traceback, and a NaN speed as a NaN tracking error in (invalid) JSON.
+    source = ["--checkpoint", "missing.pt"] if name == "play" else ["--contract", "missing.json"]
+    with pytest.raises(SystemExit) as info:
+        recipe(name).main([*source, *flags])
+    assert info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_policy_steps_names_a_non_finite_length():
+    from tocabi_torchrl.rl.gait_record import policy_steps
+
+    assert policy_steps(8.0, 0.004) == 2000
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="must be a finite number of seconds"):
+            policy_steps(bad, 0.004)
+
+
 @needs_policy
 def test_a_shipped_policy_writes_outside_the_source_tree_and_titles_the_plot_with_the_command(
         tmp_path, monkeypatch, capsys):

@@ -201,6 +201,32 @@ def test_robot_state_with_another_joint_count_fails_clearly():
         runtime.reset(state, (0.5, 0.0))
 
 
+def test_non_finite_sensors_or_commands_and_bad_command_shapes_fail_clearly():
+    # A failed sensor (NaN/inf) stops the controller with the field and the robot named, instead of being normalised
+    # into an observation the policy walks on blind; a command must be (2,) or (N, 2) finite speeds.
+    runtime = PolicyRuntime(_contract("ppo"))
+
+    def state(n=2):
+        return RobotState(base_quat=np.tile([1.0, 0, 0, 0], (n, 1)), joint_pos=np.zeros((n, 33)),
+                          joint_vel=np.zeros((n, 33)), foot_force=np.zeros((n, 2, 3)), foot_torque=np.zeros((n, 2, 3)))
+
+    runtime.reset(state(), (0.5, 0.0))
+    bad = state()
+    bad.joint_pos[1, 4] = np.nan
+    with pytest.raises(ContractError, match=r"RobotState.joint_pos is not finite .* robot\(s\) \[1\]"):
+        runtime.step(bad)
+    bad = state()
+    bad.foot_force[0, 1, 2] = np.inf
+    with pytest.raises(ContractError, match=r"RobotState.foot_force is not finite .* robot\(s\) \[0\]"):
+        runtime.reset(bad, (0.5, 0.0))
+    with pytest.raises(ContractError, match=r"command has shape \(3,\), expected \(2,\) or \(2, 2\)"):
+        runtime.reset(state(), (0.5, 0.0, 0.0))
+    with pytest.raises(ContractError, match="command holds NaN or inf"):
+        runtime.reset(state(), (float("nan"), 0.0))
+    runtime.reset(state(), [[0.5, 0.0], [0.3, 0.1]])  # one row per robot
+    assert runtime.step(state(), (0.2, 0.0)).leg.shape == (2, 12)
+
+
 def test_contract_not_json_or_input_size_mismatch_or_foreign_files_fail_clearly(contract_copy, tmp_path):
     path, c = contract_copy
     path.write_text("{ not json")

@@ -18,6 +18,7 @@ device until :meth:`GaitRecord.cpu` moves it.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -148,7 +149,9 @@ def fixed_command(command: tuple[float, float]):
 
 
 def policy_steps(seconds: float, dt: float) -> int:
-    """Policy steps in ``seconds``; ``ValueError`` if that is less than one step."""
+    """Policy steps in ``seconds``; ``ValueError`` if ``seconds`` is not finite or is less than one step."""
+    if not math.isfinite(seconds):
+        raise ValueError(f"seconds={seconds!r}: the test's length must be a finite number of seconds (e.g. 8)")
     steps = int(round(seconds / dt))
     if steps < 1:
         raise ValueError(f"seconds={seconds:g} is shorter than one policy step ({dt * 1000:g} ms); pass at least "

@@ -136,6 +136,7 @@ class PolicyRuntime:
     # --------------------------------------------------------------------------------------------- public API
     @property
     def num_robots(self) -> int:
+        """Robots this runtime drives, set by :meth:`reset` (0 before it)."""
         return 0 if self.time is None else int(self.time.shape[0])
 
     def reset(self, state: RobotState, command, init_row=None) -> Command:
@@ -167,7 +168,13 @@ class PolicyRuntime:
     def set_command(self, command) -> None:
         """Velocity command (vx, vy) [m/s], (N, 2) or (2,), used from the next observation on."""
         n = self.num_robots
-        self.command = np.broadcast_to(np.asarray(command, dtype=_F32), (n, 2)).copy()
+        value = np.asarray(command, dtype=_F32)
+        if value.shape not in ((2,), (n, 2)):
+            raise ContractError(f"command has shape {value.shape}, expected (2,) or ({n}, 2): the velocity command "
+                                "(vx, vy) [m/s], one row per robot or one for all")
+        if not np.isfinite(value).all():
+            raise ContractError(f"command holds NaN or inf ({value.tolist()}): pass finite speeds [m/s]")
+        self.command = np.broadcast_to(value, (n, 2)).copy()
 
     def policy_input(self) -> np.ndarray:
         """(N, input_dim) float32: the current policy input (for tests and logging)."""
@@ -185,6 +192,12 @@ class PolicyRuntime:
                 raise ContractError(f"RobotState.{name} has shape {got}, expected {(count, *shape)}: the contract's "
                                     f"robot has {j} joints ({self.joint_names[0]}, …) and this runtime runs {count} "
                                     "robot(s)")
+            # A failed sensor must stop the controller, not be normalised into a plausible-looking observation.
+            finite = np.isfinite(getattr(state, name)).reshape(count, -1).all(-1)
+            if not finite.all():
+                raise ContractError(f"RobotState.{name} is not finite (NaN or inf) for robot(s) "
+                                    f"{np.flatnonzero(~finite).tolist()}: check those sensors; the policy is not run "
+                                    "on invalid readings")
         return count
 
     def _observe(self, state: RobotState) -> np.ndarray:
