@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -20,7 +21,7 @@ from tocabi_torchrl.rl.checkpoint import read_checkpoint
 from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.rl.launch import LaunchError, banner, launch_config
 from tocabi_torchrl.rl.resume import ResumeConfigError
-from tocabi_torchrl.rl.run_dir import RunDirError
+from tocabi_torchrl.rl.run_dir import RunDirError, open_run
 from tocabi_torchrl.rl.trainer import train
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
@@ -114,6 +115,60 @@ def test_resume_continues_the_iterations_after_a_kill(tmp_path):
     (run / "checkpoints" / "latest.pt").write_bytes((run / "checkpoints" / "iter_000002.pt").read_bytes())
     recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "32"])
     assert iterations_logged(run) == [1, 2, 3, 4]
+
+
+def folder_bytes(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def copy_of(run: Path, root: Path) -> Path:
+    """A copy of ``run`` as ``root/run``, for a test that writes to it (``finished_run`` is shared)."""
+    shutil.copytree(run, root / "run")
+    return root / "run"
+
+
+@pytest.mark.parametrize("newest", ["iter_000002.pt", "latest.pt"])
+def test_resuming_an_older_checkpoint_into_its_own_folder_is_refused_and_changes_nothing(finished_run, tmp_path,
+                                                                                          newest):
+    # Resumed there, iteration 1 would cut the metrics of iteration 2, overwrite iter_000002.pt (or have its own
+    # iteration files pruned at once by newer ones) and set latest.pt back. "latest.pt": the newest checkpoint is
+    # only latest.pt (as after a wall-clock tagged save), which is then read to know its iteration.
+    run = copy_of(finished_run, tmp_path)
+    if newest == "latest.pt":
+        (run / "checkpoints" / "iter_000002.pt").unlink()
+    before = folder_bytes(run)
+    old = run / "checkpoints" / "iter_000001.pt"
+    args = ["--resume", str(old), "--run_dir", str(tmp_path), "--name", "run", "--total_env_steps", "32"]
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(args)
+    message = str(info.value.code)
+    assert f"{old} holds iteration 1, but its run folder {run} goes on to iteration 2" in message
+    assert str(run / "checkpoints" / newest) in message
+    assert f"--resume {run}" in message and f"--resume {old} --name NEW" in message
+    cfg, _ = parse_args(args)
+    with pytest.raises(RunDirError, match="goes on to iteration 2"):
+        train(cfg)
+    assert folder_bytes(run) == before and iterations_logged(run) == [1, 2]
+
+
+def test_resuming_the_newest_iteration_file_into_its_own_folder_goes_on_and_trims(finished_run, tmp_path):
+    run = copy_of(finished_run, tmp_path)
+    with open(run / "metrics" / "scalars" / "env_steps.csv", "a") as f:
+        f.write("3,24\n")  # logged after the last checkpoint by a run killed before its next one
+    assert iterations_logged(run) == [1, 2, 3]
+    cfg, _ = parse_args(["--resume", str(run / "checkpoints" / "iter_000002.pt"), "--run_dir", str(tmp_path),
+                         "--name", "run"])
+    assert open_run(cfg).start_iteration == 2 and iterations_logged(run) == [1, 2]
+
+
+def test_an_older_checkpoint_branches_into_a_new_folder(finished_run, tmp_path):
+    run = copy_of(finished_run, tmp_path)
+    before = folder_bytes(run)
+    old = run / "checkpoints" / "iter_000001.pt"
+    recipe("ppo_walk").main(["--resume", str(old), "--run_dir", str(tmp_path), "--name", "branch",
+                             "--total_env_steps", "16"])
+    assert iterations_logged(tmp_path / "branch") == [2] and read_checkpoint(tmp_path / "branch")["iteration"] == 2
+    assert folder_bytes(run) == before
 
 
 @pytest.mark.slow  # two training processes

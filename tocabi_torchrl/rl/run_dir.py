@@ -4,7 +4,9 @@ A new run refuses a folder that already holds a run (``config.json``, ``metrics/
 ``checkpoints/``) and says how to go on: ``--resume`` it, or pick another ``--name``. A resumed run writes into its own
 folder (or a new one) and cuts its metrics files back to the checkpoint's iteration
 (:func:`~tocabi_torchrl.rl.metrics_files.trim_metrics`), so rows logged after the last checkpoint by a run that was
-killed are not followed by a second set with the same iteration numbers.
+killed are not followed by a second set with the same iteration numbers. Resuming an older checkpoint into its own
+folder, one that holds newer checkpoints, is refused: that run's later files would be overwritten or pruned
+and its later metrics rows cut. Continue it from its newest checkpoint, or branch into a new folder (``--name NEW``).
 """
 
 from __future__ import annotations
@@ -15,11 +17,18 @@ from pathlib import Path
 
 from ..config import RunConfig
 from .atomic import remove_stale_temp_files
-from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint, run_folder_of
+from .checkpoint import (
+    _ITER_FILE,
+    CheckpointError,
+    checkpoint_file,
+    config_from_checkpoint,
+    read_checkpoint,
+    run_folder_of,
+)
 from .metrics_files import LEGACY_CSV, METRICS_DIR, trim_metrics
 from .resume import check_resume_config
 
-__all__ = ["RunDirError", "RunFolder", "open_run", "holds_run", "trim_metrics"]
+__all__ = ["RunDirError", "RunFolder", "holds_run", "open_run", "trim_metrics"]
 
 _RUN_FILES = ("config.json", METRICS_DIR, LEGACY_CSV, "checkpoints")
 
@@ -50,10 +59,32 @@ def holds_run(folder: str | os.PathLike) -> bool:
     return any((Path(folder) / name).exists() for name in _RUN_FILES)
 
 
+def _newer_checkpoint(folder: Path, iteration: int) -> tuple[int, Path] | None:
+    """A checkpoint of the run folder ``folder`` newer than ``iteration``, as ``(its iteration, file)``, or ``None``:
+    the highest ``iter_*.pt`` (read from the file names, nothing loaded), else ``latest.pt`` (newer after a tagged
+    save), read through :func:`read_checkpoint` only then and passed over if unreadable (a damaged ``latest.pt`` must
+    not stop a resume from an iteration file)."""
+    checkpoints = folder / "checkpoints"
+    found = [(int(m.group(1)), p) for p in checkpoints.glob("iter_*.pt") if (m := _ITER_FILE.match(p.name))]
+    newest = max(found, default=None)
+    if newest is not None and newest[0] > iteration:
+        return newest
+    latest = checkpoints / "latest.pt"
+    if latest.is_file():
+        try:
+            latest_iteration = int(read_checkpoint(latest)["iteration"])
+        except CheckpointError:
+            return None
+        if latest_iteration > iteration:
+            return latest_iteration, latest
+    return None
+
+
 def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
     """Check that ``cfg`` may write to its run folder and, for ``cfg.resume``, read and check the checkpoint.
 
-    Raises :class:`RunDirError` if a new run would overwrite an earlier one, and
+    Raises :class:`RunDirError` if a new run would overwrite an earlier one, or a resumed checkpoint older than its
+    folder's newest would be continued in that folder (it would overwrite, prune and cut the newer files), and
     :class:`~tocabi_torchrl.rl.checkpoint.CheckpointError` /
     :class:`~tocabi_torchrl.rl.resume.ResumeConfigError` for a bad checkpoint or a changed setting.
     ``writer=False`` (the ranks of a data-parallel run other than rank 0, which write nothing): only read and check
@@ -81,6 +112,17 @@ def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
         raise RunDirError(
             f"run folder {path} holds another run than the one resumed ({file}); resume into that run's own folder "
             f"(--name {source.name} --run_dir {source.parent}) or into a new one (--name NEW)")
+    if source.resolve() == path.resolve() and file.resolve() != (path / "checkpoints" / "latest.pt").resolve():
+        # An older checkpoint resumed into its own folder would overwrite the newer iteration files, have its own
+        # pruned at once (the newer ones count as newest), set latest.pt back and cut the newer metrics rows.
+        iteration = int(state["iteration"])
+        newest = _newer_checkpoint(path, iteration)
+        if newest is not None:
+            raise RunDirError(
+                f"{file} holds iteration {iteration}, but its run folder {path} goes on to iteration {newest[0]} "
+                f"({newest[1]}); resuming it there would overwrite or delete that run's later checkpoints and metrics, "
+                f"so nothing was changed. Continue the run from its newest checkpoint with --resume {path}, or branch "
+                f"from iteration {iteration} into a new folder with --resume {file} --name NEW")
     remove_stale_temp_files(path / "checkpoints")
     trim_metrics(path, state["iteration"])
     return RunFolder(path, state, file)
