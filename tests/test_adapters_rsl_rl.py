@@ -51,6 +51,8 @@ def test_time_outs_at_the_episode_limit(env):
     assert torch.equal(env.episode_length_buf, torch.zeros(N, dtype=torch.int64))  # already reset
     with pytest.raises(NotImplementedError, match="init_at_random_ep_len=False"):
         env.episode_length_buf = torch.zeros(N, dtype=torch.int64)
+    with pytest.raises(ValueError, match=r"actions must have shape \(2, 13\) \(num_envs, action_dim\), got \(2, 12\)"):
+        env.step(torch.zeros(N, 12))
 
 
 def test_recipe_trains_two_iterations_and_gait_tests(tmp_path):

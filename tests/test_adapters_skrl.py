@@ -33,6 +33,8 @@ def test_wrapper_interface_and_autoreset():
         obs, reward, terminated, truncated, infos = env.step(torch.zeros(N, 13))
         assert truncated.all() and not terminated.any() and infos["_final_obs"].all()
         assert not torch.equal(infos["final_obs"], obs)
+        with pytest.raises(ValueError, match=r"actions must have shape \(2, 13\) \(num_envs, action_dim\), got \(3, 13\)"):
+            env.step(torch.zeros(N + 1, 13))
     finally:
         env.close()
 

@@ -74,8 +74,17 @@ class TensorStepper:
         self._td = self.env.reset()
         return self._td.get(self.obs_key)
 
+    def check_action(self, action: torch.Tensor) -> torch.Tensor:
+        """``action`` if it is (num_envs, action_dim), else a ``ValueError`` naming both shapes (every adapter's
+        step goes through this, so each library's user gets the same message)."""
+        if tuple(action.shape) != (self.num_envs, self.action_dim):
+            raise ValueError(f"actions must have shape ({self.num_envs}, {self.action_dim}) (num_envs, action_dim), "
+                             f"got {tuple(action.shape)}")
+        return action
+
     def step(self, action: torch.Tensor) -> StepResult:
         """Step every env with ``action`` (num_envs, action_dim) on the env's device, then reset finished envs."""
+        self.check_action(action)
         if self._td is None:
             self.reset()
         td = self._td.set("action", action)

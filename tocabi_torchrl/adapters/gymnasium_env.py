@@ -76,10 +76,7 @@ class TocabiVectorEnv(VectorEnv):
 
     def step(self, actions):
         """Step every env with ``actions`` (num_envs, 13): a tensor or an array; see the class docstring."""
-        action = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
-        if action.shape != (self.num_envs, self.single_action_space.shape[0]):
-            raise ValueError(f"actions must have shape {self.action_space.shape}, got {tuple(action.shape)}")
-        r = self.stepper.step(action)
+        r = self.stepper.step(torch.as_tensor(actions, dtype=torch.float32, device=self.device))
         return self._out(r.obs), self._out(r.reward), self._out(r.terminated), self._out(r.truncated), self._infos(r)
 
     def _infos(self, r: StepResult) -> dict[str, Any]:

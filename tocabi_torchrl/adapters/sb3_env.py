@@ -54,11 +54,9 @@ class TocabiSB3VecEnv(VecEnv):
         return obs.cpu().numpy()
 
     def step_async(self, actions: np.ndarray) -> None:
-        action = torch.as_tensor(np.asarray(actions, dtype=np.float32), device=self.device)
-        if action.shape != (self.num_envs, self.action_space.shape[0]):
-            raise ValueError(f"actions must have shape ({self.num_envs}, {self.action_space.shape[0]}), got "
-                             f"{tuple(action.shape)}")
-        self._actions = action
+        # Checked here, not at step_wait, so the error points at the call that passed the actions.
+        self._actions = self.stepper.check_action(torch.as_tensor(np.asarray(actions, dtype=np.float32),
+                                                                  device=self.device))
 
     def step_wait(self):
         if self._actions is None:
