@@ -135,6 +135,11 @@ def test_bad_options_name_the_option_and_the_fix(capsys):
         preset_config("default", env=5)
     with pytest.raises(ConfigError, match=r"did you mean \['gamma'\]"):
         preset_config("default", gama=0.9)
+    # The run folder is run_dir/name, which benchmarks clear before timing: a name never reaches outside run_dir.
+    for name in ("/tmp/abs", "../x", "a/b", "a\\b", "..", ""):
+        with pytest.raises(ValueError, match=r"name must be one folder name inside run_dir"):
+            preset_config("default", name=name)
+    assert preset_config("default", name="run-1.b").name == "run-1.b"
 
 
 def test_tree_round_trips_through_json():
