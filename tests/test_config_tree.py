@@ -25,7 +25,7 @@ from tocabi_torchrl.config import (
     replace_paths,
 )
 from tocabi_torchrl.envs import TocabiWalkConfig
-from tocabi_torchrl.envs.config import ENV_FLAT_PATHS
+from tocabi_torchrl.envs.config import ENV_FLAT_PATHS, TaskConfig
 from tocabi_torchrl.rl.config import build_parser, parse_args
 from tocabi_torchrl.rl.trainer import env_config
 from tocabi_torchrl.transforms import PRESETS as TRANSFORM_PRESETS
@@ -140,6 +140,12 @@ def test_bad_options_name_the_option_and_the_fix(capsys):
         with pytest.raises(ValueError, match=r"name must be one folder name inside run_dir"):
             preset_config("default", name=name)
     assert preset_config("default", name="run-1.b").name == "run-1.b"
+    # A switch set from text is truthy in Python: refused by its path, in the run config and in the env's own.
+    for path in ("env.task.terminate_on_self_collision", "eval_at_end", "ppo.update_graph", "transforms.compile_reward"):
+        with pytest.raises(ValueError, match=rf"{path} must be True or False, got 'no'"):
+            preset_config("default", **{path: "no"})
+    with pytest.raises(ValueError, match=r"env.task.terminate_on_forbidden_contact must be True or False, got 0"):
+        TocabiWalkConfig(task=TaskConfig(terminate_on_forbidden_contact=0)).validate()
 
 
 def test_tree_round_trips_through_json():

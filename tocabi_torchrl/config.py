@@ -29,7 +29,7 @@ from types import MappingProxyType
 from typing import Any
 
 from .envs.command import CommandConfig
-from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig
+from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig, check_bool_fields
 from .sim.config import RESET_PASSES
 from .transforms.presets import TransformSettings
 from .tree import ConfigError, leaf_paths, replace_paths
@@ -259,6 +259,7 @@ class RunConfig:
             # outside run_dir.
             raise ValueError(f"name must be one folder name inside run_dir (no '/', '..' or absolute path), got "
                              f"{self.name!r}; put the folder's parent in run_dir instead")
+        check_bool_fields(self)  # the whole tree: the run's own switches, ppo's and the transforms'
         for name in ("log_every", "checkpoint_every", "eval_envs", "total_env_steps"):
             _check_int(self, name, 1)
         for name in ("checkpoint_keep_last", "checkpoint_keep_every"):

@@ -41,6 +41,18 @@ def resolve_backend(backend: str, device) -> str:
     return backend
 
 
+def check_bool_fields(tree, prefix: str = "") -> None:
+    """Raise ``ValueError`` naming the first field annotated ``bool`` in the dataclass ``tree`` (and its nested
+    sections) that holds anything but True or False: a switch set from text (``"no"``, ``"0"``) is truthy in Python
+    and would silently turn the option on."""
+    for f in dataclasses.fields(tree):
+        value = getattr(tree, f.name)
+        if f.type in ("bool", bool) and not isinstance(value, bool):
+            raise ValueError(f"{prefix}{f.name} must be True or False, got {value!r}")
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            check_bool_fields(value, f"{prefix}{f.name}.")
+
+
 @dataclass
 class EnvSimConfig:
     """How the env's worlds are simulated (``TocabiWalkConfig.sim``).
@@ -383,6 +395,7 @@ class TocabiWalkConfig:
         n = self.num_envs
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise ValueError(f"num_envs must be a positive int, got {n!r}")
+        check_bool_fields(self, "env.")
         self.sim.validate()
         self.task.validate()
         self.control.validate()
