@@ -40,7 +40,10 @@ from tocabi_torchrl.adapters.recipe import (
     TimeUp,
     TrainingClock,
     base_parser,
+    check_args,
+    check_out_dir,
     fresh_dir,
+    hidden_sizes,
     keep_previous,
     open_out_dir,
     read_resume,
@@ -160,17 +163,19 @@ def main(argv=None) -> dict:
     parser.add_argument("--std", choices=("scheduled", "learned"), default="scheduled",
                         help="action std: the preset's schedule, set after each update (default), or learned by "
                              "rsl_rl from the schedule's start")
-    parser.add_argument("--hidden", type=lambda s: tuple(int(x) for x in s.split(",")), default=(400, 200, 100),
+    parser.add_argument("--hidden", type=hidden_sizes, default=(400, 200, 100),
                         help="hidden layer sizes of actor and critic, comma-separated (default: 400,200,100)")
     args = parser.parse_args(argv)
+    check_args(parser, args, at_least={"steps_per_env": 1}, positive=("learning_rate",))
     # The adapter checks the installed rsl-rl-lib version before any of rsl_rl's own modules is imported.
     from tocabi_torchrl.adapters import TocabiRslRlEnv  # isort: skip
     from rsl_rl.runners import OnPolicyRunner
 
-    out = open_out_dir(args.out, args.resume)
+    out = check_out_dir(args.out, args.resume)  # created once the env is built: a failed call leaves no folder
     prior = read_resume(out, torch_state=True) if args.resume else {}
     torch.manual_seed(args.seed + int(prior.get("calls", 0)))  # a resumed call draws other exploration noise
     env = TocabiRslRlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + int(prior.get("calls", 0)))
+    open_out_dir(out, args.resume)
     cfg = train_cfg(args)
     settings = json.loads(json.dumps({"train_cfg": cfg, "lr_rule": args.lr_schedule, "num_envs": args.num_envs,
                                       "preset": args.preset, "init": INIT_SETTING}))

@@ -36,6 +36,9 @@ from tocabi_torchrl.adapters.recipe import (
     TimeUp,
     TrainingClock,
     base_parser,
+    check_args,
+    check_out_dir,
+    hidden_sizes,
     keep_previous,
     open_out_dir,
     read_resume,
@@ -107,12 +110,17 @@ def main(argv=None) -> dict:
     parser.add_argument("--n_steps", type=int, default=2048, help="rollout length per env (default: 2048)")
     parser.add_argument("--batch_size", type=int, default=128, help="mini-batch size (default: 128)")
     parser.add_argument("--epochs", type=int, default=3, help="passes over each rollout (default: 3)")
-    parser.add_argument("--hidden", type=lambda s: tuple(int(x) for x in s.split(",")), default=(256, 256),
+    parser.add_argument("--hidden", type=hidden_sizes, default=(256, 256),
                         help="hidden layer sizes of actor and critic, comma-separated (default: 256,256)")
     args = parser.parse_args(argv)
+    # SB3's PPO normalises the advantages of each mini-batch and of the rollout: both need at least 2 samples.
+    check_args(parser, args, at_least={"n_steps": 1, "batch_size": 2, "epochs": 1})
+    if args.n_steps * args.num_envs < 2:
+        parser.error(f"--n_steps {args.n_steps} x --num_envs {args.num_envs} must be at least 2 (SB3's PPO "
+                     "normalises the rollout's advantages)")
     from tocabi_torchrl.adapters import TocabiSB3VecEnv  # checks the stable-baselines3 version
 
-    out = open_out_dir(args.out, args.resume)
+    out = check_out_dir(args.out, args.resume)  # created once the env is built: a failed call leaves no folder
     prior = read_resume(out) if args.resume else {}
     calls = int(prior.get("calls", 0))
     settings = {"num_envs": args.num_envs, "preset": args.preset, "hidden": list(args.hidden), "n_steps": args.n_steps,
@@ -121,6 +129,7 @@ def main(argv=None) -> dict:
         raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
                          f"{prior['settings']}, given {settings} (--iterations too: it sets the LR and std schedules)")
     env = TocabiSB3VecEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + calls)
+    open_out_dir(out, args.resume)
     total = args.iterations * args.n_steps * args.num_envs
     if prior:
         # SB3's own load (the zip its save wrote): policy, both Adam parameter groups, num_timesteps and _n_updates;

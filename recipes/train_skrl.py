@@ -36,7 +36,10 @@ from tocabi_torchrl.adapters.recipe import (
     TimeUp,
     TrainingClock,
     base_parser,
+    check_args,
+    check_out_dir,
     fresh_dir,
+    hidden_sizes,
     keep_previous,
     open_out_dir,
     read_resume,
@@ -87,9 +90,10 @@ def make_models(observation_space, action_space, device, hidden: tuple[int, ...]
 def main(argv=None) -> dict:
     parser = base_parser(__doc__.split("\n\n")[0], num_envs=4096, iterations=1500)
     parser.add_argument("--rollouts", type=int, default=48, help="rollout length per env (default: 48)")
-    parser.add_argument("--hidden", type=lambda s: tuple(int(x) for x in s.split(",")), default=(400, 200, 100),
+    parser.add_argument("--hidden", type=hidden_sizes, default=(400, 200, 100),
                         help="hidden layer sizes of actor and critic, comma-separated (default: 400,200,100)")
     args = parser.parse_args(argv)
+    check_args(parser, args, at_least={"rollouts": 1})
     # The adapter checks the installed skrl version before any of skrl's own modules is imported.
     from tocabi_torchrl.adapters import TocabiSkrlEnv  # isort: skip
     from skrl.agents.torch.ppo import PPO, PPO_CFG
@@ -98,7 +102,7 @@ def main(argv=None) -> dict:
     from skrl.trainers.torch import SequentialTrainer
     from skrl.utils import set_seed
 
-    out = open_out_dir(args.out, args.resume)
+    out = check_out_dir(args.out, args.resume)  # created once the env is built: a failed call leaves no folder
     prior = read_resume(out, torch_state=True) if args.resume else {}
     calls = int(prior.get("calls", 0))
     settings = {"num_envs": args.num_envs, "preset": args.preset, "hidden": list(args.hidden),
@@ -108,6 +112,7 @@ def main(argv=None) -> dict:
                          f"{prior['settings']}, given {settings}")
     set_seed(args.seed + calls)  # a resumed call draws other exploration noise
     env = TocabiSkrlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + calls)
+    open_out_dir(out, args.resume)
     models = make_models(env.observation_space, env.action_space, env.device, args.hidden,
                          value_out_gain=preset_config(args.preset).ppo.value_out_gain)
     cfg = PPO_CFG(

@@ -1,5 +1,5 @@
 """What every adapter shares, without any RL library installed: version ranges, the policy file, the recipes'
-output folder rule."""
+output folder rule and option checks."""
 
 from __future__ import annotations
 
@@ -84,6 +84,93 @@ def test_recipes_never_reuse_an_output_folder(tmp_path):
     open_out_dir(tmp_path / "run")
     with pytest.raises(SystemExit, match="exists"):
         open_out_dir(tmp_path / "run")
+
+
+# Bad values of the options every library recipe shares (base_parser), through train_sb3's own parsing: refused by
+# check_args before the library is imported or anything built, with the option, the value and the range.
+SHARED_BAD_VALUES = [
+    ("--num_envs", "0", "--num_envs must be a positive int, got 0"),
+    ("--iterations", "0", "--iterations must be a positive int, got 0"),
+    ("--iterations", "-3", "--iterations must be a positive int, got -3"),
+    ("--max_minutes", "-1", "--max_minutes must be a finite number >= 0, got -1.0"),
+    ("--max_minutes", "nan", "--max_minutes must be a finite number >= 0, got nan"),
+    ("--max_minutes", "inf", "--max_minutes must be a finite number >= 0, got inf"),
+    ("--checkpoint_minutes", "-0.5", "--checkpoint_minutes must be a finite number >= 0, got -0.5"),
+    ("--checkpoint_minutes", "nan", "--checkpoint_minutes must be a finite number >= 0, got nan"),
+    ("--checkpoint_minutes", "0.001", "--checkpoint_minutes 0.001 is a snapshot period of 0.06 s"),
+    ("--eval_envs", "-1", "--eval_envs must be an int >= 0, got -1"),
+    ("--eval_seconds", "nan", "--eval_seconds must be a finite number > 0, got nan"),
+    ("--eval_seconds", "0", "--eval_seconds must be a finite number > 0, got 0.0"),
+    ("--eval_seconds", "0.001", "--eval_seconds: seconds=0.001 is shorter than one policy step"),
+    ("--seed", "-1", "--seed must be an int in [0, 2**32 - 1], got -1"),
+    ("--preset", "nope", "--preset: unknown preset 'nope'"),
+    ("--device", "gpu", "--device: unknown device 'gpu': use 'cuda', 'cuda:K' or 'cpu' (or 'auto')"),
+]
+
+
+def refused(recipe_name: str, argv: list[str], capsys) -> str:
+    """The error line of ``recipes/<recipe_name>.py`` refusing ``argv`` (exit status 2, argparse's)."""
+    from recipe_runner import load_recipe
+
+    with pytest.raises(SystemExit) as exit_info:
+        load_recipe(recipe_name).main(argv)
+    assert exit_info.value.code == 2
+    return capsys.readouterr().err.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize(("flag", "value", "message"), SHARED_BAD_VALUES,
+                         ids=[f"{f}={v}" for f, v, _ in SHARED_BAD_VALUES])
+def test_recipes_refuse_a_bad_shared_option_before_creating_the_output_folder(tmp_path, capsys, flag, value, message):
+    out = tmp_path / "run"
+    argv = ["--out", str(out), "--device", "cpu", "--num_envs", "2", flag, value]
+    assert message in refused("train_sb3", argv, capsys)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("recipe_name", "argv", "message"), [
+    ("train_sb3", ["--batch_size", "1"], "--batch_size must be an int >= 2, got 1"),
+    ("train_sb3", ["--n_steps", "0"], "--n_steps must be a positive int, got 0"),
+    ("train_sb3", ["--n_steps", "1", "--num_envs", "1"], "--n_steps 1 x --num_envs 1 must be at least 2"),
+    ("train_sb3", ["--hidden", "0"], "argument --hidden: must be comma-separated layer sizes >= 1"),
+    ("train_rsl_rl", ["--learning_rate", "nan"], "--learning_rate must be a finite number > 0, got nan"),
+    ("train_rsl_rl", ["--steps_per_env", "0"], "--steps_per_env must be a positive int, got 0"),
+    ("train_skrl", ["--rollouts", "-4"], "--rollouts must be a positive int, got -4"),
+    ("train_skrl", ["--hidden", "64,x"], "must be comma-separated layer sizes >= 1 (e.g. 256,256), got '64,x'"),
+])
+def test_each_recipe_refuses_a_bad_value_of_its_own_options(tmp_path, capsys, recipe_name, argv, message):
+    out = tmp_path / "run"
+    assert message in refused(recipe_name, ["--out", str(out), "--device", "cpu", *argv], capsys)
+    assert not out.exists()
+
+
+def test_a_refused_device_leaves_no_output_folder_and_a_rerun_gets_past_the_folder_check(tmp_path, capsys, monkeypatch):
+    # The audit's case: --device gpu used to leave an empty --out behind, and the rerun was refused for it.
+    from tocabi_torchrl import adapters
+
+    out = tmp_path / "lib_b"
+    assert "unknown device 'gpu'" in refused("train_sb3", ["--out", str(out), "--device", "gpu"], capsys)
+    assert not out.exists()
+    # The rerun with a good device passes the folder check and reaches the env; the folder is created only once the
+    # env is built, so an env that cannot be built (ValueError) leaves none either.
+    built = []
+
+    def env_that_fails(num_envs, device, **kwargs):
+        built.append(device)
+        raise ValueError("this env cannot be built")
+
+    monkeypatch.setattr(adapters, "TocabiSB3VecEnv", env_that_fails, raising=False)
+    from recipe_runner import load_recipe
+
+    with pytest.raises(ValueError, match="this env cannot be built"):
+        load_recipe("train_sb3").main(["--out", str(out), "--device", "cpu", "--num_envs", "2"])
+    assert built == ["cpu"] and not out.exists()
+    # A folder that existed before is never touched: refused as before, its contents kept.
+    out.mkdir()
+    (out / "earlier.txt").write_text("an earlier run")
+    assert "unknown device 'gpu'" in refused("train_sb3", ["--out", str(out), "--device", "gpu"], capsys)
+    with pytest.raises(SystemExit, match="exists; pass another --out"):
+        load_recipe("train_sb3").main(["--out", str(out), "--device", "cpu", "--num_envs", "2"])
+    assert built == ["cpu"] and (out / "earlier.txt").read_text() == "an earlier run"
 
 
 def test_resume_loads_only_a_state_the_recipe_wrote(tmp_path):

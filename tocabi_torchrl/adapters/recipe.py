@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from ..config import check_snapshot_minutes, wall_tag
@@ -22,7 +24,10 @@ __all__ = [
     "TimeUp",
     "TrainingClock",
     "base_parser",
+    "check_args",
+    "check_out_dir",
     "fresh_dir",
+    "hidden_sizes",
     "keep_previous",
     "open_out_dir",
     "read_resume",
@@ -53,17 +58,84 @@ def base_parser(description: str, num_envs: int, iterations: int) -> argparse.Ar
     return parser
 
 
-def open_out_dir(path: str, resume: bool = False) -> Path:
-    """Create the run's output folder; ``SystemExit`` with a message if it exists (an earlier run is kept). With
-    ``resume`` the folder must exist and hold ``resume.json`` (a run this recipe wrote)."""
+def hidden_sizes(text: str) -> tuple[int, ...]:
+    """The type of the recipes' ``--hidden``: comma-separated layer sizes, each at least 1 (``"256,256"``)."""
+    try:
+        sizes = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        sizes = ()
+    if not sizes or min(sizes) < 1:
+        raise argparse.ArgumentTypeError(f"must be comma-separated layer sizes >= 1 (e.g. 256,256), got {text!r}")
+    return sizes
+
+
+def _check_number(args: argparse.Namespace, name: str, low: float, strict: bool = False) -> None:
+    value = getattr(args, name)
+    if not (math.isfinite(value) and (value > low if strict else value >= low)):
+        raise ValueError(f"--{name} must be a finite number {'>' if strict else '>='} {low:g}, got {value!r}")
+
+
+def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace, at_least: Mapping[str, int] | None = None,
+               positive: Sequence[str] = ()) -> None:
+    """Check the options of :func:`base_parser` and a recipe's own, right after parsing and before anything is built
+    or written: a bad value ends the call through ``parser.error`` (the usage and one line naming the option, the
+    value and what it may be; exit status 2), so it leaves no output folder behind. ``at_least``: the recipe's own
+    int options and their lowest value (``{"n_steps": 1}``); ``positive``: its float options that must be finite and
+    > 0 (learning rates). ``--hidden`` is checked where it is parsed (:func:`hidden_sizes`).
+
+    The checks are the project's own: ``config``'s int check and snapshot period (the trainer's), the device as the
+    env resolves it (``auto``, ``cpu``, ``cuda``, ``cuda:N``; CUDA only where torch sees a GPU), the preset's name
+    and the gait test's length of at least one policy step."""
+    from ..config import _check_int, check_snapshot_minutes, preset_tree
+    from ..rl.evaluate import policy_dt, policy_steps
+    from ..rl.trainer import resolve_device
+
+    try:
+        for name, low in {"num_envs": 1, "iterations": 1, "eval_envs": 0, **(at_least or {})}.items():
+            _check_int(args, name, low, "--")
+        _check_number(args, "max_minutes", 0.0)
+        _check_number(args, "checkpoint_minutes", 0.0)
+        check_snapshot_minutes(args.checkpoint_minutes, "--checkpoint_minutes")
+        _check_number(args, "eval_seconds", 0.0, strict=True)
+        for name in positive:
+            _check_number(args, name, 0.0, strict=True)
+        if not 0 <= args.seed < 2 ** 32:  # the libraries seed NumPy with it, which takes no other value
+            raise ValueError(f"--seed must be an int in [0, 2**32 - 1], got {args.seed!r}")
+    except ValueError as err:
+        parser.error(str(err))
+    try:
+        policy_steps(args.eval_seconds, policy_dt())
+    except ValueError as err:
+        parser.error(f"--eval_seconds: {err}")
+    try:
+        preset_tree(args.preset)
+    except ValueError as err:
+        parser.error(f"--preset: {err}")
+    try:
+        resolve_device(args.device)
+    except (ValueError, RuntimeError) as err:  # RuntimeError: CUDA asked for where torch sees no GPU
+        parser.error(f"--device: {err}" + (" (or 'auto')" if isinstance(err, ValueError) else ""))
+
+
+def check_out_dir(path: str, resume: bool = False) -> Path:
+    """What :func:`open_out_dir` checks, creating nothing: a recipe calls this first and creates the folder only
+    once its env is built, so a call that fails before (a bad option, an env that cannot be built) leaves no folder
+    that a rerun with the same ``--out`` would be refused for."""
     out = Path(path)
     if resume:
         if not (out / "resume.json").is_file():
             raise SystemExit(f"error: --resume needs {out / 'resume.json'} (written at the end of every call)")
-        return out
-    if out.exists():
+    elif out.exists():
         raise SystemExit(f"error: {out} exists; pass another --out (an earlier run is never overwritten)")
-    out.mkdir(parents=True)
+    return out
+
+
+def open_out_dir(path: str, resume: bool = False) -> Path:
+    """Create the run's output folder; ``SystemExit`` with a message if it exists (an earlier run is kept). With
+    ``resume`` the folder must exist and hold ``resume.json`` (a run this recipe wrote)."""
+    out = check_out_dir(path, resume)
+    if not resume:
+        out.mkdir(parents=True)
     return out
 
 
@@ -91,7 +163,7 @@ def read_resume(out: Path, torch_state: bool = False) -> dict:
 
         try:
             torch.load(state, map_location="cpu", weights_only=True)
-        except Exception as err:  # noqa: BLE001 - any refusal means the file is not what this recipe wrote
+        except Exception as err:  # any refusal means the file is not what this recipe wrote
             raise SystemExit(f"error: {state} does not load as tensors only ({type(err).__name__}: {err}); a resume "
                              "never unpickles other objects (start a new --out instead)") from err
     return prior
