@@ -127,3 +127,6 @@ def test_export_refuses_a_non_onnx_output_and_a_bad_checkpoint(tmp_path):
     bad.write_bytes(b"not a checkpoint")
     with pytest.raises(SystemExit, match="cannot read checkpoint"):
         export_main(["--checkpoint", str(bad), "--out", str(tmp_path / "x.onnx")])
+    # An --out that cannot be written (here its folder is a file) is one error line, not a traceback.
+    with pytest.raises(SystemExit, match=r"^error: .*bad\.pt"):
+        export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(bad / "x.onnx")])

@@ -21,7 +21,7 @@ def main(argv: list[str] | None = None) -> None:
 
     try:
         result = export_policy(args.checkpoint, args.out, torchscript=args.torchscript, overwrite=args.overwrite)
-    except (FileExistsError, ValueError, RuntimeError) as err:  # CheckpointError is a RuntimeError
+    except (OSError, ValueError, RuntimeError) as err:  # CheckpointError is a RuntimeError; OSError: --out unwritable
         sys.exit(f"error: {err}")
     print(f"wrote {result.onnx} and {result.contract}" + (f" and {result.torchscript}" if result.torchscript else ""))
 

@@ -61,12 +61,14 @@ class Agent:
     teacher: AssistTeacher | None = None
 
     def state_dict(self) -> dict:
+        """``{"actor", "critic"[, "teacher"]}`` module state dicts, tensors only (what checkpoints hold)."""
         state = {"actor": self.actor.state_dict(), "critic": self.critic.state_dict()}
         if self.teacher is not None:
             state["teacher"] = self.teacher.state_dict()
         return state
 
     def load_state_dict(self, state: dict) -> None:
+        """Load :meth:`state_dict`'s output; the teacher only where both this agent and ``state`` have one."""
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])
         if self.teacher is not None and "teacher" in state:

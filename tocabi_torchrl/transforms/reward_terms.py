@@ -68,6 +68,9 @@ class RewardTerm:
     next_keys: tuple[NestedKey, ...] = ()
 
     def kernel(self, td: TensorDictBase, next_td: TensorDictBase) -> torch.Tensor:
+        """The unweighted term, (num_envs, 1) float32, from ``td`` (the state an action was applied to, time t) and
+        ``next_td`` (the step's output, time t+1); override it in a subclass. Keep it branch-free tensor code on the
+        env's device: on CUDA it runs inside the captured step graph."""
         raise NotImplementedError
 
     def __call__(self, td: TensorDictBase, next_td: TensorDictBase) -> torch.Tensor:
