@@ -171,6 +171,22 @@ def test_an_older_checkpoint_branches_into_a_new_folder(finished_run, tmp_path):
     assert folder_bytes(run) == before
 
 
+def test_a_new_run_folder_must_be_named_inside_run_dir_but_old_runs_so_named_still_open(finished_run, tmp_path):
+    # run_dir/name is the run folder (the benchmarks clear it before timing): a new one never reaches outside run_dir.
+    for name in ("/tmp/abs", "../x", "a/b", "a\\b", "..", ""):
+        cfg, _ = parse_args(["--run_dir", str(tmp_path), "--name", name])
+        with pytest.raises(RunDirError, match=r"name must be one folder name inside run_dir"):
+            open_run(cfg)
+    with pytest.raises(SystemExit, match=r"name must be one folder name inside run_dir .*got '../x'"):
+        recipe("ppo_walk").main(["--run_dir", str(tmp_path), "--name", "../x", "--total_env_steps", "16"])
+    assert not (tmp_path.parent / "x").exists()
+    # A run made before the rule under a nested name still resumes in its folder.
+    nested = tmp_path / "sweeps" / "lr3"
+    shutil.copytree(finished_run, nested)
+    cfg, _ = parse_args(["--resume", str(nested), "--run_dir", str(tmp_path), "--name", "sweeps/lr3"])
+    assert open_run(cfg).start_iteration == 2
+
+
 @pytest.mark.slow  # two training processes
 def test_a_sigkilled_run_leaves_loadable_checkpoints_and_resumes_at_the_next_iteration(tmp_path):
     # Issue 20 (formerly the soak's kill_resume mode): SIGKILL somewhere in an iteration once two checkpoints exist;

@@ -44,11 +44,13 @@ def resolve_backend(backend: str, device) -> str:
 def check_bool_fields(tree, prefix: str = "") -> None:
     """Raise ``ValueError`` naming the first field annotated ``bool`` in the dataclass ``tree`` (and its nested
     sections) that holds anything but True or False: a switch set from text (``"no"``, ``"0"``) is truthy in Python
-    and would silently turn the option on."""
+    and would silently turn the option on. A numpy bool is taken, as a plain bool."""
     for f in dataclasses.fields(tree):
         value = getattr(tree, f.name)
         if f.type in ("bool", bool) and not isinstance(value, bool):
-            raise ValueError(f"{prefix}{f.name} must be True or False, got {value!r}")
+            if not isinstance(value, np.bool_):
+                raise ValueError(f"{prefix}{f.name} must be True or False, got {value!r}")
+            setattr(tree, f.name, bool(value))  # a numpy sweep's value; plain bool for config.json
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             check_bool_fields(value, f"{prefix}{f.name}.")
 

@@ -4,7 +4,7 @@ A new run refuses a folder that already holds a run (``config.json``, ``metrics/
 ``checkpoints/``) and says how to go on: ``--resume`` it, or pick another ``--name``. A resumed run writes into its own
 folder (or a new one) and cuts its metrics files back to the checkpoint's iteration
 (:func:`~tocabi_torchrl.rl.metrics_files.trim_metrics`), so rows logged after the last checkpoint by a run that was
-killed are not followed by a second set with the same iteration numbers. Resuming an older checkpoint into its own
+killed are not followed by a second set with the same iteration numbers. Resuming an older iteration file into its own
 folder, one that holds newer checkpoints, is refused: that run's later files would be overwritten or pruned
 and its later metrics rows cut. Continue it from its newest checkpoint, or branch into a new folder (``--name NEW``).
 """
@@ -28,7 +28,7 @@ from .checkpoint import (
 from .metrics_files import LEGACY_CSV, METRICS_DIR, trim_metrics
 from .resume import check_resume_config
 
-__all__ = ["RunDirError", "RunFolder", "holds_run", "open_run", "trim_metrics"]
+__all__ = ["RunDirError", "RunFolder", "check_run_name", "holds_run", "open_run", "trim_metrics"]
 
 _RUN_FILES = ("config.json", METRICS_DIR, LEGACY_CSV, "checkpoints")
 
@@ -80,17 +80,31 @@ def _newer_checkpoint(folder: Path, iteration: int) -> tuple[int, Path] | None:
     return None
 
 
+def check_run_name(name: str) -> None:
+    """``RunDirError`` unless ``name`` is one folder name, so that ``run_dir/name`` stays inside ``run_dir`` (the
+    benchmarks clear that folder before timing). Checked for a new run and for a resume into a new folder, not on
+    load or a resume into the run's existing folder: a run made before the rule under a name like ``sweeps/lr3``
+    still loads, resumes and exports."""
+    if not isinstance(name, str) or name in ("", ".", "..") or "/" in name or "\\" in name:
+        raise RunDirError(f"name must be one folder name inside run_dir (no '/', '..' or absolute path), got "
+                          f"{name!r}; put the folder's parent in run_dir instead")
+
+
 def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
     """Check that ``cfg`` may write to its run folder and, for ``cfg.resume``, read and check the checkpoint.
 
-    Raises :class:`RunDirError` if a new run would overwrite an earlier one, or a resumed checkpoint older than its
-    folder's newest would be continued in that folder (it would overwrite, prune and cut the newer files), and
+    Raises :class:`RunDirError` if a new run would overwrite an earlier one, if a folder to create is named outside
+    ``run_dir`` (:func:`check_run_name`), or if a resumed iteration file older than its folder's newest checkpoint
+    would be continued in that folder (it would overwrite, prune and cut the newer files; ``latest.pt`` itself is
+    always resumable), and
     :class:`~tocabi_torchrl.rl.checkpoint.CheckpointError` /
     :class:`~tocabi_torchrl.rl.resume.ResumeConfigError` for a bad checkpoint or a changed setting.
     ``writer=False`` (the ranks of a data-parallel run other than rank 0, which write nothing): only read and check
     the resumed checkpoint; the folder is rank 0's to check and tidy.
     """
     path = Path(cfg.run_dir) / cfg.name
+    if writer and not (cfg.resume and path.is_dir()):
+        check_run_name(cfg.name)
     if not writer:
         if not cfg.resume:
             return RunFolder(path)
