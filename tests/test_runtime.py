@@ -227,6 +227,27 @@ def test_non_finite_sensors_or_commands_and_bad_command_shapes_fail_clearly():
     assert runtime.step(state(), (0.2, 0.0)).leg.shape == (2, 12)
 
 
+def test_the_sim_to_sim_driver_holds_a_diverged_robots_last_finite_state():
+    # The runtime refuses NaN readings (above); in the sim-to-sim driver a robot whose physics diverged is one fallen
+    # robot among many: its rows are held at its last finite state, it is marked dead, and the others go on.
+    from tocabi_torchrl.runtime.mujoco_driver import _hold_finite
+
+    def state(value):
+        return RobotState(base_quat=np.full((3, 4), value), joint_pos=np.full((3, 33), value),
+                          joint_vel=np.full((3, 33), value), foot_force=np.full((3, 2, 3), value),
+                          foot_torque=np.full((3, 2, 3), value))
+
+    held, new = state(1.0), state(2.0)
+    new.joint_vel[1, 7] = np.nan
+    out, finite = _hold_finite(new, held)
+    assert finite.tolist() == [True, False, True]
+    for name in ("base_quat", "joint_pos", "joint_vel", "foot_force", "foot_torque"):
+        rows = getattr(out, name)
+        assert np.isfinite(rows).all() and (rows[[0, 2]] == 2.0).all() and (rows[1] == 1.0).all()
+    same, finite = _hold_finite(held, state(0.0))
+    assert same is held and finite.all()
+
+
 def test_contract_not_json_or_input_size_mismatch_or_foreign_files_fail_clearly(contract_copy, tmp_path):
     path, c = contract_copy
     path.write_text("{ not json")

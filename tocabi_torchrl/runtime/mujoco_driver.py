@@ -187,7 +187,8 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
         d.ctrl[n_leg:] = first_ref[i, n_leg:]
         mujoco.mj_forward(m, d)
         d.qacc_warmstart[:] = d.qacc
-    cmd = runtime.reset(_state(m, datas, sensors), command, init_row=init_rows)
+    held = _state(m, datas, sensors)  # each robot's last finite state
+    cmd = runtime.reset(held, command, init_row=init_rows)
     vx = float(command[0])
     start = np.stack([d.qpos[:3].copy() for d in datas])
     last = start.copy()
@@ -206,7 +207,9 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
             d.qacc_warmstart[:] = d.qacc
             if alive[i] and terminated(m, d):
                 alive[i] = False
-        state = _state(m, datas, sensors)
+        state, finite = _hold_finite(_state(m, datas, sensors), held)
+        alive &= finite  # a diverged robot is a fallen one: it no longer counts, and the others go on
+        held = state
         pos = np.stack([d.qpos[:3] for d in datas])
         last = np.where(alive[:, None], pos, last)
         a = alive.astype(np.float64)
@@ -230,6 +233,22 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
         per_robot_forward_m=dist[:, 0].round(4).tolist(),
         alive=alive.tolist(),
     )
+
+
+def _hold_finite(state: RobotState, held: RobotState) -> tuple[RobotState, np.ndarray]:
+    """``state`` with each robot whose readings hold NaN or inf replaced by its ``held`` (last finite) rows, and the
+    (N,) bool mask of the robots that were finite: the runtime refuses non-finite readings, as a real controller
+    must, while here a diverged robot is only one fallen robot of many."""
+    fields = ("base_quat", "joint_pos", "joint_vel", "foot_force", "foot_torque")
+    n = len(state.base_quat)
+    finite = np.ones(n, dtype=bool)
+    for name in fields:
+        finite &= np.isfinite(getattr(state, name)).reshape(n, -1).all(-1)
+    if finite.all():
+        return state, finite
+    rows = {name: np.where(finite.reshape(-1, *[1] * (getattr(state, name).ndim - 1)), getattr(state, name),
+                           getattr(held, name)) for name in fields}
+    return RobotState(**rows), finite
 
 
 def _rotate_inverse(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
