@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import lzma
 import subprocess
 from pathlib import Path
 from types import SimpleNamespace
@@ -410,10 +411,14 @@ def test_rsl_rl_console_logs_become_one_csv_row_per_iteration(tmp_path):
                  "   Time elapsed: 0:07:35"]
         return lines + ([f"   Mean episode length: {length}"] if length else [])
 
-    log = ["+ python3 recipes/train_rsl_rl.py --out r", *block(0, 196608), *block(1, 393216, 41.5),
-           "rsl_rl: --max_minutes 2 reached", "+ python3 recipes/train_rsl_rl.py --out r", *block(2, 196608, 4314.96)]
-    (tmp_path / "r.log").write_text("\n".join(log) + "\n")
-    assert tool.main([str(tmp_path / "r.log"), str(tmp_path / "r.csv")]) == 0
+    # Two sessions' logs of one row, the second xz-compressed as committed: its calls number on from the first's.
+    first = ["+ python3 recipes/train_rsl_rl.py --out r", *block(0, 196608), *block(1, 393216, 41.5),
+             "rsl_rl: --max_minutes 2 reached"]
+    second = ["+ python3 recipes/train_rsl_rl.py --out r", *block(2, 196608, 4314.96)]
+    (tmp_path / "a.log").write_text("\n".join(first) + "\n")
+    with lzma.open(tmp_path / "b.log.xz", "wt") as fh:
+        fh.write("\n".join(second) + "\n")
+    assert tool.main([str(tmp_path / "a.log"), str(tmp_path / "b.log.xz"), str(tmp_path / "r.csv")]) == 0
     rows = list(csv.DictReader((tmp_path / "r.csv").open()))
     assert [(r["iteration"], r["call"], r["call_steps"]) for r in rows] == [
         ("0", "1", "196608"), ("1", "1", "393216"), ("2", "2", "196608")]

@@ -1,17 +1,20 @@
-"""rsl_rl's console log (a table row's, over one or more calls) as one CSV row per PPO iteration (issue 22).
+"""rsl_rl's console logs (a table row's, over one or more calls and sessions) as one CSV row per PPO iteration
+(issue 22).
 
-    python docs/adapters/rsl_rl_log_csv.py LOG OUT.csv
+    python docs/adapters/rsl_rl_log_csv.py LOG [LOG ...] OUT.csv     # LOGs in order; .xz ones are read as such
 
 rsl_rl prints a ~30-line block per iteration; the table keeps the signals that tell rows apart (episode length,
 reward, the imitation term ``qpos``, the velocity term ``body_vel``, the action std, the value loss) and the rate.
 ``iteration`` is rsl_rl's own count, which a resumed call continues; ``call`` counts the recipe's start lines
-(``+ ... train_rsl_rl.py``) in the log (concatenate the logs of a row's sessions to number its calls from 1), and ``call_steps`` is rsl_rl's "Total steps", which restarts each call. A value rsl_rl
+(``+ ... train_rsl_rl.py``) over the logs given, so a row's sessions' logs given in order number its calls from 1, and ``call_steps`` is rsl_rl's "Total steps", which restarts each call. A value rsl_rl
 did not print in an iteration (no episode ended yet) is left empty.
 """
 
 from __future__ import annotations
 
 import csv
+import itertools
+import lzma
 import re
 import sys
 from pathlib import Path
@@ -40,16 +43,23 @@ def parse(lines) -> list[dict]:
     return rows
 
 
+def _lines(path: Path):
+    """The lines of a log, read as xz where its name ends in ``.xz``."""
+    opener = lzma.open if path.suffix == ".xz" else open
+    with opener(path, "rt", errors="replace") as fh:
+        yield from fh
+
+
 def main(argv: list[str]) -> int:
-    """Write the CSV; an error, not an empty file, when the log holds no iteration block."""
-    if len(argv) != 2:
+    """Write the CSV; an error, not an empty file, when the logs hold no iteration block."""
+    if len(argv) < 2:
         print(__doc__.split("\n\n")[1], file=sys.stderr)
         return 2
-    log, out = Path(argv[0]), Path(argv[1])
-    with log.open(errors="replace") as fh:
-        rows = parse(fh)
+    logs, out = [Path(a) for a in argv[:-1]], Path(argv[-1])
+    rows = parse(itertools.chain.from_iterable(_lines(p) for p in logs))
     if not rows:
-        print(f"error: {log} has no 'Learning iteration' blocks: is it an rsl_rl console log?", file=sys.stderr)
+        print(f"error: {', '.join(map(str, logs))}: no 'Learning iteration' blocks: rsl_rl console logs?",
+              file=sys.stderr)
         return 1
     with out.open("w", newline="") as fh:
         writer = csv.DictWriter(fh, ["iteration", "call", *FIELDS])
