@@ -35,6 +35,8 @@ GIB = 2**30
 #: Raw policy steps run before the ceiling is measured (the robots settle onto the floor first).
 RAW_WARMUP = 20
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "benchmarks"
+#: Where a benchmark's default output goes on a machine without CUDA (ignored by git): see :func:`publish`.
+CPU_OUT = Path(__file__).resolve().parents[1] / "runs" / "benchmarks_cpu"
 
 
 def meta(script: str, argv: Sequence[str] | None, on: str = "cuda", **extra) -> dict:
@@ -349,8 +351,15 @@ def write_json(path: str | Path, data: dict) -> Path:
 
 
 def publish(out: str | Path, name: str, data: dict, render: Callable[[dict, Path], str]) -> str:
-    """Write ``<out>/<name>.json`` and its page ``render(data, out)`` as ``<name>.md`` (atomically, saying where)."""
+    """Write ``<out>/<name>.json`` and its page ``render(data, out)`` as ``<name>.md`` (atomically, saying where).
+
+    On a machine without CUDA, ``out`` = :data:`DOCS` (the scripts' default) becomes :data:`CPU_OUT`: a CPU smoke
+    run must not replace the published GPU results in the repository."""
     out = Path(out)
+    if out.resolve() == DOCS.resolve() and not torch.cuda.is_available():
+        print(f"no CUDA device here: writing to {CPU_OUT}, not {DOCS}, which holds the published GPU results",
+              flush=True)
+        out = CPU_OUT
     write_json(out / f"{name}.json", data)  # (making the folder)
     text = render(data, out)
     atomic_write_text(out / f"{name}.md", text)

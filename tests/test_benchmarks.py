@@ -42,6 +42,24 @@ def test_unknown_override_is_named():
         common.parse_overrides(["cuda_grpah=on"])
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the redirect is for machines without CUDA")
+def test_a_cpu_run_does_not_replace_the_published_gpu_reports(tmp_path, monkeypatch, capsys):
+    # docs/benchmarks.md gives CPU commands whose default --out is docs/benchmarks: without CUDA the report goes to
+    # runs/benchmarks_cpu instead, and the published files stay as they are.
+    docs, cpu = tmp_path / "docs", tmp_path / "cpu"
+    docs.mkdir()
+    (docs / "env_throughput.json").write_text("published")
+    monkeypatch.setattr(common, "DOCS", docs)
+    monkeypatch.setattr(common, "CPU_OUT", cpu)
+    common.publish(docs, "env_throughput", {"meta": {}, "results": []}, lambda data, out: "page")
+    assert (docs / "env_throughput.json").read_text() == "published" and not (docs / "env_throughput.md").exists()
+    assert (cpu / "env_throughput.md").read_text() == "page" and "not " + str(docs) in capsys.readouterr().out
+    for bad in (["--steps", "0"], ["--num_envs", "0"], []):  # [] asks for CUDA by default: named, not a traceback
+        with pytest.raises(SystemExit):
+            env_throughput.main([*bad, "--out", str(tmp_path / "x")] if bad else ["--out", str(tmp_path / "x")])
+        assert "error:" in capsys.readouterr().err
+
+
 def test_env_throughput_smoke(tmp_path):
     env_throughput.main(["--device", "cpu", "--num_envs", "2", "--steps", "3", "--raw_steps", "0", "--out",
                          str(tmp_path)])
