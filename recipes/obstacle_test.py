@@ -295,6 +295,11 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--heights_mm takes comma-separated numbers, got {args.heights_mm!r}")
     if args.num_envs < 1 or args.seconds <= 0 or not heights or min(heights) < 0 or args.step_mm < 0:
         parser.error("--num_envs must be >= 1, --seconds > 0, --heights_mm non-empty and >= 0, --step_mm >= 0")
+    if args.steps_on_obstacle < 1:
+        parser.error(f"--steps_on_obstacle must be >= 1 (footfalls the torque window covers), got "
+                     f"{args.steps_on_obstacle}")
+    if 0 < args.step_mm < 0.001:  # heights are kept to 1e-6 mm: a smaller step never raises the box
+        parser.error(f"--step_mm must be 0 (only --heights_mm) or at least 0.001 mm, got {args.step_mm:g}")
     if args.resume and args.overwrite:
         parser.error("--resume keeps the earlier table's rows, --overwrite replaces them: pass one of them")
     try:

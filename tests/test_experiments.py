@@ -331,6 +331,18 @@ def test_obstacle_test_end_to_end(tmp_path):
     assert "not overwritten" in str(info.value.code)
 
 
+@pytest.mark.parametrize("flags, message", [
+    (["--steps_on_obstacle", "0"], "--steps_on_obstacle must be >= 1"),
+    (["--step_mm", "1e-7"], "--step_mm must be 0 .* or at least 0.001 mm"),
+])
+def test_obstacle_test_refuses_an_empty_torque_window_or_a_step_that_never_raises_the_box(flags, message, capsys):
+    # Before: --steps_on_obstacle 0 crashed after the rollout (an empty window), and a step below the heights'
+    # 1e-6 mm rounding looped for ever on the same height.
+    with pytest.raises(SystemExit):
+        load_recipe("obstacle_test").main(["--device", "cpu", *flags])
+    assert re.search(message, capsys.readouterr().err)
+
+
 # ------------------------------------------------------------------------------------------------ resuming
 def _tiny_obstacle_run(out: Path, heights: str, *extra: str) -> list[str]:
     """The cheapest obstacle run that exercises the recipe: one robot, 0.2 s (it does not reach the box), tiny
