@@ -108,6 +108,18 @@ def test_bad_actions_and_options_are_refused(envs):
         envs.reset(options={"x": 1})
 
 
+@pytest.mark.parametrize("kwargs, match", [
+    ({"render_mode": "human"}, "does not render"),  # said, not silently dropped
+    ({"numpy": "no"}, "numpy must be True or False"),  # bool("no") is True
+    ({"vectorization_mode": "sync"}, "is a batched env .* use gymnasium.make_vec"),
+])
+def test_make_vec_names_what_the_env_cannot_do(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        gymnasium.make_vec("TocabiWalk-v0", num_envs=1, device="cpu", **kwargs)
+    with pytest.raises(ValueError, match="is a batched env"):
+        gymnasium.make("TocabiWalk-v0")
+
+
 def test_make_vec_imports_the_adapters_itself_with_the_module_prefix():
     env = gymnasium.make_vec("tocabi_torchrl.adapters:TocabiWalk-v0", num_envs=1, device="cpu")
     try:

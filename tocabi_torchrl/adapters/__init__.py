@@ -56,4 +56,5 @@ def __getattr__(name):
 
 
 if ENV_ID not in _gymnasium.registry:
-    _gymnasium.register(ENV_ID, vector_entry_point="tocabi_torchrl.adapters.gymnasium_env:make_vector_env")
+    _gymnasium.register(ENV_ID, entry_point="tocabi_torchrl.adapters.gymnasium_env:single_env_entry_point",
+                        vector_entry_point="tocabi_torchrl.adapters.gymnasium_env:make_vector_env")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 
@@ -51,6 +52,8 @@ class TocabiVectorEnv(VectorEnv):
         self.stepper = TensorStepper(env)
         self.num_envs = self.stepper.num_envs
         self.device = self.stepper.device
+        if not isinstance(numpy, (bool, np.bool_)):  # bool("no") is True
+            raise ValueError(f"numpy must be True or False, got {numpy!r}")  # noqa: TRY004 (an option value)
         self.numpy = bool(numpy)
         self.single_observation_space = box_from_spec(env.observation_spec["observation"], batched=False)
         self.single_action_space = box_from_spec(env.action_spec, batched=False)
@@ -99,7 +102,18 @@ class TocabiVectorEnv(VectorEnv):
 
 def make_vector_env(num_envs: int = 4096, **kwargs) -> TocabiVectorEnv:
     """gymnasium's ``vector_entry_point`` for ``TocabiWalk-v0``; ``kwargs`` go to :class:`TocabiVectorEnv`."""
-    kwargs.pop("render_mode", None)
+    render_mode = kwargs.pop("render_mode", None)
+    if render_mode is not None:  # said, not dropped: nothing would render
+        raise ValueError(f"TocabiWalk-v0 does not render (render_mode={render_mode!r}); leave render_mode unset and "
+                         "record videos with recipes/play.py")
     kwargs.pop("vectorization_mode", None)
     return TocabiVectorEnv(num_envs=num_envs, **kwargs)
+
+
+def single_env_entry_point(**kwargs):
+    """``TocabiWalk-v0``'s ``entry_point``: there is no single env, so ``gymnasium.make`` or
+    ``make_vec(..., vectorization_mode="sync"/"async")`` end with an error saying what to call instead."""
+    raise ValueError("TocabiWalk-v0 is a batched env simulating all its robots at once: use "
+                     "gymnasium.make_vec('TocabiWalk-v0', num_envs=N) (its vector entry point), not gymnasium.make "
+                     "or vectorization_mode='sync'/'async'")
 
