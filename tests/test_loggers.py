@@ -71,6 +71,17 @@ def test_read_metrics_joins_scalar_files_and_reads_older_wide_files(tmp_path):
     assert read_metrics(tmp_path / "nothing") == []
 
 
+def test_the_curves_command_names_a_missing_path_or_a_csv_it_cannot_plot(tmp_path, capsys):
+    from tocabi_torchrl.rl import curves
+
+    (tmp_path / "m.csv").write_text("iteration,foo\n1,2\n")
+    for metrics, message in ((tmp_path / "nothing", "does not exist"), (tmp_path / "m.csv", "no column 'env_steps'")):
+        with pytest.raises(SystemExit):
+            curves.main([str(metrics), str(tmp_path / "c.png")])
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "c.png").exists()
+
+
 def test_trim_cuts_both_layouts_back_to_the_checkpoint(tmp_path):
     scalars = tmp_path / "metrics" / "scalars"
     scalars.mkdir(parents=True)

@@ -95,7 +95,13 @@ def main(argv=None) -> None:
     parser.add_argument("metrics", help="a run folder, its metrics/ folder, or a wide metrics.csv")
     parser.add_argument("out_png")
     args = parser.parse_args(argv)
-    print(plot_curves(args.metrics, args.out_png))
+    if not Path(args.metrics).exists():
+        parser.error(f"{args.metrics} does not exist: pass a run folder (runs/<name>), its metrics/ folder or a "
+                     "metrics.csv")
+    try:
+        print(plot_curves(args.metrics, args.out_png))
+    except (ValueError, KeyError) as err:  # no rows, or a CSV without a plotted column
+        parser.error(f"{args.metrics}: {err if isinstance(err, ValueError) else f'no column {err} to plot'}")
 
 
 if __name__ == "__main__":
