@@ -142,6 +142,11 @@ def test_bad_options_name_the_option_and_the_fix(capsys):
             preset_config("default", **{path: "no"})
     with pytest.raises(ValueError, match=r"env.task.terminate_on_forbidden_contact must be True or False, got 0"):
         TocabiWalkConfig(task=TaskConfig(terminate_on_forbidden_contact=0)).validate()
+    from tocabi_torchrl.transforms import transform_config
+
+    with pytest.raises(ValueError, match=r"zero_reward_on_terminated must be True or False, got 'no'"):
+        transform_config("reference", zero_reward_on_terminated="no")  # what make_env(...) passes its options to
+    assert transform_config("reference", compile_reward=np.bool_(True)).compile_reward is True
     cfg = preset_config("default", eval_at_end=np.bool_(False))  # a numpy sweep's value, kept as a plain bool
     assert cfg.eval_at_end is False and json.loads(json.dumps(cfg.to_dict()))["eval_at_end"] is False
 

@@ -29,10 +29,10 @@ from types import MappingProxyType
 from typing import Any
 
 from .envs.command import CommandConfig
-from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig, check_bool_fields
+from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig
 from .sim.config import RESET_PASSES
 from .transforms.presets import TransformSettings
-from .tree import ConfigError, leaf_paths, replace_paths
+from .tree import ConfigError, check_bool_fields, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
 from .tree import to_dict as _tree_to_dict
 

@@ -18,8 +18,10 @@ import types
 import typing
 from typing import Any
 
-__all__ = ["ConfigError", "leaf_paths", "leaf_types", "get_path", "replace_paths", "to_dict", "from_dict",
-           "parse_leaf", "item_type"]
+import numpy as np
+
+__all__ = ["ConfigError", "check_bool_fields", "leaf_paths", "leaf_types", "get_path", "replace_paths", "to_dict",
+           "from_dict", "parse_leaf", "item_type"]
 
 
 class ConfigError(ValueError):
@@ -232,3 +234,17 @@ def parse_leaf(kind: Any, text: str) -> Any:
     if kind in (int, float, bool):
         return _scalar(kind, text)
     return text  # str, paths and anything else given as text
+
+
+def check_bool_fields(tree, prefix: str = "") -> None:
+    """Raise ``ValueError`` naming the first field annotated ``bool`` in the dataclass ``tree`` (and its nested
+    sections) that holds anything but True or False: a switch set from text (``"no"``, ``"0"``) is truthy in Python
+    and would silently turn the option on. A numpy bool is taken, as a plain bool."""
+    for f in dataclasses.fields(tree):
+        value = getattr(tree, f.name)
+        if f.type in ("bool", bool) and not isinstance(value, bool):
+            if not isinstance(value, np.bool_):
+                raise ValueError(f"{prefix}{f.name} must be True or False, got {value!r}")
+            object.__setattr__(tree, f.name, bool(value))  # a numpy sweep's value (frozen trees too)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            check_bool_fields(value, f"{prefix}{f.name}.")

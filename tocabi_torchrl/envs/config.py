@@ -10,6 +10,7 @@ import numpy as np
 
 from .. import robot
 from ..sim.config import RESET_PASSES
+from ..tree import check_bool_fields
 from .command import CommandConfig
 
 __all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "SceneConfig", "BoxObstacle", "PD_GAINS",
@@ -39,20 +40,6 @@ def resolve_backend(backend: str, device) -> str:
         raise ValueError("backend='mujoco' steps C MuJoCo on the CPU; use device='cpu' with it, or backend='warp' "
                          "(or 'auto') on CUDA")
     return backend
-
-
-def check_bool_fields(tree, prefix: str = "") -> None:
-    """Raise ``ValueError`` naming the first field annotated ``bool`` in the dataclass ``tree`` (and its nested
-    sections) that holds anything but True or False: a switch set from text (``"no"``, ``"0"``) is truthy in Python
-    and would silently turn the option on. A numpy bool is taken, as a plain bool."""
-    for f in dataclasses.fields(tree):
-        value = getattr(tree, f.name)
-        if f.type in ("bool", bool) and not isinstance(value, bool):
-            if not isinstance(value, np.bool_):
-                raise ValueError(f"{prefix}{f.name} must be True or False, got {value!r}")
-            setattr(tree, f.name, bool(value))  # a numpy sweep's value; plain bool for config.json
-        if dataclasses.is_dataclass(value) and not isinstance(value, type):
-            check_bool_fields(value, f"{prefix}{f.name}.")
 
 
 @dataclass
