@@ -197,3 +197,23 @@ def test_assets_folder_override(tmp_path, monkeypatch):
     monkeypatch.setenv("TOCABI_TORCHRL_ASSETS", str(tmp_path))
     assert robot.asset_path("tocabi", "tocabi.xml") == tmp_path / "tocabi" / "tocabi.xml"
     assert robot.load_model().nu == 33
+
+
+def test_missing_names_checks_a_spec_without_compiling(tmp_path):
+    assert robot.missing_names(robot.load_spec()) == [] and robot.missing_names(robot.load_model()) == []
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text().replace('name="L_Knee_Motor"', 'name="Other_Motor"')
+    renamed = tmp_path / "renamed.xml"
+    renamed.write_text(text)
+    assert robot.missing_names(robot.load_spec(renamed)) == ["actuator 'L_Knee_Motor'"]
+
+
+@pytest.mark.parametrize("mode", ["pd_reference", "torque"])
+def test_env_refuses_a_model_that_is_not_tocabi(tmp_path, mode):
+    from tocabi_torchrl import make_env
+
+    tiny = tmp_path / "tiny.xml"
+    tiny.write_text('<mujoco><worldbody><geom type="plane" size="1 1 .1"/></worldbody></mujoco>')
+    # The PD modes used to fail inside _pd_leg_spec with "'NoneType' object has no attribute 'set_to_position'".
+    with pytest.raises(ValueError, match=r"tiny\.xml' is not a TOCABI model: it lacks joint 'L_HipYaw_Joint'.*"
+                                         r"and \d+ more; pass a TOCABI MJCF .*JOINT_NAMES, ACTUATOR_NAMES"):
+        make_env(1, "cpu", model_path=str(tiny), control_mode=mode)

@@ -1,6 +1,7 @@
 """Motion file formats: loading, joint remapping, and validation errors that say what is wrong."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -238,3 +239,52 @@ def test_reference_txt_loads():
     data = load_txt(reference_file("processed_data_tocabi_walk.txt"))
     assert data.joint_pos.shape == (3600, 33) and data.sample_rate == 2000.0
     np.testing.assert_allclose(data.joint_pos[:, 12:], np.tile(INIT_JOINT_POS[12:], (3600, 1)), atol=1e-12)
+
+
+# --------------------------------------------------------------------------- corrupt fields of the shipped .npz
+def shipped_with(tmp_path, name: str, value) -> str:
+    """The shipped motion with one field replaced, written with plain numpy."""
+    with np.load(asset_path("motions", "tocabi_walk.npz")) as npz:
+        fields = {k: npz[k] for k in npz.files}
+    fields[name] = value
+    path = tmp_path / f"bad_{name}.npz"
+    np.savez(path, **fields)
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    "name,value,message",
+    [
+        ("meta", np.array("{not json"), "meta must be one string holding a JSON object; it is not valid JSON"),
+        ("meta", np.array("[1, 2]"), "meta must be one string holding a JSON object, got JSON list"),
+        ("sample_rate", np.array([1.0, 2.0]), r"sample_rate must be a single positive number .* got shape \(2,\)"),
+        ("sample_rate", np.array("2000"), r"sample_rate must be a single positive number .* got dtype <U4"),
+        ("stance", np.full(3600, "1"), r"stance must be a \(rows,\) array of stance codes .* got dtype <U1"),
+        ("stance", np.full(3600, 1.5), "stance must be .*; value 1.5 at index 0 is not a whole number"),
+        ("joint_pos", np.zeros((2, 3600, 33)), r"joint_pos must be a 2-D \(rows, joints\) .* \(2, 3600, 33\)"),
+        ("joint_names", np.array([JOINT_NAMES]), r"joint_names must be a 1-D array of joint names .* shape \(1, 33\)"),
+        ("foot_force", np.full((3600, 2), "x"), r"foot_force must be a \(rows, 2\) array .* got dtype <U1"),
+        ("base_pos", np.zeros((3600, 3), bool), r"base_pos must be a \(rows, 3\) array .* got dtype bool"),
+        ("init_rows", np.array([1.5, 2.7]), r"init_rows must be a 1-D array of integer .*; value 1.5 at index 0"),
+        ("init_rows", np.array([0.0, np.nan]), "init_rows must be .*; value nan at index 1 is not a whole number"),
+        ("init_rows", np.array([[0, 1800]]), r"init_rows must be a 1-D array of integer .*, got shape \(1, 2\)"),
+    ],
+)
+def test_npz_corrupt_field_names_the_file_and_the_field(tmp_path, name, value, message):
+    path = shipped_with(tmp_path, name, value)
+    with pytest.raises(MotionFormatError, match=message) as info:
+        load_npz(path)
+    assert str(info.value).startswith(f"{path}: {name} must be")
+
+
+def test_npz_whole_number_floats_are_accepted_as_integers(tmp_path):
+    data = load_npz(shipped_with(tmp_path, "init_rows", np.array([0.0, 1800.0])))
+    assert data.init_rows.dtype == np.int64 and data.init_rows.tolist() == [0, 1800]
+
+
+def test_env_reports_a_corrupt_motion_by_file(tmp_path):
+    from tocabi_torchrl import make_env
+
+    path = shipped_with(tmp_path, "meta", np.array("{not json"))
+    with pytest.raises(MotionFormatError, match=re.escape(f"{path}: meta must be one string holding a JSON object")):
+        make_env(1, "cpu", motion=path)

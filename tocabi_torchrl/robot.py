@@ -50,6 +50,7 @@ __all__ = [
     "asset_path",
     "load_model",
     "load_spec",
+    "missing_names",
     "validate_model",
 ]
 
@@ -216,14 +217,31 @@ def _required_names() -> tuple[_Required, ...]:
     )
 
 
-def validate_model(model: "mujoco.MjModel", source: str = "model") -> None:  # noqa: F821
-    """Raise :class:`RobotAssetError` listing every expected name the model lacks, and check the joint order."""
+def missing_names(model: mujoco.MjModel | mujoco.MjSpec) -> list[str]:  # noqa: F821
+    """The expected TOCABI names a compiled model or an uncompiled spec lacks, as ``"joint 'L_Knee_Joint'"`` etc.
+
+    The order is joints, actuators, sensors, bodies, sites, geoms (each in ``robot`` order); empty for a TOCABI
+    model. On a spec this checks names only (nothing is compiled), so it is cheap to run before editing the spec.
+    """
     import mujoco
 
     missing: list[str] = []
     for req in _required_names():
-        obj = getattr(mujoco.mjtObj, f"mjOBJ_{req.kind}")
-        missing += [f"{req.kind.lower()} {n!r}" for n in req.names if mujoco.mj_name2id(model, obj, n) < 0]
+        if isinstance(model, mujoco.MjSpec):
+            find = getattr(model, req.kind.lower())  # spec.joint(name), spec.actuator(name), ...: None if absent
+            absent = [n for n in req.names if find(n) is None]
+        else:
+            obj = getattr(mujoco.mjtObj, f"mjOBJ_{req.kind}")
+            absent = [n for n in req.names if mujoco.mj_name2id(model, obj, n) < 0]
+        missing += [f"{req.kind.lower()} {n!r}" for n in absent]
+    return missing
+
+
+def validate_model(model: "mujoco.MjModel", source: str = "model") -> None:  # noqa: F821
+    """Raise :class:`RobotAssetError` listing every expected name the model lacks, and check the joint order."""
+    import mujoco
+
+    missing = missing_names(model)
     if missing:
         raise RobotAssetError(f"{source} lacks {len(missing)} expected name(s): " + ", ".join(missing))
     for j, name in enumerate(JOINT_NAMES):

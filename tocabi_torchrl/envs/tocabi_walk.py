@@ -40,6 +40,19 @@ def _finite(x: torch.Tensor) -> torch.Tensor:
     return torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
 
 
+def _check_tocabi_spec(spec, model_path) -> None:
+    """Refuse a model that is not TOCABI before anything edits it by name (``_pd_leg_spec``, the contact sensors)."""
+    missing = robot.missing_names(spec)
+    if missing:
+        path = model_path if model_path is not None else robot.asset_path("tocabi", "tocabi.xml")
+        shown = ", ".join(missing[:3]) + (f" and {len(missing) - 3} more" if len(missing) > 3 else "")
+        raise ValueError(
+            f"model_path {str(path)!r} is not a TOCABI model: it lacks {shown}; pass a TOCABI MJCF with the joint, "
+            "actuator, sensor, body, site and geom names of tocabi_torchrl.robot (JOINT_NAMES, ACTUATOR_NAMES, ...), "
+            "or model_path=None for the shipped assets/tocabi/tocabi.xml"
+        )
+
+
 def _pd_leg_spec(spec, control: ControlConfig):
     """Turn the 12 leg torque motors into position servos (PD inside every physics substep)."""
     for j in robot.LEG_JOINT_IDS:
@@ -110,6 +123,7 @@ class TocabiWalk(EnvBase):
 
         self._seed = int(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item())
         spec = robot.load_spec(cfg.task.model_path)
+        _check_tocabi_spec(spec, cfg.task.model_path)
         if control.mode not in TORQUE_MODES:
             spec = _pd_leg_spec(spec, control)
         obstacles = cfg.scene.obstacles

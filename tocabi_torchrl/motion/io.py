@@ -230,24 +230,103 @@ def load_npz(path: str | os.PathLike) -> MotionData:
     fmt = str(fields["format"])
     if fmt != NPZ_FORMAT:
         raise MotionFormatError(f"{p}: format {fmt!r} is not supported; expected {NPZ_FORMAT!r}")
-    names = [str(n) for n in np.atleast_1d(fields["joint_names"])]
-    joint_pos = np.asarray(fields["joint_pos"], dtype=np.float64)
-    if joint_pos.ndim != 2 or joint_pos.shape[1] != len(names):
+    names = _joint_names(p, fields["joint_names"])
+    joint_pos = _floats(p, "joint_pos", fields["joint_pos"], "a 2-D (rows, joints) array of joint positions [rad]")
+    if joint_pos.ndim != 2:
         raise MotionFormatError(
-            f"{p}: joint_pos has {joint_pos.shape[-1] if joint_pos.ndim else 0} columns but joint_names lists "
-            f"{len(names)} joints"
+            f"{p}: joint_pos must be a 2-D (rows, joints) array of joint positions [rad], got shape {joint_pos.shape}"
+        )
+    if joint_pos.shape[1] != len(names):
+        raise MotionFormatError(
+            f"{p}: joint_pos has {joint_pos.shape[1]} columns but joint_names lists {len(names)} joints"
         )
     joint_pos = joint_pos[:, _robot_order(names, str(p))]
-    meta = json.loads(str(fields["meta"])) if "meta" in fields else {}
+    base_pos = fields.get("base_pos")
     return MotionData(
         joint_pos=joint_pos,
-        foot_force=np.asarray(fields["foot_force"], dtype=np.float64),
-        stance=np.asarray(fields["stance"]).astype(np.int64),
-        sample_rate=float(fields["sample_rate"]),
-        init_rows=np.asarray(fields["init_rows"]).astype(np.int64).reshape(-1),
-        base_pos=np.asarray(fields["base_pos"], dtype=np.float64) if "base_pos" in fields else None,
-        meta=meta,
+        foot_force=_floats(p, "foot_force", fields["foot_force"], "a (rows, 2) array of foot forces [N]"),
+        stance=_whole_numbers(
+            p, "stance", fields["stance"], "a (rows,) array of stance codes 0 (double), 1 (right), 2 (left)"
+        ),
+        sample_rate=_sample_rate_field(p, fields["sample_rate"]),
+        init_rows=_init_rows_field(p, fields["init_rows"]),
+        base_pos=None if base_pos is None else _floats(p, "base_pos", base_pos, "a (rows, 3) array of positions [m]"),
+        meta=_meta_field(p, fields["meta"]) if "meta" in fields else {},
     ).validate(str(p))
+
+
+# Converters of the .npz fields: each returns the field in its MotionData type, or raises MotionFormatError naming
+# the file, the field and what it must be (numpy's own errors name neither, and its casts truncate silently).
+def _describe(arr: np.ndarray) -> str:
+    return f"dtype {arr.dtype}, shape {arr.shape}"
+
+
+def _joint_names(p: Path, value: np.ndarray) -> list[str]:
+    arr = np.asarray(value)
+    if arr.ndim != 1 or arr.dtype.kind not in "US":
+        raise MotionFormatError(f"{p}: joint_names must be a 1-D array of joint names (strings), got {_describe(arr)}")
+    return [n.decode() if isinstance(n, bytes) else str(n) for n in arr.tolist()]
+
+
+def _floats(p: Path, name: str, value: np.ndarray, must: str) -> np.ndarray:
+    """A numeric field as float64 (integer or float dtypes; not strings, booleans, complex or objects)."""
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "iuf":
+        raise MotionFormatError(f"{p}: {name} must be {must} (an integer or float dtype), got {_describe(arr)}")
+    return arr.astype(np.float64)
+
+
+def _whole_numbers(p: Path, name: str, value: np.ndarray, must: str) -> np.ndarray:
+    """An integer field as int64: an integer dtype, or floats that are all whole numbers (never truncated)."""
+    arr = np.asarray(value)
+    if arr.dtype.kind in "iu":
+        return arr.astype(np.int64)
+    if arr.dtype.kind != "f":
+        raise MotionFormatError(f"{p}: {name} must be {must} (an integer dtype), got {_describe(arr)}")
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.isfinite(arr) & (np.abs(arr) <= 2.0**53)) | (arr != np.round(arr))
+    if bad.any():
+        at = tuple(int(i) for i in np.argwhere(bad)[0]) if arr.ndim else ()
+        where = f" at index {at[0] if len(at) == 1 else at}" if at else ""
+        raise MotionFormatError(
+            f"{p}: {name} must be {must}; value {float(arr[at])!r}{where} is not a whole number"
+        )
+    return arr.astype(np.int64)
+
+
+def _sample_rate_field(p: Path, value: np.ndarray) -> float:
+    arr = _floats(p, "sample_rate", value, "a single positive number of rows per second [Hz]")
+    if arr.size != 1:
+        raise MotionFormatError(
+            f"{p}: sample_rate must be a single positive number of rows per second [Hz], got shape {arr.shape}"
+        )
+    return float(arr.reshape(()))
+
+
+def _init_rows_field(p: Path, value: np.ndarray) -> np.ndarray:
+    must = "a 1-D array of integer start rows"
+    rows = _whole_numbers(p, "init_rows", value, must)
+    if rows.ndim > 1:
+        raise MotionFormatError(f"{p}: init_rows must be {must}, got shape {rows.shape}")
+    return rows.reshape(-1)
+
+
+def _meta_field(p: Path, value: np.ndarray) -> dict:
+    arr = np.asarray(value)
+    if arr.ndim != 0 or arr.dtype.kind not in "US":
+        raise MotionFormatError(f"{p}: meta must be one string holding a JSON object, got {_describe(arr)}")
+    text = arr.item()
+    try:
+        meta = json.loads(text.decode() if isinstance(text, bytes) else text)
+    except (ValueError, UnicodeDecodeError) as err:  # JSONDecodeError is a ValueError
+        raise MotionFormatError(
+            f"{p}: meta must be one string holding a JSON object; it is not valid JSON ({err})"
+        ) from err
+    if not isinstance(meta, dict):
+        raise MotionFormatError(
+            f"{p}: meta must be one string holding a JSON object, got JSON {type(meta).__name__}"
+        )
+    return meta
 
 
 def _robot_order(names: list[str], source: str) -> np.ndarray:
