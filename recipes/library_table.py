@@ -32,7 +32,9 @@ in progress) is in each row's notes. One H100, 10-minute commands, one row (repe
 The row's run folder (``--runs``) and ``--json`` must survive between calls (the same machine, or copied out and
 back). Calls for different rows may run at the same time, one per GPU (``CUDA_VISIBLE_DEVICES=0 python
 recipes/library_table.py ... & CUDA_VISIBLE_DEVICES=1 python recipes/library_table.py ...``): each writes only its
-own rows into ``--json``, under a file lock. This script lives in recipes/ while benchmarks/ is being rewritten; it
+own rows into ``--json``, under a file lock. Relative ``--runs``, ``--json`` and ``--md`` paths are from the current
+folder; their defaults are the repository's (``runs/library_table``, ``docs/adapters_table.{json,md}`` under it).
+A ``--report`` call needs an existing ``--json``. This script lives in recipes/ while benchmarks/ is being rewritten; it
 belongs beside benchmarks/time_to_walk.py.
 """
 
@@ -41,6 +43,8 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import math
+import os
 import re
 import shlex
 import subprocess
@@ -325,6 +329,25 @@ def row_key(row: dict) -> tuple:
     return row["library"], row["preset"], row["num_envs"]
 
 
+def load_rows(path: Path) -> list[dict]:
+    """The rows of the table json ``path`` ([] when there is no such file). ``ValueError`` naming the file when it
+    is not JSON, not a list of JSON objects, or has a row without the ``library``, ``preset`` and ``num_envs`` that
+    identify it."""
+    if not path.is_file():
+        return []
+    try:
+        rows = json.loads(path.read_text())
+    except ValueError as err:  # JSONDecodeError, UnicodeDecodeError
+        raise ValueError(f"{path} is not a table json: {err}") from None
+    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+        raise ValueError(f"{path} is not a table json: not a list of rows (JSON objects)")
+    for i, row in enumerate(rows, 1):
+        missing = [k for k in ("library", "preset", "num_envs") if k not in row]
+        if missing:
+            raise ValueError(f"{path}: row {i} has no {', '.join(map(repr, missing))}")
+    return rows
+
+
 def save_rows(json_path: Path, rows: list[dict], mine: set[tuple], md_path: Path | None = None) -> list[dict]:
     """Write this call's rows (keys in ``mine``) into ``json_path``, keeping every other row as the file has it now,
     and return the merged rows (also rendered into ``md_path`` when given). The files are read and written under an
@@ -337,7 +360,7 @@ def save_rows(json_path: Path, rows: list[dict], mine: set[tuple], md_path: Path
     json_path.parent.mkdir(parents=True, exist_ok=True)
     with open(json_path.with_name(json_path.name + ".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        on_disk = json.loads(json_path.read_text()) if json_path.is_file() else []
+        on_disk = load_rows(json_path)
         ours = {row_key(r): r for r in rows if row_key(r) in mine}
         merged = [ours.pop(row_key(r), r) if row_key(r) in mine else r for r in on_disk]
         merged += [r for r in rows if row_key(r) in ours]  # this call's new rows, in its order
@@ -348,6 +371,8 @@ def save_rows(json_path: Path, rows: list[dict], mine: set[tuple], md_path: Path
 
 
 def report(rows: list[dict], path: Path) -> None:
+    """Render ``rows`` into the table ``path``. ``ValueError`` naming the row (by its place in ``rows``, from 1) and
+    the field when one lacks a field the table shows; ``path`` is then left as it is."""
     from tocabi_torchrl.rl.atomic import atomic_write_text
 
     intro = ("Training env-steps/s (collection + update over training wall-clock) and the training time at which the "
@@ -356,23 +381,18 @@ def report(rows: list[dict], path: Path) -> None:
              ("| library | version | preset | envs | env-steps/s | walks at (min) | trained (min) | calls | device | "
               "commands |"),
              "|---|---|---|---|---|---|---|---|---|---|"]
-    notes = {}
-    for r in sorted(rows, key=lambda r: (r["preset"], r["library"], r["num_envs"])):
-        rate = f"{r['env_steps_per_s']:,.0f}"
-        if r.get("walks_minutes") is not None:
-            walks = f"{r['walks_minutes']:.1f}"
-        elif r.get("status", "final") == "final":
-            walks = f"no (≤ {r['cap_minutes']:g})"
-        elif not r.get("train_seconds"):  # every call so far was stopped before its recipe saved
-            rate, walks = "-", "not trained yet (no call has finished)"
-        else:
-            walks = "pending (training or untested snapshots)"
-        commands = r.get("commands") or [r.get("command", "")]
-        lines.append(f"| {r['library']} | {r.get('version', '')} | {r['preset']} | {r['num_envs']:,} | "
-                     f"{rate} | {walks} | {r.get('train_seconds', 0) / 60:.1f} | "
-                     f"{r.get('calls', 1)} | {r['device'] or '-'} | {'; '.join(f'`{c}`' for c in commands)} |")
-        if r.get("notes"):
-            notes[r["library"]] = r["notes"]
+    notes, cells = {}, []
+    for i, r in enumerate(rows, 1):
+        try:
+            cells.append(((str(r["preset"]), str(r["library"]), float(r["num_envs"])), table_row(r)))
+        except KeyError as err:
+            raise ValueError(f"row {i} ({row_name(r)}) has no {err.args[0]!r}") from None
+        except (TypeError, ValueError, AttributeError) as err:
+            raise ValueError(f"row {i} ({row_name(r)}): {err}") from None
+    for _, (line, note) in sorted(cells, key=lambda c: c[0]):
+        lines.append(line)
+        if note:
+            notes[note[0]] = note[1]
     if notes:
         lines += ["", ("Training split over calls (`--minutes`): the time to walk is in cumulative training minutes. "
                        "What a resumed call carries over:"), ""]
@@ -380,12 +400,88 @@ def report(rows: list[dict], path: Path) -> None:
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
+def row_name(row) -> str:
+    """``library preset num_envs`` of a row, ``?`` for what it lacks."""
+    get = row.get if isinstance(row, dict) else (lambda key, default: default)
+    return " ".join(str(get(k, "?")) for k in ("library", "preset", "num_envs"))
+
+
+def table_row(r: dict) -> tuple[str, tuple[str, str] | None]:
+    """A row's line of the table, and its (library, notes) when it has notes."""
+    rate = f"{r['env_steps_per_s']:,.0f}"
+    if r.get("walks_minutes") is not None:
+        walks = f"{r['walks_minutes']:.1f}"
+    elif r.get("status", "final") == "final":
+        walks = f"no (≤ {r['cap_minutes']:g})"
+    elif not r.get("train_seconds"):  # every call so far was stopped before its recipe saved
+        rate, walks = "-", "not trained yet (no call has finished)"
+    else:
+        walks = "pending (training or untested snapshots)"
+    commands = r.get("commands") or [r.get("command", "")]
+    line = (f"| {r['library']} | {r.get('version', '')} | {r['preset']} | {r['num_envs']:,} | "
+            f"{rate} | {walks} | {r.get('train_seconds', 0) / 60:.1f} | "
+            f"{r.get('calls', 1)} | {r['device'] or '-'} | {'; '.join(f'`{c}`' for c in commands)} |")
+    return line, ((r["library"], r["notes"]) if r.get("notes") else None)
+
+
+DEFAULT_RUNS, DEFAULT_JSON, DEFAULT_MD = "runs/library_table", "docs/adapters_table.json", "docs/adapters_table.md"
+
+
+def given_path(given: str | None, default: str) -> Path:
+    """An absolute path: ``given`` (relative: from the current folder, as any command's), else ``default`` in the
+    repository. The table's commands run from the repository root, where both read alike."""
+    return ROOT / default if given is None else Path(os.path.abspath(given))
+
+
+def check_args(parser: argparse.ArgumentParser, args) -> None:
+    """Every check of a call's arguments, before any row trains or is tested (``parser.error`` naming the flag, the
+    value and what it takes); sets ``args.library_list`` and ``args.num_envs_list`` (parsed, duplicates dropped)."""
+    if args.no_eval and args.eval_only:
+        parser.error("--no_eval and --eval_only exclude each other")
+    libraries = [x.strip() for x in args.libraries.split(",")]
+    for library in libraries:
+        if library not in LIBRARIES:
+            parser.error(f"--libraries {args.libraries}: unknown library {library!r}; give comma-separated names of "
+                         f"{', '.join(LIBRARIES)}")
+    args.library_list = list(dict.fromkeys(libraries))
+    envs = []
+    for text in args.num_envs.split(","):
+        try:
+            envs.append(int(text))
+        except ValueError:
+            envs.append(0)
+        if envs[-1] < 1:
+            parser.error(f"--num_envs {args.num_envs}: {text.strip()!r} is not an env count; give comma-separated "
+                         "whole numbers >= 1 (e.g. 8,256)")
+    args.num_envs_list = list(dict.fromkeys(envs))
+    for flag, value, positive, means in (
+            ("--max_minutes", args.max_minutes, True, "the training cap of a row"),
+            ("--minutes", args.minutes, False, "0: up to --max_minutes"),
+            ("--checkpoint_minutes", args.checkpoint_minutes, False, "the snapshot period"),
+            ("--eval_minutes", args.eval_minutes, False, "0: test all"),
+            ("--eval_seconds", args.eval_seconds, True, "the length of a gait test")):
+        if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
+            parser.error(f"{flag} {value:g}: give a finite number {'> 0' if positive else '>= 0'} ({means})")
+    if args.eval_envs < 1:
+        parser.error(f"--eval_envs {args.eval_envs}: give a number of robots >= 1")
+    if args.report:
+        return
+    from tocabi_torchrl.config import PRESETS, check_snapshot_minutes
+
+    if args.preset not in PRESETS:
+        parser.error(f"--preset {args.preset}: unknown preset; choose from {', '.join(sorted(PRESETS))}")
+    try:  # a period under 1 s could give two snapshots one name
+        check_snapshot_minutes(args.checkpoint_minutes, "--checkpoint_minutes")
+    except ValueError as err:
+        parser.error(str(err))
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--libraries", default="torchrl,rsl_rl,skrl,sb3", help="comma-separated, of " +
                         ", ".join(LIBRARIES))
     parser.add_argument("--num_envs", default="4096", help="comma-separated env counts (default: 4096)")
-    parser.add_argument("--preset", default="default", help="task preset (default; torque once it exists)")
+    parser.add_argument("--preset", default="default", help="task preset, a name of tocabi_torchrl.config.PRESETS (default: default)")
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--max_minutes", type=float, default=30.0,
                         help="training cap of a row [min], summed over calls (default: 30)")
@@ -409,22 +505,34 @@ def main(argv=None) -> None:
     parser.add_argument("--recipe_args", default="",
                         help="extra options for the rsl_rl, skrl and sb3 recipes (recipes/train_<library>.py), e.g. "
                              "'--hidden 16' for a smoke test; not passed to recipes/ppo_walk.py (torchrl rows)")
-    parser.add_argument("--runs", default="runs/library_table", help="training runs go here (one folder per row)")
-    parser.add_argument("--json", default="docs/adapters_table.json")
-    parser.add_argument("--md", default="docs/adapters_table.md")
-    parser.add_argument("--report", action="store_true", help="only rewrite --md from --json")
+    where = " (a relative path is from the current folder; default: {} in the repository)"
+    parser.add_argument("--runs", help="training runs go here (one folder per row)" + where.format(DEFAULT_RUNS))
+    parser.add_argument("--json", help="the table's rows, read and updated" + where.format(DEFAULT_JSON))
+    parser.add_argument("--md", help="the table, rewritten from --json" + where.format(DEFAULT_MD))
+    parser.add_argument("--report", action="store_true",
+                        help="only rewrite --md from --json, which must exist; trains and tests nothing")
     args = parser.parse_args(argv)
-    if args.no_eval and args.eval_only:
-        parser.error("--no_eval and --eval_only exclude each other")
-    if not args.report:
-        from tocabi_torchrl.config import check_snapshot_minutes
-
-        try:  # before any training: a period under 1 s could give two snapshots one name
-            check_snapshot_minutes(args.checkpoint_minutes, "--checkpoint_minutes")
+    check_args(parser, args)
+    json_path, md_path = given_path(args.json, DEFAULT_JSON), given_path(args.md, DEFAULT_MD)
+    runs = given_path(args.runs, DEFAULT_RUNS)
+    if args.report:
+        if not json_path.is_file():  # never an empty table over the committed one, as a mistyped --json gave
+            parser.error(f"--json {args.json or DEFAULT_JSON}: no such file ({json_path}); --report rewrites --md "
+                         "from an existing table json")
+        try:
+            rows = load_rows(json_path)
+        except ValueError as err:  # it names the file
+            parser.error(f"--json: {err}; --md {md_path} left as it is")
+        try:
+            report(rows, md_path)
         except ValueError as err:
-            parser.error(str(err))
-    json_path, md_path = ROOT / args.json, ROOT / args.md
-    rows = json.loads(json_path.read_text()) if json_path.is_file() else []
+            parser.error(f"--json {json_path}: {err}; --md {md_path} left as it is")
+        print(f"{md_path}: {len(rows)} row(s) from {json_path}")
+        return
+    try:
+        rows = load_rows(json_path)
+    except ValueError as err:  # it names the file
+        parser.error(f"--json: {err}")
     command = shlex.join(["python", "recipes/library_table.py", *(sys.argv[1:] if argv is None else argv)])
     if not args.report:
         from importlib import metadata
@@ -435,10 +543,8 @@ def main(argv=None) -> None:
         args.save_rows = lambda: save_rows(json_path, rows, mine)
         dists = {"torchrl": "torchrl", "rsl_rl": "rsl-rl-lib", "skrl": "skrl", "sb3": "stable-baselines3"}
         cap_s = 60.0 * args.max_minutes
-        for library in args.libraries.split(","):
-            if library not in LIBRARIES:
-                parser.error(f"unknown library {library!r}; choose from {', '.join(LIBRARIES)}")
-            for n in (int(x) for x in args.num_envs.split(",")):
+        for library in args.library_list:
+            for n in args.num_envs_list:
                 key = (library, args.preset, n)
                 mine.add(key)
                 row = next((r for r in rows if row_key(r) == key), None)
@@ -455,8 +561,7 @@ def main(argv=None) -> None:
                         continue
                     stamp = time.strftime("%Y%m%d_%H%M%S")
                     row = {"library": library, "version": metadata.version(dists[library]), "preset": args.preset,
-                           "num_envs": n, "status": "training", "run": str(ROOT / args.runs / f"{library}_"
-                                                                              f"{args.preset}_{n}_{stamp}"),
+                           "num_envs": n, "status": "training", "run": str(runs / f"{library}_{args.preset}_{n}_{stamp}"),
                            "env_steps": 0, "train_seconds": 0.0, "env_steps_per_s": 0.0, "snapshots": [],
                            "tested": {}, "walks_minutes": None, "walk": None, "cap_minutes": args.max_minutes,
                            "device": None, "commands": [], "notes": "", "calls": 0}
@@ -518,8 +623,7 @@ def main(argv=None) -> None:
                 print(json.dumps({k: row[k] for k in ("library", "num_envs", "status", "train_seconds",
                                                       "env_steps_per_s", "walks_minutes")}))
         save_rows(json_path, rows, mine, md_path)  # the table: with the rows of calls that ran beside this one
-    else:
-        report(rows, md_path)
+        print(f"table: {json_path}, {md_path}")
 
 
 if __name__ == "__main__":

@@ -563,3 +563,100 @@ def test_the_gpu_call_script_trains_each_row_on_its_gpu_and_packs_the_calls_snap
                              capture_output=True, text=True, check=False)
         assert bad.returncode == 2 and "LIBRARY[:PRESET[:ENVS]][+new]@GPU" in bad.stderr
         assert log.read_text() == ""
+
+
+#: A table row with what the table shows of it (a row that walks at 3 minutes).
+SHOWN = {"library": "rsl_rl", "version": "5.5.1", "preset": "default", "num_envs": 8, "env_steps_per_s": 100.0,
+         "walks_minutes": 3.0, "train_seconds": 180.0, "status": "final", "device": "cpu", "commands": ["c"]}
+
+
+def test_report_refuses_a_missing_json_and_leaves_the_md_alone(tmp_path, capsys):
+    # A mistyped --json once rendered [] over the committed table: header only, exit 0.
+    table = load_recipe("library_table")
+    (tmp_path / "table.md").write_text("the committed table\n")
+    with pytest.raises(SystemExit) as exit_:
+        table.main(["--report", "--json", str(tmp_path / "tabel.json"), "--md", str(tmp_path / "table.md")])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "error: --json" in err and "tabel.json: no such file" in err
+    assert (tmp_path / "table.md").read_text() == "the committed table\n"
+
+
+@pytest.mark.parametrize("text, said", [
+    ('[{"library": "rsl_rl"', "is not a table json: Expecting"),
+    ('{"library": "rsl_rl"}', "not a list of rows"),
+    (json.dumps([{k: v for k, v in SHOWN.items() if k != "preset"}]), "row 1 has no 'preset'"),
+    (json.dumps([SHOWN, {k: v for k, v in SHOWN.items() if k != "device"}]), "row 2 (rsl_rl default 8) has no 'device'"),
+    (json.dumps([{**SHOWN, "num_envs": "many"}]), "row 1 (rsl_rl default many)"),
+])
+def test_report_names_the_file_of_a_malformed_json_or_row(tmp_path, capsys, text, said):
+    table = load_recipe("library_table")
+    (tmp_path / "table.json").write_text(text)
+    (tmp_path / "table.md").write_text("the committed table\n")
+    with pytest.raises(SystemExit) as exit_:
+        table.main(["--report", *files(tmp_path)])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and str(tmp_path / "table.json") in err and said in err
+    assert (tmp_path / "table.md").read_text() == "the committed table\n"
+
+
+def test_report_rewrites_the_md_and_says_from_what(tmp_path, capsys):
+    table = load_recipe("library_table")
+    (tmp_path / "table.json").write_text(json.dumps([SHOWN]))
+    table.main(["--report", *files(tmp_path)])
+    assert "| rsl_rl | 5.5.1 | default | 8 | 100 | 3.0 | 3.0 | 1 | cpu | `c` |" in (tmp_path / "table.md").read_text()
+    assert f"{tmp_path / 'table.md'}: 1 row(s) from {tmp_path / 'table.json'}" in capsys.readouterr().out
+
+
+def test_relative_paths_are_from_the_current_folder_and_the_defaults_in_the_repository(torchrl_table, tmp_path,
+                                                                                         monkeypatch):
+    table = torchrl_table
+    assert table.given_path(None, table.DEFAULT_JSON) == table.ROOT / "docs" / "adapters_table.json"
+    assert table.given_path(None, table.DEFAULT_RUNS) == table.ROOT / "runs" / "library_table"
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    assert table.given_path("../t.json", table.DEFAULT_JSON) == tmp_path / "t.json"
+    (here / "mine.json").write_text(json.dumps([SHOWN]))
+    table.main(["--report", "--json", "mine.json", "--md", "mine.md"])
+    assert "| rsl_rl |" in (here / "mine.md").read_text() and not (table.ROOT / "mine.md").exists()
+    # A training call: its run folder, json and md where the relative paths say.
+    table.main(["--libraries", "torchrl", "--num_envs", "2", "--device", "cpu", "--max_minutes", str(1 / 60),
+                "--checkpoint_minutes", str(1 / 60), "--runs", "r", "--json", "t.json", "--md", "t.md"])
+    [row] = json.loads((here / "t.json").read_text())
+    assert Path(row["run"]).parent == here / "r" and (here / "t.md").is_file()
+    assert not (table.ROOT / "t.json").exists() and not (table.ROOT / "r").exists()
+
+
+@pytest.mark.parametrize("bad, said", [
+    (["--libraries", "torchrl,rsl-rl"], ("--libraries torchrl,rsl-rl: unknown library 'rsl-rl'; give "
+                                         "comma-separated names of torchrl, rsl_rl, skrl, sb3")),
+    (["--libraries", "torchrl,"], "--libraries torchrl,: unknown library ''"),
+    (["--num_envs", "2,abc"], "--num_envs 2,abc: 'abc' is not an env count"),
+    (["--num_envs", "0"], "--num_envs 0: '0' is not an env count; give comma-separated whole numbers >= 1"),
+    (["--num_envs", "2,-8"], "--num_envs 2,-8: '-8' is not an env count"),
+    (["--minutes", "-5"], "--minutes -5: give a finite number >= 0 (0: up to --max_minutes)"),
+    (["--minutes", "inf"], "--minutes inf: give a finite number >= 0"),
+    (["--max_minutes", "0"], "--max_minutes 0: give a finite number > 0"),
+    (["--max_minutes", "nan"], "--max_minutes nan: give a finite number > 0"),
+    (["--eval_minutes", "-1"], "--eval_minutes -1: give a finite number >= 0 (0: test all)"),
+    (["--checkpoint_minutes", "inf"], "--checkpoint_minutes inf: give a finite number >= 0"),
+    (["--eval_seconds", "0"], "--eval_seconds 0: give a finite number > 0"),
+    (["--eval_envs", "0"], "--eval_envs 0: give a number of robots >= 1"),
+    (["--preset", "torq"], "--preset torq: unknown preset; choose from"),
+])
+def test_arguments_are_checked_before_any_row_runs(torchrl_table, tmp_path, capsys, bad, said):
+    # Before: the torchrl row trained (up to 30 minutes) before 'rsl-rl' was found unknown; --minutes -5 was no limit.
+    with pytest.raises(SystemExit) as exit_:
+        torchrl_table.main(torchrl_args(tmp_path, *bad))
+    out, err = capsys.readouterr()
+    assert exit_.value.code == 2 and f"error: {said}" in err and out == ""
+    assert torchrl_table.ppo_walk.commands == [] and torchrl_table.tested == []
+    assert not (tmp_path / "table.json").exists() and not (tmp_path / "runs").exists()
+
+
+def test_a_malformed_json_is_refused_before_any_row_runs(torchrl_table, tmp_path, capsys):
+    (tmp_path / "table.json").write_text("[")
+    with pytest.raises(SystemExit):
+        torchrl_table.main(torchrl_args(tmp_path))
+    assert f"error: --json: {tmp_path / 'table.json'} is not a table json" in capsys.readouterr().err
+    assert torchrl_table.ppo_walk.commands == [] and (tmp_path / "table.json").read_text() == "["
