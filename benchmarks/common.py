@@ -35,7 +35,7 @@ GIB = 2**30
 #: Raw policy steps run before the ceiling is measured (the robots settle onto the floor first).
 RAW_WARMUP = 20
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "benchmarks"
-#: Where a benchmark's default output goes on a machine without CUDA (ignored by git): see :func:`publish`.
+#: Where a report measured on the CPU goes instead of :data:`DOCS` (ignored by git): see :func:`report_dir`.
 CPU_OUT = Path(__file__).resolve().parents[1] / "runs" / "benchmarks_cpu"
 
 
@@ -298,7 +298,7 @@ def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Call
     results = [measure(n, args.iterations, args.warmup, args.raw_steps, args.device, args.run_dir, overrides)
                for n in args.num_envs]
     data = {"meta": meta(name, argv, args.device, name=args.name), "results": results}
-    print(publish(args.out, args.name, data, render))
+    print(publish(args.out, args.name, data, render, measured_on=args.device))
     return data
 
 
@@ -350,16 +350,23 @@ def write_json(path: str | Path, data: dict) -> Path:
     return atomic_write_text(Path(path), json.dumps(data, indent=2) + "\n")
 
 
-def publish(out: str | Path, name: str, data: dict, render: Callable[[dict, Path], str]) -> str:
-    """Write ``<out>/<name>.json`` and its page ``render(data, out)`` as ``<name>.md`` (atomically, saying where).
-
-    On a machine without CUDA, ``out`` = :data:`DOCS` (the scripts' default) becomes :data:`CPU_OUT`: a CPU smoke
-    run must not replace the published GPU results in the repository."""
+def report_dir(out: str | Path, measured_on: str | None = None) -> Path:
+    """Where a report measured on ``measured_on`` (a device string; None: not measured here, e.g. GPU results merged
+    or re-rendered on this machine) goes: ``out``, except that a CPU measurement is never published into
+    :data:`DOCS`, which holds the GPU results; it goes to :data:`CPU_OUT` instead, saying so."""
     out = Path(out)
-    if out.resolve() == DOCS.resolve() and not torch.cuda.is_available():
-        print(f"no CUDA device here: writing to {CPU_OUT}, not {DOCS}, which holds the published GPU results",
+    if measured_on is not None and not str(measured_on).startswith("cuda") and out.resolve() == DOCS.resolve():
+        print(f"measured on {measured_on}: writing to {CPU_OUT}, not {DOCS}, which holds the published GPU results",
               flush=True)
-        out = CPU_OUT
+        return CPU_OUT
+    return out
+
+
+def publish(out: str | Path, name: str, data: dict, render: Callable[[dict, Path], str],
+            measured_on: str | None = None) -> str:
+    """Write ``<out>/<name>.json`` and its page ``render(data, out)`` as ``<name>.md`` (atomically, saying where);
+    ``out`` as :func:`report_dir` gives it for ``measured_on``."""
+    out = report_dir(out, measured_on)
     write_json(out / f"{name}.json", data)  # (making the folder)
     text = render(data, out)
     atomic_write_text(out / f"{name}.md", text)

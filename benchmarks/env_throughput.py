@@ -89,7 +89,7 @@ def main(argv=None) -> None:
     results = [measure(n, args.steps, args.raw_steps, args.device, args.backend, args.reset_pass)
                for n in args.num_envs]
     data = {"meta": common.meta(NAME, argv, args.device, name=args.name), "results": results}
-    print(common.publish(args.out, args.name, data, render))
+    print(common.publish(args.out, args.name, data, render, measured_on=args.device))
 
 
 if __name__ == "__main__":

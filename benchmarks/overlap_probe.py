@@ -140,7 +140,7 @@ def main(argv=None) -> dict:
         print(f"  physics {1e3 * r['physics_s']:.1f} ms, update {1e3 * r['update_s']:.1f} ms, both "
               f"{1e3 * r['both_s']:.1f} ms: {r['hidden']:.2f} of the update hidden", flush=True)
     data = {"meta": common.meta(NAME, argv, on=args.device, preset=args.preset), "results": results}
-    common.publish(args.out, args.name, data, render)
+    common.publish(args.out, args.name, data, render, measured_on=args.device)
     return data
 
 

@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     meta["faults"], results = run_faults(args)
     meta["faults_command"] = meta["command"]
     results = [{**c, "mode": "faults"} for c in results]
-    print(common.publish(args.out, "soak", {"meta": meta, "results": results}, render))
+    print(common.publish(args.out, "soak", {"meta": meta, "results": results}, render, measured_on=args.device))
     return 0 if all(c["ok"] for c in results) else 1
 
 

@@ -217,9 +217,12 @@ def plot_curves(metrics: list[Path], path: Path) -> None:
 
 def report_part(args, command: str) -> None:
     data = {"command": command, "records": [read_run(Path(p)) for p in args.runs]}
-    text = common.publish(args.out, "time_to_walk", data, render)  # it makes --out
+    # Runs trained on the CPU (smoke runs) are kept out of the published GPU results; GPU runs copied back are not.
+    cpu = data["records"] and all(r.get("gpu") == "cpu" for r in data["records"])
+    out = common.report_dir(args.out, "cpu" if cpu else None)
+    text = common.publish(out, "time_to_walk", data, render)  # it makes the folder
     if args.curves:
-        plot_curves([Path(p) for p in args.curves], Path(args.out) / "time_to_walk_curves.png")
+        plot_curves([Path(p) for p in args.curves], out / "time_to_walk_curves.png")
     print(text)
 
 

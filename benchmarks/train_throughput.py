@@ -117,7 +117,7 @@ def main(argv=None) -> None:
     results = [common.run_child(NAME, ["--num_envs", str(n), *options], nproc=k if max(args.nproc) > 1 else None)
                for k in args.nproc for n in args.num_envs]
     print(common.publish(args.out, args.name, {"meta": common.meta(NAME, argv, args.device), "results": results},
-                         render))
+                         render, measured_on=args.device))
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -23,6 +24,7 @@ from benchmarks import (
     soak,
     solver_load,
     step_timeline,
+    time_to_walk,
     train_throughput,
 )
 
@@ -42,21 +44,35 @@ def test_unknown_override_is_named():
         common.parse_overrides(["cuda_grpah=on"])
 
 
-@pytest.mark.skipif(torch.cuda.is_available(), reason="the redirect is for machines without CUDA")
-def test_a_cpu_run_does_not_replace_the_published_gpu_reports(tmp_path, monkeypatch, capsys):
-    # docs/benchmarks.md gives CPU commands whose default --out is docs/benchmarks: without CUDA the report goes to
-    # runs/benchmarks_cpu instead, and the published files stay as they are.
+def test_a_cpu_measurement_does_not_replace_the_published_gpu_reports(tmp_path, monkeypatch, capsys):
+    # docs/benchmarks.md gives CPU commands whose default --out is docs/benchmarks: a report measured on the CPU goes
+    # to runs/benchmarks_cpu instead. GPU results merged or re-rendered on a CPU machine (mjlab_peer's merge,
+    # time_to_walk's report of runs copied back) still go where they are told.
     docs, cpu = tmp_path / "docs", tmp_path / "cpu"
     docs.mkdir()
     (docs / "env_throughput.json").write_text("published")
     monkeypatch.setattr(common, "DOCS", docs)
     monkeypatch.setattr(common, "CPU_OUT", cpu)
-    common.publish(docs, "env_throughput", {"meta": {}, "results": []}, lambda data, out: "page")
+    common.publish(docs, "env_throughput", {"meta": {}, "results": []}, lambda data, out: "page", measured_on="cpu")
     assert (docs / "env_throughput.json").read_text() == "published" and not (docs / "env_throughput.md").exists()
     assert (cpu / "env_throughput.md").read_text() == "page" and "not " + str(docs) in capsys.readouterr().out
+    for on in (None, "cuda", "cuda:1"):
+        assert common.report_dir(docs, on) == docs
+    assert common.report_dir(tmp_path / "elsewhere", "cpu") == tmp_path / "elsewhere"  # asked for: honoured
+    # time_to_walk's report: runs trained on the GPU are published; CPU smoke runs are not, their curves neither.
+    for gpu, expected in (("NVIDIA H100 80GB HBM3", docs), ("cpu", cpu)):
+        run = tmp_path / f"run_{gpu[:3]}"
+        run.mkdir()
+        (run / "train.json").write_text(json.dumps({"preset": "cpu_smoke", "gpu": gpu}))
+        monkeypatch.setattr(time_to_walk, "render", lambda data, out: "ttw")
+        monkeypatch.setattr(time_to_walk, "plot_curves", lambda metrics, path: path.write_text("curves"))
+        time_to_walk.report_part(SimpleNamespace(runs=[str(run)], out=str(docs), curves=["m.csv"]), "cmd")
+        assert (expected / "time_to_walk.md").read_text() == "ttw" and (expected / "time_to_walk_curves.png").is_file()
+    if torch.cuda.is_available():
+        return
     for bad in (["--steps", "0"], ["--num_envs", "0"], []):  # [] asks for CUDA by default: named, not a traceback
         with pytest.raises(SystemExit):
-            env_throughput.main([*bad, "--out", str(tmp_path / "x")] if bad else ["--out", str(tmp_path / "x")])
+            env_throughput.main([*bad, "--out", str(tmp_path / "x")])
         assert "error:" in capsys.readouterr().err
 
 
