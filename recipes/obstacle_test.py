@@ -38,6 +38,7 @@ import argparse
 import dataclasses
 import io
 import json
+import math
 import sys
 
 from tocabi_torchrl.render_gl import NO_GL_FIX, GLBackendError, choose_gl_backend
@@ -298,8 +299,9 @@ def main(argv: list[str] | None = None) -> dict:
     if args.steps_on_obstacle < 1:
         parser.error(f"--steps_on_obstacle must be >= 1 (footfalls the torque window covers), got "
                      f"{args.steps_on_obstacle}")
-    if 0 < args.step_mm < 0.001:  # heights are kept to 1e-6 mm: a smaller step never raises the box
-        parser.error(f"--step_mm must be 0 (only --heights_mm) or at least 0.001 mm, got {args.step_mm:g}")
+    if not math.isfinite(args.step_mm) or 0 < args.step_mm < 1e-6:  # heights are rounded to 1e-6 mm
+        parser.error(f"--step_mm must be 0 (only --heights_mm) or a finite step of at least 1e-6 mm, got "
+                     f"{args.step_mm:g}")
     if args.resume and args.overwrite:
         parser.error("--resume keeps the earlier table's rows, --overwrite replaces them: pass one of them")
     try:

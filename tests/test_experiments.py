@@ -333,7 +333,8 @@ def test_obstacle_test_end_to_end(tmp_path):
 
 @pytest.mark.parametrize("flags, message", [
     (["--steps_on_obstacle", "0"], "--steps_on_obstacle must be >= 1"),
-    (["--step_mm", "1e-7"], "--step_mm must be 0 .* or at least 0.001 mm"),
+    (["--step_mm", "1e-7"], "--step_mm must be 0 .* or a finite step of at least 1e-6 mm"),
+    (["--step_mm", "inf"], "--step_mm must be 0 .* or a finite step"),
 ])
 def test_obstacle_test_refuses_an_empty_torque_window_or_a_step_that_never_raises_the_box(flags, message, capsys):
     # Before: --steps_on_obstacle 0 crashed after the rollout (an empty window), and a step below the heights'

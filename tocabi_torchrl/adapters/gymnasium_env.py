@@ -48,12 +48,12 @@ class TocabiVectorEnv(VectorEnv):
     def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", numpy: bool = False,
                  preset: str = "default",
                  env_options: dict | None = None, **task):
+        if not isinstance(numpy, (bool, np.bool_)):  # bool("no") is True
+            raise ValueError(f"numpy must be True or False, got {numpy!r}")  # noqa: TRY004 (an option value)
         env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
         self.stepper = TensorStepper(env)
         self.num_envs = self.stepper.num_envs
         self.device = self.stepper.device
-        if not isinstance(numpy, (bool, np.bool_)):  # bool("no") is True
-            raise ValueError(f"numpy must be True or False, got {numpy!r}")  # noqa: TRY004 (an option value)
         self.numpy = bool(numpy)
         self.single_observation_space = box_from_spec(env.observation_spec["observation"], batched=False)
         self.single_action_space = box_from_spec(env.action_spec, batched=False)
