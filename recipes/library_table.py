@@ -534,96 +534,95 @@ def main(argv=None) -> None:
     except ValueError as err:  # it names the file
         parser.error(f"--json: {err}")
     command = shlex.join(["python", "recipes/library_table.py", *(sys.argv[1:] if argv is None else argv)])
-    if not args.report:
-        from importlib import metadata
+    from importlib import metadata
 
-        import torch
+    import torch
 
-        mine: set[tuple] = set()  # the rows this call handles; the others may belong to a call running beside it
-        args.save_rows = lambda: save_rows(json_path, rows, mine)
-        dists = {"torchrl": "torchrl", "rsl_rl": "rsl-rl-lib", "skrl": "skrl", "sb3": "stable-baselines3"}
-        cap_s = 60.0 * args.max_minutes
-        for library in args.library_list:
-            for n in args.num_envs_list:
-                key = (library, args.preset, n)
-                mine.add(key)
-                row = next((r for r in rows if row_key(r) == key), None)
-                if row is not None and args.new:
-                    rows.remove(row)
-                    row = None
-                if row is not None and upgrade_old_row(row):
-                    print(f"{library} {args.preset} {n}: a row of before resumable rows (trained and gait-tested in "
-                          "one call), kept as a final row of the current format")
-                    args.save_rows()
-                if row is None:
-                    if args.eval_only:
-                        print(f"{library} {args.preset} {n}: no row to gait-test; train it first")
-                        continue
-                    stamp = time.strftime("%Y%m%d_%H%M%S")
-                    row = {"library": library, "version": metadata.version(dists[library]), "preset": args.preset,
-                           "num_envs": n, "status": "training", "run": str(runs / f"{library}_{args.preset}_{n}_{stamp}"),
-                           "env_steps": 0, "train_seconds": 0.0, "env_steps_per_s": 0.0, "snapshots": [],
-                           "tested": {}, "walks_minutes": None, "walk": None, "cap_minutes": args.max_minutes,
-                           "device": None, "commands": [], "notes": "", "calls": 0}
-                    rows.append(row)
-                # A row made final before the table tested where a recipe's budget ended: that policy is tested now
-                # (the cap is checked first, so that a refused call leaves the row as it was).
-                reopen = row["status"] == "final" and row.get("walk") is None and end_snapshot(row, Path(row["run"]))
-                if (row["status"] != "final" or reopen) and row["cap_minutes"] != args.max_minutes:
-                    parser.error(f"{library} {args.preset} {n} trains to a {row['cap_minutes']:g}-minute cap, not "
-                                 f"{args.max_minutes:g}; give that --max_minutes or --new")
-                if reopen and add_end_snapshot(library, row, Path(row["run"])):
-                    row["status"] = "training"
-                    print(f"{library} {args.preset} {n}: its recipe's budget ended at {row['train_seconds'] / 60:.1f} "
-                          "min, between two snapshots; that last policy is gait-tested too, so the row is open again")
-                    args.save_rows()
-                if row["status"] == "final":
-                    print(f"{library} {args.preset} {n}: final ({row['run']}); pass --new to train it anew")
+    mine: set[tuple] = set()  # the rows this call handles; the others may belong to a call running beside it
+    args.save_rows = lambda: save_rows(json_path, rows, mine)
+    dists = {"torchrl": "torchrl", "rsl_rl": "rsl-rl-lib", "skrl": "skrl", "sb3": "stable-baselines3"}
+    cap_s = 60.0 * args.max_minutes
+    for library in args.library_list:
+        for n in args.num_envs_list:
+            key = (library, args.preset, n)
+            mine.add(key)
+            row = next((r for r in rows if row_key(r) == key), None)
+            if row is not None and args.new:
+                rows.remove(row)
+                row = None
+            if row is not None and upgrade_old_row(row):
+                print(f"{library} {args.preset} {n}: a row of before resumable rows (trained and gait-tested in "
+                      "one call), kept as a final row of the current format")
+                args.save_rows()
+            if row is None:
+                if args.eval_only:
+                    print(f"{library} {args.preset} {n}: no row to gait-test; train it first")
                     continue
-                out = Path(row["run"])
-                row["commands"].append(command)
-                # Saved before training: a call killed from here on still leaves the row and its run on record.
+                stamp = time.strftime("%Y%m%d_%H%M%S")
+                row = {"library": library, "version": metadata.version(dists[library]), "preset": args.preset,
+                       "num_envs": n, "status": "training", "run": str(runs / f"{library}_{args.preset}_{n}_{stamp}"),
+                       "env_steps": 0, "train_seconds": 0.0, "env_steps_per_s": 0.0, "snapshots": [],
+                       "tested": {}, "walks_minutes": None, "walk": None, "cap_minutes": args.max_minutes,
+                       "device": None, "commands": [], "notes": "", "calls": 0}
+                rows.append(row)
+            # A row made final before the table tested where a recipe's budget ended: that policy is tested now
+            # (the cap is checked first, so that a refused call leaves the row as it was).
+            reopen = row["status"] == "final" and row.get("walk") is None and end_snapshot(row, Path(row["run"]))
+            if (row["status"] != "final" or reopen) and row["cap_minutes"] != args.max_minutes:
+                parser.error(f"{library} {args.preset} {n} trains to a {row['cap_minutes']:g}-minute cap, not "
+                             f"{args.max_minutes:g}; give that --max_minutes or --new")
+            if reopen and add_end_snapshot(library, row, Path(row["run"])):
+                row["status"] = "training"
+                print(f"{library} {args.preset} {n}: its recipe's budget ended at {row['train_seconds'] / 60:.1f} "
+                      "min, between two snapshots; that last policy is gait-tested too, so the row is open again")
                 args.save_rows()
-                used = run_used_seconds(library, out)
-                if used is None and not args.eval_only and not row.get("recipe_budget_done"):  # none trains again
-                    start_over_if_killed_first(row, out, args)
-                used = used or 0.0
-                left = cap_s - used
-                if not args.eval_only and left > 0 and row.get("walk") is None and not row.get("recipe_budget_done"):
-                    budget = min(60.0 * args.minutes, left) if args.minutes > 0 else left
-                    trained = train(library, n, out, args, used, budget)
-                    if trained["budget_done"]:  # before the cap: nothing is left for later calls to train
-                        row["recipe_budget_done"] = True
-                        print(f"{library} {args.preset} {n}: the recipe's own iteration budget is used")
-                    snapshots = trained["snapshots"]
-                    if library == "torchrl":
-                        # ppo_walk's snapshots are read from its folder, which holds only this call's when the run
-                        # was carried to another machine with its latest.pt alone (benchmarks/table_carry.py): the
-                        # earlier ones the row lists, up to the resume point, stay listed (and their gait tests due).
-                        earlier = [s for s in row.get("snapshots", [])
-                                   if snapshot_seconds(s) <= used + 0.5 and s not in snapshots]
-                        snapshots = sorted(earlier + snapshots, key=snapshot_seconds)
-                    row.update(env_steps=int(trained["env_steps"]), train_seconds=float(trained["train_seconds"]),
-                               env_steps_per_s=float(trained["env_steps_per_s"]), snapshots=snapshots,
-                               calls=trained.get("calls", row.get("calls", 0) + 1),
-                               notes=trained.get("resume_notes", ""),
-                               device=torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu")
-                    add_end_snapshot(library, row, out)
-                    args.save_rows()
-                if not args.no_eval:
-                    gait_test_snapshots(library, row, out, args)
-                # Final: a snapshot walks, or the cap is reached (within 1 %: ppo_walk stops at an iteration's end
-                # by its own clock, which also counts its start-up) or the recipe's budget is used, and every
-                # snapshot is tested.
-                capped = row["train_seconds"] >= 0.99 * cap_s or row.get("recipe_budget_done", False)
-                untested = [s for s in row["snapshots"] if Path(s).stem not in row.get("tested", {})]
-                if row.get("walk") is not None or (capped and not untested):
-                    row["status"] = "final"
+            if row["status"] == "final":
+                print(f"{library} {args.preset} {n}: final ({row['run']}); pass --new to train it anew")
+                continue
+            out = Path(row["run"])
+            row["commands"].append(command)
+            # Saved before training: a call killed from here on still leaves the row and its run on record.
+            args.save_rows()
+            used = run_used_seconds(library, out)
+            if used is None and not args.eval_only and not row.get("recipe_budget_done"):  # none trains again
+                start_over_if_killed_first(row, out, args)
+            used = used or 0.0
+            left = cap_s - used
+            if not args.eval_only and left > 0 and row.get("walk") is None and not row.get("recipe_budget_done"):
+                budget = min(60.0 * args.minutes, left) if args.minutes > 0 else left
+                trained = train(library, n, out, args, used, budget)
+                if trained["budget_done"]:  # before the cap: nothing is left for later calls to train
+                    row["recipe_budget_done"] = True
+                    print(f"{library} {args.preset} {n}: the recipe's own iteration budget is used")
+                snapshots = trained["snapshots"]
+                if library == "torchrl":
+                    # ppo_walk's snapshots are read from its folder, which holds only this call's when the run
+                    # was carried to another machine with its latest.pt alone (benchmarks/table_carry.py): the
+                    # earlier ones the row lists, up to the resume point, stay listed (and their gait tests due).
+                    earlier = [s for s in row.get("snapshots", [])
+                               if snapshot_seconds(s) <= used + 0.5 and s not in snapshots]
+                    snapshots = sorted(earlier + snapshots, key=snapshot_seconds)
+                row.update(env_steps=int(trained["env_steps"]), train_seconds=float(trained["train_seconds"]),
+                           env_steps_per_s=float(trained["env_steps_per_s"]), snapshots=snapshots,
+                           calls=trained.get("calls", row.get("calls", 0) + 1),
+                           notes=trained.get("resume_notes", ""),
+                           device=torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu")
+                add_end_snapshot(library, row, out)
                 args.save_rows()
-                print(json.dumps({k: row[k] for k in ("library", "num_envs", "status", "train_seconds",
-                                                      "env_steps_per_s", "walks_minutes")}))
-        save_rows(json_path, rows, mine, md_path)  # the table: with the rows of calls that ran beside this one
-        print(f"table: {json_path}, {md_path}")
+            if not args.no_eval:
+                gait_test_snapshots(library, row, out, args)
+            # Final: a snapshot walks, or the cap is reached (within 1 %: ppo_walk stops at an iteration's end
+            # by its own clock, which also counts its start-up) or the recipe's budget is used, and every
+            # snapshot is tested.
+            capped = row["train_seconds"] >= 0.99 * cap_s or row.get("recipe_budget_done", False)
+            untested = [s for s in row["snapshots"] if Path(s).stem not in row.get("tested", {})]
+            if row.get("walk") is not None or (capped and not untested):
+                row["status"] = "final"
+            args.save_rows()
+            print(json.dumps({k: row[k] for k in ("library", "num_envs", "status", "train_seconds",
+                                                  "env_steps_per_s", "walks_minutes")}))
+    save_rows(json_path, rows, mine, md_path)  # the table: with the rows of calls that ran beside this one
+    print(f"table: {json_path}, {md_path}")
 
 
 if __name__ == "__main__":

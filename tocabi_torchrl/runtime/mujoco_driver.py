@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import os
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import mujoco
@@ -239,15 +239,15 @@ def _hold_finite(state: RobotState, held: RobotState) -> tuple[RobotState, np.nd
     """``state`` with each robot whose readings hold NaN or inf replaced by its ``held`` (last finite) rows, and the
     (N,) bool mask of the robots that were finite: the runtime refuses non-finite readings, as a real controller
     must, while here a diverged robot is only one fallen robot of many."""
-    fields = ("base_quat", "joint_pos", "joint_vel", "foot_force", "foot_torque")
+    names = [f.name for f in fields(RobotState)]
     n = len(state.base_quat)
     finite = np.ones(n, dtype=bool)
-    for name in fields:
+    for name in names:
         finite &= np.isfinite(getattr(state, name)).reshape(n, -1).all(-1)
     if finite.all():
         return state, finite
     rows = {name: np.where(finite.reshape(-1, *[1] * (getattr(state, name).ndim - 1)), getattr(state, name),
-                           getattr(held, name)) for name in fields}
+                           getattr(held, name)) for name in names}
     return RobotState(**rows), finite
 
 
