@@ -394,15 +394,21 @@ def test_the_rsl_rl_rows_figure_draws_from_the_committed_csvs(tmp_path):
         figure.read(tmp_path / "bad.csv", ("iteration", "value_loss"))
 
 
+def _docs_tool(name: str):
+    """A script of docs/adapters/ (not a package) loaded as a module."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "adapters" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    return tool
+
+
 def test_rsl_rl_console_logs_become_one_csv_row_per_iteration(tmp_path):
     # docs/adapters/rsl_rl_log_csv.py: rsl_rl's iteration blocks over two calls of one row (the second resumes the
     # iteration count, its "Total steps" restarts); a value not printed stays empty; a log without blocks is refused.
-    import importlib.util
-
-    path = Path(__file__).resolve().parents[1] / "docs/adapters/rsl_rl_log_csv.py"
-    spec = importlib.util.spec_from_file_location("rsl_rl_log_csv", path)
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+    tool = _docs_tool("rsl_rl_log_csv")
 
     def block(it, steps, length=None):
         lines = [f"\x1b[1m   Learning iteration {it}/1000000   \x1b[0m", f"   Total steps: {steps} ",
@@ -426,6 +432,33 @@ def test_rsl_rl_console_logs_become_one_csv_row_per_iteration(tmp_path):
     assert rows[2]["episode_reward"] == "-3.5" and rows[2]["qpos"] == "0.0351" and rows[2]["value_loss"] == "6.4451"
     (tmp_path / "other.log").write_text("no blocks here\n")
     assert tool.main([str(tmp_path / "other.log"), str(tmp_path / "o.csv")]) == 1
+    assert not (tmp_path / "o.csv").exists()
+
+
+def test_skrl_scalars_of_a_row_become_one_csv_row_per_call_and_timestep(tmp_path):
+    # docs/adapters/skrl_events_csv.py: skrl's TensorBoard folders of one row (ppo/ for call 1, ppo_call<k>/ after),
+    # each call's timesteps from 0 again; a tag not written at a timestep stays empty; a folder without skrl
+    # scalars is refused without writing the CSV.
+    pytest.importorskip("tensorboard")
+    from torch.utils.tensorboard import SummaryWriter
+
+    tool = _docs_tool("skrl_events_csv")
+    run = tmp_path / "skrl_torque_4096_x"
+    for folder, values in (("ppo_call2", {48: 1.9, 96: 2.0}), ("ppo", {48: 1.5}), ("ppo_notes", {48: 9.0})):
+        with SummaryWriter(str(run / "skrl" / folder)) as writer:
+            for step, reward in values.items():
+                writer.add_scalar("Reward / Instantaneous reward (mean)", reward, step)
+                writer.add_scalar("Policy / Standard deviation", 0.05, step)
+            if 96 in values:  # an episode ended only by call 2's second write
+                writer.add_scalar("Episode / Total timesteps (mean)", 8000.0, 96)
+    out = tmp_path / "r.csv"
+    assert tool.main([str(run), str(out)]) == 0
+    rows = list(csv.DictReader(out.open()))
+    assert [(r["call"], r["timestep"], r["step_reward"]) for r in rows] == [
+        ("1", "48", "1.5"), ("2", "48", "1.9"), ("2", "96", "2")]
+    assert [r["episode_length"] for r in rows] == ["", "", "8000"]
+    assert rows[0]["action_std"] == "0.05" and rows[0]["value_loss"] == ""
+    assert tool.main([str(tmp_path / "empty"), str(tmp_path / "o.csv")]) == 1
     assert not (tmp_path / "o.csv").exists()
 
 
