@@ -247,7 +247,7 @@ def test_shutdown_destroys_a_gloo_group_and_ends_an_nccl_rank_without_teardown(t
             dist.destroy_process_group()
 
 
-def _train_worker(rank: int, world: int, init_file: str, run_dir: str, out: dict) -> None:
+def _train_worker(rank: int, world: int, init_file: str, run_dir: str, out: dict, options: dict | None = None) -> None:
     import dataclasses
 
     from tocabi_torchrl.rl import preset_config
@@ -257,8 +257,8 @@ def _train_worker(rank: int, world: int, init_file: str, run_dir: str, out: dict
     init_distributed(info, torch.device("cpu"), init_method=f"file://{init_file}")
     try:
         cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
-                            total_env_steps=world * 2 * 16, run_dir=run_dir, name="dp", checkpoint_every=1,
-                            progress_bar=False, eval_at_end=False)
+                            **{"total_env_steps": world * 2 * 16, "name": "dp", **(options or {})}, run_dir=run_dir,
+                            checkpoint_every=1, progress_bar=False, eval_at_end=False)
         # Running statistics, so that their merge is part of the run (the presets use the reference's fixed ones).
         env = build_env(dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info)), torch.device("cpu"),
                         for_training=True, normalization="running")
@@ -294,17 +294,31 @@ def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
     # a 1-rank run of the unscaled budget.
     one = train(preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
                               total_env_steps=32, run_dir=str(tmp_path), name="one", checkpoint_every=1,
-                              progress_bar=False, eval_at_end=False))
+                              checkpoint_keep_last=0, progress_bar=False, eval_at_end=False))
     assert one.iterations == 4
     stds = [[float(r["action_std"]) for r in read_metrics(folder)] for folder in (run, tmp_path / "one")]
     assert stds[0] == stds[1] and len(set(stds[0])) > 1, stds  # and it does fall
 
-    # The same run goes on with one rank: the 64 steps done are 8 of its 8-step iterations.
+    # The same run goes on with one rank: the 64 steps done are 8 of its 8-step iterations, so its schedules go on
+    # from there, while its files and metrics rows go on from its own iteration 4.
     cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
                         total_env_steps=80, run_dir=str(tmp_path), name="dp", checkpoint_every=1,
                         progress_bar=False, eval_at_end=False, resume=str(run))
     result = train(cfg)
-    assert result.iterations == 10 and result.env_steps == 80
+    assert result.iterations == 6 and result.env_steps == 80
+    assert [int(float(r["iteration"])) for r in read_metrics(run)] == [1, 2, 3, 4, 5, 6]
+
+    # The 1-rank run goes on with two: its 32 steps done are 2 of their 16-step iterations. Numbered from those, the
+    # new files would overwrite its iteration 3 and 4 files and repeat their metrics rows; they are 5 and 6.
+    saved = {i: torch.load(tmp_path / "one" / "checkpoints" / f"iter_{i:06d}.pt", weights_only=True)["env_steps"]
+             for i in (3, 4)}
+    more = {"name": "one", "total_env_steps": 64, "resume": str(tmp_path / "one"), "checkpoint_keep_last": 0}
+    mp.spawn(_train_worker, args=(2, str(tmp_path / "init2"), str(tmp_path), out, more), nprocs=2, join=True)
+    assert out[0]["iterations"] == 6 and out[0]["env_steps"] == 64
+    files = tmp_path / "one" / "checkpoints"
+    assert {i: torch.load(files / f"iter_{i:06d}.pt", weights_only=True)["env_steps"] for i in (3, 4, 5, 6)} == {
+        **saved, 5: 48, 6: 64}
+    assert [int(float(r["iteration"])) for r in read_metrics(tmp_path / "one")] == [1, 2, 3, 4, 5, 6]
 
 
 def _torchrun_recipe(tmp_path, name: str, *options: str):

@@ -303,7 +303,8 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
     rank trains ``cfg.env.num_envs`` worlds of its own (seed ``cfg.seed + rank``) on its own device, gradients, losses
     and running observation statistics are averaged over the ranks (:mod:`~tocabi_torchrl.rl.distributed`), an
     iteration is K rollouts (``cfg.total_env_steps`` counts all ranks' steps), and rank 0 alone logs and writes
-    checkpoints. A run resumes on any K: the iteration to continue from is derived from the env steps done.
+    checkpoints. A run resumes on any K: its progress (schedules, budget) is derived from the env steps done,
+    and its files and metrics rows go on numbering from the checkpoint's iteration.
     """
     cfg.validate()
     with float32_matmul_precision(cfg.ppo.matmul_precision):
@@ -338,15 +339,19 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
     agent = build_agent(cfg, obs_dim, act_dim, device)
     optimizer = make_optimizer(cfg, agent, device)
     run_dir = run.path
-    # Equal to the checkpoint's iteration on one rank; on another rank count, the same progress in env steps.
+    # Progress (schedules, budget) counts iterations of this rank count: the env steps done, as iterations of it.
     start_iter, env_steps, prior_train_s = run.start_env_steps // frames_per_iteration, run.start_env_steps, 0.0
+    # Files and metrics go on numbering from the checkpoint's own iteration: on another rank count the same env steps
+    # are another number of iterations, and numbering from those would overwrite the run's earlier iteration files
+    # and repeat its metrics rows. ``it + shift`` is the iteration a file or row is written under.
+    shift = (int(run.resume_state["iteration"]) if run.resume_state is not None else 0) - start_iter
     if run.resume_state is not None:
         mode = optimizer_mode(optimizer)  # the checkpoint may come from another update mode or device
         apply_checkpoint(run.resume_state, agent, optimizer, env, run.resume_file)
         restore_optimizer_mode(optimizer, mode)
         prior_train_s = float(run.resume_state.get("train_seconds", 0.0))
         if info.is_main:
-            print(f"resumed from {run.resume_file} at iteration {start_iter} ({env_steps:,} env steps)")
+            print(f"resumed from {run.resume_file} at iteration {start_iter + shift} ({env_steps:,} env steps)")
     stats_sync = None
     if info.enabled:
         broadcast_module(agent.actor, info)
@@ -364,7 +369,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
     teacher_taken = agent.teacher is not None and bool(agent.teacher.anchored)
 
     collector = make_collector(cfg, env, agent.actor, device, (iterations - start_iter) * cfg.frames_per_batch)
-    logger = RunLogger(run_dir, cfg, total_iterations=iterations, start_iteration=start_iter) if info.is_main else None
+    logger = (RunLogger(run_dir, cfg, total_iterations=iterations + shift, start_iteration=start_iter + shift)
+              if info.is_main else None)
     lr = get_lr(optimizer.param_groups[0])
     t_start = time.perf_counter()
     metrics: dict = {}
@@ -423,27 +429,27 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
             collector.update_policy_weights_()
             elapsed = time.perf_counter() - t_start
             train_s = prior_train_s + elapsed
-            if it % cfg.log_every == 0 or it == iterations:
+            if (it + shift) % cfg.log_every == 0 or it == iterations:
                 metrics = _episode_metrics(batch, info)
                 metrics.update(stats)
                 metrics.update(lr=lr, action_std=float(action_std(agent.actor).mean()), env_steps=env_steps,
                                env_steps_per_s=(env_steps - run.start_env_steps) / elapsed,
                                update_s=time.perf_counter() - t_collect, wall_s=elapsed, train_s=train_s)
                 if logger is not None:
-                    logger.log(it, metrics)
+                    logger.log(it + shift, metrics)
             # Checkpoints hold rank 0's state, which every rank shares (parameters, optimiser, statistics).
             if train_s >= next_mark:
                 if info.is_main:
-                    save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s,
+                    save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s,
                                     tag=wall_tag(next_mark))
                 next_mark = (int(train_s // mark_s) + 1) * mark_s
-            if (it % cfg.checkpoint_every == 0 or it == iterations) and info.is_main:
-                save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s)
+            if ((it + shift) % cfg.checkpoint_every == 0 or it == iterations) and info.is_main:
+                save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s)
             # Ranks' clocks differ: stop when any rank's time is up, all at the same iteration.
             if cfg.max_minutes and not agree(elapsed <= 60.0 * cfg.max_minutes, info, device):
                 if info.is_main:
                     print(f"stopping after {cfg.max_minutes} min (max_minutes)")
-                    save_checkpoint(run_dir, it, env_steps, agent, optimizer, env, cfg, train_s)
+                    save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s)
                 break
     finally:
         env_graph = bool(getattr(env, "graph_captured", False))
@@ -452,7 +458,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
             logger.close()
     wall = time.perf_counter() - t_start
     done_steps = env_steps - run.start_env_steps
-    return TrainResult(run_dir, it, env_steps, wall, done_steps / max(wall, 1e-9), metrics, env_graph, agent=agent)
+    return TrainResult(run_dir, it + shift, env_steps, wall, done_steps / max(wall, 1e-9), metrics, env_graph,
+                       agent=agent)
 
 
 #: Frames per critic call in GAE (bounds its activation memory).
