@@ -72,6 +72,27 @@ def test_episode_return_and_step_counter():
     )
 
 
+def test_env_is_the_truncation_clock_unless_a_limit_is_given():
+    # default_transforms used to truncate at 8000 steps whatever the env was configured for: an env of
+    # 10,000-step episodes composed with it was cut at 8000. By default its StepCounter only counts, as make_env's.
+    from tocabi_torchrl.transforms import TransformSettings
+
+    env = _env("tocabilab", env_kwargs={"max_episode_steps": 10_000})
+    counter = next(t for t in env.transform if type(t).__name__ == "StepCounter")
+    assert counter.max_steps is None
+    assert transform_config().max_episode_steps is TransformSettings().transform_config().max_episode_steps is None
+    td = env.reset()
+    td["step_count"].fill_(7999)  # the StepCounter's own count, as after 7999 steps
+    td = env.rand_step(td)
+    assert td["next", "step_count"].unique().tolist() == [8000]
+    assert not td["next", "truncated"].any()
+    # An explicit limit still truncates on top of the env's.
+    env = _env(env_kwargs={"max_episode_steps": 10_000}, max_episode_steps=8000)
+    td = env.reset()
+    td["step_count"].fill_(7999)
+    assert env.rand_step(td)["next", "truncated"].all()
+
+
 def test_overrides_are_config_changes():
     def alive(td, next_td):
         return torch.ones_like(next_td["reward"])
@@ -117,6 +138,22 @@ def test_preset_errors():
         transform_config(history=HistoryLayout(num_obs=5, stride=0))
     assert transform_config("tocabilab").history.stride == 1
     assert transform_config("reference").zero_reward_on_terminated
+
+
+def test_numbers_are_checked_by_name():
+    import math
+
+    import numpy as np
+
+    with pytest.raises(ValueError, match=r"obs_clip must be a finite number.*got '5'"):
+        transform_config(obs_clip="5")
+    with pytest.raises(ValueError, match=r"obs_mean\[1\] must be a finite number.*got nan"):
+        transform_config(obs_mean=(0.0, math.nan), obs_var=(1.0, 1.0))
+    with pytest.raises(ValueError, match=r"max_episode_steps must be an int.*got 100.0"):
+        transform_config(max_episode_steps=100.0)
+    cfg = transform_config(obs_clip=np.float32(5.0), max_episode_steps=np.int64(100))  # frozen, converted
+    assert type(cfg.obs_clip) is float and type(cfg.max_episode_steps) is int
+    assert transform_config(obs_clip=None).obs_clip is None
 
 
 def test_reset_returns_policy_input_without_stepping():

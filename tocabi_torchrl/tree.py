@@ -11,8 +11,11 @@ the command line as JSON.
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
 import json
+import math
+import numbers
 import os
 import types
 import typing
@@ -20,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ConfigError", "check_bool_fields", "leaf_paths", "leaf_types", "get_path", "replace_paths", "to_dict",
-           "from_dict", "parse_leaf", "item_type"]
+__all__ = ["OWN_NUMBER_CHECK", "ConfigError", "check_bool_fields", "check_number_fields", "from_dict", "get_path",
+           "item_type", "leaf_paths", "leaf_types", "parse_leaf", "replace_paths", "to_dict"]
 
 
 class ConfigError(ValueError):
@@ -248,3 +251,106 @@ def check_bool_fields(tree, prefix: str = "") -> None:
             object.__setattr__(tree, f.name, bool(value))  # a numpy sweep's value (frozen trees too)
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             check_bool_fields(value, f"{prefix}{f.name}.")
+
+
+#: Field metadata (``field(..., metadata=OWN_NUMBER_CHECK)``) of a number field that :func:`check_number_fields`
+#: leaves to its section's ``validate``, which checks it and names what is wrong more precisely (e.g. the joint).
+OWN_NUMBER_CHECK = types.MappingProxyType({"check_numbers": False})
+
+
+def _field_hints(cls: type) -> dict[str, Any]:
+    """``cls``'s resolved field annotations; where one cannot be resolved (a name only imported for type checking),
+    the plain ``"int"``/``"float"`` strings still count and the rest are left unchecked."""
+    try:
+        return typing.get_type_hints(cls)
+    except (NameError, TypeError):
+        plain = {"int": int, "float": float}
+        return {f.name: plain.get(f.type, f.type) if isinstance(f.type, str) else f.type
+                for f in dataclasses.fields(cls)}
+
+
+def _number(kind: type, value: Any, where: str) -> Any:
+    """``value`` as a plain Python number of ``kind`` (``float``: any finite real, ints too; ``int``: an int), or a
+    ``ValueError`` naming ``where``, the value and what is accepted. A bool is refused (``True`` is not a gain)."""
+    if isinstance(value, (bool, np.bool_)):
+        ok = False
+    elif kind is int:
+        ok = isinstance(value, numbers.Integral)
+    else:
+        try:
+            ok = isinstance(value, numbers.Real) and math.isfinite(value)
+        except OverflowError:  # an int too large for a float
+            ok = False
+    if not ok:
+        accepted = ("an int (not a float, a bool or text)" if kind is int
+                    else "a finite number, an int or a float (not NaN, inf, a bool or text)")
+        raise ValueError(f"{where} must be {accepted}, got {value!r}")
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _number_kinds(kind: Any) -> tuple[tuple[Any, ...], bool] | None:
+    """For a ``tuple[float, ...]``/``tuple[int, int]``/``Sequence[float]`` annotation: the per-entry kinds (one
+    kind for a variable length) and whether the length is variable; ``None`` for any other annotation."""
+    if typing.get_origin(kind) not in (tuple, collections.abc.Sequence):
+        return None
+    args = typing.get_args(kind)
+    variable = not args or Ellipsis in args or typing.get_origin(kind) is not tuple
+    kinds = tuple(a for a in args if a is not Ellipsis)
+    if not kinds or any(_unwrap_optional(k)[0] not in (int, float) for k in kinds):
+        return None
+    return kinds, variable
+
+
+def _numbers(kinds: tuple[Any, ...], variable: bool, value: Any, where: str) -> tuple:
+    """A tuple leaf's entries checked by :func:`_number` (entry ``i`` named ``where[i]``), as plain numbers."""
+    if isinstance(value, np.ndarray) and value.ndim == 1:
+        value = tuple(value)
+    n = None if variable else len(kinds)
+    if not isinstance(value, (tuple, list)) or (n is not None and len(value) != n):
+        what = "finite numbers" if _unwrap_optional(kinds[0])[0] is float else "ints"
+        raise ValueError(f"{where} must be a tuple of {what if n is None else f'{n} {what}'}, got {value!r}")
+    out = []
+    for i, v in enumerate(value):
+        kind, optional = _unwrap_optional(kinds[0] if variable else kinds[i])
+        out.append(v if v is None and optional else _number(kind, v, f"{where}[{i}]"))
+    return tuple(out)
+
+
+def check_number_fields(tree, prefix: str = "") -> None:
+    """Raise ``ValueError`` naming the first field of the dataclass ``tree`` (its nested sections and the items of
+    its tuple-of-items leaves included) whose value does not fit its annotated number type, by its path
+    (``env.control.pd_kp[3]``), with the value and what is accepted: a ``float`` field takes a finite real number
+    (an int too), an ``int`` field an int, a tuple of numbers (``tuple[float, ...]``, ``tuple[float, float]``,
+    ``Sequence[float]``) finite entries of the annotated length. Without it a gain of NaN ends every episode at its
+    first step, an inf command reaches the observation and a number given as text (``"0.6"``) fails later as a raw
+    ``TypeError``. ``None`` is taken where the annotation allows it (``float | None``); numpy scalars are taken, as
+    plain Python numbers (frozen trees too); fields of other types are left alone, and so is a field whose
+    metadata holds :data:`OWN_NUMBER_CHECK` (its section's ``validate`` checks it, with a better message)."""
+    hints = _field_hints(type(tree))
+    for f in dataclasses.fields(tree):
+        value = getattr(tree, f.name)
+        where = prefix + f.name
+        if _is_section(value):
+            check_number_fields(value, where + ".")
+            continue
+        if f.metadata.get("check_numbers", True) is False:
+            continue
+        kind, optional = _unwrap_optional(hints.get(f.name))
+        if value is None and optional:
+            continue
+        item = item_type(kind)
+        tuple_kinds = _number_kinds(kind)
+        if kind in (int, float):
+            plain = _number(kind, value, where)
+        elif tuple_kinds is not None:
+            plain = _numbers(*tuple_kinds, value, where)
+            if all(a is b for a, b in zip(plain, value)) and isinstance(value, tuple):
+                plain = value  # unchanged: keep the very object
+        else:
+            if item is not None and isinstance(value, (tuple, list)):
+                for i, v in enumerate(value):
+                    if _is_section(v):
+                        check_number_fields(v, f"{where}[{i}].")
+            continue
+        if plain is not value:
+            object.__setattr__(tree, f.name, plain)  # a numpy sweep's value, as plain numbers (frozen trees too)

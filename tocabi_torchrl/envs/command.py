@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import torch
 
+from ..tree import check_number_fields
+
 __all__ = ["CommandConfig", "VelocityCommand"]
 
 
@@ -41,14 +43,20 @@ class CommandConfig:
         return presets[name]()
 
     def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad option (``env.command.NAME``) and the accepted values."""
+        # Here as well as in TocabiWalkConfig.validate: VelocityCommand takes a CommandConfig on its own. An inf bound
+        # would reach the observation, and a float step count would fail in randint or never match the schedule.
+        check_number_fields(self, "env.command.")
         for field in ("vx_range", "vx_initial_range", "vy_range"):
             lo, hi = getattr(self, field)
             if not lo <= hi:
-                raise ValueError(f"CommandConfig.{field} must be (low, high) with low <= high, got {(lo, hi)}")
+                raise ValueError(f"env.command.{field} must be (low, high) with low <= high, got {(lo, hi)}")
         if self.resample_every < 1:
-            raise ValueError(f"CommandConfig.resample_every must be >= 1 step, got {self.resample_every}")
+            raise ValueError(f"env.command.resample_every must be an int >= 1 (steps between re-samples), got "
+                             f"{self.resample_every!r}")
         if self.max_ramp_steps < 1:
-            raise ValueError(f"CommandConfig.max_ramp_steps must be >= 1, got {self.max_ramp_steps}")
+            raise ValueError(f"env.command.max_ramp_steps must be an int >= 1 (1 = switch at once), got "
+                             f"{self.max_ramp_steps!r}")
 
 
 class VelocityCommand:

@@ -10,7 +10,7 @@ import numpy as np
 
 from .. import robot
 from ..sim.config import RESET_PASSES
-from ..tree import check_bool_fields
+from ..tree import OWN_NUMBER_CHECK, check_bool_fields, check_number_fields
 from .command import CommandConfig
 
 __all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "SceneConfig", "BoxObstacle", "PD_GAINS",
@@ -177,10 +177,12 @@ class ControlConfig:
     pd_action_scale: float = 0.5
     pd_nominal: tuple[float, ...] = tuple(float(v) for v in robot.INIT_JOINT_POS[:12])
     torque_assist: bool = False
-    mb_omega: tuple[float, ...] = MB_OMEGA
-    mb_zeta: tuple[float, ...] = (0.7,) * robot.NUM_LEG_JOINTS
+    # validate() checks the per-joint model_based values itself, naming the joint.
+    mb_omega: tuple[float, ...] = field(default=MB_OMEGA, metadata=OWN_NUMBER_CHECK)
+    mb_zeta: tuple[float, ...] = field(default=(0.7,) * robot.NUM_LEG_JOINTS, metadata=OWN_NUMBER_CHECK)
     mb_ref_window: float = 0.008
-    mb_residual_gain: tuple[float, ...] = tuple(float(v) for v in robot.LEG_TORQUE_LIMITS)
+    mb_residual_gain: tuple[float, ...] = field(default=tuple(float(v) for v in robot.LEG_TORQUE_LIMITS),
+                                                metadata=OWN_NUMBER_CHECK)
 
     def validate(self) -> None:
         if self.mode not in CONTROL_MODES:
@@ -385,6 +387,9 @@ class TocabiWalkConfig:
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise ValueError(f"num_envs must be a positive int, got {n!r}")
         check_bool_fields(self, "env.")
+        # Before the sections' own checks, which compare and convert these values: every number is then a finite
+        # real (or an int where one is declared), named by its path when it is not.
+        check_number_fields(self, "env.")
         self.sim.validate()
         self.task.validate()
         self.control.validate()

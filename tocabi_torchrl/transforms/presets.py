@@ -9,8 +9,9 @@ The default chain (``default_transforms("reference")``), in order:
 4. :class:`FixedNormalization` (or :class:`RunningNormalization`): ``obs_step`` -> ``obs_step_norm``
 5. :class:`ObsActionHistory`: ``obs_step_norm`` + ``applied_action`` -> ``observation`` (num_envs, 237)
 6. :class:`TaskReward`: ``reward`` (num_envs, 1) and ``("reward_terms", name)`` for the 13 reference terms
-7. ``StepCounter``: ``step_count``, and truncation at ``max_episode_steps`` when it is set (``make_env`` leaves it
-   ``None``: there the env's ``task.max_episode_steps`` is the one truncation clock)
+7. ``StepCounter``: ``step_count``, and truncation at ``max_episode_steps`` only when it is set; by default
+   (``None``, as in ``make_env``) it only counts, and the env's own ``task.max_episode_steps`` is the one
+   truncation clock
 8. ``RewardSum``: ``episode_reward``, the running episode return
 
 Every stage is an ordinary TorchRL transform: build your own ``Compose`` from them, or change one field here.
@@ -38,7 +39,7 @@ from tocabi_torchrl.transforms.orientation import BaseEulerAngles
 from tocabi_torchrl.transforms.phase import PhaseEncoding
 from tocabi_torchrl.transforms.reward import TaskReward
 from tocabi_torchrl.transforms.reward_terms import REFERENCE_TERMS, RewardTerm, reference_terms
-from tocabi_torchrl.tree import check_bool_fields
+from tocabi_torchrl.tree import check_bool_fields, check_number_fields
 
 __all__ = ["TransformConfig", "TransformSettings", "PRESETS", "transform_config", "default_transforms"]
 
@@ -61,7 +62,8 @@ class TransformConfig:
         reward_weights: ``{term name: weight}`` overrides.
         zero_reward_on_terminated: reward and terms are 0 on a terminating step (reference: on).
         compile_reward: ``torch.compile`` the reward terms into fused kernels (first step compiles).
-        max_episode_steps: ``StepCounter`` truncation; ``None`` counts steps without truncating.
+        max_episode_steps: ``StepCounter`` truncation at this many steps, on top of the env's own; ``None`` (the
+            default) counts steps without truncating, so the env's ``task.max_episode_steps`` is the one clock.
         track_episode_return: add ``RewardSum`` (``episode_reward``).
     """
 
@@ -76,7 +78,8 @@ class TransformConfig:
     reward_weights: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
     zero_reward_on_terminated: bool = True
     compile_reward: bool = False
-    max_episode_steps: int | None = 8000
+    # None, not the env's default 8000: a fixed limit here would cut an env configured for longer episodes.
+    max_episode_steps: int | None = None
     track_episode_return: bool = True
 
     def __post_init__(self):
@@ -90,6 +93,7 @@ class TransformConfig:
         if self.normalization not in _NORMALIZATIONS:
             raise ValueError(f"normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
         check_bool_fields(self)
+        check_number_fields(self)
         if (self.obs_mean is None) != (self.obs_var is None):
             raise ValueError("pass both obs_mean and obs_var, or neither (for the reference statistics)")
         if not isinstance(self.history, HistoryLayout):

@@ -1,0 +1,105 @@
+"""Number checks of the config trees (``tree.check_number_fields``): a NaN gain, an inf command bound, a float step
+count or a number given as text is refused by its path before an env is built; every default and preset passes."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from tocabi_torchrl.config import PRESETS, preset_config
+from tocabi_torchrl.envs import TocabiWalk, TocabiWalkConfig
+from tocabi_torchrl.envs.command import CommandConfig
+from tocabi_torchrl.tree import check_number_fields
+
+NAN, INF = math.nan, math.inf
+
+#: flat TocabiWalk option(s) -> the error (its path, what it got, what is accepted).
+BAD = [
+    ({"pd_kp": (100.0,) * 3 + (NAN,) * 9}, r"env.control.pd_kp\[3\] must be a finite number.*got nan"),
+    ({"pd_kv": (INF,) * 12}, r"env.control.pd_kv\[0\] must be a finite number.*got inf"),
+    ({"pd_nominal": (NAN,) * 12}, r"env.control.pd_nominal\[0\] must be a finite number"),
+    ({"pd_kp": "100"}, r"env.control.pd_kp must be a tuple of finite numbers, got '100'"),
+    ({"pd_action_scale": "0.5"}, r"env.control.pd_action_scale must be a finite number.*bool or text\), got '0.5'"),
+    ({"min_pelvis_height": "0.6"}, r"env.task.min_pelvis_height must be a finite number.*got '0.6'"),
+    ({"phase_rate_gain": "1"}, r"env.task.phase_rate_gain must be a finite number.*got '1'"),
+    ({"phase_rate_gain": NAN}, r"env.task.phase_rate_gain must be a finite number.*got nan"),
+    ({"phase_rate_gain": True}, r"env.task.phase_rate_gain must be a finite number.*got True"),
+    ({"max_episode_steps": 1000.0}, r"env.task.max_episode_steps must be an int \(not a float.*got 1000.0"),
+    ({"command": CommandConfig(vx_range=(0.0, INF))}, r"env.command.vx_range\[1\] must be a finite number"),
+    ({"command": CommandConfig(vx_range=(NAN, 0.7))}, r"env.command.vx_range\[0\] must be a finite number"),
+    ({"command": CommandConfig(vx_range=(0.0, 0.5, 0.7))}, r"env.command.vx_range must be a tuple of 2 finite"),
+    ({"command": CommandConfig(resample_every=2.5)}, r"env.command.resample_every must be an int.*got 2.5"),
+    ({"command": CommandConfig(resample_every="100")}, r"env.command.resample_every must be an int.*got '100'"),
+    ({"command": CommandConfig(max_ramp_steps=2.5)}, r"env.command.max_ramp_steps must be an int.*got 2.5"),
+    ({"command": CommandConfig(max_ramp_steps=0)}, r"env.command.max_ramp_steps must be an int >= 1"),
+    ({"command": CommandConfig(resample_every=0)}, r"env.command.resample_every must be an int >= 1"),
+]
+
+
+@pytest.mark.parametrize("flat, message", BAD, ids=[str(k) for k, _ in BAD])
+def test_bad_numbers_are_refused_by_their_path(flat, message):
+    with pytest.raises(ValueError, match=message):
+        TocabiWalkConfig().with_flat(**flat).validate()
+
+
+def test_the_env_refuses_them_before_it_builds():
+    # These used to build: a NaN gain ended every episode at its first step, an inf bound reached the command
+    # observation, and a float ramp length failed as a raw TypeError in randint at the first re-sample.
+    with pytest.raises(ValueError, match=r"env.control.pd_kp\[0\]"):
+        TocabiWalk(num_envs=1, device="cpu", pd_kp=(NAN,) * 12)
+    with pytest.raises(ValueError, match=r"env.command.vx_range\[1\]"):
+        TocabiWalk(num_envs=1, device="cpu", command=CommandConfig(vx_range=(0.0, INF), resample_every=2))
+    with pytest.raises(ValueError, match=r"env.command.max_ramp_steps must be an int"):
+        CommandConfig(max_ramp_steps=2.5).validate()  # as VelocityCommand checks its config on its own
+
+
+def test_every_default_and_preset_passes_and_none_stays_allowed():
+    TocabiWalkConfig().validate()
+    TocabiWalkConfig.reference().validate()
+    for name in PRESETS:
+        cfg = preset_config(name)
+        check_number_fields(cfg)  # the whole run tree, as RunConfig.validate may call it
+        cfg.env.validate()
+    cfg = TocabiWalkConfig().with_flat(nconmax=None, njmax=None, sim_threads=None, motion=None)
+    cfg.validate()
+    assert cfg.sim.nconmax is None
+
+
+def test_numpy_scalars_are_taken_as_plain_numbers():
+    cfg = TocabiWalkConfig().with_flat(pd_action_scale=np.float32(0.25), max_episode_steps=np.int64(100),
+                                       pd_kp=tuple(np.float32(50.0) for _ in range(12)),
+                                       command=CommandConfig(resample_every=np.int32(7)))
+    cfg.validate()
+    assert type(cfg.control.pd_action_scale) is float and cfg.control.pd_action_scale == 0.25
+    assert type(cfg.task.max_episode_steps) is int and type(cfg.command.resample_every) is int
+    assert all(type(v) is float for v in cfg.control.pd_kp)
+    assert TocabiWalkConfig().with_flat(phase_rate_gain=1).validate() is None  # an int for a float
+
+
+@dataclass(frozen=True)
+class _Item:
+    gain: float = 1.0
+    limit: float | None = None
+    pair: tuple[float, float] = (0.0, 1.0)
+
+
+@dataclass
+class _Tree:
+    steps: int = 3
+    items: tuple[_Item, ...] = ()
+    name: str = "x"
+
+
+def test_check_number_fields_reads_string_annotations_items_and_frozen_trees():
+    tree = _Tree(steps=np.int16(4), items=(_Item(), _Item(gain=np.float64(2.0), limit=np.float32(0.5))))
+    check_number_fields(tree, "t.")  # this module's annotations are strings (from __future__ import annotations)
+    assert type(tree.steps) is int and type(tree.items[1].gain) is float and type(tree.items[1].limit) is float
+    with pytest.raises(ValueError, match=r"t.items\[1\].pair\[1\] must be a finite number.*got inf"):
+        check_number_fields(_Tree(items=(_Item(), _Item(pair=(0.0, INF)))), "t.")
+    with pytest.raises(ValueError, match=r"t.items\[0\].limit must be a finite number.*got '1'"):
+        check_number_fields(_Tree(items=(_Item(limit="1"),)), "t.")
+    with pytest.raises(ValueError, match=r"t.steps must be an int.*got True"):
+        check_number_fields(_Tree(steps=True), "t.")
