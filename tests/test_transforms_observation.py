@@ -195,6 +195,25 @@ def test_running_normalization_tracks_batch_statistics():
     assert norm.count.item() == pytest.approx(320, rel=1e-6)
 
 
+def test_running_normalization_count_is_float64_and_exact_past_2_24_samples():
+    # A float32 count rounded each 3-sample update away once it passed 2**24 samples (16,777,216 -> 16,778,216
+    # after 1000 updates, instead of 16,780,216), skewing the update's weights.
+    norm = RunningNormalization(dim=1)
+    assert norm.count.dtype == norm.mean.dtype == norm.var.dtype == torch.float64
+    norm.count.fill_(2**24)
+    for _ in range(1000):
+        norm.update(torch.ones(3, 1))
+    assert norm.count.item() == 2**24 + 3000
+    # A state_dict of before, with a float32 count, still loads, into the float64 buffer.
+    old = {k: v.clone() for k, v in norm.state_dict().items()}
+    old["count"] = torch.tensor(1234.0, dtype=torch.float32)
+    fresh = RunningNormalization(dim=1)
+    fresh.load_state_dict(old)
+    assert fresh.count.dtype == torch.float64 and fresh.count.item() == 1234.0
+    fresh.update(torch.ones(2, 1))
+    assert fresh.count.item() == 1236.0
+
+
 def test_running_normalization_in_env_updates_on_step_only_and_freezes():
     env = TransformedEnv(
         MockTocabiWalk(4),

@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from ..rl.atomic import atomic_write_bytes, atomic_write_text
+from ..transforms.normalize import freeze_running_statistics
 from .contract import build_contract, sha256_bytes
 
 __all__ = [
@@ -75,6 +76,7 @@ def load_policy(checkpoint: str | os.PathLike, num_envs: int = 1, **env_override
     env = build_env(cfg, device, num_envs=num_envs, **env_overrides)
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
     apply_checkpoint(state, agent, env=env, path=path)
+    freeze_running_statistics(env)  # the contract states the checkpoint's statistics, frozen
     return LoadedPolicy(checkpoint=path, config=cfg, config_dict=cfg.to_dict(), agent=agent, env=env,
                         iteration=int(state["iteration"]), env_steps=int(state["env_steps"]))
 

@@ -19,7 +19,7 @@ def plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path, command: t
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    t = np.arange(len(q)) * dt
+    t = (np.arange(len(q)) + 1) * dt  # row k is the state after the k-th policy step
     fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     fell = np.flatnonzero(np.isnan(q[:, 0]))
     for i, (ax, side) in enumerate(zip(axes, ("left", "right"))):

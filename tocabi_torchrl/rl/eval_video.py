@@ -71,7 +71,7 @@ def _gl(call, *args, **kwargs):
 
 
 @_guarded
-def render_video(model, qpos: np.ndarray, fps: int, out: Path, width: int = 480, height: int = 360,
+def render_video(model, qpos: np.ndarray, fps: float, out: Path, width: int = 480, height: int = 360,
                   progress: bool = True, mocap_pos: np.ndarray | None = None) -> Path:
     """Render (T, k, nq) joint states of k robots side by side (one camera each) into an mp4 or a gif.
 

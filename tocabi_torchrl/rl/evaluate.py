@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 from .. import robot
 from ..config import RunConfig
 from ..render_gl import NO_GL_FIX
+from ..transforms.normalize import freeze_running_statistics
 from .checkpoint import checkpoint_file, read_checkpoint, run_folder_of
 from .eval_plots import plot_knees
 from .eval_video import render_video
@@ -67,6 +68,7 @@ def evaluate_policy(
     device = torch.device(device)
     if env is None:
         env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
+    freeze_running_statistics(env)  # a test of the policy as trained, not of statistics drifting with its rollout
     base = env.base_env
     steps = policy_steps(seconds, base.dt)
     out = Path(out_dir)
@@ -100,7 +102,9 @@ def evaluate_policy(
     else:
         try:
             mocap = base.sim.world_mocap_pos  # each world's obstacle positions, if the scene has any
-            summary["video"] = str(render_video(base.sim.mj_model, torch.stack(frames_qpos).cpu().numpy(), 30, out,
+            # One frame every `video_every` steps plays at the simulated speed: 31.25 fps at 4 ms steps, not 30.
+            fps = 1.0 / (video_every * base.dt)
+            summary["video"] = str(render_video(base.sim.mj_model, torch.stack(frames_qpos).cpu().numpy(), fps, out,
                                                  progress=progress,
                                                  mocap_pos=None if mocap is None else mocap[:video_envs]))
         except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless machine)

@@ -33,6 +33,7 @@ from .. import robot
 from ..config import RunConfig
 from ..envs.config import TORQUE_MODES
 from ..rotations import quat_rotate_inverse
+from ..transforms.normalize import freeze_running_statistics
 
 __all__ = ["GaitMetrics", "GaitRecord", "LoadedPolicy", "record_rollout", "applied_leg_torque", "torque_stats",
            "load_policy", "fixed_command", "policy_steps", "sole_geometry", "LEG_JOINTS", "KNEES",
@@ -185,6 +186,7 @@ def load_policy(path: str | os.PathLike, num_envs: int, device: torch.device,
     env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
     apply_checkpoint(state, agent, env=env, path=ckpt)
+    freeze_running_statistics(env)
     return LoadedPolicy(ckpt, cfg, env, agent)
 
 

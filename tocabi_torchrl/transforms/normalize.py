@@ -17,7 +17,7 @@ from torchrl.data import Composite, Unbounded
 from tocabi_torchrl.transforms._base import CallOnReset
 from tocabi_torchrl.transforms._checks import check_positive, require_spec
 
-__all__ = ["REFERENCE_OBS_MEAN", "REFERENCE_OBS_VAR", "FixedNormalization", "RunningNormalization"]
+__all__ = ["REFERENCE_OBS_MEAN", "REFERENCE_OBS_VAR", "FixedNormalization", "RunningNormalization", "freeze_running_statistics"]
 
 _LEG_NAMES = ("HipYaw", "HipRoll", "HipPitch", "Knee", "AnklePitch", "AnkleRoll")
 
@@ -189,7 +189,11 @@ class RunningNormalization(_Normalization):
             mean_t, var_t = torch.zeros(0, dtype=torch.float64), torch.ones(0, dtype=torch.float64)
         self.register_buffer("mean", mean_t)
         self.register_buffer("var", var_t)
-        self.register_buffer("count", torch.tensor(check_positive(init_count, "RunningNormalization init_count")))
+        # float64 like mean and var: a float32 count rounds increments away past 2**24 samples (~4,100 steps of
+        # 4,096 envs), skewing the update's weights n / total. An older state_dict's float32 count still loads
+        # (load_state_dict copies into this buffer, converting).
+        count = check_positive(init_count, "RunningNormalization init_count")
+        self.register_buffer("count", torch.tensor(count, dtype=torch.float64))
         self.frozen = bool(frozen)
         self.mask_key, self.mask_invert = mask_key, bool(mask_invert)
         self.health_key = health_key
@@ -272,3 +276,13 @@ class RunningNormalization(_Normalization):
         loc, scale = self._loc_scale()
         return self._normalize(x, loc, scale)
 
+
+
+def freeze_running_statistics(env) -> int:
+    """Freeze every :class:`RunningNormalization` among ``env``'s transforms; returns how many.
+
+    For an env that evaluates or exports a trained policy: it must normalise with the statistics the policy was
+    trained with (those its checkpoint holds, and its export's contract states), not with ones that drift towards
+    the evaluation's own rollouts."""
+    frozen = [t.freeze() for t in getattr(env, "transform", ()) if isinstance(t, RunningNormalization)]
+    return len(frozen)
