@@ -62,6 +62,9 @@ def main(argv: list[str] | None = None) -> None:
                                out_dir=args.out)
     except (ValueError, RuntimeError) as err:  # unreadable checkpoint, too short --seconds, unavailable device
         sys.exit(f"error: {err}")
+    except OSError as err:  # an --out that is a file, or cannot be created or written
+        sys.exit(f"error: cannot write the evaluation to {err.filename or args.out}: {err.strerror or err}; pass "
+                 f"--out a folder that can be created")
     print(json.dumps(summary, indent=2))
 
 

@@ -28,11 +28,14 @@ except GLBackendError as gl_error:
 
 import torch  # noqa: E402
 
+from tocabi_torchrl.motion.io import MotionFormatError  # noqa: E402
 from tocabi_torchrl.rl.distributed import ending, from_environment  # noqa: E402
+from tocabi_torchrl.rl.evaluate import policy_dt, policy_steps  # noqa: E402
 from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
 from tocabi_torchrl.rl.logging import require_loggers  # noqa: E402
 from tocabi_torchrl.rl.run_dir import open_run  # noqa: E402
 from tocabi_torchrl.rl.trainer import finished_result, resolve_device, train  # noqa: E402
+from tocabi_torchrl.robot import RobotAssetError  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -40,6 +43,8 @@ def main(argv: list[str] | None = None) -> None:
     # bad values, a request this machine cannot honour, an existing run folder, an unreadable or changed --resume.
     try:
         cfg, args, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0])
+        if cfg.eval_at_end:  # the gait test's length, checked now rather than after the training it follows
+            policy_steps(cfg.eval_seconds, policy_dt())
         device = resolve_device(cfg.device)
         require_loggers(cfg.loggers)
         dist_info = from_environment()  # torchrun's layout; one rank without it
@@ -71,7 +76,10 @@ def main(argv: list[str] | None = None) -> None:
     if note:
         print(note, flush=True)
     print(banner(cfg, args, device), flush=True)
-    result = train(cfg, run=run)
+    try:
+        result = train(cfg, run=run)
+    except (MotionFormatError, RobotAssetError) as err:  # a bad --env.task.motion or model_path, found as it loads
+        sys.exit(f"error: {err}")
     print(f"done: {result.env_steps:,} env steps in {result.wall_seconds:.0f} s "
           f"({result.env_steps_per_second:,.0f} env-steps/s); run folder {result.run_dir}")
     if cfg.eval_at_end:

@@ -34,6 +34,17 @@ def test_play_reports_an_unreadable_checkpoint_in_one_line(tmp_path, kind):
 
 
 @needs_policy
+def test_play_reports_an_out_it_cannot_write_in_one_line(tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("not a folder")
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--num_envs", "1", "--seconds", "0.01",
+                             "--video_envs", "0", "--device", "cpu", "--out", str(afile)])
+    assert f"error: cannot write the evaluation to {afile}" in str(info.value.code)
+    assert afile.read_text() == "not a folder"
+
+
+@needs_policy
 def test_play_refuses_seconds_below_one_policy_step():
     with pytest.raises(SystemExit) as info:
         recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--seconds", "0.001", "--device", "cpu"])

@@ -171,6 +171,78 @@ def test_an_older_checkpoint_branches_into_a_new_folder(finished_run, tmp_path):
     assert folder_bytes(run) == before
 
 
+def test_resume_goes_on_in_the_checkpoints_own_folder_wherever_the_run_was_started(finished_run, tmp_path):
+    # The saved run_dir is where the run started. From a run folder moved (or a relative run_dir read from another
+    # working folder) it named another folder, so --resume refused or silently split the run in two.
+    run = copy_of(finished_run, tmp_path)
+    before = folder_bytes(finished_run)
+    recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "24"])
+    assert iterations_logged(run) == [1, 2, 3] and read_checkpoint(run)["iteration"] == 3
+    assert folder_bytes(finished_run) == before
+    # Named explicitly, the folder is the user's: the run branches there.
+    recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "32", "--run_dir", str(tmp_path),
+                             "--name", "branch"])
+    assert iterations_logged(tmp_path / "branch") == [4]
+
+
+@pytest.mark.parametrize(("option", "value", "message"), [
+    ("ppo.lr", "inf", "ppo.lr must be a finite number"),
+    ("ppo.std_start", "inf", "ppo.std_start must be a finite number"),
+    ("ppo.value_out_gain", "nan", "ppo.value_out_gain must be a finite number"),
+    ("ppo.std_hold", "1.0", "ppo.std_hold is the fraction of the run"),
+    ("ppo.actor_hidden", "64,0", "ppo.actor_hidden must be one or more positive layer sizes"),
+    ("ppo.lr", "1e-6", "ppo.lr 1e-06 is outside the adaptive schedule's range [1e-05, 0.01]"),
+    ("eval_seconds", "inf", "eval_seconds must be a finite number"),
+    ("eval_seconds", "0.001", "seconds=0.001 is shorter than one policy step"),
+])
+def test_the_recipe_refuses_values_that_would_train_to_nan_or_fail_after_training(tmp_path, option, value, message):
+    # Each of these trained to the end before: to a NaN policy logged with zero losses (lr inf, std_start inf,
+    # value_out_gain nan), or to a traceback as the network was built (std_hold 1, a 0-wide layer) or after the whole
+    # run (eval_seconds); an adaptive lr below the rule's range was raised tenfold at the first high KL.
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(tiny_args(tmp_path, eval_at_end=True) + [f"--{option}", value])
+    assert str(info.value.code).startswith("error: ") and message in str(info.value.code), info.value.code
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_missing_motion_or_model_file_and_a_run_dir_that_is_a_file_are_one_error_line(tmp_path):
+    for option, file in (("--env.task.motion", "none.npz"), ("--env.task.model_path", "none.xml")):
+        with pytest.raises(SystemExit) as info:
+            recipe("ppo_walk").main(tiny_args(tmp_path, name="m") + [option, str(tmp_path / file)])
+        assert str(info.value.code).startswith("error: ") and file in str(info.value.code), info.value.code
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(tiny_args(tmp_path, run_dir=afile))
+    assert f"error: {afile} is a file, not a folder" in str(info.value.code)
+
+
+def test_evaluating_and_exporting_a_running_normalization_policy_freeze_its_statistics(tmp_path):
+    # The gait test, play.py, compare_gaits and the export normalised with statistics that kept updating from their
+    # own rollouts, unlike the contract (the checkpoint's statistics, frozen).
+    from tocabi_torchrl.export.onnx_export import load_policy as load_for_export
+    from tocabi_torchrl.rl.evaluate import evaluate_policy
+    from tocabi_torchrl.rl.gait_record import load_policy
+    from tocabi_torchrl.transforms.normalize import RunningNormalization
+
+    recipe("ppo_walk").main(tiny_args(tmp_path, **{"transforms.normalization": "running"}))
+    saved = read_checkpoint(tmp_path / "run")
+    for loaded in (load_policy(tmp_path / "run", 2, torch.device("cpu")), load_for_export(tmp_path / "run", 2)):
+        norm = [t for t in loaded.env.transform if isinstance(t, RunningNormalization)]
+        assert len(norm) == 1 and norm[0].frozen
+        count = norm[0].count.clone()
+        with torch.no_grad():
+            loaded.env.rollout(3, loaded.agent.actor)
+        assert torch.equal(norm[0].count, count)
+    policy = load_policy(tmp_path / "run", 2, torch.device("cpu"))
+    norm = next(t for t in policy.env.transform if isinstance(t, RunningNormalization))
+    norm.unfreeze()  # an env handed to evaluate_policy as it is
+    mean = norm.mean.clone()
+    evaluate_policy(policy.actor, policy.cfg, tmp_path / "eval", num_envs=2, device="cpu", seconds=0.02,
+                    video_envs=0, env=policy.env, progress=False)
+    assert norm.frozen and torch.equal(norm.mean, mean) and saved["iteration"] == 2
+
+
 def test_a_new_run_folder_must_be_named_inside_run_dir_but_old_runs_so_named_still_open(finished_run, tmp_path):
     # run_dir/name is the run folder (the benchmarks clear it before timing): a new one never reaches outside run_dir.
     for name in ("/tmp/abs", "../x", "a/b", "a\\b", "..", ""):

@@ -32,7 +32,7 @@ from .envs.command import CommandConfig
 from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig
 from .sim.config import RESET_PASSES
 from .transforms.presets import TransformSettings
-from .tree import ConfigError, check_bool_fields, leaf_paths, replace_paths
+from .tree import ConfigError, check_bool_fields, check_number_fields, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
 from .tree import to_dict as _tree_to_dict
 
@@ -66,6 +66,10 @@ def check_snapshot_minutes(minutes: float, name: str = "checkpoint_minutes") -> 
     if 0 < minutes and 60.0 * minutes < 1.0 - 1e-9:
         raise ValueError(f"{name} {minutes:g} is a snapshot period of {60.0 * minutes:.3g} s; snapshots are named by "
                          f"whole seconds (wall_XXXXXs.pt), so give 0 (none) or at least {1 / 60:.6g} (1 s)")
+
+
+#: The learning rates [min, max] between which the ``adaptive`` schedule moves the rate (rl/update_step.adapt_lr).
+ADAPTIVE_LR_RANGE = (1e-5, 1e-2)
 
 
 @dataclass
@@ -175,9 +179,23 @@ class PPOConfig:
         if self.grad_sync == "ddp" and self.update_graph:
             raise ValueError("ppo.grad_sync=ddp runs the update step eagerly (DDP's gradient hooks cannot be captured "
                              "in a CUDA graph): set ppo.update_graph=false as well")
-        for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end"):
+        for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "value_out_gain"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"ppo.{name} must be >= 0, got {getattr(self, name)!r}")
+        if not 0 <= self.std_hold < 1:
+            raise ValueError(f"ppo.std_hold is the fraction of the run the std holds at std_start, in [0, 1), got "
+                             f"{self.std_hold!r}")
+        for name in ("actor_hidden", "critic_hidden"):
+            sizes = getattr(self, name)
+            if not sizes or any(isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in sizes):
+                raise ValueError(f"ppo.{name} must be one or more positive layer sizes (e.g. 400,200,100), got "
+                                 f"{sizes!r}")
+        low, high = ADAPTIVE_LR_RANGE
+        if self.lr_schedule == "adaptive" and not low <= self.lr <= high:
+            # The rule keeps the rate inside this range: from outside it, its first clamp would move the rate the
+            # wrong way (up when the KL says down).
+            raise ValueError(f"ppo.lr {self.lr!r} is outside the adaptive schedule's range [{low:g}, {high:g}]; give "
+                             f"a learning rate inside it, or ppo.lr_schedule linear or fixed")
 
 
 @dataclass
@@ -255,6 +273,7 @@ class RunConfig:
         """Raise ``ValueError`` naming the first bad option by its path (``ppo.lr``, ``env.control.mode``) and the
         accepted values."""
         check_bool_fields(self)  # the whole tree: the run's own switches, ppo's and the transforms'
+        check_number_fields(self)  # the whole tree: every number finite (ints where declared), named by its path
         for name in ("log_every", "checkpoint_every", "eval_envs", "total_env_steps"):
             _check_int(self, name, 1)
         for name in ("checkpoint_keep_last", "checkpoint_keep_every"):

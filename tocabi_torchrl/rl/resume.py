@@ -12,7 +12,7 @@ import os
 
 from ..config import RunConfig, flat_to_paths
 from ..tree import get_path, leaf_paths, replace_paths
-from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint
+from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint, run_folder_of
 from .options import RESUME_SAFE
 
 __all__ = ["ResumeConfigError", "resume_config", "check_resume_config"]
@@ -62,4 +62,9 @@ def resume_config(resume: str | os.PathLike, overrides: dict) -> RunConfig:
     if diffs:
         raise _refuse(path, diffs)
     safe = {k: v for k, v in flat_to_paths(overrides).items() if k in RESUME_SAFE}
+    if path.parent.name == "checkpoints" and not {"run_dir", "name"} & set(safe):
+        # The run goes on where its checkpoint is: the saved run_dir is relative to where the run started, so from
+        # another folder (or after the run folder moved) it would name a new folder and split the run in two.
+        run = run_folder_of(path)
+        safe.update(run_dir=str(run.parent), name=run.name)
     return replace_paths(saved, {**safe, "resume": str(resume)}).validated()

@@ -105,6 +105,10 @@ def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
     path = Path(cfg.run_dir) / cfg.name
     if writer and not (cfg.resume and path.is_dir()):
         check_run_name(cfg.name)
+    for folder in (Path(cfg.run_dir), path):
+        if writer and folder.exists() and not folder.is_dir():
+            raise RunDirError(f"{folder} is a file, not a folder: the run cannot be written there; pass --run_dir "
+                              f"and --name that name a folder")
     if not writer:
         if not cfg.resume:
             return RunFolder(path)

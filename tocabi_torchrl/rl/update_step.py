@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
+from ..config import ADAPTIVE_LR_RANGE
 from ..cuda_graphs import CUDA_GRAPHS, Capturer, WarmCapture
 
 __all__ = ["MinibatchStep", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam", "optimizer_mode",
@@ -69,11 +70,12 @@ def set_lr(group: dict, lr: float) -> None:
 def adapt_lr(lr: float, kl: float, desired_kl: float) -> float:
     """The KL-adaptive learning-rate rule of the ``adaptive`` schedule, applied once per iteration: the rate divided
     by 1.5 when the update's KL is above twice ``desired_kl``, multiplied by 1.5 when below half of it, within
-    [1e-5, 1e-2]."""
+    :data:`~tocabi_torchrl.config.ADAPTIVE_LR_RANGE` ([1e-5, 1e-2]; ``PPOConfig.validate`` keeps ``lr`` inside it)."""
+    low, high = ADAPTIVE_LR_RANGE
     if kl > 2.0 * desired_kl:
-        return max(lr / 1.5, 1e-5)
+        return max(lr / 1.5, low)
     if kl < 0.5 * desired_kl:
-        return min(lr * 1.5, 1e-2)
+        return min(lr * 1.5, high)
     return lr
 
 
