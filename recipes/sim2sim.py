@@ -46,6 +46,9 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
     if args.out and Path(args.out).exists():
         parser.error(f"--out {args.out} exists; choose another file")
+    if args.out and not Path(args.out).parent.is_dir():  # checked now, not after the whole run
+        parser.error(f"--out {args.out}: folder {Path(args.out).parent} does not exist; create it or choose another "
+                     "file")
     model, strip = args.model, False
     if model == "authored":
         model = None
@@ -56,13 +59,16 @@ def main(argv: list[str] | None = None) -> dict:
     try:
         result = run_sim2sim(args.contract, model, seconds=args.seconds, num_robots=args.num_robots,
                              command=(args.vx, args.vy), remove_meshes=strip).as_dict()
-    except (ContractError, ValueError) as err:
+    except (ContractError, ValueError, ImportError) as err:  # bad contract or model, or onnxruntime missing
         sys.exit(f"error: {err}")
     result["model"] = str(args.model)
     text = json.dumps(result, indent=2)
     print(text)
     if args.out:
-        Path(args.out).write_text(text + "\n")
+        try:
+            Path(args.out).write_text(text + "\n")
+        except OSError as err:  # e.g. a full disk or no write permission: the metrics are printed above
+            sys.exit(f"error: cannot write --out {args.out} ({err}); the metrics are printed above")
     return result
 
 

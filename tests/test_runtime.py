@@ -5,10 +5,12 @@ when ``../shared/reference`` is there, and refuses malformed or mismatched contr
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -267,3 +269,86 @@ def test_contract_not_json_or_input_size_mismatch_or_foreign_files_fail_clearly(
         PolicyRuntime(_write(path, bad))
     with pytest.raises(ContractError, match="not found"):
         load_contract(tmp_path / "absent.json")
+
+
+def test_sim_to_sim_counts_a_robot_that_mujoco_reset_as_fallen(monkeypatch, tmp_path):
+    # C MuJoCo resets a diverged robot to the default pose and only counts a warning (mjWARN_BADQVEL here): the
+    # state is finite and standing again. The training env marks such a world unhealthy and ends its episode, so the
+    # driver must stop counting the robot too instead of letting it jump back and walk on.
+    import mujoco
+
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+    monkeypatch.chdir(tmp_path)  # MuJoCo logs the warning to ./MUJOCO_LOG.TXT
+    step, seen, blown = mujoco.mj_step, [], []
+
+    def diverging_step(m, d):
+        if not any(d is s for s in seen):
+            seen.append(d)
+        if d is seen[-1] and len(seen) == 2 and d.time >= 0.1 and not blown:  # robot 1, once, 0.1 s in
+            d.qvel[6] = 1e12
+            blown.append(d.time)
+        step(m, d)
+
+    monkeypatch.setattr(mujoco, "mj_step", diverging_step)
+    result = run_sim2sim(_contract("ppo"), seconds=0.2, num_robots=2)
+    assert blown and seen[1].warning[mujoco.mjtWarning.mjWARN_BADQVEL].number == 1
+    assert np.isfinite(seen[1].qpos).all()
+    assert result.alive == [True, False] and result.survival == 0.5
+
+
+def test_sim_to_sim_health_warnings_are_the_training_envs():
+    # The driver lists the warnings again (importing tocabi_torchrl.sim would load torch); they must not drift apart.
+    from tocabi_torchrl.runtime.mujoco_driver import HEALTH_WARNINGS
+    from tocabi_torchrl.sim.mujoco_health import MUJOCO_HEALTH_WARNINGS
+
+    assert sum(1 << int(w) for w in HEALTH_WARNINGS) == MUJOCO_HEALTH_WARNINGS
+
+
+def test_sim_to_sim_names_what_a_foreign_model_lacks(tmp_path):
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+    model = tmp_path / "other.xml"
+    model.write_text('<mujoco><worldbody><body><joint/><geom size="0.1"/></body></worldbody></mujoco>')
+    with pytest.raises(ValueError, match=r"other.xml lacks 72 name\(s\) the policy contract needs \(joint "
+                                         r"'L_HipYaw_Joint', .*: pass a TOCABI MJCF"):
+        run_sim2sim(_contract("ppo"), model, seconds=0.02, num_robots=1)
+    # One missing actuator is named as such (the check runs before the actuators are set up from the contract).
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    assert text.count('name="L_Knee_Motor"') == 1
+    model = tmp_path / "one.xml"  # the authored model is self-contained (no meshes or includes)
+    model.write_text(text.replace('name="L_Knee_Motor"', 'name="L_Knee_Servo"'))
+    with pytest.raises(ValueError, match=r"lacks 1 name\(s\) the policy contract needs \(actuator 'L_Knee_Motor'\)"):
+        run_sim2sim(_contract("ppo"), model, seconds=0.02, num_robots=1)
+
+
+def test_reset_refuses_init_rows_that_are_not_rows_of_the_motion():
+    # Out-of-range rows used to wrap silently, fractional rows were truncated, and a wrong count, NaN or zero robots
+    # surfaced as numpy errors.
+    runtime = PolicyRuntime(_contract("ppo"))
+    last = runtime.motion.cycle_rows - 1
+
+    def state(n=2):
+        return RobotState(base_quat=np.tile([1.0, 0, 0, 0], (n, 1)), joint_pos=np.zeros((n, 33)),
+                          joint_vel=np.zeros((n, 33)), foot_force=np.zeros((n, 2, 3)), foot_torque=np.zeros((n, 2, 3)))
+
+    allowed = rf"pass one integer or 2 \(one per robot\) in \[0, {last}\]"
+    for rows, problem in (([0, 1800, 0], r"has shape \(3,\)"), ([last + 1, 0], rf"has rows \[{last + 1}\] outside"),
+                          ([-5, 0], r"has rows \[-5\] outside"), ([0.7, 1800.0], "has dtype float64, not integers"),
+                          ([np.nan, 0], "has dtype float64"), ([True, False], "has dtype bool")):
+        with pytest.raises(ContractError, match=f"init_row {problem}.*{allowed}"):
+            runtime.reset(state(), (0.5, 0.0), init_row=rows)
+    with pytest.raises(ContractError, match=r"base_quat has shape \(0, 4\), expected \(N, 4\) with N >= 1"):
+        runtime.reset(state(0), np.zeros((0, 2)))
+    runtime.reset(state(), (0.5, 0.0), init_row=np.array([0, last], dtype=np.int32))  # numpy ints are rows
+    assert runtime.init_row.tolist() == [0, last] and runtime.init_row.dtype == np.int64
+    runtime.reset(state(), (0.5, 0.0), init_row=1800)  # one row for every robot
+    assert runtime.init_row.tolist() == [1800, 1800]
+
+
+def test_a_missing_onnxruntime_says_which_extra_installs_it(monkeypatch):
+    pyproject = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
+    assert re.search(r'^export = \[.*"onnxruntime"', pyproject, re.MULTILINE), "the message names the wrong extra"
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # makes `import onnxruntime` fail
+    with pytest.raises(ImportError, match=r'needs onnxruntime, which is not installed: pip install -e "\.\[export\]"'):
+        PolicyRuntime(_contract("ppo"))

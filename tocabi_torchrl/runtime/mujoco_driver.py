@@ -8,7 +8,8 @@ model has no servos) become position servos with ``upper_body.kp``/``kv``, force
 
 Each control period repeats the training env's simulator step (``sim/mujoco_backend.py``): ``substeps`` × ``mj_step``
 with the command held, then ``mj_forward`` with its constraint solution kept as the next warm start. Terminations are
-the env's (``envs/termination.py``, ``sim/contacts.py``), found here from the contact list.
+the env's (``envs/termination.py``, ``sim/contacts.py``), found here from the contact list, plus the training env's
+health check: a robot whose MuJoCo warning counters fired (C MuJoCo resets a diverged world itself) has fallen.
 """
 
 from __future__ import annotations
@@ -23,7 +24,15 @@ import numpy as np
 
 from .policy import PolicyRuntime, RobotState
 
-__all__ = ["Sim2SimResult", "build_model", "run_sim2sim", "strip_meshes"]
+__all__ = ["HEALTH_WARNINGS", "Sim2SimResult", "build_model", "missing_names", "run_sim2sim", "strip_meshes"]
+
+_W = mujoco.mjtWarning
+#: The warnings of ``sim/mujoco_health.MUJOCO_HEALTH_WARNINGS`` (listed again because importing ``sim`` loads torch;
+#: ``tests/test_runtime.py`` checks the two agree): dropped contacts or constraint rows, and MuJoCo's own reset of a
+#: diverged world to the model's default pose, after which the state is finite again.
+HEALTH_WARNINGS: tuple[mujoco.mjtWarning, ...] = (
+    _W.mjWARN_CONTACTFULL, _W.mjWARN_CNSTRFULL, _W.mjWARN_BADQPOS, _W.mjWARN_BADQVEL, _W.mjWARN_BADQACC,
+)
 
 
 def strip_meshes(path: str | os.PathLike) -> str:
@@ -43,10 +52,31 @@ def strip_meshes(path: str | os.PathLike) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
+def missing_names(spec: mujoco.MjSpec, contract: dict) -> list[str]:
+    """The names the contract needs that ``spec`` lacks, as ``"actuator 'L_Knee_Motor'"`` etc.: its joints, their
+    ``_Motor`` actuators, the base and neck bodies and the foot F/T sensors (empty for a TOCABI model)."""
+    rob = contract["robot"]
+    needed = {
+        "joint": rob["joint_names"],
+        "actuator": [n.replace("_Joint", "_Motor") for n in rob["joint_names"]],
+        "body": [rob["base_body"], rob["neck_body"]],
+        "sensor": [*rob["foot_force_sensors"], *rob["foot_torque_sensors"]],
+    }
+    return [f"{kind} {n!r}" for kind, names in needed.items() for n in names if getattr(spec, kind)(n) is None]
+
+
 def build_model(contract: dict, model_path: str | os.PathLike, remove_meshes: bool = False) -> mujoco.MjModel:
-    """Compile ``model_path`` with the actuators the contract's control mode needs (see the module docstring)."""
+    """Compile ``model_path`` with the actuators the contract's control mode needs (see the module docstring).
+
+    Raises ``ValueError`` naming what the model lacks when it is not a TOCABI model with the contract's names."""
     spec = (mujoco.MjSpec.from_string(strip_meshes(model_path)) if remove_meshes
             else mujoco.MjSpec.from_file(str(model_path)))
+    missing = missing_names(spec, contract)
+    if missing:
+        shown = ", ".join(missing[:8]) + (", ..." if len(missing) > 8 else "")
+        raise ValueError(f"{model_path} lacks {len(missing)} name(s) the policy contract needs ({shown}): pass a "
+                         "TOCABI MJCF with the contract's robot.joint_names, a <joint>_Motor actuator for each, "
+                         "robot.base_body, robot.neck_body and the robot.foot_force_sensors/foot_torque_sensors")
     rob, leg = contract["robot"], contract["action"]["leg"]
     motors = [n.replace("_Joint", "_Motor") for n in rob["joint_names"]]
     for i, name in enumerate(motors[: len(rob["leg_joint_names"])]):
@@ -90,7 +120,8 @@ class Sim2SimResult:
 
 
 class _Terminations:
-    """The env's early-termination checks on one MjData (contact sets from the robot facts of ``robot.py``)."""
+    """The env's early-termination checks on one MjData (contact sets from the robot facts of ``robot.py``), and
+    the env's health check (:data:`HEALTH_WARNINGS`)."""
 
     def __init__(self, model: mujoco.MjModel, contract: dict):
         from .. import robot  # numpy-only module: body lists
@@ -109,6 +140,10 @@ class _Terminations:
         if 2.0 * np.arctan2(np.linalg.norm(q[1:]), abs(q[0])) > t["max_neck_angle"]:
             return True
         if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
+            return True
+        # MuJoCo resets a diverged robot to the default pose and only counts a warning: its state is finite and
+        # standing again, so only the counters (zero in a fresh MjData, never cleared here) show that it fell.
+        if any(d.warning[w].number > 0 for w in HEALTH_WARNINGS):
             return True
         for c in d.contact[: d.ncon]:
             b1, b2 = m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]
@@ -196,7 +231,7 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     knee_sq = np.zeros(num_robots)
     vel_err = np.zeros(num_robots)
     alive_steps = np.zeros(num_robots)
-    steps = int(round(seconds / c["timing"]["control_dt_s"]))
+    steps = round(seconds / c["timing"]["control_dt_s"])
     for _ in range(steps):
         for i, d in enumerate(datas):
             d.ctrl[:n_leg] = cmd.leg[i]

@@ -63,7 +63,11 @@ class Command:
 
 
 def _onnx_session(path: Path, threads: int):
-    import onnxruntime as ort
+    try:
+        import onnxruntime as ort
+    except ImportError as err:  # an optional dependency: say which extra brings it
+        raise ImportError("running an exported policy needs onnxruntime, which is not installed: "
+                          'pip install -e ".[export]" in the repository (or pip install onnxruntime)') from err
 
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
@@ -141,12 +145,13 @@ class PolicyRuntime:
 
     def reset(self, state: RobotState, command, init_row=None) -> Command:
         """Start an episode for every robot from ``state`` (the initial pose): clock 0 at ``init_row`` (N,) (default:
-        the motion's first start row), history filled with this observation and zero actions. ``command`` (N, 2) or
-        (2,) is the velocity command [m/s] (vx, vy). Returns the command for the first period."""
+        the motion's first start row; one integer is used for every robot), history filled with this observation
+        and zero actions. ``command`` (N, 2) or (2,) is the velocity command [m/s] (vx, vy). Returns the command for
+        the first period."""
         n = self._check_state(state)
-        self.time = np.zeros(n, dtype=_F32)
         rows = self.motion.init_rows[0] if init_row is None else init_row
-        self.init_row = np.broadcast_to(np.asarray(rows, dtype=np.int64), (n,)).copy()
+        self.init_row = self._check_init_row(rows, n)
+        self.time = np.zeros(n, dtype=_F32)
         self.set_command(command)
         zeros = np.zeros((n, len(self.low)), dtype=_F32)
         self.history.reset(self._observe(state), zeros)
@@ -181,10 +186,31 @@ class PolicyRuntime:
         return self.history.read()
 
     # --------------------------------------------------------------------------------------------- internals
+    def _check_init_row(self, rows, n: int) -> np.ndarray:
+        """(n,) int64 start rows from ``rows``: one integer or n of them, each a row of the motion's cycle (the
+        motion indexes rows modulo its cycle, so an out-of-range row would silently start elsewhere)."""
+        value = np.asarray(rows)
+        last = self.motion.cycle_rows - 1
+        if value.shape not in ((), (1,), (n,)):
+            problem = f"has shape {value.shape}"
+        elif value.dtype.kind not in "iu":  # not bool: True is no row; not float: 0.7 would be truncated
+            problem = f"has dtype {value.dtype}, not integers"
+        elif not ((value >= 0) & (value <= last)).all():
+            problem = f"has rows {np.unique(value[(value < 0) | (value > last)])[:8].tolist()} outside [0, {last}]"
+        else:
+            return np.broadcast_to(value.astype(np.int64), (n,)).copy()
+        raise ContractError(f"init_row {problem}: pass one integer or {n} (one per robot) in [0, {last}], rows of "
+                            f"the reference motion's cycle (its start rows are {self.motion.init_rows.tolist()})")
+
     def _check_state(self, state: RobotState, n: int | None = None) -> int:
         j = len(self.joint_names)
         shapes = {"base_quat": (4,), "joint_pos": (j,), "joint_vel": (j,), "foot_force": (2, 3),
                   "foot_torque": (2, 3)}
+        if n is None:
+            quat = np.shape(state.base_quat)
+            if len(quat) != 2 or quat[0] < 1:
+                raise ContractError(f"RobotState.base_quat has shape {quat}, expected (N, 4) with N >= 1 robots: "
+                                    "every field holds one row per robot, even for a single robot")
         count = np.shape(state.base_quat)[0] if n is None else n
         for name, shape in shapes.items():
             got = np.shape(getattr(state, name))

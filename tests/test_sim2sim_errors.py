@@ -1,0 +1,63 @@
+"""recipes/sim2sim.py reports a model without the contract's names, an --out folder that does not exist, an --out
+file it cannot write and a missing onnxruntime in one ``error:`` line (or a usage error), not a traceback."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("onnxruntime")
+
+from recipe_runner import load_recipe
+
+CONTRACT = Path(__file__).resolve().parents[1] / "assets" / "policies" / "tocabi_walk_ppo.json"
+needs_contract = pytest.mark.skipif(not CONTRACT.is_file(), reason="shipped policy contract not present")
+
+
+def _run(argv: list[str]) -> SystemExit:
+    with pytest.raises(SystemExit) as info:
+        load_recipe("sim2sim").main(["--contract", str(CONTRACT), "--seconds", "0.02", "--num_robots", "1", *argv])
+    return info.value
+
+
+@needs_contract
+def test_a_model_without_the_contracts_names_is_one_error_line(tmp_path):
+    # It used to crash with AttributeError: 'NoneType' object has no attribute 'set_to_position'.
+    model = tmp_path / "other.xml"
+    model.write_text('<mujoco><worldbody><body><joint/><geom size="0.1"/></body></worldbody></mujoco>')
+    message = str(_run(["--model", str(model)]).code)
+    assert message.startswith(f"error: {model} lacks 72 name(s) the policy contract needs (joint 'L_HipYaw_Joint'")
+    assert "\n" not in message
+
+
+def test_an_out_file_in_a_missing_folder_is_refused_before_the_run(capsys, tmp_path):
+    # The contract does not exist either: the --out check comes first, so nothing is run (it used to fail with
+    # FileNotFoundError after the whole run).
+    out = tmp_path / "nodir" / "m.json"
+    with pytest.raises(SystemExit) as info:
+        load_recipe("sim2sim").main(["--contract", str(tmp_path / "missing.json"), "--out", str(out)])
+    assert info.value.code == 2
+    assert f"--out {out}: folder {out.parent} does not exist" in capsys.readouterr().err
+
+
+@needs_contract
+def test_an_out_file_that_cannot_be_written_is_one_error_line_after_the_printed_metrics(monkeypatch, capsys,
+                                                                                         tmp_path):
+    def refuse(self, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "write_text", refuse)  # a read-only folder does not stop root, so refuse the write
+    out = tmp_path / "m.json"
+    message = str(_run(["--out", str(out)]).code)
+    assert message.startswith(f"error: cannot write --out {out} ([Errno 13] Permission denied")
+    assert message.endswith("the metrics are printed above") and '"survival": 1.0' in capsys.readouterr().out
+
+
+@needs_contract
+def test_a_missing_onnxruntime_is_one_error_line(monkeypatch):
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # makes `import onnxruntime` fail
+    message = str(_run([]).code)
+    assert message.startswith("error: running an exported policy needs onnxruntime")
+    assert 'pip install -e ".[export]"' in message
