@@ -30,12 +30,12 @@ import torch  # noqa: E402
 
 from tocabi_torchrl.motion.io import MotionFormatError  # noqa: E402
 from tocabi_torchrl.rl.distributed import ending, from_environment  # noqa: E402
-from tocabi_torchrl.rl.evaluate import policy_dt, policy_steps  # noqa: E402
+from tocabi_torchrl.rl.gait_record import policy_steps  # noqa: E402
 from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
 from tocabi_torchrl.rl.logging import require_loggers  # noqa: E402
 from tocabi_torchrl.rl.run_dir import open_run  # noqa: E402
 from tocabi_torchrl.rl.trainer import finished_result, resolve_device, train  # noqa: E402
-from tocabi_torchrl.robot import RobotAssetError  # noqa: E402
+from tocabi_torchrl.robot import RobotAssetError, load_model  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         cfg, args, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0])
         if cfg.eval_at_end:  # the gait test's length, checked now rather than after the training it follows
-            policy_steps(cfg.eval_seconds, policy_dt())
+            policy_steps(cfg.eval_seconds, load_model(cfg.env.task.model_path).opt.timestep * cfg.env.sim.substeps)
         device = resolve_device(cfg.device)
         require_loggers(cfg.loggers)
         dist_info = from_environment()  # torchrun's layout; one rank without it

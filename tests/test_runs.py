@@ -99,7 +99,7 @@ def test_train_refuses_a_resume_with_other_network_sizes(finished_run):
 def test_resuming_a_finished_run_says_so(finished_run, capsys):
     recipe("ppo_walk").main(["--resume", str(finished_run)])
     out = capsys.readouterr().out
-    assert "already finished (iteration 2 of 2, 16 env steps)" in out
+    assert "already finished (iteration 2, 16 of 16 env steps)" in out
     assert "env-steps/s" not in out and "done:" not in out
     cfg, _ = parse_args(["--resume", str(finished_run)])
     result = train(cfg)
@@ -179,28 +179,38 @@ def test_resume_goes_on_in_the_checkpoints_own_folder_wherever_the_run_was_start
     recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "24"])
     assert iterations_logged(run) == [1, 2, 3] and read_checkpoint(run)["iteration"] == 3
     assert folder_bytes(finished_run) == before
-    # Named explicitly, the folder is the user's: the run branches there.
-    recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "32", "--run_dir", str(tmp_path),
-                             "--name", "branch"])
+    # --name alone (the form docs/training/README.md shows) branches beside the run, not into the saved run_dir.
+    recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "32", "--name", "branch"])
     assert iterations_logged(tmp_path / "branch") == [4]
+    assert folder_bytes(finished_run) == before
+
+
+def test_max_grad_norm_inf_means_no_clipping_and_nan_is_refused():
+    # The one number of the tree that may be infinite (the finiteness check would otherwise refuse it).
+    assert preset_config("cpu_smoke", max_grad_norm=math.inf).ppo.max_grad_norm == math.inf
+    for value in (math.nan, 0.0, "1.0"):
+        with pytest.raises(ValueError, match="ppo.max_grad_norm must be"):
+            preset_config("cpu_smoke", max_grad_norm=value)
 
 
 @pytest.mark.parametrize(("option", "value", "message"), [
     ("ppo.lr", "inf", "ppo.lr must be a finite number"),
     ("ppo.std_start", "inf", "ppo.std_start must be a finite number"),
     ("ppo.value_out_gain", "nan", "ppo.value_out_gain must be a finite number"),
-    ("ppo.std_hold", "1.0", "ppo.std_hold is the fraction of the run"),
+    ("ppo.std_hold", "1.0", "ppo.std_hold is the fraction of training still left when the scheduled std"),
     ("ppo.actor_hidden", "64,0", "ppo.actor_hidden must be one or more positive layer sizes"),
     ("ppo.lr", "1e-6", "ppo.lr 1e-06 is outside the adaptive schedule's range [1e-05, 0.01]"),
     ("eval_seconds", "inf", "eval_seconds must be a finite number"),
     ("eval_seconds", "0.001", "seconds=0.001 is shorter than one policy step"),
+    ("env.sim.substeps", "16", "seconds=0.003 is shorter than one policy step (8 ms)"),  # the run's own step
 ])
 def test_the_recipe_refuses_values_that_would_train_to_nan_or_fail_after_training(tmp_path, option, value, message):
     # Each of these trained to the end before: to a NaN policy logged with zero losses (lr inf, std_start inf,
     # value_out_gain nan), or to a traceback as the network was built (std_hold 1, a 0-wide layer) or after the whole
     # run (eval_seconds); an adaptive lr below the rule's range was raised tenfold at the first high KL.
     with pytest.raises(SystemExit) as info:
-        recipe("ppo_walk").main(tiny_args(tmp_path, eval_at_end=True) + [f"--{option}", value])
+        extra = ["--eval_seconds", "0.003"] if option == "env.sim.substeps" else []  # 1 step of 4 ms, 0 of 8
+        recipe("ppo_walk").main(tiny_args(tmp_path, eval_at_end=True) + [f"--{option}", value, *extra])
     assert str(info.value.code).startswith("error: ") and message in str(info.value.code), info.value.code
     assert not (tmp_path / "run").exists()
 

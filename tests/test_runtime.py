@@ -343,6 +343,11 @@ def test_reset_refuses_init_rows_that_are_not_rows_of_the_motion():
     runtime.reset(state(), (0.5, 0.0), init_row=np.array([0, last], dtype=np.int32))  # numpy ints are rows
     assert runtime.init_row.tolist() == [0, last] and runtime.init_row.dtype == np.int64
     runtime.reset(state(), (0.5, 0.0), init_row=1800)  # one row for every robot
+    # The sim-to-sim driver checks its start rows before they index the motion (a numpy broadcast error before).
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+    with pytest.raises(ContractError, match=r"init_row has shape \(3,\): pass one integer or 2"):
+        run_sim2sim(_contract("ppo"), None, seconds=0.02, num_robots=2, init_rows=[0, 0, 0])
     assert runtime.init_row.tolist() == [1800, 1800]
 
 

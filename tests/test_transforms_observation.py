@@ -290,3 +290,22 @@ def test_quat_to_rpy_matches_the_reference_formulas_on_random_quaternions():
     expected = torch.tensor([reference(qi) for qi in q], dtype=torch.float64)
     torch.testing.assert_close(quat_to_rpy(torch.tensor(q)), expected, rtol=0, atol=1e-9)
     torch.testing.assert_close(quat_to_rpy(torch.tensor(q, dtype=torch.float32)), expected.float(), rtol=0, atol=2e-5)
+
+
+def test_freezing_running_statistics_drops_a_captured_step_graph_only_when_one_changed():
+    # A captured step replays the updates it was captured with, whatever `frozen` says afterwards
+    # (SyncFreeResetEnv's docstring): freezing must make the env capture again.
+    from tocabi_torchrl.transforms.normalize import freeze_running_statistics
+
+    class Env:  # the two things freeze_running_statistics reads of an env
+        def __init__(self, transforms):
+            self.transform, self.dropped = transforms, 0
+
+        def invalidate_graph(self):
+            self.dropped += 1
+
+    norm = RunningNormalization(dim=3)
+    env = Env([norm])
+    assert freeze_running_statistics(env) == 1 and norm.frozen and env.dropped == 1
+    assert freeze_running_statistics(env) == 1 and env.dropped == 1  # already frozen: the graph stays
+    assert freeze_running_statistics(Env([])) == 0

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import numbers
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -32,7 +33,7 @@ from .envs.command import CommandConfig
 from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig
 from .sim.config import RESET_PASSES
 from .transforms.presets import TransformSettings
-from .tree import ConfigError, check_bool_fields, check_number_fields, leaf_paths, replace_paths
+from .tree import OWN_NUMBER_CHECK, ConfigError, check_bool_fields, check_number_fields, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
 from .tree import to_dict as _tree_to_dict
 
@@ -93,7 +94,8 @@ class PPOConfig:
     entropy_coef: float = 0.0
     value_coef: float = 1.0
     value_loss: str = "l2"
-    max_grad_norm: float = 1.0
+    #: Gradient-norm clip; inf = no clipping (the one number of the tree allowed to be infinite).
+    max_grad_norm: float = field(default=1.0, metadata=OWN_NUMBER_CHECK)
     # learning rate
     lr: float = 1e-3
     lr_end: float = 1e-5
@@ -166,6 +168,9 @@ class PPOConfig:
             value = getattr(self, name)
             if not low < value <= high:
                 raise ValueError(f"ppo.{name} must be in ({low}, {high}], got {value!r}")
+        if isinstance(self.max_grad_norm, bool) or not isinstance(self.max_grad_norm, numbers.Real):
+            raise ValueError(  # noqa: TRY004 - a config error, a ValueError like every other of the tree
+                f"ppo.max_grad_norm must be a number > 0 (inf: no clipping), got {self.max_grad_norm!r}")
         for name in ("lr", "std_start", "std_end", "desired_kl", "max_grad_norm", "adam_eps"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"ppo.{name} must be > 0, got {getattr(self, name)!r}")
@@ -182,12 +187,12 @@ class PPOConfig:
         for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "value_out_gain"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"ppo.{name} must be >= 0, got {getattr(self, name)!r}")
-        if not 0 <= self.std_hold < 1:
-            raise ValueError(f"ppo.std_hold is the fraction of the run the std holds at std_start, in [0, 1), got "
-                             f"{self.std_hold!r}")
+        if self.std_mode == "scheduled" and not 0 <= self.std_hold < 1:
+            raise ValueError(f"ppo.std_hold is the fraction of training still left when the scheduled std reaches "
+                             f"std_end, in [0, 1), got {self.std_hold!r}")
         for name in ("actor_hidden", "critic_hidden"):
             sizes = getattr(self, name)
-            if not sizes or any(isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in sizes):
+            if not sizes or any(isinstance(h, bool) or not isinstance(h, numbers.Integral) or h < 1 for h in sizes):
                 raise ValueError(f"ppo.{name} must be one or more positive layer sizes (e.g. 400,200,100), got "
                                  f"{sizes!r}")
         low, high = ADAPTIVE_LR_RANGE

@@ -62,9 +62,11 @@ def resume_config(resume: str | os.PathLike, overrides: dict) -> RunConfig:
     if diffs:
         raise _refuse(path, diffs)
     safe = {k: v for k, v in flat_to_paths(overrides).items() if k in RESUME_SAFE}
-    if path.parent.name == "checkpoints" and not {"run_dir", "name"} & set(safe):
-        # The run goes on where its checkpoint is: the saved run_dir is relative to where the run started, so from
-        # another folder (or after the run folder moved) it would name a new folder and split the run in two.
+    if path.parent.name == "checkpoints":
+        # The run goes on where its checkpoint is (or, given --name alone, branches beside it): the saved run_dir is
+        # relative to where the run started, so from another folder (or after the run folder moved) it would name
+        # a new folder and split the run in two.
         run = run_folder_of(path)
-        safe.update(run_dir=str(run.parent), name=run.name)
+        safe.setdefault("run_dir", str(run.parent))
+        safe.setdefault("name", run.name)
     return replace_paths(saved, {**safe, "resume": str(resume)}).validated()

@@ -167,9 +167,9 @@ class TrainResult:
 
 def finished_result(run: RunFolder, cfg: RunConfig) -> TrainResult:
     """Say that the resumed run is already done, and return its result without training."""
-    print(f"{run.resume_file}: the run is already finished (iteration {run.start_iteration} of {cfg.iterations}, "
-          f"{run.start_env_steps:,} env steps); nothing to train. Raise --total_env_steps to train it further.",
-          flush=True)
+    print(f"{run.resume_file}: the run is already finished (iteration {run.start_iteration}, "
+          f"{run.start_env_steps:,} of {cfg.total_env_steps:,} env steps); nothing to train. Raise --total_env_steps "
+          f"to train it further.", flush=True)
     return TrainResult(run.path, run.start_iteration, run.start_env_steps, 0.0, 0.0, {}, already_finished=True)
 
 

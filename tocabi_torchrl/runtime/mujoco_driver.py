@@ -208,6 +208,7 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     if init_rows is None:
         rows = runtime.motion.init_rows
         init_rows = rows[np.arange(num_robots) % len(rows)]
+    init_rows = runtime._check_init_row(init_rows, num_robots)  # before they index the motion below
     init_qpos = np.asarray(c["robot"]["initial_qpos"])
     reset_leg = (np.zeros(n_leg) if c["action"]["leg"]["kind"] == "torque"
                  else np.asarray(c["action"]["leg"].get("nominal", init_qpos[7 : 7 + n_leg])))

@@ -283,6 +283,10 @@ def freeze_running_statistics(env) -> int:
 
     For an env that evaluates or exports a trained policy: it must normalise with the statistics the policy was
     trained with (those its checkpoint holds, and its export's contract states), not with ones that drift towards
-    the evaluation's own rollouts."""
-    frozen = [t.freeze() for t in getattr(env, "transform", ()) if isinstance(t, RunningNormalization)]
-    return len(frozen)
+    the evaluation's own rollouts. An env with a captured step graph (``SyncFreeResetEnv``) drops it when a
+    normaliser changes: the graph replays the updates it was captured with."""
+    norms = [t for t in getattr(env, "transform", ()) if isinstance(t, RunningNormalization)]
+    changed = [t.freeze() for t in norms if not t.frozen]
+    if changed and hasattr(env, "invalidate_graph"):
+        env.invalidate_graph()
+    return len(norms)
