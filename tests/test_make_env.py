@@ -51,6 +51,25 @@ def test_overrides_reach_env_and_transforms(backend):
         make_env(num_envs=2, device="cpu", history_length=3)
 
 
+def test_reward_weights_reweight_on_top_of_the_defaults_and_switches_must_be_bools():
+    from tocabi_torchrl.transforms import TaskReward, TransformConfig
+
+    def weights(env):
+        reward = next(t for t in env.transform if isinstance(t, TaskReward))
+        return {t.name: t.weight for t in reward.terms}
+
+    default = weights(make_env(num_envs=1, device="cpu", sim_threads=1))
+    changed = weights(make_env(num_envs=1, device="cpu", sim_threads=1, reward_weights={"qpos": 0.5}))
+    # The default preset's body_vel=0.9 stays: the map used to replace the settings' own (body_vel back to 0.3).
+    assert default["body_vel"] == changed["body_vel"] == 0.9 and changed["qpos"] == 0.5
+    assert {k: v for k, v in changed.items() if k != "qpos"} == {k: v for k, v in default.items() if k != "qpos"}
+    for name in ("sync_free_resets", "cuda_graph"):
+        with pytest.raises(TypeError, match=f"make_env {name} must be True or False, got 'no'"):
+            make_env(num_envs=1, device="cpu", **{name: "no"})
+    with pytest.raises(TypeError, match="transforms= takes a TransformSettings"):
+        make_env(num_envs=1, device="cpu", transforms=TransformConfig())
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_gpu_transformed_step_never_syncs():

@@ -54,12 +54,21 @@ def make_env(
             See :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv` for what a capture freezes.
         overrides: env options as flat names (e.g. ``control_mode="pd"``, ``max_episode_steps=1000``, see
             ``envs.config.ENV_FLAT_PATHS``) or sections (``command=CommandConfig.reference()``), and fields of
-            :class:`~tocabi_torchrl.transforms.TransformConfig` (e.g. ``reward_weights={"qpos": 0.5}``,
+            :class:`~tocabi_torchrl.transforms.TransformConfig` (e.g. ``reward_weights={"qpos": 0.5}``, which
+            re-weights the named terms on top of the settings' weights,
             ``normalization="running"``, ``history=HistoryLayout(...)``); a name in neither raises.
 
     The env's ``task.max_episode_steps`` is the one truncation clock: the transforms' ``StepCounter`` only counts.
     """
     device = check_device(device)  # before anything reads it: a bad name gets TocabiWalk's clear message
+    for name, value in (("sync_free_resets", sync_free_resets), ("cuda_graph", cuda_graph)):
+        if not (isinstance(value, bool) or (value is None and name == "sync_free_resets")):
+            # Text such as "no" is truthy: it would silently turn the switch on.
+            raise TypeError(f"make_env {name} must be True or False, got {value!r}")
+    if transforms is not None and not isinstance(transforms, TransformSettings):
+        raise TypeError(f"make_env transforms= takes a TransformSettings (the run config's transforms section), got "
+                        f"{type(transforms).__name__}; pass TransformConfig fields as keywords (reward_weights=..., "
+                        f"history=...) or build the chain with default_transforms(TransformConfig(...))")
     unknown = set(overrides) - _ENV_KEYWORDS - _TRANSFORM_FIELDS
     if unknown:
         raise TypeError(f"make_env got unknown option(s) {sorted(unknown)}; valid options are the env's "

@@ -181,11 +181,17 @@ class TransformSettings:
 
     def transform_config(self, **overrides) -> TransformConfig:
         """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
-        ``max_episode_steps`` is ``None`` unless overridden: the env is the truncation clock."""
+        ``reward_weights`` given here re-weight the named terms on top of these settings' own weights (the
+        default's ``body_vel=0.9`` stays unless named). ``max_episode_steps`` is ``None`` unless overridden: the
+        env is the truncation clock."""
         self.validate()
+        weights = self.reward_weight_map()
+        if overrides.get("reward_weights") is not None:
+            # On top, not instead: {"qpos": 0.5} replacing the map silently put body_vel back to the reference's 0.3.
+            weights.update(overrides.pop("reward_weights"))
         values = dict(normalization=self.normalization, obs_clip=self.obs_clip,
                       zero_reward_on_terminated=self.zero_reward_on_terminated, compile_reward=self.compile_reward,
-                      reward_weights=self.reward_weight_map(), max_episode_steps=None)
+                      reward_weights=weights, max_episode_steps=None)
         return transform_config(self.preset, **{**values, **overrides})
 
 
