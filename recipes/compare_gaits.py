@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 from tocabi_torchrl.render_gl import NO_GL_FIX, GLBackendError, choose_gl_backend
@@ -158,8 +159,13 @@ def render_frames(results: dict, args, out) -> str:
 def main(argv: list[str] | None = None) -> dict:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.num_envs < 1 or args.seconds <= 0 or args.frame_every <= 0:
-        parser.error("--num_envs must be >= 1, --seconds and --frame_every > 0")
+    if args.num_envs < 1 or args.frame_width < 1 or args.frame_height < 1:
+        parser.error("--num_envs, --frame_width and --frame_height must be >= 1")
+    for flag in ("seconds", "frame_every", "knee_seconds", "torque_seconds", "fovy"):
+        if not 0 < getattr(args, flag) < math.inf:  # a negative span would slice from the end: the wrong seconds
+            parser.error(f"--{flag} must be a finite number > 0, got {getattr(args, flag)}")
+    if not (math.isfinite(args.vx) and math.isfinite(args.vy)):
+        parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
     try:
         controllers = parse_controllers(args.policy)
         device = resolve_device(args.device)
@@ -172,6 +178,11 @@ def main(argv: list[str] | None = None) -> dict:
             results[controller.label] = run_controller(controller, args, device, i, len(controllers))
         except (CheckpointError, ValueError) as err:
             sys.exit(f"error: {controller.label}: {err}")
+        # One time axis for the plots, traces.npz and the per-step smoothness column: one control period.
+        first, res = next(iter(results.items())), results[controller.label]
+        if abs(res["dt"] - first[1]["dt"]) > 1e-12:
+            sys.exit(f"error: {controller.label} steps every {res['dt'] * 1000:g} ms and {first[0]} every "
+                     f"{first[1]['dt'] * 1000:g} ms (env.sim.substeps); compare controllers of one control period")
     rows = [res["row"] for res in results.values()]
     dt = next(iter(results.values()))["dt"]
     command = (args.vx, args.vy)

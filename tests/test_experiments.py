@@ -213,6 +213,11 @@ def test_output_folders_are_never_overwritten_silently(tmp_path):
     prepare_out_dir(tmp_path / "new", overwrite=True)
     labels = [c.label for c in parse_controllers(["a=x.pt", "runs/b/checkpoints/latest.pt", "runs/c"])]
     assert labels == ["a", "b", "c"]
+    # A run named with '=' (a sweep's lr=3e-4) is a path, not LABEL=PATH split at its first '='.
+    swept = parse_controllers(["runs/lr=3e-4/policy.pt", "x=runs/lr=3e-4"])
+    assert [(c.label, str(c.path)) for c in swept] == [("policy", "runs/lr=3e-4/policy.pt"), ("x", "runs/lr=3e-4")]
+    (tmp_path / "lr=3e-4").mkdir()
+    assert parse_controllers([str(tmp_path / "lr=3e-4")])[0].label == "lr=3e-4"
     shipped = parse_controllers(None)  # the defaults: every shipped policy, each file present
     assert [c.label for c in shipped] == ["PD (pd_reference)", "torque", "model_based"]
     assert all(c.path.is_file() for c in shipped)
@@ -533,6 +538,24 @@ def test_obstacle_test_tries_rendering_only_once(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(recipe, "rendering_unavailable", lambda: "no OpenGL here; install libegl1")
     result = recipe.main(_tiny_obstacle_run(tmp_path / "off", "0"))
     assert len(calls) == 1 and result["frames"] == ["not rendered: torque, 0 mm: no OpenGL here; install libegl1"]
+
+
+@pytest.mark.parametrize("flag", ["--knee_seconds", "--torque_seconds", "--seconds", "--frame_every"])
+def test_compare_gaits_refuses_spans_that_are_not_positive_before_running(flag, capsys):
+    # A negative span sliced the traces from their end: the plots showed other seconds, with no error.
+    with pytest.raises(SystemExit):
+        load_recipe("compare_gaits").main(["--device", "cpu", flag, "-0.1"])
+    assert f"{flag} must be a finite number > 0" in capsys.readouterr().err
+
+
+def test_compare_gaits_refuses_controllers_of_different_control_periods(tmp_path, monkeypatch):
+    # The plots, traces.npz and the per-step smoothness column share the first controller's time step.
+    recipe = load_recipe("compare_gaits")
+    steps = {"a": 0.004, "b": 0.002}
+    monkeypatch.setattr(recipe, "run_controller", lambda c, *a: {"dt": steps[c.label], "row": {}})
+    with pytest.raises(SystemExit) as info:
+        recipe.main(["--device", "cpu", "--policy", "a=x.pt", "--policy", "b=y.pt", "--out", str(tmp_path / "o")])
+    assert "b steps every 2 ms and a every 4 ms" in str(info.value.code)
 
 
 def test_compare_gaits_skips_frames_when_rendering_is_off(tmp_path, monkeypatch):

@@ -37,13 +37,14 @@ class Controller:
 
 def parse_controllers(values: list[str] | None) -> list[Controller]:
     """``LABEL=PATH`` or ``PATH`` (labelled by its file or folder name) per controller; none: the shipped policies.
-    Raises ``ValueError`` for a repeated label."""
+    A value that exists as a path, or whose part before the first ``=`` holds a folder separator, is a ``PATH``
+    (run names may contain ``=``: ``runs/lr=3e-4``). Raises ``ValueError`` for a repeated label."""
     if not values:
         return [Controller(label, robot.asset_path("policies", name)) for label, name in SHIPPED_POLICIES.items()]
     out = []
     for value in values:
         label, sep, path = value.partition("=")
-        if not sep:
+        if not sep or "/" in label or "\\" in label or Path(value).exists():
             path = value
             p = Path(value)
             label = p.parent.parent.name if p.parent.name == "checkpoints" else (p.stem if p.suffix else p.name)

@@ -17,7 +17,8 @@ from torchrl.data import Composite, Unbounded
 from tocabi_torchrl.transforms._base import CallOnReset
 from tocabi_torchrl.transforms._checks import check_positive, require_spec
 
-__all__ = ["REFERENCE_OBS_MEAN", "REFERENCE_OBS_VAR", "FixedNormalization", "RunningNormalization", "freeze_running_statistics"]
+__all__ = ["REFERENCE_OBS_MEAN", "REFERENCE_OBS_VAR", "FixedNormalization", "RunningNormalization",
+           "freeze_running_statistics"]
 
 _LEG_NAMES = ("HipYaw", "HipRoll", "HipPitch", "Knee", "AnklePitch", "AnkleRoll")
 
