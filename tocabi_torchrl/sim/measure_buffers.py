@@ -92,6 +92,12 @@ def measure(
 
     Uses buffers far above the defaults so nothing overflows, and reads the counters after every substep.
     """
+    # Checked before the (slow) imports and the model build.
+    if scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; choose from {sorted(SCENARIOS)}")
+    if num_worlds < 1 or steps < 1:  # no world or no step measures nothing: the peaks below would be of nothing
+        raise ValueError(f"num_worlds and steps must be at least 1, got num_worlds={num_worlds}, steps={steps}")
+
     import mujoco_warp as mjw
     import torch
     import warp as wp
@@ -100,8 +106,6 @@ def measure(
     from .graph import Recorded
     from .warp_backend import WarpSim
 
-    if scenario not in SCENARIOS:
-        raise ValueError(f"unknown scenario {scenario!r}; choose from {sorted(SCENARIOS)}")
     cfg = SimConfig(num_worlds=num_worlds, device=device, nconmax=160, njmax=400)
     sim = WarpSim(cfg)
     rng = np.random.default_rng(seed)
@@ -139,6 +143,9 @@ def measure(
 
 
 def _markdown(rows: list[BufferUsage]) -> str:
+    """The benchmark page for ``rows`` (one or more measured scenarios)."""
+    if not rows:
+        raise ValueError("no scenarios to tabulate: measure at least one (--scenarios NAME ...)")
     head = (
         "| scenario | what | contacts in one world, max | p99.9 | contact pool / worlds, max "
         "| broadphase pairs / worlds, max | nefc max | p99.9 |\n"
@@ -170,26 +177,72 @@ def _markdown(rows: list[BufferUsage]) -> str:
     )
 
 
+def _load_rows(path: Path) -> list[BufferUsage]:
+    """The rows of a previous run's ``sim_buffers.json``; raises ``ValueError`` saying what the file lacks."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"cannot read {path} as JSON ({err})") from err
+    if not isinstance(data, list) or not data or not all(isinstance(r, dict) for r in data):
+        raise ValueError(f"{path} holds no measured scenarios; expected a non-empty list of rows from a previous run")
+    try:
+        rows = [BufferUsage(**r) for r in data]
+    except TypeError as err:  # missing or unexpected fields
+        raise ValueError(f"{path} is not a sim_buffers.json of this version ({err})") from err
+    unknown = sorted({r.scenario for r in rows} - set(SCENARIOS))
+    if unknown:
+        raise ValueError(f"{path} names unknown scenarios {unknown}; known: {list(SCENARIOS)}")
+    return rows
+
+
+def _count(text: str) -> int:
+    """argparse type of the counts (worlds, steps): an integer of at least 1, since none measures nothing."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _write(out: Path, files: dict[str, str]) -> None:
+    """Write ``files`` (name -> text) into the folder ``out``, creating it."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name, text in files.items():
+        (out / name).write_text(text)
+
+
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--num-worlds", type=int, default=16)
-    p.add_argument("--steps", type=int, default=300, help="policy steps per scenario")
+    """CLI: measure the scenarios and write ``sim_buffers.{json,md}``, or re-render the markdown ``--from-json``."""
+    p = argparse.ArgumentParser(prog="python -m tocabi_torchrl.sim.measure_buffers", description=__doc__.splitlines()[0])
+    p.add_argument("--num-worlds", type=_count, default=16)
+    p.add_argument("--steps", type=_count, default=300, help="policy steps per scenario")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--scenarios", nargs="*", default=list(SCENARIOS))
-    p.add_argument("--out", type=Path, default=Path("docs/benchmarks"))
+    # choices + nargs="+": a misspelt or missing name is refused before minutes of measuring, not at its turn.
+    p.add_argument("--scenarios", nargs="+", choices=list(SCENARIOS), default=list(SCENARIOS), metavar="NAME",
+                   help=f"scenarios to measure (default: all of {', '.join(SCENARIOS)})")
+    p.add_argument("--out", type=Path, default=Path("docs/benchmarks"), help="folder for sim_buffers.{json,md}")
     p.add_argument("--from-json", type=Path, help="re-render the markdown from a previous run's JSON")
     args = p.parse_args(argv)
+    if args.out.exists() and not args.out.is_dir():
+        p.error(f"--out {args.out} is not a folder; pass the folder to write sim_buffers.json and .md into")
     if args.from_json:
-        rows = [BufferUsage(**r) for r in json.loads(args.from_json.read_text())]
-        (args.out / "sim_buffers.md").write_text(_markdown(rows))
+        try:
+            markdown = _markdown(_load_rows(args.from_json))
+        except ValueError as err:
+            p.error(f"--from-json: {err}")
+        _write(args.out, {"sim_buffers.md": markdown})
+        print(f"wrote {args.out / 'sim_buffers.md'}")
         return
     rows = []
     for i, name in enumerate(args.scenarios):
         rows.append(measure(name, args.num_worlds, args.steps, seed=i, device=args.device))
         print(rows[-1], flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "sim_buffers.json").write_text(json.dumps([asdict(r) for r in rows], indent=2) + "\n")
-    (args.out / "sim_buffers.md").write_text(_markdown(rows))
+    # Both texts are made before either file is written: a failure leaves the previous pair as it was.
+    json_text = json.dumps([asdict(r) for r in rows], indent=2) + "\n"
+    markdown = _markdown(rows)
+    _write(args.out, {"sim_buffers.json": json_text, "sim_buffers.md": markdown})
     print(f"wrote {args.out / 'sim_buffers.md'}")
 
 
