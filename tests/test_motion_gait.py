@@ -7,7 +7,7 @@ from reference_data import reference_file
 from tocabi_torchrl import robot
 from tocabi_torchrl.motion import ReferenceMotion, force_schedule, load_npz, load_txt, stance_schedule
 from tocabi_torchrl.motion.analysis import gait_metrics, self_contacts, stance_foot_drift
-from tocabi_torchrl.motion.gait import GaitConfig, generate_walk, main, plan_gait
+from tocabi_torchrl.motion.gait import _REPO, SHIPPED_MODEL, GaitConfig, generate_walk, main, model_label, plan_gait
 from tocabi_torchrl.motion.schedule import DOUBLE_SUPPORT
 
 LEG = slice(0, 12)
@@ -95,6 +95,11 @@ def test_com_follows_the_lipm_plan(model):
         ("dsp_time", 0.0, "dsp_time 0.0 must lie in"),
         ("step_time", -1.0, "step_time must be positive"),
         ("swing_height", -0.01, "swing_height must be >= 0"),
+        ("sample_rate", float("nan"), "sample_rate must be a finite number, got nan"),
+        ("pelvis_height", float("inf"), "pelvis_height must be a finite number, got inf"),
+        ("zmp_travel", float("nan"), "zmp_travel must be a finite number"),
+        ("com_height", -0.5, "com_height must be positive"),
+        ("com_tolerance", 0.0, "com_tolerance must be positive"),
     ],
 )
 def test_config_validation(field, value, message):
@@ -175,6 +180,7 @@ def test_cli_writes_motion_and_plot(tmp_path, capsys):
     assert main(["--out", str(out), "--plot", str(png), "--swing-height", "0.05"]) == 0
     data = load_npz(out)
     assert data.meta["config"]["swing_height"] == 0.05
+    assert data.meta["model"] == "assets/tocabi/tocabi.xml"
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
     assert "clearance_m" in capsys.readouterr().out
     assert out.stat().st_size < 400_000
@@ -186,3 +192,53 @@ def test_cli_help(capsys):
     assert stop.value.code == 0
     text = capsys.readouterr().out
     assert "--step-length" in text and "--plot" in text and "heel-to-toe" in text
+
+
+@pytest.mark.parametrize(
+    "argv,options",
+    [
+        (["--pelvis-height", "1.2"], ["--pelvis-height", "--step-length", "--step-width", "--swing-height"]),
+        (["--sample-rate", "nan"], ["--sample-rate"]),
+        (["--dsp-time", "2"], ["--dsp-time", "--step-time"]),
+    ],
+)
+def test_cli_reports_parameters_that_make_no_gait(tmp_path, capsys, argv, options):
+    """A parameter the generator cannot use is a one-line usage error naming the options to change; nothing is
+    written."""
+    out = tmp_path / "walk.npz"
+    with pytest.raises(SystemExit) as stop:
+        main(["--out", str(out), *argv])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "cannot generate the walk" in err
+    assert all(option in err for option in options), err
+    assert not out.exists()
+
+
+def test_cli_refuses_a_missing_model(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["--out", str(tmp_path / "walk.npz"), "--model", str(tmp_path / "none.xml")])
+    assert stop.value.code == 2
+    assert "--model" in capsys.readouterr().err
+
+
+def test_cli_records_the_model_it_planned_on(tmp_path):
+    """meta["model"] is the --model file, not the shipped one (a coarse table keeps the test short)."""
+    other = tmp_path / "other.xml"
+    other.write_text(robot.asset_path("tocabi", "tocabi.xml").read_text())
+    out = tmp_path / "walk.npz"
+    assert main(["--out", str(out), "--model", str(other), "--sample-rate", "200"]) == 0
+    assert load_npz(out).meta["model"] == str(other)
+
+
+def test_model_label_is_repo_relative_inside_the_checkout(tmp_path):
+    assert model_label(robot.asset_path("tocabi", "tocabi.xml")) == SHIPPED_MODEL == "assets/tocabi/tocabi.xml"
+    if (_REPO / "pyproject.toml").is_file():  # a source checkout
+        assert model_label(_REPO / "tests" / "data" / "m.xml") == "tests/data/m.xml"
+    assert model_label(tmp_path / "m.xml") == str(tmp_path / "m.xml")
+
+
+def test_generate_walk_records_the_model_path(model):
+    cfg = GaitConfig(sample_rate=200.0)
+    assert generate_walk(cfg).meta["model"] == "assets/tocabi/tocabi.xml"
+    assert generate_walk(cfg, model).meta["model"] is None  # a compiled model without its path: not guessed

@@ -29,6 +29,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
+import os
+import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +46,12 @@ from .kinematics import SIDES, LegGeometry, leg_ik
 from .lipm import periodic_lipm_com
 from .schedule import REFERENCE_WEIGHT_FORCE, force_schedule, stance_schedule
 
-__all__ = ["GaitConfig", "GaitPlan", "plan_gait", "generate_walk", "main"]
+__all__ = ["GaitConfig", "GaitPlan", "plan_gait", "generate_walk", "model_label", "main"]
+
+#: How the metadata names the shipped model (its path in a source checkout).
+SHIPPED_MODEL = "assets/tocabi/tocabi.xml"
+#: The source checkout that holds this package (tocabi_torchrl/motion/gait.py -> the repository root).
+_REPO = Path(__file__).resolve().parents[2]
 
 
 @dataclass(frozen=True)
@@ -98,9 +106,16 @@ class GaitConfig:
 
     def validate(self) -> "GaitConfig":
         """Return ``self``, or raise ``ValueError`` naming the first parameter that makes no gait."""
-        for name in ("step_time", "step_width", "pelvis_height", "sample_rate"):
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            # NaN passes every comparison below and infinity makes no table: both end here, named.
+            if value is not None and not math.isfinite(value):
+                raise ValueError(f"{f.name} must be a finite number, got {value}")
+        for name in ("step_time", "step_width", "pelvis_height", "sample_rate", "com_tolerance"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.com_height is not None and self.com_height <= 0:
+            raise ValueError(f"com_height must be positive (or None for the model's), got {self.com_height}")
         if not 0.0 < self.dsp_time < self.step_time or self.dsp_rows < 2:
             raise ValueError(
                 f"dsp_time {self.dsp_time} must lie in (0, step_time={self.step_time}) and span two or more rows"
@@ -182,12 +197,21 @@ def _centres_of_pressure(cfg: GaitConfig, t: np.ndarray, sole: np.ndarray) -> np
 
 
 def _leg_joints(sole: np.ndarray, pelvis: np.ndarray, geometry: LegGeometry) -> np.ndarray:
-    """(M, 33) joints: analytic leg IK for flat feet under a level pelvis, upper body at the initial pose."""
+    """(M, 33) joints: analytic leg IK for flat feet under a level pelvis, upper body at the initial pose.
+
+    Raises ``ValueError`` naming the gait parameters to change when a foot is out of the leg's reach.
+    """
     joints = np.tile(robot.INIT_JOINT_POS, (sole.shape[0], 1))
     level = np.broadcast_to(np.eye(3), (sole.shape[0], 3, 3))
     for i, side in enumerate(SIDES):
         ankle = sole[:, i] + np.array([0.0, 0.0, geometry.sole_depth]) - pelvis
-        joints[:, 6 * i : 6 * i + 6] = leg_ik(ankle, level, side, geometry)
+        try:
+            joints[:, 6 * i : 6 * i + 6] = leg_ik(ankle, level, side, geometry)
+        except ValueError as err:  # leg_ik speaks of ankle targets; the caller chose gait parameters
+            raise ValueError(
+                f"pelvis_height, step_length, step_width or swing_height put the feet out of the legs' reach ({err}); "
+                "lower the pelvis or shorten the steps"
+            ) from err
     return joints
 
 
@@ -243,12 +267,24 @@ def plan_gait(cfg: GaitConfig = GaitConfig(), model=None, geometry: LegGeometry 
     return GaitPlan(t, sole, zmp, com, pelvis, joints, float(com_height), stride)
 
 
-def generate_walk(cfg: GaitConfig = GaitConfig(), model=None, geometry: LegGeometry = LegGeometry()) -> MotionData:
+def generate_walk(
+    cfg: GaitConfig = GaitConfig(),
+    model=None,
+    geometry: LegGeometry = LegGeometry(),
+    *,
+    model_path: str | os.PathLike | None = None,
+) -> MotionData:
     """The walking cycle as :class:`~tocabi_torchrl.motion.io.MotionData` (R rows, last row = first row).
 
     Force references and stance pattern follow spec §3.3 and §8 on the row index; the start rows are the middles of
-    the two double supports, 0 and R/2.
+    the two double supports, 0 and R/2. ``model`` is a compiled MuJoCo model, or ``None`` to compile ``model_path``
+    (default: the shipped model); ``meta["model"]`` records ``model_path`` (see :func:`model_label`), or ``None``
+    when a compiled ``model`` comes without its path.
     """
+    cfg.validate()  # before compiling a model: a bad parameter is reported at once
+    if model is None:
+        model = robot.load_model(model_path)
+        model_path = SHIPPED_MODEL if model_path is None else model_path
     plan = plan_gait(cfg, model, geometry)
     num_rows = cfg.num_rows
     joint_pos = np.concatenate([plan.joint_pos, plan.joint_pos[:1]])
@@ -264,9 +300,27 @@ def generate_walk(cfg: GaitConfig = GaitConfig(), model=None, geometry: LegGeome
             "generator": "tocabi_torchrl.motion.gait",
             "config": dataclasses.asdict(cfg),
             "com_height": round(plan.com_height, 6),
-            "model": "assets/tocabi/tocabi.xml",
+            "model": None if model_path is None else model_label(model_path),
         },
     ).validate("generate_walk")
+
+
+def model_label(path: str | os.PathLike) -> str:
+    """How the metadata records an MJCF path: the shipped model as ``assets/tocabi/tocabi.xml``, a file inside the
+    source checkout relative to it, any other as given (a record that does not depend on the machine that made it)."""
+    resolved = Path(path).resolve()
+    if resolved == robot.asset_path("tocabi", "tocabi.xml").resolve():
+        return SHIPPED_MODEL
+    # Only a source checkout (it has pyproject.toml) is a meaningful base; an installed package keeps paths as given.
+    if (_REPO / "pyproject.toml").is_file() and resolved.is_relative_to(_REPO):
+        return resolved.relative_to(_REPO).as_posix()
+    return str(path)
+
+
+def _options_named_in(message: str) -> list[str]:
+    """The command-line options of the :class:`GaitConfig` fields a message names, e.g. ``--pelvis-height``."""
+    names = [f.name for f in dataclasses.fields(GaitConfig) if re.search(rf"\b{f.name}\b", message)]
+    return [f"--{name.replace('_', '-')}" for name in names]
 
 
 def _field_help() -> dict[str, str]:
@@ -309,8 +363,17 @@ def main(argv: list[str] | None = None) -> int:
     _add_config_arguments(parser)
     args = parser.parse_args(argv)
 
+    if args.model is not None and not args.model.is_file():
+        parser.error(f"--model {args.model} is not a file; pass an MJCF file, or leave --model out for the shipped model")
     cfg = GaitConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(GaitConfig)})
-    data = generate_walk(cfg, robot.load_model(args.model))
+    try:
+        data = generate_walk(cfg, model_path=args.model)
+    except robot.RobotAssetError as err:  # the --model file does not compile or lacks TOCABI's names
+        parser.error(f"--model: {err}")
+    except ValueError as err:  # parameters that make no gait (validate) or put the feet out of reach (leg IK)
+        options = _options_named_in(str(err))
+        hint = f"change {', '.join(options)}" if options else "change the gait parameters (see --help)"
+        parser.error(f"cannot generate the walk: {err}; {hint}")
     out = args.out or robot.asset_path("motions", "tocabi_walk.npz")
     save_npz(out, data)
     metrics = gait_metrics(data.joint_pos, data.init_rows)
