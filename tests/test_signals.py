@@ -3,6 +3,8 @@ transforms' mock and docs/signals.md; adding a signal is a table row plus the li
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 from mock_env import MockTocabiWalk
@@ -13,7 +15,7 @@ from torchrl.envs.utils import check_env_specs
 from tocabi_torchrl import robot
 from tocabi_torchrl.envs import TocabiWalk
 from tocabi_torchrl.signals import EPISODE_FLAGS, REWARD, SIGNALS, Signal, SignalTable
-from tocabi_torchrl.signals_doc import DOC_PATH, is_current, main, render_table, with_table
+from tocabi_torchrl.signals_doc import BEGIN, DOC_PATH, END, is_current, main, render_table, with_table
 from tocabi_torchrl.transforms.reward_terms import REFERENCE_TERMS, SIGNAL_SHAPES
 
 N = 2
@@ -111,9 +113,44 @@ def test_docs_command_line(tmp_path, capsys):
     text = page.read_text()
     assert text.startswith("# Signals\n\nprose\n\n") and text.endswith("\n\nmore prose\n")
     assert all(f"| `{name}` |" in text for name in SIGNALS.names)
-    page.write_text("# Signals without markers\n")
-    with pytest.raises(ValueError, match="marker lines"):
-        main(["--check", "--path", str(page)])
+
+
+@pytest.mark.parametrize(
+    "text,match",
+    [
+        ("# Signals without markers\n", "lacks the marker line .*BEGIN"),
+        (f"# Signals\n\n{BEGIN}\n| old |\n", "lacks the marker line .*END"),
+        (f"# Signals\n\n{END}\n{render_table()[: -len(END)]}", "lacks the marker line .*END"),
+    ],
+)
+def test_docs_command_line_refuses_a_page_without_markers(tmp_path, capsys, text, match):
+    """A page that lacks a marker (or has END only above BEGIN) is a one-line usage error, not a traceback."""
+    page = tmp_path / "signals.md"
+    page.write_text(text)
+    for argv in (["--check", "--path", str(page)], ["--path", str(page)]):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2
+        assert re.search(match, capsys.readouterr().err)
+    assert page.read_text() == text
+
+
+def test_table_is_found_after_a_stray_end_marker(tmp_path):
+    """END is looked for after BEGIN: an END line above the table does not hide the table."""
+    page = tmp_path / "signals.md"
+    page.write_text(f"# Signals\n\n{END}\nprose\n\n{BEGIN}\n| old |\n{END}\n\nmore prose\n")
+    assert not is_current(page)
+    assert main(["--path", str(page)]) == 0
+    assert page.read_text() == f"# Signals\n\n{END}\nprose\n\n{render_table()}\n\nmore prose\n"
+    assert is_current(page)
+
+
+def test_docs_command_line_refuses_a_directory(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["--check", "--path", str(tmp_path)])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "is not a file" in err and "does not exist" not in err
 
 
 def test_env_refuses_a_signal_the_table_lacks_or_a_row_it_does_not_compute():

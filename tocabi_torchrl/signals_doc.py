@@ -35,10 +35,15 @@ def render_table(signals: SignalTable = SIGNALS) -> str:
 
 
 def with_table(text: str, signals: SignalTable = SIGNALS) -> str:
-    """``text`` (a docs/signals.md) with the part from ``BEGIN`` to ``END`` replaced by :func:`render_table`."""
-    start, stop = text.find(BEGIN), text.find(END)
-    if start < 0 or stop < start:
-        raise ValueError(f"the signals page lacks the marker lines {BEGIN!r} ... {END!r} around its table; add them")
+    """``text`` (a docs/signals.md) with the part from ``BEGIN`` to the first ``END`` after it replaced by
+    :func:`render_table`; raises ``ValueError`` naming the marker line the page lacks."""
+    start = text.find(BEGIN)
+    if start < 0:
+        raise ValueError(f"the signals page lacks the marker line {BEGIN!r} before its table; add it (and {END!r} after)")
+    # END is looked for after BEGIN: a stray END above the table must not hide the one that closes it.
+    stop = text.find(END, start + len(BEGIN))
+    if stop < 0:
+        raise ValueError(f"the signals page lacks the marker line {END!r} after {BEGIN!r}; add it below the table")
     return text[:start] + render_table(signals) + text[stop + len(END) :]
 
 
@@ -54,9 +59,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--path", type=Path, default=DOC_PATH, help="the signals page (default: %(default)s)")
     parser.add_argument("--check", action="store_true", help="only check; exit status 1 if the table is stale")
     args = parser.parse_args(argv)
+    if args.path.exists() and not args.path.is_file():
+        parser.error(f"{args.path} is not a file; pass --path to the docs/signals.md of a source checkout")
     if not args.path.is_file():
         parser.error(f"{args.path} does not exist; pass --path to the docs/signals.md of a source checkout")
-    if is_current(args.path):
+    try:
+        current = is_current(args.path)
+    except ValueError as err:  # missing marker lines (or a page that is not UTF-8 text): a one-line usage error
+        parser.error(f"--path {args.path}: {err}")
+    if current:
         print(f"{args.path}: the signal table is current")
         return 0
     if args.check:
