@@ -39,7 +39,8 @@ def with_table(text: str, signals: SignalTable = SIGNALS) -> str:
     :func:`render_table`; raises ``ValueError`` naming the marker line the page lacks."""
     start = text.find(BEGIN)
     if start < 0:
-        raise ValueError(f"the signals page lacks the marker line {BEGIN!r} before its table; add it (and {END!r} after)")
+        raise ValueError(f"the signals page lacks the marker line {BEGIN!r} before its table; add it (and {END!r} "
+                         "after)")
     # END is looked for after BEGIN: a stray END above the table must not hide the one that closes it.
     stop = text.find(END, start + len(BEGIN))
     if stop < 0:

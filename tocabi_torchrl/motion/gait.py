@@ -364,7 +364,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     if args.model is not None and not args.model.is_file():
-        parser.error(f"--model {args.model} is not a file; pass an MJCF file, or leave --model out for the shipped model")
+        parser.error(f"--model {args.model} is not a file; pass an MJCF file, or leave --model out for the shipped "
+                     "model")
     cfg = GaitConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(GaitConfig)})
     try:
         data = generate_walk(cfg, model_path=args.model)

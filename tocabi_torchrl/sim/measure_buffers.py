@@ -215,7 +215,8 @@ def _write(out: Path, files: dict[str, str]) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """CLI: measure the scenarios and write ``sim_buffers.{json,md}``, or re-render the markdown ``--from-json``."""
-    p = argparse.ArgumentParser(prog="python -m tocabi_torchrl.sim.measure_buffers", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m tocabi_torchrl.sim.measure_buffers",
+                                description=__doc__.splitlines()[0])
     p.add_argument("--num-worlds", type=_count, default=16)
     p.add_argument("--steps", type=_count, default=300, help="policy steps per scenario")
     p.add_argument("--device", default="cpu")
