@@ -1,4 +1,4 @@
-"""Number checks of the config trees (``tree.check_number_fields``): a NaN gain, an inf command bound, a float step
+"""Number checks of the config trees (``tree.check_field_types``): a NaN gain, an inf command bound, a float step
 count or a number given as text is refused by its path before an env is built; every default and preset passes."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 from tocabi_torchrl.config import PRESETS, preset_config
 from tocabi_torchrl.envs import TocabiWalk, TocabiWalkConfig
 from tocabi_torchrl.envs.command import CommandConfig
-from tocabi_torchrl.tree import check_number_fields
+from tocabi_torchrl.tree import check_field_types
 
 NAN, INF = math.nan, math.inf
 
@@ -61,7 +61,7 @@ def test_every_default_and_preset_passes_and_none_stays_allowed():
     TocabiWalkConfig.reference().validate()
     for name in PRESETS:
         cfg = preset_config(name)
-        check_number_fields(cfg)  # the whole run tree, as RunConfig.validate may call it
+        check_field_types(cfg)  # the whole run tree, as RunConfig.validate may call it
         cfg.env.validate()
     cfg = TocabiWalkConfig().with_flat(nconmax=None, njmax=None, sim_threads=None, motion=None)
     cfg.validate()
@@ -93,13 +93,13 @@ class _Tree:
     name: str = "x"
 
 
-def test_check_number_fields_reads_string_annotations_items_and_frozen_trees():
+def test_check_field_types_reads_string_annotations_items_and_frozen_trees():
     tree = _Tree(steps=np.int16(4), items=(_Item(), _Item(gain=np.float64(2.0), limit=np.float32(0.5))))
-    check_number_fields(tree, "t.")  # this module's annotations are strings (from __future__ import annotations)
+    check_field_types(tree, "t.")  # this module's annotations are strings (from __future__ import annotations)
     assert type(tree.steps) is int and type(tree.items[1].gain) is float and type(tree.items[1].limit) is float
     with pytest.raises(ValueError, match=r"t.items\[1\].pair\[1\] must be a finite number.*got inf"):
-        check_number_fields(_Tree(items=(_Item(), _Item(pair=(0.0, INF)))), "t.")
+        check_field_types(_Tree(items=(_Item(), _Item(pair=(0.0, INF)))), "t.")
     with pytest.raises(ValueError, match=r"t.items\[0\].limit must be a finite number.*got '1'"):
-        check_number_fields(_Tree(items=(_Item(limit="1"),)), "t.")
+        check_field_types(_Tree(items=(_Item(limit="1"),)), "t.")
     with pytest.raises(ValueError, match=r"t.steps must be an int.*got True"):
-        check_number_fields(_Tree(steps=True), "t.")
+        check_field_types(_Tree(steps=True), "t.")

@@ -33,7 +33,7 @@ from .envs.command import CommandConfig
 from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig
 from .sim.config import RESET_PASSES
 from .transforms.presets import TransformSettings
-from .tree import OWN_NUMBER_CHECK, ConfigError, check_bool_fields, check_number_fields, leaf_paths, replace_paths
+from .tree import OWN_NUMBER_CHECK, ConfigError, check_field_types, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
 from .tree import to_dict as _tree_to_dict
 
@@ -277,8 +277,7 @@ class RunConfig:
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad option by its path (``ppo.lr``, ``env.control.mode``) and the
         accepted values."""
-        check_bool_fields(self)  # the whole tree: the run's own switches, ppo's and the transforms'
-        check_number_fields(self)  # the whole tree: every number finite (ints where declared), named by its path
+        check_field_types(self)  # the whole tree: every switch a bool, every number finite, named by its path
         for name in ("log_every", "checkpoint_every", "eval_envs", "total_env_steps"):
             _check_int(self, name, 1)
         for name in ("checkpoint_keep_last", "checkpoint_keep_every"):

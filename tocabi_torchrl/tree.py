@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["OWN_NUMBER_CHECK", "ConfigError", "check_bool_fields", "check_number_fields", "from_dict", "get_path",
-           "item_type", "leaf_paths", "leaf_types", "parse_leaf", "replace_paths", "to_dict"]
+__all__ = ["OWN_NUMBER_CHECK", "ConfigError", "check_field_types", "from_dict", "get_path", "item_type", "leaf_paths",
+           "leaf_types", "parse_leaf", "replace_paths", "to_dict"]
 
 
 class ConfigError(ValueError):
@@ -239,32 +239,18 @@ def parse_leaf(kind: Any, text: str) -> Any:
     return text  # str, paths and anything else given as text
 
 
-def check_bool_fields(tree, prefix: str = "") -> None:
-    """Raise ``ValueError`` naming the first field annotated ``bool`` in the dataclass ``tree`` (and its nested
-    sections) that holds anything but True or False: a switch set from text (``"no"``, ``"0"``) is truthy in Python
-    and would silently turn the option on. A numpy bool is taken, as a plain bool."""
-    for f in dataclasses.fields(tree):
-        value = getattr(tree, f.name)
-        if f.type in ("bool", bool) and not isinstance(value, bool):
-            if not isinstance(value, np.bool_):
-                raise ValueError(f"{prefix}{f.name} must be True or False, got {value!r}")
-            object.__setattr__(tree, f.name, bool(value))  # a numpy sweep's value (frozen trees too)
-        if dataclasses.is_dataclass(value) and not isinstance(value, type):
-            check_bool_fields(value, f"{prefix}{f.name}.")
-
-
-#: Field metadata (``field(..., metadata=OWN_NUMBER_CHECK)``) of a number field that :func:`check_number_fields`
+#: Field metadata (``field(..., metadata=OWN_NUMBER_CHECK)``) of a number field that :func:`check_field_types`
 #: leaves to its section's ``validate``, which checks it and names what is wrong more precisely (e.g. the joint).
 OWN_NUMBER_CHECK = types.MappingProxyType({"check_numbers": False})
 
 
 def _field_hints(cls: type) -> dict[str, Any]:
     """``cls``'s resolved field annotations; where one cannot be resolved (a name only imported for type checking),
-    the plain ``"int"``/``"float"`` strings still count and the rest are left unchecked."""
+    the plain ``"bool"``/``"int"``/``"float"`` strings still count and the rest are left unchecked."""
     try:
         return typing.get_type_hints(cls)
     except (NameError, TypeError):
-        plain = {"int": int, "float": float}
+        plain = {"bool": bool, "int": int, "float": float}
         return {f.name: plain.get(f.type, f.type) if isinstance(f.type, str) else f.type
                 for f in dataclasses.fields(cls)}
 
@@ -316,41 +302,46 @@ def _numbers(kinds: tuple[Any, ...], variable: bool, value: Any, where: str) -> 
     return tuple(out)
 
 
-def check_number_fields(tree, prefix: str = "") -> None:
+def check_field_types(tree, prefix: str = "") -> None:
     """Raise ``ValueError`` naming the first field of the dataclass ``tree`` (its nested sections and the items of
-    its tuple-of-items leaves included) whose value does not fit its annotated number type, by its path
-    (``env.control.pd_kp[3]``), with the value and what is accepted: a ``float`` field takes a finite real number
-    (an int too), an ``int`` field an int, a tuple of numbers (``tuple[float, ...]``, ``tuple[float, float]``,
-    ``Sequence[float]``) finite entries of the annotated length. Without it a gain of NaN ends every episode at its
-    first step, an inf command reaches the observation and a number given as text (``"0.6"``) fails later as a raw
-    ``TypeError``. ``None`` is taken where the annotation allows it (``float | None``); numpy scalars are taken, as
-    plain Python numbers (frozen trees too); fields of other types are left alone, and so is a field whose
-    metadata holds :data:`OWN_NUMBER_CHECK` (its section's ``validate`` checks it, with a better message)."""
+    its tuple-of-items leaves included) whose value does not fit its annotated bool or number type, by its path
+    (``env.control.pd_kp[3]``), with the value and what is accepted: a ``bool`` field takes True or False (a switch
+    set from text, ``"no"``, is truthy and would silently turn the option on), a ``float`` field a finite real
+    number (an int too), an ``int`` field an int, a tuple of numbers (``tuple[float, ...]``, ``tuple[float,
+    float]``, ``Sequence[float]``) finite entries of the annotated length. Without it a gain of NaN ends every
+    episode at its first step, an inf command reaches the observation and a number given as text (``"0.6"``) fails
+    later as a raw ``TypeError``. ``None`` is taken where the annotation allows it (``float | None``); numpy scalars
+    are taken, as plain Python values (frozen trees too); fields of other types are left alone, and so is a number
+    field whose metadata holds :data:`OWN_NUMBER_CHECK` (its section's ``validate`` checks it, with a better
+    message)."""
     hints = _field_hints(type(tree))
     for f in dataclasses.fields(tree):
         value = getattr(tree, f.name)
         where = prefix + f.name
         if _is_section(value):
-            check_number_fields(value, where + ".")
-            continue
-        if f.metadata.get("check_numbers", True) is False:
+            check_field_types(value, where + ".")
             continue
         kind, optional = _unwrap_optional(hints.get(f.name))
         if value is None and optional:
             continue
-        item = item_type(kind)
         tuple_kinds = _number_kinds(kind)
-        if kind in (int, float):
+        if kind is bool:
+            if not isinstance(value, (bool, np.bool_)):
+                raise ValueError(f"{where} must be True or False, got {value!r}")
+            plain = bool(value)
+        elif f.metadata.get("check_numbers", True) is False:
+            continue
+        elif kind in (int, float):
             plain = _number(kind, value, where)
         elif tuple_kinds is not None:
             plain = _numbers(*tuple_kinds, value, where)
             if all(a is b for a, b in zip(plain, value)) and isinstance(value, tuple):
                 plain = value  # unchanged: keep the very object
         else:
-            if item is not None and isinstance(value, (tuple, list)):
+            if item_type(kind) is not None and isinstance(value, (tuple, list)):
                 for i, v in enumerate(value):
                     if _is_section(v):
-                        check_number_fields(v, f"{where}[{i}].")
+                        check_field_types(v, f"{where}[{i}].")
             continue
         if plain is not value:
-            object.__setattr__(tree, f.name, plain)  # a numpy sweep's value, as plain numbers (frozen trees too)
+            object.__setattr__(tree, f.name, plain)  # a numpy sweep's value, as a plain one (frozen trees too)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..tree import check_number_fields
+from ..tree import check_field_types
 
 __all__ = ["CommandConfig", "VelocityCommand"]
 
@@ -46,7 +46,7 @@ class CommandConfig:
         """Raise ``ValueError`` naming the first bad option (``env.command.NAME``) and the accepted values."""
         # Here as well as in TocabiWalkConfig.validate: VelocityCommand takes a CommandConfig on its own. An inf bound
         # would reach the observation, and a float step count would fail in randint or never match the schedule.
-        check_number_fields(self, "env.command.")
+        check_field_types(self, "env.command.")
         for field in ("vx_range", "vx_initial_range", "vy_range"):
             lo, hi = getattr(self, field)
             if not lo <= hi:

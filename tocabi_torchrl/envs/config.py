@@ -10,7 +10,7 @@ import numpy as np
 
 from .. import robot
 from ..sim.config import RESET_PASSES
-from ..tree import OWN_NUMBER_CHECK, check_bool_fields, check_number_fields
+from ..tree import OWN_NUMBER_CHECK, check_field_types
 from .command import CommandConfig
 
 __all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "SceneConfig", "BoxObstacle", "PD_GAINS",
@@ -386,10 +386,9 @@ class TocabiWalkConfig:
         n = self.num_envs
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise ValueError(f"num_envs must be a positive int, got {n!r}")
-        check_bool_fields(self, "env.")
-        # Before the sections' own checks, which compare and convert these values: every number is then a finite
-        # real (or an int where one is declared), named by its path when it is not.
-        check_number_fields(self, "env.")
+        # Before the sections' own checks, which compare and convert these values: every switch is then a bool and
+        # every number a finite real (or an int where one is declared), named by its path when it is not.
+        check_field_types(self, "env.")
         self.sim.validate()
         self.task.validate()
         self.control.validate()

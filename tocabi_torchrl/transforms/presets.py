@@ -39,7 +39,7 @@ from tocabi_torchrl.transforms.orientation import BaseEulerAngles
 from tocabi_torchrl.transforms.phase import PhaseEncoding
 from tocabi_torchrl.transforms.reward import TaskReward
 from tocabi_torchrl.transforms.reward_terms import REFERENCE_TERMS, RewardTerm, reference_terms
-from tocabi_torchrl.tree import check_bool_fields, check_number_fields
+from tocabi_torchrl.tree import check_field_types
 
 __all__ = ["TransformConfig", "TransformSettings", "PRESETS", "transform_config", "default_transforms"]
 
@@ -92,8 +92,7 @@ class TransformConfig:
                 object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
         if self.normalization not in _NORMALIZATIONS:
             raise ValueError(f"normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
-        check_bool_fields(self)
-        check_number_fields(self)
+        check_field_types(self)
         if (self.obs_mean is None) != (self.obs_var is None):
             raise ValueError("pass both obs_mean and obs_var, or neither (for the reference statistics)")
         if not isinstance(self.history, HistoryLayout):
