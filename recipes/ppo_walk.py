@@ -8,7 +8,8 @@
     torchrun --nproc_per_node 2 recipes/ppo_walk.py --name walk2gpu   # data-parallel, one process per GPU
 
 Without CUDA and with --device auto (the default) it says so and runs the small ``cpu_smoke`` configuration (minutes
-on a laptop, learns nothing useful); an explicit --device cuda or GPU-sized --preset fails instead. Writes
+on a laptop, learns nothing useful); an explicit --device cuda or GPU-sized --preset fails instead, and so does a
+torchrun launch (pass --device cpu for a CPU data-parallel run). Writes
 runs/<name>/: config.json, metrics/ (torchrl's CSV logger: one file per metric), checkpoints/, and (with
 --eval_at_end) eval/ with a summary JSON, the knee-trajectory plot and a video. An existing run folder is never
 overwritten: continue it with --resume, or give the new run another --name. --resume restores the saved run's
@@ -42,12 +43,13 @@ def main(argv: list[str] | None = None) -> None:
     # Everything that can stop the run before it starts is checked here and reported as one line (exit status 1):
     # bad values, a request this machine cannot honour, an existing run folder, an unreadable or changed --resume.
     try:
-        cfg, args, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0])
+        dist_info = from_environment()  # torchrun's layout; one rank without it
+        cfg, args, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0],
+                                        data_parallel=dist_info.enabled)
         if cfg.eval_at_end:  # the gait test's length, checked now rather than after the training it follows
             policy_steps(cfg.eval_seconds, load_model(cfg.env.task.model_path).opt.timestep * cfg.env.sim.substeps)
         device = resolve_device(cfg.device)
         require_loggers(cfg.loggers)
-        dist_info = from_environment()  # torchrun's layout; one rank without it
     except (ValueError, RuntimeError, ImportError) as err:
         sys.exit(f"error: {err}")
     if dist_info.enabled:

@@ -317,6 +317,34 @@ def test_auto_falls_back_to_the_smoke_run_and_the_banner_says_what_runs():
     assert cfg.preset == "default" and cfg.env.num_envs == 4096 and note is None
 
 
+def test_a_resumed_gpu_run_without_cuda_says_where_its_device_came_from(finished_run, tmp_path):
+    # The run's device comes from its checkpoint, not from the command line: the message must not tell the user to
+    # leave --device out (they did) for a smoke run (a resume never falls back to one).
+    gpu_run = tmp_path / "gpu_run"
+    shutil.copytree(finished_run, gpu_run)
+    for path in (gpu_run / "checkpoints").glob("*.pt"):
+        ckpt = torch.load(path, weights_only=True)
+        ckpt["config"]["device"] = "cuda"
+        torch.save(ckpt, path)
+    with pytest.raises(LaunchError) as info:
+        launch_config(["--resume", str(gpu_run)], cuda_available=False)
+    assert "was trained with --device cuda" in str(info.value) and "pass --device cpu" in str(info.value)
+    assert "leave --device out" not in str(info.value)
+    cfg, _, _ = launch_config(["--resume", str(gpu_run), "--device", "cpu"], cuda_available=False)
+    assert cfg.device == "cpu"
+
+
+def test_torchrun_without_cuda_refuses_the_smoke_fallback():
+    # Under torchrun no rank prints the banner that would say the run changed; the request is refused instead.
+    with pytest.raises(LaunchError, match="torchrun started several ranks.*--device cpu"):
+        launch_config(["--name", "dp"], cuda_available=False, data_parallel=True)
+    cfg, _, note = launch_config(["--preset", "cpu_smoke", "--device", "cpu"], cuda_available=False,
+                                 data_parallel=True)
+    assert cfg.preset == "cpu_smoke" and cfg.device == "cpu" and note is None
+    cfg, _, note = launch_config([], cuda_available=True, data_parallel=True)
+    assert cfg.preset == "default" and note is None
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the behaviour without CUDA")
 def test_recipe_exits_non_zero_on_an_impossible_device(tmp_path):
     with pytest.raises(SystemExit) as info:

@@ -3,7 +3,8 @@
 Only ``--device auto`` with no ``--preset`` given may turn into something else than asked: without a CUDA GPU it runs
 the small ``cpu_smoke`` configuration (keeping the other options given), and the banner says so. An explicit request
 this machine cannot honour (``--device cuda`` without CUDA, a GPU-sized ``--preset`` or resumed run on ``auto``)
-raises :class:`LaunchError` with what to pass instead.
+raises :class:`LaunchError` with what to pass instead. Under torchrun (``data_parallel``) there is no fallback: a
+multi-rank launch means GPUs were expected, and no rank prints a banner that could say the run changed.
 """
 
 from __future__ import annotations
@@ -24,13 +25,14 @@ class LaunchError(ValueError):
     """An explicit request (device, preset) that this machine cannot honour."""
 
 
-def launch_config(argv: list[str] | None, cuda_available: bool,
-                  description: str = "") -> tuple[RunConfig, argparse.Namespace, str | None]:
+def launch_config(argv: list[str] | None, cuda_available: bool, description: str = "",
+                  data_parallel: bool = False) -> tuple[RunConfig, argparse.Namespace, str | None]:
     """Parse ``argv`` (see :func:`~tocabi_torchrl.rl.config.build_parser`) into the config to run on this machine.
 
     Returns the config, the namespace (options not given are None) and, when the run differs from the request, a
     note saying why. The fallback is decided before the config is built, so options sized for the smoke run (e.g.
-    ``--env.num_envs 4``) are checked against it rather than against the GPU preset.
+    ``--env.num_envs 4``) are checked against it rather than against the GPU preset. ``data_parallel`` (a torchrun
+    launch) refuses the fallback instead of taking it.
     """
     args = build_parser(description).parse_args(argv)
     overrides = given_options(args)  # as given: a refused resume names the options as the user wrote them
@@ -40,9 +42,16 @@ def launch_config(argv: list[str] | None, cuda_available: bool,
     device = resumed.device if resumed else overrides.get("device", "auto")
     note = None
     if not cuda_available:
+        if device.startswith("cuda") and resumed and "device" not in overrides:
+            raise LaunchError(f"the resumed run {resume} was trained with --device {device}, and torch sees no CUDA "
+                              "GPU on this machine; pass --device cpu to continue it on the CPU")
         if device.startswith("cuda"):
             raise LaunchError(f"--device {device} was requested but torch sees no CUDA GPU on this machine; pass "
                               "--device cpu (or leave --device out for the small CPU smoke run)")
+        if device == "auto" and data_parallel:
+            raise LaunchError("torchrun started several ranks but torch sees no CUDA GPU on this machine; pass "
+                              "--device cpu for a data-parallel run on the CPU (gloo), with --preset cpu_smoke for the"
+                              " small one")
         if device == "auto" and preset not in CPU_SIZED_PRESETS:
             sized = preset_config(preset)
             gpu_sized = f"sized for a GPU ({sized.env.num_envs:,} envs, {sized.total_env_steps:,} env steps)"
