@@ -29,6 +29,8 @@ except GLBackendError as gl_error:
 
 import torch  # noqa: E402
 
+from tocabi_torchrl.envs.model_based import check_settings  # noqa: E402
+from tocabi_torchrl.motion import ReferenceMotion  # noqa: E402
 from tocabi_torchrl.motion.io import MotionFormatError  # noqa: E402
 from tocabi_torchrl.rl.distributed import ending, from_environment  # noqa: E402
 from tocabi_torchrl.rl.gait_record import policy_steps  # noqa: E402
@@ -46,8 +48,15 @@ def main(argv: list[str] | None = None) -> None:
         dist_info = from_environment()  # torchrun's layout; one rank without it
         cfg, args, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0],
                                         data_parallel=dist_info.enabled)
+        model_based = cfg.env.control.mode == "model_based"
+        if cfg.eval_at_end or model_based:
+            control_dt = load_model(cfg.env.task.model_path).opt.timestep * cfg.env.sim.substeps
         if cfg.eval_at_end:  # the gait test's length, checked now rather than after the training it follows
-            policy_steps(cfg.eval_seconds, load_model(cfg.env.task.model_path).opt.timestep * cfg.env.sim.substeps)
+            policy_steps(cfg.eval_seconds, control_dt)
+        if model_based:  # its gains against the control period, its window against the motion: before the banner
+            motion = cfg.env.task.motion
+            check_settings(cfg.env.control, ReferenceMotion.default() if motion is None
+                           else ReferenceMotion.from_file(motion), control_dt)
         device = resolve_device(cfg.device)
         require_loggers(cfg.loggers)
     except (ValueError, RuntimeError, ImportError) as err:

@@ -274,6 +274,32 @@ def test_a_reference_window_wider_than_half_the_cycle_is_refused_in_seconds():
         TocabiWalk(num_envs=1, device="cpu", backend="mujoco", control_mode="model_based", mb_ref_window=1.0)
 
 
+def test_omega_zero_means_no_feedback_and_is_built():
+    # ω = 0: feed-forward and bias compensation only (a double integrator, radius exactly 1), a natural ablation
+    # that the config accepts; the env must build it rather than call it unstable and advise lowering ω.
+    omega = list(MB_OMEGA)
+    omega[3] = 0.0
+    env = TocabiWalk(num_envs=1, device="cpu", backend="mujoco", control_mode="model_based", mb_omega=tuple(omega))
+    assert env.computed_torque.kp[3] == 0 and env.computed_torque.kd[3] == 0
+    assert env.computed_torque.kp[2] > 0
+
+
+def test_the_recipe_refuses_bad_model_based_settings_before_the_run_starts(tmp_path, capsys):
+    import runpy
+
+    from pathlib import Path
+
+    main = runpy.run_path(str(Path(__file__).parents[1] / "recipes" / "ppo_walk.py"))["main"]
+    base = ["--device", "cpu", "--preset", "cpu_smoke", "--run_dir", str(tmp_path), "--name", "mb",
+            "--env.control.mode", "model_based", "--eval_at_end", "false"]
+    for extra, match in ((["--env.control.mb_ref_window", "10"], "mb_ref_window 10 s is longer"),
+                         (["--env.control.mb_omega", ",".join(["900"] * 12)], "unstable for L_HipYaw_Joint")):
+        with pytest.raises(SystemExit) as info:
+            main(base + extra)
+        assert str(info.value.code).startswith("error: ") and match in str(info.value.code)
+        assert "training mb" not in capsys.readouterr().out and not (tmp_path / "mb").exists()
+
+
 def test_preset_round_trips_through_the_tree_a_tiny_run_and_its_checkpoint(tmp_path, capsys):
     from tocabi_torchrl.export.__main__ import main as export_main
     from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint

@@ -54,7 +54,7 @@ from ..motion import ReferenceMotion
 from ..sim.inertia import DenseBlock
 from .config import ControlConfig
 
-__all__ = ["ComputedTorque", "sampled_loop_radius"]
+__all__ = ["ComputedTorque", "check_settings", "sampled_loop_radius"]
 
 
 def sampled_loop_radius(omega: np.ndarray, zeta: np.ndarray, dt: float) -> np.ndarray:
@@ -69,6 +69,31 @@ def sampled_loop_radius(omega: np.ndarray, zeta: np.ndarray, dt: float) -> np.nd
     return np.array(radius)
 
 
+def check_settings(control: ControlConfig, motion: ReferenceMotion, control_dt: float) -> int:
+    """Check what :class:`ControlConfig.validate` cannot, the gains against the control period and the reference
+    window against the motion's cycle, and return the window's half-width in rows.
+
+    A joint with ω = 0 has no feedback (feed-forward and bias compensation only, the residual doing the rest): its
+    sampled loop is a double integrator at radius exactly 1, which is allowed. Any ω > 0 must give a radius < 1.
+    Raises ``ValueError`` naming the joints whose gains make the sampled loop unstable, or the longest usable window.
+    """
+    omega = np.asarray(control.mb_omega, dtype=np.float64)
+    zeta = np.asarray(control.mb_zeta, dtype=np.float64)
+    radius = sampled_loop_radius(omega, zeta, control_dt)
+    unstable = [f"{robot.JOINT_NAMES[j]} (ω = {omega[j]:g} rad/s, ζ = {zeta[j]:g}: radius {radius[j]:.3f})"
+                for j in range(len(omega)) if omega[j] > 0 and radius[j] >= 1.0]
+    if unstable:
+        raise ValueError(f"env.control.mb_omega/mb_zeta: the computed-torque loop, held for {control_dt * 1e3:g} ms "
+                         f"per step, is unstable for {', '.join(unstable)}; lower ω (ω·dt well under 1), bring ζ "
+                         "nearer 1, or set ω = 0 for no feedback on that joint")
+    half_width = max(1, int(round(float(control.mb_ref_window) / motion.row_dt)))
+    widest = motion.cycle_rows // 2 - 1
+    if half_width > widest:
+        raise ValueError(f"env.control.mb_ref_window {control.mb_ref_window:g} s is longer than half the reference "
+                         f"cycle allows; use at most {widest * motion.row_dt:g} s (the default is 0.008 s)")
+    return half_width
+
+
 class ComputedTorque:
     """The feed-forward torque τ_ff of the ``model_based`` mode (see the module docstring), for ``num_envs`` worlds.
 
@@ -80,20 +105,14 @@ class ComputedTorque:
         device: the env's device.
         control_dt: [s] one control period, over which the torque is held (for the stability check).
 
-    Raises ``ValueError`` naming the joints whose gains make the sampled loop unstable at ``control_dt``.
+    Raises ``ValueError`` from :func:`check_settings` (unstable gains at ``control_dt``, too wide a window).
     """
 
     def __init__(self, control: ControlConfig, motion: ReferenceMotion, mj_model: mujoco.MjModel, num_envs: int,
                  device: torch.device, control_dt: float):
+        half_width = check_settings(control, motion, control_dt)
         omega = np.asarray(control.mb_omega, dtype=np.float64)
         zeta = np.asarray(control.mb_zeta, dtype=np.float64)
-        radius = sampled_loop_radius(omega, zeta, control_dt)
-        unstable = [f"{robot.JOINT_NAMES[j]} (ω = {omega[j]:g} rad/s, ζ = {zeta[j]:g}: radius {radius[j]:.3f})"
-                    for j in range(len(omega)) if radius[j] >= 1.0]
-        if unstable:
-            raise ValueError(f"env.control.mb_omega/mb_zeta: the computed-torque loop, held for {control_dt * 1e3:g} "
-                             f"ms per step, is unstable for {', '.join(unstable)}; lower ω (ω·dt well under 1) or "
-                             "bring ζ nearer 1")
         f32 = torch.float32
         self.kp = torch.as_tensor(omega**2, dtype=f32, device=device)
         self.kd = torch.as_tensor(2.0 * zeta * omega, dtype=f32, device=device)
@@ -107,11 +126,6 @@ class ComputedTorque:
         self.qpos = slice(qadr[0], qadr[0] + n_leg)
         self.block = DenseBlock(mj_model, dofs, num_worlds=num_envs, device=device)
         self.motion = motion
-        half_width = max(1, int(round(float(control.mb_ref_window) / motion.row_dt)))
-        widest = motion.cycle_rows // 2 - 1
-        if half_width > widest:
-            raise ValueError(f"env.control.mb_ref_window {control.mb_ref_window:g} s is longer than half the reference "
-                             f"cycle allows; use at most {widest * motion.row_dt:g} s (the default is 0.008 s)")
         vel, acc = motion.joint_derivatives(half_width)
         self.ref_vel, self.ref_acc = vel[:, robot.LEGS].contiguous(), acc[:, robot.LEGS].contiguous()
         self.half_width = half_width
