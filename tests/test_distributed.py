@@ -78,6 +78,13 @@ def _train_steps(rows: TensorDict, info: DistInfo, init_seed: int,
     return _flat(params), all_reduce_mean(stats / STEPS, info)
 
 
+def test_stats_sync_refuses_a_normalizer_not_yet_sized():
+    # Sized later by its first observation, its merge would broadcast a (1,) base over (2D + 1,) moments.
+    with pytest.raises(ValueError, match="RunningStatsSync needs sized statistics"):
+        RunningStatsSync([RunningNormalization(init_count=1000.0)], DistInfo(0, 2, 0))
+    RunningStatsSync([RunningNormalization(dim=3)], DistInfo(0, 2, 0))  # sized: taken
+
+
 def _worker(rank: int, world: int, init_file: str, out: dict) -> None:
     info = DistInfo(rank, world, rank)
     init_distributed(info, torch.device("cpu"), init_method=f"file://{init_file}")

@@ -228,6 +228,13 @@ class RunningStatsSync:
     def __init__(self, normalizers: Iterable[torch.nn.Module], info: DistInfo):
         self.info = info
         self.normalizers = [n for n in normalizers if all(hasattr(n, b) for b in ("count", "mean", "var"))]
+        # An unsized normaliser would size itself from its first observation, after the base below is taken; the
+        # merge would then subtract a (1,) base from (2D + 1,) moments by broadcasting, every rank agreeing on the
+        # wrong mean and variance.
+        if any(n.mean.numel() == 0 for n in self.normalizers):
+            raise ValueError("RunningStatsSync needs sized statistics: build RunningNormalization with dim= or "
+                             "init_mean=, or create the sync after the env's observation_spec has been read (which "
+                             "sizes a normaliser attached to it)")
         self._base = [self._moments(n) for n in self.normalizers]
 
     @staticmethod
