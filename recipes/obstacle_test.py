@@ -302,6 +302,12 @@ def main(argv: list[str] | None = None) -> dict:
     if not math.isfinite(args.step_mm) or 0 < args.step_mm < 1e-6:  # heights are rounded to 1e-6 mm
         parser.error(f"--step_mm must be 0 (only --heights_mm) or a finite step of at least 1e-6 mm, got "
                      f"{args.step_mm:g}")
+    if not all(map(math.isfinite, heights)):
+        parser.error(f"--heights_mm must be finite numbers, got {args.heights_mm!r}")
+    if not math.isfinite(args.max_mm) or args.max_mm < 0:  # a NaN or inf cap never stops the search
+        parser.error(f"--max_mm must be a finite height >= 0 (the cap of the heights tried), got {args.max_mm:g}")
+    if not 0 < args.fail_below <= 1:  # NaN fails this too
+        parser.error(f"--fail_below must be a pass rate in (0, 1], got {args.fail_below:g}")
     if args.resume and args.overwrite:
         parser.error("--resume keeps the earlier table's rows, --overwrite replaces them: pass one of them")
     try:
