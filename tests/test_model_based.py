@@ -286,7 +286,6 @@ def test_omega_zero_means_no_feedback_and_is_built():
 
 def test_the_recipe_refuses_bad_model_based_settings_before_the_run_starts(tmp_path, capsys):
     import runpy
-
     from pathlib import Path
 
     main = runpy.run_path(str(Path(__file__).parents[1] / "recipes" / "ppo_walk.py"))["main"]
