@@ -24,6 +24,9 @@ from pathlib import Path
 
 TASK = "Mjlab-Velocity-Flat-Unitree-G1"
 OUT = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "mjlab_peer.json"
+#: Where a run off CUDA writes instead of :data:`OUT` (ignored by git): benchmarks.common.report_dir's rule, which this
+#: script cannot import.
+CPU_OUT = Path(__file__).resolve().parents[1] / "runs" / "benchmarks_cpu" / "mjlab_peer.json"
 # Modules mjlab imports that this run never uses: its __init__ points mediapy at imageio-ffmpeg's ffmpeg (videos), the
 # G1 runner module imports wandb (W&B logging). Stand-ins where missing keep ~35 MB of wheels off the GPU machine.
 STAND_INS = {"mediapy": {"set_ffmpeg": lambda path: None}, "imageio_ffmpeg": {"get_ffmpeg_exe": lambda: "ffmpeg"},
@@ -116,6 +119,10 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     if args.ours:
         return merge(args.out, args.ours)
+    if not args.device.startswith("cuda") and args.out.resolve() == OUT.resolve():  # a smoke run keeps the GPU report
+        print(f"measured on {args.device}: writing to {CPU_OUT}, not {OUT}, which holds the published GPU results",
+              flush=True)
+        args.out = CPU_OUT
     os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")  # rsl_rl imports GitPython, which wants a git binary
     # Set, not defaulted: nothing is rendered, and under egl (inherited or mjlab's default) mujoco needs libEGL and
     # PyOpenGL, without which it lacks mujoco.Renderer, read by mjlab's viewer at import.

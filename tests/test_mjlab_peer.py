@@ -82,3 +82,67 @@ def test_a_toy_run_on_the_cpu(tmp_path):
     assert (r["num_envs"], r["decimation"], r["steps_per_env"], r["runner"]) == (4, 4, 24, "VelocityOnPolicyRunner")
     assert r["train_env_steps_per_s"] > 0 and r["raw_policy_steps_per_s"] > 0 and r["ratio_train_over_raw"] > 0
     assert meta["versions"]["mujoco-warp"].startswith("3.11") and meta["task"] == mjlab_peer.TASK
+
+
+def _stand_in_mjlab(monkeypatch) -> None:
+    """Just the mjlab that main() calls (a runner whose learn() only logs), so that its CPU path runs here."""
+    import types
+    from dataclasses import dataclass
+
+    @dataclass
+    class RlCfg:
+        seed: int = 0
+        clip_actions: float | None = None
+        logger: str = "wandb"
+        num_steps_per_env: int = 24
+
+    class Runner:
+        def __init__(self, env, cfg, log_dir, device):
+            self.current_learning_iteration, self.logger = 0, types.SimpleNamespace(log=lambda *a, it, **k: None)
+
+        def learn(self, num_learning_iterations, init_at_random_ep_len=False):
+            for it in range(num_learning_iterations):
+                self.logger.log(it=it)
+
+    def env(cfg, device):
+        return types.SimpleNamespace(cfg=cfg, device=device, num_envs=cfg.scene.num_envs, physics_dt=0.005,
+                                     sim=types.SimpleNamespace(use_cuda_graph=False))
+
+    registry = types.SimpleNamespace(
+        list_tasks=lambda: [mjlab_peer.TASK], load_rl_cfg=lambda task: RlCfg(), load_runner_cls=lambda task: None,
+        load_env_cfg=lambda task: types.SimpleNamespace(scene=types.SimpleNamespace(num_envs=1), seed=None,
+                                                        decimation=4))
+    attributes = {"mjlab": {}, "mjlab.tasks": {"registry": registry}, "mjlab.envs": {"ManagerBasedRlEnv": env},
+                  "mjlab.rl": {"MjlabOnPolicyRunner": Runner,
+                               "RslRlVecEnvWrapper": lambda env, clip_actions: types.SimpleNamespace(unwrapped=env)},
+                  "mjlab.utils": {}, "mjlab.utils.torch": {"configure_torch_backends": lambda: None}}
+    for name, values in attributes.items():
+        module = types.ModuleType(name)
+        module.__dict__.update(values)
+        monkeypatch.setitem(sys.modules, name, module)
+    for parent in ("mjlab", "mjlab.utils"):  # `import mjlab.tasks` binds the submodules as attributes
+        for name in attributes:
+            if name.rpartition(".")[0] == parent:
+                monkeypatch.setattr(sys.modules[parent], name.rpartition(".")[2], sys.modules[name], raising=False)
+
+
+def test_a_smoke_run_off_cuda_does_not_replace_the_published_gpu_report(tmp_path, monkeypatch, capsys):
+    # The documented `--device cpu` smoke run, without --out, once replaced the committed GPU report (whose page then
+    # failed to regenerate); it goes where benchmarks.common.report_dir sends any CPU measurement instead.
+    published, cpu = tmp_path / "docs" / "mjlab_peer.json", tmp_path / "runs" / "mjlab_peer.json"
+    published.parent.mkdir()
+    published.write_text("the published GPU report")
+    monkeypatch.setattr(mjlab_peer, "OUT", published)
+    monkeypatch.setattr(mjlab_peer, "CPU_OUT", cpu)
+    for name in ("MUJOCO_GL", "GIT_PYTHON_REFRESH"):  # main() sets them for mjlab
+        monkeypatch.setenv(name, os.environ.get(name, ""))
+    _stand_in_mjlab(monkeypatch)
+    monkeypatch.setattr(mjlab_peer, "install_stand_ins", list)  # tested above; its modules would outlive this test
+    data = mjlab_peer.main(["--device", "cpu", "--num_envs", "2", "--iterations", "1", "--warmup", "1", "--raw_steps",
+                            "0", "--run_dir", str(tmp_path / "mjruns")])
+    assert published.read_text() == "the published GPU report" and json.loads(cpu.read_text()) == data
+    assert f"writing to {cpu}, not {published}" in capsys.readouterr().out
+    out = tmp_path / "asked.json"  # a path asked for is honoured
+    mjlab_peer.main(["--device", "cpu", "--num_envs", "2", "--iterations", "1", "--warmup", "1", "--raw_steps", "0",
+                     "--run_dir", str(tmp_path / "mjruns"), "--out", str(out)])
+    assert out.is_file()
