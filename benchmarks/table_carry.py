@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import sys
 from pathlib import Path
@@ -85,6 +86,8 @@ def main(argv=None) -> None:
                         help="most MiB to carry (default 14: beside the working tree and .devwheels/b)")
     parser.add_argument("--replace", action="store_true", help="write --out anew if it exists")
     args = parser.parse_args(argv)
+    if not 0 < args.max_mib < math.inf:  # NaN: the cap compares false and is off
+        parser.error(f"--max_mib must be a positive number of MiB, got {args.max_mib}")
     try:
         gather(args.paths, args.out, args.max_mib, args.replace)
     except ValueError as err:

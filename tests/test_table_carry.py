@@ -76,3 +76,14 @@ def test_an_existing_folder_is_replaced_only_when_asked(tmp_path, monkeypatch):
     assert (Path("carry") / "old.txt").read_text() == "kept"
     table_carry.main([str(rsl), "--out", "carry", "--replace"])
     assert not (Path("carry") / "old.txt").exists() and (Path("carry") / rsl / "resume.json").is_file()
+
+
+def test_a_size_cap_that_is_not_a_positive_number_is_refused(tmp_path, monkeypatch, capsys):
+    # NaN once switched the cap off (a comparison with NaN is false) and carried everything.
+    monkeypatch.chdir(tmp_path)
+    rsl = _row(tmp_path, "rsl_rl_torque_4096_x", calls=1)
+    for cap in ("nan", "0", "-1"):
+        with pytest.raises(SystemExit) as exit_:
+            table_carry.main([str(rsl), "--out", "carry", "--max_mib", cap])
+        assert exit_.value.code == 2 and "--max_mib must be a positive number" in capsys.readouterr().err
+        assert not Path("carry").exists()
