@@ -25,7 +25,7 @@ from tocabi_torchrl import robot
 from tocabi_torchrl.config import FLAT_PATHS, RunConfig
 from tocabi_torchrl.rl import checkpoint, trainer
 from tocabi_torchrl.rl.atomic import atomic_write_text
-from tocabi_torchrl.rl.config import preset_config
+from tocabi_torchrl.rl.config import PRESETS, preset_config
 from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.rl.evaluate import evaluate_policy
 from tocabi_torchrl.rl.gait_record import fixed_command
@@ -169,6 +169,7 @@ def memory_peaks(device: str | torch.device = "cuda", every_s: float = 0.05):
 
 # The library's entry points: the only place the benchmarks touch its config, trainer and checkpoints.
 config = preset_config  # config(preset, **overrides): a training config
+presets = sorted(PRESETS)  # the names config() takes, for the scripts' --preset checks
 
 
 def run_config(n: int, iterations: int, overrides: dict, run_dir: str, name: str, device: str, ranks: int = 1):
@@ -290,8 +291,9 @@ def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Call
     parser.add_argument("--out", default=str(DOCS))
     parser.add_argument("--name", default=name)
     args = parser.parse_args(argv)
-    if args.warmup < min_warmup or args.iterations < 1 or args.raw_steps < min_raw_steps:
-        parser.error(f"--warmup must be >= {min_warmup}, --iterations >= 1 and --raw_steps >= {min_raw_steps}")
+    if args.warmup < min_warmup or args.iterations < 1 or args.raw_steps < min_raw_steps or min(args.num_envs) < 1:
+        parser.error(f"--warmup must be >= {min_warmup}, --iterations >= 1, --raw_steps >= {min_raw_steps} and "
+                     f"--num_envs >= 1")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         parser.error(f"no CUDA device here; pass --device cpu ({device_help})")
     overrides = parse_overrides(args.set)
@@ -367,8 +369,9 @@ def publish(out: str | Path, name: str, data: dict, render: Callable[[dict, Path
     """Write ``<out>/<name>.json`` and its page ``render(data, out)`` as ``<name>.md`` (atomically, saying where);
     ``out`` as :func:`report_dir` gives it for ``measured_on``."""
     out = report_dir(out, measured_on)
-    write_json(out / f"{name}.json", data)  # (making the folder)
-    text = render(data, out)
+    out.mkdir(parents=True, exist_ok=True)  # render may write plots beside the page
+    text = render(data, out)  # first: a page that fails to render replaces nothing (JSON and page stay one pair)
+    write_json(out / f"{name}.json", data)
     atomic_write_text(out / f"{name}.md", text)
     print(f"wrote {out / name}.json and .md", flush=True)
     return text

@@ -132,6 +132,8 @@ def main(argv=None) -> dict:
                      "that the probe runs")
     if min(args.num_envs) < 1 or args.repeats < 1:
         parser.error("--num_envs and --repeats must be positive")
+    if args.preset not in common.presets:
+        parser.error(f"--preset {args.preset!r}: no such preset; choose one of {', '.join(common.presets)}")
     results = []
     for n in args.num_envs:
         print(f"overlap probe: {n:,} envs ...", flush=True)

@@ -18,6 +18,7 @@ import argparse
 import json
 import math
 import statistics
+import sys
 from pathlib import Path
 
 from . import common
@@ -25,6 +26,7 @@ from . import common
 TARGET = 983_040  # TocabiLab's budget: 4,096 envs x 24 steps x 10 iterations
 TOCABILAB_BEST = TARGET / 850  # env-steps/s of TocabiLab's best run (Isaac Lab + rsl_rl, 96 envs)
 OOM = ("out of memory", "outofmemory", "cudaerrormemoryallocation", "failed to allocate")
+STATUSES = ("ok", "partial", "oom", "error")  # a record's; oom and error records have no rates
 
 
 def run(kind: str, backend: str, n: int, args) -> dict:
@@ -32,6 +34,7 @@ def run(kind: str, backend: str, n: int, args) -> dict:
     is not in ``--redo``); running out of device memory is a result too (``oom``)."""
     path = Path(args.results) / f"{kind}_{backend}_{n:07d}.json"
     if path.is_file() and (record := json.loads(path.read_text()))["status"] not in args.redo:
+        print(f"kept {path.name} (status {record['status']}; --redo {record['status']} measures it again)", flush=True)
         return record
     base = common.config("default")
     steps = max(base.ppo.steps_per_env, math.ceil(2048 / n))  # small counts: rollouts of at least 2,048 transitions
@@ -55,6 +58,9 @@ def run(kind: str, backend: str, n: int, args) -> dict:
             if backend == "gpu" else None}
     except RuntimeError as err:
         record = {"status": "oom" if any(m in str(err).lower() for m in OOM) else "error", "error": str(err)[-3000:]}
+        if record["status"] == "error":  # its cause, where the report keeps only the status
+            last = str(err).strip().rpartition("\n")[2]
+            print(f"{path.name}: the measurement failed: {last}", flush=True)
     meta["gpu"] = r.get("device_name", "?")
     record = {"kind": kind, "backend": backend, "num_envs": n, **record, "meta": meta}
     common.write_json(path, record)
@@ -65,10 +71,15 @@ def run(kind: str, backend: str, n: int, args) -> dict:
 def render(folder: Path, out: Path) -> str:
     rec = {(r["kind"], r["backend"], r["num_envs"]): r for r in map(json.loads, map(Path.read_text, folder.iterdir()))}
     get = lambda kind, backend: sorted((k[2], r) for k, r in rec.items() if k[:2] == (kind, backend))
-    raw = {n: r["raw_policy_steps_per_s"] for n, r in get("raw", "gpu")}
+    # The rates come from measured records only; a time run that ran out of memory or failed is a status-only row.
+    measured = lambda kind, backend: [(n, r) for n, r in get(kind, backend) if r["status"] in ("ok", "partial")]
+    raw = {n: r["raw_policy_steps_per_s"] for n, r in measured("raw", "gpu")}
     time_rows = []
     for backend, label in (("gpu", "GPU (mujoco-warp)"), ("cpu", "CPU (C MuJoCo)")):
         for n, r in get("time", backend):
+            if r["status"] not in ("ok", "partial"):
+                time_rows.append((label, f"{n:,}", *["-"] * 8, r["status"]))
+                continue
             sps, c = r["env_steps_per_s"], r["config"]
             time_rows.append((label, f"{n:,}", f"{c['steps_per_env']} / {c['minibatch_size']:,}",
                               ("graph" if r.get("env_graph") else "eager") if backend == "gpu" else "-",
@@ -79,7 +90,7 @@ def render(folder: Path, out: Path) -> str:
                    "850", "-", f"{TOCABILAB_BEST:,.0f}", "850", "1.0×", "reported"),
                   ("TocabiLab: CPU MuJoCo + SB3 (reported; failed at 96 envs)", 8, "-", "-", f"{TARGET:,}", "1,535",
                    "-", f"{TARGET / 1535:,.0f}", "1,535", f"{TARGET / 1535 / TOCABILAB_BEST:.2f}×", "reported")]
-    trained = dict(get("time", "gpu"))
+    trained = dict(measured("time", "gpu"))
     # A count with a 983,040-step run takes its numbers from it (the short runs at those counts are older, eager ones).
     mem = {**{n: (r, "short run") for n, r in get("memory", "gpu")}, **{n: (r, "983k run") for n, r in trained.items()}}
     gpu = lambda r, k: (r.get("gpu") or {}).get(k)
@@ -92,7 +103,7 @@ def render(folder: Path, out: Path) -> str:
     used = [(n, device(r)) for n, (r, _) in sorted(mem.items()) if r["status"] == "ok" and device(r)]
     fit = [(n, gib) for n, gib in used if n >= 1024]
     slope = statistics.linear_regression(*zip(*fit, strict=True)).slope if len(fit) > 1 else None  # GiB per env
-    cpu_best = max((r["env_steps_per_s"] for _, r in get("time", "cpu")), default=None)
+    cpu_best = max((r["env_steps_per_s"] for _, r in measured("time", "cpu")), default=None)
     gpu4k = trained.get(4096, {}).get("env_steps_per_s")
     rss = {n: r["host"]["peak_rss_gib"] for n, (r, _) in mem.items() if r.get("host")}
     growth = 100 * (rss[16384] / rss[1024] - 1) if 1024 in rss and 16384 in rss else None
@@ -103,7 +114,7 @@ def render(folder: Path, out: Path) -> str:
                   for name, target, v in checks]
     check_rows.append(("Host RAM growth from 1,024 to 16,384 envs", "< 10 %", common.fmt(growth, ".1f") + " %",
                        "**pass**" if growth is not None and growth < 10 else "fail"))
-    _plot(get, raw, used, out)
+    _plot(measured, raw, used, out)
     m = {**trained.get(4096, next(iter(rec.values())))["meta"], "date": max(r["meta"]["date"] for r in rec.values())}
     return (f"# Efficiency and scalability: TocabiLab's chapter 5 on our system ({m['gpu']})\n\n"
             f"From the result files in `scaling/` (one fresh process each, measured up to {m['date']}); regenerate "
@@ -126,8 +137,8 @@ def render(folder: Path, out: Path) -> str:
             + "\n\n![training time, rate and memory vs env count](scaling.png)\n")
 
 
-def _plot(get, raw, fit, out: Path) -> None:
-    time_ = {b: ([n for n, _ in get("time", b)], [r["env_steps_per_s"] for _, r in get("time", b)])
+def _plot(measured, raw, fit, out: Path) -> None:
+    time_ = {b: ([n for n, _ in measured("time", b)], [r["env_steps_per_s"] for _, r in measured("time", b)])
              for b in ("gpu", "cpu")}
     common.plot(out / "scaling.png", [
         {"lines": {b: (n, [TARGET / x for x in y]) for b, (n, y) in time_.items()}, "hlines": [(850, "TocabiLab best")],
@@ -144,21 +155,31 @@ def main(argv=None) -> None:
     parser.add_argument("--backend", choices=("gpu", "cpu"), default="gpu")
     parser.add_argument("--num_envs", type=int, nargs="+", default=[4096])
     parser.add_argument("--max_minutes", type=float, default=9.0, help="a training run's own time limit")
-    parser.add_argument("--redo", nargs="*", default=[], help="measure results of these statuses again")
+    parser.add_argument("--redo", nargs="*", default=[], choices=STATUSES,
+                        help="measure results of these statuses again")
     parser.add_argument("--hidden", default="", help="actor and critic sizes, e.g. 64,64 (default: the preset's)")
     parser.add_argument("--results", default=str(common.DOCS / "scaling"))
     parser.add_argument("--run_dir", default="/tmp/tocabi_scaling_runs", help="scratch folder of the training runs")
     parser.add_argument("--report", action="store_true", help="render scaling.{md,png} beside --results")
     args = parser.parse_args(argv)
+    if min(args.num_envs) < 1 or not 0 < args.max_minutes < math.inf:  # max_minutes 0 would mean no time limit
+        parser.error(f"--num_envs must be >= 1 and --max_minutes a positive number, got {args.num_envs} and "
+                     f"{args.max_minutes}")
     if args.report:
         out = Path(args.results).parent
         text = render(Path(args.results), out)
         common.atomic_write_text(out / "scaling.md", text)
         print(text)
         return
+    failed = []
     for n in args.num_envs:
-        if run(args.kind, args.backend, n, args)["status"] == "oom" and args.kind == "memory":
+        status = run(args.kind, args.backend, n, args)["status"]
+        failed += [n] if status == "error" else []
+        if status == "oom" and args.kind == "memory":
             break  # larger counts will not fit either
+    if failed:
+        sys.exit(f"error: the {args.kind} measurement failed at {', '.join(map(str, failed))} envs (the error is in "
+                 f"its result file under {args.results}); --redo error measures it again")
 
 
 if __name__ == "__main__":

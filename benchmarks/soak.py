@@ -129,20 +129,17 @@ def run_faults(args) -> tuple[dict, list[dict]]:
     result, rows = common.train(cfg, env, wrap_policy=wrap)
     wall, inj, c = time.perf_counter() - t0, monitor.injector, dict(zip(SoakMonitor.NAMES, monitor.counts.tolist()))
     end, state = (common.device_used_gib(env.device), common.rss_gib() * 1024), common.read_checkpoint(result.run_dir)
-    baseline = monitor.series[WARMUP_ROLLOUTS - 1:WARMUP_ROLLOUTS]  # rollout 10's row, where the run got that far
-    start = (baseline[0]["device_used_gib"], baseline[0]["host_rss_mib"]) if baseline else end
+    start, memory = memory_checks(monitor.series, end)
     bad = {}
     for row in rows:  # return and length are NaN by design in an iteration where no episode ended
         skip = () if float(row.get("episodes_finished") or 0) > 0 else ("episode_return", "episode_length")
         for k, v in row.items():
             if k not in skip and v not in (None, "") and not math.isfinite(float(v)):
                 bad[k] = bad.get(k, 0) + 1
-    growth = None if start[0] is None else 100.0 * (end[0] - start[0]) / start[0]
     d = {"policy_steps": inj.calls, "env_steps": result.env_steps, "iterations": result.iterations, "wall_s": wall,
          "fault_events": len(inj.events), "events": inj.events[:50], "monitor": c, "nonfinite_metrics": bad,
          "device_used_gib_start": start[0], "device_used_gib_end": end[0], "host_rss_mib_start": start[1],
          "host_rss_mib_end": end[1], "memory_baseline_rollout": WARMUP_ROLLOUTS, "memory_series": monitor.series}
-    rss = 100.0 * (end[1] - start[1]) / start[1]
     params, optim, norm = (nonfinite(state.get(k)) for k in ("agent", "optimizer", "transforms"))
     outside, own = c["obs_outside"] + c["reward_outside"] + c["reset_obs_outside"], c["obs_hit"] + c["reward_hit"]
     nan = f"{c['nan_terminated']}/{c['nan_worlds']}", f"{c['nan_reset']}/{c['nan_worlds']}"
@@ -155,9 +152,21 @@ def run_faults(args) -> tuple[dict, list[dict]]:
         ("NaN/inf in network parameters", params, "0", params == 0),
         ("NaN/inf in optimiser state", optim, "0", optim == 0),
         ("NaN/inf in normaliser / transform state", norm, "0", norm == 0),
-        ("non-finite training metrics", sum(bad.values()), "0", not bad),
-        ("device memory growth [%]", common.fmt(growth, ".2f", "n/a"), "<= 1", growth is None or growth <= 1.0),
-        ("host RSS growth [%]", f"{rss:.1f}", "reported", True)]]
+        ("non-finite training metrics", sum(bad.values()), "0", not bad), *memory]]
+
+
+def memory_checks(series: list[dict], end: tuple) -> tuple[tuple, list[tuple]]:
+    """The memory at the baseline (rollout :data:`WARMUP_ROLLOUTS`'s row of ``series``) and the report's rows of the
+    growth from there to ``end`` (device GiB, None off CUDA; host RSS MiB). A run that ended before a rollout after
+    the baseline measured no growth: its device check fails rather than passing on the end against itself."""
+    if len(series) <= WARMUP_ROLLOUTS:
+        short = f"not measured (the run ended at rollout {len(series)}, the baseline is rollout {WARMUP_ROLLOUTS})"
+        return (None, None), [("device memory growth [%]", "n/a" if end[0] is None else short, "<= 1", end[0] is None),
+                              ("host RSS growth [%]", short, "reported", True)]
+    start = series[WARMUP_ROLLOUTS - 1]["device_used_gib"], series[WARMUP_ROLLOUTS - 1]["host_rss_mib"]
+    growth = None if start[0] is None else 100.0 * (end[0] - start[0]) / start[0]
+    return start, [("device memory growth [%]", common.fmt(growth, ".2f", "n/a"), "<= 1", growth is None or growth <= 1.0),
+                   ("host RSS growth [%]", f"{100.0 * (end[1] - start[1]) / start[1]:.1f}", "reported", True)]
 
 
 def render(data: dict, out: Path) -> str:
@@ -184,6 +193,11 @@ def main(argv: list[str] | None = None) -> int:
                                 ("out", str(common.DOCS), "where soak.{json,md} go")):
         parser.add_argument(f"--{name}", type=type(default), default=default, help=f"{text} (default: {default})")
     args = parser.parse_args(argv)
+    if args.preset not in common.presets:
+        parser.error(f"--preset {args.preset!r}: no such preset; choose one of {', '.join(common.presets)}")
+    if args.num_envs < 1 or args.fault_every < 1 or not 0 < args.minutes < math.inf:  # minutes 0: no time limit
+        parser.error(f"--num_envs and --fault_every must be >= 1 and --minutes a positive number, got "
+                     f"{args.num_envs}, {args.fault_every} and {args.minutes}")
     meta = common.meta("soak", argv, args.device, preset=args.preset, num_envs=args.num_envs, device=args.device,
                        minutes=args.minutes, fault_every=args.fault_every, normalization=args.normalization)
     meta["faults"], results = run_faults(args)

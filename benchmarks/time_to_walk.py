@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -85,11 +86,12 @@ def train_part(args, command: str) -> None:
     record = {"preset": args.preset, **named, "gpus": info.world_size, "overrides": recorded, "config": cfg.to_dict(),
               "commands": [], **record}  # what the first call recorded stays
     record["commands"].append(command)
-    record.update(gpu=common.meta("time_to_walk", [], args.device)["gpu"] if args.device == "cuda" else "cpu",
-                  env_steps=result.env_steps, train_seconds=prior_s + result.wall_seconds,
+    # Any CUDA device string ("cuda", "cuda:1") is a GPU run: its GPU named, its raw ceiling measured on it.
+    record.update(gpu=tested_on(args.device), env_steps=result.env_steps, train_seconds=prior_s + result.wall_seconds,
                   train_env_steps_per_s=steady_rate(rows, skip=3))
-    if "raw_policy_steps_per_s" not in record and args.raw_steps > 0 and args.device == "cuda":
-        record["raw_policy_steps_per_s"] = common.raw_policy_steps_per_second(cfg.env.num_envs, args.raw_steps)
+    if "raw_policy_steps_per_s" not in record and args.raw_steps > 0 and args.device.startswith("cuda"):
+        record["raw_policy_steps_per_s"] = common.raw_policy_steps_per_second(cfg.env.num_envs, args.raw_steps,
+                                                                              args.device)
     if record.get("train_env_steps_per_s") and record.get("raw_policy_steps_per_s"):
         record["train_over_raw"] = record["train_env_steps_per_s"] / (record["gpus"] * record["raw_policy_steps_per_s"])
     common.write_json(run_dir / "train.json", record)
@@ -99,6 +101,8 @@ def train_part(args, command: str) -> None:
 
 def eval_part(args, command: str) -> None:
     run_dir = RUNS / args.name
+    if not run_dir.is_dir() and not args.follow_pid:  # a trainer being followed may not have made it yet
+        raise ValueError(f"{run_dir}: no such run folder; name the trained run with --name (or --preset)")
     record = _load(run_dir / "evals.json")
     evals, envs = record.setdefault("evaluations", {}), {}
     while True:
@@ -252,6 +256,8 @@ def main(argv=None) -> None:
                    help="run folders or metrics.csv files to plot the reward curves of")
     r.add_argument("--out", default=str(common.DOCS))
     args = parser.parse_args(argv)
+    if args.part == "train" and not 0 < args.minutes < math.inf:  # the config reads max_minutes 0 as no time limit
+        parser.error(f"--minutes must be a positive number of training minutes, got {args.minutes}")
     if args.part != "report" and args.name is None:
         args.name = args.preset
     t0 = time.time()

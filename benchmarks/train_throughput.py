@@ -22,17 +22,15 @@ import torch
 from tocabi_torchrl.rl.curves import steady_rate
 from tocabi_torchrl.rl.distributed import ending, from_environment, init_distributed
 
-from . import common
+from . import STARTED, common
 
 NAME = "train_throughput"
-T0 = time.perf_counter()  # a run's set-up time counts from here (torch is imported by then)
 
 
 def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str,
             overrides: dict) -> dict | None:
     """One env count in this process (one rank of a torchrun run): the steady rate after ``warmup`` iterations, the
     whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0."""
-    t_setup = time.perf_counter() - T0
     info = from_environment()
     device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides,
@@ -43,15 +41,24 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                                 info.world_size)
         if info.is_main:  # the benchmark's own scratch run: start afresh
             shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
-        cpu0 = os.times()
-        with common.memory_peaks(device) as peaks:
+        # train() builds the env, agent and collector, then starts its clock (result.wall_seconds): the CPU time is
+        # read there, so that the cores busy are those of the timed training, not of the set-up before it.
+        at_clock, make_collector = {}, common.trainer.make_collector
+
+        def collector_then_clock(*args, **kwargs):
+            collector = make_collector(*args, **kwargs)
+            at_clock["cpu"] = os.times()
+            return collector
+
+        with common.trainer_patched({"make_collector": collector_then_clock}, []), common.memory_peaks(device) as peaks:
             result, rows = common.train(cfg)
+            cpu1, t_end = os.times(), time.perf_counter()
         if not info.is_main:  # rank 0 logged the rows and reports for every rank
             return None
-        cpu1, wall = os.times(), result.wall_seconds
+        cpu0, wall = at_clock["cpu"], result.wall_seconds
         record.update(peaks, train_env_steps_per_s=steady_rate(rows, max(warmup - 1, 0)), env_steps=result.env_steps,
                       update_s_last=float(rows[-1]["update_s"]), iterations=result.iterations, train_wall_s=wall,
-                      setup_s=t_setup, env_graph=result.env_graph,
+                      setup_s=t_end - STARTED - wall, env_graph=result.env_graph,  # all but the timed training
                       status="ok" if result.env_steps >= cfg.total_env_steps else "partial",
                       cores_used_mean=(cpu1.user + cpu1.system - cpu0.user - cpu0.system) / wall)
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
@@ -64,10 +71,12 @@ def _speedup(r: dict, results: list[dict]) -> str:
     """``r``'s rate over the 1-GPU row of the same env count and overrides in the same run ("-" without one)."""
     one = [o for o in results if o.get("gpus", 1) == 1 and o["num_envs"] == r["num_envs"]
            and o["overrides"] == r["overrides"] and o.get("train_env_steps_per_s")]
-    return common.fmt(r["train_env_steps_per_s"] / one[0]["train_env_steps_per_s"] if one else None, ".2f")
+    rate = r.get("train_env_steps_per_s")
+    return common.fmt(rate / one[0]["train_env_steps_per_s"] if one and rate else None, ".2f")
 
 
 def render(data: dict, out) -> str:
+    """The page; a raw-only row (``--iterations 0 --warmup 0``) has no training columns: "-" there."""
     results = data["results"]
     # The GPU columns only where a run had several ranks (the 1-GPU pages keep their layout).
     multi = any(r.get("gpus", 1) > 1 for r in results)
@@ -77,9 +86,10 @@ def render(data: dict, out) -> str:
          "train env-steps/s", "raw mujoco-warp policy steps/s" + (" (one GPU)" if multi else ""),
          "train / raw" + (" (GPUs x raw)" if multi else ""), "torch peak alloc GiB", "torch peak reserved GiB",
          "device peak used GiB"),
-        [(*gpus(r), r["num_envs"], common.fmt(r["train_env_steps_per_s"]), common.fmt(r["raw_policy_steps_per_s"]),
-          common.fmt(r["ratio_train_over_raw"], ".2f"), f"{r['torch_peak_allocated_gib']:.2f}",
-          f"{r['torch_peak_reserved_gib']:.2f}", common.fmt(r["device_peak_used_gib"], ".2f"))
+        [(*gpus(r), r["num_envs"], common.fmt(r.get("train_env_steps_per_s")),
+          common.fmt(r["raw_policy_steps_per_s"]), common.fmt(r["ratio_train_over_raw"], ".2f"),
+          *(common.fmt(r.get(k), ".2f") for k in ("torch_peak_allocated_gib", "torch_peak_reserved_gib",
+                                                   "device_peak_used_gib")))
          for r in results]))
 
 
@@ -98,6 +108,10 @@ def main(argv=None) -> None:
                         help="data-parallel ranks (GPUs) per measurement; each K > 1 runs under torchrun")
     parser.add_argument("--child", action="store_true", help="measure one env count in this process (internal)")
     args = parser.parse_args(argv)
+    if min(args.num_envs) < 1:
+        parser.error(f"--num_envs takes env counts >= 1, not {args.num_envs}")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        parser.error("no CUDA device here; pass --device cpu for a smoke run of the script")
     overrides = common.parse_overrides(args.set)
     if args.child:
         with ending(from_environment()):  # every rank ends, also on a failure (NCCL: the process, here)

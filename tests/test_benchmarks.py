@@ -6,8 +6,11 @@ from __future__ import annotations
 import functools
 import json
 import os
+import shutil
 import subprocess
 import sys
+import time
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -219,6 +222,36 @@ def test_scaling_measures_in_a_child_process_and_reports(tmp_path):
     assert "| CPU (C MuJoCo) | 8 | 256 / 512 | - |" in (tmp_path / "scaling.md").read_text()
 
 
+def test_scaling_keeps_a_failed_measurement_as_a_status_says_so_and_still_reports(tmp_path, monkeypatch, capsys):
+    # A time or raw run that failed or ran out of memory has no rates: --report once died on its record (KeyError),
+    # and a failed measurement exited 0 without its cause.
+    results, base = tmp_path / "scaling", ["--results", str(tmp_path / "scaling"), "--run_dir", str(tmp_path / "runs")]
+    shutil.copytree(common.DOCS / "scaling", results)  # the committed results, plus the failures below
+
+    def child(module, args, env=None, nproc=None):
+        oom = args[args.index("--num_envs") + 1] == "131072"
+        raise RuntimeError("python -m benchmarks.train_throughput --child ... failed (1):\nTraceback (...)\n"
+                           + ("torch.OutOfMemoryError: CUDA out of memory" if oom else
+                              "AssertionError: Torch not compiled with CUDA enabled"))
+
+    monkeypatch.setattr(common, "run_child", child)
+    with pytest.raises(SystemExit, match="failed at 8192 envs"):
+        scaling.main(["--kind", "time", "--num_envs", "8192", "131072", *base])
+    out = capsys.readouterr().out
+    assert "time_gpu_0008192.json: the measurement failed: AssertionError: Torch not compiled with CUDA" in out
+    assert "time_gpu_0131072.json: oom" in out  # a result: no failure
+    with pytest.raises(SystemExit, match="failed at 2048 envs"):
+        scaling.main(["--kind", "raw", "--num_envs", "2048", *base])
+    with pytest.raises(SystemExit, match="failed at 8192 envs"):  # kept, not measured again: still failed
+        scaling.main(["--kind", "time", "--num_envs", "8192", *base])
+    assert "kept time_gpu_0008192.json (status error; --redo error measures it again)" in capsys.readouterr().out
+    scaling.main(["--report", *base[:2]])
+    text = (tmp_path / "scaling.md").read_text()
+    for n, status in (("8,192", "error"), ("131,072", "oom")):
+        assert f"| GPU (mujoco-warp) | {n} |{' - |' * 8} {status} |" in text
+    assert "| 4,096 | 116,255 |" in text  # the measured rows as before
+
+
 @pytest.mark.slow  # a faulty training run of 15 s (two rollouts at least on a loaded 2-core machine)
 def test_tiny_soak_on_the_cpu(tmp_path):
     code = soak.main(["--num_envs", "8", "--minutes", "0.25", "--device", "cpu", "--fault_every", "40",
@@ -320,3 +353,143 @@ def test_device_out_packs_within_the_limits_and_lists_the_rest(tmp_path, monkeyp
             tar.extractall(tmp_path / "back", filter="data")
     for name in packed:
         assert (tmp_path / "back" / name).read_bytes() == Path(name).read_bytes()
+
+
+def test_train_throughput_counts_the_whole_set_up_and_the_cores_of_the_timed_training_only(tmp_path, monkeypatch):
+    # setup_s once counted only the argument parsing (the set-up happens inside train(), before its clock starts),
+    # and cores_used_mean divided the set-up's CPU time too by the training's wall time. Here train() keeps a core
+    # busy for 0.4 s setting up, then its timed training idles for 0.3 s.
+    from tocabi_torchrl.rl import trainer
+
+    def train(cfg):
+        end = time.process_time() + 0.4
+        while time.process_time() < end:  # building the env, compiling, the agent
+            pass
+        trainer.make_collector(cfg, None, None, None, 0)  # the trainer starts its clock right after
+        time.sleep(0.3)
+        rows = [{"env_steps": str(64 * k), "wall_s": str(0.1 * k), "update_s": "0.01"} for k in (1, 2, 3)]
+        return SimpleNamespace(env_steps=192, wall_seconds=0.3, iterations=3, env_graph=False), rows
+
+    monkeypatch.setattr(trainer, "make_collector", lambda *a, **k: "collector")
+    monkeypatch.setattr(common, "train", train)
+    monkeypatch.setattr(train_throughput, "STARTED", time.perf_counter())  # as if this process started now
+    r = train_throughput.measure(8, 2, 1, 0, "cpu", str(tmp_path), {})
+    assert r["train_wall_s"] == 0.3 and r["setup_s"] >= 0.4 and r["cores_used_mean"] < 0.5, r
+    assert trainer.make_collector(None) == "collector"  # the trainer is itself again
+
+
+def test_time_to_walk_train_on_any_cuda_device_records_its_gpu_and_raw_ceiling(tmp_path, monkeypatch):
+    # `--device cuda:1` once recorded the GPU as "cpu" and skipped the raw ceiling; the report then went to
+    # runs/benchmarks_cpu as a CPU smoke run's. The trainer and the GPU are stand-ins here.
+    monkeypatch.chdir(tmp_path)
+    cfg = SimpleNamespace(resume="", max_minutes=1.0, env=SimpleNamespace(num_envs=4096), to_dict=dict)
+    rows = [{"env_steps": str(4096 * 48 * i), "wall_s": str(1.5 * i)} for i in range(1, 8)]
+    raw_on = []
+    monkeypatch.setattr(common, "config", lambda preset, **kw: cfg)
+    monkeypatch.setattr(common, "train", lambda c: (SimpleNamespace(env_steps=4096 * 48 * 7, wall_seconds=10.5), rows))
+    monkeypatch.setattr(common, "raw_policy_steps_per_second",
+                        lambda n, steps, device="cuda": raw_on.append(device) or 180_000.0)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda dev=None: f"GPU {getattr(dev, 'index', None)}")
+    monkeypatch.setattr(common, "DOCS", tmp_path / "docs")
+    monkeypatch.setattr(common, "CPU_OUT", tmp_path / "cpu")
+    time_to_walk.main(["train", "--preset", "default", "--device", "cuda:1", "--every", "0"])
+    record = json.loads((tmp_path / "runs/time_to_walk/default/train.json").read_text())
+    assert record["gpu"] == "GPU 1" and raw_on == ["cuda:1"] and record["raw_policy_steps_per_s"] == 180_000.0
+    time_to_walk.main(["report", "--runs", "runs/time_to_walk/default", "--out", str(tmp_path / "docs")])
+    assert "| default | GPU 1 |" in (tmp_path / "docs/time_to_walk.md").read_text()
+
+
+def test_a_zero_minute_time_limit_is_refused_not_read_as_no_limit(tmp_path, monkeypatch, capsys):
+    # The config reads max_minutes 0 as no wall-clock limit: time_to_walk once trained far past its budget, the soak
+    # for ever.
+    def measured(*args, **kwargs):
+        raise AssertionError("measured")
+
+    monkeypatch.chdir(tmp_path)
+    for module, name in ((common, "train"), (common, "run_child"), (soak, "run_faults")):
+        monkeypatch.setattr(module, name, measured)
+    for main, args in ((time_to_walk.main, ["train", "--preset", "cpu_smoke", "--device", "cpu", "--minutes", "0"]),
+                       (soak.main, ["--device", "cpu", "--minutes", "0", "--out", "o"]),
+                       (soak.main, ["--device", "cpu", "--minutes", "nan", "--out", "o"]),
+                       (scaling.main, ["--backend", "cpu", "--max_minutes", "0", "--results", "s"])):
+        with pytest.raises(SystemExit) as exit_:
+            main(args)
+        assert exit_.value.code == 2 and "minutes" in capsys.readouterr().err, args
+
+
+def test_train_throughput_renders_a_raw_only_row_and_a_failed_render_replaces_nothing(tmp_path):
+    # --iterations 0 --warmup 0 measures only the raw ceiling: its page once failed (KeyError) after its JSON had
+    # replaced the report's, leaving the old page beside it.
+    row = {"num_envs": 2, "gpus": 1, "overrides": {}, "device_used_at_start_gib": None, "device_name": "cpu",
+           "raw_policy_steps_per_s": 1234.0, "ratio_train_over_raw": None}
+    data = {"meta": {"gpu": "cpu", "date": "2026-12-01", "command": "c"}, "results": [row]}
+    assert "| 2 | - | 1,234 | - | - | - | - |" in train_throughput.render(data, tmp_path)
+    (tmp_path / "report.json").write_text("the published report")
+
+    def render(data, out):
+        raise KeyError("a field this page needs")
+
+    with pytest.raises(KeyError):
+        common.publish(tmp_path, "report", data, render)
+    assert (tmp_path / "report.json").read_text() == "the published report"
+
+
+def test_a_soak_shorter_than_its_memory_baseline_measures_no_growth():
+    # The baseline is rollout 10's row; a shorter run once compared the end with itself: growth 0, a pass.
+    row = lambda k, device=1.0: {"rollout": k, "device_used_gib": device, "host_rss_mib": 500.0}
+    start, (device, rss) = soak.memory_checks([row(k) for k in range(1, 4)], (1.5, 600.0))  # a GPU run of 3 rollouts
+    assert start == (None, None) and device[3] is False and rss[3] is True
+    assert "not measured (the run ended at rollout 3, the baseline is rollout 10)" == device[1] == rss[1]
+    _, (device, _) = soak.memory_checks([row(k, None) for k in range(1, 4)], (None, 600.0))  # the CPU has none
+    assert device[1:] == ("n/a", "<= 1", True)
+    start, (device, rss) = soak.memory_checks([row(k) for k in range(1, 12)], (1.005, 510.0))
+    assert start == (1.0, 500.0) and device[1:] == ("0.50", "<= 1", True) and rss[1] == "2.0"
+
+
+def test_device_out_names_a_missing_path_and_keeps_each_tar_within_its_limit(tmp_path, monkeypatch):
+    import tarfile
+
+    # A misspelt path once packed nothing with exit status 0; long names (a PAX header each) once took a tar past
+    # --part_mib, which the transfer then drops whole. The rest is packed before the error.
+    monkeypatch.chdir(tmp_path)
+    deep = Path("runs/" + "a_row_folder_with_a_long_name_in_the_library_table/" * 3)
+    deep.mkdir(parents=True)
+    for i in range(150):
+        (deep / f"snapshot_of_the_policy_at_wall_clock_{i:05d}.json").write_bytes(b"x" * 100)
+    with pytest.raises(SystemExit, match="no such file or folder: runs/library_tabel"):
+        device_out.main(["out", "runs/library_tabel", "runs", "--part_mib", "0.25", "--budget_mib", "1"])
+    tars = sorted(Path("out").glob("part_*.tar"))
+    assert tars and all(t.stat().st_size <= 2**18 for t in tars)
+    names = []
+    for tar_path in tars:
+        with tarfile.open(tar_path) as tar:
+            names += tar.getnames()
+    assert len(names) == 150
+    assert "missing (1 paths given that do not exist):\n  runs/library_tabel" in (Path("out") / "manifest.txt").read_text()
+
+
+def test_bad_arguments_are_refused_in_one_line(tmp_path, monkeypatch, capsys):
+    # Each once ran on into a traceback (a division by zero, an unknown preset, no CUDA) or measured nothing silently.
+    def measured(*args, **kwargs):
+        raise AssertionError("measured")
+
+    monkeypatch.chdir(tmp_path)
+    for module, name in ((common, "run_child"), (soak, "run_faults"), (common, "train")):
+        monkeypatch.setattr(module, name, measured)
+    cpu = ["--device", "cpu", "--out", "o"]
+    cases = [(scaling.main, ["--num_envs", "0", "--results", "s"]),
+             (scaling.main, ["--backend", "cpu", "--redo", "partal", "--results", "s"]),
+             (soak.main, [*cpu, "--fault_every", "0"]), (soak.main, [*cpu, "--num_envs", "0"]),
+             (soak.main, [*cpu, "--preset", "bogus"]), (overlap_probe.main, [*cpu, "--preset", "bogus"]),
+             (step_timeline.main, [*cpu, "--num_envs", "0"]), (solver_load.main, [*cpu, "--num_envs", "0"]),
+             (train_throughput.main, [*cpu, "--num_envs", "0"])]
+    if not torch.cuda.is_available():
+        cases.append((train_throughput.main, ["--num_envs", "8", "--out", "o"]))  # --device cuda by default
+    for main, args in cases:
+        with pytest.raises(SystemExit) as exit_:
+            main(args)
+        assert exit_.value.code == 2 and "error:" in capsys.readouterr().err, args
+    # An eval of a run folder that is not there (a misspelt --preset) once reported "time to walk: null" into it.
+    with pytest.raises(SystemExit, match="runs/time_to_walk/torqeu: no such run folder"):
+        time_to_walk.main(["eval", "--preset", "torqeu", "--device", "cpu"])
+    assert not Path("runs").exists() and not Path("s").exists()
