@@ -306,8 +306,8 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--heights_mm must be finite numbers, got {args.heights_mm!r}")
     if not math.isfinite(args.max_mm) or args.max_mm < 0:  # a NaN or inf cap never stops the search
         parser.error(f"--max_mm must be a finite height >= 0 (the cap of the heights tried), got {args.max_mm:g}")
-    if not 0 < args.fail_below <= 1:  # NaN fails this too
-        parser.error(f"--fail_below must be a pass rate in (0, 1], got {args.fail_below:g}")
+    if math.isnan(args.fail_below):  # (0 means no height fails, above 1 that every one does: both have their uses)
+        parser.error("--fail_below must be a number: a controller fails a height when its pass rate is below it")
     if args.resume and args.overwrite:
         parser.error("--resume keeps the earlier table's rows, --overwrite replaces them: pass one of them")
     try:
