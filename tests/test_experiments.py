@@ -7,6 +7,7 @@ obstacles (``BoxObstacle``); without them its tests skip."""
 from __future__ import annotations
 
 import json
+import math
 import re
 import sys
 from pathlib import Path
@@ -234,6 +235,28 @@ def test_output_folders_are_never_overwritten_silently(tmp_path):
 
 # ------------------------------------------------------------------------------------------------ end to end
 @needs_policies
+def test_a_robot_that_falls_in_its_first_step_has_no_knee_rms_or_speed_error():
+    # 0/0 once read as a perfect 0, pulling the summary's knee RMS, one of the pass criteria, towards 0.
+    from tocabi_torchrl.rl.gait_record import KNEES, GaitMetrics
+    from tocabi_torchrl.runtime.mujoco_driver import _mean_per_alive_step
+
+    metrics = GaitMetrics(torch.zeros(2, 3), (0.5, 0.0), 0.004)
+    joint_pos, ref = torch.zeros(2, 12), torch.zeros(2, 12)
+    joint_pos[:, list(KNEES)] = 0.2  # both robots' knees 0.2 rad off the reference
+    nxt = {"base_pos": torch.zeros(2, 3), "joint_pos": joint_pos, "ref_joint_pos": ref,
+           "base_lin_vel": torch.full((2, 3), 0.3), "terminated": torch.tensor([[True], [False]])}
+    for _ in range(3):
+        metrics.update(nxt)
+    per_env = metrics.per_env()
+    assert torch.isnan(per_env["knee_rms_rad"][0]) and per_env["knee_rms_rad"][1] == pytest.approx(0.2)
+    summary = metrics.summary(8.0)
+    assert summary["knee_rms_rad"] == pytest.approx(0.2) and summary["speed_tracking_error_mps"] == pytest.approx(0.2)
+    assert summary["survival"] == 0.5
+    # The sim-to-sim driver's summary counts the same way.
+    assert _mean_per_alive_step(np.array([0.0, 3 * 0.04]), np.array([0, 3]), root=True) == pytest.approx(0.2)
+    assert math.isnan(_mean_per_alive_step(np.zeros(2), np.zeros(2)))
+
+
 def test_recorded_rollout_reports_the_gait_test_numbers(tmp_path):
     from tocabi_torchrl.rl.evaluate import evaluate_policy
     from tocabi_torchrl.rl.gait_record import load_policy, record_rollout

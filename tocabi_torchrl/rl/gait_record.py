@@ -71,7 +71,8 @@ class GaitMetrics:
     """The gait test's per-env accounting, one :meth:`update` per policy step; :meth:`summary` gives the metrics.
 
     A robot counts as alive until its first termination; every metric uses its alive steps only and its pelvis
-    position at its last alive step.
+    position at its last alive step. A robot with no alive step (it fell in the first) has no knee RMS or speed
+    error: NaN per env, left out of the summary's means (NaN there too when no robot has one).
     """
 
     def __init__(self, start_pos: torch.Tensor, command: tuple[float, float], dt: float):
@@ -98,15 +99,18 @@ class GaitMetrics:
     def per_env(self) -> dict[str, torch.Tensor]:
         """(N,) per-env values: distance travelled (x, y) and knee RMS over the alive steps."""
         dist = self.last_pos - self.start
-        n_alive = self.alive_steps.clamp_min(1)
-        return {"forward_m": dist[:, 0], "lateral_m": dist[:, 1], "knee_rms_rad": (self.knee_sq / n_alive).sqrt(),
-                "alive": self.alive, "alive_seconds": self.alive_steps * self.dt}
+        return {"forward_m": dist[:, 0], "lateral_m": dist[:, 1],
+                "knee_rms_rad": self._per_alive_step(self.knee_sq).sqrt(), "alive": self.alive,
+                "alive_seconds": self.alive_steps * self.dt}
+
+    def _per_alive_step(self, total: torch.Tensor) -> torch.Tensor:
+        """(N,) ``total`` over each robot's alive steps; NaN for a robot with none (0/0 once read as a perfect 0)."""
+        return torch.where(self.alive_steps > 0, total / self.alive_steps.clamp_min(1), float("nan"))
 
     def summary(self, seconds: float) -> dict:
         """The gait test's ``summary.json`` values (without the video entry)."""
         vx, vy = self.command
         alive, dt = self.alive, self.dt
-        n_alive = self.alive_steps.clamp_min(1)
         dist = self.last_pos - self.start
         return {
             "command_mps": [vx, vy],
@@ -117,8 +121,8 @@ class GaitMetrics:
             "forward_distance_survivors_m": float(dist[alive, 0].mean()) if alive.any() else 0.0,
             "lateral_drift_m": float(dist[:, 1].abs().mean()),
             "mean_speed_mps": float((dist[:, 0] / (self.alive_steps * dt).clamp_min(dt)).mean()),
-            "speed_tracking_error_mps": float((self.vel_err / n_alive).mean()),
-            "knee_rms_rad": float((self.knee_sq / n_alive).sqrt().mean()),
+            "speed_tracking_error_mps": float(self._per_alive_step(self.vel_err).nanmean()),
+            "knee_rms_rad": float(self._per_alive_step(self.knee_sq).sqrt().nanmean()),
         }
 
 

@@ -264,8 +264,9 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
         forward_distance_m=float(dist[:, 0].mean()),
         lateral_drift_m=float(np.abs(dist[:, 1]).mean()),
         mean_speed_mps=float((dist[:, 0] / np.maximum(alive_steps * dt, dt)).mean()),
-        speed_tracking_error_mps=float((vel_err / np.maximum(alive_steps, 1)).mean()),
-        knee_rms_rad=float(np.sqrt(knee_sq / np.maximum(alive_steps, 1)).mean()),
+        # As the env's gait test: a robot with no alive step has no knee RMS or speed error, left out of the means.
+        speed_tracking_error_mps=_mean_per_alive_step(vel_err, alive_steps),
+        knee_rms_rad=_mean_per_alive_step(knee_sq, alive_steps, root=True),
         per_robot_forward_m=dist[:, 0].round(4).tolist(),
         alive=alive.tolist(),
     )
@@ -291,3 +292,13 @@ def _rotate_inverse(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
     out = np.empty(3)
     mujoco.mju_rotVecQuat(out, vec, np.array([quat[0], -quat[1], -quat[2], -quat[3]]))
     return out
+
+
+def _mean_per_alive_step(total: np.ndarray, alive_steps: np.ndarray, root: bool = False) -> float:
+    """The mean over the robots with an alive step of ``total`` / their alive steps (its square root first with
+    ``root``); NaN when no robot has one. A robot that fell in its first step is left out, not counted as 0."""
+    measured = alive_steps > 0
+    if not measured.any():
+        return float("nan")
+    per = total[measured] / alive_steps[measured]
+    return float((np.sqrt(per) if root else per).mean())
