@@ -247,6 +247,35 @@ def test_reference_preset_gives_the_value_head_its_own_constant_lr():
     assert len(_param_groups(agent, preset_config("default", device="cpu"))) == 1
 
 
+def test_each_update_runs_with_the_linear_lr_and_std_of_the_progress_after_its_rollout(tmp_path, monkeypatch):
+    # Spec §10.2 and §10.4: the reference sets the learning rate and the std from P_k = 1 - k/K after rollout k,
+    # before update k. They were set after the update, so update k ran with P_(k-1)'s: one iteration behind.
+    from tocabi_torchrl.rl import trainer
+
+    seen, std_now, update, set_std = [], [0.1], trainer._update, trainer.set_action_std
+
+    def setting(actor, std):
+        std_now[0] = std
+        set_std(actor, std)
+
+    def recording(cfg, flat, step, info=None):
+        seen.append((step.optimizer.param_groups[0]["lr"], std_now[0]))
+        return update(cfg, flat, step, info)
+
+    monkeypatch.setattr(trainer, "_update", recording)
+    monkeypatch.setattr(trainer, "set_action_std", setting)
+    cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=8,
+                        total_env_steps=32, run_dir=str(tmp_path), name="sched", progress_bar=False,
+                        eval_at_end=False, **{"ppo.lr_schedule": "linear", "ppo.lr": 1e-3, "ppo.lr_end": 0.0,
+                                              "ppo.std_start": 0.1, "ppo.std_end": 0.05, "ppo.std_hold": 0.0})
+    trainer.train(cfg)
+    k = len(seen)
+    assert k == 4
+    for it, (lr, std) in enumerate(seen, start=1):
+        progress = 1 - it / k
+        assert lr == pytest.approx(1e-3 * progress) and std == pytest.approx(0.05 + 0.05 * progress), it
+
+
 SHIPPED_POLICY = Path(__file__).resolve().parents[1] / "assets" / "policies" / "tocabi_walk_ppo.pt"
 
 

@@ -404,6 +404,16 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
                         teacher_taken = True
                     weight = ppo.assist_absorb * assist.teacher_weight(env_steps) if teacher_taken else 0.0
                 loss_module.set_step(base.assist_gain(beta), base.assist_gain(beta_next), beta, beta_next, weight)
+            # The reference (spec §10.2, §10.4) sets the linear learning rate and the scheduled std from the progress
+            # made after each rollout and before its update, so the update runs with them, and so does the next
+            # rollout. The adaptive rate, which reads this update's KL, is set after it.
+            if ppo.lr_schedule == "linear":
+                lr = ppo.lr_end + (ppo.lr - ppo.lr_end) * progress_remaining
+                for group in optimizer.param_groups:
+                    if not group.get("fixed"):
+                        set_lr(group, lr)
+            if agent.std_schedule is not None:
+                set_action_std(agent.actor, agent.std_schedule(progress_remaining))
             stats = _update(cfg, flat, update_step, info)
             # Nothing of this rollout's copy outlives its update: the next rollout is collected without it.
             del work, flat
@@ -418,14 +428,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
             # the gait broke), so the learning rate is held there.
             if ppo.lr_schedule == "adaptive" and not fading:
                 lr = adapt_lr(lr, stats["kl"], ppo.desired_kl)
-            elif ppo.lr_schedule == "linear":
-                lr = ppo.lr_end + (ppo.lr - ppo.lr_end) * progress_remaining
-            for group in optimizer.param_groups:
-                if not group.get("fixed"):
-                    set_lr(group, lr)
-            # The reference sets the next rollout's noise after each rollout from the progress made.
-            if agent.std_schedule is not None:
-                set_action_std(agent.actor, agent.std_schedule(progress_remaining))
+                for group in optimizer.param_groups:
+                    if not group.get("fixed"):
+                        set_lr(group, lr)
             collector.update_policy_weights_()
             elapsed = time.perf_counter() - t_start
             train_s = prior_train_s + elapsed
