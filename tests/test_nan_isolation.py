@@ -98,7 +98,8 @@ def test_a_broken_frame_cannot_poison_the_ppo_update():
     # are masked out, and the losses, statistics and parameters stay finite.
     from tocabi_torchrl.rl import preset_config
     from tocabi_torchrl.rl.rollout_guard import VALID_KEY, guard_rollout
-    from tocabi_torchrl.rl.trainer import _loss_keys, _update, build_agent, make_loss, make_optimizer, make_update_step
+    from tocabi_torchrl.rl.trainer import (NORM_MASK_KEY, _loss_keys, _update, build_agent, estimate_advantages,
+                                           make_loss, make_optimizer, make_update_step)
 
     cfg = preset_config("cpu_smoke", device="cpu", num_envs=4, steps_per_env=8, minibatch_size=32, epochs=2)
     cpu = torch.device("cpu")
@@ -123,10 +124,19 @@ def test_a_broken_frame_cannot_poison_the_ppo_update():
     assert td["observation"] is observations[0] and td["next", "observation"] is observations[1]
     for key in ("action", "action_log_prob", "observation"):
         assert torch.isfinite(td[key]).all(), key
-    with torch.no_grad():
-        advantage(td)
+    estimate_advantages(advantage, td)
     flat = td.select(*_loss_keys(loss_module, td)).reshape(-1)
-    assert VALID_KEY in flat.keys()
+    assert VALID_KEY in flat.keys() and torch.equal(flat[NORM_MASK_KEY], flat[VALID_KEY])
+    # A masked frame's advantage moves neither the loss nor the advantage normalisation of the valid frames (it did:
+    # TorchRL normalises with its own mask key, not the loss mask).
+    masked = int((~flat[VALID_KEY].squeeze(-1)).nonzero()[0])
+    with torch.no_grad():
+        losses = []
+        for value in (0.0, 50.0):
+            batch = flat.clone()
+            batch["advantage"][masked] = value
+            losses.append(float(loss_module(batch)["loss_objective"]))
+    assert losses[0] == pytest.approx(losses[1], rel=1e-6), losses
     stats = _update(cfg, flat, make_update_step(cfg, loss_module, optimizer, cpu))
     assert all(math.isfinite(v) for v in stats.values()), stats
     for name, p in [*agent.actor.named_parameters(), *agent.critic.named_parameters()]:

@@ -9,7 +9,9 @@ every parameter.
 
 :func:`guard_rollout` marks each frame valid or not in ``VALID_KEY`` and makes the invalid frames harmless: finite
 observations and reward 0, the action replaced by the distribution's mean with its log-probability, so every loss
-term stays finite; the loss leaves them out through TorchRL's loss mask (``loss_module.loss_mask_key = VALID_KEY``).
+term stays finite; the loss leaves them out through TorchRL's loss mask (``loss_module.loss_mask_key = VALID_KEY``),
+and each mini-batch's advantage normalisation through the same mask under the key it reads
+(:func:`~tocabi_torchrl.rl.trainer.estimate_advantages`).
 Masks and ``torch.where`` only: no host reads, no shapes that depend on the data.
 """
 

@@ -42,6 +42,9 @@ __all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", 
            "make_update_step", "training_keys", "train", "resolve_device", "float32_matmul_precision",
            "TrainResult"]
 
+#: The mask ClipPPOLoss's advantage normalisation reads (TorchRL 0.14: ``_standardize_advantage``).
+NORM_MASK_KEY = "shifted_valid"
+
 
 def resolve_device(name: str) -> torch.device:
     """``"auto"`` -> the first CUDA GPU if torch sees one, else the CPU."""
@@ -387,8 +390,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
             # The collector reuses `batch` as its buffer (return_same_td): GAE's outputs go to a shallow copy.
             work = batch.clone(False)
             guard_rollout(work)  # frames with NaN/inf or impossible actions are masked out of the loss
-            with torch.no_grad():
-                advantage(work)
+            estimate_advantages(advantage, work)
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
             flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
             if assist is not None:
@@ -483,9 +485,19 @@ def _assist_schedule(cfg: RunConfig, env: EnvBase) -> AssistSchedule | None:
                           anchor_decay=ppo.assist_anchor_decay)
 
 
+def estimate_advantages(estimator: GAE, batch: TensorDictBase) -> None:
+    """GAE's ``advantage`` and ``value_target`` into a guarded rollout ``batch`` (no gradients), and the guard's
+    mask where ClipPPOLoss's advantage normalisation reads it (:data:`NORM_MASK_KEY`), not from the loss mask: without
+    it a masked frame's advantage still moved each mini-batch's mean and std. Set after GAE, which reads that key as
+    its own (shifted estimation) mask."""
+    with torch.no_grad():
+        estimator(batch)
+    batch.set(NORM_MASK_KEY, batch.get(VALID_KEY))
+
+
 def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBase) -> list:
     present = set(batch.keys(True, True))
-    wanted = {*loss_module.in_keys, "advantage", "value_target", "state_value", VALID_KEY}
+    wanted = {*loss_module.in_keys, "advantage", "value_target", "state_value", VALID_KEY, NORM_MASK_KEY}
     return [k for k in wanted if k in present]
 
 
