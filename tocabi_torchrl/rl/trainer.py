@@ -411,9 +411,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
             # rollout. The adaptive rate, which reads this update's KL, is set after it.
             if ppo.lr_schedule == "linear":
                 lr = ppo.lr_end + (ppo.lr - ppo.lr_end) * progress_remaining
-                for group in optimizer.param_groups:
-                    if not group.get("fixed"):
-                        set_lr(group, lr)
+                _set_scheduled_lr(optimizer, lr)
             if agent.std_schedule is not None:
                 set_action_std(agent.actor, agent.std_schedule(progress_remaining))
             stats = _update(cfg, flat, update_step, info)
@@ -430,9 +428,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
             # the gait broke), so the learning rate is held there.
             if ppo.lr_schedule == "adaptive" and not fading:
                 lr = adapt_lr(lr, stats["kl"], ppo.desired_kl)
-                for group in optimizer.param_groups:
-                    if not group.get("fixed"):
-                        set_lr(group, lr)
+                _set_scheduled_lr(optimizer, lr)
             collector.update_policy_weights_()
             elapsed = time.perf_counter() - t_start
             train_s = prior_train_s + elapsed
@@ -483,6 +479,13 @@ def _assist_schedule(cfg: RunConfig, env: EnvBase) -> AssistSchedule | None:
     ratio = float((base.assist_gain(1.0) / base.assist_gain(0.0)).log().mean().exp())
     return AssistSchedule(ppo.torque_assist, ppo.assist_fade_start, ppo.assist_fade_end, max(ratio, 1.0),
                           anchor_decay=ppo.assist_anchor_decay)
+
+
+def _set_scheduled_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    """Set ``lr`` on every parameter group but the ``fixed`` ones (the reference's constant value-head rate)."""
+    for group in optimizer.param_groups:
+        if not group.get("fixed"):
+            set_lr(group, lr)
 
 
 def estimate_advantages(estimator: GAE, batch: TensorDictBase) -> None:
