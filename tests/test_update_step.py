@@ -9,7 +9,8 @@ from graph_emulation import EmulatedCapture
 from tensordict import TensorDict
 
 from tocabi_torchrl.rl import preset_config
-from tocabi_torchrl.rl.trainer import _update, build_agent, make_loss, make_optimizer, make_update_step
+from tocabi_torchrl.rl.rollout_guard import VALID_KEY
+from tocabi_torchrl.rl.trainer import NORM_MASK_KEY, _update, build_agent, make_loss, make_optimizer, make_update_step
 from tocabi_torchrl.rl.update_step import MinibatchStep, get_lr, optimizer_mode, restore_optimizer_mode, set_lr
 
 OBS, ACT = 17, 5
@@ -25,29 +26,38 @@ def _setup(device: str, update_graph: bool, seed: int = 0):
     return cfg, agent, make_update_step(cfg, loss_module, optimizer, torch.device(device))
 
 
-def _rollout(n: int, device: str) -> TensorDict:
+def _rollout(n: int, device: str, masked: bool = False) -> TensorDict:
+    """A flat rollout; ``masked`` adds the rollout guard's masks (about 10% of frames invalid) under both keys the
+    trainer's mini-batches carry: the loss mask and the advantage normalisation mask."""
     g = torch.Generator().manual_seed(1)
-    return TensorDict({
+    td = TensorDict({
         "observation": torch.randn(n, OBS, generator=g),
         "action": torch.randn(n, ACT, generator=g),
         "action_log_prob": -torch.rand(n, generator=g) * 5,
         "advantage": torch.randn(n, 1, generator=g),
         "value_target": torch.randn(n, 1, generator=g),
         "state_value": torch.randn(n, 1, generator=g),
-    }, batch_size=[n]).to(device)
+    }, batch_size=[n])
+    if masked:  # drawn after the rest, so the unmasked values are the same
+        valid = torch.rand(n, 1, generator=g) >= 0.1
+        td.set(VALID_KEY, valid)
+        td.set(NORM_MASK_KEY, valid.clone())
+    return td.to(device)
 
 
 def _params(agent) -> torch.Tensor:
     return torch.cat([p.detach().flatten() for p in list(agent.actor.parameters()) + list(agent.critic.parameters())])
 
 
-def test_emulated_replay_wiring_matches_the_eager_step():
-    """Static buffers refilled in place give the same parameters as fresh mini-batches, step for step."""
+@pytest.mark.parametrize("masked", [False, True], ids=["unmasked", "masked"])
+def test_emulated_replay_wiring_matches_the_eager_step(masked):
+    """Static buffers refilled in place give the same parameters as fresh mini-batches, step for step; the masked
+    variant carries the rollout guard's masks, as the trainer's mini-batches do."""
     cfg, eager_agent, eager = _setup("cpu", update_graph=False)
     _, emu_agent, plain = _setup("cpu", update_graph=False)
     emu = MinibatchStep(plain.loss_module, plain.optimizer, plain.params, plain.max_grad_norm, use_graph=True,
                         capturer=EmulatedCapture())
-    flat = _rollout(512, "cpu")
+    flat = _rollout(512, "cpu", masked=masked)
     torch.manual_seed(3)
     stats_eager = _update(cfg, flat, eager)
     torch.manual_seed(3)
@@ -56,6 +66,23 @@ def test_emulated_replay_wiring_matches_the_eager_step():
     assert stats_eager == pytest.approx(stats_emu, rel=1e-6)
     torch.testing.assert_close(_params(eager_agent), _params(emu_agent), rtol=0, atol=0)
     assert not torch.equal(_params(eager_agent), _params(_setup("cpu", update_graph=False)[1])), "nothing trained"
+
+
+def test_the_masks_reach_the_loss():
+    """The same rollout with some frames marked invalid updates differently: the masks are read, not dropped."""
+    results = []
+    for masked in (False, True):
+        cfg, agent, step = _setup("cpu", update_graph=False)
+        flat = _rollout(512, "cpu", masked=masked)
+        assert (VALID_KEY in flat) == masked and (NORM_MASK_KEY in flat) == masked
+        torch.manual_seed(3)
+        results.append((_update(cfg, flat, step), _params(agent)))
+    (stats_plain, params_plain), (stats_masked, params_masked) = results
+    valid = _rollout(512, "cpu", masked=True).get(VALID_KEY)
+    assert valid.dtype == torch.bool and valid.shape == (512, 1) and 0.8 < valid.float().mean().item() < 0.97
+    assert stats_plain.keys() == stats_masked.keys()
+    assert any(stats_plain[k] != pytest.approx(stats_masked[k], rel=1e-6) for k in stats_plain)
+    assert not torch.equal(params_plain, params_masked)
 
 
 def test_update_graph_is_only_used_on_cuda():
@@ -116,13 +143,15 @@ def test_bad_warmup_is_refused():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_captured_update_matches_eager_without_syncs():
+@pytest.mark.parametrize("masked", [False, True], ids=["unmasked", "masked"])
+def test_captured_update_matches_eager_without_syncs(masked):
     """The CUDA-graph step computes what the eager step computes (capturable Adam keeps its bias corrections in
-    float32 on the device, so equal to float32 rounding), and replays without a host synchronisation."""
+    float32 on the device, so equal to float32 rounding), and replays without a host synchronisation; the masked
+    variant carries the rollout guard's masks, as the trainer's mini-batches do."""
     cfg, eager_agent, eager = _setup("cuda", update_graph=False)
     _, graph_agent, graphed = _setup("cuda", update_graph=True)
     assert graphed.use_graph and isinstance(graphed.optimizer.param_groups[0]["lr"], torch.Tensor)
-    flat = _rollout(512, "cuda")
+    flat = _rollout(512, "cuda", masked=masked)
     for it in range(2):  # 16 steps: 3 eager warm-up steps, the capture, then replays
         torch.manual_seed(10 + it)
         stats_eager = _update(cfg, flat, eager)
