@@ -4,6 +4,7 @@ control mode exports, and the command line never overwrites silently. CPU only (
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -89,20 +90,162 @@ def test_export_cli_writes_onnx_contract_torchscript_and_refuses_to_overwrite(tm
     assert contract["action"]["leg"]["kp"] == pytest.approx(list(robot.LEG_KP))  # the run's pd_gains="robot"
     assert contract["timing"] == {"physics_dt_s": 0.0005, "substeps": 8, "control_dt_s": pytest.approx(0.004),
                                   "control_hz": pytest.approx(250.0)}
-    assert contract["reference_motion"]["name"] == "tocabi_walk.npz" and len(contract["reference_motion"]["sha256"]) == 64
-    # Everything written is plain JSON that a C++ controller can read.
-    json.dumps(contract)
+    motion = contract["reference_motion"]
+    assert motion["name"] == "tocabi_walk.npz" and len(motion["sha256"]) == 64
+    # Everything written is plain JSON that a C++ controller can read: no NaN/Infinity tokens.
+    _strict_json(out.with_suffix(".json").read_text())
+    json.dumps(contract, allow_nan=False)
 
     with pytest.raises(SystemExit, match="exist"):
         export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(out)])
+    capsys.readouterr()
+    # Re-exported without --torchscript, the old .ts.pt (here the same checkpoint's, in general another one's) must
+    # not be left beside the new ONNX file as if it were its TorchScript twin: it is removed, and the output says so.
     export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(out), "--overwrite"])
-    assert "wrote" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "wrote" in printed and f"removed {out.with_suffix('.ts.pt')}" in printed
+    assert not out.with_suffix(".ts.pt").exists()
+
+
+def _strict_json(text: str):
+    def refuse(name):
+        raise ValueError(f"non-standard JSON constant {name}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+# ------------------------------------------------------------------------------------ broken checkpoints
+@pytest.fixture(scope="module")
+def tiny_checkpoints(tmp_path_factory):
+    """Tiny untrained checkpoints (16-unit actor) as test_every_control_mode_exports builds them: ``torque`` (fixed
+    normalisation) and ``running_without_stats`` (running normalisation, saved without the env's transform state)."""
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.rl.checkpoint import save_checkpoint
+    from tocabi_torchrl.rl.trainer import build_agent, build_env
+
+    root = tmp_path_factory.mktemp("tiny")
+    out = {}
+    for name, normalization in (("torque", None), ("running_without_stats", "running")):
+        cfg = preset_config("default", control_mode="torque", num_envs=1, minibatch_size=48, actor_hidden=(16,),
+                            critic_hidden=(16,), device="cpu")
+        if normalization:
+            cfg.transforms.normalization = normalization
+        env = build_env(cfg, torch.device("cpu"), num_envs=1)
+        agent = build_agent(cfg, 237, 13, torch.device("cpu"))
+        out[name] = save_checkpoint(root / name, 0, 0, agent, None, None if normalization else env, cfg)
+    return out
+
+
+def _export_with(monkeypatch, tmp_path, checkpoint, breaks):
+    """export_policy of ``checkpoint`` with ``breaks(policy)`` applied after loading: the damage reaches the export's
+    own checks whatever the checkpoint reader lets through. Returns the output path."""
+    from tocabi_torchrl.export import onnx_export
+
+    load = onnx_export.load_policy
+
+    def load_broken(ckpt):
+        policy = load(ckpt)
+        with torch.no_grad():
+            breaks(policy)
+        return policy
+
+    monkeypatch.setattr(onnx_export, "load_policy", load_broken)
+    return tmp_path / "p.onnx"
+
+
+def _mean_net(policy):
+    return DeterministicActor(policy.agent.actor).mean_net
+
+
+def _normalizer(policy):
+    return next(t for t in policy.env.transform if type(t).__name__ == "FixedNormalization")
+
+
+@pytest.mark.parametrize("what", ["actor weight", "normalisation scale"])
+def test_export_refuses_nan_or_inf_actor_weights_and_normalisation_statistics(what, tiny_checkpoints, tmp_path,
+                                                                              monkeypatch):
+    # A diverged run used to export cleanly: the runtime then turned the NaN actions into zeros and walked blind.
+    from tocabi_torchrl.export import ExportError, export_policy
+
+    def breaks(policy):
+        if what == "actor weight":
+            _mean_net(policy)[0].weight[3, 5] = float("nan")
+        else:
+            _normalizer(policy).scale[2] = float("inf")
+
+    out = _export_with(monkeypatch, tmp_path, tiny_checkpoints["torque"], breaks)
+    named = "actor.mean_net.0.weight" if what == "actor weight" else "env transform transforms.3.scale"
+    with pytest.raises(ExportError, match=rf"NaN or inf in \['{re.escape(named)}'\].*Export an earlier checkpoint"):
+        export_policy(tiny_checkpoints["torque"], out)
+    assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+def test_export_refuses_a_policy_whose_onnx_output_is_not_finite(tiny_checkpoints, tmp_path, monkeypatch):
+    # Finite weights large enough to overflow float32: only running the exported graph shows it.
+    from tocabi_torchrl.export import ExportError, export_policy
+
+    def breaks(policy):
+        net = _mean_net(policy)
+        net[0].weight.zero_()
+        net[0].bias.fill_(1e30)
+        net[2].weight.fill_(1e30)
+
+    out = _export_with(monkeypatch, tmp_path, tiny_checkpoints["torque"], breaks)
+    with pytest.raises(ExportError, match="action is NaN or inf on a representative input.*Export an earlier"):
+        export_policy(tiny_checkpoints["torque"], out)
+    assert not out.exists()
+
+
+def test_export_refuses_a_zero_normalisation_scale(tiny_checkpoints, tmp_path, monkeypatch):
+    # A constant signal normalised with eps = 0 has scale 0: finite, but the runtime would divide by it.
+    from tocabi_torchrl.export import ExportError, export_policy
+
+    out = _export_with(monkeypatch, tmp_path, tiny_checkpoints["torque"],
+                       lambda policy: _normalizer(policy).scale.__setitem__(0, 0.0))
+    with pytest.raises(ExportError, match=r"scale that is not finite and > 0 at entries \[0\].*retrain with eps > 0"):
+        export_policy(tiny_checkpoints["torque"], out)
+    assert not out.exists()
+
+
+def test_export_writes_only_standard_json(tiny_checkpoints, tmp_path, monkeypatch):
+    # json.dumps writes NaN/Infinity by default, which C++ readers refuse; the export refuses to write them.
+    from tocabi_torchrl.export import ExportError, export_policy, onnx_export
+
+    build = onnx_export.build_contract
+
+    def with_nan(*args, **kwargs):
+        contract = build(*args, **kwargs)
+        contract["training_config"]["note"] = float("nan")  # a field check_contract does not read
+        return contract
+
+    monkeypatch.setattr(onnx_export, "build_contract", with_nan)
+    out = tmp_path / "p.onnx"
+    with pytest.raises(ExportError, match="would hold a NaN or infinite number"):
+        export_policy(tiny_checkpoints["torque"], out)
+    assert not out.exists() and not out.with_suffix(".json").exists()
+    monkeypatch.setattr(onnx_export, "build_contract", build)
+    export_policy(tiny_checkpoints["torque"], out)
+    _strict_json(out.with_suffix(".json").read_text())
+
+
+def test_export_refuses_a_running_normalisation_checkpoint_without_its_statistics(tiny_checkpoints, tmp_path):
+    # Transform state is loaded leniently, so the export used to state the normaliser's initial statistics as the
+    # trained ones.
+    from tocabi_torchrl.rl.checkpoint import CheckpointError
+
+    with pytest.raises(CheckpointError, match=r"lacks the running normalisation statistics \['transforms\.3\.mean', "
+                                              r"'transforms\.3\.var', 'transforms\.3\.count'\].*Export a checkpoint "
+                                              r"saved with its env"):
+        load_policy(tiny_checkpoints["running_without_stats"])
+    with pytest.raises(SystemExit, match="error: checkpoint .* lacks the running normalisation statistics"):
+        export_main(["--checkpoint", str(tiny_checkpoints["running_without_stats"]), "--out",
+                     str(tmp_path / "r.onnx")])
 
 
 def test_every_control_mode_exports(tmp_path):
     """A pd (nominal-centred) run and a torque run export with the leg rule of their mode."""
-    from tocabi_torchrl.rl.checkpoint import save_checkpoint
     from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.rl.checkpoint import save_checkpoint
     from tocabi_torchrl.rl.trainer import build_agent, build_env
 
     cfg = preset_config("default", control_mode="pd", num_envs=1, minibatch_size=48, actor_hidden=(16,),

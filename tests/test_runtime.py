@@ -357,3 +357,224 @@ def test_a_missing_onnxruntime_says_which_extra_installs_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # makes `import onnxruntime` fail
     with pytest.raises(ImportError, match=r'needs onnxruntime, which is not installed: pip install -e "\.\[export\]"'):
         PolicyRuntime(_contract("ppo"))
+
+
+# ------------------------------------------------------------------------------------------- audit fixes
+def _robots(n=1, **fields) -> RobotState:
+    """n robots standing still at zero joint angles; ``fields`` replace some of the signals."""
+    state = {"base_quat": np.tile([1.0, 0, 0, 0], (n, 1)), "joint_pos": np.zeros((n, 33)),
+             "joint_vel": np.zeros((n, 33)), "foot_force": np.zeros((n, 2, 3)), "foot_torque": np.zeros((n, 2, 3))}
+    return RobotState(**{**state, **fields})
+
+
+def _mutated(c: dict, change) -> dict:
+    c = json.loads(json.dumps(c))
+    change(c)
+    return c
+
+
+def _set(dotted: str, value):
+    def change(c):
+        *parents, last = dotted.split(".")
+        node = c
+        for part in parents:
+            node = node[int(part)] if isinstance(node, list) else node[part]
+        node[int(last) if isinstance(node, list) else last] = value
+
+    return change
+
+
+def test_contract_with_nan_or_infinity_is_refused_and_values_must_be_valid(contract_copy):
+    # json.loads accepts the non-standard NaN/Infinity tokens and the checks used to look at lengths only: a NaN
+    # mean, a zero scale or swapped action bounds ran silently.
+    path, c = contract_copy
+    _write(path, _mutated(c, _set("observation.normalization.mean.0", float("nan"))))
+    with pytest.raises(ContractError, match="non-standard JSON value NaN.*re-export it from a sound checkpoint"):
+        load_contract(path)
+    from tocabi_torchrl.runtime import check_contract
+
+    swap = _mutated(c, lambda d: d["action"].update(low=d["action"]["high"], high=d["action"]["low"]))
+    for bad, message in (
+        (_set("observation.normalization.scale.1", float("inf")), r"normalization.scale\[1\] is inf, not a finite"),
+        (_set("observation.normalization.scale.0", 0.0), r"normalization.scale\[0\] is 0.0 but must be > 0"),
+        (_set("observation.normalization.clip", -1.0), "normalization.clip is -1.0 but must be > 0"),
+        (_set("action.leg.kp.2", float("nan")), r"action.leg.kp\[2\] is nan, not a finite \(float32\) number"),
+        (_set("observation.normalization.mean.3", 1e39), r"mean\[3\] is 1e\+39, not a finite \(float32\)"),
+        (_set("action.leg.torque_limits_nm.0", -1.0), r"torque_limits_nm\[0\] is -1.0 but must be > 0"),
+        (_set("timing.control_dt_s", 0.0), "timing.control_dt_s is 0.0 but must be > 0"),
+        (_set("timing.substeps", 4), "control_dt_s 0.004 is not physics_dt_s 0.0005 x substeps 4"),
+        (_set("robot.initial_qpos.2", float("-inf")), r"initial_qpos \(base pose \+ joints\)\[2\] is -inf"),
+        (lambda d: d.update(swap), r"action.low > action.high at indices \[0, 1, .*swapped"),
+    ):
+        with pytest.raises(ContractError, match=f"{message}.*re-export the policy"):
+            check_contract(_mutated(c, bad))
+
+
+def test_contract_leg_kind_and_center_must_match_the_control_mode(contract_copy):
+    # A pd_reference contract labelled torque made a controller apply PD targets [rad] as torques [N·m].
+    path, c = contract_copy
+    with pytest.raises(ContractError, match="action.leg.kind is 'torque' but control_mode is 'pd_reference', whose "
+                                            "leg commands are 'position': re-export"):
+        load_contract(_write(path, _mutated(c, _set("action.leg.kind", "torque"))))
+    with pytest.raises(ContractError, match="action.leg.center is 'nominal' but control_mode 'pd_reference' centres "
+                                            "the targets on 'reference'"):
+        load_contract(_write(path, _mutated(c, _set("action.leg.center", "nominal"))))
+    torque = json.loads(_contract("torque").read_text())
+    torque["policy"]["onnx_file"] = "p.onnx"
+    with pytest.raises(ContractError, match="action.leg.kind is 'position' but control_mode is 'torque'"):
+        load_contract(_write(path, _mutated(torque, _set("action.leg.kind", "position"))))
+
+
+@pytest.mark.parametrize("key", ["policy.onnx_sha256", "reference_motion.sha256"])
+def test_contract_hashes_cannot_be_left_out(key, contract_copy):
+    # A missing or null hash used to switch the ONNX/motion check off without a word.
+    path, c = contract_copy
+    section, name = key.split(".")
+    removed = _mutated(c, lambda d: d[section].pop(name))
+    with pytest.raises(ContractError, match=rf"missing required key\(s\) \['{key}'\]"):
+        PolicyRuntime(_write(path, removed))
+    for value in (None, "ABC", "A" * 64):
+        with pytest.raises(ContractError, match=rf"{key} is {re.escape(repr(value))}, not a sha256 \(64 lowercase hex"):
+            PolicyRuntime(_write(path, _mutated(c, _set(key, value))))
+    if key == "policy.onnx_sha256":  # only the explicit flag skips the ONNX check
+        PolicyRuntime(_write(path, _mutated(c, _set(key, "0" * 64))), check_onnx_hash=False)
+
+
+def test_sensor_values_beyond_float32_are_refused():
+    # 1e39 is finite in float64 but inf once the observation casts it to float32.
+    runtime = PolicyRuntime(_contract("torque"))
+    runtime.reset(_robots(2), (0.5, 0.0))
+    with pytest.raises(ContractError, match=r"RobotState.joint_vel is not finite in float32 .* robot\(s\) \[1\]"):
+        runtime.step(_robots(2, joint_vel=np.array([[0.0] * 33, [1e39] * 33])))
+    with pytest.raises(ContractError, match="command holds NaN or inf in float32"):
+        runtime.step(_robots(2), (1e39, 0.0))
+
+
+def test_a_quaternion_that_is_not_unit_length_is_refused():
+    # quat_to_rpy is scale-invariant: a zero quaternion (IMU dropout) read as upright.
+    runtime = PolicyRuntime(_contract("ppo"))
+    for quat in (np.zeros(4), np.full(4, 1e-20), np.array([2.0, 0, 0, 0])):
+        with pytest.raises(ContractError, match=r"base_quat is not a unit quaternion .* robot\(s\) \[1\]: check"):
+            runtime.reset(_robots(2, base_quat=np.stack([[1.0, 0, 0, 0], quat])), (0.5, 0.0))
+    runtime.reset(_robots(1, base_quat=np.array([[1.05, 0, 0, 0]])), (0.5, 0.0))  # drift within 0.1 is fine
+
+
+@pytest.mark.parametrize("field,value,dtype", [("joint_pos", "0.1", "<U3"), ("joint_pos", None, "object"),
+                                               ("joint_vel", 1j, "complex128"), ("foot_force", True, "bool")])
+def test_robot_state_of_non_numbers_is_refused(field, value, dtype):
+    runtime = PolicyRuntime(_contract("ppo"))
+    shape = np.shape(getattr(_robots(1), field))
+    with pytest.raises(ContractError, match=rf"RobotState.{field} has dtype {dtype}: pass real numbers"):
+        runtime.reset(_robots(1, **{field: np.full(shape, value)}), (0.5, 0.0))
+    with pytest.raises(ContractError, match="command has dtype <U2, not numbers"):
+        runtime.reset(_robots(1), "ab")
+
+
+def test_a_refused_reset_leaves_the_running_episode_as_it_was():
+    runtime = PolicyRuntime(_contract("ppo"))
+    runtime.reset(_robots(2), (0.5, 0.0), init_row=1800)
+    for _ in range(5):
+        runtime.step(_robots(2))
+    clock, rows, command = runtime.time.copy(), runtime.init_row.copy(), runtime.command.copy()
+    with pytest.raises(ContractError, match="command holds NaN"):
+        runtime.reset(_robots(2), (float("nan"), 0.0), init_row=0)
+    with pytest.raises(ContractError, match=r"command has shape \(3,\)"):
+        runtime.reset(_robots(3), (0.5, 0.0, 0.0))
+    assert runtime.num_robots == 2
+    assert (runtime.time == clock).all() and (runtime.init_row == rows).all() and (runtime.command == command).all()
+    runtime.step(_robots(2))
+
+
+@pytest.mark.parametrize("change,message", [
+    (_set("observation.entries.0.element", 999), r"entries\[0\].element is 999, not an element index in \[0, 3\)"),
+    (_set("observation.entries.0.element", True), r"entries\[0\].element is True"),
+    (lambda d: (d["observation"]["signals"].update(base_lin_vel={"shape": [3]}),
+                d["observation"]["entries"][0].update(signal="base_lin_vel")),
+     "reads signal 'base_lin_vel', which this runtime cannot build"),
+    (_set("observation.signals.joint_pos.shape", [12]), r"signals.joint_pos.shape is \[12\], but the runtime builds"),
+    (_set("action.phase_rate.index", 40), "phase_rate.index is 40, but the 12 leg actions come first"),
+    (lambda d: d["action"]["leg"].update(joint_range=[r[0] for r in d["action"]["leg"]["joint_range"]]),
+     r"joint_range\[0\] \(\[lo, hi\] rad\) must be a list of 2 values"),
+    (_set("action.leg.joint_range.3", [0.5, -0.5]), r"joint_range\[3\] is \[0.5, -0.5\]: it needs lo < hi"),
+    (_set("observation.history.obs_ages", [-1, -1, -1, -1, -1]), "obs_ages is .* integer ages >= 0"),
+    (_set("observation.history.action_ages", [7.0, 5, 3, 1]), "action_ages is .* integer ages >= 0"),
+    (_set("contract_version", True), "contract_version True is not supported"),
+    (_set("action.dim", 13.0), "action.dim is 13.0"),
+])
+def test_structurally_wrong_contracts_are_refused_on_load(change, message, contract_copy):
+    # Each of these passed load_contract and then failed with an IndexError/KeyError in reset, or ran wrongly.
+    path, c = contract_copy
+    with pytest.raises(ContractError, match=message):
+        load_contract(_write(path, _mutated(c, change)))
+
+
+def test_a_missing_observation_signal_is_a_contract_error():
+    from tocabi_torchrl.runtime.observation import ObservationBuilder
+
+    builder = ObservationBuilder(load_contract(_contract("ppo"))["observation"])
+    with pytest.raises(ContractError, match="observation signal 'base_rpy' missing.*pass every one of them"):
+        builder.raw({"joint_pos": np.zeros((1, 33))})
+
+
+@pytest.mark.parametrize("name", ["../p.onnx", "/tmp/p.onnx", "sub/p.onnx", "sub\\p.onnx", ""])
+def test_contract_onnx_file_must_be_a_file_beside_the_contract(name, contract_copy):
+    path, c = contract_copy
+    with pytest.raises(ContractError, match=rf"policy.onnx_file is {re.escape(repr(name))}; it must be a plain file"):
+        load_contract(_write(path, _mutated(c, _set("policy.onnx_file", name))))
+
+
+def _onnx_linear(path, inputs: int, outputs: int, output_name: str) -> None:
+    """A (batch, inputs) -> (batch, outputs) zero matrix as an ONNX file (no torch needed)."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper, numpy_helper
+
+    weight = numpy_helper.from_array(np.zeros((inputs, outputs), np.float32), "w")
+    graph = helper.make_graph(
+        [helper.make_node("MatMul", ["observation", "w"], [output_name])], "g",
+        [helper.make_tensor_value_info("observation", TensorProto.FLOAT, ["batch", inputs])],
+        [helper.make_tensor_value_info(output_name, TensorProto.FLOAT, ["batch", outputs])], [weight])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]), str(path))
+
+
+@pytest.mark.parametrize("outputs,output_name,shown", [(12, "action", r"'action' \['batch', 12\]"),
+                                                       (13, "value", r"'value' \['batch', 13\]")])
+def test_an_onnx_output_that_is_not_the_contracts_is_refused(outputs, output_name, shown, contract_copy):
+    # Only the input used to be checked: a 12-wide output ran (the phase rate read past the end), another name too.
+    path, c = contract_copy
+    _onnx_linear(path.with_name("p.onnx"), 237, outputs, output_name)
+    with pytest.raises(ContractError, match=rf"output {shown} does not match the contract's 'action' of \(batch, 13\)"):
+        PolicyRuntime(_write(path, c), check_onnx_hash=False)
+
+
+class _FixedOutputSession:
+    """Stands in for the onnxruntime session: returns ``raw`` and records the output names asked for."""
+
+    def __init__(self, raw):
+        self.raw, self.asked = np.asarray(raw, np.float32), []
+
+    def run(self, names, feeds):
+        self.asked.append(names)
+        return [self.raw]
+
+
+def test_a_policy_output_with_no_finite_entry_stops_that_robot():
+    # Single NaN entries count as 0 (the contract's rule); a whole NaN row used to become a zero action, i.e. zero
+    # torque, silently.
+    runtime = PolicyRuntime(_contract("torque"))
+    raw = np.full((3, 13), 0.5, np.float32)
+    raw[0, 2] = np.nan
+    runtime.session = _FixedOutputSession(raw)
+    cmd = runtime.reset(_robots(3), (0.5, 0.0))
+    assert cmd.action[0, 2] == 0.0 and cmd.action[0, 3] == 0.5 and runtime.session.asked == [["action"]]
+    raw[2] = np.nan
+    raw[1] = [np.inf] * 6 + [np.nan] * 7
+    with pytest.raises(ContractError, match=r"output is NaN or inf in every entry for robot\(s\) \[1, 2\].*re-export"):
+        runtime.step(_robots(3))
+
+
+def test_policy_input_and_set_command_before_reset_say_to_reset_first():
+    runtime = PolicyRuntime(_contract("ppo"))
+    with pytest.raises(RuntimeError, match=r"policy_input before reset.*reset\(state, command\)"):
+        runtime.policy_input()
+    with pytest.raises(RuntimeError, match=r"set_command before reset.*reset\(state, command\)"):
+        runtime.set_command((0.5, 0.0))

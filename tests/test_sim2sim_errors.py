@@ -61,3 +61,22 @@ def test_a_missing_onnxruntime_is_one_error_line(monkeypatch):
     message = str(_run([]).code)
     assert message.startswith("error: running an exported policy needs onnxruntime")
     assert 'pip install -e ".[export]"' in message
+
+
+@needs_contract
+def test_a_contract_whose_leg_kind_contradicts_its_control_mode_is_one_error_line(tmp_path):
+    # The driver built position servos from leg.kind while the runtime computed commands from control_mode: a
+    # pd_reference contract labelled torque sent PD targets [rad] to torque motors.
+    import json
+    import shutil
+
+    contract = json.loads(CONTRACT.read_text())
+    contract["action"]["leg"]["kind"] = "torque"
+    shutil.copy(CONTRACT.with_suffix(".onnx"), tmp_path / contract["policy"]["onnx_file"])
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps(contract))
+    with pytest.raises(SystemExit) as info:
+        load_recipe("sim2sim").main(["--contract", str(path), "--seconds", "0.02", "--num_robots", "1"])
+    message = str(info.value.code)
+    assert message.startswith("error: ") and "action.leg.kind is 'torque' but control_mode is 'pd_reference'" in message
+    assert "\n" not in message

@@ -5,6 +5,6 @@
 Needs the ``export`` extra (``onnx``); the runtime that runs the result is :mod:`tocabi_torchrl.runtime`.
 """
 
-from .onnx_export import ExportResult, LoadedPolicy, export_policy, load_policy
+from .onnx_export import ExportError, ExportResult, LoadedPolicy, export_policy, load_policy
 
-__all__ = ["ExportResult", "LoadedPolicy", "export_policy", "load_policy"]
+__all__ = ["ExportError", "ExportResult", "LoadedPolicy", "export_policy", "load_policy"]

@@ -17,7 +17,7 @@ from .. import __version__, robot
 from ..runtime.contract import CONTRACT_FORMAT, CONTRACT_VERSION, check_contract
 from ..runtime.motion import file_sha256
 
-__all__ = ["SIGNAL_DOCS", "build_contract", "config_sha256", "sha256_bytes"]
+__all__ = ["SIGNAL_DOCS", "ExportError", "build_contract", "config_sha256", "sha256_bytes"]
 
 _SIDES = ("left", "right")
 _AXES = ("x", "y", "z")
@@ -38,13 +38,19 @@ SIGNAL_DOCS: dict[str, dict[str, str]] = {
 }
 
 
+class ExportError(ValueError):
+    """A checkpoint that loads but cannot be exported as it is (non-finite weights or statistics, a non-finite
+    output); the message names the problem and what to export instead."""
+
+
 def sha256_bytes(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
 def config_sha256(config: dict) -> str:
-    """sha256 of the training config as canonical JSON (sorted keys, no spaces)."""
-    return sha256_bytes(json.dumps(config, sort_keys=True, separators=(",", ":"), default=list).encode())
+    """sha256 of the training config as canonical JSON (sorted keys, no spaces, no NaN/Infinity)."""
+    return sha256_bytes(json.dumps(config, sort_keys=True, separators=(",", ":"), default=list,
+                                   allow_nan=False).encode())
 
 
 def _element_names(signal: str, shape: tuple[int, ...]) -> list[str]:
@@ -119,6 +125,18 @@ def _observation(env) -> dict:
     }
 
 
+def _check_normalization(norm: dict, checkpoint: Path) -> None:
+    # check_contract would refuse these too, but only the export can say where they came from and what to do.
+    mean, scale = np.asarray(norm["mean"], dtype=np.float64), np.asarray(norm["scale"], dtype=np.float64)
+    bad = np.flatnonzero(~np.isfinite(mean) | ~np.isfinite(scale) | ~(scale > 0))
+    if bad.size:
+        raise ExportError(f"{checkpoint}: the observation normalisation ({norm['kind']}) has a non-finite mean or a "
+                          f"scale that is not finite and > 0 at entries {bad[:8].tolist()} (mean "
+                          f"{mean[bad[:4]].tolist()}, scale {scale[bad[:4]].tolist()}): the policy input would be NaN "
+                          "or inf. The run diverged or normalises a constant signal with eps = 0: export an earlier "
+                          "checkpoint, or retrain with eps > 0")
+
+
 def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, output_name: str, opset: int) -> dict:
     """The contract of a :class:`~tocabi_torchrl.export.onnx_export.LoadedPolicy` exported to ``onnx_file``."""
     env = policy.env
@@ -137,7 +155,8 @@ def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, ou
         leg = {"kind": "torque", "torque_limits_nm": limits,
                "rule": "tau[j] = action[j] * torque_limits_nm[j], held for every physics substep"}
     else:
-        leg = {"kind": "position", "kp": [float(v) for v in cfg.control.pd_kp], "kv": [float(v) for v in cfg.control.pd_kv],
+        leg = {"kind": "position", "kp": [float(v) for v in cfg.control.pd_kp],
+               "kv": [float(v) for v in cfg.control.pd_kv],
                "action_scale": float(cfg.control.pd_action_scale), "torque_limits_nm": limits,
                "joint_range": model.jnt_range[leg_ids].tolist(),
                "center": "nominal" if cfg.control.mode == "pd" else "reference",
@@ -149,6 +168,7 @@ def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, ou
     motion = base.motion
     motion_file = Path(motion.source)
     observation = _observation(env)
+    _check_normalization(observation["normalization"], policy.checkpoint)
     contract = {
         "format": CONTRACT_FORMAT,
         "contract_version": CONTRACT_VERSION,

@@ -4,6 +4,10 @@
 other function works on the :class:`LoadedPolicy` it returns. The ONNX graph maps the policy input ``observation``
 (batch, 237) (the normalised observation history, exactly what the TorchRL actor reads) to ``action`` (batch, 13),
 the Gaussian mean, unclipped; the contract says how to build the input and how to clip and apply the output.
+
+:func:`export_policy` refuses (:class:`ExportError`) a checkpoint whose actor weights or transform statistics hold
+NaN or inf, and an ONNX graph whose output on representative inputs is not finite; everything it writes is
+standard JSON (no ``NaN``/``Infinity``).
 """
 
 from __future__ import annotations
@@ -14,20 +18,24 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
 from ..rl.atomic import atomic_write_bytes, atomic_write_text
-from ..transforms.normalize import freeze_running_statistics
-from .contract import build_contract, sha256_bytes
+from ..transforms.normalize import RunningNormalization, freeze_running_statistics
+from .contract import ExportError, build_contract, sha256_bytes
 
 __all__ = [
     "ONNX_INPUT",
     "ONNX_OPSET",
     "ONNX_OUTPUT",
     "DeterministicActor",
+    "ExportError",
     "ExportResult",
     "LoadedPolicy",
+    "check_finite_policy",
+    "check_onnx_output",
     "export_onnx",
     "export_policy",
     "load_policy",
@@ -64,7 +72,8 @@ def load_policy(checkpoint: str | os.PathLike, num_envs: int = 1, **env_override
     """Read ``checkpoint`` (a ``.pt`` file or a run folder) safely and rebuild its agent and env on the CPU.
 
     This is the only function of the export that knows the checkpoint and config API; ``env_overrides`` go to
-    ``rl.trainer.build_env`` (e.g. ``command=...`` for evaluation).
+    ``rl.trainer.build_env`` (e.g. ``command=...`` for evaluation). Raises ``CheckpointError`` when the env
+    normalises with running statistics that the checkpoint does not hold.
     """
     from ..rl.checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint
     from ..rl.trainer import build_agent, build_env
@@ -75,10 +84,29 @@ def load_policy(checkpoint: str | os.PathLike, num_envs: int = 1, **env_override
     device = torch.device("cpu")
     env = build_env(cfg, device, num_envs=num_envs, **env_overrides)
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
+    _require_running_statistics(state, env, path)
     apply_checkpoint(state, agent, env=env, path=path)
     freeze_running_statistics(env)  # the contract states the checkpoint's statistics, frozen
     return LoadedPolicy(checkpoint=path, config=cfg, config_dict=cfg.to_dict(), agent=agent, env=env,
                         iteration=int(state["iteration"]), env_steps=int(state["env_steps"]))
+
+
+def _require_running_statistics(state: dict, env, path: Path) -> None:
+    """Refuse a checkpoint without the statistics of the env's running normalisers.
+
+    ``apply_checkpoint`` loads transform state leniently (a resumed run may add transforms), so such a checkpoint
+    would load with the normaliser's initial statistics, and the contract would state them as the policy's."""
+    from ..rl.checkpoint import CheckpointError
+
+    saved = state.get("transforms") or {}
+    missing = [f"{name}.{buf}" if name else buf for name, module in env.transform.named_modules()
+               if isinstance(module, RunningNormalization) for buf in ("mean", "var", "count")
+               if (f"{name}.{buf}" if name else buf) not in saved]
+    if missing:
+        raise CheckpointError(f"checkpoint {path} lacks the running normalisation statistics {missing} of its env "
+                              "(transforms.normalization = 'running'): the export would state the initial statistics "
+                              "instead of those the policy was trained with. Export a checkpoint saved with its env "
+                              "(save_checkpoint(..., env)), e.g. the run's checkpoints/latest.pt")
 
 
 class DeterministicActor(nn.Module):
@@ -106,41 +134,96 @@ def export_onnx(module: nn.Module, obs_dim: int) -> bytes:
     return buffer.getvalue()
 
 
+def check_finite_policy(actor: nn.Module, env, checkpoint: Path) -> None:
+    """Raise :class:`ExportError` when ``actor``'s parameters or buffers, or ``env``'s transform state
+    (normalisation statistics and the like), hold NaN or inf."""
+    tensors = [(f"actor.{k}", v) for k, v in actor.state_dict().items()]
+    transform = getattr(env, "transform", None)
+    if isinstance(transform, nn.Module):
+        tensors += [(f"env transform {k}", v) for k, v in transform.state_dict().items()]
+    bad = [k for k, v in tensors if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise ExportError(f"{checkpoint}: NaN or inf in {bad[:6]}{' ...' if len(bad) > 6 else ''}: the run diverged "
+                          "before this checkpoint was saved, and its export would drive the robot with NaN actions. "
+                          "Export an earlier checkpoint of the run (checkpoints/iter_*.pt)")
+
+
+def check_onnx_output(data: bytes, actor: nn.Module, obs_dim: int, checkpoint: Path) -> None:
+    """Run the exported graph ``data`` (onnxruntime; the torch ``actor`` when onnxruntime is not installed) on
+    representative inputs and raise :class:`ExportError` unless every output is finite."""
+    # Zeros: every observation at its normalisation mean and zero past actions; then a typical normalised input.
+    inputs = np.zeros((2, obs_dim), dtype=np.float32)
+    inputs[1] = np.random.default_rng(0).standard_normal(obs_dim)
+    try:
+        import onnxruntime as ort
+    except ImportError:  # the export extra brings it, but the export itself needs only onnx
+        with torch.no_grad():
+            output = actor.eval()(torch.from_numpy(inputs)).numpy()
+    else:
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = 1
+        session = ort.InferenceSession(data, sess_options=options, providers=["CPUExecutionProvider"])
+        output = session.run([ONNX_OUTPUT], {ONNX_INPUT: inputs})[0]
+    if not np.isfinite(output).all():
+        raise ExportError(f"{checkpoint}: the exported policy's action is NaN or inf on a representative input (the "
+                          "mean observation or a typical one): its weights are non-finite or so large that float32 "
+                          "overflows (a diverging run). Export an earlier checkpoint of the run "
+                          "(checkpoints/iter_*.pt)")
+
+
 @dataclass
 class ExportResult:
+    """What :func:`export_policy` wrote, and the stale TorchScript file it removed (``removed_torchscript``)."""
+
     onnx: Path
     contract: Path
     torchscript: Path | None
+    removed_torchscript: Path | None = None
 
 
 def _refuse_overwrite(paths: list[Path], overwrite: bool) -> None:
     existing = [str(p) for p in paths if p.exists()]
     if existing and not overwrite:
-        raise FileExistsError(f"{', '.join(existing)} exist(s); pass --overwrite (overwrite=True) to replace them")
+        raise FileExistsError(f"{', '.join(existing)} exist(s); pass --overwrite (overwrite=True) to replace them "
+                              "(a .ts.pt is removed when --torchscript is not given, as it belongs to another export)")
 
 
 def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchscript: bool = False,
                   overwrite: bool = False) -> ExportResult:
     """Export ``checkpoint`` to ``out`` (``.onnx``) and the contract ``out`` with ``.json``; with ``torchscript``,
     also a traced TorchScript module ``out`` with ``.ts.pt``. Files are written atomically and never replace an
-    existing file unless ``overwrite``."""
+    existing file unless ``overwrite``. Without ``torchscript``, an existing ``.ts.pt`` (another export's) counts
+    as an output: it is refused without ``overwrite`` and removed with it, after the new files are written.
+
+    Raises :class:`ExportError` for NaN/inf weights or statistics, or a non-finite output (see the module doc)."""
     out = Path(out)
     if out.suffix != ".onnx":
         raise ValueError(f"--out must name a .onnx file, got {out}")
     contract_path = out.with_suffix(".json")
-    ts_path = out.with_suffix(".ts.pt") if torchscript else None
-    _refuse_overwrite([p for p in (out, contract_path, ts_path) if p is not None], overwrite)
+    ts_path = out.with_suffix(".ts.pt")
+    _refuse_overwrite([out, contract_path, ts_path], overwrite)
     policy = load_policy(checkpoint)
     actor = DeterministicActor(policy.agent.actor)
+    check_finite_policy(actor, policy.env, policy.checkpoint)
     obs_dim = policy.env.observation_spec["observation"].shape[-1]
     data = export_onnx(actor, obs_dim)
+    check_onnx_output(data, actor, obs_dim, policy.checkpoint)
     contract = build_contract(policy, onnx_file=out.name, onnx_sha256=sha256_bytes(data), input_name=ONNX_INPUT,
                               output_name=ONNX_OUTPUT, opset=ONNX_OPSET)
+    try:  # standard JSON only: C++ readers (and load_contract) refuse NaN/Infinity
+        text = json.dumps(contract, indent=1, allow_nan=False)
+    except ValueError as err:
+        raise ExportError(f"{policy.checkpoint}: the contract would hold a NaN or infinite number ({err}), which is "
+                          "not JSON; find it in the run's config or statistics and export a sound checkpoint") from err
     atomic_write_bytes(out, data)
-    atomic_write_text(contract_path, json.dumps(contract, indent=1) + "\n")
-    if ts_path is not None:
+    atomic_write_text(contract_path, text + "\n")
+    removed = None
+    if torchscript:
         buffer = io.BytesIO()
         with torch.no_grad():
             torch.jit.save(torch.jit.trace(actor.eval(), torch.zeros(1, obs_dim)), buffer)
         atomic_write_bytes(ts_path, buffer.getvalue())
-    return ExportResult(out, contract_path, ts_path)
+    elif ts_path.exists():
+        ts_path.unlink()
+        removed = ts_path
+    return ExportResult(out, contract_path, ts_path if torchscript else None, removed)

@@ -9,10 +9,13 @@ standard library, so a deployment can check a contract before loading anything e
 from __future__ import annotations
 
 import json
+import math
 import os
+import re
 from pathlib import Path
 
-__all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "REQUIRED_KEYS", "ContractError", "check_contract", "load_contract"]
+__all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "REQUIRED_KEYS", "RUNTIME_SIGNALS", "ContractError", "check_contract",
+           "load_contract"]
 
 #: ``format`` field of every contract.
 CONTRACT_FORMAT = "tocabi_torchrl.policy_contract"
@@ -22,7 +25,8 @@ CONTRACT_VERSION = 1
 #: Top-level keys and the nested keys the runtime relies on (``"a.b"`` = key ``b`` of section ``a``).
 REQUIRED_KEYS: tuple[str, ...] = (
     "format", "contract_version", "package_version", "training_config_sha256",
-    "policy", "policy.onnx_file", "policy.input_name", "policy.output_name", "policy.input_dim", "policy.output_dim",
+    "policy", "policy.onnx_file", "policy.onnx_sha256", "policy.input_name", "policy.output_name",
+    "policy.input_dim", "policy.output_dim",
     "robot", "robot.joint_names", "robot.leg_joint_names", "robot.upper_joint_names", "robot.initial_qpos",
     "robot.base_body", "robot.neck_body", "robot.foot_force_sensors", "robot.foot_torque_sensors",
     "timing", "timing.physics_dt_s", "timing.substeps", "timing.control_dt_s",
@@ -39,6 +43,18 @@ _LEG_KEYS = {
     "pd": ("kind", "kp", "kv", "action_scale", "center", "nominal", "joint_range", "torque_limits_nm"),
     "pd_reference": ("kind", "kp", "kv", "action_scale", "center", "joint_range", "torque_limits_nm"),
 }
+#: ``action.leg.kind`` and ``action.leg.center`` each control mode implies (what the runtime computes from the mode).
+_LEG_KIND = {"torque": "torque", "pd": "position", "pd_reference": "position"}
+_LEG_CENTER = {"pd": "nominal", "pd_reference": "reference"}
+
+#: The observation signals :class:`~tocabi_torchrl.runtime.policy.PolicyRuntime` builds; the contract's
+#: ``observation.signals`` may use only these.
+RUNTIME_SIGNALS: tuple[str, ...] = ("base_rpy", "joint_pos", "joint_vel", "phase_sin", "phase_cos", "command",
+                                    "foot_force", "foot_torque")
+
+_FLOAT32_MAX = 3.4028234663852886e38
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+_FIX = "re-export the policy with `python -m tocabi_torchrl.export` (the file was edited or written by another tool?)"
 
 
 class ContractError(ValueError):
@@ -46,16 +62,30 @@ class ContractError(ValueError):
 
 
 def load_contract(path: str | os.PathLike) -> dict:
-    """Read and check the contract JSON at ``path``; raises :class:`ContractError` naming the file and the problem."""
+    """Read and check the contract JSON at ``path``; raises :class:`ContractError` naming the file and the problem.
+
+    The file must be standard JSON: ``NaN``/``Infinity`` (which Python's json module would accept) are refused."""
     path = Path(path)
     if not path.is_file():
         raise ContractError(f"policy contract not found: {path} (export one with `python -m tocabi_torchrl.export`)")
     try:
-        contract = json.loads(path.read_text())
+        contract = json.loads(path.read_text(), parse_constant=_refuse_constant)
+    except _NonStandardJSON as err:
+        raise ContractError(f"cannot read policy contract {path}: it holds the non-standard JSON value {err} (a NaN "
+                            "or infinite number, which C++ JSON readers refuse and which would poison the policy "
+                            "input); the exported policy is broken: re-export it from a sound checkpoint") from err
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise ContractError(f"cannot read policy contract {path}: not valid JSON ({err})") from err
     check_contract(contract, str(path))
     return contract
+
+
+class _NonStandardJSON(ValueError):
+    pass
+
+
+def _refuse_constant(name: str):
+    raise _NonStandardJSON(name)
 
 
 def _get(contract: dict, dotted: str):
@@ -68,15 +98,21 @@ def _get(contract: dict, dotted: str):
 
 
 def check_contract(contract, source: str = "contract") -> None:
-    """Check a contract's format, version, keys and internal consistency (lengths of every per-joint and
-    per-entry list); raises :class:`ContractError` saying what is wrong and how to fix it."""
+    """Check a contract's format, version, keys and internal consistency; raises :class:`ContractError` saying what
+    is wrong and how to fix it.
+
+    Consistency: the lengths of every per-joint and per-entry list; every number finite; ``scale`` > 0,
+    ``low`` <= ``high``, ``clip`` null or > 0, positive timing; ``action.leg`` of the kind and center its control
+    mode implies; observation entries that name a signal the runtime builds, with that signal's shape, and an
+    element inside it; non-negative integer history ages; the phase-rate action after the leg actions; both sha256
+    hashes 64 lowercase hex digits; ``policy.onnx_file`` and ``reference_motion.name`` plain file names."""
     if not isinstance(contract, dict):
         raise ContractError(f"{source}: a policy contract is a JSON object, got {type(contract).__name__}")
     if contract.get("format") != CONTRACT_FORMAT:
         raise ContractError(f"{source}: format is {contract.get('format')!r}, expected {CONTRACT_FORMAT!r} (not a "
                             "tocabi-torchrl policy contract?)")
     version = contract.get("contract_version")
-    if version != CONTRACT_VERSION:
+    if isinstance(version, bool) or version != CONTRACT_VERSION:  # True == 1 in Python
         raise ContractError(f"{source}: contract_version {version!r} is not supported; this runtime reads version "
                             f"{CONTRACT_VERSION}. Re-export the policy with this package version, or use the "
                             "tocabi-torchrl version that wrote it")
@@ -91,14 +127,52 @@ def check_contract(contract, source: str = "contract") -> None:
     _check_consistency(contract, source)
 
 
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 def _need_len(value, n: int, what: str, source: str) -> None:
     if not isinstance(value, list) or len(value) != n:
         got = len(value) if isinstance(value, list) else type(value).__name__
-        raise ContractError(f"{source}: {what} must be a list of {n} values, got {got}")
+        raise ContractError(f"{source}: {what} must be a list of {n} values, got {got}; {_FIX}")
+
+
+def _number(value, what: str, source: str, positive: bool = False) -> float:
+    # The runtime computes in float32: a value beyond its range is inf there.
+    if (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
+            or abs(value) > _FLOAT32_MAX):
+        raise ContractError(f"{source}: {what} is {value!r}, not a finite (float32) number; {_FIX}")
+    if positive and value <= 0:
+        raise ContractError(f"{source}: {what} is {value!r} but must be > 0; {_FIX}")
+    return float(value)
+
+
+def _numbers(value, n: int, what: str, source: str, positive: bool = False) -> list[float]:
+    _need_len(value, n, what, source)
+    return [_number(v, f"{what}[{i}]", source, positive) for i, v in enumerate(value)]
+
+
+def _count(value, what: str, source: str, minimum: int) -> int:
+    if not _is_int(value) or value < minimum:
+        raise ContractError(f"{source}: {what} is {value!r} but must be an integer >= {minimum}; {_FIX}")
+    return value
+
+
+def _file_name(value, what: str, source: str) -> None:
+    # The runtime opens this name beside the contract (or in the shipped motions): a path could reach any file.
+    if not isinstance(value, str) or not value or "/" in value or "\\" in value or ".." in value:
+        raise ContractError(f"{source}: {what} is {value!r}; it must be a plain file name (no folder, no '..') of a "
+                            "file beside the contract: put the file there and name it alone")
+
+
+def _sha256(value, what: str, source: str) -> None:
+    if not isinstance(value, str) or not _SHA256.fullmatch(value):
+        raise ContractError(f"{source}: {what} is {value!r}, not a sha256 (64 lowercase hex digits): the runtime "
+                            f"checks the file against it, so it cannot be left out; {_FIX}")
 
 
 def _check_consistency(c: dict, source: str) -> None:
-    rob, act, obs = c["robot"], c["action"], c["observation"]
+    rob, act, obs, pol = c["robot"], c["action"], c["observation"], c["policy"]
     joints = rob["joint_names"]
     if not isinstance(joints, list) or not joints:
         raise ContractError(f"{source}: robot.joint_names must be a non-empty list")
@@ -107,37 +181,131 @@ def _check_consistency(c: dict, source: str) -> None:
         raise ContractError(f"{source}: robot.leg_joint_names + robot.upper_joint_names must equal robot.joint_names "
                             f"({len(legs) if isinstance(legs, list) else '?'} + "
                             f"{len(upper) if isinstance(upper, list) else '?'} vs {len(joints)} joints)")
-    _need_len(rob["initial_qpos"], 7 + len(joints), "robot.initial_qpos (base pose + joints)", source)
+    _numbers(rob["initial_qpos"], 7 + len(joints), "robot.initial_qpos (base pose + joints)", source)
+    _file_name(pol["onnx_file"], "policy.onnx_file", source)
+    _sha256(pol["onnx_sha256"], "policy.onnx_sha256", source)
+    _sha256(c["reference_motion"]["sha256"], "reference_motion.sha256", source)
+    _file_name(c["reference_motion"]["name"], "reference_motion.name", source)
+    _check_timing(c["timing"], source)
     n_leg = len(legs)
-    if act["dim"] != n_leg + 1:
-        raise ContractError(f"{source}: action.dim is {act['dim']} but there are {n_leg} leg joints (+1 phase rate)")
-    _need_len(act["low"], act["dim"], "action.low", source)
-    _need_len(act["high"], act["dim"], "action.high", source)
+    if not _is_int(act["dim"]) or act["dim"] != n_leg + 1:
+        raise ContractError(f"{source}: action.dim is {act['dim']!r} but there are {n_leg} leg joints (+1 phase rate)")
+    low = _numbers(act["low"], act["dim"], "action.low", source)
+    high = _numbers(act["high"], act["dim"], "action.high", source)
+    swapped = [i for i in range(act["dim"]) if low[i] > high[i]]
+    if swapped:
+        raise ContractError(f"{source}: action.low > action.high at indices {swapped} (swapped?): every action entry "
+                            f"needs low <= high; {_FIX}")
+    rate = act["phase_rate"]
+    if not _is_int(rate["index"]) or rate["index"] != n_leg:
+        # The first n_leg entries are the leg actions: any other index would read one of them as the phase rate.
+        raise ContractError(f"{source}: action.phase_rate.index is {rate['index']!r}, but the {n_leg} leg actions "
+                            f"come first and the phase rate is entry {n_leg}, the last; {_FIX}")
+    _number(rate["gain"], "action.phase_rate.gain", source)
+    _check_leg(act, n_leg, source)
+    _numbers(c["upper_body"]["kp"], len(upper), "upper_body.kp", source)
+    _numbers(c["upper_body"]["kv"], len(upper), "upper_body.kv", source)
+    _check_observation(obs, len(joints), source)
+    hist = obs["history"]
+    step_dim = obs["step_dim"]
+    expected = len(hist["obs_ages"]) * step_dim + len(hist["action_ages"]) * act["dim"]
+    if pol["input_dim"] != expected or not _is_int(pol["input_dim"]):
+        raise ContractError(f"{source}: policy.input_dim is {pol['input_dim']} but the history holds "
+                            f"{len(hist['obs_ages'])} x {step_dim} + {len(hist['action_ages'])} x {act['dim']} = "
+                            f"{expected} values")
+    if pol["output_dim"] != act["dim"] or not _is_int(pol["output_dim"]):
+        raise ContractError(f"{source}: policy.output_dim {pol['output_dim']} != action.dim {act['dim']}")
+    for key in ("input_name", "output_name"):
+        if not isinstance(pol[key], str) or not pol[key]:
+            raise ContractError(f"{source}: policy.{key} is {pol[key]!r}, not the name of an ONNX graph input/output; "
+                                f"{_FIX}")
+
+
+def _check_timing(timing: dict, source: str) -> None:
+    physics = _number(timing["physics_dt_s"], "timing.physics_dt_s", source, positive=True)
+    substeps = _count(timing["substeps"], "timing.substeps", source, 1)
+    control = _number(timing["control_dt_s"], "timing.control_dt_s", source, positive=True)
+    # control_dt_s is written from the env's float32 dt: allow float32 rounding, nothing more.
+    if abs(physics * substeps - control) > 1e-6 * control:
+        raise ContractError(f"{source}: timing.control_dt_s {control} is not physics_dt_s {physics} x substeps "
+                            f"{substeps}; {_FIX}")
+
+
+def _check_leg(act: dict, n_leg: int, source: str) -> None:
     mode = act["control_mode"]
     if mode not in _LEG_KEYS:
         raise ContractError(f"{source}: unknown action.control_mode {mode!r}; expected one of {list(_LEG_KEYS)}")
     leg = act["leg"]
+    if not isinstance(leg, dict):
+        raise ContractError(f"{source}: action.leg must be an object, got {type(leg).__name__}; {_FIX}")
     lacking = [k for k in _LEG_KEYS[mode] if k not in leg]
     if lacking:
         raise ContractError(f"{source}: action.leg lacks {lacking} for control mode {mode!r}")
-    for k in ("torque_limits_nm", "kp", "kv", "nominal", "joint_range"):
+    # A controller applies action.leg by its kind, the runtime computes it from the mode: they must agree, or PD
+    # targets in radians would be sent as torques (or the reverse).
+    if leg["kind"] != _LEG_KIND[mode]:
+        raise ContractError(f"{source}: action.leg.kind is {leg['kind']!r} but control_mode is {mode!r}, whose leg "
+                            f"commands are {_LEG_KIND[mode]!r}: {_FIX}")
+    if mode in _LEG_CENTER and leg["center"] != _LEG_CENTER[mode]:
+        raise ContractError(f"{source}: action.leg.center is {leg['center']!r} but control_mode {mode!r} centres the "
+                            f"targets on {_LEG_CENTER[mode]!r}: {_FIX}")
+    _numbers(leg["torque_limits_nm"], n_leg, "action.leg.torque_limits_nm", source, positive=True)
+    for k in ("kp", "kv", "nominal"):
         if k in leg:
-            _need_len(leg[k], n_leg, f"action.leg.{k}", source)
-    _need_len(c["upper_body"]["kp"], len(upper), "upper_body.kp", source)
-    _need_len(c["upper_body"]["kv"], len(upper), "upper_body.kv", source)
-    step_dim = obs["step_dim"]
+            _numbers(leg[k], n_leg, f"action.leg.{k}", source)
+    if "action_scale" in leg:
+        _number(leg["action_scale"], "action.leg.action_scale", source)
+    if "joint_range" in leg:
+        ranges = leg["joint_range"]
+        _need_len(ranges, n_leg, "action.leg.joint_range", source)
+        for i, pair in enumerate(ranges):
+            lo, hi = _numbers(pair, 2, f"action.leg.joint_range[{i}] ([lo, hi] rad)", source)
+            if not lo < hi:
+                raise ContractError(f"{source}: action.leg.joint_range[{i}] is {pair}: it needs lo < hi; {_FIX}")
+
+
+def _signal_shapes(num_joints: int, harmonics: int) -> dict[str, list[int]]:
+    """The (per-robot) shape of each signal as the runtime builds it."""
+    return {"base_rpy": [3], "joint_pos": [num_joints], "joint_vel": [num_joints], "phase_sin": [harmonics],
+            "phase_cos": [harmonics], "command": [2], "foot_force": [2, 3], "foot_torque": [2, 3]}
+
+
+def _check_observation(obs: dict, num_joints: int, source: str) -> None:
+    step_dim = _count(obs["step_dim"], "observation.step_dim", source, 1)
+    harmonics = _count(obs["phase_harmonics"], "observation.phase_harmonics", source, 1)
     _need_len(obs["entries"], step_dim, "observation.entries", source)
-    _need_len(obs["normalization"]["mean"], step_dim, "observation.normalization.mean", source)
-    _need_len(obs["normalization"]["scale"], step_dim, "observation.normalization.scale", source)
+    shapes = _signal_shapes(num_joints, harmonics)
+    signals = obs["signals"]
+    if not isinstance(signals, dict):
+        raise ContractError(f"{source}: observation.signals must be an object, got {type(signals).__name__}; {_FIX}")
     for i, entry in enumerate(obs["entries"]):
-        if not isinstance(entry, dict) or entry.get("signal") not in obs["signals"] or "element" not in entry:
+        if not isinstance(entry, dict) or entry.get("signal") not in signals or "element" not in entry:
             raise ContractError(f"{source}: observation.entries[{i}] must name a signal of observation.signals and "
                                 f"an element index, got {entry!r}")
+        name, element = entry["signal"], entry["element"]
+        if name not in shapes:
+            raise ContractError(f"{source}: observation.entries[{i}] reads signal {name!r}, which this runtime cannot "
+                                f"build (it builds {list(RUNTIME_SIGNALS)}): the policy needs a runtime that knows "
+                                "that signal")
+        spec = signals[name]
+        if not isinstance(spec, dict) or spec.get("shape") != shapes[name]:
+            got = spec.get("shape") if isinstance(spec, dict) else spec
+            raise ContractError(f"{source}: observation.signals.{name}.shape is {got!r}, but the runtime builds "
+                                f"{name} with shape {shapes[name]}; {_FIX}")
+        size = math.prod(shapes[name])
+        if not _is_int(element) or not 0 <= element < size:
+            raise ContractError(f"{source}: observation.entries[{i}].element is {element!r}, not an element index in "
+                                f"[0, {size}) of signal {name!r}; {_FIX}")
+    norm = obs["normalization"]
+    _numbers(norm["mean"], step_dim, "observation.normalization.mean", source)
+    # A zero scale (a constant signal normalised with eps = 0) divides by zero: inf, then NaN, in every step.
+    _numbers(norm["scale"], step_dim, "observation.normalization.scale", source, positive=True)
+    if norm.get("clip") is not None:
+        _number(norm["clip"], "observation.normalization.clip", source, positive=True)
     hist = obs["history"]
-    expected = len(hist["obs_ages"]) * step_dim + len(hist["action_ages"]) * act["dim"]
-    if c["policy"]["input_dim"] != expected:
-        raise ContractError(f"{source}: policy.input_dim is {c['policy']['input_dim']} but the history holds "
-                            f"{len(hist['obs_ages'])} x {step_dim} + {len(hist['action_ages'])} x {act['dim']} = "
-                            f"{expected} values")
-    if c["policy"]["output_dim"] != act["dim"]:
-        raise ContractError(f"{source}: policy.output_dim {c['policy']['output_dim']} != action.dim {act['dim']}")
+    for key in ("obs_ages", "action_ages"):
+        ages = hist[key]
+        if (not isinstance(ages, list) or not all(_is_int(a) and a >= 0 for a in ages)
+                or (key == "obs_ages" and not ages)):
+            raise ContractError(f"{source}: observation.history.{key} is {ages!r}; it must be a list of integer ages "
+                                f">= 0 in control periods{' (at least one)' if key == 'obs_ages' else ''}; {_FIX}")

@@ -48,10 +48,15 @@ class RuntimeMotion:
     @classmethod
     def from_file(cls, path: str | os.PathLike, joint_names: list[str], sha256: str | None = None) -> RuntimeMotion:
         """Load a ``.npz`` (project format) or ``.txt`` (reference format) motion; with ``sha256`` the file must
-        have that hash (the contract's), else :class:`ContractError`."""
+        have that hash (the contract's), else :class:`ContractError`. Only ``sha256=None``, the caller's explicit
+        choice, skips the check (:class:`~.policy.PolicyRuntime` always passes the contract's, which
+        ``check_contract`` requires to be a sha256)."""
         path = Path(path)
         if not path.is_file():
             raise ContractError(f"reference motion not found: {path}; pass the file the contract names")
+        if sha256 is not None and (not isinstance(sha256, str) or len(sha256) != 64):
+            raise ContractError(f"reference motion hash {sha256!r} is not a sha256 (64 hex digits): pass the "
+                                "contract's reference_motion.sha256, or None to skip the check")
         if sha256 is not None:
             found = file_sha256(path)
             if found != sha256:

@@ -78,10 +78,12 @@ def build_model(contract: dict, model_path: str | os.PathLike, remove_meshes: bo
                          "TOCABI MJCF with the contract's robot.joint_names, a <joint>_Motor actuator for each, "
                          "robot.base_body, robot.neck_body and the robot.foot_force_sensors/foot_torque_sensors")
     rob, leg = contract["robot"], contract["action"]["leg"]
+    # The control mode, not leg.kind, decides: it is what PolicyRuntime computes the leg commands from.
+    position = contract["action"]["control_mode"] != "torque"
     motors = [n.replace("_Joint", "_Motor") for n in rob["joint_names"]]
     for i, name in enumerate(motors[: len(rob["leg_joint_names"])]):
         act = spec.actuator(name)
-        if leg["kind"] == "position":
+        if position:
             limit = float(leg["torque_limits_nm"][i])
             act.set_to_position(kp=float(leg["kp"][i]), kv=float(leg["kv"][i]))
             act.ctrllimited, act.forcelimited, act.forcerange = 0, 1, [-limit, limit]
@@ -210,7 +212,7 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
         init_rows = rows[np.arange(num_robots) % len(rows)]
     init_rows = runtime._check_init_row(init_rows, num_robots)  # before they index the motion below
     init_qpos = np.asarray(c["robot"]["initial_qpos"])
-    reset_leg = (np.zeros(n_leg) if c["action"]["leg"]["kind"] == "torque"
+    reset_leg = (np.zeros(n_leg) if c["action"]["control_mode"] == "torque"
                  else np.asarray(c["action"]["leg"].get("nominal", init_qpos[7 : 7 + n_leg])))
 
     datas = [mujoco.MjData(m) for _ in range(num_robots)]

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .contract import ContractError
+
 __all__ = ["History", "ObservationBuilder", "quat_to_rpy"]
 
 
@@ -60,8 +62,8 @@ class ObservationBuilder:
         out = np.empty((n, len(self.entries)), dtype=np.float32)
         for name, cols, elems in self._gathers:
             if name not in signals:
-                raise KeyError(f"observation signal {name!r} missing; the contract's observation needs "
-                               f"{[g[0] for g in self._gathers]}")
+                raise ContractError(f"observation signal {name!r} missing: the contract's observation needs "
+                                    f"{[g[0] for g in self._gathers]}; pass every one of them")
             flat = np.asarray(signals[name], dtype=np.float32).reshape(n, -1)
             out[:, cols] = flat[:, elems]
         return out
@@ -107,6 +109,8 @@ class History:
 
     def read(self) -> np.ndarray:
         """(N, K·D + M·A) float32 policy input."""
+        if self._obs is None:
+            raise RuntimeError("History.read before reset: call PolicyRuntime.reset first")
         n = self._obs.shape[0]
         parts = [self._obs[:, self.obs_ages].reshape(n, -1)]
         if self.action_ages.size:

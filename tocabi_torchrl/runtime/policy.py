@@ -83,10 +83,13 @@ class PolicyRuntime:
         motion: the reference motion file; default: the shipped motion of the name the contract gives. Its sha256
             must match the contract's.
         threads: onnxruntime intra-op threads.
-        check_onnx_hash: check the ONNX file against the contract's ``policy.onnx_sha256``.
+        check_onnx_hash: check the ONNX file against the contract's ``policy.onnx_sha256`` (which every contract
+            must give); pass False only to run an ONNX file knowingly swapped in beside the contract.
 
     Raises :class:`~tocabi_torchrl.runtime.contract.ContractError` for a bad contract, a missing or mismatched
-    ONNX file or motion, or a robot state with another joint count.
+    ONNX file (hash, input or output name and width) or motion, a robot state that is not N rows of finite
+    float32-representable readings with unit-length quaternions, and a policy output with no finite entry for
+    some robot.
     """
 
     def __init__(self, contract: str | os.PathLike, motion: str | os.PathLike | None = None, threads: int = 1,
@@ -96,14 +99,19 @@ class PolicyRuntime:
         self.onnx_path = path.parent / c["policy"]["onnx_file"]
         if not self.onnx_path.is_file():
             raise ContractError(f"{path}: ONNX file {self.onnx_path} not found beside the contract")
-        if check_onnx_hash and c["policy"].get("onnx_sha256") not in (None, file_sha256(self.onnx_path)):
+        if check_onnx_hash and c["policy"]["onnx_sha256"] != file_sha256(self.onnx_path):
             raise ContractError(f"{self.onnx_path} does not match the sha256 in {path}: the contract belongs to "
                                 "another export; re-export both together")
         self.session = _onnx_session(self.onnx_path, threads)
-        inputs = self.session.get_inputs()
-        if inputs[0].name != c["policy"]["input_name"] or inputs[0].shape[-1] != c["policy"]["input_dim"]:
-            raise ContractError(f"{self.onnx_path}: input {inputs[0].name!r} {inputs[0].shape} does not match the "
-                                f"contract's {c['policy']['input_name']!r} of {c['policy']['input_dim']} values")
+        pol = c["policy"]
+        for kind, ios, name, dim in (("input", self.session.get_inputs(), pol["input_name"], pol["input_dim"]),
+                                     ("output", self.session.get_outputs(), pol["output_name"], pol["output_dim"])):
+            # The batch dimension may be symbolic ("batch"); the width must be the contract's.
+            if not ios or ios[0].name != name or len(ios[0].shape) != 2 or ios[0].shape[-1] != dim:
+                got = f"{ios[0].name!r} {ios[0].shape}" if ios else "nothing"
+                raise ContractError(f"{self.onnx_path}: {kind} {got} does not match the contract's {name!r} of "
+                                    f"(batch, {dim}) values: the ONNX file is not this contract's policy; re-export "
+                                    "both together")
         rob, act = c["robot"], c["action"]
         self.joint_names = rob["joint_names"]
         self.num_legs = len(rob["leg_joint_names"])
@@ -114,7 +122,7 @@ class PolicyRuntime:
         self.rate_gain = float(act["phase_rate"]["gain"])
         self.mode = act["control_mode"]
         leg = act["leg"]
-        self.leg_kind = leg["kind"]
+        self.leg_kind = "torque" if self.mode == "torque" else "position"  # check_contract: == leg["kind"]
         self.torque_limits = np.asarray(leg["torque_limits_nm"], dtype=_F32)
         if self.mode != "torque":
             self.action_scale = _F32(leg["action_scale"])
@@ -147,12 +155,15 @@ class PolicyRuntime:
         """Start an episode for every robot from ``state`` (the initial pose): clock 0 at ``init_row`` (N,) (default:
         the motion's first start row; one integer is used for every robot), history filled with this observation
         and zero actions. ``command`` (N, 2) or (2,) is the velocity command [m/s] (vx, vy). Returns the command for
-        the first period."""
+        the first period.
+
+        A refused state, start row or command (:class:`ContractError`) leaves the running episode as it was."""
         n = self._check_state(state)
         rows = self.motion.init_rows[0] if init_row is None else init_row
-        self.init_row = self._check_init_row(rows, n)
-        self.time = np.zeros(n, dtype=_F32)
-        self.set_command(command)
+        init_row = self._check_init_row(rows, n)
+        command = self._check_command(command, n)
+        # Only now that everything passed: a refused reset must not restart the clock or change the robot count.
+        self.init_row, self.time, self.command = init_row, np.zeros(n, dtype=_F32), command
         zeros = np.zeros((n, len(self.low)), dtype=_F32)
         self.history.reset(self._observe(state), zeros)
         return self._act()
@@ -172,20 +183,35 @@ class PolicyRuntime:
 
     def set_command(self, command) -> None:
         """Velocity command (vx, vy) [m/s], (N, 2) or (2,), used from the next observation on."""
-        n = self.num_robots
-        value = np.asarray(command, dtype=_F32)
+        if self._pending is None:
+            raise RuntimeError("PolicyRuntime.set_command before reset: pass the first command to "
+                               "reset(state, command)")
+        self.command = self._check_command(command, self.num_robots)
+
+    def policy_input(self) -> np.ndarray:
+        """(N, input_dim) float32: the current policy input (for tests and logging)."""
+        if self._pending is None:
+            raise RuntimeError("PolicyRuntime.policy_input before reset: there is no input until reset(state, "
+                               "command) has built the first observation")
+        return self.history.read()
+
+    # --------------------------------------------------------------------------------------------- internals
+    @staticmethod
+    def _check_command(command, n: int) -> np.ndarray:
+        """(n, 2) float32 velocity command from ``command`` (2,) or (n, 2), finite in float32."""
+        value = np.asarray(command)
+        if value.dtype.kind not in "iuf":
+            raise ContractError(f"command has dtype {value.dtype}, not numbers: pass the velocity command (vx, vy) "
+                                "[m/s] as floats")
+        with np.errstate(over="ignore"):  # a float64 beyond float32's range becomes inf, refused below
+            value = value.astype(_F32)
         if value.shape not in ((2,), (n, 2)):
             raise ContractError(f"command has shape {value.shape}, expected (2,) or ({n}, 2): the velocity command "
                                 "(vx, vy) [m/s], one row per robot or one for all")
         if not np.isfinite(value).all():
-            raise ContractError(f"command holds NaN or inf ({value.tolist()}): pass finite speeds [m/s]")
-        self.command = np.broadcast_to(value, (n, 2)).copy()
+            raise ContractError(f"command holds NaN or inf in float32 ({value.tolist()}): pass finite speeds [m/s]")
+        return np.broadcast_to(value, (n, 2)).copy()
 
-    def policy_input(self) -> np.ndarray:
-        """(N, input_dim) float32: the current policy input (for tests and logging)."""
-        return self.history.read()
-
-    # --------------------------------------------------------------------------------------------- internals
     def _check_init_row(self, rows, n: int) -> np.ndarray:
         """(n,) int64 start rows from ``rows``: one integer or n of them, each a row of the motion's cycle (the
         motion indexes rows modulo its cycle, so an out-of-range row would silently start elsewhere)."""
@@ -213,17 +239,31 @@ class PolicyRuntime:
                                     "every field holds one row per robot, even for a single robot")
         count = np.shape(state.base_quat)[0] if n is None else n
         for name, shape in shapes.items():
-            got = np.shape(getattr(state, name))
-            if got != (count, *shape):
-                raise ContractError(f"RobotState.{name} has shape {got}, expected {(count, *shape)}: the contract's "
-                                    f"robot has {j} joints ({self.joint_names[0]}, …) and this runtime runs {count} "
-                                    "robot(s)")
+            value = np.asarray(getattr(state, name))
+            if value.shape != (count, *shape):
+                raise ContractError(f"RobotState.{name} has shape {value.shape}, expected {(count, *shape)}: the "
+                                    f"contract's robot has {j} joints ({self.joint_names[0]}, …) and this runtime "
+                                    f"runs {count} robot(s)")
+            if value.dtype.kind not in "iuf":  # strings, objects, complex or bools are no sensor readings
+                raise ContractError(f"RobotState.{name} has dtype {value.dtype}: pass real numbers (a float array)")
+            # Checked in float32, the precision the observation is built in: 1e39 is finite in float64 only.
+            with np.errstate(over="ignore"):
+                value = value.astype(_F32)
             # A failed sensor must stop the controller, not be normalised into a plausible-looking observation.
-            finite = np.isfinite(getattr(state, name)).reshape(count, -1).all(-1)
+            finite = np.isfinite(value).reshape(count, -1).all(-1)
             if not finite.all():
-                raise ContractError(f"RobotState.{name} is not finite (NaN or inf) for robot(s) "
-                                    f"{np.flatnonzero(~finite).tolist()}: check those sensors; the policy is not run "
-                                    "on invalid readings")
+                raise ContractError(f"RobotState.{name} is not finite in float32 (NaN, inf or beyond ±3.4e38) for "
+                                    f"robot(s) {np.flatnonzero(~finite).tolist()}: check those sensors; the policy is "
+                                    "not run on invalid readings")
+        # quat_to_rpy is scale-invariant, so a zero (dropped-out IMU) or garbage quaternion would read as some
+        # orientation, e.g. upright: only a unit quaternion is an orientation reading.
+        norm = np.linalg.norm(np.asarray(state.base_quat, dtype=np.float64), axis=-1)
+        bad = np.abs(norm - 1.0) > 0.1
+        if bad.any():
+            raise ContractError(f"RobotState.base_quat is not a unit quaternion (|q| = "
+                                f"{np.round(norm[bad][:8], 4).tolist()}, allowed 1 ± 0.1) for robot(s) "
+                                f"{np.flatnonzero(bad).tolist()}: check the IMU; the policy is not run on invalid "
+                                "readings")
         return count
 
     def _observe(self, state: RobotState) -> np.ndarray:
@@ -243,8 +283,17 @@ class PolicyRuntime:
 
     def _act(self) -> Command:
         obs = self.history.read()
-        raw = self.session.run(None, {self.contract["policy"]["input_name"]: obs})[0]
-        action = np.clip(np.nan_to_num(raw.astype(_F32), nan=0.0), self.low, self.high)
+        pol = self.contract["policy"]
+        raw = self.session.run([pol["output_name"]], {pol["input_name"]: obs})[0].astype(_F32)
+        # A single NaN entry counts as 0 (the contract's rule); a row with no finite entry is a broken policy, not
+        # a glitch, and zeroing it would quietly command zero torque or the bare reference.
+        dead = ~np.isfinite(raw).any(-1)
+        if dead.any():
+            raise ContractError(f"the policy's output is NaN or inf in every entry for robot(s) "
+                                f"{np.flatnonzero(dead).tolist()}: the exported network is broken (non-finite "
+                                "weights?) or its input was; stop these robots and re-export the policy from a sound "
+                                "checkpoint")
+        action = np.clip(np.nan_to_num(raw, nan=0.0), self.low, self.high)
         self._pending = action
         ref = self.motion.joint_targets(self.time, self.init_row)
         a_leg = action[:, : self.num_legs]
