@@ -25,6 +25,7 @@ On a CPU this is slow (C MuJoCo on the cores; a few minutes per controller at 25
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
 import sys
@@ -40,7 +41,12 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from tocabi_torchrl import robot  # noqa: E402
-from tocabi_torchrl.rl.checkpoint import CheckpointError  # noqa: E402
+from tocabi_torchrl.rl.checkpoint import (  # noqa: E402
+    CheckpointError,
+    checkpoint_file,
+    config_from_checkpoint,
+    read_checkpoint,
+)
 from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_knee_comparison  # noqa: E402
 from tocabi_torchrl.rl.eval_video import (  # noqa: E402
     CAMERA_POS,
@@ -50,16 +56,23 @@ from tocabi_torchrl.rl.eval_video import (  # noqa: E402
     rendering_unavailable,
     save_strip,
 )
+from tocabi_torchrl.rl.evaluate import policy_dt  # noqa: E402
 from tocabi_torchrl.rl.experiments import (  # noqa: E402
     ExperimentOutputError,
     display_path,
     parse_controllers,
     prepare_out_dir,
+    replace_atomically,
     slug,
+    write_atomic,
     write_table,
 )
 from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout, torque_stats  # noqa: E402
 from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
+
+#: Most frames per controller (t = 0 and every --frame_every): each is a --frame_width image in one strip, so more
+#: make a strip too wide to view (25 x 480 px is 12,000 px) and cost a render each.
+MAX_FRAMES = 25
 
 #: (option, type, default, description): the command line, defaults shown once by build_parser.
 OPTIONS = (
@@ -68,9 +81,10 @@ OPTIONS = (
     ("--seconds", float, 8.0, "duration of the walk [s]"),
     ("--vx", float, 0.5, "commanded forward speed [m/s]"),
     ("--vy", float, 0.0, "commanded lateral speed [m/s]"),
-    ("--frame_every", float, 2.0, "seconds between frames"),
-    ("--knee_seconds", float, 6.0, "seconds of knee trajectory plotted"),
-    ("--torque_seconds", float, 2.0, "seconds of joint torques plotted"),
+    ("--frame_every", float, 2.0, (f"seconds between frames; a whole number of policy steps (4 ms; others are "
+                                   f"rounded to one), at most {MAX_FRAMES} frames over --seconds")),
+    ("--knee_seconds", float, 6.0, "seconds of knee trajectory plotted; at least one policy step (0.004)"),
+    ("--torque_seconds", float, 2.0, "seconds of joint torques plotted; at least one policy step (0.004)"),
     ("--frame_width", int, 480, "frame width [px]"),
     ("--frame_height", int, 360, "frame height [px]"),
     ("--fovy", float, 30.0, "the camera's vertical field of view [deg] (MuJoCo's default: 45)"),
@@ -106,9 +120,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def run_controller(controller, args, device, index, total) -> dict:
-    """Roll one controller out; returns its table row, robot 0's traces and frames' joint states."""
-    policy = load_policy(controller.path, args.num_envs, device, command=(args.vx, args.vy))
+def read_controller(controller) -> dict:
+    """Read and check a controller's checkpoint (file, contents, config); returns its state. ``main`` reads every
+    controller's before any rollout: a bad path or file among the last must not end the run after the first have
+    taken minutes. Raises ``CheckpointError`` naming the file."""
+    file = checkpoint_file(controller.path)
+    state = read_checkpoint(file)
+    config_from_checkpoint(state, file)
+    return state
+
+
+def check_spans(args, parser, dt: float) -> None:
+    """Refuse spans shorter than one policy step ``dt`` (an empty trace) and more than :data:`MAX_FRAMES` frames;
+    round --frame_every to whole policy steps (frames are states after a step), saying so."""
+    for flag in ("seconds", "frame_every", "knee_seconds", "torque_seconds"):
+        if getattr(args, flag) < dt * (1 - 1e-9):
+            parser.error(f"--{flag} must be at least one policy step ({dt * 1000:g} ms), got {getattr(args, flag):g}")
+    snapped = round(args.frame_every / dt) * dt
+    if abs(snapped - args.frame_every) > 1e-9:
+        print(f"--frame_every {args.frame_every:g} s is not a whole number of policy steps ({dt * 1000:g} ms): frames "
+              f"every {snapped:g} s instead", flush=True)
+        args.frame_every = snapped
+    frames = math.floor(args.seconds / args.frame_every + 1e-9) + 1
+    if frames > MAX_FRAMES:
+        parser.error(f"--frame_every {args.frame_every:g} s over --seconds {args.seconds:g} gives {frames} frames per "
+                     f"controller, more than {MAX_FRAMES}; pass --frame_every "
+                     f"{math.ceil(args.seconds / (MAX_FRAMES - 1) / dt) * dt:g} or more")
+
+
+def run_controller(controller, args, device, index, total, state: dict | None = None) -> dict:
+    """Roll one controller out (``state``: its checkpoint, already read); returns its table row, robot 0's traces
+    and frames' joint states."""
+    policy = load_policy(controller.path, args.num_envs, device, command=(args.vx, args.vy), state=state)
     print(f"[{index}/{total}] {controller.label}: {policy.control_mode} control, {args.num_envs} robots x "
           f"{args.seconds:g} s on {device} ({policy.env.base_env.backend})", flush=True)
     rec = record_rollout(policy.actor, policy.env, args.seconds, (args.vx, args.vy), snapshot_every=args.frame_every,
@@ -130,6 +173,11 @@ def run_controller(controller, args, device, index, total) -> dict:
             "times": rec.snapshot_times, "model": policy.env.base_env.sim.mj_model, "dt": rec.dt}
 
 
+def _save_strip(images, path) -> None:
+    """:func:`save_strip`, atomically: a run killed mid-write leaves the earlier image whole."""
+    replace_atomically(path, lambda tmp: save_strip(images, tmp))
+
+
 def render_frames(results: dict, args, out) -> str:
     """Frame strips, their composite and time-lapse images of robot 0; returns what was written (or why not). The
     first failure ends the rendering: MuJoCo is not asked again (a failed GLFW start can abort the process)."""
@@ -143,13 +191,13 @@ def render_frames(results: dict, args, out) -> str:
             stills = render_stills(res["model"], res["snapshots"], CAMERA_POS, width=args.frame_width,
                                    height=args.frame_height, fovy=args.fovy)
             stills = [label_image(im, f"{label}, t = {t:g} s") for im, t in zip(stills, res["times"])]
-            save_strip(stills, out / f"frames_{slug(label)}.png")
+            _save_strip(stills, out / f"frames_{slug(label)}.png")
             lapse = render_timelapse(res["model"], res["snapshots"], CAMERA_POS, width=2 * args.frame_width,
                                      height=args.frame_height, fovy=args.fovy)
-            save_strip([label_image(lapse, f"{label}, t = {', '.join(f'{t:g}' for t in res['times'])} s")],
-                       out / f"timelapse_{slug(label)}.png")
+            _save_strip([label_image(lapse, f"{label}, t = {', '.join(f'{t:g}' for t in res['times'])} s")],
+                        out / f"timelapse_{slug(label)}.png")
             rows.append(stills)
-        save_strip(rows, out / "frames.png")
+        _save_strip(rows, out / "frames.png")
     except Exception as err:  # noqa: BLE001 - rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless machine)
         print(f"frames skipped ({type(err).__name__}: {err}); on a headless machine: {NO_GL_FIX}")
         return f"not rendered: {type(err).__name__}: {err}"
@@ -166,8 +214,18 @@ def main(argv: list[str] | None = None) -> dict:
             parser.error(f"--{flag} must be a finite number > 0, got {getattr(args, flag)}")
     if not (math.isfinite(args.vx) and math.isfinite(args.vy)):
         parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
+    check_spans(args, parser, policy_dt())
     try:
         controllers = parse_controllers(args.policy)
+    except ValueError as err:
+        sys.exit(f"error: {err}")
+    states = {}
+    for controller in controllers:
+        try:
+            states[controller.label] = read_controller(controller)
+        except CheckpointError as err:
+            sys.exit(f"error: {controller.label}: {err}")
+    try:
         device = resolve_device(args.device)
         out = prepare_out_dir(args.out, args.overwrite)
     except (ValueError, RuntimeError, ExperimentOutputError) as err:
@@ -175,7 +233,8 @@ def main(argv: list[str] | None = None) -> dict:
     results = {}
     for i, controller in enumerate(controllers, 1):
         try:
-            results[controller.label] = run_controller(controller, args, device, i, len(controllers))
+            results[controller.label] = run_controller(controller, args, device, i, len(controllers),
+                                                       state=states[controller.label])
         except (CheckpointError, ValueError) as err:
             sys.exit(f"error: {controller.label}: {err}")
         # One time axis for the plots, traces.npz and the per-step smoothness column: one control period.
@@ -190,10 +249,12 @@ def main(argv: list[str] | None = None) -> dict:
     plot_joint_torques({label: res["torque"] for label, res in results.items()}, dt, out / "torques.png",
                        CRITICAL_JOINTS, f"Applied joint torques, first {args.torque_seconds:g} s, robot 0, command "
                        f"({args.vx:g}, {args.vy:g}) m/s", limits=robot.LEG_TORQUE_LIMITS[list(CRITICAL)])
-    np.savez_compressed(out / "traces.npz", dt=dt, critical_joints=np.array(CRITICAL_JOINTS),
+    traces = io.BytesIO()  # written whole or not at all: a file object, so numpy adds no suffix and no temp name
+    np.savez_compressed(traces, dt=dt, critical_joints=np.array(CRITICAL_JOINTS),
                         **{f"{slug(label)}__{key}": value for label, res in results.items()
                            for key, value in (("knee", res["knee"][0]), ("knee_reference", res["knee"][1]),
                                               ("leg_torque", res["all_torque"]))})
+    write_atomic(out / "traces.npz", traces.getvalue())
     frames = render_frames(results, args, out)
     meta = {"experiment": "gait comparison (TocabiLab experiment 2)", "command_mps": list(command),
             "seconds": args.seconds, "num_envs": args.num_envs, "device": str(device), "camera_pos_m": CAMERA_POS,

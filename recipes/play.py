@@ -4,8 +4,11 @@
     python recipes/play.py --checkpoint runs/ppo_walk/checkpoints/iter_000500.pt --num_envs 64 --vx 0.3
 
 Writes summary.json (survival, forward distance, lateral drift, speed tracking error, knee RMS against the reference
-motion), knees.png (left/right knee over 6 s against the reference) and walk.mp4 (a few robots, rendered offscreen)
-to <run>/eval/, eval/ beside a checkpoint file, runs/eval/<name>/ for a policy shipped with the package, or --out.
+motion; null for a metric without a value), knees.png (left/right knee over 6 s against the reference) and walk.mp4
+(a few robots, rendered offscreen) to <run>/eval/, eval/ beside a checkpoint file, runs/eval/<name>/ for a policy
+shipped with the package, or --out. Earlier results are never replaced silently: when the default folder already
+holds some, the next free eval_2/, eval_3/, ... beside it is used; an --out that holds files is refused unless
+--overwrite. The folder used is printed first.
 On a headless machine the video uses EGL (MUJOCO_GL=egl, chosen automatically when libEGL is present); osmesa works
 only with libOSMesa and PyOpenGL installed.
 """
@@ -13,7 +16,6 @@ only with libOSMesa and PyOpenGL installed.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 
@@ -24,7 +26,7 @@ try:  # before mujoco is imported
 except GLBackendError as gl_error:
     sys.exit(f"error: {gl_error}")
 
-from tocabi_torchrl.rl.evaluate import evaluate_run  # noqa: E402
+from tocabi_torchrl.rl.evaluate import eval_out_dir, evaluate_run, summary_json  # noqa: E402
 
 #: (option, type, default, description): the command line, defaults shown once by build_parser.
 OPTIONS = (
@@ -33,7 +35,8 @@ OPTIONS = (
     ("--seconds", float, 8.0, "duration of the gait test [s]; at least one policy step (0.004)"),
     ("--vx", float, 0.5, "commanded forward speed [m/s]"),
     ("--vy", float, 0.0, "commanded lateral speed [m/s]"),
-    ("--out", str, None, "output folder (default: eval/ of the run, or runs/eval/<name>/ for a shipped policy)"),
+    ("--out", str, None, ("output folder, refused if it holds files unless --overwrite (default: eval/ of the "
+                          "run, or runs/eval/<name>/ for a shipped policy; eval_2/, ... once that holds results)")),
     ("--video_envs", int, 4, "robots shown side by side in the video; 0 = no video"),
 )
 
@@ -44,6 +47,9 @@ def build_parser() -> argparse.ArgumentParser:
     for flag, kind, default, text in OPTIONS:
         shown = "" if default is None else f" (default: {default})"
         parser.add_argument(flag, type=kind, default=default, help=text + shown)
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into an --out folder that holds files (files of the same name are replaced, "
+                             "others stay) (default: refuse)")
     return parser
 
 
@@ -57,15 +63,17 @@ def main(argv: list[str] | None = None) -> None:
     if not (math.isfinite(args.vx) and math.isfinite(args.vy)):
         parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
     try:
+        out = eval_out_dir(args.checkpoint, args.out, args.overwrite)
+        print(f"results go to {out}/", flush=True)
         summary = evaluate_run(args.checkpoint, num_envs=args.num_envs, device=args.device, seconds=args.seconds,
                                command=(args.vx, args.vy), video_envs=min(args.video_envs, args.num_envs),
-                               out_dir=args.out)
-    except (ValueError, RuntimeError) as err:  # unreadable checkpoint, too short --seconds, unavailable device
+                               out_dir=out)
+    except (ValueError, RuntimeError) as err:  # bad or diverged checkpoint, --out with results, short --seconds, device
         sys.exit(f"error: {err}")
     except OSError as err:  # an --out that is a file, or cannot be created or written
         sys.exit(f"error: cannot write the evaluation to {err.filename or args.out}: {err.strerror or err}; pass "
                  f"--out a folder that can be created")
-    print(json.dumps(summary, indent=2))
+    print(summary_json(summary))
 
 
 if __name__ == "__main__":

@@ -181,3 +181,39 @@ def test_policy_file_keeps_the_policy_and_drops_training_state(tmp_path):
     with pytest.raises(FileExistsError, match="overwrite=True"):
         write_policy_file(run, out)
     write_policy_file(run, out, overwrite=True)
+
+
+@pytest.mark.parametrize("part, key, value", [
+    ("actor", None, float("nan")), ("critic", None, float("inf")),
+    ("transforms", "transforms.3.var", float("nan")), ("transforms", "transforms.3.loc", float("-inf")),
+])
+def test_a_diverged_checkpoint_is_refused_for_evaluation_and_resume(tmp_path, part, key, value):
+    from tocabi_torchrl.rl.run_dir import open_run
+
+    run, _ = _saved_run(tmp_path)
+    file = run / "checkpoints" / "latest.pt"
+    state = torch.load(file, weights_only=True)
+    if part == "transforms":
+        state["transforms"] = {"transforms.0._angular_freq": torch.ones(1), key: torch.ones(37)}
+        state["transforms"][key][5] = value
+    else:
+        key = next(iter(state["agent"][part]))
+        state["agent"][part][key].view(-1)[0] = value
+    torch.save(state, file)
+    name = f"agent.{part}" if part != "transforms" else "transforms"
+    message = rf"latest\.pt: {name} '{key}' holds (NaN|inf) values: the training run that wrote it diverged\. Pick an " \
+              r"earlier checkpoint"
+    with pytest.raises(CheckpointError, match=message):
+        read_checkpoint(run)
+    with pytest.raises(CheckpointError, match=message):
+        open_run(_config(run_dir=str(tmp_path / "runs"), name="again", resume=str(run)))
+
+
+def test_transform_state_that_may_be_infinite_still_loads(tmp_path):
+    # A clip bound or a mask of another transform can be inf by design; only normaliser statistics are checked.
+    run, _ = _saved_run(tmp_path)
+    file = run / "checkpoints" / "latest.pt"
+    state = torch.load(file, weights_only=True)
+    state["transforms"] = {"transforms.2.low": torch.full((3,), float("-inf")), "transforms.3.mean": torch.zeros(3)}
+    torch.save(state, file)
+    assert read_checkpoint(run)["transforms"]["transforms.2.low"].isinf().all()

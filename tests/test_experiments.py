@@ -579,7 +579,8 @@ def test_compare_gaits_refuses_controllers_of_different_control_periods(tmp_path
     # The plots, traces.npz and the per-step smoothness column share the first controller's time step.
     recipe = load_recipe("compare_gaits")
     steps = {"a": 0.004, "b": 0.002}
-    monkeypatch.setattr(recipe, "run_controller", lambda c, *a: {"dt": steps[c.label], "row": {}})
+    monkeypatch.setattr(recipe, "read_controller", lambda c: {})
+    monkeypatch.setattr(recipe, "run_controller", lambda c, *a, **k: {"dt": steps[c.label], "row": {}})
     with pytest.raises(SystemExit) as info:
         recipe.main(["--device", "cpu", "--policy", "a=x.pt", "--policy", "b=y.pt", "--out", str(tmp_path / "o")])
     assert "b steps every 2 ms and a every 4 ms" in str(info.value.code)
@@ -706,3 +707,90 @@ def test_no_display_and_no_egl_turn_rendering_off_with_the_fix(monkeypatch):
     assert render_gl.choose_gl_backend(environ) == "egl" and render_gl.offscreen_unavailable(environ) is None
     environ = {"WAYLAND_DISPLAY": "wayland-0"}  # no X display: EGL, as before the no-EGL case existed
     assert render_gl.choose_gl_backend(environ) == "egl" and environ["MUJOCO_GL"] == "egl"
+
+
+@needs_policies
+def test_compare_gaits_checks_every_controller_before_rolling_any_out(tmp_path, monkeypatch):
+    # A bad last controller used to end the run only after the first ones had walked (minutes at 256 robots).
+    recipe = load_recipe("compare_gaits")
+    monkeypatch.setattr(recipe, "run_controller", lambda *a, **k: pytest.fail("a controller ran before the check"))
+    diverged = tmp_path / "diverged.pt"
+    state = torch.load(PD_POLICY, weights_only=True)
+    next(iter(state["agent"]["actor"].values())).fill_(float("nan"))
+    torch.save(state, diverged)
+    for bad, message in ((tmp_path / "missing.pt", "bad: checkpoint not found"), (diverged, "diverged")):
+        with pytest.raises(SystemExit) as info:
+            recipe.main(["--device", "cpu", "--policy", f"good={PD_POLICY}", "--policy", f"bad={bad}",
+                         "--out", str(tmp_path / "out")])
+        assert message in str(info.value.code)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--frame_every", "0.001"], "--frame_every must be at least one policy step (4 ms), got 0.001"),
+    (["--knee_seconds", "0.001"], "--knee_seconds must be at least one policy step (4 ms)"),
+    (["--torque_seconds", "0.002"], "--torque_seconds must be at least one policy step (4 ms)"),
+    (["--frame_every", "0.1"], "gives 81 frames per controller, more than 25; pass --frame_every 0.336 or more"),
+])
+def test_compare_gaits_refuses_spans_below_one_policy_step_and_too_many_frames(flags, message, capsys):
+    # Shorter spans gave empty traces and snapshots labelled with times never simulated; tiny frame steps an
+    # unbounded number of renders.
+    with pytest.raises(SystemExit):
+        load_recipe("compare_gaits").main(["--device", "cpu", "--policy", "x=missing.pt", *flags])
+    assert message in capsys.readouterr().err
+
+
+def test_compare_gaits_rounds_frame_every_to_whole_policy_steps(capsys):
+    recipe = load_recipe("compare_gaits")
+    parser = recipe.build_parser()
+    args = parser.parse_args(["--frame_every", "0.005", "--seconds", "0.05"])
+    recipe.check_spans(args, parser, 0.004)
+    assert args.frame_every == pytest.approx(0.004)
+    assert "not a whole number of policy steps (4 ms): frames every 0.004 s instead" in capsys.readouterr().out
+
+
+def test_snapshots_are_labelled_with_the_simulated_time():
+    from tocabi_torchrl.rl.gait_record import load_policy, record_rollout
+
+    policy = load_policy(TORQUE_POLICY, 1, torch.device("cpu"))
+    # 6 ms is 1.5 steps of 4 ms: the states kept are those after steps 2, 3 and 4 (8, 12, 16 ms), not 6, 12, 18 ms.
+    rec = record_rollout(policy.actor, policy.env, seconds=0.02, snapshot_every=0.006, progress=False)
+    assert rec.snapshot_times == pytest.approx([0.0, 0.008, 0.012, 0.016])
+    with pytest.raises(ValueError, match="shorter than one policy step"):
+        record_rollout(policy.actor, policy.env, seconds=0.02, snapshot_every=0.001, progress=False)
+
+
+def test_experiment_files_are_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
+    from tocabi_torchrl.rl import atomic
+    from tocabi_torchrl.rl.experiments import replace_atomically, write_atomic
+
+    synced = []
+    real_fsync = atomic.os.fsync
+    monkeypatch.setattr(atomic.os, "fsync", lambda fd: synced.append(fd) or real_fsync(fd))
+    path = write_atomic(tmp_path / "table.md", "first · version")
+    assert path.read_text(encoding="utf-8") == "first · version" and synced  # durable before the rename
+
+    def crash(*args):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(atomic.os, "replace", crash)
+    with pytest.raises(OSError, match="disk full"):
+        write_atomic(path, "second")
+    assert path.read_text(encoding="utf-8") == "first · version"
+    monkeypatch.undo()
+
+    # Writers that take a path (images): the temporary file keeps the suffix they pick the format from.
+    image = tmp_path / "frames.png"
+    image.write_bytes(b"earlier")
+    seen = []
+
+    def half_written(tmp):
+        seen.append(tmp.suffix)
+        tmp.write_bytes(b"half")
+        raise RuntimeError("renderer died")
+
+    with pytest.raises(RuntimeError, match="renderer died"):
+        replace_atomically(image, half_written)
+    assert image.read_bytes() == b"earlier" and seen == [".png"]
+    assert replace_atomically(image, lambda tmp: tmp.write_bytes(b"new")).read_bytes() == b"new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames.png", "table.md"]

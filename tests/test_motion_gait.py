@@ -242,3 +242,27 @@ def test_generate_walk_records_the_model_path(model):
     cfg = GaitConfig(sample_rate=200.0)
     assert generate_walk(cfg).meta["model"] == "assets/tocabi/tocabi.xml"
     assert generate_walk(cfg, model).meta["model"] is None  # a compiled model without its path: not guessed
+
+
+@pytest.mark.parametrize("every", [0, -1, 1.5, True])
+def test_self_contacts_refuses_a_stride_that_is_not_a_positive_int(model, walk, every):
+    # every=-1 returned [] (no row checked: "no contact"), every=0 a bare "range() arg 3 must not be zero".
+    with pytest.raises(ValueError, match="every must be an int >= 1"):
+        self_contacts(model, walk.joint_pos[:3], walk.base_pos[:3], every=every)
+
+
+def test_plotting_leaves_the_callers_matplotlib_backend_alone(tmp_path, walk):
+    import matplotlib
+
+    from tocabi_torchrl.motion.plot import plot_leg_joints
+    from tocabi_torchrl.rl.eval_plots import plot_knees
+
+    before = matplotlib.get_backend()
+    try:
+        matplotlib.use("svg")
+        plot_leg_joints(walk, None, tmp_path / "legs.png")
+        plot_knees(np.zeros((5, 2)), np.zeros((5, 2)), 0.004, tmp_path / "knees.png", (0.5, 0.0))
+        assert matplotlib.get_backend() == "svg"
+    finally:
+        matplotlib.use(before)
+    assert (tmp_path / "legs.png").read_bytes()[:4] == b"\x89PNG" and (tmp_path / "knees.png").stat().st_size > 0

@@ -288,3 +288,25 @@ def test_env_reports_a_corrupt_motion_by_file(tmp_path):
     path = shipped_with(tmp_path, "meta", np.array("{not json"))
     with pytest.raises(MotionFormatError, match=re.escape(f"{path}: meta must be one string holding a JSON object")):
         make_env(1, "cpu", motion=path)
+
+
+def test_save_npz_writes_a_name_load_motion_reads_and_replaces_files_whole(tmp_path, monkeypatch):
+    # A name without .npz was written as is, and load_motion then refused it for its suffix.
+    import os
+
+    from tocabi_torchrl.motion import io as motion_io
+
+    data = motion_data()
+    written = save_npz(tmp_path / "mymotion", data)
+    assert written == tmp_path / "mymotion.npz" and not (tmp_path / "mymotion").exists()
+    np.testing.assert_array_equal(load_motion(written).stance, data.stance)
+    # A crash mid-write leaves the earlier file whole, and no temporary file.
+    before = written.read_bytes()
+
+    def crash(*args):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(motion_io.os, "replace", crash)
+    with pytest.raises(OSError, match="disk full"):
+        save_npz(written, motion_data(rows=ROWS + 2))
+    assert written.read_bytes() == before and sorted(os.listdir(tmp_path)) == ["mymotion.npz"]

@@ -1,11 +1,13 @@
 """recipes/play.py and evaluation: wrapped errors for bad files and too-short runs, outputs of a shipped policy outside
-the source tree, the plot titled with the command, progress while rolling out and rendering, a usable --help, and a
-clear message for an unusable MUJOCO_GL=osmesa."""
+the source tree, the plot titled with the command, progress while rolling out and rendering, a usable --help, a
+clear message for an unusable MUJOCO_GL=osmesa, earlier results never overwritten silently, and strict JSON (null for
+a metric without a value)."""
 
 from __future__ import annotations
 
 import ctypes.util
 import importlib.util
+import json
 import os
 import subprocess
 import sys
@@ -13,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from test_runs import recipe
 
@@ -125,3 +128,67 @@ def test_osmesa_is_checked_before_mujoco_loads():
     proc = subprocess.run([sys.executable, str(REPO / "recipes" / "play.py"), "--help"], env=env,
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1 and "MUJOCO_GL=osmesa needs" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@needs_policy
+def test_play_refuses_an_out_holding_results_unless_overwrite(tmp_path, capsys):
+    # Checked before anything is built: an earlier evaluation's files are not replaced silently.
+    out = tmp_path / "earlier"
+    out.mkdir()
+    (out / "summary.json").write_text('{"earlier": true}')
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--num_envs", "1", "--seconds", "0.02",
+                             "--video_envs", "0", "--device", "cpu", "--out", str(out)])
+    assert f"{out} already holds results" in str(info.value.code) and "--overwrite" in str(info.value.code)
+    assert (out / "summary.json").read_text() == '{"earlier": true}'
+    recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--num_envs", "1", "--seconds", "0.02",
+                         "--video_envs", "0", "--device", "cpu", "--out", str(out), "--overwrite"])
+    assert json.loads((out / "summary.json").read_text())["num_envs"] == 1
+    assert f"results go to {out}/" in capsys.readouterr().out
+
+
+def test_the_default_eval_folder_is_never_reused_once_it_holds_results(tmp_path):
+    from tocabi_torchrl.rl.evaluate import eval_out_dir, fresh_eval_dir
+
+    ckpt = tmp_path / "run" / "checkpoints" / "latest.pt"
+    ckpt.parent.mkdir(parents=True)
+    ckpt.write_bytes(b"")  # only its place matters here
+    assert fresh_eval_dir(ckpt) == tmp_path / "run" / "eval"
+    (tmp_path / "run" / "eval").mkdir()
+    assert eval_out_dir(tmp_path / "run") == tmp_path / "run" / "eval"  # an empty folder holds nothing to lose
+    (tmp_path / "run" / "eval" / "summary.json").write_text("{}")
+    assert eval_out_dir(tmp_path / "run") == tmp_path / "run" / "eval_2"
+    (tmp_path / "run" / "eval_2").mkdir()
+    (tmp_path / "run" / "eval_2" / "knees.png").write_bytes(b"png")
+    (tmp_path / "run" / "eval_3").write_text("a file, not a folder")
+    assert eval_out_dir(tmp_path / "run") == tmp_path / "run" / "eval_4"
+    assert eval_out_dir(tmp_path / "run", tmp_path / "run" / "eval", overwrite=True) == tmp_path / "run" / "eval"
+
+
+@needs_policy
+def test_a_gait_test_where_every_robot_falls_at_once_writes_strict_json(tmp_path, monkeypatch, capsys):
+    from tocabi_torchrl.rl import evaluate
+    from tocabi_torchrl.rl.gait_record import GaitMetrics
+
+    class FallAtOnce(GaitMetrics):
+        def update(self, nxt):
+            nxt = nxt.clone()
+            nxt["terminated"] = torch.ones_like(nxt["terminated"])
+            return super().update(nxt)
+
+    monkeypatch.setattr(evaluate, "GaitMetrics", FallAtOnce)
+    out = tmp_path / "fell"
+    recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--num_envs", "2", "--seconds", "0.02",
+                         "--video_envs", "0", "--device", "cpu", "--out", str(out)])
+
+    def refuse(token):
+        raise ValueError(f"not JSON: {token}")
+
+    saved = json.loads((out / "summary.json").read_text(), parse_constant=refuse)
+    assert saved["survival"] == 0.0
+    for key in ("knee_rms_rad", "speed_tracking_error_mps", "forward_distance_survivors_m"):
+        assert saved[key] is None, key
+    printed = capsys.readouterr().out
+    assert json.loads(printed[printed.index("{"):], parse_constant=refuse) == saved
+    assert not evaluate.gait_passes(saved)
+    assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]

@@ -309,3 +309,21 @@ def test_freezing_running_statistics_drops_a_captured_step_graph_only_when_one_c
     assert freeze_running_statistics(env) == 1 and norm.frozen and env.dropped == 1
     assert freeze_running_statistics(env) == 1 and env.dropped == 1  # already frozen: the graph stays
     assert freeze_running_statistics(Env([])) == 0
+
+
+def test_freezing_finds_running_statistics_in_a_nested_compose_and_a_wrapped_env():
+    # A normaliser inside a Compose inside the env's Compose was missed, and kept learning from the evaluation.
+    from torchrl.envs.transforms import Compose, StepCounter
+
+    from tocabi_torchrl.transforms.normalize import freeze_running_statistics
+
+    class Env:
+        def __init__(self, transform, base_env=None):
+            self.transform = transform
+            self.base_env = self if base_env is None else base_env  # a base env is its own base_env
+
+    inner, outer = RunningNormalization(dim=3), RunningNormalization(dim=3)
+    env = Env(Compose(Compose(inner, StepCounter()), StepCounter()))
+    assert freeze_running_statistics(env) == 1 and inner.frozen
+    wrapped = Env(Compose(StepCounter()), base_env=Env(Compose(outer)))  # TransformedEnv(TransformedEnv(...))
+    assert freeze_running_statistics(wrapped) == 1 and outer.frozen

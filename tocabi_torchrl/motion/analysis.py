@@ -149,9 +149,13 @@ def self_contacts(
     """Penetrating pairs of collision geoms (ground excluded) along the cycle: ``(row, body1, body2, distance)``.
 
     Contacts come from MuJoCo's own collision pipeline, so the model's contype/conaffinity and parent-child
-    filtering apply exactly as in simulation.
+    filtering apply exactly as in simulation. ``every``: check every ``every``-th row (an int >= 1); ``ValueError``
+    otherwise.
     """
     import mujoco
+
+    if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+        raise ValueError(f"self_contacts: every must be an int >= 1 (1 checks every row), got {every!r}")
 
     data = mujoco.MjData(model)
     ground = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, GROUND_GEOM)

@@ -376,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
         hint = f"change {', '.join(options)}" if options else "change the gait parameters (see --help)"
         parser.error(f"cannot generate the walk: {err}; {hint}")
     out = args.out or robot.asset_path("motions", "tocabi_walk.npz")
-    save_npz(out, data)
+    out = save_npz(out, data)
     metrics = gait_metrics(data.joint_pos, data.init_rows)
     print(f"wrote {out} ({Path(out).stat().st_size / 1024:.0f} KiB, {data.num_rows} rows)")
     for key, value in metrics.summary().items():

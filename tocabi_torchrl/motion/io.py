@@ -36,6 +36,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import secrets
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -342,9 +343,14 @@ def _robot_order(names: list[str], source: str) -> np.ndarray:
 
 
 def save_npz(path: str | os.PathLike, data: MotionData) -> Path:
-    """Write ``data`` in the project format (float32, compressed); return the path written."""
+    """Write ``data`` in the project format (float32, compressed) and return the path written: ``path``, with
+    ``.npz`` appended when it has another ending (as ``np.savez`` does), since :func:`load_motion` picks the format
+    by the suffix. The file is written atomically (a temporary file beside it, renamed over it): a crash never
+    leaves half a motion where the env would load it."""
     data.validate("save_npz")
     p = Path(path)
+    if p.suffix != ".npz":
+        p = p.with_name(p.name + ".npz")
     p.parent.mkdir(parents=True, exist_ok=True)
     fields = {
         "format": np.array(NPZ_FORMAT),
@@ -363,11 +369,34 @@ def save_npz(path: str | os.PathLike, data: MotionData) -> Path:
 
 
 def _write_npz(path: Path, fields: dict[str, np.ndarray]) -> None:
-    """``np.savez_compressed`` with a fixed timestamp per member, so regenerating a motion gives identical bytes."""
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+    """``np.savez_compressed`` with a fixed timestamp per member, so regenerating a motion gives identical bytes;
+    written atomically."""
+    archive = io.BytesIO()
+    with zipfile.ZipFile(archive, "w", compression=zipfile.ZIP_DEFLATED) as zf:
         for name, arr in fields.items():
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.compress_type = zipfile.ZIP_DEFLATED
             buf = io.BytesIO()
             np.lib.format.write_array(buf, np.asanyarray(arr), allow_pickle=False)
             zf.writestr(info, buf.getvalue())
+    _write_atomic(path, archive.getvalue())
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Temporary file beside ``path``, fsynced, renamed over it. ``rl.atomic`` does the same, but importing the
+    ``rl`` package from here would load the trainer into every env that reads a motion. Created with mode 0o666 for
+    the umask to apply, as a plain ``open`` would (a shipped motion must stay readable by all)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
+    fd = os.open(tmp, flags, 0o666)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        if path.exists():
+            os.chmod(tmp, path.stat().st_mode & 0o7777)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise

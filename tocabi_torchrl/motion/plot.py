@@ -29,12 +29,13 @@ def plot_leg_joints(
         reference: optional motion drawn dashed underneath (same phase axis: row / (R − 1)).
         path: output PNG.
     """
-    import matplotlib
+    # A Figure on its own Agg canvas, not pyplot: the caller's matplotlib backend (a notebook's) stays as it was.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(6, 2, figsize=(11, 12), sharex=True)
+    fig = Figure(figsize=(11, 12))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(6, 2, sharex=True)
     phase = _phase(motion)
     dsp = motion.stance == DOUBLE_SUPPORT
     for j in range(12):
@@ -54,5 +55,4 @@ def plot_leg_joints(
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=dpi)
-    plt.close(fig)
     return out

@@ -2,8 +2,10 @@
 
 Reading a file never runs code from it: :func:`read_checkpoint` is the one reader (training's ``--resume``,
 evaluation and ``recipes/play.py`` all use it); it loads with ``torch.load(weights_only=True)``, which accepts
-tensors and plain containers only, then checks the keys, the types and the config against :data:`SCHEMA_VERSION`.
-Anything that does not fit raises :class:`CheckpointError` naming the file and what is wrong. Checkpoints written
+tensors and plain containers only, then checks the keys, the types and the config against :data:`SCHEMA_VERSION`,
+and that the policy's weights and the normalisers' statistics are finite (NaN or inf there: the run diverged, and a
+policy whose actions turn into NaN would still look plausible, as the env reads them as 0). Anything that does not
+fit raises :class:`CheckpointError` naming the file and what is wrong. Checkpoints written
 before the schema was versioned (no ``schema_version``, e.g. the shipped ``assets/policies/tocabi_walk_ppo.pt``)
 read as version 0; config fields they lack take their defaults. Versions 0 and 1 hold the flat ``PPOConfig`` dict
 of before the run config tree; :func:`config_from_checkpoint` migrates it to the tree (``config.FLAT_PATHS``).
@@ -126,7 +128,8 @@ def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu")
     """Load and check the checkpoint at ``path`` (a file or a run folder) without running code from it.
 
     Returns the state dict with ``schema_version`` filled in (0 for files written before it existed). Raises
-    :class:`CheckpointError` naming the file for a missing, truncated, foreign or malformed file.
+    :class:`CheckpointError` naming the file for a missing, truncated, foreign or malformed file, and for one whose
+    actor or critic weights or normalisation statistics hold NaN or inf (a diverged run).
     """
     path = checkpoint_file(path)
     try:
@@ -173,10 +176,13 @@ def _check_layout(state, path: Path) -> None:
                                   f"{type(state[key]).__name__}")
     for part in ("actor", "critic"):
         _check_tensor_dict(state["agent"].get(part), f"agent.{part}", path)
+        _check_finite(state["agent"][part], f"agent.{part}", path)
     if "teacher" in state["agent"]:  # the torque assist's frozen teacher (rl/assist.py)
         _check_tensor_dict(state["agent"]["teacher"], "agent.teacher", path)
     if state.get("transforms"):
         _check_tensor_dict(state["transforms"], "transforms", path)
+        _check_finite({k: v for k, v in state["transforms"].items() if k.rpartition(".")[2] in _STATISTICS},
+                      "transforms", path)
     if state.get("optimizer") is not None and not isinstance(state["optimizer"], dict):
         raise CheckpointError(f"checkpoint {path}: 'optimizer' must be a dict or None")
 
@@ -187,6 +193,24 @@ def _check_tensor_dict(value, name: str, path: Path) -> None:
     bad = [k for k, v in value.items() if not isinstance(k, str) or not isinstance(v, torch.Tensor)]
     if bad:
         raise CheckpointError(f"checkpoint {path}: {name} entries {bad[:5]} are not named tensors")
+
+
+#: Buffer names of the observation normalisers' statistics (``FixedNormalization``'s loc and scale,
+#: ``RunningNormalization``'s mean, var and count, TorchRL's ``ObservationNorm``'s loc and scale): never legitimately
+#: NaN or inf. Other transform state may be (a clip bound of inf, a -inf mask), so only these are checked.
+_STATISTICS = frozenset({"loc", "scale", "mean", "var", "count"})
+
+
+def _check_finite(tensors: dict, name: str, path: Path) -> None:
+    """:class:`CheckpointError` naming the first floating tensor of ``tensors`` that holds NaN or inf. The actor
+    and critic are checked whole: no parameter or buffer of theirs may be non-finite (the std's log is taken of a
+    positive std)."""
+    for key, value in tensors.items():
+        if (value.is_floating_point() or value.is_complex()) and not bool(torch.isfinite(value).all()):
+            what = "NaN" if bool(torch.isnan(value).any()) else "inf"
+            raise CheckpointError(f"checkpoint {path}: {name} {key!r} holds {what} values: the training run that "
+                                  f"wrote it diverged. Pick an earlier checkpoint of the run (checkpoints/iter_*.pt) "
+                                  f"to evaluate, export or resume from, or retrain (e.g. with a lower learning rate)")
 
 
 def config_from_checkpoint(state: dict, path: str | os.PathLike = "<checkpoint>") -> RunConfig:

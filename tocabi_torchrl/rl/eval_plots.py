@@ -1,26 +1,48 @@
 """Figures of the evaluations: the gait test's knee trajectories against the reference (``knees.png``), and the
 experiment recipes' knee comparison, joint torques and obstacle-height curves (``recipes/compare_gaits.py``,
-``recipes/obstacle_test.py``)."""
+``recipes/obstacle_test.py``).
+
+Figures are drawn on their own ``matplotlib.figure.Figure`` with the Agg canvas, never through ``pyplot``: the
+caller's matplotlib backend (a notebook's, a GUI's) stays as it was. Each file is written atomically (:mod:`.atomic`):
+an interrupted run leaves the earlier figure whole, never half a PNG."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_joint_torques", "plot_knee_comparison", "plot_knees", "plot_vs_height"]
+from .atomic import atomic_write_bytes
+
+__all__ = ["new_figure", "plot_joint_torques", "plot_knee_comparison", "plot_knees", "plot_vs_height", "save_figure"]
+
+
+def new_figure(**kwargs):
+    """A new figure on an Agg canvas of its own (no ``pyplot``, so no global backend switch and nothing to close)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(**kwargs)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def save_figure(fig, path: str | Path, title: str, dpi: int = 120) -> Path:
+    """Render ``fig`` (format from ``path``'s suffix, PNG by default) with ``title`` in its metadata and write it to
+    ``path`` atomically."""
+    path = Path(path)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format=path.suffix[1:].lower() or "png", dpi=dpi, metadata={"Title": title})
+    return atomic_write_bytes(path, buffer.getvalue())
 
 
 def plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path, command: tuple[float, float]) -> None:
     """Left and right knee angles (T, 2) [rad] of env 0 against the reference's over time, one panel each (TocabiLab
     figs 4.7-4.8), a red line where the episode ended (NaN rows); saved to ``path``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     t = (np.arange(len(q)) + 1) * dt  # row k is the state after the k-th policy step
-    fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    fig = new_figure(figsize=(8, 5))
+    axes = fig.subplots(2, 1, sharex=True)
     fell = np.flatnonzero(np.isnan(q[:, 0]))
     for i, (ax, side) in enumerate(zip(axes, ("left", "right"))):
         ax.plot(t, ref[:, i], "k--", lw=1.2, label="reference")
@@ -34,20 +56,10 @@ def plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path, command: t
     title = f"Knee trajectories at command ({command[0]:g}, {command[1]:g}) m/s, env 0"
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=120, metadata={"Title": title})
-    plt.close(fig)
+    save_figure(fig, path, title)
 
 
 # ------------------------------------------------------------------------------------------------ experiment figures
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def plot_knee_comparison(traces: dict[str, tuple[np.ndarray, np.ndarray]], dt: float, out_dir: Path,
                          command: tuple[float, float], stem: str = "knee") -> list[Path]:
     """One figure per knee (``<stem>_left.png``, ``<stem>_right.png``): every controller's knee angle [rad] of env 0
@@ -57,12 +69,12 @@ def plot_knee_comparison(traces: dict[str, tuple[np.ndarray, np.ndarray]], dt: f
     rollout has its own reference (the phase action speeds its clock up), so the references are drawn once, in black,
     when they agree within 1 mrad, and else dashed in each controller's colour. A mark shows where an env 0
     terminated. Returns the two paths."""
-    plt = _pyplot()
     refs = [ref for _, ref in traces.values()]
     shared = all(r.shape == refs[0].shape and np.allclose(r, refs[0], atol=1e-3) for r in refs)
     paths = []
     for i, side in enumerate(("left", "right")):
-        fig, ax = plt.subplots(figsize=(9, 3.6))
+        fig = new_figure(figsize=(9, 3.6))
+        ax = fig.subplots()
         for j, (label, (q, ref)) in enumerate(traces.items()):
             color = f"C{j}"
             t = (np.arange(len(q)) + 1) * dt
@@ -82,10 +94,7 @@ def plot_knee_comparison(traces: dict[str, tuple[np.ndarray, np.ndarray]], dt: f
         title = f"{side.capitalize()} knee at command ({command[0]:g}, {command[1]:g}) m/s, env 0"
         ax.set_title(title)
         fig.tight_layout()
-        path = Path(out_dir) / f"{stem}_{side}.png"
-        fig.savefig(path, dpi=120, metadata={"Title": title})
-        plt.close(fig)
-        paths.append(path)
+        paths.append(save_figure(fig, Path(out_dir) / f"{stem}_{side}.png", title))
     return paths
 
 
@@ -98,10 +107,10 @@ def plot_joint_torques(traces: dict[str, np.ndarray], dt: float, path: Path, joi
     ``traces``: label -> (T, len(joints)) torques, step k at time (k + 1)·dt − ``t0[label]`` (default 0);
     ``limits``: (len(joints),) torque limits drawn as grey lines; ``mark_zero``: a black line at t = 0 (e.g. the
     first contact with an obstacle). Saved to ``path``."""
-    plt = _pyplot()
     cols = 2 if len(joints) % 2 == 0 else 1
     rows = len(joints) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 2.2 * rows + 0.6), sharex=True, squeeze=False)
+    fig = new_figure(figsize=(5.2 * cols, 2.2 * rows + 0.6))
+    axes = fig.subplots(rows, cols, sharex=True, squeeze=False)
     for c in range(cols):
         for r in range(rows):
             ax = axes[r, c]
@@ -123,15 +132,13 @@ def plot_joint_torques(traces: dict[str, np.ndarray], dt: float, path: Path, joi
     axes[0, 0].legend(loc="upper right", fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=120, metadata={"Title": title})
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path, title)
 
 
 def plot_vs_height(rows: list[dict], key: str, ylabel: str, path: Path, title: str) -> Path:
     """One line per controller of ``row[key]`` against ``row["height_mm"]`` (rows of the obstacle table)."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 3.8))
+    fig = new_figure(figsize=(6.4, 3.8))
+    ax = fig.subplots()
     for i, label in enumerate(dict.fromkeys(row["controller"] for row in rows)):
         mine = sorted((row["height_mm"], row[key]) for row in rows if row["controller"] == label)
         x, y = zip(*mine)
@@ -142,6 +149,4 @@ def plot_vs_height(rows: list[dict], key: str, ylabel: str, path: Path, title: s
     ax.legend(fontsize=8)
     ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=120, metadata={"Title": title})
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path, title)

@@ -6,6 +6,10 @@ video of a few robots (``walk.mp4``, or ``walk.gif`` without an mp4 writer) rend
 rollout and the rendering show a progress bar (rendering takes minutes on a CPU). This module runs the rollout and
 computes the metrics (:class:`.gait_record.GaitMetrics`, shared with the experiment recipes); the figure is
 :mod:`.eval_plots`'s and the video :mod:`.eval_video`'s.
+
+``summary.json`` is strict JSON, written atomically: a metric that has no value (every robot fell in its first step:
+no knee RMS, no speed error; no survivor: no survivors' distance) is ``null``. The summary :func:`evaluate_policy`
+returns keeps those as NaN (``float``), for callers that format or compare the numbers.
 """
 
 from __future__ import annotations
@@ -22,14 +26,16 @@ from .. import robot
 from ..config import RunConfig
 from ..render_gl import NO_GL_FIX
 from ..transforms.normalize import freeze_running_statistics
+from .atomic import atomic_write_text
 from .checkpoint import checkpoint_file, read_checkpoint, run_folder_of
 from .eval_plots import plot_knees
 from .eval_video import render_video
+from .experiments import ExperimentOutputError, _clean
 from .gait_record import KNEES, GaitMetrics, fixed_command, load_policy, policy_steps
 from .trainer import build_env, resolve_device
 
-__all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "policy_dt", "GAIT_CRITERIA", "gait_passes",
-           "tested_on"]
+__all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "fresh_eval_dir", "eval_out_dir", "policy_dt",
+           "summary_json", "GAIT_CRITERIA", "gait_passes", "tested_on"]
 
 #: Pass thresholds of the gait test at (0.5, 0) m/s (issue 19): a policy walks when its summary meets all of them
 #: (and, in the time-to-walk benchmark, keeps ``survival`` at (0.2, 0) and (0.7, 0.1) too).
@@ -37,10 +43,19 @@ GAIT_CRITERIA = {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m":
 
 
 def gait_passes(summary: dict) -> bool:
-    """Whether a gait-test summary (:func:`evaluate_policy`'s) meets every :data:`GAIT_CRITERIA` threshold."""
+    """Whether a gait-test summary (:func:`evaluate_policy`'s, or its ``summary.json`` read back) meets every
+    :data:`GAIT_CRITERIA` threshold; a metric without a value (NaN, or ``null`` in the file) fails."""
     c = GAIT_CRITERIA
-    return (summary["survival"] >= c["survival"] and summary["forward_distance_m"] >= c["forward_distance_m"]
-            and summary["lateral_drift_m"] <= c["lateral_drift_m"] and summary["knee_rms_rad"] <= c["knee_rms_rad"])
+    values = {key: summary[key] for key in c}
+    if any(v is None for v in values.values()):
+        return False
+    return (values["survival"] >= c["survival"] and values["forward_distance_m"] >= c["forward_distance_m"]
+            and values["lateral_drift_m"] <= c["lateral_drift_m"] and values["knee_rms_rad"] <= c["knee_rms_rad"])
+
+
+def summary_json(summary: dict) -> str:
+    """``summary`` as strict JSON: NaN and inf as ``null`` (bare ``NaN`` tokens are not JSON)."""
+    return json.dumps(_clean(summary), indent=2, allow_nan=False)
 
 
 def tested_on(device: str | torch.device) -> str:
@@ -63,8 +78,10 @@ def evaluate_policy(
     env=None,
     progress: bool = True,
 ) -> dict:
-    """Roll the deterministic policy out for ``seconds`` at a fixed command and write the summary, plot and video.
-    ``seconds`` must cover at least one policy step; ``progress`` shows bars for the rollout and the rendering."""
+    """Roll the deterministic policy out for ``seconds`` at a fixed command and write the summary, plot and video
+    to ``out_dir`` (created if needed; files of the same name there are replaced: the caller chooses the folder,
+    e.g. with :func:`eval_out_dir`). ``seconds`` must cover at least one policy step; ``progress`` shows bars for
+    the rollout and the rendering. Returns the summary, NaN where a metric has no value (``null`` in the file)."""
     device = torch.device(device)
     if env is None:
         env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
@@ -94,7 +111,7 @@ def evaluate_policy(
             if video_envs < 1 and k % 50 == 49 and not bool(alive.any()):
                 break
     summary = metrics.summary(seconds)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    atomic_write_text(out / "summary.json", summary_json(summary))
     plot_knees(torch.stack(trace_q).cpu().numpy(), torch.stack(trace_ref).cpu().numpy(), base.dt, out / "knees.png",
                 command)
     if video_envs < 1:
@@ -111,14 +128,15 @@ def evaluate_policy(
             summary["video"] = f"not rendered: {type(err).__name__}: {err}"
             fix = "" if NO_GL_FIX in str(err) else f"; on a headless machine: {NO_GL_FIX}"  # said once
             print(f"video skipped ({summary['video']}){fix}")
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    atomic_write_text(out / "summary.json", summary_json(summary))
     return summary
 
 
 def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "auto",
                  out_dir: str | os.PathLike | None = None, **kwargs) -> dict:
-    """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``out_dir`` (default:
-    :func:`default_eval_dir`). Raises ``CheckpointError`` for a bad file and ``ValueError`` for ``seconds`` below
+    """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``out_dir`` as given (files of
+    the same name replaced), or by default to :func:`fresh_eval_dir` (``<run>/eval/``, or ``eval_2/``, ... when
+    earlier results are there). Raises ``CheckpointError`` for a bad file and ``ValueError`` for ``seconds`` below
     one policy step, before building anything."""
     ckpt = checkpoint_file(run)
     state = read_checkpoint(ckpt)
@@ -126,7 +144,7 @@ def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "aut
     policy = load_policy(ckpt, num_envs, resolve_device(device), command=kwargs.get("command", (0.5, 0.0)),
                          state=state)
     if out_dir is None:
-        out_dir = default_eval_dir(ckpt)
+        out_dir = fresh_eval_dir(ckpt)
     return evaluate_policy(policy.actor, policy.cfg, out_dir, num_envs=num_envs, device=policy.env.device,
                            env=policy.env, **kwargs)
 
@@ -138,6 +156,34 @@ def default_eval_dir(ckpt: Path) -> Path:
     if ckpt.resolve().is_relative_to(robot.asset_path().resolve()):
         return Path(RunConfig().run_dir) / "eval" / ckpt.stem
     return run_folder_of(ckpt) / "eval"
+
+
+def fresh_eval_dir(ckpt: Path) -> Path:
+    """:func:`default_eval_dir`, or when that already holds files (an earlier evaluation) the first of ``eval_2``,
+    ``eval_3``, ... beside it that does not: a repeated evaluation never replaces earlier results."""
+    base = default_eval_dir(ckpt)
+    candidate, n = base, 1
+    while candidate.exists() and (not candidate.is_dir() or any(candidate.iterdir())):
+        n += 1
+        candidate = base.with_name(f"{base.name}_{n}")
+    return candidate
+
+
+def eval_out_dir(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | None = None,
+                 overwrite: bool = False) -> Path:
+    """The folder an evaluation of ``checkpoint`` writes to: ``out_dir``, refused
+    (:class:`~tocabi_torchrl.rl.experiments.ExperimentOutputError`) when it already holds files unless ``overwrite``
+    (then files of the same name are replaced, others stay); without ``out_dir``, :func:`fresh_eval_dir`. Creates
+    nothing (an ``out_dir`` that is a file fails when the evaluation creates it, as ``OSError``); raises
+    ``CheckpointError`` for a missing checkpoint."""
+    if out_dir is None:
+        return fresh_eval_dir(checkpoint_file(checkpoint))
+    out = Path(out_dir)
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise ExperimentOutputError(f"{out} already holds results (e.g. an earlier evaluation's summary.json); they "
+                                    "are not overwritten. Choose another --out, leave --out out to write to a new "
+                                    "folder beside the run's eval/, or pass --overwrite to replace them")
+    return out
 
 
 def policy_dt() -> float:

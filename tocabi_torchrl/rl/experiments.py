@@ -10,13 +10,17 @@ import json
 import math
 import os
 import re
+import secrets
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from .. import robot
+from .atomic import TEMP_SUFFIX, atomic_write_bytes
 
 __all__ = ["Controller", "ExperimentOutputError", "SHIPPED_POLICIES", "checkpoint_record", "display_path",
-           "earlier_table", "parse_controllers", "prepare_out_dir", "slug", "write_atomic", "write_table"]
+           "earlier_table", "parse_controllers", "prepare_out_dir", "replace_atomically", "slug", "write_atomic",
+           "write_table"]
 
 #: The policies shipped with the package, the experiments' default controllers: label -> file name.
 SHIPPED_POLICIES = {"PD (pd_reference)": "tocabi_walk_ppo.pt", "torque": "tocabi_walk_torque.pt",
@@ -125,15 +129,26 @@ def write_table(rows: list[dict], columns: dict[str, str], out_dir: Path, stem: 
 
 
 def write_atomic(path: str | os.PathLike, data: str | bytes) -> Path:
-    """Write ``data`` to a temporary file next to ``path``, then rename it over ``path``: a run killed meanwhile
-    leaves the earlier file whole (and at most a ``.<name>.tmp`` beside it)."""
+    """Write ``data`` (text as UTF-8) to ``path`` atomically (:mod:`.atomic`: a temporary file of its own beside it,
+    fsynced, renamed over ``path``): a run killed meanwhile leaves the earlier file whole, and two writers of one
+    folder never share a temporary file."""
+    return atomic_write_bytes(path, data if isinstance(data, bytes) else data.encode("utf-8"))
+
+
+def replace_atomically(path: str | os.PathLike, write: Callable[[Path], object]) -> Path:
+    """For writers that take a path, not bytes (an image library): ``write(tmp)`` to a new temporary file beside
+    ``path`` whose name ends in ``path``'s suffix (writers pick the format from it), then fsync it and rename it
+    over ``path``. On failure the temporary file is removed and ``path`` is left as it was."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    if isinstance(data, bytes):
-        tmp.write_bytes(data)
-    else:
-        tmp.write_text(data)
-    os.replace(tmp, path)
+    tmp = path.with_name(f".{path.stem}.{secrets.token_hex(6)}{TEMP_SUFFIX}{path.suffix}")
+    try:
+        write(tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 

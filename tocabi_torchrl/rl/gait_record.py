@@ -72,7 +72,8 @@ class GaitMetrics:
 
     A robot counts as alive until its first termination; every metric uses its alive steps only and its pelvis
     position at its last alive step. A robot with no alive step (it fell in the first) has no knee RMS or speed
-    error: NaN per env, left out of the summary's means (NaN there too when no robot has one).
+    error: NaN per env, left out of the summary's means (NaN there too when no robot has one). With no survivor the
+    survivors' forward distance is NaN too (not 0: no robot stood still). The JSON writers turn NaN into ``null``.
     """
 
     def __init__(self, start_pos: torch.Tensor, command: tuple[float, float], dt: float):
@@ -118,7 +119,7 @@ class GaitMetrics:
             "num_envs": int(alive.shape[0]),
             "survival": float(alive.float().mean()),
             "forward_distance_m": float(dist[:, 0].mean()),
-            "forward_distance_survivors_m": float(dist[alive, 0].mean()) if alive.any() else 0.0,
+            "forward_distance_survivors_m": float(dist[alive, 0].mean()) if alive.any() else math.nan,
             "lateral_drift_m": float(dist[:, 1].abs().mean()),
             "mean_speed_mps": float((dist[:, 0] / (self.alive_steps * dt).clamp_min(dt)).mean()),
             "speed_tracking_error_mps": float(self._per_alive_step(self.vel_err).nanmean()),
@@ -236,7 +237,7 @@ class GaitRecord:
     alive: torch.Tensor  #: (T, N) bool
     start_pos: torch.Tensor  #: (N, 3) pelvis origin after the reset [m]
     termination_step: torch.Tensor  #: (N,) int64, the step of the first termination, -1 for none
-    snapshot_times: list[float]  #: [s] times of the ``snapshots``
+    snapshot_times: list[float]  #: [s] simulated times of the ``snapshots`` (whole policy steps)
     snapshots: torch.Tensor  #: (S, N, nq) joint states (qpos) at ``snapshot_times``
     termination_qpos: torch.Tensor  #: (N, nq) qpos on the terminating step (NaN for survivors)
     sole_half_size: np.ndarray  #: (2, 3) half sizes of the sole boxes [m]
@@ -282,7 +283,10 @@ def record_rollout(actor, env, seconds: float = 8.0, command: tuple[float, float
     """Roll the deterministic ``actor`` out in ``env`` (built at the fixed ``command``, e.g. by
     :func:`load_policy`) for ``seconds`` from a reset, recording every step (see :class:`GaitRecord`).
 
-    ``snapshot_every`` [s]: keep every env's qpos at t = 0, every, 2·every, ... (None: only t = 0).
+    ``snapshot_every`` [s]: keep every env's qpos at t = 0 and after the policy steps nearest to every, 2·every,
+    ... (None: only t = 0); ``snapshot_times`` holds the simulated times of the states kept, so an ``every`` that is
+    not a whole number of steps is labelled with the times shown, not the times asked. ``ValueError`` for an
+    ``every`` shorter than one policy step (several snapshots would fall on one step).
     ``on_step(k, env)``: called after each step, e.g. to record more from the simulator.
     """
     base = env.base_env
@@ -293,10 +297,13 @@ def record_rollout(actor, env, seconds: float = 8.0, command: tuple[float, float
     sole_centre = torch.as_tensor(centre_np, dtype=torch.float32, device=device)
     foot_ids = [sim.mj_model.body(name).id for name in robot.FOOT_BODIES]
     conjugate = torch.tensor([1.0, -1.0, -1.0, -1.0], device=device)  # made once: no host copy inside the loop
-    snap_steps = {}
+    snap_steps = set()
     if snapshot_every:
+        if not snapshot_every >= dt * (1 - 1e-9):
+            raise ValueError(f"snapshot_every={snapshot_every:g} s is shorter than one policy step ({dt * 1000:g} ms); "
+                             f"pass at least {dt:g}")
         for j in range(1, int(np.floor(seconds / snapshot_every + 1e-9)) + 1):
-            snap_steps[int(round(j * snapshot_every / dt)) - 1] = j * snapshot_every
+            snap_steps.add(int(round(j * snapshot_every / dt)) - 1)
 
     def empty(*shape, dtype=torch.float32):
         return torch.zeros(steps, n, *shape, dtype=dtype, device=device)
@@ -333,7 +340,7 @@ def record_rollout(actor, env, seconds: float = 8.0, command: tuple[float, float
             rec["alive"][k] = alive
             if k in snap_steps:
                 snapshots.append(sim.qpos.clone())
-                snapshot_times.append(snap_steps[k])
+                snapshot_times.append((k + 1) * dt)  # the state after step k
             if on_step is not None:
                 on_step(k, env)
             td = step_mdp(td)

@@ -285,8 +285,19 @@ def freeze_running_statistics(env) -> int:
     For an env that evaluates or exports a trained policy: it must normalise with the statistics the policy was
     trained with (those its checkpoint holds, and its export's contract states), not with ones that drift towards
     the evaluation's own rollouts. An env with a captured step graph (``SyncFreeResetEnv``) drops it when a
-    normaliser changes: the graph replays the updates it was captured with."""
-    norms = [t for t in getattr(env, "transform", ()) if isinstance(t, RunningNormalization)]
+    normaliser changes: the graph replays the updates it was captured with.
+
+    Every normaliser counts, wherever it sits: inside a nested ``Compose`` and in the transforms of a
+    ``TransformedEnv`` wrapped by another (one left unfrozen would go on learning from the evaluation)."""
+    norms, seen, layer = {}, set(), env
+    while layer is not None and id(layer) not in seen:
+        seen.add(id(layer))
+        transform = getattr(layer, "transform", None) or ()
+        stages = [transform] if isinstance(transform, torch.nn.Module) else list(transform)  # a Compose, or a list
+        norms.update((id(m), m) for stage in stages if isinstance(stage, torch.nn.Module) for m in stage.modules()
+                     if isinstance(m, RunningNormalization))
+        layer = getattr(layer, "base_env", None)
+    norms = list(norms.values())
     changed = [t.freeze() for t in norms if not t.frozen]
     if changed and hasattr(env, "invalidate_graph"):
         env.invalidate_graph()
