@@ -227,8 +227,16 @@ def test_evaluation_and_curves_from_a_tiny_run(tmp_path):
         assert math.isfinite(summary[key]), key
     assert 0.0 <= summary["survival"] <= 1.0 and summary["knee_rms_rad"] >= 0.0
     assert (run / "eval" / "knees.png").stat().st_size > 10_000
-    png = plot_curves(run, tmp_path / "curves.png")
-    assert png.stat().st_size > 10_000
+    import matplotlib
+
+    before = matplotlib.get_backend()
+    try:  # the curves are drawn on their own canvas: a notebook's backend is left alone
+        matplotlib.use("svg")
+        png = plot_curves(run, tmp_path / "curves.png")
+        assert matplotlib.get_backend() == "svg"
+    finally:
+        matplotlib.use(before)
+    assert png.read_bytes()[:4] == b"\x89PNG" and png.stat().st_size > 10_000
 
 
 def test_reference_preset_gives_the_value_head_its_own_constant_lr():

@@ -48,10 +48,7 @@ def steady_rate(rows: list[dict[str, str]], skip: int = 1) -> float | None:
 def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
     """Plot episode return/length and the per-term rewards against env steps (millions); ``metrics``: what
     :func:`read_metrics` reads (a run folder or a metrics file)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .eval_plots import new_figure, save_figure  # its own canvas: the caller's matplotlib backend stays
 
     data = metric_columns(metrics)
     steps = [s / 1e6 for s in data["env_steps"]]
@@ -60,7 +57,8 @@ def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
     finished = data.get("episodes_finished", [1.0] * len(steps))
     ep = [(x, r, n) for x, r, n, f in zip(steps, data["episode_return"], data["episode_length"], finished) if f > 0]
     ep_steps, ep_return, ep_length = (list(c) for c in zip(*ep)) if ep else ([], [], [])
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    fig = new_figure(figsize=(15, 4))
+    axes = fig.subplots(1, 3)
     axes[0].plot(ep_steps, ep_return, label="episode return")
     axes[0].set_ylabel("episode return")
     twin = axes[0].twinx()
@@ -85,9 +83,7 @@ def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
     fig.tight_layout()
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out, "Training curves", dpi=110)
 
 
 def main(argv=None) -> None:
