@@ -37,16 +37,21 @@ import torch
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
 from tocabi_torchrl.adapters.recipe import (
+    Interrupted,
     TimeUp,
     TrainingClock,
     base_parser,
+    call_seed,
     check_args,
     check_out_dir,
+    exit_status,
     fresh_dir,
     hidden_sizes,
     keep_previous,
     open_out_dir,
     read_resume,
+    report_interruption,
+    stop_on_signals,
     write_json,
     write_resume,
 )
@@ -173,8 +178,9 @@ def main(argv=None) -> dict:
 
     out = check_out_dir(args.out, args.resume)  # created once the env is built: a failed call leaves no folder
     prior = read_resume(out, torch_state=True) if args.resume else {}
-    torch.manual_seed(args.seed + int(prior.get("calls", 0)))  # a resumed call draws other exploration noise
-    env = TocabiRslRlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + int(prior.get("calls", 0)))
+    seed = call_seed(args.seed, int(prior.get("calls", 0)))
+    torch.manual_seed(seed)  # a resumed call draws other exploration noise
+    env = TocabiRslRlEnv(args.num_envs, args.device, preset=args.preset, seed=seed)
     open_out_dir(out, args.resume)
     cfg = train_cfg(args)
     settings = json.loads(json.dumps({"train_cfg": cfg, "lr_rule": args.lr_schedule, "num_envs": args.num_envs,
@@ -228,13 +234,17 @@ def main(argv=None) -> dict:
                           offset=float(prior.get("train_seconds", 0.0)), snapshots=prior.get("snapshots"))
     env.stepper.step_hooks.append(clock)
     left = args.iterations - done_before
-    try:
-        if clock.time_up or left <= 0:
-            print(f"rsl_rl: nothing left to train ({clock.elapsed:.0f} s, {done_before} iterations done)")
-        else:
-            runner.learn(left)
-    except TimeUp as stop:
-        print(f"rsl_rl: {stop}")
+    interrupted = None
+    with stop_on_signals(clock):
+        try:
+            if clock.time_up or left <= 0:
+                print(f"rsl_rl: nothing left to train ({clock.elapsed:.0f} s, {done_before} iterations done)")
+            else:
+                runner.learn(left)
+        except TimeUp as stop:
+            print(f"rsl_rl: {stop}")
+        except (Interrupted, KeyboardInterrupt) as stop:  # saved as at TimeUp: the call can be resumed
+            interrupted = report_interruption("rsl_rl", stop, out)
     env.stepper.step_hooks.clear()
     seconds = clock.freeze()
     iterations = done_before + updates[0]
@@ -252,7 +262,9 @@ def main(argv=None) -> dict:
     save(keep_previous(out / "policy.pt", f"call{calls}"))
     done = meta["iterations"]
     result = {"train": meta}
-    if args.eval_envs > 0:
+    if interrupted is not None:
+        result["interrupted"] = interrupted
+    elif args.eval_envs > 0:
         eval_dir = keep_previous(out / "eval", f"call{calls}")
         result["eval"] = evaluate(out / "policy.pt", eval_dir, num_envs=args.eval_envs, device=args.device,
                                   seconds=args.eval_seconds)
@@ -287,4 +299,4 @@ evaluate = functools.partial(evaluate_policy_file, load_actor)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(exit_status(main(sys.argv[1:])))

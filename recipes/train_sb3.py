@@ -33,15 +33,20 @@ import torch
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
 from tocabi_torchrl.adapters.recipe import (
+    Interrupted,
     TimeUp,
     TrainingClock,
     base_parser,
+    call_seed,
     check_args,
     check_out_dir,
+    exit_status,
     hidden_sizes,
     keep_previous,
     open_out_dir,
     read_resume,
+    report_interruption,
+    stop_on_signals,
     write_json,
     write_resume,
 )
@@ -128,7 +133,7 @@ def main(argv=None) -> dict:
     if prior and prior["settings"] != settings:
         raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
                          f"{prior['settings']}, given {settings} (--iterations too: it sets the LR and std schedules)")
-    env = TocabiSB3VecEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + calls)
+    env = TocabiSB3VecEnv(args.num_envs, args.device, preset=args.preset, seed=call_seed(args.seed, calls))
     open_out_dir(out, args.resume)
     total = args.iterations * args.n_steps * args.num_envs
     if prior:
@@ -138,7 +143,7 @@ def main(argv=None) -> dict:
         model = reference_ppo_class().load(out / prior["state"], env=env, device=str(env.device),
                                            custom_objects={"learning_rate": LinearLR(LR_START, LR_END),
                                                            "lr_schedule": LinearLR(LR_START, LR_END)})
-        model.set_random_seed(args.seed + calls)  # load reseeds with the first call's seed: draw other noise
+        model.set_random_seed(call_seed(args.seed, calls))  # load reseeds with the first call's seed: draw other noise
     else:
         model = reference_ppo_class()(
             "MlpPolicy", env, learning_rate=LinearLR(LR_START, LR_END), n_steps=args.n_steps,
@@ -163,16 +168,21 @@ def main(argv=None) -> dict:
                           offset=float(prior.get("train_seconds", 0.0)), snapshots=prior.get("snapshots"))
     env.stepper.step_hooks.append(clock)
     left = total - int(model.num_timesteps)
-    try:
-        if clock.time_up or left <= 0:
-            print(f"sb3: nothing left to train ({clock.elapsed:.0f} s, {model.num_timesteps} timesteps done)")
-        else:
-            model.learn(total_timesteps=left, reset_num_timesteps=not prior)
-    except TimeUp as stop:
-        print(f"sb3: {stop}")
-        # The rollout in progress is discarded: SB3 counted its steps in num_timesteps, which sets the schedules'
-        # position; take them back so that the next call's schedules continue from the last update.
-        model.num_timesteps = int(model._n_updates // args.epochs) * args.n_steps * args.num_envs
+    interrupted = None
+    with stop_on_signals(clock):
+        try:
+            if clock.time_up or left <= 0:
+                print(f"sb3: nothing left to train ({clock.elapsed:.0f} s, {model.num_timesteps} timesteps done)")
+            else:
+                model.learn(total_timesteps=left, reset_num_timesteps=not prior)
+        except (TimeUp, Interrupted, KeyboardInterrupt) as stop:
+            if isinstance(stop, TimeUp):
+                print(f"sb3: {stop}")
+            else:  # saved as at TimeUp: the call can be resumed
+                interrupted = report_interruption("sb3", stop, out)
+            # The rollout in progress is discarded: SB3 counted its steps in num_timesteps, which sets the schedules'
+            # position; take them back so that the next call's schedules continue from the last update.
+            model.num_timesteps = int(model._n_updates // args.epochs) * args.n_steps * args.num_envs
     env.stepper.step_hooks.clear()
     seconds = clock.freeze()
     meta.update(env_steps=env_steps(), train_seconds=seconds, env_steps_per_s=env_steps() / max(seconds, 1e-9),
@@ -186,9 +196,11 @@ def main(argv=None) -> dict:
     save(keep_previous(out / "policy.pt", f"call{calls}"))
     keep_previous(out / "sb3_model.zip", f"call{calls}").write_bytes(buffer.getvalue())
     result = {"train": meta}
-    if args.eval_envs > 0:
-        result["eval"] = evaluate(out / "policy.pt", keep_previous(out / "eval", f"call{calls}"), num_envs=args.eval_envs, device=args.device,
-                                  seconds=args.eval_seconds)
+    if interrupted is not None:
+        result["interrupted"] = interrupted
+    elif args.eval_envs > 0:
+        result["eval"] = evaluate(out / "policy.pt", keep_previous(out / "eval", f"call{calls}"),
+                                  num_envs=args.eval_envs, device=args.device, seconds=args.eval_seconds)
     write_json(keep_previous(out / "result.json", f"call{calls}"), result)
     env.close()
     print(f"sb3: {meta['env_steps']} env steps in {meta['train_seconds']:.1f} s; gait test: "
@@ -225,4 +237,4 @@ evaluate = functools.partial(evaluate_policy_file, load_actor)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(exit_status(main(sys.argv[1:])))

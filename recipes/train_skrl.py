@@ -33,16 +33,21 @@ from torch import nn
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
 from tocabi_torchrl.adapters.recipe import (
+    Interrupted,
     TimeUp,
     TrainingClock,
     base_parser,
+    call_seed,
     check_args,
     check_out_dir,
+    exit_status,
     fresh_dir,
     hidden_sizes,
     keep_previous,
     open_out_dir,
     read_resume,
+    report_interruption,
+    stop_on_signals,
     write_json,
     write_resume,
 )
@@ -110,8 +115,8 @@ def main(argv=None) -> dict:
     if prior and prior["settings"] != settings:
         raise SystemExit(f"error: --resume of {out} with other settings than it started with: saved "
                          f"{prior['settings']}, given {settings}")
-    set_seed(args.seed + calls)  # a resumed call draws other exploration noise
-    env = TocabiSkrlEnv(args.num_envs, args.device, preset=args.preset, seed=args.seed + calls)
+    set_seed(call_seed(args.seed, calls))  # a resumed call draws other exploration noise
+    env = TocabiSkrlEnv(args.num_envs, args.device, preset=args.preset, seed=call_seed(args.seed, calls))
     open_out_dir(out, args.resume)
     models = make_models(env.observation_space, env.action_space, env.device, args.hidden,
                          value_out_gain=preset_config(args.preset).ppo.value_out_gain)
@@ -159,13 +164,17 @@ def main(argv=None) -> dict:
     clock = TrainingClock(out, save, args.max_minutes, args.checkpoint_minutes,
                           offset=float(prior.get("train_seconds", 0.0)), snapshots=prior.get("snapshots"))
     env.stepper.step_hooks.append(clock)
-    try:
-        if clock.time_up or left <= 0:
-            print(f"skrl: nothing left to train ({clock.elapsed:.0f} s, {done_before} iterations done)")
-        else:
-            trainer.train()
-    except TimeUp as stop:
-        print(f"skrl: {stop}")
+    interrupted = None
+    with stop_on_signals(clock):
+        try:
+            if clock.time_up or left <= 0:
+                print(f"skrl: nothing left to train ({clock.elapsed:.0f} s, {done_before} iterations done)")
+            else:
+                trainer.train()
+        except TimeUp as stop:
+            print(f"skrl: {stop}")
+        except (Interrupted, KeyboardInterrupt) as stop:  # saved as at TimeUp: the call can be resumed
+            interrupted = report_interruption("skrl", stop, out)
     env.stepper.step_hooks.clear()
     seconds = clock.freeze()
     meta.update(env_steps=env_steps(), train_seconds=seconds, env_steps_per_s=env_steps() / max(seconds, 1e-9),
@@ -178,9 +187,11 @@ def main(argv=None) -> dict:
         "env_steps", "train_seconds", "iterations", "snapshots", "calls")}})
     save(keep_previous(out / "policy.pt", f"call{calls}"))
     result = {"train": meta}
-    if args.eval_envs > 0:
-        result["eval"] = evaluate(out / "policy.pt", keep_previous(out / "eval", f"call{calls}"), num_envs=args.eval_envs, device=args.device,
-                                  seconds=args.eval_seconds)
+    if interrupted is not None:
+        result["interrupted"] = interrupted
+    elif args.eval_envs > 0:
+        result["eval"] = evaluate(out / "policy.pt", keep_previous(out / "eval", f"call{calls}"),
+                                  num_envs=args.eval_envs, device=args.device, seconds=args.eval_seconds)
     write_json(keep_previous(out / "result.json", f"call{calls}"), result)
     env.close()
     print(f"skrl: {meta['env_steps']} env steps in {meta['train_seconds']:.1f} s; gait test: "
@@ -215,4 +226,4 @@ evaluate = functools.partial(evaluate_policy_file, load_actor)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(exit_status(main(sys.argv[1:])))

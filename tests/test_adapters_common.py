@@ -14,6 +14,10 @@ from tocabi_torchrl.adapters._versions import LibraryVersionError, require, vers
 from tocabi_torchrl.adapters.policy_file import PolicyFileError, load_policy, save_policy
 from tocabi_torchrl.adapters.recipe import TimeUp, TrainingClock, open_out_dir, read_resume, write_resume
 
+#: The counters every recipe writes into resume.json (besides the state file it names).
+COUNTERS = {"settings": {"num_envs": 2}, "calls": 1, "env_steps": 8, "train_seconds": 1.5, "iterations": 1,
+            "snapshots": []}
+
 
 def test_version_ranges():
     assert version_in_range("5.5.1", "5.0", "6.0")
@@ -178,16 +182,16 @@ def test_resume_loads_only_a_state_the_recipe_wrote(tmp_path):
     # The libraries' loaders unpickle the state file, so resume.json may only name one inside <out>/resume/.
     out = tmp_path / "run"
     out.mkdir()
-    written = write_resume(out, b"state bytes", {"calls": 1, "env_steps": 8})
+    written = write_resume(out, b"state bytes", COUNTERS)
     assert read_resume(out)["state"] == "resume/state_call1.pt" and written.read_bytes() == b"state bytes"
     (tmp_path / "crafted.pt").write_bytes(b"not ours")
     for state in ("../crafted.pt", str(tmp_path / "crafted.pt"), "resume/missing.pt"):
-        (out / "resume.json").write_text(json.dumps({"calls": 1, "state": state}))
+        (out / "resume.json").write_text(json.dumps({**COUNTERS, "state": state}))
         with pytest.raises(SystemExit, match="a resume loads only a state this recipe wrote"):
             read_resume(out)
     # a torch state must hold tensors only: a pickled object in it is refused before the library's loader sees it
     torch.save({"iter": 1, "weights": torch.zeros(2)}, out / "resume" / "state_call1.pt")
-    (out / "resume.json").write_text(json.dumps({"calls": 1, "state": "resume/state_call1.pt"}))
+    (out / "resume.json").write_text(json.dumps({**COUNTERS, "state": "resume/state_call1.pt"}))
     assert read_resume(out, torch_state=True)["calls"] == 1
     torch.save({"iter": 1, "object": TimeUp("pickled")}, out / "resume" / "state_call1.pt")
     with pytest.raises(SystemExit, match="does not load as tensors only"):
@@ -240,8 +244,8 @@ def test_training_clock_resumes_with_cumulative_time(tmp_path):
     assert [p.name for p in saved] == ["wall_00090s.pt"] and clock.snapshots[0] == "earlier.pt"
     frozen = clock.freeze()
     assert clock.elapsed == frozen
-    write_resume(tmp_path, b"x", {"calls": 1, "env_steps": 8})
-    assert read_resume(tmp_path) == {"calls": 1, "env_steps": 8, "state": "resume/state_call1.pt"}
+    write_resume(tmp_path, b"x", COUNTERS)
+    assert read_resume(tmp_path) == {**COUNTERS, "state": "resume/state_call1.pt"}
     with pytest.raises(FileExistsError, match="never overwritten"):
         write_resume(tmp_path, b"y", {"calls": 1})
     (tmp_path / "policy.pt").write_text("1")
@@ -268,3 +272,96 @@ def test_a_snapshot_left_by_a_killed_call_is_kept_aside(tmp_path):
     assert fresh_dir(tmp_path / "logs") == tmp_path / "logs"
     (tmp_path / "logs").mkdir()
     assert fresh_dir(tmp_path / "logs") == tmp_path / "logs_2"
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("{", r"is not readable JSON \(Expecting property name"),
+    ("[1, 2]", "holds list, not the object of counters a call writes"),
+    (json.dumps({k: v for k, v in COUNTERS.items() if k != "settings"}), "lacks 'settings', which every call writes"),
+    (json.dumps({**COUNTERS, "calls": "1"}), "has calls='1', which must be an int >= 1"),
+    (json.dumps({**COUNTERS, "train_seconds": -2.0}), "has train_seconds=-2.0, which must be a finite number >= 0"),
+    (json.dumps({**COUNTERS, "snapshots": None}), "has snapshots=None, which must be a list of paths"),
+    (json.dumps({**COUNTERS, "state": 3}), "has state=3, which must be a path"),
+])
+def test_a_corrupt_or_hand_edited_resume_json_is_refused_with_an_error_line(tmp_path, text, message):
+    # A traceback (JSONDecodeError, KeyError in the recipe) used to end the call; now one line names the problem.
+    write_resume(tmp_path, b"state", COUNTERS)
+    (tmp_path / "resume.json").write_text(text)
+    with pytest.raises(SystemExit, match=message) as err:
+        read_resume(tmp_path)
+    assert str(err.value).startswith(f"error: {tmp_path / 'resume.json'} ")
+    assert str(err.value).endswith("restore the file this recipe wrote, or start a new --out")
+    (tmp_path / "resume.json").write_bytes(b"\xff\xfe")  # not even text
+    with pytest.raises(SystemExit, match="is not readable JSON"):
+        read_resume(tmp_path)
+
+
+def test_a_calls_seed_stays_in_numpys_range():
+    # The recipes reseed each call with seed + calls; at the top of the accepted --seed range that left NumPy's
+    # [0, 2**32 - 1] and the resumed call crashed.
+    from tocabi_torchrl.adapters.recipe import call_seed
+
+    assert call_seed(7, 0) == 7 and call_seed(7, 2) == 9
+    assert call_seed(2 ** 32 - 1, 0) == 2 ** 32 - 1 and call_seed(2 ** 32 - 1, 1) == 0
+    assert call_seed(2 ** 32 - 2, 3) == 1
+
+
+def test_the_recipes_gait_test_shows_progress(monkeypatch, tmp_path):
+    # The recipes call evaluate_policy_file; the 8 s gait test takes minutes on a CPU and used to print nothing.
+    from tocabi_torchrl.adapters import evaluate as ev
+
+    seen = []
+    monkeypatch.setattr(ev, "evaluate_policy", lambda *a, **k: seen.append(k["progress"]) or {})
+    monkeypatch.setattr(ev, "gait_passes", lambda summary: False)
+
+    def load_actor(policy):
+        return {"preset": "default", "task": {"seed": 0}}, lambda obs: obs[:, :13]
+
+    assert ev.evaluate_policy_file(load_actor, "policy.pt", tmp_path, num_envs=1, device="cpu") == {"passes": False}
+    ev.evaluate_policy_file(load_actor, "policy.pt", tmp_path, num_envs=1, device="cpu", progress=False)
+    assert seen == [True, False]
+
+
+def test_a_signal_during_training_stops_at_the_next_step_and_the_handlers_come_back(tmp_path):
+    import os
+    import signal
+
+    from tocabi_torchrl.adapters.recipe import Interrupted, exit_status, stop_on_signals
+
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    clock = TrainingClock(tmp_path, lambda path: None)
+    with stop_on_signals(clock):
+        clock()  # no signal yet: a step goes on
+        os.kill(os.getpid(), signal.SIGTERM)  # would end the process without the handler
+        assert clock.stop_signal == "SIGTERM"
+        with pytest.raises(Interrupted, match="SIGTERM"):
+            clock()  # the next env step stops training, where TimeUp would
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)  # a second signal stops at once
+    assert {sig: signal.getsignal(sig) for sig in before} == before
+    assert exit_status({"train": {}}) == 0
+    assert exit_status({"interrupted": "SIGTERM"}) == 143 and exit_status({"interrupted": "SIGINT"}) == 130
+    assert exit_status({"interrupted": "KeyboardInterrupt"}) == 130
+
+
+def test_an_action_that_requires_grad_steps_the_env_and_the_next_step_too():
+    # A policy's output carries its graph; the env wrote it in place into its control buffer, which then joined the
+    # graph: every later step failed ("Can't call numpy() on Tensor that requires grad"), even after a reset.
+    from tensordict import TensorDict
+
+    from tocabi_torchrl.envs import TocabiWalk
+
+    n = 2
+    env = TocabiWalk(num_envs=n, device="cpu", seed=0, control_mode="torque")
+    try:
+        env.reset()
+        weight = torch.zeros(n, 13, requires_grad=True)
+        action = weight * 0.5
+        out = env.step(TensorDict({"action": action}, batch_size=[n]))["next"]
+        assert not env.sim.ctrl.requires_grad and not out["applied_action"].requires_grad
+        env.step(TensorDict({"action": torch.zeros(n, 13)}, batch_size=[n]))
+        env.step(TensorDict({"action": weight * 0.5}, batch_size=[n]))
+        action.sum().backward()  # the caller's graph is left as it was
+        assert torch.equal(weight.grad, torch.full((n, 13), 0.5))
+    finally:
+        env.close()

@@ -108,9 +108,73 @@ def test_bad_actions_and_options_are_refused(envs):
         envs.reset(options={"x": 1})
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_numpy_mode_refuses_non_finite_actions_naming_the_rows(envs, bad):
+    # The actions are on the host already, so the check is free; the env would act on NaN as 0 and clip inf.
+    envs.reset(seed=0)
+    actions = _zero(envs)
+    actions[1, 4] = bad
+    with pytest.raises(ValueError, match=r"actions must be finite, but env rows \[1\] hold NaN or inf"):
+        envs.step(actions)
+    with pytest.raises(ValueError, match=r"env rows \[1\] hold NaN or inf"):
+        envs.step(torch.as_tensor(actions))  # a CPU tensor is on the host too
+    envs.step(_zero(envs))  # nothing was stepped: the env goes on
+
+
+def test_an_action_that_requires_grad_steps_and_the_next_step_too():
+    # The docs' own envs.step(policy(obs)): the action carries the policy's graph, which reached the env's control
+    # buffer, and every later step failed, even with zeros and after a reset.
+    env = TocabiVectorEnv(N, "cpu")
+    policy = torch.nn.Linear(237, 13)
+    seen = []
+    step = env.stepper.env.step_and_maybe_reset
+
+    def spy(td):
+        seen.append(td.get("action").requires_grad)
+        return step(td)
+
+    env.stepper.env.step_and_maybe_reset = spy
+    try:
+        obs, _ = env.reset(seed=0)
+        action = policy(obs)
+        obs, reward, *_ = env.step(action)
+        assert not obs.requires_grad and not reward.requires_grad
+        env.step(policy(obs))
+        env.step(torch.zeros(N, 13))
+        assert seen == [False, False, False]  # detached where the adapters take it
+        action.sum().backward()  # the caller's graph is intact
+        assert policy.weight.grad is not None
+    finally:
+        env.close()
+
+
+def test_gymnasiums_episode_statistics_wrapper_applies_with_the_option_off():
+    # The env's own infos["episode"] collided with RecordEpisodeStatistics ("key already exists"); with
+    # episode_statistics=False gymnasium's wrapper records them. num_envs may be any integer type, numpy's too.
+    from gymnasium.wrappers.vector import RecordEpisodeStatistics
+
+    env = RecordEpisodeStatistics(TocabiVectorEnv(np.int64(N), "cpu", numpy=True, episode_statistics=False,
+                                                  max_episode_steps=2))
+    try:
+        assert env.num_envs == N and type(env.unwrapped.num_envs) is int
+        env.reset(seed=0)
+        zeros = np.zeros((N, 13), dtype=np.float32)
+        _, _, _, _, infos = env.step(zeros)
+        assert "episode" not in infos
+        _, _, _, truncated, infos = env.step(zeros)
+        assert truncated.all() and infos["_episode"].all()
+        np.testing.assert_array_equal(infos["episode"]["l"], [2, 2])
+        assert set(infos["episode"]) == {"r", "l", "t"} and len(env.return_queue) == N
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="num_envs must be a positive int, got True"):
+        TocabiVectorEnv(True, "cpu")
+
+
 @pytest.mark.parametrize("kwargs, match", [
     ({"render_mode": "human"}, "does not render"),  # said, not silently dropped
     ({"numpy": "no"}, "numpy must be True or False"),  # bool("no") is True
+    ({"episode_statistics": "no"}, "episode_statistics must be True or False"),
     ({"vectorization_mode": "sync"}, "is a batched env .* use gymnasium.make_vec"),
 ])
 def test_make_vec_names_what_the_env_cannot_do(kwargs, match):

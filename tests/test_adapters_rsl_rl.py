@@ -302,3 +302,37 @@ def test_per_iteration_rule_averages_the_kl_over_gpus(tmp_path):
         silenced, lr, groups = results[rank]
         assert silenced == [0.0, 0.0]  # rsl_rl's own rule sees no KL
         assert lr == pytest.approx(1e-3 / 1.5) and groups == [lr]
+
+
+def test_a_sigterm_saves_the_call_and_resume_continues(tmp_path, monkeypatch, capsys):
+    # SIGTERM (a job scheduler's stop) in the second rollout: the handler the recipe installs while training lets the
+    # rollout stop at the next env step, the call saves its resume state and policy.pt, and --resume trains the rest.
+    import os
+    import signal
+
+    from tocabi_torchrl.adapters.recipe import read_resume
+
+    recipe = load_recipe("train_rsl_rl")
+    real_clock, steps = recipe.TrainingClock, [0]
+
+    class Terminated(real_clock):
+        def __call__(self):
+            steps[0] += 1
+            if steps[0] == 6:  # 4 steps per rollout: the second one
+                os.kill(os.getpid(), signal.SIGTERM)  # without the recipe's handler, this ends the test process
+            super().__call__()
+
+    handler = signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(recipe, "TrainingClock", Terminated)
+    out = tmp_path / "run"
+    small = ["--out", str(out), "--device", "cpu", "--num_envs", "2", "--steps_per_env", "4", "--hidden", "16",
+             "--eval_envs", "0", "--iterations", "2", "--seed", str(2 ** 32 - 1)]
+    first = recipe.main(small)
+    assert first["interrupted"] == "SIGTERM" and recipe.exit_status(first) == 143
+    assert (first["train"]["iterations"], first["train"]["env_steps"]) == (1, 12)
+    assert read_resume(out, torch_state=True)["calls"] == 1 and (out / "policy.pt").is_file()
+    assert "rsl_rl: interrupted (SIGTERM)" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGTERM) is handler
+    monkeypatch.setattr(recipe, "TrainingClock", real_clock)
+    second = recipe.main([*small, "--resume"])["train"]  # seed 2**32 - 1 + 1 wraps to 0
+    assert (second["iterations"], second["env_steps"], second["calls"]) == (2, 20, 2)

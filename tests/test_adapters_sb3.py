@@ -18,6 +18,7 @@ from stable_baselines3.common.vec_env import VecCheckNan, VecEnv, VecMonitor
 
 from tocabi_torchrl.adapters import TocabiSB3VecEnv
 from tocabi_torchrl.adapters.policy_file import load_policy
+from tocabi_torchrl.adapters.recipe import read_resume
 
 N = 2
 
@@ -64,6 +65,27 @@ def test_step_wait_without_actions_is_refused(env):
         env.step_wait()
     with pytest.raises(ValueError, match="actions must have shape"):
         env.step_async(np.zeros((N, 3), dtype=np.float32))
+
+
+def test_non_finite_actions_are_refused_naming_the_rows(env):
+    # SB3's actions are on the host: a NaN or inf is refused there, not acted on as 0 or as the bound.
+    env.reset()
+    actions = np.zeros((N, 13), dtype=np.float32)
+    actions[0, 2], actions[1, 12] = np.nan, np.inf
+    with pytest.raises(ValueError, match=r"actions must be finite, but env rows \[0, 1\] hold NaN or inf"):
+        env.step_async(actions)
+    env.step(np.zeros((N, 13), dtype=np.float32))
+
+
+def test_reset_options_are_refused_as_by_the_gymnasium_adapter(env):
+    # SB3's set_options hands them to the next reset, which used to drop them without a word.
+    with pytest.raises(ValueError, match=r"TocabiSB3VecEnv.reset takes no options, got \{'x': 1\}"):
+        env.set_options({"x": 1})
+    with pytest.raises(ValueError, match="takes no options"):
+        env.set_options([{}, {"x": 1}])
+    env.set_options(None)
+    env.set_options([{}, {}])
+    assert env.reset().shape == (N, 237)
 
 
 def test_recipe_trains_two_iterations_with_the_reference_schedule(tmp_path):
@@ -128,3 +150,37 @@ def test_recipe_resumes_the_same_run_and_its_schedules(tmp_path):
     assert (out / "policy_call1.pt").is_file() and (out / "sb3_model_call1.zip").is_file()
     with pytest.raises(SystemExit, match="other settings"):
         recipe.main([*small[:-1], "3", "--resume"])
+
+
+def test_an_interrupted_call_saves_its_resume_state_and_resumes(tmp_path, monkeypatch, capsys):
+    # Ctrl-C (KeyboardInterrupt) in the second rollout: the call saves as at TimeUp, skips the gait test and says how
+    # to resume; --resume then trains the rest. The top seed also checks that the resumed call's seed + 1 wraps.
+    import signal
+
+    recipe = load_recipe("train_sb3")
+    real_clock, steps = recipe.TrainingClock, [0]
+
+    class CtrlC(real_clock):
+        def __call__(self):
+            super().__call__()
+            steps[0] += 1
+            if steps[0] == 6:  # 4 steps per rollout: the second one
+                raise KeyboardInterrupt
+
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    monkeypatch.setattr(recipe, "TrainingClock", CtrlC)
+    out = tmp_path / "run"
+    small = ["--out", str(out), "--device", "cpu", "--num_envs", "2", "--n_steps", "4", "--batch_size", "4",
+             "--hidden", "16", "--eval_envs", "2", "--eval_seconds", "0.1", "--iterations", "2",
+             "--seed", str(2 ** 32 - 1)]
+    first = recipe.main(small)
+    assert first["interrupted"] == "KeyboardInterrupt" and "eval" not in first and recipe.exit_status(first) == 130
+    assert (first["train"]["iterations"], first["train"]["env_steps"], first["train"]["calls"]) == (1, 12, 1)
+    assert (out / "policy.pt").is_file() and read_resume(out)["iterations"] == 1 and not (out / "eval").exists()
+    err = capsys.readouterr().err
+    assert "sb3: interrupted (KeyboardInterrupt)" in err and "run the same command with --resume" in err
+    assert {sig: signal.getsignal(sig) for sig in handlers} == handlers  # only replaced while training
+    monkeypatch.setattr(recipe, "TrainingClock", real_clock)
+    second = recipe.main([*small, "--resume"])
+    assert (second["train"]["iterations"], second["train"]["calls"]) == (2, 2) and "eval" in second
+    assert second["train"]["sb3_num_timesteps"] == 16 and "interrupted" not in second

@@ -120,3 +120,12 @@ def test_models_start_from_the_presets_initialisation(tmp_path, monkeypatch):
     assert_preset_init(built["value"].net, value_gain)
     obs = torch.randn(64, built["policy"].net[0].in_features)
     assert built["policy"].net(obs).abs().max() < 0.1
+
+
+def test_resume_of_the_top_seed(tmp_path):
+    # The resumed call reseeds with seed + 1, which used to leave NumPy's range at --seed 2**32 - 1.
+    recipe = load_recipe("train_skrl")
+    small = ["--out", str(tmp_path / "run"), "--device", "cpu", "--num_envs", "2", "--rollouts", "2", "--hidden", "8",
+             "--eval_envs", "0", "--seed", str(2 ** 32 - 1)]
+    recipe.main([*small, "--iterations", "1"])
+    assert recipe.main([*small, "--iterations", "2", "--resume"])["train"]["iterations"] == 2

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 from torchrl.envs import EnvBase
 
@@ -35,8 +37,10 @@ def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "
     from ..rl.trainer import build_env as _trainer_env
     from ..rl.trainer import resolve_device
 
-    if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+    # Any integer type (numpy's too: counts often come from arrays), but not bool, which is an int to Python.
+    if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or num_envs < 1:
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+    num_envs = int(num_envs)
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
     cfg = task_config(preset, num_envs=num_envs, device=str(dev), **task)
     env = _trainer_env(cfg, dev, num_envs=num_envs, for_training=for_training, **(env_options or {}))

@@ -82,9 +82,24 @@ class TensorStepper:
                              f"got {tuple(action.shape)}")
         return action
 
+    def check_finite(self, action: torch.Tensor) -> torch.Tensor:
+        """``action`` (num_envs, action_dim) on the host if every value is finite, else a ``ValueError`` naming the env
+        rows that hold NaN or ±inf. For actions already on the host (SB3's, gymnasium's numpy mode) only: on a GPU
+        this read would synchronise every step, so device tensors are left to the env's rule (NaN acts as 0, ±inf
+        is clipped to the action bounds)."""
+        bad = (~torch.isfinite(action).all(dim=-1)).nonzero().flatten().tolist()
+        if bad:
+            rows = ", ".join(str(i) for i in bad[:10]) + (f", ... ({len(bad)} rows)" if len(bad) > 10 else "")
+            raise ValueError(f"actions must be finite, but env rows [{rows}] hold NaN or inf (the env would act on NaN "
+                             "as 0 and clip inf to the action bounds); fix the policy output that produced them")
+        return action
+
     def step(self, action: torch.Tensor) -> StepResult:
-        """Step every env with ``action`` (num_envs, action_dim) on the env's device, then reset finished envs."""
-        self.check_action(action)
+        """Step every env with ``action`` (num_envs, action_dim) on the env's device, then reset finished envs.
+
+        The action is detached: the env writes it into its own buffers, which must never join the caller's
+        gradient graph (they would keep it alive and every later step would fail or leak)."""
+        action = self.check_action(action).detach()
         if self._td is None:
             self.reset()
         td = self._td.set("action", action)

@@ -37,9 +37,11 @@ def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str |
 
 
 def evaluate_policy_file(load_actor, policy: str, out_dir, num_envs: int = 256, device: str | torch.device = "auto",
-                         seconds: float = 8.0, command: tuple[float, float] = (0.5, 0.0)) -> dict:
+                         seconds: float = 8.0, command: tuple[float, float] = (0.5, 0.0),
+                         progress: bool = True) -> dict:
     """The 8 s gait test of a recipe's ``policy.pt``: ``load_actor(policy)`` (the recipe's loader) gives its metadata
-    (preset, task) and a deterministic ``act(obs) -> action``, which :func:`evaluate_actions` runs."""
+    (preset, task) and a deterministic ``act(obs) -> action``, which :func:`evaluate_actions` runs. ``progress``: a
+    progress bar of the rollout (on by default: the recipes' gait test runs for minutes on a CPU)."""
     meta, act = load_actor(policy)
     return evaluate_actions(act, out_dir, preset=meta["preset"], num_envs=num_envs, device=device, seconds=seconds,
-                            command=command, task=meta["task"])
+                            command=command, progress=progress, task=meta["task"])

@@ -34,27 +34,35 @@ class TocabiVectorEnv(VectorEnv):
             every returned array is a torch tensor on ``device`` and actions may be tensors there too.
         preset: the task preset (control mode, gains, commands, rewards) of
             :data:`tocabi_torchrl.rl.config.PRESETS`; ``task``: single fields of it (e.g. ``seed=1``).
+        episode_statistics: fill ``infos["episode"]``/``["_episode"]`` (below) from the env's own counters, on
+            ``device``. Pass ``False`` to wrap the env in gymnasium's ``RecordEpisodeStatistics`` instead (numpy mode),
+            which refuses to overwrite those keys.
 
     ``step`` returns ``obs`` (num_envs, 237) float32, ``reward`` (num_envs,) float32, ``terminated`` and
     ``truncated`` (num_envs,) bool (a fall vs. the episode time limit; never both), and ``infos`` with:
     ``"reward_terms"`` {name: (num_envs,)} the 13 weighted terms summing to the reward; ``"final_obs"`` and
-    ``"_final_obs"`` (see the module docstring); ``"episode"`` {``"r"``: return, ``"l"``: length [steps]}
-    (num_envs,) for the envs whose episode ended, flagged by ``"_episode"`` (the layout of gymnasium's
-    ``RecordEpisodeStatistics``).
+    ``"_final_obs"`` (see the module docstring); with ``episode_statistics``, ``"episode"`` {``"r"``: return,
+    ``"l"``: length [steps]} (num_envs,) for the envs whose episode ended, flagged by ``"_episode"`` (the layout of
+    gymnasium's ``RecordEpisodeStatistics``, without its ``"t"``).
+
+    Actions: a tensor on ``device`` (detached; NaN acts as 0 and ±inf is clipped to the bounds, unchecked so that a
+    GPU step never synchronises) or, in numpy mode, also an array, whose values are checked on the host: a NaN or
+    ±inf is a ``ValueError`` naming the env rows.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
     def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", numpy: bool = False,
-                 preset: str = "default",
-                 env_options: dict | None = None, **task):
-        if not isinstance(numpy, (bool, np.bool_)):  # bool("no") is True
-            raise ValueError(f"numpy must be True or False, got {numpy!r}")  # noqa: TRY004 (an option value)
+                 preset: str = "default", env_options: dict | None = None, episode_statistics: bool = True, **task):
+        for name, value in (("numpy", numpy), ("episode_statistics", episode_statistics)):
+            if not isinstance(value, (bool, np.bool_)):  # bool("no") is True
+                raise ValueError(f"{name} must be True or False, got {value!r}")  # noqa: TRY004 (an option value)
         env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
         self.stepper = TensorStepper(env)
         self.num_envs = self.stepper.num_envs
         self.device = self.stepper.device
         self.numpy = bool(numpy)
+        self.episode_statistics = bool(episode_statistics)
         self.single_observation_space = box_from_spec(env.observation_spec["observation"], batched=False)
         self.single_action_space = box_from_spec(env.action_spec, batched=False)
         self.observation_space = box_from_spec(env.observation_spec["observation"], batched=True)
@@ -79,18 +87,25 @@ class TocabiVectorEnv(VectorEnv):
 
     def step(self, actions):
         """Step every env with ``actions`` (num_envs, 13): a tensor or an array; see the class docstring."""
-        r = self.stepper.step(torch.as_tensor(actions, dtype=torch.float32, device=self.device))
+        if not isinstance(actions, torch.Tensor):
+            actions = np.asarray(actions, dtype=np.float32)
+        actions = torch.as_tensor(actions, dtype=torch.float32)
+        if self.numpy and actions.device.type == "cpu":  # on the host already: reading the values costs no sync
+            self.stepper.check_finite(self.stepper.check_action(actions))
+        r = self.stepper.step(actions.to(self.device))
         return self._out(r.obs), self._out(r.reward), self._out(r.terminated), self._out(r.truncated), self._infos(r)
 
     def _infos(self, r: StepResult) -> dict[str, Any]:
         done = self._out(r.done)
-        return {
+        infos = {
             "reward_terms": {k: self._out(v) for k, v in r.reward_terms.items()},
             "final_obs": self._out(r.final_obs),
             "_final_obs": done,
-            "episode": {"r": self._out(r.episode_return), "l": self._out(r.episode_length)},
-            "_episode": done,
         }
+        if self.episode_statistics:
+            infos["episode"] = {"r": self._out(r.episode_return), "l": self._out(r.episode_length)}
+            infos["_episode"] = done
+        return infos
 
     def _out(self, x: torch.Tensor):
         # Fresh tensors from the env each step (never views of its state), so handing them out is safe.

@@ -7,30 +7,42 @@ atomically, ``<out>/resume.json``, which names that file and carries the cumulat
 seconds, PPO iterations, snapshots). ``--resume`` continues from there; ``--max_minutes`` is then the cap on the
 *total* training time over all calls. The rollout in progress when a call's time is up is discarded (its env steps
 and seconds still count: they were spent), and every call starts its envs from a reset.
+
+A call stopped by Ctrl-C or SIGTERM (:func:`stop_on_signals`) ends the same way: at the next env step it saves its
+resume state and ``policy.pt``, skips the gait test and says how to resume.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
-from collections.abc import Mapping, Sequence
+import signal
+import sys
+import threading
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 from ..config import check_snapshot_minutes, wall_tag
 from ..rl.atomic import atomic_write_text
 
 __all__ = [
+    "Interrupted",
     "TimeUp",
     "TrainingClock",
     "base_parser",
+    "call_seed",
     "check_args",
     "check_out_dir",
+    "exit_status",
     "fresh_dir",
     "hidden_sizes",
     "keep_previous",
     "open_out_dir",
     "read_resume",
+    "report_interruption",
+    "stop_on_signals",
     "write_json",
     "write_resume",
 ]
@@ -143,21 +155,59 @@ def write_json(path: Path, data: dict) -> None:
     atomic_write_text(path, json.dumps(data, indent=2))
 
 
+def call_seed(seed: int, calls: int) -> int:
+    """The seed of a run's call after ``calls`` earlier ones: ``seed + calls`` (a resumed call draws other noise),
+    wrapped into [0, 2**32 - 1], the only range NumPy's seeding (the libraries') takes, so that every ``--seed``
+    :func:`check_args` accepts also resumes."""
+    return (int(seed) + int(calls)) % 2 ** 32
+
+
+def _is_int(value, low: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
+#: What every recipe writes into ``resume.json`` (besides ``state``) and reads back on ``--resume``.
+RESUME_FIELDS = {
+    "settings": ("an object", lambda v: isinstance(v, dict)),
+    "calls": ("an int >= 1", lambda v: _is_int(v, 1)),
+    "env_steps": ("an int >= 0", lambda v: _is_int(v, 0)),
+    "iterations": ("an int >= 0", lambda v: _is_int(v, 0)),
+    "train_seconds": ("a finite number >= 0", lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)
+                      and math.isfinite(v) and v >= 0),
+    "snapshots": ("a list of paths", lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v)),
+    "state": ("a path", lambda v: isinstance(v, str)),
+}
+
+
 def read_resume(out: Path, torch_state: bool = False) -> dict:
     """The counters of ``<out>/resume.json``: ``env_steps``, ``train_seconds``, ``iterations``, ``snapshots``,
-    ``calls``, ``state`` (the library state file, relative to ``out``) and ``library`` options to check.
+    ``calls``, ``state`` (the library state file, relative to ``out``) and ``settings`` (the options to check).
 
+    A file that is not JSON, or lacks one of these fields or holds a value of the wrong kind (a hand edit, a copy cut
+    short), ends the call with ``SystemExit`` and an ``error:`` line naming the field, before anything is built.
     The libraries' own loaders unpickle that state file, so it must be one this recipe wrote: ``state`` has to name
     an existing file inside ``<out>/resume/``, or ``SystemExit`` says so (a resume.json pointing elsewhere is
     refused before anything is loaded). ``torch_state``: the file is a torch checkpoint (rsl_rl's, skrl's), and it
     must load with ``torch.load(weights_only=True)`` (tensors and plain containers only), so the library's own
     unpickling loader then meets nothing that could run code."""
     out = Path(out)
-    prior = json.loads((out / "resume.json").read_text())
-    state = (out / str(prior.get("state", ""))).resolve()
+    path = out / "resume.json"
+    fix = "restore the file this recipe wrote, or start a new --out"
+    try:
+        prior = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise SystemExit(f"error: {path} is not readable JSON ({err}); {fix}") from None
+    if not isinstance(prior, dict):
+        raise SystemExit(f"error: {path} holds {type(prior).__name__}, not the object of counters a call writes; {fix}")
+    for name, (kind, ok) in RESUME_FIELDS.items():
+        if name not in prior:
+            raise SystemExit(f"error: {path} lacks {name!r}, which every call writes; {fix}")
+        if not ok(prior[name]):
+            raise SystemExit(f"error: {path} has {name}={prior[name]!r}, which must be {kind}; {fix}")
+    state = (out / prior["state"]).resolve()
     if state.parent != (out / "resume").resolve() or not state.is_file():
-        raise SystemExit(f"error: {out / 'resume.json'} names {prior.get('state')!r} as its state file; a resume loads only "
-                         f"a state this recipe wrote into {out / 'resume'}/ (start a new --out instead)")
+        raise SystemExit(f"error: {path} names {prior['state']!r} as its state file; a resume loads only a state this "
+                         f"recipe wrote into {out / 'resume'}/ (start a new --out instead)")
     if torch_state:
         import torch
 
@@ -207,6 +257,58 @@ class TimeUp(Exception):
     """Raised from inside a library's training loop when the recipe's ``--max_minutes`` are spent."""
 
 
+class Interrupted(Exception):
+    """Raised from inside a library's training loop, at the env step after Ctrl-C or SIGTERM (:func:`stop_on_signals`):
+    the recipe then saves the call as at :class:`TimeUp`."""
+
+
+@contextlib.contextmanager
+def stop_on_signals(clock: TrainingClock) -> Iterator[None]:
+    """While training: the first SIGINT (Ctrl-C) or SIGTERM asks ``clock`` to raise :class:`Interrupted` at the next
+    env step, where the rollout in progress is discarded as at :class:`TimeUp` and no update is cut short; a second
+    one raises ``KeyboardInterrupt`` at once (the recipes save then too, with the update in progress possibly part
+    applied). The previous handlers are back on exit. Python delivers signals to the main thread only, so elsewhere
+    nothing is installed."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        if clock.stop_signal is not None:
+            raise KeyboardInterrupt
+        clock.stop_signal = signal.Signals(signum).name
+        print(f"{clock.stop_signal}: stopping at the next env step to save the resume state (send it again to stop "
+              "at once)", file=sys.stderr, flush=True)
+
+    previous = {}
+    try:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, handler)
+        yield
+    finally:
+        for sig, old in previous.items():  # None: a handler not set from Python, which cannot be put back
+            signal.signal(sig, signal.SIG_DFL if old is None else old)
+
+
+def exit_status(result: Mapping) -> int:
+    """A recipe's exit status for ``result``: 0, or for an interrupted call the shell's 128 + signal number (130
+    for Ctrl-C, 143 for SIGTERM), so that a script running the calls can tell it from a finished one."""
+    reason = result.get("interrupted")
+    if reason is None:
+        return 0
+    return 128 + int(signal.SIGTERM if reason == "SIGTERM" else signal.SIGINT)
+
+
+def report_interruption(name: str, stop: BaseException, out: Path) -> str:
+    """Print that the call of recipe ``name`` was interrupted by ``stop`` and that its resume state is being saved;
+    returns what stopped it (a signal's name or the exception's), for ``result.json``."""
+    reason = str(stop) or type(stop).__name__
+    print(f"{name}: interrupted ({reason}); saving the resume state and policy.pt in {out}, skipping the gait test. "
+          f"To continue, run the same command with --resume (--max_minutes, if given, caps the total)",
+          file=sys.stderr, flush=True)
+    return reason
+
+
 class TrainingClock:
     """A step hook (``TensorStepper.step_hooks``) that saves the policy at every ``checkpoint_minutes`` of training
     wall-clock (``<out>/checkpoints/wall_XXXXXs.pt``, what the per-library table gait-tests) and raises
@@ -230,6 +332,8 @@ class TrainingClock:
         self.every = 60.0 * checkpoint_minutes
         self.next = (math.floor(self.offset / self.every) + 1) * self.every if self.every > 0 else 0.0
         self.snapshots: list[str] = list(snapshots or [])
+        #: The signal that asked training to stop (:func:`stop_on_signals`); :class:`Interrupted` at the next call.
+        self.stop_signal: str | None = None
 
     @property
     def elapsed(self) -> float:
@@ -248,6 +352,8 @@ class TrainingClock:
         return self.limit > 0 and self.elapsed >= self.limit
 
     def __call__(self) -> None:
+        if self.stop_signal is not None:
+            raise Interrupted(self.stop_signal)
         elapsed = self.elapsed
         if self.every > 0 and elapsed >= self.next:
             path = self.out / "checkpoints" / f"{wall_tag(self.next)}.pt"

@@ -32,6 +32,10 @@ class TocabiSB3VecEnv(VecEnv):
 
     ``reward_terms_in_infos``: also put each env's weighted reward terms {name: float} in its info dict every step
     (off by default: num_envs dicts of 13 floats per step cost more than the step on a GPU).
+
+    Actions are numpy on the host, so their values are checked there: a NaN or ±inf is a ``ValueError`` naming the
+    env rows (not silently acted on as 0 or the bound). ``set_options`` is refused, as ``TocabiVectorEnv.reset``
+    refuses options: the env's reset takes none.
     """
 
     def __init__(self, num_envs: int = 8, device: str | torch.device = "auto", preset: str = "default",
@@ -53,10 +57,18 @@ class TocabiSB3VecEnv(VecEnv):
         self._reset_options()
         return obs.cpu().numpy()
 
+    def set_options(self, options: list[dict] | dict | None = None) -> None:
+        # SB3 would hand them to the next reset, which has no use for them: refused here rather than dropped there.
+        given = [options] if isinstance(options, dict) else list(options or [])
+        if any(given):
+            raise ValueError(f"TocabiSB3VecEnv.reset takes no options, got {options!r}; configure the task when "
+                             "building the env (preset, env_options or task fields such as max_episode_steps=...)")
+        super().set_options(options)
+
     def step_async(self, actions: np.ndarray) -> None:
         # Checked here, not at step_wait, so the error points at the call that passed the actions.
-        self._actions = self.stepper.check_action(torch.as_tensor(np.asarray(actions, dtype=np.float32),
-                                                                  device=self.device))
+        host = self.stepper.check_action(torch.as_tensor(np.asarray(actions, dtype=np.float32)))
+        self._actions = self.stepper.check_finite(host).to(self.device)
 
     def step_wait(self):
         if self._actions is None:

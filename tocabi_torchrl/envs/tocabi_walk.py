@@ -267,7 +267,7 @@ class TocabiWalk(EnvBase):
             raise ValueError(f"action is on {action.device} but the env runs on {self.device}; move it with .to()")
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action")
+        action = tensordict.get("action").detach()  # a policy's output: its graph must not reach the sim buffers
         self._check_action(action)
         a = torch.nan_to_num(action.to(torch.float32), nan=0.0).clamp(self._act_low, self._act_high)
 
