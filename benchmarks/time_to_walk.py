@@ -258,6 +258,12 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.part == "train" and not 0 < args.minutes < math.inf:  # the config reads max_minutes 0 as no time limit
         parser.error(f"--minutes must be a positive number of training minutes, got {args.minutes}")
+    if args.part != "report" and args.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():  # said here, not as a traceback from deep inside the env build
+            parser.error(f"--device {args.device}: torch sees no CUDA GPU; time to walk is measured on a GPU "
+                         "(pass --device cpu for a smoke test of the script)")
     if args.part != "report" and args.name is None:
         args.name = args.preset
     t0 = time.time()

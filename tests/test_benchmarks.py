@@ -493,3 +493,10 @@ def test_bad_arguments_are_refused_in_one_line(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit, match="runs/time_to_walk/torqeu: no such run folder"):
         time_to_walk.main(["eval", "--preset", "torqeu", "--device", "cpu"])
     assert not Path("runs").exists() and not Path("s").exists()
+
+
+def test_time_to_walk_on_a_machine_without_cuda_is_one_error_line(monkeypatch, capsys):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(SystemExit) as stop:
+        time_to_walk.main(["train", "--preset", "torque"])
+    assert stop.value.code == 2 and "--device cpu" in capsys.readouterr().err

@@ -192,3 +192,17 @@ def test_a_gait_test_where_every_robot_falls_at_once_writes_strict_json(tmp_path
     assert json.loads(printed[printed.index("{"):], parse_constant=refuse) == saved
     assert not evaluate.gait_passes(saved)
     assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_a_missing_video_writer_names_the_viz_extra_not_egl(tmp_path, monkeypatch, capsys):
+    from tocabi_torchrl.rl import evaluate
+
+    def no_imageio(*args, **kwargs):
+        raise ModuleNotFoundError("No module named 'imageio'", name="imageio")
+
+    monkeypatch.setattr(evaluate, "render_video", no_imageio)
+    summary = evaluate.evaluate_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.1, video_envs=1,
+                                    out_dir=tmp_path / "ev")
+    said = capsys.readouterr().out
+    assert summary["video"].startswith("not rendered: ModuleNotFoundError")
+    assert '.[viz]' in said and "libegl1" not in said

@@ -126,7 +126,10 @@ def evaluate_policy(
                                                  mocap_pos=None if mocap is None else mocap[:video_envs]))
         except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless machine)
             summary["video"] = f"not rendered: {type(err).__name__}: {err}"
-            fix = "" if NO_GL_FIX in str(err) else f"; on a headless machine: {NO_GL_FIX}"  # said once
+            if isinstance(err, ModuleNotFoundError) and err.name == "imageio":  # not a GL problem: the writer
+                fix = '; install the video writer: pip install -e ".[viz]" (imageio with ffmpeg)'
+            else:
+                fix = "" if NO_GL_FIX in str(err) else f"; on a headless machine: {NO_GL_FIX}"  # said once
             print(f"video skipped ({summary['video']}){fix}")
     atomic_write_text(out / "summary.json", summary_json(summary))
     return summary
