@@ -13,7 +13,10 @@ torchrun launch (pass --device cpu for a CPU data-parallel run). Writes
 runs/<name>/: config.json, metrics/ (torchrl's CSV logger: one file per metric), checkpoints/, and (with
 --eval_at_end) eval/ with a summary JSON, the knee-trajectory plot and a video. An existing run folder is never
 overwritten: continue it with --resume, or give the new run another --name. --resume restores the saved run's
-options; only budget, logging, checkpoint, eval and device options may be given again with other values.
+options; only budget, logging, checkpoint, eval and device options and how the same computation runs (CUDA graphs,
+gradient sync, stored env signals, CPU threads, reset pass) may be given again with other values (--help lists them).
+Ctrl-C or SIGTERM stops the run after the iteration in progress, saves a checkpoint of it, skips the final evaluation,
+says how to --resume it and exits with status 130 (Ctrl-C) or 143 (SIGTERM); a second one stops at once.
 """
 
 from __future__ import annotations
@@ -32,13 +35,31 @@ import torch  # noqa: E402
 from tocabi_torchrl.envs.model_based import check_settings  # noqa: E402
 from tocabi_torchrl.motion import ReferenceMotion  # noqa: E402
 from tocabi_torchrl.motion.io import MotionFormatError  # noqa: E402
-from tocabi_torchrl.rl.distributed import ending, from_environment  # noqa: E402
+from tocabi_torchrl.rl.distributed import ending, from_environment, shutdown  # noqa: E402
 from tocabi_torchrl.rl.gait_record import policy_steps  # noqa: E402
+from tocabi_torchrl.rl.interrupt import signal_exit_status
 from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
 from tocabi_torchrl.rl.logging import require_loggers  # noqa: E402
-from tocabi_torchrl.rl.run_dir import open_run  # noqa: E402
-from tocabi_torchrl.rl.trainer import finished_result, resolve_device, train  # noqa: E402
+from tocabi_torchrl.rl.run_dir import holds_checkpoint, open_run  # noqa: E402
+from tocabi_torchrl.rl.trainer import finished_result, raised_before_training, resolve_device, train  # noqa: E402
 from tocabi_torchrl.robot import RobotAssetError, load_model  # noqa: E402
+
+
+def stopped(result) -> int:
+    """Say that the run stopped on a signal, where its checkpoint is and how to continue; its exit status."""
+    print(f"{result.interrupted}: stopped after iteration {result.iterations} ({result.env_steps:,} env steps); "
+          f"checkpoint saved in {result.run_dir / 'checkpoints'}, final evaluation skipped. Continue the run with "
+          f"--resume {result.run_dir}", file=sys.stderr, flush=True)
+    return signal_exit_status(result.interrupted)
+
+
+def stopped_at_once(run_dir) -> int:
+    """Say that a second signal stopped the run without a save, and what it can be continued from; its exit status."""
+    advice = (f"continue it from its last checkpoint with --resume {run_dir}" if holds_checkpoint(run_dir) else
+              f"it saved no checkpoint: start it again under another --name, or remove {run_dir} to reuse the name")
+    print(f"stopped at once (second signal), without saving the iteration in progress; {advice}", file=sys.stderr,
+          flush=True)
+    return signal_exit_status("SIGINT")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -68,13 +89,20 @@ def main(argv: list[str] | None = None) -> None:
         try:
             # Any failure ends every rank (an NCCL rank left waiting would never time out); on NCCL the process
             # ends inside ending(), after the last output.
+            status = 0
             with ending(dist_info, expected):
                 result = train(cfg, dist_info=dist_info)
-                if dist_info.is_main:
+                if result.interrupted is not None:
+                    status = stopped(result) if dist_info.is_main else signal_exit_status(result.interrupted)
+                    # NCCL: the rank ends here, with this status; gloo: the group is gone and ending() leaves it so.
+                    shutdown(dist_info, code=status)
+                elif dist_info.is_main:
                     print(f"done on {dist_info.world_size} ranks: {result.env_steps:,} env steps in "
                           f"{result.wall_seconds:.0f} s; run folder {result.run_dir}")
         except expected:
             sys.exit(1)  # ending() has said why
+        if status:
+            sys.exit(status)  # outside ending(), which would report the SystemExit as a failure
         return
     try:
         run = open_run(cfg)
@@ -91,6 +119,16 @@ def main(argv: list[str] | None = None) -> None:
         result = train(cfg, run=run)
     except (MotionFormatError, RobotAssetError) as err:  # a bad --env.task.motion or model_path, found as it loads
         sys.exit(f"error: {err}")
+    except ValueError as err:
+        if not raised_before_training(err):
+            raise  # a failure while training is a bug to see whole, traceback included
+        # A value the config's checks let through but the env or the networks refuse (a new run's folder is not written
+        # yet).
+        sys.exit(f"error: {err} (found while the run was being set up, before its first iteration)")
+    except KeyboardInterrupt:
+        sys.exit(stopped_at_once(run.path))
+    if result.interrupted is not None:
+        sys.exit(stopped(result))
     print(f"done: {result.env_steps:,} env steps in {result.wall_seconds:.0f} s "
           f"({result.env_steps_per_second:,.0f} env-steps/s); run folder {result.run_dir}")
     if cfg.eval_at_end:

@@ -184,3 +184,22 @@ def test_flat_names_of_before_the_tree_still_read_with_a_warning():
         cfg.num_envs = 3
     with pytest.raises(AttributeError, match="no attribute 'warp_speed'"):
         cfg.warp_speed  # noqa: B018
+
+
+def test_option_prefixes_are_not_expanded(capsys):
+    # --total used to set total_env_steps and --see the seed, silently; an ambiguous prefix named hidden flat flags.
+    for argv in (["--total", "100"], ["--see", "7"], ["--ppo.l", "0.1"]):
+        with pytest.raises(SystemExit):
+            parse_args(argv)
+        assert "unrecognized arguments" in capsys.readouterr().err
+
+
+def test_int_options_take_whole_numbers_written_as_floats(capsys):
+    cfg, _ = parse_args(["--total_env_steps", "2e8", "--ppo.assist_fade_start", "5.0e7", "--num_envs", "4096"])
+    assert cfg.total_env_steps == 200_000_000 and type(cfg.total_env_steps) is int
+    assert cfg.ppo.assist_fade_start == 50_000_000 and cfg.env.num_envs == 4096
+    for argv in (["--total_env_steps", "2.5e0"], ["--env.num_envs", "nan"], ["--total_env_steps", "lots"]):
+        with pytest.raises(SystemExit):
+            parse_args(argv)
+        err = capsys.readouterr().err
+        assert f"{argv[0]} {argv[1]!r}: expected" in err and "2e8" in err, err

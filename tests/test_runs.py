@@ -393,3 +393,96 @@ def test_help_describes_every_option_once(capsys):
         assert f"--{dest}" in text, dest
     assert "one of: torque, pd, pd_reference" in helps["env.control.mode"]
     assert "any of csv, tensorboard, wandb" in helps["loggers"] and "true/false" in helps["eval_at_end"]
+
+
+# ------------------------------------------------------------------------- audit of the command line and run folder
+@pytest.mark.parametrize(("option", "value", "message"), [
+    ("transforms.obs_clip", "0", "transforms.obs_clip must be a finite number > 0"),
+    ("transforms.obs_clip", "-1", "transforms.obs_clip must be a finite number > 0"),
+    ("transforms.reward_weights", "qpos=nan", "a weight must be a finite number"),
+    ("seed", str(2 ** 63), "seed must be an int in [0, 2**63 - 1]"),
+    ("seed", "-1", "seed must be an int >= 0"),
+    ("ppo.lr_end", "0.5", "ppo.lr_end 0.5 is above ppo.lr"),
+    ("ppo.std_end", "0.5", "ppo.std_end 0.5 is above ppo.std_start"),
+])
+def test_values_the_env_or_schedules_would_refuse_are_one_error_line_before_the_banner(tmp_path, capsys, option,
+                                                                                        value, message):
+    extra = ["--ppo.lr_schedule", "linear"] if option == "ppo.lr_end" else []
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(tiny_args(tmp_path) + [f"--{option}", value, *extra])
+    assert str(info.value.code).startswith("error: ") and message in str(info.value.code), info.value.code
+    assert "tiny" not in capsys.readouterr().out and not (tmp_path / "run").exists()
+
+
+def test_a_value_refused_while_the_run_is_set_up_is_one_error_line_and_a_bug_in_training_is_not(tmp_path,
+                                                                                                monkeypatch):
+    from tocabi_torchrl.rl import trainer
+
+    def refusing(*args, **kwargs):
+        raise ValueError("clip must be > 0")
+
+    monkeypatch.setattr(trainer, "build_env", refusing)
+    with pytest.raises(SystemExit, match=r"^error: clip must be > 0 \(found while the run was being set up"):
+        recipe("ppo_walk").main(tiny_args(tmp_path, name="setup"))
+    assert not (tmp_path / "setup").exists()
+    monkeypatch.undo()
+    monkeypatch.setattr(trainer, "_update", refusing)
+    with pytest.raises(ValueError, match="clip must be > 0"):  # not turned into an error line: its traceback shows
+        recipe("ppo_walk").main(tiny_args(tmp_path, name="training"))
+
+
+def test_lr_end_is_not_changed_on_resume(finished_run):
+    with pytest.raises(ResumeConfigError, match=r"ppo.lr_end: saved 1e-05, given 0.5"):
+        parse_args(["--resume", str(finished_run), "--ppo.lr_end", "0.5"])
+
+
+def test_equal_reward_weights_written_otherwise_resume(tmp_path):
+    recipe("ppo_walk").main(tiny_args(tmp_path, **{"transforms.reward_weights": "body_vel=0.9,qpos=0.5"}))
+    cfg, _ = parse_args(["--resume", str(tmp_path / "run"), "--transforms.reward_weights", "qpos=0.50,body_vel=0.90"])
+    assert cfg.transforms.reward_weights == ("body_vel=0.9", "qpos=0.5")  # the saved entries
+    with pytest.raises(ResumeConfigError, match="transforms.reward_weights: saved"):
+        parse_args(["--resume", str(tmp_path / "run"), "--transforms.reward_weights", "body_vel=0.9,qpos=0.6"])
+
+
+def test_a_checkpoint_older_than_a_value_rule_evaluates_with_a_warning_and_resume_explains(finished_run, tmp_path):
+    # What /tmp/audit_cli/oldckpt.py did: a run saved before the adaptive schedule's range rule, with ppo.lr 1e-6.
+    from tocabi_torchrl.rl.checkpoint import CheckpointError, config_from_checkpoint
+    from tocabi_torchrl.rl.gait_record import load_policy
+
+    run = copy_of(finished_run, tmp_path)
+    for file in (run / "checkpoints").glob("*.pt"):
+        state = torch.load(file, weights_only=True)
+        state["config"]["ppo"]["lr"] = 1e-6
+        torch.save(state, file)
+    state = read_checkpoint(run)
+    with pytest.warns(UserWarning, match=r"breaks a rule .*ppo.lr 1e-06 is outside the adaptive schedule's range"):
+        assert config_from_checkpoint(state, run).ppo.lr == 1e-6
+    with pytest.warns(UserWarning, match="breaks a rule"):
+        policy = load_policy(run, 2, torch.device("cpu"))
+    assert policy.cfg.ppo.lr == 1e-6
+    with pytest.raises(CheckpointError, match=r"breaks a rule .* continue it with the version that wrote it, or "
+                                              r"start a new run \(another --name\)"):
+        config_from_checkpoint(state, run, strict=True)
+    with pytest.raises(SystemExit, match=r"^error: .*breaks a rule.*start a new run"):
+        recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "24"])
+    state["config"]["ppo"]["lr"] = "fast"  # a wrong type is never taken, however lenient
+    with pytest.raises(CheckpointError, match="ppo.lr must be a finite number"):
+        config_from_checkpoint(state, run)
+
+
+def test_help_of_resume_names_every_option_a_resume_may_change(capsys):
+    from tocabi_torchrl.rl.options import RESUME_SAFE
+
+    with pytest.raises(SystemExit):
+        parse_args(["--help"])
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    options = text.index("options: -h, --help")  # past the usage line
+    resume = text[text.index("--resume VALUE", options):text.index("--total_env_steps VALUE", options)]
+    assert all(path in resume for path in RESUME_SAFE - {"resume"}), resume
+    assert "ppo.lr_end" not in RESUME_SAFE
+
+
+def test_device_cpu_0_trains(tmp_path):
+    # It used to be refused at the first env step ("action is on cpu but the env runs on cpu:0"), after the banner.
+    recipe("ppo_walk").main(tiny_args(tmp_path, device="cpu:0"))
+    assert read_checkpoint(tmp_path / "run")["iteration"] == 2

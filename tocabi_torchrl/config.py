@@ -39,7 +39,7 @@ from .tree import to_dict as _tree_to_dict
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "FLAT_PATHS", "flat_to_paths",
            "config_from_dict", "to_dict", "flat_dict", "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
-           "LOGGERS", "field_choices", "wall_tag", "check_snapshot_minutes", "LEGACY_VALUES"]
+           "LOGGERS", "field_choices", "wall_tag", "check_snapshot_minutes", "LEGACY_VALUES", "MAX_SEED"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
@@ -68,6 +68,9 @@ def check_snapshot_minutes(minutes: float, name: str = "checkpoint_minutes") -> 
         raise ValueError(f"{name} {minutes:g} is a snapshot period of {60.0 * minutes:.3g} s; snapshots are named by "
                          f"whole seconds (wall_XXXXXs.pt), so give 0 (none) or at least {1 / 60:.6g} (1 s)")
 
+
+#: The largest seed: the env keeps its seed in an int64 tensor (envs/tocabi_walk.py), so seeds are in [0, 2**63 - 1].
+MAX_SEED = 2 ** 63 - 1
 
 #: The learning rates [min, max] between which the ``adaptive`` schedule moves the rate (rl/update_step.adapt_lr).
 ADAPTIVE_LR_RANGE = (1e-5, 1e-2)
@@ -190,6 +193,14 @@ class PPOConfig:
         if self.std_mode == "scheduled" and not 0 <= self.std_hold < 1:
             raise ValueError(f"ppo.std_hold is the fraction of training still left when the scheduled std reaches "
                              f"std_end, in [0, 1), got {self.std_hold!r}")
+        if self.std_mode == "scheduled" and self.std_end > self.std_start:
+            # Exploration noise that grows as the policy improves undoes what it learned; no preset schedules that,
+            # so a rising pair is taken for swapped values.
+            raise ValueError(f"ppo.std_end {self.std_end!r} is above ppo.std_start {self.std_start!r}: the scheduled "
+                             f"std falls from std_start to std_end; give std_end <= std_start (equal: a constant std)")
+        if self.lr_schedule == "linear" and self.lr_end > self.lr:
+            raise ValueError(f"ppo.lr_end {self.lr_end!r} is above ppo.lr {self.lr!r}: the linear schedule falls from "
+                             f"lr to lr_end; give lr_end <= lr (equal: a constant rate, or ppo.lr_schedule fixed)")
         for name in ("actor_hidden", "critic_hidden"):
             sizes = getattr(self, name)
             if not sizes or any(isinstance(h, bool) or not isinstance(h, numbers.Integral) or h < 1 for h in sizes):
@@ -280,6 +291,10 @@ class RunConfig:
         check_field_types(self)  # the whole tree: every switch a bool, every number finite, named by its path
         for name in ("log_every", "checkpoint_every", "eval_envs", "total_env_steps"):
             _check_int(self, name, 1)
+        _check_int(self, "seed", 0)
+        if self.seed > MAX_SEED:
+            raise ValueError(f"seed must be an int in [0, 2**63 - 1] (the env keeps it as a 64-bit int), got "
+                             f"{self.seed!r}; give a smaller seed")
         for name in ("checkpoint_keep_last", "checkpoint_keep_every"):
             _check_int(self, name, 0)
         if not self.eval_seconds > 0:

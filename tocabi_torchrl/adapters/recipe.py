@@ -18,14 +18,14 @@ import argparse
 import contextlib
 import json
 import math
-import signal
 import sys
-import threading
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from ..config import check_snapshot_minutes, wall_tag
 from ..rl.atomic import atomic_write_text
+from ..rl.interrupt import Interrupted, exit_status
+from ..rl.interrupt import stop_on_signals as _stop_on_signals
 
 __all__ = [
     "Interrupted",
@@ -257,46 +257,13 @@ class TimeUp(Exception):
     """Raised from inside a library's training loop when the recipe's ``--max_minutes`` are spent."""
 
 
-class Interrupted(Exception):
-    """Raised from inside a library's training loop, at the env step after Ctrl-C or SIGTERM (:func:`stop_on_signals`):
-    the recipe then saves the call as at :class:`TimeUp`."""
-
-
-@contextlib.contextmanager
-def stop_on_signals(clock: TrainingClock) -> Iterator[None]:
+def stop_on_signals(clock: TrainingClock) -> contextlib.AbstractContextManager[None]:
     """While training: the first SIGINT (Ctrl-C) or SIGTERM asks ``clock`` to raise :class:`Interrupted` at the next
     env step, where the rollout in progress is discarded as at :class:`TimeUp` and no update is cut short; a second
     one raises ``KeyboardInterrupt`` at once (the recipes save then too, with the update in progress possibly part
     applied). The previous handlers are back on exit. Python delivers signals to the main thread only, so elsewhere
-    nothing is installed."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):
-        if clock.stop_signal is not None:
-            raise KeyboardInterrupt
-        clock.stop_signal = signal.Signals(signum).name
-        print(f"{clock.stop_signal}: stopping at the next env step to save the resume state (send it again to stop "
-              "at once)", file=sys.stderr, flush=True)
-
-    previous = {}
-    try:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, handler)
-        yield
-    finally:
-        for sig, old in previous.items():  # None: a handler not set from Python, which cannot be put back
-            signal.signal(sig, signal.SIG_DFL if old is None else old)
-
-
-def exit_status(result: Mapping) -> int:
-    """A recipe's exit status for ``result``: 0, or for an interrupted call the shell's 128 + signal number (130
-    for Ctrl-C, 143 for SIGTERM), so that a script running the calls can tell it from a finished one."""
-    reason = result.get("interrupted")
-    if reason is None:
-        return 0
-    return 128 + int(signal.SIGTERM if reason == "SIGTERM" else signal.SIGINT)
+    nothing is installed. (:func:`tocabi_torchrl.rl.interrupt.stop_on_signals`, which ``ppo_walk`` uses too.)"""
+    return _stop_on_signals(clock, "stopping at the next env step to save the resume state")
 
 
 def report_interruption(name: str, stop: BaseException, out: Path) -> str:

@@ -213,10 +213,19 @@ def _check_finite(tensors: dict, name: str, path: Path) -> None:
                                   f"to evaluate, export or resume from, or retrain (e.g. with a lower learning rate)")
 
 
-def config_from_checkpoint(state: dict, path: str | os.PathLike = "<checkpoint>") -> RunConfig:
+def config_from_checkpoint(state: dict, path: str | os.PathLike = "<checkpoint>", strict: bool = False) -> RunConfig:
     """The run's :class:`~tocabi_torchrl.config.RunConfig` as saved in ``state``: the tree (schema 2), or the flat
     ``PPOConfig`` dict of older files migrated to it (fields it lacks take their defaults). Raises
-    :class:`CheckpointError` for unknown options or invalid values."""
+    :class:`CheckpointError` for unknown options and for values of the wrong type (a text, a NaN, a bool for a number).
+
+    The value rules of ``RunConfig.validate`` (ranges, combinations) may be newer than the run: a saved value that
+    breaks one is a warning naming the rule, so that evaluating or exporting the run still works (the default). With
+    ``strict`` (what ``--resume`` uses: the run would train on with those values, which it may not change) it is a
+    :class:`CheckpointError` that says so and what can be done instead."""
+    import warnings
+
+    from ..tree import check_field_types
+
     try:
         cfg = config_from_dict(state["config"])
     except ConfigError as err:
@@ -228,9 +237,21 @@ def config_from_checkpoint(state: dict, path: str | os.PathLike = "<checkpoint>"
         raise CheckpointError(f"checkpoint {path}: config has unknown option(s) or is invalid (written by another "
                               f"version of tocabi-torchrl?): {err}") from err
     try:
-        cfg.validate()
+        check_field_types(cfg)
     except (TypeError, ValueError) as err:
         raise CheckpointError(f"checkpoint {path}: the saved config is invalid: {err}") from err
+    try:
+        cfg.validate()
+    except (TypeError, ValueError) as err:
+        if strict:
+            raise CheckpointError(
+                f"checkpoint {path}: the saved config breaks a rule of this version of tocabi-torchrl ({err}); the "
+                f"rule is newer than the run, or the file was edited. A resumed run keeps its saved options, so it "
+                f"cannot go on under this rule: continue it with the version that wrote it, or start a new run "
+                f"(another --name) with values the rule accepts. Evaluating and exporting it still work") from err
+        warnings.warn(f"checkpoint {path}: the saved config breaks a rule of this version of tocabi-torchrl ({err}); "
+                      f"the run is loaded as saved (the rule is newer than the run, or the file was edited)",
+                      UserWarning, stacklevel=2)
     return cfg
 
 

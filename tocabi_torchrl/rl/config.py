@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import decimal
 import json
 from typing import Any
 
@@ -23,10 +24,31 @@ from ..config import (
     preset_config,
     preset_tree,
 )
-from ..tree import item_type, leaf_types, parse_leaf
+from ..tree import _unwrap_optional, item_type, leaf_types, parse_leaf
 
 __all__ = ["PPOConfig", "RunConfig", "PRESETS", "preset_config", "preset_tree", "parse_args", "build_parser",
            "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES", "LOGGERS", "field_choices", "ConfigError"]
+
+
+def _parse(kind: Any, text: str) -> Any:
+    """:func:`~tocabi_torchrl.tree.parse_leaf`, except that an int option also takes a whole number written as a
+    float (``2e8``, ``1.5e3``): step budgets read better so. A fraction (``2.5``) is still refused."""
+    plain = _unwrap_optional(kind)[0]
+    if plain is int and text.lower() != "none":
+        try:
+            return int(text)
+        except ValueError:
+            pass
+        try:
+            number = decimal.Decimal(text.strip())
+        except decimal.InvalidOperation:
+            number = None
+        if number is None or not number.is_finite():
+            raise ValueError(f"expected an int (e.g. 200000000 or 2e8), got {text!r}")
+        if number != number.to_integral_value():
+            raise ValueError(f"expected a whole number (e.g. 200000000 or 2e8), got {text!r}, which has a fraction")
+        return int(number)
+    return parse_leaf(kind, text)
 
 
 class _LeafAction(argparse.Action):
@@ -39,7 +61,7 @@ class _LeafAction(argparse.Action):
 
     def __call__(self, parser, namespace, text, option_string=None):
         try:
-            value = parse_leaf(self.kind, text)
+            value = _parse(self.kind, text)
         except ValueError as err:
             parser.error(f"{option_string} {text!r}: {err} (see --help for what {self.path} takes)")
         overrides = getattr(namespace, "overrides", None) or {}
@@ -57,7 +79,7 @@ class _LegacyAction(argparse.Action):
             value = text
         else:
             try:
-                value = parse_leaf(leaf_types(RunConfig())[path], text)
+                value = _parse(leaf_types(RunConfig())[path], text)
             except ValueError as err:
                 parser.error(f"{option_string} {text!r}: {err} (the option is now --{path})")
         overrides = getattr(namespace, "overrides", None) or {}
@@ -84,9 +106,13 @@ def build_parser(description: str = "") -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(
         description=description,
+        # An abbreviation (--total for --total_env_steps) would silently pick an option, or name a hidden flat one
+        # when ambiguous: every option is given by its full name.
+        allow_abbrev=False,
         epilog="Options are paths in the run config tree (tocabi_torchrl/config.py). Defaults are the 'default' "
-               "preset's; another --preset changes some of them. Tuples are comma-separated. With --resume the saved "
-               "run's options apply and only budget, logging, checkpoint, eval, device and graph options may change.")
+               "preset's; another --preset changes some of them. Tuples are comma-separated; an int option also "
+               "takes a whole number written as a float (2e8). With --resume the saved run's options apply and only "
+               "those that --resume lists may be given other values.")
     parser.set_defaults(overrides=None)
     defaults = RunConfig()
     choices = field_choices()

@@ -6,14 +6,35 @@ option outside :data:`RESUME_SAFE`.
 
 from __future__ import annotations
 
-__all__ = ["FIELD_HELP", "RESUME_SAFE", "field_help"]
+__all__ = ["FIELD_HELP", "RESUME_SAFE", "field_help", "resume_safe_text"]
+
+#: Paths a ``--resume`` may change: they set the budget, logging, checkpoints, evaluation, where it runs, or how
+#: the same computation is executed (CUDA graphs, gradient sync, stored env signals, CPU threads, reset pass). Every
+#: other option must equal the saved run's: a schedule's end point (``ppo.lr_end``) is not among them, since changing
+#: it mid-run makes the rate jump to another line.
+RESUME_SAFE = frozenset({
+    "name", "run_dir", "device", "resume",
+    "total_env_steps", "max_minutes",
+    "log_every", "loggers", "progress_bar",
+    "checkpoint_every", "checkpoint_keep_last", "checkpoint_keep_every", "checkpoint_minutes",
+    "eval_at_end", "eval_envs", "eval_seconds",
+    "ppo.cuda_graph", "ppo.update_graph", "ppo.grad_sync", "ppo.store_env_signals",
+    "env.sim.threads", "env.sim.reset_pass",
+})
+
+
+def resume_safe_text() -> str:
+    """The options a ``--resume`` may give other values (:data:`RESUME_SAFE` but ``resume``), as ``--help`` and the
+    refusal of a changed option list them."""
+    return ", ".join(sorted(RESUME_SAFE - {"resume"}))
+
 
 #: One line per leaf of the run config tree (by path): what it sets and its unit. Allowed values and defaults are appended by the parser.
 FIELD_HELP: dict[str, str] = {
     "preset": "named configuration the other options start from",
     "name": "run folder name under run_dir; an existing run is never overwritten (--resume it or pick a new name)",
     "run_dir": "parent folder of the run folders",
-    "seed": "seed of torch and of the env's random draws",
+    "seed": "seed of torch and of the env's random draws, in [0, 2**63 - 1]",
     "device": "auto (CUDA if present, else the small CPU smoke run), cpu, cuda or cuda:N",
     "env.num_envs": "parallel simulated robots",
     "env.control.mode": "what the 12 leg actions command",
@@ -89,7 +110,7 @@ FIELD_HELP: dict[str, str] = {
     "ppo.matmul_precision": "float32 matrix products while training: highest (float32) or high (TF32 on GPUs)",
     "ppo.grad_sync": "several ranks: average gradients with one captured all-reduce, or DDP (needs update_graph false)",
     "ppo.lr": "learning rate (start value of the schedule)",
-    "ppo.lr_end": "final learning rate of the linear schedule",
+    "ppo.lr_end": "final learning rate of the linear schedule (at most ppo.lr)",
     "ppo.lr_schedule": "learning-rate schedule (adaptive: from the KL to desired_kl)",
     "ppo.desired_kl": "KL target of the adaptive schedule",
     "ppo.value_head_lr": "constant learning rate of the value head; 0 = share the policy's",
@@ -100,7 +121,7 @@ FIELD_HELP: dict[str, str] = {
     "ppo.value_out_gain": "init gain of the value output layer",
     "ppo.std_mode": "action noise: scheduled (std_start -> std_end) or learned",
     "ppo.std_start": "action std at the start",
-    "ppo.std_end": "action std at the end of the schedule",
+    "ppo.std_end": "action std at the end of the schedule (at most ppo.std_start)",
     "ppo.std_hold": "fraction of training still left when the scheduled std reaches std_end (held there after)",
     "log_every": "iterations between log rows",
     "checkpoint_every": "iterations between checkpoints",
@@ -109,27 +130,13 @@ FIELD_HELP: dict[str, str] = {
     "checkpoint_minutes": "also save checkpoints/wall_XXXXXs.pt every this many minutes of training; 0 = none, "
                           "else at least 1/60 (the names are whole seconds)",
     "loggers": "where metrics go besides the progress bar; csv (runs/<name>/metrics/) is always written",
-    "resume": "run folder or checkpoint to continue; its saved options apply, only budget/logging/eval/device "
-              "options may be changed",
+    "resume": "run folder or checkpoint to continue; its saved options apply, and only these may be given other "
+              f"values: {resume_safe_text()}",
     "eval_at_end": "run the gait test (eval/) when training ends",
     "eval_envs": "robots in the gait test",
     "eval_seconds": "duration of the gait test [s]",
     "progress_bar": "show a progress bar (else one line per log row)",
 }
-
-#: Paths a ``--resume`` may change: they set the budget, logging, checkpoints, evaluation, where it runs, or how
-#: the same computation is executed (graphs, stored signals, CPU threads). Every other option must equal the saved
-#: run's.
-RESUME_SAFE = frozenset({
-    "name", "run_dir", "device", "resume",
-    "total_env_steps", "max_minutes", "ppo.lr_end",
-    "log_every", "loggers", "progress_bar",
-    "checkpoint_every", "checkpoint_keep_last", "checkpoint_keep_every", "checkpoint_minutes",
-    "eval_at_end", "eval_envs", "eval_seconds",
-    "ppo.cuda_graph", "ppo.update_graph", "ppo.grad_sync", "ppo.store_env_signals",
-    "env.sim.threads", "env.sim.reset_pass",
-})
-
 
 def field_help(name: str) -> str:
     """The one-line description of ``name`` (a field added without one still gets a line naming it)."""

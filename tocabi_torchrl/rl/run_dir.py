@@ -1,7 +1,9 @@
 """The run folder ``<run_dir>/<name>/``: never silently overwritten, continued only by ``--resume``.
 
 A new run refuses a folder that already holds a run (``config.json``, ``metrics/``, an older run's ``metrics.csv`` or
-``checkpoints/``) and says how to go on: ``--resume`` it, or pick another ``--name``. A resumed run writes into its own
+``checkpoints/``) and says how to go on: ``--resume`` it, or pick another ``--name``. A folder whose run saved no
+checkpoint (killed before its first one) cannot be resumed: it is refused with that said, and the choice of another
+``--name`` or removing the folder (never removed here). A resumed run writes into its own
 folder (or a new one) and cuts its metrics files back to the checkpoint's iteration
 (:func:`~tocabi_torchrl.rl.metrics_files.trim_metrics`), so rows logged after the last checkpoint by a run that was
 killed are not followed by a second set with the same iteration numbers. Resuming an older iteration file into its own
@@ -26,9 +28,10 @@ from .checkpoint import (
     run_folder_of,
 )
 from .metrics_files import LEGACY_CSV, METRICS_DIR, trim_metrics
-from .resume import check_resume_config
+from .resume import check_resume_config, holds_checkpoint, no_checkpoint_message
 
-__all__ = ["RunDirError", "RunFolder", "check_run_name", "holds_run", "open_run", "trim_metrics"]
+__all__ = ["RunDirError", "RunFolder", "check_run_name", "holds_checkpoint", "holds_run", "open_run",
+           "refuse_run_without_checkpoint", "trim_metrics"]
 
 _RUN_FILES = ("config.json", METRICS_DIR, LEGACY_CSV, "checkpoints")
 
@@ -57,6 +60,14 @@ class RunFolder:
 def holds_run(folder: str | os.PathLike) -> bool:
     """Whether ``folder`` holds the files of a run."""
     return any((Path(folder) / name).exists() for name in _RUN_FILES)
+
+
+def refuse_run_without_checkpoint(resume: str | os.PathLike) -> None:
+    """:class:`RunDirError` if ``resume`` names a run folder that holds a run but no checkpoint (what a run killed
+    before its first checkpoint leaves): a clearer refusal than the missing ``latest.pt``."""
+    folder = Path(resume)
+    if folder.is_dir() and holds_run(folder) and not holds_checkpoint(folder):
+        raise RunDirError(no_checkpoint_message(folder))
 
 
 def _newer_checkpoint(folder: Path, iteration: int) -> tuple[int, Path] | None:
@@ -112,19 +123,23 @@ def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
     if not writer:
         if not cfg.resume:
             return RunFolder(path)
+        refuse_run_without_checkpoint(cfg.resume)
         file = checkpoint_file(cfg.resume)
         state = read_checkpoint(file)
-        check_resume_config(config_from_checkpoint(state, file), cfg, file)
+        check_resume_config(config_from_checkpoint(state, file, strict=True), cfg, file)
         return RunFolder(path, state, file)
     if not cfg.resume:
+        if holds_run(path) and not holds_checkpoint(path):
+            raise RunDirError(no_checkpoint_message(path))
         if holds_run(path):
             raise RunDirError(
                 f"run folder {path} already holds a run; it is not overwritten. Continue it with --resume {path}, "
                 f"or start a new run with another --name (or delete the folder)")
         return RunFolder(path)
+    refuse_run_without_checkpoint(cfg.resume)
     file = checkpoint_file(cfg.resume)
     state = read_checkpoint(file)
-    check_resume_config(config_from_checkpoint(state, file), cfg, file)
+    check_resume_config(config_from_checkpoint(state, file, strict=True), cfg, file)
     source = run_folder_of(file)
     if holds_run(path) and source.resolve() != path.resolve():
         raise RunDirError(

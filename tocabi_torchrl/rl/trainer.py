@@ -7,11 +7,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import inspect
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+import torch.distributed as dist
 from tensordict import TensorDictBase
 from torch.nn.parallel import DistributedDataParallel
 from torchrl.collectors import Collector
@@ -26,10 +28,11 @@ from ..device import check_device
 from .actors import action_std, gaussian_head, make_actor, set_action_std
 from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 from .checkpoint import apply_checkpoint, save_checkpoint
-from ..config import RunConfig, wall_tag
+from ..config import MAX_SEED, RunConfig, wall_tag
 from ..envs.config import TocabiWalkConfig
 from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, all_reduce_mean, all_reduce_sum,
                           broadcast_module, from_environment, init_distributed, rank_seed)
+from .interrupt import StopFlag, stop_on_signals
 from .logging import RunLogger, require_loggers
 from .networks import make_mlp
 from .rollout_guard import VALID_KEY, guard_rollout
@@ -40,7 +43,7 @@ from .update_step import (MinibatchStep, adapt_lr, get_lr, make_capturable_adam,
 
 __all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer",
            "make_update_step", "training_keys", "train", "resolve_device", "float32_matmul_precision",
-           "TrainResult"]
+           "TrainResult", "raised_before_training"]
 
 #: The mask ClipPPOLoss's advantage normalisation reads (TorchRL 0.14: ``_standardize_advantage``).
 NORM_MASK_KEY = "shifted_valid"
@@ -166,6 +169,9 @@ class TrainResult:
     already_finished: bool = False
     #: The trained actor and critic (None when nothing was trained).
     agent: Agent | None = None
+    #: The signal (``"SIGINT"``, ``"SIGTERM"``) that stopped the run early, after a checkpoint of its last iteration
+    #: was saved; ``None`` when it ran to its budget (or ``max_minutes``).
+    interrupted: str | None = None
 
 
 def finished_result(run: RunFolder, cfg: RunConfig) -> TrainResult:
@@ -296,6 +302,25 @@ def float32_matmul_precision(precision: str):
         torch.set_float32_matmul_precision(before)
 
 
+class _Progress(StopFlag):
+    """The stop flag :func:`train` hands to the signal handlers, and whether the run folder has been written yet."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.started = False
+
+
+#: A repeated signal within this many seconds of the first is the same request (:func:`~.interrupt.stop_on_signals`):
+#: torchrun forwards the Ctrl-C that its workers also get from the terminal.
+_REPEAT_GRACE_S = 1.0
+
+
+def raised_before_training(err: BaseException) -> bool:
+    """Whether :func:`train` raised ``err`` while it set the run up, before it wrote the run folder (a value the
+    config's checks let through but the env or the networks refuse): the recipe reports it as one ``error:`` line."""
+    return bool(getattr(err, "raised_before_training", False))
+
+
 def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = None,
           dist_info: DistInfo | None = None) -> TrainResult:
     """Run PPO as configured; returns where the run was written and its throughput. ``run``: the run folder
@@ -308,14 +333,33 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
     iteration is K rollouts (``cfg.total_env_steps`` counts all ranks' steps), and rank 0 alone logs and writes
     checkpoints. A run resumes on any K: its progress (schedules, budget) is derived from the env steps done,
     and its files and metrics rows go on numbering from the checkpoint's iteration.
+
+    Ctrl-C (SIGINT) or SIGTERM (:mod:`~tocabi_torchrl.rl.interrupt`; handlers installed for the call and restored
+    after it, main thread only): the iteration in progress finishes its update, a checkpoint of it is saved (with the
+    usual retention), and the result's ``interrupted`` names the signal; a second signal raises ``KeyboardInterrupt``
+    at once. Data-parallel ranks agree at each iteration's end whether any of them was asked to stop (one small
+    all-reduce per iteration), so they all stop at the same iteration.
     """
     cfg.validate()
-    with float32_matmul_precision(cfg.ppo.matmul_precision):
-        return _train(cfg, env, run, dist_info)
-
-
-def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info: DistInfo | None) -> TrainResult:
     info = dist_info if dist_info is not None else from_environment()
+    progress = _Progress()
+    try:
+        with float32_matmul_precision(cfg.ppo.matmul_precision), \
+                stop_on_signals(progress, "stopping after this iteration's update to save a checkpoint",
+                                repeat_grace_s=_REPEAT_GRACE_S):
+            return _train(cfg, env, run, info, progress)
+    except ValueError as err:
+        if not progress.started:
+            err.raised_before_training = True
+        raise
+
+
+def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: DistInfo,
+           progress: _Progress) -> TrainResult:
+    if info.enabled and cfg.seed + info.world_size - 1 > MAX_SEED:
+        raise ValueError(f"seed {cfg.seed}: rank r of a data-parallel run seeds its worlds with seed + r, which must "
+                         f"stay <= {MAX_SEED} (2**63 - 1) on all {info.world_size} ranks; give a seed of at most "
+                         f"{MAX_SEED - info.world_size + 1}")
     device = init_distributed(info, resolve_device(cfg.device))
     if run is None:
         # Rank 0 checks the loggers and the folder (refusing to overwrite an earlier run); the others write nothing and
@@ -372,6 +416,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
     teacher_taken = agent.teacher is not None and bool(agent.teacher.anchored)
 
     collector = make_collector(cfg, env, agent.actor, device, (iterations - start_iter) * cfg.frames_per_batch)
+    progress.started = True  # the logger writes config.json: from here on the run folder holds the run
     logger = (RunLogger(run_dir, cfg, total_iterations=iterations + shift, start_iteration=start_iter + shift)
               if info.is_main else None)
     lr = get_lr(optimizer.param_groups[0])
@@ -446,13 +491,20 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
                     save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s,
                                     tag=wall_tag(next_mark))
                 next_mark = (int(train_s // mark_s) + 1) * mark_s
-            if ((it + shift) % cfg.checkpoint_every == 0 or it == iterations) and info.is_main:
+            saved = (it + shift) % cfg.checkpoint_every == 0 or it == iterations
+            if saved and info.is_main:
                 save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s)
-            # Ranks' clocks differ: stop when any rank's time is up, all at the same iteration.
-            if cfg.max_minutes and not agree(elapsed <= 60.0 * cfg.max_minutes, info, device):
+            # Ranks' clocks differ and a signal may reach one rank only: stop when any rank's time is up or any was
+            # asked to stop, all at the same iteration (a rank that left early would hang the others' collectives).
+            time_up, stop_signal = _stop_requests(bool(cfg.max_minutes) and elapsed > 60.0 * cfg.max_minutes,
+                                                  progress.stop_signal, info, device)
+            if time_up or stop_signal is not None:
+                progress.stop_signal = progress.stop_signal or stop_signal
                 if info.is_main:
-                    print(f"stopping after {cfg.max_minutes} min (max_minutes)")
-                    save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s)
+                    if stop_signal is None:  # a signal was said when it came, and the caller says what it left
+                        print(f"stopping after {cfg.max_minutes} min (max_minutes)")
+                    if not saved:
+                        save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s)
                 break
     finally:
         env_graph = bool(getattr(env, "graph_captured", False))
@@ -462,7 +514,21 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, dist_info
     wall = time.perf_counter() - t_start
     done_steps = env_steps - run.start_env_steps
     return TrainResult(run_dir, it + shift, env_steps, wall, done_steps / max(wall, 1e-9), metrics, env_graph,
-                       agent=agent)
+                       agent=agent, interrupted=progress.stop_signal)
+
+
+def _stop_requests(time_up: bool, stop_signal: str | None, info: DistInfo,
+                   device: torch.device) -> tuple[bool, str | None]:
+    """Whether any rank's ``max_minutes`` are up, and the stop signal any rank got (the highest-numbered one), from
+    this rank's own: one all-reduce of two ints in a data-parallel run, at the iteration's end, after the update's
+    statistics were read to the host (so it waits for no GPU work); nothing is exchanged with one rank."""
+    signum = int(signal.Signals[stop_signal]) if stop_signal is not None else 0
+    if info.enabled:
+        flags = torch.tensor([int(time_up), signum], dtype=torch.int32, device=device)
+        dist.all_reduce(flags, op=dist.ReduceOp.MAX)
+        up, signum = flags.tolist()
+        time_up = bool(up)
+    return time_up, (signal.Signals(signum).name if signum else None)
 
 
 #: Frames per critic call in GAE (bounds its activation memory).

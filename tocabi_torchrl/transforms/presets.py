@@ -20,6 +20,7 @@ Every stage is an ordinary TorchRL transform: build your own ``Compose`` from th
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -167,6 +168,9 @@ class TransformSettings:
                 raise ValueError(f"transforms.reward_weights entry {entry!r} must look like 'body_vel=0.9'")
             if name not in REFERENCE_TERMS:
                 raise ValueError(f"transforms.reward_weights: unknown term {name!r}; known: {list(REFERENCE_TERMS)}")
+            if not math.isfinite(weight):
+                raise ValueError(f"transforms.reward_weights entry {entry!r}: a weight must be a finite number "
+                                 f"(e.g. '{name}=0.5'), not NaN or inf")
             weights[name] = weight
         return weights
 
@@ -177,6 +181,9 @@ class TransformSettings:
         if self.normalization not in _NORMALIZATIONS:
             raise ValueError(f"transforms.normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
         self.reward_weight_map()
+        if self.obs_clip is not None and not (self.obs_clip > 0 and math.isfinite(self.obs_clip)):
+            raise ValueError(f"transforms.obs_clip must be a finite number > 0 (the normalised observation is clipped "
+                             f"to [-obs_clip, obs_clip]) or none for no clip, got {self.obs_clip!r}")
 
     def transform_config(self, **overrides) -> TransformConfig:
         """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
