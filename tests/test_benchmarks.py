@@ -390,6 +390,7 @@ def test_time_to_walk_train_on_any_cuda_device_records_its_gpu_and_raw_ceiling(t
     monkeypatch.setattr(common, "raw_policy_steps_per_second",
                         lambda n, steps, device="cuda": raw_on.append(device) or 180_000.0)
     monkeypatch.setattr(torch.cuda, "get_device_name", lambda dev=None: f"GPU {getattr(dev, 'index', None)}")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(common, "DOCS", tmp_path / "docs")
     monkeypatch.setattr(common, "CPU_OUT", tmp_path / "cpu")
     time_to_walk.main(["train", "--preset", "default", "--device", "cuda:1", "--every", "0"])
