@@ -4,29 +4,21 @@ that can be followed."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import signal
 from pathlib import Path
 
 import pytest
 import torch
+from recipe_runner import load_recipe as recipe
 
 from tocabi_torchrl.rl import interrupt, parse_args, preset_config
 from tocabi_torchrl.rl.checkpoint import read_checkpoint
 from tocabi_torchrl.rl.curves import read_metrics
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 #: 8 env steps per iteration, 10 iterations; no checkpoint_every boundary before the end.
 TINY = {"device": "cpu", "num_envs": 2, "steps_per_env": 4, "minibatch_size": 8, "total_env_steps": 80,
         "progress_bar": False, "eval_at_end": False, "checkpoint_every": 100}
-
-
-def recipe(name: str):
-    spec = importlib.util.spec_from_file_location(f"recipe_{name}", RECIPES / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def tiny_args(root: Path, name: str = "run", **extra) -> list[str]:

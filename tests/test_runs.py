@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from recipe_runner import load_recipe as recipe
 
 from tocabi_torchrl.rl import parse_args, preset_config
 from tocabi_torchrl.rl.checkpoint import read_checkpoint
@@ -27,14 +28,6 @@ from tocabi_torchrl.rl.trainer import train
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 TINY = dict(device="cpu", num_envs=2, steps_per_env=4, minibatch_size=8, total_env_steps=16, progress_bar=False,
             eval_at_end=False, checkpoint_every=1)
-
-
-def recipe(name: str):
-    """Import ``recipes/<name>.py`` as a module (the recipes are scripts, not a package)."""
-    spec = importlib.util.spec_from_file_location(f"recipe_{name}", RECIPES / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def tiny_args(tmp_path: Path, name: str = "run", **extra) -> list[str]:
