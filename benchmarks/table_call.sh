@@ -10,7 +10,7 @@
 #   S=$(date +%s) END=580 bash benchmarks/table_call.sh rsl_rl:torque@0 sb3:default:256@1
 #
 # A row is LIBRARY[:PRESET[:ENVS]][+new]@GPU (PRESET and ENVS default to $PRESET and $NUM_ENVS; +new starts that row
-# anew, replacing the json's row of the same library, preset and env count; one row per GPU); its log is
+# anew, replacing the json's row of the same library, preset and env count; one row per GPU, each row once); its log is
 # $LOGS/LIBRARY_PRESET_ENVS.log. The resume states this call wrote are packed before its snapshots: a row can go on
 # in a later session only from them (benchmarks/table_carry.py). Files older than S are not this call's, so put
 # carried runs in place (cp -a) before S.
@@ -29,11 +29,15 @@ TABLE=${TABLE:-$RUNS/h100.json}
 NUM_ENVS=${NUM_ENVS:-4096} LOGS=${LOGS:-/tmp/table_logs} PACK=${PACK:-30} OUT=${OUT:-/tmp/out}
 usage="a row is LIBRARY[:PRESET[:ENVS]][+new]@GPU (ENVS and GPU numbers, one row per GPU)"
 [ $# -ge 1 ] || { echo "usage: S=... END=... bash benchmarks/table_call.sh ROW...; $usage" >&2; exit 2; }
-gpus=" "
+gpus=" " keys=" "
 for row in "$@"; do  # all rows checked before any starts
   [[ $row =~ ^[a-z_0-9]+(:[a-z_0-9]+(:[0-9]+)?)?(\+new)?@[0-9]+$ ]] || { echo "table_call.sh: $usage, got '$row'" >&2; exit 2; }
   [[ $gpus == *" ${row#*@} "* ]] && { echo "table_call.sh: two rows on GPU ${row#*@}: their rates would share it ($usage)" >&2; exit 2; }
   gpus+="${row#*@} "
+  spec=${row%@*} && spec=${spec%+new} && IFS=: read -r lib preset envs <<< "$spec"
+  key="$lib:${preset:-${PRESET:-default}}:${envs:-${NUM_ENVS:-4096}}"
+  [[ $keys == *" $key "* ]] && { echo "table_call.sh: row $key given twice: two calls would train one run folder at once ($usage)" >&2; exit 2; }
+  keys+="$key "
 done
 run() { if [ -n "${DRY_RUN:-}" ]; then echo "+ CUDA_VISIBLE_DEVICES=${CUDA_VISIBLE_DEVICES:-} $*"; else "$@"; fi; }
 left() { echo $(( END - $(date +%s) + S )); }
@@ -57,7 +61,8 @@ train_row() {  # library preset envs gpu: train until keep + PACK seconds before
 }
 
 for row in "$@"; do
-  spec=${row%@*} new=${NEW:-}
+  spec=${row%@*} new=
+  [ "${NEW:-0}" = 1 ] && new=1
   [[ $spec == *+new ]] && spec=${spec%+new} new=1
   IFS=: read -r lib preset envs <<< "$spec"
   train_row "$lib" "${preset:-$PRESET}" "${envs:-$NUM_ENVS}" "${row#*@}" "$new" &

@@ -237,7 +237,18 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
     from tocabi_torchrl.rl.evaluate import tested_on
 
     tested = row.setdefault("tested", {})
-    deadline = time.monotonic() + 60.0 * args.eval_minutes if args.eval_minutes > 0 else float("inf")
+    # --eval_minutes bound the call's testing, over all its rows: started at the call's first test.
+    if "eval_deadline" not in vars(args):
+        args.eval_deadline = time.monotonic() + 60.0 * args.eval_minutes if args.eval_minutes > 0 else float("inf")
+    deadline = args.eval_deadline
+    # A row's snapshots are all tested alike: a shorter test (a smoke setting) would fail a policy that walks, and
+    # the row's verdict would read as the 8 s test's.
+    setting = {"seconds": float(args.eval_seconds), "num_envs": int(args.eval_envs)}
+    if row.setdefault("gait_test", setting) != setting:
+        raise SystemExit(f"error: {library} {row['num_envs']}: its snapshots were gait-tested for "
+                         f"{row['gait_test']['seconds']:g} s on {row['gait_test']['num_envs']} robots; test the rest "
+                         f"alike (--eval_seconds {row['gait_test']['seconds']:g} --eval_envs "
+                         f"{row['gait_test']['num_envs']}), or start the row over with --new")
     for snap in sorted(row["snapshots"], key=snapshot_seconds):
         name = Path(snap).stem
         if row.get("walk") is not None:
@@ -264,7 +275,7 @@ def gait_test_snapshots(library: str, row: dict, out: Path, args) -> None:
                     unfinished = True
                     break
                 others[f"{command[0]}_{command[1]}"] = summary["survival"]
-                if summary["survival"] < GAIT_CRITERIA["survival"]:
+                if not summary["survival"] >= GAIT_CRITERIA["survival"]:  # NaN (no robot) fails too
                     break  # the snapshot fails here; the commands after it cannot change that
             else:
                 entry["passes"] = True
@@ -417,6 +428,9 @@ def table_row(r: dict) -> tuple[str, tuple[str, str] | None]:
         rate, walks = "-", "not trained yet (no call has finished)"
     else:
         walks = "pending (training or untested snapshots)"
+    test = r.get("gait_test")
+    if test and (test["seconds"], test["num_envs"]) != (8.0, 256):  # not the table's test: say which it was
+        walks += f" (gait test {test['seconds']:g} s, {test['num_envs']} robots)"
     commands = r.get("commands") or [r.get("command", "")]
     line = (f"| {r['library']} | {r.get('version', '')} | {r['preset']} | {r['num_envs']:,} | "
             f"{rate} | {walks} | {r.get('train_seconds', 0) / 60:.1f} | "
@@ -457,13 +471,19 @@ def check_args(parser: argparse.ArgumentParser, args) -> None:
     for flag, value, positive, means in (
             ("--max_minutes", args.max_minutes, True, "the training cap of a row"),
             ("--minutes", args.minutes, False, "0: up to --max_minutes"),
-            ("--checkpoint_minutes", args.checkpoint_minutes, False, "the snapshot period"),
+            ("--checkpoint_minutes", args.checkpoint_minutes, True, "the snapshot period: snapshots are tested"),
             ("--eval_minutes", args.eval_minutes, False, "0: test all"),
             ("--eval_seconds", args.eval_seconds, True, "the length of a gait test")):
         if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
             parser.error(f"{flag} {value:g}: give a finite number {'> 0' if positive else '>= 0'} ({means})")
     if args.eval_envs < 1:
         parser.error(f"--eval_envs {args.eval_envs}: give a number of robots >= 1")
+    if args.checkpoint_minutes > args.max_minutes:
+        parser.error(f"--checkpoint_minutes {args.checkpoint_minutes:g} is longer than the cap --max_minutes "
+                     f"{args.max_minutes:g}: the row would have no snapshot to gait-test; give a shorter period")
+    if args.eval_only and args.new:
+        parser.error("--eval_only --new: --new starts a row over by training it, --eval_only trains nothing; "
+                     "leave one out")
     if args.report:
         return
     from tocabi_torchrl.config import PRESETS, check_snapshot_minutes
@@ -539,7 +559,7 @@ def main(argv=None) -> None:
     import torch
 
     mine: set[tuple] = set()  # the rows this call handles; the others may belong to a call running beside it
-    args.save_rows = lambda: save_rows(json_path, rows, mine)
+    args.save_rows = lambda: save_rows(json_path, rows, mine, md_path)  # the md never lags the json
     dists = {"torchrl": "torchrl", "rsl_rl": "rsl-rl-lib", "skrl": "skrl", "sb3": "stable-baselines3"}
     cap_s = 60.0 * args.max_minutes
     for library in args.library_list:

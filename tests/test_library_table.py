@@ -590,12 +590,16 @@ def test_the_gpu_call_script_trains_each_row_on_its_gpu_and_packs_the_calls_snap
     assert listed.index(str(latest)) < listed.index(str(runs)) and "*/checkpoints/iter_*.pt" in pack
     log = tmp_path / "logs" / "skrl_torque_4096.log"
     for bad_rows in (["torchrl"], ["skrl@2", "torchrl@"], ["sb3:default:many@2"], ["sb3:x:1:2@0"], ["sb3+old@2"],
-                     ["rsl_rl:torque@1"]):
+                     ["rsl_rl:torque@1"], ["skrl:torque:4096@0"]):  # the last: skrl's torque row twice
         log.write_text("")  # checked before any row starts
         bad = subprocess.run(["bash", "benchmarks/table_call.sh", "skrl:torque@1", *bad_rows], cwd=root, env=env,
                              capture_output=True, text=True, check=False)
         assert bad.returncode == 2 and "LIBRARY[:PRESET[:ENVS]][+new]@GPU" in bad.stderr
         assert log.read_text() == ""
+    log.write_text("")
+    subprocess.run(["bash", "benchmarks/table_call.sh", "skrl:torque@1"], cwd=root, env={**env, "NEW": "0"},
+                   capture_output=True, text=True, check=True)
+    assert "--new" not in log.read_text()  # NEW=1 starts rows anew, NEW=0 does not
 
 
 #: A table row with what the table shows of it (a row that walks at 3 minutes).
@@ -672,7 +676,7 @@ def test_relative_paths_are_from_the_current_folder_and_the_defaults_in_the_repo
     (["--max_minutes", "0"], "--max_minutes 0: give a finite number > 0"),
     (["--max_minutes", "nan"], "--max_minutes nan: give a finite number > 0"),
     (["--eval_minutes", "-1"], "--eval_minutes -1: give a finite number >= 0 (0: test all)"),
-    (["--checkpoint_minutes", "inf"], "--checkpoint_minutes inf: give a finite number >= 0"),
+    (["--checkpoint_minutes", "inf"], "--checkpoint_minutes inf: give a finite number > 0"),
     (["--eval_seconds", "0"], "--eval_seconds 0: give a finite number > 0"),
     (["--eval_envs", "0"], "--eval_envs 0: give a number of robots >= 1"),
     (["--preset", "torq"], "--preset torq: unknown preset; choose from"),
@@ -693,3 +697,45 @@ def test_a_malformed_json_is_refused_before_any_row_runs(torchrl_table, tmp_path
         torchrl_table.main(torchrl_args(tmp_path))
     assert f"error: --json: {tmp_path / 'table.json'} is not a table json" in capsys.readouterr().err
     assert torchrl_table.ppo_walk.commands == [] and (tmp_path / "table.json").read_text() == "["
+
+
+@pytest.mark.parametrize("extra, said", [
+    (["--checkpoint_minutes", "0"], "--checkpoint_minutes 0: give a finite number > 0"),
+    (["--checkpoint_minutes", "31"], "longer than the cap"),
+    (["--eval_only", "--new"], "--eval_only --new"),
+])
+def test_settings_that_would_leave_a_row_untested_are_refused(tmp_path, capsys, extra, said):
+    table = load_recipe("library_table")
+    with pytest.raises(SystemExit):
+        table.main(["--libraries", "torchrl", "--device", "cpu", *extra, *files(tmp_path)])
+    assert said in capsys.readouterr().err and not (tmp_path / "table.json").exists()
+
+
+def test_a_rows_snapshots_are_all_gait_tested_alike_and_a_shorter_test_is_named(torchrl_table, tmp_path):
+    # A 1 s test fails a policy that walks: its "no" must say so, and later calls may not mix in another setting.
+    torchrl_table.main(torchrl_args(tmp_path, "--minutes", str(3 / 60), "--eval_seconds", "1", "--eval_envs", "2"))
+    [row] = rows(tmp_path)
+    assert row["gait_test"] == {"seconds": 1.0, "num_envs": 2}
+    with pytest.raises(SystemExit, match="--eval_seconds 1 --eval_envs 2"):
+        torchrl_table.main(torchrl_args(tmp_path, "--eval_only"))
+    torchrl_table.main(torchrl_args(tmp_path, "--eval_seconds", "1", "--eval_envs", "2"))  # to the cap, alike
+    [row] = rows(tmp_path)
+    assert row["status"] == "final"
+    assert "no (≤ 0.166667) (gait test 1 s, 2 robots)" in (tmp_path / "table.md").read_text()
+
+
+def test_eval_minutes_bound_the_whole_calls_testing_and_nan_survival_fails(torchrl_table, tmp_path, monkeypatch):
+    clock = [0.0]
+    monkeypatch.setattr(torchrl_table.time, "monotonic", lambda: clock[0])
+    walks = {"survival": 1.0, "forward_distance_m": 4.0, "forward_distance_survivors_m": 4.0,
+             "lateral_drift_m": 0.0, "speed_tracking_error_mps": 0.0, "knee_rms_rad": 0.0}
+
+    def gait(library, snapshot, out, args, command):  # one minute a test; the main command walks, the others NaN
+        clock[0] += 60.0
+        torchrl_table.tested.append(Path(snapshot).name)
+        return walks if command == torchrl_table.MAIN else {**walks, "survival": float("nan")}
+
+    monkeypatch.setattr(torchrl_table, "gait", gait)
+    torchrl_table.main(torchrl_args(tmp_path, "--num_envs", "2,3", "--minutes", str(3 / 60), "--eval_minutes", "2.5"))
+    assert len(torchrl_table.tested) == 3  # 2.5 minutes for the call: three tests started, not three a row
+    assert all(r.get("walks_minutes") is None for r in rows(tmp_path))  # NaN survival at a second command fails
