@@ -37,8 +37,6 @@ import torch
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
 from tocabi_torchrl.adapters.recipe import (
-    Interrupted,
-    TimeUp,
     TrainingClock,
     base_parser,
     call_seed,
@@ -50,8 +48,7 @@ from tocabi_torchrl.adapters.recipe import (
     keep_previous,
     open_out_dir,
     read_resume,
-    report_interruption,
-    stop_on_signals,
+    run_call,
     write_json,
     write_resume,
 )
@@ -234,17 +231,7 @@ def main(argv=None) -> dict:
                           offset=float(prior.get("train_seconds", 0.0)), snapshots=prior.get("snapshots"))
     env.stepper.step_hooks.append(clock)
     left = args.iterations - done_before
-    interrupted = None
-    with stop_on_signals(clock):
-        try:
-            if clock.time_up or left <= 0:
-                print(f"rsl_rl: nothing left to train ({clock.elapsed:.0f} s, {done_before} iterations done)")
-            else:
-                runner.learn(left)
-        except TimeUp as stop:
-            print(f"rsl_rl: {stop}")
-        except (Interrupted, KeyboardInterrupt) as stop:  # saved as at TimeUp: the call can be resumed
-            interrupted = report_interruption("rsl_rl", stop, out)
+    _, interrupted = run_call("rsl_rl", clock, out, lambda: runner.learn(left), left, f"{done_before} iterations")
     env.stepper.step_hooks.clear()
     seconds = clock.freeze()
     iterations = done_before + updates[0]

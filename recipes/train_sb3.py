@@ -33,8 +33,6 @@ import torch
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
 from tocabi_torchrl.adapters.recipe import (
-    Interrupted,
-    TimeUp,
     TrainingClock,
     base_parser,
     call_seed,
@@ -45,8 +43,7 @@ from tocabi_torchrl.adapters.recipe import (
     keep_previous,
     open_out_dir,
     read_resume,
-    report_interruption,
-    stop_on_signals,
+    run_call,
     write_json,
     write_resume,
 )
@@ -168,21 +165,13 @@ def main(argv=None) -> dict:
                           offset=float(prior.get("train_seconds", 0.0)), snapshots=prior.get("snapshots"))
     env.stepper.step_hooks.append(clock)
     left = total - int(model.num_timesteps)
-    interrupted = None
-    with stop_on_signals(clock):
-        try:
-            if clock.time_up or left <= 0:
-                print(f"sb3: nothing left to train ({clock.elapsed:.0f} s, {model.num_timesteps} timesteps done)")
-            else:
-                model.learn(total_timesteps=left, reset_num_timesteps=not prior)
-        except (TimeUp, Interrupted, KeyboardInterrupt) as stop:
-            if isinstance(stop, TimeUp):
-                print(f"sb3: {stop}")
-            else:  # saved as at TimeUp: the call can be resumed
-                interrupted = report_interruption("sb3", stop, out)
-            # The rollout in progress is discarded: SB3 counted its steps in num_timesteps, which sets the schedules'
-            # position; take them back so that the next call's schedules continue from the last update.
-            model.num_timesteps = int(model._n_updates // args.epochs) * args.n_steps * args.num_envs
+    stopped, interrupted = run_call("sb3", clock, out,
+                                    lambda: model.learn(total_timesteps=left, reset_num_timesteps=not prior), left,
+                                    f"{model.num_timesteps} timesteps")
+    if stopped:
+        # The rollout in progress is discarded: SB3 counted its steps in num_timesteps, which sets the schedules'
+        # position; take them back so that the next call's schedules continue from the last update.
+        model.num_timesteps = int(model._n_updates // args.epochs) * args.n_steps * args.num_envs
     env.stepper.step_hooks.clear()
     seconds = clock.freeze()
     meta.update(env_steps=env_steps(), train_seconds=seconds, env_steps_per_s=env_steps() / max(seconds, 1e-9),

@@ -33,8 +33,6 @@ from torch import nn
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
 from tocabi_torchrl.adapters.recipe import (
-    Interrupted,
-    TimeUp,
     TrainingClock,
     base_parser,
     call_seed,
@@ -46,8 +44,7 @@ from tocabi_torchrl.adapters.recipe import (
     keep_previous,
     open_out_dir,
     read_resume,
-    report_interruption,
-    stop_on_signals,
+    run_call,
     write_json,
     write_resume,
 )
@@ -164,17 +161,7 @@ def main(argv=None) -> dict:
     clock = TrainingClock(out, save, args.max_minutes, args.checkpoint_minutes,
                           offset=float(prior.get("train_seconds", 0.0)), snapshots=prior.get("snapshots"))
     env.stepper.step_hooks.append(clock)
-    interrupted = None
-    with stop_on_signals(clock):
-        try:
-            if clock.time_up or left <= 0:
-                print(f"skrl: nothing left to train ({clock.elapsed:.0f} s, {done_before} iterations done)")
-            else:
-                trainer.train()
-        except TimeUp as stop:
-            print(f"skrl: {stop}")
-        except (Interrupted, KeyboardInterrupt) as stop:  # saved as at TimeUp: the call can be resumed
-            interrupted = report_interruption("skrl", stop, out)
+    _, interrupted = run_call("skrl", clock, out, trainer.train, left, f"{done_before} iterations")
     env.stepper.step_hooks.clear()
     seconds = clock.freeze()
     meta.update(env_steps=env_steps(), train_seconds=seconds, env_steps_per_s=env_steps() / max(seconds, 1e-9),

@@ -400,15 +400,21 @@ def test_time_to_walk_train_on_any_cuda_device_records_its_gpu_and_raw_ceiling(t
     assert "| default | GPU 1 |" in (tmp_path / "docs/time_to_walk.md").read_text()
 
 
-def test_a_zero_minute_time_limit_is_refused_not_read_as_no_limit(tmp_path, monkeypatch, capsys):
-    # The config reads max_minutes 0 as no wall-clock limit: time_to_walk once trained far past its budget, the soak
-    # for ever.
+@pytest.fixture
+def nothing_measured(tmp_path, monkeypatch):
+    """Run in ``tmp_path`` with every measuring entry point (training, child runs, the soak's faults) failing the
+    test if reached: refused arguments must stop before any of them."""
     def measured(*args, **kwargs):
         raise AssertionError("measured")
 
     monkeypatch.chdir(tmp_path)
     for module, name in ((common, "train"), (common, "run_child"), (soak, "run_faults")):
         monkeypatch.setattr(module, name, measured)
+
+
+def test_a_zero_minute_time_limit_is_refused_not_read_as_no_limit(nothing_measured, capsys):
+    # The config reads max_minutes 0 as no wall-clock limit: time_to_walk once trained far past its budget, the soak
+    # for ever.
     for main, args in ((time_to_walk.main, ["train", "--preset", "cpu_smoke", "--device", "cpu", "--minutes", "0"]),
                        (soak.main, ["--device", "cpu", "--minutes", "0", "--out", "o"]),
                        (soak.main, ["--device", "cpu", "--minutes", "nan", "--out", "o"]),
@@ -469,14 +475,8 @@ def test_device_out_names_a_missing_path_and_keeps_each_tar_within_its_limit(tmp
     assert "missing (1 paths given that do not exist):\n  runs/library_tabel" in (Path("out") / "manifest.txt").read_text()
 
 
-def test_bad_arguments_are_refused_in_one_line(tmp_path, monkeypatch, capsys):
+def test_bad_arguments_are_refused_in_one_line(nothing_measured, tmp_path, monkeypatch, capsys):
     # Each once ran on into a traceback (a division by zero, an unknown preset, no CUDA) or measured nothing silently.
-    def measured(*args, **kwargs):
-        raise AssertionError("measured")
-
-    monkeypatch.chdir(tmp_path)
-    for module, name in ((common, "run_child"), (soak, "run_faults"), (common, "train")):
-        monkeypatch.setattr(module, name, measured)
     cpu = ["--device", "cpu", "--out", "o"]
     cases = [(scaling.main, ["--num_envs", "0", "--results", "s"]),
              (scaling.main, ["--backend", "cpu", "--redo", "partal", "--results", "s"]),

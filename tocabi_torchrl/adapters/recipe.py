@@ -19,7 +19,7 @@ import contextlib
 import json
 import math
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from ..config import check_snapshot_minutes, wall_tag
@@ -42,6 +42,7 @@ __all__ = [
     "open_out_dir",
     "read_resume",
     "report_interruption",
+    "run_call",
     "stop_on_signals",
     "write_json",
     "write_resume",
@@ -274,6 +275,27 @@ def report_interruption(name: str, stop: BaseException, out: Path) -> str:
           f"To continue, run the same command with --resume (--max_minutes, if given, caps the total)",
           file=sys.stderr, flush=True)
     return reason
+
+
+def run_call(name: str, clock: TrainingClock, out: Path, learn: Callable[[], object], left: int,
+             done: str) -> tuple[bool, str | None]:
+    """Train one call of recipe ``name``: ``learn()`` unless the clock's time is up or ``left`` (iterations or steps
+    to go) is not positive (then says so, with ``done``: what earlier calls did), under :func:`stop_on_signals`.
+    The clock's :class:`TimeUp` and Ctrl-C/SIGTERM end it alike, the call then saved by the recipe as usual. Returns
+    whether training stopped early (the rollout in progress is then discarded) and what interrupted it, if a signal
+    did (for ``result.json``)."""
+    with stop_on_signals(clock):
+        try:
+            if clock.time_up or left <= 0:
+                print(f"{name}: nothing left to train ({clock.elapsed:.0f} s, {done} done)")
+            else:
+                learn()
+        except TimeUp as stop:
+            print(f"{name}: {stop}")
+            return True, None
+        except (Interrupted, KeyboardInterrupt) as stop:  # saved as at TimeUp: the call can be resumed
+            return True, report_interruption(name, stop, out)
+    return False, None
 
 
 class TrainingClock:
