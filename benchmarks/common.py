@@ -22,9 +22,9 @@ from pathlib import Path
 import torch
 
 from tocabi_torchrl import robot
+from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.config import FLAT_PATHS, RunConfig
 from tocabi_torchrl.rl import checkpoint, trainer
-from tocabi_torchrl.rl.atomic import atomic_write_text
 from tocabi_torchrl.rl.config import PRESETS, preset_config
 from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.rl.evaluate import evaluate_policy

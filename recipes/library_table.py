@@ -161,7 +161,7 @@ def add_end_snapshot(library: str, row: dict, out: Path) -> bool:
     marks every ``--checkpoint_minutes`` (the end falls between two marks, and is what the run hands a user).
     Returns whether it added one to ``row["snapshots"]``; False when the row needs none or when the run's last
     policy is not here (printed)."""
-    from tocabi_torchrl.rl.atomic import atomic_write_bytes
+    from tocabi_torchrl.atomic import atomic_write_bytes
 
     end = end_snapshot(row, out)
     if end is None:
@@ -366,7 +366,7 @@ def save_rows(json_path: Path, rows: list[dict], mine: set[tuple], md_path: Path
     ``CUDA_VISIBLE_DEVICES=1``) do not drop each other's rows."""
     import fcntl
 
-    from tocabi_torchrl.rl.atomic import atomic_write_text
+    from tocabi_torchrl.atomic import atomic_write_text
 
     json_path.parent.mkdir(parents=True, exist_ok=True)
     with open(json_path.with_name(json_path.name + ".lock"), "w") as lock:
@@ -384,7 +384,7 @@ def save_rows(json_path: Path, rows: list[dict], mine: set[tuple], md_path: Path
 def report(rows: list[dict], path: Path) -> None:
     """Render ``rows`` into the table ``path``. ``ValueError`` naming the row (by its place in ``rows``, from 1) and
     the field when one lacks a field the table shows; ``path`` is then left as it is."""
-    from tocabi_torchrl.rl.atomic import atomic_write_text
+    from tocabi_torchrl.atomic import atomic_write_text
 
     intro = ("Training env-steps/s (collection + update over training wall-clock) and the training time at which the "
              "policy first passes the 8 s gait test (30-minute cap). Written by `recipes/library_table.py`.")

@@ -114,7 +114,7 @@ def test_a_network_size_mismatch_names_the_tensors_not_a_state_dict(tmp_path):
 
 def test_checkpoint_writes_are_atomic(tmp_path, monkeypatch):
     # A crash while latest.pt is being replaced must leave the previous latest.pt readable.
-    import tocabi_torchrl.rl.atomic as atomic
+    import tocabi_torchrl.atomic as atomic
 
     run, agent = _saved_run(tmp_path, iterations=(1,))
     cfg = _config()
@@ -137,7 +137,7 @@ def test_checkpoint_writes_are_atomic(tmp_path, monkeypatch):
 def test_atomic_writes_get_the_permissions_of_a_plain_write(tmp_path):
     # mkstemp creates files 0o600; a checkpoint, export or config must be readable as open(path, "w") would leave it
     # (0o666 less the umask), and a rewritten file keeps the mode its owner gave it.
-    from tocabi_torchrl.rl.atomic import atomic_write_text
+    from tocabi_torchrl.atomic import atomic_write_text
 
     old = os.umask(0o022)
     try:

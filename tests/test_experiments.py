@@ -761,7 +761,7 @@ def test_snapshots_are_labelled_with_the_simulated_time():
 
 
 def test_experiment_files_are_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
-    from tocabi_torchrl.rl import atomic
+    from tocabi_torchrl import atomic
     from tocabi_torchrl.rl.experiments import replace_atomically, write_atomic
 
     synced = []

@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.check:
         print(f"{args.path}: the signal table is stale; run python -m tocabi_torchrl.signals_doc", file=sys.stderr)
         return 1
-    from .rl.atomic import atomic_write_text  # imported here: only writing needs it
+    from .atomic import atomic_write_text  # imported here: only writing needs it
 
     atomic_write_text(args.path, with_table(args.path.read_text(encoding="utf-8")))
     print(f"{args.path}: signal table rewritten")

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from ..rl.atomic import atomic_write_bytes
+from ..atomic import atomic_write_bytes
 
 __all__ = ["FORMAT", "PolicyFileError", "load_policy", "save_policy"]
 

@@ -22,8 +22,8 @@ import sys
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
+from ..atomic import atomic_write_text
 from ..config import check_snapshot_minutes, wall_tag
-from ..rl.atomic import atomic_write_text
 from ..rl.interrupt import Interrupted, exit_status
 from ..rl.interrupt import stop_on_signals as _stop_on_signals
 
@@ -223,7 +223,7 @@ def read_resume(out: Path, torch_state: bool = False) -> dict:
 def write_resume(out: Path, state: bytes, counters: dict) -> Path:
     """Write the library's training state ``state`` as a new file (never replacing one) and then ``resume.json``
     naming it, both atomically: a call killed in between leaves the previous resume point intact."""
-    from ..rl.atomic import atomic_write_bytes
+    from ..atomic import atomic_write_bytes
 
     path = Path(out) / "resume" / f"state_call{int(counters['calls'])}.pt"
     if path.exists():

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..rl.atomic import atomic_write_bytes, atomic_write_text
+from ..atomic import atomic_write_bytes, atomic_write_text
 from ..transforms.normalize import RunningNormalization, freeze_running_statistics
 from .contract import ExportError, build_contract, sha256_bytes
 

@@ -36,7 +36,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import secrets
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,6 +44,7 @@ import numpy as np
 
 from tocabi_torchrl.robot import JOINT_NAMES, NUM_JOINTS
 
+from ..atomic import atomic_write_bytes
 from .schedule import DOUBLE_SUPPORT, LEFT_STANCE, cycle_layout, stance_schedule
 
 __all__ = [
@@ -379,24 +379,5 @@ def _write_npz(path: Path, fields: dict[str, np.ndarray]) -> None:
             buf = io.BytesIO()
             np.lib.format.write_array(buf, np.asanyarray(arr), allow_pickle=False)
             zf.writestr(info, buf.getvalue())
-    _write_atomic(path, archive.getvalue())
+    atomic_write_bytes(path, archive.getvalue())
 
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    """Temporary file beside ``path``, fsynced, renamed over it. ``rl.atomic`` does the same, but importing the
-    ``rl`` package from here would load the trainer into every env that reads a motion. Created with mode 0o666 for
-    the umask to apply, as a plain ``open`` would (a shipped motion must stay readable by all)."""
-    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
-    fd = os.open(tmp, flags, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        if path.exists():
-            os.chmod(tmp, path.stat().st_mode & 0o7777)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise

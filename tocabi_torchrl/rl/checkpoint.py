@@ -11,8 +11,8 @@ read as version 0; config fields they lack take their defaults. Versions 0 and 1
 of before the run config tree; :func:`config_from_checkpoint` migrates it to the tree (``config.FLAT_PATHS``).
 Version 2 holds the tree (``RunConfig.to_dict()``).
 
-Writing is atomic (:mod:`.atomic`): a crash leaves the previous ``latest.pt`` intact. Old ``iter_*.pt`` files are
-pruned after each save (``RunConfig.checkpoint_keep_last`` / ``checkpoint_keep_every``).
+Writing is atomic (:mod:`tocabi_torchrl.atomic`): a crash leaves the previous ``latest.pt`` intact.
+Old ``iter_*.pt`` files are pruned after each save (``RunConfig.checkpoint_keep_last`` / ``checkpoint_keep_every``).
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from ..atomic import atomic_write_bytes
 from ..config import ConfigError, RunConfig, config_from_dict
-from .atomic import atomic_write_bytes
 
 __all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_checkpoint", "apply_checkpoint", "checkpoint_file",
            "config_from_checkpoint", "prune_checkpoints", "run_folder_of", "CheckpointError", "SCHEMA_VERSION"]

@@ -3,8 +3,8 @@ experiment recipes' knee comparison, joint torques and obstacle-height curves (`
 ``recipes/obstacle_test.py``).
 
 Figures are drawn on their own ``matplotlib.figure.Figure`` with the Agg canvas, never through ``pyplot``: the
-caller's matplotlib backend (a notebook's, a GUI's) stays as it was. Each file is written atomically (:mod:`.atomic`):
-an interrupted run leaves the earlier figure whole, never half a PNG."""
+caller's matplotlib backend (a notebook's, a GUI's) stays as it was. Each file is written atomically
+(:mod:`tocabi_torchrl.atomic`): an interrupted run leaves the earlier figure whole, never half a PNG."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_write_bytes
+from ..atomic import atomic_write_bytes
 
 __all__ = ["new_figure", "plot_joint_torques", "plot_knee_comparison", "plot_knees", "plot_vs_height", "save_figure"]
 

@@ -23,10 +23,10 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm.auto import tqdm
 
 from .. import robot
+from ..atomic import atomic_write_text
 from ..config import RunConfig
 from ..render_gl import NO_GL_FIX
 from ..transforms.normalize import freeze_running_statistics
-from .atomic import atomic_write_text
 from .checkpoint import checkpoint_file, read_checkpoint, run_folder_of
 from .eval_plots import plot_knees
 from .eval_video import render_video

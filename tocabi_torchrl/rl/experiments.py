@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .. import robot
-from .atomic import TEMP_SUFFIX, atomic_write_bytes
+from ..atomic import TEMP_SUFFIX, atomic_write_bytes
 
 __all__ = ["Controller", "ExperimentOutputError", "SHIPPED_POLICIES", "checkpoint_record", "display_path",
            "earlier_table", "parse_controllers", "prepare_out_dir", "replace_atomically", "slug", "write_atomic",
@@ -129,8 +129,8 @@ def write_table(rows: list[dict], columns: dict[str, str], out_dir: Path, stem: 
 
 
 def write_atomic(path: str | os.PathLike, data: str | bytes) -> Path:
-    """Write ``data`` (text as UTF-8) to ``path`` atomically (:mod:`.atomic`: a temporary file of its own beside it,
-    fsynced, renamed over ``path``): a run killed meanwhile leaves the earlier file whole, and two writers of one
+    """Write ``data`` (text as UTF-8) to ``path`` atomically (:mod:`tocabi_torchrl.atomic`: a temporary file
+    of its own beside it, fsynced, renamed over ``path``): a run killed meanwhile leaves the earlier file whole, and two writers of one
     folder never share a temporary file."""
     return atomic_write_bytes(path, data if isinstance(data, bytes) else data.encode("utf-8"))
 

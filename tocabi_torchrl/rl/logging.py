@@ -27,7 +27,7 @@ import math
 import os
 from pathlib import Path
 
-from .atomic import atomic_write_text
+from ..atomic import atomic_write_text
 from .metrics_files import METRICS_DIR
 
 __all__ = ["RunLogger", "make_loggers", "require_loggers", "write_config"]

@@ -20,7 +20,7 @@ import os
 from collections import Counter
 from pathlib import Path
 
-from .atomic import atomic_write_text
+from ..atomic import atomic_write_text
 
 __all__ = ["LEGACY_CSV", "METRICS_DIR", "SCALARS", "metrics_sources", "read_metrics", "trim_metrics"]
 

@@ -17,8 +17,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..atomic import remove_stale_temp_files
 from ..config import RunConfig
-from .atomic import remove_stale_temp_files
 from .checkpoint import (
     _ITER_FILE,
     CheckpointError,
