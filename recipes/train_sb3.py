@@ -13,8 +13,13 @@ SB3 keeps numpy arrays on the host: each step copies observations and rewards of
 per-library table). Writes SB3's own zip (<out>/sb3_model.zip: loading it unpickles SB3's saved objects, so load
 only your own), the policy as <out>/policy.pt (tensors only) and the gait test under <out>/eval/.
 
-``--resume`` continues the run in ``--out`` from SB3's zip of its previous call (``--max_minutes`` caps the total
-training time over all calls; ``--iterations`` must stay the same, as it sets where the LR and std schedules are):
+``--resume`` continues the run in ``--out`` from the training state its previous call saved in <out>/resume/:
+the policy's weights (the scheduled std included), the Adam state of both parameter groups, ``num_timesteps`` and
+``_n_updates``, as tensors and plain values (``torch.save``, read back with ``torch.load(weights_only=True)``, so
+loading it runs no code). The model is built anew, as by a first call, and that state loaded into it; SB3's zip is
+never read on a resume, and a run folder whose state file is one (written by an earlier version of this recipe) is
+refused. ``--max_minutes`` caps the total training time over all calls; ``--iterations`` must stay the same, as it
+sets where the LR and std schedules are:
 
     python recipes/train_sb3.py --out runs/s --max_minutes 9 --eval_envs 0
     python recipes/train_sb3.py --out runs/s --max_minutes 18 --eval_envs 0 --resume     # 9 more minutes
@@ -22,24 +27,42 @@ training time over all calls; ``--iterations`` must stay the same, as it sets wh
 
 from __future__ import annotations
 
+import argparse
 import functools
 import io
 import math
 import sys
+import zipfile
 from importlib import metadata
+from pathlib import Path
 
-import torch
+from tocabi_torchrl.cli import base_parser, hidden_sizes
 
-from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
-from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
-from tocabi_torchrl.adapters.recipe import (
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line: the options every library recipe takes and Stable-Baselines3's own."""
+    parser = base_parser(__doc__.split("\n\n")[0], num_envs=8, iterations=7325)
+    parser.add_argument("--n_steps", type=int, default=2048, help="rollout length per env (default: 2048)")
+    parser.add_argument("--batch_size", type=int, default=128, help="mini-batch size (default: 128)")
+    parser.add_argument("--epochs", type=int, default=3, help="passes over each rollout (default: 3)")
+    parser.add_argument("--hidden", type=hidden_sizes, default=(256, 256),
+                        help="hidden layer sizes of actor and critic, comma-separated (default: 256,256)")
+    return parser
+
+
+if __name__ == "__main__":  # --help or a misspelt option answers before torch and Stable-Baselines3 load
+    build_parser().parse_args(sys.argv[1:])
+
+import torch  # noqa: E402
+
+from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
+from tocabi_torchrl.adapters.policy_file import load_policy, save_policy  # noqa: E402
+from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
-    base_parser,
     call_seed,
     check_args,
     check_out_dir,
     exit_status,
-    hidden_sizes,
     keep_previous,
     open_out_dir,
     read_resume,
@@ -47,16 +70,20 @@ from tocabi_torchrl.adapters.recipe import (
     write_json,
     write_resume,
 )
-from tocabi_torchrl.rl.std_schedule import StdSchedule
+from tocabi_torchrl.rl.std_schedule import StdSchedule  # noqa: E402
 
 #: Reference learning rates (spec §10.2): the policy's schedule ends and the value head's constant rate.
 LR_START, LR_END, VALUE_HEAD_LR = 1e-5, 2e-7, 5e-4
 STD = StdSchedule(start=0.1, end=0.05, hold=0.5)
 #: What a resumed call does not carry over (also in the per-library table's notes).
-RESUME_NOTES = ("resumes SB3's saved model (PPO.load): policy, Adam state of both parameter groups, num_timesteps and "
-                "_n_updates, so the LR and std schedules continue where the last completed update left them; not the "
-                "env state (every call starts from a reset), the random-number state (reseeded with seed + call "
-                "index) or the rollout in progress when a call's time is up (discarded; its steps and seconds count)")
+RESUME_NOTES = ("resumes the policy (with the scheduled std), Adam state of both parameter groups, num_timesteps and "
+                "_n_updates, saved as tensors (never SB3's zip, which unpickles) and loaded into a model built anew, "
+                "so the LR and std schedules continue where the last completed update left them; not SB3's episode "
+                "statistics (logging only), the env state (every call starts from a reset), the random-number state "
+                "(reseeded with seed + call index) or the rollout in progress when a call's time is up (discarded; "
+                "its steps and seconds count)")
+#: Marks a resume state file as this recipe's (``resume/state_call<k>.pt``), so nothing else is taken for one.
+STATE_FORMAT = "tocabi_torchrl.train_sb3.resume/1"
 
 
 class LinearLR:
@@ -102,18 +129,74 @@ def reference_ppo_class():
     return ReferencePPO
 
 
+def training_state(model) -> bytes:
+    """The resume state of ``model`` as ``torch.save`` bytes: what SB3's own load would restore and the schedules need
+    (policy weights with the scheduled std, the Adam state of both parameter groups, ``num_timesteps``, from which
+    ``learn(reset_num_timesteps=False)`` places the LR and std schedules, and ``_n_updates``), tensors and plain
+    values only, so that reading it back needs no unpickling of objects."""
+    buffer = io.BytesIO()
+    torch.save({"format": STATE_FORMAT, "policy": model.policy.state_dict(),
+                "optimizer": model.policy.optimizer.state_dict(), "num_timesteps": int(model.num_timesteps),
+                "n_updates": int(model._n_updates)}, buffer)
+    return buffer.getvalue()
+
+
+def _is_sb3_zip(path: Path) -> bool:
+    # Only the archive's names are read: SB3's zip holds its pickled objects in "data", torch's own zip in data.pkl.
+    try:
+        with zipfile.ZipFile(path) as archive:
+            names = set(archive.namelist())
+    except (zipfile.BadZipFile, OSError):
+        return False
+    return "_stable_baselines3_version" in names or {"data", "policy.pth"} <= names
+
+
+def read_training_state(path: Path) -> dict:
+    """The resume state :func:`training_state` wrote to ``path``, read with ``torch.load(weights_only=True)``: tensors
+    and plain values only, so nothing in the file can run code. Anything else ends the call with a one-line
+    ``SystemExit``, before the env is built: an SB3 zip (the state file of this recipe's earlier versions, which
+    only SB3's unpickling loader reads), a file that does not load as tensors, or one lacking a field."""
+    fix = "start a new --out (this run cannot be resumed)"
+    if _is_sb3_zip(path):
+        raise SystemExit(f"error: {path} is a Stable-Baselines3 zip, the resume state of an older train_sb3.py; "
+                         f"--resume reads tensors only and never unpickles SB3's saved objects: {fix}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # any refusal means the file is not what this recipe wrote
+        first = (str(err).strip().splitlines() or [""])[0]
+        raise SystemExit(f"error: {path} does not load as tensors only ({type(err).__name__}: {first}); a resume "
+                         f"never unpickles other objects: {fix}") from None
+    if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
+        raise SystemExit(f"error: {path} is not a resume state of train_sb3.py (no format {STATE_FORMAT!r}): {fix}")
+    for name, kind in (("policy", dict), ("optimizer", dict), ("num_timesteps", int), ("n_updates", int)):
+        value = state.get(name)
+        if not isinstance(value, kind) or isinstance(value, bool) or (kind is int and value < 0):
+            raise SystemExit(f"error: {path} has {name}={type(value).__name__}, which must be "
+                             f"{'a state dict' if kind is dict else 'an int >= 0'}: {fix}")
+    return state
+
+
+def load_training_state(model, state: dict, path: Path) -> None:
+    """Load ``state`` (:func:`read_training_state`) into ``model``, built as by a first call: the later
+    ``learn(total_timesteps=left, reset_num_timesteps=False)`` sets ``_total_timesteps = left + num_timesteps``, the
+    first call's total, so the schedules' progress continues where the saved update left it."""
+    try:
+        model.policy.load_state_dict(state["policy"])
+        model.policy.optimizer.load_state_dict(state["optimizer"])
+    except (RuntimeError, ValueError, KeyError) as err:
+        first = (str(err).strip().splitlines() or [""])[0]
+        raise SystemExit(f"error: {path} does not fit the model these settings build ({type(err).__name__}: "
+                         f"{first}); start a new --out") from None
+    model.num_timesteps, model._n_updates = state["num_timesteps"], state["n_updates"]
+
+
 def policy_kwargs(hidden: tuple[int, ...]) -> dict:
     return {"net_arch": {"pi": list(hidden), "vf": list(hidden)}, "activation_fn": torch.nn.ReLU,
             "log_std_init": math.log(STD(1.0)), "ortho_init": True}
 
 
 def main(argv=None) -> dict:
-    parser = base_parser(__doc__.split("\n\n")[0], num_envs=8, iterations=7325)
-    parser.add_argument("--n_steps", type=int, default=2048, help="rollout length per env (default: 2048)")
-    parser.add_argument("--batch_size", type=int, default=128, help="mini-batch size (default: 128)")
-    parser.add_argument("--epochs", type=int, default=3, help="passes over each rollout (default: 3)")
-    parser.add_argument("--hidden", type=hidden_sizes, default=(256, 256),
-                        help="hidden layer sizes of actor and critic, comma-separated (default: 256,256)")
+    parser = build_parser()
     args = parser.parse_args(argv)
     # SB3's PPO normalises the advantages of each mini-batch and of the rollout: both need at least 2 samples.
     check_args(parser, args, at_least={"n_steps": 1, "batch_size": 2, "epochs": 1})
@@ -124,6 +207,7 @@ def main(argv=None) -> dict:
 
     out = check_out_dir(args.out, args.resume)  # created once the env is built: a failed call leaves no folder
     prior = read_resume(out) if args.resume else {}
+    state = read_training_state(out / prior["state"]) if prior else None
     calls = int(prior.get("calls", 0))
     settings = {"num_envs": args.num_envs, "preset": args.preset, "hidden": list(args.hidden), "n_steps": args.n_steps,
                 "batch_size": args.batch_size, "epochs": args.epochs, "iterations": args.iterations, "seed": args.seed}
@@ -133,20 +217,15 @@ def main(argv=None) -> dict:
     env = TocabiSB3VecEnv(args.num_envs, args.device, preset=args.preset, seed=call_seed(args.seed, calls))
     open_out_dir(out, args.resume)
     total = args.iterations * args.n_steps * args.num_envs
-    if prior:
-        # SB3's own load (the zip its save wrote): policy, both Adam parameter groups, num_timesteps and _n_updates;
-        # the schedules are given anew (nothing of this recipe is unpickled) and read their position from
-        # num_timesteps / _total_timesteps, which learn(reset_num_timesteps=False) keeps at the first call's total.
-        model = reference_ppo_class().load(out / prior["state"], env=env, device=str(env.device),
-                                           custom_objects={"learning_rate": LinearLR(LR_START, LR_END),
-                                                           "lr_schedule": LinearLR(LR_START, LR_END)})
-        model.set_random_seed(call_seed(args.seed, calls))  # load reseeds with the first call's seed: draw other noise
-    else:
-        model = reference_ppo_class()(
-            "MlpPolicy", env, learning_rate=LinearLR(LR_START, LR_END), n_steps=args.n_steps,
-            batch_size=args.batch_size, n_epochs=args.epochs, gamma=0.99, gae_lambda=0.95, clip_range=0.2,
-            ent_coef=0.0, vf_coef=0.5, max_grad_norm=0.5, policy_kwargs=policy_kwargs(args.hidden), seed=args.seed,
-            device=str(env.device), verbose=1)
+    # The same model as a first call's, seeded for this call (a resumed call draws other noise); a resume then
+    # loads its saved tensors into it, never SB3's zip, whose load unpickles.
+    model = reference_ppo_class()(
+        "MlpPolicy", env, learning_rate=LinearLR(LR_START, LR_END), n_steps=args.n_steps,
+        batch_size=args.batch_size, n_epochs=args.epochs, gamma=0.99, gae_lambda=0.95, clip_range=0.2,
+        ent_coef=0.0, vf_coef=0.5, max_grad_norm=0.5, policy_kwargs=policy_kwargs(args.hidden),
+        seed=call_seed(args.seed, calls), device=str(env.device), verbose=1)
+    if state is not None:
+        load_training_state(model, state, out / prior["state"])
     meta = {"preset": args.preset, "task": {"seed": args.seed}, "hidden": list(args.hidden),
             "num_envs": args.num_envs, "library_version": metadata.version("stable-baselines3"),
             "obs_dim": env.observation_space.shape[0], "action_low": env.action_space.low.tolist(),
@@ -178,11 +257,11 @@ def main(argv=None) -> dict:
                 snapshots=clock.snapshots, iterations=int(model._n_updates // args.epochs), calls=calls + 1,
                 sb3_num_timesteps=int(model.num_timesteps), resume_notes=RESUME_NOTES,
                 iterations_budget=args.iterations)  # the table tells a used budget by this, not the clock
-    buffer = io.BytesIO()
-    model.save(buffer)  # SB3's own zip, written atomically as a new file
-    write_resume(out, buffer.getvalue(), {"settings": settings, **{k: meta[k] for k in (
+    write_resume(out, training_state(model), {"settings": settings, **{k: meta[k] for k in (
         "env_steps", "train_seconds", "iterations", "snapshots", "calls")}})
     save(keep_previous(out / "policy.pt", f"call{calls}"))
+    buffer = io.BytesIO()
+    model.save(buffer)  # SB3's own zip, for SB3's tools only: a resume never reads it
     keep_previous(out / "sb3_model.zip", f"call{calls}").write_bytes(buffer.getvalue())
     result = {"train": meta}
     if interrupted is not None:

@@ -119,9 +119,13 @@ def test_recipe_resumes_the_same_run_and_its_schedules(tmp_path):
     out = tmp_path / "run"
     small = ["--out", str(out), "--device", "cpu", "--num_envs", "2", "--n_steps", "4", "--batch_size", "4",
              "--hidden", "16", "--eval_envs", "0", "--iterations", "2"]
-    ref, seen = recipe.reference_ppo_class(), {"progress": [], "calls": 0}
+    ref, seen = recipe.reference_ppo_class(), {"progress": [], "lr": [], "total": [], "calls": 0}
 
     class Spied(ref):
+        @classmethod
+        def load(cls, *a, **k):  # SB3's load unpickles: a resume builds the model anew instead
+            raise AssertionError("a resume must never call PPO.load")
+
         def learn(self, *a, **k):
             seen["calls"] += 1
             seen["policy"] = {n: v.clone() for n, v in self.policy.state_dict().items()}
@@ -130,7 +134,9 @@ def test_recipe_resumes_the_same_run_and_its_schedules(tmp_path):
 
         def train(self):
             seen["progress"].append(self._current_progress_remaining)
+            seen["total"].append(self._total_timesteps)
             super().train()
+            seen["lr"].append([g["lr"] for g in self.policy.optimizer.param_groups])
             if seen["calls"] == 1:
                 raise TimeUp("time is up after the first iteration")
 
@@ -138,10 +144,18 @@ def test_recipe_resumes_the_same_run_and_its_schedules(tmp_path):
     first = recipe.main(small)["train"]
     assert (first["iterations"], first["env_steps"], first["calls"]) == (1, 8, 1)
     _, policy1 = load_policy(out / "policy.pt", "sb3")
+    # The resume state is tensors and plain values only, with the counters the schedules continue from.
+    saved = torch.load(out / "resume" / "state_call1.pt", map_location="cpu", weights_only=True)
+    assert (saved["num_timesteps"], saved["n_updates"]) == (8, 3)
+    assert len(saved["optimizer"]["param_groups"]) == 2 and all(torch.equal(saved["policy"][k], policy1[k])
+                                                                  for k in policy1)
     second = recipe.main([*small, "--resume"])["train"]
     assert (second["iterations"], second["env_steps"], second["calls"]) == (2, 16, 2)
     assert second["train_seconds"] > first["train_seconds"] and second["sb3_num_timesteps"] == 16
     assert seen["progress"] == [0.5, 0.0]  # as in one call of two iterations
+    assert seen["total"] == [16, 16]  # learn(left, reset_num_timesteps=False) adds the saved num_timesteps
+    lr = recipe.LinearLR(recipe.LR_START, recipe.LR_END)
+    assert seen["lr"] == [[lr(0.5), recipe.VALUE_HEAD_LR], [lr(0.0), recipe.VALUE_HEAD_LR]]
     assert all(torch.equal(seen["policy"][k], policy1[k]) for k in policy1)  # continued, not re-initialised
     assert seen["adam"] and all(s == 3 * 2 for s in seen["adam"])  # the first call's 3 epochs x 2 mini-batches
     _, policy2 = load_policy(out / "policy.pt", "sb3")
@@ -184,3 +198,62 @@ def test_an_interrupted_call_saves_its_resume_state_and_resumes(tmp_path, monkey
     second = recipe.main([*small, "--resume"])
     assert (second["train"]["iterations"], second["train"]["calls"]) == (2, 2) and "eval" in second
     assert second["train"]["sb3_num_timesteps"] == 16 and "interrupted" not in second
+
+
+class _TouchMarker:
+    """Unpickled, runs ``touch <marker>``: what a crafted resume state would do if a resume unpickled it."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        import os
+        import shlex
+
+        return os.system, (f"touch {shlex.quote(self.marker)}",)
+
+
+def _sb3_zip_with_payload(zip_path, payload) -> bytes:
+    # SB3's own zip with its "data" entry's ep_success_buffer replaced by a serialized object, as SB3 writes one
+    # (base64 of a pickle), which SB3's load unpickles.
+    import base64
+    import io
+    import json
+    import pickle
+    import zipfile
+
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(zip_path) as src, zipfile.ZipFile(buffer, "w") as dst:
+        for name in src.namelist():
+            body = src.read(name)
+            if name == "data":
+                data = json.loads(body)
+                data["ep_success_buffer"] = {":type:": "<class 'collections.deque'>",
+                                             ":serialized:": base64.b64encode(pickle.dumps(payload)).decode()}
+                body = json.dumps(data).encode()
+            dst.writestr(name, body)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("kind", ["sb3_zip", "torch_pickle"])
+def test_resume_refuses_a_crafted_state_file_without_running_it(tmp_path, kind):
+    # A resume state that unpickles to code (os.system here) is refused before anything is loaded from it: a pickle
+    # in SB3's zip layout (the recipe's old state file) and a torch file holding a pickled object alike.
+    recipe = load_recipe("train_sb3")
+    out, marker = tmp_path / "run", tmp_path / "MARKER"
+    small = ["--out", str(out), "--device", "cpu", "--num_envs", "2", "--n_steps", "4", "--batch_size", "4",
+             "--hidden", "16", "--eval_envs", "0", "--iterations", "1"]
+    recipe.main(small)
+    state = out / "resume" / "state_call1.pt"
+    if kind == "sb3_zip":
+        state.write_bytes(_sb3_zip_with_payload(out / "sb3_model.zip", _TouchMarker(marker)))
+        expected = r"is a Stable-Baselines3 zip.*start a new --out"
+    else:
+        torch.save({"num_timesteps": _TouchMarker(marker), "policy": {}}, state)
+        expected = r"does not load as tensors only.*start a new --out"
+    with pytest.raises(SystemExit, match=expected) as refused:
+        recipe.main([*small, "--resume"])
+    message = str(refused.value)
+    assert message.startswith("error: ") and str(state) in message and "\n" not in message
+    assert not marker.exists()
+    assert read_resume(out)["calls"] == 1 and not (out / "policy_call1.pt").exists()  # nothing ran or was written
