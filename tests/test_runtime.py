@@ -578,3 +578,46 @@ def test_policy_input_and_set_command_before_reset_say_to_reset_first():
         runtime.policy_input()
     with pytest.raises(RuntimeError, match=r"set_command before reset.*reset\(state, command\)"):
         runtime.set_command((0.5, 0.0))
+
+
+# ------------------------------------------------------------------------------------------- the env's value rules
+@pytest.mark.parametrize("field, value, shown", [
+    ("action.leg.action_scale", -0.5, r"action.leg.action_scale is -0.5 but must be a finite number >= 0"),
+    ("action.leg.kp.4", -1.0, r"action.leg.kp\[4\] is -1.0 but must be a finite number >= 0"),
+    ("action.leg.kv.0", -15.0, r"action.leg.kv\[0\] is -15.0 but must be a finite number >= 0"),
+    ("action.phase_rate.gain", 100.0, r"action.phase_rate.gain is 100.0 but must be a finite number in \[0, 100\)"),
+    ("action.phase_rate.gain", -1.0, r"action.phase_rate.gain is -1.0 but must be a finite number in \[0, 100\)"),
+    ("timing.substeps", 0, r"timing.substeps is 0 but must be an int >= 1"),
+    ("termination.min_pelvis_height", -0.6, r"termination.min_pelvis_height is -0.6 but must be a finite number >= 0"),
+    ("termination.max_neck_angle", "1", r"termination.max_neck_angle is '1' but must be a finite number >= 0"),
+    ("upper_body.kp.3", -400.0, r"upper_body.kp\[3\] is -400.0 but must be a finite number >= 0"),
+])
+def test_contract_values_obey_the_env_configs_rules(field, value, shown, contract_copy):
+    # A contract with action.leg.action_scale = -0.5 loaded and every robot fell, while TocabiWalk(pd_action_scale=-1)
+    # was refused: the contract's values now go through the env config's own rules (value_rules.ENV_RULES).
+    path, c = contract_copy
+    with pytest.raises(ContractError, match=f"{shown} .*re-export the policy"):
+        load_contract(_write(path, _mutated(c, _set(field, value))))
+
+
+def test_contract_termination_switches_must_be_true_or_false(contract_copy):
+    path, c = contract_copy
+    with pytest.raises(ContractError, match="termination.self_collision is 'false' but must be true or false"):
+        load_contract(_write(path, _mutated(c, _set("termination.self_collision", "false"))))
+
+
+def test_every_contract_field_with_an_env_rule_is_checked_with_that_rule():
+    # One source of truth: each field the contract carries from the env config names a rule of ENV_RULES, and a
+    # value that rule refuses is refused by the env config as well (so the two cannot drift apart).
+    from tocabi_torchrl.envs import TocabiWalkConfig
+    from tocabi_torchrl.runtime.contract import ENV_FIELDS
+    from tocabi_torchrl.tree import get_path, replace_paths
+    from tocabi_torchrl.value_rules import ENV_RULES
+
+    for field, env_path in ENV_FIELDS.items():
+        assert env_path in ENV_RULES, field
+        default = get_path(TocabiWalkConfig(), env_path)
+        bad = -1 if env_path != "control.pd_nominal" else float("nan")
+        env_value = tuple([bad] * len(default)) if isinstance(default, tuple) else bad
+        with pytest.raises(ValueError, match=re.escape(f"env.{env_path}")):
+            replace_paths(TocabiWalkConfig(), {env_path: env_value}).validate()

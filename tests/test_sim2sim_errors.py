@@ -80,3 +80,22 @@ def test_a_contract_whose_leg_kind_contradicts_its_control_mode_is_one_error_lin
     message = str(info.value.code)
     assert message.startswith("error: ") and "action.leg.kind is 'torque' but control_mode is 'pd_reference'" in message
     assert "\n" not in message
+
+
+@needs_contract
+def test_a_contract_with_a_negative_action_scale_is_one_error_line(capsys, tmp_path):
+    # It used to run: every robot fell and the recipe exited 0 with the metrics of a fall.
+    import json
+    import shutil
+
+    contract = json.loads(CONTRACT.read_text())
+    contract["action"]["leg"]["action_scale"] = -0.5
+    shutil.copy(CONTRACT.with_suffix(".onnx"), tmp_path / contract["policy"]["onnx_file"])
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps(contract))
+    with pytest.raises(SystemExit) as info:
+        load_recipe("sim2sim").main(["--contract", str(path), "--seconds", "0.02", "--num_robots", "1"])
+    message = str(info.value.code)
+    assert info.value.code != 0 and "\n" not in message
+    assert message.startswith(f"error: {path}: action.leg.action_scale is -0.5 but must be a finite number >= 0")
+    assert capsys.readouterr().out == ""  # no metrics: nothing ran

@@ -36,6 +36,7 @@ from .transforms.presets import TransformSettings
 from .tree import OWN_NUMBER_CHECK, ConfigError, check_field_types, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
 from .tree import to_dict as _tree_to_dict
+from .value_rules import POSITIVE
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "FLAT_PATHS", "flat_to_paths",
            "config_from_dict", "to_dict", "flat_dict", "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
@@ -312,8 +313,8 @@ class RunConfig:
             value = _get(self, path)
             if value not in allowed:
                 raise ValueError(f"{path} must be one of {allowed}, got {value!r}")
-        if not self.env.control.pd_action_scale > 0:
-            raise ValueError(f"env.control.pd_action_scale must be > 0, got {self.env.control.pd_action_scale!r}")
+        # Stricter than the env's rule (>= 0): at 0 the PD modes' leg actions move nothing, so nothing is learned.
+        POSITIVE.check(self.env.control.pd_action_scale, "env.control.pd_action_scale")
         if self.ppo.torque_assist > 0 and self.env.control.mode != "torque":
             raise ValueError(f"ppo.torque_assist > 0 needs control_mode='torque' (env.control.mode), got "
                              f"{self.env.control.mode!r} (set ppo.torque_assist=0 for the PD modes)")

@@ -6,11 +6,10 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from .. import robot
 from ..sim.config import RESET_PASSES
 from ..tree import OWN_NUMBER_CHECK, check_field_types
+from ..value_rules import ENV_RULES, check_env_value
 from .command import CommandConfig
 
 __all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "SceneConfig", "BoxObstacle", "PD_GAINS",
@@ -72,12 +71,13 @@ class EnvSimConfig:
             raise ValueError(f"unknown env.sim.backend {self.backend!r}; choose one of {BACKENDS}")
         if self.reset_pass not in RESET_PASSES:
             raise ValueError(f"unknown env.sim.reset_pass {self.reset_pass!r}; choose one of {RESET_PASSES}")
-        for name in ("substeps", "nconmax", "njmax", "threads"):
+        # substeps has the env's shared rule (the policy contract's timing.substeps is checked with it too).
+        check_env_value("sim.substeps", self.substeps)
+        for name in ("nconmax", "njmax", "threads"):
             v = getattr(self, name)
-            if (v is not None or name == "substeps") and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 alias = " (sim_threads)" if name == "threads" else ""
-                raise ValueError(f"env.sim.{name}{alias} must be a positive int"
-                                 f"{'' if name == 'substeps' else ' or None'}, got {v!r}")
+                raise ValueError(f"env.sim.{name}{alias} must be a positive int or None, got {v!r}")
 
 
 @dataclass
@@ -109,12 +109,8 @@ class TaskConfig:
         m = self.max_episode_steps
         if isinstance(m, bool) or not isinstance(m, int) or m < 1:
             raise ValueError(f"env.task.max_episode_steps must be an int >= 1, got {m!r}")
-        for name in ("min_pelvis_height", "min_neck_height", "max_neck_angle"):
-            value = float(getattr(self, name))
-            if not np.isfinite(value) or value < 0:
-                raise ValueError(f"env.task.{name} must be a finite number >= 0, got {value}")
-        if not 0 <= self.phase_rate_gain < 100:
-            raise ValueError(f"env.task.phase_rate_gain must be in [0, 100), got {self.phase_rate_gain}")
+        for name in ("min_pelvis_height", "min_neck_height", "max_neck_angle", "phase_rate_gain"):
+            check_env_value(f"task.{name}", getattr(self, name))
 
 
 #: The robot controller's leg gains, the PD modes' default (TocabiLab divides Kp by 9 and Kv by 3: ``"tocabilab"``).
@@ -191,11 +187,8 @@ class ControlConfig:
             if len(getattr(self, name)) != robot.NUM_LEG_JOINTS:
                 raise ValueError(f"env.control.{name} needs {robot.NUM_LEG_JOINTS} values (one per leg joint), got "
                                  f"{len(getattr(self, name))}")
-        if min(self.pd_kp) < 0 or min(self.pd_kv) < 0:
-            raise ValueError("env.control.pd_kp and pd_kv must be >= 0")
-        value = float(self.pd_action_scale)
-        if not np.isfinite(value) or value < 0:
-            raise ValueError(f"env.control.pd_action_scale must be a finite number >= 0, got {value}")
+        for name in ("pd_kp", "pd_kv", "pd_nominal", "pd_action_scale"):
+            check_env_value(f"control.{name}", getattr(self, name))
         if self.torque_assist and self.mode != "torque":
             raise ValueError(f"env.control.torque_assist needs control_mode='torque' (env.control.mode; the PD modes "
                              f"already track with servos), got {self.mode!r}")
@@ -207,15 +200,15 @@ class ControlConfig:
             if len(values) != robot.NUM_LEG_JOINTS:
                 raise ValueError(f"env.control.{name} needs {robot.NUM_LEG_JOINTS} values (one per leg joint), got "
                                  f"{len(values)}")
-            bad = [(robot.JOINT_NAMES[j], v) for j, v in enumerate(values)
-                   if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0]
+            rule = ENV_RULES[f"control.{name}"]
+            bad = [(robot.JOINT_NAMES[j], v) for j, v in enumerate(values) if not rule.allows(v)]
             if bad:
                 what = {"mb_omega": "natural frequency [rad/s]", "mb_zeta": "damping ratio",
                         "mb_residual_gain": "residual gain [N·m per action unit]"}[name]
-                raise ValueError(f"env.control.{name}: every leg joint's {what} must be a finite number >= 0; got "
+                raise ValueError(f"env.control.{name}: every leg joint's {what} must be {rule.describe()}; got "
                                  + ", ".join(f"{joint}={v!r}" for joint, v in bad))
         window = self.mb_ref_window
-        if isinstance(window, bool) or not isinstance(window, (int, float)) or not np.isfinite(window) or window <= 0:
+        if not ENV_RULES["control.mb_ref_window"].allows(window):
             raise ValueError(f"env.control.mb_ref_window must be a finite number of seconds > 0 (the half-width of "
                              f"the reference's velocity/acceleration differences), got {window!r}")
 

@@ -3,7 +3,8 @@
 The contract says everything a controller needs to run the policy without the training stack: joint order, what each
 action means per control mode, timing, the 37 observation entries and how they are normalised and stacked, the
 reference motion and the versions. ``docs/export.md`` describes it field by field. This module imports only the
-standard library, so a deployment can check a contract before loading anything else.
+standard library and :mod:`tocabi_torchrl.value_rules` (itself standard library only), so a deployment can check a
+contract before loading anything else.
 """
 
 from __future__ import annotations
@@ -14,8 +15,10 @@ import os
 import re
 from pathlib import Path
 
-__all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "REQUIRED_KEYS", "RUNTIME_SIGNALS", "ContractError", "check_contract",
-           "load_contract"]
+from ..value_rules import ENV_RULES, NON_NEGATIVE
+
+__all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ENV_FIELDS", "REQUIRED_KEYS", "RUNTIME_SIGNALS", "ContractError",
+           "check_contract", "load_contract"]
 
 #: ``format`` field of every contract.
 CONTRACT_FORMAT = "tocabi_torchrl.policy_contract"
@@ -36,7 +39,23 @@ REQUIRED_KEYS: tuple[str, ...] = (
     "observation.normalization.mean", "observation.normalization.scale", "observation.history",
     "observation.history.obs_ages", "observation.history.action_ages", "observation.phase_harmonics",
     "reference_motion", "reference_motion.name", "reference_motion.sha256", "termination",
+    "termination.min_pelvis_height", "termination.min_neck_height", "termination.max_neck_angle",
 )  # fmt: skip
+
+#: Contract fields that carry a value of the env config the policy was trained with -> that value's path in the env
+#: config (``value_rules.ENV_RULES``). Each is checked with the env's own rule, so a value the env refuses (a negative
+#: action scale, which made every robot fall) is refused here too. Fields absent in a control mode are skipped.
+ENV_FIELDS: dict[str, str] = {
+    "timing.substeps": "sim.substeps",
+    "action.phase_rate.gain": "task.phase_rate_gain",
+    "action.leg.kp": "control.pd_kp",
+    "action.leg.kv": "control.pd_kv",
+    "action.leg.action_scale": "control.pd_action_scale",
+    "action.leg.nominal": "control.pd_nominal",
+    "termination.min_pelvis_height": "task.min_pelvis_height",
+    "termination.min_neck_height": "task.min_neck_height",
+    "termination.max_neck_angle": "task.max_neck_angle",
+}
 
 _LEG_KEYS = {
     "torque": ("kind", "torque_limits_nm"),
@@ -105,7 +124,9 @@ def check_contract(contract, source: str = "contract") -> None:
     ``low`` <= ``high``, ``clip`` null or > 0, positive timing; ``action.leg`` of the kind and center its control
     mode implies; observation entries that name a signal the runtime builds, with that signal's shape, and an
     element inside it; non-negative integer history ages; the phase-rate action after the leg actions; both sha256
-    hashes 64 lowercase hex digits; ``policy.onnx_file`` and ``reference_motion.name`` plain file names."""
+    hashes 64 lowercase hex digits; ``policy.onnx_file`` and ``reference_motion.name`` plain file names; every value
+    the env config also constrains (:data:`ENV_FIELDS`: gains, action scale, nominal pose, substeps, phase-rate gain,
+    termination limits) by the env's own rule, and the upper-body gains >= 0."""
     if not isinstance(contract, dict):
         raise ContractError(f"{source}: a policy contract is a JSON object, got {type(contract).__name__}")
     if contract.get("format") != CONTRACT_FORMAT:
@@ -186,7 +207,7 @@ def _check_consistency(c: dict, source: str) -> None:
     _sha256(pol["onnx_sha256"], "policy.onnx_sha256", source)
     _sha256(c["reference_motion"]["sha256"], "reference_motion.sha256", source)
     _file_name(c["reference_motion"]["name"], "reference_motion.name", source)
-    _check_timing(c["timing"], source)
+    _check_timing(c, source)
     n_leg = len(legs)
     if not _is_int(act["dim"]) or act["dim"] != n_leg + 1:
         raise ContractError(f"{source}: action.dim is {act['dim']!r} but there are {n_leg} leg joints (+1 phase rate)")
@@ -203,8 +224,10 @@ def _check_consistency(c: dict, source: str) -> None:
                             f"come first and the phase rate is entry {n_leg}, the last; {_FIX}")
     _number(rate["gain"], "action.phase_rate.gain", source)
     _check_leg(act, n_leg, source)
-    _numbers(c["upper_body"]["kp"], len(upper), "upper_body.kp", source)
-    _numbers(c["upper_body"]["kv"], len(upper), "upper_body.kv", source)
+    for key in ("kp", "kv"):
+        gains = _numbers(c["upper_body"][key], len(upper), f"upper_body.{key}", source)
+        _obey(gains, NON_NEGATIVE, f"upper_body.{key}", source,
+              "a servo gain, as the legs' env.control.pd_kp/pd_kv: a negative one pushes the joint off its target")
     _check_observation(obs, len(joints), source)
     hist = obs["history"]
     step_dim = obs["step_dim"]
@@ -219,11 +242,50 @@ def _check_consistency(c: dict, source: str) -> None:
         if not isinstance(pol[key], str) or not pol[key]:
             raise ContractError(f"{source}: policy.{key} is {pol[key]!r}, not the name of an ONNX graph input/output; "
                                 f"{_FIX}")
+    _check_env_values(c, source)
+    _check_termination_switches(c["termination"], source)
 
 
-def _check_timing(timing: dict, source: str) -> None:
+def _obey(value, rule, what: str, source: str, whose: str) -> None:
+    """Raise :class:`ContractError` unless ``value`` (each entry of a list) obeys ``rule`` (a
+    :class:`~tocabi_torchrl.value_rules.Range`); the message names the field, the allowed values and ``whose`` rule
+    it is."""
+    entries = enumerate(value) if isinstance(value, list) else [(None, value)]
+    for i, v in entries:
+        if not rule.allows(v):
+            name = what if i is None else f"{what}[{i}]"
+            raise ContractError(f"{source}: {name} is {v!r} but must be {rule.describe()} ({whose}); {_FIX}")
+
+
+def _check_env_field(c: dict, field: str, source: str) -> None:
+    """One field of :data:`ENV_FIELDS`, if the contract holds it, by the env config's rule for its value."""
+    try:
+        value = _get(c, field)
+    except KeyError:
+        return  # a field of another control mode; the required ones are checked by check_contract
+    env_path = ENV_FIELDS[field]
+    _obey(value, ENV_RULES[env_path], field, source,
+          f"as the env requires of env.{env_path}, the option it carries")
+
+
+def _check_env_values(c: dict, source: str) -> None:
+    for field in ENV_FIELDS:
+        _check_env_field(c, field, source)
+
+
+def _check_termination_switches(termination: dict, source: str) -> None:
+    # The driver reads them as truths: text such as "false" would switch the check on.
+    for key in ("forbidden_contact", "self_collision"):
+        if key in termination and not isinstance(termination[key], bool):
+            raise ContractError(f"{source}: termination.{key} is {termination[key]!r} but must be true or false; "
+                                f"{_FIX}")
+
+
+def _check_timing(c: dict, source: str) -> None:
+    timing = c["timing"]
     physics = _number(timing["physics_dt_s"], "timing.physics_dt_s", source, positive=True)
-    substeps = _count(timing["substeps"], "timing.substeps", source, 1)
+    _check_env_field(c, "timing.substeps", source)  # before it is used below
+    substeps = timing["substeps"]
     control = _number(timing["control_dt_s"], "timing.control_dt_s", source, positive=True)
     # control_dt_s is written from the env's float32 dt: allow float32 rounding, nothing more.
     if abs(physics * substeps - control) > 1e-6 * control:
