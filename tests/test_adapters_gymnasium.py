@@ -27,6 +27,28 @@ def _zero(envs):
     return np.zeros(envs.action_space.shape, dtype=np.float32)
 
 
+def test_step_before_reset_and_calls_after_close_are_refused():
+    # As gymnasium's own envs: no step before the first reset (there is no observation to act on yet), and nothing
+    # after close (the simulator is released). Both used to step silently.
+    env = TocabiVectorEnv(N, "cpu", numpy=True)
+    zeros = np.zeros((N, 13), dtype=np.float32)
+    try:
+        for actions in (zeros, torch.zeros(N, 13), np.zeros((N, 12), dtype=np.float32)):  # the order comes first
+            with pytest.raises(gymnasium.error.ResetNeeded,
+                               match=r"TocabiVectorEnv.step\(\) called before reset\(\): call reset\(\) first"):
+                env.step(actions)
+        assert env.stepper.env_steps == 0  # nothing was stepped
+        env.reset(seed=0)
+        env.step(zeros)
+    finally:
+        env.close()
+    for call, name in ((lambda: env.step(zeros), "step"), (lambda: env.reset(seed=0), "reset")):
+        with pytest.raises(RuntimeError, match=rf"TocabiVectorEnv.{name}\(\) called after close\(\): the env is "
+                                               r"closed .* build a new TocabiVectorEnv"):
+            call()
+    env.close()  # closing twice is allowed, as gymnasium's envs allow it
+
+
 def test_make_vec_builds_the_adapter_with_same_step_autoreset(envs):
     assert isinstance(envs.unwrapped, TocabiVectorEnv)
     assert envs.num_envs == N

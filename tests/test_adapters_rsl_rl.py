@@ -55,6 +55,22 @@ def test_time_outs_at_the_episode_limit(env):
         env.step(torch.zeros(N, 12))
 
 
+def test_ready_once_built_and_refused_after_close():
+    # rsl_rl's VecEnv has no reset that its runner calls: a step first is allowed (it resets all envs, as
+    # get_observations would). After close nothing runs: that used to step silently.
+    env = TocabiRslRlEnv(N, "cpu")
+    try:
+        obs, rewards, dones, _ = env.step(torch.zeros(N, 13))
+        assert obs["policy"].shape == (N, 237) and env.stepper.env_steps == N
+    finally:
+        env.close()
+    for call, name in ((lambda: env.step(torch.zeros(N, 13)), "step"), (env.reset, "reset"),
+                       (env.get_observations, "get_observations")):
+        with pytest.raises(RuntimeError, match=rf"TocabiRslRlEnv.{name}\(\) called after close\(\).* build a new"):
+            call()
+    env.close()
+
+
 def test_recipe_trains_two_iterations_and_gait_tests(tmp_path):
     recipe = load_recipe("train_rsl_rl")
     out = tmp_path / "run"

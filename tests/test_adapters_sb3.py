@@ -61,10 +61,36 @@ def test_truncation_gives_terminal_observation_and_episode(env):
 
 
 def test_step_wait_without_actions_is_refused(env):
+    env.reset()
     with pytest.raises(RuntimeError, match="step_async"):
         env.step_wait()
     with pytest.raises(ValueError, match="actions must have shape"):
         env.step_async(np.zeros((N, 3), dtype=np.float32))
+
+
+def test_step_before_reset_and_calls_after_close_are_refused():
+    # As SB3's DummyVecEnv over gymnasium envs: no step before the first reset (SB3's algorithms reset first), and
+    # nothing after close. Both used to step silently.
+    import gymnasium
+
+    env = TocabiSB3VecEnv(N, "cpu")
+    zeros = np.zeros((N, 13), dtype=np.float32)
+    try:
+        for call in (lambda: env.step_async(zeros), lambda: env.step(zeros),
+                     lambda: env.step_async(np.zeros((N, 3), dtype=np.float32))):  # the order comes first
+            with pytest.raises(gymnasium.error.ResetNeeded,
+                               match=r"TocabiSB3VecEnv.step_async\(\) called before reset\(\): call reset\(\) first"):
+                call()
+        assert env.stepper.env_steps == 0
+        env.reset()
+        env.step(zeros)
+        env.step_async(zeros)
+    finally:
+        env.close()
+    for call, name in ((lambda: env.step(zeros), "step_async"), (env.step_wait, "step_wait"), (env.reset, "reset")):
+        with pytest.raises(RuntimeError, match=rf"TocabiSB3VecEnv.{name}\(\) called after close\(\).* build a new"):
+            call()
+    env.close()
 
 
 def test_non_finite_actions_are_refused_naming_the_rows(env):

@@ -39,6 +39,27 @@ def test_wrapper_interface_and_autoreset():
         env.close()
 
 
+def test_step_before_reset_and_calls_after_close_are_refused():
+    # skrl's trainers reset first: a step before that is refused as gymnasium refuses it, and nothing runs after
+    # close. Both used to step silently.
+    import gymnasium
+
+    env = TocabiSkrlEnv(N, "cpu")
+    try:
+        with pytest.raises(gymnasium.error.ResetNeeded,
+                           match=r"TocabiSkrlEnv.step\(\) called before reset\(\): call reset\(\) first"):
+            env.step(torch.zeros(N, 13))
+        assert env.stepper.env_steps == 0
+        env.reset()
+        env.step(torch.zeros(N, 13))
+    finally:
+        env.close()
+    for call, name in ((lambda: env.step(torch.zeros(N, 13)), "step"), (env.reset, "reset")):
+        with pytest.raises(RuntimeError, match=rf"TocabiSkrlEnv.{name}\(\) called after close\(\).* build a new"):
+            call()
+    env.close()
+
+
 def test_recipe_trains_two_iterations_and_gait_tests(tmp_path):
     recipe = load_recipe("train_skrl")
     out = tmp_path / "run"

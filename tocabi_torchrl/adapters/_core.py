@@ -2,6 +2,11 @@
 same call (TorchRL's ``step_and_maybe_reset``), with the terminal observation kept apart.
 
 Everything stays on the env's device; the adapters convert (or not) for their library.
+
+The order of calls is checked here once for every adapter: a ``step`` before the first ``reset`` is
+:class:`ResetNeededError` (gymnasium's ``ResetNeeded``: there is no observation the caller has acted on yet), unless
+the adapter's library expects an env that is ready once built (rsl_rl); any call after ``close`` is
+:class:`EnvClosedError` (the simulator is released).
 """
 
 from __future__ import annotations
@@ -9,10 +14,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from gymnasium.error import ClosedEnvironmentError, ResetNeeded
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-__all__ = ["StepResult", "TensorStepper"]
+__all__ = ["EnvClosedError", "ResetNeededError", "StepResult", "TensorStepper"]
+
+
+class ResetNeededError(ResetNeeded, RuntimeError):
+    """``step`` before the first ``reset`` (gymnasium's ``ResetNeeded``, and a ``RuntimeError``)."""
+
+
+class EnvClosedError(ClosedEnvironmentError, RuntimeError):
+    """A call on an env after its ``close`` (gymnasium's ``ClosedEnvironmentError``, and a ``RuntimeError``)."""
 
 
 @dataclass
@@ -41,10 +55,19 @@ class StepResult:
 
 class TensorStepper:
     """Drives a TorchRL env of the walking task (:func:`tocabi_torchrl.adapters._build.build_env`) with action
-    tensors. ``reset()`` resets all envs; ``step(action)`` steps all and resets the finished ones at once."""
+    tensors. ``reset()`` resets all envs; ``step(action)`` steps all and resets the finished ones at once.
 
-    def __init__(self, env: EnvBase, obs_key: str = "observation"):
+    ``name``: the adapter's class, named in the errors. ``reset_on_first_use``: a ``step`` (or
+    :attr:`observation`) before any ``reset()`` resets first, for a library whose env is ready once built (rsl_rl's
+    ``VecEnv`` has no reset its runner calls); otherwise that ``step`` is a :class:`ResetNeededError`."""
+
+    def __init__(self, env: EnvBase, obs_key: str = "observation", name: str = "env",
+                 reset_on_first_use: bool = False):
         self.env = env
+        self.name = name
+        self.reset_on_first_use = bool(reset_on_first_use)
+        #: Set by :meth:`close`; every later call is an :class:`EnvClosedError`.
+        self.closed = False
         self.obs_key = obs_key
         self.num_envs = int(env.batch_size[0])
         self.device = env.device
@@ -58,15 +81,33 @@ class TensorStepper:
         #: Env steps taken (num_envs per call), counted on the host.
         self.env_steps = 0
 
+    def check_open(self, call: str) -> None:
+        """:class:`EnvClosedError` naming ``call`` (e.g. ``"step()"``) if the env is closed."""
+        if self.closed:
+            raise EnvClosedError(f"{self.name}.{call} called after close(): the env is closed and its simulator "
+                                 f"released; build a new {self.name} to go on")
+
+    def check_ready(self, call: str = "step()") -> None:
+        """What a step needs: an open env and, unless ``reset_on_first_use``, a ``reset()`` since it was built
+        (:class:`ResetNeededError` otherwise). Adapters that check their actions before stepping call this first, so
+        that a step out of order is reported as such, not as a bad action."""
+        self.check_open(call)
+        if self._td is None and not self.reset_on_first_use:
+            raise ResetNeededError(f"{self.name}.{call} called before reset(): call reset() first (it returns the "
+                                   "observation to choose the first actions from)")
+
     @property
     def observation(self) -> torch.Tensor:
-        """(num_envs, obs_dim): the observation to act on next; resets all envs on first use."""
+        """(num_envs, obs_dim): the observation to act on next; with ``reset_on_first_use``, resets all envs on
+        first use."""
+        self.check_ready("observation")
         if self._td is None:
             self.reset()
         return self._td.get(self.obs_key)
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
         """Reset every env (reseeding first when ``seed`` is given); returns the observation (num_envs, obs_dim)."""
+        self.check_open("reset()")
         if seed is not None:
             # TocabiWalk restarts its episode numbering on set_seed, so reset(seed=s) repeats the same episodes, as
             # gymnasium expects of a seeded reset.
@@ -99,8 +140,9 @@ class TensorStepper:
 
         The action is detached: the env writes it into its own buffers, which must never join the caller's
         gradient graph (they would keep it alive and every later step would fail or leak)."""
+        self.check_ready("step()")
         action = self.check_action(action).detach()
-        if self._td is None:
+        if self._td is None:  # reset_on_first_use: the library's env is ready once built
             self.reset()
         td = self._td.set("action", action)
         td, self._td = self.env.step_and_maybe_reset(td)
@@ -125,5 +167,7 @@ class TensorStepper:
         return result
 
     def close(self) -> None:
+        """Release the simulator; closing again does nothing, any other call then is an :class:`EnvClosedError`."""
+        self.closed = True
         if not self.env.is_closed:
             self.env.close()

@@ -45,6 +45,9 @@ class TocabiVectorEnv(VectorEnv):
     ``"l"``: length [steps]} (num_envs,) for the envs whose episode ended, flagged by ``"_episode"`` (the layout of
     gymnasium's ``RecordEpisodeStatistics``, without its ``"t"``).
 
+    Order of calls, as gymnasium's envs: ``step`` before the first ``reset`` is a ``gymnasium.error.ResetNeeded``,
+    and ``step`` or ``reset`` after ``close`` a ``RuntimeError`` (gymnasium's ``ClosedEnvironmentError`` too).
+
     Actions: a tensor on ``device`` (detached; NaN acts as 0 and ±inf is clipped to the bounds, unchecked so that a
     GPU step never synchronises) or, in numpy mode, also an array, whose values are checked on the host: a NaN or
     ±inf is a ``ValueError`` naming the env rows.
@@ -58,7 +61,7 @@ class TocabiVectorEnv(VectorEnv):
             if not isinstance(value, (bool, np.bool_)):  # bool("no") is True
                 raise ValueError(f"{name} must be True or False, got {value!r}")  # noqa: TRY004 (an option value)
         env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
-        self.stepper = TensorStepper(env)
+        self.stepper = TensorStepper(env, name=type(self).__name__)
         self.num_envs = self.stepper.num_envs
         self.device = self.stepper.device
         self.numpy = bool(numpy)
@@ -87,6 +90,7 @@ class TocabiVectorEnv(VectorEnv):
 
     def step(self, actions):
         """Step every env with ``actions`` (num_envs, 13): a tensor or an array; see the class docstring."""
+        self.stepper.check_ready("step()")  # before the actions: a step out of order is no bad action
         if not isinstance(actions, torch.Tensor):
             actions = np.asarray(actions, dtype=np.float32)
         actions = torch.as_tensor(actions, dtype=torch.float32)

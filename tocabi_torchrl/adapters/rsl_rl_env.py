@@ -29,12 +29,16 @@ class TocabiRslRlEnv(VecEnv):
     long (an env whose episode ended is already reset, as rsl_rl expects), ``extras["time_outs"]`` (num_envs,) bool:
     the episode hit its time limit (rsl_rl bootstraps those), and ``extras["log"]`` the mean of each weighted reward
     term (``"/reward/<term>"``), scalars on the device (rsl_rl's logger reads them once per iteration).
+
+    rsl_rl's runner never calls ``reset()``: the env is ready once built, as its ``VecEnv`` expects, and resets all
+    envs at the first ``get_observations()`` or ``step``. Any call after ``close`` is a ``RuntimeError``.
     """
 
     def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", preset: str = "default",
                  env_options: dict | None = None, **task):
         env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
-        self.stepper = TensorStepper(env)
+        # rsl_rl's VecEnv is ready once built (its runner starts with get_observations, never reset).
+        self.stepper = TensorStepper(env, name=type(self).__name__, reset_on_first_use=True)
         self.num_envs = self.stepper.num_envs
         self.num_actions = self.stepper.action_dim
         self.device = self.stepper.device
@@ -57,6 +61,7 @@ class TocabiRslRlEnv(VecEnv):
         return TensorDict({"policy": obs, "critic": obs}, batch_size=[self.num_envs], device=self.device)
 
     def get_observations(self) -> TensorDict:
+        self.stepper.check_open("get_observations()")
         return self._groups(self.stepper.observation)
 
     def reset(self) -> tuple[TensorDict, dict]:

@@ -36,12 +36,15 @@ class TocabiSB3VecEnv(VecEnv):
     Actions are numpy on the host, so their values are checked there: a NaN or ±inf is a ``ValueError`` naming the
     env rows (not silently acted on as 0 or the bound). ``set_options`` is refused, as ``TocabiVectorEnv.reset``
     refuses options: the env's reset takes none.
+
+    Order of calls, as SB3's ``DummyVecEnv`` over gymnasium envs: ``step_async`` before the first ``reset`` is a
+    ``gymnasium.error.ResetNeeded``, and ``step``/``reset`` after ``close`` a ``RuntimeError``.
     """
 
     def __init__(self, num_envs: int = 8, device: str | torch.device = "auto", preset: str = "default",
                  reward_terms_in_infos: bool = False, env_options: dict | None = None, **task):
         env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
-        self.stepper = TensorStepper(env)
+        self.stepper = TensorStepper(env, name=type(self).__name__)
         self.device = self.stepper.device
         self.reward_terms_in_infos = bool(reward_terms_in_infos)
         self.render_mode = None  # read by VecEnv.__init__
@@ -67,10 +70,12 @@ class TocabiSB3VecEnv(VecEnv):
 
     def step_async(self, actions: np.ndarray) -> None:
         # Checked here, not at step_wait, so the error points at the call that passed the actions.
+        self.stepper.check_ready("step_async()")
         host = self.stepper.check_action(torch.as_tensor(np.asarray(actions, dtype=np.float32)))
         self._actions = self.stepper.check_finite(host).to(self.device)
 
     def step_wait(self):
+        self.stepper.check_open("step_wait()")
         if self._actions is None:
             raise RuntimeError("step_wait() called without step_async(actions)")
         r = self.stepper.step(self._actions)
@@ -92,6 +97,7 @@ class TocabiSB3VecEnv(VecEnv):
         return obs, r.reward.cpu().numpy(), done, infos
 
     def close(self) -> None:
+        self._actions = None
         self.stepper.close()
 
     # The single-process VecEnv API: one batched simulator, so attributes are the same for every env index.

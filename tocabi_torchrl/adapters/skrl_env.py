@@ -32,12 +32,15 @@ class TocabiSkrlEnv(Wrapper):
     reward term as a scalar tensor (``"Reward / <term>"``). skrl's trainer logs it with
     ``cfg={"environment_info": "log"}``, reading each value on the host every step (13 synchronisations per step on
     a GPU), so it is not under skrl's default key ``"episode"``.
+
+    ``reset()`` comes first, as skrl's trainers call it: ``step`` before it is a ``gymnasium.error.ResetNeeded``, and
+    ``step``/``reset`` after ``close`` a ``RuntimeError``.
     """
 
     def __init__(self, num_envs: int = 4096, device: str | torch.device = "auto", preset: str = "default",
                  env_options: dict | None = None, **task):
         env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
-        self.stepper = TensorStepper(env)
+        self.stepper = TensorStepper(env, name=type(self).__name__)
         super().__init__(env)
         self._device = self.stepper.device  # skrl's base reads `device` from the env; keep ours explicit
         self._observation_space = box_from_spec(env.observation_spec["observation"], batched=False)
