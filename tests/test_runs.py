@@ -394,7 +394,7 @@ def test_help_describes_every_option_once(capsys):
     ("transforms.obs_clip", "-1", "transforms.obs_clip must be a finite number > 0"),
     ("transforms.reward_weights", "qpos=nan", "a weight must be a finite number"),
     ("seed", str(2 ** 63), "seed must be an int in [0, 2**63 - 1]"),
-    ("seed", "-1", "seed must be an int >= 0"),
+    ("seed", "-1", "seed must be an int in [0, 2**63 - 1]"),
     ("ppo.lr_end", "0.5", "ppo.lr_end 0.5 is above ppo.lr"),
     ("ppo.std_end", "0.5", "ppo.std_end 0.5 is above ppo.std_start"),
 ])

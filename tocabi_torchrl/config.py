@@ -36,7 +36,7 @@ from .transforms.presets import TransformSettings
 from .tree import OWN_NUMBER_CHECK, ConfigError, check_field_types, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
 from .tree import to_dict as _tree_to_dict
-from .value_rules import POSITIVE
+from .value_rules import MAX_SEED, POSITIVE, check_seed
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "FLAT_PATHS", "flat_to_paths",
            "config_from_dict", "to_dict", "flat_dict", "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
@@ -69,9 +69,6 @@ def check_snapshot_minutes(minutes: float, name: str = "checkpoint_minutes") -> 
         raise ValueError(f"{name} {minutes:g} is a snapshot period of {60.0 * minutes:.3g} s; snapshots are named by "
                          f"whole seconds (wall_XXXXXs.pt), so give 0 (none) or at least {1 / 60:.6g} (1 s)")
 
-
-#: The largest seed: the env keeps its seed in an int64 tensor (envs/tocabi_walk.py), so seeds are in [0, 2**63 - 1].
-MAX_SEED = 2 ** 63 - 1
 
 #: The learning rates [min, max] between which the ``adaptive`` schedule moves the rate (rl/update_step.adapt_lr).
 ADAPTIVE_LR_RANGE = (1e-5, 1e-2)
@@ -224,7 +221,8 @@ class RunConfig:
     preset: str = "default"
     name: str = "ppo_walk"
     run_dir: str = "runs"
-    seed: int = 0
+    # validate() checks it with check_seed, the rule and message of every place a seed enters.
+    seed: int = field(default=0, metadata=OWN_NUMBER_CHECK)
     device: str = "auto"
     resume: str = ""
     # budget
@@ -292,10 +290,7 @@ class RunConfig:
         check_field_types(self)  # the whole tree: every switch a bool, every number finite, named by its path
         for name in ("log_every", "checkpoint_every", "eval_envs", "total_env_steps"):
             _check_int(self, name, 1)
-        _check_int(self, "seed", 0)
-        if self.seed > MAX_SEED:
-            raise ValueError(f"seed must be an int in [0, 2**63 - 1] (the env keeps it as a 64-bit int), got "
-                             f"{self.seed!r}; give a smaller seed")
+        self.seed = check_seed(self.seed)
         for name in ("checkpoint_keep_last", "checkpoint_keep_every"):
             _check_int(self, name, 0)
         if not self.eval_seconds > 0:

@@ -13,6 +13,7 @@ from .envs import TocabiWalk, TocabiWalkConfig
 from .envs.autoreset import SyncFreeResetEnv
 from .envs.config import ENV_FLAT_PATHS
 from .transforms import TransformConfig, TransformSettings, default_transforms
+from .value_rules import check_seed
 
 __all__ = ["make_env"]
 
@@ -61,6 +62,8 @@ def make_env(
     The env's ``task.max_episode_steps`` is the one truncation clock: the transforms' ``StepCounter`` only counts.
     """
     device = check_device(device)  # before anything reads it: a bad name gets TocabiWalk's clear message
+    if seed is not None:
+        seed = check_seed(seed)
     for name, value in (("sync_free_resets", sync_free_resets), ("cuda_graph", cuda_graph)):
         if not (isinstance(value, bool) or (value is None and name == "sync_free_resets")):
             # Text such as "no" is truthy: it would silently turn the switch on.

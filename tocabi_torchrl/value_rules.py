@@ -1,5 +1,5 @@
 """The rules a config value must obey, each written once: the env config (``envs/config.py``), the run config
-(``config.py``) and the policy contract reader (``runtime/contract.py``) all check with
+(``config.py``), the env's seed entry points and the policy contract reader (``runtime/contract.py``) all check with
 these, so a value one of them refuses cannot reach the robot through another.
 
 Standard library only: the torch-free runtime imports it to check a contract before loading anything else.
@@ -12,7 +12,8 @@ import numbers
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["ENV_RULES", "FINITE", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT", "Range", "check_env_value"]
+__all__ = ["ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT", "Range", "check_env_value",
+           "check_seed"]
 
 
 @dataclass(frozen=True)
@@ -97,3 +98,16 @@ def check_env_value(path: str, value: Any, where: str | None = None) -> None:
     else:
         rule.check(value, where)
 
+
+#: The largest seed: the env keeps its seed in an int64 tensor (``envs/tocabi_walk.py``).
+MAX_SEED = 2**63 - 1
+
+
+def check_seed(seed: Any, where: str = "seed") -> int:
+    """``seed`` as a plain int, or a ``ValueError`` naming ``where``: a seed is an int in [0, 2**63 - 1] (numpy
+    ints too; bools, floats and text are refused). The one rule of every place a seed enters: the env's constructor,
+    ``set_seed``, ``reset(seed=...)``, ``make_env`` and the run config's ``seed``."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"{where} must be an int in [0, 2**63 - 1] (the env keeps it as a 64-bit int; not a bool, "
+                         f"a float or text), got {seed!r}; give e.g. {where}=0")
+    return int(seed)
