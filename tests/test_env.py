@@ -391,3 +391,12 @@ def test_set_seed_then_reset_repeats_the_same_episodes():
         assert torch.equal(a, b)
     e.set_seed(4)
     assert not torch.equal(run()[0][0], first[0][0]) or not torch.equal(e.command.value, first[0][1])
+
+
+def test_a_step_without_an_action_names_the_key_and_its_shape():
+    # It ended in AttributeError: 'NoneType' object has no attribute 'detach'.
+    e = TocabiWalk(num_envs=2, device="cpu", seed=0, backend="mujoco", control_mode="torque")
+    with pytest.raises(KeyError, match=r"no 'action' tensor .* shape \(num_envs, 13\) = \(2, 13\)"):
+        e.step(e.reset())
+    with pytest.raises(KeyError, match=r"no 'action' tensor \(got NonTensorData\)"):
+        e.step(e.reset().set_non_tensor("action", [0.0] * 13))
