@@ -26,6 +26,7 @@ try:  # before mujoco is imported
 except GLBackendError as gl_error:
     sys.exit(f"error: {gl_error}")
 
+from tocabi_torchrl.rl.checkpoint import verified_checkpoint_file  # noqa: E402
 from tocabi_torchrl.rl.evaluate import eval_out_dir, evaluate_run, summary_json  # noqa: E402
 
 #: (option, type, default, description): the command line, defaults shown once by build_parser.
@@ -53,6 +54,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def sim2sim_options(args: argparse.Namespace) -> str:
+    """The options of ``recipes/sim2sim.py`` that repeat this call's non-default ones, for an exported policy given
+    as --checkpoint (sim2sim's own defaults are the same for --seconds, --vx and --vy)."""
+    defaults = {flag: default for flag, _, default, _ in OPTIONS}
+    options = [("--num_robots", args.num_envs)] if args.num_envs != defaults["--num_envs"] else []
+    options += [(flag, getattr(args, flag[2:])) for flag in ("--seconds", "--vx", "--vy")
+                if getattr(args, flag[2:]) != defaults[flag]]
+    return "".join(f" {flag} {value}" for flag, value in options)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -63,6 +74,8 @@ def main(argv: list[str] | None = None) -> None:
     if not (math.isfinite(args.vx) and math.isfinite(args.vy)):
         parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
     try:
+        # before the folder is named: an exported .onnx/.json (sim2sim runs those) or a damaged file goes no further
+        verified_checkpoint_file(args.checkpoint, sim2sim_options(args))
         out = eval_out_dir(args.checkpoint, args.out, args.overwrite)
         print(f"results go to {out}/", flush=True)
         summary = evaluate_run(args.checkpoint, num_envs=args.num_envs, device=args.device, seconds=args.seconds,

@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from ..atomic import atomic_write_bytes
+from ..integrity import zip_damage
 
 __all__ = ["FORMAT", "PolicyFileError", "load_policy", "save_policy"]
 
@@ -45,6 +46,9 @@ def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
     path = Path(path)
     if not path.is_file():
         raise PolicyFileError(f"no policy file at {path}; the recipes write <out>/policy.pt")
+    damage = zip_damage(path)  # torch.load ignores the zip CRCs: flipped bits would load as other weights
+    if damage is not None:
+        raise PolicyFileError(f"{path} is damaged: {damage}; copy it again from where it came from, or train anew")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # corrupt, truncated or a pickle that needs code: refuse it

@@ -1,11 +1,14 @@
 """Checkpoints: policy, critic, optimiser, transform state (e.g. running normaliser) and config in one file.
 
 Reading a file never runs code from it: :func:`read_checkpoint` is the one reader (training's ``--resume``,
-evaluation and ``recipes/play.py`` all use it); it loads with ``torch.load(weights_only=True)``, which accepts
-tensors and plain containers only, then checks the keys, the types and the config against :data:`SCHEMA_VERSION`,
-and that the policy's weights and the normalisers' statistics are finite (NaN or inf there: the run diverged, and a
-policy whose actions turn into NaN would still look plausible, as the env reads them as 0). Anything that does not
-fit raises :class:`CheckpointError` naming the file and what is wrong. Checkpoints written
+evaluation and ``recipes/play.py`` all use it). It first checks the zip CRC-32 of every entry
+(:func:`tocabi_torchrl.integrity.zip_damage`: ``torch.load`` ignores them, so bits flipped in a tensor's data would load
+as other weights) and that the file is not an exported policy (an ONNX model or its JSON contract, which
+``recipes/sim2sim.py`` runs); it then loads with ``torch.load(weights_only=True)``, which accepts tensors and plain
+containers only, and checks the keys, the types and the config against :data:`SCHEMA_VERSION`, and that the policy's
+weights and the normalisers' statistics are finite (NaN or inf there: the run diverged, and a policy whose actions turn
+into NaN would still look plausible, as the env reads them as 0). Anything that does not fit raises
+:class:`CheckpointError` naming the file and what is wrong. Checkpoints written
 before the schema was versioned (no ``schema_version``, e.g. the shipped ``assets/policies/tocabi_walk_ppo.pt``)
 read as version 0; config fields they lack take their defaults. Versions 0 and 1 hold the flat ``PPOConfig`` dict
 of before the run config tree; :func:`config_from_checkpoint` migrates it to the tree (``config.FLAT_PATHS``).
@@ -18,6 +21,7 @@ Old ``iter_*.pt`` files are pruned after each save (``RunConfig.checkpoint_keep_
 from __future__ import annotations
 
 import io
+import json
 import os
 import re
 from pathlib import Path
@@ -27,9 +31,11 @@ from torch import nn
 
 from ..atomic import atomic_write_bytes
 from ..config import ConfigError, RunConfig, config_from_dict
+from ..integrity import zip_damage
 
 __all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_checkpoint", "apply_checkpoint", "checkpoint_file",
-           "config_from_checkpoint", "prune_checkpoints", "run_folder_of", "CheckpointError", "SCHEMA_VERSION"]
+           "config_from_checkpoint", "prune_checkpoints", "run_folder_of", "verified_checkpoint_file", "CheckpointError",
+           "ExportedPolicyError", "SCHEMA_VERSION"]
 
 #: Version of the checkpoint layout and config schema written by :func:`save_checkpoint`. Bump it when a change
 #: means older code would misread a new file; :func:`read_checkpoint` refuses files from a newer version.
@@ -39,7 +45,22 @@ _ITER_FILE = re.compile(r"^iter_(\d+)\.pt$")
 
 
 class CheckpointError(RuntimeError):
-    """A checkpoint is missing, unreadable or does not fit the agent it is loaded into."""
+    """A checkpoint is missing, unreadable, damaged or does not fit the agent it is loaded into."""
+
+
+class ExportedPolicyError(CheckpointError):
+    """The file given as a checkpoint is an exported policy (an ONNX model or its JSON contract): ``recipes/sim2sim.py``
+    runs those. ``contract``: the contract to pass it (``None`` when an ONNX model has none beside it)."""
+
+    def __init__(self, path: Path, kind: str, contract: Path | None, options: str = ""):
+        self.path, self.kind, self.contract = path, kind, contract
+        if contract is not None:
+            run = f"run it with: python recipes/sim2sim.py --contract {contract}{options}"
+        else:
+            run = (f"run it with recipes/sim2sim.py, which needs its contract: {path.with_suffix('.json')} is missing "
+                   f"(export the run again with python -m tocabi_torchrl.export to write both)")
+        super().__init__(f"{path} is an exported policy ({kind}), not a training checkpoint (.pt): play.py, export "
+                         f"and --resume read a run's checkpoints; {run}")
 
 
 # --------------------------------------------------------------------------------------------------------- writing
@@ -131,7 +152,7 @@ def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu")
     :class:`CheckpointError` naming the file for a missing, truncated, foreign or malformed file, and for one whose
     actor or critic weights or normalisation statistics hold NaN or inf (a diverged run).
     """
-    path = checkpoint_file(path)
+    path = verified_checkpoint_file(path)
     try:
         state = torch.load(path, map_location=device, weights_only=True)
     except Exception as err:  # noqa: BLE001 - whatever torch/pickle/zip raise for a bad file, say which file
@@ -139,6 +160,52 @@ def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu")
     _check_layout(state, path)
     state.setdefault("schema_version", 0)
     return state
+
+
+def _check_integrity(path: Path) -> None:
+    damage = zip_damage(path)
+    if damage is not None:
+        raise CheckpointError(f"checkpoint {path} is damaged: {damage}. Loading it would give silently different "
+                              f"weights. Copy it again from where it came from, or pick another checkpoint of the run "
+                              f"(checkpoints/iter_*.pt)")
+
+
+#: ``ModelProto`` field tags an ONNX file's second field can have (producer name, version, domain, model version, doc,
+#: graph, opsets), after its first: ``ir_version`` (tag 0x08).
+_ONNX_SECOND_TAGS = frozenset(b"\x12\x1a\x22\x28\x32\x3a\x42")
+
+
+def _exported_kind(path: Path) -> tuple[str, Path | None] | None:
+    """``(what it is, its contract)`` when ``path`` is an exported policy, by its suffix or its first bytes."""
+    with open(path, "rb") as file:
+        head = file.read(16)
+    onnx = len(head) > 2 and head[0] == 0x08 and head[1] < 0x80 and head[2] in _ONNX_SECOND_TAGS
+    if path.suffix == ".onnx" or onnx:
+        contract = path.with_suffix(".json")
+        return "an ONNX model", contract if contract.is_file() else None
+    if path.suffix == ".json" or head.lstrip()[:1] == b"{":
+        from ..runtime.contract import CONTRACT_FORMAT
+
+        try:
+            text = json.loads(path.read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            return None
+        if isinstance(text, dict) and text.get("format") == CONTRACT_FORMAT:
+            return "the JSON contract of an ONNX export", path
+    return None
+
+
+def verified_checkpoint_file(path: str | os.PathLike, sim2sim_options: str = "") -> Path:
+    """:func:`checkpoint_file` of ``path``, checked before anything unpickles it: an exported policy (an ONNX model or
+    its JSON contract) raises :class:`ExportedPolicyError`, whose message gives the ``recipes/sim2sim.py`` command
+    with ``sim2sim_options`` appended (e.g. `` --num_robots 8``); a zip entry failing its CRC-32 (bits flipped on disk
+    or in a copy) raises :class:`CheckpointError`. Reads the file once (milliseconds for a policy)."""
+    path = checkpoint_file(path)
+    found = _exported_kind(path)
+    if found is not None:
+        raise ExportedPolicyError(path, *found, sim2sim_options)
+    _check_integrity(path)
+    return path
 
 
 def _load_failure(path: Path, err: Exception) -> str:
