@@ -223,3 +223,31 @@ def test_graph_wiring_matches_eager_on_cpu():
     torch.testing.assert_close(out_w["next", "observation"], out_e["next", "observation"], rtol=0, atol=0)
     wired.set_seed(7)
     assert not wired.graph_captured
+
+
+def test_preset_is_the_training_preset_as_everywhere_else():
+    # make_env(preset="torque") failed with "unknown transforms.preset 'torque'": preset named the transforms' history
+    # layout here and the training preset on the command line and in make_vec, and "reference" meant both.
+    from tocabi_torchrl.config import preset_tree
+    from tocabi_torchrl.transforms import TaskReward, TransformSettings
+
+    def weights(env):
+        reward = next(t for t in env.transform if isinstance(t, TaskReward))
+        return {t.name: t.weight for t in reward.terms}
+
+    for name in ("torque", "reference"):
+        tree = preset_tree(name)
+        e = make_env(num_envs=1, device="cpu", seed=0, preset=name, backend="mujoco", max_episode_steps=9)
+        cfg = e.base_env.cfg
+        assert cfg.control == tree.env.control and cfg.command == tree.env.command and cfg.task.max_episode_steps == 9
+        want = weights(make_env(num_envs=1, device="cpu", backend="mujoco", transforms=tree.transforms))
+        assert weights(e) == want
+    assert weights(e)["body_vel"] != 0.9  # the reference preset's reference weights, not the default's
+    with pytest.raises(ValueError, match=r"unknown training preset 'banana'; choose one of \['cpu_smoke', 'default', "
+                                         r"'model_based', 'reference', 'torque'\]"):
+        make_env(num_envs=1, device="cpu", preset="banana")
+    with pytest.raises(ValueError, match=r"'tocabilab' is a transform history preset: pass "
+                                         r"transforms=TransformSettings\(preset='tocabilab'\)"):
+        make_env(num_envs=1, device="cpu", preset="tocabilab")
+    with pytest.raises(TypeError, match="preset='torque' or the sections config=/transforms=, not both"):
+        make_env(num_envs=1, device="cpu", preset="torque", transforms=TransformSettings())

@@ -13,6 +13,7 @@ from .envs import TocabiWalk, TocabiWalkConfig
 from .envs.autoreset import SyncFreeResetEnv
 from .envs.config import ENV_FLAT_PATHS
 from .transforms import TransformConfig, TransformSettings, default_transforms
+from .transforms.presets import PRESETS as TRANSFORM_PRESETS
 from .value_rules import check_seed
 
 __all__ = ["make_env"]
@@ -45,8 +46,12 @@ def make_env(
         config: the env section (:class:`~tocabi_torchrl.envs.TocabiWalkConfig`; default: its defaults).
         transforms: the transform section (:class:`~tocabi_torchrl.transforms.TransformSettings`; default: its
             defaults: the reference observation and rewards with the velocity term tripled).
-        preset: transform history preset, replacing ``transforms.preset`` (``"reference"``: 5 observations two steps
-            apart + 4 actions; ``"tocabilab"``: the consecutive history). See :data:`tocabi_torchrl.transforms.PRESETS`.
+        preset: a training preset, as on the command line and in the adapters' ``make_vec`` (``"default"``,
+            ``"torque"``, ``"model_based"``, ``"reference"``, ``"cpu_smoke"``: :data:`tocabi_torchrl.config.PRESETS`):
+            the env is built from that preset's env and transform sections (``num_envs`` defaults to the preset's),
+            so it cannot be given with ``config``/``transforms``. The trainer's training aids are not part of a
+            preset's env (the torque preset's assist: pass ``torque_assist=True``). The transforms' history layout
+            is ``transforms=TransformSettings(preset="tocabilab")`` (see :data:`tocabi_torchrl.transforms.PRESETS`).
         sync_free_resets: return a :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`, whose
             ``step_and_maybe_reset`` (the collectors' step) resets done envs without host reads (default: on CUDA).
         cuda_graph: capture that ``step_and_maybe_reset`` as one CUDA graph after two eager calls and replay it
@@ -78,9 +83,8 @@ def make_env(
                         f"{sorted(_ENV_KEYWORDS)} and TransformConfig's {sorted(_TRANSFORM_FIELDS)}")
     env_kwargs = {k: v for k, v in overrides.items() if k in _ENV_KEYWORDS}
     tf_kwargs = {k: v for k, v in overrides.items() if k not in _ENV_KEYWORDS}
+    config, transforms = _preset_sections(preset, config, transforms)
     settings = transforms if transforms is not None else TransformSettings()
-    if preset is not None:
-        settings = dataclasses.replace(settings, preset=preset)
     tf_config = settings.transform_config(**tf_kwargs)
     if sync_free_resets is None:
         sync_free_resets = device.type == "cuda"
@@ -92,3 +96,24 @@ def make_env(
     if sync_free_resets:
         return SyncFreeResetEnv(base, transforms_, cuda_graph=cuda_graph)
     return TransformedEnv(base, transforms_)
+
+
+def _preset_sections(preset: str | None, config: TocabiWalkConfig | None,
+                     transforms: TransformSettings | None) -> tuple[TocabiWalkConfig | None, TransformSettings | None]:
+    """The env and transform sections of the training preset ``preset``; ``config``/``transforms`` as given when
+    there is none. Raises naming the training presets for an unknown name."""
+    if preset is None:
+        return config, transforms
+    from .config import PRESETS, preset_tree
+
+    if preset not in PRESETS:
+        # "tocabilab" named the transforms' history layout here before: say where it went.
+        hint = (f"; {preset!r} is a transform history preset: pass transforms=TransformSettings(preset={preset!r})"
+                if preset in TRANSFORM_PRESETS else "")
+        raise ValueError(f"unknown training preset {preset!r}; choose one of {sorted(PRESETS)}{hint}")
+    if config is not None or transforms is not None:
+        raise TypeError(f"make_env takes preset={preset!r} or the sections config=/transforms=, not both (the preset "
+                        "is its env and transform sections); change single options with keywords instead, e.g. "
+                        "control_mode=..., max_episode_steps=..., reward_weights=...")
+    tree = preset_tree(preset)
+    return tree.env, tree.transforms
