@@ -19,7 +19,7 @@ from .value_rules import check_seed
 __all__ = ["make_env"]
 
 _TRANSFORM_FIELDS = {f.name for f in dataclasses.fields(TransformConfig)} - {"max_episode_steps"}
-_ENV_KEYWORDS = set(ENV_FLAT_PATHS) | {f.name for f in dataclasses.fields(TocabiWalkConfig)}
+_ENV_KEYWORDS = set(ENV_FLAT_PATHS) | {f.name for f in dataclasses.fields(TocabiWalkConfig)} | {"leg_controller"}
 
 
 def make_env(
@@ -59,7 +59,8 @@ def make_env(
             where the step is launch-bound (``ppo.cuda_graph``, measured in ``docs/benchmarks/env_graph.md``).
             See :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv` for what a capture freezes.
         overrides: env options as flat names (e.g. ``control_mode="pd"``, ``max_episode_steps=1000``, see
-            ``envs.config.ENV_FLAT_PATHS``) or sections (``command=CommandConfig.reference()``), and fields of
+            ``envs.config.ENV_FLAT_PATHS``) or sections (``command=CommandConfig.reference()``), a user-defined
+            ``leg_controller`` (:class:`~tocabi_torchrl.control.Controller`, docs/controllers.md), and fields of
             :class:`~tocabi_torchrl.transforms.TransformConfig` (e.g. ``reward_weights={"qpos": 0.5}``, which
             re-weights the named terms on top of the settings' weights,
             ``normalization="running"``, ``history=HistoryLayout(...)``); a name in neither raises.

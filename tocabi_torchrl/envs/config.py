@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass, field
 
 from .. import robot
+from ..control.config import ActuatorConfig
 from ..sim.config import RESET_PASSES
 from ..tree import OWN_NUMBER_CHECK, check_field_types
 from ..value_rules import ENV_RULES, check_env_value
@@ -179,6 +180,8 @@ class ControlConfig:
     mb_ref_window: float = 0.008
     mb_residual_gain: tuple[float, ...] = field(default=tuple(float(v) for v in robot.LEG_TORQUE_LIMITS),
                                                 metadata=OWN_NUMBER_CHECK)
+    #: The actuator layer between the legs' torque commands and the joints (ideal by default; torque modes only).
+    actuators: ActuatorConfig = field(default_factory=ActuatorConfig)
 
     def validate(self) -> None:
         if self.mode not in CONTROL_MODES:
@@ -189,6 +192,11 @@ class ControlConfig:
                                  f"{len(getattr(self, name))}")
         for name in ("pd_kp", "pd_kv", "pd_nominal", "pd_action_scale"):
             check_env_value(f"control.{name}", getattr(self, name))
+        self.actuators.validate()
+        if not self.actuators.ideal and self.mode not in TORQUE_MODES:
+            raise ValueError(f"env.control.actuators act on torque commands, but control mode {self.mode!r} tracks "
+                             f"targets with servos inside the physics; use a torque mode {TORQUE_MODES} or leave "
+                             "env.control.actuators at its defaults")
         if self.torque_assist and self.mode != "torque":
             raise ValueError(f"env.control.torque_assist needs control_mode='torque' (env.control.mode; the PD modes "
                              f"already track with servos), got {self.mode!r}")

@@ -18,15 +18,16 @@ from torchrl.data import Bounded
 from torchrl.envs import EnvBase
 
 from .. import robot
+from ..control import ActuatorChain, ControlContext, ControlInput, Controller
 from ..device import check_device
 from ..motion import ReferenceMotion
 from ..rotations import quat_rotate_inverse
 from ..signals import EPISODE_FLAGS, REWARD, SIGNALS, SignalTable
 from ..sim import MujocoSim, SimBackend, SimConfig, WarpSim
 from .command import VelocityCommand
-from .config import TORQUE_MODES, ControlConfig, TocabiWalkConfig, resolve_backend
+from .config import TocabiWalkConfig, resolve_backend
+from .controllers import leg_actuator_chain, leg_law, upper_body_law
 from .episode_random import episode_uniform
-from .model_based import ComputedTorque
 from .obstacles import add_obstacles, world_obstacle_centres
 from .termination import termination_flags
 
@@ -53,16 +54,29 @@ def _check_tocabi_spec(spec, model_path) -> None:
         )
 
 
-def _pd_leg_spec(spec, control: ControlConfig):
-    """Turn the 12 leg torque motors into position servos (PD inside every physics substep)."""
-    for j in robot.LEG_JOINT_IDS:
+def _servo_spec(spec, joint_ids, gains):
+    """Turn the motors of ``joint_ids`` into position servos with ``gains`` = (kp, kv) (PD inside every physics
+    substep), force-limited to the joints' torque limits."""
+    kp, kv = gains
+    for i, j in enumerate(joint_ids):
         act = spec.actuator(robot.ACTUATOR_NAMES[j])
         limit = float(robot.TORQUE_LIMITS[j])
-        act.set_to_position(kp=float(control.pd_kp[j]), kv=float(control.pd_kv[j]))
+        act.set_to_position(kp=float(kp[i]), kv=float(kv[i]))
         act.ctrllimited = 0
         act.forcelimited = 1
         act.forcerange = [-limit, limit]
     return spec
+
+
+def _check_leg_controller(law) -> Controller:
+    """``law`` if it can drive the 12 leg joints, else a ``TypeError``/``ValueError`` saying what it lacks."""
+    if not isinstance(law, Controller):
+        raise TypeError(f"leg_controller must be a tocabi_torchrl.control.Controller, got {type(law).__name__}; "
+                        "subclass Controller and implement compute() (docs/controllers.md)")
+    if law.action_dim != robot.NUM_LEG_JOINTS:
+        raise ValueError(f"leg_controller reads action_dim={law.action_dim} actions, but the env's action has "
+                         f"{robot.NUM_LEG_JOINTS} leg entries (and one phase rate); set action_dim = 12")
+    return law
 
 
 class TocabiWalk(EnvBase):
@@ -79,6 +93,9 @@ class TocabiWalk(EnvBase):
             sections (``command=CommandConfig.reference()``).
         seed: seed of the env's own torch generator (initial phase, commands) and of the obstacles' per-world jitter
             (drawn once, at build: see ``BoxObstacle.jitter``); None = a random seed.
+        leg_controller: a :class:`~tocabi_torchrl.control.Controller` for the 12 leg joints that replaces the one
+            ``env.control.mode`` names (docs/controllers.md); it reads the action's first 12 entries. None = the
+            config's.
 
     Action (N, 13): 12 leg commands in [-1, 1] (torques as a fraction of the limits, or PD targets, see the
     config's ``control.mode``) and one phase-rate action in [0, 1]. Actions outside the bounds are clipped; NaN
@@ -104,6 +121,7 @@ class TocabiWalk(EnvBase):
         device: str | torch.device = "cuda",
         config: TocabiWalkConfig | None = None,
         seed: int | None = None,
+        leg_controller: Controller | None = None,
         **overrides,
     ):
         if num_envs is not None and (isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs <= 0):
@@ -121,11 +139,22 @@ class TocabiWalk(EnvBase):
         self.num_envs = num_envs
         control, sim = cfg.control, cfg.sim
 
-        self._seed = int(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item())
+        from ..value_rules import check_seed
+
+        self._seed = check_seed(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item())
+        #: The control laws of the two joint groups, and the legs' actuator layer (``tocabi_torchrl.control``).
+        self.leg_controller = (_check_leg_controller(leg_controller) if leg_controller is not None
+                               else leg_law(control))
+        self.upper_controller = upper_body_law(control)
+        self.leg_actuators: ActuatorChain = leg_actuator_chain(control, sim.substeps)
+        if self.leg_controller.servo and len(self.leg_actuators):
+            raise ValueError(f"{type(self.leg_controller).__name__} writes servo targets, which the physics tracks "
+                             "inside every substep; env.control.actuators act on torque commands only")
         spec = robot.load_spec(cfg.task.model_path)
         _check_tocabi_spec(spec, cfg.task.model_path)
-        if control.mode not in TORQUE_MODES:
-            spec = _pd_leg_spec(spec, control)
+        gains = self.leg_controller.servo_gains()
+        if gains is not None:
+            spec = _servo_spec(spec, robot.LEG_JOINT_IDS, gains)
         obstacles = cfg.scene.obstacles
         #: The seed the obstacles' per-world offsets were drawn from (the build seed: ``set_seed`` does not move them).
         self.scene_seed = self._seed
@@ -135,13 +164,16 @@ class TocabiWalk(EnvBase):
         #: jitter included; the bottom face at z = 0), fixed at build.
         self.obstacle_pos = torch.as_tensor(centres, dtype=torch.float32, device=device)
         self.backend = resolve_backend(sim.backend, device)
+        # A delayed actuator changes the legs' torques inside the step: the simulator applies them substep by substep.
+        substep_ctrl = tuple(robot.LEG_JOINT_IDS) if self.leg_actuators.per_substep else ()
         if self.backend == "warp":
             buffers = {k: v for k, v in (("nconmax", sim.nconmax), ("njmax", sim.njmax)) if v is not None}
             sim_cfg = SimConfig(num_worlds=num_envs, device=str(device), substeps=sim.substeps,
-                                reset_pass=sim.reset_pass, **buffers)
+                                reset_pass=sim.reset_pass, substep_ctrl=substep_ctrl, **buffers)
             self.sim = WarpSim(sim_cfg, model=spec, mocap_pos=mocap)
         else:
-            sim_cfg = SimConfig(num_worlds=num_envs, device="cpu", substeps=sim.substeps, threads=sim.threads)
+            sim_cfg = SimConfig(num_worlds=num_envs, device="cpu", substeps=sim.substeps, threads=sim.threads,
+                                substep_ctrl=substep_ctrl)
             self.sim = MujocoSim(sim_cfg, model=spec, mocap_pos=mocap)
         self.dt = self.sim.mj_model.opt.timestep * sim.substeps
         motion = cfg.task.motion
@@ -153,9 +185,6 @@ class TocabiWalk(EnvBase):
         # The reset's per-episode draws read the seed from the device, so a captured step graph follows set_seed.
         self._seed_t = torch.tensor(self._seed, dtype=torch.int64, device=device)
         self.command = VelocityCommand(cfg.command, num_envs, device, self.rng)
-        #: The model_based mode's feed-forward law (None in the other modes).
-        self.computed_torque = (ComputedTorque(control, self.motion, self.sim.mj_model, num_envs, device, self.dt)
-                                if control.mode == "model_based" else None)
         self._init_buffers()
         #: The reduced reset pass (``env.sim.reset_pass="reduced"``, mujoco-warp only): the start states, one per
         #: start row of the reference motion, are registered with the simulator here.
@@ -175,17 +204,22 @@ class TocabiWalk(EnvBase):
         mj = self.sim.mj_model
         leg_range = mj.jnt_range[[mj.joint(name).id for name in robot.JOINT_NAMES[robot.LEGS]]]
         self._leg_range = torch.as_tensor(leg_range, dtype=f32, device=dev)
-        self._pd_nominal = torch.as_tensor(self.cfg.control.pd_nominal, dtype=f32, device=dev)
         self._pd_kp = torch.as_tensor(self.cfg.control.pd_kp, dtype=f32, device=dev)
-        self._pd_kv = torch.as_tensor(self.cfg.control.pd_kv, dtype=f32, device=dev)
-        self._mb_gain = torch.as_tensor(self.cfg.control.mb_residual_gain, dtype=f32, device=dev)
-        #: β of the torque assist (config ``torque_assist``): a device scalar changed in place, so a captured step
-        #: graph follows it.
-        self.assist_scale = torch.zeros((), dtype=f32, device=dev)
-        self._assist_gain = self.assist_gain(0.0).clone()  # (12,) N·m per unit action at assist_scale
-        # Leg controls a reset world starts with: no torque, or the PD's nominal target.
-        self._reset_leg_ctrl = (torch.zeros_like(self._pd_nominal) if self.cfg.control.mode in TORQUE_MODES
-                                else self._pd_nominal.clone())
+        upper = [mj.joint(name).id for name in robot.JOINT_NAMES[robot.UPPER_BODY]]
+        contexts = (
+            (self.leg_controller, robot.LEG_JOINT_IDS, self._leg_limits, self._leg_range),
+            (self.upper_controller, tuple(range(robot.NUM_LEG_JOINTS, robot.NUM_JOINTS)),
+             torch.as_tensor(robot.TORQUE_LIMITS[robot.UPPER_BODY], dtype=f32, device=dev),
+             torch.as_tensor(mj.jnt_range[upper], dtype=f32, device=dev)),
+        )
+        for law, joints, limits, ranges in contexts:
+            ctx = ControlContext(num_envs=n, device=dev, joint_ids=tuple(joints), torque_limits=limits,
+                                 joint_range=ranges, dt=self.dt, sim=self.sim, motion=self.motion)
+            law.setup(ctx)
+            if law is self.leg_controller:
+                self.leg_actuators.setup(ctx)
+        # Leg controls a reset world starts with: no torque, or the servos' nominal target.
+        self._reset_leg_ctrl = self.leg_controller.reset_command()
         self._init_rows = torch.as_tensor(self.motion.init_rows, dtype=torch.int64, device=dev)
         # Task state, (num_envs, ...): phase clock [s] (kept modulo the motion period), its start row, step count.
         self.time = torch.zeros(n, dtype=f32, device=dev)
@@ -194,8 +228,6 @@ class TocabiWalk(EnvBase):
         # Signals of the last step, kept so that a partial reset can return every env's current values.
         self.applied_action = torch.zeros(n, ACTION_DIM, dtype=f32, device=dev)
         self.leg_torque = torch.zeros(n, robot.NUM_LEG_JOINTS, dtype=f32, device=dev)
-        self.leg_assist = torch.zeros(n, robot.NUM_LEG_JOINTS, dtype=f32, device=dev)
-        self.leg_feedforward = torch.zeros(n, robot.NUM_LEG_JOINTS, dtype=f32, device=dev)
         self.ref_joint_pos = torch.zeros(n, robot.NUM_JOINTS, dtype=f32, device=dev)
         self.ref_foot_force = torch.zeros(n, 2, dtype=f32, device=dev)
         self.stance = torch.zeros(n, dtype=torch.int64, device=dev)
@@ -227,8 +259,9 @@ class TocabiWalk(EnvBase):
 
     def signal_flags(self) -> dict[str, bool]:
         """The options that turn the signal table's conditional rows on (``Signal.requires``)."""
-        return {"torque_assist": bool(self.cfg.control.torque_assist),
-                "model_based": self.cfg.control.mode == "model_based", "obstacles": bool(self.cfg.scene.obstacles)}
+        extra = self.leg_controller.signals()
+        return {"torque_assist": "leg_assist" in extra, "model_based": "leg_feedforward" in extra,
+                "obstacles": bool(self.cfg.scene.obstacles)}
 
     def _check_observe_matches_table(self) -> None:
         """Raise a clear error, once at construction, when :meth:`_observe` and the signal table disagree.
@@ -254,8 +287,15 @@ class TocabiWalk(EnvBase):
                 )
 
     # ------------------------------------------------------------------------------------------------ stepping
-    def _check_action(self, action: torch.Tensor) -> None:
+    def _check_action(self, action: torch.Tensor | None) -> None:
         # Metadata only: shape, dtype and device checks never read device values.
+        if not isinstance(action, torch.Tensor):
+            raise KeyError(
+                f"the step's tensordict has no 'action' tensor (got {type(action).__name__}): set 'action' to a "
+                f"float32 tensor of shape (num_envs, {ACTION_DIM}) = ({self.num_envs}, {ACTION_DIM}), 12 leg "
+                f"commands in [-1, 1] and one phase rate in [0, 1] per env, e.g. td.set('action', "
+                f"env.action_spec.zero())"
+            )
         if action.shape != (self.num_envs, ACTION_DIM):
             raise ValueError(
                 f"action must have shape (num_envs, {ACTION_DIM}) = ({self.num_envs}, {ACTION_DIM}), got "
@@ -267,8 +307,9 @@ class TocabiWalk(EnvBase):
             raise ValueError(f"action is on {action.device} but the env runs on {self.device}; move it with .to()")
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action").detach()  # a policy's output: its graph must not reach the sim buffers
+        action = tensordict.get("action")
         self._check_action(action)
+        action = action.detach()  # a policy's output: its graph must not reach the sim buffers
         a = torch.nan_to_num(action.to(torch.float32), nan=0.0).clamp(self._act_low, self._act_high)
 
         # Reference at the pre-step clock: targets for the whole step, row for force reference and stance.
@@ -277,19 +318,18 @@ class TocabiWalk(EnvBase):
         self.command.update(self.episode_step)
         rate = 1.0 + self.cfg.task.phase_rate_gain * a[:, -1]
 
-        if self.cfg.control.torque_assist:
-            leg_cmd = self._assisted(a[:, robot.LEGS], q_ref[:, robot.LEGS])
-        elif self.computed_torque is not None:
-            leg_cmd = self._model_based(a[:, robot.LEGS], q_ref[:, robot.LEGS], rate)
-        elif self.cfg.control.mode == "torque":
-            leg_cmd = a[:, robot.LEGS] * self._leg_limits
-        else:
-            center = self._pd_nominal if self.cfg.control.mode == "pd" else q_ref[:, robot.LEGS]
-            target = center + self.cfg.control.pd_action_scale * a[:, robot.LEGS]
-            leg_cmd = torch.maximum(torch.minimum(target, self._leg_range[:, 1]), self._leg_range[:, 0])
+        # The controllers (tocabi_torchrl.control) map the action to joint commands; the legs' torques pass
+        # through the actuator layer on their way to the joints.
+        nl = robot.NUM_LEG_JOINTS
+        legs = ControlInput(action=a[:, robot.LEGS], q=self.sim.qpos[:, 7:7 + nl], qd=self.sim.qvel[:, 6:6 + nl],
+                            q_ref=q_ref[:, robot.LEGS], time=self.time, init_row=self.init_row, rate=rate)
+        leg_cmd = self.leg_controller.compute(legs)
+        leg_out = self._actuate(leg_cmd, legs)
+        upper = ControlInput(action=a[:, nl:nl], q_ref=q_ref[:, robot.UPPER_BODY], time=self.time,
+                             init_row=self.init_row, rate=rate)
         ctrl = self.sim.ctrl
-        ctrl[:, robot.LEGS] = leg_cmd
-        ctrl[:, robot.UPPER_BODY] = q_ref[:, robot.UPPER_BODY]
+        ctrl[:, robot.LEGS] = leg_out
+        ctrl[:, robot.UPPER_BODY] = self.upper_controller.compute(upper)
         self.sim.step()
 
         # Task state is updated in place (never rebound): a captured CUDA graph of this step keeps writing to the
@@ -297,14 +337,15 @@ class TocabiWalk(EnvBase):
         self.time.copy_(torch.remainder(self.time + self.dt * rate, self.motion.period))
         self.episode_step.add_(1)
         self.applied_action.copy_(a)
-        if self.cfg.control.torque_assist or self.computed_torque is not None:
-            # The history and the torque rewards see the torque the legs got, over the limits: at β = 0 that is the
-            # action itself (the reference's a_raw), and at every β a policy that applies the same torques gets the
-            # same observations and rewards, so the morph changes the action's meaning and nothing else. In
-            # model_based mode likewise: the feed-forward torque plus the residual, as torque mode would see it.
-            self.applied_action[:, robot.LEGS].copy_(leg_cmd / self._leg_limits)
-        applied = self.sim.applied_actuator_force[:, robot.LEGS]
-        self.leg_torque.copy_(leg_cmd if self.cfg.control.mode in TORQUE_MODES else applied)
+        # What the history and the torque rewards see of the legs: the action itself, or (torque assist,
+        # model_based) the commanded torque over the limits, so that a policy that commands the same torques gets
+        # the same observations and rewards whatever the law's parametrisation.
+        leg_applied = self.leg_controller.applied_action(legs, leg_cmd)
+        if leg_applied is not legs.action:
+            self.applied_action[:, robot.LEGS].copy_(leg_applied)
+        # The torque the legs got: the servos' force, or the actuator layer's output (its last substep's).
+        self.leg_torque.copy_(self.sim.applied_actuator_force[:, robot.LEGS] if self.leg_controller.servo
+                              else leg_out)
         self.ref_joint_pos.copy_(q_ref)
         self.ref_foot_force.copy_(self.motion.force_reference(row))
         self.stance.copy_(self.motion.stance_at(row))
@@ -336,24 +377,37 @@ class TocabiWalk(EnvBase):
         )
         return out
 
-    def _assisted(self, a_leg: torch.Tensor, leg_ref: torch.Tensor) -> torch.Tensor:
-        """Leg torques (num_envs, 12) [N·m] of the assisted torque mode (``TocabiWalkConfig.torque_assist``):
-        ``(1 − β)·a·limit + β·PD(q_ref + pd_action_scale·a)`` from the pre-step state, clipped to the limits; records
-        the action-independent part of the PD over the limits as ``leg_assist``."""
-        q = self.sim.qpos[:, 7 : 7 + robot.NUM_LEG_JOINTS]
-        qd = self.sim.qvel[:, 6 : 6 + robot.NUM_LEG_JOINTS]
-        self.leg_assist.copy_((self._pd_kp * (leg_ref - q) - self._pd_kv * qd) / self._leg_limits)
-        total = self._assist_gain * a_leg + self.assist_scale * self.leg_assist * self._leg_limits
-        return torch.maximum(torch.minimum(total, self._leg_limits), -self._leg_limits)
+    def _actuate(self, command: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        """(N, 12) what goes into the legs' controls: a servo's targets or an ideal actuator's torques as they are,
+        else the actuator layer's output; a delayed layer's per-substep torques (N, S, 12) go to the simulator's
+        ``substep_ctrl``, and its last substep's torque is returned."""
+        if not len(self.leg_actuators):
+            return command
+        out = self.leg_actuators(command, inp)
+        if self.leg_actuators.per_substep:
+            self.sim.substep_ctrl.copy_(out)
+            return out[:, -1]
+        return out
 
-    def _model_based(self, a_leg: torch.Tensor, leg_ref: torch.Tensor, rate: torch.Tensor) -> torch.Tensor:
-        """Leg torques (num_envs, 12) [N·m] of the ``model_based`` mode: ``clip(τ_ff + g·a, ±limit)`` with τ_ff
-        the computed-torque law from the pre-step state (:class:`~tocabi_torchrl.envs.model_based.ComputedTorque`),
-        recorded as ``leg_feedforward``, and g = ``control.mb_residual_gain`` [N·m per action unit]."""
-        tau_ff = self.computed_torque(self.sim, leg_ref, self.time, self.init_row, rate)
-        self.leg_feedforward.copy_(tau_ff)
-        total = tau_ff + self._mb_gain * a_leg
-        return torch.maximum(torch.minimum(total, self._leg_limits), -self._leg_limits)
+    @property
+    def computed_torque(self):
+        """The ``model_based`` mode's feed-forward law (``envs.model_based.ComputedTorque``), or None."""
+        return getattr(self.leg_controller, "law", None)
+
+    @property
+    def leg_assist(self) -> torch.Tensor | None:
+        """(N, 12) the torque assist's ``leg_assist`` signal (``AssistedTorque``), or None in the other modes."""
+        return self.leg_controller.signals().get("leg_assist")
+
+    @property
+    def leg_feedforward(self) -> torch.Tensor | None:
+        """(N, 12) [N·m] the ``model_based`` mode's τ_ff, or None in the other modes."""
+        return self.leg_controller.signals().get("leg_feedforward")
+
+    @property
+    def assist_scale(self) -> torch.Tensor | None:
+        """β of the torque assist, a 0-d device tensor (``AssistedTorque.assist_scale``), or None without it."""
+        return getattr(self.leg_controller, "assist_scale", None)
 
     @property
     def leg_torque_limits(self) -> torch.Tensor:
@@ -371,8 +425,7 @@ class TocabiWalk(EnvBase):
             raise RuntimeError("set_torque_assist needs an env built with torque_assist=True (torque mode)")
         if not 0.0 <= float(scale) <= 1.0:
             raise ValueError(f"torque assist scale must be in [0, 1], got {scale!r}")
-        self.assist_scale.fill_(float(scale))
-        self._assist_gain.copy_(self.assist_gain(float(scale)))
+        self.leg_controller.set_beta(float(scale))
 
     def _observe(self) -> TensorDict:
         """Current signals of every env as fresh tensors (never views of simulator memory).
@@ -405,21 +458,25 @@ class TocabiWalk(EnvBase):
             "episode_step": self.episode_step.unsqueeze(-1).clone(),
             "healthy": sim.healthy.unsqueeze(-1).clone(),
         }
-        if self.cfg.control.torque_assist:
-            signals["leg_assist"] = _finite(self.leg_assist)
-        if self.computed_torque is not None:
-            signals["leg_feedforward"] = _finite(self.leg_feedforward)
+        for name, value in self.leg_controller.signals().items():
+            signals[name] = _finite(value)
         if self.cfg.scene.obstacles:
             signals["obstacle_contact"] = sim.obstacle_contact.clone()
         return TensorDict(signals, batch_size=self.batch_size, device=self.device)
 
     # ------------------------------------------------------------------------------------------------ resets
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        seed = kwargs.pop("seed", None)
+        if seed is not None:  # reset(seed=s) is set_seed(s) then the reset (it was ignored, without a word)
+            self._set_seed(seed)
         mask = self._all
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(self.num_envs).to(torch.bool)
         # Random start row and first command from (seed, env, episode): identical whichever reset path runs.
         u = episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=0, k=3)
+        if self.leg_actuators.draws:  # each episode's actuator parameters, keyed like the start row
+            self.leg_actuators.reset(mask, episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=1,
+                                                           k=self.leg_actuators.draws))
         self.episode_count.add_(mask.long())
         pick = (u[:, 0] * len(self._init_rows)).long().clamp_(max=len(self._init_rows) - 1)
         self.init_row.copy_(torch.where(mask, self._init_rows[pick], self.init_row))
@@ -428,8 +485,8 @@ class TocabiWalk(EnvBase):
         m = mask.unsqueeze(-1)
         self.applied_action.masked_fill_(m, 0.0)
         self.leg_torque.masked_fill_(m, 0.0)
-        self.leg_assist.masked_fill_(m, 0.0)
-        self.leg_feedforward.masked_fill_(m, 0.0)
+        self.leg_controller.reset(mask)
+        self.upper_controller.reset(mask)
         self.command.reset(mask, u[:, 1:3])
         # Upper-body servos start on the initial pose so the reset state's forward pass sees no PD transient.
         row = self.motion.row_index(self.time, self.init_row)
@@ -455,7 +512,9 @@ class TocabiWalk(EnvBase):
 
     def _set_seed(self, seed: int | None) -> None:
         if seed is not None:
-            self._seed = int(seed)
+            from ..value_rules import check_seed
+
+            self._seed = check_seed(seed)
             self.rng.manual_seed(self._seed)
             self._seed_t.fill_(self._seed)
             # Start rows and first commands are keyed on (seed, env, episode number): restart the numbering so that

@@ -53,6 +53,15 @@ FIELD_HELP: dict[str, str] = {
                                     "the torque limits (the model_based preset: 0.5 rad × the robot's Kp)",
     "env.control.mb_ref_window": "model_based mode: half-width of the central differences that give the reference's "
                                  "velocity and acceleration [s]",
+    "env.control.actuators.delay_substeps": "torque modes: leg torque delay (low, high) in 0.5 ms physics substeps, "
+                                            "drawn per world at reset; default: none",
+    "env.control.actuators.motor_constant": "torque modes: motor-constant scale (low, high) of the leg torques, drawn "
+                                            "per world and joint at reset; default: 1",
+    "env.control.actuators.coulomb": "torque modes: Coulomb friction (low, high) [N·m] against each leg joint's "
+                                     "velocity, drawn per world and joint at reset; default: none",
+    "env.control.actuators.viscous": "torque modes: viscous friction (low, high) [N·m·s/rad] of each leg joint, "
+                                     "drawn per world and joint at reset; default: none",
+    "env.control.actuators.saturate": "torque modes: clip the leg torques at their limits after the actuator stages",
     "env.sim.backend": "physics backend (auto: mujoco-warp on CUDA, C MuJoCo on the CPU)",
     "env.sim.substeps": "physics substeps (0.5 ms) per policy step",
     "env.sim.nconmax": "mujoco-warp contacts per world; none = the measured default",

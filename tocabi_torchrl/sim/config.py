@@ -54,6 +54,10 @@ class SimConfig:
             that a full pass filled at registration (per world and start state, so per-world obstacles are
             included). Nothing else that a step reads comes from the skipped stages, so the trajectories match the
             full pass. :meth:`WarpSim.reset` with arbitrary states always runs the full pass.
+        substep_ctrl: actuator indices whose control changes inside a step (an actuator delay of k physics
+            substeps, ``tocabi_torchrl.control.Delay``): before physics substep s, actuator ``substep_ctrl[j]`` takes
+            the value ``sim.substep_ctrl[:, s, j]`` instead of ``ctrl``. Empty (default): ``ctrl`` holds for the whole
+            step and nothing is copied.
         threads: CPU threads that step the worlds of :class:`MujocoSim` (``None``: every available core, see
             :func:`available_cores`). Ignored by ``WarpSim``, as are ``MujocoSim``'s own limits: ``nconmax``,
             ``njmax``, ``contact_sensor_maxmatch``, ``use_graph``, ``health_overflow_mask``,
@@ -76,6 +80,7 @@ class SimConfig:
     kernel_overflow_prints: bool = False
     threads: int | None = None
     reset_pass: str = "full"
+    substep_ctrl: tuple[int, ...] = ()
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field and what it should be."""
@@ -94,6 +99,10 @@ class SimConfig:
             raise ValueError(f"SimConfig.solver_tolerance must be >= 0, got {self.solver_tolerance!r}")
         if self.reset_pass not in RESET_PASSES:
             raise ValueError(f"SimConfig.reset_pass must be one of {RESET_PASSES}, got {self.reset_pass!r}")
+        cols = self.substep_ctrl
+        if (not isinstance(cols, (tuple, list)) or len(set(cols)) != len(cols)
+                or any(isinstance(c, bool) or not isinstance(c, int) or c < 0 for c in cols)):
+            raise ValueError(f"SimConfig.substep_ctrl must be distinct actuator indices >= 0, got {cols!r}")
         if not isinstance(self.device, (str, torch.device)):
             raise ValueError(f"SimConfig.device must be a string like 'cpu' or 'cuda:0', got {self.device!r}")
 

@@ -135,3 +135,15 @@ def or_start_overflow(
     w = wp.tid()
     if mask[w]:
         overflow[w] = overflow[w] | table[index[w], w]
+
+
+@wp.kernel(enable_backward=False)
+def write_substep_ctrl(
+    schedule: wp.array3d(dtype=float),
+    substep: int,
+    columns: wp.array(dtype=int),
+    ctrl: wp.array2d(dtype=float),
+):
+    """``ctrl[w, columns[j]] = schedule[w, substep, j]``: the controls of one physics substep (an actuator delay)."""
+    w, j = wp.tid()
+    ctrl[w, columns[j]] = schedule[w, substep, j]

@@ -130,6 +130,9 @@ class MujocoSim(SimViews):
         # The float32 tensors the env sees, one per staging array.
         self._qpos, self._qvel = torch.zeros(n, mj.nq, dtype=f32), torch.zeros(n, mj.nv, dtype=f32)
         self._ctrl = torch.zeros(n, mj.nu, dtype=f32)
+        self._substep_cols = list(self._substep_columns(mj))
+        self._substep_ctrl_t = (torch.zeros(n, self.config.substeps, len(self._substep_cols), dtype=f32)
+                                if self._substep_cols else None)
         self._sensordata = torch.zeros(n, mj.nsensordata, dtype=f32)
         self._xpos, self._xquat = torch.zeros(n, mj.nbody, 3, dtype=f32), torch.zeros(n, mj.nbody, 4, dtype=f32)
         self._time = torch.zeros(n, dtype=f32)
@@ -169,15 +172,20 @@ class MujocoSim(SimViews):
         self._warnings[w] = d.warning.number
 
     def _step_world(self, w: int, ctrl: np.ndarray, dirty: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
-        m, d = self._substep_model, self._data[w]
+        m, d, cols = self._substep_model, self._data[w], self._substep_cols
+        schedule = self._substep_ctrl_t[w].numpy() if cols else None
         d.ctrl[:] = ctrl[w]
+        if cols:
+            d.ctrl[cols] = schedule[0]
         if dirty[w]:
             # qpos/qvel were written directly: take them, and run a full step (it checks them and recomputes).
             d.qpos[:], d.qvel[:] = qpos[w], qvel[w]
             mujoco.mj_step(m, d)
         else:
             mujoco.mj_step2(m, d)  # the position/velocity stages were computed by the previous forward pass
-        for _ in range(self.config.substeps - 1):
+        for s in range(1, self.config.substeps):
+            if cols:
+                d.ctrl[cols] = schedule[s]
             mujoco.mj_step(m, d)
         self._staged["applied_force"][w] = d.actuator_force  # the forward pass below overwrites it
         self._forward_and_warm_start(d)

@@ -169,6 +169,18 @@ class SimViews(abc.ABC):
         doc="(N, nC) joint-space inertia M(q) of the current state, MuJoCo's sparse lower-triangle (CSR) layout.",
     )
     qfrc_bias = property(lambda self: self._qfrc_bias, doc="(N, nv) bias force c(q, q̇): gravity, Coriolis [N·m].")
+    substep_ctrl = property(
+        lambda self: self._substep_ctrl_t,
+        doc="(N, substeps, k) controls of the ``SimConfig.substep_ctrl`` actuators in each physics substep of the "
+            "next step (their ``ctrl`` entries are ignored), or None when the config names none.",
+    )
+
+    def _substep_columns(self, mj: mujoco.MjModel) -> tuple[int, ...]:
+        """``config.substep_ctrl`` checked against the model's actuators."""
+        cols = tuple(self.config.substep_ctrl)
+        if any(c >= mj.nu for c in cols):
+            raise ValueError(f"SimConfig.substep_ctrl names actuators {cols}, but the model has nu={mj.nu}")
+        return cols
 
     @property
     def contact_counts(self) -> torch.Tensor:

@@ -31,7 +31,8 @@ from .contacts import ContactLayout, contact_layout
 from .graph import Recorded
 from .health import overflow_error
 from .kernel_cache import announce_compile_if_cold
-from .kernels import copy_rows_where, copy_start_rows, derive_signals, or_start_overflow, write_reset_state
+from .kernels import (copy_rows_where, copy_start_rows, derive_signals, or_start_overflow, write_reset_state,
+                      write_substep_ctrl)
 from .memory import check_fits, warp_world_bytes
 from .model import ModelSource, compile_model
 from .views import MocapPositions, SimViews, world_mocap_pos
@@ -98,6 +99,8 @@ class WarpSim(SimViews):
     qpos                       (N, nq=40)       base position [m], base quaternion (w, x, y, z), 33 joints [rad]
     qvel                       (N, nv=39)       base linear (world) [m/s], angular (local) [rad/s], joints [rad/s]
     ctrl                       (N, nu=33)       legs: torque [N·m]; upper body: position-actuator target [rad]
+    substep_ctrl               (N, S, k)        per-substep controls of the ``SimConfig.substep_ctrl`` actuators
+                                                (S = substeps), or None
     sensordata                 (N, nsensordata) every sensor of the model
     xpos / xquat               (N, nbody, 3/4)  body frame origins [m] / orientations (w, x, y, z) in the world
     base_pos / base_quat       (N, 3) / (N, 4)  ``robot.BASE_BODY`` pose (views of xpos / xquat)
@@ -178,6 +181,11 @@ class WarpSim(SimViews):
         self._reset_ctrl = wp.zeros((n, mj.nu), dtype=float)
         self._sensor_snapshot = wp.zeros((n, mj.nsensordata), dtype=float)
         self._applied_force = wp.zeros((n, mj.nu), dtype=float)
+        self._substep_cols = self._substep_columns(mj)
+        self._substep_ctrl = self._substep_col_arr = None
+        if self._substep_cols:
+            self._substep_ctrl = wp.zeros((n, self.config.substeps, len(self._substep_cols)), dtype=float)
+            self._substep_col_arr = wp.array(self._substep_cols, dtype=int)
         self._mocap_pos = None  # each world's mocap positions, put back after reset_data
         if self.world_mocap_pos is not None:
             self._mocap_pos = wp.array(self.world_mocap_pos.astype(np.float32), dtype=wp.vec3)
@@ -194,6 +202,7 @@ class WarpSim(SimViews):
         self._reset_qpos_t, self._reset_qvel_t = t(self._reset_qpos), t(self._reset_qvel)
         self._reset_ctrl_t = t(self._reset_ctrl)
         self._applied_force_t = t(self._applied_force)
+        self._substep_ctrl_t = None if self._substep_ctrl is None else t(self._substep_ctrl)
         # The joint-space inertia and bias force of the last forward pass (mujoco-warp's Data.M is MuJoCo's sparse
         # CSR layout, (nworld, nC), whatever the model's opt.jacobian: dense factorisation blocks live in qLD).
         self._mass_matrix, self._qfrc_bias = t(d.M), t(d.qfrc_bias)
@@ -226,13 +235,21 @@ class WarpSim(SimViews):
 
     def _step_fn(self) -> None:
         m, d, ms = self.wp_model, self.wp_data, self._substep_model
+        self._write_substep_ctrl(0)
         mjw.step2(ms, d)  # position/velocity stages of this state were computed by the previous forward pass
-        for _ in range(self.config.substeps - 1):
+        for s in range(1, self.config.substeps):
+            self._write_substep_ctrl(s)
             mjw.step(ms, d)
         wp.copy(self._applied_force, d.actuator_force)  # the forward pass below overwrites it with post-step values
         mjw.forward(m, d)
         wp.copy(d.qacc_warmstart, d.qacc)  # see _reset_fn: the solution of this state warm-starts what follows
         self._derive()
+
+    def _write_substep_ctrl(self, substep: int) -> None:
+        """The ``substep_ctrl`` actuators' controls for physics substep ``substep`` (nothing when there are none)."""
+        if self._substep_cols:
+            wp.launch(write_substep_ctrl, dim=(self.num_worlds, len(self._substep_cols)),
+                      inputs=[self._substep_ctrl, substep, self._substep_col_arr], outputs=[self.wp_data.ctrl])
 
     def _write_reset_state(self) -> None:
         """Clear the flagged worlds as ``mujoco_warp.reset_data`` does and write their reset qpos, qvel and ctrl (both

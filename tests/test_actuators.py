@@ -1,0 +1,228 @@
+"""The actuator layer (tocabi_torchrl.control.actuators) against hand computations, in the simulator and in the env."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from tocabi_torchrl import make_env, robot
+from tocabi_torchrl.control import (ActuatorChain, ActuatorConfig, ControlInput, Delay, Friction, MotorConstant,
+                                    Saturation)
+from tocabi_torchrl.control.base import ControlContext
+from tocabi_torchrl.envs import TocabiWalk, TocabiWalkConfig
+from tocabi_torchrl.sim import MujocoSim, SimConfig
+
+ALL = torch.ones(3, dtype=torch.bool)
+
+
+def context(n=3, limits=(100.0, 50.0)):
+    j = len(limits)
+    return ControlContext(num_envs=n, device=torch.device("cpu"), joint_ids=tuple(range(j)),
+                          torque_limits=torch.tensor(limits), joint_range=torch.tensor([[-1.0, 1.0]] * j))
+
+
+def built(stage, ctx=None, u=None):
+    ctx = ctx or context()
+    stage.setup(ctx)
+    if u is None:
+        u = torch.rand(ctx.num_envs, stage.draws, generator=torch.Generator().manual_seed(0))
+    stage.reset(torch.ones(ctx.num_envs, dtype=torch.bool), u)
+    return stage
+
+
+def test_motor_constant_scales_each_world_and_joint_by_its_draw():
+    u = torch.tensor([[0.0, 0.5], [1.0 - 2**-24, 0.25], [0.75, 0.0]])
+    stage = built(MotorConstant(0.8, 1.2), u=u)
+    tau = torch.tensor([[10.0, -20.0], [10.0, -20.0], [10.0, -20.0]])
+    want = tau * (0.8 + 0.4 * u)
+    torch.testing.assert_close(stage(tau, ControlInput(action=None)), want)
+    assert 0.8 - 1e-6 <= float(stage.scale.min()) and float(stage.scale.max()) <= 1.2 + 1e-6
+
+
+def test_friction_subtracts_coulomb_and_viscous_resistance_against_the_velocity():
+    u = torch.tensor([[0.0, 1.0 - 2**-24, 0.0, 0.0], [0.5, 0.5, 0.5, 0.5], [1.0 - 2**-24, 0.0, 1.0 - 2**-24, 1.0]])
+    stage = built(Friction(coulomb=(0.0, 4.0), viscous=(1.0, 3.0)), u=u)
+    qd = torch.tensor([[2.0, -1.0], [0.0, 3.0], [-0.5, 0.25]])
+    tau = torch.full((3, 2), 7.0)
+    fc, fv = 4.0 * u[:, :2], 1.0 + 2.0 * u[:, 2:]
+    by_hand = [[7.0 - (float(fc[w, j]) * float(np.sign(float(qd[w, j]))) + float(fv[w, j] * qd[w, j])) for j in range(2)]
+               for w in range(3)]
+    torch.testing.assert_close(stage(tau, ControlInput(action=None, qd=qd)), torch.tensor(by_hand))
+    # At rest only the command remains (sign(0) = 0: no Coulomb term).
+    assert float(stage(tau, ControlInput(action=None, qd=torch.zeros(3, 2)))[1, 0]) == 7.0
+
+
+def test_saturation_clips_at_the_joint_limits():
+    stage = built(Saturation())
+    tau = torch.tensor([[150.0, -60.0], [-150.0, 10.0], [99.0, 50.0]])
+    assert stage(tau, ControlInput(action=None)).tolist() == [[100.0, -50.0], [-100.0, 10.0], [99.0, 50.0]]
+
+
+@pytest.mark.parametrize("substeps", [8, 3])
+def test_delay_shifts_the_torque_by_exactly_k_substeps_per_world(substeps):
+    # Different k in different worlds, below, at and above one policy step; u picks k = low + floor(u·span).
+    low, high = 0, 2 * substeps + 3
+    ks = [0, 1, substeps, substeps + 2, high]
+    span = high - low + 1
+    u = torch.tensor([[(k - low + 0.5) / span] for k in ks])
+    stage = built(Delay(low, high, substeps), ctx=context(n=len(ks), limits=(100.0,)), u=u)
+    assert stage.delay.tolist() == ks
+    commands = [float(t + 1) for t in range(8)]  # step t commands t + 1 N·m (0 before the first step)
+    per_substep = []  # what each world gets, substep by substep
+    for c in commands:
+        out = stage(torch.full((len(ks), 1), c), ControlInput(action=None))
+        assert out.shape == (len(ks), substeps, 1)
+        per_substep.append(out[..., 0])
+    got = torch.cat(per_substep, dim=1)  # (worlds, steps × substeps)
+    undelayed = torch.tensor(commands).repeat_interleave(substeps)
+    for w, k in enumerate(ks):
+        want = torch.cat((torch.zeros(k), undelayed[: len(undelayed) - k]))
+        assert torch.equal(got[w], want), f"world {w} (k={k})"
+
+
+def test_reset_redraws_only_the_flagged_worlds_and_clears_their_delay_history():
+    chain = ActuatorChain([Delay(0, 16, 8), MotorConstant(0.8, 1.2)])
+    chain.setup(context())
+    gen = torch.Generator().manual_seed(1)
+    chain.reset(ALL, torch.rand(3, chain.draws, generator=gen))
+    chain(torch.full((3, 2), 5.0), ControlInput(action=None))
+    delay, motor = chain.stages
+    before_k, before_c = delay.delay.clone(), motor.scale.clone()
+    mask = torch.tensor([False, True, False])
+    chain.reset(mask, torch.rand(3, chain.draws, generator=gen))
+    assert torch.equal(delay.delay[~mask], before_k[~mask]) and torch.equal(motor.scale[~mask], before_c[~mask])
+    assert not torch.equal(motor.scale[1], before_c[1])
+    assert float(delay.history[1].abs().sum()) == 0.0 and float(delay.history[0].abs().sum()) > 0.0
+
+
+def test_draws_are_in_range_and_differ_between_worlds():
+    stage = built(MotorConstant(0.8, 1.2), ctx=context(n=4096))
+    scale = stage.scale
+    assert 0.8 - 1e-6 <= float(scale.min()) and float(scale.max()) <= 1.2 + 1e-6
+    assert abs(float(scale.mean()) - 1.0) < 0.01 and abs(float(scale.std()) - 0.4 / 12**0.5) < 0.01
+    delay = built(Delay(4, 20, 8), ctx=context(n=4096))
+    counts = torch.bincount(delay.delay, minlength=21)[4:]
+    assert int(counts.min()) > 4096 / 17 * 0.7 and len(counts) == 17
+
+
+def test_config_builds_the_stages_it_names_and_nothing_when_ideal():
+    assert len(ActuatorConfig().build(8)) == 0
+    chain = ActuatorConfig(delay_substeps=(4, 20), motor_constant=(0.8, 1.2), viscous=(0.0, 1.0)).build(8)
+    assert [type(s).__name__ for s in chain.stages] == ["Delay", "MotorConstant", "Friction", "Saturation"]
+    for bad in (dict(delay_substeps=(5, 2)), dict(motor_constant=(-1.0, 1.0)), dict(coulomb=(0.0, float("nan"))),
+                dict(delay_substeps=(0.5, 2))):
+        with pytest.raises(ValueError, match="env.control.actuators"):
+            ActuatorConfig(**bad).validate()
+
+
+def test_actuators_are_refused_on_servo_modes():
+    cfg = TocabiWalkConfig()
+    cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, actuators=ActuatorConfig(
+        motor_constant=(0.9, 1.1))))
+    with pytest.raises(ValueError, match="torque commands"):
+        cfg.validate()
+
+
+def test_simulator_applies_substep_controls_in_their_substep():
+    # MujocoSim with a per-substep schedule against MuJoCo stepped by hand with the same controls.
+    cols = (0, 3)
+    sim = MujocoSim(SimConfig(num_worlds=2, substeps=4, threads=1, substep_ctrl=cols))
+    schedule = torch.tensor([[[10.0, -5.0], [20.0, 0.0], [-30.0, 5.0], [0.0, 40.0]],
+                             [[-10.0, 5.0], [0.0, 0.0], [30.0, -5.0], [15.0, 15.0]]])
+    sim.substep_ctrl.copy_(schedule)
+    sim.ctrl[:, 1] = 7.0
+    qpos0 = sim.qpos.clone()
+    sim.step()
+    m = sim.mj_model
+    for w in range(2):
+        d = mujoco.MjData(m)
+        d.qpos[:] = qpos0[w].double().numpy()
+        mujoco.mj_forward(m, d)
+        d.qacc_warmstart[:] = d.qacc
+        for s in range(4):
+            d.ctrl[:] = 0.0
+            d.ctrl[1] = 7.0
+            d.ctrl[list(cols)] = schedule[w, s].double().numpy()
+            mujoco.mj_step(m, d)
+        mujoco.mj_forward(m, d)
+        np.testing.assert_allclose(sim.qpos[w].numpy(), d.qpos.astype(np.float32), rtol=0, atol=1e-6)
+
+
+def _torque_env(actuators: ActuatorConfig, n=4, **kw):
+    cfg = TocabiWalkConfig()
+    control = dataclasses.replace(cfg.control, mode="torque", actuators=actuators)
+    return TocabiWalk(num_envs=n, device="cpu", seed=0, config=dataclasses.replace(cfg, control=control), **kw)
+
+
+def test_env_delays_each_worlds_torque_by_its_own_k():
+    env = _torque_env(ActuatorConfig(delay_substeps=(0, 20)), n=6, sim_threads=1)
+    env.reset()
+    ks = env.leg_actuators.stages[0].delay.tolist()
+    assert len(set(ks)) > 1, ks  # the worlds drew different delays
+    schedules = []
+    for t in range(4):
+        action = torch.zeros(6, 13)
+        action[:, :12] = 0.01 * (t + 1)
+        env.step(_td(env, action))
+        schedules.append(env.sim.substep_ctrl.clone())
+    got = torch.cat(schedules, dim=1)  # (6, 4·8, 12)
+    limits = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32)
+    undelayed = torch.cat([torch.full((8, 12), 0.01 * (t + 1)) * limits for t in range(4)])
+    for w, k in enumerate(ks):
+        want = torch.cat((torch.zeros(k, 12), undelayed))[: 4 * 8]
+        torch.testing.assert_close(got[w], want, rtol=0, atol=0)
+    # leg_torque reports what the joints got in the last substep.
+    torch.testing.assert_close(env.leg_torque, got[:, -1])
+
+
+def _td(env, action):
+    from tensordict import TensorDict
+
+    return TensorDict({"action": action}, batch_size=[env.num_envs])
+
+
+def test_ideal_actuator_runs_nothing_and_a_full_set_changes_the_torque():
+    ideal = _torque_env(ActuatorConfig(), sim_threads=1)
+    assert len(ideal.leg_actuators) == 0 and ideal.sim.substep_ctrl is None
+    full = _torque_env(ActuatorConfig(motor_constant=(0.5, 0.5), coulomb=(1.0, 1.0)), sim_threads=1)
+    ideal.reset(), full.reset()
+    action = torch.full((4, 13), 0.1)
+    ideal.step(_td(ideal, action)), full.step(_td(full, action))
+    limits = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32)
+    torch.testing.assert_close(ideal.leg_torque, (0.1 * limits).expand(4, 12))
+    # motor constant 0.5, then 1 N·m of Coulomb friction against the pre-step velocity (at rest after the reset)
+    torch.testing.assert_close(full.leg_torque, (0.05 * limits).expand(4, 12))
+    assert torch.equal(full.applied_action, ideal.applied_action)  # the policy's command, not the joint torque
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("cuda_graph", [False, True])
+def test_gpu_actuators_never_sync_and_follow_resets(cuda_graph):
+    cfg = TocabiWalkConfig()
+    control = dataclasses.replace(cfg.control, mode="torque", actuators=ActuatorConfig(
+        delay_substeps=(4, 20), motor_constant=(0.8, 1.2), coulomb=(0.0, 2.0), viscous=(0.0, 1.0)))
+    e = make_env(num_envs=128, device="cuda", seed=0, cuda_graph=cuda_graph,
+                 config=dataclasses.replace(cfg, control=control, task=dataclasses.replace(cfg.task,
+                                                                                         max_episode_steps=3)))
+    td = e.reset()
+    action = (torch.rand(128, 13, device="cuda") * 2 - 1) * 0.3
+    for _ in range(3):
+        _, td = e.step_and_maybe_reset(td.set("action", action))
+    assert e.graph_captured == cuda_graph
+    scale = e.base_env.leg_actuators.stages[1].scale
+    before = scale.clone()
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(6):  # crosses the 3-step truncation: every world resets and redraws its parameters
+            step, td = e.step_and_maybe_reset(td.set("action", action))
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    assert bool(step["next", "truncated"].any())
+    assert not torch.equal(scale, before)  # redrawn in place, inside the (captured) step
+    assert 0.8 - 1e-6 <= float(scale.min()) and float(scale.max()) <= 1.2 + 1e-6

@@ -1,0 +1,223 @@
+"""The actuator layer: what happens to a torque command between the controller and the joint.
+
+TocabiLab's actuator model (report §3.3) is ``τ = τ_cmd − F_resist(τ_cmd, ...)``; here it is a chain of stages, each
+acting per world and joint on the command of one joint group:
+
+====================== ============================================================== ================================
+stage                  applied torque                                                 per-world parameter, drawn at
+                                                                                      reset
+====================== ============================================================== ================================
+:class:`Delay`         the command of k physics substeps ago (k per world)            k ~ U{low, ..., high} substeps
+:class:`MotorConstant` ``c · τ``                                                      c ~ U(low, high) per joint
+:class:`Friction`      ``τ − (F_c·sign(q̇) + F_v·q̇)`` (report eq. 3.6: Coulomb and     F_c, F_v ~ U(low, high) per
+                       viscous resistance), q̇ the joint velocity before the step     joint
+:class:`Saturation`    ``clip(τ, ±limit)``                                            (the joints' limits)
+====================== ============================================================== ================================
+
+An ideal actuator is the empty chain (nothing runs). Without a :class:`Delay` a stage maps (N, J) torques to (N, J)
+torques, held for the policy step. A :class:`Delay` turns the command into (N, S, J) torques, one per physics substep
+(S = substeps per policy step), which the simulator applies substep by substep (``SimConfig.substep_ctrl``); the
+stages after it act on each substep's torque.
+
+Parameters live in (N, J) device tensors that :meth:`Actuator.reset` redraws in place for the flagged worlds from
+uniforms the env supplies (``episode_uniform``: the same draws whichever reset path runs), so a captured step graph
+keeps working across resets. Friction reads the joint velocity before the step, so it is held for the step like the
+command (the PD modes' servos, which run inside the physics, take no actuator stages).
+
+>>> import torch
+>>> from tocabi_torchrl.control import ActuatorChain, MotorConstant, Saturation
+>>> from tocabi_torchrl.control.base import ControlContext, ControlInput
+>>> ctx = ControlContext(num_envs=2, device=torch.device("cpu"), joint_ids=(0,), torque_limits=torch.tensor([10.0]),
+...                      joint_range=torch.tensor([[-1.0, 1.0]]))
+>>> chain = ActuatorChain([MotorConstant(1.5, 1.5), Saturation()])
+>>> chain.setup(ctx)
+>>> chain.reset(torch.ones(2, dtype=torch.bool), torch.zeros(2, chain.draws))
+>>> chain(torch.tensor([[4.0], [8.0]]), ControlInput(action=None)).tolist()
+[[6.0], [10.0]]
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+
+import torch
+
+from .base import ControlContext, ControlInput
+
+__all__ = ["Actuator", "ActuatorChain", "Delay", "Friction", "MotorConstant", "Saturation"]
+
+
+def _per_joint(tau: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``values`` (N, J) shaped to broadcast against ``tau``, (N, J) or (N, S, J)."""
+    return values if tau.dim() == 2 else values.unsqueeze(1)
+
+
+def _uniform_range(low: float, high: float, what: str) -> tuple[float, float]:
+    low, high = float(low), float(high)
+    if not (math.isfinite(low) and math.isfinite(high)) or low > high:
+        raise ValueError(f"{what} range must be two finite numbers low <= high, got ({low}, {high})")
+    return low, high
+
+
+class Actuator(abc.ABC):
+    """One stage of the actuator layer (see the module docstring)."""
+
+    #: Uniforms in [0, 1) per world that :meth:`reset` reads (set in :meth:`setup`).
+    draws: int = 0
+
+    def setup(self, ctx: ControlContext) -> None:
+        """Allocate the per-world parameters for ``ctx.num_envs`` worlds and ``len(ctx.joint_ids)`` joints."""
+        self.ctx = ctx
+
+    @abc.abstractmethod
+    def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        """The torque after this stage: (N, J) or (N, S, J) [N·m] in, the same shape out (:class:`Delay`: (N, J)
+        in, (N, S, J) out)."""
+
+    def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
+        """Redraw the parameters of the worlds flagged in ``mask`` (N,) bool from ``u`` (N, :attr:`draws`) uniforms
+        in [0, 1), in place."""
+
+
+class _UniformPerJoint(Actuator):
+    """A stage with parameters drawn per world and joint from U(low, high)."""
+
+    def __init__(self, *ranges: tuple[float, float], what: str):
+        self.ranges = [_uniform_range(lo, hi, f"{type(self).__name__} {what}") for lo, hi in ranges]
+
+    def setup(self, ctx: ControlContext) -> None:
+        super().setup(ctx)
+        j = len(ctx.joint_ids)
+        self.draws = j * len(self.ranges)
+        #: One (N, J) tensor per range, the current worlds' values.
+        self.values = [torch.full((ctx.num_envs, j), lo, dtype=torch.float32, device=ctx.device)
+                       for lo, _ in self.ranges]
+
+    def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
+        j = len(self.ctx.joint_ids)
+        for i, ((lo, hi), value) in enumerate(zip(self.ranges, self.values)):
+            drawn = lo + (hi - lo) * u[:, i * j:(i + 1) * j]
+            value.copy_(torch.where(mask.unsqueeze(-1), drawn, value))
+
+
+class MotorConstant(_UniformPerJoint):
+    """``c · τ`` with the motor-constant scale c ~ U(low, high) per world and joint (1 = the nominal motor)."""
+
+    def __init__(self, low: float = 1.0, high: float = 1.0):
+        super().__init__((low, high), what="scale")
+
+    @property
+    def scale(self) -> torch.Tensor:
+        """(N, J) the current scale of each world's joints."""
+        return self.values[0]
+
+    def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        return tau * _per_joint(tau, self.values[0])
+
+
+class Friction(_UniformPerJoint):
+    """``τ − (F_c·sign(q̇) + F_v·q̇)``: Coulomb F_c [N·m] ~ U(coulomb) and viscous F_v [N·m·s/rad] ~ U(viscous) per
+    world and joint, with q̇ the joint velocity before the step (``ControlInput.qd``)."""
+
+    def __init__(self, coulomb: tuple[float, float] = (0.0, 0.0), viscous: tuple[float, float] = (0.0, 0.0)):
+        super().__init__(coulomb, viscous, what="coulomb/viscous")
+        if min(coulomb[0], viscous[0]) < 0:
+            raise ValueError(f"Friction coefficients must be >= 0 (a resistance), got coulomb={coulomb}, "
+                             f"viscous={viscous}")
+
+    def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        resist = self.values[0] * torch.sign(inp.qd) + self.values[1] * inp.qd
+        return tau - _per_joint(tau, resist)
+
+
+class Saturation(Actuator):
+    """``clip(τ, ±limit)`` at the joints' torque limits (``ControlContext.torque_limits``)."""
+
+    def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        limits = self.ctx.torque_limits
+        return torch.maximum(torch.minimum(tau, limits), -limits)
+
+
+class Delay(Actuator):
+    """The command of k physics substeps ago, k ~ U{low, ..., high} per world (0: none).
+
+    The command is constant within a policy step of S substeps, so the torque in substep s of step t is the command
+    of step ``t − ceil((k − s) / S)`` (step t's own from substep k on). A device shift register keeps the last
+    ``ceil(high / S) + 1`` commands; a reset world's history is cleared to zero torque.
+
+    Args:
+        low, high: the delay range in physics substeps (0.5 ms each at 2 kHz).
+        substeps: S, physics substeps per policy step (the env passes its ``sim.substeps``).
+    """
+
+    def __init__(self, low: int = 0, high: int = 0, substeps: int = 8):
+        for v in (low, high, substeps):
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise ValueError(f"Delay takes whole substeps, got low={low!r}, high={high!r}, substeps={substeps!r}")
+        if not 0 <= low <= high or substeps < 1:
+            raise ValueError(f"Delay needs 0 <= low <= high substeps and substeps >= 1, got ({low}, {high}), "
+                             f"{substeps}")
+        self.low, self.high, self.substeps = low, high, substeps
+        self.draws = 1
+
+    def setup(self, ctx: ControlContext) -> None:
+        super().setup(ctx)
+        n, j, s, dev = ctx.num_envs, len(ctx.joint_ids), self.substeps, ctx.device
+        depth = -(-self.high // s) + 1
+        #: (N, depth, J) the last commands, newest first [N·m].
+        self.history = torch.zeros(n, depth, j, dtype=torch.float32, device=dev)
+        #: (N,) int64 each world's delay k [substeps].
+        self.delay = torch.full((n,), self.low, dtype=torch.int64, device=dev)
+        self._substep = torch.arange(s, dtype=torch.int64, device=dev)
+        self._lag = torch.zeros(n, s, j, dtype=torch.int64, device=dev)  # history index read in each substep
+        self._set_lag()
+
+    def _set_lag(self) -> None:
+        lag = ((self.delay.unsqueeze(-1) - self._substep).clamp(min=0) + self.substeps - 1) // self.substeps
+        self._lag.copy_(lag.unsqueeze(-1).expand_as(self._lag))
+
+    def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        self.history.copy_(torch.roll(self.history, 1, dims=1))
+        self.history[:, 0].copy_(tau)
+        return torch.gather(self.history, 1, self._lag)
+
+    def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
+        span = self.high - self.low + 1
+        k = self.low + (u[:, 0] * span).long().clamp(max=span - 1)
+        self.delay.copy_(torch.where(mask, k, self.delay))
+        self._set_lag()
+        self.history.masked_fill_(mask.view(-1, 1, 1), 0.0)
+
+
+class ActuatorChain(Actuator):
+    """Stages applied in order; :attr:`per_substep` is True when one is a :class:`Delay` (at most one)."""
+
+    def __init__(self, stages: list[Actuator]):
+        self.stages = list(stages)
+        delays = [s for s in self.stages if isinstance(s, Delay)]
+        if len(delays) > 1:
+            raise ValueError("an actuator chain takes at most one Delay")
+        #: True: the chain returns one torque per physics substep, (N, S, J).
+        self.per_substep = bool(delays)
+        self.substeps = delays[0].substeps if delays else 1
+
+    def setup(self, ctx: ControlContext) -> None:
+        super().setup(ctx)
+        for stage in self.stages:
+            stage.setup(ctx)
+        self.draws = sum(stage.draws for stage in self.stages)
+
+    def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        for stage in self.stages:
+            tau = stage(tau, inp)
+        return tau
+
+    def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
+        start = 0
+        for stage in self.stages:
+            stage.reset(mask, u[:, start:start + stage.draws])
+            start += stage.draws
+
+    def __len__(self) -> int:
+        return len(self.stages)

@@ -1,0 +1,61 @@
+"""``ActuatorConfig``: the actuator layer of the env's config tree (``env.control.actuators``)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .actuators import ActuatorChain, Delay, Friction, MotorConstant, Saturation
+
+__all__ = ["ActuatorConfig"]
+
+
+@dataclass
+class ActuatorConfig:
+    """What happens to the legs' torque commands on their way to the joints (torque-kind controllers only; the PD
+    modes' servos run inside the physics). Every range is drawn per world (and joint) at each reset; the defaults are
+    the ideal actuator, which runs nothing.
+
+    Attributes:
+        delay_substeps: (low, high) the torque delay in physics substeps of 0.5 ms, k ~ U{low, ..., high} per world.
+        motor_constant: (low, high) the motor-constant scale c ~ U(low, high) per world and joint (1 = nominal).
+        coulomb: (low, high) Coulomb friction [N·m] per world and joint, against the joint's velocity.
+        viscous: (low, high) viscous friction [N·m·s/rad] per world and joint.
+        saturate: clip the torque at the joints' limits after the other stages (when any runs).
+    """
+
+    delay_substeps: tuple[int, int] = (0, 0)
+    motor_constant: tuple[float, float] = (1.0, 1.0)
+    coulomb: tuple[float, float] = (0.0, 0.0)
+    viscous: tuple[float, float] = (0.0, 0.0)
+    saturate: bool = True
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad range (``env.control.actuators.<name>``) and what it takes."""
+        for name in ("delay_substeps", "motor_constant", "coulomb", "viscous"):
+            low, high = getattr(self, name)
+            if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
+                raise ValueError(f"env.control.actuators.{name} must be (low, high) with 0 <= low <= high, finite, "
+                                 f"got {getattr(self, name)!r}")
+        if any(isinstance(v, bool) or int(v) != v for v in self.delay_substeps):
+            raise ValueError(f"env.control.actuators.delay_substeps takes whole substeps, got {self.delay_substeps!r}")
+
+    @property
+    def ideal(self) -> bool:
+        """True when no stage would run."""
+        return (tuple(self.delay_substeps) == (0, 0) and tuple(self.motor_constant) == (1.0, 1.0)
+                and tuple(self.coulomb) == (0.0, 0.0) and tuple(self.viscous) == (0.0, 0.0))
+
+    def build(self, substeps: int) -> ActuatorChain:
+        """The chain these settings describe (empty when :attr:`ideal`): delay, motor constant, friction,
+        saturation, each only where it changes something."""
+        stages = []
+        if tuple(self.delay_substeps) != (0, 0):
+            stages.append(Delay(int(self.delay_substeps[0]), int(self.delay_substeps[1]), substeps))
+        if tuple(self.motor_constant) != (1.0, 1.0):
+            stages.append(MotorConstant(*self.motor_constant))
+        if tuple(self.coulomb) != (0.0, 0.0) or tuple(self.viscous) != (0.0, 0.0):
+            stages.append(Friction(tuple(self.coulomb), tuple(self.viscous)))
+        if stages and self.saturate:
+            stages.append(Saturation())
+        return ActuatorChain(stages)

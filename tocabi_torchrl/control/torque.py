@@ -1,0 +1,79 @@
+"""Torque laws: commands in N·m held for the policy step."""
+
+from __future__ import annotations
+
+import torch
+
+from .base import ControlContext, ControlInput, Controller
+from .joint_pd import _vector
+
+__all__ = ["DirectTorque", "AssistedTorque", "clip_torque"]
+
+
+def clip_torque(tau: torch.Tensor, limits: torch.Tensor) -> torch.Tensor:
+    """``tau`` clipped to ``±limits`` (the same arithmetic everywhere a law saturates)."""
+    return torch.maximum(torch.minimum(tau, limits), -limits)
+
+
+class DirectTorque(Controller):
+    """Torque = action × the joint's torque limit (the reference's action space)."""
+
+    def __init__(self, action_dim: int = 12):
+        self.action_dim = action_dim
+
+    def setup(self, ctx: ControlContext) -> None:
+        super().setup(ctx)
+        self._limits = ctx.torque_limits
+
+    def compute(self, inp: ControlInput) -> torch.Tensor:
+        return inp.action * self._limits
+
+
+class AssistedTorque(Controller):
+    """The torque preset's morph from PD residuals to torques (``env.control.torque_assist``):
+    ``clip((1 − β)·a·limit + β·(kp·(q_ref + scale·a − q) − kv·q̇), ±limit)`` from the pre-step state.
+
+    β is the device scalar :attr:`assist_scale` (:meth:`set_beta`), changed in place so a captured step follows it.
+    Records the action-independent part of the PD over the limits as the ``leg_assist`` signal, and reports the
+    applied torque over the limits as ``applied_action`` (the action itself at β = 0).
+
+    Args:
+        kp, kv: (J,) PD gains [N·m/rad], [N·m·s/rad]; scale: the residual range per unit action [rad].
+    """
+
+    def __init__(self, kp, kv, scale: float, action_dim: int = 12):
+        self.kp, self.kv, self.scale = kp, kv, float(scale)
+        self.action_dim = action_dim
+
+    def setup(self, ctx: ControlContext) -> None:
+        super().setup(ctx)
+        n, j, dev = ctx.num_envs, len(ctx.joint_ids), ctx.device
+        self._limits = ctx.torque_limits
+        self._kp, self._kv = _vector(self.kp, j, dev), _vector(self.kv, j, dev)
+        #: β, a 0-d float32 device scalar.
+        self.assist_scale = torch.zeros((), dtype=torch.float32, device=dev)
+        self._gain = self.gain(0.0).clone()  # (J,) N·m per unit action at assist_scale
+        #: (N, J) the action-independent PD over the limits, from the last step's pre-step state.
+        self.leg_assist = torch.zeros(n, j, dtype=torch.float32, device=dev)
+
+    def gain(self, beta: float | torch.Tensor) -> torch.Tensor:
+        """(J,) N·m per unit action at β: ``(1 − β)·limit + β·scale·kp``."""
+        return (1.0 - beta) * self._limits + beta * self.scale * self._kp
+
+    def set_beta(self, beta: float) -> None:
+        self.assist_scale.fill_(float(beta))
+        self._gain.copy_(self.gain(float(beta)))
+
+    def compute(self, inp: ControlInput) -> torch.Tensor:
+        self.leg_assist.copy_((self._kp * (inp.q_ref - inp.q) - self._kv * inp.qd) / self._limits)
+        total = self._gain * inp.action + self.assist_scale * self.leg_assist * self._limits
+        return clip_torque(total, self._limits)
+
+    def applied_action(self, inp: ControlInput, command: torch.Tensor) -> torch.Tensor:
+        return command / self._limits
+
+    def reset(self, mask: torch.Tensor) -> None:
+        self.leg_assist.masked_fill_(mask.unsqueeze(-1), 0.0)
+
+    def signals(self) -> dict[str, torch.Tensor]:
+        return {"leg_assist": self.leg_assist}
