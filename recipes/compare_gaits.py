@@ -30,45 +30,8 @@ import json
 import math
 import sys
 
+from tocabi_torchrl.cli import RecipeParser
 from tocabi_torchrl.render_gl import NO_GL_FIX, GLBackendError, choose_gl_backend
-
-try:  # before mujoco is imported
-    choose_gl_backend()
-except GLBackendError as gl_error:
-    sys.exit(f"error: {gl_error}")
-
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from tocabi_torchrl import robot  # noqa: E402
-from tocabi_torchrl.rl.checkpoint import (  # noqa: E402
-    CheckpointError,
-    checkpoint_file,
-    config_from_checkpoint,
-    read_checkpoint,
-)
-from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_knee_comparison  # noqa: E402
-from tocabi_torchrl.rl.eval_video import (  # noqa: E402
-    CAMERA_POS,
-    label_image,
-    render_stills,
-    render_timelapse,
-    rendering_unavailable,
-    save_strip,
-)
-from tocabi_torchrl.rl.evaluate import policy_dt  # noqa: E402
-from tocabi_torchrl.rl.experiments import (  # noqa: E402
-    ExperimentOutputError,
-    display_path,
-    parse_controllers,
-    prepare_out_dir,
-    replace_atomically,
-    slug,
-    write_atomic,
-    write_table,
-)
-from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout, torque_stats  # noqa: E402
-from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
 
 #: Most frames per controller (t = 0 and every --frame_every): each is a --frame_width image in one strip, so more
 #: make a strip too wide to view (25 x 480 px is 12,000 px) and cost a render each.
@@ -109,7 +72,7 @@ NOTES = [
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = RecipeParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--policy", action="append", metavar="[LABEL=]PATH",
                         help="a controller: checkpoint .pt or run folder, optionally labelled; repeat for each "
                              "(default: the three shipped policies: PD, torque, model_based)")
@@ -118,6 +81,48 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--overwrite", action="store_true",
                         help="write into an existing --out folder (files of the same name are replaced, others stay)")
     return parser
+
+
+if __name__ == "__main__":  # --help or a misspelt option answers before torch and mujoco load
+    build_parser().parse_args(sys.argv[1:])
+
+try:  # before mujoco is imported
+    choose_gl_backend()
+except GLBackendError as gl_error:
+    sys.exit(f"error: {gl_error}")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from tocabi_torchrl import robot  # noqa: E402
+from tocabi_torchrl.rl.checkpoint import (  # noqa: E402
+    CheckpointError,
+    checkpoint_file,
+    config_from_checkpoint,
+    read_checkpoint,
+)
+from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_knee_comparison  # noqa: E402
+from tocabi_torchrl.rl.eval_video import (  # noqa: E402
+    CAMERA_POS,
+    label_image,
+    render_stills,
+    render_timelapse,
+    rendering_unavailable,
+    save_strip,
+)
+from tocabi_torchrl.rl.evaluate import policy_dt  # noqa: E402
+from tocabi_torchrl.rl.experiments import (  # noqa: E402
+    ExperimentOutputError,
+    display_path,
+    parse_controllers,
+    prepare_out_dir,
+    replace_atomically,
+    slug,
+    write_atomic,
+    write_table,
+)
+from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout, torque_stats  # noqa: E402
+from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
 
 
 def read_controller(controller) -> dict:

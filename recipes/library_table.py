@@ -52,6 +52,8 @@ import sys
 import time
 from pathlib import Path
 
+from tocabi_torchrl.cli import RecipeParser
+
 ROOT = Path(__file__).resolve().parent.parent
 MAIN = (0.5, 0.0)
 OTHERS = ((0.2, 0.0), (0.7, 0.1))
@@ -497,7 +499,7 @@ def check_args(parser: argparse.ArgumentParser, args) -> None:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = RecipeParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--libraries", default="torchrl,rsl_rl,skrl,sb3", help="comma-separated, of " +
                         ", ".join(LIBRARIES))
     parser.add_argument("--num_envs", default="4096", help="comma-separated env counts (default: 4096)")

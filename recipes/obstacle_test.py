@@ -41,34 +41,8 @@ import json
 import math
 import sys
 
+from tocabi_torchrl.cli import RecipeParser
 from tocabi_torchrl.render_gl import NO_GL_FIX, GLBackendError, choose_gl_backend
-
-try:  # before mujoco is imported
-    choose_gl_backend()
-except GLBackendError as gl_error:
-    sys.exit(f"error: {gl_error}")
-
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from tocabi_torchrl import robot  # noqa: E402
-from tocabi_torchrl.rl.checkpoint import CheckpointError  # noqa: E402
-from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_vs_height  # noqa: E402
-from tocabi_torchrl.rl.eval_video import CAMERA_POS, label_image, render_stills, rendering_unavailable, save_strip  # noqa: E402
-from tocabi_torchrl.rl.experiments import (  # noqa: E402
-    ExperimentOutputError,
-    checkpoint_record,
-    display_path,
-    earlier_table,
-    parse_controllers,
-    prepare_out_dir,
-    slug,
-    write_atomic,
-    write_table,
-)
-from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout  # noqa: E402
-from tocabi_torchrl.rl.obstacle_eval import analyse_obstacle, pick_example  # noqa: E402
-from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
 
 #: (option, type, default, description): the command line, defaults shown once by build_parser.
 OPTIONS = (
@@ -121,7 +95,7 @@ NOTES = [
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = RecipeParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--policy", action="append", metavar="[LABEL=]PATH",
                         help="a controller: checkpoint .pt or run folder, optionally labelled; repeat for each "
                              "(default: the three shipped policies: PD, torque, model_based)")
@@ -137,6 +111,37 @@ def build_parser() -> argparse.ArgumentParser:
                              f"--{', --'.join(SETTINGS)} or another checkpoint under a label; without a table.json "
                              "there it starts from scratch in that folder")
     return parser
+
+
+if __name__ == "__main__":  # --help or a misspelt option answers before torch and mujoco load
+    build_parser().parse_args(sys.argv[1:])
+
+try:  # before mujoco is imported
+    choose_gl_backend()
+except GLBackendError as gl_error:
+    sys.exit(f"error: {gl_error}")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from tocabi_torchrl import robot  # noqa: E402
+from tocabi_torchrl.rl.checkpoint import CheckpointError  # noqa: E402
+from tocabi_torchrl.rl.eval_plots import plot_joint_torques, plot_vs_height  # noqa: E402
+from tocabi_torchrl.rl.eval_video import CAMERA_POS, label_image, render_stills, rendering_unavailable, save_strip  # noqa: E402
+from tocabi_torchrl.rl.experiments import (  # noqa: E402
+    ExperimentOutputError,
+    checkpoint_record,
+    display_path,
+    earlier_table,
+    parse_controllers,
+    prepare_out_dir,
+    slug,
+    write_atomic,
+    write_table,
+)
+from tocabi_torchrl.rl.gait_record import CRITICAL, CRITICAL_JOINTS, load_policy, record_rollout  # noqa: E402
+from tocabi_torchrl.rl.obstacle_eval import analyse_obstacle, pick_example  # noqa: E402
+from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
 
 
 def make_box(args, height_mm: float):

@@ -30,6 +30,13 @@ try:  # before mujoco is imported: headless video of the final evaluation
 except GLBackendError as gl_error:
     sys.exit(f"error: {gl_error}")
 
+if __name__ == "__main__":
+    # --help or a misspelt option answers before the trainer and the evaluation load. The parser is built from the
+    # run config tree, whose modules import torch, torchrl and mujoco: that part of the wait remains.
+    from tocabi_torchrl.rl.config import build_parser
+
+    build_parser(__doc__.split("\n\n")[0]).parse_args(sys.argv[1:])
+
 import torch  # noqa: E402
 
 from tocabi_torchrl.envs.model_based import check_settings  # noqa: E402
@@ -37,7 +44,7 @@ from tocabi_torchrl.motion import ReferenceMotion  # noqa: E402
 from tocabi_torchrl.motion.io import MotionFormatError  # noqa: E402
 from tocabi_torchrl.rl.distributed import ending, from_environment, shutdown  # noqa: E402
 from tocabi_torchrl.rl.gait_record import policy_steps  # noqa: E402
-from tocabi_torchrl.rl.interrupt import signal_exit_status
+from tocabi_torchrl.rl.interrupt import signal_exit_status  # noqa: E402
 from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
 from tocabi_torchrl.rl.logging import require_loggers  # noqa: E402
 from tocabi_torchrl.rl.run_dir import holds_checkpoint, open_run  # noqa: E402

@@ -17,14 +17,13 @@ import math
 import sys
 from pathlib import Path
 
-from tocabi_torchrl.runtime import ContractError
-from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+from tocabi_torchrl.cli import RecipeParser
 
 REFERENCE_MODEL = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "dyros_tocabi.xml"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = RecipeParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--contract", required=True, help="policy contract .json (the .onnx lies beside it)")
     parser.add_argument("--model", default="authored", help="authored, reference, or an MJCF path (default: authored)")
     parser.add_argument("--seconds", type=float, default=8.0, help="simulated time [s] (default: 8)")
@@ -33,6 +32,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--vy", type=float, default=0.0, help="commanded lateral speed [m/s] (default: 0)")
     parser.add_argument("--out", default=None, help="also write the metrics to this JSON file (never overwritten)")
     return parser
+
+
+if __name__ == "__main__":  # --help or a misspelt option answers before mujoco and onnxruntime load
+    build_parser().parse_args(sys.argv[1:])
+
+from tocabi_torchrl.runtime import ContractError  # noqa: E402
+from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> dict:

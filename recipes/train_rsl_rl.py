@@ -26,25 +26,50 @@ saved (see ``tocabi_torchrl.adapters.recipe``), with ``--max_minutes`` the cap o
 
 from __future__ import annotations
 
+import argparse
 import functools
 import io
 import json
 import sys
 from importlib import metadata
 
-import torch
+from tocabi_torchrl.cli import base_parser, hidden_sizes
 
-from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
-from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
-from tocabi_torchrl.adapters.recipe import (
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line: the options every library recipe takes and rsl_rl's own."""
+    parser = base_parser(__doc__.split("\n\n")[0], num_envs=4096, iterations=1500)
+    parser.add_argument("--steps_per_env", type=int, default=48, help="rollout length per env (default: 48)")
+    parser.add_argument("--learning_rate", type=float, default=1e-3,
+                        help="Adam's learning rate: the start of the adaptive schedules, or the fixed rate "
+                             "(default: 1e-3)")
+    parser.add_argument("--lr_schedule", choices=("per_iteration", "adaptive", "fixed"), default="per_iteration",
+                        help="per_iteration: the preset's rule (towards a KL of 0.01, on the update's mean KL, once "
+                             "per iteration; default: walked at 10 training minutes on one H200); adaptive: rsl_rl's "
+                             "own rule (the same target, checked before every mini-batch step: it held the rate near "
+                             "1e-4 and three rows did not walk); fixed. docs/adapters.md has the rows")
+    parser.add_argument("--std", choices=("scheduled", "learned"), default="scheduled",
+                        help="action std: the preset's schedule, set after each update (default), or learned by "
+                             "rsl_rl from the schedule's start")
+    parser.add_argument("--hidden", type=hidden_sizes, default=(400, 200, 100),
+                        help="hidden layer sizes of actor and critic, comma-separated (default: 400,200,100)")
+    return parser
+
+
+if __name__ == "__main__":  # --help or a misspelt option answers before torch and rsl_rl load
+    build_parser().parse_args(sys.argv[1:])
+
+import torch  # noqa: E402
+
+from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
+from tocabi_torchrl.adapters.policy_file import load_policy, save_policy  # noqa: E402
+from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
-    base_parser,
     call_seed,
     check_args,
     check_out_dir,
     exit_status,
     fresh_dir,
-    hidden_sizes,
     keep_previous,
     open_out_dir,
     read_resume,
@@ -52,10 +77,10 @@ from tocabi_torchrl.adapters.recipe import (
     write_json,
     write_resume,
 )
-from tocabi_torchrl.config import preset_config
-from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, INIT_SETTING, init_orthogonal
-from tocabi_torchrl.rl.std_schedule import StdSchedule
-from tocabi_torchrl.rl.update_step import adapt_lr
+from tocabi_torchrl.config import preset_config  # noqa: E402
+from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, INIT_SETTING, init_orthogonal  # noqa: E402
+from tocabi_torchrl.rl.std_schedule import StdSchedule  # noqa: E402
+from tocabi_torchrl.rl.update_step import adapt_lr  # noqa: E402
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
 RESUME_NOTES = ("resumes actor (with the scheduled std as the last update set it), critic, Adam state, learning "
@@ -152,21 +177,7 @@ def make_actor(obs_dim: int, num_actions: int, cfg: dict):
 
 
 def main(argv=None) -> dict:
-    parser = base_parser(__doc__.split("\n\n")[0], num_envs=4096, iterations=1500)
-    parser.add_argument("--steps_per_env", type=int, default=48, help="rollout length per env (default: 48)")
-    parser.add_argument("--learning_rate", type=float, default=1e-3,
-                        help="Adam's learning rate: the start of the adaptive schedules, or the fixed rate "
-                             "(default: 1e-3)")
-    parser.add_argument("--lr_schedule", choices=("per_iteration", "adaptive", "fixed"), default="per_iteration",
-                        help="per_iteration: the preset's rule (towards a KL of 0.01, on the update's mean KL, once "
-                             "per iteration; default: walked at 10 training minutes on one H200); adaptive: rsl_rl's "
-                             "own rule (the same target, checked before every mini-batch step: it held the rate near "
-                             "1e-4 and three rows did not walk); fixed. docs/adapters.md has the rows")
-    parser.add_argument("--std", choices=("scheduled", "learned"), default="scheduled",
-                        help="action std: the preset's schedule, set after each update (default), or learned by "
-                             "rsl_rl from the schedule's start")
-    parser.add_argument("--hidden", type=hidden_sizes, default=(400, 200, 100),
-                        help="hidden layer sizes of actor and critic, comma-separated (default: 400,200,100)")
+    parser = build_parser()
     args = parser.parse_args(argv)
     check_args(parser, args, at_least={"steps_per_env": 1}, positive=("learning_rate",))
     # The adapter checks the installed rsl-rl-lib version before any of rsl_rl's own modules is imported.

@@ -21,26 +21,40 @@ caps the total training time over all calls):
 
 from __future__ import annotations
 
+import argparse
 import functools
 import io
 import math
 import sys
 from importlib import metadata
 
-import torch
-from torch import nn
+from tocabi_torchrl.cli import base_parser, hidden_sizes
 
-from tocabi_torchrl.adapters.evaluate import evaluate_policy_file
-from tocabi_torchrl.adapters.policy_file import load_policy, save_policy
-from tocabi_torchrl.adapters.recipe import (
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line: the options every library recipe takes and skrl's own."""
+    parser = base_parser(__doc__.split("\n\n")[0], num_envs=4096, iterations=1500)
+    parser.add_argument("--rollouts", type=int, default=48, help="rollout length per env (default: 48)")
+    parser.add_argument("--hidden", type=hidden_sizes, default=(400, 200, 100),
+                        help="hidden layer sizes of actor and critic, comma-separated (default: 400,200,100)")
+    return parser
+
+
+if __name__ == "__main__":  # --help or a misspelt option answers before torch and skrl load
+    build_parser().parse_args(sys.argv[1:])
+
+import torch  # noqa: E402
+from torch import nn  # noqa: E402
+
+from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
+from tocabi_torchrl.adapters.policy_file import load_policy, save_policy  # noqa: E402
+from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
-    base_parser,
     call_seed,
     check_args,
     check_out_dir,
     exit_status,
     fresh_dir,
-    hidden_sizes,
     keep_previous,
     open_out_dir,
     read_resume,
@@ -48,8 +62,8 @@ from tocabi_torchrl.adapters.recipe import (
     write_json,
     write_resume,
 )
-from tocabi_torchrl.config import preset_config
-from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, INIT_SETTING, make_mlp
+from tocabi_torchrl.config import preset_config  # noqa: E402
+from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, INIT_SETTING, make_mlp  # noqa: E402
 
 #: What a resumed call does not carry over (also in the per-library table's notes).
 RESUME_NOTES = ("resumes skrl's agent checkpoint (agent.save/agent.load): policy with its learned std, value and Adam "
@@ -90,10 +104,7 @@ def make_models(observation_space, action_space, device, hidden: tuple[int, ...]
 
 
 def main(argv=None) -> dict:
-    parser = base_parser(__doc__.split("\n\n")[0], num_envs=4096, iterations=1500)
-    parser.add_argument("--rollouts", type=int, default=48, help="rollout length per env (default: 48)")
-    parser.add_argument("--hidden", type=hidden_sizes, default=(400, 200, 100),
-                        help="hidden layer sizes of actor and critic, comma-separated (default: 400,200,100)")
+    parser = build_parser()
     args = parser.parse_args(argv)
     check_args(parser, args, at_least={"rollouts": 1})
     # The adapter checks the installed skrl version before any of skrl's own modules is imported.

@@ -23,6 +23,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from ..atomic import atomic_write_text
+from ..cli import base_parser, hidden_sizes  # light: a recipe parses its options before the heavy imports
 from ..config import check_snapshot_minutes, wall_tag
 from ..rl.interrupt import Interrupted, exit_status
 from ..rl.interrupt import stop_on_signals as _stop_on_signals
@@ -47,39 +48,6 @@ __all__ = [
     "write_json",
     "write_resume",
 ]
-
-
-def base_parser(description: str, num_envs: int, iterations: int) -> argparse.ArgumentParser:
-    """Options every library recipe takes: envs, device, iteration budget, seed, output folder, gait test size."""
-    parser = argparse.ArgumentParser(description=description)
-    parser.add_argument("--num_envs", type=int, default=num_envs, help=f"robots simulated at once (default: {num_envs})")
-    parser.add_argument("--device", default="auto", help="auto (CUDA if present, else cpu), cpu, cuda or cuda:N")
-    parser.add_argument("--iterations", type=int, default=iterations,
-                        help=f"PPO iterations (rollout + update) to train (default: {iterations})")
-    parser.add_argument("--max_minutes", type=float, default=0.0,
-                        help="stop after this many minutes of training, summed over --resume calls (0 = no limit)")
-    parser.add_argument("--checkpoint_minutes", type=float, default=0.0,
-                        help="also save the policy every this many minutes of training (0 = off)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the env and the library (default: 0)")
-    parser.add_argument("--preset", default="default", help="task preset of tocabi_torchrl.rl.config (default: default)")
-    parser.add_argument("--out", required=True, help="output folder; must not exist yet (runs are never overwritten)")
-    parser.add_argument("--resume", action="store_true",
-                        help="continue the run in --out (from its resume.json) instead of starting a new one; the "
-                             "task and network options must be the ones it started with")
-    parser.add_argument("--eval_envs", type=int, default=256, help="robots in the final 8 s gait test (0 = skip it)")
-    parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
-    return parser
-
-
-def hidden_sizes(text: str) -> tuple[int, ...]:
-    """The type of the recipes' ``--hidden``: comma-separated layer sizes, each at least 1 (``"256,256"``)."""
-    try:
-        sizes = tuple(int(x) for x in text.split(","))
-    except ValueError:
-        sizes = ()
-    if not sizes or min(sizes) < 1:
-        raise argparse.ArgumentTypeError(f"must be comma-separated layer sizes >= 1 (e.g. 256,256), got {text!r}")
-    return sizes
 
 
 def _check_number(args: argparse.Namespace, name: str, low: float, strict: bool = False) -> None:

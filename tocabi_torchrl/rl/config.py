@@ -10,6 +10,7 @@ import decimal
 import json
 from typing import Any
 
+from ..cli import RecipeParser
 from ..config import (
     ENV_GRAPH_MODES,
     FLAT_PATHS,
@@ -104,7 +105,7 @@ def build_parser(description: str = "") -> argparse.ArgumentParser:
     tree (``--num_envs``, ``--lr``, ...) are still accepted (hidden from ``--help``)."""
     from .options import field_help
 
-    parser = argparse.ArgumentParser(
+    parser = RecipeParser(
         description=description,
         # An abbreviation (--total for --total_env_steps) would silently pick an option, or name a hidden flat one
         # when ambiguous: every option is given by its full name.

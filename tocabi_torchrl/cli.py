@@ -1,0 +1,89 @@
+"""The recipes' command lines: a parser whose errors are one short message, and the options every library recipe
+shares.
+
+Only the standard library is imported here, so that a recipe can build its parser and parse its command line before
+it loads torch, torchrl and mujoco (seconds): ``--help`` and a misspelt option then answer at once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import os
+import sys
+from collections.abc import Iterable, Sequence
+
+__all__ = ["RecipeParser", "base_parser", "hidden_sizes", "suggest_options"]
+
+
+def suggest_options(given: str, known: Iterable[str], limit: int = 2) -> list[str]:
+    """The known option strings closest to ``given`` (``--num_env`` -> ``['--num_envs', ...]``), best first; an
+    ``=value`` attached to ``given`` is ignored."""
+    name = given.split("=", 1)[0]
+    return difflib.get_close_matches(name, sorted(set(known)), n=limit, cutoff=0.7)
+
+
+class RecipeParser(argparse.ArgumentParser):
+    """An :class:`argparse.ArgumentParser` whose errors are short: the one ``error:`` line, without the usage, which
+    for the generated command lines runs to dozens of lines that bury the line that matters. An unknown option also
+    gets the nearest known one (``did you mean --num_envs?``) and a second line pointing to ``--help``. Exit status
+    2, as argparse's."""
+
+    def parse_args(self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None):
+        namespace, extras = self.parse_known_args(args, namespace)
+        if extras:
+            self.exit(2, f"{self.prog}: error: {self._unknown(extras)}\n"
+                         f"{self.prog}: {self._help_command()} lists every option\n")
+        return namespace
+
+    def _unknown(self, extras: list[str]) -> str:
+        """argparse's message for arguments it did not take, with the nearest known option of each unknown one."""
+        known = [option for action in self._actions for option in action.option_strings]
+        guesses = [guess for extra in extras if extra[:1] in self.prefix_chars
+                   for guess in suggest_options(extra, known)]
+        message = f"unrecognized arguments: {' '.join(extras)}"
+        if guesses:
+            message += f"; did you mean {' or '.join(dict.fromkeys(guesses))}?"
+        return message
+
+    def error(self, message: str):
+        # The message names the option and what it takes; the usage added nothing but length.
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+    def _help_command(self) -> str:
+        """The command that prints this parser's ``--help``, as the user would type it."""
+        script = sys.argv[0] if sys.argv and os.path.basename(sys.argv[0]) == self.prog else None
+        return f"python {script} --help" if script and script.endswith(".py") else f"{self.prog} --help"
+
+
+def base_parser(description: str, num_envs: int, iterations: int) -> argparse.ArgumentParser:
+    """Options every library recipe takes: envs, device, iteration budget, seed, output folder, gait test size."""
+    parser = RecipeParser(description=description)
+    parser.add_argument("--num_envs", type=int, default=num_envs, help=f"robots simulated at once (default: {num_envs})")
+    parser.add_argument("--device", default="auto", help="auto (CUDA if present, else cpu), cpu, cuda or cuda:N")
+    parser.add_argument("--iterations", type=int, default=iterations,
+                        help=f"PPO iterations (rollout + update) to train (default: {iterations})")
+    parser.add_argument("--max_minutes", type=float, default=0.0,
+                        help="stop after this many minutes of training, summed over --resume calls (0 = no limit)")
+    parser.add_argument("--checkpoint_minutes", type=float, default=0.0,
+                        help="also save the policy every this many minutes of training (0 = off)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the env and the library (default: 0)")
+    parser.add_argument("--preset", default="default", help="task preset of tocabi_torchrl.rl.config (default: default)")
+    parser.add_argument("--out", required=True, help="output folder; must not exist yet (runs are never overwritten)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in --out (from its resume.json) instead of starting a new one; the "
+                             "task and network options must be the ones it started with")
+    parser.add_argument("--eval_envs", type=int, default=256, help="robots in the final 8 s gait test (0 = skip it)")
+    parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
+    return parser
+
+
+def hidden_sizes(text: str) -> tuple[int, ...]:
+    """The type of the recipes' ``--hidden``: comma-separated layer sizes, each at least 1 (``"256,256"``)."""
+    try:
+        sizes = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        sizes = ()
+    if not sizes or min(sizes) < 1:
+        raise argparse.ArgumentTypeError(f"must be comma-separated layer sizes >= 1 (e.g. 256,256), got {text!r}")
+    return sizes
