@@ -226,3 +226,24 @@ def test_gpu_actuators_never_sync_and_follow_resets(cuda_graph):
     assert bool(step["next", "truncated"].any())
     assert not torch.equal(scale, before)  # redrawn in place, inside the (captured) step
     assert 0.8 - 1e-6 <= float(scale.min()) and float(scale.max()) <= 1.2 + 1e-6
+
+
+@pytest.mark.parametrize("backend", ["mujoco", "warp"])
+def test_applied_body_force_pushes_the_robot_and_clears_at_reset(backend):
+    # A 1 kN push along +y on the pelvis for one policy step (4 ms, 4 N·s) moves the pelvis along +y, in that world
+    # only; a reset zeroes the force, as MuJoCo's reset does.
+    if backend == "warp":
+        pytest.importorskip("warp")
+    from tocabi_torchrl.sim import WarpSim
+
+    make = MujocoSim if backend == "mujoco" else WarpSim
+    sim = make(SimConfig(num_worlds=2, threads=1))
+    base = sim.mj_model.body(robot.BASE_BODY).id
+    sim.step()
+    before = sim.qvel[:, 1].clone()
+    sim.xfrc_applied[0, base, 1] = 1000.0
+    sim.step()
+    dv = sim.qvel[:, 1] - before
+    assert float(dv[0]) > 0.02 and abs(float(dv[1])) < 0.005, dv
+    sim.reset(torch.tensor([True, False]), sim.qpos.clone(), torch.zeros(sim.nv))
+    assert float(sim.xfrc_applied[0].abs().max()) == 0.0 and float(sim.xfrc_applied[1].abs().max()) == 0.0

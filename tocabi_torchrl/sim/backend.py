@@ -67,6 +67,8 @@ SIM_TENSORS: tuple[SimTensor, ...] = (
     SimTensor("mass_matrix", ("N", "nC"), _F32, "joint-space inertia M(q) of the current state (armature included) "
               "in MuJoCo's sparse layout: lower triangle, rows by mj_model.M_rowadr/M_rownnz, columns M_colind "
               "(sim.inertia.dense_block reads a dense block of it)"),
+    SimTensor("xfrc_applied", ("N", "nbody", 6), _F32, "external force [N] and torque [N·m] on each body, in the world "
+              "frame at the body's centre of mass; an input like ctrl (held until changed, zeroed at reset)"),
     SimTensor("qfrc_bias", ("N", "nv"), _F32, "bias force c(q, q̇) of the current state: gravity, Coriolis and "
               "centrifugal [N, N·m] (M·q̈ + c = applied + passive + constraint forces)"),
 )

@@ -130,6 +130,8 @@ class MujocoSim(SimViews):
         # The float32 tensors the env sees, one per staging array.
         self._qpos, self._qvel = torch.zeros(n, mj.nq, dtype=f32), torch.zeros(n, mj.nv, dtype=f32)
         self._ctrl = torch.zeros(n, mj.nu, dtype=f32)
+        self._xfrc_t = torch.zeros(n, mj.nbody, 6, dtype=f32)
+        self._xfrc_np = self._xfrc_t.numpy()  # the same memory, read by the worker threads
         self._substep_cols = list(self._substep_columns(mj))
         self._substep_ctrl_t = (torch.zeros(n, self.config.substeps, len(self._substep_cols), dtype=f32)
                                 if self._substep_cols else None)
@@ -175,6 +177,7 @@ class MujocoSim(SimViews):
         m, d, cols = self._substep_model, self._data[w], self._substep_cols
         schedule = self._substep_ctrl_t[w].numpy() if cols else None
         d.ctrl[:] = ctrl[w]
+        d.xfrc_applied[:] = self._xfrc_np[w]
         if cols:
             d.ctrl[cols] = schedule[0]
         if dirty[w]:
@@ -210,6 +213,7 @@ class MujocoSim(SimViews):
     def _forward_world(self, w: int, ctrl: np.ndarray, dirty: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
         d = self._data[w]
         d.ctrl[:] = ctrl[w]
+        d.xfrc_applied[:] = self._xfrc_np[w]
         if dirty[w]:
             d.qpos[:], d.qvel[:] = qpos[w], qvel[w]
         self._forward_and_warm_start(d)
@@ -293,6 +297,7 @@ class MujocoSim(SimViews):
         qpos, qvel, ctrl = (x.to(torch.float32).expand(n, -1) for x in (qpos, qvel, ctrl))
         idx = torch.from_numpy(rows)
         self._ctrl[idx] = ctrl[idx]
+        self._xfrc_t[idx] = 0.0  # as mj_resetData clears the world's applied forces
         self._run(self._reset_world, rows, qpos.numpy(), qvel.numpy(), ctrl.numpy())
         self._publish(rows)
 

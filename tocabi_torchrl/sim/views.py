@@ -169,6 +169,11 @@ class SimViews(abc.ABC):
         doc="(N, nC) joint-space inertia M(q) of the current state, MuJoCo's sparse lower-triangle (CSR) layout.",
     )
     qfrc_bias = property(lambda self: self._qfrc_bias, doc="(N, nv) bias force c(q, q̇): gravity, Coriolis [N·m].")
+    xfrc_applied = property(
+        lambda self: self._xfrc_t,
+        doc="(N, nbody, 6) external force [N] and torque [N·m] per body (world frame, at the body's centre of mass): "
+            "an input like ctrl, applied in every substep until changed, zeroed when the world resets.",
+    )
     substep_ctrl = property(
         lambda self: self._substep_ctrl_t,
         doc="(N, substeps, k) controls of the ``SimConfig.substep_ctrl`` actuators in each physics substep of the "

@@ -99,6 +99,8 @@ class WarpSim(SimViews):
     qpos                       (N, nq=40)       base position [m], base quaternion (w, x, y, z), 33 joints [rad]
     qvel                       (N, nv=39)       base linear (world) [m/s], angular (local) [rad/s], joints [rad/s]
     ctrl                       (N, nu=33)       legs: torque [N·m]; upper body: position-actuator target [rad]
+    xfrc_applied               (N, nbody, 6)    external force [N] / torque [N·m] per body, world frame at the COM:
+                                                an input (held until changed, zeroed at reset)
     substep_ctrl               (N, S, k)        per-substep controls of the ``SimConfig.substep_ctrl`` actuators
                                                 (S = substeps), or None
     sensordata                 (N, nsensordata) every sensor of the model
@@ -203,6 +205,7 @@ class WarpSim(SimViews):
         self._reset_ctrl_t = t(self._reset_ctrl)
         self._applied_force_t = t(self._applied_force)
         self._substep_ctrl_t = None if self._substep_ctrl is None else t(self._substep_ctrl)
+        self._xfrc_t = t(d.xfrc_applied)
         # The joint-space inertia and bias force of the last forward pass (mujoco-warp's Data.M is MuJoCo's sparse
         # CSR layout, (nworld, nC), whatever the model's opt.jacobian: dense factorisation blocks live in qLD).
         self._mass_matrix, self._qfrc_bias = t(d.M), t(d.qfrc_bias)
