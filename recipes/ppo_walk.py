@@ -39,10 +39,13 @@ if __name__ == "__main__":
 
 import torch  # noqa: E402
 
+from tocabi_torchrl.config import RunConfig  # noqa: E402
 from tocabi_torchrl.envs.model_based import check_settings  # noqa: E402
 from tocabi_torchrl.motion import ReferenceMotion  # noqa: E402
 from tocabi_torchrl.motion.io import MotionFormatError  # noqa: E402
+from tocabi_torchrl.rl.checkpoint import checkpoint_file  # noqa: E402
 from tocabi_torchrl.rl.distributed import ending, from_environment, shutdown  # noqa: E402
+from tocabi_torchrl.rl.evaluate import GAIT_CRITERIA, eval_out_dir, evaluate_run, gait_passes  # noqa: E402
 from tocabi_torchrl.rl.gait_record import policy_steps  # noqa: E402
 from tocabi_torchrl.rl.interrupt import signal_exit_status  # noqa: E402
 from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
@@ -67,6 +70,43 @@ def stopped_at_once(run_dir) -> int:
     print(f"stopped at once (second signal), without saving the iteration in progress; {advice}", file=sys.stderr,
           flush=True)
     return signal_exit_status("SIGINT")
+
+
+#: The gait test's metrics as the end-of-run report shows them: key, label, unit, decimals, and whether the pass
+#: threshold (GAIT_CRITERIA) is a minimum or a maximum (rl.evaluate.gait_passes applies it).
+GAIT_ROWS = (
+    ("survival", "survival", "%", 1, "min"),
+    ("forward_distance_m", "forward distance", "m", 2, "min"),
+    ("lateral_drift_m", "lateral drift", "m", 2, "max"),
+    ("knee_rms_rad", "knee RMS vs reference", "rad", 3, "max"),
+)
+
+
+def _shown(value, unit: str, decimals: int) -> str:
+    """A metric for people: rounded, with its unit; a missing value (NaN or None) says so."""
+    if value is None or value != value:
+        return "no value"
+    return f"{100 * value:.{decimals}f} %" if unit == "%" else f"{value:.{decimals}f} {unit}"
+
+
+def gait_report(summary: dict, seconds: float, robots: int, out) -> str:
+    """The gait test's verdict (walks / does not walk yet), each metric against its pass threshold, and the files
+    written; the full-precision values stay in ``out/summary.json``."""
+    verdict = "walks" if gait_passes(summary) else "does not walk yet"
+    lines = [f"gait test ({seconds:g} s, {robots} robots): {verdict}"]
+    standard = RunConfig().eval_seconds
+    if seconds != standard:  # the distance threshold assumes the full test's length
+        lines[0] += f" (the thresholds are set for the {standard:g} s test)"
+    for key, label, unit, decimals, kind in GAIT_ROWS:
+        value, limit = summary.get(key), GAIT_CRITERIA[key]
+        ok = value is not None and value == value and (value >= limit if kind == "min" else value <= limit)
+        need = f"{'>=' if kind == 'min' else '<='} {_shown(limit, unit, decimals)}"
+        lines.append(f"  {label:<22} {_shown(value, unit, decimals):>10}   needs {need:<13} {'pass' if ok else 'FAIL'}")
+    files = [out / "summary.json", out / "knees.png"]
+    video = str(summary.get("video", ""))
+    lines.append("results: " + ", ".join(str(f) for f in files if f.exists())
+                 + (f", {video}" if video.endswith(".mp4") else f" (video {video})" if video else ""))
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -138,12 +178,13 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(stopped(result))
     print(f"done: {result.env_steps:,} env steps in {result.wall_seconds:.0f} s "
           f"({result.env_steps_per_second:,.0f} env-steps/s); run folder {result.run_dir}")
+    checkpoint = checkpoint_file(result.run_dir)
     if cfg.eval_at_end:
-        from tocabi_torchrl.rl.evaluate import evaluate_run
-
-        summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device, seconds=cfg.eval_seconds)
-        print("evaluation:", {k: summary[k] for k in ("survival", "forward_distance_m", "lateral_drift_m",
-                                                       "knee_rms_rad") if k in summary})
+        out = eval_out_dir(result.run_dir)
+        summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device, seconds=cfg.eval_seconds,
+                               out_dir=out)
+        print(gait_report(summary, cfg.eval_seconds, cfg.eval_envs, out))
+    print(f"checkpoint: {checkpoint}\nwatch or re-test it: python recipes/play.py --checkpoint {result.run_dir}")
 
 
 if __name__ == "__main__":

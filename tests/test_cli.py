@@ -21,7 +21,8 @@ LIGHT_PARSERS = ("play", "sim2sim", "train_rsl_rl", "train_sb3", "train_skrl", "
 HEAVY = ("torch", "torchrl", "mujoco", "warp", "rsl_rl", "skrl", "stable_baselines3")
 
 
-def imported_modules(recipe: str, *args: str, cwd: Path = RECIPES.parent) -> tuple[subprocess.CompletedProcess, set[str]]:
+def imported_modules(recipe: str, *args: str,
+                     cwd: Path = RECIPES.parent) -> tuple[subprocess.CompletedProcess, set[str]]:
     """Run ``recipes/<recipe>.py args`` under ``-X importtime``; the call and the modules it imported."""
     proc = subprocess.run([sys.executable, "-X", "importtime", str(RECIPES / f"{recipe}.py"), *args],
                           capture_output=True, text=True, cwd=cwd, timeout=300,

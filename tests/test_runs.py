@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -479,3 +480,20 @@ def test_device_cpu_0_trains(tmp_path):
     # It used to be refused at the first env step ("action is on cpu but the env runs on cpu:0"), after the banner.
     recipe("ppo_walk").main(tiny_args(tmp_path, device="cpu:0"))
     assert read_checkpoint(tmp_path / "run")["iteration"] == 2
+
+
+def test_the_end_of_a_run_is_a_verdict_against_the_gait_criteria_with_the_files_it_wrote(tmp_path, capsys):
+    # It ended with a raw dict of 16-digit floats: no pass/fail, no threshold, no path to what it wrote.
+    from tocabi_torchrl.rl.evaluate import GAIT_CRITERIA
+
+    recipe("ppo_walk").main(tiny_args(tmp_path, eval_at_end=True, eval_envs=2, eval_seconds=0.1))
+    out = capsys.readouterr().out
+    report = out[out.index("gait test (0.1 s, 2 robots): "):]
+    assert "does not walk yet" in report.splitlines()[0] and report.count("FAIL") >= 1
+    assert "needs >= 95.0 %" in report and f"needs <= {GAIT_CRITERIA['knee_rms_rad']:.3f} rad" in report
+    paths = [Path(word.rstrip(",")) for line in report.splitlines() for word in line.split() if "/" in word]
+    summary = tmp_path / "run" / "eval" / "summary.json"
+    assert summary in paths and summary.is_file()
+    assert f"checkpoint: {tmp_path / 'run' / 'checkpoints' / 'latest.pt'}" in report
+    assert f"python recipes/play.py --checkpoint {tmp_path / 'run'}" in report
+    assert not re.search(r"\d\.\d{6,}", report), report  # rounded for people; summary.json keeps full precision
