@@ -19,15 +19,8 @@ import argparse
 import math
 import sys
 
+from tocabi_torchrl.cli import RecipeParser
 from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
-
-try:  # before mujoco is imported
-    choose_gl_backend()
-except GLBackendError as gl_error:
-    sys.exit(f"error: {gl_error}")
-
-from tocabi_torchrl.rl.checkpoint import verified_checkpoint_file  # noqa: E402
-from tocabi_torchrl.rl.evaluate import eval_out_dir, evaluate_run, summary_json  # noqa: E402
 
 #: (option, type, default, description): the command line, defaults shown once by build_parser.
 OPTIONS = (
@@ -43,7 +36,7 @@ OPTIONS = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = RecipeParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--checkpoint", required=True, help="run folder or checkpoint .pt file (required)")
     for flag, kind, default, text in OPTIONS:
         shown = "" if default is None else f" (default: {default})"
@@ -52,6 +45,18 @@ def build_parser() -> argparse.ArgumentParser:
                         help="write into an --out folder that holds files (files of the same name are replaced, "
                              "others stay) (default: refuse)")
     return parser
+
+
+if __name__ == "__main__":  # --help or a misspelt option answers before torch and mujoco load
+    build_parser().parse_args(sys.argv[1:])
+
+try:  # before mujoco is imported
+    choose_gl_backend()
+except GLBackendError as gl_error:
+    sys.exit(f"error: {gl_error}")
+
+from tocabi_torchrl.rl.checkpoint import verified_checkpoint_file  # noqa: E402
+from tocabi_torchrl.rl.evaluate import eval_out_dir, evaluate_run, summary_json  # noqa: E402
 
 
 def sim2sim_options(args: argparse.Namespace) -> str:
