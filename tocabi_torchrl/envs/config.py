@@ -12,6 +12,7 @@ from ..sim.config import RESET_PASSES
 from ..tree import OWN_NUMBER_CHECK, check_field_types
 from ..value_rules import ENV_RULES, check_env_value
 from .command import CommandConfig
+from .pushes import PushConfig
 
 __all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "SceneConfig", "BoxObstacle", "PD_GAINS",
            "ENV_FLAT_PATHS", "CONTROL_MODES", "TORQUE_MODES", "MB_OMEGA", "BACKENDS", "CPU_DEFAULT_BACKEND",
@@ -94,6 +95,9 @@ class TaskConfig:
         phase_rate_gain: phase clock t += dt × (1 + phase_rate_gain × action[12]) per step (reference 1: 1× to 2×).
         min_pelvis_height, min_neck_height, max_neck_angle, terminate_on_forbidden_contact,
             terminate_on_self_collision: the early-termination conditions.
+        start_joint_vel_std: std [rad/s] of Gaussian joint velocities a reset world starts with (0: at rest).
+        start_base_vel_std: std [m/s] of the pelvis's Gaussian linear velocity (each axis) at reset (0: at rest).
+            Either above 0 makes the starts diverse (the robust gait test) and the reset runs the full pass.
     """
 
     max_episode_steps: int = 8000
@@ -105,6 +109,8 @@ class TaskConfig:
     max_neck_angle: float = 1.0
     terminate_on_forbidden_contact: bool = True
     terminate_on_self_collision: bool = True
+    start_joint_vel_std: float = 0.0
+    start_base_vel_std: float = 0.0
 
     def validate(self) -> None:
         m = self.max_episode_steps
@@ -112,6 +118,15 @@ class TaskConfig:
             raise ValueError(f"env.task.max_episode_steps must be an int >= 1, got {m!r}")
         for name in ("min_pelvis_height", "min_neck_height", "max_neck_angle", "phase_rate_gain"):
             check_env_value(f"task.{name}", getattr(self, name))
+        for name in ("start_joint_vel_std", "start_base_vel_std"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0 <= value <= 10):
+                raise ValueError(f"env.task.{name} must be a std in [0, 10], got {value!r}")
+
+    @property
+    def diverse_starts(self) -> bool:
+        """Whether a reset draws start velocities."""
+        return self.start_joint_vel_std > 0 or self.start_base_vel_std > 0
 
 
 #: The robot controller's leg gains, the PD modes' default (TocabiLab divides Kp by 9 and Kv by 3: ``"tocabilab"``).
@@ -348,6 +363,7 @@ class TocabiWalkConfig:
         command: :class:`~tocabi_torchrl.envs.command.CommandConfig` (velocity command schedule).
         control: :class:`ControlConfig` (what the leg actions command).
         scene: :class:`SceneConfig` (obstacles on the ground).
+        pushes: :class:`~tocabi_torchrl.envs.pushes.PushConfig` (velocity kicks during an episode; off by default).
     """
 
     num_envs: int = 4096
@@ -356,6 +372,7 @@ class TocabiWalkConfig:
     command: CommandConfig = field(default_factory=CommandConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
     scene: SceneConfig = field(default_factory=SceneConfig)
+    pushes: PushConfig = field(default_factory=PushConfig)
 
     @classmethod
     def reference(cls, **flat) -> TocabiWalkConfig:
@@ -374,7 +391,7 @@ class TocabiWalkConfig:
         unknown = sorted(set(flat) - set(ENV_FLAT_PATHS) - sections)
         if unknown:
             raise TypeError(f"unknown TocabiWalk option(s) {unknown}; use a section (num_envs, sim, task, command, "
-                            f"control, scene) or one of {sorted(ENV_FLAT_PATHS)}")
+                            f"control, scene, pushes) or one of {sorted(ENV_FLAT_PATHS)}")
         return replace_paths(self, {ENV_FLAT_PATHS.get(k, k): v for k, v in flat.items()})
 
     @property
@@ -395,3 +412,4 @@ class TocabiWalkConfig:
         self.control.validate()
         self.command.validate()
         self.scene.validate()
+        self.pushes.validate()

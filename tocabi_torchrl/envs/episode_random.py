@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["episode_uniform"]
+__all__ = ["episode_uniform", "episode_normal"]
 
 _MASK = (1 << 62) - 1
 
@@ -32,3 +32,12 @@ def episode_uniform(seed: int | torch.Tensor, env_ids: torch.Tensor, episode: to
     lanes = torch.arange(k, dtype=torch.int64, device=env_ids.device) + (stream << 8)
     x = _mix(_mix(base.unsqueeze(-1) ^ (lanes * 0xC2B2AE3D)) + lanes)
     return (x & 0xFFFFFF).to(torch.float32) / float(1 << 24)
+
+
+def episode_normal(seed: int | torch.Tensor, env_ids: torch.Tensor, episode: torch.Tensor, stream: int,
+                   k: int) -> torch.Tensor:
+    """(num_envs, k) float32 standard normals for each env's ``episode`` (Box-Muller over :func:`episode_uniform`'s
+    uniforms of the same key: 2k lanes of ``stream``)."""
+    u = episode_uniform(seed, env_ids, episode, stream, 2 * k)
+    radius = torch.sqrt(-2.0 * torch.log1p(-u[:, :k]))  # 1 - u in (0, 1]: log is finite
+    return radius * torch.cos(2.0 * torch.pi * u[:, k:])

@@ -27,8 +27,9 @@ from ..sim import MujocoSim, SimBackend, SimConfig, WarpSim
 from .command import VelocityCommand
 from .config import TocabiWalkConfig, resolve_backend
 from .controllers import leg_actuator_chain, leg_law, upper_body_law
-from .episode_random import episode_uniform
+from .episode_random import episode_normal, episode_uniform
 from .obstacles import add_obstacles, world_obstacle_centres
+from .pushes import Pushes
 from .termination import termination_flags
 
 __all__ = ["TocabiWalk", "quat_rotate_inverse"]
@@ -185,10 +186,17 @@ class TocabiWalk(EnvBase):
         # The reset's per-episode draws read the seed from the device, so a captured step graph follows set_seed.
         self._seed_t = torch.tensor(self._seed, dtype=torch.int64, device=device)
         self.command = VelocityCommand(cfg.command, num_envs, device, self.rng)
+        #: The episode's kicks (``env.pushes``), or None when they are off.
+        self.pushes: Pushes | None = None
+        if cfg.pushes.count > 0:
+            mass = float(self.sim.mj_model.body_subtreemass[self.sim.mj_model.body(robot.BASE_BODY).id])
+            self.pushes = Pushes(cfg.pushes, num_envs, device, self.dt, mass)
+        self._base_body = self.sim.mj_model.body(robot.BASE_BODY).id
         self._init_buffers()
         #: The reduced reset pass (``env.sim.reset_pass="reduced"``, mujoco-warp only): the start states, one per
         #: start row of the reference motion, are registered with the simulator here.
-        self._reduced_reset = self.backend == "warp" and sim.reset_pass == "reduced"
+        # Diverse starts (random start velocities) are not in the start-state table: they take the full pass.
+        self._reduced_reset = self.backend == "warp" and sim.reset_pass == "reduced" and not cfg.task.diverse_starts
         if self._reduced_reset:
             self._register_start_states()
         self._make_specs()
@@ -330,6 +338,8 @@ class TocabiWalk(EnvBase):
         ctrl = self.sim.ctrl
         ctrl[:, robot.LEGS] = leg_out
         ctrl[:, robot.UPPER_BODY] = self.upper_controller.compute(upper)
+        if self.pushes is not None:
+            self.sim.xfrc_applied[:, self._base_body, :2] = self.pushes.at(self.episode_step)
         self.sim.step()
 
         # Task state is updated in place (never rebound): a captured CUDA graph of this step keeps writing to the
@@ -477,6 +487,10 @@ class TocabiWalk(EnvBase):
         if self.leg_actuators.draws:  # each episode's actuator parameters, keyed like the start row
             self.leg_actuators.reset(mask, episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=1,
                                                            k=self.leg_actuators.draws))
+        if self.pushes is not None:
+            self.pushes.reset(mask, episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=17,
+                                                    k=self.pushes.draws))
+        qvel = self._start_velocities() if self.cfg.task.diverse_starts else self._init_qvel
         self.episode_count.add_(mask.long())
         pick = (u[:, 0] * len(self._init_rows)).long().clamp_(max=len(self._init_rows) - 1)
         self.init_row.copy_(torch.where(mask, self._init_rows[pick], self.init_row))
@@ -499,11 +513,31 @@ class TocabiWalk(EnvBase):
         else:
             upper = self.ref_joint_pos[:, robot.UPPER_BODY]
             ctrl = torch.cat((self._reset_leg_ctrl.expand(self.num_envs, -1), upper), dim=-1)
-            self.sim.reset(mask, self._init_qpos, self._init_qvel, ctrl)
+            self.sim.reset(mask, self._init_qpos, qvel, ctrl)
         out = self._observe()
         false = torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device)
         out.update({"terminated": false, "truncated": false.clone(), "done": false.clone()})
         return out
+
+    def _start_velocities(self) -> torch.Tensor:
+        """(N, nv) start velocities of this episode: N(0, start_base_vel_std) on the pelvis's linear velocity,
+        N(0, start_joint_vel_std) on every joint, none on its angular velocity (before the episode count moves)."""
+        task, nv = self.cfg.task, self.sim.nv
+        z = episode_normal(self._seed_t, self._env_ids, self.episode_count, stream=16, k=3 + robot.NUM_JOINTS)
+        std = torch.zeros(nv, dtype=torch.float32, device=self.device)
+        std[:3], std[6:] = task.start_base_vel_std, task.start_joint_vel_std
+        qvel = torch.zeros(self.num_envs, nv, dtype=torch.float32, device=self.device)
+        qvel[:, :3], qvel[:, 6:] = z[:, :3], z[:, 3:]
+        return qvel * std
+
+    def set_push_scale(self, scale: float) -> None:
+        """Scale every kick of ``env.pushes`` by ``scale`` in [0, 1] from the next step on (a curriculum; in place,
+        so a captured step follows it)."""
+        if self.pushes is None:
+            raise RuntimeError("set_push_scale needs an env built with pushes (env.pushes.count > 0)")
+        if not 0.0 <= float(scale) <= 1.0:
+            raise ValueError(f"push scale must be in [0, 1], got {scale!r}")
+        self.pushes.scale.fill_(float(scale))
 
     def _reset_check_done(self, tensordict, tensordict_reset) -> None:
         # TorchRL re-checks that reset envs are not done with `done.any()`, a host synchronisation on every reset.

@@ -61,6 +61,14 @@ FIELD_HELP: dict[str, str] = {
                                      "velocity, drawn per world and joint at reset; default: none",
     "env.control.actuators.viscous": "torque modes: viscous friction (low, high) [N·m·s/rad] of each leg joint, "
                                      "drawn per world and joint at reset; default: none",
+    "env.task.start_joint_vel_std": "std of the Gaussian joint velocities a reset world starts with [rad/s]; 0: at "
+                                    "rest (the robust gait test uses 0.5)",
+    "env.task.start_base_vel_std": "std of the pelvis's Gaussian linear velocity at reset, per axis [m/s]; 0: at rest "
+                                   "(the robust gait test uses 0.1)",
+    "env.pushes.count": "velocity kicks of the pelvis per episode; 0: none",
+    "env.pushes.window": "(start, end) of episode time over which the kicks are spread, one per equal share [s]",
+    "env.pushes.speed": "(low, high) velocity change of the whole robot per kick [m/s] (impulse = speed x mass)",
+    "env.pushes.duration": "(low, high) how long each kick's force acts [s], in whole policy steps (at least one)",
     "env.control.actuators.saturate": "torque modes: clip the leg torques at their limits after the actuator stages",
     "env.sim.backend": "physics backend (auto: mujoco-warp on CUDA, C MuJoCo on the CPU)",
     "env.sim.substeps": "physics substeps (0.5 ms) per policy step",

@@ -1,0 +1,98 @@
+"""Pushes (velocity kicks on the pelvis) and diverse starts: the schedule, the impulse, the effect on the robot."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from tocabi_torchrl.envs import TocabiWalk, TocabiWalkConfig
+from tocabi_torchrl.envs.pushes import PushConfig, Pushes
+
+
+def test_kicks_fall_in_their_share_of_the_window_and_carry_the_exact_impulse():
+    cfg = PushConfig(count=3, window=(2.0, 7.0), speed=(0.5, 1.0), duration=(0.004, 0.1))
+    pushes = Pushes(cfg, num_envs=512, device=torch.device("cpu"), dt=0.004, mass=100.0)
+    u = torch.rand(512, pushes.draws, generator=torch.Generator().manual_seed(0))
+    pushes.reset(torch.ones(512, dtype=torch.bool), u)
+    t = pushes.start_step * 0.004
+    for j, (lo, hi) in enumerate(((2.0, 3 + 2 / 3), (3 + 2 / 3, 5 + 1 / 3), (5 + 1 / 3, 7.0))):
+        assert float(t[:, j].min()) >= lo - 0.004 and float(t[:, j].max()) <= hi + 0.004
+    # Summed over the episode's steps, each world's force gives each kick's impulse, speed x mass.
+    total = torch.zeros(512, 2)
+    for step in range(int(7.5 / 0.004)):
+        total += pushes.at(torch.full((512,), step)) * 0.004
+    per_kick = pushes.force * (pushes.steps * 0.004).unsqueeze(-1)
+    torch.testing.assert_close(total, per_kick.sum(dim=1), rtol=1e-4, atol=1e-3)
+    speed = per_kick.norm(dim=-1) / 100.0
+    assert 0.5 - 1e-5 <= float(speed.min()) and float(speed.max()) <= 1.0 + 1e-5
+    angle = torch.atan2(pushes.force[..., 1], pushes.force[..., 0])
+    assert float(angle.std()) > 1.5  # directions spread over the circle
+
+
+def test_a_reset_redraws_only_the_flagged_worlds_and_the_scale_multiplies():
+    pushes = Pushes(PushConfig(count=2), num_envs=4, device=torch.device("cpu"), dt=0.004, mass=100.0)
+    gen = torch.Generator().manual_seed(1)
+    pushes.reset(torch.ones(4, dtype=torch.bool), torch.rand(4, pushes.draws, generator=gen))
+    before = pushes.force.clone(), pushes.start_step.clone()
+    mask = torch.tensor([False, True, False, False])
+    pushes.reset(mask, torch.rand(4, pushes.draws, generator=gen))
+    assert torch.equal(pushes.force[~mask], before[0][~mask]) and torch.equal(pushes.start_step[~mask],
+                                                                              before[1][~mask])
+    assert not torch.equal(pushes.force[1], before[0][1])
+    step = pushes.start_step[:, 0]
+    full = pushes.at(step)
+    pushes.scale.fill_(0.25)
+    torch.testing.assert_close(pushes.at(step), 0.25 * full)
+
+
+@pytest.mark.parametrize("bad", [dict(count=-1), dict(count=True), dict(speed=(1.0, 0.5)),
+                                 dict(window=(0.0, float("inf")))])
+def test_bad_push_settings_are_refused_by_name(bad):
+    with pytest.raises(ValueError, match="env.pushes"):
+        PushConfig(**bad).validate()
+
+
+def _env(pushes: PushConfig, n=2, **task):
+    cfg = TocabiWalkConfig()
+    cfg = dataclasses.replace(cfg, pushes=pushes, task=dataclasses.replace(cfg.task, **task))
+    return TocabiWalk(num_envs=n, device="cpu", seed=0, config=cfg, sim_threads=1)
+
+
+def test_a_kick_changes_the_robots_velocity_by_about_its_speed():
+    # One kick of 0.5 m/s in the first share of a 0.2-0.204 s window (policy step 50), the residual-PD robot holding
+    # the reference pose (zero action). Compared with the same env without kicks.
+    kicked, calm = _env(PushConfig(count=1, window=(0.2, 0.204), speed=(0.5, 0.5))), _env(PushConfig())
+    kicked.reset(), calm.reset()
+    step = int(kicked.pushes.start_step[0, 0])
+    direction = kicked.pushes.force[:, 0] / kicked.pushes.force[:, 0].norm(dim=-1, keepdim=True)
+    action = torch.zeros(2, 13)
+    from tensordict import TensorDict
+
+    for _ in range(step + 3):
+        kicked.step(TensorDict({"action": action}, batch_size=[2]))
+        calm.step(TensorDict({"action": action}, batch_size=[2]))
+    dv = (kicked.sim.qvel[:, :2] - calm.sim.qvel[:, :2])
+    along = (dv * direction).sum(dim=-1)
+    assert float(along.min()) > 0.3 and float(along.max()) < 1.0, along
+    kicked.set_push_scale(0.0)
+    with pytest.raises(ValueError, match="push scale"):
+        kicked.set_push_scale(2.0)
+    with pytest.raises(RuntimeError, match="pushes"):
+        calm.set_push_scale(0.5)
+
+
+def test_diverse_starts_draw_each_worlds_start_velocity():
+    env = _env(PushConfig(), n=64, start_joint_vel_std=0.5, start_base_vel_std=0.1)
+    env.reset()
+    # The reset's forward pass keeps the drawn velocities (qvel is the state, not a result of the pass).
+    qvel = env.sim.qvel
+    assert 0.35 < float(qvel[:, 6:].std()) < 0.65 and 0.06 < float(qvel[:, :3].std()) < 0.14
+    assert float(qvel[:, 3:6].abs().max()) == 0.0
+    first = qvel.clone()
+    env.reset()  # the next episode draws anew
+    assert not torch.equal(env.sim.qvel, first)
+    at_rest = _env(PushConfig(), n=2)
+    at_rest.reset()
+    assert float(at_rest.sim.qvel.abs().max()) == 0.0

@@ -1,0 +1,99 @@
+"""Pushes: horizontal velocity kicks of the robot during an episode, as forces on the pelvis.
+
+Each episode of each world draws ``count`` kicks at reset. Kick j happens at a random time in the j-th of ``count``
+equal shares of ``window`` (so kicks never overlap for a window of at least ``count`` durations), in a random
+horizontal direction, and changes the robot's momentum by ``speed × mass`` (the whole robot's nominal mass): a
+force of that impulse over the kick's duration, held on the pelvis body (``sim.xfrc_applied``, world frame) for a
+whole number of policy steps (at least one), so the impulse is exact. The TOCABI lab trains with impulses of
+50-250 N·s over 0.1-1 s; a velocity kick of 0.5 m/s (≈ 52 N·s on the 104.5 kg robot) over one 4 ms policy step is the
+robust gait test's.
+
+Everything is device-side and sync-free: the schedule is (N, count) tensors drawn from the env's counter-based
+per-episode uniforms and updated in place, the force is a masked sum over the kicks, and :attr:`Pushes.scale`
+(a 0-d device tensor, e.g. a training curriculum) multiplies every kick without re-capturing a graph.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["PushConfig", "Pushes"]
+
+
+@dataclass
+class PushConfig:
+    """Velocity kicks of the pelvis during an episode (``TocabiWalkConfig.pushes``); ``count=0`` (default) is off.
+
+    Attributes:
+        count: kicks per episode.
+        window: (start, end) [s] of episode time over which the kicks are spread (kick j in the j-th share).
+        speed: (low, high) [m/s] the velocity change of the whole robot, drawn per kick (impulse = speed × mass).
+        duration: (low, high) [s] how long each kick's force acts, drawn per kick (rounded to whole policy steps,
+            at least one).
+    """
+
+    count: int = 0
+    window: tuple[float, float] = (2.0, 7.0)
+    speed: tuple[float, float] = (0.5, 0.5)
+    duration: tuple[float, float] = (0.004, 0.004)
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad field (``env.pushes.<name>``) and what it takes."""
+        if isinstance(self.count, bool) or not isinstance(self.count, int) or not 0 <= self.count <= 64:
+            raise ValueError(f"env.pushes.count must be an int in [0, 64] (kicks per episode), got {self.count!r}")
+        for name in ("window", "speed", "duration"):
+            low, high = getattr(self, name)
+            if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
+                raise ValueError(f"env.pushes.{name} must be (low, high) with 0 <= low <= high, finite, got "
+                                 f"{getattr(self, name)!r}")
+
+
+class Pushes:
+    """The kicks of ``num_envs`` worlds (see the module docstring).
+
+    Args:
+        cfg: the :class:`PushConfig` (``count`` > 0).
+        num_envs: N; device: the env's device.
+        dt: the policy step [s].
+        mass: the robot's mass [kg] (impulse = speed × mass).
+    """
+
+    def __init__(self, cfg: PushConfig, num_envs: int, device: torch.device, dt: float, mass: float):
+        self.cfg, self.dt, self.mass = cfg, float(dt), float(mass)
+        n, k, f32 = num_envs, cfg.count, torch.float32
+        #: Uniforms per world that :meth:`reset` reads: time, direction, speed and duration of each kick.
+        self.draws = 4 * k
+        #: (N, count) int64 the policy step each kick starts at, and how many steps it lasts.
+        self.start_step = torch.zeros(n, k, dtype=torch.int64, device=device)
+        self.steps = torch.ones(n, k, dtype=torch.int64, device=device)
+        #: (N, count, 2) the force [N] of each kick while it acts, world x and y.
+        self.force = torch.zeros(n, k, 2, dtype=f32, device=device)
+        #: Multiplies every kick (a 0-d device tensor, 1 = the configured kicks; a curriculum sets it in place).
+        self.scale = torch.ones((), dtype=f32, device=device)
+        share = (cfg.window[1] - cfg.window[0]) / k
+        self._share_start = cfg.window[0] + share * torch.arange(k, dtype=f32, device=device)
+        self._share = share
+
+    def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
+        """Draw the kicks of the worlds flagged in ``mask`` (N,) bool from ``u`` (N, :attr:`draws`) uniforms."""
+        k, (s_lo, s_hi), (d_lo, d_hi) = self.cfg.count, self.cfg.speed, self.cfg.duration
+        when = self._share_start + self._share * u[:, :k]
+        angle = 2.0 * math.pi * u[:, k:2 * k]
+        speed = s_lo + (s_hi - s_lo) * u[:, 2 * k:3 * k]
+        steps = torch.round((d_lo + (d_hi - d_lo) * u[:, 3 * k:]) / self.dt).long().clamp(min=1)
+        magnitude = speed * self.mass / (steps * self.dt)
+        force = magnitude.unsqueeze(-1) * torch.stack((torch.cos(angle), torch.sin(angle)), dim=-1)
+        m = mask.unsqueeze(-1)
+        self.start_step.copy_(torch.where(m, torch.round(when / self.dt).long(), self.start_step))
+        self.steps.copy_(torch.where(m, steps, self.steps))
+        self.force.copy_(torch.where(m.unsqueeze(-1), force, self.force))
+
+    def at(self, episode_step: torch.Tensor) -> torch.Tensor:
+        """(N, 2) the horizontal force [N] on the pelvis during policy step ``episode_step`` (N,) int64 (0 = the
+        episode's first step), world frame."""
+        step = episode_step.unsqueeze(-1)
+        active = (step >= self.start_step) & (step < self.start_step + self.steps)
+        return (self.force * active.unsqueeze(-1)).sum(dim=1) * self.scale
