@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -105,6 +106,38 @@ def test_rendering_shows_progress(tmp_path, capsys, model):
     except Exception as err:  # noqa: BLE001 - no OpenGL backend on this machine
         pytest.skip(f"no offscreen rendering here: {err}")
     assert "rendering video" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("budget, shadows", [(float("inf"), True), (-1.0, False)])
+def test_the_video_drops_shadows_only_where_a_tile_is_slow(tmp_path, capsys, monkeypatch, model, budget, shadows):
+    # Mesa's software OpenGL (a machine without a GPU) spent ~0.1 s per tile on the shadow map alone: 5/6 of play.py.
+    import mujoco
+
+    from tocabi_torchrl.rl import eval_video
+
+    monkeypatch.setattr(eval_video, "_failure", None)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    drawn = []
+
+    class Renderer:  # records whether each tile is drawn with shadows
+        def __init__(self, model, height, width, **kwargs):
+            self.shape, self.scene = (height, width, 3), SimpleNamespace(flags=np.ones(32, bool))
+
+        def update_scene(self, *args, **kwargs):
+            pass
+
+        def render(self):
+            drawn.append(bool(self.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW]))
+            return np.zeros(self.shape, np.uint8)
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(mujoco, "Renderer", Renderer)
+    monkeypatch.setattr(eval_video, "SHADOW_BUDGET_S", budget)
+    eval_video.render_video(model, np.tile(model.qpos0, (3, 2, 1)), 30, tmp_path, width=64, height=48)
+    assert drawn == [True, True] + [shadows] * 6  # two timed tiles with shadows, then 3 frames of 2 robots
+    assert ("rendering video (no shadows: software OpenGL)" in capsys.readouterr().err) is not shadows
 
 
 def test_play_help_shows_every_default():

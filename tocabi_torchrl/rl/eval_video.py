@@ -12,6 +12,7 @@ OpenGL off
 from __future__ import annotations
 
 import functools
+import time
 from pathlib import Path
 
 import numpy as np
@@ -20,11 +21,17 @@ from tqdm.auto import tqdm
 from .. import robot
 from ..render_gl import offscreen_unavailable
 
-__all__ = ["CAMERA_POS", "RenderingUnavailable", "free_camera", "label_image", "render_stills", "render_timelapse",
+__all__ = ["CAMERA_POS", "SHADOW_BUDGET_S", "RenderingUnavailable", "free_camera", "label_image", "render_stills", "render_timelapse",
            "render_video", "rendering_unavailable", "save_strip"]
 
 #: TocabiLab's camera for the gait figures [m], world frame: to the robot's left, ahead of the start, above.
 CAMERA_POS = (2.0, 6.0, 2.5)
+
+#: Seconds a video tile may take with shadows before the video is rendered without them. On a machine without a GPU,
+#: EGL renders with Mesa's software rasteriser (llvmpipe): ~0.13 s per 480x360 tile with MuJoCo's 4096x4096 shadow
+#: map, ~0.02 s without (a smaller map saves little), so shadows took 5/6 of play.py's time on a CPU (8 s at 31 fps,
+#: 4 robots: 1000 tiles, over two minutes). A GPU draws a tile in about a millisecond either way.
+SHADOW_BUDGET_S = 0.04
 
 #: The first OpenGL failure in this process ("<type>: <message>"); MuJoCo is not asked to render again after it.
 _failure: str | None = None
@@ -72,11 +79,12 @@ def _gl(call, *args, **kwargs):
 
 @_guarded
 def render_video(model, qpos: np.ndarray, fps: float, out: Path, width: int = 480, height: int = 360,
-                  progress: bool = True, mocap_pos: np.ndarray | None = None) -> Path:
+                  progress: bool = True, mocap_pos: np.ndarray | None = None, shadows: bool | None = None) -> Path:
     """Render (T, k, nq) joint states of k robots side by side (one camera each) into an mp4 or a gif.
 
     ``mocap_pos``: (k, nmocap, 3) positions [m] of the model's mocap bodies in each robot's world (the obstacles of a
-    jittered scene, ``sim.world_mocap_pos``); ``None`` shows them where the model puts them."""
+    jittered scene, ``sim.world_mocap_pos``); ``None`` shows them where the model puts them. ``shadows``: ``None``
+    draws them when a tile takes at most :data:`SHADOW_BUDGET_S` with them (a GPU; not a software renderer)."""
     import imageio.v2 as imageio
     import mujoco
 
@@ -88,18 +96,24 @@ def render_video(model, qpos: np.ndarray, fps: float, out: Path, width: int = 48
     camera.distance, camera.elevation, camera.azimuth = 3.0, -15.0, 120.0
     option = mujoco.MjvOption()
     option.geomgroup[2] = 0  # hide the translucent collision geoms: show the silhouette
+
+    def tile(q, i):
+        data.qpos[:] = q
+        if mocap_pos is not None:
+            data.mocap_pos[:] = mocap_pos[i]
+        mujoco.mj_forward(model, data)
+        renderer.update_scene(data, camera, scene_option=option)
+        return _gl(renderer.render)
+
     frames = []
     try:
-        for step in tqdm(qpos, desc="rendering video", unit="frame", disable=not progress, leave=False):
-            tiles = []
-            for i, q in enumerate(step):
-                data.qpos[:] = q
-                if mocap_pos is not None:
-                    data.mocap_pos[:] = mocap_pos[i]
-                mujoco.mj_forward(model, data)
-                renderer.update_scene(data, camera, scene_option=option)
-                tiles.append(_gl(renderer.render))
-            frames.append(np.concatenate(tiles, axis=1))
+        if shadows is None:
+            shadows = _shadows_in_budget(lambda: tile(qpos[0][0], 0))
+        if not shadows:  # scene flags outlive update_scene: set once for every tile
+            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+        desc = "rendering video" + ("" if shadows else " (no shadows: software OpenGL)")
+        for step in tqdm(qpos, desc=desc, unit="frame", disable=not progress, leave=False):
+            frames.append(np.concatenate([tile(q, i) for i, q in enumerate(step)], axis=1))
     finally:  # its OpenGL context goes too when a frame fails: rendering may go on in this process
         renderer.close()
     try:
@@ -111,6 +125,15 @@ def render_video(model, qpos: np.ndarray, fps: float, out: Path, width: int = 48
         imageio.mimwrite(path, frames[::2], duration=2.0 / fps)
     imageio.imwrite(out / "walk_frame.png", frames[len(frames) // 2])
     return path
+
+
+def _shadows_in_budget(render_tile) -> bool:
+    """Whether ``render_tile()`` (one tile, shadows on) takes at most :data:`SHADOW_BUDGET_S`; timed on its second
+    call, as the first also compiles the shaders."""
+    render_tile()
+    start = time.perf_counter()
+    render_tile()
+    return time.perf_counter() - start <= SHADOW_BUDGET_S
 
 
 def free_camera(position, lookat):
