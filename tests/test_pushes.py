@@ -96,3 +96,23 @@ def test_diverse_starts_draw_each_worlds_start_velocity():
     at_rest = _env(PushConfig(), n=2)
     at_rest.reset()
     assert float(at_rest.sim.qvel.abs().max()) == 0.0
+
+
+def test_training_ramps_the_pushes_by_env_steps(tmp_path):
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.metrics_files import read_metrics
+    from tocabi_torchrl.rl.trainer import build_env, push_scale, train
+
+    assert [push_scale((10, 20), s) for s in (0, 10, 15, 20, 30)] == [0.0, 0.0, 0.5, 1.0, 1.0]
+    cfg = preset_config("cpu_smoke", device="cpu", num_envs=4, steps_per_env=8, minibatch_size=16,
+                        total_env_steps=3 * 32, run_dir=str(tmp_path), name="pushed", progress_bar=False,
+                        eval_at_end=False, log_every=1, **{"env.pushes.count": 2, "env.pushes.window": (0.0, 0.1),
+                                                           "ppo.push_ramp": (0, 64)})
+    env = build_env(cfg, torch.device("cpu"), for_training=True)
+    train(cfg, env=env)
+    rows = read_metrics(tmp_path / "pushed")
+    # Each iteration's rollout ran with the scale of the env steps before it: 0, 32/64, then full.
+    assert [float(r["push_scale"]) for r in rows] == [0.0, 0.5, 1.0]
+    assert float(env.base_env.pushes.scale) == 1.0
+    with pytest.raises(ValueError, match="push_ramp"):
+        preset_config("cpu_smoke", **{"ppo.push_ramp": (10, 5)})

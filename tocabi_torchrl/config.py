@@ -129,6 +129,10 @@ class PPOConfig:
     #: to 0 over ``assist_anchor_decay`` env steps.
     assist_target: str = "teacher"
     assist_anchor_decay: int = 0
+    #: The pushes' curriculum (env.pushes): every kick is scaled by 0 before ``push_ramp[0]`` env steps, rising
+    #: linearly to full strength at ``push_ramp[1]`` ((0, 0): full from the start). A schedule on env steps, like the
+    #: assist's, so a resumed run takes it up where it was.
+    push_ramp: tuple[int, int] = (0, 0)
     #: On a GPU, capture the training env's whole step (physics, signals, transforms, masked reset) as one CUDA
     #: graph: "on", "off", or "auto" = on up to ``cuda_graphs.ENV_GRAPH_AUTO_MAX_ENVS`` envs. Small counts are
     #: launch-bound, and the graph trained 1.5-1.8x faster at 8-96 envs on an H100 (short runs); from 256 envs up it
@@ -176,6 +180,9 @@ class PPOConfig:
             if not getattr(self, name) > 0:
                 raise ValueError(f"ppo.{name} must be > 0, got {getattr(self, name)!r}")
         _check_int(self, "assist_anchor_decay", 0, "ppo.")
+        if not 0 <= self.push_ramp[0] <= self.push_ramp[1]:
+            raise ValueError(f"ppo.push_ramp must be (start, full) env steps with 0 <= start <= full, got "
+                             f"{self.push_ramp!r}")
         if not 0 <= self.torque_assist <= 1 or self.assist_absorb < 0:
             raise ValueError(f"ppo.torque_assist must be in [0, 1] and ppo.assist_absorb >= 0, got "
                              f"{self.torque_assist!r}, {self.assist_absorb!r}")

@@ -61,6 +61,8 @@ FIELD_HELP: dict[str, str] = {
                                      "velocity, drawn per world and joint at reset; default: none",
     "env.control.actuators.viscous": "torque modes: viscous friction (low, high) [N·m·s/rad] of each leg joint, "
                                      "drawn per world and joint at reset; default: none",
+    "ppo.push_ramp": "(start, full) env steps of the pushes' curriculum: no kicks before start, full strength from "
+                     "full; (0, 0): full from the start",
     "env.task.start_joint_vel_std": "std of the Gaussian joint velocities a reset world starts with [rad/s]; 0: at "
                                     "rest (the robust gait test uses 0.5)",
     "env.task.start_base_vel_std": "std of the pelvis's Gaussian linear velocity at reset, per axis [m/s]; 0: at rest "

@@ -412,6 +412,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     assist = _assist_schedule(cfg, env)
     if assist is not None:
         env.base_env.set_torque_assist(assist(env_steps))
+    pushes = getattr(env.base_env, "pushes", None) is not None
+    if pushes:
+        env.base_env.set_push_scale(push_scale(ppo.push_ramp, env_steps))
     # One host read at start-up; from then on the trainer knows when it takes the teacher.
     teacher_taken = agent.teacher is not None and bool(agent.teacher.anchored)
 
@@ -474,6 +477,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             if ppo.lr_schedule == "adaptive" and not fading:
                 lr = adapt_lr(lr, stats["kl"], ppo.desired_kl)
                 _set_scheduled_lr(optimizer, lr)
+            if pushes:
+                stats["push_scale"] = push_scale(ppo.push_ramp, env_steps - batch.numel() * info.world_size)
+                env.base_env.set_push_scale(push_scale(ppo.push_ramp, env_steps))
             collector.update_policy_weights_()
             elapsed = time.perf_counter() - t_start
             train_s = prior_train_s + elapsed
@@ -545,6 +551,14 @@ def _assist_schedule(cfg: RunConfig, env: EnvBase) -> AssistSchedule | None:
     ratio = float((base.assist_gain(1.0) / base.assist_gain(0.0)).log().mean().exp())
     return AssistSchedule(ppo.torque_assist, ppo.assist_fade_start, ppo.assist_fade_end, max(ratio, 1.0),
                           anchor_decay=ppo.assist_anchor_decay)
+
+
+def push_scale(ramp: tuple[int, int], env_steps: int) -> float:
+    """The pushes' strength in [0, 1] after ``env_steps``: 0 before ``ramp[0]``, linear to 1 at ``ramp[1]``."""
+    start, full = ramp
+    if env_steps >= full:
+        return 1.0
+    return max(0.0, (env_steps - start) / (full - start))
 
 
 def _set_scheduled_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
