@@ -101,6 +101,23 @@ FIELD_HELP: dict[str, str] = {
     "transforms.obs_clip": "clip of the normalised observation; none = no clip",
     "transforms.zero_reward_on_terminated": "reward and terms are 0 on a terminating step",
     "transforms.compile_reward": "torch.compile the reward terms (not with a captured env step)",
+    "transforms.sensor_noise.joint_pos_bias": "half-width of the observed joint positions' bias [rad], U(±b) per "
+                                              "world and joint, drawn at each reset; 0: none (TOCABI lab: π/100)",
+    "transforms.sensor_noise.joint_pos_noise_std": "σ of the encoder noise on the observed joint positions, fresh "
+                                                   "every step [rad]; 0: none (TOCABI lab: 0.00016/3)",
+    "transforms.sensor_noise.joint_pos_noise_clip": "the joint-position noise is clipped to ±this [rad]; none: not "
+                                                    "clipped (TOCABI lab: 0.00016)",
+    "transforms.sensor_noise.joint_vel_noise_std": "σ of the noise on the observed joint velocities, fresh every step "
+                                                   "[rad/s]; 0: none",
+    "transforms.sensor_noise.joint_vel_noise_clip": "the joint-velocity noise is clipped to ±this [rad/s]; none: not "
+                                                    "clipped",
+    "transforms.sensor_noise.base_rpy_bias": "half-width of the IMU bias on the observed roll, pitch and yaw [rad], "
+                                             "U(±b) per world and axis, drawn at each reset; 0: none (TOCABI lab: "
+                                             "π/150)",
+    "transforms.sensor_noise.foot_force_bias": "half-width of the foot F/T force bias [N], U(±b) per world, foot and "
+                                               "axis, drawn at each reset; 0: none (TOCABI lab: 100)",
+    "transforms.sensor_noise.foot_torque_bias": "half-width of the foot F/T moment bias [N·m], U(±b) per world, foot "
+                                                "and axis, drawn at each reset; 0: none (TOCABI lab: 10)",
     "env.control.pd_action_scale": "residual range of the PD modes [rad]: target = center + scale × action",
     "ppo.torque_assist": "torque mode training aid: start scale β in [0, 1] of the morph from PD residuals (β = 1) to "
                      "torques (β = 0); 0 = off",

@@ -5,6 +5,7 @@ One module per job:
 * :mod:`.phase`: :class:`PhaseEncoding` (sin/cos harmonics of the gait phase)
 * :mod:`.orientation`: :class:`BaseEulerAngles` (the quaternion math is :mod:`tocabi_torchrl.rotations`)
 * :mod:`.observation`: :class:`ObservationAssembly` of the per-step vector (37 values in the reference order)
+* :mod:`.sensor_noise`: :class:`SensorNoise` (sensor biases and noise on that vector), :class:`SensorNoiseConfig`
 * :mod:`.normalize`: :class:`FixedNormalization` (reference statistics) and :class:`RunningNormalization`
 * :mod:`.history`: :class:`ObsActionHistory` with a :class:`HistoryLayout` (reference: 237-value input)
 * :mod:`.reward_terms`: one :class:`RewardTerm` per reference reward component; :mod:`.reward`: :class:`TaskReward`
@@ -43,6 +44,7 @@ from tocabi_torchrl.transforms.reward_terms import (
     TorqueRegulation,
     reference_terms,
 )
+from tocabi_torchrl.transforms.sensor_noise import SensorNoise, SensorNoiseConfig
 
 __all__ = [
     "PhaseEncoding",
@@ -52,6 +54,8 @@ __all__ = [
     "ObsComponent",
     "REFERENCE_OBS_LAYOUT",
     "ObservationAssembly",
+    "SensorNoise",
+    "SensorNoiseConfig",
     "REFERENCE_OBS_MEAN",
     "REFERENCE_OBS_VAR",
     "FixedNormalization",

@@ -6,6 +6,7 @@ The default chain (``default_transforms("reference")``), in order:
 1. :class:`PhaseEncoding`: ``phase`` -> ``phase_sin``, ``phase_cos`` (num_envs, harmonics)
 2. :class:`BaseEulerAngles`: ``base_quat`` -> ``base_rpy`` (num_envs, 3)
 3. :class:`ObservationAssembly`: signals -> ``obs_step`` (num_envs, 37), the reference order
+   (with ``sensor_noise`` on, :class:`SensorNoise` then adds sensor biases and noise to ``obs_step``)
 4. :class:`FixedNormalization` (or :class:`RunningNormalization`): ``obs_step`` -> ``obs_step_norm``
 5. :class:`ObsActionHistory`: ``obs_step_norm`` + ``applied_action`` -> ``observation`` (num_envs, 237)
 6. :class:`TaskReward`: ``reward`` (num_envs, 1) and ``("reward_terms", name)`` for the 13 reference terms
@@ -40,6 +41,7 @@ from tocabi_torchrl.transforms.orientation import BaseEulerAngles
 from tocabi_torchrl.transforms.phase import PhaseEncoding
 from tocabi_torchrl.transforms.reward import TaskReward
 from tocabi_torchrl.transforms.reward_terms import REFERENCE_TERMS, RewardTerm, reference_terms
+from tocabi_torchrl.transforms.sensor_noise import SensorNoise, SensorNoiseConfig
 from tocabi_torchrl.tree import check_field_types
 
 __all__ = ["TransformConfig", "TransformSettings", "PRESETS", "transform_config", "default_transforms"]
@@ -66,6 +68,7 @@ class TransformConfig:
         max_episode_steps: ``StepCounter`` truncation at this many steps, on top of the env's own; ``None`` (the
             default) counts steps without truncating, so the env's ``task.max_episode_steps`` is the one clock.
         track_episode_return: add ``RewardSum`` (``episode_reward``).
+        sensor_noise: sensor biases and noise on the observation (:class:`SensorNoiseConfig`; all 0 = none).
     """
 
     phase_harmonics: int = 1
@@ -82,6 +85,7 @@ class TransformConfig:
     # None, not the env's default 8000: a fixed limit here would cut an env configured for longer episodes.
     max_episode_steps: int | None = None
     track_episode_return: bool = True
+    sensor_noise: SensorNoiseConfig = field(default_factory=SensorNoiseConfig)
 
     def __post_init__(self):
         # Frozen copies, so that a preset cannot be changed through a config built from it.
@@ -146,6 +150,8 @@ class TransformSettings:
         reward_weights: reward re-weighting as ``"term=weight"`` entries (``"body_vel=0.9"`` triples the
             velocity-tracking term); empty = the reference weights.
         normalization, obs_clip, zero_reward_on_terminated, compile_reward: as in :class:`TransformConfig`.
+        sensor_noise: sensor biases and noise on the observation (:class:`SensorNoiseConfig`; the default, all 0,
+            adds nothing; ``SensorNoiseConfig.tocabi_lab()``: the TOCABI lab's numbers).
     """
 
     preset: str = "reference"
@@ -154,6 +160,7 @@ class TransformSettings:
     obs_clip: float | None = None
     zero_reward_on_terminated: bool = True
     compile_reward: bool = False
+    sensor_noise: SensorNoiseConfig = field(default_factory=SensorNoiseConfig)
 
     def reward_weight_map(self) -> dict[str, float]:
         """``reward_weights`` as ``{term: weight}``; raises ``ValueError`` naming a malformed or unknown entry."""
@@ -184,6 +191,7 @@ class TransformSettings:
         if self.obs_clip is not None and not (self.obs_clip > 0 and math.isfinite(self.obs_clip)):
             raise ValueError(f"transforms.obs_clip must be a finite number > 0 (the normalised observation is clipped "
                              f"to [-obs_clip, obs_clip]) or none for no clip, got {self.obs_clip!r}")
+        self.sensor_noise.validate()
 
     def transform_config(self, **overrides) -> TransformConfig:
         """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
@@ -197,7 +205,7 @@ class TransformSettings:
             weights.update(overrides.pop("reward_weights"))
         values = dict(normalization=self.normalization, obs_clip=self.obs_clip,
                       zero_reward_on_terminated=self.zero_reward_on_terminated, compile_reward=self.compile_reward,
-                      reward_weights=weights, max_episode_steps=None)
+                      reward_weights=weights, max_episode_steps=None, sensor_noise=self.sensor_noise)
         return transform_config(self.preset, **{**values, **overrides})
 
 
@@ -243,6 +251,8 @@ def default_transforms(preset: str | TransformConfig = "reference", **overrides)
         BaseEulerAngles("base_quat", "base_rpy"),
         ObservationAssembly(cfg.obs_layout, out_key="obs_step"),
     ]
+    if cfg.sensor_noise.enabled:  # off: no transform, so not a number changes
+        stages.append(SensorNoise(cfg.sensor_noise, cfg.obs_layout, obs_key="obs_step"))
     norm = _normalization(cfg)
     if norm is not None:
         stages.append(norm)

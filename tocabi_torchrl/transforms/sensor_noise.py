@@ -1,0 +1,361 @@
+"""Sensor biases and noise on what the policy observes: joint encoders, the IMU's Euler angles, the foot F/T sensors.
+
+A real robot's sensors are offset (a calibration error, fixed over an episode) and noisy (fresh every control
+period). :class:`SensorNoise` adds both to the per-step observation ``obs_step`` (num_envs, D), between
+:class:`~tocabi_torchrl.transforms.ObservationAssembly` and the normalisation, on the columns that the observation
+layout takes from each perturbed signal:
+
+=============== ============ ======== ================================================= =============================
+signal          shape        unit     per-world bias, drawn at each reset               per-step noise
+=============== ============ ======== ================================================= =============================
+``joint_pos``   (N, 33)      rad      U(±``joint_pos_bias``) per joint                  N(0, ``joint_pos_noise_std``)
+                                                                                        clipped at ±clip, per joint
+``joint_vel``   (N, 33)      rad/s    (none)                                            N(0, ``joint_vel_noise_std``)
+                                                                                        clipped at ±clip, per joint
+``base_rpy``    (N, 3)       rad      U(±``base_rpy_bias``) per roll, pitch, yaw axis    (none)
+``foot_force``  (N, 2, 3)    N        U(±``foot_force_bias``) per axis and foot          (none)
+``foot_torque`` (N, 2, 3)    N·m      U(±``foot_torque_bias``) per axis and foot         (none)
+=============== ============ ======== ================================================= =============================
+
+Where the noise goes. ``ObservationAssembly`` only gathers signal elements into columns (and casts to float32,
+which the signals already are), so adding a value to a column of ``obs_step`` is exactly adding it to that signal
+element before the assembly reads it. The raw keys (``joint_pos``, ``foot_force``, ...) stay the true signals, and
+the reward terms, which read them, never see the perturbation; no noisy copy of a signal is stored with the rollout;
+and the observation still names the raw signals, so an exported policy's contract (``export/``) lists the signals a
+robot provides. The IMU bias is added to the Euler angles that the observation holds (``base_rpy``, from
+:class:`~tocabi_torchrl.transforms.BaseEulerAngles`), not composed with ``base_quat`` as a small rotation: the
+lab's numbers are per roll, pitch and yaw axis of those angles, and a rotation composed with the attitude would turn
+into other Euler offsets (a roll offset becomes pitch as the robot turns). A biased angle beyond ±π is wrapped
+back into (−π, π], the range of the unbiased one.
+
+Random numbers. Every draw comes from the env's counter-based hash
+(:func:`tocabi_torchrl.envs.episode_random.episode_uniform`), never from a generator: a world's biases are keyed
+on (seed, env index, episode number) and its noise on (seed, env index, episode number, step in the episode), each
+signal with a stream of its own (:data:`BIAS_STREAMS`, :data:`NOISE_STREAMS`). World i's draws therefore depend
+neither on the other worlds nor on how often or in which order reset and step run, and the noise of a step is a
+function of the env's device counters, so a captured CUDA graph of the step draws fresh numbers on every replay
+without any Python state. The biases live in (N, ...) device tensors, redrawn in place with ``torch.where`` for the
+worlds a reset flags: no host reads. Normals are Box-Muller pairs of those uniforms.
+
+>>> from tocabi_torchrl.transforms import SensorNoiseConfig
+>>> cfg = SensorNoiseConfig.tocabi_lab()
+>>> cfg.enabled, round(cfg.joint_pos_bias, 5), cfg.joint_pos_noise_clip
+(True, 0.03142, 0.00016)
+>>> SensorNoiseConfig().enabled  # the default adds no transform
+False
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from numbers import Real
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import Composite
+from torchrl.envs.transforms import Transform
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.envs.episode_random import episode_uniform
+from tocabi_torchrl.transforms._checks import require_spec
+from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsComponent
+
+__all__ = ["SensorNoiseConfig", "SensorNoise", "SENSORS", "BIAS_STREAMS", "NOISE_STREAMS", "sensor_biases",
+           "sensor_noise"]
+
+#: The signals :class:`SensorNoise` perturbs: key -> its shape per world (without the batch dimension).
+SENSORS: Mapping[str, tuple[int, ...]] = {
+    "joint_pos": (robot.NUM_JOINTS,),
+    "joint_vel": (robot.NUM_JOINTS,),
+    "base_rpy": (3,),
+    "foot_force": (2, 3),
+    "foot_torque": (2, 3),
+}
+#: Hash stream of each signal's per-episode bias and of its per-step noise (``episode_uniform``'s ``stream``). Other
+#: per-episode draws of the package use streams below 32; one stream per signal keeps a signal's numbers the same
+#: whichever other signals are perturbed.
+BIAS_STREAMS: Mapping[str, int] = {name: 32 + i for i, name in enumerate(SENSORS)}
+NOISE_STREAMS: Mapping[str, int] = {name: 40 + i for i, name in enumerate(SENSORS)}
+# The step occupies the low 32 bits of the noise key, the episode number the bits above (2**32 steps = 198 days).
+_STEP_BITS = 32
+
+
+@dataclass(frozen=True)
+class SensorNoiseConfig:
+    """Sensor biases and noise on the policy's observation (the run config's ``transforms.sensor_noise``). Every
+    value defaults to 0, which perturbs nothing: with all of them 0 no transform is added and no number changes.
+
+    Attributes:
+        joint_pos_bias: half-width [rad] of the joint-position bias, U(±b) per world and joint, drawn at reset.
+        joint_pos_noise_std: σ [rad] of the encoder noise added to the joint positions every step.
+        joint_pos_noise_clip: the encoder noise is clipped to ±clip [rad]; None: not clipped.
+        joint_vel_noise_std: σ [rad/s] of the noise added to the joint velocities every step.
+        joint_vel_noise_clip: the joint-velocity noise is clipped to ±clip [rad/s]; None: not clipped.
+        base_rpy_bias: half-width [rad] of the IMU orientation bias, U(±b) per world and roll/pitch/yaw axis, drawn
+            at reset and added to the observed Euler angles.
+        foot_force_bias: half-width [N] of the F/T force bias, U(±b) per world, foot and axis, drawn at reset.
+        foot_torque_bias: half-width [N·m] of the F/T moment bias, U(±b) per world, foot and axis, drawn at reset.
+    """
+
+    joint_pos_bias: float = 0.0
+    joint_pos_noise_std: float = 0.0
+    joint_pos_noise_clip: float | None = None
+    joint_vel_noise_std: float = 0.0
+    joint_vel_noise_clip: float | None = None
+    base_rpy_bias: float = 0.0
+    foot_force_bias: float = 0.0
+    foot_torque_bias: float = 0.0
+
+    def __post_init__(self):
+        self.validate()
+
+    @classmethod
+    def tocabi_lab(cls) -> SensorNoiseConfig:
+        """The TOCABI lab's numbers, as its real-robot training draws them: joint-position bias U(±π/100) rad,
+        IMU bias U(±π/150) rad per axis, F/T bias U(±100) N and U(±10) N·m per axis and foot, and encoder noise
+        σ = 0.00016/3 rad clipped at ±0.00016 rad (3σ) every step. The joint velocities are left alone."""
+        return cls(joint_pos_bias=math.pi / 100, joint_pos_noise_std=0.00016 / 3, joint_pos_noise_clip=0.00016,
+                   base_rpy_bias=math.pi / 150, foot_force_bias=100.0, foot_torque_bias=10.0)
+
+    def validate(self, prefix: str = "transforms.sensor_noise.") -> None:
+        """Raise ``ValueError`` naming the first bad value by its path (``transforms.sensor_noise.<name>``)."""
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if value is None and f.name.endswith("_clip"):
+                continue
+            ok = (not isinstance(value, bool) and isinstance(value, Real) and math.isfinite(value)
+                  and (value > 0 if f.name.endswith("_clip") else value >= 0))
+            if not ok:
+                what = ("a finite number > 0, or None for no clip" if f.name.endswith("_clip")
+                        else "a finite number >= 0 (0 = off)")
+                raise ValueError(f"{prefix}{f.name} must be {what}, got {value!r}")
+
+    @property
+    def enabled(self) -> bool:
+        """True when some bias or noise is not 0 (a clip alone changes nothing)."""
+        return any(self.bias(name) > 0 or self.noise(name)[0] > 0 for name in SENSORS)
+
+    def bias(self, signal: str) -> float:
+        """The bias half-width of ``signal`` (a key of :data:`SENSORS`) in its unit; 0 for none."""
+        return float(getattr(self, f"{signal}_bias", 0.0))
+
+    def noise(self, signal: str) -> tuple[float, float | None]:
+        """(σ, clip) of ``signal``'s per-step noise in its unit; σ = 0 for none."""
+        return float(getattr(self, f"{signal}_noise_std", 0.0)), getattr(self, f"{signal}_noise_clip", None)
+
+    def perturbed(self) -> tuple[str, ...]:
+        """The signals with a bias or noise, in :data:`SENSORS` order."""
+        return tuple(name for name in SENSORS if self.bias(name) > 0 or self.noise(name)[0] > 0)
+
+
+def _normals(seed, env_ids: torch.Tensor, key: torch.Tensor, stream: int, k: int) -> torch.Tensor:
+    """(N, k) standard normals of the hash key ``key`` (N,): Box-Muller on ``2·ceil(k/2)`` uniforms of ``stream``,
+    both the cosine and the sine of each pair used."""
+    m = (k + 1) // 2
+    u = episode_uniform(seed, env_ids, key, stream, 2 * m)
+    radius = torch.sqrt(-2.0 * torch.log1p(-u[:, :m]))  # 1 - u in (0, 1]: the log is finite
+    angle = (2.0 * math.pi) * u[:, m:]
+    return torch.cat((radius * torch.cos(angle), radius * torch.sin(angle)), dim=-1)[:, :k]
+
+
+def sensor_biases(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: torch.Tensor,
+                  episode: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Each biased signal's bias for each world's ``episode``: ``{signal: (N, *SENSORS[signal])}`` float32 in the
+    signal's unit, U(±half-width) per element. ``env_ids``, ``episode``: (N,) int64; ``seed``: an int or a 0-d int64
+    tensor on their device."""
+    out = {}
+    for name, shape in SENSORS.items():
+        half = config.bias(name)
+        if half > 0:
+            u = episode_uniform(seed, env_ids, episode, BIAS_STREAMS[name], math.prod(shape))
+            out[name] = (half * (2.0 * u - 1.0)).reshape(-1, *shape)
+    return out
+
+
+def sensor_noise(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: torch.Tensor, episode: torch.Tensor,
+                 step: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Each noisy signal's noise at each world's (``episode``, ``step``): ``{signal: (N, *SENSORS[signal])}``
+    float32, N(0, σ²) per element, clipped to ±clip. ``step``: (N,) int64 policy steps since the episode began (the
+    env's ``episode_step``), below 2**32."""
+    key = (episode.to(torch.int64) << _STEP_BITS) + step.to(torch.int64)
+    out = {}
+    for name, shape in SENSORS.items():
+        std, clip = config.noise(name)
+        if std > 0:
+            z = std * _normals(seed, env_ids, key, NOISE_STREAMS[name], math.prod(shape))
+            if clip is not None:
+                z = z.clamp(-clip, clip)
+            out[name] = z.reshape(-1, *shape)
+    return out
+
+
+_KEY_SOURCE = ("_seed_t", "_env_ids", "episode_count", "episode_step")
+
+
+class SensorNoise(Transform):
+    """Adds per-world sensor biases and per-step sensor noise to the observation ``obs_key`` (see the module doc).
+
+    Reads and rewrites ``obs_key`` (num_envs, D) float32, whose columns ``layout`` describes (the layout given to
+    :class:`~tocabi_torchrl.transforms.ObservationAssembly`); put it right after that transform. The raw signal keys
+    are left as they are. Runs on every step and on reset; at a reset the flagged worlds get new biases first.
+    The random numbers are keyed on the base env's device counters (``TocabiWalk``'s ``_seed_t``, ``_env_ids``,
+    ``episode_count``, ``episode_step``), so the transform belongs to one env.
+
+    Attributes:
+        biases: ``{signal: (num_envs, *shape)}`` the current bias of each world [the signal's unit] (after the
+            first reset).
+
+    Args:
+        config: the ranges (:class:`SensorNoiseConfig`); an all-zero one is refused (leave the transform out).
+        layout: the observation's blocks; every perturbed signal must be read by one.
+        obs_key: the per-step observation the noise is added to.
+
+    >>> import torch
+    >>> from tocabi_torchrl import make_env
+    >>> from tocabi_torchrl.transforms import SensorNoiseConfig
+    >>> env = make_env(num_envs=2, device="cpu", seed=0, sensor_noise=SensorNoiseConfig.tocabi_lab())
+    >>> td = env.reset()
+    >>> noise = next(t for t in env.transform if isinstance(t, SensorNoise))
+    >>> tuple(noise.biases["joint_pos"].shape), bool(noise.biases["joint_pos"].abs().max() <= torch.pi / 100)
+    ((2, 33), True)
+    """
+
+    def __init__(self, config: SensorNoiseConfig, layout: tuple[ObsComponent, ...] = REFERENCE_OBS_LAYOUT,
+                 obs_key: NestedKey = "obs_step"):
+        if not isinstance(config, SensorNoiseConfig):
+            raise TypeError(f"SensorNoise takes a SensorNoiseConfig, e.g. SensorNoiseConfig.tocabi_lab(), got "
+                            f"{type(config).__name__}")
+        if not config.enabled:
+            raise ValueError("SensorNoise got a config that perturbs nothing (every bias and noise is 0); leave the "
+                             "transform out, or set a range, e.g. SensorNoiseConfig.tocabi_lab()")
+        layout = tuple(layout)
+        read = {c.key for c in layout}
+        missing = [name for name in config.perturbed() if name not in read]
+        if missing:
+            raise ValueError(f"SensorNoise perturbs {missing}, which the observation layout does not read (its keys: "
+                             f"{sorted(map(str, read))}); set those ranges to 0 or add the signal to the layout")
+        super().__init__(in_keys=[obs_key], out_keys=[obs_key])
+        self.config = config
+        self.layout = layout
+        self.biases: dict[str, torch.Tensor] = {}
+        # Column maps, from the specs: per perturbed signal, which obs columns take which of its flat elements.
+        self._columns: dict[str, tuple[list[int], list[int]]] | None = None
+        self._width = 0
+        self._source: tuple[torch.Tensor, ...] | None = None
+        self._index: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    # ---------------------------------------------------------------------------------------------- set-up
+    def _map_columns(self, spec: Composite) -> None:
+        batch = tuple(spec.shape)
+        perturbed = self.config.perturbed()
+        columns: dict[str, tuple[list[int], list[int]]] = {name: ([], []) for name in perturbed}
+        start = 0
+        for c in self.layout:
+            shape = tuple(require_spec(spec, c.key, self).shape)[len(batch):]
+            if c.key in columns and shape != SENSORS[c.key]:
+                raise ValueError(f"SensorNoise expects {c.key!r} of shape (num_envs, *{SENSORS[c.key]}), the env "
+                                 f"gives (num_envs, *{shape}); perturb the signals of TocabiWalk (docs/signals.md) "
+                                 "or set that range to 0")
+            # The block's flat elements, in the order ObservationAssembly concatenates them.
+            elements = torch.arange(math.prod(shape)).reshape(shape)[c.index].flatten()
+            if c.key in columns:
+                cols, elems = columns[c.key]
+                cols.extend(range(start, start + elements.numel()))
+                elems.extend(elements.tolist())
+            start += elements.numel()
+        obs = require_spec(spec, self.in_keys[0], self)
+        if obs.shape[-1] != start:
+            raise ValueError(f"SensorNoise: {self.in_keys[0]!r} has {obs.shape[-1]} columns but the layout gives "
+                             f"{start}; pass SensorNoise the layout of the ObservationAssembly in front of it")
+        if columns != self._columns:
+            self._columns, self._width, self._index, self.biases = columns, start, {}, {}
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        self._map_columns(observation_spec)  # nothing new to declare: obs_key keeps its spec
+        self._source = None  # the env may have changed
+        return observation_spec
+
+    def _key_source(self) -> tuple[torch.Tensor, ...]:
+        if self._source is None:
+            parent = self.parent
+            base = getattr(parent, "base_env", parent)
+            missing = [name for name in _KEY_SOURCE if not isinstance(getattr(base, name, None), torch.Tensor)]
+            if missing:
+                raise TypeError(f"SensorNoise keys its random numbers on the env's counters {list(_KEY_SOURCE)}, "
+                                f"which {type(base).__name__} lacks ({missing}); use it on a TocabiWalk (make_env, "
+                                "default_transforms)")
+            self._source = tuple(getattr(base, name) for name in _KEY_SOURCE)
+        if self._columns is None:
+            self._map_columns(self.parent.observation_spec)
+        return self._source
+
+    def _materialise(self) -> None:
+        """Index tensors and bias buffers on the env's device (once, eagerly: the first reset runs before any
+        capture), the biases drawn for every world's current episode."""
+        seed, env_ids, episode, _ = self._source
+        if self._index:
+            return
+        dev = env_ids.device
+        self._index = {name: (torch.tensor(cols, dtype=torch.int64, device=dev),
+                              torch.tensor(elems, dtype=torch.int64, device=dev))
+                       for name, (cols, elems) in self._columns.items()}
+        self.biases = sensor_biases(self.config, seed, env_ids, episode)
+        self._bias_cols = torch.zeros(env_ids.shape[0], self._width, dtype=torch.float32, device=dev)
+        self._gather_biases()
+        # The Euler angles' columns, wrapped back into (-pi, pi] after the bias.
+        wrap = torch.zeros(self._width, dtype=torch.bool, device=dev)
+        if "base_rpy" in self.biases:
+            wrap[self._index["base_rpy"][0]] = True
+        self._wrap = wrap if "base_rpy" in self.biases else None
+
+    def _gather_biases(self) -> None:
+        """``_bias_cols`` (N, D): each world's bias in the obs columns of its signals, 0 elsewhere (in place)."""
+        full = torch.zeros_like(self._bias_cols)
+        for name, bias in self.biases.items():
+            cols, elems = self._index[name]
+            full.index_copy_(1, cols, bias.flatten(1).index_select(1, elems))
+        self._bias_cols.copy_(full)
+
+    # ------------------------------------------------------------------------------------------------ calls
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        seed, env_ids, episode, _ = self._key_source()
+        if not self._index:
+            self._materialise()
+        else:
+            reset = None if tensordict is None else tensordict.get("_reset", None)
+            n = env_ids.shape[0]
+            mask = torch.ones(n, dtype=torch.bool, device=env_ids.device) if reset is None else reset.reshape(n)
+            # The base env has counted the new episode already: the flagged worlds' key is their new episode.
+            drawn = sensor_biases(self.config, seed, env_ids, episode)
+            for name, bias in self.biases.items():
+                m = mask.reshape(n, *([1] * (bias.dim() - 1)))
+                bias.copy_(torch.where(m, drawn[name], bias))
+            self._gather_biases()
+        return self._call(tensordict_reset)
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        seed, env_ids, episode, step = self._key_source()
+        if not self._index:
+            raise RuntimeError("SensorNoise: reset the env before stepping it (the biases are drawn at reset)")
+        obs = next_tensordict.get(self.in_keys[0])
+        obs = obs + self._bias_cols
+        for name, noise in sensor_noise(self.config, seed, env_ids, episode, step).items():
+            cols, elems = self._index[name]
+            obs = obs.index_add(1, cols, noise.flatten(1).index_select(1, elems))
+        if self._wrap is not None:
+            two_pi = 2.0 * math.pi
+            obs = torch.where(self._wrap & (obs > math.pi), obs - two_pi,
+                              torch.where(self._wrap & (obs <= -math.pi), obs + two_pi, obs))
+        next_tensordict.set(self.out_keys[0], obs)
+        return next_tensordict
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Stored data (a replay buffer sample) passes unchanged: the noise belongs to the env's steps, keyed on
+        its counters, and a stored ``obs_step`` already holds it."""
+        return tensordict
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(signals={list(self.config.perturbed())}, obs_key={self.in_keys[0]!r})"
