@@ -196,6 +196,17 @@ def test_resume_loads_only_a_state_the_recipe_wrote(tmp_path):
     torch.save({"iter": 1, "object": TimeUp("pickled")}, out / "resume" / "state_call1.pt")
     with pytest.raises(SystemExit, match="does not load as tensors only"):
         read_resume(out, torch_state=True)
+    # a state whose tensor bytes changed after it was written is refused by its zip CRCs, for every library
+    torch.save({"iter": 1, "weights": torch.arange(512.0)}, out / "resume" / "state_call1.pt")
+    data = bytearray((out / "resume" / "state_call1.pt").read_bytes())
+    start = bytes(data).index(torch.arange(512.0).numpy().tobytes()[:64])
+    for i in range(start, start + 256, 4):
+        data[i] ^= 1
+    (out / "resume" / "state_call1.pt").write_bytes(bytes(data))
+    assert torch.load(out / "resume" / "state_call1.pt", weights_only=True)["iter"] == 1  # torch reads it silently
+    for torch_state in (False, True):
+        with pytest.raises(SystemExit, match="is damaged: entry .* fails its CRC-32 check"):
+            read_resume(out, torch_state=torch_state)
 
 
 def test_training_clock_saves_snapshots_and_stops(tmp_path):

@@ -158,9 +158,13 @@ def test_osmesa_is_checked_before_mujoco_loads():
         choose_gl_backend(environ)
     assert choose_gl_backend({}) in ("egl", "disable", None) and choose_gl_backend({"MUJOCO_GL": "egl"}) == "egl"
     env = {**os.environ, "MUJOCO_GL": "osmesa", "PYTHONPATH": str(REPO)}
-    proc = subprocess.run([sys.executable, str(REPO / "recipes" / "play.py"), "--help"], env=env,
+    # --help answers whatever the GL setting; a run checks it before mujoco loads.
+    proc = subprocess.run([sys.executable, str(REPO / "recipes" / "play.py"), "--checkpoint", "missing.pt"], env=env,
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1 and "MUJOCO_GL=osmesa needs" in proc.stderr and "Traceback" not in proc.stderr
+    help_proc = subprocess.run([sys.executable, str(REPO / "recipes" / "play.py"), "--help"], env=env,
+                               capture_output=True, text=True, timeout=120)
+    assert help_proc.returncode == 0 and "--checkpoint" in help_proc.stdout
 
 
 @needs_policy

@@ -177,6 +177,11 @@ def read_resume(out: Path, torch_state: bool = False) -> dict:
     if state.parent != (out / "resume").resolve() or not state.is_file():
         raise SystemExit(f"error: {path} names {prior['state']!r} as its state file; a resume loads only a state this "
                          f"recipe wrote into {out / 'resume'}/ (start a new --out instead)")
+    from ..integrity import zip_damage
+
+    damage = zip_damage(state)
+    if damage is not None:  # bits changed on disk or in a copy: torch.load would read other weights silently
+        raise SystemExit(f"error: {state} is damaged: {damage}; restore the file from a copy or start a new --out")
     if torch_state:
         import torch
 
