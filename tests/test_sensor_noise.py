@@ -254,6 +254,28 @@ def test_sync_free_steps_follow_every_reset():
     assert int(episodes.min()) >= 3
 
 
+def test_step_and_reset_are_capture_safe_cpu_proxy(env_pair):
+    # What a captured step needs, checked on the CPU: no op that would read a device value on the host, and no
+    # Python state that moves per step (every buffer updated in place, never rebound).
+    from test_transforms_presets import _HostSyncOps
+
+    _, env = env_pair
+    td = env.reset()
+    stage = _noise_stage(env)
+    state = {k: id(v) for k, v in vars(stage).items() if isinstance(v, (torch.Tensor, dict, tuple))}
+    buffers = [id(t) for t in (*stage.biases.values(), stage._bias_cols)]
+    td_in = td.clone().set("_reset", torch.tensor([[True], [False], [True], [False]]))
+    td_reset = env.base_env._reset(td_in)
+    with _HostSyncOps() as ops:
+        stage._call(td.clone())
+        env.transform._reset(td_in, td_reset)  # the chain's reset: the assembly, then this stage
+    assert ops.hits == []
+    for _ in range(3):
+        td = env.step(td.set("action", torch.zeros(4, 13)))["next"]
+    assert state == {k: id(v) for k, v in vars(stage).items() if isinstance(v, (torch.Tensor, dict, tuple))}
+    assert buffers == [id(t) for t in (*stage.biases.values(), stage._bias_cols)]
+
+
 # ------------------------------------------------------------------------------------------------------ GPU
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
