@@ -427,7 +427,7 @@ _TOP_LEVEL = ("preset", "name", "run_dir", "seed", "device", "resume", "total_en
               "checkpoint_minutes", "eval_at_end", "eval_envs", "eval_seconds")
 
 #: PPO options added after the tree: they have no flat name.
-_PPO_AFTER_THE_TREE = ("grad_sync", "matmul_precision")
+_PPO_AFTER_THE_TREE = ("grad_sync", "matmul_precision", "push_ramp")
 #: Each field of the flat ``PPOConfig`` (before the tree; checkpoints up to schema version 1 store it) -> its path in
 #: the tree. ``command_preset`` and ``pd_gains`` were names for values and become those values (:func:`flat_to_paths`).
 FLAT_PATHS: Mapping[str, str] = MappingProxyType({
