@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from .. import robot
 from ..control.config import ActuatorConfig
 from ..sim.config import RESET_PASSES
+from ..sim.dynamics import DynamicsRandomization
 from ..tree import OWN_NUMBER_CHECK, check_field_types
 from ..value_rules import ENV_RULES, check_env_value
 from .command import CommandConfig
@@ -363,6 +364,8 @@ class TocabiWalkConfig:
         command: :class:`~tocabi_torchrl.envs.command.CommandConfig` (velocity command schedule).
         control: :class:`ControlConfig` (what the leg actions command).
         scene: :class:`SceneConfig` (obstacles on the ground).
+        dynamics: :class:`~tocabi_torchrl.sim.dynamics.DynamicsRandomization` (per-world link masses, joint damping,
+            armature and friction, drawn at every reset; off by default).
         pushes: :class:`~tocabi_torchrl.envs.pushes.PushConfig` (velocity kicks during an episode; off by default).
     """
 
@@ -373,6 +376,7 @@ class TocabiWalkConfig:
     control: ControlConfig = field(default_factory=ControlConfig)
     scene: SceneConfig = field(default_factory=SceneConfig)
     pushes: PushConfig = field(default_factory=PushConfig)
+    dynamics: DynamicsRandomization = field(default_factory=DynamicsRandomization)
 
     @classmethod
     def reference(cls, **flat) -> TocabiWalkConfig:
@@ -391,7 +395,7 @@ class TocabiWalkConfig:
         unknown = sorted(set(flat) - set(ENV_FLAT_PATHS) - sections)
         if unknown:
             raise TypeError(f"unknown TocabiWalk option(s) {unknown}; use a section (num_envs, sim, task, command, "
-                            f"control, scene, pushes) or one of {sorted(ENV_FLAT_PATHS)}")
+                            f"control, scene, pushes, dynamics) or one of {sorted(ENV_FLAT_PATHS)}")
         return replace_paths(self, {ENV_FLAT_PATHS.get(k, k): v for k, v in flat.items()})
 
     @property
@@ -413,3 +417,4 @@ class TocabiWalkConfig:
         self.command.validate()
         self.scene.validate()
         self.pushes.validate()
+        self.dynamics.validate()

@@ -24,6 +24,7 @@ from ..motion import ReferenceMotion
 from ..rotations import quat_rotate_inverse
 from ..signals import EPISODE_FLAGS, REWARD, SIGNALS, SignalTable
 from ..sim import MujocoSim, SimBackend, SimConfig, WarpSim
+from ..sim.dynamics import WorldDynamics
 from .command import VelocityCommand
 from .config import TocabiWalkConfig, resolve_backend
 from .controllers import leg_actuator_chain, leg_law, upper_body_law
@@ -167,16 +168,28 @@ class TocabiWalk(EnvBase):
         self.backend = resolve_backend(sim.backend, device)
         # A delayed actuator changes the legs' torques inside the step: the simulator applies them substep by substep.
         substep_ctrl = tuple(robot.LEG_JOINT_IDS) if self.leg_actuators.per_substep else ()
+        # Per-world dynamics (env.dynamics): the model fields it draws get one row per world in the simulator, and
+        # the reset runs the full pass (the reduced pass's start-state table holds the nominal model's sensors and
+        # accelerations, which a world's own masses, damping, armature and friction change).
+        world_fields = cfg.dynamics.sim_fields
+        reset_pass = "full" if world_fields else sim.reset_pass
         if self.backend == "warp":
             buffers = {k: v for k, v in (("nconmax", sim.nconmax), ("njmax", sim.njmax)) if v is not None}
             sim_cfg = SimConfig(num_worlds=num_envs, device=str(device), substeps=sim.substeps,
-                                reset_pass=sim.reset_pass, substep_ctrl=substep_ctrl, **buffers)
+                                reset_pass=reset_pass, substep_ctrl=substep_ctrl, per_world_fields=world_fields,
+                                **buffers)
             self.sim = WarpSim(sim_cfg, model=spec, mocap_pos=mocap)
         else:
             sim_cfg = SimConfig(num_worlds=num_envs, device="cpu", substeps=sim.substeps, threads=sim.threads,
-                                substep_ctrl=substep_ctrl)
+                                substep_ctrl=substep_ctrl, per_world_fields=world_fields)
             self.sim = MujocoSim(sim_cfg, model=spec, mocap_pos=mocap)
         self.dt = self.sim.mj_model.opt.timestep * sim.substeps
+        #: Each world's link masses, joint damping, armature and friction, drawn at every reset (``env.dynamics``,
+        #: ``tocabi_torchrl.sim.dynamics``), or None when every range is off (nothing is drawn or written).
+        self.dynamics: WorldDynamics | None = None
+        if cfg.dynamics.enabled:
+            self.dynamics = WorldDynamics(cfg.dynamics)
+            self.dynamics.setup(self.sim)
         motion = cfg.task.motion
         self.motion = ReferenceMotion.default() if motion is None else ReferenceMotion.from_file(motion)
         self.motion = self.motion.to(device)
@@ -197,6 +210,7 @@ class TocabiWalk(EnvBase):
         #: start row of the reference motion, are registered with the simulator here.
         # Diverse starts (random start velocities) are not in the start-state table: they take the full pass.
         self._reduced_reset = self.backend == "warp" and sim.reset_pass == "reduced" and not cfg.task.diverse_starts
+        self._reduced_reset = self._reduced_reset and reset_pass == "reduced"  # see world_fields above
         if self._reduced_reset:
             self._register_start_states()
         self._make_specs()
@@ -487,6 +501,9 @@ class TocabiWalk(EnvBase):
         if self.leg_actuators.draws:  # each episode's actuator parameters, keyed like the start row
             self.leg_actuators.reset(mask, episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=1,
                                                            k=self.leg_actuators.draws))
+        if self.dynamics is not None:  # each episode's masses, damping, armature and friction, keyed the same way
+            self.dynamics.reset(mask, episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=2,
+                                                      k=self.dynamics.draws))
         if self.pushes is not None:
             self.pushes.reset(mask, episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=17,
                                                     k=self.pushes.draws))

@@ -79,6 +79,15 @@ FIELD_HELP: dict[str, str] = {
     "env.sim.threads": "CPU threads of the mujoco backend; none = every available core",
     "env.sim.reset_pass": "mujoco-warp reset: full forward pass, or reduced (position and velocity stages plus a "
                           "start-state table; the same result)",
+    "env.dynamics.mass_scale": "(low, high) scale of each link's mass and inertia, drawn per world and body at every "
+                               "reset; default (1, 1): off",
+    "env.dynamics.joint_damping": "(low, high) damping added to each joint [N·m·s/rad], drawn per world and joint at "
+                                  "every reset; default (0, 0): off",
+    "env.dynamics.armature_scale": "(low, high) scale of each joint's armature, drawn per world and joint at every "
+                                   "reset; default (1, 1): off",
+    "env.dynamics.friction_scale": "(low, high) scale of every geom's sliding friction (so of the ground contact's), "
+                                   "drawn per world at every reset; the shipped model's is 1, so (0.4, 1.0) is "
+                                   "friction U(0.4, 1.0); default (1, 1): off",
     "env.task.motion": "reference motion (.npz or reference .txt); none = the shipped cycle",
     "env.task.model_path": "robot model XML; none = the shipped TOCABI",
     "env.task.phase_rate_gain": "phase clock speed-up per unit of the phase action",

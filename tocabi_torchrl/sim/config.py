@@ -10,10 +10,14 @@ import torch
 from .buffers import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX
 from .health import HEALTH_OVERFLOW_MASK
 
-__all__ = ["SimConfig", "NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH", "RESET_PASSES", "available_cores"]
+__all__ = ["SimConfig", "NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH", "RESET_PASSES", "PER_WORLD_FIELDS",
+           "available_cores"]
 
 #: ``SimConfig.reset_pass`` values: the full forward pass, or the reduced one for registered start states.
 RESET_PASSES = ("full", "reduced")
+#: ``SimConfig.per_world_fields`` values: the model fields a backend can give one row per world (all of them are
+#: per-world ("batched") fields of mujoco-warp's ``Model``; ``tocabi_torchrl.sim.dynamics`` draws them).
+PER_WORLD_FIELDS = ("body_mass", "body_inertia", "body_subtreemass", "dof_damping", "dof_armature", "geom_friction")
 
 
 def available_cores() -> int:
@@ -58,6 +62,10 @@ class SimConfig:
             substeps, ``tocabi_torchrl.control.Delay``): before physics substep s, actuator ``substep_ctrl[j]`` takes
             the value ``sim.substep_ctrl[:, s, j]`` instead of ``ctrl``. Empty (default): ``ctrl`` holds for the whole
             step and nothing is copied.
+        per_world_fields: model fields (names of :data:`PER_WORLD_FIELDS`) that get one row per world, exposed as
+            the simulator's ``model_fields[name]`` (N, ...) tensors; writing a row changes that world's physics from
+            its next step, reset or forward pass (``tocabi_torchrl.sim.dynamics`` draws them at every reset). Empty
+            (default): every world reads the one compiled model, as before the field existed.
         threads: CPU threads that step the worlds of :class:`MujocoSim` (``None``: every available core, see
             :func:`available_cores`). Ignored by ``WarpSim``, as are ``MujocoSim``'s own limits: ``nconmax``,
             ``njmax``, ``contact_sensor_maxmatch``, ``use_graph``, ``health_overflow_mask``,
@@ -81,6 +89,7 @@ class SimConfig:
     threads: int | None = None
     reset_pass: str = "full"
     substep_ctrl: tuple[int, ...] = ()
+    per_world_fields: tuple[str, ...] = ()
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field and what it should be."""
@@ -103,6 +112,10 @@ class SimConfig:
         if (not isinstance(cols, (tuple, list)) or len(set(cols)) != len(cols)
                 or any(isinstance(c, bool) or not isinstance(c, int) or c < 0 for c in cols)):
             raise ValueError(f"SimConfig.substep_ctrl must be distinct actuator indices >= 0, got {cols!r}")
+        fields = self.per_world_fields
+        if (not isinstance(fields, (tuple, list)) or len(set(fields)) != len(fields)
+                or any(f not in PER_WORLD_FIELDS for f in fields)):
+            raise ValueError(f"SimConfig.per_world_fields must be distinct names of {PER_WORLD_FIELDS}, got {fields!r}")
         if not isinstance(self.device, (str, torch.device)):
             raise ValueError(f"SimConfig.device must be a string like 'cpu' or 'cuda:0', got {self.device!r}")
 

@@ -20,6 +20,12 @@ warm start. Since that forward pass already computed the position and velocity s
 step's first substep is ``mj_step2``; the trajectory is bit-identical to ``mj_step`` × ``substeps`` after such a
 forward pass (``tests/test_sim_mujoco.py``).
 
+Per-world model fields (``SimConfig.per_world_fields``): each world then steps its own copy of the model (one copy:
+its substeps switch the copy's sensor flag off and back, as only that world's thread uses it), and :attr:`MujocoSim.model_fields` holds every world's row of those fields as float64
+tensors. A world whose rows changed since they were last taken gets them copied into its models before its next
+step, reset or forward pass (only that world's; the comparison is one vectorised check per field). Without the
+option every world reads the one compiled model, as before.
+
 Contact signals come from the same contact sensors and :class:`~tocabi_torchrl.sim.contacts.ContactLayout` sums as
 the warp backend. Health: finite qpos/qvel/sensordata and none of
 :data:`~tocabi_torchrl.sim.mujoco_health.MUJOCO_HEALTH_WARNINGS` since the world's last reset (C MuJoCo resets a
@@ -67,7 +73,7 @@ class MujocoSim(SimViews):
             ``threads`` apply (the mujoco-warp buffer settings do not, see :class:`SimConfig`). ``device`` must be
             ``"cpu"``.
         model, mocap_pos: as for :class:`~tocabi_torchrl.sim.WarpSim` (the per-world mocap positions live in each
-            world's ``MjData``, so every world shares the one compiled model).
+            world's ``MjData``, so every world shares the one compiled model unless ``per_world_fields`` is set).
 
     Tensors: the same names, shapes and dtypes as ``WarpSim`` (see its docstring), on the CPU. They are the
     simulator's own buffers: writing ``ctrl`` is how actions reach the physics, and they are overwritten by the next
@@ -85,7 +91,8 @@ class MujocoSim(SimViews):
         self.threads = min(cfg.resolved_threads(), n)
 
         mj = compile_model(model, cfg)
-        check_fits(n, mujoco_world_bytes(mj), self.device, "C MuJoCo")
+        own_models = mj.nbuffer if cfg.per_world_fields else 0  # a model per world
+        check_fits(n, mujoco_world_bytes(mj) + own_models, self.device, "C MuJoCo")
         self.mj_model = mj
         self.contact_layout: ContactLayout = contact_layout(mj)
         #: (N, nmocap, 3) float64 mocap positions each world starts and resets with, or None (the model's).
@@ -98,6 +105,7 @@ class MujocoSim(SimViews):
         if not cfg.sensors_every_substep:
             self._substep_model = copy.deepcopy(mj)
             self._substep_model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
+        self._per_world_models(mj)
         self._data = [mujoco.MjData(mj) for _ in range(n)]
         #: The ``MjData`` of each world (float64), for inspection; change state through reset/ctrl, not here.
         self.mj_data: tuple[mujoco.MjData, ...] = tuple(self._data)
@@ -112,6 +120,57 @@ class MujocoSim(SimViews):
                    torch.zeros(self.nv))
 
     # ----------------------------------------------------------------------------------------------- construction
+    def _per_world_models(self, mj: mujoco.MjModel) -> None:
+        """``SimConfig.per_world_fields``: a model per world and the (N, ...) float64 rows of those fields; nothing
+        without them."""
+        names, n = tuple(self.config.per_world_fields), self.num_worlds
+        self._world_models = None
+        self._model_fields: dict[str, torch.Tensor] = {}
+        self._fields_taken: dict[str, torch.Tensor] = {}  # the rows each world's models hold
+        if not names:
+            return
+        self._world_models = [copy.deepcopy(mj) for _ in range(n)]
+        for name in names:
+            nominal = np.asarray(getattr(mj, name), dtype=np.float64)
+            self._model_fields[name] = torch.from_numpy(np.broadcast_to(nominal, (n, *nominal.shape)).copy())
+            self._fields_taken[name] = self._model_fields[name].clone()
+        self._field_rows = {name: t.numpy() for name, t in self._model_fields.items()}  # read by the worker threads
+
+    @property
+    def model_fields(self) -> dict[str, torch.Tensor]:
+        """``{name: (N, ...) float64}`` each world's row of the ``SimConfig.per_world_fields`` model fields (as
+        ``WarpSim.model_fields``, in the C engine's float64): write rows in place to change a world's physics from
+        its next step, reset or forward pass. Empty when the config names none."""
+        return self._model_fields
+
+    def _changed_fields(self) -> np.ndarray | None:
+        """(N,) bool: worlds whose ``model_fields`` rows differ from what their models hold (None without any)."""
+        if not self._model_fields:
+            return None
+        changed = torch.zeros(self.num_worlds, dtype=torch.bool)
+        for name, rows in self._model_fields.items():
+            changed |= (rows != self._fields_taken[name]).flatten(1).any(dim=1)
+        return changed.numpy()
+
+    def _fields_were_taken(self, rows: np.ndarray | None) -> None:
+        """Record that the worlds of ``rows`` (all if None) took their ``model_fields`` rows."""
+        for name, taken in self._fields_taken.items():
+            if rows is None:
+                taken.copy_(self._model_fields[name])
+            else:
+                idx = torch.from_numpy(rows)
+                taken[idx] = self._model_fields[name][idx]
+
+    def _model(self, w: int, changed: np.ndarray | None) -> mujoco.MjModel:
+        """World ``w``'s model: the shared one, or (per-world fields) its own after taking its changed rows."""
+        if self._world_models is None:
+            return self.mj_model
+        m = self._world_models[w]
+        if changed[w]:
+            for name, rows in self._field_rows.items():
+                getattr(m, name)[:] = rows[w]
+        return m
+
     def _alloc_buffers(self, mj: mujoco.MjModel) -> None:
         n, f32 = self.num_worlds, torch.float32
         # float64 staging rows, filled by the worker threads (each writes only its own worlds' rows).
@@ -173,8 +232,13 @@ class MujocoSim(SimViews):
         s["qfrc_bias"][w] = d.qfrc_bias
         self._warnings[w] = d.warning.number
 
-    def _step_world(self, w: int, ctrl: np.ndarray, dirty: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
-        m, d, cols = self._substep_model, self._data[w], self._substep_cols
+    def _step_world(self, w: int, ctrl: np.ndarray, dirty: np.ndarray, qpos: np.ndarray, qvel: np.ndarray,
+                    changed: np.ndarray | None) -> None:
+        model, d, cols = self._model(w, changed), self._data[w], self._substep_cols
+        m = self._substep_model  # the shared model's sensor-free copy
+        if model is not self.mj_model:  # the world's own model, with the substep copy's flags during the substeps
+            m = model
+            m.opt.disableflags = self._substep_model.opt.disableflags
         schedule = self._substep_ctrl_t[w].numpy() if cols else None
         d.ctrl[:] = ctrl[w]
         d.xfrc_applied[:] = self._xfrc_np[w]
@@ -191,32 +255,36 @@ class MujocoSim(SimViews):
                 d.ctrl[cols] = schedule[s]
             mujoco.mj_step(m, d)
         self._staged["applied_force"][w] = d.actuator_force  # the forward pass below overwrites it
-        self._forward_and_warm_start(d)
+        if m is model:  # the world's own model: its sensors back on for the forward pass
+            model.opt.disableflags = self.mj_model.opt.disableflags
+        self._forward_and_warm_start(model, d)
         self._gather(w, d)
 
-    def _forward_and_warm_start(self, d: mujoco.MjData) -> None:
+    def _forward_and_warm_start(self, m: mujoco.MjModel, d: mujoco.MjData) -> None:
         """``mj_forward``, then its constraint solution warm-starts the next solve (as in ``WarpSim``)."""
-        mujoco.mj_forward(self.mj_model, d)
+        mujoco.mj_forward(m, d)
         d.qacc_warmstart[:] = d.qacc
 
-    def _reset_world(self, w: int, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> None:
-        d = self._data[w]
-        mujoco.mj_resetData(self.mj_model, d)  # clears time, activations, warm start and warning counters
+    def _reset_world(self, w: int, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray,
+                     changed: np.ndarray | None) -> None:
+        m, d = self._model(w, changed), self._data[w]
+        mujoco.mj_resetData(m, d)  # clears time, activations, warm start and warning counters
         if self.world_mocap_pos is not None:  # mj_resetData put the model's mocap positions back
             d.mocap_pos[:] = self.world_mocap_pos[w]
         d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[w], qvel[w], ctrl[w]
-        self._forward_and_warm_start(d)
+        self._forward_and_warm_start(m, d)
         # Nothing was applied yet: report what the actuators would apply in the reset state (as WarpSim does).
         self._staged["applied_force"][w] = d.actuator_force
         self._gather(w, d)
 
-    def _forward_world(self, w: int, ctrl: np.ndarray, dirty: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
-        d = self._data[w]
+    def _forward_world(self, w: int, ctrl: np.ndarray, dirty: np.ndarray, qpos: np.ndarray, qvel: np.ndarray,
+                       changed: np.ndarray | None) -> None:
+        m, d = self._model(w, changed), self._data[w]
         d.ctrl[:] = ctrl[w]
         d.xfrc_applied[:] = self._xfrc_np[w]
         if dirty[w]:
             d.qpos[:], d.qvel[:] = qpos[w], qvel[w]
-        self._forward_and_warm_start(d)
+        self._forward_and_warm_start(m, d)
         self._gather(w, d)
 
     def _run(self, fn: Callable[..., None], worlds: np.ndarray | None, *args) -> None:
@@ -262,18 +330,20 @@ class MujocoSim(SimViews):
                   & torch.isfinite(self._sensordata).all(dim=1))
         self._healthy_t.copy_(finite & ((self._overflow_t & MUJOCO_HEALTH_WARNINGS) == 0))
 
-    def _host_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        return self._ctrl.numpy(), self._dirty(), self._qpos.numpy(), self._qvel.numpy()
+    def _host_inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        return self._ctrl.numpy(), self._dirty(), self._qpos.numpy(), self._qvel.numpy(), self._changed_fields()
 
     # ------------------------------------------------------------------------------------------------- public API
     def step(self) -> None:
         """Advance every world by one control period (``substeps`` physics steps) with the current ``ctrl``."""
         self._run(self._step_world, None, *self._host_inputs())
+        self._fields_were_taken(None)
         self._publish()
 
     def forward(self) -> None:
         """Recompute positions, sensors and flags from the current qpos/qvel/ctrl (after writing them directly)."""
         self._run(self._forward_world, None, *self._host_inputs())
+        self._fields_were_taken(None)
         self._publish()
 
     def reset(
@@ -298,7 +368,8 @@ class MujocoSim(SimViews):
         idx = torch.from_numpy(rows)
         self._ctrl[idx] = ctrl[idx]
         self._xfrc_t[idx] = 0.0  # as mj_resetData clears the world's applied forces
-        self._run(self._reset_world, rows, qpos.numpy(), qvel.numpy(), ctrl.numpy())
+        self._run(self._reset_world, rows, qpos.numpy(), qvel.numpy(), ctrl.numpy(), self._changed_fields())
+        self._fields_were_taken(rows)
         self._publish(rows)
 
     def check_overflow(self) -> None:

@@ -124,6 +124,12 @@ class WarpSim(SimViews):
                                                 columns ``M_colind``)
     qfrc_bias                  (N, nv)          bias force c(q, q̇) of the current state (``wp_data.qfrc_bias``)
     time                       (N,)             simulated time since the world's last reset [s]
+    model_fields[name]         (N, ...)         each world's row of model field ``name``, one per name of
+                                                ``SimConfig.per_world_fields`` (e.g. ``body_mass`` (N, nbody) [kg],
+                                                ``body_inertia`` (N, nbody, 3) [kg·m²], ``geom_friction``
+                                                (N, ngeom, 3)): views of the model's own per-world arrays, an input
+                                                read from the next step, reset or forward pass on (empty dict when
+                                                the config names none: every world reads the one model)
     ========================== ================ ===============================================================
     """
 
@@ -150,6 +156,8 @@ class WarpSim(SimViews):
             self.wp_model = mjw.put_model(mj)
             self.wp_model.opt.contact_sensor_maxmatch = cfg.contact_sensor_maxmatch
             self.wp_model.opt.warn_overflow = int(mjw.OverflowType.ALL) if cfg.kernel_overflow_prints else 0
+            # Before _without_sensors' shallow copy and before any graph records the model's arrays.
+            self._model_fields = self._per_world_fields(cfg.per_world_fields)
             self._substep_model = self.wp_model if cfg.sensors_every_substep else _without_sensors(self.wp_model)
             self.wp_data = mjw.make_data(mj, nworld=n, nconmax=cfg.nconmax, njmax=cfg.njmax)
             self._alloc_buffers(mj)
@@ -192,6 +200,35 @@ class WarpSim(SimViews):
         if self.world_mocap_pos is not None:
             self._mocap_pos = wp.array(self.world_mocap_pos.astype(np.float32), dtype=wp.vec3)
             wp.copy(self.wp_data.mocap_pos, self._mocap_pos)
+
+    def _per_world_fields(self, names: tuple[str, ...]) -> dict[str, torch.Tensor]:
+        """Replace each model field of ``names`` with an (N, ...) array, every row the model's value, and return its
+        torch views.
+
+        mujoco-warp declares these fields batched: a kernel reads row ``worldid % arr.shape[0]``, so a leading
+        dimension of N instead of 1 gives each world its own value with the same kernels (no recompilation, nothing
+        extra launched). Derived model quantities are not recomputed here: whoever writes ``body_mass`` keeps
+        ``body_subtreemass`` consistent (``tocabi_torchrl.sim.dynamics`` does).
+        """
+        m, n, views = self.wp_model, self.num_worlds, {}
+        for name in names:
+            shared = getattr(m, name)
+            if shared.shape[0] != 1:
+                raise ValueError(f"mujoco-warp's Model.{name} has {shared.shape[0]} rows, expected the one of "
+                                 "put_model: this mujoco-warp version lays the field out differently")
+            rows = wp.empty((n, *shared.shape[1:]), dtype=shared.dtype)
+            view = wp.to_torch(rows)
+            view.copy_(wp.to_torch(shared).expand_as(view))
+            setattr(m, name, rows)
+            views[name] = view
+        return views
+
+    @property
+    def model_fields(self) -> dict[str, torch.Tensor]:
+        """``{name: (N, ...) float32}`` each world's row of the ``SimConfig.per_world_fields`` model fields (views of
+        the model's arrays: write rows in place to change a world's physics from its next step, reset or forward
+        pass; never rebind them, the recorded graphs read this memory). Empty when the config names none."""
+        return self._model_fields
 
     def _make_views(self, mj: mujoco.MjModel) -> None:
         d, t = self.wp_data, wp.to_torch
@@ -381,6 +418,10 @@ class WarpSim(SimViews):
         if self.config.reset_pass != "reduced":
             raise ValueError(f"register_start_states needs SimConfig.reset_pass='reduced' (this simulator has "
                              f"{self.config.reset_pass!r}); with 'full', reset to any state with reset()")
+        if self.config.per_world_fields:
+            raise ValueError(f"register_start_states: the table would hold sensors and accelerations of the model "
+                             f"fields {self.config.per_world_fields} as they are now, but they change per world "
+                             "(SimConfig.per_world_fields); reset with the full pass, reset_pass='full'")
         if self._start_states is not None:
             raise ValueError("register_start_states was called already: a graph captured since may read the table, "
                              "so it is not replaced; build another simulator for other start states")
