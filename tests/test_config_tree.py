@@ -42,7 +42,7 @@ def _plain(value):
 
 
 #: Presets added after the tree, so without a flat config of before it to match (their own tests build them).
-ADDED_AFTER_THE_TREE = {"model_based"}
+ADDED_AFTER_THE_TREE = {"model_based", "robust"}
 
 
 def test_every_preset_is_frozen():

@@ -31,6 +31,8 @@ from typing import Any
 
 from .envs.command import CommandConfig
 from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig
+from .envs.pushes import PushConfig
+from .randomize import tocabi_lab_paths
 from .sim.config import RESET_PASSES
 from .transforms.presets import TransformSettings
 from .tree import OWN_NUMBER_CHECK, ConfigError, check_field_types, leaf_paths, replace_paths
@@ -356,6 +358,12 @@ def field_choices() -> dict[str, tuple[str, ...]]:
 # ---------------------------------------------------------------------------------------------------------- presets
 #: Named presets: the paths each one changes from the defaults (the ``default`` preset). :func:`preset_tree` builds
 #: the tree.
+_TORQUE = {
+    "env.control.mode": "torque", "ppo.torque_assist": 1.0, "ppo.assist_fade_start": 50_000_000,
+    "ppo.assist_fade_end": 110_000_000, "ppo.assist_target": "teacher", "ppo.assist_anchor_decay": 30_000_000,
+    "total_env_steps": 200_000_000,
+}
+
 PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # Residual imitation (pd_reference: leg servos with the robot's gains track the reference walk plus the policy's
     # correction), the velocity-tracking reward tripled (0.3 -> 0.9, so that following a 0.5 m/s command pays more
@@ -380,11 +388,7 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # The pull copies a frozen β = 1 teacher (DAgger) and fades out over 30 M steps after the fade. Run 5 of
     # docs/training/torque.md: walks at 24.0 min of training on an H100 (178.7 M steps). A teacher taken at 75 M
     # (run 6) went faster (3.3-3.4 m in the 8 s test) but drifted 0.30-0.34 m, just past the limit, to its end.
-    "torque": MappingProxyType({
-        "env.control.mode": "torque", "ppo.torque_assist": 1.0, "ppo.assist_fade_start": 50_000_000,
-        "ppo.assist_fade_end": 110_000_000, "ppo.assist_target": "teacher", "ppo.assist_anchor_decay": 30_000_000,
-        "total_env_steps": 200_000_000,
-    }),
+    "torque": MappingProxyType(_TORQUE),
     # Residual torque on a computed-torque law (env.control.mode "model_based", envs/model_based.py): the 12 leg
     # actions add g·a to τ_ff = M_LL·(q̈_ref + ω²·(q_ref − q) + 2ζω·(q̇_ref − q̇)) + c_L from the simulator's own
     # inertia and bias forces. The default's PPO, unchanged; no torque assist: the feed-forward law is itself the
@@ -398,6 +402,19 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "total_env_steps": 200_000_000,
     }),
     # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
+    # The torque preset trained for the real robot: the TOCABI lab's uncertainty model (randomize.tocabi_lab: motor
+    # constant, 2-10 ms torque delay, link masses, joint damping, armature, sensor biases and encoder noise, drawn per
+    # world at every reset), diverse starts (the robust gait test's start velocities) and pushes: four kicks per
+    # 32 s episode of 0.3-1.2 m/s (31-125 N·s) over 4-200 ms, ramped in from 60 M to 120 M env steps, once the
+    # assisted policy walks and while the assist fades into pure torques (50 M to 110 M). Verdict: the robust gait
+    # test (rl/robust_eval.py).
+    "robust": MappingProxyType({
+        **_TORQUE,
+        **tocabi_lab_paths(),
+        "env.pushes": PushConfig(count=4, window=(1.0, 31.0), speed=(0.3, 1.2), duration=(0.004, 0.2)),
+        "ppo.push_ramp": (60_000_000, 120_000_000),
+        "env.task.start_joint_vel_std": 0.5, "env.task.start_base_vel_std": 0.1,
+    }),
     "cpu_smoke": MappingProxyType({
         "env.num_envs": 8, "ppo.steps_per_env": 16, "ppo.minibatch_size": 64, "ppo.epochs": 2,
         "total_env_steps": 8 * 16 * 3, "checkpoint_every": 1, "eval_envs": 2, "eval_seconds": 1.0,
