@@ -3,12 +3,15 @@ report the first training time (and env steps) at which the gait test passes.
 
     python -m benchmarks.time_to_walk train --preset torque --minutes 9.5   # resumes; repeat until the budget is used
     python -m benchmarks.time_to_walk eval --preset torque                  # gait tests of every wall-clock checkpoint
+    python -m benchmarks.time_to_walk eval --preset torque --test robust    # the robust gait test (evals_robust.json)
     python -m benchmarks.time_to_walk report --runs runs/time_to_walk/torque ...   # time_to_walk.{json,md,png}
     torchrun --standalone --nproc_per_node 2 -m benchmarks.time_to_walk train --preset default --name default_2gpu
 
 ``train`` resumes ``runs/time_to_walk/<name>`` until ``--budget_minutes`` of training are used, data-parallel under
 torchrun (rank 0 writes ``train.json``; ``train_over_raw`` divides by ranks x one GPU's raw rate). ``eval`` writes the
-gait tests of each ``wall_*.pt`` to ``evals.json`` beside it, so both parts may run at once. More: docs/benchmarks.md.
+gait tests of each ``wall_*.pt`` to ``evals.json`` beside it, so both parts may run at once; ``--test robust`` runs
+the robust gait test (docs/evaluation.md) instead and keeps its results apart, in ``evals_robust.json`` (``report
+--test robust`` reads those). More: docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from pathlib import Path
 from tocabi_torchrl.rl.curves import read_metrics, steady_rate
 from tocabi_torchrl.rl.distributed import DistInfo, ending, from_environment
 from tocabi_torchrl.rl.evaluate import GAIT_CRITERIA as CRITERIA
+from tocabi_torchrl.rl.evaluate import ROBUST_CRITERIA
 from tocabi_torchrl.rl.evaluate import gait_passes as passes_main
 from tocabi_torchrl.rl.evaluate import tested_on
 
@@ -33,6 +37,12 @@ MAIN_COMMAND = (0.5, 0.0)
 OTHER_COMMANDS = ((0.2, 0.0), (0.7, 0.1))
 RUNS = Path("runs/time_to_walk")
 key = lambda c: f"{c[0]:.1f},{c[1]:.1f}"
+
+
+#: The evaluations file of each gait test (docs/evaluation.md): the two tests' verdicts are never mixed in one record.
+EVALS = {"standard": "evals.json", "robust": "evals_robust.json"}
+#: Robots per case of the robust test when --num_envs is left out (the standard test's is 256).
+ROBUST_ENVS = 1024
 
 
 def walks(evaluation: dict) -> bool:
@@ -103,13 +113,15 @@ def eval_part(args, command: str) -> None:
     run_dir = RUNS / args.name
     if not run_dir.is_dir() and not args.follow_pid:  # a trainer being followed may not have made it yet
         raise ValueError(f"{run_dir}: no such run folder; name the trained run with --name (or --preset)")
-    record = _load(run_dir / "evals.json")
+    test = getattr(args, "test", "standard")
+    evals_file = run_dir / EVALS[test]
+    record = _load(evals_file)
     evals, envs = record.setdefault("evaluations", {}), {}
     while True:
         # Checkpoints are written atomically (a temporary file, then a rename): a wall_*.pt is complete.
         for ckpt in [p for p in sorted((run_dir / "checkpoints").glob("wall_*.pt")) if p.stem not in evals]:
-            _evaluate(ckpt, evals, envs, args)
-            common.write_json(run_dir / "evals.json", record)
+            (_evaluate_robust if test == "robust" else _evaluate)(ckpt, evals, envs, args)
+            common.write_json(evals_file, record)
         if args.follow_pid and _alive(args.follow_pid):
             time.sleep(10.0)
         elif args.follow_pid:
@@ -118,7 +130,7 @@ def eval_part(args, command: str) -> None:
             break
     record.setdefault("eval_commands", []).append(command)
     record["time_to_walk"] = first_walk(record)
-    common.write_json(run_dir / "evals.json", record)
+    common.write_json(evals_file, record)
     print("time to walk:", json.dumps(record["time_to_walk"]))
 
 
@@ -138,7 +150,7 @@ def _evaluate(ckpt: Path, evals: dict, envs: dict, args) -> None:
         if command != MAIN_COMMAND and not passes_main(entry["commands"][key(MAIN_COMMAND)]):
             break
         out = ckpt.parent.parent / "eval" / ckpt.stem / f"{command[0]:.1f}_{command[1]:.1f}"
-        summary = common.gait_test(state, ckpt, command, out, args.num_envs, args.seconds, args.device, envs)
+        summary = common.gait_test(state, ckpt, command, out, args.num_envs or 256, args.seconds, args.device, envs)
         entry["commands"][key(command)] = {k: v for k, v in summary.items() if isinstance(v, (int, float))}
     entry["walks"] = walks(entry)
     evals[ckpt.stem] = entry
@@ -146,6 +158,25 @@ def _evaluate(ckpt: Path, evals: dict, envs: dict, args) -> None:
     print(f"{ckpt.stem}: {entry['train_seconds'] / 60:5.1f} min, {entry['env_steps'] / 1e6:6.1f} M steps: survival "
           f"{m['survival']:.3f}, forward {m['forward_distance_m']:.2f} m, drift {m['lateral_drift_m']:.2f} m, knee RMS "
           f"{m['knee_rms_rad']:.3f} rad -> {'WALKS' if entry['walks'] else 'no'}", flush=True)
+
+
+def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
+    """The robust gait test of one wall-clock checkpoint into ``evals[ckpt.stem]``; ``envs`` keeps the cases' envs
+    across checkpoints."""
+    from tocabi_torchrl.rl.evaluate import summary_json
+    from tocabi_torchrl.rl.robust_eval import RobustTestConfig, evaluate_robust_checkpoint
+
+    state = common.read_checkpoint(ckpt)
+    test = RobustTestConfig(num_envs=args.num_envs or ROBUST_ENVS, seconds=args.seconds)
+    report = evaluate_robust_checkpoint(state, ckpt, ckpt.parent.parent / "eval" / ckpt.stem / "robust", test=test,
+                                        device=args.device, envs=envs, progress=False)
+    entry = {"train_seconds": state["train_seconds"], "env_steps": state["env_steps"], "iteration": state["iteration"],
+             "device": tested_on(args.device), "test": "robust", "settings": report["settings"],
+             "cases": json.loads(summary_json(report["cases"])), "walks": bool(report["passes"])}
+    evals[ckpt.stem] = entry
+    cases = ", ".join(f"{name} {c['survival']:.3f}" for name, c in entry["cases"].items())
+    print(f"{ckpt.stem}: {entry['train_seconds'] / 60:5.1f} min, {entry['env_steps'] / 1e6:6.1f} M steps: robust test "
+          f"survival {cases} -> {'WALKS' if entry['walks'] else 'no'}", flush=True)
 
 
 def first_walk(record: dict) -> dict | None:
@@ -156,11 +187,12 @@ def first_walk(record: dict) -> dict | None:
                                        "iteration": first["iteration"]}
 
 
-def read_run(folder: Path) -> dict:
-    """A run's ``train.json`` and ``evals.json`` as one record (``time_to_walk`` recomputed from the evaluations)."""
-    record = {**_load(folder / "train.json"), **_load(folder / "evals.json")}
+def read_run(folder: Path, test: str = "standard") -> dict:
+    """A run's ``train.json`` and the evaluations of ``test`` (``evals.json``, or ``evals_robust.json`` for the
+    robust test) as one record (``time_to_walk`` recomputed from the evaluations)."""
+    record = {**_load(folder / "train.json"), **_load(folder / EVALS[test])}
     if not record:
-        raise SystemExit(f"{folder}: no train.json or evals.json (run the train and eval parts first)")
+        raise SystemExit(f"{folder}: no train.json or {EVALS[test]} (run the train and eval parts first)")
     return {**record, "time_to_walk": first_walk(record)}
 
 
@@ -173,26 +205,71 @@ def _gpus(r: dict) -> str:
     return f"{r['gpus']} x {r.get('gpu', '?')}" if r.get("gpus", 1) > 1 else r.get("gpu", "?")
 
 
+#: The robust test's columns in the report: case, metric path, header, format.
+ROBUST_COLUMNS = (("nominal", "survival", "survival", ".3f"),
+                  ("nominal", "forward_distance_m.mean", "forward [m]", ".2f"),
+                  ("nominal", "lateral_drift_m.p95", "drift p95 [m]", ".2f"),
+                  ("commands", "survival", "survival (commands)", ".3f"),
+                  ("commands", "tracking_error_mps.mean", "tracking error [m/s]", ".3f"),
+                  ("robust_0.5", "survival", "survival (push 0.5 m/s)", ".3f"),
+                  ("robust_1.0", "survival", "survival (push 1.0 m/s)", ".3f"))
+
+
+def _value(e: dict, case: str, path: str):
+    """A robust evaluation's value of ``case`` at ``path`` ("lateral_drift_m.p95"); None if it has none."""
+    value = e.get("cases", {}).get(case)
+    for part in path.split("."):
+        value = value.get(part) if isinstance(value, dict) else None
+    return value
+
+
+def _headline(e: dict, k: str) -> float:
+    """The plotted survival or forward distance of an evaluation: the standard test's at (0.5, 0), or the robust
+    test's nominal case (mean distance); NaN for a value the file holds as null."""
+    if e.get("test") == "robust":
+        v = _value(e, "nominal", "forward_distance_m.mean" if k == "forward_distance_m" else k)
+    else:
+        v = e["commands"][key(MAIN_COMMAND)][k]
+    return math.nan if v is None else v
+
+
+def _robust_table(evals: list) -> str:
+    """The per-checkpoint table of a run's robust evaluations (:data:`ROBUST_COLUMNS`)."""
+    rows = [(name, f"{e['train_seconds'] / 60:.1f}", f"{e['env_steps'] / 1e6:.1f} M",
+             *("-" if (v := _value(e, case, path)) is None else format(v, spec) for case, path, _, spec in
+               ROBUST_COLUMNS), "yes" if e.get("walks") else "no", e.get("device", "-")) for name, e in evals]
+    return common.table(("checkpoint", "minutes", "env steps", *(h for _, _, h, _ in ROBUST_COLUMNS), "walks",
+                         "tested on"), rows)
+
+
 def render(data: dict, out: Path) -> str:
     records, num = data["records"], lambda x, spec=",.0f": format(x, spec) if x else "-"
+    robust = data.get("test") == "robust"
     rows = [(_label(r), _gpus(r), f"{t['train_minutes']:.1f}" if (t := r.get("time_to_walk")) else
              f"not within {r.get('train_seconds', 0) / 60:.1f} min", f"{t['env_steps'] / 1e6:.1f} M" if t else "-",
              num(r.get("train_env_steps_per_s")), num(r.get("raw_policy_steps_per_s")), num(r.get("train_over_raw"),
              ".2f")) for r in records]
+    passing = ("the robust gait test (docs/evaluation.md: diverse starts; nominal, changing-command, randomised and "
+               "pushed cases, each against its thresholds in ROBUST_CRITERIA)" if robust else
+               "the 8 s gait test on 256 envs: at (0.5, 0) m/s survival >= 95 %, forward >= 2.6 m, drift <= 0.3 m, "
+               "knee RMS <= 0.15 rad; at (0.2, 0) and (0.7, 0.1) survival >= 95 %")
     text = ("# Time to walk (issue 19)\n\nTraining wall-clock (summed over resumed calls; no evaluation, no kernel "
-            "compilation) until a checkpoint first passes the 8 s gait test on 256 envs: at (0.5, 0) m/s survival >= "
-            "95 %, forward >= 2.6 m, drift <= 0.3 m, knee RMS <= 0.15 rad; at (0.2, 0) and (0.7, 0.1) survival >= 95 %."
+            f"compilation) until a checkpoint first passes {passing}."
             + (" A run on K GPUs (data-parallel, K x the envs) reports one GPU's raw rate and divides by K x raw."
                if any(r.get("gpus", 1) > 1 for r in records) else "") + "\n\n"
             + common.table(("run", "GPU", "time to walk [min]", "env steps then", "training env-steps/s",
                             "raw mujoco-warp policy steps/s (same run)", "train / raw"), rows))
+    limits = ((100 * ROBUST_CRITERIA["nominal"]["survival"][1], "survival over 8 s, robust test's nominal case [%]"),
+              (ROBUST_CRITERIA["nominal"]["forward_distance_m.mean"][1], "mean forward distance in 8 s, nominal [m]")
+              ) if robust else ((100 * CRITERIA["survival"], "survival over 8 s at (0.5, 0) m/s [%]"),
+                                (CRITERIA["forward_distance_m"], "forward distance in 8 s [m]"))
     panels = [{"lines": {}, "vlines": [], "hlines": [(y, "pass")], "xlabel": "training minutes", "ylabel": label}
-              for y, label in ((100 * CRITERIA["survival"], "survival over 8 s at (0.5, 0) m/s [%]"),
-                               (CRITERIA["forward_distance_m"], "forward distance in 8 s [m]"))]
+              for y, label in limits]
     for r in records:
         evals = sorted(r.get("evaluations", {}).items())
         text += f"\n\n## {_label(r)}\n\nCommands:\n\n" + "".join(
-            f"- `{c}`\n" for c in r.get("commands", []) + r.get("eval_commands", [])) + "\n" + common.table(
+            f"- `{c}`\n" for c in r.get("commands", []) + r.get("eval_commands", [])) + "\n" + (_robust_table(evals)
+            if robust else common.table(
             ("checkpoint", "minutes", "env steps", "survival", "forward [m]", "drift [m]", "knee RMS [rad]",
              "survival (0.2, 0)", "survival (0.7, 0.1)", "walks", "tested on"),
             [(name, f"{e['train_seconds'] / 60:.1f}", f"{e['env_steps'] / 1e6:.1f} M", *(
@@ -201,12 +278,13 @@ def render(data: dict, out: Path) -> str:
                     ("knee_rms_rad", ".3f"))), *(num(e["commands"].get(key(c), {}).get("survival"), ".3f")
                                                  for c in OTHER_COMMANDS), "yes" if e.get("walks") else "no",
              e.get("device", "-"))
-             for name, e in evals])
+             for name, e in evals]))
         for panel, k, scale in zip(panels, ("survival", "forward_distance_m"), (100, 1), strict=True):
             panel["lines"][_label(r)] = ([e["train_seconds"] / 60 for _, e in evals],
-                                           [scale * e["commands"][key(MAIN_COMMAND)][k] for _, e in evals])
+                                           [scale * _headline(e, k) for _, e in evals])
             panel["vlines"] += [r["time_to_walk"]["train_minutes"]] if r.get("time_to_walk") else []
-    common.plot(out / "time_to_walk.png", panels, "Gait test of checkpoints against training time (dotted: first pass)")
+    common.plot(out / ("time_to_walk_robust.png" if robust else "time_to_walk.png"), panels,
+                "Gait test of checkpoints against training time (dotted: first pass)")
     return text + "\n"
 
 
@@ -220,11 +298,12 @@ def plot_curves(metrics: list[Path], path: Path) -> None:
 
 
 def report_part(args, command: str) -> None:
-    data = {"command": command, "records": [read_run(Path(p)) for p in args.runs]}
+    test = getattr(args, "test", "standard")
+    data = {"command": command, "test": test, "records": [read_run(Path(p), test) for p in args.runs]}
     # Runs trained on the CPU (smoke runs) are kept out of the published GPU results; GPU runs copied back are not.
     cpu = data["records"] and all(r.get("gpu") == "cpu" for r in data["records"])
     out = common.report_dir(args.out, "cpu" if cpu else None)
-    text = common.publish(out, "time_to_walk", data, render)  # it makes the folder
+    text = common.publish(out, "time_to_walk" if test == "standard" else "time_to_walk_robust", data, render)
     if args.curves:
         plot_curves([Path(p) for p in args.curves], out / "time_to_walk_curves.png")
     print(text)
@@ -247,14 +326,18 @@ def main(argv=None) -> None:
     t.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                    help="config overrides on top of the preset (ablations); a run continues only with the same ones")
     e = sub.add_parser("eval", parents=[run], help="gait tests of every wall-clock checkpoint of a preset's run")
-    e.add_argument("--num_envs", type=int, default=256)
+    e.add_argument("--num_envs", type=int, default=None,
+                   help=f"robots in the gait test, per case in the robust one (default: 256, robust {ROBUST_ENVS})")
     e.add_argument("--seconds", type=float, default=8.0)
+    e.add_argument("--test", choices=tuple(EVALS), default="standard",
+                   help="which gait test decides 'walks': standard (3 commands) or robust (docs/evaluation.md)")
     e.add_argument("--follow_pid", type=int, default=0, help="keep evaluating while this process (the trainer) runs")
     r = sub.add_parser("report", help="tables and plots from the runs' train.json and evals.json")
     r.add_argument("--runs", nargs="+", required=True, help="run folders holding train.json / evals.json")
     r.add_argument("--curves", nargs="*", default=[],
                    help="run folders or metrics.csv files to plot the reward curves of")
     r.add_argument("--out", default=str(common.DOCS))
+    r.add_argument("--test", choices=tuple(EVALS), default="standard", help="which gait test's evaluations to report")
     args = parser.parse_args(argv)
     if args.part == "train" and not 0 < args.minutes < math.inf:  # the config reads max_minutes 0 as no time limit
         parser.error(f"--minutes must be a positive number of training minutes, got {args.minutes}")

@@ -2,13 +2,16 @@
 
     python recipes/play.py --checkpoint runs/ppo_walk                 # a run folder (uses checkpoints/latest.pt)
     python recipes/play.py --checkpoint runs/ppo_walk/checkpoints/iter_000500.pt --num_envs 64 --vx 0.3
+    python recipes/play.py --checkpoint runs/ppo_walk --test robust   # the robust gait test (docs/evaluation.md)
 
 Writes summary.json (survival, forward distance, lateral drift, speed tracking error, knee RMS against the reference
 motion; null for a metric without a value), knees.png (left/right knee over 6 s against the reference) and walk.mp4
 (a few robots, rendered offscreen) to <run>/eval/, eval/ beside a checkpoint file, runs/eval/<name>/ for a policy
 shipped with the package, or --out. Earlier results are never replaced silently: when the default folder already
 holds some, the next free eval_2/, eval_3/, ... beside it is used; an --out that holds files is refused unless
---overwrite. The folder used is printed first.
+--overwrite. The folder used is printed first. --test robust runs the robust gait test instead (diverse starts;
+nominal, changing commands, randomised and pushed cases; --num_envs robots per case) and writes robust.json and
+robust.png.
 On a headless machine the video uses EGL (MUJOCO_GL=egl, chosen automatically when libEGL is present); osmesa works
 only with libOSMesa and PyOpenGL installed.
 """
@@ -24,15 +27,18 @@ from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
 
 #: (option, type, default, description): the command line, defaults shown once by build_parser.
 OPTIONS = (
-    ("--num_envs", int, 256, "robots simulated in the gait test"),
+    ("--num_envs", int, None, ("robots simulated in the gait test, per case in the robust test (default: 256 in the "
+                               "standard test, 1024 in the robust one)")),
     ("--device", str, "auto", "auto (CUDA if present, else cpu), cpu, cuda or cuda:N"),
     ("--seconds", float, 8.0, "duration of the gait test [s]; at least one policy step (0.004)"),
-    ("--vx", float, 0.5, "commanded forward speed [m/s]"),
-    ("--vy", float, 0.0, "commanded lateral speed [m/s]"),
+    ("--vx", float, 0.5, "commanded forward speed [m/s] (standard test)"),
+    ("--vy", float, 0.0, "commanded lateral speed [m/s] (standard test)"),
     ("--out", str, None, ("output folder, refused if it holds files unless --overwrite (default: eval/ of the "
                           "run, or runs/eval/<name>/ for a shipped policy; eval_2/, ... once that holds results)")),
-    ("--video_envs", int, 4, "robots shown side by side in the video; 0 = no video"),
+    ("--video_envs", int, 4, "robots shown side by side in the video (standard test); 0 = no video"),
 )
+#: The gait tests (docs/evaluation.md) and the robots each simulates when --num_envs is left out (per case: robust).
+TESTS = {"standard": 256, "robust": 1024}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,6 +47,10 @@ def build_parser() -> argparse.ArgumentParser:
     for flag, kind, default, text in OPTIONS:
         shown = "" if default is None else f" (default: {default})"
         parser.add_argument(flag, type=kind, default=default, help=text + shown)
+    parser.add_argument("--test", choices=tuple(TESTS), default="standard",
+                        help="standard: the 8 s test at one command (256 robots, two distinct starts); robust: "
+                             "diverse starts, the nominal, changing-command, randomised and pushed cases "
+                             "(default: standard)")
     parser.add_argument("--overwrite", action="store_true",
                         help="write into an --out folder that holds files (files of the same name are replaced, "
                              "others stay) (default: refuse)")
@@ -63,7 +73,7 @@ def sim2sim_options(args: argparse.Namespace) -> str:
     """The options of ``recipes/sim2sim.py`` that repeat this call's non-default ones, for an exported policy given
     as --checkpoint (sim2sim's own defaults are the same for --seconds, --vx and --vy)."""
     defaults = {flag: default for flag, _, default, _ in OPTIONS}
-    options = [("--num_robots", args.num_envs)] if args.num_envs != defaults["--num_envs"] else []
+    options = [("--num_robots", args.num_envs)] if args.num_envs not in (None, TESTS["standard"]) else []
     options += [(flag, getattr(args, flag[2:])) for flag in ("--seconds", "--vx", "--vy")
                 if getattr(args, flag[2:]) != defaults[flag]]
     return "".join(f" {flag} {value}" for flag, value in options)
@@ -72,17 +82,28 @@ def sim2sim_options(args: argparse.Namespace) -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.num_envs < 1 or args.video_envs < 0:
+    if args.num_envs is not None and args.num_envs < 1 or args.video_envs < 0:
         parser.error("--num_envs must be >= 1 and --video_envs >= 0")
     if not 0 < args.seconds < math.inf:
         parser.error(f"--seconds must be a finite number of seconds > 0, got {args.seconds}")
     if not (math.isfinite(args.vx) and math.isfinite(args.vy)):
         parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
+    if args.test == "robust" and (args.vx, args.vy) != (0.5, 0.0):
+        parser.error("--vx/--vy set the standard test's command; the robust test's commands are its cases' (leave "
+                     "--vx/--vy out, or pass --test standard)")
     try:
         # before the folder is named: an exported .onnx/.json (sim2sim runs those) or a damaged file goes no further
         verified_checkpoint_file(args.checkpoint, sim2sim_options(args))
         out = eval_out_dir(args.checkpoint, args.out, args.overwrite)
         print(f"results go to {out}/", flush=True)
+        if args.test == "robust":
+            from tocabi_torchrl.rl.robust_eval import evaluate_robust_run, robust_report_text
+
+            report = evaluate_robust_run(args.checkpoint, num_envs=args.num_envs or TESTS["robust"],
+                                         device=args.device, seconds=args.seconds, out_dir=out)
+            print(robust_report_text(report, out))
+            return
+        args.num_envs = args.num_envs or TESTS["standard"]
         summary = evaluate_run(args.checkpoint, num_envs=args.num_envs, device=args.device, seconds=args.seconds,
                                command=(args.vx, args.vy), video_envs=min(args.video_envs, args.num_envs),
                                out_dir=out)

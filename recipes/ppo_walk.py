@@ -179,7 +179,14 @@ def main(argv: list[str] | None = None) -> None:
     print(f"done: {result.env_steps:,} env steps in {result.wall_seconds:.0f} s "
           f"({result.env_steps_per_second:,.0f} env-steps/s); run folder {result.run_dir}")
     checkpoint = checkpoint_file(result.run_dir)
-    if cfg.eval_at_end:
+    if cfg.eval_at_end and cfg.eval_test == "robust":  # the robust gait test (docs/evaluation.md) instead
+        from tocabi_torchrl.rl.robust_eval import evaluate_robust_run, robust_report_text
+
+        out = eval_out_dir(result.run_dir)
+        report = evaluate_robust_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device,
+                                     seconds=cfg.eval_seconds, out_dir=out)
+        print(robust_report_text(report, out))
+    elif cfg.eval_at_end:
         out = eval_out_dir(result.run_dir)
         summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device, seconds=cfg.eval_seconds,
                                out_dir=out)

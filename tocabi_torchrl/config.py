@@ -253,6 +253,9 @@ class RunConfig:
     eval_at_end: bool = True
     eval_envs: int = 256
     eval_seconds: float = 8.0
+    #: The gait test run at the end: "standard" (one command, 256 robots) or "robust" (rl/robust_eval.py: diverse
+    #: starts, four cases of ``eval_envs`` robots each; docs/evaluation.md).
+    eval_test: str = "standard"
     # sections
     env: TocabiWalkConfig = field(default_factory=TocabiWalkConfig)
     transforms: TransformSettings = field(default_factory=TransformSettings)
@@ -341,6 +344,10 @@ def _check_int(obj: Any, name: str, low: int, prefix: str = "") -> None:
         raise ValueError(f"{prefix}{name} must be {kind}, got {value!r}")
 
 
+#: The gait tests the end-of-training evaluation can run (``eval_test``; docs/evaluation.md).
+EVAL_TESTS = ("standard", "robust")
+
+
 def field_choices() -> dict[str, tuple[str, ...]]:
     """The allowed values of each option that takes one of a few names (checked by ``validate``, listed by
     ``--help``), by path."""
@@ -352,7 +359,7 @@ def field_choices() -> dict[str, tuple[str, ...]]:
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
             "ppo.assist_target": ASSIST_TARGETS, "env.sim.backend": ("warp", "mujoco", "auto"),
             "env.sim.reset_pass": RESET_PASSES, "ppo.grad_sync": GRAD_SYNCS,
-            "ppo.matmul_precision": MATMUL_PRECISIONS}
+            "ppo.matmul_precision": MATMUL_PRECISIONS, "eval_test": EVAL_TESTS}
 
 
 # ---------------------------------------------------------------------------------------------------------- presets

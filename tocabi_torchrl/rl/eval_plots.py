@@ -1,6 +1,6 @@
-"""Figures of the evaluations: the gait test's knee trajectories against the reference (``knees.png``), and the
-experiment recipes' knee comparison, joint torques and obstacle-height curves (``recipes/compare_gaits.py``,
-``recipes/obstacle_test.py``).
+"""Figures of the evaluations: the gait test's knee trajectories against the reference (``knees.png``), the robust
+gait test's distributions per case (``robust.png``), and the experiment recipes' knee comparison, joint torques and
+obstacle-height curves (``recipes/compare_gaits.py``, ``recipes/obstacle_test.py``).
 
 Figures are drawn on their own ``matplotlib.figure.Figure`` with the Agg canvas, never through ``pyplot``: the
 caller's matplotlib backend (a notebook's, a GUI's) stays as it was. Each file is written atomically
@@ -15,7 +15,8 @@ import numpy as np
 
 from ..atomic import atomic_write_bytes
 
-__all__ = ["new_figure", "plot_joint_torques", "plot_knee_comparison", "plot_knees", "plot_vs_height", "save_figure"]
+__all__ = ["new_figure", "plot_joint_torques", "plot_knee_comparison", "plot_knees", "plot_robust", "plot_vs_height",
+           "save_figure"]
 
 
 def new_figure(**kwargs):
@@ -57,6 +58,53 @@ def plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path, command: t
     fig.suptitle(title)
     fig.tight_layout()
     save_figure(fig, path, title)
+
+
+def plot_robust(per_case: dict, report: dict, path: Path) -> Path:
+    """The robust gait test in one figure: survival per case (bars, its threshold marked), and the CDFs over the
+    robots of forward distance [m], lateral drift |y| [m] and heading-frame speed tracking error [m/s], one line per
+    case, the thresholds of :data:`~tocabi_torchrl.rl.evaluate.ROBUST_CRITERIA` as dotted lines in the case's
+    colour. ``per_case``: case -> per-robot (N,) tensors or arrays (``robust_eval.run_case``); ``report``: the
+    report whose ``cases`` hold the checks. Saved to ``path``."""
+    names = list(per_case)
+    colors = {name: f"C{i}" for i, name in enumerate(names)}
+    fig = new_figure(figsize=(11, 7.5))
+    axes = fig.subplots(2, 2).ravel()
+    ax = axes[0]
+    survival = [float(np.asarray(per_case[n]["alive"], dtype=float).mean()) for n in names]
+    ax.bar(range(len(names)), survival, color=[colors[n] for n in names])
+    for i, name in enumerate(names):
+        check = report["cases"][name].get("checks", {}).get("survival")
+        if check is not None:
+            limit = float(check["needs"].split()[1])
+            ax.hlines(limit, i - 0.4, i + 0.4, color="k", ls=":", lw=1.2)
+        ax.text(i, min(survival[i], 1.0) + 0.01, f"{survival[i]:.3f}", ha="center", va="bottom", fontsize=8)
+    ax.set_xticks(range(len(names)), names)
+    ax.set_ylim(0, 1.1)
+    ax.set_ylabel("survival fraction (dotted: threshold)")
+    ax.grid(alpha=0.3, axis="y")
+    panels = (("forward_m", "forward distance [m]", "forward_distance_m", np.asarray),
+              ("lateral_m", "lateral drift |y| [m]", "lateral_drift_m", np.abs),
+              ("tracking_error_mps", "speed tracking error, heading frame [m/s]", "tracking_error_mps", np.asarray))
+    for ax, (key, label, metric, fn) in zip(axes[1:], panels):
+        for name in names:
+            x = np.sort(fn(np.asarray(per_case[name][key], dtype=float)))
+            x = x[~np.isnan(x)]
+            if x.size:
+                ax.step(x, np.arange(1, x.size + 1) / x.size, where="post", color=colors[name], label=name)
+            for path_, check in report["cases"][name].get("checks", {}).items():
+                if path_.split(".")[0] == metric:
+                    ax.axvline(float(check["needs"].split()[1]), color=colors[name], ls=":", lw=1.2)
+        ax.set_xlabel(label)
+        ax.set_ylabel("fraction of robots")
+        ax.grid(alpha=0.3)
+    axes[1].legend(loc="lower right", fontsize=8)
+    s = report["settings"]
+    title = (f"Robust gait test ({s['seconds']:g} s, {s['num_envs']} robots per case): "
+             + ("passes" if report["passes"] else "fails"))
+    fig.suptitle(title)
+    fig.tight_layout()
+    return save_figure(fig, path, title)
 
 
 # ------------------------------------------------------------------------------------------------ experiment figures

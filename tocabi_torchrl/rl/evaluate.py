@@ -35,11 +35,21 @@ from .gait_record import KNEES, GaitMetrics, fixed_command, load_policy, policy_
 from .trainer import build_env, resolve_device
 
 __all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "fresh_eval_dir", "eval_out_dir", "policy_dt",
-           "summary_json", "GAIT_CRITERIA", "gait_passes", "tested_on"]
+           "summary_json", "GAIT_CRITERIA", "ROBUST_CRITERIA", "gait_passes", "tested_on"]
 
 #: Pass thresholds of the gait test at (0.5, 0) m/s (issue 19): a policy walks when its summary meets all of them
 #: (and, in the time-to-walk benchmark, keeps ``survival`` at (0.2, 0) and (0.7, 0.1) too).
 GAIT_CRITERIA = {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m": 0.3, "knee_rms_rad": 0.15}
+
+#: Pass thresholds of the robust gait test (:mod:`.robust_eval`, docs/evaluation.md), per case: metric path in the
+#: case's report entry (``"forward_distance_m.mean"``: the mean over its robots) -> (">=" or "<=", limit). A policy
+#: passes the robust test when every case meets all of its thresholds (``robust_eval.robust_passes``).
+ROBUST_CRITERIA = {
+    "nominal": {"survival": (">=", 0.99), "forward_distance_m.mean": (">=", 2.6), "lateral_drift_m.p95": ("<=", 0.3)},
+    "commands": {"survival": (">=", 0.99), "tracking_error_mps.mean": ("<=", 0.12)},
+    "robust_0.5": {"survival": (">=", 0.97)},
+    "robust_1.0": {"survival": (">=", 0.85)},
+}
 
 
 def gait_passes(summary: dict) -> bool:

@@ -17,7 +17,7 @@ RESUME_SAFE = frozenset({
     "total_env_steps", "max_minutes",
     "log_every", "loggers", "progress_bar",
     "checkpoint_every", "checkpoint_keep_last", "checkpoint_keep_every", "checkpoint_minutes",
-    "eval_at_end", "eval_envs", "eval_seconds",
+    "eval_at_end", "eval_envs", "eval_seconds", "eval_test",
     "ppo.cuda_graph", "ppo.update_graph", "ppo.grad_sync", "ppo.store_env_signals",
     "env.sim.threads", "env.sim.reset_pass",
 })
@@ -178,8 +178,10 @@ FIELD_HELP: dict[str, str] = {
     "resume": "run folder or checkpoint to continue; its saved options apply, and only these may be given other "
               f"values: {resume_safe_text()}",
     "eval_at_end": "run the gait test (eval/) when training ends",
-    "eval_envs": "robots in the gait test",
+    "eval_envs": "robots in the gait test (per case in the robust test)",
     "eval_seconds": "duration of the gait test [s]",
+    "eval_test": "which gait test runs when training ends: standard (one command) or robust (diverse starts, four "
+                 "cases of eval_envs robots each; docs/evaluation.md)",
     "progress_bar": "show a progress bar (else one line per log row)",
 }
 

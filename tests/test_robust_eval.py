@@ -1,0 +1,247 @@
+"""The robust gait test (rl/robust_eval.py, docs/evaluation.md): every case reported with its distributions and
+verdicts, diverse starts, the standard test's numbers unchanged beside it, thresholds enforced per case, plot and
+strict JSON written, and play.py's --test option end to end and refusing bad values in one line. One small robust
+evaluation of the shipped policy (8 robots, 0.5 s per case, C MuJoCo on the CPU), made through play.py, serves
+every test that reads a report."""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import io
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from test_runs import recipe
+
+REPO = Path(__file__).resolve().parents[1]
+SHIPPED_POLICY = REPO / "assets" / "policies" / "tocabi_walk_ppo.pt"
+needs_policy = pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="shipped policy not present")
+ROBOTS, SECONDS = 8, 0.5
+
+
+def _strict(text: str):
+    """``json.loads`` that refuses NaN/Infinity tokens (not JSON)."""
+    def refuse(token):
+        raise ValueError(f"non-JSON token {token}")
+    return json.loads(text, parse_constant=refuse)
+
+
+@pytest.fixture(scope="module")
+def robust_run(tmp_path_factory):
+    """play.py --test robust on the shipped policy: (output folder, report read back, printed text)."""
+    if not SHIPPED_POLICY.is_file():
+        pytest.skip("shipped policy not present")
+    out = tmp_path_factory.mktemp("robust") / "eval"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--test", "robust", "--num_envs", str(ROBOTS),
+                             "--seconds", str(SECONDS), "--device", "cpu", "--out", str(out)])
+    return out, _strict((out / "robust.json").read_text()), printed.getvalue()
+
+
+def test_report_has_every_case_with_its_distributions_and_verdicts(robust_run):
+    from tocabi_torchrl.rl.evaluate import ROBUST_CRITERIA
+    from tocabi_torchrl.rl.robust_eval import CASES, EVAL_SEED, robust_passes
+
+    _, report, printed = robust_run
+    assert report["test"] == "robust" and report["seed"] == EVAL_SEED and list(report["cases"]) == list(CASES)
+    assert report["settings"]["num_envs"] == ROBOTS and report["settings"]["seconds"] == SECONDS
+    stats = {"forward_distance_m": {"mean", "p5", "p50", "p95"}, "lateral_drift_m": {"mean", "p50", "p95"},
+             "tracking_error_mps": {"mean", "p95"}, "knee_rms_rad": {"mean", "p95"}}
+    for name, case in report["cases"].items():
+        assert case["num_envs"] == ROBOTS and 0.0 <= case["survival"] <= 1.0
+        for metric, keys in stats.items():
+            values = case[metric].values()
+            assert set(case[metric]) == keys and all(isinstance(v, float) for v in values), (name, metric)
+        d = case["forward_distance_m"]
+        assert d["p5"] <= d["p50"] <= d["p95"]
+        assert set(case["checks"]) == set(ROBUST_CRITERIA[name])
+        assert case["passes"] == all(c["pass"] for c in case["checks"].values())
+    assert report["cases"]["robust_1.0"]["randomized"] and report["cases"]["robust_1.0"]["push_speed_mps"] == 1.0
+    assert not report["cases"]["nominal"]["randomized"] and "randomization" not in report["cases"]["nominal"]
+    # The shipped policy is a pd_reference one: its servos get the lab's dynamics and sensor noise, no actuator model.
+    assert report["cases"]["robust_0.5"]["randomization"].startswith("tocabi_lab without its actuator model")
+    assert report["passes"] == robust_passes(report)
+    # Half a second from rest cannot cover 2.6 m: the verdict is "does not walk yet", and says why.
+    assert not report["passes"] and "does not walk yet" in printed.splitlines()[1]
+    assert "forward_distance_m.mean" in printed and "FAIL" in printed
+
+
+def test_starts_are_diverse(robust_run):
+    # The standard test's robots share two start rows at rest: two trajectories. Kicked starts give each robot its
+    # own, in every case.
+    _, report, _ = robust_run
+    for name, case in report["cases"].items():
+        d, drift = case["forward_distance_m"], case["lateral_drift_m"]
+        assert d["p95"] - d["p5"] > 1e-3 and drift["p95"] - drift["p50"] > 1e-4, name
+
+
+@needs_policy
+def test_standard_test_numbers_are_unchanged(tmp_path):
+    from tocabi_torchrl.rl.evaluate import GAIT_CRITERIA, evaluate_run
+
+    assert GAIT_CRITERIA == {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m": 0.3, "knee_rms_rad": 0.15}
+    direct = evaluate_run(SHIPPED_POLICY, num_envs=ROBOTS, device="cpu", seconds=SECONDS, video_envs=0,
+                          out_dir=tmp_path / "direct", progress=False)
+    with contextlib.redirect_stdout(io.StringIO()):
+        recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--test", "standard", "--num_envs", str(ROBOTS),
+                             "--seconds", str(SECONDS), "--video_envs", "0", "--device", "cpu", "--out",
+                             str(tmp_path / "play")])
+    played = _strict((tmp_path / "play" / "summary.json").read_text())
+    assert played["num_envs"] == ROBOTS
+    assert {k: v for k, v in played.items() if k != "video"} == _strict(json.dumps(
+        {k: v for k, v in direct.items() if k != "video"}))
+
+
+def test_thresholds_fail_the_right_case(robust_run):
+    from tocabi_torchrl.rl.evaluate import ROBUST_CRITERIA
+    from tocabi_torchrl.rl.robust_eval import case_checks, robust_passes
+
+    good = copy.deepcopy(robust_run[1])
+    for case in good["cases"].values():  # every value on the passing side of its threshold
+        case["survival"] = 1.0
+        case["forward_distance_m"]["mean"] = 3.0
+        case["lateral_drift_m"]["p95"] = 0.1
+        case["tracking_error_mps"]["mean"] = 0.05
+    assert robust_passes(good)
+    for name, criteria in ROBUST_CRITERIA.items():
+        for path, (op, limit) in criteria.items():
+            bad = copy.deepcopy(good)
+            metric, _, stat = path.partition(".")
+            value = limit - 0.01 if op == ">=" else limit + 0.01
+            if stat:
+                bad["cases"][name][metric][stat] = value
+            else:
+                bad["cases"][name][metric] = value
+            assert not robust_passes(bad), (name, path)
+            failed = {(n, p) for n in ROBUST_CRITERIA for p, c in case_checks(n, bad["cases"][n]).items()
+                      if not c["pass"]}
+            assert failed == {(name, path)}
+            if stat:  # a value the file holds as null fails too
+                bad["cases"][name][metric][stat] = None
+                assert not case_checks(name, bad["cases"][name])[path]["pass"]
+    missing = copy.deepcopy(good)
+    del missing["cases"]["robust_1.0"]
+    assert not robust_passes(missing)
+    assert ROBUST_CRITERIA["nominal"]["survival"] == (">=", 0.99) and ROBUST_CRITERIA["robust_1.0"] == {
+        "survival": (">=", 0.85)}
+    assert math.isclose(ROBUST_CRITERIA["commands"]["tracking_error_mps.mean"][1], 0.12)
+
+
+def test_plot_and_strict_json_are_written_atomically(robust_run):
+    out, _, printed = robust_run
+    assert (out / "robust.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    _strict((out / "robust.json").read_text())
+    assert sorted(p.name for p in out.iterdir()) == ["robust.json", "robust.png"]  # no temporary file left
+    assert f"results: {out / 'robust.json'}, {out / 'robust.png'}" in printed
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--test", "fast"], "argument --test: invalid choice: 'fast'"),
+    (["--test", "robust", "--vx", "0.3"], "--vx/--vy set the standard test's command"),
+    (["--test", "robust", "--num_envs", "0"], "--num_envs must be >= 1"),
+])
+def test_play_refuses_bad_test_values_in_one_line(flags, message, capsys):
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", "missing.pt", *flags])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+def test_eval_test_is_a_checked_config_option():
+    from tocabi_torchrl.config import RunConfig, preset_config
+
+    assert RunConfig().eval_test == "standard"
+    assert preset_config("cpu_smoke", eval_test="robust").eval_test == "robust"
+    with pytest.raises(ValueError, match="eval_test must be one of"):
+        preset_config("cpu_smoke", eval_test="fast")
+
+
+def test_time_to_walk_gait_tests_snapshots_with_the_robust_test(robust_run, tmp_path, monkeypatch):
+    # The wiring only: the robust report of each snapshot (here the fixture's) decides "walks", apart from the
+    # standard test's evals.json, and the report part renders it.
+    import shutil
+
+    from benchmarks import time_to_walk
+    from tocabi_torchrl.rl import robust_eval
+
+    calls = []
+
+    def fake(state, path, out_dir, test, device, envs, progress):
+        calls.append((Path(path).name, test.num_envs, test.seconds))
+        return robust_run[1]
+
+    monkeypatch.setattr(robust_eval, "evaluate_robust_checkpoint", fake)
+    read = time_to_walk.common.read_checkpoint  # a wall-clock snapshot also records its training time and steps
+    monkeypatch.setattr(time_to_walk.common, "read_checkpoint", lambda path: {
+        **read(path), "train_seconds": 60.0, "env_steps": 1_000_000, "iteration": 10})
+    monkeypatch.chdir(tmp_path)
+    checkpoints = tmp_path / "runs/time_to_walk/x/checkpoints"
+    checkpoints.mkdir(parents=True)
+    shutil.copy(SHIPPED_POLICY, checkpoints / "wall_00060s.pt")
+    (checkpoints.parent / "train.json").write_text(json.dumps({"preset": "default", "gpus": 1, "gpu": "cpu"}))
+    with contextlib.redirect_stdout(io.StringIO()):
+        time_to_walk.main(["eval", "--name", "x", "--device", "cpu", "--test", "robust", "--seconds", "0.5"])
+    assert calls == [("wall_00060s.pt", time_to_walk.ROBUST_ENVS, 0.5)]
+    folder = tmp_path / "runs/time_to_walk/x"
+    record = _strict((folder / "evals_robust.json").read_text())
+    entry = record["evaluations"]["wall_00060s"]
+    assert entry["test"] == "robust" and entry["walks"] is False and set(entry["cases"]) == set(robust_eval.CASES)
+    assert not (folder / "evals.json").exists()
+    with contextlib.redirect_stdout(io.StringIO()):
+        time_to_walk.main(["report", "--runs", str(folder), "--test", "robust", "--out", str(tmp_path / "docs")])
+    page = next((tmp_path / "docs").rglob("time_to_walk_robust.md")).read_text()
+    assert "robust gait test" in page and "| wall_00060s |" in page and "survival (push 1.0 m/s)" in page
+
+
+def test_training_ends_with_the_robust_test_when_asked(tmp_path, capsys):
+    from test_runs import tiny_args
+
+    recipe("ppo_walk").main(tiny_args(tmp_path, eval_at_end=True, eval_test="robust", eval_envs=2, eval_seconds=0.1))
+    out = capsys.readouterr().out
+    assert "robust gait test (0.1 s, 2 robots per case): does not walk yet" in out
+    report = _strict((tmp_path / "run" / "eval" / "robust.json").read_text())
+    assert list(report["cases"]) == ["nominal", "commands", "robust_0.5", "robust_1.0"]
+    assert not (tmp_path / "run" / "eval" / "summary.json").exists()  # the standard test did not run as well
+
+
+def test_heading_frame_velocity_removes_the_yaw_only():
+    import torch
+
+    from tocabi_torchrl.rl.robust_eval import heading_frame_velocity
+
+    half = math.pi / 4  # a pelvis turned 90° left, then also pitched 0.3 rad about its own y axis
+    yaw = torch.tensor([[math.cos(half), 0.0, 0.0, math.sin(half)]])
+    assert torch.allclose(heading_frame_velocity(yaw, torch.tensor([[1.0, 0.0, 0.0]])), torch.tensor([[1.0, 0.0]]),
+                          atol=1e-6)
+    pitch = torch.tensor([[math.cos(0.15), 0.0, math.sin(0.15), 0.0]])
+    w1, v1, w2, v2 = yaw[:, :1], yaw[:, 1:], pitch[:, :1], pitch[:, 1:]
+    both = torch.cat((w1 * w2 - (v1 * v2).sum(-1, keepdim=True), w1 * v2 + w2 * v1 + torch.linalg.cross(v1, v2)), -1)
+    # Forward along the pitched pelvis x: horizontally cos(0.3) of it, still straight ahead in the heading frame.
+    got = heading_frame_velocity(both, torch.tensor([[1.0, 0.0, 0.0]]))
+    assert torch.allclose(got, torch.tensor([[math.cos(0.3), 0.0]]), atol=1e-6)
+
+
+@pytest.mark.parametrize("mode", ["pd_reference", "torque"])
+def test_case_configs_hold_what_each_case_says(mode):
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.randomize import TOCABI_LAB_ACTUATORS, TOCABI_LAB_DYNAMICS
+    from tocabi_torchrl.rl.robust_eval import EVAL_SEED, case_config
+
+    cfg = preset_config("cpu_smoke", **{"env.control.mode": mode})
+    nominal, commands, pushed = (case_config(cfg, name) for name in ("nominal", "commands", "robust_1.0"))
+    for case in (nominal, commands, pushed):
+        case.validate()
+        assert case.seed == EVAL_SEED and case.env.task.start_joint_vel_std == 0.5
+        assert case.env.task.start_base_vel_std == 0.1
+    assert nominal.env.command.vx_range == (0.5, 0.5) and nominal.env.command.vy_range == (0.0, 0.0)
+    assert nominal.env.pushes.count == 0 and nominal.env.dynamics == cfg.env.dynamics
+    assert commands.env.command.resample_every == 500 and commands.env.command.vx_range == (0.0, 0.7)
+    assert pushed.env.pushes.count == 3 and pushed.env.pushes.speed == (1.0, 1.0)
+    assert pushed.env.pushes.window == (2.0, 7.0) and pushed.env.pushes.duration == (0.004, 0.004)
+    assert pushed.env.dynamics == TOCABI_LAB_DYNAMICS and pushed.transforms.sensor_noise.enabled
+    assert pushed.env.control.actuators == (TOCABI_LAB_ACTUATORS if mode == "torque" else cfg.env.control.actuators)
