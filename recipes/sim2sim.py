@@ -2,11 +2,20 @@
 
     python recipes/sim2sim.py --contract assets/policies/tocabi_walk_ppo.json
     python recipes/sim2sim.py --contract assets/policies/tocabi_walk_torque.json --model reference --num_robots 8
+    python recipes/sim2sim.py --contract assets/policies/tocabi_walk_torque.json --randomize tocabi_lab \
+        --pushes 3 --push_speed 0.5 --start_noise --seed 1
 
 ``--model authored`` (default) is assets/tocabi/tocabi.xml; ``reference`` is ../shared/reference/dyros_tocabi.xml
 (beside the repository) with its mesh geoms removed; any other value is an MJCF path. Prints the gait-test metrics
 of rl/evaluate.py (survival, forward distance, lateral drift, speed tracking error, knee RMS) as JSON. Needs
 numpy, mujoco and onnxruntime only (`pip install tocabi-torchrl[export]`); torch is never imported.
+
+``--randomize`` (default ``none``: the nominal robot, numbers exactly as without it) draws per robot at the reset:
+``trained`` what the contract's ``trained_under`` section states, ``tocabi_lab`` the TOCABI lab's actuator delay and
+motor constant (torque policies), link masses, damping, armature and sensor biases and noise. ``--pushes N`` kicks
+every robot N times at random times in 2-7 s, each a velocity change of ``--push_speed`` m/s in a random horizontal
+direction; ``--start_noise`` starts the robots with the robust gait test's N(0, 0.5 rad/s) joint and N(0, 0.1 m/s)
+pelvis velocities; ``--seed`` seeds every draw (docs/randomization.md, "Sim-to-sim with randomisation").
 """
 
 from __future__ import annotations
@@ -31,6 +40,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--vx", type=float, default=0.5, help="commanded forward speed [m/s] (default: 0.5)")
     parser.add_argument("--vy", type=float, default=0.0, help="commanded lateral speed [m/s] (default: 0)")
     parser.add_argument("--out", default=None, help="also write the metrics to this JSON file (never overwritten)")
+    parser.add_argument("--randomize", default="none", choices=("none", "trained", "tocabi_lab"),
+                        help="per-robot randomisation drawn at the reset: none (default), trained (what the contract "
+                             "states the policy was trained under) or tocabi_lab")
+    parser.add_argument("--pushes", type=int, default=0,
+                        help="horizontal kicks of the pelvis per robot, at random times in 2-7 s (default: 0)")
+    parser.add_argument("--push_speed", type=float, default=0.5,
+                        help="velocity change of the whole robot per kick [m/s] (default: 0.5)")
+    parser.add_argument("--start_noise", action="store_true",
+                        help="start with N(0, 0.5 rad/s) joint and N(0, 0.1 m/s) pelvis velocities (robust gait test)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of every random draw (default: 0)")
     return parser
 
 
@@ -39,6 +58,8 @@ if __name__ == "__main__":  # --help or a misspelt option answers before mujoco 
 
 from tocabi_torchrl.runtime import ContractError  # noqa: E402
 from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim  # noqa: E402
+from tocabi_torchrl.runtime.randomization import ROBUST_START, PushSettings  # noqa: E402
+from tocabi_torchrl.value_rules import MAX_SEED  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -50,6 +71,12 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--seconds must be a finite number of seconds > 0, got {args.seconds}")
     if not (math.isfinite(args.vx) and math.isfinite(args.vy)):
         parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
+    if not 0 <= args.pushes <= 64:
+        parser.error(f"--pushes must be an int in [0, 64] (kicks per robot), got {args.pushes}")
+    if not 0 <= args.push_speed < math.inf:
+        parser.error(f"--push_speed must be a finite velocity change >= 0 [m/s], got {args.push_speed}")
+    if not 0 <= args.seed <= MAX_SEED:
+        parser.error(f"--seed must be an int in [0, 2**63 - 1], got {args.seed}")
     if args.out and Path(args.out).exists():
         parser.error(f"--out {args.out} exists; choose another file")
     if args.out and not Path(args.out).parent.is_dir():  # checked now, not after the whole run
@@ -63,8 +90,11 @@ def main(argv: list[str] | None = None) -> dict:
             parser.error(f"the reference model is not at {REFERENCE_MODEL}")
         model, strip = REFERENCE_MODEL, True
     try:
+        pushes = PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed)) if args.pushes else None
         result = run_sim2sim(args.contract, model, seconds=args.seconds, num_robots=args.num_robots,
-                             command=(args.vx, args.vy), remove_meshes=strip).as_dict()
+                             command=(args.vx, args.vy), remove_meshes=strip, seed=args.seed,
+                             randomize=args.randomize, pushes=pushes,
+                             start_velocity=ROBUST_START if args.start_noise else None).as_dict()
     except (ContractError, ValueError, ImportError) as err:  # bad contract or model, or onnxruntime missing
         sys.exit(f"error: {err}")
     result["model"] = str(args.model)

@@ -12,8 +12,8 @@ import numbers
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT", "Range", "check_env_value",
-           "check_seed"]
+__all__ = ["ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT", "Range",
+           "TRAINED_UNDER_RULES", "check_env_value", "check_seed", "trained_under_problems"]
 
 
 @dataclass(frozen=True)
@@ -111,3 +111,92 @@ def check_seed(seed: Any, where: str = "seed") -> int:
         raise ValueError(f"{where} must be an int in [0, 2**63 - 1] (the env keeps it as a 64-bit int; not a bool, "
                          f"a float or text), got {seed!r}; give e.g. {where}=0")
     return int(seed)
+
+
+#: The ``trained_under`` section of a policy contract (what the policy was trained under: actuator layer, dynamics,
+#: sensor noise, pushes, start velocities; ``runtime/randomization.py`` writes and reads it) -> per item, the rule of
+#: each numeric field, and whether the field is a ``[low, high]`` pair (then low <= high too) or may be null. An item
+#: is the text ``"off"`` or an object with these fields (other fields are descriptive text). The bounds are the
+#: training config's own (``ActuatorConfig``, ``DynamicsRandomization``, ``SensorNoiseConfig``, ``PushConfig``,
+#: ``TaskConfig.start_*_vel_std``), so a value training refuses is refused in a contract too.
+TRAINED_UNDER_RULES: dict[str, dict[str, dict[str, tuple[Range, str]]]] = {
+    "actuators": {
+        "delay": {"substeps": (Range(low=0, integer=True), "pair"), "ms": (NON_NEGATIVE, "pair")},
+        "motor_constant": {"range": (NON_NEGATIVE, "pair")},
+        "friction": {"coulomb_nm": (NON_NEGATIVE, "pair"), "viscous_nms_per_rad": (NON_NEGATIVE, "pair")},
+        "saturation": {},
+    },
+    "dynamics": {
+        "mass_scale": {"range": (POSITIVE, "pair")},
+        "joint_damping": {"range": (NON_NEGATIVE, "pair")},
+        "armature_scale": {"range": (NON_NEGATIVE, "pair")},
+        "friction_scale": {"range": (NON_NEGATIVE, "pair")},
+    },
+    "sensor_noise": {
+        "joint_pos_bias": {"half_width": (NON_NEGATIVE, "one")},
+        "joint_pos_noise": {"std": (NON_NEGATIVE, "one"), "clip": (POSITIVE, "nullable")},
+        "joint_vel_noise": {"std": (NON_NEGATIVE, "one"), "clip": (POSITIVE, "nullable")},
+        "base_rpy_bias": {"half_width": (NON_NEGATIVE, "one")},
+        "foot_force_bias": {"half_width": (NON_NEGATIVE, "one")},
+        "foot_torque_bias": {"half_width": (NON_NEGATIVE, "one")},
+    },
+    "pushes": {
+        "pushes": {"count": (Range(low=1, high=64, integer=True), "one"), "window_s": (NON_NEGATIVE, "pair"),
+                   "speed_mps": (NON_NEGATIVE, "pair"), "duration_s": (NON_NEGATIVE, "pair"),
+                   "robot_mass_kg": (POSITIVE, "one"), "ramp_env_steps": (Range(low=0, integer=True), "pair")},
+    },
+    "start_velocity": {
+        "start_velocity": {"joint_std_radps": (Range(low=0.0, high=10.0), "one"),
+                           "base_std_mps": (Range(low=0.0, high=10.0), "one")},
+    },
+}
+
+
+def trained_under_problems(section: Any, where: str = "trained_under") -> list[str]:
+    """What is wrong with a contract's ``trained_under`` section, each as ``"<path> is <value> but must be ..."``
+    (empty when nothing is): every group of :data:`TRAINED_UNDER_RULES` present, each item ``"off"`` or an object
+    with its numeric fields finite, obeying their rule, and each ``[low, high]`` pair ordered (low <= high); an
+    unknown item that is an object (a randomisation this reader would not apply) is refused, text beside is not. The
+    ``pushes`` and ``start_velocity`` groups are one item each, written directly as the group's value."""
+    if not isinstance(section, dict):
+        return [f"{where} is {type(section).__name__}, not an object"]
+    problems = []
+    for group, items in TRAINED_UNDER_RULES.items():
+        if group not in section:
+            problems.append(f"{where}.{group} is missing")
+            continue
+        single = list(items) == [group]
+        node = {group: section[group]} if single else section[group]
+        path = where if single else f"{where}.{group}"
+        if not isinstance(node, dict):
+            problems.append(f"{path} is {node!r}, not an object of items")
+            continue
+        # Text beside the items describes them; an unknown item that is on states something the reader would miss.
+        unknown = sorted(k for k in set(node) - set(items) if isinstance(node[k], dict))
+        if unknown:
+            problems.append(f"{path} states {unknown}, which this reader cannot apply (it knows {sorted(items)})")
+        for item, rules in items.items():
+            value = node.get(item, None)
+            if value == "off":
+                continue
+            if not isinstance(value, dict):
+                problems.append(f"{path}.{item} is {value!r} but must be \"off\" or an object")
+                continue
+            for name, (rule, shape) in rules.items():
+                problems.extend(_field_problems(value.get(name, "missing"), rule, shape, f"{path}.{item}.{name}"))
+    return problems
+
+
+def _field_problems(value: Any, rule: Range, shape: str, where: str) -> list[str]:
+    if shape == "nullable" and value is None:
+        return []
+    if shape != "pair":
+        return [] if rule.allows(value) else [f"{where} is {value!r} but must be {rule.describe()}"]
+    if not isinstance(value, list) or len(value) != 2:
+        return [f"{where} is {value!r} but must be a [low, high] pair"]
+    bad = [v for v in value if not rule.allows(v)]
+    if bad:
+        return [f"{where} is {value!r} but each end must be {rule.describe()}"]
+    if value[0] > value[1]:
+        return [f"{where} is {value!r}: low > high (swapped?)"]
+    return []

@@ -137,6 +137,28 @@ def _check_normalization(norm: dict, checkpoint: Path) -> None:
                           "checkpoint, or retrain with eps > 0")
 
 
+def _trained_under(policy, cfg, model) -> dict:
+    """The contract's ``trained_under`` section: the env config's actuator layer, dynamics, pushes and start
+    velocities, the transform chain's sensor noise and the run config's push curriculum (``ppo.push_ramp``)."""
+    from ..runtime import randomization as rnd
+
+    noise = _find(policy.env.transform, "SensorNoise")  # in the chain exactly when the run's sensor noise is on
+    dynamics = getattr(cfg, "dynamics", None)  # an env config without the section had no dynamics randomisation
+    randomization = rnd.Randomization(
+        actuators=rnd.settings_from(rnd.ActuatorSettings, cfg.control.actuators, "env.control.actuators"),
+        dynamics=(rnd.settings_from(rnd.DynamicsSettings, dynamics, "env.dynamics") if dynamics is not None
+                  else rnd.DynamicsSettings()),
+        sensors=(rnd.settings_from(rnd.SensorSettings, noise.config, "transforms.sensor_noise") if noise is not None
+                 else rnd.SensorSettings()))
+    start = rnd.StartVelocity(float(getattr(cfg.task, "start_joint_vel_std", 0.0)),
+                              float(getattr(cfg.task, "start_base_vel_std", 0.0)))
+    # The kicks' impulse is speed × the robot's nominal mass, as the env computes it (envs/pushes.py).
+    mass = float(model.body_subtreemass[model.body(robot.BASE_BODY).id])
+    ramp = getattr(getattr(policy.config, "ppo", None), "push_ramp", (0, 0))
+    return rnd.trained_under_section(randomization, rnd.settings_from(rnd.PushSettings, cfg.pushes, "env.pushes"),
+                                     start, float(model.opt.timestep), mass, ramp)
+
+
 def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, output_name: str, opset: int) -> dict:
     """The contract of a :class:`~tocabi_torchrl.export.onnx_export.LoadedPolicy` exported to ``onnx_file``."""
     env = policy.env
@@ -218,6 +240,7 @@ def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, ou
                         "max_neck_angle": float(cfg.task.max_neck_angle),
                         "forbidden_contact": bool(cfg.task.terminate_on_forbidden_contact),
                         "self_collision": bool(cfg.task.terminate_on_self_collision)},
+        "trained_under": _trained_under(policy, cfg, model),
     }
     check_contract(contract, "exported contract")
     return contract

@@ -15,14 +15,15 @@ import os
 import re
 from pathlib import Path
 
-from ..value_rules import ENV_RULES, NON_NEGATIVE
+from ..value_rules import ENV_RULES, NON_NEGATIVE, trained_under_problems
 
 __all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ENV_FIELDS", "REQUIRED_KEYS", "RUNTIME_SIGNALS", "ContractError",
            "check_contract", "load_contract"]
 
 #: ``format`` field of every contract.
 CONTRACT_FORMAT = "tocabi_torchrl.policy_contract"
-#: Layout version of the contract. Bump it when a field changes meaning; readers refuse other versions.
+#: Layout version of the contract. Bump it when a field changes meaning; readers refuse other versions. An added
+#: optional section (``trained_under``) changes no field's meaning: older contracts without it still load.
 CONTRACT_VERSION = 1
 
 #: Top-level keys and the nested keys the runtime relies on (``"a.b"`` = key ``b`` of section ``a``).
@@ -126,7 +127,10 @@ def check_contract(contract, source: str = "contract") -> None:
     element inside it; non-negative integer history ages; the phase-rate action after the leg actions; both sha256
     hashes 64 lowercase hex digits; ``policy.onnx_file`` and ``reference_motion.name`` plain file names; every value
     the env config also constrains (:data:`ENV_FIELDS`: gains, action scale, nominal pose, substeps, phase-rate gain,
-    termination limits) by the env's own rule, and the upper-body gains >= 0."""
+    termination limits) by the env's own rule, and the upper-body gains >= 0. The optional ``trained_under`` section
+    (what the policy was trained under; a contract without it states nothing and loads as before) by
+    ``value_rules.trained_under_problems``, its delay in ms against its substeps, and no actuator stages in the PD
+    modes."""
     if not isinstance(contract, dict):
         raise ContractError(f"{source}: a policy contract is a JSON object, got {type(contract).__name__}")
     if contract.get("format") != CONTRACT_FORMAT:
@@ -244,6 +248,7 @@ def _check_consistency(c: dict, source: str) -> None:
                                 f"{_FIX}")
     _check_env_values(c, source)
     _check_termination_switches(c["termination"], source)
+    _check_trained_under(c, source)
 
 
 def _obey(value, rule, what: str, source: str, whose: str) -> None:
@@ -371,3 +376,28 @@ def _check_observation(obs: dict, num_joints: int, source: str) -> None:
                 or (key == "obs_ages" and not ages)):
             raise ContractError(f"{source}: observation.history.{key} is {ages!r}; it must be a list of integer ages "
                                 f">= 0 in control periods{' (at least one)' if key == 'obs_ages' else ''}; {_FIX}")
+
+
+def _check_trained_under(contract: dict, source: str) -> None:
+    """Raise :class:`ContractError` for a ``trained_under`` section (when the contract has one) that breaks
+    ``value_rules.trained_under_problems``, whose delay in ms is not its substeps × ``timing.physics_dt_s``, or
+    that states actuator stages for a PD control mode (the training env refuses them there)."""
+    if "trained_under" not in contract:
+        return
+    section = contract["trained_under"]
+    problems = trained_under_problems(section)
+    fix = _FIX
+    if problems:
+        raise ContractError(f"{source}: {problems[0]}; {fix}")
+    delay = section["actuators"]["delay"]
+    if delay != "off":
+        dt_ms = float(contract["timing"]["physics_dt_s"]) * 1000.0
+        expected = [k * dt_ms for k in delay["substeps"]]
+        if any(abs(a - b) > 1e-6 * max(1.0, b) for a, b in zip(delay["ms"], expected)):
+            raise ContractError(f"{source}: trained_under.actuators.delay.ms is {delay['ms']} but substeps "
+                                f"{delay['substeps']} x timing.physics_dt_s is {expected} ms; {fix}")
+    mode = contract["action"]["control_mode"]
+    on = [k for k in ("delay", "motor_constant", "friction") if section["actuators"][k] != "off"]
+    if on and mode != "torque":
+        raise ContractError(f"{source}: trained_under.actuators states {on} for control mode {mode!r}, whose servos "
+                            f"take no actuator stages (the training env refuses them); {fix}")

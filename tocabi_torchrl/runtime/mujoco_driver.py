@@ -10,6 +10,11 @@ Each control period repeats the training env's simulator step (``sim/mujoco_back
 with the command held, then ``mj_forward`` with its constraint solution kept as the next warm start. Terminations are
 the env's (``envs/termination.py``, ``sim/contacts.py``), found here from the contact list, plus the training env's
 health check: a robot whose MuJoCo warning counters fired (C MuJoCo resets a diverged world itself) has fallen.
+
+Optionally (:func:`run_sim2sim`'s ``randomize``, ``pushes``, ``start_velocity``) each robot draws the training env's
+randomisation at its reset, in numpy (:mod:`.randomization`): an actuator layer whose torque is written into ``ctrl``
+substep by substep, its own ``MjModel`` copy with drawn dynamics, sensor biases and noise on what the policy
+observes, kicks on the pelvis through ``MjData.xfrc_applied``, and start velocities.
 """
 
 from __future__ import annotations
@@ -22,9 +27,15 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from . import randomization as rnd
 from .policy import PolicyRuntime, RobotState
 
-__all__ = ["HEALTH_WARNINGS", "Sim2SimResult", "build_model", "missing_names", "run_sim2sim", "strip_meshes"]
+__all__ = ["HEALTH_WARNINGS", "RANDOMIZE", "Sim2SimResult", "build_model", "missing_names", "resolve_randomization",
+           "run_sim2sim", "strip_meshes"]
+
+#: The named randomisations of :func:`run_sim2sim` (``recipes/sim2sim.py --randomize``): none, what the contract's
+#: ``trained_under`` section states, or the TOCABI lab's set (``runtime.randomization.TOCABI_LAB``).
+RANDOMIZE = ("none", "trained", "tocabi_lab")
 
 _W = mujoco.mjtWarning
 #: The warnings of ``sim/mujoco_health.MUJOCO_HEALTH_WARNINGS`` (listed again because importing ``sim`` loads torch;
@@ -116,6 +127,9 @@ class Sim2SimResult:
     knee_rms_rad: float
     per_robot_forward_m: list = field(default_factory=list)
     alive: list = field(default_factory=list)
+    #: What the run randomised and perturbed: ``randomize`` (its name), ``seed``, ``pushes`` (count per robot,
+    #: speed [m/s], kicks that started within the run), ``start_noise`` (the start velocities' σ or None).
+    perturbations: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -176,10 +190,39 @@ def _sensor_columns(m: mujoco.MjModel, names: list[str]) -> np.ndarray:
     return np.stack(cols)  # (2, 3)
 
 
+def resolve_randomization(randomize, contract: dict) -> rnd.Randomization:
+    """The :class:`~tocabi_torchrl.runtime.randomization.Randomization` that ``randomize`` names (one of
+    :data:`RANDOMIZE`, or an instance) for a policy with ``contract``. Raises ``ValueError`` saying what to use
+    instead for an unknown name, ``"trained"`` with a contract that does not state what the policy was trained
+    under, and actuator stages for a PD policy (the training env applies them to torque commands only)."""
+    if isinstance(randomize, rnd.Randomization):
+        chosen, name = randomize, "the given randomisation"
+    elif randomize == "none":
+        return rnd.Randomization()
+    elif randomize == "trained":
+        stated = rnd.from_contract(contract)
+        if stated is None:
+            raise ValueError("randomize='trained': the contract does not state what the policy was trained under (it "
+                             "has no trained_under section; exported before the section existed): use 'none' or "
+                             "'tocabi_lab', or re-export the policy with `python -m tocabi_torchrl.export`")
+        chosen, name = stated[0], "the contract's trained_under"
+    elif randomize == "tocabi_lab":
+        chosen, name = rnd.TOCABI_LAB, "tocabi_lab"
+    else:
+        raise ValueError(f"randomize is {randomize!r}; choose one of {list(RANDOMIZE)}")
+    mode = contract["action"]["control_mode"]
+    if chosen.actuators.enabled and mode != "torque":
+        raise ValueError(f"{name} has an actuator layer (delay, motor constant, friction), which acts on torque "
+                         f"commands only, but this policy's control mode is {mode!r} (PD servos): use a torque "
+                         "policy, or randomise without the actuator layer")
+    return chosen
+
+
 def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike | None = None, seconds: float = 8.0,
                 num_robots: int = 4, command: tuple[float, float] = (0.5, 0.0), init_rows=None,
                 remove_meshes: bool = False, motion: str | os.PathLike | None = None, perturbation: float = 0.0,
-                seed: int = 0) -> Sim2SimResult:
+                seed: int = 0, randomize: str | rnd.Randomization = "none", pushes: rnd.PushSettings | None = None,
+                start_velocity: rnd.StartVelocity | None = None) -> Sim2SimResult:
     """Drive ``num_robots`` C MuJoCo robots through the exported policy for ``seconds`` at ``command`` (vx, vy) m/s.
 
     ``model_path``: MJCF (default: the shipped authored model); ``remove_meshes`` strips mesh geoms first (the
@@ -190,9 +233,25 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     ``perturbation`` > 0 offsets each robot's initial joint angles by N(0, perturbation²) rad (``seed``): a
     walking gait is chaotic, so a 1e-6 rad offset (or the ~1e-6 difference between ONNX and torch arithmetic) gives
     another sample of it, and averages over such robots are what two implementations can be compared on.
+
+    Randomisation and perturbations (``docs/randomization.md``, "Sim-to-sim with randomisation"), drawn per robot
+    at the reset from numpy generators of ``seed`` (one stream per piece, ``randomization.generator``):
+
+    * ``randomize``: ``"none"`` (default: the nominal robot, numbers exactly as without these options),
+      ``"trained"`` (what the contract's ``trained_under`` section states), ``"tocabi_lab"``, or a
+      :class:`~tocabi_torchrl.runtime.randomization.Randomization`. Actuator layer: the leg torques go through
+      delay, motor constant, friction and saturation, written into ``ctrl`` substep by substep. Dynamics: one
+      ``MjModel`` copy per robot. Sensors: biases and noise on what the policy observes only.
+    * ``pushes``: kicks on the pelvis through ``MjData.xfrc_applied`` (``PushSettings``; None or count 0: none).
+    * ``start_velocity``: start joint and pelvis velocities (``StartVelocity``, e.g. ``ROBUST_START``; None: at rest).
     """
     runtime = PolicyRuntime(contract_path, motion=motion)
     c = runtime.contract
+    chosen = resolve_randomization(randomize, c)
+    pushes = pushes if pushes is not None and pushes.count > 0 else None
+    if pushes is not None:
+        pushes.validate()
+    start_velocity = start_velocity if start_velocity is not None and start_velocity.enabled else None
     if model_path is None:
         from ..robot import asset_path
 
@@ -215,15 +274,38 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     reset_leg = (np.zeros(n_leg) if c["action"]["control_mode"] == "torque"
                  else np.asarray(c["action"]["leg"].get("nominal", init_qpos[7 : 7 + n_leg])))
 
+    # Randomisation and perturbations, drawn per robot at this (the episode's only) reset. With none of them the
+    # loop below is the plain one: one shared model, the command held for every substep, no forces.
+    models = [m] * num_robots
+    actuators = kicks = None
+    if chosen.dynamics.enabled:
+        models = rnd.WorldDynamics(chosen.dynamics, m).reset(rnd.generator(seed, "dynamics"), num_robots)
+    if chosen.actuators.enabled:
+        actuators = rnd.ActuatorLayer(chosen.actuators, substeps, c["action"]["leg"]["torque_limits_nm"])
+        actuators.reset(rnd.generator(seed, "actuators"), num_robots)
+    if chosen.sensors.enabled:
+        runtime.sensors = rnd.SensorModel(chosen.sensors, len(c["robot"]["joint_names"]),
+                                          rnd.generator(seed, "sensor_noise"))
+        runtime.sensors.reset(rnd.generator(seed, "sensor_bias"), num_robots)
+    if pushes is not None:
+        # The kick changes the whole robot's velocity by `speed`: impulse = speed × the model's robot mass.
+        base = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, c["robot"]["base_body"])
+        kicks = rnd.PushSchedule(pushes, float(c["timing"]["control_dt_s"]), float(m.body_subtreemass[base]))
+        kicks.reset(rnd.generator(seed, "pushes"), num_robots)
+    start_qvel = (rnd.start_velocities(rnd.generator(seed, "start_velocity"), num_robots, m.nv, start_velocity)
+                  if start_velocity is not None else None)
+
     datas = [mujoco.MjData(m) for _ in range(num_robots)]
     first_ref = runtime.motion.joint_targets(np.zeros(num_robots, np.float32), np.asarray(init_rows))
     offsets = np.random.default_rng(seed).normal(0.0, perturbation, (num_robots, len(init_qpos) - 7))
     for i, d in enumerate(datas):
         d.qpos[:] = init_qpos
         d.qpos[7:] += offsets[i]
+        if start_qvel is not None:
+            d.qvel[:] = start_qvel[i]
         d.ctrl[:n_leg] = reset_leg
         d.ctrl[n_leg:] = first_ref[i, n_leg:]
-        mujoco.mj_forward(m, d)
+        mujoco.mj_forward(models[i], d)
         d.qacc_warmstart[:] = d.qacc
     held = _state(m, datas, sensors)  # each robot's last finite state
     cmd = runtime.reset(held, command, init_row=init_rows)
@@ -235,15 +317,30 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     vel_err = np.zeros(num_robots)
     alive_steps = np.zeros(num_robots)
     steps = round(seconds / c["timing"]["control_dt_s"])
-    for _ in range(steps):
+    kicked = 0
+    for step in range(steps):
+        # The actuator layer's torque of every substep of this period (the joint velocity at its start for friction).
+        torques = (actuators(cmd.leg, np.stack([d.qvel[6 : 6 + n_leg] for d in datas]))
+                   if actuators is not None else None)
+        if kicks is not None:
+            force = kicks.at(step)  # held for the whole period, as the env's xfrc_applied
+            kicked += int((kicks.start_step == step).sum())
         for i, d in enumerate(datas):
+            mi = models[i]
             d.ctrl[:n_leg] = cmd.leg[i]
             d.ctrl[n_leg:] = cmd.upper_targets[i]
-            for _ in range(substeps):
-                mujoco.mj_step(m, d)
-            mujoco.mj_forward(m, d)
+            if kicks is not None:
+                d.xfrc_applied[base, :2] = force[i]
+            if torques is None:
+                for _ in range(substeps):
+                    mujoco.mj_step(mi, d)
+            else:
+                for s in range(substeps):
+                    d.ctrl[:n_leg] = torques[i, s]
+                    mujoco.mj_step(mi, d)
+            mujoco.mj_forward(mi, d)
             d.qacc_warmstart[:] = d.qacc
-            if alive[i] and terminated(m, d):
+            if alive[i] and terminated(mi, d):
                 alive[i] = False
         state, finite = _hold_finite(_state(m, datas, sensors), held)
         alive &= finite  # a diverged robot is a fallen one: it no longer counts, and the others go on
@@ -271,6 +368,14 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
         knee_rms_rad=_mean_per_alive_step(knee_sq, alive_steps, root=True),
         per_robot_forward_m=dist[:, 0].round(4).tolist(),
         alive=alive.tolist(),
+        perturbations={
+            "randomize": randomize if isinstance(randomize, str) else "custom",
+            "seed": int(seed),
+            "pushes": ({"count": pushes.count, "speed_mps": list(pushes.speed), "window_s": list(pushes.window),
+                        "kicks_started": kicked} if pushes is not None else None),
+            "start_noise": ({"joint_std_radps": start_velocity.joint_std, "base_std_mps": start_velocity.base_std}
+                            if start_velocity is not None else None),
+        },
     )
 
 

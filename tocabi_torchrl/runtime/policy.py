@@ -85,6 +85,9 @@ class PolicyRuntime:
         threads: onnxruntime intra-op threads.
         check_onnx_hash: check the ONNX file against the contract's ``policy.onnx_sha256`` (which every contract
             must give); pass False only to run an ONNX file knowingly swapped in beside the contract.
+        sensors: optional callable that maps the observation's signals ``{name: (N, *shape)}`` (in the contract's
+            units) to the signals the policy observes, e.g. a simulation's sensor biases and noise
+            (:class:`~tocabi_torchrl.runtime.randomization.SensorModel`). The state is checked before it runs.
 
     Raises :class:`~tocabi_torchrl.runtime.contract.ContractError` for a bad contract, a missing or mismatched
     ONNX file (hash, input or output name and width) or motion, a robot state that is not N rows of finite
@@ -93,8 +96,9 @@ class PolicyRuntime:
     """
 
     def __init__(self, contract: str | os.PathLike, motion: str | os.PathLike | None = None, threads: int = 1,
-                 check_onnx_hash: bool = True):
+                 check_onnx_hash: bool = True, sensors=None):
         path = Path(contract)
+        self.sensors = sensors
         self.contract = c = load_contract(path)
         self.onnx_path = path.parent / c["policy"]["onnx_file"]
         if not self.onnx_path.is_file():
@@ -279,6 +283,8 @@ class PolicyRuntime:
             "foot_force": state.foot_force,
             "foot_torque": state.foot_torque,
         }
+        if self.sensors is not None:
+            signals = self.sensors(signals)
         return self.observation.normalize(self.observation.raw(signals))
 
     def _act(self) -> Command:

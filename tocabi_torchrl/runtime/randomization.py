@@ -1,0 +1,497 @@
+"""What a policy was trained under, stated in its contract, and the same randomisation and pushes in numpy for the
+sim-to-sim driver.
+
+The contract's ``trained_under`` section (written by :func:`trained_under_section`, read by :func:`from_contract`,
+checked by ``value_rules.trained_under_problems``) states the training env's actuator layer
+(``control/actuators.py``), per-world dynamics (``sim/dynamics.py``), sensor biases and noise
+(``transforms/sensor_noise.py``), pushes (``envs/pushes.py``) and start velocities (``TaskConfig.start_*_vel_std``),
+each with its unit, ``"off"`` where training did not use it. A contract without the section (exported before it
+existed) states nothing: :func:`from_contract` returns None.
+
+The numpy side reproduces each piece's distribution and semantics, not torch's random numbers (another generator):
+
+=========================== ================================================================= ====================
+piece                       what the driver does                                              drawn
+=========================== ================================================================= ====================
+:class:`ActuatorLayer`      leg torque → delay of k physics substeps (zero torque before the  per robot at reset
+                            episode) → × motor constant c → − friction → clip at the limits
+:class:`WorldDynamics`      one ``MjModel`` copy per robot: masses and inertias × s, joint    per robot at reset
+                            damping + d, armature × a, every geom's sliding friction × f
+:class:`SensorModel`        the policy's observation signals + bias (fixed per episode) +     biases at reset,
+                            noise (fresh every control period, clipped); the metrics and      noise every period
+                            terminations read the true state
+:class:`PushSchedule`       horizontal kicks of impulse speed × robot mass on the pelvis,     per robot at reset
+                            ``MjData.xfrc_applied`` held for whole control periods
+:func:`start_velocities`    N(0, σ²) joint velocities and pelvis linear velocity at reset     per robot at reset
+=========================== ================================================================= ====================
+
+Every draw comes from a ``numpy.random.Generator`` of its own stream (:func:`generator`: seed and stream), so turning
+one piece on or off leaves the others' numbers as they were. numpy and mujoco only: never torch.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from dataclasses import dataclass, fields
+
+import mujoco
+import numpy as np
+
+
+__all__ = ["ROBUST_START", "STREAMS", "TOCABI_LAB", "ActuatorLayer", "ActuatorSettings", "DynamicsSettings",
+           "PushSchedule", "PushSettings", "Randomization", "SensorModel", "SensorSettings", "StartVelocity",
+           "WorldDynamics", "from_contract", "generator", "settings_from", "start_velocities",
+           "trained_under_section"]
+
+#: The random stream of each piece (:func:`generator`).
+STREAMS = {"actuators": 1, "dynamics": 2, "sensor_bias": 3, "sensor_noise": 4, "pushes": 5, "start_velocity": 6}
+
+
+def generator(seed: int, piece: str) -> np.random.Generator:
+    """The generator of ``piece`` (a key of :data:`STREAMS`) for ``seed``: independent of every other piece's."""
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(STREAMS[piece],)))
+
+
+# ----------------------------------------------------------------------------------------------------- settings
+@dataclass(frozen=True)
+class ActuatorSettings:
+    """The legs' actuator layer (``ActuatorConfig``'s fields): delay k ~ U{low, ..., high} physics substeps per
+    robot, motor constant c ~ U(low, high) per robot and leg joint, Coulomb friction [N·m] and viscous friction
+    [N·m·s/rad] ~ U(low, high) per robot and leg joint, then a clip at the torque limits (``saturate``, when any
+    other stage runs). The defaults are the ideal actuator."""
+
+    delay_substeps: tuple[int, int] = (0, 0)
+    motor_constant: tuple[float, float] = (1.0, 1.0)
+    coulomb: tuple[float, float] = (0.0, 0.0)
+    viscous: tuple[float, float] = (0.0, 0.0)
+    saturate: bool = True
+
+    @property
+    def delay_on(self) -> bool:
+        return tuple(self.delay_substeps) != (0, 0)
+
+    @property
+    def motor_on(self) -> bool:
+        return tuple(self.motor_constant) != (1.0, 1.0)
+
+    @property
+    def friction_on(self) -> bool:
+        return tuple(self.coulomb) != (0.0, 0.0) or tuple(self.viscous) != (0.0, 0.0)
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any stage runs (the training env builds an empty chain otherwise, saturation included)."""
+        return self.delay_on or self.motor_on or self.friction_on
+
+
+@dataclass(frozen=True)
+class DynamicsSettings:
+    """Per-robot dynamics (``DynamicsRandomization``'s fields), each ``(low, high)`` of a uniform draw: body mass
+    and inertia scale, joint damping added [N·m·s/rad], joint armature scale, sliding friction scale of every geom.
+    The defaults change nothing."""
+
+    mass_scale: tuple[float, float] = (1.0, 1.0)
+    joint_damping: tuple[float, float] = (0.0, 0.0)
+    armature_scale: tuple[float, float] = (1.0, 1.0)
+    friction_scale: tuple[float, float] = (1.0, 1.0)
+
+    _OFF = {"mass_scale": (1.0, 1.0), "joint_damping": (0.0, 0.0), "armature_scale": (1.0, 1.0),
+            "friction_scale": (1.0, 1.0)}
+
+    def on(self, name: str) -> bool:
+        return tuple(float(v) for v in getattr(self, name)) != self._OFF[name]
+
+    @property
+    def enabled(self) -> bool:
+        return any(self.on(name) for name in self._OFF)
+
+
+@dataclass(frozen=True)
+class SensorSettings:
+    """Sensor biases (half-widths of U(±b), drawn per robot at reset) and per-period noise (σ, clip or None) on the
+    observation's signals (``SensorNoiseConfig``'s fields): joint positions [rad], joint velocities [rad/s], base
+    roll/pitch/yaw [rad], foot forces [N], foot torques [N·m]. All 0: nothing."""
+
+    joint_pos_bias: float = 0.0
+    joint_pos_noise_std: float = 0.0
+    joint_pos_noise_clip: float | None = None
+    joint_vel_noise_std: float = 0.0
+    joint_vel_noise_clip: float | None = None
+    base_rpy_bias: float = 0.0
+    foot_force_bias: float = 0.0
+    foot_torque_bias: float = 0.0
+
+    @property
+    def enabled(self) -> bool:
+        return any(getattr(self, n) > 0 for n in ("joint_pos_bias", "joint_pos_noise_std", "joint_vel_noise_std",
+                                                  "base_rpy_bias", "foot_force_bias", "foot_torque_bias"))
+
+
+@dataclass(frozen=True)
+class PushSettings:
+    """Horizontal kicks of the pelvis (``PushConfig``'s fields): ``count`` per episode, kick j at a uniform time in
+    the j-th of ``count`` equal shares of ``window`` [s], a uniform direction, a velocity change ~ U(``speed``)
+    [m/s] of the whole robot, a force held for ~ U(``duration``) [s] rounded to whole control periods (>= 1)."""
+
+    count: int = 0
+    window: tuple[float, float] = (2.0, 7.0)
+    speed: tuple[float, float] = (0.5, 0.5)
+    duration: tuple[float, float] = (0.004, 0.004)
+
+    def validate(self, prefix: str = "pushes.") -> None:
+        """Raise ``ValueError`` naming the first bad field and what it takes (``PushConfig.validate``'s rules)."""
+        if isinstance(self.count, bool) or not isinstance(self.count, int) or not 0 <= self.count <= 64:
+            raise ValueError(f"{prefix}count must be an int in [0, 64] (kicks per episode), got {self.count!r}")
+        for name in ("window", "speed", "duration"):
+            low, high = getattr(self, name)
+            if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
+                raise ValueError(f"{prefix}{name} must be (low, high) with 0 <= low <= high, finite, got "
+                                 f"{getattr(self, name)!r}")
+
+
+@dataclass(frozen=True)
+class StartVelocity:
+    """Start velocities drawn per robot at reset: joint velocities ~ N(0, ``joint_std``²) [rad/s], pelvis linear
+    velocity ~ N(0, ``base_std``²) [m/s] per world axis, no angular velocity (``TocabiWalk._start_velocities``)."""
+
+    joint_std: float = 0.0
+    base_std: float = 0.0
+
+    @property
+    def enabled(self) -> bool:
+        return self.joint_std > 0 or self.base_std > 0
+
+
+@dataclass(frozen=True)
+class Randomization:
+    """The randomisation of a sim-to-sim run: actuator layer, dynamics and sensors (each may be at its identity)."""
+
+    actuators: ActuatorSettings = ActuatorSettings()
+    dynamics: DynamicsSettings = DynamicsSettings()
+    sensors: SensorSettings = SensorSettings()
+
+    @property
+    def enabled(self) -> bool:
+        return self.actuators.enabled or self.dynamics.enabled or self.sensors.enabled
+
+
+#: The TOCABI lab's uncertainty model (``tocabi_torchrl.randomize.tocabi_lab``; ``tests/test_runtime_randomization
+#: .py`` checks the two agree): torque delay 2-10 ms, motor constant ×U(0.8, 1.2), link mass ×U(0.8, 1.2), joint
+#: damping +U(0, 2.9) N·m·s/rad, armature ×U(0.8, 1.2), joint-position bias U(±π/100) rad, IMU bias
+#: U(±π/150) rad, F/T bias U(±100) N and U(±10) N·m, encoder noise σ = 0.00016/3 rad clipped at ±0.00016 rad.
+TOCABI_LAB = Randomization(
+    actuators=ActuatorSettings(delay_substeps=(4, 20), motor_constant=(0.8, 1.2)),
+    dynamics=DynamicsSettings(mass_scale=(0.8, 1.2), joint_damping=(0.0, 2.9), armature_scale=(0.8, 1.2)),
+    sensors=SensorSettings(joint_pos_bias=math.pi / 100, joint_pos_noise_std=0.00016 / 3,
+                           joint_pos_noise_clip=0.00016, base_rpy_bias=math.pi / 150, foot_force_bias=100.0,
+                           foot_torque_bias=10.0),
+)
+#: The robust gait test's start velocities (``rl.robust_eval.RobustTestConfig``): N(0, 0.5 rad/s), N(0, 0.1 m/s).
+ROBUST_START = StartVelocity(joint_std=0.5, base_std=0.1)
+
+
+def settings_from(cls, values, where: str):
+    """``cls`` (a settings dataclass above) from ``values`` (a training config dataclass or a mapping with the same
+    field names). Raises ``ValueError`` for a field the settings do not know: the contract could not state it."""
+    items = dataclasses.asdict(values) if dataclasses.is_dataclass(values) else dict(values)
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(items) - known)
+    if unknown:
+        raise ValueError(f"{where} has {unknown}, which the contract's trained_under section cannot state: add them "
+                         f"to {cls.__name__} in tocabi_torchrl/runtime/randomization.py (writer, reader and driver)")
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in items.items()})
+
+
+# ------------------------------------------------------------------------------------------- contract section
+def _pair(values) -> list[float]:
+    return [float(values[0]), float(values[1])]
+
+
+def trained_under_section(randomization: Randomization, pushes: PushSettings, start: StartVelocity,
+                          physics_dt_s: float, robot_mass_kg: float, push_ramp=(0, 0)) -> dict:
+    """The contract's ``trained_under`` section (``docs/export.md``): each piece with its unit and draw, ``"off"``
+    where training did not use it. ``physics_dt_s``: the physics step, for the delay in ms; ``robot_mass_kg``: the
+    mass the kicks' impulse is computed with; ``push_ramp``: ``ppo.push_ramp`` (start, full) env steps."""
+    act, dyn, sen = randomization.actuators, randomization.dynamics, randomization.sensors
+    actuators = {
+        "applies_to": "the leg torques of the torque control modes (the PD modes' servos take none), in this order: "
+                      "delay, motor_constant, friction, saturation",
+        "delay": {"substeps": [int(v) for v in act.delay_substeps],
+                  "ms": [round(int(v) * physics_dt_s * 1000.0, 9) for v in act.delay_substeps],
+                  "unit": "physics substeps (and ms)",
+                  "draw": "k ~ U{low, ..., high} per robot at each reset; the torque in each physics substep is the "
+                          "command of k substeps earlier (zero torque before the episode's first command)"}
+        if act.delay_on else "off",
+        "motor_constant": {"range": _pair(act.motor_constant), "unit": "1",
+                           "draw": "c ~ U(low, high) per robot and leg joint at each reset; torque * c"}
+        if act.motor_on else "off",
+        "friction": {"coulomb_nm": _pair(act.coulomb), "viscous_nms_per_rad": _pair(act.viscous),
+                     "draw": "F_c, F_v ~ U(low, high) per robot and leg joint at each reset; torque - (F_c * "
+                             "sign(qdot) + F_v * qdot), qdot the joint velocity at the control period's start"}
+        if act.friction_on else "off",
+        "saturation": {"rule": "clip(torque, +-action.leg.torque_limits_nm) after the other stages"}
+        if act.enabled and act.saturate else "off",
+    }
+    units = {"mass_scale": ("1", "body mass and inertia tensor * s, s ~ U(low, high) per robot and body (not the "
+                                 "world or mocap bodies)"),
+             "joint_damping": ("N*m*s/rad", "joint dof damping + d, d ~ U(low, high) per robot and joint (not the free "
+                                            "joint)"),
+             "armature_scale": ("1", "joint dof armature * a, a ~ U(low, high) per robot and joint"),
+             "friction_scale": ("1", "sliding friction of every geom * f, f ~ U(low, high) per robot")}
+    dynamics = {name: {"range": _pair(getattr(dyn, name)), "unit": unit, "draw": f"{draw}, at each reset"}
+                if dyn.on(name) else "off" for name, (unit, draw) in units.items()}
+    sensors = {}
+    for signal, unit in (("joint_pos", "rad"), ("base_rpy", "rad"), ("foot_force", "N"), ("foot_torque", "N*m")):
+        half = float(getattr(sen, f"{signal}_bias"))
+        sensors[f"{signal}_bias"] = ({"half_width": half, "unit": unit,
+                                      "draw": "U(-half_width, half_width) per robot and element at each reset, "
+                                              "added to the observed signal"} if half > 0 else "off")
+    for signal, unit in (("joint_pos", "rad"), ("joint_vel", "rad/s")):
+        std, clip = float(getattr(sen, f"{signal}_noise_std")), getattr(sen, f"{signal}_noise_clip")
+        sensors[f"{signal}_noise"] = ({"std": std, "clip": None if clip is None else float(clip), "unit": unit,
+                                       "draw": "N(0, std^2) per joint every control period, clipped to +-clip (null: "
+                                               "not clipped), added to the observed signal"} if std > 0 else "off")
+    sensors = {k: sensors[k] for k in ("joint_pos_bias", "joint_pos_noise", "joint_vel_noise", "base_rpy_bias",
+                                       "foot_force_bias", "foot_torque_bias")}
+    return {
+        "note": "what the training env randomised and perturbed; \"off\" = not used. The metrics and terminations "
+                "read the true state; only the policy's observation reads the sensor biases and noise",
+        "actuators": actuators,
+        "dynamics": dynamics,
+        "sensor_noise": sensors,
+        "pushes": {"count": int(pushes.count), "window_s": _pair(pushes.window), "speed_mps": _pair(pushes.speed),
+                   "duration_s": _pair(pushes.duration), "robot_mass_kg": float(robot_mass_kg),
+                   "ramp_env_steps": [int(v) for v in push_ramp],
+                   "rule": "kick j at t ~ U over the j-th of count equal shares of window_s, direction ~ U(0, 2pi) "
+                           "in the horizontal plane, force speed * robot_mass_kg / (n * control_dt_s) on the pelvis "
+                           "(world frame) for n = max(1, round(duration / control_dt_s)) control periods; "
+                           "ramp_env_steps: training scaled every kick from 0 at the first to 1 at the second"}
+        if pushes.count > 0 else "off",
+        "start_velocity": {"joint_std_radps": float(start.joint_std), "base_std_mps": float(start.base_std),
+                           "rule": "at each reset: joint velocities ~ N(0, joint_std^2), pelvis linear velocity ~ "
+                                   "N(0, base_std^2) per world axis, no angular velocity"}
+        if start.enabled else "off",
+    }
+
+
+def from_contract(contract: dict) -> tuple[Randomization, PushSettings, StartVelocity] | None:
+    """What the contract's ``trained_under`` section states (checked by ``load_contract``): the randomisation, the
+    pushes and the start velocities; None when the contract does not state it (exported before the section)."""
+    section = contract.get("trained_under")
+    if section is None:
+        return None
+    act, dyn, sen = section["actuators"], section["dynamics"], section["sensor_noise"]
+
+    def pair(item, key, off):
+        return off if item == "off" else tuple(item[key])
+
+    actuators = ActuatorSettings(
+        delay_substeps=tuple(int(v) for v in pair(act["delay"], "substeps", (0, 0))),
+        motor_constant=pair(act["motor_constant"], "range", (1.0, 1.0)),
+        coulomb=pair(act["friction"], "coulomb_nm", (0.0, 0.0)),
+        viscous=pair(act["friction"], "viscous_nms_per_rad", (0.0, 0.0)),
+        saturate=act["saturation"] != "off")
+    dynamics = DynamicsSettings(**{name: pair(dyn[name], "range", off) for name, off in DynamicsSettings._OFF.items()})
+    values = {}
+    for name in ("joint_pos_bias", "base_rpy_bias", "foot_force_bias", "foot_torque_bias"):
+        values[name] = 0.0 if sen[name] == "off" else float(sen[name]["half_width"])
+    for signal in ("joint_pos", "joint_vel"):
+        item = sen[f"{signal}_noise"]
+        if item != "off":
+            values[f"{signal}_noise_std"], values[f"{signal}_noise_clip"] = float(item["std"]), item["clip"]
+    push = section["pushes"]
+    pushes = PushSettings() if push == "off" else PushSettings(
+        count=int(push["count"]), window=tuple(push["window_s"]), speed=tuple(push["speed_mps"]),
+        duration=tuple(push["duration_s"]))
+    st = section["start_velocity"]
+    start = StartVelocity() if st == "off" else StartVelocity(float(st["joint_std_radps"]), float(st["base_std_mps"]))
+    return Randomization(actuators, dynamics, SensorSettings(**values)), pushes, start
+
+
+# -------------------------------------------------------------------------------------------------- actuators
+class ActuatorLayer:
+    """The legs' actuator chain of ``control/actuators.py`` in numpy, for N robots.
+
+    Args:
+        settings: the ranges (:class:`ActuatorSettings`; ``enabled`` must be True).
+        substeps: S, physics substeps per control period.
+        torque_limits: (J,) the joints' torque limits [N·m] (the saturation's).
+
+    Attributes (after :meth:`reset`): ``delay`` (N,) int substeps, ``motor_constant``, ``coulomb``, ``viscous``
+    (N, J).
+    """
+
+    def __init__(self, settings: ActuatorSettings, substeps: int, torque_limits):
+        self.settings, self.substeps = settings, int(substeps)
+        self.limits = np.asarray(torque_limits, dtype=np.float64)
+        # The newest command and the ceil(high / S) before it: enough for a delay of `high` substeps.
+        self.depth = -(-int(settings.delay_substeps[1]) // self.substeps) + 1
+
+    def reset(self, rng: np.random.Generator, n: int) -> None:
+        """Draw each robot's delay, motor constants and friction, and clear the command history to zero torque."""
+        s, j = self.settings, len(self.limits)
+        lo, hi = (int(v) for v in s.delay_substeps)
+        self.delay = rng.integers(lo, hi + 1, size=n) if s.delay_on else np.zeros(n, dtype=np.int64)
+        self.motor_constant = rng.uniform(*s.motor_constant, size=(n, j)) if s.motor_on else np.ones((n, j))
+        if s.friction_on:
+            self.coulomb, self.viscous = rng.uniform(*s.coulomb, size=(n, j)), rng.uniform(*s.viscous, size=(n, j))
+        else:
+            self.coulomb, self.viscous = np.zeros((n, j)), np.zeros((n, j))
+        self.history = np.zeros((n, self.depth, j))
+        # The history slot substep s of a period reads: the command of ceil(max(k - s, 0) / S) periods ago, i.e. the
+        # command stream shifted by exactly k substeps (Delay._set_lag).
+        sub = np.arange(self.substeps)
+        self.lag = (np.clip(self.delay[:, None] - sub, 0, None) + self.substeps - 1) // self.substeps
+
+    def __call__(self, tau, qd) -> np.ndarray:
+        """(N, S, J) torque [N·m] per physics substep of this period from the commanded torque ``tau`` (N, J) and
+        the joint velocity ``qd`` (N, J) [rad/s] at the period's start."""
+        tau, qd = np.asarray(tau, dtype=np.float64), np.asarray(qd, dtype=np.float64)
+        self.history = np.roll(self.history, 1, axis=1)
+        self.history[:, 0] = tau
+        out = self.history[np.arange(len(tau))[:, None], self.lag]  # (N, S, J)
+        out = out * self.motor_constant[:, None]
+        out = out - (self.coulomb * np.sign(qd) + self.viscous * qd)[:, None]
+        if self.settings.saturate:
+            out = np.clip(out, -self.limits, self.limits)
+        return out
+
+
+# ---------------------------------------------------------------------------------------------------- dynamics
+class WorldDynamics:
+    """One ``MjModel`` per robot with its own masses, damping, armature and friction (``sim/dynamics.py``'s draws).
+
+    ``dof_invweight0``/``body_invweight0`` stay the nominal model's, as in training. Attributes (after
+    :meth:`reset`): ``models`` (one copy per robot), ``mass_scale`` (N, nbody) (1 for the world and mocap bodies),
+    ``joint_damping`` (N, D) [N·m·s/rad], ``armature_scale`` (N, D), ``friction_scale`` (N,), with D the joint dofs
+    (``dofs``: every dof but the free joint's)."""
+
+    def __init__(self, settings: DynamicsSettings, model: mujoco.MjModel):
+        self.settings, self.model = settings, model
+        self.bodies = np.array([b for b in range(1, model.nbody) if model.body_mocapid[b] < 0], dtype=np.int64)
+        self.dofs = np.array([d for d in range(model.nv) if model.jnt_type[model.dof_jntid[d]]
+                              != mujoco.mjtJoint.mjJNT_FREE], dtype=np.int64)
+        self.models: list[mujoco.MjModel] = []
+
+    def reset(self, rng: np.random.Generator, n: int) -> list[mujoco.MjModel]:
+        """Draw each robot's dynamics and write them into its model copy (made at the first reset); returns them."""
+        s, m, nd = self.settings, self.model, len(self.dofs)
+        if len(self.models) != n:
+            self.models = [copy.copy(m) for _ in range(n)]
+        self.mass_scale = np.ones((n, m.nbody))
+        if s.on("mass_scale"):
+            self.mass_scale[:, self.bodies] = rng.uniform(*s.mass_scale, size=(n, len(self.bodies)))
+        self.joint_damping = rng.uniform(*s.joint_damping, size=(n, nd)) if s.on("joint_damping") else np.zeros((n, nd))
+        self.armature_scale = (rng.uniform(*s.armature_scale, size=(n, nd)) if s.on("armature_scale")
+                               else np.ones((n, nd)))
+        self.friction_scale = rng.uniform(*s.friction_scale, size=n) if s.on("friction_scale") else np.ones(n)
+        for i, world in enumerate(self.models):
+            mass = m.body_mass * self.mass_scale[i]
+            world.body_mass[:] = mass
+            world.body_inertia[:] = m.body_inertia * self.mass_scale[i][:, None]
+            # Subtree masses (which subtree_com divides by) from the drawn masses: children come after parents.
+            subtree = mass.copy()
+            for b in range(m.nbody - 1, 0, -1):
+                subtree[m.body_parentid[b]] += subtree[b]
+            world.body_subtreemass[:] = subtree
+            world.dof_damping[:] = m.dof_damping
+            world.dof_damping[self.dofs] += self.joint_damping[i]
+            world.dof_armature[:] = m.dof_armature
+            world.dof_armature[self.dofs] *= self.armature_scale[i]
+            world.geom_friction[:] = m.geom_friction
+            world.geom_friction[:, 0] *= self.friction_scale[i]
+        return self.models
+
+
+# ----------------------------------------------------------------------------------------------------- sensors
+class SensorModel:
+    """Sensor biases and noise on the observation's signals (``transforms/sensor_noise.py``), for N robots.
+
+    :meth:`reset` draws each robot's biases (constant over the episode); each call adds them and fresh noise to
+    the signals the policy observes, float32 as in the env, a biased roll/pitch/yaw wrapped back into (-π, π]. Give
+    it to ``PolicyRuntime(sensors=...)``: the runtime checks the true state, then observes the perturbed one.
+
+    Attributes (after :meth:`reset`): ``biases`` {signal: (N, *shape)} float32 in the signal's unit.
+    """
+
+    SHAPES = {"joint_pos": None, "base_rpy": (3,), "foot_force": (2, 3), "foot_torque": (2, 3)}
+
+    def __init__(self, settings: SensorSettings, num_joints: int, noise_rng: np.random.Generator):
+        self.settings, self.num_joints, self.noise_rng = settings, int(num_joints), noise_rng
+        self.biases: dict[str, np.ndarray] = {}
+
+    def reset(self, rng: np.random.Generator, n: int) -> None:
+        self.biases = {}
+        for name, shape in self.SHAPES.items():
+            half = float(getattr(self.settings, f"{name}_bias"))
+            if half > 0:
+                shape = (self.num_joints,) if shape is None else shape
+                self.biases[name] = rng.uniform(-half, half, size=(n, *shape)).astype(np.float32)
+
+    def __call__(self, signals: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        out = dict(signals)
+        for name, bias in self.biases.items():
+            out[name] = np.asarray(out[name], dtype=np.float32) + bias
+        for name in ("joint_pos", "joint_vel"):
+            std, clip = float(getattr(self.settings, f"{name}_noise_std")), getattr(self.settings,
+                                                                                   f"{name}_noise_clip")
+            if std > 0:
+                value = np.asarray(out[name], dtype=np.float32)
+                z = std * self.noise_rng.standard_normal(value.shape)
+                if clip is not None:
+                    z = np.clip(z, -clip, clip)
+                out[name] = value + z.astype(np.float32)
+        if "base_rpy" in self.biases:
+            rpy = out["base_rpy"]
+            two_pi = np.float32(2.0 * math.pi)
+            out["base_rpy"] = np.where(rpy > math.pi, rpy - two_pi, np.where(rpy <= -math.pi, rpy + two_pi, rpy))
+        return out
+
+
+# ------------------------------------------------------------------------------------------------------ pushes
+class PushSchedule:
+    """The kicks of N robots (``envs/pushes.py``).
+
+    Args:
+        settings: :class:`PushSettings` (``count`` > 0).
+        dt: the control period [s].
+        mass: the robot's mass [kg] (impulse = speed × mass).
+
+    Attributes (after :meth:`reset`): ``start_step`` (N, count) the control period each kick starts in (0 = the
+    episode's first), ``steps`` (N, count) how many periods it lasts, ``force`` (N, count, 2) [N] world x, y.
+    """
+
+    def __init__(self, settings: PushSettings, dt: float, mass: float):
+        settings.validate()
+        self.settings, self.dt, self.mass = settings, float(dt), float(mass)
+
+    def reset(self, rng: np.random.Generator, n: int) -> None:
+        s, k = self.settings, self.settings.count
+        share = (s.window[1] - s.window[0]) / k
+        when = s.window[0] + share * (np.arange(k) + rng.uniform(size=(n, k)))
+        angle = rng.uniform(0.0, 2.0 * math.pi, size=(n, k))
+        speed = rng.uniform(*s.speed, size=(n, k))
+        steps = np.maximum(np.round(rng.uniform(*s.duration, size=(n, k)) / self.dt).astype(np.int64), 1)
+        magnitude = speed * self.mass / (steps * self.dt)
+        self.start_step = np.round(when / self.dt).astype(np.int64)
+        self.steps = steps
+        self.speed = speed
+        self.force = magnitude[..., None] * np.stack((np.cos(angle), np.sin(angle)), axis=-1)
+
+    def at(self, step: int) -> np.ndarray:
+        """(N, 2) the horizontal force [N] on the pelvis during control period ``step`` (0 = the first), world
+        frame."""
+        active = (step >= self.start_step) & (step < self.start_step + self.steps)
+        return (self.force * active[..., None]).sum(axis=1)
+
+
+def start_velocities(rng: np.random.Generator, n: int, nv: int, start: StartVelocity) -> np.ndarray:
+    """(N, nv) start velocities: N(0, base_std²) on the free joint's linear velocity (``qvel[:3]``, world frame),
+    N(0, joint_std²) on every joint (``qvel[6:]``), none on the angular velocity."""
+    z = rng.standard_normal((n, nv))
+    qvel = np.zeros((n, nv))
+    qvel[:, :3] = start.base_std * z[:, :3]
+    qvel[:, 6:] = start.joint_std * z[:, 6:]
+    return qvel
