@@ -8,7 +8,7 @@ from graph_emulation import EmulatedCapture
 from torchrl.envs.utils import check_env_specs
 
 from tocabi_torchrl import make_env
-from tocabi_torchrl.transforms import REFERENCE_TERMS
+from tocabi_torchrl.transforms import REFERENCE_TERMS, TransformSettings
 
 
 @pytest.fixture(scope="module", params=["warp", "mujoco"])
@@ -147,7 +147,8 @@ def test_gpu_cuda_graph_step_matches_eager(preset, mode):
     # Short and gentle (24 steps of small residuals: nobody falls), so that GPU contact-order noise between the two
     # envs cannot grow into different episodes; the 7-step truncation still resets every env three times.
     n, steps = 64, 24
-    kw = dict(num_envs=n, device="cuda", seed=3, max_episode_steps=7, preset=preset, control_mode="pd_reference")
+    kw = dict(num_envs=n, device="cuda", seed=3, max_episode_steps=7, control_mode="pd_reference",
+              transforms=TransformSettings(preset=preset))
     eager, graphed = make_env(cuda_graph=False, **kw), make_env(cuda_graph=True, **kw)
     graphed.graph_modes = (mode,)
     gen = torch.Generator(device="cuda").manual_seed(0)

@@ -213,7 +213,7 @@ def test_env_refuses_a_model_that_is_not_tocabi(tmp_path, mode):
 
     tiny = tmp_path / "tiny.xml"
     tiny.write_text('<mujoco><worldbody><geom type="plane" size="1 1 .1"/></worldbody></mujoco>')
-    # The PD modes used to fail inside _pd_leg_spec with "'NoneType' object has no attribute 'set_to_position'".
+    # The PD modes used to fail inside the leg servos' spec edit with "'NoneType' object has no attribute 'set_to_position'".
     with pytest.raises(ValueError, match=r"tiny\.xml' is not a TOCABI model: it lacks joint 'L_HipYaw_Joint'.*"
                                          r"and \d+ more; pass a TOCABI MJCF .*JOINT_NAMES, ACTUATOR_NAMES"):
         make_env(1, "cpu", model_path=str(tiny), control_mode=mode)

@@ -21,7 +21,7 @@ from tocabi_torchrl.config import config_from_dict, preset_config
 from tocabi_torchrl.envs import TocabiWalk, TocabiWalkConfig
 from tocabi_torchrl.envs.config import BoxObstacle, ControlConfig, SceneConfig
 from tocabi_torchrl.envs.obstacles import add_obstacles, initial_sole_centre, obstacle_names, world_obstacle_centres
-from tocabi_torchrl.envs.tocabi_walk import _pd_leg_spec
+from tocabi_torchrl.envs.tocabi_walk import _servo_spec
 from tocabi_torchrl.rl.config import parse_args
 from tocabi_torchrl.sim import MujocoSim, SimConfig, WarpSim
 from tocabi_torchrl.sim.model import compile_model
@@ -191,7 +191,7 @@ def test_boxes_stay_put_through_steps_and_partial_resets(env):
 
 def test_an_env_without_obstacles_compiles_the_model_it_compiled_before():
     env = TocabiWalk(num_envs=1, device="cpu", seed=0, backend="mujoco")
-    before = compile_model(_pd_leg_spec(robot.load_spec(), ControlConfig()), SimConfig())
+    before = compile_model(_servo_spec(robot.load_spec(), robot.LEG_JOINT_IDS, (ControlConfig().pd_kp, ControlConfig().pd_kv)), SimConfig())
     after = env.sim.mj_model
     fields = [k for k in dir(before) if not k.startswith("_") and isinstance(getattr(before, k), np.ndarray)]
     assert len(fields) > 100
@@ -232,7 +232,7 @@ def contact_sim(request):
     """Three worlds of the PD-leg robot with the feet plate and the hand pillar: world 0 has the plate under the
     feet, world 1 the pillar under the hand, world 2 neither (both boxes far away)."""
     hand = _hand_box()
-    spec = _pd_leg_spec(robot.load_spec(), ControlConfig())
+    spec = _servo_spec(robot.load_spec(), robot.LEG_JOINT_IDS, (ControlConfig().pd_kp, ControlConfig().pd_kv))
     names = add_obstacles(spec, (FEET_BOX, hand))
 
     def far(box):

@@ -50,6 +50,17 @@ def _with_section(tmp_path: Path, name: str, section: dict | None) -> Path:
     return out
 
 
+def _older(tmp_path: Path, name: str) -> Path:
+    """A copy of a shipped contract as exported before it stated what training randomised (no section)."""
+    contract = json.loads(_contract(name).read_text())
+    contract.pop("trained_under", None)
+    out = tmp_path / "older" / f"tocabi_walk_{name}.json"
+    out.parent.mkdir(exist_ok=True)
+    out.write_text(json.dumps(contract))
+    shutil.copy(_contract(name).with_suffix(".onnx"), out.parent)
+    return out
+
+
 def _lab_section(**pushes) -> dict:
     return rnd.trained_under_section(rnd.TOCABI_LAB, rnd.PushSettings(**pushes), rnd.ROBUST_START, 0.0005, 104.5,
                                      (100, 1000))
@@ -311,11 +322,11 @@ def test_randomize_trained_applies_what_the_contract_states(tmp_path):
     assert trained == lab
 
 
-def test_the_actuator_layer_is_refused_for_a_pd_policy_and_trained_needs_the_section():
+def test_the_actuator_layer_is_refused_for_a_pd_policy_and_trained_needs_the_section(tmp_path):
     with pytest.raises(ValueError, match="acts on torque commands only.*'pd_reference'"):
         run_sim2sim(_contract("ppo"), seconds=0.01, num_robots=1, randomize="tocabi_lab")
     with pytest.raises(ValueError, match="does not state what the policy was trained under.*re-export"):
-        run_sim2sim(_contract("torque"), seconds=0.01, num_robots=1, randomize="trained")
+        run_sim2sim(_older(tmp_path, "torque"), seconds=0.01, num_robots=1, randomize="trained")
     with pytest.raises(ValueError, match="choose one of"):
         run_sim2sim(_contract("torque"), seconds=0.01, num_robots=1, randomize="lab")
     # Dynamics and sensors alone are fine for a PD policy.
@@ -337,11 +348,19 @@ def test_a_contract_with_the_section_round_trips(tmp_path):
 
 
 @pytest.mark.parametrize("name", ["torque", "ppo"])
-def test_the_shipped_contracts_load_as_not_stated(name):
-    before = _contract(name).read_bytes()
-    assert "trained_under" not in load_contract(_contract(name))
-    assert rnd.from_contract(load_contract(_contract(name))) is None
-    assert _contract(name).read_bytes() == before
+def test_an_older_contract_loads_as_not_stated_and_the_shipped_ones_state_no_randomisation(name, tmp_path):
+    # A contract exported before the section existed: the shipped one without it.
+    older = json.loads(_contract(name).read_text())
+    older.pop("trained_under")
+    path = tmp_path / _contract(name).name
+    path.write_text(json.dumps(older))
+    shutil.copy(_contract(name).with_suffix(".onnx"), tmp_path)
+    assert "trained_under" not in load_contract(path)
+    assert rnd.from_contract(load_contract(path)) is None
+    # The shipped policies were trained on the ideal robot: every piece is stated as off.
+    stated = load_contract(_contract(name))["trained_under"]
+    assert stated["actuators"]["delay"] == "off" and stated["dynamics"]["mass_scale"] == "off"
+    assert stated["pushes"] == "off" and stated["sensor_noise"]["joint_pos_bias"] == "off"
 
 
 def _edit(section: dict, dotted: str, value) -> dict:
@@ -465,9 +484,9 @@ def test_bad_option_values_are_one_error_line(argv, message, capsys):
     ("torque", "trained", "does not state what the policy was trained under"),
     ("ppo", "tocabi_lab", "acts on torque commands only"),
 ])
-def test_an_unusable_randomisation_is_one_error_line(name, randomize, message):
+def test_an_unusable_randomisation_is_one_error_line(name, randomize, message, tmp_path):
     with pytest.raises(SystemExit) as info:
-        load_recipe("sim2sim").main(["--contract", str(_contract(name)), "--seconds", "0.02", "--num_robots", "1",
+        load_recipe("sim2sim").main(["--contract", str(_older(tmp_path, name)), "--seconds", "0.02", "--num_robots", "1",
                                      "--randomize", randomize])
     text = str(info.value.code)
     assert text.startswith("error: ") and message in text and "\n" not in text

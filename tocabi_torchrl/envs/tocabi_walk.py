@@ -44,7 +44,7 @@ def _finite(x: torch.Tensor) -> torch.Tensor:
 
 
 def _check_tocabi_spec(spec, model_path) -> None:
-    """Refuse a model that is not TOCABI before anything edits it by name (``_pd_leg_spec``, the contact sensors)."""
+    """Refuse a model that is not TOCABI before anything edits it by name (``_servo_spec``, the contact sensors)."""
     missing = robot.missing_names(spec)
     if missing:
         path = model_path if model_path is not None else robot.asset_path("tocabi", "tocabi.xml")
