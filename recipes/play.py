@@ -66,7 +66,7 @@ except GLBackendError as gl_error:
     sys.exit(f"error: {gl_error}")
 
 from tocabi_torchrl.rl.checkpoint import verified_checkpoint_file  # noqa: E402
-from tocabi_torchrl.rl.evaluate import eval_out_dir, evaluate_run, summary_json  # noqa: E402
+from tocabi_torchrl.rl.evaluate import eval_out_dir, evaluate_run, gait_report_text  # noqa: E402
 
 
 def sim2sim_options(args: argparse.Namespace) -> str:
@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> None:
     except OSError as err:  # an --out that is a file, or cannot be created or written
         sys.exit(f"error: cannot write the evaluation to {err.filename or args.out}: {err.strerror or err}; pass "
                  f"--out a folder that can be created")
-    print(summary_json(summary))
+    print(gait_report_text(summary, args.seconds, args.num_envs, out))
 
 
 if __name__ == "__main__":

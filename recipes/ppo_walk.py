@@ -45,7 +45,7 @@ from tocabi_torchrl.motion import ReferenceMotion  # noqa: E402
 from tocabi_torchrl.motion.io import MotionFormatError  # noqa: E402
 from tocabi_torchrl.rl.checkpoint import checkpoint_file  # noqa: E402
 from tocabi_torchrl.rl.distributed import ending, from_environment, shutdown  # noqa: E402
-from tocabi_torchrl.rl.evaluate import GAIT_CRITERIA, eval_out_dir, evaluate_run, gait_passes  # noqa: E402
+from tocabi_torchrl.rl.evaluate import eval_out_dir, evaluate_run, gait_report_text  # noqa: E402
 from tocabi_torchrl.rl.gait_record import policy_steps  # noqa: E402
 from tocabi_torchrl.rl.interrupt import signal_exit_status  # noqa: E402
 from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
@@ -74,41 +74,6 @@ def stopped_at_once(run_dir) -> int:
 
 #: The gait test's metrics as the end-of-run report shows them: key, label, unit, decimals, and whether the pass
 #: threshold (GAIT_CRITERIA) is a minimum or a maximum (rl.evaluate.gait_passes applies it).
-GAIT_ROWS = (
-    ("survival", "survival", "%", 1, "min"),
-    ("forward_distance_m", "forward distance", "m", 2, "min"),
-    ("lateral_drift_m", "lateral drift", "m", 2, "max"),
-    ("knee_rms_rad", "knee RMS vs reference", "rad", 3, "max"),
-)
-
-
-def _shown(value, unit: str, decimals: int) -> str:
-    """A metric for people: rounded, with its unit; a missing value (NaN or None) says so."""
-    if value is None or value != value:
-        return "no value"
-    return f"{100 * value:.{decimals}f} %" if unit == "%" else f"{value:.{decimals}f} {unit}"
-
-
-def gait_report(summary: dict, seconds: float, robots: int, out) -> str:
-    """The gait test's verdict (walks / does not walk yet), each metric against its pass threshold, and the files
-    written; the full-precision values stay in ``out/summary.json``."""
-    verdict = "walks" if gait_passes(summary) else "does not walk yet"
-    lines = [f"gait test ({seconds:g} s, {robots} robots): {verdict}"]
-    standard = RunConfig().eval_seconds
-    if seconds != standard:  # the distance threshold assumes the full test's length
-        lines[0] += f" (the thresholds are set for the {standard:g} s test)"
-    for key, label, unit, decimals, kind in GAIT_ROWS:
-        value, limit = summary.get(key), GAIT_CRITERIA[key]
-        ok = value is not None and value == value and (value >= limit if kind == "min" else value <= limit)
-        need = f"{'>=' if kind == 'min' else '<='} {_shown(limit, unit, decimals)}"
-        lines.append(f"  {label:<22} {_shown(value, unit, decimals):>10}   needs {need:<13} {'pass' if ok else 'FAIL'}")
-    files = [out / "summary.json", out / "knees.png"]
-    video = str(summary.get("video", ""))
-    lines.append("results: " + ", ".join(str(f) for f in files if f.exists())
-                 + (f", {video}" if video.endswith(".mp4") else f" (video {video})" if video else ""))
-    return "\n".join(lines)
-
-
 def main(argv: list[str] | None = None) -> None:
     # Everything that can stop the run before it starts is checked here and reported as one line (exit status 1):
     # bad values, a request this machine cannot honour, an existing run folder, an unreadable or changed --resume.
@@ -190,7 +155,7 @@ def main(argv: list[str] | None = None) -> None:
         out = eval_out_dir(result.run_dir)
         summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device, seconds=cfg.eval_seconds,
                                out_dir=out)
-        print(gait_report(summary, cfg.eval_seconds, cfg.eval_envs, out))
+        print(gait_report_text(summary, cfg.eval_seconds, cfg.eval_envs, out))
     print(f"checkpoint: {checkpoint}\nwatch or re-test it: python recipes/play.py --checkpoint {result.run_dir}")
 
 

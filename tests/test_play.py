@@ -225,8 +225,10 @@ def test_a_gait_test_where_every_robot_falls_at_once_writes_strict_json(tmp_path
     assert saved["survival"] == 0.0
     for key in ("knee_rms_rad", "speed_tracking_error_mps", "forward_distance_survivors_m"):
         assert saved[key] is None, key
+    # What play prints is the verdict for people, a metric without a value said so; the JSON holds the numbers.
     printed = capsys.readouterr().out
-    assert json.loads(printed[printed.index("{"):], parse_constant=refuse) == saved
+    assert "does not walk yet" in printed and "knee RMS vs reference    no value" in printed
+    assert str(out / "summary.json") in printed and "nan" not in printed.lower()
     assert not evaluate.gait_passes(saved)
     assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
 

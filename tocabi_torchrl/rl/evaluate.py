@@ -209,3 +209,43 @@ def policy_dt() -> float:
 #: Kept for the callers of before :mod:`.gait_record` (tests, benchmarks).
 _fixed_command = fixed_command
 _policy_steps = policy_steps
+
+
+#: Length [s] of the standard gait test, for which GAIT_CRITERIA's distance is set (the run config's default).
+STANDARD_SECONDS = RunConfig.eval_seconds
+
+
+#: The gait test's metrics as people read them: (key, label, unit, decimals, "min"/"max" threshold).
+GAIT_ROWS = (
+    ("survival", "survival", "%", 1, "min"),
+    ("forward_distance_m", "forward distance", "m", 2, "min"),
+    ("lateral_drift_m", "lateral drift", "m", 2, "max"),
+    ("knee_rms_rad", "knee RMS vs reference", "rad", 3, "max"),
+)
+
+
+def _shown(value, unit: str, decimals: int) -> str:
+    """A metric for people: rounded, with its unit; a missing value (NaN or None) says so."""
+    if value is None or value != value:
+        return "no value"
+    return f"{100 * value:.{decimals}f} %" if unit == "%" else f"{value:.{decimals}f} {unit}"
+
+
+def gait_report_text(summary: dict, seconds: float, robots: int, out) -> str:
+    """The gait test's verdict (walks / does not walk yet), each metric against its pass threshold, and the files
+    written; the full-precision values stay in ``out/summary.json``."""
+    verdict = "walks" if gait_passes(summary) else "does not walk yet"
+    lines = [f"gait test ({seconds:g} s, {robots} robots): {verdict}"]
+    standard = STANDARD_SECONDS
+    if seconds != standard:  # the distance threshold assumes the full test's length
+        lines[0] += f" (the thresholds are set for the {standard:g} s test)"
+    for key, label, unit, decimals, kind in GAIT_ROWS:
+        value, limit = summary.get(key), GAIT_CRITERIA[key]
+        ok = value is not None and value == value and (value >= limit if kind == "min" else value <= limit)
+        need = f"{'>=' if kind == 'min' else '<='} {_shown(limit, unit, decimals)}"
+        lines.append(f"  {label:<22} {_shown(value, unit, decimals):>10}   needs {need:<13} {'pass' if ok else 'FAIL'}")
+    files = [out / "summary.json", out / "knees.png"]
+    video = str(summary.get("video", ""))
+    lines.append("results: " + ", ".join(str(f) for f in files if f.exists())
+                 + (f", {video}" if video.endswith(".mp4") else f" (video {video})" if video else ""))
+    return "\n".join(lines)
