@@ -31,7 +31,7 @@ import math
 import sys
 
 from tocabi_torchrl.cli import RecipeParser
-from tocabi_torchrl.render_gl import NO_GL_FIX, GLBackendError, choose_gl_backend
+from tocabi_torchrl.render_gl import NO_GL_FIX, choose_gl_backend_or_exit
 
 #: Most frames per controller (t = 0 and every --frame_every): each is a --frame_width image in one strip, so more
 #: make a strip too wide to view (25 x 480 px is 12,000 px) and cost a render each.
@@ -86,10 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
 if __name__ == "__main__":  # --help or a misspelt option answers before torch and mujoco load
     build_parser().parse_args(sys.argv[1:])
 
-try:  # before mujoco is imported
-    choose_gl_backend()
-except GLBackendError as gl_error:
-    sys.exit(f"error: {gl_error}")
+choose_gl_backend_or_exit()  # before mujoco is imported
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402

@@ -42,7 +42,7 @@ import math
 import sys
 
 from tocabi_torchrl.cli import RecipeParser
-from tocabi_torchrl.render_gl import NO_GL_FIX, GLBackendError, choose_gl_backend
+from tocabi_torchrl.render_gl import NO_GL_FIX, choose_gl_backend_or_exit
 
 #: (option, type, default, description): the command line, defaults shown once by build_parser.
 OPTIONS = (
@@ -116,10 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
 if __name__ == "__main__":  # --help or a misspelt option answers before torch and mujoco load
     build_parser().parse_args(sys.argv[1:])
 
-try:  # before mujoco is imported
-    choose_gl_backend()
-except GLBackendError as gl_error:
-    sys.exit(f"error: {gl_error}")
+choose_gl_backend_or_exit()  # before mujoco is imported
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402

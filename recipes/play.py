@@ -23,7 +23,7 @@ import math
 import sys
 
 from tocabi_torchrl.cli import RecipeParser
-from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
+from tocabi_torchrl.render_gl import choose_gl_backend_or_exit
 
 #: (option, type, default, description): the command line, defaults shown once by build_parser.
 OPTIONS = (
@@ -60,10 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
 if __name__ == "__main__":  # --help or a misspelt option answers before torch and mujoco load
     build_parser().parse_args(sys.argv[1:])
 
-try:  # before mujoco is imported
-    choose_gl_backend()
-except GLBackendError as gl_error:
-    sys.exit(f"error: {gl_error}")
+choose_gl_backend_or_exit()  # before mujoco is imported
 
 from tocabi_torchrl.rl.checkpoint import verified_checkpoint_file  # noqa: E402
 from tocabi_torchrl.rl.evaluate import eval_out_dir, evaluate_run, gait_report_text  # noqa: E402

@@ -23,12 +23,9 @@ from __future__ import annotations
 
 import sys
 
-from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
+from tocabi_torchrl.render_gl import choose_gl_backend_or_exit
 
-try:  # before mujoco is imported: headless video of the final evaluation
-    choose_gl_backend()
-except GLBackendError as gl_error:
-    sys.exit(f"error: {gl_error}")
+choose_gl_backend_or_exit()  # before mujoco is imported: headless video of the final evaluation
 
 if __name__ == "__main__":
     # --help or a misspelt option answers before the trainer and the evaluation load. The parser is built from the

@@ -21,7 +21,8 @@ import os
 import platform
 from collections.abc import Mapping, MutableMapping
 
-__all__ = ["GL_OFF", "NO_GL_FIX", "GLBackendError", "choose_gl_backend", "offscreen_unavailable"]
+__all__ = ["GL_OFF", "NO_GL_FIX", "GLBackendError", "choose_gl_backend", "choose_gl_backend_or_exit",
+           "offscreen_unavailable"]
 
 #: ``MUJOCO_GL`` values with which MuJoCo loads no OpenGL (it then cannot render).
 GL_OFF = ("disable", "disabled", "off", "false", "0")
@@ -79,3 +80,12 @@ def offscreen_unavailable(environ: Mapping[str, str] | None = None) -> str | Non
         return (f"no OpenGL for offscreen rendering (MUJOCO_GL={value}): this machine has no display and no EGL "
                 f"library (libEGL.so.1); to render, {NO_GL_FIX}")
     return f"MUJOCO_GL={value} turns MuJoCo's OpenGL off; unset it (or set MUJOCO_GL=egl) to render"
+
+
+def choose_gl_backend_or_exit() -> str | None:
+    """:func:`choose_gl_backend` for a recipe, before mujoco is imported: a backend that cannot work ends the program
+    with its one ``error:`` line (exit status 1) instead of a traceback."""
+    try:
+        return choose_gl_backend()
+    except GLBackendError as err:
+        raise SystemExit(f"error: {err}") from None
