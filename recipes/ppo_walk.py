@@ -29,7 +29,8 @@ choose_gl_backend_or_exit()  # before mujoco is imported: headless video of the 
 
 if __name__ == "__main__":
     # --help or a misspelt option answers before the trainer and the evaluation load. The parser is built from the
-    # run config tree, whose modules import torch, torchrl and mujoco: that part of the wait remains.
+    # run config tree, whose modules import neither torch, torchrl nor mujoco(-warp): it answers in a fraction of a
+    # second (tests/test_cli.py checks what it loads).
     from tocabi_torchrl.rl.config import build_parser
 
     build_parser(__doc__.split("\n\n")[0]).parse_args(sys.argv[1:])

@@ -132,3 +132,25 @@ def test_no_import_cycles():
         if module not in state:
             visit(module)
     assert not cycles, "import cycles (imports inside functions count too):\n" + "\n".join(cycles)
+
+
+def test_config_classes_keep_their_old_import_paths():
+    # The config dataclasses moved to modules without torch (for the config tree and --help); the modules that held
+    # them, and the packages, still name the same objects.
+    import importlib
+
+    moved = {
+        "tocabi_torchrl.envs.command_config": ("tocabi_torchrl.envs.command", "tocabi_torchrl.envs", "CommandConfig"),
+        "tocabi_torchrl.envs.push_config": ("tocabi_torchrl.envs.pushes", "tocabi_torchrl.envs.pushes", "PushConfig"),
+        "tocabi_torchrl.sim.dynamics_config": ("tocabi_torchrl.sim.dynamics", "tocabi_torchrl.sim.dynamics",
+                                               "DynamicsRandomization"),
+        "tocabi_torchrl.transforms.sensor_noise_config": ("tocabi_torchrl.transforms.sensor_noise",
+                                                          "tocabi_torchrl.transforms", "SensorNoiseConfig"),
+        "tocabi_torchrl.transforms.settings": ("tocabi_torchrl.transforms.presets", "tocabi_torchrl.transforms",
+                                               "TransformSettings"),
+        "tocabi_torchrl.transforms.layouts": ("tocabi_torchrl.transforms.history", "tocabi_torchrl.transforms",
+                                              "HistoryLayout"),
+    }
+    for home, (old, package, name) in moved.items():
+        value = getattr(importlib.import_module(home), name)
+        assert getattr(importlib.import_module(old), name) is value is getattr(importlib.import_module(package), name)

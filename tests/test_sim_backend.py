@@ -79,3 +79,11 @@ def test_a_wrong_tensor_is_named(sim, monkeypatch):
     monkeypatch.setattr(type(sim), "healthy", property(lambda self: torch.zeros(N, dtype=torch.int64)))
     with pytest.raises(ValueError, match=r"healthy is \(2,\) torch.int64 on cpu, the interface says \(2,\) torch.bool"):
         check_backend(sim)
+
+
+def test_the_default_health_mask_is_mujoco_warps_overflow_bits():
+    # sim.config writes the mask as a number, so that the config tree reads without mujoco-warp.
+    from tocabi_torchrl.sim.config import DEFAULT_HEALTH_OVERFLOW_MASK
+    from tocabi_torchrl.sim.health import HEALTH_OVERFLOW_MASK
+
+    assert DEFAULT_HEALTH_OVERFLOW_MASK == int(HEALTH_OVERFLOW_MASK) == SimConfig().health_overflow_mask

@@ -232,3 +232,10 @@ def test_step_and_transform_reset_issue_no_host_sync_ops_cpu_proxy():
     with _HostSyncOps() as ops:
         env.transform._reset(td_in, td_reset)
     assert ops.hits == []
+
+
+def test_the_config_names_the_reference_terms_in_their_order():
+    # transforms.settings holds the names so that the config checks a term without the terms' torch code.
+    from tocabi_torchrl.transforms.settings import REFERENCE_TERM_NAMES
+
+    assert REFERENCE_TERM_NAMES == tuple(REFERENCE_TERMS)

@@ -29,12 +29,12 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
-from .envs.command import CommandConfig
+from .envs.command_config import CommandConfig
 from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig
-from .envs.pushes import PushConfig
+from .envs.push_config import PushConfig
 from .randomize import tocabi_lab_paths
 from .sim.config import RESET_PASSES
-from .transforms.presets import TransformSettings
+from .transforms.settings import TransformSettings
 from .tree import OWN_NUMBER_CHECK, ConfigError, check_field_types, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
 from .tree import to_dict as _tree_to_dict
@@ -52,6 +52,8 @@ GRAD_SYNCS = ("allreduce", "ddp")
 MATMUL_PRECISIONS = ("highest", "high")
 _GRAPH_ALIASES = {"true": "on", "yes": "on", "1": "on", "false": "off", "no": "off", "0": "off"}
 STD_MODES = ("scheduled", "learned")
+#: What the torque assist's absorbing loss copies into the actor (``ppo.assist_target``; rl/assist.py).
+ASSIST_TARGETS = ("rollout", "teacher")
 LOGGERS = ("csv", "tensorboard", "wandb")
 
 
@@ -351,8 +353,7 @@ EVAL_TESTS = ("standard", "robust")
 def field_choices() -> dict[str, tuple[str, ...]]:
     """The allowed values of each option that takes one of a few names (checked by ``validate``, listed by
     ``--help``), by path."""
-    from .rl.assist import ASSIST_TARGETS
-    from .transforms.presets import PRESETS as TRANSFORM_PRESETS
+    from .transforms.settings import PRESETS as TRANSFORM_PRESETS
 
     return {"ppo.lr_schedule": LR_SCHEDULES, "ppo.std_mode": STD_MODES, "env.control.mode": CONTROL_MODES,
             "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.preset": tuple(TRANSFORM_PRESETS),

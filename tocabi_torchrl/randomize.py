@@ -33,8 +33,8 @@ import math
 from typing import TypeVar
 
 from .control.config import ActuatorConfig
-from .sim.dynamics import DynamicsRandomization
-from .transforms.sensor_noise import SensorNoiseConfig
+from .sim.dynamics_config import DynamicsRandomization
+from .transforms.sensor_noise_config import SensorNoiseConfig
 from .tree import replace_paths
 
 __all__ = ["tocabi_lab", "tocabi_lab_paths", "TOCABI_LAB_ACTUATORS", "TOCABI_LAB_DYNAMICS"]

@@ -6,13 +6,19 @@ constant, friction, saturation). ``TocabiWalk`` builds them from its config (``e
 user-defined leg controller: ``TocabiWalk(..., leg_controller=MyLaw())``. docs/controllers.md has the guide.
 """
 
-from .actuators import Actuator, ActuatorChain, Delay, Friction, MotorConstant, Saturation
-from .base import ControlContext, ControlInput, Controller
-from .computed_torque import ComputedTorqueResidual
-from .config import ActuatorConfig
-from .joint_pd import JointPD, PDHold
-from .torque import AssistedTorque, DirectTorque, clip_torque
+from .._lazy import lazy_names
 
 __all__ = ["Actuator", "ActuatorChain", "ActuatorConfig", "AssistedTorque", "ComputedTorqueResidual",
            "ControlContext", "ControlInput", "Controller", "Delay", "DirectTorque", "Friction", "JointPD",
            "MotorConstant", "PDHold", "Saturation", "clip_torque"]
+
+# Each name loads its submodule when first read: importing any submodule (a config dataclass for the run config
+# tree and --help) runs this file first, and must not load the torch, torchrl and mujoco-warp code of the others.
+__getattr__, __dir__ = lazy_names(globals(), {
+    "actuators": ("Actuator", "ActuatorChain", "Delay", "Friction", "MotorConstant", "Saturation"),
+    "base": ("ControlContext", "ControlInput", "Controller"),
+    "computed_torque": ("ComputedTorqueResidual",),
+    "config": ("ActuatorConfig",),
+    "joint_pd": ("JointPD", "PDHold"),
+    "torque": ("AssistedTorque", "DirectTorque", "clip_torque"),
+})

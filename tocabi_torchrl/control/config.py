@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from .actuators import ActuatorChain, Delay, Friction, MotorConstant, Saturation
+if TYPE_CHECKING:
+    from .actuators import ActuatorChain
 
 __all__ = ["ActuatorConfig"]
 
@@ -49,6 +51,9 @@ class ActuatorConfig:
     def build(self, substeps: int) -> ActuatorChain:
         """The chain these settings describe (empty when :attr:`ideal`): delay, motor constant, friction,
         saturation, each only where it changes something."""
+        # Here, not at the top: the stages are torch code, and the config tree reads this module without torch.
+        from .actuators import ActuatorChain, Delay, Friction, MotorConstant, Saturation
+
         stages = []
         if tuple(self.delay_substeps) != (0, 0):
             stages.append(Delay(int(self.delay_substeps[0]), int(self.delay_substeps[1]), substeps))

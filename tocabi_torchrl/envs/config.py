@@ -9,11 +9,11 @@ from dataclasses import dataclass, field
 from .. import robot
 from ..control.config import ActuatorConfig
 from ..sim.config import RESET_PASSES
-from ..sim.dynamics import DynamicsRandomization
+from ..sim.dynamics_config import DynamicsRandomization
 from ..tree import OWN_NUMBER_CHECK, check_field_types
 from ..value_rules import ENV_RULES, check_env_value
-from .command import CommandConfig
-from .pushes import PushConfig
+from .command_config import CommandConfig
+from .push_config import PushConfig
 
 __all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "SceneConfig", "BoxObstacle", "PD_GAINS",
            "ENV_FLAT_PATHS", "CONTROL_MODES", "TORQUE_MODES", "MB_OMEGA", "BACKENDS", "CPU_DEFAULT_BACKEND",

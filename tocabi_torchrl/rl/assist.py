@@ -31,10 +31,11 @@ from torch import nn
 
 from .. import robot
 
-__all__ = ["AssistSchedule", "AssistAbsorbLoss", "AssistTeacher", "ASSIST_TARGETS", "applied_leg_torque"]
+# What the absorbing loss copies into the actor (see the module docstring): a config value, defined with the config
+# tree (which reads without torch) and named here too.
+from ..config import ASSIST_TARGETS
 
-#: What the absorbing loss copies into the actor (see the module docstring).
-ASSIST_TARGETS = ("rollout", "teacher")
+__all__ = ["AssistSchedule", "AssistAbsorbLoss", "AssistTeacher", "ASSIST_TARGETS", "applied_leg_torque"]
 
 
 @dataclass(frozen=True)

@@ -7,13 +7,7 @@ the same model with MuJoCo's C engine (``mujoco_backend``, health in ``mujoco_he
 both share, and ``backend`` spells that interface out (``SimBackend``, ``check_backend``).
 """
 
-from .backend import SIM_TENSORS, SimBackend, check_backend
-from .config import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX, RESET_PASSES, SimConfig
-from .contacts import ContactLayout, ContactSensorError, add_contact_sensors, contact_layout, has_contact_sensors
-from .health import HEALTH_OVERFLOW_MASK, SimOverflowError
-from .mujoco_backend import MujocoSim
-from .mujoco_health import MUJOCO_HEALTH_WARNINGS
-from .warp_backend import WarpSim
+from .._lazy import lazy_names
 
 __all__ = [
     "WarpSim",
@@ -35,3 +29,15 @@ __all__ = [
     "HEALTH_OVERFLOW_MASK",
     "SimOverflowError",
 ]
+
+# Each name loads its submodule when first read: importing any submodule (a config dataclass for the run config
+# tree and --help) runs this file first, and must not load the torch, torchrl and mujoco-warp code of the others.
+__getattr__, __dir__ = lazy_names(globals(), {
+    "backend": ("SIM_TENSORS", "SimBackend", "check_backend"),
+    "config": ("CONTACT_SENSOR_MAXMATCH", "NCONMAX", "NJMAX", "RESET_PASSES", "SimConfig"),
+    "contacts": ("ContactLayout", "ContactSensorError", "add_contact_sensors", "contact_layout", "has_contact_sensors"),
+    "health": ("HEALTH_OVERFLOW_MASK", "SimOverflowError"),
+    "mujoco_backend": ("MujocoSim",),
+    "mujoco_health": ("MUJOCO_HEALTH_WARNINGS",),
+    "warp_backend": ("WarpSim",),
+})

@@ -4,14 +4,21 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-
-import torch
+from typing import TYPE_CHECKING
 
 from .buffers import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX
-from .health import HEALTH_OVERFLOW_MASK
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["SimConfig", "NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH", "RESET_PASSES", "PER_WORLD_FIELDS",
-           "available_cores"]
+           "DEFAULT_HEALTH_OVERFLOW_MASK", "available_cores"]
+
+#: ``SimConfig.health_overflow_mask``'s default: the ``mujoco_warp.OverflowType`` bits of
+#: ``sim.health.HEALTH_OVERFLOW_MASK`` (NEFC 1 | NJMAX_NNZ 2 | BROADPHASE 4 | NARROWPHASE 8 | CCD 16 | HFIELD 32 |
+#: NVMAX 128), written as a number so that this module (and the config tree) reads without importing mujoco-warp;
+#: tests/test_sim_backend.py checks that the two agree.
+DEFAULT_HEALTH_OVERFLOW_MASK = 0b1011_1111
 
 #: ``SimConfig.reset_pass`` values: the full forward pass, or the reduced one for registered start states.
 RESET_PASSES = ("full", "reduced")
@@ -84,7 +91,7 @@ class SimConfig:
     solver_tolerance: float | None = None
     use_graph: bool = True
     sensors_every_substep: bool = False
-    health_overflow_mask: int = int(HEALTH_OVERFLOW_MASK)
+    health_overflow_mask: int = DEFAULT_HEALTH_OVERFLOW_MASK
     kernel_overflow_prints: bool = False
     threads: int | None = None
     reset_pass: str = "full"
@@ -116,6 +123,8 @@ class SimConfig:
         if (not isinstance(fields, (tuple, list)) or len(set(fields)) != len(fields)
                 or any(f not in PER_WORLD_FIELDS for f in fields)):
             raise ValueError(f"SimConfig.per_world_fields must be distinct names of {PER_WORLD_FIELDS}, got {fields!r}")
+        import torch  # here, not at the top: the config tree reads this module without torch
+
         if not isinstance(self.device, (str, torch.device)):
             raise ValueError(f"SimConfig.device must be a string like 'cpu' or 'cuda:0', got {self.device!r}")
 

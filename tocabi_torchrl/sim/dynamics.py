@@ -43,67 +43,13 @@ Derived model quantities:
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import mujoco
 import torch
 
+# The config lives in a module without torch and MuJoCo, for the config tree; this path names it too.
+from .dynamics_config import DynamicsRandomization
+
 __all__ = ["DynamicsRandomization", "WorldDynamics"]
-
-_RANGES = ("mass_scale", "joint_damping", "armature_scale", "friction_scale")
-#: The identity of each range: the value that changes nothing.
-_OFF = {"mass_scale": (1.0, 1.0), "joint_damping": (0.0, 0.0), "armature_scale": (1.0, 1.0),
-        "friction_scale": (1.0, 1.0)}
-#: The simulator's per-world model fields each range writes.
-_FIELDS = {"mass_scale": ("body_mass", "body_inertia", "body_subtreemass"), "joint_damping": ("dof_damping",),
-           "armature_scale": ("dof_armature",), "friction_scale": ("geom_friction",)}
-
-
-@dataclass
-class DynamicsRandomization:
-    """Ranges of the per-world dynamics drawn at every reset (``TocabiWalkConfig.dynamics``; see the module's table).
-    Each is ``(low, high)`` of a uniform draw; the defaults change nothing.
-
-    Attributes:
-        mass_scale: scale of each body's mass and inertia tensor (> 0).
-        joint_damping: damping [N·m·s/rad] added to each joint dof's (>= 0).
-        armature_scale: scale of each joint dof's armature (>= 0).
-        friction_scale: scale of every geom's sliding friction, one per world (>= 0).
-    """
-
-    mass_scale: tuple[float, float] = (1.0, 1.0)
-    joint_damping: tuple[float, float] = (0.0, 0.0)
-    armature_scale: tuple[float, float] = (1.0, 1.0)
-    friction_scale: tuple[float, float] = (1.0, 1.0)
-
-    def validate(self, prefix: str = "env.dynamics.") -> None:
-        """Raise ``ValueError`` naming the first bad range (``<prefix><name>``) and what it takes."""
-        for name in _RANGES:
-            value = getattr(self, name)
-            try:
-                low, high = (float(v) for v in value)
-            except (TypeError, ValueError):
-                raise ValueError(f"{prefix}{name} must be two numbers (low, high), got {value!r}") from None
-            least = 0.0 if name != "mass_scale" else math.ulp(0.0)
-            if not (math.isfinite(low) and math.isfinite(high)) or low < least or low > high:
-                bound = "0 < low" if name == "mass_scale" else "0 <= low"
-                raise ValueError(f"{prefix}{name} must be (low, high) with {bound} <= high, finite, got {value!r} "
-                                 f"({_OFF[name]} turns it off)")
-
-    def on(self, name: str) -> bool:
-        """Whether range ``name`` changes anything (it differs from its identity)."""
-        return tuple(float(v) for v in getattr(self, name)) != _OFF[name]
-
-    @property
-    def enabled(self) -> bool:
-        """True when any range changes something (else nothing is drawn or written)."""
-        return any(self.on(name) for name in _RANGES)
-
-    @property
-    def sim_fields(self) -> tuple[str, ...]:
-        """The model fields the simulator must give one row per world (``SimConfig.per_world_fields``)."""
-        return tuple(f for name in _RANGES if self.on(name) for f in _FIELDS[name])
 
 
 class WorldDynamics:

@@ -12,39 +12,7 @@ One module per job:
 * :mod:`.presets`: :class:`TransformConfig`, :data:`PRESETS` and :func:`default_transforms`
 """
 
-from tocabi_torchrl.transforms.history import REFERENCE_HISTORY, TOCABILAB_HISTORY, HistoryLayout, ObsActionHistory
-from tocabi_torchrl.transforms.normalize import (
-    REFERENCE_OBS_MEAN,
-    REFERENCE_OBS_VAR,
-    FixedNormalization,
-    RunningNormalization,
-)
-from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObservationAssembly, ObsComponent
-from tocabi_torchrl.transforms.orientation import BaseEulerAngles, quat_rotation_angle, quat_to_rpy
-from tocabi_torchrl.transforms.phase import PhaseEncoding
-from tocabi_torchrl.transforms.presets import (PRESETS, TransformConfig, TransformSettings, default_transforms,
-                                              transform_config)
-from tocabi_torchrl.transforms.reward import TaskReward
-from tocabi_torchrl.transforms.reward_terms import (
-    REFERENCE_TERMS,
-    BodyVelTracking,
-    CallableTerm,
-    ContactForce,
-    ContactForceDiff,
-    FootContactPattern,
-    ForceDiffThresholdPenalty,
-    ForceReference,
-    ForceThresholdPenalty,
-    JointAccRegulation,
-    JointPosTracking,
-    JointVelRegulation,
-    NeckOrientation,
-    RewardTerm,
-    TorqueDiffRegulation,
-    TorqueRegulation,
-    reference_terms,
-)
-from tocabi_torchrl.transforms.sensor_noise import SensorNoise, SensorNoiseConfig
+from .._lazy import lazy_names
 
 __all__ = [
     "PhaseEncoding",
@@ -88,3 +56,19 @@ __all__ = [
     "transform_config",
     "default_transforms",
 ]
+
+# Each name loads its submodule when first read: importing any submodule (a config dataclass for the run config
+# tree and --help) runs this file first, and must not load the torch, torchrl and mujoco-warp code of the others.
+__getattr__, __dir__ = lazy_names(globals(), {
+    "history": ("REFERENCE_HISTORY", "TOCABILAB_HISTORY", "HistoryLayout", "ObsActionHistory"),
+    "normalize": ("REFERENCE_OBS_MEAN", "REFERENCE_OBS_VAR", "FixedNormalization", "RunningNormalization"),
+    "observation": ("REFERENCE_OBS_LAYOUT", "ObservationAssembly", "ObsComponent"),
+    "orientation": ("BaseEulerAngles", "quat_rotation_angle", "quat_to_rpy"),
+    "phase": ("PhaseEncoding",),
+    "presets": ("default_transforms",),
+    "settings": ("PRESETS", "TransformConfig", "TransformSettings", "transform_config"),
+    "reward": ("TaskReward",),
+    "reward_terms": ("REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern", "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm", "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
+    "sensor_noise": ("SensorNoise",),
+    "sensor_noise_config": ("SensorNoiseConfig",),
+})

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import math
 from numbers import Real
+from typing import TYPE_CHECKING
 
-from tensordict.utils import NestedKey
-from torchrl.data import Composite, TensorSpec
+if TYPE_CHECKING:  # annotations only: the config's checks (check_positive_int) need no torch
+    from tensordict.utils import NestedKey
+    from torchrl.data import Composite, TensorSpec
 
 __all__ = ["require_spec", "check_positive_int", "check_finite", "check_positive"]
 

@@ -20,66 +20,17 @@ on the host.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
-from tocabi_torchrl.transforms._checks import check_positive_int, require_spec
+from tocabi_torchrl.transforms._checks import require_spec
+# The layout is config (it lives in a module without torch, for the config tree); this path names it too.
+from tocabi_torchrl.transforms.layouts import REFERENCE_HISTORY, TOCABILAB_HISTORY, HistoryLayout
 
 __all__ = ["HistoryLayout", "REFERENCE_HISTORY", "TOCABILAB_HISTORY", "ObsActionHistory"]
-
-
-@dataclass(frozen=True)
-class HistoryLayout:
-    """Which past observations and actions form the policy input.
-
-    Attributes:
-        num_obs: K >= 1 observations, ``stride`` policy steps apart, the newest being the current one.
-        stride: s >= 1 policy steps between stored entries.
-        num_actions: M >= 0 past actions (default K - 1), slot j holding ``a_{τ+1 - s·(M - j)}``.
-    """
-
-    num_obs: int = 5
-    stride: int = 2
-    num_actions: int | None = None
-
-    def __post_init__(self):
-        check_positive_int(self.num_obs, "HistoryLayout num_obs (K)", "use num_obs=1 for no observation history")
-        check_positive_int(self.stride, "HistoryLayout stride", "use stride=1 for consecutive steps")
-        if self.num_actions is None:
-            object.__setattr__(self, "num_actions", self.num_obs - 1)
-        m = self.num_actions
-        if isinstance(m, bool) or not isinstance(m, int) or m < 0:
-            raise ValueError(f"HistoryLayout num_actions must be an integer >= 0 (or None for num_obs - 1), got {m!r}")
-
-    @property
-    def obs_ages(self) -> tuple[int, ...]:
-        """Age in policy steps of each stored observation, oldest first (reference: 8, 6, 4, 2, 0)."""
-        return tuple(self.stride * (self.num_obs - 1 - i) for i in range(self.num_obs))
-
-    @property
-    def action_ages(self) -> tuple[int, ...]:
-        """Age of each stored action, oldest first; age 0 is the action just applied (reference: 7, 5, 3, 1)."""
-        return tuple(self.stride * (self.num_actions - j) - 1 for j in range(self.num_actions))
-
-    def size(self, obs_dim: int, action_dim: int) -> int:
-        """Length of the policy input: K·obs_dim + M·action_dim."""
-        return self.num_obs * obs_dim + self.num_actions * action_dim
-
-    def describe(self) -> list[str]:
-        """Human-readable content of each block, e.g. ``['obs[t-8]', …, 'action[t-1]']``."""
-        fmt = lambda a: "t" if a == 0 else f"t-{a}"  # noqa: E731
-        return [f"obs[{fmt(a)}]" for a in self.obs_ages] + [f"action[{fmt(a)}]" for a in self.action_ages]
-
-
-#: Reference layout (spec §7.4): 5 observations two steps apart + 4 raw actions, 237 values with 37/13.
-REFERENCE_HISTORY = HistoryLayout(num_obs=5, stride=2, num_actions=4)
-#: TocabiLab's consecutive layout: the last 5 observations + the last 4 applied actions, 237 values with 37/13.
-TOCABILAB_HISTORY = HistoryLayout(num_obs=5, stride=1, num_actions=4)
 
 
 class _Ring:

@@ -6,59 +6,17 @@ gives the 37 values in the reference order; a researcher changes the observation
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 
-from tocabi_torchrl import robot
 from tocabi_torchrl.transforms._base import CallOnReset
 from tocabi_torchrl.transforms._checks import require_spec
+# The layout is config (it lives in a module without torch, for the config tree); this path names it too.
+from tocabi_torchrl.transforms.layouts import REFERENCE_OBS_LAYOUT, ObsComponent
 
 __all__ = ["ObsComponent", "REFERENCE_OBS_LAYOUT", "ObservationAssembly"]
-
-_ALL = slice(None)
-
-
-@dataclass(frozen=True)
-class ObsComponent:
-    """One block of the observation vector.
-
-    Attributes:
-        name: label of the block (for docs and :attr:`ObservationAssembly.slices`).
-        key: tensordict key to read, shape (num_envs, *signal_shape).
-        index: index into the signal dimensions (not the batch), made of ints and slices only so that no index
-            tensor is copied to the device each step; e.g. ``(slice(0, 12),)`` for the leg joints of a (N, 33)
-            signal, ``(slice(None), 2)`` for the z components of a (N, 2, 3) signal. The result is flattened.
-    """
-
-    name: str
-    key: NestedKey
-    index: tuple = ()
-
-    def __post_init__(self):
-        for i in self.index:
-            if not (isinstance(i, slice) or i is Ellipsis or (isinstance(i, int) and not isinstance(i, bool))):
-                raise TypeError(
-                    f"ObsComponent {self.name!r}: index entries must be ints, slices or Ellipsis, got {i!r}; "
-                    "split a scattered selection into several components"
-                )
-
-
-#: The reference per-step observation (spec §7.1): 3 + 12 + 12 + 1 + 1 + 2 + 2 + 2 + 2 = 37 values.
-REFERENCE_OBS_LAYOUT: tuple[ObsComponent, ...] = (
-    ObsComponent("base_rpy", "base_rpy"),  # 0-2: roll, pitch, yaw of the pelvis
-    ObsComponent("leg_joint_pos", "joint_pos", (robot.LEGS,)),  # 3-14
-    ObsComponent("leg_joint_vel", "joint_vel", (robot.LEGS,)),  # 15-26
-    ObsComponent("phase_sin", "phase_sin"),  # 27
-    ObsComponent("phase_cos", "phase_cos"),  # 28
-    ObsComponent("command", "command"),  # 29-30: vx, vy
-    ObsComponent("foot_force_z", "foot_force", (_ALL, 2)),  # 31-32: Fz_L, Fz_R
-    ObsComponent("foot_torque_x", "foot_torque", (_ALL, 0)),  # 33-34: Mx_L, Mx_R
-    ObsComponent("foot_torque_y", "foot_torque", (_ALL, 1)),  # 35-36: My_L, My_R
-)
 
 
 class ObservationAssembly(CallOnReset):

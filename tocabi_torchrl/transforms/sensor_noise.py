@@ -49,8 +49,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
-from numbers import Real
 
 import torch
 from tensordict import TensorDictBase
@@ -58,22 +56,15 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
-from tocabi_torchrl import robot
 from tocabi_torchrl.envs.episode_random import episode_uniform
 from tocabi_torchrl.transforms._checks import require_spec
 from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsComponent
+# The config lives in a module without torch, for the config tree; this path names it too.
+from tocabi_torchrl.transforms.sensor_noise_config import SENSORS, SensorNoiseConfig
 
 __all__ = ["SensorNoiseConfig", "SensorNoise", "SENSORS", "BIAS_STREAMS", "NOISE_STREAMS", "sensor_biases",
            "sensor_noise"]
 
-#: The signals :class:`SensorNoise` perturbs: key -> its shape per world (without the batch dimension).
-SENSORS: Mapping[str, tuple[int, ...]] = {
-    "joint_pos": (robot.NUM_JOINTS,),
-    "joint_vel": (robot.NUM_JOINTS,),
-    "base_rpy": (3,),
-    "foot_force": (2, 3),
-    "foot_torque": (2, 3),
-}
 #: Hash stream of each signal's per-episode bias and of its per-step noise (``episode_uniform``'s ``stream``). Other
 #: per-episode draws of the package use streams below 32; one stream per signal keeps a signal's numbers the same
 #: whichever other signals are perturbed.
@@ -81,74 +72,6 @@ BIAS_STREAMS: Mapping[str, int] = {name: 32 + i for i, name in enumerate(SENSORS
 NOISE_STREAMS: Mapping[str, int] = {name: 40 + i for i, name in enumerate(SENSORS)}
 # The step occupies the low 32 bits of the noise key, the episode number the bits above (2**32 steps = 198 days).
 _STEP_BITS = 32
-
-
-@dataclass(frozen=True)
-class SensorNoiseConfig:
-    """Sensor biases and noise on the policy's observation (the run config's ``transforms.sensor_noise``). Every
-    value defaults to 0, which perturbs nothing: with all of them 0 no transform is added and no number changes.
-
-    Attributes:
-        joint_pos_bias: half-width [rad] of the joint-position bias, U(±b) per world and joint, drawn at reset.
-        joint_pos_noise_std: σ [rad] of the encoder noise added to the joint positions every step.
-        joint_pos_noise_clip: the encoder noise is clipped to ±clip [rad]; None: not clipped.
-        joint_vel_noise_std: σ [rad/s] of the noise added to the joint velocities every step.
-        joint_vel_noise_clip: the joint-velocity noise is clipped to ±clip [rad/s]; None: not clipped.
-        base_rpy_bias: half-width [rad] of the IMU orientation bias, U(±b) per world and roll/pitch/yaw axis, drawn
-            at reset and added to the observed Euler angles.
-        foot_force_bias: half-width [N] of the F/T force bias, U(±b) per world, foot and axis, drawn at reset.
-        foot_torque_bias: half-width [N·m] of the F/T moment bias, U(±b) per world, foot and axis, drawn at reset.
-    """
-
-    joint_pos_bias: float = 0.0
-    joint_pos_noise_std: float = 0.0
-    joint_pos_noise_clip: float | None = None
-    joint_vel_noise_std: float = 0.0
-    joint_vel_noise_clip: float | None = None
-    base_rpy_bias: float = 0.0
-    foot_force_bias: float = 0.0
-    foot_torque_bias: float = 0.0
-
-    def __post_init__(self):
-        self.validate()
-
-    @classmethod
-    def tocabi_lab(cls) -> SensorNoiseConfig:
-        """The TOCABI lab's numbers, as its real-robot training draws them: joint-position bias U(±π/100) rad,
-        IMU bias U(±π/150) rad per axis, F/T bias U(±100) N and U(±10) N·m per axis and foot, and encoder noise
-        σ = 0.00016/3 rad clipped at ±0.00016 rad (3σ) every step. The joint velocities are left alone."""
-        return cls(joint_pos_bias=math.pi / 100, joint_pos_noise_std=0.00016 / 3, joint_pos_noise_clip=0.00016,
-                   base_rpy_bias=math.pi / 150, foot_force_bias=100.0, foot_torque_bias=10.0)
-
-    def validate(self, prefix: str = "transforms.sensor_noise.") -> None:
-        """Raise ``ValueError`` naming the first bad value by its path (``transforms.sensor_noise.<name>``)."""
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if value is None and f.name.endswith("_clip"):
-                continue
-            ok = (not isinstance(value, bool) and isinstance(value, Real) and math.isfinite(value)
-                  and (value > 0 if f.name.endswith("_clip") else value >= 0))
-            if not ok:
-                what = ("a finite number > 0, or None for no clip" if f.name.endswith("_clip")
-                        else "a finite number >= 0 (0 = off)")
-                raise ValueError(f"{prefix}{f.name} must be {what}, got {value!r}")
-
-    @property
-    def enabled(self) -> bool:
-        """True when some bias or noise is not 0 (a clip alone changes nothing)."""
-        return any(self.bias(name) > 0 or self.noise(name)[0] > 0 for name in SENSORS)
-
-    def bias(self, signal: str) -> float:
-        """The bias half-width of ``signal`` (a key of :data:`SENSORS`) in its unit; 0 for none."""
-        return float(getattr(self, f"{signal}_bias", 0.0))
-
-    def noise(self, signal: str) -> tuple[float, float | None]:
-        """(σ, clip) of ``signal``'s per-step noise in its unit; σ = 0 for none."""
-        return float(getattr(self, f"{signal}_noise_std", 0.0)), getattr(self, f"{signal}_noise_clip", None)
-
-    def perturbed(self) -> tuple[str, ...]:
-        """The signals with a bias or noise, in :data:`SENSORS` order."""
-        return tuple(name for name in SENSORS if self.bias(name) > 0 or self.noise(name)[0] > 0)
 
 
 def _normals(seed, env_ids: torch.Tensor, key: torch.Tensor, stream: int, k: int) -> torch.Tensor:

@@ -1,0 +1,108 @@
+"""The layouts of the policy input, as plain values: which signals form the per-step observation
+(:class:`ObsComponent`, :data:`REFERENCE_OBS_LAYOUT`) and which past observations and actions the history keeps
+(:class:`HistoryLayout`). Config, not transforms: they live in a module without torch so that the run config tree
+(and ``--help``) reads without it; ``observation`` and ``history`` hold the transforms that use them, and name them
+too."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.transforms._checks import check_positive_int
+
+if TYPE_CHECKING:
+    from tensordict.utils import NestedKey
+
+__all__ = ["ObsComponent", "REFERENCE_OBS_LAYOUT", "HistoryLayout", "REFERENCE_HISTORY", "TOCABILAB_HISTORY"]
+
+_ALL = slice(None)
+
+
+@dataclass(frozen=True)
+class ObsComponent:
+    """One block of the observation vector.
+
+    Attributes:
+        name: label of the block (for docs and :attr:`ObservationAssembly.slices`).
+        key: tensordict key to read, shape (num_envs, *signal_shape).
+        index: index into the signal dimensions (not the batch), made of ints and slices only so that no index
+            tensor is copied to the device each step; e.g. ``(slice(0, 12),)`` for the leg joints of a (N, 33)
+            signal, ``(slice(None), 2)`` for the z components of a (N, 2, 3) signal. The result is flattened.
+    """
+
+    name: str
+    key: NestedKey
+    index: tuple = ()
+
+    def __post_init__(self):
+        for i in self.index:
+            if not (isinstance(i, slice) or i is Ellipsis or (isinstance(i, int) and not isinstance(i, bool))):
+                raise TypeError(
+                    f"ObsComponent {self.name!r}: index entries must be ints, slices or Ellipsis, got {i!r}; "
+                    "split a scattered selection into several components"
+                )
+
+
+#: The reference per-step observation (spec §7.1): 3 + 12 + 12 + 1 + 1 + 2 + 2 + 2 + 2 = 37 values.
+REFERENCE_OBS_LAYOUT: tuple[ObsComponent, ...] = (
+    ObsComponent("base_rpy", "base_rpy"),  # 0-2: roll, pitch, yaw of the pelvis
+    ObsComponent("leg_joint_pos", "joint_pos", (robot.LEGS,)),  # 3-14
+    ObsComponent("leg_joint_vel", "joint_vel", (robot.LEGS,)),  # 15-26
+    ObsComponent("phase_sin", "phase_sin"),  # 27
+    ObsComponent("phase_cos", "phase_cos"),  # 28
+    ObsComponent("command", "command"),  # 29-30: vx, vy
+    ObsComponent("foot_force_z", "foot_force", (_ALL, 2)),  # 31-32: Fz_L, Fz_R
+    ObsComponent("foot_torque_x", "foot_torque", (_ALL, 0)),  # 33-34: Mx_L, Mx_R
+    ObsComponent("foot_torque_y", "foot_torque", (_ALL, 1)),  # 35-36: My_L, My_R
+)
+
+
+@dataclass(frozen=True)
+class HistoryLayout:
+    """Which past observations and actions form the policy input.
+
+    Attributes:
+        num_obs: K >= 1 observations, ``stride`` policy steps apart, the newest being the current one.
+        stride: s >= 1 policy steps between stored entries.
+        num_actions: M >= 0 past actions (default K - 1), slot j holding ``a_{τ+1 - s·(M - j)}``.
+    """
+
+    num_obs: int = 5
+    stride: int = 2
+    num_actions: int | None = None
+
+    def __post_init__(self):
+        check_positive_int(self.num_obs, "HistoryLayout num_obs (K)", "use num_obs=1 for no observation history")
+        check_positive_int(self.stride, "HistoryLayout stride", "use stride=1 for consecutive steps")
+        if self.num_actions is None:
+            object.__setattr__(self, "num_actions", self.num_obs - 1)
+        m = self.num_actions
+        if isinstance(m, bool) or not isinstance(m, int) or m < 0:
+            raise ValueError(f"HistoryLayout num_actions must be an integer >= 0 (or None for num_obs - 1), got {m!r}")
+
+    @property
+    def obs_ages(self) -> tuple[int, ...]:
+        """Age in policy steps of each stored observation, oldest first (reference: 8, 6, 4, 2, 0)."""
+        return tuple(self.stride * (self.num_obs - 1 - i) for i in range(self.num_obs))
+
+    @property
+    def action_ages(self) -> tuple[int, ...]:
+        """Age of each stored action, oldest first; age 0 is the action just applied (reference: 7, 5, 3, 1)."""
+        return tuple(self.stride * (self.num_actions - j) - 1 for j in range(self.num_actions))
+
+    def size(self, obs_dim: int, action_dim: int) -> int:
+        """Length of the policy input: K·obs_dim + M·action_dim."""
+        return self.num_obs * obs_dim + self.num_actions * action_dim
+
+    def describe(self) -> list[str]:
+        """Human-readable content of each block, e.g. ``['obs[t-8]', …, 'action[t-1]']``."""
+        fmt = lambda a: "t" if a == 0 else f"t-{a}"  # noqa: E731
+        return [f"obs[{fmt(a)}]" for a in self.obs_ages] + [f"action[{fmt(a)}]" for a in self.action_ages]
+
+
+#: Reference layout (spec §7.4): 5 observations two steps apart + 4 raw actions, 237 values with 37/13.
+REFERENCE_HISTORY = HistoryLayout(num_obs=5, stride=2, num_actions=4)
+#: TocabiLab's consecutive layout: the last 5 observations + the last 4 applied actions, 237 values with 37/13.
+TOCABILAB_HISTORY = HistoryLayout(num_obs=5, stride=1, num_actions=4)

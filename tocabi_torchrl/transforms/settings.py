@@ -1,0 +1,189 @@
+"""The transforms' configuration as plain values: :class:`TransformConfig` (everything
+:func:`~tocabi_torchrl.transforms.presets.default_transforms` builds), the named :data:`PRESETS`, and
+:class:`TransformSettings`, the transforms section of the run config tree.
+
+A module without torch, so that the config tree (and ``recipes/ppo_walk.py --help``) reads without loading it;
+``presets`` builds the transforms from these values, and names them too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+
+from tocabi_torchrl.transforms._checks import check_positive_int
+from tocabi_torchrl.transforms.layouts import (REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT, TOCABILAB_HISTORY,
+                                               HistoryLayout, ObsComponent)
+from tocabi_torchrl.transforms.sensor_noise_config import SensorNoiseConfig
+from tocabi_torchrl.tree import check_field_types
+
+__all__ = ["TransformConfig", "TransformSettings", "PRESETS", "transform_config", "REFERENCE_TERM_NAMES"]
+
+_NORMALIZATIONS = ("fixed", "running", "none")
+#: The names of ``reward_terms.REFERENCE_TERMS`` (the reference's terms, in its order), here so that the config checks
+#: a term name without the terms' torch code; tests/test_transforms_presets.py checks that the two agree.
+REFERENCE_TERM_NAMES = ("orientation", "qpos", "qvel", "body_vel", "contact_force", "torque", "torque_diff", "qacc",
+                        "foot_contact", "contact_force_diff", "force_ref", "force_threshold", "force_diff_threshold")
+
+
+@dataclass(frozen=True)
+class TransformConfig:
+    """Everything :func:`default_transforms` builds, as plain values.
+
+    Attributes:
+        phase_harmonics: sin/cos harmonics of the phase (1 in the reference).
+        obs_layout: blocks of the per-step observation (:data:`REFERENCE_OBS_LAYOUT`: 37 values).
+        normalization: ``"fixed"`` (reference statistics or ``obs_mean``/``obs_var``), ``"running"`` (running
+            statistics, initialised from ``obs_mean``/``obs_var`` when given) or ``"none"``.
+        obs_mean, obs_var: statistics for the normalisation (default: the reference's, spec §7.1).
+        obs_clip: optional clip of the normalised observation (the reference has none).
+        history: observation + action history layout (:data:`REFERENCE_HISTORY`: 5 obs every 2 steps + 4 actions).
+        reward_terms: term names from :data:`REFERENCE_TERM_NAMES` and/or :class:`RewardTerm` instances / callables.
+        reward_weights: ``{term name: weight}`` overrides.
+        zero_reward_on_terminated: reward and terms are 0 on a terminating step (reference: on).
+        compile_reward: ``torch.compile`` the reward terms into fused kernels (first step compiles).
+        max_episode_steps: ``StepCounter`` truncation at this many steps, on top of the env's own; ``None`` (the
+            default) counts steps without truncating, so the env's ``task.max_episode_steps`` is the one clock.
+        track_episode_return: add ``RewardSum`` (``episode_reward``).
+        sensor_noise: sensor biases and noise on the observation (:class:`SensorNoiseConfig`; all 0 = none).
+    """
+
+    phase_harmonics: int = 1
+    obs_layout: tuple[ObsComponent, ...] = REFERENCE_OBS_LAYOUT
+    normalization: str = "fixed"
+    obs_mean: Sequence[float] | None = None
+    obs_var: Sequence[float] | None = None
+    obs_clip: float | None = None
+    history: HistoryLayout = REFERENCE_HISTORY
+    reward_terms: tuple = REFERENCE_TERM_NAMES
+    reward_weights: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    zero_reward_on_terminated: bool = True
+    compile_reward: bool = False
+    # None, not the env's default 8000: a fixed limit here would cut an env configured for longer episodes.
+    max_episode_steps: int | None = None
+    track_episode_return: bool = True
+    sensor_noise: SensorNoiseConfig = field(default_factory=SensorNoiseConfig)
+
+    def __post_init__(self):
+        # Frozen copies, so that a preset cannot be changed through a config built from it.
+        object.__setattr__(self, "reward_weights", MappingProxyType(dict(self.reward_weights)))
+        object.__setattr__(self, "reward_terms", tuple(self.reward_terms))
+        object.__setattr__(self, "obs_layout", tuple(self.obs_layout))
+        for name in ("obs_mean", "obs_var"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
+        if self.normalization not in _NORMALIZATIONS:
+            raise ValueError(f"normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
+        check_field_types(self)
+        if (self.obs_mean is None) != (self.obs_var is None):
+            raise ValueError("pass both obs_mean and obs_var, or neither (for the reference statistics)")
+        if not isinstance(self.history, HistoryLayout):
+            raise TypeError(
+                f"history must be a HistoryLayout, e.g. HistoryLayout(num_obs=5, stride=2), got {self.history!r}"
+            )
+        if self.max_episode_steps is not None:
+            check_positive_int(self.max_episode_steps, "max_episode_steps", "or None to only count steps")
+        check_positive_int(self.phase_harmonics, "phase_harmonics")
+        for t in self.reward_terms:
+            if isinstance(t, str) and t not in REFERENCE_TERM_NAMES:
+                raise KeyError(
+                    f"unknown reward term {t!r}; known terms: {list(REFERENCE_TERM_NAMES)} "
+                    "(pass a RewardTerm instance or a callable for your own term)"
+                )
+
+
+#: ``reference``: the reference task (spec §7-8). ``tocabilab``: the same, with TocabiLab's consecutive history
+#: (last 5 observations, last 4 applied actions).
+PRESETS: Mapping[str, TransformConfig] = MappingProxyType(
+    {
+        "reference": TransformConfig(),
+        "tocabilab": TransformConfig(history=TOCABILAB_HISTORY),
+    }
+)
+
+
+def transform_config(preset: str | TransformConfig = "reference", **overrides) -> TransformConfig:
+    """The preset's :class:`TransformConfig` with ``overrides`` (field names of :class:`TransformConfig`) applied."""
+    if isinstance(preset, TransformConfig):
+        base = preset
+    elif preset in PRESETS:
+        base = PRESETS[preset]
+    else:
+        raise KeyError(f"unknown transform preset {preset!r}; choose one of {list(PRESETS)} or pass a TransformConfig")
+    fields = {f.name for f in dataclasses.fields(TransformConfig)}
+    unknown = sorted(set(overrides) - fields)
+    if unknown:
+        raise TypeError(f"unknown transform option(s) {unknown}; valid options: {sorted(fields)}")
+    return dataclasses.replace(base, **overrides)
+
+
+@dataclass
+class TransformSettings:
+    """The transforms section of the run config tree (``RunConfig.transforms``): the :class:`TransformConfig`
+    choices that are plain values, so that they can be saved with a checkpoint and given on the command line.
+
+    Attributes:
+        preset: observation history layout, a name of :data:`PRESETS` (``"reference"`` or ``"tocabilab"``).
+        reward_weights: reward re-weighting as ``"term=weight"`` entries (``"body_vel=0.9"`` triples the
+            velocity-tracking term); empty = the reference weights.
+        normalization, obs_clip, zero_reward_on_terminated, compile_reward: as in :class:`TransformConfig`.
+        sensor_noise: sensor biases and noise on the observation (:class:`SensorNoiseConfig`; the default, all 0,
+            adds nothing; ``SensorNoiseConfig.tocabi_lab()``: the TOCABI lab's numbers).
+    """
+
+    preset: str = "reference"
+    reward_weights: tuple[str, ...] = ("body_vel=0.9",)
+    normalization: str = "fixed"
+    obs_clip: float | None = None
+    zero_reward_on_terminated: bool = True
+    compile_reward: bool = False
+    sensor_noise: SensorNoiseConfig = field(default_factory=SensorNoiseConfig)
+
+    def reward_weight_map(self) -> dict[str, float]:
+        """``reward_weights`` as ``{term: weight}``; raises ``ValueError`` naming a malformed or unknown entry."""
+        weights = {}
+        for entry in self.reward_weights:
+            name, sep, value = entry.partition("=")
+            try:
+                weight = float(value)
+            except ValueError:
+                weight = None
+            if not sep or weight is None:
+                raise ValueError(f"transforms.reward_weights entry {entry!r} must look like 'body_vel=0.9'")
+            if name not in REFERENCE_TERM_NAMES:
+                raise ValueError(f"transforms.reward_weights: unknown term {name!r}; known: {list(REFERENCE_TERM_NAMES)}")
+            if not math.isfinite(weight):
+                raise ValueError(f"transforms.reward_weights entry {entry!r}: a weight must be a finite number "
+                                 f"(e.g. '{name}=0.5'), not NaN or inf")
+            weights[name] = weight
+        return weights
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad option and the accepted values."""
+        if self.preset not in PRESETS:
+            raise ValueError(f"unknown transforms.preset {self.preset!r}; choose one of {list(PRESETS)}")
+        if self.normalization not in _NORMALIZATIONS:
+            raise ValueError(f"transforms.normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
+        self.reward_weight_map()
+        if self.obs_clip is not None and not (self.obs_clip > 0 and math.isfinite(self.obs_clip)):
+            raise ValueError(f"transforms.obs_clip must be a finite number > 0 (the normalised observation is clipped "
+                             f"to [-obs_clip, obs_clip]) or none for no clip, got {self.obs_clip!r}")
+        self.sensor_noise.validate()
+
+    def transform_config(self, **overrides) -> TransformConfig:
+        """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
+        ``reward_weights`` given here re-weight the named terms on top of these settings' own weights (the
+        default's ``body_vel=0.9`` stays unless named). ``max_episode_steps`` is ``None`` unless overridden: the
+        env is the truncation clock."""
+        self.validate()
+        weights = self.reward_weight_map()
+        if overrides.get("reward_weights") is not None:
+            # On top, not instead: {"qpos": 0.5} replacing the map silently put body_vel back to the reference's 0.3.
+            weights.update(overrides.pop("reward_weights"))
+        values = dict(normalization=self.normalization, obs_clip=self.obs_clip,
+                      zero_reward_on_terminated=self.zero_reward_on_terminated, compile_reward=self.compile_reward,
+                      reward_weights=weights, max_episode_steps=None, sensor_noise=self.sensor_noise)
+        return transform_config(self.preset, **{**values, **overrides})
