@@ -14,11 +14,11 @@ from recipe_runner import load_recipe
 from tocabi_torchrl.cli import RecipeParser, suggest_options
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-#: The recipes whose parser needs none of the heavy libraries (ppo_walk's is generated from the run config tree,
-#: whose modules import torch).
+#: The recipes whose parser is written out in the recipe (ppo_walk's is generated from the run config tree: see
+#: test_ppo_walk_answers_help_and_a_misspelt_option_without_the_heavy_libraries).
 LIGHT_PARSERS = ("play", "sim2sim", "train_rsl_rl", "train_sb3", "train_skrl", "compare_gaits", "obstacle_test",
                  "library_table")
-HEAVY = ("torch", "torchrl", "mujoco", "warp", "rsl_rl", "skrl", "stable_baselines3")
+HEAVY = ("torch", "torchrl", "tensordict", "mujoco", "mujoco_warp", "warp", "rsl_rl", "skrl", "stable_baselines3")
 
 
 def imported_modules(recipe: str, *args: str,
@@ -39,10 +39,15 @@ def test_help_of_a_recipe_loads_no_heavy_library(recipe):
     assert not modules & set(HEAVY), f"--help imported {sorted(modules & set(HEAVY))}"
 
 
-def test_help_of_ppo_walk_parses_before_the_trainer_loads():
+def test_ppo_walk_answers_help_and_a_misspelt_option_without_the_heavy_libraries(tmp_path):
+    # Its parser is generated from the run config tree, whose modules (dataclasses, the config halves of the env,
+    # sim and transforms modules) import none of them; the packages' __init__ files load their names on first use.
     proc, modules = imported_modules("ppo_walk", "--help")
-    assert proc.returncode == 0 and "--env.num_envs" in proc.stdout
-    assert not {"tocabi_torchrl.rl.trainer", "tocabi_torchrl.rl.evaluate"} & modules
+    assert proc.returncode == 0 and "--env.num_envs" in proc.stdout and "--ppo.assist_target" in proc.stdout
+    assert not modules & set(HEAVY), f"--help imported {sorted(modules & set(HEAVY))}"
+    proc, modules = imported_modules("ppo_walk", "--num_env", "8", cwd=tmp_path)
+    assert proc.returncode == 2 and "did you mean --num_envs or --env.num_envs?" in proc.stderr
+    assert not modules & set(HEAVY), f"the error imported {sorted(modules & set(HEAVY))}"
 
 
 def test_a_misspelt_option_of_ppo_walk_is_a_short_error_naming_the_nearest_option(capsys):
@@ -58,6 +63,8 @@ def test_a_misspelt_option_of_ppo_walk_is_a_short_error_naming_the_nearest_optio
     ("train_rsl_rl", ["--out", "o", "--learnig_rate", "1e-3"], "--learning_rate"),
     ("play", ["--checkpoint", "c", "--vxx", "0.3"], "--vx"),
     ("library_table", ["--report", "--jsno", "t.json"], "--json"),
+    # A prefix of an option is no abbreviation of it (RecipeParser's allow_abbrev=False): it used to mean --num_envs.
+    ("train_sb3", ["--out", "o", "--num_env", "8"], "--num_envs"),
 ])
 def test_a_misspelt_option_of_a_light_recipe_exits_before_anything_loads(recipe, argv, nearest, tmp_path):
     proc, modules = imported_modules(recipe, *argv, cwd=tmp_path)

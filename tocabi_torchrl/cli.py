@@ -27,7 +27,14 @@ class RecipeParser(argparse.ArgumentParser):
     """An :class:`argparse.ArgumentParser` whose errors are short: the one ``error:`` line, without the usage, which
     for the generated command lines runs to dozens of lines that bury the line that matters. An unknown option also
     gets the nearest known one (``did you mean --num_envs?``) and a second line pointing to ``--help``. Exit status
-    2, as argparse's."""
+    2, as argparse's.
+
+    Options are taken by their full names only (``allow_abbrev`` defaults to False): an abbreviation would silently
+    pick an option (``--num_env 8`` meaning ``--num_envs``), where a misspelt one should be the error above."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def parse_args(self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None):
         namespace, extras = self.parse_known_args(args, namespace)
