@@ -48,7 +48,7 @@ def test_shipped_onnx_equals_torch_actor_on_random_and_recorded_observations(nam
     recorded observations, and its contract belongs to this checkpoint (config hash, ONNX hash)."""
     policy = load_policy(_policy_file(name, ".pt"), num_envs=50, command=_fixed_command((0.5, 0.0)))
     contract = load_contract(_policy_file(name, ".json"))
-    assert contract["training_config_sha256"] == config_sha256(policy.config_dict)
+    assert contract["training_config_sha256"] == config_sha256(policy.saved_config)
     session = ort.InferenceSession(str(_policy_file(name, ".onnx")), providers=["CPUExecutionProvider"])
     actor = DeterministicActor(policy.agent.actor).eval()
     obs_dim = contract["policy"]["input_dim"]

@@ -195,7 +195,7 @@ def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, ou
         "format": CONTRACT_FORMAT,
         "contract_version": CONTRACT_VERSION,
         "package_version": __version__,
-        "training_config_sha256": config_sha256(policy.config_dict),
+        "training_config_sha256": config_sha256(policy.saved_config),
         "training_config": policy.config_dict,
         "checkpoint": {"file": policy.checkpoint.name, "iteration": policy.iteration, "env_steps": policy.env_steps},
         "policy": {"onnx_file": onnx_file, "onnx_sha256": onnx_sha256, "opset": opset, "input_name": input_name,

@@ -52,8 +52,10 @@ class LoadedPolicy:
 
     Attributes:
         checkpoint: the ``.pt`` file read.
-        config: the run's config (currently ``rl.config.PPOConfig``).
-        config_dict: the config as plain values (hashed into the contract).
+        config: the run's config (``RunConfig``, in the current schema).
+        config_dict: the config as plain values in the current schema (the contract's ``training_config``).
+        saved_config: the config exactly as the checkpoint saved it (hashed into the contract: the hash then names
+            the checkpoint's training, and stays the same when later versions add config fields).
         agent: the trainer's agent with the checkpoint's weights.
         env: the run's ``TransformedEnv`` (1 env, CPU, C MuJoCo), its transforms holding the checkpoint's state.
         iteration, env_steps: training progress saved in the checkpoint.
@@ -62,6 +64,7 @@ class LoadedPolicy:
     checkpoint: Path
     config: object
     config_dict: dict
+    saved_config: dict
     agent: object
     env: object
     iteration: int
@@ -87,7 +90,8 @@ def load_policy(checkpoint: str | os.PathLike, num_envs: int = 1, **env_override
     _require_running_statistics(state, env, path)
     apply_checkpoint(state, agent, env=env, path=path)
     freeze_running_statistics(env)  # the contract states the checkpoint's statistics, frozen
-    return LoadedPolicy(checkpoint=path, config=cfg, config_dict=cfg.to_dict(), agent=agent, env=env,
+    return LoadedPolicy(checkpoint=path, config=cfg, config_dict=cfg.to_dict(), saved_config=dict(state["config"]),
+                        agent=agent, env=env,
                         iteration=int(state["iteration"]), env_steps=int(state["env_steps"]))
 
 
