@@ -83,3 +83,14 @@ def test_a_user_controller_replaces_the_configured_one():
     td = env.reset()
     td = env.step(td.set("action", torch.zeros(2, 13)))
     assert float(td["next", "leg_torque"].abs().max()) == 0.0
+
+
+def test_the_config_names_a_law_per_joint_group():
+    from tocabi_torchrl.control import PDHold
+    from tocabi_torchrl.envs.config import ControlConfig, TocabiWalkConfig
+
+    env = TocabiWalk(num_envs=1, device="cpu", control_mode="torque")
+    assert isinstance(env.upper_controller, PDHold) and env.cfg.control.upper_body == "pd_hold"
+    assert type(env.leg_controller) is DirectTorque
+    with pytest.raises(ValueError, match="unknown env.control.upper_body 'impedance'; choose one of"):
+        TocabiWalkConfig(control=ControlConfig(upper_body="impedance")).validate()

@@ -486,7 +486,8 @@ def test_bad_option_values_are_one_error_line(argv, message, capsys):
 ])
 def test_an_unusable_randomisation_is_one_error_line(name, randomize, message, tmp_path):
     with pytest.raises(SystemExit) as info:
-        load_recipe("sim2sim").main(["--contract", str(_older(tmp_path, name)), "--seconds", "0.02", "--num_robots", "1",
+        load_recipe("sim2sim").main(["--contract", str(_older(tmp_path, name)), "--seconds", "0.02",
+                                     "--num_robots", "1",
                                      "--randomize", randomize])
     text = str(info.value.code)
     assert text.startswith("error: ") and message in text and "\n" not in text

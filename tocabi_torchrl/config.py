@@ -30,7 +30,7 @@ from types import MappingProxyType
 from typing import Any
 
 from .envs.command_config import CommandConfig
-from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, TocabiWalkConfig
+from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, UPPER_BODY_LAWS, TocabiWalkConfig
 from .envs.push_config import PushConfig
 from .randomize import tocabi_lab_paths
 from .sim.config import RESET_PASSES
@@ -356,6 +356,7 @@ def field_choices() -> dict[str, tuple[str, ...]]:
     from .transforms.settings import PRESETS as TRANSFORM_PRESETS
 
     return {"ppo.lr_schedule": LR_SCHEDULES, "ppo.std_mode": STD_MODES, "env.control.mode": CONTROL_MODES,
+            "env.control.upper_body": UPPER_BODY_LAWS,
             "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.preset": tuple(TRANSFORM_PRESETS),
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
             "ppo.assist_target": ASSIST_TARGETS, "env.sim.backend": ("warp", "mujoco", "auto"),

@@ -16,13 +16,15 @@ from .command_config import CommandConfig
 from .push_config import PushConfig
 
 __all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "SceneConfig", "BoxObstacle", "PD_GAINS",
-           "ENV_FLAT_PATHS", "CONTROL_MODES", "TORQUE_MODES", "MB_OMEGA", "BACKENDS", "CPU_DEFAULT_BACKEND",
-           "resolve_backend"]
+           "ENV_FLAT_PATHS", "CONTROL_MODES", "TORQUE_MODES", "UPPER_BODY_LAWS", "MB_OMEGA", "BACKENDS",
+           "CPU_DEFAULT_BACKEND", "resolve_backend"]
 
 CONTROL_MODES = ("torque", "pd", "pd_reference", "model_based")
 #: The modes whose leg actuators are torque motors (the env computes the torque); the others make them MuJoCo
 #: position servos.
 TORQUE_MODES = ("torque", "model_based")
+#: The upper body's control laws (``env.control.upper_body``): its servos hold the reference walk's pose.
+UPPER_BODY_LAWS = ("pd_hold",)
 #: Physics backends: mujoco-warp (``WarpSim``, GPU or warp's CPU device) or C MuJoCo on CPU threads (``MujocoSim``).
 BACKENDS = ("warp", "mujoco", "auto")
 #: ``backend="auto"`` on a CPU device. Measured by ``benchmarks/cpu_backends.py`` (docs/benchmarks/cpu_backends_*.md):
@@ -196,6 +198,8 @@ class ControlConfig:
     mb_ref_window: float = 0.008
     mb_residual_gain: tuple[float, ...] = field(default=tuple(float(v) for v in robot.LEG_TORQUE_LIMITS),
                                                 metadata=OWN_NUMBER_CHECK)
+    #: The upper body's control law (``envs.controllers.upper_body_law``): the model file's servos hold the reference.
+    upper_body: str = "pd_hold"
     #: The actuator layer between the legs' torque commands and the joints (ideal by default; torque modes only).
     actuators: ActuatorConfig = field(default_factory=ActuatorConfig)
 
@@ -208,6 +212,8 @@ class ControlConfig:
                                  f"{len(getattr(self, name))}")
         for name in ("pd_kp", "pd_kv", "pd_nominal", "pd_action_scale"):
             check_env_value(f"control.{name}", getattr(self, name))
+        if self.upper_body not in UPPER_BODY_LAWS:
+            raise ValueError(f"unknown env.control.upper_body {self.upper_body!r}; choose one of {UPPER_BODY_LAWS}")
         self.actuators.validate()
         if not self.actuators.ideal and self.mode not in TORQUE_MODES:
             raise ValueError(f"env.control.actuators act on torque commands, but control mode {self.mode!r} tracks "

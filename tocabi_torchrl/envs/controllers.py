@@ -27,8 +27,9 @@ def leg_law(control: ControlConfig) -> Controller:
 
 
 def upper_body_law(control: ControlConfig) -> Controller:
-    """The upper body's law: the reference pose held by the model's own position servos."""
-    return PDHold()
+    """The upper body's law for ``control.upper_body``: ``"pd_hold"``, the reference pose held by the model's own
+    position servos (the only one today)."""
+    return {"pd_hold": PDHold}[control.upper_body]()
 
 
 def leg_actuator_chain(control: ControlConfig, substeps: int) -> ActuatorChain:

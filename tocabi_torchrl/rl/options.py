@@ -38,6 +38,7 @@ FIELD_HELP: dict[str, str] = {
     "device": "auto (CUDA if present, else the small CPU smoke run), cpu, cuda or cuda:N",
     "env.num_envs": "parallel simulated robots",
     "env.control.mode": "what the 12 leg actions command",
+    "env.control.upper_body": "the upper body's control law (pd_hold: its servos hold the reference walk's pose)",
     "transforms.preset": "observation history layout",
     "env.task.max_episode_steps": "policy steps (4 ms) before an episode is truncated",
     "env.control.pd_kp": "leg PD stiffness per joint [N·m/rad] (PD modes, torque assist); default: the robot's, "
