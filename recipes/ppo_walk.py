@@ -37,7 +37,6 @@ if __name__ == "__main__":
 
 import torch  # noqa: E402
 
-from tocabi_torchrl.config import RunConfig  # noqa: E402
 from tocabi_torchrl.envs.model_based import check_settings  # noqa: E402
 from tocabi_torchrl.motion import ReferenceMotion  # noqa: E402
 from tocabi_torchrl.motion.io import MotionFormatError  # noqa: E402

@@ -7,8 +7,6 @@ from __future__ import annotations
 import dataclasses
 from types import SimpleNamespace
 
-import mujoco
-import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
