@@ -14,6 +14,7 @@ import math
 from pathlib import Path
 
 import pytest
+import torch
 
 from test_runs import recipe
 
@@ -245,3 +246,44 @@ def test_case_configs_hold_what_each_case_says(mode):
     assert pushed.env.pushes.window == (2.0, 7.0) and pushed.env.pushes.duration == (0.004, 0.004)
     assert pushed.env.dynamics == TOCABI_LAB_DYNAMICS and pushed.transforms.sensor_noise.enabled
     assert pushed.env.control.actuators == (TOCABI_LAB_ACTUATORS if mode == "torque" else cfg.env.control.actuators)
+
+
+def test_every_case_starts_from_the_ideal_robot_whatever_the_policy_trained_under():
+    # A robust-preset policy trained with kicks, randomisation and sensor noise: nominal and commands test the
+    # nominal robot without them; the randomised cases add the test's own set and kicks.
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.rl.robust_eval import case_config
+
+    trained = preset_config("robust")
+    for name in ("nominal", "commands"):
+        cfg = case_config(trained, name)
+        assert cfg.env.pushes.count == 0 and not cfg.env.dynamics.enabled
+        assert cfg.env.control.actuators.ideal and not cfg.transforms.sensor_noise.enabled
+    pushed = case_config(trained, "robust_1.0")
+    assert pushed.env.pushes.count == 3 and pushed.env.pushes.speed == (1.0, 1.0)
+    assert pushed.env.dynamics.enabled and pushed.transforms.sensor_noise.enabled
+
+
+def test_saved_normaliser_statistics_follow_their_transform_when_sensor_noise_shifts_the_chain():
+    from tocabi_torchrl import make_env
+    from tocabi_torchrl.rl.checkpoint import CheckpointError, align_transform_state
+    from tocabi_torchrl.transforms import SensorNoiseConfig
+
+    trained = make_env(num_envs=1, device="cpu", normalization="running").transform.state_dict()
+    noisy = make_env(num_envs=1, device="cpu", normalization="running",
+                     sensor_noise=SensorNoiseConfig.tocabi_lab()).transform.state_dict()
+    trained = {k: v + 1.0 if k.endswith(("mean", "var", "count")) else v for k, v in trained.items()}
+    moved = align_transform_state(trained, noisy)
+    assert set(moved) == set(noisy)
+    for name in ("mean", "var", "count"):
+        src = next(v for k, v in trained.items() if k.endswith(name))
+        dst = next(v for k, v in moved.items() if k.endswith(name))
+        assert torch.equal(src, dst)
+    with pytest.raises(CheckpointError, match="no place for the saved state"):
+        align_transform_state({"transforms.9.other": torch.zeros(1)}, noisy)
+
+
+def test_a_push_ramp_that_is_a_step_does_not_divide_by_zero():
+    from tocabi_torchrl.rl.trainer import push_scale
+
+    assert [push_scale((1000, 1000), s) for s in (0, 999, 1000)] == [0.0, 0.0, 1.0]

@@ -1,9 +1,9 @@
 """Pushes: horizontal velocity kicks of the robot during an episode, as forces on the pelvis.
 
-Each episode of each world draws ``count`` kicks at reset. Kick j happens at a random time in the j-th of ``count``
-equal shares of ``window`` (so kicks never overlap for a window of at least ``count`` durations), in a random
-horizontal direction, and changes the robot's momentum by ``speed × mass`` (the whole robot's nominal mass): a
-force of that impulse over the kick's duration, held on the pelvis body (``sim.xfrc_applied``, world frame) for a
+Each episode of each world draws ``count`` kicks at reset. Kick j starts at a random time in the j-th of ``count``
+equal shares of ``window`` (two kicks overlap, their forces adding, only when one outlasts the gap to the next), in a
+random horizontal direction, and changes the robot's momentum by ``speed × mass`` (the whole robot's nominal mass):
+a force of that impulse over the kick's duration, held on the pelvis body (``sim.xfrc_applied``, world frame) for a
 whole number of policy steps (at least one), so the impulse is exact. The TOCABI lab trains with impulses of
 50-250 N·s over 0.1-1 s; a velocity kick of 0.5 m/s (≈ 52 N·s on the 104.5 kg robot) over one 4 ms policy step is the
 robust gait test's.

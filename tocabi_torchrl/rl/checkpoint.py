@@ -34,8 +34,8 @@ from ..config import ConfigError, RunConfig, config_from_dict
 from ..integrity import zip_damage
 
 __all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_checkpoint", "apply_checkpoint", "checkpoint_file",
-           "config_from_checkpoint", "prune_checkpoints", "run_folder_of", "verified_checkpoint_file", "CheckpointError",
-           "ExportedPolicyError", "SCHEMA_VERSION"]
+           "config_from_checkpoint", "align_transform_state", "prune_checkpoints", "run_folder_of",
+           "verified_checkpoint_file", "CheckpointError", "ExportedPolicyError", "SCHEMA_VERSION"]
 
 #: Version of the checkpoint layout and config schema written by :func:`save_checkpoint`. Bump it when a change
 #: means older code would misread a new file; :func:`read_checkpoint` refuses files from a newer version.
@@ -334,6 +334,7 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
     saved_transforms = state.get("transforms") or {}
     if saved_transforms and isinstance(transform, nn.Module):
         mine = transform.state_dict()
+        saved_transforms = align_transform_state(saved_transforms, mine, path)
         _check_fits({k: v for k, v in saved_transforms.items() if k in mine}, mine, "env transforms", path,
                     hint="another observation layout or normalisation?", allow_missing=True)
     agent.load_state_dict(state["agent"])
@@ -345,6 +346,43 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
                                   "value_head_lr differs?") from err
     if saved_transforms and isinstance(transform, nn.Module):
         transform.load_state_dict(saved_transforms, strict=False)
+
+
+def _transform_groups(state: dict) -> dict[tuple[str, str], set[str]]:
+    """The keys of a transform chain's state by the transform they belong to: ``("transforms", "3")`` -> names."""
+    groups: dict[tuple[str, str], set[str]] = {}
+    for key in state:
+        parts = key.split(".", 2)
+        if len(parts) == 3 and parts[1].isdigit():
+            groups.setdefault((parts[0], parts[1]), set()).add(parts[2])
+    return groups
+
+
+def align_transform_state(saved: dict, mine: dict, path: str | os.PathLike = "<checkpoint>") -> dict:
+    """``saved`` (a transform chain's state from a checkpoint) with each transform's keys moved to its index in the
+    chain ``mine`` belongs to. A transform added or left out (sensor noise, say) shifts the indices of the ones after
+    it; the stateful transforms are matched in order by the names of their state (a running normaliser's ``mean``,
+    ``var``, ``count``). Raises :class:`CheckpointError` when a saved transform's state has no place to go, instead of
+    dropping it (a policy would then run on fresh normalisation statistics)."""
+    if all(key in mine for key in saved):
+        return saved
+    have, want = _transform_groups(saved), _transform_groups(mine)
+    order = sorted(want, key=lambda g: (g[0], int(g[1])))
+    moved: dict[tuple[str, str], tuple[str, str]] = {}
+    for group in sorted(have, key=lambda g: (g[0], int(g[1]))):
+        match = next((g for g in order if g[0] == group[0] and want[g] == have[group]), None)
+        if match is None:
+            raise CheckpointError(f"checkpoint {path}: the env's transforms have no place for the saved state "
+                                  f"{sorted(have[group])} of transform {group[1]} (another observation layout or "
+                                  "normalisation?)")
+        moved[group] = match
+        order = order[order.index(match) + 1:]
+    out = {}
+    for key, value in saved.items():
+        parts = key.split(".", 2)
+        group = (parts[0], parts[1]) if len(parts) == 3 else None
+        out[f"{moved[group][0]}.{moved[group][1]}.{parts[2]}" if group in moved else key] = value
+    return out
 
 
 def _check_fits(saved: dict, current: dict, what: str, path, hint: str, allow_missing: bool = False) -> None:

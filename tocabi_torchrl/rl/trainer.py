@@ -558,6 +558,8 @@ def push_scale(ramp: tuple[int, int], env_steps: int) -> float:
     start, full = ramp
     if env_steps >= full:
         return 1.0
+    if full <= start:  # a step at ``start`` rather than a ramp
+        return 0.0
     return max(0.0, (env_steps - start) / (full - start))
 
 
