@@ -23,7 +23,9 @@ class ActuatorConfig:
         motor_constant: (low, high) the motor-constant scale c ~ U(low, high) per world and joint (1 = nominal).
         coulomb: (low, high) Coulomb friction [N·m] per world and joint, against the joint's velocity.
         viscous: (low, high) viscous friction [N·m·s/rad] per world and joint.
-        saturate: clip the torque at the joints' limits after the other stages (when any runs).
+        saturate: clip the torque at the joints' limits after the other stages (when any runs). The model's leg
+            motors are control-limited to the same limits, so the physics never applies more; this decides whether
+            the ``leg_torque`` signal reports the clipped torque (True) or the stages' unclipped output.
     """
 
     delay_substeps: tuple[int, int] = (0, 0)
