@@ -266,7 +266,7 @@ def test_every_case_starts_from_the_ideal_robot_whatever_the_policy_trained_unde
 
 def test_saved_normaliser_statistics_follow_their_transform_when_sensor_noise_shifts_the_chain():
     from tocabi_torchrl import make_env
-    from tocabi_torchrl.rl.checkpoint import CheckpointError, align_transform_state
+    from tocabi_torchrl.rl.checkpoint import align_transform_state
     from tocabi_torchrl.transforms import SensorNoiseConfig
 
     trained = make_env(num_envs=1, device="cpu", normalization="running").transform.state_dict()
@@ -279,8 +279,8 @@ def test_saved_normaliser_statistics_follow_their_transform_when_sensor_noise_sh
         src = next(v for k, v in trained.items() if k.endswith(name))
         dst = next(v for k, v in moved.items() if k.endswith(name))
         assert torch.equal(src, dst)
-    with pytest.raises(CheckpointError, match="no place for the saved state"):
-        align_transform_state({"transforms.9.other": torch.zeros(1)}, noisy)
+    # a transform the chain no longer has is left out, not loaded into another one
+    assert align_transform_state({"transforms.9.other": torch.zeros(1), **trained}, noisy).keys() == noisy.keys()
 
 
 def test_a_push_ramp_that_is_a_step_does_not_divide_by_zero():

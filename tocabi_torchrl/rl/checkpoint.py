@@ -362,8 +362,9 @@ def align_transform_state(saved: dict, mine: dict, path: str | os.PathLike = "<c
     """``saved`` (a transform chain's state from a checkpoint) with each transform's keys moved to its index in the
     chain ``mine`` belongs to. A transform added or left out (sensor noise, say) shifts the indices of the ones after
     it; the stateful transforms are matched in order by the names of their state (a running normaliser's ``mean``,
-    ``var``, ``count``). Raises :class:`CheckpointError` when a saved transform's state has no place to go, instead of
-    dropping it (a policy would then run on fresh normalisation statistics)."""
+    ``var``, ``count``), so a running normaliser's statistics reach the running normaliser wherever it now stands. A
+    saved transform that the chain no longer has (running statistics resumed into fixed normalisation) is left
+    out, never loaded into another transform."""
     if all(key in mine for key in saved):
         return saved
     have, want = _transform_groups(saved), _transform_groups(mine)
@@ -371,17 +372,17 @@ def align_transform_state(saved: dict, mine: dict, path: str | os.PathLike = "<c
     moved: dict[tuple[str, str], tuple[str, str]] = {}
     for group in sorted(have, key=lambda g: (g[0], int(g[1]))):
         match = next((g for g in order if g[0] == group[0] and want[g] == have[group]), None)
-        if match is None:
-            raise CheckpointError(f"checkpoint {path}: the env's transforms have no place for the saved state "
-                                  f"{sorted(have[group])} of transform {group[1]} (another observation layout or "
-                                  "normalisation?)")
-        moved[group] = match
-        order = order[order.index(match) + 1:]
+        if match is not None:
+            moved[group] = match
+            order = order[order.index(match) + 1:]
     out = {}
     for key, value in saved.items():
         parts = key.split(".", 2)
-        group = (parts[0], parts[1]) if len(parts) == 3 else None
-        out[f"{moved[group][0]}.{moved[group][1]}.{parts[2]}" if group in moved else key] = value
+        group = (parts[0], parts[1]) if len(parts) == 3 and parts[1].isdigit() else None
+        if group is None:
+            out[key] = value
+        elif group in moved:
+            out[f"{moved[group][0]}.{moved[group][1]}.{parts[2]}"] = value
     return out
 
 
