@@ -106,6 +106,25 @@ def test_graph_follows_the_current_torch_stream(sim):
     assert torch.allclose(z, torch.full_like(z, 3.0))
 
 
+def test_capture_id_is_read_from_the_driver():
+    """The joined capture's safety check reads CUDA's capture id through the driver API: 0 outside a capture, one
+    non-zero id for the whole of a torch capture (the check would be skipped silently if the call failed)."""
+    from tocabi_torchrl.sim.graph import _capture_id
+
+    stream = wp.stream_from_torch(torch.cuda.current_stream())
+    assert _capture_id(stream) == 0
+    x = torch.zeros(4, device="cuda")
+    graph = torch.cuda.CUDAGraph()
+    side = torch.cuda.Stream()
+    with torch.cuda.stream(side):
+        inner = wp.stream_from_torch(side)
+        with torch.cuda.graph(graph, stream=side):
+            first = _capture_id(inner)
+            x += 1
+            second = _capture_id(inner)
+    assert first is not None and first > 0 and first == second
+
+
 def test_recorded_graph_refuses_a_capture_that_does_not_hold_it(sim):
     """Inside a torch capture the physics must be held by cuda_graphs.capture_graph (joined or segmented), never
     launched as a nested graph by accident. Last in this module: the refused capture leaves an empty graph."""

@@ -14,6 +14,8 @@ torch graphs at replay. A :class:`Recorded` object only behaves differently whil
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import functools
 import gc
 from collections.abc import Callable, Sequence
 
@@ -24,14 +26,35 @@ __all__ = ["Recorded", "JoinedCapture", "SegmentedCapture", "no_gc"]
 
 
 def _capture_id(stream: wp.Stream) -> int | None:
-    """CUDA's id of the capture in progress on ``stream`` (0 when none; None where warp does not expose it: warp has
-    no public call for it, so this reads warp's runtime binding and skips the check if that ever moves)."""
-    try:
-        from warp._src.context import runtime
+    """CUDA's id of the capture in progress on ``stream`` (0 when none; None where it cannot be read).
 
-        return int(runtime.core.wp_cuda_stream_get_capture_id(stream.cuda_stream))
-    except (ImportError, AttributeError):
+    Neither warp nor torch has a public call for the id, so it is asked of the CUDA driver API itself
+    (``cuStreamGetCaptureInfo``), which every CUDA machine has; the check that uses it is skipped where that fails.
+    """
+    fn = _driver_capture_info()
+    if fn is None:
         return None
+    status, capture = ctypes.c_int(0), ctypes.c_uint64(0)
+    if fn(ctypes.c_void_p(stream.cuda_stream), ctypes.byref(status), ctypes.byref(capture)) != 0:
+        return None
+    return int(capture.value) if status.value == 1 else 0  # CU_STREAM_CAPTURE_STATUS_ACTIVE
+
+
+@functools.cache
+def _driver_capture_info() -> Callable | None:
+    """``(stream, status*, id*) -> CUresult`` from libcuda (v3 on CUDA 13 drivers, v2 before), or None."""
+    try:
+        lib = ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return None
+    null = ctypes.c_void_p(None)
+    for name, extra in (("cuStreamGetCaptureInfo_v3", 4), ("cuStreamGetCaptureInfo_v2", 3)):
+        fn = getattr(lib, name, None)
+        if fn is not None:
+            fn.restype = ctypes.c_int
+            # The optional outputs (graph, dependencies, [edge data,] count) are not asked for: NULL pointers.
+            return lambda s, st, cid, fn=fn, extra=extra: fn(s, st, cid, *([null] * extra))
+    return None
 
 
 @contextlib.contextmanager
