@@ -287,3 +287,28 @@ def test_a_push_ramp_that_is_a_step_does_not_divide_by_zero():
     from tocabi_torchrl.rl.trainer import push_scale
 
     assert [push_scale((1000, 1000), s) for s in (0, 999, 1000)] == [0.0, 0.0, 1.0]
+
+
+def test_the_captured_path_gives_the_eager_path_numbers():
+    """run_case through ``step_and_maybe_reset`` (how a captured CUDA graph steps on the GPU: fallen robots are reset
+    and walk on) gives the numbers of the eager ``env.step`` (fallen robots lie where they fell). Actions pinned at
+    +1 topple the robots within the case, so resets happen on the first path."""
+    from tocabi_torchrl.config import preset_tree
+    from tocabi_torchrl.rl.robust_eval import RobustTestConfig, case_config, run_case
+    from tocabi_torchrl.rl.trainer import build_env
+
+    test = RobustTestConfig(num_envs=6, seconds=1.2)
+    cfg = case_config(preset_tree("torque"), "robust_1.0", test)
+    env = build_env(cfg, torch.device("cpu"), num_envs=6, sync_free_resets=True)
+
+    def actor(td):
+        return td.set("action", torch.ones(td.batch_size[0], env.action_spec.shape[-1]))
+
+    out = {}
+    for autoreset in (False, True):
+        env.set_seed(test.seed)
+        out[autoreset] = run_case(actor, env, test.seconds, progress=False, autoreset=autoreset)
+    eager, captured = out[False], out[True]
+    assert not eager["alive"].all(), "the pinned actions should topple some robots (else no reset is exercised)"
+    for key, value in eager.items():
+        torch.testing.assert_close(captured[key], value, equal_nan=True, msg=key)

@@ -184,6 +184,11 @@ def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig =
     # Every case starts from the ideal robot, whatever the policy trained under: the randomised cases then add the
     # test's own set, and nominal/commands test the nominal robot without the training's kicks or noise.
     control = dataclasses.replace(env.control, actuators=ActuatorConfig())
+    # No truncation inside the case: a robot is followed for the whole case, reset or not (see run_case).
+    from .evaluate import policy_dt
+
+    steps = policy_steps(test.seconds, policy_dt())
+    task = dataclasses.replace(task, max_episode_steps=max(int(task.max_episode_steps), steps + 1))
     env = dataclasses.replace(env, task=task, command=command, control=control, pushes=PushConfig(),
                               dynamics=DynamicsRandomization())
     transforms = dataclasses.replace(cfg.transforms, sensor_noise=SensorNoiseConfig())
@@ -194,10 +199,13 @@ def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig =
 def case_env(cfg: RunConfig, case: str | RobustCase, device: torch.device, num_envs: int,
              test: RobustTestConfig = RobustTestConfig()):
     """The env of one case (``num_envs`` robots on ``device``), built as the trainer builds envs
-    (:func:`.trainer.build_env`) from :func:`case_config`."""
+    (:func:`.trainer.build_env`) from :func:`case_config`. On CUDA its step is one captured CUDA graph
+    (:class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`), which :func:`run_case` replays."""
     from .trainer import build_env
 
-    return build_env(case_config(cfg, case, test), torch.device(device), num_envs=num_envs)
+    device = torch.device(device)
+    graph = {"sync_free_resets": True, "cuda_graph": True} if device.type == "cuda" else {}
+    return build_env(case_config(cfg, case, test), device, num_envs=num_envs, **graph)
 
 
 # ------------------------------------------------------------------------------------------------ one case
@@ -212,29 +220,42 @@ def heading_frame_velocity(base_quat: torch.Tensor, base_lin_vel: torch.Tensor) 
     return torch.stack((c * world[..., 0] + s * world[..., 1], -s * world[..., 0] + c * world[..., 1]), -1)
 
 
-def run_case(actor, env, seconds: float, desc: str = "robust test", progress: bool = True) -> dict[str, torch.Tensor]:
+def run_case(actor, env, seconds: float, desc: str = "robust test", progress: bool = True,
+             autoreset: bool | None = None) -> dict[str, torch.Tensor]:
     """Roll the deterministic ``actor`` out in a case's ``env`` for ``seconds`` from a reset; fallen robots are not
     reset (they lie where they fell and every metric uses their alive steps only, as in the standard test).
 
     Returns (N,) CPU tensors per robot: ``alive`` (bool), ``forward_m`` and ``lateral_m`` (pelvis displacement in
     the world's x and y up to its last alive step [m]), ``tracking_error_mps`` (mean over alive steps of
     ``|v_heading − command|``, the horizontal speed error in the heading frame [m/s]), ``knee_rms_rad`` (against
-    the reference [rad]) and ``alive_seconds``; NaN for a robot with no alive step."""
+    the reference [rad]) and ``alive_seconds``; NaN for a robot with no alive step.
+
+    An env whose step is a captured CUDA graph (``env.cuda_graph``, as :func:`case_env` builds on CUDA) is stepped
+    through that graph, ``step_and_maybe_reset``: a fallen robot is then reset and walks on, but the metrics stop
+    at its first fall either way (:class:`GaitMetrics`), so both paths give the same numbers (``autoreset`` forces
+    one: True needs a sync-free env, False is the eager ``env.step``)."""
     base = env.base_env
     dt = float(base.dt)
     steps = policy_steps(seconds, dt)
     freeze_running_statistics(env)  # a test of the policy as trained, not of statistics drifting with its rollout
+    if autoreset is None:
+        autoreset = bool(getattr(env, "cuda_graph", False))
+    if autoreset and hasattr(env, "invalidate_graph"):
+        env.invalidate_graph()  # the graph reads the normaliser's frozen flag as captured: capture it frozen
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
         metrics = GaitMetrics(td["base_pos"], (0.5, 0.0), dt)  # its own speed error is unused: the command varies
         track = torch.zeros(env.num_envs, device=td["base_pos"].device)
         for k in tqdm(range(steps), desc=desc, unit="step", disable=not progress, leave=False):
-            td = env.step(actor(td))
+            if autoreset:
+                td, carry = env.step_and_maybe_reset(actor(td))
+            else:
+                td = env.step(actor(td))
             nxt = td["next"]
             alive = metrics.update(nxt)
             err = heading_frame_velocity(nxt["base_quat"], nxt["base_lin_vel"]) - nxt["command"]
             track += alive.float() * err.norm(dim=-1)
-            td = step_mdp(td)
+            td = carry if autoreset else step_mdp(td)
             if k % 50 == 49 and not bool(alive.any()):  # no metric can change once all have fallen (a read per 50)
                 break
     per_env = metrics.per_env()
