@@ -312,3 +312,94 @@ def test_the_captured_path_gives_the_eager_path_numbers():
     assert not eager["alive"].all(), "the pinned actions should topple some robots (else no reset is exercised)"
     for key, value in eager.items():
         torch.testing.assert_close(captured[key], value, equal_nan=True, msg=key)
+
+
+def _batch(num_envs: int = 3):
+    from tocabi_torchrl.config import preset_tree
+    from tocabi_torchrl.rl.robust_eval import RobustTestConfig, batch_env
+
+    test = RobustTestConfig(num_envs=num_envs, seconds=0.2)
+    cfg = preset_tree("torque")
+    return cfg, test, batch_env(cfg, "cpu", test)
+
+
+def test_one_batch_holds_each_case_in_its_own_worlds():
+    """The batch env gives each case's worlds what the case says: the robust cases' worlds their own dynamics,
+    actuator and sensor draws and kicks of their speed; the nominal and commands worlds the ideal robot, no kicks,
+    exact sensors; the nominal worlds the fixed command."""
+    from tocabi_torchrl.rl.robust_eval import case_worlds
+
+    _, test, env = _batch()
+    env.set_seed(test.seed)
+    td = env.reset()
+    base, rows = env.base_env, case_worlds(test)
+    mass = base.dynamics.mass_scale[:, 1:]
+    delay = base.leg_actuators.stages[0].delay if hasattr(base.leg_actuators.stages[0], "delay") else None
+    for name in ("nominal", "commands"):
+        assert torch.all(mass[rows[name]] == 1.0), name
+        assert torch.all(base.pushes.world_scale[rows[name]] == 0.0), name
+        assert not base.randomized_worlds[rows[name]].any()
+    for name, speed in (("robust_0.5", 0.5), ("robust_1.0", 1.0)):
+        assert torch.all(mass[rows[name]] != 1.0), name
+        torch.testing.assert_close(base.pushes.world_scale[rows[name]], torch.full((test.num_envs,), speed))
+        assert base.randomized_worlds[rows[name]].all()
+    if delay is not None:
+        assert torch.all(delay[rows["nominal"]] == 0) and torch.all(delay[rows["robust_0.5"]] >= 4)
+    scales = [s for s in base.leg_actuators.stages if type(s).__name__ == "MotorConstant"]
+    for stage in scales:
+        assert torch.all(stage.scale[rows["commands"]] == 1.0) and torch.all(stage.scale[rows["robust_1.0"]] != 1.0)
+    command = td["command"]
+    torch.testing.assert_close(command[rows["nominal"]], torch.tensor([[0.5, 0.0]]).expand(test.num_envs, 2))
+    assert command[rows["commands"]].std(0).sum() > 0, "the commands case's worlds draw their own commands"
+    noise = next(t for t in env.transform if type(t).__name__ == "SensorNoise")
+    assert noise._worlds is not None and torch.equal(noise._worlds.squeeze(-1), base.randomized_worlds)
+
+
+def test_the_nominal_worlds_of_the_batch_are_the_nominal_case_env():
+    """No draw of the randomised worlds reaches an ideal one: the nominal case's worlds of the batch env (worlds
+    0..n-1, keyed like the nominal case's own env) follow its own env's trajectories exactly."""
+    from tocabi_torchrl.rl.robust_eval import case_env, case_worlds, run_case
+
+    cfg, test, env = _batch()
+    alone = case_env(cfg, "nominal", "cpu", test.num_envs, test)
+
+    def actor(td):
+        return td.set("action", 0.3 * torch.ones(td.batch_size[0], env.action_spec.shape[-1]))
+
+    results = []
+    for e in (env, alone):
+        e.set_seed(test.seed)
+        results.append(run_case(actor, e, test.seconds, progress=False))
+    batch, single = results
+    rows = case_worlds(test)["nominal"]
+    for key, value in single.items():
+        torch.testing.assert_close(batch[key][rows], value, equal_nan=True, atol=1e-6, rtol=0, msg=key)
+
+
+def test_a_pinned_command_survives_resampling():
+    """VelocityCommand.pin: the pinned envs keep their command through resets and resamples; the others draw."""
+    from tocabi_torchrl.envs.command import VelocityCommand
+    from tocabi_torchrl.envs.command_config import CommandConfig
+
+    gen = torch.Generator().manual_seed(0)
+    cmd = VelocityCommand(CommandConfig(resample_every=2), 6, torch.device("cpu"), gen)
+    pinned = torch.tensor([True, False, True, False, False, False])
+    cmd.pin(pinned, (0.4, -0.1))
+    cmd.reset(torch.ones(6, dtype=torch.bool))
+    seen = []
+    for step in range(40):
+        cmd.update(torch.full((6,), step, dtype=torch.int64))
+        seen.append(cmd.value.clone())
+    seen = torch.stack(seen)
+    torch.testing.assert_close(seen[:, pinned], torch.tensor([0.4, -0.1]).expand(40, 2, 2))
+    assert seen[:, ~pinned].std(0).min() > 0
+
+
+def test_set_randomized_worlds_refuses_a_wrong_mask():
+    from tocabi_torchrl import make_env
+
+    env = make_env(num_envs=2, device="cpu", seed=0)
+    with pytest.raises(ValueError, match=r"\(2,\) bool tensor"):
+        env.base_env.set_randomized_worlds(torch.tensor([1, 0]))
+    with pytest.raises(ValueError, match=r"\(2,\) bool tensor"):
+        env.base_env.set_randomized_worlds(torch.tensor([True, False, True]))

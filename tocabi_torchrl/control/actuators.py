@@ -79,9 +79,17 @@ class Actuator(abc.ABC):
         """Redraw the parameters of the worlds flagged in ``mask`` (N,) bool from ``u`` (N, :attr:`draws`) uniforms
         in [0, 1), in place."""
 
+    def nominal(self, mask: torch.Tensor) -> None:
+        """Give the worlds flagged in ``mask`` (N,) bool the ideal actuator's parameters (no scale, friction or
+        delay), in place: the env's worlds that are not randomised (``TocabiWalk.set_randomized_worlds``). A
+        stage without parameters has nothing to do."""
+
 
 class _UniformPerJoint(Actuator):
     """A stage with parameters drawn per world and joint from U(low, high)."""
+
+    #: The ideal actuator's value of each range's parameter (:meth:`nominal`).
+    identity: tuple[float, ...] = ()
 
     def __init__(self, *ranges: tuple[float, float], what: str):
         self.ranges = [_uniform_range(lo, hi, f"{type(self).__name__} {what}") for lo, hi in ranges]
@@ -100,9 +108,15 @@ class _UniformPerJoint(Actuator):
             drawn = lo + (hi - lo) * u[:, i * j:(i + 1) * j]
             value.copy_(torch.where(mask.unsqueeze(-1), drawn, value))
 
+    def nominal(self, mask: torch.Tensor) -> None:
+        for ideal, value in zip(self.identity, self.values):
+            value.masked_fill_(mask.unsqueeze(-1), ideal)
+
 
 class MotorConstant(_UniformPerJoint):
     """``c · τ`` with the motor-constant scale c ~ U(low, high) per world and joint (1 = the nominal motor)."""
+
+    identity = (1.0,)
 
     def __init__(self, low: float = 1.0, high: float = 1.0):
         super().__init__((low, high), what="scale")
@@ -119,6 +133,8 @@ class MotorConstant(_UniformPerJoint):
 class Friction(_UniformPerJoint):
     """``τ − (F_c·sign(q̇) + F_v·q̇)``: Coulomb F_c [N·m] ~ U(coulomb) and viscous F_v [N·m·s/rad] ~ U(viscous) per
     world and joint, with q̇ the joint velocity before the step (``ControlInput.qd``)."""
+
+    identity = (0.0, 0.0)
 
     def __init__(self, coulomb: tuple[float, float] = (0.0, 0.0), viscous: tuple[float, float] = (0.0, 0.0)):
         super().__init__(coulomb, viscous, what="coulomb/viscous")
@@ -189,6 +205,10 @@ class Delay(Actuator):
         self._set_lag()
         self.history.masked_fill_(mask.view(-1, 1, 1), 0.0)
 
+    def nominal(self, mask: torch.Tensor) -> None:
+        self.delay.masked_fill_(mask, 0)
+        self._set_lag()
+
 
 class ActuatorChain(Actuator):
     """Stages applied in order; :attr:`per_substep` is True when one is a :class:`Delay` (at most one)."""
@@ -218,6 +238,10 @@ class ActuatorChain(Actuator):
         for stage in self.stages:
             stage.reset(mask, u[:, start:start + stage.draws])
             start += stage.draws
+
+    def nominal(self, mask: torch.Tensor) -> None:
+        for stage in self.stages:
+            stage.nominal(mask)
 
     def __len__(self) -> int:
         return len(self.stages)

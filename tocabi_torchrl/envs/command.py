@@ -31,7 +31,20 @@ class VelocityCommand:
         hi = torch.tensor([cfg.vx_range[1], cfg.vy_range[1]], device=device)
         lo0 = torch.tensor([cfg.vx_initial_range[0], cfg.vy_range[0]], device=device)
         hi0 = torch.tensor([cfg.vx_initial_range[1], cfg.vy_range[1]], device=device)
-        self._range, self._initial_range = (lo, hi - lo), (lo0, hi0 - lo0)
+        # (num_envs, 2) low end and width of each env's ranges (one row per env, so pin() can fix some envs).
+        rows = (num_envs, 2)
+        self._range = (lo.expand(rows).clone(), (hi - lo).expand(rows).clone())
+        self._initial_range = (lo0.expand(rows).clone(), (hi0 - lo0).expand(rows).clone())
+
+    def pin(self, envs: torch.Tensor, command: tuple[float, float]) -> None:
+        """Hold ``command`` = (vx, vy) [m/s] in the envs flagged in ``envs`` (num_envs,) bool, from their next draw
+        on (reset or resample): their ranges become that one value, so one env can hold fixed-command and
+        re-drawn-command robots side by side (the robust gait test). In place."""
+        value = torch.tensor([float(command[0]), float(command[1])], device=self.value.device)
+        m = envs.to(self.value.device).unsqueeze(-1)
+        for lo, span in (self._range, self._initial_range):
+            lo.copy_(torch.where(m, value, lo))
+            span.masked_fill_(m, 0.0)
 
     def _sample(self, rng: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
         u = torch.rand(self.value.shape, device=self.value.device, generator=self.gen)

@@ -46,6 +46,9 @@ class Pushes:
         self.force = torch.zeros(n, k, 2, dtype=f32, device=device)
         #: Multiplies every kick (a 0-d device tensor, 1 = the configured kicks; a curriculum sets it in place).
         self.scale = torch.ones((), dtype=f32, device=device)
+        #: (N,) multiplies each world's kicks (1 = the configured kicks, 0 = none); set it in place, e.g. to give
+        #: worlds different kick speeds in one env (the robust gait test).
+        self.world_scale = torch.ones(n, dtype=f32, device=device)
         share = (cfg.window[1] - cfg.window[0]) / k
         self._share_start = cfg.window[0] + share * torch.arange(k, dtype=f32, device=device)
         self._share = share
@@ -69,4 +72,4 @@ class Pushes:
         episode's first step), world frame."""
         step = episode_step.unsqueeze(-1)
         active = (step >= self.start_step) & (step < self.start_step + self.steps)
-        return (self.force * active.unsqueeze(-1)).sum(dim=1) * self.scale
+        return (self.force * active.unsqueeze(-1)).sum(dim=1) * (self.scale * self.world_scale).unsqueeze(-1)

@@ -205,6 +205,10 @@ class TocabiWalk(EnvBase):
             mass = float(self.sim.mj_model.body_subtreemass[self.sim.mj_model.body(robot.BASE_BODY).id])
             self.pushes = Pushes(cfg.pushes, num_envs, device, self.dt, mass)
         self._base_body = self.sim.mj_model.body(robot.BASE_BODY).id
+        #: (N,) bool: the worlds that get ``env.dynamics``, the actuator draws and the sensor noise; the others are
+        #: the ideal robot (all True unless :meth:`set_randomized_worlds` says otherwise).
+        self.randomized_worlds = torch.ones(num_envs, dtype=torch.bool, device=device)
+        self._some_nominal = False
         self._init_buffers()
         #: The reduced reset pass (``env.sim.reset_pass="reduced"``, mujoco-warp only): the start states, one per
         #: start row of the reference motion, are registered with the simulator here.
@@ -504,6 +508,11 @@ class TocabiWalk(EnvBase):
         if self.dynamics is not None:  # each episode's masses, damping, armature and friction, keyed the same way
             self.dynamics.reset(mask, episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=2,
                                                       k=self.dynamics.draws))
+        if self._some_nominal:  # the ideal robot in the worlds set_randomized_worlds left out (same draws above)
+            ideal = mask & ~self.randomized_worlds
+            self.leg_actuators.nominal(ideal)
+            if self.dynamics is not None:
+                self.dynamics.nominal(ideal)
         if self.pushes is not None:
             self.pushes.reset(mask, episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=17,
                                                     k=self.pushes.draws))
@@ -546,6 +555,31 @@ class TocabiWalk(EnvBase):
         qvel = torch.zeros(self.num_envs, nv, dtype=torch.float32, device=self.device)
         qvel[:, :3], qvel[:, 6:] = z[:, :3], z[:, 3:]
         return qvel * std
+
+    def set_randomized_worlds(self, worlds: torch.Tensor) -> None:
+        """Choose which worlds are randomised: ``worlds`` (N,) bool, True for a world that gets ``env.dynamics``, the
+        actuator draws (``env.control.actuators``) and the sensor noise of ``transforms.sensor_noise``; a False world
+        is the ideal robot (the model's dynamics, ideal actuators, exact sensors) from its next reset on. Kicks are
+        set per world with ``pushes.world_scale``. One env can so hold nominal and randomised robots side by side
+        (the robust gait test runs its cases in one batch). In place: a captured step follows it.
+
+        >>> import torch
+        >>> from tocabi_torchrl import make_env
+        >>> from tocabi_torchrl.sim.dynamics_config import DynamicsRandomization
+        >>> env = make_env(num_envs=2, device="cpu", seed=0, dynamics=DynamicsRandomization(mass_scale=(0.8, 1.2)))
+        >>> env.base_env.set_randomized_worlds(torch.tensor([True, False]))
+        >>> _ = env.reset()
+        >>> scale = env.base_env.dynamics.mass_scale[:, 1]
+        >>> bool(scale[0] != 1.0), float(scale[1])
+        (True, 1.0)
+        """
+        if not isinstance(worlds, torch.Tensor) or worlds.dtype != torch.bool or tuple(worlds.shape) != (
+                self.num_envs,):
+            raise ValueError(f"set_randomized_worlds takes a ({self.num_envs},) bool tensor (one flag per world), "
+                             f"got {getattr(worlds, 'dtype', type(worlds).__name__)} "
+                             f"{tuple(getattr(worlds, 'shape', ()))}")
+        self.randomized_worlds.copy_(worlds.to(self.device))
+        self._some_nominal = not bool(worlds.all())  # a host read, here at set-up, never in a step
 
     def set_push_scale(self, scale: float) -> None:
         """Scale every kick of ``env.pushes`` by ``scale`` in [0, 1] from the next step on (a curriculum; in place,

@@ -45,7 +45,7 @@ from .evaluate import ROBUST_CRITERIA, fresh_eval_dir, summary_json, tested_on
 from .gait_record import GaitMetrics, fixed_command, policy_steps
 
 __all__ = ["CASES", "EVAL_SEED", "RobustCase", "RobustTestConfig", "case_config", "robust_case_config", "case_env",
-           "randomization_applied", "heading_frame_velocity", "case_summary", "run_case", "case_checks",
+           "randomization_applied", "batch_config", "batch_env", "batch_key", "case_worlds", "heading_frame_velocity", "case_summary", "run_case", "case_checks",
            "robust_passes", "evaluate_robust", "evaluate_robust_checkpoint", "evaluate_robust_run",
            "robust_report_text", "ROBUST_JSON", "ROBUST_PNG"]
 
@@ -208,6 +208,66 @@ def case_env(cfg: RunConfig, case: str | RobustCase, device: torch.device, num_e
     return build_env(case_config(cfg, case, test), device, num_envs=num_envs, **graph)
 
 
+def batch_config(cfg: RunConfig, test: RobustTestConfig = RobustTestConfig()) -> RunConfig:
+    """The run config of the one env that holds every case of ``test.cases`` side by side (:func:`batch_env`):
+    :func:`case_config` of the commands case (diverse starts, the training command range re-drawn) and, when a case
+    is pushed, :func:`robust_case_config` at the fastest case's kick speed. :func:`batch_env` then pins the
+    fixed-command worlds, scales each world's kicks to its case and leaves the unrandomised cases' worlds ideal."""
+    specs = [CASES[name] for name in test.cases]
+    redrawn = {c.resample_every for c in specs if c.command is None}
+    if len(redrawn) > 1:
+        raise ValueError(f"the robust test's cases re-draw their commands at different intervals {sorted(redrawn)}; "
+                         "one batch needs one interval")
+    base = RobustCase("batch", command=None, resample_every=redrawn.pop() if redrawn else 500)
+    out = case_config(cfg, base, test)
+    fastest = max(c.push_speed for c in specs)
+    return robust_case_config(out, fastest, test) if fastest > 0 else out
+
+
+def batch_key(test: RobustTestConfig) -> tuple:
+    """The key :func:`evaluate_robust` keeps a test's :func:`batch_env` under in its ``envs`` cache."""
+    return ("batch", tuple(test.cases), test.num_envs)
+
+
+def case_worlds(test: RobustTestConfig, device: torch.device | str = "cpu") -> dict[str, slice]:
+    """Which worlds of :func:`batch_env` each case holds: ``test.num_envs`` consecutive worlds per case, in
+    ``test.cases`` order."""
+    n = test.num_envs
+    return {name: slice(i * n, (i + 1) * n) for i, name in enumerate(test.cases)}
+
+
+def batch_env(cfg: RunConfig, device: torch.device | str, test: RobustTestConfig = RobustTestConfig()):
+    """One env of ``len(test.cases) × test.num_envs`` robots that runs every case at once (:func:`case_worlds`
+    says whose worlds are whose): one batch keeps the GPU busier than a case at a time (at 1,024 robots the
+    physics, not the host, limits a case's step rate). Built from :func:`batch_config`, then per world: a
+    fixed-command case's worlds hold its command (``VelocityCommand.pin``), each world's kicks are scaled to its
+    case's speed (``Pushes.world_scale``; 0 = none), and the worlds of an unrandomised case are the ideal robot
+    (``TocabiWalk.set_randomized_worlds``). On CUDA the step is one captured graph (:func:`run_case`)."""
+    from .trainer import build_env
+
+    device = torch.device(device)
+    worlds = case_worlds(test)
+    graph = {"sync_free_resets": True, "cuda_graph": True} if device.type == "cuda" else {}
+    env = build_env(batch_config(cfg, test), device, num_envs=test.num_envs * len(worlds), **graph)
+    base = env.base_env
+    n = base.num_envs
+    fastest = max(CASES[name].push_speed for name in worlds)
+    randomized = torch.zeros(n, dtype=torch.bool)
+    kick = torch.zeros(n)
+    for name, rows in worlds.items():
+        case = CASES[name]
+        randomized[rows] = case.randomized
+        kick[rows] = case.push_speed / fastest if fastest > 0 else 0.0
+        if case.command is not None:
+            pinned = torch.zeros(n, dtype=torch.bool)
+            pinned[rows] = True
+            base.command.pin(pinned.to(base.device), case.command)
+    base.set_randomized_worlds(randomized.to(base.device))
+    if base.pushes is not None:
+        base.pushes.world_scale.copy_(kick.to(base.device))
+    return env
+
+
 # ------------------------------------------------------------------------------------------------ one case
 def heading_frame_velocity(base_quat: torch.Tensor, base_lin_vel: torch.Tensor) -> torch.Tensor:
     """(N, 2) horizontal pelvis velocity [m/s] in the heading frame (the world rotated by the pelvis yaw), from
@@ -338,9 +398,9 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
     "cases": {name: case summary with "checks" and "passes"}}, NaN where a value does not exist (``null`` in the
     file).
 
-    ``envs``: a dict of case name -> env to reuse (e.g. across checkpoints); a case's env is built
-    (:func:`case_env`) and stored there when missing. ``prepare_env(env)``: called on each case's env before its
-    rollout, e.g. to load a checkpoint's normaliser statistics into it. ``progress``: a bar per case."""
+    Every case runs at once in one env (:func:`batch_env`). ``envs``: a dict to keep that env in for reuse (e.g.
+    across checkpoints; built and stored under :func:`batch_key` when missing). ``prepare_env(env)``: called on the
+    env before the rollout, e.g. to load a checkpoint's normaliser statistics into it. ``progress``: a bar."""
     from .evaluate import policy_dt
     from .eval_plots import plot_robust
 
@@ -358,17 +418,19 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
               "criteria": {name: {p: f"{op} {v:g}" for p, (op, v) in c.items()} for name, c in ROBUST_CRITERIA.items()},
               "cases": {}}
     per_case = {}
-    for i, name in enumerate(test.cases):
+    key = batch_key(test)
+    if key not in envs:
+        envs[key] = batch_env(cfg, device, test)
+    env = envs[key]
+    if prepare_env is not None:
+        prepare_env(env)
+    # The same robots for every policy tested in this env: episode draws restart from the test's seed.
+    env.set_seed(int(test.seed))
+    every = run_case(actor, env, test.seconds, progress=progress,
+                     desc=f"robust test: {len(test.cases)} cases x {test.num_envs} robots")
+    for name, rows in case_worlds(test).items():
         case = CASES[name]
-        if name not in envs:
-            envs[name] = case_env(cfg, case, device, test.num_envs, test)
-        env = envs[name]
-        if prepare_env is not None:
-            prepare_env(env)
-        # The same robots for every policy tested in these envs: episode draws restart from the test's seed.
-        env.set_seed(int(test.seed))
-        per_env = run_case(actor, env, test.seconds, desc=f"robust test {i + 1}/{len(test.cases)}: {name}",
-                           progress=progress)
+        per_env = {k: v[rows] for k, v in every.items()}
         summary = case_summary(case, per_env, test.seconds)
         if case.randomized:
             summary["randomization"] = randomization_applied(cfg)
@@ -396,10 +458,10 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
     cfg = config_from_checkpoint(state, path)
     test.validate(policy_dt())
     envs = {} if envs is None else envs
-    first = test.cases[0]
-    if first not in envs:  # the agent's sizes come from an env (every case has the same observation)
-        envs[first] = case_env(cfg, first, device, test.num_envs, test)
-    env = envs[first]
+    key = batch_key(test)
+    if key not in envs:  # the agent's sizes come from the env
+        envs[key] = batch_env(cfg, device, test)
+    env = envs[key]
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
     return evaluate_robust(agent.actor, cfg, out_dir, test=test, device=device, envs=envs,
                            prepare_env=lambda case_env_: apply_checkpoint(state, agent, env=case_env_, path=path),

@@ -151,3 +151,13 @@ class WorldDynamics:
             f = self.friction_scale.to(nominal.dtype)
             one = torch.ones_like(f)
             self._where(mask, "geom_friction", nominal * torch.stack((f, one, one), dim=-1).unsqueeze(1))
+
+    def nominal(self, mask: torch.Tensor) -> None:
+        """Give the worlds flagged in ``mask`` (N,) bool the model's own dynamics (identity parameters, the model's
+        field values), in place: the env's worlds that are not randomised (``TocabiWalk.set_randomized_worlds``)."""
+        self.mass_scale.masked_fill_(mask.unsqueeze(-1), 1.0)
+        self.joint_damping.masked_fill_(mask.unsqueeze(-1), 0.0)
+        self.armature_scale.masked_fill_(mask.unsqueeze(-1), 1.0)
+        self.friction_scale.masked_fill_(mask, 1.0)
+        for name, field in self.fields.items():
+            self._where(mask, name, self._nominal[name].expand_as(field))

@@ -168,6 +168,7 @@ class SensorNoise(Transform):
         self._columns: dict[str, tuple[list[int], list[int]]] | None = None
         self._width = 0
         self._source: tuple[torch.Tensor, ...] | None = None
+        self._worlds: torch.Tensor | None = None
         self._index: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
 
     # ---------------------------------------------------------------------------------------------- set-up
@@ -211,6 +212,9 @@ class SensorNoise(Transform):
                                 f"which {type(base).__name__} lacks ({missing}); use it on a TocabiWalk (make_env, "
                                 "default_transforms)")
             self._source = tuple(getattr(base, name) for name in _KEY_SOURCE)
+            # (N,) bool: the worlds with noisy sensors; the env's others are exact (TocabiWalk.set_randomized_worlds).
+            worlds = getattr(base, "randomized_worlds", None)
+            self._worlds = worlds.unsqueeze(-1) if isinstance(worlds, torch.Tensor) else None
         if self._columns is None:
             self._map_columns(self.parent.observation_spec)
         return self._source
@@ -263,8 +267,8 @@ class SensorNoise(Transform):
         seed, env_ids, episode, step = self._key_source()
         if not self._index:
             raise RuntimeError("SensorNoise: reset the env before stepping it (the biases are drawn at reset)")
-        obs = next_tensordict.get(self.in_keys[0])
-        obs = obs + self._bias_cols
+        exact = next_tensordict.get(self.in_keys[0])
+        obs = exact + self._bias_cols
         for name, noise in sensor_noise(self.config, seed, env_ids, episode, step).items():
             cols, elems = self._index[name]
             obs = obs.index_add(1, cols, noise.flatten(1).index_select(1, elems))
@@ -272,6 +276,8 @@ class SensorNoise(Transform):
             two_pi = 2.0 * math.pi
             obs = torch.where(self._wrap & (obs > math.pi), obs - two_pi,
                               torch.where(self._wrap & (obs <= -math.pi), obs + two_pi, obs))
+        if self._worlds is not None:
+            obs = torch.where(self._worlds, obs, exact)
         next_tensordict.set(self.out_keys[0], obs)
         return next_tensordict
 
