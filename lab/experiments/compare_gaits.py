@@ -72,7 +72,7 @@ NOTES = [
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = RecipeParser(description=__doc__.split("\n\n")[0])
+    parser = RecipeParser(prog="python -m lab.experiments.compare_gaits", description=__doc__.split("\n\n")[0])
     parser.add_argument("--policy", action="append", metavar="[LABEL=]PATH",
                         help="a controller: checkpoint .pt or run folder, optionally labelled; repeat for each "
                              "(default: the three shipped policies: PD, torque, model_based)")

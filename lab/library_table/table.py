@@ -499,7 +499,7 @@ def check_args(parser: argparse.ArgumentParser, args) -> None:
 
 
 def main(argv=None) -> None:
-    parser = RecipeParser(description=__doc__.split("\n\n")[0])
+    parser = RecipeParser(prog="python -m lab.library_table", description=__doc__.split("\n\n")[0])
     parser.add_argument("--libraries", default="torchrl,rsl_rl,skrl,sb3", help="comma-separated, of " +
                         ", ".join(LIBRARIES))
     parser.add_argument("--num_envs", default="4096", help="comma-separated env counts (default: 4096)")
