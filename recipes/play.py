@@ -63,7 +63,7 @@ if __name__ == "__main__":  # --help or a misspelt option answers before torch a
 choose_gl_backend_or_exit()  # before mujoco is imported
 
 from tocabi_torchrl.rl.checkpoint import verified_checkpoint_file  # noqa: E402
-from tocabi_torchrl.rl.evaluate import eval_out_dir, evaluate_run, gait_report_text  # noqa: E402
+from tocabi_torchrl.evaluation.gait_test import eval_out_dir, evaluate_run, gait_report_text  # noqa: E402
 
 
 def sim2sim_options(args: argparse.Namespace) -> str:
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> None:
         out = eval_out_dir(args.checkpoint, args.out, args.overwrite)
         print(f"results go to {out}/", flush=True)
         if args.test == "robust":
-            from tocabi_torchrl.rl.robust_eval import evaluate_robust_run, robust_report_text
+            from tocabi_torchrl.evaluation.robust import evaluate_robust_run, robust_report_text
 
             report = evaluate_robust_run(args.checkpoint, num_envs=args.num_envs or TESTS["robust"],
                                          device=args.device, seconds=args.seconds, out_dir=out)

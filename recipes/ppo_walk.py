@@ -42,8 +42,8 @@ from tocabi_torchrl.motion import ReferenceMotion  # noqa: E402
 from tocabi_torchrl.motion.io import MotionFormatError  # noqa: E402
 from tocabi_torchrl.rl.checkpoint import checkpoint_file  # noqa: E402
 from tocabi_torchrl.rl.distributed import ending, from_environment, shutdown  # noqa: E402
-from tocabi_torchrl.rl.evaluate import eval_out_dir, evaluate_run, gait_report_text  # noqa: E402
-from tocabi_torchrl.rl.gait_record import policy_steps  # noqa: E402
+from tocabi_torchrl.evaluation.gait_test import eval_out_dir, evaluate_run, gait_report_text  # noqa: E402
+from tocabi_torchrl.evaluation.record import policy_steps  # noqa: E402
 from tocabi_torchrl.rl.interrupt import signal_exit_status  # noqa: E402
 from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
 from tocabi_torchrl.rl.logging import require_loggers  # noqa: E402
@@ -70,7 +70,7 @@ def stopped_at_once(run_dir) -> int:
 
 
 #: The gait test's metrics as the end-of-run report shows them: key, label, unit, decimals, and whether the pass
-#: threshold (GAIT_CRITERIA) is a minimum or a maximum (rl.evaluate.gait_passes applies it).
+#: threshold (GAIT_CRITERIA) is a minimum or a maximum (evaluation.gait_test.gait_passes applies it).
 def main(argv: list[str] | None = None) -> None:
     # Everything that can stop the run before it starts is checked here and reported as one line (exit status 1):
     # bad values, a request this machine cannot honour, an existing run folder, an unreadable or changed --resume.
@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> None:
           f"({result.env_steps_per_second:,.0f} env-steps/s); run folder {result.run_dir}")
     checkpoint = checkpoint_file(result.run_dir)
     if cfg.eval_at_end and cfg.eval_test == "robust":  # the robust gait test (docs/evaluation.md) instead
-        from tocabi_torchrl.rl.robust_eval import evaluate_robust_run, robust_report_text
+        from tocabi_torchrl.evaluation.robust import evaluate_robust_run, robust_report_text
 
         out = eval_out_dir(result.run_dir)
         report = evaluate_robust_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device,

@@ -1,5 +1,5 @@
-"""Loads a recipe script (``recipes/<name>.py``) as a module, for the adapter tests that train through it, and checks
-that a recipe's networks start as the preset's."""
+"""Loads a recipe script (``recipes/<name>.py``, or one of the lab's tools in :data:`LAB_SCRIPTS`) as a fresh module,
+for the tests that run it, and checks that a recipe's networks start as the preset's."""
 
 from __future__ import annotations
 
@@ -8,11 +8,17 @@ from pathlib import Path
 
 import torch
 
-RECIPES = Path(__file__).resolve().parent.parent / "recipes"
+ROOT = Path(__file__).resolve().parent.parent
+RECIPES = ROOT / "recipes"
+#: The lab's command-line tools the tests load like recipes (``python -m lab...`` runs them).
+LAB_SCRIPTS = {"compare_gaits": ROOT / "lab/experiments/compare_gaits.py",
+               "obstacle_test": ROOT / "lab/experiments/obstacle_test.py",
+               "library_table": ROOT / "lab/library_table/table.py"}
 
 
 def load_recipe(name: str):
-    spec = importlib.util.spec_from_file_location(f"recipe_{name}", RECIPES / f"{name}.py")
+    """A fresh module of ``recipes/<name>.py`` (or of the lab tool ``name``), not run as ``__main__``."""
+    spec = importlib.util.spec_from_file_location(f"recipe_{name}", LAB_SCRIPTS.get(name, RECIPES / f"{name}.py"))
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

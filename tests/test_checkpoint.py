@@ -41,7 +41,7 @@ class _RunsCode:
 
 
 def test_a_crafted_checkpoint_runs_no_code(tmp_path):
-    from tocabi_torchrl.rl.evaluate import evaluate_run
+    from tocabi_torchrl.evaluation.gait_test import evaluate_run
 
     marker = tmp_path / "code_ran"
     run, agent = _saved_run(tmp_path)

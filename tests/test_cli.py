@@ -16,8 +16,8 @@ from tocabi_torchrl.cli import RecipeParser, suggest_options
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 #: The recipes whose parser is written out in the recipe (ppo_walk's is generated from the run config tree: see
 #: test_ppo_walk_answers_help_and_a_misspelt_option_without_the_heavy_libraries).
-LIGHT_PARSERS = ("play", "sim2sim", "train_rsl_rl", "train_sb3", "train_skrl", "compare_gaits", "obstacle_test",
-                 "library_table")
+#: (The lab's command lines, built on the same parser: tests/lab/test_lab_cli.py.)
+LIGHT_PARSERS = ("play", "sim2sim", "train_rsl_rl", "train_sb3", "train_skrl")
 HEAVY = ("torch", "torchrl", "tensordict", "mujoco", "mujoco_warp", "warp", "rsl_rl", "skrl", "stable_baselines3")
 
 
@@ -62,7 +62,6 @@ def test_a_misspelt_option_of_ppo_walk_is_a_short_error_naming_the_nearest_optio
 @pytest.mark.parametrize("recipe, argv, nearest", [
     ("train_rsl_rl", ["--out", "o", "--learnig_rate", "1e-3"], "--learning_rate"),
     ("play", ["--checkpoint", "c", "--vxx", "0.3"], "--vx"),
-    ("library_table", ["--report", "--jsno", "t.json"], "--json"),
     # A prefix of an option is no abbreviation of it (RecipeParser's allow_abbrev=False): it used to mean --num_envs.
     ("train_sb3", ["--out", "o", "--num_env", "8"], "--num_envs"),
 ])

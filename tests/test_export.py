@@ -20,7 +20,7 @@ from tocabi_torchrl.export import load_policy
 from tocabi_torchrl.export.__main__ import main as export_main
 from tocabi_torchrl.export.contract import config_sha256
 from tocabi_torchrl.export.onnx_export import DeterministicActor
-from tocabi_torchrl.rl.evaluate import _fixed_command
+from tocabi_torchrl.evaluation.gait_test import _fixed_command
 from tocabi_torchrl.runtime import load_contract
 from tocabi_torchrl.transforms import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT
 

@@ -1,6 +1,7 @@
 """Package layering, read from the source's import statements: the env and the physics never depend on the
-transforms or the trainer, so they can be used (and tested) without them; and no module imports itself through
-others (no import cycle in the package or the benchmarks)."""
+transforms or the trainer, so they can be used (and tested) without them; the installed package imports nothing of
+the lab, the benchmarks or the recipes, and no private warp module; no module imports itself through others (no
+import cycle anywhere in the repository's code); and the wheel holds every subpackage."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "tocabi_torchrl"
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "tocabi_torchrl"
 
 #: subpackage or module -> the subpackages it must not import.
 FORBIDDEN = {
@@ -20,16 +22,17 @@ FORBIDDEN = {
 }
 
 
-def _imports(tree: ast.AST):
-    """Every import statement of ``tree``, in functions too, except those under ``if TYPE_CHECKING:`` (never run)."""
+def _imports(tree: ast.AST, type_checking: bool = False):
+    """Every import statement of ``tree``, in functions too; those under ``if TYPE_CHECKING:`` (never run) only with
+    ``type_checking`` (a name imported for annotations still ties the two modules together)."""
     for node in ast.iter_child_nodes(tree):
-        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test) and not type_checking:
             yield from (n for branch in node.orelse for n in [branch, *_imports(branch)]
                         if isinstance(n, (ast.Import, ast.ImportFrom)))
             continue
         if isinstance(node, (ast.Import, ast.ImportFrom)):
             yield node
-        yield from _imports(node)
+        yield from _imports(node, type_checking)
 
 
 def _statement_modules(node: ast.Import | ast.ImportFrom, package: list[str]) -> tuple[str, list[str]]:
@@ -41,12 +44,13 @@ def _statement_modules(node: ast.Import | ast.ImportFrom, package: list[str]) ->
     return module, [f"{module}.{alias.name}" for alias in node.names]
 
 
-def imported_modules(path: Path, root: Path = PACKAGE, name: str = "tocabi_torchrl") -> set[str]:
+def imported_modules(path: Path, root: Path = PACKAGE, name: str = "tocabi_torchrl",
+                     type_checking: bool = False) -> set[str]:
     """Absolute names of the modules ``path`` (a file under the package folder ``root``, named ``name``) imports,
     relative imports resolved against its package, ``from M import x`` counted as both ``M`` and ``M.x``."""
     package = [name, *path.relative_to(root).parent.parts]
     names = set()
-    for node in _imports(ast.parse(path.read_text(), filename=str(path))):
+    for node in _imports(ast.parse(path.read_text(), filename=str(path)), type_checking):
         module, targets = _statement_modules(node, package)
         names.update([module, *targets] if module else targets)
     return names
@@ -84,15 +88,28 @@ def test_no_forbidden_imports(part):
     assert not bad, f"tocabi_torchrl.{part} must not import {FORBIDDEN[part]}:\n" + "\n".join(bad)
 
 
-def _module_graph() -> dict[str, set[str]]:
-    """module -> the repository modules it imports, for the package and the benchmarks, statement by statement:
-    ``from P import x`` is an edge to ``P.x`` when that is a module, else to ``P`` (whose ``__init__`` runs)."""
-    repo = PACKAGE.parent
+def _repository_modules() -> dict[str, Path]:
+    """module name -> file, for every Python file of the repository's code: the package, the lab, the recipes (as
+    ``recipes.<name>``) and the tests with their helpers (by their bare names: pytest puts their folders on the
+    path). Names must be unique."""
     files = {}
-    for top in ("tocabi_torchrl", "benchmarks"):
-        for path in sorted((repo / top).rglob("*.py")):
-            parts = path.relative_to(repo).with_suffix("").parts
+    for top in ("tocabi_torchrl", "lab", "recipes"):
+        for path in sorted((REPO / top).rglob("*.py")):
+            parts = path.relative_to(REPO).with_suffix("").parts
             files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    tests = sorted((REPO / "tests").rglob("*.py"))
+    names = [path.stem for path in tests]
+    assert len(set(names)) == len(names), f"two test files share a name (pytest would import one as the other): {names}"
+    files.update({path.stem: path for path in tests})
+    return files
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """module -> the repository modules it imports (:func:`_repository_modules`), statement by statement: at module
+    level, inside functions and under ``if TYPE_CHECKING:`` alike (a function's import runs when it is called, and an
+    import for annotations alone is still a dependency the other way round would close into a circle). ``from P
+    import x`` is an edge to ``P.x`` when that is a module, else to ``P`` (whose ``__init__`` runs)."""
+    files = _repository_modules()
 
     def owner(name: str) -> str:  # the module that defines ``name`` ("" outside the repository)
         while name and name not in files:
@@ -101,10 +118,12 @@ def _module_graph() -> dict[str, set[str]]:
 
     graph = {}
     for module, path in files.items():
-        top = module.split(".")[0]
-        package = [top, *path.relative_to(repo / top).parent.parts]
+        parts = path.relative_to(REPO).parts
+        package = [*module.split(".")[:-1]] if path.name != "__init__.py" else module.split(".")
+        if parts[0] == "tests":
+            package = []
         targets = set()
-        for node in _imports(ast.parse(path.read_text(), filename=str(path))):
+        for node in _imports(ast.parse(path.read_text(), filename=str(path)), type_checking=True):
             base, names = _statement_modules(node, package)
             for name in names:
                 targets.add(name if name in files else owner(base or name))
@@ -112,9 +131,8 @@ def _module_graph() -> dict[str, set[str]]:
     return graph
 
 
-def test_no_import_cycles():
-    graph = _module_graph()
-    assert "tocabi_torchrl.envs.tocabi_walk" in graph and "benchmarks.common" in graph
+def _cycles(graph: dict[str, set[str]]) -> list[str]:
+    """Each import cycle of ``graph`` found by a depth-first walk, as ``a -> b -> a``."""
     cycles, state, stack = [], {}, []
 
     def visit(module):
@@ -131,7 +149,83 @@ def test_no_import_cycles():
     for module in sorted(graph):
         if module not in state:
             visit(module)
-    assert not cycles, "import cycles (imports inside functions count too):\n" + "\n".join(cycles)
+    return cycles
+
+
+def test_no_import_cycles():
+    graph = _module_graph()
+    assert {"tocabi_torchrl.envs.tocabi_walk", "lab.benchmarks.common", "recipes.ppo_walk", "recipe_runner"} <= set(graph)
+    assert "tocabi_torchrl.envs.config" in graph["tocabi_torchrl.envs.obstacles"]  # edges found under TYPE_CHECKING too
+    cycles = _cycles(graph)
+    assert not cycles, ("import cycles (imports inside functions and under TYPE_CHECKING count too); move the shared "
+                        "name to a module both can import:\n" + "\n".join(cycles))
+
+
+def test_the_cycle_check_sees_a_circle_made_only_for_types():
+    # The circle issue 51 found: each module imports a name of the other, one of them only for annotations.
+    assert _cycles({"a": {"b"}, "b": {"a"}, "c": {"a"}}) == ["a -> b -> a"]
+    tree = ast.parse("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .config import Box\n")
+    assert [n.module for n in _imports(tree, type_checking=True)] == ["typing", "config"]
+    assert [n.module for n in _imports(tree)] == ["typing"]
+
+
+#: Top-level folders of the repository that the installed package must never import: the lab (benchmarks,
+#: experiments, the per-library table, measurements), the benchmarks' former home and the recipes (scripts).
+NOT_INSTALLED = ("lab", "benchmarks", "recipes")
+
+
+def test_the_package_imports_nothing_from_the_lab_or_the_recipes():
+    # Every import of every module, inside functions and under TYPE_CHECKING too: a user's installed package has no
+    # lab/ or recipes/ to find.
+    sources = sorted(PACKAGE.rglob("*.py"))
+    assert len(sources) > 50
+    bad = [f"{path.relative_to(REPO)} imports {name}" for path in sources
+           for name in sorted(imported_modules(path, type_checking=True))
+           if name.split(".")[0] in NOT_INSTALLED]
+    assert not bad, "tocabi_torchrl must not import lab/, benchmarks/ or recipes/:\n" + "\n".join(bad)
+
+
+
+
+def _private_warp_uses(path: Path) -> list[str]:
+    """Where ``path`` reaches into warp's or mujoco-warp's private modules: an import of ``warp._src...`` /
+    ``mujoco_warp._x...`` (at any depth, in functions too) or an attribute ``._src`` (``wp._src.context``)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    uses = []
+    for node in _imports(tree, type_checking=True):
+        names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+        for name in names:
+            parts = name.split(".")
+            if parts[0] in ("warp", "mujoco_warp") and any(p.startswith("_") for p in parts[1:]):
+                uses.append(f"line {node.lineno}: import of {name}")
+    uses += [f"line {n.lineno}: {ast.unparse(n)}" for n in ast.walk(tree)
+             if isinstance(n, ast.Attribute) and n.attr == "_src"]
+    return uses
+
+
+def test_the_package_uses_no_private_warp_module():
+    found = {str(path.relative_to(REPO)): _private_warp_uses(path) for path in sorted(PACKAGE.rglob("*.py"))}
+    found = {path: uses for path, uses in found.items() if uses}
+    assert not found, "private warp API (warp._src, ...) in the package; use warp's public API:\n" + "\n".join(
+        f"{path}: {uses}" for path, uses in found.items())
+
+
+def test_the_private_warp_check_sees_every_form(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text("import warp as wp\nfrom warp._src.context import runtime\nimport mujoco_warp._src.io\n"
+                     "def f():\n    return wp._src.context.runtime\n")
+    assert [use.split(":")[0] for use in _private_warp_uses(probe)] == ["line 2", "line 3", "line 5"]
+
+
+def test_the_wheel_holds_every_subpackage_of_the_package_and_nothing_else():
+    # setuptools installs the listed packages only: a subpackage missing from the list is missing for every user,
+    # and lab/ must never be in it.
+    import tomllib
+
+    listed = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {".".join(p.parent.relative_to(REPO).parts) for p in PACKAGE.rglob("__init__.py")}
+    assert listed - {"tocabi_torchrl._assets"} == folders
+    assert not [name for name in listed if name.split(".")[0] != "tocabi_torchrl"]
 
 
 def test_config_classes_keep_their_old_import_paths():

@@ -255,7 +255,7 @@ def test_plotting_leaves_the_callers_matplotlib_backend_alone(tmp_path, walk):
     import matplotlib
 
     from tocabi_torchrl.motion.plot import plot_leg_joints
-    from tocabi_torchrl.rl.eval_plots import plot_knees
+    from tocabi_torchrl.evaluation.plots import plot_knees
 
     before = matplotlib.get_backend()
     try:

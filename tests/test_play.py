@@ -72,7 +72,7 @@ def test_play_and_sim2sim_refuse_non_finite_lengths_and_speeds_by_flag(name, fla
 
 
 def test_policy_steps_names_a_non_finite_length():
-    from tocabi_torchrl.rl.gait_record import policy_steps
+    from tocabi_torchrl.evaluation.record import policy_steps
 
     assert policy_steps(8.0, 0.004) == 2000
     for bad in (float("nan"), float("inf")):
@@ -85,7 +85,7 @@ def test_a_shipped_policy_writes_outside_the_source_tree_and_titles_the_plot_wit
         tmp_path, monkeypatch, capsys):
     from PIL import Image
 
-    from tocabi_torchrl.rl.evaluate import evaluate_run
+    from tocabi_torchrl.evaluation.gait_test import evaluate_run
 
     monkeypatch.chdir(tmp_path)
     before = set(SHIPPED_POLICY.parent.iterdir())
@@ -98,7 +98,7 @@ def test_a_shipped_policy_writes_outside_the_source_tree_and_titles_the_plot_wit
 
 
 def test_rendering_shows_progress(tmp_path, capsys, model):
-    from tocabi_torchrl.rl.eval_video import render_video
+    from tocabi_torchrl.evaluation.video import render_video
 
     qpos = np.tile(model.qpos0, (3, 1, 1))
     try:
@@ -113,7 +113,7 @@ def test_the_video_drops_shadows_only_where_a_tile_is_slow(tmp_path, capsys, mon
     # Mesa's software OpenGL (a machine without a GPU) spent ~0.1 s per tile on the shadow map alone: 5/6 of play.py.
     import mujoco
 
-    from tocabi_torchrl.rl import eval_video
+    from tocabi_torchrl.evaluation import video as eval_video
 
     monkeypatch.setattr(eval_video, "_failure", None)
     monkeypatch.delenv("MUJOCO_GL", raising=False)
@@ -185,7 +185,7 @@ def test_play_refuses_an_out_holding_results_unless_overwrite(tmp_path, capsys):
 
 
 def test_the_default_eval_folder_is_never_reused_once_it_holds_results(tmp_path):
-    from tocabi_torchrl.rl.evaluate import eval_out_dir, fresh_eval_dir
+    from tocabi_torchrl.evaluation.gait_test import eval_out_dir, fresh_eval_dir
 
     ckpt = tmp_path / "run" / "checkpoints" / "latest.pt"
     ckpt.parent.mkdir(parents=True)
@@ -204,8 +204,8 @@ def test_the_default_eval_folder_is_never_reused_once_it_holds_results(tmp_path)
 
 @needs_policy
 def test_a_gait_test_where_every_robot_falls_at_once_writes_strict_json(tmp_path, monkeypatch, capsys):
-    from tocabi_torchrl.rl import evaluate
-    from tocabi_torchrl.rl.gait_record import GaitMetrics
+    from tocabi_torchrl.evaluation import gait_test as evaluate
+    from tocabi_torchrl.evaluation.record import GaitMetrics
 
     class FallAtOnce(GaitMetrics):
         def update(self, nxt):
@@ -234,7 +234,7 @@ def test_a_gait_test_where_every_robot_falls_at_once_writes_strict_json(tmp_path
 
 
 def test_a_missing_video_writer_names_the_viz_extra_not_egl(tmp_path, monkeypatch, capsys):
-    from tocabi_torchrl.rl import evaluate
+    from tocabi_torchrl.evaluation import gait_test as evaluate
 
     def no_imageio(*args, **kwargs):
         raise ModuleNotFoundError("No module named 'imageio'", name="imageio")

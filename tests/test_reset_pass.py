@@ -69,14 +69,6 @@ def test_a_saved_config_without_the_field_keeps_the_full_pass_it_trained_with():
     assert config_from_checkpoint(read_checkpoint(shipped), shipped).env.sim.reset_pass == "full"
 
 
-def test_override_path():
-    from benchmarks.common import parse_overrides
-    from tocabi_torchrl.config import field_choices
-
-    assert parse_overrides(["env.sim.reset_pass=reduced"]) == {"env.sim.reset_pass": "reduced"}
-    assert field_choices()["env.sim.reset_pass"] == ("full", "reduced")
-
-
 @pytest.fixture(scope="module")
 def start_states():
     """Three start states: standing at rest (feet 1.3 mm above the ground), lowered 3 mm into foot contact with random

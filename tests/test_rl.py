@@ -213,7 +213,7 @@ def test_two_tiny_iterations_write_a_loadable_checkpoint(tmp_path):
 
 def test_evaluation_and_curves_from_a_tiny_run(tmp_path):
     from tocabi_torchrl.rl.curves import plot_curves
-    from tocabi_torchrl.rl.evaluate import evaluate_run
+    from tocabi_torchrl.evaluation.gait_test import evaluate_run
     from tocabi_torchrl.rl.trainer import train
 
     cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=8,
@@ -290,7 +290,7 @@ SHIPPED_POLICY = Path(__file__).resolve().parents[1] / "assets" / "policies" / "
 @pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="shipped policy not present")
 def test_shipped_policy_walks_on_the_cpu_backend(tmp_path):
     """The committed default-preset policy walks forward at 0.5 m/s on C MuJoCo (4 robots, 4 s)."""
-    from tocabi_torchrl.rl.evaluate import evaluate_run
+    from tocabi_torchrl.evaluation.gait_test import evaluate_run
 
     summary = evaluate_run(SHIPPED_POLICY, num_envs=4, device="cpu", seconds=4.0, command=(0.5, 0.0), video_envs=0,
                            out_dir=tmp_path)
@@ -307,7 +307,7 @@ def test_shipped_torque_level_policies_walk_on_the_cpu_backend(tmp_path, name, m
     policy (12 residual leg torques on the computed-torque law + phase rate) walk forward at 0.5 m/s on C MuJoCo
     (4 robots, 4 s)."""
     from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint
-    from tocabi_torchrl.rl.evaluate import evaluate_run
+    from tocabi_torchrl.evaluation.gait_test import evaluate_run
 
     path = SHIPPED_POLICY.parent / name
     if not path.is_file():
@@ -401,7 +401,7 @@ def test_collector_drives_the_graph_wiring_like_the_eager_env():
 def test_gait_test_stops_once_every_robot_has_fallen(tmp_path):
     # An untrained torque policy applies almost no leg torque: every robot falls within the first second, and the
     # 8 s test stops there with the same metrics (fallen robots count for nothing after their fall).
-    from tocabi_torchrl.rl.evaluate import evaluate_policy
+    from tocabi_torchrl.evaluation.gait_test import evaluate_policy
     from tocabi_torchrl.rl.trainer import build_agent, build_env
 
     cfg = preset_config("cpu_smoke", device="cpu", control_mode="torque")

@@ -1,4 +1,4 @@
-"""The robust gait test (rl/robust_eval.py, docs/evaluation.md): every case reported with its distributions and
+"""The robust gait test (evaluation/robust.py, docs/evaluation.md): every case reported with its distributions and
 verdicts, diverse starts, the standard test's numbers unchanged beside it, thresholds enforced per case, plot and
 strict JSON written, and play.py's --test option end to end and refusing bad values in one line. One small robust
 evaluation of the shipped policy (8 robots, 0.5 s per case, C MuJoCo on the CPU), made through play.py, serves
@@ -45,8 +45,8 @@ def robust_run(tmp_path_factory):
 
 
 def test_report_has_every_case_with_its_distributions_and_verdicts(robust_run):
-    from tocabi_torchrl.rl.evaluate import ROBUST_CRITERIA
-    from tocabi_torchrl.rl.robust_eval import CASES, EVAL_SEED, robust_passes
+    from tocabi_torchrl.evaluation.gait_test import ROBUST_CRITERIA
+    from tocabi_torchrl.evaluation.robust import CASES, EVAL_SEED, robust_passes
 
     _, report, printed = robust_run
     assert report["test"] == "robust" and report["seed"] == EVAL_SEED and list(report["cases"]) == list(CASES)
@@ -83,7 +83,7 @@ def test_starts_are_diverse(robust_run):
 
 @needs_policy
 def test_standard_test_numbers_are_unchanged(tmp_path):
-    from tocabi_torchrl.rl.evaluate import GAIT_CRITERIA, evaluate_run
+    from tocabi_torchrl.evaluation.gait_test import GAIT_CRITERIA, evaluate_run
 
     assert GAIT_CRITERIA == {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m": 0.3, "knee_rms_rad": 0.15}
     direct = evaluate_run(SHIPPED_POLICY, num_envs=ROBOTS, device="cpu", seconds=SECONDS, video_envs=0,
@@ -99,8 +99,8 @@ def test_standard_test_numbers_are_unchanged(tmp_path):
 
 
 def test_thresholds_fail_the_right_case(robust_run):
-    from tocabi_torchrl.rl.evaluate import ROBUST_CRITERIA
-    from tocabi_torchrl.rl.robust_eval import case_checks, robust_passes
+    from tocabi_torchrl.evaluation.gait_test import ROBUST_CRITERIA
+    from tocabi_torchrl.evaluation.robust import case_checks, robust_passes
 
     good = copy.deepcopy(robust_run[1])
     for case in good["cases"].values():  # every value on the passing side of its threshold
@@ -167,8 +167,8 @@ def test_time_to_walk_gait_tests_snapshots_with_the_robust_test(robust_run, tmp_
     # standard test's evals.json, and the report part renders it.
     import shutil
 
-    from benchmarks import time_to_walk
-    from tocabi_torchrl.rl import robust_eval
+    from lab.benchmarks import time_to_walk
+    from tocabi_torchrl.evaluation import robust as robust_eval
 
     calls = []
 
@@ -213,7 +213,7 @@ def test_training_ends_with_the_robust_test_when_asked(tmp_path, capsys):
 def test_heading_frame_velocity_removes_the_yaw_only():
     import torch
 
-    from tocabi_torchrl.rl.robust_eval import heading_frame_velocity
+    from tocabi_torchrl.evaluation.robust import heading_frame_velocity
 
     half = math.pi / 4  # a pelvis turned 90° left, then also pitched 0.3 rad about its own y axis
     yaw = torch.tensor([[math.cos(half), 0.0, 0.0, math.sin(half)]])
@@ -231,7 +231,7 @@ def test_heading_frame_velocity_removes_the_yaw_only():
 def test_case_configs_hold_what_each_case_says(mode):
     from tocabi_torchrl.config import preset_config
     from tocabi_torchrl.randomize import TOCABI_LAB_ACTUATORS, TOCABI_LAB_DYNAMICS
-    from tocabi_torchrl.rl.robust_eval import EVAL_SEED, case_config
+    from tocabi_torchrl.evaluation.robust import EVAL_SEED, case_config
 
     cfg = preset_config("cpu_smoke", **{"env.control.mode": mode})
     nominal, commands, pushed = (case_config(cfg, name) for name in ("nominal", "commands", "robust_1.0"))
@@ -252,7 +252,7 @@ def test_every_case_starts_from_the_ideal_robot_whatever_the_policy_trained_unde
     # A robust-preset policy trained with kicks, randomisation and sensor noise: nominal and commands test the
     # nominal robot without them; the randomised cases add the test's own set and kicks.
     from tocabi_torchrl.config import preset_config
-    from tocabi_torchrl.rl.robust_eval import case_config
+    from tocabi_torchrl.evaluation.robust import case_config
 
     trained = preset_config("robust")
     for name in ("nominal", "commands"):
@@ -294,7 +294,7 @@ def test_the_captured_path_gives_the_eager_path_numbers():
     and walk on) gives the numbers of the eager ``env.step`` (fallen robots lie where they fell). Actions pinned at
     +1 topple the robots within the case, so resets happen on the first path."""
     from tocabi_torchrl.config import preset_tree
-    from tocabi_torchrl.rl.robust_eval import RobustTestConfig, case_config, run_case
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, case_config, run_case
     from tocabi_torchrl.rl.trainer import build_env
 
     test = RobustTestConfig(num_envs=6, seconds=1.2)
@@ -316,7 +316,7 @@ def test_the_captured_path_gives_the_eager_path_numbers():
 
 def _batch(num_envs: int = 3):
     from tocabi_torchrl.config import preset_tree
-    from tocabi_torchrl.rl.robust_eval import RobustTestConfig, batch_env
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, batch_env
 
     test = RobustTestConfig(num_envs=num_envs, seconds=0.2)
     cfg = preset_tree("torque")
@@ -327,7 +327,7 @@ def test_one_batch_holds_each_case_in_its_own_worlds():
     """The batch env gives each case's worlds what the case says: the robust cases' worlds their own dynamics,
     actuator and sensor draws and kicks of their speed; the nominal and commands worlds the ideal robot, no kicks,
     exact sensors; the nominal worlds the fixed command."""
-    from tocabi_torchrl.rl.robust_eval import case_worlds
+    from tocabi_torchrl.evaluation.robust import case_worlds
 
     _, test, env = _batch()
     env.set_seed(test.seed)
@@ -358,7 +358,7 @@ def test_one_batch_holds_each_case_in_its_own_worlds():
 def test_the_nominal_worlds_of_the_batch_are_the_nominal_case_env():
     """No draw of the randomised worlds reaches an ideal one: the nominal case's worlds of the batch env (worlds
     0..n-1, keyed like the nominal case's own env) follow its own env's trajectories exactly."""
-    from tocabi_torchrl.rl.robust_eval import case_env, case_worlds, run_case
+    from tocabi_torchrl.evaluation.robust import case_env, case_worlds, run_case
 
     cfg, test, env = _batch()
     alone = case_env(cfg, "nominal", "cpu", test.num_envs, test)

@@ -225,8 +225,8 @@ def test_evaluating_and_exporting_a_running_normalization_policy_freeze_its_stat
     # The gait test, play.py, compare_gaits and the export normalised with statistics that kept updating from their
     # own rollouts, unlike the contract (the checkpoint's statistics, frozen).
     from tocabi_torchrl.export.onnx_export import load_policy as load_for_export
-    from tocabi_torchrl.rl.evaluate import evaluate_policy
-    from tocabi_torchrl.rl.gait_record import load_policy
+    from tocabi_torchrl.evaluation.gait_test import evaluate_policy
+    from tocabi_torchrl.evaluation.record import load_policy
     from tocabi_torchrl.transforms.normalize import RunningNormalization
 
     recipe("ppo_walk").main(tiny_args(tmp_path, **{"transforms.normalization": "running"}))
@@ -441,7 +441,7 @@ def test_equal_reward_weights_written_otherwise_resume(tmp_path):
 def test_a_checkpoint_older_than_a_value_rule_evaluates_with_a_warning_and_resume_explains(finished_run, tmp_path):
     # What /tmp/audit_cli/oldckpt.py did: a run saved before the adaptive schedule's range rule, with ppo.lr 1e-6.
     from tocabi_torchrl.rl.checkpoint import CheckpointError, config_from_checkpoint
-    from tocabi_torchrl.rl.gait_record import load_policy
+    from tocabi_torchrl.evaluation.record import load_policy
 
     run = copy_of(finished_run, tmp_path)
     for file in (run / "checkpoints").glob("*.pt"):
@@ -484,7 +484,7 @@ def test_device_cpu_0_trains(tmp_path):
 
 def test_the_end_of_a_run_is_a_verdict_against_the_gait_criteria_with_the_files_it_wrote(tmp_path, capsys):
     # It ended with a raw dict of 16-digit floats: no pass/fail, no threshold, no path to what it wrote.
-    from tocabi_torchrl.rl.evaluate import GAIT_CRITERIA
+    from tocabi_torchrl.evaluation.gait_test import GAIT_CRITERIA
 
     recipe("ppo_walk").main(tiny_args(tmp_path, eval_at_end=True, eval_envs=2, eval_seconds=0.1))
     out = capsys.readouterr().out

@@ -73,7 +73,7 @@ def test_runtime_reproduces_torchrl_observation_and_commands(name):
     from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
     from tocabi_torchrl.export import load_policy
-    from tocabi_torchrl.rl.evaluate import _fixed_command
+    from tocabi_torchrl.evaluation.gait_test import _fixed_command
 
     policy = load_policy(robot.asset_path("policies", f"tocabi_walk_{name}.pt"), num_envs=4,
                          command=_fixed_command((0.5, 0.0)))
@@ -111,7 +111,7 @@ def test_runtime_walks_like_the_torchrl_env(name, tmp_path, record_property):
 
     from tocabi_torchrl.export import load_policy
     from tocabi_torchrl.export.onnx_export import DeterministicActor
-    from tocabi_torchrl.rl.evaluate import _fixed_command, evaluate_policy
+    from tocabi_torchrl.evaluation.gait_test import _fixed_command, evaluate_policy
 
     torch.set_num_threads(1)  # the runtime's subprocess runs beside this one on the second core
     policy = load_policy(robot.asset_path("policies", f"tocabi_walk_{name}.pt"), num_envs=WALK_ROBOTS,

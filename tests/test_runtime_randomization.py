@@ -408,7 +408,7 @@ def test_the_runtimes_tocabi_lab_is_the_training_sides():
     assert rnd.settings_from(rnd.ActuatorSettings, paths["env.control.actuators"], "a") == rnd.TOCABI_LAB.actuators
     assert rnd.settings_from(rnd.DynamicsSettings, paths["env.dynamics"], "d") == rnd.TOCABI_LAB.dynamics
     assert rnd.settings_from(rnd.SensorSettings, paths["transforms.sensor_noise"], "s") == rnd.TOCABI_LAB.sensors
-    from tocabi_torchrl.rl.robust_eval import RobustTestConfig
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig
 
     test = RobustTestConfig()
     assert (test.start_joint_vel_std, test.start_base_vel_std) == (rnd.ROBUST_START.joint_std,

@@ -255,7 +255,7 @@ class RunConfig:
     eval_at_end: bool = True
     eval_envs: int = 256
     eval_seconds: float = 8.0
-    #: The gait test run at the end: "standard" (one command, 256 robots) or "robust" (rl/robust_eval.py: diverse
+    #: The gait test run at the end: "standard" (one command, 256 robots) or "robust" (evaluation/robust.py: diverse
     #: starts, four cases of ``eval_envs`` robots each; docs/evaluation.md).
     eval_test: str = "standard"
     # sections
@@ -416,7 +416,7 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # world at every reset), diverse starts (the robust gait test's start velocities) and pushes: four kicks per
     # 32 s episode of 0.3-1.2 m/s (31-125 N·s) over 4-200 ms, ramped in from 60 M to 120 M env steps, once the
     # assisted policy walks and while the assist fades into pure torques (50 M to 110 M). Verdict: the robust gait
-    # test (rl/robust_eval.py).
+    # test (evaluation/robust.py).
     "robust": MappingProxyType({
         **_TORQUE,
         **tocabi_lab_paths(),

@@ -10,6 +10,7 @@ Joint index ``j`` (0..32) maps to ``qpos[7 + j]`` and ``qvel[6 + j]``; the free 
 
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,6 +53,7 @@ __all__ = [
     "load_spec",
     "missing_names",
     "validate_model",
+    "initial_sole_centre",
 ]
 
 NUM_JOINTS = 33
@@ -254,3 +256,31 @@ def validate_model(model: "mujoco.MjModel", source: str = "model") -> None:  # n
         aid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, ACTUATOR_NAMES[j])
         if aid != j:
             raise RobotAssetError(f"{source}: actuator {ACTUATOR_NAMES[j]!r} has index {aid}, expected {j}")
+
+
+# ------------------------------------------------------------------------------------------------ initial pose
+@functools.lru_cache(maxsize=8)
+def _sole_centres(model_path: str | None) -> np.ndarray:
+    import mujoco
+
+    model = load_model(model_path)
+    data = mujoco.MjData(model)
+    data.qpos[:] = INIT_QPOS
+    mujoco.mj_kinematics(model, data)
+    out = []
+    for foot in FOOT_BODIES:
+        b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, foot)
+        soles = [g for g in range(model.ngeom) if model.geom_bodyid[g] == b and model.geom_contype[g]
+                 and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
+        if not soles:
+            raise RobotAssetError(f"{foot} has no collision box (its sole) in the robot model")
+        sole = max(soles, key=lambda g: float(np.prod(model.geom_size[g])))
+        out.append(data.geom_xpos[sole].copy())
+    return np.array(out)
+
+
+def initial_sole_centre(foot: int = 0, model_path: str | None = None) -> np.ndarray:
+    """(3,) world position [m] of a sole's centre (the foot's largest collision box) in the robot's initial pose
+    (``INIT_QPOS``); ``foot`` 0 = left, 1 = right; ``model_path`` None = the shipped model. The left sole's
+    centre of the shipped model is (0.0999, 0.1025, 0.0148)."""
+    return _sole_centres(None if model_path is None else str(model_path))[foot].copy()

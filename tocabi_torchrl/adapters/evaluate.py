@@ -1,4 +1,4 @@
-"""The 8 s gait test of ``recipes/play.py`` (:func:`tocabi_torchrl.rl.evaluate.evaluate_policy`) for a policy of
+"""The 8 s gait test of ``recipes/play.py`` (:func:`tocabi_torchrl.evaluation.gait_test.evaluate_policy`) for a policy of
 any library, given as a function from observations to deterministic actions."""
 
 from __future__ import annotations
@@ -8,13 +8,13 @@ from collections.abc import Callable
 
 import torch
 
-from ..rl.evaluate import GAIT_CRITERIA, evaluate_policy, gait_passes
+from ..evaluation.gait_test import GAIT_CRITERIA, evaluate_policy, gait_passes
 from ..rl.trainer import resolve_device
 from ._build import task_config
 
 __all__ = ["GAIT_CRITERIA", "evaluate_actions", "evaluate_policy_file", "gait_passes"]
 
-# GAIT_CRITERIA and gait_passes are the gait test's own (tocabi_torchrl.rl.evaluate), re-exported here.
+# GAIT_CRITERIA and gait_passes are the gait test's own (tocabi_torchrl.evaluation.gait_test), re-exported here.
 
 
 def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str | os.PathLike,

@@ -1,12 +1,12 @@
 """What the library recipes (``recipes/train_<library>.py``) share: their common options, the output folder, the
 training clock and the resume state (``--resume``).
 
-A run can be trained over several calls (a GPU machine that runs one command for at most 10 minutes): each call
-ends by writing the library's own training state as a new file ``<out>/resume/state_call<k>.pt`` and then,
-atomically, ``<out>/resume.json``, which names that file and carries the cumulative counters (env steps, training
-seconds, PPO iterations, snapshots). ``--resume`` continues from there; ``--max_minutes`` is then the cap on the
-*total* training time over all calls. The rollout in progress when a call's time is up is discarded (its env steps
-and seconds still count: they were spent), and every call starts its envs from a reset.
+A run can be trained over several calls: each call ends by writing the library's own training state as a new file
+``<out>/resume/state_call<k>.pt`` and then, atomically, ``<out>/resume.json``, which names that file and carries the
+cumulative counters (env steps, training seconds, PPO iterations, snapshots). ``--resume`` continues from there;
+``--max_minutes`` is then the cap on the *total* training time over all calls. The rollout in progress when a call's
+time is up is discarded (its env steps and seconds still count: they were spent), and every call starts its envs from
+a reset.
 
 A call stopped by Ctrl-C or SIGTERM (:func:`stop_on_signals`) ends the same way: at the next env step it saves its
 resume state and ``policy.pt``, skips the gait test and says how to resume.
@@ -68,7 +68,7 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace, at_lea
     env resolves it (``auto``, ``cpu``, ``cuda``, ``cuda:N``; CUDA only where torch sees a GPU), the preset's name
     and the gait test's length of at least one policy step."""
     from ..config import _check_int, check_snapshot_minutes, preset_tree
-    from ..rl.evaluate import policy_dt, policy_steps
+    from ..evaluation.gait_test import policy_dt, policy_steps
     from ..rl.trainer import resolve_device
 
     try:

@@ -27,7 +27,7 @@ TORQUE_MODES = ("torque", "model_based")
 UPPER_BODY_LAWS = ("pd_hold",)
 #: Physics backends: mujoco-warp (``WarpSim``, GPU or warp's CPU device) or C MuJoCo on CPU threads (``MujocoSim``).
 BACKENDS = ("warp", "mujoco", "auto")
-#: ``backend="auto"`` on a CPU device. Measured by ``benchmarks/cpu_backends.py`` (docs/benchmarks/cpu_backends_*.md):
+#: ``backend="auto"`` on a CPU device. Measured by ``lab/benchmarks/cpu_backends.py`` (docs/benchmarks/cpu_backends_*.md):
 #: on a 2-core machine C MuJoCo stepped the bare env at 1800-3200 env-steps/s against mujoco-warp's CPU device's
 #: 315-340 (5.7-9.8x) at 8-96 envs, and needs no minute-long kernel compile.
 CPU_DEFAULT_BACKEND = "mujoco"
@@ -301,9 +301,7 @@ class BoxObstacle:
         at (0.100, 0.1025) m), shifted ``lateral`` [m] to the left (+y). ``length`` (x) and ``width`` (y) in m; the
         default 0.6 m width spans both feet's tracks (a box only the left foot meets needs width < 0.2 m).
         ``jitter``: see :attr:`jitter`. The centre is rounded to 0.1 mm (readable configs)."""
-        from .obstacles import initial_sole_centre
-
-        x, y = initial_sole_centre(0, model_path)[:2]
+        x, y = robot.initial_sole_centre(0, model_path)[:2]
         pos = (round(float(x) + float(distance), 4), round(float(y) + float(lateral), 4))
         return cls(size=(length, width, height), pos=pos, jitter=jitter)
 

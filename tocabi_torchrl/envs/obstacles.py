@@ -14,17 +14,13 @@ ground (``sim.contacts``), so an obstacle terminates and counts as foot contact 
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
 
-from .. import robot
-
-if TYPE_CHECKING:  # config.py builds boxes with this module's sole position: only the annotations need the class
-    from .config import BoxObstacle
+from ..robot import initial_sole_centre  # re-exported: where it lived before it became a fact of the robot model
+from .config import BoxObstacle
 
 __all__ = ["OBSTACLE_PREFIX", "obstacle_names", "add_obstacles", "world_obstacle_centres", "initial_sole_centre"]
 
@@ -73,28 +69,3 @@ def world_obstacle_centres(obstacles: Sequence[BoxObstacle], num_worlds: int, se
     out[..., :2] = pos + u * jitter
     out[..., 2] = [box.half_size[2] for box in obstacles]
     return out
-
-
-@functools.lru_cache(maxsize=8)
-def _sole_centres(model_path: str | None) -> np.ndarray:
-    model = robot.load_model(model_path)
-    data = mujoco.MjData(model)
-    data.qpos[:] = robot.INIT_QPOS
-    mujoco.mj_kinematics(model, data)
-    out = []
-    for foot in robot.FOOT_BODIES:
-        b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, foot)
-        soles = [g for g in range(model.ngeom) if model.geom_bodyid[g] == b and model.geom_contype[g]
-                 and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
-        if not soles:
-            raise robot.RobotAssetError(f"{foot} has no collision box (its sole) in the robot model")
-        sole = max(soles, key=lambda g: float(np.prod(model.geom_size[g])))
-        out.append(data.geom_xpos[sole].copy())
-    return np.array(out)
-
-
-def initial_sole_centre(foot: int = 0, model_path: str | None = None) -> np.ndarray:
-    """(3,) world position [m] of a sole's centre (the foot's largest collision box) in the robot's initial pose
-    (``robot.INIT_QPOS``); ``foot`` 0 = left, 1 = right; ``model_path`` None = the shipped model. The left sole's
-    centre of the shipped model is (0.0999, 0.1025, 0.0148)."""
-    return _sole_centres(None if model_path is None else str(model_path))[foot].copy()

@@ -1,4 +1,5 @@
-"""PPO for TOCABI: actors (scheduled or learned std), critic, training loop, checkpoints, evaluation."""
+"""PPO for TOCABI: actors (scheduled or learned std), critic, training loop, checkpoints, run folders, logging (the
+gait tests are :mod:`tocabi_torchrl.evaluation`'s)."""
 
 from .._lazy import lazy_names
 

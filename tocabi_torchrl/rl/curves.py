@@ -48,7 +48,7 @@ def steady_rate(rows: list[dict[str, str]], skip: int = 1) -> float | None:
 def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
     """Plot episode return/length and the per-term rewards against env steps (millions); ``metrics``: what
     :func:`read_metrics` reads (a run folder or a metrics file)."""
-    from .eval_plots import new_figure, save_figure  # its own canvas: the caller's matplotlib backend stays
+    from ..evaluation.plots import new_figure, save_figure  # its own canvas: the caller's matplotlib backend stays
 
     data = metric_columns(metrics)
     steps = [s / 1e6 for s in data["env_steps"]]

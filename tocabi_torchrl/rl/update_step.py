@@ -2,7 +2,7 @@
 
 The update of a 4,096-env rollout is 20 mini-batch steps of ~300 small kernels each; run eagerly, the host's Python
 (TorchRL's loss, autograd, the optimiser) takes longer than the GPU work, so the GPU idles ~40 % of the update
-(``benchmarks/trainer_timeline.py``). Captured once as a CUDA graph, a step is one launch: the kernels are the same,
+(``lab/benchmarks/trainer_timeline.py``). Captured once as a CUDA graph, a step is one launch: the kernels are the same,
 only their launching changes.
 
 Warm-up, capture and fallback are :class:`tocabi_torchrl.cuda_graphs.WarmCapture`'s, as for the env step. What this

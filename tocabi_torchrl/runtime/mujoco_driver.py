@@ -115,7 +115,7 @@ def build_model(contract: dict, model_path: str | os.PathLike, remove_meshes: bo
 
 @dataclass
 class Sim2SimResult:
-    """Gait-test metrics (as ``rl/evaluate.py`` defines them) of a sim-to-sim run; distances in m."""
+    """Gait-test metrics (as ``evaluation/gait_test.py`` defines them) of a sim-to-sim run; distances in m."""
 
     num_robots: int
     seconds: float

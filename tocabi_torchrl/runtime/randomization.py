@@ -188,7 +188,7 @@ TOCABI_LAB = Randomization(
                            joint_pos_noise_clip=0.00016, base_rpy_bias=math.pi / 150, foot_force_bias=100.0,
                            foot_torque_bias=10.0),
 )
-#: The robust gait test's start velocities (``rl.robust_eval.RobustTestConfig``): N(0, 0.5 rad/s), N(0, 0.1 m/s).
+#: The robust gait test's start velocities (``evaluation.robust.RobustTestConfig``): N(0, 0.5 rad/s), N(0, 0.1 m/s).
 ROBUST_START = StartVelocity(joint_std=0.5, base_std=0.1)
 
 

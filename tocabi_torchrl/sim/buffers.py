@@ -3,7 +3,7 @@
 mujoco-warp allocates fixed buffers: a contact pool shared by all worlds (``naconmax = nconmax * num_worlds``, which
 also bounds the broadphase candidate pairs) and ``njmax`` constraint rows per world. Too small and contacts or
 constraints are silently dropped (the backend flags the world unhealthy, see ``health``); too large costs memory and
-solver time. The defaults below come from ``python -m tocabi_torchrl.sim.measure_buffers``, which steps TOCABI through
+solver time. The defaults below come from ``python -m lab.sim_measure.measure_buffers``, which steps TOCABI through
 standing, falling, thrashing and tangled scenarios and records the per-substep peaks
 (results: ``docs/benchmarks/sim_buffers.md``).
 """

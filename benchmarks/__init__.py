@@ -1,7 +1,0 @@
-"""Benchmarks of tocabi-torchrl: run each as ``python -m benchmarks.<name>`` from the repository root."""
-
-import time
-
-#: When this process began, near enough: ``python -m benchmarks.X`` imports this package first, before torch and the
-#: library. A run's set-up (imports, CUDA, env and kernels, agent, collector) counts from here (train_throughput).
-STARTED = time.perf_counter()

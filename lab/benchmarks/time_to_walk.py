@@ -1,0 +1,365 @@
+"""Time to walk: train a preset from scratch, gait-test its checkpoints saved every ``--every`` training minutes, and
+report the first training time (and env steps) at which the gait test passes.
+
+    python -m lab.benchmarks.time_to_walk train --preset torque --minutes 9.5   # resumes; repeat until the budget is used
+    python -m lab.benchmarks.time_to_walk eval --preset torque                  # gait tests of every wall-clock checkpoint
+    python -m lab.benchmarks.time_to_walk eval --preset torque --test robust    # the robust gait test (evals_robust.json)
+    python -m lab.benchmarks.time_to_walk report --runs runs/time_to_walk/torque ...   # time_to_walk.{json,md,png}
+    torchrun --standalone --nproc_per_node 2 -m lab.benchmarks.time_to_walk train --preset default --name default_2gpu
+
+``train`` resumes ``runs/time_to_walk/<name>`` until ``--budget_minutes`` of training are used, data-parallel under
+torchrun (rank 0 writes ``train.json``; ``train_over_raw`` divides by ranks x one GPU's raw rate). ``eval`` writes the
+gait tests of each ``wall_*.pt`` to ``evals.json`` beside it, so both parts may run at once; ``--test robust`` runs
+the robust gait test (docs/evaluation.md) instead and keeps its results apart, in ``evals_robust.json`` (``report
+--test robust`` reads those). More: docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+from tocabi_torchrl.rl.curves import read_metrics, steady_rate
+from tocabi_torchrl.rl.distributed import DistInfo, ending, from_environment
+from tocabi_torchrl.evaluation.gait_test import GAIT_CRITERIA as CRITERIA
+from tocabi_torchrl.evaluation.gait_test import ROBUST_CRITERIA
+from tocabi_torchrl.evaluation.gait_test import gait_passes as passes_main
+from tocabi_torchrl.evaluation.gait_test import tested_on
+
+from . import common
+
+MAIN_COMMAND = (0.5, 0.0)
+OTHER_COMMANDS = ((0.2, 0.0), (0.7, 0.1))
+RUNS = Path("runs/time_to_walk")
+key = lambda c: f"{c[0]:.1f},{c[1]:.1f}"
+
+
+#: The evaluations file of each gait test (docs/evaluation.md): the two tests' verdicts are never mixed in one record.
+EVALS = {"standard": "evals.json", "robust": "evals_robust.json"}
+#: Robots per case of the robust test when --num_envs is left out (the standard test's is 256).
+ROBUST_ENVS = 1024
+
+
+def walks(evaluation: dict) -> bool:
+    """Whether one checkpoint's evaluation passes the whole gait test (all three commands)."""
+    runs = evaluation["commands"]
+    return (key(MAIN_COMMAND) in runs and passes_main(runs[key(MAIN_COMMAND)])
+            and all(key(c) in runs and runs[key(c)]["survival"] >= CRITERIA["survival"] for c in OTHER_COMMANDS))
+
+
+def _load(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def _as_set(overrides: dict) -> str:
+    return " ".join(f"{k}={v}" for k, v in overrides.items()) or "(none)"
+
+
+def train_part(args, command: str) -> None:
+    run_dir, info = RUNS / args.name, from_environment()
+    record, latest = _load(run_dir / "train.json"), run_dir / "checkpoints" / "latest.pt"
+    prior_s = float(common.read_checkpoint(latest).get("train_seconds", 0.0)) if latest.is_file() else 0.0
+    left_min = args.budget_minutes - prior_s / 60.0
+    if left_min <= 0:  # every rank reads the same checkpoint, so all stop here alike
+        if info.is_main:
+            print(f"{args.name}: the {args.budget_minutes}-minute training budget is used ({prior_s:.0f} s); "
+                  "run the eval part")
+        return
+    if record.get("gpus", info.world_size) != info.world_size:  # its rate and ratio are per rank count
+        raise ValueError(f"{args.name} was trained on {record['gpus']} rank(s) so far, this call has "
+                         f"{info.world_size}: continue it with {record['gpus']} (torchrun --nproc_per_node), or start "
+                         "another run with --name")
+    overrides = common.parse_overrides(args.set)
+    recorded = json.loads(json.dumps(overrides))  # as train.json keeps it (tuples become lists)
+    if record.get("overrides", recorded) != recorded:  # one run trains one config from scratch to the end
+        raise ValueError(f"{args.name} was trained with --set {_as_set(record['overrides'])} so far, this call has "
+                         f"--set {_as_set(overrides)}: continue it with the same, or start another run with --name")
+    cfg = common.config(args.preset, **{**overrides, "run_dir": str(RUNS), "name": args.name, "device": args.device,
+                                        "eval_at_end": False, "progress_bar": False, "log_every": args.log_every,
+                                        "checkpoint_minutes": args.every, "max_minutes": min(args.minutes, left_min),
+                                        "resume": str(latest) if latest.is_file() else ""})
+    if info.is_main:
+        print(f"{args.name}: training {'from ' + str(latest) if cfg.resume else 'from scratch'} on {info.world_size} "
+              f"rank(s), {prior_s / 60:.1f} of {args.budget_minutes} min used, this call up to {cfg.max_minutes:.1f} "
+              "min", flush=True)
+    if info.enabled:  # what launched this call, as it must be repeated
+        command = command.replace("python -m", f"torchrun --standalone --nproc_per_node {info.world_size} -m", 1)
+    result, rows = common.train(cfg)
+    if not info.is_main:  # rank 0 logged the rows and keeps the record
+        return
+    named = {"name": args.name} if args.name != args.preset else {}  # a run in its preset's folder is named by it
+    record = {"preset": args.preset, **named, "gpus": info.world_size, "overrides": recorded, "config": cfg.to_dict(),
+              "commands": [], **record}  # what the first call recorded stays
+    record["commands"].append(command)
+    # Any CUDA device string ("cuda", "cuda:1") is a GPU run: its GPU named, its raw ceiling measured on it.
+    record.update(gpu=tested_on(args.device), env_steps=result.env_steps, train_seconds=prior_s + result.wall_seconds,
+                  train_env_steps_per_s=steady_rate(rows, skip=3))
+    if "raw_policy_steps_per_s" not in record and args.raw_steps > 0 and args.device.startswith("cuda"):
+        record["raw_policy_steps_per_s"] = common.raw_policy_steps_per_second(cfg.env.num_envs, args.raw_steps,
+                                                                              args.device)
+    if record.get("train_env_steps_per_s") and record.get("raw_policy_steps_per_s"):
+        record["train_over_raw"] = record["train_env_steps_per_s"] / (record["gpus"] * record["raw_policy_steps_per_s"])
+    common.write_json(run_dir / "train.json", record)
+    print(json.dumps({k: record.get(k) for k in ("env_steps", "train_seconds", "train_env_steps_per_s",
+                                                 "raw_policy_steps_per_s", "train_over_raw")}), flush=True)
+
+
+def eval_part(args, command: str) -> None:
+    run_dir = RUNS / args.name
+    if not run_dir.is_dir() and not args.follow_pid:  # a trainer being followed may not have made it yet
+        raise ValueError(f"{run_dir}: no such run folder; name the trained run with --name (or --preset)")
+    test = getattr(args, "test", "standard")
+    evals_file = run_dir / EVALS[test]
+    record = _load(evals_file)
+    evals, envs = record.setdefault("evaluations", {}), {}
+    while True:
+        # Checkpoints are written atomically (a temporary file, then a rename): a wall_*.pt is complete.
+        for ckpt in [p for p in sorted((run_dir / "checkpoints").glob("wall_*.pt")) if p.stem not in evals]:
+            (_evaluate_robust if test == "robust" else _evaluate)(ckpt, evals, envs, args)
+            common.write_json(evals_file, record)
+        if args.follow_pid and _alive(args.follow_pid):
+            time.sleep(10.0)
+        elif args.follow_pid:
+            args.follow_pid = 0  # the trainer has ended: one more pass for what it wrote last
+        else:
+            break
+    record.setdefault("eval_commands", []).append(command)
+    record["time_to_walk"] = first_walk(record)
+    common.write_json(evals_file, record)
+    print("time to walk:", json.dumps(record["time_to_walk"]))
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return os.kill(pid, 0) is None  # signal 0: only whether the process exists
+    except OSError:
+        return False
+
+
+def _evaluate(ckpt: Path, evals: dict, envs: dict, args) -> None:
+    """Gait tests of one wall-clock checkpoint into ``evals[ckpt.stem]``."""
+    state = common.read_checkpoint(ckpt)
+    entry = {"train_seconds": state["train_seconds"], "env_steps": state["env_steps"], "iteration": state["iteration"],
+             "device": tested_on(args.device), "commands": {}}
+    for command in (MAIN_COMMAND, *OTHER_COMMANDS):
+        if command != MAIN_COMMAND and not passes_main(entry["commands"][key(MAIN_COMMAND)]):
+            break
+        out = ckpt.parent.parent / "eval" / ckpt.stem / f"{command[0]:.1f}_{command[1]:.1f}"
+        summary = common.gait_test(state, ckpt, command, out, args.num_envs or 256, args.seconds, args.device, envs)
+        entry["commands"][key(command)] = {k: v for k, v in summary.items() if isinstance(v, (int, float))}
+    entry["walks"] = walks(entry)
+    evals[ckpt.stem] = entry
+    m = entry["commands"][key(MAIN_COMMAND)]
+    print(f"{ckpt.stem}: {entry['train_seconds'] / 60:5.1f} min, {entry['env_steps'] / 1e6:6.1f} M steps: survival "
+          f"{m['survival']:.3f}, forward {m['forward_distance_m']:.2f} m, drift {m['lateral_drift_m']:.2f} m, knee RMS "
+          f"{m['knee_rms_rad']:.3f} rad -> {'WALKS' if entry['walks'] else 'no'}", flush=True)
+
+
+def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
+    """The robust gait test of one wall-clock checkpoint into ``evals[ckpt.stem]``; ``envs`` keeps the cases' envs
+    across checkpoints."""
+    from tocabi_torchrl.evaluation.gait_test import summary_json
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, evaluate_robust_checkpoint
+
+    state = common.read_checkpoint(ckpt)
+    test = RobustTestConfig(num_envs=args.num_envs or ROBUST_ENVS, seconds=args.seconds)
+    report = evaluate_robust_checkpoint(state, ckpt, ckpt.parent.parent / "eval" / ckpt.stem / "robust", test=test,
+                                        device=args.device, envs=envs, progress=False)
+    entry = {"train_seconds": state["train_seconds"], "env_steps": state["env_steps"], "iteration": state["iteration"],
+             "device": tested_on(args.device), "test": "robust", "settings": report["settings"],
+             "cases": json.loads(summary_json(report["cases"])), "walks": bool(report["passes"])}
+    evals[ckpt.stem] = entry
+    cases = ", ".join(f"{name} {c['survival']:.3f}" for name, c in entry["cases"].items())
+    print(f"{ckpt.stem}: {entry['train_seconds'] / 60:5.1f} min, {entry['env_steps'] / 1e6:6.1f} M steps: robust test "
+          f"survival {cases} -> {'WALKS' if entry['walks'] else 'no'}", flush=True)
+
+
+def first_walk(record: dict) -> dict | None:
+    """The earliest checkpoint (by training time) that passes the gait test, or None."""
+    passing = [e for e in record.get("evaluations", {}).values() if e.get("walks")]
+    first = min(passing, key=lambda e: e["train_seconds"], default=None)
+    return None if first is None else {"train_minutes": first["train_seconds"] / 60.0, "env_steps": first["env_steps"],
+                                       "iteration": first["iteration"]}
+
+
+def read_run(folder: Path, test: str = "standard") -> dict:
+    """A run's ``train.json`` and the evaluations of ``test`` (``evals.json``, or ``evals_robust.json`` for the
+    robust test) as one record (``time_to_walk`` recomputed from the evaluations)."""
+    record = {**_load(folder / "train.json"), **_load(folder / EVALS[test])}
+    if not record:
+        raise SystemExit(f"{folder}: no train.json or {EVALS[test]} (run the train and eval parts first)")
+    return {**record, "time_to_walk": first_walk(record)}
+
+
+def _label(r: dict) -> str:
+    """A run's name in the report: its preset, or its folder name where that differs (a 2-GPU run of a preset)."""
+    return r.get("name", r["preset"])
+
+
+def _gpus(r: dict) -> str:
+    return f"{r['gpus']} x {r.get('gpu', '?')}" if r.get("gpus", 1) > 1 else r.get("gpu", "?")
+
+
+#: The robust test's columns in the report: case, metric path, header, format.
+ROBUST_COLUMNS = (("nominal", "survival", "survival", ".3f"),
+                  ("nominal", "forward_distance_m.mean", "forward [m]", ".2f"),
+                  ("nominal", "lateral_drift_m.p95", "drift p95 [m]", ".2f"),
+                  ("commands", "survival", "survival (commands)", ".3f"),
+                  ("commands", "tracking_error_mps.mean", "tracking error [m/s]", ".3f"),
+                  ("robust_0.5", "survival", "survival (push 0.5 m/s)", ".3f"),
+                  ("robust_1.0", "survival", "survival (push 1.0 m/s)", ".3f"))
+
+
+def _value(e: dict, case: str, path: str):
+    """A robust evaluation's value of ``case`` at ``path`` ("lateral_drift_m.p95"); None if it has none."""
+    value = e.get("cases", {}).get(case)
+    for part in path.split("."):
+        value = value.get(part) if isinstance(value, dict) else None
+    return value
+
+
+def _headline(e: dict, k: str) -> float:
+    """The plotted survival or forward distance of an evaluation: the standard test's at (0.5, 0), or the robust
+    test's nominal case (mean distance); NaN for a value the file holds as null."""
+    if e.get("test") == "robust":
+        v = _value(e, "nominal", "forward_distance_m.mean" if k == "forward_distance_m" else k)
+    else:
+        v = e["commands"][key(MAIN_COMMAND)][k]
+    return math.nan if v is None else v
+
+
+def _robust_table(evals: list) -> str:
+    """The per-checkpoint table of a run's robust evaluations (:data:`ROBUST_COLUMNS`)."""
+    rows = [(name, f"{e['train_seconds'] / 60:.1f}", f"{e['env_steps'] / 1e6:.1f} M",
+             *("-" if (v := _value(e, case, path)) is None else format(v, spec) for case, path, _, spec in
+               ROBUST_COLUMNS), "yes" if e.get("walks") else "no", e.get("device", "-")) for name, e in evals]
+    return common.table(("checkpoint", "minutes", "env steps", *(h for _, _, h, _ in ROBUST_COLUMNS), "walks",
+                         "tested on"), rows)
+
+
+def render(data: dict, out: Path) -> str:
+    records, num = data["records"], lambda x, spec=",.0f": format(x, spec) if x else "-"
+    robust = data.get("test") == "robust"
+    rows = [(_label(r), _gpus(r), f"{t['train_minutes']:.1f}" if (t := r.get("time_to_walk")) else
+             f"not within {r.get('train_seconds', 0) / 60:.1f} min", f"{t['env_steps'] / 1e6:.1f} M" if t else "-",
+             num(r.get("train_env_steps_per_s")), num(r.get("raw_policy_steps_per_s")), num(r.get("train_over_raw"),
+             ".2f")) for r in records]
+    passing = ("the robust gait test (docs/evaluation.md: diverse starts; nominal, changing-command, randomised and "
+               "pushed cases, each against its thresholds in ROBUST_CRITERIA)" if robust else
+               "the 8 s gait test on 256 envs: at (0.5, 0) m/s survival >= 95 %, forward >= 2.6 m, drift <= 0.3 m, "
+               "knee RMS <= 0.15 rad; at (0.2, 0) and (0.7, 0.1) survival >= 95 %")
+    text = ("# Time to walk (issue 19)\n\nTraining wall-clock (summed over resumed calls; no evaluation, no kernel "
+            f"compilation) until a checkpoint first passes {passing}."
+            + (" A run on K GPUs (data-parallel, K x the envs) reports one GPU's raw rate and divides by K x raw."
+               if any(r.get("gpus", 1) > 1 for r in records) else "") + "\n\n"
+            + common.table(("run", "GPU", "time to walk [min]", "env steps then", "training env-steps/s",
+                            "raw mujoco-warp policy steps/s (same run)", "train / raw"), rows))
+    limits = ((100 * ROBUST_CRITERIA["nominal"]["survival"][1], "survival over 8 s, robust test's nominal case [%]"),
+              (ROBUST_CRITERIA["nominal"]["forward_distance_m.mean"][1], "mean forward distance in 8 s, nominal [m]")
+              ) if robust else ((100 * CRITERIA["survival"], "survival over 8 s at (0.5, 0) m/s [%]"),
+                                (CRITERIA["forward_distance_m"], "forward distance in 8 s [m]"))
+    panels = [{"lines": {}, "vlines": [], "hlines": [(y, "pass")], "xlabel": "training minutes", "ylabel": label}
+              for y, label in limits]
+    for r in records:
+        evals = sorted(r.get("evaluations", {}).items())
+        text += f"\n\n## {_label(r)}\n\nCommands:\n\n" + "".join(
+            f"- `{c}`\n" for c in r.get("commands", []) + r.get("eval_commands", [])) + "\n" + (_robust_table(evals)
+            if robust else common.table(
+            ("checkpoint", "minutes", "env steps", "survival", "forward [m]", "drift [m]", "knee RMS [rad]",
+             "survival (0.2, 0)", "survival (0.7, 0.1)", "walks", "tested on"),
+            [(name, f"{e['train_seconds'] / 60:.1f}", f"{e['env_steps'] / 1e6:.1f} M", *(
+                f"{e['commands'][key(MAIN_COMMAND)][k]:{spec}}" for k, spec in (
+                    ("survival", ".3f"), ("forward_distance_m", ".2f"), ("lateral_drift_m", ".2f"),
+                    ("knee_rms_rad", ".3f"))), *(num(e["commands"].get(key(c), {}).get("survival"), ".3f")
+                                                 for c in OTHER_COMMANDS), "yes" if e.get("walks") else "no",
+             e.get("device", "-"))
+             for name, e in evals]))
+        for panel, k, scale in zip(panels, ("survival", "forward_distance_m"), (100, 1), strict=True):
+            panel["lines"][_label(r)] = ([e["train_seconds"] / 60 for _, e in evals],
+                                           [scale * _headline(e, k) for _, e in evals])
+            panel["vlines"] += [r["time_to_walk"]["train_minutes"]] if r.get("time_to_walk") else []
+    common.plot(out / ("time_to_walk_robust.png" if robust else "time_to_walk.png"), panels,
+                "Gait test of checkpoints against training time (dotted: first pass)")
+    return text + "\n"
+
+
+def plot_curves(metrics: list[Path], path: Path) -> None:
+    """Reward per step and the imitation (qpos) reward against env steps, one line per run (TocabiLab figs 4.2-4.3)."""
+    runs = {p.stem: read_metrics(p) for p in metrics}
+    common.plot(path, [{"lines": {name: ([int(float(r["env_steps"])) for r in rows], [float(r[column]) for r in rows])
+                                  for name, rows in runs.items()}, "xscale": "log", "xlabel": "env steps", "ylabel": y}
+                       for column, y in (("reward", "reward per step"),
+                                             ("reward_terms/qpos", "imitation reward per step (qpos term, max 0.35)"))])
+
+
+def report_part(args, command: str) -> None:
+    test = getattr(args, "test", "standard")
+    data = {"command": command, "test": test, "records": [read_run(Path(p), test) for p in args.runs]}
+    # Runs trained on the CPU (smoke runs) are kept out of the published GPU results; GPU runs copied back are not.
+    cpu = data["records"] and all(r.get("gpu") == "cpu" for r in data["records"])
+    out = common.report_dir(args.out, "cpu" if cpu else None)
+    text = common.publish(out, "time_to_walk" if test == "standard" else "time_to_walk_robust", data, render)
+    if args.curves:
+        plot_curves([Path(p) for p in args.curves], out / "time_to_walk_curves.png")
+    print(text)
+
+
+def main(argv=None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="part", required=True)
+    run = argparse.ArgumentParser(add_help=False)  # which run, where: the train and eval parts take them alike
+    run.add_argument("--preset", default="torque")
+    run.add_argument("--name", default=None, help="the run's folder under runs/time_to_walk (default: the preset)")
+    run.add_argument("--device", default="cuda", help="cuda, or cpu (a smoke test; eval beside a GPU trainer)")
+    t = sub.add_parser("train", parents=[run], help="train (or resume) a preset for up to --minutes")
+    t.add_argument("--minutes", type=float, default=9.0, help="training minutes in this call")
+    t.add_argument("--budget_minutes", type=float, default=30.0, help="training minutes in all (summed over calls)")
+    t.add_argument("--every", type=float, default=2.0, help="minutes between evaluated checkpoints (0: none)")
+    t.add_argument("--log_every", type=int, default=5)
+    t.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
+    t.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                   help="config overrides on top of the preset (ablations); a run continues only with the same ones")
+    e = sub.add_parser("eval", parents=[run], help="gait tests of every wall-clock checkpoint of a preset's run")
+    e.add_argument("--num_envs", type=int, default=None,
+                   help=f"robots in the gait test, per case in the robust one (default: 256, robust {ROBUST_ENVS})")
+    e.add_argument("--seconds", type=float, default=8.0)
+    e.add_argument("--test", choices=tuple(EVALS), default="standard",
+                   help="which gait test decides 'walks': standard (3 commands) or robust (docs/evaluation.md)")
+    e.add_argument("--follow_pid", type=int, default=0, help="keep evaluating while this process (the trainer) runs")
+    r = sub.add_parser("report", help="tables and plots from the runs' train.json and evals.json")
+    r.add_argument("--runs", nargs="+", required=True, help="run folders holding train.json / evals.json")
+    r.add_argument("--curves", nargs="*", default=[],
+                   help="run folders or metrics.csv files to plot the reward curves of")
+    r.add_argument("--out", default=str(common.DOCS))
+    r.add_argument("--test", choices=tuple(EVALS), default="standard", help="which gait test's evaluations to report")
+    args = parser.parse_args(argv)
+    if args.part == "train" and not 0 < args.minutes < math.inf:  # the config reads max_minutes 0 as no time limit
+        parser.error(f"--minutes must be a positive number of training minutes, got {args.minutes}")
+    if args.part != "report" and args.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():  # said here, not as a traceback from deep inside the env build
+            parser.error(f"--device {args.device}: torch sees no CUDA GPU; time to walk is measured on a GPU "
+                         "(pass --device cpu for a smoke test of the script)")
+    if args.part != "report" and args.name is None:
+        args.name = args.preset
+    t0 = time.time()
+    command = " ".join(["python -m lab.benchmarks.time_to_walk", *argv])
+    info = from_environment() if args.part == "train" else DistInfo()  # only training runs data-parallel
+    try:
+        with ending(info, expected=(ValueError,)):  # every rank ends, also on a failure (NCCL: the process, here)
+            {"train": train_part, "eval": eval_part, "report": report_part}[args.part](args, command)
+            if info.is_main:
+                print(f"[{args.part} took {time.time() - t0:.0f} s]", flush=True)
+    except ValueError as err:
+        sys.exit(1 if info.enabled else f"error: {err}")  # ending() has said it on each rank
+
+
+if __name__ == "__main__":
+    main()

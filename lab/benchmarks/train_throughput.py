@@ -1,0 +1,138 @@
+"""Training throughput (collection + PPO update) against raw mujoco-warp stepping of the same model, same process.
+
+    python -m lab.benchmarks.train_throughput --num_envs 4096 16384 --iterations 10   # --set cuda_graph=off: ablations
+    python -m lab.benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --name multi_gpu   # data-parallel scaling
+
+Each env count in a fresh process: ``--iterations`` PPO iterations of the default preset after ``--warmup``, then the
+raw ceiling. ``--nproc K``: K torchrun ranks of ``--num_envs`` worlds each, one per GPU; rank 0 reports all ranks'
+rate, its own GPU's memory and one GPU's raw ceiling (``train / raw`` divides by K x raw). See docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+
+import torch
+
+from tocabi_torchrl.rl.curves import steady_rate
+from tocabi_torchrl.rl.distributed import ending, from_environment, init_distributed
+
+from . import STARTED, common
+
+NAME = "train_throughput"
+
+
+def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str,
+            overrides: dict) -> dict | None:
+    """One env count in this process (one rank of a torchrun run): the steady rate after ``warmup`` iterations, the
+    whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0."""
+    info = from_environment()
+    device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
+    record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides,
+              "device_used_at_start_gib": common.device_used_gib(device),
+              "device_name": common.meta(NAME, None, device)["gpu"]}
+    if iterations + warmup:
+        cfg = common.run_config(n, warmup + iterations, overrides, run_dir, f"train_{n}", device.split(":")[0],
+                                info.world_size)
+        if info.is_main:  # the benchmark's own scratch run: start afresh
+            shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
+        # train() builds the env, agent and collector, then starts its clock (result.wall_seconds): the CPU time is
+        # read there, so that the cores busy are those of the timed training, not of the set-up before it.
+        at_clock, make_collector = {}, common.trainer.make_collector
+
+        def collector_then_clock(*args, **kwargs):
+            collector = make_collector(*args, **kwargs)
+            at_clock["cpu"] = os.times()
+            return collector
+
+        with common.trainer_patched({"make_collector": collector_then_clock}, []), common.memory_peaks(device) as peaks:
+            result, rows = common.train(cfg)
+            cpu1, t_end = os.times(), time.perf_counter()
+        if not info.is_main:  # rank 0 logged the rows and reports for every rank
+            return None
+        cpu0, wall = at_clock["cpu"], result.wall_seconds
+        record.update(peaks, train_env_steps_per_s=steady_rate(rows, max(warmup - 1, 0)), env_steps=result.env_steps,
+                      update_s_last=float(rows[-1]["update_s"]), iterations=result.iterations, train_wall_s=wall,
+                      setup_s=t_end - STARTED - wall, env_graph=result.env_graph,  # all but the timed training
+                      status="ok" if result.env_steps >= cfg.total_env_steps else "partial",
+                      cores_used_mean=(cpu1.user + cpu1.system - cpu0.user - cpu0.system) / wall)
+    raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
+    rate = record.get("train_env_steps_per_s")
+    return {**record, "raw_policy_steps_per_s": raw,
+            "ratio_train_over_raw": rate / (info.world_size * raw) if raw and rate else None}
+
+
+def _speedup(r: dict, results: list[dict]) -> str:
+    """``r``'s rate over the 1-GPU row of the same env count and overrides in the same run ("-" without one)."""
+    one = [o for o in results if o.get("gpus", 1) == 1 and o["num_envs"] == r["num_envs"]
+           and o["overrides"] == r["overrides"] and o.get("train_env_steps_per_s")]
+    rate = r.get("train_env_steps_per_s")
+    return common.fmt(rate / one[0]["train_env_steps_per_s"] if one and rate else None, ".2f")
+
+
+def render(data: dict, out) -> str:
+    """The page; a raw-only row (``--iterations 0 --warmup 0``) has no training columns: "-" there."""
+    results = data["results"]
+    # The GPU columns only where a run had several ranks (the 1-GPU pages keep their layout).
+    multi = any(r.get("gpus", 1) > 1 for r in results)
+    gpus = lambda r: (r.get("gpus", 1), _speedup(r, results)) if multi else ()
+    return common.page("Training throughput", data, common.table(
+        (*(("GPUs", "speed-up over 1 GPU") if multi else ()), "envs" + (" per GPU" if multi else ""),
+         "train env-steps/s", "raw mujoco-warp policy steps/s" + (" (one GPU)" if multi else ""),
+         "train / raw" + (" (GPUs x raw)" if multi else ""), "torch peak alloc GiB", "torch peak reserved GiB",
+         "device peak used GiB"),
+        [(*gpus(r), r["num_envs"], common.fmt(r.get("train_env_steps_per_s")),
+          common.fmt(r["raw_policy_steps_per_s"]), common.fmt(r["ratio_train_over_raw"], ".2f"),
+          *(common.fmt(r.get(k), ".2f") for k in ("torch_peak_allocated_gib", "torch_peak_reserved_gib",
+                                                   "device_peak_used_gib")))
+         for r in results]))
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096, 16384])
+    parser.add_argument("--iterations", type=int, default=10)
+    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="config overrides (ablations)")
+    parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run of the script")
+    parser.add_argument("--run_dir", default="/tmp/tocabi_bench_runs", help="scratch folder of the training runs")
+    parser.add_argument("--out", default=str(common.DOCS))
+    parser.add_argument("--name", default=NAME)
+    parser.add_argument("--nproc", type=int, nargs="+", default=[1],
+                        help="data-parallel ranks (GPUs) per measurement; each K > 1 runs under torchrun")
+    parser.add_argument("--child", action="store_true", help="measure one env count in this process (internal)")
+    args = parser.parse_args(argv)
+    if min(args.num_envs) < 1:
+        parser.error(f"--num_envs takes env counts >= 1, not {args.num_envs}")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        parser.error("no CUDA device here; pass --device cpu for a smoke run of the script")
+    overrides = common.parse_overrides(args.set)
+    if args.child:
+        with ending(from_environment()):  # every rank ends, also on a failure (NCCL: the process, here)
+            record = measure(args.num_envs[0], args.iterations, args.warmup, args.raw_steps, args.device,
+                             args.run_dir, overrides)
+            if record is not None:  # rank 0 of a torchrun run reports for all ranks
+                print("RESULT " + json.dumps(record), flush=True)  # what common.run_child reads
+        return
+    options = ["--iterations", str(args.iterations), "--warmup", str(args.warmup), "--raw_steps", str(args.raw_steps),
+               "--device", args.device, "--run_dir", f"{args.run_dir}/{args.name}", "--set", *args.set]
+    if min(args.nproc) < 1:
+        parser.error(f"--nproc takes rank counts >= 1, not {args.nproc}")
+    if max(args.nproc) > 1 and not args.iterations + args.warmup:
+        parser.error("--nproc > 1 measures training: give --iterations or --warmup > 0")
+    # Where any K > 1, every child starts under torchrun, the 1-rank one too, so that they share its
+    # settings (it sets OMP_NUM_THREADS=1, for one).
+    results = [common.run_child(NAME, ["--num_envs", str(n), *options], nproc=k if max(args.nproc) > 1 else None)
+               for k in args.nproc for n in args.num_envs]
+    print(common.publish(args.out, args.name, {"meta": common.meta(NAME, argv, args.device), "results": results},
+                         render, measured_on=args.device))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,251 @@
+"""Evaluation of a walking policy: TocabiLab's gait experiment (command (0.5, 0) m/s for 8 s, deterministic policy).
+
+Writes ``summary.json`` (survival, forward distance, lateral drift, speed tracking error, knee RMS against the
+reference motion), ``knees.png`` (left/right knee over 6 s against the reference, TocabiLab figs 4.7-4.8) and a
+video of a few robots (``walk.mp4``, or ``walk.gif`` without an mp4 writer) rendered offscreen by MuJoCo. Both the
+rollout and the rendering show a progress bar (rendering takes minutes on a CPU). This module runs the rollout and
+computes the metrics (:class:`.record.GaitMetrics`, shared with the experiments' recorded rollouts); the figure
+is :mod:`.plots`'s and the video :mod:`.video`'s.
+
+``summary.json`` is strict JSON, written atomically: a metric that has no value (every robot fell in its first step:
+no knee RMS, no speed error; no survivor: no survivors' distance) is ``null``. The summary :func:`evaluate_policy`
+returns keeps those as NaN (``float``), for callers that format or compare the numbers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+from tqdm.auto import tqdm
+
+from .. import robot
+from ..atomic import atomic_write_text
+from ..config import RunConfig
+from ..render_gl import NO_GL_FIX
+from ..transforms.normalize import freeze_running_statistics
+from ..rl.checkpoint import checkpoint_file, read_checkpoint, run_folder_of
+from ..rl.trainer import build_env, resolve_device
+from .output import OutputExistsError, json_safe
+from .plots import plot_knees
+from .record import KNEES, GaitMetrics, fixed_command, load_policy, policy_steps
+from .video import render_video
+
+__all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "fresh_eval_dir", "eval_out_dir", "policy_dt",
+           "summary_json", "GAIT_CRITERIA", "ROBUST_CRITERIA", "gait_passes", "tested_on"]
+
+#: Pass thresholds of the gait test at (0.5, 0) m/s (issue 19): a policy walks when its summary meets all of them
+#: (and, in the time-to-walk benchmark, keeps ``survival`` at (0.2, 0) and (0.7, 0.1) too).
+GAIT_CRITERIA = {"survival": 0.95, "forward_distance_m": 2.6, "lateral_drift_m": 0.3, "knee_rms_rad": 0.15}
+
+#: Pass thresholds of the robust gait test (:mod:`.robust`, docs/evaluation.md), per case: metric path in the
+#: case's report entry (``"forward_distance_m.mean"``: the mean over its robots) -> (">=" or "<=", limit). A policy
+#: passes the robust test when every case meets all of its thresholds (``robust.robust_passes``).
+ROBUST_CRITERIA = {
+    "nominal": {"survival": (">=", 0.99), "forward_distance_m.mean": (">=", 2.6), "lateral_drift_m.p95": ("<=", 0.3)},
+    "commands": {"survival": (">=", 0.99), "tracking_error_mps.mean": ("<=", 0.12)},
+    "robust_0.5": {"survival": (">=", 0.97)},
+    "robust_1.0": {"survival": (">=", 0.85)},
+}
+
+
+def gait_passes(summary: dict) -> bool:
+    """Whether a gait-test summary (:func:`evaluate_policy`'s, or its ``summary.json`` read back) meets every
+    :data:`GAIT_CRITERIA` threshold; a metric without a value (NaN, or ``null`` in the file) fails."""
+    c = GAIT_CRITERIA
+    values = {key: summary[key] for key in c}
+    if any(v is None for v in values.values()):
+        return False
+    return (values["survival"] >= c["survival"] and values["forward_distance_m"] >= c["forward_distance_m"]
+            and values["lateral_drift_m"] <= c["lateral_drift_m"] and values["knee_rms_rad"] <= c["knee_rms_rad"])
+
+
+def summary_json(summary: dict) -> str:
+    """``summary`` as strict JSON: NaN and inf as ``null`` (bare ``NaN`` tokens are not JSON)."""
+    return json.dumps(json_safe(summary), indent=2, allow_nan=False)
+
+
+def tested_on(device: str | torch.device) -> str:
+    """Where a gait test on ``device`` runs, for its record: the GPU's name for "cuda", "cuda:1", ("auto" on a GPU
+    machine), else "cpu". C MuJoCo and mujoco-warp agree closely, not step for step over 8 s, so a drift near its
+    limit can differ."""
+    dev = resolve_device(device) if device == "auto" else torch.device(device)
+    return torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"
+
+
+def evaluate_policy(
+    actor,
+    cfg: RunConfig,
+    out_dir: str | os.PathLike,
+    num_envs: int = 256,
+    device: str | torch.device = "cuda",
+    seconds: float = 8.0,
+    command: tuple[float, float] = (0.5, 0.0),
+    video_envs: int = 4,
+    env=None,
+    progress: bool = True,
+) -> dict:
+    """Roll the deterministic policy out for ``seconds`` at a fixed command and write the summary, plot and video
+    to ``out_dir`` (created if needed; files of the same name there are replaced: the caller chooses the folder,
+    e.g. with :func:`eval_out_dir`). ``seconds`` must cover at least one policy step; ``progress`` shows bars for
+    the rollout and the rendering. Returns the summary, NaN where a metric has no value (``null`` in the file)."""
+    device = torch.device(device)
+    if env is None:
+        env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
+    freeze_running_statistics(env)  # a test of the policy as trained, not of statistics drifting with its rollout
+    base = env.base_env
+    steps = policy_steps(seconds, base.dt)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        metrics = GaitMetrics(td["base_pos"], command, base.dt)
+        trace_q, trace_ref, frames_qpos = [], [], []
+        video_every = max(1, int(round(1.0 / (30.0 * base.dt))))
+        for k in tqdm(range(steps), desc="gait test", unit="step", disable=not progress, leave=False):
+            td = env.step(actor(td))
+            nxt = td["next"]
+            alive = metrics.update(nxt)
+            if k * base.dt < 6.0:
+                # After a fall the robot keeps lying there: blank its trace instead of plotting a fallen knee.
+                trace_q.append(torch.where(alive[0], nxt["joint_pos"][0, KNEES], torch.nan))
+                trace_ref.append(nxt["ref_joint_pos"][0, KNEES])
+            if video_envs and k % video_every == 0:
+                frames_qpos.append(base.sim.qpos[:video_envs].clone())
+            # Fallen robots keep lying (no reset): `alive` already excludes them from every metric.
+            td = step_mdp(td)
+            # Once every robot has fallen no metric can change: stop (a host read every 50 steps only).
+            if video_envs < 1 and k % 50 == 49 and not bool(alive.any()):
+                break
+    summary = metrics.summary(seconds)
+    atomic_write_text(out / "summary.json", summary_json(summary))
+    plot_knees(torch.stack(trace_q).cpu().numpy(), torch.stack(trace_ref).cpu().numpy(), base.dt, out / "knees.png",
+                command)
+    if video_envs < 1:
+        summary["video"] = "not requested (video_envs=0)"
+    else:
+        try:
+            mocap = base.sim.world_mocap_pos  # each world's obstacle positions, if the scene has any
+            # One frame every `video_every` steps plays at the simulated speed: 31.25 fps at 4 ms steps, not 30.
+            fps = 1.0 / (video_every * base.dt)
+            summary["video"] = str(render_video(base.sim.mj_model, torch.stack(frames_qpos).cpu().numpy(), fps, out,
+                                                 progress=progress,
+                                                 mocap_pos=None if mocap is None else mocap[:video_envs]))
+        except Exception as err:  # rendering needs an OpenGL backend (MUJOCO_GL=egl on a headless machine)
+            summary["video"] = f"not rendered: {type(err).__name__}: {err}"
+            if isinstance(err, ModuleNotFoundError) and err.name == "imageio":  # not a GL problem: the writer
+                fix = '; install the video writer: pip install -e ".[viz]" (imageio with ffmpeg)'
+            else:
+                fix = "" if NO_GL_FIX in str(err) else f"; on a headless machine: {NO_GL_FIX}"  # said once
+            print(f"video skipped ({summary['video']}){fix}")
+    atomic_write_text(out / "summary.json", summary_json(summary))
+    return summary
+
+
+def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "auto",
+                 out_dir: str | os.PathLike | None = None, **kwargs) -> dict:
+    """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``out_dir`` as given (files of
+    the same name replaced), or by default to :func:`fresh_eval_dir` (``<run>/eval/``, or ``eval_2/``, ... when
+    earlier results are there). Raises ``CheckpointError`` for a bad file and ``ValueError`` for ``seconds`` below
+    one policy step, before building anything."""
+    ckpt = checkpoint_file(run)
+    state = read_checkpoint(ckpt)
+    policy_steps(kwargs.get("seconds", 8.0), policy_dt())
+    policy = load_policy(ckpt, num_envs, resolve_device(device), command=kwargs.get("command", (0.5, 0.0)),
+                         state=state)
+    if out_dir is None:
+        out_dir = fresh_eval_dir(ckpt)
+    return evaluate_policy(policy.actor, policy.cfg, out_dir, num_envs=num_envs, device=policy.env.device,
+                           env=policy.env, **kwargs)
+
+
+def default_eval_dir(ckpt: Path) -> Path:
+    """``<run folder>/eval/`` for a run's checkpoint, ``eval/`` beside any other file, and
+    ``runs/eval/<checkpoint stem>/`` for a policy shipped in the package's assets (never into the source tree)."""
+    ckpt = Path(ckpt)
+    if ckpt.resolve().is_relative_to(robot.asset_path().resolve()):
+        return Path(RunConfig().run_dir) / "eval" / ckpt.stem
+    return run_folder_of(ckpt) / "eval"
+
+
+def fresh_eval_dir(ckpt: Path) -> Path:
+    """:func:`default_eval_dir`, or when that already holds files (an earlier evaluation) the first of ``eval_2``,
+    ``eval_3``, ... beside it that does not: a repeated evaluation never replaces earlier results."""
+    base = default_eval_dir(ckpt)
+    candidate, n = base, 1
+    while candidate.exists() and (not candidate.is_dir() or any(candidate.iterdir())):
+        n += 1
+        candidate = base.with_name(f"{base.name}_{n}")
+    return candidate
+
+
+def eval_out_dir(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | None = None,
+                 overwrite: bool = False) -> Path:
+    """The folder an evaluation of ``checkpoint`` writes to: ``out_dir``, refused
+    (:class:`~.output.OutputExistsError`) when it already holds files unless ``overwrite``
+    (then files of the same name are replaced, others stay); without ``out_dir``, :func:`fresh_eval_dir`. Creates
+    nothing (an ``out_dir`` that is a file fails when the evaluation creates it, as ``OSError``); raises
+    ``CheckpointError`` for a missing checkpoint."""
+    if out_dir is None:
+        return fresh_eval_dir(checkpoint_file(checkpoint))
+    out = Path(out_dir)
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise OutputExistsError(f"{out} already holds results (e.g. an earlier evaluation's summary.json); they "
+                                    "are not overwritten. Choose another --out, leave --out out to write to a new "
+                                    "folder beside the run's eval/, or pass --overwrite to replace them")
+    return out
+
+
+def policy_dt() -> float:
+    """Seconds per policy step of the walking task (physics timestep × substeps)."""
+    from ..envs import TocabiWalkConfig
+
+    return float(robot.load_model().opt.timestep) * TocabiWalkConfig().sim.substeps
+
+
+#: Kept for the callers of before :mod:`.record` (tests, benchmarks).
+_fixed_command = fixed_command
+_policy_steps = policy_steps
+
+
+#: Length [s] of the standard gait test, for which GAIT_CRITERIA's distance is set (the run config's default).
+STANDARD_SECONDS = RunConfig.eval_seconds
+
+
+#: The gait test's metrics as people read them: (key, label, unit, decimals, "min"/"max" threshold).
+GAIT_ROWS = (
+    ("survival", "survival", "%", 1, "min"),
+    ("forward_distance_m", "forward distance", "m", 2, "min"),
+    ("lateral_drift_m", "lateral drift", "m", 2, "max"),
+    ("knee_rms_rad", "knee RMS vs reference", "rad", 3, "max"),
+)
+
+
+def _shown(value, unit: str, decimals: int) -> str:
+    """A metric for people: rounded, with its unit; a missing value (NaN or None) says so."""
+    if value is None or value != value:
+        return "no value"
+    return f"{100 * value:.{decimals}f} %" if unit == "%" else f"{value:.{decimals}f} {unit}"
+
+
+def gait_report_text(summary: dict, seconds: float, robots: int, out) -> str:
+    """The gait test's verdict (walks / does not walk yet), each metric against its pass threshold, and the files
+    written; the full-precision values stay in ``out/summary.json``."""
+    verdict = "walks" if gait_passes(summary) else "does not walk yet"
+    lines = [f"gait test ({seconds:g} s, {robots} robots): {verdict}"]
+    standard = STANDARD_SECONDS
+    if seconds != standard:  # the distance threshold assumes the full test's length
+        lines[0] += f" (the thresholds are set for the {standard:g} s test)"
+    for key, label, unit, decimals, kind in GAIT_ROWS:
+        value, limit = summary.get(key), GAIT_CRITERIA[key]
+        ok = value is not None and value == value and (value >= limit if kind == "min" else value <= limit)
+        need = f"{'>=' if kind == 'min' else '<='} {_shown(limit, unit, decimals)}"
+        lines.append(f"  {label:<22} {_shown(value, unit, decimals):>10}   needs {need:<13} {'pass' if ok else 'FAIL'}")
+    files = [out / "summary.json", out / "knees.png"]
+    video = str(summary.get("video", ""))
+    lines.append("results: " + ", ".join(str(f) for f in files if f.exists())
+                 + (f", {video}" if video.endswith(".mp4") else f" (video {video})" if video else ""))
+    return "\n".join(lines)

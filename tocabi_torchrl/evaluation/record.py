@@ -1,0 +1,158 @@
+"""The gait test's per-robot accounting and how a checkpoint is loaded for it (:mod:`.gait_test`, :mod:`.robust`).
+
+:class:`GaitMetrics` is the gait test's per-env accounting (survival, distance, drift, speed error, knee RMS), one
+update per policy step: :func:`~tocabi_torchrl.evaluation.gait_test.evaluate_policy` and the experiments' recorded
+rollouts (``lab/experiments/gait_record.py``) both use it, so the two report the same numbers for the same rollout.
+:func:`load_policy` reads a checkpoint and builds its env at a fixed command (:func:`fixed_command`) with its agent.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from .. import robot
+from ..config import RunConfig
+from ..transforms.normalize import freeze_running_statistics
+
+__all__ = ["GaitMetrics", "LoadedPolicy", "load_policy", "fixed_command", "policy_steps", "LEG_JOINTS", "KNEES"]
+
+#: The 12 leg joints, in action order.
+LEG_JOINTS: tuple[str, ...] = tuple(robot.JOINT_NAMES[robot.LEGS])
+#: Left and right knee, indices into the leg (and full) joint order.
+KNEES = (LEG_JOINTS.index("L_Knee_Joint"), LEG_JOINTS.index("R_Knee_Joint"))
+
+
+# ------------------------------------------------------------------------------------------------ gait test metrics
+class GaitMetrics:
+    """The gait test's per-env accounting, one :meth:`update` per policy step; :meth:`summary` gives the metrics.
+
+    A robot counts as alive until its first termination; every metric uses its alive steps only and its pelvis
+    position at its last alive step. A robot with no alive step (it fell in the first) has no knee RMS or speed
+    error: NaN per env, left out of the summary's means (NaN there too when no robot has one). With no survivor the
+    survivors' forward distance is NaN too (not 0: no robot stood still). The JSON writers turn NaN into ``null``.
+    """
+
+    def __init__(self, start_pos: torch.Tensor, command: tuple[float, float], dt: float):
+        n, device = start_pos.shape[0], start_pos.device
+        self.command, self.dt = (float(command[0]), float(command[1])), float(dt)
+        self.start = start_pos.clone()
+        self.last_pos = start_pos.clone()
+        self.alive = torch.ones(n, dtype=torch.bool, device=device)
+        self.knee_sq = torch.zeros(n, device=device)
+        self.vel_err = torch.zeros(n, device=device)
+        self.alive_steps = torch.zeros(n, device=device)
+
+    def update(self, nxt) -> torch.Tensor:
+        """Account the step whose outputs are ``nxt`` (the ``"next"`` of an env step); returns ``alive`` (N,)."""
+        self.alive = self.alive & ~nxt["terminated"].squeeze(-1)
+        a = self.alive.float()
+        self.last_pos = torch.where(self.alive.unsqueeze(-1), nxt["base_pos"], self.last_pos)
+        knee_err = nxt["joint_pos"][:, KNEES] - nxt["ref_joint_pos"][:, KNEES]
+        self.knee_sq += a * knee_err.pow(2).mean(-1)
+        self.vel_err += a * (nxt["base_lin_vel"][:, 0] - self.command[0]).abs()
+        self.alive_steps += a
+        return self.alive
+
+    def per_env(self) -> dict[str, torch.Tensor]:
+        """(N,) per-env values: distance travelled (x, y) and knee RMS over the alive steps."""
+        dist = self.last_pos - self.start
+        return {"forward_m": dist[:, 0], "lateral_m": dist[:, 1],
+                "knee_rms_rad": self._per_alive_step(self.knee_sq).sqrt(), "alive": self.alive,
+                "alive_seconds": self.alive_steps * self.dt}
+
+    def _per_alive_step(self, total: torch.Tensor) -> torch.Tensor:
+        """(N,) ``total`` over each robot's alive steps; NaN for a robot with none (0/0 once read as a perfect 0)."""
+        return torch.where(self.alive_steps > 0, total / self.alive_steps.clamp_min(1), float("nan"))
+
+    def summary(self, seconds: float) -> dict:
+        """The gait test's ``summary.json`` values (without the video entry)."""
+        vx, vy = self.command
+        alive, dt = self.alive, self.dt
+        dist = self.last_pos - self.start
+        return {
+            "command_mps": [vx, vy],
+            "seconds": seconds,
+            "num_envs": int(alive.shape[0]),
+            "survival": float(alive.float().mean()),
+            "forward_distance_m": float(dist[:, 0].mean()),
+            "forward_distance_survivors_m": float(dist[alive, 0].mean()) if alive.any() else math.nan,
+            "lateral_drift_m": float(dist[:, 1].abs().mean()),
+            "mean_speed_mps": float((dist[:, 0] / (self.alive_steps * dt).clamp_min(dt)).mean()),
+            "speed_tracking_error_mps": float(self._per_alive_step(self.vel_err).nanmean()),
+            "knee_rms_rad": float(self._per_alive_step(self.knee_sq).sqrt().nanmean()),
+        }
+
+
+# ------------------------------------------------------------------------------------------------ loading
+@dataclass
+class LoadedPolicy:
+    """A checkpoint's config, its evaluation env (fixed command) and its agent, weights applied."""
+
+    path: Path
+    cfg: RunConfig
+    env: object
+    agent: object
+
+    @property
+    def actor(self):
+        return self.agent.actor
+
+    @property
+    def control_mode(self) -> str:
+        return self.cfg.env.control.mode
+
+
+def fixed_command(command: tuple[float, float]):
+    """A command schedule that holds ``command`` = (vx, vy) [m/s] for the whole episode."""
+    from ..envs import CommandConfig
+
+    vx, vy = command
+    return CommandConfig(vx_range=(vx, vx), vx_initial_range=(vx, vx), vy_range=(vy, vy))
+
+
+def policy_steps(seconds: float, dt: float) -> int:
+    """Policy steps in ``seconds``; ``ValueError`` if ``seconds`` is not finite or is less than one step."""
+    if not math.isfinite(seconds):
+        raise ValueError(f"seconds={seconds!r}: the test's length must be a finite number of seconds (e.g. 8)")
+    steps = int(round(seconds / dt))
+    if steps < 1:
+        raise ValueError(f"seconds={seconds:g} is shorter than one policy step ({dt * 1000:g} ms); pass at least "
+                         f"{dt:g}")
+    return steps
+
+
+def load_policy(path: str | os.PathLike, num_envs: int, device: torch.device,
+                command: tuple[float, float] = (0.5, 0.0),
+                edit_env: Callable | None = None, backend: str | None = None,
+                state: dict | None = None) -> LoadedPolicy:
+    """Read ``path`` (a ``.pt`` file or a run folder) with the safe reader, build its env at a fixed ``command``
+    with ``num_envs`` worlds on ``device`` and its agent, and apply the weights and transform state.
+
+    ``edit_env``: a function from the checkpoint's env config (``TocabiWalkConfig``) to the one to build (e.g. a
+    scene with an obstacle); ``backend``: replaces ``env.sim.backend``; ``state``: the file's contents if already
+    read with ``read_checkpoint``. Raises ``CheckpointError`` for a bad file.
+    """
+    from ..rl.checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint
+    from ..rl.trainer import build_agent, build_env
+
+    ckpt = checkpoint_file(path)
+    state = read_checkpoint(ckpt) if state is None else state
+    cfg = config_from_checkpoint(state, ckpt)
+    env_cfg = cfg.env
+    if backend is not None:
+        env_cfg = dataclasses.replace(env_cfg, sim=dataclasses.replace(env_cfg.sim, backend=backend))
+    if edit_env is not None:
+        env_cfg = edit_env(env_cfg)
+    cfg = dataclasses.replace(cfg, env=env_cfg)
+    env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
+    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
+    apply_checkpoint(state, agent, env=env, path=ckpt)
+    freeze_running_statistics(env)
+    return LoadedPolicy(ckpt, cfg, env, agent)

@@ -1,0 +1,510 @@
+"""The robust gait test: does a policy walk from many different starts, under changing commands, with the TOCABI
+lab's model uncertainty and under pushes? (docs/evaluation.md)
+
+The standard gait test (:func:`.gait_test.evaluate_policy`: 256 robots at (0.5, 0) m/s for 8 s) starts every robot
+at rest on one of two rows of the reference motion, so its deterministic rollouts are two trajectories and its
+survival and drift are two samples. This test makes the starts diverse (joint velocities ~ N(0, 0.5 rad/s), pelvis
+linear velocity ~ N(0, 0.1 m/s) per axis, drawn per robot at the reset) and runs four cases of
+:data:`CASES` robots each (1,024 by default), deterministic policy, 8 s:
+
+* ``nominal``: command (0.5, 0) m/s;
+* ``commands``: the training command range (``CommandConfig()``'s) re-drawn every 2 s (500 policy steps);
+* ``robust_0.5`` and ``robust_1.0``: command (0.5, 0) m/s, the ``tocabi_lab`` randomisation (dynamics, actuators,
+  sensor noise; :func:`robust_case_config`; a PD-mode policy's servos get no actuator model) drawn from
+  :data:`EVAL_SEED`, and three horizontal velocity kicks of 0.5 or 1.0 m/s at random times in 2-7 s.
+
+Per case it reports distributions over the robots: survival fraction, forward distance (mean, p5, p50, p95),
+lateral drift (mean, p50, p95 of |y|), speed tracking error in the heading (pelvis-yaw) frame (mean, p95) and knee
+RMS against the reference (mean, p95), and a verdict against :data:`.gait_test.ROBUST_CRITERIA`. The policy passes
+the test when every case passes. :func:`evaluate_robust` writes ``robust.json`` (strict JSON, ``null`` for a value
+that does not exist) and ``robust.png`` (survival per case, distance, drift and tracking error CDFs), both
+atomically.
+
+Every random draw (start velocities, commands, randomisation, pushes) is keyed on :data:`EVAL_SEED`, the robot and
+its episode, so the same policy gets the same numbers from the same robot count on the same device.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+from tqdm.auto import tqdm
+
+from ..atomic import atomic_write_text
+from ..config import RunConfig
+from ..rotations import quat_rotate_inverse, quat_to_rpy
+from ..transforms.normalize import freeze_running_statistics
+from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, summary_json, tested_on
+from .record import GaitMetrics, fixed_command, policy_steps
+
+__all__ = ["CASES", "EVAL_SEED", "RobustCase", "RobustTestConfig", "case_config", "robust_case_config", "case_env",
+           "randomization_applied", "batch_config", "batch_env", "batch_key", "case_worlds", "heading_frame_velocity", "case_summary", "run_case", "case_checks",
+           "robust_passes", "evaluate_robust", "evaluate_robust_checkpoint", "evaluate_robust_run",
+           "robust_report_text", "ROBUST_JSON", "ROBUST_PNG"]
+
+#: The seed of every random draw of the robust test (starts, commands, randomisation, pushes). Below 2**32, the part
+#: of a seed the per-episode draws read (envs.episode_random), and far from the small seeds the presets and tests
+#: train with (0, 1, 2, ...), so the test's randomised models are not ones a policy was trained on.
+EVAL_SEED = 2_971_215_073
+#: File names of the report and its figure in the evaluation folder.
+ROBUST_JSON, ROBUST_PNG = "robust.json", "robust.png"
+#: Percentiles the report gives of each distribution.
+PERCENTILES = (5, 50, 95)
+
+
+@dataclass(frozen=True)
+class RobustCase:
+    """One case of the robust test.
+
+    Attributes:
+        name: its key in the report and in :data:`.gait_test.ROBUST_CRITERIA`.
+        command: the fixed (vx, vy) command [m/s], or None for the training range (``CommandConfig()``) re-drawn
+            every ``resample_every`` policy steps.
+        resample_every: policy steps (4 ms) between command draws when ``command`` is None (500 = 2 s).
+        push_speed: velocity change [m/s] of each horizontal kick; 0 = no kicks and no randomisation. Above 0 the
+            case also switches the ``tocabi_lab`` randomisation on (:func:`robust_case_config`).
+        description: one line for the report and the docs.
+    """
+
+    name: str
+    command: tuple[float, float] | None = (0.5, 0.0)
+    resample_every: int = 500
+    push_speed: float = 0.0
+    description: str = ""
+
+    @property
+    def randomized(self) -> bool:
+        return self.push_speed > 0
+
+
+#: The cases, in report order.
+CASES: dict[str, RobustCase] = {c.name: c for c in (
+    RobustCase("nominal", description="command (0.5, 0) m/s"),
+    RobustCase("commands", command=None, resample_every=500,
+               description="training command range re-drawn every 2 s"),
+    RobustCase("robust_0.5", push_speed=0.5,
+               description="command (0.5, 0) m/s, tocabi_lab randomisation, 3 kicks of 0.5 m/s in 2-7 s"),
+    RobustCase("robust_1.0", push_speed=1.0,
+               description="command (0.5, 0) m/s, tocabi_lab randomisation, 3 kicks of 1.0 m/s in 2-7 s"),
+)}
+
+
+@dataclass(frozen=True)
+class RobustTestConfig:
+    """The robust test's settings (the defaults are the test; smaller values are for quick checks).
+
+    Attributes:
+        num_envs: robots per case (the test asks for at least 1,024).
+        seconds: length of each case [s].
+        start_joint_vel_std: std of the Gaussian joint velocities each robot starts with [rad/s].
+        start_base_vel_std: std of the Gaussian pelvis linear velocity (each axis) each robot starts with [m/s].
+        push_count: kicks per robot in the pushed cases.
+        push_window: (start, end) [s] of episode time the kicks fall in (kick j at a random time in the j-th third).
+        seed: the seed of every draw (:data:`EVAL_SEED`).
+        cases: which of :data:`CASES` to run, in order.
+    """
+
+    num_envs: int = 1024
+    seconds: float = 8.0
+    start_joint_vel_std: float = 0.5
+    start_base_vel_std: float = 0.1
+    push_count: int = 3
+    push_window: tuple[float, float] = (2.0, 7.0)
+    seed: int = EVAL_SEED
+    cases: tuple[str, ...] = tuple(CASES)
+
+    def validate(self, dt: float) -> None:
+        """Raise ``ValueError`` naming a bad setting and the fix (``dt``: the policy step [s])."""
+        if isinstance(self.num_envs, bool) or not isinstance(self.num_envs, int) or self.num_envs < 1:
+            raise ValueError(f"num_envs must be an int >= 1 (robots per case; the test's default is 1024), got "
+                             f"{self.num_envs!r}")
+        policy_steps(self.seconds, dt)
+        unknown = [c for c in self.cases if c not in CASES]
+        if unknown or not self.cases:
+            raise ValueError(f"unknown robust-test case(s) {unknown or '(none given)'}; choose from {list(CASES)}")
+
+
+# ------------------------------------------------------------------------------------------------ the cases' envs
+def robust_case_config(cfg: RunConfig, push_speed: float, test: RobustTestConfig = RobustTestConfig()) -> RunConfig:
+    """``cfg`` with the TOCABI lab's uncertainty model switched on (:func:`tocabi_torchrl.randomize.tocabi_lab`:
+    dynamics and the actuator delay and motor constant in the env section, sensor noise in the transform section)
+    and ``test.push_count`` horizontal kicks of ``push_speed`` [m/s] (one 4 ms policy step each) at random times in
+    ``test.push_window``. The one place the robust cases' randomisation is made.
+
+    The lab's actuator model acts on torque commands; in the PD modes the legs are MuJoCo servos inside the physics,
+    where it has no place (the env refuses it), so a PD-mode policy gets the rest of the set
+    (:func:`randomization_applied` says which)."""
+    from ..envs.config import TORQUE_MODES
+    from ..envs.pushes import PushConfig
+    from ..randomize import tocabi_lab
+
+    lab = tocabi_lab(cfg)
+    env = lab.env
+    if env.control.mode not in TORQUE_MODES:
+        env = dataclasses.replace(env, control=dataclasses.replace(env.control, actuators=cfg.env.control.actuators))
+    pushes = PushConfig(count=test.push_count, window=tuple(test.push_window), speed=(push_speed, push_speed),
+                        duration=(0.004, 0.004))
+    return dataclasses.replace(lab, env=dataclasses.replace(env, pushes=pushes))
+
+
+def randomization_applied(cfg: RunConfig) -> str:
+    """What of the ``tocabi_lab`` set :func:`robust_case_config` applies to a policy of run config ``cfg``."""
+    from ..envs.config import TORQUE_MODES
+
+    mode = cfg.env.control.mode
+    if mode in TORQUE_MODES:
+        return "tocabi_lab: dynamics, actuator delay and motor constant, sensor noise"
+    return (f"tocabi_lab without its actuator model (the {mode} mode's servos act inside the physics): dynamics, "
+            "sensor noise")
+
+
+def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig = RobustTestConfig()) -> RunConfig:
+    """The run config a case's env is built from: ``cfg`` (a policy's own config) with diverse starts, the case's
+    command schedule, :attr:`RobustTestConfig.seed` and, for a pushed case, :func:`robust_case_config`."""
+    from ..envs import CommandConfig
+
+    from ..control.config import ActuatorConfig
+    from ..envs.push_config import PushConfig
+    from ..sim.dynamics_config import DynamicsRandomization
+    from ..transforms.sensor_noise_config import SensorNoiseConfig
+
+    spec = CASES[case] if isinstance(case, str) else case
+    env = cfg.env
+    task = dataclasses.replace(env.task, start_joint_vel_std=float(test.start_joint_vel_std),
+                               start_base_vel_std=float(test.start_base_vel_std))
+    command = (fixed_command(spec.command) if spec.command is not None
+               else dataclasses.replace(CommandConfig(), resample_every=int(spec.resample_every)))
+    # Every case starts from the ideal robot, whatever the policy trained under: the randomised cases then add the
+    # test's own set, and nominal/commands test the nominal robot without the training's kicks or noise.
+    control = dataclasses.replace(env.control, actuators=ActuatorConfig())
+    # No truncation inside the case: a robot is followed for the whole case, reset or not (see run_case).
+    from .gait_test import policy_dt
+
+    steps = policy_steps(test.seconds, policy_dt())
+    task = dataclasses.replace(task, max_episode_steps=max(int(task.max_episode_steps), steps + 1))
+    env = dataclasses.replace(env, task=task, command=command, control=control, pushes=PushConfig(),
+                              dynamics=DynamicsRandomization())
+    transforms = dataclasses.replace(cfg.transforms, sensor_noise=SensorNoiseConfig())
+    out = dataclasses.replace(cfg, seed=int(test.seed), env=env, transforms=transforms)
+    return robust_case_config(out, spec.push_speed, test) if spec.randomized else out
+
+
+def case_env(cfg: RunConfig, case: str | RobustCase, device: torch.device, num_envs: int,
+             test: RobustTestConfig = RobustTestConfig()):
+    """The env of one case (``num_envs`` robots on ``device``), built as the trainer builds envs
+    (:func:`~tocabi_torchrl.rl.trainer.build_env`) from :func:`case_config`. On CUDA its step is one captured CUDA
+    graph (:class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`), which :func:`run_case` replays."""
+    from ..rl.trainer import build_env
+
+    device = torch.device(device)
+    graph = {"sync_free_resets": True, "cuda_graph": True} if device.type == "cuda" else {}
+    return build_env(case_config(cfg, case, test), device, num_envs=num_envs, **graph)
+
+
+def batch_config(cfg: RunConfig, test: RobustTestConfig = RobustTestConfig()) -> RunConfig:
+    """The run config of the one env that holds every case of ``test.cases`` side by side (:func:`batch_env`):
+    :func:`case_config` of the commands case (diverse starts, the training command range re-drawn) and, when a case
+    is pushed, :func:`robust_case_config` at the fastest case's kick speed. :func:`batch_env` then pins the
+    fixed-command worlds, scales each world's kicks to its case and leaves the unrandomised cases' worlds ideal."""
+    specs = [CASES[name] for name in test.cases]
+    redrawn = {c.resample_every for c in specs if c.command is None}
+    if len(redrawn) > 1:
+        raise ValueError(f"the robust test's cases re-draw their commands at different intervals {sorted(redrawn)}; "
+                         "one batch needs one interval")
+    base = RobustCase("batch", command=None, resample_every=redrawn.pop() if redrawn else 500)
+    out = case_config(cfg, base, test)
+    fastest = max(c.push_speed for c in specs)
+    return robust_case_config(out, fastest, test) if fastest > 0 else out
+
+
+def batch_key(test: RobustTestConfig) -> tuple:
+    """The key :func:`evaluate_robust` keeps a test's :func:`batch_env` under in its ``envs`` cache."""
+    return ("batch", tuple(test.cases), test.num_envs)
+
+
+def case_worlds(test: RobustTestConfig, device: torch.device | str = "cpu") -> dict[str, slice]:
+    """Which worlds of :func:`batch_env` each case holds: ``test.num_envs`` consecutive worlds per case, in
+    ``test.cases`` order."""
+    n = test.num_envs
+    return {name: slice(i * n, (i + 1) * n) for i, name in enumerate(test.cases)}
+
+
+def batch_env(cfg: RunConfig, device: torch.device | str, test: RobustTestConfig = RobustTestConfig()):
+    """One env of ``len(test.cases) × test.num_envs`` robots that runs every case at once (:func:`case_worlds`
+    says whose worlds are whose): one batch keeps the GPU busier than a case at a time (at 1,024 robots the
+    physics, not the host, limits a case's step rate). Built from :func:`batch_config`, then per world: a
+    fixed-command case's worlds hold its command (``VelocityCommand.pin``), each world's kicks are scaled to its
+    case's speed (``Pushes.world_scale``; 0 = none), and the worlds of an unrandomised case are the ideal robot
+    (``TocabiWalk.set_randomized_worlds``). On CUDA the step is one captured graph (:func:`run_case`)."""
+    from ..rl.trainer import build_env
+
+    device = torch.device(device)
+    worlds = case_worlds(test)
+    graph = {"sync_free_resets": True, "cuda_graph": True} if device.type == "cuda" else {}
+    env = build_env(batch_config(cfg, test), device, num_envs=test.num_envs * len(worlds), **graph)
+    base = env.base_env
+    n = base.num_envs
+    fastest = max(CASES[name].push_speed for name in worlds)
+    randomized = torch.zeros(n, dtype=torch.bool)
+    kick = torch.zeros(n)
+    for name, rows in worlds.items():
+        case = CASES[name]
+        randomized[rows] = case.randomized
+        kick[rows] = case.push_speed / fastest if fastest > 0 else 0.0
+        if case.command is not None:
+            pinned = torch.zeros(n, dtype=torch.bool)
+            pinned[rows] = True
+            base.command.pin(pinned.to(base.device), case.command)
+    base.set_randomized_worlds(randomized.to(base.device))
+    if base.pushes is not None:
+        base.pushes.world_scale.copy_(kick.to(base.device))
+    return env
+
+
+# ------------------------------------------------------------------------------------------------ one case
+def heading_frame_velocity(base_quat: torch.Tensor, base_lin_vel: torch.Tensor) -> torch.Tensor:
+    """(N, 2) horizontal pelvis velocity [m/s] in the heading frame (the world rotated by the pelvis yaw), from
+    ``base_quat`` (N, 4) (w, x, y, z) and ``base_lin_vel`` (N, 3) in the pelvis frame. The command is meant in this
+    frame: the pelvis frame itself tilts with the gait's roll and pitch."""
+    conjugate = base_quat * base_quat.new_tensor([1.0, -1.0, -1.0, -1.0])
+    world = quat_rotate_inverse(conjugate, base_lin_vel)  # R(q)·v: the inverse rotation of the conjugate
+    yaw = quat_to_rpy(base_quat)[..., 2]
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    return torch.stack((c * world[..., 0] + s * world[..., 1], -s * world[..., 0] + c * world[..., 1]), -1)
+
+
+def run_case(actor, env, seconds: float, desc: str = "robust test", progress: bool = True,
+             autoreset: bool | None = None) -> dict[str, torch.Tensor]:
+    """Roll the deterministic ``actor`` out in a case's ``env`` for ``seconds`` from a reset; fallen robots are not
+    reset (they lie where they fell and every metric uses their alive steps only, as in the standard test).
+
+    Returns (N,) CPU tensors per robot: ``alive`` (bool), ``forward_m`` and ``lateral_m`` (pelvis displacement in
+    the world's x and y up to its last alive step [m]), ``tracking_error_mps`` (mean over alive steps of
+    ``|v_heading − command|``, the horizontal speed error in the heading frame [m/s]), ``knee_rms_rad`` (against
+    the reference [rad]) and ``alive_seconds``; NaN for a robot with no alive step.
+
+    An env whose step is a captured CUDA graph (``env.cuda_graph``, as :func:`case_env` builds on CUDA) is stepped
+    through that graph, ``step_and_maybe_reset``: a fallen robot is then reset and walks on, but the metrics stop
+    at its first fall either way (:class:`GaitMetrics`), so both paths give the same numbers (``autoreset`` forces
+    one: True needs a sync-free env, False is the eager ``env.step``)."""
+    base = env.base_env
+    dt = float(base.dt)
+    steps = policy_steps(seconds, dt)
+    freeze_running_statistics(env)  # a test of the policy as trained, not of statistics drifting with its rollout
+    if autoreset is None:
+        autoreset = bool(getattr(env, "cuda_graph", False))
+    if autoreset and hasattr(env, "invalidate_graph"):
+        env.invalidate_graph()  # the graph reads the normaliser's frozen flag as captured: capture it frozen
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        metrics = GaitMetrics(td["base_pos"], (0.5, 0.0), dt)  # its own speed error is unused: the command varies
+        track = torch.zeros(env.num_envs, device=td["base_pos"].device)
+        for k in tqdm(range(steps), desc=desc, unit="step", disable=not progress, leave=False):
+            if autoreset:
+                td, carry = env.step_and_maybe_reset(actor(td))
+            else:
+                td = env.step(actor(td))
+            nxt = td["next"]
+            alive = metrics.update(nxt)
+            err = heading_frame_velocity(nxt["base_quat"], nxt["base_lin_vel"]) - nxt["command"]
+            track += alive.float() * err.norm(dim=-1)
+            td = carry if autoreset else step_mdp(td)
+            if k % 50 == 49 and not bool(alive.any()):  # no metric can change once all have fallen (a read per 50)
+                break
+    per_env = metrics.per_env()
+    per_env["tracking_error_mps"] = metrics._per_alive_step(track)
+    return {k: v.detach().cpu() for k, v in per_env.items()}
+
+
+def _distribution(values: torch.Tensor, stats: Sequence[str]) -> dict[str, float]:
+    """``stats`` ("mean", "p5", "p50", "p95", ...) of ``values`` (N,) over its non-NaN entries; NaN when none."""
+    finite = values[~torch.isnan(values)].double()
+    out = {}
+    for stat in stats:
+        if finite.numel() == 0:
+            out[stat] = math.nan
+        elif stat == "mean":
+            out[stat] = float(finite.mean())
+        else:
+            out[stat] = float(torch.quantile(finite, float(stat[1:]) / 100.0))
+    return out
+
+
+def case_summary(case: RobustCase, per_env: dict[str, torch.Tensor], seconds: float) -> dict:
+    """A case's report entry (without its verdict) from :func:`run_case`'s per-robot values."""
+    return {
+        "description": case.description,
+        "num_envs": int(per_env["alive"].numel()),
+        "seconds": float(seconds),
+        "command_mps": (list(case.command) if case.command is not None
+                        else f"training range (CommandConfig()) re-drawn every {case.resample_every} steps"),
+        "randomized": case.randomized,
+        "push_speed_mps": float(case.push_speed),
+        "survival": float(per_env["alive"].float().mean()),
+        "forward_distance_m": _distribution(per_env["forward_m"], ("mean", "p5", "p50", "p95")),
+        "lateral_drift_m": _distribution(per_env["lateral_m"].abs(), ("mean", "p50", "p95")),
+        "tracking_error_mps": _distribution(per_env["tracking_error_mps"], ("mean", "p95")),
+        "knee_rms_rad": _distribution(per_env["knee_rms_rad"], ("mean", "p95")),
+    }
+
+
+# ------------------------------------------------------------------------------------------------ verdicts
+def _metric(summary: dict, path: str):
+    """The value at ``path`` ("survival", "lateral_drift_m.p95") of a case summary; None if missing."""
+    value = summary
+    for part in path.split("."):
+        if not isinstance(value, dict) or part not in value:
+            return None
+        value = value[part]
+    return value
+
+
+def case_checks(name: str, summary: dict) -> dict[str, dict]:
+    """Each threshold of case ``name`` (:data:`.gait_test.ROBUST_CRITERIA`) against ``summary`` (a case entry of the
+    report, or of ``robust.json`` read back): metric path -> {"value", "needs" (e.g. ">= 0.99"), "pass"}. A value
+    that is missing, NaN or null fails."""
+    checks = {}
+    for path, (op, limit) in ROBUST_CRITERIA[name].items():
+        value = _metric(summary, path)
+        ok = (isinstance(value, (int, float)) and math.isfinite(value)
+              and (value >= limit if op == ">=" else value <= limit))
+        checks[path] = {"value": value, "needs": f"{op} {limit:g}", "pass": bool(ok)}
+    return checks
+
+
+def robust_passes(report: dict) -> bool:
+    """Whether a robust-test report (:func:`evaluate_robust`'s, or ``robust.json`` read back) passes: every case of
+    :data:`.gait_test.ROBUST_CRITERIA` is in it and meets all its thresholds (re-checked from the values, not read
+    from the stored verdicts)."""
+    cases = report.get("cases", {})
+    return all(name in cases and all(c["pass"] for c in case_checks(name, cases[name]).values())
+               for name in ROBUST_CRITERIA)
+
+
+# ------------------------------------------------------------------------------------------------ the test
+def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: RobustTestConfig = RobustTestConfig(),
+                    device: str | torch.device = "cuda", envs: dict | None = None,
+                    prepare_env: Callable | None = None, progress: bool = True) -> dict:
+    """Run the robust test's cases (``test.cases``) of the deterministic ``actor`` (trained with run config
+    ``cfg``) and write ``robust.json`` and ``robust.png`` to ``out_dir`` (created if needed; files of the same name
+    replaced). Returns the report: {"test": "robust", "passes", "seed", "settings", "tested_on", "criteria",
+    "cases": {name: case summary with "checks" and "passes"}}, NaN where a value does not exist (``null`` in the
+    file).
+
+    Every case runs at once in one env (:func:`batch_env`). ``envs``: a dict to keep that env in for reuse (e.g.
+    across checkpoints; built and stored under :func:`batch_key` when missing). ``prepare_env(env)``: called on the
+    env before the rollout, e.g. to load a checkpoint's normaliser statistics into it. ``progress``: a bar."""
+    from .gait_test import policy_dt
+    from .plots import plot_robust
+
+    dt = policy_dt()
+    test.validate(dt)
+    device = torch.device(device)
+    envs = {} if envs is None else envs
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"test": "robust", "passes": False, "seed": test.seed, "tested_on": tested_on(device),
+              "settings": {"num_envs": test.num_envs, "seconds": test.seconds,
+                           "start_joint_vel_std_radps": test.start_joint_vel_std,
+                           "start_base_vel_std_mps": test.start_base_vel_std, "push_count": test.push_count,
+                           "push_window_s": list(test.push_window)},
+              "criteria": {name: {p: f"{op} {v:g}" for p, (op, v) in c.items()} for name, c in ROBUST_CRITERIA.items()},
+              "cases": {}}
+    per_case = {}
+    key = batch_key(test)
+    if key not in envs:
+        envs[key] = batch_env(cfg, device, test)
+    env = envs[key]
+    if prepare_env is not None:
+        prepare_env(env)
+    # The same robots for every policy tested in this env: episode draws restart from the test's seed.
+    env.set_seed(int(test.seed))
+    every = run_case(actor, env, test.seconds, progress=progress,
+                     desc=f"robust test: {len(test.cases)} cases x {test.num_envs} robots")
+    for name, rows in case_worlds(test).items():
+        case = CASES[name]
+        per_env = {k: v[rows] for k, v in every.items()}
+        summary = case_summary(case, per_env, test.seconds)
+        if case.randomized:
+            summary["randomization"] = randomization_applied(cfg)
+        summary["checks"] = case_checks(name, summary) if name in ROBUST_CRITERIA else {}
+        summary["passes"] = all(c["pass"] for c in summary["checks"].values())
+        report["cases"][name] = summary
+        per_case[name] = per_env
+    report["passes"] = robust_passes(report)
+    atomic_write_text(out / ROBUST_JSON, summary_json(report))
+    plot_robust(per_case, report, out / ROBUST_PNG)
+    return report
+
+
+def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: str | os.PathLike,
+                               test: RobustTestConfig = RobustTestConfig(), device: str | torch.device = "cuda",
+                               envs: dict | None = None, progress: bool = True) -> dict:
+    """:func:`evaluate_robust` of a checkpoint already read (``state``, from ``read_checkpoint(path)``): its actor,
+    and its normaliser statistics loaded into every case's env. ``envs`` as there: a benchmark reuses the case envs
+    of one run's checkpoints (building them costs more than the test)."""
+    from ..rl.checkpoint import apply_checkpoint, config_from_checkpoint
+    from .gait_test import policy_dt
+    from ..rl.trainer import build_agent, resolve_device
+
+    device = resolve_device(device) if str(device) == "auto" else torch.device(device)
+    cfg = config_from_checkpoint(state, path)
+    test.validate(policy_dt())
+    envs = {} if envs is None else envs
+    key = batch_key(test)
+    if key not in envs:  # the agent's sizes come from the env
+        envs[key] = batch_env(cfg, device, test)
+    env = envs[key]
+    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
+    return evaluate_robust(agent.actor, cfg, out_dir, test=test, device=device, envs=envs,
+                           prepare_env=lambda case_env_: apply_checkpoint(state, agent, env=case_env_, path=path),
+                           progress=progress)
+
+
+def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: str = "auto",
+                        out_dir: str | os.PathLike | None = None, seconds: float = 8.0,
+                        cases: Sequence[str] | None = None, progress: bool = True) -> dict:
+    """Load ``run`` (a run folder or checkpoint file) and run the robust test (``num_envs`` robots per case,
+    ``seconds`` each, ``cases`` of :data:`CASES`, default all). Results go to ``out_dir`` as given, or by default to
+    :func:`.gait_test.fresh_eval_dir`. Raises ``CheckpointError`` for a bad file and ``ValueError`` for a bad
+    setting, before building anything."""
+    from ..rl.checkpoint import checkpoint_file, read_checkpoint
+    from .gait_test import policy_dt
+
+    test = RobustTestConfig(num_envs=num_envs, seconds=seconds, cases=tuple(cases or CASES))
+    test.validate(policy_dt())
+    ckpt = checkpoint_file(run)
+    state = read_checkpoint(ckpt)
+    return evaluate_robust_checkpoint(state, ckpt, fresh_eval_dir(ckpt) if out_dir is None else out_dir, test=test,
+                                      device=device, progress=progress)
+
+
+def robust_report_text(report: dict, out: str | os.PathLike | None = None) -> str:
+    """The report for people: the verdict, one line per case (survival, distance p5/p50/p95, drift p95, tracking
+    error, knee RMS), each threshold with pass/FAIL, and the files written. Full precision stays in the JSON."""
+
+    def num(value, spec):
+        return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, spec)
+
+    s = report["settings"]
+    lines = [f"robust gait test ({s['seconds']:g} s, {s['num_envs']} robots per case): "
+             + ("walks" if report["passes"] else "does not walk yet")]
+    for name, c in report["cases"].items():
+        d, drift = c["forward_distance_m"], c["lateral_drift_m"]
+        lines.append(f"  {name:<11} survival {num(c['survival'], '.3f')}, forward p5/p50/p95 {num(d['p5'], '.2f')}/"
+                     f"{num(d['p50'], '.2f')}/{num(d['p95'], '.2f')} m, drift p95 {num(drift['p95'], '.2f')} m, "
+                     f"tracking {num(c['tracking_error_mps']['mean'], '.3f')} m/s, knee RMS "
+                     f"{num(c['knee_rms_rad']['mean'], '.3f')} rad")
+        for path, check in c.get("checks", {}).items():
+            lines.append(f"      {path:<24} {num(check['value'], '.3f'):>8}  needs {check['needs']:<8} "
+                         f"{'pass' if check['pass'] else 'FAIL'}")
+    if out is not None:
+        lines.append(f"results: {Path(out) / ROBUST_JSON}, {Path(out) / ROBUST_PNG}")
+    return "\n".join(lines)
