@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One time-limited call of the per-library table on a GPU host (docs/adapters.md, "Split over 10-minute calls"): each
+# One time-limited call of the per-library table on a GPU host (docs/other-libraries.md, "Split over 10-minute calls"): each
 # row trains on its own GPU until what it keeps (below) plus the packing before the call's end (recipes/
 # library_table.py --no_eval --minutes), then the call packs into $OUT what must come back, most important first: the
 # table, the logs, the resume states this call wrote, its snapshots (~4.5 MB each), then the rest of the runs without the libraries' own

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A pinned set of wheels (benchmarks/<set>_pins.txt) for the GPU machine, which cannot download. From the repository
-# root (docs/benchmarks.md "Peer: mjlab" and docs/adapters.md "Per-library table" have the GPU calls):
+# root (docs/benchmarks.md "Peer: mjlab" and docs/other-libraries.md "Per-library table" have the GPU calls):
 #   bash benchmarks/wheel_set.sh <set> stage     here: the wheels (Python 3.12), one tar split into .<set>wheels/1, 2,
 #                                                ..., each small enough to travel beside the working tree
 #   bash benchmarks/wheel_set.sh <set> install   there, in the call carrying the last folder (earlier calls copy theirs

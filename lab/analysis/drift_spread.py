@@ -1,7 +1,7 @@
 """Diagnostic (not the gait test): how much of a policy's 8 s drift is its own, and how much the start's rounding.
 
 At a fixed command the gait test's 256 robots start from two rows of the reference motion, so they are two
-trajectories, each chaotic in float32 rounding (docs/training/torque.md). Here every robot gets its own small push
+trajectories, each chaotic in float32 rounding (docs/training.md). Here every robot gets its own small push
 instead: for the first ``--kick_seconds`` its deterministic action gets Gaussian noise of ``--kick_std`` (in the
 normalised action units), then the policy acts alone as in the gait test. The spread of the 256 drifts shows
 whether a pass or fail at the 0.3 m limit is the policy's or the start's. On the CPU backend (C MuJoCo)::

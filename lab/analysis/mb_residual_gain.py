@@ -1,7 +1,7 @@
 """The model_based preset's residual gain: survival under random residuals, the gain at the torque limits vs at the
 PD-residual modes' authority (0.5 rad × the robot's Kp), beside pd_reference under the same noise. C MuJoCo.
 
-Wrote residual_gain.json (docs/training/model_based.md), ~4 min on 2 cores:
+Wrote residual_gain.json (docs/training.md), ~4 min on 2 cores:
 ``PYTHONPATH=. python lab/analysis/mb_residual_gain.py docs/training/model_based/residual_gain.json``
 """
 import json

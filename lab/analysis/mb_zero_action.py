@@ -1,6 +1,6 @@
 """The model_based law at zero (or small random) residual vs pd_reference: survival and leg tracking, C MuJoCo.
 
-Wrote zero_action.json (docs/training/model_based.md's table), ~40 min on 2 cores:
+Wrote zero_action.json (docs/training.md's table), ~40 min on 2 cores:
 ``PYTHONPATH=. python lab/analysis/mb_zero_action.py docs/training/model_based/zero_action.json``
 """
 import json, subprocess, sys, time
