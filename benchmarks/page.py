@@ -208,8 +208,8 @@ SECTIONS: tuple[Callable[[Path], list[str]], ...] = (
 
 FOOTER = """## Robust gait test
 
-No policy has passed the robust gait test yet ([evaluation](evaluation.md)): the shipped policies were trained
-without randomisation, and the `robust` preset has not been trained."""
+No robust policy is shipped yet ([evaluation](evaluation.md)): the shipped policies were trained without
+randomisation, and the `robust` preset, whose verdict the robust gait test is, has not been trained."""
 
 
 def render(docs: Path = DOCS) -> str:
