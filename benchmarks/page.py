@@ -12,7 +12,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Callable
+from collections.abc import Callable
 
 #: The repository's docs/ folder (the page links relative to it).
 DOCS = Path(__file__).resolve().parents[1] / "docs"
@@ -48,10 +48,12 @@ def env_throughput(docs: Path) -> list[str]:
     rows = ["| envs | raw policy steps/s | `TocabiWalk` step | env / raw | `make_env` / raw | transforms' share |",
             "|---:|---:|---:|---:|---:|---:|"]
     rows += [f"| {r['num_envs']:,} | {_k(r['raw_policy_steps_per_s'])} | {_k(r['env_steps_per_s'])} | "
-             f"{r['env_over_raw']:.3f} | {r['make_env_over_raw']:.3f} | {100 * r['transform_share_of_env_step']:.1f} % |"
+             f"{r['env_over_raw']:.3f} | {r['make_env_over_raw']:.3f} | "
+             f"{100 * r['transform_share_of_env_step']:.1f} % |"
              for r in d["results"]]
     return ["## Environment step vs raw mujoco-warp", "", *rows, "",
-            *_source("benchmarks/env_throughput.json", m["command"], m["date"], m["gpu"], "benchmarks/env_throughput.md")]
+            *_source("benchmarks/env_throughput.json", m["command"], m["date"], m["gpu"],
+                     "benchmarks/env_throughput.md")]
 
 
 def train_throughput(docs: Path) -> list[str]:
@@ -73,7 +75,8 @@ def train_throughput(docs: Path) -> list[str]:
 
 def several_gpus(docs: Path) -> list[str]:
     out = ["## Several GPUs of one host (data-parallel, 4,096 envs per GPU)", "",
-           "| GPU | gradient exchange | 1 GPU env-steps/s | 2 GPUs env-steps/s | speed-up |", "|---|---|---:|---:|---:|"]
+           "| GPU | gradient exchange | 1 GPU env-steps/s | 2 GPUs env-steps/s | speed-up |",
+           "|---|---|---:|---:|---:|"]
     sources = []
     for rel, how in (("benchmarks/multi_gpu.json", "all-reduce captured in the update"),
                      ("benchmarks/multi_gpu_h200.json", "all-reduce captured in the update"),

@@ -1,5 +1,5 @@
-"""The controller interface: the user-defined controller of docs/concepts/controllers.md builds an env, steps it and trains
-two PPO iterations on the CPU; a bad controller is refused by name."""
+"""The controller interface: the user-defined controller of docs/concepts/controllers.md builds an env, steps it and
+trains two PPO iterations on the CPU; a bad controller is refused by name."""
 
 from __future__ import annotations
 

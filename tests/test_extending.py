@@ -15,7 +15,7 @@ DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 @pytest.fixture(scope="module")
 def namespace(tmp_path_factory):
     """Every python block of the page executed in one namespace (the task writes runs/ under a temporary cwd)."""
-    blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
+    blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.DOTALL)
     assert len(blocks) == 3, "extending.md has a reward term, a controller and a task block"
     ns: dict = {}
     with pytest.MonkeyPatch.context() as mp:
@@ -27,7 +27,8 @@ def namespace(tmp_path_factory):
 
 
 def test_the_new_reward_terms_are_computed_and_logged(namespace):
-    env = namespace["make_env"](num_envs=2, device="cpu", reward_terms=("qpos", "body_vel", namespace["PelvisHeight"]()))
+    terms = ("qpos", "body_vel", namespace["PelvisHeight"]())
+    env = namespace["make_env"](num_envs=2, device="cpu", reward_terms=terms)
     td = env.rollout(2, break_when_any_done=False)
     z = td["next", "base_pos"][..., 2:3]
     want = 0.2 * torch.exp(-50.0 * (z - 0.92).square())

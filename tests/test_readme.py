@@ -88,7 +88,7 @@ def test_ci_runs_exactly_the_readme_test_command():
 def test_the_train_command_runs_the_announced_cpu_smoke_run_and_prints_the_readme_output(tmp_path):
     command = TRAIN.split(" && ", 1)[1].split()  # the install is .ci/run's (module docstring)
     out = subprocess.run([sys.executable, str(REPO / command[1]), *command[2:]], cwd=tmp_path, env=_cpu_env(tmp_path),
-                         capture_output=True, text=True, timeout=900)
+                         capture_output=True, text=True, timeout=900, check=False)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     printed = out.stdout + out.stderr
     assert "cpu_smoke" in printed  # it says which configuration it runs instead of the GPU default
@@ -108,7 +108,7 @@ def test_the_shipped_policy_command_runs_on_the_cpu(tmp_path):
     args[0] = str(REPO / args[0])
     args[args.index("--checkpoint") + 1] = str(REPO / "assets/policies/tocabi_walk_ppo.pt")
     out = subprocess.run([sys.executable, *args], cwd=tmp_path, env=_cpu_env(tmp_path), capture_output=True,
-                         text=True, timeout=900)
+                         text=True, timeout=900, check=False)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     assert "gait test" in out.stdout + out.stderr
     assert (tmp_path / "eval" / "summary.json").is_file()
@@ -120,7 +120,7 @@ def test_every_python_block_of_the_readme_runs_on_the_cpu(index, tmp_path):
     blocks = _blocks(_text(), "python")
     assert len(blocks) == 2
     out = subprocess.run([sys.executable, "-c", blocks[index]], cwd=tmp_path, env=_cpu_env(tmp_path),
-                         capture_output=True, text=True, timeout=600)
+                         capture_output=True, text=True, timeout=600, check=False)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     if index == 0:  # the shapes and terms the block's comments state
         assert "237" in out.stdout and "torque_diff" in out.stdout
@@ -131,24 +131,24 @@ def test_no_page_narrates_how_the_project_was_developed():
     for page in _pages():
         for number, line in enumerate(page.read_text().splitlines(), 1):
             hits += [f"{page.relative_to(REPO)}:{number}: {pattern}" for pattern in NARRATIVE
-                     if re.search(pattern, line, flags=re.I)]
+                     if re.search(pattern, line, flags=re.IGNORECASE)]
     assert not hits, "development narrative in README.md or docs/:\n" + "\n".join(hits)
 
 
 def test_the_narrative_check_catches_a_log_line():
     log = "Measured in the ninth session, once the H100 was available again (device call B)."
-    assert [p for p in NARRATIVE if re.search(p, log, flags=re.I)]
+    assert [p for p in NARRATIVE if re.search(p, log, flags=re.IGNORECASE)]
     manual = "A run never silently replaces an earlier one; shared buffers stay on the device; the agent's std."
-    assert not [p for p in NARRATIVE if re.search(p, manual, flags=re.I)]
+    assert not [p for p in NARRATIVE if re.search(p, manual, flags=re.IGNORECASE)]
 
 
-_LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)|^\[[^\]]+\]:\s*(\S+)", flags=re.M)
+_LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)|^\[[^\]]+\]:\s*(\S+)", flags=re.MULTILINE)
 
 
 def test_every_relative_link_resolves_inside_the_repository():
     broken = []
     for page in _pages():
-        text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.S | re.M)  # code blocks hold commands
+        text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.DOTALL | re.MULTILINE)  # code blocks hold commands
         for match in _LINK.finditer(text):
             target = (match.group(1) or match.group(2)).split("#", 1)[0]
             if not target or re.match(r"[a-z]+:", target):  # an anchor on the same page, or a URL
