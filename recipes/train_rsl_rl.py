@@ -10,10 +10,10 @@ gain 0.01, plain L2 value loss), and so do the learning rate and the std by defa
 follows the preset's KL rule (``--lr_schedule per_iteration``: towards a KL of 0.01, on the update's mean KL, once per
 iteration); rsl_rl's own rule (``adaptive``: the same target, checked before every mini-batch step) held it near 1e-4,
 the critic lagged and three rows of up to 22 minutes on one H200 did not walk, while this rule walked at 10
-(docs/adapters.md). The std by default (``--std scheduled``): the preset's schedule (from 0.2 down to 0.05 over the
+(docs/other-libraries.md). The std by default (``--std scheduled``): the preset's schedule (from 0.2 down to 0.05 over the
 first half of the preset's env-step budget, then 0.05), set after each update from the env steps trained, not
 learned. ``--std learned`` is rsl_rl's own way (a learned std starting at 0.2); on one H200 it fell to 0.03 and the
-policy had not walked after 22 minutes (docs/adapters.md). Writes rsl_rl's own logs and model_*.pt under
+policy had not walked after 22 minutes (docs/other-libraries.md). Writes rsl_rl's own logs and model_*.pt under
 <out>/rsl_rl, the policy as <out>/policy.pt (tensors only, tocabi_torchrl.adapters.policy_file) and the gait test
 under <out>/eval/.
 
@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="per_iteration: the preset's rule (towards a KL of 0.01, on the update's mean KL, once "
                              "per iteration; default: walked at 10 training minutes on one H200); adaptive: rsl_rl's "
                              "own rule (the same target, checked before every mini-batch step: it held the rate near "
-                             "1e-4 and three rows did not walk); fixed. docs/adapters.md has the rows")
+                             "1e-4 and three rows did not walk); fixed. docs/other-libraries.md has the rows")
     parser.add_argument("--std", choices=("scheduled", "learned"), default="scheduled",
                         help="action std: the preset's schedule, set after each update (default), or learned by "
                              "rsl_rl from the schedule's start")
@@ -108,7 +108,7 @@ def train_cfg(args) -> dict:
                       # The preset's critic loss is plain L2 (ClipPPOLoss without clip_value). Clipped, each value
                       # could move only +-0.2 from its rollout value per update, on returns of O(100), and at the
                       # ~1e-4 learning rate rsl_rl's per-mini-batch KL rule settles at here the critic lagged behind
-                      # (docs/adapters.md, "Second GPU row").
+                      # (docs/other-libraries.md, "Second GPU row").
                       "use_clipped_value_loss": False},
         "actor": {"class_name": "MLPModel", "hidden_dims": hidden, "activation": "elu",
                   "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": std_schedule(args)(1.0),

@@ -1,5 +1,5 @@
-"""The controller interface: the user-defined controller of docs/controllers.md builds an env, steps it and trains
-two PPO iterations on the CPU; a bad controller is refused by name."""
+"""The controller interface: the user-defined controller of docs/concepts/controllers.md builds an env, steps it and
+trains two PPO iterations on the CPU; a bad controller is refused by name."""
 
 from __future__ import annotations
 
@@ -13,11 +13,11 @@ from tocabi_torchrl import robot
 from tocabi_torchrl.control import Controller, DirectTorque
 from tocabi_torchrl.envs import TocabiWalk
 
-DOC = Path(__file__).resolve().parents[1] / "docs" / "controllers.md"
+DOC = Path(__file__).resolve().parents[1] / "docs" / "concepts" / "controllers.md"
 
 
 def _doc_example() -> dict:
-    """Run the python block of docs/controllers.md that defines PDFeedForward; return its namespace."""
+    """Run the python block of docs/concepts/controllers.md that defines PDFeedForward; return its namespace."""
     blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
     block = next(b for b in blocks if "class PDFeedForward" in b)
     namespace: dict = {}

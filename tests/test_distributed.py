@@ -297,7 +297,7 @@ def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
     from tocabi_torchrl.rl import preset_config
     from tocabi_torchrl.rl.trainer import train
 
-    # With the budget scaled by the rank count (docs/distributed.md), the scheduled std falls per update exactly as in
+    # With the budget scaled by the rank count (docs/training.md), the scheduled std falls per update exactly as in
     # a 1-rank run of the unscaled budget.
     one = train(preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
                               total_env_steps=32, run_dir=str(tmp_path), name="one", checkpoint_every=1,

@@ -173,7 +173,7 @@ def test_resume_goes_on_in_the_checkpoints_own_folder_wherever_the_run_was_start
     recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "24"])
     assert iterations_logged(run) == [1, 2, 3] and read_checkpoint(run)["iteration"] == 3
     assert folder_bytes(finished_run) == before
-    # --name alone (the form docs/training/README.md shows) branches beside the run, not into the saved run_dir.
+    # --name alone (the form docs/training.md shows) branches beside the run, not into the saved run_dir.
     recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "32", "--name", "branch"])
     assert iterations_logged(tmp_path / "branch") == [4]
     assert folder_bytes(finished_run) == before

@@ -102,7 +102,7 @@ def test_runtime_walks_like_the_torchrl_env(name, tmp_path, record_property):
     give the same survival and mean forward distances within 5 % (WALK_ROBOTS robots each, same start rows).
 
     Walking is chaotic: the ~1e-6 difference between ONNX and torch arithmetic grows to centimetres within 2 s
-    (docs/export.md), so single trajectories cannot be compared. Each robot on both sides gets its own 1e-6
+    (docs/deploying.md), so single trajectories cannot be compared. Each robot on both sides gets its own 1e-6
     perturbation (initial joint angles in the runtime, a constant action offset in the env) and the means of the
     two ensembles are compared.
     """
@@ -139,7 +139,7 @@ def test_runtime_walks_like_the_torchrl_env(name, tmp_path, record_property):
 @pytest.mark.parametrize("name", POLICIES)
 def test_runtime_drives_the_reference_robot_model(name, record_property):
     """Cross-model transfer: the same runtime on the reference ``dyros_tocabi.xml`` (meshes removed). Records
-    whether the policy walks there (docs/export.md reports it); asserts only that the run is sound."""
+    whether the policy walks there (docs/deploying.md reports it); asserts only that the run is sound."""
     model = REFERENCE_DIR / "dyros_tocabi.xml"
     if not model.is_file():
         pytest.skip(f"reference data not available ({model})")

@@ -1,5 +1,5 @@
 """The signal table (tocabi_torchrl.signals) is the one source of the env's specs, the reward terms' shape checks, the
-transforms' mock and docs/signals.md; adding a signal is a table row plus the line that computes it."""
+transforms' mock and docs/concepts/env-and-signals.md; adding a signal is a table row plus the line that computes it."""
 
 from __future__ import annotations
 
@@ -42,8 +42,8 @@ def _env(cls=TocabiWalk, **kwargs) -> TocabiWalk:
 
 def test_docs_table_is_current():
     if not DOC_PATH.is_file():
-        pytest.skip("docs/signals.md is not in this installation")
-    assert is_current(DOC_PATH), "docs/signals.md is stale: run python -m tocabi_torchrl.signals_doc"
+        pytest.skip("docs/concepts/env-and-signals.md is not in this installation")
+    assert is_current(DOC_PATH), "docs/concepts/env-and-signals.md is stale: run python -m tocabi_torchrl.signals_doc"
 
 
 def test_env_specs_are_the_table():

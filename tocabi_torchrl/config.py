@@ -85,7 +85,7 @@ class PPOConfig:
 
     The defaults (the ``default`` preset) are tuned for thousands of envs on one GPU: 48-step rollouts with gamma
     0.995 (a 0.8 s horizon at 250 Hz), large mini-batches, a KL-adaptive learning rate and a scheduled std from 0.2
-    to 0.05 (docs/training/README.md).
+    to 0.05 (docs/training.md).
     """
 
     # rollout
@@ -393,9 +393,9 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # default's PPO on an assisted torque env whose leg actions start as the residual-PD preset's position residuals
     # (β = 1 for 50 M steps) and morph into torques by 110 M (geometric in the action gain, learning rate held), a
     # loss moving each step of the morph into the actor (rl/assist.py); the rest trains the pure torque policy.
-    # Without the assist, PPO at thousands of envs learned to stand (issue 19); docs/training/torque.md has the runs.
+    # Without the assist, PPO at thousands of envs learned to stand (issue 19); docs/training.md has the runs.
     # The pull copies a frozen β = 1 teacher (DAgger) and fades out over 30 M steps after the fade. Run 5 of
-    # docs/training/torque.md: walks at 24.0 min of training on an H100 (178.7 M steps). A teacher taken at 75 M
+    # docs/training.md: walks at 24.0 min of training on an H100 (178.7 M steps). A teacher taken at 75 M
     # (run 6) went faster (3.3-3.4 m in the 8 s test) but drifted 0.30-0.34 m, just past the limit, to its end.
     "torque": MappingProxyType(_TORQUE),
     # Residual torque on a computed-torque law (env.control.mode "model_based", envs/model_based.py): the 12 leg
@@ -405,7 +405,7 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # authority (0.5 rad × the robot's Kp, 3-11× the torque limits), the action space the default preset and the
     # torque preset's β = 1 phase learn to walk in: with g = the limits, H100 run 1 (std 0.2 -> 0.05) did not walk in
     # its 24 minutes and run 2 (std 0.1 -> 0.05, less exploration still) fell within 8 s at every checkpoint
-    # (docs/training/model_based.md).
+    # (docs/training.md).
     "model_based": MappingProxyType({
         "env.control.mode": "model_based", "env.control.mb_residual_gain": MB_RESIDUAL_GAIN_PD,
         "total_env_steps": 200_000_000,

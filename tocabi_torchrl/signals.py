@@ -2,7 +2,7 @@
 
 The env's observation, done and reward specs (``TocabiWalk._make_specs``), the reward terms' shape checks
 (``transforms.reward_terms.SIGNAL_SHAPES``), the transforms' test stand-in (``tests/mock_env.py``) and the table in
-``docs/signals.md`` (``python -m tocabi_torchrl.signals_doc``) are all made from these rows. Adding a signal is a row
+``docs/concepts/env-and-signals.md`` (``python -m tocabi_torchrl.signals_doc``) are all made from these rows. Adding a signal is a row
 here and the line of ``TocabiWalk._observe`` that computes it; the env refuses to build when the two disagree.
 
 Shapes are per env: the env's tensors are ``(num_envs, *shape)``. Joint-sized signals follow ``robot.JOINT_NAMES``;
@@ -34,7 +34,7 @@ class Signal:
         shape: per-env shape (the env's tensor is ``(num_envs, *shape)``).
         dtype: ``torch.float32``, ``torch.int64`` or ``torch.bool``.
         unit: physical unit (``"rad"``, ``"m/s"``, ``"N"``, ...); ``""`` for unitless values, flags and labels.
-        meaning: one line for docs/signals.md (no ``|``, no line breaks).
+        meaning: one line for docs/concepts/env-and-signals.md (no ``|``, no line breaks).
         categories: for discrete signals, the number of values ``0 … categories − 1`` (bool flags: 2).
         bounds: ``(low, high)`` for a continuous signal with a known range (its spec is then ``Bounded``).
         requires: the name of the env option that turns the signal on (``"torque_assist"``, ``"model_based"``,
@@ -96,7 +96,7 @@ class Signal:
 
     @property
     def shape_text(self) -> str:
-        """The shape as docs/signals.md writes it, e.g. ``(N, 2, 3)``."""
+        """The shape as docs/concepts/env-and-signals.md writes it, e.g. ``(N, 2, 3)``."""
         return "(" + ", ".join(("N", *map(str, self.shape))) + ")"
 
 

@@ -1,7 +1,7 @@
-"""docs/signals.md's table, generated from the signal table (:mod:`tocabi_torchrl.signals`).
+"""docs/concepts/env-and-signals.md's table, generated from the signal table (:mod:`tocabi_torchrl.signals`).
 
-``python -m tocabi_torchrl.signals_doc`` rewrites the table between the two marker lines of docs/signals.md (the prose
-around it is edited by hand); ``--check`` only reports whether the file is current (exit status 1 if not), which
+``python -m tocabi_torchrl.signals_doc`` rewrites the table between the two marker lines of
+docs/concepts/env-and-signals.md (the prose around it is edited by hand); ``--check`` only reports whether the file is current (exit status 1 if not), which
 ``tests/test_signals.py`` also asserts.
 """
 
@@ -18,8 +18,8 @@ __all__ = ["BEGIN", "END", "DOC_PATH", "render_table", "with_table", "is_current
 #: The marker lines around the generated table.
 BEGIN = "<!-- BEGIN signal table: generated from tocabi_torchrl/signals.py by python -m tocabi_torchrl.signals_doc -->"
 END = "<!-- END signal table -->"
-#: docs/signals.md of a source checkout.
-DOC_PATH = Path(__file__).resolve().parents[1] / "docs" / "signals.md"
+#: docs/concepts/env-and-signals.md of a source checkout.
+DOC_PATH = Path(__file__).resolve().parents[1] / "docs" / "concepts" / "env-and-signals.md"
 
 
 def _row(signal: Signal) -> str:
@@ -35,8 +35,8 @@ def render_table(signals: SignalTable = SIGNALS) -> str:
 
 
 def with_table(text: str, signals: SignalTable = SIGNALS) -> str:
-    """``text`` (a docs/signals.md) with the part from ``BEGIN`` to the first ``END`` after it replaced by
-    :func:`render_table`; raises ``ValueError`` naming the marker line the page lacks."""
+    """``text`` (a docs/concepts/env-and-signals.md) with the part from ``BEGIN`` to the first ``END`` after it
+    replaced by :func:`render_table`; raises ``ValueError`` naming the marker line the page lacks."""
     start = text.find(BEGIN)
     if start < 0:
         raise ValueError(f"the signals page lacks the marker line {BEGIN!r} before its table; add it (and {END!r} "
@@ -55,15 +55,18 @@ def is_current(path: str | Path = DOC_PATH, signals: SignalTable = SIGNALS) -> b
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Command line: rewrite docs/signals.md's table, or with ``--check`` report whether it is current."""
+    """Command line: rewrite docs/concepts/env-and-signals.md's table, or with ``--check`` report whether it is
+    current."""
     parser = argparse.ArgumentParser(prog="python -m tocabi_torchrl.signals_doc", description=__doc__.split("\n")[0])
     parser.add_argument("--path", type=Path, default=DOC_PATH, help="the signals page (default: %(default)s)")
     parser.add_argument("--check", action="store_true", help="only check; exit status 1 if the table is stale")
     args = parser.parse_args(argv)
     if args.path.exists() and not args.path.is_file():
-        parser.error(f"{args.path} is not a file; pass --path to the docs/signals.md of a source checkout")
+        parser.error(f"{args.path} is not a file; pass --path to the docs/concepts/env-and-signals.md of a source "
+                     "checkout")
     if not args.path.is_file():
-        parser.error(f"{args.path} does not exist; pass --path to the docs/signals.md of a source checkout")
+        parser.error(f"{args.path} does not exist; pass --path to the docs/concepts/env-and-signals.md of a source "
+                     "checkout")
     try:
         current = is_current(args.path)
     except ValueError as err:  # missing marker lines (or a page that is not UTF-8 text): a one-line usage error

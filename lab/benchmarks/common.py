@@ -323,7 +323,7 @@ def gait_test(state: dict, path, command, out, num_envs: int, seconds: float, de
 
 
 def run_child(module: str, args: Sequence[str], env: dict | None = None, nproc: int | None = None) -> dict:
-    """``python -m benchmarks.<module> --child ARGS`` in a fresh process (its memory peaks are its own), or under
+    """``python -m lab.benchmarks.<module> --child ARGS`` in a fresh process (its memory peaks are its own), or under
     torchrun as ``nproc`` data-parallel ranks (rank 0 reports); the JSON of its last ``RESULT <json>`` line, or an
     error carrying the output's tail."""
     launch = [] if nproc is None else ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)]

@@ -310,7 +310,7 @@ def test_time_to_walk_names_the_gpu_of_any_cuda_device_string(monkeypatch):
 
 
 def test_time_to_walk_trains_on_two_ranks_under_torchrun(tmp_path):
-    """The 2-GPU command of docs/distributed.md on gloo ranks: rank 0 alone keeps the named run's record."""
+    """The 2-GPU command of docs/training.md on gloo ranks: rank 0 alone keeps the named run's record."""
     train = ["train", "--preset", "cpu_smoke", "--name", "smoke_2gpu", "--device", "cpu", "--minutes", "0.004"]
     out = _time_to_walk(tmp_path, *train, "--every", "0", "--log_every", "1", nproc=2)
     record = json.loads((tmp_path / "runs/time_to_walk/smoke_2gpu/train.json").read_text())

@@ -341,32 +341,11 @@ def test_calls_running_side_by_side_keep_each_others_rows(tmp_path):
     assert json.loads(path.read_text()) == merged
 
 
-def test_the_rsl_rl_rows_figure_draws_from_the_committed_csvs(tmp_path):
-    # docs/adapters/rsl_rl_rows.py reads three committed per-iteration CSVs (two rsl_rl rows, the preset's run);
-    # a CSV without the columns it plots is refused by name.
-    pytest.importorskip("matplotlib")
+def _lab_tool(name: str):
+    """A script of lab/analysis/ (not a package) loaded as a module."""
     import importlib.util
 
-    path = Path(__file__).resolve().parents[2] / "docs/adapters/rsl_rl_rows.py"
-    spec = importlib.util.spec_from_file_location("rsl_rl_rows", path)
-    figure = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(figure)
-    for csv_path, *columns in figure.ROWS.values():
-        iterations, *series = figure.read(csv_path, tuple(columns))
-        assert iterations == sorted(iterations) and iterations[0] >= 1  # counted from 1 (the preset logs every 5th)
-        assert len(iterations) > 100 and all(len(s) == len(iterations) for s in series)
-    out = figure.main(tmp_path / "rows.png")
-    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    (tmp_path / "bad.csv").write_text("iteration,qpos\n1,0.3\n")
-    with pytest.raises(SystemExit, match="bad.csv has no rows with all of"):
-        figure.read(tmp_path / "bad.csv", ("iteration", "value_loss"))
-
-
-def _docs_tool(name: str):
-    """A script of docs/adapters/ (not a package) loaded as a module."""
-    import importlib.util
-
-    path = Path(__file__).resolve().parents[2] / "docs" / "adapters" / f"{name}.py"
+    path = Path(__file__).resolve().parents[2] / "lab" / "analysis" / f"{name}.py"
     spec = importlib.util.spec_from_file_location(name, path)
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
@@ -374,9 +353,9 @@ def _docs_tool(name: str):
 
 
 def test_rsl_rl_console_logs_become_one_csv_row_per_iteration(tmp_path):
-    # docs/adapters/rsl_rl_log_csv.py: rsl_rl's iteration blocks over two calls of one row (the second resumes the
+    # lab/analysis/rsl_rl_log_csv.py: rsl_rl's iteration blocks over two calls of one row (the second resumes the
     # iteration count, its "Total steps" restarts); a value not printed stays empty; a log without blocks is refused.
-    tool = _docs_tool("rsl_rl_log_csv")
+    tool = _lab_tool("rsl_rl_log_csv")
 
     def block(it, steps, length=None):
         lines = [f"\x1b[1m   Learning iteration {it}/1000000   \x1b[0m", f"   Total steps: {steps} ",
@@ -404,13 +383,13 @@ def test_rsl_rl_console_logs_become_one_csv_row_per_iteration(tmp_path):
 
 
 def test_skrl_scalars_of_a_row_become_one_csv_row_per_call_and_timestep(tmp_path):
-    # docs/adapters/skrl_events_csv.py: skrl's TensorBoard folders of one row (ppo/ for call 1, ppo_call<k>/ after),
+    # lab/analysis/skrl_events_csv.py: skrl's TensorBoard folders of one row (ppo/ for call 1, ppo_call<k>/ after),
     # each call's timesteps from 0 again; a tag not written at a timestep stays empty; a folder without skrl
     # scalars is refused without writing the CSV.
     pytest.importorskip("tensorboard")
     from torch.utils.tensorboard import SummaryWriter
 
-    tool = _docs_tool("skrl_events_csv")
+    tool = _lab_tool("skrl_events_csv")
     run = tmp_path / "skrl_torque_4096_x"
     for folder, values in (("ppo_call2", {48: 1.9, 96: 2.0}), ("ppo", {48: 1.5}), ("ppo_notes", {48: 9.0})):
         with SummaryWriter(str(run / "skrl" / folder)) as writer:

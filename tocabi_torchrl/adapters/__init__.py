@@ -14,7 +14,7 @@ adapter                    library interface                        data
 
 Importing this package registers ``TocabiWalk-v0`` with gymnasium (``gymnasium.make_vec("TocabiWalk-v0",
 num_envs=...)``); the library adapters import their library only when used, and check its version
-(``_versions.SUPPORTED``). ``docs/adapters.md`` has the details.
+(``_versions.SUPPORTED``). ``docs/other-libraries.md`` has the details.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 A :class:`Controller` is one control law for one group of joints (``τ_cmd = F_con(π_θ)``); an
 :class:`ActuatorChain` is what happens to a torque command between the controller and the joint (delay, motor
 constant, friction, saturation). ``TocabiWalk`` builds them from its config (``env.control``), or takes a
-user-defined leg controller: ``TocabiWalk(..., leg_controller=MyLaw())``. docs/controllers.md has the guide.
+user-defined leg controller: ``TocabiWalk(..., leg_controller=MyLaw())``. docs/concepts/controllers.md has the guide.
 """
 
 from .._lazy import lazy_names

@@ -141,7 +141,7 @@ PD_GAINS = {"robot": (tuple(float(v) for v in robot.LEG_KP), tuple(float(v) for 
 #: initial pose each joint's stiffness ``M_jj·ω²`` is the robot controller's Kp, the PD that tracks the reference in
 #: the other modes (``tests/test_model_based.py`` recomputes them). With ``mb_zeta`` 0.7 (the default; a second-order
 #: loop's least tracking error, and the 250 Hz hold keeps it at 0.70, see ``envs.model_based``), the law at zero
-#: action tracked and survived best of the gains tried on the CPU (docs/training/model_based.md).
+#: action tracked and survived best of the gains tried on the CPU (docs/training.md).
 MB_OMEGA: tuple[float, ...] = (41.0, 29.0, 25.0, 38.0, 52.0, 89.0) * 2
 
 #: A ``model_based`` residual gain [N·m per action unit], per leg joint, with the authority of the PD-residual modes:

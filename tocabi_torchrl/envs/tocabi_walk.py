@@ -2,7 +2,7 @@
 
 N TOCABI worlds step at once in mujoco-warp on ``device`` (or, with ``backend="mujoco"``, in C MuJoCo on CPU
 threads); every tensor this env reads or returns stays on ``device``. The
-env returns raw, physically named signals (``docs/signals.md``); the policy observation and the reward are composed
+env returns raw, physically named signals (``docs/concepts/env-and-signals.md``); the policy observation and the reward are composed
 from them by transforms (``tocabi_torchrl.transforms``, ``tocabi_torchrl.make_env``).
 
 One step (spec §11): clip the action; look the reference targets up at the pre-step phase clock; update the
@@ -74,7 +74,7 @@ def _check_leg_controller(law) -> Controller:
     """``law`` if it can drive the 12 leg joints, else a ``TypeError``/``ValueError`` saying what it lacks."""
     if not isinstance(law, Controller):
         raise TypeError(f"leg_controller must be a tocabi_torchrl.control.Controller, got {type(law).__name__}; "
-                        "subclass Controller and implement compute() (docs/controllers.md)")
+                        "subclass Controller and implement compute() (docs/concepts/controllers.md)")
     if law.action_dim != robot.NUM_LEG_JOINTS:
         raise ValueError(f"leg_controller reads action_dim={law.action_dim} actions, but the env's action has "
                          f"{robot.NUM_LEG_JOINTS} leg entries (and one phase rate); set action_dim = 12")
@@ -96,20 +96,20 @@ class TocabiWalk(EnvBase):
         seed: seed of the env's own torch generator (initial phase, commands) and of the obstacles' per-world jitter
             (drawn once, at build: see ``BoxObstacle.jitter``); None = a random seed.
         leg_controller: a :class:`~tocabi_torchrl.control.Controller` for the 12 leg joints that replaces the one
-            ``env.control.mode`` names (docs/controllers.md); it reads the action's first 12 entries. None = the
+            ``env.control.mode`` names (docs/concepts/controllers.md); it reads the action's first 12 entries. None = the
             config's.
 
     Action (N, 13): 12 leg commands in [-1, 1] (torques as a fraction of the limits, or PD targets, see the
     config's ``control.mode``) and one phase-rate action in [0, 1]. Actions outside the bounds are clipped; NaN
     entries are treated as 0 (checking for them would need a host synchronisation).
 
-    Output keys and units: ``docs/signals.md``. ``done``/``terminated``/``truncated`` are (N, 1) bool; the reward of
+    Output keys and units: ``docs/concepts/env-and-signals.md``. ``done``/``terminated``/``truncated`` are (N, 1) bool; the reward of
     the bare env is 0 (the task reward is the ``TaskReward`` transform). Resets follow TorchRL's ``"_reset"``
     mask and touch only the flagged worlds, without host synchronisation.
     """
 
     batch_locked = True
-    #: The signals the env returns (docs/signals.md): its observation spec is made from this table, and
+    #: The signals the env returns (docs/concepts/env-and-signals.md): its observation spec is made from this table, and
     #: :meth:`_observe` must compute exactly its rows enabled by the config (checked when the env is built). A
     #: subclass adds a signal with ``signal_table = SIGNALS.with_rows(Signal(...))`` and an ``_observe`` that
     #: adds it to ``super()._observe()``.

@@ -1,4 +1,4 @@
-"""Export a trained policy: ONNX (optionally TorchScript) plus the JSON I/O contract (``docs/export.md``).
+"""Export a trained policy: ONNX (optionally TorchScript) plus the JSON I/O contract (``docs/deploying.md``).
 
     python -m tocabi_torchrl.export --checkpoint RUN_DIR_OR_PT --out policy.onnx [--torchscript] [--overwrite]
 

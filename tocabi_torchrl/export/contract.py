@@ -1,4 +1,4 @@
-"""Build the policy I/O contract from a loaded policy's env, transforms and config (``docs/export.md``).
+"""Build the policy I/O contract from a loaded policy's env, transforms and config (``docs/deploying.md``).
 
 Every number comes from the objects that trained the policy: the env's config, simulator model and motion, and the
 transforms (layout, normalisation buffers, history layout), never from copies, so a change of observation or
@@ -22,7 +22,7 @@ __all__ = ["SIGNAL_DOCS", "ExportError", "build_contract", "config_sha256", "sha
 _SIDES = ("left", "right")
 _AXES = ("x", "y", "z")
 
-#: Unit, frame and source of every signal the observation may read (docs/signals.md has the env's side).
+#: Unit, frame and source of every signal the observation may read (docs/concepts/env-and-signals.md has the env's side).
 SIGNAL_DOCS: dict[str, dict[str, str]] = {
     "base_rpy": {"unit": "rad", "frame": "world; fixed-XYZ (roll, pitch, yaw) of the base body (pelvis) quaternion, "
                  "yaw = absolute heading", "source": "qpos[3:7] (w, x, y, z) -> Euler angles"},

@@ -1,7 +1,7 @@
 """Generate the project's own two-step walking cycle for TOCABI, and the CLI that writes the shipped default.
 
     python -m tocabi_torchrl.motion.gait                 # regenerate assets/motions/tocabi_walk.npz
-    python -m tocabi_torchrl.motion.gait --plot docs/motion_leg_joints.png --reference path/to/reference.txt
+    python -m tocabi_torchrl.motion.gait --plot docs/concepts/motion_leg_joints.png --reference path/to/reference.txt
 
 The cycle has the layout of the reference walk (spec §3.3, §3.6): 2 kHz rows, row 0 in the middle of a double
 support with the weight moving onto the right (front) foot, right single support, a double support centred on the

@@ -14,7 +14,7 @@ is a pure torque policy (the evaluation never uses the assist).
 Two targets (``PPOConfig.assist_target``):
 - ``"rollout"``: the torque the rollout's own mean applied. It keeps what the actor does, so it only moves the
   fade's small step of PD into the actor; on the H100 the gait held to β ≈ 0.1 and broke after
-  (docs/training/torque.md, runs 2 and 4).
+  (docs/training.md, runs 2 and 4).
 - ``"teacher"``: the torque a frozen copy of the actor taken as the fade starts (:class:`AssistTeacher`, the β = 1
   policy plus its PD) applies in the same state: DAgger on the fading policy's own states, so the actor is taught
   the PD's whole feedback where its own copy of it fails, not only the fade's last step of it.
@@ -47,7 +47,7 @@ class AssistSchedule:
     ``β(u) = start·(r^(1−u) − 1)/(r − 1)`` at fade fraction u, so (for start = 1) a leg with that ratio sees c fall by
     the same factor in every step. β falls fast while the PD still carries the gait and slowly near 0, where each step
     of β is a large relative change of c. (A linear fade broke the gait in its last sixth on the H100:
-    docs/training/torque.md.)
+    docs/training.md.)
     ``gain_ratio`` 1 fades β linearly.
     """
 

@@ -2,7 +2,7 @@
 
 The contract says everything a controller needs to run the policy without the training stack: joint order, what each
 action means per control mode, timing, the 37 observation entries and how they are normalised and stacked, the
-reference motion and the versions. ``docs/export.md`` describes it field by field. This module imports only the
+reference motion and the versions. ``docs/deploying.md`` describes it field by field. This module imports only the
 standard library and :mod:`tocabi_torchrl.value_rules` (itself standard library only), so a deployment can check a
 contract before loading anything else.
 """

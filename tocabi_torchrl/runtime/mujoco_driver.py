@@ -234,7 +234,7 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     walking gait is chaotic, so a 1e-6 rad offset (or the ~1e-6 difference between ONNX and torch arithmetic) gives
     another sample of it, and averages over such robots are what two implementations can be compared on.
 
-    Randomisation and perturbations (``docs/randomization.md``, "Sim-to-sim with randomisation"), drawn per robot
+    Randomisation and perturbations (``docs/concepts/randomization.md``, "Sim-to-sim with randomisation"), drawn per robot
     at the reset from numpy generators of ``seed`` (one stream per piece, ``randomization.generator``):
 
     * ``randomize``: ``"none"`` (default: the nominal robot, numbers exactly as without these options),

@@ -3,7 +3,7 @@
 Per control period (4 ms, 250 Hz for the shipped policies) the caller passes the robot's state after the previous
 command was applied; the runtime advances its phase clock by the previous phase-rate action, builds the observation,
 pushes it into the history, runs the ONNX policy and returns the next leg commands and upper-body targets. The steps
-are those of ``TocabiWalk._step`` and the default transforms, in the same order (``docs/export.md``).
+are those of ``TocabiWalk._step`` and the default transforms, in the same order (``docs/deploying.md``).
 """
 
 from __future__ import annotations

@@ -211,7 +211,7 @@ def _pair(values) -> list[float]:
 
 def trained_under_section(randomization: Randomization, pushes: PushSettings, start: StartVelocity,
                           physics_dt_s: float, robot_mass_kg: float, push_ramp=(0, 0)) -> dict:
-    """The contract's ``trained_under`` section (``docs/export.md``): each piece with its unit and draw, ``"off"``
+    """The contract's ``trained_under`` section (``docs/deploying.md``): each piece with its unit and draw, ``"off"``
     where training did not use it. ``physics_dt_s``: the physics step, for the delay in ms; ``robot_mass_kg``: the
     mass the kicks' impulse is computed with; ``push_ramp``: ``ppo.push_ramp`` (start, full) env steps."""
     act, dyn, sen = randomization.actuators, randomization.dynamics, randomization.sensors

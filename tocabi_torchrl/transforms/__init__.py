@@ -1,4 +1,4 @@
-"""TorchRL transforms that turn ``TocabiWalk``'s raw signals (docs/signals.md) into the policy input and the reward.
+"""TorchRL transforms that turn ``TocabiWalk``'s raw signals (docs/concepts/env-and-signals.md) into the policy input and the reward.
 
 One module per job:
 

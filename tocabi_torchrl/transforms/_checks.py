@@ -32,7 +32,7 @@ def require_spec(
         fix = (
             f"put {hint} before {name} in the Compose"
             if hint
-            else "check the key name against docs/signals.md or the transform that should produce it"
+            else "check the key name against docs/concepts/env-and-signals.md or the transform that should produce it"
         )
         available = sorted(str(k) for k in observation_spec.keys(True, True))
         raise KeyError(f"{name} reads {key!r}, which the environment does not provide; {fix}. Available: {available}")

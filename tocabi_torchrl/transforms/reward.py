@@ -156,7 +156,7 @@ class TaskReward(Transform):
             if missing:
                 raise KeyError(
                     f"reward term {t.name!r} reads {missing}, which the environment does not provide; "
-                    "drop the term, or add the signal to the env (see docs/signals.md)"
+                    "drop the term, or add the signal to the env (see docs/concepts/env-and-signals.md)"
                 )
         batch = tuple(observation_spec.shape)
         for t in self.terms:
@@ -165,7 +165,7 @@ class TaskReward(Transform):
                 got = tuple(observation_spec[k].shape)
                 if want is not None and got != (*batch, *want):
                     raise ValueError(
-                        f"reward term {t.name!r} expects {k!r} of shape {('num_envs', *want)} (docs/signals.md), but "
+                        f"reward term {t.name!r} expects {k!r} of shape {('num_envs', *want)} (docs/concepts/env-and-signals.md), but "
                         f"the environment's spec has {got}; fix the env signal or use a term written for it"
                     )
         terms_spec = Composite(

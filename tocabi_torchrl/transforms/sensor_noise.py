@@ -181,7 +181,7 @@ class SensorNoise(Transform):
             shape = tuple(require_spec(spec, c.key, self).shape)[len(batch):]
             if c.key in columns and shape != SENSORS[c.key]:
                 raise ValueError(f"SensorNoise expects {c.key!r} of shape (num_envs, *{SENSORS[c.key]}), the env "
-                                 f"gives (num_envs, *{shape}); perturb the signals of TocabiWalk (docs/signals.md) "
+                                 f"gives (num_envs, *{shape}); perturb the signals of TocabiWalk (docs/concepts/env-and-signals.md) "
                                  "or set that range to 0")
             # The block's flat elements, in the order ObservationAssembly concatenates them.
             elements = torch.arange(math.prod(shape)).reshape(shape)[c.index].flatten()

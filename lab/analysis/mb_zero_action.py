@@ -1,0 +1,47 @@
+"""The model_based law at zero (or small random) residual vs pd_reference: survival and leg tracking, C MuJoCo.
+
+Wrote zero_action.json (docs/training.md's table), ~40 min on 2 cores:
+``PYTHONPATH=. python lab/analysis/mb_zero_action.py docs/training/model_based/zero_action.json``
+"""
+import json, subprocess, sys, time
+import numpy as np, torch
+from tensordict import TensorDict
+from tocabi_torchrl.envs import TocabiWalk
+from tocabi_torchrl.envs.config import MB_OMEGA
+
+def run(noise, steps, n, **kw):
+    env = TocabiWalk(num_envs=n, device="cpu", seed=0, backend="mujoco", max_episode_steps=10**6, sim_threads=1, **kw)
+    env.reset(); g = torch.Generator().manual_seed(1)
+    alive = torch.ones(n, dtype=torch.bool); life = torch.zeros(n); err = []
+    for _ in range(steps):
+        a = torch.zeros(n, 13); a[:, :12] = noise * torch.randn(n, 12, generator=g)
+        out = env.step(TensorDict({"action": a}, batch_size=[n]))["next"]
+        e = (out["joint_pos"][:, :12] - out["ref_joint_pos"][:, :12]).abs().mean(-1)
+        if alive.any():
+            err.append(e[alive].mean().item())
+        alive &= ~out["done"].squeeze(-1); life += alive.float()
+        if not alive.any():
+            break
+    return {"mean_steps_alive": life.mean().item(), "min_steps_alive": life.min().item(),
+            "survived_all_steps": alive.float().mean().item(), "mean_abs_leg_error_rad": float(np.mean(err))}
+
+
+if __name__ == "__main__":
+    W = np.array(MB_OMEGA)
+    cases = [("pd_reference", dict(control_mode="pd_reference"))]
+    cases += [(f"model_based omega x{s:g}, zeta {z:g}", dict(control_mode="model_based", mb_omega=tuple(W * s), mb_zeta=(z,) * 12))
+              for s, z in [(0.5, 1.0), (0.7, 0.7), (1, 1.0), (1, 0.7), (1.5, 1.0), (1.5, 0.7)]]
+    settings = [{"residual_std": 0.0, "steps": 2500, "num_envs": 16}, {"residual_std": 0.05, "steps": 1500, "num_envs": 32}]
+    results = []
+    for st in settings:
+        for name, kw in cases:
+            t0 = time.time()
+            r = run(st["residual_std"], st["steps"], st["num_envs"], **kw)
+            results.append({"case": name, **st, **r})
+            print(results[-1], f"{time.time() - t0:.0f}s", flush=True)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    doc = {"what": "model_based law vs pd_reference with the leg actions at 0 (or N(0, std) per step), phase action 0; "
+                   "C MuJoCo on the CPU, TocabiWalk(seed=0), default command schedule, episodes never truncated; "
+                   "mean |q_leg - q_ref| over the robots still alive",
+           "omega_default_rad_s": list(MB_OMEGA), "commit": commit, "results": results}
+    open(sys.argv[1], "w").write(json.dumps(doc, indent=1) + "\n")

@@ -1,0 +1,241 @@
+"""``python -m lab.benchmarks.page``: write docs/benchmarks.md, the current results on one page, from the committed JSON.
+
+Every section reads one committed report under docs/ and prints what it measured with the command that measured it,
+its date and its hardware, all taken from the file. The page is never edited by hand: ``tests/test_benchmark_page.py``
+checks that the committed page equals its regeneration, so a new result is a new JSON file plus a section here.
+Standard library only: the page renders without torch, mujoco or a GPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from collections.abc import Callable
+
+#: The repository's docs/ folder (the page links relative to it).
+DOCS = Path(__file__).resolve().parents[2] / "docs"
+PAGE = DOCS / "benchmarks.md"
+
+HEADER = """# Benchmarks
+
+Current results, one section per measurement. Each names the committed report it is generated from, the command
+that measured it, the date and the hardware. Ratios "x raw" divide by raw `mujoco_warp.step` of the same model
+measured in the same run (one CUDA graph of 8 physics substeps of 0.5 ms plus a leg PD hold): a policy step is 8
+substeps. Commands are as they were run; the benchmark scripts now live in `lab/benchmarks/`
+(`python -m lab.benchmarks.<name>`), and `python -m lab.benchmarks.regenerate` re-renders each detail page from
+its JSON. This page is written by `python -m lab.benchmarks.page` from the same files (do not edit it by hand)."""
+
+
+def _load(rel: str, docs: Path) -> dict | list:
+    return json.loads((docs / rel).read_text())
+
+
+def _k(x: float) -> str:
+    """An env-steps/s rate: in thousands from 10,000 on (``129k``), else whole (``877``)."""
+    return f"{x / 1000:,.0f}k" if x >= 10_000 else f"{x:,.0f}"
+
+
+def _source(rel: str, command: str, date: str, hardware: str, detail: str | None = None) -> list[str]:
+    link = f"[{Path(rel).name}]({rel})" + (f", [details]({detail})" if detail else "")
+    return [f"- command: `{command}`", f"- date: {date}; hardware: {hardware}; report: {link}"]
+
+
+def env_throughput(docs: Path) -> list[str]:
+    d = _load("benchmarks/env_throughput.json", docs)
+    m = d["meta"]
+    rows = ["| envs | raw policy steps/s | `TocabiWalk` step | env / raw | `make_env` / raw | transforms' share |",
+            "|---:|---:|---:|---:|---:|---:|"]
+    rows += [f"| {r['num_envs']:,} | {_k(r['raw_policy_steps_per_s'])} | {_k(r['env_steps_per_s'])} | "
+             f"{r['env_over_raw']:.3f} | {r['make_env_over_raw']:.3f} | "
+             f"{100 * r['transform_share_of_env_step']:.1f} % |"
+             for r in d["results"]]
+    return ["## Environment step vs raw mujoco-warp", "", *rows, "",
+            *_source("benchmarks/env_throughput.json", m["command"], m["date"], m["gpu"],
+                     "benchmarks/env_throughput.md")]
+
+
+def train_throughput(docs: Path) -> list[str]:
+    d, mem = _load("benchmarks/train_throughput.json", docs), _load("benchmarks/train_throughput_16k_memfix.json", docs)
+    rows = ["| envs | training env-steps/s | raw policy steps/s | train / raw | peak GPU memory |",
+            "|---:|---:|---:|---:|---:|"]
+    rows += [f"| {r['num_envs']:,} | {_k(r['train_env_steps_per_s'])} | {_k(r['raw_policy_steps_per_s'])} | "
+             f"{r['ratio_train_over_raw']:.2f} | {r['device_peak_used_gib']:.1f} GiB |" for r in d["results"]]
+    r = mem["results"][0]
+    rows.append(f"| {r['num_envs']:,} (second run) | {_k(r['train_env_steps_per_s'])} | "
+                f"{_k(r['raw_policy_steps_per_s'])} | {r['ratio_train_over_raw']:.2f} | "
+                f"{r['device_peak_used_gib']:.1f} GiB |")
+    m, mm = d["meta"], mem["meta"]
+    return ["## PPO training throughput (default preset, collection + update)", "", *rows, "",
+            *_source("benchmarks/train_throughput.json", m["command"], m["date"], m["gpu"],
+                     "benchmarks/train_throughput.md"),
+            *_source("benchmarks/train_throughput_16k_memfix.json", mm["command"], mm["date"], mm["gpu"])]
+
+
+def several_gpus(docs: Path) -> list[str]:
+    out = ["## Several GPUs of one host (data-parallel, 4,096 envs per GPU)", "",
+           "| GPU | gradient exchange | 1 GPU env-steps/s | 2 GPUs env-steps/s | speed-up |",
+           "|---|---|---:|---:|---:|"]
+    sources = []
+    for rel, how in (("benchmarks/multi_gpu.json", "all-reduce captured in the update"),
+                     ("benchmarks/multi_gpu_h200.json", "all-reduce captured in the update"),
+                     ("benchmarks/multi_gpu_h200_ddp.json", "torch DDP, eager update")):
+        d = _load(rel, docs)
+        by = {r["gpus"]: r["train_env_steps_per_s"] for r in d["results"]}
+        out.append(f"| {d['meta']['gpu']} | {how} | {_k(by[1])} | {_k(by[2])} | {by[2] / by[1]:.2f}x |")
+        sources += _source(rel, d["meta"]["command"], d["meta"]["date"], f"{d['meta']['gpu']} (one host)")
+    return [*out, "", *sources]
+
+
+def time_to_walk(docs: Path) -> list[str]:
+    d = _load("benchmarks/time_to_walk.json", docs)
+    rows = ["| preset | GPUs | envs per GPU | first passes the gait test at | env steps | train / raw | date |",
+            "|---|---|---:|---:|---:|---:|---|"]
+    cmds = []
+    for r in d["records"]:
+        gpus = f"{r.get('gpus', 1)} x {r['gpu']}"
+        envs = r["config"].get("env", {}).get("num_envs") or r["config"].get("num_envs")
+        ttw = r["time_to_walk"]
+        walks = (f"**{ttw['train_minutes']:.1f} min**" if ttw
+                 else f"not yet when the run ended ({r['train_seconds'] / 60:.1f} min)")
+        steps = f"{ttw['env_steps'] / 1e6:.0f} M" if ttw else "–"
+        rows.append(f"| `{r['preset']}` | {gpus} | {envs:,} | {walks} | {steps} | {r['train_over_raw']:.2f} | "
+                    f"{r['date']} |")
+        train = r["commands"][0] if isinstance(r["commands"], list) else r["commands"]
+        cmds.append(f"- `{r.get('name', r['preset'])}`: `{train}`")
+    return ["## Time to walk (training minutes until a checkpoint passes the 8 s gait test)", "",
+            "Checkpoints are gait-tested every 2 training minutes (256 robots, command (0.5, 0) m/s, 8 s).", "",
+            *rows, "", "Training commands (the first of each run):", "", *cmds, "",
+            f"- report: [time_to_walk.json](benchmarks/time_to_walk.json), "
+            f"[details and curves](benchmarks/time_to_walk.md); rendered by `{d['command'].split(' --runs')[0]}`"]
+
+
+def library_table(docs: Path) -> list[str]:
+    d = _load("adapters_table.json", docs)
+    rows = ["| library | version | preset | envs | env-steps/s | walks at (training min) | GPU | date |",
+            "|---|---|---|---:|---:|---:|---|---|"]
+    for r in sorted(d, key=lambda r: (r["preset"] != "default", r["library"], r["num_envs"])):
+        walks = f"{r['walks_minutes']:.1f}" if r.get("walks_minutes") else f"no (within {r['cap_minutes']:.0f})"
+        date = Path(r["run"]).name.split("_")[-2]
+        rows.append(f"| {r['library']} | {r['version']} | `{r['preset']}` | {r['num_envs']:,} | "
+                    f"{_k(r['env_steps_per_s'])} | {walks} | {r['device']} | {date[:4]}-{date[4:6]}-{date[6:]} |")
+    return ["## Other RL libraries on the same task (one GPU per row, 30-minute cap)", "", *rows, "",
+            "- command: `python -m lab.library_table --libraries LIB --preset PRESET --num_envs N` "
+            "(every row's own commands: [adapters_table.md](adapters_table.md))",
+            "- report: [adapters_table.json](adapters_table.json)"]
+
+
+def mjlab_peer(docs: Path) -> list[str]:
+    d = _load("benchmarks/mjlab_peer.json", docs)
+    theirs, ours = d["results"][0], d["ours"]["result"]
+    rows = ["| trainer | task | env-steps/s | its raw mujoco-warp | train / raw |", "|---|---|---:|---:|---:|",
+            f"| mjlab {d['meta']['versions'].get('mjlab', '')} | {d['meta']['task']} | "
+            f"{_k(theirs['train_env_steps_per_s'])} | {_k(theirs['raw_policy_steps_per_s'])} | "
+            f"{theirs['ratio_train_over_raw']:.2f} |",
+            f"| tocabi-torchrl | TOCABI walking, default preset | {_k(ours['train_env_steps_per_s'])} | "
+            f"{_k(ours['raw_policy_steps_per_s'])} | {ours['ratio_train_over_raw']:.2f} |"]
+    m, om = d["meta"], d["ours"]["meta"]
+    return ["## Peer: mjlab's training at 4,096 envs against its own raw mujoco-warp", "", *rows, "",
+            *_source("benchmarks/mjlab_peer.json", m["command"], m["date"], m["gpu"], "benchmarks/mjlab_peer.md"),
+            *_source("benchmarks/mjlab_peer_ours.json", om["command"], om["date"], om["gpu"])]
+
+
+def scaling(docs: Path) -> list[str]:
+    d = _load("benchmarks/scaling.json", docs)
+    m = d["meta"]
+    rows = ["| check | target | measured |", "|---|---|---|"]
+    rows += [f"| {c['name']} | {c['target']} | {c['measured']} |" for c in d["checks"]]
+    cmd = "; ".join(f"`{c}`" for c in m["commands"])
+    return ["## TocabiLab's benchmark: 983,040 env steps, scaling and memory", "", *rows, "",
+            f"- commands: {cmd}",
+            f"- dates: {m['dates'][0][:10]} to {m['dates'][-1][:10]}; hardware: {m['gpu']}, "
+            f"{m['available_cores']} CPU cores; report: [scaling.json](benchmarks/scaling.json), "
+            "[details](benchmarks/scaling.md)"]
+
+
+def randomization(docs: Path) -> list[str]:
+    d = _load("benchmarks/randomization/train_throughput.json", docs)
+    rows = ["| what is randomised (torque preset) | env-steps/s | over nothing randomised |", "|---|---:|---:|"]
+    rows += [f"| {r['what']} | {_k(r['train_env_steps_per_s'])} | {r['over_plain']:.2f} |" for r in d["results"]]
+    m = d["meta"]
+    return ["## The cost of randomisation in training", "", *rows, "",
+            f"- command: `{d['results'][-1]['command']}` (each row's own in the report)",
+            f"- date: {m['date']}; hardware: {m['gpu']}, {m['num_envs']:,} envs; report: "
+            "[train_throughput.json](benchmarks/randomization/train_throughput.json)"]
+
+
+def solver_load(docs: Path) -> list[str]:
+    d = _load("benchmarks/solver_load.json", docs)
+    rows = ["| envs | physics ms per policy step: training states | standing robots (raw ceiling) | ratio |",
+            "|---:|---:|---:|---:|"]
+    rows += [f"| {r['num_envs']:,} | {r['training']['ms_per_policy_step']:.1f} | "
+             f"{r['standing (raw ceiling)']['ms_per_policy_step']:.1f} | "
+             f"{r['physics_ratio_standing_over_training']:.3f} |" for r in d["results"]]
+    m = d["meta"]
+    return ["## The physics of training states against the raw ceiling", "",
+            "The raw ceiling steps standing robots; training states have more solver iterations in their slowest "
+            "world, which caps train / raw below 1 before anything else runs.", "", *rows, "",
+            *_source("benchmarks/solver_load.json", m["command"], m["date"], m["gpu"], "benchmarks/solver_load.md")]
+
+
+def soak(docs: Path) -> list[str]:
+    d = _load("benchmarks/soak.json", docs)
+    m = d["meta"]
+    rows = ["| check | measured | limit | ok |", "|---|---|---|---|"]
+    rows += [f"| {r['check']} | {r['value']} | {r['limit']} | {'yes' if r['ok'] else '**no**'} |" for r in d["results"]]
+    return ["## Soak: faults stay in their worlds, a killed run resumes", "", *rows, "",
+            f"- commands: `{m['faults_command']}`; `{m['kill_resume_command']}`",
+            f"- date: {m['date']}; hardware: {m['gpu']}, {m['num_envs']:,} envs; report: "
+            "[soak.json](benchmarks/soak.json), [details](benchmarks/soak.md)"]
+
+
+def cpu_backends(docs: Path) -> list[str]:
+    out = ["## CPU backends: C MuJoCo threads against mujoco-warp's CPU device", "",
+           "| machine | envs | C MuJoCo env-steps/s | warp CPU env-steps/s | ratio |", "|---|---:|---:|---:|---:|"]
+    sources = []
+    for rel in ("benchmarks/cpu_backends_2core.json", "benchmarks/cpu_backends_h100-16core.json"):
+        d = _load(rel, docs)
+        m = d["meta"]
+        out += [f"| {m['cores']} cores | {r['num_envs']} | {r['mujoco']['env_steps_per_s']:,.0f} | "
+                f"{r['warp_cpu']['env_steps_per_s']:,.0f} | {r['mujoco_over_warp']:.1f}x |" for r in d["results"]]
+        sources += _source(rel, m["command"], m["date"], f"{m['cores']} CPU cores ({m['gpu']} host)"
+                           if m["gpu"] != "cpu" else f"{m['cores']} CPU cores")
+    return [*out, "", *sources]
+
+
+#: The page's sections, in order.
+SECTIONS: tuple[Callable[[Path], list[str]], ...] = (
+    time_to_walk, train_throughput, env_throughput, several_gpus, mjlab_peer, scaling, library_table,
+    randomization, solver_load, soak, cpu_backends)
+
+FOOTER = """## Robust gait test
+
+No robust policy is shipped yet ([evaluation](evaluation.md)): the shipped policies were trained without
+randomisation, and the `robust` preset, whose verdict the robust gait test is, has not been trained."""
+
+
+def render(docs: Path = DOCS) -> str:
+    """The markdown of docs/benchmarks.md from the committed reports under ``docs``."""
+    parts = [HEADER]
+    parts += ["\n".join(section(docs)) for section in SECTIONS]
+    parts.append(FOOTER)
+    return "\n\n".join(parts) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--check", action="store_true", help="only report whether docs/benchmarks.md is current")
+    args = p.parse_args(argv)
+    text = render()
+    if args.check:
+        current = PAGE.is_file() and PAGE.read_text() == text
+        print(f"{PAGE} is {'current' if current else 'stale: run python -m lab.benchmarks.page'}")
+        return 0 if current else 1
+    PAGE.write_text(text)
+    print(f"wrote {PAGE}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

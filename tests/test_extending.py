@@ -1,0 +1,59 @@
+"""docs/extending.md's code blocks run as they stand on the CPU, in order: the new reward term is computed and
+logged, the new controller's torques are what its law gives, and the new task trains two PPO iterations."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
+
+
+@pytest.fixture(scope="module")
+def namespace(tmp_path_factory):
+    """Every python block of the page executed in one namespace (the task writes runs/ under a temporary cwd)."""
+    blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.DOTALL)
+    assert len(blocks) == 3, "extending.md has a reward term, a controller and a task block"
+    ns: dict = {}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(tmp_path_factory.mktemp("extending"))
+        for block in blocks:
+            exec(compile(block, str(DOC), "exec"), ns)  # noqa: S102 - the project's own documentation
+        ns["cwd"] = Path.cwd()
+    return ns
+
+
+def test_the_new_reward_terms_are_computed_and_logged(namespace):
+    terms = ("qpos", "body_vel", namespace["PelvisHeight"]())
+    env = namespace["make_env"](num_envs=2, device="cpu", reward_terms=terms)
+    td = env.rollout(2, break_when_any_done=False)
+    z = td["next", "base_pos"][..., 2:3]
+    want = 0.2 * torch.exp(-50.0 * (z - 0.92).square())
+    torch.testing.assert_close(td["next", "reward_terms", "pelvis_height"], want)
+    assert td["next", "reward_terms", "qpos"].shape == (2, 2, 1)
+
+
+def test_the_new_controller_applies_its_law(namespace):
+    env = namespace["make_env"](num_envs=2, device="cpu", control_mode="torque", leg_controller=namespace["StiffPD"]())
+    base = env.base_env
+    base.sim.forward()  # as in tests/test_controllers.py: the state the first step starts from
+    td = env.reset()
+    action = torch.zeros(2, 13)
+    action[:, :12] = 0.1
+    q, qd = base.sim.qpos[:, 7:19].clone(), base.sim.qvel[:, 6:18].clone()
+    q_ref = base.motion.joint_targets(base.time, base.init_row)[:, :12]
+    out = env.step(td.set("action", action))["next"]
+    limits = base.leg_torque_limits
+    want = torch.clamp(600.0 * (q_ref + 0.3 * 0.1 - q) - 30.0 * qd, -limits, limits)
+    torch.testing.assert_close(out["leg_torque"], want, rtol=1e-5, atol=1e-4)  # float32 at ~500 N·m
+
+
+def test_the_new_task_trained_and_wrote_its_run(namespace):
+    result = namespace["result"]
+    assert result.env_steps == 64
+    run = namespace["cwd"] / "runs" / "stand"
+    assert (run / "checkpoints" / "latest.pt").is_file()
+    assert (run / "metrics" / "scalars" / "reward_terms" / "pelvis_height.csv").is_file()
