@@ -61,6 +61,8 @@ class PoseStream:
         self._host = [torch.empty(shape, dtype=torch.float32, pin_memory=self.cuda) for _ in range(2)]
         self._lock = threading.Lock()
         self.ticks = self.copies = self.skipped = 0
+        #: Whether ticks take copies (``False`` pauses the stream; the benchmark alternates it).
+        self.active = True
         self._ready: tuple[int, int, int] | None = None  # (buffer, index, tick) of the newest completed copy
         self._taken = 0  # index of the newest copy :meth:`latest` returned
         if self.cuda:
@@ -73,7 +75,7 @@ class PoseStream:
     def tick(self) -> None:
         """Count one policy step; every ``every``-th takes a copy (:meth:`capture`)."""
         self.ticks += 1
-        if self.ticks % self.every == 0:
+        if self.active and self.ticks % self.every == 0:
             self.capture()
 
     def capture(self) -> bool:
