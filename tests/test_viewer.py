@@ -5,7 +5,6 @@ velocity), the training stream's host copies, the geometry, the config section a
 from __future__ import annotations
 
 import os
-import shutil
 import socket
 import sys
 import threading
@@ -67,10 +66,10 @@ def _robot_pixels(image: np.ndarray) -> int:
 
 
 def _screenshot(page, path: Path) -> np.ndarray:
-    import imageio.v2 as imageio
+    from PIL import Image  # matplotlib's dependency, in the test extra
 
     page.screenshot(path=str(path))
-    return np.asarray(imageio.imread(path))
+    return np.asarray(Image.open(path).convert("RGB"))
 
 
 @pytest.mark.slow

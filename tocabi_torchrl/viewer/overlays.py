@@ -66,7 +66,9 @@ class KneeTrace:
         series = (uplot.Series(label="t [s]"),) + tuple(
             uplot.Series(label=label, stroke=color, width=2 if i < 2 else 1)
             for i, (label, color) in enumerate(zip(self.LABELS, self.COLORS)))
-        self.handle = server.gui.add_uplot(data=self._arrays(), series=series, title="knee angle [rad]", aspect=1.6)
+        # x is seconds since the metrics restarted, not a date (uPlot's default x scale is time of day)
+        self.handle = server.gui.add_uplot(data=self._arrays(), series=series, title="knee angle [rad]", aspect=1.6,
+                                           scales={"x": uplot.Scale(time=False)})
 
     def _arrays(self) -> tuple[np.ndarray, ...]:
         if len(self.t) < 2:  # uPlot needs points: two at t = 0 until the first steps arrive
