@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from pathlib import Path
 
 from tocabi_torchrl.cli import RecipeParser
 from tocabi_torchrl.render_gl import choose_gl_backend_or_exit
@@ -147,6 +148,9 @@ def serve(args: argparse.Namespace) -> None:
     from tocabi_torchrl.viewer import ViewerUnavailable
     from tocabi_torchrl.viewer.play import serve_policy
 
+    if Path(args.checkpoint).suffix in (".onnx", ".json"):  # an exported policy: the torch-free runtime drives it
+        serve_exported(args)
+        return
     try:
         verified_checkpoint_file(args.checkpoint)
         serve_policy(args.checkpoint, num_envs=args.num_envs or VIEWER_ENVS, device=args.device,
@@ -155,6 +159,31 @@ def serve(args: argparse.Namespace) -> None:
         sys.exit(f"error: {err}")
     except (ValueError, RuntimeError) as err:
         sys.exit(f"error: {err}")
+
+
+def serve_exported(args: argparse.Namespace) -> None:
+    """--viewer of an exported policy (.onnx and its .json contract): recipes/sim2sim.py's driver, drawn live for
+    --seconds in real time."""
+    from tocabi_torchrl.viewer.exported import contract_of
+
+    try:
+        contract = contract_of(args.checkpoint)
+    except ValueError as err:
+        sys.exit(f"error: {err}")
+    sim2sim = _recipe("sim2sim")
+    sim2sim.main(["--contract", str(contract), "--num_robots", str(args.num_envs or VIEWER_ENVS),
+                  "--seconds", str(args.seconds), "--vx", str(args.vx), "--vy", str(args.vy), "--viewer",
+                  "--viewer_host", args.viewer_host, "--viewer_port", str(args.viewer_port)])
+
+
+def _recipe(name: str):
+    """recipes/<name>.py as a module (the recipes folder is not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"_recipe_{name}", Path(__file__).with_name(f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 if __name__ == "__main__":

@@ -293,3 +293,44 @@ def test_policy_names_a_shipped_policy_or_says_which_there_are(tmp_path):
     assert resolve_policy(tmp_path) == tmp_path  # a run folder as given
     with pytest.raises(ValueError, match="shipped ones are .*ppo"):
         resolve_policy("no_such_policy")
+
+
+# ------------------------------------------------------------------------------------------------ exported policies
+ONNX_POLICY = REPO / "assets" / "policies" / "tocabi_walk_ppo.onnx"
+
+
+@pytest.mark.skipif(not ONNX_POLICY.is_file(), reason="shipped ONNX policy not present")
+def test_the_exported_policy_driver_draws_every_control_period_on_the_page():
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+    pytest.importorskip("onnxruntime", reason="the export extra (onnxruntime) is not installed")
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+    from tocabi_torchrl.viewer.exported import ExportedWatch, contract_of
+    from tocabi_torchrl.viewer.server import start_server
+
+    server = start_server("127.0.0.1", _free_port())
+    try:
+        watch = ExportedWatch(server, dt=0.004, fps=1e6, real_time=False)  # draw every period, no pacing
+        seen = []
+
+        def on_step(step, model, datas):
+            watch(step, model, datas)
+            seen.append((step, np.stack([d.xpos for d in datas])))
+
+        run_sim2sim(contract_of(ONNX_POLICY), seconds=0.02, num_robots=2, on_step=on_step)
+        assert [s for s, _ in seen] == list(range(5)) and watch.frames == 5
+        last = seen[-1][1]
+        mesh = watch.scene.meshes[0]
+        np.testing.assert_allclose(watch.scene.handles[0].batched_positions,
+                                   last[:, mesh.body] + watch.scene.offsets, atol=1e-6)
+    finally:
+        server.stop()
+
+
+@pytest.mark.skipif(not ONNX_POLICY.is_file(), reason="shipped ONNX policy not present")
+def test_play_viewer_of_an_onnx_policy_runs_the_torch_free_driver(capsys):
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+    pytest.importorskip("onnxruntime", reason="the export extra (onnxruntime) is not installed")
+    recipe("play").main(["--policy", "ppo.onnx", "--viewer", "--num_envs", "2", "--seconds", "0.02",
+                         "--viewer_port", str(_free_port())])
+    out = capsys.readouterr().out
+    assert "viewer: 2 robots of" in out and '"survival"' in out  # the page was served, then sim2sim's metrics
