@@ -212,6 +212,34 @@ def test_the_tapped_policy_ticks_once_per_call_and_acts_as_the_policy():
     assert list(tapped.parameters()) == list(policy.parameters())
 
 
+@pytest.mark.slow
+def test_a_training_run_with_the_viewer_streams_its_worlds_and_shows_its_metrics(tmp_path, monkeypatch):
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.rl import trainer
+    from tocabi_torchrl.viewer.training import TrainingView
+
+    views = []
+
+    def live_view(cfg, env):
+        views.append(TrainingView(cfg.viewer, env.base_env.sim))
+        return views[-1]
+
+    monkeypatch.setattr(trainer, "_live_view", live_view)
+    cfg = preset_config("cpu_smoke", device="cpu", total_env_steps=8 * 16 * 2, eval_at_end=False, progress_bar=False,
+                        run_dir=str(tmp_path), name="viewer_run")
+    cfg.viewer.enabled, cfg.viewer.port, cfg.viewer.worlds, cfg.viewer.every = True, _free_port(), 4, 5
+    result = trainer.train(cfg)
+    (view,) = views
+    assert result.iterations == 2 and view.stream.worlds == 4
+    # one tick per collected policy step, and the collector's one call of the policy as it is built
+    assert view.stream.ticks in (2 * 16, 2 * 16 + 1), view.stream.ticks
+    assert view.stream.copies == view.stream.ticks // 5
+    assert view.frames > 0 or view.stream.latest() is not None  # a copy reached the page's side
+    assert "| iteration | 2 |" in view.panel.handle.content
+    assert view._stop.is_set(), "closed with the run"
+
+
 # ------------------------------------------------------------------------------------------------ pieces
 def test_the_geometry_draws_the_silhouette_not_the_collision_shells():
     from tocabi_torchrl.robot import load_model
