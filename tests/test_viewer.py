@@ -281,6 +281,8 @@ def test_the_metrics_table_formats_numbers_and_leaves_nan_as_a_dash():
     text = metrics_markdown({"survival": 0.98765, "knee_rms_rad": float("nan"), "other": 1.0},
                             {"survival": ("survival", "", 3), "knee_rms_rad": ("knee RMS", "rad", 3)})
     assert "| survival | 0.988 |" in text and "| knee RMS | – |" in text and "other" not in text
+    small = metrics_markdown({"lr": 3e-5, "seconds": 0.04}, {"lr": ("lr", "", 6), "seconds": ("time", "s", 1)})
+    assert "| lr | 3.00e-05 |" in small and "| time | 0.0 s |" in small
 
 
 def test_the_viewer_section_is_a_resume_safe_documented_part_of_the_run_config():

@@ -12,7 +12,7 @@ __all__ = ["metrics_markdown", "KneeTrace", "MetricsPanel"]
 
 #: How the gait metrics of a live policy are shown: key -> (label, unit, decimals).
 GAIT_ROWS = {
-    "seconds": ("time", "s", 1),
+    "seconds": ("time", "s", 2),
     "survival": ("survival", "", 3),
     "forward_distance_m": ("forward distance", "m", 2),
     "lateral_drift_m": ("lateral drift", "m", 3),
@@ -29,7 +29,9 @@ def _number(value, decimals: int) -> str:
         return "–"
     if isinstance(value, int):
         return f"{value:,}"
-    return f"{value:.{decimals}f}" if abs(value) >= 10 ** -decimals or value == 0 else f"{value:.2e}"
+    # learning rates and KLs: small numbers keep their digits; times and distances are shown rounded
+    tiny = 0 < abs(value) < 1e-3 and decimals >= 4
+    return f"{value:.2e}" if tiny else f"{value:.{decimals}f}"
 
 
 def metrics_markdown(metrics: dict, rows: dict | None = None, title: str | None = None) -> str:

@@ -50,7 +50,9 @@ class RobotScene:
         # The first view: every world in sight, from behind-left of the walking direction and above.
         span = np.ptp(self.offsets, axis=0) if num_worlds > 1 else np.zeros(3)
         server.initial_camera.look_at = (0.0, 0.0, 0.6)
-        server.initial_camera.position = (-(span[0] / 2 + 2.0), -(span[1] / 2 + 3.0), 1.5 + 0.3 * max(span[:2]))
+        far = max(span[:2])
+        server.initial_camera.position = (-(span[0] / 2 + 2.0 + 0.1 * far), -(span[1] / 2 + 3.0 + 0.15 * far),
+                                          1.5 + 0.3 * far)
         identity = np.tile(np.array([1.0, 0.0, 0.0, 0.0], np.float32), (num_worlds, 1))
         self.handles = [
             server.scene.add_batched_meshes_simple(
