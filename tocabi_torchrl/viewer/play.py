@@ -59,6 +59,7 @@ class LiveSession:
         self.scene = RobotScene(server, body_meshes(self.sim.mj_model), self.shown)
         self.scene.select(0)
         self.steps = 0  # policy steps since the last reset
+        self.total_steps = self.frames = 0  # policy steps and frames sent since the start
         self._command = None
         self._lock = threading.Lock()  # held while the env steps, so readers (tests, tools) see whole steps
         self._reset()
@@ -104,6 +105,7 @@ class LiveSession:
             ref = nxt["ref_joint_pos"][w, self._knees]
             self.td = step_mdp(td)
             self.steps += 1
+            self.total_steps += 1
         self.knee_trace.append((self.steps - self.metrics_t0) * self.dt, knees.cpu().numpy(), ref.cpu().numpy())
 
     # -------------------------------------------------------------------------------------------- page side
@@ -113,6 +115,7 @@ class LiveSession:
         xpos = self.sim.xpos[:w].detach().cpu().numpy()
         xquat = self.sim.xquat[:w].detach().cpu().numpy()
         self.scene.update(xpos, xquat)
+        self.frames += 1
         sel = self.controls.selected
         self.scene.select(sel)
         if self.controls.follow.value:
