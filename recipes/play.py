@@ -3,6 +3,7 @@
     python recipes/play.py --checkpoint runs/ppo_walk                 # a run folder (uses checkpoints/latest.pt)
     python recipes/play.py --checkpoint runs/ppo_walk/checkpoints/iter_000500.pt --num_envs 64 --vx 0.3
     python recipes/play.py --checkpoint runs/ppo_walk --test robust   # the robust gait test (docs/evaluation.md)
+    python recipes/play.py --policy ppo --viewer --num_envs 64        # watch it walk live in a browser
 
 Writes summary.json (survival, forward distance, lateral drift, speed tracking error, knee RMS against the reference
 motion; null for a metric without a value), knees.png (left/right knee over 6 s against the reference) and walk.mp4
@@ -12,6 +13,10 @@ holds some, the next free eval_2/, eval_3/, ... beside it is used; an --out that
 --overwrite. The folder used is printed first. --test robust runs the robust gait test instead (diverse starts;
 nominal, changing commands, randomised and pushed cases; --num_envs robots per case) and writes robust.json and
 robust.png.
+--viewer serves a live web page instead (the `viewer` extra, docs/viewer.md): every robot walking, command sliders,
+pause/step, push, reset, world picker, camera follow, the gait metrics and a knee trace; --viewer_host/--viewer_port
+say where (reach a remote machine with ssh -L 8080:localhost:8080). --policy names a shipped policy (ppo, torque,
+model_based) or a run folder or file, like --checkpoint.
 On a headless machine the video uses EGL (MUJOCO_GL=egl, chosen automatically when libEGL is present); osmesa works
 only with libOSMesa and PyOpenGL installed.
 """
@@ -21,6 +26,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from pathlib import Path
 
 from tocabi_torchrl.cli import RecipeParser
 from tocabi_torchrl.render_gl import choose_gl_backend_or_exit
@@ -43,7 +49,9 @@ TESTS = {"standard": 256, "robust": 1024}
 
 def build_parser() -> argparse.ArgumentParser:
     parser = RecipeParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--checkpoint", required=True, help="run folder or checkpoint .pt file (required)")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--checkpoint", help="run folder or checkpoint .pt file (this or --policy is required)")
+    source.add_argument("--policy", help="a shipped policy (ppo, torque, model_based), a run folder or a file")
     for flag, kind, default, text in OPTIONS:
         shown = "" if default is None else f" (default: {default})"
         parser.add_argument(flag, type=kind, default=default, help=text + shown)
@@ -54,7 +62,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--overwrite", action="store_true",
                         help="write into an --out folder that holds files (files of the same name are replaced, "
                              "others stay) (default: refuse)")
+    parser.add_argument("--viewer", action="store_true",
+                        help="serve a live web page of the robots instead of the gait test (pip install -e "
+                             "\".[viewer]\"; 64 robots unless --num_envs) (default: off)")
+    parser.add_argument("--viewer_host", default="127.0.0.1",
+                        help="address the page is served on; 0.0.0.0 for every interface (default: 127.0.0.1)")
+    parser.add_argument("--viewer_port", type=int, default=8080, help="TCP port of the page (default: 8080)")
+    parser.add_argument("--backend", choices=("warp", "mujoco"), default=None,
+                        help="--viewer: the physics backend, replacing the checkpoint's (mujoco: C MuJoCo on the CPU) "
+                             "(default: the checkpoint's)")
     return parser
+
+
+#: Robots simulated by --viewer when --num_envs is left out.
+VIEWER_ENVS = 64
 
 
 if __name__ == "__main__":  # --help or a misspelt option answers before torch and mujoco load
@@ -85,6 +106,16 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--seconds must be a finite number of seconds > 0, got {args.seconds}")
     if not (math.isfinite(args.vx) and math.isfinite(args.vy)):
         parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
+    if args.policy is not None:
+        from tocabi_torchrl.viewer.policy_source import resolve_policy
+
+        try:
+            args.checkpoint = str(resolve_policy(args.policy))
+        except ValueError as err:
+            parser.error(str(err))
+    if args.viewer:
+        serve(args)
+        return
     if args.test == "robust" and (args.vx, args.vy) != (0.5, 0.0):
         parser.error("--vx/--vy set the standard test's command; the robust test's commands are its cases' (leave "
                      "--vx/--vy out, or pass --test standard)")
@@ -110,6 +141,49 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(f"error: cannot write the evaluation to {err.filename or args.out}: {err.strerror or err}; pass "
                  f"--out a folder that can be created")
     print(gait_report_text(summary, args.seconds, args.num_envs, out))
+
+
+def serve(args: argparse.Namespace) -> None:
+    """--viewer: the live page of the policy (tocabi_torchrl.viewer), until Ctrl-C."""
+    from tocabi_torchrl.viewer import ViewerUnavailable
+    from tocabi_torchrl.viewer.play import serve_policy
+
+    if Path(args.checkpoint).suffix in (".onnx", ".json"):  # an exported policy: the torch-free runtime drives it
+        serve_exported(args)
+        return
+    try:
+        verified_checkpoint_file(args.checkpoint)
+        serve_policy(args.checkpoint, num_envs=args.num_envs or VIEWER_ENVS, device=args.device,
+                     host=args.viewer_host, port=args.viewer_port, command=(args.vx, args.vy), backend=args.backend)
+    except ViewerUnavailable as err:
+        sys.exit(f"error: {err}")
+    except (ValueError, RuntimeError) as err:
+        sys.exit(f"error: {err}")
+
+
+def serve_exported(args: argparse.Namespace) -> None:
+    """--viewer of an exported policy (.onnx and its .json contract): recipes/sim2sim.py's driver, drawn live for
+    --seconds in real time."""
+    from tocabi_torchrl.viewer.exported import contract_of
+
+    try:
+        contract = contract_of(args.checkpoint)
+    except ValueError as err:
+        sys.exit(f"error: {err}")
+    sim2sim = _recipe("sim2sim")
+    sim2sim.main(["--contract", str(contract), "--num_robots", str(args.num_envs or VIEWER_ENVS),
+                  "--seconds", str(args.seconds), "--vx", str(args.vx), "--vy", str(args.vy), "--viewer",
+                  "--viewer_host", args.viewer_host, "--viewer_port", str(args.viewer_port)])
+
+
+def _recipe(name: str):
+    """recipes/<name>.py as a module (the recipes folder is not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"_recipe_{name}", Path(__file__).with_name(f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 if __name__ == "__main__":

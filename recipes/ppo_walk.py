@@ -4,6 +4,7 @@
     python recipes/ppo_walk.py --preset reference   # the reference's hyper-parameters (8 envs, 120 M steps)
     python recipes/ppo_walk.py --env.num_envs 8192 --ppo.lr 3e-4 --max_minutes 20 --name walk8k
     python recipes/ppo_walk.py --resume runs/ppo_walk   # continue from runs/ppo_walk/checkpoints/latest.pt
+    python recipes/ppo_walk.py --viewer             # and watch 16 training worlds live in a browser (docs/viewer.md)
     python recipes/ppo_walk.py --help               # every option (a dotted path of tocabi_torchrl/config.py)
     torchrun --nproc_per_node 2 recipes/ppo_walk.py --name walk2gpu   # data-parallel, one process per GPU
 
@@ -32,8 +33,9 @@ if __name__ == "__main__":
     # run config tree, whose modules import neither torch, torchrl nor mujoco(-warp): it answers in a fraction of a
     # second (tests/test_cli.py checks what it loads).
     from tocabi_torchrl.rl.config import build_parser
+    from tocabi_torchrl.viewer.config import expand_viewer_flag
 
-    build_parser(__doc__.split("\n\n")[0]).parse_args(sys.argv[1:])
+    build_parser(__doc__.split("\n\n")[0]).parse_args(expand_viewer_flag(sys.argv[1:]))
 
 import torch  # noqa: E402
 
@@ -50,6 +52,8 @@ from tocabi_torchrl.rl.logging import require_loggers  # noqa: E402
 from tocabi_torchrl.rl.run_dir import holds_checkpoint, open_run  # noqa: E402
 from tocabi_torchrl.rl.trainer import finished_result, raised_before_training, resolve_device, train  # noqa: E402
 from tocabi_torchrl.robot import RobotAssetError, load_model  # noqa: E402
+from tocabi_torchrl.viewer.config import expand_viewer_flag  # noqa: E402
+from tocabi_torchrl.viewer.extra import require_viser  # noqa: E402
 
 
 def stopped(result) -> int:
@@ -76,8 +80,12 @@ def main(argv: list[str] | None = None) -> None:
     # bad values, a request this machine cannot honour, an existing run folder, an unreadable or changed --resume.
     try:
         dist_info = from_environment()  # torchrun's layout; one rank without it
+        # --viewer is the shorthand of --viewer.enabled true (the live page of a few training worlds)
+        argv = expand_viewer_flag(sys.argv[1:] if argv is None else argv)
         cfg, args, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0],
                                         data_parallel=dist_info.enabled)
+        if cfg.viewer.enabled:
+            require_viser()  # said now, not after the env is built
         model_based = cfg.env.control.mode == "model_based"
         if cfg.eval_at_end or model_based:
             control_dt = load_model(cfg.env.task.model_path).opt.timestep * cfg.env.sim.substeps

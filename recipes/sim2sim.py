@@ -2,6 +2,7 @@
 
     python recipes/sim2sim.py --contract assets/policies/tocabi_walk_ppo.json
     python recipes/sim2sim.py --contract assets/policies/tocabi_walk_torque.json --model reference --num_robots 8
+    python recipes/sim2sim.py --contract assets/policies/tocabi_walk_ppo.json --viewer --seconds 60 --num_robots 16
     python recipes/sim2sim.py --contract assets/policies/tocabi_walk_torque.json --randomize tocabi_lab \
         --pushes 3 --push_speed 0.5 --start_noise --seed 1
 
@@ -50,6 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--start_noise", action="store_true",
                         help="start with N(0, 0.5 rad/s) joint and N(0, 0.1 m/s) pelvis velocities (robust gait test)")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random draw (default: 0)")
+    parser.add_argument("--viewer", action="store_true",
+                        help="watch the robots live in a browser while they run, in real time (pip install -e "
+                             "\".[viewer]\"; docs/viewer.md) (default: off)")
+    parser.add_argument("--viewer_host", default="127.0.0.1",
+                        help="address the page is served on; 0.0.0.0 for every interface (default: 127.0.0.1)")
+    parser.add_argument("--viewer_port", type=int, default=8080, help="TCP port of the page (default: 8080)")
     return parser
 
 
@@ -60,6 +67,19 @@ from tocabi_torchrl.runtime import ContractError  # noqa: E402
 from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim  # noqa: E402
 from tocabi_torchrl.runtime.randomization import ROBUST_START, PushSettings  # noqa: E402
 from tocabi_torchrl.value_rules import MAX_SEED  # noqa: E402
+
+
+def watch(args: argparse.Namespace):
+    """--viewer: a live page (numpy, mujoco and viser only) and the driver's per-period callback that draws on it."""
+    from tocabi_torchrl.runtime.contract import load_contract
+    from tocabi_torchrl.viewer.exported import ExportedWatch
+    from tocabi_torchrl.viewer.server import page_url, start_server
+
+    dt = float(load_contract(args.contract)["timing"]["control_dt_s"])
+    server = start_server(args.viewer_host, args.viewer_port)
+    print(f"viewer: {args.num_robots} robots of {args.contract} for {args.seconds} s, in real time; open "
+          f"{page_url(args.viewer_host, server.get_port())}", flush=True)
+    return server, ExportedWatch(server, dt)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -89,14 +109,23 @@ def main(argv: list[str] | None = None) -> dict:
         if not REFERENCE_MODEL.is_file():
             parser.error(f"the reference model is not at {REFERENCE_MODEL}")
         model, strip = REFERENCE_MODEL, True
+    server = None
     try:
+        on_step = None
+        if args.viewer:  # the missing extra is an ImportError, said before the run
+            server, on_step = watch(args)
         pushes = PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed)) if args.pushes else None
         result = run_sim2sim(args.contract, model, seconds=args.seconds, num_robots=args.num_robots,
                              command=(args.vx, args.vy), remove_meshes=strip, seed=args.seed,
                              randomize=args.randomize, pushes=pushes,
-                             start_velocity=ROBUST_START if args.start_noise else None).as_dict()
+                             start_velocity=ROBUST_START if args.start_noise else None, on_step=on_step).as_dict()
     except (ContractError, ValueError, ImportError) as err:  # bad contract or model, or onnxruntime missing
         sys.exit(f"error: {err}")
+    except KeyboardInterrupt:
+        sys.exit("stopped (Ctrl-C)")
+    finally:
+        if server is not None:
+            server.stop()
     result["model"] = str(args.model)
     text = json.dumps(result, indent=2)
     print(text)

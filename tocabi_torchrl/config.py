@@ -39,6 +39,7 @@ from .tree import OWN_NUMBER_CHECK, ConfigError, check_field_types, leaf_paths, 
 from .tree import from_dict as _tree_from_dict
 from .tree import to_dict as _tree_to_dict
 from .value_rules import MAX_SEED, POSITIVE, check_seed
+from .viewer.config import ViewerConfig
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "FLAT_PATHS", "flat_to_paths",
            "config_from_dict", "to_dict", "flat_dict", "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
@@ -262,6 +263,8 @@ class RunConfig:
     env: TocabiWalkConfig = field(default_factory=TocabiWalkConfig)
     transforms: TransformSettings = field(default_factory=TransformSettings)
     ppo: PPOConfig = field(default_factory=PPOConfig)
+    #: The live web viewer of the training worlds (``--viewer``; the ``viewer`` extra; docs/viewer.md).
+    viewer: ViewerConfig = field(default_factory=ViewerConfig)
 
     def __getattr__(self, name: str) -> Any:
         # Only reached for names that are not attributes: the flat PPOConfig names of before the tree still read
@@ -318,6 +321,7 @@ class RunConfig:
         self.env.validate()
         self.transforms.validate()
         self.ppo.validate()
+        self.viewer.validate()
         for path, allowed in field_choices().items():
             value = _get(self, path)
             if value not in allowed:
@@ -483,7 +487,7 @@ def flat_to_paths(values: Mapping[str, Any]) -> dict[str, Any]:
             out["env.control.pd_kp"], out["env.control.pd_kv"] = PD_GAINS[value]
         elif key in FLAT_PATHS:
             out[FLAT_PATHS[key]] = tuple(value) if isinstance(value, list) else value
-        elif key in paths or key.split(".")[0] in ("env", "transforms", "ppo"):
+        elif key in paths or key.split(".")[0] in ("env", "transforms", "ppo", "viewer"):
             out[key] = value  # a path, or a whole section; replace_paths names an unknown one
         else:
             near = sorted({p for p in paths if p.endswith("." + key)}

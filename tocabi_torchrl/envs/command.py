@@ -63,6 +63,18 @@ class VelocityCommand:
         if not self.cfg.ramp_survives_reset:
             self.ramp_pos.copy_(torch.where(mask, self.ramp_len, self.ramp_pos))
 
+    def hold(self, vx: float, vy: float) -> None:
+        """Command (vx, vy) [m/s] to every env from now on, resets and resampling included (a live viewer's sliders).
+
+        Writes the value, the ramp's end points and both sampling ranges in place (a captured step keeps reading the
+        same tensors): a resample then draws (vx, vy) again, and a ramp runs from it to itself."""
+        v = torch.tensor([float(vx), float(vy)], device=self.value.device)
+        for t in (self.value, self.start, self.final):
+            t.copy_(v.expand_as(t))
+        for lo, span in (self._range, self._initial_range):
+            lo.copy_(v)
+            span.zero_()
+
     def update(self, episode_step: torch.Tensor) -> None:
         """Advance the schedule before the physics of a step; ``episode_step`` (num_envs,) is the pre-step count."""
         cfg = self.cfg

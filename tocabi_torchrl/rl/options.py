@@ -9,7 +9,8 @@ from __future__ import annotations
 __all__ = ["FIELD_HELP", "RESUME_SAFE", "field_help", "resume_safe_text"]
 
 #: Paths a ``--resume`` may change: they set the budget, logging, checkpoints, evaluation, where it runs, or how
-#: the same computation is executed (CUDA graphs, gradient sync, stored env signals, CPU threads, reset pass). Every
+#: the same computation is executed (CUDA graphs, gradient sync, stored env signals, CPU threads, reset pass), or
+#: whether a live viewer watches it (viewer.*, which changes nothing of the computation). Every
 #: other option must equal the saved run's: a schedule's end point (``ppo.lr_end``) is not among them, since changing
 #: it mid-run makes the rate jump to another line.
 RESUME_SAFE = frozenset({
@@ -20,6 +21,7 @@ RESUME_SAFE = frozenset({
     "eval_at_end", "eval_envs", "eval_seconds", "eval_test",
     "ppo.cuda_graph", "ppo.update_graph", "ppo.grad_sync", "ppo.store_env_signals",
     "env.sim.threads", "env.sim.reset_pass",
+    "viewer.enabled", "viewer.host", "viewer.port", "viewer.worlds", "viewer.every",
 })
 
 
@@ -184,6 +186,12 @@ FIELD_HELP: dict[str, str] = {
     "eval_test": "which gait test runs when training ends: standard (one command) or robust (diverse starts, four "
                  "cases of eval_envs robots each; docs/evaluation.md)",
     "progress_bar": "show a progress bar (else one line per log row)",
+    "viewer.enabled": "serve a live web page of a few training worlds while training (the viewer extra; "
+                      "docs/viewer.md)",
+    "viewer.host": "address the viewer's page is served on (127.0.0.1: this machine, via ssh -L; 0.0.0.0: all)",
+    "viewer.port": "TCP port of the viewer's page",
+    "viewer.worlds": "training worlds shown (the first ones; at most 64)",
+    "viewer.every": "policy steps between two host copies of the shown worlds' body poses",
 }
 
 def field_help(name: str) -> str:

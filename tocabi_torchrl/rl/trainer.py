@@ -418,7 +418,10 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     # One host read at start-up; from then on the trainer knows when it takes the teacher.
     teacher_taken = agent.teacher is not None and bool(agent.teacher.anchored)
 
-    collector = make_collector(cfg, env, agent.actor, device, (iterations - start_iter) * cfg.frames_per_batch)
+    # The live viewer (rank 0): a policy that also ticks its pose stream, a host copy off the training stream.
+    live = _live_view(cfg, env) if cfg.viewer.enabled and info.is_main else None
+    collector = make_collector(cfg, env, agent.actor if live is None else live.wrap(agent.actor), device,
+                               (iterations - start_iter) * cfg.frames_per_batch)
     progress.started = True  # the logger writes config.json: from here on the run folder holds the run
     logger = (RunLogger(run_dir, cfg, total_iterations=iterations + shift, start_iteration=start_iter + shift)
               if info.is_main else None)
@@ -491,6 +494,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                                update_s=time.perf_counter() - t_collect, wall_s=elapsed, train_s=train_s)
                 if logger is not None:
                     logger.log(it + shift, metrics)
+                if live is not None:
+                    live.publish(it + shift, metrics)
             # Checkpoints hold rank 0's state, which every rank shares (parameters, optimiser, statistics).
             if train_s >= next_mark:
                 if info.is_main:
@@ -517,10 +522,20 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         collector.shutdown()
         if logger is not None:
             logger.close()
+        if live is not None:
+            live.close()
     wall = time.perf_counter() - t_start
     done_steps = env_steps - run.start_env_steps
     return TrainResult(run_dir, it + shift, env_steps, wall, done_steps / max(wall, 1e-9), metrics, env_graph,
                        agent=agent, interrupted=progress.stop_signal)
+
+
+def _live_view(cfg: RunConfig, env: EnvBase):
+    """The training's live page (``cfg.viewer``; needs the ``viewer`` extra, whose absence the recipe reports before
+    the run starts)."""
+    from ..viewer.training import TrainingView
+
+    return TrainingView(cfg.viewer, env.base_env.sim)
 
 
 def _stop_requests(time_up: bool, stop_signal: str | None, info: DistInfo,

@@ -23,6 +23,7 @@ import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import Callable
 
 import mujoco
 import numpy as np
@@ -222,7 +223,8 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
                 num_robots: int = 4, command: tuple[float, float] = (0.5, 0.0), init_rows=None,
                 remove_meshes: bool = False, motion: str | os.PathLike | None = None, perturbation: float = 0.0,
                 seed: int = 0, randomize: str | rnd.Randomization = "none", pushes: rnd.PushSettings | None = None,
-                start_velocity: rnd.StartVelocity | None = None) -> Sim2SimResult:
+                start_velocity: rnd.StartVelocity | None = None,
+                on_step: Callable[[int, mujoco.MjModel, list], None] | None = None) -> Sim2SimResult:
     """Drive ``num_robots`` C MuJoCo robots through the exported policy for ``seconds`` at ``command`` (vx, vy) m/s.
 
     ``model_path``: MJCF (default: the shipped authored model); ``remove_meshes`` strips mesh geoms first (the
@@ -244,6 +246,9 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
       ``MjModel`` copy per robot. Sensors: biases and noise on what the policy observes only.
     * ``pushes``: kicks on the pelvis through ``MjData.xfrc_applied`` (``PushSettings``; None or count 0: none).
     * ``start_velocity``: start joint and pelvis velocities (``StartVelocity``, e.g. ``ROBUST_START``; None: at rest).
+
+    ``on_step(step, model, datas)``: called after each control period with its 0-based index, the compiled model and
+    the robots' ``MjData`` (read them, do not write; the live viewer draws them: docs/viewer.md).
     """
     runtime = PolicyRuntime(contract_path, motion=motion)
     c = runtime.contract
@@ -354,6 +359,8 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
         vel_err += a * np.abs(lin_vel[:, 0] - vx)
         alive_steps += a
         cmd = runtime.step(state)
+        if on_step is not None:
+            on_step(step, m, datas)
     dt = float(c["timing"]["control_dt_s"])
     dist = last - start
     return Sim2SimResult(
