@@ -456,3 +456,25 @@ def test_override_path():
 
     assert parse_overrides(["env.sim.reset_pass=reduced"]) == {"env.sim.reset_pass": "reduced"}
     assert field_choices()["env.sim.reset_pass"] == ("full", "reduced")
+
+
+def test_robust_policies_table_names_each_case_and_its_verdict(tmp_path):
+    """lab.benchmarks.robust_policies on the CPU (2 robots per case, 0.1 s): one row per policy and case, a ✗ on a
+    missed threshold, each policy's own report beside the table."""
+    import json
+
+    from lab.benchmarks import robust_policies
+
+    policy = robust_policies.POLICIES / "tocabi_walk_ppo.pt"
+    if not policy.is_file():
+        pytest.skip("shipped policy not present")
+    robust_policies.main(["--policies", str(policy), "--num_envs", "2", "--seconds", "0.1", "--device", "cpu",
+                          "--out", str(tmp_path)])
+    data = json.loads((tmp_path / "robust_policies.json").read_text())
+    (row,) = data["results"]
+    assert row["policy"] == "tocabi_walk_ppo" and set(row["cases"]) == {"nominal", "commands", "robust_0.5",
+                                                                         "robust_1.0"}
+    assert row["passes"] is False  # 0.1 s cannot cover the 2.6 m the nominal case asks for
+    page = (tmp_path / "robust_policies.md").read_text()
+    assert "| tocabi_walk_ppo | nominal |" in page and "✗" in page and "python -m lab.benchmarks.robust_policies" in page
+    assert (tmp_path / "tocabi_walk_ppo" / "robust.json").is_file()

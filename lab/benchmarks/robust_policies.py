@@ -1,0 +1,104 @@
+"""The robust gait test of several policies side by side (by default the shipped ones), one table.
+
+    python -m lab.benchmarks.robust_policies --out docs/benchmarks/robust
+    python -m lab.benchmarks.robust_policies --policies runs/robust/checkpoints/best.pt --num_envs 1024
+
+Each policy gets ``tocabi_torchrl.evaluation.robust`` (four cases of ``--num_envs`` robots, 8 s, one batch): its
+``robust.json`` and ``robust.png`` go to ``<out>/<policy>/``, the table of every policy and case to
+``<out>/robust_policies.{json,md,png}`` with the command, date and hardware, and the seconds each test took.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from . import common
+
+NAME = "robust_policies"
+SHIPPED = ("tocabi_walk_ppo", "tocabi_walk_torque", "tocabi_walk_model_based")
+POLICIES = Path(__file__).resolve().parents[2] / "assets" / "policies"
+#: The columns of the table: (label, path in a case summary, format).
+COLUMNS = (("survival", "survival", ".3f"), ("distance mean [m]", "forward_distance_m.mean", ".2f"),
+           ("drift p95 [m]", "lateral_drift_m.p95", ".2f"), ("tracking [m/s]", "tracking_error_mps.mean", ".3f"))
+
+
+def _value(summary: dict, path: str):
+    for part in path.split("."):
+        summary = summary.get(part) if isinstance(summary, dict) else None
+    return summary
+
+
+def measure(policy: Path, out: Path, num_envs: int, seconds: float, device: str) -> dict:
+    from tocabi_torchrl.evaluation.robust import evaluate_robust_run
+
+    start = time.perf_counter()
+    report = evaluate_robust_run(policy, num_envs=num_envs, device=device, out_dir=out / policy.stem, seconds=seconds)
+    took = time.perf_counter() - start
+    cases = {name: {"passes": c["passes"], **{path: _value(c, path) for _, path, _ in COLUMNS},
+                    "checks": {p: {"value": v["value"], "needs": v["needs"], "pass": v["pass"]}
+                               for p, v in c["checks"].items()}}
+             for name, c in report["cases"].items()}
+    print(f"{policy.stem}: {'passes' if report['passes'] else 'does not pass'} ({took:.0f} s)", flush=True)
+    return {"policy": policy.stem, "file": str(policy), "passes": report["passes"], "seconds": took, "cases": cases}
+
+
+def render(data: dict, out: Path) -> str:
+    rows = []
+    for r in data["results"]:
+        for name, c in r["cases"].items():
+            cells = [common.fmt(c[path], spec) + ("" if all(ch["pass"] for p, ch in c["checks"].items() if p == path)
+                                                  else " ✗") for _, path, spec in COLUMNS]
+            rows.append([r["policy"], name, *cells, "pass" if c["passes"] else "FAIL"])
+    lines = [common.table(["policy", "case", *[label for label, _, _ in COLUMNS], "case verdict"], rows), ""]
+    lines += [f"- {r['policy']}: {'passes' if r['passes'] else 'does not pass'} the robust test; "
+              f"{r['seconds']:.0f} s for its four cases ([report]({r['policy']}/robust.json))" for r in data["results"]]
+    _plot(data, out / f"{NAME}.png")
+    s = data["meta"]
+    return common.page("The robust gait test of the policies", data,
+                       f"{s['num_envs']} robots per case, {s['seconds']:g} s, one batch per policy; ✗: a threshold "
+                       f"of the case missed (docs/evaluation.md).\n\n" + "\n".join(lines) + f"\n\n![]({NAME}.png)")
+
+
+def _plot(data: dict, path: Path) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    results = data["results"]
+    cases = list(results[0]["cases"]) if results else []
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    width = 0.8 / max(len(results), 1)
+    for i, r in enumerate(results):
+        ax.bar([k + i * width for k in range(len(cases))], [r["cases"][c]["survival"] or 0.0 for c in cases], width,
+               label=r["policy"])
+    ax.set_xticks([k + 0.4 - width / 2 for k in range(len(cases))], cases)
+    ax.set(ylabel="survival", ylim=(0, 1.05), title="robust gait test: survival per case")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m lab.benchmarks.robust_policies", description=__doc__.split("\n")[0])
+    parser.add_argument("--policies", nargs="+", default=[str(POLICIES / f"{p}.pt") for p in SHIPPED],
+                        help="checkpoints or run folders (default: the shipped policies)")
+    parser.add_argument("--num_envs", type=int, default=1024, help="robots per case")
+    parser.add_argument("--seconds", type=float, default=8.0, help="length of each case [s]")
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--out", default=str(common.DOCS / "robust"), help="folder of the reports and the table")
+    args = parser.parse_args(argv)
+    out = common.report_dir(args.out, args.device)
+    results = [measure(Path(p), out, args.num_envs, args.seconds, args.device) for p in args.policies]
+    data = {"meta": common.meta(NAME, argv, on=args.device, num_envs=args.num_envs, seconds=args.seconds),
+            "results": results}
+    print(common.publish(out, NAME, data, render))
+
+
+if __name__ == "__main__":
+    main()
