@@ -37,7 +37,7 @@ def test_committed_report_regenerates_from_its_json(page, tmp_path):
     text = regenerate.regenerate(page, common.DOCS, tmp_path)
     assert text == (common.DOCS / page).read_text(), f"{page} differs from what its JSON renders"
     # the throughput tables (ours, and the mjlab peer's) are the only pages without a figure
-    assert bool(list(tmp_path.glob("*.png"))) == (regenerate.REPORTS[page][1] not in (train_throughput.render,
+    assert bool(list(tmp_path.rglob("*.png"))) == (regenerate.REPORTS[page][1] not in (train_throughput.render,
                                                                                       mjlab_peer.render))
 
 
