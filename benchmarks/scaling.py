@@ -46,7 +46,7 @@ def run(kind: str, backend: str, n: int, args) -> dict:
         r = common.run_child("train_throughput", [
             "--num_envs", str(n), "--iterations", str(max(rounds - 1, 0)), "--warmup", str(min(rounds, 1)),
             "--raw_steps", str(200 if kind == "raw" else 0), "--device", "cuda" if backend == "gpu" else "cpu",
-            "--run_dir", args.run_dir, "--set", f"steps_per_env={steps}", f"minibatch_size={batch}",
+            "--run_dir", args.run_dir, "--set", f"ppo.steps_per_env={steps}", f"ppo.minibatch_size={batch}",
             f"max_minutes={args.max_minutes}", *hidden], env={"CUDA_VISIBLE_DEVICES": ""} if backend == "cpu" else None)
         record = {"status": "ok", "raw_policy_steps_per_s": r["raw_policy_steps_per_s"]} if kind == "raw" else {
             **{k: r[k] for k in ("status", "iterations", "env_steps", "train_wall_s", "setup_s", "env_graph")},

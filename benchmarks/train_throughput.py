@@ -1,6 +1,6 @@
 """Training throughput (collection + PPO update) against raw mujoco-warp stepping of the same model, same process.
 
-    python -m benchmarks.train_throughput --num_envs 4096 16384 --iterations 10   # --set cuda_graph=off: ablations
+    python -m benchmarks.train_throughput --num_envs 4096 16384 --iterations 10   # --set ppo.cuda_graph=off: ablations
     python -m benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --name multi_gpu   # data-parallel scaling
 
 Each env count in a fresh process: ``--iterations`` PPO iterations of the default preset after ``--warmup``, then the

@@ -18,7 +18,7 @@ SHIPPED_POLICY = Path(__file__).resolve().parents[1] / "assets" / "policies" / "
 
 
 def _config(**overrides):
-    return preset_config("cpu_smoke", device="cpu", num_envs=4, minibatch_size=16, **overrides)
+    return preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.minibatch_size": 16}, **overrides)
 
 
 def _saved_run(tmp_path: Path, iterations=(1,), **overrides) -> tuple[Path, object]:

@@ -27,8 +27,8 @@ from tocabi_torchrl.rl.run_dir import RunDirError, open_run
 from tocabi_torchrl.rl.trainer import train
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-TINY = dict(device="cpu", num_envs=2, steps_per_env=4, minibatch_size=8, total_env_steps=16, progress_bar=False,
-            eval_at_end=False, checkpoint_every=1)
+TINY = {"device": "cpu", "env.num_envs": 2, "ppo.steps_per_env": 4, "ppo.minibatch_size": 8, "total_env_steps": 16,
+        "progress_bar": False, "eval_at_end": False, "checkpoint_every": 1}
 
 
 def tiny_args(tmp_path: Path, name: str = "run", **extra) -> list[str]:
@@ -85,7 +85,7 @@ def test_resume_refuses_changed_settings_naming_them(finished_run, option, value
 
 def test_train_refuses_a_resume_with_other_network_sizes(finished_run):
     cfg = preset_config("cpu_smoke", **{**TINY, "total_env_steps": 32}, run_dir=str(finished_run.parent), name="run",
-                        resume=str(finished_run), actor_hidden=(32, 32))
+                        resume=str(finished_run), **{"ppo.actor_hidden": (32, 32)})
     with pytest.raises(ResumeConfigError, match=r"actor_hidden: saved \(64, 64\), given \(32, 32\)"):
         train(cfg)
 
@@ -181,10 +181,10 @@ def test_resume_goes_on_in_the_checkpoints_own_folder_wherever_the_run_was_start
 
 def test_max_grad_norm_inf_means_no_clipping_and_nan_is_refused():
     # The one number of the tree that may be infinite (the finiteness check would otherwise refuse it).
-    assert preset_config("cpu_smoke", max_grad_norm=math.inf).ppo.max_grad_norm == math.inf
+    assert preset_config("cpu_smoke", **{"ppo.max_grad_norm": math.inf}).ppo.max_grad_norm == math.inf
     for value in (math.nan, 0.0, "1.0"):
         with pytest.raises(ValueError, match="ppo.max_grad_norm must be"):
-            preset_config("cpu_smoke", max_grad_norm=value)
+            preset_config("cpu_smoke", **{"ppo.max_grad_norm": value})
 
 
 @pytest.mark.parametrize(("option", "value", "message"), [

@@ -51,7 +51,7 @@ def make_env(
             the env is built from that preset's env and transform sections (``num_envs`` defaults to the preset's),
             so it cannot be given with ``config``/``transforms``. The trainer's training aids are not part of a
             preset's env (the torque preset's assist: pass ``torque_assist=True``). The transforms' history layout
-            is ``transforms=TransformSettings(preset="tocabilab")`` (see :data:`tocabi_torchrl.transforms.PRESETS`).
+            is ``transforms=TransformSettings(history="tocabilab")`` (see :data:`tocabi_torchrl.transforms.PRESETS`).
         sync_free_resets: return a :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`, whose
             ``step_and_maybe_reset`` (the collectors' step) resets done envs without host reads (default: on CUDA).
         cuda_graph: capture that ``step_and_maybe_reset`` as one CUDA graph after two eager calls and replay it
@@ -109,7 +109,7 @@ def _preset_sections(preset: str | None, config: TocabiWalkConfig | None,
 
     if preset not in PRESETS:
         # "tocabilab" named the transforms' history layout here before: say where it went.
-        hint = (f"; {preset!r} is a transform history preset: pass transforms=TransformSettings(preset={preset!r})"
+        hint = (f"; {preset!r} is a transforms history layout: pass transforms=TransformSettings(history={preset!r})"
                 if preset in TRANSFORM_PRESETS else "")
         raise ValueError(f"unknown training preset {preset!r}; choose one of {sorted(PRESETS)}{hint}")
     if config is not None or transforms is not None:

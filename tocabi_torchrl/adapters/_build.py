@@ -20,7 +20,7 @@ def task_config(preset: str = "default", num_envs: int = 4096, **task) -> RunCon
     ``control_mode="torque"``); the ``ppo`` section is ignored by the adapters, whose library trains."""
     # The adapters never use the ppo section's update: shrink the mini-batch so a few envs validate.
     task.setdefault("minibatch_size", 1)
-    return preset_config(preset, num_envs=num_envs, **task)
+    return preset_config(preset, **{"env.num_envs": num_envs}, **task)
 
 
 def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "default",
