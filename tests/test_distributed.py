@@ -339,7 +339,8 @@ def _torchrun_recipe(tmp_path, name: str, *options: str):
     recipe = Path(__file__).resolve().parents[1] / "recipes" / "ppo_walk.py"
     return subprocess.run(
         [torchrun, "--standalone", "--nproc_per_node", "2", str(recipe), "--preset", "cpu_smoke", "--device", "cpu",
-         "--num_envs", "2", "--steps_per_env", "4", "--minibatch_size", "4", "--total_env_steps", "32", *options,
+         "--env.num_envs", "2", "--ppo.steps_per_env", "4", "--ppo.minibatch_size", "4", "--total_env_steps", "32",
+         *options,
          "--run_dir", str(tmp_path), "--name", name, "--eval_at_end", "false", "--progress_bar", "false"],
         capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
 
@@ -381,8 +382,9 @@ def test_torchrun_trains_on_two_gpus_with_nccl_and_ends(tmp_path, grad_sync):
     recipe = Path(__file__).resolve().parents[1] / "recipes" / "ppo_walk.py"
     proc = subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", str(recipe),
-         "--preset", "cpu_smoke", "--device", "cuda", "--num_envs", "64", "--steps_per_env", "8", "--minibatch_size",
-         "256", "--total_env_steps", str(2 * 2 * 64 * 8), "--update_graph", str(grad_sync == "allreduce").lower(),
+         "--preset", "cpu_smoke", "--device", "cuda", "--env.num_envs", "64", "--ppo.steps_per_env", "8",
+         "--ppo.minibatch_size", "256", "--total_env_steps", str(2 * 2 * 64 * 8), "--ppo.update_graph",
+         str(grad_sync == "allreduce").lower(),
          "--ppo.grad_sync", grad_sync, "--run_dir", str(tmp_path),
          "--name", "dp", "--eval_at_end", "false", "--progress_bar", "false"],
         capture_output=True, text=True, timeout=900, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)

@@ -148,7 +148,7 @@ def test_gpu_cuda_graph_step_matches_eager(preset, mode):
     # envs cannot grow into different episodes; the 7-step truncation still resets every env three times.
     n, steps = 64, 24
     kw = dict(num_envs=n, device="cuda", seed=3, max_episode_steps=7, control_mode="pd_reference",
-              transforms=TransformSettings(preset=preset))
+              transforms=TransformSettings(history=preset))
     eager, graphed = make_env(cuda_graph=False, **kw), make_env(cuda_graph=True, **kw)
     graphed.graph_modes = (mode,)
     gen = torch.Generator(device="cuda").manual_seed(0)

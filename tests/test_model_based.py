@@ -311,7 +311,7 @@ def test_preset_round_trips_through_the_tree_a_tiny_run_and_its_checkpoint(tmp_p
     assert cfg.env.control.mb_residual_gain == tuple(0.5 * float(k) for k in robot.LEG_KP)
     assert ControlConfig().mb_residual_gain == tuple(LIMITS)
     assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
-    parsed, _ = parse_args(["--preset", "model_based", "--env.control.mb_zeta", ",".join(["1.0"] * 12),
+    parsed, _ = parse_args(["--preset", "model_based", "--env.control.mb_zeta", *["1.0"] * 12,
                             "--env.control.mb_ref_window", "0.004"])
     assert parsed.env.control.mb_zeta == (1.0,) * 12 and parsed.env.control.mb_ref_window == 0.004
 

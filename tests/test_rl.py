@@ -70,34 +70,39 @@ def test_gae_bootstraps_truncation_but_not_termination():
     assert adv[1].item() == pytest.approx(1.0 + gamma * value - value)  # timeout: bootstrap from the final state
 
 
-@pytest.mark.parametrize("field, value, match", [
-    ("num_envs", 0, "num_envs"), ("gamma", 1.5, "gamma"), ("lr", 0.0, "lr"), ("lr_schedule", "cosine", "lr_schedule"),
-    ("std_mode", "fixed", "std_mode"), ("loggers", ("csv", "mlflow"), "mlflow"), ("minibatch_size", 10**9, "rollout"),
-    ("activation", "gelu", "activation"), ("control_mode", "velocity", "control_mode"),
-    ("pd_gains", "soft", "pd_gains"), ("pd_action_scale", 0.0, "pd_action_scale"),
-    ("reward_weights", ("body_vel",), "body_vel=0.9"), ("reward_weights", ("speed=1",), "unknown term"),
-    ("cuda_graph", "sometimes", "cuda_graph must be one of"),
+@pytest.mark.parametrize("path, value, match", [
+    ("env.num_envs", 0, "num_envs"), ("ppo.gamma", 1.5, "gamma"), ("ppo.lr", 0.0, "lr"),
+    ("ppo.lr_schedule", "cosine", "lr_schedule"), ("ppo.std_mode", "fixed", "std_mode"),
+    ("loggers", ("csv", "mlflow"), "mlflow"), ("ppo.minibatch_size", 10**9, "rollout"),
+    ("ppo.activation", "gelu", "activation"), ("env.control.mode", "velocity", "env.control.mode"),
+    ("env.control.pd_action_scale", 0.0, "pd_action_scale"),
+    ("transforms.reward_weights", ("body_vel=0.9",), "must be a RewardWeights"),
+    ("transforms.reward_weights.body_vel", float("nan"), "transforms.reward_weights.body_vel must be a finite number"),
+    ("transforms.reward_weights.speed", 1.0, "reward_weights has no 'speed'"),
+    ("ppo.cuda_graph", "sometimes", "cuda_graph must be one of"),
 ])
-def test_bad_config_values(field, value, match):
+def test_bad_config_values(path, value, match):
     with pytest.raises(ValueError, match=match):
-        preset_config("default", **{field: value})
+        preset_config("default", **{path: value})
 
 
 def test_unknown_preset_and_field():
     with pytest.raises(ValueError, match="unknown preset"):
         preset_config("fastest")
-    with pytest.raises(ValueError, match="unknown PPOConfig field"):
+    with pytest.raises(ValueError, match=r"unknown config option 'learning_rate'"):
         preset_config("default", learning_rate=1e-3)
 
 
 def test_command_line_overrides():
-    cfg, _ = parse_args(["--preset", "reference", "--num_envs", "16", "--actor_hidden", "64,32",
-                         "--eval_at_end", "false", "--reward_weights", "body_vel=0.9,qpos=0.5"])
+    cfg, _ = parse_args(["--preset", "reference", "--env.num_envs", "16", "--ppo.actor_hidden", "64", "32",
+                         "--eval_at_end", "false", "--transforms.reward_weights.body_vel", "0.9",
+                         "--transforms.reward_weights.qpos", "0.5"])
     assert cfg.transforms.reward_weight_map() == {"body_vel": 0.9, "qpos": 0.5}
+    assert parse_args(["--preset", "reference"])[0].transforms.reward_weight_map() == {}  # the reference weights
     assert cfg.preset == "reference" and cfg.env.num_envs == 16 and cfg.ppo.actor_hidden == (64, 32)
     assert cfg.eval_at_end is False and cfg.ppo.minibatch_size == 128 and cfg.ppo.value_head_lr == 5e-4
     with pytest.raises(SystemExit):
-        parse_args(["--num_envs", "many"])
+        parse_args(["--env.num_envs", "many"])
 
 
 @pytest.mark.parametrize("value, mode", [(True, "on"), (False, "off"), ("true", "on"), ("False", "off"),
@@ -106,7 +111,6 @@ def test_command_line_overrides():
 def test_cuda_graph_reads_old_bool_configs_as_on_off(value, mode):
     # Checkpoints and scripts from before "auto" carry a bool (or true/false on a command line).
     assert preset_config("default", **{"ppo.cuda_graph": value}).ppo.cuda_graph == mode
-    assert parse_args(["--cuda_graph", str(value)])[0].ppo.cuda_graph == mode
     assert parse_args(["--ppo.cuda_graph", str(value)])[0].ppo.cuda_graph == mode
 
 

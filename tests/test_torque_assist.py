@@ -258,7 +258,7 @@ def test_torque_preset_is_the_reference_action_space_with_a_fading_assist():
     cfg = preset_config("torque")
     assert cfg.env.control.mode == "torque" and cfg.ppo.torque_assist == 1.0
     assert 0 < cfg.ppo.assist_fade_start < cfg.ppo.assist_fade_end < cfg.total_env_steps
-    assert cfg.transforms.preset == "reference"  # 13 reference reward terms, reference observation
+    assert cfg.transforms.history == "reference"  # 13 reference reward terms, reference observation
 
 
 @pytest.mark.parametrize("target", ["teacher", "rollout"])
