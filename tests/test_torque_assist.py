@@ -244,10 +244,10 @@ def test_absorb_loss_moves_the_mean_to_its_target():
 
 
 @pytest.mark.parametrize("overrides, match", [
-    (dict(control_mode="pd_reference"), "needs control_mode='torque'"),
-    (dict(assist_fade_start=5, assist_fade_end=5), "assist_fade_start < assist_fade_end"),
-    (dict(torque_assist=-1.0), "torque_assist must be in \\[0, 1\\]"),
-    (dict(torque_assist=1.5), "torque_assist must be in \\[0, 1\\]"),
+    ({"env.control.mode": "pd_reference"}, "needs control_mode='torque'"),
+    ({"ppo.assist_fade_start": 5, "ppo.assist_fade_end": 5}, "assist_fade_start < assist_fade_end"),
+    ({"ppo.torque_assist": -1.0}, "torque_assist must be in \\[0, 1\\]"),
+    ({"ppo.torque_assist": 1.5}, "torque_assist must be in \\[0, 1\\]"),
 ])
 def test_torque_preset_rejects_bad_assist_settings(overrides, match):
     with pytest.raises(ValueError, match=match):
@@ -305,10 +305,10 @@ def test_a_resumed_run_keeps_its_teacher(tmp_path):
 
     n, steps = 4, 8
     frames = n * steps
-    kw = dict(device="cpu", num_envs=n, steps_per_env=steps, minibatch_size=16, epochs=1,
-              assist_fade_start=frames, assist_fade_end=5 * frames, actor_hidden=(16,), critic_hidden=(16,),
-              run_dir=str(tmp_path), name="r", eval_at_end=False, progress_bar=False, checkpoint_every=1,
-              checkpoint_keep_last=0, cuda_graph="off")
+    kw = {"device": "cpu", "env.num_envs": n, "ppo.steps_per_env": steps, "ppo.minibatch_size": 16, "ppo.epochs": 1,
+          "ppo.assist_fade_start": frames, "ppo.assist_fade_end": 5 * frames, "ppo.actor_hidden": (16,),
+          "ppo.critic_hidden": (16,), "run_dir": str(tmp_path), "name": "r", "eval_at_end": False,
+          "progress_bar": False, "checkpoint_every": 1, "checkpoint_keep_last": 0, "ppo.cuda_graph": "off"}
     first = train(preset_config("torque", total_env_steps=2 * frames, **kw))  # the teacher is taken in iteration 2
     folder = first.run_dir / "checkpoints"
     taken = torch.load(folder / "iter_000002.pt", weights_only=True)["agent"]["teacher"]

@@ -29,7 +29,7 @@ from ..config import PRESETS, PPOConfig, RunConfig, preset_config, preset_tree
 from ..tree import ConfigError, build_items, get_path, item_type, leaf_paths, to_dict
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_config", "preset_tree", "parse_args", "parse_tree", "check_command_line",
-           "given_options", "option_value", "ConfigError"]
+           "given_options", "option_value", "resume_config", "ConfigError"]
 
 #: What ``--help`` says above the options (the recipe's own first line comes before it).
 HOW_TO = ("--preset NAME (one of: {presets}) sets the defaults the other options change; give it first, the help "
@@ -161,8 +161,21 @@ def parse_args(argv: Sequence[str], prog: str | None = None, description: str = 
     ``rl.launch.launch_config``, which also decides what runs on a machine without CUDA."""
     resume = option_value(argv, "resume")
     if resume:
-        from .resume import resume_config
-
         return resume_config(resume, argv, prog=prog, description=description)
     cfg = parse_tree(argv, _preset_tree(argv), prog, description).validated()
     return cfg, given_options(argv, cfg)
+
+
+def resume_config(resume: str, argv: Sequence[str] = (), prog: str | None = None,
+                  description: str = "") -> tuple[RunConfig, dict]:
+    """The config saved with ``resume`` (a run folder or checkpoint file) with the command line ``argv`` (which may
+    name ``--resume`` and any option) parsed over it, validated, and the options ``argv`` names (``{path: value}``).
+    Raises ``rl.resume.ResumeConfigError`` naming each option outside ``RESUME_SAFE`` given another value than the
+    saved one (``--preset`` included)."""
+    from .checkpoint import checkpoint_file
+    from .resume import check_resume_config, saved_config
+
+    saved = saved_config(resume)
+    cfg = parse_tree(argv, saved, prog, description)
+    check_resume_config(saved, cfg, checkpoint_file(resume))
+    return cfg.validated(), given_options(argv, cfg)

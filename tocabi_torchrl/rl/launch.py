@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from ..config import RunConfig, preset_config, preset_tree
-from .config import PRESETS, given_options, option_value, parse_tree
+from .config import PRESETS, given_options, option_value, parse_tree, resume_config
 
 __all__ = ["LaunchError", "CPU_SIZED_PRESETS", "launch_config", "banner"]
 
@@ -36,8 +36,6 @@ def launch_config(argv: Sequence[str] | None, cuda_available: bool, description:
     argv = list(argv or [])
     resume = option_value(argv, "resume")
     if resume:
-        from .resume import resume_config
-
         resumed, given = resume_config(resume, argv, prog, description)
     asked = option_value(argv, "preset")
     if asked is not None and asked not in PRESETS:

@@ -4,21 +4,20 @@ A resumed run is the same run: its networks, task, rewards and learning settings
 given again may change only what :data:`RESUME_SAFE` lists (budget, logging, checkpoint cadence and retention,
 evaluation, device, and how the same computation runs: CUDA graphs, gradient sync, stored env signals, CPU threads,
 reset pass); any other difference is refused with a :class:`ResumeConfigError` naming the option, the saved value
-and the given one. The command line is parsed over the saved config (``rl.config.parse_tree``), so an option given
-with its saved value is no change.
+and the given one. The command line is parsed over the saved config (``rl.config.resume_config``), so an option
+given with its saved value is no change.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
 from pathlib import Path
 
 from ..config import RunConfig
 from ..tree import get_path, leaf_paths, replace_paths
 from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint, run_folder_of
 
-__all__ = ["ResumeConfigError", "RESUME_SAFE", "resume_config", "resume_safe_text", "check_resume_config",
+__all__ = ["ResumeConfigError", "RESUME_SAFE", "saved_config", "resume_safe_text", "check_resume_config",
            "holds_checkpoint", "no_checkpoint_message"]
 
 #: Paths a ``--resume`` may change: they set the budget, logging, checkpoints, evaluation, where it runs, or how
@@ -100,17 +99,3 @@ def saved_config(resume: str | os.PathLike) -> RunConfig:
         run = run_folder_of(path)
         where.update(run_dir=str(run.parent), name=run.name)
     return replace_paths(saved, where)
-
-
-def resume_config(resume: str | os.PathLike, argv: Sequence[str] = (), prog: str | None = None,
-                  description: str = "") -> tuple[RunConfig, dict]:
-    """The config saved with ``resume`` with the command line ``argv`` (which may name ``--resume`` and any
-    option) parsed over it, validated, and the options ``argv`` names (``{path: value}``). Raises
-    :class:`ResumeConfigError` naming each option outside :data:`RESUME_SAFE` given another value than the saved one
-    (``--preset`` included)."""
-    from .config import given_options, parse_tree
-
-    saved = saved_config(resume)
-    cfg = parse_tree(argv, saved, prog, description)
-    check_resume_config(saved, cfg, checkpoint_file(resume))
-    return cfg.validated(), given_options(argv, cfg)
