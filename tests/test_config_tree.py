@@ -27,7 +27,7 @@ from tocabi_torchrl.envs import TocabiWalkConfig
 from tocabi_torchrl.envs.config import ENV_FLAT_PATHS, TaskConfig
 from tocabi_torchrl.rl.config import parse_args
 from tocabi_torchrl.rl.trainer import env_config
-from tocabi_torchrl.transforms import PRESETS as TRANSFORM_PRESETS
+from tocabi_torchrl.transforms import HISTORIES
 from tocabi_torchrl.transforms import TransformSettings
 from tocabi_torchrl.tree import get_path, to_dict
 
@@ -66,7 +66,7 @@ def test_preset_matches_the_flat_config_it_replaces(name):
         if key == "command_preset":
             from tocabi_torchrl.envs import CommandConfig
 
-            assert tree.env.command == CommandConfig.preset(value), key
+            assert tree.env.command == CommandConfig.named(value), key
         elif key == "pd_gains":
             kp = robot.LEG_KP if value == "robot" else robot.LEG_KP / 9.0
             assert tree.env.control.pd_kp == pytest.approx(tuple(kp)), key
@@ -97,7 +97,7 @@ def test_preset_builds_the_env_and_transforms_it_built_before(name, training):
         assert _plain(got) == pytest.approx(_plain(value)) if key in ("pd_kp", "pd_kv") else _plain(got) == _plain(value), key
     tf = cfg.transforms.transform_config()
     frozen_tf = frozen["transforms"]
-    assert TRANSFORM_PRESETS[cfg.transforms.history].history == tf.history
+    assert HISTORIES[cfg.transforms.history].history == tf.history
     assert cfg.transforms.history == frozen_tf["history"]
     assert dict(tf.reward_weights) == frozen_tf["reward_weights"]
     for key in ("normalization", "zero_reward_on_terminated", "compile_reward", "phase_harmonics", "obs_clip",

@@ -292,7 +292,7 @@ def test_the_recipe_refuses_bad_model_based_settings_before_the_run_starts(tmp_p
     base = ["--device", "cpu", "--preset", "cpu_smoke", "--run_dir", str(tmp_path), "--name", "mb",
             "--env.control.mode", "model_based", "--eval_at_end", "false"]
     for extra, match in ((["--env.control.mb_ref_window", "10"], "mb_ref_window 10 s is longer"),
-                         (["--env.control.mb_omega", ",".join(["900"] * 12)], "unstable for L_HipYaw_Joint")):
+                         (["--env.control.mb_omega", *["900"] * 12], "unstable for L_HipYaw_Joint")):
         with pytest.raises(SystemExit) as info:
             main(base + extra)
         assert str(info.value.code).startswith("error: ") and match in str(info.value.code)

@@ -10,7 +10,7 @@ from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from tocabi_torchrl.transforms import (
-    PRESETS,
+    HISTORIES,
     REFERENCE_OBS_LAYOUT,
     REFERENCE_TERMS,
     CallableTerm,
@@ -29,7 +29,7 @@ def _env(preset="reference", device="cpu", env_kwargs=None, **overrides) -> Tran
     return TransformedEnv(base, default_transforms(preset, **overrides))
 
 
-@pytest.mark.parametrize("preset", list(PRESETS))
+@pytest.mark.parametrize("preset", list(HISTORIES))
 def test_check_env_specs(preset):
     env = _env(preset, env_kwargs={"terminate_prob": 0.3})
     check_env_specs(env, break_when_any_done="both")
@@ -40,9 +40,9 @@ def test_check_env_specs(preset):
     assert spec["episode_reward"].shape == spec["step_count"].shape == (N, 1)
 
 
-@pytest.mark.parametrize("preset", list(PRESETS))
+@pytest.mark.parametrize("preset", list(HISTORIES))
 def test_policy_input_is_the_history_of_normalised_observations_and_actions(preset):
-    layout = PRESETS[preset].history
+    layout = HISTORIES[preset].history
     env = _env(preset, env_kwargs={"terminate_prob": 0.15, "seed": 3})
     ro = env.rollout(20, break_when_any_done=False)
     # Rebuild each input from the rollout's own per-step data: obs[t] is ("next", obs_step_norm) at t, obs[-1]
@@ -120,7 +120,7 @@ def test_overrides_are_config_changes():
 
 
 def test_preset_errors():
-    with pytest.raises(KeyError, match="unknown transform preset 'walk'"):
+    with pytest.raises(KeyError, match="unknown transforms history layout 'walk'"):
         default_transforms("walk")
     with pytest.raises(TypeError, match="unknown transform option.*'histroy'"):
         default_transforms(histroy=None)

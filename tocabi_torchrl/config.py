@@ -267,7 +267,8 @@ class RunConfig:
     the envs unless a name says otherwise."""
 
     preset: str = "default"
-    """named configuration the other options start from"""
+    """the training preset the other options change (PRESETS: cpu_smoke, default, model_based, reference, robust,
+    torque); on the command line it is read first, whatever its place"""
     name: str = "ppo_walk"
     """run folder name under run_dir; an existing run is never overwritten (--resume it or pick a new name)"""
     run_dir: str = "runs"
@@ -399,11 +400,11 @@ EVAL_TESTS = ("standard", "robust")
 def field_choices() -> dict[str, tuple[str, ...]]:
     """The allowed values of each option that takes one of a few names (checked by ``validate``, listed by
     ``--help``), by path."""
-    from .transforms.settings import PRESETS as TRANSFORM_PRESETS
+    from .transforms.settings import HISTORIES
 
     return {"ppo.lr_schedule": LR_SCHEDULES, "ppo.std_mode": STD_MODES, "env.control.mode": CONTROL_MODES,
             "env.control.upper_body": UPPER_BODY_LAWS,
-            "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.history": tuple(TRANSFORM_PRESETS),
+            "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.history": tuple(HISTORIES),
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
             "ppo.assist_target": ASSIST_TARGETS, "env.sim.backend": ("warp", "mujoco", "auto"),
             "env.sim.reset_pass": RESET_PASSES, "ppo.grad_sync": GRAD_SYNCS,

@@ -39,11 +39,12 @@ class CommandConfig:
                    max_ramp_steps=250, ramp_survives_reset=True)
 
     @classmethod
-    def preset(cls, name: str) -> "CommandConfig":
-        presets = {"tocabilab": cls, "reference": cls.reference}
-        if name not in presets:
-            raise ValueError(f"unknown command preset {name!r}; choose one of {sorted(presets)}")
-        return presets[name]()
+    def named(cls, name: str) -> "CommandConfig":
+        """The schedule called ``name``: ``"tocabilab"`` (the default) or ``"reference"``."""
+        schedules = {"tocabilab": cls, "reference": cls.reference}
+        if name not in schedules:
+            raise ValueError(f"unknown command schedule {name!r}; choose one of {sorted(schedules)}")
+        return schedules[name]()
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad option (``env.command.NAME``) and the accepted values."""

@@ -1,5 +1,5 @@
 """The transforms' configuration as plain values: :class:`TransformConfig` (everything
-:func:`~tocabi_torchrl.transforms.presets.default_transforms` builds), the named :data:`PRESETS`, and
+:func:`~tocabi_torchrl.transforms.presets.default_transforms` builds), the named :data:`HISTORIES`, and
 :class:`TransformSettings`, the transforms section of the run config tree.
 
 A module without torch, so that the config tree (and ``recipes/ppo_walk.py --help``) reads without loading it;
@@ -20,7 +20,7 @@ from tocabi_torchrl.transforms.layouts import (REFERENCE_HISTORY, REFERENCE_OBS_
 from tocabi_torchrl.transforms.sensor_noise_config import SensorNoiseConfig
 from tocabi_torchrl.tree import check_field_types
 
-__all__ = ["TransformConfig", "TransformSettings", "RewardWeights", "PRESETS", "transform_config", "REFERENCE_TERM_NAMES"]
+__all__ = ["TransformConfig", "TransformSettings", "RewardWeights", "HISTORIES", "transform_config", "REFERENCE_TERM_NAMES"]
 
 _NORMALIZATIONS = ("fixed", "running", "none")
 #: The names of ``reward_terms.REFERENCE_TERMS`` (the reference's terms, in its order), here so that the config checks
@@ -97,7 +97,7 @@ class TransformConfig:
 
 #: ``reference``: the reference task (spec §7-8). ``tocabilab``: the same, with TocabiLab's consecutive history
 #: (last 5 observations, last 4 applied actions).
-PRESETS: Mapping[str, TransformConfig] = MappingProxyType(
+HISTORIES: Mapping[str, TransformConfig] = MappingProxyType(
     {
         "reference": TransformConfig(),
         "tocabilab": TransformConfig(history=TOCABILAB_HISTORY),
@@ -105,14 +105,17 @@ PRESETS: Mapping[str, TransformConfig] = MappingProxyType(
 )
 
 
-def transform_config(preset: str | TransformConfig = "reference", **overrides) -> TransformConfig:
-    """The preset's :class:`TransformConfig` with ``overrides`` (field names of :class:`TransformConfig`) applied."""
-    if isinstance(preset, TransformConfig):
-        base = preset
-    elif preset in PRESETS:
-        base = PRESETS[preset]
-    else:
-        raise KeyError(f"unknown transform preset {preset!r}; choose one of {list(PRESETS)} or pass a TransformConfig")
+def transform_config(base: str | TransformConfig = "reference", /, **overrides) -> TransformConfig:
+    """The :class:`TransformConfig` of ``base`` (the name of a history layout in :data:`HISTORIES`, or a
+    :class:`TransformConfig` to start from) with ``overrides`` (field names of :class:`TransformConfig`) applied."""
+    if isinstance(base, str):
+        if base not in HISTORIES:
+            raise KeyError(f"unknown transforms history layout {base!r}; choose one of {list(HISTORIES)} or pass a "
+                           f"TransformConfig")
+        base = HISTORIES[base]
+    elif not isinstance(base, TransformConfig):
+        raise TypeError(f"transform_config takes a history layout's name {list(HISTORIES)} or a TransformConfig, got "
+                        f"{base!r}")
     fields = {f.name for f in dataclasses.fields(TransformConfig)}
     unknown = sorted(set(overrides) - fields)
     if unknown:
@@ -201,8 +204,8 @@ class TransformSettings:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad option and the accepted values."""
-        if self.history not in PRESETS:
-            raise ValueError(f"unknown transforms.history {self.history!r}; choose one of {list(PRESETS)}")
+        if self.history not in HISTORIES:
+            raise ValueError(f"unknown transforms.history {self.history!r}; choose one of {list(HISTORIES)}")
         if self.normalization not in _NORMALIZATIONS:
             raise ValueError(f"transforms.normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
         self.reward_weight_map()
