@@ -282,7 +282,8 @@ def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Call
     parser.add_argument("--raw_steps", type=int, default=200,
                         help=f"raw mujoco-warp policy steps measured (>= {min_raw_steps}"
                              + ("; 0 skips them)" if min_raw_steps == 0 else ")"))
-    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="config overrides (ablations)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE",
+                        help="config overrides (ablations): dotted paths, e.g. ppo.cuda_graph=off")
     parser.add_argument("--device", default="cuda", help=device_help)
     parser.add_argument("--run_dir", default=f"/tmp/tocabi_bench_runs/{name}")
     parser.add_argument("--out", default=str(DOCS))

@@ -40,7 +40,8 @@ def run(kind: str, backend: str, n: int, args) -> dict:
     steps = max(base.ppo.steps_per_env, math.ceil(2048 / n))  # small counts: rollouts of at least 2,048 transitions
     batch = min(base.ppo.minibatch_size, n * steps // 4)
     rounds = 0 if kind == "raw" else 3 if kind == "memory" else math.ceil(TARGET / (n * steps))
-    hidden = [f"actor_hidden={args.hidden}", f"critic_hidden={args.hidden}"] if args.hidden else []
+    sizes = args.hidden.replace(",", " ")  # --set takes a tuple space-separated, as ppo_walk.py does
+    hidden = [f"ppo.actor_hidden={sizes}", f"ppo.critic_hidden={sizes}"] if args.hidden else []
     meta, r = common.meta("scaling", None, "cpu"), {}  # no CUDA context in this driving process: the child names it
     try:
         r = common.run_child("train_throughput", [
