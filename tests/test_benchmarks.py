@@ -126,7 +126,8 @@ def test_step_timeline_marks_every_phase_of_the_real_trainer(tmp_path, monkeypat
     monkeypatch.setattr(trainer, "build_env",
                         lambda cfg, device, **kw: build_env(cfg, device, **{"sync_free_resets": True, **kw}))
     args = ["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--raw_steps", "0",
-            "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs"), "--set", "ppo.steps_per_env=8", "ppo.actor_hidden=8 8"]
+            "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs"), "--set", "ppo.steps_per_env=8",
+            "ppo.actor_hidden=8 8"]
     data = step_timeline.main(args)
     (r,) = data["results"]
     ms = r["ms_per_policy_step"]
@@ -149,7 +150,8 @@ def test_solver_load_counts_the_trainer_and_the_raw_ceiling_on_warps_cpu(tmp_pat
         pytest.skip("warp's CPU device is not available here")
     originals = {k: getattr(trainer, k) for k in ("make_collector", "_update")}
     args = ["--device", "cpu", "--num_envs", "4", "--iterations", "2", "--warmup", "1", "--raw_steps", "3",
-            "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs"), "--set", "ppo.steps_per_env=6", "ppo.actor_hidden=8 8"]
+            "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs"), "--set", "ppo.steps_per_env=6",
+            "ppo.actor_hidden=8 8"]
     (r,) = solver_load.main(args)["results"]
     train, raw = r["training"], r["standing (raw ceiling)"]
     assert r["overrides"]["env.sim.backend"] == "warp"  # the counts are mujoco-warp's, also on the CPU

@@ -102,7 +102,8 @@ def test_a_bad_value_of_ppo_walk_names_the_option(argv, message, capsys):
 
 def test_a_value_the_config_refuses_is_one_error_line_naming_the_option(capsys):
     for argv, message in ((["--ppo.gamma", "1.5"], "error: ppo.gamma must be in (0.0, 1.0], got 1.5"),
-                          (["--transforms.reward_weights.qpos", "nan"], "error: transforms.reward_weights.qpos must be"),
+                          (["--transforms.reward_weights.qpos", "nan"],
+                           "error: transforms.reward_weights.qpos must be"),
                           (["--preset", "torq"], "error: --preset torq: unknown preset; choose one of")):
         with pytest.raises(SystemExit) as info:
             load_recipe("ppo_walk").main(argv)

@@ -263,7 +263,8 @@ def _train_worker(rank: int, world: int, init_file: str, run_dir: str, out: dict
     info = DistInfo(rank, world, rank)
     init_distributed(info, torch.device("cpu"), init_method=f"file://{init_file}")
     try:
-        cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4, "ppo.minibatch_size": 4,
+        cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                            "ppo.minibatch_size": 4,
                             "total_env_steps": world * 2 * 16, "name": "dp", **(options or {})}, run_dir=run_dir,
                             checkpoint_every=1, progress_bar=False, eval_at_end=False)
         # Running statistics, so that their merge is part of the run (the presets use the reference's fixed ones).
@@ -299,7 +300,8 @@ def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
 
     # With the budget scaled by the rank count (docs/distributed.md), the scheduled std falls per update exactly as in
     # a 1-rank run of the unscaled budget.
-    one = train(preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4, "ppo.minibatch_size": 4},
+    one = train(preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                "ppo.minibatch_size": 4},
                               total_env_steps=32, run_dir=str(tmp_path), name="one", checkpoint_every=1,
                               checkpoint_keep_last=0, progress_bar=False, eval_at_end=False))
     assert one.iterations == 4
@@ -308,7 +310,8 @@ def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
 
     # The same run goes on with one rank: the 64 steps done are 8 of its 8-step iterations, so its schedules go on
     # from there, while its files and metrics rows go on from its own iteration 4.
-    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4, "ppo.minibatch_size": 4},
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                        "ppo.minibatch_size": 4},
                         total_env_steps=80, run_dir=str(tmp_path), name="dp", checkpoint_every=1,
                         progress_bar=False, eval_at_end=False, resume=str(run))
     result = train(cfg)

@@ -228,7 +228,8 @@ def test_graph_wiring_matches_eager_on_cpu():
 
 def test_preset_is_the_training_preset_as_everywhere_else():
     # make_env(preset="torque") failed with "unknown transforms.preset 'torque'": preset named the transforms' history
-    # layout (now transforms.history) here and the training preset on the command line and in make_vec, and "reference" meant both.
+    # layout (now transforms.history) here and the training preset on the command line and in make_vec, and
+    # "reference" meant both.
     from tocabi_torchrl.config import preset_tree
     from tocabi_torchrl.transforms import TaskReward, TransformSettings
 

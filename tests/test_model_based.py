@@ -315,7 +315,8 @@ def test_preset_round_trips_through_the_tree_a_tiny_run_and_its_checkpoint(tmp_p
                             "--env.control.mb_ref_window", "0.004"])
     assert parsed.env.control.mb_zeta == (1.0,) * 12 and parsed.env.control.mb_ref_window == 0.004
 
-    tiny = preset_config("model_based", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8, "ppo.minibatch_size": 16},
+    tiny = preset_config("model_based", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
+                         "ppo.minibatch_size": 16},
                          total_env_steps=64, run_dir=str(tmp_path), name="mb", checkpoint_every=1, progress_bar=False,
                          eval_at_end=False, **{"ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,),
                                                "env.control.mb_zeta": (0.9,) * 12})

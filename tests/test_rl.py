@@ -138,7 +138,8 @@ def test_env_graph_auto_captures_small_counts_on_the_gpu_only():
 def test_gpu_train_captures_the_env_step_when_auto_says_so(tmp_path, num_envs, graphed):
     from tocabi_torchrl.rl.trainer import train
 
-    cfg = preset_config("default", **{"env.num_envs": num_envs, "ppo.steps_per_env": 8, "ppo.minibatch_size": 2 * num_envs},
+    cfg = preset_config("default", **{"env.num_envs": num_envs, "ppo.steps_per_env": 8,
+                        "ppo.minibatch_size": 2 * num_envs},
                         total_env_steps=num_envs * 24,
                         device="cuda", run_dir=str(tmp_path), eval_at_end=False, progress_bar=False,
                         **{"ppo.actor_hidden": (32,), "ppo.critic_hidden": (32,)})
@@ -154,7 +155,8 @@ def test_build_env_asks_make_env_for_the_graph_only_where_it_can_be_captured(mon
     asked = []
     monkeypatch.setattr(tocabi_torchrl, "make_env", lambda *args, **kwargs: asked.append(kwargs.get("cuda_graph")))
     cuda = torch.device("cuda")
-    auto, on = (preset_config("default", **{"env.num_envs": 4, "ppo.minibatch_size": 16, "ppo.cuda_graph": m}) for m in ("auto", "on"))
+    auto, on = (preset_config("default", **{"env.num_envs": 4, "ppo.minibatch_size": 16,
+                "ppo.cuda_graph": m}) for m in ("auto", "on"))
     build_env(auto, cuda)
     build_env(auto, cuda, num_envs=4096)
     build_env(auto, cuda, sync_free_resets=False)  # TorchRL's stock resets read the host: not capturable
@@ -189,7 +191,8 @@ def test_two_tiny_iterations_write_a_loadable_checkpoint(tmp_path):
     from tocabi_torchrl.rl.checkpoint import CheckpointError, load_checkpoint
     from tocabi_torchrl.rl.trainer import build_agent, train
 
-    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8, "ppo.minibatch_size": 16},
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
+                        "ppo.minibatch_size": 16},
                         total_env_steps=64, run_dir=str(tmp_path), name="tiny", checkpoint_every=1,
                         progress_bar=False, eval_at_end=False)
     result = train(cfg)
@@ -220,7 +223,8 @@ def test_evaluation_and_curves_from_a_tiny_run(tmp_path):
     from tocabi_torchrl.rl.evaluate import evaluate_run
     from tocabi_torchrl.rl.trainer import train
 
-    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4, "ppo.minibatch_size": 8},
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                        "ppo.minibatch_size": 8},
                         total_env_steps=16, run_dir=str(tmp_path), name="ev", progress_bar=False, eval_at_end=False)
     train(cfg)
     run = tmp_path / "ev"
@@ -276,7 +280,8 @@ def test_each_update_runs_with_the_linear_lr_and_std_of_the_progress_after_its_r
 
     monkeypatch.setattr(trainer, "_update", recording)
     monkeypatch.setattr(trainer, "set_action_std", setting)
-    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4, "ppo.minibatch_size": 8},
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                        "ppo.minibatch_size": 8},
                         total_env_steps=32, run_dir=str(tmp_path), name="sched", progress_bar=False,
                         eval_at_end=False, **{"ppo.lr_schedule": "linear", "ppo.lr": 1e-3, "ppo.lr_end": 0.0,
                                               "ppo.std_start": 0.1, "ppo.std_end": 0.05, "ppo.std_hold": 0.0})
@@ -331,7 +336,8 @@ def test_training_env_stores_fewer_keys_with_the_same_dynamics():
     # signals (torque_diff, qacc, contact-force changes) must still see them, so rewards and observations match.
     from tocabi_torchrl.rl.trainer import build_env, training_keys
 
-    cfg = preset_config("default", **{"env.num_envs": 3, "ppo.minibatch_size": 16}, device="cpu", **{"env.task.max_episode_steps": 12})
+    cfg = preset_config("default", **{"env.num_envs": 3, "ppo.minibatch_size": 16}, device="cpu",
+                        **{"env.task.max_episode_steps": 12})
     device = torch.device("cpu")
     full = build_env(cfg, device, sync_free_resets=True)
     lean = build_env(cfg, device, sync_free_resets=True, for_training=True)
@@ -382,7 +388,8 @@ def test_collector_drives_the_graph_wiring_like_the_eager_env():
 
     from tocabi_torchrl.rl.trainer import build_agent, build_env
 
-    cfg = preset_config("default", **{"env.num_envs": 3, "ppo.minibatch_size": 16}, device="cpu", **{"ppo.steps_per_env": 8, "env.task.max_episode_steps": 5})
+    cfg = preset_config("default", **{"env.num_envs": 3, "ppo.minibatch_size": 16}, device="cpu",
+                        **{"ppo.steps_per_env": 8, "env.task.max_episode_steps": 5})
     device = torch.device("cpu")
     batches = []
     for wired in (False, True):

@@ -267,8 +267,10 @@ def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_pat
 
     n, steps = 4, 8
     frames = n * steps
-    cfg = preset_config("torque", device="cpu", **{"env.num_envs": n, "ppo.steps_per_env": steps, "ppo.minibatch_size": 16, "ppo.epochs": 1},
-                        total_env_steps=4 * frames, **{"ppo.assist_fade_start": frames, "ppo.assist_fade_end": 3 * frames,
+    cfg = preset_config("torque", device="cpu", **{"env.num_envs": n, "ppo.steps_per_env": steps,
+                        "ppo.minibatch_size": 16, "ppo.epochs": 1},
+                        total_env_steps=4 * frames, **{"ppo.assist_fade_start": frames,
+                                                       "ppo.assist_fade_end": 3 * frames,
                         "ppo.assist_target": target, "ppo.assist_anchor_decay": frames,
                         "ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,)}, run_dir=str(tmp_path), name="t",
                         eval_at_end=False, progress_bar=False, checkpoint_every=1, checkpoint_keep_last=0,
@@ -401,8 +403,10 @@ def test_gpu_torque_preset_trains_with_the_captured_absorbing_update(tmp_path):
 
     n, steps = 512, 16
     frames = n * steps
-    cfg = preset_config("torque", device="cuda", **{"env.num_envs": n, "ppo.steps_per_env": steps, "ppo.minibatch_size": frames // 4},
-                        total_env_steps=5 * frames, **{"ppo.assist_fade_start": frames, "ppo.assist_fade_end": 4 * frames,
+    cfg = preset_config("torque", device="cuda", **{"env.num_envs": n, "ppo.steps_per_env": steps,
+                        "ppo.minibatch_size": frames // 4},
+                        total_env_steps=5 * frames, **{"ppo.assist_fade_start": frames,
+                                                       "ppo.assist_fade_end": 4 * frames,
                         "ppo.assist_anchor_decay": frames},
                         run_dir=str(tmp_path), name="g", eval_at_end=False, progress_bar=False)
     with _no_capture_warning():  # the absorbing loss must be captured with the update, not fall back to eager

@@ -239,3 +239,23 @@ def test_the_config_names_the_reference_terms_in_their_order():
     from tocabi_torchrl.transforms.settings import REFERENCE_TERM_NAMES
 
     assert REFERENCE_TERM_NAMES == tuple(REFERENCE_TERMS)
+
+
+def test_reward_weights_have_one_field_per_term_whose_help_gives_its_reference_weight():
+    # RewardWeights (transforms.reward_weights) is the command line's --transforms.reward_weights.<term>; the help
+    # text of each field (its docstring) quotes the term's reference weight, which lives with the torch code.
+    import dataclasses
+    import inspect
+    import re
+
+    from tocabi_torchrl.transforms.reward_terms import reference_terms
+    from tocabi_torchrl.transforms.settings import RewardWeights
+
+    assert tuple(f.name for f in dataclasses.fields(RewardWeights)) == tuple(REFERENCE_TERMS)
+    docs = dict(re.findall(r"\n    (\w+): float \| None = [^\n]+\n    \"\"\"([^\"]+)\"\"\"",
+                inspect.getsource(RewardWeights)))
+    for term in reference_terms():
+        assert f"(reference {term.weight:g})" in docs[term.name], term.name
+    assert RewardWeights().as_map() == {"body_vel": 0.9}  # the default preset's tripled velocity term
+    with pytest.raises(ValueError, match=r"transforms.reward_weights.qpos must be a finite number"):
+        RewardWeights(qpos=float("inf")).as_map()

@@ -523,8 +523,9 @@ def _renamed(data: Mapping[str, Any]) -> dict[str, Any]:
     are saved in the current form. Raises :class:`ConfigError` for the flat ``PPOConfig`` dict of before the tree."""
     if not isinstance(data.get("ppo"), Mapping):
         raise ConfigError("the saved config is the flat PPOConfig of before the run config tree (it has no 'ppo' "
-                          "section), which this version no longer reads; load and re-save it with tocabi-torchrl "
-                          "0.x before 2026-12 (config_from_dict there migrates it), or retrain", unknown=[])
+                          "section, checkpoint schema 0 or 1), which this version no longer reads: convert it with a "
+                          "version of tocabi-torchrl from before 2026-12-02, whose config_from_dict migrates it "
+                          "(save its RunConfig.to_dict() as the checkpoint's config), or retrain", unknown=[])
     transforms = data.get("transforms")
     if not isinstance(transforms, Mapping) or not ("preset" in transforms or isinstance(
             transforms.get("reward_weights"), (list, tuple))):

@@ -28,7 +28,8 @@ from typing import Any
 from ..config import PRESETS, PPOConfig, RunConfig, preset_config, preset_tree
 from ..tree import ConfigError, build_items, get_path, item_type, leaf_paths, to_dict
 
-__all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_config", "preset_tree", "parse_args", "parse_tree", "check_command_line",
+__all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_config", "preset_tree", "parse_args", "parse_tree",
+           "check_command_line",
            "given_options", "option_value", "resume_config", "ConfigError"]
 
 #: What ``--help`` says above the options (the recipe's own first line comes before it).

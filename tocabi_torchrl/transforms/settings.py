@@ -20,7 +20,8 @@ from tocabi_torchrl.transforms.layouts import (REFERENCE_HISTORY, REFERENCE_OBS_
 from tocabi_torchrl.transforms.sensor_noise_config import SensorNoiseConfig
 from tocabi_torchrl.tree import check_field_types
 
-__all__ = ["TransformConfig", "TransformSettings", "RewardWeights", "HISTORIES", "transform_config", "REFERENCE_TERM_NAMES"]
+__all__ = ["TransformConfig", "TransformSettings", "RewardWeights", "HISTORIES", "transform_config",
+           "REFERENCE_TERM_NAMES"]
 
 _NORMALIZATIONS = ("fixed", "running", "none")
 #: The names of ``reward_terms.REFERENCE_TERMS`` (the reference's terms, in its order), here so that the config checks
