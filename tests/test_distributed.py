@@ -363,7 +363,7 @@ def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
 
 def test_torchrun_trains_the_recipe_with_ddp_on_two_gloo_ranks(tmp_path):
     """--ppo.grad_sync ddp from the command line to the trainer: two ranks train and end, rank 0 writes the run."""
-    proc = _torchrun_recipe(tmp_path, "ddp", "--ppo.grad_sync", "ddp", "--update_graph", "false")
+    proc = _torchrun_recipe(tmp_path, "ddp", "--ppo.grad_sync", "ddp", "--ppo.update_graph", "false")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "done on 2 ranks: 32 env steps" in proc.stdout
     saved = torch.load(tmp_path / "ddp" / "checkpoints" / "latest.pt", weights_only=True)
