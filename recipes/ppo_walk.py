@@ -1,11 +1,14 @@
 """Train TOCABI to walk with PPO on TorchRL.
 
     python recipes/ppo_walk.py                      # default preset: 4096 envs on the GPU
+    python recipes/ppo_walk.py --preset torque --env.num_envs 8192   # a preset, then options that change it
     python recipes/ppo_walk.py --preset reference   # the reference's hyper-parameters (8 envs, 120 M steps)
     python recipes/ppo_walk.py --env.num_envs 8192 --ppo.lr 3e-4 --max_minutes 20 --name walk8k
+    python recipes/ppo_walk.py --transforms.reward_weights.body_vel 0.6 --ppo.actor_hidden 256 256
     python recipes/ppo_walk.py --resume runs/ppo_walk   # continue from runs/ppo_walk/checkpoints/latest.pt
     python recipes/ppo_walk.py --viewer             # and watch 16 training worlds live in a browser (docs/viewer.md)
-    python recipes/ppo_walk.py --help               # every option (a dotted path of tocabi_torchrl/config.py)
+    python recipes/ppo_walk.py --preset torque --help   # every option (a dotted path of tocabi_torchrl/config.py),
+                                                        # with the torque preset's values as defaults
     torchrun --nproc_per_node 2 recipes/ppo_walk.py --name walk2gpu   # data-parallel, one process per GPU
 
 Without CUDA and with --device auto (the default) it says so and runs the small ``cpu_smoke`` configuration (minutes
@@ -29,13 +32,13 @@ from tocabi_torchrl.render_gl import choose_gl_backend_or_exit
 choose_gl_backend_or_exit()  # before mujoco is imported: headless video of the final evaluation
 
 if __name__ == "__main__":
-    # --help or a misspelt option answers before the trainer and the evaluation load. The parser is built from the
-    # run config tree, whose modules import neither torch, torchrl nor mujoco(-warp): it answers in a fraction of a
-    # second (tests/test_cli.py checks what it loads).
-    from tocabi_torchrl.rl.config import build_parser
+    # --help, a misspelt option or a value of the wrong type answers before the trainer and the evaluation load.
+    # The command line is tyro's, from the run config tree, whose modules import neither torch, torchrl nor
+    # mujoco(-warp): it answers in a fraction of a second (tests/test_cli.py checks what it loads).
+    from tocabi_torchrl.rl.config import check_command_line
     from tocabi_torchrl.viewer.config import expand_viewer_flag
 
-    build_parser(__doc__.split("\n\n")[0]).parse_args(expand_viewer_flag(sys.argv[1:]))
+    check_command_line(expand_viewer_flag(sys.argv[1:]), "ppo_walk.py", __doc__.split("\n\n")[0])
 
 import torch  # noqa: E402
 
@@ -82,8 +85,8 @@ def main(argv: list[str] | None = None) -> None:
         dist_info = from_environment()  # torchrun's layout; one rank without it
         # --viewer is the shorthand of --viewer.enabled true (the live page of a few training worlds)
         argv = expand_viewer_flag(sys.argv[1:] if argv is None else argv)
-        cfg, args, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0],
-                                        data_parallel=dist_info.enabled)
+        cfg, given, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0],
+                                         data_parallel=dist_info.enabled, prog="ppo_walk.py")
         if cfg.viewer.enabled:
             require_viser()  # said now, not after the env is built
         model_based = cfg.env.control.mode == "model_based"
@@ -131,7 +134,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     if note:
         print(note, flush=True)
-    print(banner(cfg, args, device), flush=True)
+    print(banner(cfg, given, device), flush=True)
     try:
         result = train(cfg, run=run)
     except (MotionFormatError, RobotAssetError) as err:  # a bad --env.task.motion or model_path, found as it loads

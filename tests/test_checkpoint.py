@@ -18,7 +18,7 @@ SHIPPED_POLICY = Path(__file__).resolve().parents[1] / "assets" / "policies" / "
 
 
 def _config(**overrides):
-    return preset_config("cpu_smoke", device="cpu", num_envs=4, minibatch_size=16, **overrides)
+    return preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.minibatch_size": 16}, **overrides)
 
 
 def _saved_run(tmp_path: Path, iterations=(1,), **overrides) -> tuple[Path, object]:
@@ -95,9 +95,11 @@ def test_saved_checkpoints_are_versioned_and_load_with_weights_only(tmp_path):
 
 
 @pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="shipped policy not present")
-def test_the_shipped_policy_predates_the_schema_and_still_loads():
+def test_the_shipped_policy_holds_the_current_schema_and_loads():
+    # Trained before the schema was versioned, re-saved with its config in the current tree (no train_seconds: the
+    # run did not count them).
     state = read_checkpoint(SHIPPED_POLICY)
-    assert state["schema_version"] == 0
+    assert state["schema_version"] == SCHEMA_VERSION and "train_seconds" not in state
     cfg = config_from_checkpoint(state, SHIPPED_POLICY)
     assert cfg.ppo.actor_hidden == (400, 200, 100) and cfg.ppo.store_env_signals is False  # a field it predates
     load_checkpoint(SHIPPED_POLICY, build_agent(cfg, 237, 13, CPU))
@@ -105,7 +107,7 @@ def test_the_shipped_policy_predates_the_schema_and_still_loads():
 
 def test_a_network_size_mismatch_names_the_tensors_not_a_state_dict(tmp_path):
     run, _ = _saved_run(tmp_path)
-    other = build_agent(_config(actor_hidden=(32, 32)), 237, 13, CPU)
+    other = build_agent(_config(**{"ppo.actor_hidden": (32, 32)}), 237, 13, CPU)
     with pytest.raises(CheckpointError, match=r"does not fit this agent's actor .*mean_net.0.weight: file "
                                               r"\(64, 237\) vs \(32, 237\)") as info:
         load_checkpoint(run, other)
@@ -164,8 +166,9 @@ def test_policy_file_keeps_the_policy_and_drops_training_state(tmp_path):
     from tocabi_torchrl.rl.checkpoint import write_policy_file
 
     # A torque-preset run: its checkpoints also hold the assist's teacher.
-    run, agent = _saved_run(tmp_path, control_mode="torque", torque_assist=1.0, assist_fade_start=0,
-                            assist_fade_end=10, assist_target="teacher")
+    run, agent = _saved_run(tmp_path, **{"env.control.mode": "torque", "ppo.torque_assist": 1.0,
+                                         "ppo.assist_fade_start": 0, "ppo.assist_fade_end": 10,
+                                         "ppo.assist_target": "teacher"})
     full = read_checkpoint(run)
     assert "teacher" in full["agent"] and full["optimizer"] is not None
     out = write_policy_file(run, tmp_path / "ship" / "policy.pt")

@@ -39,24 +39,76 @@ def test_help_of_a_recipe_loads_no_heavy_library(recipe):
     assert not modules & set(HEAVY), f"--help imported {sorted(modules & set(HEAVY))}"
 
 
+def _text(err: str) -> str:
+    """tyro's boxed message as one line of words (no frame characters, no line breaks)."""
+    return " ".join(err.replace("│", " ").replace("╭", " ").replace("╰", " ").replace("─", " ").split())
+
+
 def test_ppo_walk_answers_help_and_a_misspelt_option_without_the_heavy_libraries(tmp_path):
-    # Its parser is generated from the run config tree, whose modules (dataclasses, the config halves of the env,
-    # sim and transforms modules) import none of them; the packages' __init__ files load their names on first use.
+    # Its command line is tyro's, generated from the run config tree, whose modules (dataclasses, the config halves
+    # of the env, sim and transforms modules) import none of them; the packages' __init__ files load their names on
+    # first use.
     proc, modules = imported_modules("ppo_walk", "--help")
     assert proc.returncode == 0 and "--env.num_envs" in proc.stdout and "--ppo.assist_target" in proc.stdout
     assert not modules & set(HEAVY), f"--help imported {sorted(modules & set(HEAVY))}"
-    proc, modules = imported_modules("ppo_walk", "--num_env", "8", cwd=tmp_path)
-    assert proc.returncode == 2 and "did you mean --num_envs or --env.num_envs?" in proc.stderr
+    proc, modules = imported_modules("ppo_walk", "--env.num_env", "8", cwd=tmp_path)
+    assert proc.returncode == 2 and "Unrecognized options: --env.num_env" in _text(proc.stderr)
+    assert "Perhaps you meant: --env.num_envs INT" in _text(proc.stderr)
     assert not modules & set(HEAVY), f"the error imported {sorted(modules & set(HEAVY))}"
 
 
-def test_a_misspelt_option_of_ppo_walk_is_a_short_error_naming_the_nearest_option(capsys):
+def test_ppo_walk_help_is_the_fields_docstrings_with_the_presets_values(tmp_path):
+    from tocabi_torchrl.config import RunConfig
+    from tocabi_torchrl.tree import leaf_paths
+
+    env = {**os.environ, "COLUMNS": "100"}  # one column of option boxes
+    out = subprocess.run([sys.executable, str(RECIPES / "ppo_walk.py"), "--preset", "torque", "--help"], env=env,
+                         capture_output=True, text=True, timeout=300).stdout
+    helps, option = {}, None  # option -> its help text, the lines after "--option TYPE" joined
+    for line in (line.strip("│ ") for line in out.splitlines()):
+        if line.startswith("--"):
+            option = line.split()[0][2:]
+            helps[option] = ""
+        elif option and line and line[0] not in "╭╰─":
+            helps[option] = f"{helps[option]} {line}".strip()
+        else:
+            option = None
+    missing = [p for p in leaf_paths(RunConfig()) if not helps.get(p, "(default").strip().partition("(default")[0]]
+    assert not missing, f"options without help text: {missing}"
+    assert helps["ppo.lr"].startswith("learning rate (start value of the schedule)")
+    assert helps["transforms.reward_weights.body_vel"].startswith("pelvis velocity against the command")
+    assert "(default: torque)" in helps["env.control.mode"] and "(default: 200000000)" in helps["total_env_steps"]
+
+
+def test_a_misspelt_option_of_ppo_walk_is_an_error_naming_the_nearest_option(capsys):
     with pytest.raises(SystemExit) as info:
-        load_recipe("ppo_walk").main(["--num_env", "8"])
-    err = capsys.readouterr().err
+        load_recipe("ppo_walk").main(["--ppo.lrr", "8"])
+    err = _text(capsys.readouterr().err)
     assert info.value.code == 2
-    assert "error: unrecognized arguments: --num_env 8" in err and "did you mean --num_envs" in err
-    assert "--help" in err and "usage:" not in err and len(err.splitlines()) < 5
+    assert "Unrecognized options: --ppo.lrr, 8" in err and "Perhaps you meant: --ppo.lr FLOAT" in err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--ppo.epochs", "three"], "Error parsing --ppo.epochs: expected an int (e.g. 200000000 or 2e8), got 'three'"),
+    (["--eval_at_end", "maybe"], "Error parsing --eval_at_end: expected true or false, got 'maybe'"),
+    (["--transforms.reward_weights.qpos", "heavy"], "Error parsing --transforms.reward_weights.qpos"),
+    (["--env.scene.obstacles", "[{]"], "Error parsing --env.scene.obstacles: expected JSON"),
+])
+def test_a_bad_value_of_ppo_walk_names_the_option(argv, message, capsys):
+    with pytest.raises(SystemExit) as info:
+        load_recipe("ppo_walk").main(argv)
+    assert info.value.code == 2 and message in _text(capsys.readouterr().err)
+
+
+def test_a_value_the_config_refuses_is_one_error_line_naming_the_option(capsys):
+    for argv, message in ((["--ppo.gamma", "1.5"], "error: ppo.gamma must be in (0.0, 1.0], got 1.5"),
+                          (["--transforms.reward_weights.qpos", "nan"],
+                           "error: transforms.reward_weights.qpos must be"),
+                          (["--preset", "torq"], "error: --preset torq: unknown preset; choose one of")):
+        with pytest.raises(SystemExit) as info:
+            load_recipe("ppo_walk").main(argv)
+        assert str(info.value.code).startswith(message), info.value.code
+        assert "\n" not in str(info.value.code)
 
 
 @pytest.mark.parametrize("recipe, argv, nearest", [

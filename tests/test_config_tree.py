@@ -14,24 +14,22 @@ import pytest
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.config import (
-    FLAT_PATHS,
     LEGACY_VALUES,
     PRESETS,
     ConfigError,
+    PPOConfig,
     RunConfig,
     config_from_dict,
-    flat_dict,
     preset_config,
     preset_tree,
-    replace_paths,
 )
 from tocabi_torchrl.envs import TocabiWalkConfig
 from tocabi_torchrl.envs.config import ENV_FLAT_PATHS, TaskConfig
-from tocabi_torchrl.rl.config import build_parser, parse_args
+from tocabi_torchrl.rl.config import parse_args
 from tocabi_torchrl.rl.trainer import env_config
-from tocabi_torchrl.transforms import PRESETS as TRANSFORM_PRESETS
+from tocabi_torchrl.transforms import HISTORIES
 from tocabi_torchrl.transforms import TransformSettings
-from tocabi_torchrl.tree import get_path, leaf_paths, to_dict
+from tocabi_torchrl.tree import get_path, to_dict
 
 FROZEN = json.loads((Path(__file__).parent / "data" / "presets_before_config_tree.json").read_text())
 ASSETS = Path(__file__).resolve().parents[1] / "assets" / "policies"
@@ -40,6 +38,18 @@ ASSETS = Path(__file__).resolve().parents[1] / "assets" / "policies"
 def _plain(value):
     return json.loads(json.dumps(value, default=str))
 
+
+#: The frozen presets' flat keys (the PPOConfig of before the tree) -> their path in the tree, for comparing; the
+#: package itself no longer reads flat names. ``command_preset``/``pd_gains`` named values and are compared as such.
+FROZEN_PATHS = {
+    **{name: name for name in ("preset", "name", "run_dir", "seed", "device", "resume", "total_env_steps",
+                               "max_minutes", "log_every", "loggers", "progress_bar", "checkpoint_every",
+                               "checkpoint_keep_last", "checkpoint_keep_every", "checkpoint_minutes", "eval_at_end",
+                               "eval_envs", "eval_seconds")},
+    **{f.name: f"ppo.{f.name}" for f in dataclasses.fields(PPOConfig)},
+    "num_envs": "env.num_envs", "control_mode": "env.control.mode", "max_episode_steps": "env.task.max_episode_steps",
+    "pd_action_scale": "env.control.pd_action_scale", "transform_preset": "transforms.history",
+}
 
 #: Presets added after the tree, so without a flat config of before it to match (their own tests build them).
 ADDED_AFTER_THE_TREE = {"model_based", "robust"}
@@ -56,18 +66,18 @@ def test_preset_matches_the_flat_config_it_replaces(name):
         if key == "command_preset":
             from tocabi_torchrl.envs import CommandConfig
 
-            assert tree.env.command == CommandConfig.preset(value), key
+            assert tree.env.command == CommandConfig.named(value), key
         elif key == "pd_gains":
             kp = robot.LEG_KP if value == "robot" else robot.LEG_KP / 9.0
             assert tree.env.control.pd_kp == pytest.approx(tuple(kp)), key
+        elif key == "reward_weights":  # "term=weight" entries then, one weight per term now
+            weights = {k: float(v) for k, v in (entry.split("=") for entry in value)}
+            assert tree.transforms.reward_weight_map() == weights, key
         else:
-            assert _plain(get_path(tree, FLAT_PATHS[key])) == _plain(value), key
-    # Migrating the frozen flat dict gives the preset's tree, leaf by leaf, but for the fields whose default changed
-    # since (LEGACY_VALUES: the file keeps what it ran with), and the flat view gives it back.
-    migrated = config_from_dict(FROZEN[name]["flat"])
-    assert {path: get_path(migrated, path) for path in LEGACY_VALUES} == dict(LEGACY_VALUES)
-    assert to_dict(replace_paths(migrated, {path: get_path(tree, path) for path in LEGACY_VALUES})) == to_dict(tree)
-    assert _plain(flat_dict(tree)) == _plain(FROZEN[name]["flat"])
+            assert _plain(get_path(tree, FROZEN_PATHS[key])) == _plain(value), key
+    # The flat dict itself is no longer read: a file holding it is refused, saying what it is.
+    with pytest.raises(ConfigError, match=r"flat PPOConfig of before the run config tree"):
+        config_from_dict(FROZEN[name]["flat"])
 
 
 @pytest.mark.parametrize("training", [False, True], ids=["eval_env", "training_env"])
@@ -87,8 +97,8 @@ def test_preset_builds_the_env_and_transforms_it_built_before(name, training):
         assert _plain(got) == pytest.approx(_plain(value)) if key in ("pd_kp", "pd_kv") else _plain(got) == _plain(value), key
     tf = cfg.transforms.transform_config()
     frozen_tf = frozen["transforms"]
-    assert TRANSFORM_PRESETS[cfg.transforms.preset].history == tf.history
-    assert cfg.transforms.preset == frozen_tf["history"]
+    assert HISTORIES[cfg.transforms.history].history == tf.history
+    assert cfg.transforms.history == frozen_tf["history"]
     assert dict(tf.reward_weights) == frozen_tf["reward_weights"]
     for key in ("normalization", "zero_reward_on_terminated", "compile_reward", "phase_harmonics", "obs_clip",
                 "track_episode_return"):
@@ -103,18 +113,20 @@ def test_env_and_recipe_share_their_defaults():
     assert RunConfig() == dataclasses.replace(default, preset="default")
 
 
-def test_command_line_has_a_nested_option_per_leaf_and_keeps_the_flat_ones():
-    parser = build_parser()
-    options = parser._option_string_actions
-    assert all(f"--{p}" in options for p in leaf_paths(RunConfig()) if p != "preset")
-    cfg, _ = parse_args(["--preset", "cpu_smoke", "--ppo.lr", "3e-4", "--env.num_envs", "4",
-                         "--env.control.mode", "torque", "--env.command.vx_range", "0.1,0.3", "--ppo.minibatch_size",
-                         "16", "--env.task.motion", "none"])
+def test_command_line_sets_nested_options_over_the_preset():
+    cfg, given = parse_args(["--preset", "cpu_smoke", "--ppo.lr", "3e-4", "--env.num_envs", "4",
+                             "--env.control.mode", "torque", "--env.command.vx_range", "0.1", "0.3",
+                             "--ppo.minibatch_size", "16", "--env.task.motion", "None",
+                             "--transforms.reward_weights.qpos", "0.5", "--ppo.actor_hidden", "32", "16"])
     assert (cfg.ppo.lr, cfg.env.num_envs, cfg.env.control.mode) == (3e-4, 4, "torque")
     assert cfg.env.command.vx_range == (0.1, 0.3) and cfg.env.task.motion is None
-    old, _ = parse_args(["--preset", "cpu_smoke", "--lr", "3e-4", "--num_envs", "4", "--minibatch_size", "16",
-                         "--command_preset", "reference"])
-    assert (old.ppo.lr, old.env.num_envs, old.env.command.max_ramp_steps) == (3e-4, 4, 250)
+    assert cfg.transforms.reward_weight_map() == {"qpos": 0.5, "body_vel": 0.9} and cfg.ppo.actor_hidden == (32, 16)
+    assert cfg.preset == "cpu_smoke" and cfg.ppo.epochs == preset_config("cpu_smoke").ppo.epochs  # the preset's
+    assert given["env.num_envs"] == 4 and "ppo.epochs" not in given
+    # The flat options of before the tree are gone.
+    for argv in (["--num_envs", "4"], ["--lr", "3e-4"], ["--command_preset", "reference"]):
+        with pytest.raises(SystemExit):
+            parse_args(argv)
 
 
 def test_bad_options_name_the_option_and_the_fix(capsys):
@@ -129,13 +141,16 @@ def test_bad_options_name_the_option_and_the_fix(capsys):
     assert preset_config("default", checkpoint_minutes=1 / 60).checkpoint_minutes == 1 / 60
     with pytest.raises(SystemExit):
         parse_args(["--ppo.epochs", "three"])
-    assert "--ppo.epochs 'three'" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--ppo.epochs" in err and "'three'" in err
     with pytest.raises(ConfigError, match=r"unknown config option\(s\) \['ppo.warp'\]"):
         config_from_dict({"ppo": {"warp": 1}})
     with pytest.raises(ConfigError, match=r"section 'env' must be a TocabiWalkConfig .* e.g. 'env.num_envs'"):
         preset_config("default", env=5)
-    with pytest.raises(ConfigError, match=r"did you mean \['gamma'\]"):
+    with pytest.raises(ConfigError, match=r"did you mean \['ppo.gamma'\]"):
         preset_config("default", gama=0.9)
+    with pytest.raises(ConfigError, match=r"did you mean \['env.num_envs'\]"):
+        preset_config("default", num_envs=8)  # the flat names of before the tree are gone
     # A switch set from text is truthy in Python: refused by its path, in the run config and in the env's own.
     for path in ("env.task.terminate_on_self_collision", "eval_at_end", "ppo.update_graph", "transforms.compile_reward"):
         with pytest.raises(ValueError, match=rf"{path} must be True or False, got 'no'"):
@@ -156,34 +171,43 @@ def test_tree_round_trips_through_json():
     assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
 
 
-@pytest.mark.parametrize("policy", ["tocabi_walk_ppo.pt", "tocabi_walk_torque.pt"])
-def test_shipped_policies_migrate_from_the_flat_config(policy):
+@pytest.mark.parametrize("policy", ["tocabi_walk_ppo.pt", "tocabi_walk_torque.pt", "tocabi_walk_model_based.pt"])
+def test_shipped_policies_hold_the_current_tree(policy):
     path = ASSETS / policy
     if not path.is_file():
         pytest.skip("shipped policy not present")
-    from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint
+    from tocabi_torchrl.rl.checkpoint import SCHEMA_VERSION, config_from_checkpoint, read_checkpoint
 
     state = read_checkpoint(path)
-    flat = state["config"]
-    assert "ppo" not in flat  # written before the tree
+    assert state["schema_version"] == SCHEMA_VERSION and "ppo" in state["config"]
     cfg = config_from_checkpoint(state, path)
-    assert cfg.env.num_envs == flat["num_envs"] and cfg.env.control.mode == flat["control_mode"]
-    assert cfg.ppo.actor_hidden == tuple(flat["actor_hidden"]) and cfg.preset == flat["preset"]
-    assert cfg.ppo.torque_assist == flat.get("torque_assist", 0.0)
-    assert cfg.transforms.reward_weights == tuple(flat["reward_weights"])
-    assert cfg.env.control.pd_kp == pytest.approx(tuple(robot.LEG_KP))  # pd_gains="robot"
-    # And a checkpoint written now stores the tree, which reads back unchanged.
-    assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    assert to_dict(cfg) == state["config"]  # every option saved, by its current name: nothing to migrate
+    assert cfg.transforms.history == "reference" and cfg.transforms.reward_weight_map() == {"body_vel": 0.9}
+    # Re-saved from the flat config they were trained with: that config's full reset pass, the robot's gains.
+    assert cfg.env.sim.reset_pass == LEGACY_VALUES["env.sim.reset_pass"]
+    if cfg.env.control.mode != "model_based":
+        assert cfg.env.control.pd_kp == pytest.approx(tuple(robot.LEG_KP))
 
 
-def test_flat_names_of_before_the_tree_still_read_with_a_warning():
+def test_a_tree_saved_before_the_renames_reads_by_the_new_names():
+    # Checkpoints and config.json of schema 2 hold the history layout as transforms.preset and the weights as
+    # "term=weight" entries: the loader's one rename step reads them.
+    old = preset_tree("reference").to_dict()
+    old["transforms"] = {**old["transforms"], "preset": "tocabilab", "reward_weights": ["qpos=0.5"]}
+    del old["transforms"]["history"]
+    cfg = config_from_dict(old)
+    assert cfg.transforms.history == "tocabilab" and cfg.transforms.reward_weight_map() == {"qpos": 0.5}
+    assert config_from_dict({**old, "transforms": {**old["transforms"], "reward_weights": []}}
+                            ).transforms.reward_weight_map() == {}  # empty: the reference weights
+    with pytest.raises(ConfigError, match=r"must look like 'body_vel=0.9'"):
+        config_from_dict({**old, "transforms": {**old["transforms"], "reward_weights": ["qpos"]}})
+
+
+def test_flat_names_of_before_the_tree_are_gone():
     cfg = preset_config("cpu_smoke")
-    with pytest.warns(DeprecationWarning, match=r"read cfg.ppo.minibatch_size"):
-        assert cfg.minibatch_size == cfg.ppo.minibatch_size == 64
-    with pytest.raises(AttributeError, match=r"set cfg.env.num_envs"):
-        cfg.num_envs = 3
-    with pytest.raises(AttributeError, match="no attribute 'warp_speed'"):
-        cfg.warp_speed  # noqa: B018
+    assert not hasattr(cfg, "minibatch_size") and not hasattr(cfg, "num_envs")
+    with pytest.raises(ConfigError, match=r"flat PPOConfig"):
+        config_from_dict({"num_envs": 8, "lr": 1e-3})
 
 
 def test_option_prefixes_are_not_expanded(capsys):
@@ -191,15 +215,15 @@ def test_option_prefixes_are_not_expanded(capsys):
     for argv in (["--total", "100"], ["--see", "7"], ["--ppo.l", "0.1"]):
         with pytest.raises(SystemExit):
             parse_args(argv)
-        assert "unrecognized arguments" in capsys.readouterr().err
+        assert "Unrecognized options" in capsys.readouterr().err
 
 
 def test_int_options_take_whole_numbers_written_as_floats(capsys):
-    cfg, _ = parse_args(["--total_env_steps", "2e8", "--ppo.assist_fade_start", "5.0e7", "--num_envs", "4096"])
+    cfg, _ = parse_args(["--total_env_steps", "2e8", "--ppo.assist_fade_start", "5.0e7", "--env.num_envs", "4096"])
     assert cfg.total_env_steps == 200_000_000 and type(cfg.total_env_steps) is int
     assert cfg.ppo.assist_fade_start == 50_000_000 and cfg.env.num_envs == 4096
     for argv in (["--total_env_steps", "2.5e0"], ["--env.num_envs", "nan"], ["--total_env_steps", "lots"]):
         with pytest.raises(SystemExit):
             parse_args(argv)
-        err = capsys.readouterr().err
-        assert f"{argv[0]} {argv[1]!r}: expected" in err and "2e8" in err, err
+        err = " ".join(capsys.readouterr().err.replace("│", " ").split())
+        assert f"Error parsing {argv[0]}: expected" in err and "2e8" in err, err

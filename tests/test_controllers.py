@@ -53,7 +53,8 @@ def test_doc_controller_trains_two_iterations_on_the_cpu(example, tmp_path):
     from tocabi_torchrl.rl import preset_config
     from tocabi_torchrl.rl.trainer import build_env, train
 
-    cfg = preset_config("cpu_smoke", device="cpu", num_envs=4, steps_per_env=8, minibatch_size=16,
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
+                        "ppo.minibatch_size": 16},
                         total_env_steps=2 * 4 * 8, run_dir=str(tmp_path), name="pdff", progress_bar=False,
                         eval_at_end=False, **{"env.control.mode": "torque"})
     env = build_env(cfg, torch.device("cpu"), for_training=True, leg_controller=example["PDFeedForward"]())

@@ -17,7 +17,8 @@ CUDA, CPU = torch.device("cuda"), torch.device("cpu")
 
 def test_plan_graphs_is_the_one_decision():
     def cfg(mode="auto", n=8, update=True, compile_reward=False):
-        c = preset_config("default", num_envs=n, minibatch_size=16, cuda_graph=mode, update_graph=update)
+        c = preset_config("default", **{"env.num_envs": n, "ppo.minibatch_size": 16, "ppo.cuda_graph": mode,
+                          "ppo.update_graph": update})
         c.transforms.compile_reward = compile_reward
         return c
 

@@ -263,8 +263,9 @@ def _train_worker(rank: int, world: int, init_file: str, run_dir: str, out: dict
     info = DistInfo(rank, world, rank)
     init_distributed(info, torch.device("cpu"), init_method=f"file://{init_file}")
     try:
-        cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
-                            **{"total_env_steps": world * 2 * 16, "name": "dp", **(options or {})}, run_dir=run_dir,
+        cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                            "ppo.minibatch_size": 4,
+                            "total_env_steps": world * 2 * 16, "name": "dp", **(options or {})}, run_dir=run_dir,
                             checkpoint_every=1, progress_bar=False, eval_at_end=False)
         # Running statistics, so that their merge is part of the run (the presets use the reference's fixed ones).
         env = build_env(dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info)), torch.device("cpu"),
@@ -299,7 +300,8 @@ def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
 
     # With the budget scaled by the rank count (docs/training.md), the scheduled std falls per update exactly as in
     # a 1-rank run of the unscaled budget.
-    one = train(preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
+    one = train(preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                "ppo.minibatch_size": 4},
                               total_env_steps=32, run_dir=str(tmp_path), name="one", checkpoint_every=1,
                               checkpoint_keep_last=0, progress_bar=False, eval_at_end=False))
     assert one.iterations == 4
@@ -308,7 +310,8 @@ def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
 
     # The same run goes on with one rank: the 64 steps done are 8 of its 8-step iterations, so its schedules go on
     # from there, while its files and metrics rows go on from its own iteration 4.
-    cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=4,
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                        "ppo.minibatch_size": 4},
                         total_env_steps=80, run_dir=str(tmp_path), name="dp", checkpoint_every=1,
                         progress_bar=False, eval_at_end=False, resume=str(run))
     result = train(cfg)
@@ -339,7 +342,8 @@ def _torchrun_recipe(tmp_path, name: str, *options: str):
     recipe = Path(__file__).resolve().parents[1] / "recipes" / "ppo_walk.py"
     return subprocess.run(
         [torchrun, "--standalone", "--nproc_per_node", "2", str(recipe), "--preset", "cpu_smoke", "--device", "cpu",
-         "--num_envs", "2", "--steps_per_env", "4", "--minibatch_size", "4", "--total_env_steps", "32", *options,
+         "--env.num_envs", "2", "--ppo.steps_per_env", "4", "--ppo.minibatch_size", "4", "--total_env_steps", "32",
+         *options,
          "--run_dir", str(tmp_path), "--name", name, "--eval_at_end", "false", "--progress_bar", "false"],
         capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)
 
@@ -359,7 +363,7 @@ def test_torchrun_runs_the_recipe_on_two_gloo_ranks(tmp_path):
 
 def test_torchrun_trains_the_recipe_with_ddp_on_two_gloo_ranks(tmp_path):
     """--ppo.grad_sync ddp from the command line to the trainer: two ranks train and end, rank 0 writes the run."""
-    proc = _torchrun_recipe(tmp_path, "ddp", "--ppo.grad_sync", "ddp", "--update_graph", "false")
+    proc = _torchrun_recipe(tmp_path, "ddp", "--ppo.grad_sync", "ddp", "--ppo.update_graph", "false")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "done on 2 ranks: 32 env steps" in proc.stdout
     saved = torch.load(tmp_path / "ddp" / "checkpoints" / "latest.pt", weights_only=True)
@@ -381,8 +385,9 @@ def test_torchrun_trains_on_two_gpus_with_nccl_and_ends(tmp_path, grad_sync):
     recipe = Path(__file__).resolve().parents[1] / "recipes" / "ppo_walk.py"
     proc = subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", str(recipe),
-         "--preset", "cpu_smoke", "--device", "cuda", "--num_envs", "64", "--steps_per_env", "8", "--minibatch_size",
-         "256", "--total_env_steps", str(2 * 2 * 64 * 8), "--update_graph", str(grad_sync == "allreduce").lower(),
+         "--preset", "cpu_smoke", "--device", "cuda", "--env.num_envs", "64", "--ppo.steps_per_env", "8",
+         "--ppo.minibatch_size", "256", "--total_env_steps", str(2 * 2 * 64 * 8), "--ppo.update_graph",
+         str(grad_sync == "allreduce").lower(),
          "--ppo.grad_sync", grad_sync, "--run_dir", str(tmp_path),
          "--name", "dp", "--eval_at_end", "false", "--progress_bar", "false"],
         capture_output=True, text=True, timeout=900, env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=tmp_path)

@@ -310,9 +310,9 @@ def test_backend_selection():
     assert "backend='mujoco'" in repr(e)
 
 
-def test_bad_command_preset():
-    with pytest.raises(ValueError, match="unknown command preset"):
-        CommandConfig.preset("fast")
+def test_bad_command_schedule():
+    with pytest.raises(ValueError, match="unknown command schedule"):
+        CommandConfig.named("fast")
     with pytest.raises(ValueError, match="vx_range"):
         CommandConfig(vx_range=(0.5, 0.1)).validate()
 

@@ -126,8 +126,9 @@ def tiny_checkpoints(tmp_path_factory):
     root = tmp_path_factory.mktemp("tiny")
     out = {}
     for name, normalization in (("torque", None), ("running_without_stats", "running")):
-        cfg = preset_config("default", control_mode="torque", num_envs=1, minibatch_size=48, actor_hidden=(16,),
-                            critic_hidden=(16,), device="cpu")
+        cfg = preset_config("default", **{"env.control.mode": "torque", "env.num_envs": 1, "ppo.minibatch_size": 48,
+                            "ppo.actor_hidden": (16,),
+                            "ppo.critic_hidden": (16,)}, device="cpu")
         if normalization:
             cfg.transforms.normalization = normalization
         env = build_env(cfg, torch.device("cpu"), num_envs=1)
@@ -248,8 +249,9 @@ def test_every_control_mode_exports(tmp_path):
     from tocabi_torchrl.rl.checkpoint import save_checkpoint
     from tocabi_torchrl.rl.trainer import build_agent, build_env
 
-    cfg = preset_config("default", control_mode="pd", num_envs=1, minibatch_size=48, actor_hidden=(16,),
-                        critic_hidden=(16,), device="cpu")
+    cfg = preset_config("default", **{"env.control.mode": "pd", "env.num_envs": 1, "ppo.minibatch_size": 48,
+                        "ppo.actor_hidden": (16,),
+                        "ppo.critic_hidden": (16,)}, device="cpu")
     env = build_env(cfg, torch.device("cpu"), num_envs=1)
     agent = build_agent(cfg, 237, 13, torch.device("cpu"))
     ckpt = save_checkpoint(tmp_path / "run", 0, 0, agent, None, env, cfg)

@@ -17,7 +17,7 @@ from tocabi_torchrl.rl.checkpoint import read_checkpoint
 from tocabi_torchrl.rl.curves import read_metrics
 
 #: 8 env steps per iteration, 10 iterations; no checkpoint_every boundary before the end.
-TINY = {"device": "cpu", "num_envs": 2, "steps_per_env": 4, "minibatch_size": 8, "total_env_steps": 80,
+TINY = {"device": "cpu", "env.num_envs": 2, "ppo.steps_per_env": 4, "ppo.minibatch_size": 8, "total_env_steps": 80,
         "progress_bar": False, "eval_at_end": False, "checkpoint_every": 100}
 
 

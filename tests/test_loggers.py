@@ -19,7 +19,7 @@ from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.rl.metrics_files import trim_metrics
 from tocabi_torchrl.rl.trainer import train
 
-TINY = {"device": "cpu", "num_envs": 2, "steps_per_env": 4, "minibatch_size": 8, "total_env_steps": 16,
+TINY = {"device": "cpu", "env.num_envs": 2, "ppo.steps_per_env": 4, "ppo.minibatch_size": 8, "total_env_steps": 16,
         "progress_bar": False, "eval_at_end": False, "checkpoint_every": 1}
 
 

@@ -148,7 +148,7 @@ def test_gpu_cuda_graph_step_matches_eager(preset, mode):
     # envs cannot grow into different episodes; the 7-step truncation still resets every env three times.
     n, steps = 64, 24
     kw = dict(num_envs=n, device="cuda", seed=3, max_episode_steps=7, control_mode="pd_reference",
-              transforms=TransformSettings(preset=preset))
+              transforms=TransformSettings(history=preset))
     eager, graphed = make_env(cuda_graph=False, **kw), make_env(cuda_graph=True, **kw)
     graphed.graph_modes = (mode,)
     gen = torch.Generator(device="cuda").manual_seed(0)
@@ -228,7 +228,8 @@ def test_graph_wiring_matches_eager_on_cpu():
 
 def test_preset_is_the_training_preset_as_everywhere_else():
     # make_env(preset="torque") failed with "unknown transforms.preset 'torque'": preset named the transforms' history
-    # layout here and the training preset on the command line and in make_vec, and "reference" meant both.
+    # layout (now transforms.history) here and the training preset on the command line and in make_vec, and
+    # "reference" meant both.
     from tocabi_torchrl.config import preset_tree
     from tocabi_torchrl.transforms import TaskReward, TransformSettings
 
@@ -247,8 +248,8 @@ def test_preset_is_the_training_preset_as_everywhere_else():
     with pytest.raises(ValueError, match=r"unknown training preset 'banana'; choose one of \['cpu_smoke', 'default', "
                                          r"'model_based', 'reference', 'robust', 'torque'\]"):
         make_env(num_envs=1, device="cpu", preset="banana")
-    with pytest.raises(ValueError, match=r"'tocabilab' is a transform history preset: pass "
-                                         r"transforms=TransformSettings\(preset='tocabilab'\)"):
+    with pytest.raises(ValueError, match=r"'tocabilab' is a transforms history layout: pass "
+                                         r"transforms=TransformSettings\(history='tocabilab'\)"):
         make_env(num_envs=1, device="cpu", preset="tocabilab")
     with pytest.raises(TypeError, match="preset='torque' or the sections config=/transforms=, not both"):
         make_env(num_envs=1, device="cpu", preset="torque", transforms=TransformSettings())

@@ -292,7 +292,7 @@ def test_the_recipe_refuses_bad_model_based_settings_before_the_run_starts(tmp_p
     base = ["--device", "cpu", "--preset", "cpu_smoke", "--run_dir", str(tmp_path), "--name", "mb",
             "--env.control.mode", "model_based", "--eval_at_end", "false"]
     for extra, match in ((["--env.control.mb_ref_window", "10"], "mb_ref_window 10 s is longer"),
-                         (["--env.control.mb_omega", ",".join(["900"] * 12)], "unstable for L_HipYaw_Joint")):
+                         (["--env.control.mb_omega", *["900"] * 12], "unstable for L_HipYaw_Joint")):
         with pytest.raises(SystemExit) as info:
             main(base + extra)
         assert str(info.value.code).startswith("error: ") and match in str(info.value.code)
@@ -311,11 +311,12 @@ def test_preset_round_trips_through_the_tree_a_tiny_run_and_its_checkpoint(tmp_p
     assert cfg.env.control.mb_residual_gain == tuple(0.5 * float(k) for k in robot.LEG_KP)
     assert ControlConfig().mb_residual_gain == tuple(LIMITS)
     assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
-    parsed, _ = parse_args(["--preset", "model_based", "--env.control.mb_zeta", ",".join(["1.0"] * 12),
+    parsed, _ = parse_args(["--preset", "model_based", "--env.control.mb_zeta", *["1.0"] * 12,
                             "--env.control.mb_ref_window", "0.004"])
     assert parsed.env.control.mb_zeta == (1.0,) * 12 and parsed.env.control.mb_ref_window == 0.004
 
-    tiny = preset_config("model_based", device="cpu", num_envs=4, steps_per_env=8, minibatch_size=16,
+    tiny = preset_config("model_based", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
+                         "ppo.minibatch_size": 16},
                          total_env_steps=64, run_dir=str(tmp_path), name="mb", checkpoint_every=1, progress_bar=False,
                          eval_at_end=False, **{"ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,),
                                                "env.control.mb_zeta": (0.9,) * 12})

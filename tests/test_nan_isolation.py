@@ -101,7 +101,8 @@ def test_a_broken_frame_cannot_poison_the_ppo_update():
     from tocabi_torchrl.rl.trainer import (NORM_MASK_KEY, _loss_keys, _update, build_agent, estimate_advantages,
                                            make_loss, make_optimizer, make_update_step)
 
-    cfg = preset_config("cpu_smoke", device="cpu", num_envs=4, steps_per_env=8, minibatch_size=32, epochs=2)
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
+                        "ppo.minibatch_size": 32, "ppo.epochs": 2})
     cpu = torch.device("cpu")
     torch.manual_seed(0)
     agent = build_agent(cfg, 6, 13, cpu)

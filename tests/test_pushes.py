@@ -104,7 +104,8 @@ def test_training_ramps_the_pushes_by_env_steps(tmp_path):
     from tocabi_torchrl.rl.trainer import build_env, push_scale, train
 
     assert [push_scale((10, 20), s) for s in (0, 10, 15, 20, 30)] == [0.0, 0.0, 0.5, 1.0, 1.0]
-    cfg = preset_config("cpu_smoke", device="cpu", num_envs=4, steps_per_env=8, minibatch_size=16,
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
+                        "ppo.minibatch_size": 16},
                         total_env_steps=3 * 32, run_dir=str(tmp_path), name="pushed", progress_bar=False,
                         eval_at_end=False, log_every=1, **{"env.pushes.count": 2, "env.pushes.window": (0.0, 0.1),
                                                            "ppo.push_ramp": (0, 64)})

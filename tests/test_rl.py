@@ -70,34 +70,39 @@ def test_gae_bootstraps_truncation_but_not_termination():
     assert adv[1].item() == pytest.approx(1.0 + gamma * value - value)  # timeout: bootstrap from the final state
 
 
-@pytest.mark.parametrize("field, value, match", [
-    ("num_envs", 0, "num_envs"), ("gamma", 1.5, "gamma"), ("lr", 0.0, "lr"), ("lr_schedule", "cosine", "lr_schedule"),
-    ("std_mode", "fixed", "std_mode"), ("loggers", ("csv", "mlflow"), "mlflow"), ("minibatch_size", 10**9, "rollout"),
-    ("activation", "gelu", "activation"), ("control_mode", "velocity", "control_mode"),
-    ("pd_gains", "soft", "pd_gains"), ("pd_action_scale", 0.0, "pd_action_scale"),
-    ("reward_weights", ("body_vel",), "body_vel=0.9"), ("reward_weights", ("speed=1",), "unknown term"),
-    ("cuda_graph", "sometimes", "cuda_graph must be one of"),
+@pytest.mark.parametrize("path, value, match", [
+    ("env.num_envs", 0, "num_envs"), ("ppo.gamma", 1.5, "gamma"), ("ppo.lr", 0.0, "lr"),
+    ("ppo.lr_schedule", "cosine", "lr_schedule"), ("ppo.std_mode", "fixed", "std_mode"),
+    ("loggers", ("csv", "mlflow"), "mlflow"), ("ppo.minibatch_size", 10**9, "rollout"),
+    ("ppo.activation", "gelu", "activation"), ("env.control.mode", "velocity", "env.control.mode"),
+    ("env.control.pd_action_scale", 0.0, "pd_action_scale"),
+    ("transforms.reward_weights", ("body_vel=0.9",), "must be a RewardWeights"),
+    ("transforms.reward_weights.body_vel", float("nan"), "transforms.reward_weights.body_vel must be a finite number"),
+    ("transforms.reward_weights.speed", 1.0, "reward_weights has no 'speed'"),
+    ("ppo.cuda_graph", "sometimes", "cuda_graph must be one of"),
 ])
-def test_bad_config_values(field, value, match):
+def test_bad_config_values(path, value, match):
     with pytest.raises(ValueError, match=match):
-        preset_config("default", **{field: value})
+        preset_config("default", **{path: value})
 
 
 def test_unknown_preset_and_field():
     with pytest.raises(ValueError, match="unknown preset"):
         preset_config("fastest")
-    with pytest.raises(ValueError, match="unknown PPOConfig field"):
+    with pytest.raises(ValueError, match=r"unknown config option 'learning_rate'"):
         preset_config("default", learning_rate=1e-3)
 
 
 def test_command_line_overrides():
-    cfg, _ = parse_args(["--preset", "reference", "--num_envs", "16", "--actor_hidden", "64,32",
-                         "--eval_at_end", "false", "--reward_weights", "body_vel=0.9,qpos=0.5"])
+    cfg, _ = parse_args(["--preset", "reference", "--env.num_envs", "16", "--ppo.actor_hidden", "64", "32",
+                         "--eval_at_end", "false", "--transforms.reward_weights.body_vel", "0.9",
+                         "--transforms.reward_weights.qpos", "0.5"])
     assert cfg.transforms.reward_weight_map() == {"body_vel": 0.9, "qpos": 0.5}
+    assert parse_args(["--preset", "reference"])[0].transforms.reward_weight_map() == {}  # the reference weights
     assert cfg.preset == "reference" and cfg.env.num_envs == 16 and cfg.ppo.actor_hidden == (64, 32)
     assert cfg.eval_at_end is False and cfg.ppo.minibatch_size == 128 and cfg.ppo.value_head_lr == 5e-4
     with pytest.raises(SystemExit):
-        parse_args(["--num_envs", "many"])
+        parse_args(["--env.num_envs", "many"])
 
 
 @pytest.mark.parametrize("value, mode", [(True, "on"), (False, "off"), ("true", "on"), ("False", "off"),
@@ -105,8 +110,7 @@ def test_command_line_overrides():
                                          ("no", "off"), (" ON ", "on"), ("Auto", "auto"), (1, "on"), (0, "off")])
 def test_cuda_graph_reads_old_bool_configs_as_on_off(value, mode):
     # Checkpoints and scripts from before "auto" carry a bool (or true/false on a command line).
-    assert preset_config("default", cuda_graph=value).ppo.cuda_graph == mode
-    assert parse_args(["--cuda_graph", str(value)])[0].ppo.cuda_graph == mode
+    assert preset_config("default", **{"ppo.cuda_graph": value}).ppo.cuda_graph == mode
     assert parse_args(["--ppo.cuda_graph", str(value)])[0].ppo.cuda_graph == mode
 
 
@@ -117,7 +121,7 @@ def test_env_graph_auto_captures_small_counts_on_the_gpu_only():
         return plan_graphs(cfg, device, num_envs).env_step
 
     def config(num_envs, mode="auto"):
-        return preset_config("default", num_envs=num_envs, minibatch_size=64, cuda_graph=mode)
+        return preset_config("default", **{"env.num_envs": num_envs, "ppo.minibatch_size": 64, "ppo.cuda_graph": mode})
 
     cuda, cpu = torch.device("cuda"), torch.device("cpu")
     small, large = ENV_GRAPH_AUTO_MAX_ENVS, ENV_GRAPH_AUTO_MAX_ENVS + 1
@@ -134,10 +138,11 @@ def test_env_graph_auto_captures_small_counts_on_the_gpu_only():
 def test_gpu_train_captures_the_env_step_when_auto_says_so(tmp_path, num_envs, graphed):
     from tocabi_torchrl.rl.trainer import train
 
-    cfg = preset_config("default", num_envs=num_envs, steps_per_env=8, minibatch_size=2 * num_envs,
+    cfg = preset_config("default", **{"env.num_envs": num_envs, "ppo.steps_per_env": 8,
+                        "ppo.minibatch_size": 2 * num_envs},
                         total_env_steps=num_envs * 24,
                         device="cuda", run_dir=str(tmp_path), eval_at_end=False, progress_bar=False,
-                        actor_hidden=(32,), critic_hidden=(32,))
+                        **{"ppo.actor_hidden": (32,), "ppo.critic_hidden": (32,)})
     result = train(cfg)
     assert result.env_graph is graphed and result.env_steps == num_envs * 24
 
@@ -150,7 +155,8 @@ def test_build_env_asks_make_env_for_the_graph_only_where_it_can_be_captured(mon
     asked = []
     monkeypatch.setattr(tocabi_torchrl, "make_env", lambda *args, **kwargs: asked.append(kwargs.get("cuda_graph")))
     cuda = torch.device("cuda")
-    auto, on = (preset_config("default", num_envs=4, minibatch_size=16, cuda_graph=m) for m in ("auto", "on"))
+    auto, on = (preset_config("default", **{"env.num_envs": 4, "ppo.minibatch_size": 16,
+                "ppo.cuda_graph": m}) for m in ("auto", "on"))
     build_env(auto, cuda)
     build_env(auto, cuda, num_envs=4096)
     build_env(auto, cuda, sync_free_resets=False)  # TorchRL's stock resets read the host: not capturable
@@ -167,7 +173,7 @@ def test_gpu_build_env_with_stock_resets_stays_eager():
     # cuda_graph="auto" at a small count must not turn a stock-reset env (profiling, comparisons) into an error.
     from tocabi_torchrl.rl.trainer import build_env
 
-    cfg = preset_config("default", num_envs=4, minibatch_size=16)
+    cfg = preset_config("default", **{"env.num_envs": 4, "ppo.minibatch_size": 16})
     env = build_env(cfg, torch.device("cuda"), sync_free_resets=False)
     assert not getattr(env, "cuda_graph", False)
     assert build_env(cfg, torch.device("cuda")).cuda_graph
@@ -185,7 +191,8 @@ def test_two_tiny_iterations_write_a_loadable_checkpoint(tmp_path):
     from tocabi_torchrl.rl.checkpoint import CheckpointError, load_checkpoint
     from tocabi_torchrl.rl.trainer import build_agent, train
 
-    cfg = preset_config("cpu_smoke", device="cpu", num_envs=4, steps_per_env=8, minibatch_size=16,
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
+                        "ppo.minibatch_size": 16},
                         total_env_steps=64, run_dir=str(tmp_path), name="tiny", checkpoint_every=1,
                         progress_bar=False, eval_at_end=False)
     result = train(cfg)
@@ -216,7 +223,8 @@ def test_evaluation_and_curves_from_a_tiny_run(tmp_path):
     from tocabi_torchrl.evaluation.gait_test import evaluate_run
     from tocabi_torchrl.rl.trainer import train
 
-    cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=8,
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                        "ppo.minibatch_size": 8},
                         total_env_steps=16, run_dir=str(tmp_path), name="ev", progress_bar=False, eval_at_end=False)
     train(cfg)
     run = tmp_path / "ev"
@@ -272,7 +280,8 @@ def test_each_update_runs_with_the_linear_lr_and_std_of_the_progress_after_its_r
 
     monkeypatch.setattr(trainer, "_update", recording)
     monkeypatch.setattr(trainer, "set_action_std", setting)
-    cfg = preset_config("cpu_smoke", device="cpu", num_envs=2, steps_per_env=4, minibatch_size=8,
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                        "ppo.minibatch_size": 8},
                         total_env_steps=32, run_dir=str(tmp_path), name="sched", progress_bar=False,
                         eval_at_end=False, **{"ppo.lr_schedule": "linear", "ppo.lr": 1e-3, "ppo.lr_end": 0.0,
                                               "ppo.std_start": 0.1, "ppo.std_end": 0.05, "ppo.std_hold": 0.0})
@@ -327,7 +336,8 @@ def test_training_env_stores_fewer_keys_with_the_same_dynamics():
     # signals (torque_diff, qacc, contact-force changes) must still see them, so rewards and observations match.
     from tocabi_torchrl.rl.trainer import build_env, training_keys
 
-    cfg = preset_config("default", num_envs=3, minibatch_size=16, device="cpu", max_episode_steps=12)
+    cfg = preset_config("default", **{"env.num_envs": 3, "ppo.minibatch_size": 16}, device="cpu",
+                        **{"env.task.max_episode_steps": 12})
     device = torch.device("cpu")
     full = build_env(cfg, device, sync_free_resets=True)
     lean = build_env(cfg, device, sync_free_resets=True, for_training=True)
@@ -378,7 +388,8 @@ def test_collector_drives_the_graph_wiring_like_the_eager_env():
 
     from tocabi_torchrl.rl.trainer import build_agent, build_env
 
-    cfg = preset_config("default", num_envs=3, minibatch_size=16, device="cpu", steps_per_env=8, max_episode_steps=5)
+    cfg = preset_config("default", **{"env.num_envs": 3, "ppo.minibatch_size": 16}, device="cpu",
+                        **{"ppo.steps_per_env": 8, "env.task.max_episode_steps": 5})
     device = torch.device("cpu")
     batches = []
     for wired in (False, True):
@@ -404,7 +415,7 @@ def test_gait_test_stops_once_every_robot_has_fallen(tmp_path):
     from tocabi_torchrl.evaluation.gait_test import evaluate_policy
     from tocabi_torchrl.rl.trainer import build_agent, build_env
 
-    cfg = preset_config("cpu_smoke", device="cpu", control_mode="torque")
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.control.mode": "torque"})
     device = torch.device("cpu")
     env = build_env(cfg, device, num_envs=2)
     agent = build_agent(cfg, 237, 13, device)

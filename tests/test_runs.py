@@ -27,13 +27,13 @@ from tocabi_torchrl.rl.run_dir import RunDirError, open_run
 from tocabi_torchrl.rl.trainer import train
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-TINY = dict(device="cpu", num_envs=2, steps_per_env=4, minibatch_size=8, total_env_steps=16, progress_bar=False,
-            eval_at_end=False, checkpoint_every=1)
+TINY = {"device": "cpu", "env.num_envs": 2, "ppo.steps_per_env": 4, "ppo.minibatch_size": 8, "total_env_steps": 16,
+        "progress_bar": False, "eval_at_end": False, "checkpoint_every": 1}
 
 
 def tiny_args(tmp_path: Path, name: str = "run", **extra) -> list[str]:
-    options = {**TINY, "run_dir": str(tmp_path), "name": name, "preset": "cpu_smoke", **extra}
-    return [x for k, v in options.items() for x in (f"--{k}", str(v))]
+    options = {"preset": "cpu_smoke", **TINY, "run_dir": str(tmp_path), "name": name, **extra}
+    return [x for k, v in options.items() for x in (f"--{k}", *(map(str, v) if isinstance(v, tuple) else [str(v)]))]
 
 
 def iterations_logged(run: Path) -> list[int]:
@@ -74,18 +74,24 @@ def test_resume_restores_the_saved_config(finished_run):
     assert cfg.total_env_steps == 24 and cfg.max_minutes == 1.0 and cfg.env.num_envs == 2
 
 
-@pytest.mark.parametrize("option, value, saved", [("lr", "0.5", "0.001"), ("control_mode", "torque", "'pd_reference'"),
-                                                  ("transform_preset", "tocabilab", "'reference'"),
-                                                  ("actor_hidden", "32,32", r"\(64, 64\)"),
-                                                  ("preset", "default", "'cpu_smoke'")])
+@pytest.mark.parametrize("option, value, saved", [("ppo.lr", ["0.5"], "0.001"),
+                                                  ("env.control.mode", ["torque"], "'pd_reference'"),
+                                                  ("transforms.history", ["tocabilab"], "'reference'"),
+                                                  ("ppo.actor_hidden", ["32", "32"], r"\(64, 64\)"),
+                                                  ("transforms.reward_weights.qpos", ["0.5"], "None"),
+                                                  ("preset", ["default"], "'cpu_smoke'")])
 def test_resume_refuses_changed_settings_naming_them(finished_run, option, value, saved):
-    with pytest.raises(ResumeConfigError, match=rf"{option}: saved {saved}, given "):
-        parse_args(["--resume", str(finished_run), f"--{option}", value])
+    with pytest.raises(ResumeConfigError, match=rf"{option}: saved {saved}, given .*On --resume only these may change"):
+        parse_args(["--resume", str(finished_run), f"--{option}", *value])
+    # The same option given with its saved value is no change.
+    same = {"ppo.lr": ["0.001"], "env.control.mode": ["pd_reference"], "transforms.history": ["reference"],
+            "ppo.actor_hidden": ["64", "64"], "transforms.reward_weights.qpos": ["None"], "preset": ["cpu_smoke"]}
+    assert parse_args(["--resume", str(finished_run), f"--{option}", *same[option]])[0].resume == str(finished_run)
 
 
 def test_train_refuses_a_resume_with_other_network_sizes(finished_run):
     cfg = preset_config("cpu_smoke", **{**TINY, "total_env_steps": 32}, run_dir=str(finished_run.parent), name="run",
-                        resume=str(finished_run), actor_hidden=(32, 32))
+                        resume=str(finished_run), **{"ppo.actor_hidden": (32, 32)})
     with pytest.raises(ResumeConfigError, match=r"actor_hidden: saved \(64, 64\), given \(32, 32\)"):
         train(cfg)
 
@@ -181,10 +187,10 @@ def test_resume_goes_on_in_the_checkpoints_own_folder_wherever_the_run_was_start
 
 def test_max_grad_norm_inf_means_no_clipping_and_nan_is_refused():
     # The one number of the tree that may be infinite (the finiteness check would otherwise refuse it).
-    assert preset_config("cpu_smoke", max_grad_norm=math.inf).ppo.max_grad_norm == math.inf
+    assert preset_config("cpu_smoke", **{"ppo.max_grad_norm": math.inf}).ppo.max_grad_norm == math.inf
     for value in (math.nan, 0.0, "1.0"):
         with pytest.raises(ValueError, match="ppo.max_grad_norm must be"):
-            preset_config("cpu_smoke", max_grad_norm=value)
+            preset_config("cpu_smoke", **{"ppo.max_grad_norm": value})
 
 
 @pytest.mark.parametrize(("option", "value", "message"), [
@@ -192,7 +198,7 @@ def test_max_grad_norm_inf_means_no_clipping_and_nan_is_refused():
     ("ppo.std_start", "inf", "ppo.std_start must be a finite number"),
     ("ppo.value_out_gain", "nan", "ppo.value_out_gain must be a finite number"),
     ("ppo.std_hold", "1.0", "ppo.std_hold is the fraction of training still left when the scheduled std"),
-    ("ppo.actor_hidden", "64,0", "ppo.actor_hidden must be one or more positive layer sizes"),
+    ("ppo.actor_hidden", "64 0", "ppo.actor_hidden must be one or more positive layer sizes"),
     ("ppo.lr", "1e-6", "ppo.lr 1e-06 is outside the adaptive schedule's range [1e-05, 0.01]"),
     ("eval_seconds", "inf", "eval_seconds must be a finite number"),
     ("eval_seconds", "0.001", "seconds=0.001 is shorter than one policy step"),
@@ -204,7 +210,7 @@ def test_the_recipe_refuses_values_that_would_train_to_nan_or_fail_after_trainin
     # run (eval_seconds); an adaptive lr below the rule's range was raised tenfold at the first high KL.
     with pytest.raises(SystemExit) as info:
         extra = ["--eval_seconds", "0.003"] if option == "env.sim.substeps" else []  # 1 step of 4 ms, 0 of 8
-        recipe("ppo_walk").main(tiny_args(tmp_path, eval_at_end=True) + [f"--{option}", value, *extra])
+        recipe("ppo_walk").main(tiny_args(tmp_path, eval_at_end=True) + [f"--{option}", *value.split(), *extra])
     assert str(info.value.code).startswith("error: ") and message in str(info.value.code), info.value.code
     assert not (tmp_path / "run").exists()
 
@@ -290,7 +296,7 @@ def test_a_sigkilled_run_leaves_loadable_checkpoints_and_resumes_at_the_next_ite
 def test_explicit_cuda_or_gpu_preset_without_cuda_is_refused(finished_run):
     for argv, match in ((["--device", "cuda"], "--device cuda was requested but torch sees no CUDA GPU"),
                         (["--preset", "reference"], "--preset reference is sized for a GPU"),
-                        (["--preset", "default", "--num_envs", "8"], "--device cpu"),
+                        (["--preset", "default", "--env.num_envs", "8"], "--device cpu"),
                         (["--resume", str(finished_run), "--device", "cuda:0"], "no CUDA GPU")):
         with pytest.raises(LaunchError, match=match):
             launch_config(argv, cuda_available=False)
@@ -301,11 +307,11 @@ def test_explicit_cuda_or_gpu_preset_without_cuda_is_refused(finished_run):
 
 
 def test_auto_falls_back_to_the_smoke_run_and_the_banner_says_what_runs():
-    smoke, args, note = launch_config(["--num_envs", "4", "--name", "mine"], cuda_available=False)
+    smoke, given, note = launch_config(["--env.num_envs", "4", "--name", "mine"], cuda_available=False)
     assert smoke.preset == "cpu_smoke" and smoke.device == "cpu" and smoke.env.num_envs == 4 and smoke.name == "mine"
     assert "No CUDA GPU found" in note and "cpu_smoke" in note
-    line = banner(smoke, args, torch.device("cpu"))
-    assert "preset cpu_smoke, 4 envs" in line and "on cpu" in line and "num_envs=4" in line
+    line = banner(smoke, given, torch.device("cpu"))
+    assert "preset cpu_smoke, 4 envs" in line and "on cpu" in line and "env.num_envs=4, name=mine" in line
     assert f"{smoke.iterations:,} iterations of {smoke.frames_per_batch:,} env steps" in line
     cfg, _, note = launch_config([], cuda_available=True)
     assert cfg.preset == "default" and cfg.env.num_envs == 4096 and note is None
@@ -351,7 +357,7 @@ def test_recipe_exits_non_zero_on_an_impossible_device(tmp_path):
 @pytest.mark.skipif(importlib.util.find_spec("wandb") is not None, reason="wandb is installed")
 def test_missing_wandb_names_the_install_command(tmp_path):
     with pytest.raises(SystemExit) as info:
-        recipe("ppo_walk").main(tiny_args(tmp_path, loggers="csv,wandb"))
+        recipe("ppo_walk").main(tiny_args(tmp_path, loggers=("csv", "wandb")))
     assert 'pip install "tocabi-torchrl[wandb]"' in str(info.value.code)
     assert not (tmp_path / "run").exists()
 
@@ -369,31 +375,23 @@ def test_log_lines_show_a_dash_until_an_episode_ends(tmp_path, capsys):
     assert lines[2].startswith("it 3: return 12.3 len 50")  # the last finished episodes' values
 
 
-def test_help_describes_every_option_once(capsys):
-    import argparse
-
-    from tocabi_torchrl.rl.config import RunConfig, build_parser
-    from tocabi_torchrl.rl.options import FIELD_HELP
+def test_help_names_every_option_once(capsys):
+    from tocabi_torchrl.rl.config import RunConfig
     from tocabi_torchrl.tree import leaf_paths
 
-    assert set(FIELD_HELP) == set(leaf_paths(RunConfig())), "every option needs a help line"
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as info:
         parse_args(["--help"])
-    text = " ".join(capsys.readouterr().out.split())
-    helps = {a.option_strings[0][2:]: a.help for a in build_parser()._actions
-             if a.dest != "help" and a.help != argparse.SUPPRESS}  # hidden: the flat options of before the tree
-    for dest, line in helps.items():
-        assert line.count("(default:") == 1 and line.startswith(FIELD_HELP[dest]), dest
-        assert f"--{dest}" in text, dest
-    assert "one of: torque, pd, pd_reference" in helps["env.control.mode"]
-    assert "any of csv, tensorboard, wandb" in helps["loggers"] and "true/false" in helps["eval_at_end"]
+    assert info.value.code == 0
+    options = [word for word in capsys.readouterr().out.split() if word.startswith("--")]
+    for path in leaf_paths(RunConfig()):  # --preset and --resume are named in the description too
+        assert options.count(f"--{path}") == (2 if path in ("preset", "resume") else 1), path
 
 
 # ------------------------------------------------------------------------- audit of the command line and run folder
 @pytest.mark.parametrize(("option", "value", "message"), [
     ("transforms.obs_clip", "0", "transforms.obs_clip must be a finite number > 0"),
     ("transforms.obs_clip", "-1", "transforms.obs_clip must be a finite number > 0"),
-    ("transforms.reward_weights", "qpos=nan", "a weight must be a finite number"),
+    ("transforms.reward_weights.qpos", "nan", "transforms.reward_weights.qpos must be a finite number"),
     ("seed", str(2 ** 63), "seed must be an int in [0, 2**63 - 1]"),
     ("seed", "-1", "seed must be an int in [0, 2**63 - 1]"),
     ("ppo.lr_end", "0.5", "ppo.lr_end 0.5 is above ppo.lr"),
@@ -431,11 +429,12 @@ def test_lr_end_is_not_changed_on_resume(finished_run):
 
 
 def test_equal_reward_weights_written_otherwise_resume(tmp_path):
-    recipe("ppo_walk").main(tiny_args(tmp_path, **{"transforms.reward_weights": "body_vel=0.9,qpos=0.5"}))
-    cfg, _ = parse_args(["--resume", str(tmp_path / "run"), "--transforms.reward_weights", "qpos=0.50,body_vel=0.90"])
-    assert cfg.transforms.reward_weights == ("body_vel=0.9", "qpos=0.5")  # the saved entries
-    with pytest.raises(ResumeConfigError, match="transforms.reward_weights: saved"):
-        parse_args(["--resume", str(tmp_path / "run"), "--transforms.reward_weights", "body_vel=0.9,qpos=0.6"])
+    recipe("ppo_walk").main(tiny_args(tmp_path, **{"transforms.reward_weights.qpos": "0.5"}))
+    cfg, _ = parse_args(["--resume", str(tmp_path / "run"), "--transforms.reward_weights.qpos", "0.50",
+                         "--transforms.reward_weights.body_vel", "0.90"])
+    assert cfg.transforms.reward_weight_map() == {"qpos": 0.5, "body_vel": 0.9}  # the saved weights
+    with pytest.raises(ResumeConfigError, match="transforms.reward_weights.qpos: saved 0.5, given 0.6"):
+        parse_args(["--resume", str(tmp_path / "run"), "--transforms.reward_weights.qpos", "0.6"])
 
 
 def test_a_checkpoint_older_than_a_value_rule_evaluates_with_a_warning_and_resume_explains(finished_run, tmp_path):
@@ -465,13 +464,12 @@ def test_a_checkpoint_older_than_a_value_rule_evaluates_with_a_warning_and_resum
 
 
 def test_help_of_resume_names_every_option_a_resume_may_change(capsys):
-    from tocabi_torchrl.rl.options import RESUME_SAFE
+    from tocabi_torchrl.rl.resume import RESUME_SAFE
 
     with pytest.raises(SystemExit):
         parse_args(["--help"])
-    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
-    options = text.index("options: -h, --help")  # past the usage line
-    resume = text[text.index("--resume VALUE", options):text.index("--total_env_steps VALUE", options)]
+    text = " ".join(capsys.readouterr().out.replace("│", " ").split())  # tyro wraps lines in boxes
+    resume = text[text.index("--resume STR"):text.index("--total_env_steps INT")]
     assert all(path in resume for path in RESUME_SAFE - {"resume"}), resume
     assert "ppo.lr_end" not in RESUME_SAFE
 

@@ -425,8 +425,9 @@ def test_export_states_what_the_policy_was_trained_under(tmp_path):
     from tocabi_torchrl.rl.checkpoint import save_checkpoint
     from tocabi_torchrl.rl.trainer import build_agent, build_env
 
-    cfg = tocabi_lab(preset_config("default", control_mode="torque", num_envs=1, minibatch_size=48,
-                                   actor_hidden=(16,), critic_hidden=(16,), device="cpu"))
+    cfg = tocabi_lab(preset_config("default", **{"env.control.mode": "torque", "env.num_envs": 1,
+                     "ppo.minibatch_size": 48,
+                                   "ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,)}, device="cpu"))
     task = dataclasses.replace(cfg.env.task, start_joint_vel_std=0.5, start_base_vel_std=0.1)
     env_cfg = dataclasses.replace(cfg.env, task=task, pushes=PushConfig(count=2, speed=(0.3, 0.6)))
     cfg = dataclasses.replace(cfg, env=env_cfg, ppo=dataclasses.replace(cfg.ppo, push_ramp=(10, 20)))

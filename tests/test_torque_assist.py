@@ -244,10 +244,10 @@ def test_absorb_loss_moves_the_mean_to_its_target():
 
 
 @pytest.mark.parametrize("overrides, match", [
-    (dict(control_mode="pd_reference"), "needs control_mode='torque'"),
-    (dict(assist_fade_start=5, assist_fade_end=5), "assist_fade_start < assist_fade_end"),
-    (dict(torque_assist=-1.0), "torque_assist must be in \\[0, 1\\]"),
-    (dict(torque_assist=1.5), "torque_assist must be in \\[0, 1\\]"),
+    ({"env.control.mode": "pd_reference"}, "needs control_mode='torque'"),
+    ({"ppo.assist_fade_start": 5, "ppo.assist_fade_end": 5}, "assist_fade_start < assist_fade_end"),
+    ({"ppo.torque_assist": -1.0}, "torque_assist must be in \\[0, 1\\]"),
+    ({"ppo.torque_assist": 1.5}, "torque_assist must be in \\[0, 1\\]"),
 ])
 def test_torque_preset_rejects_bad_assist_settings(overrides, match):
     with pytest.raises(ValueError, match=match):
@@ -258,7 +258,7 @@ def test_torque_preset_is_the_reference_action_space_with_a_fading_assist():
     cfg = preset_config("torque")
     assert cfg.env.control.mode == "torque" and cfg.ppo.torque_assist == 1.0
     assert 0 < cfg.ppo.assist_fade_start < cfg.ppo.assist_fade_end < cfg.total_env_steps
-    assert cfg.transforms.preset == "reference"  # 13 reference reward terms, reference observation
+    assert cfg.transforms.history == "reference"  # 13 reference reward terms, reference observation
 
 
 @pytest.mark.parametrize("target", ["teacher", "rollout"])
@@ -267,12 +267,14 @@ def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_pat
 
     n, steps = 4, 8
     frames = n * steps
-    cfg = preset_config("torque", device="cpu", num_envs=n, steps_per_env=steps, minibatch_size=16, epochs=1,
-                        total_env_steps=4 * frames, assist_fade_start=frames, assist_fade_end=3 * frames,
-                        assist_target=target, assist_anchor_decay=frames,
-                        actor_hidden=(16,), critic_hidden=(16,), run_dir=str(tmp_path), name="t",
+    cfg = preset_config("torque", device="cpu", **{"env.num_envs": n, "ppo.steps_per_env": steps,
+                        "ppo.minibatch_size": 16, "ppo.epochs": 1},
+                        total_env_steps=4 * frames, **{"ppo.assist_fade_start": frames,
+                                                       "ppo.assist_fade_end": 3 * frames,
+                        "ppo.assist_target": target, "ppo.assist_anchor_decay": frames,
+                        "ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,)}, run_dir=str(tmp_path), name="t",
                         eval_at_end=False, progress_bar=False, checkpoint_every=1, checkpoint_keep_last=0,
-                        cuda_graph="off")
+                        **{"ppo.cuda_graph": "off"})
     result = train(cfg)
     rows = read_metrics(result.run_dir)
     # β each rollout ran with: 1, 1 (the fade starts after one iteration), halfway through the (geometric) fade, 0.
@@ -305,10 +307,10 @@ def test_a_resumed_run_keeps_its_teacher(tmp_path):
 
     n, steps = 4, 8
     frames = n * steps
-    kw = dict(device="cpu", num_envs=n, steps_per_env=steps, minibatch_size=16, epochs=1,
-              assist_fade_start=frames, assist_fade_end=5 * frames, actor_hidden=(16,), critic_hidden=(16,),
-              run_dir=str(tmp_path), name="r", eval_at_end=False, progress_bar=False, checkpoint_every=1,
-              checkpoint_keep_last=0, cuda_graph="off")
+    kw = {"device": "cpu", "env.num_envs": n, "ppo.steps_per_env": steps, "ppo.minibatch_size": 16, "ppo.epochs": 1,
+          "ppo.assist_fade_start": frames, "ppo.assist_fade_end": 5 * frames, "ppo.actor_hidden": (16,),
+          "ppo.critic_hidden": (16,), "run_dir": str(tmp_path), "name": "r", "eval_at_end": False,
+          "progress_bar": False, "checkpoint_every": 1, "checkpoint_keep_last": 0, "ppo.cuda_graph": "off"}
     first = train(preset_config("torque", total_env_steps=2 * frames, **kw))  # the teacher is taken in iteration 2
     folder = first.run_dir / "checkpoints"
     taken = torch.load(folder / "iter_000002.pt", weights_only=True)["agent"]["teacher"]
@@ -358,9 +360,9 @@ def test_teacher_weight_holds_through_the_fade_then_decays():
     with pytest.raises(ValueError, match="anchor_decay"):
         AssistSchedule(1.0, fade_start=0, fade_end=1, anchor_decay=-1)
     with pytest.raises(ValueError, match="assist_target"):
-        preset_config("torque", assist_target="teachr")
+        preset_config("torque", **{"ppo.assist_target": "teachr"})
     with pytest.raises(ValueError, match="assist_anchor_decay"):
-        preset_config("torque", assist_anchor_decay=-5)
+        preset_config("torque", **{"ppo.assist_anchor_decay": -5})
 
 
 def test_wall_clock_checkpoints_carry_the_training_time(tmp_path, monkeypatch):
@@ -401,9 +403,11 @@ def test_gpu_torque_preset_trains_with_the_captured_absorbing_update(tmp_path):
 
     n, steps = 512, 16
     frames = n * steps
-    cfg = preset_config("torque", device="cuda", num_envs=n, steps_per_env=steps, minibatch_size=frames // 4,
-                        total_env_steps=5 * frames, assist_fade_start=frames, assist_fade_end=4 * frames,
-                        assist_anchor_decay=frames,
+    cfg = preset_config("torque", device="cuda", **{"env.num_envs": n, "ppo.steps_per_env": steps,
+                        "ppo.minibatch_size": frames // 4},
+                        total_env_steps=5 * frames, **{"ppo.assist_fade_start": frames,
+                                                       "ppo.assist_fade_end": 4 * frames,
+                        "ppo.assist_anchor_decay": frames},
                         run_dir=str(tmp_path), name="g", eval_at_end=False, progress_bar=False)
     with _no_capture_warning():  # the absorbing loss must be captured with the update, not fall back to eager
         result = train(cfg)

@@ -10,7 +10,7 @@ from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from tocabi_torchrl.transforms import (
-    PRESETS,
+    HISTORIES,
     REFERENCE_OBS_LAYOUT,
     REFERENCE_TERMS,
     CallableTerm,
@@ -29,7 +29,7 @@ def _env(preset="reference", device="cpu", env_kwargs=None, **overrides) -> Tran
     return TransformedEnv(base, default_transforms(preset, **overrides))
 
 
-@pytest.mark.parametrize("preset", list(PRESETS))
+@pytest.mark.parametrize("preset", list(HISTORIES))
 def test_check_env_specs(preset):
     env = _env(preset, env_kwargs={"terminate_prob": 0.3})
     check_env_specs(env, break_when_any_done="both")
@@ -40,9 +40,9 @@ def test_check_env_specs(preset):
     assert spec["episode_reward"].shape == spec["step_count"].shape == (N, 1)
 
 
-@pytest.mark.parametrize("preset", list(PRESETS))
+@pytest.mark.parametrize("preset", list(HISTORIES))
 def test_policy_input_is_the_history_of_normalised_observations_and_actions(preset):
-    layout = PRESETS[preset].history
+    layout = HISTORIES[preset].history
     env = _env(preset, env_kwargs={"terminate_prob": 0.15, "seed": 3})
     ro = env.rollout(20, break_when_any_done=False)
     # Rebuild each input from the rollout's own per-step data: obs[t] is ("next", obs_step_norm) at t, obs[-1]
@@ -120,7 +120,7 @@ def test_overrides_are_config_changes():
 
 
 def test_preset_errors():
-    with pytest.raises(KeyError, match="unknown transform preset 'walk'"):
+    with pytest.raises(KeyError, match="unknown transforms history layout 'walk'"):
         default_transforms("walk")
     with pytest.raises(TypeError, match="unknown transform option.*'histroy'"):
         default_transforms(histroy=None)
@@ -239,3 +239,23 @@ def test_the_config_names_the_reference_terms_in_their_order():
     from tocabi_torchrl.transforms.settings import REFERENCE_TERM_NAMES
 
     assert REFERENCE_TERM_NAMES == tuple(REFERENCE_TERMS)
+
+
+def test_reward_weights_have_one_field_per_term_whose_help_gives_its_reference_weight():
+    # RewardWeights (transforms.reward_weights) is the command line's --transforms.reward_weights.<term>; the help
+    # text of each field (its docstring) quotes the term's reference weight, which lives with the torch code.
+    import dataclasses
+    import inspect
+    import re
+
+    from tocabi_torchrl.transforms.reward_terms import reference_terms
+    from tocabi_torchrl.transforms.settings import RewardWeights
+
+    assert tuple(f.name for f in dataclasses.fields(RewardWeights)) == tuple(REFERENCE_TERMS)
+    docs = dict(re.findall(r"\n    (\w+): float \| None = [^\n]+\n    \"\"\"([^\"]+)\"\"\"",
+                inspect.getsource(RewardWeights)))
+    for term in reference_terms():
+        assert f"(reference {term.weight:g})" in docs[term.name], term.name
+    assert RewardWeights().as_map() == {"body_vel": 0.9}  # the default preset's tripled velocity term
+    with pytest.raises(ValueError, match=r"transforms.reward_weights.qpos must be a finite number"):
+        RewardWeights(qpos=float("inf")).as_map()

@@ -17,8 +17,9 @@ OBS, ACT = 17, 5
 
 
 def _setup(device: str, update_graph: bool, seed: int = 0):
-    cfg = preset_config("default", num_envs=64, steps_per_env=8, minibatch_size=128, epochs=2,
-                        actor_hidden=(32, 16), critic_hidden=(32, 16), update_graph=update_graph, device=device)
+    cfg = preset_config("default", **{"env.num_envs": 64, "ppo.steps_per_env": 8, "ppo.minibatch_size": 128,
+                                      "ppo.epochs": 2, "ppo.actor_hidden": (32, 16), "ppo.critic_hidden": (32, 16),
+                                      "ppo.update_graph": update_graph}, device=device)
     torch.manual_seed(seed)
     agent = build_agent(cfg, OBS, ACT, torch.device(device))
     loss_module, _ = make_loss(cfg, agent)

@@ -14,23 +14,21 @@
 Every value has one home (its dotted path, e.g. ``ppo.lr``, ``env.control.mode``) and one default; the defaults
 are the ``default`` preset, which is also what ``TocabiWalk()`` and ``make_env()`` build. Named presets
 (:data:`PRESETS`) change a few paths. The tree is saved with every checkpoint (:func:`to_dict`) and read back by
-:func:`config_from_dict`, which also migrates the flat ``PPOConfig`` dict that checkpoints written before the tree
-hold (:data:`FLAT_PATHS`).
+:func:`config_from_dict`. The command line of ``recipes/ppo_walk.py`` is generated from the tree by tyro
+(:mod:`tocabi_torchrl.rl.config`): each field's docstring is its ``--help`` line.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import difflib
 import numbers
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
 from .envs.command_config import CommandConfig
-from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, PD_GAINS, UPPER_BODY_LAWS, TocabiWalkConfig
+from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, UPPER_BODY_LAWS, TocabiWalkConfig
 from .envs.push_config import PushConfig
 from .randomize import tocabi_lab_paths
 from .sim.config import RESET_PASSES
@@ -41,8 +39,8 @@ from .tree import to_dict as _tree_to_dict
 from .value_rules import MAX_SEED, POSITIVE, check_seed
 from .viewer.config import ViewerConfig
 
-__all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "FLAT_PATHS", "flat_to_paths",
-           "config_from_dict", "to_dict", "flat_dict", "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
+__all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "config_from_dict", "to_dict",
+           "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
            "LOGGERS", "field_choices", "wall_tag", "check_snapshot_minutes", "LEGACY_VALUES", "MAX_SEED"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
@@ -91,33 +89,57 @@ class PPOConfig:
 
     # rollout
     steps_per_env: int = 48
+    """rollout length per env and iteration [policy steps]"""
     # PPO update
     epochs: int = 5
+    """passes over each rollout per update"""
     minibatch_size: int = 49152
+    """frames per mini-batch"""
     gamma: float = 0.995
+    """discount factor per policy step"""
     gae_lambda: float = 0.95
+    """GAE lambda"""
     clip_epsilon: float = 0.2
+    """PPO ratio clip"""
     entropy_coef: float = 0.0
+    """entropy bonus weight; 0 = none"""
     value_coef: float = 1.0
+    """value loss weight"""
     value_loss: str = "l2"
+    """value loss function"""
     #: Gradient-norm clip; inf = no clipping (the one number of the tree allowed to be infinite).
     max_grad_norm: float = field(default=1.0, metadata=OWN_NUMBER_CHECK)
+    """gradient norm clip"""
     # learning rate
     lr: float = 1e-3
+    """learning rate (start value of the schedule)"""
     lr_end: float = 1e-5
+    """final learning rate of the linear schedule (at most ppo.lr)"""
     lr_schedule: str = "adaptive"
+    """learning-rate schedule (adaptive: from the KL to desired_kl)"""
     desired_kl: float = 0.01
+    """KL target of the adaptive schedule"""
     value_head_lr: float = 0.0  # > 0: the value head gets its own constant LR (the reference's second optimizer)
+    """constant learning rate of the value head; 0 = share the policy's"""
     adam_eps: float = 1e-8
+    """Adam epsilon"""
     # networks and exploration
     actor_hidden: tuple[int, ...] = (400, 200, 100)
+    """hidden layer sizes of the policy network"""
     critic_hidden: tuple[int, ...] = (400, 200, 100)
+    """hidden layer sizes of the value network"""
     activation: str = "elu"
+    """hidden-layer activation"""
     value_out_gain: float = 1.0
+    """init gain of the value output layer"""
     std_mode: str = "scheduled"
+    """action noise: scheduled (std_start -> std_end) or learned"""
     std_start: float = 0.2
+    """action std at the start"""
     std_end: float = 0.05
+    """action std at the end of the schedule (at most ppo.std_start)"""
     std_hold: float = 0.5
+    """fraction of training still left when the scheduled std reaches std_end (held there after)"""
     #: Torque mode training aid (0 = off): the training env gets ``env.control.torque_assist`` and its leg actions
     #: morph from position residuals tracked by a PD (``env.control.pd_kp``/``pd_kv``/``pd_action_scale``) at β = 1
     #: to torques at β = 0. β starts at this value, holds until ``assist_fade_start`` env steps and falls to 0 at
@@ -125,27 +147,39 @@ class PPOConfig:
     #: rl/assist.AssistSchedule); during the fade a loss term (weight ``assist_absorb``) moves each step of the morph
     #: into the actor (rl/assist.py), so the run ends as a pure torque policy. Evaluations never use the assist.
     torque_assist: float = 0.0
+    """torque mode training aid: start scale β in [0, 1] of the morph from PD residuals (β = 1) to torques (β =
+    0); 0 = off"""
     assist_fade_start: int = 0
+    """env steps at which the torque assist starts to fade"""
     assist_fade_end: int = 0
+    """env steps at which the torque assist reaches 0 (pure torque from there on)"""
     assist_absorb: float = 1.0
+    """weight of the loss that moves each step of the morph into the actor"""
     #: What the absorbing loss copies (rl/assist.py): "teacher", the torque of a frozen copy of the actor taken as
     #: the fade starts, in the fading policy's own states (DAgger); or "rollout", the torque the rollout's own mean
     #: applied (only the fade's step). With "teacher" the pull holds to ``assist_fade_end`` and then falls linearly
     #: to 0 over ``assist_anchor_decay`` env steps.
     assist_target: str = "teacher"
+    """what that loss copies: 'teacher' (the torque of a frozen copy of the actor taken as the fade starts,
+    DAgger) or 'rollout' (the torque the rollout's own mean applied)"""
     assist_anchor_decay: int = 0
+    """env steps after assist_fade_end over which the teacher's pull falls to 0"""
     #: The pushes' curriculum (env.pushes): every kick is scaled by 0 before ``push_ramp[0]`` env steps, rising
     #: linearly to full strength at ``push_ramp[1]`` ((0, 0): full from the start). A schedule on env steps, like the
     #: assist's, so a resumed run takes it up where it was.
     push_ramp: tuple[int, int] = (0, 0)
+    """(start, full) env steps of the pushes' curriculum: no kicks before start, full strength from full; (0, 0):
+    full from the start"""
     #: On a GPU, capture the training env's whole step (physics, signals, transforms, masked reset) as one CUDA
     #: graph: "on", "off", or "auto" = on up to ``cuda_graphs.ENV_GRAPH_AUTO_MAX_ENVS`` envs. Small counts are
     #: launch-bound, and the graph trained 1.5-1.8x faster at 8-96 envs on an H100 (short runs); from 256 envs up it
     #: was 3-6 % slower (docs/benchmarks/env_graph.md). Both compute the same step (tests compare them).
     cuda_graph: str = "auto"
+    """capture the env step as one CUDA graph (auto: up to 128 envs)"""
     #: On a GPU, capture each PPO mini-batch step (loss, backward, clipping, fused Adam) as one CUDA graph after 3
     #: eager steps (falls back to eager, with a warning, if the capture fails, e.g. with entropy_coef > 0).
     update_graph: bool = True
+    """on a GPU, capture each mini-batch step as a CUDA graph"""
     #: Data-parallel runs (torchrun, several ranks): how the ranks' gradients are averaged before clipping.
     #: "allreduce": one all-reduce of one flat buffer after backward, captured with the update step; "ddp": torch's
     #: DistributedDataParallel around the loss (bucketed all-reduces that overlap backward), which cannot be captured,
@@ -153,14 +187,17 @@ class PPOConfig:
     #: On one rank nothing is exchanged either way (the update_graph rule still applies, so a config means the
     #: same on any rank count).
     grad_sync: str = "allreduce"
+    """several ranks: average gradients with one captured all-reduce, or DDP (needs update_graph false)"""
     #: float32 matrix products while training (torch.set_float32_matmul_precision, set for the run and restored
     #: after it): "highest" (full float32) or "high" (TF32 tensor cores where the GPU has them, a 10-bit mantissa;
     #: the update's and GAE's network passes are matmul-bound, ~115 GFLOP per default mini-batch step). It applies
     #: to every torch product in the process, the env's transforms included; C MuJoCo and mujoco-warp are untouched.
     matmul_precision: str = "highest"
+    """float32 matrix products while training: highest (float32) or high (TF32 on GPUs)"""
     #: Keep every env signal (joint_pos, base_pos, ...) in the training rollout; off: only what PPO and the logs
     #: read (observation, reward, done flags, reward terms, episode counters), ~40 % less rollout memory.
     store_env_signals: bool = False
+    """keep every env signal in the rollout (more memory; off keeps what PPO reads)"""
 
     def __post_init__(self) -> None:
         # Configs and checkpoints written before "auto" existed hold a bool here, and the command line used to take
@@ -231,56 +268,66 @@ class RunConfig:
     the envs unless a name says otherwise."""
 
     preset: str = "default"
+    """the training preset the other options change (PRESETS: cpu_smoke, default, model_based, reference, robust,
+    torque); on the command line it is read first, whatever its place"""
     name: str = "ppo_walk"
+    """run folder name under run_dir; an existing run is never overwritten (--resume it or pick a new name)"""
     run_dir: str = "runs"
+    """parent folder of the run folders"""
     # validate() checks it with check_seed, the rule and message of every place a seed enters.
     seed: int = field(default=0, metadata=OWN_NUMBER_CHECK)
+    """seed of torch and of the env's random draws, in [0, 2**63 - 1]"""
     device: str = "auto"
+    """auto (CUDA if present, else the small CPU smoke run), cpu, cuda or cuda:N"""
     resume: str = ""
+    """run folder or checkpoint to continue; its saved options apply, and only these may be given other values:
+    checkpoint_every, checkpoint_keep_every, checkpoint_keep_last, checkpoint_minutes, device,
+    env.sim.reset_pass, env.sim.threads, eval_at_end, eval_envs, eval_seconds, eval_test, log_every, loggers,
+    max_minutes, name, ppo.cuda_graph, ppo.grad_sync, ppo.store_env_signals, ppo.update_graph, progress_bar,
+    run_dir, total_env_steps"""
     # budget
     total_env_steps: int = 300_000_000
+    """training budget in env steps (all envs together)"""
     max_minutes: float = 0.0  # 0 = no wall-clock limit
+    """wall-clock budget [min]; 0 = none"""
     # logging and checkpoints
     log_every: int = 1
+    """iterations between log rows"""
     loggers: tuple[str, ...] = ("csv",)
+    """where metrics go besides the progress bar; csv (runs/<name>/metrics/) is always written"""
     progress_bar: bool = True
+    """show a progress bar (else one line per log row)"""
     checkpoint_every: int = 100
+    """iterations between checkpoints"""
     #: Checkpoint retention: keep the newest ``checkpoint_keep_last`` iteration files (0 = keep all) and every file
     #: whose iteration is a multiple of ``checkpoint_keep_every`` (0 = none more); ``latest.pt`` is always kept.
     checkpoint_keep_last: int = 3
+    """newest checkpoints kept; 0 = keep all"""
     checkpoint_keep_every: int = 50
+    """also keep checkpoints of iterations that are multiples of this; 0 = none"""
     #: Also save ``checkpoints/wall_XXXXXs.pt`` whenever the training wall-clock (summed over resumed segments)
     #: passes a multiple of this many minutes (0 = off; else at least 1/60: :func:`wall_tag` names whole seconds).
     checkpoint_minutes: float = 0.0
+    """also save checkpoints/wall_XXXXXs.pt every this many minutes of training; 0 = none, else at least 1/60
+    (the names are whole seconds)"""
     # evaluation at the end
     eval_at_end: bool = True
+    """run the gait test (eval/) when training ends"""
     eval_envs: int = 256
+    """robots in the gait test (per case in the robust test)"""
     eval_seconds: float = 8.0
+    """duration of the gait test [s]"""
     #: The gait test run at the end: "standard" (one command, 256 robots) or "robust" (evaluation/robust.py: diverse
     #: starts, four cases of ``eval_envs`` robots each; docs/evaluation.md).
     eval_test: str = "standard"
+    """which gait test runs when training ends: standard (one command) or robust (diverse starts, four cases of
+    eval_envs robots each; docs/evaluation.md)"""
     # sections
     env: TocabiWalkConfig = field(default_factory=TocabiWalkConfig)
     transforms: TransformSettings = field(default_factory=TransformSettings)
     ppo: PPOConfig = field(default_factory=PPOConfig)
     #: The live web viewer of the training worlds (``--viewer``; the ``viewer`` extra; docs/viewer.md).
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
-
-    def __getattr__(self, name: str) -> Any:
-        # Only reached for names that are not attributes: the flat PPOConfig names of before the tree still read
-        # (with a DeprecationWarning naming the path), so that scripts written for it keep working while they move.
-        path = FLAT_PATHS.get(name)
-        if path is None or path == name or name in ("command_preset", "pd_gains"):
-            raise AttributeError(f"RunConfig has no attribute {name!r}")
-        warnings.warn(f"RunConfig.{name} is the flat name of before the config tree; read cfg.{path}",
-                      DeprecationWarning, stacklevel=2)
-        return _get(self, path)
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        if name not in self.__dataclass_fields__ and name in FLAT_PATHS:
-            raise AttributeError(f"RunConfig has no option {name!r}: set cfg.{FLAT_PATHS[name]} (or build the config "
-                                 f"with preset_config(..., {name}=...))")
-        object.__setattr__(self, name, value)
 
     @property
     def frames_per_batch(self) -> int:
@@ -357,11 +404,11 @@ EVAL_TESTS = ("standard", "robust")
 def field_choices() -> dict[str, tuple[str, ...]]:
     """The allowed values of each option that takes one of a few names (checked by ``validate``, listed by
     ``--help``), by path."""
-    from .transforms.settings import PRESETS as TRANSFORM_PRESETS
+    from .transforms.settings import HISTORIES
 
     return {"ppo.lr_schedule": LR_SCHEDULES, "ppo.std_mode": STD_MODES, "env.control.mode": CONTROL_MODES,
             "env.control.upper_body": UPPER_BODY_LAWS,
-            "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.preset": tuple(TRANSFORM_PRESETS),
+            "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.history": tuple(HISTORIES),
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
             "ppo.assist_target": ASSIST_TARGETS, "env.sim.backend": ("warp", "mujoco", "auto"),
             "env.sim.reset_pass": RESET_PASSES, "ppo.grad_sync": GRAD_SYNCS,
@@ -386,7 +433,7 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # linear, value head at 5e-4, std 0.1 -> 0.05, 120 M steps), on the reference's task.
     "reference": MappingProxyType({
         "env.control.mode": "torque", "env.command": CommandConfig.reference(), "env.num_envs": 8,
-        "transforms.reward_weights": (), "total_env_steps": 120_000_000,
+        "transforms.reward_weights.body_vel": None, "total_env_steps": 120_000_000,
         "ppo.gamma": 0.99, "ppo.steps_per_env": 2048, "ppo.minibatch_size": 128, "ppo.epochs": 3,
         "ppo.lr": 1e-5, "ppo.lr_end": 2e-7, "ppo.lr_schedule": "linear", "ppo.value_head_lr": 5e-4,
         "ppo.adam_eps": 1e-5, "ppo.actor_hidden": (256, 256), "ppo.critic_hidden": (256, 256),
@@ -444,58 +491,28 @@ def preset_tree(name: str) -> RunConfig:
 
 
 def preset_config(name: str, /, **overrides) -> RunConfig:
-    """The named preset with ``overrides`` applied and validated. Keys are dotted paths (``**{"ppo.lr": 3e-4}``)
-    or the flat names of the ``PPOConfig`` before the tree (``num_envs=8``, see :data:`FLAT_PATHS`); a ``preset``
-    key is ignored. Raises :class:`ConfigError` naming an unknown key, ``ValueError`` for a bad value."""
+    """The named preset with ``overrides`` applied and validated. Keys are dotted paths (``**{"ppo.lr": 3e-4}``;
+    top-level options also as keywords, ``seed=1``); a ``preset`` key is ignored. Raises :class:`ConfigError` naming
+    an unknown key (with the nearest paths), ``ValueError`` for a bad value."""
     overrides.pop("preset", None)
-    return replace_paths(preset_tree(name), flat_to_paths(overrides)).validated()
+    return replace_paths(preset_tree(name), _known_paths(overrides)).validated()
 
 
-# ------------------------------------------------------------------------------------------ the flat PPOConfig of old
-_TOP_LEVEL = ("preset", "name", "run_dir", "seed", "device", "resume", "total_env_steps", "max_minutes", "log_every",
-              "loggers", "progress_bar", "checkpoint_every", "checkpoint_keep_last", "checkpoint_keep_every",
-              "checkpoint_minutes", "eval_at_end", "eval_envs", "eval_seconds")
-
-#: PPO options added after the tree: they have no flat name.
-_PPO_AFTER_THE_TREE = ("grad_sync", "matmul_precision", "push_ramp")
-#: Each field of the flat ``PPOConfig`` (before the tree; checkpoints up to schema version 1 store it) -> its path in
-#: the tree. ``command_preset`` and ``pd_gains`` were names for values and become those values (:func:`flat_to_paths`).
-FLAT_PATHS: Mapping[str, str] = MappingProxyType({
-    **{name: name for name in _TOP_LEVEL},
-    # PPO options added after the tree have no flat name: the flat names stand for the flat config of before it.
-    **{f.name: f"ppo.{f.name}" for f in dataclasses.fields(PPOConfig) if f.name not in _PPO_AFTER_THE_TREE},
-    "num_envs": "env.num_envs", "control_mode": "env.control.mode", "max_episode_steps": "env.task.max_episode_steps",
-    "pd_action_scale": "env.control.pd_action_scale", "command_preset": "env.command", "pd_gains": "env.control.pd_kp",
-    "transform_preset": "transforms.preset", "reward_weights": "transforms.reward_weights",
-})
-
-
-def flat_to_paths(values: Mapping[str, Any]) -> dict[str, Any]:
-    """``{flat PPOConfig name or dotted path: value}`` -> ``{dotted path: value}``. Raises :class:`ConfigError`
-    naming a key that is neither (with the nearest paths)."""
-    out: dict[str, Any] = {}
+def _known_paths(values: Mapping[str, Any]) -> dict[str, Any]:
+    """``values`` as given, after checking every key names a leaf or a section of the tree; raises
+    :class:`ConfigError` naming an unknown key and the nearest paths."""
     paths = set(leaf_paths(RunConfig()))
-    for key, value in values.items():
-        if key == "command_preset":
-            try:
-                out["env.command"] = CommandConfig.preset(value)
-            except ValueError as err:
-                raise ConfigError(f"command_preset: {err}") from None
-        elif key == "pd_gains":
-            if value not in PD_GAINS:
-                raise ConfigError(f"pd_gains must be one of {sorted(PD_GAINS)}, got {value!r}")
-            out["env.control.pd_kp"], out["env.control.pd_kv"] = PD_GAINS[value]
-        elif key in FLAT_PATHS:
-            out[FLAT_PATHS[key]] = tuple(value) if isinstance(value, list) else value
-        elif key in paths or key.split(".")[0] in ("env", "transforms", "ppo", "viewer"):
-            out[key] = value  # a path, or a whole section; replace_paths names an unknown one
-        else:
-            near = sorted({p for p in paths if p.endswith("." + key)}
-                          | set(difflib.get_close_matches(key, sorted(paths | set(FLAT_PATHS)), n=3, cutoff=0.75)))
-            raise ConfigError(f"unknown PPOConfig field or config option {key!r}"
-                              + (f"; did you mean {near}?" if near else "; options are dotted paths such as 'ppo.lr', "
-                                 "'env.num_envs', 'env.control.mode' (see recipes/ppo_walk.py --help)"), unknown=[key])
-    return out
+    for key in values:
+        if key in paths or key.split(".")[0] in ("env", "transforms", "ppo", "viewer"):
+            continue  # a path, or a whole section; replace_paths names an unknown one
+        # The nearest paths, by the whole path or by its last name (num_envs -> env.num_envs, gama -> ppo.gamma).
+        names = set(difflib.get_close_matches(key, sorted({p.rsplit(".", 1)[-1] for p in paths}), n=3, cutoff=0.75))
+        near = sorted({p for p in paths if p.rsplit(".", 1)[-1] in names}
+                      | set(difflib.get_close_matches(key, sorted(paths), n=3, cutoff=0.75)))
+        raise ConfigError(f"unknown config option {key!r}"
+                          + (f"; did you mean {near}?" if near else "; options are dotted paths such as 'ppo.lr', "
+                             "'env.num_envs', 'env.control.mode' (see recipes/ppo_walk.py --help)"), unknown=[key])
+    return dict(values)
 
 
 def to_dict(cfg: RunConfig) -> dict[str, Any]:
@@ -503,21 +520,40 @@ def to_dict(cfg: RunConfig) -> dict[str, Any]:
     return _tree_to_dict(cfg)
 
 
-def flat_dict(cfg: RunConfig) -> dict[str, Any]:
-    """``cfg`` as the flat ``PPOConfig`` dict of before the tree (the inverse of the migration), for comparing with
-    results recorded then. ``command_preset``/``pd_gains`` name the preset values the tree holds, or are ``None`` for
-    values no name stands for."""
-    out = {name: _get(cfg, path) for name, path in FLAT_PATHS.items() if name not in ("command_preset", "pd_gains")}
-    presets = {"tocabilab": CommandConfig(), "reference": CommandConfig.reference()}
-    out["command_preset"] = next((k for k, v in presets.items() if v == cfg.env.command), None)
-    gains = (tuple(cfg.env.control.pd_kp), tuple(cfg.env.control.pd_kv))
-    out["pd_gains"] = next((k for k, v in PD_GAINS.items() if v == gains), None)
-    return out
-
-
-def is_flat(data: Mapping[str, Any]) -> bool:
-    """Whether a saved config dict is the flat ``PPOConfig`` of before the tree (it has no ``ppo`` section)."""
-    return not isinstance(data.get("ppo"), Mapping)
+def _renamed(data: Mapping[str, Any]) -> dict[str, Any]:
+    """A saved tree with the two options renamed since it was written, in their new form: ``transforms.preset``
+    (the observation-history layout) is ``transforms.history``, and ``transforms.reward_weights``, once
+    ``"term=weight"`` entries, is one weight per term. This is the loader's one rename step; the shipped policies
+    are saved in the current form. Raises :class:`ConfigError` for the flat ``PPOConfig`` dict of before the tree."""
+    if not isinstance(data.get("ppo"), Mapping):
+        raise ConfigError("the saved config is the flat PPOConfig of before the run config tree (it has no 'ppo' "
+                          "section, checkpoint schema 0 or 1), which this version no longer reads: convert it with a "
+                          "version of tocabi-torchrl from before 2026-12-02, whose config_from_dict migrates it "
+                          "(save its RunConfig.to_dict() as the checkpoint's config), or retrain", unknown=[])
+    transforms = data.get("transforms")
+    if not isinstance(transforms, Mapping) or not ("preset" in transforms or isinstance(
+            transforms.get("reward_weights"), (list, tuple))):
+        return dict(data)
+    transforms = dict(transforms)
+    if "preset" in transforms:
+        if "history" in transforms:
+            raise ConfigError("the saved config has both transforms.preset and transforms.history (the first is the "
+                              "old name of the second); keep one", unknown=["transforms.preset"])
+        transforms["history"] = transforms.pop("preset")
+    if isinstance(transforms.get("reward_weights"), (list, tuple)):
+        weights = {}
+        for entry in transforms["reward_weights"]:
+            name, sep, value = str(entry).partition("=")
+            try:
+                weights[name] = float(value) if sep else None
+            except ValueError:
+                weights[name] = None
+            if weights[name] is None:
+                raise ConfigError(f"transforms.reward_weights entry {entry!r} of the saved config must look like "
+                                  f"'body_vel=0.9'")
+        # An empty list meant the reference weights: every term None, body_vel's default of 0.9 included.
+        transforms["reward_weights"] = {"body_vel": None, **weights}
+    return {**data, "transforms": transforms}
 
 
 #: Fields whose default changed after files were saved without them: such a file gets the value it ran with, not
@@ -527,16 +563,11 @@ LEGACY_VALUES: Mapping[str, Any] = MappingProxyType({"env.sim.reset_pass": "full
 
 
 def config_from_dict(data: Mapping[str, Any]) -> RunConfig:
-    """The :class:`RunConfig` a checkpoint or ``config.json`` saved: the tree, or (older files) the flat ``PPOConfig``
-    dict, migrated path by path (its fields missing take their defaults, which the flat config shared with the
-    ``default`` preset, except :data:`LEGACY_VALUES`). Not validated; raises :class:`ConfigError` naming an unknown
-    key."""
-    data = {k: v for k, v in data.items() if k != "schema_version"}  # config.json carries it beside the fields
-    if is_flat(data):
-        paths = flat_to_paths(data)
-        cfg, saved = replace_paths(RunConfig(), paths), set(paths)
-    else:
-        cfg, saved = _tree_from_dict(RunConfig, data), {path for path in LEGACY_VALUES if _has_path(data, path)}
+    """The :class:`RunConfig` a checkpoint or ``config.json`` saved (fields it lacks take their defaults, except
+    :data:`LEGACY_VALUES`; options renamed since, by :func:`_renamed`). Not validated; raises :class:`ConfigError`
+    naming an unknown key."""
+    data = _renamed({k: v for k, v in data.items() if k != "schema_version"})  # config.json carries it beside them
+    cfg, saved = _tree_from_dict(RunConfig, data), {path for path in LEGACY_VALUES if _has_path(data, path)}
     missing = {path: value for path, value in LEGACY_VALUES.items() if path not in saved}
     return replace_paths(cfg, missing) if missing else cfg
 

@@ -13,7 +13,7 @@ from .envs import TocabiWalk, TocabiWalkConfig
 from .envs.autoreset import SyncFreeResetEnv
 from .envs.config import ENV_FLAT_PATHS
 from .transforms import TransformConfig, TransformSettings, default_transforms
-from .transforms.presets import PRESETS as TRANSFORM_PRESETS
+from .transforms.presets import HISTORIES
 from .value_rules import check_seed
 
 __all__ = ["make_env"]
@@ -51,7 +51,7 @@ def make_env(
             the env is built from that preset's env and transform sections (``num_envs`` defaults to the preset's),
             so it cannot be given with ``config``/``transforms``. The trainer's training aids are not part of a
             preset's env (the torque preset's assist: pass ``torque_assist=True``). The transforms' history layout
-            is ``transforms=TransformSettings(preset="tocabilab")`` (see :data:`tocabi_torchrl.transforms.PRESETS`).
+            is ``transforms=TransformSettings(history="tocabilab")`` (see :data:`tocabi_torchrl.transforms.HISTORIES`).
         sync_free_resets: return a :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`, whose
             ``step_and_maybe_reset`` (the collectors' step) resets done envs without host reads (default: on CUDA).
         cuda_graph: capture that ``step_and_maybe_reset`` as one CUDA graph after two eager calls and replay it
@@ -109,8 +109,8 @@ def _preset_sections(preset: str | None, config: TocabiWalkConfig | None,
 
     if preset not in PRESETS:
         # "tocabilab" named the transforms' history layout here before: say where it went.
-        hint = (f"; {preset!r} is a transform history preset: pass transforms=TransformSettings(preset={preset!r})"
-                if preset in TRANSFORM_PRESETS else "")
+        hint = (f"; {preset!r} is a transforms history layout: pass transforms=TransformSettings(history={preset!r})"
+                if preset in HISTORIES else "")
         raise ValueError(f"unknown training preset {preset!r}; choose one of {sorted(PRESETS)}{hint}")
     if config is not None or transforms is not None:
         raise TypeError(f"make_env takes preset={preset!r} or the sections config=/transforms=, not both (the preset "

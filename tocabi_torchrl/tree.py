@@ -1,6 +1,7 @@
-"""Nested dataclass trees as plain data: dotted paths to their leaves, conversion to and from dicts, and parsing a
-leaf's value from text. The run config (:mod:`tocabi_torchrl.config`) is such a tree; its command line, checkpoint
-entry and ``config.json`` are generated from it with these helpers.
+"""Nested dataclass trees as plain data: dotted paths to their leaves, conversion to and from dicts, and the check of
+every bool and number by its declared type. The run config (:mod:`tocabi_torchrl.config`) is such a tree; its
+checkpoint entry and ``config.json`` are written and read with these helpers (its command line is tyro's, from the
+same tree: :mod:`tocabi_torchrl.rl.config`).
 
 A *section* is a dataclass field whose value is itself a dataclass; every other field is a *leaf*, addressed by its
 dotted path (``"ppo.lr"``, ``"env.control.mode"``). Leaf values are plain data: numbers, strings, bools, ``None`` and
@@ -13,7 +14,6 @@ from __future__ import annotations
 
 import collections.abc
 import dataclasses
-import json
 import math
 import numbers
 import os
@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["OWN_NUMBER_CHECK", "ConfigError", "check_field_types", "from_dict", "get_path", "item_type", "leaf_paths",
-           "leaf_types", "parse_leaf", "replace_paths", "to_dict"]
+__all__ = ["OWN_NUMBER_CHECK", "ConfigError", "build_items", "check_field_types", "from_dict", "get_path", "item_type",
+           "leaf_paths", "leaf_types", "replace_paths", "to_dict"]
 
 
 class ConfigError(ValueError):
@@ -55,7 +55,7 @@ def item_type(kind: Any) -> type | None:
     return None
 
 
-def _items(item: type, value: Any, where: str) -> Any:
+def build_items(item: type, value: Any, where: str) -> Any:
     """A tuple-of-items leaf's value with every dict (as :func:`to_dict` writes an item) built into ``item``."""
     if isinstance(value, (dict, item)):  # one item
         value = [value]
@@ -125,7 +125,7 @@ def replace_paths(tree: Any, values: dict[str, Any]) -> Any:
         current = getattr(tree, head)
         item = item_type(_hints(type(tree))[head])
         if item is not None:
-            direct[head] = _items(item, value, head)
+            direct[head] = build_items(item, value, head)
         elif _is_section(current) and isinstance(value, dict):  # a section given as a dict (as to_dict writes it)
             direct[head] = from_dict(type(current), value, f"{head}.")
         elif _is_section(current) and not isinstance(value, type(current)):
@@ -180,7 +180,7 @@ def from_dict(cls: type, data: dict[str, Any], where: str = "") -> Any:
         if _is_section(current):
             values[name] = from_dict(type(current), value, f"{where}{name}.")
         elif item is not None:
-            values[name] = _items(item, value, f"{where}{name}")
+            values[name] = build_items(item, value, f"{where}{name}")
         else:
             values[name] = _as_leaf(value)
     return cls(**values)
@@ -192,51 +192,6 @@ def _unwrap_optional(kind: Any) -> tuple[Any, bool]:
         rest = [a for a in args if a is not type(None)]
         return rest[0], True
     return kind, False
-
-
-_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
-
-
-def _scalar(kind: Any, text: str) -> Any:
-    if kind is bool:
-        if text.lower() in _TRUE:
-            return True
-        if text.lower() in _FALSE:
-            return False
-        raise ValueError(f"expected true or false, got {text!r}")
-    if kind in (int, float):
-        return kind(text)
-    return text
-
-
-def parse_leaf(kind: Any, text: str) -> Any:
-    """A leaf's value from command-line ``text`` for its annotated type: ``int``, ``float``, ``bool`` (true/false),
-    ``str``, optional ones (``none`` -> ``None``), tuples (comma-separated; empty text -> ``()``) and tuples of
-    dataclass items (JSON: a list of objects of the item's fields, or one object; ``none`` or empty -> ``()``).
-    Raises ``ValueError`` for text that does not fit."""
-    kind, optional = _unwrap_optional(kind)
-    if optional and text.lower() == "none":
-        return None
-    item = item_type(kind)
-    if item is not None:
-        if text.strip().lower() in ("", "none", "[]"):
-            return ()
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"expected JSON, a list of {item.__name__} objects such as "
-                             f"{json.dumps([to_dict(item())])}: {err}") from None
-        return _items(item, [data] if isinstance(data, dict) else data, item.__name__)
-    if typing.get_origin(kind) is tuple:
-        args = typing.get_args(kind) or (str,)
-        elem = _unwrap_optional(args[0])[0]
-        items = tuple(_scalar(elem, t.strip()) for t in text.split(",") if t.strip())
-        if Ellipsis not in args and len(items) != len(args):
-            raise ValueError(f"expected {len(args)} comma-separated values, got {text!r}")
-        return items
-    if kind in (int, float, bool):
-        return _scalar(kind, text)
-    return text  # str, paths and anything else given as text
 
 
 #: Field metadata (``field(..., metadata=OWN_NUMBER_CHECK)``) of a number field that :func:`check_field_types`

@@ -23,13 +23,13 @@ import torch
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.atomic import atomic_write_text
-from tocabi_torchrl.config import FLAT_PATHS, RunConfig
+from tocabi_torchrl.config import RunConfig
 from tocabi_torchrl.rl import checkpoint, trainer
-from tocabi_torchrl.rl.config import PRESETS, preset_config
+from tocabi_torchrl.rl.config import PRESETS, parse_tree, preset_config
 from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.evaluation.gait_test import evaluate_policy
 from tocabi_torchrl.evaluation.record import fixed_command
-from tocabi_torchrl.tree import leaf_types, parse_leaf
+from tocabi_torchrl.tree import get_path, leaf_types
 
 GIB = 2**30
 #: Raw policy steps run before the ceiling is measured (the robots settle onto the floor first).
@@ -175,9 +175,9 @@ presets = sorted(PRESETS)  # the names config() takes, for the scripts' --preset
 def run_config(n: int, iterations: int, overrides: dict, run_dir: str, name: str, device: str, ranks: int = 1):
     """The default preset as the throughput benchmarks train it: ``n`` envs per rank for ``iterations`` PPO
     iterations in all (``ranks`` ranks), a mini-batch of at most a quarter of a rollout, every iteration logged, no
-    checkpoint, progress bar or closing evaluation; ``overrides`` (flat names or paths) on top."""
-    steps = overrides.get("steps_per_env", config("default").ppo.steps_per_env)
-    return config("default", **{"minibatch_size": min(49152, n * steps // 4), **overrides, "num_envs": n,
+    checkpoint, progress bar or closing evaluation; ``overrides`` (dotted paths) on top."""
+    steps = overrides.get("ppo.steps_per_env", config("default").ppo.steps_per_env)
+    return config("default", **{"ppo.minibatch_size": min(49152, n * steps // 4), **overrides, "env.num_envs": n,
                                 "total_env_steps": iterations * n * steps * ranks, "run_dir": run_dir, "name": name,
                                 "checkpoint_every": 10**9, "progress_bar": False, "eval_at_end": False,
                                 "log_every": 1, "device": device})
@@ -185,20 +185,17 @@ read_checkpoint = checkpoint.read_checkpoint  # a checkpoint (file or run folder
 
 
 def parse_overrides(items: Sequence[str]) -> dict:
-    """``FIELD=VALUE`` strings (a flat name such as ``num_envs``, or a path such as ``ppo.lr``) typed by the config
-    tree, keyed by the flat name where one exists (the scripts and recorded results use them); unknown ones named."""
-    kinds, out = {**leaf_types(RunConfig()), "command_preset": str, "pd_gains": str}, {}  # these two name values
-    flat = {path: name for name, path in FLAT_PATHS.items() if name not in ("command_preset", "pd_gains")}
+    """``PATH=VALUE`` strings (a path of the config tree such as ``ppo.lr`` or ``env.num_envs``; a tuple's entries
+    space-separated) typed by the tree, as ``recipes/ppo_walk.py``'s ``--PATH VALUE`` would read them, by path."""
+    paths, argv = set(leaf_types(RunConfig())), []
     for item in items:
         field, _, value = item.partition("=")
-        path = field if field in kinds else FLAT_PATHS.get(field, field)
-        if path not in kinds:
-            raise SystemExit(f"--set {item}: the training config has no field {field!r}")
-        try:
-            out[flat.get(path, field)] = parse_leaf(kinds[path], value)
-        except ValueError as err:
-            raise SystemExit(f"--set {item}: {err}") from None
-    return out
+        if field not in paths:
+            raise SystemExit(f"--set {item}: the training config has no option {field!r} (options are dotted paths "
+                             "such as ppo.lr or env.num_envs: recipes/ppo_walk.py --help)")
+        argv += [f"--{field}", *value.split()]
+    cfg = parse_tree(argv, RunConfig())
+    return {field: get_path(cfg, field) for field in (item.partition("=")[0] for item in items)}
 
 
 def train(cfg, env=None, wrap_policy: Callable | None = None):
@@ -251,7 +248,7 @@ def eager_step_config(script: str, n: int, iterations: int, overrides: dict, run
     at = trainer.resolve_device(device)
     if cfg.ppo.cuda_graph == "on" or trainer.plan_graphs(cfg, at, n).env_step:
         raise SystemExit(f"{script} marks the eager env step, and ppo.cuda_graph={cfg.ppo.cuda_graph!r} captures it at "
-                         f"{n} envs (a captured step has no points to mark): pass --set cuda_graph=off")
+                         f"{n} envs (a captured step has no points to mark): pass --set ppo.cuda_graph=off")
     shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
     return cfg, at
 
@@ -285,7 +282,8 @@ def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Call
     parser.add_argument("--raw_steps", type=int, default=200,
                         help=f"raw mujoco-warp policy steps measured (>= {min_raw_steps}"
                              + ("; 0 skips them)" if min_raw_steps == 0 else ")"))
-    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="config overrides (ablations)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE",
+                        help="config overrides (ablations): dotted paths, e.g. ppo.cuda_graph=off")
     parser.add_argument("--device", default="cuda", help=device_help)
     parser.add_argument("--run_dir", default=f"/tmp/tocabi_bench_runs/{name}")
     parser.add_argument("--out", default=str(DOCS))

@@ -40,13 +40,14 @@ def run(kind: str, backend: str, n: int, args) -> dict:
     steps = max(base.ppo.steps_per_env, math.ceil(2048 / n))  # small counts: rollouts of at least 2,048 transitions
     batch = min(base.ppo.minibatch_size, n * steps // 4)
     rounds = 0 if kind == "raw" else 3 if kind == "memory" else math.ceil(TARGET / (n * steps))
-    hidden = [f"actor_hidden={args.hidden}", f"critic_hidden={args.hidden}"] if args.hidden else []
+    sizes = args.hidden.replace(",", " ")  # --set takes a tuple space-separated, as ppo_walk.py does
+    hidden = [f"ppo.actor_hidden={sizes}", f"ppo.critic_hidden={sizes}"] if args.hidden else []
     meta, r = common.meta("scaling", None, "cpu"), {}  # no CUDA context in this driving process: the child names it
     try:
         r = common.run_child("train_throughput", [
             "--num_envs", str(n), "--iterations", str(max(rounds - 1, 0)), "--warmup", str(min(rounds, 1)),
             "--raw_steps", str(200 if kind == "raw" else 0), "--device", "cuda" if backend == "gpu" else "cpu",
-            "--run_dir", args.run_dir, "--set", f"steps_per_env={steps}", f"minibatch_size={batch}",
+            "--run_dir", args.run_dir, "--set", f"ppo.steps_per_env={steps}", f"ppo.minibatch_size={batch}",
             f"max_minutes={args.max_minutes}", *hidden], env={"CUDA_VISIBLE_DEVICES": ""} if backend == "cpu" else None)
         record = {"status": "ok", "raw_policy_steps_per_s": r["raw_policy_steps_per_s"]} if kind == "raw" else {
             **{k: r[k] for k in ("status", "iterations", "env_steps", "train_wall_s", "setup_s", "env_graph")},

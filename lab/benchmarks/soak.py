@@ -113,9 +113,10 @@ def nonfinite(obj) -> int:
 def run_faults(args) -> tuple[dict, list[dict]]:
     base = common.config(args.preset).ppo
     # cuda_graph off: the monitor keeps Python-side state in the env step, which a captured graph would freeze.
-    cfg = common.config(args.preset, num_envs=args.num_envs, device=args.device, run_dir=args.run_dir, name="soak",
-                        minibatch_size=min(base.minibatch_size, max(args.num_envs * base.steps_per_env // 4, 1)),
-                        eval_at_end=False, progress_bar=False, total_env_steps=10**12, cuda_graph="off",
+    batch = min(base.minibatch_size, max(args.num_envs * base.steps_per_env // 4, 1))
+    cfg = common.config(args.preset, **{"env.num_envs": args.num_envs, "ppo.minibatch_size": batch},
+                        device=args.device, run_dir=args.run_dir, name="soak",
+                        eval_at_end=False, progress_bar=False, total_env_steps=10**12, **{"ppo.cuda_graph": "off"},
                         max_minutes=args.minutes, checkpoint_every=10**6)
     shutil.rmtree(Path(cfg.run_dir) / cfg.name, ignore_errors=True)  # the soak's own scratch run
     env = common.build_env(cfg, for_training=True, normalization=args.normalization)

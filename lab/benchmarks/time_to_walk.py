@@ -323,7 +323,7 @@ def main(argv=None) -> None:
     t.add_argument("--every", type=float, default=2.0, help="minutes between evaluated checkpoints (0: none)")
     t.add_argument("--log_every", type=int, default=5)
     t.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
-    t.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+    t.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE",
                    help="config overrides on top of the preset (ablations); a run continues only with the same ones")
     e = sub.add_parser("eval", parents=[run], help="gait tests of every wall-clock checkpoint of a preset's run")
     e.add_argument("--num_envs", type=int, default=None,

@@ -1,6 +1,6 @@
 """Training throughput (collection + PPO update) against raw mujoco-warp stepping of the same model, same process.
 
-    python -m lab.benchmarks.train_throughput --num_envs 4096 16384 --iterations 10   # --set cuda_graph=off: ablations
+    python -m lab.benchmarks.train_throughput --num_envs 4096 16384 --iterations 10   # --set ppo.cuda_graph=off: ablations
     python -m lab.benchmarks.train_throughput --num_envs 4096 --nproc 1 2 --name multi_gpu   # data-parallel scaling
 
 Each env count in a fresh process: ``--iterations`` PPO iterations of the default preset after ``--warmup``, then the
@@ -99,7 +99,8 @@ def main(argv=None) -> None:
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
-    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="config overrides (ablations)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE",
+                        help="config overrides (ablations): dotted paths, e.g. ppo.cuda_graph=off")
     parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run of the script")
     parser.add_argument("--run_dir", default="/tmp/tocabi_bench_runs", help="scratch folder of the training runs")
     parser.add_argument("--out", default=str(common.DOCS))

@@ -84,8 +84,8 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
             cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--resume",
                    str(out / "checkpoints" / "latest.pt"), *common]
         else:
-            cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--preset", args.preset, "--num_envs",
-                   str(num_envs), "--minibatch_size", str(min(49152, 48 * num_envs)), *common]
+            cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--preset", args.preset,
+                   "--env.num_envs", str(num_envs), "--ppo.minibatch_size", str(min(49152, 48 * num_envs)), *common]
     else:
         # The library recipes' --max_minutes caps the training time summed over --resume calls.
         cmd = [sys.executable, str(ROOT / f"recipes/train_{library}.py"), "--out", str(out), "--num_envs",

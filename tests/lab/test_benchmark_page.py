@@ -6,7 +6,6 @@ from __future__ import annotations
 import importlib
 import re
 
-import pytest
 
 
 def _page_module():

@@ -42,8 +42,12 @@ def test_committed_report_regenerates_from_its_json(page, tmp_path):
 
 
 def test_unknown_override_is_named():
-    with pytest.raises(SystemExit, match="no field 'cuda_grpah'"):
+    with pytest.raises(SystemExit, match="no option 'cuda_grpah'"):
         common.parse_overrides(["cuda_grpah=on"])
+    with pytest.raises(SystemExit, match="no option 'cuda_graph'.*dotted paths"):  # the flat names are gone
+        common.parse_overrides(["cuda_graph=on"])
+    assert common.parse_overrides(["ppo.cuda_graph=on", "ppo.actor_hidden=8 8", "total_env_steps=2e3"]) == {
+        "ppo.cuda_graph": "on", "ppo.actor_hidden": (8, 8), "total_env_steps": 2000}
 
 
 def test_a_cpu_measurement_does_not_replace_the_published_gpu_reports(tmp_path, monkeypatch, capsys):
@@ -121,7 +125,8 @@ def test_step_timeline_marks_every_phase_of_the_real_trainer(tmp_path, monkeypat
     monkeypatch.setattr(trainer, "build_env",
                         lambda cfg, device, **kw: build_env(cfg, device, **{"sync_free_resets": True, **kw}))
     args = ["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--raw_steps", "0",
-            "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs"), "--set", "steps_per_env=8", "actor_hidden=8,8"]
+            "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs"), "--set", "ppo.steps_per_env=8",
+            "ppo.actor_hidden=8 8"]
     data = step_timeline.main(args)
     (r,) = data["results"]
     ms = r["ms_per_policy_step"]
@@ -144,7 +149,8 @@ def test_solver_load_counts_the_trainer_and_the_raw_ceiling_on_warps_cpu(tmp_pat
         pytest.skip("warp's CPU device is not available here")
     originals = {k: getattr(trainer, k) for k in ("make_collector", "_update")}
     args = ["--device", "cpu", "--num_envs", "4", "--iterations", "2", "--warmup", "1", "--raw_steps", "3",
-            "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs"), "--set", "steps_per_env=6", "actor_hidden=8,8"]
+            "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs"), "--set", "ppo.steps_per_env=6",
+            "ppo.actor_hidden=8 8"]
     (r,) = solver_load.main(args)["results"]
     train, raw = r["training"], r["standing (raw ceiling)"]
     assert r["overrides"]["env.sim.backend"] == "warp"  # the counts are mujoco-warp's, also on the CPU
@@ -197,11 +203,11 @@ def test_step_timeline_puts_back_every_wrapper_and_hook_also_after_an_error(monk
 
 def test_train_throughput_smoke_in_a_child_process_and_on_two_ranks(tmp_path):
     train_throughput.main(["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--nproc", "1",
-                           "2", "--raw_steps", "0", "--set", "steps_per_env=8", "actor_hidden=8,8", "--out",
+                           "2", "--raw_steps", "0", "--set", "ppo.steps_per_env=8", "ppo.actor_hidden=8 8", "--out",
                            str(tmp_path), "--run_dir", str(tmp_path / "runs")])
     one, two = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
     for r, k in ((one, 1), (two, 2)):
-        assert r["num_envs"] == 8 and r["train_env_steps_per_s"] > 0 and r["overrides"]["actor_hidden"] == [8, 8]
+        assert r["num_envs"] == 8 and r["train_env_steps_per_s"] > 0 and r["overrides"]["ppo.actor_hidden"] == [8, 8]
         # 3 iterations of K x 8 envs x 8 steps: torchrun's K gloo ranks, counted together by rank 0
         assert r["gpus"] == k and r["iterations"] == 3 and r["env_steps"] == 3 * k * 64
     speedup = two["train_env_steps_per_s"] / one["train_env_steps_per_s"]

@@ -9,6 +9,7 @@ import torch
 from torchrl.envs import EnvBase
 
 from ..config import RunConfig, preset_config
+from ..envs.config import ENV_FLAT_PATHS
 
 __all__ = ["build_env", "task_config"]
 
@@ -16,11 +17,13 @@ __all__ = ["build_env", "task_config"]
 def task_config(preset: str = "default", num_envs: int = 4096, **task) -> RunConfig:
     """The run config of a training preset (its ``env`` and ``transforms`` sections are the task: control mode, PD
     gains, commands, reward weights, episode length) for ``num_envs`` envs. ``task``: options of
-    :func:`tocabi_torchrl.config.preset_config` (dotted paths or flat names, e.g. ``seed=1``,
-    ``control_mode="torque"``); the ``ppo`` section is ignored by the adapters, whose library trains."""
+    :func:`tocabi_torchrl.config.preset_config` (dotted paths, e.g. ``seed=1``, ``**{"env.control.mode": "torque"}``)
+    or the env's keywords as ``make_env`` takes them (``max_episode_steps=1000``, ``control_mode="torque"``:
+    ``envs.config.ENV_FLAT_PATHS``); the ``ppo`` section is ignored by the adapters, whose library trains."""
     # The adapters never use the ppo section's update: shrink the mini-batch so a few envs validate.
-    task.setdefault("minibatch_size", 1)
-    return preset_config(preset, num_envs=num_envs, **task)
+    paths = {(f"env.{ENV_FLAT_PATHS[k]}" if k in ENV_FLAT_PATHS else k): v for k, v in task.items()}
+    paths.setdefault("ppo.minibatch_size", 1)
+    return preset_config(preset, **{"env.num_envs": num_envs}, **paths)
 
 
 def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "default",

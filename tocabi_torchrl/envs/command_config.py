@@ -21,9 +21,13 @@ class CommandConfig:
     """
 
     vx_range: tuple[float, float] = (0.0, 0.7)
+    """forward command range low,high [m/s]"""
     vx_initial_range: tuple[float, float] = (0.2, 0.7)
+    """forward command range of an episode's first command [m/s]"""
     vy_range: tuple[float, float] = (-0.2, 0.2)
+    """lateral command range low,high [m/s]"""
     resample_every: int = 2000
+    """policy steps between command re-samples"""
     #: Ramp length D is drawn from randint(1, max_ramp_steps) (exclusive upper bound, like numpy); 1 = switch at once.
     max_ramp_steps: int = 1
     #: The reference never resets its ramp state, so a ramp in progress overwrites a new episode's first commands.
@@ -35,11 +39,12 @@ class CommandConfig:
                    max_ramp_steps=250, ramp_survives_reset=True)
 
     @classmethod
-    def preset(cls, name: str) -> "CommandConfig":
-        presets = {"tocabilab": cls, "reference": cls.reference}
-        if name not in presets:
-            raise ValueError(f"unknown command preset {name!r}; choose one of {sorted(presets)}")
-        return presets[name]()
+    def named(cls, name: str) -> "CommandConfig":
+        """The schedule called ``name``: ``"tocabilab"`` (the default) or ``"reference"``."""
+        schedules = {"tocabilab": cls, "reference": cls.reference}
+        if name not in schedules:
+            raise ValueError(f"unknown command schedule {name!r}; choose one of {sorted(schedules)}")
+        return schedules[name]()
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad option (``env.command.NAME``) and the accepted values."""

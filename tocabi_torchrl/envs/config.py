@@ -67,7 +67,9 @@ class EnvSimConfig:
     backend: str = "auto"
     substeps: int = 8
     nconmax: int | None = None
+    """mujoco-warp contacts per world; none = the measured default"""
     njmax: int | None = None
+    """mujoco-warp constraint rows per world; none = the measured default"""
     threads: int | None = None
     reset_pass: str = "reduced"
 
@@ -108,10 +110,15 @@ class TaskConfig:
     model_path: str | None = None
     phase_rate_gain: float = 1.0
     min_pelvis_height: float = 0.6
+    """episode ends below this pelvis height [m]"""
     min_neck_height: float = 0.8
+    """episode ends below this neck height [m]"""
     max_neck_angle: float = 1.0
+    """episode ends beyond this neck tilt [rad]"""
     terminate_on_forbidden_contact: bool = True
+    """episode ends when a body other than the feet touches the ground or an obstacle"""
     terminate_on_self_collision: bool = True
+    """episode ends on a self-collision"""
     start_joint_vel_std: float = 0.0
     start_base_vel_std: float = 0.0
 
@@ -187,11 +194,17 @@ class ControlConfig:
     """
 
     mode: str = "pd_reference"
+    """what the 12 leg actions command"""
     pd_kp: tuple[float, ...] = PD_GAINS["robot"][0]
+    """leg PD stiffness per joint [N·m/rad] (PD modes, torque assist); default: the robot's, TocabiLab used Kp/9"""
     pd_kv: tuple[float, ...] = PD_GAINS["robot"][1]
+    """leg PD damping per joint [N·m·s/rad]; default: the robot's, TocabiLab used Kv/3"""
     pd_action_scale: float = 0.5
+    """residual range of the PD modes [rad]: target = center + scale × action"""
     pd_nominal: tuple[float, ...] = tuple(float(v) for v in robot.INIT_JOINT_POS[:12])
+    """centre of the 'pd' mode's leg targets [rad], one per leg joint"""
     torque_assist: bool = False
+    """give every env the torque assist (the trainer sets it on its training env when ppo.torque_assist > 0)"""
     # validate() checks the per-joint model_based values itself, naming the joint.
     mb_omega: tuple[float, ...] = field(default=MB_OMEGA, metadata=OWN_NUMBER_CHECK)
     mb_zeta: tuple[float, ...] = field(default=(0.7,) * robot.NUM_LEG_JOINTS, metadata=OWN_NUMBER_CHECK)

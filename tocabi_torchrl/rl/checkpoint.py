@@ -9,10 +9,11 @@ containers only, and checks the keys, the types and the config against :data:`SC
 weights and the normalisers' statistics are finite (NaN or inf there: the run diverged, and a policy whose actions turn
 into NaN would still look plausible, as the env reads them as 0). Anything that does not fit raises
 :class:`CheckpointError` naming the file and what is wrong. Checkpoints written
-before the schema was versioned (no ``schema_version``, e.g. the shipped ``assets/policies/tocabi_walk_ppo.pt``)
-read as version 0; config fields they lack take their defaults. Versions 0 and 1 hold the flat ``PPOConfig`` dict
-of before the run config tree; :func:`config_from_checkpoint` migrates it to the tree (``config.FLAT_PATHS``).
-Version 2 holds the tree (``RunConfig.to_dict()``).
+before the schema was versioned (no ``schema_version``) read as version 0; config fields they lack take their
+defaults. Versions 0 and 1 hold the flat ``PPOConfig`` dict of before the run config tree, which this version refuses
+with a message saying so (``config.config_from_dict``). Version 2 holds the tree (``RunConfig.to_dict()``) with the
+history layout as ``transforms.preset`` and the reward weights as ``"term=weight"`` entries, read by their current
+names; version 3 (the shipped policies) holds the tree as it is now.
 
 Writing is atomic (:mod:`tocabi_torchrl.atomic`): a crash leaves the previous ``latest.pt`` intact.
 Old ``iter_*.pt`` files are pruned after each save (``RunConfig.checkpoint_keep_last`` / ``checkpoint_keep_every``).
@@ -39,7 +40,7 @@ __all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_chec
 
 #: Version of the checkpoint layout and config schema written by :func:`save_checkpoint`. Bump it when a change
 #: means older code would misread a new file; :func:`read_checkpoint` refuses files from a newer version.
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 _ITER_FILE = re.compile(r"^iter_(\d+)\.pt$")
 
@@ -281,8 +282,8 @@ def _check_finite(tensors: dict, name: str, path: Path) -> None:
 
 
 def config_from_checkpoint(state: dict, path: str | os.PathLike = "<checkpoint>", strict: bool = False) -> RunConfig:
-    """The run's :class:`~tocabi_torchrl.config.RunConfig` as saved in ``state``: the tree (schema 2), or the flat
-    ``PPOConfig`` dict of older files migrated to it (fields it lacks take their defaults). Raises
+    """The run's :class:`~tocabi_torchrl.config.RunConfig` as saved in ``state``: the tree (schema 2; fields it lacks
+    take their defaults, options renamed since are read by their new name: ``config.config_from_dict``). Raises
     :class:`CheckpointError` for unknown options and for values of the wrong type (a text, a NaN, a bool for a number).
 
     The value rules of ``RunConfig.validate`` (ranges, combinations) may be newer than the run: a saved value that

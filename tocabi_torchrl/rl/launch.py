@@ -9,11 +9,10 @@ multi-rank launch means GPUs were expected, and no rank prints a banner that cou
 
 from __future__ import annotations
 
-import argparse
+from collections.abc import Sequence
 
-from ..config import RunConfig
-from .config import build_parser, given_options, preset_config
-from .resume import resume_config
+from ..config import RunConfig, preset_config, preset_tree
+from .config import PRESETS, given_options, option_value, parse_tree, resume_config
 
 __all__ = ["LaunchError", "CPU_SIZED_PRESETS", "launch_config", "banner"]
 
@@ -25,24 +24,27 @@ class LaunchError(ValueError):
     """An explicit request (device, preset) that this machine cannot honour."""
 
 
-def launch_config(argv: list[str] | None, cuda_available: bool, description: str = "",
-                  data_parallel: bool = False) -> tuple[RunConfig, argparse.Namespace, str | None]:
-    """Parse ``argv`` (see :func:`~tocabi_torchrl.rl.config.build_parser`) into the config to run on this machine.
+def launch_config(argv: Sequence[str] | None, cuda_available: bool, description: str = "",
+                  data_parallel: bool = False, prog: str | None = None) -> tuple[RunConfig, dict, str | None]:
+    """Parse ``argv`` (see :mod:`tocabi_torchrl.rl.config`) into the validated config to run on this machine.
 
-    Returns the config, the namespace (options not given are None) and, when the run differs from the request, a
-    note saying why. The fallback is decided before the config is built, so options sized for the smoke run (e.g.
-    ``--env.num_envs 4``) are checked against it rather than against the GPU preset. ``data_parallel`` (a torchrun
-    launch) refuses the fallback instead of taking it.
+    Returns the config, the options ``argv`` names (``{path: value}``) and, when the run differs from the request, a
+    note saying why. The fallback is decided before the options are applied, so options sized for the smoke run
+    (e.g. ``--env.num_envs 4``) are checked against it rather than against the GPU preset. ``data_parallel`` (a
+    torchrun launch) refuses the fallback instead of taking it.
     """
-    args = build_parser(description).parse_args(argv)
-    overrides = given_options(args)  # as given: a refused resume names the options as the user wrote them
-    resume = overrides.get("resume")
-    resumed = resume_config(resume, overrides) if resume else None
-    preset = resumed.preset if resumed else (args.preset or "default")
-    device = resumed.device if resumed else overrides.get("device", "auto")
-    note = None
+    argv = list(argv or [])
+    resume = option_value(argv, "resume")
+    if resume:
+        resumed, given = resume_config(resume, argv, prog, description)
+    asked = option_value(argv, "preset")
+    if asked is not None and asked not in PRESETS:
+        raise LaunchError(f"--preset {asked}: unknown preset; choose one of {', '.join(sorted(PRESETS))}")
+    preset = resumed.preset if resume else (asked or "default")
+    device = resumed.device if resume else (option_value(argv, "device") or "auto")
+    note, base = None, {}
     if not cuda_available:
-        if device.startswith("cuda") and resumed and "device" not in overrides:
+        if device.startswith("cuda") and resume and option_value(argv, "device") is None:
             raise LaunchError(f"the resumed run {resume} was trained with --device {device}, and torch sees no CUDA "
                               "GPU on this machine; pass --device cpu to continue it on the CPU")
         if device.startswith("cuda"):
@@ -55,22 +57,27 @@ def launch_config(argv: list[str] | None, cuda_available: bool, description: str
         if device == "auto" and preset not in CPU_SIZED_PRESETS:
             sized = preset_config(preset)
             gpu_sized = f"sized for a GPU ({sized.env.num_envs:,} envs, {sized.total_env_steps:,} env steps)"
-            if resumed:
+            if resume:
                 raise LaunchError(f"the resumed run {resume} uses preset {preset!r}, {gpu_sized}, and torch sees "
                                   "no CUDA GPU; pass --device cpu to continue it on the CPU anyway")
-            if args.preset is not None:
+            if asked is not None:
                 raise LaunchError(f"--preset {preset} is {gpu_sized}, and torch sees no CUDA GPU; pass --device cpu "
                                   f"to run it on the CPU anyway, or use --preset {min(CPU_SIZED_PRESETS)}")
-            preset, overrides["device"] = min(CPU_SIZED_PRESETS), "cpu"
+            preset, base = min(CPU_SIZED_PRESETS), {"device": "cpu"}
             note = (f"No CUDA GPU found and --device auto: running the small CPU smoke configuration (preset {preset})"
                     " instead of the GPU-sized default; it proves the pipeline and learns nothing useful. Pass "
                     "--device cpu to run the default preset on the CPU.")
-    return resumed or preset_config(preset, **overrides), args, note
+    if resume:
+        return resumed, given, note
+    from dataclasses import replace
+
+    cfg = parse_tree(argv, replace(preset_tree(preset), **base), prog, description).validated()
+    return cfg, given_options(argv, cfg), note
 
 
-def banner(cfg: RunConfig, args: argparse.Namespace, device) -> str:
+def banner(cfg: RunConfig, given: dict, device) -> str:
     """One line saying what will run: preset, size, budget, device and the options given on the command line."""
-    given = {k: v for k, v in given_options(args).items() if k != "preset"}
+    given = {k: v for k, v in given.items() if k != "preset"}
     shown = ", ".join(f"{k}={','.join(map(str, v)) if isinstance(v, tuple) else v}" for k, v in given.items())
     return (f"training {cfg.name}: preset {cfg.preset}, {cfg.env.num_envs:,} envs, {cfg.iterations:,} iterations of "
             f"{cfg.frames_per_batch:,} env steps ({cfg.env.control.mode} control) on {device}"

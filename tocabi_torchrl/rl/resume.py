@@ -1,11 +1,11 @@
 """``--resume``: continue a run with the config saved in its checkpoint.
 
 A resumed run is the same run: its networks, task, rewards and learning settings come from the checkpoint. Options
-given again may change only what :data:`~tocabi_torchrl.rl.options.RESUME_SAFE` lists (budget, logging, checkpoint
-cadence and retention, evaluation, device, and how the same computation runs: CUDA graphs, gradient sync, stored env
-signals, CPU threads, reset pass); any other difference is refused with a :class:`ResumeConfigError` naming the field,
-the saved value and the given one. Values are compared as values: ``transforms.reward_weights`` by the weight each
-term gets, not by how its entries are written.
+given again may change only what :data:`RESUME_SAFE` lists (budget, logging, checkpoint cadence and retention,
+evaluation, device, and how the same computation runs: CUDA graphs, gradient sync, stored env signals, CPU threads,
+reset pass); any other difference is refused with a :class:`ResumeConfigError` naming the option, the saved value
+and the given one. The command line is parsed over the saved config (``rl.config.resume_config``), so an option
+given with its saved value is no change.
 """
 
 from __future__ import annotations
@@ -13,12 +13,33 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..config import RunConfig, flat_to_paths
+from ..config import RunConfig
 from ..tree import get_path, leaf_paths, replace_paths
 from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint, run_folder_of
-from .options import RESUME_SAFE, resume_safe_text
 
-__all__ = ["ResumeConfigError", "resume_config", "check_resume_config", "holds_checkpoint", "no_checkpoint_message"]
+__all__ = ["ResumeConfigError", "RESUME_SAFE", "saved_config", "resume_safe_text", "check_resume_config",
+           "holds_checkpoint", "no_checkpoint_message"]
+
+#: Paths a ``--resume`` may change: they set the budget, logging, checkpoints, evaluation, where it runs, or how
+#: the same computation is executed (CUDA graphs, gradient sync, stored env signals, CPU threads, reset pass). Every
+#: other option must equal the saved run's: a schedule's end point (``ppo.lr_end``) is not among them, since changing
+#: it mid-run makes the rate jump to another line. ``RunConfig.resume``'s help lists them too (a test compares).
+RESUME_SAFE = frozenset({
+    "name", "run_dir", "device", "resume",
+    "total_env_steps", "max_minutes",
+    "log_every", "loggers", "progress_bar",
+    "checkpoint_every", "checkpoint_keep_last", "checkpoint_keep_every", "checkpoint_minutes",
+    "eval_at_end", "eval_envs", "eval_seconds", "eval_test",
+    "ppo.cuda_graph", "ppo.update_graph", "ppo.grad_sync", "ppo.store_env_signals",
+    "env.sim.threads", "env.sim.reset_pass",
+    "viewer.enabled", "viewer.host", "viewer.port", "viewer.worlds", "viewer.every",
+})
+
+
+def resume_safe_text() -> str:
+    """The options a ``--resume`` may give other values (:data:`RESUME_SAFE` but ``resume``), as the refusal of a
+    changed option lists them."""
+    return ", ".join(sorted(RESUME_SAFE - {"resume"}))
 
 
 class ResumeConfigError(ValueError):
@@ -40,34 +61,10 @@ def no_checkpoint_message(folder: Path) -> str:
             f"(rm -r {folder}) to use this name again")
 
 
-def _differences(saved: RunConfig, given: dict) -> list[tuple[str, object, object]]:
-    """``(option, saved value, given value)`` of each given option outside :data:`RESUME_SAFE` that differs; an
-    option is named as it was given (a dotted path, or a flat name of before the tree)."""
-    out = []
-    for name, value in given.items():
-        for path, now in flat_to_paths({name: value}).items():
-            if path in RESUME_SAFE:
-                continue
-            was = get_path(saved, path)
-            if not _same(path, was, now):
-                out.append((name, was, now))
-    return out
-
-
-def _same(path: str, was, now) -> bool:
-    """Whether the saved and the given value of ``path`` set the same thing."""
-    if now == was:
-        return True
-    if path == "transforms.reward_weights":
-        # 'body_vel=0.9' and 'body_vel=0.90' (or the entries in another order) are the same weights.
-        from ..transforms.presets import TransformSettings
-
-        try:
-            return (TransformSettings(reward_weights=tuple(was)).reward_weight_map()
-                    == TransformSettings(reward_weights=tuple(now)).reward_weight_map())
-        except (TypeError, ValueError):  # a malformed entry differs; validate() names it
-            return False
-    return False
+def _differences(saved: RunConfig, given: RunConfig) -> list[tuple[str, object, object]]:
+    """``(path, saved value, given value)`` of each option outside :data:`RESUME_SAFE` that differs."""
+    return [(path, get_path(saved, path), get_path(given, path)) for path in leaf_paths(saved)
+            if path not in RESUME_SAFE and get_path(saved, path) != get_path(given, path)]
 
 
 def _refuse(path, diffs: list[tuple[str, object, object]]) -> ResumeConfigError:
@@ -81,30 +78,25 @@ def _refuse(path, diffs: list[tuple[str, object, object]]) -> ResumeConfigError:
 
 def check_resume_config(saved: RunConfig, given: RunConfig, path: str | os.PathLike = "<checkpoint>") -> None:
     """Raise :class:`ResumeConfigError` if ``given`` differs from ``saved`` in an option a resume may not change."""
-    diffs = _differences(saved, {p: get_path(given, p) for p in leaf_paths(given)})
+    diffs = _differences(saved, given)
     if diffs:
         raise _refuse(path, diffs)
 
 
-def resume_config(resume: str | os.PathLike, overrides: dict) -> RunConfig:
-    """The config saved with ``resume`` (a run folder or checkpoint file) with the command line's explicit
-    ``overrides`` applied; ``overrides`` (dotted paths or the flat names of before the tree) may hold ``preset``
-    (compared by name) and any option."""
+def saved_config(resume: str | os.PathLike) -> RunConfig:
+    """The config saved with ``resume`` (a run folder or checkpoint file), set to go on where its checkpoint is:
+    ``resume`` set, and ``run_dir``/``name`` naming the checkpoint's run folder."""
     folder = Path(resume)
     if folder.is_dir() and (folder / "config.json").is_file() and not holds_checkpoint(folder):
         raise ResumeConfigError(no_checkpoint_message(folder))
     path = checkpoint_file(resume)
     # Strict: the run trains on with these values, so one that breaks a rule of this version is refused here.
     saved = config_from_checkpoint(read_checkpoint(path), path, strict=True)
-    diffs = _differences(saved, overrides)
-    if diffs:
-        raise _refuse(path, diffs)
-    safe = {k: v for k, v in flat_to_paths(overrides).items() if k in RESUME_SAFE}
+    where = {"resume": str(resume)}
     if path.parent.name == "checkpoints":
         # The run goes on where its checkpoint is (or, given --name alone, branches beside it): the saved run_dir is
         # relative to where the run started, so from another folder (or after the run folder moved) it would name
         # a new folder and split the run in two.
         run = run_folder_of(path)
-        safe.setdefault("run_dir", str(run.parent))
-        safe.setdefault("name", run.name)
-    return replace_paths(saved, {**safe, "resume": str(resume)}).validated()
+        where.update(run_dir=str(run.parent), name=run.name)
+    return replace_paths(saved, where)

@@ -9,7 +9,7 @@ One module per job:
 * :mod:`.normalize`: :class:`FixedNormalization` (reference statistics) and :class:`RunningNormalization`
 * :mod:`.history`: :class:`ObsActionHistory` with a :class:`HistoryLayout` (reference: 237-value input)
 * :mod:`.reward_terms`: one :class:`RewardTerm` per reference reward component; :mod:`.reward`: :class:`TaskReward`
-* :mod:`.presets`: :class:`TransformConfig`, :data:`PRESETS` and :func:`default_transforms`
+* :mod:`.presets`: :class:`TransformConfig`, :data:`HISTORIES` and :func:`default_transforms`
 """
 
 from .._lazy import lazy_names
@@ -52,7 +52,8 @@ __all__ = [
     "TaskReward",
     "TransformConfig",
     "TransformSettings",
-    "PRESETS",
+    "RewardWeights",
+    "HISTORIES",
     "transform_config",
     "default_transforms",
 ]
@@ -66,7 +67,7 @@ __getattr__, __dir__ = lazy_names(globals(), {
     "orientation": ("BaseEulerAngles", "quat_rotation_angle", "quat_to_rpy"),
     "phase": ("PhaseEncoding",),
     "presets": ("default_transforms",),
-    "settings": ("PRESETS", "TransformConfig", "TransformSettings", "transform_config"),
+    "settings": ("HISTORIES", "RewardWeights", "TransformConfig", "TransformSettings", "transform_config"),
     "reward": ("TaskReward",),
     "reward_terms": ("REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern", "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm", "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
     "sensor_noise": ("SensorNoise",),

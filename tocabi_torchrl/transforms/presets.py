@@ -36,9 +36,9 @@ from tocabi_torchrl.transforms.reward import TaskReward
 from tocabi_torchrl.transforms.reward_terms import RewardTerm, reference_terms
 from tocabi_torchrl.transforms.sensor_noise import SensorNoise
 # The config (plain values) lives in a module without torch, for the config tree; this path names it too.
-from tocabi_torchrl.transforms.settings import PRESETS, TransformConfig, TransformSettings, transform_config
+from tocabi_torchrl.transforms.settings import HISTORIES, TransformConfig, TransformSettings, transform_config
 
-__all__ = ["TransformConfig", "TransformSettings", "PRESETS", "transform_config", "default_transforms"]
+__all__ = ["TransformConfig", "TransformSettings", "HISTORIES", "transform_config", "default_transforms"]
 
 
 def _normalization(cfg: TransformConfig) -> Transform | None:
@@ -64,12 +64,12 @@ def _reward_terms(cfg: TransformConfig) -> list[RewardTerm]:
     return [reference_terms((t,))[0] if isinstance(t, str) else t for t in cfg.reward_terms]
 
 
-def default_transforms(preset: str | TransformConfig = "reference", **overrides) -> Compose:
+def default_transforms(base: str | TransformConfig = "reference", /, **overrides) -> Compose:
     """Build the default ``Compose`` for :class:`~tocabi_torchrl.envs.TocabiWalk` signals (see the module doc).
 
     Args:
-        preset: ``"reference"`` (237-value input: 5 obs two steps apart + 4 actions), ``"tocabilab"`` (consecutive
-            history), or a :class:`TransformConfig`.
+        base: a history layout's name (:data:`HISTORIES`): ``"reference"`` (237-value input: 5 obs two steps
+            apart + 4 actions), ``"tocabilab"`` (consecutive history), or a :class:`TransformConfig`.
         **overrides: :class:`TransformConfig` fields, e.g. ``history=HistoryLayout(num_obs=3, stride=1)``,
             ``reward_weights={"qpos": 0.5}``, ``reward_terms=("qpos", "body_vel", my_term)``,
             ``normalization="running"``.
@@ -77,7 +77,7 @@ def default_transforms(preset: str | TransformConfig = "reference", **overrides)
     Returns:
         A fresh ``Compose`` (its history is stateful: use one per env).
     """
-    cfg = transform_config(preset, **overrides)
+    cfg = transform_config(base, **overrides)
     stages: list[Transform] = [
         PhaseEncoding("phase", ("phase_sin", "phase_cos"), harmonics=cfg.phase_harmonics),
         BaseEulerAngles("base_quat", "base_rpy"),

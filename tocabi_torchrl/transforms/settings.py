@@ -1,5 +1,5 @@
 """The transforms' configuration as plain values: :class:`TransformConfig` (everything
-:func:`~tocabi_torchrl.transforms.presets.default_transforms` builds), the named :data:`PRESETS`, and
+:func:`~tocabi_torchrl.transforms.presets.default_transforms` builds), the named :data:`HISTORIES`, and
 :class:`TransformSettings`, the transforms section of the run config tree.
 
 A module without torch, so that the config tree (and ``recipes/ppo_walk.py --help``) reads without loading it;
@@ -20,7 +20,8 @@ from tocabi_torchrl.transforms.layouts import (REFERENCE_HISTORY, REFERENCE_OBS_
 from tocabi_torchrl.transforms.sensor_noise_config import SensorNoiseConfig
 from tocabi_torchrl.tree import check_field_types
 
-__all__ = ["TransformConfig", "TransformSettings", "PRESETS", "transform_config", "REFERENCE_TERM_NAMES"]
+__all__ = ["TransformConfig", "TransformSettings", "RewardWeights", "HISTORIES", "transform_config",
+           "REFERENCE_TERM_NAMES"]
 
 _NORMALIZATIONS = ("fixed", "running", "none")
 #: The names of ``reward_terms.REFERENCE_TERMS`` (the reference's terms, in its order), here so that the config checks
@@ -97,7 +98,7 @@ class TransformConfig:
 
 #: ``reference``: the reference task (spec §7-8). ``tocabilab``: the same, with TocabiLab's consecutive history
 #: (last 5 observations, last 4 applied actions).
-PRESETS: Mapping[str, TransformConfig] = MappingProxyType(
+HISTORIES: Mapping[str, TransformConfig] = MappingProxyType(
     {
         "reference": TransformConfig(),
         "tocabilab": TransformConfig(history=TOCABILAB_HISTORY),
@@ -105,14 +106,17 @@ PRESETS: Mapping[str, TransformConfig] = MappingProxyType(
 )
 
 
-def transform_config(preset: str | TransformConfig = "reference", **overrides) -> TransformConfig:
-    """The preset's :class:`TransformConfig` with ``overrides`` (field names of :class:`TransformConfig`) applied."""
-    if isinstance(preset, TransformConfig):
-        base = preset
-    elif preset in PRESETS:
-        base = PRESETS[preset]
-    else:
-        raise KeyError(f"unknown transform preset {preset!r}; choose one of {list(PRESETS)} or pass a TransformConfig")
+def transform_config(base: str | TransformConfig = "reference", /, **overrides) -> TransformConfig:
+    """The :class:`TransformConfig` of ``base`` (the name of a history layout in :data:`HISTORIES`, or a
+    :class:`TransformConfig` to start from) with ``overrides`` (field names of :class:`TransformConfig`) applied."""
+    if isinstance(base, str):
+        if base not in HISTORIES:
+            raise KeyError(f"unknown transforms history layout {base!r}; choose one of {list(HISTORIES)} or pass a "
+                           f"TransformConfig")
+        base = HISTORIES[base]
+    elif not isinstance(base, TransformConfig):
+        raise TypeError(f"transform_config takes a history layout's name {list(HISTORIES)} or a TransformConfig, got "
+                        f"{base!r}")
     fields = {f.name for f in dataclasses.fields(TransformConfig)}
     unknown = sorted(set(overrides) - fields)
     if unknown:
@@ -121,50 +125,88 @@ def transform_config(preset: str | TransformConfig = "reference", **overrides) -
 
 
 @dataclass
+class RewardWeights:
+    """The weight of each of the 13 reference reward terms (``transforms.reward_weights``; on the command line
+    ``--transforms.reward_weights.body_vel 0.9``). ``None`` keeps the term's reference weight (in brackets below,
+    ``reward_terms.REFERENCE_TERMS``); a number replaces it. The default triples the velocity-tracking term."""
+
+    orientation: float | None = None
+    """neck orientation, weight · exp(-s·|θ_neck|) (reference 0.3); None: the reference weight"""
+    qpos: float | None = None
+    """joint positions against the reference walk (reference 0.35); None: the reference weight"""
+    qvel: float | None = None
+    """joint velocities, weight · exp(-s·‖q̇‖²) (reference 0.05); None: the reference weight"""
+    body_vel: float | None = 0.9
+    """pelvis velocity against the command (reference 0.3); None: the reference weight"""
+    contact_force: float | None = None
+    """foot contact forces (reference 0.1); None: the reference weight"""
+    torque: float | None = None
+    """leg torques (reference 0.05); None: the reference weight"""
+    torque_diff: float | None = None
+    """change of the leg torques between steps (reference 0.6); None: the reference weight"""
+    qacc: float | None = None
+    """joint accelerations (reference 0.05); None: the reference weight"""
+    foot_contact: float | None = None
+    """feet in contact when the reference walk has them so (reference 0.2); None: the reference weight"""
+    contact_force_diff: float | None = None
+    """change of the foot contact forces (reference 0.2); None: the reference weight"""
+    force_ref: float | None = None
+    """foot forces against the reference's (reference 0.2); None: the reference weight"""
+    force_threshold: float | None = None
+    """foot force over its threshold, a penalty (reference -0.08); None: the reference weight"""
+    force_diff_threshold: float | None = None
+    """foot force change over its threshold, a penalty (reference -0.05); None: the reference weight"""
+
+    def as_map(self) -> dict[str, float]:
+        """``{term: weight}`` of the terms given a weight (what :class:`TransformConfig` takes); raises
+        ``ValueError`` naming a weight that is not a finite number."""
+        weights = {}
+        for name in REFERENCE_TERM_NAMES:
+            value = getattr(self, name)
+            if value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"transforms.reward_weights.{name} must be a finite number (or None for the "
+                                 f"reference weight), got {value!r}")
+            weights[name] = float(value)
+        return weights
+
+
+@dataclass
 class TransformSettings:
     """The transforms section of the run config tree (``RunConfig.transforms``): the :class:`TransformConfig`
     choices that are plain values, so that they can be saved with a checkpoint and given on the command line.
 
-    Attributes:
-        preset: observation history layout, a name of :data:`PRESETS` (``"reference"`` or ``"tocabilab"``).
-        reward_weights: reward re-weighting as ``"term=weight"`` entries (``"body_vel=0.9"`` triples the
-            velocity-tracking term); empty = the reference weights.
-        normalization, obs_clip, zero_reward_on_terminated, compile_reward: as in :class:`TransformConfig`.
-        sensor_noise: sensor biases and noise on the observation (:class:`SensorNoiseConfig`; the default, all 0,
-            adds nothing; ``SensorNoiseConfig.tocabi_lab()``: the TOCABI lab's numbers).
+    The fields' docstrings are the command line's help (``recipes/ppo_walk.py --help``).
     """
 
-    preset: str = "reference"
-    reward_weights: tuple[str, ...] = ("body_vel=0.9",)
+    history: str = "reference"
+    """observation + action history layout: reference (5 observations every 2 steps, 4 actions) or tocabilab (the
+    last 5 observations and 4 actions)"""
+    reward_weights: RewardWeights = field(default_factory=RewardWeights)
+    """the weight of each reward term"""
     normalization: str = "fixed"
+    """observation normalisation: fixed (the reference statistics), running or none"""
     obs_clip: float | None = None
+    """clip of the normalised observation; None: no clip"""
     zero_reward_on_terminated: bool = True
+    """reward and terms are 0 on a terminating step"""
     compile_reward: bool = False
+    """torch.compile the reward terms (not with a captured env step)"""
     sensor_noise: SensorNoiseConfig = field(default_factory=SensorNoiseConfig)
+    """sensor biases and noise on the observation (all 0: none; SensorNoiseConfig.tocabi_lab(): the TOCABI lab's)"""
 
     def reward_weight_map(self) -> dict[str, float]:
-        """``reward_weights`` as ``{term: weight}``; raises ``ValueError`` naming a malformed or unknown entry."""
-        weights = {}
-        for entry in self.reward_weights:
-            name, sep, value = entry.partition("=")
-            try:
-                weight = float(value)
-            except ValueError:
-                weight = None
-            if not sep or weight is None:
-                raise ValueError(f"transforms.reward_weights entry {entry!r} must look like 'body_vel=0.9'")
-            if name not in REFERENCE_TERM_NAMES:
-                raise ValueError(f"transforms.reward_weights: unknown term {name!r}; known: {list(REFERENCE_TERM_NAMES)}")
-            if not math.isfinite(weight):
-                raise ValueError(f"transforms.reward_weights entry {entry!r}: a weight must be a finite number "
-                                 f"(e.g. '{name}=0.5'), not NaN or inf")
-            weights[name] = weight
-        return weights
+        """``reward_weights`` as ``{term: weight}`` of the terms given one; raises ``ValueError`` naming a bad one."""
+        if not isinstance(self.reward_weights, RewardWeights):
+            raise ValueError(f"transforms.reward_weights must be a RewardWeights (one weight per term, e.g. "
+                             f"RewardWeights(body_vel=0.9)), got {self.reward_weights!r}")
+        return self.reward_weights.as_map()
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad option and the accepted values."""
-        if self.preset not in PRESETS:
-            raise ValueError(f"unknown transforms.preset {self.preset!r}; choose one of {list(PRESETS)}")
+        if self.history not in HISTORIES:
+            raise ValueError(f"unknown transforms.history {self.history!r}; choose one of {list(HISTORIES)}")
         if self.normalization not in _NORMALIZATIONS:
             raise ValueError(f"transforms.normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
         self.reward_weight_map()
@@ -176,7 +218,7 @@ class TransformSettings:
     def transform_config(self, **overrides) -> TransformConfig:
         """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
         ``reward_weights`` given here re-weight the named terms on top of these settings' own weights (the
-        default's ``body_vel=0.9`` stays unless named). ``max_episode_steps`` is ``None`` unless overridden: the
+        default's ``body_vel`` 0.9 stays unless named). ``max_episode_steps`` is ``None`` unless overridden: the
         env is the truncation clock."""
         self.validate()
         weights = self.reward_weight_map()
@@ -186,4 +228,4 @@ class TransformSettings:
         values = dict(normalization=self.normalization, obs_clip=self.obs_clip,
                       zero_reward_on_terminated=self.zero_reward_on_terminated, compile_reward=self.compile_reward,
                       reward_weights=weights, max_episode_steps=None, sensor_noise=self.sensor_noise)
-        return transform_config(self.preset, **{**values, **overrides})
+        return transform_config(self.history, **{**values, **overrides})

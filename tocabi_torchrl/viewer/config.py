@@ -23,10 +23,15 @@ class ViewerConfig:
     """
 
     enabled: bool = False
+    """serve a live web page of a few training worlds while training (the viewer extra; docs/viewer.md)"""
     host: str = "127.0.0.1"
+    """address the page is served on (127.0.0.1: this machine, reach it via ssh -L; 0.0.0.0: every interface)"""
     port: int = 8080
+    """TCP port of the page"""
     worlds: int = 16
+    """training worlds shown (the first ones; at most 64)"""
     every: int = 8
+    """policy steps between two host copies of the shown worlds' body poses"""
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the bad option (by its path) and what it accepts."""
