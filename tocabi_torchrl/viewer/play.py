@@ -144,7 +144,10 @@ class LiveSession:
             now = time.perf_counter()
             if now >= next_frame:
                 self.draw()
-                next_frame = now + frame_s
+                # A fixed cadence: "now + frame_s" would add each loop's overshoot to every frame (27 fps, not 30).
+                next_frame += frame_s
+                if next_frame < now - frame_s:  # more than a frame behind (a slow machine): skip, never burst
+                    next_frame = now + frame_s
             if now >= next_metrics:
                 self.show_metrics()
                 next_metrics = now + metrics_every_s
