@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from . import (common, env_throughput, mjlab_peer, robust_policies, scaling, soak, time_to_walk, train_throughput,
-               viewer_overhead)
+               viewer_overhead, viewer_play)
 
 #: page under docs/benchmarks -> (its JSON file or results folder there, render(data or folder, out) -> markdown)
 REPORTS = {"env_throughput.md": ("env_throughput.json", env_throughput.render), "soak.md": ("soak.json", soak.render),
@@ -16,7 +16,8 @@ REPORTS = {"env_throughput.md": ("env_throughput.json", env_throughput.render), 
            "scaling.md": ("scaling", scaling.render), "time_to_walk.md": ("time_to_walk.json", time_to_walk.render),
            "mjlab_peer.md": ("mjlab_peer.json", mjlab_peer.render),
            "robust/robust_policies.md": ("robust/robust_policies.json", robust_policies.render),
-           "viewer_overhead/viewer_overhead.md": ("viewer_overhead/viewer_overhead.json", viewer_overhead.render)}
+           "viewer_overhead/viewer_overhead.md": ("viewer_overhead/viewer_overhead.json", viewer_overhead.render),
+           "viewer_overhead/viewer_play.md": ("viewer_overhead/viewer_play.json", viewer_play.render)}
 
 
 def regenerate(page: str, docs: Path = common.DOCS, out: Path = common.DOCS) -> str:

@@ -28,6 +28,7 @@ from lab.benchmarks import (
     step_timeline,
     time_to_walk,
     train_throughput,
+    viewer_play,
 )
 
 
@@ -38,7 +39,8 @@ def test_committed_report_regenerates_from_its_json(page, tmp_path):
     assert text == (common.DOCS / page).read_text(), f"{page} differs from what its JSON renders"
     # the throughput tables (ours, and the mjlab peer's) are the only pages without a figure
     assert bool(list(tmp_path.rglob("*.png"))) == (regenerate.REPORTS[page][1] not in (train_throughput.render,
-                                                                                      mjlab_peer.render))
+                                                                                      mjlab_peer.render,
+                                                                                      viewer_play.render))
 
 
 def test_unknown_override_is_named():
