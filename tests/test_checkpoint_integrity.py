@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import shlex
 import shutil
+import struct
 import time
 import zipfile
 from pathlib import Path
@@ -22,8 +23,21 @@ SHIPPED = POLICIES / "tocabi_walk_ppo.pt"
 pytestmark = pytest.mark.skipif(not SHIPPED.is_file(), reason="shipped policy not present")
 
 
-def flip_bits(source: Path, target: Path, start: int = 6059, stop: int = 8107) -> Path:
-    """``source`` copied to ``target`` with bit 0 of every 4th byte of ``[start, stop)`` flipped."""
+def first_tensor_span(path: Path, length: int = 2048) -> tuple[int, int]:
+    """Byte range of the start of the first tensor's data in the zip file ``path`` (member ``.../data/0``, the
+    actor's first weight, stored uncompressed), read from the member's local header."""
+    with zipfile.ZipFile(path) as z:
+        info = next(i for i in z.infolist() if i.filename.endswith("/data/0"))
+    raw = path.read_bytes()
+    name_len, extra_len = struct.unpack("<HH", raw[info.header_offset + 26:info.header_offset + 30])
+    start = info.header_offset + 30 + name_len + extra_len
+    return start, start + min(length, info.file_size)
+
+
+def flip_bits(source: Path, target: Path, span: tuple[int, int] | None = None) -> Path:
+    """``source`` copied to ``target`` with bit 0 of every 4th byte of ``span`` (default: the first tensor's data,
+    :func:`first_tensor_span`) flipped."""
+    start, stop = span or first_tensor_span(source)
     data = bytearray(source.read_bytes())
     for offset in range(start, stop, 4):
         data[offset] ^= 1
@@ -92,7 +106,7 @@ def test_a_library_policy_file_with_flipped_bits_is_refused(tmp_path):
 
     path = save_policy(tmp_path / "policy.pt", "sb3", {"w": torch.arange(4096, dtype=torch.float32)}, {"n": 1})
     entry = max(zipfile.ZipFile(path).infolist(), key=lambda info: info.file_size)  # the tensor's data
-    damaged = flip_bits(path, tmp_path / "damaged.pt", entry.header_offset + 200, entry.header_offset + 300)
+    damaged = flip_bits(path, tmp_path / "damaged.pt", (entry.header_offset + 200, entry.header_offset + 300))
     assert load_policy(path, "sb3")[1]["w"].equal(torch.arange(4096, dtype=torch.float32))
     with pytest.raises(PolicyFileError, match=rf"{damaged} is damaged: entry .* fails its CRC-32 check"):
         load_policy(damaged, "sb3")

@@ -326,7 +326,7 @@ def run_child(module: str, args: Sequence[str], env: dict | None = None, nproc: 
     error carrying the output's tail."""
     launch = [] if nproc is None else ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)]
     cmd = [sys.executable, *launch, "-m", f"lab.benchmarks.{module}", "--child", *args]
-    proc = subprocess.run(cmd, capture_output=True, text=True, check=False, cwd=DOCS.parents[2],
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=False, cwd=DOCS.parents[1],  # the repository root: lab/ is importable from there
                           env={**os.environ, **(env or {})})
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
     if proc.returncode != 0 or not lines:
