@@ -5,7 +5,7 @@ set -uo pipefail
 log=${LOG_DIR:-/tmp}
 for part in "${@:-all}"; do
   case $part in
-    tests|all) python3 -m pytest -q -m gpu -p no:cacheprovider tests 2>&1 | tee "$log/gpu_tests.log" | tail -25 ;;&
+    tests|all) python3 -m pytest -q -m gpu -n 0 -p no:cacheprovider tests 2>&1 | tee "$log/gpu_tests.log" | tail -25 ;;&
     env|all) python3 -m lab.benchmarks.env_throughput --num_envs 1024 4096 16384 2>&1 | tee "$log/env.log" | tail -12 ;;&
     train|all) python3 -m lab.benchmarks.train_throughput --num_envs 4096 16384 2>&1 | tee "$log/train.log" | tail -8 ;;&
     graph) python3 -m lab.benchmarks.train_throughput --set ppo.cuda_graph=on --name train_throughput_graph 2>&1 | tail -8 ;;
