@@ -34,6 +34,7 @@ def test_the_robust_preset_builds_an_env_with_everything_on_and_steps_it():
     cfg = preset_config("robust", device="cpu", **{"env.num_envs": 4, "ppo.minibatch_size": 64})
     assert cfg.env.control.mode == "torque" and cfg.ppo.torque_assist == 1.0  # the torque preset's training
     assert cfg.env.pushes.count > 0 and cfg.ppo.push_ramp[1] > cfg.ppo.push_ramp[0] > 0
+    assert cfg.eval_test == "robust" and cfg.eval_envs == 1024  # its verdict is the robust gait test, at full size
     env = build_env(cfg, torch.device("cpu"), for_training=True)
     base = env.base_env
     assert len(base.leg_actuators) == 3 and base.dynamics is not None and base.pushes is not None

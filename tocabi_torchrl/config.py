@@ -474,6 +474,8 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "env.pushes": PushConfig(count=4, window=(1.0, 31.0), speed=(0.3, 1.2), duration=(0.004, 0.2)),
         "ppo.push_ramp": (60_000_000, 120_000_000),
         "env.task.start_joint_vel_std": 0.5, "env.task.start_base_vel_std": 0.1,
+        # Its verdict at the end of training: the robust gait test at its own size (1,024 robots per case).
+        "eval_test": "robust", "eval_envs": 1024,
     }),
     "cpu_smoke": MappingProxyType({
         "env.num_envs": 8, "ppo.steps_per_env": 16, "ppo.minibatch_size": 64, "ppo.epochs": 2,
