@@ -263,7 +263,8 @@ def test_a_library_recipe_reports_its_used_budget(tmp_path):
     pytest.importorskip("rsl_rl")
     table = load_recipe("library_table")
     args = ["--libraries", "rsl_rl", "--num_envs", "2", "--device", "cpu", "--max_minutes", "1", "--checkpoint_minutes",
-            "1", "--recipe_args", "--steps_per_env 4 --hidden 16 --iterations 1", *files(tmp_path)]
+            "1", "--eval_envs", "2", "--eval_seconds", "0.5", "--recipe_args",
+            "--steps_per_env 4 --hidden 16 --iterations 1", *files(tmp_path)]
     table.main(args)
     [row] = rows(tmp_path)
     assert row["status"] == "final" and row["recipe_budget_done"] and row["calls"] == 1
