@@ -100,11 +100,17 @@ def test_the_page_shows_robots_and_its_slider_and_push_reach_the_env(tmp_path):
                 page.wait_for_selector("canvas", timeout=60_000)
                 _wait(lambda: len(session.server.get_clients()) == 1, 30, "the page to connect")
                 page.get_by_role("button", name="push", exact=True).wait_for(timeout=30_000)
-                time.sleep(4.0)  # the first frames: meshes uploaded, software WebGL draws
-                for toast in page.locator(".mantine-Notification-closeButton").all():
-                    toast.click()  # the "software WebGL" notice covers the scene's corner
-                shown = _screenshot(page, shots / "viewer_live.png")
-                scene_area = shown[160:760, :860]  # left of the control panel, below the notice
+                # The first frames: meshes uploaded, then software WebGL draws them, slowly on a loaded machine.
+                # Wait for the robots to appear (or a minute and a half), not for a fixed time.
+                deadline = time.monotonic() + 90.0
+                while True:
+                    for toast in page.locator(".mantine-Notification-closeButton").all():
+                        toast.click()  # the "software WebGL" notice covers the scene's corner
+                    shown = _screenshot(page, shots / "viewer_live.png")
+                    scene_area = shown[160:760, :860]  # left of the control panel, below the notice
+                    if _robot_pixels(scene_area) > 800 or time.monotonic() > deadline:
+                        break
+                    time.sleep(1.0)
                 # The same view with the robots hidden: what the ground and the sky alone look like.
                 for handle in session.scene.handles:
                     handle.visible = False
