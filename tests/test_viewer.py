@@ -85,9 +85,9 @@ def test_the_page_shows_robots_and_its_slider_and_push_reach_the_env(tmp_path):
     server.start()
     try:
         _wait(lambda: started, 120, "the viewer to load the policy and serve its page")
-        session = started[0]
-        assert session.sim.__class__.__name__ == "MujocoSim", "the CPU backend (C MuJoCo) was asked for"
-        url = f"http://127.0.0.1:{session.server.get_port()}"
+        live = started[0]
+        assert live.sim.__class__.__name__ == "MujocoSim", "the CPU backend (C MuJoCo) was asked for"
+        url = f"http://127.0.0.1:{live.server.get_port()}"
         shots = Path(os.environ.get("TOCABI_VIEWER_SHOTS", tmp_path))
         shots.mkdir(parents=True, exist_ok=True)
         with sync_api.sync_playwright() as p:
@@ -98,7 +98,7 @@ def test_the_page_shows_robots_and_its_slider_and_push_reach_the_env(tmp_path):
                 page = browser.new_page(viewport={"width": 1280, "height": 800})
                 page.goto(url)
                 page.wait_for_selector("canvas", timeout=60_000)
-                _wait(lambda: len(session.server.get_clients()) == 1, 30, "the page to connect")
+                _wait(lambda: len(live.server.get_clients()) == 1, 30, "the page to connect")
                 page.get_by_role("button", name="push", exact=True).wait_for(timeout=30_000)
                 # The first frames: meshes uploaded, then software WebGL draws them, slowly on a loaded machine.
                 # Wait for the robots to appear (or a minute and a half), not for a fixed time.
@@ -112,19 +112,19 @@ def test_the_page_shows_robots_and_its_slider_and_push_reach_the_env(tmp_path):
                         break
                     time.sleep(1.0)
                 # The same view with the robots hidden: what the ground and the sky alone look like.
-                for handle in session.scene.handles:
+                for handle in live.scene.handles:
                     handle.visible = False
                 time.sleep(1.5)
                 empty = _screenshot(page, tmp_path / "viewer_no_robots.png")[160:760, :860]
-                for handle in session.scene.handles:
+                for handle in live.scene.handles:
                     handle.visible = True
                 with_robots, without = _robot_pixels(scene_area), _robot_pixels(empty)
                 assert with_robots > 800 and without < with_robots / 20, (
                     f"robot-coloured pixels: {with_robots} with the robots, {without} without them")
-                assert len(session.scene.handles) == len(session.scene.meshes) > 10  # one batched mesh per body
+                assert len(live.scene.handles) == len(live.scene.meshes) > 10  # one batched mesh per body
 
                 # The vx slider: keyboard on its thumb, as a user's arrows move it; the env's command follows.
-                base = session.base
+                base = live.base
                 before = base.command.value.clone()
                 label = page.locator("label", has_text="vx [m/")
                 thumb = page.locator(f"[id='{label.get_attribute('for')}'] [role=slider]")
@@ -139,19 +139,19 @@ def test_the_page_shows_robots_and_its_slider_and_push_reach_the_env(tmp_path):
 
                 # Pause (so only the push moves anything), then push robot 0 along +y and take one step.
                 page.locator("label", has_text="pause").click()
-                _wait(lambda: session.controls.paused, 20, "the pause checkbox")
+                _wait(lambda: live.controls.paused, 20, "the pause checkbox")
                 time.sleep(0.3)
-                vel_before = session.sim.qvel[:, :2].clone()
-                steps = session.steps
+                vel_before = live.sim.qvel[:, :2].clone()
+                steps = live.steps
                 page.get_by_role("button", name="push", exact=True).click()
-                _wait(lambda: (session.sim.qvel[0, 1] - vel_before[0, 1]).abs() > 0.4, 20,
+                _wait(lambda: (live.sim.qvel[0, 1] - vel_before[0, 1]).abs() > 0.4, 20,
                       "robot 0's lateral velocity to jump")
-                kick = session.sim.qvel[:, :2] - vel_before
+                kick = live.sim.qvel[:, :2] - vel_before
                 assert torch.allclose(kick[0], torch.tensor([0.0, 0.5]), atol=1e-4), kick  # 0.5 m/s at 90 degrees
                 assert kick[1:].abs().max() == 0, "only the selected robot is pushed"
                 page.get_by_role("button", name="step", exact=True).click()
-                _wait(lambda: session.steps == steps + 1, 20, "one single step")
-                after = session.sim.qvel[:, 1] - vel_before[:, 1]
+                _wait(lambda: live.steps == steps + 1, 20, "one single step")
+                after = live.sim.qvel[:, 1] - vel_before[:, 1]
                 assert after[0] > 0.3 and after[1:].abs().max() < 0.2, after  # the kick survives the step
                 _screenshot(page, shots / "viewer_pushed.png")
             finally:

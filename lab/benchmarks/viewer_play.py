@@ -38,16 +38,16 @@ def measure(n: int, seconds: float, device: str, backend: str | None) -> dict:
             time.sleep(0.5)
         if not started:
             raise RuntimeError("the page did not come up")
-        session = started[0]
+        live = started[0]
         time.sleep(3.0)  # past the first steps (CUDA graph capture)
-        steps0, frames0, t0 = session.total_steps, session.frames, time.monotonic()
+        steps0, frames0, t0 = live.total_steps, live.frames, time.monotonic()
         time.sleep(seconds)
         elapsed = time.monotonic() - t0
-        steps, frames = session.total_steps - steps0, session.frames - frames0
+        steps, frames = live.total_steps - steps0, live.frames - frames0
     finally:
         stop.set()
         thread.join(timeout=30)
-    real_time = 1.0 / session.dt
+    real_time = 1.0 / live.dt
     return {"num_envs": n, "backend": backend or "auto", "seconds": elapsed, "frames_per_s": frames / elapsed,
             "policy_steps_per_s": steps / elapsed, "real_time_steps_per_s": real_time,
             "real_time_fraction": steps / elapsed / real_time}

@@ -23,13 +23,13 @@ from .geometry import body_meshes
 from .overlays import GAIT_ROWS, KneeTrace, MetricsPanel
 from .scene import RobotScene, follow
 
-__all__ = ["LiveSession", "MAX_SHOWN"]
+__all__ = ["LivePage", "MAX_SHOWN"]
 
 #: The most robots drawn on the page (the first worlds); the env may simulate more.
 MAX_SHOWN = 256
 
 
-class LiveSession:
+class LivePage:
     """A policy, its env and the page that shows them.
 
     Args:
@@ -172,7 +172,7 @@ def serve_policy(path, num_envs: int = 64, device: str = "auto", host: str = "12
                  stop: threading.Event | None = None, ready=None) -> None:
     """Load the checkpoint or run folder ``path`` with ``num_envs`` worlds and serve its live page on ``host``:
     ``port`` until Ctrl-C (or ``stop``). Prints the URL. ``backend`` replaces the checkpoint's ``env.sim.backend``
-    (``"mujoco"``: C MuJoCo on the CPU). ``ready``: called with the :class:`LiveSession` once the page is up."""
+    (``"mujoco"``: C MuJoCo on the CPU). ``ready``: called with the :class:`LivePage` once the page is up."""
     from ..evaluation.record import load_policy
     from ..rl.trainer import resolve_device
     from .extra import require_viser
@@ -182,13 +182,13 @@ def serve_policy(path, num_envs: int = 64, device: str = "auto", host: str = "12
     policy = load_policy(path, num_envs, resolve_device(device), command=command, backend=backend)
     server = start_server(host, port)
     try:
-        session = LiveSession(policy.env, policy.actor, server, command=command)
+        live = LivePage(policy.env, policy.actor, server, command=command)
         print(f"viewer: {policy.path} with {num_envs} robots on {policy.env.device} "
               f"({policy.cfg.env.sim.backend} backend); open {page_url(host, server.get_port())} "
               "(Ctrl-C stops)", flush=True)
         if ready is not None:
-            ready(session)
-        session.run(stop)
+            ready(live)
+        live.run(stop)
     except KeyboardInterrupt:
         print("viewer stopped")
     finally:
