@@ -259,3 +259,30 @@ def test_reward_weights_have_one_field_per_term_whose_help_gives_its_reference_w
     assert RewardWeights().as_map() == {"body_vel": 0.9}  # the default preset's tripled velocity term
     with pytest.raises(ValueError, match=r"transforms.reward_weights.qpos must be a finite number"):
         RewardWeights(qpos=float("inf")).as_map()
+
+
+def test_a_reward_scale_sharpens_its_term_and_bad_scales_are_named():
+    from tocabi_torchrl.transforms.reward_terms import BodyVelTracking
+    from tocabi_torchrl.transforms.settings import TransformSettings
+
+    env = _env(reward_scales={"body_vel": 8.0})
+    ro = env.rollout(3)
+    nxt = ro["next"]
+    err = (nxt["base_lin_vel"][..., :2] - nxt["command"]).square().sum(-1, keepdim=True)
+    torch.testing.assert_close(nxt["reward_terms", "body_vel"], 0.3 * torch.exp(-8.0 * err))
+    torch.testing.assert_close(nxt["reward_terms", "body_vel"],
+                               BodyVelTracking(scale=8.0)(ro.exclude("next"), nxt))
+    assert BodyVelTracking().scale == 3.0  # the default term is not changed by a config that sharpens a copy
+    # The run config's field: None is the reference's kernel, a number sharpens it.
+    assert TransformSettings().transform_config().reward_scales == {}
+    assert TransformSettings(body_vel_scale=8.0).transform_config().reward_scales == {"body_vel": 8.0}
+    for bad in (0.0, -1.0, float("inf"), "8", True):
+        with pytest.raises(ValueError, match="transforms.body_vel_scale must be a finite number > 0"):
+            TransformSettings(body_vel_scale=bad).validate()
+    with pytest.raises(ValueError, match=r"reward_scales\['body_vel'\] must be a finite number > 0"):
+        transform_config(reward_scales={"body_vel": float("nan")})
+    with pytest.raises(KeyError, match=r"reward_scales given for term\(s\) \['qpoz'\] that are not in use"):
+        default_transforms(reward_scales={"qpoz": 2.0})
+    with pytest.raises(ValueError, match="has no kernel scale"):
+        default_transforms(reward_terms=("qpos", CallableTerm("alive", lambda td, n: n["reward"])),
+                           reward_scales={"alive": 2.0})

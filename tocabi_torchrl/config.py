@@ -466,11 +466,14 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # constant, 2-10 ms torque delay, link masses, joint damping, armature, sensor biases and encoder noise, drawn per
     # world at every reset), diverse starts (the robust gait test's start velocities) and pushes: four kicks per
     # 32 s episode of 0.3-1.2 m/s (31-125 N·s) over 4-200 ms, ramped in from 60 M to 120 M env steps, once the
-    # assisted policy walks and while the assist fades into pure torques (50 M to 110 M). Verdict: the robust gait
-    # test (evaluation/robust.py).
+    # assisted policy walks and while the assist fades into pure torques (50 M to 110 M). For the test's changing
+    # commands, a command every 2 s (the test's rate; the default draws one per 8 s) and a sharper velocity-tracking
+    # kernel (exp(-8·‖v − cmd‖²), the reference's 3 barely pays for the last 0.1 m/s: the shipped policies walk at
+    # 0.36-0.42 m/s when asked for 0.5). Verdict: the robust gait test (evaluation/robust.py).
     "robust": MappingProxyType({
         **_TORQUE,
         **tocabi_lab_paths(),
+        "env.command.resample_every": 500, "transforms.body_vel_scale": 8.0,
         "env.pushes": PushConfig(count=4, window=(1.0, 31.0), speed=(0.3, 1.2), duration=(0.004, 0.2)),
         "ppo.push_ramp": (60_000_000, 120_000_000),
         "env.task.start_joint_vel_std": 0.5, "env.task.start_base_vel_std": 0.1,

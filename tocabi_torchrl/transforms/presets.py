@@ -20,6 +20,8 @@ Every stage is an ordinary TorchRL transform: build your own ``Compose`` from th
 
 from __future__ import annotations
 
+import copy
+
 from torchrl.envs.transforms import Compose, RewardSum, StepCounter, Transform
 
 from tocabi_torchrl.transforms.history import ObsActionHistory
@@ -61,7 +63,20 @@ def _normalization(cfg: TransformConfig) -> Transform | None:
 
 
 def _reward_terms(cfg: TransformConfig) -> list[RewardTerm]:
-    return [reference_terms((t,))[0] if isinstance(t, str) else t for t in cfg.reward_terms]
+    """The terms of ``cfg``, each with its ``reward_scales`` entry as its kernel's ``scale`` (a copy: a term instance
+    the caller passed is not changed)."""
+    terms = [reference_terms((t,))[0] if isinstance(t, str) else t for t in cfg.reward_terms]
+    names = [getattr(t, "name", getattr(t, "__name__", None)) for t in terms]
+    unknown = sorted(set(cfg.reward_scales) - set(names))
+    if unknown:
+        raise KeyError(f"reward_scales given for term(s) {unknown} that are not in use; terms: {names}")
+    for i, name in enumerate(names):
+        if name in cfg.reward_scales:
+            if not hasattr(terms[i], "scale"):
+                raise ValueError(f"reward_scales[{name!r}]: the term {terms[i]!r} has no kernel scale to set")
+            terms[i] = copy.copy(terms[i])
+            terms[i].scale = float(cfg.reward_scales[name])
+    return terms
 
 
 def default_transforms(base: str | TransformConfig = "reference", /, **overrides) -> Compose:

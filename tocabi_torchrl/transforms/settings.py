@@ -44,6 +44,8 @@ class TransformConfig:
         history: observation + action history layout (:data:`REFERENCE_HISTORY`: 5 obs every 2 steps + 4 actions).
         reward_terms: term names from :data:`REFERENCE_TERM_NAMES` and/or :class:`RewardTerm` instances / callables.
         reward_weights: ``{term name: weight}`` overrides.
+        reward_scales: ``{term name: scale}`` overrides of a term's kernel sharpness (its ``scale`` field, e.g.
+            ``{"body_vel": 8.0}`` for ``exp(-8·‖v - cmd‖²)``); each must be a finite number > 0.
         zero_reward_on_terminated: reward and terms are 0 on a terminating step (reference: on).
         compile_reward: ``torch.compile`` the reward terms into fused kernels (first step compiles).
         max_episode_steps: ``StepCounter`` truncation at this many steps, on top of the env's own; ``None`` (the
@@ -61,6 +63,7 @@ class TransformConfig:
     history: HistoryLayout = REFERENCE_HISTORY
     reward_terms: tuple = REFERENCE_TERM_NAMES
     reward_weights: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    reward_scales: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
     zero_reward_on_terminated: bool = True
     compile_reward: bool = False
     # None, not the env's default 8000: a fixed limit here would cut an env configured for longer episodes.
@@ -71,6 +74,7 @@ class TransformConfig:
     def __post_init__(self):
         # Frozen copies, so that a preset cannot be changed through a config built from it.
         object.__setattr__(self, "reward_weights", MappingProxyType(dict(self.reward_weights)))
+        object.__setattr__(self, "reward_scales", MappingProxyType(dict(self.reward_scales)))
         object.__setattr__(self, "reward_terms", tuple(self.reward_terms))
         object.__setattr__(self, "obs_layout", tuple(self.obs_layout))
         for name in ("obs_mean", "obs_var"):
@@ -94,6 +98,10 @@ class TransformConfig:
                     f"unknown reward term {t!r}; known terms: {list(REFERENCE_TERM_NAMES)} "
                     "(pass a RewardTerm instance or a callable for your own term)"
                 )
+        for name, scale in self.reward_scales.items():
+            if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 < scale < math.inf:
+                raise ValueError(f"reward_scales[{name!r}] must be a finite number > 0 (the term's kernel scale), "
+                                 f"got {scale!r}")
 
 
 #: ``reference``: the reference task (spec §7-8). ``tocabilab``: the same, with TocabiLab's consecutive history
@@ -195,6 +203,9 @@ class TransformSettings:
     """torch.compile the reward terms (not with a captured env step)"""
     sensor_noise: SensorNoiseConfig = field(default_factory=SensorNoiseConfig)
     """sensor biases and noise on the observation (all 0: none; SensorNoiseConfig.tocabi_lab(): the TOCABI lab's)"""
+    body_vel_scale: float | None = None
+    """sharpness s of the velocity-tracking term body_vel, weight·exp(-s·‖v − cmd‖²) [s²/m²] (reference 3.0: a
+    0.1 m/s error then costs 3 % of the term); None: the reference's"""
 
     def reward_weight_map(self) -> dict[str, float]:
         """``reward_weights`` as ``{term: weight}`` of the terms given one; raises ``ValueError`` naming a bad one."""
@@ -214,6 +225,10 @@ class TransformSettings:
             raise ValueError(f"transforms.obs_clip must be a finite number > 0 (the normalised observation is clipped "
                              f"to [-obs_clip, obs_clip]) or none for no clip, got {self.obs_clip!r}")
         self.sensor_noise.validate()
+        if self.body_vel_scale is not None and (isinstance(self.body_vel_scale, bool) or not isinstance(
+                self.body_vel_scale, (int, float)) or not 0 < self.body_vel_scale < math.inf):
+            raise ValueError(f"transforms.body_vel_scale must be a finite number > 0 (s in exp(-s·‖v − cmd‖²), "
+                             f"s²/m²) or none for the reference's 3.0, got {self.body_vel_scale!r}")
 
     def transform_config(self, **overrides) -> TransformConfig:
         """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
@@ -227,5 +242,6 @@ class TransformSettings:
             weights.update(overrides.pop("reward_weights"))
         values = dict(normalization=self.normalization, obs_clip=self.obs_clip,
                       zero_reward_on_terminated=self.zero_reward_on_terminated, compile_reward=self.compile_reward,
-                      reward_weights=weights, max_episode_steps=None, sensor_noise=self.sensor_noise)
+                      reward_weights=weights, max_episode_steps=None, sensor_noise=self.sensor_noise,
+                      reward_scales={} if self.body_vel_scale is None else {"body_vel": float(self.body_vel_scale)})
         return transform_config(self.history, **{**values, **overrides})
