@@ -173,11 +173,13 @@ presets = sorted(PRESETS)  # the names config() takes, for the scripts' --preset
 
 
 def run_config(n: int, iterations: int, overrides: dict, run_dir: str, name: str, device: str, ranks: int = 1):
-    """The default preset as the throughput benchmarks train it: ``n`` envs per rank for ``iterations`` PPO
-    iterations in all (``ranks`` ranks), a mini-batch of at most a quarter of a rollout, every iteration logged, no
-    checkpoint, progress bar or closing evaluation; ``overrides`` (dotted paths) on top."""
-    steps = overrides.get("ppo.steps_per_env", config("default").ppo.steps_per_env)
-    return config("default", **{"ppo.minibatch_size": min(49152, n * steps // 4), **overrides, "env.num_envs": n,
+    """A preset (``overrides["preset"]``, default ``"default"``) as the throughput benchmarks train it: ``n`` envs per
+    rank for ``iterations`` PPO iterations in all (``ranks`` ranks), a mini-batch of at most a quarter of a rollout,
+    every iteration logged, no checkpoint, progress bar or closing evaluation; ``overrides`` (dotted paths) on top."""
+    overrides = dict(overrides)
+    preset = overrides.pop("preset", "default")
+    steps = overrides.get("ppo.steps_per_env", config(preset).ppo.steps_per_env)
+    return config(preset, **{"ppo.minibatch_size": min(49152, n * steps // 4), **overrides, "env.num_envs": n,
                                 "total_env_steps": iterations * n * steps * ranks, "run_dir": run_dir, "name": name,
                                 "checkpoint_every": 10**9, "progress_bar": False, "eval_at_end": False,
                                 "log_every": 1, "device": device})
@@ -283,7 +285,8 @@ def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Call
                         help=f"raw mujoco-warp policy steps measured (>= {min_raw_steps}"
                              + ("; 0 skips them)" if min_raw_steps == 0 else ")"))
     parser.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE",
-                        help="config overrides (ablations): dotted paths, e.g. ppo.cuda_graph=off")
+                        help="config overrides (ablations): dotted paths, e.g. ppo.cuda_graph=off; preset=NAME "
+                             "measures that training preset (default: default)")
     parser.add_argument("--device", default="cuda", help=device_help)
     parser.add_argument("--run_dir", default=f"/tmp/tocabi_bench_runs/{name}")
     parser.add_argument("--out", default=str(DOCS))

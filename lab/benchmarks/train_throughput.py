@@ -100,7 +100,8 @@ def main(argv=None) -> None:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
     parser.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE",
-                        help="config overrides (ablations): dotted paths, e.g. ppo.cuda_graph=off")
+                        help="config overrides (ablations): dotted paths, e.g. ppo.cuda_graph=off; preset=NAME "
+                             "measures that training preset (default: default)")
     parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run of the script")
     parser.add_argument("--run_dir", default="/tmp/tocabi_bench_runs", help="scratch folder of the training runs")
     parser.add_argument("--out", default=str(common.DOCS))
