@@ -28,7 +28,7 @@ import math
 import sys
 from pathlib import Path
 
-from tocabi_torchrl.cli import RecipeParser
+from tocabi_torchrl.cli import RecipeParser, add_viewer_options
 from tocabi_torchrl.render_gl import choose_gl_backend_or_exit
 
 #: (option, type, default, description): the command line, defaults shown once by build_parser.
@@ -62,12 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--overwrite", action="store_true",
                         help="write into an --out folder that holds files (files of the same name are replaced, "
                              "others stay) (default: refuse)")
-    parser.add_argument("--viewer", action="store_true",
-                        help="serve a live web page of the robots instead of the gait test (pip install -e "
-                             "\".[viewer]\"; 64 robots unless --num_envs) (default: off)")
-    parser.add_argument("--viewer_host", default="127.0.0.1",
-                        help="address the page is served on; 0.0.0.0 for every interface (default: 127.0.0.1)")
-    parser.add_argument("--viewer_port", type=int, default=8080, help="TCP port of the page (default: 8080)")
+    add_viewer_options(parser, "serve a live web page of the robots instead of the gait test (pip install -e "
+                               "\".[viewer]\"; 64 robots unless --num_envs)")
     parser.add_argument("--backend", choices=("warp", "mujoco"), default=None,
                         help="--viewer: the physics backend, replacing the checkpoint's (mujoco: C MuJoCo on the CPU) "
                              "(default: the checkpoint's)")

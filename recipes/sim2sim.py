@@ -27,7 +27,7 @@ import math
 import sys
 from pathlib import Path
 
-from tocabi_torchrl.cli import RecipeParser
+from tocabi_torchrl.cli import RecipeParser, add_viewer_options
 
 REFERENCE_MODEL = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "dyros_tocabi.xml"
 
@@ -51,12 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--start_noise", action="store_true",
                         help="start with N(0, 0.5 rad/s) joint and N(0, 0.1 m/s) pelvis velocities (robust gait test)")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random draw (default: 0)")
-    parser.add_argument("--viewer", action="store_true",
-                        help="watch the robots live in a browser while they run, in real time (pip install -e "
-                             "\".[viewer]\"; docs/viewer.md) (default: off)")
-    parser.add_argument("--viewer_host", default="127.0.0.1",
-                        help="address the page is served on; 0.0.0.0 for every interface (default: 127.0.0.1)")
-    parser.add_argument("--viewer_port", type=int, default=8080, help="TCP port of the page (default: 8080)")
+    add_viewer_options(parser, "watch the robots live in a browser while they run, in real time (pip install -e "
+                               "\".[viewer]\"; docs/viewer.md)")
     return parser
 
 

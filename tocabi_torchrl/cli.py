@@ -13,7 +13,7 @@ import os
 import sys
 from collections.abc import Iterable, Sequence
 
-__all__ = ["RecipeParser", "base_parser", "hidden_sizes", "suggest_options"]
+__all__ = ["RecipeParser", "add_viewer_options", "base_parser", "hidden_sizes", "suggest_options"]
 
 
 def suggest_options(given: str, known: Iterable[str], limit: int = 2) -> list[str]:
@@ -83,6 +83,19 @@ def base_parser(description: str, num_envs: int, iterations: int) -> argparse.Ar
     parser.add_argument("--eval_envs", type=int, default=256, help="robots in the final 8 s gait test (0 = skip it)")
     parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
     return parser
+
+
+def add_viewer_options(parser: argparse.ArgumentParser, viewer_help: str) -> None:
+    """``--viewer`` (its help: ``viewer_help``), ``--viewer_host`` and ``--viewer_port`` on ``parser``, with the
+    defaults of the run config's viewer section (:class:`~tocabi_torchrl.viewer.config.ViewerConfig`, torch-free)."""
+    from .viewer.config import ViewerConfig
+
+    page = ViewerConfig()
+    parser.add_argument("--viewer", action="store_true", help=f"{viewer_help} (default: off)")
+    parser.add_argument("--viewer_host", default=page.host,
+                        help=f"address the page is served on; 0.0.0.0 for every interface (default: {page.host})")
+    parser.add_argument("--viewer_port", type=int, default=page.port,
+                        help=f"TCP port of the page (default: {page.port})")
 
 
 def hidden_sizes(text: str) -> tuple[int, ...]:
