@@ -332,6 +332,30 @@ def test_the_loss_sees_the_doubled_mirrored_batch():
         torch.testing.assert_close(seen[key][16:], td[key], rtol=0, atol=0)
 
 
+def test_the_logged_kl_and_clip_fraction_are_the_original_halfs():
+    """The KL-adaptive learning rate reads kl_approx: it is the original frames' (as in rsl_rl), not the mirrored
+    frames', whose ratio measures the policy's asymmetry. Old log-probs = the current policy's: their KL is 0, while
+    the whole doubled batch's is not (an untrained policy is not symmetric)."""
+    from torchrl.objectives import ClipPPOLoss
+
+    from tocabi_torchrl.rl.trainer import build_agent
+
+    torch.manual_seed(0)
+    agent = build_agent(preset_config("cpu_smoke"), 237, 13, torch.device("cpu"))
+    inner = ClipPPOLoss(agent.actor, agent.critic, clip_epsilon=0.2, normalize_advantage=True)
+    inner.set_keys(sample_log_prob="action_log_prob")
+    loss = SymmetryAugmentLoss(inner, PolicyInputMirror(), SignedPermutation(*action_mirror_map()))
+    td = _batch(64, torch.Generator().manual_seed(6))
+    with torch.no_grad():
+        td["action_log_prob"] = agent.actor.get_dist(td.select("observation")).log_prob(td["action"])
+        out = loss(td)
+        doubled = torch.cat([td, loss.mirror_batch(td)], dim=0)
+        whole = inner(doubled)
+    assert abs(float(out["kl_approx"])) < 1e-5 and float(out["clip_fraction"]) == 0.0
+    assert abs(float(whole["kl_approx"])) > 1e-3 and float(whole["clip_fraction"]) > 0.0
+    torch.testing.assert_close(out["loss_objective"], whole["loss_objective"])
+
+
 def test_a_key_without_a_mirror_rule_is_refused():
     g = torch.Generator().manual_seed(3)
     loss = SymmetryAugmentLoss(_Spy(), PolicyInputMirror(), SignedPermutation(*action_mirror_map()))

@@ -248,6 +248,12 @@ class SymmetryAugmentLoss(nn.Module):
     signal in the batch is not silently left unmirrored. The batch size is fixed (2B), so a captured update step
     stays valid.
 
+    The logged ``kl_approx`` and ``clip_fraction`` are those of the original half, as in rsl_rl: the mirrored half's
+    log-ratio compares the new policy's mirrored action with the old policy's original one, which differ as long as
+    the policy is not symmetric, and counting them would move the KL-adaptive learning rate for that reason. They
+    are read from ``ClipPPOLoss._log_weight`` (TorchRL 0.14's per-frame log-ratio), wrapped on the instance; a loss
+    without it keeps its own values.
+
     Args:
         ppo_loss: the PPO loss (``ClipPPOLoss``); ``in_keys`` is its own.
         obs_mirror: :class:`PolicyInputMirror` of the policy input.
@@ -262,6 +268,16 @@ class SymmetryAugmentLoss(nn.Module):
         self.register_buffer("_scale_perm", p.clone())
         self.register_buffer("_leg_perm", p[: robot.NUM_LEG_JOINTS].clone())
         self.register_buffer("_leg_sign", action_mirror.sign[: robot.NUM_LEG_JOINTS].clone())
+        self._last_log_weight = None
+        if hasattr(ppo_loss, "_log_weight") and hasattr(ppo_loss, "_clip_bounds"):
+            log_weight = ppo_loss._log_weight
+
+            def recorded(*args, **kwargs):
+                # (log_weight, dist, kl_approx, log_is_weight), each (2B, 1): kept for this forward's statistics.
+                self._last_log_weight = out = log_weight(*args, **kwargs)
+                return out
+
+            ppo_loss._log_weight = recorded
 
     @property
     def in_keys(self) -> list:
@@ -292,8 +308,17 @@ class SymmetryAugmentLoss(nn.Module):
         return out
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
-        doubled = torch.cat([td, self.mirror_batch(td)], dim=0)
-        return self.ppo_loss(doubled)
+        b = td.batch_size[0]
+        self._last_log_weight = None
+        out = self.ppo_loss(torch.cat([td, self.mirror_batch(td)], dim=0))
+        if self._last_log_weight is not None:
+            log_weight, _, kl_approx, _ = self._last_log_weight
+            self._last_log_weight = None
+            original = log_weight[:b].detach()
+            low, high = self.ppo_loss._clip_bounds
+            out.set("kl_approx", kl_approx[:b].detach().mean())
+            out.set("clip_fraction", (original.clamp(low, high) != original).to(original.dtype).mean())
+        return out
 
 
 def find_normalization(env) -> nn.Module | None:
