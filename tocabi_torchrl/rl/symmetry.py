@@ -183,7 +183,9 @@ class PolicyInputMirror(SignedPermutation):
         """Use the normaliser statistics ``loc``, ``scale`` (D,) for the observation blocks, in place (a captured
         update reads the same buffers). ``None`` for both: raw observations."""
         d = self.obs_dim
-        if loc is None and scale is None:
+        if (loc is None) != (scale is None):
+            raise ValueError("PolicyInputMirror.set_statistics: give both loc and scale, or neither (raw observations)")
+        if loc is None:
             gain, offset = self.obs_sign, torch.zeros_like(self.obs_sign)
         else:
             loc = torch.as_tensor(loc, dtype=torch.float32, device=self.gain.device).reshape(-1)
