@@ -41,7 +41,7 @@ from .viewer.config import ViewerConfig
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "config_from_dict", "to_dict",
            "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
-           "LOGGERS", "field_choices", "wall_tag", "check_snapshot_minutes", "LEGACY_VALUES", "MAX_SEED"]
+           "LOGGERS", "SYMMETRY_MODES", "field_choices", "wall_tag", "check_snapshot_minutes", "LEGACY_VALUES", "MAX_SEED"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
@@ -54,6 +54,8 @@ STD_MODES = ("scheduled", "learned")
 #: What the torque assist's absorbing loss copies into the actor (``ppo.assist_target``; rl/assist.py).
 ASSIST_TARGETS = ("rollout", "teacher")
 LOGGERS = ("csv", "tensorboard", "wandb")
+#: Left-right symmetry in PPO (``ppo.symmetry``; rl/symmetry.py): none, or each mini-batch doubled with its mirror.
+SYMMETRY_MODES = ("none", "augment")
 
 
 def wall_tag(seconds: float) -> str:
@@ -123,6 +125,12 @@ class PPOConfig:
     """constant learning rate of the value head; 0 = share the policy's"""
     adam_eps: float = 1e-8
     """Adam epsilon"""
+    #: Left-right mirror symmetry (rl/symmetry.py): "augment" doubles every mini-batch with its mirror image
+    #: (observations and actions mirrored; advantages, value targets and old log-probabilities kept), so that the
+    #: policy and the critic learn from both sides of every state. Twice the frames per update step.
+    symmetry: str = "none"
+    """left-right symmetry: none, or augment (each mini-batch doubled with its mirror image: mirrored observations
+    and actions, same advantages, value targets and old log-probabilities)"""
     # networks and exploration
     actor_hidden: tuple[int, ...] = (400, 200, 100)
     """hidden layer sizes of the policy network"""
@@ -412,7 +420,7 @@ def field_choices() -> dict[str, tuple[str, ...]]:
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
             "ppo.assist_target": ASSIST_TARGETS, "env.sim.backend": ("warp", "mujoco", "auto"),
             "env.sim.reset_pass": RESET_PASSES, "ppo.grad_sync": GRAD_SYNCS,
-            "ppo.matmul_precision": MATMUL_PRECISIONS, "eval_test": EVAL_TESTS}
+            "ppo.matmul_precision": MATMUL_PRECISIONS, "eval_test": EVAL_TESTS, "ppo.symmetry": SYMMETRY_MODES}
 
 
 # ---------------------------------------------------------------------------------------------------------- presets

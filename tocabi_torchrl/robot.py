@@ -26,6 +26,8 @@ __all__ = [
     "UPPER_JOINT_IDS",
     "LEGS",
     "UPPER_BODY",
+    "MIRROR_JOINT",
+    "MIRROR_SIGN",
     "TORQUE_LIMITS",
     "LEG_TORQUE_LIMITS",
     "INIT_JOINT_POS",
@@ -80,6 +82,22 @@ UPPER_JOINT_IDS: tuple[int, ...] = tuple(range(NUM_LEG_JOINTS, NUM_JOINTS))
 #: index tensor to copy to the device).
 LEGS = slice(0, NUM_LEG_JOINTS)
 UPPER_BODY = slice(NUM_LEG_JOINTS, NUM_JOINTS)
+
+_SIDE = tuple(range(6)), tuple(range(15, 23))  # a leg's 6 joints, an arm's 8: left at i, right at i + 6 / i + 10
+#: Left-right mirror image of a joint configuration (reflection y -> -y about the pelvis's x-z plane): joint ``j`` of
+#: the mirrored robot takes ``MIRROR_SIGN[j] * q[MIRROR_JOINT[j]]``. Left and right joints swap; the waist and the neck
+#: map to themselves. The signs follow from the MJCF's joint axes: the reflection ``M = diag(1, -1, 1)`` turns a
+#: rotation by θ about the world axis ``a`` into one by −θ about ``M·a``, so a partner joint whose axis is ``M·a`` takes
+#: −θ and one whose axis is ``−M·a`` takes +θ. Hence the roll- and yaw-type joints (axis along x or z) flip, the legs'
+#: pitch joints (y axes on both sides) keep their sign, and every arm joint flips (the right arm's y axes point the
+#: other way). ``tests/test_symmetry.py`` derives these from the compiled model's world axes at ``qpos0``.
+MIRROR_JOINT: tuple[int, ...] = (
+    tuple(i + 6 for i in _SIDE[0]) + _SIDE[0] + (12, 13, 14) + tuple(i + 10 for i in _SIDE[1]) + (23, 24) + _SIDE[1]
+)
+#: See :data:`MIRROR_JOINT`; leg order hip yaw, hip roll, hip pitch, knee, ankle pitch, ankle roll.
+MIRROR_SIGN: tuple[float, ...] = (
+    (-1.0, -1.0, 1.0, 1.0, 1.0, -1.0) * 2 + (-1.0, 1.0, -1.0) + (-1.0,) * 8 + (-1.0, 1.0) + (-1.0,) * 8
+)
 
 _ARM_LIMITS = (64.0, 64.0, 64.0, 64.0, 23.0, 23.0, 10.0, 10.0)
 #: Actuator torque limits [N·m] (spec §1.4), joint order.

@@ -38,6 +38,7 @@ from .networks import make_mlp
 from .rollout_guard import VALID_KEY, guard_rollout
 from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
+from .symmetry import SymmetryAugmentLoss, make_symmetry_loss, refresh_statistics
 from .update_step import (MinibatchStep, adapt_lr, get_lr, make_capturable_adam, optimizer_mode,
                           restore_optimizer_mode, set_lr)
 
@@ -264,9 +265,11 @@ def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.
                          use_graph=plan_graphs(cfg, device).update, grad_sync=sync)
 
 
-def make_loss(cfg: RunConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbLoss, GAE]:
-    """The clipped PPO loss (wrapped in :class:`AssistAbsorbLoss` when ``cfg.ppo.torque_assist`` > 0) and the GAE value
-    estimator of :func:`train`."""
+def make_loss(cfg: RunConfig, agent: Agent, env: EnvBase | None = None,
+              ) -> tuple[ClipPPOLoss | SymmetryAugmentLoss | AssistAbsorbLoss, GAE]:
+    """The clipped PPO loss (in :class:`~tocabi_torchrl.rl.symmetry.SymmetryAugmentLoss` with ``cfg.ppo.symmetry``
+    "augment", which needs the training ``env`` for its layout and normaliser; then in :class:`AssistAbsorbLoss` when
+    ``cfg.ppo.torque_assist`` > 0) and the GAE value estimator of :func:`train`."""
     # The critic runs over the rollout in chunks of ~64k frames (along the env dim): unchunked, TorchRL stacks
     # observations and next observations and keeps (2 · frames, 400) activations, ~6 GB at 16384 envs.
     ppo = cfg.ppo
@@ -284,6 +287,12 @@ def make_loss(cfg: RunConfig, agent: Agent) -> tuple[ClipPPOLoss | AssistAbsorbL
     )
     loss_module.set_keys(sample_log_prob="action_log_prob")
     loss_module.loss_mask_key = VALID_KEY  # see rollout_guard: broken frames add nothing to the losses
+    if ppo.symmetry == "augment":
+        if env is None:
+            raise ValueError("ppo.symmetry='augment' mirrors the policy input by the env's layout and normaliser: "
+                             "pass the training env to make_loss")
+        # Inside the assist's loss: its absorbing term copies the teacher on the rollout's own frames only.
+        loss_module = make_symmetry_loss(loss_module, env, cfg.transforms.transform_config())
     if cfg.ppo.torque_assist > 0:
         loss_module = AssistAbsorbLoss(loss_module, gaussian_head(agent.actor), robot.LEG_TORQUE_LIMITS,
                                        teacher=agent.teacher)
@@ -407,7 +416,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         torch.manual_seed(cfg.seed)  # this rank's seed (set above): its own exploration noise and mini-batch order
 
     ppo = cfg.ppo
-    loss_module, advantage = make_loss(cfg, agent)
+    loss_module, advantage = make_loss(cfg, agent, env)
+    symmetry = next((m for m in loss_module.modules() if isinstance(m, SymmetryAugmentLoss)), None)
     update_step = make_update_step(cfg, loss_module, optimizer, device, info)
     assist = _assist_schedule(cfg, env)
     if assist is not None:
@@ -438,6 +448,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             progress_remaining = 1.0 - it / iterations
             if stats_sync is not None:
                 stats_sync.sync()  # before the update: every rank's next rollout normalises alike
+            if symmetry is not None:  # the mirror of a normalised input uses the statistics the rollout ended with
+                refresh_statistics(symmetry, env)
             # The collector reuses `batch` as its buffer (return_same_td): GAE's outputs go to a shallow copy.
             work = batch.clone(False)
             guard_rollout(work)  # frames with NaN/inf or impossible actions are masked out of the loss
