@@ -103,3 +103,16 @@ def test_check_field_types_reads_string_annotations_items_and_frozen_trees():
         check_field_types(_Tree(items=(_Item(limit="1"),)), "t.")
     with pytest.raises(ValueError, match=r"t.steps must be an int.*got True"):
         check_field_types(_Tree(steps=True), "t.")
+
+
+def test_the_convex_collision_slots_reach_mujoco_warp_and_a_bad_count_is_named():
+    from tocabi_torchrl.envs import TocabiWalk
+    from tocabi_torchrl.envs.config import EnvSimConfig
+    from tocabi_torchrl.sim.buffers import NCCDMAX
+
+    with pytest.raises(ValueError, match=r"env.sim.nccdmax must be a positive int or None, got 0"):
+        EnvSimConfig(nccdmax=0).validate()
+    env = TocabiWalk(num_envs=2, device="cpu", config=TocabiWalkConfig(sim=EnvSimConfig(backend="warp", nccdmax=4)))
+    assert env.sim.wp_data.naccdmax == 2 * 4
+    default = TocabiWalk(num_envs=2, device="cpu", config=TocabiWalkConfig(sim=EnvSimConfig(backend="warp")))
+    assert default.sim.wp_data.naccdmax == 2 * NCCDMAX

@@ -427,3 +427,41 @@ def test_cold_kernel_cache_prints_one_line(tmp_path, capsys, monkeypatch):
     assert announce_compile_if_cold(device)
     out = capsys.readouterr().out.strip().splitlines()
     assert len(out) == 1 and "compiling mujoco-warp kernels" in out[0] and str(tmp_path) in out[0]
+
+
+def _tangled_qpos(n: int, seed: int = 0) -> torch.Tensor:
+    """Robots in the air with random joint angles (sd 0.6 rad): limbs close to each other, the state that gives the
+    convex narrowphase (box and cylinder pairs) the most candidates (lab.sim_measure.measure_buffers' tangled)."""
+    rng = np.random.default_rng(seed)
+    qpos = _init_qpos(n)
+    qpos[:, 7:] += torch.as_tensor(rng.normal(0.0, 0.6, (n, robot.NUM_JOINTS)), dtype=torch.float32)
+    qpos[:, 2] = 1.5
+    return qpos
+
+
+def test_convex_collision_slots_default_to_the_measured_count_and_overflow_names_their_setting():
+    from tocabi_torchrl.sim.buffers import NCCDMAX, NCONMAX
+    from tocabi_torchrl.sim.memory import epa_slot_bytes, warp_world_bytes
+
+    assert SimConfig().ccd_per_world == NCCDMAX < NCONMAX
+    assert SimConfig(nconmax=8).ccd_per_world == 8  # never above the contact pool it is taken from
+    for bad, message in ((0, "nccdmax must be a positive int"), (NCONMAX + 1, r"nccdmax \(49\) must be <= nconmax")):
+        with pytest.raises(ValueError, match=message):
+            SimConfig(nccdmax=bad).validate()
+    # The EPA scratch is counted in the memory estimate: ~5 KB per slot for TOCABI (35 EPA iterations).
+    sim = WarpSim(SimConfig(num_worlds=2, nccdmax=1))
+    assert sim.wp_data.naccdmax == 2
+    mj = sim.mj_model
+    assert 4000 < epa_slot_bytes(mj) < 6000
+    assert warp_world_bytes(mj, NCONMAX, 224, 16) - warp_world_bytes(mj, NCONMAX, 224, 0) == 16 * epa_slot_bytes(mj)
+    # Two tangled robots ask for more convex-collision pairs of one geom-type pair than one slot per world.
+    qpos = _tangled_qpos(2)
+    sim.reset(torch.ones(2, dtype=torch.bool), qpos, torch.zeros(sim.nv), _upper_ctrl(2))
+    assert int(sim.overflow[0]) & int(mjw.OverflowType.CCD) and not sim.healthy.any()
+    with pytest.raises(SimOverflowError, match=r"CCD.*raise SimConfig.nccdmax \(env.sim.nccdmax\)"):
+        sim.check_overflow()
+    # The measured default holds them.
+    roomy = WarpSim(SimConfig(num_worlds=2))
+    roomy.reset(torch.ones(2, dtype=torch.bool), qpos, torch.zeros(roomy.nv), _upper_ctrl(2))
+    assert roomy.wp_data.naccdmax == 2 * NCCDMAX
+    assert not any(int(bits) & int(mjw.OverflowType.CCD) for bits in roomy.overflow)

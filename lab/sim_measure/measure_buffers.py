@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from tocabi_torchrl.sim.buffers import NCONMAX, NJMAX
+from tocabi_torchrl.sim.buffers import NCCDMAX, NCONMAX, NJMAX
 
-__all__ = ["SCENARIOS", "BufferUsage", "measure", "main"]
+__all__ = ["SCENARIOS", "BufferUsage", "ConvexCandidates", "measure", "main"]
 
 #: Scenario name -> what the worlds do (see ``_scenario_state`` / ``_scenario_ctrl``).
 SCENARIOS = {
@@ -44,6 +44,8 @@ class BufferUsage:
     broadphase_pairs_per_world_max: float  # ncollision / num_worlds
     nefc_max: int
     nefc_p999: float
+    ccd_pairs_per_world_max: int  # convex-narrowphase candidates of one geom-type pair in one world
+    ccd_pool_per_world_max: float  # the same over all worlds / num_worlds: what the pooled nccdmax must hold
 
 
 def _quat(axis, angle: float) -> np.ndarray:
@@ -85,6 +87,48 @@ def _scenario_ctrl(name: str, qpos: np.ndarray, qvel: np.ndarray, rng: np.random
     return ctrl
 
 
+#: Geom-type pairs of TOCABI's collision geoms that mujoco-warp 4.0 sends through its convex (GJK/EPA) narrowphase:
+#: boxes and cylinders among themselves (box-box through its native CCD, the default); the ground plane's pairs are
+#: primitive.
+CONVEX_TYPES = ("mjGEOM_BOX", "mjGEOM_CYLINDER")
+
+
+class ConvexCandidates:
+    """Counts the convex narrowphase's candidate pairs as mujoco-warp's broadphase passes them (its sphere and OBB
+    filters, ``opt.broadphase_filter`` of TOCABI's model), per world and geom-type pair, from the geom poses a
+    substep's collision used (``geom_xpos``/``geom_xmat`` after ``mujoco_warp.step``, which integrates ``qpos``
+    only). mujoco-warp counts each type pair against ``naccdmax`` separately, so the peak over the type pairs is the
+    need."""
+
+    def __init__(self, mj, pairs: np.ndarray):
+        import mujoco
+
+        types, convex_types = mj.geom_type, [int(getattr(mujoco.mjtGeom, name)) for name in CONVEX_TYPES]
+        convex = np.isin(types[pairs[:, 0]], convex_types) & np.isin(types[pairs[:, 1]], convex_types)
+        self.pairs = pairs[convex]
+        g1, g2 = self.pairs[:, 0], self.pairs[:, 1]
+        margin = mj.geom_margin + mj.geom_gap
+        self.margin = margin[g1] + margin[g2]
+        self.bound = mj.geom_rbound[g1] + mj.geom_rbound[g2] + self.margin
+        aabb = mj.geom_aabb.reshape(-1, 6)
+        self.center, self.size = (aabb[g1, :3], aabb[g2, :3]), (aabb[g1, 3:], aabb[g2, 3:])
+        kinds = np.sort(np.stack([types[g1], types[g2]], 1), 1)
+        self.kinds = [kinds[:, 0] * 100 + kinds[:, 1] == k for k in np.unique(kinds[:, 0] * 100 + kinds[:, 1])]
+
+    def count(self, xpos: np.ndarray, xmat: np.ndarray) -> np.ndarray:
+        """(num_worlds, type pairs) candidates, from ``xpos`` (N, ngeom, 3) and ``xmat`` (N, ngeom, 3, 3)."""
+        g1, g2 = self.pairs[:, 0], self.pairs[:, 1]
+        dif = xpos[:, g2] - xpos[:, g1]
+        passed = (dif * dif).sum(-1) <= self.bound**2
+        rot = (xmat[:, g1], xmat[:, g2])
+        centers = [np.einsum("wpij,pj->wpi", rot[i], self.center[i]) + xpos[:, (g1, g2)[i]] for i in range(2)]
+        for axis in (*(rot[0][..., k] for k in range(3)), *(rot[1][..., k] for k in range(3))):  # face normals
+            gap = np.abs(((centers[1] - centers[0]) * axis).sum(-1))
+            radius = sum(np.abs(np.einsum("wpij,wpi->wpj", rot[i], axis) * self.size[i]).sum(-1) for i in range(2))
+            passed &= radius + self.margin >= gap
+        return np.stack([passed[:, kind].sum(1) for kind in self.kinds], 1)
+
+
 def measure(
     scenario: str, num_worlds: int = 16, steps: int = 300, seed: int = 0, device: str = "cpu"
 ) -> BufferUsage:
@@ -116,7 +160,8 @@ def measure(
     m, d = sim.wp_model, sim.wp_data
     substep = Recorded(lambda: mjw.step(m, d), sim.wp_device, cfg.use_graph)
 
-    per_world, pool, pairs, nefc = [], [], [], []
+    per_world, pool, pairs, nefc, ccd_world, ccd_pool = [], [], [], [], [], []
+    convex = ConvexCandidates(sim.mj_model, m.nxn_geom_pair_filtered.numpy())
     for _ in range(steps):
         q, v = sim.qpos.cpu().numpy(), sim.qvel.cpu().numpy()
         sim.ctrl.copy_(torch.as_tensor(_scenario_ctrl(scenario, q, v, rng), dtype=torch.float32, device=dev))
@@ -129,6 +174,9 @@ def measure(
             pool.append(nacon / num_worlds)
             pairs.append(int(d.ncollision.numpy()[0]) / num_worlds)
             nefc.append(int(d.nefc.numpy().max()))
+            ccd = convex.count(d.geom_xpos.numpy(), d.geom_xmat.numpy().reshape(num_worlds, -1, 3, 3))
+            ccd_world.append(int(ccd.max()))
+            ccd_pool.append(float(ccd.sum(0).max()) / num_worlds)
     return BufferUsage(
         scenario=scenario,
         num_worlds=num_worlds,
@@ -139,6 +187,8 @@ def measure(
         broadphase_pairs_per_world_max=float(max(pairs)),
         nefc_max=int(max(nefc)),
         nefc_p999=float(np.percentile(nefc, 99.9)),
+        ccd_pairs_per_world_max=int(max(ccd_world)),
+        ccd_pool_per_world_max=float(max(ccd_pool)),
     )
 
 
@@ -148,18 +198,21 @@ def _markdown(rows: list[BufferUsage]) -> str:
         raise ValueError("no scenarios to tabulate: measure at least one (--scenarios NAME ...)")
     head = (
         "| scenario | what | contacts in one world, max | p99.9 | contact pool / worlds, max "
-        "| broadphase pairs / worlds, max | nefc max | p99.9 |\n"
-        "|---|---|---|---|---|---|---|---|\n"
+        "| broadphase pairs / worlds, max | nefc max | p99.9 | convex pairs in one world, max "
+        "| convex pairs / worlds, max |\n"
+        "|---|---|---|---|---|---|---|---|---|---|\n"
     )
     body = "".join(
         f"| {r.scenario} | {SCENARIOS[r.scenario]} | {r.contacts_per_world_max} | {r.contacts_per_world_p999:.0f} | "
         f"{r.contacts_pool_per_world_max:.1f} | {r.broadphase_pairs_per_world_max:.1f} | {r.nefc_max} | "
-        f"{r.nefc_p999:.0f} |\n"
+        f"{r.nefc_p999:.0f} | {r.ccd_pairs_per_world_max} | {r.ccd_pool_per_world_max:.1f} |\n"
         for r in rows
     )
     worst_c = max(r.contacts_per_world_max for r in rows)
     worst_j = max(r.nefc_max for r in rows)
     worst_p = max(r.broadphase_pairs_per_world_max for r in rows)
+    worst_ccd, worst_ccd_pool = (max(r.ccd_pairs_per_world_max for r in rows),
+                                 max(r.ccd_pool_per_world_max for r in rows))
     return (
         "# Contact and constraint buffers for TOCABI (mujoco-warp)\n\n"
         "Generated by `python -m lab.sim_measure.measure_buffers`; counters read after every physics substep "
@@ -168,7 +221,10 @@ def _markdown(rows: list[BufferUsage]) -> str:
         + body
         + f"\nChosen: `nconmax = {NCONMAX}` per world (pooled; worst measured {worst_c} contacts in one world and "
         f"{worst_p:.0f} broadphase pairs per world on average), `njmax = {NJMAX}` rows per world (worst measured "
-        f"{worst_j}). "
+        f"{worst_j}), `nccdmax = {NCCDMAX}` convex-collision pairs per world (pooled, per pair of geom types; worst "
+        f"measured {worst_ccd_pool:.1f} per world on average and {worst_ccd} in one world). "
+        "Convex pairs are the box and cylinder pairs the broadphase's sphere and OBB filters pass, each slot of "
+        "mujoco-warp's EPA scratch ~5 KB. "
         "A scene with more geometry (obstacles, terrain) needs larger values: an overflow marks the world unhealthy "
         "and `WarpSim.check_overflow()` names the setting to raise.\n\n"
         "mujoco-warp generates more contacts than C MuJoCo for the same kind of scene (C MuJoCo peaked at 26 contacts "

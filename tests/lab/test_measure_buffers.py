@@ -14,7 +14,7 @@ from lab.sim_measure.measure_buffers import SCENARIOS, BufferUsage, main
 
 
 def _usage(scenario: str, num_worlds: int = 2, steps: int = 1) -> BufferUsage:
-    return BufferUsage(scenario, num_worlds, 8 * steps, 12, 11.0, 6.5, 40.0, 90, 88.0)
+    return BufferUsage(scenario, num_worlds, 8 * steps, 12, 11.0, 6.5, 40.0, 90, 88.0, 3, 1.5)
 
 
 @pytest.fixture

@@ -55,6 +55,8 @@ class EnvSimConfig:
             CUDA, :data:`CPU_DEFAULT_BACKEND` on the CPU).
         substeps: physics substeps per policy step (0.5 ms each: 8 -> 250 Hz policy).
         nconmax, njmax: contact/constraint buffers per world for mujoco-warp (None = the backend's measured defaults).
+        nccdmax: mujoco-warp convex-collision pairs per world, pooled (None = the measured default,
+            ``sim.buffers.NCCDMAX``); it sizes the EPA scratch, ~5 KB a slot.
         threads: CPU threads of the ``"mujoco"`` backend (None = every available core).
         reset_pass: what a mujoco-warp reset computes over all worlds (``SimConfig.reset_pass``): ``"reduced"``
             (default) only the position and velocity stages, with the rest of each start state (one per start row
@@ -70,6 +72,8 @@ class EnvSimConfig:
     """mujoco-warp contacts per world; none = the measured default"""
     njmax: int | None = None
     """mujoco-warp constraint rows per world; none = the measured default"""
+    nccdmax: int | None = None
+    """mujoco-warp convex-collision pairs per world (pooled; sizes the EPA scratch); none = the measured default"""
     threads: int | None = None
     reset_pass: str = "reduced"
 
@@ -80,7 +84,7 @@ class EnvSimConfig:
             raise ValueError(f"unknown env.sim.reset_pass {self.reset_pass!r}; choose one of {RESET_PASSES}")
         # substeps has the env's shared rule (the policy contract's timing.substeps is checked with it too).
         check_env_value("sim.substeps", self.substeps)
-        for name in ("nconmax", "njmax", "threads"):
+        for name in ("nconmax", "njmax", "nccdmax", "threads"):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 alias = " (sim_threads)" if name == "threads" else ""

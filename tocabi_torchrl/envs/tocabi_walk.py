@@ -174,7 +174,8 @@ class TocabiWalk(EnvBase):
         world_fields = cfg.dynamics.sim_fields
         reset_pass = "full" if world_fields else sim.reset_pass
         if self.backend == "warp":
-            buffers = {k: v for k, v in (("nconmax", sim.nconmax), ("njmax", sim.njmax)) if v is not None}
+            buffers = {k: v for k, v in (("nconmax", sim.nconmax), ("njmax", sim.njmax), ("nccdmax", sim.nccdmax))
+                       if v is not None}
             sim_cfg = SimConfig(num_worlds=num_envs, device=str(device), substeps=sim.substeps,
                                 reset_pass=reset_pass, substep_ctrl=substep_ctrl, per_world_fields=world_fields,
                                 **buffers)

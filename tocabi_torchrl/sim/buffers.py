@@ -10,13 +10,22 @@ standing, falling, thrashing and tangled scenarios and records the per-substep p
 
 from __future__ import annotations
 
-__all__ = ["NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH"]
+__all__ = ["NCONMAX", "NCCDMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH"]
 
 #: Contacts per world, pooled over worlds (``naconmax = nconmax * num_worlds``). Measured in mujoco-warp, per substep:
 #: 8 per standing robot (4 per sole); one world peaks at 28 lying on its back, 41 after a hard fall on its front and
 #: 48 with tangled legs; the pool averaged at most 19 per world in any scenario and the broadphase at most 23 pairs.
 #: 48 holds even the worst single world in every world at once (2.5x the worst pooled average).
 NCONMAX = 48
+#: Convex-collision (GJK/EPA) candidate pairs per world, pooled over worlds (``naccdmax = nccdmax * num_worlds``,
+#: counted per pair of geom types). TOCABI's box and cylinder geoms collide with each other through mujoco-warp's
+#: convex narrowphase (the ground plane's pairs are primitive), and its EPA scratch holds ~5 KB per slot
+#: (``ccd_iterations`` 35): at mujoco-warp's default of nconmax slots per world that is 31 GB at 131,072 worlds.
+#: Measured after the broadphase's sphere and OBB filters (lab.sim_measure.measure_buffers, whose count adds up to
+#: mujoco-warp's own broadphase count): no pair for standing robots; pooled over 16 worlds at most 4.0 per world for
+#: collapsed robots, 5.4 dropped on their side, 7.1 with tangled limbs, and 21 in the worst single world. 16 holds
+#: 2.3x the worst pooled average, a third of mujoco-warp's default of nconmax slots.
+NCCDMAX = 16
 #: Constraint rows per world, a hard per-world limit: 33 friction-loss rows always, 3 per contact (elliptic cone,
 #: condim 3) and joint-limit rows. Measured peaks: 57 standing, 117 lying on the back, 156 after a hard fall on the
 #: front, 177 with tangled legs. 224 (a multiple of the solver's 16-row tile) leaves 1.27x over the worst case; the

@@ -6,12 +6,12 @@ import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from .buffers import CONTACT_SENSOR_MAXMATCH, NCONMAX, NJMAX
+from .buffers import CONTACT_SENSOR_MAXMATCH, NCCDMAX, NCONMAX, NJMAX
 
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["SimConfig", "NCONMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH", "RESET_PASSES", "PER_WORLD_FIELDS",
+__all__ = ["SimConfig", "NCONMAX", "NCCDMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH", "RESET_PASSES", "PER_WORLD_FIELDS",
            "DEFAULT_HEALTH_OVERFLOW_MASK", "available_cores"]
 
 #: ``SimConfig.health_overflow_mask``'s default: the ``mujoco_warp.OverflowType`` bits of
@@ -45,6 +45,8 @@ class SimConfig:
         substeps: physics steps per :meth:`WarpSim.step` (8: 2 kHz physics, 250 Hz control for a 0.5 ms timestep).
         nconmax: contacts per world (pooled over worlds), see :data:`NCONMAX`.
         njmax: constraint rows per world, see :data:`NJMAX`.
+        nccdmax: convex-collision (GJK/EPA) candidate pairs per world, pooled over worlds, at most ``nconmax``;
+            ``None``: :data:`NCCDMAX` (or ``nconmax`` if that is smaller). It sizes the EPA scratch (~5 KB a slot).
         contact_sensor_maxmatch: mujoco-warp contact-sensor slots, see :data:`CONTACT_SENSOR_MAXMATCH`.
         solver_iterations, solver_ls_iterations, solver_tolerance: explicit overrides of the model's solver options;
             ``None`` keeps what the model file says (the backend never changes physics on its own).
@@ -85,6 +87,7 @@ class SimConfig:
     substeps: int = 8
     nconmax: int = NCONMAX
     njmax: int = NJMAX
+    nccdmax: int | None = None
     contact_sensor_maxmatch: int = CONTACT_SENSOR_MAXMATCH
     solver_iterations: int | None = None
     solver_ls_iterations: int | None = None
@@ -98,6 +101,11 @@ class SimConfig:
     substep_ctrl: tuple[int, ...] = ()
     per_world_fields: tuple[str, ...] = ()
 
+    @property
+    def ccd_per_world(self) -> int:
+        """The convex-collision slots per world this config allocates (``nccdmax``, or its default)."""
+        return self.nccdmax if self.nccdmax is not None else min(NCCDMAX, self.nconmax)
+
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field and what it should be."""
 
@@ -108,7 +116,7 @@ class SimConfig:
 
         for name in ("num_worlds", "substeps", "nconmax", "njmax", "contact_sensor_maxmatch"):
             positive_int(name)
-        for name in ("solver_iterations", "solver_ls_iterations", "threads"):
+        for name in ("solver_iterations", "solver_ls_iterations", "threads", "nccdmax"):
             if getattr(self, name) is not None:
                 positive_int(name)
         if self.solver_tolerance is not None and not self.solver_tolerance >= 0.0:
@@ -123,6 +131,9 @@ class SimConfig:
         if (not isinstance(fields, (tuple, list)) or len(set(fields)) != len(fields)
                 or any(f not in PER_WORLD_FIELDS for f in fields)):
             raise ValueError(f"SimConfig.per_world_fields must be distinct names of {PER_WORLD_FIELDS}, got {fields!r}")
+        if self.nccdmax is not None and self.nccdmax > self.nconmax:
+            raise ValueError(f"SimConfig.nccdmax ({self.nccdmax}) must be <= nconmax ({self.nconmax}): mujoco-warp "
+                             "takes convex-collision pairs from the contact pool")
         import torch  # here, not at the top: the config tree reads this module without torch
 
         if not isinstance(self.device, (str, torch.device)):

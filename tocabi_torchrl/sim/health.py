@@ -25,7 +25,8 @@ _FIX = {
     OverflowType.NJMAX_NNZ: "constraint Jacobian non-zeros overflowed: raise SimConfig.njmax",
     OverflowType.BROADPHASE: "more candidate collision pairs than nconmax*num_worlds: raise SimConfig.nconmax",
     OverflowType.NARROWPHASE: "more contacts than nconmax*num_worlds: raise SimConfig.nconmax",
-    OverflowType.CCD: "convex-collision contact buffer overflowed: raise SimConfig.nconmax",
+    OverflowType.CCD: "more convex-collision pairs than nccdmax*num_worlds: raise SimConfig.nccdmax "
+                      "(env.sim.nccdmax)",
     OverflowType.HFIELD: "height-field collision buffer overflowed: simplify the height field",
     OverflowType.NVMAX: "island dof buffer overflowed",
     OverflowType.CONTACT_MATCH: "contact sensor slots overflowed (counts stay exact): raise contact_sensor_maxmatch",

@@ -16,7 +16,7 @@ import os
 import mujoco
 import torch
 
-__all__ = ["available_bytes", "check_fits", "mujoco_world_bytes", "warp_world_bytes", "MUJOCO_OVERHEAD"]
+__all__ = ["available_bytes", "check_fits", "epa_slot_bytes", "mujoco_world_bytes", "warp_world_bytes", "MUJOCO_OVERHEAD"]
 
 #: Resident memory of a C MuJoCo world over the bytes its ``MjData`` uses (buffer, used arena and stack): the Python
 #: binding's arrays and the allocator. Measured for TOCABI: 636 kB RSS per ``MjData`` against 235 kB used (2.7×).
@@ -67,16 +67,31 @@ def mujoco_world_bytes(mj: mujoco.MjModel) -> int:
     return int(MUJOCO_OVERHEAD * used) + 12 * per_row + 4 * (mj.nq + mj.nv + mj.nu)
 
 
-def warp_world_bytes(mj: mujoco.MjModel, nconmax: int, njmax: int) -> int:
+def warp_world_bytes(mj: mujoco.MjModel, nconmax: int, njmax: int, nccdmax: int = 0) -> int:
     """Bytes of one mujoco-warp world of ``mj`` (every array of a one-world ``mujoco_warp.Data`` with these buffer
-    sizes, on the CPU, which allocates nothing on the GPU) plus the backend's own per-world buffers."""
+    sizes, on the CPU, which allocates nothing on the GPU), the backend's own per-world buffers and ``nccdmax``
+    slots of the convex narrowphase's EPA scratch (:func:`epa_slot_bytes`, allocated when collision first runs)."""
     import mujoco_warp as mjw
     import warp as wp
 
     with wp.ScopedDevice("cpu"):
         data = mjw.make_data(mj, nworld=1, nconmax=nconmax, njmax=njmax)
     own = 4 * (2 * mj.nq + 2 * mj.nv + 3 * mj.nu + mj.nsensordata + 8)  # reset, snapshot and signal buffers
-    return _array_bytes(data) + own
+    return _array_bytes(data) + own + nccdmax * epa_slot_bytes(mj)
+
+
+#: mujoco-warp 4.0's EPA polytope bounds: faces added per iteration and horizon edges (``MJ_MAX_EPAFACES``,
+#: ``MJ_MAX_EPAHORIZON``).
+_EPA_FACES_PER_ITERATION, _EPA_HORIZON = 5, 24
+
+
+def epa_slot_bytes(mj: mujoco.MjModel) -> int:
+    """Bytes of one slot of mujoco-warp's EPA scratch for ``mj``: the polytope's vertices (vec3 + index) and faces
+    (three indices, the origin's projection and its squared norm) for ``opt.ccd_iterations`` iterations, and the
+    horizon. TOCABI (35 iterations): about 5 KB."""
+    it = int(mj.opt.ccd_iterations)
+    vertices, faces = 10 + 2 * it, 6 + _EPA_FACES_PER_ITERATION * it
+    return vertices * (12 + 4) + faces * (4 + 12 + 4) + _EPA_HORIZON * 4
 
 
 def _array_bytes(obj) -> int:

@@ -143,7 +143,7 @@ class WarpSim(SimViews):
         self.num_worlds = n = cfg.num_worlds
 
         mj = compile_model(model, cfg)
-        check_fits(n, warp_world_bytes(mj, cfg.nconmax, cfg.njmax), self.device, "mujoco-warp")
+        check_fits(n, warp_world_bytes(mj, cfg.nconmax, cfg.njmax, cfg.ccd_per_world), self.device, "mujoco-warp")
         self.mj_model = mj
         self.contact_layout: ContactLayout = contact_layout(mj)
         self.world_mocap_pos = world_mocap_pos(mj, n, mocap_pos)
@@ -159,7 +159,8 @@ class WarpSim(SimViews):
             # Before _without_sensors' shallow copy and before any graph records the model's arrays.
             self._model_fields = self._per_world_fields(cfg.per_world_fields)
             self._substep_model = self.wp_model if cfg.sensors_every_substep else _without_sensors(self.wp_model)
-            self.wp_data = mjw.make_data(mj, nworld=n, nconmax=cfg.nconmax, njmax=cfg.njmax)
+            self.wp_data = mjw.make_data(mj, nworld=n, nconmax=cfg.nconmax, njmax=cfg.njmax,
+                                         nccdmax=cfg.ccd_per_world)
             self._alloc_buffers(mj)
         self._make_views(mj)
 
