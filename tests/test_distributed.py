@@ -85,7 +85,8 @@ def test_stats_sync_refuses_a_normalizer_not_yet_sized():
     RunningStatsSync([RunningNormalization(dim=3)], DistInfo(0, 2, 0))  # sized: taken
 
 
-def _worker(rank: int, world: int, init_file: str, out: dict) -> None:
+def _worker(rank: int, world: int, init_file: str, out: dict, run_dir: str = "", runs: tuple = ()) -> None:
+    """The pieces above on this rank, then the training ``runs`` (:func:`_train_runs`) in the same process group."""
     info = DistInfo(rank, world, rank)
     init_distributed(info, torch.device("cpu"), init_method=f"file://{init_file}")
     try:
@@ -109,7 +110,8 @@ def _worker(rank: int, world: int, init_file: str, out: dict) -> None:
         out[rank] = {"params": params, "params_ddp": params_ddp, "all": torch.stack(gathered), "stats": stats,
                      "norm": (norm.count.clone(), norm.mean.clone(), norm.var.clone()), "data": data,
                      "episodes": _episode_metrics(_rollout(rank), info),
-                     "episodes_rank0_none": _episode_metrics(_rollout(rank, finish=rank == 1), info)}
+                     "episodes_rank0_none": _episode_metrics(_rollout(rank, finish=rank == 1), info),
+                     "runs": _train_runs(info, run_dir, runs)}
     finally:
         dist.destroy_process_group()
 
@@ -129,15 +131,32 @@ def _rollout(rank: int, finish: bool = True) -> TensorDict:
     return TensorDict({"next": TensorDict(nxt, batch_size=[4, 5])}, batch_size=[4, 5])
 
 
-def _spawn_two(tmp_path) -> dict:
-    out = mp.Manager().dict()
-    mp.spawn(_worker, args=(2, str(tmp_path / "init"), out), nprocs=2, join=True)
-    return dict(out)
+def _one_rank_run(run_dir, **options):
+    """A 1-rank cpu_smoke run of 2 envs x 4 steps in ``run_dir`` (a new one, or ``resume`` one)."""
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.trainer import train
+
+    return train(preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                 "ppo.minibatch_size": 4}, run_dir=str(run_dir), checkpoint_every=1, progress_bar=False,
+                               eval_at_end=False, **options))
 
 
 @pytest.fixture(scope="module")
 def two_ranks(tmp_path_factory):
-    return _spawn_two(tmp_path_factory.mktemp("gloo"))
+    """Two gloo ranks, spawned once for the module (each spawned interpreter spends seconds importing torch, torchrl
+    and the package): ``[rank]`` holds the pieces' results and, under "runs", the two 2-rank training runs of
+    test_two_ranks_train_end_to_end_and_resume_on_one: a new run "dp", then the 1-rank run "one" continued. "one"
+    is trained here first; "root" is the runs' folder, "one" the 1-rank run's result, std curve and iteration 3
+    and 4 env steps as they were before the ranks continued it."""
+    root = tmp_path_factory.mktemp("gloo")
+    one = _one_rank_run(root, total_env_steps=32, name="one", checkpoint_keep_last=0)
+    std_one = [float(r["action_std"]) for r in read_metrics(root / "one")]
+    saved = {i: torch.load(root / "one" / "checkpoints" / f"iter_{i:06d}.pt", weights_only=True)["env_steps"]
+             for i in (3, 4)}
+    more = {"name": "one", "total_env_steps": 64, "resume": str(root / "one"), "checkpoint_keep_last": 0}
+    out = mp.Manager().dict()
+    mp.spawn(_worker, args=(2, str(root / "init"), out, str(root), ({}, more)), nprocs=2, join=True)
+    return {**dict(out), "root": root, "one": (one.iterations, std_one, saved)}
 
 
 def test_two_ranks_keep_identical_parameters(two_ranks):
@@ -254,18 +273,19 @@ def test_shutdown_destroys_a_gloo_group_and_ends_an_nccl_rank_without_teardown(t
             dist.destroy_process_group()
 
 
-def _train_worker(rank: int, world: int, init_file: str, run_dir: str, out: dict, options: dict | None = None) -> None:
+def _train_runs(info: DistInfo, run_dir: str, runs) -> list[dict]:
+    """Train each of ``runs`` (preset overrides of a 2-envs x 4-steps cpu_smoke run named "dp") in turn on this
+    rank of the process group; one result per run."""
     import dataclasses
 
     from tocabi_torchrl.rl import preset_config
     from tocabi_torchrl.rl.trainer import build_env, train
 
-    info = DistInfo(rank, world, rank)
-    init_distributed(info, torch.device("cpu"), init_method=f"file://{init_file}")
-    try:
+    results = []
+    for options in runs:
         cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
                             "ppo.minibatch_size": 4,
-                            "total_env_steps": world * 2 * 16, "name": "dp", **(options or {})}, run_dir=run_dir,
+                            "total_env_steps": info.world_size * 2 * 16, "name": "dp", **options}, run_dir=run_dir,
                             checkpoint_every=1, progress_bar=False, eval_at_end=False)
         # Running statistics, so that their merge is part of the run (the presets use the reference's fixed ones).
         env = build_env(dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info)), torch.device("cpu"),
@@ -273,16 +293,17 @@ def _train_worker(rank: int, world: int, init_file: str, run_dir: str, out: dict
         result = train(cfg, env=env, dist_info=info)
         norm = next(t for t in env.transform if isinstance(t, RunningNormalization))
         params = _flat([*result.agent.actor.parameters(), *result.agent.critic.parameters()])
-        out[rank] = {"iterations": result.iterations, "env_steps": result.env_steps, "params": params,
-                     "norm": (norm.count.clone(), norm.mean.clone())}
-    finally:
-        dist.destroy_process_group()
+        results.append({"iterations": result.iterations, "env_steps": result.env_steps, "params": params,
+                        "norm": (norm.count.clone(), norm.mean.clone())})
+    return results
 
 
-def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
-    out = mp.Manager().dict()
-    mp.spawn(_train_worker, args=(2, str(tmp_path / "init"), str(tmp_path), out), nprocs=2, join=True)
-    r0, r1 = out[0], out[1]
+def test_two_ranks_train_end_to_end_and_resume_on_one(two_ranks):
+    # The module's spawn trained the 1-rank run "one" (32 env steps), then on two ranks the new run "dp" and "one"
+    # continued (its 32 steps done are 2 of their 16-step iterations).
+    tmp_path, (one_iterations, std_one, saved) = two_ranks["root"], two_ranks["one"]
+    assert one_iterations == 4
+    (r0, r0_one), (r1, _) = two_ranks[0]["runs"], two_ranks[1]["runs"]
     # 2 ranks x 2 envs x 4 steps = 16 env steps per iteration: 4 iterations for the 64-step budget.
     assert r0["iterations"] == r1["iterations"] == 4 and r0["env_steps"] == r1["env_steps"] == 64
     torch.testing.assert_close(r0["params"], r1["params"], rtol=0, atol=0)
@@ -295,36 +316,20 @@ def test_two_ranks_train_end_to_end_and_resume_on_one(tmp_path):
     assert len(rows) == 4, "rank 0 alone logs: one row per iteration"
     assert sorted(p.name for p in run.iterdir()) == sorted(["checkpoints", "config.json", "metrics"])
 
-    from tocabi_torchrl.rl import preset_config
-    from tocabi_torchrl.rl.trainer import train
-
     # With the budget scaled by the rank count (docs/training.md), the scheduled std falls per update exactly as in
     # a 1-rank run of the unscaled budget.
-    one = train(preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
-                "ppo.minibatch_size": 4},
-                              total_env_steps=32, run_dir=str(tmp_path), name="one", checkpoint_every=1,
-                              checkpoint_keep_last=0, progress_bar=False, eval_at_end=False))
-    assert one.iterations == 4
-    stds = [[float(r["action_std"]) for r in read_metrics(folder)] for folder in (run, tmp_path / "one")]
-    assert stds[0] == stds[1] and len(set(stds[0])) > 1, stds  # and it does fall
+    std_dp = [float(r["action_std"]) for r in rows]
+    assert std_dp == std_one and len(set(std_dp)) > 1, (std_dp, std_one)  # and it does fall
 
     # The same run goes on with one rank: the 64 steps done are 8 of its 8-step iterations, so its schedules go on
     # from there, while its files and metrics rows go on from its own iteration 4.
-    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
-                        "ppo.minibatch_size": 4},
-                        total_env_steps=80, run_dir=str(tmp_path), name="dp", checkpoint_every=1,
-                        progress_bar=False, eval_at_end=False, resume=str(run))
-    result = train(cfg)
+    result = _one_rank_run(tmp_path, total_env_steps=80, name="dp", resume=str(run))
     assert result.iterations == 6 and result.env_steps == 80
     assert [int(float(r["iteration"])) for r in read_metrics(run)] == [1, 2, 3, 4, 5, 6]
 
-    # The 1-rank run goes on with two: its 32 steps done are 2 of their 16-step iterations. Numbered from those, the
-    # new files would overwrite its iteration 3 and 4 files and repeat their metrics rows; they are 5 and 6.
-    saved = {i: torch.load(tmp_path / "one" / "checkpoints" / f"iter_{i:06d}.pt", weights_only=True)["env_steps"]
-             for i in (3, 4)}
-    more = {"name": "one", "total_env_steps": 64, "resume": str(tmp_path / "one"), "checkpoint_keep_last": 0}
-    mp.spawn(_train_worker, args=(2, str(tmp_path / "init2"), str(tmp_path), out, more), nprocs=2, join=True)
-    assert out[0]["iterations"] == 6 and out[0]["env_steps"] == 64
+    # The 1-rank run went on with two: numbered from the 2 two-rank iterations its 32 steps make, the new files
+    # would have overwritten its iteration 3 and 4 files and repeated their metrics rows; they are 5 and 6.
+    assert r0_one["iterations"] == 6 and r0_one["env_steps"] == 64
     files = tmp_path / "one" / "checkpoints"
     assert {i: torch.load(files / f"iter_{i:06d}.pt", weights_only=True)["env_steps"] for i in (3, 4, 5, 6)} == {
         **saved, 5: 48, 6: 64}

@@ -228,7 +228,9 @@ def test_evaluation_and_curves_from_a_tiny_run(tmp_path):
                         total_env_steps=16, run_dir=str(tmp_path), name="ev", progress_bar=False, eval_at_end=False)
     train(cfg)
     run = tmp_path / "ev"
-    summary = evaluate_run(run, num_envs=2, device="cpu", seconds=0.1, video_envs=1)
+    # No video: nothing here reads it, and the README's train command (tests/test_readme.py) runs this evaluation
+    # with its video, its output naming the walk.mp4 written; the encoder took a third of this test's time.
+    summary = evaluate_run(run, num_envs=2, device="cpu", seconds=0.1, video_envs=0)
     saved = json.loads((run / "eval" / "summary.json").read_text())
     assert saved["num_envs"] == 2 and saved["command_mps"] == [0.5, 0.0] and saved["seconds"] == 0.1
     for key in ("survival", "forward_distance_m", "lateral_drift_m", "speed_tracking_error_mps", "knee_rms_rad"):

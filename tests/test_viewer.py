@@ -87,6 +87,10 @@ def test_the_page_shows_robots_and_its_slider_and_push_reach_the_env(tmp_path):
         _wait(lambda: started, 120, "the viewer to load the policy and serve its page")
         live = started[0]
         assert live.sim.__class__.__name__ == "MujocoSim", "the CPU backend (C MuJoCo) was asked for"
+        # The live loop steps the policy as fast as it can up to real time: on a 2-core machine a whole core (it
+        # does not reach real time). Paused while Chromium starts and draws its first frames in software WebGL,
+        # the slowest part of the test, it leaves that core to the browser; it runs again for the slider below.
+        live.controls.pause.value = True
         url = f"http://127.0.0.1:{live.server.get_port()}"
         shots = Path(os.environ.get("TOCABI_VIEWER_SHOTS", tmp_path))
         shots.mkdir(parents=True, exist_ok=True)
@@ -122,6 +126,11 @@ def test_the_page_shows_robots_and_its_slider_and_push_reach_the_env(tmp_path):
                 assert with_robots > 800 and without < with_robots / 20, (
                     f"robot-coloured pixels: {with_robots} with the robots, {without} without them")
                 assert len(live.scene.handles) == len(live.scene.meshes) > 10  # one batched mesh per body
+
+                # The loop steps the policy again once unpaused (the page's checkbox follows the server's value).
+                steps = live.total_steps
+                live.controls.pause.value = False
+                _wait(lambda: live.total_steps >= steps + 10, 30, "the live loop to step the policy")
 
                 # The vx slider: keyboard on its thumb, as a user's arrows move it; the env's command follows.
                 base = live.base

@@ -1,15 +1,12 @@
 """The benchmark harness on the CPU: every committed report regenerates from its JSON, and every benchmark runs end
-to end at toy size (``--device cpu``); their GPU paths reuse the same helpers."""
+to end at toy size (``--device cpu``); their GPU paths reuse the same helpers. Time to walk's runs are in
+test_benchmarks_time_to_walk.py, the training benchmarks run in child processes and under torchrun in
+test_benchmarks_training.py: the test run gives each file to one worker, and one file of all three kept one worker
+busy for longer than the rest of the suite took on the other."""
 
 from __future__ import annotations
 
-import functools
 import json
-import os
-import shutil
-import subprocess
-import sys
-import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -203,179 +200,6 @@ def test_step_timeline_puts_back_every_wrapper_and_hook_also_after_an_error(monk
     assert len(timeline.marks) == n  # nothing marks any more
 
 
-def test_train_throughput_smoke_in_a_child_process_and_on_two_ranks(tmp_path):
-    train_throughput.main(["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--nproc", "1",
-                           "2", "--raw_steps", "0", "--set", "ppo.steps_per_env=8", "ppo.actor_hidden=8 8", "--out",
-                           str(tmp_path), "--run_dir", str(tmp_path / "runs")])
-    one, two = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
-    for r, k in ((one, 1), (two, 2)):
-        assert r["num_envs"] == 8 and r["train_env_steps_per_s"] > 0 and r["overrides"]["ppo.actor_hidden"] == [8, 8]
-        # 3 iterations of K x 8 envs x 8 steps: torchrun's K gloo ranks, counted together by rank 0
-        assert r["gpus"] == k and r["iterations"] == 3 and r["env_steps"] == 3 * k * 64
-    speedup = two["train_env_steps_per_s"] / one["train_env_steps_per_s"]
-    assert f"| 2 | {speedup:.2f} | 8 |" in (tmp_path / "train_throughput.md").read_text()
-
-
-@pytest.mark.slow
-def test_scaling_measures_in_a_child_process_and_reports(tmp_path):
-    args = ["--kind", "time", "--backend", "cpu", "--num_envs", "8", "--hidden", "8", "--max_minutes", "0.02",
-            "--results", str(tmp_path / "scaling"), "--run_dir", str(tmp_path / "runs")]
-    scaling.main(args)
-    first = json.loads((tmp_path / "scaling" / "time_cpu_0000008.json").read_text())
-    assert first["status"] == "partial" and 0 < first["env_steps"] < scaling.TARGET and first["host"]["peak_rss_gib"]
-    scaling.main(args)  # an existing result is kept unless its status is redone
-    assert json.loads((tmp_path / "scaling" / "time_cpu_0000008.json").read_text()) == first
-    scaling.main(["--report", "--results", str(tmp_path / "scaling")])
-    assert "| CPU (C MuJoCo) | 8 | 256 / 512 | - |" in (tmp_path / "scaling.md").read_text()
-
-
-def test_scaling_keeps_a_failed_measurement_as_a_status_says_so_and_still_reports(tmp_path, monkeypatch, capsys):
-    # A time or raw run that failed or ran out of memory has no rates: --report once died on its record (KeyError),
-    # and a failed measurement exited 0 without its cause.
-    results, base = tmp_path / "scaling", ["--results", str(tmp_path / "scaling"), "--run_dir", str(tmp_path / "runs")]
-    shutil.copytree(common.DOCS / "scaling", results)  # the committed results, plus the failures below
-
-    def child(module, args, env=None, nproc=None):
-        oom = args[args.index("--num_envs") + 1] == "131072"
-        raise RuntimeError("python -m lab.benchmarks.train_throughput --child ... failed (1):\nTraceback (...)\n"
-                           + ("torch.OutOfMemoryError: CUDA out of memory" if oom else
-                              "AssertionError: Torch not compiled with CUDA enabled"))
-
-    monkeypatch.setattr(common, "run_child", child)
-    with pytest.raises(SystemExit, match="failed at 8192 envs"):
-        scaling.main(["--kind", "time", "--num_envs", "8192", "131072", *base])
-    out = capsys.readouterr().out
-    assert "time_gpu_0008192.json: the measurement failed: AssertionError: Torch not compiled with CUDA" in out
-    assert "time_gpu_0131072.json: oom" in out  # a result: no failure
-    with pytest.raises(SystemExit, match="failed at 2048 envs"):
-        scaling.main(["--kind", "raw", "--num_envs", "2048", *base])
-    with pytest.raises(SystemExit, match="failed at 8192 envs"):  # kept, not measured again: still failed
-        scaling.main(["--kind", "time", "--num_envs", "8192", *base])
-    assert "kept time_gpu_0008192.json (status error; --redo error measures it again)" in capsys.readouterr().out
-    scaling.main(["--report", *base[:2]])
-    text = (tmp_path / "scaling.md").read_text()
-    for n, status in (("8,192", "error"), ("131,072", "oom")):
-        assert f"| GPU (mujoco-warp) | {n} |{' - |' * 8} {status} |" in text
-    assert "| 4,096 | 116,255 |" in text  # the measured rows as before
-
-
-@pytest.mark.slow  # a faulty training run of 15 s (two rollouts at least on a loaded 2-core machine)
-def test_tiny_soak_on_the_cpu(tmp_path):
-    code = soak.main(["--num_envs", "8", "--minutes", "0.25", "--device", "cpu", "--fault_every", "40",
-                      "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs")])
-    report = json.loads((tmp_path / "soak.json").read_text())
-    assert code == 0 and report["results"] and not [c for c in report["results"] if not c["ok"]]
-    faults = report["meta"]["faults"]
-    assert faults["fault_events"] >= 1 and faults["monitor"]["nan_worlds"] == faults["fault_events"]
-    assert [r["rollout"] for r in faults["memory_series"]] == list(range(1, len(faults["memory_series"]) + 1))
-    assert (tmp_path / "soak_memory.png").stat().st_size > 1000
-
-
-def _time_to_walk(cwd, *args, code=0, nproc=0) -> str:
-    """``python -m lab.benchmarks.time_to_walk ARGS`` in ``cwd`` (under torchrun with ``nproc`` ranks): its output."""
-    launch = ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)] if nproc else []
-    env = {**os.environ, "PYTHONPATH": str(common.DOCS.parents[1])}  # the run's cwd is a temporary folder
-    proc = subprocess.run([sys.executable, *launch, "-m", "lab.benchmarks.time_to_walk", *args], cwd=cwd, text=True,
-                          capture_output=True, env=env, check=False, timeout=600)
-    assert proc.returncode == code, proc.stdout[-3000:] + proc.stderr[-3000:]
-    return proc.stdout + proc.stderr
-
-
-def test_time_to_walk_train_resume_eval_report(tmp_path):
-    run = functools.partial(_time_to_walk, tmp_path)
-    # 20 iterations (~2.5 s on a CPU) pass a 1 s snapshot mark; the first call stops at 1.8 s, the second resumes
-    train = ["train", "--preset", "cpu_smoke", "--device", "cpu", "--every", "0.017", "--log_every", "1",
-             "--set", f"total_env_steps={8 * 16 * 20}"]
-    run(*train, "--minutes", "0.03", "--budget_minutes", "1")
-    assert "training from runs/time_to_walk/cpu_smoke/checkpoints/latest.pt" in run(*train, "--budget_minutes", "1")
-    folder = tmp_path / "runs/time_to_walk/cpu_smoke"
-    walls = sorted(p.stem for p in (folder / "checkpoints").glob("wall_*.pt"))
-    run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--num_envs", "2", "--seconds", "0.1")
-    record = {**json.loads((folder / "train.json").read_text()), **json.loads((folder / "evals.json").read_text())}
-    assert walls and sorted(record["evaluations"]) == walls and len(record["commands"]) == 2
-    assert record["overrides"] == {"total_env_steps": 8 * 16 * 20}
-    # Continuing it with other overrides would mix two configs in one time-to-walk record.
-    assert "trained with --set total_env_steps=2560 so far, this call has --set (none)" in run(
-        "train", "--preset", "cpu_smoke", "--device", "cpu", "--every", "0", code=1)
-    for entry in record["evaluations"].values():  # 0.1 s cannot cover 2.6 m
-        assert 0.0 <= entry["commands"]["0.5,0.0"]["survival"] <= 1.0 and entry["walks"] is False
-        assert entry["device"] == "cpu"
-    text = run("report", "--runs", str(folder), "--curves", str(folder), "--out", str(tmp_path / "d"))
-    assert record["time_to_walk"] is None and "| cpu_smoke | cpu | not within" in text
-    assert "| no | cpu |" in text  # each checkpoint's row says where it was tested
-    assert (tmp_path / "d/time_to_walk.png").is_file() and (tmp_path / "d/time_to_walk_curves.png").is_file()
-
-
-def test_time_to_walk_names_the_gpu_of_any_cuda_device_string(monkeypatch):
-    import torch
-
-    from tocabi_torchrl.evaluation.gait_test import tested_on  # what time_to_walk and the library table record
-
-    seen = []
-    monkeypatch.setattr(torch.cuda, "get_device_name", lambda dev: seen.append(dev) or f"GPU {dev.index}")
-    assert tested_on("cpu") == "cpu" and not seen
-    assert tested_on("cuda:1") == "GPU 1" and tested_on("cuda") == "GPU None"
-
-
-def test_time_to_walk_trains_on_two_ranks_under_torchrun(tmp_path):
-    """The 2-GPU command of docs/training.md on gloo ranks: rank 0 alone keeps the named run's record."""
-    train = ["train", "--preset", "cpu_smoke", "--name", "smoke_2gpu", "--device", "cpu", "--minutes", "0.004"]
-    out = _time_to_walk(tmp_path, *train, "--every", "0", "--log_every", "1", nproc=2)
-    record = json.loads((tmp_path / "runs/time_to_walk/smoke_2gpu/train.json").read_text())
-    assert (record["preset"], record["name"], record["gpus"]) == ("cpu_smoke", "smoke_2gpu", 2)
-    assert record["commands"][0].startswith("torchrun --standalone --nproc_per_node 2 -m lab.benchmarks.time_to_walk")
-    latest = torch.load(tmp_path / "runs/time_to_walk/smoke_2gpu/checkpoints/latest.pt", weights_only=True)
-    assert record["env_steps"] == latest["env_steps"] == 2 * 8 * 16 * latest["iteration"]  # both ranks' steps
-    assert out.count("training from scratch on 2 rank(s)") == 1 and out.count("[train took") == 1
-    # A run is continued on the rank count it was trained on (its rate and ratio are per rank count).
-    assert "was trained on 2 rank(s) so far, this call has 1" in _time_to_walk(tmp_path, *train, code=1)
-
-
-def test_train_throughput_counts_the_whole_set_up_and_the_cores_of_the_timed_training_only(tmp_path, monkeypatch):
-    # setup_s once counted only the argument parsing (the set-up happens inside train(), before its clock starts),
-    # and cores_used_mean divided the set-up's CPU time too by the training's wall time. Here train() keeps a core
-    # busy for 0.4 s setting up, then its timed training idles for 0.3 s.
-    from tocabi_torchrl.rl import trainer
-
-    def train(cfg):
-        end = time.process_time() + 0.4
-        while time.process_time() < end:  # building the env, compiling, the agent
-            pass
-        trainer.make_collector(cfg, None, None, None, 0)  # the trainer starts its clock right after
-        time.sleep(0.3)
-        rows = [{"env_steps": str(64 * k), "wall_s": str(0.1 * k), "update_s": "0.01"} for k in (1, 2, 3)]
-        return SimpleNamespace(env_steps=192, wall_seconds=0.3, iterations=3, env_graph=False), rows
-
-    monkeypatch.setattr(trainer, "make_collector", lambda *a, **k: "collector")
-    monkeypatch.setattr(common, "train", train)
-    monkeypatch.setattr(train_throughput, "STARTED", time.perf_counter())  # as if this process started now
-    r = train_throughput.measure(8, 2, 1, 0, "cpu", str(tmp_path), {})
-    assert r["train_wall_s"] == 0.3 and r["setup_s"] >= 0.4 and r["cores_used_mean"] < 0.5, r
-    assert trainer.make_collector(None) == "collector"  # the trainer is itself again
-
-
-def test_time_to_walk_train_on_any_cuda_device_records_its_gpu_and_raw_ceiling(tmp_path, monkeypatch):
-    # `--device cuda:1` once recorded the GPU as "cpu" and skipped the raw ceiling; the report then went to
-    # runs/benchmarks_cpu as a CPU smoke run's. The trainer and the GPU are stand-ins here.
-    monkeypatch.chdir(tmp_path)
-    cfg = SimpleNamespace(resume="", max_minutes=1.0, env=SimpleNamespace(num_envs=4096), to_dict=dict)
-    rows = [{"env_steps": str(4096 * 48 * i), "wall_s": str(1.5 * i)} for i in range(1, 8)]
-    raw_on = []
-    monkeypatch.setattr(common, "config", lambda preset, **kw: cfg)
-    monkeypatch.setattr(common, "train", lambda c: (SimpleNamespace(env_steps=4096 * 48 * 7, wall_seconds=10.5), rows))
-    monkeypatch.setattr(common, "raw_policy_steps_per_second",
-                        lambda n, steps, device="cuda": raw_on.append(device) or 180_000.0)
-    monkeypatch.setattr(torch.cuda, "get_device_name", lambda dev=None: f"GPU {getattr(dev, 'index', None)}")
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
-    monkeypatch.setattr(common, "DOCS", tmp_path / "docs")
-    monkeypatch.setattr(common, "CPU_OUT", tmp_path / "cpu")
-    time_to_walk.main(["train", "--preset", "default", "--device", "cuda:1", "--every", "0"])
-    record = json.loads((tmp_path / "runs/time_to_walk/default/train.json").read_text())
-    assert record["gpu"] == "GPU 1" and raw_on == ["cuda:1"] and record["raw_policy_steps_per_s"] == 180_000.0
-    time_to_walk.main(["report", "--runs", "runs/time_to_walk/default", "--out", str(tmp_path / "docs")])
-    assert "| default | GPU 1 |" in (tmp_path / "docs/time_to_walk.md").read_text()
-
-
 @pytest.fixture
 def nothing_measured(tmp_path, monkeypatch):
     """Run in ``tmp_path`` with every measuring entry point (training, child runs, the soak's faults) failing the
@@ -448,13 +272,6 @@ def test_bad_arguments_are_refused_in_one_line(nothing_measured, tmp_path, monke
     with pytest.raises(SystemExit, match="runs/time_to_walk/torqeu: no such run folder"):
         time_to_walk.main(["eval", "--preset", "torqeu", "--device", "cpu"])
     assert not Path("runs").exists() and not Path("s").exists()
-
-
-def test_time_to_walk_on_a_machine_without_cuda_is_one_error_line(monkeypatch, capsys):
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    with pytest.raises(SystemExit) as stop:
-        time_to_walk.main(["train", "--preset", "torque"])
-    assert stop.value.code == 2 and "--device cpu" in capsys.readouterr().err
 
 
 def test_override_path():

@@ -10,6 +10,7 @@ import csv
 import json
 import lzma
 import subprocess
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -114,12 +115,25 @@ def test_a_snapshot_period_under_a_second_is_refused(tmp_path, capsys):
     assert "named by whole seconds" in capsys.readouterr().err and not (tmp_path / "table.json").exists()
 
 
+def recipe_in_this_process(cmd, check=True, cwd=None) -> None:
+    """``subprocess.run(cmd, check=True)`` of a ``[python, recipes/train_<library>.py, ARGS]`` command as a call of
+    the recipe's ``main(ARGS)`` here; a non-zero exit status raises as ``check`` makes it (CalledProcessError)."""
+    assert cmd[0] == sys.executable and Path(cmd[1]).parent.name == "recipes", cmd
+    recipe = load_recipe(Path(cmd[1]).stem)
+    status = recipe.exit_status(recipe.main(cmd[2:]))
+    if check and status:
+        raise subprocess.CalledProcessError(status, cmd)
+
+
 def test_a_second_minutes_call_continues_the_same_row(tmp_path, capsys, monkeypatch):
     # Only what the table decides is asserted, never how long a call took (a loaded 2-core machine may stall a
     # step): whether a call trains, the --max_minutes it gives the recipe (whose clock stops at or past it), the
     # counters' growth, the snapshot names and their order.
     pytest.importorskip("rsl_rl")
     table = load_recipe("library_table")
+    # The table's recipe command runs in this process (its main, from the command's own arguments): three fresh
+    # interpreters cost ~20 s of imports. test_a_library_recipe_reports_its_used_budget runs it as a subprocess.
+    monkeypatch.setattr(table, "subprocess", SimpleNamespace(run=recipe_in_this_process))
     cap_s, minutes = 60 * 0.06, 0.025
     common = ["--libraries", "rsl_rl", "--num_envs", "2", "--device", "cpu", "--max_minutes", "0.06",
               "--checkpoint_minutes", str(1 / 60), "--eval_envs", "2", "--eval_seconds", "0.05", "--minutes",

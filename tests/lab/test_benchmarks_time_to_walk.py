@@ -1,0 +1,123 @@
+"""lab.benchmarks.time_to_walk on the CPU at toy size: train, resume, evaluate and report a cpu_smoke run, train it on
+two gloo ranks under torchrun, and the GPU names and refusals its records depend on."""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import subprocess
+import sys
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from lab.benchmarks import common, time_to_walk
+
+
+def _time_to_walk(cwd, *args, code=0, nproc=0) -> str:
+    """``python -m lab.benchmarks.time_to_walk ARGS`` in ``cwd`` (under torchrun with ``nproc`` ranks): its output."""
+    launch = ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)] if nproc else []
+    env = {**os.environ, "PYTHONPATH": str(common.DOCS.parents[1])}  # the run's cwd is a temporary folder
+    proc = subprocess.run([sys.executable, *launch, "-m", "lab.benchmarks.time_to_walk", *args], cwd=cwd, text=True,
+                          capture_output=True, env=env, check=False, timeout=600)
+    assert proc.returncode == code, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc.stdout + proc.stderr
+
+
+def _time_to_walk_here(capsys, *args, error: str | None = None) -> str:
+    """``time_to_walk.main(ARGS)`` in this process and its current folder (``runs/`` is relative to it): what it
+    printed. With ``error``, the call must end as the command line ends on a refused run: ``sys.exit("error: ...")``
+    (one line on stderr, exit status 1), its message holding ``error``. A fresh interpreter per call cost ~6 s of
+    imports each; the module's own command line is run under torchrun below."""
+    if error is None:
+        time_to_walk.main(list(args))
+    else:
+        with pytest.raises(SystemExit) as stop:
+            time_to_walk.main(list(args))
+        message = stop.value.code
+        assert isinstance(message, str) and message.startswith("error: ") and error in message, message
+    printed = capsys.readouterr()
+    return printed.out + printed.err
+
+
+def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    run = functools.partial(_time_to_walk_here, capsys)
+    # 20 iterations (~2.5 s on a CPU) pass a 1 s snapshot mark; the first call stops at 1.8 s, the second resumes
+    train = ["train", "--preset", "cpu_smoke", "--device", "cpu", "--every", "0.017", "--log_every", "1",
+             "--set", f"total_env_steps={8 * 16 * 20}"]
+    run(*train, "--minutes", "0.03", "--budget_minutes", "1")
+    assert "training from runs/time_to_walk/cpu_smoke/checkpoints/latest.pt" in run(*train, "--budget_minutes", "1")
+    folder = tmp_path / "runs/time_to_walk/cpu_smoke"
+    walls = sorted(p.stem for p in (folder / "checkpoints").glob("wall_*.pt"))
+    run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--num_envs", "2", "--seconds", "0.1")
+    record = {**json.loads((folder / "train.json").read_text()), **json.loads((folder / "evals.json").read_text())}
+    assert walls and sorted(record["evaluations"]) == walls and len(record["commands"]) == 2
+    assert record["overrides"] == {"total_env_steps": 8 * 16 * 20}
+    # Continuing it with other overrides would mix two configs in one time-to-walk record.
+    run("train", "--preset", "cpu_smoke", "--device", "cpu", "--every", "0",
+        error="trained with --set total_env_steps=2560 so far, this call has --set (none)")
+    for entry in record["evaluations"].values():  # 0.1 s cannot cover 2.6 m
+        assert 0.0 <= entry["commands"]["0.5,0.0"]["survival"] <= 1.0 and entry["walks"] is False
+        assert entry["device"] == "cpu"
+    text = run("report", "--runs", str(folder), "--curves", str(folder), "--out", str(tmp_path / "d"))
+    assert record["time_to_walk"] is None and "| cpu_smoke | cpu | not within" in text
+    assert "| no | cpu |" in text  # each checkpoint's row says where it was tested
+    assert (tmp_path / "d/time_to_walk.png").is_file() and (tmp_path / "d/time_to_walk_curves.png").is_file()
+
+
+def test_time_to_walk_names_the_gpu_of_any_cuda_device_string(monkeypatch):
+    import torch
+
+    from tocabi_torchrl.evaluation.gait_test import tested_on  # what time_to_walk and the library table record
+
+    seen = []
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda dev: seen.append(dev) or f"GPU {dev.index}")
+    assert tested_on("cpu") == "cpu" and not seen
+    assert tested_on("cuda:1") == "GPU 1" and tested_on("cuda") == "GPU None"
+
+
+def test_time_to_walk_trains_on_two_ranks_under_torchrun(tmp_path, monkeypatch, capsys):
+    """The 2-GPU command of docs/training.md on gloo ranks: rank 0 alone keeps the named run's record."""
+    train = ["train", "--preset", "cpu_smoke", "--name", "smoke_2gpu", "--device", "cpu", "--minutes", "0.004"]
+    out = _time_to_walk(tmp_path, *train, "--every", "0", "--log_every", "1", nproc=2)
+    record = json.loads((tmp_path / "runs/time_to_walk/smoke_2gpu/train.json").read_text())
+    assert (record["preset"], record["name"], record["gpus"]) == ("cpu_smoke", "smoke_2gpu", 2)
+    assert record["commands"][0].startswith("torchrun --standalone --nproc_per_node 2 -m lab.benchmarks.time_to_walk")
+    latest = torch.load(tmp_path / "runs/time_to_walk/smoke_2gpu/checkpoints/latest.pt", weights_only=True)
+    assert record["env_steps"] == latest["env_steps"] == 2 * 8 * 16 * latest["iteration"]  # both ranks' steps
+    assert out.count("training from scratch on 2 rank(s)") == 1 and out.count("[train took") == 1
+    # A run is continued on the rank count it was trained on (its rate and ratio are per rank count).
+    monkeypatch.chdir(tmp_path)  # the same call on one rank, in this process (no torchrun: one rank)
+    _time_to_walk_here(capsys, *train, error="was trained on 2 rank(s) so far, this call has 1")
+
+
+def test_time_to_walk_train_on_any_cuda_device_records_its_gpu_and_raw_ceiling(tmp_path, monkeypatch):
+    # `--device cuda:1` once recorded the GPU as "cpu" and skipped the raw ceiling; the report then went to
+    # runs/benchmarks_cpu as a CPU smoke run's. The trainer and the GPU are stand-ins here.
+    monkeypatch.chdir(tmp_path)
+    cfg = SimpleNamespace(resume="", max_minutes=1.0, env=SimpleNamespace(num_envs=4096), to_dict=dict)
+    rows = [{"env_steps": str(4096 * 48 * i), "wall_s": str(1.5 * i)} for i in range(1, 8)]
+    raw_on = []
+    monkeypatch.setattr(common, "config", lambda preset, **kw: cfg)
+    monkeypatch.setattr(common, "train", lambda c: (SimpleNamespace(env_steps=4096 * 48 * 7, wall_seconds=10.5), rows))
+    monkeypatch.setattr(common, "raw_policy_steps_per_second",
+                        lambda n, steps, device="cuda": raw_on.append(device) or 180_000.0)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda dev=None: f"GPU {getattr(dev, 'index', None)}")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(common, "DOCS", tmp_path / "docs")
+    monkeypatch.setattr(common, "CPU_OUT", tmp_path / "cpu")
+    time_to_walk.main(["train", "--preset", "default", "--device", "cuda:1", "--every", "0"])
+    record = json.loads((tmp_path / "runs/time_to_walk/default/train.json").read_text())
+    assert record["gpu"] == "GPU 1" and raw_on == ["cuda:1"] and record["raw_policy_steps_per_s"] == 180_000.0
+    time_to_walk.main(["report", "--runs", "runs/time_to_walk/default", "--out", str(tmp_path / "docs")])
+    assert "| default | GPU 1 |" in (tmp_path / "docs/time_to_walk.md").read_text()
+
+
+def test_time_to_walk_on_a_machine_without_cuda_is_one_error_line(monkeypatch, capsys):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(SystemExit) as stop:
+        time_to_walk.main(["train", "--preset", "torque"])
+    assert stop.value.code == 2 and "--device cpu" in capsys.readouterr().err

@@ -1,0 +1,105 @@
+"""The training benchmarks that measure in child processes and under torchrun, on the CPU at toy size:
+train_throughput (one child, two gloo ranks), scaling (a child per measurement, kept or redone by its status) and
+the soak (a faulty training run)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from types import SimpleNamespace
+
+import pytest
+
+from lab.benchmarks import common, scaling, soak, train_throughput
+
+
+def test_train_throughput_smoke_in_a_child_process_and_on_two_ranks(tmp_path):
+    train_throughput.main(["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--nproc", "1",
+                           "2", "--raw_steps", "0", "--set", "ppo.steps_per_env=8", "ppo.actor_hidden=8 8", "--out",
+                           str(tmp_path), "--run_dir", str(tmp_path / "runs")])
+    one, two = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
+    for r, k in ((one, 1), (two, 2)):
+        assert r["num_envs"] == 8 and r["train_env_steps_per_s"] > 0 and r["overrides"]["ppo.actor_hidden"] == [8, 8]
+        # 3 iterations of K x 8 envs x 8 steps: torchrun's K gloo ranks, counted together by rank 0
+        assert r["gpus"] == k and r["iterations"] == 3 and r["env_steps"] == 3 * k * 64
+    speedup = two["train_env_steps_per_s"] / one["train_env_steps_per_s"]
+    assert f"| 2 | {speedup:.2f} | 8 |" in (tmp_path / "train_throughput.md").read_text()
+
+
+@pytest.mark.slow
+def test_scaling_measures_in_a_child_process_and_reports(tmp_path):
+    args = ["--kind", "time", "--backend", "cpu", "--num_envs", "8", "--hidden", "8", "--max_minutes", "0.02",
+            "--results", str(tmp_path / "scaling"), "--run_dir", str(tmp_path / "runs")]
+    scaling.main(args)
+    first = json.loads((tmp_path / "scaling" / "time_cpu_0000008.json").read_text())
+    assert first["status"] == "partial" and 0 < first["env_steps"] < scaling.TARGET and first["host"]["peak_rss_gib"]
+    scaling.main(args)  # an existing result is kept unless its status is redone
+    assert json.loads((tmp_path / "scaling" / "time_cpu_0000008.json").read_text()) == first
+    scaling.main(["--report", "--results", str(tmp_path / "scaling")])
+    assert "| CPU (C MuJoCo) | 8 | 256 / 512 | - |" in (tmp_path / "scaling.md").read_text()
+
+
+def test_scaling_keeps_a_failed_measurement_as_a_status_says_so_and_still_reports(tmp_path, monkeypatch, capsys):
+    # A time or raw run that failed or ran out of memory has no rates: --report once died on its record (KeyError),
+    # and a failed measurement exited 0 without its cause.
+    results, base = tmp_path / "scaling", ["--results", str(tmp_path / "scaling"), "--run_dir", str(tmp_path / "runs")]
+    shutil.copytree(common.DOCS / "scaling", results)  # the committed results, plus the failures below
+
+    def child(module, args, env=None, nproc=None):
+        oom = args[args.index("--num_envs") + 1] == "131072"
+        raise RuntimeError("python -m lab.benchmarks.train_throughput --child ... failed (1):\nTraceback (...)\n"
+                           + ("torch.OutOfMemoryError: CUDA out of memory" if oom else
+                              "AssertionError: Torch not compiled with CUDA enabled"))
+
+    monkeypatch.setattr(common, "run_child", child)
+    with pytest.raises(SystemExit, match="failed at 8192 envs"):
+        scaling.main(["--kind", "time", "--num_envs", "8192", "131072", *base])
+    out = capsys.readouterr().out
+    assert "time_gpu_0008192.json: the measurement failed: AssertionError: Torch not compiled with CUDA" in out
+    assert "time_gpu_0131072.json: oom" in out  # a result: no failure
+    with pytest.raises(SystemExit, match="failed at 2048 envs"):
+        scaling.main(["--kind", "raw", "--num_envs", "2048", *base])
+    with pytest.raises(SystemExit, match="failed at 8192 envs"):  # kept, not measured again: still failed
+        scaling.main(["--kind", "time", "--num_envs", "8192", *base])
+    assert "kept time_gpu_0008192.json (status error; --redo error measures it again)" in capsys.readouterr().out
+    scaling.main(["--report", *base[:2]])
+    text = (tmp_path / "scaling.md").read_text()
+    for n, status in (("8,192", "error"), ("131,072", "oom")):
+        assert f"| GPU (mujoco-warp) | {n} |{' - |' * 8} {status} |" in text
+    assert "| 4,096 | 116,255 |" in text  # the measured rows as before
+
+
+@pytest.mark.slow  # a faulty training run of 15 s (two rollouts at least on a loaded 2-core machine)
+def test_tiny_soak_on_the_cpu(tmp_path):
+    code = soak.main(["--num_envs", "8", "--minutes", "0.25", "--device", "cpu", "--fault_every", "40",
+                      "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs")])
+    report = json.loads((tmp_path / "soak.json").read_text())
+    assert code == 0 and report["results"] and not [c for c in report["results"] if not c["ok"]]
+    faults = report["meta"]["faults"]
+    assert faults["fault_events"] >= 1 and faults["monitor"]["nan_worlds"] == faults["fault_events"]
+    assert [r["rollout"] for r in faults["memory_series"]] == list(range(1, len(faults["memory_series"]) + 1))
+    assert (tmp_path / "soak_memory.png").stat().st_size > 1000
+
+
+def test_train_throughput_counts_the_whole_set_up_and_the_cores_of_the_timed_training_only(tmp_path, monkeypatch):
+    # setup_s once counted only the argument parsing (the set-up happens inside train(), before its clock starts),
+    # and cores_used_mean divided the set-up's CPU time too by the training's wall time. Here train() keeps a core
+    # busy for 0.4 s setting up, then its timed training idles for 0.3 s.
+    from tocabi_torchrl.rl import trainer
+
+    def train(cfg):
+        end = time.process_time() + 0.4
+        while time.process_time() < end:  # building the env, compiling, the agent
+            pass
+        trainer.make_collector(cfg, None, None, None, 0)  # the trainer starts its clock right after
+        time.sleep(0.3)
+        rows = [{"env_steps": str(64 * k), "wall_s": str(0.1 * k), "update_s": "0.01"} for k in (1, 2, 3)]
+        return SimpleNamespace(env_steps=192, wall_seconds=0.3, iterations=3, env_graph=False), rows
+
+    monkeypatch.setattr(trainer, "make_collector", lambda *a, **k: "collector")
+    monkeypatch.setattr(common, "train", train)
+    monkeypatch.setattr(train_throughput, "STARTED", time.perf_counter())  # as if this process started now
+    r = train_throughput.measure(8, 2, 1, 0, "cpu", str(tmp_path), {})
+    assert r["train_wall_s"] == 0.3 and r["setup_s"] >= 0.4 and r["cores_used_mean"] < 0.5, r
+    assert trainer.make_collector(None) == "collector"  # the trainer is itself again
