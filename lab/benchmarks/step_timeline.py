@@ -94,8 +94,8 @@ def marked_trainer(timeline: Timeline):
                 common.wrap_method(env.base_env.sim, name, mark[reset_sim], mark[reset_obs], undo)
         return saved["make_collector"](cfg, env, actor, *args, **kwargs)
 
-    def make_loss(cfg, agent):
-        loss_module, advantage = saved["make_loss"](cfg, agent)
+    def make_loss(*args, **kwargs):
+        loss_module, advantage = saved["make_loss"](*args, **kwargs)
         common.wrap_method(advantage, "forward", lambda: timeline.mark(ITERATION_PHASES[1]),
                            lambda: timeline.mark(ITERATION_PHASES[2]), undo)
         return loss_module, advantage
