@@ -460,3 +460,57 @@ def test_symmetry_sits_inside_the_torque_assist_loss():
     assert torch.isfinite(out["loss_objective"]) and "loss_absorb" in out
     with pytest.raises(ValueError, match="pass the training env"):
         make_loss(cfg, agent)
+
+
+def _augmented_update_steps(device: str, graphs: tuple[bool, ...]):
+    """The trainer's mini-batch step with ``ppo.symmetry augment`` on a 64-env default-preset env, one per entry of
+    ``graphs`` (``ppo.update_graph``), each with its agent built from the same seed."""
+    from tocabi_torchrl.rl.trainer import build_agent, build_env, make_loss, make_optimizer, make_update_step
+
+    dev, made = torch.device(device), []
+    for graph in graphs:
+        cfg = preset_config("default", device=device, **{
+            "ppo.symmetry": "augment", "env.num_envs": 64, "ppo.minibatch_size": 128, "ppo.steps_per_env": 8,
+            "ppo.actor_hidden": (32, 16), "ppo.critic_hidden": (32, 16), "ppo.update_graph": graph})
+        env = build_env(cfg, dev, for_training=True)
+        torch.manual_seed(0)
+        agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], dev)
+        loss, _ = make_loss(cfg, agent, env)
+        made.append((make_update_step(cfg, loss, make_optimizer(cfg, agent, dev), dev), agent))
+    return made
+
+
+def _agent_params(agent) -> torch.Tensor:
+    return torch.cat([p.detach().flatten() for p in (*agent.actor.parameters(), *agent.critic.parameters())])
+
+
+def test_the_trainers_augmented_update_step_runs_the_doubled_batch_on_the_cpu():
+    # The same wiring as the GPU test below, eagerly: the trainer's loss, optimiser and step take the mini-batch.
+    ((step, agent),) = _augmented_update_steps("cpu", (False,))
+    before = _agent_params(agent).clone()
+    step(_batch(128, torch.Generator().manual_seed(6)))
+    assert not torch.equal(_agent_params(agent), before)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_the_captured_augmented_update_replays_without_host_syncs_and_matches_eager():
+    """On CUDA the augmented update step is one captured graph after its warm-up: it replays without a host
+    synchronisation (the mirror is a gather and a multiply-add on the device) and gives the eager step's parameters
+    to float32 rounding."""
+    (eager, eager_agent), (graphed, graph_agent) = _augmented_update_steps("cuda", (False, True))
+    assert graphed.use_graph
+    g = torch.Generator().manual_seed(6)
+    batches = [_batch(128, g).to("cuda") for _ in range(6)]
+    for mb in batches[:-1]:  # eager warm-up steps, the capture, then replays
+        eager(mb)
+        graphed(mb)
+    assert graphed.captured
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        graphed(batches[-1])
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    eager(batches[-1])
+    torch.testing.assert_close(_agent_params(graph_agent), _agent_params(eager_agent), rtol=1e-4, atol=1e-5)
