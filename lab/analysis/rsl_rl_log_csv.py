@@ -1,4 +1,4 @@
-"""rsl_rl's console logs (a table row's, over one or more calls and sessions) as one CSV row per PPO iteration
+"""rsl_rl's console logs (a table row's, over one or more resumed calls) as one CSV row per PPO iteration
 (issue 22).
 
     python lab/analysis/rsl_rl_log_csv.py LOG [LOG ...] OUT.csv     # LOGs in order; .xz ones are read as such
@@ -6,8 +6,9 @@
 rsl_rl prints a ~30-line block per iteration; the table keeps the signals that tell rows apart (episode length,
 reward, the imitation term ``qpos``, the velocity term ``body_vel``, the action std, the value loss) and the rate.
 ``iteration`` is rsl_rl's own count, which a resumed call continues; ``call`` counts the recipe's start lines
-(``+ ... train_rsl_rl.py``) over the logs given, so a row's sessions' logs given in order number its calls from 1, and ``call_steps`` is rsl_rl's "Total steps", which restarts each call. A value rsl_rl
-did not print in an iteration (no episode ended yet) is left empty.
+(``+ ... train_rsl_rl.py``) over the logs given, so a row's logs given in order number its calls from 1, and
+``call_steps`` is rsl_rl's "Total steps", which restarts each call. A value rsl_rl did not print in an iteration (no
+episode ended yet) is left empty.
 """
 
 from __future__ import annotations
