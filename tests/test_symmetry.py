@@ -514,3 +514,21 @@ def test_the_captured_augmented_update_replays_without_host_syncs_and_matches_ea
         torch.cuda.set_sync_debug_mode("default")
     eager(batches[-1])
     torch.testing.assert_close(_agent_params(graph_agent), _agent_params(eager_agent), rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("normalization, refreshes", [("running", 2), ("fixed", 0)])
+def test_the_trainer_refreshes_the_mirror_only_for_moving_statistics(tmp_path, monkeypatch, normalization, refreshes):
+    # A running normaliser moves during each rollout: the mirror takes its statistics before each update. Fixed ones
+    # never move, so the mirror keeps what make_loss gave it.
+    from tocabi_torchrl.rl import trainer
+
+    calls = []
+    refresh = trainer.refresh_statistics
+    monkeypatch.setattr(trainer, "refresh_statistics", lambda loss, env: calls.append(1) or refresh(loss, env))
+    cfg = preset_config("cpu_smoke", device="cpu", **{"ppo.symmetry": "augment", "env.num_envs": 4,
+                                                      "ppo.steps_per_env": 8, "ppo.minibatch_size": 16,
+                                                      "transforms.normalization": normalization},
+                        total_env_steps=64, run_dir=str(tmp_path), name="sym", progress_bar=False,
+                        eval_at_end=False)
+    assert trainer.train(cfg).iterations == 2
+    assert len(calls) == refreshes

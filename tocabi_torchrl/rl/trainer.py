@@ -38,7 +38,8 @@ from .networks import make_mlp
 from .rollout_guard import VALID_KEY, guard_rollout
 from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
-from .symmetry import SymmetryAugmentLoss, make_symmetry_loss, refresh_statistics
+from ..transforms.normalize import RunningNormalization
+from .symmetry import SymmetryAugmentLoss, find_normalization, make_symmetry_loss, refresh_statistics
 from .update_step import (MinibatchStep, adapt_lr, get_lr, make_capturable_adam, optimizer_mode,
                           restore_optimizer_mode, set_lr)
 
@@ -417,7 +418,11 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
 
     ppo = cfg.ppo
     loss_module, advantage = make_loss(cfg, agent, env)
-    symmetry = next((m for m in loss_module.modules() if isinstance(m, SymmetryAugmentLoss)), None)
+    # The symmetry loss whose mirror follows a running normaliser's statistics (fixed ones never move: make_loss set
+    # them); None without symmetry or with fixed statistics.
+    running_mirror = next((m for m in loss_module.modules() if isinstance(m, SymmetryAugmentLoss)), None)
+    if not isinstance(find_normalization(env), RunningNormalization):
+        running_mirror = None
     update_step = make_update_step(cfg, loss_module, optimizer, device, info)
     assist = _assist_schedule(cfg, env)
     if assist is not None:
@@ -448,8 +453,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             progress_remaining = 1.0 - it / iterations
             if stats_sync is not None:
                 stats_sync.sync()  # before the update: every rank's next rollout normalises alike
-            if symmetry is not None:  # the mirror of a normalised input uses the statistics the rollout ended with
-                refresh_statistics(symmetry, env)
+            if running_mirror is not None:  # the mirror of a normalised input uses the rollout's last statistics
+                refresh_statistics(running_mirror, env)
             # The collector reuses `batch` as its buffer (return_same_td): GAE's outputs go to a shallow copy.
             work = batch.clone(False)
             guard_rollout(work)  # frames with NaN/inf or impossible actions are masked out of the loss
