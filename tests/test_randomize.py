@@ -42,3 +42,8 @@ def test_the_robust_preset_builds_an_env_with_everything_on_and_steps_it():
     for _ in range(5):
         out, td = env.step_and_maybe_reset(td.set("action", torch.zeros(4, 13)))
     assert torch.isfinite(out["next", "observation"]).all()
+    # The heading-hold term's premise: every episode, diverse start or not, begins facing the world's +x, so one
+    # step after a reset the term pays (almost) its whole weight.
+    first, _ = env.step_and_maybe_reset(env.reset().set("action", torch.zeros(4, 13)))
+    torch.testing.assert_close(first["next", "reward_terms", "heading"],
+                               torch.full((4, 1), cfg.transforms.heading_weight), rtol=1e-3, atol=0.0)

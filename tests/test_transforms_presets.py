@@ -261,6 +261,34 @@ def test_reward_weights_have_one_field_per_term_whose_help_gives_its_reference_w
         RewardWeights(qpos=float("inf")).as_map()
 
 
+def test_the_heading_hold_term_rewards_facing_the_start_heading_and_is_off_by_default():
+    import math
+
+    from tensordict import TensorDict
+
+    from tocabi_torchrl.transforms.reward_terms import HeadingHold
+    from tocabi_torchrl.transforms.settings import REFERENCE_TERM_NAMES, TransformSettings
+
+    env = _env(reward_terms=(*REFERENCE_TERM_NAMES, HeadingHold(weight=0.3, scale=20.0)))
+    nxt = env.rollout(3)["next"]
+    yaw = nxt["base_rpy"][..., 2:3]
+    assert yaw.abs().max() > 0.01  # the mock's pelvis turns, so the kernel is tested away from its peak
+    torch.testing.assert_close(nxt["reward_terms", "heading"], 0.3 * torch.exp(-20.0 * yaw.square()))
+    # Symmetric: a turn to either side costs the same.
+    term = HeadingHold(weight=1.0, scale=20.0)
+    rpy = torch.tensor([[0.0, 0.0, 0.1], [0.0, 0.0, -0.1], [0.0, 0.0, 0.0]])
+    values = term(TensorDict({}, [3]), TensorDict({"base_rpy": rpy}, [3])).flatten()
+    torch.testing.assert_close(values, torch.tensor([math.exp(-0.2), math.exp(-0.2), 1.0]))
+    # The run config: 0 (the default) adds no term, a weight adds it after the reference's 13.
+    assert all(not isinstance(t, HeadingHold) for t in TransformSettings().transform_config().reward_terms)
+    terms = TransformSettings(heading_weight=0.3, heading_scale=10.0).transform_config().reward_terms
+    assert terms[:13] == REFERENCE_TERM_NAMES and terms[13] == HeadingHold(weight=0.3, scale=10.0)
+    for name, bad in (("heading_weight", -0.1), ("heading_weight", float("nan")), ("heading_scale", 0.0),
+                      ("heading_scale", "20"), ("heading_weight", True)):
+        with pytest.raises(ValueError, match=f"transforms.{name} must be a finite number"):
+            TransformSettings(**{name: bad}).validate()
+
+
 def test_a_reward_scale_sharpens_its_term_and_bad_scales_are_named():
     from tocabi_torchrl.transforms.reward_terms import BodyVelTracking
     from tocabi_torchrl.transforms.settings import TransformSettings

@@ -69,7 +69,7 @@ __getattr__, __dir__ = lazy_names(globals(), {
     "presets": ("default_transforms",),
     "settings": ("HISTORIES", "RewardWeights", "TransformConfig", "TransformSettings", "transform_config"),
     "reward": ("TaskReward",),
-    "reward_terms": ("REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern", "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm", "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
+    "reward_terms": ("REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern", "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "HeadingHold", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm", "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
     "sensor_noise": ("SensorNoise",),
     "sensor_noise_config": ("SensorNoiseConfig",),
 })

@@ -44,6 +44,7 @@ __all__ = [
     "ForceReference",
     "ForceThresholdPenalty",
     "ForceDiffThresholdPenalty",
+    "HeadingHold",
     "REFERENCE_TERMS",
     "SIGNAL_SHAPES",
     "reference_terms",
@@ -178,6 +179,26 @@ class BodyVelTracking(RewardTerm):
     def kernel(self, td, next_td):
         err = next_td.get("base_lin_vel")[..., :2] - next_td.get("command")
         return torch.exp(-self.scale * err.square().sum(-1, keepdim=True))
+
+
+@dataclass
+class HeadingHold(RewardTerm):
+    """Not a reference term: ``weight · exp(-scale · ψ²)``, ψ = ``next["base_rpy"][..., 2]`` the pelvis yaw [rad].
+
+    Every episode starts facing the world's +x (ψ = 0) and the command is meant in the heading frame, so ψ is how far
+    the robot has turned from the way it was sent. ``body_vel`` tracks the command in the pelvis frame and is blind to
+    a slow turn; a policy that turns 0.3 rad in 8 s while walking at 0.5 m/s ends ~0.6 m to the side, which the gait
+    tests measure as drift. The weight defaults to 0 (off); ``transforms.heading_weight`` and
+    ``transforms.heading_scale`` set it in the run config.
+    """
+
+    name: str = "heading"
+    weight: float = 0.0
+    scale: float = 20.0
+    next_keys: tuple = field(default=("base_rpy",), init=False, repr=False)
+
+    def kernel(self, td, next_td):
+        return torch.exp(-self.scale * next_td.get("base_rpy")[..., 2:3].square())
 
 
 @dataclass

@@ -206,6 +206,11 @@ class TransformSettings:
     body_vel_scale: float | None = None
     """sharpness s of the velocity-tracking term body_vel, weight·exp(-s·‖v − cmd‖²) [s²/m²] (reference 3.0: a
     0.1 m/s error then costs 3 % of the term); None: the reference's"""
+    heading_weight: float = 0.0
+    """weight w of the heading-hold term heading, w·exp(-s·ψ²), ψ the pelvis yaw from the episode's start heading
+    [rad] (not a reference term: reward_terms.HeadingHold); 0: off"""
+    heading_scale: float = 20.0
+    """sharpness s of the heading-hold term [1/rad²] (20: a 0.1 rad turn costs 18 % of the term)"""
 
     def reward_weight_map(self) -> dict[str, float]:
         """``reward_weights`` as ``{term: weight}`` of the terms given one; raises ``ValueError`` naming a bad one."""
@@ -229,6 +234,12 @@ class TransformSettings:
                 self.body_vel_scale, (int, float)) or not 0 < self.body_vel_scale < math.inf):
             raise ValueError(f"transforms.body_vel_scale must be a finite number > 0 (s in exp(-s·‖v − cmd‖²), "
                              f"s²/m²) or none for the reference's 3.0, got {self.body_vel_scale!r}")
+        for name, low in (("heading_weight", "0 <="), ("heading_scale", "0 <")):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not (
+                    value >= 0 if low == "0 <=" else value > 0):
+                raise ValueError(f"transforms.{name} must be a finite number with {low} value (the heading-hold term "
+                                 f"w·exp(-s·ψ²)), got {value!r}")
 
     def transform_config(self, **overrides) -> TransformConfig:
         """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
@@ -244,4 +255,9 @@ class TransformSettings:
                       zero_reward_on_terminated=self.zero_reward_on_terminated, compile_reward=self.compile_reward,
                       reward_weights=weights, max_episode_steps=None, sensor_noise=self.sensor_noise,
                       reward_scales={} if self.body_vel_scale is None else {"body_vel": float(self.body_vel_scale)})
+        if self.heading_weight > 0:  # off adds no term, so a config without it computes what it always did
+            from tocabi_torchrl.transforms.reward_terms import HeadingHold  # torch: the tree itself reads without it
+
+            values["reward_terms"] = (*REFERENCE_TERM_NAMES, HeadingHold(weight=float(self.heading_weight),
+                                                                       scale=float(self.heading_scale)))
         return transform_config(self.history, **{**values, **overrides})
