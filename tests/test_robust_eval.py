@@ -15,7 +15,6 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from test_runs import recipe
 
 REPO = Path(__file__).resolve().parents[1]
@@ -230,8 +229,8 @@ def test_heading_frame_velocity_removes_the_yaw_only():
 @pytest.mark.parametrize("mode", ["pd_reference", "torque"])
 def test_case_configs_hold_what_each_case_says(mode):
     from tocabi_torchrl.config import preset_config
-    from tocabi_torchrl.randomize import TOCABI_LAB_ACTUATORS, TOCABI_LAB_DYNAMICS
     from tocabi_torchrl.evaluation.robust import EVAL_SEED, case_config
+    from tocabi_torchrl.randomize import TOCABI_LAB_ACTUATORS, TOCABI_LAB_DYNAMICS
 
     cfg = preset_config("cpu_smoke", **{"env.control.mode": mode})
     nominal, commands, pushed = (case_config(cfg, name) for name in ("nominal", "commands", "robust_1.0"))

@@ -24,12 +24,11 @@ import sys
 import time
 from pathlib import Path
 
+from tocabi_torchrl.evaluation.gait_test import GAIT_CRITERIA as CRITERIA
+from tocabi_torchrl.evaluation.gait_test import ROBUST_CRITERIA, tested_on
+from tocabi_torchrl.evaluation.gait_test import gait_passes as passes_main
 from tocabi_torchrl.rl.curves import read_metrics, steady_rate
 from tocabi_torchrl.rl.distributed import DistInfo, ending, from_environment
-from tocabi_torchrl.evaluation.gait_test import GAIT_CRITERIA as CRITERIA
-from tocabi_torchrl.evaluation.gait_test import ROBUST_CRITERIA
-from tocabi_torchrl.evaluation.gait_test import gait_passes as passes_main
-from tocabi_torchrl.evaluation.gait_test import tested_on
 
 from . import common
 

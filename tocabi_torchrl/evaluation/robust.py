@@ -44,10 +44,10 @@ from ..transforms.normalize import freeze_running_statistics
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, summary_json, tested_on
 from .record import GaitMetrics, fixed_command, policy_steps
 
-__all__ = ["CASES", "EVAL_SEED", "RobustCase", "RobustTestConfig", "case_config", "robust_case_config", "case_env",
-           "randomization_applied", "batch_config", "batch_env", "batch_key", "case_worlds", "heading_frame_velocity", "case_summary", "run_case", "case_checks",
-           "robust_passes", "evaluate_robust", "evaluate_robust_checkpoint", "evaluate_robust_run",
-           "robust_report_text", "ROBUST_JSON", "ROBUST_PNG"]
+__all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "RobustCase", "RobustTestConfig", "batch_config",
+           "batch_env", "batch_key", "case_checks", "case_config", "case_env", "case_summary", "case_worlds",
+           "evaluate_robust", "evaluate_robust_checkpoint", "evaluate_robust_run", "heading_frame_velocity",
+           "randomization_applied", "robust_case_config", "robust_passes", "robust_report_text", "run_case"]
 
 #: The seed of every random draw of the robust test (starts, commands, randomisation, pushes). Below 2**32, the part
 #: of a seed the per-episode draws read (envs.episode_random), and far from the small seeds the presets and tests
@@ -168,9 +168,8 @@ def randomization_applied(cfg: RunConfig) -> str:
 def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig = RobustTestConfig()) -> RunConfig:
     """The run config a case's env is built from: ``cfg`` (a policy's own config) with diverse starts, the case's
     command schedule, :attr:`RobustTestConfig.seed` and, for a pushed case, :func:`robust_case_config`."""
-    from ..envs import CommandConfig
-
     from ..control.config import ActuatorConfig
+    from ..envs import CommandConfig
     from ..envs.push_config import PushConfig
     from ..sim.dynamics_config import DynamicsRandomization
     from ..transforms.sensor_noise_config import SensorNoiseConfig
@@ -451,8 +450,8 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
     and its normaliser statistics loaded into every case's env. ``envs`` as there: a benchmark reuses the case envs
     of one run's checkpoints (building them costs more than the test)."""
     from ..rl.checkpoint import apply_checkpoint, config_from_checkpoint
-    from .gait_test import policy_dt
     from ..rl.trainer import build_agent, resolve_device
+    from .gait_test import policy_dt
 
     device = resolve_device(device) if str(device) == "auto" else torch.device(device)
     cfg = config_from_checkpoint(state, path)
