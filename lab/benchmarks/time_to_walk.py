@@ -209,7 +209,8 @@ ROBUST_COLUMNS = (("nominal", "survival", "survival", ".3f"),
                   ("nominal", "forward_distance_m.mean", "forward [m]", ".2f"),
                   ("nominal", "lateral_drift_m.p95", "drift p95 [m]", ".2f"),
                   ("commands", "survival", "survival (commands)", ".3f"),
-                  ("commands", "tracking_error_mps.mean", "tracking error [m/s]", ".3f"),
+                  ("commands", "tracking_error_mps.mean", "tracking error, cycle mean [m/s]", ".3f"),
+                  ("commands", "instant_speed_error_mps.mean", "instantaneous speed error [m/s]", ".3f"),
                   ("robust_0.5", "survival", "survival (push 0.5 m/s)", ".3f"),
                   ("robust_1.0", "survival", "survival (push 1.0 m/s)", ".3f"))
 
