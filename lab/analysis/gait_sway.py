@@ -6,8 +6,11 @@ velocity of every robot at every step. Reports, averaged over the robots alive a
 and v_y over the last ``--tail`` seconds, the error of their mean velocity over that time per axis, the
 instantaneous error ``|v − command|`` over that time, the error of the mean velocity over the last gait cycle per
 axis, and the test's two metrics over the whole case (``tracking_error_mps``: the error of the gait-cycle mean
-velocity; ``instant_speed_error_mps``). Wrote docs/evaluation/gait_sway.json
-(about 5 min on 2 cores)::
+velocity; ``instant_speed_error_mps``). The policy's phase action may run its clock faster than the reference's,
+which shortens its own gait cycle: the script reports that rate over the tail, the cycle in policy steps it gives,
+and the cycle-mean error over the recorded steps with that window beside the test's (one reference cycle).
+
+Wrote docs/evaluation/gait_sway.json (about a minute on 2 cores)::
 
     PYTHONPATH=. python lab/analysis/gait_sway.py --out docs/evaluation/gait_sway.json
 """
@@ -40,12 +43,14 @@ def measure(path: Path, num_envs: int, seconds: float, tail: float) -> dict:
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
     apply_checkpoint(state, agent, env=env, path=path)
     env.set_seed(int(test.seed))
-    trace = []
+    trace, phase = [], []
 
     def actor(td):
         # The actor sees the last step's outputs (step_mdp moved them to the root): the velocity after each step.
         trace.append((robust.heading_frame_velocity(td["base_quat"], td["base_lin_vel"]), td["command"].clone()))
-        return agent.actor(td)
+        td = agent.actor(td)
+        phase.append(td["action"][:, -1].clamp(0.0, 1.0))  # the phase-rate action, clipped as the env clips it
+        return td
 
     per_env = robust.run_case(actor, env, seconds, progress=False)
     base = env.base_env
@@ -58,8 +63,17 @@ def measure(path: Path, num_envs: int, seconds: float, tail: float) -> dict:
     window = robust.gait_cycle_steps(base.motion.period, base.dt)
     cycle_err = (vel[-window:].mean(0) - cmd[-window:].mean(0))[alive].abs()
     instant = (last - cmd[-1]).norm(dim=-1).mean(0)[alive]
+    # The policy's phase action runs its clock at 1 + gain·a times the reference's: its own gait cycle is shorter.
+    rate = 1.0 + cfg.env.task.phase_rate_gain * torch.stack(phase)[-len(last):].double().mean()
+    own = round(window / float(rate))
+    by_window = {}
+    for steps in sorted({own, window}):  # the cycle-mean error over the recorded steps, robots alive at the end
+        tracker = robust.CycleMeanTracking(num_envs, steps)
+        for v, c in zip(vel, cmd):
+            tracker.update(v, c, alive)
+        by_window[str(steps)] = float(tracker.per_env()[alive].mean())
     return {"policy": path.name, "num_envs": num_envs, "seconds": seconds, "tail_s": tail, "seed": robust.EVAL_SEED,
-            "window_steps": window,
+            "window_steps": window, "phase_clock_rate": float(rate), "policy_cycle_steps": own,
             "survival": float(alive.float().mean()),
             "tail": {"std_vx_mps": float(std[:, 0].mean()), "std_vy_mps": float(std[:, 1].mean()),
                      "mean_velocity_error_vx_mps": float(mean_err[:, 0].mean()),
@@ -67,6 +81,7 @@ def measure(path: Path, num_envs: int, seconds: float, tail: float) -> dict:
                      "instant_speed_error_mps": float(instant.mean())},
             "last_cycle": {"mean_velocity_error_vx_mps": float(cycle_err[:, 0].mean()),
                            "mean_velocity_error_vy_mps": float(cycle_err[:, 1].mean())},
+            "tracking_error_by_window_mps": by_window,
             "case": {k: float(per_env[k].nanmean()) for k in ("tracking_error_mps", "instant_speed_error_mps")}}
 
 
