@@ -54,8 +54,9 @@ def render(data: dict, out: Path) -> str:
     rows = []
     for r in data["results"]:
         for name, c in r["cases"].items():
-            cells = [common.fmt(c.get(path), spec) + ("" if all(ch["pass"] for p, ch in c["checks"].items()
-                                                                 if p == path) else " ✗") for _, path, spec in COLUMNS]
+            cells = [common.fmt(c.get(path), spec)
+                     + ("" if all(ch["pass"] for p, ch in c["checks"].items() if p == path) else " ✗")
+                     for _, path, spec in COLUMNS]
             rows.append([r["policy"], name, *cells, "pass" if c["passes"] else "FAIL"])
     lines = [common.table(["policy", "case", *[label for label, _, _ in COLUMNS], "case verdict"], rows), ""]
     lines += [f"- {r['policy']}: {'passes' if r['passes'] else 'does not pass'} the robust test; "
