@@ -15,7 +15,6 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from test_runs import recipe
 
 REPO = Path(__file__).resolve().parents[1]
@@ -52,12 +51,15 @@ def test_report_has_every_case_with_its_distributions_and_verdicts(robust_run):
     assert report["test"] == "robust" and report["seed"] == EVAL_SEED and list(report["cases"]) == list(CASES)
     assert report["settings"]["num_envs"] == ROBOTS and report["settings"]["seconds"] == SECONDS
     stats = {"forward_distance_m": {"mean", "p5", "p50", "p95"}, "lateral_drift_m": {"mean", "p50", "p95"},
-             "tracking_error_mps": {"mean", "p95"}, "knee_rms_rad": {"mean", "p95"}}
+             "instant_speed_error_mps": {"mean", "p95"}, "knee_rms_rad": {"mean", "p95"}}
     for name, case in report["cases"].items():
         assert case["num_envs"] == ROBOTS and 0.0 <= case["survival"] <= 1.0
         for metric, keys in stats.items():
             values = case[metric].values()
             assert set(case[metric]) == keys and all(isinstance(v, float) for v in values), (name, metric)
+        # Half a second is shorter than one gait cycle (1.8 s): no robot has a cycle-mean velocity yet, so the
+        # tracking error has no value (null), and the commands case's check on it fails.
+        assert case["tracking_error_mps"] == {"mean": None, "p95": None}, name
         d = case["forward_distance_m"]
         assert d["p5"] <= d["p50"] <= d["p95"]
         assert set(case["checks"]) == set(ROBUST_CRITERIA[name])
@@ -70,6 +72,8 @@ def test_report_has_every_case_with_its_distributions_and_verdicts(robust_run):
     # Half a second from rest cannot cover 2.6 m: the verdict is "does not walk yet", and says why.
     assert not report["passes"] and "does not walk yet" in printed.splitlines()[1]
     assert "forward_distance_m.mean" in printed and "FAIL" in printed
+    instant = report["cases"]["nominal"]["instant_speed_error_mps"]["mean"]
+    assert f"tracking (cycle mean / instantaneous) - / {instant:.3f} m/s" in printed
 
 
 def test_starts_are_diverse(robust_run):
@@ -227,11 +231,104 @@ def test_heading_frame_velocity_removes_the_yaw_only():
     assert torch.allclose(got, torch.tensor([[math.cos(0.3), 0.0]]), atol=1e-6)
 
 
+def test_the_tracking_window_is_one_reference_gait_cycle():
+    from tocabi_torchrl.evaluation.gait_test import policy_dt
+    from tocabi_torchrl.evaluation.robust import gait_cycle_steps
+    from tocabi_torchrl.motion import ReferenceMotion
+
+    period = ReferenceMotion.default().period
+    assert period == pytest.approx(1.7995) and gait_cycle_steps(period, policy_dt()) == 450
+
+
+def test_the_cycle_mean_error_sees_the_speed_not_the_sway():
+    # A pelvis that walks 0.45 m/s forward and 0.03 m/s sideways on average, surging ±0.15 m/s twice per cycle and
+    # swaying ±0.12 m/s once per cycle, under command (0.5, 0): its cycle-mean error is the average's, 0.058 m/s;
+    # its instantaneous error is dominated by the sway.
+    from tocabi_torchrl.evaluation.robust import CycleMeanTracking
+
+    window, steps, n = 50, 400, 3
+    tracker = CycleMeanTracking(n, window)
+    command = torch.tensor([0.5, 0.0]).expand(n, 2)
+    phase = torch.tensor([0.0, 1.0, 2.5])  # each robot's own phase in the cycle
+    instant = []
+    for k in range(steps):
+        angle = 2 * math.pi * k / window + phase
+        velocity = torch.stack((0.45 + 0.15 * torch.sin(2 * angle), 0.03 + 0.12 * torch.cos(angle)), -1)
+        tracker.update(velocity, command, torch.ones(n, dtype=torch.bool))
+        instant.append((velocity - command).norm(dim=-1))
+    cycle_mean = tracker.per_env()
+    torch.testing.assert_close(cycle_mean, torch.full((n,), math.hypot(0.05, 0.03)), atol=1e-6, rtol=0)
+    assert torch.all(tracker.steps == steps - window + 1)
+    assert torch.all(torch.stack(instant).mean(0) > 1.8 * cycle_mean)
+
+
+def test_the_cycle_mean_tracking_example_runs():
+    import doctest
+
+    from tocabi_torchrl.evaluation import robust
+
+    tests = doctest.DocTestFinder().find(robust.CycleMeanTracking, globs={"torch": torch, **vars(robust)})
+    runner = doctest.DocTestRunner()
+    for test in tests:
+        runner.run(test)
+    assert runner.summarize(verbose=False).attempted > 0 and runner.summarize(verbose=False).failed == 0
+
+
+def test_a_robot_that_falls_within_its_first_cycle_has_no_cycle_mean_error():
+    from tocabi_torchrl.evaluation.robust import CycleMeanTracking
+
+    window = 10
+    falls_at = torch.tensor([5, 25, 10**6])  # within the first window, after it, never (alive until the first fall)
+    tracker = CycleMeanTracking(3, window)
+    for k in range(40):
+        tracker.update(torch.full((3, 2), 0.3), torch.zeros(3, 2), k < falls_at)
+    per_env = tracker.per_env()
+    assert math.isnan(per_env[0]) and tracker.steps.tolist() == [0, 25 - window + 1, 40 - window + 1]
+    torch.testing.assert_close(per_env[1:], torch.full((2,), math.hypot(0.3, 0.3)))
+    # A robot alive again after a fall (an env that resets it) counts only after a whole window alive again.
+    tracker = CycleMeanTracking(1, window)
+    for k in range(40):
+        tracker.update(torch.ones(1, 2), torch.zeros(1, 2), torch.tensor([k != 20]))
+    assert tracker.steps.tolist() == [(20 - window + 1) + (40 - 21 - window + 1)]
+    # A rollout shorter than a window gives no robot a value.
+    tracker = CycleMeanTracking(2, window)
+    for _ in range(window - 1):
+        tracker.update(torch.ones(2, 2), torch.zeros(2, 2), torch.ones(2, dtype=torch.bool))
+    assert torch.isnan(tracker.per_env()).all()
+
+
+def test_the_rolling_means_are_the_direct_means():
+    # 2,000 float32 steps of a random walk at a 10 m/s offset (a hard case for a rolling float32 sum), window 450:
+    # at every step the rolling means equal the float64 means of the last 450 values, and the per-robot result
+    # equals the directly computed mean error.
+    from tocabi_torchrl.evaluation.robust import CycleMeanTracking
+
+    gen = torch.Generator().manual_seed(0)
+    window, steps, n = 450, 2000, 4
+    vel = (10.0 + 0.3 * torch.randn(steps, n, 2, generator=gen)).float()
+    cmd = torch.rand(steps, n, 2, generator=gen).float()
+    alive = torch.ones(steps, n, dtype=torch.bool)
+    alive[1500:, 1] = False  # one robot falls at step 1,500
+    tracker = CycleMeanTracking(n, window)
+    worst = 0.0
+    for k in range(steps):
+        tracker.update(vel[k], cmd[k], alive[k])
+        lo = max(0, k + 1 - window)
+        worst = max(worst, float((tracker.mean_velocity() - vel[lo:k + 1].double().mean(0)).abs().max()),
+                    float((tracker.mean_command() - cmd[lo:k + 1].double().mean(0)).abs().max()))
+    assert worst < 1e-12
+    windows = vel.double().unfold(0, window, 1).mean(-1) - cmd.double().unfold(0, window, 1).mean(-1)  # (T-W+1, N, 2)
+    errors = windows.norm(dim=-1)
+    direct = torch.stack((errors[:, 0].mean(), errors[:1500 - window + 1, 1].mean(), errors[:, 2].mean(),
+                          errors[:, 3].mean())).float()
+    torch.testing.assert_close(tracker.per_env(), direct, atol=1e-6, rtol=0)
+
+
 @pytest.mark.parametrize("mode", ["pd_reference", "torque"])
 def test_case_configs_hold_what_each_case_says(mode):
     from tocabi_torchrl.config import preset_config
-    from tocabi_torchrl.randomize import TOCABI_LAB_ACTUATORS, TOCABI_LAB_DYNAMICS
     from tocabi_torchrl.evaluation.robust import EVAL_SEED, case_config
+    from tocabi_torchrl.randomize import TOCABI_LAB_ACTUATORS, TOCABI_LAB_DYNAMICS
 
     cfg = preset_config("cpu_smoke", **{"env.control.mode": mode})
     nominal, commands, pushed = (case_config(cfg, name) for name in ("nominal", "commands", "robust_1.0"))

@@ -24,12 +24,11 @@ import sys
 import time
 from pathlib import Path
 
+from tocabi_torchrl.evaluation.gait_test import GAIT_CRITERIA as CRITERIA
+from tocabi_torchrl.evaluation.gait_test import ROBUST_CRITERIA, tested_on
+from tocabi_torchrl.evaluation.gait_test import gait_passes as passes_main
 from tocabi_torchrl.rl.curves import read_metrics, steady_rate
 from tocabi_torchrl.rl.distributed import DistInfo, ending, from_environment
-from tocabi_torchrl.evaluation.gait_test import GAIT_CRITERIA as CRITERIA
-from tocabi_torchrl.evaluation.gait_test import ROBUST_CRITERIA
-from tocabi_torchrl.evaluation.gait_test import gait_passes as passes_main
-from tocabi_torchrl.evaluation.gait_test import tested_on
 
 from . import common
 
@@ -210,7 +209,8 @@ ROBUST_COLUMNS = (("nominal", "survival", "survival", ".3f"),
                   ("nominal", "forward_distance_m.mean", "forward [m]", ".2f"),
                   ("nominal", "lateral_drift_m.p95", "drift p95 [m]", ".2f"),
                   ("commands", "survival", "survival (commands)", ".3f"),
-                  ("commands", "tracking_error_mps.mean", "tracking error [m/s]", ".3f"),
+                  ("commands", "tracking_error_mps.mean", "tracking error, cycle mean [m/s]", ".3f"),
+                  ("commands", "instant_speed_error_mps.mean", "instantaneous speed error [m/s]", ".3f"),
                   ("robust_0.5", "survival", "survival (push 0.5 m/s)", ".3f"),
                   ("robust_1.0", "survival", "survival (push 1.0 m/s)", ".3f"))
 

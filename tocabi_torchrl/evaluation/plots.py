@@ -62,8 +62,9 @@ def plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path, command: t
 
 def plot_robust(per_case: dict, report: dict, path: Path) -> Path:
     """The robust gait test in one figure: survival per case (bars, its threshold marked), and the CDFs over the
-    robots of forward distance [m], lateral drift |y| [m] and heading-frame speed tracking error [m/s], one line per
-    case, the thresholds of :data:`~tocabi_torchrl.evaluation.gait_test.ROBUST_CRITERIA` as dotted lines in the case's
+    robots of forward distance [m], lateral drift |y| [m] and heading-frame speed tracking error [m/s] (of the
+    gait-cycle mean velocity, solid; the instantaneous error, dashed, where ``per_case`` has it), one line per case,
+    the thresholds of :data:`~tocabi_torchrl.evaluation.gait_test.ROBUST_CRITERIA` as dotted lines in the case's
     colour. ``per_case``: case -> per-robot (N,) tensors or arrays (``robust.run_case``); ``report``: the
     report whose ``cases`` hold the checks. Saved to ``path``."""
     names = list(per_case)
@@ -85,13 +86,19 @@ def plot_robust(per_case: dict, report: dict, path: Path) -> Path:
     ax.grid(alpha=0.3, axis="y")
     panels = (("forward_m", "forward distance [m]", "forward_distance_m", np.asarray),
               ("lateral_m", "lateral drift |y| [m]", "lateral_drift_m", np.abs),
-              ("tracking_error_mps", "speed tracking error, heading frame [m/s]", "tracking_error_mps", np.asarray))
+              ("tracking_error_mps", ("speed tracking error, heading frame [m/s]\n"
+                                      "solid: of the gait-cycle mean velocity; dashed: instantaneous"),
+               "tracking_error_mps", np.asarray))
     for ax, (key, label, metric, fn) in zip(axes[1:], panels):
         for name in names:
-            x = np.sort(fn(np.asarray(per_case[name][key], dtype=float)))
-            x = x[~np.isnan(x)]
-            if x.size:
-                ax.step(x, np.arange(1, x.size + 1) / x.size, where="post", color=colors[name], label=name)
+            keys = [(key, "-")] + ([("instant_speed_error_mps", "--")] if key == "tracking_error_mps"
+                                   and "instant_speed_error_mps" in per_case[name] else [])
+            for series, style in keys:
+                x = np.sort(fn(np.asarray(per_case[name][series], dtype=float)))
+                x = x[~np.isnan(x)]
+                if x.size:
+                    ax.step(x, np.arange(1, x.size + 1) / x.size, where="post", color=colors[name], ls=style,
+                            label=name if style == "-" else None)
             for path_, check in report["cases"][name].get("checks", {}).items():
                 if path_.split(".")[0] == metric:
                     ax.axvline(float(check["needs"].split()[1]), color=colors[name], ls=":", lw=1.2)
