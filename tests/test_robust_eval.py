@@ -407,6 +407,8 @@ def test_the_captured_path_gives_the_eager_path_numbers():
         out[autoreset] = run_case(actor, env, test.seconds, progress=False, autoreset=autoreset)
     eager, captured = out[False], out[True]
     assert not eager["alive"].all(), "the pinned actions should topple some robots (else no reset is exercised)"
+    # How far each robot turned, frozen at its fall: finite (every robot had alive steps), not all 0 (they topple).
+    assert torch.isfinite(eager["heading_change_rad"]).all() and eager["heading_change_rad"].max() > 0
     for key, value in eager.items():
         torch.testing.assert_close(captured[key], value, equal_nan=True, msg=key)
 

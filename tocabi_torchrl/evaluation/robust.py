@@ -375,8 +375,9 @@ def run_case(actor, env, seconds: float, desc: str = "robust test", progress: bo
     the whole last cycle, of ``|mean_cycle(v_heading) − mean_cycle(command)|`` [m/s], v_heading the horizontal
     pelvis velocity in the heading frame; NaN for a robot that fell, or a case that ended, within its first
     cycle), ``instant_speed_error_mps`` (the mean over alive steps of the instantaneous ``|v_heading − command|``
-    [m/s], which includes the gait's sway within each cycle), ``knee_rms_rad`` (against the reference [rad]) and
-    ``alive_seconds``; NaN for a robot with no alive step. The cycle is the reference motion's period in policy
+    [m/s], which includes the gait's sway within each cycle), ``knee_rms_rad`` (against the reference [rad]),
+    ``heading_change_rad`` (|pelvis yaw| at the last alive step [rad]: every robot starts facing +x, so this is how
+    far it turned, the usual cause of drift) and ``alive_seconds``; NaN for a robot with no alive step. The cycle is the reference motion's period in policy
     steps (:func:`gait_cycle_steps`: 450 steps of 4 ms).
 
     An env whose step is a captured CUDA graph (``env.cuda_graph``, as :func:`case_env` builds on CUDA) is stepped
@@ -396,6 +397,7 @@ def run_case(actor, env, seconds: float, desc: str = "robust test", progress: bo
         metrics = GaitMetrics(td["base_pos"], (0.5, 0.0), dt)  # its own speed error is unused: the command varies
         instant = torch.zeros(env.num_envs, device=td["base_pos"].device)
         cycle = CycleMeanTracking(env.num_envs, gait_cycle_steps(base.motion.period, dt), td["base_pos"].device)
+        heading = torch.zeros(env.num_envs, device=td["base_pos"].device)  # pelvis yaw at the last alive step
         for k in tqdm(range(steps), desc=desc, unit="step", disable=not progress, leave=False):
             if autoreset:
                 td, carry = env.step_and_maybe_reset(actor(td))
@@ -406,12 +408,14 @@ def run_case(actor, env, seconds: float, desc: str = "robust test", progress: bo
             velocity = heading_frame_velocity(nxt["base_quat"], nxt["base_lin_vel"])
             instant += alive.float() * (velocity - nxt["command"]).norm(dim=-1)
             cycle.update(velocity, nxt["command"], alive)
+            heading = torch.where(alive, quat_to_rpy(nxt["base_quat"])[..., 2], heading)
             td = carry if autoreset else step_mdp(td)
             if k % 50 == 49 and not bool(alive.any()):  # no metric can change once all have fallen (a read per 50)
                 break
     per_env = metrics.per_env()
     per_env["tracking_error_mps"] = cycle.per_env()
     per_env["instant_speed_error_mps"] = metrics._per_alive_step(instant)
+    per_env["heading_change_rad"] = torch.where(metrics.alive_steps > 0, heading.abs(), float("nan"))
     return {k: v.detach().cpu() for k, v in per_env.items()}
 
 
@@ -445,6 +449,7 @@ def case_summary(case: RobustCase, per_env: dict[str, torch.Tensor], seconds: fl
         "tracking_error_mps": _distribution(per_env["tracking_error_mps"], ("mean", "p95")),
         "instant_speed_error_mps": _distribution(per_env["instant_speed_error_mps"], ("mean", "p95")),
         "knee_rms_rad": _distribution(per_env["knee_rms_rad"], ("mean", "p95")),
+        "heading_change_rad": _distribution(per_env["heading_change_rad"], ("mean", "p95")),
     }
 
 
@@ -596,7 +601,8 @@ def robust_report_text(report: dict, out: str | os.PathLike | None = None) -> st
                      f"{num(d['p50'], '.2f')}/{num(d['p95'], '.2f')} m, drift p95 {num(drift['p95'], '.2f')} m, "
                      f"tracking (cycle mean / instantaneous) {num(c['tracking_error_mps']['mean'], '.3f')} / "
                      f"{num(c.get('instant_speed_error_mps', {}).get('mean'), '.3f')} m/s, knee RMS "
-                     f"{num(c['knee_rms_rad']['mean'], '.3f')} rad")
+                     f"{num(c['knee_rms_rad']['mean'], '.3f')} rad, turned p95 "
+                     f"{num(c.get('heading_change_rad', {}).get('p95'), '.2f')} rad")
         for path, check in c.get("checks", {}).items():
             lines.append(f"      {path:<24} {num(check['value'], '.3f'):>8}  needs {check['needs']:<8} "
                          f"{'pass' if check['pass'] else 'FAIL'}")
