@@ -29,6 +29,7 @@ from tocabi_torchrl.rl.symmetry import (
 )
 from tocabi_torchrl.transforms.layouts import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT, TOCABILAB_HISTORY, ObsComponent
 from tocabi_torchrl.transforms.normalize import REFERENCE_OBS_MEAN, REFERENCE_OBS_VAR
+from tocabi_torchrl.transforms.privileged import PRIVILEGED_MIRROR, PrivilegedState
 from tocabi_torchrl.transforms.settings import transform_config
 
 _M = np.diag([1.0, -1.0, 1.0])  # the reflection y -> -y
@@ -239,7 +240,8 @@ def _mirrored_pair_errors(model_path: str | None, mode: str, steps: int = 20,
     base.applied_action[1] = act_m(base.applied_action[:1])[0]
     blocks = {"rpy": slice(0, 3), "joint_pos": slice(3, 15), "joint_vel": slice(15, 27), "phase": slice(27, 29),
               "command": slice(29, 31), "foot_force_z": slice(31, 33), "foot_moments": slice(33, 37)}
-    errors: dict[str, list[float]] = {k: [] for k in (*blocks, "policy_input", "qpos")}
+    errors: dict[str, list[float]] = {k: [] for k in (*blocks, "policy_input", "qpos", "privileged")}
+    priv_m, priv = SignedPermutation(*PRIVILEGED_MIRROR), PrivilegedState()
     for k in range(steps):
         a = action(1)
         td["action"] = torch.cat((a, act_m(a)))
@@ -253,6 +255,8 @@ def _mirrored_pair_errors(model_path: str | None, mode: str, steps: int = 20,
             p = td["observation"]
             errors["policy_input"].append(float((pin(p[:1]) - p[1:]).abs().max()))
         errors["qpos"].append(float((mirror_qpos(sim.qpos[:1]) - sim.qpos[1:]).abs().max()))
+        v = priv._call(td.clone())["privileged"]  # the asymmetric critic's true-state input
+        errors["privileged"].append(float((priv_m(v[:1]) - v[1:]).abs().max()))
     return {k: np.asarray(v) for k, v in errors.items()}
 
 
@@ -261,9 +265,9 @@ def _mirrored_pair_errors(model_path: str | None, mode: str, steps: int = 20,
 #: 2.7e-3 N, policy input 3.7e-5 (2026-12-02).
 _SYMMETRIC_BOUNDS = {
     "mujoco": {"rpy": 1e-6, "joint_pos": 1e-6, "joint_vel": 1e-6, "phase": 1e-6, "command": 0.0,
-               "foot_force_z": 1e-6, "foot_moments": 1e-6, "qpos": 1e-6, "policy_input": 1e-5},
+               "foot_force_z": 1e-6, "foot_moments": 1e-6, "qpos": 1e-6, "policy_input": 1e-5, "privileged": 1e-5},
     "warp": {"rpy": 1e-5, "joint_pos": 1e-5, "joint_vel": 1e-4, "phase": 1e-6, "command": 0.0,
-             "foot_force_z": 0.05, "foot_moments": 0.05, "qpos": 1e-5, "policy_input": 1e-3},
+             "foot_force_z": 0.05, "foot_moments": 0.05, "qpos": 1e-5, "policy_input": 1e-3, "privileged": 1e-3},
 }
 
 

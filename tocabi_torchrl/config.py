@@ -131,6 +131,12 @@ class PPOConfig:
     symmetry: str = "none"
     """left-right symmetry: none, or augment (each mini-batch doubled with its mirror image: mirrored observations
     and actions, same advantages, value targets and old log-probabilities)"""
+    #: Asymmetric actor-critic (transforms/privileged.py): the critic also reads ``privileged``, 12 values of true
+    #: state (pelvis velocities and height, foot loads, orientation) the policy does not see; the policy and its
+    #: export are unchanged. The env gets a PrivilegedState transform.
+    critic_privileged: bool = False
+    """the critic also reads true pelvis velocity, height, orientation and foot loads (asymmetric actor-critic; the
+    policy's input is unchanged)"""
     # networks and exploration
     actor_hidden: tuple[int, ...] = (400, 200, 100)
     """hidden layer sizes of the policy network"""

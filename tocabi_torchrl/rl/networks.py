@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import torch
 from torch import nn
 
 __all__ = ["ACTION_OUT_GAIN", "ACTIVATIONS", "INIT_SETTING", "init_orthogonal", "make_mlp"]
@@ -48,3 +49,17 @@ def make_mlp(in_dim: int, hidden: Sequence[int], out_dim: int, activation: str =
         layers += [nn.Linear(a, b), ACTIVATIONS[activation]()]
     layers.append(nn.Linear(sizes[-1], out_dim))
     return init_orthogonal(nn.Sequential(*layers), out_gain)
+
+
+class ConcatInputs(nn.Sequential):
+    """An MLP (the layers of :func:`make_mlp`) over several inputs concatenated on the last dim: the asymmetric
+    critic's ``(observation, privileged)`` -> value. A ``Sequential``, so its layers index and save as the plain
+    critic's do.
+
+    >>> net = ConcatInputs(*make_mlp(5, (8,), 1))
+    >>> net(torch.zeros(3, 2), torch.zeros(3, 3)).shape
+    torch.Size([3, 1])
+    """
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        return super().forward(torch.cat(inputs, dim=-1))

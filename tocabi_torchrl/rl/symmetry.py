@@ -39,6 +39,7 @@ from .. import robot
 # The config's values (``ppo.symmetry``), defined with the config tree (which reads without torch), named here too.
 from ..config import SYMMETRY_MODES
 from ..transforms.layouts import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT, HistoryLayout, ObsComponent
+from ..transforms.privileged import PRIVILEGED_MIRROR
 
 __all__ = ["SYMMETRY_MODES", "ACTION_DIM", "obs_step_mirror_map", "action_mirror_map", "policy_input_mirror_map",
            "SignedPermutation", "PolicyInputMirror", "mirror_qpos", "mirror_qvel", "SymmetryAugmentLoss",
@@ -270,6 +271,9 @@ class SymmetryAugmentLoss(nn.Module):
         self.register_buffer("_scale_perm", p.clone())
         self.register_buffer("_leg_perm", p[: robot.NUM_LEG_JOINTS].clone())
         self.register_buffer("_leg_sign", action_mirror.sign[: robot.NUM_LEG_JOINTS].clone())
+        # The asymmetric critic's true-state input (ppo.critic_privileged), by its own signed permutation.
+        self.register_buffer("_priv_perm", torch.tensor(PRIVILEGED_MIRROR[0], dtype=torch.int64))
+        self.register_buffer("_priv_sign", torch.tensor(PRIVILEGED_MIRROR[1]))
         self._last_log_weight = None
         if hasattr(ppo_loss, "_log_weight") and hasattr(ppo_loss, "_clip_bounds"):
             log_weight = ppo_loss._log_weight
@@ -303,6 +307,8 @@ class SymmetryAugmentLoss(nn.Module):
                 value = value.index_select(-1, self._scale_perm)
             elif key == ("next", "leg_assist"):
                 value = value.index_select(-1, self._leg_perm) * self._leg_sign
+            elif key in ("privileged", ("next", "privileged")):
+                value = value.index_select(-1, self._priv_perm) * self._priv_sign
             elif key not in _KEPT:
                 raise KeyError(f"SymmetryAugmentLoss: the mini-batch holds {key!r}, which it has no mirror rule for; "
                                f"add one to tocabi_torchrl/rl/symmetry.py (or keep the key out of the loss's batch)")

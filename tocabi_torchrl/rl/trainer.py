@@ -34,11 +34,12 @@ from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, 
                           broadcast_module, from_environment, init_distributed, rank_seed)
 from .interrupt import StopFlag, stop_on_signals
 from .logging import RunLogger, require_loggers
-from .networks import make_mlp
+from .networks import ConcatInputs, make_mlp
 from .rollout_guard import VALID_KEY, guard_rollout
 from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
 from ..transforms.normalize import RunningNormalization
+from ..transforms.privileged import PRIVILEGED_DIM, PrivilegedState
 from .symmetry import SymmetryAugmentLoss, find_normalization, make_symmetry_loss, refresh_statistics
 from .update_step import (MinibatchStep, adapt_lr, get_lr, make_capturable_adam, optimizer_mode,
                           restore_optimizer_mode, set_lr)
@@ -110,6 +111,8 @@ def build_env(cfg: RunConfig, device: torch.device, num_envs: int | None = None,
         env_overrides.setdefault("cuda_graph", plan.env_step)
     env = make_env(num_envs, device, seed=cfg.seed, config=env_config(cfg, for_training),
                    transforms=cfg.transforms, **env_overrides)
+    if cfg.ppo.critic_privileged:
+        env.append_transform(PrivilegedState())
     if for_training and not cfg.ppo.store_env_signals:
         env.append_transform(SelectTransform(*training_keys(env)))
     return env
@@ -121,7 +124,7 @@ def training_keys(env: EnvBase) -> list:
     and the signals a transform reads from the previous step (the reward terms' ``root_keys``).
     Reward and done flags are always kept."""
     leaves = list(env.observation_spec.keys(True, True))
-    keys = ["observation", "step_count", "episode_reward", "leg_assist"]
+    keys = ["observation", "privileged", "step_count", "episode_reward", "leg_assist"]
     keys += [k for k in leaves if isinstance(k, tuple) and k[0] == "reward_terms"]
     for t in getattr(env, "transform", []):
         for term in getattr(t, "terms", ()):
@@ -134,8 +137,14 @@ def build_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device
     ppo = cfg.ppo
     actor = make_actor(obs_dim, act_dim, ppo.actor_hidden, ppo.activation, init_std=ppo.std_start,
                        learn_std=ppo.std_mode == "learned").to(device)
-    critic = ValueOperator(make_mlp(obs_dim, ppo.critic_hidden, 1, ppo.activation, out_gain=ppo.value_out_gain),
-                           in_keys=["observation"]).to(device)
+    if ppo.critic_privileged:  # asymmetric: the critic reads the policy input and the true state beside it
+        critic = ValueOperator(
+            ConcatInputs(*make_mlp(obs_dim + PRIVILEGED_DIM, ppo.critic_hidden, 1, ppo.activation,
+                                   out_gain=ppo.value_out_gain)),
+            in_keys=["observation", "privileged"]).to(device)
+    else:
+        critic = ValueOperator(make_mlp(obs_dim, ppo.critic_hidden, 1, ppo.activation, out_gain=ppo.value_out_gain),
+                               in_keys=["observation"]).to(device)
     schedule = StdSchedule(ppo.std_start, ppo.std_end, ppo.std_hold) if ppo.std_mode == "scheduled" else None
     teacher = None
     if ppo.torque_assist > 0 and ppo.assist_target == "teacher":

@@ -10,6 +10,7 @@ One module per job:
 * :mod:`.history`: :class:`ObsActionHistory` with a :class:`HistoryLayout` (reference: 237-value input)
 * :mod:`.reward_terms`: one :class:`RewardTerm` per reference reward component; :mod:`.reward`: :class:`TaskReward`
 * :mod:`.presets`: :class:`TransformConfig`, :data:`HISTORIES` and :func:`default_transforms`
+* :mod:`.privileged`: :class:`PrivilegedState`, the asymmetric critic's true-state input (``ppo.critic_privileged``)
 """
 
 from .._lazy import lazy_names
@@ -47,9 +48,11 @@ __all__ = [
     "ForceReference",
     "ForceThresholdPenalty",
     "ForceDiffThresholdPenalty",
+    "HeadingHold",
     "REFERENCE_TERMS",
     "reference_terms",
     "TaskReward",
+    "PrivilegedState",
     "TransformConfig",
     "TransformSettings",
     "RewardWeights",
@@ -67,6 +70,7 @@ __getattr__, __dir__ = lazy_names(globals(), {
     "orientation": ("BaseEulerAngles", "quat_rotation_angle", "quat_to_rpy"),
     "phase": ("PhaseEncoding",),
     "presets": ("default_transforms",),
+    "privileged": ("PRIVILEGED_DIM", "PRIVILEGED_MIRROR", "PrivilegedState"),
     "settings": ("HISTORIES", "RewardWeights", "TransformConfig", "TransformSettings", "transform_config"),
     "reward": ("TaskReward",),
     "reward_terms": ("REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern", "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "HeadingHold", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm", "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
