@@ -29,7 +29,7 @@ from tocabi_torchrl.rl.symmetry import (
 )
 from tocabi_torchrl.transforms.layouts import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT, TOCABILAB_HISTORY, ObsComponent
 from tocabi_torchrl.transforms.normalize import REFERENCE_OBS_MEAN, REFERENCE_OBS_VAR
-from tocabi_torchrl.transforms.privileged import PRIVILEGED_MIRROR, PrivilegedState
+from tocabi_torchrl.transforms.privileged import PRIVILEGED_DIM, PRIVILEGED_MIRROR, PrivilegedState
 from tocabi_torchrl.transforms.settings import transform_config
 
 _M = np.diag([1.0, -1.0, 1.0])  # the reflection y -> -y
@@ -320,8 +320,10 @@ class _Spy(torch.nn.Module):
                            "kl_approx": self.w.detach() * 0, "clip_fraction": self.w.detach() * 0}, [])
 
 
-def _batch(n: int, g: torch.Generator) -> TensorDict:
+def _batch(n: int, g: torch.Generator, privileged: bool = False) -> TensorDict:
+    extra = {"privileged": torch.randn(n, PRIVILEGED_DIM, generator=g)} if privileged else {}
     return TensorDict({
+        **extra,
         "observation": torch.randn(n, 237, generator=g),
         "action": torch.rand(n, 13, generator=g) * 2 - 1,
         "action_log_prob": -torch.rand(n, generator=g),
@@ -466,16 +468,18 @@ def test_symmetry_sits_inside_the_torque_assist_loss():
         make_loss(cfg, agent)
 
 
-def _augmented_update_steps(device: str, graphs: tuple[bool, ...]):
+def _augmented_update_steps(device: str, graphs: tuple[bool, ...], privileged: bool = False):
     """The trainer's mini-batch step with ``ppo.symmetry augment`` on a 64-env default-preset env, one per entry of
-    ``graphs`` (``ppo.update_graph``), each with its agent built from the same seed."""
+    ``graphs`` (``ppo.update_graph``), each with its agent built from the same seed; ``privileged``: with the
+    asymmetric critic (``ppo.critic_privileged``)."""
     from tocabi_torchrl.rl.trainer import build_agent, build_env, make_loss, make_optimizer, make_update_step
 
     dev, made = torch.device(device), []
     for graph in graphs:
         cfg = preset_config("default", device=device, **{
             "ppo.symmetry": "augment", "env.num_envs": 64, "ppo.minibatch_size": 128, "ppo.steps_per_env": 8,
-            "ppo.actor_hidden": (32, 16), "ppo.critic_hidden": (32, 16), "ppo.update_graph": graph})
+            "ppo.actor_hidden": (32, 16), "ppo.critic_hidden": (32, 16), "ppo.update_graph": graph,
+            "ppo.critic_privileged": privileged})
         env = build_env(cfg, dev, for_training=True)
         torch.manual_seed(0)
         agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], dev)
@@ -488,24 +492,26 @@ def _agent_params(agent) -> torch.Tensor:
     return torch.cat([p.detach().flatten() for p in (*agent.actor.parameters(), *agent.critic.parameters())])
 
 
-def test_the_trainers_augmented_update_step_runs_the_doubled_batch_on_the_cpu():
+@pytest.mark.parametrize("privileged", [False, True])
+def test_the_trainers_augmented_update_step_runs_the_doubled_batch_on_the_cpu(privileged):
     # The same wiring as the GPU test below, eagerly: the trainer's loss, optimiser and step take the mini-batch.
-    ((step, agent),) = _augmented_update_steps("cpu", (False,))
+    ((step, agent),) = _augmented_update_steps("cpu", (False,), privileged)
     before = _agent_params(agent).clone()
-    step(_batch(128, torch.Generator().manual_seed(6)))
+    step(_batch(128, torch.Generator().manual_seed(6), privileged))
     assert not torch.equal(_agent_params(agent), before)
 
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_the_captured_augmented_update_replays_without_host_syncs_and_matches_eager():
+@pytest.mark.parametrize("privileged", [False, True])
+def test_the_captured_augmented_update_replays_without_host_syncs_and_matches_eager(privileged):
     """On CUDA the augmented update step is one captured graph after its warm-up: it replays without a host
     synchronisation (the mirror is a gather and a multiply-add on the device) and gives the eager step's parameters
-    to float32 rounding."""
-    (eager, eager_agent), (graphed, graph_agent) = _augmented_update_steps("cuda", (False, True))
+    to float32 rounding; with the asymmetric critic too."""
+    (eager, eager_agent), (graphed, graph_agent) = _augmented_update_steps("cuda", (False, True), privileged)
     assert graphed.use_graph
     g = torch.Generator().manual_seed(6)
-    batches = [_batch(128, g).to("cuda") for _ in range(6)]
+    batches = [_batch(128, g, privileged).to("cuda") for _ in range(6)]
     for mb in batches[:-1]:  # eager warm-up steps, the capture, then replays
         eager(mb)
         graphed(mb)
