@@ -483,7 +483,9 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # 60 M) already recovers from them; the assist then fades into pure torques from 60 M to 120 M. (The first run
     # ramped four kicks in from 60 M to 120 M, during the fade and after the teacher was taken: its pure-torque
     # policy fell every ~1,700 steps and did not walk in 24 minutes, docs/training/robust/h200_run1.) Left-right
-    # symmetry augmentation, for a gait without a sideways bias. For the test's drift, a heading-hold term
+    # symmetry augmentation, for a gait without a sideways bias. An asymmetric critic (transforms/privileged.py):
+    # the policy's sensors are biased and noisy, the critic reads the true pelvis velocity, height, orientation and
+    # foot loads, so that a kicked or heavier robot's state is valued as such. For the test's drift, a heading-hold term
     # (0.3·exp(-20·ψ²), ψ the pelvis yaw): the second run's pure-torque policy turned 0.29 rad on average in the
     # test's 8 s, every robot to the same side, and drifted 0.74 m (p95), unseen by the pelvis-frame velocity term.
     # For the test's changing commands, a command every 2 s (the test's rate; the default draws one per 8 s) and a
@@ -498,7 +500,7 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "env.pushes": PushConfig(count=8, window=(1.0, 31.0), speed=(0.3, 1.2), duration=(0.004, 0.2)),
         "ppo.push_ramp": (15_000_000, 55_000_000),
         "ppo.assist_fade_start": 60_000_000, "ppo.assist_fade_end": 120_000_000,
-        "ppo.symmetry": "augment",
+        "ppo.symmetry": "augment", "ppo.critic_privileged": True,
         "env.task.start_joint_vel_std": 0.5, "env.task.start_base_vel_std": 0.1,
         # Its verdict at the end of training: the robust gait test at its own size (1,024 robots per case).
         "eval_test": "robust", "eval_envs": 1024,
