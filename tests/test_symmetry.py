@@ -354,6 +354,16 @@ def test_the_loss_sees_the_doubled_mirrored_batch():
         torch.testing.assert_close(seen[key][16:], td[key], rtol=0, atol=0)
 
 
+def test_every_mirror_buffer_lives_on_the_mirrors_device():
+    # Nothing moves the loss module to the env's device: each buffer it makes must start where the mirrors are (a
+    # CPU-made privileged map broke the first CUDA update). The meta device stands in for CUDA on a CPU machine.
+    act = SignedPermutation(*action_mirror_map()).to("meta")
+    loss = SymmetryAugmentLoss(_Spy(), SignedPermutation(*obs_step_mirror_map()).to("meta"), act)
+    assert {b.device.type for b in loss.buffers()} == {"meta"}
+    out = loss.mirror_batch(TensorDict({"privileged": torch.empty(4, PRIVILEGED_DIM, device="meta")}, [4]))
+    assert out["privileged"].device.type == "meta"
+
+
 def test_the_logged_kl_and_clip_fraction_are_the_original_halfs():
     """The KL-adaptive learning rate reads kl_approx: it is the original frames' (as in rsl_rl), not the mirrored
     frames', whose ratio measures the policy's asymmetry. Old log-probs = the current policy's: their KL is 0, while

@@ -271,9 +271,10 @@ class SymmetryAugmentLoss(nn.Module):
         self.register_buffer("_scale_perm", p.clone())
         self.register_buffer("_leg_perm", p[: robot.NUM_LEG_JOINTS].clone())
         self.register_buffer("_leg_sign", action_mirror.sign[: robot.NUM_LEG_JOINTS].clone())
-        # The asymmetric critic's true-state input (ppo.critic_privileged), by its own signed permutation.
-        self.register_buffer("_priv_perm", torch.tensor(PRIVILEGED_MIRROR[0], dtype=torch.int64))
-        self.register_buffer("_priv_sign", torch.tensor(PRIVILEGED_MIRROR[1]))
+        # The asymmetric critic's true-state input (ppo.critic_privileged), by its own signed permutation, on the
+        # mirrors' device: nothing moves the loss module itself.
+        self.register_buffer("_priv_perm", torch.tensor(PRIVILEGED_MIRROR[0], dtype=torch.int64, device=p.device))
+        self.register_buffer("_priv_sign", torch.tensor(PRIVILEGED_MIRROR[1], device=p.device))
         self._last_log_weight = None
         if hasattr(ppo_loss, "_log_weight") and hasattr(ppo_loss, "_clip_bounds"):
             log_weight = ppo_loss._log_weight
