@@ -137,14 +137,13 @@ def build_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device
     ppo = cfg.ppo
     actor = make_actor(obs_dim, act_dim, ppo.actor_hidden, ppo.activation, init_std=ppo.std_start,
                        learn_std=ppo.std_mode == "learned").to(device)
-    if ppo.critic_privileged:  # asymmetric: the critic reads the policy input and the true state beside it
-        critic = ValueOperator(
-            ConcatInputs(*make_mlp(obs_dim + PRIVILEGED_DIM, ppo.critic_hidden, 1, ppo.activation,
-                                   out_gain=ppo.value_out_gain)),
-            in_keys=["observation", "privileged"]).to(device)
+    # Asymmetric (ppo.critic_privileged): the critic reads the true state beside the policy input.
+    width = obs_dim + (PRIVILEGED_DIM if ppo.critic_privileged else 0)
+    value_net = make_mlp(width, ppo.critic_hidden, 1, ppo.activation, out_gain=ppo.value_out_gain)
+    if ppo.critic_privileged:
+        critic = ValueOperator(ConcatInputs(*value_net), in_keys=["observation", "privileged"]).to(device)
     else:
-        critic = ValueOperator(make_mlp(obs_dim, ppo.critic_hidden, 1, ppo.activation, out_gain=ppo.value_out_gain),
-                               in_keys=["observation"]).to(device)
+        critic = ValueOperator(value_net, in_keys=["observation"]).to(device)
     schedule = StdSchedule(ppo.std_start, ppo.std_end, ppo.std_hold) if ppo.std_mode == "scheduled" else None
     teacher = None
     if ppo.torque_assist > 0 and ppo.assist_target == "teacher":
