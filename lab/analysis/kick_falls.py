@@ -1,0 +1,131 @@
+"""Which kick topples a robot in the robust gait test's pushed cases, from which direction, and how soon after.
+
+Runs one pushed case of the robust test (``robust_1.0`` by default: the test's seed, diverse starts, the
+``tocabi_lab`` randomisation, three one-step kicks at random times in 2-7 s) for each checkpoint on the CPU (C MuJoCo)
+through :func:`tocabi_torchrl.evaluation.robust.run_case`, reads each robot's kick schedule from the env
+(``Pushes.start_step`` and ``Pushes.force``) and its fall time (``alive_seconds``), and attributes every fall to the
+last kick before it. Directions are those of the kick's force in the world frame, in four 90° sectors (every robot
+starts facing +x and the test's robots turn 0.03-0.6 rad, so "forward" is roughly the way the robot walks).
+
+Reports per checkpoint: survival, falls by the kick that preceded them, the hazard of each kick (falls after it over
+the robots it met alive), falls by direction against the kicks drawn per direction, and the fall delay after the kick.
+
+Wrote docs/training/robust/h200_run3/kick_falls.json (about 80 s per checkpoint of 64 robots on 2 cores)::
+
+    PYTHONPATH=. python lab/analysis/kick_falls.py --num_envs 64 --out docs/training/robust/h200_run3/kick_falls.json \\
+        --checkpoint runs/time_to_walk/robust_v3/checkpoints/wall_01260s.pt \\
+        runs/time_to_walk/robust_v2/checkpoints/wall_01080s.pt
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from tocabi_torchrl.atomic import atomic_write_text
+from tocabi_torchrl.evaluation import robust
+from tocabi_torchrl.rl.checkpoint import apply_checkpoint, config_from_checkpoint, read_checkpoint
+
+SECTORS = ("forward (+x)", "left (+y)", "back (-x)", "right (-y)")
+
+
+def sector(angle: float) -> str:
+    """The 90° sector of a world-frame direction ``angle`` [rad] (0 = +x), centred on the four axes."""
+    return SECTORS[int(((math.degrees(angle) + 45.0) % 360.0) // 90.0)]
+
+
+def measure(path: Path, case: str, num_envs: int) -> dict:
+    from tocabi_torchrl.rl.trainer import build_agent
+
+    state = read_checkpoint(path)
+    cfg = config_from_checkpoint(state, path)
+    test = robust.RobustTestConfig(num_envs=num_envs)
+    env = robust.case_env(cfg, case, torch.device("cpu"), num_envs, test)
+    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
+    apply_checkpoint(state, agent, env=env, path=path)
+    env.set_seed(int(test.seed))
+    pushes, schedule = env.base_env.pushes, {}
+
+    def actor(td):
+        if not schedule:  # the reset drew every robot's kicks; they stay fixed for the case (no robot is reset)
+            schedule["start"], schedule["force"] = pushes.start_step.clone(), pushes.force.clone()
+        return agent.actor(td)
+
+    per_env = robust.run_case(actor, env, test.seconds, progress=False)
+    dt = float(env.base_env.dt)
+    kick_s = schedule["start"].double() * dt  # (N, K) start time of each kick [s]
+    angle = torch.atan2(schedule["force"][..., 1], schedule["force"][..., 0])  # (N, K) world-frame direction [rad]
+    alive, fell_at = per_env["alive"], per_env["alive_seconds"]
+    count = kick_s.shape[1]
+    met = [0] * count  # robots alive when kick j came
+    after = [0] * count  # falls whose last kick before them was kick j
+    by_dir = {s: 0 for s in SECTORS}
+    drawn = {s: 0 for s in SECTORS}
+    delays, before_any = [], 0
+    for i in range(num_envs):
+        t_end = math.inf if bool(alive[i]) else float(fell_at[i])
+        for j in range(count):
+            drawn[sector(float(angle[i, j]))] += 1
+            met[j] += int(float(kick_s[i, j]) <= t_end)
+        if bool(alive[i]):
+            continue
+        prior = [j for j in range(count) if float(kick_s[i, j]) <= t_end]
+        if not prior:
+            before_any += 1
+            continue
+        j = prior[-1]
+        after[j] += 1
+        by_dir[sector(float(angle[i, j]))] += 1
+        delays.append(t_end - float(kick_s[i, j]))
+    delays_t = torch.tensor(delays or [math.nan], dtype=torch.float64)
+    return {
+        "checkpoint": str(path), "case": case, "num_envs": num_envs, "seed": robust.EVAL_SEED,
+        "env_steps": int(state.get("env_steps", 0)), "train_seconds": float(state.get("train_seconds", 0.0)),
+        "survival": float(alive.float().mean()),
+        "falls_before_any_kick": before_any,
+        "falls_after_kick": after,
+        "robots_alive_at_kick": met,
+        "kick_hazard": [a / m if m else None for a, m in zip(after, met)],
+        "falls_by_direction_of_last_kick": by_dir,
+        "kicks_drawn_by_direction": drawn,
+        "fall_delay_after_kick_s": {"mean": float(delays_t.mean()), "min": float(delays_t.min()),
+                                    "max": float(delays_t.max())},
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", nargs="+", required=True, type=Path, help="checkpoints (.pt) to test")
+    p.add_argument("--case", default="robust_1.0", help="a pushed case of the robust test (robust_0.5, robust_1.0)")
+    p.add_argument("--num_envs", type=int, default=64, help="robots (the test asks 1,024 on a GPU)")
+    p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
+    args = p.parse_args(argv)
+    if args.case not in robust.CASES or not robust.CASES[args.case].randomized:
+        pushed = sorted(n for n, c in robust.CASES.items() if c.randomized)
+        p.error(f"--case must be a pushed case of the robust test, one of {pushed}; got {args.case!r}")
+    results = []
+    for path in args.checkpoint:
+        start = time.perf_counter()
+        r = measure(path, args.case, args.num_envs)
+        print(f"{path}: survival {r['survival']:.3f}, falls after kicks {r['falls_after_kick']} of robots "
+              f"{r['robots_alive_at_kick']} alive at them, by direction {r['falls_by_direction_of_last_kick']}, "
+              f"delay {r['fall_delay_after_kick_s']['mean']:.2f} s ({time.perf_counter() - start:.0f} s)", flush=True)
+        results.append(r)
+    if args.out is not None:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], check=False, capture_output=True,
+                                text=True).stdout.strip()
+        meta = {"command": " ".join(["python", "lab/analysis/kick_falls.py", *(argv or sys.argv[1:])]),
+                "date": time.strftime("%Y-%m-%d"), "code": commit, "hardware": "CPU (C MuJoCo)"}
+        atomic_write_text(args.out, json.dumps({"meta": meta, "results": results}, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
