@@ -342,6 +342,27 @@ def test_gpu_step_and_reset_never_sync():
     assert td["joint_pos"].device.type == "cuda"
 
 
+def test_one_hash_pass_draws_every_stream_as_its_own_call_would():
+    """EpisodeDraws (the reset's and the sensor noise's one pass over several streams) gives each stream exactly the
+    numbers of its own episode_uniform call, whatever other streams share the pass, and its normals episode_normal's."""
+    from tocabi_torchrl.envs.episode_random import EpisodeDraws, box_muller, episode_normal, episode_uniform
+
+    ids, episode = torch.arange(257), torch.randint(0, 2**40, (257,), generator=torch.Generator().manual_seed(3))
+    streams = {0: 3, 1: 24, 2: 99, 16: 72, 17: 32, 40: 34}
+    seed = torch.tensor(2**31 + 9)
+    together = EpisodeDraws(streams, "cpu")(seed, ids, episode)
+    assert list(together) == list(streams)
+    for stream, k in streams.items():
+        assert torch.equal(together[stream], episode_uniform(seed, ids, episode, stream, k)), stream
+        alone = EpisodeDraws({stream: k, 5: 0}, "cpu")(seed, ids, episode)  # an empty stream is left out
+        assert list(alone) == [stream] and torch.equal(alone[stream], together[stream])
+    assert torch.equal(box_muller(together[16]), episode_normal(seed, ids, episode, 16, 36))
+    # Streams differ from each other (disjoint lanes), and from the same stream of the next episode.
+    assert (together[1][:, :3] != together[0]).float().mean() > 0.99
+    nxt = EpisodeDraws(streams, "cpu")(seed, ids, episode + 1)
+    assert (nxt[2] != together[2]).float().mean() > 0.99
+
+
 def test_episode_random_numbers_depend_on_episode_not_call_order():
     from tocabi_torchrl.envs.episode_random import episode_uniform
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["episode_uniform", "episode_normal"]
+__all__ = ["episode_uniform", "episode_normal", "EpisodeDraws", "box_muller"]
 
 _MASK = (1 << 62) - 1
 
@@ -23,21 +23,69 @@ def _mix(x: torch.Tensor) -> torch.Tensor:
     return x ^ (x >> 29)
 
 
+def _lanes(stream: int, k: int, device) -> torch.Tensor:
+    """(k,) int64 hash lanes of ``stream``: one per uniform, disjoint across streams below 2**55."""
+    return torch.arange(k, dtype=torch.int64, device=device) + (stream << 8)
+
+
+def _hash(seed: int | torch.Tensor, env_ids: torch.Tensor, episode: torch.Tensor, lanes: torch.Tensor,
+          scrambled: torch.Tensor) -> torch.Tensor:
+    """(num_envs, L) uniforms of the lanes ``lanes`` (L,); ``scrambled`` is ``lanes * 0xC2B2AE3D`` (int64)."""
+    base = (env_ids.to(torch.int64) * 0x9E3779B1 + episode.to(torch.int64) * 0x85EBCA77 + (seed & 0xFFFFFFFF)) & _MASK
+    x = _mix(_mix(base.unsqueeze(-1) ^ scrambled) + lanes)
+    return (x & 0xFFFFFF).to(torch.float32) / float(1 << 24)
+
+
 def episode_uniform(seed: int | torch.Tensor, env_ids: torch.Tensor, episode: torch.Tensor, stream: int,
                     k: int) -> torch.Tensor:
     """(num_envs, k) float32 uniforms in [0, 1) for each env's ``episode`` (num_envs,) int64 and a ``stream`` id.
 
     ``seed``: a Python int or a 0-d int64 tensor on the envs' device (same numbers either way)."""
-    base = (env_ids.to(torch.int64) * 0x9E3779B1 + episode.to(torch.int64) * 0x85EBCA77 + (seed & 0xFFFFFFFF)) & _MASK
-    lanes = torch.arange(k, dtype=torch.int64, device=env_ids.device) + (stream << 8)
-    x = _mix(_mix(base.unsqueeze(-1) ^ (lanes * 0xC2B2AE3D)) + lanes)
-    return (x & 0xFFFFFF).to(torch.float32) / float(1 << 24)
+    lanes = _lanes(stream, k, env_ids.device)
+    return _hash(seed, env_ids, episode, lanes, lanes * 0xC2B2AE3D)
+
+
+class EpisodeDraws:
+    """The uniforms of several streams for one key in one hash pass: ``{stream: (num_envs, k)}``, each equal to
+    ``episode_uniform(seed, env_ids, key, stream, k)`` bit for bit (the hash is elementwise in its lanes).
+
+    A step that draws from many streams (start row, actuators, dynamics, pushes, sensor biases) runs the ~30 integer
+    ops of the hash once instead of once per stream: on a GPU each op is a kernel of the captured step graph.
+
+    Args:
+        streams: ``{stream id: uniforms per env}``; a stream with 0 uniforms is left out.
+        device: where the lane constants live (the env's device).
+
+    >>> import torch
+    >>> ids, ep = torch.arange(4), torch.zeros(4, dtype=torch.int64)
+    >>> draws = EpisodeDraws({0: 3, 17: 8}, "cpu")(7, ids, ep)
+    >>> torch.equal(draws[17], episode_uniform(7, ids, ep, stream=17, k=8)), tuple(draws[0].shape)
+    (True, (4, 3))
+    """
+
+    def __init__(self, streams: dict[int, int], device: torch.device | str):
+        self.streams = {int(s): int(k) for s, k in streams.items() if k > 0}
+        device = torch.device(device)
+        parts = [_lanes(s, k, device) for s, k in self.streams.items()]
+        self._lanes = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.int64, device=device)
+        self._scrambled = self._lanes * 0xC2B2AE3D
+
+    def __call__(self, seed: int | torch.Tensor, env_ids: torch.Tensor, key: torch.Tensor) -> dict[int, torch.Tensor]:
+        """``{stream: (num_envs, k)}`` float32 uniforms in [0, 1) of each env's ``key`` (num_envs,) int64."""
+        u = _hash(seed, env_ids, key, self._lanes, self._scrambled)
+        return dict(zip(self.streams, u.split(list(self.streams.values()), dim=-1)))
 
 
 def episode_normal(seed: int | torch.Tensor, env_ids: torch.Tensor, episode: torch.Tensor, stream: int,
                    k: int) -> torch.Tensor:
     """(num_envs, k) float32 standard normals for each env's ``episode`` (Box-Muller over :func:`episode_uniform`'s
     uniforms of the same key: 2k lanes of ``stream``)."""
-    u = episode_uniform(seed, env_ids, episode, stream, 2 * k)
+    return box_muller(episode_uniform(seed, env_ids, episode, stream, 2 * k))
+
+
+def box_muller(u: torch.Tensor) -> torch.Tensor:
+    """(num_envs, k) standard normals from (num_envs, 2k) uniforms in [0, 1): the cosine of each Box-Muller pair
+    (radius from the first k, angle from the last k), as :func:`episode_normal` draws them."""
+    k = u.shape[-1] // 2
     radius = torch.sqrt(-2.0 * torch.log1p(-u[:, :k]))  # 1 - u in (0, 1]: log is finite
     return radius * torch.cos(2.0 * torch.pi * u[:, k:])

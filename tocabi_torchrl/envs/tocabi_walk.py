@@ -28,7 +28,7 @@ from ..sim.dynamics import WorldDynamics
 from .command import VelocityCommand
 from .config import TocabiWalkConfig, resolve_backend
 from .controllers import leg_actuator_chain, leg_law, upper_body_law
-from .episode_random import episode_normal, episode_uniform
+from .episode_random import EpisodeDraws, box_muller
 from .obstacles import add_obstacles, world_obstacle_centres
 from .pushes import Pushes
 from .termination import termination_flags
@@ -218,6 +218,16 @@ class TocabiWalk(EnvBase):
         self._reduced_reset = self._reduced_reset and reset_pass == "reduced"  # see world_fields above
         if self._reduced_reset:
             self._register_start_states()
+        # (nv,) the diverse starts' std per velocity coordinate [m/s, rad/s]: pelvis linear, none angular, joints.
+        self._start_std = torch.zeros(self.sim.nv, dtype=torch.float32, device=device)
+        self._start_std[:3], self._start_std[6:] = cfg.task.start_base_vel_std, cfg.task.start_joint_vel_std
+        # Every per-episode draw of a reset, keyed on (seed, env, episode), in one hash pass: stream 0 the start
+        # row and first command, 1 the actuators, 2 the dynamics, 16 the start velocities (Box-Muller pairs),
+        # 17 the kicks.
+        self._draws = EpisodeDraws({
+            0: 3, 1: self.leg_actuators.draws, 2: self.dynamics.draws if self.dynamics is not None else 0,
+            16: 2 * (3 + robot.NUM_JOINTS) if cfg.task.diverse_starts else 0,
+            17: self.pushes.draws if self.pushes is not None else 0}, device)
         self._make_specs()
 
     # ------------------------------------------------------------------------------------------------ set-up
@@ -502,22 +512,20 @@ class TocabiWalk(EnvBase):
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(self.num_envs).to(torch.bool)
         # Random start row and first command from (seed, env, episode): identical whichever reset path runs.
-        u = episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=0, k=3)
+        draws = self._draws(self._seed_t, self._env_ids, self.episode_count)
+        u = draws[0]
         if self.leg_actuators.draws:  # each episode's actuator parameters, keyed like the start row
-            self.leg_actuators.reset(mask, episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=1,
-                                                           k=self.leg_actuators.draws))
+            self.leg_actuators.reset(mask, draws[1])
         if self.dynamics is not None:  # each episode's masses, damping, armature and friction, keyed the same way
-            self.dynamics.reset(mask, episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=2,
-                                                      k=self.dynamics.draws))
+            self.dynamics.reset(mask, draws[2])
         if self._some_nominal:  # the ideal robot in the worlds set_randomized_worlds left out (same draws above)
             ideal = mask & ~self.randomized_worlds
             self.leg_actuators.nominal(ideal)
             if self.dynamics is not None:
                 self.dynamics.nominal(ideal)
         if self.pushes is not None:
-            self.pushes.reset(mask, episode_uniform(self._seed_t, self._env_ids, self.episode_count, stream=17,
-                                                    k=self.pushes.draws))
-        qvel = self._start_velocities() if self.cfg.task.diverse_starts else self._init_qvel
+            self.pushes.reset(mask, draws[17])
+        qvel = self._start_velocities(draws[16]) if self.cfg.task.diverse_starts else self._init_qvel
         self.episode_count.add_(mask.long())
         pick = (u[:, 0] * len(self._init_rows)).long().clamp_(max=len(self._init_rows) - 1)
         self.init_row.copy_(torch.where(mask, self._init_rows[pick], self.init_row))
@@ -546,16 +554,13 @@ class TocabiWalk(EnvBase):
         out.update({"terminated": false, "truncated": false.clone(), "done": false.clone()})
         return out
 
-    def _start_velocities(self) -> torch.Tensor:
+    def _start_velocities(self, u: torch.Tensor) -> torch.Tensor:
         """(N, nv) start velocities of this episode: N(0, start_base_vel_std) on the pelvis's linear velocity,
         N(0, start_joint_vel_std) on every joint, none on its angular velocity (before the episode count moves)."""
-        task, nv = self.cfg.task, self.sim.nv
-        z = episode_normal(self._seed_t, self._env_ids, self.episode_count, stream=16, k=3 + robot.NUM_JOINTS)
-        std = torch.zeros(nv, dtype=torch.float32, device=self.device)
-        std[:3], std[6:] = task.start_base_vel_std, task.start_joint_vel_std
-        qvel = torch.zeros(self.num_envs, nv, dtype=torch.float32, device=self.device)
+        z = box_muller(u)  # u: (N, 2·(3 + joints)) uniforms of stream 16
+        qvel = torch.zeros(self.num_envs, self.sim.nv, dtype=torch.float32, device=self.device)
         qvel[:, :3], qvel[:, 6:] = z[:, :3], z[:, 3:]
-        return qvel * std
+        return qvel * self._start_std
 
     def set_randomized_worlds(self, worlds: torch.Tensor) -> None:
         """Choose which worlds are randomised: ``worlds`` (N,) bool, True for a world that gets ``env.dynamics``, the

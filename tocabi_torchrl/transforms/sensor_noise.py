@@ -56,7 +56,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
-from tocabi_torchrl.envs.episode_random import episode_uniform
+from tocabi_torchrl.envs.episode_random import EpisodeDraws
 from tocabi_torchrl.transforms._checks import require_spec
 from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsComponent
 # The config lives in a module without torch, for the config tree; this path names it too.
@@ -74,14 +74,47 @@ NOISE_STREAMS: Mapping[str, int] = {name: 40 + i for i, name in enumerate(SENSOR
 _STEP_BITS = 32
 
 
-def _normals(seed, env_ids: torch.Tensor, key: torch.Tensor, stream: int, k: int) -> torch.Tensor:
-    """(N, k) standard normals of the hash key ``key`` (N,): Box-Muller on ``2·ceil(k/2)`` uniforms of ``stream``,
-    both the cosine and the sine of each pair used."""
+def _normals(u: torch.Tensor, k: int) -> torch.Tensor:
+    """(N, k) standard normals from (N, 2·ceil(k/2)) uniforms: Box-Muller, both the cosine and the sine of each pair
+    used."""
     m = (k + 1) // 2
-    u = episode_uniform(seed, env_ids, key, stream, 2 * m)
     radius = torch.sqrt(-2.0 * torch.log1p(-u[:, :m]))  # 1 - u in (0, 1]: the log is finite
     angle = (2.0 * math.pi) * u[:, m:]
     return torch.cat((radius * torch.cos(angle), radius * torch.sin(angle)), dim=-1)[:, :k]
+
+
+def _bias_draws(config: SensorNoiseConfig, device) -> EpisodeDraws:
+    """One hash pass for every biased signal's uniforms (its own stream each)."""
+    return EpisodeDraws({BIAS_STREAMS[name]: math.prod(shape) for name, shape in SENSORS.items()
+                         if config.bias(name) > 0}, device)
+
+
+def _noise_draws(config: SensorNoiseConfig, device) -> EpisodeDraws:
+    """One hash pass for every noisy signal's Box-Muller uniforms (its own stream each)."""
+    return EpisodeDraws({NOISE_STREAMS[name]: 2 * ((math.prod(shape) + 1) // 2) for name, shape in SENSORS.items()
+                         if config.noise(name)[0] > 0}, device)
+
+
+def _biases(config: SensorNoiseConfig, draws: EpisodeDraws, seed, env_ids: torch.Tensor,
+            episode: torch.Tensor) -> dict[str, torch.Tensor]:
+    u = draws(seed, env_ids, episode)
+    return {name: (config.bias(name) * (2.0 * u[BIAS_STREAMS[name]] - 1.0)).reshape(-1, *shape)
+            for name, shape in SENSORS.items() if config.bias(name) > 0}
+
+
+def _noise(config: SensorNoiseConfig, draws: EpisodeDraws, seed, env_ids: torch.Tensor, episode: torch.Tensor,
+           step: torch.Tensor) -> dict[str, torch.Tensor]:
+    key = (episode.to(torch.int64) << _STEP_BITS) + step.to(torch.int64)
+    u = draws(seed, env_ids, key)
+    out = {}
+    for name, shape in SENSORS.items():
+        std, clip = config.noise(name)
+        if std > 0:
+            z = std * _normals(u[NOISE_STREAMS[name]], math.prod(shape))
+            if clip is not None:
+                z = z.clamp(-clip, clip)
+            out[name] = z.reshape(-1, *shape)
+    return out
 
 
 def sensor_biases(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: torch.Tensor,
@@ -89,13 +122,7 @@ def sensor_biases(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: 
     """Each biased signal's bias for each world's ``episode``: ``{signal: (N, *SENSORS[signal])}`` float32 in the
     signal's unit, U(±half-width) per element. ``env_ids``, ``episode``: (N,) int64; ``seed``: an int or a 0-d int64
     tensor on their device."""
-    out = {}
-    for name, shape in SENSORS.items():
-        half = config.bias(name)
-        if half > 0:
-            u = episode_uniform(seed, env_ids, episode, BIAS_STREAMS[name], math.prod(shape))
-            out[name] = (half * (2.0 * u - 1.0)).reshape(-1, *shape)
-    return out
+    return _biases(config, _bias_draws(config, env_ids.device), seed, env_ids, episode)
 
 
 def sensor_noise(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: torch.Tensor, episode: torch.Tensor,
@@ -103,16 +130,7 @@ def sensor_noise(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: t
     """Each noisy signal's noise at each world's (``episode``, ``step``): ``{signal: (N, *SENSORS[signal])}``
     float32, N(0, σ²) per element, clipped to ±clip. ``step``: (N,) int64 policy steps since the episode began (the
     env's ``episode_step``), below 2**32."""
-    key = (episode.to(torch.int64) << _STEP_BITS) + step.to(torch.int64)
-    out = {}
-    for name, shape in SENSORS.items():
-        std, clip = config.noise(name)
-        if std > 0:
-            z = std * _normals(seed, env_ids, key, NOISE_STREAMS[name], math.prod(shape))
-            if clip is not None:
-                z = z.clamp(-clip, clip)
-            out[name] = z.reshape(-1, *shape)
-    return out
+    return _noise(config, _noise_draws(config, env_ids.device), seed, env_ids, episode, step)
 
 
 _KEY_SOURCE = ("_seed_t", "_env_ids", "episode_count", "episode_step")
@@ -229,7 +247,9 @@ class SensorNoise(Transform):
         self._index = {name: (torch.tensor(cols, dtype=torch.int64, device=dev),
                               torch.tensor(elems, dtype=torch.int64, device=dev))
                        for name, (cols, elems) in self._columns.items()}
-        self.biases = sensor_biases(self.config, seed, env_ids, episode)
+        # The hash lanes of every bias and of every noise stream, made once: each step hashes them in one pass.
+        self._bias_hash, self._noise_hash = _bias_draws(self.config, dev), _noise_draws(self.config, dev)
+        self.biases = _biases(self.config, self._bias_hash, seed, env_ids, episode)
         self._bias_cols = torch.zeros(env_ids.shape[0], self._width, dtype=torch.float32, device=dev)
         self._gather_biases()
         # The Euler angles' columns, wrapped back into (-pi, pi] after the bias.
@@ -256,7 +276,7 @@ class SensorNoise(Transform):
             n = env_ids.shape[0]
             mask = torch.ones(n, dtype=torch.bool, device=env_ids.device) if reset is None else reset.reshape(n)
             # The base env has counted the new episode already: the flagged worlds' key is their new episode.
-            drawn = sensor_biases(self.config, seed, env_ids, episode)
+            drawn = _biases(self.config, self._bias_hash, seed, env_ids, episode)
             for name, bias in self.biases.items():
                 m = mask.reshape(n, *([1] * (bias.dim() - 1)))
                 bias.copy_(torch.where(m, drawn[name], bias))
@@ -269,7 +289,7 @@ class SensorNoise(Transform):
             raise RuntimeError("SensorNoise: reset the env before stepping it (the biases are drawn at reset)")
         exact = next_tensordict.get(self.in_keys[0])
         obs = exact + self._bias_cols
-        for name, noise in sensor_noise(self.config, seed, env_ids, episode, step).items():
+        for name, noise in _noise(self.config, self._noise_hash, seed, env_ids, episode, step).items():
             cols, elems = self._index[name]
             obs = obs.index_add(1, cols, noise.flatten(1).index_select(1, elems))
         if self._wrap is not None:
