@@ -175,7 +175,20 @@ def randomization(docs: Path) -> list[str]:
     return ["## The cost of randomisation in training", "", *rows, "",
             f"- command: `{d['results'][-1]['command']}` (each row's own in the report)",
             f"- date: {m['date']}; hardware: {m['gpu']}, {m['num_envs']:,} envs; report: "
-            "[train_throughput.json](benchmarks/randomization/train_throughput.json)"]
+            "[train_throughput.json](benchmarks/randomization/train_throughput.json)", "", *step_ops(docs)]
+
+
+def step_ops(docs: Path) -> list[str]:
+    d = _load("benchmarks/randomization/step_ops.json", docs)
+    m = d["meta"]
+    rows = [f"| switched on | torch ops per env step | at {m['before']['code']} |", "|---|---:|---:|"]
+    rows += [f"| {r['what']} | {r['ops_per_step']:,.0f} ({r['over_nothing']:+.0f}) | {r['ops_per_step_before']:,.0f} |"
+             for r in d["results"]]
+    return ["Where the per-step overhead comes from: torch ops of one training env step (each a kernel of the "
+            "captured graph on a GPU), one piece of the robust preset's randomisation at a time.", "", *rows, "",
+            f"- command: `{m['command']}`; code {m['code']} (and {m['before']['code']}: {m['before']['what']})",
+            f"- date: {m['date']}; hardware: {m['hardware']}, {m['num_envs']} envs, torch {m['torch']}; report: "
+            "[step_ops.json](benchmarks/randomization/step_ops.json)"]
 
 
 def solver_load(docs: Path) -> list[str]:
