@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from collections.abc import Callable
 
 import mujoco
 import mujoco_warp as mjw
@@ -62,10 +63,11 @@ def _without_sensors(m: mjw.Model) -> mjw.Model:
 class _StartStates:
     """Registered start states (rows) and, per row and world, what the full reset pass computed for them."""
 
-    qpos: torch.Tensor  # (K, nq)
-    qvel: torch.Tensor  # (K, nv)
-    ctrl: torch.Tensor  # (K, nu)
+    qpos: torch.Tensor  # (K * N, nq): state k of world w in row k * N + w
+    qvel: torch.Tensor  # (K * N, nv)
+    ctrl: torch.Tensor  # (K * N, nu)
     num: int
+    worlds: torch.Tensor  # (N,) int64 world ids, for the row of each world's state
     index: wp.array  # (N,) int32: the row each world resets to
     index_t: torch.Tensor  # its torch view, which the host side fills
     rows: torch.Tensor  # (N,) int64: the clamped rows, refilled in place on every reset (no allocation)
@@ -394,17 +396,24 @@ class WarpSim(SimViews):
             self._reset_ctrl_t.copy_(ctrl)
         self._reset_graph()
 
-    def register_start_states(self, qpos: torch.Tensor, qvel: torch.Tensor, ctrl: torch.Tensor) -> None:
+    def register_start_states(self, qpos: torch.Tensor, qvel: torch.Tensor, ctrl: torch.Tensor,
+                              set_fields: Callable[[int], None] | None = None) -> None:
         """Register the K start states :meth:`reset_to_start` may reset to (``reset_pass="reduced"`` only).
 
         Args:
-            qpos, qvel, ctrl: (K, nq), (K, nv), (K, nu) float32 tensors on :attr:`device`, start state k in row k.
+            qpos, qvel, ctrl: (K, nq), (K, nv), (K, nu) float32 tensors on :attr:`device`, start state k in row k;
+                or (K, N, nq), (K, N, nv), (K, N, nu): each world's own start state k (a pool of drawn starts).
+            set_fields: with ``SimConfig.per_world_fields``, required: ``set_fields(k)`` writes each world's
+                model fields of its start state k (:attr:`model_fields`, e.g. drawn masses) before that state's
+                full pass; a world reset to state k must then have those fields again (the caller writes them,
+                as before the full pass). Without per-world fields, leave it None.
 
         Runs the full reset of :meth:`reset` once per start state over all worlds (each with its own mocap
-        positions) and keeps, per state and world, what the reduced reset does not compute: the sensors, ``qacc``
-        (the warm start), the actuator forces and the overflow bits. Call it before the first :meth:`reset_to_start`
-        and before capturing a graph that resets; it overwrites every world's state (leaving start state 0) and
-        syncs with the host. The table holds for this simulator's model and mocap positions, which never change.
+        positions and, with ``set_fields``, model fields) and keeps, per state and world, what the reduced reset
+        does not compute: the sensors, ``qacc`` (the warm start), the actuator forces and the overflow bits. Call it
+        before the first :meth:`reset_to_start` and before capturing a graph that resets; it overwrites every world's
+        state (leaving start state 0, with the model fields of state K - 1) and syncs with the host. The table holds
+        for this simulator's model and mocap positions, which never change, and the fields ``set_fields`` wrote.
         Once only: a graph captured after it reads the table's memory, so replacing the table could free what the
         graph still reads.
 
@@ -419,10 +428,14 @@ class WarpSim(SimViews):
         if self.config.reset_pass != "reduced":
             raise ValueError(f"register_start_states needs SimConfig.reset_pass='reduced' (this simulator has "
                              f"{self.config.reset_pass!r}); with 'full', reset to any state with reset()")
-        if self.config.per_world_fields:
+        if self.config.per_world_fields and set_fields is None:
             raise ValueError(f"register_start_states: the table would hold sensors and accelerations of the model "
                              f"fields {self.config.per_world_fields} as they are now, but they change per world "
-                             "(SimConfig.per_world_fields); reset with the full pass, reset_pass='full'")
+                             "(SimConfig.per_world_fields); pass set_fields (each state's fields, written before its "
+                             "full pass), or reset with the full pass, reset_pass='full'")
+        if set_fields is not None and not self.config.per_world_fields:
+            raise ValueError("register_start_states: set_fields writes per-world model fields, but this simulator has "
+                             "none (SimConfig.per_world_fields is empty); leave it None")
         if self._start_states is not None:
             raise ValueError("register_start_states was called already: a graph captured since may read the table, "
                              "so it is not replaced; build another simulator for other start states")
@@ -431,14 +444,20 @@ class WarpSim(SimViews):
         if unsupported or m.opt.integrator == mjw.IntegratorType.DISCRETE:
             raise ValueError("reset_pass='reduced' does not reproduce the energy, sleep or discrete-integrator "
                              "stages of the full pass; use reset_pass='full' with this model")
+        n = self.num_worlds
         for name, value, width in (("qpos", qpos, self.nq), ("qvel", qvel, self.nv), ("ctrl", ctrl, self.nu)):
-            if (not isinstance(value, torch.Tensor) or value.dim() != 2 or value.shape[0] < 1
-                    or value.shape[1] != width or value.shape[0] != qpos.shape[0] or value.device != self.device):
-                raise ValueError(f"register_start_states: {name} must be a (K, {width}) tensor on {self.device}, "
-                                 f"K >= 1 rows like qpos, got {getattr(value, 'shape', type(value).__name__)}")
-        k, n, d = qpos.shape[0], self.num_worlds, self.wp_data
+            ok = (isinstance(value, torch.Tensor) and value.dim() in (2, 3) and value.shape[0] >= 1
+                  and value.shape[-1] == width and value.shape[0] == qpos.shape[0] and value.device == self.device
+                  and (value.dim() == 2 or value.shape[1] == n))
+            if not ok:
+                raise ValueError(f"register_start_states: {name} must be a (K, {width}) or (K, {n}, {width}) tensor "
+                                 f"on {self.device}, K >= 1 rows like qpos, got "
+                                 f"{getattr(value, 'shape', type(value).__name__)}")
+        k, d = qpos.shape[0], self.wp_data
         dev, f32 = self.device, torch.float32
-        qpos, qvel, ctrl = (v.to(f32).contiguous().clone() for v in (qpos, qvel, ctrl))
+        # Every world's own row of every state: (K, N, width), flattened to (K * N, width) for the reset's gather.
+        qpos, qvel, ctrl = (v.to(f32).unsqueeze(1).expand(k, n, v.shape[-1]).clone() if v.dim() == 2
+                            else v.to(f32).contiguous().clone() for v in (qpos, qvel, ctrl))
         table = {"sensordata": torch.zeros(k, n, self.mj_model.nsensordata, dtype=f32, device=dev),
                  "qacc": torch.zeros(k, n, self.nv, dtype=f32, device=dev),
                  "actuator_force": torch.zeros(k, n, self.nu, dtype=f32, device=dev),
@@ -446,6 +465,8 @@ class WarpSim(SimViews):
         t = wp.to_torch
         with wp.ScopedDevice(self.wp_device):
             for r in range(k):  # the full reset, eagerly, of every world into start state r
+                if set_fields is not None:
+                    set_fields(r)
                 self._reset_mask_t.fill_(True)
                 self._reset_qpos_t.copy_(qpos[r])
                 self._reset_qvel_t.copy_(qvel[r])
@@ -457,7 +478,8 @@ class WarpSim(SimViews):
                     table[name][r].copy_(t(getattr(d, name)))
             index = wp.zeros(n, dtype=wp.int32)
             self._start_states = _StartStates(
-                qpos=qpos, qvel=qvel, ctrl=ctrl, num=k, index=index, index_t=t(index),
+                qpos=qpos.reshape(k * n, -1), qvel=qvel.reshape(k * n, -1), ctrl=ctrl.reshape(k * n, -1), num=k,
+                worlds=torch.arange(n, dtype=torch.int64, device=dev), index=index, index_t=t(index),
                 rows=torch.zeros(n, dtype=torch.int64, device=dev),
                 **{name: wp.from_torch(v) for name, v in table.items()}, tables=table,
             )
@@ -475,9 +497,10 @@ class WarpSim(SimViews):
         rows = torch.clamp(index, 0, s.num - 1, out=s.rows)  # an index out of range would read outside the table
         self._reset_mask_t.copy_(mask)
         s.index_t.copy_(rows)
-        torch.index_select(s.qpos, 0, rows, out=self._reset_qpos_t)
-        torch.index_select(s.qvel, 0, rows, out=self._reset_qvel_t)
-        torch.index_select(s.ctrl, 0, rows, out=self._reset_ctrl_t)
+        flat = rows.mul_(self.num_worlds).add_(s.worlds)  # state rows[w] of world w: row rows[w] * N + w
+        torch.index_select(s.qpos, 0, flat, out=self._reset_qpos_t)
+        torch.index_select(s.qvel, 0, flat, out=self._reset_qvel_t)
+        torch.index_select(s.ctrl, 0, flat, out=self._reset_ctrl_t)
 
     def reset_to_start(self, mask: torch.Tensor, index: torch.Tensor) -> None:
         """Put each flagged world into registered start state ``index[w]`` with the reduced reset pass (see
