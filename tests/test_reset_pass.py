@@ -222,3 +222,104 @@ def test_gpu_reduced_pass_is_captured_and_never_syncs():
     kwargs = {"num_envs": 64, "device": "cuda", "seed": 3, "control_mode": "torque", "max_episode_steps": 6,
               "reset_pass": "reduced"}
     assert_captured_equals_eager(kwargs, ("observation", "reward", "done"))
+
+
+# -------------------------------------------------------------------------------------- a pool of drawn start states
+def _pool_env(reset_pass, pool=3, seed=0, **kwargs):
+    from tocabi_torchrl import make_env
+    from tocabi_torchrl.randomize import TOCABI_LAB_DYNAMICS
+
+    options = {"start_joint_vel_std": 0.5, "start_base_vel_std": 0.1, "dynamics": TOCABI_LAB_DYNAMICS, **kwargs}
+    return make_env(num_envs=N, device="cpu", seed=seed, sync_free_resets=True, backend="warp",
+                    control_mode="torque", max_episode_steps=5, reset_pass=reset_pass, start_pool=pool, **options)
+
+
+def test_pool_reduced_matches_full():
+    """With diverse starts and per-world dynamics drawn from a start pool, the reduced pass (each world's pooled
+    states registered with their own masses, damping and armature) gives every observation, signal and sim view of
+    the full pass bit for bit, through the sync-free step's own resets into other pooled states."""
+    full, reduced = _pool_env("full"), _pool_env("reduced")
+    assert full.base_env.sim.config.reset_pass == "full" and reduced.base_env.sim.config.reset_pass == "reduced"
+    assert reduced.base_env._reduced_reset and not full.base_env._reduced_reset
+    td_f, td_r = full.reset(), reduced.reset()
+    _assert_tds_equal(td_f, td_r, "reset")
+    _assert_sims_equal(full.base_env.sim, reduced.base_env.sim, "reset")
+    g = torch.Generator().manual_seed(11)
+    states, resets = set(), 0
+    for t in range(16):
+        a = 2 * torch.rand(N, 13, generator=g) - 1
+        a[:, 12] = a[:, 12].abs()
+        td_f["action"], td_r["action"] = a.clone(), a.clone()
+        out_f, td_f = full.step_and_maybe_reset(td_f)
+        out_r, td_r = reduced.step_and_maybe_reset(td_r)
+        _assert_tds_equal(out_f, out_r, f"step {t}")
+        _assert_tds_equal(td_f, td_r, f"step {t}, after the sync-free resets")
+        _assert_sims_equal(full.base_env.sim, reduced.base_env.sim, f"step {t}")
+        resets += int(out_f["next", "done"].sum())
+        states.add(tuple(reduced.base_env.sim._start_states.index_t.tolist()))
+    assert resets >= N and len(states) > 1  # every world restarted, into more than one pooled state
+
+
+def test_pool_draws():
+    """Each world's pooled states differ from each other and from other worlds'; a reset's masses and start
+    velocities are those of one of its world's pooled states; the pool is the same for the same seed."""
+    from tocabi_torchrl.randomize import TOCABI_LAB_DYNAMICS
+
+    env = _pool_env("reduced", pool=4)
+    base = env.base_env
+    qvel, dyn = base._pool_qvel, base._pool_dyn
+    assert qvel.shape == (4, N, base.sim.nv) and dyn.shape == (4, N, base.dynamics.draws)
+    assert torch.equal(qvel[..., 3:6], torch.zeros(4, N, 3))  # no angular start velocity
+    assert (qvel[..., 6:].std() - 0.5).abs() < 0.1 and (dyn.flatten(0, 1)[:, None] != dyn.flatten(0, 1)).any(-1).sum() == 16 * 15
+    for _ in range(3):
+        td = env.reset()
+        for w in range(N):
+            match = [k for k in range(4) if torch.equal(td["joint_vel"][w], qvel[k, w, 6:])]
+            assert len(match) == 1, f"world {w} started with velocities of none of its pooled states"
+            lo, hi = TOCABI_LAB_DYNAMICS.mass_scale
+            scale = base.dynamics.mass_scale[w, base.dynamics.bodies]
+            assert torch.equal(scale, lo + (hi - lo) * dyn[match[0], w, :len(base.dynamics.bodies)])
+    again = _pool_env("reduced", pool=4).base_env
+    assert torch.equal(again._pool_qvel, qvel) and torch.equal(again._pool_dyn, dyn)  # same seed: same pool
+    assert not torch.equal(_pool_env("reduced", pool=4, seed=1).base_env._pool_qvel, qvel)
+
+
+def test_pool_config_and_errors():
+    from tocabi_torchrl.envs.config import MAX_START_POOL
+
+    for bad in (-1, MAX_START_POOL + 1, 1.5, True):
+        with pytest.raises(ValueError, match="env.sim.start_pool"):
+            EnvSimConfig(start_pool=bad).validate()
+    env = _pool_env("reduced", pool=2)
+    with pytest.raises(ValueError, match="start_pool=0"):
+        env.base_env.set_randomized_worlds(torch.tensor([True, False, True, True]))
+    env.base_env.set_randomized_worlds(torch.ones(N, dtype=torch.bool))  # all randomised: nothing changes
+    # Without diverse starts or dynamics the pool has nothing to draw: the env is the plain one.
+    from tocabi_torchrl.sim.dynamics_config import DynamicsRandomization
+
+    plain = _pool_env("reduced", pool=2, start_joint_vel_std=0.0, start_base_vel_std=0.0,
+                      dynamics=DynamicsRandomization())
+    assert plain.base_env._pool == 0 and plain.base_env._reduced_reset
+    sim = WarpSim(SimConfig(num_worlds=2, device="cpu", reset_pass="reduced", per_world_fields=("body_mass",)))
+    qpos = torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32).repeat(1, 1)
+    with pytest.raises(ValueError, match="set_fields"):
+        sim.register_start_states(qpos, torch.zeros(1, 39), torch.zeros(1, 33))
+    with pytest.raises(ValueError, match=r"\(K, 2, 39\)"):
+        sim.register_start_states(qpos, torch.zeros(1, 3, 39), torch.zeros(1, 33), lambda k: None)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # a failed capture or an eager fallback fails the test
+def test_gpu_pool_reduced_pass_is_captured_and_never_syncs():
+    """A start pool with diverse starts and per-world dynamics on the GPU: the reduced reset (each world's pooled
+    state, its drawn masses written in place) is recorded inside the captured step, replays like the eager step and
+    reads nothing on the host."""
+    from captured_vs_eager import assert_captured_equals_eager
+
+    from tocabi_torchrl.randomize import TOCABI_LAB_DYNAMICS
+
+    kwargs = {"num_envs": 64, "device": "cuda", "seed": 3, "control_mode": "torque", "max_episode_steps": 6,
+              "reset_pass": "reduced", "start_pool": 4, "start_joint_vel_std": 0.5, "start_base_vel_std": 0.1,
+              "dynamics": TOCABI_LAB_DYNAMICS}
+    assert_captured_equals_eager(kwargs, ("observation", "reward", "done"))

@@ -46,6 +46,11 @@ def resolve_backend(backend: str, device) -> str:
     return backend
 
 
+#: The most start states per world ``env.sim.start_pool`` takes: the table holds each state's sensors, accelerations
+#: and actuator forces per world (P × num_envs rows).
+MAX_START_POOL = 64
+
+
 @dataclass
 class EnvSimConfig:
     """How the env's worlds are simulated (``TocabiWalkConfig.sim``).
@@ -64,6 +69,14 @@ class EnvSimConfig:
             full pass in every trajectory on warp's CPU device and ~1 ms a step cheaper at 4,096 envs on an H100
             (docs/benchmarks.md, issue 25); ``"full"`` a full forward pass. The ``"mujoco"`` backend ignores it
             (its reset computes the reset worlds only).
+        start_pool: P > 0: each world draws P start states once, when the env is built (start row, diverse start
+            velocities, ``env.dynamics``' masses, damping, armature and friction), and every reset picks one of its
+            P at random; their sensors and accelerations are computed then, so a reset with diverse starts or
+            per-world dynamics takes the reduced pass (the full pass otherwise). 0 (default): a fresh draw at every
+            reset. The draws' distributions are the same; the robots a run meets are num_envs × P instead of new
+            ones at every reset. The actuator draws, sensor biases and kicks stay fresh per episode. Worlds can
+            then not be made ideal (``TocabiWalk.set_randomized_worlds``). Inert without diverse starts or
+            dynamics.
     """
 
     backend: str = "auto"
@@ -76,12 +89,19 @@ class EnvSimConfig:
     """mujoco-warp convex-collision pairs per world (pooled; sizes the EPA scratch); none = the measured default"""
     threads: int | None = None
     reset_pass: str = "reduced"
+    start_pool: int = 0
+    """start states drawn per world at build (diverse starts, dynamics) that resets pick from, letting them take the
+    reduced pass; 0 = a fresh draw and the full pass at every reset"""
 
     def validate(self) -> None:
         if self.backend not in BACKENDS:
             raise ValueError(f"unknown env.sim.backend {self.backend!r}; choose one of {BACKENDS}")
         if self.reset_pass not in RESET_PASSES:
             raise ValueError(f"unknown env.sim.reset_pass {self.reset_pass!r}; choose one of {RESET_PASSES}")
+        pool = self.start_pool
+        if isinstance(pool, bool) or not isinstance(pool, int) or not 0 <= pool <= MAX_START_POOL:
+            raise ValueError(f"env.sim.start_pool must be an int in [0, {MAX_START_POOL}] (start states per world; "
+                             f"0 = a fresh draw at every reset), got {pool!r}")
         # substeps has the env's shared rule (the policy contract's timing.substeps is checked with it too).
         check_env_value("sim.substeps", self.substeps)
         for name in ("nconmax", "njmax", "nccdmax", "threads"):
@@ -364,7 +384,8 @@ ENV_FLAT_PATHS = {
     "torque_assist": "control.torque_assist", "mb_omega": "control.mb_omega", "mb_zeta": "control.mb_zeta",
     "mb_ref_window": "control.mb_ref_window", "mb_residual_gain": "control.mb_residual_gain",
     "substeps": "sim.substeps", "nconmax": "sim.nconmax", "njmax": "sim.njmax", "backend": "sim.backend",
-    "sim_threads": "sim.threads", "reset_pass": "sim.reset_pass", "obstacles": "scene.obstacles",
+    "sim_threads": "sim.threads", "reset_pass": "sim.reset_pass", "start_pool": "sim.start_pool",
+    "obstacles": "scene.obstacles",
     **{name: f"task.{name}" for name in TaskConfig.__dataclass_fields__},
 }
 

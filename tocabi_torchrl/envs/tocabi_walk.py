@@ -172,7 +172,10 @@ class TocabiWalk(EnvBase):
         # the reset runs the full pass (the reduced pass's start-state table holds the nominal model's sensors and
         # accelerations, which a world's own masses, damping, armature and friction change).
         world_fields = cfg.dynamics.sim_fields
-        reset_pass = "full" if world_fields else sim.reset_pass
+        # A pool of start states drawn at build (env.sim.start_pool) has its sensors and accelerations in the
+        # reduced pass's table, per world, so per-world dynamics and diverse starts keep the reduced pass with it.
+        self._pool = sim.start_pool if (cfg.task.diverse_starts or cfg.dynamics.enabled) else 0
+        reset_pass = "full" if world_fields and not self._pool else sim.reset_pass
         if self.backend == "warp":
             buffers = {k: v for k, v in (("nconmax", sim.nconmax), ("njmax", sim.njmax), ("nccdmax", sim.nccdmax))
                        if v is not None}
@@ -213,20 +216,26 @@ class TocabiWalk(EnvBase):
         self._init_buffers()
         #: The reduced reset pass (``env.sim.reset_pass="reduced"``, mujoco-warp only): the start states, one per
         #: start row of the reference motion, are registered with the simulator here.
-        # Diverse starts (random start velocities) are not in the start-state table: they take the full pass.
-        self._reduced_reset = self.backend == "warp" and sim.reset_pass == "reduced" and not cfg.task.diverse_starts
+        # Diverse starts (random start velocities) are not in the start-state table unless drawn from a pool: they
+        # take the full pass.
+        self._reduced_reset = self.backend == "warp" and sim.reset_pass == "reduced"
+        self._reduced_reset = self._reduced_reset and (self._pool > 0 or not cfg.task.diverse_starts)
         self._reduced_reset = self._reduced_reset and reset_pass == "reduced"  # see world_fields above
-        if self._reduced_reset:
-            self._register_start_states()
         # (nv,) the diverse starts' std per velocity coordinate [m/s, rad/s]: pelvis linear, none angular, joints.
         self._start_std = torch.zeros(self.sim.nv, dtype=torch.float32, device=device)
         self._start_std[:3], self._start_std[6:] = cfg.task.start_base_vel_std, cfg.task.start_joint_vel_std
+        if self._pool:
+            self._draw_pool()
+        if self._reduced_reset:
+            self._register_start_states()
         # Every per-episode draw of a reset, keyed on (seed, env, episode), in one hash pass: stream 0 the start
-        # row and first command, 1 the actuators, 2 the dynamics, 16 the start velocities (Box-Muller pairs),
-        # 17 the kicks.
+        # row and first command (and, with a pool, which of its world's start states), 1 the actuators, 2 the
+        # dynamics, 16 the start velocities (Box-Muller pairs), 17 the kicks. The pool's draws replace 2 and 16.
+        pooled = self._pool > 0
         self._draws = EpisodeDraws({
-            0: 3, 1: self.leg_actuators.draws, 2: self.dynamics.draws if self.dynamics is not None else 0,
-            16: 2 * (3 + robot.NUM_JOINTS) if cfg.task.diverse_starts else 0,
+            0: 4 if pooled else 3, 1: self.leg_actuators.draws,
+            2: self.dynamics.draws if self.dynamics is not None and not pooled else 0,
+            16: 2 * (3 + robot.NUM_JOINTS) if cfg.task.diverse_starts and not pooled else 0,
             17: self.pushes.draws if self.pushes is not None else 0}, device)
         self._make_specs()
 
@@ -273,9 +282,44 @@ class TocabiWalk(EnvBase):
         self._env_ids = torch.arange(n, dtype=torch.int64, device=dev)
         self.episode_count = torch.zeros(n, dtype=torch.int64, device=dev)
 
+    def _draw_pool(self) -> None:
+        """Draw each world's ``env.sim.start_pool`` start states, keyed on (build seed, env, state index) in streams
+        of their own: the start row's index, the start velocities, the dynamics' uniforms (whichever are on)."""
+        p, n, nv = self._pool, self.num_envs, self.sim.nv
+        diverse, dyn = self.cfg.task.diverse_starts, self.dynamics is not None
+        draws = EpisodeDraws({50: 1, 49: 2 * (3 + robot.NUM_JOINTS) if diverse else 0,
+                              48: self.dynamics.draws if dyn else 0}, self.device)
+        per_state = [draws(self._seed_t, self._env_ids, torch.full((n,), k, dtype=torch.int64, device=self.device))
+                     for k in range(p)]
+        u = {stream: torch.stack([d[stream] for d in per_state]) for stream in draws.streams}  # (P, N, k) each
+        rows = len(self._init_rows)
+        #: (P, N) int64 each pooled start state's index into the motion's start rows.
+        self._pool_pick = (u[50][..., 0] * rows).long().clamp_(max=rows - 1)
+        #: (P, N, nv) each pooled start state's velocities (zero without diverse starts).
+        self._pool_qvel = self._init_qvel.expand(p, n, nv).clone()
+        if diverse:
+            z = box_muller(u[49].reshape(p * n, -1)).reshape(p, n, -1)
+            self._pool_qvel[..., :3], self._pool_qvel[..., 6:] = z[..., :3], z[..., 3:]
+            self._pool_qvel *= self._start_std
+        #: (P, N, draws) each pooled start state's dynamics uniforms (``WorldDynamics.reset``), or None.
+        self._pool_dyn = u[48] if dyn else None
+
     def _register_start_states(self) -> None:
         """Register with the simulator the start state of each start row, as :meth:`_reset` builds it: the initial
-        pose at rest, leg controls ``_reset_leg_ctrl``, upper-body targets of the reference at the row's time 0."""
+        pose at rest, leg controls ``_reset_leg_ctrl``, upper-body targets of the reference at the row's time 0. With
+        a start pool, each world's pooled states instead, with their velocities and dynamics."""
+        if self._pool:
+            p, n = self._pool, self.num_envs
+            rows = self._init_rows[self._pool_pick].reshape(-1)
+            q_ref = self.motion.joint_targets(torch.zeros(p * n, dtype=torch.float32, device=self.device), rows)
+            ctrl = torch.cat((self._reset_leg_ctrl.expand(p * n, -1), q_ref[:, robot.UPPER_BODY]), dim=-1)
+            set_fields = None
+            if self._pool_dyn is not None:
+                def set_fields(k: int) -> None:
+                    self.dynamics.reset(self._all, self._pool_dyn[k])
+            self.sim.register_start_states(self._init_qpos.expand(p, -1), self._pool_qvel, ctrl.reshape(p, n, -1),
+                                           set_fields)
+            return
         k = len(self._init_rows)
         q_ref = self.motion.joint_targets(torch.zeros(k, dtype=torch.float32, device=self.device), self._init_rows)
         ctrl = torch.cat((self._reset_leg_ctrl.expand(k, -1), q_ref[:, robot.UPPER_BODY]), dim=-1)
@@ -514,10 +558,13 @@ class TocabiWalk(EnvBase):
         # Random start row and first command from (seed, env, episode): identical whichever reset path runs.
         draws = self._draws(self._seed_t, self._env_ids, self.episode_count)
         u = draws[0]
+        if self._pool:  # one of the world's pooled start states (row, velocities, dynamics): state k of world w
+            state = (u[:, 3] * self._pool).long().clamp_(max=self._pool - 1)
+            flat = state * self.num_envs + self._env_ids
         if self.leg_actuators.draws:  # each episode's actuator parameters, keyed like the start row
             self.leg_actuators.reset(mask, draws[1])
         if self.dynamics is not None:  # each episode's masses, damping, armature and friction, keyed the same way
-            self.dynamics.reset(mask, draws[2])
+            self.dynamics.reset(mask, self._pool_dyn.flatten(0, 1)[flat] if self._pool else draws[2])
         if self._some_nominal:  # the ideal robot in the worlds set_randomized_worlds left out (same draws above)
             ideal = mask & ~self.randomized_worlds
             self.leg_actuators.nominal(ideal)
@@ -525,9 +572,12 @@ class TocabiWalk(EnvBase):
                 self.dynamics.nominal(ideal)
         if self.pushes is not None:
             self.pushes.reset(mask, draws[17])
-        qvel = self._start_velocities(draws[16]) if self.cfg.task.diverse_starts else self._init_qvel
+        if self._pool:
+            qvel, pick = self._pool_qvel.flatten(0, 1)[flat], self._pool_pick.flatten()[flat]
+        else:
+            qvel = self._start_velocities(draws[16]) if self.cfg.task.diverse_starts else self._init_qvel
+            pick = (u[:, 0] * len(self._init_rows)).long().clamp_(max=len(self._init_rows) - 1)
         self.episode_count.add_(mask.long())
-        pick = (u[:, 0] * len(self._init_rows)).long().clamp_(max=len(self._init_rows) - 1)
         self.init_row.copy_(torch.where(mask, self._init_rows[pick], self.init_row))
         self.time.masked_fill_(mask, 0.0)
         self.episode_step.masked_fill_(mask, 0)
@@ -543,8 +593,8 @@ class TocabiWalk(EnvBase):
         self.ref_joint_pos.copy_(torch.where(m, q_ref, self.ref_joint_pos))
         self.ref_foot_force.copy_(torch.where(m, self.motion.force_reference(row), self.ref_foot_force))
         self.stance.copy_(torch.where(mask, self.motion.stance_at(row), self.stance))
-        if self._reduced_reset:  # the same start state, registered as row `pick` (see _register_start_states)
-            self.sim.reset_to_start(mask, pick)
+        if self._reduced_reset:  # the same start state, registered as row `pick` or pooled state (see above)
+            self.sim.reset_to_start(mask, state if self._pool else pick)
         else:
             upper = self.ref_joint_pos[:, robot.UPPER_BODY]
             ctrl = torch.cat((self._reset_leg_ctrl.expand(self.num_envs, -1), upper), dim=-1)
@@ -584,6 +634,10 @@ class TocabiWalk(EnvBase):
             raise ValueError(f"set_randomized_worlds takes a ({self.num_envs},) bool tensor (one flag per world), "
                              f"got {getattr(worlds, 'dtype', type(worlds).__name__)} "
                              f"{tuple(getattr(worlds, 'shape', ()))}")
+        if self._pool and not bool(worlds.all()):
+            raise ValueError(f"set_randomized_worlds: this env draws its robots from a start pool (env.sim.start_pool="
+                             f"{self._pool}), whose states hold randomised dynamics and start velocities; build the "
+                             "env with env.sim.start_pool=0 to hold ideal robots beside randomised ones")
         self.randomized_worlds.copy_(worlds.to(self.device))
         self._some_nominal = not bool(worlds.all())  # a host read, here at set-up, never in a step
 

@@ -193,8 +193,10 @@ def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig =
 
     steps = policy_steps(test.seconds, policy_dt())
     task = dataclasses.replace(task, max_episode_steps=max(int(task.max_episode_steps), steps + 1))
+    # Fresh draws at every reset, never a training start pool (env.sim.start_pool): the test's robots are its own.
+    sim = dataclasses.replace(env.sim, start_pool=0)
     env = dataclasses.replace(env, task=task, command=command, control=control, pushes=PushConfig(),
-                              dynamics=DynamicsRandomization())
+                              dynamics=DynamicsRandomization(), sim=sim)
     transforms = dataclasses.replace(cfg.transforms, sensor_noise=SensorNoiseConfig())
     out = dataclasses.replace(cfg, seed=int(test.seed), env=env, transforms=transforms)
     return robust_case_config(out, spec.push_speed, test) if spec.randomized else out
