@@ -308,6 +308,38 @@ def test_pool_config_and_errors():
         sim.register_start_states(qpos, torch.zeros(1, 3, 39), torch.zeros(1, 33), lambda k: None)
 
 
+def test_robust_preset_training_env_pool_matches_full():
+    """The robust preset's own training env (its start pool, every randomisation piece, kicks, the privileged
+    critic's input), on mujoco-warp's CPU device: the reduced pass gives what the full pass gives, bit for bit."""
+    from tocabi_torchrl.config import preset_tree
+    from tocabi_torchrl.rl.trainer import build_env
+    from tocabi_torchrl.tree import replace_paths
+
+    cfg = preset_tree("robust")
+    assert cfg.env.sim.start_pool > 0 and cfg.env.sim.reset_pass == "reduced"
+    # Short episodes and an early kick, so that worlds restart and get kicked within the few steps run here.
+    cfg = replace_paths(cfg, {"env.sim.backend": "warp", "env.task.max_episode_steps": 6,
+                              "env.pushes.window": (0.0, 0.02)})
+    envs = [build_env(replace_paths(cfg, {"env.sim.reset_pass": p}), torch.device("cpu"), num_envs=N,
+                      for_training=True, sync_free_resets=True) for p in ("full", "reduced")]
+    full, reduced = envs
+    assert reduced.base_env._reduced_reset and not full.base_env._reduced_reset
+    td_f, td_r = full.reset(), reduced.reset()
+    _assert_tds_equal(td_f, td_r, "reset")
+    g = torch.Generator().manual_seed(2)
+    resets, kicked = 0, False
+    for t in range(9):
+        a = 2 * torch.rand(N, 13, generator=g) - 1
+        td_f["action"], td_r["action"] = a.clone(), a.clone()
+        out_f, td_f = full.step_and_maybe_reset(td_f)
+        out_r, td_r = reduced.step_and_maybe_reset(td_r)
+        _assert_tds_equal(out_f, out_r, f"step {t}")
+        _assert_sims_equal(full.base_env.sim, reduced.base_env.sim, f"step {t}")
+        resets += int(out_f["next", "done"].sum())
+        kicked |= bool(full.base_env.sim.wp_data.xfrc_applied.numpy().any())
+    assert resets >= N and kicked
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # a failed capture or an eager fallback fails the test
