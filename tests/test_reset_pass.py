@@ -45,6 +45,24 @@ def _assert_tds_equal(a: TensorDict, b: TensorDict, when: str) -> None:
         assert torch.equal(a[key], b[key]), f"{when}: {key} differs"
 
 
+def _step_both(full, reduced, td_f, td_r, action: torch.Tensor, when: str):
+    """One sync-free step of the full-pass and the reduced-pass env with the same action; asserts that what they
+    return, and their simulators, are bit-identical. Returns (out_f, td_f, out_r, td_r)."""
+    td_f["action"], td_r["action"] = action.clone(), action.clone()
+    out_f, td_f = full.step_and_maybe_reset(td_f)
+    out_r, td_r = reduced.step_and_maybe_reset(td_r)
+    _assert_tds_equal(out_f, out_r, when)
+    _assert_tds_equal(td_f, td_r, f"{when}, after the sync-free resets")
+    _assert_sims_equal(full.base_env.sim, reduced.base_env.sim, when)
+    return out_f, td_f, out_r, td_r
+
+
+def _random_action(g: torch.Generator) -> torch.Tensor:
+    a = 2 * torch.rand(N, 13, generator=g) - 1
+    a[:, 12] = a[:, 12].abs()
+    return a
+
+
 # ------------------------------------------------------------------------------------------------ config and API
 def test_config_values():
     SimConfig(reset_pass="reduced").validate()
@@ -192,14 +210,7 @@ def test_env_reduced_matches_full(envs):
     g = torch.Generator().manual_seed(7)
     partial_autoresets = 0
     for t in range(14):
-        a = 2 * torch.rand(N, 13, generator=g) - 1
-        a[:, 12] = a[:, 12].abs()
-        td_f["action"], td_r["action"] = a.clone(), a.clone()
-        out_f, td_f = full.step_and_maybe_reset(td_f)
-        out_r, td_r = reduced.step_and_maybe_reset(td_r)
-        _assert_tds_equal(out_f, out_r, f"step {t}")
-        _assert_tds_equal(td_f, td_r, f"step {t}, after the sync-free resets")
-        _assert_sims_equal(full.base_env.sim, reduced.base_env.sim, f"step {t}")
+        out_f, td_f, _, td_r = _step_both(full, reduced, td_f, td_r, _random_action(g), f"step {t}")
         done = out_f["next", "done"].squeeze(-1)
         partial_autoresets += int(bool(done.any()) and not bool(done.all()))
         if t == 2:  # worlds 0 and 2 restart mid-episode; 1 and 3 go on
@@ -247,14 +258,7 @@ def test_pool_reduced_matches_full():
     g = torch.Generator().manual_seed(11)
     states, resets = set(), 0
     for t in range(16):
-        a = 2 * torch.rand(N, 13, generator=g) - 1
-        a[:, 12] = a[:, 12].abs()
-        td_f["action"], td_r["action"] = a.clone(), a.clone()
-        out_f, td_f = full.step_and_maybe_reset(td_f)
-        out_r, td_r = reduced.step_and_maybe_reset(td_r)
-        _assert_tds_equal(out_f, out_r, f"step {t}")
-        _assert_tds_equal(td_f, td_r, f"step {t}, after the sync-free resets")
-        _assert_sims_equal(full.base_env.sim, reduced.base_env.sim, f"step {t}")
+        out_f, td_f, _, td_r = _step_both(full, reduced, td_f, td_r, _random_action(g), f"step {t}")
         resets += int(out_f["next", "done"].sum())
         states.add(tuple(reduced.base_env.sim._start_states.index_t.tolist()))
     assert resets >= N and len(states) > 1  # every world restarted, into more than one pooled state
@@ -329,12 +333,7 @@ def test_robust_preset_training_env_pool_matches_full():
     g = torch.Generator().manual_seed(2)
     resets, kicked = 0, False
     for t in range(9):
-        a = 2 * torch.rand(N, 13, generator=g) - 1
-        td_f["action"], td_r["action"] = a.clone(), a.clone()
-        out_f, td_f = full.step_and_maybe_reset(td_f)
-        out_r, td_r = reduced.step_and_maybe_reset(td_r)
-        _assert_tds_equal(out_f, out_r, f"step {t}")
-        _assert_sims_equal(full.base_env.sim, reduced.base_env.sim, f"step {t}")
+        out_f, td_f, _, td_r = _step_both(full, reduced, td_f, td_r, _random_action(g), f"step {t}")
         resets += int(out_f["next", "done"].sum())
         kicked |= bool(full.base_env.sim.wp_data.xfrc_applied.numpy().any())
     assert resets >= N and kicked
