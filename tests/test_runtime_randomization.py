@@ -445,6 +445,18 @@ def test_export_states_what_the_policy_was_trained_under(tmp_path):
     assert section["pushes"]["ramp_env_steps"] == [10, 20]
     assert section["actuators"]["delay"] == {**section["actuators"]["delay"], "substeps": [4, 20], "ms": [2.0, 10.0]}
     assert section["actuators"]["saturation"] != "off" and section["actuators"]["friction"] == "off"
+    assert section["dynamics"]["mass_scale"]["draw"].endswith(", at each reset")
+    assert section["start_velocity"]["rule"].startswith("at each reset:")
+    # A start pool (env.sim.start_pool) is stated where it acted: the dynamics and the start velocities.
+    pooled = dataclasses.replace(cfg, env=dataclasses.replace(env_cfg, sim=dataclasses.replace(env_cfg.sim,
+                                                                                                start_pool=3)))
+    env = build_env(pooled, torch.device("cpu"), num_envs=1)
+    ckpt = save_checkpoint(tmp_path / "pooled", 0, 0, agent, None, env, pooled)
+    export_main(["--checkpoint", str(ckpt), "--out", str(tmp_path / "pooled.onnx")])
+    section = load_contract(tmp_path / "pooled.json")["trained_under"]
+    for text in (section["dynamics"]["armature_scale"]["draw"], section["start_velocity"]["rule"]):
+        assert "3 draws per robot made when the training env was built, one of them picked at each reset" in text
+    assert rnd.from_contract(load_contract(tmp_path / "pooled.json"))[0] == rnd.TOCABI_LAB
 
 
 # ------------------------------------------------------------------------------------------------ the recipe

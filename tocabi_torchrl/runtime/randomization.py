@@ -210,11 +210,15 @@ def _pair(values) -> list[float]:
 
 
 def trained_under_section(randomization: Randomization, pushes: PushSettings, start: StartVelocity,
-                          physics_dt_s: float, robot_mass_kg: float, push_ramp=(0, 0)) -> dict:
+                          physics_dt_s: float, robot_mass_kg: float, push_ramp=(0, 0), start_pool: int = 0) -> dict:
     """The contract's ``trained_under`` section (``docs/deploying.md``): each piece with its unit and draw, ``"off"``
     where training did not use it. ``physics_dt_s``: the physics step, for the delay in ms; ``robot_mass_kg``: the
-    mass the kicks' impulse is computed with; ``push_ramp``: ``ppo.push_ramp`` (start, full) env steps."""
+    mass the kicks' impulse is computed with; ``push_ramp``: ``ppo.push_ramp`` (start, full) env steps;
+    ``start_pool``: ``env.sim.start_pool`` as it acted (0 = dynamics and start velocities drawn at each reset)."""
     act, dyn, sen = randomization.actuators, randomization.dynamics, randomization.sensors
+    # How the dynamics and start velocities were drawn: afresh at each reset, or from a pool drawn at build.
+    when = (f"{int(start_pool)} draws per robot made when the training env was built, one of them picked at each "
+            "reset" if start_pool else "at each reset")
     actuators = {
         "applies_to": "the leg torques of the torque control modes (the PD modes' servos take none), in this order: "
                       "delay, motor_constant, friction, saturation",
@@ -240,7 +244,7 @@ def trained_under_section(randomization: Randomization, pushes: PushSettings, st
                                             "joint)"),
              "armature_scale": ("1", "joint dof armature * a, a ~ U(low, high) per robot and joint"),
              "friction_scale": ("1", "sliding friction of every geom * f, f ~ U(low, high) per robot")}
-    dynamics = {name: {"range": _pair(getattr(dyn, name)), "unit": unit, "draw": f"{draw}, at each reset"}
+    dynamics = {name: {"range": _pair(getattr(dyn, name)), "unit": unit, "draw": f"{draw}, {when}"}
                 if dyn.on(name) else "off" for name, (unit, draw) in units.items()}
     sensors = {}
     for signal, unit in (("joint_pos", "rad"), ("base_rpy", "rad"), ("foot_force", "N"), ("foot_torque", "N*m")):
@@ -270,7 +274,7 @@ def trained_under_section(randomization: Randomization, pushes: PushSettings, st
                            "ramp_env_steps: training scaled every kick from 0 at the first to 1 at the second"}
         if pushes.count > 0 else "off",
         "start_velocity": {"joint_std_radps": float(start.joint_std), "base_std_mps": float(start.base_std),
-                           "rule": "at each reset: joint velocities ~ N(0, joint_std^2), pelvis linear velocity ~ "
+                           "rule": f"{when}: joint velocities ~ N(0, joint_std^2), pelvis linear velocity ~ "
                                    "N(0, base_std^2) per world axis, no angular velocity"}
         if start.enabled else "off",
     }
