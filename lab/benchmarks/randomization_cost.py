@@ -1,0 +1,90 @@
+"""What a preset's randomisation and perturbations cost in training: its throughput with them against the same preset
+without them, in one run (issue "Robust walking": >= 0.95x).
+
+    python -m lab.benchmarks.randomization_cost --preset robust --num_envs 4096 --rounds 2
+
+Each round measures two variants, each in a fresh child process of ``train_throughput`` (the steady training rate
+after ``--warmup`` iterations, then the raw mujoco-warp ceiling of standing robots): ``on``, the preset as committed
+but with its kicks at full strength from the first step (``ppo.push_ramp=0 0``: a run of a few iterations would
+otherwise end before its curriculum lets a kick through), and ``off``, the same with every piece of
+:data:`OFF` at its identity (actuator layer, dynamics, sensor biases and noise, pushes, diverse starts). The rounds
+alternate on, off, on, off, so that a drift of the GPU's clocks hits both. Reports every measurement and the ratio of
+the two variants' median rates. See docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+
+from . import common
+
+NAME = "randomization_cost"
+
+#: Every randomisation and perturbation piece at its identity, as ``--set`` items of the training config.
+OFF = ("env.control.actuators.delay_substeps=0 0", "env.control.actuators.motor_constant=1 1",
+       "env.dynamics.mass_scale=1 1", "env.dynamics.joint_damping=0 0", "env.dynamics.armature_scale=1 1",
+       "env.dynamics.friction_scale=1 1", "transforms.sensor_noise.joint_pos_bias=0",
+       "transforms.sensor_noise.joint_pos_noise_std=0", "transforms.sensor_noise.joint_vel_noise_std=0",
+       "transforms.sensor_noise.base_rpy_bias=0", "transforms.sensor_noise.foot_force_bias=0",
+       "transforms.sensor_noise.foot_torque_bias=0", "env.pushes.count=0", "env.task.start_joint_vel_std=0",
+       "env.task.start_base_vel_std=0")
+#: The kicks at full strength from the first step (see the module docstring).
+FULL_KICKS = ("ppo.push_ramp=0 0",)
+
+
+def variants(preset: str, extra: list[str]) -> dict[str, list[str]]:
+    """``--set`` items of each variant."""
+    base = [f"preset={preset}", *extra]
+    return {"on": [*base, *FULL_KICKS], "off": [*base, *FULL_KICKS, *OFF]}
+
+
+def render(data: dict, out) -> str:
+    rows = [(r["round"], r["variant"], common.fmt(r.get("train_env_steps_per_s")),
+             common.fmt(r.get("raw_policy_steps_per_s")), common.fmt(r.get("ratio_train_over_raw"), ".2f"))
+            for r in data["results"]]
+    s = data["summary"]
+    body = common.table(("round", "variant", "train env-steps/s", "raw mujoco-warp policy steps/s", "train / raw"),
+                        rows)
+    body += (f"\n\nMedian training rate: on {common.fmt(s['on_median'])}, off {common.fmt(s['off_median'])} env-steps/s; "
+             f"on / off = **{s['on_over_off']:.3f}** (the target is >= 0.95).\n")
+    return common.page("What randomisation costs in training", data, body)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--preset", default="robust", help="the training preset whose randomisation is measured")
+    p.add_argument("--num_envs", type=int, default=4096)
+    p.add_argument("--rounds", type=int, default=2, help="alternating on/off measurements of each variant")
+    p.add_argument("--iterations", type=int, default=10)
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed per measurement (0: skip)")
+    p.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="more overrides, for both variants")
+    p.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run of the script")
+    p.add_argument("--run_dir", default="/tmp/tocabi_bench_runs", help="scratch folder of the training runs")
+    p.add_argument("--out", default=str(common.DOCS / "randomization"))
+    p.add_argument("--name", default=NAME)
+    args = p.parse_args(argv)
+    if args.rounds < 1 or args.num_envs < 1:
+        p.error(f"--rounds and --num_envs take values >= 1, got {args.rounds} and {args.num_envs}")
+    sets = variants(args.preset, args.set)
+    for items in sets.values():
+        common.parse_overrides(items)  # a bad path or value fails here, before any measurement
+    results = []
+    for r in range(args.rounds):
+        for name, items in sets.items():
+            record = common.run_child("train_throughput", [
+                "--num_envs", str(args.num_envs), "--iterations", str(args.iterations), "--warmup", str(args.warmup),
+                "--raw_steps", str(args.raw_steps), "--device", args.device,
+                "--run_dir", f"{args.run_dir}/{args.name}_{name}", "--set", *items])
+            results.append({"round": r + 1, "variant": name, "set": items, **record})
+            print(f"round {r + 1} {name}: {record.get('train_env_steps_per_s') or 0:,.0f} env-steps/s", flush=True)
+    median = {v: statistics.median(x["train_env_steps_per_s"] for x in results if x["variant"] == v) for v in sets}
+    summary = {"on_median": median["on"], "off_median": median["off"], "on_over_off": median["on"] / median["off"]}
+    meta = common.meta(NAME, argv, args.device, preset=args.preset, num_envs=args.num_envs, rounds=args.rounds)
+    print(common.publish(args.out, args.name, {"meta": meta, "summary": summary, "results": results}, render,
+                         measured_on=args.device))
+
+
+if __name__ == "__main__":
+    main()
