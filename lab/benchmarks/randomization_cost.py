@@ -46,8 +46,8 @@ def render(data: dict, out) -> str:
     s = data["summary"]
     body = common.table(("round", "variant", "train env-steps/s", "raw mujoco-warp policy steps/s", "train / raw"),
                         rows)
-    body += (f"\n\nMedian training rate: on {common.fmt(s['on_median'])}, off {common.fmt(s['off_median'])} env-steps/s; "
-             f"on / off = **{s['on_over_off']:.3f}** (the target is >= 0.95).\n")
+    body += (f"\n\nMedian training rate: on {common.fmt(s['on_median'])}, off {common.fmt(s['off_median'])} "
+             f"env-steps/s; on / off = **{s['on_over_off']:.3f}** (the target is >= 0.95).\n")
     return common.page("What randomisation costs in training", data, body)
 
 
