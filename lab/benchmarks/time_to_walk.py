@@ -265,6 +265,12 @@ def render(data: dict, out: Path) -> str:
                                 (CRITERIA["forward_distance_m"], "forward distance in 8 s [m]"))
     panels = [{"lines": {}, "vlines": [], "hlines": [(y, "pass")], "xlabel": "training minutes", "ylabel": label}
               for y, label in limits]
+    # The robust test's pushed cases beside them: survival under three kicks, each speed against its own threshold.
+    pushed = ("robust_0.5", "robust_1.0") if robust else ()
+    if pushed:
+        panels.append({"lines": {}, "vlines": [], "xlabel": "training minutes",
+                       "ylabel": "survival over 8 s under three kicks [%]",
+                       "hlines": [(100 * ROBUST_CRITERIA[c]["survival"][1], f"pass {c}") for c in pushed]})
     for r in records:
         evals = sorted(r.get("evaluations", {}).items())
         text += f"\n\n## {_label(r)}\n\nCommands:\n\n" + "".join(
@@ -279,10 +285,16 @@ def render(data: dict, out: Path) -> str:
                                                  for c in OTHER_COMMANDS), "yes" if e.get("walks") else "no",
              e.get("device", "-"))
              for name, e in evals]))
-        for panel, k, scale in zip(panels, ("survival", "forward_distance_m"), (100, 1), strict=True):
+        for panel, k, scale in zip(panels[:2], ("survival", "forward_distance_m"), (100, 1), strict=True):
             panel["lines"][_label(r)] = ([e["train_seconds"] / 60 for _, e in evals],
                                            [scale * _headline(e, k) for _, e in evals])
             panel["vlines"] += [r["time_to_walk"]["train_minutes"]] if r.get("time_to_walk") else []
+        for case in pushed:
+            values = [_value(e, case, "survival") for _, e in evals]
+            panels[2]["lines"][f"{_label(r)}, {case}"] = ([e["train_seconds"] / 60 for _, e in evals],
+                                                          [math.nan if v is None else 100 * v for v in values])
+        if pushed and r.get("time_to_walk"):
+            panels[2]["vlines"].append(r["time_to_walk"]["train_minutes"])
     common.plot(out / ("time_to_walk_robust.png" if robust else "time_to_walk.png"), panels,
                 "Gait test of checkpoints against training time (dotted: first pass)")
     return text + "\n"
