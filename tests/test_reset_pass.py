@@ -261,6 +261,14 @@ def test_pool_reduced_matches_full():
         out_f, td_f, _, td_r = _step_both(full, reduced, td_f, td_r, _random_action(g), f"step {t}")
         resets += int(out_f["next", "done"].sum())
         states.add(tuple(reduced.base_env.sim._start_states.index_t.tolist()))
+        if t in (1, 8):  # worlds 1 and 2 restart mid-episode, into other pooled states; 0 and 3 go on
+            mask = torch.tensor([False, True, True, False]).unsqueeze(-1)
+            keep = reduced.base_env.sim.qpos[[0, 3]].clone()
+            td_f = full.reset(td_f.set("_reset", mask.clone()))
+            td_r = reduced.reset(td_r.set("_reset", mask.clone()))
+            _assert_tds_equal(td_f, td_r, f"partial reset after step {t}")
+            _assert_sims_equal(full.base_env.sim, reduced.base_env.sim, f"partial reset after step {t}")
+            assert torch.equal(reduced.base_env.sim.qpos[[0, 3]], keep)
     assert resets >= N and len(states) > 1  # every world restarted, into more than one pooled state
 
 
@@ -298,9 +306,19 @@ def test_pool_config_and_errors():
     with pytest.raises(ValueError, match="start_pool=0"):
         env.base_env.set_randomized_worlds(torch.tensor([True, False, True, True]))
     env.base_env.set_randomized_worlds(torch.ones(N, dtype=torch.bool))  # all randomised: nothing changes
-    # Without diverse starts or dynamics the pool has nothing to draw: the env is the plain one.
+    # A pool of start velocities only holds no dynamics: ideal worlds are allowed there (their actuators, sensors).
     from tocabi_torchrl.sim.dynamics_config import DynamicsRandomization
 
+    starts_only = _pool_env("reduced", pool=2, dynamics=DynamicsRandomization())
+    assert starts_only.base_env._pool == 2 and starts_only.base_env._pool_dyn is None
+    starts_only.base_env.set_randomized_worlds(torch.tensor([True, False, True, True]))
+    starts_only.reset()
+    # The pool is the build seed's: set_seed moves the per-episode draws, not the pooled states.
+    assert env.base_env.pool_seed == 0
+    before = env.base_env._pool_qvel.clone()
+    env.set_seed(123)
+    assert torch.equal(env.base_env._pool_qvel, before) and env.base_env.pool_seed == 0
+    # Without diverse starts or dynamics the pool has nothing to draw: the env is the plain one.
     plain = _pool_env("reduced", pool=2, start_joint_vel_std=0.0, start_base_vel_std=0.0,
                       dynamics=DynamicsRandomization())
     assert plain.base_env._pool == 0 and plain.base_env._reduced_reset
@@ -354,3 +372,41 @@ def test_gpu_pool_reduced_pass_is_captured_and_never_syncs():
               "reset_pass": "reduced", "start_pool": 4, "start_joint_vel_std": 0.5, "start_base_vel_std": 0.1,
               "dynamics": TOCABI_LAB_DYNAMICS}
     assert_captured_equals_eager(kwargs, ("observation", "reward", "done"))
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.filterwarnings("error:SyncFreeResetEnv")
+def test_gpu_robust_preset_training_env_reduced_matches_full():
+    """The robust preset's own training env on the GPU, both reset passes: the first reset (each world's pooled state,
+    the reduced pass's from the table the GPU computed at build) gives the full pass's observations and sensors
+    (within float32 rounding: the GPU sums contact forces in atomics, so no two GPU runs are bit-identical); then
+    captured steps through truncations, resets and kicks read nothing on the host."""
+    from tocabi_torchrl.config import preset_tree
+    from tocabi_torchrl.rl.trainer import build_env
+    from tocabi_torchrl.tree import replace_paths
+
+    cfg = replace_paths(preset_tree("robust"), {"env.task.max_episode_steps": 8, "env.pushes.window": (0.0, 0.03)})
+    dev = torch.device("cuda")
+    envs = [build_env(replace_paths(cfg, {"env.sim.reset_pass": p}), dev, num_envs=256, for_training=True,
+                      sync_free_resets=True, cuda_graph=True) for p in ("full", "reduced")]
+    full, reduced = envs
+    assert reduced.base_env._reduced_reset and not full.base_env._reduced_reset
+    td_f, td_r = full.reset(), reduced.reset()
+    torch.testing.assert_close(td_r["observation"], td_f["observation"], atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(reduced.base_env.sim.sensordata, full.base_env.sim.sensordata, atol=1e-3, rtol=1e-4)
+    g = torch.Generator(device="cpu").manual_seed(4)
+    resets = 0
+    try:
+        for t in range(20):
+            a = (2 * torch.rand(256, 13, generator=g) - 1).to(dev)
+            td_f["action"], td_r["action"] = a.clone(), a.clone()
+            if t == 3:
+                torch.cuda.set_sync_debug_mode("error")  # after the captures: replays must not read the host
+            _, td_f = full.step_and_maybe_reset(td_f)
+            out_r, td_r = reduced.step_and_maybe_reset(td_r)
+            torch.cuda.set_sync_debug_mode(0)
+            resets += int(out_r["next", "done"].sum())
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    assert resets >= 256 and full.graph_captured and reduced.graph_captured

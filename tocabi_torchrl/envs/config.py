@@ -74,9 +74,9 @@ class EnvSimConfig:
             P at random; their sensors and accelerations are computed then, so a reset with diverse starts or
             per-world dynamics takes the reduced pass (the full pass otherwise). 0 (default): a fresh draw at every
             reset. The draws' distributions are the same; the robots a run meets are num_envs × P instead of new
-            ones at every reset. The actuator draws, sensor biases and kicks stay fresh per episode. Worlds can
-            then not be made ideal (``TocabiWalk.set_randomized_worlds``). Inert without diverse starts or
-            dynamics.
+            ones at every reset. The actuator draws, sensor biases and kicks stay fresh per episode, and the pool
+            stays that of the build seed (``set_seed`` does not redraw it). With pooled dynamics, worlds can not be
+            made ideal (``TocabiWalk.set_randomized_worlds``). Inert without diverse starts or dynamics.
     """
 
     backend: str = "auto"

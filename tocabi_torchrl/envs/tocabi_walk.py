@@ -284,14 +284,21 @@ class TocabiWalk(EnvBase):
 
     def _draw_pool(self) -> None:
         """Draw each world's ``env.sim.start_pool`` start states, keyed on (build seed, env, state index) in streams
-        of their own: the start row's index, the start velocities, the dynamics' uniforms (whichever are on)."""
+        of their own: the start row's index, the start velocities, the dynamics' uniforms (whichever are on). Like
+        the obstacles' offsets, the pool stays that of the build seed (:attr:`pool_seed`): ``set_seed`` moves every
+        per-episode draw, including which pooled state a reset picks, but not the pooled states themselves."""
         p, n, nv = self._pool, self.num_envs, self.sim.nv
         diverse, dyn = self.cfg.task.diverse_starts, self.dynamics is not None
+        #: The seed the start pool was drawn from (the build seed).
+        self.pool_seed = self._seed
         draws = EpisodeDraws({50: 1, 49: 2 * (3 + robot.NUM_JOINTS) if diverse else 0,
                               48: self.dynamics.draws if dyn else 0}, self.device)
-        per_state = [draws(self._seed_t, self._env_ids, torch.full((n,), k, dtype=torch.int64, device=self.device))
-                     for k in range(p)]
-        u = {stream: torch.stack([d[stream] for d in per_state]) for stream in draws.streams}  # (P, N, k) each
+        u = {stream: torch.empty(p, n, k, dtype=torch.float32, device=self.device)
+             for stream, k in draws.streams.items()}  # (P, N, k) each, filled state by state (no P-fold peak)
+        for k in range(p):
+            state = draws(self._seed_t, self._env_ids, torch.full((n,), k, dtype=torch.int64, device=self.device))
+            for stream, values in state.items():
+                u[stream][k].copy_(values)
         rows = len(self._init_rows)
         #: (P, N) int64 each pooled start state's index into the motion's start rows.
         self._pool_pick = (u[50][..., 0] * rows).long().clamp_(max=rows - 1)
@@ -634,10 +641,10 @@ class TocabiWalk(EnvBase):
             raise ValueError(f"set_randomized_worlds takes a ({self.num_envs},) bool tensor (one flag per world), "
                              f"got {getattr(worlds, 'dtype', type(worlds).__name__)} "
                              f"{tuple(getattr(worlds, 'shape', ()))}")
-        if self._pool and not bool(worlds.all()):
+        if self._pool and self._pool_dyn is not None and not bool(worlds.all()):
             raise ValueError(f"set_randomized_worlds: this env draws its robots from a start pool (env.sim.start_pool="
-                             f"{self._pool}), whose states hold randomised dynamics and start velocities; build the "
-                             "env with env.sim.start_pool=0 to hold ideal robots beside randomised ones")
+                             f"{self._pool}), whose states hold randomised dynamics; build the env with "
+                             "env.sim.start_pool=0 to hold ideal robots beside randomised ones")
         self.randomized_worlds.copy_(worlds.to(self.device))
         self._some_nominal = not bool(worlds.all())  # a host read, here at set-up, never in a step
 

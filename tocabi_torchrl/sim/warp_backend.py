@@ -70,7 +70,7 @@ class _StartStates:
     worlds: torch.Tensor  # (N,) int64 world ids, for the row of each world's state
     index: wp.array  # (N,) int32: the row each world resets to
     index_t: torch.Tensor  # its torch view, which the host side fills
-    rows: torch.Tensor  # (N,) int64: the clamped rows, refilled in place on every reset (no allocation)
+    rows: torch.Tensor  # (N,) int64 scratch, refilled in place on every reset: clamped rows, then their flat rows
     sensordata: wp.array  # (K, N, nsensordata)
     qacc: wp.array  # (K, N, nv)
     actuator_force: wp.array  # (K, N, nu)

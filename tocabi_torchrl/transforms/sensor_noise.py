@@ -65,11 +65,13 @@ from tocabi_torchrl.transforms.sensor_noise_config import SENSORS, SensorNoiseCo
 __all__ = ["SensorNoiseConfig", "SensorNoise", "SENSORS", "BIAS_STREAMS", "NOISE_STREAMS", "sensor_biases",
            "sensor_noise"]
 
-#: Hash stream of each signal's per-episode bias and of its per-step noise (``episode_uniform``'s ``stream``). Other
-#: per-episode draws of the package use streams below 32; one stream per signal keeps a signal's numbers the same
-#: whichever other signals are perturbed.
+#: Hash stream of each signal's per-episode bias and of its per-step noise (``episode_uniform``'s ``stream``). The
+#: env's per-episode draws use streams below 32 and its start pool 48-50 (``envs/tocabi_walk.py``); one stream per
+#: signal keeps a signal's numbers the same whichever other signals are perturbed.
 BIAS_STREAMS: Mapping[str, int] = {name: 32 + i for i, name in enumerate(SENSORS)}
 NOISE_STREAMS: Mapping[str, int] = {name: 40 + i for i, name in enumerate(SENSORS)}
+assert max(BIAS_STREAMS.values()) < min(NOISE_STREAMS.values()) and max(NOISE_STREAMS.values()) < 48, (
+    "the sensor streams would run into each other or into the start pool's (48-50)")
 # The step occupies the low 32 bits of the noise key, the episode number the bits above (2**32 steps = 198 days).
 _STEP_BITS = 32
 
