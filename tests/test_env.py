@@ -357,6 +357,17 @@ def test_one_hash_pass_draws_every_stream_as_its_own_call_would():
         alone = EpisodeDraws({stream: k, 5: 0}, "cpu")(seed, ids, episode)  # an empty stream is left out
         assert list(alone) == [stream] and torch.equal(alone[stream], together[stream])
     assert torch.equal(box_muller(together[16]), episode_normal(seed, ids, episode, 16, 36))
+    # The numbers themselves, as the per-stream hash drew them before the one-pass draw existed (values × 2**24).
+    pinned = EpisodeDraws({0: 3, 2: 2, 17: 2, 33: 2}, "cpu")(seed, torch.tensor([0, 5, 4095]),
+                                                            torch.tensor([0, 7, 2**40 + 3]))
+    assert {s: (u * (1 << 24)).long().tolist() for s, u in pinned.items()} == {
+        0: [[14082174, 14779758, 15450096], [6053201, 15535796, 16084843], [12652417, 5375057, 11739389]],
+        2: [[3560581, 12969962], [9374992, 13786362], [5712760, 8868444]],
+        17: [[1768404, 374026], [11605394, 14184731], [5814443, 11169919]],
+        33: [[15950955, 16757830], [7618500, 10566801], [16462573, 12674182]]}
+    assert EpisodeDraws({3: 0}, "cpu")(seed, ids, episode) == {}  # nothing to draw: no hash at all
+    with pytest.raises(ValueError, match="256"):
+        EpisodeDraws({4: 257}, "cpu")
     # Streams differ from each other (disjoint lanes), and from the same stream of the next episode.
     assert (together[1][:, :3] != together[0]).float().mean() > 0.99
     nxt = EpisodeDraws(streams, "cpu")(seed, ids, episode + 1)

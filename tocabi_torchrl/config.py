@@ -478,7 +478,7 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # The torque preset trained for the real robot: the TOCABI lab's uncertainty model (randomize.tocabi_lab: motor
     # constant, 2-10 ms torque delay, link masses, joint damping, armature, sensor biases and encoder noise, drawn per
     # world at every reset), diverse starts (the robust gait test's start velocities) and pushes: eight kicks per 32 s
-    # episode of 0.3-1.3 m/s (31-136 N·s) over 4-40 ms, near-impulses like the test's one-step kicks: 13 % of them reach
+    # episode of 0.3-1.3 m/s (31-136 N·s) over 4-40 ms, near-impulses like the test's one-step kicks: 15 % of them reach
     # 1.0 m/s within 20 ms. (The third run's, 0.3-1.2 m/s over 4-200 ms, did so 2 % of the time, and the test's first
     # 1.0 m/s kick toppled 19 % of its robots, docs/training/robust/h200_run3.) The kicks ramp in from 15 M to 55 M env
     # steps, while the legs are still PD residuals (β = 1), so that the frozen teacher the fade copies from (taken at

@@ -2,13 +2,16 @@
 
 Runs one pushed case of the robust test (``robust_1.0`` by default: the test's seed, diverse starts, the
 ``tocabi_lab`` randomisation, three one-step kicks at random times in 2-7 s) for each checkpoint on the CPU (C MuJoCo)
-through :func:`tocabi_torchrl.evaluation.robust.run_case`, reads each robot's kick schedule from the env
+through :func:`tocabi_torchrl.evaluation.robust.run_case`: the case's settings in an env of its own
+(:func:`~tocabi_torchrl.evaluation.robust.case_env`), so its robots are not the very ones of the test's batch env,
+where the case holds other world indices. It reads each robot's kick schedule from the env
 (``Pushes.start_step`` and ``Pushes.force``) and its fall time (``alive_seconds``), and attributes every fall to the
 last kick before it. Directions are those of the kick's force in the world frame, in four 90° sectors (every robot
 starts facing +x and the test's robots turn 0.03-0.6 rad, so "forward" is roughly the way the robot walks).
 
 Reports per checkpoint: survival, falls by the kick that preceded them, the hazard of each kick (falls after it over
-the robots it met alive), falls by direction against the kicks drawn per direction, and the fall delay after the kick.
+the robots it met alive), falls by direction against the kicks per direction that met a standing robot, and the fall
+delay after the kick (null when nothing fell).
 
 Wrote docs/training/robust/h200_run3/kick_falls.json (about 80 s per checkpoint of 64 robots on 2 cores)::
 
@@ -67,13 +70,14 @@ def measure(path: Path, case: str, num_envs: int) -> dict:
     met = [0] * count  # robots alive when kick j came
     after = [0] * count  # falls whose last kick before them was kick j
     by_dir = {s: 0 for s in SECTORS}
-    drawn = {s: 0 for s in SECTORS}
+    met_dir = {s: 0 for s in SECTORS}  # kicks per direction that came while their robot stood
     delays, before_any = [], 0
     for i in range(num_envs):
         t_end = math.inf if bool(alive[i]) else float(fell_at[i])
         for j in range(count):
-            drawn[sector(float(angle[i, j]))] += 1
-            met[j] += int(float(kick_s[i, j]) <= t_end)
+            standing = float(kick_s[i, j]) <= t_end
+            met[j] += int(standing)
+            met_dir[sector(float(angle[i, j]))] += int(standing)
         if bool(alive[i]):
             continue
         prior = [j for j in range(count) if float(kick_s[i, j]) <= t_end]
@@ -84,7 +88,7 @@ def measure(path: Path, case: str, num_envs: int) -> dict:
         after[j] += 1
         by_dir[sector(float(angle[i, j]))] += 1
         delays.append(t_end - float(kick_s[i, j]))
-    delays_t = torch.tensor(delays or [math.nan], dtype=torch.float64)
+    delays_t = torch.tensor(delays, dtype=torch.float64)
     return {
         "checkpoint": str(path), "case": case, "num_envs": num_envs, "seed": robust.EVAL_SEED,
         "env_steps": int(state.get("env_steps", 0)), "train_seconds": float(state.get("train_seconds", 0.0)),
@@ -94,9 +98,9 @@ def measure(path: Path, case: str, num_envs: int) -> dict:
         "robots_alive_at_kick": met,
         "kick_hazard": [a / m if m else None for a, m in zip(after, met)],
         "falls_by_direction_of_last_kick": by_dir,
-        "kicks_drawn_by_direction": drawn,
-        "fall_delay_after_kick_s": {"mean": float(delays_t.mean()), "min": float(delays_t.min()),
-                                    "max": float(delays_t.max())},
+        "kicks_met_standing_by_direction": met_dir,
+        "fall_delay_after_kick_s": ({"mean": float(delays_t.mean()), "min": float(delays_t.min()),
+                                     "max": float(delays_t.max())} if delays else None),
     }
 
 
@@ -114,16 +118,18 @@ def main(argv=None) -> int:
     for path in args.checkpoint:
         start = time.perf_counter()
         r = measure(path, args.case, args.num_envs)
+        delay = r["fall_delay_after_kick_s"]
         print(f"{path}: survival {r['survival']:.3f}, falls after kicks {r['falls_after_kick']} of robots "
-              f"{r['robots_alive_at_kick']} alive at them, by direction {r['falls_by_direction_of_last_kick']}, "
-              f"delay {r['fall_delay_after_kick_s']['mean']:.2f} s ({time.perf_counter() - start:.0f} s)", flush=True)
+              f"{r['robots_alive_at_kick']} alive at them, by direction {r['falls_by_direction_of_last_kick']} of "
+              f"{r['kicks_met_standing_by_direction']}, delay {'-' if delay is None else round(delay['mean'], 2)} s "
+              f"({time.perf_counter() - start:.0f} s)", flush=True)
         results.append(r)
     if args.out is not None:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], check=False, capture_output=True,
                                 text=True).stdout.strip()
         meta = {"command": " ".join(["python", "lab/analysis/kick_falls.py", *(argv or sys.argv[1:])]),
                 "date": time.strftime("%Y-%m-%d"), "code": commit, "hardware": "CPU (C MuJoCo)"}
-        atomic_write_text(args.out, json.dumps({"meta": meta, "results": results}, indent=1) + "\n")
+        atomic_write_text(args.out, json.dumps({"meta": meta, "results": results}, indent=1, allow_nan=False) + "\n")
     return 0
 
 

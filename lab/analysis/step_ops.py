@@ -8,9 +8,12 @@ The count is of top-level ``aten::`` ops (views included) under ``torch.profiler
 averaged over 10 steps of 32 envs on C MuJoCo; each row switches one piece of the ``robust`` preset on over the
 preset with all of them off, the last row is the preset itself.
 
-Wrote docs/benchmarks/randomization/step_ops.json (about a minute on 2 cores)::
+Wrote docs/benchmarks/randomization/step_ops.json (about a minute on 2 cores; ``--before`` adds an earlier report's
+counts as a column, here those of the code before the reset's draws shared one hash pass, written by this script at
+93447b9 with ``--out /tmp/step_ops_before.json``)::
 
-    PYTHONPATH=. python lab/analysis/step_ops.py --out docs/benchmarks/randomization/step_ops.json
+    PYTHONPATH=. python lab/analysis/step_ops.py --out docs/benchmarks/randomization/step_ops.json \
+        --before /tmp/step_ops_before.json --before_note "before the reset's draws shared one hash pass"
 """
 
 from __future__ import annotations
@@ -80,7 +83,11 @@ def main(argv=None) -> int:
     p.add_argument("--num_envs", type=int, default=32, help="envs (the count does not depend on it)")
     p.add_argument("--steps", type=int, default=10, help="steps counted per row")
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
+    p.add_argument("--before", type=Path, default=None,
+                   help="an earlier report of this script, whose counts become a column beside these")
+    p.add_argument("--before_note", default="", help="what the earlier report's code lacked (shown with its column)")
     args = p.parse_args(argv)
+    before = json.loads(args.before.read_text()) if args.before is not None else None
     torch.set_num_threads(1)
     robust = preset_tree("robust")
     off = replace_paths(robust, OFF)
@@ -98,6 +105,11 @@ def main(argv=None) -> int:
         meta = {"command": " ".join(["python", "lab/analysis/step_ops.py", *(argv or sys.argv[1:])]),
                 "date": time.strftime("%Y-%m-%d"), "code": commit, "torch": torch.__version__,
                 "hardware": "CPU (C MuJoCo)", "num_envs": args.num_envs, "steps": args.steps}
+        if before is not None:
+            earlier = {r["what"]: r["ops_per_step"] for r in before["results"]}
+            meta["before"] = {"code": before["meta"]["code"], "what": args.before_note or "an earlier count"}
+            for r in results:
+                r["ops_per_step_before"] = earlier.get(r["what"])
         atomic_write_text(args.out, json.dumps({"meta": meta, "results": results}, indent=1) + "\n")
     return 0
 

@@ -379,7 +379,8 @@ def publish(out: str | Path, name: str, data: dict, render: Callable[[dict, Path
 
 
 def plot(path: Path, panels: Sequence[dict], title: str = "") -> None:
-    """Line panels side by side, each ``{"lines": {label: (x, y)}, "hlines": [(y, label)], "vlines": [x], **axes}``
+    """Line panels side by side, each ``{"lines": {label: (x, y)}, "hlines": [(y, label[, linestyle])], "vlines": [x],
+    **axes}``
     (``axes``: ``ax.set`` options such as ylabel, xscale); nothing where matplotlib is missing (plots are optional)."""
     try:
         import matplotlib
@@ -392,8 +393,8 @@ def plot(path: Path, panels: Sequence[dict], title: str = "") -> None:
     for ax, panel in zip(axes[0], panels, strict=True):
         for label, (x, y) in panel.pop("lines").items():
             ax.plot(x, y, "o-", ms=3, label=label)
-        for y, label in panel.pop("hlines", ()):
-            ax.axhline(y, color="k", ls="--", lw=0.8, label=label)
+        for y, label, *style in panel.pop("hlines", ()):
+            ax.axhline(y, color="k", ls=style[0] if style else "--", lw=0.8, label=label)
         for x in panel.pop("vlines", ()):
             ax.axvline(x, color="grey", ls=":", lw=0.8)
         ax.set(**panel)

@@ -180,13 +180,16 @@ def randomization(docs: Path) -> list[str]:
 
 def step_ops(docs: Path) -> list[str]:
     d = _load("benchmarks/randomization/step_ops.json", docs)
-    m = d["meta"]
-    rows = [f"| switched on | torch ops per env step | at {m['before']['code']} |", "|---|---:|---:|"]
-    rows += [f"| {r['what']} | {r['ops_per_step']:,.0f} ({r['over_nothing']:+.0f}) | {r['ops_per_step_before']:,.0f} |"
-             for r in d["results"]]
+    m, before = d["meta"], d["meta"].get("before")  # the earlier count's column, where the report has one
+    count = lambda v: "-" if v is None else f"{v:,.0f}"
+    rows = ["| switched on | torch ops per env step |" + (f" at {before['code']} |" if before else ""),
+            "|---|---:|" + ("---:|" if before else "")]
+    rows += [f"| {r['what']} | {r['ops_per_step']:,.0f} ({r['over_nothing']:+.0f}) |"
+             + (f" {count(r.get('ops_per_step_before'))} |" if before else "") for r in d["results"]]
+    also = f" (and {before['code']}: {before['what']})" if before else ""
     return ["Where the per-step overhead comes from: torch ops of one training env step (each a kernel of the "
             "captured graph on a GPU), one piece of the robust preset's randomisation at a time.", "", *rows, "",
-            f"- command: `{m['command']}`; code {m['code']} (and {m['before']['code']}: {m['before']['what']})",
+            f"- command: `{m['command']}`; code {m['code']}{also}",
             f"- date: {m['date']}; hardware: {m['hardware']}, {m['num_envs']} envs, torch {m['torch']}; report: "
             "[step_ops.json](benchmarks/randomization/step_ops.json)"]
 

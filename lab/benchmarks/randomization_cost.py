@@ -7,9 +7,9 @@ Each round measures two variants, each in a fresh child process of ``train_throu
 after ``--warmup`` iterations, then the raw mujoco-warp ceiling of standing robots): ``on``, the preset as committed
 but with its kicks at full strength from the first step (``ppo.push_ramp=0 0``: a run of a few iterations would
 otherwise end before its curriculum lets a kick through), and ``off``, the same with every piece of
-:data:`OFF` at its identity (actuator layer, dynamics, sensor biases and noise, pushes, diverse starts). The rounds
-alternate on, off, on, off, so that a drift of the GPU's clocks hits both. Reports every measurement and the ratio of
-the two variants' median rates. See docs/benchmarks.md.
+:data:`OFF` at its identity (actuator layer, dynamics, sensor biases and noise, pushes, diverse starts). The order
+alternates by round (on, off, then off, on, ...), so that neither variant always runs first and a drift of the GPU's
+clocks hits both. Reports every measurement and the ratio of the two variants' median rates.
 """
 
 from __future__ import annotations
@@ -72,7 +72,8 @@ def main(argv=None) -> None:
         common.parse_overrides(items)  # a bad path or value fails here, before any measurement
     results = []
     for r in range(args.rounds):
-        for name, items in sets.items():
+        for name in (list(sets) if r % 2 == 0 else list(sets)[::-1]):
+            items = sets[name]
             record = common.run_child("train_throughput", [
                 "--num_envs", str(args.num_envs), "--iterations", str(args.iterations), "--warmup", str(args.warmup),
                 "--raw_steps", str(args.raw_steps), "--device", args.device,

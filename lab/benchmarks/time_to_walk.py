@@ -270,7 +270,8 @@ def render(data: dict, out: Path) -> str:
     if pushed:
         panels.append({"lines": {}, "vlines": [], "xlabel": "training minutes",
                        "ylabel": "survival over 8 s under three kicks [%]",
-                       "hlines": [(100 * ROBUST_CRITERIA[c]["survival"][1], f"pass {c}") for c in pushed]})
+                       "hlines": [(100 * ROBUST_CRITERIA[c]["survival"][1], f"pass {c}", ls)
+                                  for c, ls in zip(pushed, ("--", ":"), strict=True)]})
     for r in records:
         evals = sorted(r.get("evaluations", {}).items())
         text += f"\n\n## {_label(r)}\n\nCommands:\n\n" + "".join(
@@ -285,13 +286,15 @@ def render(data: dict, out: Path) -> str:
                                                  for c in OTHER_COMMANDS), "yes" if e.get("walks") else "no",
              e.get("device", "-"))
              for name, e in evals]))
+        # A run whose checkpoints were tested on a CPU (a screen with fewer robots) says so in the plots too.
+        label = _label(r) + (" (tested on a CPU)" if any(e.get("device") == "cpu" for _, e in evals) else "")
         for panel, k, scale in zip(panels[:2], ("survival", "forward_distance_m"), (100, 1), strict=True):
-            panel["lines"][_label(r)] = ([e["train_seconds"] / 60 for _, e in evals],
-                                           [scale * _headline(e, k) for _, e in evals])
+            panel["lines"][label] = ([e["train_seconds"] / 60 for _, e in evals],
+                                     [scale * _headline(e, k) for _, e in evals])
             panel["vlines"] += [r["time_to_walk"]["train_minutes"]] if r.get("time_to_walk") else []
         for case in pushed:
             values = [_value(e, case, "survival") for _, e in evals]
-            panels[2]["lines"][f"{_label(r)}, {case}"] = ([e["train_seconds"] / 60 for _, e in evals],
+            panels[2]["lines"][f"{label}, {case}"] = ([e["train_seconds"] / 60 for _, e in evals],
                                                           [math.nan if v is None else 100 * v for v in values])
         if pushed and r.get("time_to_walk"):
             panels[2]["vlines"].append(r["time_to_walk"]["train_minutes"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 import subprocess
 import sys
@@ -121,3 +122,37 @@ def test_time_to_walk_on_a_machine_without_cuda_is_one_error_line(monkeypatch, c
     with pytest.raises(SystemExit) as stop:
         time_to_walk.main(["train", "--preset", "torque"])
     assert stop.value.code == 2 and "--device cpu" in capsys.readouterr().err
+
+
+def test_time_to_walk_renders_a_robust_report_with_a_missing_case_and_a_first_pass(tmp_path, monkeypatch):
+    """The robust report: its table, the pushed cases' panel, a case an evaluation lacks (shown as "-", plotted as
+    a gap), the first passing checkpoint, and runs screened on a CPU marked so."""
+    pytest.importorskip("matplotlib")
+
+    def case(survival, **extra):
+        return {"survival": survival, **extra}
+
+    def evaluation(minutes, walks, pushed_10):
+        cases = {"nominal": case(1.0, forward_distance_m={"mean": 3.0}, lateral_drift_m={"p95": 0.2}),
+                 "commands": case(1.0, tracking_error_mps={"mean": 0.08}), "robust_0.5": case(0.98)}
+        if pushed_10 is not None:
+            cases["robust_1.0"] = case(pushed_10)
+        return {"train_seconds": 60.0 * minutes, "env_steps": int(minutes * 1e7), "iteration": minutes,
+                "device": "cpu", "test": "robust", "cases": cases, "walks": walks}
+
+    record = {"preset": "robust", "name": "robust_x", "gpu": "NVIDIA H200", "train_seconds": 1800.0,
+              "evaluations": {"wall_00180s": evaluation(3, False, None), "wall_00360s": evaluation(6, True, 0.9)},
+              "time_to_walk": {"train_minutes": 6.0, "env_steps": 60_000_000, "iteration": 6}}
+    text = time_to_walk.render({"command": "x", "test": "robust", "records": [record]}, tmp_path)
+    assert "| robust_x | NVIDIA H200 | 6.0 | 60.0 M |" in text and "| wall_00180s | 3.0 |" in text
+    row = next(line for line in text.splitlines() if line.startswith("| wall_00180s"))
+    assert "| - |" in row and row.endswith("| no | cpu |")
+    assert (tmp_path / "time_to_walk_robust.png").stat().st_size > 0
+    drawn = {}
+    monkeypatch.setattr(time_to_walk.common, "plot", lambda path, panels, title="": drawn.update(panels=panels))
+    time_to_walk.render({"command": "x", "test": "robust", "records": [record]}, tmp_path)
+    pushed = drawn["panels"][2]
+    x, y = pushed["lines"]["robust_x (tested on a CPU), robust_1.0"]
+    assert x == [3.0, 6.0] and math.isnan(y[0]) and y[1] == pytest.approx(90.0)
+    assert pushed["lines"]["robust_x (tested on a CPU), robust_0.5"][1] == pytest.approx([98.0, 98.0])
+    assert [(h[0], h[2]) for h in pushed["hlines"]] == [(97.0, "--"), (85.0, ":")] and pushed["vlines"] == [6.0]

@@ -24,7 +24,7 @@ def _mix(x: torch.Tensor) -> torch.Tensor:
 
 
 def _lanes(stream: int, k: int, device) -> torch.Tensor:
-    """(k,) int64 hash lanes of ``stream``: one per uniform, disjoint across streams below 2**55."""
+    """(k,) int64 hash lanes of ``stream``: one per uniform, disjoint across streams for k <= 256."""
     return torch.arange(k, dtype=torch.int64, device=device) + (stream << 8)
 
 
@@ -65,6 +65,9 @@ class EpisodeDraws:
 
     def __init__(self, streams: dict[int, int], device: torch.device | str):
         self.streams = {int(s): int(k) for s, k in streams.items() if k > 0}
+        too_many = {s: k for s, k in self.streams.items() if k > 256}
+        if too_many:  # lane j of stream s is (s << 8) + j: beyond 256 it would reuse the next stream's lanes
+            raise ValueError(f"EpisodeDraws: a stream holds at most 256 uniforms per key, got {too_many}")
         device = torch.device(device)
         parts = [_lanes(s, k, device) for s, k in self.streams.items()]
         self._lanes = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.int64, device=device)
@@ -72,6 +75,8 @@ class EpisodeDraws:
 
     def __call__(self, seed: int | torch.Tensor, env_ids: torch.Tensor, key: torch.Tensor) -> dict[int, torch.Tensor]:
         """``{stream: (num_envs, k)}`` float32 uniforms in [0, 1) of each env's ``key`` (num_envs,) int64."""
+        if not self.streams:  # nothing to draw: no hash ops at all
+            return {}
         u = _hash(seed, env_ids, key, self._lanes, self._scrambled)
         return dict(zip(self.streams, u.split(list(self.streams.values()), dim=-1)))
 
