@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import shlex
 import subprocess
 import sys
 import time
@@ -102,7 +103,7 @@ def main(argv=None) -> int:
     if args.out is not None:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], check=False, capture_output=True,
                                 text=True).stdout.strip()
-        meta = {"command": " ".join(["python", "lab/analysis/step_ops.py", *(argv or sys.argv[1:])]),
+        meta = {"command": shlex.join(["python", "lab/analysis/step_ops.py", *(argv or sys.argv[1:])]),
                 "date": time.strftime("%Y-%m-%d"), "code": commit, "torch": torch.__version__,
                 "hardware": "CPU (C MuJoCo)", "num_envs": args.num_envs, "steps": args.steps}
         if before is not None:
