@@ -13,7 +13,7 @@ counts as a column, here those of the code before the reset's draws shared one h
 93447b9 with ``--out /tmp/step_ops_before.json``)::
 
     PYTHONPATH=. python lab/analysis/step_ops.py --out docs/benchmarks/randomization/step_ops.json \
-        --before /tmp/step_ops_before.json --before_note "before the reset's draws shared one hash pass"
+        --before /tmp/step_ops_before.json --before_note "before one hash pass served all the reset draws"
 """
 
 from __future__ import annotations
