@@ -445,6 +445,12 @@ class TocabiWalkConfig:
         """``control.torque_assist``: whether the env has the assist (and its ``leg_assist`` signal)."""
         return self.control.torque_assist
 
+    @property
+    def start_pool(self) -> int:
+        """The start states per world the env pools (``sim.start_pool``), or 0 where it has nothing to pool: no
+        diverse starts and no dynamics randomisation."""
+        return self.sim.start_pool if self.task.diverse_starts or self.dynamics.enabled else 0
+
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad option (as its path, e.g. ``env.control.mode``) and the fix."""
         n = self.num_envs

@@ -174,7 +174,7 @@ class TocabiWalk(EnvBase):
         world_fields = cfg.dynamics.sim_fields
         # A pool of start states drawn at build (env.sim.start_pool) has its sensors and accelerations in the
         # reduced pass's table, per world, so per-world dynamics and diverse starts keep the reduced pass with it.
-        self._pool = sim.start_pool if (cfg.task.diverse_starts or cfg.dynamics.enabled) else 0
+        self._pool = cfg.start_pool
         reset_pass = "full" if world_fields and not self._pool else sim.reset_pass
         if self.backend == "warp":
             buffers = {k: v for k, v in (("nconmax", sim.nconmax), ("njmax", sim.njmax), ("nccdmax", sim.nccdmax))
@@ -303,11 +303,8 @@ class TocabiWalk(EnvBase):
         #: (P, N) int64 each pooled start state's index into the motion's start rows.
         self._pool_pick = (u[50][..., 0] * rows).long().clamp_(max=rows - 1)
         #: (P, N, nv) each pooled start state's velocities (zero without diverse starts).
-        self._pool_qvel = self._init_qvel.expand(p, n, nv).clone()
-        if diverse:
-            z = box_muller(u[49].reshape(p * n, -1)).reshape(p, n, -1)
-            self._pool_qvel[..., :3], self._pool_qvel[..., 6:] = z[..., :3], z[..., 3:]
-            self._pool_qvel *= self._start_std
+        self._pool_qvel = (self._start_velocities(u[49].flatten(0, 1)).reshape(p, n, nv) if diverse
+                           else self._init_qvel.expand(p, n, nv).clone())
         #: (P, N, draws) each pooled start state's dynamics uniforms (``WorldDynamics.reset``), or None.
         self._pool_dyn = u[48] if dyn else None
 
@@ -315,22 +312,22 @@ class TocabiWalk(EnvBase):
         """Register with the simulator the start state of each start row, as :meth:`_reset` builds it: the initial
         pose at rest, leg controls ``_reset_leg_ctrl``, upper-body targets of the reference at the row's time 0. With
         a start pool, each world's pooled states instead, with their velocities and dynamics."""
+        def start_ctrl(rows: torch.Tensor) -> torch.Tensor:  # (M,) motion rows -> (M, nu) controls at time 0
+            q_ref = self.motion.joint_targets(torch.zeros(len(rows), dtype=torch.float32, device=self.device), rows)
+            return torch.cat((self._reset_leg_ctrl.expand(len(rows), -1), q_ref[:, robot.UPPER_BODY]), dim=-1)
+
         if self._pool:
             p, n = self._pool, self.num_envs
-            rows = self._init_rows[self._pool_pick].reshape(-1)
-            q_ref = self.motion.joint_targets(torch.zeros(p * n, dtype=torch.float32, device=self.device), rows)
-            ctrl = torch.cat((self._reset_leg_ctrl.expand(p * n, -1), q_ref[:, robot.UPPER_BODY]), dim=-1)
+            ctrl = start_ctrl(self._init_rows[self._pool_pick].reshape(-1)).reshape(p, n, -1)
             set_fields = None
             if self._pool_dyn is not None:
                 def set_fields(k: int) -> None:
                     self.dynamics.reset(self._all, self._pool_dyn[k])
-            self.sim.register_start_states(self._init_qpos.expand(p, -1), self._pool_qvel, ctrl.reshape(p, n, -1),
-                                           set_fields)
+            self.sim.register_start_states(self._init_qpos.expand(p, -1), self._pool_qvel, ctrl, set_fields)
             return
         k = len(self._init_rows)
-        q_ref = self.motion.joint_targets(torch.zeros(k, dtype=torch.float32, device=self.device), self._init_rows)
-        ctrl = torch.cat((self._reset_leg_ctrl.expand(k, -1), q_ref[:, robot.UPPER_BODY]), dim=-1)
-        self.sim.register_start_states(self._init_qpos.expand(k, -1), self._init_qvel.expand(k, -1), ctrl)
+        self.sim.register_start_states(self._init_qpos.expand(k, -1), self._init_qvel.expand(k, -1),
+                                       start_ctrl(self._init_rows))
 
     def _make_specs(self) -> None:
         n, dev = self.num_envs, self.device
@@ -612,10 +609,11 @@ class TocabiWalk(EnvBase):
         return out
 
     def _start_velocities(self, u: torch.Tensor) -> torch.Tensor:
-        """(N, nv) start velocities of this episode: N(0, start_base_vel_std) on the pelvis's linear velocity,
-        N(0, start_joint_vel_std) on every joint, none on its angular velocity (before the episode count moves)."""
-        z = box_muller(u)  # u: (N, 2·(3 + joints)) uniforms of stream 16
-        qvel = torch.zeros(self.num_envs, self.sim.nv, dtype=torch.float32, device=self.device)
+        """(M, nv) start velocities from (M, 2·(3 + joints)) uniforms (one row per world's episode, or per pooled
+        state): N(0, start_base_vel_std) on the pelvis's linear velocity, N(0, start_joint_vel_std) on every joint,
+        none on its angular velocity."""
+        z = box_muller(u)  # u: (M, 2·(3 + joints)) uniforms: stream 16's, or the pool's stream 49's
+        qvel = torch.zeros(u.shape[0], self.sim.nv, dtype=torch.float32, device=self.device)
         qvel[:, :3], qvel[:, 6:] = z[:, :3], z[:, 3:]
         return qvel * self._start_std
 

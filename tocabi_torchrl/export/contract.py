@@ -155,11 +155,9 @@ def _trained_under(policy, cfg, model) -> dict:
     # The kicks' impulse is speed × the robot's nominal mass, as the env computes it (envs/pushes.py).
     mass = float(model.body_subtreemass[model.body(robot.BASE_BODY).id])
     ramp = getattr(getattr(policy.config, "ppo", None), "push_ramp", (0, 0))
-    # The env's start pool acts only where it has something to draw (envs/tocabi_walk.py).
-    pool = int(getattr(getattr(cfg, "sim", None), "start_pool", 0))
-    pool = pool if start.enabled or (dynamics is not None and dynamics.enabled) else 0
     return rnd.trained_under_section(randomization, rnd.settings_from(rnd.PushSettings, cfg.pushes, "env.pushes"),
-                                     start, float(model.opt.timestep), mass, ramp, start_pool=pool)
+                                     start, float(model.opt.timestep), mass, ramp,
+                                     start_pool=int(getattr(cfg, "start_pool", 0)))
 
 
 def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, output_name: str, opset: int) -> dict:
