@@ -502,3 +502,21 @@ def test_set_randomized_worlds_refuses_a_wrong_mask():
         env.base_env.set_randomized_worlds(torch.tensor([1, 0]))
     with pytest.raises(ValueError, match=r"\(2,\) bool tensor"):
         env.base_env.set_randomized_worlds(torch.tensor([True, False, True]))
+
+
+@needs_policy
+def test_checkpoint_case_gives_the_shipped_policy_in_a_case_env_seeded_for_the_test():
+    """robust.checkpoint_case: the checkpoint as read, its config, the case's env (the test's seed, the nominal
+    command pinned, no start pool) and the agent holding the checkpoint's weights; run_case rolls it out."""
+    from tocabi_torchrl.evaluation import robust
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint
+
+    test = robust.RobustTestConfig(num_envs=2, seconds=0.2)
+    state, cfg, env, agent = robust.checkpoint_case(SHIPPED_POLICY, "nominal", "cpu", test)
+    saved = read_checkpoint(SHIPPED_POLICY)
+    assert state["env_steps"] == saved["env_steps"] and cfg.env.control.mode == "pd_reference"
+    assert env.num_envs == 2 and env.base_env._seed == robust.EVAL_SEED and env.base_env._pool == 0
+    actor = agent.actor.state_dict()
+    assert all(torch.equal(actor[k], v) for k, v in saved["agent"]["actor"].items())
+    per_env = robust.run_case(agent.actor, env, test.seconds, progress=False)
+    assert bool(per_env["alive"].all())  # the shipped policy stands through 0.2 s

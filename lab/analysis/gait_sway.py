@@ -28,21 +28,13 @@ import torch
 from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.evaluation import robust
 from tocabi_torchrl.evaluation.gait_test import summary_json
-from tocabi_torchrl.rl.checkpoint import apply_checkpoint, config_from_checkpoint, read_checkpoint
 
 SHIPPED = Path(__file__).resolve().parents[2] / "assets" / "policies" / "tocabi_walk_ppo.pt"
 
 
 def measure(path: Path, num_envs: int, seconds: float, tail: float) -> dict:
-    from tocabi_torchrl.rl.trainer import build_agent
-
-    state = read_checkpoint(path)
-    cfg = config_from_checkpoint(state, path)
     test = robust.RobustTestConfig(num_envs=num_envs, seconds=seconds)
-    env = robust.case_env(cfg, "nominal", torch.device("cpu"), num_envs, test)
-    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
-    apply_checkpoint(state, agent, env=env, path=path)
-    env.set_seed(int(test.seed))
+    _, cfg, env, agent = robust.checkpoint_case(path, "nominal", "cpu", test)
     trace, phase = [], []
 
     def actor(td):

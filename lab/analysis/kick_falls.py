@@ -34,7 +34,6 @@ import torch
 
 from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.evaluation import robust
-from tocabi_torchrl.rl.checkpoint import apply_checkpoint, config_from_checkpoint, read_checkpoint
 
 SECTORS = ("forward (+x)", "left (+y)", "back (-x)", "right (-y)")
 
@@ -45,15 +44,8 @@ def sector(angle: float) -> str:
 
 
 def measure(path: Path, case: str, num_envs: int) -> dict:
-    from tocabi_torchrl.rl.trainer import build_agent
-
-    state = read_checkpoint(path)
-    cfg = config_from_checkpoint(state, path)
     test = robust.RobustTestConfig(num_envs=num_envs)
-    env = robust.case_env(cfg, case, torch.device("cpu"), num_envs, test)
-    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
-    apply_checkpoint(state, agent, env=env, path=path)
-    env.set_seed(int(test.seed))
+    state, _, env, agent = robust.checkpoint_case(path, case, "cpu", test)
     pushes, schedule = env.base_env.pushes, {}
 
     def actor(td):

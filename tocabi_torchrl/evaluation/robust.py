@@ -50,8 +50,8 @@ from .record import GaitMetrics, fixed_command, policy_steps
 
 __all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking", "RobustCase", "RobustTestConfig",
            "batch_config", "batch_env", "batch_key", "case_checks", "case_config", "case_env", "case_summary",
-           "case_worlds", "evaluate_robust", "evaluate_robust_checkpoint", "evaluate_robust_run", "gait_cycle_steps",
-           "heading_frame_velocity", "randomization_applied", "robust_case_config", "robust_passes",
+           "case_worlds", "checkpoint_case", "evaluate_robust", "evaluate_robust_checkpoint", "evaluate_robust_run",
+           "gait_cycle_steps", "heading_frame_velocity", "randomization_applied", "robust_case_config", "robust_passes",
            "robust_report_text", "run_case"]
 
 #: The seed of every random draw of the robust test (starts, commands, randomisation, pushes). Below 2**32, the part
@@ -212,6 +212,24 @@ def case_env(cfg: RunConfig, case: str | RobustCase, device: torch.device, num_e
     device = torch.device(device)
     graph = {"sync_free_resets": True, "cuda_graph": True} if device.type == "cuda" else {}
     return build_env(case_config(cfg, case, test), device, num_envs=num_envs, **graph)
+
+
+def checkpoint_case(path: str | os.PathLike, case: str | RobustCase, device: torch.device | str,
+                    test: RobustTestConfig = RobustTestConfig()):
+    """A checkpoint's policy in one case's env, ready for :func:`run_case`: ``(state, cfg, env, agent)``, the
+    checkpoint as read, its run config, the env of ``test.num_envs`` robots (:func:`case_env`) seeded with
+    ``test.seed`` and holding the checkpoint's normaliser statistics, and the agent with its weights
+    (``agent.actor`` is the policy to roll out)."""
+    from ..rl.checkpoint import apply_checkpoint, config_from_checkpoint, read_checkpoint
+    from ..rl.trainer import build_agent
+
+    state = read_checkpoint(path)
+    cfg = config_from_checkpoint(state, path)
+    env = case_env(cfg, case, torch.device(device), test.num_envs, test)
+    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
+    apply_checkpoint(state, agent, env=env, path=path)
+    env.set_seed(int(test.seed))
+    return state, cfg, env, agent
 
 
 def batch_config(cfg: RunConfig, test: RobustTestConfig = RobustTestConfig()) -> RunConfig:
