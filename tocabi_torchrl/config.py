@@ -506,7 +506,8 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "ppo.symmetry": "augment", "ppo.critic_privileged": True,
         "env.task.start_joint_vel_std": 0.5, "env.task.start_base_vel_std": 0.1,
         # Each world's start velocities and dynamics from 16 drawn at build, so that resets keep the reduced pass
-        # (env.sim.start_pool: ~1 ms a step at 4,096 envs); a 30-minute run meets 65,536 robots.
+        # (env.sim.start_pool; the full pass took 1.15 ms a step more at 4,096 envs on an H100, docs/benchmarks.md,
+        # not yet measured with the pool); a run meets 65,536 robots.
         "env.sim.start_pool": 16,
         # Its verdict at the end of training: the robust gait test at its own size (1,024 robots per case).
         "eval_test": "robust", "eval_envs": 1024,
