@@ -302,6 +302,32 @@ def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_pat
     assert build_env(cfg, torch.device("cpu"), num_envs=2, for_training=True).base_env.cfg.torque_assist is True
 
 
+@pytest.mark.parametrize("hold", ["fade", "pull"])
+def test_the_adaptive_rate_is_held_through_the_fade_or_also_the_teachers_pull(tmp_path, hold):
+    # A KL target no update meets (KL > 2e-12: the rate falls) unless it leaves the policy as it was (KL 0: rises), so
+    # the adaptive rule changes the rate after every update where it is not held.
+    from tocabi_torchrl.rl.trainer import train
+
+    n, steps = 4, 8
+    frames = n * steps
+    cfg = preset_config("torque", device="cpu", **{"env.num_envs": n, "ppo.steps_per_env": steps,
+                        "ppo.minibatch_size": 16, "ppo.epochs": 1, "ppo.desired_kl": 1e-12},
+                        total_env_steps=6 * frames, **{"ppo.assist_fade_start": frames,
+                                                       "ppo.assist_fade_end": 2 * frames,
+                        "ppo.assist_anchor_decay": 3 * frames, "ppo.assist_lr_hold": hold,
+                        "ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,)}, run_dir=str(tmp_path), name="t",
+                        eval_at_end=False, progress_bar=False, checkpoint_every=1000, **{"ppo.cuda_graph": "off"})
+    rows = read_metrics(train(cfg).run_dir)
+    beta, weight = [float(r["torque_assist"]) for r in rows], [float(r["absorb_weight"]) for r in rows]
+    lr = [float(r["lr"]) for r in rows]
+    # β falls during iteration 1; the teacher's pull is 1 there, then decays over three iterations (gone at 4).
+    assert beta[:3] == [1.0, 1.0, 0.0] and weight[:5] == pytest.approx([0, 1, 2 / 3, 1 / 3, 0])
+    if hold == "fade":
+        assert lr[2] != lr[1] and lr[3] != lr[2]  # the rule acts again as soon as β stops falling
+    else:
+        assert lr[1] == lr[2] == lr[3] and lr[4] != lr[3]  # held until the pull is gone, then the rule acts
+
+
 def test_a_resumed_run_keeps_its_teacher(tmp_path):
     from tocabi_torchrl.rl.trainer import train
 

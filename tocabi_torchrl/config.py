@@ -53,6 +53,8 @@ _GRAPH_ALIASES = {"true": "on", "yes": "on", "1": "on", "false": "off", "no": "o
 STD_MODES = ("scheduled", "learned")
 #: What the torque assist's absorbing loss copies into the actor (``ppo.assist_target``; rl/assist.py).
 ASSIST_TARGETS = ("rollout", "teacher")
+#: How long the adaptive learning rate is held around the torque assist's fade (``ppo.assist_lr_hold``).
+ASSIST_LR_HOLDS = ("fade", "pull")
 LOGGERS = ("csv", "tensorboard", "wandb")
 #: Left-right symmetry in PPO (``ppo.symmetry``; rl/symmetry.py): none, or each mini-batch doubled with its mirror.
 SYMMETRY_MODES = ("none", "augment")
@@ -178,6 +180,14 @@ class PPOConfig:
     DAgger) or 'rollout' (the torque the rollout's own mean applied)"""
     assist_anchor_decay: int = 0
     """env steps after assist_fade_end over which the teacher's pull falls to 0"""
+    #: The adaptive learning rate reads the KL of each update, and while the loss pulls the actor to the next β's
+    #: actions or to the teacher that KL measures the intended pull as well: "fade" holds the rate while β falls
+    #: (the rule alone starved the fade, docs/training.md), "pull" holds it on until the teacher's pull has decayed
+    #: too. (With "fade" the robust preset's fourth run read KLs of 0.1-2.3 after the fade and its rate sat at the
+    #: 1e-5 floor for the next 27 M env steps, docs/training/robust/h200_run4.)
+    assist_lr_hold: str = "fade"
+    """hold the adaptive learning rate while β fades ('fade') or until the teacher's pull has decayed too
+    ('pull')"""
     #: The pushes' curriculum (env.pushes): every kick is scaled by 0 before ``push_ramp[0]`` env steps, rising
     #: linearly to full strength at ``push_ramp[1]`` ((0, 0): full from the start). A schedule on env steps, like the
     #: assist's, so a resumed run takes it up where it was.
@@ -424,7 +434,8 @@ def field_choices() -> dict[str, tuple[str, ...]]:
             "env.control.upper_body": UPPER_BODY_LAWS,
             "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.history": tuple(HISTORIES),
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
-            "ppo.assist_target": ASSIST_TARGETS, "env.sim.backend": ("warp", "mujoco", "auto"),
+            "ppo.assist_target": ASSIST_TARGETS, "ppo.assist_lr_hold": ASSIST_LR_HOLDS,
+            "env.sim.backend": ("warp", "mujoco", "auto"),
             "env.sim.reset_pass": RESET_PASSES, "ppo.grad_sync": GRAD_SYNCS,
             "ppo.matmul_precision": MATMUL_PRECISIONS, "eval_test": EVAL_TESTS, "ppo.symmetry": SYMMETRY_MODES}
 

@@ -498,10 +498,11 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 env.base_env.set_torque_assist(beta_next)
                 stats["torque_assist"] = beta  # the β this iteration's rollout (and its logged rewards) ran with
                 stats["absorb_weight"] = weight
-                fading = beta_next < beta
+                fading = beta_next < beta or (ppo.assist_lr_hold == "pull" and weight > 0)
             # While the assist fades, the KL also measures the intended move to the next β's actions; the adaptive
             # rule would read it as too large a step and starve the absorption (the LR fell to 1e-5 on the H100 and
-            # the gait broke), so the learning rate is held there.
+            # the gait broke), so the learning rate is held there (and, with assist_lr_hold "pull", while the
+            # teacher's pull decays after the fade: the same reading of an intended move).
             if ppo.lr_schedule == "adaptive" and not fading:
                 lr = adapt_lr(lr, stats["kl"], ppo.desired_kl)
                 _set_scheduled_lr(optimizer, lr)
