@@ -15,7 +15,8 @@ numpy, mujoco and onnxruntime only (`pip install tocabi-torchrl[export]`); torch
 ``trained`` what the contract's ``trained_under`` section states, ``tocabi_lab`` the TOCABI lab's actuator delay and
 motor constant (torque policies), link masses, damping, armature and sensor biases and noise. ``--pushes N`` kicks
 every robot N times at random times in 2-7 s, each a velocity change of ``--push_speed`` m/s in a random horizontal
-direction; ``--start_noise`` starts the robots with the robust gait test's N(0, 0.5 rad/s) joint and N(0, 0.1 m/s)
+direction, within one control period (``--push_kind velocity``, the robust gait test's: the whole robot's velocity
+changes; ``force``: an impulse of the same momentum on the pelvis alone); ``--start_noise`` starts the robots with the robust gait test's N(0, 0.5 rad/s) joint and N(0, 0.1 m/s)
 pelvis velocities; ``--seed`` seeds every draw (docs/concepts/randomization.md, "Sim-to-sim with randomisation").
 """
 
@@ -45,9 +46,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="per-robot randomisation drawn at the reset: none (default), trained (what the contract "
                              "states the policy was trained under) or tocabi_lab")
     parser.add_argument("--pushes", type=int, default=0,
-                        help="horizontal kicks of the pelvis per robot, at random times in 2-7 s (default: 0)")
+                        help="horizontal kicks per robot, at random times in 2-7 s (default: 0)")
     parser.add_argument("--push_speed", type=float, default=0.5,
                         help="velocity change of the whole robot per kick [m/s] (default: 0.5)")
+    parser.add_argument("--push_kind", choices=("velocity", "force"), default="velocity",
+                        help="velocity: every body's velocity changes by --push_speed (the robust gait test's kicks, "
+                             "default); force: the same momentum as a force on the pelvis alone")
     parser.add_argument("--start_noise", action="store_true",
                         help="start with N(0, 0.5 rad/s) joint and N(0, 0.1 m/s) pelvis velocities (robust gait test)")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random draw (default: 0)")
@@ -110,7 +114,8 @@ def main(argv: list[str] | None = None) -> dict:
         on_step = None
         if args.viewer:  # the missing extra is an ImportError, said before the run
             server, on_step = watch(args)
-        pushes = PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed)) if args.pushes else None
+        pushes = (PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed), kind=args.push_kind)
+                  if args.pushes else None)
         result = run_sim2sim(args.contract, model, seconds=args.seconds, num_robots=args.num_robots,
                              command=(args.vx, args.vy), remove_meshes=strip, seed=args.seed,
                              randomize=args.randomize, pushes=pushes,

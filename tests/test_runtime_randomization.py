@@ -263,10 +263,47 @@ def test_a_kick_through_xfrc_applied_changes_the_robots_momentum_by_its_impulse(
     assert np.linalg.norm(change[:2]) == pytest.approx(0.5 * mass, rel=1e-3) and abs(change[2]) < 0.03
 
 
+def test_a_velocity_kick_changes_every_bodys_velocity_alike():
+    # Zero gravity, the robot in the air: against the same robot unkicked (its upper-body servos move it a little
+    # either way), the kick, a uniform field, changes the velocity of every body by the kick's speed (0.5 m/s) and
+    # the joints' velocities not at all.
+    m = _model()
+    m.opt.gravity[:] = 0.0
+    base = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, robot.BASE_BODY)
+    kicks = rnd.PushSchedule(rnd.PushSettings(count=1, window=(0.0, 0.0), speed=(0.5, 0.5), kind="velocity"), DT,
+                             float(m.body_subtreemass[base]))
+    kicks.reset(np.random.default_rng(0), 1)
+    forces = kicks.body_forces(0, base, m.body_mass[None])
+    assert forces.shape == (1, m.nbody, 2)
+
+    def after(kicked: bool):
+        d = mujoco.MjData(m)
+        d.qpos[:] = load_contract(_contract("torque"))["robot"]["initial_qpos"]
+        d.qpos[2] += 2.0
+        if kicked:
+            d.xfrc_applied[:, :2] = forces[0]
+        for _ in range(S):
+            mujoco.mj_step(m, d)
+        mujoco.mj_forward(m, d)
+        out = np.zeros((m.nbody, 6))
+        for b in range(1, m.nbody):
+            mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, b, out[b], 0)
+        return out[1:, 3:], d.qvel[6:].copy()  # each body's linear velocity (world frame), the joint velocities
+
+    (kicked, kicked_joints), (calm, calm_joints) = after(True), after(False)
+    direction = kicks.force[0, 0] / np.linalg.norm(kicks.force[0, 0])
+    np.testing.assert_allclose((kicked - calm)[:, :2], np.broadcast_to(0.5 * direction, kicked[:, :2].shape),
+                               atol=1e-4)
+    np.testing.assert_allclose(kicked_joints, calm_joints, atol=1e-4)
+
+
 def test_the_driver_kicks_every_robot_in_the_window():
     pushes = rnd.PushSettings(count=2, window=(0.02, 0.08), speed=(0.5, 0.5))
     result = run_sim2sim(_contract("torque"), seconds=0.1, num_robots=2, pushes=pushes, seed=4)
-    assert result.perturbations["pushes"]["kicks_started"] == 4
+    assert result.perturbations["pushes"]["kicks_started"] == 4 and result.perturbations["pushes"]["kind"] == "force"
+    velocity = run_sim2sim(_contract("torque"), seconds=0.1, num_robots=2, seed=4,
+                           pushes=dataclasses.replace(pushes, kind="velocity"))
+    assert velocity.per_robot_forward_m != result.per_robot_forward_m  # the same momentum, another push
     quiet = run_sim2sim(_contract("torque"), seconds=0.1, num_robots=2, seed=4)
     assert result.per_robot_forward_m != quiet.per_robot_forward_m or result.lateral_drift_m != quiet.lateral_drift_m
 
@@ -335,6 +372,19 @@ def test_the_actuator_layer_is_refused_for_a_pd_policy_and_trained_needs_the_sec
 
 
 # ------------------------------------------------------------------------------------------------ the contract
+def test_a_velocity_kick_contract_round_trips_and_an_unknown_kind_is_refused(tmp_path):
+    section = json.loads(json.dumps(_lab_section(count=3, speed=(0.5, 1.0), kind="velocity")))
+    assert section["pushes"]["kind"] == "velocity" and "on every body" in section["pushes"]["rule"]
+    _, pushes, _ = rnd.from_contract(load_contract(_with_section(tmp_path, "torque", section)))
+    assert pushes == rnd.PushSettings(count=3, speed=(0.5, 1.0), kind="velocity")
+    section["pushes"]["kind"] = "impulse"
+    with pytest.raises(ContractError, match="pushes.kind is 'impulse'.*re-export"):
+        (tmp_path / "bad").mkdir()
+        load_contract(_with_section(tmp_path / "bad", "torque", section))
+    with pytest.raises(ValueError, match="pushes.kind"):
+        rnd.PushSettings(count=1, kind="impulse").validate()
+
+
 def test_a_contract_with_the_section_round_trips(tmp_path):
     section = _lab_section(count=3, speed=(0.5, 1.0))
     path = _with_section(tmp_path, "torque", json.loads(json.dumps(section)))

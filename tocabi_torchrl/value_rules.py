@@ -12,7 +12,7 @@ import numbers
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT", "Range",
+__all__ = ["ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT", "PUSH_KINDS", "Range",
            "TRAINED_UNDER_RULES", "check_env_value", "check_seed", "trained_under_problems"]
 
 
@@ -101,6 +101,9 @@ def check_env_value(path: str, value: Any, where: str | None = None) -> None:
 
 #: The largest seed: the env keeps its seed in an int64 tensor (``envs/tocabi_walk.py``).
 MAX_SEED = 2**63 - 1
+#: How a kick acts (``PushConfig.kind``, the contract's ``trained_under.pushes.kind``): "force" on the pelvis alone, or
+#: "velocity", every body's mass × one acceleration (envs/pushes.py).
+PUSH_KINDS = ("force", "velocity")
 
 
 def check_seed(seed: Any, where: str = "seed") -> int:

@@ -6,7 +6,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["PushConfig"]
+from ..value_rules import PUSH_KINDS
+
+__all__ = ["PushConfig", "PUSH_KINDS"]
 
 
 @dataclass
@@ -19,12 +21,19 @@ class PushConfig:
         speed: (low, high) [m/s] the velocity change of the whole robot, drawn per kick (impulse = speed × mass).
         duration: (low, high) [s] how long each kick's force acts, drawn per kick (rounded to whole policy steps,
             at least one).
+        kind: how the kick acts. ``"force"``: a force on the pelvis alone (the TOCABI lab's pushes): the robot's
+            momentum changes by speed × mass, but the pelvis is jerked and the limbs and upper body lag behind it,
+            so the joints are kicked too. ``"velocity"``: a velocity kick of the whole robot: every body gets the
+            force of its own mass × the same acceleration (a uniform field, like a brief change of gravity), so
+            every body's velocity changes by the same ``speed`` and no joint is kicked; what MuJoCo Playground's
+            and Isaac Lab's velocity pushes do, and the robust gait test's kicks.
     """
 
     count: int = 0
     window: tuple[float, float] = (2.0, 7.0)
     speed: tuple[float, float] = (0.5, 0.5)
     duration: tuple[float, float] = (0.004, 0.004)
+    kind: str = "force"
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field (``env.pushes.<name>``) and what it takes."""
@@ -35,3 +44,6 @@ class PushConfig:
             if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
                 raise ValueError(f"env.pushes.{name} must be (low, high) with 0 <= low <= high, finite, got "
                                  f"{getattr(self, name)!r}")
+        if self.kind not in PUSH_KINDS:
+            raise ValueError(f"env.pushes.kind must be one of {PUSH_KINDS} (force: on the pelvis; velocity: the "
+                             f"whole robot's velocity), got {self.kind!r}")

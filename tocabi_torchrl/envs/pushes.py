@@ -1,12 +1,20 @@
-"""Pushes: horizontal velocity kicks of the robot during an episode, as forces on the pelvis.
+"""Pushes: horizontal kicks of the robot during an episode, as forces held for whole policy steps.
 
 Each episode of each world draws ``count`` kicks at reset. Kick j starts at a random time in the j-th of ``count``
 equal shares of ``window`` (two kicks overlap, their forces adding, only when one outlasts the gap to the next), in a
-random horizontal direction, and changes the robot's momentum by ``speed × mass`` (the whole robot's nominal mass):
-a force of that impulse over the kick's duration, held on the pelvis body (``sim.xfrc_applied``, world frame) for a
-whole number of policy steps (at least one), so the impulse is exact. The TOCABI lab trains with impulses of
-50-250 N·s over 0.1-1 s; a velocity kick of 0.5 m/s (≈ 52 N·s on the 104.5 kg robot) over one 4 ms policy step is the
-robust gait test's.
+random horizontal direction, and changes the robot's velocity by ``speed``, over the kick's duration (a whole number
+of policy steps, at least one). How (``PushConfig.kind``):
+
+- ``"force"``: a force of impulse ``speed × mass`` (the whole robot's nominal mass) on the pelvis body
+  (``sim.xfrc_applied``, world frame): the robot's momentum changes exactly as a velocity kick's, but the pelvis is
+  jerked ahead of the limbs and upper body, which lag, so the joints are kicked as well. The TOCABI lab trains with
+  such impulses, 50-250 N·s over 0.1-1 s.
+- ``"velocity"``: every body gets its own mass × the kick's acceleration ``speed / duration`` (its world's drawn
+  masses where ``env.dynamics`` randomises them): a uniform field, like a brief change of gravity, so every body's
+  velocity changes by the same ``speed`` and no joint is kicked (contacts aside). This is a velocity kick of the whole
+  robot, what MuJoCo Playground and Isaac Lab push with by writing the root velocity, here through forces so that it
+  reaches both backends' physics alike and keeps the warp step's reuse of its last forward pass valid. The robust
+  gait test's kicks: 0.5 and 1.0 m/s (≈ 52 and 104.5 N·s on the 104.5 kg robot) within one 4 ms policy step.
 
 Everything is device-side and sync-free: the schedule is (N, count) tensors drawn from the env's counter-based
 per-episode uniforms and updated in place, the force is a masked sum over the kicks, and :attr:`Pushes.scale`
@@ -68,8 +76,16 @@ class Pushes:
         self.force.copy_(torch.where(m.unsqueeze(-1), force, self.force))
 
     def at(self, episode_step: torch.Tensor) -> torch.Tensor:
-        """(N, 2) the horizontal force [N] on the pelvis during policy step ``episode_step`` (N,) int64 (0 = the
-        episode's first step), world frame."""
+        """(N, 2) the horizontal force [N] of a ``"force"`` kick on the pelvis during policy step ``episode_step``
+        (N,) int64 (0 = the episode's first step), world frame: the kick's impulse (speed × the robot's mass) over
+        its duration."""
         step = episode_step.unsqueeze(-1)
         active = (step >= self.start_step) & (step < self.start_step + self.steps)
         return (self.force * active.unsqueeze(-1)).sum(dim=1) * (self.scale * self.world_scale).unsqueeze(-1)
+
+    def body_forces(self, episode_step: torch.Tensor, body_mass: torch.Tensor) -> torch.Tensor:
+        """(N, nbody, 2) the horizontal force [N] of a ``"velocity"`` kick on every body during policy step
+        ``episode_step`` (N,) int64, world frame: each body's mass (``body_mass`` (N, nbody) or (nbody,) [kg]) times
+        the kick's acceleration [m/s²] (the force of :meth:`at` over the robot's mass)."""
+        acceleration = self.at(episode_step) / self.mass
+        return acceleration.unsqueeze(1) * body_mass.unsqueeze(-1)

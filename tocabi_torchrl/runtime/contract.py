@@ -15,7 +15,7 @@ import os
 import re
 from pathlib import Path
 
-from ..value_rules import ENV_RULES, NON_NEGATIVE, trained_under_problems
+from ..value_rules import ENV_RULES, NON_NEGATIVE, PUSH_KINDS, trained_under_problems
 
 __all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ENV_FIELDS", "REQUIRED_KEYS", "RUNTIME_SIGNALS", "ContractError",
            "check_contract", "load_contract"]
@@ -396,6 +396,10 @@ def _check_trained_under(contract: dict, source: str) -> None:
         if any(abs(a - b) > 1e-6 * max(1.0, b) for a, b in zip(delay["ms"], expected)):
             raise ContractError(f"{source}: trained_under.actuators.delay.ms is {delay['ms']} but substeps "
                                 f"{delay['substeps']} x timing.physics_dt_s is {expected} ms; {fix}")
+    kind = section["pushes"].get("kind", "force") if isinstance(section["pushes"], dict) else "force"
+    if kind not in PUSH_KINDS:
+        raise ContractError(f"{source}: trained_under.pushes.kind is {kind!r} but must be one of {list(PUSH_KINDS)}; "
+                            f"{fix}")
     mode = contract["action"]["control_mode"]
     on = [k for k in ("delay", "motor_constant", "friction") if section["actuators"][k] != "off"]
     if on and mode != "torque":

@@ -14,7 +14,8 @@ health check: a robot whose MuJoCo warning counters fired (C MuJoCo resets a div
 Optionally (:func:`run_sim2sim`'s ``randomize``, ``pushes``, ``start_velocity``) each robot draws the training env's
 randomisation at its reset, in numpy (:mod:`.randomization`): an actuator layer whose torque is written into ``ctrl``
 substep by substep, its own ``MjModel`` copy with drawn dynamics, sensor biases and noise on what the policy
-observes, kicks on the pelvis through ``MjData.xfrc_applied``, and start velocities.
+observes, kicks through ``MjData.xfrc_applied`` (on the pelvis, or on every body by its mass for a velocity kick),
+and start velocities.
 """
 
 from __future__ import annotations
@@ -244,7 +245,8 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
       :class:`~tocabi_torchrl.runtime.randomization.Randomization`. Actuator layer: the leg torques go through
       delay, motor constant, friction and saturation, written into ``ctrl`` substep by substep. Dynamics: one
       ``MjModel`` copy per robot. Sensors: biases and noise on what the policy observes only.
-    * ``pushes``: kicks on the pelvis through ``MjData.xfrc_applied`` (``PushSettings``; None or count 0: none).
+    * ``pushes``: kicks through ``MjData.xfrc_applied`` (``PushSettings``: ``kind`` "force" on the pelvis,
+      "velocity" on every body by the robot's own masses; None or count 0: none).
     * ``start_velocity``: start joint and pelvis velocities (``StartVelocity``, e.g. ``ROBUST_START``; None: at rest).
 
     ``on_step(step, model, datas)``: called after each control period with its 0-based index, the compiled model and
@@ -297,6 +299,7 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
         base = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, c["robot"]["base_body"])
         kicks = rnd.PushSchedule(pushes, float(c["timing"]["control_dt_s"]), float(m.body_subtreemass[base]))
         kicks.reset(rnd.generator(seed, "pushes"), num_robots)
+        body_mass = np.stack([mi.body_mass for mi in models])  # (N, nbody) each robot's own (drawn) masses
     start_qvel = (rnd.start_velocities(rnd.generator(seed, "start_velocity"), num_robots, m.nv, start_velocity)
                   if start_velocity is not None else None)
 
@@ -328,14 +331,14 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
         torques = (actuators(cmd.leg, np.stack([d.qvel[6 : 6 + n_leg] for d in datas]))
                    if actuators is not None else None)
         if kicks is not None:
-            force = kicks.at(step)  # held for the whole period, as the env's xfrc_applied
+            forces = kicks.body_forces(step, base, body_mass)  # held for the whole period, as the env's xfrc_applied
             kicked += int((kicks.start_step == step).sum())
         for i, d in enumerate(datas):
             mi = models[i]
             d.ctrl[:n_leg] = cmd.leg[i]
             d.ctrl[n_leg:] = cmd.upper_targets[i]
             if kicks is not None:
-                d.xfrc_applied[base, :2] = force[i]
+                d.xfrc_applied[:, :2] = forces[i]
             if torques is None:
                 for _ in range(substeps):
                     mujoco.mj_step(mi, d)
@@ -379,7 +382,7 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
             "randomize": randomize if isinstance(randomize, str) else "custom",
             "seed": int(seed),
             "pushes": ({"count": pushes.count, "speed_mps": list(pushes.speed), "window_s": list(pushes.window),
-                        "kicks_started": kicked} if pushes is not None else None),
+                        "kind": pushes.kind, "kicks_started": kicked} if pushes is not None else None),
             "start_noise": ({"joint_std_radps": start_velocity.joint_std, "base_std_mps": start_velocity.base_std}
                             if start_velocity is not None else None),
         },

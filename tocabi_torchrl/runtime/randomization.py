@@ -39,6 +39,8 @@ from dataclasses import dataclass, fields
 import mujoco
 import numpy as np
 
+from ..value_rules import PUSH_KINDS
+
 
 __all__ = ["ROBUST_START", "STREAMS", "TOCABI_LAB", "ActuatorLayer", "ActuatorSettings", "DynamicsSettings",
            "PushSchedule", "PushSettings", "Randomization", "SensorModel", "SensorSettings", "StartVelocity",
@@ -131,14 +133,16 @@ class SensorSettings:
 
 @dataclass(frozen=True)
 class PushSettings:
-    """Horizontal kicks of the pelvis (``PushConfig``'s fields): ``count`` per episode, kick j at a uniform time in
-    the j-th of ``count`` equal shares of ``window`` [s], a uniform direction, a velocity change ~ U(``speed``)
-    [m/s] of the whole robot, a force held for ~ U(``duration``) [s] rounded to whole control periods (>= 1)."""
+    """Horizontal kicks (``PushConfig``'s fields): ``count`` per episode, kick j at a uniform time in the j-th of
+    ``count`` equal shares of ``window`` [s], a uniform direction, a velocity change ~ U(``speed``) [m/s] of the whole
+    robot, forces held for ~ U(``duration``) [s] rounded to whole control periods (>= 1): on the pelvis alone
+    (``kind`` "force") or on every body by its mass (``kind`` "velocity", the robust gait test's)."""
 
     count: int = 0
     window: tuple[float, float] = (2.0, 7.0)
     speed: tuple[float, float] = (0.5, 0.5)
     duration: tuple[float, float] = (0.004, 0.004)
+    kind: str = "force"
 
     def validate(self, prefix: str = "pushes.") -> None:
         """Raise ``ValueError`` naming the first bad field and what it takes (``PushConfig.validate``'s rules)."""
@@ -149,6 +153,9 @@ class PushSettings:
             if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
                 raise ValueError(f"{prefix}{name} must be (low, high) with 0 <= low <= high, finite, got "
                                  f"{getattr(self, name)!r}")
+        if self.kind not in PUSH_KINDS:
+            raise ValueError(f"{prefix}kind must be one of {PUSH_KINDS} (force: on the pelvis; velocity: the whole "
+                             f"robot's velocity), got {self.kind!r}")
 
 
 @dataclass(frozen=True)
@@ -267,11 +274,14 @@ def trained_under_section(randomization: Randomization, pushes: PushSettings, st
         "sensor_noise": sensors,
         "pushes": {"count": int(pushes.count), "window_s": _pair(pushes.window), "speed_mps": _pair(pushes.speed),
                    "duration_s": _pair(pushes.duration), "robot_mass_kg": float(robot_mass_kg),
-                   "ramp_env_steps": [int(v) for v in push_ramp],
+                   "ramp_env_steps": [int(v) for v in push_ramp], "kind": pushes.kind,
                    "rule": "kick j at t ~ U over the j-th of count equal shares of window_s, direction ~ U(0, 2pi) "
-                           "in the horizontal plane, force speed * robot_mass_kg / (n * control_dt_s) on the pelvis "
-                           "(world frame) for n = max(1, round(duration / control_dt_s)) control periods; "
-                           "ramp_env_steps: training scaled every kick from 0 at the first to 1 at the second"}
+                           "in the horizontal plane, for n = max(1, round(duration / control_dt_s)) control periods "
+                           + ("a force speed * robot_mass_kg / (n * control_dt_s) on the pelvis (world frame)"
+                              if pushes.kind == "force" else
+                              "a force body_mass * speed / (n * control_dt_s) on every body (world frame, the "
+                              "robot's own masses): the whole robot's velocity changes by speed")
+                           + "; ramp_env_steps: training scaled every kick from 0 at the first to 1 at the second"}
         if pushes.count > 0 else "off",
         "start_velocity": {"joint_std_radps": float(start.joint_std), "base_std_mps": float(start.base_std),
                            "rule": f"{when}: joint velocities ~ N(0, joint_std^2), pelvis linear velocity ~ "
@@ -308,7 +318,7 @@ def from_contract(contract: dict) -> tuple[Randomization, PushSettings, StartVel
     push = section["pushes"]
     pushes = PushSettings() if push == "off" else PushSettings(
         count=int(push["count"]), window=tuple(push["window_s"]), speed=tuple(push["speed_mps"]),
-        duration=tuple(push["duration_s"]))
+        duration=tuple(push["duration_s"]), kind=str(push.get("kind", "force")))
     st = section["start_velocity"]
     start = StartVelocity() if st == "off" else StartVelocity(float(st["joint_std_radps"]), float(st["base_std_mps"]))
     return Randomization(actuators, dynamics, SensorSettings(**values)), pushes, start
@@ -485,10 +495,22 @@ class PushSchedule:
         self.force = magnitude[..., None] * np.stack((np.cos(angle), np.sin(angle)), axis=-1)
 
     def at(self, step: int) -> np.ndarray:
-        """(N, 2) the horizontal force [N] on the pelvis during control period ``step`` (0 = the first), world
-        frame."""
+        """(N, 2) the horizontal force [N] of a "force" kick on the pelvis during control period ``step`` (0 = the
+        first), world frame; a "velocity" kick's acceleration [m/s²] is this over :attr:`mass`."""
         active = (step >= self.start_step) & (step < self.start_step + self.steps)
         return (self.force * active[..., None]).sum(axis=1)
+
+    def body_forces(self, step: int, base: int, body_mass: np.ndarray) -> np.ndarray:
+        """(N, nbody, 2) the horizontal force [N] on every body during control period ``step``, world frame, for
+        ``MjData.xfrc_applied[:, :2]``: a "force" kick on body ``base`` (the pelvis) alone, a "velocity" kick on
+        every body by its mass (``body_mass`` (N, nbody) [kg], each robot's own model's) × the kick's
+        acceleration (``envs/pushes.py``)."""
+        force = self.at(step)
+        if self.settings.kind == "velocity":
+            return body_mass[:, :, None] * (force / self.mass)[:, None, :]
+        out = np.zeros((*body_mass.shape, 2))
+        out[:, base] = force
+        return out
 
 
 def start_velocities(rng: np.random.Generator, n: int, nv: int, start: StartVelocity) -> np.ndarray:
