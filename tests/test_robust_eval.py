@@ -520,3 +520,29 @@ def test_checkpoint_case_gives_the_shipped_policy_in_a_case_env_seeded_for_the_t
     assert all(torch.equal(actor[k], v) for k, v in saved["agent"]["actor"].items())
     per_env = robust.run_case(agent.actor, env, test.seconds, progress=False)
     assert bool(per_env["alive"].all())  # the shipped policy stands through 0.2 s
+
+
+@needs_policy
+def test_checkpoint_case_as_trained_acts_with_the_assist_its_training_had(tmp_path):
+    """A torque-assisted run's checkpoint, as_trained: the case env has the assist at β(env steps) of the run's
+    schedule (here a copy of the shipped torque checkpoint as if saved mid-fade); by default its legs are pure torque."""
+    from tocabi_torchrl.evaluation import robust
+    from tocabi_torchrl.rl.assist import AssistSchedule
+
+    saved = torch.load(REPO / "assets" / "policies" / "tocabi_walk_torque.pt", map_location="cpu", weights_only=True)
+    saved["env_steps"] = 80_000_000  # the preset fades from 50 M to 110 M env steps
+    path = tmp_path / "mid_fade.pt"
+    torch.save(saved, path)
+    test = robust.RobustTestConfig(num_envs=2, seconds=0.1)
+    _, cfg, env, _ = robust.checkpoint_case(path, "robust_1.0", "cpu", test, as_trained=True)
+    beta = float(env.base_env.assist_scale)
+    ratio = float((env.base_env.assist_gain(1.0) / env.base_env.assist_gain(0.0)).log().mean().exp())
+    expected = AssistSchedule(cfg.ppo.torque_assist, cfg.ppo.assist_fade_start, cfg.ppo.assist_fade_end, ratio)
+    assert 0 < beta < 1 and beta == pytest.approx(expected(80_000_000))
+    _, _, plain, _ = robust.checkpoint_case(path, "robust_1.0", "cpu", test)
+    assert plain.base_env.assist_scale is None and plain.base_env.pushes.cfg.kind == "velocity"
+    _, _, forced, _ = robust.checkpoint_case(path, "robust_1.0", "cpu", robust.RobustTestConfig(
+        num_envs=2, seconds=0.1, push_kind="force"))
+    assert forced.base_env.pushes.cfg.kind == "force"
+    with pytest.raises(ValueError, match="push_kind"):
+        robust.RobustTestConfig(push_kind="impulse").validate(0.004)

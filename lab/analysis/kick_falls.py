@@ -43,9 +43,10 @@ def sector(angle: float) -> str:
     return SECTORS[int(((math.degrees(angle) + 45.0) % 360.0) // 90.0)]
 
 
-def measure(path: Path, case: str, num_envs: int) -> dict:
-    test = robust.RobustTestConfig(num_envs=num_envs)
-    state, _, env, agent = robust.checkpoint_case(path, case, "cpu", test)
+def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", as_trained: bool = False) -> dict:
+    test = robust.RobustTestConfig(num_envs=num_envs, push_kind=push_kind)
+    state, _, env, agent = robust.checkpoint_case(path, case, "cpu", test, as_trained=as_trained)
+    beta = env.base_env.assist_scale
     pushes, schedule = env.base_env.pushes, {}
 
     def actor(td):
@@ -83,6 +84,7 @@ def measure(path: Path, case: str, num_envs: int) -> dict:
     delays_t = torch.tensor(delays, dtype=torch.float64)
     return {
         "checkpoint": str(path), "case": case, "num_envs": num_envs, "seed": robust.EVAL_SEED,
+        "push_kind": push_kind, "torque_assist": None if beta is None else float(beta),
         "env_steps": int(state.get("env_steps", 0)), "train_seconds": float(state.get("train_seconds", 0.0)),
         "survival": float(alive.float().mean()),
         "falls_before_any_kick": before_any,
@@ -101,6 +103,10 @@ def main(argv=None) -> int:
     p.add_argument("--checkpoint", nargs="+", required=True, type=Path, help="checkpoints (.pt) to test")
     p.add_argument("--case", default="robust_1.0", help="a pushed case of the robust test (robust_0.5, robust_1.0)")
     p.add_argument("--num_envs", type=int, default=64, help="robots (the test asks 1,024 on a GPU)")
+    p.add_argument("--push_kind", choices=("velocity", "force"), default="velocity",
+                   help="velocity: the test's kicks (default); force: the same momentum on the pelvis alone")
+    p.add_argument("--as_trained", action="store_true",
+                   help="a torque-assisted run's checkpoint acts with the assist at the β its training had reached")
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
     args = p.parse_args(argv)
     if args.case not in robust.CASES or not robust.CASES[args.case].randomized:
@@ -109,9 +115,10 @@ def main(argv=None) -> int:
     results = []
     for path in args.checkpoint:
         start = time.perf_counter()
-        r = measure(path, args.case, args.num_envs)
+        r = measure(path, args.case, args.num_envs, args.push_kind, args.as_trained)
         delay = r["fall_delay_after_kick_s"]
-        print(f"{path}: survival {r['survival']:.3f}, falls after kicks {r['falls_after_kick']} of robots "
+        assisted = "" if r["torque_assist"] is None else f" (assist β {r['torque_assist']:.2f})"
+        print(f"{path}{assisted}: survival {r['survival']:.3f}, falls after kicks {r['falls_after_kick']} of robots "
               f"{r['robots_alive_at_kick']} alive at them, by direction {r['falls_by_direction_of_last_kick']} of "
               f"{r['kicks_met_standing_by_direction']}, delay {'-' if delay is None else round(delay['mean'], 2)} s "
               f"({time.perf_counter() - start:.0f} s)", flush=True)

@@ -247,7 +247,11 @@ def robust_policies(docs: Path) -> list[str]:
     return ["## Robust gait test", "",
             f"{m['num_envs']:,} robots per case, {m['seconds']:g} s (docs/evaluation.md: nominal needs survival >= 0.99 "
             "and drift p95 <= 0.3 m, commands survival >= 0.99 and tracking <= 0.12 m/s, robust_0.5 survival >= 0.97, "
-            "robust_1.0 >= 0.85). No robust policy is shipped yet: the `robust` preset has not been trained.", "",
+            "robust_1.0 >= 0.85). "
+            + ("Kicks: velocity kicks of the whole robot. " if all(r.get("push_kind") == "velocity" for r in d["results"])
+               else "Kicks: a force of the same momentum on the pelvis alone (the test's kicks before they became velocity "
+                    "kicks of the whole robot, a harder push). ")
+            + "No robust policy is shipped yet: no run of the `robust` preset has passed the test.", "",
             *rows, "",
             *_source("benchmarks/robust/robust_policies.json", m["command"], m["date"], m["gpu"],
                      "benchmarks/robust/robust_policies.md")]

@@ -26,6 +26,10 @@ COLUMNS = (("survival", "survival", ".3f"), ("distance mean [m]", "forward_dista
 #: What the two speed columns are (docs/evaluation.md), and what the first was in a report made before the second.
 SPEED_NOTE = ("tracking: the error of the velocity averaged over one gait cycle; instantaneous: the mean "
               "instantaneous speed error, gait sway included")
+#: How each kind of kick acts (``RobustTestConfig.push_kind``); a report made before the test recorded it had "force".
+KICK_NOTE = {"velocity": "kicks: velocity kicks of the whole robot (every body's velocity changes by the kick's speed)",
+             "force": "kicks: a force on the pelvis alone of the same momentum (the test's kicks before they became "
+                      "velocity kicks of the whole robot: the limbs lag and the joints are kicked too, a harder push)"}
 LEGACY_NOTE = ("tracking: the mean instantaneous speed error, gait sway included, as the test measured it before "
                "its cycle-mean tracking error and instantaneous column")
 
@@ -47,7 +51,8 @@ def measure(policy: Path, out: Path, num_envs: int, seconds: float, device: str)
                                for p, v in c["checks"].items()}}
              for name, c in report["cases"].items()}
     print(f"{policy.stem}: {'passes' if report['passes'] else 'does not pass'} ({took:.0f} s)", flush=True)
-    return {"policy": policy.stem, "file": str(policy), "passes": report["passes"], "seconds": took, "cases": cases}
+    return {"policy": policy.stem, "file": str(policy), "passes": report["passes"], "seconds": took,
+            "push_kind": report["settings"]["push_kind"], "cases": cases}
 
 
 def render(data: dict, out: Path) -> str:
@@ -64,9 +69,11 @@ def render(data: dict, out: Path) -> str:
     _plot(data, out / f"{NAME}.png")
     s = data["meta"]
     legacy = any("instant_speed_error_mps.mean" not in c for r in data["results"] for c in r["cases"].values())
+    kicks = "; ".join(KICK_NOTE[k] for k in sorted({r.get("push_kind", "force") for r in data["results"]}))
     return common.page("The robust gait test of the policies", data,
                        f"{s['num_envs']} robots per case, {s['seconds']:g} s, one batch per policy; ✗: a threshold "
-                       f"of the case missed; {LEGACY_NOTE if legacy else SPEED_NOTE} (docs/evaluation.md).\n\n"
+                       f"of the case missed; {LEGACY_NOTE if legacy else SPEED_NOTE}; {kicks} (docs/evaluation.md)."
+                       "\n\n"
                        + "\n".join(lines) + f"\n\n![]({NAME}.png)")
 
 

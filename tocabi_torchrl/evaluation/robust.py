@@ -11,7 +11,8 @@ linear velocity ~ N(0, 0.1 m/s) per axis, drawn per robot at the reset) and runs
 * ``commands``: the training command range (``CommandConfig()``'s) re-drawn every 2 s (500 policy steps);
 * ``robust_0.5`` and ``robust_1.0``: command (0.5, 0) m/s, the ``tocabi_lab`` randomisation (dynamics, actuators,
   sensor noise; :func:`robust_case_config`; a PD-mode policy's servos get no actuator model) drawn from
-  :data:`EVAL_SEED`, and three horizontal velocity kicks of 0.5 or 1.0 m/s at random times in 2-7 s.
+  :data:`EVAL_SEED`, and three horizontal velocity kicks of 0.5 or 1.0 m/s at random times in 2-7 s, each within
+  one 4 ms policy step: every body of the robot gets the same velocity change (``PushConfig(kind="velocity")``).
 
 Per case it reports distributions over the robots: survival fraction, forward distance (mean, p5, p50, p95),
 lateral drift (mean, p50, p95 of |y|), speed tracking error (mean, p95), instantaneous speed error (mean, p95) and
@@ -112,6 +113,9 @@ class RobustTestConfig:
         start_base_vel_std: std of the Gaussian pelvis linear velocity (each axis) each robot starts with [m/s].
         push_count: kicks per robot in the pushed cases.
         push_window: (start, end) [s] of episode time the kicks fall in (kick j at a random time in the j-th third).
+        push_kind: how a kick acts (``PushConfig.kind``): "velocity" (the test: the whole robot's velocity changes
+            by the kick's speed) or "force" (an impulse of speed × mass on the pelvis alone, which also kicks the
+            joints: a harder push of the same momentum, for comparison).
         seed: the seed of every draw (:data:`EVAL_SEED`).
         cases: which of :data:`CASES` to run, in order.
     """
@@ -122,6 +126,7 @@ class RobustTestConfig:
     start_base_vel_std: float = 0.1
     push_count: int = 3
     push_window: tuple[float, float] = (2.0, 7.0)
+    push_kind: str = "velocity"
     seed: int = EVAL_SEED
     cases: tuple[str, ...] = tuple(CASES)
 
@@ -131,6 +136,10 @@ class RobustTestConfig:
             raise ValueError(f"num_envs must be an int >= 1 (robots per case; the test's default is 1024), got "
                              f"{self.num_envs!r}")
         policy_steps(self.seconds, dt)
+        from ..envs.push_config import PUSH_KINDS
+
+        if self.push_kind not in PUSH_KINDS:
+            raise ValueError(f"push_kind must be one of {PUSH_KINDS} (the test's is velocity), got {self.push_kind!r}")
         unknown = [c for c in self.cases if c not in CASES]
         if unknown or not self.cases:
             raise ValueError(f"unknown robust-test case(s) {unknown or '(none given)'}; choose from {list(CASES)}")
@@ -140,8 +149,9 @@ class RobustTestConfig:
 def robust_case_config(cfg: RunConfig, push_speed: float, test: RobustTestConfig = RobustTestConfig()) -> RunConfig:
     """``cfg`` with the TOCABI lab's uncertainty model switched on (:func:`tocabi_torchrl.randomize.tocabi_lab`:
     dynamics and the actuator delay and motor constant in the env section, sensor noise in the transform section)
-    and ``test.push_count`` horizontal kicks of ``push_speed`` [m/s] (one 4 ms policy step each) at random times in
-    ``test.push_window``. The one place the robust cases' randomisation is made.
+    and ``test.push_count`` horizontal kicks of ``push_speed`` [m/s] (one 4 ms policy step each, of
+    ``test.push_kind``) at random times in ``test.push_window``. The one place the robust cases' randomisation is
+    made.
 
     The lab's actuator model acts on torque commands; in the PD modes the legs are MuJoCo servos inside the physics,
     where it has no place (the env refuses it), so a PD-mode policy gets the rest of the set
@@ -155,7 +165,7 @@ def robust_case_config(cfg: RunConfig, push_speed: float, test: RobustTestConfig
     if env.control.mode not in TORQUE_MODES:
         env = dataclasses.replace(env, control=dataclasses.replace(env.control, actuators=cfg.env.control.actuators))
     pushes = PushConfig(count=test.push_count, window=tuple(test.push_window), speed=(push_speed, push_speed),
-                        duration=(0.004, 0.004))
+                        duration=(0.004, 0.004), kind=test.push_kind)
     return dataclasses.replace(lab, env=dataclasses.replace(env, pushes=pushes))
 
 
@@ -203,31 +213,42 @@ def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig =
 
 
 def case_env(cfg: RunConfig, case: str | RobustCase, device: torch.device, num_envs: int,
-             test: RobustTestConfig = RobustTestConfig()):
+             test: RobustTestConfig = RobustTestConfig(), torque_assist: bool = False):
     """The env of one case (``num_envs`` robots on ``device``), built as the trainer builds envs
     (:func:`~tocabi_torchrl.rl.trainer.build_env`) from :func:`case_config`. On CUDA its step is one captured CUDA
-    graph (:class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`), which :func:`run_case` replays."""
+    graph (:class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`), which :func:`run_case` replays.
+    ``torque_assist``: the torque preset's training aid in the env (an analysis of a checkpoint as it acted in
+    training, :func:`checkpoint_case`; the test itself never has it)."""
     from ..rl.trainer import build_env
 
     device = torch.device(device)
     graph = {"sync_free_resets": True, "cuda_graph": True} if device.type == "cuda" else {}
-    return build_env(case_config(cfg, case, test), device, num_envs=num_envs, **graph)
+    out = case_config(cfg, case, test)
+    if torque_assist:
+        out = dataclasses.replace(out, env=dataclasses.replace(out.env, control=dataclasses.replace(
+            out.env.control, torque_assist=True)))
+    return build_env(out, device, num_envs=num_envs, **graph)
 
 
 def checkpoint_case(path: str | os.PathLike, case: str | RobustCase, device: torch.device | str,
-                    test: RobustTestConfig = RobustTestConfig()):
+                    test: RobustTestConfig = RobustTestConfig(), as_trained: bool = False):
     """A checkpoint's policy in one case's env, ready for :func:`run_case`: ``(state, cfg, env, agent)``, the
     checkpoint as read, its run config, the env of ``test.num_envs`` robots (:func:`case_env`) seeded with
     ``test.seed`` and holding the checkpoint's normaliser statistics, and the agent with its weights
-    (``agent.actor`` is the policy to roll out)."""
+    (``agent.actor`` is the policy to roll out). ``as_trained``: a checkpoint of a run with the torque assist
+    (``ppo.torque_assist``) acts with the assist at the β its training had reached (an analysis: is a weakness the
+    fade's?); without it, as in every test, its legs are pure torque."""
     from ..rl.checkpoint import apply_checkpoint, config_from_checkpoint, read_checkpoint
-    from ..rl.trainer import build_agent
+    from ..rl.trainer import assist_schedule, build_agent
 
     state = read_checkpoint(path)
     cfg = config_from_checkpoint(state, path)
-    env = case_env(cfg, case, torch.device(device), test.num_envs, test)
+    assisted = as_trained and cfg.ppo.torque_assist > 0
+    env = case_env(cfg, case, torch.device(device), test.num_envs, test, torque_assist=assisted)
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
     apply_checkpoint(state, agent, env=env, path=path)
+    if assisted:
+        env.base_env.set_torque_assist(assist_schedule(cfg, env)(int(state["env_steps"])))
     env.set_seed(int(test.seed))
     return state, cfg, env, agent
 
@@ -250,7 +271,7 @@ def batch_config(cfg: RunConfig, test: RobustTestConfig = RobustTestConfig()) ->
 
 def batch_key(test: RobustTestConfig) -> tuple:
     """The key :func:`evaluate_robust` keeps a test's :func:`batch_env` under in its ``envs`` cache."""
-    return ("batch", tuple(test.cases), test.num_envs)
+    return ("batch", tuple(test.cases), test.num_envs, test.push_kind)
 
 
 def case_worlds(test: RobustTestConfig, device: torch.device | str = "cpu") -> dict[str, slice]:
@@ -532,7 +553,7 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
               "settings": {"num_envs": test.num_envs, "seconds": test.seconds,
                            "start_joint_vel_std_radps": test.start_joint_vel_std,
                            "start_base_vel_std_mps": test.start_base_vel_std, "push_count": test.push_count,
-                           "push_window_s": list(test.push_window)},
+                           "push_window_s": list(test.push_window), "push_kind": test.push_kind},
               "criteria": {name: {p: f"{op} {v:g}" for p, (op, v) in c.items()} for name, c in ROBUST_CRITERIA.items()},
               "cases": {}}
     per_case = {}

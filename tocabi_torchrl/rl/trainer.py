@@ -432,7 +432,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     if not isinstance(find_normalization(env), RunningNormalization):
         running_mirror = None
     update_step = make_update_step(cfg, loss_module, optimizer, device, info)
-    assist = _assist_schedule(cfg, env)
+    assist = assist_schedule(cfg, env)
     if assist is not None:
         env.base_env.set_torque_assist(assist(env_steps))
     pushes = getattr(env.base_env, "pushes", None) is not None
@@ -582,7 +582,7 @@ def _stop_requests(time_up: bool, stop_signal: str | None, info: DistInfo,
 _VALUE_CHUNK_FRAMES = 65536
 
 
-def _assist_schedule(cfg: RunConfig, env: EnvBase) -> AssistSchedule | None:
+def assist_schedule(cfg: RunConfig, env: EnvBase) -> AssistSchedule | None:
     """β of the torque assist against env steps (geometric in the env's action gain), or None without an assist."""
     ppo = cfg.ppo
     if ppo.torque_assist <= 0:
