@@ -43,8 +43,10 @@ def sector(angle: float) -> str:
     return SECTORS[int(((math.degrees(angle) + 45.0) % 360.0) // 90.0)]
 
 
-def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", as_trained: bool = False) -> dict:
-    test = robust.RobustTestConfig(num_envs=num_envs, push_kind=push_kind)
+def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", as_trained: bool = False,
+            push_window: tuple[float, float] = (2.0, 7.0), seconds: float = 8.0) -> dict:
+    test = robust.RobustTestConfig(num_envs=num_envs, push_kind=push_kind, push_window=tuple(push_window),
+                                   seconds=seconds)
     state, _, env, agent = robust.checkpoint_case(path, case, "cpu", test, as_trained=as_trained)
     beta = env.base_env.assist_scale
     pushes, schedule = env.base_env.pushes, {}
@@ -84,7 +86,8 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
     delays_t = torch.tensor(delays, dtype=torch.float64)
     return {
         "checkpoint": str(path), "case": case, "num_envs": num_envs, "seed": robust.EVAL_SEED,
-        "push_kind": push_kind, "torque_assist": None if beta is None else float(beta),
+        "push_kind": push_kind, "push_window_s": list(push_window), "seconds": seconds,
+        "torque_assist": None if beta is None else float(beta),
         "env_steps": int(state.get("env_steps", 0)), "train_seconds": float(state.get("train_seconds", 0.0)),
         "survival": float(alive.float().mean()),
         "falls_before_any_kick": before_any,
@@ -107,6 +110,9 @@ def main(argv=None) -> int:
                    help="velocity: the test's kicks (default); force: the same momentum on the pelvis alone")
     p.add_argument("--as_trained", action="store_true",
                    help="a torque-assisted run's checkpoint acts with the assist at the β its training had reached")
+    p.add_argument("--push_window", type=float, nargs=2, default=(2.0, 7.0), metavar=("START", "END"),
+                   help="seconds the three kicks fall in, one per third (the test's: 2 7); a wider window spaces them")
+    p.add_argument("--seconds", type=float, default=8.0, help="length of the case [s] (the test's: 8)")
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
     args = p.parse_args(argv)
     if args.case not in robust.CASES or not robust.CASES[args.case].randomized:
@@ -115,7 +121,7 @@ def main(argv=None) -> int:
     results = []
     for path in args.checkpoint:
         start = time.perf_counter()
-        r = measure(path, args.case, args.num_envs, args.push_kind, args.as_trained)
+        r = measure(path, args.case, args.num_envs, args.push_kind, args.as_trained, args.push_window, args.seconds)
         delay = r["fall_delay_after_kick_s"]
         assisted = "" if r["torque_assist"] is None else f" (assist β {r['torque_assist']:.2f})"
         print(f"{path}{assisted}: survival {r['survival']:.3f}, falls after kicks {r['falls_after_kick']} of robots "
