@@ -4,6 +4,7 @@ report the first training time (and env steps) at which the gait test passes.
     python -m lab.benchmarks.time_to_walk train --preset torque --minutes 9.5   # resumes; repeat until the budget is used
     python -m lab.benchmarks.time_to_walk eval --preset torque                  # gait tests of every wall-clock checkpoint
     python -m lab.benchmarks.time_to_walk eval --preset torque --test robust    # the robust gait test (evals_robust.json)
+    python -m lab.benchmarks.time_to_walk eval --preset robust --test robust --from_minutes 15   # skip earlier marks
     python -m lab.benchmarks.time_to_walk report --runs runs/time_to_walk/torque ...   # time_to_walk.{json,md,png}
     torchrun --standalone --nproc_per_node 2 -m lab.benchmarks.time_to_walk train --preset default --name default_2gpu
 
@@ -118,7 +119,11 @@ def eval_part(args, command: str) -> None:
     evals, envs = record.setdefault("evaluations", {}), {}
     while True:
         # Checkpoints are written atomically (a temporary file, then a rename): a wall_*.pt is complete.
-        for ckpt in [p for p in sorted((run_dir / "checkpoints").glob("wall_*.pt")) if p.stem not in evals]:
+        # Marks before --from_minutes are left out: a GPU's test of each costs about a minute, and a screen may
+        # already have shown that they cannot pass (a torque run before its assist has faded). Marks are whole
+        # seconds: half a second of slack for a minute count that floating point puts a hair past one.
+        for ckpt in [p for p in sorted((run_dir / "checkpoints").glob("wall_*.pt"))
+                     if p.stem not in evals and _mark_seconds(p.stem) + 0.5 >= 60.0 * args.from_minutes]:
             (_evaluate_robust if test == "robust" else _evaluate)(ckpt, evals, envs, args)
             common.write_json(evals_file, record)
         if args.follow_pid and _alive(args.follow_pid):
@@ -131,6 +136,11 @@ def eval_part(args, command: str) -> None:
     record["time_to_walk"] = first_walk(record)
     common.write_json(evals_file, record)
     print("time to walk:", json.dumps(record["time_to_walk"]))
+
+
+def _mark_seconds(stem: str) -> int:
+    """The training second a wall-clock checkpoint marks, from its name (``wall_00540s`` -> 540; ``config.wall_tag``)."""
+    return int(stem[len("wall_"):-1])
 
 
 def _alive(pid: int) -> bool:
@@ -347,6 +357,8 @@ def main(argv=None) -> None:
     e.add_argument("--test", choices=tuple(EVALS), default="standard",
                    help="which gait test decides 'walks': standard (3 commands) or robust (docs/evaluation.md)")
     e.add_argument("--follow_pid", type=int, default=0, help="keep evaluating while this process (the trainer) runs")
+    e.add_argument("--from_minutes", type=float, default=0.0,
+                   help="test only the checkpoints of this training minute and later (default: all)")
     r = sub.add_parser("report", help="tables and plots from the runs' train.json and evals.json")
     r.add_argument("--runs", nargs="+", required=True, help="run folders holding train.json / evals.json")
     r.add_argument("--curves", nargs="*", default=[],

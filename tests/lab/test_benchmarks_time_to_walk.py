@@ -53,6 +53,11 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
     assert "training from runs/time_to_walk/cpu_smoke/checkpoints/latest.pt" in run(*train, "--budget_minutes", "1")
     folder = tmp_path / "runs/time_to_walk/cpu_smoke"
     walls = sorted(p.stem for p in (folder / "checkpoints").glob("wall_*.pt"))
+    # Only the last mark first (--from_minutes at its training second), then the rest: each is tested once.
+    last_s = int(walls[-1][len("wall_"):-1])
+    run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--num_envs", "2", "--seconds", "0.1", "--from_minutes",
+        str(last_s / 60))
+    assert sorted(json.loads((folder / "evals.json").read_text())["evaluations"]) == [walls[-1]]
     run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--num_envs", "2", "--seconds", "0.1")
     record = {**json.loads((folder / "train.json").read_text()), **json.loads((folder / "evals.json").read_text())}
     assert walls and sorted(record["evaluations"]) == walls and len(record["commands"]) == 2
