@@ -119,6 +119,26 @@ def test_a_velocity_kick_moves_the_whole_robot_and_a_force_kick_jerks_the_pelvis
     assert float(dq_vel.max()) < 0.35 * float(dq_force.min()), (dq_vel, dq_force)
 
 
+def test_a_velocity_kick_of_one_world_leaves_the_others_exactly_as_they_were():
+    # Worlds 0 and 2 kicked, 1 and 3 not (world_scale 0): the unkicked worlds follow the unkicked env bit for bit.
+    from tensordict import TensorDict
+
+    def env(pushes):
+        return TocabiWalk(num_envs=4, device="cpu", seed=0, config=dataclasses.replace(TocabiWalkConfig(),
+                          pushes=pushes), sim_threads=1)
+
+    kicked = env(PushConfig(count=1, window=(0.02, 0.02), speed=(1.0, 1.0), kind="velocity"))
+    calm = env(PushConfig())
+    kicked.pushes.world_scale.copy_(torch.tensor([1.0, 0.0, 1.0, 0.0]))
+    kicked.reset(), calm.reset()
+    action = TensorDict({"action": torch.zeros(4, 13)}, batch_size=[4])
+    for _ in range(10):
+        kicked.step(action), calm.step(action)
+    assert torch.equal(kicked.sim.qvel[1::2], calm.sim.qvel[1::2])
+    assert torch.equal(kicked.sim.qpos[1::2], calm.sim.qpos[1::2])
+    assert float((kicked.sim.qvel[0::2, :2] - calm.sim.qvel[0::2, :2]).norm(dim=-1).min()) > 0.5
+
+
 def test_a_velocity_kick_uses_each_worlds_drawn_masses():
     # Lighter and heavier worlds alike: each body's force is its own drawn mass × the acceleration.
     from tocabi_torchrl.sim.dynamics_config import DynamicsRandomization
