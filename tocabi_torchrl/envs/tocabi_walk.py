@@ -208,8 +208,11 @@ class TocabiWalk(EnvBase):
         if cfg.pushes.count > 0:
             mass = float(self.sim.mj_model.body_subtreemass[self.sim.mj_model.body(robot.BASE_BODY).id])
             self.pushes = Pushes(cfg.pushes, num_envs, device, self.dt, mass)
-            #: (nbody,) [kg] the model's body masses, which a "velocity" kick scales by each world's drawn ones.
-            self._body_mass = torch.as_tensor(self.sim.mj_model.body_mass, dtype=torch.float32, device=device)
+            #: [kg] the body masses a "velocity" kick accelerates: the simulator's own per-world field (N, nbody),
+            #: which env.dynamics rewrites in place at each reset, where it draws masses; the model's (nbody,) else.
+            drawn = self.dynamics is not None and "body_mass" in self.dynamics.fields
+            self._kick_mass = (self.dynamics.fields["body_mass"] if drawn else
+                               torch.as_tensor(self.sim.mj_model.body_mass, dtype=torch.float32, device=device))
         self._base_body = self.sim.mj_model.body(robot.BASE_BODY).id
         #: (N,) bool: the worlds that get ``env.dynamics``, the actuator draws and the sensor noise; the others are
         #: the ideal robot (all True unless :meth:`set_randomized_worlds` says otherwise).
@@ -419,8 +422,7 @@ class TocabiWalk(EnvBase):
         ctrl[:, robot.UPPER_BODY] = self.upper_controller.compute(upper)
         if self.pushes is not None:
             if self.pushes.cfg.kind == "velocity":  # every body: its (drawn) mass × the kick's acceleration
-                mass = self._body_mass if self.dynamics is None else self._body_mass * self.dynamics.mass_scale
-                self.sim.xfrc_applied[:, :, :2] = self.pushes.body_forces(self.episode_step, mass)
+                self.sim.xfrc_applied[:, :, :2] = self.pushes.body_forces(self.episode_step, self._kick_mass)
             else:
                 self.sim.xfrc_applied[:, self._base_body, :2] = self.pushes.at(self.episode_step)
         self.sim.step()
