@@ -16,8 +16,8 @@ numpy, mujoco and onnxruntime only (`pip install tocabi-torchrl[export]`); torch
 motor constant (torque policies), link masses, damping, armature and sensor biases and noise. ``--pushes N`` kicks
 every robot N times at random times in 2-7 s, each a velocity change of ``--push_speed`` m/s in a random horizontal
 direction, within one control period (``--push_kind velocity``, the robust gait test's: the whole robot's velocity
-changes; ``force``: an impulse of the same momentum on the pelvis alone); ``--start_noise`` starts the robots with the robust gait test's N(0, 0.5 rad/s) joint and N(0, 0.1 m/s)
-pelvis velocities; ``--seed`` seeds every draw (docs/concepts/randomization.md, "Sim-to-sim with randomisation").
+changes; ``force``: an impulse of the same momentum on the pelvis alone); ``--start_noise`` starts the robots with
+the robust gait test's N(0, 0.5 rad/s) joint and N(0, 0.1 m/s) pelvis velocities; ``--seed`` seeds every draw (docs/concepts/randomization.md, "Sim-to-sim with randomisation").
 """
 
 from __future__ import annotations

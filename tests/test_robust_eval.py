@@ -525,7 +525,8 @@ def test_checkpoint_case_gives_the_shipped_policy_in_a_case_env_seeded_for_the_t
 @needs_policy
 def test_checkpoint_case_as_trained_acts_with_the_assist_its_training_had(tmp_path):
     """A torque-assisted run's checkpoint, as_trained: the case env has the assist at β(env steps) of the run's
-    schedule (here a copy of the shipped torque checkpoint as if saved mid-fade); by default its legs are pure torque."""
+    schedule (here a copy of the shipped torque checkpoint as if saved mid-fade); by default its legs are pure
+    torque."""
     from tocabi_torchrl.evaluation import robust
     from tocabi_torchrl.rl.assist import AssistSchedule
 

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 from . import common
+from .page import kick_note
 
 NAME = "robust_policies"
 SHIPPED = ("tocabi_walk_ppo", "tocabi_walk_torque", "tocabi_walk_model_based")
@@ -26,10 +27,6 @@ COLUMNS = (("survival", "survival", ".3f"), ("distance mean [m]", "forward_dista
 #: What the two speed columns are (docs/evaluation.md), and what the first was in a report made before the second.
 SPEED_NOTE = ("tracking: the error of the velocity averaged over one gait cycle; instantaneous: the mean "
               "instantaneous speed error, gait sway included")
-#: How each kind of kick acts (``RobustTestConfig.push_kind``); a report made before the test recorded it had "force".
-KICK_NOTE = {"velocity": "kicks: velocity kicks of the whole robot (every body's velocity changes by the kick's speed)",
-             "force": "kicks: a force on the pelvis alone of the same momentum (the test's kicks before they became "
-                      "velocity kicks of the whole robot: the limbs lag and the joints are kicked too, a harder push)"}
 LEGACY_NOTE = ("tracking: the mean instantaneous speed error, gait sway included, as the test measured it before "
                "its cycle-mean tracking error and instantaneous column")
 
@@ -69,7 +66,7 @@ def render(data: dict, out: Path) -> str:
     _plot(data, out / f"{NAME}.png")
     s = data["meta"]
     legacy = any("instant_speed_error_mps.mean" not in c for r in data["results"] for c in r["cases"].values())
-    kicks = "; ".join(KICK_NOTE[k] for k in sorted({r.get("push_kind", "force") for r in data["results"]}))
+    kicks = kick_note(data["results"])
     return common.page("The robust gait test of the policies", data,
                        f"{s['num_envs']} robots per case, {s['seconds']:g} s, one batch per policy; ✗: a threshold "
                        f"of the case missed; {LEGACY_NOTE if legacy else SPEED_NOTE}; {kicks} (docs/evaluation.md)."

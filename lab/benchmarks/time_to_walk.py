@@ -139,7 +139,8 @@ def eval_part(args, command: str) -> None:
 
 
 def _mark_seconds(stem: str) -> int:
-    """The training second a wall-clock checkpoint marks, from its name (``wall_00540s`` -> 540; ``config.wall_tag``)."""
+    """The training second a wall-clock checkpoint marks, from its name (``wall_00540s`` -> 540,
+    ``config.wall_tag``)."""
     return int(stem[len("wall_"):-1])
 
 

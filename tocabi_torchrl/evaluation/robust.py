@@ -46,6 +46,7 @@ from ..atomic import atomic_write_text
 from ..config import RunConfig
 from ..rotations import quat_rotate_inverse, quat_to_rpy
 from ..transforms.normalize import freeze_running_statistics
+from ..value_rules import PUSH_KINDS
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, summary_json, tested_on
 from .record import GaitMetrics, fixed_command, policy_steps
 
@@ -136,8 +137,6 @@ class RobustTestConfig:
             raise ValueError(f"num_envs must be an int >= 1 (robots per case; the test's default is 1024), got "
                              f"{self.num_envs!r}")
         policy_steps(self.seconds, dt)
-        from ..envs.push_config import PUSH_KINDS
-
         if self.push_kind not in PUSH_KINDS:
             raise ValueError(f"push_kind must be one of {PUSH_KINDS} (the test's is velocity), got {self.push_kind!r}")
         unknown = [c for c in self.cases if c not in CASES]
