@@ -261,6 +261,68 @@ def test_torque_preset_is_the_reference_action_space_with_a_fading_assist():
     assert cfg.transforms.history == "reference"  # 13 reference reward terms, reference observation
 
 
+def _sensed_env(sensed: bool, num_envs: int = 4, randomized=None):
+    """The robust preset's assisted training env (CPU, the lab's encoder biases) with ``ppo.assist_pd_sensed``."""
+    from tocabi_torchrl.rl.trainer import build_env
+
+    cfg = preset_config("robust", **{"ppo.assist_pd_sensed": sensed, "env.sim.start_pool": 0, "env.pushes.count": 0})
+    env = build_env(cfg, torch.device("cpu"), num_envs=num_envs, for_training=True)
+    if randomized is not None:
+        env.base_env.set_randomized_worlds(randomized)
+    return env
+
+
+def _noise(env):
+    from tocabi_torchrl.transforms import SensorNoise
+
+    return next(t for t in env.transform if isinstance(t, SensorNoise))
+
+
+def test_assist_pd_reads_the_joint_positions_the_policy_senses():
+    """ppo.assist_pd_sensed: the PD's offset is the observation's own encoder bias, world by world and episode by
+    episode (redrawn with a world's reset, kept by the others), 0 in an ideal world; off, the PD reads the truth."""
+    worlds = torch.tensor([True, True, True, False])
+    env = _sensed_env(True, randomized=worlds)
+    env.reset()
+    base, noise = env.base_env, _noise(env)
+    legs_bias = noise.biases["joint_pos"][:, :12] * worlds.unsqueeze(-1)
+    torch.testing.assert_close(base.leg_controller.q_offset, legs_bias, rtol=0, atol=0)
+    assert bool((base.leg_controller.q_offset[:3].abs() > 0).all()) and bool((base.leg_controller.q_offset[3] == 0).all())
+    assert float(base.leg_controller.q_offset.abs().max()) <= math.pi / 100
+    before = base.leg_controller.q_offset.clone()
+    mask = torch.tensor([True, False, False, False])
+    env.reset(TensorDict({"_reset": mask.unsqueeze(-1)}, batch_size=[4]))
+    after = base.leg_controller.q_offset
+    torch.testing.assert_close(after, noise.biases["joint_pos"][:, :12] * worlds.unsqueeze(-1), rtol=0, atol=0)
+    assert not torch.equal(after[0], before[0]) and torch.equal(after[1:], before[1:])
+
+    off = _sensed_env(False)
+    off.reset()
+    assert bool((off.base_env.leg_controller.q_offset == 0).all())
+
+
+def test_sensed_assist_pd_subtracts_the_encoder_bias_times_the_stiffness():
+    """Same worlds, same state, same action: the sensed PD differs from the true-position PD by exactly −kp·bias
+    (over the limits)."""
+    envs, out = (_sensed_env(True), _sensed_env(False)), []
+    for env in envs:
+        td = env.reset()
+        env.base_env.set_torque_assist(1.0)
+        td["action"] = torch.zeros(4, 13)
+        out.append(env.step(td)["next"]["leg_assist"])
+    kp = torch.as_tensor(robot.LEG_KP, dtype=torch.float32)
+    offset = envs[0].base_env.leg_controller.q_offset
+    torch.testing.assert_close(out[0] - out[1], -kp * offset / LIMITS, rtol=1e-4, atol=1e-5)
+    assert float((out[0] - out[1]).abs().max()) > 0.1  # the bias matters: > 10 % of a limit
+
+
+def test_assist_pd_sensed_needs_the_assist():
+    with pytest.raises(ValueError, match="assist_pd_sensed .* needs ppo.torque_assist > 0"):
+        preset_config("default", **{"ppo.assist_pd_sensed": True})
+    with pytest.raises(RuntimeError, match="torque_assist=True"):
+        TocabiWalk(num_envs=1, device="cpu", control_mode="torque").sense_assist_joints(None)
+
+
 @pytest.mark.parametrize("target", ["teacher", "rollout"])
 def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_path, target):
     from tocabi_torchrl.rl.trainer import build_env, train

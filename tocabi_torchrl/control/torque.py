@@ -31,9 +31,12 @@ class DirectTorque(Controller):
 
 class AssistedTorque(Controller):
     """The torque preset's morph from PD residuals to torques (``env.control.torque_assist``):
-    ``clip((1 − β)·a·limit + β·(kp·(q_ref + scale·a − q) − kv·q̇), ±limit)`` from the pre-step state.
+    ``clip((1 − β)·a·limit + β·(kp·(q_ref + scale·a − q − b) − kv·q̇), ±limit)`` from the pre-step state.
 
     β is the device scalar :attr:`assist_scale` (:meth:`set_beta`), changed in place so a captured step follows it.
+    ``b`` (:attr:`q_offset`, (N, J) rad, 0 unless set) is each world's encoder bias when the PD reads the joint
+    positions the policy senses (:meth:`set_q_offset`, ``ppo.assist_pd_sensed``): a PD on the true positions is
+    feedback the policy, whose encoders are biased, cannot copy when the assist fades.
     Records the action-independent part of the PD over the limits as the ``leg_assist`` signal, and reports the
     applied torque over the limits as ``applied_action`` (the action itself at β = 0).
 
@@ -55,6 +58,13 @@ class AssistedTorque(Controller):
         self._gain = self.gain(0.0).clone()  # (J,) N·m per unit action at assist_scale
         #: (N, J) the action-independent PD over the limits, from the last step's pre-step state.
         self.leg_assist = torch.zeros(n, j, dtype=torch.float32, device=dev)
+        #: (N, J) rad added to the measured joint positions the PD reads (the sensed encoder bias; 0 = true).
+        self.q_offset = torch.zeros(n, j, dtype=torch.float32, device=dev)
+
+    def set_q_offset(self, mask: torch.Tensor, offset: torch.Tensor) -> None:
+        """Worlds ``mask`` (N,) bool read their joint positions as ``q + offset`` ((N, J) rad) from now on (in place,
+        so a captured step follows it)."""
+        self.q_offset.copy_(torch.where(mask.unsqueeze(-1), offset.to(self.q_offset.dtype), self.q_offset))
 
     def gain(self, beta: float | torch.Tensor) -> torch.Tensor:
         """(J,) N·m per unit action at β: ``(1 − β)·limit + β·scale·kp``."""
@@ -65,7 +75,7 @@ class AssistedTorque(Controller):
         self._gain.copy_(self.gain(float(beta)))
 
     def compute(self, inp: ControlInput) -> torch.Tensor:
-        self.leg_assist.copy_((self._kp * (inp.q_ref - inp.q) - self._kv * inp.qd) / self._limits)
+        self.leg_assist.copy_((self._kp * (inp.q_ref - inp.q - self.q_offset) - self._kv * inp.qd) / self._limits)
         total = self._gain * inp.action + self.assist_scale * self.leg_assist * self._limits
         return clip_torque(total, self._limits)
 

@@ -63,7 +63,7 @@ from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsCompo
 from tocabi_torchrl.transforms.sensor_noise_config import SENSORS, SensorNoiseConfig
 
 __all__ = ["SensorNoiseConfig", "SensorNoise", "SENSORS", "BIAS_STREAMS", "NOISE_STREAMS", "sensor_biases",
-           "sensor_noise"]
+           "joint_pos_bias_fn", "sensor_noise"]
 
 #: Hash stream of each signal's per-episode bias and of its per-step noise (``episode_uniform``'s ``stream``). The
 #: env's per-episode draws use streams below 32 and its start pool 48-50 (``envs/tocabi_walk.py``); one stream per
@@ -125,6 +125,21 @@ def sensor_biases(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: 
     signal's unit, U(±half-width) per element. ``env_ids``, ``episode``: (N,) int64; ``seed``: an int or a 0-d int64
     tensor on their device."""
     return _biases(config, _bias_draws(config, env_ids.device), seed, env_ids, episode)
+
+
+def joint_pos_bias_fn(config: SensorNoiseConfig, device: torch.device | str):
+    """``f(seed, env_ids, episode) -> (N, 33)`` [rad]: each world's joint-encoder bias in an episode, the very one
+    :class:`SensorNoise` of ``config`` adds to the observation (same keys, same hash lanes, made once here); None
+    when ``config`` biases no encoder. What :meth:`TocabiWalk.sense_assist_joints` takes."""
+    if config.bias("joint_pos") <= 0:
+        return None
+    only = SensorNoiseConfig(joint_pos_bias=config.joint_pos_bias)  # each signal has its own stream: same values
+    draws = _bias_draws(only, device)
+
+    def joint_pos_bias(seed, env_ids: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
+        return _biases(only, draws, seed, env_ids, episode)["joint_pos"]
+
+    return joint_pos_bias
 
 
 def sensor_noise(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: torch.Tensor, episode: torch.Tensor,
