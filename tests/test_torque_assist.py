@@ -320,7 +320,7 @@ def test_assist_pd_sensed_needs_the_assist():
     with pytest.raises(ValueError, match="assist_pd_sensed .* needs ppo.torque_assist > 0"):
         preset_config("default", **{"ppo.assist_pd_sensed": True})
     with pytest.raises(RuntimeError, match="torque_assist=True"):
-        TocabiWalk(num_envs=1, device="cpu", control_mode="torque").sense_assist_joints(None)
+        TocabiWalk(num_envs=1, device="cpu", control_mode="torque").sense_assist_joints()
 
 
 @pytest.mark.parametrize("target", ["teacher", "rollout"])

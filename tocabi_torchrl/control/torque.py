@@ -35,7 +35,8 @@ class AssistedTorque(Controller):
 
     β is the device scalar :attr:`assist_scale` (:meth:`set_beta`), changed in place so a captured step follows it.
     ``b`` (:attr:`q_offset`, (N, J) rad, 0 unless set) is each world's encoder bias when the PD reads the joint
-    positions the policy senses (:meth:`set_q_offset`, ``ppo.assist_pd_sensed``): a PD on the true positions is
+    positions the policy senses (:meth:`set_q_offset`, written by the SensorNoise transform when the env's
+    ``sense_assist_joints`` is on, ``ppo.assist_pd_sensed``): a PD on the true positions is
     feedback the policy, whose encoders are biased, cannot copy when the assist fades.
     Records the action-independent part of the PD over the limits as the ``leg_assist`` signal, and reports the
     applied torque over the limits as ``applied_action`` (the action itself at β = 0).

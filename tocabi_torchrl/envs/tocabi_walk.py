@@ -218,7 +218,8 @@ class TocabiWalk(EnvBase):
         #: the ideal robot (all True unless :meth:`set_randomized_worlds` says otherwise).
         self.randomized_worlds = torch.ones(num_envs, dtype=torch.bool, device=device)
         self._some_nominal = False
-        self._assist_sensing = None  # the encoder-bias function the assist's PD reads (sense_assist_joints)
+        #: Whether the torque assist's PD reads the sensed joint positions (:meth:`sense_assist_joints`).
+        self.assist_reads_sensed = False
         self._init_buffers()
         #: The reduced reset pass (``env.sim.reset_pass="reduced"``, mujoco-warp only): the start states, one per
         #: start row of the reference motion, are registered with the simulator here.
@@ -523,15 +524,15 @@ class TocabiWalk(EnvBase):
             raise ValueError(f"torque assist scale must be in [0, 1], got {scale!r}")
         self.leg_controller.set_beta(float(scale))
 
-    def sense_assist_joints(self, joint_pos_bias) -> None:
-        """Make the torque assist's PD read the leg joint positions the policy senses, biased encoders included.
+    def sense_assist_joints(self, on: bool = True) -> None:
+        """Make the torque assist's PD read the leg joint positions the policy senses, biased encoders included
+        (``on``), or the true ones again.
 
-        ``joint_pos_bias(seed, env_ids, episode) -> (N, 33)`` [rad] is each world's encoder bias in an episode, drawn
-        with the env's keys (a 0-d int64 seed tensor, (N,) env indices and episode numbers): the SensorNoise
-        transform's own, :func:`tocabi_torchrl.transforms.sensor_noise.joint_pos_bias_fn`, so the PD and the
-        observation carry the same offset in every episode; None reads the true positions again. It is evaluated at
-        every reset (inside a captured step too: device ops only). Ideal worlds (:meth:`set_randomized_worlds`)
-        read the true positions, as their sensors are exact.
+        The env's ``SensorNoise`` transform (``transforms.sensor_noise``), which draws each world's encoder bias at
+        every reset, then writes the legs' part of it into the PD's offset too (``leg_controller.q_offset``, (N, 12)
+        rad): the very values the observation carries, episode by episode, with no second draw. Ideal worlds
+        (:meth:`set_randomized_worlds`) read the true positions, as their sensors are exact; without encoder biases
+        the offset stays 0. It takes effect at each world's next reset.
 
         Why (``ppo.assist_pd_sensed``): the fade copies the assisted policy into a torque policy that sees only its
         biased encoders; a PD on the true positions is feedback it cannot copy (the TOCABI lab's ±π/100 rad is up
@@ -542,11 +543,10 @@ class TocabiWalk(EnvBase):
         >>> from tocabi_torchrl import make_env
         >>> from tocabi_torchrl.envs import TocabiWalkConfig
         >>> from tocabi_torchrl.transforms import SensorNoiseConfig
-        >>> from tocabi_torchrl.transforms.sensor_noise import joint_pos_bias_fn
         >>> cfg = TocabiWalkConfig()
         >>> cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode="torque", torque_assist=True))
-        >>> env = make_env(num_envs=2, device="cpu", config=cfg)
-        >>> env.base_env.sense_assist_joints(joint_pos_bias_fn(SensorNoiseConfig.tocabi_lab(), "cpu"))
+        >>> env = make_env(num_envs=2, device="cpu", config=cfg, sensor_noise=SensorNoiseConfig.tocabi_lab())
+        >>> env.base_env.sense_assist_joints()
         >>> _ = env.reset()
         >>> offset = env.base_env.leg_controller.q_offset  # (num_envs, 12) rad
         >>> tuple(offset.shape), bool(offset.abs().max() <= 3.1416 / 100), bool(offset.abs().sum() > 0)
@@ -555,19 +555,9 @@ class TocabiWalk(EnvBase):
         if not self.cfg.control.torque_assist:
             raise RuntimeError("sense_assist_joints needs an env built with torque_assist=True (torque mode): only the "
                                "torque assist's PD reads joint positions")
-        if joint_pos_bias is not None and not callable(joint_pos_bias):
-            raise TypeError("sense_assist_joints takes a function (seed, env_ids, episode) -> (N, 33) rad, or None; "
-                            f"got {type(joint_pos_bias).__name__}")
-        self._assist_sensing = joint_pos_bias
-        self._sense_assist_joints(self._all)
-
-    def _sense_assist_joints(self, mask: torch.Tensor) -> None:
-        """The assist PD's joint-position offset of the worlds ``mask`` for their current episodes (0 when off)."""
-        if self._assist_sensing is None:
-            self.leg_controller.set_q_offset(mask, torch.zeros_like(self.leg_controller.q_offset))
-            return
-        bias = self._assist_sensing(self._seed_t, self._env_ids, self.episode_count)
-        self.leg_controller.set_q_offset(mask, bias[:, robot.LEGS] * self.randomized_worlds.unsqueeze(-1))
+        self.assist_reads_sensed = bool(on)
+        if not on:
+            self.leg_controller.set_q_offset(self._all, torch.zeros_like(self.leg_controller.q_offset))
 
     def _observe(self) -> TensorDict:
         """Current signals of every env as fresh tensors (never views of simulator memory).
@@ -644,8 +634,6 @@ class TocabiWalk(EnvBase):
         self.applied_action.masked_fill_(m, 0.0)
         self.leg_torque.masked_fill_(m, 0.0)
         self.leg_controller.reset(mask)
-        if self._assist_sensing is not None:  # after the episode count: the SensorNoise transform's key for the episode
-            self._sense_assist_joints(mask)
         self.upper_controller.reset(mask)
         self.command.reset(mask, u[:, 1:3])
         # Upper-body servos start on the initial pose so the reset state's forward pass sees no PD transient.

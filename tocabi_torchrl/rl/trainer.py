@@ -40,7 +40,6 @@ from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
 from ..transforms.normalize import RunningNormalization
 from ..transforms.privileged import PRIVILEGED_DIM, PrivilegedState
-from ..transforms.sensor_noise import joint_pos_bias_fn
 from .symmetry import SymmetryAugmentLoss, find_normalization, make_symmetry_loss, refresh_statistics
 from .update_step import (MinibatchStep, adapt_lr, get_lr, make_capturable_adam, optimizer_mode,
                           restore_optimizer_mode, set_lr)
@@ -113,7 +112,7 @@ def build_env(cfg: RunConfig, device: torch.device, num_envs: int | None = None,
     env = make_env(num_envs, device, seed=cfg.seed, config=env_config(cfg, for_training),
                    transforms=cfg.transforms, **env_overrides)
     if cfg.ppo.assist_pd_sensed and env.base_env.cfg.control.torque_assist:
-        env.base_env.sense_assist_joints(joint_pos_bias_fn(cfg.transforms.sensor_noise, env.device))
+        env.base_env.sense_assist_joints()
     if cfg.ppo.critic_privileged:
         env.append_transform(PrivilegedState())
     if for_training and not cfg.ppo.store_env_signals:

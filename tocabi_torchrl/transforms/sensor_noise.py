@@ -56,6 +56,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
+from tocabi_torchrl import robot
 from tocabi_torchrl.envs.episode_random import EpisodeDraws
 from tocabi_torchrl.transforms._checks import require_spec
 from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsComponent
@@ -63,7 +64,7 @@ from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsCompo
 from tocabi_torchrl.transforms.sensor_noise_config import SENSORS, SensorNoiseConfig
 
 __all__ = ["SensorNoiseConfig", "SensorNoise", "SENSORS", "BIAS_STREAMS", "NOISE_STREAMS", "sensor_biases",
-           "joint_pos_bias_fn", "sensor_noise"]
+           "sensor_noise"]
 
 #: Hash stream of each signal's per-episode bias and of its per-step noise (``episode_uniform``'s ``stream``). The
 #: env's per-episode draws use streams below 32 and its start pool 48-50 (``envs/tocabi_walk.py``); one stream per
@@ -125,21 +126,6 @@ def sensor_biases(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: 
     signal's unit, U(±half-width) per element. ``env_ids``, ``episode``: (N,) int64; ``seed``: an int or a 0-d int64
     tensor on their device."""
     return _biases(config, _bias_draws(config, env_ids.device), seed, env_ids, episode)
-
-
-def joint_pos_bias_fn(config: SensorNoiseConfig, device: torch.device | str):
-    """``f(seed, env_ids, episode) -> (N, 33)`` [rad]: each world's joint-encoder bias in an episode, the very one
-    :class:`SensorNoise` of ``config`` adds to the observation (same keys, same hash lanes, made once here); None
-    when ``config`` biases no encoder. What :meth:`TocabiWalk.sense_assist_joints` takes."""
-    if config.bias("joint_pos") <= 0:
-        return None
-    only = SensorNoiseConfig(joint_pos_bias=config.joint_pos_bias)  # each signal has its own stream: same values
-    draws = _bias_draws(only, device)
-
-    def joint_pos_bias(seed, env_ids: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
-        return _biases(only, draws, seed, env_ids, episode)["joint_pos"]
-
-    return joint_pos_bias
 
 
 def sensor_noise(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: torch.Tensor, episode: torch.Tensor,
@@ -286,11 +272,12 @@ class SensorNoise(Transform):
     # ------------------------------------------------------------------------------------------------ calls
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         seed, env_ids, episode, _ = self._key_source()
+        n = env_ids.shape[0]
         if not self._index:
             self._materialise()
+            mask = torch.ones(n, dtype=torch.bool, device=env_ids.device)
         else:
             reset = None if tensordict is None else tensordict.get("_reset", None)
-            n = env_ids.shape[0]
             mask = torch.ones(n, dtype=torch.bool, device=env_ids.device) if reset is None else reset.reshape(n)
             # The base env has counted the new episode already: the flagged worlds' key is their new episode.
             drawn = _biases(self.config, self._bias_hash, seed, env_ids, episode)
@@ -298,7 +285,17 @@ class SensorNoise(Transform):
                 m = mask.reshape(n, *([1] * (bias.dim() - 1)))
                 bias.copy_(torch.where(m, drawn[name], bias))
             self._gather_biases()
+        self._share_with_assist(mask)
         return self._call(tensordict_reset)
+
+    def _share_with_assist(self, mask: torch.Tensor) -> None:
+        """The reset worlds' leg encoder biases into the torque assist's PD, when the env's PD reads the sensed
+        positions (``TocabiWalk.sense_assist_joints``): one source for the observation's bias and the PD's."""
+        base = getattr(self.parent, "base_env", self.parent)
+        if not getattr(base, "assist_reads_sensed", False) or "joint_pos" not in self.biases:
+            return
+        bias = self.biases["joint_pos"][:, robot.LEGS]
+        base.leg_controller.set_q_offset(mask, bias if self._worlds is None else bias * self._worlds)
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         seed, env_ids, episode, step = self._key_source()
