@@ -301,6 +301,24 @@ def test_assist_pd_reads_the_joint_positions_the_policy_senses():
     assert bool((off.base_env.leg_controller.q_offset == 0).all())
 
 
+def test_sensed_assist_pd_follows_the_sync_free_resets_of_training():
+    """Through the training env's sync-free masked resets (step_and_maybe_reset, the captured step's path), every
+    reset world's PD offset is its new episode's observation bias, and the others keep theirs."""
+    from tocabi_torchrl.rl.trainer import build_env
+
+    cfg = preset_config("robust", **{"env.sim.start_pool": 0, "env.pushes.count": 0,
+                                     "env.task.max_episode_steps": 3})
+    env = build_env(cfg, torch.device("cpu"), num_envs=4, for_training=True, sync_free_resets=True)
+    noise, offset = _noise(env), env.base_env.leg_controller.q_offset
+    td = env.reset()
+    seen = offset.clone()
+    for _ in range(4):  # episodes of 3 steps: every world resets once in the loop
+        td["action"] = torch.zeros(4, 13)
+        _, td = env.step_and_maybe_reset(td)
+        torch.testing.assert_close(offset, noise.biases["joint_pos"][:, :12], rtol=0, atol=0)
+    assert not torch.equal(offset, seen) and bool((offset != seen).any(-1).all())
+
+
 def test_sensed_assist_pd_subtracts_the_encoder_bias_times_the_stiffness():
     """Same worlds, same state, same action: the sensed PD differs from the true-position PD by exactly −kp·bias
     (over the limits)."""
