@@ -9,11 +9,10 @@ averaged over 10 steps of 32 envs on C MuJoCo; each row switches one piece of th
 preset with all of them off, the last row is the preset itself.
 
 Wrote docs/benchmarks/randomization/step_ops.json (about a minute on 2 cores; ``--before`` adds an earlier report's
-counts as a column, here those of the code before the reset's draws shared one hash pass, written by this script at
-93447b9 with ``--out /tmp/step_ops_before.json``)::
+counts as a column, here the one this script wrote at 2000356, copied to /tmp first)::
 
     PYTHONPATH=. python lab/analysis/step_ops.py --out docs/benchmarks/randomization/step_ops.json \
-        --before /tmp/step_ops_before.json --before_note "before one hash pass served all the reset draws"
+        --before /tmp/an/step_ops_2000356.json --before_note "before velocity kicks and the sensed assist PD"
 """
 
 from __future__ import annotations
