@@ -12,7 +12,7 @@ import numbers
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT", "PUSH_KINDS", "Range",
+__all__ = ["ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT", "PUSH_KINDS", "Range", "check_push_settings",
            "TRAINED_UNDER_RULES", "check_env_value", "check_seed", "trained_under_problems"]
 
 
@@ -104,6 +104,23 @@ MAX_SEED = 2**63 - 1
 #: How a kick acts (``PushConfig.kind``, the contract's ``trained_under.pushes.kind``): "force" on the pelvis alone, or
 #: "velocity", every body's mass × one acceleration (envs/pushes.py).
 PUSH_KINDS = ("force", "velocity")
+
+
+def check_push_settings(pushes: Any, prefix: str) -> None:
+    """Raise ``ValueError`` naming the first bad field (``{prefix}<name>``) of a kicks' settings and what it takes:
+    ``count``, ``window``, ``speed``, ``duration`` and ``kind`` as ``PushConfig`` (the env's) and ``PushSettings``
+    (the torch-free runtime's) both hold them."""
+    count = pushes.count
+    if isinstance(count, bool) or not isinstance(count, int) or not 0 <= count <= 64:
+        raise ValueError(f"{prefix}count must be an int in [0, 64] (kicks per episode), got {count!r}")
+    for name in ("window", "speed", "duration"):
+        low, high = getattr(pushes, name)
+        if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
+            raise ValueError(f"{prefix}{name} must be (low, high) with 0 <= low <= high, finite, got "
+                             f"{getattr(pushes, name)!r}")
+    if pushes.kind not in PUSH_KINDS:
+        raise ValueError(f"{prefix}kind must be one of {PUSH_KINDS} (force: on the pelvis; velocity: the whole "
+                         f"robot's velocity), got {pushes.kind!r}")
 
 
 def check_seed(seed: Any, where: str = "seed") -> int:

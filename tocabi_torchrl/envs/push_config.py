@@ -1,12 +1,11 @@
-"""``PushConfig``: the kicks of the pelvis during an episode (``env.pushes``), in a module of its own so that the
+"""``PushConfig``: the kicks of the robot during an episode (``env.pushes``), in a module of its own so that the
 config tree reads without torch (``Pushes``, in ``envs.pushes``, applies them)."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-from ..value_rules import PUSH_KINDS
+from ..value_rules import PUSH_KINDS, check_push_settings
 
 __all__ = ["PushConfig", "PUSH_KINDS"]
 
@@ -37,13 +36,4 @@ class PushConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field (``env.pushes.<name>``) and what it takes."""
-        if isinstance(self.count, bool) or not isinstance(self.count, int) or not 0 <= self.count <= 64:
-            raise ValueError(f"env.pushes.count must be an int in [0, 64] (kicks per episode), got {self.count!r}")
-        for name in ("window", "speed", "duration"):
-            low, high = getattr(self, name)
-            if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
-                raise ValueError(f"env.pushes.{name} must be (low, high) with 0 <= low <= high, finite, got "
-                                 f"{getattr(self, name)!r}")
-        if self.kind not in PUSH_KINDS:
-            raise ValueError(f"env.pushes.kind must be one of {PUSH_KINDS} (force: on the pelvis; velocity: the "
-                             f"whole robot's velocity), got {self.kind!r}")
+        check_push_settings(self, "env.pushes.")

@@ -39,7 +39,7 @@ from dataclasses import dataclass, fields
 import mujoco
 import numpy as np
 
-from ..value_rules import PUSH_KINDS
+from ..value_rules import check_push_settings
 
 
 __all__ = ["ROBUST_START", "STREAMS", "TOCABI_LAB", "ActuatorLayer", "ActuatorSettings", "DynamicsSettings",
@@ -146,16 +146,7 @@ class PushSettings:
 
     def validate(self, prefix: str = "pushes.") -> None:
         """Raise ``ValueError`` naming the first bad field and what it takes (``PushConfig.validate``'s rules)."""
-        if isinstance(self.count, bool) or not isinstance(self.count, int) or not 0 <= self.count <= 64:
-            raise ValueError(f"{prefix}count must be an int in [0, 64] (kicks per episode), got {self.count!r}")
-        for name in ("window", "speed", "duration"):
-            low, high = getattr(self, name)
-            if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
-                raise ValueError(f"{prefix}{name} must be (low, high) with 0 <= low <= high, finite, got "
-                                 f"{getattr(self, name)!r}")
-        if self.kind not in PUSH_KINDS:
-            raise ValueError(f"{prefix}kind must be one of {PUSH_KINDS} (force: on the pelvis; velocity: the whole "
-                             f"robot's velocity), got {self.kind!r}")
+        check_push_settings(self, prefix)
 
 
 @dataclass(frozen=True)
