@@ -29,6 +29,7 @@ import sys
 from pathlib import Path
 
 from tocabi_torchrl.cli import RecipeParser, add_viewer_options
+from tocabi_torchrl.value_rules import PUSH_KINDS
 
 REFERENCE_MODEL = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "dyros_tocabi.xml"
 
@@ -49,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="horizontal kicks per robot, at random times in 2-7 s (default: 0)")
     parser.add_argument("--push_speed", type=float, default=0.5,
                         help="velocity change of the whole robot per kick [m/s] (default: 0.5)")
-    parser.add_argument("--push_kind", choices=("velocity", "force"), default="velocity",
+    parser.add_argument("--push_kind", choices=PUSH_KINDS, default="velocity",
                         help="velocity: every body's velocity changes by --push_speed (the robust gait test's kicks, "
                              "default); force: the same momentum as a force on the pelvis alone")
     parser.add_argument("--start_noise", action="store_true",

@@ -34,6 +34,7 @@ import torch
 
 from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.evaluation import robust
+from tocabi_torchrl.value_rules import PUSH_KINDS
 
 SECTORS = ("forward (+x)", "left (+y)", "back (-x)", "right (-y)")
 
@@ -106,7 +107,7 @@ def main(argv=None) -> int:
     p.add_argument("--checkpoint", nargs="+", required=True, type=Path, help="checkpoints (.pt) to test")
     p.add_argument("--case", default="robust_1.0", help="a pushed case of the robust test (robust_0.5, robust_1.0)")
     p.add_argument("--num_envs", type=int, default=64, help="robots (the test asks 1,024 on a GPU)")
-    p.add_argument("--push_kind", choices=("velocity", "force"), default="velocity",
+    p.add_argument("--push_kind", choices=PUSH_KINDS, default="velocity",
                    help="velocity: the test's kicks (default); force: the same momentum on the pelvis alone")
     p.add_argument("--as_trained", action="store_true",
                    help="a torque-assisted run's checkpoint acts with the assist at the β its training had reached")
