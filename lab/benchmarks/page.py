@@ -184,10 +184,33 @@ def randomization(docs: Path) -> list[str]:
     rows = ["| what is randomised (torque preset) | env-steps/s | over nothing randomised |", "|---|---:|---:|"]
     rows += [f"| {r['what']} | {_k(r['train_env_steps_per_s'])} | {r['over_plain']:.2f} |" for r in d["results"]]
     m = d["meta"]
-    return ["## The cost of randomisation in training", "", *rows, "",
+    latest = randomization_cost(docs) if (docs / RANDOMIZATION_COST).is_file() else []
+    earlier = ["Per piece, an earlier measurement (each piece switched on alone, before the start pool):", ""]
+    return ["## The cost of randomisation in training", "", *latest, *(earlier if latest else []), *rows, "",
             f"- command: `{d['results'][-1]['command']}` (each row's own in the report)",
             f"- date: {m['date']}; hardware: {m['gpu']}, {m['num_envs']:,} envs; report: "
             "[train_throughput.json](benchmarks/randomization/train_throughput.json)", "", *step_ops(docs)]
+
+
+RANDOMIZATION_COST = "benchmarks/randomization/randomization_cost.json"
+
+
+def randomization_cost(docs: Path) -> list[str]:
+    """The issue's measure: the preset with everything on against the same preset with every piece at its identity,
+    alternating rounds in one run (lab/benchmarks/randomization_cost.py)."""
+    d = _load(RANDOMIZATION_COST, docs)
+    m, s = d["meta"], d["summary"]
+    rows = ["| round | variant | train env-steps/s | train / raw standing |", "|---:|---|---:|---:|"]
+    rows += [f"| {r['round']} | {r['variant']} | {_k(r['train_env_steps_per_s'])} | "
+             + ("-" if r.get("ratio_train_over_raw") is None else f"{r['ratio_train_over_raw']:.2f}") + " |"
+             for r in d["results"]]
+    verdict = "meets" if s["on_over_off"] >= 0.95 else "misses"
+    return [f"With everything of the `{m['preset']}` preset on (dynamics, actuators, sensor noise, kicks at full "
+            f"strength, diverse starts), training runs at **{s['on_over_off']:.3f}x** the same preset with every piece "
+            f"at its identity (medians of {m['rounds']} alternating rounds at {m['num_envs']:,} envs); this {verdict} "
+            "the 0.95x target.", "", *rows, "",
+            *_source(RANDOMIZATION_COST, m["command"], m["date"], m["gpu"],
+                     "benchmarks/randomization/randomization_cost.md"), ""]
 
 
 def step_ops(docs: Path) -> list[str]:

@@ -47,3 +47,18 @@ def test_it_measures_both_variants_alternately_and_reports_their_ratio(tmp_path)
     ratio = on["train_env_steps_per_s"] / off["train_env_steps_per_s"]
     assert abs(data["summary"]["on_over_off"] - ratio) < 1e-9
     assert f"on / off = **{ratio:.3f}**" in (tmp_path / "randomization_cost.md").read_text()
+
+    # The benchmarks page shows the measurement above the earlier per-piece table once the report is committed.
+    from lab.benchmarks import page
+
+    docs = tmp_path / "docs"
+    (docs / "benchmarks" / "randomization").mkdir(parents=True)
+    for name in ("train_throughput.json", "step_ops.json"):
+        (docs / "benchmarks" / "randomization" / name).write_text((page.DOCS / "benchmarks" / "randomization" /
+                                                                   name).read_text())
+    section = "\n".join(page.randomization(docs))
+    assert "randomization_cost.json" not in section  # not measured: the section is the earlier one alone
+    (docs / page.RANDOMIZATION_COST).write_text((tmp_path / "randomization_cost.json").read_text())
+    section = "\n".join(page.randomization(docs))
+    assert f"**{ratio:.3f}x**" in section and ("meets" if ratio >= 0.95 else "misses") in section
+    assert section.index("randomization_cost.json") < section.index("train_throughput.json")
