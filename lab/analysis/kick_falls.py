@@ -10,8 +10,9 @@ last kick before it. Directions are those of the kick's force in the world frame
 starts facing +x and the test's robots turn 0.03-0.6 rad, so "forward" is roughly the way the robot walks).
 
 Reports per checkpoint: survival, falls by the kick that preceded them, the hazard of each kick (falls after it over
-the robots it met alive), falls by direction against the kicks per direction that met a standing robot, and the fall
-delay after the kick (null when nothing fell).
+the robots it met alive), falls by direction against the kicks per direction that met a standing robot, the hazard of
+a kick by the seconds since the robot's previous kick (:func:`hazard_by_gap`), and the fall delay after the kick (null
+when nothing fell).
 
 Wrote docs/training/robust/h200_run3/kick_falls.json (about 80 s per checkpoint of 64 robots on 2 cores)::
 
@@ -37,11 +38,42 @@ from tocabi_torchrl.evaluation import robust
 from tocabi_torchrl.value_rules import PUSH_KINDS
 
 SECTORS = ("forward (+x)", "left (+y)", "back (-x)", "right (-y)")
+#: Upper edges [s] of the bins of the time since a robot's previous kick (the last bin is open): whether a kick is
+#: deadlier when the robot has not recovered from the one before.
+GAP_EDGES_S = (0.5, 1.0, 2.0)
 
 
 def sector(angle: float) -> str:
     """The 90° sector of a world-frame direction ``angle`` [rad] (0 = +x), centred on the four axes."""
     return SECTORS[int(((math.degrees(angle) + 45.0) % 360.0) // 90.0)]
+
+
+def hazard_by_gap(kick_s: torch.Tensor, t_end: torch.Tensor, edges=GAP_EDGES_S) -> dict:
+    """The kicks after each robot's first, binned by the seconds since its previous kick.
+
+    kick_s: (N, K) start time of each robot's kicks [s]; t_end: (N,) the robot's fall time [s] (``inf``: it stood to
+    the end). Per bin ("<0.5 s", "0.5-1 s", ..., ">=2 s"): ``met``, the kicks that came while their robot stood;
+    ``falls``, those that were the last kick before their robot fell; ``hazard``, falls / met (None when none met).
+
+    >>> import torch
+    >>> r = hazard_by_gap(torch.tensor([[2.0, 2.3, 5.0], [2.0, 2.7, 6.0]]), torch.tensor([3.0, float("inf")]))
+    >>> r["<0.5 s"], r["0.5-1 s"], r[">=2 s"]["met"]
+    ({'met': 1, 'falls': 1, 'hazard': 1.0}, {'met': 1, 'falls': 0, 'hazard': 0.0}, 1)
+    """
+    labels = [f"<{edges[0]:g} s", *(f"{a:g}-{b:g} s" for a, b in zip(edges[:-1], edges[1:])), f">={edges[-1]:g} s"]
+    table = {label: {"met": 0, "falls": 0} for label in labels}
+    times, _ = torch.sort(kick_s.double(), dim=1)
+    for i in range(times.shape[0]):
+        end = float(t_end[i])
+        prior = [j for j in range(times.shape[1]) if float(times[i, j]) <= end]
+        for j in prior[1:]:
+            gap = float(times[i, j] - times[i, j - 1])
+            cell = table[labels[sum(gap >= e for e in edges)]]
+            cell["met"] += 1
+            cell["falls"] += int(math.isfinite(end) and j == prior[-1])
+    for cell in table.values():
+        cell["hazard"] = cell["falls"] / cell["met"] if cell["met"] else None
+    return table
 
 
 def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", as_trained: bool = False,
@@ -85,6 +117,7 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
         by_dir[sector(float(angle[i, j]))] += 1
         delays.append(t_end - float(kick_s[i, j]))
     delays_t = torch.tensor(delays, dtype=torch.float64)
+    t_end_all = torch.where(alive.bool(), torch.full_like(fell_at.double(), math.inf), fell_at.double())
     return {
         "checkpoint": str(path), "case": case, "num_envs": num_envs, "seed": robust.EVAL_SEED,
         "push_kind": push_kind, "push_window_s": list(push_window), "seconds": seconds,
@@ -96,6 +129,7 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
         "robots_alive_at_kick": met,
         "kick_hazard": [a / m if m else None for a, m in zip(after, met)],
         "falls_by_direction_of_last_kick": by_dir,
+        "hazard_by_seconds_since_previous_kick": hazard_by_gap(kick_s, t_end_all),
         "kicks_met_standing_by_direction": met_dir,
         "fall_delay_after_kick_s": ({"mean": float(delays_t.mean()), "min": float(delays_t.min()),
                                      "max": float(delays_t.max())} if delays else None),
