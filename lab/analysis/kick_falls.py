@@ -12,7 +12,8 @@ starts facing +x and the test's robots turn 0.03-0.6 rad, so "forward" is roughl
 Reports per checkpoint: survival, falls by the kick that preceded them, the hazard of each kick (falls after it over
 the robots it met alive), falls by direction against the kicks per direction that met a standing robot, the hazard of
 a kick by the seconds since the robot's previous kick (:func:`hazard_by_gap`), and the fall delay after the kick (null
-when nothing fell).
+when nothing fell); with ``--values``, the critic's mean value around the kicks robots fell after and around the others
+(:func:`value_around_kicks`).
 
 Wrote docs/training/robust/h200_run3/kick_falls.json (about 80 s per checkpoint of 64 robots on 2 cores)::
 
@@ -41,6 +42,9 @@ SECTORS = ("forward (+x)", "left (+y)", "back (-x)", "right (-y)")
 #: Upper edges [s] of the bins of the time since a robot's previous kick (the last bin is open): whether a kick is
 #: deadlier when the robot has not recovered from the one before.
 GAP_EDGES_S = (0.5, 1.0, 2.0)
+#: Policy steps from a kick's step at which ``--values`` reads the critic: the step before it, then 0.05, 0.1 and
+#: 0.2 s after it (4 ms steps).
+VALUE_OFFSETS = (-1, 12, 25, 50)
 
 
 def sector(angle: float) -> str:
@@ -76,17 +80,50 @@ def hazard_by_gap(kick_s: torch.Tensor, t_end: torch.Tensor, edges=GAP_EDGES_S) 
     return table
 
 
+def value_around_kicks(values: torch.Tensor, kick_step: torch.Tensor, t_end: torch.Tensor, dt: float,
+                       offsets=VALUE_OFFSETS) -> dict:
+    """The critic's mean value around the kicks that met a standing robot, for the kicks its robot fell after (the
+    last kick before its fall) and for the others.
+
+    values: (N, T) the critic's value of each robot's state at each policy step; kick_step: (N, K) the policy step of
+    each kick; t_end: (N,) the robot's fall time [s] (``inf``: it stood); dt: the policy step [s]. A kick is counted
+    only where every offset (policy steps from the kick, ``offsets``) lies within the rollout. Returns ``{"falls
+    after": {...}, "stands": {...}}``, each ``{"kicks": n, "value": {offset: mean or None}}``.
+
+    >>> import torch
+    >>> v = torch.arange(10.0).repeat(2, 1)            # value t at step t
+    >>> r = value_around_kicks(v, torch.tensor([[3], [4]]), torch.tensor([0.05, float("inf")]), 0.01, offsets=(-1, 2))
+    >>> r["falls after"], r["stands"]
+    ({'kicks': 1, 'value': {-1: 2.0, 2: 5.0}}, {'kicks': 1, 'value': {-1: 3.0, 2: 6.0}})
+    """
+    groups = {"falls after": [], "stands": []}
+    steps, _ = torch.sort(kick_step.to(torch.int64), dim=1)
+    for i in range(steps.shape[0]):
+        end = float(t_end[i])
+        met = [int(k) for k in steps[i] if int(k) * dt <= end]
+        for j, k in enumerate(met):
+            if not all(0 <= k + o < values.shape[1] for o in offsets):
+                continue
+            fell_after = math.isfinite(end) and j == len(met) - 1
+            groups["falls after" if fell_after else "stands"].append([float(values[i, k + o]) for o in offsets])
+    return {name: {"kicks": len(rows), "value": {o: (sum(r[c] for r in rows) / len(rows) if rows else None)
+                                                 for c, o in enumerate(offsets)}}
+            for name, rows in groups.items()}
+
+
 def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", as_trained: bool = False,
-            push_window: tuple[float, float] = (2.0, 7.0), seconds: float = 8.0) -> dict:
+            push_window: tuple[float, float] = (2.0, 7.0), seconds: float = 8.0, values: bool = False) -> dict:
     test = robust.RobustTestConfig(num_envs=num_envs, push_kind=push_kind, push_window=tuple(push_window),
                                    seconds=seconds)
-    state, _, env, agent = robust.checkpoint_case(path, case, "cpu", test, as_trained=as_trained)
+    state, cfg, env, agent = robust.checkpoint_case(path, case, "cpu", test, as_trained=as_trained)
     beta = env.base_env.assist_scale
-    pushes, schedule = env.base_env.pushes, {}
+    pushes, schedule, critic_values = env.base_env.pushes, {}, []
 
     def actor(td):
         if not schedule:  # the reset drew every robot's kicks; they stay fixed for the case (no robot is reset)
             schedule["start"], schedule["force"] = pushes.start_step.clone(), pushes.force.clone()
+        if values:  # the critic of the state the action is chosen in (a copy: the critic writes its output key)
+            critic_values.append(agent.critic(td.clone())["state_value"].reshape(-1).clone())
         return agent.actor(td)
 
     per_env = robust.run_case(actor, env, test.seconds, progress=False)
@@ -118,6 +155,11 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
         delays.append(t_end - float(kick_s[i, j]))
     delays_t = torch.tensor(delays, dtype=torch.float64)
     t_end_all = torch.where(alive.bool(), torch.full_like(fell_at.double(), math.inf), fell_at.double())
+    extra = {}
+    if values:
+        extra["critic_value_around_kicks"] = {
+            "offsets_s": [o * dt for o in VALUE_OFFSETS], "gamma": float(cfg.ppo.gamma),
+            **value_around_kicks(torch.stack(critic_values, 1), schedule["start"], t_end_all, dt)}
     return {
         "checkpoint": str(path), "case": case, "num_envs": num_envs, "seed": robust.EVAL_SEED,
         "push_kind": push_kind, "push_window_s": list(push_window), "seconds": seconds,
@@ -133,6 +175,7 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
         "kicks_met_standing_by_direction": met_dir,
         "fall_delay_after_kick_s": ({"mean": float(delays_t.mean()), "min": float(delays_t.min()),
                                      "max": float(delays_t.max())} if delays else None),
+        **extra,
     }
 
 
@@ -148,6 +191,9 @@ def main(argv=None) -> int:
     p.add_argument("--push_window", type=float, nargs=2, default=(2.0, 7.0), metavar=("START", "END"),
                    help="seconds the three kicks fall in, one per third (the test's: 2 7); a wider window spaces them")
     p.add_argument("--seconds", type=float, default=8.0, help="length of the case [s] (the test's: 8)")
+    p.add_argument("--values", action="store_true",
+                   help="also the critic's mean value before and 0.05-0.2 s after the kicks robots fell after, and "
+                        "after the others: does the critic see a fall coming?")
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
     args = p.parse_args(argv)
     if args.case not in robust.CASES or not robust.CASES[args.case].randomized:
@@ -156,13 +202,20 @@ def main(argv=None) -> int:
     results = []
     for path in args.checkpoint:
         start = time.perf_counter()
-        r = measure(path, args.case, args.num_envs, args.push_kind, args.as_trained, args.push_window, args.seconds)
+        r = measure(path, args.case, args.num_envs, args.push_kind, args.as_trained, args.push_window, args.seconds,
+                    args.values)
         delay = r["fall_delay_after_kick_s"]
         assisted = "" if r["torque_assist"] is None else f" (assist β {r['torque_assist']:.2f})"
         print(f"{path}{assisted}: survival {r['survival']:.3f}, falls after kicks {r['falls_after_kick']} of robots "
               f"{r['robots_alive_at_kick']} alive at them, by direction {r['falls_by_direction_of_last_kick']} of "
               f"{r['kicks_met_standing_by_direction']}, delay {'-' if delay is None else round(delay['mean'], 2)} s "
               f"({time.perf_counter() - start:.0f} s)", flush=True)
+        if "critic_value_around_kicks" in r:
+            v = r["critic_value_around_kicks"]
+            print("  critic value at", [round(t, 3) for t in v["offsets_s"]], "s from the kick:",
+                  {g: [None if x is None else round(x, 1) for x in v[g]["value"].values()] for g in ("falls after",
+                                                                                                   "stands")},
+                  {g: v[g]["kicks"] for g in ("falls after", "stands")}, "kicks", flush=True)
         results.append(r)
     if args.out is not None:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], check=False, capture_output=True,

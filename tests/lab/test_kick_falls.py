@@ -34,3 +34,20 @@ def test_each_kick_after_the_first_is_binned_once_and_only_the_last_before_a_fal
 def test_a_bin_no_kick_reaches_has_no_hazard():
     table = kick_falls.hazard_by_gap(torch.tensor([[2.0, 5.0]]), torch.tensor([math.inf]), edges=(1.0,))
     assert table == {"<1 s": {"met": 0, "falls": 0, "hazard": None}, ">=1 s": {"met": 1, "falls": 0, "hazard": 0.0}}
+
+
+def test_value_around_kicks_groups_each_standing_kick_by_whether_its_robot_fell_after_it():
+    values = torch.arange(100.0).repeat(3, 1) + torch.tensor([[0.0], [1000.0], [2000.0]])  # robot r, step t: 1000r + t
+    kicks = torch.tensor([[60, 20],     # unsorted; falls at step 70: kick 20 stands, kick 60 is the one it fell after
+                          [10, 98],     # stands; kick 98 + 2 is beyond the rollout: left out
+                          [30, 80]])    # falls at step 25, before any kick: nothing counted
+    t_end = torch.tensor([0.70, math.inf, 0.25])
+    r = kick_falls.value_around_kicks(values, kicks, t_end, dt=0.01, offsets=(-1, 2))
+    assert r["falls after"] == {"kicks": 1, "value": {-1: 59.0, 2: 62.0}}
+    assert r["stands"] == {"kicks": 2, "value": {-1: (19.0 + 1009.0) / 2, 2: (22.0 + 1012.0) / 2}}
+
+
+def test_value_around_kicks_with_no_kick_in_a_group_gives_none():
+    r = kick_falls.value_around_kicks(torch.zeros(1, 10), torch.tensor([[5]]), torch.tensor([math.inf]), dt=0.01)
+    assert r["falls after"] == {"kicks": 0, "value": {o: None for o in kick_falls.VALUE_OFFSETS}}
+    assert r["stands"]["kicks"] == 0  # the default offsets reach 50 steps past the kick: beyond this rollout
