@@ -15,6 +15,7 @@ import torch
 from control_regression import CASES, KEYS, rollout
 
 RECORDED = Path(__file__).parent / "data" / "control_regression.pt"
+_EPS = torch.finfo(torch.float32).eps  # 1.19e-07
 
 
 @pytest.fixture(scope="module")
@@ -32,8 +33,6 @@ def test_same_numbers_as_recorded(case, recorded):
             ok = torch.equal(got[key], want[key])
         assert ok, f"{case}: {key} differs from the recording, max |diff| = {_max_diff(got[key], want[key]):.3g}"
 
-
-_EPS = torch.finfo(torch.float32).eps  # 1.19e-07
 
 
 def _max_diff(got: torch.Tensor, want: torch.Tensor) -> float:

@@ -52,6 +52,12 @@ def sector(angle: float) -> str:
     return SECTORS[int(((math.degrees(angle) + 45.0) % 360.0) // 90.0)]
 
 
+def kicks_met(row, end_s: float, dt: float = 1.0) -> list:
+    """One robot's kicks that came while it stood, in time order: the items of ``row`` (kick times, in units of
+    ``dt`` seconds) at or before its fall time ``end_s`` [s] (``inf``: it stood to the end)."""
+    return sorted(k for k in row if k * dt <= end_s)
+
+
 def hazard_by_gap(kick_s: torch.Tensor, t_end: torch.Tensor, edges=GAP_EDGES_S) -> dict:
     """The kicks after each robot's first, binned by the seconds since its previous kick.
 
@@ -66,15 +72,12 @@ def hazard_by_gap(kick_s: torch.Tensor, t_end: torch.Tensor, edges=GAP_EDGES_S) 
     """
     labels = [f"<{edges[0]:g} s", *(f"{a:g}-{b:g} s" for a, b in zip(edges[:-1], edges[1:])), f">={edges[-1]:g} s"]
     table = {label: {"met": 0, "falls": 0} for label in labels}
-    times, _ = torch.sort(kick_s.double(), dim=1)
-    for i in range(times.shape[0]):
-        end = float(t_end[i])
-        prior = [j for j in range(times.shape[1]) if float(times[i, j]) <= end]
-        for j in prior[1:]:
-            gap = float(times[i, j] - times[i, j - 1])
-            cell = table[labels[sum(gap >= e for e in edges)]]
+    for row, end in zip(kick_s.double().tolist(), t_end.tolist()):
+        met = kicks_met(row, end)
+        for j in range(1, len(met)):
+            cell = table[labels[sum(met[j] - met[j - 1] >= e for e in edges)]]
             cell["met"] += 1
-            cell["falls"] += int(math.isfinite(end) and j == prior[-1])
+            cell["falls"] += int(math.isfinite(end) and j == len(met) - 1)
     for cell in table.values():
         cell["hazard"] = cell["falls"] / cell["met"] if cell["met"] else None
     return table
@@ -97,10 +100,8 @@ def value_around_kicks(values: torch.Tensor, kick_step: torch.Tensor, t_end: tor
     ({'kicks': 1, 'value': {-1: 2.0, 2: 5.0}}, {'kicks': 1, 'value': {-1: 3.0, 2: 6.0}})
     """
     groups = {"falls after": [], "stands": []}
-    steps, _ = torch.sort(kick_step.to(torch.int64), dim=1)
-    for i in range(steps.shape[0]):
-        end = float(t_end[i])
-        met = [int(k) for k in steps[i] if int(k) * dt <= end]
+    for i, (row, end) in enumerate(zip(kick_step.to(torch.int64).tolist(), t_end.tolist())):
+        met = kicks_met(row, end, dt)
         for j, k in enumerate(met):
             if not all(0 <= k + o < values.shape[1] for o in offsets):
                 continue
@@ -130,7 +131,10 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
     dt = float(env.base_env.dt)
     kick_s = schedule["start"].double() * dt  # (N, K) start time of each kick [s]
     angle = torch.atan2(schedule["force"][..., 1], schedule["force"][..., 0])  # (N, K) world-frame direction [rad]
-    alive, fell_at = per_env["alive"], per_env["alive_seconds"]
+    alive = per_env["alive"]
+    # (N,) each robot's fall time [s], inf for a robot that stood to the end
+    t_end_all = torch.where(alive.bool(), torch.full_like(per_env["alive_seconds"].double(), math.inf),
+                            per_env["alive_seconds"].double())
     count = kick_s.shape[1]
     met = [0] * count  # robots alive when kick j came
     after = [0] * count  # falls whose last kick before them was kick j
@@ -138,7 +142,7 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
     met_dir = {s: 0 for s in SECTORS}  # kicks per direction that came while their robot stood
     delays, before_any = [], 0
     for i in range(num_envs):
-        t_end = math.inf if bool(alive[i]) else float(fell_at[i])
+        t_end = float(t_end_all[i])
         for j in range(count):
             standing = float(kick_s[i, j]) <= t_end
             met[j] += int(standing)
@@ -154,7 +158,6 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
         by_dir[sector(float(angle[i, j]))] += 1
         delays.append(t_end - float(kick_s[i, j]))
     delays_t = torch.tensor(delays, dtype=torch.float64)
-    t_end_all = torch.where(alive.bool(), torch.full_like(fell_at.double(), math.inf), fell_at.double())
     extra = {}
     if values:
         extra["critic_value_around_kicks"] = {
@@ -212,10 +215,10 @@ def main(argv=None) -> int:
               f"({time.perf_counter() - start:.0f} s)", flush=True)
         if "critic_value_around_kicks" in r:
             v = r["critic_value_around_kicks"]
-            print("  critic value at", [round(t, 3) for t in v["offsets_s"]], "s from the kick:",
-                  {g: [None if x is None else round(x, 1) for x in v[g]["value"].values()] for g in ("falls after",
-                                                                                                   "stands")},
-                  {g: v[g]["kicks"] for g in ("falls after", "stands")}, "kicks", flush=True)
+            print("  critic value at", [round(t, 3) for t in v["offsets_s"]], "s from the kick:", flush=True)
+            for group in ("falls after", "stands"):
+                means = [None if x is None else round(x, 1) for x in v[group]["value"].values()]
+                print(f"    {group} ({v[group]['kicks']} kicks): {means}", flush=True)
         results.append(r)
     if args.out is not None:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], check=False, capture_output=True,
