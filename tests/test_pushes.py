@@ -48,6 +48,43 @@ def test_a_reset_redraws_only_the_flagged_worlds_and_the_scale_multiplies():
     torch.testing.assert_close(pushes.at(step), 0.25 * full)
 
 
+def test_latest_kick_reports_its_age_and_scaled_speed_per_world():
+    pushes = Pushes(PushConfig(count=3, window=(0.0, 0.3), speed=(0.4, 1.4)), num_envs=64,
+                    device=torch.device("cpu"), dt=0.004, mass=100.0)
+    pushes.reset(torch.ones(64, dtype=torch.bool), torch.rand(64, pushes.draws,
+                                                               generator=torch.Generator().manual_seed(2)))
+    pushes.world_scale[::2] = 0.5
+    pushes.scale.fill_(0.8)
+    for done in range(0, 90, 7):  # policy steps done; the kick of start step k acts in the step taken at k
+        age, speed = pushes.latest(torch.full((64,), done))
+        for w in range(64):
+            begun = [j for j in range(3) if int(pushes.start_step[w, j]) < done]
+            if not begun:
+                assert float(age[w]) == pytest.approx(done * 0.004) and float(speed[w]) == 0.0
+                continue
+            j = begun[-1]
+            assert float(age[w]) == pytest.approx((done - int(pushes.start_step[w, j])) * 0.004)
+            want = float(pushes.speed[w, j]) * 0.8 * (0.5 if w % 2 == 0 else 1.0)
+            assert float(speed[w]) == pytest.approx(want, rel=1e-6)
+    assert 0.4 <= float(pushes.speed.min()) and float(pushes.speed.max()) <= 1.4
+
+
+def test_an_env_with_kicks_reports_the_latest_one():
+    env = TocabiWalk(num_envs=2, device="cpu", seed=0, sim_threads=1, config=dataclasses.replace(
+        TocabiWalkConfig(), pushes=PushConfig(count=1, window=(0.02, 0.02), speed=(0.7, 0.7), kind="velocity")))
+    from tensordict import TensorDict
+
+    td = env.reset()
+    assert float(td["kick_speed"].abs().max()) == 0.0 and td["kick_age"].shape == (2, 1)
+    action = TensorDict({"action": torch.zeros(2, 13)}, batch_size=[2])
+    for _ in range(8):
+        td = env.step(action)["next"]
+    # The kick acted in the step taken at episode step 5 (0.02 s): three steps later it is 3 steps old.
+    torch.testing.assert_close(td["kick_age"], torch.full((2, 1), 0.012))
+    torch.testing.assert_close(td["kick_speed"], torch.full((2, 1), 0.7))
+    assert "kick_age" not in TocabiWalk(num_envs=1, device="cpu", sim_threads=1).reset().keys()
+
+
 @pytest.mark.parametrize("bad", [dict(count=-1), dict(count=True), dict(speed=(1.0, 0.5)),
                                  dict(window=(0.0, float("inf"))), dict(kind="impulse")])
 def test_bad_push_settings_are_refused_by_name(bad):

@@ -331,3 +331,50 @@ def test_compiled_reward_matches_eager():
     assert compiled.transform._compiled is not None
     torch.testing.assert_close(ro_c["next", "reward"], ro_e["next", "reward"])
     torch.testing.assert_close(ro_c["next", "reward_terms"], ro_e["next", "reward_terms"])
+
+
+# ------------------------------------------------------------------------------------------------ kick relaxation
+def _kicked_pair(age: list[float], speed: list[float]) -> tuple[TensorDict, TensorDict]:
+    td, nxt = _pair()
+    nxt["kick_age"] = torch.tensor(age).unsqueeze(-1)
+    nxt["kick_speed"] = torch.tensor(speed).unsqueeze(-1)
+    return td, nxt
+
+
+def test_a_kick_relaxes_the_named_terms_by_its_age_and_speed():
+    from tocabi_torchrl.transforms import KickRelax
+
+    relax = KickRelax(seconds=2.0, full_speed=1.0, terms=("qpos", "torque_diff"))
+    plain, relaxed = TaskReward(reference_terms()), TaskReward(reference_terms(), kick_relax=relax)
+    # Just kicked at full speed; half-way through at 1.4 m/s (clamped to 1); just kicked at 0.5 m/s; long ago.
+    td, nxt = _kicked_pair([0.0, 1.0, 0.0, 5.0][:N], [1.0, 1.4, 0.5, 1.0][:N])
+    want, got = plain._weighted_terms(td, nxt), relaxed._weighted_terms(td, nxt)
+    factor = torch.tensor([0.0, 0.5, 0.5][:N]).unsqueeze(-1)
+    names = plain.names
+    for i, name in enumerate(names):
+        expected = want[:, i:i + 1] * (factor if name in relax.terms else 1.0)
+        torch.testing.assert_close(got[:, i:i + 1], expected, msg=name)
+    # Past the relaxation (age >= seconds) every term is the plain one.
+    td, nxt = _kicked_pair([2.0, 3.0, 9.0][:N], [1.0, 1.0, 1.0][:N])
+    torch.testing.assert_close(relaxed._weighted_terms(td, nxt), plain._weighted_terms(td, nxt))
+
+
+def test_kick_relaxation_is_off_without_kicks_and_refuses_bad_settings():
+    from tocabi_torchrl.transforms import KickRelax
+
+    # The mock env has no kicks (no kick_age / kick_speed): the relaxed reward is the plain one.
+    relaxed = TransformedEnv(MockTocabiWalk(N, seed=3), TaskReward(reference_terms(), kick_relax=KickRelax(1.0)))
+    plain = TransformedEnv(MockTocabiWalk(N, seed=3), TaskReward(reference_terms()))
+    torch.manual_seed(0)  # the rollouts' random actions
+    want = plain.rollout(3)["next", "reward"]
+    torch.manual_seed(0)
+    torch.testing.assert_close(relaxed.rollout(3)["next", "reward"], want)
+    assert not KickRelax().enabled and TaskReward(reference_terms(), kick_relax=KickRelax()).kick_relax is None
+    with pytest.raises(KeyError, match="qpoz.*not in use"):
+        TaskReward(reference_terms(), kick_relax=KickRelax(1.0, terms=("qpoz",)))
+    with pytest.raises(ValueError, match="kick_relax.seconds"):
+        KickRelax(seconds=-1.0)
+    with pytest.raises(ValueError, match="kick_relax.full_speed"):
+        KickRelax(seconds=1.0, full_speed=0.0)
+    with pytest.raises(TypeError, match="KickRelax"):
+        TaskReward(reference_terms(), kick_relax={"seconds": 1.0})

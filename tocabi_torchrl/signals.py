@@ -38,8 +38,8 @@ class Signal:
         categories: for discrete signals, the number of values ``0 … categories − 1`` (bool flags: 2).
         bounds: ``(low, high)`` for a continuous signal with a known range (its spec is then ``Bounded``).
         requires: the name of the env option that turns the signal on (``"torque_assist"``, ``"model_based"``,
-            ``"obstacles"``; the env passes its options' values as ``flags``, see ``TocabiWalk.signal_flags``);
-            ``None``: always on.
+            ``"obstacles"``, ``"pushes"``; the env passes its options' values as ``flags``, see
+            ``TocabiWalk.signal_flags``); ``None``: always on.
     """
 
     name: str
@@ -198,6 +198,12 @@ SIGNALS = SignalTable((
            "only in `model_based` mode: the feed-forward torque τ_ff = M_LL·(q̈_ref + ω²·(q_ref − q) + 2ζω·(q̇_ref − "
            "q̇)) + c_L of that step, from the pre-step state (before the residual and the clip)",
            requires="model_based"),
+    Signal("kick_age", (1,), _F32, "s",
+           "only with `env.pushes`: seconds since the episode's latest kick began (the episode's time before its "
+           "first)", requires="pushes"),
+    Signal("kick_speed", (1,), _F32, "m/s",
+           "only with `env.pushes`: the velocity change that kick gave, its curriculum and per-world scales included "
+           "(0 before the first)", requires="pushes"),
     Signal("obstacle_contact", (2,), _BOOL, "",
            "only with `env.scene.obstacles`: a `Foot_Link` geom touches an obstacle box, [left, right] (also counted "
            "in `foot_contact`)", requires="obstacles"),

@@ -52,6 +52,8 @@ class Pushes:
         self.steps = torch.ones(n, k, dtype=torch.int64, device=device)
         #: (N, count, 2) the force [N] of each kick while it acts, world x and y.
         self.force = torch.zeros(n, k, 2, dtype=f32, device=device)
+        #: (N, count) the velocity change [m/s] of each kick as drawn (before :attr:`scale` and :attr:`world_scale`).
+        self.speed = torch.zeros(n, k, dtype=f32, device=device)
         #: Multiplies every kick (a 0-d device tensor, 1 = the configured kicks; a curriculum sets it in place).
         self.scale = torch.ones((), dtype=f32, device=device)
         #: (N,) multiplies each world's kicks (1 = the configured kicks, 0 = none); set it in place, e.g. to give
@@ -74,6 +76,7 @@ class Pushes:
         self.start_step.copy_(torch.where(m, torch.round(when / self.dt).long(), self.start_step))
         self.steps.copy_(torch.where(m, steps, self.steps))
         self.force.copy_(torch.where(m.unsqueeze(-1), force, self.force))
+        self.speed.copy_(torch.where(m, speed, self.speed))
 
     def at(self, episode_step: torch.Tensor) -> torch.Tensor:
         """(N, 2) the horizontal force [N] of a ``"force"`` kick on the pelvis during policy step ``episode_step``
@@ -82,6 +85,18 @@ class Pushes:
         step = episode_step.unsqueeze(-1)
         active = (step >= self.start_step) & (step < self.start_step + self.steps)
         return (self.force * active.unsqueeze(-1)).sum(dim=1) * (self.scale * self.world_scale).unsqueeze(-1)
+
+    def latest(self, episode_step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The episode's most recent kick as of ``episode_step`` (N,) int64 policy steps done: ``(age, speed)``, each
+        (N,) float32: the seconds since it began [s] and the velocity change it gave [m/s], :attr:`scale` and
+        :attr:`world_scale` included; (episode time, 0) before the first kick. The kicks' start steps rise with their
+        index (one per share of the window), so the latest is the last one begun."""
+        begun = self.start_step < episode_step.unsqueeze(-1)  # (N, count), a prefix of each row
+        last = (begun.sum(dim=1, keepdim=True) - 1).clamp(min=0)  # (N, 1) index of the last begun kick (0 if none)
+        any_begun = begun.any(dim=1)
+        start = torch.where(any_begun, self.start_step.gather(1, last).squeeze(1), 0)
+        speed = self.speed.gather(1, last).squeeze(1) * any_begun * self.scale * self.world_scale
+        return (episode_step - start).to(torch.float32) * self.dt, speed
 
     def body_forces(self, episode_step: torch.Tensor, body_mass: torch.Tensor) -> torch.Tensor:
         """(N, nbody, 2) the horizontal force [N] of a ``"velocity"`` kick on every body during policy step

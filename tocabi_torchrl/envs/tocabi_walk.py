@@ -353,7 +353,7 @@ class TocabiWalk(EnvBase):
         """The options that turn the signal table's conditional rows on (``Signal.requires``)."""
         extra = self.leg_controller.signals()
         return {"torque_assist": "leg_assist" in extra, "model_based": "leg_feedforward" in extra,
-                "obstacles": bool(self.cfg.scene.obstacles)}
+                "obstacles": bool(self.cfg.scene.obstacles), "pushes": self.pushes is not None}
 
     def _check_observe_matches_table(self) -> None:
         """Raise a clear error, once at construction, when :meth:`_observe` and the signal table disagree.
@@ -594,6 +594,9 @@ class TocabiWalk(EnvBase):
             signals[name] = _finite(value)
         if self.cfg.scene.obstacles:
             signals["obstacle_contact"] = sim.obstacle_contact.clone()
+        if self.pushes is not None:
+            age, speed = self.pushes.latest(self.episode_step)
+            signals["kick_age"], signals["kick_speed"] = age.unsqueeze(-1), speed.unsqueeze(-1)
         return TensorDict(signals, batch_size=self.batch_size, device=self.device)
 
     # ------------------------------------------------------------------------------------------------ resets

@@ -9,6 +9,7 @@ One module per job:
 * :mod:`.normalize`: :class:`FixedNormalization` (reference statistics) and :class:`RunningNormalization`
 * :mod:`.history`: :class:`ObsActionHistory` with a :class:`HistoryLayout` (reference: 237-value input)
 * :mod:`.reward_terms`: one :class:`RewardTerm` per reference reward component; :mod:`.reward`: :class:`TaskReward`
+  (with :class:`KickRelax`, terms relaxed while a kicked robot recovers)
 * :mod:`.presets`: :class:`TransformConfig`, :data:`HISTORIES` and :func:`default_transforms`
 * :mod:`.privileged`: :class:`PrivilegedState`, the asymmetric critic's true-state input (``ppo.critic_privileged``)
 """
@@ -52,6 +53,7 @@ __all__ = [
     "REFERENCE_TERMS",
     "reference_terms",
     "TaskReward",
+    "KickRelax",
     "PrivilegedState",
     "TransformConfig",
     "TransformSettings",
@@ -73,6 +75,7 @@ __getattr__, __dir__ = lazy_names(globals(), {
     "privileged": ("PRIVILEGED_DIM", "PRIVILEGED_MIRROR", "PrivilegedState"),
     "settings": ("HISTORIES", "RewardWeights", "TransformConfig", "TransformSettings", "transform_config"),
     "reward": ("TaskReward",),
+    "kick_relax_config": ("KICK_RELAX_TERMS", "KickRelax"),
     "reward_terms": ("REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern", "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "HeadingHold", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm", "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
     "sensor_noise": ("SensorNoise",),
     "sensor_noise_config": ("SensorNoiseConfig",),

@@ -117,6 +117,7 @@ def default_transforms(base: str | TransformConfig = "reference", /, **overrides
             weights=cfg.reward_weights,
             zero_on_terminated=cfg.zero_reward_on_terminated,
             compile=cfg.compile_reward,
+            kick_relax=cfg.kick_relax,
         )
     )
     stages.append(StepCounter(max_steps=cfg.max_episode_steps))

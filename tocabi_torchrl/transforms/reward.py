@@ -13,6 +13,7 @@ from torchrl.envs.transforms import Transform
 
 from tocabi_torchrl.transforms._checks import check_finite
 from tocabi_torchrl.transforms.reward_terms import SIGNAL_SHAPES, CallableTerm, RewardTerm
+from tocabi_torchrl.transforms.kick_relax_config import KickRelax
 
 __all__ = ["TaskReward"]
 
@@ -29,6 +30,13 @@ class TaskReward(Transform):
     * ``next_td[reward_key]`` (num_envs, 1) is replaced by the sum, and ``next_td[(terms_key, name)]`` holds each
       term's contribution, so the terms add up to the reward.
 
+    * with ``kick_relax`` (a :class:`KickRelax` naming terms), those terms are scaled by ``1 − r`` after a kick
+      (``env.pushes``): ``r = clamp(1 − age / seconds, 0, 1) · clamp(speed / full_speed, 0, 1)`` from
+      ``next_td["kick_age"]`` [s] and ``next_td["kick_speed"]`` [m/s], the env's latest kick. A kicked robot is
+      then paid less for the reference gait's clocked joint positions, contacts and smooth torques while it
+      recovers, and the reward's remaining terms (upright, velocity, heading) carry the recovery. The kick times are
+      drawn at reset, independent of the policy, so this changes what a recovery is paid for, not when.
+
     The per-term values are registered as observations (like :class:`~torchrl.envs.transforms.RewardSum`'s
     ``episode_reward``) so that ``reward`` stays the env's single reward key; they are 0 after a reset.
 
@@ -40,6 +48,7 @@ class TaskReward(Transform):
         reward_key, terms_key, terminated_key: keys written/read.
         compile: compute all terms with one ``torch.compile``-d function (fused kernels; the first step compiles,
             which takes tens of seconds). Off by default.
+        kick_relax: which terms a kick relaxes, and for how long (see above); ``None`` or no terms: none.
     """
 
     def __init__(
@@ -51,6 +60,7 @@ class TaskReward(Transform):
         terms_key: str = "reward_terms",
         terminated_key: NestedKey = "terminated",
         compile: bool = False,
+        kick_relax: KickRelax | None = None,
     ):
         terms = [self._as_term(t) for t in terms]
         if not terms:
@@ -70,11 +80,26 @@ class TaskReward(Transform):
                 terms[i] = t
         if not isinstance(terms_key, str):
             raise TypeError(f"TaskReward terms_key must be a string, got {terms_key!r}")
+        if kick_relax is not None and not isinstance(kick_relax, KickRelax):
+            raise TypeError(f"TaskReward kick_relax must be a KickRelax or None, got {kick_relax!r}")
+        relax = kick_relax if kick_relax is not None and kick_relax.enabled else None
+        if relax is not None:
+            relax.validate()
+            missing = [n for n in relax.terms if n not in names]
+            if missing:
+                raise KeyError(f"TaskReward: kick_relax names term(s) {missing} that are not in use; terms in use: "
+                               f"{names}")
         in_keys = list(dict.fromkeys(k for t in terms for k in (*t.root_keys, *t.next_keys)))
+        if relax is not None:
+            in_keys += list(KickRelax.KEYS)
         out_keys = [reward_key] + [(terms_key, n) for n in names]
         super().__init__(in_keys=in_keys, out_keys=out_keys)
         self.terms: tuple[RewardTerm, ...] = tuple(terms)
         self.register_buffer("_weights", torch.tensor([t.weight for t in terms], dtype=torch.float32))
+        self.kick_relax = relax
+        # (n_terms,) 1 for the terms a kick relaxes: one multiply of the stacked terms, no per-term branches.
+        self.register_buffer("_relaxed", torch.tensor(
+            [float(relax is not None and n in relax.terms) for n in names], dtype=torch.float32))
         self.compile = bool(compile)
         self._compiled = None
         self._checked = False
@@ -115,6 +140,11 @@ class TaskReward(Transform):
         # One (num_envs, n_terms) tensor: one weight multiply, one where and one sum for all terms, and the per-term
         # entries are views into it. This runs every step, so kernel launches matter more than the arithmetic.
         stacked = torch.cat(kernels, dim=-1).to(torch.float32) * self._weights
+        if self.kick_relax is not None:
+            k = self.kick_relax
+            age, speed = (next_tensordict.get(key) for key in KickRelax.KEYS)  # (N, 1) each, s and m/s
+            r = (1.0 - age / k.seconds).clamp(0.0, 1.0) * (speed / k.full_speed).clamp(0.0, 1.0)  # (N, 1)
+            stacked = stacked * (1.0 - r * self._relaxed)
         if self.zero_on_terminated:
             stacked = torch.where(next_tensordict.get(self.terminated_key), 0.0, stacked)
         return stacked
@@ -151,6 +181,11 @@ class TaskReward(Transform):
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         available = set(observation_spec.keys(True, True))
+        if self.kick_relax is not None and not set(KickRelax.KEYS) <= available:
+            # An env without kicks (env.pushes.count 0: no kick_age / kick_speed) has nothing to relax, e.g. a
+            # robust preset's policy in a gait test's kick-free case: the reward is the unrelaxed one.
+            self.kick_relax = None
+            self._relaxed.zero_()
         for t in self.terms:
             missing = [k for k in (*t.root_keys, *t.next_keys) if k not in available]
             if missing:
@@ -185,4 +220,5 @@ class TaskReward(Transform):
 
     def __repr__(self) -> str:
         inner = ", ".join(f"{t.name}={t.weight:g}" for t in self.terms)
-        return f"{type(self).__name__}({inner}, zero_on_terminated={self.zero_on_terminated})"
+        relax = "" if self.kick_relax is None else f", kick_relax={self.kick_relax}"
+        return f"{type(self).__name__}({inner}, zero_on_terminated={self.zero_on_terminated}{relax})"

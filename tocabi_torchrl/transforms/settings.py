@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 
 from tocabi_torchrl.transforms._checks import check_positive_int
+from tocabi_torchrl.transforms.kick_relax_config import KickRelax
 from tocabi_torchrl.transforms.layouts import (REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT, TOCABILAB_HISTORY,
                                                HistoryLayout, ObsComponent)
 from tocabi_torchrl.transforms.sensor_noise_config import SensorNoiseConfig
@@ -52,6 +53,7 @@ class TransformConfig:
             default) counts steps without truncating, so the env's ``task.max_episode_steps`` is the one clock.
         track_episode_return: add ``RewardSum`` (``episode_reward``).
         sensor_noise: sensor biases and noise on the observation (:class:`SensorNoiseConfig`; all 0 = none).
+        kick_relax: reward terms relaxed while a kicked robot recovers (:class:`KickRelax`; seconds 0 = none).
     """
 
     phase_harmonics: int = 1
@@ -70,6 +72,7 @@ class TransformConfig:
     max_episode_steps: int | None = None
     track_episode_return: bool = True
     sensor_noise: SensorNoiseConfig = field(default_factory=SensorNoiseConfig)
+    kick_relax: KickRelax = field(default_factory=KickRelax)
 
     def __post_init__(self):
         # Frozen copies, so that a preset cannot be changed through a config built from it.
@@ -211,6 +214,9 @@ class TransformSettings:
     [rad] (not a reference term: reward_terms.HeadingHold); 0: off"""
     heading_scale: float = 20.0
     """sharpness s of the heading-hold term [1/rad²] (20: a 0.1 rad turn costs 18 % of the term)"""
+    kick_relax: KickRelax = field(default_factory=KickRelax)
+    """reward terms (the reference gait's clocked joint positions, contacts and loads, and smoothness) scaled down
+    for seconds after a kick (env.pushes) while the robot recovers; seconds 0: off"""
 
     def reward_weight_map(self) -> dict[str, float]:
         """``reward_weights`` as ``{term: weight}`` of the terms given one; raises ``ValueError`` naming a bad one."""
@@ -230,6 +236,10 @@ class TransformSettings:
             raise ValueError(f"transforms.obs_clip must be a finite number > 0 (the normalised observation is clipped "
                              f"to [-obs_clip, obs_clip]) or none for no clip, got {self.obs_clip!r}")
         self.sensor_noise.validate()
+        if not isinstance(self.kick_relax, KickRelax):
+            raise ValueError(f"transforms.kick_relax must be a KickRelax (e.g. KickRelax(seconds=1.5)), got "
+                             f"{self.kick_relax!r}")
+        self.kick_relax.validate()
         if self.body_vel_scale is not None and (isinstance(self.body_vel_scale, bool) or not isinstance(
                 self.body_vel_scale, (int, float)) or not 0 < self.body_vel_scale < math.inf):
             raise ValueError(f"transforms.body_vel_scale must be a finite number > 0 (s in exp(-s·‖v − cmd‖²), "
@@ -254,6 +264,7 @@ class TransformSettings:
         values = dict(normalization=self.normalization, obs_clip=self.obs_clip,
                       zero_reward_on_terminated=self.zero_reward_on_terminated, compile_reward=self.compile_reward,
                       reward_weights=weights, max_episode_steps=None, sensor_noise=self.sensor_noise,
+                      kick_relax=self.kick_relax,
                       reward_scales={} if self.body_vel_scale is None else {"body_vel": float(self.body_vel_scale)})
         if self.heading_weight > 0:  # off adds no term, so a config without it computes what it always did
             from tocabi_torchrl.transforms.reward_terms import HeadingHold  # torch: the tree itself reads without it
