@@ -219,3 +219,36 @@ def test_training_ramps_the_pushes_by_env_steps(tmp_path):
     assert float(env.base_env.pushes.scale) == 1.0
     with pytest.raises(ValueError, match="push_ramp"):
         preset_config("cpu_smoke", **{"ppo.push_ramp": (10, 5)})
+
+
+def test_training_env_relaxes_the_reward_after_its_kicks(tmp_path):
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.trainer import build_env, train
+    from tocabi_torchrl.transforms import TaskReward
+
+    kicks = {"env.pushes.count": 2, "env.pushes.window": (0.0, 0.1), "env.pushes.speed": (1.0, 1.0),
+             "env.pushes.kind": "velocity", "transforms.kick_relax.seconds": 1.0}
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
+                        "ppo.minibatch_size": 16}, total_env_steps=2 * 32, run_dir=str(tmp_path), name="relaxed",
+                        progress_bar=False, eval_at_end=False, **kicks)
+    env = build_env(cfg, torch.device("cpu"), for_training=True)
+    reward = next(t for t in env.transform if isinstance(t, TaskReward))
+    assert reward.kick_relax == cfg.transforms.kick_relax and float(reward._relaxed.sum()) == 6
+    plain = build_env(preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, **kicks,
+                                    "transforms.kick_relax.seconds": 0.0}), torch.device("cpu"), for_training=True)
+    def zeros(td):
+        return td.set("action", torch.zeros(4, 13))
+
+    # Same physics (the reward does not act on it): the relaxed terms shrink after the kicks (window 0-0.1 s, the
+    # first 25 steps), the others do not change.
+    relaxed_td, plain_td = env.rollout(60, zeros, break_when_any_done=False), plain.rollout(60, zeros,
+                                                                                           break_when_any_done=False)
+    assert reward.kick_relax is not None  # the env reports its kicks: relaxation on
+    ratio = relaxed_td["next", "reward_terms", "qpos"] / plain_td["next", "reward_terms", "qpos"]
+    assert float(ratio[:, 5:40].min()) < 0.2 and float(ratio.max()) <= 1.0 + 1e-6
+    torch.testing.assert_close(relaxed_td["next", "reward_terms", "body_vel"],
+                               plain_td["next", "reward_terms", "body_vel"])
+    train(cfg, env=env)  # and a run trains with it
+    calm = build_env(preset_config("cpu_smoke", device="cpu", **{"transforms.kick_relax.seconds": 1.0}),
+                     torch.device("cpu"), for_training=True)
+    assert next(t for t in calm.transform if isinstance(t, TaskReward)).kick_relax is None  # no kicks: nothing
