@@ -56,7 +56,7 @@ def test_latest_kick_reports_its_age_and_scaled_speed_per_world():
     pushes.world_scale[::2] = 0.5
     pushes.scale.fill_(0.8)
     for done in range(0, 90, 7):  # policy steps done; the kick of start step k acts in the step taken at k
-        age, speed = pushes.latest(torch.full((64,), done))
+        age, speed = (v.squeeze(-1) for v in pushes.latest(torch.full((64,), done)))
         for w in range(64):
             begun = [j for j in range(3) if int(pushes.start_step[w, j]) < done]
             if not begun:

@@ -77,8 +77,11 @@ class EpisodeDraws:
         """``{stream: (num_envs, k)}`` float32 uniforms in [0, 1) of each env's ``key`` (num_envs,) int64."""
         if not self.streams:  # nothing to draw: no hash ops at all
             return {}
-        u = _hash(seed, env_ids, key, self._lanes, self._scrambled)
-        return dict(zip(self.streams, u.split(list(self.streams.values()), dim=-1)))
+        return dict(zip(self.streams, self.flat(seed, env_ids, key).split(list(self.streams.values()), dim=-1)))
+
+    def flat(self, seed: int | torch.Tensor, env_ids: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
+        """(num_envs, Σk) the same uniforms side by side, the streams in the order given (no split)."""
+        return _hash(seed, env_ids, key, self._lanes, self._scrambled)
 
 
 def episode_normal(seed: int | torch.Tensor, env_ids: torch.Tensor, episode: torch.Tensor, stream: int,

@@ -47,13 +47,17 @@ class Pushes:
         n, k, f32 = num_envs, cfg.count, torch.float32
         #: Uniforms per world that :meth:`reset` reads: time, direction, speed and duration of each kick.
         self.draws = 4 * k
-        #: (N, count) int64 the policy step each kick starts at, and how many steps it lasts.
-        self.start_step = torch.zeros(n, k, dtype=torch.int64, device=device)
+        # Column 0 of these two pads is the episode's start (step 0, speed 0), the kicks' columns follow: the latest
+        # kick is one gather at the number of kicks begun (:meth:`latest`), 0 meaning none yet.
+        self._start_pad = torch.zeros(n, k + 1, dtype=torch.int64, device=device)
+        self._speed_pad = torch.zeros(n, k + 1, dtype=f32, device=device)
+        #: (N, count) int64 the policy step each kick starts at (a view of the pad), and how many steps it lasts.
+        self.start_step = self._start_pad[:, 1:]
         self.steps = torch.ones(n, k, dtype=torch.int64, device=device)
         #: (N, count, 2) the force [N] of each kick while it acts, world x and y.
         self.force = torch.zeros(n, k, 2, dtype=f32, device=device)
         #: (N, count) the velocity change [m/s] of each kick as drawn (before :attr:`scale` and :attr:`world_scale`).
-        self.speed = torch.zeros(n, k, dtype=f32, device=device)
+        self.speed = self._speed_pad[:, 1:]
         #: Multiplies every kick (a 0-d device tensor, 1 = the configured kicks; a curriculum sets it in place).
         self.scale = torch.ones((), dtype=f32, device=device)
         #: (N,) multiplies each world's kicks (1 = the configured kicks, 0 = none); set it in place, e.g. to give
@@ -88,15 +92,14 @@ class Pushes:
 
     def latest(self, episode_step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The episode's most recent kick as of ``episode_step`` (N,) int64 policy steps done: ``(age, speed)``, each
-        (N,) float32: the seconds since it began [s] and the velocity change it gave [m/s], :attr:`scale` and
+        (N, 1) float32: the seconds since it began [s] and the velocity change it gave [m/s], :attr:`scale` and
         :attr:`world_scale` included; (episode time, 0) before the first kick. The kicks' start steps rise with their
         index (one per share of the window), so the latest is the last one begun."""
-        begun = self.start_step < episode_step.unsqueeze(-1)  # (N, count), a prefix of each row
-        last = (begun.sum(dim=1, keepdim=True) - 1).clamp(min=0)  # (N, 1) index of the last begun kick (0 if none)
-        any_begun = begun.any(dim=1)
-        start = torch.where(any_begun, self.start_step.gather(1, last).squeeze(1), 0)
-        speed = self.speed.gather(1, last).squeeze(1) * any_begun * self.scale * self.world_scale
-        return (episode_step - start).to(torch.float32) * self.dt, speed
+        step = episode_step.unsqueeze(-1)
+        begun = (self.start_step < step).sum(dim=1, keepdim=True)  # (N, 1) kicks begun: the pads' column
+        age = (step - self._start_pad.gather(1, begun)) * self.dt
+        speed = self._speed_pad.gather(1, begun) * (self.scale * self.world_scale).unsqueeze(-1)
+        return age, speed
 
     def body_forces(self, episode_step: torch.Tensor, body_mass: torch.Tensor) -> torch.Tensor:
         """(N, nbody, 2) the horizontal force [N] of a ``"velocity"`` kick on every body during policy step

@@ -595,8 +595,7 @@ class TocabiWalk(EnvBase):
         if self.cfg.scene.obstacles:
             signals["obstacle_contact"] = sim.obstacle_contact.clone()
         if self.pushes is not None:
-            age, speed = self.pushes.latest(self.episode_step)
-            signals["kick_age"], signals["kick_speed"] = age.unsqueeze(-1), speed.unsqueeze(-1)
+            signals["kick_age"], signals["kick_speed"] = self.pushes.latest(self.episode_step)
         return TensorDict(signals, batch_size=self.batch_size, device=self.device)
 
     # ------------------------------------------------------------------------------------------------ resets

@@ -252,8 +252,26 @@ class SensorNoise(Transform):
                        for name, (cols, elems) in self._columns.items()}
         # The hash lanes of every bias and of every noise stream, made once: each step hashes them in one pass.
         self._bias_hash, self._noise_hash = _bias_draws(self.config, dev), _noise_draws(self.config, dev)
-        self.biases = _biases(self.config, self._bias_hash, seed, env_ids, episode)
-        self._bias_cols = torch.zeros(env_ids.shape[0], self._width, dtype=torch.float32, device=dev)
+        # Every bias in one (N, B) buffer, the signals side by side in the hash's stream order, so that a reset
+        # redraws them all with a handful of ops; ``biases`` holds (N, *shape) views of it.
+        n, biased = env_ids.shape[0], [name for name in SENSORS if self.config.bias(name) > 0]
+        sizes = [math.prod(SENSORS[name]) for name in biased]
+        offsets = [sum(sizes[:i]) for i in range(len(sizes))]
+        self._bias_flat = torch.zeros(n, sum(sizes), dtype=torch.float32, device=dev)
+        self._bias_half = torch.tensor([self.config.bias(name) for name, k in zip(biased, sizes) for _ in range(k)],
+                                       dtype=torch.float32, device=dev)
+        self.biases = {name: self._bias_flat[:, o:o + k].view(n, *SENSORS[name])
+                       for name, o, k in zip(biased, offsets, sizes)}
+        # Column c of the observation takes element _bias_src[c] of the buffer, times _bias_on[c] (0: unbiased).
+        src = torch.zeros(self._width, dtype=torch.int64)
+        on = torch.zeros(self._width, dtype=torch.float32)
+        for name, o in zip(biased, offsets):
+            cols, elems = self._columns[name]
+            src[cols] = torch.tensor(elems, dtype=torch.int64) + o
+            on[cols] = 1.0
+        self._bias_src, self._bias_on = src.to(dev), on.to(dev)
+        self._bias_flat.copy_(self._drawn_biases(seed, env_ids, episode))
+        self._bias_cols = torch.zeros(n, self._width, dtype=torch.float32, device=dev)
         self._gather_biases()
         # The Euler angles' columns, wrapped back into (-pi, pi] after the bias.
         wrap = torch.zeros(self._width, dtype=torch.bool, device=dev)
@@ -261,13 +279,13 @@ class SensorNoise(Transform):
             wrap[self._index["base_rpy"][0]] = True
         self._wrap = wrap if "base_rpy" in self.biases else None
 
+    def _drawn_biases(self, seed, env_ids: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
+        """(N, B) every bias of each world's ``episode``, U(±half-width), as :func:`sensor_biases` draws them."""
+        return self._bias_half * (2.0 * self._bias_hash.flat(seed, env_ids, episode) - 1.0)
+
     def _gather_biases(self) -> None:
         """``_bias_cols`` (N, D): each world's bias in the obs columns of its signals, 0 elsewhere (in place)."""
-        full = torch.zeros_like(self._bias_cols)
-        for name, bias in self.biases.items():
-            cols, elems = self._index[name]
-            full.index_copy_(1, cols, bias.flatten(1).index_select(1, elems))
-        self._bias_cols.copy_(full)
+        self._bias_cols.copy_(self._bias_flat.index_select(1, self._bias_src) * self._bias_on)
 
     # ------------------------------------------------------------------------------------------------ calls
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
@@ -280,10 +298,8 @@ class SensorNoise(Transform):
             reset = None if tensordict is None else tensordict.get("_reset", None)
             mask = torch.ones(n, dtype=torch.bool, device=env_ids.device) if reset is None else reset.reshape(n)
             # The base env has counted the new episode already: the flagged worlds' key is their new episode.
-            drawn = _biases(self.config, self._bias_hash, seed, env_ids, episode)
-            for name, bias in self.biases.items():
-                m = mask.reshape(n, *([1] * (bias.dim() - 1)))
-                bias.copy_(torch.where(m, drawn[name], bias))
+            drawn = self._drawn_biases(seed, env_ids, episode)
+            self._bias_flat.copy_(torch.where(mask.unsqueeze(-1), drawn, self._bias_flat))
             self._gather_biases()
         self._share_with_assist(mask)
         return self._call(tensordict_reset)
