@@ -452,3 +452,26 @@ def test_adaptive_learning_rate_rule():
     assert adapt_lr(1e-3, 0.0049, 0.01) == pytest.approx(1.5e-3)
     assert adapt_lr(1e-3, 0.01, 0.01) == 1e-3
     assert adapt_lr(1.2e-5, 1.0, 0.01) == 1e-5 and adapt_lr(9e-3, 0.0, 0.01) == 1e-2
+    # ppo.lr_min raises the floor (never lowers it below the range).
+    assert adapt_lr(6e-5, 1.0, 0.01, 5e-5) == 5e-5 and adapt_lr(1.2e-5, 1.0, 0.01, 1e-6) == 1e-5
+    assert adapt_lr(1e-3, 1.0, 0.01, 5e-5) == pytest.approx(1e-3 / 1.5)
+    from tocabi_torchrl.config import preset_config
+
+    assert preset_config("default").ppo.lr_min == 1e-5
+    for bad in (1e-6, 2e-3, float("nan"), True):
+        with pytest.raises(ValueError, match="ppo.lr_min"):
+            preset_config("default", **{"ppo.lr_min": bad})
+
+
+def test_the_adaptive_rate_stops_at_ppo_lr_min(tmp_path):
+    # A KL target no update meets: the rule lowers the rate every iteration, down to the floor and no further.
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.metrics_files import read_metrics
+    from tocabi_torchrl.rl.trainer import train
+
+    cfg = preset_config("cpu_smoke", device="cpu", run_dir=str(tmp_path), name="floor", progress_bar=False,
+                        eval_at_end=False, log_every=1, total_env_steps=4 * 8 * 16,
+                        **{"ppo.lr": 2e-4, "ppo.lr_min": 1e-4, "ppo.desired_kl": 1e-12})
+    train(cfg)
+    rates = [float(r["lr"]) for r in read_metrics(tmp_path / "floor")]
+    assert rates[0] == pytest.approx(2e-4 / 1.5) and rates[1:] == pytest.approx([1e-4] * (len(rates) - 1))

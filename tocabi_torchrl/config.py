@@ -123,6 +123,11 @@ class PPOConfig:
     """learning-rate schedule (adaptive: from the KL to desired_kl)"""
     desired_kl: float = 0.01
     """KL target of the adaptive schedule"""
+    #: The adaptive rule's floor. At a small action σ one step of the mean is a large KL, and the rule can sit at
+    #: its floor for the rest of a run (the robust preset's sixth run: 1e-5 for its last seven minutes,
+    #: docs/training/robust/h200_run6); a higher floor keeps it learning, PPO's ratio clip bounding each update.
+    lr_min: float = ADAPTIVE_LR_RANGE[0]
+    """lowest learning rate of the adaptive schedule (at least 1e-5, at most ppo.lr)"""
     value_head_lr: float = 0.0  # > 0: the value head gets its own constant LR (the reference's second optimizer)
     """constant learning rate of the value head; 0 = share the policy's"""
     adam_eps: float = 1e-8
@@ -289,6 +294,10 @@ class PPOConfig:
                 raise ValueError(f"ppo.{name} must be one or more positive layer sizes (e.g. 400,200,100), got "
                                  f"{sizes!r}")
         low, high = ADAPTIVE_LR_RANGE
+        if isinstance(self.lr_min, bool) or not isinstance(self.lr_min, numbers.Real) or not (
+                low <= self.lr_min <= max(self.lr, low)):
+            raise ValueError(f"ppo.lr_min must be a number in [{low:g}, ppo.lr = {self.lr:g}] (the adaptive "
+                             f"schedule's floor), got {self.lr_min!r}")
         if self.lr_schedule == "adaptive" and not low <= self.lr <= high:
             # The rule keeps the rate inside this range: from outside it, its first clamp would move the rate the
             # wrong way (up when the KL says down).

@@ -506,7 +506,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             # the gait broke), so the learning rate is held there (and, with assist_lr_hold "pull", while the
             # teacher's pull decays after the fade: the same reading of an intended move).
             if ppo.lr_schedule == "adaptive" and not fading:
-                lr = adapt_lr(lr, stats["kl"], ppo.desired_kl)
+                lr = adapt_lr(lr, stats["kl"], ppo.desired_kl, ppo.lr_min)
                 _set_scheduled_lr(optimizer, lr)
             if pushes:
                 stats["push_scale"] = push_scale(ppo.push_ramp, env_steps - batch.numel() * info.world_size)

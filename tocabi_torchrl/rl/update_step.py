@@ -67,11 +67,13 @@ def set_lr(group: dict, lr: float) -> None:
         group["lr"] = lr
 
 
-def adapt_lr(lr: float, kl: float, desired_kl: float) -> float:
+def adapt_lr(lr: float, kl: float, desired_kl: float, floor: float | None = None) -> float:
     """The KL-adaptive learning-rate rule of the ``adaptive`` schedule, applied once per iteration: the rate divided
     by 1.5 when the update's KL is above twice ``desired_kl``, multiplied by 1.5 when below half of it, within
-    :data:`~tocabi_torchrl.config.ADAPTIVE_LR_RANGE` ([1e-5, 1e-2]; ``PPOConfig.validate`` keeps ``lr`` inside it)."""
+    :data:`~tocabi_torchrl.config.ADAPTIVE_LR_RANGE` ([1e-5, 1e-2]; ``PPOConfig.validate`` keeps ``lr`` inside it),
+    and not below ``floor`` (``ppo.lr_min``) when given."""
     low, high = ADAPTIVE_LR_RANGE
+    low = low if floor is None else max(low, floor)
     if kl > 2.0 * desired_kl:
         return max(lr / 1.5, low)
     if kl < 0.5 * desired_kl:
