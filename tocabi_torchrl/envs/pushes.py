@@ -66,6 +66,13 @@ class Pushes:
         share = (cfg.window[1] - cfg.window[0]) / k
         self._share_start = cfg.window[0] + share * torch.arange(k, dtype=f32, device=device)
         self._share = share
+        # A fixed duration (the velocity kicks': one 4 ms step) is the same whole number of steps for every kick:
+        # made once, so a reset spends no ops on it (the values are those the draw would give).
+        self._fixed_steps = None
+        if cfg.duration[0] == cfg.duration[1]:
+            fixed = max(round(cfg.duration[0] / self.dt), 1)
+            self.steps.fill_(fixed)
+            self._fixed_steps = torch.full((), float(fixed), dtype=f32, device=device) * self.dt  # [s]
 
     def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
         """Draw the kicks of the worlds flagged in ``mask`` (N,) bool from ``u`` (N, :attr:`draws`) uniforms."""
@@ -73,12 +80,16 @@ class Pushes:
         when = self._share_start + self._share * u[:, :k]
         angle = 2.0 * math.pi * u[:, k:2 * k]
         speed = s_lo + (s_hi - s_lo) * u[:, 2 * k:3 * k]
-        steps = torch.round((d_lo + (d_hi - d_lo) * u[:, 3 * k:]) / self.dt).long().clamp(min=1)
-        magnitude = speed * self.mass / (steps * self.dt)
+        if self._fixed_steps is None:
+            steps = torch.round((d_lo + (d_hi - d_lo) * u[:, 3 * k:]) / self.dt).long().clamp(min=1)
+            magnitude = speed * self.mass / (steps * self.dt)
+        else:
+            magnitude = speed * self.mass / self._fixed_steps
         force = magnitude.unsqueeze(-1) * torch.stack((torch.cos(angle), torch.sin(angle)), dim=-1)
         m = mask.unsqueeze(-1)
         self.start_step.copy_(torch.where(m, torch.round(when / self.dt).long(), self.start_step))
-        self.steps.copy_(torch.where(m, steps, self.steps))
+        if self._fixed_steps is None:
+            self.steps.copy_(torch.where(m, steps, self.steps))
         self.force.copy_(torch.where(m.unsqueeze(-1), force, self.force))
         self.speed.copy_(torch.where(m, speed, self.speed))
 
