@@ -9,7 +9,9 @@ but with its kicks at full strength from the first step (``ppo.push_ramp=0 0``: 
 otherwise end before its curriculum lets a kick through), and ``off``, the same with every piece of
 :data:`OFF` at its identity (actuator layer, dynamics, sensor biases and noise, pushes, diverse starts). The order
 alternates by round (on, off, then off, on, ...), so that neither variant always runs first and a drift of the GPU's
-clocks hits both. Reports every measurement and the ratio of the two variants' median rates.
+clocks hits both. Reports every measurement and the ratio of the two variants' median rates. ``--pieces dynamics
+sensors ...`` also measures ``off`` with each named piece switched on alone (``off+<piece>``), to see which piece
+costs what.
 """
 
 from __future__ import annotations
@@ -31,12 +33,23 @@ OFF = ("env.control.actuators.delay_substeps=0 0", "env.control.actuators.motor_
        "env.task.start_base_vel_std=0")
 #: The kicks at full strength from the first step (see the module docstring).
 FULL_KICKS = ("ppo.push_ramp=0 0",)
+#: The pieces ``--pieces`` can switch on alone over ``off``, each by the :data:`OFF` items (path prefixes) it owns.
+PIECES = {"actuators": ("env.control.actuators.",), "dynamics": ("env.dynamics.",),
+          "sensors": ("transforms.sensor_noise.",), "pushes": ("env.pushes.",), "starts": ("env.task.start_",)}
 
 
-def variants(preset: str, extra: list[str]) -> dict[str, list[str]]:
-    """``--set`` items of each variant."""
+def variants(preset: str, extra: list[str], pieces: tuple[str, ...] = ()) -> dict[str, list[str]]:
+    """``--set`` items of each variant: ``on``, ``off``, and ``off+<piece>`` for each of ``pieces`` (``off`` with
+    that piece as the preset sets it)."""
+    unknown = [name for name in pieces if name not in PIECES]
+    if unknown:
+        raise ValueError(f"unknown piece(s) {unknown}; choose from {list(PIECES)}")
     base = [f"preset={preset}", *extra]
-    return {"on": [*base, *FULL_KICKS], "off": [*base, *FULL_KICKS, *OFF]}
+    out = {"on": [*base, *FULL_KICKS], "off": [*base, *FULL_KICKS, *OFF]}
+    for name in pieces:
+        kept = [item for item in OFF if not item.startswith(PIECES[name])]
+        out[f"off+{name}"] = [*base, *FULL_KICKS, *kept]
+    return out
 
 
 def render(data: dict, out) -> str:
@@ -48,6 +61,8 @@ def render(data: dict, out) -> str:
                         rows)
     body += (f"\n\nMedian training rate: on {common.fmt(s['on_median'])}, off {common.fmt(s['off_median'])} "
              f"env-steps/s; on / off = **{s['on_over_off']:.3f}** (the target is >= 0.95).\n")
+    for name, ratio in s.get("piece_over_off", {}).items():
+        body += f"- {name} alone over off: {ratio:.3f}\n"
     return common.page("What randomisation costs in training", data, body)
 
 
@@ -60,6 +75,8 @@ def main(argv=None) -> None:
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed per measurement (0: skip)")
     p.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="more overrides, for both variants")
+    p.add_argument("--pieces", nargs="*", default=[], choices=list(PIECES),
+                   help="also measure off with each of these pieces switched on alone (off+<piece>)")
     p.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run of the script")
     p.add_argument("--run_dir", default="/tmp/tocabi_bench_runs", help="scratch folder of the training runs")
     p.add_argument("--out", default=str(common.DOCS / "randomization"))
@@ -67,7 +84,7 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     if args.rounds < 1 or args.num_envs < 1:
         p.error(f"--rounds and --num_envs take values >= 1, got {args.rounds} and {args.num_envs}")
-    sets = variants(args.preset, args.set)
+    sets = variants(args.preset, args.set, tuple(args.pieces))
     for items in sets.values():
         common.parse_overrides(items)  # a bad path or value fails here, before any measurement
     results = []
@@ -82,6 +99,8 @@ def main(argv=None) -> None:
             print(f"round {r + 1} {name}: {record.get('train_env_steps_per_s') or 0:,.0f} env-steps/s", flush=True)
     median = {v: statistics.median(x["train_env_steps_per_s"] for x in results if x["variant"] == v) for v in sets}
     summary = {"on_median": median["on"], "off_median": median["off"], "on_over_off": median["on"] / median["off"]}
+    if args.pieces:
+        summary["piece_over_off"] = {name: median[f"off+{name}"] / median["off"] for name in args.pieces}
     meta = common.meta(NAME, argv, args.device, preset=args.preset, num_envs=args.num_envs, rounds=args.rounds)
     print(common.publish(args.out, args.name, {"meta": meta, "summary": summary, "results": results}, render,
                          measured_on=args.device))

@@ -62,3 +62,21 @@ def test_it_measures_both_variants_alternately_and_reports_their_ratio(tmp_path)
     section = "\n".join(page.randomization(docs))
     assert f"**{ratio:.3f}x**" in section and ("meets" if ratio >= 0.95 else "misses") in section
     assert section.index("randomization_cost.json") < section.index("train_throughput.json")
+
+
+def test_each_piece_owns_its_off_items_and_comes_back_alone():
+    from tocabi_torchrl.tree import get_path, leaf_paths
+
+    owners = {item: [n for n, prefixes in randomization_cost.PIECES.items() if item.startswith(prefixes)]
+              for item in randomization_cost.OFF}
+    assert all(len(v) == 1 for v in owners.values()), owners  # every OFF item belongs to one piece
+    sets = randomization_cost.variants("robust", [], tuple(randomization_cost.PIECES))
+    off = _config(sets["off"])
+    for name, prefixes in randomization_cost.PIECES.items():
+        alone = _config(sets[f"off+{name}"])
+        differ = {path for path in leaf_paths(off) if get_path(off, path) != get_path(alone, path)}
+        assert differ and all(path.startswith(prefixes) for path in differ), (name, differ)
+    import pytest
+
+    with pytest.raises(ValueError, match="unknown piece"):
+        randomization_cost.variants("robust", [], ("lighting",))
