@@ -68,11 +68,12 @@ class Pushes:
         self._share = share
         # A fixed duration (the velocity kicks': one 4 ms step) is the same whole number of steps for every kick:
         # made once, so a reset spends no ops on it (the values are those the draw would give).
-        self._fixed_steps = None
+        self._fixed_seconds = None
         if cfg.duration[0] == cfg.duration[1]:
             fixed = max(round(cfg.duration[0] / self.dt), 1)
             self.steps.fill_(fixed)
-            self._fixed_steps = torch.full((), float(fixed), dtype=f32, device=device) * self.dt  # [s]
+            # The duration in seconds as the draw computes it (float32 steps times dt), so the forces equal the drawn path's.
+            self._fixed_seconds = torch.full((), float(fixed), dtype=f32, device=device) * self.dt
 
     def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
         """Draw the kicks of the worlds flagged in ``mask`` (N,) bool from ``u`` (N, :attr:`draws`) uniforms."""
@@ -80,15 +81,15 @@ class Pushes:
         when = self._share_start + self._share * u[:, :k]
         angle = 2.0 * math.pi * u[:, k:2 * k]
         speed = s_lo + (s_hi - s_lo) * u[:, 2 * k:3 * k]
-        if self._fixed_steps is None:
+        if self._fixed_seconds is None:
             steps = torch.round((d_lo + (d_hi - d_lo) * u[:, 3 * k:]) / self.dt).long().clamp(min=1)
             magnitude = speed * self.mass / (steps * self.dt)
         else:
-            magnitude = speed * self.mass / self._fixed_steps
+            magnitude = speed * self.mass / self._fixed_seconds
         force = magnitude.unsqueeze(-1) * torch.stack((torch.cos(angle), torch.sin(angle)), dim=-1)
         m = mask.unsqueeze(-1)
         self.start_step.copy_(torch.where(m, torch.round(when / self.dt).long(), self.start_step))
-        if self._fixed_steps is None:
+        if self._fixed_seconds is None:
             self.steps.copy_(torch.where(m, steps, self.steps))
         self.force.copy_(torch.where(m.unsqueeze(-1), force, self.force))
         self.speed.copy_(torch.where(m, speed, self.speed))

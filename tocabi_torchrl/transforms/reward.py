@@ -83,8 +83,7 @@ class TaskReward(Transform):
         if kick_relax is not None and not isinstance(kick_relax, KickRelax):
             raise TypeError(f"TaskReward kick_relax must be a KickRelax or None, got {kick_relax!r}")
         relax = kick_relax if kick_relax is not None and kick_relax.enabled else None
-        if relax is not None:
-            relax.validate()
+        if relax is not None:  # (a KickRelax validated its own values when it was made)
             missing = [n for n in relax.terms if n not in names]
             if missing:
                 raise KeyError(f"TaskReward: kick_relax names term(s) {missing} that are not in use; terms in use: "
