@@ -72,7 +72,7 @@ class Pushes:
         if cfg.duration[0] == cfg.duration[1]:
             fixed = max(round(cfg.duration[0] / self.dt), 1)
             self.steps.fill_(fixed)
-            # The duration in seconds as the draw computes it (float32 steps times dt), so the forces equal the drawn path's.
+            # In seconds as the draw computes it (float32 steps times dt): the forces equal the drawn path's.
             self._fixed_seconds = torch.full((), float(fixed), dtype=f32, device=device) * self.dt
 
     def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
