@@ -32,7 +32,6 @@ from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, UPPER_BODY_LAWS, To
 from .envs.push_config import PushConfig
 from .randomize import tocabi_lab_paths
 from .sim.config import RESET_PASSES
-from .transforms.kick_relax_config import KickRelax
 from .transforms.settings import TransformSettings
 from .tree import OWN_NUMBER_CHECK, ConfigError, check_field_types, leaf_paths, replace_paths
 from .tree import from_dict as _tree_from_dict
@@ -555,11 +554,15 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "env.sim.start_pool": 16,
         # The sixth run (these settings without the two below) passed nominal, commands and robust_0.5 and kept 0.693
         # under 1.0 m/s kicks (docs/training/robust/h200_run6): its robots survived a lone 1.0 m/s kick and fell on
-        # a fifth of the kicks that came within 2 s of the previous one, too slow to recover, and its learning rate
-        # sat at the 1e-5 floor for the last seven minutes. So, for 1.5 s after a kick, the clocked imitation and
-        # smoothness terms are scaled down (transforms.kick_relax: linearly back to full, in proportion to the
-        # kick's speed up to 1.0 m/s), and the adaptive rate keeps at least 5e-5 (ppo.lr_min).
-        "transforms.kick_relax": KickRelax(seconds=1.5), "ppo.lr_min": 5e-5,
+        # a fifth of the kicks that came within 2 s of the previous one, a second after the kick on average, and its
+        # learning rate sat at the 1e-5 floor for the last seven minutes. The seventh run relaxed the clocked and
+        # smoothness terms for 1.5 s after a kick (transforms.kick_relax) and fell twice as often in training, 0.44
+        # under the test's 1.0 m/s kicks at 18 minutes against the sixth's 0.84 (docs/training/robust/h200_run7):
+        # the relaxation takes reward from the recovering robot, so surviving a kick is worth less. So no relaxation;
+        # instead a longer horizon: at gamma 0.995 (0.8 s) a fall 1 s after a kick weighs 0.29 of its cost and the
+        # next kick, 1-2 s on, is nearly out of sight; at 0.997 (1.3 s) 0.47. The adaptive rate keeps at least 5e-5
+        # (ppo.lr_min).
+        "ppo.gamma": 0.997, "ppo.lr_min": 5e-5,
         # Its verdict at the end of training: the robust gait test at its own size (1,024 robots per case).
         "eval_test": "robust", "eval_envs": 1024,
     }),
