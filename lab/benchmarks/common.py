@@ -276,7 +276,9 @@ def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Call
                       min_raw_steps: int, device_help: str) -> dict:
     """The command line of the benchmarks that run the real trainer at each ``--num_envs`` and raw mujoco-warp in the
     same process (step_timeline, solver_load): parses ``argv``, calls ``measure(n, iterations, warmup, raw_steps,
-    device, run_dir, overrides)`` per env count, publishes ``<out>/<name>.{json,md}`` and returns the data."""
+    device, run_dir, overrides)`` per env count, publishes ``<out>/<name>.{json,md}`` and returns the data. With
+    ``--child`` it measures the first env count, prints the record as the ``RESULT`` line :func:`run_child` reads and
+    publishes nothing (another benchmark's measurement in a process of its own)."""
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--num_envs", type=int, nargs="+", default=[4096])
     parser.add_argument("--iterations", type=int, default=3, help="training iterations measured")
@@ -291,6 +293,8 @@ def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Call
     parser.add_argument("--run_dir", default=f"/tmp/tocabi_bench_runs/{name}")
     parser.add_argument("--out", default=str(DOCS))
     parser.add_argument("--name", default=name)
+    parser.add_argument("--child", action="store_true", help="measure the first env count, report it, publish "
+                                                             "nothing (internal: common.run_child)")
     args = parser.parse_args(argv)
     if args.warmup < min_warmup or args.iterations < 1 or args.raw_steps < min_raw_steps or min(args.num_envs) < 1:
         parser.error(f"--warmup must be >= {min_warmup}, --iterations >= 1, --raw_steps >= {min_raw_steps} and "
@@ -298,6 +302,11 @@ def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Call
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         parser.error(f"no CUDA device here; pass --device cpu ({device_help})")
     overrides = parse_overrides(args.set)
+    if args.child:
+        record = measure(args.num_envs[0], args.iterations, args.warmup, args.raw_steps, args.device, args.run_dir,
+                         overrides)
+        print("RESULT " + json.dumps(record), flush=True)
+        return {"results": [record]}
     results = [measure(n, args.iterations, args.warmup, args.raw_steps, args.device, args.run_dir, overrides)
                for n in args.num_envs]
     data = {"meta": meta(name, argv, args.device, name=args.name), "results": results}

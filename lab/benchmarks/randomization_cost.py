@@ -11,7 +11,9 @@ otherwise end before its curriculum lets a kick through), and ``off``, the same 
 alternates by round (on, off, then off, on, ...), so that neither variant always runs first and a drift of the GPU's
 clocks hits both. Reports every measurement and the ratio of the two variants' median rates. ``--pieces dynamics
 sensors ...`` also measures ``off`` with each named piece switched on alone (``off+<piece>``), to see which piece
-costs what.
+costs what. ``--physics`` also measures each variant's physics alone (``solver_load`` in a child process: the
+trainer's steps run eagerly, timed, with the solver iterations of the slowest world), to tell what of the cost is
+the physics of kicked, randomised robots and what the rest of the step.
 """
 
 from __future__ import annotations
@@ -63,6 +65,17 @@ def render(data: dict, out) -> str:
              f"env-steps/s; on / off = **{s['on_over_off']:.3f}** (the target is >= 0.95).\n")
     for name, ratio in s.get("piece_over_off", {}).items():
         body += f"- {name} alone over off: {ratio:.3f}\n"
+    if data.get("physics"):
+        rows = [(name, common.fmt(p["ms_per_policy_step"], ".3f"), common.fmt(p["niter_max_over_worlds"], ".2f"),
+                 common.fmt(p["niter_mean"], ".2f"), common.fmt(p["niter_max_seen"], ".0f"),
+                 common.fmt(p["constraint_rows_per_world"], ".1f"), common.fmt(p["contacts_per_world"], ".1f"))
+                for name, p in data["physics"].items()]
+        body += ("\n### The physics alone (solver_load, eager steps)\n\n"
+                 + common.table(("variant", "physics ms per policy step", "solver iterations, slowest world",
+                                 "mean over worlds", "most seen", "constraint rows per world", "contacts per world"),
+                                rows)
+                 + f"\n\nPhysics time off / on = **{s['physics_off_over_on']:.3f}** (the on / off ratio if everything "
+                   "but the physics cost the same in both).\n")
     return common.page("What randomisation costs in training", data, body)
 
 
@@ -77,6 +90,8 @@ def main(argv=None) -> None:
     p.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="more overrides, for both variants")
     p.add_argument("--pieces", nargs="*", default=[], choices=list(PIECES),
                    help="also measure off with each of these pieces switched on alone (off+<piece>)")
+    p.add_argument("--physics", action="store_true",
+                   help="also measure each variant's physics alone (solver_load: eager steps, solver iterations)")
     p.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run of the script")
     p.add_argument("--run_dir", default="/tmp/tocabi_bench_runs", help="scratch folder of the training runs")
     p.add_argument("--out", default=str(common.DOCS / "randomization"))
@@ -101,9 +116,19 @@ def main(argv=None) -> None:
     summary = {"on_median": median["on"], "off_median": median["off"], "on_over_off": median["on"] / median["off"]}
     if args.pieces:
         summary["piece_over_off"] = {name: median[f"off+{name}"] / median["off"] for name in args.pieces}
+    physics = {}
+    if args.physics:
+        for name, items in sets.items():
+            record = common.run_child("solver_load", [
+                "--num_envs", str(args.num_envs), "--iterations", str(args.iterations), "--warmup", str(args.warmup),
+                "--raw_steps", "1", "--device", args.device, "--run_dir", f"{args.run_dir}/{args.name}_{name}_physics",
+                "--set", *items])
+            physics[name] = record["training"]
+            print(f"physics {name}: {physics[name]['ms_per_policy_step']:.3f} ms per policy step", flush=True)
+        summary["physics_off_over_on"] = physics["off"]["ms_per_policy_step"] / physics["on"]["ms_per_policy_step"]
     meta = common.meta(NAME, argv, args.device, preset=args.preset, num_envs=args.num_envs, rounds=args.rounds)
-    print(common.publish(args.out, args.name, {"meta": meta, "summary": summary, "results": results}, render,
-                         measured_on=args.device))
+    data = {"meta": meta, "summary": summary, "results": results, **({"physics": physics} if physics else {})}
+    print(common.publish(args.out, args.name, data, render, measured_on=args.device))
 
 
 if __name__ == "__main__":

@@ -139,7 +139,7 @@ def test_step_timeline_marks_every_phase_of_the_real_trainer(tmp_path, monkeypat
         step_timeline.main([*args, "cuda_graph=on"])
 
 
-def test_solver_load_counts_the_trainer_and_the_raw_ceiling_on_warps_cpu(tmp_path):
+def test_solver_load_counts_the_trainer_and_the_raw_ceiling_on_warps_cpu(tmp_path, capsys):
     from warp_cpu import warp_cpu_available
 
     from tocabi_torchrl.rl import trainer
@@ -163,6 +163,16 @@ def test_solver_load_counts_the_trainer_and_the_raw_ceiling_on_warps_cpu(tmp_pat
                                                                        / train["ms_per_policy_step"])
     assert "| standing (raw ceiling) |" in (tmp_path / "solver_load.md").read_text()
     assert {k: getattr(trainer, k) for k in originals} == originals  # the trainer is itself again
+
+    # As another benchmark's child (randomization_cost --physics): one env count, reported as the RESULT line
+    # common.run_child reads, nothing published.
+    out = tmp_path / "child"
+    child = solver_load.main(["--child", *args[:args.index("--iterations")], "--iterations", "1", "--warmup", "1",
+                              "--raw_steps", "1", "--out", str(out), "--run_dir", str(tmp_path / "runs_child"),
+                              "--set", "ppo.steps_per_env=6", "ppo.actor_hidden=8 8"])
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("RESULT ")]
+    assert len(lines) == 1 and json.loads(lines[0][len("RESULT "):]) == json.loads(json.dumps(child["results"][0]))
+    assert child["results"][0]["training"]["steps"] == 6 and not out.exists()
 
 
 def test_step_timeline_puts_back_every_wrapper_and_hook_also_after_an_error(monkeypatch):

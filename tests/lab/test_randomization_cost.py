@@ -80,3 +80,30 @@ def test_each_piece_owns_its_off_items_and_comes_back_alone():
 
     with pytest.raises(ValueError, match="unknown piece"):
         randomization_cost.variants("robust", [], ("lighting",))
+
+
+def test_physics_measures_each_variant_in_a_solver_load_child_and_reports_the_ratio(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_child(module, args, env=None, nproc=None):
+        calls.append((module, list(args)))
+        items = args[args.index("--set") + 1:]
+        if module == "train_throughput":
+            return {"train_env_steps_per_s": 100.0 if "env.pushes.count=0" in items else 90.0}
+        # The "off" variant's physics is quicker: its robots are neither kicked nor randomised.
+        ms = 2.0 if "env.pushes.count=0" in items else 2.5
+        return {"training": {"ms_per_policy_step": ms, "niter_max_over_worlds": 7.0, "niter_mean": 2.0,
+                             "niter_max_seen": 9.0, "constraint_rows_per_world": 40.0, "contacts_per_world": 2.0}}
+
+    monkeypatch.setattr(common, "run_child", fake_child)
+    randomization_cost.main(["--device", "cpu", "--num_envs", "8", "--rounds", "1", "--physics", "--out",
+                             str(tmp_path), "--run_dir", str(tmp_path / "runs")])
+    physics_calls = [args for module, args in calls if module == "solver_load"]
+    assert len(physics_calls) == 2 and all(a[a.index("--num_envs") + 1] == "8" for a in physics_calls)
+    assert {"env.pushes.count=0" in a for a in physics_calls} == {True, False}
+    data = json.loads((tmp_path / "randomization_cost.json").read_text())
+    assert set(data["physics"]) == {"on", "off"}
+    assert data["summary"]["physics_off_over_on"] == 2.0 / 2.5
+    assert data["summary"]["on_over_off"] == 0.9
+    text = (tmp_path / "randomization_cost.md").read_text()
+    assert "Physics time off / on = **0.800**" in text and "| on | 2.500 | 7.00 |" in text
