@@ -315,6 +315,11 @@ def test_auto_falls_back_to_the_smoke_run_and_the_banner_says_what_runs():
     assert f"{smoke.iterations:,} iterations of {smoke.frames_per_batch:,} env steps" in line
     cfg, _, note = launch_config([], cuda_available=True)
     assert cfg.preset == "default" and cfg.env.num_envs == 4096 and note is None
+    # Hyphens, as the command line also takes them, are the same options.
+    cfg, given, _ = launch_config(["--env.num-envs", "6", "--ppo.steps-per-env=12", "--name", "mine"],
+                                  cuda_available=False)
+    assert cfg.env.num_envs == 6 and cfg.ppo.steps_per_env == 12
+    assert "env.num_envs=6, ppo.steps_per_env=12, name=mine" in banner(cfg, given, torch.device("cpu"))
 
 
 def test_a_resumed_gpu_run_without_cuda_says_where_its_device_came_from(finished_run, tmp_path):

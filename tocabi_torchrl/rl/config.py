@@ -53,9 +53,10 @@ def option_value(argv: Sequence[str], name: str) -> str | None:
 
 
 def given_options(argv: Sequence[str], cfg: RunConfig) -> dict[str, Any]:
-    """``{path: value in cfg}`` of every option named on the command line ``argv`` (for the banner)."""
+    """``{path: value in cfg}`` of every option named on the command line ``argv`` (for the banner), spelled with
+    underscores or, as the command line also takes them, hyphens (``--env.num-envs``)."""
     paths = set(leaf_paths(cfg))
-    named = [t[2:].split("=", 1)[0] for t in argv if t.startswith("--")]
+    named = [t[2:].split("=", 1)[0].replace("-", "_") for t in argv if t.startswith("--")]
     return {p: get_path(cfg, p) for p in dict.fromkeys(named) if p in paths}
 
 
