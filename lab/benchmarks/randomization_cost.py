@@ -79,6 +79,14 @@ def render(data: dict, out) -> str:
     return common.page("What randomisation costs in training", data, body)
 
 
+def _measure(module: str, args, raw_steps: int, run_name: str, items: list[str]) -> dict:
+    """One variant (``items``) measured by benchmark ``module`` in a child process of its own."""
+    return common.run_child(module, [
+        "--num_envs", str(args.num_envs), "--iterations", str(args.iterations), "--warmup", str(args.warmup),
+        "--raw_steps", str(raw_steps), "--device", args.device, "--run_dir", f"{args.run_dir}/{run_name}",
+        "--set", *items])
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--preset", default="robust", help="the training preset whose randomisation is measured")
@@ -106,10 +114,7 @@ def main(argv=None) -> None:
     for r in range(args.rounds):
         for name in (list(sets) if r % 2 == 0 else list(sets)[::-1]):
             items = sets[name]
-            record = common.run_child("train_throughput", [
-                "--num_envs", str(args.num_envs), "--iterations", str(args.iterations), "--warmup", str(args.warmup),
-                "--raw_steps", str(args.raw_steps), "--device", args.device,
-                "--run_dir", f"{args.run_dir}/{args.name}_{name}", "--set", *items])
+            record = _measure("train_throughput", args, args.raw_steps, f"{args.name}_{name}", items)
             results.append({"round": r + 1, "variant": name, "set": items, **record})
             print(f"round {r + 1} {name}: {record.get('train_env_steps_per_s') or 0:,.0f} env-steps/s", flush=True)
     median = {v: statistics.median(x["train_env_steps_per_s"] for x in results if x["variant"] == v) for v in sets}
@@ -119,11 +124,7 @@ def main(argv=None) -> None:
     physics = {}
     if args.physics:
         for name, items in sets.items():
-            record = common.run_child("solver_load", [
-                "--num_envs", str(args.num_envs), "--iterations", str(args.iterations), "--warmup", str(args.warmup),
-                "--raw_steps", "1", "--device", args.device, "--run_dir", f"{args.run_dir}/{args.name}_{name}_physics",
-                "--set", *items])
-            physics[name] = record["training"]
+            physics[name] = _measure("solver_load", args, 1, f"{args.name}_{name}_physics", items)["training"]
             print(f"physics {name}: {physics[name]['ms_per_policy_step']:.3f} ms per policy step", flush=True)
         summary["physics_off_over_on"] = physics["off"]["ms_per_policy_step"] / physics["on"]["ms_per_policy_step"]
     meta = common.meta(NAME, argv, args.device, preset=args.preset, num_envs=args.num_envs, rounds=args.rounds)
