@@ -9,11 +9,12 @@ where the case holds other world indices. It reads each robot's kick schedule fr
 last kick before it. Directions are those of the kick's force in the world frame, in four 90° sectors (every robot
 starts facing +x and the test's robots turn 0.03-0.6 rad, so "forward" is roughly the way the robot walks).
 
-Reports per checkpoint: survival, falls by the kick that preceded them, the hazard of each kick (falls after it over
-the robots it met alive), falls by direction against the kicks per direction that met a standing robot, the hazard of
-a kick by the seconds since the robot's previous kick (:func:`hazard_by_gap`), and the fall delay after the kick (null
-when nothing fell); with ``--values``, the critic's mean value around the kicks robots fell after and around the others
-(:func:`value_around_kicks`).
+Reports per checkpoint: survival, falls by the condition that ended them (:func:`note_first_flags`:
+``self_collision``, ``neck_tilt``, ...), those before any kick with their times, falls by the kick that preceded
+them, the hazard of each kick (falls after it over the robots it met alive), falls by direction against the kicks per
+direction that met a standing robot, the hazard of a kick by the seconds since the robot's previous kick
+(:func:`hazard_by_gap`), and the fall delay after the kick (null when nothing fell); with ``--values``, the critic's
+mean value around the kicks robots fell after and around the others (:func:`value_around_kicks`).
 
 Wrote docs/training/robust/h200_run3/kick_falls.json (about 80 s per checkpoint of 64 robots on 2 cores)::
 
@@ -25,6 +26,7 @@ Wrote docs/training/robust/h200_run3/kick_falls.json (about 80 s per checkpoint 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import subprocess
@@ -112,6 +114,48 @@ def value_around_kicks(values: torch.Tensor, kick_step: torch.Tensor, t_end: tor
             for name, rows in groups.items()}
 
 
+def note_first_flags(first: dict, flags: dict, step: int) -> None:
+    """Note in ``first`` (robot index -> (step, condition)) each robot's first termination: the conditions of
+    ``flags`` (name -> (N,) bool, as :func:`tocabi_torchrl.envs.termination.termination_flags` returns them, ``"any"``
+    left out) true at ``step``, for robots not noted before (the first condition in ``flags``' order when several).
+
+    >>> import torch
+    >>> first = {}
+    >>> yes, no = torch.tensor([True, True]), torch.tensor([False, False])
+    >>> note_first_flags(first, {"pelvis_low": torch.tensor([False, True]), "self_collision": yes, "any": yes}, 5)
+    >>> note_first_flags(first, {"pelvis_low": torch.tensor([True, False]), "self_collision": no, "any": yes}, 6)
+    >>> first
+    {1: (5, 'pelvis_low'), 0: (5, 'self_collision')}
+    """
+    for name, flag in flags.items():
+        if name == "any":
+            continue
+        for i in flag.nonzero().flatten().tolist():
+            first.setdefault(i, (step, name))
+
+
+@contextlib.contextmanager
+def noting_terminations(first: dict):
+    """While open, every step of a walking env notes its robots' first termination in ``first``
+    (:func:`note_first_flags`, steps counted from 1 per env step). The env keeps only whether a robot ended, so this
+    wraps the one function that computes the conditions, in the env module's namespace, and restores it on exit."""
+    from tocabi_torchrl.envs import tocabi_walk
+
+    original, steps = tocabi_walk.termination_flags, [0]
+
+    def noting(**kwargs):
+        flags = original(**kwargs)
+        steps[0] += 1
+        note_first_flags(first, flags, steps[0])
+        return flags
+
+    tocabi_walk.termination_flags = noting
+    try:
+        yield first
+    finally:
+        tocabi_walk.termination_flags = original
+
+
 def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", as_trained: bool = False,
             push_window: tuple[float, float] = (2.0, 7.0), seconds: float = 8.0, values: bool = False) -> dict:
     test = robust.RobustTestConfig(num_envs=num_envs, push_kind=push_kind, push_window=tuple(push_window),
@@ -127,9 +171,12 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
             critic_values.append(agent.critic(td.clone())["state_value"].reshape(-1).clone())
         return agent.actor(td)
 
-    per_env = robust.run_case(actor, env, test.seconds, progress=False)
+    with noting_terminations({}) as first_flag:
+        per_env = robust.run_case(actor, env, test.seconds, progress=False)
     dt = float(env.base_env.dt)
     kick_s = schedule["start"].double() * dt  # (N, K) start time of each kick [s]
+    # A kick due after the case's end (a --seconds shorter than the window) never came: NaN is met by no robot.
+    kick_s = torch.where(kick_s < seconds, kick_s, torch.full_like(kick_s, math.nan))
     angle = torch.atan2(schedule["force"][..., 1], schedule["force"][..., 0])  # (N, K) world-frame direction [rad]
     alive = per_env["alive"]
     # (N,) each robot's fall time [s], inf for a robot that stood to the end
@@ -140,7 +187,7 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
     after = [0] * count  # falls whose last kick before them was kick j
     by_dir = {s: 0 for s in SECTORS}
     met_dir = {s: 0 for s in SECTORS}  # kicks per direction that came while their robot stood
-    delays, before_any = [], 0
+    delays, before_any, before_any_s, reasons, before_reasons = [], 0, [], {}, {}
     for i in range(num_envs):
         t_end = float(t_end_all[i])
         for j in range(count):
@@ -149,9 +196,13 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
             met_dir[sector(float(angle[i, j]))] += int(standing)
         if bool(alive[i]):
             continue
+        reason = first_flag.get(i, (0, "unknown"))[1]
+        reasons[reason] = reasons.get(reason, 0) + 1
         prior = [j for j in range(count) if float(kick_s[i, j]) <= t_end]
         if not prior:
             before_any += 1
+            before_any_s.append(round(t_end, 3))
+            before_reasons[reason] = before_reasons.get(reason, 0) + 1
             continue
         j = prior[-1]
         after[j] += 1
@@ -169,7 +220,10 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
         "torque_assist": None if beta is None else float(beta),
         "env_steps": int(state.get("env_steps", 0)), "train_seconds": float(state.get("train_seconds", 0.0)),
         "survival": float(alive.float().mean()),
+        "falls_by_reason": reasons,
         "falls_before_any_kick": before_any,
+        "falls_before_any_kick_s": sorted(before_any_s),
+        "falls_before_any_kick_by_reason": before_reasons,
         "falls_after_kick": after,
         "robots_alive_at_kick": met,
         "kick_hazard": [a / m if m else None for a, m in zip(after, met)],
@@ -209,7 +263,9 @@ def main(argv=None) -> int:
                     args.values)
         delay = r["fall_delay_after_kick_s"]
         assisted = "" if r["torque_assist"] is None else f" (assist β {r['torque_assist']:.2f})"
-        print(f"{path}{assisted}: survival {r['survival']:.3f}, falls after kicks {r['falls_after_kick']} of robots "
+        print(f"{path}{assisted}: survival {r['survival']:.3f}, falls by reason {r['falls_by_reason']}, "
+              f"{r['falls_before_any_kick']} before any kick (at {r['falls_before_any_kick_s']} s), "
+              f"falls after kicks {r['falls_after_kick']} of robots "
               f"{r['robots_alive_at_kick']} alive at them, by direction {r['falls_by_direction_of_last_kick']} of "
               f"{r['kicks_met_standing_by_direction']}, delay {'-' if delay is None else round(delay['mean'], 2)} s "
               f"({time.perf_counter() - start:.0f} s)", flush=True)

@@ -51,3 +51,20 @@ def test_value_around_kicks_with_no_kick_in_a_group_gives_none():
     r = kick_falls.value_around_kicks(torch.zeros(1, 10), torch.tensor([[5]]), torch.tensor([math.inf]), dt=0.01)
     assert r["falls after"] == {"kicks": 0, "value": {o: None for o in kick_falls.VALUE_OFFSETS}}
     assert r["stands"]["kicks"] == 0  # the default offsets reach 50 steps past the kick: beyond this rollout
+
+
+def test_noting_terminations_notes_each_robots_first_condition_and_restores_the_env_function(monkeypatch):
+    from tocabi_torchrl.envs import tocabi_walk
+
+    steps = iter([{"neck_tilt": torch.tensor([False, True, False]), "any": torch.tensor([False, True, False])},
+                  {"neck_tilt": torch.tensor([True, True, False]), "any": torch.tensor([True, True, False])}])
+
+    def fake(**kwargs):
+        return next(steps)
+
+    monkeypatch.setattr(tocabi_walk, "termination_flags", fake)
+    with kick_falls.noting_terminations({}) as first:
+        for _ in range(2):
+            tocabi_walk.termination_flags(pelvis_height=None)  # the env calls it by keyword, once per step
+    assert first == {1: (1, "neck_tilt"), 0: (2, "neck_tilt")}
+    assert tocabi_walk.termination_flags is fake
