@@ -32,6 +32,7 @@ import math
 import subprocess
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import torch
@@ -187,7 +188,7 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
     after = [0] * count  # falls whose last kick before them was kick j
     by_dir = {s: 0 for s in SECTORS}
     met_dir = {s: 0 for s in SECTORS}  # kicks per direction that came while their robot stood
-    delays, before_any, before_any_s, reasons, before_reasons = [], 0, [], {}, {}
+    delays, before_any_s, reasons, before_reasons = [], [], Counter(), Counter()
     for i in range(num_envs):
         t_end = float(t_end_all[i])
         for j in range(count):
@@ -197,12 +198,11 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
         if bool(alive[i]):
             continue
         reason = first_flag.get(i, (0, "unknown"))[1]
-        reasons[reason] = reasons.get(reason, 0) + 1
+        reasons[reason] += 1
         prior = [j for j in range(count) if float(kick_s[i, j]) <= t_end]
         if not prior:
-            before_any += 1
             before_any_s.append(round(t_end, 3))
-            before_reasons[reason] = before_reasons.get(reason, 0) + 1
+            before_reasons[reason] += 1
             continue
         j = prior[-1]
         after[j] += 1
@@ -220,10 +220,10 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
         "torque_assist": None if beta is None else float(beta),
         "env_steps": int(state.get("env_steps", 0)), "train_seconds": float(state.get("train_seconds", 0.0)),
         "survival": float(alive.float().mean()),
-        "falls_by_reason": reasons,
-        "falls_before_any_kick": before_any,
+        "falls_by_reason": dict(reasons),
+        "falls_before_any_kick": len(before_any_s),
         "falls_before_any_kick_s": sorted(before_any_s),
-        "falls_before_any_kick_by_reason": before_reasons,
+        "falls_before_any_kick_by_reason": dict(before_reasons),
         "falls_after_kick": after,
         "robots_alive_at_kick": met,
         "kick_hazard": [a / m if m else None for a, m in zip(after, met)],
