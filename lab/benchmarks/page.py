@@ -205,10 +205,27 @@ def randomization_cost(docs: Path) -> list[str]:
              + ("-" if r.get("ratio_train_over_raw") is None else f"{r['ratio_train_over_raw']:.2f}") + " |"
              for r in d["results"]]
     verdict = "meets" if s["on_over_off"] >= 0.95 else "misses"
+    ms = {name: v["ms_per_policy_step"] for name, v in d.get("physics", {}).items()}
+    pieces = [f"- `{name}` alone over none: {ratio:.3f}x in training"
+              + (f", physics {ms['off'] / ms[f'off+{name}']:.3f}x" if f"off+{name}" in ms and "off" in ms else "")
+              for name, ratio in s.get("piece_over_off", {}).items()]
+    physics = []
+    if "physics_off_over_on" in s and {"on", "off"} <= ms.keys():
+        # Each variant's own training states replayed through raw mujoco-warp (eager steps): the solver's share of the
+        # gap. With the rest of a training step as long as off's, on / off would be off's step over off's rest plus
+        # on's physics.
+        step_off, n = 1.0 / s["off_median"], m["num_envs"]
+        same_rest = step_off / (step_off - ms["off"] * 1e-3 / n + ms["on"] * 1e-3 / n)
+        physics = [f"The physics alone (raw mujoco-warp replaying each variant's own training states, eager steps, "
+                   f"`--physics`): off / on = **{s['physics_off_over_on']:.3f}**: the solver works harder on the "
+                   f"states a randomised robot visits. Were the rest of a training step as long as off's, on / off "
+                   f"would be {same_rest:.3f}; the randomisation's own work is the remaining "
+                   f"{same_rest - s['on_over_off']:.3f} "
+                   "([details](benchmarks/randomization/randomization_cost.md)).", ""]
     return [f"With everything of the `{m['preset']}` preset on (dynamics, actuators, sensor noise, kicks at full "
             f"strength, diverse starts), training runs at **{s['on_over_off']:.3f}x** the same preset with every piece "
             f"at its identity (medians of {m['rounds']} alternating rounds at {m['num_envs']:,} envs); this {verdict} "
-            "the 0.95x target.", "", *rows, "",
+            "the 0.95x target.", "", *rows, "", *pieces, *([""] if pieces else []), *physics,
             *_source(RANDOMIZATION_COST, m["command"], m["date"], m["gpu"],
                      "benchmarks/randomization/randomization_cost.md"), ""]
 

@@ -32,3 +32,27 @@ def test_check_mode_reports_a_stale_page(tmp_path, monkeypatch, capsys):
     (tmp_path / "benchmarks.md").write_text("# Benchmarks\n\nedited by hand\n")
     assert page.main(["--check"]) == 1 and "stale" in capsys.readouterr().out
     assert page.main([]) == 0 and page.main(["--check"]) == 0
+
+
+def test_randomization_cost_splits_the_gap_into_physics_and_the_rest(tmp_path):
+    """With ``--physics`` the section says what on / off would be were the rest of a training step as long as off's:
+    here off's step is 10 µs of which 6 µs physics, on's physics 7 µs, so 10 / 11; pieces get their physics too."""
+    import json
+
+    page = _page_module()
+    n = 1000
+    physics = {name: {"ms_per_policy_step": us * n * 1e-3} for name, us in
+               (("on", 7.0), ("off", 6.0), ("off+actuators", 6.5))}
+    report = {"meta": {"preset": "robust", "rounds": 1, "num_envs": n, "command": "python -m x", "date": "2026-12-03",
+                       "gpu": "NVIDIA H200"},
+              "summary": {"on_median": 80_000.0, "off_median": 100_000.0, "on_over_off": 0.8,
+                          "piece_over_off": {"actuators": 0.9}, "physics_off_over_on": 6.0 / 7.0},
+              "results": [{"round": 1, "variant": "on", "train_env_steps_per_s": 80_000.0}],
+              "physics": physics}
+    path = tmp_path / page.RANDOMIZATION_COST
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps(report))
+    text = "\n".join(page.randomization_cost(tmp_path))
+    assert "training runs at **0.800x**" in text and "misses the 0.95x target" in text
+    assert "`actuators` alone over none: 0.900x in training, physics 0.923x" in text
+    assert "off / on = **0.857**" in text and "on / off would be 0.909" in text and "remaining 0.109" in text
