@@ -1,0 +1,144 @@
+"""Where the robust gait test's lateral drift comes from: a turn, or walking sideways; when; from which start.
+
+Runs one case of the robust test (``nominal`` by default: diverse starts, command (0.5, 0) m/s) for each checkpoint
+on the CPU (C MuJoCo) through :func:`tocabi_torchrl.evaluation.robust.checkpoint_case`, stepping the deterministic
+policy eagerly, and splits each robot's world-y displacement into two integrals over its alive steps
+(:func:`lateral_parts`): the part from its heading, ``∫ v_x·sin ψ dt``, and the part from walking sideways in its
+heading frame, ``∫ v_y·cos ψ dt`` (v the pelvis velocity in the heading frame, ψ the pelvis yaw). It reports the
+displacement at fixed times (the start's transient against the rest of the walk) and grouped by the start phase
+(every start row of the motion: a symmetric policy on a symmetric robot drifts by the same amount to opposite sides
+from mirrored starts, so the mean over both is the policy's own bias).
+
+Wrote the drift sources of docs/training/robust/h200_run8/README.md (about 80 s per checkpoint and start of 64 robots
+on 2 cores)::
+
+    PYTHONPATH=. python lab/analysis/drift_sources.py --num_envs 64 --calm_start \\
+        --out docs/training/robust/h200_run8/drift_sources.json \\
+        --checkpoint docs/training/robust/h200_run8/checkpoints/wall_01080s.pt
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+from tocabi_torchrl.atomic import atomic_write_text
+from tocabi_torchrl.evaluation import robust
+from tocabi_torchrl.evaluation.record import policy_steps
+from tocabi_torchrl.rotations import quat_to_rpy
+from tocabi_torchrl.transforms.normalize import freeze_running_statistics
+
+#: Times [s] at which the displacement is read (the test's case lasts 8 s).
+MARKS_S = (0.5, 1.0, 2.0, 4.0, 8.0)
+
+
+def lateral_parts(v_heading: torch.Tensor, yaw: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """One step's world-y displacement [m] of each robot split in two: from the heading, ``v_x·sin ψ·dt``, and from
+    walking sideways, ``v_y·cos ψ·dt``; ``v_heading`` (N, 2) [m/s] in the heading frame, ``yaw`` (N,) [rad].
+
+    >>> turned, sideways = lateral_parts(torch.tensor([[0.5, 0.0], [0.5, 0.1]]), torch.tensor([0.1, 0.0]), 1.0)
+    >>> [round(x, 4) for x in turned.tolist()], [round(x, 4) for x in sideways.tolist()]
+    ([0.0499, 0.0], [0.0, 0.1])
+    """
+    return v_heading[:, 0] * torch.sin(yaw) * dt, v_heading[:, 1] * torch.cos(yaw) * dt
+
+
+def spread(values: torch.Tensor) -> dict:
+    """Mean, mean of the magnitude and its p95 [m] of per-robot displacements ``values`` (N,) (NaN-free).
+
+    >>> spread(torch.tensor([0.1, -0.3]))
+    {'mean': -0.1, 'abs_mean': 0.2, 'abs_p95': 0.29}
+    """
+    a = values.abs()
+    return {"mean": round(float(values.mean()), 4), "abs_mean": round(float(a.mean()), 4),
+            "abs_p95": round(float(a.quantile(0.95)), 4)}
+
+
+def by_start(values: torch.Tensor, start_phase: torch.Tensor) -> dict:
+    """:func:`spread` of ``values`` (N,) for each start phase in ``start_phase`` (N,), keyed by the phase (3
+    decimals), with its robot count.
+
+    >>> by_start(torch.tensor([0.2, 0.4, -0.1]), torch.tensor([0.0, 0.0, 0.5]))["0.000"]
+    {'robots': 2, 'mean': 0.3, 'abs_mean': 0.3, 'abs_p95': 0.39}
+    """
+    return {f"{float(p):.3f}": {"robots": int((start_phase == p).sum()), **spread(values[start_phase == p])}
+            for p in start_phase.unique()}
+
+
+def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bool = False) -> dict:
+    """The drift sources of one checkpoint in one case of the robust test (see the module docstring);
+    ``calm_start``: the robots start without the test's random joint and pelvis velocities."""
+    calm = {"start_joint_vel_std": 0.0, "start_base_vel_std": 0.0} if calm_start else {}
+    test = robust.RobustTestConfig(num_envs=num_envs, seconds=seconds, **calm)
+    _, _, env, agent = robust.checkpoint_case(path, case, "cpu", test)
+    freeze_running_statistics(env)  # as the test does: the policy as trained
+    dt = float(env.base_env.dt)
+    steps = policy_steps(seconds, dt)
+    marks = {round(s / dt): s for s in (*MARKS_S, seconds) if s <= seconds}  # and the case's end
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        start_y, start_phase = td["base_pos"][:, 1].clone(), td["phase"].reshape(-1).clone()
+        alive = torch.ones(num_envs, dtype=torch.bool)
+        turned, sideways = torch.zeros(num_envs), torch.zeros(num_envs)
+        y = start_y.clone()
+        at = {}
+        for k in range(1, steps + 1):
+            td = env.step(agent.actor(td))
+            nxt = td["next"]
+            v = robust.heading_frame_velocity(nxt["base_quat"], nxt["base_lin_vel"])
+            dt_turned, dt_sideways = lateral_parts(v, quat_to_rpy(nxt["base_quat"])[..., 2], dt)
+            # A fallen robot's displacement stays where it fell, as in the test's metrics.
+            turned += torch.where(alive, dt_turned, 0.0)
+            sideways += torch.where(alive, dt_sideways, 0.0)
+            y = torch.where(alive, nxt["base_pos"][:, 1], y)
+            alive &= ~nxt["done"].reshape(-1)
+            if k in marks:
+                at[f"{marks[k]:g} s"] = spread(y - start_y)
+            td = step_mdp(td)
+    lateral = y - start_y
+    return {"checkpoint": str(path), "case": case, "robots": num_envs, "seconds": seconds, "calm_start": calm_start,
+            "survival": round(float(alive.float().mean()), 4), "lateral_m": spread(lateral),
+            "lateral_m_at": at, "from_heading_m": spread(turned), "from_sideways_walk_m": spread(sideways),
+            "lateral_m_by_start_phase": by_start(lateral, start_phase)}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", nargs="+", required=True, type=Path, help="checkpoints (.pt) to test")
+    p.add_argument("--case", default="nominal", choices=tuple(robust.CASES), help="a case of the robust test")
+    p.add_argument("--num_envs", type=int, default=64, help="robots (the test asks 1,024 on a GPU)")
+    p.add_argument("--seconds", type=float, default=8.0, help="length of the case [s] (the test's: 8)")
+    p.add_argument("--calm_start", action="store_true",
+                   help="also each checkpoint with the robots starting still (no random start velocities): how much "
+                        "of the drift is the start's")
+    p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
+    args = p.parse_args(argv)
+    missing = [str(c) for c in args.checkpoint if not c.is_file()]
+    if missing:
+        p.error(f"no such checkpoint: {', '.join(missing)}")
+    if args.out is not None and args.out.exists():
+        p.error(f"{args.out} exists; pass another --out or remove it first")
+    results = []
+    for path, calm in [(c, calm) for c in args.checkpoint for calm in (False, True)[:1 + args.calm_start]]:
+        start = time.perf_counter()
+        r = measure(path, args.case, args.num_envs, args.seconds, calm)
+        print(f"{path}{' (calm start)' if calm else ''}: lateral {r['lateral_m']}, from the heading "
+              f"{r['from_heading_m']}, from walking sideways {r['from_sideways_walk_m']}, by start phase {r['lateral_m_by_start_phase']} "
+              f"({time.perf_counter() - start:.0f} s)", flush=True)
+        results.append(r)
+    if args.out is not None:
+        command = "PYTHONPATH=. python lab/analysis/drift_sources.py " + " ".join(
+            sys.argv[1:] if argv is None else argv)
+        atomic_write_text(args.out, json.dumps({"command": command, "results": results}, indent=2) + "\n")
+        print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
