@@ -18,6 +18,7 @@ runs with every helper here a no-op.
 from __future__ import annotations
 
 import contextlib
+import gc
 import os
 import sys
 import traceback
@@ -103,7 +104,8 @@ def init_distributed(info: DistInfo, device: torch.device, init_method: str | No
 def shutdown(info: DistInfo, code: int = 0) -> None:
     """End this rank's part after its last collective and its last output.
 
-    gloo (the CPU): the process group is destroyed and the call returns. NCCL: ``destroy_process_group``, and the
+    gloo (the CPU): after a barrier (exit status 0 only: on an error the peer may never come), the process group is
+    destroyed and the call returns. NCCL: ``destroy_process_group``, and the
     group's teardown at interpreter exit too, can wait for ever once CUDA graphs captured the group's collectives
     (pytorch/pytorch#115388); on an H100 pair it hung after the captured update's all-reduce. The trainer has closed
     its loggers and written its checkpoints atomically by then, so the process ends here, with exit status ``code``,
@@ -112,6 +114,12 @@ def shutdown(info: DistInfo, code: int = 0) -> None:
     if not info.enabled or not dist.is_initialized():
         return
     if "nccl" not in str(dist.get_backend()):  # also a mixed "cpu:gloo,cuda:nccl" group
+        if code == 0:
+            # Both ranks past their last collective before either tears down: a gloo rank that exited while its
+            # peer still had an operation open aborted at exit ("terminate called without an active exception") in
+            # a loaded test run. On an error the peer may never get here, so no barrier then.
+            dist.barrier()
+        gc.collect()  # whatever still holds the group only through a reference cycle goes while the group works
         dist.destroy_process_group()
         return
     for stream in (sys.stdout, sys.stderr):
