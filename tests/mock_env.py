@@ -66,6 +66,7 @@ class MockTocabiWalk(EnvBase):
         self._init_joint_pos = torch.as_tensor(robot.INIT_JOINT_POS, **f32)
         self._base_pos = torch.tensor([0.0, 0.0, 0.93], **f32)
         self._neck_pos = torch.tensor([0.0, 0.0, 1.5], **f32)
+        self._foot_pos = torch.tensor([[0.11, 0.125, 0.13], [0.11, -0.125, 0.13]], **f32)  # the reference's 0.25 m gap
         self._make_specs()
         self._reset(None)  # the simulator has a state from construction on, like the real env
 
@@ -122,7 +123,7 @@ class MockTocabiWalk(EnvBase):
         force = 100.0 * self._randn(2, 3)
         force[..., 2] = -600.0 * self._rand(2) - 50.0 * self._rand(2)
         init = self._init_joint_pos
-        return {
+        drawn = {
             "joint_pos": init + 0.1 * self._randn(robot.NUM_JOINTS),
             "joint_vel": self._randn(robot.NUM_JOINTS),
             "base_pos": self._base_pos + 0.05 * self._randn(3),
@@ -141,6 +142,8 @@ class MockTocabiWalk(EnvBase):
             "foot_contact": self._rand(2) < 0.6,
             "stance": torch.randint(0, 3, (n, 1), generator=self._gen, device=self.device),
         }
+        drawn["foot_pos"] = self._foot_pos + 0.05 * self._randn(2, 3)  # drawn last: the others keep their values
+        return drawn
 
     # -------------------------------------------------------------- EnvBase
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:

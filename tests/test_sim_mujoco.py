@@ -48,7 +48,8 @@ def test_views_have_the_warp_backends_shapes_and_dtypes(sim):
     shapes = {
         "qpos": (N, m.nq), "qvel": (N, m.nv), "ctrl": (N, m.nu), "sensordata": (N, m.nsensordata),
         "xpos": (N, m.nbody, 3), "xquat": (N, m.nbody, 4), "base_pos": (N, 3), "base_quat": (N, 4),
-        "neck_pos": (N, 3), "neck_quat": (N, 4), "foot_force": (N, 2, 3), "foot_torque": (N, 2, 3),
+        "neck_pos": (N, 3), "neck_quat": (N, 4), "foot_pos": (N, 2, 3), "foot_force": (N, 2, 3),
+        "foot_torque": (N, 2, 3),
         "contact_counts": (N, sim.contact_layout.count), "time": (N,), "applied_actuator_force": (N, m.nu),
     }
     for name, shape in shapes.items():
@@ -65,6 +66,9 @@ def test_views_have_the_warp_backends_shapes_and_dtypes(sim):
     assert torch.equal(sim.foot_force[:, 1], sim.sensordata[:, adr : adr + 3])
     base = mujoco.mj_name2id(sim.mj_model, mujoco.mjtObj.mjOBJ_BODY, robot.BASE_BODY)
     assert sim.base_pos.data_ptr() == sim.xpos[:, base].data_ptr()
+    left, right = (mujoco.mj_name2id(sim.mj_model, mujoco.mjtObj.mjOBJ_BODY, b) for b in robot.FOOT_BODIES)
+    assert torch.equal(sim.foot_pos, sim.xpos[:, [left, right]])
+    assert sim.foot_pos.data_ptr() == sim.xpos[:, left].data_ptr()  # a window: it follows every step
 
 
 def _forward_and_warm_start(m, d):

@@ -166,6 +166,7 @@ SIGNALS = SignalTable((
     Signal("base_ang_vel", (3,), _F32, "rad/s", "pelvis angular velocity in the pelvis frame (`qvel[3:6]`)"),
     Signal("neck_pos", (3,), _F32, "m", "`Neck_Link` origin in the world"),
     Signal("neck_quat", (4,), _F32, "", "`Neck_Link` orientation in the world, (w, x, y, z)"),
+    Signal("foot_pos", (2, 3), _F32, "m", "`Foot_Link` origins in the world, [left, right]"),
     Signal("foot_force", (2, 3), _F32, "N",
            "foot F/T sensor force in its site frame, [left, right]; z < 0 when loaded"),
     Signal("foot_torque", (2, 3), _F32, "N·m", "foot F/T sensor torque about the site, site frame, [left, right]"),

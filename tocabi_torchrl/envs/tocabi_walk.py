@@ -577,6 +577,7 @@ class TocabiWalk(EnvBase):
             "base_ang_vel": qvel[:, 3:6].clone(),
             "neck_pos": _finite(sim.neck_pos),
             "neck_quat": _finite(sim.neck_quat),
+            "foot_pos": _finite(sim.foot_pos),
             "foot_force": _finite(sim.foot_force),
             "foot_torque": _finite(sim.foot_torque),
             "foot_contact": sim.foot_contact.clone(),

@@ -52,6 +52,7 @@ SIM_TENSORS: tuple[SimTensor, ...] = (
     SimTensor("base_quat", ("N", 4), _F32, "pelvis orientation (w, x, y, z)"),
     SimTensor("neck_pos", ("N", 3), _F32, "Neck_Link origin [m]"),
     SimTensor("neck_quat", ("N", 4), _F32, "Neck_Link orientation (w, x, y, z)"),
+    SimTensor("foot_pos", ("N", 2, 3), _F32, "Foot_Link origins in the world [m], [left, right]"),
     SimTensor("foot_force", ("N", 2, 3), _F32, "foot F/T force, site frame [N], [left, right]"),
     SimTensor("foot_torque", ("N", 2, 3), _F32, "foot F/T torque, site frame [N·m], [left, right]"),
     SimTensor("contact_counts", ("N", "ncontact"), _F32, "contact-sensor counts (columns: contact_layout.names)"),
@@ -111,6 +112,7 @@ class SimBackend(Protocol):
     base_quat: torch.Tensor
     neck_pos: torch.Tensor
     neck_quat: torch.Tensor
+    foot_pos: torch.Tensor
     foot_force: torch.Tensor
     foot_torque: torch.Tensor
     contact_counts: torch.Tensor

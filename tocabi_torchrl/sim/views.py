@@ -68,6 +68,11 @@ class SimViews(abc.ABC):
 
         self._base_pos, self._base_quat = self._xpos[:, body(robot.BASE_BODY)], self._xquat[:, body(robot.BASE_BODY)]
         self._neck_pos, self._neck_quat = self._xpos[:, body(robot.NECK_BODY)], self._xquat[:, body(robot.NECK_BODY)]
+        left, right = (body(name) for name in robot.FOOT_BODIES)
+        if right <= left:
+            raise ValueError(f"bodies {robot.FOOT_BODIES} must appear left before right in the model to be viewed as "
+                             "one tensor")
+        self._foot_pos = self._xpos[:, left : right + 1 : right - left]  # (N, 2, 3), a strided window
         self._foot_force = self._sensor_pair(mj, robot.FOOT_FORCE_SENSORS)
         self._foot_torque = self._sensor_pair(mj, robot.FOOT_TORQUE_SENSORS)
         adr = self.contact_layout.adr
@@ -151,6 +156,7 @@ class SimViews(abc.ABC):
     base_quat = property(lambda self: self._base_quat, doc="(N, 4) pelvis orientation (w, x, y, z).")
     neck_pos = property(lambda self: self._neck_pos, doc="(N, 3) Neck_Link origin [m].")
     neck_quat = property(lambda self: self._neck_quat, doc="(N, 4) Neck_Link orientation (w, x, y, z).")
+    foot_pos = property(lambda self: self._foot_pos, doc="(N, 2, 3) Foot_Link origins in the world [m], [L, R].")
     foot_force = property(lambda self: self._foot_force, doc="(N, 2, 3) foot F/T force, site frame [N], [L, R].")
     foot_torque = property(lambda self: self._foot_torque, doc="(N, 2, 3) foot F/T torque, site frame [N·m].")
     foot_contact = property(lambda self: self._foot_contact, doc="(N, 2) bool foot-ground contact, [L, R].")

@@ -109,6 +109,7 @@ class WarpSim(SimViews):
     xpos / xquat               (N, nbody, 3/4)  body frame origins [m] / orientations (w, x, y, z) in the world
     base_pos / base_quat       (N, 3) / (N, 4)  ``robot.BASE_BODY`` pose (views of xpos / xquat)
     neck_pos / neck_quat       (N, 3) / (N, 4)  ``robot.NECK_BODY`` pose
+    foot_pos                   (N, 2, 3)        ``robot.FOOT_BODIES`` origins [m], world frame, [left, right]
     foot_force / foot_torque   (N, 2, 3)        foot F/T sensors [N] / [N·m], site frame, [left, right]
     contact_counts             (N, k)           the ``found`` counts of the contact sensors (see contact_layout)
     foot_contact               (N, 2) bool      a foot body touches a world-body geom, [left, right]
