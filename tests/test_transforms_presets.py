@@ -289,6 +289,58 @@ def test_the_heading_hold_term_rewards_facing_the_start_heading_and_is_off_by_de
             TransformSettings(**{name: bad}).validate()
 
 
+def test_the_foot_gap_term_pays_for_feet_apart_in_the_heading_frame_and_is_off_by_default():
+    import doctest
+
+    from tensordict import TensorDict
+
+    from tocabi_torchrl.transforms import reward_terms
+    from tocabi_torchrl.transforms.reward_terms import FootGap
+    from tocabi_torchrl.transforms.settings import REFERENCE_TERM_NAMES, TransformSettings
+
+    runner = doctest.DocTestRunner()
+    for test in doctest.DocTestFinder().find(FootGap, "FootGap", globs={"FootGap": FootGap}):
+        runner.run(test)
+    assert runner.summarize(verbose=False).failed == 0 and runner.tries >= 3
+    # In the env: the mock's feet sit 0.25 m apart (± noise) and its pelvis turns a little.
+    env = _env(reward_terms=(*REFERENCE_TERM_NAMES, FootGap(weight=0.2, min_gap=0.3)))
+    nxt = env.rollout(3)["next"]
+    feet, yaw = nxt["foot_pos"], nxt["base_rpy"][..., 2:3]
+    d = (feet[..., 0, 1:2] - feet[..., 1, 1:2]) * torch.cos(yaw) - (feet[..., 0, 0:1] - feet[..., 1, 0:1]) * torch.sin(
+        yaw)
+    expected = 0.2 * torch.exp(-((0.3 - d).clamp_min(0.0) / 0.05).square())
+    torch.testing.assert_close(nxt["reward_terms", "foot_gap"], expected)
+    assert (expected < 0.2).any()  # a min_gap above the mock's 0.25 m: the kernel is tested below its plateau
+    # The gap is measured across the heading: the same feet turned with the pelvis keep their value; crossed feet
+    # (the left one right of the right one) and feet side by side at the sole width get next to nothing.
+    term = FootGap(weight=1.0)
+    psi = torch.tensor(0.7)
+    turn = torch.tensor([[torch.cos(psi), -torch.sin(psi)], [torch.sin(psi), torch.cos(psi)]])
+    left, right = torch.tensor([0.05, 0.09]), torch.tensor([-0.05, -0.09])  # 0.18 m apart, facing +x
+    feet = torch.zeros(4, 2, 3)
+    feet[0, :, :2] = torch.stack([left, right])
+    feet[1, :, :2] = torch.stack([turn @ left, turn @ right])
+    feet[2, :, :2] = torch.stack([right, left])  # crossed
+    feet[3, :, 1] = torch.tensor([0.3, 0.0])  # 0.3 m apart: the full term
+    rpy = torch.zeros(4, 3)
+    rpy[1, 2] = psi
+    values = term(None, TensorDict({"foot_pos": feet, "base_rpy": rpy}, [4])).flatten()
+    torch.testing.assert_close(values[0], values[1])
+    assert values[3] == 1.0 and values[2] < 1e-6 and 0.8 < values[0] < 0.9  # 0.18 m: exp(-0.16)
+    # The run config: 0 (the default) adds no term; a weight adds it after the reference's 13 (and the heading term).
+    assert all(not isinstance(t, FootGap) for t in TransformSettings().transform_config().reward_terms)
+    settings = TransformSettings(heading_weight=0.3, foot_gap_weight=0.2, foot_gap_min=0.22)
+    terms = settings.transform_config().reward_terms
+    assert terms[:13] == REFERENCE_TERM_NAMES and terms[14] == FootGap(weight=0.2, min_gap=0.22)
+    for name, bad in (("foot_gap_weight", -0.1), ("foot_gap_weight", float("inf")), ("foot_gap_min", 0.0),
+                      ("foot_gap_min", "0.2"), ("foot_gap_weight", True)):
+        with pytest.raises(ValueError, match=f"transforms.{name} must be a finite number"):
+            TransformSettings(**{name: bad}).validate()
+    with pytest.raises(ValueError, match="min_gap"):
+        FootGap(weight=1.0, min_gap=-0.1)
+    assert "FootGap" in reward_terms.__all__
+
+
 def test_a_reward_scale_sharpens_its_term_and_bad_scales_are_named():
     from tocabi_torchrl.transforms.reward_terms import BodyVelTracking
     from tocabi_torchrl.transforms.settings import TransformSettings

@@ -50,6 +50,7 @@ __all__ = [
     "ForceThresholdPenalty",
     "ForceDiffThresholdPenalty",
     "HeadingHold",
+    "FootGap",
     "REFERENCE_TERMS",
     "reference_terms",
     "TaskReward",
@@ -76,7 +77,7 @@ __getattr__, __dir__ = lazy_names(globals(), {
     "settings": ("HISTORIES", "RewardWeights", "TransformConfig", "TransformSettings", "transform_config"),
     "reward": ("TaskReward",),
     "kick_relax_config": ("KICK_RELAX_TERMS", "KickRelax"),
-    "reward_terms": ("REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern", "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "HeadingHold", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm", "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
+    "reward_terms": ("REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern", "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "FootGap", "HeadingHold", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm", "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
     "sensor_noise": ("SensorNoise",),
     "sensor_noise_config": ("SensorNoiseConfig",),
 })

@@ -45,6 +45,7 @@ __all__ = [
     "ForceThresholdPenalty",
     "ForceDiffThresholdPenalty",
     "HeadingHold",
+    "FootGap",
     "REFERENCE_TERMS",
     "SIGNAL_SHAPES",
     "reference_terms",
@@ -199,6 +200,46 @@ class HeadingHold(RewardTerm):
 
     def kernel(self, td, next_td):
         return torch.exp(-self.scale * next_td.get("base_rpy")[..., 2:3].square())
+
+
+@dataclass
+class FootGap(RewardTerm):
+    """Not a reference term: ``weight · exp(-(max(min_gap − d, 0) / width)²)``, d the left foot's sideways offset
+    from the right [m] in the pelvis heading frame (the world's horizontal plane turned by the pelvis yaw ψ):
+    ``d = (p_L − p_R)·(−sin ψ, cos ψ)``, p = ``next["foot_pos"]`` (num_envs, 2, 3) the ``Foot_Link`` origins.
+
+    The task ends an episode when the feet touch (a self-collision, spec §9.1): the soles are 0.17 m wide and the
+    reference walk keeps them 0.25 m apart, so feet nearer than ~0.17 m side by side touch, and crossed feet have
+    d < 0. The termination alone pays for that only through the lost future; this term pays at every step for
+    keeping the feet apart, fully from ``min_gap`` on. The weight defaults to 0 (off); ``transforms.foot_gap_weight``
+    and ``transforms.foot_gap_min`` set it in the run config.
+
+    >>> import torch
+    >>> from tensordict import TensorDict
+    >>> feet = torch.tensor([[[0.0, 0.125, 0.1], [0.0, -0.125, 0.1]], [[0.0, 0.075, 0.1], [0.0, -0.075, 0.1]]])
+    >>> nxt = TensorDict({"foot_pos": feet, "base_rpy": torch.zeros(2, 3)}, [2])
+    >>> [round(k, 4) for k in FootGap(weight=1.0).kernel(None, nxt).squeeze(-1).tolist()]  # 0.25 m; 0.15 m: e^-1
+    [1.0, 0.3679]
+    """
+
+    name: str = "foot_gap"
+    weight: float = 0.0
+    min_gap: float = 0.2
+    width: float = 0.05
+    next_keys: tuple = field(default=("foot_pos", "base_rpy"), init=False, repr=False)
+
+    def __post_init__(self):
+        super().__post_init__()
+        self.min_gap = check_positive(self.min_gap, f"{self.name} min_gap [m]")
+        self.width = check_positive(self.width, f"{self.name} width [m]")
+
+    def kernel(self, td, next_td):
+        feet = next_td.get("foot_pos")
+        yaw = next_td.get("base_rpy")[..., 2:3]
+        apart = feet[..., 0, :2] - feet[..., 1, :2]  # left minus right, world horizontal plane
+        d = apart[..., 1:2] * torch.cos(yaw) - apart[..., 0:1] * torch.sin(yaw)
+        short = (self.min_gap - d).clamp_min(0.0) / self.width
+        return torch.exp(-short.square())
 
 
 @dataclass

@@ -214,6 +214,12 @@ class TransformSettings:
     [rad] (not a reference term: reward_terms.HeadingHold); 0: off"""
     heading_scale: float = 20.0
     """sharpness s of the heading-hold term [1/rad²] (20: a 0.1 rad turn costs 18 % of the term)"""
+    foot_gap_weight: float = 0.0
+    """weight w of the foot-gap term foot_gap, w·exp(-(max(g − d, 0)/0.05 m)²), d the feet's sideways distance in
+    the heading frame [m] (not a reference term: reward_terms.FootGap; touching feet end the episode); 0: off"""
+    foot_gap_min: float = 0.2
+    """distance g [m] from which the foot-gap term pays in full (the reference walk keeps 0.25 m; the 0.17 m wide
+    soles touch below ~0.17 m)"""
     kick_relax: KickRelax = field(default_factory=KickRelax)
     """reward terms (the reference gait's clocked joint positions, contacts and loads, and smoothness) scaled down
     for seconds after a kick (env.pushes) while the robot recovers; seconds 0: off"""
@@ -244,12 +250,15 @@ class TransformSettings:
                 self.body_vel_scale, (int, float)) or not 0 < self.body_vel_scale < math.inf):
             raise ValueError(f"transforms.body_vel_scale must be a finite number > 0 (s in exp(-s·‖v − cmd‖²), "
                              f"s²/m²) or none for the reference's 3.0, got {self.body_vel_scale!r}")
-        for name, low in (("heading_weight", "0 <="), ("heading_scale", "0 <")):
+        for name, low, term in (("heading_weight", "0 <=", "the heading-hold term w·exp(-s·ψ²)"),
+                                ("heading_scale", "0 <", "the heading-hold term w·exp(-s·ψ²)"),
+                                ("foot_gap_weight", "0 <=", "the foot-gap term w·exp(-(max(g − d, 0)/0.05)²)"),
+                                ("foot_gap_min", "0 <", "the foot-gap term's g [m]")):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not (
                     value >= 0 if low == "0 <=" else value > 0):
-                raise ValueError(f"transforms.{name} must be a finite number with {low} value (the heading-hold term "
-                                 f"w·exp(-s·ψ²)), got {value!r}")
+                raise ValueError(f"transforms.{name} must be a finite number with {low} value ({term}), got "
+                                 f"{value!r}")
 
     def transform_config(self, **overrides) -> TransformConfig:
         """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
@@ -266,9 +275,14 @@ class TransformSettings:
                       reward_weights=weights, max_episode_steps=None, sensor_noise=self.sensor_noise,
                       kick_relax=self.kick_relax,
                       reward_scales={} if self.body_vel_scale is None else {"body_vel": float(self.body_vel_scale)})
-        if self.heading_weight > 0:  # off adds no term, so a config without it computes what it always did
-            from tocabi_torchrl.transforms.reward_terms import HeadingHold  # torch: the tree itself reads without it
+        # A term that is off is not added, so a config without it computes what it always did.
+        extra = []
+        if self.heading_weight > 0 or self.foot_gap_weight > 0:
+            from tocabi_torchrl.transforms.reward_terms import FootGap, HeadingHold  # torch: the tree reads without
 
-            values["reward_terms"] = (*REFERENCE_TERM_NAMES, HeadingHold(weight=float(self.heading_weight),
-                                                                       scale=float(self.heading_scale)))
+            if self.heading_weight > 0:
+                extra.append(HeadingHold(weight=float(self.heading_weight), scale=float(self.heading_scale)))
+            if self.foot_gap_weight > 0:
+                extra.append(FootGap(weight=float(self.foot_gap_weight), min_gap=float(self.foot_gap_min)))
+            values["reward_terms"] = (*REFERENCE_TERM_NAMES, *extra)
         return transform_config(self.history, **{**values, **overrides})
