@@ -313,7 +313,7 @@ def test_the_foot_gap_term_pays_for_feet_apart_in_the_heading_frame_and_is_off_b
     assert (expected < 0.2).any()  # a min_gap above the mock's 0.25 m: the kernel is tested below its plateau
     # The gap is measured across the heading: the same feet turned with the pelvis keep their value; crossed feet
     # (the left one right of the right one) and feet side by side at the sole width get next to nothing.
-    term = FootGap(weight=1.0)
+    term = FootGap(weight=1.0, min_gap=0.2)
     psi = torch.tensor(0.7)
     turn = torch.tensor([[torch.cos(psi), -torch.sin(psi)], [torch.sin(psi), torch.cos(psi)]])
     left, right = torch.tensor([0.05, 0.09]), torch.tensor([-0.05, -0.09])  # 0.18 m apart, facing +x

@@ -208,23 +208,23 @@ class FootGap(RewardTerm):
     from the right [m] in the pelvis heading frame (the world's horizontal plane turned by the pelvis yaw ψ):
     ``d = (p_L − p_R)·(−sin ψ, cos ψ)``, p = ``next["foot_pos"]`` (num_envs, 2, 3) the ``Foot_Link`` origins.
 
-    The task ends an episode when the feet touch (a self-collision, spec §9.1): the soles are 0.17 m wide and the
-    reference walk keeps them 0.25 m apart, so feet nearer than ~0.17 m side by side touch, and crossed feet have
-    d < 0. The termination alone pays for that only through the lost future; this term pays at every step for
-    keeping the feet apart, fully from ``min_gap`` on. The weight defaults to 0 (off); ``transforms.foot_gap_weight``
-    and ``transforms.foot_gap_min`` set it in the run config.
+    The task ends an episode when the feet touch (a self-collision, spec §9.1). The reference walk keeps the origins
+    0.25 m apart; the soles are 0.17 m wide and sit 0.145 m below the origins, so tilted feet touch well before the
+    origins are 0.17 m apart, and crossed feet have d < 0. The termination alone pays for touching only through the
+    lost future; this term pays at every step for a margin, fully from ``min_gap`` on. The weight defaults to 0
+    (off); ``transforms.foot_gap_weight`` and ``transforms.foot_gap_min`` set it in the run config.
 
     >>> import torch
     >>> from tensordict import TensorDict
     >>> feet = torch.tensor([[[0.0, 0.125, 0.1], [0.0, -0.125, 0.1]], [[0.0, 0.075, 0.1], [0.0, -0.075, 0.1]]])
     >>> nxt = TensorDict({"foot_pos": feet, "base_rpy": torch.zeros(2, 3)}, [2])
-    >>> [round(k, 4) for k in FootGap(weight=1.0).kernel(None, nxt).squeeze(-1).tolist()]  # 0.25 m; 0.15 m: e^-1
-    [1.0, 0.3679]
+    >>> [round(k, 4) for k in FootGap(weight=1.0).kernel(None, nxt).squeeze(-1).tolist()]  # 0.25 m; 0.15 m: e^-3.24
+    [1.0, 0.0392]
     """
 
     name: str = "foot_gap"
     weight: float = 0.0
-    min_gap: float = 0.2
+    min_gap: float = 0.24
     width: float = 0.05
     next_keys: tuple = field(default=("foot_pos", "base_rpy"), init=False, repr=False)
 

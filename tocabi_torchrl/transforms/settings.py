@@ -217,9 +217,9 @@ class TransformSettings:
     foot_gap_weight: float = 0.0
     """weight w of the foot-gap term foot_gap, w·exp(-(max(g − d, 0)/0.05 m)²), d the feet's sideways distance in
     the heading frame [m] (not a reference term: reward_terms.FootGap; touching feet end the episode); 0: off"""
-    foot_gap_min: float = 0.2
-    """distance g [m] from which the foot-gap term pays in full (the reference walk keeps 0.25 m; the 0.17 m wide
-    soles touch below ~0.17 m)"""
+    foot_gap_min: float = 0.24
+    """distance g [m] between the Foot_Link origins from which the foot-gap term pays in full (the reference walk
+    keeps 0.25 m; the 0.17 m wide soles, 0.145 m below the origins, touch nearer than that when tilted)"""
     kick_relax: KickRelax = field(default_factory=KickRelax)
     """reward terms (the reference gait's clocked joint positions, contacts and loads, and smoothness) scaled down
     for seconds after a kick (env.pushes) while the robot recovers; seconds 0: off"""
