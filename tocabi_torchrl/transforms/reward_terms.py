@@ -211,7 +211,8 @@ class FootGap(RewardTerm):
     The task ends an episode when the feet touch (a self-collision, spec §9.1). The reference walk keeps the origins
     0.25 m apart; the soles are 0.17 m wide and sit 0.145 m below the origins, so tilted feet touch well before the
     origins are 0.17 m apart, and crossed feet have d < 0. The termination alone pays for touching only through the
-    lost future; this term pays at every step for a margin, fully from ``min_gap`` on. The weight defaults to 0
+    lost future; this term pays at every step for a margin, fully from ``min_gap`` on (the robots start standing
+    0.205 m apart, where the default pays 0.61 of it: a first step outwards earns the rest). The weight defaults to 0
     (off); ``transforms.foot_gap_weight`` and ``transforms.foot_gap_min`` set it in the run config.
 
     >>> import torch
