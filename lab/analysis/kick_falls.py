@@ -10,7 +10,8 @@ last kick before it. Directions are those of the kick's force in the world frame
 starts facing +x and the test's robots turn 0.03-0.6 rad, so "forward" is roughly the way the robot walks).
 
 Reports per checkpoint: survival, falls by the condition that ended them (:func:`note_first_flags`:
-``self_collision``, ``neck_tilt``, ...), those before any kick with their times, falls by the kick that preceded
+``self_collision``, ``neck_tilt``, ...), how far apart the feet were before the self-collisions (:func:`foot_gaps`),
+those before any kick with their times, falls by the kick that preceded
 them, the hazard of each kick (falls after it over the robots it met alive), falls by direction against the kicks per
 direction that met a standing robot, the hazard of a kick by the seconds since the robot's previous kick
 (:func:`hazard_by_gap`), and the fall delay after the kick (null when nothing fell); with ``--values``, the critic's
@@ -39,6 +40,7 @@ import torch
 
 from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.evaluation import robust
+from tocabi_torchrl.transforms.reward_terms import feet_apart_across_heading
 from tocabi_torchrl.value_rules import PUSH_KINDS
 
 SECTORS = ("forward (+x)", "left (+y)", "back (-x)", "right (-y)")
@@ -115,6 +117,35 @@ def value_around_kicks(values: torch.Tensor, kick_step: torch.Tensor, t_end: tor
             for name, rows in groups.items()}
 
 
+def foot_gaps(gap: torch.Tensor, t_end: torch.Tensor, dt: float, touched: list[int]) -> dict:
+    """The feet's distance across the heading [m] (``FootGap``'s d) around the falls that ended with the feet
+    touching: ``gap`` (N, T) per robot and policy step (the state each action was chosen in, the reset state first),
+    ``t_end`` (N,) each robot's fall time [s] (its alive seconds, the terminating step not counted; inf: it stood),
+    ``touched`` the robots whose fall was a self-collision. Reports d in the state each of those robots took its
+    last action in (one policy step before the feet touched), each standing robot's smallest d, and the quantiles
+    of d over every robot's states before its fall.
+
+    >>> g = torch.tensor([[0.30, 0.25, 0.20, 0.19], [0.30, 0.28, 0.26, 0.27]])
+    >>> r = foot_gaps(g, torch.tensor([0.03, math.inf]), 0.01, [0])  # robot 0's 4th step touched
+    >>> r["before_self_collision"], r["standing_min"]["p50"]
+    ([0.19], 0.26)
+    """
+    steps = gap.shape[1]
+    # States each robot acted in while alive: a fall after k alive steps came from the (k + 1)-th state.
+    seen = torch.where(torch.isinf(t_end), steps, (t_end / dt).round() + 1).long().clamp(1, steps)
+    alive_steps = torch.arange(steps).unsqueeze(0) < seen.unsqueeze(1)
+    before = [round(float(gap[i, int(seen[i]) - 1]), 3) for i in touched]
+    standing = torch.isinf(t_end)
+    smallest = gap.masked_fill(~alive_steps, math.inf).min(1).values[standing]
+    walking = gap[alive_steps]
+
+    def q(values: torch.Tensor, levels: dict) -> dict:
+        return {k: (round(float(values.quantile(v)), 3) if values.numel() else None) for k, v in levels.items()}
+
+    return {"before_self_collision": before, "standing_min": q(smallest, {"p5": 0.05, "p50": 0.5}),
+            "alive_steps": q(walking, {"p1": 0.01, "p5": 0.05, "p50": 0.5})}
+
+
 def note_first_flags(first: dict, flags: dict, step: int) -> None:
     """Note in ``first`` (robot index -> (step, condition)) each robot's first termination: the conditions of
     ``flags`` (name -> (N,) bool, as :func:`tocabi_torchrl.envs.termination.termination_flags` returns them, ``"any"``
@@ -163,11 +194,12 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
                                    seconds=seconds)
     state, cfg, env, agent = robust.checkpoint_case(path, case, "cpu", test, as_trained=as_trained)
     beta = env.base_env.assist_scale
-    pushes, schedule, critic_values = env.base_env.pushes, {}, []
+    pushes, schedule, critic_values, gaps = env.base_env.pushes, {}, [], []
 
     def actor(td):
         if not schedule:  # the reset drew every robot's kicks; they stay fixed for the case (no robot is reset)
             schedule["start"], schedule["force"] = pushes.start_step.clone(), pushes.force.clone()
+        gaps.append(feet_apart_across_heading(td["foot_pos"], td["base_rpy"][..., 2:3]).reshape(-1).clone())
         if values:  # the critic of the state the action is chosen in (a copy: the critic writes its output key)
             critic_values.append(agent.critic(td.clone())["state_value"].reshape(-1).clone())
         return agent.actor(td)
@@ -209,7 +241,9 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
         by_dir[sector(float(angle[i, j]))] += 1
         delays.append(t_end - float(kick_s[i, j]))
     delays_t = torch.tensor(delays, dtype=torch.float64)
-    extra = {}
+    extra = {"foot_gap_m": foot_gaps(torch.stack(gaps, 1), t_end_all, dt,
+                                     [i for i in range(num_envs) if first_flag.get(i, (0, ""))[1] == "self_collision"
+                                      and not bool(alive[i])])}
     if values:
         extra["critic_value_around_kicks"] = {
             "offsets_s": [o * dt for o in VALUE_OFFSETS], "gamma": float(cfg.ppo.gamma),

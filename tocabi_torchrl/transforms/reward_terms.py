@@ -46,6 +46,7 @@ __all__ = [
     "ForceDiffThresholdPenalty",
     "HeadingHold",
     "FootGap",
+    "feet_apart_across_heading",
     "REFERENCE_TERMS",
     "SIGNAL_SHAPES",
     "reference_terms",
@@ -235,12 +236,17 @@ class FootGap(RewardTerm):
         self.width = check_positive(self.width, f"{self.name} width [m]")
 
     def kernel(self, td, next_td):
-        feet = next_td.get("foot_pos")
-        yaw = next_td.get("base_rpy")[..., 2:3]
-        apart = feet[..., 0, :2] - feet[..., 1, :2]  # left minus right, world horizontal plane
-        d = apart[..., 1:2] * torch.cos(yaw) - apart[..., 0:1] * torch.sin(yaw)
+        d = feet_apart_across_heading(next_td.get("foot_pos"), next_td.get("base_rpy")[..., 2:3])
         short = (self.min_gap - d).clamp_min(0.0) / self.width
         return torch.exp(-short.square())
+
+
+def feet_apart_across_heading(foot_pos: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+    """(…, 1) [m] the left foot's offset from the right across the heading, ``(p_L − p_R)·(−sin ψ, cos ψ)``, from
+    ``foot_pos`` (…, 2, 3) [m] (world frame, [left, right]) and the pelvis yaw ``yaw`` (…, 1) [rad]; negative when
+    the feet are crossed (:class:`FootGap`)."""
+    apart = foot_pos[..., 0, :2] - foot_pos[..., 1, :2]  # left minus right, world horizontal plane
+    return apart[..., 1:2] * torch.cos(yaw) - apart[..., 0:1] * torch.sin(yaw)
 
 
 @dataclass
