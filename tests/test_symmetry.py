@@ -354,6 +354,44 @@ def test_the_loss_sees_the_doubled_mirrored_batch():
         torch.testing.assert_close(seen[key][16:], td[key], rtol=0, atol=0)
 
 
+def test_the_mirror_loss_measures_and_pulls_the_mean_action_towards_symmetry():
+    from tocabi_torchrl.rl.actors import gaussian_head, make_actor
+
+    g = torch.Generator().manual_seed(3)
+    torch.manual_seed(3)
+    pin = PolicyInputMirror(REFERENCE_HISTORY, loc=torch.tensor(REFERENCE_OBS_MEAN),
+                            scale=torch.tensor(REFERENCE_OBS_VAR).sqrt())
+    act = SignedPermutation(*action_mirror_map())
+    head = gaussian_head(make_actor(237, 13, hidden=(16,)))
+    td = _batch(32, g)
+    spy = _Spy()
+    spy.loss_mask_key = VALID_KEY
+    assert "loss_symmetry" not in SymmetryAugmentLoss(spy, pin, act, head).forward(td).keys()
+    loss = SymmetryAugmentLoss(spy, pin, act, head, mirror_loss=2.0)
+    with torch.no_grad():
+        gap = (head(pin(td["observation"]))[0] - act(head(td["observation"])[0])).square().mean(-1)
+    valid = td[VALID_KEY].reshape(-1)
+    assert not valid.all() and valid.any()
+    expected = 2.0 * gap[valid].mean()  # frames the PPO loss masks out are left out here too
+    first = loss(td)["loss_symmetry"]
+    torch.testing.assert_close(first, expected)
+    assert first > 0  # a random network is not symmetric
+    # Its gradient makes the policy more symmetric (the mirrored side moves, the target is held fixed).
+    opt = torch.optim.Adam(head.parameters(), lr=0.01)
+    for _ in range(30):
+        opt.zero_grad()
+        loss(td)["loss_symmetry"].backward()
+        opt.step()
+    assert loss(td)["loss_symmetry"] < 0.5 * first
+    with pytest.raises(ValueError, match="needs the actor's head"):
+        SymmetryAugmentLoss(spy, pin, act, mirror_loss=1.0)
+    with pytest.raises(ValueError, match="ppo.symmetry_loss > 0 works with ppo.symmetry='augment'"):
+        preset_config("torque", **{"ppo.symmetry_loss": 0.5})
+    with pytest.raises(ValueError, match="ppo.symmetry_loss must be a finite number"):
+        preset_config("robust", **{"ppo.symmetry_loss": -1.0})
+    assert preset_config("robust", **{"ppo.symmetry_loss": 0.5}).ppo.symmetry_loss == 0.5
+
+
 def test_every_mirror_buffer_lives_on_the_mirrors_device():
     # Nothing moves the loss module to the env's device: each buffer it makes must start where the mirrors are (a
     # CPU-made privileged map broke the first CUDA update). The meta device stands in for CUDA on a CPU machine.

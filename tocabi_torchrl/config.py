@@ -21,6 +21,7 @@ are the ``default`` preset, which is also what ``TocabiWalk()`` and ``make_env()
 from __future__ import annotations
 
 import difflib
+import math
 import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -138,6 +139,12 @@ class PPOConfig:
     symmetry: str = "none"
     """left-right symmetry: none, or augment (each mini-batch doubled with its mirror image: mirrored observations
     and actions, same advantages, value targets and old log-probabilities)"""
+    #: The augmentation acts through PPO's ratio, whose mirrored half is clipped away once the policy is a little
+    #: asymmetric at a small action σ (docs/training.md, "Left-right symmetry"). A mirror loss on the mean action acts
+    #: at any σ (rsl_rl's symmetry module offers both).
+    symmetry_loss: float = 0.0
+    """weight of the mirror loss (with symmetry augment): mean over mini-batch frames and actions of (μ(M·o) −
+    A·μ(o))², μ the policy's mean action, M and A the input and action mirrors; 0: off"""
     #: Asymmetric actor-critic (transforms/privileged.py): the critic also reads ``privileged``, 12 values of true
     #: state (pelvis velocities and height, foot loads, orientation) the policy does not see; the policy and its
     #: export are unchanged. The env gets a PrivilegedState transform.
@@ -265,6 +272,13 @@ class PPOConfig:
         if not 0 <= self.torque_assist <= 1 or self.assist_absorb < 0:
             raise ValueError(f"ppo.torque_assist must be in [0, 1] and ppo.assist_absorb >= 0, got "
                              f"{self.torque_assist!r}, {self.assist_absorb!r}")
+        if not (isinstance(self.symmetry_loss, (int, float)) and not isinstance(self.symmetry_loss, bool)
+                and 0 <= self.symmetry_loss < math.inf):
+            raise ValueError(f"ppo.symmetry_loss must be a finite number >= 0 (the mirror loss's weight), got "
+                             f"{self.symmetry_loss!r}")
+        if self.symmetry_loss > 0 and self.symmetry != "augment":
+            raise ValueError(f"ppo.symmetry_loss > 0 works with ppo.symmetry='augment' (whose mirrors it uses), got "
+                             f"ppo.symmetry={self.symmetry!r}: set both, or leave ppo.symmetry_loss at 0")
         if self.assist_pd_sensed and not self.torque_assist > 0:
             raise ValueError("ppo.assist_pd_sensed is about the torque assist's PD and needs ppo.torque_assist > 0; "
                              "leave it false without the assist")

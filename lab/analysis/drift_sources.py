@@ -129,7 +129,8 @@ def main(argv=None) -> int:
         start = time.perf_counter()
         r = measure(path, args.case, args.num_envs, args.seconds, calm)
         print(f"{path}{' (calm start)' if calm else ''}: lateral {r['lateral_m']}, from the heading "
-              f"{r['from_heading_m']}, from walking sideways {r['from_sideways_walk_m']}, by start phase {r['lateral_m_by_start_phase']} "
+              f"{r['from_heading_m']}, from walking sideways {r['from_sideways_walk_m']}, by start phase "
+              f"{r['lateral_m_by_start_phase']} "
               f"({time.perf_counter() - start:.0f} s)", flush=True)
         results.append(r)
     if args.out is not None:

@@ -257,15 +257,28 @@ class SymmetryAugmentLoss(nn.Module):
     are read from ``ClipPPOLoss._log_weight`` (TorchRL 0.14's per-frame log-ratio), wrapped on the instance; a loss
     without it keeps its own values.
 
+    That log-ratio also limits the augmentation: once the policy is a little asymmetric at a small action σ, every
+    mirrored frame lies outside PPO's clip and adds no gradient (docs/training.md, "Left-right symmetry"). With
+    ``mirror_loss`` > 0 the output also holds ``loss_symmetry = mirror_loss · mean((μ(M·o) − A·μ(o))²)`` over
+    the frames and actions, μ the policy's mean (``head``), each side pulled towards the other's mirror image
+    (rsl_rl's mirror loss, over the doubled batch): it acts at any σ.
+
     Args:
         ppo_loss: the PPO loss (``ClipPPOLoss``); ``in_keys`` is its own.
         obs_mirror: :class:`PolicyInputMirror` of the policy input.
         action_mirror: :class:`SignedPermutation` of the action (:func:`action_mirror_map`).
+        head: the actor's :class:`~tocabi_torchrl.rl.actors.GaussianHead` (shares its parameters), for the mirror
+            loss.
+        mirror_loss: the mirror loss's weight (0: no ``loss_symmetry``).
     """
 
-    def __init__(self, ppo_loss: nn.Module, obs_mirror: SignedPermutation, action_mirror: SignedPermutation):
+    def __init__(self, ppo_loss: nn.Module, obs_mirror: SignedPermutation, action_mirror: SignedPermutation,
+                 head: nn.Module | None = None, mirror_loss: float = 0.0):
         super().__init__()
+        if mirror_loss > 0 and head is None:
+            raise ValueError("SymmetryAugmentLoss: a mirror_loss > 0 needs the actor's head (its mean action)")
         self.ppo_loss, self.obs_mirror, self.action_mirror = ppo_loss, obs_mirror, action_mirror
+        self.head, self.mirror_loss = head, float(mirror_loss)
         p = action_mirror.perm
         # |sign| for the std, and the legs' map for the (N, 12) assist torque.
         self.register_buffer("_scale_perm", p.clone())
@@ -327,7 +340,27 @@ class SymmetryAugmentLoss(nn.Module):
             low, high = self.ppo_loss._clip_bounds
             out.set("kl_approx", kl_approx[:b].detach().mean())
             out.set("clip_fraction", (original.clamp(low, high) != original).to(original.dtype).mean())
+        if self.mirror_loss > 0:
+            out.set("loss_symmetry", self.mirror_loss * self._mirror_loss(td))
         return out
+
+    def _mirror_loss(self, td: TensorDictBase) -> torch.Tensor:
+        """mean((μ(M·o) − A·μ(o))²) over the frames the PPO loss keeps and every action. Each side is pulled towards
+        the other's mirror image, held fixed: the frame and its mirror image both act as the original, as in the
+        doubled batch (pulling only μ(M·o) let the weights it shares with μ(o) move μ(o) away)."""
+        obs = td["observation"]
+        loc, _ = self.head(obs)
+        loc_of_mirror, _ = self.head(self.obs_mirror(obs))
+        # A is a signed permutation: |μ(o) − A·μ(M·o)| = |A·μ(o) − μ(M·o)|, so the two halves have one value.
+        # NaN-free before squaring: a broken frame is masked below, but 0 × NaN would still reach the gradients.
+        gap_mirror = torch.nan_to_num(loc_of_mirror - self.action_mirror(loc).detach())
+        gap_original = torch.nan_to_num(loc - self.action_mirror(loc_of_mirror).detach())
+        per_frame = 0.5 * (gap_mirror.square() + gap_original.square()).mean(-1)
+        mask_key = self.loss_mask_key
+        if mask_key is not None and mask_key in td.keys():
+            valid = td[mask_key].reshape(per_frame.shape)
+            return torch.where(valid, per_frame, 0.0).sum() / valid.sum().clamp_min(1)
+        return per_frame.mean()
 
 
 def find_normalization(env) -> nn.Module | None:
@@ -368,13 +401,16 @@ def make_policy_input_mirror(env, transforms_config) -> PolicyInputMirror:
     return mirror
 
 
-def make_symmetry_loss(ppo_loss: nn.Module, env, transforms_config) -> SymmetryAugmentLoss:
-    """:class:`SymmetryAugmentLoss` around ``ppo_loss`` for ``env`` (see :func:`make_policy_input_mirror`)."""
+def make_symmetry_loss(ppo_loss: nn.Module, env, transforms_config, head: nn.Module | None = None,
+                       mirror_loss: float = 0.0) -> SymmetryAugmentLoss:
+    """:class:`SymmetryAugmentLoss` around ``ppo_loss`` for ``env`` (see :func:`make_policy_input_mirror`), with the
+    mirror loss of weight ``mirror_loss`` on ``head``'s mean action when > 0."""
     action_dim = env.action_spec.shape[-1]
     if action_dim != ACTION_DIM:
         raise ValueError(f"ppo.symmetry needs TOCABI's {ACTION_DIM} actions (12 legs + phase rate), got {action_dim}")
     action_mirror = SignedPermutation(*action_mirror_map()).to(env.device)
-    return SymmetryAugmentLoss(ppo_loss, make_policy_input_mirror(env, transforms_config), action_mirror)
+    return SymmetryAugmentLoss(ppo_loss, make_policy_input_mirror(env, transforms_config), action_mirror, head,
+                               mirror_loss)
 
 
 def refresh_statistics(loss: SymmetryAugmentLoss, env) -> None:

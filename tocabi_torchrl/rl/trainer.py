@@ -303,7 +303,8 @@ def make_loss(cfg: RunConfig, agent: Agent, env: EnvBase | None = None,
             raise ValueError("ppo.symmetry='augment' mirrors the policy input by the env's layout and normaliser: "
                              "pass the training env to make_loss")
         # Inside the assist's loss: its absorbing term copies the teacher on the rollout's own frames only.
-        loss_module = make_symmetry_loss(loss_module, env, cfg.transforms.transform_config())
+        loss_module = make_symmetry_loss(loss_module, env, cfg.transforms.transform_config(),
+                                         gaussian_head(agent.actor), ppo.symmetry_loss)
     if cfg.ppo.torque_assist > 0:
         loss_module = AssistAbsorbLoss(loss_module, gaussian_head(agent.actor), robot.LEG_TORQUE_LIMITS,
                                        teacher=agent.teacher)

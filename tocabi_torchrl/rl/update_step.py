@@ -25,7 +25,7 @@ __all__ = ["MinibatchStep", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_ada
 #: The loss outputs averaged into the update's log line, in this order.
 STAT_KEYS = ("loss_objective", "loss_critic", "kl_approx", "clip_fraction")
 #: Further loss outputs logged when the loss module returns them (after :data:`STAT_KEYS`).
-EXTRA_STAT_KEYS = ("loss_absorb",)
+EXTRA_STAT_KEYS = ("loss_absorb", "loss_symmetry")
 
 
 def make_capturable_adam(param_groups: list[dict], eps: float, device: torch.device) -> torch.optim.Adam:
