@@ -20,19 +20,18 @@ on 2 cores)::
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 import time
 from pathlib import Path
 
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.evaluation import robust
 from tocabi_torchrl.evaluation.record import policy_steps
 from tocabi_torchrl.rotations import quat_to_rpy
 from tocabi_torchrl.transforms.normalize import freeze_running_statistics
+
+from lab.analysis.reports import check_paths, write_report
 
 #: Times [s] at which the displacement is read (the test's case lasts 8 s).
 MARKS_S = (0.5, 1.0, 2.0, 4.0, 8.0)
@@ -119,11 +118,7 @@ def main(argv=None) -> int:
                         "of the drift is the start's")
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
     args = p.parse_args(argv)
-    missing = [str(c) for c in args.checkpoint if not c.is_file()]
-    if missing:
-        p.error(f"no such checkpoint: {', '.join(missing)}")
-    if args.out is not None and args.out.exists():
-        p.error(f"{args.out} exists; pass another --out or remove it first")
+    check_paths(p, args.checkpoint, args.out)
     results = []
     for path, calm in [(c, calm) for c in args.checkpoint for calm in (False, True)[:1 + args.calm_start]]:
         start = time.perf_counter()
@@ -134,10 +129,7 @@ def main(argv=None) -> int:
               f"({time.perf_counter() - start:.0f} s)", flush=True)
         results.append(r)
     if args.out is not None:
-        command = "PYTHONPATH=. python lab/analysis/drift_sources.py " + " ".join(
-            sys.argv[1:] if argv is None else argv)
-        atomic_write_text(args.out, json.dumps({"command": command, "results": results}, indent=2) + "\n")
-        print(f"wrote {args.out}")
+        write_report(args.out, "lab/analysis/drift_sources.py", argv, results)
     return 0
 
 

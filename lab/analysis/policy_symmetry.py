@@ -20,8 +20,6 @@ Wrote docs/training/robust/h200_run8/policy_symmetry.json (about 40 s per checkp
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 import time
 from pathlib import Path
 
@@ -29,12 +27,13 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from tocabi_torchrl import robot
-from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.evaluation import robust
 from tocabi_torchrl.evaluation.record import policy_steps
 from tocabi_torchrl.rl.actors import gaussian_head
 from tocabi_torchrl.rl.symmetry import SignedPermutation, action_mirror_map, make_policy_input_mirror
 from tocabi_torchrl.transforms.normalize import freeze_running_statistics
+
+from lab.analysis.reports import check_paths, write_report
 
 LEGS = robot.NUM_LEG_JOINTS
 
@@ -103,11 +102,7 @@ def main(argv=None) -> int:
     p.add_argument("--seconds", type=float, default=2.0, help="length of the rollout [s]")
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
     args = p.parse_args(argv)
-    missing = [str(c) for c in args.checkpoint if not c.is_file()]
-    if missing:
-        p.error(f"no such checkpoint: {', '.join(missing)}")
-    if args.out is not None and args.out.exists():
-        p.error(f"{args.out} exists; pass another --out or remove it first")
+    check_paths(p, args.checkpoint, args.out)
     results = []
     for path in args.checkpoint:
         start = time.perf_counter()
@@ -117,10 +112,7 @@ def main(argv=None) -> int:
               f"{r['mirrored_frames_within_clip']:.3f} ({time.perf_counter() - start:.0f} s)", flush=True)
         results.append(r)
     if args.out is not None:
-        command = "PYTHONPATH=. python lab/analysis/policy_symmetry.py " + " ".join(
-            sys.argv[1:] if argv is None else argv)
-        atomic_write_text(args.out, json.dumps({"command": command, "results": results}, indent=2) + "\n")
-        print(f"wrote {args.out}")
+        write_report(args.out, "lab/analysis/policy_symmetry.py", argv, results)
     return 0
 
 
