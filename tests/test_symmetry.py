@@ -387,8 +387,9 @@ def test_the_mirror_loss_measures_and_pulls_the_mean_action_towards_symmetry():
         SymmetryAugmentLoss(spy, pin, act, mirror_loss=1.0)
     with pytest.raises(ValueError, match="ppo.symmetry_loss > 0 works with ppo.symmetry='augment'"):
         preset_config("torque", **{"ppo.symmetry_loss": 0.5})
-    with pytest.raises(ValueError, match="ppo.symmetry_loss must be a finite number"):
-        preset_config("robust", **{"ppo.symmetry_loss": -1.0})
+    for bad in (-1.0, float("inf"), True):
+        with pytest.raises(ValueError, match="ppo.symmetry_loss must be"):
+            preset_config("robust", **{"ppo.symmetry_loss": bad})
     assert preset_config("robust", **{"ppo.symmetry_loss": 0.5}).ppo.symmetry_loss == 0.5
 
 

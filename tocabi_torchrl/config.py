@@ -21,7 +21,6 @@ are the ``default`` preset, which is also what ``TocabiWalk()`` and ``make_env()
 from __future__ import annotations
 
 import difflib
-import math
 import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -272,10 +271,6 @@ class PPOConfig:
         if not 0 <= self.torque_assist <= 1 or self.assist_absorb < 0:
             raise ValueError(f"ppo.torque_assist must be in [0, 1] and ppo.assist_absorb >= 0, got "
                              f"{self.torque_assist!r}, {self.assist_absorb!r}")
-        if not (isinstance(self.symmetry_loss, (int, float)) and not isinstance(self.symmetry_loss, bool)
-                and 0 <= self.symmetry_loss < math.inf):
-            raise ValueError(f"ppo.symmetry_loss must be a finite number >= 0 (the mirror loss's weight), got "
-                             f"{self.symmetry_loss!r}")
         if self.symmetry_loss > 0 and self.symmetry != "augment":
             raise ValueError(f"ppo.symmetry_loss > 0 works with ppo.symmetry='augment' (whose mirrors it uses), got "
                              f"ppo.symmetry={self.symmetry!r}: set both, or leave ppo.symmetry_loss at 0")
@@ -288,7 +283,7 @@ class PPOConfig:
         if self.grad_sync == "ddp" and self.update_graph:
             raise ValueError("ppo.grad_sync=ddp runs the update step eagerly (DDP's gradient hooks cannot be captured "
                              "in a CUDA graph): set ppo.update_graph=false as well")
-        for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "value_out_gain"):
+        for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "value_out_gain", "symmetry_loss"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"ppo.{name} must be >= 0, got {getattr(self, name)!r}")
         if self.std_mode == "scheduled" and not 0 <= self.std_hold < 1:

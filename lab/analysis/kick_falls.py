@@ -220,7 +220,7 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
     after = [0] * count  # falls whose last kick before them was kick j
     by_dir = {s: 0 for s in SECTORS}
     met_dir = {s: 0 for s in SECTORS}  # kicks per direction that came while their robot stood
-    delays, before_any_s, reasons, before_reasons = [], [], Counter(), Counter()
+    delays, before_any_s, reasons, before_reasons, touched = [], [], Counter(), Counter(), []
     for i in range(num_envs):
         t_end = float(t_end_all[i])
         for j in range(count):
@@ -231,6 +231,8 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
             continue
         reason = first_flag.get(i, (0, "unknown"))[1]
         reasons[reason] += 1
+        if reason == "self_collision":
+            touched.append(i)
         prior = [j for j in range(count) if float(kick_s[i, j]) <= t_end]
         if not prior:
             before_any_s.append(round(t_end, 3))
@@ -241,9 +243,7 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
         by_dir[sector(float(angle[i, j]))] += 1
         delays.append(t_end - float(kick_s[i, j]))
     delays_t = torch.tensor(delays, dtype=torch.float64)
-    extra = {"foot_gap_m": foot_gaps(torch.stack(gaps, 1), t_end_all, dt,
-                                     [i for i in range(num_envs) if first_flag.get(i, (0, ""))[1] == "self_collision"
-                                      and not bool(alive[i])])}
+    extra = {"foot_gap_m": foot_gaps(torch.stack(gaps, 1), t_end_all, dt, touched)}
     if values:
         extra["critic_value_around_kicks"] = {
             "offsets_s": [o * dt for o in VALUE_OFFSETS], "gamma": float(cfg.ppo.gamma),

@@ -30,6 +30,7 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from .. import robot
+from .rollout_guard import mean_over_valid
 
 # What the absorbing loss copies into the actor (see the module docstring): a config value, defined with the config
 # tree (which reads without torch) and named here too.
@@ -214,11 +215,5 @@ class AssistAbsorbLoss(nn.Module):
         scale = torch.nan_to_num(td["scale"][..., :legs], nan=1.0).clamp_min(1e-6)
         kl = 0.5 * ((loc[..., :legs] - target) / scale).pow(2).sum(-1)
         # Frames the rollout guard marked unusable (a faulted world) pull the actor nowhere, as in the PPO terms.
-        mask_key = getattr(self.ppo_loss, "loss_mask_key", None)
-        if mask_key is not None and mask_key in td.keys():
-            valid = td[mask_key].reshape(kl.shape)
-            kl = torch.where(valid, kl, 0.0).sum() / valid.sum().clamp_min(1)
-        else:
-            kl = kl.mean()
-        out["loss_absorb"] = self.weight * kl
+        out["loss_absorb"] = self.weight * mean_over_valid(kl, td, getattr(self.ppo_loss, "loss_mask_key", None))
         return out

@@ -22,13 +22,23 @@ import math
 import torch
 from tensordict import TensorDictBase
 
-__all__ = ["VALID_KEY", "MAX_SAMPLE_Z", "guard_rollout"]
+__all__ = ["VALID_KEY", "MAX_SAMPLE_Z", "guard_rollout", "mean_over_valid"]
 
 #: Key of the (…, 1) bool mask of usable frames written by :func:`guard_rollout`.
 VALID_KEY = "frame_valid"
 #: A stored action further than this many standard deviations from the stored mean is no sample of the stored
 #: Gaussian (probability far below 1e-500): it came from a fault, not from the policy's distribution.
 MAX_SAMPLE_Z = 50.0
+
+
+def mean_over_valid(values: torch.Tensor, td: TensorDictBase, mask_key: str | None) -> torch.Tensor:
+    """The mean of the per-frame ``values`` (B,) over the frames of ``td`` (B,) its ``mask_key`` marks usable (the
+    PPO loss's ``loss_mask_key``, :data:`VALID_KEY`), so that an extra loss term leaves out the frames the PPO terms
+    leave out; the plain mean without a mask. ``values`` must already be finite (0 × NaN is NaN)."""
+    if mask_key is None or mask_key not in td.keys():
+        return values.mean()
+    valid = td[mask_key].reshape(values.shape)
+    return torch.where(valid, values, 0.0).sum() / valid.sum().clamp_min(1)
 
 
 def _finite_rows(x: torch.Tensor, event_dims: int) -> torch.Tensor:

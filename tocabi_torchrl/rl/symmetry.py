@@ -40,6 +40,7 @@ from .. import robot
 from ..config import SYMMETRY_MODES
 from ..transforms.layouts import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT, HistoryLayout, ObsComponent
 from ..transforms.privileged import PRIVILEGED_MIRROR
+from .rollout_guard import mean_over_valid
 
 __all__ = ["SYMMETRY_MODES", "ACTION_DIM", "obs_step_mirror_map", "action_mirror_map", "policy_input_mirror_map",
            "SignedPermutation", "PolicyInputMirror", "mirror_qpos", "mirror_qvel", "SymmetryAugmentLoss",
@@ -356,11 +357,7 @@ class SymmetryAugmentLoss(nn.Module):
         gap_mirror = torch.nan_to_num(loc_of_mirror - self.action_mirror(loc).detach())
         gap_original = torch.nan_to_num(loc - self.action_mirror(loc_of_mirror).detach())
         per_frame = 0.5 * (gap_mirror.square() + gap_original.square()).mean(-1)
-        mask_key = self.loss_mask_key
-        if mask_key is not None and mask_key in td.keys():
-            valid = td[mask_key].reshape(per_frame.shape)
-            return torch.where(valid, per_frame, 0.0).sum() / valid.sum().clamp_min(1)
-        return per_frame.mean()
+        return mean_over_valid(per_frame, td, self.loss_mask_key)
 
 
 def find_normalization(env) -> nn.Module | None:
