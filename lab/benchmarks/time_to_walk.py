@@ -174,15 +174,25 @@ def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
     """The robust gait test of one wall-clock checkpoint into ``evals[ckpt.stem]``; ``envs`` keeps the cases' envs
     across checkpoints."""
     from tocabi_torchrl.evaluation.gait_test import summary_json
-    from tocabi_torchrl.evaluation.robust import RobustTestConfig, evaluate_robust_checkpoint
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, evaluate_robust_checkpoint, robust_passes
 
     state = common.read_checkpoint(ckpt)
-    test = RobustTestConfig(num_envs=args.num_envs or ROBUST_ENVS, seconds=args.seconds)
-    report = evaluate_robust_checkpoint(state, ckpt, ckpt.parent.parent / "eval" / ckpt.stem / "robust", test=test,
-                                        device=args.device, envs=envs, progress=False)
+    if args.reports:
+        report = _load(Path(args.reports) / ckpt.stem / "robust.json")
+        if not report:
+            print(f"{ckpt.stem}: no {Path(args.reports) / ckpt.stem / 'robust.json'}; left out", flush=True)
+            return
+        if report.get("test") != "robust" or not isinstance(report.get("cases"), dict):
+            raise ValueError(f"{args.reports}/{ckpt.stem}/robust.json is not a robust gait test report")
+        device = report.get("tested_on", "?")
+    else:
+        test = RobustTestConfig(num_envs=args.num_envs or ROBUST_ENVS, seconds=args.seconds)
+        report = evaluate_robust_checkpoint(state, ckpt, ckpt.parent.parent / "eval" / ckpt.stem / "robust",
+                                            test=test, device=args.device, envs=envs, progress=False)
+        device = tested_on(args.device)
     entry = {"train_seconds": state["train_seconds"], "env_steps": state["env_steps"], "iteration": state["iteration"],
-             "device": tested_on(args.device), "test": "robust", "settings": report["settings"],
-             "cases": json.loads(summary_json(report["cases"])), "walks": bool(report["passes"])}
+             "device": device, "test": "robust", "settings": report["settings"],
+             "cases": json.loads(summary_json(report["cases"])), "walks": robust_passes(report)}
     evals[ckpt.stem] = entry
     cases = ", ".join(f"{name} {c['survival']:.3f}" for name, c in entry["cases"].items())
     print(f"{ckpt.stem}: {entry['train_seconds'] / 60:5.1f} min, {entry['env_steps'] / 1e6:6.1f} M steps: robust test "
@@ -360,6 +370,10 @@ def main(argv=None) -> None:
     e.add_argument("--follow_pid", type=int, default=0, help="keep evaluating while this process (the trainer) runs")
     e.add_argument("--from_minutes", type=float, default=0.0,
                    help="test only the checkpoints of this training minute and later (default: all)")
+    e.add_argument("--reports", default=None, metavar="DIR",
+                   help="with --test robust: read each checkpoint's results from DIR/<checkpoint>/robust.json (as "
+                        "lab.benchmarks.robust_policies --out DIR writes them) instead of testing it again; "
+                        "checkpoints without one are left out")
     r = sub.add_parser("report", help="tables and plots from the runs' train.json and evals.json")
     r.add_argument("--runs", nargs="+", required=True, help="run folders holding train.json / evals.json")
     r.add_argument("--curves", nargs="*", default=[],
@@ -369,7 +383,11 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.part == "train" and not 0 < args.minutes < math.inf:  # the config reads max_minutes 0 as no time limit
         parser.error(f"--minutes must be a positive number of training minutes, got {args.minutes}")
-    if args.part != "report" and args.device.startswith("cuda"):
+    if getattr(args, "reports", None) and args.test != "robust":
+        parser.error("--reports reads robust gait test reports: pass --test robust with it")
+    if getattr(args, "reports", None) and not Path(args.reports).is_dir():
+        parser.error(f"--reports {args.reports}: no such folder (the --out of lab.benchmarks.robust_policies)")
+    if args.part != "report" and args.device.startswith("cuda") and not getattr(args, "reports", None):
         import torch
 
         if not torch.cuda.is_available():  # said here, not as a traceback from deep inside the env build

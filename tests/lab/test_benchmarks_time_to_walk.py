@@ -7,6 +7,7 @@ import functools
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from types import SimpleNamespace
@@ -72,6 +73,30 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
     assert record["time_to_walk"] is None and "| cpu_smoke | cpu | not within" in text
     assert "| no | cpu |" in text  # each checkpoint's row says where it was tested
     assert (tmp_path / "d/time_to_walk.png").is_file() and (tmp_path / "d/time_to_walk_curves.png").is_file()
+    # The robust test's results of a GPU run (lab.benchmarks.robust_policies --out DIR) read in, not re-tested:
+    # the verdict re-checked from the values (a report's own "passes" is not trusted), the GPU's name kept, a
+    # checkpoint without a report left out, and --reports refused without --test robust.
+    reports = tmp_path / "verdict"
+    cases = {"nominal": {"survival": 1.0, "forward_distance_m": {"mean": 4.0}, "lateral_drift_m": {"p95": 0.29}},
+             "commands": {"survival": 1.0, "tracking_error_mps": {"mean": 0.1}},
+             "robust_0.5": {"survival": 0.99}, "robust_1.0": {"survival": 0.9}}
+    drifting = {**cases, "nominal": {**cases["nominal"], "lateral_drift_m": {"p95": 0.31}}}
+    later = "wall_09999s"  # a second mark: the first's checkpoint under a later name
+    shutil.copy(folder / "checkpoints" / f"{walls[0]}.pt", folder / "checkpoints" / f"{later}.pt")
+    for stem, its_cases in ((walls[0], cases), (later, drifting)):
+        (reports / stem).mkdir(parents=True)
+        (reports / stem / "robust.json").write_text(json.dumps(
+            {"test": "robust", "passes": True, "tested_on": "NVIDIA H200", "settings": {"num_envs": 1024},
+             "cases": its_cases}))
+    text = run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(reports))
+    robust = json.loads((folder / "evals_robust.json").read_text())
+    assert {k: (e["walks"], e["device"]) for k, e in robust["evaluations"].items()} == \
+        {walls[0]: (True, "NVIDIA H200"), later: (False, "NVIDIA H200")}
+    assert all(f"{w}: no " in text for w in walls[1:])
+    assert robust["time_to_walk"]["iteration"] == robust["evaluations"][walls[0]]["iteration"]
+    with pytest.raises(SystemExit) as stop:
+        time_to_walk.main(["eval", "--preset", "cpu_smoke", "--device", "cpu", "--reports", str(reports)])
+    assert stop.value.code == 2 and "pass --test robust with it" in capsys.readouterr().err
 
 
 def test_time_to_walk_names_the_gpu_of_any_cuda_device_string(monkeypatch):
