@@ -189,6 +189,22 @@ def test_shipped_policies_hold_the_current_tree(policy):
         assert cfg.env.control.pd_kp == pytest.approx(tuple(robot.LEG_KP))
 
 
+def test_the_shipped_robust_policy_was_trained_with_the_committed_robust_preset():
+    # A policy "walks" only from a from-scratch run of the committed preset: a preset changed since must be re-run
+    # (and the policy re-shipped), not left claiming the old run's verdict.
+    path = ASSETS / "tocabi_walk_robust.pt"
+    if not path.is_file():
+        pytest.skip("shipped policy not present")
+    from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint
+
+    state = read_checkpoint(path)
+    trained, preset = config_from_checkpoint(state, path), preset_config("robust")
+    assert to_dict(trained) == state["config"]
+    for section in ("env", "transforms", "ppo"):
+        assert to_dict(getattr(trained, section)) == to_dict(getattr(preset, section)), section
+    assert state["env_steps"] < trained.total_env_steps and state["train_seconds"] <= 30 * 60
+
+
 def test_a_tree_saved_before_the_renames_reads_by_the_new_names():
     # Checkpoints and config.json of schema 2 hold the history layout as transforms.preset and the weights as
     # "term=weight" entries: the loader's one rename step reads them.

@@ -24,7 +24,7 @@ from tocabi_torchrl.evaluation.gait_test import _fixed_command
 from tocabi_torchrl.runtime import load_contract
 from tocabi_torchrl.transforms import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT
 
-POLICIES = ("ppo", "torque")
+POLICIES = ("ppo", "torque", "robust")
 
 
 def _policy_file(name: str, suffix: str):
