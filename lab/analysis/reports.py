@@ -21,9 +21,11 @@ def check_paths(parser: argparse.ArgumentParser, checkpoints: Sequence[Path], ou
         parser.error(f"{out} exists; pass another --out or remove it first")
 
 
-def write_report(out: Path, script: str, argv: Sequence[str] | None, results: list) -> None:
-    """Write ``{"command", "results"}`` to ``out`` atomically; the command is ``script`` (its path from the project
-    root) run with ``argv`` (the process's own arguments when None)."""
+def write_report(out: Path, script: str, argv: Sequence[str] | None, results: list, meta: dict | None = None) -> None:
+    """Write ``{"command", "results"}`` (and ``"meta"`` when given: date, hardware, versions) to ``out`` atomically;
+    the command is ``script`` (its path from the project root) run with ``argv`` (the process's own arguments when
+    None)."""
     command = f"PYTHONPATH=. python {script} " + " ".join(sys.argv[1:] if argv is None else argv)
-    atomic_write_text(out, json.dumps({"command": command, "results": results}, indent=2) + "\n")
+    report = {"command": command, **({"meta": meta} if meta else {}), "results": results}
+    atomic_write_text(out, json.dumps(report, indent=2) + "\n")
     print(f"wrote {out}")

@@ -216,7 +216,8 @@ def randomization(docs: Path) -> list[str]:
     return ["## The cost of randomisation in training", "", *latest, *(earlier if latest else []), *rows, "",
             f"- command: `{d['results'][-1]['command']}` (each row's own in the report)",
             f"- date: {m['date']}; hardware: {m['gpu']}, {m['num_envs']:,} envs; report: "
-            "[train_throughput.json](benchmarks/randomization/train_throughput.json)", "", *step_ops(docs)]
+            "[train_throughput.json](benchmarks/randomization/train_throughput.json)", "", *step_ops(docs), "",
+            *substep_iterations(docs)]
 
 
 RANDOMIZATION_COST = "benchmarks/randomization/randomization_cost.json"
@@ -271,6 +272,23 @@ def step_ops(docs: Path) -> list[str]:
             f"- command: `{m['command']}`; code {m['code']}{also}",
             f"- date: {m['date']}; hardware: {m['hardware']}, {m['num_envs']} envs, torch {m['torch']}; report: "
             "[step_ops.json](benchmarks/randomization/step_ops.json)"]
+
+
+def substep_iterations(docs: Path) -> list[str]:
+    d = _load("benchmarks/randomization/substep_iterations.json", docs)
+    m = d["meta"]
+    rows = ["| leg actuators | solver iterations per period, each robot's own | lockstep (most of any robot, per "
+            "substep) |", "|---|---:|---:|"]
+    rows += [f"| {r['variant']} ({r['delay_substeps'][0]}-{r['delay_substeps'][1]} substeps) | "
+             f"{r['own_per_period']:.1f} | {r['lockstep_per_period']:.1f} |" for r in d["results"]]
+    return ["What likely makes the actuators cost physics time: a torque change makes the substep it lands in solve "
+            "longer. Without a delay every robot's lands in substep 0; the delay spreads them over all substeps, and "
+            "mujoco-warp iterates a substep's worlds until the slowest converges. Measured with C MuJoCo standing in "
+            "for mujoco-warp (the GPU's per-substep counts are not measured yet), robots driven by the shipped robust "
+            f"policy, {m['num_robots']} robots, {m['seconds']:g} s:", "", *rows, "",
+            f"- command: `{d['command']}`",
+            f"- date: {m['date']}; hardware: {m['hardware']}; report: "
+            "[substep_iterations.json](benchmarks/randomization/substep_iterations.json)"]
 
 
 def solver_load(docs: Path) -> list[str]:

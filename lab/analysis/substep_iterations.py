@@ -1,0 +1,119 @@
+"""Solver iterations per physics substep when the leg actuators' delay spreads the torque changes over a control
+period: C MuJoCo robots driven by an exported policy through the torch-free runtime (``recipes/sim2sim.py``'s
+driver), the delay off, of one whole control period, and the TOCABI lab's 4-20 substeps.
+
+Each substep's Newton solve starts from the previous substep's acceleration, which a jump in the commanded torque
+makes stale, so the substep a jump lands in takes more iterations. Without a delay every robot's torque jumps at
+substep 0 of each period; with a delay of k substeps at substep k mod S, which differs from robot to robot.
+mujoco-warp iterates all worlds of a substep until the slowest has converged, so a GPU pays, per substep, about the
+most iterations any world needs: the ``lockstep`` count below (the maximum over robots, summed over a period's
+substeps), beside each robot's ``own``. C MuJoCo stands in for mujoco-warp here (same solver and warm start; the
+counts differ in detail).
+
+Wrote docs/benchmarks/randomization/substep_iterations.json (about 3 minutes on 2 cores)::
+
+    PYTHONPATH=. python lab/analysis/substep_iterations.py --num_robots 32 --seconds 4 \\
+        --out docs/benchmarks/randomization/substep_iterations.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import platform
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.runtime import load_contract
+from tocabi_torchrl.runtime import randomization as rnd
+from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+from lab.analysis.reports import check_paths, write_report
+
+CONTRACT = robot.asset_path("policies", "tocabi_walk_robust.json")
+
+
+@contextlib.contextmanager
+def counted_steps() -> Iterator[list[int]]:
+    """Within the block, every ``mujoco.mj_step`` appends the solver iterations of its solve (``solver_niter[0]``)
+    to the yielded list; ``mj_step`` is restored on leaving."""
+    counts: list[int] = []
+    step = mujoco.mj_step
+
+    def counting(m, d):
+        step(m, d)
+        counts.append(int(d.solver_niter[0]))
+
+    mujoco.mj_step = counting
+    try:
+        yield counts
+    finally:
+        mujoco.mj_step = step
+
+
+def lockstep(counts: np.ndarray) -> dict:
+    """Summary of iterations ``counts`` (periods, robots, substeps): per period, each robot's own sum (mean over
+    robots and periods) and the lockstep sum (the maximum over robots per substep, summed), and per substep the
+    mean and the lockstep maximum (means over periods).
+
+    >>> c = np.array([[[3, 1], [1, 3]]])  # one period, two robots, two substeps: each jumps in another substep
+    >>> s = lockstep(c)
+    >>> s["own_per_period"], s["lockstep_per_period"], s["lockstep_per_substep"]
+    (4.0, 6.0, [3.0, 3.0])
+    """
+    most = counts.max(axis=1)
+    return {"own_per_period": round(float(counts.sum(axis=2).mean()), 3),
+            "lockstep_per_period": round(float(most.sum(axis=1).mean()), 3),
+            "mean_per_substep": counts.mean(axis=(0, 1)).round(3).tolist(),
+            "lockstep_per_substep": most.mean(axis=0).round(3).tolist()}
+
+
+def variants(substeps: int) -> dict[str, rnd.Randomization]:
+    """The actuator layers compared: none, a delay of exactly one control period (every jump back at substep 0),
+    and the TOCABI lab's delay (``rnd.TOCABI_LAB``'s range, motor constant left at 1)."""
+    return {"no delay": rnd.Randomization(),
+            "delay of one period": rnd.Randomization(actuators=rnd.ActuatorSettings(delay_substeps=(substeps,) * 2)),
+            "tocabi_lab delay": rnd.Randomization(
+                actuators=rnd.ActuatorSettings(delay_substeps=rnd.TOCABI_LAB.actuators.delay_substeps))}
+
+
+def measure(contract: Path, num_robots: int, seconds: float, seed: int) -> list[dict]:
+    """One sim-to-sim run per :func:`variants` entry, the same robots and seed: their iteration summaries."""
+    substeps = int(load_contract(contract)["timing"]["substeps"])
+    results = []
+    for name, randomization in variants(substeps).items():
+        with counted_steps() as counts:
+            run = run_sim2sim(contract, num_robots=num_robots, seconds=seconds, seed=seed, randomize=randomization)
+        summary = lockstep(np.asarray(counts).reshape(-1, num_robots, substeps))
+        results.append({"variant": name, "delay_substeps": list(randomization.actuators.delay_substeps),
+                        "survival": run.survival, **summary})
+        print(f"{name}: own {summary['own_per_period']:.2f}, lockstep {summary['lockstep_per_period']:.2f} "
+              "iterations per period", flush=True)
+    return results
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--contract", type=Path, default=CONTRACT, help="exported policy's contract (.json)")
+    parser.add_argument("--num_robots", type=int, default=32)
+    parser.add_argument("--seconds", type=float, default=4.0, help="length of each run [s]")
+    parser.add_argument("--seed", type=int, default=7, help="seed of the delays' draws (one per robot)")
+    parser.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
+    args = parser.parse_args(argv)
+    check_paths(parser, [args.contract], args.out)
+    if args.num_robots < 1 or not args.seconds > 0:
+        parser.error("--num_robots must be >= 1 and --seconds > 0")
+    results = measure(args.contract, args.num_robots, args.seconds, args.seed)
+    if args.out is not None:
+        meta = {"date": time.strftime("%Y-%m-%d"), "hardware": f"CPU (C MuJoCo {mujoco.__version__}), "
+                f"{platform.machine()}", "num_robots": args.num_robots, "seconds": args.seconds}
+        write_report(args.out, "lab/analysis/substep_iterations.py", argv, results, meta)
+
+
+if __name__ == "__main__":
+    main()
