@@ -53,7 +53,7 @@ def test_it_measures_both_variants_alternately_and_reports_their_ratio(tmp_path)
 
     docs = tmp_path / "docs"
     (docs / "benchmarks" / "randomization").mkdir(parents=True)
-    for name in ("train_throughput.json", "step_ops.json"):
+    for name in ("train_throughput.json", "step_ops.json", "substep_iterations.json"):
         (docs / "benchmarks" / "randomization" / name).write_text((page.DOCS / "benchmarks" / "randomization" /
                                                                    name).read_text())
     section = "\n".join(page.randomization(docs))
