@@ -174,16 +174,18 @@ def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
     """The robust gait test of one wall-clock checkpoint into ``evals[ckpt.stem]``; ``envs`` keeps the cases' envs
     across checkpoints."""
     from tocabi_torchrl.evaluation.gait_test import summary_json
-    from tocabi_torchrl.evaluation.robust import RobustTestConfig, evaluate_robust_checkpoint, robust_passes
+    from tocabi_torchrl.evaluation.robust import (ROBUST_JSON, RobustTestConfig, evaluate_robust_checkpoint,
+                                                  robust_passes)
 
     state = common.read_checkpoint(ckpt)
     if args.reports:
-        report = _load(Path(args.reports) / ckpt.stem / "robust.json")
+        found = Path(args.reports) / ckpt.stem / ROBUST_JSON
+        report = _load(found)
         if not report:
-            print(f"{ckpt.stem}: no {Path(args.reports) / ckpt.stem / 'robust.json'}; left out", flush=True)
+            print(f"{ckpt.stem}: no {found}; left out", flush=True)
             return
         if report.get("test") != "robust" or not isinstance(report.get("cases"), dict):
-            raise ValueError(f"{args.reports}/{ckpt.stem}/robust.json is not a robust gait test report")
+            raise ValueError(f"{found} is not a robust gait test report")
         device = report.get("tested_on", "?")
     else:
         test = RobustTestConfig(num_envs=args.num_envs or ROBUST_ENVS, seconds=args.seconds)
@@ -383,11 +385,12 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.part == "train" and not 0 < args.minutes < math.inf:  # the config reads max_minutes 0 as no time limit
         parser.error(f"--minutes must be a positive number of training minutes, got {args.minutes}")
-    if getattr(args, "reports", None) and args.test != "robust":
+    reports = getattr(args, "reports", None)  # an eval option only
+    if reports and args.test != "robust":
         parser.error("--reports reads robust gait test reports: pass --test robust with it")
-    if getattr(args, "reports", None) and not Path(args.reports).is_dir():
-        parser.error(f"--reports {args.reports}: no such folder (the --out of lab.benchmarks.robust_policies)")
-    if args.part != "report" and args.device.startswith("cuda") and not getattr(args, "reports", None):
+    if reports and not Path(reports).is_dir():
+        parser.error(f"--reports {reports}: no such folder (the --out of lab.benchmarks.robust_policies)")
+    if args.part != "report" and args.device.startswith("cuda") and not reports:
         import torch
 
         if not torch.cuda.is_available():  # said here, not as a traceback from deep inside the env build
