@@ -180,7 +180,10 @@ def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
     state = common.read_checkpoint(ckpt)
     if args.reports:
         found = Path(args.reports) / ckpt.stem / ROBUST_JSON
-        report = _load(found)
+        try:
+            report = _load(found)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{found} is not valid JSON ({err}); write it again with lab.benchmarks.robust_policies")
         if not report:
             print(f"{ckpt.stem}: no {found}; left out", flush=True)
             return

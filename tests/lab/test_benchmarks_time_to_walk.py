@@ -94,6 +94,10 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
         {walls[0]: (True, "NVIDIA H200"), later: (False, "NVIDIA H200")}
     assert all(f"{w}: no " in text for w in walls[1:])
     assert robust["time_to_walk"]["iteration"] == robust["evaluations"][walls[0]]["iteration"]
+    (folder / "evals_robust.json").unlink()  # read again: a corrupt report is named, not a bare JSON error
+    (reports / later / "robust.json").write_text("{not json")
+    run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(reports),
+        error=f"{reports / later / 'robust.json'} is not valid JSON")
     with pytest.raises(SystemExit) as stop:
         time_to_walk.main(["eval", "--preset", "cpu_smoke", "--device", "cpu", "--reports", str(reports)])
     assert stop.value.code == 2 and "pass --test robust with it" in capsys.readouterr().err
