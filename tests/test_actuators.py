@@ -117,6 +117,20 @@ def test_config_builds_the_stages_it_names_and_nothing_when_ideal():
                 dict(delay_substeps=(0.5, 2))):
         with pytest.raises(ValueError, match="env.control.actuators"):
             ActuatorConfig(**bad).validate()
+    strided = ActuatorConfig(delay_substeps=(4, 20), delay_stride=8).build(8).stages[0]
+    assert strided.values() == [4, 12, 20]
+    for stride, message in ((5, "does not divide the delay range"), (0, ">= 1"), (True, ">= 1")):
+        with pytest.raises(ValueError, match=f"env.control.actuators.delay_stride.*{message}"):
+            ActuatorConfig(delay_substeps=(4, 20), delay_stride=stride).validate()
+
+
+def test_a_strided_delay_draws_its_grid_alone_and_each_value_of_it():
+    delay = built(Delay(4, 20, 8, stride=8), ctx=context(n=3000))
+    counts = torch.bincount(delay.delay, minlength=21)
+    assert set(torch.nonzero(counts).flatten().tolist()) == {4, 12, 20}
+    assert int(counts[[4, 12, 20]].min()) > 3000 / 3 * 0.8
+    with pytest.raises(ValueError, match="divides high - low"):
+        Delay(4, 20, 8, stride=3)
 
 
 def test_actuators_are_refused_on_servo_modes():

@@ -103,6 +103,38 @@ def test_delay_draws_every_whole_substep_of_its_range():
     assert layer.history.shape == (2000, 4, 12)  # the newest command and ceil(20 / 8) = 3 before it
 
 
+def test_a_delay_stride_draws_the_grid_alone_and_matches_the_training_stage():
+    torch = pytest.importorskip("torch")
+    from tocabi_torchrl.control.actuators import Delay
+
+    layer = rnd.ActuatorLayer(rnd.ActuatorSettings(delay_substeps=(4, 20), delay_stride=8), S, [300.0] * 12)
+    layer.reset(np.random.default_rng(0), 600)
+    assert set(layer.delay.tolist()) == set(Delay(4, 20, S, stride=8).values()) == {4, 12, 20}
+    assert len(set((layer.delay % S).tolist())) == 1  # every robot's torque changes in the same substep
+    # The stride-1 draw is the same numbers as before the stride existed: U{low, ..., high} from rng.integers.
+    one = rnd.ActuatorLayer(rnd.ActuatorSettings(delay_substeps=(4, 20)), S, [300.0] * 12)
+    one.reset(np.random.default_rng(5), 50)
+    np.testing.assert_array_equal(one.delay, np.random.default_rng(5).integers(4, 21, size=50))
+
+
+def test_a_delay_stride_is_stated_and_read_back(tmp_path):
+    lab = rnd.Randomization(dataclasses.replace(rnd.TOCABI_LAB.actuators, delay_stride=8), rnd.TOCABI_LAB.dynamics,
+                            rnd.TOCABI_LAB.sensors)
+    section = rnd.trained_under_section(lab, rnd.PushSettings(), rnd.ROBUST_START, 0.0005, 104.5)
+    assert section["actuators"]["delay"]["stride_substeps"] == 8
+    assert "stride_substeps" not in _lab_section()["actuators"]["delay"]  # a stride of 1 is the unstated default
+    path = _with_section(tmp_path, "torque", json.loads(json.dumps(section)))
+    assert rnd.from_contract(load_contract(path))[0] == lab
+    for sub in ("bad", "zero"):
+        (tmp_path / sub).mkdir()
+    bad = _with_section(tmp_path / "bad", "torque", _edit(section, "actuators.delay.stride_substeps", 5))
+    with pytest.raises(ContractError, match=r"stride_substeps 5 does not divide its range \[4, 20\].*re-export"):
+        load_contract(bad)
+    zero = _with_section(tmp_path / "zero", "torque", _edit(section, "actuators.delay.stride_substeps", 0))
+    with pytest.raises(ContractError, match="stride_substeps is 0 but must be an int >= 1"):
+        load_contract(zero)
+
+
 def test_motor_constant_friction_and_saturation_match_a_hand_computation():
     limits = np.array([100.0, 50.0, 10.0])
     settings = rnd.ActuatorSettings(motor_constant=(0.8, 1.2), coulomb=(0.5, 1.0), viscous=(0.1, 0.2))

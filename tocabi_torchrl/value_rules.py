@@ -135,13 +135,15 @@ def check_seed(seed: Any, where: str = "seed") -> int:
 
 #: The ``trained_under`` section of a policy contract (what the policy was trained under: actuator layer, dynamics,
 #: sensor noise, pushes, start velocities; ``runtime/randomization.py`` writes and reads it) -> per item, the rule of
-#: each numeric field, and whether the field is a ``[low, high]`` pair (then low <= high too) or may be null. An item
+#: each numeric field, and whether the field is a ``[low, high]`` pair (then low <= high too), may be null or may be
+#: left out ("optional": its default then). An item
 #: is the text ``"off"`` or an object with these fields (other fields are descriptive text). The bounds are the
 #: training config's own (``ActuatorConfig``, ``DynamicsRandomization``, ``SensorNoiseConfig``, ``PushConfig``,
 #: ``TaskConfig.start_*_vel_std``), so a value training refuses is refused in a contract too.
 TRAINED_UNDER_RULES: dict[str, dict[str, dict[str, tuple[Range, str]]]] = {
     "actuators": {
-        "delay": {"substeps": (Range(low=0, integer=True), "pair"), "ms": (NON_NEGATIVE, "pair")},
+        "delay": {"substeps": (Range(low=0, integer=True), "pair"), "ms": (NON_NEGATIVE, "pair"),
+                  "stride_substeps": (Range(low=1, integer=True), "optional")},
         "motor_constant": {"range": (NON_NEGATIVE, "pair")},
         "friction": {"coulomb_nm": (NON_NEGATIVE, "pair"), "viscous_nms_per_rad": (NON_NEGATIVE, "pair")},
         "saturation": {},
@@ -208,7 +210,7 @@ def trained_under_problems(section: Any, where: str = "trained_under") -> list[s
 
 
 def _field_problems(value: Any, rule: Range, shape: str, where: str) -> list[str]:
-    if shape == "nullable" and value is None:
+    if (shape == "nullable" and value is None) or (shape == "optional" and value == "missing"):
         return []
     if shape != "pair":
         return [] if rule.allows(value) else [f"{where} is {value!r} but must be {rule.describe()}"]

@@ -1,6 +1,7 @@
 """Solver iterations per physics substep when the leg actuators' delay spreads the torque changes over a control
 period: C MuJoCo robots driven by an exported policy through the torch-free runtime (``recipes/sim2sim.py``'s
-driver), the delay off, of one whole control period, and the TOCABI lab's 4-20 substeps.
+driver), the delay off, of one whole control period, the TOCABI lab's 4-20 substeps, and those on a grid of one
+period (4, 12 and 20 substeps: ``env.control.actuators.delay_stride``).
 
 Each substep's Newton solve starts from the previous substep's acceleration, which a jump in the commanded torque
 makes stale, so the substep a jump lands in takes more iterations. Without a delay every robot's torque jumps at
@@ -10,7 +11,7 @@ most iterations any world needs: the ``lockstep`` count below (the maximum over 
 substeps), beside each robot's ``own``. C MuJoCo stands in for mujoco-warp here (same solver and warm start; the
 counts differ in detail).
 
-Wrote docs/benchmarks/randomization/substep_iterations.json (about 3 minutes on 2 cores)::
+Wrote docs/benchmarks/randomization/substep_iterations.json (about 4 minutes on 2 cores)::
 
     PYTHONPATH=. python lab/analysis/substep_iterations.py --num_robots 32 --seconds 4 \\
         --out docs/benchmarks/randomization/substep_iterations.json
@@ -75,11 +76,14 @@ def lockstep(counts: np.ndarray) -> dict:
 
 def variants(substeps: int) -> dict[str, rnd.Randomization]:
     """The actuator layers compared: none, a delay of exactly one control period (every jump back at substep 0),
-    and the TOCABI lab's delay (``rnd.TOCABI_LAB``'s range, motor constant left at 1)."""
+    the TOCABI lab's delay (``rnd.TOCABI_LAB``'s range, motor constant left at 1), and the same range on a grid of
+    one control period (``ActuatorConfig.delay_stride`` = S: 4, 12, 20 substeps, every jump in the same substep)."""
+    lab = rnd.TOCABI_LAB.actuators.delay_substeps
     return {"no delay": rnd.Randomization(),
             "delay of one period": rnd.Randomization(actuators=rnd.ActuatorSettings(delay_substeps=(substeps,) * 2)),
-            "tocabi_lab delay": rnd.Randomization(
-                actuators=rnd.ActuatorSettings(delay_substeps=rnd.TOCABI_LAB.actuators.delay_substeps))}
+            "tocabi_lab delay": rnd.Randomization(actuators=rnd.ActuatorSettings(delay_substeps=lab)),
+            "tocabi_lab delay, one-period grid": rnd.Randomization(
+                actuators=rnd.ActuatorSettings(delay_substeps=lab, delay_stride=substeps))}
 
 
 def measure(contract: Path, num_robots: int, seconds: float, seed: int) -> list[dict]:
@@ -91,6 +95,7 @@ def measure(contract: Path, num_robots: int, seconds: float, seed: int) -> list[
             run = run_sim2sim(contract, num_robots=num_robots, seconds=seconds, seed=seed, randomize=randomization)
         summary = lockstep(np.asarray(counts).reshape(-1, num_robots, substeps))
         results.append({"variant": name, "delay_substeps": list(randomization.actuators.delay_substeps),
+                        "delay_stride": randomization.actuators.delay_stride,
                         "survival": run.survival, **summary})
         print(f"{name}: own {summary['own_per_period']:.2f}, lockstep {summary['lockstep_per_period']:.2f} "
               "iterations per period", flush=True)

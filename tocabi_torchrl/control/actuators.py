@@ -156,7 +156,7 @@ class Saturation(Actuator):
 
 
 class Delay(Actuator):
-    """The command of k physics substeps ago, k ~ U{low, ..., high} per world (0: none).
+    """The command of k physics substeps ago, k ~ U{low, low + stride, ..., high} per world (0: none).
 
     The command is constant within a policy step of S substeps, so the torque in substep s of step t is the command
     of step ``t − ceil((k − s) / S)`` (step t's own from substep k on). A device shift register keeps the last
@@ -165,16 +165,22 @@ class Delay(Actuator):
     Args:
         low, high: the delay range in physics substeps (0.5 ms each at 2 kHz).
         substeps: S, physics substeps per policy step (the env passes its ``sim.substeps``).
+        stride: the step of the delay's grid [substeps] (``ActuatorConfig.delay_stride``); ``high - low`` a
+            multiple of it.
+
+    >>> Delay(4, 20, substeps=8, stride=8).values()
+    [4, 12, 20]
     """
 
-    def __init__(self, low: int = 0, high: int = 0, substeps: int = 8):
-        for v in (low, high, substeps):
+    def __init__(self, low: int = 0, high: int = 0, substeps: int = 8, stride: int = 1):
+        for v in (low, high, substeps, stride):
             if isinstance(v, bool) or not isinstance(v, int):
-                raise ValueError(f"Delay takes whole substeps, got low={low!r}, high={high!r}, substeps={substeps!r}")
-        if not 0 <= low <= high or substeps < 1:
-            raise ValueError(f"Delay needs 0 <= low <= high substeps and substeps >= 1, got ({low}, {high}), "
-                             f"{substeps}")
-        self.low, self.high, self.substeps = low, high, substeps
+                raise ValueError(f"Delay takes whole substeps, got low={low!r}, high={high!r}, substeps={substeps!r}, "
+                                 f"stride={stride!r}")
+        if not 0 <= low <= high or substeps < 1 or stride < 1 or (high - low) % stride:
+            raise ValueError(f"Delay needs 0 <= low <= high substeps, substeps >= 1 and a stride >= 1 that divides "
+                             f"high - low, got ({low}, {high}), {substeps}, stride {stride}")
+        self.low, self.high, self.substeps, self.stride = low, high, substeps, stride
         self.draws = 1
 
     def setup(self, ctx: ControlContext) -> None:
@@ -198,9 +204,13 @@ class Delay(Actuator):
         self.history[:, 0].copy_(tau)
         return torch.gather(self.history, 1, self._lag)
 
+    def values(self) -> list[int]:
+        """The delays a world can draw [substeps]."""
+        return list(range(self.low, self.high + 1, self.stride))
+
     def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
-        span = self.high - self.low + 1
-        k = self.low + (u[:, 0] * span).long().clamp(max=span - 1)
+        span = (self.high - self.low) // self.stride + 1
+        k = self.low + self.stride * (u[:, 0] * span).long().clamp(max=span - 1)
         self.delay.copy_(torch.where(mask, k, self.delay))
         self._set_lag()
         self.history.masked_fill_(mask.view(-1, 1, 1), 0.0)

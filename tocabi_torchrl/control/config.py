@@ -19,7 +19,13 @@ class ActuatorConfig:
     the ideal actuator, which runs nothing.
 
     Attributes:
-        delay_substeps: (low, high) the torque delay in physics substeps of 0.5 ms, k ~ U{low, ..., high} per world.
+        delay_substeps: (low, high) the torque delay in physics substeps of 0.5 ms, k ~ U{low, low + stride, ...,
+            high} per world.
+        delay_stride: the step of the delay's grid [substeps]; ``high - low`` must be a multiple of it. 1: every
+            whole substep. At the control period's substeps (8), every world's delayed torque changes in the same
+            substep of the period; mujoco-warp's solver iterates all worlds of a substep until the slowest has
+            converged, so the substep a torque change makes costly is then paid for once a period, not in each
+            (lab/analysis/substep_iterations.py). The range's ends stay; the values between are fewer.
         motor_constant: (low, high) the motor-constant scale c ~ U(low, high) per world and joint (1 = nominal).
         coulomb: (low, high) Coulomb friction [N·m] per world and joint, against the joint's velocity.
         viscous: (low, high) viscous friction [N·m·s/rad] per world and joint.
@@ -29,6 +35,7 @@ class ActuatorConfig:
     """
 
     delay_substeps: tuple[int, int] = (0, 0)
+    delay_stride: int = 1
     motor_constant: tuple[float, float] = (1.0, 1.0)
     coulomb: tuple[float, float] = (0.0, 0.0)
     viscous: tuple[float, float] = (0.0, 0.0)
@@ -43,6 +50,15 @@ class ActuatorConfig:
                                  f"got {getattr(self, name)!r}")
         if any(isinstance(v, bool) or int(v) != v for v in self.delay_substeps):
             raise ValueError(f"env.control.actuators.delay_substeps takes whole substeps, got {self.delay_substeps!r}")
+        stride = self.delay_stride
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+            raise ValueError(f"env.control.actuators.delay_stride must be a whole number of substeps >= 1, got "
+                             f"{stride!r}")
+        low, high = (int(v) for v in self.delay_substeps)
+        if (high - low) % stride:
+            raise ValueError(f"env.control.actuators.delay_stride {stride} does not divide the delay range "
+                             f"{self.delay_substeps!r} (high - low = {high - low}); pick a range whose width is a "
+                             f"multiple of it, e.g. ({low}, {low + stride * max(1, (high - low) // stride)})")
 
     @property
     def ideal(self) -> bool:
@@ -58,7 +74,8 @@ class ActuatorConfig:
 
         stages = []
         if tuple(self.delay_substeps) != (0, 0):
-            stages.append(Delay(int(self.delay_substeps[0]), int(self.delay_substeps[1]), substeps))
+            stages.append(Delay(int(self.delay_substeps[0]), int(self.delay_substeps[1]), substeps,
+                                int(self.delay_stride)))
         if tuple(self.motor_constant) != (1.0, 1.0):
             stages.append(MotorConstant(*self.motor_constant))
         if tuple(self.coulomb) != (0.0, 0.0) or tuple(self.viscous) != (0.0, 0.0):

@@ -380,7 +380,8 @@ def _check_observation(obs: dict, num_joints: int, source: str) -> None:
 
 def _check_trained_under(contract: dict, source: str) -> None:
     """Raise :class:`ContractError` for a ``trained_under`` section (when the contract has one) that breaks
-    ``value_rules.trained_under_problems``, whose delay in ms is not its substeps × ``timing.physics_dt_s``, or
+    ``value_rules.trained_under_problems``, whose delay in ms is not its substeps × ``timing.physics_dt_s`` or whose
+    delay stride does not divide its range, or
     that states actuator stages for a PD control mode (the training env refuses them there)."""
     if "trained_under" not in contract:
         return
@@ -396,6 +397,10 @@ def _check_trained_under(contract: dict, source: str) -> None:
         if any(abs(a - b) > 1e-6 * max(1.0, b) for a, b in zip(delay["ms"], expected)):
             raise ContractError(f"{source}: trained_under.actuators.delay.ms is {delay['ms']} but substeps "
                                 f"{delay['substeps']} x timing.physics_dt_s is {expected} ms; {fix}")
+        stride, (low, high) = delay.get("stride_substeps", 1), delay["substeps"]
+        if (high - low) % stride:
+            raise ContractError(f"{source}: trained_under.actuators.delay.stride_substeps {stride} does not divide "
+                                f"its range {delay['substeps']} substeps; {fix}")
     kind = section["pushes"].get("kind", "force") if isinstance(section["pushes"], dict) else "force"
     if kind not in PUSH_KINDS:
         raise ContractError(f"{source}: trained_under.pushes.kind is {kind!r} but must be one of {list(PUSH_KINDS)}; "

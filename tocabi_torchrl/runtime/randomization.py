@@ -59,12 +59,13 @@ def generator(seed: int, piece: str) -> np.random.Generator:
 # ----------------------------------------------------------------------------------------------------- settings
 @dataclass(frozen=True)
 class ActuatorSettings:
-    """The legs' actuator layer (``ActuatorConfig``'s fields): delay k ~ U{low, ..., high} physics substeps per
-    robot, motor constant c ~ U(low, high) per robot and leg joint, Coulomb friction [N·m] and viscous friction
+    """The legs' actuator layer (``ActuatorConfig``'s fields): delay k ~ U{low, low + stride, ..., high} physics
+    substeps per robot, motor constant c ~ U(low, high) per robot and leg joint, Coulomb friction [N·m] and viscous friction
     [N·m·s/rad] ~ U(low, high) per robot and leg joint, then a clip at the torque limits (``saturate``, when any
     other stage runs). The defaults are the ideal actuator."""
 
     delay_substeps: tuple[int, int] = (0, 0)
+    delay_stride: int = 1
     motor_constant: tuple[float, float] = (1.0, 1.0)
     coulomb: tuple[float, float] = (0.0, 0.0)
     viscous: tuple[float, float] = (0.0, 0.0)
@@ -207,6 +208,19 @@ def _pair(values) -> list[float]:
     return [float(values[0]), float(values[1])]
 
 
+def _delay_item(act: ActuatorSettings, physics_dt_s: float) -> dict:
+    """The contract's ``actuators.delay`` item; ``stride_substeps`` only where the grid is coarser than 1 (a
+    contract without it states a stride of 1)."""
+    stride = int(act.delay_stride)
+    grid = "{low, ..., high}" if stride == 1 else "{low, low + stride_substeps, ..., high}"
+    return {"substeps": [int(v) for v in act.delay_substeps],
+            "ms": [round(int(v) * physics_dt_s * 1000.0, 9) for v in act.delay_substeps],
+            **({"stride_substeps": stride} if stride != 1 else {}),
+            "unit": "physics substeps (and ms)",
+            "draw": f"k ~ U{grid} per robot at each reset; the torque in each physics substep is the command of k "
+                    "substeps earlier (zero torque before the episode's first command)"}
+
+
 def trained_under_section(randomization: Randomization, pushes: PushSettings, start: StartVelocity,
                           physics_dt_s: float, robot_mass_kg: float, push_ramp=(0, 0), start_pool: int = 0) -> dict:
     """The contract's ``trained_under`` section (``docs/deploying.md``): each piece with its unit and draw, ``"off"``
@@ -220,12 +234,7 @@ def trained_under_section(randomization: Randomization, pushes: PushSettings, st
     actuators = {
         "applies_to": "the leg torques of the torque control modes (the PD modes' servos take none), in this order: "
                       "delay, motor_constant, friction, saturation",
-        "delay": {"substeps": [int(v) for v in act.delay_substeps],
-                  "ms": [round(int(v) * physics_dt_s * 1000.0, 9) for v in act.delay_substeps],
-                  "unit": "physics substeps (and ms)",
-                  "draw": "k ~ U{low, ..., high} per robot at each reset; the torque in each physics substep is the "
-                          "command of k substeps earlier (zero torque before the episode's first command)"}
-        if act.delay_on else "off",
+        "delay": _delay_item(act, physics_dt_s) if act.delay_on else "off",
         "motor_constant": {"range": _pair(act.motor_constant), "unit": "1",
                            "draw": "c ~ U(low, high) per robot and leg joint at each reset; torque * c"}
         if act.motor_on else "off",
@@ -294,6 +303,7 @@ def from_contract(contract: dict) -> tuple[Randomization, PushSettings, StartVel
 
     actuators = ActuatorSettings(
         delay_substeps=tuple(int(v) for v in pair(act["delay"], "substeps", (0, 0))),
+        delay_stride=1 if act["delay"] == "off" else int(act["delay"].get("stride_substeps", 1)),
         motor_constant=pair(act["motor_constant"], "range", (1.0, 1.0)),
         coulomb=pair(act["friction"], "coulomb_nm", (0.0, 0.0)),
         viscous=pair(act["friction"], "viscous_nms_per_rad", (0.0, 0.0)),
@@ -337,8 +347,9 @@ class ActuatorLayer:
     def reset(self, rng: np.random.Generator, n: int) -> None:
         """Draw each robot's delay, motor constants and friction, and clear the command history to zero torque."""
         s, j = self.settings, len(self.limits)
-        lo, hi = (int(v) for v in s.delay_substeps)
-        self.delay = rng.integers(lo, hi + 1, size=n) if s.delay_on else np.zeros(n, dtype=np.int64)
+        lo, hi, stride = (int(v) for v in (*s.delay_substeps, s.delay_stride))
+        self.delay = (lo + stride * rng.integers(0, (hi - lo) // stride + 1, size=n) if s.delay_on
+                      else np.zeros(n, dtype=np.int64))
         self.motor_constant = rng.uniform(*s.motor_constant, size=(n, j)) if s.motor_on else np.ones((n, j))
         if s.friction_on:
             self.coulomb, self.viscous = rng.uniform(*s.coulomb, size=(n, j)), rng.uniform(*s.viscous, size=(n, j))
