@@ -128,7 +128,8 @@ def test_a_delay_stride_is_stated_and_read_back(tmp_path):
     for sub in ("bad", "zero"):
         (tmp_path / sub).mkdir()
     bad = _with_section(tmp_path / "bad", "torque", _edit(section, "actuators.delay.stride_substeps", 5))
-    with pytest.raises(ContractError, match=r"stride_substeps 5 does not divide its range \[4, 20\].*re-export"):
+    with pytest.raises(ContractError,
+                       match=r"stride_substeps: stride 5 does not divide the delay range \(4, 20\).*re-export"):
         load_contract(bad)
     zero = _with_section(tmp_path / "zero", "torque", _edit(section, "actuators.delay.stride_substeps", 0))
     with pytest.raises(ContractError, match="stride_substeps is 0 but must be an int >= 1"):

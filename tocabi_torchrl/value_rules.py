@@ -123,6 +123,19 @@ def check_push_settings(pushes: Any, prefix: str) -> None:
                          f"robot's velocity), got {pushes.kind!r}")
 
 
+def delay_grid_problem(low: int, high: int, stride: Any) -> str | None:
+    """What is wrong with a torque delay grid ``{low, low + stride, ..., high}`` [substeps], or None: the stride is a
+    whole number >= 1 that divides ``high - low``. The one rule of the training config
+    (``ActuatorConfig.delay_stride``) and a contract's ``trained_under.actuators.delay.stride_substeps``."""
+    if isinstance(stride, bool) or not isinstance(stride, numbers.Integral) or stride < 1:
+        return f"stride {stride!r} must be a whole number of substeps >= 1"
+    if (int(high) - int(low)) % int(stride):
+        example = low + stride * max(1, (high - low) // stride)
+        return (f"stride {stride} does not divide the delay range ({low}, {high}) (high - low = {high - low}); pick "
+                f"a range whose width is a multiple of it, e.g. ({low}, {example})")
+    return None
+
+
 def check_seed(seed: Any, where: str = "seed") -> int:
     """``seed`` as a plain int, or a ``ValueError`` naming ``where``: a seed is an int in [0, 2**63 - 1] (numpy
     ints too; bools, floats and text are refused). The one rule of every place a seed enters: the env's constructor,

@@ -280,11 +280,12 @@ def substep_iterations(docs: Path) -> list[str]:
     rows = ["| leg actuators | solver iterations per period, each robot's own | lockstep (most of any robot, per "
             "substep) |", "|---|---:|---:|"]
     rows += [f"| {r['variant']} ({r['delay_substeps'][0]}-{r['delay_substeps'][1]} substeps"
-             + (f", every {r['delay_stride']}" if r.get("delay_stride", 1) != 1 else "")
+             + (f", every {r['delay_stride']}" if r["delay_stride"] != 1 else "")
              + f") | {r['own_per_period']:.1f} | {r['lockstep_per_period']:.1f} |" for r in d["results"]]
     return ["What likely makes the actuators cost physics time: a torque change makes the substep it lands in solve "
             "longer. Without a delay every robot's lands in substep 0; the delay spreads them over all substeps, and "
-            "mujoco-warp iterates a substep's worlds until the slowest converges. Measured with C MuJoCo standing in "
+            "mujoco-warp iterates a substep's worlds until the slowest converges; on a grid of one period "
+            "(`env.control.actuators.delay_stride`) they land in one substep again. Measured with C MuJoCo standing in "
             "for mujoco-warp (the GPU's per-substep counts are not measured yet), robots driven by the shipped robust "
             f"policy, {m['num_robots']} robots, {m['seconds']:g} s:", "", *rows, "",
             f"- command: `{d['command']}`",

@@ -6,6 +6,8 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from ..value_rules import delay_grid_problem
+
 if TYPE_CHECKING:
     from .actuators import ActuatorChain
 
@@ -50,15 +52,9 @@ class ActuatorConfig:
                                  f"got {getattr(self, name)!r}")
         if any(isinstance(v, bool) or int(v) != v for v in self.delay_substeps):
             raise ValueError(f"env.control.actuators.delay_substeps takes whole substeps, got {self.delay_substeps!r}")
-        stride = self.delay_stride
-        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
-            raise ValueError(f"env.control.actuators.delay_stride must be a whole number of substeps >= 1, got "
-                             f"{stride!r}")
-        low, high = (int(v) for v in self.delay_substeps)
-        if (high - low) % stride:
-            raise ValueError(f"env.control.actuators.delay_stride {stride} does not divide the delay range "
-                             f"{self.delay_substeps!r} (high - low = {high - low}); pick a range whose width is a "
-                             f"multiple of it, e.g. ({low}, {low + stride * max(1, (high - low) // stride)})")
+        problem = delay_grid_problem(*(int(v) for v in self.delay_substeps), self.delay_stride)
+        if problem:
+            raise ValueError(f"env.control.actuators.delay_stride: {problem}")
 
     @property
     def ideal(self) -> bool:

@@ -15,7 +15,7 @@ import os
 import re
 from pathlib import Path
 
-from ..value_rules import ENV_RULES, NON_NEGATIVE, PUSH_KINDS, trained_under_problems
+from ..value_rules import ENV_RULES, NON_NEGATIVE, PUSH_KINDS, delay_grid_problem, trained_under_problems
 
 __all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ENV_FIELDS", "REQUIRED_KEYS", "RUNTIME_SIGNALS", "ContractError",
            "check_contract", "load_contract"]
@@ -381,8 +381,8 @@ def _check_observation(obs: dict, num_joints: int, source: str) -> None:
 def _check_trained_under(contract: dict, source: str) -> None:
     """Raise :class:`ContractError` for a ``trained_under`` section (when the contract has one) that breaks
     ``value_rules.trained_under_problems``, whose delay in ms is not its substeps × ``timing.physics_dt_s`` or whose
-    delay stride does not divide its range, or
-    that states actuator stages for a PD control mode (the training env refuses them there)."""
+    delay stride does not divide its range (``value_rules.delay_grid_problem``), or that states actuator stages for a
+    PD control mode (the training env refuses them there)."""
     if "trained_under" not in contract:
         return
     section = contract["trained_under"]
@@ -397,10 +397,9 @@ def _check_trained_under(contract: dict, source: str) -> None:
         if any(abs(a - b) > 1e-6 * max(1.0, b) for a, b in zip(delay["ms"], expected)):
             raise ContractError(f"{source}: trained_under.actuators.delay.ms is {delay['ms']} but substeps "
                                 f"{delay['substeps']} x timing.physics_dt_s is {expected} ms; {fix}")
-        stride, (low, high) = delay.get("stride_substeps", 1), delay["substeps"]
-        if (high - low) % stride:
-            raise ContractError(f"{source}: trained_under.actuators.delay.stride_substeps {stride} does not divide "
-                                f"its range {delay['substeps']} substeps; {fix}")
+        problem = delay_grid_problem(*delay["substeps"], delay.get("stride_substeps", 1))
+        if problem:
+            raise ContractError(f"{source}: trained_under.actuators.delay.stride_substeps: {problem}; {fix}")
     kind = section["pushes"].get("kind", "force") if isinstance(section["pushes"], dict) else "force"
     if kind not in PUSH_KINDS:
         raise ContractError(f"{source}: trained_under.pushes.kind is {kind!r} but must be one of {list(PUSH_KINDS)}; "

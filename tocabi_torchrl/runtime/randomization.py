@@ -60,9 +60,9 @@ def generator(seed: int, piece: str) -> np.random.Generator:
 @dataclass(frozen=True)
 class ActuatorSettings:
     """The legs' actuator layer (``ActuatorConfig``'s fields): delay k ~ U{low, low + stride, ..., high} physics
-    substeps per robot, motor constant c ~ U(low, high) per robot and leg joint, Coulomb friction [N·m] and viscous friction
-    [N·m·s/rad] ~ U(low, high) per robot and leg joint, then a clip at the torque limits (``saturate``, when any
-    other stage runs). The defaults are the ideal actuator."""
+    substeps per robot, motor constant c ~ U(low, high) per robot and leg joint, Coulomb friction [N·m] and viscous
+    friction [N·m·s/rad] ~ U(low, high) per robot and leg joint, then a clip at the torque limits (``saturate``, when
+    any other stage runs). The defaults are the ideal actuator."""
 
     delay_substeps: tuple[int, int] = (0, 0)
     delay_stride: int = 1
