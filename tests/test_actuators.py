@@ -12,6 +12,7 @@ import torch
 from tocabi_torchrl import make_env, robot
 from tocabi_torchrl.control import (ActuatorChain, ActuatorConfig, ControlInput, Delay, Friction, MotorConstant,
                                     Saturation)
+from tocabi_torchrl.control.actuators import AveragedDelay
 from tocabi_torchrl.control.base import ControlContext
 from tocabi_torchrl.envs import TocabiWalk, TocabiWalkConfig
 from tocabi_torchrl.sim import MujocoSim, SimConfig
@@ -133,6 +134,49 @@ def test_a_strided_delay_draws_its_grid_alone_and_each_value_of_it():
         Delay(4, 20, 8, stride=3)
 
 
+@pytest.mark.parametrize("substeps", [8, 3])
+def test_an_averaged_delay_holds_the_delayed_torque_s_mean_over_each_step(substeps):
+    # Every k of a range that ends on a whole step (no older slot for k = high) and one that does not.
+    for low, high in ((0, 2 * substeps), (1, 2 * substeps + 3)):
+        ks = list(range(low, high + 1))
+        u = torch.tensor([[(k - low + 0.5) / len(ks)] for k in ks])
+        ctx = context(n=len(ks), limits=(100.0,))
+        exact = built(Delay(low, high, substeps), ctx=ctx, u=u)
+        mean = built(AveragedDelay(low, high, substeps), ctx=ctx, u=u)
+        assert exact.delay.tolist() == mean.delay.tolist() == ks
+        gen = torch.Generator().manual_seed(substeps)
+        for _ in range(6):
+            tau = torch.randn(len(ks), 1, generator=gen)
+            got = mean(tau, ControlInput(action=None))
+            assert got.shape == (len(ks), 1)
+            torch.testing.assert_close(got, exact(tau, ControlInput(action=None)).mean(dim=1))
+    # k = 6 of 8: the older command in 6 substeps, the newer in 2.
+    stage = built(AveragedDelay(6, 6, 8), ctx=context(n=1, limits=(100.0,)))
+    assert stage(torch.tensor([[8.0]]), ControlInput(action=None)).tolist() == [[2.0]]
+    assert stage(torch.tensor([[16.0]]), ControlInput(action=None)).tolist() == [[10.0]]  # 6/8·8 + 2/8·16
+
+
+def test_an_averaged_delay_is_one_torque_per_step_and_resets_like_the_delay():
+    cfg = ActuatorConfig(delay_substeps=(4, 20), motor_constant=(0.8, 1.2), delay_average=True)
+    chain = cfg.build(8)
+    assert [type(s).__name__ for s in chain.stages] == ["AveragedDelay", "MotorConstant", "Saturation"]
+    assert not chain.per_substep and chain.substeps == 1
+    assert ActuatorConfig(delay_substeps=(4, 20)).build(8).per_substep
+    chain.setup(context())
+    gen = torch.Generator().manual_seed(2)
+    chain.reset(ALL, torch.rand(3, chain.draws, generator=gen))
+    assert chain(torch.full((3, 2), 5.0), ControlInput(action=None)).shape == (3, 2)
+    delay = chain.stages[0]
+    mask = torch.tensor([False, True, False])
+    before = delay._weights.clone()
+    chain.reset(mask, torch.rand(3, chain.draws, generator=gen))
+    assert torch.equal(delay._weights[~mask], before[~mask])
+    assert float(delay.history[1].abs().sum()) == 0.0 and float(delay.history[0].abs().sum()) > 0.0
+    torch.testing.assert_close(delay._weights.sum(dim=1), torch.ones(3))  # every world's shares add up to one
+    with pytest.raises(ValueError, match="delay_average must be True or False"):
+        ActuatorConfig(delay_substeps=(4, 20), delay_average=1).validate()
+
+
 def test_actuators_are_refused_on_servo_modes():
     cfg = TocabiWalkConfig()
     cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, actuators=ActuatorConfig(
@@ -193,6 +237,23 @@ def test_env_delays_each_worlds_torque_by_its_own_k():
     torch.testing.assert_close(env.leg_torque, got[:, -1])
 
 
+def test_env_with_an_averaged_delay_applies_each_worlds_step_mean_through_the_step():
+    env = _torque_env(ActuatorConfig(delay_substeps=(0, 20), delay_average=True), n=6, sim_threads=1)
+    assert env.sim.substep_ctrl is None  # one torque per step: no per-substep controls
+    env.reset()
+    ks = env.leg_actuators.stages[0].delay.tolist()
+    assert len(set(ks)) > 1, ks
+    limits = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32)
+    undelayed = torch.cat([torch.full((8, 12), 0.01 * (t + 1)) * limits for t in range(4)])
+    for t in range(4):
+        action = torch.zeros(6, 13)
+        action[:, :12] = 0.01 * (t + 1)
+        env.step(_td(env, action))
+        for w, k in enumerate(ks):  # the mean of what Delay would apply in this step's 8 substeps
+            want = torch.cat((torch.zeros(k, 12), undelayed))[8 * t: 8 * t + 8].mean(dim=0)
+            torch.testing.assert_close(env.leg_torque[w], want)
+
+
 def _td(env, action):
     from tensordict import TensorDict
 
@@ -216,10 +277,12 @@ def test_ideal_actuator_runs_nothing_and_a_full_set_changes_the_torque():
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("cuda_graph", [False, True])
-def test_gpu_actuators_never_sync_and_follow_resets(cuda_graph):
+@pytest.mark.parametrize("average", [False, True])
+def test_gpu_actuators_never_sync_and_follow_resets(cuda_graph, average):
     cfg = TocabiWalkConfig()
     control = dataclasses.replace(cfg.control, mode="torque", actuators=ActuatorConfig(
-        delay_substeps=(4, 20), motor_constant=(0.8, 1.2), coulomb=(0.0, 2.0), viscous=(0.0, 1.0)))
+        delay_substeps=(4, 20), motor_constant=(0.8, 1.2), coulomb=(0.0, 2.0), viscous=(0.0, 1.0),
+        delay_average=average))
     e = make_env(num_envs=128, device="cuda", seed=0, cuda_graph=cuda_graph,
                  config=dataclasses.replace(cfg, control=control, task=dataclasses.replace(cfg.task,
                                                                                          max_episode_steps=3)))

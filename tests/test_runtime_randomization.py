@@ -136,6 +136,40 @@ def test_a_delay_stride_is_stated_and_read_back(tmp_path):
         load_contract(zero)
 
 
+@pytest.mark.parametrize("k", [0, 3, 8, 13, 16, 20])
+def test_an_averaged_delay_equals_the_training_stage(k):
+    torch = pytest.importorskip("torch")
+    from tocabi_torchrl.control.actuators import AveragedDelay
+    from tocabi_torchrl.control.base import ControlContext, ControlInput
+
+    stage = AveragedDelay(k, max(k, 16), S)
+    stage.setup(ControlContext(num_envs=1, device=torch.device("cpu"), joint_ids=(0, 1),
+                               torque_limits=torch.tensor([1e9, 1e9]), joint_range=torch.tensor([[-1.0, 1.0]] * 2)))
+    stage.reset(torch.ones(1, dtype=torch.bool), torch.zeros(1, 1))  # u = 0: k = low
+    layer = rnd.ActuatorLayer(rnd.ActuatorSettings(delay_substeps=(k, k), delay_average=True, saturate=False), S,
+                              [1e9] * 2)
+    layer.reset(np.random.default_rng(0), 1)
+    for cmd in np.random.default_rng(1).normal(size=(5, 1, 2)):
+        ours = layer(cmd, np.zeros((1, 2)))
+        theirs = stage(torch.tensor(cmd, dtype=torch.float32), ControlInput(action=None)).double().numpy()
+        np.testing.assert_allclose(ours, np.broadcast_to(theirs[:, None], ours.shape), rtol=1e-6, atol=1e-7)
+
+
+def test_an_averaged_delay_is_stated_and_read_back(tmp_path):
+    lab = rnd.Randomization(dataclasses.replace(rnd.TOCABI_LAB.actuators, delay_average=True),
+                            rnd.TOCABI_LAB.dynamics, rnd.TOCABI_LAB.sensors)
+    section = rnd.trained_under_section(lab, rnd.PushSettings(), rnd.ROBUST_START, 0.0005, 104.5)
+    assert section["actuators"]["delay"]["applied"] == "period_mean"
+    assert "applied" not in _lab_section()["actuators"]["delay"]  # per substep is the unstated default
+    path = _with_section(tmp_path, "torque", json.loads(json.dumps(section)))
+    assert rnd.from_contract(load_contract(path))[0] == lab
+    (tmp_path / "bad").mkdir()
+    bad = _with_section(tmp_path / "bad", "torque", _edit(section, "actuators.delay.applied", "smoothed"))
+    with pytest.raises(ContractError, match=r"delay.applied is 'smoothed' but must be one of \['substep', "
+                                            r"'period_mean'\].*re-export"):
+        load_contract(bad)
+
+
 def test_motor_constant_friction_and_saturation_match_a_hand_computation():
     limits = np.array([100.0, 50.0, 10.0])
     settings = rnd.ActuatorSettings(motor_constant=(0.8, 1.2), coulomb=(0.5, 1.0), viscous=(0.1, 0.2))

@@ -12,8 +12,9 @@ import numbers
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT", "PUSH_KINDS", "Range", "check_push_settings",
-           "TRAINED_UNDER_RULES", "check_env_value", "check_seed", "trained_under_problems"]
+__all__ = ["DELAY_APPLIED", "ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT",
+           "PUSH_KINDS", "Range", "check_push_settings", "TRAINED_UNDER_RULES", "check_env_value", "check_seed",
+           "trained_under_problems"]
 
 
 @dataclass(frozen=True)
@@ -121,6 +122,12 @@ def check_push_settings(pushes: Any, prefix: str) -> None:
     if pushes.kind not in PUSH_KINDS:
         raise ValueError(f"{prefix}kind must be one of {PUSH_KINDS} (force: on the pelvis; velocity: the whole "
                          f"robot's velocity), got {pushes.kind!r}")
+
+
+#: A contract's ``trained_under.actuators.delay.applied``: how the delayed torque reaches the joint, in each
+#: physics substep (``Delay``; the value when the field is left out) or as its mean over each control period
+#: (``AveragedDelay``, ``ActuatorConfig.delay_average``).
+DELAY_APPLIED = ("substep", "period_mean")
 
 
 def delay_grid_problem(low: int, high: int, stride: Any) -> str | None:

@@ -8,6 +8,7 @@ stage                  applied torque                                           
                                                                                       reset
 ====================== ============================================================== ================================
 :class:`Delay`         the command of k physics substeps ago (k per world)            k ~ U{low, ..., high} substeps
+:class:`AveragedDelay` the same delayed torque averaged over each policy step          k ~ U{low, ..., high} substeps
 :class:`MotorConstant` ``c · τ``                                                      c ~ U(low, high) per joint
 :class:`Friction`      ``τ − (F_c·sign(q̇) + F_v·q̇)`` (report eq. 3.6: Coulomb and     F_c, F_v ~ U(low, high) per
                        viscous resistance), q̇ the joint velocity before the step     joint
@@ -17,7 +18,8 @@ stage                  applied torque                                           
 An ideal actuator is the empty chain (nothing runs). Without a :class:`Delay` a stage maps (N, J) torques to (N, J)
 torques, held for the policy step. A :class:`Delay` turns the command into (N, S, J) torques, one per physics substep
 (S = substeps per policy step), which the simulator applies substep by substep (``SimConfig.substep_ctrl``); the
-stages after it act on each substep's torque.
+stages after it act on each substep's torque. An :class:`AveragedDelay` holds that torque's mean over the step
+instead: the same impulse per step, (N, J) like the other stages.
 
 Parameters live in (N, J) device tensors that :meth:`Actuator.reset` redraws in place for the flagged worlds from
 uniforms the env supplies (``episode_uniform``: the same draws whichever reset path runs), so a captured step graph
@@ -45,7 +47,7 @@ import torch
 
 from .base import ControlContext, ControlInput
 
-__all__ = ["Actuator", "ActuatorChain", "Delay", "Friction", "MotorConstant", "Saturation"]
+__all__ = ["Actuator", "ActuatorChain", "AveragedDelay", "Delay", "Friction", "MotorConstant", "Saturation"]
 
 
 def _per_joint(tau: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
@@ -191,9 +193,14 @@ class Delay(Actuator):
         self.history = torch.zeros(n, depth, j, dtype=torch.float32, device=dev)
         #: (N,) int64 each world's delay k [substeps].
         self.delay = torch.full((n,), self.low, dtype=torch.int64, device=dev)
+        self._setup_reader()
+        self._set_lag()
+
+    def _setup_reader(self) -> None:
+        """The buffers that say which history slot each substep reads (:meth:`_set_lag` fills them)."""
+        n, j, s, dev = self.ctx.num_envs, self.history.shape[2], self.substeps, self.ctx.device
         self._substep = torch.arange(s, dtype=torch.int64, device=dev)
         self._lag = torch.zeros(n, s, j, dtype=torch.int64, device=dev)  # history index read in each substep
-        self._set_lag()
 
     def _set_lag(self) -> None:
         lag = ((self.delay.unsqueeze(-1) - self._substep).clamp(min=0) + self.substeps - 1) // self.substeps
@@ -220,8 +227,51 @@ class Delay(Actuator):
         self._set_lag()
 
 
+class AveragedDelay(Delay):
+    """:class:`Delay`'s torque averaged over each policy step: one (N, J) torque per step, not (N, S, J).
+
+    With k = m·S + r (0 <= r < S), the delayed torque of step t is the command of step t − m − 1 in the step's
+    first r substeps and that of step t − m in the others; this stage applies ``(r/S)·τ[t−m−1] + (1 − r/S)·τ[t−m]``
+    through the whole step. Each step's impulse is the delayed torque's, to the substep, and so is the delay of a
+    slow change; only the shape within one 4 ms step differs. What it buys on a GPU: every world's torque changes
+    at the step's first substep, as without a delay, so no substep waits on the worlds a torque change made slow to
+    solve (mujoco-warp solves a substep's worlds in lockstep; ``ActuatorConfig.delay_average``).
+
+    Args: as :class:`Delay`'s.
+
+    >>> import torch
+    >>> from tocabi_torchrl.control.base import ControlContext, ControlInput
+    >>> ctx = ControlContext(num_envs=1, device=torch.device("cpu"), joint_ids=(0,),
+    ...                      torque_limits=torch.tensor([10.0]), joint_range=torch.tensor([[-1.0, 1.0]]))
+    >>> stage = AveragedDelay(6, 6, substeps=8)  # 6 of 8 substeps still carry the previous command
+    >>> stage.setup(ctx)
+    >>> stage(torch.tensor([[8.0]]), ControlInput(action=None)).tolist()  # the previous command was 0
+    [[2.0]]
+    """
+
+    def _setup_reader(self) -> None:
+        #: (N, depth) the weight of each history slot in the step's torque (two slots per world).
+        self._weights = torch.zeros(self.ctx.num_envs, self.history.shape[1], dtype=torch.float32,
+                                    device=self.ctx.device)
+
+    def _set_lag(self) -> None:
+        s, depth = self.substeps, self.history.shape[1]
+        newer = (self.delay // s).unsqueeze(-1)
+        older_share = (self.delay % s).unsqueeze(-1).to(torch.float32) / s
+        # A delay of exactly ceil(high / S) steps has no older slot in the register; its share is 0 there.
+        self._weights.zero_()
+        self._weights.scatter_add_(1, newer, 1.0 - older_share)
+        self._weights.scatter_add_(1, (newer + 1).clamp(max=depth - 1), older_share)
+
+    def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        self.history.copy_(torch.roll(self.history, 1, dims=1))
+        self.history[:, 0].copy_(tau)
+        return torch.bmm(self._weights.unsqueeze(1), self.history).squeeze(1)
+
+
 class ActuatorChain(Actuator):
-    """Stages applied in order; :attr:`per_substep` is True when one is a :class:`Delay` (at most one)."""
+    """Stages applied in order; :attr:`per_substep` is True when one is a :class:`Delay` that is not an
+    :class:`AveragedDelay` (at most one delay)."""
 
     def __init__(self, stages: list[Actuator]):
         self.stages = list(stages)
@@ -229,8 +279,8 @@ class ActuatorChain(Actuator):
         if len(delays) > 1:
             raise ValueError("an actuator chain takes at most one Delay")
         #: True: the chain returns one torque per physics substep, (N, S, J).
-        self.per_substep = bool(delays)
-        self.substeps = delays[0].substeps if delays else 1
+        self.per_substep = bool(delays) and not isinstance(delays[0], AveragedDelay)
+        self.substeps = delays[0].substeps if self.per_substep else 1
 
     def setup(self, ctx: ControlContext) -> None:
         super().setup(ctx)

@@ -28,6 +28,10 @@ class ActuatorConfig:
             substep of the period; mujoco-warp's solver iterates all worlds of a substep until the slowest has
             converged, so the substep a torque change makes costly is then paid for once a period, not in each
             (lab/analysis/substep_iterations.py). The range's ends stay; the values between are fewer.
+        delay_average: apply the delayed torque's mean over each policy step instead of the delayed torque itself
+            substep by substep (``AveragedDelay``): each step's impulse and every delay of the range stay, only the
+            torque's shape within the step goes, and every world's torque changes at the step's first substep, so
+            the solver's lockstep pays no extra iterations for the delay (the grid's gain without the grid).
         motor_constant: (low, high) the motor-constant scale c ~ U(low, high) per world and joint (1 = nominal).
         coulomb: (low, high) Coulomb friction [N·m] per world and joint, against the joint's velocity.
         viscous: (low, high) viscous friction [N·m·s/rad] per world and joint.
@@ -38,6 +42,7 @@ class ActuatorConfig:
 
     delay_substeps: tuple[int, int] = (0, 0)
     delay_stride: int = 1
+    delay_average: bool = False
     motor_constant: tuple[float, float] = (1.0, 1.0)
     coulomb: tuple[float, float] = (0.0, 0.0)
     viscous: tuple[float, float] = (0.0, 0.0)
@@ -55,6 +60,8 @@ class ActuatorConfig:
         problem = delay_grid_problem(*(int(v) for v in self.delay_substeps), self.delay_stride)
         if problem:
             raise ValueError(f"env.control.actuators.delay_stride: {problem}")
+        if not isinstance(self.delay_average, bool):
+            raise ValueError(f"env.control.actuators.delay_average must be True or False, got {self.delay_average!r}")
 
     @property
     def ideal(self) -> bool:
@@ -66,12 +73,13 @@ class ActuatorConfig:
         """The chain these settings describe (empty when :attr:`ideal`): delay, motor constant, friction,
         saturation, each only where it changes something."""
         # Here, not at the top: the stages are torch code, and the config tree reads this module without torch.
-        from .actuators import ActuatorChain, Delay, Friction, MotorConstant, Saturation
+        from .actuators import ActuatorChain, AveragedDelay, Delay, Friction, MotorConstant, Saturation
 
         stages = []
         if tuple(self.delay_substeps) != (0, 0):
-            stages.append(Delay(int(self.delay_substeps[0]), int(self.delay_substeps[1]), substeps,
-                                int(self.delay_stride)))
+            kind = AveragedDelay if self.delay_average else Delay
+            stages.append(kind(int(self.delay_substeps[0]), int(self.delay_substeps[1]), substeps,
+                               int(self.delay_stride)))
         if tuple(self.motor_constant) != (1.0, 1.0):
             stages.append(MotorConstant(*self.motor_constant))
         if tuple(self.coulomb) != (0.0, 0.0) or tuple(self.viscous) != (0.0, 0.0):

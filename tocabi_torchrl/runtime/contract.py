@@ -15,7 +15,8 @@ import os
 import re
 from pathlib import Path
 
-from ..value_rules import ENV_RULES, NON_NEGATIVE, PUSH_KINDS, delay_grid_problem, trained_under_problems
+from ..value_rules import (DELAY_APPLIED, ENV_RULES, NON_NEGATIVE, PUSH_KINDS, delay_grid_problem,
+                           trained_under_problems)
 
 __all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ENV_FIELDS", "REQUIRED_KEYS", "RUNTIME_SIGNALS", "ContractError",
            "check_contract", "load_contract"]
@@ -381,7 +382,8 @@ def _check_observation(obs: dict, num_joints: int, source: str) -> None:
 def _check_trained_under(contract: dict, source: str) -> None:
     """Raise :class:`ContractError` for a ``trained_under`` section (when the contract has one) that breaks
     ``value_rules.trained_under_problems``, whose delay in ms is not its substeps × ``timing.physics_dt_s`` or whose
-    delay stride does not divide its range (``value_rules.delay_grid_problem``), or that states actuator stages for a
+    delay stride does not divide its range (``value_rules.delay_grid_problem``), whose delay is applied in a way this
+    reader does not know (``value_rules.DELAY_APPLIED``), or that states actuator stages for a
     PD control mode (the training env refuses them there)."""
     if "trained_under" not in contract:
         return
@@ -400,6 +402,10 @@ def _check_trained_under(contract: dict, source: str) -> None:
         problem = delay_grid_problem(*delay["substeps"], delay.get("stride_substeps", 1))
         if problem:
             raise ContractError(f"{source}: trained_under.actuators.delay.stride_substeps: {problem}; {fix}")
+        applied = delay.get("applied", DELAY_APPLIED[0])
+        if applied not in DELAY_APPLIED:
+            raise ContractError(f"{source}: trained_under.actuators.delay.applied is {applied!r} but must be one of "
+                                f"{list(DELAY_APPLIED)}; {fix}")
     kind = section["pushes"].get("kind", "force") if isinstance(section["pushes"], dict) else "force"
     if kind not in PUSH_KINDS:
         raise ContractError(f"{source}: trained_under.pushes.kind is {kind!r} but must be one of {list(PUSH_KINDS)}; "

@@ -39,7 +39,7 @@ from dataclasses import dataclass, fields
 import mujoco
 import numpy as np
 
-from ..value_rules import check_push_settings
+from ..value_rules import DELAY_APPLIED, check_push_settings
 
 
 __all__ = ["ROBUST_START", "STREAMS", "TOCABI_LAB", "ActuatorLayer", "ActuatorSettings", "DynamicsSettings",
@@ -60,12 +60,14 @@ def generator(seed: int, piece: str) -> np.random.Generator:
 @dataclass(frozen=True)
 class ActuatorSettings:
     """The legs' actuator layer (``ActuatorConfig``'s fields): delay k ~ U{low, low + stride, ..., high} physics
-    substeps per robot, motor constant c ~ U(low, high) per robot and leg joint, Coulomb friction [N·m] and viscous
-    friction [N·m·s/rad] ~ U(low, high) per robot and leg joint, then a clip at the torque limits (``saturate``, when
-    any other stage runs). The defaults are the ideal actuator."""
+    substeps per robot (``delay_average``: the delayed torque's mean over each control period), motor constant
+    c ~ U(low, high) per robot and leg joint, Coulomb friction [N·m] and viscous friction [N·m·s/rad] ~ U(low, high)
+    per robot and leg joint, then a clip at the torque limits (``saturate``, when any other stage runs). The defaults
+    are the ideal actuator."""
 
     delay_substeps: tuple[int, int] = (0, 0)
     delay_stride: int = 1
+    delay_average: bool = False
     motor_constant: tuple[float, float] = (1.0, 1.0)
     coulomb: tuple[float, float] = (0.0, 0.0)
     viscous: tuple[float, float] = (0.0, 0.0)
@@ -209,16 +211,19 @@ def _pair(values) -> list[float]:
 
 
 def _delay_item(act: ActuatorSettings, physics_dt_s: float) -> dict:
-    """The contract's ``actuators.delay`` item; ``stride_substeps`` only where the grid is coarser than 1 (a
-    contract without it states a stride of 1)."""
+    """The contract's ``actuators.delay`` item; ``stride_substeps`` only where the grid is coarser than 1 and
+    ``applied`` only where the torque is averaged (a contract without them states a stride of 1, per substep)."""
     stride = int(act.delay_stride)
     grid = "{low, ..., high}" if stride == 1 else "{low, low + stride_substeps, ..., high}"
+    how = ("the torque held through each control period is the mean over its physics substeps of the command of k "
+           "substeps earlier" if act.delay_average else
+           "the torque in each physics substep is the command of k substeps earlier")
     return {"substeps": [int(v) for v in act.delay_substeps],
             "ms": [round(int(v) * physics_dt_s * 1000.0, 9) for v in act.delay_substeps],
             **({"stride_substeps": stride} if stride != 1 else {}),
+            **({"applied": DELAY_APPLIED[1]} if act.delay_average else {}),
             "unit": "physics substeps (and ms)",
-            "draw": f"k ~ U{grid} per robot at each reset; the torque in each physics substep is the command of k "
-                    "substeps earlier (zero torque before the episode's first command)"}
+            "draw": f"k ~ U{grid} per robot at each reset; {how} (zero torque before the episode's first command)"}
 
 
 def trained_under_section(randomization: Randomization, pushes: PushSettings, start: StartVelocity,
@@ -304,6 +309,7 @@ def from_contract(contract: dict) -> tuple[Randomization, PushSettings, StartVel
     actuators = ActuatorSettings(
         delay_substeps=tuple(int(v) for v in pair(act["delay"], "substeps", (0, 0))),
         delay_stride=1 if act["delay"] == "off" else int(act["delay"].get("stride_substeps", 1)),
+        delay_average=act["delay"] != "off" and act["delay"].get("applied", DELAY_APPLIED[0]) == DELAY_APPLIED[1],
         motor_constant=pair(act["motor_constant"], "range", (1.0, 1.0)),
         coulomb=pair(act["friction"], "coulomb_nm", (0.0, 0.0)),
         viscous=pair(act["friction"], "viscous_nms_per_rad", (0.0, 0.0)),
@@ -368,6 +374,8 @@ class ActuatorLayer:
         self.history = np.roll(self.history, 1, axis=1)
         self.history[:, 0] = tau
         out = self.history[np.arange(len(tau))[:, None], self.lag]  # (N, S, J)
+        if self.settings.delay_average:  # AveragedDelay: the period's mean, held through it
+            out = np.broadcast_to(out.mean(axis=1, keepdims=True), out.shape)
         out = out * self.motor_constant[:, None]
         out = out - (self.coulomb * np.sign(qd) + self.viscous * qd)[:, None]
         if self.settings.saturate:
