@@ -1,7 +1,8 @@
 """Solver iterations per physics substep when the leg actuators' delay spreads the torque changes over a control
 period: C MuJoCo robots driven by an exported policy through the torch-free runtime (``recipes/sim2sim.py``'s
-driver), the delay off, of one whole control period, the TOCABI lab's 4-20 substeps, and those on a grid of one
-period (4, 12 and 20 substeps: ``env.control.actuators.delay_stride``).
+driver), the delay off, of one whole control period, the TOCABI lab's 4-20 substeps, those on a grid of one
+period (4, 12 and 20 substeps: ``env.control.actuators.delay_stride``), and the lab's 4-20 substeps averaged over
+each period (``env.control.actuators.delay_average``).
 
 Each substep's Newton solve starts from the previous substep's acceleration, which a jump in the commanded torque
 makes stale, so the substep a jump lands in takes more iterations. Without a delay every robot's torque jumps at
@@ -11,16 +12,25 @@ most iterations any world needs: the ``lockstep`` count below (the maximum over 
 substeps), beside each robot's ``own``. C MuJoCo stands in for mujoco-warp here (same solver and warm start; the
 counts differ in detail).
 
-Wrote docs/benchmarks/randomization/substep_iterations.json (about 4 minutes on 2 cores)::
+The lockstep count also grows with how different the robots' states are: robots that start alike and draw the same
+delay move alike and need their iterations in the same substeps. A training batch is thousands of worlds in every
+phase of their episodes, so by default every robot starts with the robust gait test's random joint and pelvis
+velocities (``ROBUST_START``), in every variant alike; ``--at_rest`` starts them at rest, as the first report did.
 
-    PYTHONPATH=. python lab/analysis/substep_iterations.py --num_robots 32 --seconds 4 \\
+Wrote docs/benchmarks/randomization/substep_iterations.json (about 10 minutes on 2 cores) and, robots at rest,
+substep_iterations_at_rest.json (about 5)::
+
+    PYTHONPATH=. python lab/analysis/substep_iterations.py --num_robots 64 --seconds 4 \\
         --out docs/benchmarks/randomization/substep_iterations.json
+    PYTHONPATH=. python lab/analysis/substep_iterations.py --num_robots 32 --seconds 4 --at_rest \\
+        --out docs/benchmarks/randomization/substep_iterations_at_rest.json
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import platform
 import time
 from collections.abc import Iterator
@@ -77,25 +87,32 @@ def lockstep(counts: np.ndarray) -> dict:
 def variants(substeps: int) -> dict[str, rnd.Randomization]:
     """The actuator layers compared: none, a delay of exactly one control period (every jump back at substep 0),
     the TOCABI lab's delay (``rnd.TOCABI_LAB``'s range, motor constant left at 1), and the same range on a grid of
-    one control period (``ActuatorConfig.delay_stride`` = S: 4, 12, 20 substeps, every jump in the same substep)."""
+    one control period (``ActuatorConfig.delay_stride`` = S: 4, 12, 20 substeps, every jump in the same substep),
+    and the lab's range averaged over each period (``ActuatorConfig.delay_average``: every jump at substep 0)."""
     lab = rnd.TOCABI_LAB.actuators.delay_substeps
     return {"no delay": rnd.Randomization(),
             "delay of one period": rnd.Randomization(actuators=rnd.ActuatorSettings(delay_substeps=(substeps,) * 2)),
             "tocabi_lab delay": rnd.Randomization(actuators=rnd.ActuatorSettings(delay_substeps=lab)),
             "tocabi_lab delay, one-period grid": rnd.Randomization(
-                actuators=rnd.ActuatorSettings(delay_substeps=lab, delay_stride=substeps))}
+                actuators=rnd.ActuatorSettings(delay_substeps=lab, delay_stride=substeps)),
+            "tocabi_lab delay, averaged per period": rnd.Randomization(
+                actuators=rnd.ActuatorSettings(delay_substeps=lab, delay_average=True))}
 
 
-def measure(contract: Path, num_robots: int, seconds: float, seed: int) -> list[dict]:
-    """One sim-to-sim run per :func:`variants` entry, the same robots and seed: their iteration summaries."""
+def measure(contract: Path, num_robots: int, seconds: float, seed: int, at_rest: bool = False) -> list[dict]:
+    """One sim-to-sim run per :func:`variants` entry, the same robots, seed and start velocities (``ROBUST_START``,
+    none when ``at_rest``): their iteration summaries."""
     substeps = int(load_contract(contract)["timing"]["substeps"])
+    start = None if at_rest else rnd.ROBUST_START
     results = []
     for name, randomization in variants(substeps).items():
         with counted_steps() as counts:
-            run = run_sim2sim(contract, num_robots=num_robots, seconds=seconds, seed=seed, randomize=randomization)
+            run = run_sim2sim(contract, num_robots=num_robots, seconds=seconds, seed=seed, randomize=randomization,
+                              start_velocity=start)
         summary = lockstep(np.asarray(counts).reshape(-1, num_robots, substeps))
         results.append({"variant": name, "delay_substeps": list(randomization.actuators.delay_substeps),
                         "delay_stride": randomization.actuators.delay_stride,
+                        "delay_average": randomization.actuators.delay_average,
                         "survival": run.survival, **summary})
         print(f"{name}: own {summary['own_per_period']:.2f}, lockstep {summary['lockstep_per_period']:.2f} "
               "iterations per period", flush=True)
@@ -108,15 +125,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--num_robots", type=int, default=32)
     parser.add_argument("--seconds", type=float, default=4.0, help="length of each run [s]")
     parser.add_argument("--seed", type=int, default=7, help="seed of the delays' draws (one per robot)")
+    parser.add_argument("--at_rest", action="store_true",
+                        help="start the robots at rest (default: the robust test's random start velocities)")
     parser.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
     args = parser.parse_args(argv)
     check_paths(parser, [args.contract], args.out)
     if args.num_robots < 1 or not args.seconds > 0:
         parser.error("--num_robots must be >= 1 and --seconds > 0")
-    results = measure(args.contract, args.num_robots, args.seconds, args.seed)
+    results = measure(args.contract, args.num_robots, args.seconds, args.seed, args.at_rest)
     if args.out is not None:
         meta = {"date": time.strftime("%Y-%m-%d"), "hardware": f"CPU (C MuJoCo {mujoco.__version__}), "
-                f"{platform.machine()}", "num_robots": args.num_robots, "seconds": args.seconds}
+                f"{platform.machine()}", "num_robots": args.num_robots, "seconds": args.seconds,
+                "start_velocity": None if args.at_rest else dataclasses.asdict(rnd.ROBUST_START)}
         write_report(args.out, "lab/analysis/substep_iterations.py", argv, results, meta)
 
 

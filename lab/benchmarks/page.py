@@ -281,16 +281,35 @@ def substep_iterations(docs: Path) -> list[str]:
             "substep) |", "|---|---:|---:|"]
     rows += [f"| {r['variant']} ({r['delay_substeps'][0]}-{r['delay_substeps'][1]} substeps"
              + (f", every {r['delay_stride']}" if r["delay_stride"] != 1 else "")
+             + (", mean over each period" if r.get("delay_average") else "")
              + f") | {r['own_per_period']:.1f} | {r['lockstep_per_period']:.1f} |" for r in d["results"]]
     return ["What likely makes the actuators cost physics time: a torque change makes the substep it lands in solve "
             "longer. Without a delay every robot's lands in substep 0; the delay spreads them over all substeps, and "
             "mujoco-warp iterates a substep's worlds until the slowest converges; on a grid of one period "
-            "(`env.control.actuators.delay_stride`) they land in one substep again. Measured with C MuJoCo standing in "
+            "(`env.control.actuators.delay_stride`) they land in one substep again, and averaged over each period "
+            "(`env.control.actuators.delay_average`) in substep 0, as without a delay. Measured with C MuJoCo standing in "
             "for mujoco-warp (the GPU's per-substep counts are not measured yet), robots driven by the shipped robust "
-            f"policy, {m['num_robots']} robots, {m['seconds']:g} s:", "", *rows, "",
+            f"policy, {m['num_robots']} robots, {m['seconds']:g} s"
+            + (", each started with the robust test's random joint and pelvis velocities (a batch of robots in "
+               "different states, as in training)" if m.get("start_velocity") else ", started at rest") + ":",
+            "", *rows, "",
             f"- command: `{d['command']}`",
             f"- date: {m['date']}; hardware: {m['hardware']}; report: "
-            "[substep_iterations.json](benchmarks/randomization/substep_iterations.json)"]
+            "[substep_iterations.json](benchmarks/randomization/substep_iterations.json)", *_at_rest(docs)]
+
+
+def _at_rest(docs: Path) -> list[str]:
+    """The same count with the robots started at rest (a report of its own, when there is one): alike robots
+    converge alike, so there the delay's spread shows alone."""
+    name = "benchmarks/randomization/substep_iterations_at_rest.json"
+    if not (docs / name).is_file():
+        return []
+    d = _load(name, docs)
+    counts = "; ".join(f"{r['variant']} {r['lockstep_per_period']:.1f}" for r in d["results"])
+    return [f"- the same with {d['meta']['num_robots']} robots started at rest, lockstep iterations per period: "
+            f"{counts} ([{Path(name).name}]({name}); `{d['command']}`). Robots in alike states solve alike, so "
+            "there the lockstep count grows with how many different delays the robots drew as much as with where "
+            "their torque changes land"]
 
 
 def solver_load(docs: Path) -> list[str]:
