@@ -359,13 +359,18 @@ def test_every_case_starts_from_the_ideal_robot_whatever_the_policy_trained_unde
     pushed = case_config(trained, "robust_1.0")
     assert pushed.env.pushes.count == 3 and pushed.env.pushes.speed == (1.0, 1.0)
     assert pushed.env.dynamics.enabled and pushed.transforms.sensor_noise.enabled
-    # A delay trained on a coarser grid (env.control.actuators.delay_stride) is tested on the lab's every substep.
+    # A delay trained on a coarser grid (env.control.actuators.delay_stride) is tested on the lab's every substep,
     from tocabi_torchrl.randomize import TOCABI_LAB_ACTUATORS
     from tocabi_torchrl.tree import replace_paths
 
     grid = replace_paths(trained, {"env.control.actuators.delay_stride": 8})
     assert case_config(grid, "robust_0.5").env.control.actuators == TOCABI_LAB_ACTUATORS
     assert TOCABI_LAB_ACTUATORS.delay_stride == 1
+    # So is one trained on the delay's mean over each step (env.control.actuators.delay_average).
+    averaged = replace_paths(trained, {"env.control.actuators.delay_average": True})
+    tested = case_config(averaged, "robust_1.0").env.control.actuators
+    assert tested == TOCABI_LAB_ACTUATORS and not tested.delay_average
+    assert tested.build(8).per_substep
 
 
 def test_saved_normaliser_statistics_follow_their_transform_when_sensor_noise_shifts_the_chain():
