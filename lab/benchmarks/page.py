@@ -217,7 +217,28 @@ def randomization(docs: Path) -> list[str]:
             f"- command: `{d['results'][-1]['command']}` (each row's own in the report)",
             f"- date: {m['date']}; hardware: {m['gpu']}, {m['num_envs']:,} envs; report: "
             "[train_throughput.json](benchmarks/randomization/train_throughput.json)", "", *step_ops(docs), "",
-            *substep_iterations(docs)]
+            *substep_iterations(docs), *averaged_delay(docs)]
+
+
+def averaged_delay(docs: Path) -> list[str]:
+    """The shipped robust policy under the lab's delay per substep and averaged (lab/analysis/averaged_delay.py),
+    when that report exists."""
+    name = "benchmarks/randomization/averaged_delay.json"
+    if not (docs / name).is_file():
+        return []
+    d = _load(name, docs)
+    m = d["meta"]
+    rows = ["| kicks | torque delay | survival | robots whose outcome differs from the first row's | forward "
+            "distance [m] | lateral drift [m] |", "|---:|---|---:|---:|---:|---:|"]
+    rows += [f"| {r['kick_speed_mps']:g} m/s | {r['variant']} | {r['survival']:.3f} | {r['outcomes_changed']} | "
+             f"{r['forward_distance_m']:.2f} | {r['lateral_drift_m']:.2f} |" for r in d["results"]]
+    return ["", "Whether a policy meets the same robot when the delay is averaged over each period "
+            "(`env.control.actuators.delay_average`): the shipped robust policy, trained with the delay per substep, "
+            f"on C MuJoCo under the robust test's pushed cases, {m['num_robots']} robots, every draw alike between "
+            "the rows of a kick speed (the third row: the per-substep delay with the start joint angles offset by "
+            "1e-6 rad, how many outcomes a meaningless difference changes in a chaotic gait):", "", *rows, "",
+            f"- command: `{d['command']}`",
+            f"- date: {m['date']}; hardware: {m['hardware']}; report: [{Path(name).name}]({name})"]
 
 
 RANDOMIZATION_COST = "benchmarks/randomization/randomization_cost.json"
