@@ -77,14 +77,15 @@ def measure(contract: Path, num_robots: int, speeds: list[float], seed: int) -> 
                               randomize=randomization, pushes=pushes, start_velocity=rnd.ROBUST_START,
                               perturbation=offset)
             first = run if first is None else first
+            differ = changed(first.alive, run.alive)
             results.append({"kick_speed_mps": speed, "variant": name, "survival": run.survival,
-                            "outcomes_changed": changed(first.alive, run.alive),
+                            "outcomes_changed": differ,
                             "forward_distance_m": round(run.forward_distance_m, 3),
                             "lateral_drift_m": round(run.lateral_drift_m, 3),
                             "speed_tracking_error_mps": round(run.speed_tracking_error_mps, 4),
                             "alive": [bool(a) for a in run.alive]})
             print(f"kicks {speed} m/s, {name}: survival {run.survival:.3f}, forward {run.forward_distance_m:.2f} m, "
-                  f"drift {run.lateral_drift_m:.2f} m, {changed(first.alive, run.alive)} outcomes changed", flush=True)
+                  f"drift {run.lateral_drift_m:.2f} m, {differ} outcomes changed", flush=True)
     return results
 
 

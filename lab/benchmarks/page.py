@@ -308,8 +308,9 @@ def substep_iterations(docs: Path) -> list[str]:
             "longer. Without a delay every robot's lands in substep 0; the delay spreads them over all substeps, and "
             "mujoco-warp iterates a substep's worlds until the slowest converges; on a grid of one period "
             "(`env.control.actuators.delay_stride`) they land in one substep again, and averaged over each period "
-            "(`env.control.actuators.delay_average`) in substep 0, as without a delay. Measured with C MuJoCo standing in "
-            "for mujoco-warp (the GPU's per-substep counts are not measured yet), robots driven by the shipped robust "
+            "(`env.control.actuators.delay_average`) in substep 0, as without a delay. Measured with C MuJoCo "
+            "standing in for mujoco-warp (the GPU's per-substep counts are not measured yet), robots driven by the "
+            "shipped robust "
             f"policy, {m['num_robots']} robots, {m['seconds']:g} s"
             + (", each started with the robust test's random joint and pelvis velocities (a batch of robots in "
                "different states, as in training)" if m.get("start_velocity") else ", started at rest") + ":",

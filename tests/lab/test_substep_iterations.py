@@ -30,8 +30,7 @@ def test_a_delay_moves_the_costly_substep_and_a_whole_period_keeps_it(tmp_path):
     """Two robots, 0.2 s: without a delay the torque jump makes substep 0 the costliest; a delay of one period
     brings the jump back there; the TOCABI lab's delay moves it off substep 0 (its warm start there is the solution
     of the same torque), on a one-period grid onto one substep for every robot, and averaged per period back onto
-    substep 0. The report names its command and
-    is never written over."""
+    substep 0. The report names its command and is never written over."""
     out = tmp_path / "it.json"
     substep_iterations.main(["--num_robots", "2", "--seconds", "0.2", "--out", str(out)])
     report = json.loads(out.read_text())

@@ -206,9 +206,13 @@ class Delay(Actuator):
         lag = ((self.delay.unsqueeze(-1) - self._substep).clamp(min=0) + self.substeps - 1) // self.substeps
         self._lag.copy_(lag.unsqueeze(-1).expand_as(self._lag))
 
-    def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+    def _push(self, tau: torch.Tensor) -> None:
+        """Shift the command register by one step and put ``tau`` (N, J) at its front (in place)."""
         self.history.copy_(torch.roll(self.history, 1, dims=1))
         self.history[:, 0].copy_(tau)
+
+    def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        self._push(tau)
         return torch.gather(self.history, 1, self._lag)
 
     def values(self) -> list[int]:
@@ -264,8 +268,7 @@ class AveragedDelay(Delay):
         self._weights.scatter_add_(1, (newer + 1).clamp(max=depth - 1), older_share)
 
     def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
-        self.history.copy_(torch.roll(self.history, 1, dims=1))
-        self.history[:, 0].copy_(tau)
+        self._push(tau)
         return torch.bmm(self._weights.unsqueeze(1), self.history).squeeze(1)
 
 
