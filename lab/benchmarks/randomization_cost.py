@@ -9,7 +9,11 @@ but with its kicks at full strength from the first step (``ppo.push_ramp=0 0``: 
 otherwise end before its curriculum lets a kick through), and ``off``, the same with every piece of
 :data:`OFF` at its identity (actuator layer, dynamics, sensor biases and noise, pushes, diverse starts). The order
 alternates by round (on, off, then off, on, ...), so that neither variant always runs first and a drift of the GPU's
-clocks hits both. Reports every measurement and the ratio of the two variants' median rates. ``--pieces dynamics
+clocks hits both. Each round trains its own seed (``--seeds``; round r the seed r − 1 by default), the same for
+every variant of the round: the first iterations of a run are a few seconds of robots flailing under one initial
+policy, and how hard their physics is to solve depends on that policy (on an H200 at 4,096 envs, one round each of
+seeds 0-4 gave 0.941-0.956 for the same preset, docs/benchmarks/randomization/delay_average_cost). Reports every
+measurement, each round's ratio, and their median. ``--pieces dynamics
 sensors ...`` also measures ``off`` with each named piece switched on alone (``off+<piece>``), to see which piece
 costs what. ``--physics`` also measures each variant's physics alone (``solver_load`` in a child process: the
 trainer's steps run eagerly, timed, with the solver iterations of the slowest world), to tell what of the cost is
@@ -55,14 +59,17 @@ def variants(preset: str, extra: list[str], pieces: tuple[str, ...] = ()) -> dic
 
 
 def render(data: dict, out) -> str:
-    rows = [(r["round"], r["variant"], common.fmt(r.get("train_env_steps_per_s")),
+    rows = [(r["round"], r.get("seed", 0), r["variant"], common.fmt(r.get("train_env_steps_per_s")),
              common.fmt(r.get("raw_policy_steps_per_s")), common.fmt(r.get("ratio_train_over_raw"), ".2f"))
             for r in data["results"]]
     s = data["summary"]
-    body = common.table(("round", "variant", "train env-steps/s", "raw mujoco-warp policy steps/s", "train / raw"),
-                        rows)
+    body = common.table(("round", "seed", "variant", "train env-steps/s", "raw mujoco-warp policy steps/s",
+                         "train / raw"), rows)
+    rounds = s.get("round_on_over_off")
+    per_round = (" Per round, on / off of the same seed: " + ", ".join(f"{x:.3f}" for x in rounds)
+                 + "; their median is the ratio.") if rounds else ""
     body += (f"\n\nMedian training rate: on {common.fmt(s['on_median'])}, off {common.fmt(s['off_median'])} "
-             f"env-steps/s; on / off = **{s['on_over_off']:.3f}** (the target is >= 0.95).\n")
+             f"env-steps/s; on / off = **{s['on_over_off']:.3f}** (the target is >= 0.95).{per_round}\n")
     for name, ratio in s.get("piece_over_off", {}).items():
         body += f"- {name} alone over off: {ratio:.3f}\n"
     if data.get("physics"):
@@ -96,6 +103,8 @@ def main(argv=None) -> None:
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed per measurement (0: skip)")
     p.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="more overrides, for both variants")
+    p.add_argument("--seeds", type=int, nargs="*", default=None,
+                   help="the training seed of each round, one per round (default: 0, 1, ... --rounds - 1)")
     p.add_argument("--pieces", nargs="*", default=[], choices=list(PIECES),
                    help="also measure off with each of these pieces switched on alone (off+<piece>)")
     p.add_argument("--physics", action="store_true",
@@ -107,27 +116,42 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     if args.rounds < 1 or args.num_envs < 1:
         p.error(f"--rounds and --num_envs take values >= 1, got {args.rounds} and {args.num_envs}")
+    if any(item.partition("=")[0].strip() == "seed" for item in args.set):
+        p.error("set the rounds' seeds with --seeds, not --set seed=...")
+    seeds = list(range(args.rounds)) if args.seeds is None else args.seeds
+    if len(seeds) != args.rounds:
+        p.error(f"--seeds takes one seed per round: {args.rounds} round(s), got {len(seeds)} seed(s)")
     sets = variants(args.preset, args.set, tuple(args.pieces))
     for items in sets.values():
         common.parse_overrides(items)  # a bad path or value fails here, before any measurement
     results = []
-    for r in range(args.rounds):
+    for r, seed in enumerate(seeds):
         for name in (list(sets) if r % 2 == 0 else list(sets)[::-1]):
-            items = sets[name]
+            items = [*sets[name], f"seed={seed}"]
             record = _measure("train_throughput", args, args.raw_steps, f"{args.name}_{name}", items)
-            results.append({"round": r + 1, "variant": name, "set": items, **record})
-            print(f"round {r + 1} {name}: {record.get('train_env_steps_per_s') or 0:,.0f} env-steps/s", flush=True)
+            results.append({"round": r + 1, "seed": seed, "variant": name, "set": items, **record})
+            print(f"round {r + 1} (seed {seed}) {name}: {record.get('train_env_steps_per_s') or 0:,.0f} env-steps/s",
+                  flush=True)
+    rate = {(x["round"], x["variant"]): x["train_env_steps_per_s"] for x in results}
+
+    def paired(variant: str, over: str) -> list[float]:
+        """Each round's ratio of two variants' rates (same seed, same round)."""
+        return [rate[(r + 1, variant)] / rate[(r + 1, over)] for r in range(len(seeds))]
+
     median = {v: statistics.median(x["train_env_steps_per_s"] for x in results if x["variant"] == v) for v in sets}
-    summary = {"on_median": median["on"], "off_median": median["off"], "on_over_off": median["on"] / median["off"]}
+    summary = {"on_median": median["on"], "off_median": median["off"], "round_on_over_off": paired("on", "off"),
+               "on_over_off": statistics.median(paired("on", "off"))}
     if args.pieces:
-        summary["piece_over_off"] = {name: median[f"off+{name}"] / median["off"] for name in args.pieces}
+        summary["piece_over_off"] = {name: statistics.median(paired(f"off+{name}", "off")) for name in args.pieces}
     physics = {}
     if args.physics:
         for name, items in sets.items():
+            items = [*items, f"seed={seeds[0]}"]
             physics[name] = _measure("solver_load", args, 1, f"{args.name}_{name}_physics", items)["training"]
             print(f"physics {name}: {physics[name]['ms_per_policy_step']:.3f} ms per policy step", flush=True)
         summary["physics_off_over_on"] = physics["off"]["ms_per_policy_step"] / physics["on"]["ms_per_policy_step"]
-    meta = common.meta(NAME, argv, args.device, preset=args.preset, num_envs=args.num_envs, rounds=args.rounds)
+    meta = common.meta(NAME, argv, args.device, preset=args.preset, num_envs=args.num_envs, rounds=args.rounds,
+                       seeds=seeds)
     data = {"meta": meta, "summary": summary, "results": results, **({"physics": physics} if physics else {})}
     print(common.publish(args.out, args.name, data, render, measured_on=args.device))
 

@@ -107,3 +107,38 @@ def test_physics_measures_each_variant_in_a_solver_load_child_and_reports_the_ra
     assert data["summary"]["on_over_off"] == 0.9
     text = (tmp_path / "randomization_cost.md").read_text()
     assert "Physics time off / on = **0.800**" in text and "| on | 2.500 | 7.00 |" in text
+
+
+def test_each_round_trains_its_own_seed_and_the_ratio_is_the_median_of_the_rounds(tmp_path, monkeypatch):
+    # One seed's first iterations are one sample of how hard the flailing robots' physics is: the rounds differ in
+    # seed, both variants of a round share it, and the ratio is the median of the rounds' own ratios.
+    rates = {("on", 0): 90.0, ("off", 0): 100.0, ("on", 1): 99.0, ("off", 1): 110.0, ("on", 2): 50.0,
+             ("off", 2): 100.0}
+    seen = []
+
+    def fake_child(module, args, env=None, nproc=None):
+        items = args[args.index("--set") + 1:]
+        seed = int(next(i for i in items if i.startswith("seed=")).partition("=")[2])
+        variant = "off" if "env.pushes.count=0" in items else "on"
+        seen.append((variant, seed))
+        return {"train_env_steps_per_s": rates[(variant, seed)]}
+
+    monkeypatch.setattr(common, "run_child", fake_child)
+    randomization_cost.main(["--device", "cpu", "--num_envs", "8", "--rounds", "3", "--out", str(tmp_path),
+                             "--run_dir", str(tmp_path / "runs")])
+    assert seen == [("on", 0), ("off", 0), ("off", 1), ("on", 1), ("on", 2), ("off", 2)]  # alternating order
+    data = json.loads((tmp_path / "randomization_cost.json").read_text())
+    assert data["meta"]["seeds"] == [0, 1, 2] and [r["seed"] for r in data["results"]] == [0, 0, 1, 1, 2, 2]
+    assert data["summary"]["round_on_over_off"] == [0.9, 0.9, 0.5]
+    assert data["summary"]["on_over_off"] == 0.9  # the median of the rounds, not median(on) / median(off) = 0.9/1
+    assert "0.900, 0.900, 0.500" in (tmp_path / "randomization_cost.md").read_text()
+
+    seen.clear()
+    randomization_cost.main(["--device", "cpu", "--num_envs", "8", "--rounds", "1", "--seeds", "2", "--name", "b",
+                             "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs")])
+    assert seen == [("on", 2), ("off", 2)]
+    import pytest
+
+    for bad in (["--rounds", "2", "--seeds", "1"], ["--set", "seed=3"]):
+        with pytest.raises(SystemExit):
+            randomization_cost.main(["--device", "cpu", *bad, "--out", str(tmp_path / "no")])
