@@ -372,6 +372,14 @@ def test_one_hash_pass_draws_every_stream_as_its_own_call_would():
     assert (together[1][:, :3] != together[0]).float().mean() > 0.99
     nxt = EpisodeDraws(streams, "cpu")(seed, ids, episode + 1)
     assert (nxt[2] != together[2]).float().mean() > 0.99
+    # Explicit lanes in an order of one's own (the sensor noise's layout): each column is its lane's uniform.
+    from tocabi_torchrl.envs.episode_random import LaneDraws, stream_lanes
+
+    lanes = torch.cat((stream_lanes(17, 8, "cpu")[4:], stream_lanes(0, 3, "cpu"), stream_lanes(17, 8, "cpu")[:4]))
+    mixed = LaneDraws(lanes)(seed, ids, episode)
+    assert torch.equal(mixed, torch.cat((together[17][:, 4:8], together[0], together[17][:, :4]), dim=-1))
+    with pytest.raises(ValueError, match="int64"):
+        LaneDraws(lanes.float())
 
 
 def test_episode_random_numbers_depend_on_episode_not_call_order():

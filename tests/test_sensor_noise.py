@@ -235,9 +235,13 @@ def test_biases_hold_over_an_episode_and_are_redrawn_at_that_worlds_reset_only(e
     _check_observed_perturbation(env, td)
 
 
-def test_sync_free_steps_follow_every_reset():
-    # The collectors' path: a masked reset on every step (base env, then every transform), merged with where.
-    env = make_env(num_envs=4, device="cpu", seed=1, max_episode_steps=3, sync_free_resets=True, sensor_noise=LAB)
+@pytest.mark.parametrize("cfg", [LAB, dataclasses.replace(LAB, joint_vel_noise_std=0.02, joint_vel_noise_clip=0.03)],
+                         ids=["lab", "with_joint_vel_noise"])
+def test_sync_free_steps_follow_every_reset(cfg):
+    # The collectors' path: a masked reset on every step (base env, then every transform), merged with where. The
+    # reset draws the new biases and the first observation's noise in one hash pass, and the noisy signals share
+    # one Box-Muller: each must still be what sensor_biases and sensor_noise give, signal by signal.
+    env = make_env(num_envs=4, device="cpu", seed=1, max_episode_steps=3, sync_free_resets=True, sensor_noise=cfg)
     td = env.reset()
     stage = _noise_stage(env)
     episodes = env.base_env.episode_count.clone()

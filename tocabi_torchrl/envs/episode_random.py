@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["episode_uniform", "episode_normal", "EpisodeDraws", "box_muller"]
+__all__ = ["episode_uniform", "episode_normal", "EpisodeDraws", "LaneDraws", "stream_lanes", "box_muller"]
 
 _MASK = (1 << 62) - 1
 
@@ -23,7 +23,7 @@ def _mix(x: torch.Tensor) -> torch.Tensor:
     return x ^ (x >> 29)
 
 
-def _lanes(stream: int, k: int, device) -> torch.Tensor:
+def stream_lanes(stream: int, k: int, device) -> torch.Tensor:
     """(k,) int64 hash lanes of ``stream``: one per uniform, disjoint across streams for k <= 256."""
     return torch.arange(k, dtype=torch.int64, device=device) + (stream << 8)
 
@@ -41,7 +41,7 @@ def episode_uniform(seed: int | torch.Tensor, env_ids: torch.Tensor, episode: to
     """(num_envs, k) float32 uniforms in [0, 1) for each env's ``episode`` (num_envs,) int64 and a ``stream`` id.
 
     ``seed``: a Python int or a 0-d int64 tensor on the envs' device (same numbers either way)."""
-    lanes = _lanes(stream, k, env_ids.device)
+    lanes = stream_lanes(stream, k, env_ids.device)
     return _hash(seed, env_ids, episode, lanes, lanes * 0xC2B2AE3D)
 
 
@@ -69,9 +69,8 @@ class EpisodeDraws:
         if too_many:  # lane j of stream s is (s << 8) + j: beyond 256 it would reuse the next stream's lanes
             raise ValueError(f"EpisodeDraws: a stream holds at most 256 uniforms per key, got {too_many}")
         device = torch.device(device)
-        parts = [_lanes(s, k, device) for s, k in self.streams.items()]
-        self._lanes = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.int64, device=device)
-        self._scrambled = self._lanes * 0xC2B2AE3D
+        parts = [stream_lanes(s, k, device) for s, k in self.streams.items()]
+        self._flat = LaneDraws(torch.cat(parts) if parts else torch.zeros(0, dtype=torch.int64, device=device))
 
     def __call__(self, seed: int | torch.Tensor, env_ids: torch.Tensor, key: torch.Tensor) -> dict[int, torch.Tensor]:
         """``{stream: (num_envs, k)}`` float32 uniforms in [0, 1) of each env's ``key`` (num_envs,) int64."""
@@ -81,7 +80,37 @@ class EpisodeDraws:
 
     def flat(self, seed: int | torch.Tensor, env_ids: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
         """(num_envs, Σk) the same uniforms side by side, the streams in the order given (no split)."""
-        return _hash(seed, env_ids, key, self._lanes, self._scrambled)
+        return self._flat(seed, env_ids, key)
+
+
+class LaneDraws:
+    """The uniforms of an explicit list of hash lanes, in that list's order, in one hash pass: ``(num_envs, L)``.
+
+    Lane ``(stream << 8) + j`` (:func:`stream_lanes`) gives uniform j of ``stream``, the number
+    ``episode_uniform(seed, env_ids, key, stream, k)[:, j]`` holds. For a caller that wants several streams'
+    uniforms in an order of its own (interleaved, or split differently from the streams) without a gather after
+    the hash: the order is paid once, when the lanes are built.
+
+    Args:
+        lanes: (L,) int64 hash lanes, on the envs' device.
+
+    >>> import torch
+    >>> ids, ep = torch.arange(3), torch.zeros(3, dtype=torch.int64)
+    >>> lanes = torch.cat((stream_lanes(5, 4, "cpu")[2:], stream_lanes(9, 1, "cpu")))
+    >>> u = LaneDraws(lanes)(0, ids, ep)
+    >>> torch.equal(u[:, :2], episode_uniform(0, ids, ep, stream=5, k=4)[:, 2:]), tuple(u.shape)
+    (True, (3, 3))
+    """
+
+    def __init__(self, lanes: torch.Tensor):
+        if lanes.dtype != torch.int64 or lanes.dim() != 1:
+            raise ValueError(f"LaneDraws takes (L,) int64 lanes, got {tuple(lanes.shape)} {lanes.dtype}")
+        self.lanes = lanes
+        self._scrambled = lanes * 0xC2B2AE3D
+
+    def __call__(self, seed: int | torch.Tensor, env_ids: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
+        """(num_envs, L) float32 uniforms in [0, 1) of each env's ``key`` (num_envs,) int64."""
+        return _hash(seed, env_ids, key, self.lanes, self._scrambled)
 
 
 def episode_normal(seed: int | torch.Tensor, env_ids: torch.Tensor, episode: torch.Tensor, stream: int,

@@ -29,9 +29,10 @@ into other Euler offsets (a roll offset becomes pitch as the robot turns). A bia
 back into (−π, π], the range of the unbiased one.
 
 Random numbers. Every draw comes from the env's counter-based hash
-(:func:`tocabi_torchrl.envs.episode_random.episode_uniform`), never from a generator: a world's biases are keyed
-on (seed, env index, episode number) and its noise on (seed, env index, episode number, step in the episode), each
-signal with a stream of its own (:data:`BIAS_STREAMS`, :data:`NOISE_STREAMS`). World i's draws therefore depend
+(:func:`tocabi_torchrl.envs.episode_random.episode_uniform`), never from a generator: a world's noise is keyed on
+(seed, env index, episode number, step in the episode) and its biases on the key of the episode's first step, each
+signal with a stream of its own (:data:`BIAS_STREAMS`, :data:`NOISE_STREAMS`), so that a reset draws the new biases
+and the first observation's noise in one hash pass. World i's draws therefore depend
 neither on the other worlds nor on how often or in which order reset and step run, and the noise of a step is a
 function of the env's device counters, so a captured CUDA graph of the step draws fresh numbers on every replay
 without any Python state. The biases live in (N, ...) device tensors, redrawn in place with ``torch.where`` for the
@@ -57,7 +58,7 @@ from torchrl.data import Composite
 from torchrl.envs.transforms import Transform
 
 from tocabi_torchrl import robot
-from tocabi_torchrl.envs.episode_random import EpisodeDraws
+from tocabi_torchrl.envs.episode_random import EpisodeDraws, LaneDraws, stream_lanes
 from tocabi_torchrl.transforms._checks import require_spec
 from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsComponent
 # The config lives in a module without torch, for the config tree; this path names it too.
@@ -75,6 +76,12 @@ assert max(BIAS_STREAMS.values()) < min(NOISE_STREAMS.values()) and max(NOISE_ST
     "the sensor streams would run into each other or into the start pool's (48-50)")
 # The step occupies the low 32 bits of the noise key, the episode number the bits above (2**32 steps = 198 days).
 _STEP_BITS = 32
+
+
+def _key(episode: torch.Tensor, step: torch.Tensor | int = 0) -> torch.Tensor:
+    """(N,) int64 hash key of each world's (``episode``, ``step``); the biases use step 0's."""
+    step = step.to(torch.int64) if isinstance(step, torch.Tensor) else step
+    return (episode.to(torch.int64) << _STEP_BITS) + step
 
 
 def _normals(u: torch.Tensor, k: int) -> torch.Tensor:
@@ -100,15 +107,14 @@ def _noise_draws(config: SensorNoiseConfig, device) -> EpisodeDraws:
 
 def _biases(config: SensorNoiseConfig, draws: EpisodeDraws, seed, env_ids: torch.Tensor,
             episode: torch.Tensor) -> dict[str, torch.Tensor]:
-    u = draws(seed, env_ids, episode)
+    u = draws(seed, env_ids, _key(episode))
     return {name: (config.bias(name) * (2.0 * u[BIAS_STREAMS[name]] - 1.0)).reshape(-1, *shape)
             for name, shape in SENSORS.items() if config.bias(name) > 0}
 
 
 def _noise(config: SensorNoiseConfig, draws: EpisodeDraws, seed, env_ids: torch.Tensor, episode: torch.Tensor,
            step: torch.Tensor) -> dict[str, torch.Tensor]:
-    key = (episode.to(torch.int64) << _STEP_BITS) + step.to(torch.int64)
-    u = draws(seed, env_ids, key)
+    u = draws(seed, env_ids, _key(episode, step))
     out = {}
     for name, shape in SENSORS.items():
         std, clip = config.noise(name)
@@ -123,8 +129,8 @@ def _noise(config: SensorNoiseConfig, draws: EpisodeDraws, seed, env_ids: torch.
 def sensor_biases(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: torch.Tensor,
                   episode: torch.Tensor) -> dict[str, torch.Tensor]:
     """Each biased signal's bias for each world's ``episode``: ``{signal: (N, *SENSORS[signal])}`` float32 in the
-    signal's unit, U(±half-width) per element. ``env_ids``, ``episode``: (N,) int64; ``seed``: an int or a 0-d int64
-    tensor on their device."""
+    signal's unit, U(±half-width) per element, keyed on the episode's step 0. ``env_ids``, ``episode``: (N,)
+    int64; ``seed``: an int or a 0-d int64 tensor on their device."""
     return _biases(config, _bias_draws(config, env_ids.device), seed, env_ids, episode)
 
 
@@ -202,7 +208,8 @@ class SensorNoise(Transform):
             shape = tuple(require_spec(spec, c.key, self).shape)[len(batch):]
             if c.key in columns and shape != SENSORS[c.key]:
                 raise ValueError(f"SensorNoise expects {c.key!r} of shape (num_envs, *{SENSORS[c.key]}), the env "
-                                 f"gives (num_envs, *{shape}); perturb the signals of TocabiWalk (docs/concepts/env-and-signals.md) "
+                                 f"gives (num_envs, *{shape}); perturb the signals of TocabiWalk "
+                                 "(docs/concepts/env-and-signals.md) "
                                  "or set that range to 0")
             # The block's flat elements, in the order ObservationAssembly concatenates them.
             elements = torch.arange(math.prod(shape)).reshape(shape)[c.index].flatten()
@@ -241,22 +248,20 @@ class SensorNoise(Transform):
         return self._source
 
     def _materialise(self) -> None:
-        """Index tensors and bias buffers on the env's device (once, eagerly: the first reset runs before any
-        capture), the biases drawn for every world's current episode."""
-        seed, env_ids, episode, _ = self._source
+        """Index tensors, hash lanes and bias buffers on the env's device (once, eagerly: the first reset runs before
+        any capture); the first reset then draws every world's biases."""
+        env_ids = self._source[1]
         if self._index:
             return
         dev = env_ids.device
         self._index = {name: (torch.tensor(cols, dtype=torch.int64, device=dev),
                               torch.tensor(elems, dtype=torch.int64, device=dev))
                        for name, (cols, elems) in self._columns.items()}
-        # The hash lanes of every bias and of every noise stream, made once: each step hashes them in one pass.
-        self._bias_hash, self._noise_hash = _bias_draws(self.config, dev), _noise_draws(self.config, dev)
-        # Every bias in one (N, B) buffer, the signals side by side in the hash's stream order, so that a reset
-        # redraws them all with a handful of ops; ``biases`` holds (N, *shape) views of it.
         n, biased = env_ids.shape[0], [name for name in SENSORS if self.config.bias(name) > 0]
         sizes = [math.prod(SENSORS[name]) for name in biased]
         offsets = [sum(sizes[:i]) for i in range(len(sizes))]
+        # Every bias in one (N, B) buffer, the signals side by side, so that a reset redraws them all with a handful
+        # of ops; ``biases`` holds (N, *shape) views of it.
         self._bias_flat = torch.zeros(n, sum(sizes), dtype=torch.float32, device=dev)
         self._bias_half = torch.tensor([self.config.bias(name) for name, k in zip(biased, sizes) for _ in range(k)],
                                        dtype=torch.float32, device=dev)
@@ -270,26 +275,80 @@ class SensorNoise(Transform):
             src[cols] = torch.tensor(elems, dtype=torch.int64) + o
             on[cols] = 1.0
         self._bias_src, self._bias_on = src.to(dev), on.to(dev)
-        self._bias_flat.copy_(self._drawn_biases(seed, env_ids, episode))
         self._bias_cols = torch.zeros(n, self._width, dtype=torch.float32, device=dev)
-        self._gather_biases()
+        noise_lanes = self._map_noise(dev)
+        bias_lanes = [stream_lanes(BIAS_STREAMS[name], k, dev) for name, k in zip(biased, sizes)]
+        # A step hashes the noise lanes; a reset the bias lanes and the noise lanes together, in one pass: the biases
+        # are keyed on step 0 of the episode, which is where a reset world's noise key stands.
+        self._step_hash = LaneDraws(noise_lanes)
+        self._reset_hash = LaneDraws(torch.cat((*bias_lanes, noise_lanes)))
         # The Euler angles' columns, wrapped back into (-pi, pi] after the bias.
         wrap = torch.zeros(self._width, dtype=torch.bool, device=dev)
         if "base_rpy" in self.biases:
             wrap[self._index["base_rpy"][0]] = True
         self._wrap = wrap if "base_rpy" in self.biases else None
 
-    def _drawn_biases(self, seed, env_ids: torch.Tensor, episode: torch.Tensor) -> torch.Tensor:
-        """(N, B) every bias of each world's ``episode``, U(±half-width), as :func:`sensor_biases` draws them."""
-        return self._bias_half * (2.0 * self._bias_hash.flat(seed, env_ids, episode) - 1.0)
+    def _map_noise(self, dev) -> torch.Tensor:
+        """Lay out every noisy signal's Box-Muller pairs for one pass: returns the (2P,) hash lanes, the P pairs'
+        radius uniforms first, then their angle uniforms (each signal's own lanes, as :func:`sensor_noise` reads
+        them), and sets the maps from the pairs' normals to the observation's noisy columns."""
+        radius, angle, cols, src, std, clip = [], [], [], [], [], []
+        pairs = sum((math.prod(SENSORS[name]) + 1) // 2 for name in SENSORS if self.config.noise(name)[0] > 0)
+        first = 0  # this signal's first pair
+        for name, shape in SENSORS.items():
+            sigma, limit = self.config.noise(name)
+            if sigma <= 0:
+                continue
+            m = (math.prod(shape) + 1) // 2
+            lanes = stream_lanes(NOISE_STREAMS[name], 2 * m, dev)
+            radius.append(lanes[:m])
+            angle.append(lanes[m:])
+            # Element e < m is pair e's cosine normal, element e >= m pair (e - m)'s sine one (the normals side
+            # by side: P cosines, then P sines).
+            for col, e in zip(*self._columns[name]):
+                cols.append(col)
+                src.append(first + e if e < m else pairs + first + e - m)
+                std.append(sigma)
+                clip.append(math.inf if limit is None else limit)
+            first += m
+        self._pairs = pairs
+        self._noise_cols = torch.tensor(cols, dtype=torch.int64, device=dev) if cols else None
+        self._noise_src = torch.tensor(src, dtype=torch.int64, device=dev)
+        self._noise_std = torch.tensor(std, dtype=torch.float32, device=dev)
+        self._noise_clip = torch.tensor(clip, dtype=torch.float32, device=dev)
+        return torch.cat((*radius, *angle)) if cols else torch.zeros(0, dtype=torch.int64, device=dev)
+
+    def _drawn_biases(self, u: torch.Tensor) -> torch.Tensor:
+        """(N, B) every bias from the reset hash's uniforms ``u`` (N, B + 2P), U(±half-width), as
+        :func:`sensor_biases` draws them."""
+        return self._bias_half * (2.0 * u[:, :self._bias_half.shape[0]] - 1.0)
 
     def _gather_biases(self) -> None:
         """``_bias_cols`` (N, D): each world's bias in the obs columns of its signals, 0 elsewhere (in place)."""
         self._bias_cols.copy_(self._bias_flat.index_select(1, self._bias_src) * self._bias_on)
 
+    def _perturbed(self, exact: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """(N, D) the observation ``exact`` plus each world's biases and the noise of the pairs' uniforms ``u``
+        (N, 2P): Box-Muller once for every noisy signal, the normals scaled and clipped per column."""
+        obs = exact + self._bias_cols
+        if self._noise_cols is not None:
+            p = self._pairs
+            radius = torch.sqrt(-2.0 * torch.log1p(-u[:, :p]))  # 1 - u in (0, 1]: the log is finite
+            angle = (2.0 * math.pi) * u[:, p:]
+            normals = torch.cat((radius * torch.cos(angle), radius * torch.sin(angle)), dim=-1)
+            noise = normals.index_select(1, self._noise_src) * self._noise_std
+            obs = obs.index_add(1, self._noise_cols, noise.clamp(-self._noise_clip, self._noise_clip))
+        if self._wrap is not None:
+            two_pi = 2.0 * math.pi
+            obs = torch.where(self._wrap & (obs > math.pi), obs - two_pi,
+                              torch.where(self._wrap & (obs <= -math.pi), obs + two_pi, obs))
+        if self._worlds is not None:
+            obs = torch.where(self._worlds, obs, exact)
+        return obs
+
     # ------------------------------------------------------------------------------------------------ calls
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        seed, env_ids, episode, _ = self._key_source()
+        seed, env_ids, episode, step = self._key_source()
         n = env_ids.shape[0]
         if not self._index:
             self._materialise()
@@ -297,12 +356,15 @@ class SensorNoise(Transform):
         else:
             reset = None if tensordict is None else tensordict.get("_reset", None)
             mask = torch.ones(n, dtype=torch.bool, device=env_ids.device) if reset is None else reset.reshape(n)
-            # The base env has counted the new episode already: the flagged worlds' key is their new episode.
-            drawn = self._drawn_biases(seed, env_ids, episode)
-            self._bias_flat.copy_(torch.where(mask.unsqueeze(-1), drawn, self._bias_flat))
-            self._gather_biases()
+        # The base env has counted the new episode and zeroed its step already: a flagged world's key is its new
+        # episode's step 0, the biases' key. The other worlds' bias uniforms are drawn and left unused.
+        u = self._reset_hash(seed, env_ids, _key(episode, step))
+        self._bias_flat.copy_(torch.where(mask.unsqueeze(-1), self._drawn_biases(u), self._bias_flat))
+        self._gather_biases()
         self._share_with_assist(mask)
-        return self._call(tensordict_reset)
+        exact = tensordict_reset.get(self.in_keys[0])
+        tensordict_reset.set(self.out_keys[0], self._perturbed(exact, u[:, self._bias_half.shape[0]:]))
+        return tensordict_reset
 
     def _share_with_assist(self, mask: torch.Tensor) -> None:
         """The reset worlds' leg encoder biases into the torque assist's PD, when the env's PD reads the sensed
@@ -318,17 +380,8 @@ class SensorNoise(Transform):
         if not self._index:
             raise RuntimeError("SensorNoise: reset the env before stepping it (the biases are drawn at reset)")
         exact = next_tensordict.get(self.in_keys[0])
-        obs = exact + self._bias_cols
-        for name, noise in _noise(self.config, self._noise_hash, seed, env_ids, episode, step).items():
-            cols, elems = self._index[name]
-            obs = obs.index_add(1, cols, noise.flatten(1).index_select(1, elems))
-        if self._wrap is not None:
-            two_pi = 2.0 * math.pi
-            obs = torch.where(self._wrap & (obs > math.pi), obs - two_pi,
-                              torch.where(self._wrap & (obs <= -math.pi), obs + two_pi, obs))
-        if self._worlds is not None:
-            obs = torch.where(self._worlds, obs, exact)
-        next_tensordict.set(self.out_keys[0], obs)
+        u = self._step_hash(seed, env_ids, _key(episode, step)) if self._noise_cols is not None else None
+        next_tensordict.set(self.out_keys[0], self._perturbed(exact, u))
         return next_tensordict
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
