@@ -108,7 +108,7 @@ class _UniformPerJoint(Actuator):
         j = len(self.ctx.joint_ids)
         for i, ((lo, hi), value) in enumerate(zip(self.ranges, self.values)):
             drawn = lo + (hi - lo) * u[:, i * j:(i + 1) * j]
-            value.copy_(torch.where(mask.unsqueeze(-1), drawn, value))
+            torch.where(mask.unsqueeze(-1), drawn, value, out=value)
 
     def nominal(self, mask: torch.Tensor) -> None:
         for ideal, value in zip(self.identity, self.values):
@@ -222,7 +222,7 @@ class Delay(Actuator):
     def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
         span = (self.high - self.low) // self.stride + 1
         k = self.low + self.stride * (u[:, 0] * span).long().clamp(max=span - 1)
-        self.delay.copy_(torch.where(mask, k, self.delay))
+        torch.where(mask, k, self.delay, out=self.delay)
         self._set_lag()
         self.history.masked_fill_(mask.view(-1, 1, 1), 0.0)
 

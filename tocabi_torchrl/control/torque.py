@@ -65,7 +65,7 @@ class AssistedTorque(Controller):
     def set_q_offset(self, mask: torch.Tensor, offset: torch.Tensor) -> None:
         """Worlds ``mask`` (N,) bool read their joint positions as ``q + offset`` ((N, J) rad) from now on (in place,
         so a captured step follows it)."""
-        self.q_offset.copy_(torch.where(mask.unsqueeze(-1), offset.to(self.q_offset.dtype), self.q_offset))
+        torch.where(mask.unsqueeze(-1), offset.to(self.q_offset.dtype), self.q_offset, out=self.q_offset)
 
     def gain(self, beta: float | torch.Tensor) -> torch.Tensor:
         """(J,) N·m per unit action at β: ``(1 − β)·limit + β·scale·kp``."""

@@ -43,7 +43,7 @@ class VelocityCommand:
         value = torch.tensor([float(command[0]), float(command[1])], device=self.value.device)
         m = envs.to(self.value.device).unsqueeze(-1)
         for lo, span in (self._range, self._initial_range):
-            lo.copy_(torch.where(m, value, lo))
+            torch.where(m, value, lo, out=lo)
             span.masked_fill_(m, 0.0)
 
     def _sample(self, rng: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
@@ -59,9 +59,9 @@ class VelocityCommand:
         m = mask.unsqueeze(-1)
         lo, span = self._initial_range
         fresh = lo + span * uniform if uniform is not None else self._sample(self._initial_range)
-        self.value.copy_(torch.where(m, fresh, self.value))
+        torch.where(m, fresh, self.value, out=self.value)
         if not self.cfg.ramp_survives_reset:
-            self.ramp_pos.copy_(torch.where(mask, self.ramp_len, self.ramp_pos))
+            torch.where(mask, self.ramp_len, self.ramp_pos, out=self.ramp_pos)
 
     def hold(self, vx: float, vy: float) -> None:
         """Command (vx, vy) [m/s] to every env from now on, resets and resampling included (a live viewer's sliders).
@@ -80,16 +80,16 @@ class VelocityCommand:
         cfg = self.cfg
         due = (episode_step % cfg.resample_every) == (cfg.resample_every - 1)
         d = due.unsqueeze(-1)
-        self.start.copy_(torch.where(d, self.value, self.start))
-        self.final.copy_(torch.where(d, self._sample(self._range), self.final))
+        torch.where(d, self.value, self.start, out=self.start)
+        torch.where(d, self._sample(self._range), self.final, out=self.final)
         if cfg.max_ramp_steps > 1:
             draw = torch.randint(1, cfg.max_ramp_steps, due.shape, device=due.device, generator=self.gen)
-            self.ramp_len.copy_(torch.where(due, draw, self.ramp_len))
+            torch.where(due, draw, self.ramp_len, out=self.ramp_len)
             self.ramp_pos.masked_fill_(due, 0)
             ramping = self.ramp_pos < self.ramp_len
             frac = (self.ramp_pos.float() / self.ramp_len.float()).unsqueeze(-1)
             ramped = self.start + (self.final - self.start) * frac
-            self.value.copy_(torch.where(ramping.unsqueeze(-1), ramped, self.value))
+            torch.where(ramping.unsqueeze(-1), ramped, self.value, out=self.value)
             self.ramp_pos.add_(ramping.long())
         else:
-            self.value.copy_(torch.where(d, self.final, self.value))
+            torch.where(d, self.final, self.value, out=self.value)

@@ -88,11 +88,11 @@ class Pushes:
             magnitude = speed * self.mass / self._fixed_seconds
         force = magnitude.unsqueeze(-1) * torch.stack((torch.cos(angle), torch.sin(angle)), dim=-1)
         m = mask.unsqueeze(-1)
-        self.start_step.copy_(torch.where(m, torch.round(when / self.dt).long(), self.start_step))
+        torch.where(m, torch.round(when / self.dt).long(), self.start_step, out=self.start_step)
         if self._fixed_seconds is None:
-            self.steps.copy_(torch.where(m, steps, self.steps))
-        self.force.copy_(torch.where(m.unsqueeze(-1), force, self.force))
-        self.speed.copy_(torch.where(m, speed, self.speed))
+            torch.where(m, steps, self.steps, out=self.steps)
+        torch.where(m.unsqueeze(-1), force, self.force, out=self.force)
+        torch.where(m, speed, self.speed, out=self.speed)
 
     def at(self, episode_step: torch.Tensor) -> torch.Tensor:
         """(N, 2) the horizontal force [N] of a ``"force"`` kick on the pelvis during policy step ``episode_step``

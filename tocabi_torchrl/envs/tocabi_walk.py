@@ -630,7 +630,7 @@ class TocabiWalk(EnvBase):
             qvel = self._start_velocities(draws[16]) if self.cfg.task.diverse_starts else self._init_qvel
             pick = (u[:, 0] * len(self._init_rows)).long().clamp_(max=len(self._init_rows) - 1)
         self.episode_count.add_(mask.long())
-        self.init_row.copy_(torch.where(mask, self._init_rows[pick], self.init_row))
+        torch.where(mask, self._init_rows[pick], self.init_row, out=self.init_row)
         self.time.masked_fill_(mask, 0.0)
         self.episode_step.masked_fill_(mask, 0)
         m = mask.unsqueeze(-1)
@@ -642,9 +642,9 @@ class TocabiWalk(EnvBase):
         # Upper-body servos start on the initial pose so the reset state's forward pass sees no PD transient.
         row = self.motion.row_index(self.time, self.init_row)
         q_ref = self.motion.joint_targets(self.time, self.init_row)
-        self.ref_joint_pos.copy_(torch.where(m, q_ref, self.ref_joint_pos))
-        self.ref_foot_force.copy_(torch.where(m, self.motion.force_reference(row), self.ref_foot_force))
-        self.stance.copy_(torch.where(mask, self.motion.stance_at(row), self.stance))
+        torch.where(m, q_ref, self.ref_joint_pos, out=self.ref_joint_pos)
+        torch.where(m, self.motion.force_reference(row), self.ref_foot_force, out=self.ref_foot_force)
+        torch.where(mask, self.motion.stance_at(row), self.stance, out=self.stance)
         if self._reduced_reset:  # the same start state, registered as row `pick` or pooled state (see above)
             self.sim.reset_to_start(mask, state if self._pool else pick)
         else:

@@ -112,7 +112,7 @@ class WorldDynamics:
     def _where(self, mask: torch.Tensor, name: str, new: torch.Tensor) -> None:
         field = self.fields[name]
         flag = mask.view(-1, *([1] * (field.dim() - 1)))
-        field.copy_(torch.where(flag, new.to(field.dtype), field))
+        torch.where(flag, new.to(field.dtype), field, out=field)
 
     def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
         """Redraw the parameters of the worlds flagged in ``mask`` (N,) bool from ``u`` (N, :attr:`draws`) uniforms in
@@ -123,7 +123,7 @@ class WorldDynamics:
         if cfg.on("mass_scale"):
             lo, hi = (float(v) for v in cfg.mass_scale)
             drawn = self.mass_scale.index_copy(1, self._bodies_t, lo + (hi - lo) * u[:, :nb])
-            self.mass_scale.copy_(torch.where(m, drawn, self.mass_scale))
+            torch.where(m, drawn, self.mass_scale, out=self.mass_scale)
             dtype = self.fields["body_mass"].dtype
             mass = self._nominal["body_mass"] * self.mass_scale.to(dtype)
             self._where(mask, "body_mass", mass)
@@ -132,21 +132,21 @@ class WorldDynamics:
             self._where(mask, "body_subtreemass", mass.to(torch.float64) @ self._subtree)
         if cfg.on("joint_damping"):
             lo, hi = (float(v) for v in cfg.joint_damping)
-            self.joint_damping.copy_(torch.where(m, lo + (hi - lo) * u[:, nb:nb + nd], self.joint_damping))
+            torch.where(m, lo + (hi - lo) * u[:, nb:nb + nd], self.joint_damping, out=self.joint_damping)
             nominal = self._nominal["dof_damping"]
             added = nominal.new_zeros(mask.shape[0], nominal.shape[0]).index_copy_(
                 1, self._dofs_t, self.joint_damping.to(nominal.dtype))
             self._where(mask, "dof_damping", nominal + added)
         if cfg.on("armature_scale"):
             lo, hi = (float(v) for v in cfg.armature_scale)
-            self.armature_scale.copy_(torch.where(m, lo + (hi - lo) * u[:, nb + nd:nb + 2 * nd], self.armature_scale))
+            torch.where(m, lo + (hi - lo) * u[:, nb + nd:nb + 2 * nd], self.armature_scale, out=self.armature_scale)
             nominal = self._nominal["dof_armature"]
             scale = nominal.new_ones(mask.shape[0], nominal.shape[0]).index_copy_(
                 1, self._dofs_t, self.armature_scale.to(nominal.dtype))
             self._where(mask, "dof_armature", nominal * scale)
         if cfg.on("friction_scale"):
             lo, hi = (float(v) for v in cfg.friction_scale)
-            self.friction_scale.copy_(torch.where(mask, lo + (hi - lo) * u[:, nb + 2 * nd], self.friction_scale))
+            torch.where(mask, lo + (hi - lo) * u[:, nb + 2 * nd], self.friction_scale, out=self.friction_scale)
             nominal = self._nominal["geom_friction"]  # (ngeom, 3): sliding, torsional, rolling
             f = self.friction_scale.to(nominal.dtype)
             one = torch.ones_like(f)

@@ -57,7 +57,7 @@ class _Ring:
 
     def refill(self, x: torch.Tensor, mask: torch.Tensor) -> None:
         """Rows where ``mask`` (…, 1, 1) is True get every slot set to ``x`` (…, D); other rows keep theirs."""
-        self.buf.copy_(torch.where(mask, x.unsqueeze(-2), self.buf))
+        torch.where(mask, x.unsqueeze(-2), self.buf, out=self.buf)
 
     def read(self) -> torch.Tensor:
         """(…, n·D): the entries at the layout's ages, oldest first."""

@@ -359,7 +359,7 @@ class SensorNoise(Transform):
         # The base env has counted the new episode and zeroed its step already: a flagged world's key is its new
         # episode's step 0, the biases' key. The other worlds' bias uniforms are drawn and left unused.
         u = self._reset_hash(seed, env_ids, _key(episode, step))
-        self._bias_flat.copy_(torch.where(mask.unsqueeze(-1), self._drawn_biases(u), self._bias_flat))
+        torch.where(mask.unsqueeze(-1), self._drawn_biases(u), self._bias_flat, out=self._bias_flat)
         self._gather_biases()
         self._share_with_assist(mask)
         exact = tensordict_reset.get(self.in_keys[0])
