@@ -244,6 +244,9 @@ def test_sync_free_steps_follow_every_reset(cfg):
     env = make_env(num_envs=4, device="cpu", seed=1, max_episode_steps=3, sync_free_resets=True, sensor_noise=cfg)
     td = env.reset()
     stage = _noise_stage(env)
+    hashes = []  # the step's own hash runs only where no reset drew its noise
+    step_hash = stage._step_hash
+    stage._step_hash = lambda *args: hashes.append(1) or step_hash(*args)
     episodes = env.base_env.episode_count.clone()
     for _ in range(7):
         before = {k: v.clone() for k, v in stage.biases.items()}
@@ -256,6 +259,11 @@ def test_sync_free_steps_follow_every_reset(cfg):
             assert torch.equal(changed, redrawn), name
         _check_observed_perturbation(env, td)
     assert int(episodes.min()) >= 3
+    assert hashes == []  # every step read the noise the reset before it drew
+    step = env.step(td.set("action", torch.zeros(4, 13)))["next"]  # a plain step after a step: no reset between
+    step = env.step(step.set("action", torch.zeros(4, 13)))["next"]
+    assert hashes == [1]
+    _check_observed_perturbation(env, step)
 
 
 def test_step_and_reset_are_capture_safe_cpu_proxy(env_pair):

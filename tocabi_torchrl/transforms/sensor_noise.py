@@ -29,14 +29,17 @@ into other Euler offsets (a roll offset becomes pitch as the robot turns). A bia
 back into (−π, π], the range of the unbiased one.
 
 Random numbers. Every draw comes from the env's counter-based hash
-(:func:`tocabi_torchrl.envs.episode_random.episode_uniform`), never from a generator: a world's noise is keyed on
-(seed, env index, episode number, step in the episode) and its biases on the key of the episode's first step, each
-signal with a stream of its own (:data:`BIAS_STREAMS`, :data:`NOISE_STREAMS`), so that a reset draws the new biases
-and the first observation's noise in one hash pass. World i's draws therefore depend
-neither on the other worlds nor on how often or in which order reset and step run, and the noise of a step is a
-function of the env's device counters, so a captured CUDA graph of the step draws fresh numbers on every replay
-without any Python state. The biases live in (N, ...) device tensors, redrawn in place with ``torch.where`` for the
-worlds a reset flags: no host reads. Normals are Box-Muller pairs of those uniforms.
+(:func:`tocabi_torchrl.envs.episode_random.episode_uniform`), never from a generator, each signal with streams of
+its own: a world's biases are keyed on (seed, env index, episode number, step 0) (:data:`BIAS_STREAMS`), the noise
+of its episode's first observation on the same key (:data:`NOISE_STREAMS`), and the noise of observation k >= 1 on
+the key of step k − 1 (:data:`LATER_NOISE_STREAMS`). In training the masked reset runs after every step, keyed on
+each world's (episode, step): one hash pass there draws a reset world's biases and first noise and every world's
+next noise, and the step reads that noise instead of hashing again (a step that no reset preceded hashes it). World
+i's draws therefore depend neither on the other worlds nor on how often or in which order reset and step run, and
+the noise of a step is a function of the env's device counters, so a captured CUDA graph of the step draws fresh
+numbers on every replay (its one host flag, whether a reset came before the step, is the same on every replay of a
+captured step and reset). The biases live in (N, ...) device tensors, redrawn in place with ``torch.where`` for
+the worlds a reset flags: no host reads. Normals are Box-Muller pairs of those uniforms.
 
 >>> from tocabi_torchrl.transforms import SensorNoiseConfig
 >>> cfg = SensorNoiseConfig.tocabi_lab()
@@ -64,16 +67,19 @@ from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsCompo
 # The config lives in a module without torch, for the config tree; this path names it too.
 from tocabi_torchrl.transforms.sensor_noise_config import SENSORS, SensorNoiseConfig
 
-__all__ = ["SensorNoiseConfig", "SensorNoise", "SENSORS", "BIAS_STREAMS", "NOISE_STREAMS", "sensor_biases",
-           "sensor_noise"]
+__all__ = ["SensorNoiseConfig", "SensorNoise", "SENSORS", "BIAS_STREAMS", "NOISE_STREAMS", "LATER_NOISE_STREAMS",
+           "sensor_biases", "sensor_noise"]
 
-#: Hash stream of each signal's per-episode bias and of its per-step noise (``episode_uniform``'s ``stream``). The
-#: env's per-episode draws use streams below 32 and its start pool 48-50 (``envs/tocabi_walk.py``); one stream per
-#: signal keeps a signal's numbers the same whichever other signals are perturbed.
+#: Hash stream of each signal's per-episode bias, of the noise of an episode's first observation, and of the noise of
+#: its later observations (``episode_uniform``'s ``stream``). The env's per-episode draws use streams below 32 and its
+#: start pool 48-50 (``envs/tocabi_walk.py``); one stream per signal keeps a signal's numbers the same whichever other
+#: signals are perturbed.
 BIAS_STREAMS: Mapping[str, int] = {name: 32 + i for i, name in enumerate(SENSORS)}
 NOISE_STREAMS: Mapping[str, int] = {name: 40 + i for i, name in enumerate(SENSORS)}
+LATER_NOISE_STREAMS: Mapping[str, int] = {name: 52 + i for i, name in enumerate(SENSORS)}
 assert max(BIAS_STREAMS.values()) < min(NOISE_STREAMS.values()) and max(NOISE_STREAMS.values()) < 48, (
     "the sensor streams would run into each other or into the start pool's (48-50)")
+assert min(LATER_NOISE_STREAMS.values()) > 50, "the later noise's streams would run into the start pool's (48-50)"
 # The step occupies the low 32 bits of the noise key, the episode number the bits above (2**32 steps = 198 days).
 _STEP_BITS = 32
 
@@ -99,9 +105,9 @@ def _bias_draws(config: SensorNoiseConfig, device) -> EpisodeDraws:
                          if config.bias(name) > 0}, device)
 
 
-def _noise_draws(config: SensorNoiseConfig, device) -> EpisodeDraws:
-    """One hash pass for every noisy signal's Box-Muller uniforms (its own stream each)."""
-    return EpisodeDraws({NOISE_STREAMS[name]: 2 * ((math.prod(shape) + 1) // 2) for name, shape in SENSORS.items()
+def _noise_draws(config: SensorNoiseConfig, streams: Mapping[str, int], device) -> EpisodeDraws:
+    """One hash pass for every noisy signal's Box-Muller uniforms (its own stream of ``streams`` each)."""
+    return EpisodeDraws({streams[name]: 2 * ((math.prod(shape) + 1) // 2) for name, shape in SENSORS.items()
                          if config.noise(name)[0] > 0}, device)
 
 
@@ -112,14 +118,19 @@ def _biases(config: SensorNoiseConfig, draws: EpisodeDraws, seed, env_ids: torch
             for name, shape in SENSORS.items() if config.bias(name) > 0}
 
 
-def _noise(config: SensorNoiseConfig, draws: EpisodeDraws, seed, env_ids: torch.Tensor, episode: torch.Tensor,
+def _noise(config: SensorNoiseConfig, seed, env_ids: torch.Tensor, episode: torch.Tensor,
            step: torch.Tensor) -> dict[str, torch.Tensor]:
-    u = draws(seed, env_ids, _key(episode, step))
+    step = step.to(torch.int64)
+    first = _noise_draws(config, NOISE_STREAMS, env_ids.device)(seed, env_ids, _key(episode))
+    later = _noise_draws(config, LATER_NOISE_STREAMS, env_ids.device)(seed, env_ids,
+                                                                      _key(episode, (step - 1).clamp(min=0)))
     out = {}
     for name, shape in SENSORS.items():
         std, clip = config.noise(name)
         if std > 0:
-            z = std * _normals(u[NOISE_STREAMS[name]], math.prod(shape))
+            k = math.prod(shape)
+            z = std * torch.where((step == 0).unsqueeze(-1), _normals(first[NOISE_STREAMS[name]], k),
+                                  _normals(later[LATER_NOISE_STREAMS[name]], k))
             if clip is not None:
                 z = z.clamp(-clip, clip)
             out[name] = z.reshape(-1, *shape)
@@ -138,8 +149,10 @@ def sensor_noise(config: SensorNoiseConfig, seed: int | torch.Tensor, env_ids: t
                  step: torch.Tensor) -> dict[str, torch.Tensor]:
     """Each noisy signal's noise at each world's (``episode``, ``step``): ``{signal: (N, *SENSORS[signal])}``
     float32, N(0, σ²) per element, clipped to ±clip. ``step``: (N,) int64 policy steps since the episode began (the
-    env's ``episode_step``), below 2**32."""
-    return _noise(config, _noise_draws(config, env_ids.device), seed, env_ids, episode, step)
+    env's ``episode_step``), below 2**32. Step 0's noise is keyed on (``episode``, 0) with :data:`NOISE_STREAMS`,
+    step k's from k = 1 on on (``episode``, k − 1) with :data:`LATER_NOISE_STREAMS`: the key the masked reset after
+    step k − 1 holds, so that it draws the next observation's noise in its own hash pass."""
+    return _noise(config, seed, env_ids, episode, step)
 
 
 _KEY_SOURCE = ("_seed_t", "_env_ids", "episode_count", "episode_step")
@@ -197,6 +210,9 @@ class SensorNoise(Transform):
         self._source: tuple[torch.Tensor, ...] | None = None
         self._worlds: torch.Tensor | None = None
         self._index: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+        # Host flag: a reset ran since the last step, so _noise_next holds every world's next noise. A captured step
+        # (step, then masked reset) records the path it took; every replay is again a step after a reset.
+        self._next_drawn = False
 
     # ---------------------------------------------------------------------------------------------- set-up
     def _map_columns(self, spec: Composite) -> None:
@@ -276,50 +292,68 @@ class SensorNoise(Transform):
             on[cols] = 1.0
         self._bias_src, self._bias_on = src.to(dev), on.to(dev)
         self._bias_cols = torch.zeros(n, self._width, dtype=torch.float32, device=dev)
-        noise_lanes = self._map_noise(dev)
+        first, later = self._map_noise(n, dev)
         bias_lanes = [stream_lanes(BIAS_STREAMS[name], k, dev) for name, k in zip(biased, sizes)]
-        # A step hashes the noise lanes; a reset the bias lanes and the noise lanes together, in one pass: the biases
-        # are keyed on step 0 of the episode, which is where a reset world's noise key stands.
-        self._step_hash = LaneDraws(noise_lanes)
-        self._reset_hash = LaneDraws(torch.cat((*bias_lanes, noise_lanes)))
+        # The masked reset (every step in training) draws, in one hash pass keyed on each world's (episode, step):
+        # a reset world's biases and first noise (its step is 0, the biases' key) and every world's next noise. A
+        # step then reads that next noise; it hashes only when no reset ran since the last step.
+        p = self._pairs
+        self._reset_hash = LaneDraws(torch.cat((*bias_lanes, first[:p], later[:p], first[p:], later[p:])))
+        self._step_hash = LaneDraws(later)
         # The Euler angles' columns, wrapped back into (-pi, pi] after the bias.
         wrap = torch.zeros(self._width, dtype=torch.bool, device=dev)
         if "base_rpy" in self.biases:
             wrap[self._index["base_rpy"][0]] = True
         self._wrap = wrap if "base_rpy" in self.biases else None
 
-    def _map_noise(self, dev) -> torch.Tensor:
-        """Lay out every noisy signal's Box-Muller pairs for one pass: returns the (2P,) hash lanes, the P pairs'
-        radius uniforms first, then their angle uniforms (each signal's own lanes, as :func:`sensor_noise` reads
-        them), and sets the maps from the pairs' normals to the observation's noisy columns."""
-        radius, angle, cols, src, std, clip = [], [], [], [], [], []
+    def _map_noise(self, n: int, dev) -> tuple[torch.Tensor, torch.Tensor]:
+        """Lay out every noisy signal's Box-Muller pairs for one pass and set the maps from their normals to the
+        observation's noisy columns. Returns the (2P,) hash lanes of the first and of the later noise
+        (:data:`NOISE_STREAMS`, :data:`LATER_NOISE_STREAMS`), each the P pairs' radius uniforms, then their angle
+        uniforms (each signal's own lanes, as :func:`sensor_noise` reads them)."""
+        first, later, cols, elements, std, clip = ([], []), ([], []), [], [], [], []
         pairs = sum((math.prod(SENSORS[name]) + 1) // 2 for name in SENSORS if self.config.noise(name)[0] > 0)
-        first = 0  # this signal's first pair
+        start = 0  # this signal's first pair
         for name, shape in SENSORS.items():
             sigma, limit = self.config.noise(name)
             if sigma <= 0:
                 continue
             m = (math.prod(shape) + 1) // 2
-            lanes = stream_lanes(NOISE_STREAMS[name], 2 * m, dev)
-            radius.append(lanes[:m])
-            angle.append(lanes[m:])
-            # Element e < m is pair e's cosine normal, element e >= m pair (e - m)'s sine one (the normals side
-            # by side: P cosines, then P sines).
+            for lanes, streams in ((first, NOISE_STREAMS), (later, LATER_NOISE_STREAMS)):
+                block = stream_lanes(streams[name], 2 * m, dev)
+                lanes[0].append(block[:m])
+                lanes[1].append(block[m:])
+            # Element e < m is pair e's cosine normal, element e >= m pair (e - m)'s sine one.
             for col, e in zip(*self._columns[name]):
                 cols.append(col)
-                src.append(first + e if e < m else pairs + first + e - m)
+                elements.append((start + e, False) if e < m else (start + e - m, True))
                 std.append(sigma)
                 clip.append(math.inf if limit is None else limit)
-            first += m
+            start += m
         self._pairs = pairs
-        self._noise_cols = torch.tensor(cols, dtype=torch.int64, device=dev) if cols else None
-        self._noise_src = torch.tensor(src, dtype=torch.int64, device=dev)
-        self._noise_std = torch.tensor(std, dtype=torch.float32, device=dev)
-        self._noise_clip = torch.tensor(clip, dtype=torch.float32, device=dev)
-        return torch.cat((*radius, *angle)) if cols else torch.zeros(0, dtype=torch.int64, device=dev)
+        empty = torch.zeros(0, dtype=torch.int64, device=dev)
+        if not cols:
+            self._noise_cols = None
+            return empty, empty
+        # Normals side by side as Box-Muller gives them: a step's (N, 2P) [cos | sin] of the later noise, a reset's
+        # (N, 4P) [cos first | cos later | sin first | sin later].
+        step_src = [pair + pairs * sine for pair, sine in elements]
+        first_src = [pair + 2 * pairs * sine for pair, sine in elements]
+        tensor = lambda values, dtype=torch.int64: torch.tensor(values, dtype=dtype, device=dev)
+        self._noise_cols = tensor(cols)
+        self._step_src = tensor(step_src)
+        self._reset_src = tensor(first_src + [i + pairs for i in first_src])  # (2C,): first, then later
+        self._noise_std = tensor(std * 2, torch.float32)
+        self._noise_clip = tensor(clip * 2, torch.float32)
+        c = len(cols)
+        #: (N, C) the noise of each world's latest observation, and of its next one as the last reset drew it.
+        self._noise_now = torch.zeros(n, c, dtype=torch.float32, device=dev)
+        self._noise_next = torch.zeros(n, c, dtype=torch.float32, device=dev)
+        cat = lambda parts: torch.cat(parts) if parts else empty
+        return torch.cat((cat(first[0]), cat(first[1]))), torch.cat((cat(later[0]), cat(later[1])))
 
     def _drawn_biases(self, u: torch.Tensor) -> torch.Tensor:
-        """(N, B) every bias from the reset hash's uniforms ``u`` (N, B + 2P), U(±half-width), as
+        """(N, B) every bias from the reset hash's uniforms ``u`` (N, B + 4P), U(±half-width), as
         :func:`sensor_biases` draws them."""
         return self._bias_half * (2.0 * u[:, :self._bias_half.shape[0]] - 1.0)
 
@@ -327,17 +361,21 @@ class SensorNoise(Transform):
         """``_bias_cols`` (N, D): each world's bias in the obs columns of its signals, 0 elsewhere (in place)."""
         self._bias_cols.copy_(self._bias_flat.index_select(1, self._bias_src) * self._bias_on)
 
-    def _perturbed(self, exact: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """(N, D) the observation ``exact`` plus each world's biases and the noise of the pairs' uniforms ``u``
-        (N, 2P): Box-Muller once for every noisy signal, the normals scaled and clipped per column."""
+    def _scaled_noise(self, u: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
+        """The noisy columns' noise from Box-Muller uniforms ``u`` (N, 2Q): the Q pairs' normals, picked per column by
+        ``src``, scaled by the column's σ and clipped (the first ``len(src)`` columns of σ and clip)."""
+        q, k = u.shape[1] // 2, src.shape[0]
+        radius = torch.sqrt(-2.0 * torch.log1p(-u[:, :q]))  # 1 - u in (0, 1]: the log is finite
+        angle = (2.0 * math.pi) * u[:, q:]
+        normals = torch.cat((radius * torch.cos(angle), radius * torch.sin(angle)), dim=-1)
+        clip = self._noise_clip[:k]
+        return (normals.index_select(1, src) * self._noise_std[:k]).clamp(-clip, clip)
+
+    def _perturbed(self, exact: torch.Tensor) -> torch.Tensor:
+        """(N, D) the observation ``exact`` plus each world's biases and the noise of its latest observation."""
         obs = exact + self._bias_cols
         if self._noise_cols is not None:
-            p = self._pairs
-            radius = torch.sqrt(-2.0 * torch.log1p(-u[:, :p]))  # 1 - u in (0, 1]: the log is finite
-            angle = (2.0 * math.pi) * u[:, p:]
-            normals = torch.cat((radius * torch.cos(angle), radius * torch.sin(angle)), dim=-1)
-            noise = normals.index_select(1, self._noise_src) * self._noise_std
-            obs = obs.index_add(1, self._noise_cols, noise.clamp(-self._noise_clip, self._noise_clip))
+            obs = obs.index_add(1, self._noise_cols, self._noise_now)
         if self._wrap is not None:
             two_pi = 2.0 * math.pi
             obs = torch.where(self._wrap & (obs > math.pi), obs - two_pi,
@@ -357,13 +395,19 @@ class SensorNoise(Transform):
             reset = None if tensordict is None else tensordict.get("_reset", None)
             mask = torch.ones(n, dtype=torch.bool, device=env_ids.device) if reset is None else reset.reshape(n)
         # The base env has counted the new episode and zeroed its step already: a flagged world's key is its new
-        # episode's step 0, the biases' key. The other worlds' bias uniforms are drawn and left unused.
+        # episode's step 0, the biases' key. The other worlds' bias and first-noise uniforms go unused.
         u = self._reset_hash(seed, env_ids, _key(episode, step))
-        torch.where(mask.unsqueeze(-1), self._drawn_biases(u), self._bias_flat, out=self._bias_flat)
+        m = mask.unsqueeze(-1)
+        torch.where(m, self._drawn_biases(u), self._bias_flat, out=self._bias_flat)
         self._gather_biases()
+        if self._noise_cols is not None:
+            noise = self._scaled_noise(u[:, self._bias_half.shape[0]:], self._reset_src)  # (N, 2C): first, next
+            c = self._noise_now.shape[1]
+            torch.where(m, noise[:, :c], self._noise_now, out=self._noise_now)
+            self._noise_next.copy_(noise[:, c:])
+            self._next_drawn = True
         self._share_with_assist(mask)
-        exact = tensordict_reset.get(self.in_keys[0])
-        tensordict_reset.set(self.out_keys[0], self._perturbed(exact, u[:, self._bias_half.shape[0]:]))
+        tensordict_reset.set(self.out_keys[0], self._perturbed(tensordict_reset.get(self.in_keys[0])))
         return tensordict_reset
 
     def _share_with_assist(self, mask: torch.Tensor) -> None:
@@ -379,9 +423,14 @@ class SensorNoise(Transform):
         seed, env_ids, episode, step = self._key_source()
         if not self._index:
             raise RuntimeError("SensorNoise: reset the env before stepping it (the biases are drawn at reset)")
-        exact = next_tensordict.get(self.in_keys[0])
-        u = self._step_hash(seed, env_ids, _key(episode, step)) if self._noise_cols is not None else None
-        next_tensordict.set(self.out_keys[0], self._perturbed(exact, u))
+        if self._noise_cols is not None:
+            if self._next_drawn:  # the masked reset after the last step drew this observation's noise
+                self._noise_now.copy_(self._noise_next)
+            else:
+                u = self._step_hash(seed, env_ids, _key(episode, step - 1))
+                self._noise_now.copy_(self._scaled_noise(u, self._step_src))
+            self._next_drawn = False
+        next_tensordict.set(self.out_keys[0], self._perturbed(next_tensordict.get(self.in_keys[0])))
         return next_tensordict
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
