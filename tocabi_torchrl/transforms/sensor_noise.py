@@ -34,11 +34,11 @@ its own: a world's biases are keyed on (seed, env index, episode number, step 0)
 of its episode's first observation on the same key (:data:`NOISE_STREAMS`), and the noise of observation k >= 1 on
 the key of step k − 1 (:data:`LATER_NOISE_STREAMS`). In training the masked reset runs after every step, keyed on
 each world's (episode, step): one hash pass there draws a reset world's biases and first noise and every world's
-next noise, and the step reads that noise instead of hashing again (a step that no reset preceded hashes it). World
-i's draws therefore depend neither on the other worlds nor on how often or in which order reset and step run, and
-the noise of a step is a function of the env's device counters, so a captured CUDA graph of the step draws fresh
-numbers on every replay (its one host flag, whether a reset came before the step, is the same on every replay of a
-captured step and reset). The biases live in (N, ...) device tensors, redrawn in place with ``torch.where`` for
+next noise, and the step reads that noise instead of hashing again (a step that no reset preceded hashes it, and
+so does a step being captured into a CUDA graph, whose replays need not follow a reset). World i's draws therefore
+depend neither on the other worlds nor on how often or in which order reset and step run, and the noise of a step
+is a function of the env's device counters, so a captured CUDA graph of the step draws fresh numbers on every
+replay without any Python state. The biases live in (N, ...) device tensors, redrawn in place with ``torch.where`` for
 the worlds a reset flags: no host reads. Normals are Box-Muller pairs of those uniforms.
 
 >>> from tocabi_torchrl.transforms import SensorNoiseConfig
@@ -210,8 +210,7 @@ class SensorNoise(Transform):
         self._source: tuple[torch.Tensor, ...] | None = None
         self._worlds: torch.Tensor | None = None
         self._index: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
-        # Host flag: a reset ran since the last step, so _noise_next holds every world's next noise. A captured step
-        # (step, then masked reset) records the path it took; every replay is again a step after a reset.
+        # Host flag: a reset ran since the last step, so _noise_next holds every world's next noise.
         self._next_drawn = False
 
     # ---------------------------------------------------------------------------------------------- set-up
@@ -424,7 +423,9 @@ class SensorNoise(Transform):
         if not self._index:
             raise RuntimeError("SensorNoise: reset the env before stepping it (the biases are drawn at reset)")
         if self._noise_cols is not None:
-            if self._next_drawn:  # the masked reset after the last step drew this observation's noise
+            # The masked reset after the last step drew this observation's noise. A step being captured into a CUDA
+            # graph hashes anyway: its replays need not follow a reset.
+            if self._next_drawn and not (env_ids.is_cuda and torch.cuda.is_current_stream_capturing()):
                 self._noise_now.copy_(self._noise_next)
             else:
                 u = self._step_hash(seed, env_ids, _key(episode, step - 1))
