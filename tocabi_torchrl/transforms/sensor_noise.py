@@ -295,7 +295,7 @@ class SensorNoise(Transform):
         bias_lanes = [stream_lanes(BIAS_STREAMS[name], k, dev) for name, k in zip(biased, sizes)]
         # The masked reset (every step in training) draws, in one hash pass keyed on each world's (episode, step):
         # a reset world's biases and first noise (its step is 0, the biases' key) and every world's next noise. A
-        # step then reads that next noise; it hashes only when no reset ran since the last step.
+        # step then reads that next noise; it hashes only when no reset ran since the last step, or under capture.
         p = self._pairs
         self._reset_hash = LaneDraws(torch.cat((*bias_lanes, first[:p], later[:p], first[p:], later[p:])))
         self._step_hash = LaneDraws(later)
