@@ -321,6 +321,25 @@ def test_gpu_captured_step_never_syncs_and_draws_fresh_noise_across_resets():
     assert all(not torch.equal(a, b) for a, b in zip(deltas, deltas[1:]))
 
 
+def test_biased_euler_angles_are_wrapped_back_into_minus_pi_pi():
+    env = make_env(num_envs=64, device="cpu", seed=3, sensor_noise=SensorNoiseConfig(base_rpy_bias=0.5))
+    env.reset()
+    stage = _noise_stage(env)
+    cols = stage._index["base_rpy"][0]
+    exact = torch.full((64, stage._width), 0.25)
+    near = torch.tensor([math.pi - 0.01, -math.pi + 0.01, math.pi, 0.0])
+    exact[:, cols] = near.repeat(64)[: 64 * 3].reshape(64, 3)
+    out = stage._perturbed(exact)
+    angles, want = out[:, cols], (exact + stage._bias_cols)[:, cols]
+    assert bool((angles > -math.pi).all() and (angles <= math.pi).all())
+    assert bool(((angles - want).abs() > 1.0).any())  # some biased angles crossed ±pi and were wrapped
+    torch.testing.assert_close(torch.remainder(angles - want + math.pi, 2 * math.pi) - math.pi,
+                               torch.zeros_like(angles), rtol=0, atol=1e-6)
+    rest = torch.ones(stage._width, dtype=torch.bool)
+    rest[cols] = False
+    assert torch.equal(out[:, rest], exact[:, rest])  # the other columns: no bias, no noise, no wrap
+
+
 def test_a_reset_without_mask_redraws_every_world():
     # A reset without "_reset" redraws every world (the base env resets them all).
     env = make_env(num_envs=2, device="cpu", seed=5, sensor_noise=SensorNoiseConfig(foot_force_bias=50.0))

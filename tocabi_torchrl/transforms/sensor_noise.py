@@ -299,11 +299,13 @@ class SensorNoise(Transform):
         p = self._pairs
         self._reset_hash = LaneDraws(torch.cat((*bias_lanes, first[:p], later[:p], first[p:], later[p:])))
         self._step_hash = LaneDraws(later)
-        # The Euler angles' columns, wrapped back into (-pi, pi] after the bias.
-        wrap = torch.zeros(self._width, dtype=torch.bool, device=dev)
+        # The Euler angles' columns are wrapped back into (-pi, pi] after the bias: (D,) bounds, ±pi there and ±inf
+        # in the other columns, so that the wrap is two compares over the whole observation.
+        self._wrap = None
         if "base_rpy" in self.biases:
-            wrap[self._index["base_rpy"][0]] = True
-        self._wrap = wrap if "base_rpy" in self.biases else None
+            upper = torch.full((self._width,), math.inf, dtype=torch.float32)
+            upper[self._columns["base_rpy"][0]] = math.pi
+            self._wrap = (upper.to(dev), (-upper).to(dev))
 
     def _map_noise(self, n: int, dev) -> tuple[torch.Tensor, torch.Tensor]:
         """Lay out every noisy signal's Box-Muller pairs for one pass and set the maps from their normals to the
@@ -376,9 +378,8 @@ class SensorNoise(Transform):
         if self._noise_cols is not None:
             obs = obs.index_add(1, self._noise_cols, self._noise_now)
         if self._wrap is not None:
-            two_pi = 2.0 * math.pi
-            obs = torch.where(self._wrap & (obs > math.pi), obs - two_pi,
-                              torch.where(self._wrap & (obs <= -math.pi), obs + two_pi, obs))
+            (upper, lower), two_pi = self._wrap, 2.0 * math.pi
+            obs = torch.where(obs > upper, obs - two_pi, torch.where(obs <= lower, obs + two_pi, obs))
         if self._worlds is not None:
             obs = torch.where(self._worlds, obs, exact)
         return obs
