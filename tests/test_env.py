@@ -382,6 +382,48 @@ def test_one_hash_pass_draws_every_stream_as_its_own_call_would():
         LaneDraws(lanes.float())
 
 
+def test_the_one_kernel_hash_gives_the_torch_hash_bit_for_bit():
+    # The warp kernel that LaneDraws runs for eager CUDA steps, here on warp's CPU device: the same uint64 arithmetic,
+    # keys far beyond 32 bits (episode << 32 + step), large env ids and seeds up to 2**63 - 1.
+    from tocabi_torchrl.envs.episode_hash import hash_uniforms
+    from tocabi_torchrl.envs.episode_random import _hash, stream_lanes
+
+    g = torch.Generator().manual_seed(0)
+    ids = torch.randint(0, 1 << 17, (3000,), generator=g)
+    key = (torch.randint(0, 1 << 20, (3000,), generator=g) << 32) + torch.randint(0, 1 << 31, (3000,), generator=g)
+    lanes = torch.cat([stream_lanes(s, 40, "cpu") for s in (0, 17, 33, 52)])
+    for seed in (0, 7, 2**40 + 3, 2**63 - 1):
+        s = torch.tensor(seed, dtype=torch.int64)
+        assert torch.equal(hash_uniforms(s, ids, key, lanes, lanes * 0xC2B2AE3D), _hash(s, ids, key, lanes,
+                                                                                     lanes * 0xC2B2AE3D)), seed
+    assert hash_uniforms(torch.tensor(0), ids[:0], key[:0], lanes, lanes).shape == (0, lanes.shape[0])
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_gpu_lane_draws_run_one_kernel_eagerly_with_the_torch_numbers_and_no_sync():
+    from tocabi_torchrl.envs.episode_random import LaneDraws, _hash, stream_lanes
+
+    lanes = torch.cat([stream_lanes(s, 40, "cuda") for s in (0, 33, 52)])
+    draws = LaneDraws(lanes)
+    ids = torch.arange(4096, device="cuda")
+    key = (torch.arange(4096, device="cuda") << 32) + 17
+    seed = torch.tensor(5, dtype=torch.int64, device="cuda")
+    torch.cuda.synchronize()
+    draws(seed, ids, key)  # the kernel's module loads here
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+            u = draws(seed, ids, key)
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    top = [e.name for e in prof.events() if e.name.startswith("aten::")
+           and (e.cpu_parent is None or not e.cpu_parent.name.startswith("aten::"))]
+    assert len(top) <= 6, top  # the output's allocation and views, no arithmetic (the torch hash: ~30 ops)
+    assert torch.equal(u, _hash(seed, ids, key, draws.lanes, lanes * 0xC2B2AE3D))
+
+
 def test_episode_random_numbers_depend_on_episode_not_call_order():
     from tocabi_torchrl.envs.episode_random import episode_uniform
 

@@ -3,7 +3,8 @@
 A reset draws its random initial conditions (start row of the motion, first command) from a counter-based hash
 instead of a stateful generator. Each env's episode k then starts the same way whichever reset path ran and however
 often it was called: TorchRL's reset-only-when-done path and the sync-free reset-every-step path give identical
-rollouts, and a run is reproducible from its seed. Integer ops only: sync-free on any device.
+rollouts, and a run is reproducible from its seed. Integer ops only: sync-free on any device. On eager CUDA steps
+the hash is one warp kernel with the same numbers (:mod:`~tocabi_torchrl.envs.episode_hash`).
 """
 
 from __future__ import annotations
@@ -105,11 +106,20 @@ class LaneDraws:
     def __init__(self, lanes: torch.Tensor):
         if lanes.dtype != torch.int64 or lanes.dim() != 1:
             raise ValueError(f"LaneDraws takes (L,) int64 lanes, got {tuple(lanes.shape)} {lanes.dtype}")
-        self.lanes = lanes
-        self._scrambled = lanes * 0xC2B2AE3D
+        self.lanes = lanes.contiguous()
+        self._scrambled = self.lanes * 0xC2B2AE3D
+        self._streams: dict = {}  # warp's wrappers of PyTorch's CUDA streams, for the one-kernel hash
 
     def __call__(self, seed: int | torch.Tensor, env_ids: torch.Tensor, key: torch.Tensor) -> torch.Tensor:
-        """(num_envs, L) float32 uniforms in [0, 1) of each env's ``key`` (num_envs,) int64."""
+        """(num_envs, L) float32 uniforms in [0, 1) of each env's ``key`` (num_envs,) int64.
+
+        On CUDA with a tensor ``seed``, outside CUDA graph capture, one warp kernel computes them
+        (:func:`~tocabi_torchrl.envs.episode_hash.hash_uniforms`, the same numbers); elsewhere ~30 torch ops do."""
+        if key.is_cuda and isinstance(seed, torch.Tensor) and not torch.cuda.is_current_stream_capturing():
+            from .episode_hash import hash_uniforms  # warp only where it runs
+
+            return hash_uniforms(seed, env_ids.to(torch.int64).contiguous(), key.to(torch.int64).contiguous(),
+                                 self.lanes, self._scrambled, self._streams)
         return _hash(seed, env_ids, key, self.lanes, self._scrambled)
 
 
