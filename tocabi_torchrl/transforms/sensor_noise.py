@@ -346,6 +346,7 @@ class SensorNoise(Transform):
         self._reset_src = tensor(first_src + [i + pairs for i in first_src])  # (2C,): first, then later
         self._noise_std = tensor(std * 2, torch.float32)
         self._noise_clip = tensor(clip * 2, torch.float32)
+        self._noise_floor = -self._noise_clip  # the lower bound, made once rather than negated every step
         c = len(cols)
         #: (N, C) the noise of each world's latest observation, and of its next one as the last reset drew it.
         self._noise_now = torch.zeros(n, c, dtype=torch.float32, device=dev)
@@ -365,12 +366,9 @@ class SensorNoise(Transform):
     def _scaled_noise(self, u: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
         """The noisy columns' noise from Box-Muller uniforms ``u`` (N, 2Q): the Q pairs' normals, picked per column by
         ``src``, scaled by the column's σ and clipped (the first ``len(src)`` columns of σ and clip)."""
-        q, k = u.shape[1] // 2, src.shape[0]
-        radius = torch.sqrt(-2.0 * torch.log1p(-u[:, :q]))  # 1 - u in (0, 1]: the log is finite
-        angle = (2.0 * math.pi) * u[:, q:]
-        normals = torch.cat((radius * torch.cos(angle), radius * torch.sin(angle)), dim=-1)
-        clip = self._noise_clip[:k]
-        return (normals.index_select(1, src) * self._noise_std[:k]).clamp(-clip, clip)
+        k = src.shape[0]
+        noise = _normals(u, u.shape[1]).index_select(1, src) * self._noise_std[:k]
+        return noise.clamp(self._noise_floor[:k], self._noise_clip[:k])
 
     def _perturbed(self, exact: torch.Tensor) -> torch.Tensor:
         """(N, D) the observation ``exact`` plus each world's biases and the noise of its latest observation."""
