@@ -258,6 +258,28 @@ def randomization_cost(docs: Path) -> list[str]:
     how = (f"the median of {m['rounds']} rounds' own ratios, each round a seed of its own"
            if "round_on_over_off" in s else f"medians of {m['rounds']} alternating rounds")
     verdict = "meets" if s["on_over_off"] >= 0.95 else "misses"
+    split = _pieces_and_physics(d, RANDOMIZATION_COST.removesuffix(".json") + ".md")
+    if not split and (docs / RANDOMIZATION_PIECES).is_file():
+        # The latest run has no per-piece split; the last one that had shows where the gap came from then.
+        p = _load(RANDOMIZATION_PIECES, docs)
+        pm = p["meta"]
+        split = [f"Piece by piece, an earlier run ({pm['date']}, {pm['gpu']}, {pm['num_envs']:,} envs, seed 0, one "
+                 f"round: on / off {p['summary']['on_over_off']:.3f}x; `{pm['command']}`):", "",
+                 *_pieces_and_physics(p, RANDOMIZATION_PIECES.removesuffix(".json") + ".md")]
+    return [f"With everything of the `{m['preset']}` preset on (dynamics, actuators, sensor noise, kicks at full "
+            f"strength, diverse starts), training runs at **{s['on_over_off']:.3f}x** the same preset with every piece "
+            f"at its identity ({how}, {m['num_envs']:,} envs); this {verdict} the 0.95x target.", "", *rows, "",
+            *_source(RANDOMIZATION_COST, m["command"], m["date"], m["gpu"],
+                     "benchmarks/randomization/randomization_cost.md"), "", *split, *delay_average_cost(docs)]
+
+
+#: The last ``randomization_cost`` run with ``--pieces`` and ``--physics`` (each piece alone; the solver's share).
+RANDOMIZATION_PIECES = "benchmarks/randomization/pieces_2026-12-03.json"
+
+
+def _pieces_and_physics(d: dict, detail: str) -> list[str]:
+    """A ``randomization_cost`` report's per-piece ratios and physics split, when it measured them."""
+    m, s = d["meta"], d["summary"]
     ms = {name: v["ms_per_policy_step"] for name, v in d.get("physics", {}).items()}
     pieces = [f"- `{name}` alone over none: {ratio:.3f}x in training"
               + (f", physics {ms['off'] / ms[f'off+{name}']:.3f}x" if f"off+{name}" in ms and "off" in ms else "")
@@ -273,27 +295,35 @@ def randomization_cost(docs: Path) -> list[str]:
                    f"`--physics`): off / on = **{s['physics_off_over_on']:.3f}**: the solver works harder on the "
                    f"states a randomised robot visits. Were the rest of a training step as long as off's, on / off "
                    f"would be {same_rest:.3f}; the randomisation's own work is the remaining "
-                   f"{same_rest - s['on_over_off']:.3f} "
-                   "([details](benchmarks/randomization/randomization_cost.md)).", ""]
-    return [f"With everything of the `{m['preset']}` preset on (dynamics, actuators, sensor noise, kicks at full "
-            f"strength, diverse starts), training runs at **{s['on_over_off']:.3f}x** the same preset with every piece "
-            f"at its identity ({how}, {m['num_envs']:,} envs); this {verdict} the 0.95x target.", "", *rows, "",
-            *pieces, *([""] if pieces else []), *physics,
-            *_source(RANDOMIZATION_COST, m["command"], m["date"], m["gpu"],
-                     "benchmarks/randomization/randomization_cost.md"), "", *delay_average_cost(docs)]
+                   f"{same_rest - s['on_over_off']:.3f} ([details]({detail})).", ""]
+    return [*pieces, *([""] if pieces else []), *physics]
 
 
 DELAY_AVERAGE_COST = "benchmarks/randomization/delay_average_cost"
+#: ``randomization_cost --rounds 3`` of the preset with the averaged delay.
+DELAY_AVERAGE_THREE_ROUNDS = f"{DELAY_AVERAGE_COST}/three_rounds.json"
 
 
 def delay_average_cost(docs: Path) -> list[str]:
-    """The averaged delay's one-round ratios, seed by seed (``rounds/rc_seed*.md``), when they are committed."""
+    """The averaged delay's one-round ratios, seed by seed (``rounds/rc_seed*.md``), and its three-round run, when
+    they are committed."""
     reports = sorted((docs / DELAY_AVERAGE_COST / "rounds").glob("rc_seed*.md"),
                      key=lambda p: int(p.stem.removeprefix("rc_seed")))
     ratios = {int(p.stem.removeprefix("rc_seed")): float(re.search(r"on / off = \*\*([0-9.]+)\*\*", p.read_text())[1])
               for p in reports}
+    three = []
+    if (docs / DELAY_AVERAGE_THREE_ROUNDS).is_file():
+        d = _load(DELAY_AVERAGE_THREE_ROUNDS, docs)
+        m, s = d["meta"], d["summary"]
+        rounds = ", ".join(f"{r:.3f}" for r in s["round_on_over_off"])
+        seeds = ", ".join(map(str, m["seeds"]))
+        three = [f"On the code of the figure above, the averaged delay's {m['rounds']} rounds in one run "
+                 f"(seeds {seeds}: {rounds}) gave **{s['on_over_off']:.3f}x**, which "
+                 f"{'meets' if s['on_over_off'] >= 0.95 else 'misses'} the target "
+                 f"([three_rounds.md]({DELAY_AVERAGE_THREE_ROUNDS.removesuffix('.json')}.md); "
+                 f"{m['date']}, {m['gpu']}).", ""]
     if not ratios:
-        return []
+        return three
     seeds = ", ".join(f"{seed}: {r:.3f}" for seed, r in ratios.items())
     # The rest of the step (all but the physics), on over off, in the 10-iteration timelines of each seed.
     rest = {}
@@ -307,7 +337,7 @@ def delay_average_cost(docs: Path) -> list[str]:
     return [f"With the delay averaged over each policy step (`env.control.actuators.delay_average`, not in the preset "
             f"yet), one round per seed gave on / off {seeds} (median {statistics.median(ratios.values()):.3f}): a "
             "seed's round is one sample of how hard its untrained robots' physics is, hence the rounds of different "
-            f"seeds. {split} ([details]({DELAY_AVERAGE_COST}/README.md)).", ""]
+            f"seeds. {split} ([details]({DELAY_AVERAGE_COST}/README.md)).", "", *three]
 
 
 def step_ops(docs: Path) -> list[str]:

@@ -56,3 +56,33 @@ def test_randomization_cost_splits_the_gap_into_physics_and_the_rest(tmp_path):
     assert "training runs at **0.800x**" in text and "misses the 0.95x target" in text
     assert "`actuators` alone over none: 0.900x in training, physics 0.923x" in text
     assert "off / on = **0.857**" in text and "on / off would be 0.909" in text and "remaining 0.109" in text
+
+
+def test_randomization_cost_without_pieces_shows_the_last_split_and_the_averaged_rounds(tmp_path):
+    """A run without ``--pieces``/``--physics`` keeps the last per-piece run on the page (its own link), and the
+    averaged delay's three-round run says whether it meets the target."""
+    import json
+
+    page = _page_module()
+    meta = {"preset": "robust", "rounds": 3, "num_envs": 1000, "command": "python -m latest", "date": "2026-12-04",
+            "gpu": "NVIDIA H200", "seeds": [0, 1, 2]}
+    latest = {"meta": meta, "summary": {"on_median": 93_000.0, "off_median": 100_000.0, "on_over_off": 0.93,
+                                        "round_on_over_off": [0.92, 0.93, 0.94]},
+              "results": [{"round": 1, "seed": 0, "variant": "on", "train_env_steps_per_s": 93_000.0}]}
+    pieces = {"meta": {**meta, "rounds": 1, "command": "python -m pieces", "date": "2026-12-03"},
+              "summary": {"on_median": 90_000.0, "off_median": 100_000.0, "on_over_off": 0.9,
+                          "piece_over_off": {"actuators": 0.91}},
+              "results": []}
+    three = {"meta": meta, "summary": {**latest["summary"], "on_over_off": 0.951,
+                                       "round_on_over_off": [0.95, 0.951, 0.96]}, "results": []}
+    for rel, report in ((page.RANDOMIZATION_COST, latest), (page.RANDOMIZATION_PIECES, pieces),
+                        (page.DELAY_AVERAGE_THREE_ROUNDS, three)):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(json.dumps(report))
+    text = "\n".join(page.randomization_cost(tmp_path))
+    assert "**0.930x**" in text and "misses the 0.95x target" in text
+    assert "an earlier run (2026-12-03" in text and "`python -m pieces`" in text
+    assert "`actuators` alone over none: 0.910x in training" in text
+    assert "0.950, 0.951, 0.960) gave **0.951x**, which meets the target" in text
+    (tmp_path / page.RANDOMIZATION_PIECES).unlink()
+    assert "an earlier run" not in "\n".join(page.randomization_cost(tmp_path))
