@@ -248,11 +248,17 @@ def eager_step_config(script: str, n: int, iterations: int, overrides: dict, run
     benchmark's scratch run folder."""
     cfg = run_config(n, iterations, overrides, run_dir, name, device)
     at = trainer.resolve_device(device)
+    refuse_captured_env_step(script, cfg, at, n)
+    shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
+    return cfg, at
+
+
+def refuse_captured_env_step(script: str, cfg, at: torch.device, n: int) -> None:
+    """Exit, naming the fix, when ``cfg``'s trainer would capture the env step at ``n`` envs on ``at``: a captured
+    step has no points to mark."""
     if cfg.ppo.cuda_graph == "on" or trainer.plan_graphs(cfg, at, n).env_step:
         raise SystemExit(f"{script} marks the eager env step, and ppo.cuda_graph={cfg.ppo.cuda_graph!r} captures it at "
                          f"{n} envs (a captured step has no points to mark): pass --set ppo.cuda_graph=off")
-    shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
-    return cfg, at
 
 
 @contextlib.contextmanager

@@ -34,18 +34,19 @@ class Recorder:
     """Times steps (CUDA events, or host clocks off CUDA) and copies the per-world counts after each, on the device;
     ``on`` gates the recording (the trainer's warm-up iterations are not recorded)."""
 
-    def __init__(self, device: torch.device):
+    def __init__(self, device: torch.device, counts: bool = True):
         self.cuda = device.type == "cuda"
         self.on = True
         self.spans: list[tuple[object, object]] = []
-        self.counts: dict[str, list[torch.Tensor]] = {name: [] for name in (*FIELDS, "nacon")}
+        #: per-world counts copied after each step (none with ``counts=False``: the times alone, no extra kernels).
+        self.counts: dict[str, list[torch.Tensor]] = {name: [] for name in (*FIELDS, "nacon")} if counts else {}
         self._start = None
 
     def before(self) -> None:
         if self.on:
             self._start = common.stamp(self.cuda)
 
-    def after(self, data) -> None:
+    def after(self, data=None) -> None:
         if not self.on:
             return
         self.spans.append((self._start, common.stamp(self.cuda)))
@@ -58,8 +59,13 @@ class Recorder:
         if self.cuda:
             torch.cuda.synchronize()
         ms = [common.elapsed_ms(a, b, self.cuda) for a, b in self.spans]
+        if not ms:
+            raise RuntimeError("no simulator step was recorded: the env step was captured, or no iteration was timed")
+        times = {"steps": len(ms), "ms_per_policy_step": sum(ms) / len(ms)}
+        if not self.counts:
+            return times
         niter = torch.stack(self.counts["solver_niter"]).float()  # (steps, num_worlds)
-        return {"steps": len(ms), "ms_per_policy_step": sum(ms) / len(ms),
+        return {**times,
                 "niter_max_over_worlds": niter.max(dim=1).values.mean().item(), "niter_mean": niter.mean().item(),
                 "niter_max_seen": niter.max().item(),
                 "constraint_rows_per_world": torch.stack(self.counts["nefc"]).float().mean().item(),
@@ -78,7 +84,9 @@ def recorded_trainer(recorder: Recorder, warmup: int):
 
     def make_collector(cfg, env, actor, *args, **kwargs):
         sim = env.base_env.sim
-        common.wrap_method(sim, "step", recorder.before, lambda: recorder.after(sim.wp_data), undo)
+        # The counts are mujoco-warp's (``wp_data``); a recorder of times alone also times C MuJoCo's step.
+        common.wrap_method(sim, "step", recorder.before,
+                           lambda: recorder.after(sim.wp_data if recorder.counts else None), undo)
         return saved["make_collector"](cfg, env, actor, *args, **kwargs)
 
     def update(*args, **kwargs):

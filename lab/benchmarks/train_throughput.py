@@ -6,11 +6,21 @@
 Each env count in a fresh process: ``--iterations`` PPO iterations of the default preset after ``--warmup``, then the
 raw ceiling. ``--nproc K``: K torchrun ranks of ``--num_envs`` worlds each, one per GPU; rank 0 reports all ranks'
 rate, its own GPU's memory and one GPU's raw ceiling (``train / raw`` divides by K x raw). See docs/benchmarks.md.
+
+The raw ceiling steps robots that stand still; training steps robots that walk, stumble and fall, whose physics costs
+more (mujoco-warp iterates every world until the slowest converges). ``--ceiling`` also times the simulator's step in
+place during the timed iterations (CUDA events around ``sim.step``; nothing waits): the physics of the very states
+training visits, on the same model in the same run. Its rate, ``num_envs`` over that time, is the ceiling training
+could reach were everything but the physics free; ``train / ceiling`` stands beside ``train / raw``. It needs the eager
+env step (at 4,096 envs and more the trainer's default), one rank.
+
+    python -m lab.benchmarks.train_throughput --num_envs 4096 16384 --ceiling --name train_over_ceiling
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -22,15 +32,16 @@ import torch
 from tocabi_torchrl.rl.curves import steady_rate
 from tocabi_torchrl.rl.distributed import ending, from_environment, init_distributed
 
-from . import STARTED, common
+from . import STARTED, common, solver_load
 
 NAME = "train_throughput"
 
 
 def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str,
-            overrides: dict) -> dict | None:
+            overrides: dict, ceiling: bool = False) -> dict | None:
     """One env count in this process (one rank of a torchrun run): the steady rate after ``warmup`` iterations, the
-    whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0."""
+    whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0.
+    ``ceiling``: also the simulator's own time per policy step over the same timed iterations (module docstring)."""
     info = from_environment()
     device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides,
@@ -41,18 +52,26 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                                 info.world_size)
         if info.is_main:  # the benchmark's own scratch run: start afresh
             shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
-        # train() builds the env, agent and collector, then starts its clock (result.wall_seconds): the CPU time is
-        # read there, so that the cores busy are those of the timed training, not of the set-up before it.
-        at_clock, make_collector = {}, common.trainer.make_collector
+        physics = None
+        if ceiling:
+            at = common.trainer.resolve_device(device)
+            common.refuse_captured_env_step(f"{NAME} --ceiling", cfg, at, n)
+            physics = solver_load.Recorder(at, counts=False)
+        # The physics is timed from the end of iteration max(warmup, 1) on: the iterations of the steady rate.
+        with solver_load.recorded_trainer(physics, max(warmup, 1)) if physics else contextlib.nullcontext():
+            # train() builds the env, agent and collector, then starts its clock (result.wall_seconds): the CPU time
+            # is read there, so that the cores busy are those of the timed training, not of the set-up before it.
+            at_clock, make_collector = {}, common.trainer.make_collector
 
-        def collector_then_clock(*args, **kwargs):
-            collector = make_collector(*args, **kwargs)
-            at_clock["cpu"] = os.times()
-            return collector
+            def collector_then_clock(*args, **kwargs):
+                collector = make_collector(*args, **kwargs)
+                at_clock["cpu"] = os.times()
+                return collector
 
-        with common.trainer_patched({"make_collector": collector_then_clock}, []), common.memory_peaks(device) as peaks:
-            result, rows = common.train(cfg)
-            cpu1, t_end = os.times(), time.perf_counter()
+            with (common.trainer_patched({"make_collector": collector_then_clock}, []),
+                  common.memory_peaks(device) as peaks):
+                result, rows = common.train(cfg)
+                cpu1, t_end = os.times(), time.perf_counter()
         if not info.is_main:  # rank 0 logged the rows and reports for every rank
             return None
         cpu0, wall = at_clock["cpu"], result.wall_seconds
@@ -61,6 +80,11 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                       setup_s=t_end - STARTED - wall, env_graph=result.env_graph,  # all but the timed training
                       status="ok" if result.env_steps >= cfg.total_env_steps else "partial",
                       cores_used_mean=(cpu1.user + cpu1.system - cpu0.user - cpu0.system) / wall)
+        if physics:
+            ms = physics.summary(n)["ms_per_policy_step"]
+            rate, top = record["train_env_steps_per_s"], n * 1e3 / ms
+            record.update(physics_ms_per_policy_step=ms, physics_steps_timed=len(physics.spans),
+                          ceiling_env_steps_per_s=top, ratio_train_over_ceiling=rate / top if rate else None)
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
     rate = record.get("train_env_steps_per_s")
     return {**record, "raw_policy_steps_per_s": raw,
@@ -81,13 +105,20 @@ def render(data: dict, out) -> str:
     # The GPU columns only where a run had several ranks (the 1-GPU pages keep their layout).
     multi = any(r.get("gpus", 1) > 1 for r in results)
     gpus = lambda r: (r.get("gpus", 1), _speedup(r, results)) if multi else ()
+    # The training-state ceiling's columns only where a run measured it (--ceiling).
+    top = any("ratio_train_over_ceiling" in r for r in results)
+    ceiling = lambda r: (common.fmt(r.get("physics_ms_per_policy_step"), ".2f"),
+                         common.fmt(r.get("ceiling_env_steps_per_s")),
+                         common.fmt(r.get("ratio_train_over_ceiling"), ".3f")) if top else ()
     return common.page("Training throughput", data, common.table(
         (*(("GPUs", "speed-up over 1 GPU") if multi else ()), "envs" + (" per GPU" if multi else ""),
          "train env-steps/s", "raw mujoco-warp policy steps/s" + (" (one GPU)" if multi else ""),
-         "train / raw" + (" (GPUs x raw)" if multi else ""), "torch peak alloc GiB", "torch peak reserved GiB",
-         "device peak used GiB"),
+         "train / raw" + (" (GPUs x raw)" if multi else ""),
+         *(("physics ms per policy step in training", "ceiling of training states, env-steps/s", "train / ceiling")
+           if top else ()),
+         "torch peak alloc GiB", "torch peak reserved GiB", "device peak used GiB"),
         [(*gpus(r), r["num_envs"], common.fmt(r.get("train_env_steps_per_s")),
-          common.fmt(r["raw_policy_steps_per_s"]), common.fmt(r["ratio_train_over_raw"], ".2f"),
+          common.fmt(r["raw_policy_steps_per_s"]), common.fmt(r["ratio_train_over_raw"], ".2f"), *ceiling(r),
           *(common.fmt(r.get(k), ".2f") for k in ("torch_peak_allocated_gib", "torch_peak_reserved_gib",
                                                    "device_peak_used_gib")))
          for r in results]))
@@ -108,6 +139,9 @@ def main(argv=None) -> None:
     parser.add_argument("--name", default=NAME)
     parser.add_argument("--nproc", type=int, nargs="+", default=[1],
                         help="data-parallel ranks (GPUs) per measurement; each K > 1 runs under torchrun")
+    parser.add_argument("--ceiling", action="store_true",
+                        help="also time the simulator's step in place during the timed iterations: the physics of "
+                             "the states training visits, and train / that ceiling (eager env step, one rank)")
     parser.add_argument("--child", action="store_true", help="measure one env count in this process (internal)")
     args = parser.parse_args(argv)
     if min(args.num_envs) < 1:
@@ -118,7 +152,7 @@ def main(argv=None) -> None:
     if args.child:
         with ending(from_environment()):  # every rank ends, also on a failure (NCCL: the process, here)
             record = measure(args.num_envs[0], args.iterations, args.warmup, args.raw_steps, args.device,
-                             args.run_dir, overrides)
+                             args.run_dir, overrides, args.ceiling)
             if record is not None:  # rank 0 of a torchrun run reports for all ranks
                 print("RESULT " + json.dumps(record), flush=True)  # what common.run_child reads
         return
@@ -126,6 +160,10 @@ def main(argv=None) -> None:
                "--device", args.device, "--run_dir", f"{args.run_dir}/{args.name}", "--set", *args.set]
     if min(args.nproc) < 1:
         parser.error(f"--nproc takes rank counts >= 1, not {args.nproc}")
+    if args.ceiling and (max(args.nproc) > 1 or not args.iterations):
+        parser.error("--ceiling times the physics of one rank's timed training iterations: use --nproc 1 and "
+                     "--iterations >= 1")
+    options += ["--ceiling"] if args.ceiling else []
     if max(args.nproc) > 1 and not args.iterations + args.warmup:
         parser.error("--nproc > 1 measures training: give --iterations or --warmup > 0")
     # Where any K > 1, every child starts under torchrun, the 1-rank one too, so that they share its
