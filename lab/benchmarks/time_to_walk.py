@@ -179,13 +179,22 @@ def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
 
     state = common.read_checkpoint(ckpt)
     if args.reports:
-        found = Path(args.reports) / ckpt.stem / ROBUST_JSON
+        # Several folders: the verdicts of one run written by several robust_policies calls (a group of marks each).
+        candidates = [Path(folder) / ckpt.stem / ROBUST_JSON for folder in args.reports]
+        found = [path for path in candidates if path.is_file()]
+        if len(found) > 1:
+            raise ValueError(f"{ckpt.stem}: a report in each of {', '.join(map(str, found))}; pass the folders so "
+                             "that one holds each checkpoint's report")
+        if not found:
+            print(f"{ckpt.stem}: no {' or '.join(map(str, candidates))}; left out", flush=True)
+            return
+        found = found[0]
         try:
             report = _load(found)
         except json.JSONDecodeError as err:
             raise ValueError(f"{found} is not valid JSON ({err}); write it again with lab.benchmarks.robust_policies")
         if not report:
-            print(f"{ckpt.stem}: no {found}; left out", flush=True)
+            print(f"{ckpt.stem}: {found} is empty; left out", flush=True)
             return
         if report.get("test") != "robust" or not isinstance(report.get("cases"), dict):
             raise ValueError(f"{found} is not a robust gait test report")
@@ -375,10 +384,10 @@ def main(argv=None) -> None:
     e.add_argument("--follow_pid", type=int, default=0, help="keep evaluating while this process (the trainer) runs")
     e.add_argument("--from_minutes", type=float, default=0.0,
                    help="test only the checkpoints of this training minute and later (default: all)")
-    e.add_argument("--reports", default=None, metavar="DIR",
+    e.add_argument("--reports", nargs="+", default=None, metavar="DIR",
                    help="with --test robust: read each checkpoint's results from DIR/<checkpoint>/robust.json (as "
-                        "lab.benchmarks.robust_policies --out DIR writes them) instead of testing it again; "
-                        "checkpoints without one are left out")
+                        "lab.benchmarks.robust_policies --out DIR writes them; several DIRs: the one that has it) "
+                        "instead of testing it again; checkpoints without one are left out")
     r = sub.add_parser("report", help="tables and plots from the runs' train.json and evals.json")
     r.add_argument("--runs", nargs="+", required=True, help="run folders holding train.json / evals.json")
     r.add_argument("--curves", nargs="*", default=[],
@@ -391,8 +400,9 @@ def main(argv=None) -> None:
     reports = getattr(args, "reports", None)  # an eval option only
     if reports and args.test != "robust":
         parser.error("--reports reads robust gait test reports: pass --test robust with it")
-    if reports and not Path(reports).is_dir():
-        parser.error(f"--reports {reports}: no such folder (the --out of lab.benchmarks.robust_policies)")
+    for folder in reports or ():
+        if not Path(folder).is_dir():
+            parser.error(f"--reports {folder}: no such folder (the --out of lab.benchmarks.robust_policies)")
     if args.part != "report" and args.device.startswith("cuda") and not reports:
         import torch
 

@@ -88,13 +88,21 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
         (reports / stem / "robust.json").write_text(json.dumps(
             {"test": "robust", "passes": True, "tested_on": "NVIDIA H200", "settings": {"num_envs": 1024},
              "cases": its_cases}))
-    text = run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(reports))
+    # The second mark's verdict came from a second robust_policies call, into a folder of its own.
+    (tmp_path / "verdict2").mkdir()
+    (reports / later).rename(tmp_path / "verdict2" / later)
+    text = run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(reports),
+               str(tmp_path / "verdict2"))
+    shutil.copytree(tmp_path / "verdict2" / later, reports / later)
     robust = json.loads((folder / "evals_robust.json").read_text())
     assert {k: (e["walks"], e["device"]) for k, e in robust["evaluations"].items()} == \
         {walls[0]: (True, "NVIDIA H200"), later: (False, "NVIDIA H200")}
     assert all(f"{w}: no " in text for w in walls[1:])
     assert robust["time_to_walk"]["iteration"] == robust["evaluations"][walls[0]]["iteration"]
-    (folder / "evals_robust.json").unlink()  # read again: a corrupt report is named, not a bare JSON error
+    (folder / "evals_robust.json").unlink()  # two folders with one checkpoint's report: which one is named
+    run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(reports),
+        str(tmp_path / "verdict2"), error=f"{later}: a report in each of {reports / later / 'robust.json'}")
+    (folder / "evals_robust.json").unlink(missing_ok=True)  # read again: a corrupt report is named, not a bare error
     (reports / later / "robust.json").write_text("{not json")
     run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(reports),
         error=f"{reports / later / 'robust.json'} is not valid JSON")
