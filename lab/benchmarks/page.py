@@ -415,7 +415,35 @@ def solver_load(docs: Path) -> list[str]:
     return ["## The physics of training states against the raw ceiling", "",
             "The raw ceiling steps standing robots; training states have more solver iterations in their slowest "
             "world, which caps train / raw below 1 before anything else runs.", "", *rows, "",
-            *_source("benchmarks/solver_load.json", m["command"], m["date"], m["gpu"], "benchmarks/solver_load.md")]
+            *_source("benchmarks/solver_load.json", m["command"], m["date"], m["gpu"], "benchmarks/solver_load.md"),
+            *train_over_ceiling(docs)]
+
+
+TRAIN_OVER_CEILING = "benchmarks/train_over_ceiling.json"
+#: The share of the training-state ceiling that training is to reach, per env count.
+CEILING_TARGETS = {4096: 0.9, 16384: 0.95}
+
+
+def train_over_ceiling(docs: Path) -> list[str]:
+    """Training against the physics of its own states, timed in place in the same run (``train_throughput
+    --ceiling``), when that report is committed."""
+    if not (docs / TRAIN_OVER_CEILING).is_file():
+        return []
+    d = _load(TRAIN_OVER_CEILING, docs)
+    m = d["meta"]
+    rows = ["| envs | train env-steps/s | physics ms per policy step | ceiling of training states | train / ceiling | "
+            "target | train / raw standing |", "|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in d["results"]:
+        target = CEILING_TARGETS.get(r["num_envs"])
+        met = "" if target is None else (" (met)" if r["ratio_train_over_ceiling"] >= target else " (missed)")
+        rows.append(f"| {r['num_envs']:,} | {_k(r['train_env_steps_per_s'])} | {r['physics_ms_per_policy_step']:.2f} | "
+                    f"{_k(r['ceiling_env_steps_per_s'])} | **{r['ratio_train_over_ceiling']:.3f}** | "
+                    f"{'-' if target is None else f'{target:g}{met}'} | "
+                    + ("-" if r.get("ratio_train_over_raw") is None else f"{r['ratio_train_over_raw']:.3f}") + " |")
+    return ["", "Training against that ceiling in the same run: the simulator's step timed in place (CUDA events) "
+            "over the timed iterations, the ceiling its env count over that time:", "", *rows, "",
+            *_source(TRAIN_OVER_CEILING, m["command"], m["date"], m["gpu"],
+                     TRAIN_OVER_CEILING.removesuffix(".json") + ".md")]
 
 
 def soak(docs: Path) -> list[str]:

@@ -86,3 +86,21 @@ def test_randomization_cost_without_pieces_shows_the_last_split_and_the_averaged
     assert "0.950, 0.951, 0.960) gave **0.951x**, which meets the target" in text
     (tmp_path / page.RANDOMIZATION_PIECES).unlink()
     assert "an earlier run" not in "\n".join(page.randomization_cost(tmp_path))
+
+
+def test_train_over_ceiling_joins_the_solver_load_section_with_its_targets(tmp_path):
+    import json
+
+    page = _page_module()
+    assert page.train_over_ceiling(tmp_path) == []  # not measured: nothing
+    rows = [{"num_envs": 4096, "train_env_steps_per_s": 150_000.0, "physics_ms_per_policy_step": 24.0,
+             "ceiling_env_steps_per_s": 170_666.7, "ratio_train_over_ceiling": 0.879, "ratio_train_over_raw": 0.79},
+            {"num_envs": 16384, "train_env_steps_per_s": 190_000.0, "physics_ms_per_policy_step": 82.0,
+             "ceiling_env_steps_per_s": 199_804.9, "ratio_train_over_ceiling": 0.951, "ratio_train_over_raw": None}]
+    (tmp_path / page.TRAIN_OVER_CEILING).parent.mkdir(parents=True)
+    (tmp_path / page.TRAIN_OVER_CEILING).write_text(json.dumps(
+        {"meta": {"command": "python -m x --ceiling", "date": "2026-12-05", "gpu": "NVIDIA H200"}, "results": rows}))
+    text = "\n".join(page.train_over_ceiling(tmp_path))
+    assert "| 4,096 | 150k | 24.00 | 171k | **0.879** | 0.9 (missed) | 0.790 |" in text
+    assert "| 16,384 | 190k | 82.00 | 200k | **0.951** | 0.95 (met) | - |" in text
+    assert "`python -m x --ceiling`" in text and "NVIDIA H200" in text
