@@ -5,6 +5,7 @@ report the first training time (and env steps) at which the gait test passes.
     python -m lab.benchmarks.time_to_walk eval --preset torque                  # gait tests of every wall-clock checkpoint
     python -m lab.benchmarks.time_to_walk eval --preset torque --test robust    # the robust gait test (evals_robust.json)
     python -m lab.benchmarks.time_to_walk eval --preset robust --test robust --from_minutes 15   # skip earlier marks
+    python -m lab.benchmarks.time_to_walk eval --preset torque --test diverse   # its nominal and commands cases only
     python -m lab.benchmarks.time_to_walk report --runs runs/time_to_walk/torque ...   # time_to_walk.{json,md,png}
     torchrun --standalone --nproc_per_node 2 -m lab.benchmarks.time_to_walk train --preset default --name default_2gpu
 
@@ -40,7 +41,10 @@ key = lambda c: f"{c[0]:.1f},{c[1]:.1f}"
 
 
 #: The evaluations file of each gait test (docs/evaluation.md): the two tests' verdicts are never mixed in one record.
-EVALS = {"standard": "evals.json", "robust": "evals_robust.json"}
+EVALS = {"standard": "evals.json", "robust": "evals_robust.json", "diverse": "evals_diverse.json"}
+#: The robust test's cases each test decides "walks" by: "diverse" is the robust test without its randomised, kicked
+#: cases (diverse starts, the fixed command and the changing ones: the verdict of how fast a preset learns to walk).
+TEST_CASES = {"robust": ("nominal", "commands", "robust_0.5", "robust_1.0"), "diverse": ("nominal", "commands")}
 #: Robots per case of the robust test when --num_envs is left out (the standard test's is 256).
 ROBUST_ENVS = 1024
 
@@ -124,7 +128,7 @@ def eval_part(args, command: str) -> None:
         # seconds: half a second of slack for a minute count that floating point puts a hair past one.
         for ckpt in [p for p in sorted((run_dir / "checkpoints").glob("wall_*.pt"))
                      if p.stem not in evals and _mark_seconds(p.stem) + 0.5 >= 60.0 * args.from_minutes]:
-            (_evaluate_robust if test == "robust" else _evaluate)(ckpt, evals, envs, args)
+            (_evaluate_robust if test in TEST_CASES else _evaluate)(ckpt, evals, envs, args)
             common.write_json(evals_file, record)
         if args.follow_pid and _alive(args.follow_pid):
             time.sleep(10.0)
@@ -171,8 +175,8 @@ def _evaluate(ckpt: Path, evals: dict, envs: dict, args) -> None:
 
 
 def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
-    """The robust gait test of one wall-clock checkpoint into ``evals[ckpt.stem]``; ``envs`` keeps the cases' envs
-    across checkpoints."""
+    """The robust gait test (``--test robust``) or its unperturbed cases (``--test diverse``) of one wall-clock
+    checkpoint into ``evals[ckpt.stem]``; ``envs`` keeps the cases' envs across checkpoints."""
     from tocabi_torchrl.evaluation.gait_test import summary_json
     from tocabi_torchrl.evaluation.robust import (ROBUST_JSON, RobustTestConfig, evaluate_robust_checkpoint,
                                                   robust_passes)
@@ -200,17 +204,20 @@ def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
             raise ValueError(f"{found} is not a robust gait test report")
         device = report.get("tested_on", "?")
     else:
-        test = RobustTestConfig(num_envs=args.num_envs or ROBUST_ENVS, seconds=args.seconds)
+        test = RobustTestConfig(num_envs=args.num_envs or ROBUST_ENVS, seconds=args.seconds,
+                                cases=TEST_CASES[args.test])
         report = evaluate_robust_checkpoint(state, ckpt, ckpt.parent.parent / "eval" / ckpt.stem / "robust",
                                             test=test, device=args.device, envs=envs, progress=False)
         device = tested_on(args.device)
     entry = {"train_seconds": state["train_seconds"], "env_steps": state["env_steps"], "iteration": state["iteration"],
-             "device": device, "test": "robust", "settings": report["settings"],
-             "cases": json.loads(summary_json(report["cases"])), "walks": robust_passes(report)}
+             "device": device, "test": args.test, "settings": report["settings"],
+             "cases": json.loads(summary_json({name: c for name, c in report["cases"].items()
+                                               if name in TEST_CASES[args.test]})),
+             "walks": robust_passes(report, TEST_CASES[args.test])}
     evals[ckpt.stem] = entry
     cases = ", ".join(f"{name} {c['survival']:.3f}" for name, c in entry["cases"].items())
-    print(f"{ckpt.stem}: {entry['train_seconds'] / 60:5.1f} min, {entry['env_steps'] / 1e6:6.1f} M steps: robust test "
-          f"survival {cases} -> {'WALKS' if entry['walks'] else 'no'}", flush=True)
+    print(f"{ckpt.stem}: {entry['train_seconds'] / 60:5.1f} min, {entry['env_steps'] / 1e6:6.1f} M steps: {args.test} "
+          f"test survival {cases} -> {'WALKS' if entry['walks'] else 'no'}", flush=True)
 
 
 def first_walk(record: dict) -> dict | None:
@@ -261,31 +268,37 @@ def _value(e: dict, case: str, path: str):
 def _headline(e: dict, k: str) -> float:
     """The plotted survival or forward distance of an evaluation: the standard test's at (0.5, 0), or the robust
     test's nominal case (mean distance); NaN for a value the file holds as null."""
-    if e.get("test") == "robust":
+    if e.get("test") in TEST_CASES:
         v = _value(e, "nominal", "forward_distance_m.mean" if k == "forward_distance_m" else k)
     else:
         v = e["commands"][key(MAIN_COMMAND)][k]
     return math.nan if v is None else v
 
 
-def _robust_table(evals: list) -> str:
-    """The per-checkpoint table of a run's robust evaluations (:data:`ROBUST_COLUMNS`)."""
+def _robust_table(evals: list, test: str = "robust") -> str:
+    """The per-checkpoint table of a run's robust (or diverse) evaluations (:data:`ROBUST_COLUMNS` of the test's
+    cases)."""
+    columns = [c for c in ROBUST_COLUMNS if c[0] in TEST_CASES[test]]
     rows = [(name, f"{e['train_seconds'] / 60:.1f}", f"{e['env_steps'] / 1e6:.1f} M",
              *("-" if (v := _value(e, case, path)) is None else format(v, spec) for case, path, _, spec in
-               ROBUST_COLUMNS), "yes" if e.get("walks") else "no", e.get("device", "-")) for name, e in evals]
-    return common.table(("checkpoint", "minutes", "env steps", *(h for _, _, h, _ in ROBUST_COLUMNS), "walks",
+               columns), "yes" if e.get("walks") else "no", e.get("device", "-")) for name, e in evals]
+    return common.table(("checkpoint", "minutes", "env steps", *(h for _, _, h, _ in columns), "walks",
                          "tested on"), rows)
 
 
 def render(data: dict, out: Path) -> str:
     records, num = data["records"], lambda x, spec=",.0f": format(x, spec) if x else "-"
-    robust = data.get("test") == "robust"
+    test = data.get("test", "standard")
+    robust = test in TEST_CASES
     rows = [(_label(r), _gpus(r), f"{t['train_minutes']:.1f}" if (t := r.get("time_to_walk")) else
              f"not within {r.get('train_seconds', 0) / 60:.1f} min", f"{t['env_steps'] / 1e6:.1f} M" if t else "-",
              num(r.get("train_env_steps_per_s")), num(r.get("raw_policy_steps_per_s")), num(r.get("train_over_raw"),
              ".2f")) for r in records]
     passing = ("the robust gait test (docs/evaluation.md: diverse starts; nominal, changing-command, randomised and "
-               "pushed cases, each against its thresholds in ROBUST_CRITERIA)" if robust else
+               "pushed cases, each against its thresholds in ROBUST_CRITERIA)" if test == "robust" else
+               "the robust gait test's unperturbed cases (docs/evaluation.md: diverse starts; the nominal and "
+               "changing-command cases against their thresholds in ROBUST_CRITERIA; no randomisation, no kicks)"
+               if test == "diverse" else
                "the 8 s gait test on 256 envs: at (0.5, 0) m/s survival >= 95 %, forward >= 2.6 m, drift <= 0.3 m, "
                "knee RMS <= 0.15 rad; at (0.2, 0) and (0.7, 0.1) survival >= 95 %")
     text = ("# Time to walk (issue 19)\n\nTraining wall-clock (summed over resumed calls; no evaluation, no kernel "
@@ -301,7 +314,7 @@ def render(data: dict, out: Path) -> str:
     panels = [{"lines": {}, "vlines": [], "hlines": [(y, "pass")], "xlabel": "training minutes", "ylabel": label}
               for y, label in limits]
     # The robust test's pushed cases beside them: survival under three kicks, each speed against its own threshold.
-    pushed = ("robust_0.5", "robust_1.0") if robust else ()
+    pushed = ("robust_0.5", "robust_1.0") if test == "robust" else ()
     if pushed:
         panels.append({"lines": {}, "vlines": [], "xlabel": "training minutes",
                        "ylabel": "survival over 8 s under three kicks [%]",
@@ -310,8 +323,8 @@ def render(data: dict, out: Path) -> str:
     for r in records:
         evals = sorted(r.get("evaluations", {}).items())
         text += f"\n\n## {_label(r)}\n\nCommands:\n\n" + "".join(
-            f"- `{c}`\n" for c in r.get("commands", []) + r.get("eval_commands", [])) + "\n" + (_robust_table(evals)
-            if robust else common.table(
+            f"- `{c}`\n" for c in r.get("commands", []) + r.get("eval_commands", [])) + "\n" + (
+            _robust_table(evals, test) if robust else common.table(
             ("checkpoint", "minutes", "env steps", "survival", "forward [m]", "drift [m]", "knee RMS [rad]",
              "survival (0.2, 0)", "survival (0.7, 0.1)", "walks", "tested on"),
             [(name, f"{e['train_seconds'] / 60:.1f}", f"{e['env_steps'] / 1e6:.1f} M", *(
@@ -333,7 +346,7 @@ def render(data: dict, out: Path) -> str:
                                                           [math.nan if v is None else 100 * v for v in values])
         if pushed and r.get("time_to_walk"):
             panels[2]["vlines"].append(r["time_to_walk"]["train_minutes"])
-    common.plot(out / ("time_to_walk_robust.png" if robust else "time_to_walk.png"), panels,
+    common.plot(out / (f"time_to_walk_{test}.png" if robust else "time_to_walk.png"), panels,
                 "Gait test of checkpoints against training time (dotted: first pass)")
     return text + "\n"
 
@@ -353,7 +366,7 @@ def report_part(args, command: str) -> None:
     # Runs trained on the CPU (smoke runs) are kept out of the published GPU results; GPU runs copied back are not.
     cpu = data["records"] and all(r.get("gpu") == "cpu" for r in data["records"])
     out = common.report_dir(args.out, "cpu" if cpu else None)
-    text = common.publish(out, "time_to_walk" if test == "standard" else "time_to_walk_robust", data, render)
+    text = common.publish(out, "time_to_walk" if test == "standard" else f"time_to_walk_{test}", data, render)
     if args.curves:
         plot_curves([Path(p) for p in args.curves], out / "time_to_walk_curves.png")
     print(text)
@@ -377,10 +390,12 @@ def main(argv=None) -> None:
                    help="config overrides on top of the preset (ablations); a run continues only with the same ones")
     e = sub.add_parser("eval", parents=[run], help="gait tests of every wall-clock checkpoint of a preset's run")
     e.add_argument("--num_envs", type=int, default=None,
-                   help=f"robots in the gait test, per case in the robust one (default: 256, robust {ROBUST_ENVS})")
+                   help=f"robots in the gait test, per case in the robust one (default: 256, robust and diverse "
+                        f"{ROBUST_ENVS})")
     e.add_argument("--seconds", type=float, default=8.0)
     e.add_argument("--test", choices=tuple(EVALS), default="standard",
-                   help="which gait test decides 'walks': standard (3 commands) or robust (docs/evaluation.md)")
+                   help="which gait test decides 'walks': standard (3 commands), robust (docs/evaluation.md) or "
+                        "diverse (the robust test's nominal and commands cases: diverse starts, no kicks)")
     e.add_argument("--follow_pid", type=int, default=0, help="keep evaluating while this process (the trainer) runs")
     e.add_argument("--from_minutes", type=float, default=0.0,
                    help="test only the checkpoints of this training minute and later (default: all)")
@@ -398,8 +413,8 @@ def main(argv=None) -> None:
     if args.part == "train" and not 0 < args.minutes < math.inf:  # the config reads max_minutes 0 as no time limit
         parser.error(f"--minutes must be a positive number of training minutes, got {args.minutes}")
     reports = getattr(args, "reports", None)  # an eval option only
-    if reports and args.test != "robust":
-        parser.error("--reports reads robust gait test reports: pass --test robust with it")
+    if reports and args.test not in TEST_CASES:
+        parser.error("--reports reads robust gait test reports: pass --test robust (or diverse) with it")
     for folder in reports or ():
         if not Path(folder).is_dir():
             parser.error(f"--reports {folder}: no such folder (the --out of lab.benchmarks.robust_policies)")

@@ -75,15 +75,15 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
     assert (tmp_path / "d/time_to_walk.png").is_file() and (tmp_path / "d/time_to_walk_curves.png").is_file()
     # The robust test's results of a GPU run (lab.benchmarks.robust_policies --out DIR) read in, not re-tested:
     # the verdict re-checked from the values (a report's own "passes" is not trusted), the GPU's name kept, a
-    # checkpoint without a report left out, and --reports refused without --test robust.
+    # checkpoint without a report left out, and --reports refused without --test robust (or diverse).
     reports = tmp_path / "verdict"
     cases = {"nominal": {"survival": 1.0, "forward_distance_m": {"mean": 4.0}, "lateral_drift_m": {"p95": 0.29}},
              "commands": {"survival": 1.0, "tracking_error_mps": {"mean": 0.1}},
              "robust_0.5": {"survival": 0.99}, "robust_1.0": {"survival": 0.9}}
-    drifting = {**cases, "nominal": {**cases["nominal"], "lateral_drift_m": {"p95": 0.31}}}
+    toppled = {**cases, "robust_1.0": {"survival": 0.5}}  # fails the kicks alone: not robust, walks by "diverse"
     later = "wall_09999s"  # a second mark: the first's checkpoint under a later name
     shutil.copy(folder / "checkpoints" / f"{walls[0]}.pt", folder / "checkpoints" / f"{later}.pt")
-    for stem, its_cases in ((walls[0], cases), (later, drifting)):
+    for stem, its_cases in ((walls[0], cases), (later, toppled)):
         (reports / stem).mkdir(parents=True)
         (reports / stem / "robust.json").write_text(json.dumps(
             {"test": "robust", "passes": True, "tested_on": "NVIDIA H200", "settings": {"num_envs": 1024},
@@ -99,6 +99,20 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
         {walls[0]: (True, "NVIDIA H200"), later: (False, "NVIDIA H200")}
     assert all(f"{w}: no " in text for w in walls[1:])
     assert robust["time_to_walk"]["iteration"] == robust["evaluations"][walls[0]]["iteration"]
+    # --test diverse (issue 50's verdict): the same reports' nominal and commands cases alone decide.
+    run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "diverse", "--reports", str(reports))
+    diverse = json.loads((folder / "evals_diverse.json").read_text())
+    assert {k: e["walks"] for k, e in diverse["evaluations"].items()} == {walls[0]: True, later: True}
+    assert all(set(e["cases"]) == {"nominal", "commands"} and e["test"] == "diverse"
+               for e in diverse["evaluations"].values())
+    text = run("report", "--test", "diverse", "--runs", str(folder), "--out", str(tmp_path / "d"))
+    assert "unperturbed cases" in text and "push 1.0" not in text and "drift p95 [m]" in text
+    assert (tmp_path / "d" / "time_to_walk_diverse.md").is_file()
+    (folder / "evals_diverse.json").unlink()  # tested here: only the two unperturbed cases run
+    run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "diverse", "--num_envs", "2", "--seconds", "0.2")
+    diverse = json.loads((folder / "evals_diverse.json").read_text())
+    assert all(set(e["cases"]) == {"nominal", "commands"} and e["device"] == "cpu" and e["settings"]["num_envs"] == 2
+               for e in diverse["evaluations"].values())
     (folder / "evals_robust.json").unlink()  # two folders with one checkpoint's report: which one is named
     run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(reports),
         str(tmp_path / "verdict2"), error=f"{later}: a report in each of {reports / later / 'robust.json'}")
@@ -108,7 +122,7 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
         error=f"{reports / later / 'robust.json'} is not valid JSON")
     with pytest.raises(SystemExit) as stop:
         time_to_walk.main(["eval", "--preset", "cpu_smoke", "--device", "cpu", "--reports", str(reports)])
-    assert stop.value.code == 2 and "pass --test robust with it" in capsys.readouterr().err
+    assert stop.value.code == 2 and "pass --test robust (or diverse) with it" in capsys.readouterr().err
 
 
 def test_time_to_walk_names_the_gpu_of_any_cuda_device_string(monkeypatch):
