@@ -313,3 +313,36 @@ def test_robust_policies_table_names_each_case_and_its_verdict(tmp_path):
     page = (tmp_path / "robust_policies.md").read_text()
     assert "| tocabi_walk_ppo | nominal |" in page and "✗" in page and "python -m lab.benchmarks.robust_policies" in page
     assert (tmp_path / "tocabi_walk_ppo" / "robust.json").is_file()
+    assert "does not pass the robust test; " in page and "for its four cases" in page
+
+
+def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, monkeypatch, capsys):
+    """--cases: only those cases run, and a policy passes or fails those cases (not the whole test, which a report of
+    two cases can never pass); an unknown case is refused by name."""
+    import json
+
+    from lab.benchmarks import robust_policies
+    from tocabi_torchrl.evaluation import robust
+
+    seen = {}
+
+    def run(policy, num_envs, device, out_dir, seconds, cases):
+        seen["cases"] = cases
+        case = {"passes": True, "survival": 1.0, "checks": {"survival": {"value": 1.0, "needs": ">= 0.99",
+                                                                          "pass": True}}}
+        good = {"survival": 1.0, "forward_distance_m": {"mean": 4.0}, "lateral_drift_m": {"p95": 0.2},
+                "tracking_error_mps": {"mean": 0.05}}
+        return {"passes": False, "settings": {"push_kind": "velocity"},
+                "cases": {name: {**case, **good} for name in cases}}
+
+    monkeypatch.setattr(robust, "evaluate_robust_run", run)
+    robust_policies.main(["--policies", str(tmp_path / "p.pt"), "--cases", "nominal", "commands", "--device", "cpu",
+                          "--out", str(tmp_path)])
+    assert seen["cases"] == ("nominal", "commands")
+    (row,) = json.loads((tmp_path / "robust_policies.json").read_text())["results"]
+    assert row["passes"] is True and set(row["cases"]) == {"nominal", "commands"}
+    page = (tmp_path / "robust_policies.md").read_text()
+    assert "- p: passes the cases nominal, commands; 0 s for its two cases" in page
+    with pytest.raises(SystemExit):
+        robust_policies.main(["--cases", "nominal", "kicked", "--device", "cpu", "--out", str(tmp_path)])
+    assert "unknown case(s) ['kicked']" in capsys.readouterr().err
