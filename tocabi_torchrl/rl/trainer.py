@@ -34,6 +34,7 @@ from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, 
                           broadcast_module, from_environment, init_distributed, rank_seed)
 from .interrupt import StopFlag, stop_on_signals
 from .logging import RunLogger, require_loggers
+from .overlap import UpdateOverlap
 from .networks import ConcatInputs, make_mlp
 from .rollout_guard import VALID_KEY, guard_rollout
 from .run_dir import RunFolder, open_run
@@ -381,6 +382,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         raise ValueError(f"seed {cfg.seed}: rank r of a data-parallel run seeds its worlds with seed + r, which must "
                          f"stay <= {MAX_SEED} (2**63 - 1) on all {info.world_size} ranks; give a seed of at most "
                          f"{MAX_SEED - info.world_size + 1}")
+    if cfg.ppo.overlap_update and info.enabled:
+        raise ValueError(f"ppo.overlap_update runs on one rank; this run has {info.world_size}: set "
+                         "ppo.overlap_update=false for a data-parallel run")
     device = init_distributed(info, resolve_device(cfg.device))
     if run is None:
         # Rank 0 checks the loggers and the folder (refusing to overwrite an earlier run); the others write nothing and
@@ -444,9 +448,12 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     # One host read at start-up; from then on the trainer knows when it takes the teacher.
     teacher_taken = agent.teacher is not None and bool(agent.teacher.anchored)
 
+    # With ppo.overlap_update the collector acts with a copy of the actor taken before each update (rl/overlap.py).
+    overlap = UpdateOverlap(device, agent.actor) if ppo.overlap_update else None
+    policy = agent.actor if overlap is None else overlap.collect_actor
     # The live viewer (rank 0): a policy that also ticks its pose stream, a host copy off the training stream.
     live = _live_view(cfg, env) if cfg.viewer.enabled and info.is_main else None
-    collector = make_collector(cfg, env, agent.actor if live is None else live.wrap(agent.actor), device,
+    collector = make_collector(cfg, env, policy if live is None else live.wrap(policy), device,
                                (iterations - start_iter) * cfg.frames_per_batch)
     progress.started = True  # the logger writes config.json: from here on the run folder holds the run
     logger = (RunLogger(run_dir, cfg, total_iterations=iterations + shift, start_iteration=start_iter + shift)
@@ -457,9 +464,34 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     it = start_iter
     mark_s = 60.0 * cfg.checkpoint_minutes
     next_mark = (int(prior_train_s // mark_s) + 1) * mark_s if mark_s else float("inf")
+
+    def settle(stats: dict[str, float], ctx: dict) -> None:
+        """What needs an update's losses (``stats``, by log name): the adaptive learning rate for the next update,
+        and the iteration's log row. Right after the update, or (overlap_update) once the next rollout has been
+        collected; ``ctx``: what the iteration knew without them."""
+        nonlocal lr, metrics
+        stats = {**stats, **ctx["extra"]}
+        # While the assist fades, the KL also measures the intended move to the next β's actions; the adaptive
+        # rule would read it as too large a step and starve the absorption (the LR fell to 1e-5 on the H100 and
+        # the gait broke), so the learning rate is held there (and, with assist_lr_hold "pull", while the
+        # teacher's pull decays after the fade: the same reading of an intended move).
+        if ppo.lr_schedule == "adaptive" and not ctx["fading"]:
+            lr = adapt_lr(lr, stats["kl"], ppo.desired_kl, ppo.lr_min)
+            _set_scheduled_lr(optimizer, lr)
+        if ctx["episode"] is None:
+            return
+        metrics = {**ctx["episode"], **stats}
+        metrics.update(lr=lr, action_std=float(action_std(agent.actor).mean()), **ctx["progress"])
+        if logger is not None:
+            logger.log(ctx["row"], metrics)
+        if live is not None:
+            live.publish(ctx["row"], metrics)
+
     try:
         for it, batch in enumerate(collector, start=start_iter + 1):
             t_collect = time.perf_counter()
+            if overlap is not None and overlap.in_flight:  # the previous update, run while this rollout was collected
+                settle(*_finished(overlap, update_step))
             env_steps += batch.numel() * info.world_size
             progress_remaining = 1.0 - it / iterations
             if stats_sync is not None:
@@ -472,6 +504,11 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             estimate_advantages(advantage, work)
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
             flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
+            if overlap is not None:
+                # The update reads it on the side stream while the collector refills `batch`: its own memory.
+                flat = flat.clone()
+            extra: dict[str, float] = {}
+            weight = 0.0
             if assist is not None:
                 # This rollout ran with β(steps before it); the next runs with β(now): the update absorbs the gap.
                 beta, beta_next = assist(env_steps - batch.numel() * info.world_size), assist(env_steps)
@@ -487,58 +524,62 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 loss_module.set_step(base.assist_gain(beta), base.assist_gain(beta_next), beta, beta_next, weight)
             # The reference (spec §10.2, §10.4) sets the linear learning rate and the scheduled std from the progress
             # made after each rollout and before its update, so the update runs with them, and so does the next
-            # rollout. The adaptive rate, which reads this update's KL, is set after it.
+            # rollout. The adaptive rate, which reads this update's KL, is set after it (settle).
             if ppo.lr_schedule == "linear":
                 lr = ppo.lr_end + (ppo.lr - ppo.lr_end) * progress_remaining
                 _set_scheduled_lr(optimizer, lr)
             if agent.std_schedule is not None:
                 set_action_std(agent.actor, agent.std_schedule(progress_remaining))
-            stats = _update(cfg, flat, update_step, info)
-            # Nothing of this rollout's copy outlives its update: the next rollout is collected without it.
-            del work, flat
             fading = False
             if assist is not None:
-                env.base_env.set_torque_assist(beta_next)
-                stats["torque_assist"] = beta  # the β this iteration's rollout (and its logged rewards) ran with
-                stats["absorb_weight"] = weight
+                extra["torque_assist"] = beta  # the β this iteration's rollout (and its logged rewards) ran with
+                extra["absorb_weight"] = weight
                 fading = beta_next < beta or (ppo.assist_lr_hold == "pull" and weight > 0)
-            # While the assist fades, the KL also measures the intended move to the next β's actions; the adaptive
-            # rule would read it as too large a step and starve the absorption (the LR fell to 1e-5 on the H100 and
-            # the gait broke), so the learning rate is held there (and, with assist_lr_hold "pull", while the
-            # teacher's pull decays after the fade: the same reading of an intended move).
-            if ppo.lr_schedule == "adaptive" and not fading:
-                lr = adapt_lr(lr, stats["kl"], ppo.desired_kl, ppo.lr_min)
-                _set_scheduled_lr(optimizer, lr)
+            if overlap is None:
+                stats = _update(cfg, flat, update_step, info)
+            else:
+                overlap.refresh()  # the next rollout acts with the learner as it is before this update
+                overlap.launch(lambda: _update_losses(cfg, flat, update_step), keep=flat, context=None)
+            # Nothing of this rollout's copy outlives its update: the next rollout is collected without it.
+            del work, flat
+            if assist is not None:
+                env.base_env.set_torque_assist(beta_next)
             if pushes:
-                stats["push_scale"] = push_scale(ppo.push_ramp, env_steps - batch.numel() * info.world_size)
+                extra["push_scale"] = push_scale(ppo.push_ramp, env_steps - batch.numel() * info.world_size)
                 env.base_env.set_push_scale(push_scale(ppo.push_ramp, env_steps))
-            collector.update_policy_weights_()
+            if overlap is None:
+                collector.update_policy_weights_()
             elapsed = time.perf_counter() - t_start
             train_s = prior_train_s + elapsed
-            if (it + shift) % cfg.log_every == 0 or it == iterations:
-                metrics = _episode_metrics(batch, info)
-                metrics.update(stats)
-                metrics.update(lr=lr, action_std=float(action_std(agent.actor).mean()), env_steps=env_steps,
-                               env_steps_per_s=(env_steps - run.start_env_steps) / elapsed,
-                               update_s=time.perf_counter() - t_collect, wall_s=elapsed, train_s=train_s)
-                if logger is not None:
-                    logger.log(it + shift, metrics)
-                if live is not None:
-                    live.publish(it + shift, metrics)
-            # Checkpoints hold rank 0's state, which every rank shares (parameters, optimiser, statistics).
-            if train_s >= next_mark:
-                if info.is_main:
-                    save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s,
-                                    tag=wall_tag(next_mark))
-                next_mark = (int(train_s // mark_s) + 1) * mark_s
+            logged = (it + shift) % cfg.log_every == 0 or it == iterations
+            context = {"extra": extra, "fading": fading, "row": it + shift,
+                       # Read now: the collector overwrites `batch` with the next rollout.
+                       "episode": _episode_metrics(batch, info) if logged else None,
+                       "progress": dict(env_steps=env_steps,
+                                        env_steps_per_s=(env_steps - run.start_env_steps) / elapsed,
+                                        update_s=time.perf_counter() - t_collect, wall_s=elapsed, train_s=train_s)}
+            mark_due = train_s >= next_mark
             saved = (it + shift) % cfg.checkpoint_every == 0 or it == iterations
-            if saved and info.is_main:
-                save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s)
             # Ranks' clocks differ and a signal may reach one rank only: stop when any rank's time is up or any was
             # asked to stop, all at the same iteration (a rank that left early would hang the others' collectives).
             time_up, stop_signal = _stop_requests(bool(cfg.max_minutes) and elapsed > 60.0 * cfg.max_minutes,
                                                   progress.stop_signal, info, device)
-            if time_up or stop_signal is not None:
+            stopping = time_up or stop_signal is not None
+            if overlap is None:
+                settle(stats, context)
+            else:
+                overlap.annotate(context)
+                if mark_due or saved or stopping:  # a checkpoint holds the learner after this update
+                    settle(*_finished(overlap, update_step))
+            # Checkpoints hold rank 0's state, which every rank shares (parameters, optimiser, statistics).
+            if mark_due:
+                if info.is_main:
+                    save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s,
+                                    tag=wall_tag(next_mark))
+                next_mark = (int(train_s // mark_s) + 1) * mark_s
+            if saved and info.is_main:
+                save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s)
+            if stopping:
                 progress.stop_signal = progress.stop_signal or stop_signal
                 if info.is_main:
                     if stop_signal is None:  # a signal was said when it came, and the caller says what it left
@@ -546,8 +587,12 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                     if not saved:
                         save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s)
                 break
+        if overlap is not None and overlap.in_flight:  # the collector ran out: the last update's row
+            settle(*_finished(overlap, update_step))
     finally:
         env_graph = bool(getattr(env, "graph_captured", False))
+        if overlap is not None and overlap.in_flight:  # an error: let the side stream end before anything is freed
+            overlap.finish()
         collector.shutdown()
         if logger is not None:
             logger.close()
@@ -630,10 +675,24 @@ def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBas
     return [k for k in wanted if k in present]
 
 
+def _finished(overlap: UpdateOverlap, step: MinibatchStep) -> tuple[dict[str, float], dict]:
+    """The in-flight update's losses by log name and its context, once it is done (a host wait)."""
+    values, context = overlap.finish()
+    return {_STAT_NAMES.get(k, k): v for k, v in zip(step.stat_keys, values)}, context
+
+
 def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep,
             dist_info: DistInfo | None = None) -> dict[str, float]:
-    """``epochs`` passes of shuffled mini-batches over the rollout. Returns mean losses and KL (one host read),
-    averaged over the ranks in a data-parallel run, so that every rank adapts its learning rate alike."""
+    """:func:`_update_losses` read on the host, by log name."""
+    mean = _update_losses(cfg, flat, step, dist_info).tolist()
+    return {_STAT_NAMES.get(k, k): v for k, v in zip(step.stat_keys, mean)}
+
+
+def _update_losses(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep,
+                   dist_info: DistInfo | None = None) -> torch.Tensor:
+    """``epochs`` passes of shuffled mini-batches over the rollout. Returns the mean losses and KL
+    (``step.stat_keys``) as a device tensor (no host read), averaged over the ranks in a data-parallel run, so that
+    every rank adapts its learning rate alike."""
     n, mb, epochs = flat.shape[0], cfg.ppo.minibatch_size, cfg.ppo.epochs
     num_mb = max(1, n // mb)
     sums = None
@@ -645,8 +704,7 @@ def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep,
     mean = sums / (epochs * num_mb)
     if dist_info is not None:
         all_reduce_mean(mean, dist_info)
-    mean = mean.tolist()
-    return {_STAT_NAMES.get(k, k): v for k, v in zip(step.stat_keys, mean)}
+    return mean
 
 
 #: Log names of the update's loss outputs.

@@ -1,0 +1,116 @@
+"""The PPO update on a side CUDA stream while the next rollout is collected (``ppo.overlap_update``).
+
+mujoco-warp steps a few thousand worlds in kernels that leave most of a GPU's multiprocessors idle (its solver
+iterates every world in lockstep, one thread per world in many kernels), and the trainer's update, a few hundred
+matrix-product kernels per mini-batch, can fill them. :class:`UpdateOverlap` runs iteration k's update on a stream of
+its own and lets the host go on to collect rollout k+1 on the training stream, with a copy of the actor taken before
+update k: each rollout is collected with the policy of one update before. PPO takes its ratio against the policy that
+acted (the rollout stores its log-probabilities), so the loss stays what it is; only the first mini-batch of each
+update starts one update away from the behaviour policy instead of at it.
+
+Order, per iteration (host): :meth:`finish` waits for the previous update and hands back its losses; the trainer
+then reads the learner (GAE's critic, the teacher, the symmetry's statistics), sets its schedules, :meth:`refresh`
+copies the learner's actor into the collector's (on the training stream), and :meth:`launch` starts the update on
+the side stream after everything queued on the training stream so far. What the update reads (the rollout's
+flattened copy) is kept alive until :meth:`finish`, so the allocator cannot hand its memory to the next rollout while
+the side stream still reads it. On a CPU there is no stream: :meth:`launch` runs the update at once, in the same
+order, so a CPU run trains exactly as a GPU run would without the concurrency.
+
+>>> import torch
+>>> actor = torch.nn.Linear(2, 1)
+>>> overlap = UpdateOverlap(torch.device("cpu"), actor)
+>>> overlap.collect_actor is actor, overlap.finish()
+(False, None)
+>>> with torch.no_grad():
+...     _ = actor.weight.add_(1.0)  # an update of the learner
+>>> overlap.refresh()
+>>> torch.equal(overlap.collect_actor.weight, actor.weight)
+True
+>>> overlap.launch(lambda: torch.tensor([0.5]), keep=None, context={"iteration": 1})
+>>> overlap.finish()
+([0.5], {'iteration': 1})
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+__all__ = ["UpdateOverlap"]
+
+
+class UpdateOverlap:
+    """One update in flight at a time on a side stream (CUDA), or run inline (CPU).
+
+    Args:
+        device: the training device.
+        actor: the learner's actor; :attr:`collect_actor` is a copy of it (parameters and buffers, e.g. the scheduled
+            action std) that the collector acts with, refreshed by :meth:`refresh`.
+    """
+
+    def __init__(self, device: torch.device, actor: torch.nn.Module):
+        self.device = device
+        self.stream = torch.cuda.Stream(device) if device.type == "cuda" else None
+        self.collect_actor = copy.deepcopy(actor)
+        self.collect_actor.requires_grad_(False)
+        self._learner = actor
+        self._pairs = _state_pairs(self.collect_actor, actor)
+        self._pending: tuple[Any, torch.Tensor, Any, Any] | None = None
+
+    @property
+    def in_flight(self) -> bool:
+        """Whether an update has been launched and not yet :meth:`finish`-ed."""
+        return self._pending is not None
+
+    def refresh(self) -> None:
+        """Copy the learner's actor into :attr:`collect_actor` on the current (training) stream. Call it after
+        :meth:`finish`: the copy must not race an update."""
+        if self._pending is not None:
+            raise RuntimeError("UpdateOverlap.refresh() while an update is in flight: call finish() first")
+        with torch.no_grad():
+            torch._foreach_copy_([dst for dst, _ in self._pairs], [src for _, src in self._pairs])
+
+    def launch(self, update: Callable[[], torch.Tensor], keep: Any, context: Any) -> None:
+        """Start ``update()`` (which returns a device tensor of its losses) on the side stream, after the work
+        already queued on the current stream; ``keep`` (what the update reads) stays referenced and ``context`` is
+        handed back by :meth:`finish`."""
+        if self._pending is not None:
+            raise RuntimeError("UpdateOverlap.launch() with an update in flight: call finish() first")
+        if self.stream is None:
+            self._pending = (None, update(), keep, context)
+            return
+        ready = torch.cuda.current_stream(self.device).record_event()
+        with torch.cuda.stream(self.stream):
+            self.stream.wait_event(ready)
+            losses = update()
+            done = self.stream.record_event()
+        self._pending = (done, losses, keep, context)
+
+    def annotate(self, context: Any) -> None:
+        """Replace the in-flight update's ``context`` (what the host learnt after launching it)."""
+        if self._pending is None:
+            raise RuntimeError("UpdateOverlap.annotate() with no update in flight")
+        self._pending = (*self._pending[:3], context)
+
+    def finish(self) -> tuple[list[float], Any] | None:
+        """Wait (host) for the update in flight and return its losses as floats and its ``context``; None when no
+        update is in flight. Releases what :meth:`launch` kept."""
+        if self._pending is None:
+            return None
+        done, losses, _keep, context = self._pending
+        if done is not None:
+            done.synchronize()
+        values = losses.tolist()
+        self._pending = None
+        return values, context
+
+
+def _state_pairs(copy_of: torch.nn.Module, original: torch.nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(copy, original) tensor pairs of two modules of one structure: parameters, then floating-point buffers."""
+    pairs = [(a, b) for a, b in zip(copy_of.parameters(), original.parameters(), strict=True)]
+    pairs += [(a, b) for a, b in zip(copy_of.buffers(), original.buffers(), strict=True)
+              if a.is_floating_point()]
+    return pairs
