@@ -184,6 +184,12 @@ def test_policy_file_keeps_the_policy_and_drops_training_state(tmp_path):
     with pytest.raises(FileExistsError, match="overwrite=True"):
         write_policy_file(run, out)
     write_policy_file(run, out, overwrite=True)
+    # A run saved before an option existed: the shipped file names it, with the value the run trained with.
+    older = read_checkpoint(run)
+    del older["config"]["ppo"]["overlap_update"]
+    torch.save(older, tmp_path / "older.pt")
+    shipped = read_checkpoint(write_policy_file(tmp_path / "older.pt", tmp_path / "older_policy.pt"))
+    assert shipped["config"] == full["config"] and shipped["config"]["ppo"]["overlap_update"] is False
 
 
 @pytest.mark.parametrize("part, key, value", [

@@ -98,13 +98,18 @@ def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimi
 def write_policy_file(checkpoint: str | os.PathLike, out: str | os.PathLike, overwrite: bool = False) -> Path:
     """Write the policy of ``checkpoint`` (a ``.pt`` file or a run folder) to ``out`` for shipping or deployment:
     actor, critic, env-transform state and config, without the optimiser state or the torque assist's teacher
-    (training-only). The file is read with :func:`read_checkpoint` and written atomically; an existing
-    ``out`` raises ``FileExistsError`` unless ``overwrite``. Returns ``out``."""
-    state = read_checkpoint(checkpoint)
+    (training-only). The config is written as this version's whole tree (:func:`config_from_checkpoint`: options
+    added since the run take the value it trained with), so a shipped file names every option. The file is read with
+    :func:`read_checkpoint` and written atomically; an existing ``out`` raises ``FileExistsError`` unless
+    ``overwrite``. Returns ``out``."""
+    from ..tree import to_dict
+
+    path = checkpoint_file(checkpoint)
+    state = read_checkpoint(path)
     out = Path(out)
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} exists; pass overwrite=True to replace it")
-    policy = {**state, "optimizer": None,
+    policy = {**state, "optimizer": None, "config": to_dict(config_from_checkpoint(state, path)),
               "agent": {part: state["agent"][part] for part in ("actor", "critic")}}
     buffer = io.BytesIO()
     torch.save(policy, buffer)
