@@ -248,17 +248,17 @@ def eager_step_config(script: str, n: int, iterations: int, overrides: dict, run
     benchmark's scratch run folder."""
     cfg = run_config(n, iterations, overrides, run_dir, name, device)
     at = trainer.resolve_device(device)
+    if cfg.ppo.overlap_update:
+        raise SystemExit(f"{script} times the trainer's phases one after another, and ppo.overlap_update runs the "
+                         "update beside the next rollout: pass --set ppo.overlap_update=false")
     refuse_captured_env_step(script, cfg, at, n)
     shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
     return cfg, at
 
 
 def refuse_captured_env_step(script: str, cfg, at: torch.device, n: int) -> None:
-    """Exit, naming the fix, when ``cfg``'s trainer would capture the env step at ``n`` envs on ``at`` (a captured
-    step has no points to mark) or run its update beside the next rollout (the marks would time both at once)."""
-    if cfg.ppo.overlap_update:
-        raise SystemExit(f"{script} times the trainer's phases one after another, and ppo.overlap_update runs the "
-                         "update beside the next rollout: pass --set ppo.overlap_update=false")
+    """Exit, naming the fix, when ``cfg``'s trainer would capture the env step at ``n`` envs on ``at``: a captured
+    step has no points to mark."""
     if cfg.ppo.cuda_graph == "on" or trainer.plan_graphs(cfg, at, n).env_step:
         raise SystemExit(f"{script} marks the eager env step, and ppo.cuda_graph={cfg.ppo.cuda_graph!r} captures it at "
                          f"{n} envs (a captured step has no points to mark): pass --set ppo.cuda_graph=off")

@@ -77,7 +77,8 @@ def recorded_trainer(recorder: Recorder, warmup: int):
     """The trainer with the simulator's step wrapped by ``recorder`` from the end of iteration ``warmup`` on; all put
     back on exit, also after an error."""
     trainer = common.trainer
-    saved = {k: getattr(trainer, k) for k in ("make_collector", "_update")}
+    # _update_losses: the update in either order (ppo.overlap_update launches it, which returns at once).
+    saved = {k: getattr(trainer, k) for k in ("make_collector", "_update_losses")}
     done = {"iterations": 0}
     undo: list = []
     recorder.on = warmup == 0
@@ -91,12 +92,12 @@ def recorded_trainer(recorder: Recorder, warmup: int):
 
     def update(*args, **kwargs):
         recorder.on = False  # the update's own work is not a policy step
-        stats = saved["_update"](*args, **kwargs)
+        stats = saved["_update_losses"](*args, **kwargs)
         done["iterations"] += 1
         recorder.on = done["iterations"] >= warmup
         return stats
 
-    with common.trainer_patched({"make_collector": make_collector, "_update": update}, undo):
+    with common.trainer_patched({"make_collector": make_collector, "_update_losses": update}, undo):
         yield
 
 

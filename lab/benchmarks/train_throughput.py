@@ -11,8 +11,10 @@ The raw ceiling steps robots that stand still; training steps robots that walk, 
 more (mujoco-warp iterates every world until the slowest converges). ``--ceiling`` also times the simulator's step in
 place during the timed iterations (CUDA events around ``sim.step``; nothing waits): the physics of the very states
 training visits, on the same model in the same run. Its rate, ``num_envs`` over that time, is the ceiling training
-could reach were everything but the physics free; ``train / ceiling`` stands beside ``train / raw``. It needs the eager
-env step (at 4,096 envs and more the trainer's default), one rank.
+could reach were everything but the physics free; ``train / ceiling`` stands beside ``train / raw``. With
+``ppo.overlap_update`` only the steps that ran while no update ran beside them count (each update's span is recorded
+on its stream), so the ceiling is the physics alone. It needs the eager env step (at 4,096 envs and more the
+trainer's default), one rank.
 
     python -m lab.benchmarks.train_throughput --num_envs 4096 16384 --ceiling --name train_over_ceiling
 """
@@ -52,13 +54,28 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                                 info.world_size)
         if info.is_main:  # the benchmark's own scratch run: start afresh
             shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
-        physics = None
+        physics, overlaps = None, []
+        patches = {}
         if ceiling:
             at = common.trainer.resolve_device(device)
             common.refuse_captured_env_step(f"{NAME} --ceiling", cfg, at, n)
             physics = solver_load.Recorder(at, counts=False)
+
+            class RecordedOverlap(common.trainer.UpdateOverlap):
+                """ppo.overlap_update's updates, with the spans they ran in on their stream."""
+
+                def __init__(self, *args, **kwargs):
+                    super().__init__(*args, **kwargs)
+                    self.spans = []
+                    # Before any rollout or update: every later event of either stream comes after it.
+                    self.origin = (torch.cuda.current_stream(self.device).record_event(
+                        torch.cuda.Event(enable_timing=True)) if self.stream is not None else None)
+                    overlaps.append(self)
+
+            patches["UpdateOverlap"] = RecordedOverlap
         # The physics is timed from the end of iteration max(warmup, 1) on: the iterations of the steady rate.
-        with solver_load.recorded_trainer(physics, max(warmup, 1)) if physics else contextlib.nullcontext():
+        with (solver_load.recorded_trainer(physics, max(warmup, 1)) if physics else contextlib.nullcontext(),
+              common.trainer_patched(patches, [])):
             # train() builds the env, agent and collector, then starts its clock (result.wall_seconds): the CPU time
             # is read there, so that the cores busy are those of the timed training, not of the set-up before it.
             at_clock, make_collector = {}, common.trainer.make_collector
@@ -81,14 +98,34 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                       status="ok" if result.env_steps >= cfg.total_env_steps else "partial",
                       cores_used_mean=(cpu1.user + cpu1.system - cpu0.user - cpu0.system) / wall)
         if physics:
-            ms = physics.summary(n)["ms_per_policy_step"]
+            ms, alone = uncontended_ms(physics, [span for o in overlaps for span in o.spans],
+                                       overlaps[0].origin if overlaps else None)
             rate, top = record["train_env_steps_per_s"], n * 1e3 / ms
-            record.update(physics_ms_per_policy_step=ms, physics_steps_timed=len(physics.spans),
-                          ceiling_env_steps_per_s=top, ratio_train_over_ceiling=rate / top if rate else None)
+            record.update(physics_ms_per_policy_step=ms, physics_steps_timed=alone,
+                          physics_steps_recorded=len(physics.spans), ceiling_env_steps_per_s=top,
+                          ratio_train_over_ceiling=rate / top if rate else None)
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
     rate = record.get("train_env_steps_per_s")
     return {**record, "raw_policy_steps_per_s": raw,
             "ratio_train_over_raw": rate / (info.world_size * raw) if raw and rate else None}
+
+
+def uncontended_ms(physics: solver_load.Recorder, updates: list[tuple], origin=None) -> tuple[float, int]:
+    """The mean time [ms] of the recorded simulator steps that ran while no update ran beside them (the updates'
+    (start, done) CUDA events on their side stream, ``ppo.overlap_update``), and how many such steps there were.
+    Without updates beside the rollout every step counts. Events of the two streams are put on one clock by their
+    elapsed time from ``origin``, an event recorded before any of them."""
+    physics.summary(1)  # synchronises and refuses an empty record
+    if not updates:
+        spans = [common.elapsed_ms(a, b, physics.cuda) for a, b in physics.spans]
+        return sum(spans) / len(spans), len(spans)
+    t = origin.elapsed_time
+    busy = [(t(a), t(b)) for a, b in updates]
+    alone = [t(b) - t(a) for a, b in physics.spans
+             if not any(t(a) < end and start < t(b) for start, end in busy)]
+    if not alone:
+        raise RuntimeError("every timed simulator step ran beside an update: time more iterations")
+    return sum(alone) / len(alone), len(alone)
 
 
 def _speedup(r: dict, results: list[dict]) -> str:

@@ -126,3 +126,35 @@ def test_train_throughput_ceiling_refuses_several_ranks_and_a_captured_env_step(
         train_throughput.main(["--device", "cpu", "--num_envs", "8", "--nproc", "2", "--ceiling"])
     with pytest.raises(SystemExit, match="ppo.cuda_graph=off"):
         train_throughput.measure(8, 1, 1, 0, "cpu", str(tmp_path), {"ppo.cuda_graph": "on"}, ceiling=True)
+
+
+def test_the_ceiling_counts_only_the_steps_no_update_ran_beside():
+    # Times on one clock (ms from the origin): steps at 0-1, 2-3 and 5-6; an update ran from 2.5 to 5.5, beside the
+    # second and the third, so the ceiling is the first step's 1 ms alone.
+    class Mark:
+        def __init__(self, at):
+            self.at = at
+
+        def elapsed_time(self, other):
+            return other.at - self.at
+
+    physics = SimpleNamespace(cuda=True, spans=[(Mark(0.0), Mark(1.0)), (Mark(2.0), Mark(3.5)),
+                                                  (Mark(5.0), Mark(6.5))], summary=lambda n: {})
+    assert train_throughput.uncontended_ms(physics, [(Mark(2.5), Mark(5.5))], Mark(-1.0)) == (1.0, 1)
+    with pytest.raises(RuntimeError, match="every timed simulator step ran beside an update"):
+        train_throughput.uncontended_ms(physics, [(Mark(-0.5), Mark(9.0))], Mark(-1.0))
+    physics.cuda = False  # host clocks, no updates beside: every step
+    physics.spans = [(0.0, 0.001), (0.002, 0.004)]
+    ms, steps = train_throughput.uncontended_ms(physics, [])
+    assert steps == 2 and ms == pytest.approx(1.5)
+
+
+def test_the_ceiling_measures_an_overlapped_run_and_the_phase_benchmarks_refuse_one(tmp_path):
+    train_throughput.main(["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--ceiling",
+                           "--raw_steps", "0", "--set", "ppo.steps_per_env=8", "ppo.actor_hidden=8 8",
+                           "ppo.overlap_update=true", "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs")])
+    (r,) = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
+    # On the CPU nothing runs beside the rollout: every step of the timed iterations counts.
+    assert r["physics_steps_timed"] == r["physics_steps_recorded"] == 16 and 0 < r["ratio_train_over_ceiling"] < 1
+    with pytest.raises(SystemExit, match="ppo.overlap_update=false"):
+        common.eager_step_config("step_timeline", 8, 2, {"ppo.overlap_update": True}, str(tmp_path), "t", "cpu")

@@ -59,6 +59,9 @@ class UpdateOverlap:
         self._learner = actor
         self._pairs = _state_pairs(self.collect_actor, actor)
         self._pending: tuple[Any, torch.Tensor, Any, Any] | None = None
+        #: Set to a list to record each update's (start, done) CUDA events on the side stream (a benchmark's timeline;
+        #: None: nothing recorded).
+        self.spans: list[tuple[torch.cuda.Event, torch.cuda.Event]] | None = None
 
     @property
     def in_flight(self) -> bool:
@@ -85,8 +88,11 @@ class UpdateOverlap:
         ready = torch.cuda.current_stream(self.device).record_event()
         with torch.cuda.stream(self.stream):
             self.stream.wait_event(ready)
+            start = self.stream.record_event(torch.cuda.Event(enable_timing=True)) if self.spans is not None else None
             losses = update()
-            done = self.stream.record_event()
+            done = self.stream.record_event(torch.cuda.Event(enable_timing=self.spans is not None))
+        if self.spans is not None:
+            self.spans.append((start, done))
         self._pending = (done, losses, keep, context)
 
     def annotate(self, context: Any) -> None:
