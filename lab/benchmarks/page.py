@@ -416,7 +416,34 @@ def solver_load(docs: Path) -> list[str]:
             "The raw ceiling steps standing robots; training states have more solver iterations in their slowest "
             "world, which caps train / raw below 1 before anything else runs.", "", *rows, "",
             *_source("benchmarks/solver_load.json", m["command"], m["date"], m["gpu"], "benchmarks/solver_load.md"),
-            *train_over_ceiling(docs)]
+            *train_over_ceiling(docs), *solver_settings(docs)]
+
+
+SOLVER_TOLERANCE = "benchmarks/solver_tolerance.json"
+
+
+def solver_settings(docs: Path) -> list[str]:
+    """Newton iterations per control period under looser tolerances and lower iteration caps
+    (lab/analysis/solver_tolerance.py), when that report is committed."""
+    if not (docs / SOLVER_TOLERANCE).is_file():
+        return []
+    d = _load(SOLVER_TOLERANCE, docs)
+    m, results = d["meta"], d["results"]
+    base = results[0]["lockstep_per_period"]
+    rows = ["| tolerance | iteration cap | iterations per period: own | lockstep | lockstep over the model's | "
+            "survival | parity sequence: largest joint difference [rad] |", "|---|---|---:|---:|---:|---:|---:|"]
+    own = lambda value, model: f"model ({model:g})" if value is None else f"{value:g}"
+    rows += [f"| {own(r['tolerance'], m['model_tolerance'])} | {own(r['iterations'], m['model_iterations'])} | "
+             f"{r['own_per_period']:.2f} | {r['lockstep_per_period']:.2f} | {r['lockstep_per_period'] / base:.3f} | "
+             f"{r['survival']:.3f} | {r['parity_deviation_rad']:.1e} |" for r in results]
+    return ["", "Where the solver could do less: Newton iterations per control period (8 substeps) of "
+            f"{m['num_robots']} robots walking the shipped torque policy for {m['seconds']:g} s from the robust test's "
+            "diverse starts, C MuJoCo standing in for mujoco-warp (own: each robot's; lockstep: the most any robot "
+            "needs in each substep, what a GPU pays), and how far each setting moves the parity test's 0.25 s "
+            "torque sequence (the test allows 1e-3 rad):", "", *rows, "",
+            f"- command: `{d['command']}`",
+            f"- date: {m['date']}; hardware: {m['hardware']}; report: [{Path(SOLVER_TOLERANCE).name}]"
+            f"({SOLVER_TOLERANCE})"]
 
 
 TRAIN_OVER_CEILING = "benchmarks/train_over_ceiling.json"
