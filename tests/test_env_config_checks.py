@@ -116,3 +116,19 @@ def test_the_convex_collision_slots_reach_mujoco_warp_and_a_bad_count_is_named()
     assert env.sim.wp_data.naccdmax == 2 * 4
     default = TocabiWalk(num_envs=2, device="cpu", config=TocabiWalkConfig(sim=EnvSimConfig(backend="warp")))
     assert default.sim.wp_data.naccdmax == 2 * NCCDMAX
+
+
+@pytest.mark.parametrize("backend", ["mujoco", "warp"])
+def test_the_solver_iteration_cap_reaches_both_backends_and_a_bad_cap_is_named(backend):
+    from tocabi_torchrl.envs import TocabiWalk
+    from tocabi_torchrl.envs.config import EnvSimConfig
+
+    with pytest.raises(ValueError, match=r"env.sim.solver_iterations must be a positive int or None, got 0"):
+        EnvSimConfig(solver_iterations=0).validate()
+    env = TocabiWalk(num_envs=2, device="cpu",
+                     config=TocabiWalkConfig(sim=EnvSimConfig(backend=backend, solver_iterations=3)))
+    assert env.sim.mj_model.opt.iterations == 3
+    if backend == "warp":  # what mujoco-warp's solver loop reads
+        assert int(env.sim.wp_model.opt.iterations) == 3
+    default = TocabiWalk(num_envs=2, device="cpu", config=TocabiWalkConfig(sim=EnvSimConfig(backend=backend)))
+    assert default.sim.mj_model.opt.iterations == 20  # the model's own

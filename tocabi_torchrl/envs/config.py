@@ -77,6 +77,11 @@ class EnvSimConfig:
             ones at every reset. The actuator draws, sensor biases and kicks stay fresh per episode, and the pool
             stays that of the build seed (``set_seed`` does not redraw it). With pooled dynamics, worlds can not be
             made ideal (``TocabiWalk.set_randomized_worlds``). Inert without diverse starts or dynamics.
+        solver_iterations: the Newton solver's iteration cap per substep (None: the model's, 20 in
+            assets/tocabi/tocabi.xml). mujoco-warp iterates every world until the slowest has converged, so a lower
+            cap cuts the slowest worlds' solves short: on C MuJoCo robots walking from diverse starts, a cap of 3
+            needed 0.64x the lockstep iterations of the model's and moved the parity test's sequence by 1.3e-4 rad
+            (docs/benchmarks/solver_tolerance.json). A physics change: the same on both backends.
     """
 
     backend: str = "auto"
@@ -92,6 +97,8 @@ class EnvSimConfig:
     start_pool: int = 0
     """start states drawn per world at build (diverse starts, dynamics) that resets pick from, letting them take the
     reduced pass; 0 = a fresh draw and the full pass at every reset"""
+    solver_iterations: int | None = None
+    """the Newton solver's iteration cap per substep; none = the model's (20)"""
 
     def validate(self) -> None:
         if self.backend not in BACKENDS:
@@ -104,7 +111,7 @@ class EnvSimConfig:
                              f"0 = a fresh draw at every reset), got {pool!r}")
         # substeps has the env's shared rule (the policy contract's timing.substeps is checked with it too).
         check_env_value("sim.substeps", self.substeps)
-        for name in ("nconmax", "njmax", "nccdmax", "threads"):
+        for name in ("nconmax", "njmax", "nccdmax", "threads", "solver_iterations"):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 alias = " (sim_threads)" if name == "threads" else ""

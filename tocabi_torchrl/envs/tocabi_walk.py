@@ -181,11 +181,12 @@ class TocabiWalk(EnvBase):
                        if v is not None}
             sim_cfg = SimConfig(num_worlds=num_envs, device=str(device), substeps=sim.substeps,
                                 reset_pass=reset_pass, substep_ctrl=substep_ctrl, per_world_fields=world_fields,
-                                **buffers)
+                                solver_iterations=sim.solver_iterations, **buffers)
             self.sim = WarpSim(sim_cfg, model=spec, mocap_pos=mocap)
         else:
             sim_cfg = SimConfig(num_worlds=num_envs, device="cpu", substeps=sim.substeps, threads=sim.threads,
-                                substep_ctrl=substep_ctrl, per_world_fields=world_fields)
+                                substep_ctrl=substep_ctrl, per_world_fields=world_fields,
+                                solver_iterations=sim.solver_iterations)
             self.sim = MujocoSim(sim_cfg, model=spec, mocap_pos=mocap)
         self.dt = self.sim.mj_model.opt.timestep * sim.substeps
         #: Each world's link masses, joint damping, armature and friction, drawn at every reset (``env.dynamics``,
