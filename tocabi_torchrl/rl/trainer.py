@@ -592,7 +592,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     finally:
         env_graph = bool(getattr(env, "graph_captured", False))
         if overlap is not None and overlap.in_flight:  # an error: let the side stream end before anything is freed
-            overlap.finish()
+            with contextlib.suppress(Exception):  # the error that got here is the one to report
+                overlap.finish()
         collector.shutdown()
         if logger is not None:
             logger.close()
