@@ -105,22 +105,6 @@ def test_train_throughput_counts_the_whole_set_up_and_the_cores_of_the_timed_tra
     assert trainer.make_collector(None) == "collector"  # the trainer is itself again
 
 
-def test_train_throughput_ceiling_times_the_physics_of_the_timed_iterations_in_place(tmp_path):
-    # --ceiling: the simulator's own time over exactly the steady rate's iterations (2 timed iterations of 8 envs x 8
-    # steps: 16 policy steps), its ceiling num_envs / time, and train / ceiling beside train / raw.
-    train_throughput.main(["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--ceiling",
-                           "--raw_steps", "0", "--set", "ppo.steps_per_env=8", "ppo.actor_hidden=8 8", "--out",
-                           str(tmp_path), "--run_dir", str(tmp_path / "runs")])
-    (r,) = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
-    assert r["physics_steps_timed"] == 16 and r["physics_ms_per_policy_step"] > 0
-    assert r["ceiling_env_steps_per_s"] == pytest.approx(8e3 / r["physics_ms_per_policy_step"])
-    # The physics is part of the training step: training cannot outrun it.
-    assert 0 < r["ratio_train_over_ceiling"] < 1
-    assert r["ratio_train_over_ceiling"] == pytest.approx(r["train_env_steps_per_s"] / r["ceiling_env_steps_per_s"])
-    page = (tmp_path / "train_throughput.md").read_text()
-    assert "| train / ceiling |" in page and f"| {r['ratio_train_over_ceiling']:.3f} |" in page
-
-
 def test_train_throughput_ceiling_refuses_several_ranks_and_a_captured_env_step(tmp_path):
     with pytest.raises(SystemExit):
         train_throughput.main(["--device", "cpu", "--num_envs", "8", "--nproc", "2", "--ceiling"])
@@ -149,12 +133,21 @@ def test_the_ceiling_counts_only_the_steps_no_update_ran_beside():
     assert steps == 2 and ms == pytest.approx(1.5)
 
 
-def test_the_ceiling_measures_an_overlapped_run_and_the_phase_benchmarks_refuse_one(tmp_path):
+def test_train_throughput_ceiling_times_the_physics_of_the_timed_iterations_in_place(tmp_path):
+    # --ceiling: the simulator's own time over exactly the steady rate's iterations (2 timed iterations of 8 envs x 8
+    # steps: 16 policy steps), its ceiling num_envs / time, and train / ceiling beside train / raw. The run overlaps
+    # its updates (ppo.overlap_update); on the CPU nothing runs beside the rollout, so every timed step counts.
     train_throughput.main(["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--ceiling",
                            "--raw_steps", "0", "--set", "ppo.steps_per_env=8", "ppo.actor_hidden=8 8",
                            "ppo.overlap_update=true", "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs")])
     (r,) = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
-    # On the CPU nothing runs beside the rollout: every step of the timed iterations counts.
-    assert r["physics_steps_timed"] == r["physics_steps_recorded"] == 16 and 0 < r["ratio_train_over_ceiling"] < 1
+    assert r["physics_steps_timed"] == r["physics_steps_recorded"] == 16 and r["physics_ms_per_policy_step"] > 0
+    assert r["ceiling_env_steps_per_s"] == pytest.approx(8e3 / r["physics_ms_per_policy_step"])
+    # The physics is part of the training step: training cannot outrun it.
+    assert 0 < r["ratio_train_over_ceiling"] < 1
+    assert r["ratio_train_over_ceiling"] == pytest.approx(r["train_env_steps_per_s"] / r["ceiling_env_steps_per_s"])
+    page = (tmp_path / "train_throughput.md").read_text()
+    assert "| train / ceiling |" in page and f"| {r['ratio_train_over_ceiling']:.3f} |" in page
+    # The phase benchmarks time one phase at a time: they refuse an overlapped run.
     with pytest.raises(SystemExit, match="ppo.overlap_update=false"):
         common.eager_step_config("step_timeline", 8, 2, {"ppo.overlap_update": True}, str(tmp_path), "t", "cpu")
