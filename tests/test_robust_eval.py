@@ -559,3 +559,19 @@ def test_checkpoint_case_as_trained_acts_with_the_assist_its_training_had(tmp_pa
     assert forced.base_env.pushes.cfg.kind == "force"
     with pytest.raises(ValueError, match="push_kind"):
         robust.RobustTestConfig(push_kind="impulse").validate(0.004)
+
+
+def test_cases_run_once_each_in_the_test_order_and_a_subset_is_judged_on_its_cases():
+    # A case's robots are a block of world indices whose draws are hashed by index: out of order or twice, a case
+    # would meet other robots (or none) than in the whole test.
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, robust_passes
+
+    for cases, message in ((("nominal", "nominal"), "distinct"), (("commands", "nominal"), "in the test's order")):
+        with pytest.raises(ValueError, match=message):
+            RobustTestConfig(cases=cases).validate(0.004)
+    RobustTestConfig(cases=("nominal", "commands")).validate(0.004)
+    report = {"cases": {"nominal": {"survival": 1.0, "forward_distance_m": {"mean": 3.0},
+                                    "lateral_drift_m": {"p95": 0.1}}}}
+    assert robust_passes(report, ("nominal",)) and not robust_passes(report)
+    with pytest.raises(ValueError, match="no cases to judge"):
+        robust_passes(report, ())

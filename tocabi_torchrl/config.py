@@ -225,10 +225,10 @@ class PPOConfig:
     """on a GPU, capture each mini-batch step as a CUDA graph"""
     #: Run each PPO update on a side CUDA stream while the next rollout is collected, instead of between rollouts.
     #: mujoco-warp's kernels at a few thousand worlds leave most of a GPU idle, and the update (~6-14 % of a training
-    #: step at 4,096 envs) can fill it. The price: each rollout is collected with the policy of one update before
-    #: (PPO's ratio is taken against the policy that acted, whose log-probabilities the rollout stores), and the
-    #: adaptive learning rate reads an update's KL one rollout later. One rank only; on a CPU the order is the same,
-    #: without the concurrency (rl/overlap.py).
+    #: step at 4,096 envs) can fill it. The price: each rollout is collected with the policy of one update before;
+    #: PPO's ratio, clip and KL are taken against that policy (the rollout stores its log-probabilities), so the KL
+    #: the adaptive learning rate reads also holds the previous update's move and the rate falls more often. One
+    #: rank only; on a CPU the order is the same, without the concurrency (rl/overlap.py).
     overlap_update: bool = False
     """update on a side stream while the next rollout is collected (the rollout's policy lags one update)"""
     #: Data-parallel runs (torchrun, several ranks): how the ranks' gradients are averaged before clipping.

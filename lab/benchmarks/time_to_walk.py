@@ -202,11 +202,16 @@ def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
             return
         if report.get("test") != "robust" or not isinstance(report.get("cases"), dict):
             raise ValueError(f"{found} is not a robust gait test report")
+        missing = [c for c in TEST_CASES[args.test] if c not in report["cases"]]
+        if missing:  # a report of fewer cases (robust_policies --cases) cannot decide this test
+            print(f"{ckpt.stem}: {found} lacks the case(s) {', '.join(missing)} of the {args.test} test; left out",
+                  flush=True)
+            return
         device = report.get("tested_on", "?")
     else:
         test = RobustTestConfig(num_envs=args.num_envs or ROBUST_ENVS, seconds=args.seconds,
                                 cases=TEST_CASES[args.test])
-        report = evaluate_robust_checkpoint(state, ckpt, ckpt.parent.parent / "eval" / ckpt.stem / "robust",
+        report = evaluate_robust_checkpoint(state, ckpt, ckpt.parent.parent / "eval" / ckpt.stem / args.test,
                                             test=test, device=args.device, envs=envs, progress=False)
         device = tested_on(args.device)
     entry = {"train_seconds": state["train_seconds"], "env_steps": state["env_steps"], "iteration": state["iteration"],
@@ -229,8 +234,8 @@ def first_walk(record: dict) -> dict | None:
 
 
 def read_run(folder: Path, test: str = "standard") -> dict:
-    """A run's ``train.json`` and the evaluations of ``test`` (``evals.json``, or ``evals_robust.json`` for the
-    robust test) as one record (``time_to_walk`` recomputed from the evaluations)."""
+    """A run's ``train.json`` and the evaluations of ``test`` (:data:`EVALS`: ``evals.json``, ``evals_robust.json``
+    or ``evals_diverse.json``) as one record (``time_to_walk`` recomputed from the evaluations)."""
     record = {**_load(folder / "train.json"), **_load(folder / EVALS[test])}
     if not record:
         raise SystemExit(f"{folder}: no train.json or {EVALS[test]} (run the train and eval parts first)")
@@ -400,9 +405,10 @@ def main(argv=None) -> None:
     e.add_argument("--from_minutes", type=float, default=0.0,
                    help="test only the checkpoints of this training minute and later (default: all)")
     e.add_argument("--reports", nargs="+", default=None, metavar="DIR",
-                   help="with --test robust: read each checkpoint's results from DIR/<checkpoint>/robust.json (as "
-                        "lab.benchmarks.robust_policies --out DIR writes them; several DIRs: the one that has it) "
-                        "instead of testing it again; checkpoints without one are left out")
+                   help="with --test robust or diverse: read each checkpoint's results from "
+                        "DIR/<checkpoint>/robust.json (as lab.benchmarks.robust_policies --out DIR writes them; "
+                        "several DIRs: the one that has it) instead of testing it again; checkpoints without one "
+                        "(or without the test's cases) are left out")
     r = sub.add_parser("report", help="tables and plots from the runs' train.json and evals.json")
     r.add_argument("--runs", nargs="+", required=True, help="run folders holding train.json / evals.json")
     r.add_argument("--curves", nargs="*", default=[],

@@ -108,6 +108,16 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
     text = run("report", "--test", "diverse", "--runs", str(folder), "--out", str(tmp_path / "d"))
     assert "unperturbed cases" in text and "push 1.0" not in text and "drift p95 [m]" in text
     assert (tmp_path / "d" / "time_to_walk_diverse.md").is_file()
+    # A report of the two unperturbed cases alone cannot decide the robust test: left out, not a "no".
+    partial = tmp_path / "verdict_partial" / walls[0]
+    partial.mkdir(parents=True)
+    (partial / "robust.json").write_text(json.dumps({"test": "robust", "tested_on": "NVIDIA H200", "settings": {},
+                                                     "cases": {k: cases[k] for k in ("nominal", "commands")}}))
+    (folder / "evals_robust.json").rename(tmp_path / "evals_robust.json")
+    text = run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(partial.parent))
+    assert "lacks the case(s) robust_0.5, robust_1.0 of the robust test; left out" in text
+    assert walls[0] not in json.loads((folder / "evals_robust.json").read_text())["evaluations"]
+    (tmp_path / "evals_robust.json").replace(folder / "evals_robust.json")
     (folder / "evals_diverse.json").unlink()  # tested here: only the two unperturbed cases run
     run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "diverse", "--num_envs", "2", "--seconds", "0.2")
     diverse = json.loads((folder / "evals_diverse.json").read_text())

@@ -142,6 +142,11 @@ class RobustTestConfig:
         unknown = [c for c in self.cases if c not in CASES]
         if unknown or not self.cases:
             raise ValueError(f"unknown robust-test case(s) {unknown or '(none given)'}; choose from {list(CASES)}")
+        if len(set(self.cases)) != len(self.cases) or list(self.cases) != [c for c in CASES if c in self.cases]:
+            # Each case's robots are a block of world indices, whose draws are hashed by index: in the test's order
+            # and once each, a case meets the same robots whichever others run beside it.
+            raise ValueError(f"robust-test cases {list(self.cases)} must be distinct and in the test's order "
+                             f"{list(CASES)}")
 
 
 # ------------------------------------------------------------------------------------------------ the cases' envs
@@ -521,6 +526,8 @@ def robust_passes(report: dict, cases: tuple[str, ...] | None = None) -> bool:
     """Whether a robust-test report (:func:`evaluate_robust`'s, or ``robust.json`` read back) passes: every case of
     ``cases`` (default: all of :data:`.gait_test.ROBUST_CRITERIA`) is in it and meets all its thresholds
     (re-checked from the values, not read from the stored verdicts)."""
+    if cases is not None and not cases:
+        raise ValueError("robust_passes: no cases to judge; give None (the whole test) or the cases' names")
     found = report.get("cases", {})
     return all(name in found and all(c["pass"] for c in case_checks(name, found[name]).values())
                for name in (tuple(ROBUST_CRITERIA) if cases is None else cases))
@@ -616,7 +623,10 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
     from ..rl.checkpoint import checkpoint_file, read_checkpoint
     from .gait_test import policy_dt
 
-    test = RobustTestConfig(num_envs=num_envs, seconds=seconds, cases=tuple(cases or CASES))
+    # In the test's order, each once (RobustTestConfig.validate): a case meets the same robots in any subset.
+    test = RobustTestConfig(num_envs=num_envs, seconds=seconds,
+                            cases=tuple(c for c in CASES if c in set(cases or CASES)) + tuple(
+                                c for c in dict.fromkeys(cases or ()) if c not in CASES))
     test.validate(policy_dt())
     ckpt = checkpoint_file(run)
     state = read_checkpoint(ckpt)

@@ -5,8 +5,10 @@ iterates every world in lockstep, one thread per world in many kernels), and the
 matrix-product kernels per mini-batch, can fill them. :class:`UpdateOverlap` runs iteration k's update on a stream of
 its own and lets the host go on to collect rollout k+1 on the training stream, with a copy of the actor taken before
 update k: each rollout is collected with the policy of one update before. PPO takes its ratio against the policy that
-acted (the rollout stores its log-probabilities), so the loss stays what it is; only the first mini-batch of each
-update starts one update away from the behaviour policy instead of at it.
+acted (the rollout stores its log-probabilities), so every mini-batch's ratio, clip and approximate KL are measured
+from one update back: the clip's trust region sits there, and the KL the adaptive learning rate reads also holds
+the previous update's move (roughly twice an update's own), so that rule lowers the rate more often than without
+the overlap. Whether that costs time to walk is for a from-scratch run to show.
 
 Order, per iteration (host): :meth:`finish` waits for the previous update and hands back its losses; the trainer
 then reads the learner (GAE's critic, the teacher, the symmetry's statistics), sets its schedules, :meth:`refresh`
@@ -89,7 +91,12 @@ class UpdateOverlap:
         with torch.cuda.stream(self.stream):
             self.stream.wait_event(ready)
             start = self.stream.record_event(torch.cuda.Event(enable_timing=True)) if self.spans is not None else None
-            losses = update()
+            try:
+                losses = update()
+            except BaseException:
+                # Kernels it queued may still read what the caller is about to free: let them end first.
+                self.stream.synchronize()
+                raise
             done = self.stream.record_event(torch.cuda.Event(enable_timing=self.spans is not None))
         if self.spans is not None:
             self.spans.append((start, done))

@@ -560,16 +560,11 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                                         update_s=time.perf_counter() - t_collect, wall_s=elapsed, train_s=train_s)}
             mark_due = train_s >= next_mark
             saved = (it + shift) % cfg.checkpoint_every == 0 or it == iterations
-            # Ranks' clocks differ and a signal may reach one rank only: stop when any rank's time is up or any was
-            # asked to stop, all at the same iteration (a rank that left early would hang the others' collectives).
-            time_up, stop_signal = _stop_requests(bool(cfg.max_minutes) and elapsed > 60.0 * cfg.max_minutes,
-                                                  progress.stop_signal, info, device)
-            stopping = time_up or stop_signal is not None
             if overlap is None:
                 settle(stats, context)
             else:
                 overlap.annotate(context)
-                if mark_due or saved or stopping:  # a checkpoint holds the learner after this update
+                if mark_due or saved:  # a checkpoint holds the learner after this update
                     settle(*_finished(overlap, update_step))
             # Checkpoints hold rank 0's state, which every rank shares (parameters, optimiser, statistics).
             if mark_due:
@@ -579,7 +574,13 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 next_mark = (int(train_s // mark_s) + 1) * mark_s
             if saved and info.is_main:
                 save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s)
-            if stopping:
+            # Ranks' clocks differ and a signal may reach one rank only: stop when any rank's time is up or any was
+            # asked to stop, all at the same iteration (a rank that left early would hang the others' collectives).
+            time_up, stop_signal = _stop_requests(bool(cfg.max_minutes) and elapsed > 60.0 * cfg.max_minutes,
+                                                  progress.stop_signal, info, device)
+            if time_up or stop_signal is not None:
+                if overlap is not None and overlap.in_flight:  # the checkpoint below holds the learner after it
+                    settle(*_finished(overlap, update_step))
                 progress.stop_signal = progress.stop_signal or stop_signal
                 if info.is_main:
                     if stop_signal is None:  # a signal was said when it came, and the caller says what it left
