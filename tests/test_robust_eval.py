@@ -575,3 +575,23 @@ def test_cases_run_once_each_in_the_test_order_and_a_subset_is_judged_on_its_cas
     assert robust_passes(report, ("nominal",)) and not robust_passes(report)
     with pytest.raises(ValueError, match="no cases to judge"):
         robust_passes(report, ())
+
+
+def test_the_unperturbed_cases_alone_give_the_numbers_of_the_whole_test(tmp_path):
+    # time_to_walk --test diverse runs nominal and commands alone, or reads them from a four-case report: the same
+    # robots, the same values either way, up to float32 rounding (the four-case batch env also builds the pushed
+    # cases' machinery, which these worlds pass through as identities).
+    from tocabi_torchrl import robot
+    from tocabi_torchrl.evaluation.robust import evaluate_robust_run
+
+    policy = robot.asset_path("policies", "tocabi_walk_torque.pt")
+    if not policy.is_file():
+        pytest.skip("shipped policy not present")
+    run = lambda out, cases: evaluate_robust_run(policy, num_envs=2, device="cpu", out_dir=tmp_path / out,
+                                                 seconds=0.5, cases=cases, progress=False)
+    whole, alone = run("whole", None), run("alone", ["commands", "nominal"])  # any order given: the test's order
+    assert list(alone["cases"]) == ["nominal", "commands"]
+    for case in ("nominal", "commands"):
+        for key in ("survival", "forward_distance_m", "lateral_drift_m", "tracking_error_mps"):
+            a, b = alone["cases"][case][key], whole["cases"][case][key]
+            assert a == pytest.approx(b, rel=1e-5, abs=1e-6, nan_ok=True), (case, key)
