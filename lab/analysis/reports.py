@@ -1,11 +1,14 @@
-"""What the analysis scripts share: checking their input and output paths, and writing their JSON report with the
-command that made it (atomically, never over an existing file)."""
+"""What the analysis scripts share: checking their input and output paths, the options of those that drive C MuJoCo
+robots through the torch-free runtime, and writing their JSON report with the command that made it (atomically,
+never over an existing file)."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import platform
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -29,3 +32,32 @@ def write_report(out: Path, script: str, argv: Sequence[str] | None, results: li
     report = {"command": command, **({"meta": meta} if meta else {}), "results": results}
     atomic_write_text(out, json.dumps(report, indent=2) + "\n")
     print(f"wrote {out}")
+
+
+def sim2sim_parser(doc: str, contract: Path, seed_help: str) -> argparse.ArgumentParser:
+    """The options of a script that runs robots through the torch-free runtime: ``--contract``, ``--num_robots``,
+    ``--seconds``, ``--seed`` and ``--out``; add the script's own, then read them with :func:`sim2sim_args`."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--contract", type=Path, default=contract, help="exported policy's contract (.json)")
+    parser.add_argument("--num_robots", type=int, default=32)
+    parser.add_argument("--seconds", type=float, default=4.0, help="length of each run [s]")
+    parser.add_argument("--seed", type=int, default=7, help=seed_help)
+    parser.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
+    return parser
+
+
+def sim2sim_args(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """:func:`sim2sim_parser`'s options, checked: the contract exists, ``--out`` does not, counts and lengths > 0."""
+    args = parser.parse_args(argv)
+    check_paths(parser, [args.contract], args.out)
+    if args.num_robots < 1 or not args.seconds > 0:
+        parser.error("--num_robots must be >= 1 and --seconds > 0")
+    return args
+
+
+def sim2sim_meta(args: argparse.Namespace, **extra) -> dict:
+    """A C MuJoCo report's meta: date, hardware, robots and seconds, then ``extra``."""
+    import mujoco
+
+    return {"date": time.strftime("%Y-%m-%d"), "hardware": f"CPU (C MuJoCo {mujoco.__version__}), "
+            f"{platform.machine()}", "num_robots": args.num_robots, "seconds": args.seconds, **extra}

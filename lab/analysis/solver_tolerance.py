@@ -21,10 +21,7 @@ Newton solver and warm start; counts differ in detail from mujoco-warp's):
 
 from __future__ import annotations
 
-import argparse
 import contextlib
-import platform
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -36,8 +33,8 @@ from tocabi_torchrl.runtime import load_contract
 from tocabi_torchrl.runtime import randomization as rnd
 from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
 
-from lab.analysis.reports import check_paths, write_report
-from lab.analysis.substep_iterations import lockstep
+from lab.analysis.reports import sim2sim_args, sim2sim_meta, sim2sim_parser, write_report
+from lab.analysis.substep_iterations import counted_steps, lockstep
 
 CONTRACT = robot.asset_path("policies", "tocabi_walk_torque.json")
 #: (tolerance, iteration cap) settings compared; None: the model's own.
@@ -64,19 +61,8 @@ def solved_with(tolerance: float | None, iterations: int | None = None) -> Itera
     >>> mujoco.mj_step.__name__
     'mj_step'
     """
-    counts: list[int] = []
-    step = mujoco.mj_step
-
-    def solving(m, d):
-        _set(m, tolerance, iterations)
-        step(m, d)
-        counts.append(int(d.solver_niter[0]))
-
-    mujoco.mj_step = solving
-    try:
+    with counted_steps(lambda m: _set(m, tolerance, iterations)) as counts:
         yield counts
-    finally:
-        mujoco.mj_step = step
 
 
 def _set(m: mujoco.MjModel, tolerance: float | None, iterations: int | None) -> None:
@@ -145,27 +131,19 @@ def measure_kicked(contract: Path, num_robots: int) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--contract", type=Path, default=CONTRACT, help="exported policy's contract (.json)")
-    parser.add_argument("--num_robots", type=int, default=32)
-    parser.add_argument("--seconds", type=float, default=4.0, help="length of each run [s]")
-    parser.add_argument("--seed", type=int, default=7, help="seed of the start velocities")
+    parser = sim2sim_parser(__doc__, CONTRACT, "seed of the start velocities")
     parser.add_argument("--kicked", action="store_true",
                         help="also run the caps under the robust test's 1.0 m/s kicks (the shipped robust policy)")
-    parser.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
-    args = parser.parse_args(argv)
-    check_paths(parser, [args.contract], args.out)
-    if args.num_robots < 1 or not args.seconds > 0:
-        parser.error("--num_robots must be >= 1 and --seconds > 0")
+    args = sim2sim_args(parser, argv)
     results = measure(args.contract, args.num_robots, args.seconds, args.seed)
     if args.kicked:
         results += measure_kicked(ROBUST_CONTRACT, args.num_robots)
     if args.out is not None:
-        meta = {"date": time.strftime("%Y-%m-%d"), "hardware": f"CPU (C MuJoCo {mujoco.__version__}), "
-                f"{platform.machine()}", "num_robots": args.num_robots, "seconds": args.seconds,
-                "model_tolerance": float(robot.load_model().opt.tolerance),
-                "model_iterations": int(robot.load_model().opt.iterations),
-                "start_velocity": {"joint_std": rnd.ROBUST_START.joint_std, "base_std": rnd.ROBUST_START.base_std}}
+        model = robot.load_model()
+        meta = sim2sim_meta(args, model_tolerance=float(model.opt.tolerance),
+                            model_iterations=int(model.opt.iterations),
+                            start_velocity={"joint_std": rnd.ROBUST_START.joint_std,
+                                            "base_std": rnd.ROBUST_START.base_std})
         write_report(args.out, "lab/analysis/solver_tolerance.py", argv, results, meta)
 
 

@@ -28,12 +28,9 @@ substep_iterations_at_rest.json (about 5)::
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import dataclasses
-import platform
-import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import mujoco
@@ -44,19 +41,21 @@ from tocabi_torchrl.runtime import load_contract
 from tocabi_torchrl.runtime import randomization as rnd
 from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
 
-from lab.analysis.reports import check_paths, write_report
+from lab.analysis.reports import sim2sim_args, sim2sim_meta, sim2sim_parser, write_report
 
 CONTRACT = robot.asset_path("policies", "tocabi_walk_robust.json")
 
 
 @contextlib.contextmanager
-def counted_steps() -> Iterator[list[int]]:
+def counted_steps(before: Callable[[mujoco.MjModel], None] | None = None) -> Iterator[list[int]]:
     """Within the block, every ``mujoco.mj_step`` appends the solver iterations of its solve (``solver_niter[0]``)
-    to the yielded list; ``mj_step`` is restored on leaving."""
+    to the yielded list, after ``before(model)`` when given; ``mj_step`` is restored on leaving."""
     counts: list[int] = []
     step = mujoco.mj_step
 
     def counting(m, d):
+        if before is not None:
+            before(m)
         step(m, d)
         counts.append(int(d.solver_niter[0]))
 
@@ -120,23 +119,13 @@ def measure(contract: Path, num_robots: int, seconds: float, seed: int, at_rest:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--contract", type=Path, default=CONTRACT, help="exported policy's contract (.json)")
-    parser.add_argument("--num_robots", type=int, default=32)
-    parser.add_argument("--seconds", type=float, default=4.0, help="length of each run [s]")
-    parser.add_argument("--seed", type=int, default=7, help="seed of the delays' draws (one per robot)")
+    parser = sim2sim_parser(__doc__, CONTRACT, "seed of the delays' draws (one per robot)")
     parser.add_argument("--at_rest", action="store_true",
                         help="start the robots at rest (default: the robust test's random start velocities)")
-    parser.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
-    args = parser.parse_args(argv)
-    check_paths(parser, [args.contract], args.out)
-    if args.num_robots < 1 or not args.seconds > 0:
-        parser.error("--num_robots must be >= 1 and --seconds > 0")
+    args = sim2sim_args(parser, argv)
     results = measure(args.contract, args.num_robots, args.seconds, args.seed, args.at_rest)
     if args.out is not None:
-        meta = {"date": time.strftime("%Y-%m-%d"), "hardware": f"CPU (C MuJoCo {mujoco.__version__}), "
-                f"{platform.machine()}", "num_robots": args.num_robots, "seconds": args.seconds,
-                "start_velocity": None if args.at_rest else dataclasses.asdict(rnd.ROBUST_START)}
+        meta = sim2sim_meta(args, start_velocity=None if args.at_rest else dataclasses.asdict(rnd.ROBUST_START))
         write_report(args.out, "lab/analysis/substep_iterations.py", argv, results, meta)
 
 
