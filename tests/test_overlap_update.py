@@ -89,9 +89,9 @@ def test_update_overlap_refuses_to_race_an_update_in_flight():
     from tocabi_torchrl.rl.overlap import UpdateOverlap
 
     overlap = UpdateOverlap(torch.device("cpu"), torch.nn.Linear(2, 1))
-    overlap.launch(lambda: torch.zeros(1), keep=None, context=None)
+    overlap.launch(lambda: torch.zeros(1), keep=None)
     with pytest.raises(RuntimeError, match="call finish"):
         overlap.refresh()
     with pytest.raises(RuntimeError, match="call finish"):
-        overlap.launch(lambda: torch.zeros(1), keep=None, context=None)
+        overlap.launch(lambda: torch.zeros(1), keep=None)
     assert overlap.finish() == ([0.0], None) and not overlap.in_flight

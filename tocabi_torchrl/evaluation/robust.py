@@ -624,9 +624,9 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
     from .gait_test import policy_dt
 
     # In the test's order, each once (RobustTestConfig.validate): a case meets the same robots in any subset.
-    test = RobustTestConfig(num_envs=num_envs, seconds=seconds,
-                            cases=tuple(c for c in CASES if c in set(cases or CASES)) + tuple(
-                                c for c in dict.fromkeys(cases or ()) if c not in CASES))
+    order = list(CASES)
+    cases = sorted(dict.fromkeys(cases or CASES), key=lambda c: order.index(c) if c in order else len(order))
+    test = RobustTestConfig(num_envs=num_envs, seconds=seconds, cases=tuple(cases))
     test.validate(policy_dt())
     ckpt = checkpoint_file(run)
     state = read_checkpoint(ckpt)

@@ -28,7 +28,8 @@ order, so a CPU run trains exactly as a GPU run would without the concurrency.
 >>> overlap.refresh()
 >>> torch.equal(overlap.collect_actor.weight, actor.weight)
 True
->>> overlap.launch(lambda: torch.tensor([0.5]), keep=None, context={"iteration": 1})
+>>> overlap.launch(lambda: torch.tensor([0.5]), keep=None)
+>>> overlap.annotate({"iteration": 1})
 >>> overlap.finish()
 ([0.5], {'iteration': 1})
 """
@@ -78,14 +79,14 @@ class UpdateOverlap:
         with torch.no_grad():
             torch._foreach_copy_([dst for dst, _ in self._pairs], [src for _, src in self._pairs])
 
-    def launch(self, update: Callable[[], torch.Tensor], keep: Any, context: Any) -> None:
+    def launch(self, update: Callable[[], torch.Tensor], keep: Any) -> None:
         """Start ``update()`` (which returns a device tensor of its losses) on the side stream, after the work
-        already queued on the current stream; ``keep`` (what the update reads) stays referenced and ``context`` is
-        handed back by :meth:`finish`."""
+        already queued on the current stream; ``keep`` (what the update reads) stays referenced until
+        :meth:`finish`, which also hands back the context :meth:`annotate` gave it (None without one)."""
         if self._pending is not None:
             raise RuntimeError("UpdateOverlap.launch() with an update in flight: call finish() first")
         if self.stream is None:
-            self._pending = (None, update(), keep, context)
+            self._pending = (None, update(), keep, None)
             return
         ready = torch.cuda.current_stream(self.device).record_event()
         with torch.cuda.stream(self.stream):
@@ -100,10 +101,10 @@ class UpdateOverlap:
             done = self.stream.record_event(torch.cuda.Event(enable_timing=self.spans is not None))
         if self.spans is not None:
             self.spans.append((start, done))
-        self._pending = (done, losses, keep, context)
+        self._pending = (done, losses, keep, None)
 
     def annotate(self, context: Any) -> None:
-        """Replace the in-flight update's ``context`` (what the host learnt after launching it)."""
+        """Give the in-flight update a ``context`` (what the host learnt after launching it) for :meth:`finish`."""
         if self._pending is None:
             raise RuntimeError("UpdateOverlap.annotate() with no update in flight")
         self._pending = (*self._pending[:3], context)

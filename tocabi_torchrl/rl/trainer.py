@@ -508,7 +508,6 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 # The update reads it on the side stream while the collector refills `batch`: its own memory.
                 flat = flat.clone()
             extra: dict[str, float] = {}
-            weight = 0.0
             if assist is not None:
                 # This rollout ran with β(steps before it); the next runs with β(now): the update absorbs the gap.
                 beta, beta_next = assist(env_steps - batch.numel() * info.world_size), assist(env_steps)
@@ -539,7 +538,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 stats = _update(cfg, flat, update_step, info)
             else:
                 overlap.refresh()  # the next rollout acts with the learner as it is before this update
-                overlap.launch(lambda: _update_losses(cfg, flat, update_step), keep=flat, context=None)
+                overlap.launch(lambda: _update_losses(cfg, flat, update_step), keep=flat)
             # Nothing of this rollout's copy outlives its update: the next rollout is collected without it.
             del work, flat
             if assist is not None:
