@@ -349,7 +349,7 @@ def test_every_case_starts_from_the_ideal_robot_whatever_the_policy_trained_unde
     # A robust-preset policy trained with kicks, randomisation and sensor noise: nominal and commands test the
     # nominal robot without them; the randomised cases add the test's own set and kicks.
     from tocabi_torchrl.config import preset_config
-    from tocabi_torchrl.evaluation.robust import case_config
+    from tocabi_torchrl.evaluation.robust import batch_config, case_config
 
     trained = preset_config("robust")
     for name in ("nominal", "commands"):
@@ -371,6 +371,11 @@ def test_every_case_starts_from_the_ideal_robot_whatever_the_policy_trained_unde
     tested = case_config(averaged, "robust_1.0").env.control.actuators
     assert tested == TOCABI_LAB_ACTUATORS and not tested.delay_average
     assert tested.build(8).per_substep
+    # And one trained with the Newton solver capped (env.sim.solver_iterations) meets the model's own solver.
+    capped = replace_paths(trained, {"env.sim.solver_iterations": 4})
+    for name in ("nominal", "commands", "robust_0.5", "robust_1.0"):
+        assert case_config(capped, name).env.sim.solver_iterations is None
+    assert batch_config(capped).env.sim.solver_iterations is None
 
 
 def test_saved_normaliser_statistics_follow_their_transform_when_sensor_noise_shifts_the_chain():

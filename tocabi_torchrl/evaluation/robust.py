@@ -208,7 +208,9 @@ def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig =
     steps = policy_steps(test.seconds, policy_dt())
     task = dataclasses.replace(task, max_episode_steps=max(int(task.max_episode_steps), steps + 1))
     # Fresh draws at every reset, never a training start pool (env.sim.start_pool): the test's robots are its own.
-    sim = dataclasses.replace(env.sim, start_pool=0)
+    # And the model's own solver, never a training's iteration cap (env.sim.solver_iterations): the test's physics
+    # is the robot's, whatever shortcut a run trained on.
+    sim = dataclasses.replace(env.sim, start_pool=0, solver_iterations=None)
     env = dataclasses.replace(env, task=task, command=command, control=control, pushes=PushConfig(),
                               dynamics=DynamicsRandomization(), sim=sim)
     transforms = dataclasses.replace(cfg.transforms, sensor_noise=SensorNoiseConfig())
