@@ -24,6 +24,12 @@ substep_iterations_at_rest.json (about 5)::
         --out docs/benchmarks/randomization/substep_iterations.json
     PYTHONPATH=. python lab/analysis/substep_iterations.py --num_robots 32 --seconds 4 --at_rest \\
         --out docs/benchmarks/randomization/substep_iterations_at_rest.json
+
+With the solver capped (``env.sim.solver_iterations``), the slowest worlds' solves are cut short, in the substeps a
+delayed torque jumps in as in the others; wrote substep_iterations_cap4.json and _cap3.json (about 10 minutes each)::
+
+    PYTHONPATH=. python lab/analysis/substep_iterations.py --num_robots 64 --seconds 4 --iterations 4 \\
+        --out docs/benchmarks/randomization/substep_iterations_cap4.json
 """
 
 from __future__ import annotations
@@ -98,14 +104,17 @@ def variants(substeps: int) -> dict[str, rnd.Randomization]:
                 actuators=rnd.ActuatorSettings(delay_substeps=lab, delay_average=True))}
 
 
-def measure(contract: Path, num_robots: int, seconds: float, seed: int, at_rest: bool = False) -> list[dict]:
+def measure(contract: Path, num_robots: int, seconds: float, seed: int, at_rest: bool = False,
+            iterations: int | None = None) -> list[dict]:
     """One sim-to-sim run per :func:`variants` entry, the same robots, seed and start velocities (``ROBUST_START``,
-    none when ``at_rest``): their iteration summaries."""
+    none when ``at_rest``): their iteration summaries. ``iterations``: the solver's iteration cap per substep
+    (``env.sim.solver_iterations``; None: the model's)."""
     substeps = int(load_contract(contract)["timing"]["substeps"])
     start = None if at_rest else rnd.ROBUST_START
+    capped = None if iterations is None else (lambda m: setattr(m.opt, "iterations", iterations))
     results = []
     for name, randomization in variants(substeps).items():
-        with counted_steps() as counts:
+        with counted_steps(capped) as counts:
             run = run_sim2sim(contract, num_robots=num_robots, seconds=seconds, seed=seed, randomize=randomization,
                               start_velocity=start)
         summary = lockstep(np.asarray(counts).reshape(-1, num_robots, substeps))
@@ -122,10 +131,16 @@ def main(argv: list[str] | None = None) -> None:
     parser = sim2sim_parser(__doc__, CONTRACT, "seed of the delays' draws (one per robot)")
     parser.add_argument("--at_rest", action="store_true",
                         help="start the robots at rest (default: the robust test's random start velocities)")
+    parser.add_argument("--iterations", type=int, default=None,
+                        help="cap the solver at this many iterations per substep, as env.sim.solver_iterations does "
+                             "(default: the model's 20)")
     args = sim2sim_args(parser, argv)
-    results = measure(args.contract, args.num_robots, args.seconds, args.seed, args.at_rest)
+    if args.iterations is not None and args.iterations < 1:
+        parser.error(f"--iterations must be >= 1, got {args.iterations}")
+    results = measure(args.contract, args.num_robots, args.seconds, args.seed, args.at_rest, args.iterations)
     if args.out is not None:
-        meta = sim2sim_meta(args, start_velocity=None if args.at_rest else dataclasses.asdict(rnd.ROBUST_START))
+        meta = sim2sim_meta(args, start_velocity=None if args.at_rest else dataclasses.asdict(rnd.ROBUST_START),
+                            solver_iterations=args.iterations)
         write_report(args.out, "lab/analysis/substep_iterations.py", argv, results, meta)
 
 

@@ -365,15 +365,25 @@ def step_ops(docs: Path) -> list[str]:
             "[step_ops.json](benchmarks/randomization/step_ops.json)"]
 
 
+#: The same count with the solver capped (``--iterations``), a report per cap: a column each in the table.
+CAPPED_ITERATIONS = {4: "benchmarks/randomization/substep_iterations_cap4.json",
+                     3: "benchmarks/randomization/substep_iterations_cap3.json"}
+
+
 def substep_iterations(docs: Path) -> list[str]:
     d = _load("benchmarks/randomization/substep_iterations.json", docs)
     m = d["meta"]
+    capped = {cap: _load(name, docs) for cap, name in CAPPED_ITERATIONS.items() if (docs / name).is_file()}
+    lockstep = {cap: {r["variant"]: r["lockstep_per_period"] for r in c["results"]} for cap, c in capped.items()}
     rows = ["| leg actuators | solver iterations per period, each robot's own | lockstep (most of any robot, per "
-            "substep) |", "|---|---:|---:|"]
+            "substep) |" + "".join(f" lockstep, solver capped at {cap} |" for cap in capped),
+            "|---|---:|---:|" + "---:|" * len(capped)]
     rows += [f"| {r['variant']} ({r['delay_substeps'][0]}-{r['delay_substeps'][1]} substeps"
              + (f", every {r['delay_stride']}" if r["delay_stride"] != 1 else "")
              + (", mean over each period" if r.get("delay_average") else "")
-             + f") | {r['own_per_period']:.1f} | {r['lockstep_per_period']:.1f} |" for r in d["results"]]
+             + f") | {r['own_per_period']:.1f} | {r['lockstep_per_period']:.1f} |"
+             + "".join(f" {lockstep[cap].get(r['variant'], float('nan')):.1f} |" for cap in capped)
+             for r in d["results"]]
     return ["What likely makes the actuators cost physics time: a torque change makes the substep it lands in solve "
             "longer. Without a delay every robot's lands in substep 0; the delay spreads them over all substeps, and "
             "mujoco-warp iterates a substep's worlds until the slowest converges; on a grid of one period "
@@ -387,7 +397,25 @@ def substep_iterations(docs: Path) -> list[str]:
             "", *rows, "",
             f"- command: `{d['command']}`",
             f"- date: {m['date']}; hardware: {m['hardware']}; report: "
-            "[substep_iterations.json](benchmarks/randomization/substep_iterations.json)", *_at_rest(docs)]
+            "[substep_iterations.json](benchmarks/randomization/substep_iterations.json)", *_at_rest(docs),
+            *_capped_note(d, capped)]
+
+
+def _capped_note(uncapped: dict, capped: dict[int, dict]) -> list[str]:
+    """What a cap does to the lab's delay per substep against no delay, one line per capped report."""
+    def extra(d: dict) -> float:
+        by = {r["variant"]: r["lockstep_per_period"] for r in d["results"]}
+        return by["tocabi_lab delay"] / by["no delay"] - 1
+
+    lines = []
+    for cap, d in capped.items():
+        name = CAPPED_ITERATIONS[cap]
+        lines.append(f"- solver capped at {cap} iterations per substep (`env.sim.solver_iterations`): the lab's delay "
+                     f"per substep costs {100 * extra(d):+.1f} % lockstep iterations over no delay, against "
+                     f"{100 * extra(uncapped):+.1f} % uncapped; the cap cuts the slowest worlds' solves short in the "
+                     f"substeps the delayed torques jump in as in the others ([{Path(name).name}]({name}); "
+                     f"`{d['command']}`; {d['meta']['date']}, {d['meta']['hardware']})")
+    return lines
 
 
 def _at_rest(docs: Path) -> list[str]:

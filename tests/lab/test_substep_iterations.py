@@ -50,3 +50,17 @@ def test_a_delay_moves_the_costly_substep_and_a_whole_period_keeps_it(tmp_path):
         assert r["lockstep_per_period"] >= r["own_per_period"] > 0 and r["survival"] == 1.0
     with pytest.raises(SystemExit):
         substep_iterations.main(["--num_robots", "2", "--seconds", "0.2", "--out", str(out)])
+
+
+def test_an_iteration_cap_bounds_every_substep_and_is_recorded(tmp_path):
+    """--iterations caps the solver as env.sim.solver_iterations does: no substep of any robot takes more, the
+    lockstep sum of a period is at most cap x substeps, and the report's meta names the cap; a cap below 1 is
+    refused before anything runs."""
+    out = tmp_path / "cap.json"
+    substep_iterations.main(["--num_robots", "2", "--seconds", "0.2", "--iterations", "2", "--out", str(out)])
+    report = json.loads(out.read_text())
+    assert report["meta"]["solver_iterations"] == 2 and "--iterations 2" in report["command"]
+    for r in report["results"]:
+        assert max(r["lockstep_per_substep"]) <= 2 and r["lockstep_per_period"] <= 2 * 8
+    with pytest.raises(SystemExit):
+        substep_iterations.main(["--num_robots", "2", "--seconds", "0.2", "--iterations", "0"])
