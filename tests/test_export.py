@@ -118,17 +118,19 @@ def _strict_json(text: str):
 @pytest.fixture(scope="module")
 def tiny_checkpoints(tmp_path_factory):
     """Tiny untrained checkpoints (16-unit actor) as test_every_control_mode_exports builds them: ``torque`` (fixed
-    normalisation) and ``running_without_stats`` (running normalisation, saved without the env's transform state)."""
+    normalisation), ``running_without_stats`` (running normalisation, saved without the env's transform state) and
+    ``capped_solver`` (``torque`` trained with the Newton solver capped at 4 iterations)."""
     from tocabi_torchrl.config import preset_config
     from tocabi_torchrl.rl.checkpoint import save_checkpoint
     from tocabi_torchrl.rl.trainer import build_agent, build_env
 
     root = tmp_path_factory.mktemp("tiny")
     out = {}
-    for name, normalization in (("torque", None), ("running_without_stats", "running")):
+    for name, normalization, extra in (("torque", None, {}), ("running_without_stats", "running", {}),
+                                       ("capped_solver", None, {"env.sim.solver_iterations": 4})):
         cfg = preset_config("default", **{"env.control.mode": "torque", "env.num_envs": 1, "ppo.minibatch_size": 48,
                             "ppo.actor_hidden": (16,),
-                            "ppo.critic_hidden": (16,)}, device="cpu")
+                            "ppo.critic_hidden": (16,), **extra}, device="cpu")
         if normalization:
             cfg.transforms.normalization = normalization
         env = build_env(cfg, torch.device("cpu"), num_envs=1)
@@ -275,3 +277,17 @@ def test_export_refuses_a_non_onnx_output_and_a_bad_checkpoint(tmp_path):
     # An --out that cannot be written (here its folder is a file) is one error line, not a traceback.
     with pytest.raises(SystemExit, match=r"^error: .*bad\.pt"):
         export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(bad / "x.onnx")])
+
+
+def test_the_contract_says_when_training_capped_the_solver(tiny_checkpoints, tmp_path):
+    from tocabi_torchrl.export import export_policy
+    from tocabi_torchrl.runtime import load_contract
+
+    sections = {}
+    for name in ("torque", "capped_solver"):
+        out = tmp_path / name / "p.onnx"
+        out.parent.mkdir()
+        export_policy(tiny_checkpoints[name], out)
+        sections[name] = load_contract(out.with_suffix(".json"))["trained_under"]
+    assert "solver" not in sections["torque"]
+    assert sections["capped_solver"]["solver"].startswith("Newton iterations capped at 4 per physics substep")

@@ -426,6 +426,18 @@ def test_randomize_trained_applies_what_the_contract_states(tmp_path):
     assert trained == lab
 
 
+def test_a_capped_solver_is_stated_as_text_that_every_reader_accepts(tmp_path):
+    # env.sim.solver_iterations: the section says the training's physics was cut short; the contract still loads
+    # and states the same randomisation (no reader applies the cap), and without a cap nothing is said.
+    plain = rnd.trained_under_section(rnd.TOCABI_LAB, rnd.PushSettings(), rnd.StartVelocity(), 0.0005, 104.5)
+    capped = rnd.trained_under_section(rnd.TOCABI_LAB, rnd.PushSettings(), rnd.StartVelocity(), 0.0005, 104.5,
+                                       solver_iterations=4)
+    assert "solver" not in plain and "capped at 4 per physics substep" in capped["solver"]
+    assert {k: v for k, v in capped.items() if k != "solver"} == plain
+    loaded = load_contract(_with_section(tmp_path, "torque", capped))
+    assert rnd.from_contract(loaded) == rnd.from_contract(load_contract(_with_section(tmp_path, "torque", plain)))
+
+
 def test_the_actuator_layer_is_refused_for_a_pd_policy_and_trained_needs_the_section(tmp_path):
     with pytest.raises(ValueError, match="acts on torque commands only.*'pd_reference'"):
         run_sim2sim(_contract("ppo"), seconds=0.01, num_robots=1, randomize="tocabi_lab")

@@ -157,7 +157,8 @@ def _trained_under(policy, cfg, model) -> dict:
     ramp = getattr(getattr(policy.config, "ppo", None), "push_ramp", (0, 0))
     return rnd.trained_under_section(randomization, rnd.settings_from(rnd.PushSettings, cfg.pushes, "env.pushes"),
                                      start, float(model.opt.timestep), mass, ramp,
-                                     start_pool=int(getattr(cfg, "start_pool", 0)))
+                                     start_pool=int(getattr(cfg, "start_pool", 0)),
+                                     solver_iterations=getattr(getattr(cfg, "sim", None), "solver_iterations", None))
 
 
 def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, output_name: str, opset: int) -> dict:

@@ -227,11 +227,14 @@ def _delay_item(act: ActuatorSettings, physics_dt_s: float) -> dict:
 
 
 def trained_under_section(randomization: Randomization, pushes: PushSettings, start: StartVelocity,
-                          physics_dt_s: float, robot_mass_kg: float, push_ramp=(0, 0), start_pool: int = 0) -> dict:
+                          physics_dt_s: float, robot_mass_kg: float, push_ramp=(0, 0), start_pool: int = 0,
+                          solver_iterations: int | None = None) -> dict:
     """The contract's ``trained_under`` section (``docs/deploying.md``): each piece with its unit and draw, ``"off"``
     where training did not use it. ``physics_dt_s``: the physics step, for the delay in ms; ``robot_mass_kg``: the
     mass the kicks' impulse is computed with; ``push_ramp``: ``ppo.push_ramp`` (start, full) env steps;
-    ``start_pool``: ``env.sim.start_pool`` as it acted (0 = dynamics and start velocities drawn at each reset)."""
+    ``start_pool``: ``env.sim.start_pool`` as it acted (0 = dynamics and start velocities drawn at each reset);
+    ``solver_iterations``: ``env.sim.solver_iterations``, the training's cap on the Newton solver per physics substep
+    (None: the model's own, and no ``solver`` text in the section)."""
     act, dyn, sen = randomization.actuators, randomization.dynamics, randomization.sensors
     # How the dynamics and start velocities were drawn: afresh at each reset, or from a pool drawn at build.
     when = (f"{int(start_pool)} draws per robot made when the training env was built, one of them picked at each "
@@ -271,9 +274,15 @@ def trained_under_section(randomization: Randomization, pushes: PushSettings, st
                                                "not clipped), added to the observed signal"} if std > 0 else "off")
     sensors = {k: sensors[k] for k in ("joint_pos_bias", "joint_pos_noise", "joint_vel_noise", "base_rpy_bias",
                                        "foot_force_bias", "foot_torque_bias")}
+    # Text, not an object: no reader applies it (a deployment's simulator keeps its own solver), it says how the
+    # training's physics was cut short.
+    solver = ({"solver": f"Newton iterations capped at {int(solver_iterations)} per physics substep in training "
+                         "(env.sim.solver_iterations); the model file's own settings everywhere else"}
+              if solver_iterations is not None else {})
     return {
         "note": "what the training env randomised and perturbed; \"off\" = not used. The metrics and terminations "
                 "read the true state; only the policy's observation reads the sensor biases and noise",
+        **solver,
         "actuators": actuators,
         "dynamics": dynamics,
         "sensor_noise": sensors,
