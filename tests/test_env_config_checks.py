@@ -132,3 +132,32 @@ def test_the_solver_iteration_cap_reaches_both_backends_and_a_bad_cap_is_named(b
         assert int(env.sim.wp_model.opt.iterations) == 3
     default = TocabiWalk(num_envs=2, device="cpu", config=TocabiWalkConfig(sim=EnvSimConfig(backend=backend)))
     assert default.sim.mj_model.opt.iterations == 20  # the model's own
+
+
+@pytest.mark.gpu
+def test_the_capped_solver_steps_on_the_gpu_without_sync_and_never_iterates_past_the_cap():
+    # Random full-scale leg torques make robots stumble and fall, the states that need the most iterations.
+    import torch
+    import warp as wp
+
+    from tocabi_torchrl.envs.config import EnvSimConfig
+
+    if not torch.cuda.is_available():
+        pytest.skip("needs CUDA")
+    n = 256
+    env = TocabiWalk(num_envs=n, device="cuda", seed=0, control_mode="torque",
+                     config=TocabiWalkConfig(sim=EnvSimConfig(backend="warp", solver_iterations=4)))
+    td = env.reset()
+    gen = torch.Generator(device="cuda").manual_seed(0)
+    actions = [torch.rand(n, 13, device="cuda", generator=gen) * 2 - 1 for _ in range(40)]
+    torch.cuda.synchronize()
+    most = torch.zeros((), dtype=torch.int32, device="cuda")
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for action in actions:
+            td = env.step(td.set("action", action))["next"]
+            torch.maximum(most, wp.to_torch(env.sim.wp_data.solver_niter).max(), out=most)
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    assert 1 <= int(most) <= 4
+    assert bool(torch.isfinite(td["joint_pos"]).all())
