@@ -270,7 +270,8 @@ def randomization_cost(docs: Path) -> list[str]:
             f"strength, diverse starts), training runs at **{s['on_over_off']:.3f}x** the same preset with every piece "
             f"at its identity ({how}, {m['num_envs']:,} envs); this {verdict} the 0.95x target.", "", *rows, "",
             *_source(RANDOMIZATION_COST, m["command"], m["date"], m["gpu"],
-                     "benchmarks/randomization/randomization_cost.md"), "", *split, *delay_average_cost(docs)]
+                     "benchmarks/randomization/randomization_cost.md"), "", *split, *delay_average_cost(docs),
+            *solver_cap_cost(docs)]
 
 
 #: The last ``randomization_cost`` run with ``--pieces`` and ``--physics`` (each piece alone; the solver's share).
@@ -302,6 +303,25 @@ def _pieces_and_physics(d: dict, detail: str) -> list[str]:
 DELAY_AVERAGE_COST = "benchmarks/randomization/delay_average_cost"
 #: ``randomization_cost --rounds 3`` of the preset with the averaged delay.
 DELAY_AVERAGE_THREE_ROUNDS = f"{DELAY_AVERAGE_COST}/three_rounds.json"
+
+
+SOLVER_CAP_COST = "benchmarks/randomization/solver_cap_cost"
+#: ``randomization_cost --rounds 3`` of the preset with the solver capped at 4 iterations.
+SOLVER_CAP_THREE_ROUNDS = f"{SOLVER_CAP_COST}/three_rounds.json"
+
+
+def solver_cap_cost(docs: Path) -> list[str]:
+    """The three-round cost of the preset with the solver capped, when it is committed."""
+    if not (docs / SOLVER_CAP_THREE_ROUNDS).is_file():
+        return []
+    d = _load(SOLVER_CAP_THREE_ROUNDS, docs)
+    m, s = d["meta"], d["summary"]
+    rounds = ", ".join(f"{r:.3f}" for r in s["round_on_over_off"])
+    return [f"With the solver capped at 4 iterations per substep (the preset plus `env.sim.solver_iterations: 4`), "
+            f"{m['rounds']} rounds (seeds {', '.join(map(str, m['seeds']))}: {rounds}) gave "
+            f"**{s['on_over_off']:.3f}x**, on {_k(s['on_median'])} against off {_k(s['off_median'])} env-steps/s "
+            f"({m['date']}, {m['gpu']}; [details]({SOLVER_CAP_COST}/README.md)). The preset keeps the model's "
+            "solver until a from-scratch run with the cap passes the robust gait test.", ""]
 
 
 def delay_average_cost(docs: Path) -> list[str]:

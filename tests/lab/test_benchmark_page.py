@@ -104,3 +104,19 @@ def test_train_over_ceiling_joins_the_solver_load_section_with_its_targets(tmp_p
     assert "| 4,096 | 150k | 24.00 | 171k | **0.879** | 0.9 (missed) | 0.790 |" in text
     assert "| 16,384 | 190k | 82.00 | 200k | **0.951** | 0.95 (met) | - |" in text
     assert "`python -m x --ceiling`" in text and "NVIDIA H200" in text
+
+
+def test_the_capped_solver_cost_appears_only_once_measured(tmp_path):
+    import json
+
+    page = _page_module()
+    assert page.solver_cap_cost(tmp_path) == []
+    meta = {"preset": "robust", "rounds": 3, "num_envs": 4096, "command": "python -m x", "date": "2026-12-04",
+            "gpu": "NVIDIA H200", "seeds": [0, 1, 2]}
+    summary = {"on_median": 136_000.0, "off_median": 141_000.0, "on_over_off": 0.966,
+               "round_on_over_off": [0.964, 0.968, 0.966]}
+    (tmp_path / page.SOLVER_CAP_THREE_ROUNDS).parent.mkdir(parents=True)
+    (tmp_path / page.SOLVER_CAP_THREE_ROUNDS).write_text(json.dumps({"meta": meta, "summary": summary, "results": []}))
+    text = "\n".join(page.solver_cap_cost(tmp_path))
+    assert "(seeds 0, 1, 2: 0.964, 0.968, 0.966) gave **0.966x**, on 136k against off 141k" in text
+    assert "2026-12-04, NVIDIA H200" in text
