@@ -135,12 +135,15 @@ def test_the_solver_iteration_cap_reaches_both_backends_and_a_bad_cap_is_named(b
 
 
 @pytest.mark.gpu
-def test_the_capped_solver_steps_on_the_gpu_without_sync_and_never_iterates_past_the_cap():
+def test_the_capped_solver_steps_on_the_gpu_without_a_torch_sync_and_bounds_every_substep(monkeypatch):
     # Random full-scale leg torques make robots stumble and fall, the states that need the most iterations.
+    import mujoco_warp as mjw
     import torch
     import warp as wp
 
+    from tocabi_torchrl import robot
     from tocabi_torchrl.envs.config import EnvSimConfig
+    from tocabi_torchrl.sim import SimConfig, WarpSim
 
     if not torch.cuda.is_available():
         pytest.skip("needs CUDA")
@@ -151,13 +154,43 @@ def test_the_capped_solver_steps_on_the_gpu_without_sync_and_never_iterates_past
     gen = torch.Generator(device="cuda").manual_seed(0)
     actions = [torch.rand(n, 13, device="cuda", generator=gen) * 2 - 1 for _ in range(40)]
     torch.cuda.synchronize()
-    most = torch.zeros((), dtype=torch.int32, device="cuda")
     torch.cuda.set_sync_debug_mode("error")
-    try:
+    try:  # the env's captured step
         for action in actions:
             td = env.step(td.set("action", action))["next"]
-            torch.maximum(most, wp.to_torch(env.sim.wp_data.solver_niter).max(), out=most)
     finally:
         torch.cuda.set_sync_debug_mode(0)
-    assert 1 <= int(most) <= 4
     assert bool(torch.isfinite(td["joint_pos"]).all())
+
+    # Every substep's iterations, read right after mjw.step/step2 (the step's closing forward pass overwrites them),
+    # on eager CUDA steps of the simulator, with and without the cap; the maximum stays on the device.
+    def most_per_substep(cap):
+        sim = WarpSim(SimConfig(num_worlds=n, device="cuda", use_graph=False, solver_iterations=cap))
+        most = torch.zeros((), dtype=torch.int32, device="cuda")
+        calls = []
+        for name in ("step", "step2"):
+            def recorded(m, d, _real=getattr(mjw, name)):
+                _real(m, d)
+                calls.append(1)
+                torch.maximum(most, wp.to_torch(d.solver_niter).max(), out=most)
+
+            monkeypatch.setattr(mjw, name, recorded)
+        start = torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32, device="cuda")
+        sim.reset(torch.ones(n, dtype=torch.bool, device="cuda"), start, torch.zeros(sim.nv, device="cuda"),
+                  torch.zeros(sim.nu, device="cuda"))
+        limits = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32, device="cuda")
+        torques = [(torch.rand(n, 12, device="cuda", generator=gen) * 2 - 1) * limits for _ in range(20)]
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("error")
+        try:
+            for tau in torques:
+                sim.ctrl[:, :12].copy_(tau)
+                sim.step()
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+            monkeypatch.undo()
+        assert len(calls) == 20 * sim.config.substeps
+        return int(most)
+
+    assert 1 <= most_per_substep(4) <= 4
+    assert most_per_substep(None) > 4  # the same robots need more without the cap, so the bound could fail

@@ -414,6 +414,38 @@ def test_solver_overrides_are_explicit_and_leave_the_callers_model_alone():
     assert plain.mj_model.opt.iterations == model.opt.iterations, "no override: the model file's solver settings"
 
 
+def _substep_iterations(monkeypatch, sim: WarpSim, policy_steps: int, seed: int = 0) -> list[int]:
+    """Step ``sim`` (eager: ``use_graph=False``) under random full-scale leg torques and return, for every physics
+    substep, the most Newton iterations any world took (``solver_niter`` read right after ``mjw.step``/``step2``,
+    before the step's closing forward pass overwrites it)."""
+    seen = []
+    for name in ("step", "step2"):
+        real = getattr(mjw, name)
+
+        def recorded(m, d, _real=real):
+            _real(m, d)
+            seen.append(int(d.solver_niter.numpy().max()))
+
+        monkeypatch.setattr(mjw, name, recorded)
+    _reset_standing(sim)
+    rng = np.random.default_rng(seed)
+    for _ in range(policy_steps):
+        sim.ctrl[:, LEGS] = torch.as_tensor(rng.uniform(-1, 1, (N, 12)) * robot.LEG_TORQUE_LIMITS, dtype=torch.float32)
+        sim.step()
+    monkeypatch.undo()
+    assert len(seen) == policy_steps * sim.config.substeps, "one record per substep"
+    return seen
+
+
+def test_an_iteration_cap_bounds_every_substep_of_a_step(monkeypatch):
+    """``solver_iterations`` reaches the sensor-free model the substeps run with: capped at 4, no substep of stumbling
+    robots iterates more; with the model's own cap (20) some substep of the same robots does."""
+    capped = _substep_iterations(monkeypatch, WarpSim(SimConfig(num_worlds=N, use_graph=False, solver_iterations=4)), 6)
+    free = _substep_iterations(monkeypatch, WarpSim(SimConfig(num_worlds=N, use_graph=False)), 6)
+    assert 1 <= max(capped) <= 4, capped
+    assert max(free) > 4, free
+
+
 def test_bad_model_is_refused():
     with pytest.raises(ContactSensorError, match="add_contact_sensors"):
         WarpSim(SimConfig(), model=robot.load_model())
