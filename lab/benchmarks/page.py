@@ -391,6 +391,8 @@ CAPPED_ITERATIONS = {4: "benchmarks/randomization/substep_iterations_cap4.json",
 
 
 def substep_iterations(docs: Path) -> list[str]:
+    """Newton iterations per substep under the lab's delay against none (C MuJoCo, ``substep_iterations.py``), with
+    the capped runs' columns when their reports are committed."""
     d = _load("benchmarks/randomization/substep_iterations.json", docs)
     m = d["meta"]
     capped = {cap: _load(name, docs) for cap, name in CAPPED_ITERATIONS.items() if (docs / name).is_file()}

@@ -52,7 +52,7 @@ def test_a_delay_moves_the_costly_substep_and_a_whole_period_keeps_it(tmp_path):
         substep_iterations.main(["--num_robots", "2", "--seconds", "0.2", "--out", str(out)])
 
 
-def test_an_iteration_cap_bounds_every_substep_and_is_recorded(tmp_path):
+def test_an_iteration_cap_bounds_every_substep_and_is_recorded(tmp_path, capsys):
     """--iterations caps the solver as env.sim.solver_iterations does: no substep of any robot takes more, the
     lockstep sum of a period is at most cap x substeps, and the report's meta names the cap; a cap below 1 is
     refused before anything runs."""
@@ -62,5 +62,7 @@ def test_an_iteration_cap_bounds_every_substep_and_is_recorded(tmp_path):
     assert report["meta"]["solver_iterations"] == 2 and "--iterations 2" in report["command"]
     for r in report["results"]:
         assert max(r["lockstep_per_substep"]) <= 2 and r["lockstep_per_period"] <= 2 * 8
+    capsys.readouterr()
     with pytest.raises(SystemExit):
         substep_iterations.main(["--num_robots", "2", "--seconds", "0.2", "--iterations", "0"])
+    assert "--iterations must be >= 1, got 0" in capsys.readouterr().err
