@@ -516,6 +516,8 @@ def train_over_ceiling(docs: Path) -> list[str]:
     m = d["meta"]
     rows = ["| envs | train env-steps/s | physics ms per policy step | ceiling of training states | train / ceiling | "
             "target | train / raw standing |", "|---:|---:|---:|---:|---:|---:|---:|"]
+    split = ["| envs | whole policy step [ms] | physics | PPO update (last iteration's, per policy step) | the rest |",
+             "|---:|---:|---:|---:|---:|"]
     for r in d["results"]:
         target = CEILING_TARGETS.get(r["num_envs"])
         met = "" if target is None else (" (met)" if r["ratio_train_over_ceiling"] >= target else " (missed)")
@@ -523,8 +525,18 @@ def train_over_ceiling(docs: Path) -> list[str]:
                     f"{_k(r['ceiling_env_steps_per_s'])} | **{r['ratio_train_over_ceiling']:.3f}** | "
                     f"{'-' if target is None else f'{target:g}{met}'} | "
                     + ("-" if r.get("ratio_train_over_raw") is None else f"{r['ratio_train_over_raw']:.3f}") + " |")
+        if r.get("update_s_last") and r.get("iterations") and r.get("env_steps") and r.get("gpus", 1) == 1:
+            # One GPU: every env takes env_steps / iterations / num_envs policy steps per iteration.
+            step = r["num_envs"] * 1e3 / r["train_env_steps_per_s"]
+            update = r["update_s_last"] * 1e3 / (r["env_steps"] / r["iterations"] / r["num_envs"])
+            physics = r["physics_ms_per_policy_step"]
+            split.append(f"| {r['num_envs']:,} | {step:.2f} | {physics:.2f} | {update:.2f} | "
+                         f"{step - physics - update:.2f} |")
+    split = ["", "Where a training step's time goes (ms per policy step of all envs; the update is its last "
+             "iteration's time over the iteration's policy steps, the rest is everything else: policy, "
+             "observations, rewards, resets, GAE):", "", *split] if len(split) > 2 else []
     return ["", "Training against that ceiling in the same run: the simulator's step timed in place (CUDA events) "
-            "over the timed iterations, the ceiling its env count over that time:", "", *rows, "",
+            "over the timed iterations, the ceiling its env count over that time:", "", *rows, *split, "",
             *_source(TRAIN_OVER_CEILING, m["command"], m["date"], m["gpu"],
                      TRAIN_OVER_CEILING.removesuffix(".json") + ".md")]
 

@@ -94,7 +94,8 @@ def test_train_over_ceiling_joins_the_solver_load_section_with_its_targets(tmp_p
     page = _page_module()
     assert page.train_over_ceiling(tmp_path) == []  # not measured: nothing
     rows = [{"num_envs": 4096, "train_env_steps_per_s": 150_000.0, "physics_ms_per_policy_step": 24.0,
-             "ceiling_env_steps_per_s": 170_666.7, "ratio_train_over_ceiling": 0.879, "ratio_train_over_raw": 0.79},
+             "ceiling_env_steps_per_s": 170_666.7, "ratio_train_over_ceiling": 0.879, "ratio_train_over_raw": 0.79,
+             "update_s_last": 0.096, "iterations": 10, "env_steps": 10 * 48 * 4096, "gpus": 1},
             {"num_envs": 16384, "train_env_steps_per_s": 190_000.0, "physics_ms_per_policy_step": 82.0,
              "ceiling_env_steps_per_s": 199_804.9, "ratio_train_over_ceiling": 0.951, "ratio_train_over_raw": None}]
     (tmp_path / page.TRAIN_OVER_CEILING).parent.mkdir(parents=True)
@@ -104,6 +105,9 @@ def test_train_over_ceiling_joins_the_solver_load_section_with_its_targets(tmp_p
     assert "| 4,096 | 150k | 24.00 | 171k | **0.879** | 0.9 (missed) | 0.790 |" in text
     assert "| 16,384 | 190k | 82.00 | 200k | **0.951** | 0.95 (met) | - |" in text
     assert "`python -m x --ceiling`" in text and "NVIDIA H200" in text
+    # 4,096 / 150k/s = 27.31 ms a step: 24.00 physics, 96 ms / 48 steps = 2.00 update, 1.31 the rest; the row without
+    # an update time has no split.
+    assert "| 4,096 | 27.31 | 24.00 | 2.00 | 1.31 |" in text and "| 16,384 | 86.23 |" not in text
 
 
 def test_the_capped_solver_cost_appears_only_once_measured(tmp_path):
