@@ -137,13 +137,14 @@ def test_the_solver_iteration_cap_reaches_both_backends_and_a_bad_cap_is_named(b
 @pytest.mark.gpu
 def test_the_capped_solver_steps_on_the_gpu_without_a_torch_sync_and_bounds_every_substep(monkeypatch):
     # Random full-scale leg torques make robots stumble and fall, the states that need the most iterations.
-    import mujoco_warp as mjw
     import torch
     import warp as wp
 
     from tocabi_torchrl import robot
     from tocabi_torchrl.envs.config import EnvSimConfig
     from tocabi_torchrl.sim import SimConfig, WarpSim
+
+    from warp_substeps import after_each_substep
 
     if not torch.cuda.is_available():
         pytest.skip("needs CUDA")
@@ -168,13 +169,12 @@ def test_the_capped_solver_steps_on_the_gpu_without_a_torch_sync_and_bounds_ever
         sim = WarpSim(SimConfig(num_worlds=n, device="cuda", use_graph=False, solver_iterations=cap))
         most = torch.zeros((), dtype=torch.int32, device="cuda")
         calls = []
-        for name in ("step", "step2"):
-            def recorded(m, d, _real=getattr(mjw, name)):
-                _real(m, d)
-                calls.append(1)
-                torch.maximum(most, wp.to_torch(d.solver_niter).max(), out=most)
 
-            monkeypatch.setattr(mjw, name, recorded)
+        def record(d):
+            calls.append(1)
+            torch.maximum(most, wp.to_torch(d.solver_niter).max(), out=most)
+
+        after_each_substep(monkeypatch, record)
         start = torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32, device="cuda")
         sim.reset(torch.ones(n, dtype=torch.bool, device="cuda"), start, torch.zeros(sim.nv, device="cuda"),
                   torch.zeros(sim.nu, device="cuda"))

@@ -27,6 +27,8 @@ from tocabi_torchrl.sim import (
 )
 from tocabi_torchrl.sim.kernel_cache import announce_compile_if_cold
 
+from warp_substeps import after_each_substep
+
 N = 4
 LEGS = slice(0, robot.NUM_LEG_JOINTS)
 UPPER = slice(robot.NUM_LEG_JOINTS, robot.NUM_JOINTS)
@@ -419,14 +421,7 @@ def _substep_iterations(monkeypatch, sim: WarpSim, policy_steps: int, seed: int 
     substep, the most Newton iterations any world took (``solver_niter`` read right after ``mjw.step``/``step2``,
     before the step's closing forward pass overwrites it)."""
     seen = []
-    for name in ("step", "step2"):
-        real = getattr(mjw, name)
-
-        def recorded(m, d, _real=real):
-            _real(m, d)
-            seen.append(int(d.solver_niter.numpy().max()))
-
-        monkeypatch.setattr(mjw, name, recorded)
+    after_each_substep(monkeypatch, lambda d: seen.append(int(d.solver_niter.numpy().max())))
     _reset_standing(sim)
     rng = np.random.default_rng(seed)
     for _ in range(policy_steps):
