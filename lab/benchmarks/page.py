@@ -420,22 +420,23 @@ def substep_iterations(docs: Path) -> list[str]:
             f"- command: `{d['command']}`",
             f"- date: {m['date']}; hardware: {m['hardware']}; report: "
             "[substep_iterations.json](benchmarks/randomization/substep_iterations.json)", *_at_rest(docs),
-            *_capped_note(d, capped)]
+            *_capped_note({r["variant"]: r["lockstep_per_period"] for r in d["results"]}, lockstep, capped)]
 
 
-def _capped_note(uncapped: dict, capped: dict[int, dict]) -> list[str]:
-    """What a cap does to the lab's delay per substep against no delay, one line per capped report."""
-    def extra(d: dict) -> float:
-        by = {r["variant"]: r["lockstep_per_period"] for r in d["results"]}
+def _capped_note(uncapped: dict[str, float], lockstep: dict[int, dict[str, float]],
+                 capped: dict[int, dict]) -> list[str]:
+    """What a cap does to the lab's delay per substep against no delay, one line per capped report (``uncapped``,
+    ``lockstep[cap]``: lockstep iterations per period by variant)."""
+    def extra(by: dict[str, float]) -> float:
         return by["tocabi_lab delay"] / by["no delay"] - 1
 
     lines = []
     for cap, d in capped.items():
         name = CAPPED_ITERATIONS[cap]
         lines.append(f"- solver capped at {cap} iterations per substep (`env.sim.solver_iterations`): the lab's delay "
-                     f"per substep costs {100 * extra(d):+.1f} % lockstep iterations over no delay, against "
-                     f"{100 * extra(uncapped):+.1f} % uncapped; the cap cuts the slowest worlds' solves short in the "
-                     f"substeps the delayed torques jump in as in the others ([{Path(name).name}]({name}); "
+                     f"per substep costs {100 * extra(lockstep[cap]):+.1f} % lockstep iterations over no delay, "
+                     f"against {100 * extra(uncapped):+.1f} % uncapped; the cap cuts the slowest worlds' solves short "
+                     f"in the substeps the delayed torques jump in as in the others ([{Path(name).name}]({name}); "
                      f"`{d['command']}`; {d['meta']['date']}, {d['meta']['hardware']})")
     return lines
 
