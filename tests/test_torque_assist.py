@@ -382,8 +382,8 @@ def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_pat
     assert build_env(cfg, torch.device("cpu"), num_envs=2, for_training=True).base_env.cfg.torque_assist is True
 
 
-@pytest.mark.parametrize("hold", ["fade", "pull"])
-def test_the_adaptive_rate_is_held_through_the_fade_or_also_the_teachers_pull(tmp_path, hold):
+@pytest.mark.parametrize("hold, bound", [("fade", 0.0), ("pull", 0.0), ("pull", 1e-4)])
+def test_the_adaptive_rate_is_held_through_the_fade_or_also_the_teachers_pull(tmp_path, hold, bound):
     # A KL target no update meets (KL > 2e-12: the rate falls) unless it leaves the policy as it was (KL 0: rises), so
     # the adaptive rule changes the rate after every update where it is not held.
     from tocabi_torchrl.rl.trainer import train
@@ -395,6 +395,7 @@ def test_the_adaptive_rate_is_held_through_the_fade_or_also_the_teachers_pull(tm
                         total_env_steps=6 * frames, **{"ppo.assist_fade_start": frames,
                                                        "ppo.assist_fade_end": 2 * frames,
                         "ppo.assist_anchor_decay": 3 * frames, "ppo.assist_lr_hold": hold,
+                        "ppo.assist_lr_max": bound,
                         "ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,)}, run_dir=str(tmp_path), name="t",
                         eval_at_end=False, progress_bar=False, checkpoint_every=1000, **{"ppo.cuda_graph": "off"})
     rows = read_metrics(train(cfg).run_dir)
@@ -406,6 +407,20 @@ def test_the_adaptive_rate_is_held_through_the_fade_or_also_the_teachers_pull(tm
         assert lr[2] != lr[1] and lr[3] != lr[2]  # the rule acts again as soon as β stops falling
     else:
         assert lr[1] == lr[2] == lr[3] and lr[4] != lr[3]  # held until the pull is gone, then the rule acts
+    # Unbounded, the hold keeps what the rule reached in iteration 0 (1e-3 / 1.5); ppo.assist_lr_max caps it from
+    # the hold's first update on, and the rule goes on from the cap once the hold ends.
+    assert lr[0] == pytest.approx(1e-3 / 1.5)
+    assert lr[1] == pytest.approx(bound or lr[0])
+    if hold == "pull":  # one step of the rule (down, or up after an update that left the policy as it was)
+        assert lr[4] / (bound or lr[0]) in (pytest.approx(1 / 1.5), pytest.approx(1.5))
+
+
+def test_ppo_assist_lr_max_is_0_or_a_rate_between_the_floor_and_the_start():
+    assert preset_config("robust").ppo.assist_lr_max == 0.0
+    assert preset_config("robust", **{"ppo.assist_lr_max": 7.5e-5}).ppo.assist_lr_max == 7.5e-5
+    for bad in (1e-6, 2e-3, -1e-4, float("nan"), True):
+        with pytest.raises(ValueError, match="ppo.assist_lr_max must be"):
+            preset_config("robust", **{"ppo.assist_lr_max": bad})
 
 
 def test_a_resumed_run_keeps_its_teacher(tmp_path):

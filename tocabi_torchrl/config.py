@@ -199,6 +199,12 @@ class PPOConfig:
     assist_lr_hold: str = "fade"
     """hold the adaptive learning rate while β fades ('fade') or until the teacher's pull has decayed too
     ('pull')"""
+    #: The hold keeps the rate the adaptive rule happened to reach by the fade's start: 7.5e-5 to 3.0e-4 in the
+    #: robust preset's fourth to twelfth runs, and the twelfth, holding 3.0e-4, read KLs 3-5 times the ninth's (7.5e-5)
+    #: while its teacher pulled (docs/training/robust/h200_run12). A bound makes the held rate a setting, not a draw.
+    assist_lr_max: float = 0.0
+    """highest learning rate while assist_lr_hold holds the adaptive rate (0: no bound; the rate the rule had
+    reached when the hold began)"""
     #: The assist's PD on the true joint positions is feedback a policy with biased encoders cannot copy when the
     #: PD fades (transforms.sensor_noise: the TOCABI lab's ±π/100 rad is 0.2-0.7 of a leg's torque limit through the
     #: PD's stiffness). On: the PD reads each world's sensed positions, the SensorNoise transform's bias included
@@ -315,6 +321,10 @@ class PPOConfig:
                 low <= self.lr_min <= max(self.lr, low)):
             raise ValueError(f"ppo.lr_min must be a number in [{low:g}, ppo.lr = {self.lr:g}] (the adaptive "
                              f"schedule's floor), got {self.lr_min!r}")
+        if isinstance(self.assist_lr_max, bool) or not isinstance(self.assist_lr_max, numbers.Real) or not (
+                self.assist_lr_max == 0 or self.lr_min <= self.assist_lr_max <= self.lr):
+            raise ValueError(f"ppo.assist_lr_max must be 0 (no bound) or a number in [ppo.lr_min = {self.lr_min:g}, "
+                             f"ppo.lr = {self.lr:g}] (the held adaptive rate's ceiling), got {self.assist_lr_max!r}")
         if self.lr_schedule == "adaptive" and not low <= self.lr <= high:
             # The rule keeps the rate inside this range: from outside it, its first clamp would move the rate the
             # wrong way (up when the KL says down).

@@ -534,6 +534,10 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 extra["torque_assist"] = beta  # the β this iteration's rollout (and its logged rewards) ran with
                 extra["absorb_weight"] = weight
                 fading = beta_next < beta or (ppo.assist_lr_hold == "pull" and weight > 0)
+                if fading and ppo.lr_schedule == "adaptive" and 0 < ppo.assist_lr_max < lr:
+                    # Held from here on, so bounded before this update (ppo.assist_lr_max).
+                    lr = ppo.assist_lr_max
+                    _set_scheduled_lr(optimizer, lr)
             if overlap is None:
                 stats = _update(cfg, flat, update_step, info)
             else:
