@@ -308,6 +308,8 @@ DELAY_AVERAGE_THREE_ROUNDS = f"{DELAY_AVERAGE_COST}/three_rounds.json"
 SOLVER_CAP_COST = "benchmarks/randomization/solver_cap_cost"
 #: ``randomization_cost --rounds 3`` of the preset with the solver capped at 4 iterations.
 SOLVER_CAP_THREE_ROUNDS = f"{SOLVER_CAP_COST}/three_rounds.json"
+#: From-scratch runs of the preset with the solver capped (time_to_walk records of the robust test), in order.
+SOLVER_CAP_RUNS = ("training/robust/h200_run12/time_to_walk_robust.json",)
 
 
 def solver_cap_cost(docs: Path) -> list[str]:
@@ -321,7 +323,23 @@ def solver_cap_cost(docs: Path) -> list[str]:
             f"{m['rounds']} rounds (seeds {', '.join(map(str, m['seeds']))}: {rounds}) gave "
             f"**{s['on_over_off']:.3f}x**, on {_k(s['on_median'])} against off {_k(s['off_median'])} env-steps/s "
             f"({m['date']}, {m['gpu']}; [details]({SOLVER_CAP_COST}/README.md)). The preset keeps the model's "
-            "solver until a from-scratch run with the cap passes the robust gait test.", ""]
+            "solver until a from-scratch run with the cap passes the robust gait test.", *_capped_runs(docs), ""]
+
+
+def _capped_runs(docs: Path) -> list[str]:
+    """One line per committed from-scratch run of the capped preset: its verdict at the marks it tested."""
+    lines = []
+    for path in (p for p in SOLVER_CAP_RUNS if (docs / p).is_file()):
+        record = _load(path, docs)["records"][0]
+        marks = sorted(record["evaluations"].values(), key=lambda e: e["train_seconds"])
+        tested = ", ".join(f"{e['train_seconds'] / 60:.0f}" for e in marks)
+        walk = record["time_to_walk"]
+        verdict = (f"passes at {walk['train_minutes']:.1f} training minutes" if walk else
+                   f"does not pass at the marks in its record ({tested} training minutes, of "
+                   f"{record['train_seconds'] / 60:.1f})")
+        lines.append(f"- The capped preset's from-scratch run `{record['name']}` ({record['gpu']}) {verdict}: "
+                     f"[README]({path.rsplit('/', 1)[0]}/README.md).")
+    return lines
 
 
 def delay_average_cost(docs: Path) -> list[str]:
