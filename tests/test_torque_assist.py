@@ -418,9 +418,16 @@ def test_the_adaptive_rate_is_held_through_the_fade_or_also_the_teachers_pull(tm
 def test_ppo_assist_lr_max_is_0_or_a_rate_between_the_floor_and_the_start():
     assert preset_config("robust").ppo.assist_lr_max == 0.0
     assert preset_config("robust", **{"ppo.assist_lr_max": 7.5e-5}).ppo.assist_lr_max == 7.5e-5
-    for bad in (1e-6, 2e-3, -1e-4, float("nan"), True):
+    # Above ppo.lr (1e-3) is allowed: the rule may have raised the rate before the hold.
+    assert preset_config("robust", **{"ppo.assist_lr_max": 2e-3}).ppo.assist_lr_max == 2e-3
+    for bad in (1e-6, 2e-2, -1e-4, float("nan"), True):
         with pytest.raises(ValueError, match="ppo.assist_lr_max must be"):
             preset_config("robust", **{"ppo.assist_lr_max": bad})
+    # A bound on a hold that never happens is refused: no adaptive rate, or no assist.
+    with pytest.raises(ValueError, match="this run has no such hold"):
+        preset_config("robust", **{"ppo.assist_lr_max": 1e-4, "ppo.lr_schedule": "linear"})
+    with pytest.raises(ValueError, match="this run has no such hold"):
+        preset_config("default", **{"ppo.assist_lr_max": 1e-4})
 
 
 def test_a_resumed_run_keeps_its_teacher(tmp_path):

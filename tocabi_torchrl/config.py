@@ -204,7 +204,7 @@ class PPOConfig:
     #: while its teacher pulled (docs/training/robust/h200_run12). A bound makes the held rate a setting, not a draw.
     assist_lr_max: float = 0.0
     """highest learning rate while assist_lr_hold holds the adaptive rate (0: no bound; the rate the rule had
-    reached when the hold began)"""
+    reached when the hold began); with the adaptive schedule and a torque assist only"""
     #: The assist's PD on the true joint positions is feedback a policy with biased encoders cannot copy when the
     #: PD fades (transforms.sensor_noise: the TOCABI lab's ±π/100 rad is 0.2-0.7 of a leg's torque limit through the
     #: PD's stiffness). On: the PD reads each world's sensed positions, the SensorNoise transform's bias included
@@ -321,10 +321,17 @@ class PPOConfig:
                 low <= self.lr_min <= max(self.lr, low)):
             raise ValueError(f"ppo.lr_min must be a number in [{low:g}, ppo.lr = {self.lr:g}] (the adaptive "
                              f"schedule's floor), got {self.lr_min!r}")
+        # The adaptive rule may have raised the rate above ppo.lr by the time the hold begins, so the ceiling may
+        # lie anywhere in the rule's range.
         if isinstance(self.assist_lr_max, bool) or not isinstance(self.assist_lr_max, numbers.Real) or not (
-                self.assist_lr_max == 0 or self.lr_min <= self.assist_lr_max <= self.lr):
+                self.assist_lr_max == 0 or self.lr_min <= self.assist_lr_max <= high):
             raise ValueError(f"ppo.assist_lr_max must be 0 (no bound) or a number in [ppo.lr_min = {self.lr_min:g}, "
-                             f"ppo.lr = {self.lr:g}] (the held adaptive rate's ceiling), got {self.assist_lr_max!r}")
+                             f"{high:g}] (the held adaptive rate's ceiling), got {self.assist_lr_max!r}")
+        if self.assist_lr_max and (self.lr_schedule != "adaptive" or not self.torque_assist):
+            raise ValueError(f"ppo.assist_lr_max {self.assist_lr_max:g} bounds the adaptive rate the torque assist's "
+                             f"hold keeps, and this run has no such hold (ppo.lr_schedule {self.lr_schedule!r}, "
+                             f"ppo.torque_assist {self.torque_assist:g}); set it to 0, or train with the adaptive "
+                             f"schedule and an assist")
         if self.lr_schedule == "adaptive" and not low <= self.lr <= high:
             # The rule keeps the rate inside this range: from outside it, its first clamp would move the rate the
             # wrong way (up when the KL says down).
