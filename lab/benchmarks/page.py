@@ -333,10 +333,10 @@ def _capped_runs(docs: Path) -> list[str]:
         record = _load(path, docs)["records"][0]
         marks = sorted(record["evaluations"].values(), key=lambda e: e["train_seconds"])
         tested = ", ".join(f"{e['train_seconds'] / 60:.0f}" for e in marks)
-        walk = record["time_to_walk"]
+        walk, trained = record["time_to_walk"], f"{record['train_seconds'] / 60:.1f}"
         verdict = (f"passes at {walk['train_minutes']:.1f} training minutes" if walk else
-                   f"does not pass at the marks in its record ({tested} training minutes, of "
-                   f"{record['train_seconds'] / 60:.1f})")
+                   f"does not pass at the marks in its record ({tested} training minutes, of {trained})" if marks
+                   else f"has no tested mark in its record ({trained} training minutes)")
         lines.append(f"- The capped preset's from-scratch run `{record['name']}` ({record['gpu']}) {verdict}: "
                      f"[README]({path.rsplit('/', 1)[0]}/README.md).")
     return lines

@@ -134,6 +134,8 @@ def test_the_capped_solver_cost_appears_only_once_measured(tmp_path):
     text = "\n".join(page.solver_cap_cost(tmp_path))
     assert ("`robust_v12` (NVIDIA H200) does not pass at the marks in its record (16, 17 training minutes, of "
             "18.1)") in text
+    run.write_text(json.dumps({"records": [{**record, "evaluations": {}}]}))
+    assert "has no tested mark in its record (18.1 training minutes)" in "\n".join(page.solver_cap_cost(tmp_path))
     record["time_to_walk"] = {"train_minutes": 16.02}
     run.write_text(json.dumps({"records": [record]}))
     assert "`robust_v12` (NVIDIA H200) passes at 16.0 training minutes" in "\n".join(page.solver_cap_cost(tmp_path))

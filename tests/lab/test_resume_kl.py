@@ -22,10 +22,12 @@ def test_the_copy_scales_the_robots_and_mini_batch_and_carries_the_variant_witho
     assert config["env"]["num_envs"] == 64 and config["ppo"]["minibatch_size"] == 768  # 4 mini-batches, as saved
     assert config["env"]["task"] == {"start_joint_vel_std": 0.0, "start_base_vel_std": 0.0}
     assert state == _state()
-    with pytest.raises(ValueError, match="does not keep the run's mini-batches"):
-        resume_kl.resumed_copy(_state(minibatch=1000), 64, {}, tmp_path / "d.pt")
-    with pytest.raises(KeyError, match="ppo.no_such"):
-        resume_kl.resumed_copy(state, 64, {"ppo.no_such": 1}, tmp_path / "e.pt")
+    for envs, state_ in ((64, _state(minibatch=1000)), (100, state)):  # mini-batches not kept; not a divisor
+        with pytest.raises(ValueError, match="is not a divisor of the run's"):
+            resume_kl.resumed_copy(state_, envs, {}, tmp_path / "d.pt")
+    for path in ("ppo.no_such", "no_such.part"):
+        with pytest.raises(KeyError, match=path):
+            resume_kl.resumed_copy(state, 64, {path: 1}, tmp_path / "e.pt")
 
 
 def test_a_short_run_resumed_in_two_variants_writes_its_report(tmp_path):
