@@ -309,7 +309,8 @@ SOLVER_CAP_COST = "benchmarks/randomization/solver_cap_cost"
 #: ``randomization_cost --rounds 3`` of the preset with the solver capped at 4 iterations.
 SOLVER_CAP_THREE_ROUNDS = f"{SOLVER_CAP_COST}/three_rounds.json"
 #: From-scratch runs of the preset with the solver capped (time_to_walk records of the robust test), in order.
-SOLVER_CAP_RUNS = ("training/robust/h200_run12/time_to_walk_robust.json",)
+SOLVER_CAP_RUNS = ("training/robust/h200_run12/time_to_walk_robust.json",
+                   "training/robust/h200_run13/time_to_walk_robust.json")
 
 
 def solver_cap_cost(docs: Path) -> list[str]:
@@ -337,7 +338,10 @@ def _capped_runs(docs: Path) -> list[str]:
         verdict = (f"passes at {walk['train_minutes']:.1f} training minutes" if walk else
                    f"does not pass at the marks in its record ({tested} training minutes, of {trained})" if marks
                    else f"has no tested mark in its record ({trained} training minutes)")
-        lines.append(f"- The capped preset's from-scratch run `{record['name']}` ({record['gpu']}) {verdict}: "
+        extra = ", ".join(f"`{k}={v}`" for k, v in record.get("overrides", {}).items()
+                          if k != "env.sim.solver_iterations")
+        run = f"`{record['name']}`" + (f" (also {extra})" if extra else "")
+        lines.append(f"- The capped preset's from-scratch run {run} ({record['gpu']}) {verdict}: "
                      f"[README]({path.rsplit('/', 1)[0]}/README.md).")
     return lines
 
