@@ -340,8 +340,8 @@ def _capped_runs(docs: Path) -> list[str]:
                    else f"has no tested mark in its record ({trained} training minutes)")
         extra = ", ".join(f"`{k}={v}`" for k, v in record.get("overrides", {}).items()
                           if k != "env.sim.solver_iterations")
-        run = f"`{record['name']}`" + (f" (also {extra})" if extra else "")
-        lines.append(f"- The capped preset's from-scratch run {run} ({record['gpu']}) {verdict}: "
+        also = f"; also {extra}" if extra else ""
+        lines.append(f"- The capped preset's from-scratch run `{record['name']}` ({record['gpu']}{also}) {verdict}: "
                      f"[README]({path.rsplit('/', 1)[0]}/README.md).")
     return lines
 
