@@ -201,7 +201,8 @@ class PPOConfig:
     ('pull')"""
     #: The hold keeps the rate the adaptive rule happened to reach by the fade's start: 7.5e-5 to 3.0e-4 in the
     #: robust preset's fourth to twelfth runs, and the twelfth, holding 3.0e-4, read KLs 3-5 times the ninth's (7.5e-5)
-    #: while its teacher pulled (docs/training/robust/h200_run12). A bound makes the held rate a setting, not a draw.
+    #: while its teacher pulled (docs/training/robust/h200_run12). A bound makes the held rate a setting, not a draw;
+    #: bounded at 7.5e-5, the capped thirteenth run still failed (docs/training/robust/h200_run13), so it stays 0.
     assist_lr_max: float = 0.0
     """highest learning rate while assist_lr_hold holds the adaptive rate (0: no bound; the rate the rule had
     reached when the hold began); with the adaptive schedule and a torque assist only"""
