@@ -561,7 +561,34 @@ def train_over_ceiling(docs: Path) -> list[str]:
     return ["", "Training against that ceiling in the same run: the simulator's step timed in place (CUDA events) "
             "over the timed iterations, the ceiling its env count over that time:", "", *rows, *split, "",
             *_source(TRAIN_OVER_CEILING, m["command"], m["date"], m["gpu"],
-                     TRAIN_OVER_CEILING.removesuffix(".json") + ".md")]
+                     TRAIN_OVER_CEILING.removesuffix(".json") + ".md"), *train_over_ceiling_variants(docs)]
+
+
+#: The same measurement with options the presets do not use yet, one report per env count.
+TRAIN_OVER_CEILING_OVERLAP = "benchmarks/train_over_ceiling_overlap"
+
+
+def train_over_ceiling_variants(docs: Path) -> list[str]:
+    """One line per committed ``--ceiling`` report of the preset with options switched on (``--set``), against the
+    target of its env count."""
+    lines = []
+    for path in sorted((docs / TRAIN_OVER_CEILING_OVERLAP).glob("envs*.json"),
+                       key=lambda p: int(p.stem.removeprefix("envs"))):
+        d = json.loads(path.read_text())
+        for r in d["results"]:
+            target = CEILING_TARGETS.get(r["num_envs"])
+            verdict = "" if target is None else f", {'meets' if r['ratio_train_over_ceiling'] >= target else 'misses'}"
+            options = " ".join(f"`{k}={str(v).lower() if isinstance(v, bool) else v}`"
+                               for k, v in r.get("overrides", {}).items())
+            lines.append(f"- {r['num_envs']:,} envs with {options or 'no option'}: "
+                         f"**{r['ratio_train_over_ceiling']:.3f}** of the ceiling ({_k(r['train_env_steps_per_s'])} "
+                         f"against {_k(r['ceiling_env_steps_per_s'])} env-steps/s{verdict}"
+                         + ("" if target is None else f" the target {target:g}") + f"; {d['meta']['date']}, "
+                         f"{d['meta']['gpu']}; [{path.name}]({TRAIN_OVER_CEILING_OVERLAP}/{path.name})).")
+    if not lines:
+        return []
+    return ["", "With options that no preset uses yet, measured the same way "
+            f"([details]({TRAIN_OVER_CEILING_OVERLAP}/README.md)):", "", *lines]
 
 
 def soak(docs: Path) -> list[str]:

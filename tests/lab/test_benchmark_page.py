@@ -108,6 +108,20 @@ def test_train_over_ceiling_joins_the_solver_load_section_with_its_targets(tmp_p
     # 4,096 / 150k/s = 27.31 ms a step: 24.00 physics, 96 ms / 48 steps = 2.00 update, 1.31 the rest; the row without
     # an update time has no split.
     assert "| 4,096 | 27.31 | 24.00 | 2.00 | 1.31 |" in text and "| 16,384 | 86.23 |" not in text
+    assert "With options that no preset uses yet" not in text  # no variant report: no line
+    # A variant report per env count, read in env-count order (16384 after 4096, not before it as text).
+    variant = tmp_path / page.TRAIN_OVER_CEILING_OVERLAP
+    variant.mkdir(parents=True)
+    for n, ratio in ((16384, 0.951), (4096, 0.891)):
+        row = {**rows[0], "num_envs": n, "ratio_train_over_ceiling": ratio,
+               "overrides": {"ppo.overlap_update": True, "ppo.matmul_precision": "high"}}
+        (variant / f"envs{n}.json").write_text(json.dumps(
+            {"meta": {"command": "c", "date": "2026-12-05", "gpu": "NVIDIA H200"}, "results": [row]}))
+    lines = [line for line in page.train_over_ceiling(tmp_path) if line.startswith("- 4,096 envs with") or
+             line.startswith("- 16,384 envs with")]
+    assert len(lines) == 2 and lines[0].startswith("- 4,096") and lines[1].startswith("- 16,384")
+    assert "`ppo.overlap_update=true` `ppo.matmul_precision=high`: **0.891**" in lines[0]
+    assert "misses the target 0.9" in lines[0] and "meets the target 0.95" in lines[1]
 
 
 def test_the_capped_solver_cost_appears_only_once_measured(tmp_path):
