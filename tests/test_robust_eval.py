@@ -566,6 +566,28 @@ def test_checkpoint_case_as_trained_acts_with_the_assist_its_training_had(tmp_pa
         robust.RobustTestConfig(push_kind="impulse").validate(0.004)
 
 
+@needs_policy
+def test_checkpoint_case_with_train_solver_runs_the_cap_the_run_trained_with(tmp_path):
+    """A run trained with the Newton solver capped (here a copy of the shipped torque checkpoint saved as if capped
+    at 4 iterations): its case runs the model's 20 iterations, as every test does, and the cap only with
+    train_solver; a run without a cap keeps the model's solver either way."""
+    from tocabi_torchrl.evaluation import robust
+
+    saved = torch.load(REPO / "assets" / "policies" / "tocabi_walk_torque.pt", map_location="cpu", weights_only=True)
+    saved["config"]["env"]["sim"]["solver_iterations"] = 4
+    path = tmp_path / "capped.pt"
+    torch.save(saved, path)
+    test = robust.RobustTestConfig(num_envs=2, seconds=0.1)
+    _, cfg, tested, _ = robust.checkpoint_case(path, "nominal", "cpu", test)
+    _, _, as_trained, _ = robust.checkpoint_case(path, "nominal", "cpu", test, train_solver=True)
+    assert cfg.env.sim.solver_iterations == 4
+    assert tested.base_env.sim.mj_model.opt.iterations == 20
+    assert as_trained.base_env.sim.mj_model.opt.iterations == 4
+    plain = REPO / "assets" / "policies" / "tocabi_walk_torque.pt"
+    _, _, uncapped, _ = robust.checkpoint_case(plain, "nominal", "cpu", test, train_solver=True)
+    assert uncapped.base_env.sim.mj_model.opt.iterations == 20
+
+
 def test_cases_run_once_each_in_the_test_order_and_a_subset_is_judged_on_its_cases():
     # A case's robots are a block of world indices whose draws are hashed by index: out of order or twice, a case
     # would meet other robots (or none) than in the whole test.

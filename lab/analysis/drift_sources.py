@@ -70,12 +70,14 @@ def by_start(values: torch.Tensor, start_phase: torch.Tensor) -> dict:
             for p in start_phase.unique()}
 
 
-def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bool = False) -> dict:
+def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bool = False,
+            train_solver: bool = False) -> dict:
     """The drift sources of one checkpoint in one case of the robust test (see the module docstring);
-    ``calm_start``: the robots start without the test's random joint and pelvis velocities."""
+    ``calm_start``: the robots start without the test's random joint and pelvis velocities; ``train_solver``: the
+    physics runs the solver iteration cap the run trained with, not the model's solver the test runs."""
     calm = {"start_joint_vel_std": 0.0, "start_base_vel_std": 0.0} if calm_start else {}
     test = robust.RobustTestConfig(num_envs=num_envs, seconds=seconds, **calm)
-    _, _, env, agent = robust.checkpoint_case(path, case, "cpu", test)
+    _, cfg, env, agent = robust.checkpoint_case(path, case, "cpu", test, train_solver=train_solver)
     freeze_running_statistics(env)  # as the test does: the policy as trained
     dt = float(env.base_env.dt)
     steps = policy_steps(seconds, dt)
@@ -101,7 +103,9 @@ def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bo
                 at[f"{marks[k]:g} s"] = spread(y - start_y)
             td = step_mdp(td)
     lateral = y - start_y
+    solver = cfg.env.sim.solver_iterations if train_solver else None
     return {"checkpoint": str(path), "case": case, "robots": num_envs, "seconds": seconds, "calm_start": calm_start,
+            "solver_iterations": solver,
             "survival": round(float(alive.float().mean()), 4), "lateral_m": spread(lateral),
             "lateral_m_at": at, "from_heading_m": spread(turned), "from_sideways_walk_m": spread(sideways),
             "lateral_m_by_start_phase": by_start(lateral, start_phase)}
@@ -116,14 +120,18 @@ def main(argv=None) -> int:
     p.add_argument("--calm_start", action="store_true",
                    help="also each checkpoint with the robots starting still (no random start velocities): how much "
                         "of the drift is the start's")
+    p.add_argument("--train_solver", action="store_true",
+                   help="run the physics with the solver iteration cap each run trained with "
+                        "(env.sim.solver_iterations), not the model's solver the test runs: is the drift the cap's?")
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
     args = p.parse_args(argv)
     check_paths(p, args.checkpoint, args.out)
     results = []
     for path, calm in [(c, calm) for c in args.checkpoint for calm in (False, True)[:1 + args.calm_start]]:
         start = time.perf_counter()
-        r = measure(path, args.case, args.num_envs, args.seconds, calm)
-        print(f"{path}{' (calm start)' if calm else ''}: lateral {r['lateral_m']}, from the heading "
+        r = measure(path, args.case, args.num_envs, args.seconds, calm, args.train_solver)
+        solver = f" (solver capped at {r['solver_iterations']})" if r["solver_iterations"] else ""
+        print(f"{path}{' (calm start)' if calm else ''}{solver}: survival {r['survival']}, lateral {r['lateral_m']}, from the heading "
               f"{r['from_heading_m']}, from walking sideways {r['from_sideways_walk_m']}, by start phase "
               f"{r['lateral_m_by_start_phase']} "
               f"({time.perf_counter() - start:.0f} s)", flush=True)

@@ -219,12 +219,13 @@ def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig =
 
 
 def case_env(cfg: RunConfig, case: str | RobustCase, device: torch.device, num_envs: int,
-             test: RobustTestConfig = RobustTestConfig(), torque_assist: bool = False):
+             test: RobustTestConfig = RobustTestConfig(), torque_assist: bool = False, train_solver: bool = False):
     """The env of one case (``num_envs`` robots on ``device``), built as the trainer builds envs
     (:func:`~tocabi_torchrl.rl.trainer.build_env`) from :func:`case_config`. On CUDA its step is one captured CUDA
     graph (:class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv`), which :func:`run_case` replays.
     ``torque_assist``: the torque preset's training aid in the env (an analysis of a checkpoint as it acted in
-    training, :func:`checkpoint_case`; the test itself never has it)."""
+    training, :func:`checkpoint_case`; the test itself never has it). ``train_solver``: ``cfg``'s own solver
+    iteration cap instead of the model's (an analysis, :func:`checkpoint_case`; never the test's)."""
     from ..rl.trainer import build_env
 
     device = torch.device(device)
@@ -233,24 +234,31 @@ def case_env(cfg: RunConfig, case: str | RobustCase, device: torch.device, num_e
     if torque_assist:
         out = dataclasses.replace(out, env=dataclasses.replace(out.env, control=dataclasses.replace(
             out.env.control, torque_assist=True)))
+    if train_solver:
+        out = dataclasses.replace(out, env=dataclasses.replace(out.env, sim=dataclasses.replace(
+            out.env.sim, solver_iterations=cfg.env.sim.solver_iterations)))
     return build_env(out, device, num_envs=num_envs, **graph)
 
 
 def checkpoint_case(path: str | os.PathLike, case: str | RobustCase, device: torch.device | str,
-                    test: RobustTestConfig = RobustTestConfig(), as_trained: bool = False):
+                    test: RobustTestConfig = RobustTestConfig(), as_trained: bool = False,
+                    train_solver: bool = False):
     """A checkpoint's policy in one case's env, ready for :func:`run_case`: ``(state, cfg, env, agent)``, the
     checkpoint as read, its run config, the env of ``test.num_envs`` robots (:func:`case_env`) seeded with
     ``test.seed`` and holding the checkpoint's normaliser statistics, and the agent with its weights
     (``agent.actor`` is the policy to roll out). ``as_trained``: a checkpoint of a run with the torque assist
     (``ppo.torque_assist``) acts with the assist at the β its training had reached (an analysis: is a weakness the
-    fade's?); without it, as in every test, its legs are pure torque."""
+    fade's?); without it, as in every test, its legs are pure torque. ``train_solver``: the case's physics runs the
+    Newton solver the run trained with (``env.sim.solver_iterations``; an analysis: is a weakness the cap's?);
+    without it, as in every test, the model's own."""
     from ..rl.checkpoint import apply_checkpoint, config_from_checkpoint, read_checkpoint
     from ..rl.trainer import assist_schedule, build_agent
 
     state = read_checkpoint(path)
     cfg = config_from_checkpoint(state, path)
     assisted = as_trained and cfg.ppo.torque_assist > 0
-    env = case_env(cfg, case, torch.device(device), test.num_envs, test, torque_assist=assisted)
+    env = case_env(cfg, case, torch.device(device), test.num_envs, test, torque_assist=assisted,
+                   train_solver=train_solver)
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
     apply_checkpoint(state, agent, env=env, path=path)
     if assisted:
