@@ -9,6 +9,10 @@ displacement at fixed times (the start's transient against the rest of the walk)
 (every start row of the motion: a symmetric policy on a symmetric robot drifts by the same amount to opposite sides
 from mirrored starts, so the mean over both is the policy's own bias).
 
+``--train_solver`` runs the physics with the solver iteration cap each checkpoint's run trained with
+(``env.sim.solver_iterations``) instead of the model's solver the test runs: does a capped run's policy walk better
+on the physics it trained on?
+
 Wrote the drift sources of docs/training/robust/h200_run8/README.md (about 80 s per checkpoint and start of 64 robots
 on 2 cores)::
 
@@ -131,9 +135,9 @@ def main(argv=None) -> int:
         start = time.perf_counter()
         r = measure(path, args.case, args.num_envs, args.seconds, calm, args.train_solver)
         solver = f" (solver capped at {r['solver_iterations']})" if r["solver_iterations"] else ""
-        print(f"{path}{' (calm start)' if calm else ''}{solver}: survival {r['survival']}, lateral {r['lateral_m']}, from the heading "
-              f"{r['from_heading_m']}, from walking sideways {r['from_sideways_walk_m']}, by start phase "
-              f"{r['lateral_m_by_start_phase']} "
+        print(f"{path}{' (calm start)' if calm else ''}{solver}: survival {r['survival']}, lateral {r['lateral_m']}, "
+              f"from the heading {r['from_heading_m']}, from walking sideways {r['from_sideways_walk_m']}, "
+              f"by start phase {r['lateral_m_by_start_phase']} "
               f"({time.perf_counter() - start:.0f} s)", flush=True)
         results.append(r)
     if args.out is not None:

@@ -557,26 +557,29 @@ def train_over_ceiling(docs: Path) -> list[str]:
             split.append(f"| {r['num_envs']:,} | {step:.2f} | {physics:.2f} | {update:.2f} | "
                          f"{step - physics - update:.2f} |")
     split = ["", "Where a training step's time goes (ms per policy step of all envs; the update is its last "
-             "iteration's time over the iteration's policy steps, the rest is everything else: policy, "
-             "observations, rewards, resets, GAE):", "", *split] if len(split) > 2 else []
+             "iteration's host time from the rollout's end (GAE and the update) over the iteration's policy steps, "
+             "the rest is everything else: policy, observations, rewards, resets):", "", *split] if len(split) > 2 else []
     return ["", "Training against that ceiling in the same run: the simulator's step timed in place (CUDA events) "
             "over the timed iterations, the ceiling its env count over that time:", "", *rows, *split, "",
             *_source(TRAIN_OVER_CEILING, m["command"], m["date"], m["gpu"],
                      TRAIN_OVER_CEILING.removesuffix(".json") + ".md"), *train_over_ceiling_variants(docs)]
 
 
-#: The same measurement with options the presets do not use yet, one report per env count.
+#: The same measurement with the update overlapped and TF32, which the presets do not use yet: one report per env
+#: count, ``envs<N>.json``.
 TRAIN_OVER_CEILING_OVERLAP = "benchmarks/train_over_ceiling_overlap"
 
 
 def train_over_ceiling_variants(docs: Path) -> list[str]:
-    """One line per committed ``--ceiling`` report of the preset with options switched on (``--set``), against the
-    target of its env count."""
+    """One line per result of the committed ``--ceiling`` reports in :data:`TRAIN_OVER_CEILING_OVERLAP` (the preset
+    with options switched on by ``--set``), in env-count order, each against the target of its env count; a result
+    without a training rate is left out."""
     lines = []
-    for path in sorted((docs / TRAIN_OVER_CEILING_OVERLAP).glob("envs*.json"),
-                       key=lambda p: int(p.stem.removeprefix("envs"))):
+    reports = [p for p in (docs / TRAIN_OVER_CEILING_OVERLAP).glob("envs*.json")
+               if p.stem.removeprefix("envs").isdigit()]
+    for path in sorted(reports, key=lambda p: int(p.stem.removeprefix("envs"))):
         d = json.loads(path.read_text())
-        for r in d["results"]:
+        for r in (r for r in d["results"] if r.get("ratio_train_over_ceiling") is not None):
             target = CEILING_TARGETS.get(r["num_envs"])
             verdict = "" if target is None else f", {'meets' if r['ratio_train_over_ceiling'] >= target else 'misses'}"
             options = " ".join(f"`{k}={str(v).lower() if isinstance(v, bool) else v}`"

@@ -112,14 +112,16 @@ def test_train_over_ceiling_joins_the_solver_load_section_with_its_targets(tmp_p
     # A variant report per env count, read in env-count order (16384 after 4096, not before it as text).
     variant = tmp_path / page.TRAIN_OVER_CEILING_OVERLAP
     variant.mkdir(parents=True)
-    for n, ratio in ((16384, 0.951), (4096, 0.891)):
+    (variant / "envs4096_notes.json").write_text("not a report")  # not envs<N>.json: not read
+    for n, ratio in ((16384, 0.951), (4096, 0.891), (1024, None)):
         row = {**rows[0], "num_envs": n, "ratio_train_over_ceiling": ratio,
                "overrides": {"ppo.overlap_update": True, "ppo.matmul_precision": "high"}}
         (variant / f"envs{n}.json").write_text(json.dumps(
             {"meta": {"command": "c", "date": "2026-12-05", "gpu": "NVIDIA H200"}, "results": [row]}))
     lines = [line for line in page.train_over_ceiling(tmp_path) if line.startswith("- 4,096 envs with") or
              line.startswith("- 16,384 envs with")]
-    assert len(lines) == 2 and lines[0].startswith("- 4,096") and lines[1].startswith("- 16,384")
+    assert len(lines) == 2 and lines[0].startswith("- 4,096")
+    assert not any(line.startswith("- 1,024") for line in page.train_over_ceiling(tmp_path))  # no training rate and lines[1].startswith("- 16,384")
     assert "`ppo.overlap_update=true` `ppo.matmul_precision=high`: **0.891**" in lines[0]
     assert "misses the target 0.9" in lines[0] and "meets the target 0.95" in lines[1]
 

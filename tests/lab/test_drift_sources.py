@@ -55,3 +55,19 @@ def test_a_short_case_on_a_shipped_policy_writes_its_report(tmp_path):
         assert r["solver_iterations"] is None  # the test's solver, the model's own
     with pytest.raises(SystemExit):
         drift_sources.main(args)
+
+
+def test_train_solver_runs_the_cap_the_run_trained_with(tmp_path):
+    """A checkpoint saved as if trained with the solver capped at 4 iterations: --train_solver runs its case on that
+    cap and says so in the report; without the flag the report names none (the model's solver)."""
+    from lab.benchmarks.robust_policies import POLICIES
+
+    saved = torch.load(POLICIES / "tocabi_walk_torque.pt", map_location="cpu", weights_only=True)
+    saved["config"]["env"]["sim"]["solver_iterations"] = 4
+    capped = tmp_path / "capped.pt"
+    torch.save(saved, capped)
+    for flag, expected in ((["--train_solver"], 4), ([], None)):
+        out = tmp_path / f"drift{len(flag)}.json"
+        assert drift_sources.main(["--checkpoint", str(capped), "--num_envs", "2", "--seconds", "0.1", *flag,
+                                   "--out", str(out)]) == 0
+        assert json.loads(out.read_text())["results"][0]["solver_iterations"] == expected
