@@ -322,8 +322,9 @@ def test_bad_command_schedule():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_gpu_step_and_reset_never_sync():
-    e = TocabiWalk(num_envs=64, device="cuda", seed=0, control_mode="torque")
+@pytest.mark.parametrize("options", [{}, {"cycle_velocity": True}], ids=["plain", "cycle_velocity"])
+def test_gpu_step_and_reset_never_sync(options):
+    e = TocabiWalk(num_envs=64, device="cuda", seed=0, control_mode="torque", **options)
     check_env_specs(e, seed=0)
     td = e.reset()
     action = torch.zeros(64, 13, device="cuda")

@@ -177,7 +177,8 @@ def test_zero_action_walk_stays_finite_and_resets_clear_the_feedforward(env):
 def test_specs_and_the_signal_exist_in_model_based_mode_only():
     e = TocabiWalk(num_envs=N, device="cpu", seed=0, backend="mujoco", control_mode="model_based")
     check_env_specs(e, seed=0)
-    assert e.signal_flags() == {"torque_assist": False, "model_based": True, "obstacles": False, "pushes": False}
+    assert e.signal_flags() == {"torque_assist": False, "model_based": True, "obstacles": False, "pushes": False,
+                                "cycle_velocity": False}
     assert "leg_feedforward" in e.observation_spec.keys()
     plain = TocabiWalk(num_envs=N, device="cpu", seed=0, backend="mujoco", control_mode="torque")
     assert "leg_feedforward" not in plain.observation_spec.keys() and plain.computed_torque is None

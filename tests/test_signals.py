@@ -176,9 +176,11 @@ def test_conditional_signal_follows_the_config():
     row = SIGNALS["leg_assist"]
     assert row.requires == "torque_assist"
     assert not row.enabled(None) and "leg_assist" not in [r.name for r in SIGNALS.enabled()]
-    assisted_flags = {"torque_assist": True, "model_based": False, "obstacles": False, "pushes": False}
+    assisted_flags = {"torque_assist": True, "model_based": False, "obstacles": False, "pushes": False,
+                      "cycle_velocity": False}
     assert not row.enabled({"torque_assist": False}) and SIGNALS.enabled(assisted_flags)[-1] is row
-    assert _env().signal_flags() == {"torque_assist": False, "model_based": False, "obstacles": False, "pushes": False}
+    assert _env().signal_flags() == {"torque_assist": False, "model_based": False, "obstacles": False, "pushes": False,
+                                     "cycle_velocity": False}
     assisted = _env(torque_assist=True, control_mode="torque")
     assert assisted.signal_flags() == assisted_flags
     assert list(assisted.observation_spec.keys())[-1] == "leg_assist"

@@ -457,6 +457,9 @@ class RunConfig:
         if self.ppo.torque_assist > 0 and self.env.control.mode != "torque":
             raise ValueError(f"ppo.torque_assist > 0 needs control_mode='torque' (env.control.mode), got "
                              f"{self.env.control.mode!r} (set ppo.torque_assist=0 for the PD modes)")
+        if self.transforms.cycle_vel_weight > 0 and not self.env.task.cycle_velocity:
+            raise ValueError("transforms.cycle_vel_weight > 0 reads the env's cycle_vel_error signal, which "
+                             "env.task.cycle_velocity turns on: set env.task.cycle_velocity=true as well")
         if self.ppo.minibatch_size > self.frames_per_batch:
             raise ValueError(
                 f"ppo.minibatch_size {self.ppo.minibatch_size} exceeds the rollout ({self.env.num_envs} envs × "

@@ -136,6 +136,8 @@ class TaskConfig:
         start_joint_vel_std: std [rad/s] of Gaussian joint velocities a reset world starts with (0: at rest).
         start_base_vel_std: std [m/s] of the pelvis's Gaussian linear velocity (each axis) at reset (0: at rest).
             Either above 0 makes the starts diverse (the robust gait test) and the reset runs the full pass.
+        cycle_velocity: report ``cycle_vel_error``, the heading-frame velocity minus the command averaged over the
+            last gait cycle (envs/cycle_velocity.py), which the ``cycle_vel`` reward term reads.
     """
 
     max_episode_steps: int = 8000
@@ -154,6 +156,9 @@ class TaskConfig:
     """episode ends on a self-collision"""
     start_joint_vel_std: float = 0.0
     start_base_vel_std: float = 0.0
+    cycle_velocity: bool = False
+    """report cycle_vel_error, the velocity-tracking error averaged over the last gait cycle [m/s] (the cycle_vel
+    reward term reads it)"""
 
     def validate(self) -> None:
         m = self.max_episode_steps
@@ -165,6 +170,8 @@ class TaskConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 <= value <= 10):
                 raise ValueError(f"env.task.{name} must be a std in [0, 10], got {value!r}")
+        if not isinstance(self.cycle_velocity, bool):
+            raise ValueError(f"env.task.cycle_velocity must be true or false, got {self.cycle_velocity!r}")
 
     @property
     def diverse_starts(self) -> bool:

@@ -28,6 +28,7 @@ from ..sim.dynamics import WorldDynamics
 from .command import VelocityCommand
 from .config import TocabiWalkConfig, resolve_backend
 from .controllers import leg_actuator_chain, leg_law, upper_body_law
+from .cycle_velocity import CycleVelocityError, gait_cycle_steps, heading_velocity
 from .episode_random import EpisodeDraws, box_muller
 from .obstacles import add_obstacles, world_obstacle_centres
 from .pushes import Pushes
@@ -289,6 +290,12 @@ class TocabiWalk(EnvBase):
         # Episodes started per env: with the env index and the seed it keys the reset's random draws.
         self._env_ids = torch.arange(n, dtype=torch.int64, device=dev)
         self.episode_count = torch.zeros(n, dtype=torch.int64, device=dev)
+        #: With ``env.task.cycle_velocity``: the rolling error over each world's last gait cycle and its latest
+        #: mean, (N, 2) [m/s] (the ``cycle_vel_error`` signal); None without it.
+        self.cycle_velocity = self.cycle_vel_error = None
+        if self.cfg.task.cycle_velocity:
+            self.cycle_velocity = CycleVelocityError(n, gait_cycle_steps(self.motion.period, self.dt), dev)
+            self.cycle_vel_error = torch.zeros(n, 2, dtype=f32, device=dev)
 
     def _draw_pool(self) -> None:
         """Draw each world's ``env.sim.start_pool`` start states, keyed on (build seed, env, state index) in streams
@@ -354,7 +361,8 @@ class TocabiWalk(EnvBase):
         """The options that turn the signal table's conditional rows on (``Signal.requires``)."""
         extra = self.leg_controller.signals()
         return {"torque_assist": "leg_assist" in extra, "model_based": "leg_feedforward" in extra,
-                "obstacles": bool(self.cfg.scene.obstacles), "pushes": self.pushes is not None}
+                "obstacles": bool(self.cfg.scene.obstacles), "pushes": self.pushes is not None,
+                "cycle_velocity": self.cycle_velocity is not None}
 
     def _check_observe_matches_table(self) -> None:
         """Raise a clear error, once at construction, when :meth:`_observe` and the signal table disagree.
@@ -447,6 +455,9 @@ class TocabiWalk(EnvBase):
         self.ref_joint_pos.copy_(q_ref)
         self.ref_foot_force.copy_(self.motion.force_reference(row))
         self.stance.copy_(self.motion.stance_at(row))
+        if self.cycle_velocity is not None:
+            velocity = heading_velocity(_finite(self.sim.qpos[:, 3:7]), _finite(self.sim.qvel[:, :3]))
+            self.cycle_vel_error.copy_(self.cycle_velocity.update(velocity, self.command.value, self.episode_step))
 
         sim, cfg = self.sim, self.cfg.task
         flags = termination_flags(
@@ -598,6 +609,8 @@ class TocabiWalk(EnvBase):
             signals["obstacle_contact"] = sim.obstacle_contact.clone()
         if self.pushes is not None:
             signals["kick_age"], signals["kick_speed"] = self.pushes.latest(self.episode_step)
+        if self.cycle_vel_error is not None:
+            signals["cycle_vel_error"] = self.cycle_vel_error.clone()
         return TensorDict(signals, batch_size=self.batch_size, device=self.device)
 
     # ------------------------------------------------------------------------------------------------ resets
@@ -640,6 +653,9 @@ class TocabiWalk(EnvBase):
         self.leg_controller.reset(mask)
         self.upper_controller.reset(mask)
         self.command.reset(mask, u[:, 1:3])
+        if self.cycle_velocity is not None:
+            self.cycle_velocity.reset(mask)
+            self.cycle_vel_error.masked_fill_(m, 0.0)
         # Upper-body servos start on the initial pose so the reset state's forward pass sees no PD transient.
         row = self.motion.row_index(self.time, self.init_row)
         q_ref = self.motion.joint_targets(self.time, self.init_row)

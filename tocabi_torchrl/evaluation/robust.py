@@ -44,6 +44,7 @@ from tqdm.auto import tqdm
 
 from ..atomic import atomic_write_text
 from ..config import RunConfig
+from ..envs.cycle_velocity import gait_cycle_steps
 from ..rotations import quat_rotate_inverse, quat_to_rpy
 from ..transforms.normalize import freeze_running_statistics
 from ..value_rules import PUSH_KINDS
@@ -337,14 +338,6 @@ def heading_frame_velocity(base_quat: torch.Tensor, base_lin_vel: torch.Tensor) 
     yaw = quat_to_rpy(base_quat)[..., 2]
     c, s = torch.cos(yaw), torch.sin(yaw)
     return torch.stack((c * world[..., 0] + s * world[..., 1], -s * world[..., 0] + c * world[..., 1]), -1)
-
-
-def gait_cycle_steps(period: float, dt: float) -> int:
-    """Policy steps in one gait cycle: ``round(period / dt)`` (the reference motion's 1.7995 s at 4 ms: 450)."""
-    steps = round(float(period) / float(dt))
-    if steps < 1:
-        raise ValueError(f"a gait cycle of {period:g} s is shorter than one policy step ({dt:g} s)")
-    return steps
 
 
 class CycleMeanTracking:

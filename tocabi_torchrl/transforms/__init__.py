@@ -51,6 +51,7 @@ __all__ = [
     "ForceDiffThresholdPenalty",
     "HeadingHold",
     "FootGap",
+    "CycleVelTracking",
     "REFERENCE_TERMS",
     "reference_terms",
     "TaskReward",
@@ -77,7 +78,7 @@ __getattr__, __dir__ = lazy_names(globals(), {
     "settings": ("HISTORIES", "RewardWeights", "TransformConfig", "TransformSettings", "transform_config"),
     "reward": ("TaskReward",),
     "kick_relax_config": ("KICK_RELAX_TERMS", "KickRelax"),
-    "reward_terms": ("REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern", "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "FootGap", "HeadingHold", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm", "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
+    "reward_terms": ("REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern", "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "FootGap", "CycleVelTracking", "HeadingHold", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm", "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
     "sensor_noise": ("SensorNoise",),
     "sensor_noise_config": ("SensorNoiseConfig",),
 })

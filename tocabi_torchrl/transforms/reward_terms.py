@@ -45,6 +45,7 @@ __all__ = [
     "ForceThresholdPenalty",
     "ForceDiffThresholdPenalty",
     "HeadingHold",
+    "CycleVelTracking",
     "FootGap",
     "feet_apart_across_heading",
     "REFERENCE_TERMS",
@@ -201,6 +202,34 @@ class HeadingHold(RewardTerm):
 
     def kernel(self, td, next_td):
         return torch.exp(-self.scale * next_td.get("base_rpy")[..., 2:3].square())
+
+
+@dataclass
+class CycleVelTracking(RewardTerm):
+    """Not a reference term: ``weight · exp(-scale · ‖ē‖²)``, ē = ``next["cycle_vel_error"]`` (num_envs, 2) [m/s],
+    the heading-frame pelvis velocity minus the command averaged over the world's last gait cycle (the env's
+    ``env.task.cycle_velocity``; envs/cycle_velocity.py).
+
+    ``body_vel`` reads the instantaneous velocity, whose error is mostly the gait's own sway and surge; a sideways
+    walk of 0.02 m/s, 0.16 m of drift in the gait tests' 8 s, changes it by a fraction of a percent. Averaged over a
+    cycle the rhythm cancels, and this term pays for the average itself, the quantity the robust gait test's
+    tracking error reads. The weight defaults to 0 (off); ``transforms.cycle_vel_weight`` and
+    ``transforms.cycle_vel_scale`` set it in the run config.
+
+    >>> import torch
+    >>> from tensordict import TensorDict
+    >>> nxt = TensorDict({"cycle_vel_error": torch.tensor([[0.0, 0.0], [0.0, 0.1], [0.06, -0.08]])}, [3])
+    >>> [round(k, 4) for k in CycleVelTracking(weight=1.0).kernel(None, nxt).squeeze(-1).tolist()]
+    [1.0, 0.3679, 0.3679]
+    """
+
+    name: str = "cycle_vel"
+    weight: float = 0.0
+    scale: float = 100.0
+    next_keys: tuple = field(default=("cycle_vel_error",), init=False, repr=False)
+
+    def kernel(self, td, next_td):
+        return torch.exp(-self.scale * next_td.get("cycle_vel_error").square().sum(-1, keepdim=True))
 
 
 @dataclass

@@ -214,6 +214,13 @@ class TransformSettings:
     [rad] (not a reference term: reward_terms.HeadingHold); 0: off"""
     heading_scale: float = 20.0
     """sharpness s of the heading-hold term [1/rad²] (20: a 0.1 rad turn costs 18 % of the term)"""
+    cycle_vel_weight: float = 0.0
+    """weight w of the cycle-mean velocity term cycle_vel, w·exp(-s·‖ē‖²), ē the velocity-tracking error averaged
+    over the last gait cycle [m/s] (not a reference term: reward_terms.CycleVelTracking; needs
+    env.task.cycle_velocity); 0: off"""
+    cycle_vel_scale: float = 100.0
+    """sharpness s of the cycle-mean velocity term [s²/m²] (100: a 0.05 m/s average error costs 22 % of the term,
+    0.1 m/s 63 %)"""
     foot_gap_weight: float = 0.0
     """weight w of the foot-gap term foot_gap, w·exp(-(max(g − d, 0)/0.05 m)²), d the feet's sideways distance in
     the heading frame [m] (not a reference term: reward_terms.FootGap; touching feet end the episode); 0: off"""
@@ -252,6 +259,8 @@ class TransformSettings:
                              f"s²/m²) or none for the reference's 3.0, got {self.body_vel_scale!r}")
         for name, low, term in (("heading_weight", "0 <=", "the heading-hold term w·exp(-s·ψ²)"),
                                 ("heading_scale", "0 <", "the heading-hold term w·exp(-s·ψ²)"),
+                                ("cycle_vel_weight", "0 <=", "the cycle-mean velocity term w·exp(-s·‖ē‖²)"),
+                                ("cycle_vel_scale", "0 <", "the cycle-mean velocity term w·exp(-s·‖ē‖²)"),
                                 ("foot_gap_weight", "0 <=", "the foot-gap term w·exp(-(max(g − d, 0)/0.05)²)"),
                                 ("foot_gap_min", "0 <", "the foot-gap term's g [m]")):
             value = getattr(self, name)
@@ -277,11 +286,14 @@ class TransformSettings:
                       reward_scales={} if self.body_vel_scale is None else {"body_vel": float(self.body_vel_scale)})
         # A term that is off is not added, so a config without it computes what it always did.
         extra = []
-        if self.heading_weight > 0 or self.foot_gap_weight > 0:
-            from tocabi_torchrl.transforms.reward_terms import FootGap, HeadingHold  # torch: the tree reads without
+        if self.heading_weight > 0 or self.foot_gap_weight > 0 or self.cycle_vel_weight > 0:
+            # torch: the tree reads without
+            from tocabi_torchrl.transforms.reward_terms import CycleVelTracking, FootGap, HeadingHold
 
             if self.heading_weight > 0:
                 extra.append(HeadingHold(weight=float(self.heading_weight), scale=float(self.heading_scale)))
+            if self.cycle_vel_weight > 0:
+                extra.append(CycleVelTracking(weight=float(self.cycle_vel_weight), scale=float(self.cycle_vel_scale)))
             if self.foot_gap_weight > 0:
                 extra.append(FootGap(weight=float(self.foot_gap_weight), min_gap=float(self.foot_gap_min)))
             values["reward_terms"] = (*REFERENCE_TERM_NAMES, *extra)
