@@ -11,6 +11,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import step_mdp
 
 from tocabi_torchrl.envs import TocabiWalk
+from tocabi_torchrl.envs.command_config import CommandConfig
 from tocabi_torchrl.envs import cycle_velocity
 from tocabi_torchrl.envs.cycle_velocity import CycleVelocityError, heading_velocity
 
@@ -45,6 +46,13 @@ def test_the_rolling_mean_is_the_mean_of_each_worlds_last_window_since_its_reset
             torch.testing.assert_close(got[w], want, atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match="window must be an int >= 1"):
         CycleVelocityError(2, 0, "cpu")
+    # An overflowing step counts as 0 and does not stay in the window beyond its own episode.
+    rolling = CycleVelocityError(1, 3, "cpu")
+    rolling.update(torch.tensor([[float("inf"), 0.0]]), torch.zeros(1, 2), torch.tensor([1]))
+    rolling.reset(torch.tensor([True]))
+    for k in range(1, 5):
+        out = rolling.update(torch.tensor([[0.2, 0.1]]), torch.zeros(1, 2), torch.tensor([k]))
+        torch.testing.assert_close(out, torch.tensor([[0.2, 0.1]]))
 
 
 def test_heading_velocity_turns_the_world_velocity_by_the_yaw_alone():
@@ -59,18 +67,20 @@ def test_heading_velocity_turns_the_world_velocity_by_the_yaw_alone():
     turned = torch.stack([torch.cos(psi / 2), torch.tensor(0.0), torch.tensor(0.0), torch.sin(psi / 2)]).unsqueeze(0)
     along = torch.stack([0.5 * torch.cos(psi), 0.5 * torch.sin(psi), torch.tensor(0.0)]).unsqueeze(0)
     torch.testing.assert_close(heading_velocity(turned, along), torch.tensor([[0.5, 0.0]]), atol=1e-6, rtol=0)
+    # A quaternion a little off unit (as an integrator leaves it) gives the same heading.
+    torch.testing.assert_close(heading_velocity(turned * 1.001, along), torch.tensor([[0.5, 0.0]]), atol=1e-5, rtol=0)
 
 
 def test_the_env_signal_is_the_robust_tests_cycle_mean_and_restarts_at_a_reset():
-    """From diverse starts with zero torques, the env's cycle_vel_error is, at every step, the mean heading-frame
-    velocity minus the mean command over the same window that the robust test's tracking error reads
-    (CycleMeanTracking); a partial reset zeroes the reset world's and keeps the others'. Without the option the
-    signal is absent."""
+    """From diverse starts with zero torques and a command re-drawn every 100 steps, the env's cycle_vel_error is,
+    at every step, the mean heading-frame velocity minus the mean command over the same window that the robust
+    test's tracking error reads (CycleMeanTracking); a partial reset zeroes the reset world's, keeps the others' and
+    restarts its window. Without the option the signal is absent."""
     from tocabi_torchrl.evaluation.robust import CycleMeanTracking, heading_frame_velocity
 
     assert "cycle_vel_error" not in TocabiWalk(num_envs=2, device="cpu", seed=0).reset().keys()
     env = TocabiWalk(num_envs=3, device="cpu", seed=0, control_mode="torque", cycle_velocity=True,
-                     start_joint_vel_std=0.5, start_base_vel_std=0.1)
+                     start_joint_vel_std=0.5, start_base_vel_std=0.1, command=CommandConfig(resample_every=100))
     window = env.cycle_velocity.window
     assert window == 450  # the reference motion's 1.7995 s at 4 ms
     td = env.reset()
@@ -88,9 +98,18 @@ def test_the_env_signal_is_the_robust_tests_cycle_mean_and_restarts_at_a_reset()
         td = step_mdp(td)
     before = td["cycle_vel_error"].clone()
     assert before.abs().min() > 0
-    out = env._reset(td.clone().set("_reset", torch.tensor([[False], [True], [False]])))
-    assert not out["cycle_vel_error"][1].any()
-    torch.testing.assert_close(out["cycle_vel_error"][[0, 2]], before[[0, 2]])
+    td = env._reset(td.clone().set("_reset", torch.tensor([[False], [True], [False]])))
+    assert not td["cycle_vel_error"][1].any()
+    torch.testing.assert_close(td["cycle_vel_error"][[0, 2]], before[[0, 2]])
+    restarted = CycleMeanTracking(1, window)  # world 1's new episode, from its first step
+    for _ in range(5):
+        td = env.step(td.set("action", action))
+        nxt = td["next"]
+        restarted.update(heading_frame_velocity(nxt["base_quat"][1:2], nxt["base_lin_vel"][1:2]), nxt["command"][1:2],
+                         torch.ones(1, dtype=torch.bool))
+        torch.testing.assert_close(nxt["cycle_vel_error"][1:2],
+                                   (restarted.mean_velocity() - restarted.mean_command()).float(), atol=1e-5, rtol=0)
+        td = step_mdp(td)
 
 
 def test_the_cycle_vel_term_reads_the_signal_and_the_run_config_asks_for_both_switches():
@@ -118,22 +137,29 @@ def test_the_cycle_vel_term_reads_the_signal_and_the_run_config_asks_for_both_sw
     assert cfg.env.task.cycle_velocity and not preset_config("robust").env.task.cycle_velocity
     with pytest.raises(ValueError, match="env.task.cycle_velocity must be"):
         preset_config("robust", **{"env.task.cycle_velocity": 1})
+    # Built by hand without the signal, the term names the env option that turns it on.
+    from tocabi_torchrl import make_env
+
+    with pytest.raises(KeyError, match="reports 'cycle_vel_error' only with its option 'cycle_velocity' on"):
+        make_env(num_envs=2, device="cpu", seed=0, transforms=TransformSettings(cycle_vel_weight=0.5)).rollout(1)
 
 
 def test_a_trainer_env_pays_the_term_from_the_signal(tmp_path):
-    """The robust preset's env, as the trainer builds it, with the term on: the logged cycle_vel term is its weight
-    times the kernel of the env's signal at every step."""
+    """The robust preset's env, as the trainer builds it, with the term on (a mild scale, so that the early errors
+    of a standing start give values far from 0): the logged cycle_vel term is its weight times the kernel of the
+    env's signal at every step."""
     from tocabi_torchrl.config import preset_config
     from tocabi_torchrl.rl.trainer import build_env
 
-    cfg = preset_config("robust", **{"transforms.cycle_vel_weight": 0.5, "env.task.cycle_velocity": True,
-                                     "env.num_envs": 2, "ppo.minibatch_size": 32, "env.sim.start_pool": 0,
-                                     "device": "cpu"})
+    cfg = preset_config("robust", **{"transforms.cycle_vel_weight": 0.5, "transforms.cycle_vel_scale": 1.0,
+                                     "env.task.cycle_velocity": True, "env.num_envs": 2, "ppo.minibatch_size": 32,
+                                     "env.sim.start_pool": 0, "device": "cpu"})
     env = build_env(cfg, torch.device("cpu"), num_envs=2)
     nxt = env.rollout(5)["next"]
     error = nxt["cycle_vel_error"]
-    want = 0.5 * torch.exp(-100.0 * error.square().sum(-1, keepdim=True))
+    want = 0.5 * torch.exp(-error.square().sum(-1, keepdim=True))
     alive = ~nxt["terminated"]
+    assert alive.any() and (want[alive] > 0.1).all()
     torch.testing.assert_close(nxt["reward_terms", "cycle_vel"][alive], want[alive])
 
 

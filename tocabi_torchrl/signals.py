@@ -207,8 +207,8 @@ SIGNALS = SignalTable((
            "(0 before the first)", requires="pushes"),
     Signal("cycle_vel_error", (2,), _F32, "m/s",
            "only with `env.task.cycle_velocity`: the heading-frame pelvis velocity minus the command, (vx, vy), "
-           "averaged over the world's last gait cycle (450 policy steps) or its episode so far if shorter; 0 after a "
-           "reset (envs/cycle_velocity.py)", requires="cycle_velocity"),
+           "averaged over the world's last 450 policy steps (one gait cycle at the nominal phase rate) or its "
+           "episode so far if shorter; 0 after a reset (envs/cycle_velocity.py)", requires="cycle_velocity"),
     Signal("obstacle_contact", (2,), _BOOL, "",
            "only with `env.scene.obstacles`: a `Foot_Link` geom touches an obstacle box, [left, right] (also counted "
            "in `foot_contact`)", requires="obstacles"),

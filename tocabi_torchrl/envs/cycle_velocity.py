@@ -33,7 +33,8 @@ def heading_velocity(base_quat: torch.Tensor, world_lin_vel: torch.Tensor) -> to
     [0.5, 0.0]
     """
     w, x, y, z = base_quat.unbind(-1)
-    yaw = torch.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    # w² + x² − y² − z² is 1 − 2(y² + z²) for a unit quaternion, and keeps the yaw right for one a little off unit.
+    yaw = torch.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
     c, s = torch.cos(yaw), torch.sin(yaw)
     vx, vy = world_lin_vel[..., 0], world_lin_vel[..., 1]
     return torch.stack((c * vx + s * vy, -s * vx + c * vy), -1)
@@ -41,7 +42,9 @@ def heading_velocity(base_quat: torch.Tensor, world_lin_vel: torch.Tensor) -> to
 
 class CycleVelocityError:
     """Per world, the mean of ``v − command`` [m/s] (N, 2) over its last ``window`` policy steps, or over the steps
-    of its episode so far when fewer.
+    of its episode so far when fewer. The env's window is one gait cycle at the nominal phase rate (450 steps); a
+    policy that speeds its phase clock up (the phase-rate action, up to 2×) walks up to two cycles in it, which still
+    cancel the sway, and it is the window the robust test's tracking error reads.
 
     Each world writes its step k of an episode into ring slot ``(k − 1) mod window`` and keeps a float64 running sum
     (the value leaving the window cancels what it added up to float64 rounding over a 32 s episode). A reset only
@@ -71,20 +74,22 @@ class CycleVelocityError:
 
     def update(self, velocity: torch.Tensor, command: torch.Tensor, episode_step: torch.Tensor) -> torch.Tensor:
         """Account one policy step: ``velocity`` and ``command`` (N, 2) [m/s] in the heading frame after the step,
-        ``episode_step`` (N,) int64 the step's number in each world's episode (1 for the first step after a
-        reset). Returns the (N, 2) float32 mean (:meth:`mean`) of the steps so far."""
-        torch.sub(velocity, command, out=self._error)
+        ``episode_step`` (N,) int64 the step's number in each world's episode, >= 1 (1 for the first step after a
+        reset). Returns the (N, 2) float32 mean (:meth:`mean`) of the steps so far. A non-finite error is taken as
+        0, so that one overflowing step cannot poison the window for a whole episode."""
+        torch.nan_to_num(torch.sub(velocity, command, out=self._error), nan=0.0, posinf=0.0, neginf=0.0,
+                         out=self._error)
         slot = torch.remainder(episode_step - 1, self.window).view(-1, 1, 1).expand(-1, 1, 2)
         leaving = self.ring.gather(1, slot).squeeze(1)
         # A slot still holding the previous episode's value (the world's first `window` steps) adds nothing back.
-        leaving = leaving * (episode_step > self.window).unsqueeze(-1)
+        leaving = torch.where((episode_step > self.window).unsqueeze(-1), leaving, 0.0)
         self.total.sub_(leaving.double()).add_(self._error.double())
         self.ring.scatter_(1, slot, self._error.unsqueeze(1))
         return self.mean(episode_step)
 
     def mean(self, episode_step: torch.Tensor) -> torch.Tensor:
-        """(N, 2) float32 the running sum over ``min(episode_step, window)`` steps [m/s] (0 before a world's first
-        step)."""
+        """(N, 2) float32 the mean error over each world's last ``min(episode_step, window)`` steps [m/s] (0 before
+        its first step)."""
         count = episode_step.clamp(1, self.window).unsqueeze(-1)
         return (self.total / count).float()
 

@@ -11,6 +11,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from tocabi_torchrl.signals import SIGNALS
 from tocabi_torchrl.transforms._checks import check_finite
 from tocabi_torchrl.transforms.reward_terms import SIGNAL_SHAPES, CallableTerm, RewardTerm
 from tocabi_torchrl.transforms.kick_relax_config import KickRelax
@@ -188,9 +189,13 @@ class TaskReward(Transform):
         for t in self.terms:
             missing = [k for k in (*t.root_keys, *t.next_keys) if k not in available]
             if missing:
+                # A signal the env reports only with one of its options on: name the option.
+                options = [f"{k!r} only with its option {SIGNALS[k].requires!r} on" for k in missing
+                           if isinstance(k, str) and k in SIGNALS and SIGNALS[k].requires]
                 raise KeyError(
                     f"reward term {t.name!r} reads {missing}, which the environment does not provide; "
-                    "drop the term, or add the signal to the env (see docs/concepts/env-and-signals.md)"
+                    + (f"the env reports {', '.join(options)}; " if options else "")
+                    + "drop the term, or add the signal to the env (see docs/concepts/env-and-signals.md)"
                 )
         batch = tuple(observation_spec.shape)
         for t in self.terms:

@@ -287,7 +287,7 @@ class TransformSettings:
         # A term that is off is not added, so a config without it computes what it always did.
         extra = []
         if self.heading_weight > 0 or self.foot_gap_weight > 0 or self.cycle_vel_weight > 0:
-            # torch: the tree reads without
+            # Imported here: the terms need torch, which reading the config tree does not.
             from tocabi_torchrl.transforms.reward_terms import CycleVelTracking, FootGap, HeadingHold
 
             if self.heading_weight > 0:
