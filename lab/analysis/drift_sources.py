@@ -9,6 +9,10 @@ displacement at fixed times (the start's transient against the rest of the walk)
 (every start row of the motion: a symmetric policy on a symmetric robot drifts by the same amount to opposite sides
 from mirrored starts, so the mean over both is the policy's own bias).
 
+After the first gait cycle it also reports the error of the velocity averaged over the last cycle, forward and
+sideways (:func:`cycle_mean_error`): the slow sideways walk the drift accumulates from, which the ``cycle_vel`` reward
+term pays for (``transforms.cycle_vel_weight``).
+
 ``--train_solver`` runs the physics with the solver iteration cap each checkpoint's run trained with
 (``env.sim.solver_iterations``) instead of the model's solver the test runs: does a capped run's policy walk better
 on the physics it trained on?
@@ -30,6 +34,7 @@ from pathlib import Path
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
+from tocabi_torchrl.envs.cycle_velocity import gait_cycle_steps
 from tocabi_torchrl.evaluation import robust
 from tocabi_torchrl.evaluation.record import policy_steps
 from tocabi_torchrl.rotations import quat_to_rpy
@@ -86,6 +91,10 @@ def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bo
     dt = float(env.base_env.dt)
     steps = policy_steps(seconds, dt)
     marks = {round(s / dt): s for s in (*MARKS_S, seconds) if s <= seconds}  # and the case's end
+    # The error of the velocity averaged over the last gait cycle, what the cycle_vel reward term pays for, at every
+    # step after the first cycle where the robot is alive: (steps, N, 2) collected, then summarised.
+    cycle = robust.CycleMeanTracking(num_envs, gait_cycle_steps(env.base_env.motion.period, dt))
+    cycle_errors, cycle_alive = [], []
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
         start_y, start_phase = td["base_pos"][:, 1].clone(), td["phase"].reshape(-1).clone()
@@ -103,6 +112,10 @@ def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bo
             sideways += torch.where(alive, dt_sideways, 0.0)
             y = torch.where(alive, nxt["base_pos"][:, 1], y)
             alive &= ~nxt["done"].reshape(-1)
+            cycle.update(v, nxt["command"], alive)
+            if k > cycle.window:
+                cycle_errors.append((cycle.mean_velocity() - cycle.mean_command()).float())
+                cycle_alive.append(alive.clone())
             if k in marks:
                 at[f"{marks[k]:g} s"] = spread(y - start_y)
             td = step_mdp(td)
@@ -112,7 +125,28 @@ def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bo
             "solver_iterations": solver,
             "survival": round(float(alive.float().mean()), 4), "lateral_m": spread(lateral),
             "lateral_m_at": at, "from_heading_m": spread(turned), "from_sideways_walk_m": spread(sideways),
-            "lateral_m_by_start_phase": by_start(lateral, start_phase)}
+            "lateral_m_by_start_phase": by_start(lateral, start_phase),
+            "cycle_mean_error_mps": cycle_mean_error(cycle_errors, cycle_alive)}
+
+
+def cycle_mean_error(errors: list[torch.Tensor], alive: list[torch.Tensor]) -> dict | None:
+    """Over every step after the first gait cycle where the robot is alive: the mean and p95 of the magnitude of the
+    forward and sideways parts of the cycle-mean velocity error (each ``errors`` entry (N, 2) [m/s], each
+    ``alive`` (N,) bool), and the mean of exp(−100·‖ē‖²), the ``cycle_vel`` term's kernel at its default scale;
+    None when no such step exists (a case shorter than a cycle, or every robot fallen).
+
+    >>> cycle_mean_error([torch.tensor([[0.1, 0.0], [0.0, -0.2]])], [torch.tensor([True, False])])
+    {'forward': {'abs_mean': 0.1, 'abs_p95': 0.1}, 'sideways': {'abs_mean': 0.0, 'abs_p95': 0.0}, 'kernel_mean': 0.3679}
+    """
+    if not errors:
+        return None
+    e = torch.stack(errors)[torch.stack(alive)]  # (alive steps, 2)
+    if not len(e):
+        return None
+    parts = {name: {"abs_mean": round(float(e[:, i].abs().mean()), 4),
+                    "abs_p95": round(float(e[:, i].abs().quantile(0.95)), 4)}
+             for i, name in enumerate(("forward", "sideways"))}
+    return {**parts, "kernel_mean": round(float(torch.exp(-100.0 * e.square().sum(-1)).mean()), 4)}
 
 
 def main(argv=None) -> int:
@@ -137,8 +171,8 @@ def main(argv=None) -> int:
         solver = f" (solver capped at {r['solver_iterations']})" if r["solver_iterations"] else ""
         print(f"{path}{' (calm start)' if calm else ''}{solver}: survival {r['survival']}, lateral {r['lateral_m']}, "
               f"from the heading {r['from_heading_m']}, from walking sideways {r['from_sideways_walk_m']}, "
-              f"by start phase {r['lateral_m_by_start_phase']} "
-              f"({time.perf_counter() - start:.0f} s)", flush=True)
+              f"by start phase {r['lateral_m_by_start_phase']}, cycle-mean velocity error after the first cycle "
+              f"{r['cycle_mean_error_mps']} ({time.perf_counter() - start:.0f} s)", flush=True)
         results.append(r)
     if args.out is not None:
         write_report(args.out, "lab/analysis/drift_sources.py", argv, results)

@@ -53,6 +53,7 @@ def test_a_short_case_on_a_shipped_policy_writes_its_report(tmp_path):
         parts = r["from_heading_m"]["mean"] + r["from_sideways_walk_m"]["mean"]
         assert abs(parts - r["lateral_m"]["mean"]) < 2e-3
         assert r["solver_iterations"] is None  # the test's solver, the model's own
+        assert r["cycle_mean_error_mps"] is None  # 0.2 s: no step after a whole gait cycle
     with pytest.raises(SystemExit):
         drift_sources.main(args)
 
