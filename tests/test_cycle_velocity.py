@@ -17,8 +17,15 @@ from tocabi_torchrl.envs.cycle_velocity import CycleVelocityError, heading_veloc
 
 
 def test_docstring_examples_run():
+    from tocabi_torchrl.transforms.reward_terms import CycleVelTracking
+
     result = doctest.testmod(cycle_velocity)
     assert result.attempted >= 4 and result.failed == 0
+    runner = doctest.DocTestRunner()
+    for test in doctest.DocTestFinder().find(CycleVelTracking, "CycleVelTracking",
+                                             globs={"CycleVelTracking": CycleVelTracking}):
+        runner.run(test)
+    assert runner.summarize(verbose=False).failed == 0 and runner.tries >= 3
 
 
 def test_the_rolling_mean_is_the_mean_of_each_worlds_last_window_since_its_reset():
