@@ -328,6 +328,17 @@ def solver_cap_cost(docs: Path) -> list[str]:
             "solver until a from-scratch run with the cap passes the robust gait test.", *_capped_runs(docs), ""]
 
 
+def _set_items(overrides: dict, skip: tuple[str, ...] = ()) -> str:
+    """``overrides`` {path: value} as the ``--set`` items that gave them, each in backticks (a switch as true or
+    false), those of ``skip`` left out.
+
+    >>> _set_items({"ppo.overlap_update": True, "ppo.lr": 1e-4, "seed": 2}, skip=("seed",))
+    '`ppo.overlap_update=true` `ppo.lr=0.0001`'
+    """
+    return " ".join(f"`{k}={str(v).lower() if isinstance(v, bool) else v}`" for k, v in overrides.items()
+                    if k not in skip)
+
+
 def _capped_runs(docs: Path) -> list[str]:
     """One line per committed from-scratch run of the capped preset: its verdict at the marks it tested."""
     lines = []
@@ -339,8 +350,7 @@ def _capped_runs(docs: Path) -> list[str]:
         verdict = (f"passes at {walk['train_minutes']:.1f} training minutes" if walk else
                    f"does not pass at the marks in its record ({tested} training minutes, of {trained})" if marks
                    else f"has no tested mark in its record ({trained} training minutes)")
-        extra = ", ".join(f"`{k}={v}`" for k, v in record.get("overrides", {}).items()
-                          if k != "env.sim.solver_iterations")
+        extra = _set_items(record.get("overrides", {}), skip=("env.sim.solver_iterations",))
         also = f"; also {extra}" if extra else ""
         lines.append(f"- The capped preset's from-scratch run `{record['name']}` ({record['gpu']}{also}) {verdict}: "
                      f"[README]({path.rsplit('/', 1)[0]}/README.md).")
@@ -558,7 +568,8 @@ def train_over_ceiling(docs: Path) -> list[str]:
                          f"{step - physics - update:.2f} |")
     split = ["", "Where a training step's time goes (ms per policy step of all envs; the update is its last "
              "iteration's host time from the rollout's end (GAE and the update) over the iteration's policy steps, "
-             "the rest is everything else: policy, observations, rewards, resets):", "", *split] if len(split) > 2 else []
+             "the rest is everything else: policy, observations, rewards, resets):", "",
+             *split] if len(split) > 2 else []
     return ["", "Training against that ceiling in the same run: the simulator's step timed in place (CUDA events) "
             "over the timed iterations, the ceiling its env count over that time:", "", *rows, *split, "",
             *_source(TRAIN_OVER_CEILING, m["command"], m["date"], m["gpu"],
@@ -580,14 +591,11 @@ def train_over_ceiling_variants(docs: Path) -> list[str]:
     for path in sorted(reports, key=lambda p: int(p.stem.removeprefix("envs"))):
         d = json.loads(path.read_text())
         for r in (r for r in d["results"] if r.get("ratio_train_over_ceiling") is not None):
-            target = CEILING_TARGETS.get(r["num_envs"])
-            verdict = "" if target is None else f", {'meets' if r['ratio_train_over_ceiling'] >= target else 'misses'}"
-            options = " ".join(f"`{k}={str(v).lower() if isinstance(v, bool) else v}`"
-                               for k, v in r.get("overrides", {}).items())
-            lines.append(f"- {r['num_envs']:,} envs with {options or 'no option'}: "
-                         f"**{r['ratio_train_over_ceiling']:.3f}** of the ceiling ({_k(r['train_env_steps_per_s'])} "
-                         f"against {_k(r['ceiling_env_steps_per_s'])} env-steps/s{verdict}"
-                         + ("" if target is None else f" the target {target:g}") + f"; {d['meta']['date']}, "
+            ratio, target = r["ratio_train_over_ceiling"], CEILING_TARGETS.get(r["num_envs"])
+            verdict = "" if target is None else f", {'meets' if ratio >= target else 'misses'} the target {target:g}"
+            lines.append(f"- {r['num_envs']:,} envs with {_set_items(r.get('overrides', {})) or 'no option'}: "
+                         f"**{ratio:.3f}** of the ceiling ({_k(r['train_env_steps_per_s'])} against "
+                         f"{_k(r['ceiling_env_steps_per_s'])} env-steps/s{verdict}; {d['meta']['date']}, "
                          f"{d['meta']['gpu']}; [{path.name}]({TRAIN_OVER_CEILING_OVERLAP}/{path.name})).")
     if not lines:
         return []

@@ -163,3 +163,10 @@ def test_the_capped_solver_cost_appears_only_once_measured(tmp_path):
     record["overrides"] = {"env.sim.solver_iterations": 4}
     run.write_text(json.dumps({"records": [record]}))
     assert "also" not in "\n".join(page.solver_cap_cost(tmp_path)).split("`robust_v12`")[1]
+
+
+def test_docstring_examples_run():
+    import doctest
+
+    result = doctest.testmod(_page_module())
+    assert result.attempted >= 1 and result.failed == 0

@@ -170,8 +170,6 @@ class TaskConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 <= value <= 10):
                 raise ValueError(f"env.task.{name} must be a std in [0, 10], got {value!r}")
-        if not isinstance(self.cycle_velocity, bool):
-            raise ValueError(f"env.task.cycle_velocity must be true or false, got {self.cycle_velocity!r}")
 
     @property
     def diverse_starts(self) -> bool:

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import torch
 
+from ..rotations import quat_to_rpy
+
 __all__ = ["CycleVelocityError", "gait_cycle_steps", "heading_velocity"]
 
 
@@ -32,9 +34,7 @@ def heading_velocity(base_quat: torch.Tensor, world_lin_vel: torch.Tensor) -> to
     >>> [round(v, 4) + 0.0 for v in heading_velocity(quarter_turn, torch.tensor([[0.0, 0.5, 0.0]]))[0].tolist()]
     [0.5, 0.0]
     """
-    w, x, y, z = base_quat.unbind(-1)
-    # w² + x² − y² − z² is 1 − 2(y² + z²) for a unit quaternion, and keeps the yaw right for one a little off unit.
-    yaw = torch.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
+    yaw = quat_to_rpy(base_quat)[..., 2]  # scale-invariant: a quaternion a little off unit turns the same
     c, s = torch.cos(yaw), torch.sin(yaw)
     vx, vy = world_lin_vel[..., 0], world_lin_vel[..., 1]
     return torch.stack((c * vx + s * vy, -s * vx + c * vy), -1)

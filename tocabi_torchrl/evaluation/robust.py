@@ -44,7 +44,7 @@ from tqdm.auto import tqdm
 
 from ..atomic import atomic_write_text
 from ..config import RunConfig
-from ..envs.cycle_velocity import gait_cycle_steps
+from ..envs.cycle_velocity import gait_cycle_steps, heading_velocity
 from ..rotations import quat_rotate_inverse, quat_to_rpy
 from ..transforms.normalize import freeze_running_statistics
 from ..value_rules import PUSH_KINDS
@@ -335,9 +335,7 @@ def heading_frame_velocity(base_quat: torch.Tensor, base_lin_vel: torch.Tensor) 
     frame: the pelvis frame itself tilts with the gait's roll and pitch."""
     conjugate = base_quat * base_quat.new_tensor([1.0, -1.0, -1.0, -1.0])
     world = quat_rotate_inverse(conjugate, base_lin_vel)  # R(q)·v: the inverse rotation of the conjugate
-    yaw = quat_to_rpy(base_quat)[..., 2]
-    c, s = torch.cos(yaw), torch.sin(yaw)
-    return torch.stack((c * world[..., 0] + s * world[..., 1], -s * world[..., 0] + c * world[..., 1]), -1)
+    return heading_velocity(base_quat, world)
 
 
 class CycleMeanTracking:
