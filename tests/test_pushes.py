@@ -69,6 +69,40 @@ def test_latest_kick_reports_its_age_and_scaled_speed_per_world():
     assert 0.4 <= float(pushes.speed.min()) and float(pushes.speed.max()) <= 1.4
 
 
+def test_a_calm_fraction_leaves_that_share_of_episodes_without_kicks():
+    cfg = PushConfig(count=3, window=(2.0, 7.0), speed=(0.5, 1.0))
+    n, gen = 4000, torch.Generator().manual_seed(3)
+    u, calm = torch.rand(n, 12, generator=gen), torch.rand(n, 1, generator=gen)
+    kicked, mixed = (Pushes(c, n, torch.device("cpu"), 0.004, 100.0) for c in (cfg, dataclasses.replace(
+        cfg, calm_fraction=0.3)))
+    assert (kicked.calm_draws, mixed.calm_draws) == (0, 1)
+    everyone = torch.ones(n, dtype=torch.bool)
+    kicked.reset(everyone, u)
+    mixed.reset(everyone, u, calm)
+    still = (calm < 0.3).squeeze(-1)
+    assert float(still.float().mean()) == pytest.approx(0.3, abs=0.025)
+    # A calm episode has no kick at any step and reports none; every other episode's kicks are as drawn without it.
+    assert float(mixed.speed[still].abs().max()) == 0.0
+    assert float(sum(mixed.at(torch.full((n,), s)).abs() for s in range(1800))[still].max()) == 0.0
+    assert torch.equal(mixed.force[~still], kicked.force[~still]) and torch.equal(mixed.speed[~still],
+                                                                                  kicked.speed[~still])
+    assert float(mixed.latest(torch.full((n,), 1800))[1][still].abs().max()) == 0.0
+    with pytest.raises(ValueError, match=r"needs calm, \(N, 1\) uniforms, got None"):
+        mixed.reset(everyone, u)
+
+
+def test_an_env_draws_each_episodes_calm_from_its_own_stream():
+    # The calm draw is a stream of its own: the kicks of the kicked worlds stay those of the same seed without it.
+    cfg = PushConfig(count=2, window=(1.0, 3.0), speed=(0.5, 1.0), kind="velocity")
+    base, mixed = (_env(c, n=32) for c in (cfg, dataclasses.replace(cfg, calm_fraction=0.5)))
+    base.reset()
+    mixed.reset()
+    still = (mixed.pushes.speed == 0).all(dim=1)
+    assert 4 <= int(still.sum()) <= 28  # worlds differ: some calm, some kicked (binomial(32, 0.5))
+    assert torch.equal(mixed.pushes.speed[~still], base.pushes.speed[~still])
+    assert torch.equal(mixed.pushes.start_step, base.pushes.start_step)
+
+
 def test_an_env_with_kicks_reports_the_latest_one():
     env = TocabiWalk(num_envs=2, device="cpu", seed=0, sim_threads=1, config=dataclasses.replace(
         TocabiWalkConfig(), pushes=PushConfig(count=1, window=(0.02, 0.02), speed=(0.7, 0.7), kind="velocity")))
@@ -86,7 +120,8 @@ def test_an_env_with_kicks_reports_the_latest_one():
 
 
 @pytest.mark.parametrize("bad", [dict(count=-1), dict(count=True), dict(speed=(1.0, 0.5)),
-                                 dict(window=(0.0, float("inf"))), dict(kind="impulse")])
+                                 dict(window=(0.0, float("inf"))), dict(kind="impulse"), dict(calm_fraction=1.0),
+                                 dict(calm_fraction=-0.1), dict(calm_fraction=float("nan"))])
 def test_bad_push_settings_are_refused_by_name(bad):
     with pytest.raises(ValueError, match="env.pushes"):
         PushConfig(**bad).validate()

@@ -301,6 +301,30 @@ def test_push_schedule_times_directions_and_impulse():
     assert np.histogram(angle, bins=4, range=(-math.pi, math.pi))[0].min() > 150  # uniform direction
 
 
+def test_a_calm_fraction_leaves_that_share_of_robots_unkicked_and_the_others_as_drawn():
+    settings = rnd.PushSettings(count=3, window=(2.0, 7.0), speed=(0.5, 1.0))
+    calm = dataclasses.replace(settings, calm_fraction=0.3)
+    kicks, kept = rnd.PushSchedule(settings, DT, 104.5), rnd.PushSchedule(calm, DT, 104.5)
+    kicks.reset(np.random.default_rng(0), 4000)
+    kept.reset(np.random.default_rng(0), 4000)
+    still = (kept.speed == 0).all(axis=1)
+    assert still.mean() == pytest.approx(0.3, abs=0.025)  # binomial σ 0.007
+    assert np.abs(kept.force[still]).max() == 0.0 and np.abs(sum(kept.at(s) for s in range(2000))[still]).max() == 0
+    # The calm draw comes after the others: every kicked robot's kicks are those of the same seed without it.
+    np.testing.assert_array_equal(kept.force[~still], kicks.force[~still])
+    np.testing.assert_array_equal(kept.start_step, kicks.start_step)
+    with pytest.raises(ValueError, match=r"pushes.calm_fraction must be a finite number in \[0, 1\)"):
+        rnd.PushSettings(count=1, calm_fraction=1.0).validate()
+
+
+def test_a_calm_fraction_is_stated_only_when_used_and_read_back(tmp_path):
+    assert "calm_fraction" not in _lab_section(count=3)["pushes"]
+    section = json.loads(json.dumps(_lab_section(count=3, calm_fraction=0.25)))
+    assert section["pushes"]["calm_fraction"] == 0.25 and "without kicks" in section["pushes"]["rule"]
+    _, pushes, _ = rnd.from_contract(load_contract(_with_section(tmp_path, "torque", section)))
+    assert pushes == rnd.PushSettings(count=3, calm_fraction=0.25)
+
+
 def test_a_kick_through_xfrc_applied_changes_the_robots_momentum_by_its_impulse():
     # Zero gravity and the robot in the air: only the kick (an external force) changes the total momentum.
     m = _model()
@@ -514,6 +538,7 @@ def _edit(section: dict, dotted: str, value) -> dict:
     ("sensor_noise.foot_force_bias.half_width", -1.0, "half_width is -1.0 but must be a finite number >= 0"),
     ("pushes.count", 0, "pushes.count is 0 but must be an int in \\[1, 64\\]"),
     ("pushes.speed_mps", [0.5], r"speed_mps is \[0.5\] but must be a \[low, high\] pair"),
+    ("pushes.calm_fraction", 1.0, r"calm_fraction is 1.0 but must be a finite number in \[0, 1\)"),
     ("start_velocity.joint_std_radps", 11.0, r"joint_std_radps is 11.0 but must be a finite number in \[0, 10\]"),
     ("dynamics", None, "trained_under.dynamics is None, not an object"),
 ])

@@ -107,10 +107,14 @@ MAX_SEED = 2**63 - 1
 PUSH_KINDS = ("force", "velocity")
 
 
+#: ``PushConfig.calm_fraction``: the probability of an episode without kicks; 1 would be no kicks (``count`` 0).
+CALM_FRACTION = Range(low=0.0, high=1.0, high_open=True)
+
+
 def check_push_settings(pushes: Any, prefix: str) -> None:
     """Raise ``ValueError`` naming the first bad field (``{prefix}<name>``) of a kicks' settings and what it takes:
-    ``count``, ``window``, ``speed``, ``duration`` and ``kind`` as ``PushConfig`` (the env's) and ``PushSettings``
-    (the torch-free runtime's) both hold them."""
+    ``count``, ``window``, ``speed``, ``duration``, ``kind`` and ``calm_fraction`` as ``PushConfig`` (the env's) and
+    ``PushSettings`` (the torch-free runtime's) both hold them."""
     count = pushes.count
     if isinstance(count, bool) or not isinstance(count, int) or not 0 <= count <= 64:
         raise ValueError(f"{prefix}count must be an int in [0, 64] (kicks per episode), got {count!r}")
@@ -122,6 +126,9 @@ def check_push_settings(pushes: Any, prefix: str) -> None:
     if pushes.kind not in PUSH_KINDS:
         raise ValueError(f"{prefix}kind must be one of {PUSH_KINDS} (force: on the pelvis; velocity: the whole "
                          f"robot's velocity), got {pushes.kind!r}")
+    if not CALM_FRACTION.allows(pushes.calm_fraction):
+        raise ValueError(f"{prefix}calm_fraction must be {CALM_FRACTION.describe()} (the probability of an episode "
+                         f"without kicks; for no kicks at all set count 0), got {pushes.calm_fraction!r}")
 
 
 #: A contract's ``trained_under.actuators.delay.applied``: how the delayed torque reaches the joint, in each
@@ -185,7 +192,8 @@ TRAINED_UNDER_RULES: dict[str, dict[str, dict[str, tuple[Range, str]]]] = {
     "pushes": {
         "pushes": {"count": (Range(low=1, high=64, integer=True), "one"), "window_s": (NON_NEGATIVE, "pair"),
                    "speed_mps": (NON_NEGATIVE, "pair"), "duration_s": (NON_NEGATIVE, "pair"),
-                   "robot_mass_kg": (POSITIVE, "one"), "ramp_env_steps": (Range(low=0, integer=True), "pair")},
+                   "robot_mass_kg": (POSITIVE, "one"), "ramp_env_steps": (Range(low=0, integer=True), "pair"),
+                   "calm_fraction": (CALM_FRACTION, "optional")},
     },
     "start_velocity": {
         "start_velocity": {"joint_std_radps": (Range(low=0.0, high=10.0), "one"),

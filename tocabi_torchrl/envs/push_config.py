@@ -26,6 +26,10 @@ class PushConfig:
             force of its own mass × the same acceleration (a uniform field, like a brief change of gravity), so
             every body's velocity changes by the same ``speed`` and no joint is kicked; what MuJoCo Playground's
             and Isaac Lab's velocity pushes do, and the robust gait test's kicks.
+        calm_fraction: the probability, drawn per episode at reset, that an episode has no kicks at all, in [0, 1)
+            (0: every episode has ``count``). With kicks every two seconds a robot hardly ever walks undisturbed
+            for a whole gait cycle, which the robust gait test's ``nominal`` case asks of it for 8 s; calm episodes
+            train that walk beside the kicked ones.
     """
 
     count: int = 0
@@ -33,6 +37,7 @@ class PushConfig:
     speed: tuple[float, float] = (0.5, 0.5)
     duration: tuple[float, float] = (0.004, 0.004)
     kind: str = "force"
+    calm_fraction: float = 0.0
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field (``env.pushes.<name>``) and what it takes."""

@@ -16,6 +16,9 @@ of policy steps, at least one). How (``PushConfig.kind``):
   reaches both backends' physics alike and keeps the warp step's reuse of its last forward pass valid. The robust
   gait test's kicks: 0.5 and 1.0 m/s (≈ 52 and 104.5 N·s on the 104.5 kg robot) within one 4 ms policy step.
 
+With ``PushConfig.calm_fraction`` f > 0, each episode is calm (no kicks at all) with probability f, drawn at reset
+from one more uniform per world (:attr:`Pushes.calm_draws`).
+
 Everything is device-side and sync-free: the schedule is (N, count) tensors drawn from the env's counter-based
 per-episode uniforms and updated in place, the force is a masked sum over the kicks, and :attr:`Pushes.scale`
 (a 0-d device tensor, e.g. a training curriculum) multiplies every kick without re-capturing a graph.
@@ -47,6 +50,8 @@ class Pushes:
         n, k, f32 = num_envs, cfg.count, torch.float32
         #: Uniforms per world that :meth:`reset` reads: time, direction, speed and duration of each kick.
         self.draws = 4 * k
+        #: Uniforms per world that :meth:`reset` reads as ``calm``: 1 with ``calm_fraction`` > 0, else 0.
+        self.calm_draws = 1 if cfg.calm_fraction > 0 else 0
         # Column 0 of these two pads is the episode's start (step 0, speed 0), the kicks' columns follow: the latest
         # kick is one gather at the number of kicks begun (:meth:`latest`), 0 meaning none yet.
         self._start_pad = torch.zeros(n, k + 1, dtype=torch.int64, device=device)
@@ -56,7 +61,8 @@ class Pushes:
         self.steps = torch.ones(n, k, dtype=torch.int64, device=device)
         #: (N, count, 2) the force [N] of each kick while it acts, world x and y.
         self.force = torch.zeros(n, k, 2, dtype=f32, device=device)
-        #: (N, count) the velocity change [m/s] of each kick as drawn (before :attr:`scale` and :attr:`world_scale`).
+        #: (N, count) the velocity change [m/s] of each kick as drawn (before :attr:`scale` and :attr:`world_scale`;
+        #: 0 in a calm episode).
         self.speed = self._speed_pad[:, 1:]
         #: Multiplies every kick (a 0-d device tensor, 1 = the configured kicks; a curriculum sets it in place).
         self.scale = torch.ones((), dtype=f32, device=device)
@@ -75,12 +81,18 @@ class Pushes:
             # In seconds as the draw computes it (float32 steps times dt): the forces equal the drawn path's.
             self._fixed_seconds = torch.full((), float(fixed), dtype=f32, device=device) * self.dt
 
-    def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
-        """Draw the kicks of the worlds flagged in ``mask`` (N,) bool from ``u`` (N, :attr:`draws`) uniforms."""
+    def reset(self, mask: torch.Tensor, u: torch.Tensor, calm: torch.Tensor | None = None) -> None:
+        """Draw the kicks of the worlds flagged in ``mask`` (N,) bool from ``u`` (N, :attr:`draws`) uniforms, and,
+        with ``calm_fraction`` f > 0, whether the episode is calm from ``calm`` (N, 1) uniforms (calm below f)."""
         k, (s_lo, s_hi), (d_lo, d_hi) = self.cfg.count, self.cfg.speed, self.cfg.duration
         when = self._share_start + self._share * u[:, :k]
         angle = 2.0 * math.pi * u[:, k:2 * k]
         speed = s_lo + (s_hi - s_lo) * u[:, 2 * k:3 * k]
+        if self.calm_draws:
+            if calm is None or tuple(calm.shape) != (u.shape[0], 1):
+                raise ValueError(f"Pushes.reset: calm_fraction {self.cfg.calm_fraction} needs calm, (N, 1) uniforms, "
+                                 f"got {None if calm is None else tuple(calm.shape)}")
+            speed = speed * (calm >= self.cfg.calm_fraction)  # a calm episode's kicks have no speed, so no force
         if self._fixed_seconds is None:
             steps = torch.round((d_lo + (d_hi - d_lo) * u[:, 3 * k:]) / self.dt).long().clamp(min=1)
             magnitude = speed * self.mass / (steps * self.dt)

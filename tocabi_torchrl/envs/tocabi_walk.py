@@ -239,13 +239,15 @@ class TocabiWalk(EnvBase):
             self._register_start_states()
         # Every per-episode draw of a reset, keyed on (seed, env, episode), in one hash pass: stream 0 the start
         # row and first command (and, with a pool, which of its world's start states), 1 the actuators, 2 the
-        # dynamics, 16 the start velocities (Box-Muller pairs), 17 the kicks. The pool's draws replace 2 and 16.
+        # dynamics, 16 the start velocities (Box-Muller pairs), 17 the kicks, 18 whether the episode is calm (no
+        # kicks). The pool's draws replace 2 and 16.
         pooled = self._pool > 0
         self._draws = EpisodeDraws({
             0: 4 if pooled else 3, 1: self.leg_actuators.draws,
             2: self.dynamics.draws if self.dynamics is not None and not pooled else 0,
             16: 2 * (3 + robot.NUM_JOINTS) if cfg.task.diverse_starts and not pooled else 0,
-            17: self.pushes.draws if self.pushes is not None else 0}, device)
+            17: self.pushes.draws if self.pushes is not None else 0,
+            18: self.pushes.calm_draws if self.pushes is not None else 0}, device)
         self._make_specs()
 
     # ------------------------------------------------------------------------------------------------ set-up
@@ -637,7 +639,7 @@ class TocabiWalk(EnvBase):
             if self.dynamics is not None:
                 self.dynamics.nominal(ideal)
         if self.pushes is not None:
-            self.pushes.reset(mask, draws[17])
+            self.pushes.reset(mask, draws[17], draws.get(18))
         if self._pool:
             qvel, pick = self._pool_qvel.flatten(0, 1)[flat], self._pool_pick.flatten()[flat]
         else:

@@ -139,13 +139,15 @@ class PushSettings:
     """Horizontal kicks (``PushConfig``'s fields): ``count`` per episode, kick j at a uniform time in the j-th of
     ``count`` equal shares of ``window`` [s], a uniform direction, a velocity change ~ U(``speed``) [m/s] of the whole
     robot, forces held for ~ U(``duration``) [s] rounded to whole control periods (>= 1): on the pelvis alone
-    (``kind`` "force") or on every body by its mass (``kind`` "velocity", the robust gait test's)."""
+    (``kind`` "force") or on every body by its mass (``kind`` "velocity", the robust gait test's); each robot's
+    episode without any kick with probability ``calm_fraction``."""
 
     count: int = 0
     window: tuple[float, float] = (2.0, 7.0)
     speed: tuple[float, float] = (0.5, 0.5)
     duration: tuple[float, float] = (0.004, 0.004)
     kind: str = "force"
+    calm_fraction: float = 0.0
 
     def validate(self, prefix: str = "pushes.") -> None:
         """Raise ``ValueError`` naming the first bad field and what it takes (``PushConfig.validate``'s rules)."""
@@ -295,7 +297,10 @@ def trained_under_section(randomization: Randomization, pushes: PushSettings, st
                               if pushes.kind == "force" else
                               "a force body_mass * speed / (n * control_dt_s) on every body (world frame, the "
                               "robot's own masses): the whole robot's velocity changes by speed")
-                           + "; ramp_env_steps: training scaled every kick from 0 at the first to 1 at the second"}
+                           + "; ramp_env_steps: training scaled every kick from 0 at the first to 1 at the second"
+                           + ("; calm_fraction: the probability, drawn per episode, of an episode without kicks"
+                              if pushes.calm_fraction > 0 else ""),
+                   **({"calm_fraction": float(pushes.calm_fraction)} if pushes.calm_fraction > 0 else {})}
         if pushes.count > 0 else "off",
         "start_velocity": {"joint_std_radps": float(start.joint_std), "base_std_mps": float(start.base_std),
                            "rule": f"{when}: joint velocities ~ N(0, joint_std^2), pelvis linear velocity ~ "
@@ -334,7 +339,8 @@ def from_contract(contract: dict) -> tuple[Randomization, PushSettings, StartVel
     push = section["pushes"]
     pushes = PushSettings() if push == "off" else PushSettings(
         count=int(push["count"]), window=tuple(push["window_s"]), speed=tuple(push["speed_mps"]),
-        duration=tuple(push["duration_s"]), kind=str(push.get("kind", "force")))
+        duration=tuple(push["duration_s"]), kind=str(push.get("kind", "force")),
+        calm_fraction=float(push.get("calm_fraction", 0.0)))
     st = section["start_velocity"]
     start = StartVelocity() if st == "off" else StartVelocity(float(st["joint_std_radps"]), float(st["base_std_mps"]))
     return Randomization(actuators, dynamics, SensorSettings(**values)), pushes, start
@@ -507,6 +513,8 @@ class PushSchedule:
         angle = rng.uniform(0.0, 2.0 * math.pi, size=(n, k))
         speed = rng.uniform(*s.speed, size=(n, k))
         steps = np.maximum(np.round(rng.uniform(*s.duration, size=(n, k)) / self.dt).astype(np.int64), 1)
+        if s.calm_fraction > 0:  # drawn only then, so that the other draws of a seed stay as they were
+            speed = speed * (rng.uniform(size=(n, 1)) >= s.calm_fraction)
         magnitude = speed * self.mass / (steps * self.dt)
         self.start_step = np.round(when / self.dt).astype(np.int64)
         self.steps = steps
