@@ -86,8 +86,11 @@ def test_a_calm_fraction_leaves_that_share_of_episodes_without_kicks():
     assert float(sum(mixed.at(torch.full((n,), s)).abs() for s in range(1800))[still].max()) == 0.0
     assert torch.equal(mixed.force[~still], kicked.force[~still]) and torch.equal(mixed.speed[~still],
                                                                                   kicked.speed[~still])
-    assert float(mixed.latest(torch.full((n,), 1800))[1][still].abs().max()) == 0.0
-    with pytest.raises(ValueError, match=r"needs calm, \(N, 1\) uniforms, got None"):
+    # ... and reads like an episode before its first kick: its age is the episode's time.
+    age, speed = (v.squeeze(-1) for v in mixed.latest(torch.full((n,), 1800)))
+    assert float(speed[still].abs().max()) == 0.0 and torch.allclose(age[still], torch.full_like(age[still], 7.2))
+    assert float(age[~still].max()) < 7.2 - 5.0  # every kicked episode has begun its last kick by 7 s
+    with pytest.raises(ValueError, match=r"needs `calm`, a \(4000, 1\) float tensor of uniforms, got None"):
         mixed.reset(everyone, u)
 
 
@@ -100,7 +103,8 @@ def test_an_env_draws_each_episodes_calm_from_its_own_stream():
     still = (mixed.pushes.speed == 0).all(dim=1)
     assert 4 <= int(still.sum()) <= 28  # worlds differ: some calm, some kicked (binomial(32, 0.5))
     assert torch.equal(mixed.pushes.speed[~still], base.pushes.speed[~still])
-    assert torch.equal(mixed.pushes.start_step, base.pushes.start_step)
+    assert torch.equal(mixed.pushes.start_step[~still], base.pushes.start_step[~still])
+    assert int(mixed.pushes.start_step[still].min()) > 10 ** 9  # a calm episode's kicks never begin
 
 
 def test_an_env_with_kicks_reports_the_latest_one():

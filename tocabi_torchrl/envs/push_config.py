@@ -27,9 +27,9 @@ class PushConfig:
             every body's velocity changes by the same ``speed`` and no joint is kicked; what MuJoCo Playground's
             and Isaac Lab's velocity pushes do, and the robust gait test's kicks.
         calm_fraction: the probability, drawn per episode at reset, that an episode has no kicks at all, in [0, 1)
-            (0: every episode has ``count``). With kicks every two seconds a robot hardly ever walks undisturbed
-            for a whole gait cycle, which the robust gait test's ``nominal`` case asks of it for 8 s; calm episodes
-            train that walk beside the kicked ones.
+            (0: every episode has ``count``; moot when ``count`` is 0). The ``robust`` preset's kicks come at most
+            3.75 s apart, so its robots never walk the 8 undisturbed seconds of the robust gait test's ``nominal``
+            case; calm episodes are meant to train that walk beside the kicked ones.
     """
 
     count: int = 0

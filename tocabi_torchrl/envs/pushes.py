@@ -17,7 +17,8 @@ of policy steps, at least one). How (``PushConfig.kind``):
   gait test's kicks: 0.5 and 1.0 m/s (≈ 52 and 104.5 N·s on the 104.5 kg robot) within one 4 ms policy step.
 
 With ``PushConfig.calm_fraction`` f > 0, each episode is calm (no kicks at all) with probability f, drawn at reset
-from one more uniform per world (:attr:`Pushes.calm_draws`).
+from one more uniform per world (:attr:`Pushes.calm_draws`): its kicks get no speed and a start time that never
+comes, so a calm episode reads like one before its first kick (``latest``: the episode's time, speed 0).
 
 Everything is device-side and sync-free: the schedule is (N, count) tensors drawn from the env's counter-based
 per-episode uniforms and updated in place, the force is a masked sum over the kicks, and :attr:`Pushes.scale`
@@ -33,6 +34,9 @@ import torch
 from .push_config import PushConfig
 
 __all__ = ["PushConfig", "Pushes"]
+
+#: The start time [s] of a calm episode's kicks: past any episode (a float32 that rounds to a whole policy step).
+NEVER_S = 1.0e9
 
 
 class Pushes:
@@ -90,9 +94,12 @@ class Pushes:
         speed = s_lo + (s_hi - s_lo) * u[:, 2 * k:3 * k]
         if self.calm_draws:
             if calm is None or tuple(calm.shape) != (u.shape[0], 1):
-                raise ValueError(f"Pushes.reset: calm_fraction {self.cfg.calm_fraction} needs calm, (N, 1) uniforms, "
-                                 f"got {None if calm is None else tuple(calm.shape)}")
-            speed = speed * (calm >= self.cfg.calm_fraction)  # a calm episode's kicks have no speed, so no force
+                raise ValueError(f"Pushes.reset: calm_fraction {self.cfg.calm_fraction} needs `calm`, a "
+                                 f"({u.shape[0]}, 1) float tensor of uniforms, got "
+                                 f"{None if calm is None else tuple(calm.shape)}")
+            still = calm < self.cfg.calm_fraction
+            speed = speed.masked_fill(still, 0.0)  # no force
+            when = when.masked_fill(still, NEVER_S)  # and no kick begun, as the time before a first kick reads
         if self._fixed_seconds is None:
             steps = torch.round((d_lo + (d_hi - d_lo) * u[:, 3 * k:]) / self.dt).long().clamp(min=1)
             magnitude = speed * self.mass / (steps * self.dt)
@@ -118,7 +125,8 @@ class Pushes:
         """The episode's most recent kick as of ``episode_step`` (N,) int64 policy steps done: ``(age, speed)``, each
         (N, 1) float32: the seconds since it began [s] and the velocity change it gave [m/s], :attr:`scale` and
         :attr:`world_scale` included; (episode time, 0) before the first kick. The kicks' start steps rise with their
-        index (one per share of the window), so the latest is the last one begun."""
+        index (one per share of the window), so the latest is the last one begun. A calm episode
+        (``calm_fraction``) reads (episode time, 0) throughout."""
         step = episode_step.unsqueeze(-1)
         begun = (self.start_step < step).sum(dim=1, keepdim=True)  # (N, 1) kicks begun: the pads' column
         age = (step - self._start_pad.gather(1, begun)) * self.dt

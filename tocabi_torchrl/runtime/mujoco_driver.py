@@ -382,7 +382,9 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
             "randomize": randomize if isinstance(randomize, str) else "custom",
             "seed": int(seed),
             "pushes": ({"count": pushes.count, "speed_mps": list(pushes.speed), "window_s": list(pushes.window),
-                        "kind": pushes.kind, "kicks_started": kicked} if pushes is not None else None),
+                        "duration_s": list(pushes.duration), "kind": pushes.kind, "kicks_started": kicked,
+                        **({"calm_fraction": pushes.calm_fraction} if pushes.calm_fraction > 0 else {})}
+                       if pushes is not None else None),
             "start_noise": ({"joint_std_radps": start_velocity.joint_std, "base_std_mps": start_velocity.base_std}
                             if start_velocity is not None else None),
         },

@@ -41,6 +41,9 @@ import numpy as np
 
 from ..value_rules import DELAY_APPLIED, check_push_settings
 
+#: The start time [s] of a calm episode's kicks (``PushSettings.calm_fraction``): past any run.
+NEVER_S = 1.0e9
+
 
 __all__ = ["ROBUST_START", "STREAMS", "TOCABI_LAB", "ActuatorLayer", "ActuatorSettings", "DynamicsSettings",
            "PushSchedule", "PushSettings", "Randomization", "SensorModel", "SensorSettings", "StartVelocity",
@@ -514,7 +517,8 @@ class PushSchedule:
         speed = rng.uniform(*s.speed, size=(n, k))
         steps = np.maximum(np.round(rng.uniform(*s.duration, size=(n, k)) / self.dt).astype(np.int64), 1)
         if s.calm_fraction > 0:  # drawn only then, so that the other draws of a seed stay as they were
-            speed = speed * (rng.uniform(size=(n, 1)) >= s.calm_fraction)
+            still = rng.uniform(size=(n, 1)) < s.calm_fraction  # a calm episode: no kick ever begins
+            speed, when = np.where(still, 0.0, speed), np.where(still, NEVER_S, when)
         magnitude = speed * self.mass / (steps * self.dt)
         self.start_step = np.round(when / self.dt).astype(np.int64)
         self.steps = steps
