@@ -3,6 +3,7 @@ truncation, PD mode, backend selection, bad input."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -11,7 +12,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from tocabi_torchrl import robot
-from tocabi_torchrl.envs import CommandConfig, TocabiWalk, VelocityCommand
+from tocabi_torchrl.envs import CommandConfig, TocabiWalk, TocabiWalkConfig, VelocityCommand
 from tocabi_torchrl.envs.config import CPU_DEFAULT_BACKEND, resolve_backend
 from tocabi_torchrl.envs.termination import termination_flags
 from tocabi_torchrl.envs.tocabi_walk import quat_rotate_inverse
@@ -322,8 +323,14 @@ def test_bad_command_schedule():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@pytest.mark.parametrize("options", [{}, {"cycle_velocity": True}], ids=["plain", "cycle_velocity"])
+@pytest.mark.parametrize("options", [{}, {"cycle_velocity": True}, {"pushes": "calm"}],
+                         ids=["plain", "cycle_velocity", "calm_kicks"])
 def test_gpu_step_and_reset_never_sync(options):
+    if options.get("pushes") == "calm":  # kicks from the first step, half the episodes calm
+        from tocabi_torchrl.envs.pushes import PushConfig
+
+        options = {"config": dataclasses.replace(TocabiWalkConfig(), pushes=PushConfig(
+            count=2, window=(0.0, 0.02), speed=(0.5, 1.0), kind="velocity", calm_fraction=0.5))}
     e = TocabiWalk(num_envs=64, device="cuda", seed=0, control_mode="torque", **options)
     check_env_specs(e, seed=0)
     td = e.reset()
