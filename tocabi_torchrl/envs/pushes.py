@@ -35,7 +35,7 @@ from .push_config import PushConfig
 
 __all__ = ["PushConfig", "Pushes"]
 
-#: The start time [s] of a calm episode's kicks: past any episode (a float32 that rounds to a whole policy step).
+#: The start time [s] of a calm episode's kicks: past any episode.
 NEVER_S = 1.0e9
 
 

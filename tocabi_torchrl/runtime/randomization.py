@@ -41,14 +41,13 @@ import numpy as np
 
 from ..value_rules import DELAY_APPLIED, check_push_settings
 
-#: The start time [s] of a calm episode's kicks (``PushSettings.calm_fraction``): past any run.
-NEVER_S = 1.0e9
-
-
 __all__ = ["ROBUST_START", "STREAMS", "TOCABI_LAB", "ActuatorLayer", "ActuatorSettings", "DynamicsSettings",
            "PushSchedule", "PushSettings", "Randomization", "SensorModel", "SensorSettings", "StartVelocity",
            "WorldDynamics", "from_contract", "generator", "settings_from", "start_velocities",
            "trained_under_section"]
+
+#: The start time [s] of a calm episode's kicks (``PushSettings.calm_fraction``): past any run.
+NEVER_S = 1.0e9
 
 #: The random stream of each piece (:func:`generator`).
 STREAMS = {"actuators": 1, "dynamics": 2, "sensor_bias": 3, "sensor_noise": 4, "pushes": 5, "start_velocity": 6}
