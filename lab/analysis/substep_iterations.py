@@ -26,7 +26,8 @@ substep_iterations_at_rest.json (about 5)::
         --out docs/benchmarks/randomization/substep_iterations_at_rest.json
 
 With the solver capped (``env.sim.solver_iterations``), the slowest worlds' solves are cut short, in the substeps a
-delayed torque jumps in as in the others; wrote substep_iterations_cap4.json and _cap3.json (about 10 minutes each)::
+delayed torque jumps in as in the others; wrote substep_iterations_cap4.json, _cap3.json and _cap5.json (about 10
+minutes each)::
 
     PYTHONPATH=. python lab/analysis/substep_iterations.py --num_robots 64 --seconds 4 --iterations 4 \\
         --out docs/benchmarks/randomization/substep_iterations_cap4.json
