@@ -170,6 +170,7 @@ def test_a_trainer_env_pays_the_term_from_the_signal(tmp_path):
     torch.testing.assert_close(nxt["reward_terms", "cycle_vel"][alive], want[alive])
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_a_captured_step_keeps_the_rolling_window_as_the_eager_one_without_syncs():
     """The graphed env (cuda_graph=True) replays the window's gather, scatter and masked reset in place: its signal
