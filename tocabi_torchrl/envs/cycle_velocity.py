@@ -54,7 +54,7 @@ class CycleVelocityError:
 
     >>> e = CycleVelocityError(num_envs=2, window=2, device="cpu")
     >>> for k, v in enumerate(([0.3, 0.0], [0.5, 0.2], [0.7, 0.0])):
-    ...     _ = e.update(torch.tensor([v, v]), torch.tensor([[0.5, 0.0]] * 2), torch.tensor([k + 1, k + 1]))
+    ...     e.update(torch.tensor([v, v]), torch.tensor([[0.5, 0.0]] * 2), torch.tensor([k + 1, k + 1]))
     >>> e.mean(torch.tensor([3, 3])).double().round(decimals=4).tolist()  # the last two: (0, 0.2), (0.2, 0)
     [[0.1, 0.1], [0.1, 0.1]]
     >>> e.reset(torch.tensor([True, False]))
@@ -72,11 +72,11 @@ class CycleVelocityError:
         self.total = torch.zeros(num_envs, 2, dtype=torch.float64, device=device)
         self._error = torch.zeros(num_envs, 2, dtype=torch.float32, device=device)
 
-    def update(self, velocity: torch.Tensor, command: torch.Tensor, episode_step: torch.Tensor) -> torch.Tensor:
+    def update(self, velocity: torch.Tensor, command: torch.Tensor, episode_step: torch.Tensor) -> None:
         """Account one policy step: ``velocity`` and ``command`` (N, 2) [m/s] in the heading frame after the step,
         ``episode_step`` (N,) int64 the step's number in each world's episode, >= 1 (1 for the first step after a
-        reset). Returns the (N, 2) float32 mean (:meth:`mean`) of the steps so far. A non-finite error is taken as
-        0, so that one overflowing step cannot poison the window for a whole episode."""
+        reset); :meth:`mean` then reads the steps so far. A non-finite error is taken as 0, so that one overflowing
+        step cannot poison the window for a whole episode."""
         torch.nan_to_num(torch.sub(velocity, command, out=self._error), nan=0.0, posinf=0.0, neginf=0.0,
                          out=self._error)
         slot = torch.remainder(episode_step - 1, self.window).view(-1, 1, 1).expand(-1, 1, 2)
@@ -85,7 +85,6 @@ class CycleVelocityError:
         leaving = torch.where((episode_step > self.window).unsqueeze(-1), leaving, 0.0)
         self.total.sub_(leaving.double()).add_(self._error.double())
         self.ring.scatter_(1, slot, self._error.unsqueeze(1))
-        return self.mean(episode_step)
 
     def mean(self, episode_step: torch.Tensor) -> torch.Tensor:
         """(N, 2) float32 the mean error over each world's last ``min(episode_step, window)`` steps [m/s] (0 before

@@ -292,12 +292,11 @@ class TocabiWalk(EnvBase):
         # Episodes started per env: with the env index and the seed it keys the reset's random draws.
         self._env_ids = torch.arange(n, dtype=torch.int64, device=dev)
         self.episode_count = torch.zeros(n, dtype=torch.int64, device=dev)
-        #: With ``env.task.cycle_velocity``: the rolling error over each world's last gait cycle and its latest
-        #: mean, (N, 2) [m/s] (the ``cycle_vel_error`` signal); None without it.
-        self.cycle_velocity = self.cycle_vel_error = None
+        #: With ``env.task.cycle_velocity``: the rolling error over each world's last gait cycle, whose mean at
+        #: ``episode_step`` is the ``cycle_vel_error`` signal, (N, 2) [m/s]; None without it.
+        self.cycle_velocity = None
         if self.cfg.task.cycle_velocity:
             self.cycle_velocity = CycleVelocityError(n, gait_cycle_steps(self.motion.period, self.dt), dev)
-            self.cycle_vel_error = torch.zeros(n, 2, dtype=f32, device=dev)
 
     def _draw_pool(self) -> None:
         """Draw each world's ``env.sim.start_pool`` start states, keyed on (build seed, env, state index) in streams
@@ -459,7 +458,7 @@ class TocabiWalk(EnvBase):
         self.stance.copy_(self.motion.stance_at(row))
         if self.cycle_velocity is not None:
             velocity = heading_velocity(_finite(self.sim.qpos[:, 3:7]), _finite(self.sim.qvel[:, :3]))
-            self.cycle_vel_error.copy_(self.cycle_velocity.update(velocity, self.command.value, self.episode_step))
+            self.cycle_velocity.update(velocity, self.command.value, self.episode_step)
 
         sim, cfg = self.sim, self.cfg.task
         flags = termination_flags(
@@ -611,8 +610,8 @@ class TocabiWalk(EnvBase):
             signals["obstacle_contact"] = sim.obstacle_contact.clone()
         if self.pushes is not None:
             signals["kick_age"], signals["kick_speed"] = self.pushes.latest(self.episode_step)
-        if self.cycle_vel_error is not None:
-            signals["cycle_vel_error"] = self.cycle_vel_error.clone()
+        if self.cycle_velocity is not None:  # 0 right after a reset: the world's sum is 0
+            signals["cycle_vel_error"] = self.cycle_velocity.mean(self.episode_step)
         return TensorDict(signals, batch_size=self.batch_size, device=self.device)
 
     # ------------------------------------------------------------------------------------------------ resets
@@ -657,7 +656,6 @@ class TocabiWalk(EnvBase):
         self.command.reset(mask, u[:, 1:3])
         if self.cycle_velocity is not None:
             self.cycle_velocity.reset(mask)
-            self.cycle_vel_error.masked_fill_(m, 0.0)
         # Upper-body servos start on the initial pose so the reset state's forward pass sees no PD transient.
         row = self.motion.row_index(self.time, self.init_row)
         q_ref = self.motion.joint_targets(self.time, self.init_row)
