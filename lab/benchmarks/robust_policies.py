@@ -79,7 +79,8 @@ def render(data: dict, out: Path) -> str:
             rows.append([r["policy"], name, *cells, "pass" if c["passes"] else "FAIL"])
     lines = [common.table(["policy", "case", *[label for label, _, _ in COLUMNS], "case verdict"], rows), ""]
     lines += [f"- {r['policy']}: {'passes' if r['passes'] else 'does not pass'} {_what(r['cases'])}; "
-              f"{r['seconds']:.0f} s for its {NUMBERS[len(r['cases'])]} cases ([report]({r['policy']}/robust.json))"
+              f"{r['seconds']:.0f} s for its {NUMBERS[len(r['cases'])]} case{'s' if len(r['cases']) > 1 else ''} "
+              f"([report]({r['policy']}/robust.json))"
               for r in data["results"]]
     _plot(data, out / f"{NAME}.png")
     s = data["meta"]

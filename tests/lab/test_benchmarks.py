@@ -343,6 +343,10 @@ def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, mon
     assert row["passes"] is True and set(row["cases"]) == {"nominal", "commands"}
     page = (tmp_path / "robust_policies.md").read_text()
     assert "- p: passes the cases nominal, commands; 0 s for its two cases" in page
+    robust_policies.main(["--policies", str(tmp_path / "p.pt"), "--cases", "robust_1.0", "--device", "cpu",
+                          "--out", str(tmp_path / "one")])
+    one = (tmp_path / "one/robust_policies.md").read_text()
+    assert "- p: passes the case robust_1.0; 0 s for its one case (" in one
     with pytest.raises(SystemExit):
         robust_policies.main(["--cases", "nominal", "kicked", "--device", "cpu", "--out", str(tmp_path)])
     assert "unknown case(s) ['kicked']" in capsys.readouterr().err
