@@ -312,7 +312,8 @@ SOLVER_CAP_THREE_ROUNDS = f"{SOLVER_CAP_COST}/three_rounds.json"
 SOLVER_CAP_RUNS = ("training/robust/h200_run12/time_to_walk_robust.json",
                    "training/robust/h200_run13/time_to_walk_robust.json",
                    "training/robust/h200_run14/time_to_walk_robust.json",
-                   "training/robust/h200_run15/time_to_walk_robust.json")
+                   "training/robust/h200_run15/time_to_walk_robust.json",
+                   "training/robust/h200_run16/time_to_walk_robust.json")
 
 
 def solver_cap_cost(docs: Path) -> list[str]:
