@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 import torch
+from tqdm.auto import tqdm
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from tocabi_torchrl.envs.cycle_velocity import gait_cycle_steps
@@ -102,7 +103,7 @@ def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bo
         turned, sideways = torch.zeros(num_envs), torch.zeros(num_envs)
         y = start_y.clone()
         at = {}
-        for k in range(1, steps + 1):
+        for k in tqdm(range(1, steps + 1), desc=f"drift sources: {path.name} {case}", unit="step", leave=False):
             td = env.step(agent.actor(td))
             nxt = td["next"]
             v = robust.heading_frame_velocity(nxt["base_quat"], nxt["base_lin_vel"])

@@ -44,7 +44,7 @@ def measure(path: Path, num_envs: int, seconds: float, tail: float) -> dict:
         phase.append(td["action"][:, -1].clamp(0.0, 1.0))  # the phase-rate action, clipped as the env clips it
         return td
 
-    per_env = robust.run_case(actor, env, seconds, progress=False)
+    per_env = robust.run_case(actor, env, seconds, desc="gait sway")
     base = env.base_env
     vel = torch.stack([v for v, _ in trace[1:]]).double()  # (T, N, 2): after steps 1 .. T (the reset's left out)
     cmd = torch.stack([c for _, c in trace[1:]]).double()

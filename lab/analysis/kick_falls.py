@@ -205,7 +205,7 @@ def measure(path: Path, case: str, num_envs: int, push_kind: str = "velocity", a
         return agent.actor(td)
 
     with noting_terminations({}) as first_flag:
-        per_env = robust.run_case(actor, env, test.seconds, progress=False)
+        per_env = robust.run_case(actor, env, test.seconds, desc=f"kick falls: {Path(path).name}")
     dt = float(env.base_env.dt)
     kick_s = schedule["start"].double() * dt  # (N, K) start time of each kick [s]
     # A kick due after the case's end (a --seconds shorter than the window) never came: NaN is met by no robot.
