@@ -110,6 +110,10 @@ PUSH_KINDS = ("force", "velocity")
 #: ``PushConfig.calm_fraction``: the probability of an episode without kicks; 1 would be no kicks (``count`` 0).
 CALM_FRACTION = Range(low=0.0, high=1.0, high_open=True)
 
+#: The start time [s] of a calm episode's kicks, past any episode: the env's ``Pushes`` and the torch-free runtime's
+#: ``PushSchedule`` both give a calm episode's kicks this time, so that none ever begins.
+CALM_NEVER_S = 1.0e9
+
 
 def check_push_settings(pushes: Any, prefix: str) -> None:
     """Raise ``ValueError`` naming the first bad field (``{prefix}<name>``) of a kicks' settings and what it takes:

@@ -31,12 +31,10 @@ import math
 
 import torch
 
+from ..value_rules import CALM_NEVER_S
 from .push_config import PushConfig
 
 __all__ = ["PushConfig", "Pushes"]
-
-#: The start time [s] of a calm episode's kicks: past any episode.
-NEVER_S = 1.0e9
 
 
 class Pushes:
@@ -99,7 +97,7 @@ class Pushes:
                                  f"{None if calm is None else tuple(calm.shape)}")
             still = calm < self.cfg.calm_fraction
             speed = speed.masked_fill(still, 0.0)  # no force
-            when = when.masked_fill(still, NEVER_S)  # and no kick begun, as the time before a first kick reads
+            when = when.masked_fill(still, CALM_NEVER_S)  # and no kick begun, as the time before a first kick reads
         if self._fixed_seconds is None:
             steps = torch.round((d_lo + (d_hi - d_lo) * u[:, 3 * k:]) / self.dt).long().clamp(min=1)
             magnitude = speed * self.mass / (steps * self.dt)

@@ -39,15 +39,12 @@ from dataclasses import dataclass, fields
 import mujoco
 import numpy as np
 
-from ..value_rules import DELAY_APPLIED, check_push_settings
+from ..value_rules import CALM_NEVER_S, DELAY_APPLIED, check_push_settings
 
 __all__ = ["ROBUST_START", "STREAMS", "TOCABI_LAB", "ActuatorLayer", "ActuatorSettings", "DynamicsSettings",
            "PushSchedule", "PushSettings", "Randomization", "SensorModel", "SensorSettings", "StartVelocity",
            "WorldDynamics", "from_contract", "generator", "settings_from", "start_velocities",
            "trained_under_section"]
-
-#: The start time [s] of a calm episode's kicks (``PushSettings.calm_fraction``): past any run.
-NEVER_S = 1.0e9
 
 #: The random stream of each piece (:func:`generator`).
 STREAMS = {"actuators": 1, "dynamics": 2, "sensor_bias": 3, "sensor_noise": 4, "pushes": 5, "start_velocity": 6}
@@ -517,7 +514,7 @@ class PushSchedule:
         steps = np.maximum(np.round(rng.uniform(*s.duration, size=(n, k)) / self.dt).astype(np.int64), 1)
         if s.calm_fraction > 0:  # drawn only then, so that the other draws of a seed stay as they were
             still = rng.uniform(size=(n, 1)) < s.calm_fraction  # a calm episode: no kick ever begins
-            speed, when = np.where(still, 0.0, speed), np.where(still, NEVER_S, when)
+            speed, when = np.where(still, 0.0, speed), np.where(still, CALM_NEVER_S, when)
         magnitude = speed * self.mass / (steps * self.dt)
         self.start_step = np.round(when / self.dt).astype(np.int64)
         self.steps = steps
