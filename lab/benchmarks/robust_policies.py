@@ -5,7 +5,8 @@
 
 Each policy gets ``tocabi_torchrl.evaluation.robust`` (four cases of ``--num_envs`` robots, 8 s, one batch): its
 ``robust.json`` and ``robust.png`` go to ``<out>/<policy>/``, the table of every policy and case to
-``<out>/robust_policies.{json,md,png}`` with the command, date and hardware, and the seconds each test took.
+``<out>/robust_policies.{json,md,png}`` with the command, date and hardware, and the seconds each test took. The
+table is written again after each policy, so a call stopped partway keeps the policies it finished (marked partial).
 ``--cases nominal commands`` runs those cases alone (the ``diverse`` verdict of ``time_to_walk``); a policy then
 passes those cases, not the robust test.
 """
@@ -78,6 +79,10 @@ def render(data: dict, out: Path) -> str:
                      for _, path, spec in COLUMNS]
             rows.append([r["policy"], name, *cells, "pass" if c["passes"] else "FAIL"])
     lines = [common.table(["policy", "case", *[label for label, _, _ in COLUMNS], "case verdict"], rows), ""]
+    untested = data["meta"].get("untested", 0)
+    if untested:
+        lines.insert(0, f"Partial: {untested} more polic{'ies' if untested > 1 else 'y'} of the command not tested "
+                        "yet (the table is written after each policy).\n")
     lines += [f"- {r['policy']}: {'passes' if r['passes'] else 'does not pass'} {_what(r['cases'])}; "
               f"{r['seconds']:.0f} s for its {NUMBERS[len(r['cases'])]} case{'s' if len(r['cases']) > 1 else ''} "
               f"([report]({r['policy']}/robust.json))"
@@ -133,11 +138,20 @@ def main(argv=None) -> None:
     if unknown:
         parser.error(f"--cases: unknown case(s) {unknown}; choose from {list(CASES)}")
     out = common.report_dir(args.out, args.device)
-    results = [measure(Path(p), out, args.num_envs, args.seconds, args.device, args.cases and tuple(args.cases))
-               for p in args.policies]
     data = {"meta": common.meta(NAME, argv, on=args.device, num_envs=args.num_envs, seconds=args.seconds),
-            "results": results}
-    print(common.publish(out, NAME, data, render))
+            "results": []}
+    for i, policy in enumerate(args.policies):
+        data["results"].append(measure(Path(policy), out, args.num_envs, args.seconds, args.device,
+                                       args.cases and tuple(args.cases)))
+        # The table after every policy, not only at the end: a call stopped partway (a time limit, Ctrl-C) keeps the
+        # table of the policies it finished, and says how many it was asked for.
+        left = len(args.policies) - i - 1
+        if left:
+            data["meta"]["untested"] = left
+        else:
+            data["meta"].pop("untested", None)
+        text = common.publish(out, NAME, data, render)
+    print(text)
 
 
 if __name__ == "__main__":

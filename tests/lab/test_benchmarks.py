@@ -316,6 +316,35 @@ def test_robust_policies_table_names_each_case_and_its_verdict(tmp_path):
     assert "does not pass the robust test; " in page and "for its four cases" in page
 
 
+def test_robust_policies_keeps_the_table_of_the_policies_it_finished(tmp_path, monkeypatch):
+    """A call stopped partway (here the second policy's test raises, as a time limit's signal would stop it) leaves
+    the table of the first policy, marked partial; a finished call's table is not marked."""
+    import json
+
+    from lab.benchmarks import robust_policies
+    from tocabi_torchrl.evaluation import robust
+
+    def run(policy, num_envs, device, out_dir, seconds, cases):
+        if policy.stem == "second":
+            raise KeyboardInterrupt
+        case = {"passes": True, "survival": 1.0, "forward_distance_m": {"mean": 4.0},
+                "checks": {"survival": {"value": 1.0, "needs": ">= 0.99", "pass": True}}}
+        return {"passes": True, "settings": {"push_kind": "velocity"}, "cases": {name: case for name in cases}}
+
+    monkeypatch.setattr(robust, "evaluate_robust_run", run)
+    argv = ["--cases", "nominal", "--device", "cpu", "--out", str(tmp_path)]
+    with pytest.raises(KeyboardInterrupt):
+        robust_policies.main(["--policies", str(tmp_path / "first.pt"), str(tmp_path / "second.pt"),
+                              str(tmp_path / "third.pt"), *argv])
+    data = json.loads((tmp_path / "robust_policies.json").read_text())
+    assert [r["policy"] for r in data["results"]] == ["first"] and data["meta"]["untested"] == 2
+    page = (tmp_path / "robust_policies.md").read_text()
+    assert "| first | nominal |" in page and "Partial: 2 more policies of the command not tested yet" in page
+    robust_policies.main(["--policies", str(tmp_path / "first.pt"), *argv])
+    data = json.loads((tmp_path / "robust_policies.json").read_text())
+    assert "untested" not in data["meta"] and "Partial" not in (tmp_path / "robust_policies.md").read_text()
+
+
 def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, monkeypatch, capsys):
     """--cases: only those cases run, and a policy passes or fails those cases (not the whole test, which a report of
     two cases can never pass); an unknown case is refused by name."""
