@@ -313,7 +313,8 @@ SOLVER_CAP_RUNS = ("training/robust/h200_run12/time_to_walk_robust.json",
                    "training/robust/h200_run13/time_to_walk_robust.json",
                    "training/robust/h200_run14/time_to_walk_robust.json",
                    "training/robust/h200_run15/time_to_walk_robust.json",
-                   "training/robust/h200_run16/time_to_walk_robust.json")
+                   "training/robust/h200_run16/time_to_walk_robust.json",
+                   "training/robust/h200_run17/time_to_walk_robust.json")
 
 
 def solver_cap_cost(docs: Path) -> list[str]:
@@ -346,8 +347,9 @@ def _capped_runs(docs: Path) -> list[str]:
     lines = []
     for path in (p for p in SOLVER_CAP_RUNS if (docs / p).is_file()):
         record = _load(path, docs)["records"][0]
-        marks = sorted(record["evaluations"].values(), key=lambda e: e["train_seconds"])
-        tested = ", ".join(f"{e['train_seconds'] / 60:.0f}" for e in marks)
+        # A mark by its checkpoint's name (wall_00750s: 12.5 min), not its train_seconds, which run a little past it.
+        marks = sorted(int(stem[len("wall_"):-1]) for stem in record["evaluations"])
+        tested = ", ".join(f"{seconds / 60:g}" for seconds in marks)
         walk, trained = record["time_to_walk"], f"{record['train_seconds'] / 60:.1f}"
         verdict = (f"passes at {walk['train_minutes']:.1f} training minutes" if walk else
                    f"does not pass at the marks in its record ({tested} training minutes, of {trained})" if marks

@@ -150,6 +150,10 @@ def test_the_capped_solver_cost_appears_only_once_measured(tmp_path):
     text = "\n".join(page.solver_cap_cost(tmp_path))
     assert ("`robust_v12` (NVIDIA H200) does not pass at the marks in its record (16, 17 training minutes, of "
             "18.1)") in text
+    # Half-minute marks read as such, by the checkpoint's name, not rounded from train_seconds (run past the mark).
+    half = {"wall_00750s": {"train_seconds": 751.2}, "wall_00780s": {"train_seconds": 781.0}}
+    run.write_text(json.dumps({"records": [{**record, "evaluations": half}]}))
+    assert "(12.5, 13 training minutes, of 18.1)" in "\n".join(page.solver_cap_cost(tmp_path))
     run.write_text(json.dumps({"records": [{**record, "evaluations": {}}]}))
     assert "has no tested mark in its record (18.1 training minutes)" in "\n".join(page.solver_cap_cost(tmp_path))
     record["time_to_walk"] = {"train_minutes": 16.02}
