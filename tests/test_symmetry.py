@@ -460,7 +460,7 @@ def test_the_replayed_update_step_takes_the_doubled_batch():
 
 # ----------------------------------------------------------------------------------------------------- the config
 def test_symmetry_is_off_in_every_preset_but_robust_and_not_resume_safe():
-    assert field_choices()["ppo.symmetry"] == ("none", "augment")
+    assert field_choices()["ppo.symmetry"] == ("none", "augment", "equivariant")
     for name in PRESETS:  # the robust preset mirrors its mini-batches for a gait without a sideways bias
         assert preset_config(name).ppo.symmetry == ("augment" if name == "robust" else "none"), name
     assert "ppo.symmetry" not in RESUME_SAFE
@@ -517,21 +517,24 @@ def test_symmetry_sits_inside_the_torque_assist_loss():
         make_loss(cfg, agent)
 
 
-def _augmented_update_steps(device: str, graphs: tuple[bool, ...], privileged: bool = False):
-    """The trainer's mini-batch step with ``ppo.symmetry augment`` on a 64-env default-preset env, one per entry of
-    ``graphs`` (``ppo.update_graph``), each with its agent built from the same seed; ``privileged``: with the
+def _augmented_update_steps(device: str, graphs: tuple[bool, ...], privileged: bool = False,
+                            symmetry: str = "augment"):
+    """The trainer's mini-batch step with ``ppo.symmetry`` ``symmetry`` on a 64-env default-preset env, one per entry
+    of ``graphs`` (``ppo.update_graph``), each with its agent built from the same seed; ``privileged``: with the
     asymmetric critic (``ppo.critic_privileged``)."""
+    from tocabi_torchrl.rl.symmetry import set_equivariant_statistics
     from tocabi_torchrl.rl.trainer import build_agent, build_env, make_loss, make_optimizer, make_update_step
 
     dev, made = torch.device(device), []
     for graph in graphs:
         cfg = preset_config("default", device=device, **{
-            "ppo.symmetry": "augment", "env.num_envs": 64, "ppo.minibatch_size": 128, "ppo.steps_per_env": 8,
+            "ppo.symmetry": symmetry, "env.num_envs": 64, "ppo.minibatch_size": 128, "ppo.steps_per_env": 8,
             "ppo.actor_hidden": (32, 16), "ppo.critic_hidden": (32, 16), "ppo.update_graph": graph,
             "ppo.critic_privileged": privileged})
         env = build_env(cfg, dev, for_training=True)
         torch.manual_seed(0)
         agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], dev)
+        set_equivariant_statistics(agent.actor, env)
         loss, _ = make_loss(cfg, agent, env)
         made.append((make_update_step(cfg, loss, make_optimizer(cfg, agent, dev), dev), agent))
     return made
@@ -562,6 +565,37 @@ def test_the_captured_augmented_update_replays_without_host_syncs_and_matches_ea
     g = torch.Generator().manual_seed(6)
     batches = [_batch(128, g, privileged).to("cuda") for _ in range(6)]
     for mb in batches[:-1]:  # eager warm-up steps, the capture, then replays
+        eager(mb)
+        graphed(mb)
+    assert graphed.captured
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        graphed(batches[-1])
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    eager(batches[-1])
+    torch.testing.assert_close(_agent_params(graph_agent), _agent_params(eager_agent), rtol=1e-4, atol=1e-5)
+
+
+def test_the_trainers_update_step_with_an_equivariant_actor_on_the_cpu():
+    ((step, agent),) = _augmented_update_steps("cpu", (False,), symmetry="equivariant")
+    before = _agent_params(agent).clone()
+    step(_batch(128, torch.Generator().manual_seed(6)))
+    assert not torch.equal(_agent_params(agent), before)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_the_captured_update_with_an_equivariant_actor_replays_without_host_syncs_and_matches_eager():
+    """The equivariant actor's two passes (a stack, the mirror's gather and multiply-add, the clip) inside the
+    captured update step: it replays without a host synchronisation and gives the eager step's parameters."""
+    (eager, eager_agent), (graphed, graph_agent) = _augmented_update_steps("cuda", (False, True),
+                                                                           symmetry="equivariant")
+    assert graphed.use_graph
+    g = torch.Generator().manual_seed(6)
+    batches = [_batch(128, g).to("cuda") for _ in range(6)]
+    for mb in batches[:-1]:
         eager(mb)
         graphed(mb)
     assert graphed.captured

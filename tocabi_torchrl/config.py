@@ -56,8 +56,9 @@ ASSIST_TARGETS = ("rollout", "teacher")
 #: How long the adaptive learning rate is held around the torque assist's fade (``ppo.assist_lr_hold``).
 ASSIST_LR_HOLDS = ("fade", "pull")
 LOGGERS = ("csv", "tensorboard", "wandb")
-#: Left-right symmetry in PPO (``ppo.symmetry``; rl/symmetry.py): none, or each mini-batch doubled with its mirror.
-SYMMETRY_MODES = ("none", "augment")
+#: Left-right symmetry in PPO (``ppo.symmetry``; rl/symmetry.py): none, each mini-batch doubled with its mirror, or a
+#: mean action symmetric by construction.
+SYMMETRY_MODES = ("none", "augment", "equivariant")
 
 
 def wall_tag(seconds: float) -> str:
@@ -134,10 +135,13 @@ class PPOConfig:
     """Adam epsilon"""
     #: Left-right mirror symmetry (rl/symmetry.py): "augment" doubles every mini-batch with its mirror image
     #: (observations and actions mirrored; advantages, value targets and old log-probabilities kept), so that the
-    #: policy and the critic learn from both sides of every state. Twice the frames per update step.
+    #: policy and the critic learn from both sides of every state. Twice the frames per update step. "equivariant"
+    #: makes the policy's mean action symmetric by construction, ½·(f(o) + A·f(M·o)) (EquivariantMean): the actor's
+    #: network runs twice per input, the critic and the batch are unchanged.
     symmetry: str = "none"
-    """left-right symmetry: none, or augment (each mini-batch doubled with its mirror image: mirrored observations
-    and actions, same advantages, value targets and old log-probabilities)"""
+    """left-right symmetry: none, augment (each mini-batch doubled with its mirror image: mirrored observations
+    and actions, same advantages, value targets and old log-probabilities), or equivariant (the mean action is
+    ½·(f(o) + A·f(M·o)), symmetric by construction)"""
     #: The augmentation acts through PPO's ratio, whose mirrored half is clipped away once the policy is a little
     #: asymmetric at a small action σ (docs/training.md, "Left-right symmetry"). A mirror loss on the mean action acts
     #: at any σ (rsl_rl's symmetry module offers both).

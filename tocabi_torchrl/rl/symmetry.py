@@ -24,6 +24,8 @@ multiply-add, no host reads, nothing allocated but the output, so they run insid
 
 :class:`SymmetryAugmentLoss` doubles each PPO mini-batch with its mirror image (observations and actions mirrored;
 advantages, value targets and the old log-probabilities kept): the idea of rsl_rl's symmetry augmentation.
+:class:`EquivariantMean` instead makes the policy's mean action symmetric by construction (``ppo.symmetry``
+"equivariant").
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from .rollout_guard import mean_over_valid
 __all__ = ["SYMMETRY_MODES", "ACTION_DIM", "obs_step_mirror_map", "action_mirror_map", "policy_input_mirror_map",
            "SignedPermutation", "PolicyInputMirror", "mirror_qpos", "mirror_qvel", "SymmetryAugmentLoss",
            "find_normalization", "normalization_statistics", "make_policy_input_mirror", "make_symmetry_loss",
-           "refresh_statistics"]
+           "refresh_statistics", "EquivariantMean", "make_equivariant_mean", "set_equivariant_statistics"]
 
 #: 12 leg actions + the phase rate.
 ACTION_DIM = robot.NUM_LEG_JOINTS + 1
@@ -144,7 +146,7 @@ class SignedPermutation(nn.Module):
         return self.perm.numel()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.shape[-1] != self.dim:
+        if not torch.jit.is_tracing() and x.shape[-1] != self.dim:  # static under an export's trace
             raise ValueError(f"{type(self).__name__} maps {self.dim} values, got a tensor of shape {tuple(x.shape)}")
         out = x.index_select(-1, self.perm)
         return out.mul_(self.gain).add_(self.offset)
@@ -206,6 +208,92 @@ class PolicyInputMirror(SignedPermutation):
         if self.clip is not None:  # only the observations: the stored actions are not normalised
             out[..., : self._obs_entries].clamp_(-self.clip, self.clip)
         return out
+
+
+class EquivariantMean(nn.Module):
+    """A mean-action network that is left-right symmetric by construction (``ppo.symmetry="equivariant"``):
+    ``μ(o) = ½·(f(o) + A·f(M·o))``, ``f`` the wrapped network, ``M`` the policy input's mirror and ``A`` the action's.
+
+    Then ``μ(M·o) = A·μ(o)`` for every input, whatever ``f``'s weights (``M`` and ``A`` are involutions): the mirrored
+    state gets the mirrored action at every point of training, with no term in the loss and no mirrored frames in the
+    batch. Where the augmentation's mirrored frames fall outside PPO's clip at a small action σ, and a mirror loss
+    can be outweighed (docs/training.md, "Left-right symmetry"), this cannot drift from symmetric. The two passes of
+    ``f`` run as one, over a (2, N, input_dim) stack (``f`` must act on the last dimension, as an MLP does).
+
+    The input is normalised, so ``M`` is :class:`PolicyInputMirror` with the normaliser's statistics (its buffers,
+    saved in checkpoints; :func:`set_equivariant_statistics` sets them from the env). Exact for inputs inside the
+    normaliser's clip; a clipped entry mirrors approximately (the clip is applied again after the mirror).
+
+    Args:
+        net: ``f``, (..., input_dim) -> (..., action_dim).
+        obs_mirror: the policy input's :class:`PolicyInputMirror`.
+        action_mirror: the action's :class:`SignedPermutation` (:func:`action_mirror_map`).
+
+    Input (N, input_dim) normalised policy input; output (N, action_dim) mean action.
+
+    >>> import torch
+    >>> mean = EquivariantMean(torch.nn.Linear(237, ACTION_DIM), PolicyInputMirror(),
+    ...                        SignedPermutation(*action_mirror_map()))
+    >>> o = torch.randn(4, 237)
+    >>> torch.allclose(mean(mean.obs_mirror(o)), mean.action_mirror(mean(o)), atol=1e-6)
+    True
+    """
+
+    def __init__(self, net: nn.Module, obs_mirror: PolicyInputMirror, action_mirror: SignedPermutation):
+        super().__init__()
+        if obs_mirror.clip is not None:
+            raise ValueError("EquivariantMean applies the normaliser's clip itself (a buffer, so that a checkpoint "
+                             "keeps it): build the PolicyInputMirror without one and call set_statistics")
+        self.net, self.obs_mirror, self.action_mirror = net, obs_mirror, action_mirror
+        #: The normaliser's clip of the observation entries, applied again after the mirror (float32 max: none).
+        self.register_buffer("clip", torch.tensor(torch.finfo(torch.float32).max))
+
+    @torch.no_grad()
+    def set_statistics(self, loc: torch.Tensor | None, scale: torch.Tensor | None, clip: float | None) -> None:
+        """The normaliser's statistics (D,) and clip (None for raw observations or no clip), in place."""
+        self.obs_mirror.set_statistics(loc, scale)
+        self.clip.fill_(torch.finfo(torch.float32).max if clip is None else float(clip))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if not torch.jit.is_tracing() and obs.shape[-1] != self.obs_mirror.dim:  # static under an export's trace
+            raise ValueError(f"EquivariantMean: the mirror maps a policy input of {self.obs_mirror.dim} values, got "
+                             f"shape {tuple(obs.shape)}")
+        mirrored = self.obs_mirror(obs)
+        entries = self.obs_mirror.history.num_obs * self.obs_mirror.obs_dim  # the observations; actions follow
+        mirrored = torch.cat((torch.clamp(mirrored[..., :entries], -self.clip, self.clip), mirrored[..., entries:]),
+                             dim=-1)
+        # One pass over both, stacked on a leading axis of 2 (not concatenated along the batch: an export keeps its
+        # batch size dynamic).
+        both = self.net(torch.stack((obs, mirrored)))
+        return 0.5 * (both[0] + self.action_mirror(both[1]))
+
+
+def make_equivariant_mean(net: nn.Module, transforms_config, obs_dim: int, act_dim: int) -> EquivariantMean:
+    """:class:`EquivariantMean` around ``net`` for the policy input of ``transforms_config`` (a ``TransformConfig``:
+    layout, history, phase harmonics), with raw statistics until :func:`set_equivariant_statistics` (or a loaded
+    checkpoint) sets the normaliser's. Raises ``ValueError`` when ``obs_dim``/``act_dim`` do not fit the maps."""
+    cfg = transforms_config
+    mirror = PolicyInputMirror(cfg.history, obs_step_mirror_map(cfg.obs_layout, cfg.phase_harmonics))
+    if obs_dim != mirror.dim or act_dim != ACTION_DIM:
+        raise ValueError(f"ppo.symmetry='equivariant' mirrors a policy input of {mirror.dim} values (layout "
+                         f"{cfg.history}) and TOCABI's {ACTION_DIM} actions; this policy has {obs_dim} inputs and "
+                         f"{act_dim} actions")
+    device = next(net.parameters()).device
+    return EquivariantMean(net, mirror.to(device), SignedPermutation(*action_mirror_map()).to(device))
+
+
+def set_equivariant_statistics(module: nn.Module, env) -> bool:
+    """Give every :class:`EquivariantMean` in ``module`` the statistics and clip of ``env``'s observation normaliser
+    (in place: a captured update and the collector's copy read the same buffers). Returns whether ``module`` has one.
+    Call it once the normaliser holds its statistics (after a resume's load too), and before each update while a
+    running normaliser moves."""
+    found = False
+    norm = find_normalization(env)
+    for m in module.modules():
+        if isinstance(m, EquivariantMean):
+            m.set_statistics(*normalization_statistics(norm), getattr(norm, "clip", None))
+            found = True
+    return found
 
 
 # ------------------------------------------------------------------------------------------------ simulator state

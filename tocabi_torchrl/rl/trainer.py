@@ -41,7 +41,8 @@ from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
 from ..transforms.normalize import RunningNormalization
 from ..transforms.privileged import PRIVILEGED_DIM, PrivilegedState
-from .symmetry import SymmetryAugmentLoss, find_normalization, make_symmetry_loss, refresh_statistics
+from .symmetry import (SymmetryAugmentLoss, find_normalization, make_equivariant_mean, make_symmetry_loss,
+                       refresh_statistics, set_equivariant_statistics)
 from .update_step import (MinibatchStep, adapt_lr, get_lr, make_capturable_adam, optimizer_mode,
                           restore_optimizer_mode, set_lr)
 
@@ -140,6 +141,9 @@ def build_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device
     ppo = cfg.ppo
     actor = make_actor(obs_dim, act_dim, ppo.actor_hidden, ppo.activation, init_std=ppo.std_start,
                        learn_std=ppo.std_mode == "learned").to(device)
+    if ppo.symmetry == "equivariant":  # before the teacher copies the mean network
+        head = gaussian_head(actor)
+        head.mean_net = make_equivariant_mean(head.mean_net, cfg.transforms.transform_config(), obs_dim, act_dim)
     # Asymmetric (ppo.critic_privileged): the critic reads the true state beside the policy input.
     width = obs_dim + (PRIVILEGED_DIM if ppo.critic_privileged else 0)
     value_net = make_mlp(width, ppo.critic_hidden, 1, ppo.activation, out_gain=ppo.value_out_gain)
@@ -436,7 +440,11 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     # The symmetry loss whose mirror follows a running normaliser's statistics (fixed ones never move: make_loss set
     # them); None without symmetry or with fixed statistics.
     running_mirror = next((m for m in loss_module.modules() if isinstance(m, SymmetryAugmentLoss)), None)
-    if not isinstance(find_normalization(env), RunningNormalization):
+    # An equivariant actor's mirror takes the normaliser's statistics now (a resumed run's, loaded above) and, with a
+    # running normaliser, before each update; the teacher copies them with its weights when it is taken.
+    equivariant = set_equivariant_statistics(agent.actor, env)
+    running = isinstance(find_normalization(env), RunningNormalization)
+    if not running:
         running_mirror = None
     update_step = make_update_step(cfg, loss_module, optimizer, device, info)
     assist = assist_schedule(cfg, env)
@@ -498,6 +506,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 stats_sync.sync()  # before the update: every rank's next rollout normalises alike
             if running_mirror is not None:  # the mirror of a normalised input uses the rollout's last statistics
                 refresh_statistics(running_mirror, env)
+            if equivariant and running:
+                set_equivariant_statistics(agent.actor, env)
             # The collector reuses `batch` as its buffer (return_same_td): GAE's outputs go to a shallow copy.
             work = batch.clone(False)
             guard_rollout(work)  # frames with NaN/inf or impossible actions are masked out of the loss

@@ -1,0 +1,124 @@
+"""The left-right equivariant actor (``ppo.symmetry="equivariant"``, rl/symmetry.py ``EquivariantMean``): symmetric
+for any weights and normaliser statistics, built by ``build_agent``, kept through training, checkpoints and the
+ONNX export."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tocabi_torchrl.config import preset_config
+from tocabi_torchrl.rl.actors import gaussian_head
+from tocabi_torchrl.rl.networks import make_mlp
+from tocabi_torchrl.rl.symmetry import (
+    ACTION_DIM,
+    EquivariantMean,
+    PolicyInputMirror,
+    SignedPermutation,
+    action_mirror_map,
+    find_normalization,
+    normalization_statistics,
+)
+
+CPU = torch.device("cpu")
+
+
+def _mean(seed: int = 0, clip: float | None = None) -> EquivariantMean:
+    torch.manual_seed(seed)
+    mean = EquivariantMean(make_mlp(237, (32, 16), ACTION_DIM, "elu"), PolicyInputMirror(),
+                           SignedPermutation(*action_mirror_map()))
+    d = mean.obs_mirror.obs_dim
+    mean.set_statistics(torch.randn(d) * 0.3, torch.rand(d) + 0.5, clip)
+    return mean
+
+
+def test_the_mean_action_of_a_mirrored_input_is_the_mirrored_mean_action():
+    """μ(M·o) = A·μ(o) for random weights and asymmetric statistics (an untrained MLP is far from symmetric: the
+    wrapped network alone misses it by orders of magnitude more)."""
+    mean = _mean()
+    o = torch.randn(64, 237)
+    with torch.no_grad():
+        gap = (mean(mean.obs_mirror(o)) - mean.action_mirror(mean(o))).abs().max()
+        raw = (mean.net(mean.obs_mirror(o)) - mean.action_mirror(mean.net(o))).abs().max()
+    assert gap < 1e-5 and raw > 1e-2
+    # Any batch shape the network takes: one frame, and (T, N) frames of a rollout.
+    with torch.no_grad():
+        assert mean(o[:1]).shape == (1, ACTION_DIM) and mean(o.reshape(4, 16, 237)).shape == (4, 16, ACTION_DIM)
+
+
+def test_the_clip_is_applied_again_after_the_mirror_and_kept_as_a_buffer():
+    """Inside the normaliser's clip the mirror is exact; the clip is a buffer, so a checkpoint keeps it."""
+    mean = _mean(clip=5.0)
+    assert float(mean.clip) == 5.0 and "clip" in dict(mean.named_buffers())
+    o = torch.randn(8, 237).clamp(-2.0, 2.0)
+    with torch.no_grad():
+        mirrored = mean.obs_mirror(o)
+        assert mirrored[:, : 7 * 37].abs().max() > 0  # observation entries present (the reference keeps 7 steps)
+        torch.testing.assert_close(mean(mirrored), mean.action_mirror(mean(o)), atol=1e-5, rtol=0)
+    mean.set_statistics(None, None, None)  # raw observations, no clip
+    assert float(mean.clip) == torch.finfo(torch.float32).max
+    assert torch.equal(mean.obs_mirror.gain, mean.obs_mirror.sign)
+
+
+def test_bad_inputs_are_refused_by_name():
+    mean = _mean()
+    with pytest.raises(ValueError, match="policy input of 237 values, got shape"):
+        mean(torch.zeros(2, 36))
+    with pytest.raises(ValueError, match="applies the normaliser's clip itself"):
+        EquivariantMean(torch.nn.Linear(237, 13), PolicyInputMirror(clip=3.0), SignedPermutation(*action_mirror_map()))
+
+
+def test_build_agent_wraps_the_mean_network_and_the_teacher_copies_it():
+    from tocabi_torchrl.rl.trainer import build_agent
+
+    cfg = preset_config("robust", device="cpu", **{"ppo.symmetry": "equivariant", "env.num_envs": 4,
+                                                   "ppo.minibatch_size": 64})
+    agent = build_agent(cfg, 237, 13, CPU)
+    assert isinstance(gaussian_head(agent.actor).mean_net, EquivariantMean)
+    assert isinstance(agent.teacher.mean_net, EquivariantMean)  # the frozen teacher is symmetric too
+    with pytest.raises(ValueError, match="mirrors a policy input of 237 values"):
+        build_agent(cfg, 200, 13, CPU)
+    plain = build_agent(preset_config("robust", device="cpu", **{"env.num_envs": 4, "ppo.minibatch_size": 64}),
+                        237, 13, CPU)
+    assert not isinstance(gaussian_head(plain.actor).mean_net, EquivariantMean)
+
+
+@pytest.mark.parametrize("normalization", ["fixed", "running"])
+def test_cpu_training_keeps_the_policy_symmetric_through_checkpoint_and_export(tmp_path, normalization):
+    """A tiny CPU run: the trainer gives the mirror the env's normaliser statistics (a running normaliser's again
+    before each update), the trained policy is symmetric under them, a checkpoint restores them, and the ONNX export
+    computes the same actions at any batch size."""
+    from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, load_checkpoint, read_checkpoint
+    from tocabi_torchrl.rl.trainer import build_agent, build_env, train
+
+    cfg = preset_config("cpu_smoke", device="cpu", **{"ppo.symmetry": "equivariant", "env.num_envs": 4,
+                                                      "ppo.steps_per_env": 8, "ppo.minibatch_size": 16,
+                                                      "transforms.normalization": normalization},
+                        total_env_steps=64, run_dir=str(tmp_path), name="eq", progress_bar=False, eval_at_end=False)
+    result = train(cfg)
+    assert result.iterations == 2
+    path = tmp_path / "eq" / "checkpoints" / "iter_000002.pt"
+    state = read_checkpoint(path)
+    agent = build_agent(config_from_checkpoint(state, path), 237, 13, CPU)
+    env = build_env(cfg, CPU, for_training=True)
+    load_checkpoint(path, agent, env=env)
+    mean = gaussian_head(agent.actor).mean_net
+    # The statistics the last update ran with are the normaliser's as saved: no rollout came after that update.
+    loc, scale = normalization_statistics(find_normalization(env))
+    assert loc is not None
+    expected = PolicyInputMirror(loc=loc, scale=scale)
+    torch.testing.assert_close(mean.obs_mirror.offset, expected.offset)
+    torch.testing.assert_close(mean.obs_mirror.gain, expected.gain)
+    assert mean.obs_mirror.offset.abs().max() > 0  # not the identity it was built with
+    o = torch.randn(16, 237)
+    with torch.no_grad():
+        action = mean(o)
+        torch.testing.assert_close(mean(mean.obs_mirror(o)), mean.action_mirror(action), atol=1e-5, rtol=0)
+    ort = pytest.importorskip("onnxruntime")
+    from tocabi_torchrl.export.onnx_export import export_policy
+
+    exported = export_policy(path, tmp_path / "eq.onnx")
+    session = ort.InferenceSession(str(exported.onnx))
+    for n in (1, 5):
+        out = session.run(None, {"observation": o[:n].numpy()})[0]
+        torch.testing.assert_close(torch.from_numpy(out), action[:n], atol=1e-5, rtol=0)
