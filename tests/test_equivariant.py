@@ -50,9 +50,10 @@ def test_the_clip_is_applied_again_after_the_mirror_and_kept_as_a_buffer():
     """Inside the normaliser's clip the mirror is exact; the clip is a buffer, so a checkpoint keeps it."""
     mean = _mean(clip=5.0)
     assert float(mean.clip) == 5.0 and "clip" in dict(mean.named_buffers())
-    o = torch.randn(8, 237).clamp(-2.0, 2.0)
+    o = torch.randn(8, 237).clamp(-1.0, 1.0)
     with torch.no_grad():
         mirrored = mean.obs_mirror(o)
+        assert mirrored.abs().max() < 5.0  # o and M·o inside the clip: the mirror is exact there
         assert mirrored[:, : 7 * 37].abs().max() > 0  # observation entries present (the reference keeps 7 steps)
         torch.testing.assert_close(mean(mirrored), mean.action_mirror(mean(o)), atol=1e-5, rtol=0)
     mean.set_statistics(None, None, None)  # raw observations, no clip
@@ -81,6 +82,31 @@ def test_build_agent_wraps_the_mean_network_and_the_teacher_copies_it():
     plain = build_agent(preset_config("robust", device="cpu", **{"env.num_envs": 4, "ppo.minibatch_size": 64}),
                         237, 13, CPU)
     assert not isinstance(gaussian_head(plain.actor).mean_net, EquivariantMean)
+
+
+def test_the_teacher_taken_from_an_equivariant_actor_keeps_its_mirror_and_symmetry():
+    """The torque assist's teacher copies the actor's weights and buffers when the fade starts: the mirror's
+    statistics come with them, so the teacher's leg torques mirror with the state."""
+    from tocabi_torchrl import robot
+    from tocabi_torchrl.rl.trainer import build_agent
+
+    cfg = preset_config("robust", device="cpu", **{"ppo.symmetry": "equivariant", "env.num_envs": 4,
+                                                   "ppo.minibatch_size": 64})
+    agent = build_agent(cfg, 237, 13, CPU)
+    actor_mean = gaussian_head(agent.actor).mean_net
+    d = actor_mean.obs_mirror.obs_dim
+    actor_mean.set_statistics(torch.randn(d) * 0.2, torch.rand(d) + 0.5, 5.0)
+    limits = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32)
+    agent.teacher.anchor(actor_mean, limits, 0.5)
+    teacher_mirror = agent.teacher.mean_net.obs_mirror
+    assert torch.equal(teacher_mirror.offset, actor_mean.obs_mirror.offset) and float(agent.teacher.mean_net.clip) == 5
+    o = torch.randn(8, 237) * 0.3  # o and M·o inside the clip: the mirror is exact there
+    assert actor_mean.obs_mirror(o).abs().max() < 5.0
+    assist = torch.randn(8, 12) * 0.1
+    leg_perm, leg_sign = actor_mean.action_mirror.perm[:12], actor_mean.action_mirror.sign[:12]
+    torque = agent.teacher.torque(o, assist, limits)
+    mirrored = agent.teacher.torque(teacher_mirror(o), assist[:, leg_perm] * leg_sign, limits)
+    torch.testing.assert_close(mirrored, torque[:, leg_perm] * leg_sign, atol=1e-4, rtol=1e-5)
 
 
 @pytest.mark.parametrize("normalization", ["fixed", "running"])
