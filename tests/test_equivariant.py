@@ -54,11 +54,25 @@ def test_the_clip_is_applied_again_after_the_mirror_and_kept_as_a_buffer():
     with torch.no_grad():
         mirrored = mean.obs_mirror(o)
         assert mirrored.abs().max() < 5.0  # o and M·o inside the clip: the mirror is exact there
-        assert mirrored[:, : 7 * 37].abs().max() > 0  # observation entries present (the reference keeps 7 steps)
+        entries = mean.obs_mirror.history.num_obs * mean.obs_mirror.obs_dim
+        assert entries < 237 and mirrored[:, :entries].abs().max() > 0  # observation entries, the actions after them
         torch.testing.assert_close(mean(mirrored), mean.action_mirror(mean(o)), atol=1e-5, rtol=0)
     mean.set_statistics(None, None, None)  # raw observations, no clip
     assert float(mean.clip) == torch.finfo(torch.float32).max
     assert torch.equal(mean.obs_mirror.gain, mean.obs_mirror.sign)
+
+
+def test_every_buffer_lives_on_the_networks_device():
+    """Built around a network on another device (here "meta", which needs no GPU), the wrapper's buffers go there
+    too: a CPU buffer beside CUDA weights would fail the first CUDA update."""
+    from types import SimpleNamespace
+
+    from tocabi_torchrl.rl.symmetry import make_equivariant_mean
+    from tocabi_torchrl.transforms.layouts import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT
+
+    layout = SimpleNamespace(history=REFERENCE_HISTORY, obs_layout=REFERENCE_OBS_LAYOUT, phase_harmonics=1)
+    mean = make_equivariant_mean(make_mlp(237, (8,), ACTION_DIM).to("meta"), layout, 237, ACTION_DIM)
+    assert {t.device.type for t in (*mean.buffers(), *mean.parameters())} == {"meta"}
 
 
 def test_bad_inputs_are_refused_by_name():
@@ -82,6 +96,17 @@ def test_build_agent_wraps_the_mean_network_and_the_teacher_copies_it():
     plain = build_agent(preset_config("robust", device="cpu", **{"env.num_envs": 4, "ppo.minibatch_size": 64}),
                         237, 13, CPU)
     assert not isinstance(gaussian_head(plain.actor).mean_net, EquivariantMean)
+
+
+def test_an_equivariant_checkpoint_does_not_load_into_another_mode_and_says_why():
+    from tocabi_torchrl.rl.checkpoint import CheckpointError, apply_checkpoint
+    from tocabi_torchrl.rl.trainer import build_agent
+
+    small = {"ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,), "env.num_envs": 4, "ppo.minibatch_size": 64}
+    equivariant = build_agent(preset_config("cpu_smoke", **small, **{"ppo.symmetry": "equivariant"}), 237, 13, CPU)
+    plain = build_agent(preset_config("cpu_smoke", **small), 237, 13, CPU)
+    with pytest.raises(CheckpointError, match="symmetry differ"):
+        apply_checkpoint({"agent": equivariant.state_dict()}, plain)
 
 
 def test_the_teacher_taken_from_an_equivariant_actor_keeps_its_mirror_and_symmetry():

@@ -246,7 +246,7 @@ class EquivariantMean(nn.Module):
                              "keeps it): build the PolicyInputMirror without one and call set_statistics")
         self.net, self.obs_mirror, self.action_mirror = net, obs_mirror, action_mirror
         #: The normaliser's clip of the observation entries, applied again after the mirror (float32 max: none).
-        self.register_buffer("clip", torch.tensor(torch.finfo(torch.float32).max))
+        self.register_buffer("clip", torch.tensor(torch.finfo(torch.float32).max, device=obs_mirror.gain.device))
 
     @torch.no_grad()
     def set_statistics(self, loc: torch.Tensor | None, scale: torch.Tensor | None, clip: float | None) -> None:
@@ -279,7 +279,9 @@ def make_equivariant_mean(net: nn.Module, transforms_config, obs_dim: int, act_d
                          f"{cfg.history}) and TOCABI's {ACTION_DIM} actions; this policy has {obs_dim} inputs and "
                          f"{act_dim} actions")
     device = next(net.parameters()).device
-    return EquivariantMean(net, mirror.to(device), SignedPermutation(*action_mirror_map()).to(device))
+    # Everything on the network's device: a buffer left on the CPU would fail the first CUDA update (a clamp with a
+    # CPU bound), though the collector's own device-mapped copy would not show it.
+    return EquivariantMean(net, mirror, SignedPermutation(*action_mirror_map())).to(device)
 
 
 def set_equivariant_statistics(module: nn.Module, env) -> bool:
