@@ -75,6 +75,27 @@ def test_every_buffer_lives_on_the_networks_device():
     assert {t.device.type for t in (*mean.buffers(), *mean.parameters())} == {"meta"}
 
 
+def test_the_agent_built_on_another_device_acts_there_with_its_teacher():
+    """build_agent on the meta device (shapes only, no GPU needed): every parameter and buffer of the actor and the
+    teacher is there, and both act on inputs there, as they must on CUDA."""
+    from tensordict import TensorDict
+
+    from tocabi_torchrl import robot
+    from tocabi_torchrl.rl.trainer import build_agent
+
+    meta = torch.device("meta")
+    cfg = preset_config("robust", device="cpu", **{"ppo.symmetry": "equivariant", "env.num_envs": 4,
+                                                   "ppo.minibatch_size": 64})
+    agent = build_agent(cfg, 237, 13, meta)
+    tensors = (*agent.actor.parameters(), *agent.actor.buffers(), *agent.teacher.buffers())
+    assert {t.device.type for t in tensors} == {"meta"}
+    out = agent.actor(TensorDict({"observation": torch.zeros(8, 237, device=meta)}, [8], device=meta))
+    assert out["action"].shape == (8, 13) and out["action"].device == meta
+    limits = torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32, device=meta)
+    assert agent.teacher.torque(torch.zeros(8, 237, device=meta), torch.zeros(8, 12, device=meta), limits).shape == (
+        8, 12)
+
+
 def test_bad_inputs_are_refused_by_name():
     mean = _mean()
     with pytest.raises(ValueError, match="policy input of 237 values, got shape"):
