@@ -54,7 +54,7 @@ def test_the_clip_is_applied_again_after_the_mirror_and_kept_as_a_buffer():
     with torch.no_grad():
         mirrored = mean.obs_mirror(o)
         assert mirrored.abs().max() < 5.0  # o and M·o inside the clip: the mirror is exact there
-        entries = mean.obs_mirror.history.num_obs * mean.obs_mirror.obs_dim
+        entries = mean.obs_mirror.obs_entries
         assert entries < 237 and mirrored[:, :entries].abs().max() > 0  # observation entries, the actions after them
         torch.testing.assert_close(mean(mirrored), mean.action_mirror(mean(o)), atol=1e-5, rtol=0)
     mean.set_statistics(None, None, None)  # raw observations, no clip

@@ -176,8 +176,8 @@ class PolicyInputMirror(SignedPermutation):
         self.obs_dim = len(obs_map[0])
         self.register_buffer("obs_perm", torch.tensor(list(obs_map[0]), dtype=torch.long))
         self.register_buffer("obs_sign", torch.tensor(list(obs_map[1]), dtype=torch.float32))
-        # Entries of the flat input that hold observations: the first K·D (the actions follow them).
-        self._obs_entries = history.num_obs * self.obs_dim
+        #: Entries of the flat input that hold observations: the first K·D (the actions follow them).
+        self.obs_entries = history.num_obs * self.obs_dim
         self.clip = clip
         if loc is not None or scale is not None:
             self.set_statistics(loc, scale)
@@ -200,13 +200,13 @@ class PolicyInputMirror(SignedPermutation):
             gain = self.obs_sign * scale[self.obs_perm] / scale
             offset = (self.obs_sign * loc[self.obs_perm] - loc) / scale
         k = self.history.num_obs
-        self.gain[: self._obs_entries].copy_(gain.repeat(k))
-        self.offset[: self._obs_entries].copy_(offset.repeat(k))
+        self.gain[: self.obs_entries].copy_(gain.repeat(k))
+        self.offset[: self.obs_entries].copy_(offset.repeat(k))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         out = super().forward(x)
         if self.clip is not None:  # only the observations: the stored actions are not normalised
-            out[..., : self._obs_entries].clamp_(-self.clip, self.clip)
+            out[..., : self.obs_entries].clamp_(-self.clip, self.clip)
         return out
 
 
@@ -259,7 +259,7 @@ class EquivariantMean(nn.Module):
             raise ValueError(f"EquivariantMean: the mirror maps a policy input of {self.obs_mirror.dim} values, got "
                              f"shape {tuple(obs.shape)}")
         mirrored = self.obs_mirror(obs)
-        entries = self.obs_mirror.history.num_obs * self.obs_mirror.obs_dim  # the observations; actions follow
+        entries = self.obs_mirror.obs_entries
         mirrored = torch.cat((torch.clamp(mirrored[..., :entries], -self.clip, self.clip), mirrored[..., entries:]),
                              dim=-1)
         # One pass over both, stacked on a leading axis of 2 (not concatenated along the batch: an export keeps its
