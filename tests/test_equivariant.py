@@ -190,7 +190,7 @@ def test_cpu_training_keeps_the_policy_symmetric_through_checkpoint_and_export(t
     from tocabi_torchrl.export.onnx_export import export_policy
 
     exported = export_policy(path, tmp_path / "eq.onnx")
-    session = ort.InferenceSession(str(exported.onnx))
+    onnx_policy = ort.InferenceSession(str(exported.onnx))
     for n in (1, 5):
-        out = session.run(None, {"observation": o[:n].numpy()})[0]
+        out = onnx_policy.run(None, {"observation": o[:n].numpy()})[0]
         torch.testing.assert_close(torch.from_numpy(out), action[:n], atol=1e-5, rtol=0)
