@@ -68,6 +68,15 @@ def wall_tag(seconds: float) -> str:
     return f"wall_{round(seconds):05d}s"
 
 
+def wall_seconds(tag: str) -> int:
+    """The training second a :func:`wall_tag` name marks (``"wall_00540s"`` -> 540).
+
+    >>> wall_seconds(wall_tag(750.2))
+    750
+    """
+    return int(tag[len("wall_"):-1])
+
+
 def check_snapshot_minutes(minutes: float, name: str = "checkpoint_minutes") -> None:
     """``ValueError`` unless ``minutes`` is 0 (no snapshots) or at least 1/60 (1 s): :func:`wall_tag` names are
     whole seconds, so marks less than a second apart could get one name and one snapshot would replace the other."""

@@ -347,7 +347,8 @@ def _capped_runs(docs: Path) -> list[str]:
     lines = []
     for path in (p for p in SOLVER_CAP_RUNS if (docs / p).is_file()):
         record = _load(path, docs)["records"][0]
-        # A mark by its checkpoint's name (wall_00750s: 12.5 min), not its train_seconds, which run a little past it.
+        # A mark by its checkpoint's name (wall_00750s: 12.5 min), not its train_seconds, which run a little past it;
+        # config.wall_seconds parsed here, the page being standard library only.
         marks = sorted(int(stem[len("wall_"):-1]) for stem in record["evaluations"])
         tested = ", ".join(f"{seconds / 60:g}" for seconds in marks)
         walk, trained = record["time_to_walk"], f"{record['train_seconds'] / 60:.1f}"

@@ -26,6 +26,7 @@ import sys
 import time
 from pathlib import Path
 
+from tocabi_torchrl.config import wall_seconds
 from tocabi_torchrl.evaluation.gait_test import GAIT_CRITERIA as CRITERIA
 from tocabi_torchrl.evaluation.gait_test import ROBUST_CRITERIA, tested_on
 from tocabi_torchrl.evaluation.gait_test import gait_passes as passes_main
@@ -127,7 +128,7 @@ def eval_part(args, command: str) -> None:
         # already have shown that they cannot pass (a torque run before its assist has faded). Marks are whole
         # seconds: half a second of slack for a minute count that floating point puts a hair past one.
         for ckpt in [p for p in sorted((run_dir / "checkpoints").glob("wall_*.pt"))
-                     if p.stem not in evals and _mark_seconds(p.stem) + 0.5 >= 60.0 * args.from_minutes]:
+                     if p.stem not in evals and wall_seconds(p.stem) + 0.5 >= 60.0 * args.from_minutes]:
             (_evaluate_robust if test in TEST_CASES else _evaluate)(ckpt, evals, envs, args)
             common.write_json(evals_file, record)
         if args.follow_pid and _alive(args.follow_pid):
@@ -140,12 +141,6 @@ def eval_part(args, command: str) -> None:
     record["time_to_walk"] = first_walk(record)
     common.write_json(evals_file, record)
     print("time to walk:", json.dumps(record["time_to_walk"]))
-
-
-def _mark_seconds(stem: str) -> int:
-    """The training second a wall-clock checkpoint marks, from its name (``wall_00540s`` -> 540,
-    ``config.wall_tag``)."""
-    return int(stem[len("wall_"):-1])
 
 
 def _alive(pid: int) -> bool:
