@@ -631,7 +631,8 @@ def cpu_backends(docs: Path) -> list[str]:
                 f"{r['warp_cpu']['env_steps_per_s']:,.0f} | {r['mujoco_over_warp']:.1f}x |" for r in d["results"]]
         sources += _source(rel, m["command"], m["date"], f"{m['cores']} CPU cores ({m['gpu']} host)"
                            if m["gpu"] != "cpu" else f"{m['cores']} CPU cores")
-    return [*out, "", *sources]
+    retired = "- the script was retired on 2026-11-25; it is `benchmarks/cpu_backends.py` at commit dab4ad2"
+    return [*out, "", *sources, retired]
 
 
 #: Where the shipped robust policy's verdict is: the report of its run's checkpoints, and the checkpoint that

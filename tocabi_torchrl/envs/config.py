@@ -27,7 +27,8 @@ TORQUE_MODES = ("torque", "model_based")
 UPPER_BODY_LAWS = ("pd_hold",)
 #: Physics backends: mujoco-warp (``WarpSim``, GPU or warp's CPU device) or C MuJoCo on CPU threads (``MujocoSim``).
 BACKENDS = ("warp", "mujoco", "auto")
-#: ``backend="auto"`` on a CPU device. Measured by ``lab/benchmarks/cpu_backends.py`` (docs/benchmarks/cpu_backends_*.md):
+#: ``backend="auto"`` on a CPU device. Measured by ``benchmarks/cpu_backends.py`` (retired; at commit dab4ad2),
+#: docs/benchmarks/cpu_backends_*.md:
 #: on a 2-core machine C MuJoCo stepped the bare env at 1800-3200 env-steps/s against mujoco-warp's CPU device's
 #: 315-340 (5.7-9.8x) at 8-96 envs, and needs no minute-long kernel compile.
 CPU_DEFAULT_BACKEND = "mujoco"
