@@ -7,9 +7,13 @@
     │   ├── sim: EnvSimConfig      backend, substeps, contact buffers, threads
     │   ├── task: TaskConfig       episode length (the one truncation clock), motion, terminations
     │   ├── command: CommandConfig velocity-command schedule
-    │   └── control: ControlConfig control mode, PD gains and residual range
-    ├── transforms: TransformSettings   history layout, reward weights, normalisation
-    └── ppo: PPOConfig             rollout, PPO update, learning rate, networks, action std, torque assist, graphs
+    │   ├── control: ControlConfig control mode, PD gains and residual range, actuator layer
+    │   ├── scene: SceneConfig     obstacles
+    │   ├── pushes: PushConfig     kicks during the episode
+    │   └── dynamics: DynamicsRandomization   per-world masses, damping, armature, friction
+    ├── transforms: TransformSettings   history layout, reward weights, normalisation, sensor noise
+    ├── ppo: PPOConfig             rollout, PPO update, learning rate, networks, action std, torque assist, graphs
+    └── viewer: ViewerConfig       the live viewer of a training run
 
 Every value has one home (its dotted path, e.g. ``ppo.lr``, ``env.control.mode``) and one default; the defaults
 are the ``default`` preset, which is also what ``TocabiWalk()`` and ``make_env()`` build. Named presets

@@ -35,8 +35,9 @@ __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_config", "preset_tree", 
 #: What ``--help`` says above the options (the recipe's own first line comes before it).
 HOW_TO = ("--preset NAME (one of: {presets}) sets the defaults the other options change; give it first, the help "
           "below then shows its values. --resume RUN continues a saved run: its options apply, and only budget, "
-          "logging, checkpoint, evaluation and device options may change. Tuples are space-separated, switches "
-          "take true/false, an int also takes 2e8.")
+          "logging, checkpoint, evaluation, device and viewer options, and how the same computation runs (CUDA "
+          "graphs, gradient sync, reset pass, threads), may change (the full list: tocabi_torchrl.rl.resume."
+          "RESUME_SAFE). Tuples are space-separated, switches take true/false, an int also takes 2e8.")
 
 _TRUE, _FALSE = ("true", "yes", "1", "on"), ("false", "no", "0", "off")
 
