@@ -1,5 +1,6 @@
-"""recipes/sim2sim.py reports a model without the contract's names, an --out folder that does not exist, an --out
-file it cannot write and a missing onnxruntime in one ``error:`` line (or a usage error), not a traceback."""
+"""recipes/sim2sim.py reports a model without the contract's names, a missing model file, a policy file given as the
+contract, an --out folder that does not exist, an --out file it cannot write and a missing onnxruntime in one
+``error:`` line (or a usage error), not a traceback."""
 
 from __future__ import annotations
 
@@ -99,3 +100,24 @@ def test_a_contract_with_a_negative_action_scale_is_one_error_line(capsys, tmp_p
     assert info.value.code != 0 and "\n" not in message
     assert message.startswith(f"error: {path}: action.leg.action_scale is -0.5 but must be a finite number >= 0")
     assert capsys.readouterr().out == ""  # no metrics: nothing ran
+
+
+@needs_contract
+@pytest.mark.parametrize("suffix", [".onnx", ".pt"])
+def test_a_policy_file_given_as_the_contract_names_the_contract_beside_it(capsys, suffix):
+    # It used to say only "not valid JSON ('utf-8' codec can't decode byte ...)".
+    policy = CONTRACT.with_suffix(suffix)
+    with pytest.raises(SystemExit) as info:
+        load_recipe("sim2sim").main(["--contract", str(policy)])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert f"--contract takes the policy's .json contract, not a {suffix} file" in err
+    assert f"the contract beside it is {CONTRACT}" in err
+
+
+def test_a_missing_model_file_names_the_option(capsys, tmp_path):
+    # It used to pass MuJoCo's own "ParseXML: Error opening file" through, after loading the contract.
+    with pytest.raises(SystemExit) as info:
+        load_recipe("sim2sim").main(["--contract", str(CONTRACT), "--model", str(tmp_path / "nope.xml")])
+    assert info.value.code == 2
+    assert f"--model {tmp_path / 'nope.xml'}: no such file" in capsys.readouterr().err
