@@ -11,7 +11,7 @@
                                                         # with the torque preset's values as defaults
     torchrun --nproc_per_node 2 recipes/ppo_walk.py --name walk2gpu   # data-parallel, one process per GPU
 
-Without CUDA and with --device auto (the default) it says so and runs the small ``cpu_smoke`` configuration (minutes
+Without CUDA and with --device auto (the default) it says so and runs the small ``cpu_smoke`` configuration (seconds
 on a laptop, learns nothing useful); an explicit --device cuda or GPU-sized --preset fails instead, and so does a
 torchrun launch (pass --device cpu for a CPU data-parallel run). Writes
 runs/<name>/: config.json, metrics/ (torchrl's CSV logger: one file per metric), checkpoints/, and (with
@@ -164,7 +164,9 @@ def main(argv: list[str] | None = None) -> None:
         summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device, seconds=cfg.eval_seconds,
                                out_dir=out)
         print(gait_report_text(summary, cfg.eval_seconds, cfg.eval_envs, out))
-    print(f"checkpoint: {checkpoint}\nwatch or re-test it: python recipes/play.py --checkpoint {result.run_dir}")
+    # On a CPU, the play recipe's defaults (256 robots, 8 s, a video) take minutes: suggest what this run tested with.
+    small = f" --num_envs {cfg.eval_envs} --seconds {cfg.eval_seconds:g}" if device.type == "cpu" else ""
+    print(f"checkpoint: {checkpoint}\nwatch or re-test it: python recipes/play.py --checkpoint {result.run_dir}{small}")
 
 
 if __name__ == "__main__":
