@@ -9,7 +9,7 @@
 ``--model authored`` (default) is assets/tocabi/tocabi.xml; ``reference`` is ../shared/reference/dyros_tocabi.xml
 (beside the repository) with its mesh geoms removed; any other value is an MJCF path. Prints the gait-test metrics
 of evaluation/gait_test.py (survival, forward distance, lateral drift, speed tracking error, knee RMS) as JSON. Needs
-numpy, mujoco and onnxruntime only (`pip install tocabi-torchrl[export]`); torch is never imported.
+numpy, mujoco and onnxruntime only (`pip install -e ".[export]"`); torch is never imported.
 
 ``--randomize`` (default ``none``: the nominal robot, numbers exactly as without it) draws per robot at the reset:
 ``trained`` what the contract's ``trained_under`` section states, ``tocabi_lab`` the TOCABI lab's actuator delay and

@@ -36,7 +36,7 @@ def test_a_version_outside_the_range_fails_naming_the_range(monkeypatch, module)
         require(module)
     message = str(err.value)
     assert f"{dist} 1.0.0 is installed" in message and f"{dist}>={low},<{high}" in message
-    assert f"tocabi-torchrl[{extra}]" in message
+    assert f'pip install -e ".[{extra}]" in the repository' in message
 
 
 def test_a_missing_library_says_how_to_install_it(monkeypatch):

@@ -94,7 +94,7 @@ def test_trim_cuts_both_layouts_back_to_the_checkpoint(tmp_path):
 
 
 @pytest.mark.parametrize("name, install", [("tensorboard", "pip install tensorboard"),
-                                           ("wandb", 'pip install "tocabi-torchrl[wandb]"')])
+                                           ("wandb", 'pip install -e ".[wandb]" in the repository')])
 def test_a_missing_logger_package_is_refused_before_anything_is_written(tmp_path, monkeypatch, name, install):
     find_spec = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda module, *a: None if module == name else

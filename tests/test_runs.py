@@ -363,7 +363,7 @@ def test_recipe_exits_non_zero_on_an_impossible_device(tmp_path):
 def test_missing_wandb_names_the_install_command(tmp_path):
     with pytest.raises(SystemExit) as info:
         recipe("ppo_walk").main(tiny_args(tmp_path, loggers=("csv", "wandb")))
-    assert 'pip install "tocabi-torchrl[wandb]"' in str(info.value.code)
+    assert 'pip install -e ".[wandb]" in the repository' in str(info.value.code)
     assert not (tmp_path / "run").exists()
 
 

@@ -56,7 +56,7 @@ def require(module: str) -> ModuleType:
     missing or its version is outside the range.
     """
     dist, low, high, extra = SUPPORTED[module]
-    install = (f"pip install 'tocabi-torchrl[{extra}]'" if extra else f"pip install '{dist}>={low},<{high}'")
+    install = (f'pip install -e ".[{extra}]" in the repository' if extra else f"pip install '{dist}>={low},<{high}'")
     try:
         version = importlib.metadata.version(dist)
     except importlib.metadata.PackageNotFoundError:

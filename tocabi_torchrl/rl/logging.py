@@ -34,7 +34,7 @@ __all__ = ["RunLogger", "make_loggers", "require_loggers", "write_config"]
 
 #: The package each optional logger imports, and how to install it.
 _LOGGER_PACKAGES = {
-    "wandb": ("wandb", 'pip install "tocabi-torchrl[wandb]"'),
+    "wandb": ("wandb", 'pip install -e ".[wandb]" in the repository'),
     "tensorboard": ("tensorboard", "pip install tensorboard"),
 }
 #: The W&B project of the runs.
