@@ -233,11 +233,16 @@ def test_export_writes_only_standard_json(tiny_checkpoints, tmp_path, monkeypatc
 
 def test_export_refuses_a_running_normalisation_checkpoint_without_its_statistics(tiny_checkpoints, tmp_path):
     # Transform state is loaded leniently, so the export used to state the normaliser's initial statistics as the
-    # trained ones.
+    # trained ones, and play.py's gait test used to run with them.
+    from tocabi_torchrl.evaluation.record import load_policy as load_for_play
     from tocabi_torchrl.rl.checkpoint import CheckpointError
 
+    with pytest.raises(CheckpointError, match=r"lacks the running normalisation statistics .*would run with the "
+                                              r"initial statistics"):
+        load_for_play(tiny_checkpoints["running_without_stats"], num_envs=2, device=torch.device("cpu"))
+
     with pytest.raises(CheckpointError, match=r"lacks the running normalisation statistics \['transforms\.3\.mean', "
-                                              r"'transforms\.3\.var', 'transforms\.3\.count'\].*Export a checkpoint "
+                                              r"'transforms\.3\.var', 'transforms\.3\.count'\].*Use a checkpoint "
                                               r"saved with its env"):
         load_policy(tiny_checkpoints["running_without_stats"])
     with pytest.raises(SystemExit, match="error: checkpoint .* lacks the running normalisation statistics"):

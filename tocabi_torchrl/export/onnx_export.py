@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from ..atomic import atomic_write_bytes, atomic_write_text
-from ..transforms.normalize import RunningNormalization, freeze_running_statistics
+from ..transforms.normalize import freeze_running_statistics
 from .contract import ExportError, build_contract, sha256_bytes
 
 __all__ = [
@@ -87,30 +87,11 @@ def load_policy(checkpoint: str | os.PathLike, num_envs: int = 1, **env_override
     device = torch.device("cpu")
     env = build_env(cfg, device, num_envs=num_envs, **env_overrides)
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
-    _require_running_statistics(state, env, path)
     apply_checkpoint(state, agent, env=env, path=path)
     freeze_running_statistics(env)  # the contract states the checkpoint's statistics, frozen
     return LoadedPolicy(checkpoint=path, config=cfg, config_dict=cfg.to_dict(), saved_config=dict(state["config"]),
                         agent=agent, env=env,
                         iteration=int(state["iteration"]), env_steps=int(state["env_steps"]))
-
-
-def _require_running_statistics(state: dict, env, path: Path) -> None:
-    """Refuse a checkpoint without the statistics of the env's running normalisers.
-
-    ``apply_checkpoint`` loads transform state leniently (a resumed run may add transforms), so such a checkpoint
-    would load with the normaliser's initial statistics, and the contract would state them as the policy's."""
-    from ..rl.checkpoint import CheckpointError
-
-    saved = state.get("transforms") or {}
-    missing = [f"{name}.{buf}" if name else buf for name, module in env.transform.named_modules()
-               if isinstance(module, RunningNormalization) for buf in ("mean", "var", "count")
-               if (f"{name}.{buf}" if name else buf) not in saved]
-    if missing:
-        raise CheckpointError(f"checkpoint {path} lacks the running normalisation statistics {missing} of its env "
-                              "(transforms.normalization = 'running'): the export would state the initial statistics "
-                              "instead of those the policy was trained with. Export a checkpoint saved with its env "
-                              "(save_checkpoint(..., env)), e.g. the run's checkpoints/latest.pt")
 
 
 class DeterministicActor(nn.Module):

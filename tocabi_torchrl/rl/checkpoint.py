@@ -338,6 +338,8 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
                     hint="the run's actor_hidden / critic_hidden / std_mode / symmetry differ from this agent's?")
     transform = getattr(env, "transform", None) if env is not None else None
     saved_transforms = state.get("transforms") or {}
+    if isinstance(transform, nn.Module):
+        _require_running_statistics(saved_transforms, transform, path)
     if saved_transforms and isinstance(transform, nn.Module):
         mine = transform.state_dict()
         saved_transforms = align_transform_state(saved_transforms, mine, path)
@@ -352,6 +354,23 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
                                   "value_head_lr differs?") from err
     if saved_transforms and isinstance(transform, nn.Module):
         transform.load_state_dict(saved_transforms, strict=False)
+
+
+def _require_running_statistics(saved: dict, transform: nn.Module, path) -> None:
+    """Refuse a checkpoint without the statistics of the env's running normalisers.
+
+    Transform state loads leniently (a resumed run may add transforms), so such a checkpoint would otherwise act,
+    be gait-tested or exported with the normaliser's initial statistics instead of those the policy trained with."""
+    from ..transforms.normalize import RunningNormalization
+
+    missing = [f"{name}.{buf}" if name else buf for name, module in transform.named_modules()
+               if isinstance(module, RunningNormalization) for buf in ("mean", "var", "count")
+               if (f"{name}.{buf}" if name else buf) not in saved]
+    if missing:
+        raise CheckpointError(f"checkpoint {path} lacks the running normalisation statistics {missing} of its env "
+                              "(transforms.normalization = 'running'): the policy would run with the initial "
+                              "statistics instead of those it was trained with. Use a checkpoint saved with its env "
+                              "(save_checkpoint(..., env)), e.g. the run's checkpoints/latest.pt")
 
 
 def _transform_groups(state: dict) -> dict[tuple[str, str], set[str]]:
