@@ -25,7 +25,7 @@ from tocabi_torchrl.sim import (
     WarpSim,
     add_contact_sensors,
 )
-from tocabi_torchrl.sim.kernel_cache import announce_compile_if_cold
+from tocabi_torchrl.sim.kernel_cache import announce_compile_if_cold, quiet_warp_info
 
 from warp_substeps import after_each_substep
 
@@ -454,6 +454,17 @@ def test_cold_kernel_cache_prints_one_line(tmp_path, capsys, monkeypatch):
     assert announce_compile_if_cold(device)
     out = capsys.readouterr().out.strip().splitlines()
     assert len(out) == 1 and "compiling mujoco-warp kernels" in out[0] and str(tmp_path) in out[0]
+
+
+@pytest.mark.skipif(not hasattr(wp.config, "log_level"), reason="this warp has quiet, not log_level")
+def test_warps_default_info_lines_are_lowered_to_warnings_and_a_users_level_is_kept(monkeypatch):
+    # At warp's default level every simulator built printed a banner and ~50 "Module ... load on device" lines.
+    monkeypatch.setattr(wp.config, "log_level", wp.LOG_INFO)
+    quiet_warp_info()
+    assert wp.config.log_level == wp.LOG_WARNING
+    monkeypatch.setattr(wp.config, "log_level", wp.LOG_DEBUG)
+    quiet_warp_info()
+    assert wp.config.log_level == wp.LOG_DEBUG
 
 
 def _tangled_qpos(n: int, seed: int = 0) -> torch.Tensor:

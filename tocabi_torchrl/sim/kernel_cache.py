@@ -6,7 +6,7 @@ import os
 
 import warp as wp
 
-__all__ = ["announce_compile_if_cold"]
+__all__ = ["announce_compile_if_cold", "quiet_warp_info"]
 
 # A full step/forward/reset of this robot loads ~40 warp modules; far fewer compiled ones means a cold cache.
 _WARM_MODULES = 30
@@ -42,3 +42,18 @@ def announce_compile_if_cold(device: wp.Device) -> bool:
         flush=True,
     )
     return True
+
+
+def quiet_warp_info() -> None:
+    """Lower warp's log level from its default (info) to warnings, before warp initialises.
+
+    At the info level warp prints a banner and one line per module it loads, about fifty lines for every simulator
+    built, which bury a run's own output; :func:`announce_compile_if_cold` says what a user needs to know about the
+    compile. A level the user set (anything but the default) is kept; after a simulator is built,
+    ``wp.config.log_level = wp.LOG_INFO`` brings the lines back. Warp versions before ``log_level`` have ``quiet``.
+    """
+    if hasattr(wp.config, "log_level"):
+        if wp.config.log_level == wp.LOG_INFO:
+            wp.config.log_level = wp.LOG_WARNING
+    elif hasattr(wp.config, "quiet"):
+        wp.config.quiet = True

@@ -31,7 +31,7 @@ from .config import SimConfig
 from .contacts import ContactLayout, contact_layout
 from .graph import Recorded
 from .health import overflow_error
-from .kernel_cache import announce_compile_if_cold
+from .kernel_cache import announce_compile_if_cold, quiet_warp_info
 from .kernels import (copy_rows_where, copy_start_rows, derive_signals, or_start_overflow, write_reset_state,
                       write_substep_ctrl)
 from .memory import check_fits, warp_world_bytes
@@ -44,6 +44,7 @@ def _resolve_device(name) -> wp.Device:
     name = str(name)
     if name != "cpu" and name != "cuda" and not (name.startswith("cuda:") and name[5:].isdigit()):
         raise ValueError(f"unknown device {name!r}: use 'cpu', 'cuda' or 'cuda:N'")
+    quiet_warp_info()
     wp.init()
     if name.startswith("cuda") and not wp.is_cuda_available():
         raise ValueError(f"device {name!r} requested but warp sees no CUDA device on this machine; use device='cpu'")
