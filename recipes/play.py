@@ -16,7 +16,7 @@ robust.png.
 --viewer serves a live web page instead (the `viewer` extra, docs/viewer.md): every robot walking, command sliders,
 pause/step, push, reset, world picker, camera follow, the gait metrics and a knee trace; --viewer_host/--viewer_port
 say where (reach a remote machine with ssh -L 8080:localhost:8080). --policy names a shipped policy (ppo, torque,
-model_based) or a run folder or file, like --checkpoint.
+model_based, robust) or a run folder or file, like --checkpoint.
 On a headless machine the video uses EGL (MUJOCO_GL=egl, chosen automatically when libEGL is present); osmesa works
 only with libOSMesa and PyOpenGL installed.
 """
@@ -40,7 +40,8 @@ OPTIONS = (
     ("--vx", float, 0.5, "commanded forward speed [m/s] (standard test)"),
     ("--vy", float, 0.0, "commanded lateral speed [m/s] (standard test)"),
     ("--out", str, None, ("output folder, refused if it holds files unless --overwrite (default: eval/ of the "
-                          "run, or runs/eval/<name>/ for a shipped policy; eval_2/, ... once that holds results)")),
+                          "run, eval/ beside a checkpoint file, or runs/eval/<name>/ for a shipped policy; eval_2/, "
+                          "... once that holds results)")),
     ("--video_envs", int, 4, "robots shown side by side in the video (standard test); 0 = no video"),
 )
 #: The gait tests (docs/evaluation.md) and the robots each simulates when --num_envs is left out (per case: robust).
@@ -51,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = RecipeParser(description=__doc__.split("\n\n")[0])
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--checkpoint", help="run folder or checkpoint .pt file (this or --policy is required)")
-    source.add_argument("--policy", help="a shipped policy (ppo, torque, model_based), a run folder or a file")
+    source.add_argument("--policy", help="a shipped policy (ppo, torque, model_based, robust), a run folder or a file")
     for flag, kind, default, text in OPTIONS:
         shown = "" if default is None else f" (default: {default})"
         parser.add_argument(flag, type=kind, default=default, help=text + shown)

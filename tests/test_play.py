@@ -147,6 +147,17 @@ def test_play_help_shows_every_default():
             assert action.help.count("(default:") == 1, action.dest
 
 
+def test_play_help_names_every_shipped_policy():
+    from tocabi_torchrl.viewer.policy_source import shipped_policies
+
+    parser = recipe("play").build_parser()
+    (policy,) = [a for a in parser._actions if a.dest == "policy"]
+    doc = " ".join(recipe("play").__doc__.split())
+    for text in (policy.help, doc.split("--policy names a shipped policy", 1)[1]):
+        names = text.split("(", 1)[1].split(")", 1)[0].split(", ")
+        assert sorted(names) == sorted(shipped_policies()), f"{text!r} lists other names than the shipped policies"
+
+
 def test_osmesa_is_checked_before_mujoco_loads():
     from tocabi_torchrl.render_gl import GLBackendError, choose_gl_backend
 
