@@ -56,6 +56,15 @@ def test_the_env_refuses_them_before_it_builds():
         CommandConfig(max_ramp_steps=2.5).validate()  # as VelocityCommand checks its config on its own
 
 
+def test_a_misspelt_option_names_the_nearest():
+    with pytest.raises(TypeError, match=r"\['num_env'\]; 'num_env': did you mean 'num_envs'\?; use a section "
+                                        r"\(num_envs, sim, .*\) or one of \[.*'control_mode'"):
+        TocabiWalk(num_env=3, device="cpu")
+    with pytest.raises(TypeError, match=r"\['max_episode_step'\]; 'max_episode_step': did you mean "
+                                        r"'max_episode_steps'"):
+        TocabiWalkConfig().with_flat(max_episode_step=10)
+
+
 def test_every_default_and_preset_passes_and_none_stays_allowed():
     TocabiWalkConfig().validate()
     TocabiWalkConfig.reference().validate()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from dataclasses import dataclass, field
 
@@ -451,8 +452,12 @@ class TocabiWalkConfig:
         sections = {f.name for f in dataclasses.fields(self)}
         unknown = sorted(set(flat) - set(ENV_FLAT_PATHS) - sections)
         if unknown:
-            raise TypeError(f"unknown TocabiWalk option(s) {unknown}; use a section (num_envs, sim, task, command, "
-                            f"control, scene, pushes, dynamics) or one of {sorted(ENV_FLAT_PATHS)}")
+            known = sorted(sections | set(ENV_FLAT_PATHS))
+            close = {k: m[0] for k in unknown if (m := difflib.get_close_matches(k, known, n=1))}
+            hint = "".join(f"; {k!r}: did you mean {v!r}?" for k, v in close.items())
+            raise TypeError(f"unknown TocabiWalk option(s) {unknown}{hint}; use a section ("
+                            f"{', '.join(f.name for f in dataclasses.fields(self))}) or one of "
+                            f"{sorted(ENV_FLAT_PATHS)}")
         return replace_paths(self, {ENV_FLAT_PATHS.get(k, k): v for k, v in flat.items()})
 
     @property
