@@ -1,12 +1,14 @@
 """The robust gait test of several policies side by side (by default the shipped ones), one table.
 
-    python -m lab.benchmarks.robust_policies --out docs/benchmarks/robust
+    python -m lab.benchmarks.robust_policies --out docs/benchmarks/robust --overwrite
     python -m lab.benchmarks.robust_policies --policies runs/robust/checkpoints/best.pt --num_envs 1024
 
 Each policy gets ``tocabi_torchrl.evaluation.robust`` (four cases of ``--num_envs`` robots, 8 s, one batch): its
 ``robust.json`` and ``robust.png`` go to ``<out>/<policy>/``, the table of every policy and case to
-``<out>/robust_policies.{json,md,png}`` with the command, date and hardware, and the seconds each test took. The
-table is written again after each policy, so a call stopped partway keeps the policies it finished (marked partial).
+``<out>/robust_policies.{json,md,png}`` with the command, date and hardware, and the seconds each test took (two
+policies of one file name, e.g. two runs' ``latest.pt``, are told apart by their run folder's name). The table is
+written again after each policy, so a call stopped partway keeps the policies it finished (marked partial). An
+``--out`` that holds a table already is refused unless ``--overwrite``.
 ``--cases nominal commands`` runs those cases alone (the ``diverse`` verdict of ``time_to_walk``); a policy then
 passes those cases, not the robust test.
 """
@@ -41,12 +43,29 @@ def _value(summary: dict, path: str):
     return summary
 
 
+def labels(policies: list[Path]) -> list[str]:
+    """One name per policy for its report folder and table rows: the file's stem, or, where two policies share it,
+    the run folder's name before it (``runA_latest``), then a number if they still do."""
+    stems = [p.stem for p in policies]
+    names = []
+    for p, stem in zip(policies, stems):
+        run = next((q.name for q in p.resolve().parents if q.name and q.name != "checkpoints"), "")
+        names.append(f"{run}_{stem}" if stems.count(stem) > 1 and run else stem)
+    seen: dict[str, int] = {}
+    unique = []
+    for name in names:
+        seen[name] = seen.get(name, 0) + 1
+        unique.append(name if names.count(name) == 1 else f"{name}_{seen[name]}")
+    return unique
+
+
 def measure(policy: Path, out: Path, num_envs: int, seconds: float, device: str,
-            cases: tuple[str, ...] | None = None) -> dict:
+            cases: tuple[str, ...] | None = None, label: str | None = None) -> dict:
     from tocabi_torchrl.evaluation.robust import CASES, evaluate_robust_run, robust_passes
 
+    label = label or policy.stem
     start = time.perf_counter()
-    report = evaluate_robust_run(policy, num_envs=num_envs, device=device, out_dir=out / policy.stem, seconds=seconds,
+    report = evaluate_robust_run(policy, num_envs=num_envs, device=device, out_dir=out / label, seconds=seconds,
                                  cases=cases)
     took = time.perf_counter() - start
     run = tuple(report["cases"])
@@ -56,8 +75,8 @@ def measure(policy: Path, out: Path, num_envs: int, seconds: float, device: str,
                     "checks": {p: {"value": v["value"], "needs": v["needs"], "pass": v["pass"]}
                                for p, v in c["checks"].items()}}
              for name, c in report["cases"].items()}
-    print(f"{policy.stem}: {'passes' if passes else 'does not pass'} {_what(run)} ({took:.0f} s)", flush=True)
-    return {"policy": policy.stem, "file": str(policy), "passes": passes, "seconds": took,
+    print(f"{label}: {'passes' if passes else 'does not pass'} {_what(run)} ({took:.0f} s)", flush=True)
+    return {"policy": label, "file": str(policy), "passes": passes, "seconds": took,
             "push_kind": report["settings"]["push_kind"], "cases": cases}
 
 
@@ -125,10 +144,14 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m lab.benchmarks.robust_policies", description=__doc__.split("\n")[0])
     parser.add_argument("--policies", nargs="+", default=[str(POLICIES / f"{p}.pt") for p in SHIPPED],
                         help="checkpoints or run folders (default: the shipped policies)")
-    parser.add_argument("--num_envs", type=int, default=1024, help="robots per case")
-    parser.add_argument("--seconds", type=float, default=8.0, help="length of each case [s]")
-    parser.add_argument("--device", default="cuda")
-    parser.add_argument("--out", default=str(common.DOCS / "robust"), help="folder of the reports and the table")
+    parser.add_argument("--num_envs", type=int, default=1024, help="robots per case (default: 1024)")
+    parser.add_argument("--seconds", type=float, default=8.0, help="length of each case [s] (default: 8)")
+    parser.add_argument("--device", default="cuda", help="cuda, cuda:N or cpu (default: cuda)")
+    parser.add_argument("--out", default=str(common.DOCS / "robust"),
+                        help="folder of the reports and the table (default: docs/benchmarks/robust, the published "
+                             "table of the shipped policies; a CPU measurement goes to "
+                             "runs/benchmarks_cpu instead)")
+    parser.add_argument("--overwrite", action="store_true", help="replace a table --out holds already")
     parser.add_argument("--cases", nargs="+", default=None, metavar="CASE",
                         help="run these cases alone (default: all four), e.g. nominal commands")
     args = parser.parse_args(argv)
@@ -137,12 +160,26 @@ def main(argv=None) -> None:
     unknown = [c for c in args.cases or () if c not in CASES]
     if unknown:
         parser.error(f"--cases: unknown case(s) {unknown}; choose from {list(CASES)}")
+    missing = [p for p in args.policies if not Path(p).exists()]
+    if missing:
+        parser.error(f"--policies: no such file or run folder: {', '.join(missing)}")
+    if args.num_envs < 1 or not args.seconds > 0:
+        parser.error(f"--num_envs must be >= 1 and --seconds > 0, got {args.num_envs} and {args.seconds}")
+    if args.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            parser.error(f"--device {args.device}: torch sees no CUDA GPU here; pass --device cpu")
     out = common.report_dir(args.out, args.device)
+    if (out / f"{NAME}.json").exists() and not args.overwrite:
+        parser.error(f"--out {out} holds a table already ({NAME}.json); pass --overwrite to replace it, or choose "
+                     "another folder")
+    names = labels([Path(p) for p in args.policies])
     data = {"meta": common.meta(NAME, argv, on=args.device, num_envs=args.num_envs, seconds=args.seconds),
             "results": []}
     for i, policy in enumerate(args.policies):
         data["results"].append(measure(Path(policy), out, args.num_envs, args.seconds, args.device,
-                                       args.cases and tuple(args.cases)))
+                                       args.cases and tuple(args.cases), names[i]))
         # The table after every policy, not only at the end: a call stopped partway (a time limit, Ctrl-C) keeps the
         # table of the policies it finished, and says how many it was asked for.
         left = len(args.policies) - i - 1

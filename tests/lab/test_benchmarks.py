@@ -332,6 +332,8 @@ def test_robust_policies_keeps_the_table_of_the_policies_it_finished(tmp_path, m
         return {"passes": True, "settings": {"push_kind": "velocity"}, "cases": {name: case for name in cases}}
 
     monkeypatch.setattr(robust, "evaluate_robust_run", run)
+    for name in ("first", "second", "third"):
+        (tmp_path / f"{name}.pt").touch()
     argv = ["--cases", "nominal", "--device", "cpu", "--out", str(tmp_path)]
     with pytest.raises(KeyboardInterrupt):
         robust_policies.main(["--policies", str(tmp_path / "first.pt"), str(tmp_path / "second.pt"),
@@ -340,9 +342,50 @@ def test_robust_policies_keeps_the_table_of_the_policies_it_finished(tmp_path, m
     assert [r["policy"] for r in data["results"]] == ["first"] and data["meta"]["untested"] == 2
     page = (tmp_path / "robust_policies.md").read_text()
     assert "| first | nominal |" in page and "Partial: 2 more policies of the command not tested yet" in page
-    robust_policies.main(["--policies", str(tmp_path / "first.pt"), *argv])
+    robust_policies.main(["--policies", str(tmp_path / "first.pt"), *argv, "--overwrite"])
     data = json.loads((tmp_path / "robust_policies.json").read_text())
     assert "untested" not in data["meta"] and "Partial" not in (tmp_path / "robust_policies.md").read_text()
+
+
+def test_robust_policies_tells_same_named_files_apart_and_never_replaces_a_table_unasked(tmp_path, monkeypatch,
+                                                                                        capsys):
+    """Two runs' latest.pt used to share one report folder and one row name; a second call into the same --out
+    replaced its table. Missing files, no robots and a CUDA device without CUDA are one usage line each."""
+    import json
+
+    from lab.benchmarks import robust_policies
+    from tocabi_torchrl.evaluation import robust
+
+    def run(policy, num_envs, device, out_dir, seconds, cases):
+        out_dir.mkdir(parents=True)  # as the test writes its report: a second policy here would collide
+        case = {"passes": True, "survival": 1.0, "checks": {"survival": {"value": 1.0, "needs": ">= 0.99",
+                                                                          "pass": True}}}
+        return {"passes": True, "settings": {"push_kind": "velocity"}, "cases": {name: case for name in cases}}
+
+    monkeypatch.setattr(robust, "evaluate_robust_run", run)
+    files = []
+    for run_name in ("runA", "runB"):
+        (tmp_path / run_name / "checkpoints").mkdir(parents=True)
+        files.append(tmp_path / run_name / "checkpoints" / "latest.pt")
+        files[-1].touch()
+    out = tmp_path / "out"
+    argv = ["--cases", "nominal", "--device", "cpu", "--out", str(out)]
+    robust_policies.main(["--policies", *map(str, files), *argv])
+    rows = json.loads((out / "robust_policies.json").read_text())["results"]
+    assert [r["policy"] for r in rows] == ["runA_latest", "runB_latest"]
+    assert (out / "runA_latest").is_dir() and (out / "runB_latest").is_dir()
+    assert robust_policies.labels([files[0], files[0]]) == ["runA_latest_1", "runA_latest_2"]
+    assert robust_policies.labels([files[0], tmp_path / "x.pt"]) == ["latest", "x"]
+    for bad, said in ((["--policies", *map(str, files), *argv], "holds a table already"),
+                      (["--policies", str(tmp_path / "nope.pt"), *argv], "no such file or run folder"),
+                      (["--policies", str(files[0]), "--num_envs", "0", *argv], "--num_envs must be >= 1")):
+        with pytest.raises(SystemExit):
+            robust_policies.main(bad)
+        assert said in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        with pytest.raises(SystemExit):
+            robust_policies.main(["--policies", str(files[0]), "--out", str(tmp_path / "gpu")])
+        assert "--device cuda: torch sees no CUDA GPU here; pass --device cpu" in capsys.readouterr().err
 
 
 def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, monkeypatch, capsys):
@@ -365,6 +408,7 @@ def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, mon
                 "cases": {name: {**case, **good} for name in cases}}
 
     monkeypatch.setattr(robust, "evaluate_robust_run", run)
+    (tmp_path / "p.pt").touch()
     robust_policies.main(["--policies", str(tmp_path / "p.pt"), "--cases", "nominal", "commands", "--device", "cpu",
                           "--out", str(tmp_path)])
     assert seen["cases"] == ("nominal", "commands")
