@@ -92,6 +92,7 @@ def test_a_shipped_policy_writes_outside_the_source_tree_and_titles_the_plot_wit
     evaluate_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.1, command=(0.3, 0.1), video_envs=0)
     out = tmp_path / "runs" / "eval" / "tocabi_walk_ppo"
     assert (out / "summary.json").is_file() and (out / "knees.png").is_file()
+    assert json.loads((out / "summary.json").read_text())["checkpoint"] == str(SHIPPED_POLICY)
     assert set(SHIPPED_POLICY.parent.iterdir()) == before, "evaluation wrote into the package's assets"
     assert Image.open(out / "knees.png").text["Title"] == "Knee trajectories at command (0.3, 0.1) m/s, env 0"
     assert "gait test" in capsys.readouterr().err  # the rollout's progress bar

@@ -208,9 +208,12 @@ def test_training_ends_with_the_robust_test_when_asked(tmp_path, capsys):
 
     recipe("ppo_walk").main(tiny_args(tmp_path, eval_at_end=True, eval_test="robust", eval_envs=2, eval_seconds=0.1))
     out = capsys.readouterr().out
-    assert "robust gait test (0.1 s, 2 robots per case): does not walk yet" in out
+    # A short test says that its thresholds are the 8 s test's, and that its kicks (2-7 s) never came.
+    assert ("robust gait test (0.1 s, 2 robots per case): does not walk yet (the thresholds are set for the 8 s "
+            "test); no kick falls within 0.1 s (they come at 2-7 s)") in out
     report = _strict((tmp_path / "run" / "eval" / "robust.json").read_text())
     assert list(report["cases"]) == ["nominal", "commands", "robust_0.5", "robust_1.0"]
+    assert report["checkpoint"] == str(tmp_path / "run" / "checkpoints" / "latest.pt")  # which policy it tested
     assert not (tmp_path / "run" / "eval" / "summary.json").exists()  # the standard test did not run as well
 
 

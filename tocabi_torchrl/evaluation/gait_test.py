@@ -87,11 +87,12 @@ def evaluate_policy(
     video_envs: int = 4,
     env=None,
     progress: bool = True,
+    source: str | os.PathLike | None = None,
 ) -> dict:
     """Roll the deterministic policy out for ``seconds`` at a fixed command and write the summary, plot and video
     to ``out_dir`` (created if needed; files of the same name there are replaced: the caller chooses the folder,
     e.g. with :func:`eval_out_dir`). ``seconds`` must cover at least one policy step; ``progress`` shows bars for
-    the rollout and the rendering. Returns the summary, NaN where a metric has no value (``null`` in the file)."""
+    the rollout and the rendering; ``source``, the checkpoint tested, is recorded in the summary as ``checkpoint``. Returns the summary, NaN where a metric has no value (``null`` in the file)."""
     device = torch.device(device)
     if env is None:
         env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
@@ -121,6 +122,8 @@ def evaluate_policy(
             if video_envs < 1 and k % 50 == 49 and not bool(alive.any()):
                 break
     summary = metrics.summary(seconds)
+    if source is not None:  # which policy these numbers are of, once several eval_N/ folders sit side by side
+        summary["checkpoint"] = str(source)
     atomic_write_text(out / "summary.json", summary_json(summary))
     plot_knees(torch.stack(trace_q).cpu().numpy(), torch.stack(trace_ref).cpu().numpy(), base.dt, out / "knees.png",
                 command)
@@ -159,7 +162,7 @@ def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "aut
     if out_dir is None:
         out_dir = fresh_eval_dir(ckpt)
     return evaluate_policy(policy.actor, policy.cfg, out_dir, num_envs=num_envs, device=policy.env.device,
-                           env=policy.env, **kwargs)
+                           env=policy.env, source=ckpt, **kwargs)
 
 
 def default_eval_dir(ckpt: Path) -> Path:

@@ -48,7 +48,7 @@ from ..envs.cycle_velocity import gait_cycle_steps, heading_velocity
 from ..rotations import quat_rotate_inverse, quat_to_rpy
 from ..transforms.normalize import freeze_running_statistics
 from ..value_rules import PUSH_KINDS
-from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, summary_json, tested_on
+from .gait_test import ROBUST_CRITERIA, STANDARD_SECONDS, fresh_eval_dir, summary_json, tested_on
 from .record import GaitMetrics, fixed_command, policy_steps
 
 __all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking", "RobustCase", "RobustTestConfig",
@@ -537,7 +537,8 @@ def robust_passes(report: dict, cases: tuple[str, ...] | None = None) -> bool:
 # ------------------------------------------------------------------------------------------------ the test
 def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: RobustTestConfig = RobustTestConfig(),
                     device: str | torch.device = "cuda", envs: dict | None = None,
-                    prepare_env: Callable | None = None, progress: bool = True) -> dict:
+                    prepare_env: Callable | None = None, progress: bool = True,
+                    source: str | os.PathLike | None = None) -> dict:
     """Run the robust test's cases (``test.cases``) of the deterministic ``actor`` (trained with run config
     ``cfg``) and write ``robust.json`` and ``robust.png`` to ``out_dir`` (created if needed; files of the same name
     replaced). Returns the report: {"test": "robust", "passes", "seed", "settings", "tested_on", "criteria",
@@ -546,7 +547,8 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
 
     Every case runs at once in one env (:func:`batch_env`). ``envs``: a dict to keep that env in for reuse (e.g.
     across checkpoints; built and stored under :func:`batch_key` when missing). ``prepare_env(env)``: called on the
-    env before the rollout, e.g. to load a checkpoint's normaliser statistics into it. ``progress``: a bar."""
+    env before the rollout, e.g. to load a checkpoint's normaliser statistics into it. ``progress``: a bar.
+    ``source``: the checkpoint tested, recorded in the report as ``checkpoint``."""
     from .gait_test import policy_dt
     from .plots import plot_robust
 
@@ -563,6 +565,8 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
                            "push_window_s": list(test.push_window), "push_kind": test.push_kind},
               "criteria": {name: {p: f"{op} {v:g}" for p, (op, v) in c.items()} for name, c in ROBUST_CRITERIA.items()},
               "cases": {}}
+    if source is not None:
+        report["checkpoint"] = str(source)
     per_case = {}
     key = batch_key(test)
     if key not in envs:
@@ -611,7 +615,7 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
     return evaluate_robust(agent.actor, cfg, out_dir, test=test, device=device, envs=envs,
                            prepare_env=lambda case_env_: apply_checkpoint(state, agent, env=case_env_, path=path),
-                           progress=progress)
+                           progress=progress, source=path)
 
 
 def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: str = "auto",
@@ -646,6 +650,11 @@ def robust_report_text(report: dict, out: str | os.PathLike | None = None) -> st
     s = report["settings"]
     lines = [f"robust gait test ({s['seconds']:g} s, {s['num_envs']} robots per case): "
              + ("walks" if report["passes"] else "does not walk yet")]
+    if s["seconds"] != STANDARD_SECONDS:  # the distance threshold and the kicks' window assume the full length
+        lines[0] += f" (the thresholds are set for the {STANDARD_SECONDS:g} s test)"
+    window = s.get("push_window_s")
+    if window and s["seconds"] <= window[0] and any(n.startswith("robust") for n in report["cases"]):
+        lines[0] += f"; no kick falls within {s['seconds']:g} s (they come at {window[0]:g}-{window[1]:g} s)"
     for name, c in report["cases"].items():
         d, drift = c["forward_distance_m"], c["lateral_drift_m"]
         lines.append(f"  {name:<11} survival {num(c['survival'], '.3f')}, forward p5/p50/p95 {num(d['p5'], '.2f')}/"
