@@ -65,6 +65,7 @@ from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy  # noqa: E402
 from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
+    adapter,
     call_seed,
     check_args,
     check_out_dir,
@@ -181,7 +182,7 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     check_args(parser, args, at_least={"steps_per_env": 1}, positive=("learning_rate",))
     # The adapter checks the installed rsl-rl-lib version before any of rsl_rl's own modules is imported.
-    from tocabi_torchrl.adapters import TocabiRslRlEnv  # isort: skip
+    TocabiRslRlEnv = adapter("TocabiRslRlEnv")
     from rsl_rl.runners import OnPolicyRunner
 
     out = check_out_dir(args.out, args.resume)  # created once the env is built: a failed call leaves no folder

@@ -59,6 +59,7 @@ from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy  # noqa: E402
 from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
+    adapter,
     call_seed,
     check_args,
     check_out_dir,
@@ -203,7 +204,7 @@ def main(argv=None) -> dict:
     if args.n_steps * args.num_envs < 2:
         parser.error(f"--n_steps {args.n_steps} x --num_envs {args.num_envs} must be at least 2 (SB3's PPO "
                      "normalises the rollout's advantages)")
-    from tocabi_torchrl.adapters import TocabiSB3VecEnv  # checks the stable-baselines3 version
+    TocabiSB3VecEnv = adapter("TocabiSB3VecEnv")  # checks the stable-baselines3 version
 
     out = check_out_dir(args.out, args.resume)  # created once the env is built: a failed call leaves no folder
     prior = read_resume(out) if args.resume else {}

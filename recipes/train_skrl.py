@@ -50,6 +50,7 @@ from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
 from tocabi_torchrl.adapters.policy_file import load_policy, save_policy  # noqa: E402
 from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
+    adapter,
     call_seed,
     check_args,
     check_out_dir,
@@ -108,7 +109,7 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     check_args(parser, args, at_least={"rollouts": 1})
     # The adapter checks the installed skrl version before any of skrl's own modules is imported.
-    from tocabi_torchrl.adapters import TocabiSkrlEnv  # isort: skip
+    TocabiSkrlEnv = adapter("TocabiSkrlEnv")
     from skrl.agents.torch.ppo import PPO, PPO_CFG
     from skrl.memories.torch import RandomMemory
     from skrl.resources.schedulers.torch import KLAdaptiveLR

@@ -60,6 +60,31 @@ def test_the_adapter_import_itself_checks_the_version(monkeypatch):
         from tocabi_torchrl.adapters import TocabiSB3VecEnv  # noqa: F401
 
 
+@pytest.mark.parametrize(("recipe_name", "module", "dist"), [("train_sb3", "sb3_env", "stable-baselines3"),
+                                                            ("train_rsl_rl", "rsl_rl_env", "rsl-rl-lib"),
+                                                            ("train_skrl", "skrl_env", "skrl")])
+def test_a_recipe_without_its_library_ends_in_one_error_line(monkeypatch, tmp_path, recipe_name, module, dist):
+    # It used to end in a ~15-line traceback with the install command on its last line.
+    import sys
+
+    from recipe_runner import load_recipe
+
+    real = importlib.metadata.version
+
+    def missing(name):
+        if name == dist:
+            raise importlib.metadata.PackageNotFoundError(name)
+        return real(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", missing)
+    monkeypatch.delitem(sys.modules, f"tocabi_torchrl.adapters.{module}", raising=False)
+    with pytest.raises(SystemExit) as exit_info:
+        load_recipe(recipe_name).main(["--out", str(tmp_path / "out"), "--device", "cpu", "--num_envs", "8"])
+    message = str(exit_info.value.code)
+    assert message.startswith(f"error: {dist} is not installed") and "pip install -e" in message
+    assert "\n" not in message and not (tmp_path / "out").exists()
+
+
 def test_policy_file_round_trip_and_refusals(tmp_path):
     state = {"w": torch.arange(6.0).reshape(2, 3)}
     path = save_policy(tmp_path / "policy.pt", "sb3", state, {"hidden": [4]})

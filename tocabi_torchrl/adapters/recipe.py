@@ -30,6 +30,7 @@ from ..rl.interrupt import stop_on_signals as _stop_on_signals
 
 __all__ = [
     "Interrupted",
+    "adapter",
     "TimeUp",
     "TrainingClock",
     "base_parser",
@@ -48,6 +49,19 @@ __all__ = [
     "write_json",
     "write_resume",
 ]
+
+
+def adapter(name: str):
+    """The adapter class ``name`` (e.g. ``"TocabiSB3VecEnv"``), which imports its library and checks its version; a
+    missing library or one of an unsupported version ends the recipe with one ``error:`` line and its install
+    command (not a traceback)."""
+    from .. import adapters
+    from ._versions import LibraryVersionError
+
+    try:
+        return getattr(adapters, name)  # the package's lazy import, or what the module already holds
+    except LibraryVersionError as err:
+        raise SystemExit(f"error: {err}") from None
 
 
 def _check_number(args: argparse.Namespace, name: str, low: float, strict: bool = False) -> None:
