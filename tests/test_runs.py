@@ -74,6 +74,24 @@ def test_resume_restores_the_saved_config(finished_run):
     assert cfg.total_env_steps == 24 and cfg.max_minutes == 1.0 and cfg.env.num_envs == 2
 
 
+def test_a_damaged_latest_checkpoint_names_the_newest_readable_one(finished_run, tmp_path):
+    # It used to say only that latest.pt was unreadable, though the run's iteration files resume fine.
+    import shutil
+
+    from tocabi_torchrl.rl.checkpoint import CheckpointError
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    latest = run / "checkpoints" / "latest.pt"
+    latest.write_bytes(latest.read_bytes()[:1000])
+    newest = sorted((run / "checkpoints").glob("iter_*.pt"))[-1]
+    with pytest.raises(CheckpointError, match=rf"latest.pt.*newest readable checkpoint is {newest.name} "
+                                              rf"\(iteration \d+\): continue from it with --resume {newest}"):
+        parse_args(["--resume", str(run)])
+    cfg, _ = parse_args(["--resume", str(newest)])  # and that advice works
+    assert cfg.resume == str(newest)
+
+
 @pytest.mark.parametrize("option, value, saved", [("ppo.lr", ["0.5"], "0.001"),
                                                   ("env.control.mode", ["torque"], "'pd_reference'"),
                                                   ("transforms.history", ["tocabilab"], "'reference'"),

@@ -15,7 +15,14 @@ from pathlib import Path
 
 from ..config import RunConfig
 from ..tree import get_path, leaf_paths, replace_paths
-from .checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint, run_folder_of
+from .checkpoint import (
+    _ITER_FILE,
+    CheckpointError,
+    checkpoint_file,
+    config_from_checkpoint,
+    read_checkpoint,
+    run_folder_of,
+)
 
 __all__ = ["ResumeConfigError", "RESUME_SAFE", "saved_config", "resume_safe_text", "check_resume_config",
            "holds_checkpoint", "no_checkpoint_message"]
@@ -76,6 +83,21 @@ def _refuse(path, diffs: list[tuple[str, object, object]]) -> ResumeConfigError:
     )
 
 
+def _intact_alternative(damaged: Path) -> str:
+    """A hint for an unreadable checkpoint: the newest other ``iter_*.pt`` beside it that reads, if any (a run keeps
+    its last iteration files; ``latest.pt`` is one of them under another name)."""
+    found = sorted(((int(m.group(1)), p) for p in damaged.parent.glob("iter_*.pt")
+                    if (m := _ITER_FILE.match(p.name)) and p != damaged), reverse=True)
+    for iteration, other in found:
+        try:
+            read_checkpoint(other)
+        except CheckpointError:
+            continue
+        return (f". Its newest readable checkpoint is {other.name} (iteration {iteration}): continue from it with "
+                f"--resume {other}")
+    return ""
+
+
 def check_resume_config(saved: RunConfig, given: RunConfig, path: str | os.PathLike = "<checkpoint>") -> None:
     """Raise :class:`ResumeConfigError` if ``given`` differs from ``saved`` in an option a resume may not change."""
     diffs = _differences(saved, given)
@@ -90,8 +112,12 @@ def saved_config(resume: str | os.PathLike) -> RunConfig:
     if folder.is_dir() and (folder / "config.json").is_file() and not holds_checkpoint(folder):
         raise ResumeConfigError(no_checkpoint_message(folder))
     path = checkpoint_file(resume)
+    try:
+        state = read_checkpoint(path)
+    except CheckpointError as err:
+        raise CheckpointError(f"{err}{_intact_alternative(path)}") from None
     # Strict: the run trains on with these values, so one that breaks a rule of this version is refused here.
-    saved = config_from_checkpoint(read_checkpoint(path), path, strict=True)
+    saved = config_from_checkpoint(state, path, strict=True)
     where = {"resume": str(resume)}
     if path.parent.name == "checkpoints":
         # The run goes on where its checkpoint is (or, given --name alone, branches beside it): the saved run_dir is
