@@ -149,8 +149,10 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(stopped_at_once(run.path))
     if result.interrupted is not None:
         sys.exit(stopped(result))
-    print(f"done: {result.env_steps:,} env steps in {result.wall_seconds:.0f} s "
-          f"({result.env_steps_per_second:,.0f} env-steps/s); run folder {result.run_dir}")
+    this_call = result.env_steps - run.start_env_steps  # the time and rate are this call's
+    total = f" ({result.env_steps:,} in the run)" if run.start_env_steps else ""
+    print(f"done: {this_call:,} env steps in {result.wall_seconds:.0f} s ({result.env_steps_per_second:,.0f} "
+          f"env-steps/s){total}; run folder {result.run_dir}")
     checkpoint = checkpoint_file(result.run_dir)
     if cfg.eval_at_end and cfg.eval_test == "robust":  # the robust gait test (docs/evaluation.md) instead
         from tocabi_torchrl.evaluation.robust import evaluate_robust_run, robust_report_text

@@ -74,6 +74,17 @@ def test_resume_restores_the_saved_config(finished_run):
     assert cfg.total_env_steps == 24 and cfg.max_minutes == 1.0 and cfg.env.num_envs == 2
 
 
+def test_a_resumed_call_reports_its_own_env_steps_beside_the_runs(finished_run, tmp_path, capsys):
+    # It printed the run's total env steps beside this call's seconds and rate.
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "32"])
+    out = capsys.readouterr().out
+    assert "done: 16 env steps in " in out and " env-steps/s) (32 in the run); run folder" in out
+
+
 def test_a_damaged_latest_checkpoint_names_the_newest_readable_one(finished_run, tmp_path):
     # It used to say only that latest.pt was unreadable, though the run's iteration files resume fine.
     import shutil
