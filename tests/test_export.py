@@ -49,7 +49,7 @@ def test_shipped_onnx_equals_torch_actor_on_random_and_recorded_observations(nam
     policy = load_policy(_policy_file(name, ".pt"), num_envs=50, command=_fixed_command((0.5, 0.0)))
     contract = load_contract(_policy_file(name, ".json"))
     assert contract["training_config_sha256"] == config_sha256(policy.saved_config)
-    session = ort.InferenceSession(str(_policy_file(name, ".onnx")), providers=["CPUExecutionProvider"])
+    onnx_policy = ort.InferenceSession(str(_policy_file(name, ".onnx")), providers=["CPUExecutionProvider"])
     actor = DeterministicActor(policy.agent.actor).eval()
     obs_dim = contract["policy"]["input_dim"]
     gen = torch.Generator().manual_seed(0)
@@ -59,7 +59,7 @@ def test_shipped_onnx_equals_torch_actor_on_random_and_recorded_observations(nam
     for obs in (random_obs, recorded):
         with torch.no_grad():
             expected = actor(obs).numpy()
-        got = session.run(None, {contract["policy"]["input_name"]: obs.numpy()})[0]
+        got = onnx_policy.run(None, {contract["policy"]["input_name"]: obs.numpy()})[0]
         assert got.shape == expected.shape == (10_000, contract["action"]["dim"])
         assert np.abs(got - expected).max() <= 1e-5
 
@@ -71,8 +71,8 @@ def test_export_cli_writes_onnx_contract_torchscript_and_refuses_to_overwrite(tm
     contract = load_contract(out.with_suffix(".json"))
     scripted = torch.jit.load(str(out.with_suffix(".ts.pt")))
     obs = torch.randn(7, contract["policy"]["input_dim"])
-    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
-    np.testing.assert_allclose(scripted(obs).detach().numpy(), session.run(None, {"observation": obs.numpy()})[0],
+    onnx_policy = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    np.testing.assert_allclose(scripted(obs).detach().numpy(), onnx_policy.run(None, {"observation": obs.numpy()})[0],
                                atol=1e-5)
 
     # The contract's facts are those of the objects that trained the policy.
@@ -96,8 +96,12 @@ def test_export_cli_writes_onnx_contract_torchscript_and_refuses_to_overwrite(tm
     _strict_json(out.with_suffix(".json").read_text())
     json.dumps(contract, allow_nan=False)
 
-    with pytest.raises(SystemExit, match="exist"):
+    with pytest.raises(SystemExit, match=r"already exist\(s\); replace with --overwrite \(overwrite=True from "
+                                         r"Python\) \(the \.ts\.pt is another export's"):
         export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(out)])
+    with pytest.raises(SystemExit) as refusal:  # with --torchscript the .ts.pt is replaced like the others
+        export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(out), "--torchscript"])
+    assert "already exist(s)" in str(refusal.value.code) and "another export" not in str(refusal.value.code)
     capsys.readouterr()
     # Re-exported without --torchscript, the old .ts.pt (here the same checkpoint's, in general another one's) must
     # not be left beside the new ONNX file as if it were its TorchScript twin: it is removed, and the output says so.

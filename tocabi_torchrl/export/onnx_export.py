@@ -147,8 +147,8 @@ def check_onnx_output(data: bytes, actor: nn.Module, obs_dim: int, checkpoint: P
     else:
         options = ort.SessionOptions()
         options.intra_op_num_threads = 1
-        session = ort.InferenceSession(data, sess_options=options, providers=["CPUExecutionProvider"])
-        output = session.run([ONNX_OUTPUT], {ONNX_INPUT: inputs})[0]
+        onnx_policy = ort.InferenceSession(data, sess_options=options, providers=["CPUExecutionProvider"])
+        output = onnx_policy.run([ONNX_OUTPUT], {ONNX_INPUT: inputs})[0]
     if not np.isfinite(output).all():
         raise ExportError(f"{checkpoint}: the exported policy's action is NaN or inf on a representative input (the "
                           "mean observation or a typical one): its weights are non-finite or so large that float32 "
@@ -166,11 +166,14 @@ class ExportResult:
     removed_torchscript: Path | None = None
 
 
-def _refuse_overwrite(paths: list[Path], overwrite: bool) -> None:
-    existing = [str(p) for p in paths if p.exists()]
+def _refuse_overwrite(paths: list[Path], overwrite: bool, torchscript: bool) -> None:
+    existing = [p for p in paths if p.exists()]
     if existing and not overwrite:
-        raise FileExistsError(f"{', '.join(existing)} exist(s); pass --overwrite (overwrite=True) to replace them "
-                              "(a .ts.pt is removed when --torchscript is not given, as it belongs to another export)")
+        stale = not torchscript and any(p.name.endswith(".ts.pt") for p in existing)
+        note = (" (the .ts.pt is another export's: without --torchscript, --overwrite removes it rather than leave it "
+                "beside this export)") if stale else ""
+        raise FileExistsError(f"{', '.join(map(str, existing))} already exist(s); replace with --overwrite "
+                              f"(overwrite=True from Python){note}")
 
 
 def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchscript: bool = False,
@@ -186,7 +189,7 @@ def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchsc
         raise ValueError(f"--out must name a .onnx file, got {out}")
     contract_path = out.with_suffix(".json")
     ts_path = out.with_suffix(".ts.pt")
-    _refuse_overwrite([out, contract_path, ts_path], overwrite)
+    _refuse_overwrite([out, contract_path, ts_path], overwrite, torchscript)
     policy = load_policy(checkpoint)
     actor = DeterministicActor(policy.agent.actor)
     check_finite_policy(actor, policy.env, policy.checkpoint)
