@@ -23,7 +23,7 @@ from tocabi_torchrl import robot  # noqa: E402
 
 @pytest.fixture(scope="session")
 def model():
-    """The shipped TOCABI model (compiled once per session)."""
+    """The shipped TOCABI model (compiled once per test run)."""
     try:
         return robot.load_model()
     except robot.RobotAssetError as err:

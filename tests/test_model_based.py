@@ -31,7 +31,7 @@ LIMITS = np.asarray(robot.LEG_TORQUE_LIMITS, dtype=np.float64)
 
 @pytest.fixture(scope="module", params=["mujoco", "warp"])
 def env(request):
-    # warp runs on its CPU device (kernels cached after the first build of the session).
+    # warp runs on its CPU device (kernels cached after the first build of the test run).
     return TocabiWalk(num_envs=N, device="cpu", seed=0, backend=request.param, control_mode="model_based",
                       max_episode_steps=10**6)
 

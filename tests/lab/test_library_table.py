@@ -379,7 +379,7 @@ def test_rsl_rl_console_logs_become_one_csv_row_per_iteration(tmp_path):
                  "   Time elapsed: 0:07:35"]
         return lines + ([f"   Mean episode length: {length}"] if length else [])
 
-    # Two sessions' logs of one row, the second xz-compressed as committed: its calls number on from the first's.
+    # Two calls' logs of one row, the second xz-compressed as committed: its calls number on from the first's.
     first = ["+ python3 recipes/train_rsl_rl.py --out r", *block(0, 196608), *block(1, 393216, 41.5),
              "rsl_rl: --max_minutes 2 reached"]
     second = ["+ python3 recipes/train_rsl_rl.py --out r", *block(2, 196608, 4314.96)]
