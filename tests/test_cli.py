@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from recipe_runner import load_recipe
 
-from tocabi_torchrl.cli import RecipeParser, suggest_options
+from tocabi_torchrl.cli import RecipeParser, base_parser, suggest_options
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 #: The recipes whose parser is written out in the recipe (ppo_walk's is generated from the run config tree: see
@@ -144,3 +144,11 @@ def test_a_bad_value_or_a_missing_option_is_one_error_line(capsys):
     assert info.value.code == 2 and capsys.readouterr().err.splitlines() == [
         "demo.py: error: unrecognized arguments: --stpes 2; did you mean --steps?",
         "demo.py: demo.py --help lists every option"]
+
+
+def test_every_shared_library_recipe_option_with_a_default_shows_it():
+    # --eval_envs, --max_minutes, --checkpoint_minutes and --device used to leave their defaults out of --help.
+    parser = base_parser("demo", num_envs=8, iterations=2)
+    for action in parser._actions:
+        if action.dest not in ("help", "out", "resume"):  # --out is required, --resume a switch
+            assert "(default:" in action.help, f"--{action.dest} does not say its default"

@@ -67,20 +67,21 @@ def base_parser(description: str, num_envs: int, iterations: int) -> argparse.Ar
     """Options every library recipe takes: envs, device, iteration budget, seed, output folder, gait test size."""
     parser = RecipeParser(description=description)
     parser.add_argument("--num_envs", type=int, default=num_envs, help=f"robots simulated at once (default: {num_envs})")
-    parser.add_argument("--device", default="auto", help="auto (CUDA if present, else cpu), cpu, cuda or cuda:N")
+    parser.add_argument("--device", default="auto", help="auto (CUDA if present, else cpu), cpu, cuda or cuda:N "
+                        "(default: auto)")
     parser.add_argument("--iterations", type=int, default=iterations,
                         help=f"PPO iterations (rollout + update) to train (default: {iterations})")
     parser.add_argument("--max_minutes", type=float, default=0.0,
-                        help="stop after this many minutes of training, summed over --resume calls (0 = no limit)")
+                        help="stop after this many minutes of training, summed over --resume calls (default: 0 = no limit)")
     parser.add_argument("--checkpoint_minutes", type=float, default=0.0,
-                        help="also save the policy every this many minutes of training (0 = off)")
+                        help="also save the policy every this many minutes of training (default: 0 = off)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the env and the library (default: 0)")
     parser.add_argument("--preset", default="default", help="task preset of tocabi_torchrl.rl.config (default: default)")
     parser.add_argument("--out", required=True, help="output folder; must not exist yet (runs are never overwritten)")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out (from its resume.json) instead of starting a new one; the "
                              "task and network options must be the ones it started with")
-    parser.add_argument("--eval_envs", type=int, default=256, help="robots in the final 8 s gait test (0 = skip it)")
+    parser.add_argument("--eval_envs", type=int, default=256, help="robots in the final 8 s gait test (default: 256; 0 = skip it)")
     parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
     return parser
 
