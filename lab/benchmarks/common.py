@@ -23,6 +23,7 @@ import torch
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.atomic import atomic_write_text
+from tocabi_torchrl.cli import suggest_options
 from tocabi_torchrl.config import RunConfig
 from tocabi_torchrl.rl import checkpoint, trainer
 from tocabi_torchrl.rl.config import PRESETS, parse_tree, preset_config
@@ -193,8 +194,10 @@ def parse_overrides(items: Sequence[str]) -> dict:
     for item in items:
         field, _, value = item.partition("=")
         if field not in paths:
-            raise SystemExit(f"--set {item}: the training config has no option {field!r} (options are dotted paths "
-                             "such as ppo.lr or env.num_envs: recipes/ppo_walk.py --help)")
+            near = suggest_options(field, paths)
+            hint = f"; did you mean {' or '.join(near)}?" if near else ""
+            raise SystemExit(f"error: --set {item}: the training config has no option {field!r}{hint} (options are "
+                             "dotted paths such as ppo.lr or env.num_envs: recipes/ppo_walk.py --help)")
         argv += [f"--{field}", *value.split()]
     cfg = parse_tree(argv, RunConfig())
     return {field: get_path(cfg, field) for field in (item.partition("=")[0] for item in items)}

@@ -233,7 +233,7 @@ def read_run(folder: Path, test: str = "standard") -> dict:
     or ``evals_diverse.json``) as one record (``time_to_walk`` recomputed from the evaluations)."""
     record = {**_load(folder / "train.json"), **_load(folder / EVALS[test])}
     if not record:
-        raise SystemExit(f"{folder}: no train.json or {EVALS[test]} (run the train and eval parts first)")
+        raise SystemExit(f"error: {folder}: no train.json or {EVALS[test]} (run the train and eval parts first)")
     return {**record, "time_to_walk": first_walk(record)}
 
 
@@ -385,29 +385,36 @@ def report_part(args, command: str) -> None:
 
 def main(argv=None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m lab.benchmarks.time_to_walk", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="part", required=True)
     run = argparse.ArgumentParser(add_help=False)  # which run, where: the train and eval parts take them alike
-    run.add_argument("--preset", default="torque")
+    run.add_argument("--preset", default="torque", help="a name of tocabi_torchrl.config.PRESETS (default: torque)")
     run.add_argument("--name", default=None, help="the run's folder under runs/time_to_walk (default: the preset)")
-    run.add_argument("--device", default="cuda", help="cuda, or cpu (a smoke test; eval beside a GPU trainer)")
-    t = sub.add_parser("train", parents=[run], help="train (or resume) a preset for up to --minutes")
-    t.add_argument("--minutes", type=float, default=9.0, help="training minutes in this call")
-    t.add_argument("--budget_minutes", type=float, default=30.0, help="training minutes in all (summed over calls)")
-    t.add_argument("--every", type=float, default=2.0, help="minutes between evaluated checkpoints (0: none)")
-    t.add_argument("--log_every", type=int, default=5)
-    t.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
+    run.add_argument("--device", default="cuda",
+                     help="cuda, or cpu (a smoke test; eval beside a GPU trainer) (default: cuda)")
+    what = "train (or resume) a preset for up to --minutes"
+    t = sub.add_parser("train", parents=[run], help=what, description=what)
+    t.add_argument("--minutes", type=float, default=9.0, help="training minutes in this call (default: 9)")
+    t.add_argument("--budget_minutes", type=float, default=30.0,
+                   help="training minutes in all, summed over calls (default: 30)")
+    t.add_argument("--every", type=float, default=2.0,
+                   help="minutes between evaluated checkpoints (default: 2; 0: none)")
+    t.add_argument("--log_every", type=int, default=5, help="iterations between logged rows (default: 5)")
+    t.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (default: 200; 0: skip)")
     t.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE",
                    help="config overrides on top of the preset (ablations); a run continues only with the same ones")
-    e = sub.add_parser("eval", parents=[run], help="gait tests of every wall-clock checkpoint of a preset's run")
+    what = "gait tests of every wall-clock checkpoint of a preset's run"
+    e = sub.add_parser("eval", parents=[run], help=what, description=what)
     e.add_argument("--num_envs", type=int, default=None,
                    help=f"robots in the gait test, per case in the robust one (default: 256, robust and diverse "
                         f"{ROBUST_ENVS})")
-    e.add_argument("--seconds", type=float, default=8.0)
+    e.add_argument("--seconds", type=float, default=8.0, help="length of each gait test [s] (default: 8)")
     e.add_argument("--test", choices=tuple(EVALS), default="standard",
                    help="which gait test decides 'walks': standard (3 commands), robust (docs/evaluation.md) or "
-                        "diverse (the robust test's nominal and commands cases: diverse starts, no kicks)")
-    e.add_argument("--follow_pid", type=int, default=0, help="keep evaluating while this process (the trainer) runs")
+                        "diverse (the robust test's nominal and commands cases: diverse starts, no kicks) "
+                        "(default: standard)")
+    e.add_argument("--follow_pid", type=int, default=0,
+                   help="keep evaluating while this process (the trainer) runs (default: 0, none)")
     e.add_argument("--from_minutes", type=float, default=0.0,
                    help="test only the checkpoints of this training minute and later (default: all)")
     e.add_argument("--reports", nargs="+", default=None, metavar="DIR",
@@ -415,12 +422,14 @@ def main(argv=None) -> None:
                         "DIR/<checkpoint>/robust.json (as lab.benchmarks.robust_policies --out DIR writes them; "
                         "several DIRs: the one that has it) instead of testing it again; checkpoints without one "
                         "(or without the test's cases) are left out")
-    r = sub.add_parser("report", help="tables and plots from the runs' train.json and evals.json")
+    what = "tables and plots from the runs' train.json and evals.json"
+    r = sub.add_parser("report", help=what, description=what)
     r.add_argument("--runs", nargs="+", required=True, help="run folders holding train.json / evals.json")
     r.add_argument("--curves", nargs="*", default=[],
                    help="run folders or metrics.csv files to plot the reward curves of")
-    r.add_argument("--out", default=str(common.DOCS))
-    r.add_argument("--test", choices=tuple(EVALS), default="standard", help="which gait test's evaluations to report")
+    r.add_argument("--out", default=str(common.DOCS), help="folder of the tables and plots (default: docs/benchmarks)")
+    r.add_argument("--test", choices=tuple(EVALS), default="standard",
+                   help="which gait test's evaluations to report (default: standard)")
     args = parser.parse_args(argv)
     if args.part == "train" and not 0 < args.minutes < math.inf:  # the config reads max_minutes 0 as no time limit
         parser.error(f"--minutes must be a positive number of training minutes, got {args.minutes}")

@@ -195,6 +195,31 @@ def test_time_to_walk_on_a_machine_without_cuda_is_one_error_line(monkeypatch, c
     assert stop.value.code == 2 and "--device cpu" in capsys.readouterr().err
 
 
+def test_time_to_walk_help_gives_each_default_and_its_errors_say_error(tmp_path, capsys):
+    # Several options left their defaults out of --help, the subcommands had no description, and a missing run
+    # folder or an unknown --set path ended without the "error:" the other refusals have.
+    for part, skip in (("train", {"name", "set"}), ("eval", {"name", "num_envs", "from_minutes", "reports"}),
+                       ("report", {"runs", "curves"})):
+        with pytest.raises(SystemExit):
+            time_to_walk.main([part, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert text.startswith(f"usage: python -m lab.benchmarks.time_to_walk {part}")
+        text = text.split("options:", 1)[1]  # the options' help, after the usage line
+        for option in {"train": ("preset", "device", "minutes", "budget_minutes", "every", "log_every", "raw_steps"),
+                       "eval": ("preset", "device", "seconds", "test", "follow_pid"),
+                       "report": ("out", "test")}[part]:
+            assert option not in skip
+            after = text.split(f"--{option} ", 1)[1].split(" --", 1)[0]
+            assert "(default:" in after, f"{part} --{option} does not say its default"
+    with pytest.raises(SystemExit) as stop:
+        time_to_walk.main(["report", "--runs", str(tmp_path / "nope"), "--out", str(tmp_path)])
+    assert str(stop.value.code).startswith(f"error: {tmp_path / 'nope'}: no train.json")
+    with pytest.raises(SystemExit) as stop:
+        common.parse_overrides(["ppo.lrr=1"])
+    assert str(stop.value.code).startswith("error: --set ppo.lrr=1: the training config has no option 'ppo.lrr'; "
+                                           "did you mean ppo.lr")
+
+
 def test_time_to_walk_renders_a_robust_report_with_a_missing_case_and_a_first_pass(tmp_path, monkeypatch):
     """The robust report: its table, the pushed cases' panel, a case an evaluation lacks (shown as "-", plotted as
     a gap), the first passing checkpoint, and runs screened on a CPU marked so."""
