@@ -188,7 +188,9 @@ def test_play_refuses_an_out_holding_results_unless_overwrite(tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
         recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--num_envs", "1", "--seconds", "0.02",
                              "--video_envs", "0", "--device", "cpu", "--out", str(out)])
-    assert f"{out} already holds results" in str(info.value.code) and "--overwrite" in str(info.value.code)
+    # It names what the folder holds (it used to guess "an earlier evaluation's summary.json" whatever was there).
+    assert f"{out} already holds results (summary.json)" in str(info.value.code)
+    assert "--overwrite" in str(info.value.code)
     assert (out / "summary.json").read_text() == '{"earlier": true}'
     recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--num_envs", "1", "--seconds", "0.02",
                          "--video_envs", "0", "--device", "cpu", "--out", str(out), "--overwrite"])

@@ -196,9 +196,11 @@ def eval_out_dir(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | Non
         return fresh_eval_dir(checkpoint_file(checkpoint))
     out = Path(out_dir)
     if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise OutputExistsError(f"{out} already holds results (e.g. an earlier evaluation's summary.json); they "
-                                    "are not overwritten. Choose another --out, leave --out out to write to a new "
-                                    "folder beside the run's eval/, or pass --overwrite to replace them")
+        held = sorted(p.name for p in out.iterdir())
+        shown = ", ".join(held[:3]) + (f" and {len(held) - 3} more" if len(held) > 3 else "")
+        raise OutputExistsError(f"{out} already holds results ({shown}); nothing there is overwritten. Choose another "
+                                "--out, leave --out out to write to a fresh folder (eval/, eval_2/, ...), or pass "
+                                "--overwrite to replace the files of the same name (the others stay)")
     return out
 
 
