@@ -338,13 +338,14 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
                     hint="the run's actor_hidden / critic_hidden / std_mode / symmetry differ from this agent's?")
     transform = getattr(env, "transform", None) if env is not None else None
     saved_transforms = state.get("transforms") or {}
-    if isinstance(transform, nn.Module):
-        _require_running_statistics(saved_transforms, transform, path)
     if saved_transforms and isinstance(transform, nn.Module):
         mine = transform.state_dict()
         saved_transforms = align_transform_state(saved_transforms, mine, path)
         _check_fits({k: v for k, v in saved_transforms.items() if k in mine}, mine, "env transforms", path,
                     hint="another observation layout or normalisation?", allow_missing=True)
+    saved_norm = ((state.get("config") or {}).get("transforms") or {}).get("normalization")
+    if saved_norm == "running" and isinstance(transform, nn.Module):  # after the alignment (indices may shift)
+        _require_running_statistics(saved_transforms, transform, path)
     agent.load_state_dict(state["agent"])
     if optimizer is not None and state.get("optimizer"):
         try:
@@ -357,10 +358,12 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
 
 
 def _require_running_statistics(saved: dict, transform: nn.Module, path) -> None:
-    """Refuse a checkpoint without the statistics of the env's running normalisers.
+    """Refuse a checkpoint of a run with running normalisation that lacks the statistics of the env's normalisers.
 
     Transform state loads leniently (a resumed run may add transforms), so such a checkpoint would otherwise act,
-    be gait-tested or exported with the normaliser's initial statistics instead of those the policy trained with."""
+    be gait-tested or exported with the normaliser's initial statistics instead of those the policy trained with.
+    (A caller that gives a fixed-normalisation run's checkpoint an env of its own with a running normaliser chose
+    that normaliser's start.)"""
     from ..transforms.normalize import RunningNormalization
 
     missing = [f"{name}.{buf}" if name else buf for name, module in transform.named_modules()
