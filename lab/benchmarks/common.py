@@ -377,12 +377,17 @@ def write_json(path: str | Path, data: dict) -> Path:
 def report_dir(out: str | Path, measured_on: str | None = None) -> Path:
     """Where a report measured on ``measured_on`` (a device string; None: not measured here, e.g. GPU results merged
     or re-rendered on this machine) goes: ``out``, except that a CPU measurement is never published into
-    :data:`DOCS`, which holds the GPU results; it goes to :data:`CPU_OUT` instead, saying so."""
+    :data:`DOCS` or a folder in it, which hold the GPU results; it goes to the same place under :data:`CPU_OUT`
+    instead, saying so."""
     out = Path(out)
-    if measured_on is not None and not str(measured_on).startswith("cuda") and out.resolve() == DOCS.resolve():
-        print(f"measured on {measured_on}: writing to {CPU_OUT}, not {DOCS}, which holds the published GPU results",
+    docs = DOCS.resolve()
+    if measured_on is None or str(measured_on).startswith("cuda"):
+        return out
+    if out.resolve() == docs or docs in out.resolve().parents:
+        moved = CPU_OUT / out.resolve().relative_to(docs)
+        print(f"measured on {measured_on}: writing to {moved}, not {out}, which holds the published GPU results",
               flush=True)
-        return CPU_OUT
+        return moved
     return out
 
 

@@ -49,13 +49,15 @@ def labels(policies: list[Path]) -> list[str]:
     stems = [p.stem for p in policies]
     names = []
     for p, stem in zip(policies, stems):
-        run = next((q.name for q in p.resolve().parents if q.name and q.name != "checkpoints"), "")
+        run = next((q.name for q in p.absolute().parents if q.name and q.name != "checkpoints"), "")
         names.append(f"{run}_{stem}" if stems.count(stem) > 1 and run else stem)
-    seen: dict[str, int] = {}
-    unique = []
+    unique: list[str] = []
     for name in names:
-        seen[name] = seen.get(name, 0) + 1
-        unique.append(name if names.count(name) == 1 else f"{name}_{seen[name]}")
+        label, k = name, 1
+        while label in unique or (names.count(name) > 1 and k == 1):  # every one of a repeated name is numbered
+            k += 1
+            label = f"{name}_{k - 1}"
+        unique.append(label)
     return unique
 
 
@@ -150,7 +152,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default=str(common.DOCS / "robust"),
                         help="folder of the reports and the table (default: docs/benchmarks/robust, the published "
                              "table of the shipped policies; a CPU measurement goes to "
-                             "runs/benchmarks_cpu instead)")
+                             "runs/benchmarks_cpu/robust instead)")
     parser.add_argument("--overwrite", action="store_true", help="replace a table --out holds already")
     parser.add_argument("--cases", nargs="+", default=None, metavar="CASE",
                         help="run these cases alone (default: all four), e.g. nominal commands")

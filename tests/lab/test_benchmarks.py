@@ -64,6 +64,9 @@ def test_a_cpu_measurement_does_not_replace_the_published_gpu_reports(tmp_path, 
     for on in (None, "cuda", "cuda:1"):
         assert common.report_dir(docs, on) == docs
     assert common.report_dir(tmp_path / "elsewhere", "cpu") == tmp_path / "elsewhere"  # asked for: honoured
+    # A folder inside the published results too (robust_policies' default, docs/benchmarks/robust).
+    assert common.report_dir(docs / "robust", "cpu") == cpu / "robust"
+    assert common.report_dir(docs / "robust", "cuda") == docs / "robust"
     # time_to_walk's report: runs trained on the GPU are published; CPU smoke runs are not, their curves neither.
     for gpu, expected in (("NVIDIA H100 80GB HBM3", docs), ("cpu", cpu)):
         run = tmp_path / f"run_{gpu[:3]}"
@@ -376,6 +379,8 @@ def test_robust_policies_tells_same_named_files_apart_and_never_replaces_a_table
     assert (out / "runA_latest").is_dir() and (out / "runB_latest").is_dir()
     assert robust_policies.labels([files[0], files[0]]) == ["runA_latest_1", "runA_latest_2"]
     assert robust_policies.labels([files[0], tmp_path / "x.pt"]) == ["latest", "x"]
+    taken = [Path("a/run/checkpoints/latest.pt"), Path("b/run/checkpoints/latest.pt"), Path("c/run_latest_1.pt")]
+    assert len(set(robust_policies.labels(taken))) == 3  # a numbered label never meets a file of that name
     for bad, said in ((["--policies", *map(str, files), *argv], "holds a table already"),
                       (["--policies", str(tmp_path / "nope.pt"), *argv], "no such file or run folder"),
                       (["--policies", str(files[0]), "--num_envs", "0", *argv], "--num_envs must be >= 1")):
