@@ -78,6 +78,13 @@ def stopped_at_once(run_dir) -> int:
 
 #: The gait test's metrics as the end-of-run report shows them: key, label, unit, decimals, and whether the pass
 #: threshold (GAIT_CRITERIA) is a minimum or a maximum (evaluation.gait_test.gait_passes applies it).
+def done_text(result) -> str:
+    """This call's env steps, seconds and rate, the run's total after a resume, and the run folder."""
+    total = f" ({result.env_steps:,} in the run)" if result.start_env_steps else ""
+    return (f"{result.env_steps - result.start_env_steps:,} env steps in {result.wall_seconds:.0f} s "
+            f"({result.env_steps_per_second:,.0f} env-steps/s){total}; run folder {result.run_dir}")
+
+
 def main(argv: list[str] | None = None) -> None:
     # Everything that can stop the run before it starts is checked here and reported as one line (exit status 1):
     # bad values, a request this machine cannot honour, an existing run folder, an unreadable or changed --resume.
@@ -117,8 +124,7 @@ def main(argv: list[str] | None = None) -> None:
                     # NCCL: the rank ends here, with this status; gloo: the group is gone and ending() leaves it so.
                     shutdown(dist_info, code=status)
                 elif dist_info.is_main:
-                    print(f"done on {dist_info.world_size} ranks: {result.env_steps:,} env steps in "
-                          f"{result.wall_seconds:.0f} s; run folder {result.run_dir}")
+                    print(f"done on {dist_info.world_size} ranks: {done_text(result)}")
         except expected:
             sys.exit(1)  # ending() has said why
         if status:
@@ -149,10 +155,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(stopped_at_once(run.path))
     if result.interrupted is not None:
         sys.exit(stopped(result))
-    this_call = result.env_steps - run.start_env_steps  # the time and rate are this call's
-    total = f" ({result.env_steps:,} in the run)" if run.start_env_steps else ""
-    print(f"done: {this_call:,} env steps in {result.wall_seconds:.0f} s ({result.env_steps_per_second:,.0f} "
-          f"env-steps/s){total}; run folder {result.run_dir}")
+    print(f"done: {done_text(result)}")
     checkpoint = checkpoint_file(result.run_dir)
     if cfg.eval_at_end and cfg.eval_test == "robust":  # the robust gait test (docs/evaluation.md) instead
         from tocabi_torchrl.evaluation.robust import evaluate_robust_run, robust_report_text
@@ -166,8 +169,11 @@ def main(argv: list[str] | None = None) -> None:
         summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device, seconds=cfg.eval_seconds,
                                out_dir=out)
         print(gait_report_text(summary, cfg.eval_seconds, cfg.eval_envs, out))
-    # On a CPU, the play recipe's defaults (256 robots, 8 s, a video) take minutes: suggest what this run tested with.
-    small = f" --num_envs {cfg.eval_envs} --seconds {cfg.eval_seconds:g}" if device.type == "cpu" else ""
+    # On a CPU the play recipe's default test (256 robots for 8 s) takes minutes: suggest the test this run ended with.
+    small = ""
+    if device.type == "cpu" and cfg.eval_at_end:
+        small = f" --num_envs {cfg.eval_envs} --seconds {cfg.eval_seconds:g}"
+        small += " --test robust" if cfg.eval_test == "robust" else ""
     print(f"checkpoint: {checkpoint}\nwatch or re-test it: python recipes/play.py --checkpoint {result.run_dir}{small}")
 
 

@@ -83,6 +83,12 @@ def test_a_resumed_call_reports_its_own_env_steps_beside_the_runs(finished_run, 
     recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "32"])
     out = capsys.readouterr().out
     assert "done: 16 env steps in " in out and " env-steps/s) (32 in the run); run folder" in out
+    # The data-parallel closing line is the same text after "done on K ranks: ".
+    from types import SimpleNamespace
+
+    result = SimpleNamespace(env_steps=48, start_env_steps=16, wall_seconds=2.0, env_steps_per_second=16.0,
+                             run_dir="r")
+    assert recipe("ppo_walk").done_text(result) == "32 env steps in 2 s (16 env-steps/s) (48 in the run); run folder r"
 
 
 def test_a_damaged_latest_checkpoint_names_the_newest_readable_one(finished_run, tmp_path):

@@ -189,6 +189,9 @@ class TrainResult:
     #: The signal (``"SIGINT"``, ``"SIGTERM"``) that stopped the run early, after a checkpoint of its last iteration
     #: was saved; ``None`` when it ran to its budget (or ``max_minutes``).
     interrupted: str | None = None
+    #: The run's env steps before this call (its resumed checkpoint's; 0 for a new run): ``env_steps`` minus this is
+    #: what ``wall_seconds`` and ``env_steps_per_second`` measure.
+    start_env_steps: int = 0
 
 
 def finished_result(run: RunFolder, cfg: RunConfig) -> TrainResult:
@@ -196,7 +199,8 @@ def finished_result(run: RunFolder, cfg: RunConfig) -> TrainResult:
     print(f"{run.resume_file}: the run is already finished (iteration {run.start_iteration}, "
           f"{run.start_env_steps:,} of {cfg.total_env_steps:,} env steps); nothing to train. Raise --total_env_steps "
           f"to train it further.", flush=True)
-    return TrainResult(run.path, run.start_iteration, run.start_env_steps, 0.0, 0.0, {}, already_finished=True)
+    return TrainResult(run.path, run.start_iteration, run.start_env_steps, 0.0, 0.0, {}, already_finished=True,
+                       start_env_steps=run.start_env_steps)
 
 
 def _episode_metrics(batch: TensorDictBase, dist_info: DistInfo | None = None) -> dict[str, float]:
@@ -616,7 +620,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     wall = time.perf_counter() - t_start
     done_steps = env_steps - run.start_env_steps
     return TrainResult(run_dir, it + shift, env_steps, wall, done_steps / max(wall, 1e-9), metrics, env_graph,
-                       agent=agent, interrupted=progress.stop_signal)
+                       agent=agent, interrupted=progress.stop_signal, start_env_steps=run.start_env_steps)
 
 
 def _live_view(cfg: RunConfig, env: EnvBase):
