@@ -102,7 +102,7 @@ def test_a_damaged_latest_checkpoint_names_the_newest_readable_one(finished_run,
     latest = run / "checkpoints" / "latest.pt"
     latest.write_bytes(latest.read_bytes()[:1000])
     newest = sorted((run / "checkpoints").glob("iter_*.pt"))[-1]
-    with pytest.raises(CheckpointError, match=rf"latest.pt.*newest readable checkpoint is {newest.name} "
+    with pytest.raises(CheckpointError, match=rf"latest.pt.*newest readable checkpoint beside it is {newest.name} "
                                               rf"\(iteration \d+\): continue from it with --resume {newest}"):
         parse_args(["--resume", str(run)])
     cfg, _ = parse_args(["--resume", str(newest)])  # and that advice works

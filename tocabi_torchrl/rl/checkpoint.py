@@ -36,7 +36,8 @@ from ..integrity import zip_damage
 
 __all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_checkpoint", "apply_checkpoint", "checkpoint_file",
            "config_from_checkpoint", "align_transform_state", "prune_checkpoints", "run_folder_of",
-           "verified_checkpoint_file", "CheckpointError", "ExportedPolicyError", "SCHEMA_VERSION"]
+           "verified_checkpoint_file", "CheckpointError", "DamagedCheckpointError", "ExportedPolicyError",
+           "SCHEMA_VERSION"]
 
 #: Version of the checkpoint layout and config schema written by :func:`save_checkpoint`. Bump it when a change
 #: means older code would misread a new file; :func:`read_checkpoint` refuses files from a newer version.
@@ -47,6 +48,11 @@ _ITER_FILE = re.compile(r"^iter_(\d+)\.pt$")
 
 class CheckpointError(RuntimeError):
     """A checkpoint is missing, unreadable, damaged or does not fit the agent it is loaded into."""
+
+
+class DamagedCheckpointError(CheckpointError):
+    """A checkpoint file that is truncated or corrupt (its zip's CRCs, or a load that stops partway): another copy
+    or another checkpoint of the run can stand in for it."""
 
 
 class ExportedPolicyError(CheckpointError):
@@ -162,7 +168,8 @@ def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu")
     try:
         state = torch.load(path, map_location=device, weights_only=True)
     except Exception as err:  # noqa: BLE001 - whatever torch/pickle/zip raise for a bad file, say which file
-        raise CheckpointError(_load_failure(path, err)) from err
+        text, refused = _load_failure(path, err)
+        raise (CheckpointError if refused else DamagedCheckpointError)(text) from err
     _check_layout(state, path)
     state.setdefault("schema_version", 0)
     return state
@@ -171,7 +178,7 @@ def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu")
 def _check_integrity(path: Path) -> None:
     damage = zip_damage(path)
     if damage is not None:
-        raise CheckpointError(f"checkpoint {path} is damaged: {damage}. Loading it would give silently different "
+        raise DamagedCheckpointError(f"checkpoint {path} is damaged: {damage}. Loading it would give silently different "
                               f"weights. Copy it again from where it came from, or pick another checkpoint of the run "
                               f"(checkpoints/iter_*.pt)")
 
@@ -214,7 +221,9 @@ def verified_checkpoint_file(path: str | os.PathLike, sim2sim_options: str = "")
     return path
 
 
-def _load_failure(path: Path, err: Exception) -> str:
+def _load_failure(path: Path, err: Exception) -> tuple[str, bool]:
+    """The message for a file ``torch.load`` failed on, and whether the load was refused (a pickled global) rather
+    than stopped by a broken file."""
     text = str(err)
     # weights_only refuses a pickled reference to a function or class ("Unsupported global: GLOBAL ..."); other
     # unpickling failures ("Unsupported operand", bad zip) are files that are not pickles at all.
@@ -222,11 +231,11 @@ def _load_failure(path: Path, err: Exception) -> str:
     if refused:
         return (f"refusing to load {path}: it holds Python objects other than tensors and plain containers, and "
                 f"loading those could run code from the file ({refused}). Checkpoints written by tocabi-torchrl "
-                "never do; only load files you trust")
+                "never do; only load files you trust"), True
     # torch's own message goes on to suggest turning weights_only off, which is exactly what must not be done here.
     detail = next((line.strip() for line in text.splitlines() if "Unsupported" in line), text.split(". ")[0])
     return (f"cannot read checkpoint {path}: not a complete torch checkpoint (truncated, corrupt or another kind of "
-            f"file): {type(err).__name__}: {detail[:160]}")
+            f"file): {type(err).__name__}: {detail[:160]}"), False
 
 
 def _check_layout(state, path: Path) -> None:

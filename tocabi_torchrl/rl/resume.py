@@ -16,8 +16,8 @@ from pathlib import Path
 from ..config import RunConfig
 from ..tree import get_path, leaf_paths, replace_paths
 from .checkpoint import (
-    _ITER_FILE,
     CheckpointError,
+    DamagedCheckpointError,
     checkpoint_file,
     config_from_checkpoint,
     read_checkpoint,
@@ -83,18 +83,22 @@ def _refuse(path, diffs: list[tuple[str, object, object]]) -> ResumeConfigError:
     )
 
 
+#: How many of a damaged checkpoint's neighbours :func:`_intact_alternative` reads at most (each is read whole).
+_ALTERNATIVES_READ = 3
+
+
 def _intact_alternative(damaged: Path) -> str:
-    """A hint for an unreadable checkpoint: the newest other ``iter_*.pt`` beside it that reads, if any (a run keeps
-    its last iteration files; ``latest.pt`` is one of them under another name)."""
-    found = sorted(((int(m.group(1)), p) for p in damaged.parent.glob("iter_*.pt")
-                    if (m := _ITER_FILE.match(p.name)) and p != damaged), reverse=True)
-    for iteration, other in found:
+    """A hint for a damaged checkpoint: the most recently written other checkpoint beside it (``iter_*.pt``,
+    ``wall_*.pt``, ``latest.pt``) that reads, among the newest :data:`_ALTERNATIVES_READ`, with its iteration."""
+    others = sorted((p for p in damaged.parent.glob("*.pt") if p != damaged and p.is_file()),
+                    key=lambda p: p.stat().st_mtime, reverse=True)
+    for other in others[:_ALTERNATIVES_READ]:
         try:
-            read_checkpoint(other)
+            iteration = int(read_checkpoint(other)["iteration"])
         except CheckpointError:
             continue
-        return (f". Its newest readable checkpoint is {other.name} (iteration {iteration}): continue from it with "
-                f"--resume {other}")
+        return (f". The newest readable checkpoint beside it is {other.name} (iteration {iteration}): continue from "
+                f"it with --resume {other}")
     return ""
 
 
@@ -114,8 +118,8 @@ def saved_config(resume: str | os.PathLike) -> RunConfig:
     path = checkpoint_file(resume)
     try:
         state = read_checkpoint(path)
-    except CheckpointError as err:
-        raise CheckpointError(f"{err}{_intact_alternative(path)}") from None
+    except DamagedCheckpointError as err:  # another checkpoint of the run can stand in; other refusals stay as raised
+        raise DamagedCheckpointError(f"{err}{_intact_alternative(path)}") from err
     # Strict: the run trains on with these values, so one that breaks a rule of this version is refused here.
     saved = config_from_checkpoint(state, path, strict=True)
     where = {"resume": str(resume)}
