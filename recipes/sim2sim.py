@@ -39,7 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--contract", required=True, help="policy contract .json (the .onnx lies beside it)")
     parser.add_argument("--model", default="authored", help="authored, reference, or an MJCF path (default: authored)")
     parser.add_argument("--seconds", type=float, default=8.0, help="simulated time [s] (default: 8)")
-    parser.add_argument("--num_robots", type=int, default=4, help="robots, started at the motion's start rows in turn (default: 4)")
+    parser.add_argument("--num_robots", type=int, default=4,
+                        help="robots, started at the motion's start rows in turn (default: 4)")
     parser.add_argument("--vx", type=float, default=0.5, help="commanded forward speed [m/s] (default: 0.5)")
     parser.add_argument("--vy", type=float, default=0.0, help="commanded lateral speed [m/s] (default: 0)")
     parser.add_argument("--out", default=None, help="also write the metrics to this JSON file (never overwritten)")
@@ -105,7 +106,8 @@ def main(argv: list[str] | None = None) -> dict:
                      "file")
     contract = Path(args.contract)
     if contract.suffix in (".onnx", ".pt"):  # the policy itself rather than its contract
-        beside = contract.with_suffix(".json")
+        stem = contract.name.removesuffix(".pt").removesuffix(".ts") if contract.suffix == ".pt" else contract.stem
+        beside = contract.with_name(f"{stem}.json")
         hint = f"; the contract beside it is {beside}" if beside.is_file() else (
             "; python -m tocabi_torchrl.export writes the .onnx and its .json" if contract.suffix == ".pt" else "")
         parser.error(f"--contract takes the policy's .json contract, not a {contract.suffix} file ({contract}){hint}")

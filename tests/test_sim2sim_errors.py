@@ -103,10 +103,12 @@ def test_a_contract_with_a_negative_action_scale_is_one_error_line(capsys, tmp_p
 
 
 @needs_contract
-@pytest.mark.parametrize("suffix", [".onnx", ".pt"])
+@pytest.mark.parametrize("suffix", [".onnx", ".pt", ".ts.pt"])
 def test_a_policy_file_given_as_the_contract_names_the_contract_beside_it(capsys, suffix):
-    # It used to say only "not valid JSON ('utf-8' codec can't decode byte ...)".
+    # It used to say only "not valid JSON ('utf-8' codec can't decode byte ...)". A TorchScript twin (walk.ts.pt)
+    # has its contract at walk.json too.
     policy = CONTRACT.with_suffix(suffix)
+    suffix = policy.suffix
     with pytest.raises(SystemExit) as info:
         load_recipe("sim2sim").main(["--contract", str(policy)])
     assert info.value.code == 2
