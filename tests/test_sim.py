@@ -465,6 +465,12 @@ def test_warps_default_info_lines_are_lowered_to_warnings_and_a_users_level_is_k
     monkeypatch.setattr(wp.config, "log_level", wp.LOG_DEBUG)
     quiet_warp_info()
     assert wp.config.log_level == wp.LOG_DEBUG
+    # What a simulator does before warp initialises.
+    from tocabi_torchrl.sim import warp_backend
+
+    monkeypatch.setattr(wp.config, "log_level", wp.LOG_INFO)
+    warp_backend._resolve_device("cpu")
+    assert wp.config.log_level == wp.LOG_WARNING
 
 
 def _tangled_qpos(n: int, seed: int = 0) -> torch.Tensor:

@@ -13,6 +13,8 @@ from __future__ import annotations
 import torch
 import warp as wp
 
+from ..sim.kernel_cache import quiet_warp_info
+
 __all__ = ["episode_hash", "hash_uniforms"]
 
 _MASK62 = wp.constant(wp.uint64((1 << 62) - 1))
@@ -63,6 +65,7 @@ def hash_uniforms(seed: torch.Tensor, env_ids: torch.Tensor, key: torch.Tensor, 
     out = torch.empty(n, k, dtype=torch.float32, device=env_ids.device)
     if n == 0 or k == 0:
         return out
+    quiet_warp_info()  # before warp's first init prints its banner (a simulator usually came first and did this)
     wp.init()  # once per process; a no-op after
     stream = None
     if env_ids.is_cuda:

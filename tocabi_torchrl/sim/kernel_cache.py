@@ -50,7 +50,8 @@ def quiet_warp_info() -> None:
     At the info level warp prints a banner and one line per module it loads, about fifty lines for every simulator
     built, which bury a run's own output; :func:`announce_compile_if_cold` says what a user needs to know about the
     compile. A level the user set (anything but the default) is kept; after a simulator is built,
-    ``wp.config.log_level = wp.LOG_INFO`` brings the lines back. Warp versions before ``log_level`` have ``quiet``.
+    ``wp.config.log_level = wp.LOG_INFO`` brings the lines back. Warp versions before ``log_level`` have only the
+    switch ``quiet``, which is set (``wp.config.quiet = False`` afterwards brings the lines back there).
     """
     if hasattr(wp.config, "log_level"):
         if wp.config.log_level == wp.LOG_INFO:
