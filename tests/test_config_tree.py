@@ -137,7 +137,7 @@ def test_bad_options_name_the_option_and_the_fix(capsys):
     with pytest.raises(ValueError, match=r"ppo.torque_assist > 0 needs control_mode='torque' \(env.control.mode\)"):
         preset_config("default", **{"ppo.torque_assist": 0.5, "ppo.assist_fade_end": 10})
     # A preset's mini-batch with a CPU's few envs: the message gives a size that fits, and that size works.
-    with pytest.raises(ValueError, match=r"exceeds the rollout \(8 envs × 48 steps = 384\).*ppo.minibatch_size=96"):
+    with pytest.raises(ValueError, match=r"exceeds the rollout \(8 envs × 48 steps = 384\).*ppo.minibatch_size=96: "):
         preset_config("torque", **{"env.num_envs": 8})
     assert preset_config("torque", **{"env.num_envs": 8, "ppo.minibatch_size": 96}).ppo.minibatch_size == 96
     with pytest.raises(ValueError, match=r"checkpoint_minutes 0.01 is a snapshot period of 0.6 s"):

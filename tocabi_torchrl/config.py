@@ -478,11 +478,11 @@ class RunConfig:
             raise ValueError("transforms.cycle_vel_weight > 0 reads the env's cycle_vel_error signal, which "
                              "env.task.cycle_velocity turns on: set env.task.cycle_velocity=true as well")
         if self.ppo.minibatch_size > self.frames_per_batch:
-            quarter = max(1, self.frames_per_batch // 4)  # the presets' four mini-batches per epoch
+            quarter = max(1, self.frames_per_batch // 4)
             raise ValueError(
                 f"ppo.minibatch_size {self.ppo.minibatch_size} exceeds the rollout ({self.env.num_envs} envs × "
                 f"{self.ppo.steps_per_env} steps = {self.frames_per_batch}); lower it (e.g. ppo.minibatch_size="
-                f"{quarter}, four mini-batches as the presets have) or collect more (env.num_envs, ppo.steps_per_env)")
+                f"{quarter}: four mini-batches per epoch) or collect more (env.num_envs, ppo.steps_per_env)")
 
 
 def _get(tree: Any, path: str) -> Any:
