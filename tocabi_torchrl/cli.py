@@ -72,7 +72,8 @@ def base_parser(description: str, num_envs: int, iterations: int) -> argparse.Ar
     parser.add_argument("--iterations", type=int, default=iterations,
                         help=f"PPO iterations (rollout + update) to train (default: {iterations})")
     parser.add_argument("--max_minutes", type=float, default=0.0,
-                        help="stop after this many minutes of training, summed over --resume calls (default: 0 = no limit)")
+                        help="stop after this many minutes of training, summed over --resume calls (default: 0 = no "
+                             "limit)")
     parser.add_argument("--checkpoint_minutes", type=float, default=0.0,
                         help="also save the policy every this many minutes of training (default: 0 = off)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the env and the library (default: 0)")
@@ -81,7 +82,8 @@ def base_parser(description: str, num_envs: int, iterations: int) -> argparse.Ar
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out (from its resume.json) instead of starting a new one; the "
                              "task and network options must be the ones it started with")
-    parser.add_argument("--eval_envs", type=int, default=256, help="robots in the final 8 s gait test (default: 256; 0 = skip it)")
+    parser.add_argument("--eval_envs", type=int, default=256,
+                        help="robots in the final 8 s gait test (default: 256; 0 = skip it)")
     parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
     return parser
 

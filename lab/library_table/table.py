@@ -389,8 +389,9 @@ def report(rows: list[dict], path: Path) -> None:
     from tocabi_torchrl.atomic import atomic_write_text
 
     intro = ("Training env-steps/s (collection + update over training wall-clock) and the training time at which the "
-             "policy first passes the 8 s gait test (30-minute cap). Written by `python -m lab.library_table`; each row's "
-             "commands are as they were run (`recipes/library_table.py` is the same script's earlier place).")
+             "policy first passes the 8 s gait test (30-minute cap). Written by `python -m lab.library_table`; "
+             "each row's commands are as they were run (`recipes/library_table.py` is the same script's earlier "
+             "place).")
     lines = ["# Per-library table (issue 22)", "", intro, "",
              ("| library | version | preset | envs | env-steps/s | walks at (min) | trained (min) | calls | device | "
               "commands |"),

@@ -92,7 +92,8 @@ def evaluate_policy(
     """Roll the deterministic policy out for ``seconds`` at a fixed command and write the summary, plot and video
     to ``out_dir`` (created if needed; files of the same name there are replaced: the caller chooses the folder,
     e.g. with :func:`eval_out_dir`). ``seconds`` must cover at least one policy step; ``progress`` shows bars for
-    the rollout and the rendering; ``source``, the checkpoint tested, is recorded in the summary as ``checkpoint``. Returns the summary, NaN where a metric has no value (``null`` in the file)."""
+    the rollout and the rendering; ``source``, the checkpoint tested, is recorded in the summary as ``checkpoint``.
+    Returns the summary, NaN where a metric has no value (``null`` in the file)."""
     device = torch.device(device)
     if env is None:
         env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))

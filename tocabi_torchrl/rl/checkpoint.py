@@ -178,9 +178,9 @@ def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu")
 def _check_integrity(path: Path) -> None:
     damage = zip_damage(path)
     if damage is not None:
-        raise DamagedCheckpointError(f"checkpoint {path} is damaged: {damage}. Loading it would give silently different "
-                              f"weights. Copy it again from where it came from, or pick another checkpoint of the run "
-                              f"(checkpoints/iter_*.pt)")
+        raise DamagedCheckpointError(f"checkpoint {path} is damaged: {damage}. Loading it would give silently "
+                                     "different weights. Copy it again from where it came from, or pick another "
+                                     "checkpoint of the run (checkpoints/iter_*.pt)")
 
 
 #: ``ModelProto`` field tags an ONNX file's second field can have (producer name, version, domain, model version, doc,
