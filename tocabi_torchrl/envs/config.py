@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
 from dataclasses import dataclass, field
 
 from .. import robot
+from ..cli import suggest_options
 from ..control.config import ActuatorConfig
 from ..sim.config import RESET_PASSES
 from ..sim.dynamics_config import DynamicsRandomization
@@ -453,7 +453,7 @@ class TocabiWalkConfig:
         unknown = sorted(set(flat) - set(ENV_FLAT_PATHS) - sections)
         if unknown:
             known = sorted(sections | set(ENV_FLAT_PATHS))
-            close = {k: m[0] for k in unknown if (m := difflib.get_close_matches(k, known, n=1))}
+            close = {k: m[0] for k in unknown if (m := suggest_options(k, known, limit=1))}
             hint = "".join(f"; {k!r}: did you mean {v!r}?" for k, v in close.items())
             raise TypeError(f"unknown TocabiWalk option(s) {unknown}{hint}; use a section ("
                             f"{', '.join(f.name for f in dataclasses.fields(self))}) or one of "
