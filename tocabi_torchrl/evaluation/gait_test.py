@@ -221,6 +221,12 @@ _policy_steps = policy_steps
 STANDARD_SECONDS = RunConfig.eval_seconds
 
 
+def length_note(seconds: float) -> str:
+    """What a verdict's headline adds for a test of another length than the standard one: the distance threshold
+    (and the robust test's kick window) assume the full length."""
+    return "" if seconds == STANDARD_SECONDS else f" (the thresholds are set for the {STANDARD_SECONDS:g} s test)"
+
+
 #: The gait test's metrics as people read them: (key, label, unit, decimals, "min"/"max" threshold).
 GAIT_ROWS = (
     ("survival", "survival", "%", 1, "min"),
@@ -241,10 +247,7 @@ def gait_report_text(summary: dict, seconds: float, robots: int, out) -> str:
     """The gait test's verdict (walks / does not walk yet), each metric against its pass threshold, and the files
     written; the full-precision values stay in ``out/summary.json``."""
     verdict = "walks" if gait_passes(summary) else "does not walk yet"
-    lines = [f"gait test ({seconds:g} s, {robots} robots): {verdict}"]
-    standard = STANDARD_SECONDS
-    if seconds != standard:  # the distance threshold assumes the full test's length
-        lines[0] += f" (the thresholds are set for the {standard:g} s test)"
+    lines = [f"gait test ({seconds:g} s, {robots} robots): {verdict}{length_note(seconds)}"]
     for key, label, unit, decimals, kind in GAIT_ROWS:
         value, limit = summary.get(key), GAIT_CRITERIA[key]
         ok = value is not None and value == value and (value >= limit if kind == "min" else value <= limit)

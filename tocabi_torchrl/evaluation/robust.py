@@ -48,7 +48,7 @@ from ..envs.cycle_velocity import gait_cycle_steps, heading_velocity
 from ..rotations import quat_rotate_inverse, quat_to_rpy
 from ..transforms.normalize import freeze_running_statistics
 from ..value_rules import PUSH_KINDS
-from .gait_test import ROBUST_CRITERIA, STANDARD_SECONDS, fresh_eval_dir, summary_json, tested_on
+from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
 from .record import GaitMetrics, fixed_command, policy_steps
 
 __all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking", "RobustCase", "RobustTestConfig",
@@ -649,9 +649,7 @@ def robust_report_text(report: dict, out: str | os.PathLike | None = None) -> st
 
     s = report["settings"]
     lines = [f"robust gait test ({s['seconds']:g} s, {s['num_envs']} robots per case): "
-             + ("walks" if report["passes"] else "does not walk yet")]
-    if s["seconds"] != STANDARD_SECONDS:  # the distance threshold and the kicks' window assume the full length
-        lines[0] += f" (the thresholds are set for the {STANDARD_SECONDS:g} s test)"
+             + ("walks" if report["passes"] else "does not walk yet") + length_note(s["seconds"])]
     window = s.get("push_window_s")
     if window and s["seconds"] <= window[0] and any(n.startswith("robust") for n in report["cases"]):
         lines[0] += f"; no kick falls within {s['seconds']:g} s (they come at {window[0]:g}-{window[1]:g} s)"
