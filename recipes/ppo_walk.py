@@ -76,8 +76,6 @@ def stopped_at_once(run_dir) -> int:
     return signal_exit_status("SIGINT")
 
 
-#: The gait test's metrics as the end-of-run report shows them: key, label, unit, decimals, and whether the pass
-#: threshold (GAIT_CRITERIA) is a minimum or a maximum (evaluation.gait_test.gait_passes applies it).
 def done_text(result) -> str:
     """This call's env steps, seconds and rate, the run's total after a resume, and the run folder."""
     total = f" ({result.env_steps:,} in the run)" if result.start_env_steps else ""

@@ -19,6 +19,8 @@ import argparse
 import time
 from pathlib import Path
 
+import torch
+
 from . import common
 from .page import kick_note
 
@@ -53,10 +55,10 @@ def labels(policies: list[Path]) -> list[str]:
         names.append(f"{run}_{stem}" if stems.count(stem) > 1 and run else stem)
     unique: list[str] = []
     for name in names:
-        label, k = name, 1
-        while label in unique or (names.count(name) > 1 and k == 1):  # every one of a repeated name is numbered
+        label, k = name, 0
+        while (k == 0 and names.count(name) > 1) or label in unique:  # a repeated name is numbered from 1
             k += 1
-            label = f"{name}_{k - 1}"
+            label = f"{name}_{k}"
         unique.append(label)
     return unique
 
@@ -167,11 +169,8 @@ def main(argv=None) -> None:
         parser.error(f"--policies: no such file or run folder: {', '.join(missing)}")
     if args.num_envs < 1 or not args.seconds > 0:
         parser.error(f"--num_envs must be >= 1 and --seconds > 0, got {args.num_envs} and {args.seconds}")
-    if args.device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            parser.error(f"--device {args.device}: torch sees no CUDA GPU here; pass --device cpu")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        parser.error(f"--device {args.device}: torch sees no CUDA GPU here; pass --device cpu")
     out = common.report_dir(args.out, args.device)
     if (out / f"{NAME}.json").exists() and not args.overwrite:
         parser.error(f"--out {out} holds a table already ({NAME}.json); pass --overwrite to replace it, or choose "
