@@ -49,6 +49,13 @@ def meta(script: str, argv: Sequence[str] | None, on: str = "cuda", **extra) -> 
             "command": " ".join([f"python -m lab.benchmarks.{script}", *args]), **extra}
 
 
+def require_cuda(parser: argparse.ArgumentParser, device: str, fix: str) -> None:
+    """End the command with ``parser.error`` (one line, exit 2) when ``device`` names CUDA and torch sees no GPU,
+    rather than with a traceback from deep inside an env build; ``fix`` says what to pass instead."""
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        parser.error(f"--device {device}: torch sees no CUDA GPU here; {fix}")
+
+
 def per_second(step: Callable[[], object], steps: int, device: str | torch.device, warmup: int = 0) -> float:
     """Calls of ``step`` per second over ``steps`` calls after ``warmup``, the device's queued work included."""
     sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
@@ -311,8 +318,7 @@ def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Call
     if args.warmup < min_warmup or args.iterations < 1 or args.raw_steps < min_raw_steps or min(args.num_envs) < 1:
         parser.error(f"--warmup must be >= {min_warmup}, --iterations >= 1, --raw_steps >= {min_raw_steps} and "
                      f"--num_envs >= 1")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        parser.error(f"no CUDA device here; pass --device cpu ({device_help})")
+    require_cuda(parser, args.device, f"pass --device cpu ({device_help})")
     overrides = parse_overrides(args.set)
     if args.child:
         record = measure(args.num_envs[0], args.iterations, args.warmup, args.raw_steps, args.device, args.run_dir,

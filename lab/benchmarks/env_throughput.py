@@ -84,8 +84,7 @@ def main(argv=None) -> None:
     if args.steps < 1 or args.raw_steps < 0 or min(args.num_envs) < 1:
         parser.error(f"--steps must be >= 1, --raw_steps >= 0 and --num_envs >= 1, got {args.steps}, "
                      f"{args.raw_steps} and {args.num_envs}")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        parser.error("no CUDA device here; pass --device cpu for a CPU run (with --backend mujoco or warp)")
+    common.require_cuda(parser, args.device, "pass --device cpu for a CPU run (with --backend mujoco or warp)")
     results = [measure(n, args.steps, args.raw_steps, args.device, args.backend, args.reset_pass)
                for n in args.num_envs]
     data = {"meta": common.meta(NAME, argv, args.device, name=args.name), "results": results}

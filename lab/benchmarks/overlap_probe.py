@@ -127,9 +127,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--name", default=NAME)
     parser.add_argument("--out", default=str(common.DOCS))
     args = parser.parse_args(argv)
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        parser.error("--device cuda needs a GPU (two CUDA streams are what is measured); --device cpu only checks "
-                     "that the probe runs")
+    common.require_cuda(parser, args.device, "two CUDA streams are what is measured; --device cpu only checks "
+                                             "that the probe runs")
     if min(args.num_envs) < 1 or args.repeats < 1:
         parser.error("--num_envs and --repeats must be positive")
     if args.preset not in common.presets:

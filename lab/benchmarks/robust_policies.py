@@ -19,8 +19,6 @@ import argparse
 import time
 from pathlib import Path
 
-import torch
-
 from . import common
 from .page import kick_note
 
@@ -169,8 +167,7 @@ def main(argv=None) -> None:
         parser.error(f"--policies: no such file or run folder: {', '.join(missing)}")
     if args.num_envs < 1 or not args.seconds > 0:
         parser.error(f"--num_envs must be >= 1 and --seconds > 0, got {args.num_envs} and {args.seconds}")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        parser.error(f"--device {args.device}: torch sees no CUDA GPU here; pass --device cpu")
+    common.require_cuda(parser, args.device, "pass --device cpu")
     out = common.report_dir(args.out, args.device)
     if (out / f"{NAME}.json").exists() and not args.overwrite:
         parser.error(f"--out {out} holds a table already ({NAME}.json); pass --overwrite to replace it, or choose "

@@ -439,12 +439,9 @@ def main(argv=None) -> None:
     for folder in reports or ():
         if not Path(folder).is_dir():
             parser.error(f"--reports {folder}: no such folder (the --out of lab.benchmarks.robust_policies)")
-    if args.part != "report" and args.device.startswith("cuda") and not reports:
-        import torch
-
-        if not torch.cuda.is_available():  # said here, not as a traceback from deep inside the env build
-            parser.error(f"--device {args.device}: torch sees no CUDA GPU; time to walk is measured on a GPU "
-                         "(pass --device cpu for a smoke test of the script)")
+    if args.part != "report" and not reports:
+        common.require_cuda(parser, args.device, "time to walk is measured on a GPU (pass --device cpu for a smoke "
+                                                 "test of the script)")
     if args.part != "report" and args.name is None:
         args.name = args.preset
     t0 = time.time()

@@ -183,8 +183,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if min(args.num_envs) < 1:
         parser.error(f"--num_envs takes env counts >= 1, not {args.num_envs}")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        parser.error("no CUDA device here; pass --device cpu for a smoke run of the script")
+    common.require_cuda(parser, args.device, "pass --device cpu for a smoke run of the script")
     overrides = common.parse_overrides(args.set)
     if args.child:
         with ending(from_environment()):  # every rank ends, also on a failure (NCCL: the process, here)

@@ -21,8 +21,6 @@ import json
 import shutil
 from pathlib import Path
 
-import torch
-
 from . import common
 
 NAME = "viewer_overhead"
@@ -143,8 +141,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.iterations < 4 or args.warmup < 1 or min(args.num_envs) < 1:
         parser.error("--iterations must be >= 4, --warmup >= 1 and --num_envs >= 1")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        parser.error("no CUDA device here; pass --device cpu for a smoke run of the script")
+    common.require_cuda(parser, args.device, "pass --device cpu for a smoke run of the script")
     overrides = common.parse_overrides(args.set)
     viewer = {"port": args.port, "worlds": args.worlds, "every": args.every}
     if args.child:

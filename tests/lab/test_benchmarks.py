@@ -25,6 +25,7 @@ from lab.benchmarks import (
     step_timeline,
     time_to_walk,
     train_throughput,
+    viewer_overhead,
     viewer_play,
 )
 
@@ -285,6 +286,19 @@ def test_bad_arguments_are_refused_in_one_line(nothing_measured, tmp_path, monke
     with pytest.raises(SystemExit, match="runs/time_to_walk/torqeu: no such run folder"):
         time_to_walk.main(["eval", "--preset", "torqeu", "--device", "cpu"])
     assert not Path("runs").exists() and not Path("s").exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+@pytest.mark.parametrize("main, args", [
+    (train_throughput.main, ["--num_envs", "8"]), (overlap_probe.main, []), (env_throughput.main, ["--steps", "1"]),
+    (step_timeline.main, []), (solver_load.main, []), (time_to_walk.main, ["train", "--preset", "cpu_smoke"]),
+    (viewer_overhead.main, [])], ids=lambda v: getattr(v, "__module__", "").rsplit(".", 1)[-1] or None)
+def test_a_gpu_script_without_a_gpu_ends_in_one_line_naming_the_fix(main, args, nothing_measured, capsys):
+    # Each once ran into a traceback from deep inside the env build; common.require_cuda says it before anything runs.
+    with pytest.raises(SystemExit) as exit_:
+        main([*args, "--device", "cuda", "--out", "o"] if main is not time_to_walk.main else [*args, "--device", "cuda"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "--device cuda: torch sees no CUDA GPU here; " in err and "--device cpu" in err
 
 
 def test_override_path():
