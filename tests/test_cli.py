@@ -152,3 +152,8 @@ def test_every_shared_library_recipe_option_with_a_default_shows_it():
     for action in parser._actions:
         if action.dest not in ("help", "out", "resume"):  # --out is required, --resume a switch
             assert "(default:" in action.help, f"--{action.dest} does not say its default"
+    # --preset once said only "task preset of tocabi_torchrl.rl.config": a user had to read the code for the names.
+    from tocabi_torchrl.config import PRESETS
+
+    preset_help = next(a.help for a in parser._actions if a.dest == "preset")
+    assert all(name in preset_help for name in PRESETS), preset_help

@@ -77,7 +77,11 @@ def base_parser(description: str, num_envs: int, iterations: int) -> argparse.Ar
     parser.add_argument("--checkpoint_minutes", type=float, default=0.0,
                         help="also save the policy every this many minutes of training (default: 0 = off)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the env and the library (default: 0)")
-    parser.add_argument("--preset", default="default", help="task preset of tocabi_torchrl.rl.config (default: default)")
+    from .config import PRESETS  # torch-free, as this module
+
+    parser.add_argument("--preset", default="default", metavar="NAME",
+                        help=f"task preset of tocabi_torchrl.config, one of {', '.join(sorted(PRESETS))} (default: "
+                             "default)")
     parser.add_argument("--out", required=True, help="output folder; must not exist yet (runs are never overwritten)")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out (from its resume.json) instead of starting a new one; the "
