@@ -347,7 +347,7 @@ def test_the_recipes_gait_test_shows_progress(monkeypatch, tmp_path):
     from tocabi_torchrl.adapters import evaluate as ev
 
     seen = []
-    monkeypatch.setattr(ev, "evaluate_policy", lambda *a, **k: seen.append(k["progress"]) or {})
+    monkeypatch.setattr(ev, "evaluate_policy", lambda *a, **k: seen.append((k["progress"], k["source"])) or {})
     monkeypatch.setattr(ev, "gait_passes", lambda summary: False)
 
     def load_actor(policy):
@@ -355,7 +355,7 @@ def test_the_recipes_gait_test_shows_progress(monkeypatch, tmp_path):
 
     assert ev.evaluate_policy_file(load_actor, "policy.pt", tmp_path, num_envs=1, device="cpu") == {"passes": False}
     ev.evaluate_policy_file(load_actor, "policy.pt", tmp_path, num_envs=1, device="cpu", progress=False)
-    assert seen == [True, False]
+    assert seen == [(True, "policy.pt"), (False, "policy.pt")]  # summary.json names the file it tested
 
 
 def test_a_signal_during_training_stops_at_the_next_step_and_the_handlers_come_back(tmp_path):

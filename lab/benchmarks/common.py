@@ -347,7 +347,7 @@ def gait_test(state: dict, path, command, out, num_envs: int, seconds: float, de
     agent = trainer.build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
     checkpoint.apply_checkpoint(state, agent, env=env, path=path)
     return evaluate_policy(agent.actor, cfg, out, num_envs=num_envs, device=device, seconds=seconds, command=command,
-                           video_envs=0, env=env, progress=False)
+                           video_envs=0, env=env, progress=False, source=path)
 
 
 def run_child(module: str, args: Sequence[str], env: dict | None = None, nproc: int | None = None) -> dict:

@@ -59,6 +59,8 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
     run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--num_envs", "2", "--seconds", "0.1", "--from_minutes",
         str(last_s / 60))
     assert sorted(json.loads((folder / "evals.json").read_text())["evaluations"]) == [walls[-1]]
+    summary = json.loads((folder / "eval" / walls[-1] / "0.5_0.0" / "summary.json").read_text())
+    assert summary["checkpoint"].endswith(f"{walls[-1]}.pt")  # the file each report is of, beside the others
     run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--num_envs", "2", "--seconds", "0.1")
     record = {**json.loads((folder / "train.json").read_text()), **json.loads((folder / "evals.json").read_text())}
     assert walls and sorted(record["evaluations"]) == walls and len(record["commands"]) == 2

@@ -20,10 +20,12 @@ __all__ = ["GAIT_CRITERIA", "evaluate_actions", "evaluate_policy_file", "gait_pa
 def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str | os.PathLike,
                      preset: str = "default", num_envs: int = 256, device: str | torch.device = "auto",
                      seconds: float = 8.0, command: tuple[float, float] = (0.5, 0.0), video_envs: int = 0,
-                     progress: bool = False, task: dict | None = None) -> dict:
+                     progress: bool = False, task: dict | None = None,
+                     source: str | os.PathLike | None = None) -> dict:
     """Run the gait test on ``act``: (num_envs, 237) observations -> (num_envs, 13) actions on the same device,
     deterministic (the policy's mean). ``preset``/``task`` must be the ones the policy trained on. Writes
-    ``summary.json`` and ``knees.png`` to ``out_dir`` and returns the summary with ``"passes"`` added."""
+    ``summary.json`` (with ``"checkpoint": source`` when given: the file the policy came from) and ``knees.png`` to
+    ``out_dir`` and returns the summary with ``"passes"`` added."""
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
     cfg = task_config(preset, num_envs=num_envs, **(task or {}))
 
@@ -31,7 +33,7 @@ def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str |
         return td.set("action", act(td.get("observation")))
 
     summary = evaluate_policy(actor, cfg, out_dir, num_envs=num_envs, device=dev, seconds=seconds, command=command,
-                              video_envs=video_envs, progress=progress)
+                              video_envs=video_envs, progress=progress, source=source)
     summary["passes"] = gait_passes(summary)
     return summary
 
@@ -44,4 +46,4 @@ def evaluate_policy_file(load_actor, policy: str, out_dir, num_envs: int = 256, 
     progress bar of the rollout (on by default: the recipes' gait test runs for minutes on a CPU)."""
     meta, act = load_actor(policy)
     return evaluate_actions(act, out_dir, preset=meta["preset"], num_envs=num_envs, device=device, seconds=seconds,
-                            command=command, progress=progress, task=meta["task"])
+                            command=command, progress=progress, task=meta["task"], source=policy)
