@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from lab.benchmarks import common, time_to_walk
+from tocabi_torchrl.config import wall_seconds
 
 
 def _time_to_walk(cwd, *args, code=0, nproc=0) -> str:
@@ -55,7 +56,7 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
     folder = tmp_path / "runs/time_to_walk/cpu_smoke"
     walls = sorted(p.stem for p in (folder / "checkpoints").glob("wall_*.pt"))
     # Only the last mark first (--from_minutes at its training second), then the rest: each is tested once.
-    last_s = int(walls[-1][len("wall_"):-1])
+    last_s = wall_seconds(walls[-1])
     run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--num_envs", "2", "--seconds", "0.1", "--from_minutes",
         str(last_s / 60))
     assert sorted(json.loads((folder / "evals.json").read_text())["evaluations"]) == [walls[-1]]
