@@ -140,6 +140,25 @@ def test_assembly_errors():
         env.observation_spec
 
 
+
+def test_a_hand_built_chain_names_its_mistake_at_the_first_reset():
+    # Specs are computed lazily: a chain whose specs nobody read once failed at its first reset on the missing key
+    # ("'NoneType' object is not subscriptable"), not with the spec check's message naming the fix.
+    from tocabi_torchrl.transforms import ObsActionHistory
+
+    cases = [(Compose(ObservationAssembly(), PhaseEncoding(), BaseEulerAngles()), KeyError,
+              "put BaseEulerAngles before ObservationAssembly"),
+             (Compose(PhaseEncoding(in_key="phas")), KeyError, "PhaseEncoding reads 'phas'"),
+             (Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(), FixedNormalization(),
+                      ObsActionHistory(action_key="action")), KeyError, "ObsActionHistory reads 'action'"),
+             (Compose(PhaseEncoding(harmonics=2), BaseEulerAngles(), ObservationAssembly(), FixedNormalization()),
+              ValueError, "holds 37 statistics but 'obs_step' has 39 values")]
+    for chain, error, message in cases:
+        with pytest.raises(error, match=message):
+            TransformedEnv(MockTocabiWalk(2), chain).reset()
+    env = TransformedEnv(MockTocabiWalk(2), Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly()))
+    assert env.reset()["obs_step"].shape == (2, 37)  # a right chain resets as before
+
 # ----------------------------------------------------------------------------------------- normalisation
 def test_fixed_normalization_reference_statistics():
     mean = torch.tensor(REFERENCE_OBS_MEAN)

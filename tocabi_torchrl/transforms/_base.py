@@ -5,7 +5,22 @@ from __future__ import annotations
 from tensordict import TensorDictBase
 from torchrl.envs.transforms import Transform
 
-__all__ = ["CallOnReset"]
+__all__ = ["CallOnReset", "check_specs_once"]
+
+
+def check_specs_once(transform: Transform) -> None:
+    """Run ``transform``'s spec checks against what the env in front of it provides, once, at its first reset.
+
+    TorchRL computes specs lazily, so a chain built by hand (a transform in the wrong place, a misspelt key, a layout
+    that does not fit) would reach the transform's first reset before anything read its specs, and fail there on a
+    missing key with a bare ``TypeError``; the spec checks (``_checks.require_spec``) name the problem and the fix.
+    A host flag: nothing reads the device."""
+    if getattr(transform, "_specs_checked", False):
+        return
+    parent = transform.parent
+    if parent is not None:
+        transform.transform_observation_spec(parent.observation_spec.clone())
+    transform._specs_checked = True
 
 
 class CallOnReset(Transform):
@@ -17,4 +32,5 @@ class CallOnReset(Transform):
     """
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        check_specs_once(self)
         return self._call(tensordict_reset)

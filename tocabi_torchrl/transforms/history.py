@@ -26,6 +26,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from tocabi_torchrl.transforms._base import check_specs_once
 from tocabi_torchrl.transforms._checks import require_spec
 # The layout is config (it lives in a module without torch, for the config tree); this path names it too.
 from tocabi_torchrl.transforms.layouts import REFERENCE_HISTORY, TOCABILAB_HISTORY, HistoryLayout
@@ -108,6 +109,7 @@ class ObsActionHistory(Transform):
         return torch.cat(parts, dim=-1)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        check_specs_once(self)
         obs, act = self._inputs(tensordict_reset)
         fresh = self._obs is None or not self._obs.matches(obs)
         fresh = fresh or (act is not None and (self._act is None or not self._act.matches(act)))
