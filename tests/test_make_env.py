@@ -63,6 +63,16 @@ def test_reward_weights_reweight_on_top_of_the_defaults_and_switches_must_be_boo
     # The default preset's body_vel=0.9 stays: the map used to replace the settings' own (body_vel back to 0.3).
     assert default["body_vel"] == changed["body_vel"] == 0.9 and changed["qpos"] == 0.5
     assert {k: v for k, v in changed.items() if k != "qpos"} == {k: v for k, v in default.items() if k != "qpos"}
+    # Terms without body_vel: the settings' own weight reaches only the terms in use (it once raised "weights given
+    # for unknown term(s) ['body_vel']", a weight the caller never gave); a weight the caller names stays strict.
+    assert weights(make_env(num_envs=1, device="cpu", reward_terms=("qpos", "orientation"))) == {
+        "qpos": default["qpos"], "orientation": default["orientation"]}
+    with pytest.raises(KeyError, match=r"unknown term\(s\) \['body_vel'\]"):
+        make_env(num_envs=1, device="cpu", reward_terms=("qpos",), reward_weights={"body_vel": 1.0})
+    # Scales go on top too: reward_scales={"qpos": 5.0} once dropped the robust preset's body_vel sharpness 8.0.
+    reward = next(t for t in make_env(num_envs=1, device="cpu", preset="robust", reward_scales={"qpos": 5.0}).transform
+                  if isinstance(t, TaskReward))
+    assert {t.name: t.scale for t in reward.terms if t.name in ("qpos", "body_vel")} == {"qpos": 5.0, "body_vel": 8.0}
     for name in ("sync_free_resets", "cuda_graph"):
         with pytest.raises(TypeError, match=f"make_env {name} must be True or False, got 'no'"):
             make_env(num_envs=1, device="cpu", **{name: "no"})

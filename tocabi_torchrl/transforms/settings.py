@@ -271,19 +271,28 @@ class TransformSettings:
 
     def transform_config(self, **overrides) -> TransformConfig:
         """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
-        ``reward_weights`` given here re-weight the named terms on top of these settings' own weights (the
-        default's ``body_vel`` 0.9 stays unless named). ``max_episode_steps`` is ``None`` unless overridden: the
+        ``reward_weights`` and ``reward_scales`` given here set the named terms on top of these settings' own
+        weights and scales (the default's ``body_vel`` weight 0.9 stays unless named); with ``reward_terms`` given,
+        the settings' own apply to the terms among them. ``max_episode_steps`` is ``None`` unless overridden: the
         env is the truncation clock."""
         self.validate()
         weights = self.reward_weight_map()
-        if overrides.get("reward_weights") is not None:
-            # On top, not instead: {"qpos": 0.5} replacing the map silently put body_vel back to the reference's 0.3.
-            weights.update(overrides.pop("reward_weights"))
+        scales = {} if self.body_vel_scale is None else {"body_vel": float(self.body_vel_scale)}
+        if overrides.get("reward_terms") is not None:
+            # Terms without body_vel once ended in "weights given for unknown term(s) ['body_vel']", a weight the
+            # caller never gave: these settings' own weights and scales only reach the terms in use.
+            in_use = {t if isinstance(t, str) else getattr(t, "name", getattr(t, "__name__", None))
+                      for t in overrides["reward_terms"]}
+            weights = {name: w for name, w in weights.items() if name in in_use}
+            scales = {name: v for name, v in scales.items() if name in in_use}
+        # On top, not instead: {"qpos": 0.5} replacing the map silently put body_vel back to the reference's 0.3
+        # (weights), and the robust preset's body_vel sharpness 8.0 back to 3.0 (scales).
+        weights.update(overrides.pop("reward_weights", None) or {})
+        scales.update(overrides.pop("reward_scales", None) or {})
         values = dict(normalization=self.normalization, obs_clip=self.obs_clip,
                       zero_reward_on_terminated=self.zero_reward_on_terminated, compile_reward=self.compile_reward,
                       reward_weights=weights, max_episode_steps=None, sensor_noise=self.sensor_noise,
-                      kick_relax=self.kick_relax,
-                      reward_scales={} if self.body_vel_scale is None else {"body_vel": float(self.body_vel_scale)})
+                      kick_relax=self.kick_relax, reward_scales=scales)
         # A term that is off is not added, so a config without it computes what it always did.
         extra = []
         if self.heading_weight > 0 or self.foot_gap_weight > 0 or self.cycle_vel_weight > 0:
