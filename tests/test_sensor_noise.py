@@ -90,6 +90,16 @@ def test_transform_refuses_what_it_cannot_do():
     env = TransformedEnv(MockTocabiWalk(2), default_transforms(sensor_noise=LAB))
     with pytest.raises(TypeError, match="keys its random numbers on the env's counters"):
         env.reset()
+    # After the normalisation the noise reached nothing the policy saw (its input equal to the noiseless one),
+    # silently.
+    from torchrl.envs import Compose
+
+    from tocabi_torchrl.transforms import FixedNormalization, ObsActionHistory, PhaseEncoding
+
+    late = Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(), FixedNormalization(), SensorNoise(LAB),
+                   ObsActionHistory())
+    with pytest.raises(ValueError, match="SensorNoise comes after FixedNormalization, which reads 'obs_step'"):
+        TransformedEnv(make_env(num_envs=2, device="cpu").base_env, late).reset()
 
 
 # ------------------------------------------------------------------------------------------- distributions

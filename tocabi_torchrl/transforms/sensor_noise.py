@@ -58,7 +58,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Composite
-from torchrl.envs.transforms import Transform
+from torchrl.envs.transforms import Compose, Transform
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.envs.episode_random import EpisodeDraws, LaneDraws, stream_lanes
@@ -214,7 +214,21 @@ class SensorNoise(Transform):
         self._next_drawn = False
 
     # ---------------------------------------------------------------------------------------------- set-up
+    def _check_place(self) -> None:
+        """Refuse a place after a transform that reads ``obs_key`` already (a normalisation, the history): the noise
+        added there would reach nothing the policy sees, silently."""
+        key, stack = self.in_keys[0], [getattr(self.parent, "transform", None)]
+        while stack:
+            t = stack.pop()
+            if isinstance(t, Compose):
+                stack.extend(t.transforms)
+            elif t is not None and key in t.in_keys:
+                raise ValueError(f"SensorNoise comes after {type(t).__name__}, which reads {key!r} already, so the "
+                                 f"noise would reach nothing the policy sees; put SensorNoise right after "
+                                 "ObservationAssembly (as default_transforms does)")
+
     def _map_columns(self, spec: Composite) -> None:
+        self._check_place()
         batch = tuple(spec.shape)
         perturbed = self.config.perturbed()
         columns: dict[str, tuple[list[int], list[int]]] = {name: ([], []) for name in perturbed}
