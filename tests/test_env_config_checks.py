@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+import torch
 
 from tocabi_torchrl.config import PRESETS, preset_config
 from tocabi_torchrl.envs import TocabiWalk, TocabiWalkConfig
@@ -86,6 +87,14 @@ def test_numpy_scalars_are_taken_as_plain_numbers():
     assert type(cfg.task.max_episode_steps) is int and type(cfg.command.resample_every) is int
     assert all(type(v) is float for v in cfg.control.pd_kp)
     assert TocabiWalkConfig().with_flat(phase_rate_gain=1).validate() is None  # an int for a float
+    # The env's own num_envs too (it once said "must be a positive int, got np.int64(2)"); a dict for the config
+    # tree is named, not an AttributeError from inside.
+    assert TocabiWalk(num_envs=np.int64(2), device="cpu").num_envs == 2
+    for bad in (np.float64(2.0), 2.0, True, torch.tensor([1, 2])):
+        with pytest.raises(ValueError, match="num_envs must be a positive int"):
+            TocabiWalk(num_envs=bad, device="cpu")
+    with pytest.raises(TypeError, match="config must be a TocabiWalkConfig, got dict; pass settings as keywords"):
+        TocabiWalk(num_envs=2, device="cpu", config={"num_envs": 2})
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,9 @@ captured CUDA graph on GPU); advance the phase clock by dt·(1 + a13); evaluate 
 
 from __future__ import annotations
 
+import contextlib
+import operator
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded
@@ -127,9 +130,16 @@ class TocabiWalk(EnvBase):
         leg_controller: Controller | None = None,
         **overrides,
     ):
+        if num_envs is not None and not isinstance(num_envs, (bool, int)):
+            with contextlib.suppress(TypeError):  # a numpy or 0-d tensor integer is an int here; the rest is refused
+                num_envs = operator.index(num_envs)
         if num_envs is not None and (isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs <= 0):
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
         device = check_device(device)
+        if config is not None and not isinstance(config, TocabiWalkConfig):
+            raise TypeError(f"config must be a TocabiWalkConfig, got {type(config).__name__}; pass settings as "
+                            "keywords (TocabiWalk(num_envs=..., control_mode='torque')) or build one with "
+                            "TocabiWalkConfig().with_flat(...)")
         cfg = config if config is not None else TocabiWalkConfig()
         if num_envs is not None:
             overrides["num_envs"] = num_envs

@@ -90,7 +90,10 @@ class TransformConfig:
             raise ValueError("pass both obs_mean and obs_var, or neither (for the reference statistics)")
         if not isinstance(self.history, HistoryLayout):
             raise TypeError(
-                f"history must be a HistoryLayout, e.g. HistoryLayout(num_obs=5, stride=2), got {self.history!r}"
+                f"history must be a HistoryLayout (REFERENCE_HISTORY, TOCABILAB_HISTORY or e.g. "
+                f"HistoryLayout(num_obs=5, stride=2), from tocabi_torchrl.transforms), got {self.history!r}"
+                + (f"; to pick one by name, pass transforms=TransformSettings(history={self.history!r})"
+                   if isinstance(self.history, str) else "")
             )
         if self.max_episode_steps is not None:
             check_positive_int(self.max_episode_steps, "max_episode_steps", "or None to only count steps")
