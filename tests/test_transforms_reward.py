@@ -378,3 +378,18 @@ def test_kick_relaxation_is_off_without_kicks_and_refuses_bad_settings():
         KickRelax(seconds=1.0, full_speed=0.0)
     with pytest.raises(TypeError, match="KickRelax"):
         TaskReward(reference_terms(), kick_relax={"seconds": 1.0})
+
+
+def test_a_reward_sum_in_front_of_the_reward_is_refused():
+    # The bare env's reward is 0 by design: a RewardSum before TaskReward summed zeros into episode_reward, silently.
+    from torchrl.envs import Compose, RewardSum
+
+    from tocabi_torchrl.transforms import BaseEulerAngles, PhaseEncoding
+
+    env = TransformedEnv(MockTocabiWalk(2), Compose(PhaseEncoding(), BaseEulerAngles(), RewardSum(),
+                                                    TaskReward(reference_terms())))
+    with pytest.raises(ValueError, match="RewardSum comes before TaskReward"):
+        env.reset()
+    env = TransformedEnv(MockTocabiWalk(2), Compose(PhaseEncoding(), BaseEulerAngles(), TaskReward(reference_terms()),
+                                                    RewardSum()))
+    assert env.rollout(3)["next", "episode_reward"].abs().sum() > 0

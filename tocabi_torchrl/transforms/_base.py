@@ -3,9 +3,22 @@
 from __future__ import annotations
 
 from tensordict import TensorDictBase
-from torchrl.envs.transforms import Transform
+from torchrl.envs.transforms import Compose, Transform
 
-__all__ = ["CallOnReset", "check_specs_once"]
+__all__ = ["CallOnReset", "check_specs_once", "transforms_before"]
+
+
+def transforms_before(transform: Transform) -> list[Transform]:
+    """The transforms in front of ``transform`` in its env's chain (nested ``Compose`` flattened); empty when it
+    belongs to no env. For checks of a transform's place in the chain."""
+    found, stack = [], [getattr(transform.parent, "transform", None)]
+    while stack:
+        t = stack.pop()
+        if isinstance(t, Compose):
+            stack.extend(reversed(t.transforms))
+        elif t is not None:
+            found.append(t)
+    return found
 
 
 def check_specs_once(transform: Transform) -> None:

@@ -9,9 +9,10 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
-from torchrl.envs.transforms import Transform
+from torchrl.envs.transforms import RewardSum, Transform
 
 from tocabi_torchrl.signals import SIGNALS
+from tocabi_torchrl.transforms._base import check_specs_once, transforms_before
 from tocabi_torchrl.transforms._checks import check_finite
 from tocabi_torchrl.transforms.reward_terms import SIGNAL_SHAPES, CallableTerm, RewardTerm
 from tocabi_torchrl.transforms.kick_relax_config import KickRelax
@@ -172,6 +173,7 @@ class TaskReward(Transform):
         return next_tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        check_specs_once(self)
         zeros = torch.zeros(
             (*tensordict_reset.batch_size, 1), dtype=torch.float32, device=tensordict_reset.device
         )
@@ -180,6 +182,11 @@ class TaskReward(Transform):
         return tensordict_reset
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        for t in transforms_before(self):
+            if isinstance(t, RewardSum) and self.reward_key in t.in_keys:
+                # The bare env's reward is 0 by design: a sum taken in front of this transform sums zeros.
+                raise ValueError(f"{type(t).__name__} comes before TaskReward, so it sums the bare env's reward (0 by "
+                                 "design); put it after TaskReward")
         available = set(observation_spec.keys(True, True))
         if self.kick_relax is not None and not set(KickRelax.KEYS) <= available:
             # An env without kicks (env.pushes.count 0: no kick_age / kick_speed) has nothing to relax, e.g. a

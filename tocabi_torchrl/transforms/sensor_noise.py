@@ -58,10 +58,11 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Composite
-from torchrl.envs.transforms import Compose, Transform
+from torchrl.envs.transforms import Transform
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.envs.episode_random import EpisodeDraws, LaneDraws, stream_lanes
+from tocabi_torchrl.transforms._base import transforms_before
 from tocabi_torchrl.transforms._checks import require_spec
 from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsComponent
 # The config lives in a module without torch, for the config tree; this path names it too.
@@ -217,12 +218,9 @@ class SensorNoise(Transform):
     def _check_place(self) -> None:
         """Refuse a place after a transform that reads ``obs_key`` already (a normalisation, the history): the noise
         added there would reach nothing the policy sees, silently."""
-        key, stack = self.in_keys[0], [getattr(self.parent, "transform", None)]
-        while stack:
-            t = stack.pop()
-            if isinstance(t, Compose):
-                stack.extend(t.transforms)
-            elif t is not None and key in t.in_keys:
+        key = self.in_keys[0]
+        for t in transforms_before(self):
+            if key in t.in_keys:
                 raise ValueError(f"SensorNoise comes after {type(t).__name__}, which reads {key!r} already, so the "
                                  f"noise would reach nothing the policy sees; put SensorNoise right after "
                                  "ObservationAssembly (as default_transforms does)")
