@@ -95,6 +95,11 @@ def test_numpy_scalars_are_taken_as_plain_numbers():
             TocabiWalk(num_envs=bad, device="cpu")
     with pytest.raises(TypeError, match="config must be a TocabiWalkConfig, got dict; pass settings as keywords"):
         TocabiWalk(num_envs=2, device="cpu", config={"num_envs": 2})
+    # .to() moved the specs alone and failed later, inside a step; the env's own device is still fine.
+    env = TocabiWalk(num_envs=2, device="cpu")
+    assert env.to("cpu") is env
+    with pytest.raises(RuntimeError, match="TocabiWalk cannot move from cpu to cuda: .* build it there"):
+        env.to("cuda")
 
 
 @dataclass(frozen=True)

@@ -746,6 +746,16 @@ class TocabiWalk(EnvBase):
             # set_seed(s) followed by reset() repeats the same episodes.
             self.episode_count.zero_()
 
+    def to(self, device) -> TocabiWalk:
+        """Only the device it was built on: the simulator's worlds and the env's state live there, and moving the
+        specs alone would fail later, inside a step. Build the env on the other device instead."""
+        target = torch.device(device)
+        if target.type != self.device.type or target.index not in (None, self.device.index):  # "cuda" is cuda:K too
+            raise RuntimeError(f"TocabiWalk cannot move from {self.device} to {torch.device(device)}: its simulator and "
+                               f"state live where it was built; build it there, e.g. TocabiWalk(device="
+                               f"{str(torch.device(device))!r}) or make_env(device=...)")
+        return super().to(device)
+
     def cuda_graph_generators(self) -> list[torch.Generator]:
         """The CUDA generators a step draws from besides torch's default one (command resampling), which a
         captured step graph must advance on every replay."""
