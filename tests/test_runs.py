@@ -354,7 +354,12 @@ def test_auto_falls_back_to_the_smoke_run_and_the_banner_says_what_runs():
     cfg, given, _ = launch_config(["--env.num-envs", "6", "--ppo.steps-per-env=12", "--name", "mine"],
                                   cuda_available=False)
     assert cfg.env.num_envs == 6 and cfg.ppo.steps_per_env == 12
-    assert "env.num_envs=6, ppo.steps_per_env=12, name=mine" in banner(cfg, given, torch.device("cpu"))
+    line = banner(cfg, given, torch.device("cpu"))
+    assert "env.num_envs=6, ppo.steps_per_env=12, name=mine" in line
+    # A mini-batch that does not divide the rollout left frames out of every epoch without a word.
+    assert line.endswith("\nnote: ppo.minibatch_size 64 leaves 8 of the rollout's 72 frames out of each epoch (11 %; "
+                         "each epoch reshuffles, so a different share); 72 divides it")
+    assert "note:" not in banner(smoke, given, torch.device("cpu"))  # 4 envs x 16 steps: one mini-batch of 64
 
 
 def test_a_resumed_gpu_run_without_cuda_says_where_its_device_came_from(finished_run, tmp_path):

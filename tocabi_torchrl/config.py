@@ -25,6 +25,7 @@ are the ``default`` preset, which is also what ``TocabiWalk()`` and ``make_env()
 from __future__ import annotations
 
 import difflib
+import math
 import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -112,7 +113,8 @@ class PPOConfig:
     epochs: int = 5
     """passes over each rollout per update"""
     minibatch_size: int = 49152
-    """frames per mini-batch"""
+    """frames per mini-batch; each epoch takes floor(rollout / size) mini-batches of a fresh shuffle, so a size
+    that does not divide the rollout (env.num_envs × ppo.steps_per_env) leaves another remainder out of each epoch"""
     gamma: float = 0.995
     """discount factor per policy step"""
     gae_lambda: float = 0.95
@@ -429,6 +431,18 @@ class RunConfig:
     def frames_per_batch(self) -> int:
         """Env steps per rollout: ``env.num_envs × ppo.steps_per_env``."""
         return self.env.num_envs * self.ppo.steps_per_env
+
+    def minibatch_note(self) -> str | None:
+        """What a mini-batch size that does not divide the rollout leaves out of each epoch, with the dividing size
+        nearest to it; ``None`` when it divides (or exceeds the rollout, which :meth:`validate` refuses)."""
+        frames, size = self.frames_per_batch, self.ppo.minibatch_size
+        left = frames % size
+        if left == 0 or size > frames:
+            return None
+        divisors = {d for k in range(1, math.isqrt(frames) + 1) if frames % k == 0 for d in (k, frames // k)}
+        nearest = min(divisors, key=lambda d: (abs(d - size), -d))
+        return (f"ppo.minibatch_size {size:,} leaves {left:,} of the rollout's {frames:,} frames out of each epoch "
+                f"({100 * left / frames:.0f} %; each epoch reshuffles, so a different share); {nearest:,} divides it")
 
     @property
     def iterations(self) -> int:

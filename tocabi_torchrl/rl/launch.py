@@ -82,4 +82,5 @@ def banner(cfg: RunConfig, given: dict, device) -> str:
     return (f"training {cfg.name}: preset {cfg.preset}, {cfg.env.num_envs:,} envs, {cfg.iterations:,} iterations of "
             f"{cfg.frames_per_batch:,} env steps ({cfg.env.control.mode} control) on {device}"
             + (f"; options given: {shown}" if shown else "")
-            + f"; run folder {cfg.run_dir}/{cfg.name}")
+            + f"; run folder {cfg.run_dir}/{cfg.name}"
+            + (f"\nnote: {note}" if (note := cfg.minibatch_note()) else ""))
