@@ -250,7 +250,7 @@ def test_the_recipe_refuses_values_that_would_train_to_nan_or_fail_after_trainin
     assert not (tmp_path / "run").exists()
 
 
-def test_a_missing_motion_or_model_file_and_a_run_dir_that_is_a_file_are_one_error_line(tmp_path):
+def test_a_missing_motion_or_model_file_and_a_run_dir_that_is_a_file_are_one_error_line(tmp_path, monkeypatch):
     for option, file in (("--env.task.motion", "none.npz"), ("--env.task.model_path", "none.xml")):
         with pytest.raises(SystemExit) as info:
             recipe("ppo_walk").main(tiny_args(tmp_path, name="m") + [option, str(tmp_path / file)])
@@ -260,6 +260,19 @@ def test_a_missing_motion_or_model_file_and_a_run_dir_that_is_a_file_are_one_err
     with pytest.raises(SystemExit) as info:
         recipe("ppo_walk").main(tiny_args(tmp_path, run_dir=afile))
     assert f"error: {afile} is a file, not a folder" in str(info.value.code)
+    # A folder the user cannot write was found by the logger's first write, a traceback after the env build. The
+    # probe is made to fail here: these tests may run as root, whom permissions do not stop.
+    import tempfile
+
+    def refused(*args, dir=None, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", refused)
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(tiny_args(tmp_path, run_dir=tmp_path / "locked" / "runs"))
+    assert str(info.value.code) == (f"error: cannot write the run into {tmp_path}/locked/runs/run: "
+                                    f"{tmp_path} is not writable (Permission denied); pass --run_dir (and --name) "
+                                    "naming a folder you can write")
 
 
 def test_evaluating_and_exporting_a_running_normalization_policy_freeze_its_statistics(tmp_path):

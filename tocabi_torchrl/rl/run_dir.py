@@ -14,6 +14,7 @@ and its later metrics rows cut. Continue it from its newest checkpoint, or branc
 from __future__ import annotations
 
 import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -101,6 +102,21 @@ def check_run_name(name: str) -> None:
                           f"{name!r}; put the folder's parent in run_dir instead")
 
 
+def check_writable(path: Path) -> None:
+    """``RunDirError`` unless a file can be created in ``path`` or, while it does not exist, in its nearest existing
+    parent (a probe file, created and removed at once): said before the env is built, not as a traceback from the
+    logger's first write."""
+    folder = path
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as err:
+        raise RunDirError(f"cannot write the run into {path}: {folder} is not writable ({err.strerror or err}); "
+                          "pass --run_dir (and --name) naming a folder you can write") from None
+
+
 def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
     """Check that ``cfg`` may write to its run folder and, for ``cfg.resume``, read and check the checkpoint.
 
@@ -120,6 +136,8 @@ def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
         if writer and folder.exists() and not folder.is_dir():
             raise RunDirError(f"{folder} is a file, not a folder: the run cannot be written there; pass --run_dir "
                               f"and --name that name a folder")
+    if writer:
+        check_writable(path)
     if not writer:
         if not cfg.resume:
             return RunFolder(path)
