@@ -454,10 +454,13 @@ def test_help_names_every_option_once(capsys):
     ("seed", "-1", "seed must be an int in [0, 2**63 - 1]"),
     ("ppo.lr_end", "0.5", "ppo.lr_end 0.5 is above ppo.lr"),
     ("ppo.std_end", "0.5", "ppo.std_end 0.5 is above ppo.std_start"),
+    # A KeyError traceback from the reward transform, after the banner: heading's weight is 0, so it is not in use.
+    ("transforms.kick_relax.terms", "heading", "transforms.kick_relax.terms names ['heading'], which no reward term"),
 ])
 def test_values_the_env_or_schedules_would_refuse_are_one_error_line_before_the_banner(tmp_path, capsys, option,
                                                                                         value, message):
-    extra = ["--ppo.lr_schedule", "linear"] if option == "ppo.lr_end" else []
+    extra = {"ppo.lr_end": ["--ppo.lr_schedule", "linear"],
+             "transforms.kick_relax.terms": ["--transforms.kick_relax.seconds", "1"]}.get(option, [])
     with pytest.raises(SystemExit) as info:
         recipe("ppo_walk").main(tiny_args(tmp_path) + [f"--{option}", value, *extra])
     assert str(info.value.code).startswith("error: ") and message in str(info.value.code), info.value.code

@@ -256,6 +256,16 @@ class TransformSettings:
             raise ValueError(f"transforms.kick_relax must be a KickRelax (e.g. KickRelax(seconds=1.5)), got "
                              f"{self.kick_relax!r}")
         self.kick_relax.validate()
+        if self.kick_relax.enabled:
+            in_use = (*REFERENCE_TERM_NAMES, *(name for name, weight in (("heading", self.heading_weight),
+                                                                        ("cycle_vel", self.cycle_vel_weight),
+                                                                        ("foot_gap", self.foot_gap_weight))
+                                             if isinstance(weight, (int, float)) and weight > 0))
+            missing = [t for t in self.kick_relax.terms if t not in in_use]
+            if missing:
+                raise ValueError(f"transforms.kick_relax.terms names {missing}, which no reward term in use is "
+                                 f"called (terms in use: {list(in_use)}); name terms in use, or switch the term on "
+                                 "with its weight (e.g. transforms.heading_weight)")
         if self.body_vel_scale is not None and (isinstance(self.body_vel_scale, bool) or not isinstance(
                 self.body_vel_scale, (int, float)) or not 0 < self.body_vel_scale < math.inf):
             raise ValueError(f"transforms.body_vel_scale must be a finite number > 0 (s in exp(-s·‖v − cmd‖²), "
