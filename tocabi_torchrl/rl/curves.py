@@ -89,11 +89,22 @@ def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description="Plot a run's training curves")
     parser.add_argument("metrics", help="a run folder, its metrics/ folder, or a wide metrics.csv")
-    parser.add_argument("out_png")
+    parser.add_argument("out_png", help="the figure to write (.png, or another format matplotlib writes: .pdf, "
+                                        ".svg); an existing file is replaced only with --overwrite")
+    parser.add_argument("--overwrite", action="store_true", help="replace out_png if it exists (default: refuse)")
     args = parser.parse_args(argv)
     if not Path(args.metrics).exists():
         parser.error(f"{args.metrics} does not exist: pass a run folder (runs/<name>), its metrics/ folder or a "
                      "metrics.csv")
+    out = Path(args.out_png)
+    suffix = out.suffix[1:].lower() or "png"
+    import matplotlib.figure  # the formats matplotlib can write (no backend needed)
+
+    if suffix not in matplotlib.figure.Figure().canvas.get_supported_filetypes():
+        parser.error(f"out_png {out}: matplotlib cannot write .{suffix} files; name a .png (or .pdf, .svg)")
+    if out.is_dir() or (out.exists() and not args.overwrite):
+        parser.error(f"out_png {out} exists; it is not replaced: pass --overwrite, or name another file"
+                     if not out.is_dir() else f"out_png {out} is a folder: name the figure file, e.g. {out}/curves.png")
     try:
         print(plot_curves(args.metrics, args.out_png))
     except (ValueError, KeyError) as err:  # no rows, or a CSV without a plotted column
