@@ -524,6 +524,20 @@ def test_a_checkpoint_older_than_a_value_rule_evaluates_with_a_warning_and_resum
         config_from_checkpoint(state, run)
 
 
+def test_help_lists_the_choices_of_every_option_that_takes_one_of_a_few_names(capsys):
+    # field_choices says --help lists them; env.control.mode, ppo.value_loss, ppo.activation, ppo.lr_schedule,
+    # ppo.grad_sync and --loggers did not.
+    from tocabi_torchrl.config import LOGGERS, field_choices
+
+    with pytest.raises(SystemExit):
+        parse_args(["--help"])
+    text = " ".join(capsys.readouterr().out.replace("│", " ").split())  # tyro wraps lines in boxes
+    for path, choices in {**field_choices(), "loggers": LOGGERS}.items():
+        start = text.index(f"--{path} ")
+        help_text = text[start:text.index(" --", start + 2)]
+        assert all(choice in help_text for choice in choices), help_text
+
+
 def test_help_of_resume_names_every_option_a_resume_may_change(capsys):
     from tocabi_torchrl.rl.resume import RESUME_SAFE
 

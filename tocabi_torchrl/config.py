@@ -126,7 +126,7 @@ class PPOConfig:
     value_coef: float = 1.0
     """value loss weight"""
     value_loss: str = "l2"
-    """value loss function"""
+    """value loss function: l2, smooth_l1 or l1"""
     #: Gradient-norm clip; inf = no clipping (the one number of the tree allowed to be infinite).
     max_grad_norm: float = field(default=1.0, metadata=OWN_NUMBER_CHECK)
     """gradient norm clip"""
@@ -136,7 +136,7 @@ class PPOConfig:
     lr_end: float = 1e-5
     """final learning rate of the linear schedule (at most ppo.lr)"""
     lr_schedule: str = "adaptive"
-    """learning-rate schedule (adaptive: from the KL to desired_kl)"""
+    """learning-rate schedule: adaptive (from the KL to desired_kl), linear (lr to lr_end) or fixed"""
     desired_kl: float = 0.01
     """KL target of the adaptive schedule"""
     #: The adaptive rule's floor. At a small action σ one step of the mean is a large KL, and the rule can sit at
@@ -175,7 +175,7 @@ class PPOConfig:
     critic_hidden: tuple[int, ...] = (400, 200, 100)
     """hidden layer sizes of the value network"""
     activation: str = "elu"
-    """hidden-layer activation"""
+    """hidden-layer activation: elu, relu, tanh or silu"""
     value_out_gain: float = 1.0
     """init gain of the value output layer"""
     std_mode: str = "scheduled"
@@ -244,7 +244,7 @@ class PPOConfig:
     #: launch-bound, and the graph trained 1.5-1.8x faster at 8-96 envs on an H100 (short runs); from 256 envs up it
     #: was 3-6 % slower (docs/benchmarks/env_graph.md). Both compute the same step (tests compare them).
     cuda_graph: str = "auto"
-    """capture the env step as one CUDA graph (auto: up to 128 envs)"""
+    """capture the env step as one CUDA graph: on, off, or auto (on up to 128 envs)"""
     #: On a GPU, capture each PPO mini-batch step (loss, backward, clipping, fused Adam) as one CUDA graph after 3
     #: eager steps (falls back to eager, with a warning, if the capture fails, e.g. with entropy_coef > 0).
     update_graph: bool = True
@@ -264,7 +264,8 @@ class PPOConfig:
     #: On one rank nothing is exchanged either way (the update_graph rule still applies, so a config means the
     #: same on any rank count).
     grad_sync: str = "allreduce"
-    """several ranks: average gradients with one captured all-reduce, or DDP (needs update_graph false)"""
+    """several ranks: average gradients with one captured all-reduce (allreduce), or ddp (needs update_graph
+    false)"""
     #: float32 matrix products while training (torch.set_float32_matmul_precision, set for the run and restored
     #: after it): "highest" (full float32) or "high" (TF32 tensor cores where the GPU has them, a 10-bit mantissa;
     #: the update's and GAE's network passes are matmul-bound, ~115 GFLOP per default mini-batch step). It applies
@@ -392,7 +393,8 @@ class RunConfig:
     log_every: int = 1
     """iterations between log rows"""
     loggers: tuple[str, ...] = ("csv",)
-    """where metrics go besides the progress bar; csv (runs/<name>/metrics/) is always written"""
+    """where metrics go besides the progress bar: csv, tensorboard, wandb; csv (runs/<name>/metrics/) is always
+    written"""
     progress_bar: bool = True
     """show a progress bar (else one line per log row)"""
     checkpoint_every: int = 100

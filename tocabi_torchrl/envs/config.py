@@ -234,7 +234,8 @@ class ControlConfig:
     """
 
     mode: str = "pd_reference"
-    """what the 12 leg actions command"""
+    """what the 12 leg actions command: pd_reference (residuals on the reference walk's PD targets), pd (PD targets
+    around a fixed pose), torque, or model_based (residual torques on a computed-torque law)"""
     pd_kp: tuple[float, ...] = PD_GAINS["robot"][0]
     """leg PD stiffness per joint [N·m/rad] (PD modes, torque assist); default: the robot's, TocabiLab used Kp/9"""
     pd_kv: tuple[float, ...] = PD_GAINS["robot"][1]
@@ -247,10 +248,16 @@ class ControlConfig:
     """give every env the torque assist (the trainer sets it on its training env when ppo.torque_assist > 0)"""
     # validate() checks the per-joint model_based values itself, naming the joint.
     mb_omega: tuple[float, ...] = field(default=MB_OMEGA, metadata=OWN_NUMBER_CHECK)
+    """model_based mode: the computed-torque loop's natural frequency ω per leg joint [rad/s] (Kp = ω²)"""
     mb_zeta: tuple[float, ...] = field(default=(0.7,) * robot.NUM_LEG_JOINTS, metadata=OWN_NUMBER_CHECK)
+    """model_based mode: the loop's damping ratio ζ per leg joint (Kd = 2ζω)"""
     mb_ref_window: float = 0.008
+    """model_based mode: half-width of the central differences that give the reference's velocity and
+    acceleration [s]"""
     mb_residual_gain: tuple[float, ...] = field(default=tuple(float(v) for v in robot.LEG_TORQUE_LIMITS),
                                                 metadata=OWN_NUMBER_CHECK)
+    """model_based mode: torque per unit of the policy's residual action, per leg joint [N·m] (default: the torque
+    limits)"""
     #: The upper body's control law (``envs.controllers.upper_body_law``): the model file's servos hold the reference.
     upper_body: str = "pd_hold"
     #: The actuator layer between the legs' torque commands and the joints (ideal by default; torque modes only).
