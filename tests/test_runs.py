@@ -107,6 +107,14 @@ def test_a_damaged_latest_checkpoint_names_the_newest_readable_one(finished_run,
         parse_args(["--resume", str(run)])
     cfg, _ = parse_args(["--resume", str(newest)])  # and that advice works
     assert cfg.resume == str(newest)
+    # In a folder of other policies (a copy of assets/policies), a readable file there is no run's to continue.
+    other = tmp_path / "policies"
+    other.mkdir()
+    shutil.copy(newest, other / "tocabi_walk_ppo.pt")
+    (other / "mine.pt").write_bytes(latest.read_bytes())
+    with pytest.raises(CheckpointError) as info:
+        parse_args(["--resume", str(other / "mine.pt")])
+    assert "newest readable checkpoint" not in str(info.value)
 
 
 @pytest.mark.parametrize("option, value, saved", [("ppo.lr", ["0.5"], "0.001"),

@@ -11,6 +11,7 @@ given with its saved value is no change.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 from ..config import RunConfig
@@ -90,7 +91,9 @@ _ALTERNATIVES_READ = 3
 def _intact_alternative(damaged: Path) -> str:
     """A hint for a damaged checkpoint: the most recently written other checkpoint beside it (``iter_*.pt``,
     ``wall_*.pt``, ``latest.pt``) that reads, among the newest :data:`_ALTERNATIVES_READ`, with its iteration."""
-    others = sorted((p for p in damaged.parent.glob("*.pt") if p != damaged and p.is_file()),
+    # A run's own checkpoint names only: a folder of other policies (assets/policies) names no run to continue.
+    others = sorted((p for p in damaged.parent.glob("*.pt") if p != damaged and p.is_file()
+                     and (p.name == "latest.pt" or re.fullmatch(r"(iter_\d+|wall_\d+s)\.pt", p.name))),
                     key=lambda p: p.stat().st_mtime, reverse=True)
     for other in others[:_ALTERNATIVES_READ]:
         try:
