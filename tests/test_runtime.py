@@ -546,6 +546,21 @@ def test_an_onnx_output_that_is_not_the_contracts_is_refused(outputs, output_nam
         PolicyRuntime(_write(path, c), check_onnx_hash=False)
 
 
+def test_a_file_that_is_not_onnx_is_a_contract_error(contract_copy):
+    # A file whose hash the contract matches but that onnxruntime cannot load (an empty or foreign file) ended in
+    # onnxruntime's own InvalidProtobuf traceback.
+    pytest.importorskip("onnxruntime")
+    from tocabi_torchrl.runtime.motion import file_sha256
+
+    path, c = contract_copy
+    onnx = path.with_name("p.onnx")
+    for data in (b"", b"not a model"):
+        onnx.write_bytes(data)
+        c["policy"]["onnx_sha256"] = file_sha256(onnx)
+        with pytest.raises(ContractError, match=r"p.onnx is not an ONNX model onnxruntime can load .*export it again"):
+            PolicyRuntime(_write(path, c))
+
+
 class _FixedOutputSession:
     """Stands in for the onnxruntime session: returns ``raw`` and records the output names asked for."""
 

@@ -72,7 +72,11 @@ def _onnx_session(path: Path, threads: int):
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
-    return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+    try:
+        return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+    except Exception as err:  # onnxruntime's own errors (InvalidProtobuf, InvalidArgument, ...) share no base class
+        raise ContractError(f"{path} is not an ONNX model onnxruntime can load ({type(err).__name__}: "
+                            f"{str(err).strip()[:200]}); export it again with python -m tocabi_torchrl.export") from err
 
 
 class PolicyRuntime:
