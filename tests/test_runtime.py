@@ -500,6 +500,14 @@ def test_a_refused_reset_leaves_the_running_episode_as_it_was():
     (_set("observation.history.action_ages", [7.0, 5, 3, 1]), "action_ages is .* integer ages >= 0"),
     (_set("contract_version", True), "contract_version True is not supported"),
     (_set("action.dim", 13.0), "action.dim is 13.0"),
+    # Loaded without a word: unknown keys (a misspelt optional one is ignored), a rate that contradicts the period,
+    # and a text dimension reported as if it were the right number.
+    (_set("foo", 1), r"unknown key\(s\) \['foo'\]; the runtime would ignore them"),
+    (_set("termination.self_colision", True), r"unknown key\(s\) \['termination.self_colision'\]"),
+    (_set("action.leg.kp_scale", 1.0), r"unknown key\(s\) \['action.leg.kp_scale'\]"),
+    (_set("timing.control_hz", 100), r"timing.control_hz 100.0 is not 1 / control_dt_s 0.004 \(250\)"),
+    (_set("policy.input_dim", "237"), r"policy.input_dim is '237' but .* \(an integer\)"),
+    (_set("policy.output_dim", "13"), r"policy.output_dim is '13' but must be action.dim, the integer 13"),
 ])
 def test_structurally_wrong_contracts_are_refused_on_load(change, message, contract_copy):
     # Each of these passed load_contract and then failed with an IndexError/KeyError in reset, or ran wrongly.

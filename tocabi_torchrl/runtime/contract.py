@@ -44,6 +44,20 @@ REQUIRED_KEYS: tuple[str, ...] = (
     "termination.min_pelvis_height", "termination.min_neck_height", "termination.max_neck_angle",
 )  # fmt: skip
 
+#: Keys an export writes besides :data:`REQUIRED_KEYS`: descriptions and values a robot controller may use that the
+#: runtime does not read. ``checkpoint``, ``training_config`` and ``trained_under`` are whole sections (the last
+#: checked by ``value_rules.trained_under_problems``); ``action.leg`` holds its mode's keys.
+OPTIONAL_KEYS: tuple[str, ...] = (
+    "checkpoint", "training_config", "trained_under", "policy.opset", "policy.output", "robot.actuator_names",
+    "timing.control_hz", "action.nan", "action.phase_rate.rule", "upper_body.hold", "observation.normalization.clip",
+    "observation.normalization.eps", "observation.normalization.kind", "observation.normalization.rule",
+    "observation.history.blocks", "observation.history.num_actions", "observation.history.num_obs",
+    "observation.history.order", "observation.history.reset", "observation.history.stride",
+    "reference_motion.init_rows", "reference_motion.interpolation", "reference_motion.period_s",
+    "reference_motion.phase", "reference_motion.row_dt_s", "reference_motion.rows",
+    "termination.forbidden_contact", "termination.self_collision",
+)  # fmt: skip
+
 #: Contract fields that carry a value of the env config the policy was trained with -> that value's path in the env
 #: config (``value_rules.ENV_RULES``). Each is checked with the env's own rule, so a value the env refuses (a negative
 #: action scale, which made every robot fall) is refused here too. Fields absent in a control mode are skipped.
@@ -150,7 +164,28 @@ def check_contract(contract, source: str = "contract") -> None:
             missing.append(key)
     if missing:
         raise ContractError(f"{source}: missing required key(s) {missing}; re-export the policy")
+    _check_unknown_keys(contract, source)
     _check_consistency(contract, source)
+
+
+def _check_unknown_keys(contract: dict, source: str) -> None:
+    """Refuse a key no export writes in a section the runtime reads: a misspelt optional key (``self_colision``)
+    would be ignored without a word."""
+    known = {*REQUIRED_KEYS, *OPTIONAL_KEYS}
+    sections = {""} | {key.rsplit(".", 1)[0] for key in known if "." in key} - {"action.leg"}
+    for section in sorted(sections):
+        node = contract if not section else _get(contract, section)
+        if isinstance(node, dict):
+            prefix = f"{section}." if section else ""
+            unknown = sorted(k for k in node if f"{prefix}{k}" not in known)
+            if unknown:
+                raise ContractError(f"{source}: unknown key(s) {[prefix + k for k in unknown]}; the runtime would "
+                                    f"ignore them (a misspelt key?); {_FIX}")
+    leg = contract["action"]["leg"]
+    unknown = sorted(k for k in (leg if isinstance(leg, dict) else ()) if k not in {*_LEG_KEYS["pd"], "rule"})
+    if unknown:
+        raise ContractError(f"{source}: unknown key(s) {['action.leg.' + k for k in unknown]}; the runtime would "
+                            f"ignore them (a misspelt key?); {_FIX}")
 
 
 def _is_int(value) -> bool:
@@ -238,11 +273,12 @@ def _check_consistency(c: dict, source: str) -> None:
     step_dim = obs["step_dim"]
     expected = len(hist["obs_ages"]) * step_dim + len(hist["action_ages"]) * act["dim"]
     if pol["input_dim"] != expected or not _is_int(pol["input_dim"]):
-        raise ContractError(f"{source}: policy.input_dim is {pol['input_dim']} but the history holds "
+        raise ContractError(f"{source}: policy.input_dim is {pol['input_dim']!r} but the history holds "
                             f"{len(hist['obs_ages'])} x {step_dim} + {len(hist['action_ages'])} x {act['dim']} = "
-                            f"{expected} values")
+                            f"{expected} values (an integer)")
     if pol["output_dim"] != act["dim"] or not _is_int(pol["output_dim"]):
-        raise ContractError(f"{source}: policy.output_dim {pol['output_dim']} != action.dim {act['dim']}")
+        raise ContractError(f"{source}: policy.output_dim is {pol['output_dim']!r} but must be action.dim, the "
+                            f"integer {act['dim']}")
     for key in ("input_name", "output_name"):
         if not isinstance(pol[key], str) or not pol[key]:
             raise ContractError(f"{source}: policy.{key} is {pol[key]!r}, not the name of an ONNX graph input/output; "
@@ -297,6 +333,11 @@ def _check_timing(c: dict, source: str) -> None:
     if abs(physics * substeps - control) > 1e-6 * control:
         raise ContractError(f"{source}: timing.control_dt_s {control} is not physics_dt_s {physics} x substeps "
                             f"{substeps}; {_FIX}")
+    if "control_hz" in timing:  # not read here, but a robot controller may take its rate from it
+        hz = _number(timing["control_hz"], "timing.control_hz", source, positive=True)
+        if abs(hz * control - 1.0) > 1e-4:
+            raise ContractError(f"{source}: timing.control_hz {hz} is not 1 / control_dt_s {control} "
+                                f"({1.0 / control:g}); {_FIX}")
 
 
 def _check_leg(act: dict, n_leg: int, source: str) -> None:
