@@ -38,7 +38,7 @@ def test_play_reports_an_unreadable_checkpoint_in_one_line(tmp_path, kind):
 
 
 @needs_policy
-def test_play_reports_an_out_it_cannot_write_in_one_line(tmp_path):
+def test_play_reports_an_out_it_cannot_write_in_one_line(tmp_path, monkeypatch):
     afile = tmp_path / "afile"
     afile.write_text("not a folder")
     with pytest.raises(SystemExit) as info:
@@ -46,6 +46,26 @@ def test_play_reports_an_out_it_cannot_write_in_one_line(tmp_path):
                              "--video_envs", "0", "--device", "cpu", "--out", str(afile)])
     assert f"error: cannot write the evaluation to {afile}" in str(info.value.code)
     assert afile.read_text() == "not a folder"
+    # A folder that cannot be written was found by the first write, after the whole test had run (minutes on a
+    # CPU). The probe is made to fail here: these tests may run as root, whom permissions do not stop.
+    import tempfile
+
+    from tocabi_torchrl.evaluation import gait_test
+
+    ran = []
+    monkeypatch.setattr(gait_test, "evaluate_policy", lambda *a, **k: ran.append(1))
+
+    def refused(*args, dir=None, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", refused)
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--num_envs", "1", "--seconds", "0.01",
+                             "--video_envs", "0", "--device", "cpu", "--out", str(locked / "eval")])
+    assert str(info.value.code).startswith(f"error: cannot write the evaluation to {locked}: Permission denied")
+    assert not ran
 
 
 @needs_policy

@@ -9,11 +9,13 @@ the permissions a plain ``open(path, "w")`` would give it: the target's own when
 
 from __future__ import annotations
 
+import errno
 import os
 import secrets
+import tempfile
 from pathlib import Path
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "remove_stale_temp_files", "TEMP_SUFFIX"]
+__all__ = ["atomic_write_bytes", "atomic_write_text", "remove_stale_temp_files", "check_writable", "TEMP_SUFFIX"]
 
 #: Suffix of the temporary files written next to their target.
 TEMP_SUFFIX = ".tmp"
@@ -42,6 +44,22 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     """:func:`atomic_write_bytes` for UTF-8 text."""
     return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def check_writable(path: str | os.PathLike) -> None:
+    """Raise ``OSError`` (``filename``: the folder) unless a file can be created in ``path`` or, while it does not
+    exist, in its nearest existing parent: a probe file, created and removed at once, so that a command says so
+    before its work instead of at its first write."""
+    folder = Path(path)
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, "a file, not a folder", str(folder))
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as err:
+        raise OSError(err.errno, err.strerror or str(err), str(folder)) from None
 
 
 def remove_stale_temp_files(folder: str | os.PathLike) -> list[Path]:

@@ -23,7 +23,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm.auto import tqdm
 
 from .. import robot
-from ..atomic import atomic_write_text
+from ..atomic import atomic_write_text, check_writable
 from ..config import RunConfig
 from ..render_gl import NO_GL_FIX
 from ..transforms.normalize import freeze_running_statistics
@@ -191,17 +191,16 @@ def eval_out_dir(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | Non
     """The folder an evaluation of ``checkpoint`` writes to: ``out_dir``, refused
     (:class:`~.output.OutputExistsError`) when it already holds files unless ``overwrite``
     (then files of the same name are replaced, others stay); without ``out_dir``, :func:`fresh_eval_dir`. Creates
-    nothing (an ``out_dir`` that is a file fails when the evaluation creates it, as ``OSError``); raises
-    ``CheckpointError`` for a missing checkpoint."""
-    if out_dir is None:
-        return fresh_eval_dir(checkpoint_file(checkpoint))
-    out = Path(out_dir)
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
+    nothing; raises ``OSError`` for a folder that cannot be written (checked with a probe file before the test runs,
+    not at its first write, minutes later) and ``CheckpointError`` for a missing checkpoint."""
+    out = fresh_eval_dir(checkpoint_file(checkpoint)) if out_dir is None else Path(out_dir)
+    if out_dir is not None and out.is_dir() and any(out.iterdir()) and not overwrite:
         held = sorted(p.name for p in out.iterdir())
         shown = ", ".join(held[:3]) + (f" and {len(held) - 3} more" if len(held) > 3 else "")
         raise OutputExistsError(f"{out} already holds results ({shown}); nothing there is overwritten. Choose another "
                                 "--out, leave --out out to write to a fresh folder (eval/, eval_2/, ...), or pass "
                                 "--overwrite to replace the files of the same name (the others stay)")
+    check_writable(out)
     return out
 
 

@@ -14,10 +14,10 @@ and its later metrics rows cut. Continue it from its newest checkpoint, or branc
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..atomic import check_writable as atomic_check_writable
 from ..atomic import remove_stale_temp_files
 from ..config import RunConfig
 from .checkpoint import (
@@ -106,14 +106,10 @@ def check_writable(path: Path) -> None:
     """``RunDirError`` unless a file can be created in ``path`` or, while it does not exist, in its nearest existing
     parent (a probe file, created and removed at once): said before the env is built, not as a traceback from the
     logger's first write."""
-    folder = path
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
     try:
-        with tempfile.TemporaryFile(dir=folder):
-            pass
+        atomic_check_writable(path)
     except OSError as err:
-        raise RunDirError(f"cannot write the run into {path}: {folder} is not writable ({err.strerror or err}); "
+        raise RunDirError(f"cannot write the run into {path}: {err.filename} is not writable ({err.strerror}); "
                           "pass --run_dir (and --name) naming a folder you can write") from None
 
 
