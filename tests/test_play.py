@@ -73,6 +73,10 @@ def test_play_refuses_seconds_below_one_policy_step():
     with pytest.raises(SystemExit) as info:
         recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--seconds", "0.001", "--device", "cpu"])
     assert "seconds=0.001 is shorter than one policy step (4 ms)" in str(info.value.code)
+    # sim2sim ran no step and reported survival 1.0 with NaN metrics (not JSON) into its --out.
+    with pytest.raises(SystemExit) as info:
+        recipe("sim2sim").main(["--contract", str(SHIPPED_POLICY.with_suffix(".json")), "--seconds", "0.001"])
+    assert "seconds=0.001 is shorter than one control period (4 ms)" in str(info.value.code)
 
 
 @pytest.mark.parametrize("name", ["play", "sim2sim"])

@@ -20,6 +20,7 @@ and start velocities.
 
 from __future__ import annotations
 
+import math
 import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field, fields
@@ -254,6 +255,11 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     """
     runtime = PolicyRuntime(contract_path, motion=motion)
     c = runtime.contract
+    dt = float(c["timing"]["control_dt_s"])
+    steps = round(seconds / dt) if math.isfinite(seconds) else 0
+    if steps < 1:  # no step would run: survival 1 and NaN metrics of no walk at all
+        raise ValueError(f"seconds={seconds!r} is shorter than one control period ({dt * 1000:g} ms) or not finite; "
+                         f"pass at least {dt:g}")
     chosen = resolve_randomization(randomize, c)
     pushes = pushes if pushes is not None and pushes.count > 0 else None
     if pushes is not None:
@@ -324,7 +330,6 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     knee_sq = np.zeros(num_robots)
     vel_err = np.zeros(num_robots)
     alive_steps = np.zeros(num_robots)
-    steps = round(seconds / c["timing"]["control_dt_s"])
     kicked = 0
     for step in range(steps):
         # The actuator layer's torque of every substep of this period (the joint velocity at its start for friction).
