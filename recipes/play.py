@@ -113,6 +113,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.viewer:
         serve(args)
         return
+    if args.backend is not None:  # the gait tests run on the checkpoint's own backend
+        parser.error("--backend sets the physics of --viewer only; leave it out, or add --viewer")
     if args.test == "robust" and (args.vx, args.vy) != (0.5, 0.0):
         parser.error("--vx/--vy set the standard test's command; the robust test's commands are its cases' (leave "
                      "--vx/--vy out, or pass --test standard)")

@@ -69,10 +69,14 @@ def test_play_reports_an_out_it_cannot_write_in_one_line(tmp_path, monkeypatch):
 
 
 @needs_policy
-def test_play_refuses_seconds_below_one_policy_step():
+def test_play_refuses_seconds_below_one_policy_step(capsys):
     with pytest.raises(SystemExit) as info:
         recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--seconds", "0.001", "--device", "cpu"])
     assert "seconds=0.001 is shorter than one policy step (4 ms)" in str(info.value.code)
+    # --backend without --viewer was ignored without a word.
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--backend", "warp", "--device", "cpu"])
+    assert info.value.code == 2 and "--backend sets the physics of --viewer only" in capsys.readouterr().err
     # sim2sim ran no step and reported survival 1.0 with NaN metrics (not JSON) into its --out.
     with pytest.raises(SystemExit) as info:
         recipe("sim2sim").main(["--contract", str(SHIPPED_POLICY.with_suffix(".json")), "--seconds", "0.001"])

@@ -381,6 +381,9 @@ def test_auto_falls_back_to_the_smoke_run_and_the_banner_says_what_runs():
     assert line.endswith("\nnote: ppo.minibatch_size 64 leaves 8 of the rollout's 72 frames out of each epoch (11 %; "
                          "each epoch reshuffles, so a different share); 72 divides it")
     assert "note:" not in banner(smoke, given, torch.device("cpu"))  # 4 envs x 16 steps: one mini-batch of 64
+    # An empty run_dir writes into the working folder; the banner said "run folder /mine".
+    empty, given, _ = launch_config(["--run_dir", "", "--name", "mine"], cuda_available=False)
+    assert banner(empty, given, torch.device("cpu")).endswith("; run folder mine")
 
 
 def test_a_resumed_gpu_run_without_cuda_says_where_its_device_came_from(finished_run, tmp_path):
@@ -464,6 +467,7 @@ def test_help_names_every_option_once(capsys):
     ("ppo.std_end", "0.5", "ppo.std_end 0.5 is above ppo.std_start"),
     # A KeyError traceback from the reward transform, after the banner: heading's weight is 0, so it is not in use.
     ("transforms.kick_relax.terms", "heading", "transforms.kick_relax.terms names ['heading'], which no reward term"),
+    ("env.task.motion", "", "env.task.motion must be a path to a .npz or reference .txt motion"),  # after the banner
 ])
 def test_values_the_env_or_schedules_would_refuse_are_one_error_line_before_the_banner(tmp_path, capsys, option,
                                                                                         value, message):

@@ -172,6 +172,9 @@ class TaskConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 <= value <= 10):
                 raise ValueError(f"env.task.{name} must be a std in [0, 10], got {value!r}")
+        if self.motion is not None and (not isinstance(self.motion, str) or not self.motion.strip()):
+            raise ValueError(f"env.task.motion must be a path to a .npz or reference .txt motion, or none for the "
+                             f"shipped cycle, got {self.motion!r}")
 
     @property
     def diverse_starts(self) -> bool:

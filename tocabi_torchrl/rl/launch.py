@@ -10,6 +10,7 @@ multi-rank launch means GPUs were expected, and no rank prints a banner that cou
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 from ..config import RunConfig, preset_config, preset_tree
 from .config import PRESETS, given_options, option_value, parse_tree, resume_config
@@ -82,5 +83,5 @@ def banner(cfg: RunConfig, given: dict, device) -> str:
     return (f"training {cfg.name}: preset {cfg.preset}, {cfg.env.num_envs:,} envs, {cfg.iterations:,} iterations of "
             f"{cfg.frames_per_batch:,} env steps ({cfg.env.control.mode} control) on {device}"
             + (f"; options given: {shown}" if shown else "")
-            + f"; run folder {cfg.run_dir}/{cfg.name}"
+            + f"; run folder {Path(cfg.run_dir) / cfg.name}"
             + (f"\nnote: {note}" if (note := cfg.minibatch_note()) else ""))
