@@ -34,11 +34,12 @@ import sys
 from importlib import metadata
 
 from tocabi_torchrl.cli import base_parser, hidden_sizes
+from tocabi_torchrl.config import PRESETS  # torch-free: --help answers before torch loads
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line: the options every library recipe takes and rsl_rl's own."""
-    parser = base_parser(__doc__.split("\n\n")[0], num_envs=4096, iterations=1500)
+    parser = base_parser(__doc__.split("\n\n")[0], num_envs=4096, iterations=1500, presets=PRESETS)
     parser.add_argument("--steps_per_env", type=int, default=48, help="rollout length per env (default: 48)")
     parser.add_argument("--learning_rate", type=float, default=1e-3,
                         help="Adam's learning rate: the start of the adaptive schedules, or the fixed rate "

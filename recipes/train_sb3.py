@@ -37,11 +37,12 @@ from importlib import metadata
 from pathlib import Path
 
 from tocabi_torchrl.cli import base_parser, hidden_sizes
+from tocabi_torchrl.config import PRESETS  # torch-free: --help answers before torch loads
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line: the options every library recipe takes and Stable-Baselines3's own."""
-    parser = base_parser(__doc__.split("\n\n")[0], num_envs=8, iterations=7325)
+    parser = base_parser(__doc__.split("\n\n")[0], num_envs=8, iterations=7325, presets=PRESETS)
     parser.add_argument("--n_steps", type=int, default=2048, help="rollout length per env (default: 2048)")
     parser.add_argument("--batch_size", type=int, default=128, help="mini-batch size (default: 128)")
     parser.add_argument("--epochs", type=int, default=3, help="passes over each rollout (default: 3)")

@@ -148,12 +148,13 @@ def test_a_bad_value_or_a_missing_option_is_one_error_line(capsys):
 
 def test_every_shared_library_recipe_option_with_a_default_shows_it():
     # --eval_envs, --max_minutes, --checkpoint_minutes and --device used to leave their defaults out of --help.
-    parser = base_parser("demo", num_envs=8, iterations=2)
+    from tocabi_torchrl.config import PRESETS
+
+    parser = base_parser("demo", num_envs=8, iterations=2, presets=PRESETS)
     for action in parser._actions:
         if action.dest not in ("help", "out", "resume"):  # --out is required, --resume a switch
             assert "(default:" in action.help, f"--{action.dest} does not say its default"
     # --preset once said only "task preset of tocabi_torchrl.rl.config": a user had to read the code for the names.
-    from tocabi_torchrl.config import PRESETS
-
-    preset_help = next(a.help for a in parser._actions if a.dest == "preset")
-    assert all(name in preset_help for name in PRESETS), preset_help
+    for parser in (parser, *(load_recipe(name).build_parser() for name in ("train_sb3", "train_rsl_rl", "train_skrl"))):
+        preset_help = next(a.help for a in parser._actions if a.dest == "preset")
+        assert all(name in preset_help for name in PRESETS), preset_help

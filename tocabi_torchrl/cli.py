@@ -63,8 +63,11 @@ class RecipeParser(argparse.ArgumentParser):
         return f"python {script} --help" if script and script.endswith(".py") else f"{self.prog} --help"
 
 
-def base_parser(description: str, num_envs: int, iterations: int) -> argparse.ArgumentParser:
-    """Options every library recipe takes: envs, device, iteration budget, seed, output folder, gait test size."""
+def base_parser(description: str, num_envs: int, iterations: int,
+                presets: Iterable[str] = ()) -> argparse.ArgumentParser:
+    """Options every library recipe takes: envs, device, iteration budget, seed, output folder, gait test size.
+    ``presets``: the preset names ``--preset`` lists (``tocabi_torchrl.config.PRESETS``, which this module, imported
+    by the config, cannot import itself)."""
     parser = RecipeParser(description=description)
     parser.add_argument("--num_envs", type=int, default=num_envs, help=f"robots simulated at once (default: {num_envs})")
     parser.add_argument("--device", default="auto", help="auto (CUDA if present, else cpu), cpu, cuda or cuda:N "
@@ -77,11 +80,9 @@ def base_parser(description: str, num_envs: int, iterations: int) -> argparse.Ar
     parser.add_argument("--checkpoint_minutes", type=float, default=0.0,
                         help="also save the policy every this many minutes of training (default: 0 = off)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the env and the library (default: 0)")
-    from .config import PRESETS  # torch-free, as this module
-
+    names = f", one of {', '.join(sorted(presets))}" if presets else ""
     parser.add_argument("--preset", default="default", metavar="NAME",
-                        help=f"task preset of tocabi_torchrl.config, one of {', '.join(sorted(PRESETS))} (default: "
-                             "default)")
+                        help=f"task preset of tocabi_torchrl.config{names} (default: default)")
     parser.add_argument("--out", required=True, help="output folder; must not exist yet (runs are never overwritten)")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out (from its resume.json) instead of starting a new one; the "
