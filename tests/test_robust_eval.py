@@ -381,6 +381,36 @@ def test_every_case_starts_from_the_ideal_robot_whatever_the_policy_trained_unde
     assert batch_config(capped).env.sim.solver_iterations is None
 
 
+def test_the_standard_test_runs_on_the_nominal_robot_whatever_the_policy_trained_under(tmp_path, monkeypatch):
+    # The standard test built the env of the checkpoint's own config: the shipped robust policy met its training's
+    # 16 kicks, draws and sensor noise, drifted 0.86 m and "did not walk yet"; at rest on the nominal robot, 0.10 m.
+    from tocabi_torchrl.adapters import evaluate as adapters_evaluate
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.evaluation import gait_test
+    from tocabi_torchrl.evaluation.record import nominal_config
+    from tocabi_torchrl.transforms import SensorNoise
+    from tocabi_torchrl.tree import replace_paths
+
+    robust = Path(SHIPPED_POLICY).with_name("tocabi_walk_robust.pt")
+    if not robust.is_file():
+        pytest.skip("the shipped robust policy is not present")
+    built = []
+    monkeypatch.setattr(gait_test, "evaluate_policy", lambda actor, cfg, out, **k: built.append(k["env"]) or {})
+    gait_test.evaluate_run(robust, num_envs=2, device="cpu", seconds=0.1, out_dir=tmp_path / "eval")
+    base = built[0].base_env
+    assert base.cfg.pushes.count == 0 and not base.cfg.dynamics.enabled and base.cfg.control.actuators.ideal
+    assert not base.cfg.task.diverse_starts and base.cfg.sim.start_pool == 0
+    assert not any(isinstance(t, SensorNoise) for t in built[0].transform)
+    capped = nominal_config(replace_paths(preset_config("robust"), {"env.sim.solver_iterations": 4}))
+    assert capped.env.sim.solver_iterations is None and not capped.transforms.sensor_noise.enabled
+    seen = []  # the library recipes' test too
+    monkeypatch.setattr(adapters_evaluate, "evaluate_policy", lambda actor, cfg, out, **k: seen.append(cfg) or {})
+    monkeypatch.setattr(adapters_evaluate, "gait_passes", lambda summary: False)
+    adapters_evaluate.evaluate_actions(lambda obs: obs[:, :13], tmp_path / "a", preset="robust", num_envs=2,
+                                       device="cpu")
+    assert seen[0].env.pushes.count == 0 and not seen[0].transforms.sensor_noise.enabled
+
+
 def test_saved_normaliser_statistics_follow_their_transform_when_sensor_noise_shifts_the_chain():
     from tocabi_torchrl import make_env
     from tocabi_torchrl.rl.checkpoint import align_transform_state

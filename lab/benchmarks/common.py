@@ -29,7 +29,7 @@ from tocabi_torchrl.rl import checkpoint, trainer
 from tocabi_torchrl.rl.config import PRESETS, parse_tree, preset_config
 from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.evaluation.gait_test import evaluate_policy
-from tocabi_torchrl.evaluation.record import fixed_command
+from tocabi_torchrl.evaluation.record import fixed_command, nominal_config
 from tocabi_torchrl.tree import get_path, leaf_types
 
 GIB = 2**30
@@ -340,7 +340,7 @@ def build_env(cfg, **kwargs):
 def gait_test(state: dict, path, command, out, num_envs: int, seconds: float, device: str, envs: dict) -> dict:
     """The evaluation summary of checkpoint ``state`` at a fixed command; ``envs`` caches one env per command across
     checkpoints (building one costs more than the test)."""
-    cfg, device = checkpoint.config_from_checkpoint(state, path), torch.device(device)
+    cfg, device = nominal_config(checkpoint.config_from_checkpoint(state, path)), torch.device(device)
     if command not in envs:
         envs[command] = trainer.build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
     env = envs[command]

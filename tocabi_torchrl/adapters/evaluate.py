@@ -9,6 +9,7 @@ from collections.abc import Callable
 import torch
 
 from ..evaluation.gait_test import GAIT_CRITERIA, evaluate_policy, gait_passes
+from ..evaluation.record import nominal_config
 from ..rl.trainer import resolve_device
 from ._build import task_config
 
@@ -27,7 +28,7 @@ def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str |
     ``summary.json`` (with ``"checkpoint": source`` when given: the file the policy came from) and ``knees.png`` to
     ``out_dir`` and returns the summary with ``"passes"`` added."""
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
-    cfg = task_config(preset, num_envs=num_envs, **(task or {}))
+    cfg = nominal_config(task_config(preset, num_envs=num_envs, **(task or {})))  # the robot, not training's draws
 
     def actor(td):
         return td.set("action", act(td.get("observation")))

@@ -159,7 +159,7 @@ def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "aut
     state = read_checkpoint(ckpt)
     policy_steps(kwargs.get("seconds", 8.0), policy_dt())
     policy = load_policy(ckpt, num_envs, resolve_device(device), command=kwargs.get("command", (0.5, 0.0)),
-                         state=state)
+                         state=state, nominal=True)
     if out_dir is None:
         out_dir = fresh_eval_dir(ckpt)
     return evaluate_policy(policy.actor, policy.cfg, out_dir, num_envs=num_envs, device=policy.env.device,

@@ -128,16 +128,36 @@ def policy_steps(seconds: float, dt: float) -> int:
     return steps
 
 
+def nominal_config(cfg: RunConfig) -> RunConfig:
+    """``cfg`` without the perturbations a training may add: ideal actuators, no kicks, no dynamics randomisation, no
+    sensor noise, starts at rest, no start pool, and the model's own solver (no training iteration cap). The gait
+    tests run on it (the robust test's cases then add their own draws): a policy is tested on the robot, not on its
+    training's draws."""
+    from ..control.config import ActuatorConfig
+    from ..envs.push_config import PushConfig
+    from ..sim.dynamics_config import DynamicsRandomization
+    from ..transforms.sensor_noise_config import SensorNoiseConfig
+
+    env = cfg.env
+    env = dataclasses.replace(
+        env, task=dataclasses.replace(env.task, start_joint_vel_std=0.0, start_base_vel_std=0.0),
+        control=dataclasses.replace(env.control, actuators=ActuatorConfig()), pushes=PushConfig(),
+        dynamics=DynamicsRandomization(), sim=dataclasses.replace(env.sim, start_pool=0, solver_iterations=None))
+    return dataclasses.replace(cfg, env=env, transforms=dataclasses.replace(cfg.transforms,
+                                                                            sensor_noise=SensorNoiseConfig()))
+
+
 def load_policy(path: str | os.PathLike, num_envs: int, device: torch.device,
                 command: tuple[float, float] = (0.5, 0.0),
                 edit_env: Callable | None = None, backend: str | None = None,
-                state: dict | None = None) -> LoadedPolicy:
+                state: dict | None = None, nominal: bool = False) -> LoadedPolicy:
     """Read ``path`` (a ``.pt`` file or a run folder) with the safe reader, build its env at a fixed ``command``
     with ``num_envs`` worlds on ``device`` and its agent, and apply the weights and transform state.
 
     ``edit_env``: a function from the checkpoint's env config (``TocabiWalkConfig``) to the one to build (e.g. a
     scene with an obstacle); ``backend``: replaces ``env.sim.backend``; ``state``: the file's contents if already
-    read with ``read_checkpoint``. Raises ``CheckpointError`` for a bad file.
+    read with ``read_checkpoint``; ``nominal``: the env of :func:`nominal_config` (the gait tests'), not the one the
+    policy trained in. Raises ``CheckpointError`` for a bad file.
     """
     from ..rl.checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint
     from ..rl.trainer import build_agent, build_env
@@ -145,6 +165,8 @@ def load_policy(path: str | os.PathLike, num_envs: int, device: torch.device,
     ckpt = checkpoint_file(path)
     state = read_checkpoint(ckpt) if state is None else state
     cfg = config_from_checkpoint(state, ckpt)
+    if nominal:
+        cfg = nominal_config(cfg)
     env_cfg = cfg.env
     if backend is not None:
         env_cfg = dataclasses.replace(env_cfg, sim=dataclasses.replace(env_cfg.sim, backend=backend))

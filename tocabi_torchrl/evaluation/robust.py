@@ -49,7 +49,7 @@ from ..rotations import quat_rotate_inverse, quat_to_rpy
 from ..transforms.normalize import freeze_running_statistics
 from ..value_rules import PUSH_KINDS
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
-from .record import GaitMetrics, fixed_command, policy_steps
+from .record import GaitMetrics, fixed_command, nominal_config, policy_steps
 
 __all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking", "RobustCase", "RobustTestConfig",
            "batch_config", "batch_env", "batch_key", "case_checks", "case_config", "case_env", "case_summary",
@@ -188,34 +188,24 @@ def randomization_applied(cfg: RunConfig) -> str:
 def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig = RobustTestConfig()) -> RunConfig:
     """The run config a case's env is built from: ``cfg`` (a policy's own config) with diverse starts, the case's
     command schedule, :attr:`RobustTestConfig.seed` and, for a pushed case, :func:`robust_case_config`."""
-    from ..control.config import ActuatorConfig
     from ..envs import CommandConfig
-    from ..envs.push_config import PushConfig
-    from ..sim.dynamics_config import DynamicsRandomization
-    from ..transforms.sensor_noise_config import SensorNoiseConfig
 
     spec = CASES[case] if isinstance(case, str) else case
-    env = cfg.env
+    # Every case starts from the ideal robot, whatever the policy trained under (record.nominal_config: no kicks,
+    # noise or draws of the training, fresh draws at every reset rather than a start pool, and the model's own solver,
+    # never a training's iteration cap): the randomised cases then add the test's own set.
+    env = nominal_config(cfg).env
     task = dataclasses.replace(env.task, start_joint_vel_std=float(test.start_joint_vel_std),
                                start_base_vel_std=float(test.start_base_vel_std))
     command = (fixed_command(spec.command) if spec.command is not None
                else dataclasses.replace(CommandConfig(), resample_every=int(spec.resample_every)))
-    # Every case starts from the ideal robot, whatever the policy trained under: the randomised cases then add the
-    # test's own set, and nominal/commands test the nominal robot without the training's kicks or noise.
-    control = dataclasses.replace(env.control, actuators=ActuatorConfig())
     # No truncation inside the case: a robot is followed for the whole case, reset or not (see run_case).
     from .gait_test import policy_dt
 
     steps = policy_steps(test.seconds, policy_dt())
     task = dataclasses.replace(task, max_episode_steps=max(int(task.max_episode_steps), steps + 1))
-    # Fresh draws at every reset, never a training start pool (env.sim.start_pool): the test's robots are its own.
-    # And the model's own solver, never a training's iteration cap (env.sim.solver_iterations): the test's physics
-    # is the robot's, whatever shortcut a run trained on.
-    sim = dataclasses.replace(env.sim, start_pool=0, solver_iterations=None)
-    env = dataclasses.replace(env, task=task, command=command, control=control, pushes=PushConfig(),
-                              dynamics=DynamicsRandomization(), sim=sim)
-    transforms = dataclasses.replace(cfg.transforms, sensor_noise=SensorNoiseConfig())
-    out = dataclasses.replace(cfg, seed=int(test.seed), env=env, transforms=transforms)
+    env = dataclasses.replace(env, task=task, command=command)
+    out = dataclasses.replace(nominal_config(cfg), seed=int(test.seed), env=env)
     return robust_case_config(out, spec.push_speed, test) if spec.randomized else out
 
 
