@@ -411,6 +411,18 @@ def test_the_standard_test_runs_on_the_nominal_robot_whatever_the_policy_trained
     assert seen[0].env.pushes.count == 0 and not seen[0].transforms.sensor_noise.enabled
 
 
+def test_the_env_cache_keeps_one_env_per_kind_of_policy():
+    # The key was the test's size and cases alone: a PD policy tested after a torque one ran in the torque env and
+    # fell in every case.
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, batch_key
+
+    test = RobustTestConfig(num_envs=2, seconds=1.0)
+    torque, pd = preset_config("torque"), preset_config("default")
+    assert batch_key(test, torque) != batch_key(test, pd)
+    assert batch_key(test, torque) == batch_key(test, preset_config("torque", **{"ppo.lr": 1e-3}))  # same env
+
+
 def test_saved_normaliser_statistics_follow_their_transform_when_sensor_noise_shifts_the_chain():
     from tocabi_torchrl import make_env
     from tocabi_torchrl.rl.checkpoint import align_transform_state

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import json
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -46,6 +47,7 @@ from ..atomic import atomic_write_text
 from ..config import RunConfig
 from ..envs.cycle_velocity import gait_cycle_steps, heading_velocity
 from ..rotations import quat_rotate_inverse, quat_to_rpy
+from ..tree import to_dict
 from ..transforms.normalize import freeze_running_statistics
 from ..value_rules import PUSH_KINDS
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
@@ -274,9 +276,14 @@ def batch_config(cfg: RunConfig, test: RobustTestConfig = RobustTestConfig()) ->
     return robust_case_config(out, fastest, test) if fastest > 0 else out
 
 
-def batch_key(test: RobustTestConfig) -> tuple:
-    """The key :func:`evaluate_robust` keeps a test's :func:`batch_env` under in its ``envs`` cache."""
-    return ("batch", tuple(test.cases), test.num_envs, test.push_kind)
+def batch_key(test: RobustTestConfig, cfg: RunConfig) -> tuple:
+    """The key :func:`evaluate_robust` keeps a test's :func:`batch_env` under in its ``envs`` cache: the test's
+    size and cases and the env and transform sections of the policy's :func:`batch_config`, so that a policy of
+    another control mode, observation or normalisation never meets an env built for another (a PD policy run in a
+    torque env once fell in every case)."""
+    built = batch_config(cfg, test)
+    sections = json.dumps({"env": to_dict(built.env), "transforms": to_dict(built.transforms)}, sort_keys=True)
+    return ("batch", tuple(test.cases), test.num_envs, test.push_kind, sections)
 
 
 def case_worlds(test: RobustTestConfig, device: torch.device | str = "cpu") -> dict[str, slice]:
@@ -558,7 +565,7 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
     if source is not None:
         report["checkpoint"] = str(source)
     per_case = {}
-    key = batch_key(test)
+    key = batch_key(test, cfg)
     if key not in envs:
         envs[key] = batch_env(cfg, device, test)
     env = envs[key]
@@ -598,7 +605,7 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
     cfg = config_from_checkpoint(state, path)
     test.validate(policy_dt())
     envs = {} if envs is None else envs
-    key = batch_key(test)
+    key = batch_key(test, cfg)
     if key not in envs:  # the agent's sizes come from the env
         envs[key] = batch_env(cfg, device, test)
     env = envs[key]
