@@ -1,4 +1,5 @@
-"""The robust gait test of several policies side by side (by default the shipped ones), one table.
+"""The robust gait test of several policies side by side (by default the three shipped policies trained on the
+nominal robot, ``SHIPPED``; add the robust one with ``--policies``), one table.
 
     python -m lab.benchmarks.robust_policies --out docs/benchmarks/robust --overwrite
     python -m lab.benchmarks.robust_policies --policies runs/robust/checkpoints/best.pt --num_envs 1024
@@ -10,7 +11,9 @@ policies of one file name, e.g. two runs' ``latest.pt``, are told apart by their
 written again after each policy, so a call stopped partway keeps the policies it finished (marked partial). An
 ``--out`` that holds a table already is refused unless ``--overwrite``.
 ``--cases nominal commands`` runs those cases alone (the ``diverse`` verdict of ``time_to_walk``); a policy then
-passes those cases, not the robust test.
+passes those cases, not the robust test. A case meets the full test's robots only when every case before it in the
+test's order runs too (``nominal commands`` do); another subset (``--cases nominal robust_1.0``) draws other robots
+of the same distribution, a screen rather than the verdict.
 """
 
 from __future__ import annotations

@@ -146,8 +146,10 @@ class RobustTestConfig:
         if unknown or not self.cases:
             raise ValueError(f"unknown robust-test case(s) {unknown or '(none given)'}; choose from {list(CASES)}")
         if len(set(self.cases)) != len(self.cases) or list(self.cases) != [c for c in CASES if c in self.cases]:
-            # Each case's robots are a block of world indices, whose draws are hashed by index: in the test's order
-            # and once each, a case meets the same robots whichever others run beside it.
+            # Each case's robots are a block of world indices, whose draws are hashed by index (and the commands
+            # drawn from one generator over all worlds): in the test's order and once each, a case meets the full
+            # test's robots when every case before it runs too (nominal, commands: the diverse test); alone, or
+            # after a gap, it meets other robots of the same distribution.
             raise ValueError(f"robust-test cases {list(self.cases)} must be distinct and in the test's order "
                              f"{list(CASES)}")
 
@@ -625,7 +627,8 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
     from ..rl.checkpoint import checkpoint_file, read_checkpoint
     from .gait_test import policy_dt
 
-    # In the test's order, each once (RobustTestConfig.validate): a case meets the same robots in any subset.
+    # In the test's order, each once (RobustTestConfig.validate): a case meets the full test's robots when the cases
+    # before it run too.
     order = list(CASES)
     cases = sorted(dict.fromkeys(cases or CASES), key=lambda c: order.index(c) if c in order else len(order))
     test = RobustTestConfig(num_envs=num_envs, seconds=seconds, cases=tuple(cases))
