@@ -202,6 +202,16 @@ def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
             print(f"{ckpt.stem}: {found} lacks the case(s) {', '.join(missing)} of the {args.test} test; left out",
                   flush=True)
             return
+        # A report of another size or length (a quick screen) is no verdict of the test this record holds.
+        want = RobustTestConfig(num_envs=args.num_envs or ROBUST_ENVS, seconds=args.seconds)
+        expected = {"num_envs": want.num_envs, "seconds": want.seconds, "push_count": want.push_count,
+                    "push_window_s": list(want.push_window), "push_kind": want.push_kind}
+        settings = report.get("settings") or {}
+        differ = [f"{k} {settings.get(k)!r} (the test's {v!r})" for k, v in expected.items() if settings.get(k) != v]
+        if differ:
+            print(f"{ckpt.stem}: {found} was tested with {', '.join(differ)}; left out (pass --num_envs/--seconds "
+                  "of that report to record it as such)", flush=True)
+            return
         device = report.get("tested_on", "?")
     else:
         test = RobustTestConfig(num_envs=args.num_envs or ROBUST_ENVS, seconds=args.seconds,

@@ -19,6 +19,10 @@ from lab.benchmarks import common, time_to_walk
 from tocabi_torchrl.config import wall_seconds
 
 
+#: A robust report's settings as the full robust gait test writes them (evaluation/robust.py).
+FULL_TEST = {"num_envs": 1024, "seconds": 8.0, "push_count": 3, "push_window_s": [2.0, 7.0], "push_kind": "velocity"}
+
+
 def _time_to_walk(cwd, *args, code=0, nproc=0) -> str:
     """``python -m lab.benchmarks.time_to_walk ARGS`` in ``cwd`` (under torchrun with ``nproc`` ranks): its output."""
     launch = ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc)] if nproc else []
@@ -94,8 +98,7 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
     for stem, its_cases in ((walls[0], cases), (later, toppled)):
         (reports / stem).mkdir(parents=True)
         (reports / stem / "robust.json").write_text(json.dumps(
-            {"test": "robust", "passes": True, "tested_on": "NVIDIA H200", "settings": {"num_envs": 1024},
-             "cases": its_cases}))
+            {"test": "robust", "passes": True, "tested_on": "NVIDIA H200", "settings": FULL_TEST, "cases": its_cases}))
     # The second mark's verdict came from a second robust_policies call, into a folder of its own.
     (tmp_path / "verdict2").mkdir()
     (reports / later).rename(tmp_path / "verdict2" / later)
@@ -119,11 +122,17 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
     # A report of the two unperturbed cases alone cannot decide the robust test: left out, not a "no".
     partial = tmp_path / "verdict_partial" / walls[0]
     partial.mkdir(parents=True)
-    (partial / "robust.json").write_text(json.dumps({"test": "robust", "tested_on": "NVIDIA H200", "settings": {},
+    (partial / "robust.json").write_text(json.dumps({"test": "robust", "tested_on": "NVIDIA H200",
+                                                     "settings": FULL_TEST,
                                                      "cases": {k: cases[k] for k in ("nominal", "commands")}}))
     (folder / "evals_robust.json").rename(tmp_path / "evals_robust.json")
     text = run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(partial.parent))
     assert "lacks the case(s) robust_0.5, robust_1.0 of the robust test; left out" in text
+    # Nor can a quick screen of fewer robots: it was once recorded as the mark's verdict.
+    (partial / "robust.json").write_text(json.dumps({"test": "robust", "tested_on": "NVIDIA H200",
+                                                     "settings": {**FULL_TEST, "num_envs": 64}, "cases": cases}))
+    text = run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(partial.parent))
+    assert "was tested with num_envs 64 (the test's 1024); left out" in text
     assert walls[0] not in json.loads((folder / "evals_robust.json").read_text())["evaluations"]
     (tmp_path / "evals_robust.json").replace(folder / "evals_robust.json")
     (folder / "evals_diverse.json").unlink()  # tested here: only the two unperturbed cases run
