@@ -210,7 +210,14 @@ def test_training_ends_with_the_robust_test_when_asked(tmp_path, capsys):
     out = capsys.readouterr().out
     # A short test says that its thresholds are the 8 s test's, and that its kicks (2-7 s) never came.
     assert ("robust gait test (0.1 s, 2 robots per case): does not walk yet (the thresholds are set for the 8 s "
-            "test); no kick falls within 0.1 s (they come at 2-7 s)") in out
+            "test); no kick falls within 0.1 s (they come at 2-7 s); 2 robots per case, the test asks for 1,024") in out
+    # A test that ends inside the kick window, too (robust_passes once said True for one that never kicked).
+    from tocabi_torchrl.evaluation.robust import robust_report_text
+
+    report = _strict((tmp_path / "run" / "eval" / "robust.json").read_text())
+    report["settings"].update(seconds=4.0, num_envs=1024)
+    assert robust_report_text(report).splitlines()[0].endswith(
+        "(the thresholds are set for the 8 s test); the kicks come at 2-7 s, so some robots met fewer than 3 in 4 s")
     report = _strict((tmp_path / "run" / "eval" / "robust.json").read_text())
     assert list(report["cases"]) == ["nominal", "commands", "robust_0.5", "robust_1.0"]
     assert report["checkpoint"] == str(tmp_path / "run" / "checkpoints" / "latest.pt")  # which policy it tested
