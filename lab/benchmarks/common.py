@@ -29,6 +29,7 @@ from tocabi_torchrl.rl import checkpoint, trainer
 from tocabi_torchrl.rl.config import PRESETS, parse_tree, preset_config
 from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.evaluation.gait_test import evaluate_policy
+from tocabi_torchrl.evaluation.output import json_safe
 from tocabi_torchrl.evaluation.record import fixed_command, nominal_config
 from tocabi_torchrl.tree import get_path, leaf_types
 
@@ -377,7 +378,9 @@ def page(title: str, data: dict, body: str) -> str:
 
 
 def write_json(path: str | Path, data: dict) -> Path:
-    return atomic_write_text(Path(path), json.dumps(data, indent=2) + "\n")
+    """``data`` as strict JSON (a NaN or infinite number as ``null``: bare ``NaN`` tokens are not JSON, and a
+    case shorter than a gait cycle has no tracking error), written atomically."""
+    return atomic_write_text(Path(path), json.dumps(json_safe(data), indent=2, allow_nan=False) + "\n")
 
 
 def report_dir(out: str | Path, measured_on: str | None = None) -> Path:

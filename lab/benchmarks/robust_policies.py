@@ -19,6 +19,7 @@ of the same distribution, a screen rather than the verdict.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from pathlib import Path
 
@@ -41,9 +42,11 @@ LEGACY_NOTE = ("tracking: the mean instantaneous speed error, gait sway included
 
 
 def _value(summary: dict, path: str):
+    """The value at ``path`` (dotted) of a case summary; None where it has none (missing, NaN: the table shows "-",
+    the JSON null)."""
     for part in path.split("."):
         summary = summary.get(part) if isinstance(summary, dict) else None
-    return summary
+    return None if isinstance(summary, float) and not math.isfinite(summary) else summary
 
 
 def labels(policies: list[Path]) -> list[str]:

@@ -322,13 +322,16 @@ def test_robust_policies_table_names_each_case_and_its_verdict(tmp_path):
         pytest.skip("shipped policy not present")
     robust_policies.main(["--policies", str(policy), "--num_envs", "2", "--seconds", "0.1", "--device", "cpu",
                           "--out", str(tmp_path)])
-    data = json.loads((tmp_path / "robust_policies.json").read_text())
+    # Strict JSON: a 0.1 s case has no tracking error (NaN), once written as a bare NaN token and shown as "nan".
+    data = json.loads((tmp_path / "robust_policies.json").read_text(), parse_constant=lambda name: 1 / 0)
     (row,) = data["results"]
+    assert row["cases"]["nominal"]["tracking_error_mps.mean"] is None
     assert row["policy"] == "tocabi_walk_ppo" and set(row["cases"]) == {"nominal", "commands", "robust_0.5",
                                                                          "robust_1.0"}
     assert row["passes"] is False  # 0.1 s cannot cover the 2.6 m the nominal case asks for
     page = (tmp_path / "robust_policies.md").read_text()
     assert "| tocabi_walk_ppo | nominal |" in page and "✗" in page and "python -m lab.benchmarks.robust_policies" in page
+    assert "nan" not in page
     assert (tmp_path / "tocabi_walk_ppo" / "robust.json").is_file()
     assert "does not pass the robust test; " in page and "for its four cases" in page
 
