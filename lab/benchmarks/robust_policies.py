@@ -49,6 +49,14 @@ def _value(summary: dict, path: str):
     return None if isinstance(summary, float) and not math.isfinite(summary) else summary
 
 
+def check_policy(path: str | Path) -> None:
+    """Read ``path`` as a training checkpoint (an exported policy or a damaged file raises ``CheckpointError``), so
+    that a bad file is named before any test runs."""
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint, verified_checkpoint_file
+
+    read_checkpoint(verified_checkpoint_file(path))
+
+
 def labels(policies: list[Path]) -> list[str]:
     """One name per policy for its report folder and table rows: the file's stem, or, where two policies share it,
     the run folder's name before it (``runA_latest``), then a number if they still do."""
@@ -173,6 +181,18 @@ def main(argv=None) -> None:
         parser.error(f"--policies: no such file or run folder: {', '.join(missing)}")
     if args.num_envs < 1 or not args.seconds > 0:
         parser.error(f"--num_envs must be >= 1 and --seconds > 0, got {args.num_envs} and {args.seconds}")
+    from tocabi_torchrl.evaluation.gait_test import policy_dt
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig
+    from tocabi_torchrl.rl.checkpoint import CheckpointError
+
+    # Every setting and file before the first test: a bad third policy once ended the call after two had run.
+    try:
+        RobustTestConfig(num_envs=args.num_envs, seconds=args.seconds,
+                         cases=tuple(c for c in CASES if c in (args.cases or CASES))).validate(policy_dt())
+        for policy in args.policies:
+            check_policy(policy)
+    except (ValueError, CheckpointError) as err:
+        parser.error(str(err))
     common.require_cuda(parser, args.device, "pass --device cpu")
     out = common.report_dir(args.out, args.device)
     if (out / f"{NAME}.json").exists() and not args.overwrite:

@@ -334,6 +334,12 @@ def test_robust_policies_table_names_each_case_and_its_verdict(tmp_path):
     assert "nan" not in page
     assert (tmp_path / "tocabi_walk_ppo" / "robust.json").is_file()
     assert "does not pass the robust test; " in page and "for its four cases" in page
+    # A file that is no checkpoint is named before any policy runs (it once ended the call after those before it).
+    (tmp_path / "notes.pt").write_text("not a checkpoint")
+    with pytest.raises(SystemExit) as stop:
+        robust_policies.main(["--policies", str(policy), str(tmp_path / "notes.pt"), "--device", "cpu", "--out",
+                              str(tmp_path / "again")])
+    assert stop.value.code == 2 and not (tmp_path / "again").exists()
 
 
 def test_robust_policies_keeps_the_table_of_the_policies_it_finished(tmp_path, monkeypatch):
@@ -352,6 +358,7 @@ def test_robust_policies_keeps_the_table_of_the_policies_it_finished(tmp_path, m
         return {"passes": True, "settings": {"push_kind": "velocity"}, "cases": {name: case for name in cases}}
 
     monkeypatch.setattr(robust, "evaluate_robust_run", run)
+    monkeypatch.setattr(robust_policies, "check_policy", lambda path: None)  # stand-in files, not checkpoints
     for name in ("first", "second", "third"):
         (tmp_path / f"{name}.pt").touch()
     argv = ["--cases", "nominal", "--device", "cpu", "--out", str(tmp_path)]
@@ -383,6 +390,7 @@ def test_robust_policies_tells_same_named_files_apart_and_never_replaces_a_table
         return {"passes": True, "settings": {"push_kind": "velocity"}, "cases": {name: case for name in cases}}
 
     monkeypatch.setattr(robust, "evaluate_robust_run", run)
+    monkeypatch.setattr(robust_policies, "check_policy", lambda path: None)  # stand-in files, not checkpoints
     files = []
     for run_name in ("runA", "runB"):
         (tmp_path / run_name / "checkpoints").mkdir(parents=True)
@@ -400,7 +408,9 @@ def test_robust_policies_tells_same_named_files_apart_and_never_replaces_a_table
     assert len(set(robust_policies.labels(taken))) == 3  # a numbered label never meets a file of that name
     for bad, said in ((["--policies", *map(str, files), *argv], "holds a table already"),
                       (["--policies", str(tmp_path / "nope.pt"), *argv], "no such file or run folder"),
-                      (["--policies", str(files[0]), "--num_envs", "0", *argv], "--num_envs must be >= 1")):
+                      (["--policies", str(files[0]), "--num_envs", "0", *argv], "--num_envs must be >= 1"),
+                      # Once a traceback, and only on reaching that policy, after the ones before it had run:
+                      (["--policies", str(files[0]), "--seconds", "inf", *argv], "must be a finite number of seconds")):
         with pytest.raises(SystemExit):
             robust_policies.main(bad)
         assert said in capsys.readouterr().err
@@ -430,6 +440,7 @@ def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, mon
                 "cases": {name: {**case, **good} for name in cases}}
 
     monkeypatch.setattr(robust, "evaluate_robust_run", run)
+    monkeypatch.setattr(robust_policies, "check_policy", lambda path: None)  # stand-in files, not checkpoints
     (tmp_path / "p.pt").touch()
     robust_policies.main(["--policies", str(tmp_path / "p.pt"), "--cases", "nominal", "commands", "--device", "cpu",
                           "--out", str(tmp_path)])
