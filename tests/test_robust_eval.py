@@ -418,6 +418,17 @@ def test_the_standard_test_runs_on_the_nominal_robot_whatever_the_policy_trained
     assert seen[0].env.pushes.count == 0 and not seen[0].transforms.sensor_noise.enabled
 
 
+def test_bad_case_lists_are_named():
+    # A single name as a string was read as its letters: "unknown robust-test case(s) ['n', 'o', ...]".
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig
+
+    for cases, message in (("nominal", "cases must be a tuple of case names, e.g. \\('nominal',\\)"),
+                           (("robust_1.0", "nominal"), "must be distinct and in the test's order"),
+                           (("nominl",), r"unknown robust-test case\(s\) \['nominl'\]")):
+        with pytest.raises(ValueError, match=message):
+            RobustTestConfig(cases=cases).validate(0.004)
+
+
 def test_the_env_cache_keeps_one_env_per_kind_of_policy():
     # The key was the test's size and cases alone: a PD policy tested after a torque one ran in the torque env and
     # fell in every case.

@@ -142,6 +142,9 @@ class RobustTestConfig:
         policy_steps(self.seconds, dt)
         if self.push_kind not in PUSH_KINDS:
             raise ValueError(f"push_kind must be one of {PUSH_KINDS} (the test's is velocity), got {self.push_kind!r}")
+        if isinstance(self.cases, str):  # iterated, one name would be read as its letters
+            raise ValueError(f"cases must be a tuple of case names, e.g. ({self.cases!r},), got the string "
+                             f"{self.cases!r}")
         unknown = [c for c in self.cases if c not in CASES]
         if unknown or not self.cases:
             raise ValueError(f"unknown robust-test case(s) {unknown or '(none given)'}; choose from {list(CASES)}")
