@@ -401,3 +401,19 @@ def test_an_action_that_requires_grad_steps_the_env_and_the_next_step_too():
         assert torch.equal(weight.grad, torch.full((n, 13), 0.5))
     finally:
         env.close()
+
+
+def test_env_options_of_the_env_config_are_the_config_the_adapter_reports():
+    # env_options={"max_episode_steps": 3} ran 3-step episodes while the adapter (rsl_rl's max_episode_length, its
+    # logged env.cfg, gymnasium's task_config) reported the preset's 8,000; a key the adapter sets itself crashed
+    # from deep inside (num_envs: "got multiple values"; track_episode_return False: at the first step).
+    from tocabi_torchrl.adapters._build import build_env
+
+    env, cfg = build_env(2, "cpu", env_options={"max_episode_steps": 3, "control_mode": "torque"})
+    assert cfg.env.task.max_episode_steps == env.base_env.cfg.task.max_episode_steps == 3
+    assert cfg.env.control.mode == env.base_env.cfg.control.mode == "torque"
+    for kwargs, message in ((dict(max_episode_steps=5, env_options={"max_episode_steps": 3}), "given twice"),
+                            (dict(env_options={"num_envs": 4}), "pass num_envs as the adapter's own argument"),
+                            (dict(env_options={"track_episode_return": False}), "leave it out")):
+        with pytest.raises(ValueError, match=message):
+            build_env(2, "cpu", **kwargs)
