@@ -95,6 +95,8 @@ def test_truncation_at_the_time_limit_resets_in_the_same_step(envs):
     for _ in range(2):
         obs, _, terminated, truncated, infos = envs.step(_zero(envs))
         assert not truncated.any() and not infos["_final_obs"].any() and not infos["_episode"].any()
+        # 0 in rows whose episode goes on, as RecordEpisodeStatistics has it (the running return once sat there).
+        assert not infos["episode"]["r"].any() and not infos["episode"]["l"].any()
     obs, _, terminated, truncated, infos = envs.step(_zero(envs))
     assert truncated.all() and not terminated.any()
     assert infos["_final_obs"].all() and infos["_episode"].all()

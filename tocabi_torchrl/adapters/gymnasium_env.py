@@ -107,7 +107,11 @@ class TocabiVectorEnv(VectorEnv):
             "_final_obs": done,
         }
         if self.episode_statistics:
-            infos["episode"] = {"r": self._out(r.episode_return), "l": self._out(r.episode_length)}
+            # 0 where no episode ended, as RecordEpisodeStatistics has it (the running values once sat there, and a
+            # mean over the rows logged partial returns). The key is there every step: leaving it out of steps with
+            # no ended episode would read the device.
+            infos["episode"] = {"r": self._out(torch.where(r.done, r.episode_return, 0.0)),
+                                "l": self._out(torch.where(r.done, r.episode_length, 0))}
             infos["_episode"] = done
         return infos
 
