@@ -88,6 +88,16 @@ def test_reset_with_a_seed_is_deterministic(envs):
     b, _ = envs.reset(seed=7)
     step_b = envs.step(_zero(envs))[0]
     assert data_equivalence(a, b) and data_equivalence(step_a, step_b)
+    # gymnasium's generator is seeded too (check_reset_seed_determinism asks it), and a bad seed is named by the
+    # env's own check (int() once took 1.9, True and "1" as 1; [] raised an IndexError).
+    from gymnasium.utils.env_checker import check_reset_seed_determinism
+
+    envs.reset(seed=np.int64(3))
+    assert envs.np_random_seed == 3
+    check_reset_seed_determinism(envs)
+    for bad in (1.9, True, "1", []):
+        with pytest.raises(ValueError, match="seed"):
+            envs.reset(seed=bad)
 
 
 def test_truncation_at_the_time_limit_resets_in_the_same_step(envs):

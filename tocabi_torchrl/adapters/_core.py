@@ -111,7 +111,7 @@ class TensorStepper:
         if seed is not None:
             # TocabiWalk restarts its episode numbering on set_seed, so reset(seed=s) repeats the same episodes, as
             # gymnasium expects of a seeded reset.
-            self.env.set_seed(int(seed))
+            self.env.set_seed(seed)  # the env's own check names a bool, a float or text (int() would take 1.9 as 1)
         self._td = self.env.reset()
         return self._td.get(self.obs_key)
 

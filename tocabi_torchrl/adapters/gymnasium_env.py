@@ -84,8 +84,12 @@ class TocabiVectorEnv(VectorEnv):
         if options:
             raise ValueError(f"TocabiVectorEnv.reset takes no options, got {sorted(options)}")
         if isinstance(seed, (list, tuple)):
+            if not seed:
+                raise ValueError("TocabiVectorEnv.reset: seed is an empty list; pass an int (or a list of them)")
             seed = seed[0]
         obs = self.stepper.reset(seed)
+        if seed is not None:  # gymnasium's own generator (np_random) too, as VectorEnv.reset(seed=...) seeds it
+            super().reset(seed=int(seed))  # checked by the env already: an integer, numpy's too
         return self._out(obs), {}
 
     def step(self, actions):
