@@ -417,3 +417,20 @@ def test_env_options_of_the_env_config_are_the_config_the_adapter_reports():
                             (dict(env_options={"track_episode_return": False}), "leave it out")):
         with pytest.raises(ValueError, match=message):
             build_env(2, "cpu", **kwargs)
+
+
+def test_a_star_import_needs_no_optional_library_and_a_numpy_action_is_named():
+    # __all__ listed the rsl_rl, SB3 and skrl adapters: the star import failed where those libraries are missing.
+    namespace: dict = {}
+    exec("from tocabi_torchrl.adapters import *", namespace)
+    assert "TocabiVectorEnv" in namespace and "TocabiRslRlEnv" not in namespace
+    # rsl_rl's and skrl's steppers take tensors; an array ended in "'numpy.ndarray' object has no attribute 'detach'".
+    import numpy as np
+
+    from tocabi_torchrl.adapters._build import build_env
+    from tocabi_torchrl.adapters._core import TensorStepper
+
+    stepper = TensorStepper(build_env(2, "cpu")[0], name="test")
+    stepper.reset()
+    with pytest.raises(TypeError, match=r"actions must be a torch.Tensor of shape \(2, 13\), got ndarray"):
+        stepper.step(np.zeros((2, 13), np.float32))

@@ -283,3 +283,9 @@ def test_resume_refuses_a_crafted_state_file_without_running_it(tmp_path, kind):
     assert message.startswith("error: ") and str(state) in message and "\n" not in message
     assert not marker.exists()
     assert read_resume(out)["calls"] == 1 and not (out / "policy_call1.pt").exists()  # nothing ran or was written
+
+
+def test_a_switch_that_is_not_a_bool_is_refused():
+    # bool("no") is True: reward_terms_in_infos="no" switched the per-env dicts on.
+    with pytest.raises(ValueError, match="reward_terms_in_infos must be True or False, got 'no'"):
+        TocabiSB3VecEnv(2, "cpu", reward_terms_in_infos="no")

@@ -24,13 +24,13 @@ import gymnasium as _gymnasium
 from ._build import build_env, task_config
 from ._versions import SUPPORTED, LibraryVersionError
 
+# What a star import takes: the core (gymnasium is a core dependency). The rsl_rl, SB3 and skrl adapters import
+# their optional library, so they are imported by name only (``from tocabi_torchrl.adapters import TocabiRslRlEnv``):
+# a star import listing them failed on an install without those libraries.
 __all__ = [
     "ENV_ID",
     "SUPPORTED",
     "LibraryVersionError",
-    "TocabiRslRlEnv",
-    "TocabiSB3VecEnv",
-    "TocabiSkrlEnv",
     "TocabiVectorEnv",
     "build_env",
     "task_config",

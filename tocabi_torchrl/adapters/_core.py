@@ -118,6 +118,9 @@ class TensorStepper:
     def check_action(self, action: torch.Tensor) -> torch.Tensor:
         """``action`` if it is (num_envs, action_dim), else a ``ValueError`` naming both shapes (every adapter's
         step goes through this, so each library's user gets the same message)."""
+        if not isinstance(action, torch.Tensor):  # rsl_rl's and skrl's loops pass tensors; a numpy array lacks .detach
+            raise TypeError(f"actions must be a torch.Tensor of shape ({self.num_envs}, {self.action_dim}), got "
+                            f"{type(action).__name__}; wrap an array with torch.as_tensor(actions, device=env.device)")
         if tuple(action.shape) != (self.num_envs, self.action_dim):
             raise ValueError(f"actions must have shape ({self.num_envs}, {self.action_dim}) (num_envs, action_dim), "
                              f"got {tuple(action.shape)}")
