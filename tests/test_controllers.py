@@ -95,3 +95,25 @@ def test_the_config_names_a_law_per_joint_group():
     assert type(env.leg_controller) is DirectTorque
     with pytest.raises(ValueError, match="unknown env.control.upper_body 'impedance'; choose one of"):
         TocabiWalkConfig(control=ControlConfig(upper_body="impedance")).validate()
+
+
+def test_an_env_other_than_its_config_is_refused_by_train(tmp_path):
+    # train(cfg, env=...) saved cfg whatever the env was: a torque policy with running statistics was saved as a PD
+    # policy with fixed ones, and every evaluation, play and export rebuilt the wrong env from it.
+    from tocabi_torchrl.envs import TocabiWalk
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.trainer import build_env, train
+
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
+                        "ppo.minibatch_size": 16}, total_env_steps=32, run_dir=str(tmp_path), name="x",
+                        progress_bar=False, eval_at_end=False)
+    cpu = torch.device("cpu")
+    for env, message in ((build_env(cfg, cpu, for_training=True, control_mode="torque"),
+                          r"env.control.mode: 'torque' in the env, 'pd_reference' in cfg"),
+                         (build_env(cfg, cpu, for_training=True, normalization="running"),
+                          "normalises with running statistics, cfg.transforms.normalization is 'fixed'"),
+                         (build_env(cfg, cpu, num_envs=2, for_training=True), "has 2 worlds, cfg.env.num_envs 4"),
+                         (TocabiWalk(num_envs=4, device="cpu"), "has no 'observation'")):
+        with pytest.raises(ValueError, match=message):
+            train(cfg, env=env)
+    assert not (tmp_path / "x").exists()

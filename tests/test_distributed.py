@@ -283,18 +283,20 @@ def _train_runs(info: DistInfo, run_dir: str, runs) -> list[dict]:
 
     results = []
     for options in runs:
+        # A new run with running statistics, so that their merge is part of it (the presets use the reference's fixed
+        # ones); a resumed run with the statistics it was saved with.
+        normalization = "fixed" if "resume" in options else "running"
         cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
-                            "ppo.minibatch_size": 4,
+                            "ppo.minibatch_size": 4, "transforms.normalization": normalization,
                             "total_env_steps": info.world_size * 2 * 16, "name": "dp", **options}, run_dir=run_dir,
                             checkpoint_every=1, progress_bar=False, eval_at_end=False)
-        # Running statistics, so that their merge is part of the run (the presets use the reference's fixed ones).
         env = build_env(dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info)), torch.device("cpu"),
-                        for_training=True, normalization="running")
+                        for_training=True)
         result = train(cfg, env=env, dist_info=info)
-        norm = next(t for t in env.transform if isinstance(t, RunningNormalization))
+        norm = next((t for t in env.transform if isinstance(t, RunningNormalization)), None)
         params = _flat([*result.agent.actor.parameters(), *result.agent.critic.parameters()])
         results.append({"iterations": result.iterations, "env_steps": result.env_steps, "params": params,
-                        "norm": (norm.count.clone(), norm.mean.clone())})
+                        "norm": None if norm is None else (norm.count.clone(), norm.mean.clone())})
     return results
 
 
@@ -323,7 +325,8 @@ def test_two_ranks_train_end_to_end_and_resume_on_one(two_ranks):
 
     # The same run goes on with one rank: the 64 steps done are 8 of its 8-step iterations, so its schedules go on
     # from there, while its files and metrics rows go on from its own iteration 4.
-    result = _one_rank_run(tmp_path, total_env_steps=80, name="dp", resume=str(run))
+    result = _one_rank_run(tmp_path, total_env_steps=80, name="dp", resume=str(run),
+                           **{"transforms.normalization": "running"})  # as "dp" was trained (and saved)
     assert result.iterations == 6 and result.env_steps == 80
     assert [int(float(r["iteration"])) for r in read_metrics(run)] == [1, 2, 3, 4, 5, 6]
 

@@ -117,9 +117,10 @@ def run_faults(args) -> tuple[dict, list[dict]]:
     cfg = common.config(args.preset, **{"env.num_envs": args.num_envs, "ppo.minibatch_size": batch},
                         device=args.device, run_dir=args.run_dir, name="soak",
                         eval_at_end=False, progress_bar=False, total_env_steps=10**12, **{"ppo.cuda_graph": "off"},
-                        max_minutes=args.minutes, checkpoint_every=10**6)
+                        max_minutes=args.minutes, checkpoint_every=10**6,
+                        **{"transforms.normalization": args.normalization})
     shutil.rmtree(Path(cfg.run_dir) / cfg.name, ignore_errors=True)  # the soak's own scratch run
-    env = common.build_env(cfg, for_training=True, normalization=args.normalization)
+    env = common.build_env(cfg, for_training=True)
     env.append_transform(monitor := SoakMonitor(cfg.ppo.steps_per_env, env.device))
 
     def wrap(actor):

@@ -30,6 +30,7 @@ from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 from .checkpoint import apply_checkpoint, save_checkpoint
 from ..config import MAX_SEED, RunConfig, wall_tag
 from ..envs.config import TocabiWalkConfig
+from ..tree import get_path, leaf_paths
 from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, all_reduce_mean, all_reduce_sum,
                           broadcast_module, from_environment, init_distributed, rank_seed)
 from .interrupt import StopFlag, stop_on_signals
@@ -93,6 +94,34 @@ def env_config(cfg: RunConfig, for_training: bool = False) -> TocabiWalkConfig:
     if for_training and cfg.ppo.torque_assist > 0 and not env.control.torque_assist:
         env = dataclasses.replace(env, control=dataclasses.replace(env.control, torque_assist=True))
     return env
+
+
+def check_given_env(cfg: RunConfig, env: EnvBase) -> None:
+    """``ValueError`` unless an env given to :func:`train` is the one ``cfg`` describes: the run saves ``cfg``, and
+    every evaluation, play, export and resume rebuilds the env from it, so an env built with other settings would
+    train a policy its files describe wrongly (a torque policy saved as a PD one, running statistics dropped)."""
+    if "observation" not in env.observation_spec.keys():
+        raise ValueError("the env given to train() has no 'observation' (the policy input); build it with "
+                         "build_env(cfg, device, for_training=True), or make_env with the default transforms")
+    if env.batch_size.numel() != cfg.env.num_envs:
+        raise ValueError(f"the env given to train() has {env.batch_size.numel()} worlds, cfg.env.num_envs "
+                         f"{cfg.env.num_envs}: set env.num_envs in cfg, or build the env with build_env(cfg, ...)")
+    base = getattr(env, "base_env", env)
+    want = env_config(cfg, for_training=True)
+    if isinstance(getattr(base, "cfg", None), TocabiWalkConfig):
+        differ = [f"env.{path}: {get_path(base.cfg, path)!r} in the env, {get_path(want, path)!r} in cfg"
+                  for path in leaf_paths(want)
+                  if path != "num_envs" and get_path(base.cfg, path) != get_path(want, path)]
+        if differ:
+            raise ValueError(f"the env given to train() was built with other settings than cfg ({'; '.join(differ[:3])}"
+                             f"{'; ...' if len(differ) > 3 else ''}): the run saves cfg, so its files would describe "
+                             "another env; put the settings into cfg and build the env with build_env(cfg, device, "
+                             "for_training=True)")
+    running = isinstance(find_normalization(env), RunningNormalization)
+    if running != (cfg.transforms.normalization == "running"):
+        raise ValueError(f"the env given to train() normalises with {'running' if running else 'fixed or no'} "
+                         f"statistics, cfg.transforms.normalization is {cfg.transforms.normalization!r}: set it in cfg "
+                         "and build the env with build_env(cfg, device, for_training=True)")
 
 
 def build_env(cfg: RunConfig, device: torch.device, num_envs: int | None = None, for_training: bool = False,
@@ -413,6 +442,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     torch.manual_seed(cfg.seed)
     if info.enabled:  # each rank its own worlds; rank 0 keeps the 1-rank run's seed
         cfg = dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info))
+    if env is not None:
+        check_given_env(cfg, env)
     env = env if env is not None else build_env(cfg, device, for_training=True)
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim = env.action_spec.shape[-1]
