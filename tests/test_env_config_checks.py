@@ -97,9 +97,11 @@ def test_numpy_scalars_are_taken_as_plain_numbers():
         TocabiWalk(num_envs=2, device="cpu", config={"num_envs": 2})
     # .to() moved the specs alone and failed later, inside a step; the env's own device is still fine.
     env = TocabiWalk(num_envs=2, device="cpu")
-    assert env.to("cpu") is env
-    with pytest.raises(RuntimeError, match="TocabiWalk cannot move from cpu to cuda: .* build it there"):
+    assert env.to("cpu") is env and env.to("cpu:0") is env and env.device == torch.device("cpu")
+    with pytest.raises(RuntimeError, match="cannot move from cpu to cuda: .* build it there|torch sees no CUDA GPU"):
         env.to("cuda")
+    with pytest.raises(ValueError, match="unsupported device meta"):
+        env.to("meta")
 
 
 @dataclass(frozen=True)

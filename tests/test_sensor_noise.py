@@ -100,6 +100,13 @@ def test_transform_refuses_what_it_cannot_do():
                    ObsActionHistory())
     with pytest.raises(ValueError, match="SensorNoise comes after FixedNormalization, which reads 'obs_step'"):
         TransformedEnv(make_env(num_envs=2, device="cpu").base_env, late).reset()
+    # A transform that rewrites obs_step in place passes the noise on: that place is fine.
+    from torchrl.envs import ClipTransform
+
+    clipped = Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(),
+                      ClipTransform(in_keys=["obs_step"], out_keys=["obs_step"], low=-100.0, high=100.0),
+                      SensorNoise(LAB), FixedNormalization(), ObsActionHistory())
+    assert TransformedEnv(make_env(num_envs=2, device="cpu").base_env, clipped).reset()["observation"].shape == (2, 237)
 
 
 # ------------------------------------------------------------------------------------------- distributions

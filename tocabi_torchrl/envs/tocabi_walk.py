@@ -749,12 +749,14 @@ class TocabiWalk(EnvBase):
     def to(self, device) -> TocabiWalk:
         """Only the device it was built on: the simulator's worlds and the env's state live there, and moving the
         specs alone would fail later, inside a step. Build the env on the other device instead."""
-        target = torch.device(device)
-        if target.type != self.device.type or target.index not in (None, self.device.index):  # "cuda" is cuda:K too
+        target = check_device(device)  # "cpu:0" is the cpu
+        if target.type == "cuda" and target.index is None and self.device.type == "cuda":
+            target = torch.device("cuda", torch.cuda.current_device())  # where EnvBase.to would put "cuda"
+        if target != self.device:
             raise RuntimeError(f"TocabiWalk cannot move from {self.device} to {torch.device(device)}: its simulator and "
                                f"state live where it was built; build it there, e.g. TocabiWalk(device="
                                f"{str(torch.device(device))!r}) or make_env(device=...)")
-        return super().to(device)
+        return super().to(self.device)  # the same device, as the env names it (not "cpu:0" for "cpu")
 
     def cuda_graph_generators(self) -> list[torch.Generator]:
         """The CUDA generators a step draws from besides torch's default one (command resampling), which a

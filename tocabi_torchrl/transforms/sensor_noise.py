@@ -220,7 +220,7 @@ class SensorNoise(Transform):
         added there would reach nothing the policy sees, silently."""
         key = self.in_keys[0]
         for t in transforms_before(self):
-            if key in t.in_keys:
+            if key in t.in_keys and key not in t.out_keys:  # one that rewrites obs_step in place passes it on
                 raise ValueError(f"SensorNoise comes after {type(t).__name__}, which reads {key!r} already, so the "
                                  f"noise would reach nothing the policy sees; put SensorNoise right after "
                                  "ObservationAssembly (as default_transforms does)")
