@@ -413,7 +413,8 @@ def test_env_options_of_the_env_config_are_the_config_the_adapter_reports():
     assert cfg.env.task.max_episode_steps == env.base_env.cfg.task.max_episode_steps == 3
     assert cfg.env.control.mode == env.base_env.cfg.control.mode == "torque"
     for kwargs, message in ((dict(max_episode_steps=5, env_options={"max_episode_steps": 3}), "given twice"),
-                            (dict(env_options={"num_envs": 4}), "pass num_envs as the adapter's own argument"),
+                            (dict(env_options={"num_envs": 4}), "the adapter sets these from its own arguments"),
+                            (dict(env_options={"transforms": None}), "the adapter sets these from its own arguments"),
                             (dict(env_options={"track_episode_return": False}), "leave it out")):
         with pytest.raises(ValueError, match=message):
             build_env(2, "cpu", **kwargs)

@@ -82,7 +82,8 @@ def test_the_curves_command_names_a_missing_path_or_a_csv_it_cannot_plot(tmp_pat
     assert not (tmp_path / "c.png").exists()
     # It replaced any file it was given (a run's eval/knees.png, the last figure), and blamed the metrics for an
     # output format it cannot write.
-    (tmp_path / "m.csv").write_text("iteration,env_steps,episode_return,episode_length,reward\n1,10,1,5,0.1\n2,20,2,6,0.2\n")
+    (tmp_path / "m.csv").write_text("iteration,env_steps,episode_return,episode_length,reward\n"
+                                    "1,10,1,5,0.1\n2,20,2,6,0.2\n")
     (tmp_path / "knees.png").write_bytes(b"the gait test's figure")
     for out, message in (("knees.png", "exists; it is not replaced: pass --overwrite"),
                          ("c.pt", "matplotlib cannot write .pt files"), (".", "is a folder")):

@@ -427,6 +427,10 @@ def test_bad_case_lists_are_named():
                            (("nominl",), r"unknown robust-test case\(s\) \['nominl'\]")):
         with pytest.raises(ValueError, match=message):
             RobustTestConfig(cases=cases).validate(0.004)
+    from tocabi_torchrl.evaluation.robust import evaluate_robust_run
+
+    with pytest.raises(ValueError, match="got the string 'nominal'"):  # split into letters before the check
+        evaluate_robust_run(SHIPPED_POLICY, num_envs=2, seconds=0.1, cases="nominal")
 
 
 def test_the_env_cache_keeps_one_env_per_kind_of_policy():
@@ -439,6 +443,7 @@ def test_the_env_cache_keeps_one_env_per_kind_of_policy():
     torque, pd = preset_config("torque"), preset_config("default")
     assert batch_key(test, torque) != batch_key(test, pd)
     assert batch_key(test, torque) == batch_key(test, preset_config("torque", **{"ppo.lr": 1e-3}))  # same env
+    assert batch_key(test, torque) != batch_key(test, preset_config("torque", **{"ppo.critic_privileged": True}))
 
 
 def test_saved_normaliser_statistics_follow_their_transform_when_sensor_noise_shifts_the_chain():
@@ -659,6 +664,10 @@ def test_cases_run_once_each_in_the_test_order_and_a_subset_is_judged_on_its_cas
     for cases, message in ((("nominal", "nominal"), "distinct"), (("commands", "nominal"), "in the test's order")):
         with pytest.raises(ValueError, match=message):
             RobustTestConfig(cases=cases).validate(0.004)
+    from tocabi_torchrl.evaluation.robust import evaluate_robust_run
+
+    with pytest.raises(ValueError, match="got the string 'nominal'"):  # split into letters before the check
+        evaluate_robust_run(SHIPPED_POLICY, num_envs=2, seconds=0.1, cases="nominal")
     RobustTestConfig(cases=("nominal", "commands")).validate(0.004)
     report = {"cases": {"nominal": {"survival": 1.0, "forward_distance_m": {"mean": 3.0},
                                     "lateral_drift_m": {"p95": 0.1}}}}

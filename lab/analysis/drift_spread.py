@@ -27,7 +27,7 @@ LIMIT_M = 0.3
 
 
 def spread(path: str, num_envs: int, seconds: float, kick_seconds: float, kick_std: float, seed: int) -> dict:
-    policy = load_policy(path, num_envs, torch.device("cpu"))
+    policy = load_policy(path, num_envs, torch.device("cpu"), nominal=True)  # as the gait tests: the nominal robot
     env, base = policy.env, policy.env.base_env
     steps, kick_steps = policy_steps(seconds, base.dt), round(kick_seconds / base.dt)
     noise = torch.Generator().manual_seed(seed)

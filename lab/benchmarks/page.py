@@ -653,13 +653,15 @@ def robust_policies(docs: Path) -> list[str]:
         raise ValueError(f"docs/{ours_file} has no result of {ours_checkpoint} (ROBUST_SHIPPED)")
     for name, r in [(ours_name, shipped[0])] + [(r["policy"], r) for r in d["results"]]:
         c = r["cases"]
-        rows.append(f"| {name} | {c['nominal']['survival']:.3f} / {c['nominal']['lateral_drift_m.p95']:.2f} m | "
-                    f"{c['commands']['survival']:.3f} / {c['commands']['tracking_error_mps.mean']:.3f} m/s | "
-                    f"{c['robust_0.5']['survival']:.3f} | {c['robust_1.0']['survival']:.3f} | "
+        f = lambda value, spec: "-" if value is None else format(value, spec)  # null: no value (a short test)
+        nominal, commands = c["nominal"], c["commands"]
+        rows.append(f"| {name} | {f(nominal['survival'], '.3f')} / {f(nominal['lateral_drift_m.p95'], '.2f')} m | "
+                    f"{f(commands['survival'], '.3f')} / {f(commands['tracking_error_mps.mean'], '.3f')} m/s | "
+                    f"{f(c['robust_0.5']['survival'], '.3f')} | {f(c['robust_1.0']['survival'], '.3f')} | "
                     f"{'yes' if r['passes'] else 'no'} |")
     return ["## Robust gait test", "",
-            f"{m['num_envs']:,} robots per case, {m['seconds']:g} s (docs/evaluation.md: nominal needs survival >= 0.99, "
-            "mean distance >= 2.6 m and drift p95 <= 0.3 m, commands survival >= 0.99 and tracking <= 0.12 m/s, "
+            f"{m['num_envs']:,} robots per case, {m['seconds']:g} s (docs/evaluation.md: nominal needs survival >= "
+            "0.99, mean distance >= 2.6 m and drift p95 <= 0.3 m, commands survival >= 0.99 and tracking <= 0.12 m/s, "
             "robust_0.5 survival >= 0.97, "
             f"robust_1.0 >= 0.85). {kicks[0].upper() + kicks[1:]}. `{ours_name}` is the `{ours_checkpoint}` "
             "checkpoint of a from-scratch run of the `robust` preset (training/robust/h200_run9/README.md), tested "

@@ -11,9 +11,10 @@ policies of one file name, e.g. two runs' ``latest.pt``, are told apart by their
 written again after each policy, so a call stopped partway keeps the policies it finished (marked partial). An
 ``--out`` that holds a table already is refused unless ``--overwrite``.
 ``--cases nominal commands`` runs those cases alone (the ``diverse`` verdict of ``time_to_walk``); a policy then
-passes those cases, not the robust test. A case meets the full test's robots only when every case before it in the
-test's order runs too (``nominal commands`` do); another subset (``--cases nominal robust_1.0``) draws other robots
-of the same distribution, a screen rather than the verdict.
+passes those cases, not the robust test. A case has the full test's start states and draws only when every case
+before it in the test's order runs too (``nominal commands`` do, though the commands case's re-drawn commands
+differ with the number of cases); another subset (``--cases nominal robust_1.0``) draws other robots of the same
+distribution: a screen, not the verdict.
 """
 
 from __future__ import annotations
@@ -185,6 +186,11 @@ def main(argv=None) -> None:
     from tocabi_torchrl.evaluation.robust import RobustTestConfig
     from tocabi_torchrl.rl.checkpoint import CheckpointError
 
+    common.require_cuda(parser, args.device, "pass --device cpu")
+    out = common.report_dir(args.out, args.device)
+    if (out / f"{NAME}.json").exists() and not args.overwrite:
+        parser.error(f"--out {out} holds a table already ({NAME}.json); pass --overwrite to replace it, or choose "
+                     "another folder")
     # Every setting and file before the first test: a bad third policy once ended the call after two had run.
     try:
         RobustTestConfig(num_envs=args.num_envs, seconds=args.seconds,
@@ -193,11 +199,6 @@ def main(argv=None) -> None:
             check_policy(policy)
     except (ValueError, CheckpointError) as err:
         parser.error(str(err))
-    common.require_cuda(parser, args.device, "pass --device cpu")
-    out = common.report_dir(args.out, args.device)
-    if (out / f"{NAME}.json").exists() and not args.overwrite:
-        parser.error(f"--out {out} holds a table already ({NAME}.json); pass --overwrite to replace it, or choose "
-                     "another folder")
     names = labels([Path(p) for p in args.policies])
     data = {"meta": common.meta(NAME, argv, on=args.device, num_envs=args.num_envs, seconds=args.seconds),
             "results": []}

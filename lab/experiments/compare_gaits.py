@@ -153,7 +153,8 @@ def check_spans(args, parser, dt: float) -> None:
 def run_controller(controller, args, device, index, total, state: dict | None = None) -> dict:
     """Roll one controller out (``state``: its checkpoint, already read); returns its table row, robot 0's traces
     and frames' joint states."""
-    policy = load_policy(controller.path, args.num_envs, device, command=(args.vx, args.vy), state=state)
+    policy = load_policy(controller.path, args.num_envs, device, command=(args.vx, args.vy), state=state,
+                         nominal=True)  # the robot, not a training's kicks or draws, as the gait tests
     print(f"[{index}/{total}] {controller.label}: {policy.control_mode} control, {args.num_envs} robots x "
           f"{args.seconds:g} s on {device} ({policy.env.base_env.backend})", flush=True)
     rec = record_rollout(policy.actor, policy.env, args.seconds, (args.vx, args.vy), snapshot_every=args.frame_every,

@@ -176,7 +176,7 @@ def run_one(controller, height_mm, args, device) -> dict:
     """One controller at one height: rollout, analysis, the example robots' frames and torque traces."""
     box, virtual = make_box(args, height_mm)
     policy = load_policy(controller.path, args.num_envs, device, command=(args.vx, args.vy),
-                         edit_env=with_box(box, virtual))
+                         edit_env=with_box(box, virtual), nominal=True)  # the robot, as the gait tests
     rec = record_rollout(policy.actor, policy.env, args.seconds, (args.vx, args.vy), snapshot_every=0.5,
                          desc=f"{controller.label}, {height_mm:g} mm").cpu()
     size = (box.size[0], box.size[1], 0.0 if virtual else box.size[2])

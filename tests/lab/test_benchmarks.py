@@ -296,7 +296,7 @@ def test_bad_arguments_are_refused_in_one_line(nothing_measured, tmp_path, monke
 def test_a_gpu_script_without_a_gpu_ends_in_one_line_naming_the_fix(main, args, nothing_measured, capsys):
     # Each once ran into a traceback from deep inside the env build; common.require_cuda says it before anything runs.
     with pytest.raises(SystemExit) as exit_:
-        main([*args, "--device", "cuda", "--out", "o"] if main is not time_to_walk.main else [*args, "--device", "cuda"])
+        main([*args, "--device", "cuda", *(["--out", "o"] if main is not time_to_walk.main else [])])
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and "--device cuda: torch sees no CUDA GPU here; " in err and "--device cpu" in err
 
@@ -410,7 +410,8 @@ def test_robust_policies_tells_same_named_files_apart_and_never_replaces_a_table
                       (["--policies", str(tmp_path / "nope.pt"), *argv], "no such file or run folder"),
                       (["--policies", str(files[0]), "--num_envs", "0", *argv], "--num_envs must be >= 1"),
                       # Once a traceback, and only on reaching that policy, after the ones before it had run:
-                      (["--policies", str(files[0]), "--seconds", "inf", *argv], "must be a finite number of seconds")):
+                      (["--policies", str(files[0]), "--seconds", "inf", *argv[:-1], str(tmp_path / "inf")],
+                       "must be a finite number of seconds")):
         with pytest.raises(SystemExit):
             robust_policies.main(bad)
         assert said in capsys.readouterr().err

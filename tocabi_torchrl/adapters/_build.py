@@ -46,15 +46,16 @@ def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "
     num_envs = int(num_envs)
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
     options = dict(env_options or {})
-    own = [k for k in options if k in ("num_envs", "seed", "device")]
+    own = [k for k in options if k in ("num_envs", "seed", "device", "config", "transforms")]
     if own:
-        raise ValueError(f"env_options {own}: pass {', '.join(own)} as the adapter's own argument, not in env_options")
+        raise ValueError(f"env_options {own}: the adapter sets these from its own arguments and preset (num_envs, "
+                         "device, seed=..., preset=...); give env config fields or make_env options instead")
     if "track_episode_return" in options:  # the adapters report returns from the env's episode_reward
         raise ValueError("env_options track_episode_return: the adapter reads the env's episode returns; leave it out")
     # The env config's own fields go into the task config, so that the config the adapter reports (task_config,
     # rsl_rl's env.cfg) is the env it runs, not the preset's.
     for key in [k for k in options if k in ENV_FLAT_PATHS]:
-        if key in task and task[key] != options[key]:
+        if key in task:
             raise ValueError(f"{key} given twice, {task[key]!r} as a keyword and {options[key]!r} in env_options; "
                              "give it once")
         task[key] = options.pop(key)

@@ -43,12 +43,12 @@ class TocabiSB3VecEnv(VecEnv):
 
     def __init__(self, num_envs: int = 8, device: str | torch.device = "auto", preset: str = "default",
                  reward_terms_in_infos: bool = False, env_options: dict | None = None, **task):
-        if not isinstance(reward_terms_in_infos, bool):  # bool("no") is True
+        if not isinstance(reward_terms_in_infos, (bool, np.bool_)):  # bool("no") is True
             raise ValueError(f"reward_terms_in_infos must be True or False, got {reward_terms_in_infos!r}")
         env, self.task_config = build_env(num_envs, device, preset=preset, env_options=env_options, **task)
         self.stepper = TensorStepper(env, name=type(self).__name__)
         self.device = self.stepper.device
-        self.reward_terms_in_infos = reward_terms_in_infos
+        self.reward_terms_in_infos = bool(reward_terms_in_infos)
         self.render_mode = None  # read by VecEnv.__init__
         super().__init__(self.stepper.num_envs, box_from_spec(env.observation_spec["observation"], batched=False),
                          box_from_spec(env.action_spec, batched=False))

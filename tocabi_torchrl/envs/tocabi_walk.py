@@ -753,9 +753,9 @@ class TocabiWalk(EnvBase):
         if target.type == "cuda" and target.index is None and self.device.type == "cuda":
             target = torch.device("cuda", torch.cuda.current_device())  # where EnvBase.to would put "cuda"
         if target != self.device:
-            raise RuntimeError(f"TocabiWalk cannot move from {self.device} to {torch.device(device)}: its simulator and "
-                               f"state live where it was built; build it there, e.g. TocabiWalk(device="
-                               f"{str(torch.device(device))!r}) or make_env(device=...)")
+            raise RuntimeError(f"TocabiWalk cannot move from {self.device} to {target}: its simulator and state "
+                               f"live where it was built; build it there, e.g. TocabiWalk(device={str(target)!r}) or "
+                               "make_env(device=...)")
         return super().to(self.device)  # the same device, as the env names it (not "cpu:0" for "cpu")
 
     def cuda_graph_generators(self) -> list[torch.Generator]:

@@ -149,10 +149,10 @@ class RobustTestConfig:
         if unknown or not self.cases:
             raise ValueError(f"unknown robust-test case(s) {unknown or '(none given)'}; choose from {list(CASES)}")
         if len(set(self.cases)) != len(self.cases) or list(self.cases) != [c for c in CASES if c in self.cases]:
-            # Each case's robots are a block of world indices, whose draws are hashed by index (and the commands
-            # drawn from one generator over all worlds): in the test's order and once each, a case meets the full
-            # test's robots when every case before it runs too (nominal, commands: the diverse test); alone, or
-            # after a gap, it meets other robots of the same distribution.
+            # Each case's robots are a block of world indices, whose draws are hashed by index: in the test's order
+            # and once each, a case has the full test's start states and randomisation when every case before it
+            # runs too (nominal, commands: the diverse test). The commands case's re-drawn commands come from one
+            # generator over all worlds, so they differ with the number of cases run.
             raise ValueError(f"robust-test cases {list(self.cases)} must be distinct and in the test's order "
                              f"{list(CASES)}")
 
@@ -287,7 +287,9 @@ def batch_key(test: RobustTestConfig, cfg: RunConfig) -> tuple:
     another control mode, observation or normalisation never meets an env built for another (a PD policy run in a
     torque env once fell in every case)."""
     built = batch_config(cfg, test)
-    sections = json.dumps({"env": to_dict(built.env), "transforms": to_dict(built.transforms)}, sort_keys=True)
+    sections = json.dumps({"env": to_dict(built.env), "transforms": to_dict(built.transforms),
+                           "ppo": [cfg.ppo.critic_privileged, cfg.ppo.assist_pd_sensed]},  # what build_env reads
+                          sort_keys=True)
     return ("batch", tuple(test.cases), test.num_envs, test.push_kind, sections)
 
 
@@ -630,8 +632,10 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
     from ..rl.checkpoint import checkpoint_file, read_checkpoint
     from .gait_test import policy_dt
 
-    # In the test's order, each once (RobustTestConfig.validate): a case meets the full test's robots when the cases
-    # before it run too.
+    # In the test's order, each once (RobustTestConfig.validate): a case has the full test's start states and draws
+    # when the cases before it run too (not the commands case's re-drawn commands: RobustTestConfig.validate).
+    if isinstance(cases, str):  # dict.fromkeys would take one name as its letters
+        raise ValueError(f"cases must be a sequence of case names, e.g. [{cases!r}], got the string {cases!r}")
     order = list(CASES)
     cases = sorted(dict.fromkeys(cases or CASES), key=lambda c: order.index(c) if c in order else len(order))
     test = RobustTestConfig(num_envs=num_envs, seconds=seconds, cases=tuple(cases))

@@ -1,8 +1,10 @@
 """Training curves from a run's metrics: return and episode length, and every reward term (TocabiLab's figs 4.2-4.3
 show the total and the imitation rewards).
 
-    python -m tocabi_torchrl.rl.curves runs/ppo_walk docs/training/curves.png
-    python -m tocabi_torchrl.rl.curves docs/training/walk_metrics.csv docs/training/walk_curves.png
+    python -m tocabi_torchrl.rl.curves runs/ppo_walk curves.png
+    python -m tocabi_torchrl.rl.curves docs/training/walk_metrics.csv docs/training/walk_curves.png --overwrite
+
+An existing figure is replaced only with ``--overwrite``.
 
 The metrics are read by :func:`~tocabi_torchrl.rl.metrics_files.read_metrics` (re-exported here): a run folder, its
 ``metrics/`` folder (torchrl's ``CSVLogger``) or an older run's wide ``metrics.csv``.

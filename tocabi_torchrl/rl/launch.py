@@ -77,7 +77,8 @@ def launch_config(argv: Sequence[str] | None, cuda_available: bool, description:
 
 
 def banner(cfg: RunConfig, given: dict, device) -> str:
-    """One line saying what will run: preset, size, budget, device and the options given on the command line."""
+    """One line saying what will run: preset, size, budget, device and the options given on the command line; a
+    second, ``note: ...``, when the mini-batch size leaves part of each epoch out (:meth:`RunConfig.minibatch_note`)."""
     given = {k: v for k, v in given.items() if k != "preset"}
     shown = ", ".join(f"{k}={','.join(map(str, v)) if isinstance(v, tuple) else v}" for k, v in given.items())
     return (f"training {cfg.name}: preset {cfg.preset}, {cfg.env.num_envs:,} envs, {cfg.iterations:,} iterations of "
