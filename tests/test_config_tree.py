@@ -247,3 +247,16 @@ def test_int_options_take_whole_numbers_written_as_floats(capsys):
             parse_args(argv)
         err = " ".join(capsys.readouterr().err.replace("│", " ").split())
         assert f"Error parsing {argv[0]}: expected" in err and "2e8" in err, err
+
+
+def test_a_section_given_as_a_dict_of_some_options_keeps_the_others():
+    # It was built from the class defaults: the robust preset's env.pushes={"calm_fraction": 0.25} trained with no
+    # kicks (count 0), the reference's env.command dict lost its ranges.
+    from tocabi_torchrl.config import preset_config
+
+    robust = preset_config("robust")
+    calm = preset_config("robust", **{"env.pushes": {"calm_fraction": 0.25}})
+    assert calm.env.pushes == dataclasses.replace(robust.env.pushes, calm_fraction=0.25)
+    nested = preset_config("robust", **{"env": {"pushes": {"count": 8}}})
+    assert nested.env.pushes.count == 8 and nested.env.pushes.speed == robust.env.pushes.speed
+    assert nested.env.dynamics == robust.env.dynamics

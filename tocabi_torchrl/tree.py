@@ -127,7 +127,9 @@ def replace_paths(tree: Any, values: dict[str, Any]) -> Any:
         if item is not None:
             direct[head] = build_items(item, value, head)
         elif _is_section(current) and isinstance(value, dict):  # a section given as a dict (as to_dict writes it)
-            direct[head] = from_dict(type(current), value, f"{head}.")
+            # Over the section as it is: a dict of some options once reset the others to the class defaults (the
+            # robust preset's env.pushes={"calm_fraction": 0.25} trained with no kicks at all).
+            direct[head] = from_dict(type(current), _merged(to_dict(current), value), f"{head}.")
         elif _is_section(current) and not isinstance(value, type(current)):
             raise ConfigError(f"config section {head!r} must be a {type(current).__name__} or a dict of its options, "
                               f"got {type(value).__name__}; to set one option give its path, e.g. "
@@ -135,6 +137,14 @@ def replace_paths(tree: Any, values: dict[str, Any]) -> Any:
     for head, sub in nested.items():
         direct[head] = replace_paths(direct.get(head, getattr(tree, head)), sub)
     return dataclasses.replace(tree, **direct)
+
+
+def _merged(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over``'s entries on top, sub-dicts (sections) merged the same way."""
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
 
 
 def _plain(value: Any) -> Any:
