@@ -226,3 +226,20 @@ def test_transform_state_that_may_be_infinite_still_loads(tmp_path):
     state["transforms"] = {"transforms.2.low": torch.full((3,), float("-inf")), "transforms.3.mean": torch.zeros(3)}
     torch.save(state, file)
     assert read_checkpoint(run)["transforms"]["transforms.2.low"].isinf().all()
+
+
+@pytest.mark.skipif(not SHIPPED_POLICY.with_name("tocabi_walk_torque.pt").is_file(), reason="shipped policy absent")
+def test_a_policy_of_another_control_mode_is_refused_by_the_env():
+    # Only tensor sizes were compared, the same in every mode: the torque policy loaded into a PD env, its actions
+    # then meaning PD target offsets.
+    from tocabi_torchrl.rl.checkpoint import apply_checkpoint, read_checkpoint
+    from tocabi_torchrl.rl.trainer import build_env
+
+    cfg = preset_config("default", device="cpu")
+    env = build_env(cfg, torch.device("cpu"), num_envs=2)
+    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1],
+                        torch.device("cpu"))
+    torque = SHIPPED_POLICY.with_name("tocabi_walk_torque.pt")
+    with pytest.raises(CheckpointError, match="env.control.mode 'torque', but the env runs 'pd_reference'"):
+        apply_checkpoint(read_checkpoint(torque), agent, env=env, path=torque)
+    apply_checkpoint(read_checkpoint(SHIPPED_POLICY), agent, env=env, path=SHIPPED_POLICY)  # its own mode loads

@@ -341,6 +341,14 @@ def config_from_checkpoint(state: dict, path: str | os.PathLike = "<checkpoint>"
 def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | os.PathLike = "<checkpoint>") -> None:
     """Copy a :func:`read_checkpoint` state into ``agent`` (and the optimiser / env transforms when given), after
     checking that every tensor fits; a mismatch raises :class:`CheckpointError` listing what differs."""
+    saved_mode = (((state.get("config") or {}).get("env") or {}).get("control") or {}).get("mode")
+    base = getattr(env, "base_env", env)
+    env_mode = getattr(getattr(getattr(base, "cfg", None), "control", None), "mode", None)
+    if saved_mode is not None and env_mode is not None and saved_mode != env_mode:
+        # Same tensor sizes in every mode: the actions would load, and mean torques to a PD env or the reverse.
+        raise CheckpointError(f"checkpoint {path}: a policy of env.control.mode {saved_mode!r}, but the env runs "
+                              f"{env_mode!r}: its actions would mean something else there; build the env from the "
+                              "checkpoint's config (config_from_checkpoint, or play.py / load_policy)")
     current = agent.state_dict()
     for part in ("actor", "critic"):
         _check_fits(state["agent"][part], current[part], f"agent's {part}", path,
