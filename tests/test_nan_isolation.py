@@ -142,3 +142,21 @@ def test_a_broken_frame_cannot_poison_the_ppo_update():
     assert all(math.isfinite(v) for v in stats.values()), stats
     for name, p in [*agent.actor.named_parameters(), *agent.critic.named_parameters()]:
         assert torch.isfinite(p).all(), name
+
+
+def test_a_reward_term_that_returns_nan_is_said_not_trained_on_silently(tmp_path, capsys):
+    # Every frame was masked out of the update, the losses were 0 and the progress lines said nothing.
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.metrics_files import read_metrics
+    from tocabi_torchrl.rl.trainer import build_env, train
+    from tocabi_torchrl.transforms import CallableTerm
+    from tocabi_torchrl.transforms.settings import REFERENCE_TERM_NAMES
+
+    cfg = preset_config("cpu_smoke", device="cpu", run_dir=str(tmp_path), name="nan", total_env_steps=8 * 16 * 2,
+                        progress_bar=False, eval_at_end=False)
+    broken = CallableTerm("broken", lambda td, nxt: torch.full_like(nxt["base_pos"][:, :1], math.nan), 0.1)
+    train(cfg, env=build_env(cfg, torch.device("cpu"), for_training=True,
+                             reward_terms=(*REFERENCE_TERM_NAMES, broken)))
+    out = capsys.readouterr().out
+    assert out.count("warning: 100.0 % of iteration 1's frames were left out of the update") == 1  # once a run
+    assert [float(row["masked_frac"]) for row in read_metrics(tmp_path / "nan")] == [1.0, 1.0]

@@ -232,11 +232,19 @@ def finished_result(run: RunFolder, cfg: RunConfig) -> TrainResult:
                        start_env_steps=run.start_env_steps)
 
 
-def _episode_metrics(batch: TensorDictBase, dist_info: DistInfo | None = None) -> dict[str, float]:
+#: The share of a rollout's frames left out of the update (rollout_guard) above which training warns: a fault that
+#: breaks a frame now and then is absorbed; a reward term or controller that returns NaN breaks them all.
+MASKED_WARNING = 0.01
+
+
+def _episode_metrics(batch: TensorDictBase, dist_info: DistInfo | None = None,
+                     masked_frac: torch.Tensor | None = None) -> dict[str, float]:
     """Mean return and length of the episodes that ended in this batch, their count, and per-step means (one host
     read per iteration). In a data-parallel run the episode values are over every rank's finished episodes (sums
     merged, then divided: a rank that finished more episodes weighs more) and ``episodes_finished`` is their total;
-    the per-step means are averaged over the ranks (equal batch sizes, so that is exact)."""
+    the per-step means are averaged over the ranks (equal batch sizes, so that is exact). ``masked_frac``: the share
+    of the rollout's frames :func:`~tocabi_torchrl.rl.rollout_guard.guard_rollout` left out of the update, a 0-d
+    device tensor read with the rest."""
     done = batch["next", "done"].squeeze(-1)
     sums = {"episodes_finished": done.sum()}
     if ("next", "episode_reward") in batch.keys(True):
@@ -244,6 +252,8 @@ def _episode_metrics(batch: TensorDictBase, dist_info: DistInfo | None = None) -
     if ("next", "step_count") in batch.keys(True):
         sums["episode_length"] = (batch["next", "step_count"].squeeze(-1).float() * done).sum()
     means = {"terminated_frac": batch["next", "terminated"].float().mean(), "reward": batch["next", "reward"].mean()}
+    if masked_frac is not None:
+        means["masked_frac"] = masked_frac
     if ("next", "reward_terms") in batch.keys(True):
         for key, value in batch["next", "reward_terms"].items():
             means[f"reward_terms/{key}"] = value.mean()
@@ -507,6 +517,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     it = start_iter
     mark_s = 60.0 * cfg.checkpoint_minutes
     next_mark = (int(prior_train_s // mark_s) + 1) * mark_s if mark_s else float("inf")
+    warned_masked = False
 
     def settle(stats: dict[str, float], ctx: dict) -> None:
         """What needs an update's losses (``stats``, by log name): the adaptive learning rate for the next update,
@@ -545,7 +556,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 set_equivariant_statistics(agent.actor, env)
             # The collector reuses `batch` as its buffer (return_same_td): GAE's outputs go to a shallow copy.
             work = batch.clone(False)
-            guard_rollout(work)  # frames with NaN/inf or impossible actions are masked out of the loss
+            masked = (~guard_rollout(work)).float().mean()  # frames with NaN/inf or impossible actions: out of the loss
             estimate_advantages(advantage, work)
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
             flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
@@ -602,10 +613,16 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             logged = (it + shift) % cfg.log_every == 0 or it == iterations
             context = {"extra": extra, "fading": fading, "row": it + shift,
                        # Read now: the collector overwrites `batch` with the next rollout.
-                       "episode": _episode_metrics(batch, info) if logged else None,
+                       "episode": _episode_metrics(batch, info, masked) if logged else None,
                        "progress": dict(env_steps=env_steps,
                                         env_steps_per_s=(env_steps - run.start_env_steps) / elapsed,
                                         update_s=time.perf_counter() - t_collect, wall_s=elapsed, train_s=train_s)}
+            share = context["episode"]["masked_frac"] if logged else 0.0
+            if share > MASKED_WARNING and info.is_main and not warned_masked:  # once a run: a broken term stays broken
+                warned_masked = True
+                print(f"warning: {100 * share:.1f} % of iteration {it + shift}'s frames were left out of the update: "
+                      "a NaN or inf observation, reward or action (a reward term, controller or env of your own?); "
+                      "metrics column masked_frac follows it", flush=True)
             mark_due = train_s >= next_mark
             saved = (it + shift) % cfg.checkpoint_every == 0 or it == iterations
             if overlap is None:
