@@ -67,6 +67,10 @@ def test_reward_weights_reweight_on_top_of_the_defaults_and_switches_must_be_boo
     # for unknown term(s) ['body_vel']", a weight the caller never gave); a weight the caller names stays strict.
     assert weights(make_env(num_envs=1, device="cpu", reward_terms=("qpos", "orientation"))) == {
         "qpos": default["qpos"], "orientation": default["orientation"]}
+    from tocabi_torchrl.transforms import CallableTerm
+
+    mine = CallableTerm("body_vel", lambda td, nxt: nxt["base_pos"][:, :1] * 0, weight=2.0)  # one's own, built-in name
+    assert weights(make_env(num_envs=1, device="cpu", reward_terms=("qpos", mine)))["body_vel"] == 2.0
     with pytest.raises(KeyError, match=r"unknown term\(s\) \['body_vel'\]"):
         make_env(num_envs=1, device="cpu", reward_terms=("qpos",), reward_weights={"body_vel": 1.0})
     # Scales go on top too: reward_scales={"qpos": 5.0} once dropped the robust preset's body_vel sharpness 8.0.

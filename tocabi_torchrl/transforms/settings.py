@@ -293,9 +293,9 @@ class TransformSettings:
         scales = {} if self.body_vel_scale is None else {"body_vel": float(self.body_vel_scale)}
         if overrides.get("reward_terms") is not None:
             # Terms without body_vel once ended in "weights given for unknown term(s) ['body_vel']", a weight the
-            # caller never gave: these settings' own weights and scales only reach the terms in use.
-            in_use = {t if isinstance(t, str) else getattr(t, "name", getattr(t, "__name__", None))
-                      for t in overrides["reward_terms"]}
+            # caller never gave: these settings' own weights and scales only reach the built-in terms named in use. A
+            # term object keeps its own (a term of one's own named body_vel once got the setting's 0.9).
+            in_use = {t for t in overrides["reward_terms"] if isinstance(t, str)}
             weights = {name: w for name, w in weights.items() if name in in_use}
             scales = {name: v for name, v in scales.items() if name in in_use}
         # On top, not instead: {"qpos": 0.5} replacing the map silently put body_vel back to the reference's 0.3
