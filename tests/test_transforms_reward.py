@@ -393,3 +393,15 @@ def test_a_reward_sum_in_front_of_the_reward_is_refused():
     env = TransformedEnv(MockTocabiWalk(2), Compose(PhaseEncoding(), BaseEulerAngles(), TaskReward(reference_terms()),
                                                     RewardSum()))
     assert env.rollout(3)["next", "episode_reward"].abs().sum() > 0
+
+
+def test_a_term_reading_an_undeclared_key_of_the_state_at_t_is_named():
+    # It worked in env.rollout and failed in training, where the state at t holds only the declared keys, with a
+    # KeyError from deep inside tensordict.
+    term = CallableTerm("prev_height", lambda td, nxt: td["base_pos"][:, 2:3] * 0, weight=0.1)
+    reward = TaskReward([term])
+    td = TensorDict({"observation": torch.zeros(2, 3)}, batch_size=[2])
+    nxt = TensorDict({"base_pos": torch.zeros(2, 3), "terminated": torch.zeros(2, 1, dtype=torch.bool)},
+                     batch_size=[2])
+    with pytest.raises(KeyError, match="reward term 'prev_height' reads a key its step does not hold.*root_keys"):
+        reward._check_terms(td, nxt)

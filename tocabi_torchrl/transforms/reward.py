@@ -20,6 +20,13 @@ from tocabi_torchrl.transforms.kick_relax_config import KickRelax
 __all__ = ["TaskReward"]
 
 
+class TermKeyError(KeyError):
+    """A reward term read a key its step does not hold; printed as its message (a ``KeyError`` prints its repr)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
 class TaskReward(Transform):
     """``reward = Σ term(td, next_td)`` over the given terms, each value also written to ``(terms_key, name)``.
 
@@ -153,7 +160,15 @@ class TaskReward(Transform):
     def _check_terms(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> None:
         want = (*next_tensordict.batch_size, 1)
         for t in self.terms:
-            shape = tuple(t.kernel(tensordict, next_tensordict).shape)
+            try:
+                shape = tuple(t.kernel(tensordict, next_tensordict).shape)
+            except KeyError as err:
+                # The trainer keeps only the declared keys of the state at t (training_keys): an undeclared read
+                # works in env.rollout and fails in training, from deep inside tensordict.
+                missing = err.args[0] if err.args else err
+                raise TermKeyError(f"reward term {t.name!r} reads a key its step does not hold ({missing}); declare "
+                                   "what it reads of the state at t in its root_keys and of the step's result in its "
+                                   "next_keys (docs/extending.md)") from err
             if shape != want:
                 raise ValueError(
                     f"reward term {t.name!r} returned shape {shape}; it must return {want} "
