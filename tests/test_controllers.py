@@ -117,3 +117,25 @@ def test_an_env_other_than_its_config_is_refused_by_train(tmp_path):
         with pytest.raises(ValueError, match=message):
             train(cfg, env=env)
     assert not (tmp_path / "x").exists()
+
+
+def test_a_controller_returning_the_wrong_shape_is_named():
+    # (1, 12) was broadcast to every world without a word; (N, 6) failed in the ctrl write naming no controller.
+    from tocabi_torchrl.control import Controller
+    from tocabi_torchrl.envs import TocabiWalk
+
+    class Narrow(Controller):
+        action_dim = 12
+
+        def __init__(self, rows: int, width: int):
+            self.rows, self.width = rows, width
+
+        def compute(self, inp):
+            return torch.zeros(self.rows, self.width, device=inp.action.device)
+
+    for rows, width in ((1, 12), (3, 6)):
+        env = TocabiWalk(num_envs=3, device="cpu", control_mode="torque", leg_controller=Narrow(rows, width))
+        env.reset()
+        with pytest.raises(ValueError, match=rf"leg controller Narrow.compute returned \({rows}, {width}\); it must "
+                                             r"return a \(3, 12\) tensor"):
+            env.rand_step()

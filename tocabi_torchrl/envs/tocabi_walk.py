@@ -301,6 +301,7 @@ class TocabiWalk(EnvBase):
         self._all = torch.ones(n, dtype=torch.bool, device=dev)
         # Episodes started per env: with the env index and the seed it keys the reset's random draws.
         self._env_ids = torch.arange(n, dtype=torch.int64, device=dev)
+        self._leg_cmd_checked = False  # the leg controller's output shape, checked at the first step
         self.episode_count = torch.zeros(n, dtype=torch.int64, device=dev)
         #: With ``env.task.cycle_velocity``: the rolling error over each world's last gait cycle, whose mean at
         #: ``episode_step`` is the ``cycle_vel_error`` signal, (N, 2) [m/s]; None without it.
@@ -436,6 +437,8 @@ class TocabiWalk(EnvBase):
         legs = ControlInput(action=a[:, robot.LEGS], q=self.sim.qpos[:, 7:7 + nl], qd=self.sim.qvel[:, 6:6 + nl],
                             q_ref=q_ref[:, robot.LEGS], time=self.time, init_row=self.init_row, rate=rate)
         leg_cmd = self.leg_controller.compute(legs)
+        if not self._leg_cmd_checked:  # once, eagerly (the first step runs before any capture): a host flag
+            self._check_leg_command(leg_cmd)
         leg_out = self._actuate(leg_cmd, legs)
         upper = ControlInput(action=a[:, nl:nl], q_ref=q_ref[:, robot.UPPER_BODY], time=self.time,
                              init_row=self.init_row, rate=rate)
@@ -757,6 +760,17 @@ class TocabiWalk(EnvBase):
                                f"live where it was built; build it there, e.g. TocabiWalk(device={str(target)!r}) or "
                                "make_env(device=...)")
         return super().to(self.device)  # the same device, as the env names it (not "cpu:0" for "cpu")
+
+    def _check_leg_command(self, cmd) -> None:
+        """A leg controller's output must be (num_envs, 12) per-world commands: a (1, 12) one broadcast to every world
+        without a word, a wrong width failed in the ctrl write without naming the controller."""
+        want = (self.num_envs, robot.NUM_LEG_JOINTS)
+        shape = tuple(cmd.shape) if isinstance(cmd, torch.Tensor) else type(cmd).__name__
+        if shape != want:
+            raise ValueError(f"leg controller {type(self.leg_controller).__name__}.compute returned {shape}; it must "
+                             f"return a {want} tensor, one command per world and leg joint (docs/concepts/"
+                             "controllers.md)")
+        self._leg_cmd_checked = True
 
     def cuda_graph_generators(self) -> list[torch.Generator]:
         """The CUDA generators a step draws from besides torch's default one (command resampling), which a
