@@ -54,6 +54,9 @@ def test_the_loggers_are_torchrl_loggers(tmp_path):
     assert all(isinstance(logger, Logger) for logger in loggers.values())
     # csv is written even when --loggers leaves it out: the package's own tools read it.
     assert list(run_logging.make_loggers(tmp_path, tiny(tmp_path, loggers=()))) == ["csv"]
+    # A name as a string was read as its letters: "unknown logger(s) ['a', 'b', 'd', ...]".
+    with pytest.raises(ValueError, match="loggers must be a tuple of names, e.g. \\('tensorboard',\\)"):
+        tiny(tmp_path, loggers="tensorboard")
 
 
 def test_read_metrics_joins_scalar_files_and_reads_older_wide_files(tmp_path):

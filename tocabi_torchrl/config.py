@@ -474,6 +474,9 @@ class RunConfig:
         if not self.max_minutes >= 0:
             raise ValueError(f"max_minutes must be >= 0, got {self.max_minutes!r}")
         check_snapshot_minutes(self.checkpoint_minutes)
+        if isinstance(self.loggers, str):  # iterated, one name would be read as its letters
+            raise ValueError(f"loggers must be a tuple of names, e.g. ({self.loggers!r},), got the string "
+                             f"{self.loggers!r}")
         bad = set(self.loggers) - set(LOGGERS)
         if bad:
             raise ValueError(f"unknown logger(s) {sorted(bad)}; choose from {', '.join(LOGGERS)}")

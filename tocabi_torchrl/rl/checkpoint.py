@@ -352,7 +352,8 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
     current = agent.state_dict()
     for part in ("actor", "critic"):
         _check_fits(state["agent"][part], current[part], f"agent's {part}", path,
-                    hint="the run's actor_hidden / critic_hidden / std_mode / symmetry differ from this agent's?")
+                    hint="the run's actor_hidden / critic_hidden / critic_privileged / std_mode / symmetry differ "
+                         "from this agent's?")
     transform = getattr(env, "transform", None) if env is not None else None
     saved_transforms = state.get("transforms") or {}
     if saved_transforms and isinstance(transform, nn.Module):
