@@ -17,7 +17,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..atomic import check_writable as atomic_check_writable
+from ..atomic import check_writable
 from ..atomic import remove_stale_temp_files
 from ..config import RunConfig
 from .checkpoint import (
@@ -102,12 +102,12 @@ def check_run_name(name: str) -> None:
                           f"{name!r}; put the folder's parent in run_dir instead")
 
 
-def check_writable(path: Path) -> None:
+def check_run_writable(path: Path) -> None:
     """``RunDirError`` unless a file can be created in ``path`` or, while it does not exist, in its nearest existing
     parent (a probe file, created and removed at once): said before the env is built, not as a traceback from the
     logger's first write."""
     try:
-        atomic_check_writable(path)
+        check_writable(path)
     except OSError as err:
         raise RunDirError(f"cannot write the run into {path}: {err.filename} is not writable ({err.strerror}); "
                           "pass --run_dir (and --name) naming a folder you can write") from None
@@ -133,7 +133,7 @@ def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
             raise RunDirError(f"{folder} is a file, not a folder: the run cannot be written there; pass --run_dir "
                               f"and --name that name a folder")
     if writer:
-        check_writable(path)
+        check_run_writable(path)
     if not writer:
         if not cfg.resume:
             return RunFolder(path)

@@ -257,10 +257,7 @@ class TransformSettings:
                              f"{self.kick_relax!r}")
         self.kick_relax.validate()
         if self.kick_relax.enabled:
-            in_use = (*REFERENCE_TERM_NAMES, *(name for name, weight in (("heading", self.heading_weight),
-                                                                        ("cycle_vel", self.cycle_vel_weight),
-                                                                        ("foot_gap", self.foot_gap_weight))
-                                             if isinstance(weight, (int, float)) and weight > 0))
+            in_use = (*REFERENCE_TERM_NAMES, *self.extra_terms())
             missing = [t for t in self.kick_relax.terms if t not in in_use]
             if missing:
                 raise ValueError(f"transforms.kick_relax.terms names {missing}, which no reward term in use is "
@@ -281,6 +278,12 @@ class TransformSettings:
                     value >= 0 if low == "0 <=" else value > 0):
                 raise ValueError(f"transforms.{name} must be a finite number with {low} value ({term}), got "
                                  f"{value!r}")
+
+    def extra_terms(self) -> tuple[str, ...]:
+        """The names of the terms beyond the reference's that these settings switch on (their weight > 0)."""
+        weights = (("heading", self.heading_weight), ("cycle_vel", self.cycle_vel_weight),
+                   ("foot_gap", self.foot_gap_weight))
+        return tuple(name for name, weight in weights if isinstance(weight, (int, float)) and weight > 0)
 
     def transform_config(self, **overrides) -> TransformConfig:
         """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
@@ -308,7 +311,7 @@ class TransformSettings:
                       kick_relax=self.kick_relax, reward_scales=scales)
         # A term that is off is not added, so a config without it computes what it always did.
         extra = []
-        if self.heading_weight > 0 or self.foot_gap_weight > 0 or self.cycle_vel_weight > 0:
+        if self.extra_terms():
             # Imported here: the terms need torch, which reading the config tree does not.
             from tocabi_torchrl.transforms.reward_terms import CycleVelTracking, FootGap, HeadingHold
 
