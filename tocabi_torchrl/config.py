@@ -412,7 +412,7 @@ class RunConfig:
     (the names are whole seconds)"""
     # evaluation at the end
     eval_at_end: bool = True
-    """run the gait test (eval/) when training ends"""
+    """run the gait test (eval/) when training ends (recipes/ppo_walk.py does; trainer.train() itself does not)"""
     eval_envs: int = 256
     """robots in the gait test (per case in the robust test)"""
     eval_seconds: float = 8.0

@@ -79,8 +79,8 @@ def _refuse(path, diffs: list[tuple[str, object, object]]) -> ResumeConfigError:
     lines = "; ".join(f"{name}: saved {was!r}, given {now!r}" for name, was, now in diffs)
     return ResumeConfigError(
         f"cannot resume {path} with other settings than the run was trained with ({lines}). Drop these options to "
-        f"continue the run as saved, or start a new run with --name. On --resume only these may change: "
-        f"{resume_safe_text()}"
+        f"continue the run as saved (from Python: tocabi_torchrl.rl.resume.saved_config(run) is the saved config, set "
+        f"to resume), or start a new run with --name. On --resume only these may change: {resume_safe_text()}"
     )
 
 
