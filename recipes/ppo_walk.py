@@ -155,24 +155,29 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(stopped(result))
     print(f"done: {done_text(result)}")
     checkpoint = checkpoint_file(result.run_dir)
-    if cfg.eval_at_end and cfg.eval_test == "robust":  # the robust gait test (docs/evaluation.md) instead
-        from tocabi_torchrl.evaluation.robust import evaluate_robust_run, robust_report_text
-
-        out = eval_out_dir(result.run_dir)
-        report = evaluate_robust_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device,
-                                     seconds=cfg.eval_seconds, out_dir=out)
-        print(robust_report_text(report, out))
-    elif cfg.eval_at_end:
-        out = eval_out_dir(result.run_dir)
-        summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device, seconds=cfg.eval_seconds,
-                               out_dir=out)
-        print(gait_report_text(summary, cfg.eval_seconds, cfg.eval_envs, out))
-    # On a CPU the play recipe's default test (256 robots for 8 s) takes minutes: suggest the test this run ended with.
+    # On a CPU the play recipe's default test (256 robots for 8 s) takes minutes: suggest this run's test size.
     small = ""
-    if device.type == "cpu" and cfg.eval_at_end:
-        small = f" --num_envs {cfg.eval_envs} --seconds {cfg.eval_seconds:g}"
+    if device.type == "cpu":
+        small = f" --num_envs {cfg.eval_envs} --seconds {cfg.eval_seconds:g}" if cfg.eval_envs else ""
         small += " --test robust" if cfg.eval_test == "robust" else ""
-    print(f"checkpoint: {checkpoint}\nwatch or re-test it: python recipes/play.py --checkpoint {result.run_dir}{small}")
+    where = (f"checkpoint: {checkpoint}\nwatch or re-test it: python recipes/play.py --checkpoint "
+             f"{result.run_dir}{small}")
+    try:
+        if cfg.eval_at_end and cfg.eval_test == "robust":  # the robust gait test (docs/evaluation.md) instead
+            from tocabi_torchrl.evaluation.robust import evaluate_robust_run, robust_report_text
+
+            out = eval_out_dir(result.run_dir)
+            report = evaluate_robust_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device,
+                                         seconds=cfg.eval_seconds, out_dir=out)
+            print(robust_report_text(report, out))
+        elif cfg.eval_at_end:
+            out = eval_out_dir(result.run_dir)
+            summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device,
+                                   seconds=cfg.eval_seconds, out_dir=out)
+            print(gait_report_text(summary, cfg.eval_seconds, cfg.eval_envs, out))
+    except KeyboardInterrupt:  # training is done and saved: only the test stopped
+        sys.exit(f"\nstopped (Ctrl-C) during the gait test; training had finished and is saved.\n{where}")
+    print(where)
 
 
 if __name__ == "__main__":

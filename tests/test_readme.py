@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
 TRAIN = 'pip install -e ".[viz]" && python recipes/ppo_walk.py'
 TEST = 'pip install -e ".[test]" && python -m pytest -q'
-PLAY = "python recipes/play.py --checkpoint assets/policies/tocabi_walk_ppo.pt --num_envs 8 --device cpu"
+PLAY = "python recipes/play.py --policy ppo --num_envs 8 --device cpu"
 
 #: Phrases that only a development log uses: who ran what on which machine and when it was available. Each is
 #: matched case-insensitively as a whole phrase; ordinary text (a "shared" buffer, an RL "agent") does not match.
@@ -107,8 +107,7 @@ def test_the_shipped_policy_command_runs_on_the_cpu(tmp_path):
     # reports; the shipped policies walk the 8 s gait test in tests/test_runtime.py) and --out (the default writes
     # runs/eval/ under the working directory).
     args = PLAY.split()[1:] + ["--video_envs", "0", "--seconds", "1", "--out", str(tmp_path / "eval")]
-    args[0] = str(REPO / args[0])
-    args[args.index("--checkpoint") + 1] = str(REPO / "assets/policies/tocabi_walk_ppo.pt")
+    args[0] = str(REPO / args[0])  # --policy ppo finds the shipped file from any working directory
     out = subprocess.run([sys.executable, *args], cwd=tmp_path, env=_cpu_env(tmp_path), capture_output=True,
                          text=True, timeout=900, check=False)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]

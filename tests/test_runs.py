@@ -582,3 +582,26 @@ def test_the_end_of_a_run_is_a_verdict_against_the_gait_criteria_with_the_files_
     assert f"checkpoint: {tmp_path / 'run' / 'checkpoints' / 'latest.pt'}" in report
     assert f"python recipes/play.py --checkpoint {tmp_path / 'run'}" in report
     assert not re.search(r"\d\.\d{6,}", report), report  # rounded for people; summary.json keeps full precision
+
+
+def test_ctrl_c_in_the_final_gait_test_says_training_is_saved_and_the_hint_keeps_its_cpu_size(tmp_path):
+    # Ctrl-C during the end-of-run test printed a raw traceback without the checkpoint or the re-test command; with
+    # the test off, the hint named play's default size (256 robots for 8 s: minutes on a CPU).
+    module = recipe("ppo_walk")
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    module.evaluate_run = interrupted
+    with pytest.raises(SystemExit) as info:
+        module.main(tiny_args(tmp_path, eval_at_end=True, eval_envs=2, eval_seconds=0.1))
+    said = str(info.value.code)
+    assert "stopped (Ctrl-C) during the gait test; training had finished and is saved." in said
+    assert f"checkpoint: {tmp_path / 'run' / 'checkpoints' / 'latest.pt'}" in said
+    assert said.endswith(f"--checkpoint {tmp_path / 'run'} --num_envs 2 --seconds 0.1")
+    assert read_checkpoint(tmp_path / "run")["iteration"] == 2
+
+
+def test_the_re_test_hint_keeps_the_cpu_size_without_the_final_test(tmp_path, capsys):
+    recipe("ppo_walk").main(tiny_args(tmp_path, eval_at_end=False, eval_envs=2, eval_seconds=0.1))
+    assert capsys.readouterr().out.rstrip().endswith(f"--checkpoint {tmp_path / 'run'} --num_envs 2 --seconds 0.1")

@@ -62,18 +62,23 @@ def launch_config(argv: Sequence[str] | None, cuda_available: bool, description:
                 raise LaunchError(f"the resumed run {resume} uses preset {preset!r}, {gpu_sized}, and torch sees "
                                   "no CUDA GPU; pass --device cpu to continue it on the CPU anyway")
             if asked is not None:
-                raise LaunchError(f"--preset {preset} is {gpu_sized}, and torch sees no CUDA GPU; pass --device cpu "
-                                  f"to run it on the CPU anyway, or use --preset {min(CPU_SIZED_PRESETS)}")
+                raise LaunchError(f"--preset {preset} is {gpu_sized}, and torch sees no CUDA GPU; at its size a CPU "
+                                  f"takes days, so use --preset {min(CPU_SIZED_PRESETS)}, or {CPU_SIZED_HINT}")
             preset, base = min(CPU_SIZED_PRESETS), {"device": "cpu"}
             note = (f"No CUDA GPU found and --device auto: running the small CPU smoke configuration (preset {preset})"
-                    " instead of the GPU-sized default; it proves the pipeline and learns nothing useful. Pass "
-                    "--device cpu to run the default preset on the CPU.")
+                    " instead of the GPU-sized default; it proves the pipeline and learns nothing useful. The default "
+                    f"preset's size takes days on a CPU; to test a change on it, {CPU_SIZED_HINT}.")
     if resume:
         return resumed, given, note
     from dataclasses import replace
 
     cfg = parse_tree(argv, replace(preset_tree(preset), **base), prog, description).validated()
     return cfg, given_options(argv, cfg), note
+
+
+#: How a GPU-sized preset runs on a CPU at a size that ends (docs/training.md, "On a CPU").
+CPU_SIZED_HINT = ("pass --device cpu --env.num_envs 8 --ppo.minibatch_size 96 --total_env_steps 3840 --eval_envs 2 "
+                  "--eval_seconds 1 (docs/training.md: On a CPU)")
 
 
 def banner(cfg: RunConfig, given: dict, device) -> str:
