@@ -554,6 +554,20 @@ def test_an_onnx_output_that_is_not_the_contracts_is_refused(outputs, output_nam
         PolicyRuntime(_write(path, c), check_onnx_hash=False)
 
 
+def test_a_motion_of_ones_own_is_found_beside_the_contract(contract_copy):
+    # Only the shipped motions were looked in: a policy trained on its own motion could not run, though the
+    # contract's check says the motion is a file beside the contract.
+    path, c = contract_copy
+    own = path.with_name("my_walk.npz")
+    shutil.copy(robot.asset_path("motions", "tocabi_walk.npz"), own)
+    c["reference_motion"]["name"] = own.name
+    runtime = PolicyRuntime(_write(path, c))
+    assert runtime.motion is not None
+    own.unlink()
+    with pytest.raises(ContractError, match="reference motion not found"):
+        PolicyRuntime(_write(path, c))
+
+
 def test_a_file_that_is_not_onnx_is_a_contract_error(contract_copy):
     # A file whose hash the contract matches but that onnxruntime cannot load (an empty or foreign file) ended in
     # onnxruntime's own InvalidProtobuf traceback.

@@ -148,9 +148,15 @@ class PolicyRuntime:
 
     def _load_motion(self, spec: dict, motion) -> RuntimeMotion:
         if motion is None:
-            from ..robot import asset_path  # numpy-only module
+            # Beside the contract first (where a policy trained on a motion of its own brings it, as the contract's
+            # check says), then the shipped motions.
+            beside = self.onnx_path.with_name(spec["name"])
+            if beside.is_file():
+                motion = beside
+            else:
+                from ..robot import asset_path  # numpy-only module
 
-            motion = asset_path("motions", spec["name"])
+                motion = asset_path("motions", spec["name"])
         return RuntimeMotion.from_file(motion, self.joint_names, spec["sha256"])
 
     # --------------------------------------------------------------------------------------------- public API
