@@ -6,7 +6,7 @@ import socket
 
 from .extra import require_viser
 
-__all__ = ["start_server", "page_url"]
+__all__ = ["start_server", "page_url", "check_address"]
 
 
 def page_url(host: str, port: int) -> str:
@@ -16,9 +16,25 @@ def page_url(host: str, port: int) -> str:
     return f"http://{shown}:{port}"
 
 
+def check_address(host: str, port: int) -> None:
+    """``ValueError`` unless the viewer can serve on ``host``:``port``: a port in [0, 65535] and a host that is an
+    address of this machine. viser, given another, tries a thousand ports and then waits for ever without saying so
+    (a cloud machine's public address is a natural thing to type)."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise ValueError(f"viewer port must be an int in [0, 65535], got {port!r}")
+    try:
+        family = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)[0][0]
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.bind((host, 0))  # any free port: whether the host is this machine's
+    except OSError as err:  # socket.gaierror too
+        raise ValueError(f"the viewer cannot serve on host {host!r} ({err.strerror or err}): use 127.0.0.1 (this "
+                         "machine only; reach it via ssh -L) or 0.0.0.0 (every interface)") from None
+
+
 def start_server(host: str = "127.0.0.1", port: int = 8080, label: str = "tocabi-torchrl"):
     """A running ``viser.ViserServer`` on ``host``:``port`` (raises :class:`~.extra.ViewerUnavailable` without the
     extra). viser moves to the next free port when ``port`` is taken: the port it got is ``server.get_port()``."""
+    check_address(host, port)
     viser = require_viser()
     server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
     server.gui.configure_theme(control_width="large", show_share_button=False)
