@@ -165,6 +165,12 @@ def serve_exported(args: argparse.Namespace) -> None:
     --seconds in real time."""
     from tocabi_torchrl.viewer.exported import contract_of
 
+    # The torch-free driver runs C MuJoCo on the CPU and tests nothing: these would be ignored without a word.
+    ignored = [flag for flag, given in (("--backend", args.backend is not None), ("--device", args.device != "auto"),
+                                        ("--test", args.test != "standard"), ("--out", args.out is not None)) if given]
+    if ignored:
+        sys.exit(f"error: {', '.join(ignored)}: an exported policy's viewer runs the torch-free C MuJoCo driver "
+                 "(recipes/sim2sim.py), which takes none of them; leave them out")
     try:
         contract = contract_of(args.checkpoint)
     except ValueError as err:

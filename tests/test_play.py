@@ -77,6 +77,11 @@ def test_play_refuses_seconds_below_one_policy_step(capsys):
     with pytest.raises(SystemExit) as info:
         recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--backend", "warp", "--device", "cpu"])
     assert info.value.code == 2 and "--backend sets the physics of --viewer only" in capsys.readouterr().err
+    # The viewer of an exported policy ignored them without a word (it runs the torch-free C MuJoCo driver).
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", str(SHIPPED_POLICY.with_suffix(".onnx")), "--viewer", "--backend", "warp",
+                             "--test", "robust"])
+    assert str(info.value.code).startswith("error: --backend, --test: an exported policy's viewer runs the torch-free")
     # sim2sim ran no step and reported survival 1.0 with NaN metrics (not JSON) into its --out.
     with pytest.raises(SystemExit) as info:
         recipe("sim2sim").main(["--contract", str(SHIPPED_POLICY.with_suffix(".json")), "--seconds", "0.001"])
