@@ -201,7 +201,8 @@ def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig =
     # Every case starts from the ideal robot, whatever the policy trained under (record.nominal_config: no kicks,
     # noise or draws of the training, fresh draws at every reset rather than a start pool, and the model's own solver,
     # never a training's iteration cap): the randomised cases then add the test's own set.
-    env = nominal_config(cfg).env
+    nominal = nominal_config(cfg)
+    env = nominal.env
     task = dataclasses.replace(env.task, start_joint_vel_std=float(test.start_joint_vel_std),
                                start_base_vel_std=float(test.start_base_vel_std))
     command = (fixed_command(spec.command) if spec.command is not None
@@ -212,7 +213,7 @@ def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig =
     steps = policy_steps(test.seconds, policy_dt())
     task = dataclasses.replace(task, max_episode_steps=max(int(task.max_episode_steps), steps + 1))
     env = dataclasses.replace(env, task=task, command=command)
-    out = dataclasses.replace(nominal_config(cfg), seed=int(test.seed), env=env)
+    out = dataclasses.replace(nominal, seed=int(test.seed), env=env)
     return robust_case_config(out, spec.push_speed, test) if spec.randomized else out
 
 
@@ -660,10 +661,10 @@ def robust_report_text(report: dict, out: str | os.PathLike | None = None) -> st
     window = s.get("push_window_s")
     if window and s["seconds"] < window[1] and any(n.startswith("robust") for n in report["cases"]):
         # The kicks come at random times in the window: a shorter test gives some robots fewer of them, or none.
-        lines[0] += (f"; no kick falls within {s['seconds']:g} s" if s["seconds"] <= window[0] else
+        lines[0] += (f"; no kick falls within {s['seconds']:g} s (they come at {window[0]:g}-{window[1]:g} s)"
+                     if s["seconds"] <= window[0] else
                      f"; the kicks come at {window[0]:g}-{window[1]:g} s, so some robots met fewer than "
                      f"{s.get('push_count', 3)} in {s['seconds']:g} s")
-        lines[0] += f" (they come at {window[0]:g}-{window[1]:g} s)" if s["seconds"] <= window[0] else ""
     if s["num_envs"] < RobustTestConfig().num_envs:
         lines[0] += f"; {s['num_envs']} robots per case, the test asks for {RobustTestConfig().num_envs:,}"
     for name, c in report["cases"].items():
