@@ -13,6 +13,9 @@ After the first gait cycle it also reports the error of the velocity averaged ov
 sideways (:func:`cycle_mean_error`): the slow sideways walk the drift accumulates from, which the ``cycle_vel`` reward
 term pays for (``transforms.cycle_vel_weight``).
 
+It also tallies where in the gait the robots fell (:func:`falls_by_phase`): the gait phase at each robot's last
+alive step, in tenths of the cycle (a policy that falls as one foot takes over falls near phases 0 and 0.5).
+
 ``--train_solver`` runs the physics with the solver iteration cap each checkpoint's run trained with
 (``env.sim.solver_iterations``) instead of the model's solver the test runs: does a capped run's policy walk better
 on the physics it trained on?
@@ -80,6 +83,17 @@ def by_start(values: torch.Tensor, start_phase: torch.Tensor) -> dict:
             for p in start_phase.unique()}
 
 
+def falls_by_phase(phase: torch.Tensor, bins: int = 10) -> list[int]:
+    """How many robots fell in each ``1/bins`` of the gait cycle: ``phase`` (N,) in [0, 1), the gait phase at each
+    fallen robot's last alive step (NaN for a robot that did not fall, left out).
+
+    >>> falls_by_phase(torch.tensor([0.02, 0.48, 0.51, float("nan"), 0.99]))
+    [1, 0, 0, 0, 1, 1, 0, 0, 0, 1]
+    """
+    fell = phase[~torch.isnan(phase)]
+    return torch.bincount((fell * bins).long().clamp(0, bins - 1), minlength=bins).tolist()
+
+
 def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bool = False,
             train_solver: bool = False) -> dict:
     """The drift sources of one checkpoint in one case of the robust test (see the module docstring);
@@ -100,6 +114,8 @@ def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bo
         td = env.reset()
         start_y, start_phase = td["base_pos"][:, 1].clone(), td["phase"].reshape(-1).clone()
         alive = torch.ones(num_envs, dtype=torch.bool)
+        # The phase at each robot's last alive step (the step's start: a fall's own step reports a reset's phase).
+        phase, fall_phase = start_phase.clone(), torch.full((num_envs,), float("nan"))
         turned, sideways = torch.zeros(num_envs), torch.zeros(num_envs)
         y = start_y.clone()
         at = {}
@@ -112,7 +128,10 @@ def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bo
             turned += torch.where(alive, dt_turned, 0.0)
             sideways += torch.where(alive, dt_sideways, 0.0)
             y = torch.where(alive, nxt["base_pos"][:, 1], y)
-            alive &= ~nxt["done"].reshape(-1)
+            fell = alive & nxt["done"].reshape(-1)
+            fall_phase = torch.where(fell, phase, fall_phase)
+            alive &= ~fell
+            phase = nxt["phase"].reshape(-1).clone()
             cycle.update(v, nxt["command"], alive)
             if k > cycle.window:
                 cycle_errors.append((cycle.mean_velocity() - cycle.mean_command()).float())
@@ -127,7 +146,8 @@ def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bo
             "survival": round(float(alive.float().mean()), 4), "lateral_m": spread(lateral),
             "lateral_m_at": at, "from_heading_m": spread(turned), "from_sideways_walk_m": spread(sideways),
             "lateral_m_by_start_phase": by_start(lateral, start_phase),
-            "cycle_mean_error_mps": cycle_mean_error(cycle_errors, cycle_alive)}
+            "cycle_mean_error_mps": cycle_mean_error(cycle_errors, cycle_alive),
+            "falls_by_phase_tenth": falls_by_phase(fall_phase)}
 
 
 def cycle_mean_error(errors: list[torch.Tensor], alive: list[torch.Tensor]) -> dict | None:
@@ -173,7 +193,8 @@ def main(argv=None) -> int:
         print(f"{path}{' (calm start)' if calm else ''}{solver}: survival {r['survival']}, lateral {r['lateral_m']}, "
               f"from the heading {r['from_heading_m']}, from walking sideways {r['from_sideways_walk_m']}, "
               f"by start phase {r['lateral_m_by_start_phase']}, cycle-mean velocity error after the first cycle "
-              f"{r['cycle_mean_error_mps']} ({time.perf_counter() - start:.0f} s)", flush=True)
+              f"{r['cycle_mean_error_mps']}, falls by tenth of the gait cycle {r['falls_by_phase_tenth']} "
+              f"({time.perf_counter() - start:.0f} s)", flush=True)
         results.append(r)
     if args.out is not None:
         write_report(args.out, "lab/analysis/drift_sources.py", argv, results)

@@ -27,6 +27,14 @@ def test_the_two_parts_add_up_to_the_world_lateral_displacement():
     assert turned[0] > 0 > turned[1]  # turned left walks to +y, turned right to -y
 
 
+def test_falls_are_binned_by_the_phase_of_their_last_alive_step():
+    """Phase 0.5 is the first bin of the second half; phase just under 1 the last bin; robots that stayed up (NaN)
+    are not counted."""
+    phases = torch.tensor([0.5, 0.999, float("nan"), 0.0, 0.1])
+    assert drift_sources.falls_by_phase(phases) == [1, 1, 0, 0, 0, 1, 0, 0, 0, 1]
+    assert drift_sources.falls_by_phase(phases, bins=2) == [2, 2]
+
+
 def test_groups_by_start_phase_keep_each_robot_once():
     values = torch.tensor([0.1, -0.2, 0.3, 0.05])
     groups = drift_sources.by_start(values, torch.tensor([0.5, 0.0, 0.5, 0.0]))
@@ -54,6 +62,8 @@ def test_a_short_case_on_a_shipped_policy_writes_its_report(tmp_path):
         assert abs(parts - r["lateral_m"]["mean"]) < 2e-3
         assert r["solver_iterations"] is None  # the test's solver, the model's own
         assert r["cycle_mean_error_mps"] is None  # 0.2 s: no step after a whole gait cycle
+        falls = r["falls_by_phase_tenth"]
+        assert len(falls) == 10 and sum(falls) == round((1 - r["survival"]) * 2)
     with pytest.raises(SystemExit):
         drift_sources.main(args)
 
