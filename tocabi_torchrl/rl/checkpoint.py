@@ -34,16 +34,27 @@ from ..atomic import atomic_write_bytes
 from ..config import ConfigError, RunConfig, config_from_dict
 from ..integrity import zip_damage
 
-__all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_checkpoint", "apply_checkpoint", "checkpoint_file",
-           "config_from_checkpoint", "align_transform_state", "prune_checkpoints", "run_folder_of",
-           "verified_checkpoint_file", "CheckpointError", "DamagedCheckpointError", "ExportedPolicyError",
-           "SCHEMA_VERSION"]
+__all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_checkpoint", "apply_checkpoint",
+           "checkpoint_file", "config_from_checkpoint", "align_transform_state", "prune_checkpoints", "run_folder_of",
+           "is_run_checkpoint", "verified_checkpoint_file", "CheckpointError", "DamagedCheckpointError",
+           "ExportedPolicyError", "SCHEMA_VERSION"]
 
 #: Version of the checkpoint layout and config schema written by :func:`save_checkpoint`. Bump it when a change
 #: means older code would misread a new file; :func:`read_checkpoint` refuses files from a newer version.
 SCHEMA_VERSION = 3
 
 _ITER_FILE = re.compile(r"^iter_(\d+)\.pt$")
+#: Every name a run gives its checkpoints: ``latest.pt``, ``iter_<n>.pt``, ``wall_<seconds>s.pt`` (config.wall_tag).
+_RUN_FILE = re.compile(r"^(?:latest|iter_\d+|wall_\d+s)\.pt$")
+
+
+def is_run_checkpoint(path: str | os.PathLike) -> bool:
+    """Whether ``path``'s file name is one a training run gives its checkpoints (not an exported or shipped policy).
+
+    >>> [is_run_checkpoint(n) for n in ("latest.pt", "iter_120.pt", "wall_00540s.pt", "tocabi_walk_torque.pt")]
+    [True, True, True, False]
+    """
+    return _RUN_FILE.match(Path(path).name) is not None
 
 
 class CheckpointError(RuntimeError):

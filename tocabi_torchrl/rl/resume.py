@@ -21,6 +21,7 @@ from .checkpoint import (
     DamagedCheckpointError,
     checkpoint_file,
     config_from_checkpoint,
+    is_run_checkpoint,
     read_checkpoint,
     run_folder_of,
 )
@@ -92,8 +93,7 @@ def _intact_alternative(damaged: Path) -> str:
     """A hint for a damaged checkpoint: the most recently written other checkpoint beside it (``iter_*.pt``,
     ``wall_*.pt``, ``latest.pt``) that reads, among the newest :data:`_ALTERNATIVES_READ`, with its iteration."""
     # A run's own checkpoint names only: a folder of other policies (assets/policies) names no run to continue.
-    others = sorted((p for p in damaged.parent.glob("*.pt") if p != damaged and p.is_file()
-                     and (p.name == "latest.pt" or re.fullmatch(r"(iter_\d+|wall_\d+s)\.pt", p.name))),
+    others = sorted((p for p in damaged.parent.glob("*.pt") if p != damaged and p.is_file() and is_run_checkpoint(p)),
                     key=lambda p: p.stat().st_mtime, reverse=True)
     for other in others[:_ALTERNATIVES_READ]:
         try:
