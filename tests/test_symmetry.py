@@ -12,6 +12,7 @@ from graph_emulation import EmulatedCapture
 from reference_data import reference_file
 from tensordict import TensorDict
 
+from lab.analysis.symmetric_model import MIRROR, partner, symmetric_spec
 from tocabi_torchrl import make_env, robot
 from tocabi_torchrl.config import PRESETS, field_choices, preset_config
 from tocabi_torchrl.motion.reference import ReferenceMotion
@@ -32,13 +33,6 @@ from tocabi_torchrl.transforms.normalize import REFERENCE_OBS_MEAN, REFERENCE_OB
 from tocabi_torchrl.transforms.privileged import PRIVILEGED_DIM, PRIVILEGED_MIRROR, PrivilegedState
 from tocabi_torchrl.transforms.settings import transform_config
 
-_M = np.diag([1.0, -1.0, 1.0])  # the reflection y -> -y
-
-
-def _partner(name: str) -> str:
-    return ("R_" + name[2:]) if name.startswith("L_") else ("L_" + name[2:]) if name.startswith("R_") else name
-
-
 # ------------------------------------------------------------------------------------------------------ the maps
 def test_mirror_joints_and_signs_follow_the_mjcf_axes():
     """The reflection M turns a rotation by θ about the world axis a into one by −θ about M·a: a partner joint whose
@@ -48,10 +42,10 @@ def test_mirror_joints_and_signs_follow_the_mjcf_axes():
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     for j, name in enumerate(robot.JOINT_NAMES):
-        assert robot.JOINT_NAMES[robot.MIRROR_JOINT[j]] == _partner(name)
-        a, p = model.joint(name).id, model.joint(_partner(name)).id
-        np.testing.assert_allclose(_M @ data.xanchor[a], data.xanchor[p], atol=1e-9, err_msg=name)
-        alignment = float((_M @ data.xaxis[a]) @ data.xaxis[p])
+        assert robot.JOINT_NAMES[robot.MIRROR_JOINT[j]] == partner(name)
+        a, p = model.joint(name).id, model.joint(partner(name)).id
+        np.testing.assert_allclose(MIRROR @ data.xanchor[a], data.xanchor[p], atol=1e-9, err_msg=name)
+        alignment = float((MIRROR @ data.xaxis[a]) @ data.xaxis[p])
         assert abs(abs(alignment) - 1.0) < 1e-9, name
         assert robot.MIRROR_SIGN[j] == -np.sign(alignment), name
 
@@ -167,41 +161,6 @@ def test_reference_walk_is_its_own_mirror_image_half_a_cycle_later():
 
 
 # --------------------------------------------------------------------------------------------------- the physics
-def _symmetric_spec() -> mujoco.MjSpec:
-    """TOCABI's MJCF made exactly left-right symmetric where the authored model is not: every right or centre link
-    takes the mirror image of its left partner's inertial (a centre link the mean of its own and its mirror's), and
-    the right joints take their left partners' damping and mirrored range (R_Shoulder1 has 5.0 against the left's
-    3.0; the elbows' ranges differ)."""
-    spec = robot.load_spec()
-    model = spec.compile()
-    data = mujoco.MjData(model)
-    mujoco.mj_forward(model, data)
-
-    def world_inertia(i: int) -> np.ndarray:
-        rot = data.ximat[i].reshape(3, 3)
-        return rot @ np.diag(model.body_inertia[i]) @ rot.T
-
-    for b in range(1, model.nbody):
-        name = model.body(b).name
-        if name.startswith("L_"):
-            continue
-        p = model.body(_partner(name)).id
-        com, inertia = _M @ data.xipos[p], _M @ world_inertia(p) @ _M
-        if p == b:
-            com, inertia = 0.5 * (data.xipos[b] + com), 0.5 * (world_inertia(b) + inertia)
-        rot = data.xmat[b].reshape(3, 3)
-        local = rot.T @ inertia @ rot
-        body = spec.body(name)
-        body.ipos = rot.T @ (com - data.xpos[b])
-        body.iquat = [1.0, 0.0, 0.0, 0.0]
-        body.fullinertia = [local[0, 0], local[1, 1], local[2, 2], local[0, 1], local[0, 2], local[1, 2]]
-        body.mass = model.body_mass[p]
-    for j, name in enumerate(robot.JOINT_NAMES):
-        if name.startswith("R_"):
-            left, right = spec.joint(robot.JOINT_NAMES[robot.MIRROR_JOINT[j]]), spec.joint(name)
-            right.damping = left.damping
-            right.range = sorted(robot.MIRROR_SIGN[j] * np.asarray(left.range))
-    return spec
 
 
 def _mirrored_pair_errors(model_path: str | None, mode: str, steps: int = 20,
@@ -283,7 +242,7 @@ def test_physics_is_mirror_equivariant_on_a_symmetric_model(tmp_path, backend):
         if not warp_cpu_available():
             pytest.skip("warp's CPU device is not available")
     path = tmp_path / "tocabi_symmetric.xml"
-    path.write_text(_symmetric_spec().to_xml())
+    path.write_text(symmetric_spec().to_xml())
     errors = _mirrored_pair_errors(str(path), "torque", backend=backend)
     for name, bound in _SYMMETRIC_BOUNDS[backend].items():
         assert errors[name].max() <= bound, (name, errors[name])

@@ -16,6 +16,9 @@ term pays for (``transforms.cycle_vel_weight``).
 It also tallies where in the gait the robots fell (:func:`falls_by_phase`): the gait phase at each robot's last
 alive step, in tenths of the cycle (a policy that falls as one foot takes over falls near phases 0 and 0.5).
 
+``--model FILE`` runs another TOCABI MJCF, e.g. the exactly symmetric copy ``lab/analysis/symmetric_model.py``
+writes: does a drift or a fall come from the authored robot's small asymmetries?
+
 ``--train_solver`` runs the physics with the solver iteration cap each checkpoint's run trained with
 (``env.sim.solver_iterations``) instead of the model's solver the test runs: does a capped run's policy walk better
 on the physics it trained on?
@@ -95,13 +98,14 @@ def falls_by_phase(phase: torch.Tensor, bins: int = 10) -> list[int]:
 
 
 def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bool = False,
-            train_solver: bool = False) -> dict:
+            train_solver: bool = False, model: Path | None = None) -> dict:
     """The drift sources of one checkpoint in one case of the robust test (see the module docstring);
     ``calm_start``: the robots start without the test's random joint and pelvis velocities; ``train_solver``: the
-    physics runs the solver iteration cap the run trained with, not the model's solver the test runs."""
+    physics runs the solver iteration cap the run trained with, not the model's solver the test runs; ``model``:
+    another TOCABI MJCF to run instead of the checkpoint's."""
     calm = {"start_joint_vel_std": 0.0, "start_base_vel_std": 0.0} if calm_start else {}
     test = robust.RobustTestConfig(num_envs=num_envs, seconds=seconds, **calm)
-    _, cfg, env, agent = robust.checkpoint_case(path, case, "cpu", test, train_solver=train_solver)
+    _, cfg, env, agent = robust.checkpoint_case(path, case, "cpu", test, train_solver=train_solver, model_path=model)
     freeze_running_statistics(env)  # as the test does: the policy as trained
     dt = float(env.base_env.dt)
     steps = policy_steps(seconds, dt)
@@ -142,7 +146,7 @@ def measure(path: Path, case: str, num_envs: int, seconds: float, calm_start: bo
     lateral = y - start_y
     solver = cfg.env.sim.solver_iterations if train_solver else None
     return {"checkpoint": str(path), "case": case, "robots": num_envs, "seconds": seconds, "calm_start": calm_start,
-            "solver_iterations": solver,
+            "solver_iterations": solver, "model": None if model is None else str(model),
             "survival": round(float(alive.float().mean()), 4), "lateral_m": spread(lateral),
             "lateral_m_at": at, "from_heading_m": spread(turned), "from_sideways_walk_m": spread(sideways),
             "lateral_m_by_start_phase": by_start(lateral, start_phase),
@@ -182,14 +186,21 @@ def main(argv=None) -> int:
     p.add_argument("--train_solver", action="store_true",
                    help="run the physics with the solver iteration cap each run trained with "
                         "(env.sim.solver_iterations), not the model's solver the test runs: is the drift the cap's?")
+    p.add_argument("--model", type=Path, default=None,
+                   help="run on this TOCABI MJCF instead of each checkpoint's model (e.g. the exactly symmetric copy "
+                        "of lab/analysis/symmetric_model.py: is the drift or a fall the authored robot's asymmetry?)")
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
     args = p.parse_args(argv)
     check_paths(p, args.checkpoint, args.out)
+    if args.model is not None and not args.model.is_file():
+        p.error(f"--model {args.model}: no such file (write the symmetric copy with "
+                "PYTHONPATH=. python lab/analysis/symmetric_model.py --out FILE.xml)")
     results = []
     for path, calm in [(c, calm) for c in args.checkpoint for calm in (False, True)[:1 + args.calm_start]]:
         start = time.perf_counter()
-        r = measure(path, args.case, args.num_envs, args.seconds, calm, args.train_solver)
+        r = measure(path, args.case, args.num_envs, args.seconds, calm, args.train_solver, args.model)
         solver = f" (solver capped at {r['solver_iterations']})" if r["solver_iterations"] else ""
+        solver += f" (on {args.model})" if args.model is not None else ""
         print(f"{path}{' (calm start)' if calm else ''}{solver}: survival {r['survival']}, lateral {r['lateral_m']}, "
               f"from the heading {r['from_heading_m']}, from walking sideways {r['from_sideways_walk_m']}, "
               f"by start phase {r['lateral_m_by_start_phase']}, cycle-mean velocity error after the first cycle "

@@ -82,3 +82,25 @@ def test_train_solver_runs_the_cap_the_run_trained_with(tmp_path):
         assert drift_sources.main(["--checkpoint", str(capped), "--num_envs", "2", "--seconds", "0.1", *flag,
                                    "--out", str(out)]) == 0
         assert json.loads(out.read_text())["results"][0]["solver_iterations"] == expected
+
+
+def test_model_runs_the_case_on_another_mjcf(tmp_path):
+    """--model runs the checkpoint on the given MJCF (the exactly symmetric copy) and names it in the report; the
+    checkpoint's own model is named by none; a missing file is refused before any robot runs."""
+    from lab.analysis.symmetric_model import main as write_symmetric
+    from lab.benchmarks.robust_policies import POLICIES
+
+    model = tmp_path / "sym.xml"
+    assert write_symmetric(["--out", str(model)]) == 0
+    ckpt = str(POLICIES / "tocabi_walk_torque.pt")
+    reports = {}
+    for name, flag in (("own", []), ("sym", ["--model", str(model)])):
+        out = tmp_path / f"{name}.json"
+        assert drift_sources.main(["--checkpoint", ckpt, "--num_envs", "2", "--seconds", "0.3", *flag,
+                                   "--out", str(out)]) == 0
+        reports[name] = json.loads(out.read_text())["results"][0]
+    assert reports["own"].pop("model") is None and reports["sym"].pop("model") == str(model)
+    # Other inertials, other motion: the same robots, started alike, walk otherwise.
+    assert reports["own"] != reports["sym"]
+    with pytest.raises(SystemExit, match="2"):
+        drift_sources.main(["--checkpoint", ckpt, "--model", str(tmp_path / "none.xml")])

@@ -241,7 +241,7 @@ def case_env(cfg: RunConfig, case: str | RobustCase, device: torch.device, num_e
 
 def checkpoint_case(path: str | os.PathLike, case: str | RobustCase, device: torch.device | str,
                     test: RobustTestConfig = RobustTestConfig(), as_trained: bool = False,
-                    train_solver: bool = False):
+                    train_solver: bool = False, model_path: str | os.PathLike | None = None):
     """A checkpoint's policy in one case's env, ready for :func:`run_case`: ``(state, cfg, env, agent)``, the
     checkpoint as read, its run config, the env of ``test.num_envs`` robots (:func:`case_env`) seeded with
     ``test.seed`` and holding the checkpoint's normaliser statistics, and the agent with its weights
@@ -249,12 +249,17 @@ def checkpoint_case(path: str | os.PathLike, case: str | RobustCase, device: tor
     (``ppo.torque_assist``) acts with the assist at the β its training had reached (an analysis: is a weakness the
     fade's?); without it, as in every test, its legs are pure torque. ``train_solver``: the case's physics runs the
     Newton solver the run trained with (``env.sim.solver_iterations``; an analysis: is a weakness the cap's?);
-    without it, as in every test, the model's own."""
+    without it, as in every test, the model's own. ``model_path``: the case runs on another TOCABI MJCF (an
+    analysis: is a weakness the authored robot's asymmetry? ``lab/analysis/symmetric_model.py``); without it, the
+    checkpoint's own model, as in every test."""
     from ..rl.checkpoint import apply_checkpoint, config_from_checkpoint, read_checkpoint
     from ..rl.trainer import assist_schedule, build_agent
 
     state = read_checkpoint(path)
     cfg = config_from_checkpoint(state, path)
+    if model_path is not None:
+        cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, task=dataclasses.replace(
+            cfg.env.task, model_path=str(model_path))))
     assisted = as_trained and cfg.ppo.torque_assist > 0
     env = case_env(cfg, case, torch.device(device), test.num_envs, test, torque_assist=assisted,
                    train_solver=train_solver)
@@ -428,8 +433,8 @@ def run_case(actor, env, seconds: float, desc: str = "robust test", progress: bo
     cycle), ``instant_speed_error_mps`` (the mean over alive steps of the instantaneous ``|v_heading − command|``
     [m/s], which includes the gait's sway within each cycle), ``knee_rms_rad`` (against the reference [rad]),
     ``heading_change_rad`` (|pelvis yaw| at the last alive step [rad]: every robot starts facing +x, so this is how
-    far it turned, the usual cause of drift) and ``alive_seconds``; NaN for a robot with no alive step. The cycle is the reference motion's period in policy
-    steps (:func:`gait_cycle_steps`: 450 steps of 4 ms).
+    far it turned, the usual cause of drift) and ``alive_seconds``; NaN for a robot with no alive step. The cycle is
+    the reference motion's period in policy steps (:func:`gait_cycle_steps`: 450 steps of 4 ms).
 
     An env whose step is a captured CUDA graph (``env.cuda_graph``, as :func:`case_env` builds on CUDA) is stepped
     through that graph, ``step_and_maybe_reset``: a fallen robot is then reset and walks on, but the metrics stop
