@@ -29,12 +29,21 @@ def new_figure(**kwargs):
     return fig
 
 
+def figure_format(path: str | Path) -> str:
+    """The image format :func:`save_figure` writes ``path`` in: its suffix, PNG without one.
+
+    >>> figure_format("curves.PDF"), figure_format("out/curves")
+    ('pdf', 'png')
+    """
+    return Path(path).suffix[1:].lower() or "png"
+
+
 def save_figure(fig, path: str | Path, title: str, dpi: int = 120) -> Path:
-    """Render ``fig`` (format from ``path``'s suffix, PNG by default) with ``title`` in its metadata and write it to
-    ``path`` atomically."""
+    """Render ``fig`` (format from ``path``'s suffix, PNG by default: :func:`figure_format`) with ``title`` in its
+    metadata and write it to ``path`` atomically."""
     path = Path(path)
     buffer = io.BytesIO()
-    fig.savefig(buffer, format=path.suffix[1:].lower() or "png", dpi=dpi, metadata={"Title": title})
+    fig.savefig(buffer, format=figure_format(path), dpi=dpi, metadata={"Title": title})
     return atomic_write_bytes(path, buffer.getvalue())
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..evaluation.plots import figure_format
 from .metrics_files import read_metrics
 
 __all__ = ["metric_columns", "plot_curves", "read_metrics", "steady_rate"]
@@ -99,7 +100,7 @@ def main(argv=None) -> None:
         parser.error(f"{args.metrics} does not exist: pass a run folder (runs/<name>), its metrics/ folder or a "
                      "metrics.csv")
     out = Path(args.out_png)
-    suffix = out.suffix[1:].lower() or "png"
+    suffix = figure_format(out)
     import matplotlib.figure  # the formats matplotlib can write (no backend needed)
 
     if suffix not in matplotlib.figure.Figure().canvas.get_supported_filetypes():
