@@ -1,6 +1,6 @@
-"""recipes/sim2sim.py reports a model without the contract's names, a missing model file, a policy file given as the
-contract, an --out folder that does not exist, an --out file it cannot write and a missing onnxruntime in one
-``error:`` line (or a usage error), not a traceback."""
+"""recipes/sim2sim.py reports a model without the contract's names, a file MuJoCo cannot read, a missing model file, a
+policy file given as the contract, an --out folder that does not exist, an --out file it cannot write and a missing
+onnxruntime in one ``error:`` line (or a usage error), not a traceback."""
 
 from __future__ import annotations
 
@@ -31,6 +31,19 @@ def test_a_model_without_the_contracts_names_is_one_error_line(tmp_path):
     message = str(_run(["--model", str(model)]).code)
     assert message.startswith(f"error: {model} lacks 72 name(s) the policy contract needs (joint 'L_HipYaw_Joint'")
     assert "\n" not in message
+
+
+@needs_contract
+@pytest.mark.parametrize("name, text", [("model.txt", "not a model"),
+                                        ("broken.xml", "<mujoco><worldbody><body></mujoco>")])
+def test_a_file_mujoco_cannot_read_is_one_error_line_naming_it(tmp_path, name, text):
+    """A file of another kind, or broken XML: MuJoCo's own message ("could not find decoder for resource", or an XML
+    error over several lines) on one line, with the file and what to pass."""
+    model = tmp_path / name
+    model.write_text(text)
+    message = str(_run(["--model", str(model)]).code)
+    assert message.startswith(f"error: {model}: MuJoCo cannot read it as an MJCF model (")
+    assert message.endswith("pass a TOCABI MJCF (.xml)") and "\n" not in message
 
 
 def test_an_out_file_in_a_missing_folder_is_refused_before_the_run(capsys, tmp_path):

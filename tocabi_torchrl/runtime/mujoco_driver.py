@@ -82,9 +82,15 @@ def missing_names(spec: mujoco.MjSpec, contract: dict) -> list[str]:
 def build_model(contract: dict, model_path: str | os.PathLike, remove_meshes: bool = False) -> mujoco.MjModel:
     """Compile ``model_path`` with the actuators the contract's control mode needs (see the module docstring).
 
-    Raises ``ValueError`` naming what the model lacks when it is not a TOCABI model with the contract's names."""
-    spec = (mujoco.MjSpec.from_string(strip_meshes(model_path)) if remove_meshes
-            else mujoco.MjSpec.from_file(str(model_path)))
+    Raises ``ValueError`` when MuJoCo cannot read ``model_path`` as a model, or naming what the model lacks when it is
+    not a TOCABI model with the contract's names."""
+    try:
+        spec = (mujoco.MjSpec.from_string(strip_meshes(model_path)) if remove_meshes
+                else mujoco.MjSpec.from_file(str(model_path)))
+    except ValueError as err:  # MuJoCo's own words ("could not find decoder for resource ...") name no fix
+        detail = " ".join(str(err).split())  # an XML error spans lines
+        raise ValueError(f"{model_path}: MuJoCo cannot read it as an MJCF model ({detail}); pass a TOCABI MJCF "
+                         "(.xml)") from err
     missing = missing_names(spec, contract)
     if missing:
         shown = ", ".join(missing[:8]) + (", ..." if len(missing) > 8 else "")
@@ -238,8 +244,8 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     walking gait is chaotic, so a 1e-6 rad offset (or the ~1e-6 difference between ONNX and torch arithmetic) gives
     another sample of it, and averages over such robots are what two implementations can be compared on.
 
-    Randomisation and perturbations (``docs/concepts/randomization.md``, "Sim-to-sim with randomisation"), drawn per robot
-    at the reset from numpy generators of ``seed`` (one stream per piece, ``randomization.generator``):
+    Randomisation and perturbations (``docs/concepts/randomization.md``, "Sim-to-sim with randomisation"), drawn per
+    robot at the reset from numpy generators of ``seed`` (one stream per piece, ``randomization.generator``):
 
     * ``randomize``: ``"none"`` (default: the nominal robot, numbers exactly as without these options),
       ``"trained"`` (what the contract's ``trained_under`` section states), ``"tocabi_lab"``, or a
