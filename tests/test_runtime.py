@@ -607,6 +607,12 @@ def test_a_policy_output_with_no_finite_entry_stops_that_robot():
     raw[1] = [np.inf] * 6 + [np.nan] * 7
     with pytest.raises(ContractError, match=r"output is NaN or inf in every entry for robot\(s\) \[1, 2\].*re-export"):
         runtime.step(_robots(3))
+    # The clock had moved on to a period with no command: a further step is refused, not run on the stale action.
+    with pytest.raises(RuntimeError, match=r"step without a running episode.*reset\(state, command\)"):
+        runtime.step(_robots(3))
+    raw[1:] = 0.25
+    assert runtime.reset(_robots(3), (0.5, 0.0)).action[1, 0] == 0.25  # a reset starts another episode
+    runtime.step(_robots(3))
 
 
 def test_policy_input_and_set_command_before_reset_say_to_reset_first():

@@ -186,7 +186,8 @@ class PolicyRuntime:
         """``state`` after one control period of the last command; returns the command for the next period.
         ``command`` (optional) replaces the velocity command from this observation on."""
         if self._pending is None:
-            raise RuntimeError("PolicyRuntime.step before reset: call reset(state, command) first")
+            raise RuntimeError("PolicyRuntime.step without a running episode (before reset, or after a policy output "
+                               "with no finite entry): call reset(state, command) first")
         self._check_state(state, self.num_robots)
         if command is not None:
             self.set_command(command)
@@ -305,10 +306,12 @@ class PolicyRuntime:
         # a glitch, and zeroing it would quietly command zero torque or the bare reference.
         dead = ~np.isfinite(raw).any(-1)
         if dead.any():
+            # The clock and the history have moved on to a period that has no command: no step may follow it.
+            self._pending = None
             raise ContractError(f"the policy's output is NaN or inf in every entry for robot(s) "
                                 f"{np.flatnonzero(dead).tolist()}: the exported network is broken (non-finite "
                                 "weights?) or its input was; stop these robots and re-export the policy from a sound "
-                                "checkpoint")
+                                "checkpoint (the episode has ended: reset() starts another)")
         action = np.clip(np.nan_to_num(raw, nan=0.0), self.low, self.high)
         self._pending = action
         ref = self.motion.joint_targets(self.time, self.init_row)
