@@ -175,8 +175,10 @@ def main(argv: list[str] | None = None) -> None:
             summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device,
                                    seconds=cfg.eval_seconds, out_dir=out)
             print(gait_report_text(summary, cfg.eval_seconds, cfg.eval_envs, out))
-    except KeyboardInterrupt:  # training is done and saved: only the test stopped
-        sys.exit(f"\nstopped (Ctrl-C) during the gait test; training had finished and is saved.\n{where}")
+    except KeyboardInterrupt:  # training is done and saved: only the test stopped; 130 as for any Ctrl-C stop
+        print(f"\nstopped (Ctrl-C) during the gait test; training had finished and is saved.\n{where}",
+              file=sys.stderr)
+        sys.exit(signal_exit_status("SIGINT"))
     print(where)
 
 
