@@ -11,7 +11,6 @@ given with its saved value is no change.
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 
 from ..config import RunConfig
