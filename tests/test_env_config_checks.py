@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -76,6 +77,19 @@ def test_every_default_and_preset_passes_and_none_stays_allowed():
     cfg = TocabiWalkConfig().with_flat(nconmax=None, njmax=None, sim_threads=None, motion=None)
     cfg.validate()
     assert cfg.sim.nconmax is None
+
+
+def test_a_motion_given_as_a_path_object_is_a_path(tmp_path):
+    """A pathlib.Path, as ReferenceMotion.from_file takes, was refused by the motion check ("must be a path ...,
+    got PosixPath(...)"); an empty one is still refused."""
+    from tocabi_torchrl import robot
+
+    shipped = Path(robot.asset_path("motions", "tocabi_walk.npz"))
+    TocabiWalkConfig().with_flat(motion=shipped).validate()
+    env = TocabiWalk(num_envs=1, device="cpu", config=TocabiWalkConfig().with_flat(motion=shipped))
+    assert env.motion.num_rows > 0
+    with pytest.raises(ValueError, match="env.task.motion must be a path"):
+        TocabiWalkConfig().with_flat(motion="  ").validate()
 
 
 def test_numpy_scalars_are_taken_as_plain_numbers():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
 
 from .. import robot
@@ -172,7 +173,8 @@ class TaskConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 <= value <= 10):
                 raise ValueError(f"env.task.{name} must be a std in [0, 10], got {value!r}")
-        if self.motion is not None and (not isinstance(self.motion, str) or not self.motion.strip()):
+        motion = os.fspath(self.motion) if isinstance(self.motion, os.PathLike) else self.motion
+        if motion is not None and (not isinstance(motion, str) or not motion.strip()):
             raise ValueError(f"env.task.motion must be a path to a .npz or reference .txt motion, or none for the "
                              f"shipped cycle, got {self.motion!r}")
 
