@@ -107,6 +107,15 @@ def test_transform_refuses_what_it_cannot_do():
                       ClipTransform(in_keys=["obs_step"], out_keys=["obs_step"], low=-100.0, high=100.0),
                       SensorNoise(LAB), FixedNormalization(), ObsActionHistory())
     assert TransformedEnv(make_env(num_envs=2, device="cpu").base_env, clipped).reset()["observation"].shape == (2, 237)
+    # A transform in front that only copies obs_step (a clean copy for a critic or a log) is fine too, while the
+    # policy input is built behind the noise (it was refused as "comes after CatTensors").
+    from torchrl.envs import CatTensors
+
+    copied = Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(),
+                     CatTensors(in_keys=["obs_step"], out_key="obs_clean", del_keys=False), SensorNoise(LAB),
+                     FixedNormalization(), ObsActionHistory())
+    td = TransformedEnv(make_env(num_envs=2, device="cpu").base_env, copied).reset()
+    assert td["observation"].shape == (2, 237) and not torch.equal(td["obs_clean"], td["obs_step"])
 
 
 # ------------------------------------------------------------------------------------------- distributions

@@ -5,7 +5,7 @@ from __future__ import annotations
 from tensordict import TensorDictBase
 from torchrl.envs.transforms import Compose, Transform
 
-__all__ = ["CallOnReset", "check_specs_once", "transforms_before"]
+__all__ = ["CallOnReset", "check_specs_once", "transforms_after", "transforms_before"]
 
 
 def transforms_before(transform: Transform) -> list[Transform]:
@@ -19,6 +19,27 @@ def transforms_before(transform: Transform) -> list[Transform]:
         elif t is not None:
             found.append(t)
     return found
+
+
+def _flattened(transforms) -> list[Transform]:
+    found = []
+    for t in transforms:
+        if t is not None:
+            found.extend(_flattened(t.transforms) if isinstance(t, Compose) else [t])
+    return found
+
+
+def transforms_after(transform: Transform) -> list[Transform]:
+    """The transforms behind ``transform`` in its env's chain (or its ``Compose``'s, outside an env), in order, nested
+    ``Compose`` flattened; empty when it belongs to neither. For checks of a transform's place in the chain."""
+    try:
+        box = transform.container  # the env, for a transform anywhere in an env's chain
+    except ValueError:  # in no Compose nor env
+        return []
+    chain = _flattened([box if isinstance(box, Compose) else getattr(box, "transform", None)] if box is not None
+                       else [])
+    index = next((i for i, t in enumerate(chain) if t is transform), None)
+    return [] if index is None else chain[index + 1:]
 
 
 def check_specs_once(transform: Transform) -> None:

@@ -62,7 +62,7 @@ from torchrl.envs.transforms import Transform
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.envs.episode_random import EpisodeDraws, LaneDraws, stream_lanes
-from tocabi_torchrl.transforms._base import transforms_before
+from tocabi_torchrl.transforms._base import transforms_after, transforms_before
 from tocabi_torchrl.transforms._checks import require_spec
 from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsComponent
 # The config lives in a module without torch, for the config tree; this path names it too.
@@ -216,17 +216,19 @@ class SensorNoise(Transform):
 
     # ---------------------------------------------------------------------------------------------- set-up
     def _check_place(self) -> None:
-        """Refuse a place after a transform that reads ``obs_key`` already (a normalisation, the history): the noise
-        added there would reach nothing the policy sees, silently."""
+        """Refuse a place after the transform that builds the policy input from ``obs_key`` (a normalisation, the
+        history) when no transform behind reads ``obs_key``: the noise added there would reach nothing the policy
+        sees, silently. A transform in front that only reads it (a clean copy for a critic or a log) is fine while
+        the policy input is built behind."""
         key = self.in_keys[0]
-        for t in transforms_before(self):
-            if key in t.in_keys and key not in t.out_keys:  # one that rewrites obs_step in place passes it on
-                raise ValueError(f"SensorNoise comes after {type(t).__name__}, which reads {key!r} already, so the "
-                                 f"noise would reach nothing the policy sees; put SensorNoise right after "
-                                 "ObservationAssembly (as default_transforms does)")
+        # One that rewrites obs_step in place passes the noise on.
+        readers = [t for t in transforms_before(self) if key in t.in_keys and key not in t.out_keys]
+        if readers and not any(key in t.in_keys for t in transforms_after(self)):
+            raise ValueError(f"SensorNoise comes after {type(readers[-1]).__name__}, which reads {key!r} already, "
+                             f"and nothing behind it reads {key!r}, so the noise would reach nothing the policy sees; "
+                             "put SensorNoise right after ObservationAssembly (as default_transforms does)")
 
     def _map_columns(self, spec: Composite) -> None:
-        self._check_place()
         batch = tuple(spec.shape)
         perturbed = self.config.perturbed()
         columns: dict[str, tuple[list[int], list[int]]] = {name: ([], []) for name in perturbed}
@@ -399,6 +401,9 @@ class SensorNoise(Transform):
         seed, env_ids, episode, step = self._key_source()
         n = env_ids.shape[0]
         if not self._index:
+            # Here, not with the specs: torchrl computes a later transform's specs on copies of the chain in front
+            # of it, where nothing is behind this transform.
+            self._check_place()
             self._materialise()
             mask = torch.ones(n, dtype=torch.bool, device=env_ids.device)
         else:
