@@ -568,6 +568,20 @@ def test_a_motion_of_ones_own_is_found_beside_the_contract(contract_copy):
         PolicyRuntime(_write(path, c))
 
 
+def test_an_old_copy_of_a_shipped_motion_beside_the_contract_does_not_hide_the_shipped_one(contract_copy):
+    # A file of the shipped motion's name beside the contract with another hash was taken first and then failed the
+    # hash check, where the shipped file matched.
+    path, c = contract_copy
+    stale = path.with_name(c["reference_motion"]["name"])
+    np.savez(stale, stale=np.zeros(3))
+    assert stale.is_file()
+    runtime = PolicyRuntime(_write(path, c))
+    assert runtime.motion is not None
+    c["reference_motion"]["sha256"] = "0" * 64  # neither matches: the error names the file beside the contract
+    with pytest.raises(ContractError, match=f"reference motion {stale}"):
+        PolicyRuntime(_write(path, c), check_onnx_hash=False)
+
+
 def test_a_file_that_is_not_onnx_is_a_contract_error(contract_copy):
     # A file whose hash the contract matches but that onnxruntime cannot load (an empty or foreign file) ended in
     # onnxruntime's own InvalidProtobuf traceback.

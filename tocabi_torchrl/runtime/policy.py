@@ -149,14 +149,14 @@ class PolicyRuntime:
     def _load_motion(self, spec: dict, motion) -> RuntimeMotion:
         if motion is None:
             # Beside the contract first (where a policy trained on a motion of its own brings it, as the contract's
-            # check says), then the shipped motions.
-            beside = self.onnx_path.with_name(spec["name"])
-            if beside.is_file():
-                motion = beside
-            else:
-                from ..robot import asset_path  # numpy-only module
+            # check says), then the shipped motions; a file of the name beside it with another hash (an old copy)
+            # does not hide a shipped one that matches.
+            from ..robot import asset_path  # numpy-only module
 
-                motion = asset_path("motions", spec["name"])
+            beside, shipped = self.onnx_path.with_name(spec["name"]), asset_path("motions", spec["name"])
+            motion = beside if beside.is_file() else shipped
+            if motion == beside and shipped.is_file() and file_sha256(beside) != spec["sha256"]:
+                motion = shipped if file_sha256(shipped) == spec["sha256"] else beside
         return RuntimeMotion.from_file(motion, self.joint_names, spec["sha256"])
 
     # --------------------------------------------------------------------------------------------- public API
