@@ -57,6 +57,7 @@ from tocabi_torchrl.rl.trainer import finished_result, raised_before_training, r
 from tocabi_torchrl.robot import RobotAssetError, load_model  # noqa: E402
 from tocabi_torchrl.viewer.config import expand_viewer_flag  # noqa: E402
 from tocabi_torchrl.viewer.extra import require_viser  # noqa: E402
+from tocabi_torchrl.viewer.server import check_address  # noqa: E402
 
 
 def stopped(result) -> int:
@@ -92,8 +93,9 @@ def main(argv: list[str] | None = None) -> None:
         argv = expand_viewer_flag(sys.argv[1:] if argv is None else argv)
         cfg, given, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0],
                                          data_parallel=dist_info.enabled, prog="ppo_walk.py")
-        if cfg.viewer.enabled:
-            require_viser()  # said now, not after the env is built
+        if cfg.viewer.enabled:  # said now, not after the env is built
+            require_viser()
+            check_address(cfg.viewer.host, cfg.viewer.port)
         model_based = cfg.env.control.mode == "model_based"
         if cfg.eval_at_end or model_based:
             control_dt = load_model(cfg.env.task.model_path).opt.timestep * cfg.env.sim.substeps

@@ -331,6 +331,40 @@ def test_a_missing_viewer_extra_names_the_install_command(name, monkeypatch, cap
     assert 'pip install -e ".[viewer]"' in message
 
 
+@pytest.mark.parametrize("name", ["play", "ppo_walk"])
+def test_a_viewer_address_it_cannot_serve_on_is_said_before_anything_is_loaded(name, monkeypatch):
+    # Checked only when the server started: after the policy was loaded or the training env built (kernel
+    # compilation on a GPU).
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed: pip install -e '.[viewer]'")
+    from tocabi_torchrl.evaluation import record
+    from tocabi_torchrl.rl import trainer
+
+    def loaded(*args, **kwargs):
+        raise AssertionError("loaded before the address was checked")
+
+    monkeypatch.setattr(record, "load_policy", loaded)
+    monkeypatch.setattr(trainer, "build_env", loaded)
+    argv = (["--policy", "ppo", "--viewer", "--device", "cpu"] if name == "play" else
+            ["--viewer", "--device", "cpu", "--preset", "cpu_smoke"])
+    with pytest.raises(SystemExit) as exc:
+        recipe(name).main([*argv, "--viewer.host" if name == "ppo_walk" else "--viewer_host", "10.9.9.9"])
+    assert "the viewer cannot serve on host '10.9.9.9'" in str(exc.value.code), exc.value.code
+
+
+def test_a_host_is_served_when_any_of_its_addresses_binds(monkeypatch):
+    # The server binds every address a name resolves to and skips those it cannot; the check tried the first only
+    # (localhost resolving to ::1 first on a machine without IPv6 was refused).
+    from tocabi_torchrl.viewer import server
+
+    foreign = (socket.AF_INET, socket.SOCK_STREAM, 6, "", ("10.9.9.9", 0))
+    local = (socket.AF_INET, socket.SOCK_STREAM, 6, "", ("127.0.0.1", 0))
+    monkeypatch.setattr(server.socket, "getaddrinfo", lambda *a, **k: [foreign, local])
+    server.check_address("both.example", 8080)
+    monkeypatch.setattr(server.socket, "getaddrinfo", lambda *a, **k: [foreign])
+    with pytest.raises(ValueError, match="cannot serve on host 'both.example'"):
+        server.check_address("both.example", 8080)
+
+
 def test_policy_names_a_shipped_policy_or_says_which_there_are(tmp_path):
     from tocabi_torchrl.viewer.policy_source import resolve_policy
 

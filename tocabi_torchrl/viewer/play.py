@@ -176,9 +176,10 @@ def serve_policy(path, num_envs: int = 64, device: str = "auto", host: str = "12
     from ..evaluation.record import load_policy
     from ..rl.trainer import resolve_device
     from .extra import require_viser
-    from .server import page_url, start_server
+    from .server import check_address, page_url, start_server
 
-    require_viser()  # before minutes of loading: the missing extra is said at once
+    require_viser()  # before minutes of loading: the missing extra and a bad address are said at once
+    check_address(host, port)
     policy = load_policy(path, num_envs, resolve_device(device), command=command, backend=backend)
     server = start_server(host, port)
     try:

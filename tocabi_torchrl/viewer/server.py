@@ -23,12 +23,20 @@ def check_address(host: str, port: int) -> None:
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise ValueError(f"viewer port must be an int in [0, 65535], got {port!r}")
     try:
-        family = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)[0][0]
-        with socket.socket(family, socket.SOCK_STREAM) as probe:
-            probe.bind((host, 0))  # any free port: whether the host is this machine's
-    except OSError as err:  # socket.gaierror too
-        raise ValueError(f"the viewer cannot serve on host {host!r} ({err.strerror or err}): use 127.0.0.1 (this "
-                         "machine only; reach it via ssh -L) or 0.0.0.0 (every interface)") from None
+        found = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+    except OSError as err:  # socket.gaierror: a name that resolves to nothing
+        found, last = [], err
+    # The server binds every address the name resolves to and skips those it cannot: one that binds is enough
+    # (localhost may resolve to ::1 first on a machine without IPv6).
+    for family, _, _, _, address in found:
+        try:
+            with socket.socket(family, socket.SOCK_STREAM) as probe:
+                probe.bind((address[0], 0, *address[2:]))  # any free port: whether the address is this machine's
+            return
+        except OSError as err:
+            last = err
+    raise ValueError(f"the viewer cannot serve on host {host!r} ({last.strerror or last}): use 127.0.0.1 (this "
+                     "machine only; reach it via ssh -L) or 0.0.0.0 (every interface)") from None
 
 
 def start_server(host: str = "127.0.0.1", port: int = 8080, label: str = "tocabi-torchrl"):
