@@ -103,6 +103,8 @@ def test_an_env_other_than_its_config_is_refused_by_train(tmp_path):
     from tocabi_torchrl.envs import TocabiWalk
     from tocabi_torchrl.rl import preset_config
     from tocabi_torchrl.rl.trainer import build_env, train
+    from tocabi_torchrl.transforms.layouts import TOCABILAB_HISTORY
+    from tocabi_torchrl.transforms.sensor_noise_config import SensorNoiseConfig
 
     cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
                         "ppo.minibatch_size": 16}, total_env_steps=32, run_dir=str(tmp_path), name="x",
@@ -113,10 +115,21 @@ def test_an_env_other_than_its_config_is_refused_by_train(tmp_path):
                          (build_env(cfg, cpu, for_training=True, normalization="running"),
                           "normalises with running statistics, cfg.transforms.normalization is 'fixed'"),
                          (build_env(cfg, cpu, num_envs=2, for_training=True), "has 2 worlds, cfg.env.num_envs 4"),
-                         (TocabiWalk(num_envs=4, device="cpu"), "has no 'observation'")):
+                         (TocabiWalk(num_envs=4, device="cpu"), "has no 'observation'"),
+                         # Inputs of the same width (237) built otherwise: the run would save another input.
+                         (build_env(cfg, cpu, for_training=True, history=TOCABILAB_HISTORY),
+                          r"builds its policy input otherwise than cfg \(history: HistoryLayout\(num_obs=5, stride=1"),
+                         (build_env(cfg, cpu, for_training=True, sensor_noise=SensorNoiseConfig.tocabi_lab()),
+                          "sensor noise: a SensorNoiseConfig of its own in the env, none in cfg"),
+                         (build_env(cfg, cpu, for_training=True, obs_clip=5.0),
+                          "observation clip: 5.0 in the env, none in cfg")):
         with pytest.raises(ValueError, match=message):
             train(cfg, env=env)
     assert not (tmp_path / "x").exists()
+    # A reward of one's own is a task's (docs/extending.md): not refused.
+    from tocabi_torchrl.rl.trainer import check_given_env
+
+    check_given_env(cfg, build_env(cfg, cpu, for_training=True, reward_terms=("body_vel", "orientation")))
 
 
 def test_a_controller_returning_the_wrong_shape_is_named():

@@ -122,6 +122,52 @@ def check_given_env(cfg: RunConfig, env: EnvBase) -> None:
         raise ValueError(f"the env given to train() normalises with {'running' if running else 'fixed or no'} "
                          f"statistics, cfg.transforms.normalization is {cfg.transforms.normalization!r}: set it in cfg "
                          "and build the env with build_env(cfg, device, for_training=True)")
+    # The policy input's other settings: a history layout, sensor noise or clip of another kind can give an input
+    # of the same width, which every later evaluation, export and resume would build otherwise. (The reward terms
+    # may be one's own: a task of its own passes them to build_env, docs/extending.md.)
+    from ..transforms.presets import default_transforms
+
+    given = _input_settings(getattr(env, "transform", None))
+    if given is not None:
+        want = _input_settings(default_transforms(cfg.transforms.transform_config()))
+        differ = [f"{name}: {_short(given[name])} in the env, {_short(want[name])} in cfg" for name in want
+                  if given[name] != want[name]]
+        if differ:
+            raise ValueError(f"the env given to train() builds its policy input otherwise than cfg "
+                             f"({'; '.join(differ[:2])}{'; ...' if len(differ) > 2 else ''}): the run saves cfg, so "
+                             "every evaluation, export and resume would build another input; put the settings into "
+                             "cfg.transforms and build the env with build_env(cfg, device, for_training=True)")
+
+
+def _short(value) -> str:
+    """``value`` for an error line: its repr, or its type's name when that is long (a whole config)."""
+    text = "none" if value is None else repr(value)
+    return text if len(text) <= 64 else f"a {type(value).__name__} of its own"
+
+
+def _input_settings(chain) -> dict | None:
+    """What of a transform chain builds the policy input, for comparing two chains: the phase harmonics, the
+    per-step layout, the sensor noise, the normalisation's kind and clip and the history layout; None without a
+    chain (an env without transforms)."""
+    if chain is None:
+        return None
+    from ..transforms._base import flatten_chain
+
+    found = {"phase harmonics": None, "observation layout": None, "sensor noise": None, "normalization": None,
+             "observation clip": None, "history": None}
+    for t in flatten_chain([chain]):
+        kind = type(t).__name__
+        if kind == "PhaseEncoding":
+            found["phase harmonics"] = t.harmonics
+        elif kind == "ObservationAssembly":
+            found["observation layout"] = tuple(c.name for c in t.layout)
+        elif kind == "SensorNoise":
+            found["sensor noise"] = t.config
+        elif kind in ("FixedNormalization", "RunningNormalization"):
+            found["normalization"], found["observation clip"] = kind, t.clip
+        elif kind == "ObsActionHistory":
+            found["history"] = t.layout
+    return found
 
 
 def build_env(cfg: RunConfig, device: torch.device, num_envs: int | None = None, for_training: bool = False,

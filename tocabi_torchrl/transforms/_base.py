@@ -5,7 +5,7 @@ from __future__ import annotations
 from tensordict import TensorDictBase
 from torchrl.envs.transforms import Compose, Transform
 
-__all__ = ["CallOnReset", "check_specs_once", "transforms_after", "transforms_before"]
+__all__ = ["CallOnReset", "check_specs_once", "flatten_chain", "transforms_after", "transforms_before"]
 
 
 def transforms_before(transform: Transform) -> list[Transform]:
@@ -21,11 +21,12 @@ def transforms_before(transform: Transform) -> list[Transform]:
     return found
 
 
-def _flattened(transforms) -> list[Transform]:
+def flatten_chain(transforms) -> list[Transform]:
+    """``transforms`` (transforms or ``Compose``, ``None`` skipped) as one flat list, in order."""
     found = []
     for t in transforms:
         if t is not None:
-            found.extend(_flattened(t.transforms) if isinstance(t, Compose) else [t])
+            found.extend(flatten_chain(t.transforms) if isinstance(t, Compose) else [t])
     return found
 
 
@@ -36,7 +37,7 @@ def transforms_after(transform: Transform) -> list[Transform]:
         box = transform.container  # the env, for a transform anywhere in an env's chain
     except ValueError:  # in no Compose nor env
         return []
-    chain = _flattened([box if isinstance(box, Compose) else getattr(box, "transform", None)] if box is not None
+    chain = flatten_chain([box if isinstance(box, Compose) else getattr(box, "transform", None)] if box is not None
                        else [])
     index = next((i for i, t in enumerate(chain) if t is transform), None)
     return [] if index is None else chain[index + 1:]
