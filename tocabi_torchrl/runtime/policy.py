@@ -62,7 +62,10 @@ class Command:
     reference: np.ndarray
 
 
-def _onnx_session(path: Path, threads: int):
+def _onnx_session(path: Path, threads: int, as_exported: bool = False, opset: int | None = None):
+    """An onnxruntime session of ``path`` on the CPU; ``ContractError`` when onnxruntime cannot load it.
+    ``as_exported``: the file's hash is its contract's, so a failure may be this onnxruntime's (too old for the
+    graph's ``opset``) as well as the file's; the error says both."""
     try:
         import onnxruntime as ort
     except ImportError as err:  # an optional dependency: say which extra brings it
@@ -75,8 +78,14 @@ def _onnx_session(path: Path, threads: int):
     try:
         return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
     except Exception as err:  # onnxruntime's own errors (InvalidProtobuf, InvalidArgument, ...) share no base class
-        raise ContractError(f"{path} is not an ONNX model onnxruntime can load ({type(err).__name__}: "
-                            f"{str(err).strip()[:200]}); export it again with python -m tocabi_torchrl.export") from err
+        said = f"{type(err).__name__}: {str(err).strip()[:200]}"
+        if as_exported:  # the file is the one the contract names: the export's, or both replaced together
+            raise ContractError(f"onnxruntime {ort.__version__} cannot load {path} ({said}); its sha256 is its "
+                                f"contract's, so this onnxruntime may be too old for the graph's opset {opset} "
+                                "(pip install -U onnxruntime), or the file and its contract were both replaced "
+                                "(export it again with python -m tocabi_torchrl.export)") from err
+        raise ContractError(f"{path} is not an ONNX model onnxruntime can load ({said}); export it again with "
+                            "python -m tocabi_torchrl.export") from err
 
 
 class PolicyRuntime:
@@ -110,7 +119,8 @@ class PolicyRuntime:
         if check_onnx_hash and c["policy"]["onnx_sha256"] != file_sha256(self.onnx_path):
             raise ContractError(f"{self.onnx_path} does not match the sha256 in {path}: the contract belongs to "
                                 "another export; re-export both together")
-        self.session = _onnx_session(self.onnx_path, threads)
+        self.session = _onnx_session(self.onnx_path, threads, as_exported=check_onnx_hash,
+                                     opset=c["policy"].get("opset"))
         pol = c["policy"]
         for kind, ios, name, dim in (("input", self.session.get_inputs(), pol["input_name"], pol["input_dim"]),
                                      ("output", self.session.get_outputs(), pol["output_name"], pol["output_dim"])):
