@@ -147,6 +147,13 @@ def serve(args: argparse.Namespace) -> None:
     from tocabi_torchrl.viewer import ViewerUnavailable
     from tocabi_torchrl.viewer.play import serve_policy
 
+    # The live page tests nothing and writes nothing: these would be ignored without a word.
+    ignored = [flag for flag, given in (("--test", args.test != "standard"), ("--out", args.out is not None),
+                                        ("--overwrite", args.overwrite), ("--video_envs", args.video_envs != 4))
+               if given]
+    if ignored:
+        sys.exit(f"error: {', '.join(ignored)}: the live viewer tests nothing and writes no files, so it takes none "
+                 "of them; leave them out (or drop --viewer for the gait test)")
     if Path(args.checkpoint).suffix in (".onnx", ".json"):  # an exported policy: the torch-free runtime drives it
         serve_exported(args)
         return
@@ -166,8 +173,8 @@ def serve_exported(args: argparse.Namespace) -> None:
     from tocabi_torchrl.viewer.exported import contract_of
 
     # The torch-free driver runs C MuJoCo on the CPU and tests nothing: these would be ignored without a word.
-    ignored = [flag for flag, given in (("--backend", args.backend is not None), ("--device", args.device != "auto"),
-                                        ("--test", args.test != "standard"), ("--out", args.out is not None)) if given]
+    ignored = [flag for flag, given in (("--backend", args.backend is not None), ("--device", args.device != "auto"))
+               if given]
     if ignored:
         sys.exit(f"error: {', '.join(ignored)}: an exported policy's viewer runs the torch-free C MuJoCo driver "
                  "(recipes/sim2sim.py), which takes none of them; leave them out")

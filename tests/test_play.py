@@ -80,8 +80,15 @@ def test_play_refuses_seconds_below_one_policy_step(capsys):
     # The viewer of an exported policy ignored them without a word (it runs the torch-free C MuJoCo driver).
     with pytest.raises(SystemExit) as info:
         recipe("play").main(["--checkpoint", str(SHIPPED_POLICY.with_suffix(".onnx")), "--viewer", "--backend", "warp",
-                             "--test", "robust"])
-    assert str(info.value.code).startswith("error: --backend, --test: an exported policy's viewer runs the torch-free")
+                             "--device", "cpu"])
+    assert str(info.value.code).startswith("error: --backend, --device: an exported policy's viewer runs the torch-free")
+    # Any live viewer ignored the test's options without a word (--video_envs and --overwrite among them).
+    for policy in (SHIPPED_POLICY, SHIPPED_POLICY.with_suffix(".onnx")):
+        with pytest.raises(SystemExit) as info:
+            recipe("play").main(["--checkpoint", str(policy), "--viewer", "--test", "robust", "--video_envs", "2",
+                                 "--overwrite"])
+        assert str(info.value.code).startswith("error: --test, --overwrite, --video_envs: the live viewer tests "
+                                               "nothing"), info.value.code
     # sim2sim ran no step and reported survival 1.0 with NaN metrics (not JSON) into its --out.
     with pytest.raises(SystemExit) as info:
         recipe("sim2sim").main(["--contract", str(SHIPPED_POLICY.with_suffix(".json")), "--seconds", "0.001"])
