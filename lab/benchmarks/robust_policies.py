@@ -1,5 +1,6 @@
 """The robust gait test of several policies side by side (by default the three shipped policies trained on the
-nominal robot, ``SHIPPED``; add the robust one with ``--policies``), one table.
+nominal robot, ``SHIPPED``; ``--policies`` replaces that list, so name the shipped ones too to test the robust one
+beside them), one table.
 
     python -m lab.benchmarks.robust_policies --out docs/benchmarks/robust --overwrite
     python -m lab.benchmarks.robust_policies --policies runs/robust/checkpoints/best.pt --num_envs 1024
@@ -160,7 +161,8 @@ def _plot(data: dict, path: Path) -> None:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m lab.benchmarks.robust_policies", description=__doc__.split("\n")[0])
     parser.add_argument("--policies", nargs="+", default=[str(POLICIES / f"{p}.pt") for p in SHIPPED],
-                        help="checkpoints or run folders (default: the shipped policies)")
+                        help="checkpoints or run folders, which replace the default: the three shipped policies "
+                             "trained on the nominal robot (assets/policies/*.pt but the robust one)")
     parser.add_argument("--num_envs", type=int, default=1024, help="robots per case (default: 1024)")
     parser.add_argument("--seconds", type=float, default=8.0, help="length of each case [s] (default: 8)")
     parser.add_argument("--device", default="cuda", help="cuda, cuda:N or cpu (default: cuda)")

@@ -209,8 +209,11 @@ def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
         settings = report.get("settings") or {}
         differ = [f"{k} {settings.get(k)!r} (the test's {v!r})" for k, v in expected.items() if settings.get(k) != v]
         if differ:
-            print(f"{ckpt.stem}: {found} was tested with {', '.join(differ)}; left out (pass --num_envs/--seconds "
-                  "of that report to record it as such)", flush=True)
+            # Only the size and length are this command's to set: a report of other kicks is of another test.
+            fix = ("pass --num_envs/--seconds of that report to record it as such"
+                   if all(k in ("num_envs", "seconds") for k in expected if settings.get(k) != expected[k]) else
+                   "its kicks are not the test's: test the checkpoint again")
+            print(f"{ckpt.stem}: {found} was tested with {', '.join(differ)}; left out ({fix})", flush=True)
             return
         device = report.get("tested_on", "?")
     else:

@@ -132,7 +132,12 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
     (partial / "robust.json").write_text(json.dumps({"test": "robust", "tested_on": "NVIDIA H200",
                                                      "settings": {**FULL_TEST, "num_envs": 64}, "cases": cases}))
     text = run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(partial.parent))
-    assert "was tested with num_envs 64 (the test's 1024); left out" in text
+    assert "was tested with num_envs 64 (the test's 1024); left out (pass --num_envs/--seconds" in text
+    # A report of other kicks is of another test: no option of this command records it.
+    (partial / "robust.json").write_text(json.dumps({"test": "robust", "tested_on": "NVIDIA H200",
+                                                     "settings": {**FULL_TEST, "push_count": 1}, "cases": cases}))
+    text = run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(partial.parent))
+    assert "left out (its kicks are not the test's: test the checkpoint again)" in text
     assert walls[0] not in json.loads((folder / "evals_robust.json").read_text())["evaluations"]
     (tmp_path / "evals_robust.json").replace(folder / "evals_robust.json")
     (folder / "evals_diverse.json").unlink()  # tested here: only the two unperturbed cases run
