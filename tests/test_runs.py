@@ -21,7 +21,8 @@ from recipe_runner import load_recipe as recipe
 from tocabi_torchrl.rl import parse_args, preset_config
 from tocabi_torchrl.rl.checkpoint import read_checkpoint
 from tocabi_torchrl.rl.curves import read_metrics
-from tocabi_torchrl.rl.launch import LaunchError, banner, launch_config
+from tocabi_torchrl.config import PRESETS
+from tocabi_torchrl.rl.launch import LaunchError, banner, cpu_sized_hint, launch_config
 from tocabi_torchrl.rl.resume import ResumeConfigError
 from tocabi_torchrl.rl.run_dir import RunDirError, open_run
 from tocabi_torchrl.rl.trainer import train
@@ -360,6 +361,20 @@ def test_explicit_cuda_or_gpu_preset_without_cuda_is_refused(finished_run):
     assert cfg.preset == "reference" and cfg.device == "cpu" and note is None  # asked for explicitly: honoured
     cfg, _, note = launch_config(["--preset", "reference"], cuda_available=True)
     assert cfg.preset == "reference" and note is None
+
+
+@pytest.mark.parametrize("preset", sorted(set(PRESETS) - {"cpu_smoke"}))
+def test_the_cpu_hint_of_each_gpu_preset_is_a_run_that_ends_and_uses_every_frame(preset):
+    # One hint for all: it gave --preset reference a mini-batch of 96, which leaves frames of its 16,384-step rollout
+    # out, and a budget under one of its iterations.
+    with pytest.raises(LaunchError) as info:
+        launch_config(["--preset", preset], cuda_available=False)
+    hint = cpu_sized_hint(preset_config(preset))
+    assert hint in str(info.value)
+    options = hint.removeprefix("pass ").split(" (docs/")[0].split()
+    cfg, _, _ = launch_config(["--preset", preset, *options], cuda_available=False)
+    assert cfg.device == "cpu" and cfg.env.num_envs <= 8 and cfg.minibatch_note() is None
+    assert cfg.frames_per_batch <= cfg.total_env_steps <= 10 * cfg.frames_per_batch
 
 
 def test_auto_falls_back_to_the_smoke_run_and_the_banner_says_what_runs():

@@ -63,11 +63,11 @@ def launch_config(argv: Sequence[str] | None, cuda_available: bool, description:
                                   "no CUDA GPU; pass --device cpu to continue it on the CPU anyway")
             if asked is not None:
                 raise LaunchError(f"--preset {preset} is {gpu_sized}, and torch sees no CUDA GPU; at its size a CPU "
-                                  f"takes days, so use --preset {min(CPU_SIZED_PRESETS)}, or {CPU_SIZED_HINT}")
+                                  f"takes days, so use --preset {min(CPU_SIZED_PRESETS)}, or {cpu_sized_hint(sized)}")
             preset, base = min(CPU_SIZED_PRESETS), {"device": "cpu"}
             note = (f"No CUDA GPU found and --device auto: running the small CPU smoke configuration (preset {preset})"
                     " instead of the GPU-sized default; it proves the pipeline and learns nothing useful. The default "
-                    f"preset's size takes days on a CPU; to test a change on it, {CPU_SIZED_HINT}.")
+                    f"preset's size takes days on a CPU; to test a change on it, {cpu_sized_hint(sized)}.")
     if resume:
         return resumed, given, note
     from dataclasses import replace
@@ -76,9 +76,25 @@ def launch_config(argv: Sequence[str] | None, cuda_available: bool, description:
     return cfg, given_options(argv, cfg), note
 
 
-#: How a GPU-sized preset runs on a CPU at a size that ends (docs/training.md, "On a CPU").
-CPU_SIZED_HINT = ("pass --device cpu --env.num_envs 8 --ppo.minibatch_size 96 --total_env_steps 3840 --eval_envs 2 "
-                  "--eval_seconds 1 (docs/training.md: On a CPU)")
+def cpu_sized_hint(cfg: RunConfig) -> str:
+    """How the preset of ``cfg`` runs on a CPU at a size that ends (docs/training.md, "On a CPU"): 8 envs, a
+    mini-batch that divides their rollout, ten iterations (one of a rollout longer than 1,000 steps), a short test.
+
+    >>> from tocabi_torchrl.config import preset_config
+    >>> cpu_sized_hint(preset_config("default")).split(" --eval")[0]
+    'pass --device cpu --env.num_envs 8 --ppo.minibatch_size 96 --total_env_steps 3840'
+    >>> cpu_sized_hint(preset_config("reference")).split(" --eval")[0]  # 8 envs, 128 divides 16,384 already
+    'pass --device cpu --total_env_steps 16384'
+    """
+    envs = min(8, cfg.env.num_envs)
+    frames = envs * cfg.ppo.steps_per_env
+    options = ["--device cpu"]
+    if envs != cfg.env.num_envs:
+        options.append(f"--env.num_envs {envs}")
+    if cfg.ppo.minibatch_size > frames or frames % cfg.ppo.minibatch_size:
+        options.append(f"--ppo.minibatch_size {frames // 4 if frames % 4 == 0 else frames}")
+    options.append(f"--total_env_steps {frames * (10 if frames <= 1000 else 1)}")
+    return f"pass {' '.join(options)} --eval_envs 2 --eval_seconds 1 (docs/training.md: On a CPU)"
 
 
 def banner(cfg: RunConfig, given: dict, device) -> str:
