@@ -418,6 +418,19 @@ def test_env_options_of_the_env_config_are_the_config_the_adapter_reports():
                             (dict(env_options={"track_episode_return": False}), "leave it out")):
         with pytest.raises(ValueError, match=message):
             build_env(2, "cpu", **kwargs)
+    # Sections and transform settings reached the env alone: the reported config held the preset's kicks and
+    # normalisation.
+    from tocabi_torchrl.envs.push_config import PushConfig
+    from tocabi_torchrl.rl.symmetry import find_normalization
+    from tocabi_torchrl.transforms.normalize import RunningNormalization
+
+    env, cfg = build_env(2, "cpu", env_options={"pushes": PushConfig(count=2), "normalization": "running",
+                                                "reward_weights": {"qpos": 0.5}})
+    assert cfg.env.pushes.count == env.base_env.cfg.pushes.count == 2
+    assert cfg.transforms.normalization == "running" and isinstance(find_normalization(env), RunningNormalization)
+    assert cfg.transforms.reward_weight_map()["qpos"] == 0.5
+    with pytest.raises(ValueError, match="given twice"):
+        build_env(2, "cpu", **{"transforms.normalization": "fixed"}, env_options={"normalization": "running"})
 
 
 def test_a_star_import_needs_no_optional_library_and_a_numpy_action_is_named():

@@ -13,6 +13,12 @@ from ..envs.config import ENV_FLAT_PATHS
 
 __all__ = ["build_env", "task_config"]
 
+#: env_options that are sections of the env config (TocabiWalkConfig): reported as env.<section>.
+_ENV_SECTIONS = ("sim", "task", "command", "control", "scene", "pushes", "dynamics")
+#: make_env's transform options that are run-config transform settings of the same meaning: transforms.<name>.
+_TRANSFORM_SETTINGS = ("normalization", "obs_clip", "zero_reward_on_terminated", "compile_reward", "sensor_noise",
+                       "kick_relax", "reward_weights")
+
 
 def task_config(preset: str = "default", num_envs: int = 4096, **task) -> RunConfig:
     """The run config of a training preset (its ``env`` and ``transforms`` sections are the task: control mode, PD
@@ -35,7 +41,8 @@ def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "
     reward term, ``episode_reward`` (num_envs, 1) and ``step_count`` (num_envs, 1). ``for_training`` drops the raw
     signals nobody reads during training (the gait test builds its own env with them). ``env_options``: fields of
     :class:`~tocabi_torchrl.envs.TocabiWalkConfig` or the transform config beyond the preset's (``make_env``'s
-    options, e.g. ``{"min_pelvis_height": 0.7}``).
+    options, e.g. ``{"min_pelvis_height": 0.7}``, ``{"pushes": PushConfig(count=4)}``); those the run config holds
+    (env fields and sections, the transform settings) are in the returned config.
     """
     from ..rl.trainer import build_env as _trainer_env
     from ..rl.trainer import resolve_device
@@ -52,13 +59,24 @@ def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "
                          "device, seed=..., preset=...); give env config fields or make_env options instead")
     if "track_episode_return" in options:  # the adapters report returns from the env's episode_reward
         raise ValueError("env_options track_episode_return: the adapter reads the env's episode returns; leave it out")
-    # The env config's own fields go into the task config, so that the config the adapter reports (task_config,
-    # rsl_rl's env.cfg) is the env it runs, not the preset's.
-    for key in [k for k in options if k in ENV_FLAT_PATHS]:
-        if key in task:
-            raise ValueError(f"{key} given twice, {task[key]!r} as a keyword and {options[key]!r} in env_options; "
+    # What the run config can hold goes into the task config, so that the config the adapter reports (task_config,
+    # rsl_rl's env.cfg) is the env it runs, not the preset's: the env's fields and sections, and the transform
+    # settings of the same name and kind. The rest (a leg controller, reward terms of one's own, a history layout
+    # object, observation statistics) reach the env alone.
+    for key in list(options):
+        if key in ENV_FLAT_PATHS:
+            path = key
+        elif key in _ENV_SECTIONS:
+            path = f"env.{key}"
+        elif key in _TRANSFORM_SETTINGS or (key == "history" and isinstance(options[key], str)):
+            path = f"transforms.{key}"
+        else:
+            continue
+        if key in task or path in task:
+            given = task.get(key, task.get(path))
+            raise ValueError(f"{key} given twice, {given!r} as a keyword and {options[key]!r} in env_options; "
                              "give it once")
-        task[key] = options.pop(key)
+        task[path] = options.pop(key)
     cfg = task_config(preset, num_envs=num_envs, device=str(dev), **task)
     env = _trainer_env(cfg, dev, num_envs=num_envs, for_training=for_training, **options)
     return env, cfg
