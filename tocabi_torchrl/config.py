@@ -163,6 +163,12 @@ class PPOConfig:
     symmetry_loss: float = 0.0
     """weight of the mirror loss (with symmetry augment): mean over mini-batch frames and actions of (μ(M·o) −
     A·μ(o))², μ the policy's mean action, M and A the input and action mirrors; 0: off"""
+    #: The trained network made symmetric after training, as the policy its checkpoints give: run 12's 16-minute mark
+    #: passed the robust test so where the mark itself drifted too far (docs/training/robust/symmetrized), and an
+    #: actor trained equivariant from the start fell (run 18). Training never sees it, so a run trains as without it.
+    symmetric_policy: bool = False
+    """the policy of a checkpoint (every gait test, play, viewer and export) is the trained actor's mean made
+    left-right symmetric, ½·(f(o) + A·f(M·o)); training acts with f itself, so the run trains as without it"""
     #: Asymmetric actor-critic (transforms/privileged.py): the critic also reads ``privileged``, 12 values of true
     #: state (pelvis velocities and height, foot loads, orientation) the policy does not see; the policy and its
     #: export are unchanged. The env gets a PrivilegedState transform.
@@ -306,6 +312,9 @@ class PPOConfig:
         if not 0 <= self.torque_assist <= 1 or self.assist_absorb < 0:
             raise ValueError(f"ppo.torque_assist must be in [0, 1] and ppo.assist_absorb >= 0, got "
                              f"{self.torque_assist!r}, {self.assist_absorb!r}")
+        if self.symmetric_policy is True and self.symmetry == "equivariant":
+            raise ValueError("ppo.symmetric_policy makes a trained actor symmetric; with ppo.symmetry='equivariant' "
+                             "it is symmetric already: leave ppo.symmetric_policy false")
         if self.symmetry_loss > 0 and self.symmetry != "augment":
             raise ValueError(f"ppo.symmetry_loss > 0 works with ppo.symmetry='augment' (whose mirrors it uses), got "
                              f"ppo.symmetry={self.symmetry!r}: set both, or leave ppo.symmetry_loss at 0")

@@ -159,7 +159,8 @@ def load_policy(path: str | os.PathLike, num_envs: int, device: torch.device,
     read with ``read_checkpoint``; ``nominal``: the env of :func:`nominal_config` (the gait tests'), not the one the
     policy trained in. Raises ``CheckpointError`` for a bad file.
     """
-    from ..rl.checkpoint import apply_checkpoint, checkpoint_file, config_from_checkpoint, read_checkpoint
+    from ..rl.checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint
+    from ..rl.symmetry import apply_checkpoint_policy
     from ..rl.trainer import build_agent, build_env
 
     ckpt = checkpoint_file(path)
@@ -175,6 +176,6 @@ def load_policy(path: str | os.PathLike, num_envs: int, device: torch.device,
     cfg = dataclasses.replace(cfg, env=env_cfg)
     env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
-    apply_checkpoint(state, agent, env=env, path=ckpt)
+    apply_checkpoint_policy(state, agent, cfg, env, ckpt)
     freeze_running_statistics(env)
     return LoadedPolicy(ckpt, cfg, env, agent)

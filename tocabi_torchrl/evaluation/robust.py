@@ -252,7 +252,8 @@ def checkpoint_case(path: str | os.PathLike, case: str | RobustCase, device: tor
     without it, as in every test, the model's own. ``model_path``: the case runs on another TOCABI MJCF (an
     analysis: is a weakness the authored robot's asymmetry? ``lab/analysis/symmetric_model.py``); without it, the
     checkpoint's own model, as in every test."""
-    from ..rl.checkpoint import apply_checkpoint, config_from_checkpoint, read_checkpoint
+    from ..rl.checkpoint import config_from_checkpoint, read_checkpoint
+    from ..rl.symmetry import apply_checkpoint_policy
     from ..rl.trainer import assist_schedule, build_agent
 
     state = read_checkpoint(path)
@@ -264,7 +265,7 @@ def checkpoint_case(path: str | os.PathLike, case: str | RobustCase, device: tor
     env = case_env(cfg, case, torch.device(device), test.num_envs, test, torque_assist=assisted,
                    train_solver=train_solver)
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
-    apply_checkpoint(state, agent, env=env, path=path)
+    apply_checkpoint_policy(state, agent, cfg, env, path)
     if assisted:
         env.base_env.set_torque_assist(assist_schedule(cfg, env)(int(state["env_steps"])))
     env.set_seed(int(test.seed))
@@ -610,7 +611,8 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
     """:func:`evaluate_robust` of a checkpoint already read (``state``, from ``read_checkpoint(path)``): its actor,
     and its normaliser statistics loaded into every case's env. ``envs`` as there: a benchmark reuses the case envs
     of one run's checkpoints (building them costs more than the test)."""
-    from ..rl.checkpoint import apply_checkpoint, config_from_checkpoint
+    from ..rl.checkpoint import config_from_checkpoint
+    from ..rl.symmetry import apply_checkpoint_policy
     from ..rl.trainer import build_agent, resolve_device
     from .gait_test import policy_dt
 
@@ -624,7 +626,7 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
     env = envs[key]
     agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
     return evaluate_robust(agent.actor, cfg, out_dir, test=test, device=device, envs=envs,
-                           prepare_env=lambda case_env_: apply_checkpoint(state, agent, env=case_env_, path=path),
+                           prepare_env=lambda case_env_: apply_checkpoint_policy(state, agent, cfg, case_env_, path),
                            progress=progress, source=path)
 
 

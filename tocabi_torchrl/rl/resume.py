@@ -38,7 +38,7 @@ RESUME_SAFE = frozenset({
     "log_every", "loggers", "progress_bar",
     "checkpoint_every", "checkpoint_keep_last", "checkpoint_keep_every", "checkpoint_minutes",
     "eval_at_end", "eval_envs", "eval_seconds", "eval_test",
-    "ppo.cuda_graph", "ppo.update_graph", "ppo.grad_sync", "ppo.store_env_signals",
+    "ppo.cuda_graph", "ppo.update_graph", "ppo.grad_sync", "ppo.store_env_signals", "ppo.symmetric_policy",
     "env.sim.threads", "env.sim.reset_pass",
     "viewer.enabled", "viewer.host", "viewer.port", "viewer.worlds", "viewer.every",
 })

@@ -47,7 +47,8 @@ from .rollout_guard import mean_over_valid
 __all__ = ["SYMMETRY_MODES", "ACTION_DIM", "obs_step_mirror_map", "action_mirror_map", "policy_input_mirror_map",
            "SignedPermutation", "PolicyInputMirror", "mirror_qpos", "mirror_qvel", "SymmetryAugmentLoss",
            "find_normalization", "normalization_statistics", "make_policy_input_mirror", "make_symmetry_loss",
-           "refresh_statistics", "EquivariantMean", "make_equivariant_mean", "set_equivariant_statistics"]
+           "refresh_statistics", "EquivariantMean", "make_equivariant_mean", "set_equivariant_statistics",
+           "apply_checkpoint_policy"]
 
 #: 12 leg actions + the phase rate.
 ACTION_DIM = robot.NUM_LEG_JOINTS + 1
@@ -296,6 +297,26 @@ def set_equivariant_statistics(module: nn.Module, env) -> bool:
             m.set_statistics(*normalization_statistics(norm), getattr(norm, "clip", None))
             found = True
     return found
+
+
+def apply_checkpoint_policy(state: dict, agent, cfg, env, path) -> None:
+    """``apply_checkpoint`` for a checkpoint's policy (a gait test, play, the viewer, an export): the trained weights
+    and ``env``'s normaliser state, then, with ``cfg.ppo.symmetric_policy``, the trained actor made the symmetric
+    policy the checkpoint gives, its mean network wrapped in :class:`EquivariantMean` with ``env``'s normaliser
+    statistics (in place). Training loads with ``apply_checkpoint`` alone. Called again (one env per case), the
+    wrapper is taken off for the weights and put back with the new env's statistics."""
+    from .actors import gaussian_head
+    from .checkpoint import apply_checkpoint
+
+    head = gaussian_head(agent.actor)
+    wrapped = cfg.ppo.symmetric_policy and isinstance(head.mean_net, EquivariantMean)
+    if wrapped:
+        head.mean_net = head.mean_net.net  # the trained network, which the checkpoint's weights are of
+    apply_checkpoint(state, agent, env=env, path=path)
+    if cfg.ppo.symmetric_policy:
+        obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+        head.mean_net = make_equivariant_mean(head.mean_net, cfg.transforms.transform_config(), obs_dim, act_dim)
+        set_equivariant_statistics(agent.actor, env)
 
 
 # ------------------------------------------------------------------------------------------------ simulator state
