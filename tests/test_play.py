@@ -81,7 +81,8 @@ def test_play_refuses_seconds_below_one_policy_step(capsys):
     with pytest.raises(SystemExit) as info:
         recipe("play").main(["--checkpoint", str(SHIPPED_POLICY.with_suffix(".onnx")), "--viewer", "--backend", "warp",
                              "--device", "cpu"])
-    assert str(info.value.code).startswith("error: --backend, --device: an exported policy's viewer runs the torch-free")
+    assert str(info.value.code).startswith("error: --backend, --device: an exported policy's viewer runs the "
+                                           "torch-free")
     # Any live viewer ignored the test's options without a word (--video_envs and --overwrite among them).
     for policy in (SHIPPED_POLICY, SHIPPED_POLICY.with_suffix(".onnx")):
         with pytest.raises(SystemExit) as info:
