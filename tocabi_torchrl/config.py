@@ -391,8 +391,9 @@ class RunConfig:
     """run folder or checkpoint to continue; its saved options apply, and only these may be given other values:
     checkpoint_every, checkpoint_keep_every, checkpoint_keep_last, checkpoint_minutes, device,
     env.sim.reset_pass, env.sim.threads, eval_at_end, eval_envs, eval_seconds, eval_test, log_every, loggers,
-    max_minutes, name, ppo.cuda_graph, ppo.grad_sync, ppo.store_env_signals, ppo.update_graph, progress_bar,
-    run_dir, total_env_steps, viewer.enabled, viewer.every, viewer.host, viewer.port, viewer.worlds"""
+    max_minutes, name, ppo.cuda_graph, ppo.grad_sync, ppo.store_env_signals, ppo.symmetric_policy,
+    ppo.update_graph, progress_bar, run_dir, total_env_steps, viewer.enabled, viewer.every, viewer.host,
+    viewer.port, viewer.worlds"""
     # budget
     total_env_steps: int = 300_000_000
     """training budget in env steps (all envs together)"""
