@@ -405,21 +405,3 @@ def test_a_term_reading_an_undeclared_key_of_the_state_at_t_is_named():
                      batch_size=[2])
     with pytest.raises(KeyError, match="reward term 'prev_height' reads a key its step does not hold.*root_keys"):
         reward._check_terms(td, nxt)
-
-
-def test_kick_relax_may_name_a_reward_term_of_ones_own():
-    """The settings know their own terms only: a term of one's own, given to make_env as reward_terms=, may be
-    relaxed (it was refused as "no reward term in use"); a name no term in use has is refused once the terms are
-    known, and a built-in term the settings switch off at once."""
-    from tocabi_torchrl.transforms.kick_relax_config import KickRelax as Relax
-    from tocabi_torchrl.transforms.reward_terms import CallableTerm
-    from tocabi_torchrl.transforms.settings import REFERENCE_TERM_NAMES, TransformSettings
-
-    settings = TransformSettings(kick_relax=Relax(seconds=1.5, terms=("qpos", "alive")))
-    settings.validate()
-    alive = CallableTerm("alive", lambda td, nxt: torch.ones(td.batch_size[0]), weight=0.1)
-    assert settings.transform_config(reward_terms=(*REFERENCE_TERM_NAMES, alive)).kick_relax.terms == ("qpos", "alive")
-    with pytest.raises(ValueError, match=r"names \['alive'\], which no reward term in use is called"):
-        settings.transform_config()
-    with pytest.raises(ValueError, match=r"names \['heading'\].*transforms.heading_weight"):
-        TransformSettings(kick_relax=Relax(seconds=1.5, terms=("heading",))).validate()

@@ -186,10 +186,6 @@ class RewardWeights:
         return weights
 
 
-#: The built-in reward terms beyond the reference's, each on when its weight (transforms.<name>_weight) is > 0.
-_OPTIONAL_TERMS = ("heading", "cycle_vel", "foot_gap")
-
-
 @dataclass
 class TransformSettings:
     """The transforms section of the run config tree (``RunConfig.transforms``): the :class:`TransformConfig`
@@ -260,10 +256,13 @@ class TransformSettings:
             raise ValueError(f"transforms.kick_relax must be a KickRelax (e.g. KickRelax(seconds=1.5)), got "
                              f"{self.kick_relax!r}")
         self.kick_relax.validate()
-        # Here only the built-in terms these settings switch off: a caller's own terms (make_env's reward_terms=)
-        # are known to transform_config, which checks every name against the terms it builds.
-        off = set(_OPTIONAL_TERMS) - set(self.extra_terms())
-        self._check_kick_relax_terms((*REFERENCE_TERM_NAMES, *self.extra_terms()), only=off)
+        if self.kick_relax.enabled:
+            in_use = (*REFERENCE_TERM_NAMES, *self.extra_terms())
+            missing = [t for t in self.kick_relax.terms if t not in in_use]
+            if missing:
+                raise ValueError(f"transforms.kick_relax.terms names {missing}, which no reward term in use is "
+                                 f"called (terms in use: {list(in_use)}); name terms in use, or switch the term on "
+                                 "with its weight (e.g. transforms.heading_weight)")
         if self.body_vel_scale is not None and (isinstance(self.body_vel_scale, bool) or not isinstance(
                 self.body_vel_scale, (int, float)) or not 0 < self.body_vel_scale < math.inf):
             raise ValueError(f"transforms.body_vel_scale must be a finite number > 0 (s in exp(-s·‖v − cmd‖²), "
@@ -280,19 +279,10 @@ class TransformSettings:
                 raise ValueError(f"transforms.{name} must be a finite number with {low} value ({term}), got "
                                  f"{value!r}")
 
-    def _check_kick_relax_terms(self, in_use: Sequence[str], only: set[str] | None = None) -> None:
-        """``ValueError`` if ``kick_relax`` (when on) names a term not in ``in_use`` (among ``only``, when given)."""
-        if not self.kick_relax.enabled:
-            return
-        missing = [t for t in self.kick_relax.terms if t not in in_use and (only is None or t in only)]
-        if missing:
-            raise ValueError(f"transforms.kick_relax.terms names {missing}, which no reward term in use is "
-                             f"called (terms in use: {list(in_use)}); name terms in use, or switch the term on "
-                             "with its weight (e.g. transforms.heading_weight)")
-
     def extra_terms(self) -> tuple[str, ...]:
         """The names of the terms beyond the reference's that these settings switch on (their weight > 0)."""
-        weights = zip(_OPTIONAL_TERMS, (self.heading_weight, self.cycle_vel_weight, self.foot_gap_weight))
+        weights = (("heading", self.heading_weight), ("cycle_vel", self.cycle_vel_weight),
+                   ("foot_gap", self.foot_gap_weight))
         return tuple(name for name, weight in weights if isinstance(weight, (int, float)) and weight > 0)
 
     def transform_config(self, **overrides) -> TransformConfig:
@@ -332,7 +322,4 @@ class TransformSettings:
             if self.foot_gap_weight > 0:
                 extra.append(FootGap(weight=float(self.foot_gap_weight), min_gap=float(self.foot_gap_min)))
             values["reward_terms"] = (*REFERENCE_TERM_NAMES, *extra)
-        merged = {**values, **overrides}
-        terms = merged.get("reward_terms") or REFERENCE_TERM_NAMES
-        self._check_kick_relax_terms([t if isinstance(t, str) else getattr(t, "name", t) for t in terms])
-        return transform_config(self.history, **merged)
+        return transform_config(self.history, **{**values, **overrides})
