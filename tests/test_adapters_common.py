@@ -431,6 +431,10 @@ def test_env_options_of_the_env_config_are_the_config_the_adapter_reports():
     assert cfg.transforms.reward_weight_map()["qpos"] == 0.5
     with pytest.raises(ValueError, match="given twice"):
         build_env(2, "cpu", **{"transforms.normalization": "fixed"}, env_options={"normalization": "running"})
+    # A weight of a term the config holds none for (heading, a term of one's own) reaches the env as before.
+    env, cfg = build_env(2, "cpu", preset="robust", env_options={"reward_weights": {"heading": 0.5}})
+    reward = next(t for t in env.transform if type(t).__name__ == "TaskReward")
+    assert {t.name: t.weight for t in reward.terms}["heading"] == 0.5
 
 
 def test_a_star_import_needs_no_optional_library_and_a_numpy_action_is_named():

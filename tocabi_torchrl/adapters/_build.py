@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import numbers
 
 import torch
@@ -10,6 +11,7 @@ from torchrl.envs import EnvBase
 
 from ..config import RunConfig, preset_config
 from ..envs.config import ENV_FLAT_PATHS
+from ..transforms.settings import RewardWeights
 
 __all__ = ["build_env", "task_config"]
 
@@ -17,7 +19,9 @@ __all__ = ["build_env", "task_config"]
 _ENV_SECTIONS = ("sim", "task", "command", "control", "scene", "pushes", "dynamics")
 #: make_env's transform options that are run-config transform settings of the same meaning: transforms.<name>.
 _TRANSFORM_SETTINGS = ("normalization", "obs_clip", "zero_reward_on_terminated", "compile_reward", "sensor_noise",
-                       "kick_relax", "reward_weights")
+                       "kick_relax")
+#: The terms transforms.reward_weights holds a weight for (RewardWeights' fields).
+_REWARD_WEIGHT_NAMES = tuple(f.name for f in dataclasses.fields(RewardWeights))
 
 
 def task_config(preset: str = "default", num_envs: int = 4096, **task) -> RunConfig:
@@ -68,7 +72,10 @@ def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "
             path = key
         elif key in _ENV_SECTIONS:
             path = f"env.{key}"
-        elif key in _TRANSFORM_SETTINGS or (key == "history" and isinstance(options[key], str)):
+        elif (key in _TRANSFORM_SETTINGS or (key == "history" and isinstance(options[key], str))
+              or (key == "reward_weights" and isinstance(options[key], dict)
+                  and set(options[key]) <= set(_REWARD_WEIGHT_NAMES))):
+            # Weights of terms the config names no weight for (heading, a term of one's own) reach the env alone.
             path = f"transforms.{key}"
         else:
             continue
