@@ -98,7 +98,7 @@ def test_transform_refuses_what_it_cannot_do():
 
     late = Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(), FixedNormalization(), SensorNoise(LAB),
                    ObsActionHistory())
-    with pytest.raises(ValueError, match="SensorNoise comes after FixedNormalization, which reads 'obs_step'"):
+    with pytest.raises(ValueError, match="SensorNoise comes after FixedNormalization, which builds the policy input"):
         TransformedEnv(make_env(num_envs=2, device="cpu").base_env, late).reset()
     # A transform that rewrites obs_step in place passes the noise on: that place is fine.
     from torchrl.envs import ClipTransform
@@ -116,6 +116,17 @@ def test_transform_refuses_what_it_cannot_do():
                      FixedNormalization(), ObsActionHistory())
     td = TransformedEnv(make_env(num_envs=2, device="cpu").base_env, copied).reset()
     assert td["observation"].shape == (2, 237) and not torch.equal(td["obs_clean"], td["obs_step"])
+    # Behind the normalisation, a log copy reading obs_step behind the noise does not make the place right: the
+    # policy input was built in front.
+    logged = Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(), FixedNormalization(), SensorNoise(LAB),
+                     CatTensors(in_keys=["obs_step"], out_key="obs_log", del_keys=False), ObsActionHistory())
+    with pytest.raises(ValueError, match="SensorNoise comes after FixedNormalization, which builds the policy input"):
+        TransformedEnv(make_env(num_envs=2, device="cpu").base_env, logged).reset()
+    # Behind a copy alone, with nothing behind reading obs_step, the noise reaches nothing either.
+    alone = Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(),
+                    CatTensors(in_keys=["obs_step"], out_key="obs_copy", del_keys=False), SensorNoise(LAB))
+    with pytest.raises(ValueError, match="after CatTensors, which reads 'obs_step' already, and nothing behind it"):
+        TransformedEnv(make_env(num_envs=2, device="cpu").base_env, alone).reset()
 
 
 # ------------------------------------------------------------------------------------------- distributions

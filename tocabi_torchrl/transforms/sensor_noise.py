@@ -64,6 +64,8 @@ from tocabi_torchrl import robot
 from tocabi_torchrl.envs.episode_random import EpisodeDraws, LaneDraws, stream_lanes
 from tocabi_torchrl.transforms._base import transforms_after, transforms_before
 from tocabi_torchrl.transforms._checks import require_spec
+from tocabi_torchrl.transforms.history import ObsActionHistory
+from tocabi_torchrl.transforms.normalize import _Normalization
 from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsComponent
 # The config lives in a module without torch, for the config tree; this path names it too.
 from tocabi_torchrl.transforms.sensor_noise_config import SENSORS, SensorNoiseConfig
@@ -216,17 +218,23 @@ class SensorNoise(Transform):
 
     # ---------------------------------------------------------------------------------------------- set-up
     def _check_place(self) -> None:
-        """Refuse a place after the transform that builds the policy input from ``obs_key`` (a normalisation, the
-        history) when no transform behind reads ``obs_key``: the noise added there would reach nothing the policy
-        sees, silently. A transform in front that only reads it (a clean copy for a critic or a log) is fine while
-        the policy input is built behind."""
+        """Refuse a place where the noise would reach nothing the policy sees, silently: after the transform that
+        builds the policy input from ``obs_key`` (a normalisation, the history), whatever reads it behind (a log
+        copy), or after any other reader of it with nothing behind reading it. A transform in front that only reads
+        it (a clean copy for a critic or a log) is fine while the policy input is built behind."""
         key = self.in_keys[0]
         # One that rewrites obs_step in place passes the noise on.
         readers = [t for t in transforms_before(self) if key in t.in_keys and key not in t.out_keys]
-        if readers and not any(key in t.in_keys for t in transforms_after(self)):
-            raise ValueError(f"SensorNoise comes after {type(readers[-1]).__name__}, which reads {key!r} already, "
-                             f"and nothing behind it reads {key!r}, so the noise would reach nothing the policy sees; "
-                             "put SensorNoise right after ObservationAssembly (as default_transforms does)")
+        builds_input = [t for t in readers if isinstance(t, (_Normalization, ObsActionHistory))]
+        if builds_input:
+            why = f"which builds the policy input from {key!r} already"
+        elif readers and not any(key in t.in_keys for t in transforms_after(self)):
+            why = f"which reads {key!r} already, and nothing behind it reads {key!r}"
+        else:
+            return
+        raise ValueError(f"SensorNoise comes after {type((builds_input or readers)[-1]).__name__}, {why}, so the noise "
+                         "would reach nothing the policy sees; put SensorNoise right after ObservationAssembly (as "
+                         "default_transforms does)")
 
     def _map_columns(self, spec: Composite) -> None:
         batch = tuple(spec.shape)
