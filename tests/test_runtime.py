@@ -635,9 +635,9 @@ def test_a_policy_output_with_no_finite_entry_stops_that_robot():
 
 def test_policy_input_and_set_command_before_reset_say_to_reset_first():
     runtime = PolicyRuntime(_contract("ppo"))
-    with pytest.raises(RuntimeError, match=r"policy_input before reset.*reset\(state, command\)"):
+    with pytest.raises(RuntimeError, match=r"policy_input without a running episode.*reset\(state, command\)"):
         runtime.policy_input()
-    with pytest.raises(RuntimeError, match=r"set_command before reset.*reset\(state, command\)"):
+    with pytest.raises(RuntimeError, match=r"set_command without a running episode.*reset\(state, command\)"):
         runtime.set_command((0.5, 0.0))
 
 

@@ -209,15 +209,16 @@ class PolicyRuntime:
     def set_command(self, command) -> None:
         """Velocity command (vx, vy) [m/s], (N, 2) or (2,), used from the next observation on."""
         if self._pending is None:
-            raise RuntimeError("PolicyRuntime.set_command before reset: pass the first command to "
-                               "reset(state, command)")
+            raise RuntimeError("PolicyRuntime.set_command without a running episode (before reset, or after a "
+                               "policy output with no finite entry): pass the command to reset(state, command)")
         self.command = self._check_command(command, self.num_robots)
 
     def policy_input(self) -> np.ndarray:
         """(N, input_dim) float32: the current policy input (for tests and logging)."""
         if self._pending is None:
-            raise RuntimeError("PolicyRuntime.policy_input before reset: there is no input until reset(state, "
-                               "command) has built the first observation")
+            raise RuntimeError("PolicyRuntime.policy_input without a running episode (before reset, or after a "
+                               "policy output with no finite entry): there is no input until reset(state, command) "
+                               "has built one")
         return self.history.read()
 
     # --------------------------------------------------------------------------------------------- internals

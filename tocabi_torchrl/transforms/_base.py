@@ -31,8 +31,9 @@ def flatten_chain(transforms) -> list[Transform]:
 
 
 def transforms_after(transform: Transform) -> list[Transform]:
-    """The transforms behind ``transform`` in its env's chain (or its ``Compose``'s, outside an env), in order, nested
-    ``Compose`` flattened; empty when it belongs to neither. For checks of a transform's place in the chain."""
+    """The transforms behind ``transform`` in its env's chain, in order, nested ``Compose`` flattened; empty when it
+    belongs to no env (torchrl's ``container`` of a ``Compose`` outside an env raises). For checks of a
+    transform's place in the chain."""
     try:
         box = transform.container  # the env, for a transform anywhere in an env's chain
     except ValueError:  # in no Compose nor env
