@@ -62,13 +62,22 @@ def test_every_loader_gives_the_symmetric_copy_that_symmetrize_writes(tmp_path):
 
 
 @needs_robust
-def test_the_robust_test_loads_the_policy_into_each_case_env(tmp_path):
-    """evaluate_robust_checkpoint loads the checkpoint once per case env: the wrapper comes off for the weights and
-    back with that env's statistics (loading into the wrapped actor would fail on its keys)."""
-    from tocabi_torchrl.evaluation.robust import RobustTestConfig, evaluate_robust_checkpoint
+def test_loading_again_into_a_symmetric_policy_takes_the_wrapper_off_for_the_weights(tmp_path):
+    """A loader may load a checkpoint into the same agent again (evaluate_robust's prepare_env, once per env it is
+    given): the wrapper comes off for the weights and back with that env's statistics (loading into the wrapped
+    actor would fail on its keys), and the policy acts as after the first load; the robust test runs through it."""
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, checkpoint_case, evaluate_robust_checkpoint
     from tocabi_torchrl.rl.checkpoint import read_checkpoint
+    from tocabi_torchrl.rl.symmetry import apply_checkpoint_policy
 
     flagged = _with_symmetric_policy(tmp_path)
+    state, cfg, env, agent = checkpoint_case(flagged, "nominal", "cpu", RobustTestConfig(num_envs=2))
+    obs = torch.randn(4, 237)
+    first = _mean(agent.actor, obs)
+    apply_checkpoint_policy(state, agent, cfg, env, flagged)
+    assert isinstance(gaussian_head(agent.actor).mean_net, EquivariantMean)
+    assert isinstance(gaussian_head(agent.actor).mean_net.net, torch.nn.Sequential)  # not wrapped twice
+    torch.testing.assert_close(_mean(agent.actor, obs), first)
     test = RobustTestConfig(num_envs=2, seconds=0.1, cases=("nominal", "robust_0.5"))
     report = evaluate_robust_checkpoint(read_checkpoint(flagged), flagged, tmp_path / "out", test=test, device="cpu",
                                         progress=False)
