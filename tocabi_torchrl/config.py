@@ -163,9 +163,10 @@ class PPOConfig:
     symmetry_loss: float = 0.0
     """weight of the mirror loss (with symmetry augment): mean over mini-batch frames and actions of (μ(M·o) −
     A·μ(o))², μ the policy's mean action, M and A the input and action mirrors; 0: off"""
-    #: The trained network made symmetric after training, as the policy its checkpoints give: run 12's 16-minute mark
-    #: passed the robust test so where the mark itself drifted too far (docs/training/robust/symmetrized), and an
-    #: actor trained equivariant from the start fell (run 18). Training never sees it, so a run trains as without it.
+    #: The trained network made symmetric after training, as the policy its checkpoints give: made symmetric, run
+    #: 12's 16-minute mark passed the robust test where the mark itself drifted too far
+    #: (docs/training/robust/symmetrized), and an actor trained equivariant from the start fell (run 18). Training
+    #: never sees it, so a run trains as without it.
     symmetric_policy: bool = False
     """the policy of a checkpoint (every gait test, play, viewer and export) is the trained actor's mean made
     left-right symmetric, ½·(f(o) + A·f(M·o)); training acts with f itself, so the run trains as without it"""
