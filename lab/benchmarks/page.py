@@ -328,7 +328,47 @@ def solver_cap_cost(docs: Path) -> list[str]:
             f"{m['rounds']} rounds (seeds {', '.join(map(str, m['seeds']))}: {rounds}) gave "
             f"**{s['on_over_off']:.3f}x**, on {_k(s['on_median'])} against off {_k(s['off_median'])} env-steps/s "
             f"({m['date']}, {m['gpu']}; [details]({SOLVER_CAP_COST}/README.md)). The preset keeps the model's "
-            "solver until a from-scratch run with the cap passes the robust gait test.", *_capped_runs(docs), ""]
+            "solver until a from-scratch run with the cap passes the robust gait test.", *_capped_runs(docs),
+            *_screened_runs(docs), *_symmetric_copy(docs), ""]
+
+
+#: From-scratch runs of the capped preset whose marks were screened and went to no verdict: (screen report, README).
+SOLVER_CAP_SCREENED = (("training/robust/h200_run18/screen_gpu/robust_policies.json",
+                        "training/robust/h200_run18/README.md", "`ppo.symmetry=equivariant`"),)
+
+
+def _screened_runs(docs: Path) -> list[str]:
+    """One line per committed capped run that a screen stopped before the full test."""
+    lines = []
+    for report, readme, also in (r for r in SOLVER_CAP_SCREENED if (docs / r[0]).is_file()):
+        d = _load(report, docs)
+        m, results = d["meta"], d["results"]
+        kept = [r["cases"]["nominal"]["survival"] for r in results]
+        kicks = [r["cases"]["robust_1.0"]["survival"] for r in results]
+        lines.append(f"- The capped preset's from-scratch run with {also} went to no verdict: a screen of "
+                     f"{len(results)} marks ({m['num_envs']:,} robots per case; {m['date']}, {m['gpu']}) kept "
+                     f"{min(kept):.2f}-{max(kept):.2f} of the robots up in `nominal` and {min(kicks):.2f}-"
+                     f"{max(kicks):.2f} under the 1.0 m/s kicks: [README]({readme}).")
+    return lines
+
+
+#: The full robust test of run 12's 16-minute mark made symmetric after training (lab/analysis/symmetrize.py).
+SYMMETRIC_COPY = "training/robust/symmetrized/gpu_verdict_run12/robust_policies.json"
+
+
+def _symmetric_copy(docs: Path) -> list[str]:
+    """One line for the verdict of run 12's symmetric copy, when it is committed."""
+    if not (docs / SYMMETRIC_COPY).is_file():
+        return []
+    d = _load(SYMMETRIC_COPY, docs)
+    m, r = d["meta"], d["results"][0]
+    c = r["cases"]
+    verdict = "passes" if r["passes"] else "does not pass"
+    return [f"- Run 12's 16-minute mark made left-right symmetric after training {verdict} the whole robust test "
+            f"({m['num_envs']:,} robots per case: `nominal` drift p95 {c['nominal']['lateral_drift_m.p95']:.4f} m, "
+            f"`robust_1.0` survival {c['robust_1.0']['survival']:.3f}; {m['date']}, {m['gpu']}; "
+            "[details](training/robust/symmetrized/README.md)). `ppo.symmetric_policy` makes such a copy a run's "
+            "policy; the preset takes it with the cap only after a from-scratch run with both passes."]
 
 
 def _set_items(overrides: dict, skip: tuple[str, ...] = ()) -> str:
