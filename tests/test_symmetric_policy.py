@@ -110,3 +110,24 @@ def test_it_is_refused_beside_an_equivariant_actor_and_may_change_on_resume():
     with pytest.raises(ValueError, match="symmetric already: leave ppo.symmetric_policy false"):
         preset_config("cpu_smoke", **{"ppo.symmetry": "equivariant", "ppo.symmetric_policy": True})
     assert "ppo.symmetric_policy" in RESUME_SAFE  # it changes no computation of the run
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@needs_robust
+def test_the_robust_test_runs_a_symmetric_policy_on_the_gpu(tmp_path):
+    """On CUDA the robust test's batch env steps through a captured graph; the wrapped policy, its mirror buffers
+    and the normaliser statistics must all live on the GPU, and the policy must act as on the CPU."""
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, checkpoint_case, evaluate_robust_checkpoint
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint
+
+    flagged = _with_symmetric_policy(tmp_path)
+    test = RobustTestConfig(num_envs=8, seconds=0.2, cases=("nominal", "robust_1.0"))
+    report = evaluate_robust_checkpoint(read_checkpoint(flagged), flagged, tmp_path / "out", test=test, device="cuda",
+                                        progress=False)
+    assert set(report["cases"]) == {"nominal", "robust_1.0"}
+    obs = torch.randn(4, 237)
+    cpu = checkpoint_case(flagged, "nominal", "cpu", RobustTestConfig(num_envs=2))[3].actor
+    gpu = checkpoint_case(flagged, "nominal", "cuda", RobustTestConfig(num_envs=2))[3].actor
+    assert all(b.device.type == "cuda" for b in gaussian_head(gpu).mean_net.buffers())
+    torch.testing.assert_close(_mean(gpu, obs.cuda()).cpu(), _mean(cpu, obs), atol=1e-4, rtol=1e-4)
