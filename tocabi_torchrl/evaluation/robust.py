@@ -32,8 +32,8 @@ its episode, so the same policy gets the same numbers from the same robot count 
 from __future__ import annotations
 
 import dataclasses
-import math
 import json
+import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -642,11 +642,10 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
 
     # In the test's order, each once (RobustTestConfig.validate): a case has the full test's start states and draws
     # when the cases before it run too (not the commands case's re-drawn commands: RobustTestConfig.validate).
-    if isinstance(cases, str):  # dict.fromkeys would take one name as its letters
-        raise ValueError(f"cases must be a sequence of case names, e.g. [{cases!r}], got the string {cases!r}")
-    order = list(CASES)
-    cases = sorted(dict.fromkeys(cases or CASES), key=lambda c: order.index(c) if c in order else len(order))
-    test = RobustTestConfig(num_envs=num_envs, seconds=seconds, cases=tuple(cases))
+    if not isinstance(cases, str):  # a string goes to the test's own check whole (dict.fromkeys splits it)
+        order = list(CASES)
+        cases = tuple(sorted(dict.fromkeys(cases or CASES), key=lambda c: order.index(c) if c in order else len(order)))
+    test = RobustTestConfig(num_envs=num_envs, seconds=seconds, cases=cases)
     test.validate(policy_dt())
     ckpt = checkpoint_file(run)
     state = read_checkpoint(ckpt)

@@ -11,14 +11,7 @@ __all__ = ["CallOnReset", "check_specs_once", "flatten_chain", "transforms_after
 def transforms_before(transform: Transform) -> list[Transform]:
     """The transforms in front of ``transform`` in its env's chain (nested ``Compose`` flattened); empty when it
     belongs to no env. For checks of a transform's place in the chain."""
-    found, stack = [], [getattr(transform.parent, "transform", None)]
-    while stack:
-        t = stack.pop()
-        if isinstance(t, Compose):
-            stack.extend(reversed(t.transforms))
-        elif t is not None:
-            found.append(t)
-    return found
+    return flatten_chain([getattr(transform.parent, "transform", None)])
 
 
 def flatten_chain(transforms) -> list[Transform]:
@@ -38,8 +31,7 @@ def transforms_after(transform: Transform) -> list[Transform]:
         box = transform.container  # the env, for a transform anywhere in an env's chain
     except ValueError:  # in no Compose nor env
         return []
-    chain = flatten_chain([box if isinstance(box, Compose) else getattr(box, "transform", None)] if box is not None
-                       else [])
+    chain = flatten_chain([box if isinstance(box, Compose) else getattr(box, "transform", None)])
     index = next((i for i, t in enumerate(chain) if t is transform), None)
     return [] if index is None else chain[index + 1:]
 

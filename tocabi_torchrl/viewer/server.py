@@ -22,10 +22,11 @@ def check_address(host: str, port: int) -> None:
     (a cloud machine's public address is a natural thing to type)."""
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise ValueError(f"viewer port must be an int in [0, 65535], got {port!r}")
+    found, last = [], OSError(f"{host!r} resolves to no address")
     try:
         found = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
     except OSError as err:  # socket.gaierror: a name that resolves to nothing
-        found, last = [], err
+        last = err
     # The server binds every address the name resolves to and skips those it cannot: one that binds is enough
     # (localhost may resolve to ::1 first on a machine without IPv6).
     for family, _, _, _, address in found:
