@@ -26,7 +26,6 @@ from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.cli import suggest_options
 from tocabi_torchrl.config import RunConfig
 from tocabi_torchrl.rl import checkpoint, trainer
-from tocabi_torchrl.rl.symmetry import apply_checkpoint_policy
 from tocabi_torchrl.rl.config import PRESETS, parse_tree, preset_config
 from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.evaluation.gait_test import evaluate_policy
@@ -346,8 +345,7 @@ def gait_test(state: dict, path, command, out, num_envs: int, seconds: float, de
     if command not in envs:
         envs[command] = trainer.build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
     env = envs[command]
-    agent = trainer.build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
-    apply_checkpoint_policy(state, agent, cfg, env, path)
+    agent = trainer.checkpoint_agent(state, cfg, env, path)
     return evaluate_policy(agent.actor, cfg, out, num_envs=num_envs, device=device, seconds=seconds, command=command,
                            video_envs=0, env=env, progress=False, source=path)
 

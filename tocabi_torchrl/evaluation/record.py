@@ -160,8 +160,7 @@ def load_policy(path: str | os.PathLike, num_envs: int, device: torch.device,
     policy trained in. Raises ``CheckpointError`` for a bad file.
     """
     from ..rl.checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint
-    from ..rl.symmetry import apply_checkpoint_policy
-    from ..rl.trainer import build_agent, build_env
+    from ..rl.trainer import build_env, checkpoint_agent
 
     ckpt = checkpoint_file(path)
     state = read_checkpoint(ckpt) if state is None else state
@@ -175,7 +174,6 @@ def load_policy(path: str | os.PathLike, num_envs: int, device: torch.device,
         env_cfg = edit_env(env_cfg)
     cfg = dataclasses.replace(cfg, env=env_cfg)
     env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
-    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
-    apply_checkpoint_policy(state, agent, cfg, env, ckpt)
+    agent = checkpoint_agent(state, cfg, env, ckpt)
     freeze_running_statistics(env)
     return LoadedPolicy(ckpt, cfg, env, agent)

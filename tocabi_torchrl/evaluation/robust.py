@@ -253,8 +253,7 @@ def checkpoint_case(path: str | os.PathLike, case: str | RobustCase, device: tor
     analysis: is a weakness the authored robot's asymmetry? ``lab/analysis/symmetric_model.py``); without it, the
     checkpoint's own model, as in every test."""
     from ..rl.checkpoint import config_from_checkpoint, read_checkpoint
-    from ..rl.symmetry import apply_checkpoint_policy
-    from ..rl.trainer import assist_schedule, build_agent
+    from ..rl.trainer import assist_schedule, checkpoint_agent
 
     state = read_checkpoint(path)
     cfg = config_from_checkpoint(state, path)
@@ -264,8 +263,7 @@ def checkpoint_case(path: str | os.PathLike, case: str | RobustCase, device: tor
     assisted = as_trained and cfg.ppo.torque_assist > 0
     env = case_env(cfg, case, torch.device(device), test.num_envs, test, torque_assist=assisted,
                    train_solver=train_solver)
-    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
-    apply_checkpoint_policy(state, agent, cfg, env, path)
+    agent = checkpoint_agent(state, cfg, env, path)
     if assisted:
         env.base_env.set_torque_assist(assist_schedule(cfg, env)(int(state["env_steps"])))
     env.set_seed(int(test.seed))

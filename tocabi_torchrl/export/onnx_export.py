@@ -79,16 +79,14 @@ def load_policy(checkpoint: str | os.PathLike, num_envs: int = 1, **env_override
     normalises with running statistics that the checkpoint does not hold.
     """
     from ..rl.checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint
-    from ..rl.symmetry import apply_checkpoint_policy
-    from ..rl.trainer import build_agent, build_env
+    from ..rl.trainer import build_env, checkpoint_agent
 
     path = checkpoint_file(checkpoint)
     state = read_checkpoint(path)
     cfg = config_from_checkpoint(state, path)
     device = torch.device("cpu")
     env = build_env(cfg, device, num_envs=num_envs, **env_overrides)
-    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
-    apply_checkpoint_policy(state, agent, cfg, env, path)
+    agent = checkpoint_agent(state, cfg, env, path)
     freeze_running_statistics(env)  # the contract states the checkpoint's statistics, frozen
     return LoadedPolicy(checkpoint=path, config=cfg, config_dict=cfg.to_dict(), saved_config=dict(state["config"]),
                         agent=agent, env=env,

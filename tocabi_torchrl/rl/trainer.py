@@ -42,8 +42,8 @@ from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
 from ..transforms.normalize import RunningNormalization
 from ..transforms.privileged import PRIVILEGED_DIM, PrivilegedState
-from .symmetry import (SymmetryAugmentLoss, find_normalization, make_equivariant_mean, make_symmetry_loss,
-                       refresh_statistics, set_equivariant_statistics)
+from .symmetry import (SymmetryAugmentLoss, apply_checkpoint_policy, find_normalization, make_equivariant_mean,
+                       make_symmetry_loss, refresh_statistics, set_equivariant_statistics)
 from .update_step import (MinibatchStep, adapt_lr, get_lr, make_capturable_adam, optimizer_mode,
                           restore_optimizer_mode, set_lr)
 
@@ -231,6 +231,16 @@ def build_agent(cfg: RunConfig, obs_dim: int, act_dim: int, device: torch.device
     if ppo.torque_assist > 0 and ppo.assist_target == "teacher":
         teacher = AssistTeacher(gaussian_head(actor).mean_net, robot.LEG_TORQUE_LIMITS)
     return Agent(actor, critic, schedule, teacher)
+
+
+def checkpoint_agent(state: dict, cfg: RunConfig, env: EnvBase, path) -> Agent:
+    """The agent of checkpoint ``state`` (read from ``path``, config ``cfg``) for ``env``: built at the env's
+    observation and action widths on its device, with the trained weights and ``env``'s normaliser state applied by
+    :func:`~.symmetry.apply_checkpoint_policy` (so, with ``cfg.ppo.symmetric_policy``, the symmetric policy). What
+    every reader of a checkpoint's policy uses: the gait tests, play, the viewer, the export."""
+    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
+    apply_checkpoint_policy(state, agent, cfg, env, path)
+    return agent
 
 
 def _param_groups(agent: Agent, cfg: RunConfig) -> list[dict]:
