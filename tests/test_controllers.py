@@ -3,6 +3,7 @@ trains two PPO iterations on the CPU; a bad controller is refused by name."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
@@ -104,12 +105,15 @@ def test_an_env_other_than_its_config_is_refused_by_train(tmp_path):
     from tocabi_torchrl.rl import preset_config
     from tocabi_torchrl.rl.trainer import build_env, train
     from tocabi_torchrl.transforms.layouts import TOCABILAB_HISTORY
+    from tocabi_torchrl.transforms.privileged import PrivilegedState
     from tocabi_torchrl.transforms.sensor_noise_config import SensorNoiseConfig
 
     cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
                         "ppo.minibatch_size": 16}, total_env_steps=32, run_dir=str(tmp_path), name="x",
                         progress_bar=False, eval_at_end=False)
     cpu = torch.device("cpu")
+    privileged_env = build_env(cfg, cpu, for_training=False)
+    privileged_env.append_transform(PrivilegedState())
     for env, message in ((build_env(cfg, cpu, for_training=True, control_mode="torque"),
                           r"env.control.mode: 'torque' in the env, 'pd_reference' in cfg"),
                          (build_env(cfg, cpu, for_training=True, normalization="running"),
@@ -122,7 +126,12 @@ def test_an_env_other_than_its_config_is_refused_by_train(tmp_path):
                          (build_env(cfg, cpu, for_training=True, sensor_noise=SensorNoiseConfig.tocabi_lab()),
                           "sensor noise: a SensorNoiseConfig of its own in the env, none in cfg"),
                          (build_env(cfg, cpu, for_training=True, obs_clip=5.0),
-                          "observation clip: 5.0 in the env, none in cfg")):
+                          "observation clip: 5.0 in the env, none in cfg"),
+                         # What build_env adds from cfg besides the env section.
+                         (build_env(dataclasses.replace(cfg, seed=cfg.seed + 1), cpu, for_training=True),
+                          f"seeded with {cfg.seed + 1}, cfg.seed is {cfg.seed}"),
+                         (privileged_env, r"gives 'privileged' \(the asymmetric critic's input\), "
+                                          "cfg.ppo.critic_privileged is False")):
         with pytest.raises(ValueError, match=message):
             train(cfg, env=env)
     assert not (tmp_path / "x").exists()
@@ -130,6 +139,24 @@ def test_an_env_other_than_its_config_is_refused_by_train(tmp_path):
     from tocabi_torchrl.rl.trainer import check_given_env
 
     check_given_env(cfg, build_env(cfg, cpu, for_training=True, reward_terms=("body_vel", "orientation")))
+
+
+def test_the_robust_presets_assist_and_critic_need_build_env(tmp_path):
+    # make_env with the run's env and transform sections leaves out what build_env sets from cfg.ppo: the robust
+    # preset trained with its assist PD on the true joints (saved as sensed), or died in a tensordict KeyError.
+    from tocabi_torchrl import make_env
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.trainer import build_env, check_given_env, env_config
+
+    cfg = preset_config("robust", device="cpu", **{"env.num_envs": 2, "ppo.minibatch_size": 16})
+    assert cfg.ppo.assist_pd_sensed and cfg.ppo.critic_privileged and env_config(cfg, True).control.torque_assist
+    plain = make_env(2, "cpu", seed=cfg.seed, config=env_config(cfg, True), transforms=cfg.transforms)
+    with pytest.raises(ValueError, match=r"assist PD read the true joint positions, cfg.ppo.assist_pd_sensed is True"):
+        check_given_env(cfg, plain)
+    plain.base_env.sense_assist_joints()
+    with pytest.raises(ValueError, match=r"has no 'privileged'.*cfg.ppo.critic_privileged is True"):
+        check_given_env(cfg, plain)
+    check_given_env(cfg, build_env(cfg, torch.device("cpu"), for_training=True))
 
 
 def test_a_controller_returning_the_wrong_shape_is_named():

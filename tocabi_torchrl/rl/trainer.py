@@ -117,6 +117,21 @@ def check_given_env(cfg: RunConfig, env: EnvBase) -> None:
                              f"{'; ...' if len(differ) > 3 else ''}): the run saves cfg, so its files would describe "
                              "another env; put the settings into cfg and build the env with build_env(cfg, device, "
                              "for_training=True)")
+        # What build_env sets from cfg besides the env section: the seed and the assist PD's sensed joints.
+        if base._seed != cfg.seed:
+            raise ValueError(f"the env given to train() was seeded with {base._seed}, cfg.seed is {cfg.seed}: the run "
+                             "saves cfg, so a resume or a repeat would draw other episodes; set seed in cfg, or build "
+                             "the env with build_env(cfg, device, for_training=True)")
+        sensed = bool(cfg.ppo.assist_pd_sensed and base.cfg.control.torque_assist)
+        if base.assist_reads_sensed != sensed:
+            raise ValueError(f"the env given to train() has its assist PD read the {'true' if sensed else 'sensed'} "
+                             f"joint positions, cfg.ppo.assist_pd_sensed is {cfg.ppo.assist_pd_sensed}: build the env "
+                             "with build_env(cfg, device, for_training=True), which sets it")
+    privileged = "privileged" in env.observation_spec.keys()
+    if privileged != cfg.ppo.critic_privileged:
+        raise ValueError(f"the env given to train() {'gives' if privileged else 'has no'} 'privileged' (the "
+                         f"asymmetric critic's input), cfg.ppo.critic_privileged is {cfg.ppo.critic_privileged}: build "
+                         "the env with build_env(cfg, device, for_training=True), which adds it")
     running = isinstance(find_normalization(env), RunningNormalization)
     if running != (cfg.transforms.normalization == "running"):
         raise ValueError(f"the env given to train() normalises with {'running' if running else 'fixed or no'} "
