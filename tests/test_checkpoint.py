@@ -243,3 +243,27 @@ def test_a_policy_of_another_control_mode_is_refused_by_the_env():
     with pytest.raises(CheckpointError, match="env.control.mode 'torque', but the env runs 'pd_reference'"):
         apply_checkpoint(read_checkpoint(torque), agent, env=env, path=torque)
     apply_checkpoint(read_checkpoint(SHIPPED_POLICY), agent, env=env, path=SHIPPED_POLICY)  # its own mode loads
+
+
+@pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="shipped policy not present")
+def test_a_policy_is_refused_by_an_env_normalising_otherwise():
+    # The weights fit an env without a normaliser (the same width): the fixed-normalisation policy acted on raw
+    # observations without a word, the saved loc and scale unused.
+    import copy
+    import dataclasses
+
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint
+    from tocabi_torchrl.rl.trainer import build_env, checkpoint_agent
+
+    state = read_checkpoint(SHIPPED_POLICY)
+    cfg = config_from_checkpoint(state, SHIPPED_POLICY)
+    assert cfg.transforms.normalization == "fixed"
+    raw = build_env(dataclasses.replace(cfg, transforms=dataclasses.replace(cfg.transforms, normalization="none")),
+                    CPU, num_envs=2)
+    with pytest.raises(CheckpointError, match="normalization 'fixed', but the env does not normalise"):
+        checkpoint_agent(state, cfg, raw, SHIPPED_POLICY)
+    unnormalised = copy.deepcopy(state)
+    unnormalised["config"]["transforms"]["normalization"] = "none"
+    with pytest.raises(CheckpointError, match="normalization 'none', but the env normalises"):
+        checkpoint_agent(unnormalised, cfg, build_env(cfg, CPU, num_envs=2), SHIPPED_POLICY)
+    checkpoint_agent(state, cfg, build_env(cfg, CPU, num_envs=2), SHIPPED_POLICY)  # its own kind loads

@@ -373,6 +373,8 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
         _check_fits({k: v for k, v in saved_transforms.items() if k in mine}, mine, "env transforms", path,
                     hint="another observation layout or normalisation?", allow_missing=True)
     saved_norm = ((state.get("config") or {}).get("transforms") or {}).get("normalization")
+    if saved_norm is not None and isinstance(transform, nn.Module):
+        _require_normaliser(saved_norm, transform, path)
     if saved_norm == "running" and isinstance(transform, nn.Module):  # after the alignment (indices may shift)
         _require_running_statistics(saved_transforms, transform, path)
     agent.load_state_dict(state["agent"])
@@ -384,6 +386,20 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
                                   "value_head_lr differs?") from err
     if saved_transforms and isinstance(transform, nn.Module):
         transform.load_state_dict(saved_transforms, strict=False)
+
+
+def _require_normaliser(saved_norm: str, transform: nn.Module, path) -> None:
+    """Refuse an env whose policy input is normalised when the checkpoint's was not, or the reverse: the weights
+    fit either way (same width), and the policy would act on raw observations, or on ones divided by statistics it
+    never saw."""
+    from ..transforms.normalize import _Normalization
+
+    env_has = any(isinstance(m, _Normalization) for m in transform.modules())
+    if env_has != (saved_norm != "none"):
+        raise CheckpointError(f"checkpoint {path}: a policy of transforms.normalization {saved_norm!r}, but the env "
+                              f"{'normalises' if env_has else 'does not normalise'} its observations: the policy "
+                              "would act on inputs it never saw; build the env from the checkpoint's config "
+                              "(config_from_checkpoint, or play.py / load_policy)")
 
 
 def _require_running_statistics(saved: dict, transform: nn.Module, path) -> None:
