@@ -73,6 +73,24 @@ def test_config_round_trips_with_the_run_config():
     assert cfg.transforms.transform_config().sensor_noise == LAB
 
 
+def test_a_section_given_as_none_or_a_dict_is_named_or_built():
+    # make_env(sensor_noise=None) and TransformSettings(sensor_noise=None).validate() ended in AttributeError.
+    from tocabi_torchrl.transforms import KickRelax, TransformConfig, TransformSettings
+
+    for make in (lambda: make_env(2, "cpu", sensor_noise=None), lambda: TransformConfig(sensor_noise=None),
+                 lambda: TransformSettings(sensor_noise=None).validate()):
+        with pytest.raises(ValueError, match=r"sensor_noise must be a SensorNoiseConfig.*got None; for none, give "
+                                             r"SensorNoiseConfig\(\)"):
+            make()
+    with pytest.raises(ValueError, match="kick_relax must be a KickRelax or a dict of its options, got 3"):
+        TransformConfig(kick_relax=3)
+    # A dict of options, as an env section takes one: the section it names.
+    assert TransformConfig(sensor_noise={"joint_pos_bias": 0.1}).sensor_noise == SensorNoiseConfig(joint_pos_bias=0.1)
+    assert TransformConfig(kick_relax={"seconds": 1.5}).kick_relax == KickRelax(seconds=1.5)
+    names = [type(t).__name__ for t in make_env(2, "cpu", sensor_noise={"joint_pos_bias": 0.1}).transform]
+    assert "SensorNoise" in names
+
+
 def test_off_adds_no_transform():
     for chain in (default_transforms(), default_transforms(sensor_noise=SensorNoiseConfig())):
         assert not any(isinstance(t, SensorNoise) for t in chain)

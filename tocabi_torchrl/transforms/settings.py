@@ -85,6 +85,8 @@ class TransformConfig:
                 object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
         if self.normalization not in _NORMALIZATIONS:
             raise ValueError(f"normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
+        for name, kind in (("sensor_noise", SensorNoiseConfig), ("kick_relax", KickRelax)):
+            object.__setattr__(self, name, _section(getattr(self, name), kind, name))
         check_field_types(self)
         if (self.obs_mean is None) != (self.obs_var is None):
             raise ValueError("pass both obs_mean and obs_var, or neither (for the reference statistics)")
@@ -108,6 +110,19 @@ class TransformConfig:
             if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 < scale < math.inf:
                 raise ValueError(f"reward_scales[{name!r}] must be a finite number > 0 (the term's kernel scale), "
                                  f"got {scale!r}")
+
+
+def _section(value, kind: type, where: str, dicts: bool = True):
+    """``value`` as a ``kind`` section: itself, or (``dicts``) built from a dict of its options; ``ValueError``
+    naming ``where`` for anything else (None once failed later as an ``AttributeError``)."""
+    if isinstance(value, kind):
+        return value
+    if dicts and isinstance(value, Mapping):
+        from tocabi_torchrl.tree import from_dict
+
+        return from_dict(kind, dict(value), f"{where}.")
+    raise ValueError(f"{where} must be a {kind.__name__}{' or a dict of its options' if dicts else ''}, got "
+                     f"{value!r}; for none, give {kind.__name__}() (all off)")
 
 
 #: ``reference``: the reference task (spec §7-8). ``tocabilab``: the same, with TocabiLab's consecutive history
@@ -251,10 +266,9 @@ class TransformSettings:
         if self.obs_clip is not None and not (self.obs_clip > 0 and math.isfinite(self.obs_clip)):
             raise ValueError(f"transforms.obs_clip must be a finite number > 0 (the normalised observation is clipped "
                              f"to [-obs_clip, obs_clip]) or none for no clip, got {self.obs_clip!r}")
+        for name, kind in (("sensor_noise", SensorNoiseConfig), ("kick_relax", KickRelax)):
+            _section(getattr(self, name), kind, f"transforms.{name}", dicts=False)  # the tree converts dicts
         self.sensor_noise.validate()
-        if not isinstance(self.kick_relax, KickRelax):
-            raise ValueError(f"transforms.kick_relax must be a KickRelax (e.g. KickRelax(seconds=1.5)), got "
-                             f"{self.kick_relax!r}")
         self.kick_relax.validate()
         if self.kick_relax.enabled:
             in_use = (*REFERENCE_TERM_NAMES, *self.extra_terms())
