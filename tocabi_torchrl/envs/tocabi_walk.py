@@ -32,7 +32,7 @@ from .command import VelocityCommand
 from .config import TocabiWalkConfig, resolve_backend
 from .controllers import leg_actuator_chain, leg_law, upper_body_law
 from .cycle_velocity import CycleVelocityError, gait_cycle_steps, heading_velocity
-from .episode_random import EpisodeDraws, box_muller
+from .episode_random import EpisodeDraws, box_muller, hash_seed
 from .obstacles import add_obstacles, world_obstacle_centres
 from .pushes import Pushes
 from .termination import termination_flags
@@ -213,7 +213,7 @@ class TocabiWalk(EnvBase):
         self.rng = torch.Generator(device=device)
         self.rng.manual_seed(self._seed)
         # The reset's per-episode draws read the seed from the device, so a captured step graph follows set_seed.
-        self._seed_t = torch.tensor(self._seed, dtype=torch.int64, device=device)
+        self._seed_t = torch.tensor(hash_seed(self._seed), dtype=torch.int64, device=device)  # the draws' key
         self.command = VelocityCommand(cfg.command, num_envs, device, self.rng)
         #: The episode's kicks (``env.pushes``), or None when they are off.
         self.pushes: Pushes | None = None
@@ -744,7 +744,7 @@ class TocabiWalk(EnvBase):
 
             self._seed = check_seed(seed)
             self.rng.manual_seed(self._seed)
-            self._seed_t.fill_(self._seed)
+            self._seed_t.fill_(hash_seed(self._seed))
             # Start rows and first commands are keyed on (seed, env, episode number): restart the numbering so that
             # set_seed(s) followed by reset() repeats the same episodes.
             self.episode_count.zero_()

@@ -59,9 +59,9 @@ __all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking
            "gait_cycle_steps", "heading_frame_velocity", "randomization_applied", "robust_case_config", "robust_passes",
            "robust_report_text", "run_case"]
 
-#: The seed of every random draw of the robust test (starts, commands, randomisation, pushes). Below 2**32, the part
-#: of a seed the per-episode draws read (envs.episode_random), and far from the small seeds the presets and tests
-#: train with (0, 1, 2, ...), so the test's randomised models are not ones a policy was trained on.
+#: The seed of every random draw of the robust test (starts, commands, randomisation, pushes). Below 2**32, where the
+#: per-episode draws' key is the seed itself (envs.episode_random.hash_seed), and far from the small seeds the presets
+#: and tests train with (0, 1, 2, ...), so the test's randomised models are not ones a policy was trained on.
 EVAL_SEED = 2_971_215_073
 #: File names of the report and its figure in the evaluation folder.
 ROBUST_JSON, ROBUST_PNG = "robust.json", "robust.png"
