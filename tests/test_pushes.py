@@ -262,8 +262,9 @@ def test_training_ramps_the_pushes_by_env_steps(tmp_path):
 
 def test_training_env_relaxes_the_reward_after_its_kicks(tmp_path):
     from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl import make_env
     from tocabi_torchrl.rl.trainer import build_env, train
-    from tocabi_torchrl.transforms import TaskReward
+    from tocabi_torchrl.transforms import KickRelax, TaskReward
 
     kicks = {"env.pushes.count": 2, "env.pushes.window": (0.0, 0.1), "env.pushes.speed": (1.0, 1.0),
              "env.pushes.kind": "velocity", "transforms.kick_relax.seconds": 1.0}
@@ -288,6 +289,11 @@ def test_training_env_relaxes_the_reward_after_its_kicks(tmp_path):
     torch.testing.assert_close(relaxed_td["next", "reward_terms", "body_vel"],
                                plain_td["next", "reward_terms", "body_vel"])
     train(cfg, env=env)  # and a run trains with it
-    calm = build_env(preset_config("cpu_smoke", device="cpu", **{"transforms.kick_relax.seconds": 1.0}),
-                     torch.device("cpu"), for_training=True)
+    # An env without kicks (a gait test builds the trained env without them) takes it and relaxes nothing; a run
+    # config that asks for it without kicks would train as without it, and is refused.
+    calm = make_env(2, "cpu", kick_relax=KickRelax(seconds=1.0))
+    calm.reset()
     assert next(t for t in calm.transform if isinstance(t, TaskReward)).kick_relax is None  # no kicks: nothing
+    with pytest.raises(ValueError, match="env.pushes.count is 0 .no kicks.: set env.pushes.count > 0, or "
+                                         "transforms.kick_relax.seconds=0"):
+        preset_config("cpu_smoke", device="cpu", **{"transforms.kick_relax.seconds": 1.0})

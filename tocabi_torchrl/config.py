@@ -507,6 +507,11 @@ class RunConfig:
         if self.transforms.cycle_vel_weight > 0 and not self.env.task.cycle_velocity:
             raise ValueError("transforms.cycle_vel_weight > 0 reads the env's cycle_vel_error signal, which "
                              "env.task.cycle_velocity turns on: set env.task.cycle_velocity=true as well")
+        if self.transforms.kick_relax.enabled and self.env.pushes.count == 0:
+            # Not an error in the env (a gait test builds the trained env without its kicks), but a run that sets it
+            # would train exactly as without it.
+            raise ValueError("transforms.kick_relax relaxes reward terms after a kick, and env.pushes.count is 0 (no "
+                             "kicks): set env.pushes.count > 0, or transforms.kick_relax.seconds=0")
         if self.ppo.minibatch_size > self.frames_per_batch:
             quarter = max(1, self.frames_per_batch // 4)
             raise ValueError(
