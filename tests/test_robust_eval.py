@@ -431,6 +431,26 @@ def test_bad_case_lists_are_named():
 
     with pytest.raises(ValueError, match="got the string 'nominal'"):  # split into letters before the check
         evaluate_robust_run(SHIPPED_POLICY, num_envs=2, seconds=0.1, cases="nominal")
+    with pytest.raises(ValueError, match=r"unknown robust-test case\(s\) \(none given\)"):  # once: all four
+        evaluate_robust_run(SHIPPED_POLICY, num_envs=2, seconds=0.1, cases=[])
+
+
+def test_bad_test_settings_are_named_before_anything_is_built():
+    # A float seed ran as int(seed) while the report kept 1.5; a bad kick count, window or start std failed in the
+    # env's build under a path the caller never set (push_count -1: "env.pushes.count must be an int in [0, 64]").
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig
+
+    for setting, message in (({"seed": 1.5}, r"seed must be an int in \[0, 2\*\*63 - 1\]"),
+                             ({"push_count": -1}, r"push_count must be an int in \[1, 64\]"),
+                             ({"push_count": 2.0}, "push_count must be an int"),
+                             ({"push_window": (7.0, 2.0)}, r"push_window must be \(start, end\)"),
+                             ({"push_window": (2.0,)}, "push_window must be"),
+                             ({"push_window": (-1.0, 2.0)}, "push_window must be"),
+                             ({"start_joint_vel_std": -0.5}, "start_joint_vel_std must be a finite number >= 0"),
+                             ({"start_base_vel_std": float("nan")}, "start_base_vel_std must be a finite number")):
+        with pytest.raises(ValueError, match=message):
+            RobustTestConfig(**setting).validate(0.004)
+    RobustTestConfig(seconds=1.0).validate(0.004)  # a quick check keeps the test's window (2, 7) s
 
 
 def test_the_env_cache_keeps_one_env_per_kind_of_policy():

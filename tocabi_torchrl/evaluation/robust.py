@@ -49,7 +49,7 @@ from ..envs.cycle_velocity import gait_cycle_steps, heading_velocity
 from ..rotations import quat_rotate_inverse, quat_to_rpy
 from ..tree import to_dict
 from ..transforms.normalize import freeze_running_statistics
-from ..value_rules import PUSH_KINDS
+from ..value_rules import PUSH_KINDS, check_seed
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
 from .record import GaitMetrics, fixed_command, nominal_config, policy_steps
 
@@ -140,6 +140,21 @@ class RobustTestConfig:
             raise ValueError(f"num_envs must be an int >= 1 (robots per case; the test's default is 1024), got "
                              f"{self.num_envs!r}")
         policy_steps(self.seconds, dt)
+        check_seed(self.seed, "seed")  # a float was truncated by int() while the report kept it
+        for name in ("start_joint_vel_std", "start_base_vel_std"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < math.inf:
+                raise ValueError(f"{name} must be a finite number >= 0 (the Gaussian's std; the test's is "
+                                 f"{getattr(RobustTestConfig, name)}), got {value!r}")
+        if isinstance(self.push_count, bool) or not isinstance(self.push_count, int) or not 1 <= self.push_count <= 64:
+            raise ValueError(f"push_count must be an int in [1, 64] (kicks per robot in the pushed cases; the test's "
+                             f"is 3), got {self.push_count!r}")
+        window = tuple(self.push_window) if isinstance(self.push_window, (tuple, list)) else ()
+        if (len(window) != 2 or not all(isinstance(t, (int, float)) and not isinstance(t, bool) for t in window)
+                or not 0 <= window[0] < window[1] < math.inf):
+            # An end past `seconds` is taken: a shorter quick check keeps the test's window (the report says so).
+            raise ValueError(f"push_window must be (start, end) [s] with 0 <= start < end, finite (the test's is "
+                             f"(2.0, 7.0)), got {self.push_window!r}")
         if self.push_kind not in PUSH_KINDS:
             raise ValueError(f"push_kind must be one of {PUSH_KINDS} (the test's is velocity), got {self.push_kind!r}")
         if isinstance(self.cases, str):  # iterated, one name would be read as its letters
@@ -642,7 +657,7 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
     # when the cases before it run too (not the commands case's re-drawn commands: RobustTestConfig.validate).
     if not isinstance(cases, str):  # a string goes to the test's own check whole (dict.fromkeys splits it)
         order = list(CASES)
-        cases = tuple(sorted(dict.fromkeys(cases or CASES), key=lambda c: order.index(c) if c in order else len(order)))
+        cases = tuple(sorted(dict.fromkeys(CASES if cases is None else cases), key=lambda c: order.index(c) if c in order else len(order)))
     test = RobustTestConfig(num_envs=num_envs, seconds=seconds, cases=cases)
     test.validate(policy_dt())
     ckpt = checkpoint_file(run)
