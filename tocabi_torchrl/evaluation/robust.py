@@ -657,7 +657,8 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
     # when the cases before it run too (not the commands case's re-drawn commands: RobustTestConfig.validate).
     if not isinstance(cases, str):  # a string goes to the test's own check whole (dict.fromkeys splits it)
         order = list(CASES)
-        cases = tuple(sorted(dict.fromkeys(CASES if cases is None else cases), key=lambda c: order.index(c) if c in order else len(order)))
+        named = dict.fromkeys(CASES if cases is None else cases)  # [] stays empty: the check below names it
+        cases = tuple(sorted(named, key=lambda c: order.index(c) if c in order else len(order)))
     test = RobustTestConfig(num_envs=num_envs, seconds=seconds, cases=cases)
     test.validate(policy_dt())
     ckpt = checkpoint_file(run)
