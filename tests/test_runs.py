@@ -102,7 +102,12 @@ def test_a_damaged_latest_checkpoint_names_the_newest_readable_one(finished_run,
     shutil.copytree(finished_run, run)
     latest = run / "checkpoints" / "latest.pt"
     latest.write_bytes(latest.read_bytes()[:1000])
-    newest = sorted((run / "checkpoints").glob("iter_*.pt"))[-1]
+    files = sorted((run / "checkpoints").glob("iter_*.pt"))
+    newest = files[-1]
+    assert len(files) >= 2
+    for age, older in enumerate(files[1:]):  # as after a `cp -r` in another order: the oldest file written last
+        os.utime(older, (1e9 + age, 1e9 + age))
+    os.utime(files[0], (2e9, 2e9))
     with pytest.raises(CheckpointError, match=rf"latest.pt.*newest readable checkpoint beside it is {newest.name} "
                                               rf"\(iteration \d+\): continue from it with --resume {newest}"):
         parse_args(["--resume", str(run)])

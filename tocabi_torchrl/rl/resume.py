@@ -17,6 +17,7 @@ from ..config import RunConfig
 from ..tree import get_path, leaf_paths, replace_paths
 from .checkpoint import (
     CheckpointError,
+    _ITER_FILE,
     DamagedCheckpointError,
     checkpoint_file,
     config_from_checkpoint,
@@ -89,11 +90,18 @@ _ALTERNATIVES_READ = 3
 
 
 def _intact_alternative(damaged: Path) -> str:
-    """A hint for a damaged checkpoint: the most recently written other checkpoint beside it (``iter_*.pt``,
-    ``wall_*.pt``, ``latest.pt``) that reads, among the newest :data:`_ALTERNATIVES_READ`, with its iteration."""
+    """A hint for a damaged checkpoint: the newest other checkpoint beside it that reads, among the first
+    :data:`_ALTERNATIVES_READ`, with its iteration: the ``iter_*.pt`` files by the iteration in their names, highest
+    first (the one a resume into the run's folder accepts), then ``wall_*.pt`` and ``latest.pt`` by write time."""
     # A run's own checkpoint names only: a folder of other policies (assets/policies) names no run to continue.
-    others = sorted((p for p in damaged.parent.glob("*.pt") if p != damaged and p.is_file() and is_run_checkpoint(p)),
-                    key=lambda p: p.stat().st_mtime, reverse=True)
+    others = [p for p in damaged.parent.glob("*.pt") if p != damaged and p.is_file() and is_run_checkpoint(p)]
+
+    def newest_first(p: Path) -> tuple[int, float]:
+        # File times alone put iteration 13 first after `cp -r` (which writes every copy anew, in any order).
+        m = _ITER_FILE.match(p.name)
+        return (-int(m.group(1)), 0.0) if m else (1, -p.stat().st_mtime)
+
+    others.sort(key=newest_first)
     for other in others[:_ALTERNATIVES_READ]:
         try:
             iteration = int(read_checkpoint(other)["iteration"])
