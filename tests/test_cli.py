@@ -158,3 +158,22 @@ def test_every_shared_library_recipe_option_with_a_default_shows_it():
     for parser in (parser, *(load_recipe(name).build_parser() for name in ("train_sb3", "train_rsl_rl", "train_skrl"))):
         preset_help = next(a.help for a in parser._actions if a.dest == "preset")
         assert all(name in preset_help for name in PRESETS), preset_help
+
+
+def test_the_package_command_lines_take_full_option_names_only(tmp_path, capsys):
+    # python -m tocabi_torchrl.export took --over for --overwrite and replaced an export without being asked.
+    from tocabi_torchrl.export.__main__ import build_parser as export_parser
+    from tocabi_torchrl.motion.gait import main as gait_main
+    from tocabi_torchrl.rl.curves import main as curves_main
+    from tocabi_torchrl.signals_doc import main as signals_main
+
+    with pytest.raises(SystemExit) as info:
+        export_parser().parse_args(["--checkpoint", "c.pt", "--out", "o.onnx", "--over"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "unrecognized arguments: --over; did you mean --overwrite?" in err
+    for main, argv in ((curves_main, [str(tmp_path), str(tmp_path / "c.png"), "--over"]),
+                       (signals_main, ["--che"]), (gait_main, ["--ou", str(tmp_path / "g.npz")])):
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        assert info.value.code == 2 and "did you mean" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())

@@ -7,9 +7,10 @@ docs/concepts/env-and-signals.md (the prose around it is edited by hand); ``--ch
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
+
+from .cli import RecipeParser
 
 from .signals import EPISODE_FLAGS, REWARD, SIGNALS, Signal, SignalTable
 
@@ -57,7 +58,7 @@ def is_current(path: str | Path = DOC_PATH, signals: SignalTable = SIGNALS) -> b
 def main(argv: list[str] | None = None) -> int:
     """Command line: rewrite docs/concepts/env-and-signals.md's table, or with ``--check`` report whether it is
     current."""
-    parser = argparse.ArgumentParser(prog="python -m tocabi_torchrl.signals_doc", description=__doc__.split("\n")[0])
+    parser = RecipeParser(prog="python -m tocabi_torchrl.signals_doc", description=__doc__.split("\n")[0])
     parser.add_argument("--path", type=Path, default=DOC_PATH, help="the signals page (default: %(default)s)")
     parser.add_argument("--check", action="store_true", help="only check; exit status 1 if the table is stale")
     args = parser.parse_args(argv)

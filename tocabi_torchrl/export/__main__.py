@@ -5,9 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ..cli import RecipeParser
+
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m tocabi_torchrl.export", description=__doc__)
+    # Full option names only: an abbreviation such as --over would silently mean --overwrite.
+    parser = RecipeParser(prog="python -m tocabi_torchrl.export", description=__doc__)
     parser.add_argument("--checkpoint", required=True, help="run folder or checkpoint .pt file")
     parser.add_argument("--out", required=True, help="ONNX file to write; the contract goes beside it as .json")
     parser.add_argument("--torchscript", action="store_true", help="also write a traced TorchScript module (.ts.pt)")

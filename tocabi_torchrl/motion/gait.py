@@ -40,6 +40,7 @@ import numpy as np
 
 from tocabi_torchrl import robot
 
+from ..cli import RecipeParser
 from .analysis import gait_metrics
 from .io import MotionData, load_motion, save_npz
 from .kinematics import SIDES, LegGeometry, leg_ik
@@ -352,7 +353,7 @@ def _add_config_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI: regenerate the default walking cycle (see the module docstring)."""
-    parser = argparse.ArgumentParser(
+    parser = RecipeParser(
         prog="python -m tocabi_torchrl.motion.gait",
         description="Generate TOCABI's two-step reference walking cycle (project .npz format).",
     )

@@ -12,8 +12,9 @@ The metrics are read by :func:`~tocabi_torchrl.rl.metrics_files.read_metrics` (r
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
+
+from ..cli import RecipeParser
 
 from ..evaluation.plots import figure_format
 from .metrics_files import read_metrics
@@ -90,7 +91,7 @@ def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description="Plot a run's training curves")
+    parser = RecipeParser(description="Plot a run's training curves")
     parser.add_argument("metrics", help="a run folder, its metrics/ folder, or a wide metrics.csv")
     parser.add_argument("out_png", help="the figure to write (.png, or another format matplotlib writes: .pdf, "
                                         ".svg); an existing file is replaced only with --overwrite")
