@@ -118,10 +118,15 @@ def main(argv: list[str] | None = None) -> None:
     if args.test == "robust" and (args.vx, args.vy) != (0.5, 0.0):
         parser.error("--vx/--vy set the standard test's command; the robust test's commands are its cases' (leave "
                      "--vx/--vy out, or pass --test standard)")
+    if args.test == "robust" and args.video_envs != 4:
+        parser.error("--video_envs sets the standard test's video; the robust test records none (leave --video_envs "
+                     "out, or pass --test standard)")
+    out, made = None, False
     try:
         # before the folder is named: an exported .onnx/.json (sim2sim runs those) or a damaged file goes no further
         verified_checkpoint_file(args.checkpoint, sim2sim_options(args))
         out = eval_out_dir(args.checkpoint, args.out, args.overwrite)
+        made = not out.exists()  # a folder the test makes and leaves empty goes on Ctrl-C; one given stays
         print(f"results go to {out}/", flush=True)
         if args.test == "robust":
             from tocabi_torchrl.evaluation.robust import evaluate_robust_run, robust_report_text
@@ -139,6 +144,13 @@ def main(argv: list[str] | None = None) -> None:
     except OSError as err:  # an --out that is a file, or cannot be created or written
         sys.exit(f"error: cannot write the evaluation to {err.filename or args.out}: {err.strerror or err}; pass "
                  f"--out a folder that can be created")
+    except KeyboardInterrupt:  # 130 as for any Ctrl-C stop; an output folder with nothing in it goes too
+        kept = out is not None and out.is_dir() and any(out.iterdir())
+        if made and out.is_dir() and not kept:
+            out.rmdir()
+        print(f"\nstopped (Ctrl-C) during the gait test{f'; {out}/ holds what was written' if kept else ''}",
+              file=sys.stderr)
+        sys.exit(130)
     print(gait_report_text(summary, args.seconds, args.num_envs, out))
 
 
@@ -148,13 +160,17 @@ def serve(args: argparse.Namespace) -> None:
     from tocabi_torchrl.viewer.play import serve_policy
 
     # The live page tests nothing and writes nothing: these would be ignored without a word.
+    exported = Path(args.checkpoint).suffix in (".onnx", ".json")
     ignored = [flag for flag, given in (("--test", args.test != "standard"), ("--out", args.out is not None),
                                         ("--overwrite", args.overwrite), ("--video_envs", args.video_envs != 4))
                if given]
     if ignored:
         sys.exit(f"error: {', '.join(ignored)}: the live viewer tests nothing and writes no files, so it takes none "
                  "of them; leave them out (or drop --viewer for the gait test)")
-    if Path(args.checkpoint).suffix in (".onnx", ".json"):  # an exported policy: the torch-free runtime drives it
+    if args.seconds != 8.0 and not exported:
+        sys.exit("error: --seconds: a checkpoint's live viewer runs until Ctrl-C, so it takes none; leave it out (an "
+                 "exported policy's viewer, --checkpoint X.onnx, runs for --seconds)")
+    if exported:  # an exported policy: the torch-free runtime drives it
         serve_exported(args)
         return
     try:

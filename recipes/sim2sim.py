@@ -134,8 +134,9 @@ def main(argv: list[str] | None = None) -> dict:
                              start_velocity=ROBUST_START if args.start_noise else None, on_step=on_step).as_dict()
     except (ContractError, ValueError, ImportError) as err:  # bad contract or model, or onnxruntime missing
         sys.exit(f"error: {err}")
-    except KeyboardInterrupt:
-        sys.exit("stopped (Ctrl-C)")
+    except KeyboardInterrupt:  # 130, as for any Ctrl-C stop (sys.exit with a message would say 1)
+        print("stopped (Ctrl-C)", file=sys.stderr)
+        sys.exit(130)
     finally:
         if server is not None:
             server.stop()

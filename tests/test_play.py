@@ -90,6 +90,13 @@ def test_play_refuses_seconds_below_one_policy_step(capsys):
                                  "--overwrite"])
         assert str(info.value.code).startswith("error: --test, --overwrite, --video_envs: the live viewer tests "
                                                "nothing"), info.value.code
+    # A checkpoint's viewer ran on after --seconds 2; the robust test wrote no video for --video_envs 2.
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--viewer", "--seconds", "2"])
+    assert str(info.value.code).startswith("error: --seconds: a checkpoint's live viewer runs until Ctrl-C")
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--test", "robust", "--video_envs", "2"])
+    assert info.value.code == 2 and "--video_envs sets the standard test's video" in capsys.readouterr().err
     # sim2sim ran no step and reported survival 1.0 with NaN metrics (not JSON) into its --out.
     with pytest.raises(SystemExit) as info:
         recipe("sim2sim").main(["--contract", str(SHIPPED_POLICY.with_suffix(".json")), "--seconds", "0.001"])
@@ -221,6 +228,32 @@ def test_osmesa_is_checked_before_mujoco_loads():
 
 
 @needs_policy
+def test_ctrl_c_in_the_gait_test_exits_130_and_leaves_no_empty_folder(tmp_path, monkeypatch, capsys):
+    # It ended in a KeyboardInterrupt traceback and left the empty results folder; sim2sim said 1.
+    play = recipe("play")
+
+    def interrupted(*args, **kwargs):
+        kwargs["out_dir"].mkdir(parents=True, exist_ok=True)  # as the test makes its folder before its first step
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(play, "evaluate_run", interrupted)
+    out = tmp_path / "eval"
+    with pytest.raises(SystemExit) as info:
+        play.main(["--checkpoint", str(SHIPPED_POLICY), "--device", "cpu", "--out", str(out)])
+    assert info.value.code == 130 and "stopped (Ctrl-C) during the gait test" in capsys.readouterr().err
+    assert not out.exists()
+    given = tmp_path / "given"
+    given.mkdir()  # a folder the user made stays
+    with pytest.raises(SystemExit) as info:
+        play.main(["--checkpoint", str(SHIPPED_POLICY), "--device", "cpu", "--out", str(given)])
+    assert info.value.code == 130 and given.is_dir()
+    sim2sim = recipe("sim2sim")
+    monkeypatch.setattr(sim2sim, "run_sim2sim", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+    with pytest.raises(SystemExit) as info:
+        sim2sim.main(["--contract", str(SHIPPED_POLICY.with_name("tocabi_walk_torque.json")), "--seconds", "0.1"])
+    assert info.value.code == 130 and "stopped (Ctrl-C)" in capsys.readouterr().err
+
+
 def test_play_refuses_an_out_holding_results_unless_overwrite(tmp_path, capsys):
     # Checked before anything is built: an earlier evaluation's files are not replaced silently.
     out = tmp_path / "earlier"
