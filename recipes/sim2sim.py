@@ -65,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
 if __name__ == "__main__":  # --help or a misspelt option answers before mujoco and onnxruntime load
     build_parser().parse_args(sys.argv[1:])
 
+from tocabi_torchrl.atomic import atomic_write_text  # noqa: E402
 from tocabi_torchrl.runtime import ContractError  # noqa: E402
 from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim  # noqa: E402
 from tocabi_torchrl.runtime.randomization import ROBUST_START, PushSettings  # noqa: E402
@@ -82,6 +83,25 @@ def watch(args: argparse.Namespace):
     print(f"viewer: {args.num_robots} robots of {args.contract} for {args.seconds} s, in real time; open "
           f"{page_url(args.viewer_host, server.get_port())}", flush=True)
     return server, ExportedWatch(server, dt)
+
+
+def progress(args: argparse.Namespace, draw=None):
+    """A progress bar on stderr (stdout stays the JSON) and the driver's per-period callback that moves it (and
+    calls ``draw``, the viewer's, when given): ``(bar, on_step)``."""
+    from tqdm import tqdm
+
+    from tocabi_torchrl.runtime.contract import load_contract
+
+    dt = float(load_contract(args.contract)["timing"]["control_dt_s"])
+    bar = tqdm(total=round(args.seconds / dt), unit="step", desc=f"sim2sim, {args.num_robots} robots",
+               file=sys.stderr, mininterval=1.0, leave=False)
+
+    def on_step(step, model, datas) -> None:
+        bar.update(1)
+        if draw is not None:
+            draw(step, model, datas)
+
+    return bar, on_step
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -121,11 +141,12 @@ def main(argv: list[str] | None = None) -> dict:
             parser.error(f"--model reference: the reference implementation's model is not at {REFERENCE_MODEL} (this "
                          "repository does not ship it); leave --model out for the authored model, or give an MJCF path")
         model, strip = REFERENCE_MODEL, True
-    server = None
+    server = bar = None
     try:
-        on_step = None
+        draw = None
         if args.viewer:  # the missing extra is an ImportError, said before the run
-            server, on_step = watch(args)
+            server, draw = watch(args)
+        bar, on_step = progress(args, draw)
         pushes = (PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed), kind=args.push_kind)
                   if args.pushes else None)
         result = run_sim2sim(args.contract, model, seconds=args.seconds, num_robots=args.num_robots,
@@ -138,6 +159,8 @@ def main(argv: list[str] | None = None) -> dict:
         print("stopped (Ctrl-C)", file=sys.stderr)
         sys.exit(130)
     finally:
+        if bar is not None:
+            bar.close()
         if server is not None:
             server.stop()
     result["model"] = str(args.model)
@@ -145,7 +168,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(text)
     if args.out:
         try:
-            Path(args.out).write_text(text + "\n")
+            atomic_write_text(args.out, text + "\n")  # never a half-written file
         except OSError as err:  # e.g. a full disk or no write permission: the metrics are printed above
             sys.exit(f"error: cannot write --out {args.out} ({err}); the metrics are printed above")
     return result

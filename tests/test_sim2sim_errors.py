@@ -59,10 +59,13 @@ def test_an_out_file_in_a_missing_folder_is_refused_before_the_run(capsys, tmp_p
 @needs_contract
 def test_an_out_file_that_cannot_be_written_is_one_error_line_after_the_printed_metrics(monkeypatch, capsys,
                                                                                          tmp_path):
-    def refuse(self, *args, **kwargs):
-        raise PermissionError(13, "Permission denied", str(self))
+    import tocabi_torchrl.atomic
 
-    monkeypatch.setattr(Path, "write_text", refuse)  # a read-only folder does not stop root, so refuse the write
+    def refuse(path, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    # A read-only folder does not stop root, so refuse the (atomic) write.
+    monkeypatch.setattr(tocabi_torchrl.atomic, "atomic_write_bytes", refuse)
     out = tmp_path / "m.json"
     message = str(_run(["--out", str(out)]).code)
     assert message.startswith(f"error: cannot write --out {out} ([Errno 13] Permission denied")
@@ -146,3 +149,22 @@ def test_a_viewer_address_it_cannot_serve_on_is_one_error_line_not_a_hang():
         "error: viewer port must be an int in [0, 65535], got 99999")
     assert str(_run(["--viewer", "--viewer_host", "10.9.9.9"]).code).startswith(
         "error: the viewer cannot serve on host '10.9.9.9'")
+
+
+@needs_contract
+def test_a_run_shows_progress_on_stderr_and_keeps_stdout_json_without_torch(tmp_path):
+    # Sixty-four robots for 8 s ran about 80 s in silence.
+    import json
+    import os
+    import subprocess
+
+    out = tmp_path / "m.json"
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "sim2sim.py"
+    proc = subprocess.run([sys.executable, "-X", "importtime", str(recipe), "--contract", str(CONTRACT), "--seconds",
+                           "0.2", "--num_robots", "1", "--out", str(out)], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert json.loads(proc.stdout) == json.loads(out.read_text())  # stdout is the JSON alone; --out the same
+    assert "sim2sim, 1 robots" in proc.stderr and "0/50 [" in proc.stderr  # 0.2 s of 4 ms periods
+    modules = {line.rsplit("|", 1)[1].strip() for line in proc.stderr.splitlines() if line.startswith("import time:")}
+    assert "tqdm" in modules and not {"torch", "torchrl", "tensordict"} & modules
