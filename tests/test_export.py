@@ -300,3 +300,37 @@ def test_the_contract_says_when_training_capped_the_solver(tiny_checkpoints, tmp
         sections[name] = load_contract(out.with_suffix(".json"))["trained_under"]
     assert "solver" not in sections["torque"]
     assert sections["capped_solver"]["solver"].startswith("Newton iterations capped at 4 per physics substep")
+
+
+def test_a_policy_of_its_own_motion_exports_with_it_and_sim2sim_runs_it(tmp_path, capsys):
+    # The contract named my_walk.npz, which the export left behind: sim2sim then failed naming only the shipped
+    # motions' folder, and had no way to be given the file.
+    import shutil
+
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.rl.checkpoint import save_checkpoint
+    from tocabi_torchrl.rl.trainer import build_agent, build_env
+    from tocabi_torchrl.robot import asset_path
+    from tocabi_torchrl.runtime import ContractError, PolicyRuntime
+
+    motion = tmp_path / "motions" / "my_walk.npz"
+    motion.parent.mkdir()
+    shutil.copy(asset_path("motions", "tocabi_walk.npz"), motion)
+    cfg = preset_config("default", **{"env.num_envs": 1, "ppo.minibatch_size": 48, "ppo.actor_hidden": (16,),
+                                      "ppo.critic_hidden": (16,), "env.task.motion": str(motion)}, device="cpu")
+    env = build_env(cfg, torch.device("cpu"), num_envs=1)
+    ckpt = save_checkpoint(tmp_path / "run", 0, 0, build_agent(cfg, 237, 13, torch.device("cpu")), None, env, cfg)
+    out = tmp_path / "export" / "mine.onnx"
+    out.parent.mkdir()
+    (out.parent / "my_walk.npz").write_bytes(b"another motion")
+    with pytest.raises(SystemExit, match="my_walk.npz already exists and is another motion than the policy's"):
+        export_main(["--checkpoint", str(ckpt), "--out", str(out)])
+    export_main(["--checkpoint", str(ckpt), "--out", str(out), "--overwrite"])
+    assert f"copied the policy's reference motion to {out.parent / 'my_walk.npz'}" in capsys.readouterr().out
+    assert (out.parent / "my_walk.npz").read_bytes() == motion.read_bytes()
+    assert PolicyRuntime(out.with_suffix(".json")).motion.cycle_rows > 0  # the runtime finds it beside the .onnx
+    export_main(["--checkpoint", str(ckpt), "--out", str(tmp_path / "export" / "again.onnx")])  # same file: kept
+    assert "copied" not in capsys.readouterr().out
+    (out.parent / "my_walk.npz").unlink()
+    with pytest.raises(ContractError, match=r"my_walk.npz is neither beside the policy \(.*\) nor among the shipped"):
+        PolicyRuntime(out.with_suffix(".json"))

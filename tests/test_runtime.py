@@ -564,7 +564,7 @@ def test_a_motion_of_ones_own_is_found_beside_the_contract(contract_copy):
     runtime = PolicyRuntime(_write(path, c))
     assert runtime.motion is not None
     own.unlink()
-    with pytest.raises(ContractError, match="reference motion not found"):
+    with pytest.raises(ContractError, match="reference motion my_walk.npz is neither beside the policy"):
         PolicyRuntime(_write(path, c))
 
 

@@ -27,6 +27,9 @@ def main(argv: list[str] | None = None) -> None:
     except (OSError, ValueError, RuntimeError) as err:  # CheckpointError is a RuntimeError; OSError: --out unwritable
         sys.exit(f"error: {err}")
     print(f"wrote {result.onnx} and {result.contract}" + (f" and {result.torchscript}" if result.torchscript else ""))
+    if result.motion:
+        print(f"copied the policy's reference motion to {result.motion} (it is none of the shipped motions; the "
+              "runtime reads it beside the .onnx)")
     if result.removed_torchscript:
         print(f"removed {result.removed_torchscript}: a TorchScript module of the export this one replaced (pass "
               "--torchscript to write this policy's)")

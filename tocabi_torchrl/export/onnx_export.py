@@ -163,6 +163,27 @@ class ExportResult:
     contract: Path
     torchscript: Path | None
     removed_torchscript: Path | None = None
+    #: The policy's reference motion, copied beside the ``.onnx`` when it is none of the shipped motions (the
+    #: torch-free runtime looks there, then among the shipped ones); None when a shipped motion is the policy's.
+    motion: Path | None = None
+
+
+def _motion_beside(motion_file: Path, out: Path, overwrite: bool) -> Path | None:
+    """Where the policy's motion must go beside ``out`` for the runtime to find it, or None (a shipped motion,
+    or the same file already there). Refuses (``FileExistsError``) another file of the name unless ``overwrite``."""
+    from ..robot import asset_path
+    from ..runtime.motion import file_sha256
+
+    want = file_sha256(motion_file)
+    shipped = asset_path("motions", motion_file.name)
+    target = out.with_name(motion_file.name)
+    if (shipped.is_file() and file_sha256(shipped) == want) or (target.is_file() and file_sha256(target) == want):
+        return None
+    if target.exists() and not overwrite:
+        raise FileExistsError(f"{target} already exists and is another motion than the policy's ({motion_file}), "
+                              "which the runtime reads beside the .onnx; replace it with --overwrite (overwrite=True "
+                              "from Python), or export to another folder")
+    return target
 
 
 def _refuse_overwrite(paths: list[Path], overwrite: bool, torchscript: bool) -> None:
@@ -180,7 +201,9 @@ def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchsc
     """Export ``checkpoint`` to ``out`` (``.onnx``) and the contract ``out`` with ``.json``; with ``torchscript``,
     also a traced TorchScript module ``out`` with ``.ts.pt``. Files are written atomically and never replace an
     existing file unless ``overwrite``. Without ``torchscript``, an existing ``.ts.pt`` (another export's) counts
-    as an output: it is refused without ``overwrite`` and removed with it, after the new files are written.
+    as an output: it is refused without ``overwrite`` and removed with it, after the new files are written. A
+    policy trained on a motion that is none of the shipped ones gets that motion copied beside ``out`` (where the
+    torch-free runtime looks for it), an other file of its name there replaced only with ``overwrite``.
 
     Raises :class:`ExportError` for NaN/inf weights or statistics, or a non-finite output (see the module doc)."""
     out = Path(out)
@@ -193,6 +216,8 @@ def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchsc
     actor = DeterministicActor(policy.agent.actor)
     check_finite_policy(actor, policy.env, policy.checkpoint)
     obs_dim = policy.env.observation_spec["observation"].shape[-1]
+    motion_file = Path(policy.env.base_env.motion.source)
+    motion_copy = _motion_beside(motion_file, out, overwrite)
     data = export_onnx(actor, obs_dim)
     check_onnx_output(data, actor, obs_dim, policy.checkpoint)
     contract = build_contract(policy, onnx_file=out.name, onnx_sha256=sha256_bytes(data), input_name=ONNX_INPUT,
@@ -204,6 +229,8 @@ def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchsc
                           "not JSON; find it in the run's config or statistics and export a sound checkpoint") from err
     atomic_write_bytes(out, data)
     atomic_write_text(contract_path, text + "\n")
+    if motion_copy is not None:  # a motion of the run's own: the runtime reads it beside the .onnx
+        atomic_write_bytes(motion_copy, motion_file.read_bytes())
     removed = None
     if torchscript:
         buffer = io.BytesIO()
@@ -213,4 +240,4 @@ def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchsc
     elif ts_path.exists():
         ts_path.unlink()
         removed = ts_path
-    return ExportResult(out, contract_path, ts_path if torchscript else None, removed)
+    return ExportResult(out, contract_path, ts_path if torchscript else None, removed, motion_copy)

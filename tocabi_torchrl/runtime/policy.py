@@ -167,6 +167,10 @@ class PolicyRuntime:
             motion = beside if beside.is_file() else shipped
             if motion == beside and shipped.is_file() and file_sha256(beside) != spec["sha256"]:
                 motion = shipped if file_sha256(shipped) == spec["sha256"] else beside
+            if not motion.is_file():
+                raise ContractError(f"reference motion {spec['name']} is neither beside the policy ({beside}) nor "
+                                    f"among the shipped motions ({shipped.parent}): copy the motion the policy was "
+                                    "trained on beside the .onnx (python -m tocabi_torchrl.export copies it there)")
         return RuntimeMotion.from_file(motion, self.joint_names, spec["sha256"])
 
     # --------------------------------------------------------------------------------------------- public API
