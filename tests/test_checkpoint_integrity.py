@@ -135,3 +135,28 @@ def test_an_exported_policy_is_recognised_by_content_and_refused_by_every_reader
     contract = shutil.copy(POLICIES / "tocabi_walk_ppo.json", tmp_path / "contract.txt")
     with pytest.raises(ExportedPolicyError, match=rf"run it with: python recipes/sim2sim.py --contract {contract}$"):
         read_checkpoint(contract)
+
+
+def test_an_exported_torchscript_module_or_a_runs_config_is_named_not_called_corrupt(tmp_path):
+    # Both read as "not a complete torch checkpoint (truncated, corrupt or another kind of file)", the first after a
+    # torch warning about TorchScript archives, the second as "UnpicklingError: Unsupported operand 123".
+    import json
+    import warnings
+
+    module = tmp_path / "walk.ts.pt"
+    module.write_bytes(b"PK\x03\x04 a TorchScript zip")
+    with pytest.raises(ExportedPolicyError, match=r"a TorchScript module.*needs its contract: .*walk\.json is "):
+        read_checkpoint(module)
+    contract = shutil.copy(POLICIES / "tocabi_walk_ppo.json", tmp_path / "walk.json")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # torch's TorchScript warning no longer comes first
+        with pytest.raises(ExportedPolicyError, match=rf"--contract {contract}$"):
+            read_checkpoint(module)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"env": {}, "ppo": {}, "seed": 0}))
+    for read in (read_checkpoint, lambda p: recipe("play").main(["--checkpoint", str(p)])):
+        with pytest.raises((CheckpointError, SystemExit),
+                           match=rf"config.json is a run's config \(config.json\), not a checkpoint: pass the run "
+                                 rf"folder {run} "):
+            read(run / "config.json")

@@ -67,15 +67,16 @@ class DamagedCheckpointError(CheckpointError):
 
 
 class ExportedPolicyError(CheckpointError):
-    """The file given as a checkpoint is an exported policy (an ONNX model or its JSON contract): ``recipes/sim2sim.py``
-    runs those. ``contract``: the contract to pass it (``None`` when an ONNX model has none beside it)."""
+    """The file given as a checkpoint is an exported policy (an ONNX model, its JSON contract or its TorchScript
+    module): ``recipes/sim2sim.py`` runs those. ``contract``: the contract to pass it (``None`` when the model has
+    none beside it)."""
 
     def __init__(self, path: Path, kind: str, contract: Path | None, options: str = ""):
         self.path, self.kind, self.contract = path, kind, contract
         if contract is not None:
             run = f"run it with: python recipes/sim2sim.py --contract {contract}{options}"
         else:
-            run = (f"run it with recipes/sim2sim.py, which needs its contract: {path.with_suffix('.json')} is missing "
+            run = (f"run it with recipes/sim2sim.py, which needs its contract: {_contract_beside(path)} is missing "
                    f"(export the run again with python -m tocabi_torchrl.export to write both)")
         super().__init__(f"{path} is an exported policy ({kind}), not a training checkpoint (.pt): play.py, export "
                          f"and --resume read a run's checkpoints; {run}")
@@ -199,14 +200,38 @@ def _check_integrity(path: Path) -> None:
 _ONNX_SECOND_TAGS = frozenset(b"\x12\x1a\x22\x28\x32\x3a\x42")
 
 
+def _contract_beside(path: Path) -> Path:
+    """The JSON contract an export wrote beside its ``.onnx`` or ``.ts.pt`` file ``path``."""
+    stem = path.name[:-len(".ts.pt")] if path.name.endswith(".ts.pt") else path.stem
+    return path.with_name(f"{stem}.json")
+
+
+def _run_config_note(path: Path) -> str | None:
+    """A message when ``path`` is a run's ``config.json`` (a JSON object with the run config's sections), else None:
+    torch's own error for it reads "Unsupported operand 123"."""
+    try:
+        with open(path, "rb") as file:
+            if file.read(64).lstrip()[:1] != b"{":
+                return None
+        text = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    if not (isinstance(text, dict) and {"env", "ppo"} <= text.keys()):
+        return None
+    return (f"{path} is a run's config (config.json), not a checkpoint: pass the run folder {path.parent} (its "
+            f"checkpoints/latest.pt) or a file in {path.parent / 'checkpoints'}")
+
+
 def _exported_kind(path: Path) -> tuple[str, Path | None] | None:
     """``(what it is, its contract)`` when ``path`` is an exported policy, by its suffix or its first bytes."""
     with open(path, "rb") as file:
         head = file.read(16)
     onnx = len(head) > 2 and head[0] == 0x08 and head[1] < 0x80 and head[2] in _ONNX_SECOND_TAGS
-    if path.suffix == ".onnx" or onnx:
-        contract = path.with_suffix(".json")
-        return "an ONNX model", contract if contract.is_file() else None
+    if path.suffix == ".onnx" or onnx or path.name.endswith(".ts.pt"):
+        # A .ts.pt is the export's traced TorchScript module, which torch.load cannot read with weights_only.
+        contract = _contract_beside(path)
+        kind = "a TorchScript module" if path.name.endswith(".ts.pt") else "an ONNX model"
+        return kind, contract if contract.is_file() else None
     if path.suffix == ".json" or head.lstrip()[:1] == b"{":
         from ..runtime.contract import CONTRACT_FORMAT
 
@@ -228,6 +253,9 @@ def verified_checkpoint_file(path: str | os.PathLike, sim2sim_options: str = "")
     found = _exported_kind(path)
     if found is not None:
         raise ExportedPolicyError(path, *found, sim2sim_options)
+    note = _run_config_note(path)
+    if note is not None:
+        raise CheckpointError(note)
     _check_integrity(path)
     return path
 
@@ -243,6 +271,9 @@ def _load_failure(path: Path, err: Exception) -> tuple[str, bool]:
         return (f"refusing to load {path}: it holds Python objects other than tensors and plain containers, and "
                 f"loading those could run code from the file ({refused}). Checkpoints written by tocabi-torchrl "
                 "never do; only load files you trust"), True
+    note = _run_config_note(path)
+    if note is not None:
+        return note, False
     # torch's own message goes on to suggest turning weights_only off, which is exactly what must not be done here.
     detail = next((line.strip() for line in text.splitlines() if "Unsupported" in line), text.split(". ")[0])
     return (f"cannot read checkpoint {path}: not a complete torch checkpoint (truncated, corrupt or another kind of "
