@@ -80,8 +80,12 @@ if __name__ == "__main__":  # --help or a misspelt option answers before torch a
 
 choose_gl_backend_or_exit()  # before mujoco is imported
 
+import torch  # noqa: E402
+
+from tocabi_torchrl.device import check_device  # noqa: E402
 from tocabi_torchrl.rl.checkpoint import verified_checkpoint_file  # noqa: E402
-from tocabi_torchrl.evaluation.gait_test import eval_out_dir, evaluate_run, gait_report_text  # noqa: E402
+from tocabi_torchrl.evaluation.gait_test import eval_out_dir, evaluate_run, gait_report_text, policy_dt  # noqa: E402
+from tocabi_torchrl.evaluation.record import policy_steps  # noqa: E402
 
 
 def sim2sim_options(args: argparse.Namespace) -> str:
@@ -121,9 +125,15 @@ def main(argv: list[str] | None = None) -> None:
     if args.test == "robust" and args.video_envs != 4:
         parser.error("--video_envs sets the standard test's video; the robust test records none (leave --video_envs "
                      "out, or pass --test standard)")
+    if args.device != "auto" and args.device.startswith("cuda") and not torch.cuda.is_available():
+        parser.error(f"--device {args.device}: torch sees no CUDA GPU on this machine; pass --device cpu (or leave "
+                     "--device out: the GPU when there is one, else the CPU)")
     out, made = None, False
     try:
-        # before the folder is named: an exported .onnx/.json (sim2sim runs those) or a damaged file goes no further
+        # before the folder is named: a device torch does not know, a test shorter than one step, an exported
+        # .onnx/.json (sim2sim runs those) or a damaged file goes no further
+        check_device("cpu" if args.device == "auto" else args.device)
+        policy_steps(args.seconds, policy_dt())
         verified_checkpoint_file(args.checkpoint, sim2sim_options(args))
         out = eval_out_dir(args.checkpoint, args.out, args.overwrite)
         made = not out.exists()  # a folder the test makes and leaves empty goes on Ctrl-C; one given stays

@@ -73,6 +73,18 @@ def test_play_refuses_seconds_below_one_policy_step(capsys):
     with pytest.raises(SystemExit) as info:
         recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--seconds", "0.001", "--device", "cpu"])
     assert "seconds=0.001 is shorter than one policy step (4 ms)" in str(info.value.code)
+    # These were said after "results go to ...", a folder that was then never made; the device in Python's words.
+    assert "results go to" not in capsys.readouterr().out
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--device", "gpu"])
+    assert str(info.value.code).startswith("error: unknown device 'gpu'")
+    assert "results go to" not in capsys.readouterr().out
+    if not torch.cuda.is_available():
+        with pytest.raises(SystemExit) as info:
+            recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--device", "cuda"])
+        captured = capsys.readouterr()
+        assert info.value.code == 2 and "torch sees no CUDA GPU on this machine; pass --device cpu" in captured.err
+        assert "results go to" not in captured.out
     # --backend without --viewer was ignored without a word.
     with pytest.raises(SystemExit) as info:
         recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--backend", "warp", "--device", "cpu"])
