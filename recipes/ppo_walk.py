@@ -84,6 +84,17 @@ def done_text(result) -> str:
             f"({result.env_steps_per_second:,.0f} env-steps/s){total}; run folder {result.run_dir}")
 
 
+def ranks_done_text(result, cfg, world_size: int) -> str:
+    """The closing line of a data-parallel run: :func:`done_text`, and, when ``cfg.eval_at_end`` asks for the gait
+    test, that torchrun leaves it out (it is one process's, docs/training.md) and the command that runs it."""
+    test = ""
+    if cfg.eval_at_end:
+        robust = " --test robust" if cfg.eval_test == "robust" else ""
+        test = (f"; the gait test is not run under torchrun, run it with: python recipes/play.py --checkpoint "
+                f"{result.run_dir}{robust}")
+    return f"done on {world_size} ranks: {done_text(result)}{test}"
+
+
 def main(argv: list[str] | None = None) -> None:
     # Everything that can stop the run before it starts is checked here and reported as one line (exit status 1):
     # bad values, a request this machine cannot honour, an existing run folder, an unreadable or changed --resume.
@@ -124,7 +135,7 @@ def main(argv: list[str] | None = None) -> None:
                     # NCCL: the rank ends here, with this status; gloo: the group is gone and ending() leaves it so.
                     shutdown(dist_info, code=status)
                 elif dist_info.is_main:
-                    print(f"done on {dist_info.world_size} ranks: {done_text(result)}")
+                    print(ranks_done_text(result, cfg, dist_info.world_size))
         except expected:
             sys.exit(1)  # ending() has said why
         if status:

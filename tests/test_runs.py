@@ -90,6 +90,14 @@ def test_a_resumed_call_reports_its_own_env_steps_beside_the_runs(finished_run, 
     result = SimpleNamespace(env_steps=48, start_env_steps=16, wall_seconds=2.0, env_steps_per_second=16.0,
                              run_dir="r")
     assert recipe("ppo_walk").done_text(result) == "32 env steps in 2 s (16 env-steps/s) (48 in the run); run folder r"
+    # It said nothing of the gait test that --eval_at_end asked for and torchrun leaves out.
+    from tocabi_torchrl.rl import preset_config
+
+    line = recipe("ppo_walk").ranks_done_text(result, preset_config("robust"), 2)
+    assert line == ("done on 2 ranks: 32 env steps in 2 s (16 env-steps/s) (48 in the run); run folder r; the gait "
+                    "test is not run under torchrun, run it with: python recipes/play.py --checkpoint r --test robust")
+    quiet = preset_config("cpu_smoke", eval_at_end=False)
+    assert recipe("ppo_walk").ranks_done_text(result, quiet, 2).endswith("; run folder r")
 
 
 def test_a_damaged_latest_checkpoint_names_the_newest_readable_one(finished_run, tmp_path):
@@ -488,6 +496,8 @@ def test_help_names_every_option_once(capsys):
     # A KeyError traceback from the reward transform, after the banner: heading's weight is 0, so it is not in use.
     ("transforms.kick_relax.terms", "heading", "transforms.kick_relax.terms names ['heading'], which no reward term"),
     ("env.task.motion", "", "env.task.motion must be a path to a .npz or reference .txt motion"),  # after the banner
+    # Named without its section, and without the way out of a test at the end.
+    ("env.num_envs", "0", "env.num_envs must be a positive int, got 0"),
 ])
 def test_values_the_env_or_schedules_would_refuse_are_one_error_line_before_the_banner(tmp_path, capsys, option,
                                                                                         value, message):
@@ -497,6 +507,14 @@ def test_values_the_env_or_schedules_would_refuse_are_one_error_line_before_the_
         recipe("ppo_walk").main(tiny_args(tmp_path) + [f"--{option}", value, *extra])
     assert str(info.value.code).startswith("error: ") and message in str(info.value.code), info.value.code
     assert "tiny" not in capsys.readouterr().out and not (tmp_path / "run").exists()
+
+
+def test_no_robots_in_the_test_at_the_end_points_to_eval_at_end():
+    from tocabi_torchrl.rl import preset_config
+
+    with pytest.raises(ValueError, match=r"eval_envs must be a positive int \(robots in the gait test at the end\), "
+                                         "got 0; for no test at the end, set eval_at_end=false"):
+        preset_config("cpu_smoke", eval_envs=0)
 
 
 def test_a_value_refused_while_the_run_is_set_up_is_one_error_line_and_a_bug_in_training_is_not(tmp_path,

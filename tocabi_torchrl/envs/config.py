@@ -487,7 +487,7 @@ class TocabiWalkConfig:
         """Raise ``ValueError`` naming the first bad option (as its path, e.g. ``env.control.mode``) and the fix."""
         n = self.num_envs
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"num_envs must be a positive int, got {n!r}")
+            raise ValueError(f"env.num_envs must be a positive int, got {n!r}")
         # Before the sections' own checks, which compare and convert these values: every switch is then a bool and
         # every number a finite real (or an int where one is declared), named by its path when it is not.
         check_field_types(self, "env.")
