@@ -88,10 +88,11 @@ def ranks_done_text(result, cfg, world_size: int) -> str:
     """The closing line of a data-parallel run: :func:`done_text`, and, when ``cfg.eval_at_end`` asks for the gait
     test, that torchrun leaves it out (it is one process's, docs/training.md) and the command that runs it."""
     test = ""
-    if cfg.eval_at_end:
+    if cfg.eval_at_end:  # the test the run asked for: its robots and seconds, which play.py's defaults are not
+        size = f" --num_envs {cfg.eval_envs} --seconds {cfg.eval_seconds:g}"
         robust = " --test robust" if cfg.eval_test == "robust" else ""
         test = (f"; the gait test is not run under torchrun, run it with: python recipes/play.py --checkpoint "
-                f"{result.run_dir}{robust}")
+                f"{result.run_dir}{size}{robust}")
     return f"done on {world_size} ranks: {done_text(result)}{test}"
 
 

@@ -95,7 +95,8 @@ def test_a_resumed_call_reports_its_own_env_steps_beside_the_runs(finished_run, 
 
     line = recipe("ppo_walk").ranks_done_text(result, preset_config("robust"), 2)
     assert line == ("done on 2 ranks: 32 env steps in 2 s (16 env-steps/s) (48 in the run); run folder r; the gait "
-                    "test is not run under torchrun, run it with: python recipes/play.py --checkpoint r --test robust")
+                    "test is not run under torchrun, run it with: python recipes/play.py --checkpoint r --num_envs "
+                    "1024 --seconds 8 --test robust")
     quiet = preset_config("cpu_smoke", eval_at_end=False)
     assert recipe("ppo_walk").ranks_done_text(result, quiet, 2).endswith("; run folder r")
 
@@ -121,6 +122,15 @@ def test_a_damaged_latest_checkpoint_names_the_newest_readable_one(finished_run,
         parse_args(["--resume", str(run)])
     cfg, _ = parse_args(["--resume", str(newest)])  # and that advice works
     assert cfg.resume == str(newest)
+    # A wall-clock save later than the last iteration file is the newest: named, though iteration files sort first.
+    state = torch.load(newest, weights_only=True)
+    state["iteration"] += 5
+    wall = run / "checkpoints" / "wall_03600s.pt"
+    torch.save(state, wall)
+    os.utime(wall, (1.5e9, 1.5e9))
+    with pytest.raises(CheckpointError, match=rf"beside it is wall_03600s.pt \(iteration {state['iteration']}\)"):
+        parse_args(["--resume", str(run)])
+    wall.unlink()
     # In a folder of other policies (a copy of assets/policies), a readable file there is no run's to continue.
     other = tmp_path / "policies"
     other.mkdir()
@@ -513,7 +523,7 @@ def test_no_robots_in_the_test_at_the_end_points_to_eval_at_end():
     from tocabi_torchrl.rl import preset_config
 
     with pytest.raises(ValueError, match=r"eval_envs must be a positive int \(robots in the gait test at the end\), "
-                                         "got 0; for no test at the end, set eval_at_end=false"):
+                                         "got 0; for no test at the end, set eval_at_end=false instead"):
         preset_config("cpu_smoke", eval_envs=0)
 
 

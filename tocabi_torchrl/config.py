@@ -478,7 +478,7 @@ class RunConfig:
         if self.eval_at_end and (isinstance(self.eval_envs, bool) or not isinstance(self.eval_envs, int)
                                  or self.eval_envs < 1):
             raise ValueError(f"eval_envs must be a positive int (robots in the gait test at the end), got "
-                             f"{self.eval_envs!r}; for no test at the end, set eval_at_end=false")
+                             f"{self.eval_envs!r}; for no test at the end, set eval_at_end=false instead")
         for name in ("log_every", "checkpoint_every", "eval_envs", "total_env_steps"):
             _check_int(self, name, 1)
         self.seed = check_seed(self.seed)

@@ -85,31 +85,33 @@ def _refuse(path, diffs: list[tuple[str, object, object]]) -> ResumeConfigError:
     )
 
 
-#: How many of a damaged checkpoint's neighbours :func:`_intact_alternative` reads at most (each is read whole).
-_ALTERNATIVES_READ = 3
+#: How many of a damaged checkpoint's neighbours :func:`_intact_alternative` reads at most of each kind (the
+#: iteration files, the others); each is read whole.
+_ALTERNATIVES_READ = 2
 
 
 def _intact_alternative(damaged: Path) -> str:
-    """A hint for a damaged checkpoint: the newest other checkpoint beside it that reads, among the first
-    :data:`_ALTERNATIVES_READ`, with its iteration: the ``iter_*.pt`` files by the iteration in their names, highest
-    first (the one a resume into the run's folder accepts), then ``wall_*.pt`` and ``latest.pt`` by write time."""
+    """A hint for a damaged checkpoint: the readable checkpoint beside it with the highest iteration, among the
+    :data:`_ALTERNATIVES_READ` highest ``iter_*.pt`` files (by the iteration in their names) and the as many newest
+    ``wall_*.pt`` / ``latest.pt`` files (by write time), so a wall-clock save later than the last iteration file is
+    named when it is the newest."""
     # A run's own checkpoint names only: a folder of other policies (assets/policies) names no run to continue.
     others = [p for p in damaged.parent.glob("*.pt") if p != damaged and p.is_file() and is_run_checkpoint(p)]
-
-    def newest_first(p: Path) -> tuple[int, float]:
-        # File times alone put iteration 13 first after `cp -r` (which writes every copy anew, in any order).
-        m = _ITER_FILE.match(p.name)
-        return (-int(m.group(1)), 0.0) if m else (1, -p.stat().st_mtime)
-
-    others.sort(key=newest_first)
-    for other in others[:_ALTERNATIVES_READ]:
+    # File times alone put iteration 13 first after `cp -r` (which writes every copy anew, in any order).
+    numbered = sorted((p for p in others if _ITER_FILE.match(p.name)),
+                      key=lambda p: -int(_ITER_FILE.match(p.name).group(1)))
+    timed = sorted((p for p in others if not _ITER_FILE.match(p.name)), key=lambda p: -p.stat().st_mtime)
+    found = []
+    for other in (*numbered[:_ALTERNATIVES_READ], *timed[:_ALTERNATIVES_READ]):
         try:
-            iteration = int(read_checkpoint(other)["iteration"])
+            found.append((int(read_checkpoint(other)["iteration"]), other))
         except CheckpointError:
             continue
-        return (f". The newest readable checkpoint beside it is {other.name} (iteration {iteration}): continue from "
-                f"it with --resume {other}")
-    return ""
+    if not found:
+        return ""
+    iteration, other = max(found, key=lambda f: f[0])  # the first of equal ones: an iteration file
+    return (f". The newest readable checkpoint beside it is {other.name} (iteration {iteration}): continue from "
+            f"it with --resume {other}")
 
 
 def check_resume_config(saved: RunConfig, given: RunConfig, path: str | os.PathLike = "<checkpoint>") -> None:
