@@ -626,7 +626,7 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
     of one run's checkpoints (building them costs more than the test)."""
     from ..rl.checkpoint import config_from_checkpoint
     from ..rl.symmetry import apply_checkpoint_policy
-    from ..rl.trainer import build_agent, resolve_device
+    from ..rl.trainer import checkpoint_agent, resolve_device
     from .gait_test import policy_dt
 
     device = resolve_device(device) if str(device) == "auto" else torch.device(device)
@@ -637,7 +637,7 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
     if key not in envs:  # the agent's sizes come from the env
         envs[key] = batch_env(cfg, device, test)
     env = envs[key]
-    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], env.device)
+    agent = checkpoint_agent(state, cfg, env, path)  # each case's env then gets the checkpoint's state again
     return evaluate_robust(agent.actor, cfg, out_dir, test=test, device=device, envs=envs,
                            prepare_env=lambda case_env_: apply_checkpoint_policy(state, agent, cfg, case_env_, path),
                            progress=progress, source=path)

@@ -245,10 +245,11 @@ def _exported_kind(path: Path) -> tuple[str, Path | None] | None:
 
 
 def verified_checkpoint_file(path: str | os.PathLike, sim2sim_options: str = "") -> Path:
-    """:func:`checkpoint_file` of ``path``, checked before anything unpickles it: an exported policy (an ONNX model or
-    its JSON contract) raises :class:`ExportedPolicyError`, whose message gives the ``recipes/sim2sim.py`` command
-    with ``sim2sim_options`` appended (e.g. `` --num_robots 8``); a zip entry failing its CRC-32 (bits flipped on disk
-    or in a copy) raises :class:`CheckpointError`. Reads the file once (milliseconds for a policy)."""
+    """:func:`checkpoint_file` of ``path``, checked before anything unpickles it: an exported policy (an ONNX model,
+    its JSON contract or its TorchScript module) raises :class:`ExportedPolicyError`, whose message gives the
+    ``recipes/sim2sim.py`` command with ``sim2sim_options`` appended (e.g. `` --num_robots 8``); a run's
+    ``config.json`` (its folder is what to pass) and a zip entry failing its CRC-32 (bits flipped on disk or in a
+    copy) raise :class:`CheckpointError`. Reads the file once (milliseconds for a policy)."""
     path = checkpoint_file(path)
     found = _exported_kind(path)
     if found is not None:
