@@ -182,6 +182,9 @@ def main(argv=None) -> dict:
     parser = build_parser()
     args = parser.parse_args(argv)
     check_args(parser, args, at_least={"steps_per_env": 1}, positive=("learning_rate",))
+    if args.steps_per_env * args.num_envs < 2:  # one sample: the advantages' std is NaN, and so is every weight after
+        parser.error(f"--steps_per_env {args.steps_per_env} x --num_envs {args.num_envs} must be at least 2 (rsl_rl's "
+                     "PPO normalises the rollout's advantages)")
     # The adapter checks the installed rsl-rl-lib version before any of rsl_rl's own modules is imported.
     TocabiRslRlEnv = adapter("TocabiRslRlEnv")
     from rsl_rl.runners import OnPolicyRunner

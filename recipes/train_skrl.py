@@ -109,6 +109,9 @@ def main(argv=None) -> dict:
     parser = build_parser()
     args = parser.parse_args(argv)
     check_args(parser, args, at_least={"rollouts": 1})
+    if args.rollouts * args.num_envs < 2:  # one sample: the advantages' std is NaN, and so is every weight after
+        parser.error(f"--rollouts {args.rollouts} x --num_envs {args.num_envs} must be at least 2 (skrl's PPO "
+                     "normalises the rollout's advantages)")
     # The adapter checks the installed skrl version before any of skrl's own modules is imported.
     TocabiSkrlEnv = adapter("TocabiSkrlEnv")
     from skrl.agents.torch.ppo import PPO, PPO_CFG

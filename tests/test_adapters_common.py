@@ -164,6 +164,10 @@ def test_recipes_refuse_a_bad_shared_option_before_creating_the_output_folder(tm
     ("train_rsl_rl", ["--learning_rate", "nan"], "--learning_rate must be a finite number > 0, got nan"),
     ("train_rsl_rl", ["--steps_per_env", "0"], "--steps_per_env must be a positive int, got 0"),
     ("train_skrl", ["--rollouts", "-4"], "--rollouts must be a positive int, got -4"),
+    # One sample: both trained, saved and gait-tested a policy whose every weight was NaN, and exited 0.
+    ("train_rsl_rl", ["--steps_per_env", "1", "--num_envs", "1"],
+     "--steps_per_env 1 x --num_envs 1 must be at least 2"),
+    ("train_skrl", ["--rollouts", "1", "--num_envs", "1"], "--rollouts 1 x --num_envs 1 must be at least 2"),
     ("train_skrl", ["--hidden", "64,x"], "must be comma-separated layer sizes >= 1 (e.g. 256,256), got '64,x'"),
 ])
 def test_each_recipe_refuses_a_bad_value_of_its_own_options(tmp_path, capsys, recipe_name, argv, message):
