@@ -167,6 +167,20 @@ def test_reset_returns_policy_input_without_stepping():
     assert td["next", "observation"].shape == (N, 237)
 
 
+def test_a_chain_nested_in_another_compose_is_named_and_a_flat_one_works():
+    # torchrl's parent lookup fails there with a bare "IndexError: index -1 is out of range" at the first reset.
+    from torchrl.envs import Compose
+
+    from tocabi_torchrl.transforms import PrivilegedState
+
+    nested = TransformedEnv(MockTocabiWalk(N), Compose(default_transforms(), PrivilegedState()))
+    with pytest.raises(ValueError, match=r"PhaseEncoding sits in a Compose nested inside another Compose.*"
+                                         r"Compose\(\*default_transforms\(\), MyTransform\(\)\)"):
+        nested.reset()
+    flat = TransformedEnv(MockTocabiWalk(N), Compose(*default_transforms(), PrivilegedState()))
+    assert flat.reset()["observation"].shape == (N, 237)
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_transformed_step_has_no_host_sync():

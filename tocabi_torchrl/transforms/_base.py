@@ -8,10 +8,21 @@ from torchrl.envs.transforms import Compose, Transform
 __all__ = ["CallOnReset", "check_specs_once", "flatten_chain", "transforms_after", "transforms_before"]
 
 
+def parent_of(transform: Transform):
+    """``transform.parent`` (the env in front of it, or None), with a message for a ``Compose`` inside another
+    ``Compose``, where torchrl's lookup fails with a bare ``IndexError``."""
+    try:
+        return transform.parent
+    except IndexError as err:
+        raise ValueError(f"{type(transform).__name__} sits in a Compose nested inside another Compose, where torchrl "
+                         "cannot find the env in front of it; flatten the chain, e.g. Compose(*default_transforms(), "
+                         "MyTransform()), or add to an env with env.append_transform(MyTransform())") from err
+
+
 def transforms_before(transform: Transform) -> list[Transform]:
     """The transforms in front of ``transform`` in its env's chain (nested ``Compose`` flattened); empty when it
     belongs to no env. For checks of a transform's place in the chain."""
-    return flatten_chain([getattr(transform.parent, "transform", None)])
+    return flatten_chain([getattr(parent_of(transform), "transform", None)])
 
 
 def flatten_chain(transforms) -> list[Transform]:
@@ -45,7 +56,7 @@ def check_specs_once(transform: Transform) -> None:
     A host flag: nothing reads the device."""
     if getattr(transform, "_specs_checked", False):
         return
-    parent = transform.parent
+    parent = parent_of(transform)
     if parent is not None:
         transform.transform_observation_spec(parent.observation_spec.clone())
     transform._specs_checked = True
