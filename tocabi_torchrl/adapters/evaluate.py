@@ -26,7 +26,8 @@ def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str |
     """Run the gait test on ``act``: (num_envs, 237) observations -> (num_envs, 13) actions on the same device,
     deterministic (the policy's mean). ``preset``/``task`` must be the ones the policy trained on. Writes
     ``summary.json`` (with ``"checkpoint": source`` when given: the file the policy came from) and ``knees.png`` to
-    ``out_dir`` and returns the summary with ``"passes"`` added."""
+    ``out_dir``, replacing files of those names there (the recipes pass a fresh folder; pass one to keep earlier
+    results), and returns the summary with ``"passes"`` added."""
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
     cfg = nominal_config(task_config(preset, num_envs=num_envs, **(task or {})))  # the robot, not training's draws
 
