@@ -181,6 +181,19 @@ def test_a_chain_nested_in_another_compose_is_named_and_a_flat_one_works():
     assert flat.reset()["observation"].shape == (N, 237)
 
 
+def test_a_chain_given_to_a_second_env_is_named_at_the_first_envs_reset():
+    # torchrl moves the Compose to the second env without a word; the first then failed in StepCounter with
+    # "The expanded size of the tensor (4) must match the existing size (3)".
+    chain = default_transforms()
+    first = TransformedEnv(MockTocabiWalk(N), chain)
+    first.reset()
+    second = TransformedEnv(MockTocabiWalk(N - 1), chain)
+    assert second.reset()["observation"].shape == (N - 1, 237)
+    with pytest.raises(RuntimeError, match=r"PhaseEncoding belongs to another env now \(batch \(3,\), this reset's "
+                                           r"\(4,\)\).*default_transforms\(\) for each"):
+        first.reset()
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_transformed_step_has_no_host_sync():

@@ -72,4 +72,11 @@ class CallOnReset(Transform):
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         check_specs_once(self)
+        parent = parent_of(self)
+        if parent is not None and parent.batch_size != tensordict_reset.batch_size:
+            # torchrl moves a Compose given to a second TransformedEnv there without a word; the first env then
+            # fails inside torchrl's StepCounter with a shape error. (Sizes only: no device read.)
+            raise RuntimeError(f"{type(self).__name__} belongs to another env now (batch {tuple(parent.batch_size)}, "
+                               f"this reset's {tuple(tensordict_reset.batch_size)}): a transform chain was given to "
+                               "a second TransformedEnv; build one chain per env, e.g. default_transforms() for each")
         return self._call(tensordict_reset)
