@@ -72,7 +72,10 @@ class CallOnReset(Transform):
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         check_specs_once(self)
-        parent = parent_of(self)
+        guards = self.__dict__.get("_guards_chain")
+        if guards is None:  # one transform per chain checks its env below on every reset: the first of this kind
+            guards = self._guards_chain = not any(isinstance(t, CallOnReset) for t in transforms_before(self))
+        parent = parent_of(self) if guards else None
         if parent is not None and parent.batch_size != tensordict_reset.batch_size:
             # torchrl moves a Compose given to a second TransformedEnv there without a word; the first env then
             # fails inside torchrl's StepCounter with a shape error. (Sizes only: no device read.)
