@@ -475,11 +475,11 @@ class RunConfig:
         """Raise ``ValueError`` naming the first bad option by its path (``ppo.lr``, ``env.control.mode``) and the
         accepted values."""
         check_field_types(self)  # the whole tree: every switch a bool, every number finite, named by its path
-        if self.eval_at_end and (isinstance(self.eval_envs, bool) or not isinstance(self.eval_envs, int)
-                                 or self.eval_envs < 1):
+        if isinstance(self.eval_envs, bool) or not isinstance(self.eval_envs, int) or self.eval_envs < 1:
+            hint = "; for no test at the end, set eval_at_end=false instead" if self.eval_at_end else ""
             raise ValueError(f"eval_envs must be a positive int (robots in the gait test at the end), got "
-                             f"{self.eval_envs!r}; for no test at the end, set eval_at_end=false instead")
-        for name in ("log_every", "checkpoint_every", "eval_envs", "total_env_steps"):
+                             f"{self.eval_envs!r}{hint}")
+        for name in ("log_every", "checkpoint_every", "total_env_steps"):
             _check_int(self, name, 1)
         self.seed = check_seed(self.seed)
         for name in ("checkpoint_keep_last", "checkpoint_keep_every"):

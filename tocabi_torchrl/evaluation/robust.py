@@ -49,7 +49,7 @@ from ..envs.cycle_velocity import gait_cycle_steps, heading_velocity
 from ..rotations import quat_rotate_inverse, quat_to_rpy
 from ..tree import to_dict
 from ..transforms.normalize import freeze_running_statistics
-from ..value_rules import PUSH_KINDS, check_seed
+from ..value_rules import NON_NEGATIVE, PUSH_KINDS, Range, check_seed
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
 from .record import GaitMetrics, fixed_command, nominal_config, policy_steps
 
@@ -63,6 +63,8 @@ __all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking
 #: per-episode draws' key is the seed itself (envs.episode_random.hash_seed), and far from the small seeds the presets
 #: and tests train with (0, 1, 2, ...), so the test's randomised models are not ones a policy was trained on.
 EVAL_SEED = 2_971_215_073
+#: Kicks per robot in a pushed case (the env's kicks hold at most 64).
+_KICKS = Range(low=1, high=64, integer=True)
 #: File names of the report and its figure in the evaluation folder.
 ROBUST_JSON, ROBUST_PNG = "robust.json", "robust.png"
 #: Percentiles the report gives of each distribution.
@@ -142,16 +144,14 @@ class RobustTestConfig:
         policy_steps(self.seconds, dt)
         check_seed(self.seed, "seed")  # a float was truncated by int() while the report kept it
         for name in ("start_joint_vel_std", "start_base_vel_std"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < math.inf:
-                raise ValueError(f"{name} must be a finite number >= 0 (the Gaussian's std; the test's is "
-                                 f"{getattr(RobustTestConfig, name)}), got {value!r}")
-        if isinstance(self.push_count, bool) or not isinstance(self.push_count, int) or not 1 <= self.push_count <= 64:
-            raise ValueError(f"push_count must be an int in [1, 64] (kicks per robot in the pushed cases; the test's "
-                             f"is 3), got {self.push_count!r}")
+            if not NON_NEGATIVE.allows(getattr(self, name)):
+                raise ValueError(f"{name} must be {NON_NEGATIVE.describe()} (the Gaussian's std; the test's is "
+                                 f"{getattr(RobustTestConfig, name)}), got {getattr(self, name)!r}")
+        if not _KICKS.allows(self.push_count):
+            raise ValueError(f"push_count must be {_KICKS.describe()} (kicks per robot in the pushed cases; the "
+                             f"test's is 3), got {self.push_count!r}")
         window = tuple(self.push_window) if isinstance(self.push_window, (tuple, list)) else ()
-        if (len(window) != 2 or not all(isinstance(t, (int, float)) and not isinstance(t, bool) for t in window)
-                or not 0 <= window[0] < window[1] < math.inf):
+        if len(window) != 2 or not all(NON_NEGATIVE.allows(t) for t in window) or not window[0] < window[1]:
             # An end past `seconds` is taken: a shorter quick check keeps the test's window (the report says so).
             raise ValueError(f"push_window must be (start, end) [s] with 0 <= start < end, finite (the test's is "
                              f"(2.0, 7.0)), got {self.push_window!r}")
