@@ -67,32 +67,29 @@ if __name__ == "__main__":  # --help or a misspelt option answers before mujoco 
 
 from tocabi_torchrl.atomic import atomic_write_text  # noqa: E402
 from tocabi_torchrl.runtime import ContractError  # noqa: E402
+from tocabi_torchrl.runtime.contract import load_contract  # noqa: E402
 from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim  # noqa: E402
 from tocabi_torchrl.runtime.randomization import ROBUST_START, PushSettings  # noqa: E402
 from tocabi_torchrl.value_rules import MAX_SEED  # noqa: E402
 
 
-def watch(args: argparse.Namespace):
-    """--viewer: a live page (numpy, mujoco and viser only) and the driver's per-period callback that draws on it."""
-    from tocabi_torchrl.runtime.contract import load_contract
+def watch(args: argparse.Namespace, dt: float):
+    """--viewer: a live page (numpy, mujoco and viser only) and the driver's per-period callback that draws on it
+    (``dt``: the contract's control period [s])."""
     from tocabi_torchrl.viewer.exported import ExportedWatch
     from tocabi_torchrl.viewer.server import page_url, start_server
 
-    dt = float(load_contract(args.contract)["timing"]["control_dt_s"])
     server = start_server(args.viewer_host, args.viewer_port)
     print(f"viewer: {args.num_robots} robots of {args.contract} for {args.seconds} s, in real time; open "
           f"{page_url(args.viewer_host, server.get_port())}", flush=True)
     return server, ExportedWatch(server, dt)
 
 
-def progress(args: argparse.Namespace, draw=None):
+def progress(args: argparse.Namespace, dt: float, draw=None):
     """A progress bar on stderr (stdout stays the JSON) and the driver's per-period callback that moves it (and
-    calls ``draw``, the viewer's, when given): ``(bar, on_step)``."""
+    calls ``draw``, the viewer's, when given): ``(bar, on_step)``; ``dt``: the contract's control period [s]."""
     from tqdm import tqdm
 
-    from tocabi_torchrl.runtime.contract import load_contract
-
-    dt = float(load_contract(args.contract)["timing"]["control_dt_s"])
     bar = tqdm(total=round(args.seconds / dt), unit="step", desc=f"sim2sim, {args.num_robots} robots",
                file=sys.stderr, mininterval=1.0, leave=False)
 
@@ -143,10 +140,10 @@ def main(argv: list[str] | None = None) -> dict:
         model, strip = REFERENCE_MODEL, True
     server = bar = None
     try:
-        draw = None
+        dt, draw = float(load_contract(args.contract)["timing"]["control_dt_s"]), None
         if args.viewer:  # the missing extra is an ImportError, said before the run
-            server, draw = watch(args)
-        bar, on_step = progress(args, draw)
+            server, draw = watch(args, dt)
+        bar, on_step = progress(args, dt, draw)
         pushes = (PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed), kind=args.push_kind)
                   if args.pushes else None)
         result = run_sim2sim(args.contract, model, seconds=args.seconds, num_robots=args.num_robots,

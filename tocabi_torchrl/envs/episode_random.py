@@ -28,10 +28,9 @@ def hash_seed(seed: int) -> int:
     """The 32-bit key the hash reads for an env seed in [0, 2**63 - 1]: the seed itself below 2**32, and above, its
     low half mixed with its high half, so that seeds differing only above bit 31 draw other episodes (they once drew
     the same). On the host, once per seed."""
-    seed, high = int(seed), int(seed) >> 32
-    for mult in (0x2545F4914F6CDD1D, 0x27BB2EE687B0B0FD):  # _mix on a Python int; 0 stays 0
-        high = ((high ^ (high >> 31)) * (mult & _MASK)) & _MASK
-    return (seed ^ high ^ (high >> 29)) & 0xFFFFFFFF
+    seed = int(seed)
+    high = int(_mix(torch.tensor(seed >> 32, dtype=torch.int64)))  # 0 stays 0
+    return (seed ^ high) & 0xFFFFFFFF
 
 
 def stream_lanes(stream: int, k: int, device) -> torch.Tensor:
