@@ -71,13 +71,11 @@ from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     check_args,
     check_out_dir,
     exit_status,
+    finish_call,
     fresh_dir,
-    keep_previous,
     open_out_dir,
     read_resume,
     run_call,
-    write_json,
-    write_resume,
 )
 from tocabi_torchrl.config import preset_config  # noqa: E402
 from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, INIT_SETTING, init_orthogonal  # noqa: E402
@@ -260,20 +258,9 @@ def main(argv=None) -> dict:
     saved.update(iter=iterations, infos=None)
     buffer = io.BytesIO()
     torch.save(saved, buffer)  # rsl_rl's checkpoint format (what OnPolicyRunner.save writes), written atomically
-    write_resume(out, buffer.getvalue(), {"settings": settings, **{k: meta[k] for k in (
-        "env_steps", "train_seconds", "iterations", "snapshots", "calls")}})
-    save(keep_previous(out / "policy.pt", f"call{calls}"))
-    done = meta["iterations"]
-    result = {"train": meta}
-    if interrupted is not None:
-        result["interrupted"] = interrupted
-    elif args.eval_envs > 0:
-        eval_dir = keep_previous(out / "eval", f"call{calls}")
-        result["eval"] = evaluate(out / "policy.pt", eval_dir, num_envs=args.eval_envs, device=args.device,
-                                  seconds=args.eval_seconds)
-    write_json(keep_previous(out / "result.json", f"call{calls}"), result)
+    result = finish_call(out, args, meta, settings, buffer.getvalue(), save, evaluate, interrupted)
     env.close()
-    print(f"rsl_rl: {done} PPO iterations in {seconds:.1f} s of training; gait test: {result.get('eval', 'skipped')}")
+    print(f"rsl_rl: {meta['iterations']} PPO iterations in {seconds:.1f} s of training; gait test: {result.get('eval', 'skipped')}")
     return result
 
 

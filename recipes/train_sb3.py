@@ -65,12 +65,11 @@ from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     check_args,
     check_out_dir,
     exit_status,
+    finish_call,
     keep_previous,
     open_out_dir,
     read_resume,
     run_call,
-    write_json,
-    write_resume,
 )
 from tocabi_torchrl.rl.std_schedule import StdSchedule  # noqa: E402
 
@@ -259,19 +258,10 @@ def main(argv=None) -> dict:
                 snapshots=clock.snapshots, iterations=int(model._n_updates // args.epochs), calls=calls + 1,
                 sb3_num_timesteps=int(model.num_timesteps), resume_notes=RESUME_NOTES,
                 iterations_budget=args.iterations)  # the table tells a used budget by this, not the clock
-    write_resume(out, training_state(model), {"settings": settings, **{k: meta[k] for k in (
-        "env_steps", "train_seconds", "iterations", "snapshots", "calls")}})
-    save(keep_previous(out / "policy.pt", f"call{calls}"))
     buffer = io.BytesIO()
     model.save(buffer)  # SB3's own zip, for SB3's tools only: a resume never reads it
     keep_previous(out / "sb3_model.zip", f"call{calls}").write_bytes(buffer.getvalue())
-    result = {"train": meta}
-    if interrupted is not None:
-        result["interrupted"] = interrupted
-    elif args.eval_envs > 0:
-        result["eval"] = evaluate(out / "policy.pt", keep_previous(out / "eval", f"call{calls}"),
-                                  num_envs=args.eval_envs, device=args.device, seconds=args.eval_seconds)
-    write_json(keep_previous(out / "result.json", f"call{calls}"), result)
+    result = finish_call(out, args, meta, settings, training_state(model), save, evaluate, interrupted)
     env.close()
     print(f"sb3: {meta['env_steps']} env steps in {meta['train_seconds']:.1f} s; gait test: "
           f"{result.get('eval', 'skipped')}")

@@ -56,13 +56,11 @@ from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     check_args,
     check_out_dir,
     exit_status,
+    finish_call,
     fresh_dir,
-    keep_previous,
     open_out_dir,
     read_resume,
     run_call,
-    write_json,
-    write_resume,
 )
 from tocabi_torchrl.config import preset_config  # noqa: E402
 from tocabi_torchrl.rl.networks import ACTION_OUT_GAIN, INIT_SETTING, make_mlp  # noqa: E402
@@ -186,16 +184,7 @@ def main(argv=None) -> dict:
                 iterations_budget=args.iterations)  # the table tells a used budget by this, not the clock
     buffer = io.BytesIO()
     agent.save(buffer)  # skrl's own checkpoint (its checkpoint_modules), written atomically as a new file
-    write_resume(out, buffer.getvalue(), {"settings": settings, **{k: meta[k] for k in (
-        "env_steps", "train_seconds", "iterations", "snapshots", "calls")}})
-    save(keep_previous(out / "policy.pt", f"call{calls}"))
-    result = {"train": meta}
-    if interrupted is not None:
-        result["interrupted"] = interrupted
-    elif args.eval_envs > 0:
-        result["eval"] = evaluate(out / "policy.pt", keep_previous(out / "eval", f"call{calls}"),
-                                  num_envs=args.eval_envs, device=args.device, seconds=args.eval_seconds)
-    write_json(keep_previous(out / "result.json", f"call{calls}"), result)
+    result = finish_call(out, args, meta, settings, buffer.getvalue(), save, evaluate, interrupted)
     env.close()
     print(f"skrl: {meta['env_steps']} env steps in {meta['train_seconds']:.1f} s; gait test: "
           f"{result.get('eval', 'skipped')}")

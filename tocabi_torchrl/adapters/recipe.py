@@ -38,6 +38,7 @@ __all__ = [
     "check_args",
     "check_out_dir",
     "exit_status",
+    "finish_call",
     "fresh_dir",
     "hidden_sizes",
     "keep_previous",
@@ -218,6 +219,31 @@ def write_resume(out: Path, state: bytes, counters: dict) -> Path:
     atomic_write_bytes(path, state)
     write_json(Path(out) / "resume.json", {**counters, "state": str(path.relative_to(out))})
     return path
+
+
+#: The counters ``resume.json`` carries from call to call, out of ``meta`` (:func:`finish_call`).
+RESUME_COUNTERS = tuple(name for name in RESUME_FIELDS if name not in ("settings", "state"))
+
+
+def finish_call(out: Path, args: argparse.Namespace, meta: dict, settings: dict, state: bytes,
+                save: Callable[[Path], object], evaluate: Callable[..., dict], interrupted: str | None) -> dict:
+    """The end of a library recipe's call, in the order that keeps a resume point whatever stops it: the library's
+    training ``state`` and ``resume.json`` (:func:`write_resume`, with ``settings`` and ``meta``'s counters), then
+    ``policy.pt`` by ``save(path)``, then unless ``interrupted`` (what stopped the call) or ``--eval_envs 0`` the
+    gait test ``evaluate(policy, out_dir, num_envs=, device=, seconds=)``, then ``result.json``. A resumed call keeps
+    the earlier call's files (:func:`keep_previous`). ``meta["calls"]`` is this call's count; returns ``result``
+    (``{"train": meta, "eval": ... or "interrupted": ...}``)."""
+    calls = int(meta["calls"]) - 1  # earlier calls: their files get this tag
+    write_resume(out, state, {"settings": settings, **{k: meta[k] for k in RESUME_COUNTERS}})
+    save(keep_previous(out / "policy.pt", f"call{calls}"))
+    result = {"train": meta}
+    if interrupted is not None:
+        result["interrupted"] = interrupted
+    elif args.eval_envs > 0:
+        result["eval"] = evaluate(out / "policy.pt", keep_previous(out / "eval", f"call{calls}"),
+                                  num_envs=args.eval_envs, device=args.device, seconds=args.eval_seconds)
+    write_json(keep_previous(out / "result.json", f"call{calls}"), result)
+    return result
 
 
 def keep_previous(path: Path, tag: str) -> Path:
