@@ -334,3 +334,31 @@ def test_a_policy_of_its_own_motion_exports_with_it_and_sim2sim_runs_it(tmp_path
     (out.parent / "my_walk.npz").unlink()
     with pytest.raises(ContractError, match=r"my_walk.npz is neither beside the policy \(.*\) nor among the shipped"):
         PolicyRuntime(out.with_suffix(".json"))
+
+
+def test_a_relative_motion_found_elsewhere_is_refused(tmp_path, monkeypatch):
+    # A run trained with env.task.motion="my_walk.npz" (relative, as typed): exported from another folder holding
+    # another my_walk.npz, the policy went out with that file's joint targets and hash, without a word.
+    import numpy as np
+
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint, save_checkpoint
+    from tocabi_torchrl.rl.trainer import build_agent, build_env
+    from tocabi_torchrl.robot import asset_path
+
+    shipped = dict(np.load(asset_path("motions", "tocabi_walk.npz")))
+    for folder, shift in (("a", 0.0), ("b", 0.01)):
+        (tmp_path / folder).mkdir()
+        np.savez(tmp_path / folder / "my_walk.npz", **{**shipped, "joint_pos": shipped["joint_pos"] + shift})
+    monkeypatch.chdir(tmp_path / "a")
+    cfg = preset_config("default", **{"env.num_envs": 1, "ppo.minibatch_size": 48, "ppo.actor_hidden": (16,),
+                                      "ppo.critic_hidden": (16,), "env.task.motion": "my_walk.npz"}, device="cpu")
+    env = build_env(cfg, torch.device("cpu"), num_envs=1)
+    ckpt = save_checkpoint(tmp_path / "run", 0, 0, build_agent(cfg, 237, 13, torch.device("cpu")), None, env, cfg)
+    assert len(read_checkpoint(ckpt)["motion_sha256"]) == 64
+    export_main(["--checkpoint", str(ckpt), "--out", str(tmp_path / "a.onnx")])  # the same file: exported
+    monkeypatch.chdir(tmp_path / "b")
+    with pytest.raises(SystemExit, match=r"trained on a reference motion of sha256 .* but the env's motion "
+                                         r".*b/my_walk.npz is another file .*run from the folder the training ran in"):
+        export_main(["--checkpoint", str(ckpt), "--out", str(tmp_path / "b.onnx")])
+    assert not (tmp_path / "b.onnx").exists()

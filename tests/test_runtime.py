@@ -496,8 +496,8 @@ def test_a_refused_reset_leaves_the_running_episode_as_it_was():
     (lambda d: d["action"]["leg"].update(joint_range=[r[0] for r in d["action"]["leg"]["joint_range"]]),
      r"joint_range\[0\] \(\[lo, hi\] rad\) must be a list of 2 values"),
     (_set("action.leg.joint_range.3", [0.5, -0.5]), r"joint_range\[3\] is \[0.5, -0.5\]: it needs lo < hi"),
-    (_set("observation.history.obs_ages", [-1, -1, -1, -1, -1]), "obs_ages is .* integer ages >= 0"),
-    (_set("observation.history.action_ages", [7.0, 5, 3, 1]), "action_ages is .* integer ages >= 0"),
+    (_set("observation.history.obs_ages", [-1, -1, -1, -1, -1]), r"obs_ages is .* integer ages in \[0, 1024\]"),
+    (_set("observation.history.action_ages", [7.0, 5, 3, 1]), r"action_ages is .* integer ages in \[0, 1024\]"),
     (_set("contract_version", True), "contract_version True is not supported"),
     (_set("action.dim", 13.0), "action.dim is 13.0"),
     # Loaded without a word: unknown keys (a misspelt optional one is ignored), a rate that contradicts the period,
@@ -508,6 +508,24 @@ def test_a_refused_reset_leaves_the_running_episode_as_it_was():
     (_set("timing.control_hz", 100), r"timing.control_hz 100.0 is not 1 / control_dt_s 0.004 \(250\)"),
     (_set("policy.input_dim", "237"), r"policy.input_dim is '237' but .* \(an integer\)"),
     (_set("policy.output_dim", "13"), r"policy.output_dim is '13' but must be action.dim, the integer 13"),
+    # Loaded, then a torque ten times the limits, a clock run backwards, a raw TypeError or MemoryError, a group of
+    # randomisation or a count a controller would read ignored.
+    (_set("action.low.0", -100.0), r"action.low/high at indices \[0\] reach outside .*legs in \[-1, 1\]"),
+    (_set("action.low.12", -50.0), r"indices \[12\] reach outside .* the phase rate in \[0, 1\]"),
+    (_set("action.control_mode", ["pd"]), r"unknown action.control_mode \['pd'\]"),
+    (_set("observation.entries.0.signal", ["base_rpy"]), r"entries\[0\] must name a signal"),
+    (_set("robot.base_body", 5), "robot.base_body: 5 is not a name"),
+    (_set("robot.foot_force_sensors.1", "LF_Force_sensor"), r"foot_force_sensors \(left, right\): a name appears twice"),
+    (_set("observation.history.obs_ages", [10 ** 12, 6, 4, 2, 0]), r"obs_ages is .* ages in \[0, 1024\]"),
+    (_set("observation.phase_harmonics", 10 ** 10), "phase_harmonics is 10000000000 but this runtime builds at most 64"),
+    (_set("trained_under.terrain", {"roughness_m": [0, 0.05]}), r"states \['terrain'\], which this reader cannot"),
+    (_set("observation.history.num_obs", 7), "history.num_obs is 7 but obs_ages holds 5"),
+    (_set("observation.normalization.kind", "runnin"), "normalization.kind is 'runnin' but must be 'fixed'"),
+    (_set("observation.normalization.eps", "x"), "normalization.eps is 'x', not a finite"),
+    (_set("observation.entries.3.index", 5), r"entries\[3\].index is 5, not its position 3"),
+    (_set("observation.entries.0.scale", 2.0), r"entries\[0\] has unknown key\(s\) \['scale'\]"),
+    (_set("observation.signals.base_rpy.bias", 0.1), r"signals.base_rpy has unknown key\(s\) \['bias'\]"),
+    (_set("action.leg.torque_limits_nm.0", 1e-46), r"torque_limits_nm\[0\] is 1e-46 but must be > 0 \(in float32"),
 ])
 def test_structurally_wrong_contracts_are_refused_on_load(change, message, contract_copy):
     # Each of these passed load_contract and then failed with an IndexError/KeyError in reset, or ran wrongly.
@@ -531,26 +549,43 @@ def test_contract_onnx_file_must_be_a_file_beside_the_contract(name, contract_co
         load_contract(_write(path, _mutated(c, _set("policy.onnx_file", name))))
 
 
-def _onnx_linear(path, inputs: int, outputs: int, output_name: str) -> None:
-    """A (batch, inputs) -> (batch, outputs) zero matrix as an ONNX file (no torch needed)."""
+def _onnx_linear(path, inputs: int, outputs: int, output_name: str, double: bool = False,
+                 extra_input: bool = False) -> None:
+    """A (batch, inputs) -> (batch, outputs) zero matrix as an ONNX file (no torch needed); ``double``: float64 in
+    and out; ``extra_input``: a second, unused graph input."""
     onnx = pytest.importorskip("onnx")
     from onnx import TensorProto, helper, numpy_helper
 
-    weight = numpy_helper.from_array(np.zeros((inputs, outputs), np.float32), "w")
+    kind, dtype = (TensorProto.DOUBLE, np.float64) if double else (TensorProto.FLOAT, np.float32)
+    weight = numpy_helper.from_array(np.zeros((inputs, outputs), dtype), "w")
+    ins = [helper.make_tensor_value_info("observation", kind, ["batch", inputs])]
+    if extra_input:
+        ins.append(helper.make_tensor_value_info("hidden", kind, ["batch", 4]))
     graph = helper.make_graph(
-        [helper.make_node("MatMul", ["observation", "w"], [output_name])], "g",
-        [helper.make_tensor_value_info("observation", TensorProto.FLOAT, ["batch", inputs])],
-        [helper.make_tensor_value_info(output_name, TensorProto.FLOAT, ["batch", outputs])], [weight])
+        [helper.make_node("MatMul", ["observation", "w"], [output_name])], "g", ins,
+        [helper.make_tensor_value_info(output_name, kind, ["batch", outputs])], [weight])
     onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]), str(path))
 
 
-@pytest.mark.parametrize("outputs,output_name,shown", [(12, "action", r"'action' \['batch', 12\]"),
-                                                       (13, "value", r"'value' \['batch', 13\]")])
+@pytest.mark.parametrize("double,extra,shown", [(True, False, r"'observation' tensor\(double\)"),
+                                                (False, True, r"'observation' tensor\(float\) .*, 'hidden'")])
+def test_an_onnx_input_of_another_type_or_count_is_refused(double, extra, shown, contract_copy):
+    # Both loaded; the first reset then failed inside onnxruntime (a raw InvalidArgument or "Required inputs").
+    path, c = contract_copy
+    _onnx_linear(path.with_name("p.onnx"), 237, 13, "action", double=double, extra_input=extra)
+    with pytest.raises(ContractError, match=rf"input {shown}.* does not match the contract's one 'observation' of "
+                                            r"\(batch, 237\) float32 values"):
+        PolicyRuntime(_write(path, c), check_onnx_hash=False)
+
+
+@pytest.mark.parametrize("outputs,output_name,shown", [(12, "action", r"'action' tensor\(float\) \['batch', 12\]"),
+                                                       (13, "value", r"'value' tensor\(float\) \['batch', 13\]")])
 def test_an_onnx_output_that_is_not_the_contracts_is_refused(outputs, output_name, shown, contract_copy):
     # Only the input used to be checked: a 12-wide output ran (the phase rate read past the end), another name too.
     path, c = contract_copy
     _onnx_linear(path.with_name("p.onnx"), 237, outputs, output_name)
-    with pytest.raises(ContractError, match=rf"output {shown} does not match the contract's 'action' of \(batch, 13\)"):
+    with pytest.raises(ContractError, match=rf"output {shown} does not match the contract's one 'action' of "
+                                            r"\(batch, 13\)"):
         PolicyRuntime(_write(path, c), check_onnx_hash=False)
 
 
@@ -682,3 +717,27 @@ def test_every_contract_field_with_an_env_rule_is_checked_with_that_rule():
         env_value = tuple([bad] * len(default)) if isinstance(default, tuple) else bad
         with pytest.raises(ValueError, match=re.escape(f"env.{env_path}")):
             replace_paths(TocabiWalkConfig(), {env_path: env_value}).validate()
+
+
+@pytest.mark.parametrize("text,message", [
+    ('{"a": 1e999}', "non-standard JSON value 1e999"),
+    ('{"a": 1, "a": 2}', "key 'a' appears twice in one object"),
+    ("[" * 100000 + "]" * 100000, "nested too deep to be a contract"),
+])
+def test_contract_json_that_python_reads_loosely_is_refused(text, message, tmp_path):
+    # 1e999 read as inf, a repeated key as its last value (some C++ readers take the first), deep nesting as a
+    # RecursionError traceback.
+    path = tmp_path / "p.json"
+    path.write_text(text)
+    with pytest.raises(ContractError, match=message):
+        load_contract(path)
+
+
+@pytest.mark.parametrize("key,value", [("period_s", 5.0), ("rows", 7), ("init_rows", [0, 99999]),
+                                       ("row_dt_s", 0.001)])
+def test_contract_motion_values_must_be_the_motion_files(key, value, contract_copy):
+    # The runtime reads the motion file (checked by hash) and ignored what the contract said of it, which a robot
+    # controller running its clock from the contract would follow.
+    path, c = contract_copy
+    with pytest.raises(ContractError, match=rf"reference_motion.{key} is .* in the contract, but the motion .* has"):
+        PolicyRuntime(_write(path, _mutated(c, _set(f"reference_motion.{key}", value))))

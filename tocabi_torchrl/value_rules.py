@@ -210,11 +210,15 @@ def trained_under_problems(section: Any, where: str = "trained_under") -> list[s
     """What is wrong with a contract's ``trained_under`` section, each as ``"<path> is <value> but must be ..."``
     (empty when nothing is): every group of :data:`TRAINED_UNDER_RULES` present, each item ``"off"`` or an object
     with its numeric fields finite, obeying their rule, and each ``[low, high]`` pair ordered (low <= high); an
-    unknown item that is an object (a randomisation this reader would not apply) is refused, text beside is not. The
-    ``pushes`` and ``start_velocity`` groups are one item each, written directly as the group's value."""
+    unknown item or group that is an object (a randomisation this reader would not apply) is refused, text beside is
+    not. The ``pushes`` and ``start_velocity`` groups are one item each, written directly as the group's value."""
     if not isinstance(section, dict):
         return [f"{where} is {type(section).__name__}, not an object"]
     problems = []
+    unknown = sorted(k for k in set(section) - set(TRAINED_UNDER_RULES) if isinstance(section[k], dict))
+    if unknown:  # a group of randomisation this reader does not know: as an unknown item, refused
+        problems.append(f"{where} states {unknown}, which this reader cannot apply (it knows "
+                        f"{sorted(TRAINED_UNDER_RULES)})")
     for group, items in TRAINED_UNDER_RULES.items():
         if group not in section:
             problems.append(f"{where}.{group} is missing")

@@ -15,6 +15,9 @@ with a message saying so (``config.config_from_dict``). Version 2 holds the tree
 history layout as ``transforms.preset`` and the reward weights as ``"term=weight"`` entries, read by their current
 names; version 3 (the shipped policies) holds the tree as it is now.
 
+Since the reference motion can be a file of one's own, a checkpoint also holds that file's sha256
+(``motion_sha256``); :func:`apply_checkpoint` refuses an env whose motion file differs (older files lack it).
+
 Writing is atomic (:mod:`tocabi_torchrl.atomic`): a crash leaves the previous ``latest.pt`` intact.
 Old ``iter_*.pt`` files are pruned after each save (``RunConfig.checkpoint_keep_last`` / ``checkpoint_keep_every``).
 """
@@ -88,6 +91,31 @@ def _transform_state(env) -> dict:
     return transform.state_dict() if isinstance(transform, nn.Module) else {}
 
 
+def motion_sha256(env) -> str | None:
+    """Hex sha256 of the file ``env``'s reference motion was read from (the base env's ``motion.source``); None for an
+    env without one, or a motion not read from a file."""
+    source = getattr(getattr(getattr(env, "base_env", env), "motion", None), "source", "")
+    if not source or not Path(source).is_file():
+        return None
+    from ..runtime.motion import file_sha256
+
+    return file_sha256(source)
+
+
+def _check_motion(state: dict, env, path) -> None:
+    """Refuse an env whose reference motion file is not the one the checkpoint trained on: a relative
+    ``env.task.motion`` is found from the working folder, so another folder can hold another file of that name, and
+    the policy would follow other joint targets and phase without a word."""
+    saved = state.get("motion_sha256")
+    mine = motion_sha256(env) if saved is not None and env is not None else None
+    if mine is not None and mine != saved:
+        base = getattr(env, "base_env", env)
+        raise CheckpointError(f"checkpoint {path} was trained on a reference motion of sha256 {saved[:12]}..., but "
+                              f"the env's motion {Path(base.motion.source).resolve()} is another file ({mine[:12]}...): a relative "
+                              "env.task.motion is found from the working folder; run from the folder the training "
+                              "ran in, or set env.task.motion to the file the policy trained on")
+
+
 def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimizer, env, cfg: RunConfig,
                     train_seconds: float = 0.0, tag: str | None = None) -> Path:
     """Write ``checkpoints/iter_XXXXXX.pt`` (or ``checkpoints/<tag>.pt``) and ``checkpoints/latest.pt`` under
@@ -104,6 +132,9 @@ def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimi
         "config": cfg.to_dict(),
         "train_seconds": float(train_seconds),
     }
+    motion = motion_sha256(env)
+    if motion is not None:  # what the policy followed: a rebuild that finds another file is refused (_check_motion)
+        state["motion_sha256"] = motion
     buffer = io.BytesIO()
     torch.save(state, buffer)  # serialised once, written twice
     data = buffer.getvalue()
@@ -310,6 +341,10 @@ def _check_layout(state, path: Path) -> None:
                       "transforms", path)
     if state.get("optimizer") is not None and not isinstance(state["optimizer"], dict):
         raise CheckpointError(f"checkpoint {path}: 'optimizer' must be a dict or None")
+    motion = state.get("motion_sha256")
+    if motion is not None and not (isinstance(motion, str) and re.fullmatch(r"[0-9a-f]{64}", motion)):
+        raise CheckpointError(f"checkpoint {path}: 'motion_sha256' must be a sha256 (64 lowercase hex digits), got "
+                              f"{motion!r}")
 
 
 def _check_tensor_dict(value, name: str, path: Path) -> None:
@@ -392,6 +427,7 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
         raise CheckpointError(f"checkpoint {path}: a policy of env.control.mode {saved_mode!r}, but the env runs "
                               f"{env_mode!r}: its actions would mean something else there; build the env from the "
                               "checkpoint's config (config_from_checkpoint, or play.py / load_policy)")
+    _check_motion(state, env, path)
     current = agent.state_dict()
     for part in ("actor", "critic"):
         _check_fits(state["agent"][part], current[part], f"agent's {part}", path,

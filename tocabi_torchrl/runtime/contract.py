@@ -13,6 +13,7 @@ import json
 import math
 import os
 import re
+import struct
 from pathlib import Path
 
 from ..value_rules import (DELAY_APPLIED, ENV_RULES, NON_NEGATIVE, PUSH_KINDS, delay_grid_problem,
@@ -80,6 +81,9 @@ _LEG_KEYS = {
 }
 #: ``action.leg.kind`` and ``action.leg.center`` each control mode implies (what the runtime computes from the mode).
 _LEG_KIND = {"torque": "torque", "pd": "position", "pd_reference": "position"}
+#: The keys an export writes into each ``observation.entries[i]`` and ``observation.signals.<name>``.
+_ENTRY_KEYS = {"index", "block", "signal", "element", "name", "unit", "frame"}
+_SIGNAL_KEYS = {"shape", "unit", "frame", "source"}
 _LEG_CENTER = {"pd": "nominal", "pd_reference": "reference"}
 
 #: The observation signals :class:`~tocabi_torchrl.runtime.policy.PolicyRuntime` builds; the contract's
@@ -88,6 +92,11 @@ RUNTIME_SIGNALS: tuple[str, ...] = ("base_rpy", "joint_pos", "joint_vel", "phase
                                     "foot_force", "foot_torque")
 
 _FLOAT32_MAX = 3.4028234663852886e38
+_F32_ROUND = struct.Struct("<f")
+#: Bounds on sizes the runtime allocates per robot: a history of at most this many control periods, at most this many
+#: phase harmonics (the shipped policies: 8 periods, 1 harmonic).
+MAX_HISTORY_AGE = 1024
+MAX_PHASE_HARMONICS = 64
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _FIX = "re-export the policy with `python -m tocabi_torchrl.export` (the file was edited or written by another tool?)"
 
@@ -104,7 +113,15 @@ def load_contract(path: str | os.PathLike) -> dict:
     if not path.is_file():
         raise ContractError(f"policy contract not found: {path} (export one with `python -m tocabi_torchrl.export`)")
     try:
-        contract = json.loads(path.read_text(), parse_constant=_refuse_constant)
+        contract = json.loads(path.read_text(), parse_constant=_refuse_constant, parse_float=_finite_float,
+                              object_pairs_hook=_unique_keys)
+    except _DuplicateKey as err:
+        raise ContractError(f"cannot read policy contract {path}: key {err} appears twice in one object (JSON readers "
+                            "disagree on which one counts: Python takes the last, some C++ readers the first); keep "
+                            "one, or re-export the policy") from err
+    except RecursionError as err:
+        raise ContractError(f"cannot read policy contract {path}: nested too deep to be a contract; re-export the "
+                            "policy") from err
     except _NonStandardJSON as err:
         raise ContractError(f"cannot read policy contract {path}: it holds the non-standard JSON value {err} (a NaN "
                             "or infinite number, which C++ JSON readers refuse and which would poison the policy "
@@ -119,8 +136,29 @@ class _NonStandardJSON(ValueError):
     pass
 
 
+class _DuplicateKey(ValueError):
+    pass
+
+
 def _refuse_constant(name: str):
     raise _NonStandardJSON(name)
+
+
+def _finite_float(text: str) -> float:
+    # "1e999" is standard JSON that Python reads as inf: as poisonous as the Infinity literal.
+    value = float(text)
+    if not math.isfinite(value):
+        raise _NonStandardJSON(text)
+    return value
+
+
+def _unique_keys(pairs: list) -> dict:
+    seen = {}
+    for key, value in pairs:
+        if key in seen:
+            raise _DuplicateKey(repr(key))
+        seen[key] = value
+    return seen
 
 
 def _get(contract: dict, dotted: str):
@@ -203,8 +241,9 @@ def _number(value, what: str, source: str, positive: bool = False) -> float:
     if (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
             or abs(value) > _FLOAT32_MAX):
         raise ContractError(f"{source}: {what} is {value!r}, not a finite (float32) number; {_FIX}")
-    if positive and value <= 0:
-        raise ContractError(f"{source}: {what} is {value!r} but must be > 0; {_FIX}")
+    if positive and not _F32_ROUND.unpack(_F32_ROUND.pack(value))[0] > 0:  # 1e-46 > 0, but 0 in float32
+        raise ContractError(f"{source}: {what} is {value!r} but must be > 0 (in float32, which the runtime computes "
+                            f"in); {_FIX}")
     return float(value)
 
 
@@ -217,6 +256,19 @@ def _count(value, what: str, source: str, minimum: int) -> int:
     if not _is_int(value) or value < minimum:
         raise ContractError(f"{source}: {what} is {value!r} but must be an integer >= {minimum}; {_FIX}")
     return value
+
+
+def _names(value, n: int | None, what: str, source: str) -> None:
+    """A model name (``n`` None) or a list of ``n`` distinct ones: non-empty strings, which the driver looks up in
+    the MJCF model."""
+    values = [value] if n is None else value
+    if n is not None:
+        _need_len(value, n, what, source)
+    bad = [v for v in values if not isinstance(v, str) or not v]
+    if bad or len(set(values)) != len(values):
+        problem = f"{bad[0]!r} is not a name" if bad else "a name appears twice"
+        raise ContractError(f"{source}: {what}: {problem}; each must be a distinct non-empty string naming an "
+                            f"element of the robot model; {_FIX}")
 
 
 def _file_name(value, what: str, source: str) -> None:
@@ -242,6 +294,11 @@ def _check_consistency(c: dict, source: str) -> None:
         raise ContractError(f"{source}: robot.leg_joint_names + robot.upper_joint_names must equal robot.joint_names "
                             f"({len(legs) if isinstance(legs, list) else '?'} + "
                             f"{len(upper) if isinstance(upper, list) else '?'} vs {len(joints)} joints)")
+    _names(joints, len(joints), "robot.joint_names", source)
+    for key in ("base_body", "neck_body"):
+        _names(rob[key], None, f"robot.{key}", source)
+    for key in ("foot_force_sensors", "foot_torque_sensors"):
+        _names(rob[key], 2, f"robot.{key} (left, right)", source)
     _numbers(rob["initial_qpos"], 7 + len(joints), "robot.initial_qpos (base pose + joints)", source)
     _file_name(pol["onnx_file"], "policy.onnx_file", source)
     _sha256(pol["onnx_sha256"], "policy.onnx_sha256", source)
@@ -257,6 +314,12 @@ def _check_consistency(c: dict, source: str) -> None:
     if swapped:
         raise ContractError(f"{source}: action.low > action.high at indices {swapped} (swapped?): every action entry "
                             f"needs low <= high; {_FIX}")
+    # The env's bounds: leg actions in [-1, 1] (a torque policy's fraction of each joint's limit), the phase rate in
+    # [0, 1]. Wider ones would let a controller command torques beyond the limits, or run the clock backwards.
+    outside = [i for i in range(act["dim"]) if low[i] < (-1.0 if i < n_leg else 0.0) or high[i] > 1.0]
+    if outside:
+        raise ContractError(f"{source}: action.low/high at indices {outside} reach outside the policy's action bounds "
+                            f"(legs in [-1, 1], the phase rate in [0, 1]); {_FIX}")
     rate = act["phase_rate"]
     if not _is_int(rate["index"]) or rate["index"] != n_leg:
         # The first n_leg entries are the leg actions: any other index would read one of them as the phase rate.
@@ -279,6 +342,10 @@ def _check_consistency(c: dict, source: str) -> None:
     if pol["output_dim"] != act["dim"] or not _is_int(pol["output_dim"]):
         raise ContractError(f"{source}: policy.output_dim is {pol['output_dim']!r} but must be action.dim, the "
                             f"integer {act['dim']}")
+    for key, count in (("obs_ages", "num_obs"), ("action_ages", "num_actions")):
+        if count in hist and hist[count] != len(hist[key]):  # a controller may size its history by the count
+            raise ContractError(f"{source}: observation.history.{count} is {hist[count]!r} but {key} holds "
+                                f"{len(hist[key])}; {_FIX}")
     for key in ("input_name", "output_name"):
         if not isinstance(pol[key], str) or not pol[key]:
             raise ContractError(f"{source}: policy.{key} is {pol[key]!r}, not the name of an ONNX graph input/output; "
@@ -342,7 +409,7 @@ def _check_timing(c: dict, source: str) -> None:
 
 def _check_leg(act: dict, n_leg: int, source: str) -> None:
     mode = act["control_mode"]
-    if mode not in _LEG_KEYS:
+    if not isinstance(mode, str) or mode not in _LEG_KEYS:
         raise ContractError(f"{source}: unknown action.control_mode {mode!r}; expected one of {list(_LEG_KEYS)}")
     leg = act["leg"]
     if not isinstance(leg, dict):
@@ -382,21 +449,36 @@ def _signal_shapes(num_joints: int, harmonics: int) -> dict[str, list[int]]:
 def _check_observation(obs: dict, num_joints: int, source: str) -> None:
     step_dim = _count(obs["step_dim"], "observation.step_dim", source, 1)
     harmonics = _count(obs["phase_harmonics"], "observation.phase_harmonics", source, 1)
+    if harmonics > MAX_PHASE_HARMONICS:
+        raise ContractError(f"{source}: observation.phase_harmonics is {harmonics} but this runtime builds at most "
+                            f"{MAX_PHASE_HARMONICS}; {_FIX}")
     _need_len(obs["entries"], step_dim, "observation.entries", source)
     shapes = _signal_shapes(num_joints, harmonics)
     signals = obs["signals"]
     if not isinstance(signals, dict):
         raise ContractError(f"{source}: observation.signals must be an object, got {type(signals).__name__}; {_FIX}")
     for i, entry in enumerate(obs["entries"]):
-        if not isinstance(entry, dict) or entry.get("signal") not in signals or "element" not in entry:
+        if (not isinstance(entry, dict) or not isinstance(entry.get("signal"), str) or entry["signal"] not in signals
+                or "element" not in entry):
             raise ContractError(f"{source}: observation.entries[{i}] must name a signal of observation.signals and "
                                 f"an element index, got {entry!r}")
+        unknown = sorted(set(entry) - _ENTRY_KEYS)
+        if unknown:
+            raise ContractError(f"{source}: observation.entries[{i}] has unknown key(s) {unknown} (it takes "
+                                f"{sorted(_ENTRY_KEYS)}); {_FIX}")
+        if "index" in entry and entry["index"] != i:  # the runtime reads entries by position
+            raise ContractError(f"{source}: observation.entries[{i}].index is {entry['index']!r}, not its position "
+                                f"{i}; {_FIX}")
         name, element = entry["signal"], entry["element"]
         if name not in shapes:
             raise ContractError(f"{source}: observation.entries[{i}] reads signal {name!r}, which this runtime cannot "
                                 f"build (it builds {list(RUNTIME_SIGNALS)}): the policy needs a runtime that knows "
                                 "that signal")
         spec = signals[name]
+        unknown = sorted(set(spec) - _SIGNAL_KEYS) if isinstance(spec, dict) else []
+        if unknown:
+            raise ContractError(f"{source}: observation.signals.{name} has unknown key(s) {unknown} (it takes "
+                                f"{sorted(_SIGNAL_KEYS)}); {_FIX}")
         if not isinstance(spec, dict) or spec.get("shape") != shapes[name]:
             got = spec.get("shape") if isinstance(spec, dict) else spec
             raise ContractError(f"{source}: observation.signals.{name}.shape is {got!r}, but the runtime builds "
@@ -411,13 +493,20 @@ def _check_observation(obs: dict, num_joints: int, source: str) -> None:
     _numbers(norm["scale"], step_dim, "observation.normalization.scale", source, positive=True)
     if norm.get("clip") is not None:
         _number(norm["clip"], "observation.normalization.clip", source, positive=True)
+    if "eps" in norm and _number(norm["eps"], "observation.normalization.eps", source) < 0:
+        raise ContractError(f"{source}: observation.normalization.eps is {norm['eps']!r} but must be >= 0; {_FIX}")
+    if "kind" in norm and norm["kind"] not in ("fixed", "running", "none"):
+        raise ContractError(f"{source}: observation.normalization.kind is {norm['kind']!r} but must be 'fixed', "
+                            f"'running' or 'none'; {_FIX}")
     hist = obs["history"]
     for key in ("obs_ages", "action_ages"):
         ages = hist[key]
-        if (not isinstance(ages, list) or not all(_is_int(a) and a >= 0 for a in ages)
+        if (not isinstance(ages, list) or not all(_is_int(a) and 0 <= a <= MAX_HISTORY_AGE for a in ages)
                 or (key == "obs_ages" and not ages)):
             raise ContractError(f"{source}: observation.history.{key} is {ages!r}; it must be a list of integer ages "
-                                f">= 0 in control periods{' (at least one)' if key == 'obs_ages' else ''}; {_FIX}")
+                                f"in [0, {MAX_HISTORY_AGE}] control periods"
+                                f"{' (at least one)' if key == 'obs_ages' else ''}; {_FIX}")
+
 
 
 def _check_trained_under(contract: dict, source: str) -> None:

@@ -88,6 +88,15 @@ def _onnx_session(path: Path, threads: int, as_exported: bool = False, opset: in
                             "python -m tocabi_torchrl.export") from err
 
 
+def _same(said, found) -> bool:
+    """A contract's value equals the file's (floats to 1e-9 relative: both are written from the same float64)."""
+    if isinstance(found, list):
+        return isinstance(said, list) and len(said) == len(found) and all(map(_same, said, found))
+    if isinstance(said, bool) or not isinstance(said, (int, float)):
+        return False
+    return said == found if isinstance(found, int) else abs(said - found) <= 1e-9 * max(1.0, abs(found))
+
+
 class PolicyRuntime:
     """An exported policy with its contract, its phase clock and its observation history for N robots.
 
@@ -125,10 +134,11 @@ class PolicyRuntime:
         for kind, ios, name, dim in (("input", self.session.get_inputs(), pol["input_name"], pol["input_dim"]),
                                      ("output", self.session.get_outputs(), pol["output_name"], pol["output_dim"])):
             # The batch dimension may be symbolic ("batch"); the width must be the contract's.
-            if not ios or ios[0].name != name or len(ios[0].shape) != 2 or ios[0].shape[-1] != dim:
-                got = f"{ios[0].name!r} {ios[0].shape}" if ios else "nothing"
-                raise ContractError(f"{self.onnx_path}: {kind} {got} does not match the contract's {name!r} of "
-                                    f"(batch, {dim}) values: the ONNX file is not this contract's policy; re-export "
+            if (len(ios) != 1 or ios[0].name != name or len(ios[0].shape) != 2 or ios[0].shape[-1] != dim
+                    or ios[0].type != "tensor(float)"):
+                got = ", ".join(f"{io.name!r} {io.type} {io.shape}" for io in ios) or "nothing"
+                raise ContractError(f"{self.onnx_path}: {kind} {got} does not match the contract's one {name!r} of "
+                                    f"(batch, {dim}) float32 values: the ONNX file is not this contract's policy; re-export "
                                     "both together")
         rob, act = c["robot"], c["action"]
         self.joint_names = rob["joint_names"]
@@ -171,7 +181,17 @@ class PolicyRuntime:
                 raise ContractError(f"reference motion {spec['name']} is neither beside the policy ({beside}) nor "
                                     f"among the shipped motions ({shipped.parent}): copy the motion the policy was "
                                     "trained on beside the .onnx (python -m tocabi_torchrl.export copies it there)")
-        return RuntimeMotion.from_file(motion, self.joint_names, spec["sha256"])
+        loaded = RuntimeMotion.from_file(motion, self.joint_names, spec["sha256"])
+        # What the contract states of the motion besides its hash: a controller may run its clock from these.
+        stated = {"rows": (spec.get("rows"), loaded.cycle_rows + 1), "row_dt_s": (spec.get("row_dt_s"), loaded.row_dt),
+                  "period_s": (spec.get("period_s"), loaded.period),
+                  "init_rows": (spec.get("init_rows"), loaded.init_rows.tolist())}
+        for key, (said, found) in stated.items():
+            if said is not None and not _same(said, found):
+                raise ContractError(f"reference_motion.{key} is {said!r} in the contract, but the motion {motion} "
+                                    f"(of the contract's hash) has {found!r}: the contract was edited; re-export the "
+                                    "policy")
+        return loaded
 
     # --------------------------------------------------------------------------------------------- public API
     @property
