@@ -260,3 +260,29 @@ def test_a_section_given_as_a_dict_of_some_options_keeps_the_others():
     nested = preset_config("robust", **{"env": {"pushes": {"count": 8}}})
     assert nested.env.pushes.count == 8 and nested.env.pushes.speed == robust.env.pushes.speed
     assert nested.env.dynamics == robust.env.dynamics
+
+
+def test_a_config_edited_in_place_leaves_presets_and_the_lab_set_alone():
+    # The robust preset put the module's TOCABI_LAB_ACTUATORS / _DYNAMICS objects (and one PushConfig) into every
+    # tree it built: editing one config in place switched the next preset_config("robust") and the robust gait
+    # test's randomised cases to the edited values.
+    from tocabi_torchrl.evaluation.robust import robust_case_config
+    from tocabi_torchrl.randomize import TOCABI_LAB_ACTUATORS, tocabi_lab
+
+    a = preset_config("robust")
+    a.env.control.actuators.delay_substeps = (0, 0)
+    a.env.pushes.count = 0
+    a.env.dynamics.mass_scale = (1.0, 1.0)
+    b = preset_config("robust")
+    assert (b.env.control.actuators.delay_substeps, b.env.pushes.count, b.env.dynamics.mass_scale) == \
+        ((4, 20), 16, (0.8, 1.2))
+    assert TOCABI_LAB_ACTUATORS.delay_substeps == (4, 20)
+    case = robust_case_config(preset_config("torque"), 1.0)
+    assert case.env.control.actuators.delay_substeps == (4, 20) and case.env.dynamics.mass_scale == (0.8, 1.2)
+    reference = preset_tree("reference")
+    reference.env.command.vx_range = (9.0, 9.0)
+    assert preset_tree("reference").env.command.vx_range != (9.0, 9.0)
+    torque = preset_config("torque")
+    lab = tocabi_lab(torque)  # the copy shares no section with the tree it came from
+    lab.env.task.min_pelvis_height = 0.1
+    assert torque.env.task.min_pelvis_height != 0.1

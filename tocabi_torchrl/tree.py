@@ -13,6 +13,7 @@ the command line as JSON.
 from __future__ import annotations
 
 import collections.abc
+import copy
 import dataclasses
 import math
 import numbers
@@ -111,7 +112,15 @@ def get_path(tree: Any, path: str) -> Any:
 
 def replace_paths(tree: Any, values: dict[str, Any]) -> Any:
     """A copy of ``tree`` with each ``{dotted path: value}`` set (the tree itself is not changed). A path may name a
-    leaf or a whole section (a dataclass instance, or a dict as :func:`to_dict` writes it)."""
+    leaf or a whole section (a dataclass instance, or a dict as :func:`to_dict` writes it).
+
+    The copy owns every section in it: neither ``tree``'s sections nor a section given as a value (a preset's, or a
+    module constant such as ``randomize.TOCABI_LAB_DYNAMICS``) is shared, so editing the copy in place changes
+    nothing else."""
+    return _replace_paths(copy.deepcopy(tree), copy.deepcopy(values))
+
+
+def _replace_paths(tree: Any, values: dict[str, Any]) -> Any:
     nested: dict[str, dict[str, Any]] = {}
     direct: dict[str, Any] = {}
     for path, value in values.items():
@@ -135,7 +144,7 @@ def replace_paths(tree: Any, values: dict[str, Any]) -> Any:
                               f"got {type(value).__name__}; to set one option give its path, e.g. "
                               f"'{head}.{dataclasses.fields(current)[0].name}'")
     for head, sub in nested.items():
-        direct[head] = replace_paths(direct.get(head, getattr(tree, head)), sub)
+        direct[head] = _replace_paths(direct.get(head, getattr(tree, head)), sub)
     return dataclasses.replace(tree, **direct)
 
 
