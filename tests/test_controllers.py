@@ -78,6 +78,28 @@ def test_a_controller_of_the_wrong_kind_or_width_is_refused():
         TocabiWalk(num_envs=1, device="cpu", leg_controller=_Bad())
 
 
+class _ServoWithoutGains(Controller):
+    servo = True
+    action_dim = 12
+
+    def compute(self, inp):
+        return inp.q_ref[:, :12] + 0.5 * inp.action
+
+
+def test_a_controller_reused_without_servo_gains_or_with_the_assist_is_refused():
+    # Each was built: a reused law computed for the other env's simulator (or failed inside the law on other
+    # sizes), a servo law's angles [rad] went to the leg motors as torques [N·m], and the assist failed at its first
+    # set_torque_assist with an AttributeError.
+    law = DirectTorque()
+    TocabiWalk(num_envs=2, device="cpu", control_mode="torque", leg_controller=law)
+    with pytest.raises(ValueError, match="this DirectTorque is already set up for another env .*pass a new instance"):
+        TocabiWalk(num_envs=3, device="cpu", control_mode="torque", leg_controller=law)
+    with pytest.raises(ValueError, match=r"servo_gains\(\) gives None: the legs' actuators .* are torque motors"):
+        TocabiWalk(num_envs=1, device="cpu", leg_controller=_ServoWithoutGains())
+    with pytest.raises(ValueError, match="torque_assist adds its PD .* leg_controller replaces that law"):
+        TocabiWalk(num_envs=1, device="cpu", control_mode="torque", torque_assist=True, leg_controller=DirectTorque())
+
+
 def test_a_user_controller_replaces_the_configured_one():
     env = TocabiWalk(num_envs=2, device="cpu", control_mode="pd_reference", leg_controller=DirectTorque())
     # a torque law: the leg motors stay motors (no servos), so a zero action applies no leg torque

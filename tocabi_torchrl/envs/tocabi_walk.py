@@ -82,6 +82,15 @@ def _check_leg_controller(law) -> Controller:
     if law.action_dim != robot.NUM_LEG_JOINTS:
         raise ValueError(f"leg_controller reads action_dim={law.action_dim} actions, but the env's action has "
                          f"{robot.NUM_LEG_JOINTS} leg entries (and one phase rate); set action_dim = 12")
+    ctx = getattr(law, "ctx", None)
+    if ctx is not None:  # it would go on computing for the other env, or fail there inside the law on other sizes
+        raise ValueError(f"this {type(law).__name__} is already set up for another env ({ctx.num_envs} worlds on "
+                         f"{ctx.device}): a controller holds one env's simulator and buffers; pass a new instance "
+                         f"to each env")
+    if law.servo and law.servo_gains() is None:
+        raise ValueError(f"{type(law).__name__} has servo = True but servo_gains() gives None: the legs' actuators "
+                         "in the model file are torque motors, which would take its targets [rad] as torques [N·m]; "
+                         "return (kp, kv) from servo_gains(), or set servo = False and return torques")
     return law
 
 
@@ -156,6 +165,10 @@ class TocabiWalk(EnvBase):
 
         self._seed = check_seed(seed) if seed is not None else int(torch.randint(0, 2**31 - 1, ()).item())
         #: The control laws of the two joint groups, and the legs' actuator layer (``tocabi_torchrl.control``).
+        if leg_controller is not None and control.torque_assist:
+            raise ValueError("env.control.torque_assist adds its PD to the config's torque law, and leg_controller "
+                             "replaces that law: set torque_assist False (or ppo.torque_assist 0), or leave "
+                             "leg_controller out")
         self.leg_controller = (_check_leg_controller(leg_controller) if leg_controller is not None
                                else leg_law(control))
         self.upper_controller = upper_body_law(control)
