@@ -52,6 +52,8 @@ def test_config_is_off_by_default_and_holds_the_lab_numbers():
     ("foot_force_bias", float("nan"), "foot_force_bias must be a finite number >= 0"),
     ("joint_vel_noise_std", True, "joint_vel_noise_std must be a finite number >= 0"),
     ("joint_pos_noise_clip", 0.0, "joint_pos_noise_clip must be a finite number > 0, or None"),
+    # Accepted, and then an observed angle of 3.65 rad: one 2π turn does not wrap a bias of 10 rad back.
+    ("base_rpy_bias", 10.0, r"base_rpy_bias must be a finite number in \[0, 3.14159"),
 ])
 def test_config_refuses_bad_values_by_path(field, value, message):
     with pytest.raises(ValueError, match=f"transforms.sensor_noise.{message}"):

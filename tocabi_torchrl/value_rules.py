@@ -107,6 +107,10 @@ MAX_SEED = 2**63 - 1
 PUSH_KINDS = ("force", "velocity")
 
 
+#: ``SensorNoiseConfig.base_rpy_bias`` [rad]: a half-width beyond π would bias an angle by more than one turn, which
+#: the (−π, π] wrap of the observed angles cannot take back (a bias of π already reaches every angle).
+RPY_BIAS = Range(low=0.0, high=math.pi)
+
 #: ``PushConfig.calm_fraction``: the probability of an episode without kicks; 1 would be no kicks (``count`` 0).
 CALM_FRACTION = Range(low=0.0, high=1.0, high_open=True)
 
@@ -189,7 +193,7 @@ TRAINED_UNDER_RULES: dict[str, dict[str, dict[str, tuple[Range, str]]]] = {
         "joint_pos_bias": {"half_width": (NON_NEGATIVE, "one")},
         "joint_pos_noise": {"std": (NON_NEGATIVE, "one"), "clip": (POSITIVE, "nullable")},
         "joint_vel_noise": {"std": (NON_NEGATIVE, "one"), "clip": (POSITIVE, "nullable")},
-        "base_rpy_bias": {"half_width": (NON_NEGATIVE, "one")},
+        "base_rpy_bias": {"half_width": (RPY_BIAS, "one")},
         "foot_force_bias": {"half_width": (NON_NEGATIVE, "one")},
         "foot_torque_bias": {"half_width": (NON_NEGATIVE, "one")},
     },

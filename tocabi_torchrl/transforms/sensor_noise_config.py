@@ -10,6 +10,7 @@ from dataclasses import dataclass, fields
 from numbers import Real
 
 from tocabi_torchrl import robot
+from tocabi_torchrl.value_rules import RPY_BIAS
 
 __all__ = ["SensorNoiseConfig", "SENSORS"]
 
@@ -72,6 +73,7 @@ class SensorNoiseConfig:
                 what = ("a finite number > 0, or None for no clip" if f.name.endswith("_clip")
                         else "a finite number >= 0 (0 = off)")
                 raise ValueError(f"{prefix}{f.name} must be {what}, got {value!r}")
+        RPY_BIAS.check(self.base_rpy_bias, f"{prefix}base_rpy_bias")
 
     @property
     def enabled(self) -> bool:
