@@ -12,8 +12,10 @@ import pytest
 import torch
 
 from tocabi_torchrl.config import PRESETS, preset_config
+from tocabi_torchrl import make_env
 from tocabi_torchrl.envs import TocabiWalk, TocabiWalkConfig
 from tocabi_torchrl.envs.command import CommandConfig
+from tocabi_torchrl.envs.config import ControlConfig
 from tocabi_torchrl.tree import check_field_types
 
 NAN, INF = math.nan, math.inf
@@ -233,3 +235,15 @@ def test_the_capped_solver_steps_on_the_gpu_without_a_torch_sync_and_bounds_ever
 
     assert 1 <= most_per_substep(4) <= 4
     assert most_per_substep(None) > 4  # the same robots need more without the cap, so the bound could fail
+
+
+@pytest.mark.parametrize("config,where,kind", [
+    (lambda: TocabiWalkConfig(dynamics=None), "env.dynamics", "DynamicsRandomization"),
+    (lambda: TocabiWalkConfig(pushes={"count": 1}), "env.pushes", "PushConfig"),
+    (lambda: TocabiWalkConfig(control=ControlConfig(actuators={"delay_substeps": (1, 2)})), "env.control.actuators",
+     "ActuatorConfig"),
+])
+def test_a_section_given_as_none_or_a_dict_to_the_config_class_is_named(config, where, kind):
+    # Each failed with "AttributeError: 'NoneType' (or 'dict') object has no attribute 'validate'".
+    with pytest.raises(ValueError, match=rf"{where} must be a section of type {kind}, got .*for none, {kind}\(\)"):
+        make_env(num_envs=2, device="cpu", config=config())
