@@ -11,7 +11,10 @@ from ..value_rules import delay_grid_problem
 if TYPE_CHECKING:
     from .actuators import ActuatorChain
 
-__all__ = ["ActuatorConfig"]
+__all__ = ["ActuatorConfig", "MAX_DELAY_SUBSTEPS"]
+
+#: The longest torque delay [physics substeps] the actuator layer takes: it keeps that many past torques per world.
+MAX_DELAY_SUBSTEPS = 400
 
 
 @dataclass
@@ -57,6 +60,10 @@ class ActuatorConfig:
                                  f"got {getattr(self, name)!r}")
         if any(isinstance(v, bool) or int(v) != v for v in self.delay_substeps):
             raise ValueError(f"env.control.actuators.delay_substeps takes whole substeps, got {self.delay_substeps!r}")
+        if self.delay_substeps[1] > MAX_DELAY_SUBSTEPS:
+            raise ValueError(f"env.control.actuators.delay_substeps {self.delay_substeps!r} reaches past "
+                             f"{MAX_DELAY_SUBSTEPS} substeps (0.2 s at 0.5 ms): the delay keeps that many past torques "
+                             "of every world in memory; the TOCABI lab's delay is 4-20 substeps")
         problem = delay_grid_problem(*(int(v) for v in self.delay_substeps), self.delay_stride)
         if problem:
             raise ValueError(f"env.control.actuators.delay_stride: {problem}")
