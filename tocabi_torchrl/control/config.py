@@ -25,7 +25,7 @@ class ActuatorConfig:
 
     Attributes:
         delay_substeps: (low, high) the torque delay in physics substeps of 0.5 ms, k ~ U{low, low + stride, ...,
-            high} per world.
+            high} per world; high at most :data:`MAX_DELAY_SUBSTEPS`.
         delay_stride: the step of the delay's grid [substeps]; ``high - low`` must be a multiple of it. 1: every
             whole substep. At the control period's substeps (8), every world's delayed torque changes in the same
             substep of the period; mujoco-warp's solver iterates all worlds of a substep until the slowest has
