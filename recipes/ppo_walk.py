@@ -31,6 +31,11 @@ from tocabi_torchrl.render_gl import choose_gl_backend_or_exit
 
 choose_gl_backend_or_exit()  # before mujoco is imported: headless video of the final evaluation
 
+#: What --help says above the options: their defaults are the --preset's, which a machine without CUDA replaces.
+HELP = (f"{__doc__.split(chr(10) * 2)[0]} The defaults below are the --preset's (default: 'default'). Without CUDA "
+        "and without --preset or --device, the run uses the small 'cpu_smoke' preset instead (--preset cpu_smoke "
+        "--help lists its values).")
+
 if __name__ == "__main__":
     # --help, a misspelt option or a value of the wrong type answers before the trainer and the evaluation load.
     # The command line is tyro's, from the run config tree, whose modules import neither torch, torchrl nor
@@ -38,7 +43,7 @@ if __name__ == "__main__":
     from tocabi_torchrl.rl.config import check_command_line
     from tocabi_torchrl.viewer.config import expand_viewer_flag
 
-    check_command_line(expand_viewer_flag(sys.argv[1:]), "ppo_walk.py", __doc__.split("\n\n")[0])
+    check_command_line(expand_viewer_flag(sys.argv[1:]), "ppo_walk.py", HELP)
 
 import torch  # noqa: E402
 

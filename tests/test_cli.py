@@ -51,6 +51,9 @@ def test_ppo_walk_answers_help_and_a_misspelt_option_without_the_heavy_libraries
     proc, modules = imported_modules("ppo_walk", "--help")
     assert proc.returncode == 0 and "--env.num_envs" in proc.stdout and "--ppo.assist_target" in proc.stdout
     assert not modules & set(HEAVY), f"--help imported {sorted(modules & set(HEAVY))}"
+    # It shows the default preset's 4,096 envs; without CUDA the same command runs cpu_smoke, which it now says.
+    assert "Without CUDA and without --preset or --device, the run uses the small 'cpu_smoke'" in \
+        " ".join(proc.stdout.split())
     proc, modules = imported_modules("ppo_walk", "--env.num_env", "8", cwd=tmp_path)
     assert proc.returncode == 2 and "Unrecognized options: --env.num_env" in _text(proc.stderr)
     assert "Perhaps you meant: --env.num_envs INT" in _text(proc.stderr)

@@ -138,7 +138,8 @@ class TaskConfig:
             terminate_on_self_collision: the early-termination conditions.
         start_joint_vel_std: std [rad/s] of Gaussian joint velocities a reset world starts with (0: at rest).
         start_base_vel_std: std [m/s] of the pelvis's Gaussian linear velocity (each axis) at reset (0: at rest).
-            Either above 0 makes the starts diverse (the robust gait test) and the reset runs the full pass.
+            Either above 0 makes the starts diverse (the robust gait test) and the reset runs the full pass (unless
+            ``sim.start_pool`` pools the start states).
         cycle_velocity: report ``cycle_vel_error``, the heading-frame velocity minus the command averaged over the
             last gait cycle (envs/cycle_velocity.py), which the ``cycle_vel`` reward term reads.
     """
@@ -436,7 +437,8 @@ class TocabiWalkConfig:
         scene: :class:`SceneConfig` (obstacles on the ground).
         dynamics: :class:`~tocabi_torchrl.sim.dynamics.DynamicsRandomization` (per-world link masses, joint damping,
             armature and friction, drawn at every reset; off by default).
-        pushes: :class:`~tocabi_torchrl.envs.pushes.PushConfig` (velocity kicks during an episode; off by default).
+        pushes: :class:`~tocabi_torchrl.envs.pushes.PushConfig` (kicks during an episode: a force on the pelvis or a
+            velocity kick of the whole robot; off by default).
     """
 
     num_envs: int = 4096

@@ -12,7 +12,8 @@ __all__ = ["PushConfig", "PUSH_KINDS"]
 
 @dataclass
 class PushConfig:
-    """Velocity kicks of the pelvis during an episode (``TocabiWalkConfig.pushes``); ``count=0`` (default) is off.
+    """Kicks during an episode (``TocabiWalkConfig.pushes``): a force on the pelvis (``kind="force"``, the default)
+    or a velocity kick of the whole robot (``"velocity"``); ``count=0`` (default) is off.
 
     Attributes:
         count: kicks per episode.
