@@ -107,6 +107,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--seconds must be a finite number of seconds > 0, got {args.seconds}")
     if not (math.isfinite(args.vx) and math.isfinite(args.vy)):
         parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
+    parser.refuse_without(args, args.viewer, "--viewer", ("viewer_host", "viewer_port"))
     if args.policy is not None:
         from tocabi_torchrl.viewer.policy_source import resolve_policy
 

@@ -9,7 +9,7 @@
 ``--model authored`` (default) is assets/tocabi/tocabi.xml; ``reference`` is ../shared/reference/dyros_tocabi.xml
 (beside the repository) with its mesh geoms removed; any other value is an MJCF path. Prints the gait-test metrics
 of evaluation/gait_test.py (survival, forward distance, lateral drift, speed tracking error, knee RMS) as JSON. Needs
-numpy, mujoco and onnxruntime only (`pip install -e ".[export]"`); torch is never imported.
+numpy, mujoco, onnxruntime and tqdm only (`pip install -e ".[export]"`); torch is never imported.
 
 ``--randomize`` (default ``none``: the nominal robot, numbers exactly as without it) draws per robot at the reset:
 ``trained`` what the contract's ``trained_under`` section states, ``tocabi_lab`` the TOCABI lab's actuator delay and
@@ -88,7 +88,11 @@ def watch(args: argparse.Namespace, dt: float):
 def progress(args: argparse.Namespace, dt: float, draw=None):
     """A progress bar on stderr (stdout stays the JSON) and the driver's per-period callback that moves it (and
     calls ``draw``, the viewer's, when given): ``(bar, on_step)``; ``dt``: the contract's control period [s]."""
-    from tqdm import tqdm
+    try:
+        from tqdm import tqdm
+    except ImportError as err:
+        raise ImportError("the progress bar needs tqdm: pip install tqdm (or pip install -e \".[export]\" in the "
+                          "repository, which brings it with the package)") from err
 
     bar = tqdm(total=round(args.seconds / dt), unit="step", desc=f"sim2sim, {args.num_robots} robots",
                file=sys.stderr, mininterval=1.0, leave=False)
@@ -99,6 +103,15 @@ def progress(args: argparse.Namespace, dt: float, draw=None):
             draw(step, model, datas)
 
     return bar, on_step
+
+
+def _null_for_nan(value):
+    """``value`` (nested dicts and lists) with every non-finite float as None."""
+    if isinstance(value, dict):
+        return {k: _null_for_nan(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_null_for_nan(v) for v in value]
+    return None if isinstance(value, float) and not math.isfinite(value) else value
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -114,6 +127,8 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--pushes must be an int in [0, 64] (kicks per robot), got {args.pushes}")
     if not 0 <= args.push_speed < math.inf:
         parser.error(f"--push_speed must be a finite velocity change >= 0 [m/s], got {args.push_speed}")
+    parser.refuse_without(args, args.pushes > 0, "--pushes N", ("push_speed", "push_kind"))
+    parser.refuse_without(args, args.viewer, "--viewer", ("viewer_host", "viewer_port"))
     if not 0 <= args.seed <= MAX_SEED:
         parser.error(f"--seed must be an int in [0, 2**63 - 1], got {args.seed}")
     if args.out and Path(args.out).exists():
@@ -161,7 +176,9 @@ def main(argv: list[str] | None = None) -> dict:
         if server is not None:
             server.stop()
     result["model"] = str(args.model)
-    text = json.dumps(result, indent=2)
+    # Standard JSON, as the export writes: a metric of no robot (every one fell in the first period) is null, not the
+    # NaN that strict JSON readers refuse.
+    text = json.dumps(_null_for_nan(result), indent=2, allow_nan=False)
     print(text)
     if args.out:
         try:

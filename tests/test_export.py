@@ -362,3 +362,26 @@ def test_a_relative_motion_found_elsewhere_is_refused(tmp_path, monkeypatch):
                                          r".*b/my_walk.npz is another file .*run from the folder the training ran in"):
         export_main(["--checkpoint", str(ckpt), "--out", str(tmp_path / "b.onnx")])
     assert not (tmp_path / "b.onnx").exists()
+
+
+def test_an_unwritable_out_is_said_before_the_policy_loads_and_ctrl_c_exits_130(tmp_path, monkeypatch, capsys):
+    # The unwritable folder was found at the first write, after the policy had loaded and been traced; Ctrl-C gave
+    # a KeyboardInterrupt traceback from deep inside the tracer.
+    import tocabi_torchrl.export.onnx_export as onnx_export
+
+    def never(*a, **k):
+        raise AssertionError("the policy was loaded")
+
+    blocked = tmp_path / "blocked"
+    blocked.write_text("a file, not a folder")
+    monkeypatch.setattr(onnx_export, "load_policy", never)
+    with pytest.raises(SystemExit, match="error: .*a file, not a folder"):
+        export_main(["--checkpoint", "assets/policies/tocabi_walk_ppo.pt", "--out", str(blocked / "p.onnx")])
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(onnx_export, "load_policy", interrupted)
+    with pytest.raises(SystemExit) as info:
+        export_main(["--checkpoint", "assets/policies/tocabi_walk_ppo.pt", "--out", str(tmp_path / "p.onnx")])
+    assert info.value.code == 130 and "stopped (Ctrl-C); no file is left half-written" in capsys.readouterr().err

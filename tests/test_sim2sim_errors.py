@@ -168,3 +168,33 @@ def test_a_run_shows_progress_on_stderr_and_keeps_stdout_json_without_torch(tmp_
     assert "sim2sim, 1 robots" in proc.stderr and "0/50 [" in proc.stderr  # 0.2 s of 4 ms periods
     modules = {line.rsplit("|", 1)[1].strip() for line in proc.stderr.splitlines() if line.startswith("import time:")}
     assert "tqdm" in modules and not {"torch", "torchrl", "tensordict"} & modules
+
+
+@needs_contract
+@pytest.mark.parametrize("argv,message", [
+    (["--push_speed", "3"], "--push_speed applies with --pushes N only, which is not given"),
+    (["--push_kind", "force"], "--push_kind applies with --pushes N only"),
+    (["--viewer_port", "8081"], "--viewer_port applies with --viewer only"),
+])
+def test_an_option_its_switch_is_missing_for_is_refused_not_ignored(argv, message, capsys):
+    # Each ran as if it were not given: no kicks at 3 m/s, no viewer, and "pushes": null in the metrics.
+    assert _run(argv).code == 2 and message in capsys.readouterr().err
+
+
+@needs_contract
+def test_metrics_of_no_surviving_robot_are_null_in_strict_json(capsys, tmp_path):
+    # A robot that fell in the first period has no speed or knee error: printed as NaN, which strict JSON readers
+    # (and the contract's own rule) refuse.
+    import json
+    import shutil
+
+    for suffix in (".json", ".onnx"):
+        shutil.copy(CONTRACT.with_suffix(suffix), tmp_path / f"p{suffix}")
+    contract = json.loads((tmp_path / "p.json").read_text())
+    contract["policy"]["onnx_file"] = "p.onnx"
+    contract["termination"]["min_neck_height"] = 3.0  # above the standing robot's neck: every robot ends at once
+    (tmp_path / "p.json").write_text(json.dumps(contract))
+    result = load_recipe("sim2sim").main(["--contract", str(tmp_path / "p.json"), "--seconds", "0.02",
+                                          "--num_robots", "1"])
+    printed = json.loads(capsys.readouterr().out, parse_constant=lambda name: pytest.fail(f"non-standard {name}"))
+    assert result["survival"] == 0.0 and printed["knee_rms_rad"] is None

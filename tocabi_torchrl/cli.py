@@ -53,6 +53,14 @@ class RecipeParser(argparse.ArgumentParser):
             message += f"; did you mean {' or '.join(dict.fromkeys(guesses))}?"
         return message
 
+    def refuse_without(self, args: argparse.Namespace, on: bool, switch: str, names: Iterable[str]) -> None:
+        """An error for each option of ``names`` given another value than its default while ``switch`` (the option
+        they belong to; ``on``: whether it is given) is not: it would be ignored without a word."""
+        for name in names:
+            if not on and getattr(args, name) != self.get_default(name):
+                self.error(f"--{name} applies with {switch} only, which is not given; add {switch}, or leave "
+                           f"--{name} out")
+
     def error(self, message: str):
         # The message names the option and what it takes; the usage added nothing but length.
         self.exit(2, f"{self.prog}: error: {message}\n")

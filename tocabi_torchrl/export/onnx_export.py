@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..atomic import atomic_write_bytes, atomic_write_text
+from ..atomic import atomic_write_bytes, atomic_write_text, check_writable
 from ..transforms.normalize import freeze_running_statistics
 from .contract import ExportError, build_contract, sha256_bytes
 
@@ -212,6 +212,7 @@ def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchsc
     contract_path = out.with_suffix(".json")
     ts_path = out.with_suffix(".ts.pt")
     _refuse_overwrite([out, contract_path, ts_path], overwrite, torchscript)
+    check_writable(out.parent)  # now, not after loading and tracing the policy
     policy = load_policy(checkpoint)
     actor = DeterministicActor(policy.agent.actor)
     check_finite_policy(actor, policy.env, policy.checkpoint)

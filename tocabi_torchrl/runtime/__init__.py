@@ -1,4 +1,5 @@
-"""A torch-free runtime for exported policies: numpy, mujoco (for the sim-to-sim driver) and onnxruntime only.
+"""A torch-free runtime for exported policies: numpy, mujoco (for the sim-to-sim driver) and onnxruntime only (the
+sim-to-sim recipe's progress bar adds tqdm).
 
 * :mod:`.contract`: :func:`load_contract`, :class:`ContractError`, :data:`CONTRACT_VERSION`
 * :mod:`.policy`: :class:`PolicyRuntime` (observation, history, phase clock, ONNX, leg commands at the control rate)
