@@ -286,3 +286,9 @@ def test_a_config_edited_in_place_leaves_presets_and_the_lab_set_alone():
     lab = tocabi_lab(torque)  # the copy shares no section with the tree it came from
     lab.env.task.min_pelvis_height = 0.1
     assert torque.env.task.min_pelvis_height != 0.1
+    from tocabi_torchrl.transforms import CallableTerm, TransformConfig
+    from tocabi_torchrl.tree import replace_paths as tree_replace_paths
+
+    term = CallableTerm("up", lambda td, nxt: nxt["base_pos"][:, 2:3], weight=0.5)
+    mine = tree_replace_paths(TransformConfig(), {"reward_terms": ("qpos", term)})
+    assert mine.reward_terms[1] == term and mine.reward_terms[1].fn is term.fn  # leaves are the very objects

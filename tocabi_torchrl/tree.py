@@ -116,8 +116,23 @@ def replace_paths(tree: Any, values: dict[str, Any]) -> Any:
 
     The copy owns every section in it: neither ``tree``'s sections nor a section given as a value (a preset's, or a
     module constant such as ``randomize.TOCABI_LAB_DYNAMICS``) is shared, so editing the copy in place changes
-    nothing else."""
-    return _replace_paths(copy.deepcopy(tree), copy.deepcopy(values))
+    nothing else. Leaves are not copied: a function or a tensor given is the very object."""
+    return _replace_paths(_own_sections(tree), {path: _own_sections(value) for path, value in values.items()})
+
+
+def _own_sections(value: Any) -> Any:
+    """``value`` with every section in it (a dataclass instance, also inside tuples, lists and dicts) a new object
+    holding the same leaves; other values as they are."""
+    if _is_section(value):
+        clone = copy.copy(value)  # frozen sections and fields outside __init__ too, without running __post_init__
+        for f in dataclasses.fields(value):
+            object.__setattr__(clone, f.name, _own_sections(getattr(value, f.name)))
+        return clone
+    if type(value) in (tuple, list):
+        return type(value)(_own_sections(v) for v in value)
+    if type(value) is dict:
+        return {k: _own_sections(v) for k, v in value.items()}
+    return value
 
 
 def _replace_paths(tree: Any, values: dict[str, Any]) -> Any:
