@@ -385,3 +385,21 @@ def test_an_unwritable_out_is_said_before_the_policy_loads_and_ctrl_c_exits_130(
     with pytest.raises(SystemExit) as info:
         export_main(["--checkpoint", "assets/policies/tocabi_walk_ppo.pt", "--out", str(tmp_path / "p.onnx")])
     assert info.value.code == 130 and "stopped (Ctrl-C); no file is left half-written" in capsys.readouterr().err
+
+
+def test_a_policy_with_running_normalisation_exports_and_runs(tmp_path):
+    # The contract check refused the export's own "running (frozen at export)" kind: no such policy could be exported.
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.export import export_policy
+    from tocabi_torchrl.rl.checkpoint import save_checkpoint
+    from tocabi_torchrl.rl.trainer import build_agent, build_env
+    from tocabi_torchrl.runtime import PolicyRuntime
+
+    cfg = preset_config("default", **{"env.num_envs": 1, "ppo.minibatch_size": 48, "ppo.actor_hidden": (16,),
+                                      "ppo.critic_hidden": (16,), "transforms.normalization": "running"},
+                        device="cpu")
+    env = build_env(cfg, torch.device("cpu"), num_envs=1)
+    ckpt = save_checkpoint(tmp_path / "run", 0, 0, build_agent(cfg, 237, 13, torch.device("cpu")), None, env, cfg)
+    result = export_policy(ckpt, tmp_path / "p.onnx")
+    runtime = PolicyRuntime(result.contract)
+    assert runtime.contract["observation"]["normalization"]["kind"] == "running (frozen at export)"

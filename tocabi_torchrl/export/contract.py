@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, robot
-from ..runtime.contract import CONTRACT_FORMAT, CONTRACT_VERSION, check_contract
+from ..runtime.contract import CONTRACT_FORMAT, CONTRACT_VERSION, NORMALIZATION_KINDS, check_contract
 from ..runtime.motion import file_sha256
 
 __all__ = ["SIGNAL_DOCS", "ExportError", "build_contract", "config_sha256", "sha256_bytes"]
@@ -97,15 +97,15 @@ def _observation(env) -> dict:
                             "frame": doc.get("frame", "?")})
     norm = _find(transform, "FixedNormalization")
     if norm is not None:
-        normalization = {"kind": "fixed", "rule": "(raw - mean) / scale, then clip to +-clip when clip is set",
+        normalization = {"kind": NORMALIZATION_KINDS[0], "rule": "(raw - mean) / scale, then clip to +-clip when clip is set",
                          "mean": norm.loc.tolist(), "scale": norm.scale.tolist(), "eps": norm.eps, "clip": norm.clip}
     elif _find(transform, "RunningNormalization") is not None:
         run = _find(transform, "RunningNormalization")
         loc, scale = run._loc_scale()  # frozen at export: the checkpoint's statistics
-        normalization = {"kind": "running (frozen at export)", "rule": "(raw - mean) / scale, then clip",
+        normalization = {"kind": NORMALIZATION_KINDS[1], "rule": "(raw - mean) / scale, then clip",
                          "mean": loc.tolist(), "scale": scale.tolist(), "eps": run.eps, "clip": run.clip}
     else:
-        normalization = {"kind": "none", "rule": "identity", "mean": [0.0] * len(entries),
+        normalization = {"kind": NORMALIZATION_KINDS[2], "rule": "identity", "mean": [0.0] * len(entries),
                          "scale": [1.0] * len(entries), "eps": 0.0, "clip": None}
     lay = history.layout
     return {

@@ -19,8 +19,8 @@ from pathlib import Path
 from ..value_rules import (DELAY_APPLIED, ENV_RULES, NON_NEGATIVE, PUSH_KINDS, delay_grid_problem,
                            trained_under_problems)
 
-__all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ENV_FIELDS", "REQUIRED_KEYS", "RUNTIME_SIGNALS", "ContractError",
-           "check_contract", "load_contract"]
+__all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ENV_FIELDS", "NORMALIZATION_KINDS", "REQUIRED_KEYS",
+           "RUNTIME_SIGNALS", "ContractError", "check_contract", "load_contract"]
 
 #: ``format`` field of every contract.
 CONTRACT_FORMAT = "tocabi_torchrl.policy_contract"
@@ -81,6 +81,9 @@ _LEG_KEYS = {
 }
 #: ``action.leg.kind`` and ``action.leg.center`` each control mode implies (what the runtime computes from the mode).
 _LEG_KIND = {"torque": "torque", "pd": "position", "pd_reference": "position"}
+#: ``observation.normalization.kind`` as the export writes it: statistics fixed by the config, a run's running
+#: statistics as they were at export (the runtime never updates them), or none.
+NORMALIZATION_KINDS = ("fixed", "running (frozen at export)", "none")
 #: The keys an export writes into each ``observation.entries[i]`` and ``observation.signals.<name>``.
 _ENTRY_KEYS = {"index", "block", "signal", "element", "name", "unit", "frame"}
 _SIGNAL_KEYS = {"shape", "unit", "frame", "source"}
@@ -495,9 +498,9 @@ def _check_observation(obs: dict, num_joints: int, source: str) -> None:
         _number(norm["clip"], "observation.normalization.clip", source, positive=True)
     if "eps" in norm and _number(norm["eps"], "observation.normalization.eps", source) < 0:
         raise ContractError(f"{source}: observation.normalization.eps is {norm['eps']!r} but must be >= 0; {_FIX}")
-    if "kind" in norm and norm["kind"] not in ("fixed", "running", "none"):
-        raise ContractError(f"{source}: observation.normalization.kind is {norm['kind']!r} but must be 'fixed', "
-                            f"'running' or 'none'; {_FIX}")
+    if "kind" in norm and norm["kind"] not in NORMALIZATION_KINDS:
+        raise ContractError(f"{source}: observation.normalization.kind is {norm['kind']!r} but must be one of "
+                            f"{list(NORMALIZATION_KINDS)}; {_FIX}")
     hist = obs["history"]
     for key in ("obs_ages", "action_ages"):
         ages = hist[key]
