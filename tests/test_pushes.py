@@ -298,10 +298,3 @@ def test_training_env_relaxes_the_reward_after_its_kicks(tmp_path):
                                          "transforms.kick_relax.seconds=0"):
         preset_config("cpu_smoke", device="cpu", **{"transforms.kick_relax.seconds": 1.0})
 
-
-def test_a_push_ramp_without_kicks_is_refused():
-    # Accepted, and the run then trained exactly as without it (as kick_relax without kicks, refused before).
-    from tocabi_torchrl.rl import preset_config
-
-    with pytest.raises(ValueError, match=r"ppo.push_ramp \(100, 200\) ramps the kicks up, and env.pushes.count is 0"):
-        preset_config("cpu_smoke", **{"ppo.push_ramp": (100, 200)})

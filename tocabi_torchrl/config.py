@@ -516,9 +516,6 @@ class RunConfig:
             # would train exactly as without it.
             raise ValueError("transforms.kick_relax relaxes reward terms after a kick, and env.pushes.count is 0 (no "
                              "kicks): set env.pushes.count > 0, or transforms.kick_relax.seconds=0")
-        if tuple(self.ppo.push_ramp) != (0, 0) and self.env.pushes.count == 0:  # as kick_relax: no effect at all
-            raise ValueError(f"ppo.push_ramp {tuple(self.ppo.push_ramp)} ramps the kicks up, and env.pushes.count is "
-                             "0 (no kicks): set env.pushes.count > 0, or ppo.push_ramp=(0, 0)")
         if self.ppo.minibatch_size > self.frames_per_batch:
             quarter = max(1, self.frames_per_batch // 4)
             raise ValueError(
