@@ -245,5 +245,5 @@ def test_the_capped_solver_steps_on_the_gpu_without_a_torch_sync_and_bounds_ever
 ])
 def test_a_section_given_as_none_or_a_dict_to_the_config_class_is_named(config, where, kind):
     # Each failed with "AttributeError: 'NoneType' (or 'dict') object has no attribute 'validate'".
-    with pytest.raises(ValueError, match=rf"{where} must be a section of type {kind}, got .*for none, {kind}\(\)"):
+    with pytest.raises(ValueError, match=rf"{where} must be a {kind}, got .*\({kind}\(\) for its defaults\)"):
         make_env(num_envs=2, device="cpu", config=config())
