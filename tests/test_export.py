@@ -403,3 +403,19 @@ def test_a_policy_with_running_normalisation_exports_and_runs(tmp_path):
     result = export_policy(ckpt, tmp_path / "p.onnx")
     runtime = PolicyRuntime(result.contract)
     assert runtime.contract["observation"]["normalization"]["kind"] == "running (frozen at export)"
+
+
+def test_a_checkpoint_of_another_shipped_motion_says_so():
+    # Another package version's shipped motion: the message must not send the user looking for a relative path.
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.rl.checkpoint import CheckpointError, apply_checkpoint, read_checkpoint
+    from tocabi_torchrl.rl.trainer import build_agent, build_env
+
+    state = read_checkpoint(robot.asset_path("policies", "tocabi_walk_ppo.pt"))
+    cfg = preset_config("default", **{"env.num_envs": 1, "ppo.minibatch_size": 48}, device="cpu")
+    env = build_env(cfg, torch.device("cpu"), num_envs=1)
+    agent = build_agent(cfg, 237, 13, torch.device("cpu"))
+    apply_checkpoint(state, agent, env=env)  # the shipped files predate the hash: nothing to compare
+    with pytest.raises(CheckpointError, match=r"sha256 000000000000\.\.\., but the env's motion .*tocabi_walk.npz "
+                                              r"is another file .*the shipped motion is not the one"):
+        apply_checkpoint({**state, "motion_sha256": "0" * 64}, agent, env=env)

@@ -14,8 +14,10 @@ continuous there, and indices are clamped so no lookup can leave the table.
 
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import dataclass, fields, replace
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -42,6 +44,8 @@ class ReferenceMotion:
         row_dt: seconds between rows (0.0005).
         base_pos: optional (R, 3) float32 planned pelvis position [m] (generated motions only), else ``None``.
         source: where the motion came from (file path), for messages and logs.
+        file_sha256: hex sha256 of the file it was loaded from ("" when built from arrays): what a checkpoint records
+            of the motion its policy followed.
 
     The cycle period is ``(R − 1)·row_dt``; row ``R − 1`` is only ever the end point of the last interpolation.
     """
@@ -53,6 +57,7 @@ class ReferenceMotion:
     row_dt: float
     base_pos: torch.Tensor | None = None
     source: str = ""
+    file_sha256: str = ""
 
     # ----------------------------------------------------------------------------------------------- construction
     @classmethod
@@ -71,6 +76,7 @@ class ReferenceMotion:
             row_dt=1.0 / float(data.sample_rate),
             base_pos=None if data.base_pos is None else f32(data.base_pos),
             source=str(data.meta.get("source", "")),
+            file_sha256=str(data.meta.get("file_sha256", "")),
         )
 
     @classmethod
@@ -78,6 +84,7 @@ class ReferenceMotion:
         """Load a ``.txt`` (reference format) or ``.npz`` (project format) motion file onto ``device``."""
         data = load_motion(path)
         data.meta["source"] = str(path)
+        data.meta["file_sha256"] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
         return cls.from_data(data, device)
 
     @classmethod

@@ -92,28 +92,29 @@ def _transform_state(env) -> dict:
 
 
 def motion_sha256(env) -> str | None:
-    """Hex sha256 of the file ``env``'s reference motion was read from (the base env's ``motion.source``); None for an
-    env without one, or a motion not read from a file."""
-    source = getattr(getattr(getattr(env, "base_env", env), "motion", None), "source", "")
-    if not source or not Path(source).is_file():
-        return None
-    from ..runtime.motion import file_sha256
-
-    return file_sha256(source)
+    """Hex sha256 of the file ``env``'s reference motion was loaded from (the base env's ``motion.file_sha256``, taken
+    when the env read it); None for an env without one, or a motion not read from a file."""
+    motion = getattr(getattr(env, "base_env", env), "motion", None)
+    return getattr(motion, "file_sha256", "") or None
 
 
 def _check_motion(state: dict, env, path) -> None:
-    """Refuse an env whose reference motion file is not the one the checkpoint trained on: a relative
-    ``env.task.motion`` is found from the working folder, so another folder can hold another file of that name, and
-    the policy would follow other joint targets and phase without a word."""
+    """Refuse an env whose reference motion file is not the one the checkpoint trained on: the policy would follow
+    other joint targets and phase without a word."""
     saved = state.get("motion_sha256")
     mine = motion_sha256(env) if saved is not None and env is not None else None
-    if mine is not None and mine != saved:
-        base = getattr(env, "base_env", env)
-        raise CheckpointError(f"checkpoint {path} was trained on a reference motion of sha256 {saved[:12]}..., but "
-                              f"the env's motion {Path(base.motion.source).resolve()} is another file ({mine[:12]}...): a relative "
-                              "env.task.motion is found from the working folder; run from the folder the training "
-                              "ran in, or set env.task.motion to the file the policy trained on")
+    if mine is None or mine == saved:
+        return
+    base = getattr(env, "base_env", env)
+    where = Path(base.motion.source).resolve()
+    if getattr(getattr(getattr(base, "cfg", None), "task", None), "motion", None) is None:
+        why = ("the shipped motion is not the one the policy trained on (another version of tocabi-torchrl?): use the "
+               "version that trained it, or set env.task.motion to the file it trained on")
+    else:  # a relative path is found from the working folder, which can hold another file of that name
+        why = ("run from the folder the training ran in, if env.task.motion is a relative path, or set it to the "
+               "file the policy trained on")
+    raise CheckpointError(f"checkpoint {path} was trained on a reference motion of sha256 {saved[:12]}..., but the "
+                          f"env's motion {where} is another file ({mine[:12]}...): {why}")
 
 
 def save_checkpoint(run_dir: Path, iteration: int, env_steps: int, agent, optimizer, env, cfg: RunConfig,
