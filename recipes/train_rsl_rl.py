@@ -260,7 +260,8 @@ def main(argv=None) -> dict:
     torch.save(saved, buffer)  # rsl_rl's checkpoint format (what OnPolicyRunner.save writes), written atomically
     result = finish_call(out, args, meta, settings, buffer.getvalue(), save, evaluate, interrupted)
     env.close()
-    print(f"rsl_rl: {meta['iterations']} PPO iterations in {seconds:.1f} s of training; gait test: {result.get('eval', 'skipped')}")
+    print(f"rsl_rl: {meta['iterations']} PPO iterations in {seconds:.1f} s of training; gait test: "
+          f"{result.get('eval', 'skipped')}")
     return result
 
 

@@ -258,10 +258,14 @@ def main(argv=None) -> dict:
                 snapshots=clock.snapshots, iterations=int(model._n_updates // args.epochs), calls=calls + 1,
                 sb3_num_timesteps=int(model.num_timesteps), resume_notes=RESUME_NOTES,
                 iterations_budget=args.iterations)  # the table tells a used budget by this, not the clock
-    buffer = io.BytesIO()
-    model.save(buffer)  # SB3's own zip, for SB3's tools only: a resume never reads it
-    keep_previous(out / "sb3_model.zip", f"call{calls}").write_bytes(buffer.getvalue())
-    result = finish_call(out, args, meta, settings, training_state(model), save, evaluate, interrupted)
+
+    def save_sb3_zip(tag: str) -> None:  # SB3's own zip, for SB3's tools only: a resume never reads it
+        buffer = io.BytesIO()
+        model.save(buffer)
+        keep_previous(out / "sb3_model.zip", tag).write_bytes(buffer.getvalue())
+
+    result = finish_call(out, args, meta, settings, training_state(model), save, evaluate, interrupted,
+                         also_save=save_sb3_zip)
     env.close()
     print(f"sb3: {meta['env_steps']} env steps in {meta['train_seconds']:.1f} s; gait test: "
           f"{result.get('eval', 'skipped')}")

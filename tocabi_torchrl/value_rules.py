@@ -168,6 +168,10 @@ def check_seed(seed: Any, where: str = "seed") -> int:
     return int(seed)
 
 
+#: The longest torque delay [physics substeps] the actuator layer takes (``ActuatorConfig.delay_substeps``, a
+#: contract's ``trained_under.actuators.delay.substeps``): it keeps that many past torques of every robot.
+MAX_DELAY_SUBSTEPS = 400
+
 #: The ``trained_under`` section of a policy contract (what the policy was trained under: actuator layer, dynamics,
 #: sensor noise, pushes, start velocities; ``runtime/randomization.py`` writes and reads it) -> per item, the rule of
 #: each numeric field, and whether the field is a ``[low, high]`` pair (then low <= high too), may be null or may be
@@ -177,7 +181,8 @@ def check_seed(seed: Any, where: str = "seed") -> int:
 #: ``TaskConfig.start_*_vel_std``), so a value training refuses is refused in a contract too.
 TRAINED_UNDER_RULES: dict[str, dict[str, dict[str, tuple[Range, str]]]] = {
     "actuators": {
-        "delay": {"substeps": (Range(low=0, integer=True), "pair"), "ms": (NON_NEGATIVE, "pair"),
+        "delay": {"substeps": (Range(low=0, high=MAX_DELAY_SUBSTEPS, integer=True), "pair"),
+                  "ms": (NON_NEGATIVE, "pair"),
                   "stride_substeps": (Range(low=1, integer=True), "optional")},
         "motor_constant": {"range": (NON_NEGATIVE, "pair")},
         "friction": {"coulomb_nm": (NON_NEGATIVE, "pair"), "viscous_nms_per_rad": (NON_NEGATIVE, "pair")},

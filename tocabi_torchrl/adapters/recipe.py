@@ -226,16 +226,20 @@ RESUME_COUNTERS = tuple(name for name in RESUME_FIELDS if name not in ("settings
 
 
 def finish_call(out: Path, args: argparse.Namespace, meta: dict, settings: dict, state: bytes,
-                save: Callable[[Path], object], evaluate: Callable[..., dict], interrupted: str | None) -> dict:
+                save: Callable[[Path], object], evaluate: Callable[..., dict], interrupted: str | None,
+                also_save: Callable[[str], object] | None = None) -> dict:
     """The end of a library recipe's call, in the order that keeps a resume point whatever stops it: the library's
     training ``state`` and ``resume.json`` (:func:`write_resume`, with ``settings`` and ``meta``'s counters), then
-    ``policy.pt`` by ``save(path)``, then unless ``interrupted`` (what stopped the call) or ``--eval_envs 0`` the
+    ``policy.pt`` by ``save(path)`` (and the recipe's own files by ``also_save(tag)``, ``tag`` naming this call for
+    :func:`keep_previous`), then unless ``interrupted`` (what stopped the call) or ``--eval_envs 0`` the
     gait test ``evaluate(policy, out_dir, num_envs=, device=, seconds=)``, then ``result.json``. A resumed call keeps
     the earlier call's files (:func:`keep_previous`). ``meta["calls"]`` is this call's count; returns ``result``
     (``{"train": meta, "eval": ... or "interrupted": ...}``)."""
     calls = int(meta["calls"]) - 1  # earlier calls: their files get this tag
     write_resume(out, state, {"settings": settings, **{k: meta[k] for k in RESUME_COUNTERS}})
     save(keep_previous(out / "policy.pt", f"call{calls}"))
+    if also_save is not None:
+        also_save(f"call{calls}")
     result = {"train": meta}
     if interrupted is not None:
         result["interrupted"] = interrupted

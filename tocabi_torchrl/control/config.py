@@ -6,15 +6,12 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from ..value_rules import delay_grid_problem
+from ..value_rules import MAX_DELAY_SUBSTEPS, delay_grid_problem
 
 if TYPE_CHECKING:
     from .actuators import ActuatorChain
 
 __all__ = ["ActuatorConfig", "MAX_DELAY_SUBSTEPS"]
-
-#: The longest torque delay [physics substeps] the actuator layer takes: it keeps that many past torques per world.
-MAX_DELAY_SUBSTEPS = 400
 
 
 @dataclass

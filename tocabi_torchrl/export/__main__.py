@@ -27,8 +27,8 @@ def main(argv: list[str] | None = None) -> None:
     except (OSError, ValueError, RuntimeError) as err:  # CheckpointError is a RuntimeError; OSError: --out unwritable
         sys.exit(f"error: {err}")
     except KeyboardInterrupt:  # every file is written atomically: nothing half-written is left
-        print("stopped (Ctrl-C); no file is left half-written: run the export again (with --overwrite if it had written "
-              "some of its files already)", file=sys.stderr)
+        print("stopped (Ctrl-C); no file is left half-written: run the export again (with --overwrite if it had "
+              "written some of its files already)", file=sys.stderr)
         sys.exit(130)
     print(f"wrote {result.onnx} and {result.contract}" + (f" and {result.torchscript}" if result.torchscript else ""))
     if result.motion:

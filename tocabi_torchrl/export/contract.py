@@ -97,7 +97,8 @@ def _observation(env) -> dict:
                             "frame": doc.get("frame", "?")})
     norm = _find(transform, "FixedNormalization")
     if norm is not None:
-        normalization = {"kind": NORMALIZATION_KINDS[0], "rule": "(raw - mean) / scale, then clip to +-clip when clip is set",
+        normalization = {"kind": NORMALIZATION_KINDS[0],
+                         "rule": "(raw - mean) / scale, then clip to +-clip when clip is set",
                          "mean": norm.loc.tolist(), "scale": norm.scale.tolist(), "eps": norm.eps, "clip": norm.clip}
     elif _find(transform, "RunningNormalization") is not None:
         run = _find(transform, "RunningNormalization")

@@ -511,7 +511,6 @@ def _check_observation(obs: dict, num_joints: int, source: str) -> None:
                                 f"{' (at least one)' if key == 'obs_ages' else ''}; {_FIX}")
 
 
-
 def _check_trained_under(contract: dict, source: str) -> None:
     """Raise :class:`ContractError` for a ``trained_under`` section (when the contract has one) that breaks
     ``value_rules.trained_under_problems``, whose delay in ms is not its substeps × ``timing.physics_dt_s`` or whose

@@ -138,8 +138,8 @@ class PolicyRuntime:
                     or ios[0].type != "tensor(float)"):
                 got = ", ".join(f"{io.name!r} {io.type} {io.shape}" for io in ios) or "nothing"
                 raise ContractError(f"{self.onnx_path}: {kind} {got} does not match the contract's one {name!r} of "
-                                    f"(batch, {dim}) float32 values: the ONNX file is not this contract's policy; re-export "
-                                    "both together")
+                                    f"(batch, {dim}) float32 values: the ONNX file is not this contract's policy; "
+                                    "re-export both together")
         rob, act = c["robot"], c["action"]
         self.joint_names = rob["joint_names"]
         self.num_legs = len(rob["leg_joint_names"])
