@@ -27,7 +27,7 @@ def reference():
 def test_shipped_motion_is_the_generator_output(walk):
     """Regeneration reproduces assets/motions/tocabi_walk.npz; if the model changed, rerun the generator."""
     shipped = load_npz(robot.asset_path("motions", "tocabi_walk.npz"))
-    hint = "stale assets/motions/tocabi_walk.npz: run `python -m tocabi_torchrl.motion.gait`"
+    hint = "stale assets/motions/tocabi_walk.npz: run `python -m tocabi_torchrl.motion.gait --overwrite`"
     np.testing.assert_allclose(shipped.joint_pos, walk.joint_pos, atol=2e-6, err_msg=hint)
     np.testing.assert_allclose(shipped.base_pos, walk.base_pos, atol=2e-6, err_msg=hint)
     np.testing.assert_array_equal(shipped.stance, walk.stance)
@@ -229,6 +229,56 @@ def test_cli_records_the_model_it_planned_on(tmp_path):
     out = tmp_path / "walk.npz"
     assert main(["--out", str(out), "--model", str(other), "--sample-rate", "200"]) == 0
     assert load_npz(out).meta["model"] == str(other)
+
+
+def test_cli_replaces_no_file_unasked_and_reads_the_reference_first(tmp_path, capsys, monkeypatch):
+    # It replaced the shipped motion when --out was left out (the shipped policies then ran against another cycle),
+    # any --out or --plot, and read --reference after writing --out over it (the plot compared the walk with itself).
+    import tocabi_torchrl.motion.plot as plot
+
+    shipped = robot.asset_path("motions", "tocabi_walk.npz")
+    before = shipped.read_bytes()
+    with pytest.raises(SystemExit) as stop:
+        main(["--sample-rate", "200"])
+    assert stop.value.code == 2 and "(the shipped motion the shipped policies were trained on); pass --overwrite" \
+        in capsys.readouterr().err
+    assert shipped.read_bytes() == before
+    out, png = tmp_path / "walk.npz", tmp_path / "legs.png"
+    assert main(["--out", str(out), "--sample-rate", "200"]) == 0
+    first = out.read_bytes()
+    for argv, message in ((["--out", str(out)], f"--out {out} exists; pass --overwrite"),
+                          (["--out", str(tmp_path / "w2"), "--plot", str(tmp_path / "legs.npz")], "give a .png file"),
+                          (["--out", str(tmp_path)], f"--out {tmp_path} is a folder")):
+        with pytest.raises(SystemExit) as stop:
+            main([*argv, "--sample-rate", "200"])
+        assert stop.value.code == 2 and message in capsys.readouterr().err
+    assert out.read_bytes() == first and not (tmp_path / "w2.npz").exists()
+    seen = {}
+    monkeypatch.setattr(plot, "plot_leg_joints", lambda data, reference, path: seen.update(reference=reference))
+    assert main(["--out", str(out), "--plot", str(png), "--reference", str(out), "--overwrite", "--sample-rate",
+                 "200", "--swing-height", "0.05"]) == 0
+    assert out.read_bytes() != first  # replaced, as asked; the plot's reference is the file as it was
+    np.testing.assert_allclose(seen["reference"].joint_pos[:5], _first_rows(first))
+
+
+def _first_rows(npz_bytes: bytes):
+    import io
+
+    with np.load(io.BytesIO(npz_bytes), allow_pickle=False) as data:
+        return data["joint_pos"][:5]
+
+
+def test_cli_refuses_a_model_whose_legs_differ_from_the_planned_geometry(tmp_path, capsys):
+    # It planned with TOCABI's leg lengths on a model of longer legs: replayed there, the feet were 13 cm in the
+    # ground and the stance feet slid.
+    longer = tmp_path / "long_legs.xml"
+    longer.write_text(robot.asset_path("tocabi", "tocabi.xml").read_text().replace('pos="0 0 -0.35"',
+                                                                                   'pos="0 0 -0.42"'))
+    with pytest.raises(SystemExit) as stop:
+        main(["--out", str(tmp_path / "w.npz"), "--model", str(longer), "--sample-rate", "200"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "the model's legs are not the ones the gait is planned for: left thigh 0.42" in err
+    assert not (tmp_path / "w.npz").exists()
 
 
 def test_model_label_is_repo_relative_inside_the_checkout(tmp_path):

@@ -1,7 +1,9 @@
 """Generate the project's own two-step walking cycle for TOCABI, and the CLI that writes the shipped default.
 
-    python -m tocabi_torchrl.motion.gait                 # regenerate assets/motions/tocabi_walk.npz
-    python -m tocabi_torchrl.motion.gait --plot docs/concepts/motion_leg_joints.png --reference path/to/reference.txt
+    python -m tocabi_torchrl.motion.gait --out my_walk.npz --step-length 0.15   # a cycle of one's own
+    python -m tocabi_torchrl.motion.gait --overwrite     # regenerate assets/motions/tocabi_walk.npz
+    python -m tocabi_torchrl.motion.gait --overwrite --plot docs/concepts/motion_leg_joints.png \
+        --reference path/to/reference.txt
 
 The cycle has the layout of the reference walk (spec §3.3, §3.6): 2 kHz rows, row 0 in the middle of a double
 support with the weight moving onto the right (front) foot, right single support, a double support centred on the
@@ -231,10 +233,38 @@ def com_in_pelvis(model, joint_pos: np.ndarray) -> np.ndarray:
     return out
 
 
+def geometry_problem(model, geometry: LegGeometry, tolerance: float = 1e-3) -> str | None:
+    """What of ``geometry`` the compiled ``model`` does not have, measured at its zero pose (straight legs): each
+    hip centre in the base body's frame, thigh (hip to knee axis) and shank (knee to ankle); None when all agree to
+    ``tolerance`` [m]. The sole depth is not measured (the feet's collision shapes vary)."""
+    import mujoco
+
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    base = model.body(robot.BASE_BODY).id
+    to_base = data.xmat[base].reshape(3, 3).T
+    found = []
+    for side in SIDES:
+        prefix = side[0].upper()
+        hip, knee, ankle = (data.xanchor[model.joint(f"{prefix}_{name}_Joint").id]
+                            for name in ("HipPitch", "Knee", "AnklePitch"))
+        measured = {"hip": to_base @ (hip - data.xpos[base]), "thigh": np.linalg.norm(knee - hip),
+                    "shank": np.linalg.norm(ankle - knee)}
+        planned = {"hip": geometry.hip_position(side), "thigh": geometry.thigh, "shank": geometry.shank}
+        found += [f"{side} {name} {np.round(measured[name], 4).tolist()} m, planned "
+                  f"{np.round(planned[name], 4).tolist()} m"
+                  for name in measured if np.abs(measured[name] - planned[name]).max() > tolerance]
+    return "; ".join(found) or None
+
+
 def plan_gait(cfg: GaitConfig = GaitConfig(), model=None, geometry: LegGeometry = LegGeometry()) -> GaitPlan:
     """Plan one cycle (stages 1-4 of the module docstring) on ``model`` (default: ``robot.load_model()``)."""
     cfg.validate()
     model = robot.load_model() if model is None else model
+    problem = geometry_problem(model, geometry)
+    if problem:
+        raise ValueError(f"the model's legs are not the ones the gait is planned for: {problem}; plan with the "
+                         "model's own LegGeometry (generate_walk(geometry=...)), or on the shipped model")
     num_rows, dsp_rows = cfg.num_rows, cfg.dsp_rows
     m = num_rows - 1
     period = 2.0 * cfg.step_time
@@ -357,16 +387,34 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m tocabi_torchrl.motion.gait",
         description="Generate TOCABI's two-step reference walking cycle (project .npz format).",
     )
-    parser.add_argument("--out", type=Path, default=None, help="output .npz (default: assets/motions/tocabi_walk.npz)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="output .npz (default: the shipped assets/motions/tocabi_walk.npz, which the shipped "
+                             "policies were trained on)")
     parser.add_argument("--model", type=Path, default=None, help="MJCF to plan on (default: the shipped model)")
     parser.add_argument("--plot", type=Path, default=None, help="also write a PNG of the leg joint trajectories")
     parser.add_argument("--reference", type=Path, default=None, help="motion file to overlay on the plot")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing --out or --plot file (the default --out always exists)")
     _add_config_arguments(parser)
     args = parser.parse_args(argv)
 
     if args.model is not None and not args.model.is_file():
         parser.error(f"--model {args.model} is not a file; pass an MJCF file, or leave --model out for the shipped "
                      "model")
+    for option, path in (("--out", args.out), ("--plot", args.plot)):
+        if path is not None and path.is_dir():
+            parser.error(f"{option} {path} is a folder; give a file name")
+    if args.plot is not None and args.plot.suffix.lower() != ".png":
+        parser.error(f"--plot {args.plot}: give a .png file")
+    out = Path(args.out or robot.asset_path("motions", "tocabi_walk.npz"))
+    out = out if out.suffix == ".npz" else out.with_name(out.name + ".npz")  # what save_npz writes
+    for option, path in (("--out", out), ("--plot", args.plot)):
+        if path is not None and path.exists() and not args.overwrite:
+            shipped = " (the shipped motion the shipped policies were trained on)" if args.out is None else ""
+            parser.error(f"{option} {path} exists{shipped}; pass --overwrite to replace it, or give another "
+                         f"{option}")
+    # Read before anything is written: --reference may name the file --out replaces.
+    reference = load_motion(args.reference) if args.reference is not None else None
     cfg = GaitConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(GaitConfig)})
     try:
         data = generate_walk(cfg, model_path=args.model)
@@ -376,7 +424,8 @@ def main(argv: list[str] | None = None) -> int:
         options = _options_named_in(str(err))
         hint = f"change {', '.join(options)}" if options else "change the gait parameters (see --help)"
         parser.error(f"cannot generate the walk: {err}; {hint}")
-    out = args.out or robot.asset_path("motions", "tocabi_walk.npz")
+    except RuntimeError as err:  # the pelvis/CoM iteration did not reach --com-tolerance
+        parser.error(f"cannot generate the walk: {err}; raise --com-tolerance (default {GaitConfig.com_tolerance})")
     out = save_npz(out, data)
     metrics = gait_metrics(data.joint_pos, data.init_rows)
     print(f"wrote {out} ({Path(out).stat().st_size / 1024:.0f} KiB, {data.num_rows} rows)")
@@ -385,7 +434,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.plot is not None:
         from .plot import plot_leg_joints
 
-        reference = load_motion(args.reference) if args.reference is not None else None
         plot_leg_joints(data, reference, args.plot)
         print(f"wrote {args.plot}")
     return 0
