@@ -531,7 +531,7 @@ def _edit(section: dict, dotted: str, value) -> dict:
     ("dynamics.mass_scale.range", [1.2, 0.8], r"trained_under.dynamics.mass_scale.range is \[1.2, 0.8\]: low > high"),
     ("dynamics.mass_scale.range", [0.0, 1.2], "each end must be a finite number > 0"),
     ("dynamics.joint_damping.range", [-1.0, 2.9], "each end must be a finite number >= 0"),
-    ("actuators.delay.substeps", [4.5, 20], "each end must be an int >= 0"),
+    ("actuators.delay.substeps", [4.5, 20], r"each end must be an int in \[0, 400\]"),
     ("actuators.delay.ms", [2.0, 11.0], r"delay.ms is \[2.0, 11.0\] but substeps \[4, 20\]"),
     ("actuators.motor_constant", "on", r"motor_constant is 'on' but must be \"off\" or an object"),
     ("actuators.backlash", {"range": [0.0, 0.1]}, r"states \['backlash'\], which this reader cannot apply"),
