@@ -27,7 +27,9 @@ ROWS = 12
 def table(rows: int = ROWS, rate: float = 2000.0, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     t = np.arange(rows) / rate
-    return np.column_stack([t, rng.normal(scale=0.3, size=(rows, 33)), -1025 * rng.random((rows, 2))])
+    joints = rng.normal(scale=0.3, size=(rows, 33))
+    joints[-1] = joints[0]  # a cycle: its last row is its first again
+    return np.column_stack([t, joints, -1025 * rng.random((rows, 2))])
 
 
 def write_txt(path, tab: np.ndarray, fmt: str = "%.16e") -> str:
@@ -310,3 +312,41 @@ def test_save_npz_writes_a_name_load_motion_reads_and_replaces_files_whole(tmp_p
     with pytest.raises(OSError, match="disk full"):
         save_npz(written, motion_data(rows=ROWS + 2))
     assert written.read_bytes() == before and sorted(os.listdir(tmp_path)) == ["mymotion.npz"]
+
+
+def _cycle(**change) -> MotionData:
+    """A 12-row closed cycle at 2 kHz, with ``change``'s fields replaced."""
+    t = table()
+    fields = dict(joint_pos=t[:, 1:34], foot_force=t[:, 34:], stance=stance_schedule(ROWS, 2), sample_rate=2000.0,
+                  init_rows=np.array([0, 6]))
+    return MotionData(**{**fields, **change})
+
+
+@pytest.mark.parametrize("change,message", [
+    # Each was accepted: truncated, cast, or loaded to run in other units.
+    (dict(init_rows=np.array([0, 5.6])), r"init_rows must be row indices; value 5.6 at index 1 is not a whole"),
+    (dict(stance=np.full(ROWS, 0.5)), r"stance must be 0, 1 or 2; value 0.5 at index 0 is not a whole number"),
+    (dict(stance=np.full(ROWS, np.nan)), r"stance must be 0, 1 or 2; value nan"),
+    (dict(sample_rate="2000"), "sample_rate must be a positive number of rows per second, got '2000'"),
+    (dict(sample_rate=0.1), r"the cycle lasts 110 s .* more than 60 s: a time column in ms"),
+    (dict(foot_force=np.full((ROWS, 2), 300.0)), r"foot_force\[0, 0\] is 300.0 N; .* <= 0 \(loaded < 0\)"),
+    (dict(foot_force=np.full((ROWS, 2), -1e9)), r"foot_force\[0, 0\] is -1000000000.0 N; .* at least -10000 N"),
+    (dict(joint_pos=table(seed=0)[:, 1:34] + np.linspace(0, 0.5, ROWS)[:, None]),
+     r"the cycle does not close: L_HipYaw_Joint is .* in the first row and .* in the last"),
+])
+def test_motion_data_refuses_what_the_npz_reader_refuses_and_other_units(change, message):
+    with pytest.raises(MotionFormatError, match=message):
+        _cycle(**change).validate("m")
+
+
+def test_a_motion_in_degrees_is_refused_by_the_env(tmp_path):
+    # A .txt in degrees loaded, and the env then chased a knee target of 33 rad against a range of about ±3.
+    from tocabi_torchrl import make_env
+    from tocabi_torchrl.robot import asset_path
+
+    walk = load_motion(asset_path("motions", "tocabi_walk.npz"))
+    save_npz(tmp_path / "deg.npz", MotionData(joint_pos=np.degrees(walk.joint_pos), foot_force=walk.foot_force,
+                                              stance=walk.stance, sample_rate=walk.sample_rate,
+                                              init_rows=walk.init_rows))
+    with pytest.raises(ValueError, match=r"deg.npz: .* rad at row .*, outside the model's range .*in degrees"):
+        make_env(num_envs=1, device="cpu", motion=str(tmp_path / "deg.npz"))

@@ -20,8 +20,10 @@ from tocabi_torchrl.motion import (
 def small_motion(rows: int = 10, sample_rate: float = 2.0, seed: int = 0) -> ReferenceMotion:
     """Random table on a coarse clock (dt = 0.5 s) so phases like 3.25 rows are exact in float32."""
     rng = np.random.default_rng(seed)
+    joint_pos = rng.normal(size=(rows, 33))
+    joint_pos[-1] = joint_pos[0]  # a cycle: its last row is its first again
     data = MotionData(
-        joint_pos=rng.normal(size=(rows, 33)),
+        joint_pos=joint_pos,
         foot_force=-1025 * rng.random((rows, 2)),
         stance=stance_schedule(rows, 2),
         sample_rate=sample_rate,

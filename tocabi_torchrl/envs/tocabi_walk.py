@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import operator
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded
@@ -92,6 +93,21 @@ def _check_leg_controller(law) -> Controller:
                          "in the model file are torque motors, which would take its targets [rad] as torques [N·m]; "
                          "return (kp, kv) from servo_gains(), or set servo = False and return torques")
     return law
+
+
+def _check_motion_in_range(motion: ReferenceMotion, model) -> None:
+    """``ValueError`` for a reference motion whose joint targets leave a limited joint's range in ``model`` by more
+    than 0.01 rad: a motion in degrees, or of another robot, which the servos and the imitation reward would chase."""
+    ids = [model.joint(name).id for name in robot.JOINT_NAMES]
+    low, high = model.jnt_range[ids, 0], model.jnt_range[ids, 1]
+    limited = model.jnt_limited[ids].astype(bool)
+    q = motion.joint_pos.cpu().numpy()
+    beyond = np.maximum(q - high, low - q) * limited
+    if beyond.max() > 0.01:
+        row, j = (int(i) for i in np.unravel_index(np.argmax(beyond), beyond.shape))
+        raise ValueError(f"reference motion {motion.source or '(arrays)'}: {robot.JOINT_NAMES[j]} is {q[row, j]:.3f} "
+                         f"rad at row {row}, outside the model's range [{low[j]:.3f}, {high[j]:.3f}]: joint targets "
+                         "are radians (a motion in degrees?), in robot.JOINT_NAMES order")
 
 
 class TocabiWalk(EnvBase):
@@ -221,6 +237,7 @@ class TocabiWalk(EnvBase):
             self.dynamics.setup(self.sim)
         motion = cfg.task.motion
         self.motion = ReferenceMotion.default() if motion is None else ReferenceMotion.from_file(motion)
+        _check_motion_in_range(self.motion, self.sim.mj_model)
         self.motion = self.motion.to(device)
 
         self.rng = torch.Generator(device=device)

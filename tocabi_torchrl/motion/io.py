@@ -65,6 +65,14 @@ _TXT_LAYOUT = "time, 33 joint positions, 2 foot forces"
 _REQUIRED_NPZ = ("format", "joint_names", "joint_pos", "foot_force", "stance", "sample_rate", "init_rows")
 # Relative spread of time steps tolerated as "uniform": text files print time with finite precision.
 _TIME_STEP_RTOL = 1e-3
+#: The largest load a reference may put on one foot [N]: about ten times TOCABI's weight (1,025 N); the reference's
+#: peak is the whole weight. More is a unit mistake (kN read as N, a scale).
+MAX_FOOT_FORCE = 10_000.0
+#: How far the last row's joint targets may be from the first's [rad]: the cycle's end point is its start again (the
+#: reference walk's seam is 0.00225 rad; a larger jump kicks every joint at every loop).
+SEAM_TOLERANCE = 0.01
+#: The longest cycle [s] a motion may last: the reference's is 1.8 s; hours are a time column in ms.
+MAX_PERIOD = 60.0
 
 
 class MotionFormatError(ValueError):
@@ -98,8 +106,16 @@ class MotionData:
         return int(self.joint_pos.shape[0])
 
     def validate(self, source: str = "motion") -> "MotionData":
-        """Check shapes, finiteness, stance codes and start rows; return ``self``, else raise MotionFormatError."""
-        jp, ff, st = np.asarray(self.joint_pos), np.asarray(self.foot_force), np.asarray(self.stance)
+        """Check shapes, finiteness, stance codes and start rows (whole numbers, never truncated), the foot forces'
+        sign and size (loaded < 0, at most :data:`MAX_FOOT_FORCE` N), that the cycle closes (the last row is the
+        first, to :data:`SEAM_TOLERANCE` rad) and a period of at most :data:`MAX_PERIOD` s; return ``self``, else
+        raise MotionFormatError."""
+        if isinstance(self.sample_rate, (bool, str, bytes)) or not isinstance(self.sample_rate, (int, float, np.number)):
+            raise MotionFormatError(f"{source}: sample_rate must be a positive number of rows per second, got "
+                                    f"{self.sample_rate!r}")
+        st = _whole_numbers(source, "stance", self.stance, "0, 1 or 2")
+        _whole_numbers(source, "init_rows", self.init_rows, "row indices")
+        jp, ff = np.asarray(self.joint_pos), np.asarray(self.foot_force)
         if jp.ndim != 2 or jp.shape[1] != NUM_JOINTS:
             raise MotionFormatError(f"{source}: joint_pos has shape {jp.shape}, expected (rows, {NUM_JOINTS})")
         rows = jp.shape[0]
@@ -124,6 +140,21 @@ class MotionData:
             )
         if not (np.isfinite(self.sample_rate) and self.sample_rate > 0):
             raise MotionFormatError(f"{source}: sample_rate must be a positive number of rows per second")
+        period = (rows - 1) / float(self.sample_rate)
+        if period > MAX_PERIOD:
+            raise MotionFormatError(f"{source}: the cycle lasts {period:g} s ({rows} rows at {self.sample_rate:g} "
+                                    f"rows/s), more than {MAX_PERIOD:g} s: a time column in ms, or the sample rate "
+                                    "of another unit?")
+        if (ff > 0).any() or (ff < -MAX_FOOT_FORCE).any():
+            r, c = (int(i) for i in np.argwhere((ff > 0) | (ff < -MAX_FOOT_FORCE))[0])
+            raise MotionFormatError(f"{source}: foot_force[{r}, {c}] is {float(ff[r, c])!r} N; the reference forces "
+                                    f"are the load on each foot, <= 0 (loaded < 0) and at least -{MAX_FOOT_FORCE:g} N")
+        seam = np.abs(jp[-1] - jp[0])
+        if seam.max() > SEAM_TOLERANCE:
+            j = int(np.argmax(seam))
+            raise MotionFormatError(f"{source}: the cycle does not close: {JOINT_NAMES[j]} is {float(jp[0, j]):.4f} "
+                                    f"rad in the first row and {float(jp[-1, j]):.4f} in the last; the last row is the "
+                                    "cycle's end point (the first row again), or the targets jump at every loop")
         init = np.asarray(self.init_rows)
         if init.ndim != 1 or init.size == 0 or (init < 0).any() or (init > rows - 2).any():
             raise MotionFormatError(f"{source}: init_rows {init.tolist()} must be a non-empty list in [0, {rows - 2}]")
@@ -277,7 +308,7 @@ def _floats(p: Path, name: str, value: np.ndarray, must: str) -> np.ndarray:
     return arr.astype(np.float64)
 
 
-def _whole_numbers(p: Path, name: str, value: np.ndarray, must: str) -> np.ndarray:
+def _whole_numbers(p: Path | str, name: str, value: np.ndarray, must: str) -> np.ndarray:
     """An integer field as int64: an integer dtype, or floats that are all whole numbers (never truncated)."""
     arr = np.asarray(value)
     if arr.dtype.kind in "iu":
