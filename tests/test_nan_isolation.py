@@ -3,6 +3,7 @@ observation, reward, or PPO update of any other world sees it (both physics back
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -154,9 +155,16 @@ def test_a_reward_term_that_returns_nan_is_said_not_trained_on_silently(tmp_path
 
     cfg = preset_config("cpu_smoke", device="cpu", run_dir=str(tmp_path), name="nan", total_env_steps=8 * 16 * 2,
                         progress_bar=False, eval_at_end=False)
-    broken = CallableTerm("broken", lambda td, nxt: torch.full_like(nxt["base_pos"][:, :1], math.nan), 0.1)
+    # NaN in half the envs (as a diverging world's physics would give): trained on, masked, said.
+    half = CallableTerm("half", lambda td, nxt: torch.where(torch.arange(len(nxt["base_pos"]))[:, None] % 2 == 0,
+                                                            math.nan, nxt["base_pos"][:, :1] * 0), 0.1)
     train(cfg, env=build_env(cfg, torch.device("cpu"), for_training=True,
-                             reward_terms=(*REFERENCE_TERM_NAMES, broken)))
+                             reward_terms=(*REFERENCE_TERM_NAMES, half)))
     out = capsys.readouterr().out
-    assert out.count("warning: 100.0 % of iteration 1's frames were left out of the update") == 1  # once a run
-    assert [float(row["masked_frac"]) for row in read_metrics(tmp_path / "nan")] == [1.0, 1.0]
+    assert out.count("warning: 50.0 % of iteration 1's frames were left out of the update") == 1  # once a run
+    assert [float(row["masked_frac"]) for row in read_metrics(tmp_path / "nan")] == [0.5, 0.5]
+    # NaN in every env is a broken term: said at the first step, by name.
+    broken = CallableTerm("broken", lambda td, nxt: torch.full_like(nxt["base_pos"][:, :1], math.nan), 0.1)
+    with pytest.raises(ValueError, match="reward term 'broken' returned NaN or inf in every env at the first step"):
+        train(dataclasses.replace(cfg, name="nan2"), env=build_env(cfg, torch.device("cpu"), for_training=True,
+                                                                   reward_terms=(*REFERENCE_TERM_NAMES, broken)))

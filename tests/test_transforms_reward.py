@@ -405,3 +405,20 @@ def test_a_term_reading_an_undeclared_key_of_the_state_at_t_is_named():
                      batch_size=[2])
     with pytest.raises(KeyError, match="reward term 'prev_height' reads a key its step does not hold.*root_keys"):
         reward._check_terms(td, nxt)
+
+
+@pytest.mark.parametrize("fn,error,message", [
+    # NaN made every reward NaN without a word; a float or a tensor of another device failed inside the sum
+    # without the term's name; a complex tensor was silently cast to real.
+    (lambda td, nxt: nxt["base_pos"][:, 2:3] / 0 * 0, ValueError, r"'bad' returned NaN or inf in every env at the"),
+    (lambda td, nxt: 1.0, TypeError, r"'bad' returned a float; it must return a tensor of shape \(2, 1\)"),
+    (lambda td, nxt: torch.zeros(2, 1, device="meta"), ValueError, r"'bad' returned a tensor on meta, the env"),
+    (lambda td, nxt: torch.zeros(2, 1, dtype=torch.complex64), ValueError, r"'bad' returned torch.complex64"),
+])
+def test_a_term_returning_no_finite_real_tensor_of_the_envs_device_is_named(fn, error, message):
+    reward = TaskReward([CallableTerm("bad", fn, weight=0.1)])
+    td = TensorDict({}, batch_size=[2], device="cpu")
+    nxt = TensorDict({"base_pos": torch.zeros(2, 3), "terminated": torch.zeros(2, 1, dtype=torch.bool)},
+                     batch_size=[2], device="cpu")
+    with pytest.raises(error, match=message):
+        reward._check_terms(td, nxt)

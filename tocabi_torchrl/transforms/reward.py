@@ -161,7 +161,7 @@ class TaskReward(Transform):
         want = (*next_tensordict.batch_size, 1)
         for t in self.terms:
             try:
-                shape = tuple(t.kernel(tensordict, next_tensordict).shape)
+                value = t.kernel(tensordict, next_tensordict)
             except KeyError as err:
                 # The trainer keeps only the declared keys of the state at t (training_keys): an undeclared read
                 # works in env.rollout and fails in training, from deep inside tensordict.
@@ -169,11 +169,29 @@ class TaskReward(Transform):
                 raise TermKeyError(f"reward term {t.name!r} reads a key its step does not hold ({missing}); declare "
                                    "what it reads of the state at t in its root_keys and of the step's result in its "
                                    "next_keys (docs/extending.md)") from err
+            if not isinstance(value, torch.Tensor):
+                raise TypeError(f"reward term {t.name!r} returned a {type(value).__name__}; it must return a tensor "
+                                f"of shape {want} on the env's device")
+            shape = tuple(value.shape)
             if shape != want:
                 raise ValueError(
                     f"reward term {t.name!r} returned shape {shape}; it must return {want} "
                     "(use keepdim=True in reductions)"
                 )
+            device = next_tensordict.device
+            if device is not None and value.device != device:
+                raise ValueError(f"reward term {t.name!r} returned a tensor on {value.device}, the env runs on "
+                                 f"{device}: compute it from the step's tensors (or create it on their device)")
+            if value.is_complex() or value.dtype == torch.bool:
+                raise ValueError(f"reward term {t.name!r} returned {value.dtype}; it must return real numbers "
+                                 "(float32)")
+            # Once, at the first step (a host sync here only): a term that is NaN or inf in every env is broken,
+            # and training would only mask all its frames. (Some envs' NaN can be their physics: the trainer masks
+            # those frames and says so.)
+            capturing = value.is_cuda and torch.cuda.is_current_stream_capturing()
+            if not capturing and value.numel() and not bool(torch.isfinite(value).any()):
+                raise ValueError(f"reward term {t.name!r} returned NaN or inf in every env at the first step: guard "
+                                 "its division, log or sqrt")
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         if not self._checked:
