@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import mujoco
 import numpy as np
 import pytest
@@ -184,6 +186,23 @@ def test_missing_names_are_listed(tmp_path):
         robot.load_model(broken)
     message = str(info.value)
     assert "'L_Knee_Motor'" in message and "'LF_Force_sensor'" in message and "renamed.xml" in message
+
+
+@pytest.mark.parametrize("old,new,message", [
+    ('<force name="LF_Force_sensor" site="LF_FT"/>', '<touch name="LF_Force_sensor" site="LF_FT"/>',
+     "sensor 'LF_Force_sensor' must be a 3-axis <force> sensor, got a mjSENS_TOUCH of 1 values"),
+    ('<force name="RF_Force_sensor" site="RF_FT"/>', '<force name="RF_Force_sensor" site="LF_FT"/>',
+     "sensor 'RF_Force_sensor' must sit on site 'RF_FT'"),
+])
+def test_foot_sensors_of_another_kind_or_foot_are_refused(tmp_path, old, new, message):
+    # Both built and stepped: the left foot_force then read a touch value and its neighbour's torques, or the right
+    # foot read the left's forces.
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    assert old in text
+    path = tmp_path / "sensors.xml"
+    path.write_text(text.replace(old, new))
+    with pytest.raises(robot.RobotAssetError, match=re.escape(message)):
+        robot.load_model(path)
 
 
 def test_asset_path_exists():

@@ -274,6 +274,27 @@ def validate_model(model: "mujoco.MjModel", source: str = "model") -> None:  # n
         aid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_ACTUATOR, ACTUATOR_NAMES[j])
         if aid != j:
             raise RobotAssetError(f"{source}: actuator {ACTUATOR_NAMES[j]!r} has index {aid}, expected {j}")
+    _check_foot_sensors(model, source)
+
+
+def _check_foot_sensors(model: "mujoco.MjModel", source: str) -> None:  # noqa: F821
+    """Each foot's F/T pair is a 3-axis force and a 3-axis torque sensor on that foot's site: a sensor of another
+    kind (a touch sensor under the force sensor's name) or on the other foot reads other values under the right
+    name."""
+    import mujoco
+
+    kinds = ((FOOT_FORCE_SENSORS, mujoco.mjtSensor.mjSENS_FORCE, "force"),
+             (FOOT_TORQUE_SENSORS, mujoco.mjtSensor.mjSENS_TORQUE, "torque"))
+    for names, kind, word in kinds:
+        for name, site in zip(names, FOOT_SITES):
+            sid = model.sensor(name).id
+            site_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
+            if model.sensor_type[sid] != kind or model.sensor_dim[sid] != 3:
+                raise RobotAssetError(f"{source}: sensor {name!r} must be a 3-axis <{word}> sensor, got a "
+                                      f"{mujoco.mjtSensor(model.sensor_type[sid]).name} of {model.sensor_dim[sid]} "
+                                      "values")
+            if model.sensor_objtype[sid] != mujoco.mjtObj.mjOBJ_SITE or model.sensor_objid[sid] != site_id:
+                raise RobotAssetError(f"{source}: sensor {name!r} must sit on site {site!r} (its foot's F/T site)")
 
 
 # ------------------------------------------------------------------------------------------------ initial pose
