@@ -198,6 +198,7 @@ def test_cli_help(capsys):
     "argv,options",
     [
         (["--pelvis-height", "1.2"], ["--pelvis-height", "--step-length", "--step-width", "--swing-height"]),
+        (["--zmp-travel", "5"], ["--zmp-travel", "--zmp-offset-x"]),  # the hint once named the step options alone
         (["--sample-rate", "nan"], ["--sample-rate"]),
         (["--dsp-time", "2"], ["--dsp-time", "--step-time"]),
     ],

@@ -350,3 +350,11 @@ def test_a_motion_in_degrees_is_refused_by_the_env(tmp_path):
                                               init_rows=walk.init_rows))
     with pytest.raises(ValueError, match=r"deg.npz: .* rad at row .*, outside the model's range .*in degrees"):
         make_env(num_envs=1, device="cpu", motion=str(tmp_path / "deg.npz"))
+
+
+def test_a_binary_file_named_txt_is_a_format_error(tmp_path):
+    # A renamed .npz raised a raw UnicodeDecodeError.
+    path = tmp_path / "walk.txt"
+    path.write_bytes(asset_path("motions", "tocabi_walk.npz").read_bytes())
+    with pytest.raises(MotionFormatError, match=r"walk.txt: not a text file .*a project motion ends in .npz"):
+        load_motion(path)

@@ -88,6 +88,9 @@ def check_settings(control: ControlConfig, motion: ReferenceMotion, control_dt: 
                          "nearer 1, or set ω = 0 for no feedback on that joint")
     half_width = max(1, int(round(float(control.mb_ref_window) / motion.row_dt)))
     widest = motion.cycle_rows // 2 - 1
+    if widest < 1:
+        raise ValueError(f"the reference motion's cycle has {motion.cycle_rows} rows, too few for the model-based "
+                         "law's reference window (it needs at least 4): use a motion of a whole walking cycle")
     if half_width > widest:
         raise ValueError(f"env.control.mb_ref_window {control.mb_ref_window:g} s is longer than half the reference "
                          f"cycle allows; use at most {widest * motion.row_dt:g} s (the default is 0.008 s)")

@@ -212,8 +212,9 @@ def _leg_joints(sole: np.ndarray, pelvis: np.ndarray, geometry: LegGeometry) -> 
             joints[:, 6 * i : 6 * i + 6] = leg_ik(ankle, level, side, geometry)
         except ValueError as err:  # leg_ik speaks of ankle targets; the caller chose gait parameters
             raise ValueError(
-                f"pelvis_height, step_length, step_width or swing_height put the feet out of the legs' reach ({err}); "
-                "lower the pelvis or shorten the steps"
+                f"pelvis_height, step_length, step_width or swing_height put the feet out of the legs' reach ({err}), "
+                "or zmp_travel, zmp_offset_x or zmp_offset_y moved the pelvis (the CoM follows the centre of "
+                "pressure) too far from them; lower the pelvis, shorten the steps or keep the pressure under the feet"
             ) from err
     return joints
 

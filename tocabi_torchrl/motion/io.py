@@ -190,19 +190,23 @@ def load_txt(path: str | os.PathLike, dsp_fraction: float = 1.0 / 3.0) -> Motion
     if not p.is_file():
         raise MotionFormatError(f"motion file not found: {p}")
     rows: list[list[float]] = []
-    with p.open() as fh:
-        for line_no, line in enumerate(fh, start=1):
-            fields = line.split()
-            if not fields:
-                continue
-            if len(fields) != TXT_COLUMNS:
-                raise MotionFormatError(
-                    f"{p}: line {line_no} has {len(fields)} columns, expected {TXT_COLUMNS} ({_TXT_LAYOUT})"
-                )
-            try:
-                rows.append([float(x) for x in fields])
-            except ValueError as err:
-                raise MotionFormatError(f"{p}: line {line_no} is not numeric ({err})") from err
+    try:
+        with p.open(encoding="utf-8") as fh:
+            for line_no, line in enumerate(fh, start=1):
+                fields = line.split()
+                if not fields:
+                    continue
+                if len(fields) != TXT_COLUMNS:
+                    raise MotionFormatError(
+                        f"{p}: line {line_no} has {len(fields)} columns, expected {TXT_COLUMNS} ({_TXT_LAYOUT})"
+                    )
+                try:
+                    rows.append([float(x) for x in fields])
+                except ValueError as err:
+                    raise MotionFormatError(f"{p}: line {line_no} is not numeric ({err})") from err
+    except UnicodeDecodeError as err:  # a binary file (a renamed .npz?) read as text
+        raise MotionFormatError(f"{p}: not a text file ({err.reason} at byte {err.start}); the .txt format is "
+                                f"{TXT_COLUMNS} numbers a line ({_TXT_LAYOUT}); a project motion ends in .npz") from err
     table = np.asarray(rows, dtype=np.float64).reshape(-1, TXT_COLUMNS)
     if table.shape[0] < 2:
         raise MotionFormatError(f"{p}: a motion needs at least two rows (one interval), got {table.shape[0]}")
@@ -231,7 +235,8 @@ def _sample_rate_of(time: np.ndarray, source: str) -> float:
     if (steps <= 0).any():
         r = int(np.argmax(steps <= 0)) + 1
         raise MotionFormatError(
-            f"{source}: time is not strictly increasing at row {r} (t={time[r]!r} after t={time[r - 1]!r})"
+            f"{source}: time is not strictly increasing at row {r} (t={float(time[r])!r} after "
+            f"t={float(time[r - 1])!r})"
         )
     typical = float(np.median(steps))  # the median names the odd step, where the mean would blame row 1
     off = np.abs(steps - typical) > _TIME_STEP_RTOL * typical
