@@ -138,6 +138,10 @@ def test_assembly_errors():
     env = TransformedEnv(MockTocabiWalk(2), ObservationAssembly((ObsComponent("x", "command", (slice(None), 0)),)))
     with pytest.raises(ValueError, match="does not fit"):
         env.observation_spec
+    # A slice past the end added 0 columns without a word.
+    env = TransformedEnv(MockTocabiWalk(2), ObservationAssembly((ObsComponent("arms", "joint_pos", (slice(33, 40),)),)))
+    with pytest.raises(ValueError, match=r"block 'arms': index \(slice\(33, 40, None\),\) selects no element"):
+        env.observation_spec
 
 
 

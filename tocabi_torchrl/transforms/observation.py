@@ -72,6 +72,9 @@ class ObservationAssembly(CallOnReset):
                     f"ObservationAssembly block {c.name!r}: index {c.index!r} does not fit {c.key!r} of shape "
                     f"{tuple(spec.shape)} ({err}); index the signal dimensions only, not the batch"
                 ) from err
+            if probe.shape[-1] == 0:  # an index past the signal's end selects nothing, which slicing allows
+                raise ValueError(f"ObservationAssembly block {c.name!r}: index {c.index!r} selects no element of "
+                                 f"{c.key!r} of shape {tuple(spec.shape)}; index elements that exist")
             slices[c.name] = slice(start, start + probe.shape[-1])
             start += probe.shape[-1]
         self.slices = slices
