@@ -654,3 +654,25 @@ def test_ctrl_c_in_the_final_gait_test_says_training_is_saved_and_the_hint_keeps
 def test_the_re_test_hint_keeps_the_cpu_size_without_the_final_test(tmp_path, capsys):
     recipe("ppo_walk").main(tiny_args(tmp_path, eval_at_end=False, eval_envs=2, eval_seconds=0.1))
     assert capsys.readouterr().out.rstrip().endswith(f"--checkpoint {tmp_path / 'run'} --num_envs 2 --seconds 0.1")
+
+
+def test_a_second_run_of_the_same_name_started_at_once_is_refused(tmp_path):
+    # Both started before either had written config.json, both trained into one folder and both said "done".
+    import subprocess
+
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.run_dir import RunDirError, open_run
+
+    cfg = preset_config("cpu_smoke", device="cpu", run_dir=str(tmp_path), name="same")
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (tmp_path / ".same.claim").write_text(str(other.pid))  # as the other run's open_run leaves it
+        with pytest.raises(RunDirError, match=rf"another run \(process {other.pid}\) is writing into .*same; wait"):
+            open_run(cfg)
+    finally:
+        other.kill()
+        other.wait()
+    run = open_run(cfg)  # the other process has ended: its claim is stale and taken over
+    assert (tmp_path / ".same.claim").read_text() == str(os.getpid())
+    run.release()
+    assert not (tmp_path / ".same.claim").exists() and not (tmp_path / "same").exists()

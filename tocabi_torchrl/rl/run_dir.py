@@ -13,7 +13,10 @@ and its later metrics rows cut. Continue it from its newest checkpoint, or branc
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,8 +34,8 @@ from .checkpoint import (
 from .metrics_files import LEGACY_CSV, METRICS_DIR, trim_metrics
 from .resume import check_resume_config, holds_checkpoint, no_checkpoint_message
 
-__all__ = ["RunDirError", "RunFolder", "check_run_name", "holds_checkpoint", "holds_run", "open_run",
-           "refuse_run_without_checkpoint", "trim_metrics"]
+__all__ = ["RunDirError", "RunFolder", "check_run_name", "claim_run_folder", "holds_checkpoint", "holds_run",
+           "open_run", "refuse_run_without_checkpoint", "release_claim", "trim_metrics"]
 
 _RUN_FILES = ("config.json", METRICS_DIR, LEGACY_CSV, "checkpoints")
 
@@ -43,11 +46,19 @@ class RunDirError(RuntimeError):
 
 @dataclass
 class RunFolder:
-    """Where a run writes, and (resuming) the checkpoint state it continues from."""
+    """Where a run writes, and (resuming) the checkpoint state it continues from. ``claim``: the file that keeps a
+    second run out of ``path`` while this one runs (:func:`claim_run_folder`), which :meth:`release` removes."""
 
     path: Path
     resume_state: dict | None = None
     resume_file: Path | None = None
+    claim: Path | None = None
+
+    def release(self) -> None:
+        """Let other runs into the folder again (the run has ended); idempotent."""
+        if self.claim is not None:
+            release_claim(self.claim)
+            self.claim = None
 
     @property
     def start_iteration(self) -> int:
@@ -56,6 +67,65 @@ class RunFolder:
     @property
     def start_env_steps(self) -> int:
         return self.resume_state["env_steps"] if self.resume_state else 0
+
+
+def claim_run_folder(path: Path) -> Path:
+    """Claim the run folder ``path`` for this process: ``<run_dir>/.<name>.claim``, created exclusively and holding
+    this process's id, so that a second run started with the same name before this one has written its files is
+    refused instead of writing into the same folder (:class:`RunDirError` naming the other process). A claim whose
+    process has ended (killed) is taken over. Returns the claim file; :func:`release_claim` removes it, and so does
+    the end of the process."""
+    claim = path.parent / f".{path.name}.claim"
+    claim.parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(3):  # a stale claim is removed and taken once; another process may race for it
+        try:
+            fd = os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            owner = _claim_owner(claim)
+            if (owner is not None and owner != os.getpid() and _alive(owner)) or (owner is None and _fresh(claim)):
+                who = f"process {owner}" if owner is not None else "a process starting now"
+                raise RunDirError(f"another run ({who}) is writing into {path}; wait for it to end, or start this "
+                                  "one with another --name") from None
+            with contextlib.suppress(FileNotFoundError):
+                claim.unlink()
+            continue
+        with os.fdopen(fd, "w") as fh:
+            fh.write(str(os.getpid()))
+        atexit.register(release_claim, claim)
+        return claim
+    raise RunDirError(f"cannot claim {path}: other processes keep claiming it; start this run with another --name")
+
+
+def release_claim(claim: Path) -> None:
+    """Remove ``claim`` if this process holds it."""
+    if _claim_owner(claim) == os.getpid():
+        with contextlib.suppress(FileNotFoundError):
+            claim.unlink()
+
+
+def _claim_owner(claim: Path) -> int | None:
+    try:
+        return int(claim.read_text().strip())
+    except (OSError, ValueError):
+        return None  # gone, or being written: no owner to wait for
+
+
+def _fresh(claim: Path) -> bool:
+    """Whether ``claim`` (still without its process id) was made in the last seconds: being written, not stale."""
+    try:
+        return time.time() - claim.stat().st_mtime < 5.0
+    except FileNotFoundError:
+        return False
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def holds_run(folder: str | os.PathLike) -> bool:
@@ -123,7 +193,10 @@ def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
     :class:`~tocabi_torchrl.rl.checkpoint.CheckpointError` /
     :class:`~tocabi_torchrl.rl.resume.ResumeConfigError` for a bad checkpoint or a changed setting.
     ``writer=False`` (the ranks of a data-parallel run other than rank 0, which write nothing): only read and check
-    the resumed checkpoint; the folder is rank 0's to check and tidy.
+    the resumed checkpoint; the folder is rank 0's to check and tidy. The writer claims the folder first
+    (:func:`claim_run_folder`: a second run of the same name started at the same time is refused, not let in before
+    the first has written its files); ``RunFolder.release`` (:func:`~tocabi_torchrl.rl.trainer.train` calls it when
+    the run ends) or the end of the process lets it go.
     """
     path = Path(cfg.run_dir) / cfg.name
     if writer and not (cfg.resume and path.is_dir()):
@@ -134,14 +207,25 @@ def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
                               f"and --name that name a folder")
     if writer:
         check_run_writable(path)
-    if not writer:
-        if not cfg.resume:
-            return RunFolder(path)
-        refuse_run_without_checkpoint(cfg.resume)
-        file = checkpoint_file(cfg.resume)
-        state = read_checkpoint(file)
-        check_resume_config(config_from_checkpoint(state, file, strict=True), cfg, file)
-        return RunFolder(path, state, file)
+        claim = claim_run_folder(path)
+        try:
+            run = _open_claimed(cfg, path)
+        except BaseException:
+            release_claim(claim)
+            raise
+        run.claim = claim
+        return run
+    if not cfg.resume:
+        return RunFolder(path)
+    refuse_run_without_checkpoint(cfg.resume)
+    file = checkpoint_file(cfg.resume)
+    state = read_checkpoint(file)
+    check_resume_config(config_from_checkpoint(state, file, strict=True), cfg, file)
+    return RunFolder(path, state, file)
+
+
+def _open_claimed(cfg: RunConfig, path: Path) -> RunFolder:
+    """:func:`open_run`'s checks of the folder ``path`` that this process has claimed."""
     if not cfg.resume:
         if holds_run(path) and not holds_checkpoint(path):
             raise RunDirError(no_checkpoint_message(path))

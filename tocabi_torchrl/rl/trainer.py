@@ -448,6 +448,8 @@ class _Progress(StopFlag):
     def __init__(self) -> None:
         super().__init__()
         self.started = False
+        #: The run folder :func:`_train` opened (its claim is let go when :func:`train` returns).
+        self.run: RunFolder | None = None
 
 
 #: A repeated signal within this many seconds of the first is the same request (:func:`~.interrupt.stop_on_signals`):
@@ -492,6 +494,10 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
         if not progress.started:
             err.raised_before_training = True
         raise
+    finally:  # the run has ended: another may write into its folder (it refuses a run that is there)
+        for folder in (run, progress.run):
+            if folder is not None:
+                folder.release()
 
 
 def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: DistInfo,
@@ -511,7 +517,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         try:
             if info.is_main:
                 require_loggers(cfg.loggers)
-            run = open_run(cfg, writer=info.is_main)
+            run = progress.run = open_run(cfg, writer=info.is_main)
         except Exception as err:  # noqa: BLE001 - re-raised below, after the ranks agreed to stop
             error = err
         if not agree(error is None, info, device):
