@@ -84,6 +84,13 @@ def test_a_resumed_call_reports_its_own_env_steps_beside_the_runs(finished_run, 
     recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "32"])
     out = capsys.readouterr().out
     assert "done: 16 env steps in " in out and " env-steps/s) (32 in the run); run folder" in out
+    assert "moves the schedules" not in out  # the std holds at its end over the last half: nothing moves
+    # A larger budget put the scheduled std back toward its start without a word.
+    shutil.rmtree(run)
+    shutil.copytree(finished_run, run)
+    recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "64"])
+    assert "note: total_env_steps 64 (the run's was 16) moves the schedules, which follow the progress through the " \
+           "budget: at the next iteration action std 0.05 -> 0.0875" in capsys.readouterr().out
     # The data-parallel closing line is the same text after "done on K ranks: ".
     from types import SimpleNamespace
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import inspect
+import math
 import signal
 import time
 from dataclasses import dataclass
@@ -27,7 +28,7 @@ from ..cuda_graphs import plan_graphs
 from ..device import check_device
 from .actors import action_std, gaussian_head, make_actor, set_action_std
 from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
-from .checkpoint import apply_checkpoint, save_checkpoint
+from .checkpoint import apply_checkpoint, config_from_checkpoint, save_checkpoint
 from ..config import MAX_SEED, RunConfig, wall_tag
 from ..envs.config import TocabiWalkConfig
 from ..tree import get_path, leaf_paths
@@ -294,6 +295,29 @@ class TrainResult:
     start_env_steps: int = 0
 
 
+def schedule_change_note(state: dict, cfg: RunConfig, start_iter: int, frames_per_iteration: int) -> str | None:
+    """What a resumed run's changed ``total_env_steps`` does to its schedules, or None: the scheduled action std and
+    the linear learning rate follow the progress made through the budget, so a larger budget puts them back toward
+    their start (a smaller one forward) at the next iteration."""
+    saved = config_from_checkpoint(state)
+    if saved.total_env_steps == cfg.total_env_steps:
+        return None
+    ppo, moves = cfg.ppo, []
+    before, after = (1.0 - (start_iter + 1) / max(1, -(-total // frames_per_iteration))
+                     for total in (saved.total_env_steps, cfg.total_env_steps))
+    if ppo.std_mode == "scheduled":
+        schedule = StdSchedule(ppo.std_start, ppo.std_end, ppo.std_hold)
+        moves.append(("action std", schedule(before), schedule(after)))
+    if ppo.lr_schedule == "linear":
+        moves.append(("learning rate", *(ppo.lr_end + (ppo.lr - ppo.lr_end) * min(max(p, 0.0), 1.0)
+                                         for p in (before, after))))
+    moves = [f"{name} {a:.4g} -> {b:.4g}" for name, a, b in moves if not math.isclose(a, b, rel_tol=1e-6)]
+    if not moves:
+        return None
+    return (f"note: total_env_steps {cfg.total_env_steps:,} (the run's was {saved.total_env_steps:,}) moves the "
+            f"schedules, which follow the progress through the budget: at the next iteration {', '.join(moves)}")
+
+
 def finished_result(run: RunFolder, cfg: RunConfig) -> TrainResult:
     """Say that the resumed run is already done, and return its result without training."""
     print(f"{run.resume_file}: the run is already finished (iteration {run.start_iteration}, "
@@ -550,6 +574,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         prior_train_s = float(run.resume_state.get("train_seconds", 0.0))
         if info.is_main:
             print(f"resumed from {run.resume_file} at iteration {start_iter + shift} ({env_steps:,} env steps)")
+            note = schedule_change_note(run.resume_state, cfg, start_iter, frames_per_iteration)
+            if note:
+                print(note, flush=True)
     stats_sync = None
     if info.enabled:
         broadcast_module(agent.actor, info)
