@@ -25,7 +25,10 @@ says how to --resume it and exits with status 130 (Ctrl-C) or 143 (SIGTERM); a s
 
 from __future__ import annotations
 
+import errno
+import signal
 import sys
+import threading
 
 from tocabi_torchrl.render_gl import choose_gl_backend_or_exit
 
@@ -170,6 +173,15 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(f"error: {err} (found while the run was being set up, before its first iteration)")
     except KeyboardInterrupt:
         sys.exit(stopped_at_once(run.path))
+    except OSError as err:
+        if err.errno not in WRITE_ERRNOS:
+            raise
+        # The disk filled or the folder became read-only mid-run: every file is written atomically, so the last
+        # complete checkpoint stands.
+        advice = (f"then continue from its last checkpoint with --resume {run.path}" if holds_checkpoint(run.path)
+                  else f"it saved no checkpoint: start it again, under another --name or after removing {run.path}")
+        sys.exit(f"error: the run could not write its files ({err}); free space or make {run.path} writable, "
+                 f"{advice}")
     if result.interrupted is not None:
         sys.exit(stopped(result))
     print(f"done: {done_text(result)}")
@@ -181,24 +193,59 @@ def main(argv: list[str] | None = None) -> None:
         small += " --test robust" if cfg.eval_test == "robust" else ""
     where = (f"checkpoint: {checkpoint}\nwatch or re-test it: python recipes/play.py --checkpoint "
              f"{result.run_dir}{small}")
+    out, made = None, False
+    main_thread = threading.current_thread() is threading.main_thread()  # where Python delivers signals
+    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None  # as Ctrl-C: said, not silent
     try:
+        if cfg.eval_at_end:
+            out = eval_out_dir(result.run_dir)
+            made = not out.exists()  # a folder the test makes and leaves empty goes if it is stopped
         if cfg.eval_at_end and cfg.eval_test == "robust":  # the robust gait test (docs/evaluation.md) instead
             from tocabi_torchrl.evaluation.robust import evaluate_robust_run, robust_report_text
 
-            out = eval_out_dir(result.run_dir)
             report = evaluate_robust_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device,
                                          seconds=cfg.eval_seconds, out_dir=out)
             print(robust_report_text(report, out))
         elif cfg.eval_at_end:
-            out = eval_out_dir(result.run_dir)
             summary = evaluate_run(result.run_dir, num_envs=cfg.eval_envs, device=cfg.device,
                                    seconds=cfg.eval_seconds, out_dir=out)
             print(gait_report_text(summary, cfg.eval_seconds, cfg.eval_envs, out))
-    except KeyboardInterrupt:  # training is done and saved: only the test stopped; 130 as for any Ctrl-C stop
-        print(f"\nstopped (Ctrl-C) during the gait test; training had finished and is saved.\n{where}",
-              file=sys.stderr)
-        sys.exit(signal_exit_status("SIGINT"))
+    except (KeyboardInterrupt, _Terminated) as stop:  # training is done and saved: only the test stopped
+        name = "SIGTERM" if isinstance(stop, _Terminated) else "SIGINT"
+        _remove_if_empty(out, made)
+        print(f"\nstopped ({'SIGTERM' if name == 'SIGTERM' else 'Ctrl-C'}) during the gait test; training had "
+              f"finished and is saved.\n{where}", file=sys.stderr)
+        sys.exit(signal_exit_status(name))
+    except OSError as err:
+        if err.errno not in WRITE_ERRNOS:
+            raise
+        _remove_if_empty(out, made)
+        print(f"error: the gait test could not write its results ({err}); training had finished and is saved. "
+              f"Free space or fix the folder's permissions and re-test it with play.py.\n{where}", file=sys.stderr)
+        sys.exit(1)
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
     print(where)
+
+
+#: Errors of writing files (a full disk or quota, a read-only or forbidden folder, an I/O failure), which the run
+#: reports in one line with what was saved; other OSErrors are bugs to see whole.
+WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO})
+
+
+class _Terminated(Exception):
+    """SIGTERM during the gait test at the end (the signal handlers of training are gone by then)."""
+
+
+def _terminate(signum, frame) -> None:
+    raise _Terminated()
+
+
+def _remove_if_empty(out, made: bool) -> None:
+    """Remove the results folder the stopped test made, if it is still empty."""
+    if made and out is not None and out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
 
 
 if __name__ == "__main__":

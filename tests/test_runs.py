@@ -314,6 +314,27 @@ def test_a_missing_motion_or_model_file_and_a_run_dir_that_is_a_file_are_one_err
                                     "naming a folder you can write")
 
 
+def test_a_resume_into_a_read_only_checkpoints_folder_is_said_before_it_trains(finished_run, tmp_path, monkeypatch):
+    # Only the run folder was probed: one iteration trained and logged, then an OSError traceback at its save.
+    import shutil
+    import tempfile
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    probe = tempfile.TemporaryFile
+
+    def refused_in_checkpoints(*args, dir=None, **kwargs):
+        if dir is not None and Path(dir).name == "checkpoints":
+            raise PermissionError(13, "Permission denied")
+        return probe(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", refused_in_checkpoints)
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "32"])
+    assert str(info.value.code).startswith(f"error: cannot write the run into {run}/checkpoints: ")
+    assert iterations_logged(run) == [1, 2]
+
+
 def test_evaluating_and_exporting_a_running_normalization_policy_freeze_its_statistics(tmp_path):
     # The gait test, play.py, compare_gaits and the export normalised with statistics that kept updating from their
     # own rollouts, unlike the contract (the checkpoint's statistics, frozen).
@@ -656,6 +677,58 @@ def test_ctrl_c_in_the_final_gait_test_says_training_is_saved_and_the_hint_keeps
     assert f"checkpoint: {tmp_path / 'run' / 'checkpoints' / 'latest.pt'}" in said
     assert said.rstrip().endswith(f"--checkpoint {tmp_path / 'run'} --num_envs 2 --seconds 0.1")
     assert read_checkpoint(tmp_path / "run")["iteration"] == 2
+    assert not (tmp_path / "run" / "eval").exists()  # the empty results folder the test made is gone
+
+
+@pytest.mark.parametrize("stop,code,said", [
+    # SIGTERM there exited 143 without a word; a full disk or a read-only eval folder was a traceback after "done:",
+    # without the checkpoint and re-test lines, and a video that failed to write was blamed on OpenGL.
+    ("sigterm", 143, "stopped (SIGTERM) during the gait test; training had finished and is saved."),
+    ("disk_full", 1, "error: the gait test could not write its results ([Errno 28] No space left on device); "
+                     "training had finished and is saved."),
+])
+def test_a_final_gait_test_stopped_by_sigterm_or_a_full_disk_says_training_is_saved(tmp_path, capsys, stop, code,
+                                                                                    said):
+    import errno
+
+    module = recipe("ppo_walk")
+
+    def stopped(*args, **kwargs):
+        if stop == "sigterm":
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # the handler raises first
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    module.evaluate_run = stopped
+    with pytest.raises(SystemExit) as info:
+        module.main(tiny_args(tmp_path, eval_at_end=True, eval_envs=2, eval_seconds=0.1))
+    err = capsys.readouterr().err
+    assert info.value.code == code and said in err and f"--checkpoint {tmp_path / 'run'} --num_envs 2" in err
+    assert not (tmp_path / "run" / "eval").exists()
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # put back
+
+
+def test_a_disk_that_fills_while_training_is_one_error_line_naming_the_resume(tmp_path, monkeypatch):
+    # It ended in an OSError traceback from the checkpoint writer, without how to go on.
+    import errno
+
+    from tocabi_torchrl.rl import checkpoint
+
+    saved = []
+
+    def full_after_one(path, data):
+        if saved:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        saved.append(path)
+        return write(path, data)
+
+    write = checkpoint.atomic_write_bytes
+    monkeypatch.setattr(checkpoint, "atomic_write_bytes", full_after_one)
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(tiny_args(tmp_path))
+    assert str(info.value.code) == (f"error: the run could not write its files ([Errno 28] No space left on device); "
+                                    f"free space or make {tmp_path / 'run'} writable, then continue from its last "
+                                    f"checkpoint with --resume {tmp_path / 'run'}")
 
 
 def test_the_re_test_hint_keeps_the_cpu_size_without_the_final_test(tmp_path, capsys):

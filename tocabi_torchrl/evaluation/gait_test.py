@@ -14,6 +14,7 @@ returns keeps those as NaN (``float``), for callers that format or compare the n
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from pathlib import Path
@@ -142,6 +143,11 @@ def evaluate_policy(
             summary["video"] = f"not rendered: {type(err).__name__}: {err}"
             if isinstance(err, ModuleNotFoundError) and err.name == "imageio":  # not a GL problem: the writer
                 fix = '; install the video writer: pip install -e ".[viz]" (imageio with ffmpeg)'
+            elif isinstance(err, OSError):  # the disk or the folder, not the renderer
+                fix = f"; check that {out} has free space and can be written"
+                for partial in (out / "walk.mp4", out / "walk.gif", out / "walk_frame.png"):  # half-written
+                    with contextlib.suppress(OSError):
+                        partial.unlink()
             else:
                 fix = "" if NO_GL_FIX in str(err) else f"; on a headless machine: {NO_GL_FIX}"  # said once
             print(f"video skipped ({summary['video']}){fix}")

@@ -206,7 +206,9 @@ def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
             raise RunDirError(f"{folder} is a file, not a folder: the run cannot be written there; pass --run_dir "
                               f"and --name that name a folder")
     if writer:
-        check_run_writable(path)
+        for folder in (path, path / "checkpoints", path / METRICS_DIR):  # a resumed run writes into all three
+            if folder == path or folder.is_dir():
+                check_run_writable(folder)
         claim = claim_run_folder(path)
         try:
             run = _open_claimed(cfg, path)
