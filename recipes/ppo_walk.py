@@ -53,7 +53,7 @@ import torch  # noqa: E402
 from tocabi_torchrl.envs.model_based import check_settings  # noqa: E402
 from tocabi_torchrl.motion import ReferenceMotion  # noqa: E402
 from tocabi_torchrl.motion.io import MotionFormatError  # noqa: E402
-from tocabi_torchrl.rl.checkpoint import checkpoint_file  # noqa: E402
+from tocabi_torchrl.rl.checkpoint import CheckpointError, checkpoint_file  # noqa: E402
 from tocabi_torchrl.rl.distributed import ending, from_environment, shutdown  # noqa: E402
 from tocabi_torchrl.evaluation.gait_test import eval_out_dir, evaluate_run, gait_report_text  # noqa: E402
 from tocabi_torchrl.evaluation.record import policy_steps  # noqa: E402
@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> None:
     print(banner(cfg, given, device), flush=True)
     try:
         result = train(cfg, run=run)
-    except (MotionFormatError, RobotAssetError) as err:  # a bad --env.task.motion or model_path, found as it loads
+    except (MotionFormatError, RobotAssetError, CheckpointError) as err:  # a bad motion, model or resumed file
         sys.exit(f"error: {err}")
     except ValueError as err:
         if not raised_before_training(err):

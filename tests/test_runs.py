@@ -225,6 +225,19 @@ def test_resuming_an_older_checkpoint_into_its_own_folder_is_refused_and_changes
     assert folder_bytes(run) == before and iterations_logged(run) == [1, 2]
 
 
+def test_an_iteration_file_is_resumable_in_its_folder_when_every_newer_one_is_damaged(finished_run, tmp_path):
+    # The damaged-latest.pt hint named iter_000001.pt, and resuming it was refused for iter_000002.pt, which was
+    # cut short: each message sent the user to the other.
+    run = copy_of(finished_run, tmp_path)
+    (run / "checkpoints" / "iter_000002.pt").write_bytes(b"")
+    (run / "checkpoints" / "latest.pt").write_bytes(b"")
+    cfg, _ = parse_args(["--resume", str(run / "checkpoints" / "iter_000001.pt"), "--run_dir", str(tmp_path),
+                         "--name", "run"])
+    folder = open_run(cfg)
+    assert folder.start_iteration == 1
+    folder.release()
+
+
 def test_resuming_the_newest_iteration_file_into_its_own_folder_goes_on_and_trims(finished_run, tmp_path):
     run = copy_of(finished_run, tmp_path)
     with open(run / "metrics" / "scalars" / "env_steps.csv", "a") as f:
@@ -756,3 +769,21 @@ def test_a_second_run_of_the_same_name_started_at_once_is_refused(tmp_path):
     assert (tmp_path / ".same.claim").read_text() == str(os.getpid())
     run.release()
     assert not (tmp_path / ".same.claim").exists() and not (tmp_path / "same").exists()
+
+
+def test_a_run_of_its_own_reward_terms_resumed_by_the_recipe_is_told_how_to_go_on(tmp_path):
+    # It was a CheckpointError traceback blaming "another observation layout or normalisation?".
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.trainer import build_env
+    from tocabi_torchrl.transforms import CallableTerm
+    from tocabi_torchrl.transforms.settings import REFERENCE_TERM_NAMES
+
+    cfg = preset_config("cpu_smoke", **TINY, run_dir=str(tmp_path), name="own")
+    height = CallableTerm("height", lambda td, nxt: nxt["base_pos"][:, 2:3], weight=0.1)
+    train(cfg, env=build_env(cfg, torch.device("cpu"), for_training=True,
+                             reward_terms=(*REFERENCE_TERM_NAMES, height)))
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(["--resume", str(tmp_path / "own"), "--total_env_steps", "32"])
+    assert str(info.value.code).startswith("error: checkpoint ") and \
+        "it was trained with 14 reward terms, this env has 13: a run trained with terms of its own" in \
+        str(info.value.code)

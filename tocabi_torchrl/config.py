@@ -413,14 +413,14 @@ class RunConfig:
     #: Checkpoint retention: keep the newest ``checkpoint_keep_last`` iteration files (0 = keep all) and every file
     #: whose iteration is a multiple of ``checkpoint_keep_every`` (0 = none more); ``latest.pt`` is always kept.
     checkpoint_keep_last: int = 3
-    """newest checkpoints kept; 0 = keep all"""
+    """newest iteration checkpoints (iter_*.pt) kept; 0 = keep all"""
     checkpoint_keep_every: int = 50
     """also keep checkpoints of iterations that are multiples of this; 0 = none"""
     #: Also save ``checkpoints/wall_XXXXXs.pt`` whenever the training wall-clock (summed over resumed segments)
     #: passes a multiple of this many minutes (0 = off; else at least 1/60: :func:`wall_tag` names whole seconds).
     checkpoint_minutes: float = 0.0
-    """also save checkpoints/wall_XXXXXs.pt every this many minutes of training; 0 = none, else at least 1/60
-    (the names are whole seconds)"""
+    """also save checkpoints/wall_XXXXXs.pt every this many minutes of training (all kept: the pruning of
+    checkpoint_keep_last/keep_every leaves them); 0 = none, else at least 1/60 (the names are whole seconds)"""
     # evaluation at the end
     eval_at_end: bool = True
     """run the gait test (eval/) when training ends (recipes/ppo_walk.py does; trainer.train() itself does not)"""

@@ -537,6 +537,13 @@ def _check_fits(saved: dict, current: dict, what: str, path, hint: str, allow_mi
                  if k in saved and tuple(saved[k].shape) != tuple(v.shape)]
     if problems:
         shown = "; ".join(problems[:6]) + (f"; ... ({len(problems)} in all)" if len(problems) > 6 else "")
+        terms = [k for k, v in current.items() if k.endswith("._weights") and k in saved
+                 and tuple(saved[k].shape) != tuple(v.shape)]
+        if terms:  # TaskReward's weights: one per reward term
+            k = terms[0]
+            hint = (f"it was trained with {saved[k].shape[0]} reward terms, this env has {current[k].shape[0]}: a run "
+                    "trained with terms of its own (build_env(cfg, ..., reward_terms=...)) goes on from Python with "
+                    "an env built with the same terms: train(cfg, env=...), evaluate_policy(..., env=...)")
         raise CheckpointError(f"checkpoint {path} does not fit this {what} ({hint}): {shown}")
 
 

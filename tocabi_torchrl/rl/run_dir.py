@@ -17,6 +17,7 @@ import atexit
 import contextlib
 import os
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from .checkpoint import (
     read_checkpoint,
     run_folder_of,
 )
+from ..integrity import zip_damage
 from .metrics_files import LEGACY_CSV, METRICS_DIR, trim_metrics
 from .resume import check_resume_config, holds_checkpoint, no_checkpoint_message
 
@@ -143,14 +145,17 @@ def refuse_run_without_checkpoint(resume: str | os.PathLike) -> None:
 
 def _newer_checkpoint(folder: Path, iteration: int) -> tuple[int, Path] | None:
     """A checkpoint of the run folder ``folder`` newer than ``iteration``, as ``(its iteration, file)``, or ``None``:
-    the highest ``iter_*.pt`` (read from the file names, nothing loaded), else ``latest.pt`` (newer after a tagged
+    the highest intact ``iter_*.pt`` (its iteration read from the name; a file that is not a whole zip archive, cut
+    short or damaged, is passed over, as the resume hint passes it over), else ``latest.pt`` (newer after a tagged
     save), read through :func:`read_checkpoint` only then and passed over if unreadable (a damaged ``latest.pt`` must
     not stop a resume from an iteration file)."""
     checkpoints = folder / "checkpoints"
     found = [(int(m.group(1)), p) for p in checkpoints.glob("iter_*.pt") if (m := _ITER_FILE.match(p.name))]
-    newest = max(found, default=None)
-    if newest is not None and newest[0] > iteration:
-        return newest
+    for newest in sorted(found, reverse=True):
+        if newest[0] <= iteration:
+            break
+        if zipfile.is_zipfile(newest[1]) and zip_damage(newest[1]) is None:
+            return newest
     latest = checkpoints / "latest.pt"
     if latest.is_file():
         try:
