@@ -345,3 +345,14 @@ def test_a_missing_video_writer_names_the_viz_extra_not_egl(tmp_path, monkeypatc
     said = capsys.readouterr().out
     assert summary["video"].startswith("not rendered: ModuleNotFoundError")
     assert '.[viz]' in said and "libegl1" not in said
+
+
+def test_no_robots_is_refused_not_the_runs_4096(tmp_path):
+    # evaluate_run(num_envs=0) built the run's 4,096 worlds: half an hour and more on a CPU, without a word.
+    from tocabi_torchrl.evaluation.gait_test import evaluate_run
+    from tocabi_torchrl.robot import asset_path
+
+    with pytest.raises(ValueError, match=r"num_envs must be a positive int \(worlds to build\), got 0; None for"):
+        evaluate_run(asset_path("policies", "tocabi_walk_ppo.pt"), num_envs=0, device="cpu", seconds=0.2,
+                     video_envs=0, out_dir=tmp_path / "e")
+    assert not (tmp_path / "e").exists()

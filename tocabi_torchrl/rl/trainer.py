@@ -8,6 +8,7 @@ import contextlib
 import dataclasses
 import inspect
 import math
+import numbers
 import signal
 import time
 from dataclasses import dataclass
@@ -197,7 +198,12 @@ def build_env(cfg: RunConfig, device: torch.device, num_envs: int | None = None,
     """
     from .. import make_env
 
-    num_envs = num_envs or cfg.env.num_envs
+    if num_envs is None:
+        num_envs = cfg.env.num_envs
+    elif isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or num_envs < 1:  # 0 meant 4,096
+        raise ValueError(f"num_envs must be a positive int (worlds to build), got {num_envs!r}; None for the run's "
+                         f"env.num_envs ({cfg.env.num_envs})")
+    num_envs = int(num_envs)
     if device.type == "cuda":
         plan = plan_graphs(cfg, device, num_envs, sync_free_resets=env_overrides.get("sync_free_resets") is not False,
                            compile_reward=bool(env_overrides.get("compile_reward")))
