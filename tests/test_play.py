@@ -356,3 +356,17 @@ def test_no_robots_is_refused_not_the_runs_4096(tmp_path):
         evaluate_run(asset_path("policies", "tocabi_walk_ppo.pt"), num_envs=0, device="cpu", seconds=0.2,
                      video_envs=0, out_dir=tmp_path / "e")
     assert not (tmp_path / "e").exists()
+
+
+def test_the_standard_report_says_its_command_and_never_rounds_a_fail_into_a_pass():
+    # --vx 0.3 (play.py's own example) could never pass the 2.6 m of the 0.5 m/s test, and the report did not say
+    # so; 2.597 m was shown as "2.60 m needs >= 2.60 m FAIL".
+    from tocabi_torchrl.evaluation.gait_test import gait_report_text
+
+    summary = {"command_mps": [0.3, 0.0], "survival": 1.0, "forward_distance_m": 2.597, "lateral_drift_m": 0.1,
+               "knee_rms_rad": 0.1}
+    text = gait_report_text(summary, 8.0, 4, Path("/nonexistent"))
+    assert text.splitlines()[0] == ("gait test (8 s, 4 robots): does not walk yet (the thresholds are set for the "
+                                    "(0.5, 0.0) m/s command, not (0.3, 0.0))")
+    assert "forward distance          2.597 m   needs >= 2.60 m     FAIL" in text
+    assert "not (" not in gait_report_text({**summary, "command_mps": [0.5, 0.0]}, 8.0, 4, Path("/nonexistent"))

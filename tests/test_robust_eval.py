@@ -218,6 +218,15 @@ def test_training_ends_with_the_robust_test_when_asked(tmp_path, capsys):
     report["settings"].update(seconds=4.0, num_envs=1024)
     assert robust_report_text(report).splitlines()[0].endswith(
         "(the thresholds are set for the 8 s test); the kicks come at 2-7 s, so some robots met fewer than 3 in 4 s")
+    # Some cases alone: each may pass, and the headline said "does not walk yet" without why.
+    partial = json.loads(json.dumps(report))
+    partial["cases"] = {"robust_0.5": partial["cases"]["robust_0.5"]}
+    assert robust_report_text(partial).splitlines()[0].endswith(
+        "; not run: nominal, commands, robust_1.0 (the verdict needs every case)")
+    # A rounding that read as the other verdict: 0.9697 shown as 0.970 beside "needs >= 0.97 FAIL".
+    check = {"value": 0.9697, "needs": ">= 0.97", "pass": False}
+    partial["cases"]["robust_0.5"]["checks"] = {"survival": check}
+    assert "survival                   0.9697  needs >= 0.97  FAIL" in robust_report_text(partial)
     report = _strict((tmp_path / "run" / "eval" / "robust.json").read_text())
     assert list(report["cases"]) == ["nominal", "commands", "robust_0.5", "robust_1.0"]
     assert report["checkpoint"] == str(tmp_path / "run" / "checkpoints" / "latest.pt")  # which policy it tested

@@ -30,7 +30,7 @@ from ..render_gl import NO_GL_FIX
 from ..transforms.normalize import freeze_running_statistics
 from ..rl.checkpoint import checkpoint_file, read_checkpoint, run_folder_of
 from ..rl.trainer import build_env, resolve_device
-from .output import OutputExistsError, json_safe
+from .output import OutputExistsError, json_safe, rounded_against
 from .plots import plot_knees
 from .record import KNEES, GaitMetrics, fixed_command, load_policy, policy_steps
 from .video import render_video
@@ -224,6 +224,8 @@ _policy_steps = policy_steps
 
 #: Length [s] of the standard gait test, for which GAIT_CRITERIA's distance is set (the run config's default).
 STANDARD_SECONDS = RunConfig.eval_seconds
+#: The standard gait test's velocity command [m/s] (vx, vy), for which GAIT_CRITERIA's distance and drift are set.
+STANDARD_COMMAND = (0.5, 0.0)
 
 
 def length_note(seconds: float) -> str:
@@ -250,14 +252,22 @@ def _shown(value, unit: str, decimals: int) -> str:
 
 def gait_report_text(summary: dict, seconds: float, robots: int, out) -> str:
     """The gait test's verdict (walks / does not walk yet), each metric against its pass threshold, and the files
-    written; the full-precision values stay in ``out/summary.json``."""
+    written; the full-precision values stay in ``out/summary.json``. A command other than the standard (0.5, 0) m/s
+    is said beside the verdict: the distance and drift thresholds assume it."""
     verdict = "walks" if gait_passes(summary) else "does not walk yet"
-    lines = [f"gait test ({seconds:g} s, {robots} robots): {verdict}{length_note(seconds)}"]
+    command = tuple(summary.get("command_mps", STANDARD_COMMAND))
+    note = length_note(seconds) + ("" if command == STANDARD_COMMAND else
+                                   f" (the thresholds are set for the {STANDARD_COMMAND} m/s command, not {command})")
+    lines = [f"gait test ({seconds:g} s, {robots} robots): {verdict}{note}"]
     for key, label, unit, decimals, kind in GAIT_ROWS:
         value, limit = summary.get(key), GAIT_CRITERIA[key]
         ok = value is not None and value == value and (value >= limit if kind == "min" else value <= limit)
         need = f"{'>=' if kind == 'min' else '<='} {_shown(limit, unit, decimals)}"
-        lines.append(f"  {label:<22} {_shown(value, unit, decimals):>10}   needs {need:<13} {'pass' if ok else 'FAIL'}")
+        shown = _shown(value, unit, decimals)
+        if ok is False and value is not None and value == value:  # never a rounding that reads as a pass
+            scale = 100.0 if unit == "%" else 1.0
+            shown = f"{rounded_against(scale * value, scale * limit, ok, kind, decimals)} {unit}"
+        lines.append(f"  {label:<22} {shown:>10}   needs {need:<13} {'pass' if ok else 'FAIL'}")
     files = [out / "summary.json", out / "knees.png"]
     video = str(summary.get("video", ""))
     lines.append("results: " + ", ".join(str(f) for f in files if f.exists())

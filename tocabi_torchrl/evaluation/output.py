@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["OutputExistsError", "json_safe"]
+__all__ = ["OutputExistsError", "json_safe", "rounded_against"]
 
 
 class OutputExistsError(RuntimeError):
@@ -21,3 +21,14 @@ def json_safe(value):
     if isinstance(value, (list, tuple)):
         return [json_safe(v) for v in value]
     return value
+
+
+def rounded_against(value: float, limit: float, passed: bool, kind: str, decimals: int) -> str:
+    """``value`` with ``decimals`` decimals, or as many more as it takes for the rounded number to read as the
+    verdict ``passed`` of ``value >= limit`` (``kind`` "min") or ``value <= limit`` ("max"): 0.9697 shown as 0.970
+    beside "needs >= 0.97 FAIL" reads as a wrong verdict, 0.9697 does not."""
+    for places in range(decimals, decimals + 7):
+        text = f"{value:.{places}f}"
+        if (float(text) >= limit if kind == "min" else float(text) <= limit) == passed:
+            return text
+    return repr(value)

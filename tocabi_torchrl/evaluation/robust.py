@@ -52,6 +52,7 @@ from ..transforms.normalize import freeze_running_statistics
 from ..value_rules import NON_NEGATIVE, PUSH_KINDS, Range, check_seed
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
 from .record import GaitMetrics, fixed_command, nominal_config, policy_steps
+from .output import rounded_against
 
 __all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking", "RobustCase", "RobustTestConfig",
            "batch_config", "batch_env", "batch_key", "case_checks", "case_config", "case_env", "case_summary",
@@ -687,6 +688,9 @@ def robust_report_text(report: dict, out: str | os.PathLike | None = None) -> st
                      f"{s.get('push_count', 3)} in {s['seconds']:g} s")
     if s["num_envs"] < RobustTestConfig().num_envs:
         lines[0] += f"; {s['num_envs']} robots per case, the test asks for {RobustTestConfig().num_envs:,}"
+    left_out = [name for name in ROBUST_CRITERIA if name not in report["cases"]]
+    if left_out:  # every case it ran may pass: the verdict needs all of them
+        lines[0] += f"; not run: {', '.join(left_out)} (the verdict needs every case)"
     for name, c in report["cases"].items():
         d, drift = c["forward_distance_m"], c["lateral_drift_m"]
         lines.append(f"  {name:<11} survival {num(c['survival'], '.3f')}, forward p5/p50/p95 {num(d['p5'], '.2f')}/"
@@ -696,7 +700,11 @@ def robust_report_text(report: dict, out: str | os.PathLike | None = None) -> st
                      f"{num(c['knee_rms_rad']['mean'], '.3f')} rad, turned p95 "
                      f"{num(c.get('heading_change_rad', {}).get('p95'), '.2f')} rad")
         for path, check in c.get("checks", {}).items():
-            lines.append(f"      {path:<24} {num(check['value'], '.3f'):>8}  needs {check['needs']:<8} "
+            value, (op, limit) = check["value"], check["needs"].split()
+            shown = num(value, ".3f")
+            if shown != "-":  # never a rounding that reads as the other verdict (0.9697 as 0.970, needs >= 0.97)
+                shown = rounded_against(value, float(limit), check["pass"], "min" if op == ">=" else "max", 3)
+            lines.append(f"      {path:<24} {shown:>8}  needs {check['needs']:<8} "
                          f"{'pass' if check['pass'] else 'FAIL'}")
     if out is not None:
         lines.append(f"results: {Path(out) / ROBUST_JSON}, {Path(out) / ROBUST_PNG}")
