@@ -118,6 +118,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.viewer:
         serve(args)
         return
+    parser.refuse_without(args, args.out is not None, "--out", ("overwrite",))  # the fresh default folder needs none
     if args.backend is not None:  # the gait tests run on the checkpoint's own backend
         parser.error("--backend sets the physics of --viewer only; leave it out, or add --viewer")
     if args.test == "robust" and (args.vx, args.vy) != (0.5, 0.0):
@@ -142,6 +143,10 @@ def main(argv: list[str] | None = None) -> None:
         if args.test == "robust":
             from tocabi_torchrl.evaluation.robust import evaluate_robust_run, robust_report_text
 
+            on_cpu = args.device == "cpu" or (args.device == "auto" and not torch.cuda.is_available())
+            if on_cpu and args.num_envs is None:  # measured: about 1 step/s at 512 robots on 2 cores
+                print(f"note: {TESTS['robust']:,} robots per case for {args.seconds:g} s take hours on a CPU; "
+                      "--num_envs 4 takes about a minute (a smaller sample of the same test)", flush=True)
             report = evaluate_robust_run(args.checkpoint, num_envs=args.num_envs or TESTS["robust"],
                                          device=args.device, seconds=args.seconds, out_dir=out)
             print(robust_report_text(report, out))

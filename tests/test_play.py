@@ -370,3 +370,21 @@ def test_the_standard_report_says_its_command_and_never_rounds_a_fail_into_a_pas
                                     "(0.5, 0.0) m/s command, not (0.3, 0.0))")
     assert "forward distance          2.597 m   needs >= 2.60 m     FAIL" in text
     assert "not (" not in gait_report_text({**summary, "command_mps": [0.5, 0.0]}, 8.0, 4, Path("/nonexistent"))
+
+
+def test_overwrite_without_out_is_refused_and_a_cpu_robust_test_of_full_size_is_said(capsys, monkeypatch):
+    # --overwrite without --out wrote to a fresh folder anyway; the robust test's default 1,024 robots per case on
+    # a CPU sat for hours at "0/2000" without a word.
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--policy", "ppo", "--overwrite", "--device", "cpu"])
+    assert info.value.code == 2 and "--overwrite applies with --out only" in capsys.readouterr().err
+    import tocabi_torchrl.evaluation.robust as robust
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(robust, "evaluate_robust_run", stop)
+    with pytest.raises(SystemExit):
+        recipe("play").main(["--policy", "robust", "--test", "robust", "--device", "cpu"])
+    assert "note: 1,024 robots per case for 8 s take hours on a CPU; --num_envs 4 takes about a minute" in \
+        capsys.readouterr().out
