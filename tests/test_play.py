@@ -388,3 +388,30 @@ def test_overwrite_without_out_is_refused_and_a_cpu_robust_test_of_full_size_is_
         recipe("play").main(["--policy", "robust", "--test", "robust", "--device", "cpu"])
     assert "note: 1,024 robots per case for 8 s take hours on a CPU; --num_envs 4 takes about a minute" in \
         capsys.readouterr().out
+
+
+@pytest.mark.parametrize("cause", ["gl_unset_with_egl", "disk_full"])
+def test_a_video_that_fails_names_its_own_cause(tmp_path, monkeypatch, capsys, cause):
+    # With EGL installed and MUJOCO_GL unset (the Python API imports mujoco first), and for a full disk, the advice
+    # was to install EGL and leave MUJOCO_GL unset, which held already; a failed write left half a walk.mp4.
+    import ctypes.util
+    import errno
+
+    from tocabi_torchrl.evaluation import gait_test as evaluate
+
+    def fails(model, qpos, fps, out, **kwargs):
+        if cause == "disk_full":
+            (out / "walk.mp4").write_bytes(b"half")
+            raise OSError(errno.ENOSPC, "No space left on device")
+        raise RuntimeError("an OpenGL platform library has not been loaded into this process")
+
+    monkeypatch.setattr(evaluate, "render_video", fails)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    monkeypatch.setattr(ctypes.util, "find_library", lambda name: "libEGL.so.1" if name == "EGL" else None)
+    evaluate.evaluate_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.1, video_envs=1, out_dir=tmp_path / "e")
+    said = capsys.readouterr().out
+    if cause == "disk_full":
+        assert f"check that {tmp_path / 'e'} has free space and can be written" in said
+        assert not (tmp_path / "e" / "walk.mp4").exists() and "libegl1" not in said
+    else:
+        assert "set MUJOCO_GL=egl before Python imports mujoco" in said and "leave MUJOCO_GL unset" not in said

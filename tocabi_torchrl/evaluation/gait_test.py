@@ -15,6 +15,7 @@ returns keeps those as NaN (``float``), for callers that format or compare the n
 from __future__ import annotations
 
 import contextlib
+import ctypes.util
 import json
 import os
 from pathlib import Path
@@ -150,6 +151,10 @@ def evaluate_policy(
                 for partial in (out / "walk.mp4", out / "walk.gif", out / "walk_frame.png"):  # half-written
                     with contextlib.suppress(OSError):
                         partial.unlink()
+            elif not os.environ.get("MUJOCO_GL") and ctypes.util.find_library("EGL"):
+                # EGL is here, but MuJoCo picked its backend when it was imported, before anything set it.
+                fix = ("; on a headless machine set MUJOCO_GL=egl before Python imports mujoco (or call "
+                       "tocabi_torchrl.render_gl.choose_gl_backend() first, as the recipes do)")
             else:
                 fix = "" if NO_GL_FIX in str(err) else f"; on a headless machine: {NO_GL_FIX}"  # said once
             print(f"video skipped ({summary['video']}){fix}")
