@@ -300,6 +300,15 @@ def test_the_default_eval_folder_is_never_reused_once_it_holds_results(tmp_path)
     (tmp_path / "run" / "eval_3").write_text("a file, not a folder")
     assert eval_out_dir(tmp_path / "run") == tmp_path / "run" / "eval_4"
     assert eval_out_dir(tmp_path / "run", tmp_path / "run" / "eval", overwrite=True) == tmp_path / "run" / "eval"
+    # Two evaluations started together both chose eval_4 and wrote into it: a folder another live process has
+    # claimed is passed over.
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (tmp_path / "run" / ".eval_4.claim").write_text(str(other.pid))
+        assert eval_out_dir(tmp_path / "run") == tmp_path / "run" / "eval_5"
+    finally:
+        other.kill()
+        other.wait()
 
 
 @needs_policy

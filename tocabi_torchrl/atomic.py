@@ -9,13 +9,17 @@ the permissions a plain ``open(path, "w")`` would give it: the target's own when
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import errno
 import os
 import secrets
 import tempfile
+import time
 from pathlib import Path
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "remove_stale_temp_files", "check_writable", "TEMP_SUFFIX"]
+__all__ = ["atomic_write_bytes", "atomic_write_text", "remove_stale_temp_files", "check_writable", "claim_path",
+           "release_claim", "TEMP_SUFFIX"]
 
 #: Suffix of the temporary files written next to their target.
 TEMP_SUFFIX = ".tmp"
@@ -98,3 +102,66 @@ def _fsync_dir(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def claim_path(path: str | os.PathLike) -> tuple[Path | None, int | None]:
+    """Claim the folder ``path`` for this process, so that two processes never write into one folder that each
+    found free: ``<parent>/.<name>.claim``, created exclusively and holding this process's id. Returns ``(the claim
+    file, None)``, or ``(None, the holder's process id)`` while another live process holds it (``None`` as the id
+    for a claim made in the last seconds and not yet written). A claim whose process has ended is taken over; the
+    end of this process, or :func:`release_claim`, removes it."""
+    path = Path(path)
+    claim = path.parent / f".{path.name}.claim"
+    claim.parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(3):  # a stale claim is removed and taken once; another process may race for it
+        try:
+            fd = os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            owner = _claim_owner(claim)
+            if owner is not None and owner != os.getpid() and _alive(owner):
+                return None, owner
+            if owner is None and _fresh(claim):
+                return None, None
+            if owner == os.getpid():
+                return claim, None
+            with contextlib.suppress(FileNotFoundError):
+                claim.unlink()
+            continue
+        with os.fdopen(fd, "w") as fh:
+            fh.write(str(os.getpid()))
+        atexit.register(release_claim, claim)
+        return claim, None
+    return None, None
+
+
+def release_claim(claim: str | os.PathLike) -> None:
+    """Remove the claim file ``claim`` if this process holds it."""
+    claim = Path(claim)
+    if _claim_owner(claim) == os.getpid():
+        with contextlib.suppress(FileNotFoundError):
+            claim.unlink()
+
+
+def _claim_owner(claim: Path) -> int | None:
+    try:
+        return int(claim.read_text().strip())
+    except (OSError, ValueError):
+        return None  # gone, or being written: no owner to wait for
+
+
+def _fresh(claim: Path) -> bool:
+    """Whether ``claim`` (still without its process id) was made in the last seconds: being written, not stale."""
+    try:
+        return time.time() - claim.stat().st_mtime < 5.0
+    except FileNotFoundError:
+        return False
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True

@@ -25,7 +25,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm.auto import tqdm
 
 from .. import robot
-from ..atomic import atomic_write_text, check_writable
+from ..atomic import atomic_write_text, check_writable, claim_path
 from ..config import RunConfig
 from ..render_gl import NO_GL_FIX
 from ..transforms.normalize import freeze_running_statistics
@@ -189,22 +189,26 @@ def default_eval_dir(ckpt: Path) -> Path:
 
 
 def fresh_eval_dir(ckpt: Path) -> Path:
-    """:func:`default_eval_dir`, or when that already holds files (an earlier evaluation) the first of ``eval_2``,
-    ``eval_3``, ... beside it that does not: a repeated evaluation never replaces earlier results."""
+    """:func:`default_eval_dir`, or when that already holds files (an earlier evaluation) or another running
+    evaluation has claimed it (:func:`~tocabi_torchrl.atomic.claim_path`), the first of ``eval_2``, ``eval_3``, ...
+    beside it that is free: a repeated evaluation never replaces earlier results, and two at once never share a
+    folder. The folder returned is claimed for this process until it ends."""
     base = default_eval_dir(ckpt)
     candidate, n = base, 1
-    while candidate.exists() and (not candidate.is_dir() or any(candidate.iterdir())):
+    while True:
+        free = not candidate.exists() or (candidate.is_dir() and not any(candidate.iterdir()))
+        if free and claim_path(candidate)[0] is not None:
+            return candidate
         n += 1
         candidate = base.with_name(f"{base.name}_{n}")
-    return candidate
 
 
 def eval_out_dir(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | None = None,
                  overwrite: bool = False) -> Path:
     """The folder an evaluation of ``checkpoint`` writes to: ``out_dir``, refused
     (:class:`~.output.OutputExistsError`) when it already holds files unless ``overwrite``
-    (then files of the same name are replaced, others stay); without ``out_dir``, :func:`fresh_eval_dir`. Creates
-    nothing; raises ``OSError`` for a folder that cannot be written (checked with a probe file before the test runs,
+    (then files of the same name are replaced, others stay); without ``out_dir``, :func:`fresh_eval_dir` (which
+    claims it). Creates no results folder; raises ``OSError`` for a folder that cannot be written (checked with a probe file before the test runs,
     not at its first write, minutes later) and ``CheckpointError`` for a missing checkpoint."""
     out = fresh_eval_dir(checkpoint_file(checkpoint)) if out_dir is None else Path(out_dir)
     if out_dir is not None and out.is_dir() and any(out.iterdir()) and not overwrite:

@@ -13,15 +13,12 @@ and its later metrics rows cut. Continue it from its newest checkpoint, or branc
 
 from __future__ import annotations
 
-import atexit
-import contextlib
 import os
-import time
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..atomic import check_writable
+from ..atomic import check_writable, claim_path, release_claim
 from ..atomic import remove_stale_temp_files
 from ..config import RunConfig
 from .checkpoint import (
@@ -72,62 +69,15 @@ class RunFolder:
 
 
 def claim_run_folder(path: Path) -> Path:
-    """Claim the run folder ``path`` for this process: ``<run_dir>/.<name>.claim``, created exclusively and holding
-    this process's id, so that a second run started with the same name before this one has written its files is
-    refused instead of writing into the same folder (:class:`RunDirError` naming the other process). A claim whose
-    process has ended (killed) is taken over. Returns the claim file; :func:`release_claim` removes it, and so does
-    the end of the process."""
-    claim = path.parent / f".{path.name}.claim"
-    claim.parent.mkdir(parents=True, exist_ok=True)
-    for _ in range(3):  # a stale claim is removed and taken once; another process may race for it
-        try:
-            fd = os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            owner = _claim_owner(claim)
-            if (owner is not None and owner != os.getpid() and _alive(owner)) or (owner is None and _fresh(claim)):
-                who = f"process {owner}" if owner is not None else "a process starting now"
-                raise RunDirError(f"another run ({who}) is writing into {path}; wait for it to end, or start this "
-                                  "one with another --name") from None
-            with contextlib.suppress(FileNotFoundError):
-                claim.unlink()
-            continue
-        with os.fdopen(fd, "w") as fh:
-            fh.write(str(os.getpid()))
-        atexit.register(release_claim, claim)
-        return claim
-    raise RunDirError(f"cannot claim {path}: other processes keep claiming it; start this run with another --name")
-
-
-def release_claim(claim: Path) -> None:
-    """Remove ``claim`` if this process holds it."""
-    if _claim_owner(claim) == os.getpid():
-        with contextlib.suppress(FileNotFoundError):
-            claim.unlink()
-
-
-def _claim_owner(claim: Path) -> int | None:
-    try:
-        return int(claim.read_text().strip())
-    except (OSError, ValueError):
-        return None  # gone, or being written: no owner to wait for
-
-
-def _fresh(claim: Path) -> bool:
-    """Whether ``claim`` (still without its process id) was made in the last seconds: being written, not stale."""
-    try:
-        return time.time() - claim.stat().st_mtime < 5.0
-    except FileNotFoundError:
-        return False
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
+    """Claim the run folder ``path`` for this process (:func:`~tocabi_torchrl.atomic.claim_path`), so that a second
+    run started with the same name before this one has written its files is refused instead of writing into the
+    same folder (:class:`RunDirError` naming the other process). Returns the claim file."""
+    claim, owner = claim_path(path)
+    if claim is None:
+        who = f"process {owner}" if owner is not None else "a process starting now"
+        raise RunDirError(f"another run ({who}) is writing into {path}; wait for it to end, or start this one with "
+                          "another --name")
+    return claim
 
 
 def holds_run(folder: str | os.PathLike) -> bool:
