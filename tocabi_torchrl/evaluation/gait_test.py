@@ -206,10 +206,10 @@ def fresh_eval_dir(ckpt: Path) -> Path:
 def eval_out_dir(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | None = None,
                  overwrite: bool = False) -> Path:
     """The folder an evaluation of ``checkpoint`` writes to: ``out_dir``, refused
-    (:class:`~.output.OutputExistsError`) when it already holds files unless ``overwrite``
-    (then files of the same name are replaced, others stay); without ``out_dir``, :func:`fresh_eval_dir` (which
-    claims it). Creates no results folder; raises ``OSError`` for a folder that cannot be written (checked with a probe file before the test runs,
-    not at its first write, minutes later) and ``CheckpointError`` for a missing checkpoint."""
+    (:class:`~.output.OutputExistsError`) when it already holds files unless ``overwrite`` (then files of the same
+    name are replaced, others stay); without ``out_dir``, :func:`fresh_eval_dir` (which claims it). Creates no
+    results folder; raises ``OSError`` for a folder that cannot be written (checked with a probe file before the test
+    runs, not at its first write, minutes later) and ``CheckpointError`` for a missing checkpoint."""
     out = fresh_eval_dir(checkpoint_file(checkpoint)) if out_dir is None else Path(out_dir)
     if out_dir is not None and out.is_dir() and any(out.iterdir()) and not overwrite:
         held = sorted(p.name for p in out.iterdir())
