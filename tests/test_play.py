@@ -424,3 +424,17 @@ def test_a_video_that_fails_names_its_own_cause(tmp_path, monkeypatch, capsys, c
         assert not (tmp_path / "e" / "walk.mp4").exists() and "libegl1" not in said
     else:
         assert "set MUJOCO_GL=egl before Python imports mujoco" in said and "leave MUJOCO_GL unset" not in said
+
+
+def test_a_negative_video_size_and_a_file_as_results_folder_are_refused_before_anything_runs(tmp_path):
+    # video_envs=-1 recorded "not requested (video_envs=0)"; out_dir naming a file was a raw FileExistsError after
+    # the env was built.
+    from tocabi_torchrl.evaluation.gait_test import evaluate_run
+    from tocabi_torchrl.evaluation.robust import evaluate_robust_run
+
+    with pytest.raises(ValueError, match=r"video_envs must be an int >= 0 \(robots in the video; 0 for none\), got -1"):
+        evaluate_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.1, video_envs=-1, out_dir=tmp_path / "e")
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    with pytest.raises(ValueError, match="out_dir .*afile is a file, not a folder"):
+        evaluate_robust_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.1, out_dir=afile)

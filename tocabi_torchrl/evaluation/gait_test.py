@@ -99,6 +99,8 @@ def evaluate_policy(
     the rollout and the rendering; ``source``, the checkpoint tested, is recorded in the summary as ``checkpoint``.
     Returns the summary, NaN where a metric has no value (``null`` in the file)."""
     device = torch.device(device)
+    if isinstance(video_envs, bool) or not isinstance(video_envs, int) or video_envs < 0:
+        raise ValueError(f"video_envs must be an int >= 0 (robots in the video; 0 for none), got {video_envs!r}")
     if env is None:
         env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
     freeze_running_statistics(env)  # a test of the policy as trained, not of statistics drifting with its rollout

@@ -662,6 +662,8 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
         cases = tuple(sorted(named, key=lambda c: order.index(c) if c in order else len(order)))
     test = RobustTestConfig(num_envs=num_envs, seconds=seconds, cases=cases)
     test.validate(policy_dt())
+    if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ValueError(f"out_dir {out_dir} is a file, not a folder: give a folder for the results")
     ckpt = checkpoint_file(run)
     state = read_checkpoint(ckpt)
     return evaluate_robust_checkpoint(state, ckpt, fresh_eval_dir(ckpt) if out_dir is None else out_dir, test=test,
