@@ -240,6 +240,7 @@ def test_the_capped_solver_steps_on_the_gpu_without_a_torch_sync_and_bounds_ever
 @pytest.mark.parametrize("config,where,kind", [
     (lambda: TocabiWalkConfig(dynamics=None), "env.dynamics", "DynamicsRandomization"),
     (lambda: TocabiWalkConfig(pushes={"count": 1}), "env.pushes", "PushConfig"),
+    (lambda: TocabiWalkConfig(pushes=0), "env.pushes", "PushConfig"),
     (lambda: TocabiWalkConfig(control=ControlConfig(actuators={"delay_substeps": (1, 2)})), "env.control.actuators",
      "ActuatorConfig"),
 ])

@@ -300,8 +300,9 @@ def check_field_types(tree, prefix: str = "") -> None:
     float]``, ``Sequence[float]``) finite entries of the annotated length. Without it a gain of NaN ends every
     episode at its first step, an inf command reaches the observation and a number given as text (``"0.6"``) fails
     later as a raw ``TypeError``. ``None`` is taken where the annotation allows it (``float | None``); numpy scalars
-    are taken, as plain Python values (frozen trees too); a section (a dataclass field) given as None or a dict is
-    named (either failed later as an ``AttributeError``); fields of other types are left alone, and so is a number
+    are taken, as plain Python values (frozen trees too); a section (a dataclass field) that is not an instance of
+    its class (None, a dict, a number) is named (each failed later as an ``AttributeError``); fields of other types
+    are left alone, and so is a number
     field whose metadata holds :data:`OWN_NUMBER_CHECK` (its section's ``validate`` checks it, with a better
     message)."""
     hints = _field_hints(type(tree))
@@ -314,9 +315,8 @@ def check_field_types(tree, prefix: str = "") -> None:
         kind, optional = _unwrap_optional(hints.get(f.name))
         if value is None and optional:
             continue
-        if isinstance(kind, type) and dataclasses.is_dataclass(kind) and (value is None or isinstance(value, dict)):
-            # Either failed later as an AttributeError in the section's own checks; other values get those checks'
-            # own messages.
+        if isinstance(kind, type) and dataclasses.is_dataclass(kind) and not isinstance(value, kind):
+            # Anything else failed later as an AttributeError in the section's own checks.
             raise ValueError(f"{where} must be a {kind.__name__}, got {value!r}: give {kind.__name__}(...) "
                              f"({kind.__name__}() for its defaults); a dict of options is built into the section by "
                              "replace_paths (and by make_env's section keywords)")

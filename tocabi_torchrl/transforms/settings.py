@@ -87,16 +87,16 @@ class TransformConfig:
             raise ValueError(f"normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
         for name, kind in (("sensor_noise", SensorNoiseConfig), ("kick_relax", KickRelax)):
             object.__setattr__(self, name, _section(getattr(self, name), kind, name))
-        check_field_types(self)
-        if (self.obs_mean is None) != (self.obs_var is None):
-            raise ValueError("pass both obs_mean and obs_var, or neither (for the reference statistics)")
-        if not isinstance(self.history, HistoryLayout):
+        if not isinstance(self.history, HistoryLayout):  # before the general check: this one names the layouts
             raise TypeError(
                 f"history must be a HistoryLayout (REFERENCE_HISTORY, TOCABILAB_HISTORY or e.g. "
                 f"HistoryLayout(num_obs=5, stride=2), from tocabi_torchrl.transforms), got {self.history!r}"
                 + (f"; to pick one by name, pass transforms=TransformSettings(history={self.history!r})"
                    if isinstance(self.history, str) else "")
             )
+        check_field_types(self)
+        if (self.obs_mean is None) != (self.obs_var is None):
+            raise ValueError("pass both obs_mean and obs_var, or neither (for the reference statistics)")
         if self.max_episode_steps is not None:
             check_positive_int(self.max_episode_steps, "max_episode_steps", "or None to only count steps")
         check_positive_int(self.phase_harmonics, "phase_harmonics")
