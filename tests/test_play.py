@@ -300,12 +300,16 @@ def test_the_default_eval_folder_is_never_reused_once_it_holds_results(tmp_path)
     (tmp_path / "run" / "eval_3").write_text("a file, not a folder")
     assert eval_out_dir(tmp_path / "run") == tmp_path / "run" / "eval_4"
     assert eval_out_dir(tmp_path / "run", tmp_path / "run" / "eval", overwrite=True) == tmp_path / "run" / "eval"
-    # Two evaluations started together both chose eval_4 and wrote into it: a folder another live process has
-    # claimed is passed over.
-    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    # Two evaluations started together both chose the same fresh folder and wrote into it: a folder another live
+    # process has claimed is passed over.
+    from test_runs import hold_claim
+
+    other_run = tmp_path / "other" / "checkpoints" / "latest.pt"
+    other_run.parent.mkdir(parents=True)
+    other_run.write_bytes(b"")
+    other = hold_claim(tmp_path / "other" / "eval")
     try:
-        (tmp_path / "run" / ".eval_4.claim").write_text(str(other.pid))
-        assert eval_out_dir(tmp_path / "run") == tmp_path / "run" / "eval_5"
+        assert eval_out_dir(tmp_path / "other") == tmp_path / "other" / "eval_2"
     finally:
         other.kill()
         other.wait()

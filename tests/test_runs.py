@@ -749,24 +749,35 @@ def test_the_re_test_hint_keeps_the_cpu_size_without_the_final_test(tmp_path, ca
     assert capsys.readouterr().out.rstrip().endswith(f"--checkpoint {tmp_path / 'run'} --num_envs 2 --seconds 0.1")
 
 
+def hold_claim(path: Path) -> subprocess.Popen:
+    """Another process that claims ``path`` (as its open_run or evaluation would) and keeps it until killed."""
+    code = ("import sys, time; from tocabi_torchrl.atomic import claim_path; "
+            "print(claim_path(sys.argv[1])[0] is not None, flush=True); time.sleep(120)")
+    other = subprocess.Popen([sys.executable, "-c", code, str(path)], stdout=subprocess.PIPE, text=True)
+    assert other.stdout.readline().strip() == "True"
+    return other
+
+
 def test_a_second_run_of_the_same_name_started_at_once_is_refused(tmp_path):
     # Both started before either had written config.json, both trained into one folder and both said "done".
-    import subprocess
-
     from tocabi_torchrl.rl import preset_config
     from tocabi_torchrl.rl.run_dir import RunDirError, open_run
 
     cfg = preset_config("cpu_smoke", device="cpu", run_dir=str(tmp_path), name="same")
-    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    other = hold_claim(tmp_path / "same")
     try:
-        (tmp_path / ".same.claim").write_text(str(other.pid))  # as the other run's open_run leaves it
-        with pytest.raises(RunDirError, match=rf"another run \(process {other.pid}\) is writing into .*same; wait"):
+        with pytest.raises(RunDirError, match=rf"another run \(process {other.pid}\) is writing into .*same \(it "
+                                              r"holds .*\.same\.claim\); wait"):
             open_run(cfg)
     finally:
         other.kill()
         other.wait()
-    run = open_run(cfg)  # the other process has ended: its claim is stale and taken over
+    run = open_run(cfg)  # killed: the kernel dropped its lock, and the claim is this run's at once
     assert (tmp_path / ".same.claim").read_text() == str(os.getpid())
+    # A second open_run of the folder in this process that fails let the first run's claim go with it.
+    with pytest.raises(Exception):
+        open_run(dataclasses.replace(cfg, resume=str(tmp_path / "missing.pt")))
+    assert (tmp_path / ".same.claim").is_file()
     run.release()
     assert not (tmp_path / ".same.claim").exists() and not (tmp_path / "same").exists()
 

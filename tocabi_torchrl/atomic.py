@@ -15,7 +15,6 @@ import errno
 import os
 import secrets
 import tempfile
-import time
 from pathlib import Path
 
 __all__ = ["atomic_write_bytes", "atomic_write_text", "remove_stale_temp_files", "check_writable", "claim_path",
@@ -104,64 +103,73 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+#: The claims this process holds: claim file -> [its open descriptor, holding the lock; how many holders]. Process-
+#: wide by nature: a lock belongs to the process, and every open_run or evaluation of one folder shares it.
+_HELD: dict[Path, list[int]] = {}
+
+
 def claim_path(path: str | os.PathLike) -> tuple[Path | None, int | None]:
     """Claim the folder ``path`` for this process, so that two processes never write into one folder that each
-    found free: ``<parent>/.<name>.claim``, created exclusively and holding this process's id. Returns ``(the claim
-    file, None)``, or ``(None, the holder's process id)`` while another live process holds it (``None`` as the id
-    for a claim made in the last seconds and not yet written). A claim whose process has ended is taken over; the
-    end of this process, or :func:`release_claim`, removes it."""
-    path = Path(path)
-    claim = path.parent / f".{path.name}.claim"
+    found free: an exclusive ``flock`` on ``<parent>/.<name>.claim``, which holds the claimant's process id for
+    messages. Returns ``(the claim file, None)``, or ``(None, the holder's process id)`` while another process holds
+    the lock (``None`` as the id if it has not written it yet). The kernel drops the lock when its process ends,
+    however it ends, so a killed run's claim is free at once; a process may claim a folder it holds again (each
+    :func:`release_claim` undoes one claim)."""
+    claim = Path(path).absolute()
+    claim = claim.parent / f".{claim.name}.claim"
+    if claim in _HELD:
+        _HELD[claim][1] += 1
+        return claim, None
     claim.parent.mkdir(parents=True, exist_ok=True)
-    for _ in range(3):  # a stale claim is removed and taken once; another process may race for it
+    import fcntl  # POSIX; imported here so that the module loads anywhere
+
+    for _ in range(5):
+        fd = os.open(claim, os.O_CREAT | os.O_RDWR, 0o644)
         try:
-            fd = os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            owner = _claim_owner(claim)
-            if owner is not None and owner != os.getpid() and _alive(owner):
-                return None, owner
-            if owner is None and _fresh(claim):
-                return None, None
-            if owner == os.getpid():
-                return claim, None
-            with contextlib.suppress(FileNotFoundError):
-                claim.unlink()
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            return None, _claim_owner(claim)
+        try:
+            same = os.fstat(fd).st_ino == os.stat(claim).st_ino
+        except FileNotFoundError:
+            same = False
+        if not same:  # its holder removed the file between our open and our lock: lock the file there now
+            os.close(fd)
             continue
-        with os.fdopen(fd, "w") as fh:
-            fh.write(str(os.getpid()))
-        atexit.register(release_claim, claim)
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        if not _HELD:
+            atexit.register(_release_all)
+        _HELD[claim] = [fd, 1]
         return claim, None
     return None, None
 
 
 def release_claim(claim: str | os.PathLike) -> None:
-    """Remove the claim file ``claim`` if this process holds it."""
-    claim = Path(claim)
-    if _claim_owner(claim) == os.getpid():
-        with contextlib.suppress(FileNotFoundError):
-            claim.unlink()
+    """Undo one :func:`claim_path` of this process; the last one removes the claim file and drops the lock."""
+    claim = Path(claim).absolute()
+    held = _HELD.get(claim)
+    if held is None:
+        return
+    held[1] -= 1
+    if held[1] > 0:
+        return
+    del _HELD[claim]
+    with contextlib.suppress(FileNotFoundError):
+        claim.unlink()  # before the lock goes: a process that opened it meanwhile sees another file and retries
+    os.close(held[0])
+
+
+def _release_all() -> None:
+    """At exit: remove every claim file this process still holds (the locks go with the process anyway)."""
+    for claim in list(_HELD):
+        _HELD[claim][1] = 1
+        release_claim(claim)
 
 
 def _claim_owner(claim: Path) -> int | None:
     try:
         return int(claim.read_text().strip())
     except (OSError, ValueError):
-        return None  # gone, or being written: no owner to wait for
-
-
-def _fresh(claim: Path) -> bool:
-    """Whether ``claim`` (still without its process id) was made in the last seconds: being written, not stale."""
-    try:
-        return time.time() - claim.stat().st_mtime < 5.0
-    except FileNotFoundError:
-        return False
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
+        return None  # gone, or being written

@@ -75,8 +75,8 @@ def claim_run_folder(path: Path) -> Path:
     claim, owner = claim_path(path)
     if claim is None:
         who = f"process {owner}" if owner is not None else "a process starting now"
-        raise RunDirError(f"another run ({who}) is writing into {path}; wait for it to end, or start this one with "
-                          "another --name")
+        raise RunDirError(f"another run ({who}) is writing into {path} (it holds {path.parent / f'.{path.name}.claim'}"
+                          "); wait for it to end, or start this one with another --name")
     return claim
 
 
