@@ -95,8 +95,9 @@ def evaluate_policy(
     to ``out_dir`` (created if needed; files of the same name there are replaced: the caller chooses the folder,
     e.g. with :func:`eval_out_dir`). It tests ``env``, or the env ``cfg`` builds, as it is: the standard test's
     nominal robot is ``nominal_config(cfg)`` (or ``load_policy(..., nominal=True).env``), which :func:`evaluate_run`
-    uses; a training config's kicks and randomisation stay on otherwise. ``seconds`` must cover at least one policy step; ``progress`` shows bars for
-    the rollout and the rendering; ``source``, the checkpoint tested, is recorded in the summary as ``checkpoint``.
+    uses; a training config's kicks and randomisation stay on otherwise. ``seconds`` must cover at least one policy
+    step; ``progress`` shows bars for the rollout and the rendering; ``source``, the checkpoint tested, is recorded
+    in the summary as ``checkpoint``.
     Returns the summary, NaN where a metric has no value (``null`` in the file)."""
     device = torch.device(device)
     if isinstance(video_envs, bool) or not isinstance(video_envs, int) or video_envs < 0:

@@ -423,7 +423,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--model: {err}")
     except ValueError as err:  # parameters that make no gait (validate) or put the feet out of reach (leg IK)
         options = _options_named_in(str(err))
-        hint = f"change {', '.join(options)}" if options else "change the gait parameters (see --help)"
+        geometry = "legs are not the ones" in str(err)  # no gait parameter changes the model's legs
+        hint = (f"change {', '.join(options)}" if options else "plan on a model of TOCABI's legs" if geometry
+                else "change the gait parameters (see --help)")
         parser.error(f"cannot generate the walk: {err}; {hint}")
     except RuntimeError as err:  # the pelvis/CoM iteration did not reach --com-tolerance
         parser.error(f"cannot generate the walk: {err}; raise --com-tolerance (default {GaitConfig.com_tolerance})")

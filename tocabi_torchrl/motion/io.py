@@ -110,7 +110,8 @@ class MotionData:
         sign and size (loaded < 0, at most :data:`MAX_FOOT_FORCE` N), that the cycle closes (the last row is the
         first, to :data:`SEAM_TOLERANCE` rad) and a period of at most :data:`MAX_PERIOD` s; return ``self``, else
         raise MotionFormatError."""
-        if isinstance(self.sample_rate, (bool, str, bytes)) or not isinstance(self.sample_rate, (int, float, np.number)):
+        rate = self.sample_rate
+        if isinstance(rate, (bool, str, bytes)) or not isinstance(rate, (int, float, np.number)):
             raise MotionFormatError(f"{source}: sample_rate must be a positive number of rows per second, got "
                                     f"{self.sample_rate!r}")
         st = _whole_numbers(source, "stance", self.stance, "0, 1 or 2")
