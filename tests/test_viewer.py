@@ -414,3 +414,57 @@ def test_play_viewer_of_an_onnx_policy_runs_the_torch_free_driver(capsys):
                          "--viewer_port", str(_free_port())])
     out = capsys.readouterr().out
     assert "viewer: 2 robots of" in out and '"survival"' in out  # the page was served, then sim2sim's metrics
+
+
+class _Camera:
+    """viser's camera handle as it behaves: setting the position moves look_at along with it."""
+
+    def __init__(self):
+        self._position, self._look_at = np.array([-3.0, -3.0, 2.0]), np.array([0.0, 0.0, 0.6])
+
+    @property
+    def position(self):
+        return self._position
+
+    @position.setter
+    def position(self, value):
+        value = np.asarray(value, np.float64)
+        self._look_at = self._look_at + (value - self._position)
+        self._position = value
+
+    @property
+    def look_at(self):
+        return self._look_at
+
+    @look_at.setter
+    def look_at(self, value):
+        self._look_at = np.asarray(value, np.float64)
+
+
+def test_camera_follow_looks_at_the_robot_and_a_world_out_of_range_is_clamped():
+    # follow() set look_at before the position, whose setter moved look_at again: the view flipped between two wrong
+    # ones every frame. A world index past the robots (the page's number box sends any) ended the play viewer with
+    # an IndexError; a --vx outside the slider's range was viser's error after the model had loaded.
+    import contextlib
+    from types import SimpleNamespace
+
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed: pip install -e '.[viewer]'")
+    from tocabi_torchrl.viewer.controls import PlayControls
+    from tocabi_torchrl.viewer.scene import follow
+    from tocabi_torchrl.viewer.server import start_server
+
+    client = SimpleNamespace(camera=_Camera(), atomic=contextlib.nullcontext)
+    server = SimpleNamespace(get_clients=lambda: {0: client})
+    target = np.array([1.5, -0.5, 0.9])
+    for _ in range(3):
+        follow(server, target)
+        np.testing.assert_allclose(client.camera.look_at, target)
+        np.testing.assert_allclose(client.camera.position - client.camera.look_at, [-3.0, -3.0, 1.4])
+    page = start_server("127.0.0.1", 0)
+    try:
+        controls = PlayControls(page, 4, command=(2.0, 0.0))
+        assert controls.vx.value == 2.0 and controls.vx.max == 2.0
+        controls.world.value = 7
+        assert controls.selected == 3
+    finally:
+        page.stop()

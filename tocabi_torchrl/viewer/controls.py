@@ -25,6 +25,7 @@ class WorldControls:
 
     def __init__(self, server, num_worlds: int):
         gui = server.gui
+        self.num_worlds = num_worlds
         self.world = gui.add_slider("world", min=0, max=max(num_worlds - 1, 1), step=1, initial_value=0,
                                     disabled=num_worlds < 2, hint="the robot pushes act on, traced and followed")
         self.follow = gui.add_checkbox("camera follow", initial_value=False,
@@ -32,7 +33,9 @@ class WorldControls:
 
     @property
     def selected(self) -> int:
-        return int(self.world.value)
+        """The picked world, clamped to the worlds there are: the page's number box can send any value (7 of 4
+        worlds once ended the play viewer with an IndexError)."""
+        return min(max(int(self.world.value), 0), self.num_worlds - 1)
 
 
 class PlayControls(WorldControls):
@@ -50,6 +53,9 @@ class PlayControls(WorldControls):
         gui = server.gui
         self._lock = threading.Lock()
         self._requests = Requests()
+        # A start command outside the default ranges widens them (--vx 2.0 was an error from viser after the load).
+        vx_range = (min(vx_range[0], float(command[0])), max(vx_range[1], float(command[0])))
+        vy_range = (min(vy_range[0], float(command[1])), max(vy_range[1], float(command[1])))
         with gui.add_folder("command"):
             self.vx = gui.add_slider("vx [m/s]", min=vx_range[0], max=vx_range[1], step=0.05,
                                      initial_value=float(command[0]))

@@ -100,5 +100,7 @@ def follow(server, target: np.ndarray) -> None:
         cam = client.camera
         offset = np.asarray(cam.position, np.float64) - np.asarray(cam.look_at, np.float64)
         with client.atomic():
-            cam.look_at = target
+            # Position first: viser's position setter moves look_at along with it, which would undo a look_at set
+            # before it (the view then flipped between two wrong ones every frame).
             cam.position = target + offset
+            cam.look_at = target

@@ -40,10 +40,23 @@ def check_address(host: str, port: int) -> None:
                      "machine only; reach it via ssh -L) or 0.0.0.0 (every interface)") from None
 
 
+def _taken(host: str, port: int) -> bool:
+    """Whether ``port`` on ``host`` cannot be bound now."""
+    try:
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
+            probe.bind((host, port))
+        return False
+    except OSError:
+        return True
+
+
 def start_server(host: str = "127.0.0.1", port: int = 8080, label: str = "tocabi-torchrl"):
     """A running ``viser.ViserServer`` on ``host``:``port`` (raises :class:`~.extra.ViewerUnavailable` without the
     extra). viser moves to the next free port when ``port`` is taken: the port it got is ``server.get_port()``."""
     check_address(host, port)
+    if port == 65535 and _taken(host, port):  # viser would try 65536, fail outside its retry and wait for ever
+        raise ValueError(f"viewer port {port} is taken and is the last port, so no next one is free to move to: pass "
+                         "another --viewer_port")
     viser = require_viser()
     server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
     server.gui.configure_theme(control_width="large", show_share_button=False)
