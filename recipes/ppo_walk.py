@@ -116,6 +116,10 @@ def main(argv: list[str] | None = None) -> None:
         if cfg.viewer.enabled:  # said now, not after the env is built
             require_viser()
             check_address(cfg.viewer.host, cfg.viewer.port)
+        unused = sorted(p for p in given if p.startswith("viewer.") and p != "viewer.enabled")
+        if unused and not cfg.viewer.enabled:  # as play.py's and sim2sim.py's --viewer_port without --viewer
+            raise ValueError(f"{', '.join('--' + p for p in unused)} set the live viewer, which is off: add --viewer, "
+                             "or leave them out")
         model_based = cfg.env.control.mode == "model_based"
         if cfg.eval_at_end or model_based:
             control_dt = load_model(cfg.env.task.model_path).opt.timestep * cfg.env.sim.substeps

@@ -798,3 +798,12 @@ def test_a_run_of_its_own_reward_terms_resumed_by_the_recipe_is_told_how_to_go_o
     assert str(info.value.code).startswith("error: checkpoint ") and \
         "it was trained with 14 reward terms, this env has 13: a run trained with terms of its own" in \
         str(info.value.code)
+
+
+def test_viewer_options_without_the_viewer_are_refused(tmp_path):
+    # --viewer.port 18186 without --viewer trained with no page and no word (the banner even listed it).
+    with pytest.raises(SystemExit) as info:
+        recipe("ppo_walk").main(tiny_args(tmp_path) + ["--viewer.port", "18186"])
+    assert str(info.value.code) == ("error: --viewer.port set the live viewer, which is off: add --viewer, or leave "
+                                    "them out")
+    assert not (tmp_path / "run").exists()
