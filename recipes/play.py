@@ -197,6 +197,9 @@ def serve(args: argparse.Namespace) -> None:
         sys.exit(f"error: {err}")
     except (ValueError, RuntimeError) as err:
         sys.exit(f"error: {err}")
+    except KeyboardInterrupt:  # while loading or serving: 130, as every Ctrl-C stop, not a traceback or 0
+        print("viewer stopped (Ctrl-C)", file=sys.stderr)
+        sys.exit(130)
 
 
 def serve_exported(args: argparse.Namespace) -> None:

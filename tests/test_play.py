@@ -442,3 +442,16 @@ def test_a_negative_video_size_and_a_file_as_results_folder_are_refused_before_a
     afile.write_text("")
     with pytest.raises(ValueError, match="out_dir .*afile is a file, not a folder"):
         evaluate_robust_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.1, out_dir=afile)
+
+
+def test_ctrl_c_in_a_checkpoint_viewer_exits_130_while_loading_or_serving(monkeypatch, capsys):
+    # Serving, Ctrl-C printed "viewer stopped" and exited 0; while loading it was a 67-line traceback.
+    import tocabi_torchrl.viewer.play as viewer_play
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(viewer_play, "serve_policy", interrupted)
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--policy", "ppo", "--viewer", "--device", "cpu"])
+    assert info.value.code == 130 and "viewer stopped (Ctrl-C)" in capsys.readouterr().err

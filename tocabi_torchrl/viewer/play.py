@@ -172,7 +172,8 @@ def serve_policy(path, num_envs: int = 64, device: str = "auto", host: str = "12
                  stop: threading.Event | None = None, ready=None) -> None:
     """Load the checkpoint or run folder ``path`` with ``num_envs`` worlds and serve its live page on ``host``:
     ``port`` until Ctrl-C (or ``stop``). Prints the URL. ``backend`` replaces the checkpoint's ``env.sim.backend``
-    (``"mujoco"``: C MuJoCo on the CPU). ``ready``: called with the :class:`LivePage` once the page is up."""
+    (``"mujoco"``: C MuJoCo on the CPU). ``ready``: called with the :class:`LivePage` once the page is up. Ctrl-C
+    stops the page and raises ``KeyboardInterrupt`` on to the caller (a command line exits 130 on it)."""
     from ..evaluation.record import load_policy
     from ..rl.trainer import resolve_device
     from .extra import require_viser
@@ -190,7 +191,5 @@ def serve_policy(path, num_envs: int = 64, device: str = "auto", host: str = "12
         if ready is not None:
             ready(live)
         live.run(stop)
-    except KeyboardInterrupt:
-        print("viewer stopped")
     finally:
         server.stop()
