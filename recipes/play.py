@@ -84,7 +84,9 @@ import torch  # noqa: E402
 
 from tocabi_torchrl.device import check_device  # noqa: E402
 from tocabi_torchrl.rl.checkpoint import verified_checkpoint_file  # noqa: E402
+from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
 from tocabi_torchrl.evaluation.gait_test import eval_out_dir, evaluate_run, gait_report_text, policy_dt  # noqa: E402
+from tocabi_torchrl.evaluation.output import remove_if_empty  # noqa: E402
 from tocabi_torchrl.evaluation.record import policy_steps  # noqa: E402
 
 
@@ -143,8 +145,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.test == "robust":
             from tocabi_torchrl.evaluation.robust import evaluate_robust_run, robust_report_text
 
-            on_cpu = args.device == "cpu" or (args.device == "auto" and not torch.cuda.is_available())
-            if on_cpu and args.num_envs is None:  # measured: about 1 step/s at 512 robots on 2 cores
+            # Measured: about 1 step/s at 512 robots on 2 cores.
+            if resolve_device(args.device).type == "cpu" and args.num_envs is None:
                 print(f"note: {TESTS['robust']:,} robots per case for {args.seconds:g} s take hours on a CPU; "
                       "--num_envs 4 takes about a minute (a smaller sample of the same test)", flush=True)
             report = evaluate_robust_run(args.checkpoint, num_envs=args.num_envs or TESTS["robust"],
@@ -161,9 +163,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(f"error: cannot write the evaluation to {err.filename or args.out}: {err.strerror or err}; pass "
                  f"--out a folder that can be created")
     except KeyboardInterrupt:  # 130 as for any Ctrl-C stop; an output folder with nothing in it goes too
-        kept = out is not None and out.is_dir() and any(out.iterdir())
-        if made and out.is_dir() and not kept:
-            out.rmdir()
+        kept = remove_if_empty(out, made)
         print(f"\nstopped (Ctrl-C) during the gait test{f'; {out}/ holds what was written' if kept else ''}",
               file=sys.stderr)
         sys.exit(130)

@@ -56,6 +56,7 @@ from tocabi_torchrl.motion.io import MotionFormatError  # noqa: E402
 from tocabi_torchrl.rl.checkpoint import CheckpointError, checkpoint_file  # noqa: E402
 from tocabi_torchrl.rl.distributed import ending, from_environment, shutdown  # noqa: E402
 from tocabi_torchrl.evaluation.gait_test import eval_out_dir, evaluate_run, gait_report_text  # noqa: E402
+from tocabi_torchrl.evaluation.output import remove_if_empty  # noqa: E402
 from tocabi_torchrl.evaluation.record import policy_steps  # noqa: E402
 from tocabi_torchrl.rl.interrupt import signal_exit_status  # noqa: E402
 from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
@@ -216,14 +217,14 @@ def main(argv: list[str] | None = None) -> None:
             print(gait_report_text(summary, cfg.eval_seconds, cfg.eval_envs, out))
     except (KeyboardInterrupt, _Terminated) as stop:  # training is done and saved: only the test stopped
         name = "SIGTERM" if isinstance(stop, _Terminated) else "SIGINT"
-        _remove_if_empty(out, made)
+        remove_if_empty(out, made)
         print(f"\nstopped ({'SIGTERM' if name == 'SIGTERM' else 'Ctrl-C'}) during the gait test; training had "
               f"finished and is saved.\n{where}", file=sys.stderr)
         sys.exit(signal_exit_status(name))
     except OSError as err:
         if err.errno not in WRITE_ERRNOS:
             raise
-        _remove_if_empty(out, made)
+        remove_if_empty(out, made)
         print(f"error: the gait test could not write its results ({err}); training had finished and is saved. "
               f"Free space or fix the folder's permissions and re-test it with play.py.\n{where}", file=sys.stderr)
         sys.exit(1)
@@ -244,12 +245,6 @@ class _Terminated(Exception):
 
 def _terminate(signum, frame) -> None:
     raise _Terminated()
-
-
-def _remove_if_empty(out, made: bool) -> None:
-    """Remove the results folder the stopped test made, if it is still empty."""
-    if made and out is not None and out.is_dir() and not any(out.iterdir()):
-        out.rmdir()
 
 
 if __name__ == "__main__":

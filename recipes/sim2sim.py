@@ -66,6 +66,7 @@ if __name__ == "__main__":  # --help or a misspelt option answers before mujoco 
     build_parser().parse_args(sys.argv[1:])
 
 from tocabi_torchrl.atomic import atomic_write_text  # noqa: E402
+from tocabi_torchrl.evaluation.output import json_safe  # noqa: E402
 from tocabi_torchrl.runtime import ContractError  # noqa: E402
 from tocabi_torchrl.runtime.contract import load_contract  # noqa: E402
 from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim  # noqa: E402
@@ -103,15 +104,6 @@ def progress(args: argparse.Namespace, dt: float, draw=None):
             draw(step, model, datas)
 
     return bar, on_step
-
-
-def _null_for_nan(value):
-    """``value`` (nested dicts and lists) with every non-finite float as None."""
-    if isinstance(value, dict):
-        return {k: _null_for_nan(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_null_for_nan(v) for v in value]
-    return None if isinstance(value, float) and not math.isfinite(value) else value
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -178,7 +170,7 @@ def main(argv: list[str] | None = None) -> dict:
     result["model"] = str(args.model)
     # Standard JSON, as the export writes: a metric of no robot (every one fell in the first period) is null, not the
     # NaN that strict JSON readers refuse.
-    text = json.dumps(_null_for_nan(result), indent=2, allow_nan=False)
+    text = json.dumps(json_safe(result), indent=2, allow_nan=False)
     print(text)
     if args.out:
         try:

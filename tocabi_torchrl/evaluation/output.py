@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["OutputExistsError", "json_safe", "rounded_against"]
+__all__ = ["OutputExistsError", "json_safe", "remove_if_empty", "rounded_against"]
 
 
 class OutputExistsError(RuntimeError):
@@ -21,6 +21,15 @@ def json_safe(value):
     if isinstance(value, (list, tuple)):
         return [json_safe(v) for v in value]
     return value
+
+
+def remove_if_empty(out, made: bool) -> bool:
+    """After a stopped evaluation: remove the results folder ``out`` if this evaluation ``made`` it and it is still
+    empty (a folder given stays). Returns whether ``out`` holds files (what was written before the stop)."""
+    kept = out is not None and out.is_dir() and any(out.iterdir())
+    if made and out is not None and out.is_dir() and not kept:
+        out.rmdir()
+    return kept
 
 
 def rounded_against(value: float, limit: float, passed: bool, kind: str, decimals: int) -> str:

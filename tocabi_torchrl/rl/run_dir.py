@@ -174,11 +174,16 @@ def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
         return run
     if not cfg.resume:
         return RunFolder(path)
+    return RunFolder(path, *_resumed_checkpoint(cfg))
+
+
+def _resumed_checkpoint(cfg: RunConfig) -> tuple[dict, Path]:
+    """The state and file of ``cfg.resume``, read and checked against ``cfg``'s settings."""
     refuse_run_without_checkpoint(cfg.resume)
     file = checkpoint_file(cfg.resume)
     state = read_checkpoint(file)
     check_resume_config(config_from_checkpoint(state, file, strict=True), cfg, file)
-    return RunFolder(path, state, file)
+    return state, file
 
 
 def _open_claimed(cfg: RunConfig, path: Path) -> RunFolder:
@@ -191,10 +196,7 @@ def _open_claimed(cfg: RunConfig, path: Path) -> RunFolder:
                 f"run folder {path} already holds a run; it is not overwritten. Continue it with --resume {path}, "
                 f"or start a new run with another --name (or delete the folder)")
         return RunFolder(path)
-    refuse_run_without_checkpoint(cfg.resume)
-    file = checkpoint_file(cfg.resume)
-    state = read_checkpoint(file)
-    check_resume_config(config_from_checkpoint(state, file, strict=True), cfg, file)
+    state, file = _resumed_checkpoint(cfg)
     source = run_folder_of(file)
     if holds_run(path) and source.resolve() != path.resolve():
         raise RunDirError(

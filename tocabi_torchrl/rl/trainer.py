@@ -301,6 +301,16 @@ class TrainResult:
     start_env_steps: int = 0
 
 
+def budget_iterations(total_env_steps: int, frames_per_iteration: int) -> int:
+    """PPO iterations of a budget of ``total_env_steps`` (the last one may run past it), at least one."""
+    return max(1, -(-total_env_steps // frames_per_iteration))
+
+
+def linear_lr(ppo, progress_remaining: float) -> float:
+    """``ppo.lr_schedule == "linear"``'s rate: ``ppo.lr`` at the start (progress remaining 1), ``ppo.lr_end`` at 0."""
+    return ppo.lr_end + (ppo.lr - ppo.lr_end) * progress_remaining
+
+
 def schedule_change_note(state: dict, cfg: RunConfig, start_iter: int, frames_per_iteration: int) -> str | None:
     """What a resumed run's changed ``total_env_steps`` does to its schedules, or None: the scheduled action std and
     the linear learning rate follow the progress made through the budget, so a larger budget puts them back toward
@@ -309,14 +319,13 @@ def schedule_change_note(state: dict, cfg: RunConfig, start_iter: int, frames_pe
     if saved.total_env_steps == cfg.total_env_steps:
         return None
     ppo, moves = cfg.ppo, []
-    before, after = (1.0 - (start_iter + 1) / max(1, -(-total // frames_per_iteration))
+    before, after = (1.0 - (start_iter + 1) / budget_iterations(total, frames_per_iteration)
                      for total in (saved.total_env_steps, cfg.total_env_steps))
     if ppo.std_mode == "scheduled":
         schedule = StdSchedule(ppo.std_start, ppo.std_end, ppo.std_hold)
         moves.append(("action std", schedule(before), schedule(after)))
     if ppo.lr_schedule == "linear":
-        moves.append(("learning rate", *(ppo.lr_end + (ppo.lr - ppo.lr_end) * min(max(p, 0.0), 1.0)
-                                         for p in (before, after))))
+        moves.append(("learning rate", *(linear_lr(ppo, min(max(p, 0.0), 1.0)) for p in (before, after))))
     moves = [f"{name} {a:.4g} -> {b:.4g}" for name, a, b in moves if not math.isclose(a, b, rel_tol=1e-6)]
     if not moves:
         return None
@@ -553,7 +562,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         if not agree(error is None, info, device):
             raise error if error is not None else RuntimeError("another rank could not open the run; see its error")
     frames_per_iteration = cfg.frames_per_batch * info.world_size
-    iterations = max(1, -(-cfg.total_env_steps // frames_per_iteration))
+    iterations = budget_iterations(cfg.total_env_steps, frames_per_iteration)
     if run.start_env_steps // frames_per_iteration >= iterations:
         return finished_result(run, cfg)
     torch.manual_seed(cfg.seed)
@@ -691,7 +700,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             # made after each rollout and before its update, so the update runs with them, and so does the next
             # rollout. The adaptive rate, which reads this update's KL, is set after it (settle).
             if ppo.lr_schedule == "linear":
-                lr = ppo.lr_end + (ppo.lr - ppo.lr_end) * progress_remaining
+                lr = linear_lr(ppo, progress_remaining)
                 _set_scheduled_lr(optimizer, lr)
             if agent.std_schedule is not None:
                 set_action_std(agent.actor, agent.std_schedule(progress_remaining))
