@@ -138,6 +138,26 @@ def test_tensorboard_writes_event_files(tmp_path):
     assert [r["kl"] for r in read_metrics(tmp_path)] == ["0.5", "0.25"]
 
 
+def test_a_resumed_tensorboard_run_drops_the_steps_logged_after_its_checkpoint(tmp_path):
+    # A run killed at iteration 4 after its checkpoint at 2 logged 3 and 4; the resumed run logs them again. Without
+    # the purge TensorBoard showed both values at each step (event files are append-only).
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = tiny(tmp_path, loggers=("csv", "tensorboard"))
+    killed = run_logging.RunLogger(tmp_path, cfg, total_iterations=4)
+    for it in (1, 2, 3, 4):
+        killed.log(it, {"kl": float(it)})
+    killed.close()
+    resumed = run_logging.RunLogger(tmp_path, cfg, total_iterations=4, start_iteration=2)
+    for it in (3, 4):
+        resumed.log(it, {"kl": 10.0 * it})
+    resumed.close()
+    assert len(list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))) == 2
+    events = EventAccumulator(str(tmp_path / "tensorboard")).Reload()
+    assert [(e.step, e.value) for e in events.Scalars("kl")] == [(1, 1.0), (2, 2.0), (3, 30.0), (4, 40.0)]
+
+
 def test_wandb_logs_offline_and_a_resume_continues_its_run(tmp_path, monkeypatch):
     pytest.importorskip("wandb")
     monkeypatch.delenv("WANDB_API_KEY", raising=False)

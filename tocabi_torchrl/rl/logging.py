@@ -9,7 +9,8 @@ Each logged iteration's metrics go to :mod:`torchrl.record.loggers` instances, `
   resumed run continues the same files (:func:`~tocabi_torchrl.rl.run_dir.open_run` first drops what was logged
   after the checkpoint). Read them with :func:`~tocabi_torchrl.rl.metrics_files.read_metrics`, the one reader.
 - ``TensorboardLogger`` (exp_name ``tensorboard``) on ``--loggers tensorboard``: event files in
-  ``<run>/tensorboard/``; a resumed run adds a new event file beside the earlier ones.
+  ``<run>/tensorboard/``; a resumed run adds a new event file beside the earlier ones, which starts by telling
+  TensorBoard to drop the earlier files' events after the checkpoint (what a killed run logged past it).
 - ``WandbLogger`` on ``--loggers wandb``: project ``tocabi-torchrl``, the run's name and config, files in
   ``<run>/wandb/``. Offline (``mode="offline"`` passed to ``wandb.init``, not the process-wide ``WANDB_MODE`` that
   torchrl's ``offline=True`` sets) unless ``WANDB_API_KEY`` is set. The W&B run id is kept in
@@ -62,9 +63,11 @@ def write_config(run_dir: str | os.PathLike, cfg) -> Path:
                              json.dumps({"schema_version": SCHEMA_VERSION, **cfg.to_dict()}, indent=2, default=str))
 
 
-def make_loggers(run_dir: str | os.PathLike, cfg) -> dict:
+def make_loggers(run_dir: str | os.PathLike, cfg, resumed_at: int = 0) -> dict:
     """The torchrl loggers of a run folder, by name: ``csv`` always, then those of ``cfg.loggers`` (see the module
-    docstring for where each writes). Checks the packages first (:func:`require_loggers`)."""
+    docstring for where each writes). Checks the packages first (:func:`require_loggers`). ``resumed_at``: the
+    checkpoint's iteration a resumed run goes on from (0: a new run); TensorBoard then drops the earlier event files'
+    steps after it, as :func:`~tocabi_torchrl.rl.metrics_files.trim_metrics` drops those rows from the CSV files."""
     from torchrl.record.loggers import CSVLogger
 
     require_loggers(cfg.loggers)
@@ -73,10 +76,24 @@ def make_loggers(run_dir: str | os.PathLike, cfg) -> dict:
     if "tensorboard" in cfg.loggers:
         from torchrl.record.loggers import TensorboardLogger
 
-        loggers["tensorboard"] = TensorboardLogger(exp_name="tensorboard", log_dir=str(run_dir))
+        loggers["tensorboard"] = (TensorboardLogger(exp_name="tensorboard", log_dir=str(run_dir)) if resumed_at <= 0
+                                  else _resumed_tensorboard(run_dir, resumed_at))
     if "wandb" in cfg.loggers:
         loggers["wandb"] = _wandb_logger(run_dir, cfg)
     return loggers
+
+
+def _resumed_tensorboard(run_dir: Path, resumed_at: int):
+    """torchrl's TensorBoard logger whose writer has ``purge_step`` (the first step after the checkpoint): event files
+    are append-only, so the steps a killed run logged past its checkpoint can only be purged on reading."""
+    from torch.utils.tensorboard import SummaryWriter
+    from torchrl.record.loggers import TensorboardLogger
+
+    class ResumedTensorboardLogger(TensorboardLogger):
+        def _create_experiment(self) -> SummaryWriter:
+            return SummaryWriter(log_dir=os.path.join(self.log_dir, self.exp_name), purge_step=resumed_at + 1)
+
+    return ResumedTensorboardLogger(exp_name="tensorboard", log_dir=str(run_dir))
 
 
 def _wandb_logger(run_dir: Path, cfg):
@@ -103,11 +120,12 @@ class RunLogger:
     logged iteration)."""
 
     def __init__(self, run_dir: str | os.PathLike, cfg, total_iterations: int, start_iteration: int = 0):
+        """``start_iteration``: the iteration the run goes on from (a resumed run's checkpoint; 0: a new run)."""
         require_loggers(cfg.loggers)  # before anything is written
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         write_config(self.run_dir, cfg)
-        self.loggers = make_loggers(self.run_dir, cfg)
+        self.loggers = make_loggers(self.run_dir, cfg, resumed_at=start_iteration)
         # Episodes outlast several iterations: the bar shows the last finished episodes' numbers until new ones end.
         self._last_episode = {"episode_return": None, "episode_length": None}
         self._bar = None
