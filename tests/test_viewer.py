@@ -365,6 +365,21 @@ def test_a_host_is_served_when_any_of_its_addresses_binds(monkeypatch):
         server.check_address("both.example", 8080)
 
 
+def test_the_page_url_brackets_an_ipv6_address(monkeypatch):
+    # "http://::1:8080" reads as host "" and a bad port; a browser needs "http://[::1]:8080".
+    import doctest
+
+    from tocabi_torchrl.viewer import server
+
+    runner = doctest.DocTestRunner()
+    for test in doctest.DocTestFinder().find(server.page_url, globs={"page_url": server.page_url}):
+        runner.run(test)
+    assert runner.failures == 0 and runner.tries == 1
+    assert server.page_url("fe80::1", 9) == "http://[fe80::1]:9"
+    monkeypatch.setattr(server.socket, "gethostname", lambda: "robot-lab")
+    assert server.page_url("::", 8080) == "http://robot-lab:8080"
+
+
 def test_policy_names_a_shipped_policy_or_says_which_there_are(tmp_path):
     from tocabi_torchrl.viewer.policy_source import resolve_policy
 

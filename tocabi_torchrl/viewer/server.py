@@ -11,9 +11,14 @@ __all__ = ["start_server", "page_url", "check_address"]
 
 def page_url(host: str, port: int) -> str:
     """The URL a browser opens for a server bound to ``host``:``port`` (``0.0.0.0``/``::``: this machine's name,
-    reachable from others; through an SSH tunnel open http://localhost:<port>)."""
+    reachable from others; through an SSH tunnel open http://localhost:<port>). An IPv6 address goes in brackets
+    (RFC 3986), or the browser reads its last group as the port.
+
+    >>> page_url("127.0.0.1", 8080), page_url("::1", 8080)
+    ('http://127.0.0.1:8080', 'http://[::1]:8080')
+    """
     shown = socket.gethostname() if host in ("0.0.0.0", "::", "") else host
-    return f"http://{shown}:{port}"
+    return f"http://[{shown}]:{port}" if ":" in shown else f"http://{shown}:{port}"
 
 
 def check_address(host: str, port: int) -> None:
