@@ -158,6 +158,27 @@ def test_a_resumed_tensorboard_run_drops_the_steps_logged_after_its_checkpoint(t
     assert [(e.step, e.value) for e in events.Scalars("kl")] == [(1, 1.0), (2, 2.0), (3, 30.0), (4, 40.0)]
 
 
+def test_a_resume_keeps_an_edited_config_json_instead_of_writing_over_it(tmp_path, capsys):
+    import json
+
+    cfg = tiny(tmp_path)
+    run_logging.RunLogger(tmp_path, cfg, total_iterations=4).close()
+    written = json.loads((tmp_path / "config.json").read_text())
+    safe_edit = {**written, "max_minutes": 99.0}  # a resume may change it: nothing to keep
+    (tmp_path / "config.json").write_text(json.dumps(safe_edit))
+    run_logging.RunLogger(tmp_path, cfg, total_iterations=4, start_iteration=2).close()
+    assert not list(tmp_path.glob("config.edited*")) and "was edited" not in capsys.readouterr().out
+    edited = {**written, "ppo": {**written["ppo"], "gamma": 0.5}}
+    for expected in ("config.edited.json", "config.edited.1.json"):
+        (tmp_path / "config.json").write_text(json.dumps(edited))
+        run_logging.RunLogger(tmp_path, cfg, total_iterations=4, start_iteration=2).close()
+        assert json.loads((tmp_path / expected).read_text())["ppo"]["gamma"] == 0.5
+        assert json.loads((tmp_path / "config.json").read_text()) == written
+        out = capsys.readouterr().out
+        assert f"was edited (ppo.gamma: 0.5 (the run's: {cfg.ppo.gamma!r}))" in out and expected in out
+    assert json.loads((tmp_path / "config.edited.json").read_text())["ppo"]["gamma"] == 0.5  # the first not replaced
+
+
 def test_wandb_logs_offline_and_a_resume_continues_its_run(tmp_path, monkeypatch):
     pytest.importorskip("wandb")
     monkeypatch.delenv("WANDB_API_KEY", raising=False)

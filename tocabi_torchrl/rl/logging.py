@@ -31,7 +31,7 @@ from pathlib import Path
 from ..atomic import atomic_write_text
 from .metrics_files import METRICS_DIR
 
-__all__ = ["RunLogger", "make_loggers", "require_loggers", "write_config"]
+__all__ = ["RunLogger", "keep_edited_config", "make_loggers", "require_loggers", "write_config"]
 
 #: The package each optional logger imports, and how to install it.
 _LOGGER_PACKAGES = {
@@ -61,6 +61,43 @@ def write_config(run_dir: str | os.PathLike, cfg) -> Path:
 
     return atomic_write_text(Path(run_dir) / "config.json",
                              json.dumps({"schema_version": SCHEMA_VERSION, **cfg.to_dict()}, indent=2, default=str))
+
+
+def _leaves(tree: dict, prefix: str = "") -> dict:
+    """A nested config dict flattened to dotted paths."""
+    out = {}
+    for key, value in tree.items():
+        path = f"{prefix}{key}"
+        out.update(_leaves(value, path + ".") if isinstance(value, dict) else {path: value})
+    return out
+
+
+def keep_edited_config(run_dir: str | os.PathLike, cfg) -> Path | None:
+    """Before a resumed run writes ``config.json`` again: if the file was edited (an option a resume may not change
+    holds another value than the checkpoint's config), move it to a free ``config.edited[.N].json`` and say so; a
+    resume trains the checkpoint's config, and rewriting the file would silently drop the edit. Returns the new path,
+    or None when nothing was edited."""
+    from .resume import RESUME_SAFE
+
+    path = Path(run_dir) / "config.json"
+    try:
+        on_disk = _leaves(json.loads(path.read_text()))
+    except (OSError, ValueError, AttributeError):  # none, or not a JSON object: nothing an edit could be told from
+        return None
+    saved = _leaves(json.loads(json.dumps(cfg.to_dict(), default=str)))
+    edited = sorted(k for k in on_disk.keys() & saved.keys() if k not in RESUME_SAFE and on_disk[k] != saved[k])
+    if not edited:
+        return None
+    kept, n = path.with_name("config.edited.json"), 1
+    while kept.exists():
+        kept, n = path.with_name(f"config.edited.{n}.json"), n + 1
+    os.replace(path, kept)
+    shown = ", ".join(f"{k}: {on_disk[k]!r} (the run's: {saved[k]!r})" for k in edited[:3])
+    more = f" and {len(edited) - 3} more" if len(edited) > 3 else ""
+    print(f"{path} was edited ({shown}{more}); a resume trains the checkpoint's config and ignores the file, so the "
+          f"edited file was moved to {kept.name} and config.json is written again. Options a resume may change go on "
+          "the command line; for other changes start a new run (--name NEW).", flush=True)
+    return kept
 
 
 def make_loggers(run_dir: str | os.PathLike, cfg, resumed_at: int = 0) -> dict:
@@ -124,6 +161,8 @@ class RunLogger:
         require_loggers(cfg.loggers)  # before anything is written
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        if start_iteration > 0:
+            keep_edited_config(self.run_dir, cfg)
         write_config(self.run_dir, cfg)
         self.loggers = make_loggers(self.run_dir, cfg, resumed_at=start_iteration)
         # Episodes outlast several iterations: the bar shows the last finished episodes' numbers until new ones end.
