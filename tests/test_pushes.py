@@ -137,6 +137,13 @@ def _env(pushes: PushConfig, n=2, **task):
     return TocabiWalk(num_envs=n, device="cpu", seed=0, config=cfg, sim_threads=1)
 
 
+def test_a_push_window_past_the_episode_end_is_refused():
+    # 250 steps of 4 ms = 1 s: a window to 2 s would leave its second kick's share past every episode's end.
+    with pytest.raises(ValueError, match=r"env.pushes.window ends at 2 s, after the episode's 1 s"):
+        _env(PushConfig(count=2, window=(0.5, 2.0)), max_episode_steps=250)
+    assert _env(PushConfig(count=2, window=(0.5, 1.0)), max_episode_steps=250).pushes is not None
+
+
 def test_a_kick_changes_the_robots_velocity_by_about_its_speed():
     # One kick of 0.5 m/s in the first share of a 0.2-0.204 s window (policy step 50), the residual-PD robot holding
     # the reference pose (zero action). Compared with the same env without kicks.

@@ -17,7 +17,8 @@ class PushConfig:
 
     Attributes:
         count: kicks per episode.
-        window: (start, end) [s] of episode time over which the kicks are spread (kick j in the j-th share).
+        window: (start, end) [s] of episode time over which the kicks are spread (kick j in the j-th share); the env
+            refuses an end past its episode (``env.task.max_episode_steps``), whose last kicks would never come.
         speed: (low, high) [m/s] the velocity change of the whole robot, drawn per kick (impulse = speed × mass).
         duration: (low, high) [s] how long each kick's force acts, drawn per kick (rounded to whole policy steps,
             at least one).

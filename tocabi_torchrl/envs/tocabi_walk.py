@@ -248,6 +248,12 @@ class TocabiWalk(EnvBase):
         #: The episode's kicks (``env.pushes``), or None when they are off.
         self.pushes: Pushes | None = None
         if cfg.pushes.count > 0:
+            episode_s = cfg.task.max_episode_steps * self.dt
+            if cfg.pushes.window[1] > episode_s + 1e-9:  # the later shares' kicks would never come
+                raise ValueError(f"env.pushes.window ends at {cfg.pushes.window[1]:g} s, after the episode's "
+                                 f"{episode_s:g} s (env.task.max_episode_steps {cfg.task.max_episode_steps} x "
+                                 f"{self.dt * 1e3:g} ms): the kicks of its last shares would never come. End the "
+                                 f"window by {episode_s:g} s or lengthen the episode")
             mass = float(self.sim.mj_model.body_subtreemass[self.sim.mj_model.body(robot.BASE_BODY).id])
             self.pushes = Pushes(cfg.pushes, num_envs, device, self.dt, mass)
             #: [kg] the body masses a "velocity" kick accelerates: the simulator's own per-world field (N, nbody),
