@@ -306,3 +306,19 @@ def test_mocap_positions_are_checked():
         MujocoSim(SimConfig(num_worlds=2, device="cpu"), model=spec, mocap_pos={"obstacle_0": np.zeros((3, 3))})
     with pytest.raises(ValueError, match="obstacle names are reserved"):
         add_obstacles(spec, (FIXED,))
+
+
+@pytest.mark.parametrize("box, problem", [
+    (BoxObstacle(size=(0.3, 0.6, 0.012), pos=(0.3, 0.1)), "overlaps the left sole"),
+    (BoxObstacle(size=(0.2, 0.2, 0.05), pos=(0.1, -0.3), jitter=(0.0, 0.2)), "overlaps the right sole"),
+])
+def test_a_box_the_robot_would_start_inside_is_refused(box, problem):
+    from tocabi_torchrl.envs.obstacles import check_clear_of_start
+
+    with pytest.raises(ValueError, match=rf"env.scene.obstacles\[1\] .*{problem} where the robot starts"):
+        check_clear_of_start((FIXED, box))
+    # Clear of both soles: ahead of them, beside them once its jitter cannot reach, or a plate a few mm high.
+    check_clear_of_start((BoxObstacle.ahead_of_left_foot(0.012), BoxObstacle((0.2, 0.2, 0.05), (0.1, -0.3)),
+                          FEET_BOX))
+    with pytest.raises(ValueError, match="overlaps the left sole"):
+        TocabiWalk(num_envs=1, device="cpu", backend="mujoco", obstacles=(BoxObstacle((0.4, 0.6, 0.012), (0.1, 0.0)),))

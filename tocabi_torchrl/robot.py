@@ -299,14 +299,15 @@ def _check_foot_sensors(model: "mujoco.MjModel", source: str) -> None:  # noqa: 
 
 # ------------------------------------------------------------------------------------------------ initial pose
 @functools.lru_cache(maxsize=8)
-def _sole_centres(model_path: str | None) -> np.ndarray:
+def _soles(model_path: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """(2, 3) centres and (2, 3) half extents of the world-axis box around each sole, in ``INIT_QPOS`` [m]."""
     import mujoco
 
     model = load_model(model_path)
     data = mujoco.MjData(model)
     data.qpos[:] = INIT_QPOS
     mujoco.mj_kinematics(model, data)
-    out = []
+    centres, extents = [], []
     for foot in FOOT_BODIES:
         b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, foot)
         soles = [g for g in range(model.ngeom) if model.geom_bodyid[g] == b and model.geom_contype[g]
@@ -314,8 +315,19 @@ def _sole_centres(model_path: str | None) -> np.ndarray:
         if not soles:
             raise RobotAssetError(f"{foot} has no collision box (its sole) in the robot model")
         sole = max(soles, key=lambda g: float(np.prod(model.geom_size[g])))
-        out.append(data.geom_xpos[sole].copy())
-    return np.array(out)
+        centres.append(data.geom_xpos[sole].copy())
+        extents.append(np.abs(data.geom_xmat[sole].reshape(3, 3)) @ model.geom_size[sole])
+    return np.array(centres), np.array(extents)
+
+
+def _sole_centres(model_path: str | None) -> np.ndarray:
+    return _soles(model_path)[0]
+
+
+def initial_sole_extents(foot: int = 0, model_path: str | None = None) -> np.ndarray:
+    """(3,) half extents [m] along the world axes of a sole's box in the robot's initial pose (``INIT_QPOS``), around
+    :func:`initial_sole_centre`; ``foot`` 0 = left, 1 = right."""
+    return _soles(None if model_path is None else str(model_path))[1][foot].copy()
 
 
 def initial_sole_centre(foot: int = 0, model_path: str | None = None) -> np.ndarray:

@@ -20,15 +20,20 @@ import mujoco
 import numpy as np
 
 from ..robot import initial_sole_centre  # re-exported: where it lived before it became a fact of the robot model
+from ..robot import initial_sole_extents
 from .config import BoxObstacle
 
-__all__ = ["OBSTACLE_PREFIX", "obstacle_names", "add_obstacles", "world_obstacle_centres", "initial_sole_centre"]
+__all__ = ["OBSTACLE_PREFIX", "obstacle_names", "add_obstacles", "world_obstacle_centres", "initial_sole_centre",
+           "check_clear_of_start"]
 
 #: Body and geom name of obstacle k: ``OBSTACLE_PREFIX + str(k)``.
 OBSTACLE_PREFIX = "obstacle_"
 #: Stream tag of the per-world jitter draws (mixed with the env seed), so they never coincide with other draws.
 _JITTER_STREAM = 0x0B57AC1E
 _RGBA = (0.55, 0.45, 0.3, 1.0)
+#: [m] how far a box under a sole may reach into it at the start: the contact solver lifts the robot out of a few mm
+#: as softly as out of the ground (a 3 mm plate under both feet keeps it standing, tests/test_obstacles.py).
+START_PENETRATION_M = 0.005
 
 
 def obstacle_names(count: int) -> tuple[str, ...]:
@@ -50,6 +55,29 @@ def add_obstacles(spec: mujoco.MjSpec, obstacles: Sequence[BoxObstacle]) -> tupl
         body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=[hx, hy, hz], contype=1, conaffinity=1,
                       rgba=list(_RGBA))
     return names
+
+
+def check_clear_of_start(obstacles: Sequence[BoxObstacle], model_path: str | None = None) -> None:
+    """``ValueError`` naming the first box whose footprint, anywhere its jitter may put it, overlaps a sole in the
+    robot's initial pose and which stands more than :data:`START_PENETRATION_M` above the sole's start height: the
+    robot would start inside it (each box stands on the ground, where the soles start), and the contact solver's
+    first step throws it off. ``model_path``: the robot model (None: the shipped one)."""
+    for k, box in enumerate(obstacles):
+        reach = np.array(box.half_size[:2]) + np.array(box.jitter)
+        for foot, side in enumerate(("left", "right")):
+            sole, size = initial_sole_centre(foot, model_path), initial_sole_extents(foot, model_path)
+            centre, extent = sole[:2], size[:2]
+            gap = np.abs(np.array(box.pos) - centre) - (reach + extent)
+            # A plate up to a few mm above the sole's start height (1.3 mm on the shipped robot) lifts the robot
+            # the way the soft ground contact does; a taller box throws it off.
+            if (gap < 0).all() and box.size[2] > sole[2] - size[2] + START_PENETRATION_M:
+                lo, hi = centre - extent, centre + extent
+                raise ValueError(
+                    f"env.scene.obstacles[{k}] (centre {tuple(box.pos)}, size {tuple(box.size)}, jitter "
+                    f"{tuple(box.jitter)}) overlaps the {side} sole where the robot starts (x {lo[0]:.3f}..{hi[0]:.3f}, "
+                    f"y {lo[1]:.3f}..{hi[1]:.3f} m): the robot would start inside the box. Move it at least "
+                    f"{-gap.max():.3f} m further along x or y (BoxObstacle.ahead_of_left_foot places one ahead "
+                    "of the feet)")
 
 
 def world_obstacle_centres(obstacles: Sequence[BoxObstacle], num_worlds: int, seed: int) -> np.ndarray:

@@ -34,7 +34,7 @@ from .config import TocabiWalkConfig, resolve_backend
 from .controllers import leg_actuator_chain, leg_law, upper_body_law
 from .cycle_velocity import CycleVelocityError, gait_cycle_steps, heading_velocity
 from .episode_random import EpisodeDraws, box_muller, hash_seed
-from .obstacles import add_obstacles, world_obstacle_centres
+from .obstacles import add_obstacles, check_clear_of_start, world_obstacle_centres
 from .pushes import Pushes
 from .termination import termination_flags
 
@@ -198,6 +198,7 @@ class TocabiWalk(EnvBase):
         if gains is not None:
             spec = _servo_spec(spec, robot.LEG_JOINT_IDS, gains)
         obstacles = cfg.scene.obstacles
+        check_clear_of_start(obstacles, cfg.task.model_path)
         #: The seed the obstacles' per-world offsets were drawn from (the build seed: ``set_seed`` does not move them).
         self.scene_seed = self._seed
         centres = world_obstacle_centres(obstacles, num_envs, self.scene_seed)
