@@ -121,6 +121,10 @@ def test_config_builds_the_stages_it_names_and_nothing_when_ideal():
     # Accepted, and the delay's history would then have held 10**9 past torques of every world.
     with pytest.raises(ValueError, match=r"delay_substeps \(0, 1000000000\) reaches past 400 substeps"):
         ActuatorConfig(delay_substeps=(0, 10 ** 9)).validate()
+    # Options of a delay without one were accepted and did nothing.
+    for shaping in (dict(delay_average=True), dict(delay_stride=8)):
+        with pytest.raises(ValueError, match=r"shape a torque delay, but delay_substeps is \(0, 0\)"):
+            ActuatorConfig(**shaping).validate()
     strided = ActuatorConfig(delay_substeps=(4, 20), delay_stride=8).build(8).stages[0]
     assert strided.values() == [4, 12, 20]
     for stride, message in ((5, "does not divide the delay range"), (0, ">= 1"), (True, ">= 1")):

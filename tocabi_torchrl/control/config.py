@@ -66,6 +66,11 @@ class ActuatorConfig:
             raise ValueError(f"env.control.actuators.delay_stride: {problem}")
         if not isinstance(self.delay_average, bool):
             raise ValueError(f"env.control.actuators.delay_average must be True or False, got {self.delay_average!r}")
+        if tuple(self.delay_substeps) == (0, 0) and (self.delay_average or self.delay_stride != 1):
+            # Both shape the delay; without one they would be silently ignored.
+            raise ValueError(f"env.control.actuators.delay_average {self.delay_average} / delay_stride "
+                             f"{self.delay_stride} shape a torque delay, but delay_substeps is (0, 0): set a delay "
+                             "(e.g. delay_substeps=(4, 20)) or leave them at False / 1")
 
     @property
     def ideal(self) -> bool:
