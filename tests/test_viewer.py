@@ -483,3 +483,27 @@ def test_camera_follow_looks_at_the_robot_and_a_world_out_of_range_is_clamped():
         assert controls.selected == 3
     finally:
         page.stop()
+
+
+@pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="shipped policy not present")
+def test_selecting_another_robot_starts_its_own_knee_trace():
+    # The trace went on with the new robot's knees after the old one's, one line through two robots.
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed: pip install -e '.[viewer]'")
+    from tocabi_torchrl.evaluation.record import load_policy
+    from tocabi_torchrl.viewer.play import LivePage
+    from tocabi_torchrl.viewer.server import start_server
+
+    policy = load_policy(SHIPPED_POLICY, 2, "cpu", command=(0.5, 0.0), backend="mujoco")  # a name works too
+    server = start_server("127.0.0.1", 0)
+    try:
+        live = LivePage(policy.env, policy.actor, server)
+        for _ in range(3):
+            live.step()
+        assert len(live.knee_trace.t) == 3
+        live.controls.world.value = 1
+        live.step()
+        assert list(live.knee_trace.t) == [pytest.approx(4 * live.dt)]
+        live.step()
+        assert len(live.knee_trace.t) == 2
+    finally:
+        server.stop()

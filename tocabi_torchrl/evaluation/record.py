@@ -147,12 +147,13 @@ def nominal_config(cfg: RunConfig) -> RunConfig:
                                                                             sensor_noise=SensorNoiseConfig()))
 
 
-def load_policy(path: str | os.PathLike, num_envs: int, device: torch.device,
+def load_policy(path: str | os.PathLike, num_envs: int, device: torch.device | str,
                 command: tuple[float, float] = (0.5, 0.0),
                 edit_env: Callable | None = None, backend: str | None = None,
                 state: dict | None = None, nominal: bool = False) -> LoadedPolicy:
     """Read ``path`` (a ``.pt`` file or a run folder) with the safe reader, build its env at a fixed ``command``
-    with ``num_envs`` worlds on ``device`` and its agent, and apply the weights and transform state.
+    with ``num_envs`` worlds on ``device`` (a ``torch.device`` or its name, ``"cpu"``, ``"cuda"``) and its agent, and
+    apply the weights and transform state.
 
     ``edit_env``: a function from the checkpoint's env config (``TocabiWalkConfig``) to the one to build (e.g. a
     scene with an obstacle); ``backend``: replaces ``env.sim.backend``; ``state``: the file's contents if already
@@ -162,6 +163,7 @@ def load_policy(path: str | os.PathLike, num_envs: int, device: torch.device,
     from ..rl.checkpoint import checkpoint_file, config_from_checkpoint, read_checkpoint
     from ..rl.trainer import build_env, checkpoint_agent
 
+    device = torch.device(device)
     ckpt = checkpoint_file(path)
     state = read_checkpoint(ckpt) if state is None else state
     cfg = config_from_checkpoint(state, ckpt)

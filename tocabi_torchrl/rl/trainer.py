@@ -187,7 +187,7 @@ def _input_settings(chain) -> dict | None:
     return found
 
 
-def build_env(cfg: RunConfig, device: torch.device, num_envs: int | None = None, for_training: bool = False,
+def build_env(cfg: RunConfig, device: torch.device | str, num_envs: int | None = None, for_training: bool = False,
               **env_overrides) -> EnvBase:
     """``make_env`` with the run's env and transform sections (:func:`env_config`) and seed.
 
@@ -203,7 +203,7 @@ def build_env(cfg: RunConfig, device: torch.device, num_envs: int | None = None,
     elif isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or num_envs < 1:  # 0 meant 4,096
         raise ValueError(f"num_envs must be a positive int (worlds to build), got {num_envs!r}; None for the run's "
                          f"env.num_envs ({cfg.env.num_envs})")
-    num_envs = int(num_envs)
+    num_envs, device = int(num_envs), torch.device(device)  # a name ("cuda") works as well as a torch.device
     if device.type == "cuda":
         plan = plan_graphs(cfg, device, num_envs, sync_free_resets=env_overrides.get("sync_free_resets") is not False,
                            compile_reward=bool(env_overrides.get("compile_reward")))

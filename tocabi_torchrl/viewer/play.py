@@ -56,6 +56,7 @@ class LivePage:
         self.controls = PlayControls(server, self.shown, command)
         self.metrics_panel = MetricsPanel(server)
         self.knee_trace = KneeTrace(server, self.dt)
+        self._traced = 0  # the world the knee trace holds
         self.scene = RobotScene(server, body_meshes(self.sim.mj_model), self.shown)
         self.scene.select(0)
         self.steps = 0  # policy steps since the last reset
@@ -106,6 +107,9 @@ class LivePage:
             self.td = step_mdp(td)
             self.steps += 1
             self.total_steps += 1
+        if w != self._traced:  # one robot's trace: another robot's knees would continue its line
+            self.knee_trace.clear()
+            self._traced = w
         self.knee_trace.append((self.steps - self.metrics_t0) * self.dt, knees.cpu().numpy(), ref.cpu().numpy())
 
     # -------------------------------------------------------------------------------------------- page side
