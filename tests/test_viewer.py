@@ -507,3 +507,18 @@ def test_selecting_another_robot_starts_its_own_knee_trace():
         assert len(live.knee_trace.t) == 2
     finally:
         server.stop()
+
+
+@pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="shipped policy not present")
+def test_the_viewer_banner_names_the_backend_it_runs(capsys):
+    # It printed the config's "auto", not the simulator the env resolved it to.
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed: pip install -e '.[viewer]'")
+    import threading
+
+    from tocabi_torchrl.viewer.play import serve_policy
+
+    stop = threading.Event()
+    stop.set()  # serve the page, print the banner, stop at once
+    serve_policy(SHIPPED_POLICY, num_envs=1, device="cpu", host="127.0.0.1", port=0, stop=stop)
+    banner = capsys.readouterr().out
+    assert "robots on cpu (mujoco backend)" in banner, banner

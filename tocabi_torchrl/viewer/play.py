@@ -190,7 +190,7 @@ def serve_policy(path, num_envs: int = 64, device: str = "auto", host: str = "12
     try:
         live = LivePage(policy.env, policy.actor, server, command=command)
         print(f"viewer: {policy.path} with {num_envs} robots on {policy.env.device} "
-              f"({policy.cfg.env.sim.backend} backend); open {page_url(host, server.get_port())} "
+              f"({live.base.backend} backend); open {page_url(host, server.get_port())} "
               "(Ctrl-C stops)", flush=True)
         if ready is not None:
             ready(live)
