@@ -72,7 +72,9 @@ class GaitMetrics:
         return torch.where(self.alive_steps > 0, total / self.alive_steps.clamp_min(1), float("nan"))
 
     def summary(self, seconds: float) -> dict:
-        """The gait test's ``summary.json`` values (without the video entry)."""
+        """The gait test's ``summary.json`` values (without the video entry). ``speed_tracking_error_mps`` is the mean
+        of ``|base vx - command vx|`` [m/s] over the alive steps: the forward speed alone, gait sway included (a
+        report figure, not one of the test's thresholds)."""
         vx, vy = self.command
         alive, dt = self.alive, self.dt
         dist = self.last_pos - self.start
