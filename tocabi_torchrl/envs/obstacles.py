@@ -74,10 +74,10 @@ def check_clear_of_start(obstacles: Sequence[BoxObstacle], model_path: str | Non
                 lo, hi = centre - extent, centre + extent
                 raise ValueError(
                     f"env.scene.obstacles[{k}] (centre {tuple(box.pos)}, size {tuple(box.size)}, jitter "
-                    f"{tuple(box.jitter)}) overlaps the {side} sole where the robot starts (x {lo[0]:.3f}..{hi[0]:.3f}, "
-                    f"y {lo[1]:.3f}..{hi[1]:.3f} m): the robot would start inside the box. Move it at least "
-                    f"{-gap.max():.3f} m further along x or y (BoxObstacle.ahead_of_left_foot places one ahead "
-                    "of the feet)")
+                    f"{tuple(box.jitter)}) overlaps the {side} sole where the robot starts (x "
+                    f"{lo[0]:.3f}..{hi[0]:.3f}, y {lo[1]:.3f}..{hi[1]:.3f} m): the robot would start inside the box. "
+                    f"Move it at least {-gap.max():.3f} m further along x or y (BoxObstacle.ahead_of_left_foot "
+                    "places one ahead of the feet)")
 
 
 def world_obstacle_centres(obstacles: Sequence[BoxObstacle], num_worlds: int, seed: int) -> np.ndarray:
