@@ -105,8 +105,9 @@ class _Payload:
 
 def test_pickled_objects_are_refused(tmp_path):
     torch.save({"format": "x", "obj": _Payload()}, tmp_path / "evil.pt")
-    with pytest.raises(PolicyFileError, match="not a readable policy file"):
+    with pytest.raises(PolicyFileError, match="not a readable policy file") as err:
         load_policy(tmp_path / "evil.pt", "sb3")
+    assert "weights_only" not in str(err.value).split("Weights only load failed")[-1], str(err.value)
 
 
 def test_recipes_never_reuse_an_output_folder(tmp_path):
@@ -456,3 +457,16 @@ def test_a_star_import_needs_no_optional_library_and_a_numpy_action_is_named():
     stepper.reset()
     with pytest.raises(TypeError, match=r"actions must be a torch.Tensor of shape \(2, 13\), got ndarray"):
         stepper.step(np.zeros((2, 13), np.float32))
+
+
+def test_device_none_is_auto_and_an_index_or_other_type_is_named(monkeypatch):
+    # SB3 and skrl code passes device=None; None and an int ended in torch's own errors.
+    from tocabi_torchrl.adapters._build import build_env
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    env, _ = build_env(1, None)
+    assert env.device == torch.device("cpu")
+    with pytest.raises(RuntimeError, match="device 'cuda:0' requested but torch sees no CUDA GPU; pass device='cpu'"):
+        build_env(1, 0)
+    with pytest.raises(TypeError, match="device must be 'cpu', 'cuda', 'cuda:K', 'auto' or a torch.device, got 1.5"):
+        build_env(1, 1.5)

@@ -45,6 +45,17 @@ def test_vecenv_interface_passes_sb3_checks(env):
     assert env.get_attr("render_mode") == [None] * N and env.env_is_wrapped(VecMonitor) == [False] * N
 
 
+def test_a_set_or_call_for_some_env_indices_is_refused(env):
+    # They acted on every env: env_method("reset", indices=[0]) reset all of them.
+    for call in (lambda: env.env_method("reset", indices=[0]), lambda: env.set_attr("x", 1, indices=[1])):
+        with pytest.raises(ValueError, match=r"indices=\[\d\]: TocabiSB3VecEnv is one batched simulator"):
+            call()
+    assert not hasattr(env, "x")
+    env.set_attr("x", 1, indices=list(range(N)))
+    assert env.get_attr("x") == [1] * N
+    del env.x
+
+
 def test_truncation_gives_terminal_observation_and_episode(env):
     env.seed(5)
     env.reset()

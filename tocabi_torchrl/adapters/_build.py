@@ -55,7 +55,13 @@ def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "
     if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or num_envs < 1:
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
     num_envs = int(num_envs)
-    dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
+    if device is None:  # SB3's and skrl's "no preference"
+        device = "auto"
+    elif isinstance(device, numbers.Integral) and not isinstance(device, bool):  # torch's GPU index
+        device = f"cuda:{int(device)}"
+    elif not isinstance(device, (str, torch.device)):
+        raise TypeError(f"device must be 'cpu', 'cuda', 'cuda:K', 'auto' or a torch.device, got {device!r}")
+    dev = resolve_device(device if isinstance(device, str) else str(device))
     options = dict(env_options or {})
     own = [k for k in options if k in ("num_envs", "seed", "device", "config", "transforms")]
     if own:

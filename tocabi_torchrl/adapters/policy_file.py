@@ -52,7 +52,9 @@ def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # corrupt, truncated or a pickle that needs code: refuse it
-        raise PolicyFileError(f"{path} is not a readable policy file ({type(err).__name__}: {err})") from None
+        # torch's first line only: the rest advises the unsafe weights_only=False that this refusal exists to avoid
+        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        raise PolicyFileError(f"{path} is not a readable policy file ({type(err).__name__}: {first})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise PolicyFileError(f"{path} is not a {FORMAT} file")
     if payload["library"] != library:

@@ -108,16 +108,26 @@ class TocabiSB3VecEnv(VecEnv):
             return list(range(self.num_envs))
         return [indices] if isinstance(indices, int) else list(indices)
 
+    def _all_indices(self, indices, what: str) -> list[int]:
+        """The indices, refused unless they are every env: a set or a call acts on the one batched simulator."""
+        chosen = self._indices_list(indices)
+        if sorted(int(i) for i in chosen) != list(range(self.num_envs)):
+            raise ValueError(f"{what} with indices={indices!r}: TocabiSB3VecEnv is one batched simulator, so an "
+                             f"attribute or method acts on all {self.num_envs} envs at once; call it without indices")
+        return chosen
+
     def get_attr(self, attr_name: str, indices=None) -> list[Any]:
         value = getattr(self, attr_name)
         return [value for _ in self._indices_list(indices)]
 
     def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        self._all_indices(indices, f"set_attr({attr_name!r})")
         setattr(self, attr_name, value)
 
     def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
+        chosen = self._all_indices(indices, f"env_method({method_name!r})")
         result = getattr(self, method_name)(*method_args, **method_kwargs)
-        return [result for _ in self._indices_list(indices)]
+        return [result for _ in chosen]
 
     def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
         return [False for _ in self._indices_list(indices)]
