@@ -511,3 +511,29 @@ def test_a_step_without_an_action_names_the_key_and_its_shape():
         e.step(e.reset())
     with pytest.raises(KeyError, match=r"no 'action' tensor \(got NonTensorData\)"):
         e.step(e.reset().set_non_tensor("action", [0.0] * 13))
+
+
+def test_close_stops_the_simulators_worker_threads():
+    # torchrl's close only set is_closed: the CPU backend's thread pool lived on until garbage collection.
+    import threading
+
+    def workers():
+        return [t for t in threading.enumerate() if t.name.startswith("MujocoSim")]
+
+    before = len(workers())
+    env = TocabiWalk(num_envs=4, device="cpu", sim_threads=2, backend="mujoco")
+    env.rollout(3)
+    assert len(workers()) > before
+    env.close()
+    assert len(workers()) == before and env.is_closed
+    env.close(raise_if_closed=False)  # a second close is harmless
+
+
+def test_copying_an_env_with_simulator_threads_says_what_to_do_instead():
+    import copy
+
+    env = TocabiWalk(num_envs=2, device="cpu", sim_threads=2, backend="mujoco")
+    with pytest.raises(TypeError, match="cannot be copied or pickled .* pass an env factory"):
+        copy.deepcopy(env)
+    single = copy.deepcopy(TocabiWalk(num_envs=2, device="cpu", sim_threads=1, backend="mujoco"))
+    assert single.reset()["base_pos"].shape == (2, 3)

@@ -775,6 +775,14 @@ class TocabiWalk(EnvBase):
         # `_reset` returns all-False done flags by construction, so the check can only pass; skip it.
         return None
 
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        """Release the simulator's worker threads (the CPU backend's pool; they went only at garbage collection),
+        then close as torchrl does. A closed env still steps, on the calling thread."""
+        release = getattr(self.sim, "close", None)
+        if release is not None:
+            release()
+        super().close(raise_if_closed=raise_if_closed)
+
     def _set_seed(self, seed: int | None) -> None:
         if seed is not None:
             from ..value_rules import check_seed

@@ -378,6 +378,13 @@ class MujocoSim(SimViews):
         if error is not None:
             raise error
 
+    def __getstate__(self) -> dict:
+        if self._pool is not None:  # else pickle's own "cannot pickle '_queue.SimpleQueue' object"
+            raise TypeError(f"MujocoSim with {self.threads} worker threads cannot be copied or pickled (its thread "
+                            "pool cannot): build one env per process or copy, e.g. pass an env factory "
+                            "(lambda: TocabiWalk(...)) to ParallelEnv, or build it with sim_threads=1")
+        return self.__dict__
+
     def close(self) -> None:
         """Stop the worker threads (also done when the simulator is garbage collected)."""
         if self._pool is not None:
