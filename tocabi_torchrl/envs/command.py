@@ -36,6 +36,14 @@ class VelocityCommand:
         self._range = (lo.expand(rows).clone(), (hi - lo).expand(rows).clone())
         self._initial_range = (lo0.expand(rows).clone(), (hi0 - lo0).expand(rows).clone())
 
+    def restart(self) -> None:
+        """Forget the schedule's state, as built (no ramp under way), in place: with ``ramp_survives_reset`` a ramp
+        runs on across resets, so a re-seeded env must drop it to repeat its first episodes."""
+        for t in (self.start, self.final):
+            t.zero_()
+        self.ramp_len.fill_(1)
+        self.ramp_pos.fill_(1)
+
     def pin(self, envs: torch.Tensor, command: tuple[float, float]) -> None:
         """Hold ``command`` = (vx, vy) [m/s] in the envs flagged in ``envs`` (num_envs,) bool, from their next draw
         on (reset or resample): their ranges become that one value, so one env can hold fixed-command and

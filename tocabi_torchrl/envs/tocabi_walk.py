@@ -793,6 +793,7 @@ class TocabiWalk(EnvBase):
             # Start rows and first commands are keyed on (seed, env, episode number): restart the numbering so that
             # set_seed(s) followed by reset() repeats the same episodes.
             self.episode_count.zero_()
+            self.command.restart()  # a ramp that survives resets would carry the old episodes' commands over
 
     def to(self, device) -> TocabiWalk:
         """Only the device it was built on: the simulator's worlds and the env's state live there, and moving the
