@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import pytest
 import torch
@@ -551,3 +552,18 @@ def test_set_seed_repeats_the_episodes_of_a_command_ramp_that_survives_resets():
     used.set_seed(0)
     again = used.rollout(20, zero, break_when_any_done=False)
     torch.testing.assert_close(again["next", "command"], fresh["next", "command"], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("setting, message", [
+    (dict(min_pelvis_height=5.0), "min_pelvis_height 5.0 (the start pose's pelvis height is 0.930 m)"),
+    (dict(min_neck_height=1.6), "min_neck_height 1.6 (the start pose's neck height is 1.507 m)"),
+    (dict(max_neck_angle=-0.1), None)])  # refused by the value check before the env is built
+def test_termination_thresholds_the_start_pose_trips_are_said(setting, message):
+    # min_pelvis_height=5 ended every episode at its first step without a word (a warning: a test may want that).
+    if message is None:
+        with pytest.raises(ValueError, match="max_neck_angle"):
+            TocabiWalk(num_envs=1, device="cpu", backend="mujoco", **setting)
+        return
+    with pytest.warns(UserWarning, match=re.escape(message) + ".* every episode ends at its first step"):
+        env = TocabiWalk(num_envs=1, device="cpu", backend="mujoco", **setting)
+    assert env.rollout(2, break_when_any_done=False)["next", "terminated"].all()

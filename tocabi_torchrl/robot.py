@@ -324,6 +324,22 @@ def _sole_centres(model_path: str | None) -> np.ndarray:
     return _soles(model_path)[0]
 
 
+@functools.lru_cache(maxsize=8)
+def initial_heights(model_path: str | None = None) -> dict[str, float]:
+    """The pelvis and neck heights [m] and the neck's angle from upright [rad] of the robot's initial pose
+    (``INIT_QPOS``): what the early terminations compare with their thresholds."""
+    import mujoco
+
+    model = load_model(model_path)
+    data = mujoco.MjData(model)
+    data.qpos[:] = INIT_QPOS
+    mujoco.mj_kinematics(model, data)
+    base, neck = (mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in (BASE_BODY, NECK_BODY))
+    w = min(1.0, abs(float(data.xquat[neck][0])))
+    return {"pelvis_height": float(data.xpos[base][2]), "neck_height": float(data.xpos[neck][2]),
+            "neck_angle": 2.0 * float(np.arccos(w))}
+
+
 def initial_sole_extents(foot: int = 0, model_path: str | None = None) -> np.ndarray:
     """(3,) half extents [m] along the world axes of a sole's box in the robot's initial pose (``INIT_QPOS``), around
     :func:`initial_sole_centre`; ``foot`` 0 = left, 1 = right."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import operator
+import warnings
 
 import numpy as np
 import torch
@@ -59,6 +60,22 @@ def _check_tocabi_spec(spec, model_path) -> None:
             "actuator, sensor, body, site and geom names of tocabi_torchrl.robot (JOINT_NAMES, ACTUATOR_NAMES, ...), "
             "or model_path=None for the shipped assets/tocabi/tocabi.xml"
         )
+
+
+def _check_start_survives(task, model_path) -> None:
+    """Warn of termination thresholds that the initial pose already trips: every episode ends at its first step, and
+    training would run on without a word (e.g. ``min_pelvis_height=5``). A warning, not an error: a test may want
+    every step to be a fall."""
+    start = robot.initial_heights(None if model_path is None else str(model_path))
+    tripped = [f"{name} {getattr(task, name)!r} (the start pose's {what} is {start[key]:.3f} {unit})"
+               for name, key, what, unit, trips in (
+                   ("min_pelvis_height", "pelvis_height", "pelvis height", "m", lambda v, s: s < v),
+                   ("min_neck_height", "neck_height", "neck height", "m", lambda v, s: s < v),
+                   ("max_neck_angle", "neck_angle", "neck angle", "rad", lambda v, s: s > v))
+               if trips(float(getattr(task, name)), start[key])]
+    if tripped:
+        warnings.warn(f"env.task: {'; '.join(tripped)}: the robot's start pose already terminates, so every episode "
+                      "ends at its first step; set the threshold past the start pose's value", stacklevel=3)
 
 
 def _servo_spec(spec, joint_ids, gains):
@@ -194,6 +211,7 @@ class TocabiWalk(EnvBase):
                              "inside every substep; env.control.actuators act on torque commands only")
         spec = robot.load_spec(cfg.task.model_path)
         _check_tocabi_spec(spec, cfg.task.model_path)
+        _check_start_survives(cfg.task, cfg.task.model_path)
         gains = self.leg_controller.servo_gains()
         if gains is not None:
             spec = _servo_spec(spec, robot.LEG_JOINT_IDS, gains)
