@@ -130,7 +130,11 @@ class TocabiSB3VecEnv(VecEnv):
         return [result for _ in chosen]
 
     def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
-        return [False for _ in self._indices_list(indices)]
+        # step() fills info["episode"] = {"r", "l", "t"} itself, as SB3's Monitor does: its evaluate_policy asks for
+        # a Monitor to count whole episodes, and would warn about one that is not needed.
+        from stable_baselines3.common.monitor import Monitor
+
+        return [wrapper_class is Monitor for _ in self._indices_list(indices)]
 
     def get_images(self):
         raise NotImplementedError("TocabiSB3VecEnv does not render; use recipes/play.py for a video")
