@@ -136,6 +136,10 @@ def test_termination_is_not_truncation_and_returns_the_episode():
 
 def test_bad_actions_and_options_are_refused(envs):
     envs.reset(seed=0)
+    # A complex array stepped with its imaginary part dropped (numpy's ComplexWarning alone).
+    for bad in (np.zeros((N, 13), complex), np.zeros((N, 13), bool), torch.zeros(N, 13, dtype=torch.complex64)):
+        with pytest.raises(TypeError, match="actions must be real numbers"):
+            envs.step(bad)
     with pytest.raises(ValueError, match="actions must have shape"):
         envs.step(np.zeros((N, 12), dtype=np.float32))
     with pytest.raises(ValueError, match="takes no options"):

@@ -96,7 +96,13 @@ class TocabiVectorEnv(VectorEnv):
         """Step every env with ``actions`` (num_envs, 13): a tensor or an array; see the class docstring."""
         self.stepper.check_ready("step()")  # before the actions: a step out of order is no bad action
         if not isinstance(actions, torch.Tensor):
-            actions = np.asarray(actions, dtype=np.float32)
+            raw = np.asarray(actions)
+            # float32 would drop an imaginary part with numpy's warning alone, and read True as 1.0
+            if raw.dtype.kind not in "fiu":
+                raise TypeError(f"actions must be real numbers (float32), got an array of {raw.dtype}")
+            actions = raw.astype(np.float32, copy=False)
+        elif actions.is_complex() or actions.dtype == torch.bool:
+            raise TypeError(f"actions must be real numbers (float32), got a tensor of {actions.dtype}")
         actions = torch.as_tensor(actions, dtype=torch.float32)
         if self.numpy and actions.device.type == "cpu":  # on the host already: reading the values costs no sync
             self.stepper.check_finite(self.stepper.check_action(actions))
