@@ -516,17 +516,13 @@ def test_a_step_without_an_action_names_the_key_and_its_shape():
 
 def test_close_stops_the_simulators_worker_threads():
     # torchrl's close only set is_closed: the CPU backend's thread pool lived on until garbage collection.
-    import threading
-
-    def workers():
-        return [t for t in threading.enumerate() if t.name.startswith("MujocoSim")]
-
-    before = len(workers())
     env = TocabiWalk(num_envs=4, device="cpu", sim_threads=2, backend="mujoco")
     env.rollout(3)
-    assert len(workers()) > before
+    pool = env.sim._pool
+    threads = list(pool._threads)
+    assert threads and all(t.is_alive() for t in threads)
     env.close()
-    assert len(workers()) == before and env.is_closed
+    assert env.sim._pool is None and not any(t.is_alive() for t in threads) and env.is_closed
     env.close(raise_if_closed=False)  # a second close is harmless
 
 
