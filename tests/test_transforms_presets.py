@@ -181,17 +181,21 @@ def test_a_chain_nested_in_another_compose_is_named_and_a_flat_one_works():
     assert flat.reset()["observation"].shape == (N, 237)
 
 
-def test_a_chain_given_to_a_second_env_is_named_at_the_first_envs_reset():
-    # torchrl moves the Compose to the second env without a word; the first then failed in StepCounter with
-    # "The expanded size of the tensor (4) must match the existing size (3)".
+@pytest.mark.parametrize("size", [N, N - 1])
+def test_a_chain_given_to_a_second_env_is_refused_and_the_first_keeps_it(size):
+    # torchrl moves the Compose to the second env without a word. With another batch size the first then failed in
+    # StepCounter; with the same one, the second env's resets filled the first's history, silently.
     chain = default_transforms()
     first = TransformedEnv(MockTocabiWalk(N), chain)
     first.reset()
-    second = TransformedEnv(MockTocabiWalk(N - 1), chain)
-    assert second.reset()["observation"].shape == (N - 1, 237)
-    with pytest.raises(RuntimeError, match=r"PhaseEncoding belongs to another env now \(batch \(3,\), this reset's "
-                                           r"\(4,\)\).*default_transforms\(\) for each"):
-        first.reset()
+    with pytest.raises(RuntimeError, match=r"belongs to another env already.*default_transforms\(\) for each"):
+        TransformedEnv(MockTocabiWalk(size), chain)
+    assert first.transform is chain and chain.parent is not None
+    assert first.reset()["observation"].shape == (N, 237)
+    # A clone belongs to no env yet; a chain its env has let go of may go to another.
+    assert TransformedEnv(MockTocabiWalk(size), chain.clone()).reset()["observation"].shape == (size, 237)
+    first.transform = default_transforms()
+    assert TransformedEnv(MockTocabiWalk(size), chain).reset()["observation"].shape == (size, 237)
 
 
 @pytest.mark.gpu

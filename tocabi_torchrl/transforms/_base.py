@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import weakref
+
 from tensordict import TensorDictBase
 from torchrl.envs.transforms import Compose, Transform
 
@@ -47,6 +49,15 @@ def transforms_after(transform: Transform) -> list[Transform]:
     return [] if index is None else chain[index + 1:]
 
 
+def _env_of(container):
+    """The env a transform's container stands for: the container itself, or the env of the ``Compose`` it is in
+    (None while the ``Compose`` is in none)."""
+    if isinstance(container, Compose):
+        ref = container.__dict__.get("_container")
+        return ref() if ref is not None else None
+    return container
+
+
 def check_specs_once(transform: Transform) -> None:
     """Run ``transform``'s spec checks against what the env in front of it provides, once, at its first reset.
 
@@ -69,6 +80,36 @@ class CallOnReset(Transform):
     the keys the transform adds. A subclass of this one applies its ``_call`` there as well: the reset state gets the
     same keys, computed the same way, as every step.
     """
+
+    def set_container(self, container) -> None:
+        # torchrl's Compose.set_container takes a chain from the env it belongs to when it is given to a second
+        # TransformedEnv, without a word: both envs then run one chain, and with equal batch sizes one env's resets
+        # fill the other's history. Refused here (the chain is put back first: the refusal leaves the first env as it
+        # was); a chain its env has let go of (env.transform = other) may go to another.
+        env = _env_of(container)
+        owner_ref = self.__dict__.get("_owner_env")
+        owner = owner_ref() if owner_ref is not None else None
+        taken = owner is not None and env is not None and owner is not env
+        if taken and getattr(owner, "_transform", None) is container:
+            container.__dict__["_container"] = weakref.ref(owner)
+            for t in container.transforms:
+                t.__dict__["_container"], t.__dict__["_parent"] = weakref.ref(container), None
+            raise RuntimeError(f"this transform chain ({type(self).__name__} in it) belongs to another env already: "
+                               "one chain holds one env's state (the history of its observations); build one chain "
+                               "per env, e.g. default_transforms() for each, or transform.clone()")
+        super().set_container(container)
+        if env is not None:
+            self.__dict__["_owner_env"] = weakref.ref(env)
+
+    def clone(self):
+        copy = super().clone()
+        copy.__dict__.pop("_owner_env", None)  # a clone belongs to no env yet
+        return copy
+
+    def __getstate__(self):
+        state = super().__getstate__()
+        state.pop("_owner_env", None)  # a weak reference cannot be pickled; an unpickled copy belongs to no env yet
+        return state
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         check_specs_once(self)
