@@ -30,7 +30,20 @@ def regenerate(page: str, docs: Path = common.DOCS, out: Path = common.DOCS) -> 
     return text
 
 
-if __name__ == "__main__":
-    for name in REPORTS:
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.split("``: ", 1)[-1])
+    parser.add_argument("pages", nargs="*", metavar="PAGE",
+                        help="pages under docs/benchmarks to render (default: all of them): " + ", ".join(REPORTS))
+    pages = parser.parse_args(argv).pages
+    unknown = [p for p in pages if p not in REPORTS]
+    if unknown:
+        parser.error(f"no such report page: {', '.join(unknown)} (the pages: {', '.join(REPORTS)})")
+    for name in pages or REPORTS:
         regenerate(name)
         print(f"rendered {common.DOCS / name}")
+
+
+if __name__ == "__main__":
+    main()

@@ -41,6 +41,17 @@ def test_committed_report_regenerates_from_its_json(page, tmp_path):
                                                                                       viewer_play.render))
 
 
+def test_regenerate_help_and_a_bad_page_write_nothing(monkeypatch, capsys):
+    # --help was no option: it re-rendered every committed page.
+    monkeypatch.setattr(regenerate, "regenerate", lambda *a, **k: pytest.fail("rendered a page"))
+    with pytest.raises(SystemExit) as done:
+        regenerate.main(["--help"])
+    assert done.value.code == 0 and "pages under docs/benchmarks to render" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as done:
+        regenerate.main(["nope.md"])
+    assert done.value.code == 2 and "no such report page: nope.md" in capsys.readouterr().err
+
+
 def test_unknown_override_is_named():
     with pytest.raises(SystemExit, match="no option 'cuda_grpah'"):
         common.parse_overrides(["cuda_grpah=on"])
