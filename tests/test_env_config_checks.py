@@ -34,6 +34,8 @@ BAD = [
     ({"max_episode_steps": 1000.0}, r"env.task.max_episode_steps must be an int \(not a float.*got 1000.0"),
     ({"command": CommandConfig(vx_range=(0.0, INF))}, r"env.command.vx_range\[1\] must be a finite number"),
     ({"command": CommandConfig(vx_range=(NAN, 0.7))}, r"env.command.vx_range\[0\] must be a finite number"),
+    ({"command": CommandConfig(vx_range=(0.0, 1e9))}, r"env.command.vx_range \(0.0, 1000000000.0\) reaches past 10"),
+    ({"command": CommandConfig(vy_range=(-20.0, 0.0))}, r"env.command.vy_range \(-20.0, 0.0\) reaches past 10 m/s"),
     ({"command": CommandConfig(vx_range=(0.0, 0.5, 0.7))}, r"env.command.vx_range must be a tuple of 2 finite"),
     ({"command": CommandConfig(resample_every=2.5)}, r"env.command.resample_every must be an int.*got 2.5"),
     ({"command": CommandConfig(resample_every="100")}, r"env.command.resample_every must be an int.*got '100'"),

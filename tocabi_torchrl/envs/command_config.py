@@ -10,6 +10,10 @@ from ..tree import check_field_types
 __all__ = ["CommandConfig"]
 
 
+#: [m/s] the largest speed a command range may reach: far past any walk (the defaults end at 0.7 m/s).
+MAX_COMMAND_MPS = 10.0
+
+
 @dataclass
 class CommandConfig:
     """How the commanded pelvis-frame velocity [m/s] is drawn.
@@ -55,6 +59,9 @@ class CommandConfig:
             lo, hi = getattr(self, field)
             if not lo <= hi:
                 raise ValueError(f"env.command.{field} must be (low, high) with low <= high, got {(lo, hi)}")
+            if max(abs(lo), abs(hi)) > MAX_COMMAND_MPS:  # a typo (1e9), not a walk: it would reach the observation
+                raise ValueError(f"env.command.{field} {(lo, hi)} reaches past {MAX_COMMAND_MPS:g} m/s, far beyond "
+                                 "a walk (the defaults go to 0.7 m/s): give the range in m/s")
         if self.resample_every < 1:
             raise ValueError(f"env.command.resample_every must be an int >= 1 (steps between re-samples), got "
                              f"{self.resample_every!r}")
