@@ -462,6 +462,20 @@ def test_bad_test_settings_are_named_before_anything_is_built():
     RobustTestConfig(seconds=1.0).validate(0.004)  # a quick check keeps the test's window (2, 7) s
 
 
+def test_a_quick_check_of_a_short_episode_policy_keeps_its_kicks_in_the_episode():
+    # A policy trained on 4 s episodes, checked for 2 s: the kicks keep the test's (2, 7) s window, and the env
+    # refused a window past its episode's end.
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, batch_env, case_config
+
+    cfg = preset_config("cpu_smoke")
+    cfg.env.task.max_episode_steps = 1000
+    test = RobustTestConfig(num_envs=1, seconds=2.0)
+    assert case_config(cfg, "robust_1.0", test).env.task.max_episode_steps >= 7.0 / 0.004
+    env = batch_env(cfg, "cpu", test)
+    assert env.batch_size.numel() == 4
+
+
 def test_the_env_cache_keeps_one_env_per_kind_of_policy():
     # The key was the test's size and cases alone: a PD policy tested after a torque one ran in the torque env and
     # fell in every case.

@@ -6,7 +6,7 @@ import pytest
 import torch
 from mock_env import MockTocabiWalk
 from torch.utils._python_dispatch import TorchDispatchMode
-from torchrl.envs import TransformedEnv
+from torchrl.envs import Compose, RewardSum, TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from tocabi_torchrl.transforms import (
@@ -196,6 +196,11 @@ def test_a_chain_given_to_a_second_env_is_refused_and_the_first_keeps_it(size):
     assert TransformedEnv(MockTocabiWalk(size), chain.clone()).reset()["observation"].shape == (size, 237)
     first.transform = default_transforms()
     assert TransformedEnv(MockTocabiWalk(size), chain).reset()["observation"].shape == (size, 237)
+    # A nested Compose: torchrl clears the containers all the way down, and they all come back.
+    nested = TransformedEnv(MockTocabiWalk(N), Compose(*default_transforms(), Compose(RewardSum(in_keys=["reward"]))))
+    with pytest.raises(RuntimeError, match="belongs to another env already"):
+        TransformedEnv(MockTocabiWalk(size), nested.transform)
+    assert nested.rollout(2)["next", "observation"].shape == (N, 2, 237)
 
 
 @pytest.mark.gpu

@@ -75,7 +75,7 @@ def _check_start_survives(task, model_path) -> None:
                if trips(float(getattr(task, name)), start[key])]
     if tripped:
         warnings.warn(f"env.task: {'; '.join(tripped)}: the robot's start pose already terminates, so every episode "
-                      "ends at its first step; set the threshold past the start pose's value", stacklevel=3)
+                      "ends at its first step; set the threshold past the start pose's value", stacklevel=4)
 
 
 def _servo_spec(spec, joint_ids, gains):

@@ -226,7 +226,8 @@ def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig =
     # No truncation inside the case: a robot is followed for the whole case, reset or not (see run_case).
     from .gait_test import policy_dt
 
-    steps = policy_steps(test.seconds, policy_dt())
+    # The kicks keep the test's window even in a shorter quick check, so the episode covers the window too.
+    steps = max(policy_steps(test.seconds, policy_dt()), policy_steps(float(test.push_window[1]), policy_dt()))
     task = dataclasses.replace(task, max_episode_steps=max(int(task.max_episode_steps), steps + 1))
     env = dataclasses.replace(env, task=task, command=command)
     out = dataclasses.replace(nominal, seed=int(test.seed), env=env)

@@ -91,9 +91,7 @@ class CallOnReset(Transform):
         owner = owner_ref() if owner_ref is not None else None
         taken = owner is not None and env is not None and owner is not env
         if taken and getattr(owner, "_transform", None) is container:
-            container.__dict__["_container"] = weakref.ref(owner)
-            for t in container.transforms:
-                t.__dict__["_container"], t.__dict__["_parent"] = weakref.ref(container), None
+            container.set_container(owner)  # torchrl cleared the chain's containers all the way down: put them back
             raise RuntimeError(f"this transform chain ({type(self).__name__} in it) belongs to another env already: "
                                "one chain holds one env's state (the history of its observations); build one chain "
                                "per env, e.g. default_transforms() for each, or transform.clone()")
