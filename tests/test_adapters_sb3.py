@@ -43,10 +43,6 @@ def test_vecenv_interface_passes_sb3_checks(env):
     assert len(infos[0]["reward_terms"]) == 13
     assert math.isclose(sum(infos[0]["reward_terms"].values()), float(rewards[0]), rel_tol=1e-4, abs_tol=1e-5)
     assert env.get_attr("render_mode") == [None] * N and env.env_is_wrapped(VecMonitor) == [False] * N
-    # Its own episode infos are a Monitor's: SB3's evaluate_policy warned that a Monitor was missing.
-    from stable_baselines3.common.monitor import Monitor
-
-    assert env.env_is_wrapped(Monitor) == [True] * N
 
 
 def test_a_set_or_call_for_some_env_indices_is_refused(env):

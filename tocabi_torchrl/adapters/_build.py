@@ -36,7 +36,7 @@ def task_config(preset: str = "default", num_envs: int = 4096, **task) -> RunCon
     return preset_config(preset, **{"env.num_envs": num_envs}, **paths)
 
 
-def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "default",
+def build_env(num_envs: int, device: str | torch.device | int | None = "cpu", preset: str = "default",
               for_training: bool = True, env_options: dict | None = None, **task) -> tuple[EnvBase, RunConfig]:
     """The walking task of ``preset`` over ``num_envs`` envs on ``device``, as a TorchRL env, and its config.
 
@@ -60,7 +60,8 @@ def build_env(num_envs: int, device: str | torch.device = "cpu", preset: str = "
     elif isinstance(device, numbers.Integral) and not isinstance(device, bool):  # torch's GPU index
         device = f"cuda:{int(device)}"
     elif not isinstance(device, (str, torch.device)):
-        raise TypeError(f"device must be 'cpu', 'cuda', 'cuda:K', 'auto' or a torch.device, got {device!r}")
+        raise TypeError(f"device must be 'cpu', 'cuda', 'cuda:K', 'auto', a torch.device, a GPU index or None "
+                        f"(auto), got {device!r}")
     dev = resolve_device(device if isinstance(device, str) else str(device))
     options = dict(env_options or {})
     own = [k for k in options if k in ("num_envs", "seed", "device", "config", "transforms")]

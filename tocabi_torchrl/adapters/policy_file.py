@@ -52,9 +52,10 @@ def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # corrupt, truncated or a pickle that needs code: refuse it
-        # torch's first line only: the rest advises the unsafe weights_only=False that this refusal exists to avoid
-        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
-        raise PolicyFileError(f"{path} is not a readable policy file ({type(err).__name__}: {first})") from None
+        from ..rl.checkpoint import load_error_detail  # what is wrong, not torch's advice to load it unsafely
+
+        raise PolicyFileError(f"{path} is not a readable policy file ({type(err).__name__}: "
+                              f"{load_error_detail(err)})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise PolicyFileError(f"{path} is not a {FORMAT} file")
     if payload["library"] != library:

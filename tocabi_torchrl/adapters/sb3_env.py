@@ -37,6 +37,10 @@ class TocabiSB3VecEnv(VecEnv):
     env rows (not silently acted on as 0 or the bound). ``set_options`` is refused, as ``TocabiVectorEnv.reset``
     refuses options: the env's reset takes none.
 
+    Each ended episode's info holds ``"episode": {"r", "l", "t"}``, as a ``Monitor`` would add: SB3's logger reads
+    it without a ``VecMonitor`` (which would compute the same), and ``evaluate_policy`` counts whole episodes from it;
+    its warning that no ``Monitor`` wraps the env can be silenced with ``evaluate_policy(..., warn=False)``.
+
     Order of calls, as SB3's ``DummyVecEnv`` over gymnasium envs: ``step_async`` before the first ``reset`` is a
     ``gymnasium.error.ResetNeeded``, and ``step``/``reset`` after ``close`` a ``RuntimeError``.
     """
@@ -130,11 +134,7 @@ class TocabiSB3VecEnv(VecEnv):
         return [result for _ in chosen]
 
     def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
-        # step() fills info["episode"] = {"r", "l", "t"} itself, as SB3's Monitor does: its evaluate_policy asks for
-        # a Monitor to count whole episodes, and would warn about one that is not needed.
-        from stable_baselines3.common.monitor import Monitor
-
-        return [wrapper_class is Monitor for _ in self._indices_list(indices)]
+        return [False for _ in self._indices_list(indices)]
 
     def get_images(self):
         raise NotImplementedError("TocabiSB3VecEnv does not render; use recipes/play.py for a video")

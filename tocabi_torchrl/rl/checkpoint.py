@@ -293,13 +293,26 @@ def verified_checkpoint_file(path: str | os.PathLike, sim2sim_options: str = "")
     return path
 
 
+def load_error_detail(err: Exception) -> str:
+    """The line of a failed ``torch.load(weights_only=True)`` that says what is wrong (the refused global, or what
+    could not be read), without torch's advice to turn ``weights_only`` off, which must not be followed for a file
+    from outside, and without its terminal colour codes."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(err))
+    lines = [line.strip() for line in text.splitlines()]
+    found = (next((line for line in lines if "GLOBAL" in line), None)
+             or next((line for line in lines if "Unsupported" in line), None))
+    if found is None:
+        return text.split(". ")[0].strip()
+    return found.removeprefix("WeightsUnpickler error: ").split(" by default")[0]
+
+
 def _load_failure(path: Path, err: Exception) -> tuple[str, bool]:
     """The message for a file ``torch.load`` failed on, and whether the load was refused (a pickled global) rather
     than stopped by a broken file."""
-    text = str(err)
     # weights_only refuses a pickled reference to a function or class ("Unsupported global: GLOBAL ..."); other
     # unpickling failures ("Unsupported operand", bad zip) are files that are not pickles at all.
-    refused = next((line.strip() for line in text.splitlines() if "GLOBAL" in line), None)
+    detail = load_error_detail(err)
+    refused = detail if "GLOBAL" in detail else None
     if refused:
         return (f"refusing to load {path}: it holds Python objects other than tensors and plain containers, and "
                 f"loading those could run code from the file ({refused}). Checkpoints written by tocabi-torchrl "
@@ -307,8 +320,6 @@ def _load_failure(path: Path, err: Exception) -> tuple[str, bool]:
     note = _run_config_note(path)
     if note is not None:
         return note, False
-    # torch's own message goes on to suggest turning weights_only off, which is exactly what must not be done here.
-    detail = next((line.strip() for line in text.splitlines() if "Unsupported" in line), text.split(". ")[0])
     return (f"cannot read checkpoint {path}: not a complete torch checkpoint (truncated, corrupt or another kind of "
             f"file): {type(err).__name__}: {detail[:160]}"), False
 
