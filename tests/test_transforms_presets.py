@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 from mock_env import MockTocabiWalk
@@ -201,6 +203,11 @@ def test_a_chain_given_to_a_second_env_is_refused_and_the_first_keeps_it(size):
     with pytest.raises(RuntimeError, match="belongs to another env already"):
         TransformedEnv(MockTocabiWalk(size), nested.transform)
     assert nested.rollout(2)["next", "observation"].shape == (N, 2, 237)
+    # A deep copy's chain belongs to the copy once it resets (a weak reference does not survive the copy).
+    copied = copy.deepcopy(TransformedEnv(MockTocabiWalk(N), default_transforms()))
+    copied.reset()
+    with pytest.raises(RuntimeError, match="belongs to another env already"):
+        TransformedEnv(MockTocabiWalk(size), copied.transform)
 
 
 @pytest.mark.gpu

@@ -110,6 +110,11 @@ class CallOnReset(Transform):
         return state
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        if "_owner_env" not in self.__dict__:  # a copy (deepcopy, pickle) belongs to the env that first resets it
+            ref = self.__dict__.get("_container")
+            env = _env_of(ref()) if ref is not None else None
+            if env is not None:
+                self.__dict__["_owner_env"] = weakref.ref(env)
         check_specs_once(self)
         guards = self.__dict__.get("_guards_chain")
         if guards is None:  # one transform per chain checks its env below on every reset: the first of this kind
