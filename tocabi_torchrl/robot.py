@@ -298,15 +298,23 @@ def _check_foot_sensors(model: "mujoco.MjModel", source: str) -> None:  # noqa: 
 
 
 # ------------------------------------------------------------------------------------------------ initial pose
-@functools.lru_cache(maxsize=8)
-def _soles(model_path: str | None) -> tuple[np.ndarray, np.ndarray]:
-    """(2, 3) centres and (2, 3) half extents of the world-axis box around each sole, in ``INIT_QPOS`` [m]."""
+def _initial_pose(model_path: str | None):
+    """``(model, data)`` of the robot model at ``INIT_QPOS``, its kinematics computed (body and geom poses)."""
     import mujoco
 
     model = load_model(model_path)
     data = mujoco.MjData(model)
     data.qpos[:] = INIT_QPOS
     mujoco.mj_kinematics(model, data)
+    return model, data
+
+
+@functools.lru_cache(maxsize=8)
+def _soles(model_path: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """(2, 3) centres and (2, 3) half extents of the world-axis box around each sole, in ``INIT_QPOS`` [m]."""
+    import mujoco
+
+    model, data = _initial_pose(model_path)
     centres, extents = [], []
     for foot in FOOT_BODIES:
         b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, foot)
@@ -330,10 +338,7 @@ def initial_heights(model_path: str | None = None) -> dict[str, float]:
     (``INIT_QPOS``): what the early terminations compare with their thresholds."""
     import mujoco
 
-    model = load_model(model_path)
-    data = mujoco.MjData(model)
-    data.qpos[:] = INIT_QPOS
-    mujoco.mj_kinematics(model, data)
+    model, data = _initial_pose(model_path)
     base, neck = (mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in (BASE_BODY, NECK_BODY))
     w = min(1.0, abs(float(data.xquat[neck][0])))
     return {"pelvis_height": float(data.xpos[base][2]), "neck_height": float(data.xpos[neck][2]),
