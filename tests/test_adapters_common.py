@@ -107,7 +107,7 @@ def test_pickled_objects_are_refused(tmp_path):
     torch.save({"format": "x", "obj": _Payload()}, tmp_path / "evil.pt")
     with pytest.raises(PolicyFileError, match="not a readable policy file") as err:
         load_policy(tmp_path / "evil.pt", "sb3")
-    # What is wrong, not torch's advice to load it with weights_only=False, nor its colour codes.
+    # What is wrong, not torch's advice to turn weights_only off, nor its colour codes.
     assert str(err.value).endswith("(UnpicklingError: Unsupported global: GLOBAL test_adapters_common._Payload was "
                                    "not an allowed global)"), str(err.value)
 
