@@ -63,36 +63,28 @@ def write_config(run_dir: str | os.PathLike, cfg) -> Path:
                              json.dumps({"schema_version": SCHEMA_VERSION, **cfg.to_dict()}, indent=2, default=str))
 
 
-def _leaves(tree: dict, prefix: str = "") -> dict:
-    """A nested config dict flattened to dotted paths."""
-    out = {}
-    for key, value in tree.items():
-        path = f"{prefix}{key}"
-        out.update(_leaves(value, path + ".") if isinstance(value, dict) else {path: value})
-    return out
-
-
 def keep_edited_config(run_dir: str | os.PathLike, cfg) -> Path | None:
     """Before a resumed run writes ``config.json`` again: if the file was edited (an option a resume may not change
     holds another value than the checkpoint's config), move it to a free ``config.edited[.N].json`` and say so; a
     resume trains the checkpoint's config, and rewriting the file would silently drop the edit. Returns the new path,
     or None when nothing was edited."""
-    from .resume import RESUME_SAFE
+    from ..config import config_from_dict
+    from .resume import _differences
 
     path = Path(run_dir) / "config.json"
     try:
-        on_disk = _leaves(json.loads(path.read_text()))
-    except (OSError, ValueError, AttributeError):  # none, or not a JSON object: nothing an edit could be told from
+        # Read as a checkpoint's config is: older files' renamed or missing options are not taken for edits.
+        on_disk = config_from_dict(json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError, AttributeError):  # none, or no config: nothing an edit could be told from
         return None
-    saved = _leaves(json.loads(json.dumps(cfg.to_dict(), default=str)))
-    edited = sorted(k for k in on_disk.keys() & saved.keys() if k not in RESUME_SAFE and on_disk[k] != saved[k])
+    edited = _differences(on_disk, cfg)  # (path, in the file, the run's), outside what a resume may change
     if not edited:
         return None
     kept, n = path.with_name("config.edited.json"), 1
     while kept.exists():
         kept, n = path.with_name(f"config.edited.{n}.json"), n + 1
     os.replace(path, kept)
-    shown = ", ".join(f"{k}: {on_disk[k]!r} (the run's: {saved[k]!r})" for k in edited[:3])
+    shown = ", ".join(f"{k}: {was!r} (the run's: {now!r})" for k, was, now in edited[:3])
     more = f" and {len(edited) - 3} more" if len(edited) > 3 else ""
     print(f"{path} was edited ({shown}{more}); a resume trains the checkpoint's config and ignores the file, so the "
           f"edited file was moved to {kept.name} and config.json is written again. Options a resume may change go on "
