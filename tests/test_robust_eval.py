@@ -737,3 +737,36 @@ def test_the_unperturbed_cases_alone_give_the_numbers_of_the_whole_test(tmp_path
         for key in ("survival", "forward_distance_m", "lateral_drift_m", "tracking_error_mps"):
             a, b = alone["cases"][case][key], whole["cases"][case][key]
             assert a == pytest.approx(b, rel=1e-5, abs=1e-6, nan_ok=True), (case, key)
+
+
+def test_the_gait_tests_refuse_an_env_whose_running_normaliser_never_saw_a_step(tmp_path):
+    # An env built from a running-normalisation run's config starts with the normaliser's initial statistics, not
+    # the checkpoint's: the standard test's numbers of such a policy came out wrong (0.00 survival against 0.25 on
+    # the checkpoint's env) without a word.
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.evaluation.gait_test import evaluate_policy
+    from tocabi_torchrl.evaluation.record import nominal_config
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, evaluate_robust
+    from tocabi_torchrl.rl.trainer import build_agent, build_env
+
+    cfg = preset_config("cpu_smoke", device="cpu", **{"transforms.normalization": "running"})
+    agent = build_agent(cfg, 237, 13, torch.device("cpu"))
+    with pytest.raises(ValueError, match="starting statistics, not the checkpoint's.*nominal=True"):
+        evaluate_policy(agent.actor, nominal_config(cfg), tmp_path / "a", num_envs=2, device="cpu", seconds=0.1,
+                        video_envs=0, progress=False)
+    test = RobustTestConfig(num_envs=1, seconds=0.1, cases=("nominal",))
+    with pytest.raises(ValueError, match="starting statistics"):
+        evaluate_robust(agent.actor, cfg, tmp_path / "b", test=test, device="cpu", progress=False)
+    env = build_env(nominal_config(cfg), torch.device("cpu"), num_envs=2)
+    env.rollout(2, agent.actor)  # statistics that have seen steps, as a trained policy's have
+    summary = evaluate_policy(agent.actor, cfg, tmp_path / "c", device="cpu", seconds=0.1, video_envs=0, env=env,
+                              progress=False)
+    assert summary["seconds"] == 0.1
+
+
+def test_a_test_length_under_one_policy_step_is_refused_as_its_message_says():
+    from tocabi_torchrl.evaluation.record import policy_steps
+
+    with pytest.raises(ValueError, match="pass at least 0.004"):
+        policy_steps(0.003, 0.004)  # rounded up to one 4 ms step before
+    assert policy_steps(0.004, 0.004) == 1 and policy_steps(8.0, 0.004) == 2000

@@ -33,7 +33,7 @@ from ..rl.checkpoint import checkpoint_file, read_checkpoint, run_folder_of
 from ..rl.trainer import build_env, resolve_device
 from .output import OutputExistsError, json_safe, rounded_against
 from .plots import plot_knees
-from .record import KNEES, GaitMetrics, fixed_command, load_policy, policy_steps
+from .record import KNEES, GaitMetrics, fixed_command, load_policy, policy_steps, require_trained_statistics
 from .video import render_video
 
 __all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "fresh_eval_dir", "eval_out_dir", "policy_dt",
@@ -94,8 +94,10 @@ def evaluate_policy(
     """Roll the deterministic policy out for ``seconds`` at a fixed command and write the summary, plot and video
     to ``out_dir`` (created if needed; files of the same name there are replaced: the caller chooses the folder,
     e.g. with :func:`eval_out_dir`). It tests ``env``, or the env ``cfg`` builds, as it is: the standard test's
-    nominal robot is ``nominal_config(cfg)`` (or ``load_policy(..., nominal=True).env``), which :func:`evaluate_run`
-    uses; a training config's kicks and randomisation stay on otherwise. ``seconds`` must cover at least one policy
+    nominal robot is the env of ``load_policy(..., nominal=True)``, which :func:`evaluate_run` uses (or, for a
+    policy without running normalisation, one built from ``nominal_config(cfg)``); a training config's kicks and
+    randomisation stay on otherwise. An env whose running normaliser never saw a step (built from the config, not
+    loaded with the checkpoint's statistics) raises ``ValueError`` (:func:`.record.require_trained_statistics`). ``seconds`` must cover at least one policy
     step; ``progress`` shows bars for the rollout and the rendering; ``source``, the checkpoint tested, is recorded
     in the summary as ``checkpoint``.
     Returns the summary, NaN where a metric has no value (``null`` in the file)."""
@@ -104,6 +106,7 @@ def evaluate_policy(
         raise ValueError(f"video_envs must be an int >= 0 (robots in the video; 0 for none), got {video_envs!r}")
     if env is None:
         env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
+    require_trained_statistics(env)
     freeze_running_statistics(env)  # a test of the policy as trained, not of statistics drifting with its rollout
     base = env.base_env
     steps = policy_steps(seconds, base.dt)

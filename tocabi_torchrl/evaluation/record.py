@@ -19,9 +19,10 @@ import torch
 
 from .. import robot
 from ..config import RunConfig
-from ..transforms.normalize import freeze_running_statistics
+from ..transforms.normalize import freeze_running_statistics, untrained_running_normalizers
 
-__all__ = ["GaitMetrics", "LoadedPolicy", "load_policy", "fixed_command", "policy_steps", "LEG_JOINTS", "KNEES"]
+__all__ = ["GaitMetrics", "LoadedPolicy", "load_policy", "fixed_command", "policy_steps", "require_trained_statistics",
+           "LEG_JOINTS", "KNEES"]
 
 #: The 12 leg joints, in action order.
 LEG_JOINTS: tuple[str, ...] = tuple(robot.JOINT_NAMES[robot.LEGS])
@@ -124,10 +125,22 @@ def policy_steps(seconds: float, dt: float) -> int:
     if not math.isfinite(seconds):
         raise ValueError(f"seconds={seconds!r}: the test's length must be a finite number of seconds (e.g. 8)")
     steps = int(round(seconds / dt))
-    if steps < 1:
+    if steps < 1 or seconds < dt * (1.0 - 1e-9):  # 0.003 s would round up to one 4 ms step: refused, as said
         raise ValueError(f"seconds={seconds:g} is shorter than one policy step ({dt * 1000:g} ms); pass at least "
                          f"{dt:g}")
     return steps
+
+
+def require_trained_statistics(env) -> None:
+    """``ValueError`` if ``env`` normalises observations with running statistics that never saw a step: an env built
+    from a run's config (e.g. ``build_env(nominal_config(cfg), ...)``) starts with the normaliser's initial
+    statistics, not those of the checkpoint, so a policy trained with ``transforms.normalization running`` would be
+    tested on inputs scaled unlike those it learned from, and its numbers would be wrong without a word."""
+    if untrained_running_normalizers(env):
+        raise ValueError("the env's running observation normaliser holds its starting statistics, not the "
+                         "checkpoint's (an env built from the run's config): the policy would see inputs scaled "
+                         "unlike those it trained on. Pass env=load_policy(checkpoint, ..., nominal=True).env, or "
+                         "test the checkpoint with evaluate_run / evaluate_robust_run")
 
 
 def nominal_config(cfg: RunConfig) -> RunConfig:

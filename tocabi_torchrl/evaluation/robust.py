@@ -51,7 +51,7 @@ from ..tree import to_dict
 from ..transforms.normalize import freeze_running_statistics
 from ..value_rules import NON_NEGATIVE, PUSH_KINDS, Range, check_seed
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
-from .record import GaitMetrics, fixed_command, nominal_config, policy_steps
+from .record import GaitMetrics, fixed_command, nominal_config, policy_steps, require_trained_statistics
 from .output import rounded_against
 
 __all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking", "RobustCase", "RobustTestConfig",
@@ -600,6 +600,7 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
     env = envs[key]
     if prepare_env is not None:
         prepare_env(env)
+    require_trained_statistics(env)  # without prepare_env, a running normaliser has no checkpoint's statistics
     # The same robots for every policy tested in this env: episode draws restart from the test's seed.
     env.set_seed(int(test.seed))
     every = run_case(actor, env, test.seconds, progress=progress,

@@ -18,7 +18,7 @@ from tocabi_torchrl.transforms._base import CallOnReset
 from tocabi_torchrl.transforms._checks import check_positive, require_spec
 
 __all__ = ["REFERENCE_OBS_MEAN", "REFERENCE_OBS_VAR", "FixedNormalization", "RunningNormalization",
-           "freeze_running_statistics"]
+           "freeze_running_statistics", "running_normalizers", "untrained_running_normalizers"]
 
 _LEG_NAMES = ("HipYaw", "HipRoll", "HipPitch", "Knee", "AnklePitch", "AnkleRoll")
 
@@ -195,6 +195,7 @@ class RunningNormalization(_Normalization):
         # (load_state_dict copies into this buffer, converting).
         count = check_positive(init_count, "RunningNormalization init_count")
         self.register_buffer("count", torch.tensor(count, dtype=torch.float64))
+        self.init_count = count  # a count still at this value: statistics that never saw a step (untrained)
         self.frozen = bool(frozen)
         self.mask_key, self.mask_invert = mask_key, bool(mask_invert)
         self.health_key = health_key
@@ -279,6 +280,27 @@ class RunningNormalization(_Normalization):
 
 
 
+def running_normalizers(env) -> list[RunningNormalization]:
+    """Every :class:`RunningNormalization` among ``env``'s transforms, each once: inside a nested ``Compose`` and
+    in the transforms of a ``TransformedEnv`` wrapped by another too."""
+    norms, seen, layer = {}, set(), env
+    while layer is not None and id(layer) not in seen:
+        seen.add(id(layer))
+        transform = getattr(layer, "transform", None) or ()
+        stages = [transform] if isinstance(transform, torch.nn.Module) else list(transform)  # a Compose, or a list
+        norms.update((id(m), m) for stage in stages if isinstance(stage, torch.nn.Module) for m in stage.modules()
+                     if isinstance(m, RunningNormalization))
+        layer = getattr(layer, "base_env", None)
+    return list(norms.values())
+
+
+def untrained_running_normalizers(env) -> list[RunningNormalization]:
+    """The :class:`RunningNormalization` of ``env`` (:func:`running_normalizers`) that never folded in a step: their
+    statistics are still the starting ones, as in an env freshly built from a config, not a trained policy's
+    (loaded from its checkpoint). Reads each count on the host: for set-up checks, not for the step."""
+    return [n for n in running_normalizers(env) if float(n.count) == n.init_count]
+
+
 def freeze_running_statistics(env) -> int:
     """Freeze every :class:`RunningNormalization` among ``env``'s transforms; returns how many.
 
@@ -289,15 +311,7 @@ def freeze_running_statistics(env) -> int:
 
     Every normaliser counts, wherever it sits: inside a nested ``Compose`` and in the transforms of a
     ``TransformedEnv`` wrapped by another (one left unfrozen would go on learning from the evaluation)."""
-    norms, seen, layer = {}, set(), env
-    while layer is not None and id(layer) not in seen:
-        seen.add(id(layer))
-        transform = getattr(layer, "transform", None) or ()
-        stages = [transform] if isinstance(transform, torch.nn.Module) else list(transform)  # a Compose, or a list
-        norms.update((id(m), m) for stage in stages if isinstance(stage, torch.nn.Module) for m in stage.modules()
-                     if isinstance(m, RunningNormalization))
-        layer = getattr(layer, "base_env", None)
-    norms = list(norms.values())
+    norms = running_normalizers(env)
     changed = [t.freeze() for t in norms if not t.frozen]
     if changed and hasattr(env, "invalidate_graph"):
         env.invalidate_graph()
