@@ -770,3 +770,31 @@ def test_a_test_length_under_one_policy_step_is_refused_as_its_message_says():
     with pytest.raises(ValueError, match="pass at least 0.004"):
         policy_steps(0.003, 0.004)  # rounded up to one 4 ms step before
     assert policy_steps(0.004, 0.004) == 1 and policy_steps(8.0, 0.004) == 2000
+
+
+def test_the_gait_tests_check_device_and_out_folder_before_building_or_making_anything(tmp_path, monkeypatch):
+    # On a CPU-only machine the default device ("cuda") ended in torch's "not compiled with CUDA" and left an empty
+    # folder; "auto" was refused; an out_dir that is a file failed after the env was built.
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.evaluation import gait_test, robust
+    from tocabi_torchrl.rl.trainer import build_agent
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    cfg = preset_config("cpu_smoke", device="cpu")
+    agent = build_agent(cfg, 237, 13, torch.device("cpu"))
+    test = robust.RobustTestConfig(num_envs=1, seconds=0.1, cases=("nominal",))
+    with pytest.raises(RuntimeError, match="pass device='cpu'"):
+        robust.evaluate_robust(agent.actor, cfg, tmp_path / "r", test=test, device="cuda", progress=False)
+    with pytest.raises(RuntimeError, match="pass device='cpu'"):
+        gait_test.evaluate_policy(agent.actor, cfg, tmp_path / "g", num_envs=1, device="cuda", progress=False)
+    assert not (tmp_path / "r").exists() and not (tmp_path / "g").exists()
+    summary = gait_test.evaluate_policy(agent.actor, cfg, tmp_path / "a", num_envs=1, device="auto", seconds=0.1,
+                                        video_envs=0, progress=False)
+    assert summary["seconds"] == 0.1
+    (tmp_path / "f").write_text("")
+    monkeypatch.setattr(gait_test, "load_policy", lambda *a, **k: pytest.fail("built before the checks"))
+    policy = Path(__file__).resolve().parents[1] / "assets" / "policies" / "tocabi_walk_ppo.pt"
+    with pytest.raises(ValueError, match="is a file, not a folder"):
+        gait_test.evaluate_run(policy, num_envs=1, device="cpu", out_dir=tmp_path / "f")
+    with pytest.raises(ValueError, match="video_envs must be an int >= 0"):
+        gait_test.evaluate_run(policy, num_envs=1, device="cpu", out_dir=tmp_path / "v", video_envs=-1)

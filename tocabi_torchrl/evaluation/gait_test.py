@@ -78,12 +78,18 @@ def tested_on(device: str | torch.device) -> str:
     return torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"
 
 
+def check_video_envs(video_envs) -> None:
+    """``ValueError`` unless ``video_envs`` (robots in the gait test's video) is an int >= 0."""
+    if isinstance(video_envs, bool) or not isinstance(video_envs, int) or video_envs < 0:
+        raise ValueError(f"video_envs must be an int >= 0 (robots in the video; 0 for none), got {video_envs!r}")
+
+
 def evaluate_policy(
     actor,
     cfg: RunConfig,
     out_dir: str | os.PathLike,
     num_envs: int = 256,
-    device: str | torch.device = "cuda",
+    device: str | torch.device = "auto",
     seconds: float = 8.0,
     command: tuple[float, float] = (0.5, 0.0),
     video_envs: int = 4,
@@ -97,13 +103,13 @@ def evaluate_policy(
     nominal robot is the env of ``load_policy(..., nominal=True)``, which :func:`evaluate_run` uses (or, for a
     policy without running normalisation, one built from ``nominal_config(cfg)``); a training config's kicks and
     randomisation stay on otherwise. An env whose running normaliser never saw a step (built from the config, not
-    loaded with the checkpoint's statistics) raises ``ValueError`` (:func:`.record.require_trained_statistics`). ``seconds`` must cover at least one policy
-    step; ``progress`` shows bars for the rollout and the rendering; ``source``, the checkpoint tested, is recorded
-    in the summary as ``checkpoint``.
+    loaded with the checkpoint's statistics) raises ``ValueError`` (:func:`.record.require_trained_statistics`).
+    ``device``: "auto" (the GPU if torch sees one, else the CPU), "cuda", "cuda:K" or "cpu". ``seconds`` must cover
+    at least one policy step; ``progress`` shows bars for the rollout and the rendering; ``source``, the checkpoint
+    tested, is recorded in the summary as ``checkpoint``.
     Returns the summary, NaN where a metric has no value (``null`` in the file)."""
-    device = torch.device(device)
-    if isinstance(video_envs, bool) or not isinstance(video_envs, int) or video_envs < 0:
-        raise ValueError(f"video_envs must be an int >= 0 (robots in the video; 0 for none), got {video_envs!r}")
+    device = resolve_device(device)  # "auto" too; a GPU asked for on a CPU-only machine says to pass "cpu"
+    check_video_envs(video_envs)
     if env is None:
         env = build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
     require_trained_statistics(env)
@@ -173,7 +179,11 @@ def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "aut
     """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``out_dir`` as given (files of
     the same name replaced), or by default to :func:`fresh_eval_dir` (``<run>/eval/``, or ``eval_2/``, ... when
     earlier results are there). Raises ``CheckpointError`` for a bad file and ``ValueError`` for ``seconds`` below
-    one policy step, before building anything."""
+    one policy step, ``video_envs`` below 0 or an ``out_dir`` that is a file, before building anything."""
+    if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ValueError(f"out_dir {out_dir} is a file, not a folder: give a folder for the results")
+    if "video_envs" in kwargs:
+        check_video_envs(kwargs["video_envs"])
     ckpt = checkpoint_file(run)
     state = read_checkpoint(ckpt)
     policy_steps(kwargs.get("seconds", 8.0), policy_dt())

@@ -562,7 +562,7 @@ def robust_passes(report: dict, cases: tuple[str, ...] | None = None) -> bool:
 
 # ------------------------------------------------------------------------------------------------ the test
 def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: RobustTestConfig = RobustTestConfig(),
-                    device: str | torch.device = "cuda", envs: dict | None = None,
+                    device: str | torch.device = "auto", envs: dict | None = None,
                     prepare_env: Callable | None = None, progress: bool = True,
                     source: str | os.PathLike | None = None) -> dict:
     """Run the robust test's cases (``test.cases``) of the deterministic ``actor`` (trained with run config
@@ -573,14 +573,18 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
 
     Every case runs at once in one env (:func:`batch_env`). ``envs``: a dict to keep that env in for reuse (e.g.
     across checkpoints; built and stored under :func:`batch_key` when missing). ``prepare_env(env)``: called on the
-    env before the rollout, e.g. to load a checkpoint's normaliser statistics into it. ``progress``: a bar.
-    ``source``: the checkpoint tested, recorded in the report as ``checkpoint``."""
+    env before the rollout, e.g. to load a checkpoint's normaliser statistics into it (without it, an env whose
+    running normaliser never saw a step raises ``ValueError``). ``device``: "auto" (the GPU if torch sees one, else
+    the CPU), "cuda", "cuda:K" or "cpu". ``progress``: a bar. ``source``: the checkpoint tested, recorded in the
+    report as ``checkpoint``."""
     from .gait_test import policy_dt
     from .plots import plot_robust
 
+    from ..rl.trainer import resolve_device
+
     dt = policy_dt()
     test.validate(dt)
-    device = torch.device(device)
+    device = resolve_device(device)  # before the folder is made: "cuda" on a CPU-only machine says to pass "cpu"
     envs = {} if envs is None else envs
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -622,7 +626,7 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
 
 
 def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: str | os.PathLike,
-                               test: RobustTestConfig = RobustTestConfig(), device: str | torch.device = "cuda",
+                               test: RobustTestConfig = RobustTestConfig(), device: str | torch.device = "auto",
                                envs: dict | None = None, progress: bool = True) -> dict:
     """:func:`evaluate_robust` of a checkpoint already read (``state``, from ``read_checkpoint(path)``): its actor,
     and its normaliser statistics loaded into every case's env. ``envs`` as there: a benchmark reuses the case envs
@@ -632,7 +636,7 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
     from ..rl.trainer import checkpoint_agent, resolve_device
     from .gait_test import policy_dt
 
-    device = resolve_device(device) if str(device) == "auto" else torch.device(device)
+    device = resolve_device(device)
     cfg = config_from_checkpoint(state, path)
     test.validate(policy_dt())
     envs = {} if envs is None else envs
