@@ -107,13 +107,23 @@ def _what(cases) -> str:
     return ("the cases " if len(cases) > 1 else "the case ") + ", ".join(cases)
 
 
+def _cell(value, check: dict | None, spec: str) -> str:
+    """A table cell: ``value`` in ``spec``, ✗ when its ``check`` failed, with as many more decimals as it takes not to
+    read as the other verdict (a drift of 0.3032 against <= 0.3 shows 0.303 ✗, not 0.30 ✗)."""
+    from tocabi_torchrl.evaluation.output import rounded_against
+
+    if value is None or check is None:
+        return common.fmt(value, spec) + ("" if check is None or check["pass"] else " ✗")
+    op, limit = check["needs"].split()
+    text = rounded_against(value, float(limit), check["pass"], "min" if op == ">=" else "max", int(spec[1:-1]))
+    return text + ("" if check["pass"] else " ✗")
+
+
 def render(data: dict, out: Path) -> str:
     rows = []
     for r in data["results"]:
         for name, c in r["cases"].items():
-            cells = [common.fmt(c.get(path), spec)
-                     + ("" if all(ch["pass"] for p, ch in c["checks"].items() if p == path) else " ✗")
-                     for _, path, spec in COLUMNS]
+            cells = [_cell(c.get(path), c["checks"].get(path), spec) for _, path, spec in COLUMNS]
             rows.append([r["policy"], name, *cells, "pass" if c["passes"] else "FAIL"])
     lines = [common.table(["policy", "case", *[label for label, _, _ in COLUMNS], "case verdict"], rows), ""]
     untested = data["meta"].get("untested", 0)
@@ -190,6 +200,8 @@ def main(argv=None) -> None:
 
     common.require_cuda(parser, args.device, "pass --device cpu")
     out = common.report_dir(args.out, args.device)
+    if out.exists() and not out.is_dir():
+        parser.error(f"--out {out} is a file, not a folder: give a folder for the reports")
     if (out / f"{NAME}.json").exists() and not args.overwrite:
         parser.error(f"--out {out} holds a table already ({NAME}.json); pass --overwrite to replace it, or choose "
                      "another folder")

@@ -468,3 +468,26 @@ def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, mon
     with pytest.raises(SystemExit):
         robust_policies.main(["--cases", "nominal", "kicked", "--device", "cpu", "--out", str(tmp_path)])
     assert "unknown case(s) ['kicked']" in capsys.readouterr().err
+
+
+def test_robust_policies_cells_never_round_a_miss_to_read_as_its_limit(tmp_path):
+    # A drift p95 of 0.3032 against <= 0.3 was published as "0.30 ✗".
+    from lab.benchmarks.robust_policies import _cell
+
+    assert _cell(0.3032, {"needs": "<= 0.3", "pass": False}, ".2f") == "0.303 ✗"
+    assert _cell(0.9697, {"needs": ">= 0.97", "pass": False}, ".3f") == "0.9697 ✗"
+    assert _cell(0.29, {"needs": "<= 0.3", "pass": True}, ".2f") == "0.29"
+    assert _cell(None, {"needs": ">= 0.97", "pass": False}, ".3f") == "- ✗" and _cell(4.1, None, ".2f") == "4.10"
+
+
+def test_robust_policies_refuses_an_out_that_is_a_file_before_any_test(tmp_path):
+    from lab.benchmarks import robust_policies
+
+    policy = robust_policies.POLICIES / "tocabi_walk_ppo.pt"
+    if not policy.is_file():
+        pytest.skip("shipped policy not present")
+    (tmp_path / "f").write_text("")
+    with pytest.raises(SystemExit) as stop:
+        robust_policies.main(["--policies", str(policy), "--device", "cpu", "--num_envs", "1", "--out",
+                              str(tmp_path / "f")])
+    assert stop.value.code == 2
