@@ -238,6 +238,21 @@ def test_an_iteration_file_is_resumable_in_its_folder_when_every_newer_one_is_da
     folder.release()
 
 
+def test_a_run_folder_without_latest_pt_resumes_from_its_newest_iteration_file(finished_run, tmp_path):
+    # A run killed between writing its first iteration file and latest.pt: the folder's resume said "checkpoint not
+    # found: .../latest.pt", and a new run of that name said to resume the folder.
+    from tocabi_torchrl.rl.checkpoint import checkpoint_file
+
+    run = copy_of(finished_run, tmp_path)
+    (run / "checkpoints" / "latest.pt").unlink()
+    (run / "checkpoints" / "iter_000010.pt").write_bytes((run / "checkpoints" / "iter_000002.pt").read_bytes())
+    (run / "checkpoints" / "iter_000002.pt").touch()  # written last by file time: the name's iteration counts
+    assert checkpoint_file(run) == run / "checkpoints" / "iter_000010.pt"
+    (run / "checkpoints" / "iter_000010.pt").unlink()
+    recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "24"])
+    assert iterations_logged(run) == [1, 2, 3] and read_checkpoint(run)["iteration"] == 3
+
+
 def test_resuming_the_newest_iteration_file_into_its_own_folder_goes_on_and_trims(finished_run, tmp_path):
     run = copy_of(finished_run, tmp_path)
     with open(run / "metrics" / "scalars" / "env_steps.csv", "a") as f:

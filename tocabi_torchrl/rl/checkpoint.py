@@ -185,13 +185,24 @@ def prune_checkpoints(folder: str | os.PathLike, keep_last: int, keep_every: int
 
 # --------------------------------------------------------------------------------------------------------- reading
 def checkpoint_file(path: str | os.PathLike) -> Path:
-    """The ``.pt`` file meant by ``path``: the file itself, or ``checkpoints/latest.pt`` of a run folder."""
+    """The ``.pt`` file meant by ``path``: the file itself, or of a run folder ``checkpoints/latest.pt`` (the newest
+    ``iter_*.pt`` where that is missing)."""
     path = Path(path)
     if path.is_dir():
-        path = path / "checkpoints" / "latest.pt" if (path / "checkpoints").is_dir() else path / "latest.pt"
+        folder = path / "checkpoints" if (path / "checkpoints").is_dir() else path
+        path = _newest_checkpoint(folder)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path} (pass a .pt file or a run folder with checkpoints/)")
     return path
+
+
+def _newest_checkpoint(folder: Path) -> Path:
+    """``folder/latest.pt``, or where it is missing (a run killed between writing its first iteration file and
+    ``latest.pt``, :func:`save_checkpoint`) the ``iter_*.pt`` of the highest iteration by name (file times put any
+    file first after ``cp -r``). Returns ``latest.pt`` when there is neither, for the caller's not-found error."""
+    latest = folder / "latest.pt"
+    found = sorted((int(m.group(1)), p) for p in folder.glob("iter_*.pt") if (m := _ITER_FILE.match(p.name)))
+    return found[-1][1] if found and not latest.is_file() else latest
 
 
 def run_folder_of(checkpoint: str | os.PathLike) -> Path:
