@@ -747,3 +747,16 @@ def test_contract_motion_values_must_be_the_motion_files(key, value, contract_co
     path, c = contract_copy
     with pytest.raises(ContractError, match=rf"reference_motion.{key} is .* in the contract, but the motion .* has"):
         PolicyRuntime(_write(path, _mutated(c, _set(f"reference_motion.{key}", value))))
+
+
+def test_editing_a_returned_command_does_not_change_the_runtimes_next_input():
+    # Command.action was the runtime's own pending action: a caller zeroing it in place changed the phase clock and
+    # the action history of the next step.
+    edited, kept = PolicyRuntime(_contract("torque")), PolicyRuntime(_contract("torque"))
+    edited.reset(_robots(2), (0.5, 0.0)).action[:] = 1.0
+    kept.reset(_robots(2), (0.5, 0.0))
+    edited.step(_robots(2)).action[:] = 0.0
+    kept.step(_robots(2))
+    assert (edited.time == kept.time).all()
+    assert np.array_equal(edited.step(_robots(2)).action, kept.step(_robots(2)).action)
+    assert np.array_equal(edited.policy_input(), kept.policy_input())

@@ -47,7 +47,7 @@ class Command:
     """What to apply for the next control period.
 
     Attributes:
-        action: (N, A) float32 clipped policy action (the value the history stores).
+        action: (N, A) float32 clipped policy action (the value the history stores), a copy the caller may edit.
         leg: (N, L) float32 leg commands: torques [N·m] (``leg_kind == "torque"``) or target angles [rad] for a PD
             with the contract's ``action.leg.kp``/``kv``, force-limited to ``torque_limits_nm`` (``"position"``).
         leg_kind: ``"torque"`` or ``"position"``.
@@ -356,5 +356,7 @@ class PolicyRuntime:
         else:
             center = self.nominal if self.mode == "pd" else ref[:, : self.num_legs]
             leg = np.clip(center + self.action_scale * a_leg, self.range_low, self.range_high)
-        return Command(action=action, leg=leg.astype(_F32), leg_kind=self.leg_kind,
+        # The caller's copy: the runtime keeps its own for the next step's clock and history, which an in-place
+        # edit of the returned command (e.g. zeroing a robot's action) must not reach.
+        return Command(action=action.copy(), leg=leg.astype(_F32), leg_kind=self.leg_kind,
                        upper_targets=ref[:, self.num_legs :], reference=ref)
