@@ -532,6 +532,11 @@ def test_a_refused_reset_leaves_the_running_episode_as_it_was():
     (_set("observation.entries.0.scale", 2.0), r"entries\[0\] has unknown key\(s\) \['scale'\]"),
     (_set("observation.signals.base_rpy.bias", 0.1), r"signals.base_rpy has unknown key\(s\) \['bias'\]"),
     (_set("action.leg.torque_limits_nm.0", 1e-46), r"torque_limits_nm\[0\] is 1e-46 but must be > 0 \(in float32"),
+    # Optional fields a controller may read, loaded unchecked.
+    (_set("robot.actuator_names", ["L_HipYaw_Motor"]), r"actuator_names \(one motor per joint\) must be a list of 33"),
+    (_set("robot.actuator_names.1", "L_HipYaw_Motor"), r"actuator_names \(one motor per joint\): a name appears twice"),
+    (_set("policy.opset", "18"), "policy.opset is '18' but must be an integer >= 1"),
+    (_set("policy.opset", 0), "policy.opset is 0 but must be an integer >= 1"),
 ])
 def test_structurally_wrong_contracts_are_refused_on_load(change, message, contract_copy):
     # Each of these passed load_contract and then failed with an IndexError/KeyError in reset, or ran wrongly.
@@ -693,6 +698,12 @@ def test_policy_input_and_set_command_before_reset_say_to_reset_first():
     ("termination.min_pelvis_height", -0.6, r"termination.min_pelvis_height is -0.6 but must be a finite number >= 0"),
     ("termination.max_neck_angle", "1", r"termination.max_neck_angle is '1' but must be a finite number >= 0"),
     ("upper_body.kp.3", -400.0, r"upper_body.kp\[3\] is -400.0 but must be a finite number >= 0"),
+    # A list where the env takes one number passed entry by entry: [8] substeps ended in a TypeError, [] as a height
+    # in run_sim2sim's ValueError, [0.6] loaded as if it were 0.6.
+    ("timing.substeps", [8], r"timing.substeps is \[8\] but must be one number, not a list \(an int >= 1,"),
+    ("termination.min_pelvis_height", [], r"min_pelvis_height is \[\] but must be one number, not a list"),
+    ("termination.min_pelvis_height", [0.6], r"min_pelvis_height is \[0.6\] but must be one number, not a list"),
+    ("termination.max_neck_angle", [], r"max_neck_angle is \[\] but must be one number, not a list"),
 ])
 def test_contract_values_obey_the_env_configs_rules(field, value, shown, contract_copy):
     # A contract with action.leg.action_scale = -0.5 loaded and every robot fell, while TocabiWalk(pd_action_scale=-1)
@@ -712,13 +723,14 @@ def test_every_contract_field_with_an_env_rule_is_checked_with_that_rule():
     # One source of truth: each field the contract carries from the env config names a rule of ENV_RULES, and a
     # value that rule refuses is refused by the env config as well (so the two cannot drift apart).
     from tocabi_torchrl.envs import TocabiWalkConfig
-    from tocabi_torchrl.runtime.contract import ENV_FIELDS
+    from tocabi_torchrl.runtime.contract import _ENV_LIST_FIELDS, ENV_FIELDS
     from tocabi_torchrl.tree import get_path, replace_paths
     from tocabi_torchrl.value_rules import ENV_RULES
 
     for field, env_path in ENV_FIELDS.items():
         assert env_path in ENV_RULES, field
         default = get_path(TocabiWalkConfig(), env_path)
+        assert isinstance(default, tuple) == (field in _ENV_LIST_FIELDS), field  # a list exactly where the env's is
         bad = -1 if env_path != "control.pd_nominal" else float("nan")
         env_value = tuple([bad] * len(default)) if isinstance(default, tuple) else bad
         with pytest.raises(ValueError, match=re.escape(f"env.{env_path}")):

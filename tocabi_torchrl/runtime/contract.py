@@ -74,6 +74,9 @@ ENV_FIELDS: dict[str, str] = {
     "termination.max_neck_angle": "task.max_neck_angle",
 }
 
+#: The :data:`ENV_FIELDS` whose env value is a tuple (one entry per leg joint); every other one is a single number.
+_ENV_LIST_FIELDS = frozenset({"action.leg.kp", "action.leg.kv", "action.leg.nominal"})
+
 _LEG_KEYS = {
     "torque": ("kind", "torque_limits_nm"),
     "pd": ("kind", "kp", "kv", "action_scale", "center", "nominal", "joint_range", "torque_limits_nm"),
@@ -183,10 +186,11 @@ def check_contract(contract, source: str = "contract") -> None:
     element inside it; non-negative integer history ages; the phase-rate action after the leg actions; both sha256
     hashes 64 lowercase hex digits; ``policy.onnx_file`` and ``reference_motion.name`` plain file names; every value
     the env config also constrains (:data:`ENV_FIELDS`: gains, action scale, nominal pose, substeps, phase-rate gain,
-    termination limits) by the env's own rule, and the upper-body gains >= 0. The optional ``trained_under`` section
-    (what the policy was trained under; a contract without it states nothing and loads as before) by
-    ``value_rules.trained_under_problems``, its delay in ms against its substeps, and no actuator stages in the PD
-    modes."""
+    termination limits) by the env's own rule, each one number or a list as the env takes it, and the upper-body
+    gains >= 0; the optional ``robot.actuator_names`` (one distinct name per joint) and ``policy.opset`` (an
+    integer >= 1) when given. The optional ``trained_under`` section (what the policy was trained under; a contract
+    without it states nothing and loads as before) by ``value_rules.trained_under_problems``, its delay in ms
+    against its substeps, and no actuator stages in the PD modes."""
     if not isinstance(contract, dict):
         raise ContractError(f"{source}: a policy contract is a JSON object, got {type(contract).__name__}")
     if contract.get("format") != CONTRACT_FORMAT:
@@ -303,6 +307,10 @@ def _check_consistency(c: dict, source: str) -> None:
     for key in ("foot_force_sensors", "foot_torque_sensors"):
         _names(rob[key], 2, f"robot.{key} (left, right)", source)
     _numbers(rob["initial_qpos"], 7 + len(joints), "robot.initial_qpos (base pose + joints)", source)
+    if "actuator_names" in rob:  # optional, but a controller may drive its motors by these names
+        _names(rob["actuator_names"], len(joints), "robot.actuator_names (one motor per joint)", source)
+    if "opset" in pol:  # optional; the runtime names it when onnxruntime cannot load the graph
+        _count(pol["opset"], "policy.opset", source, 1)
     _file_name(pol["onnx_file"], "policy.onnx_file", source)
     _sha256(pol["onnx_sha256"], "policy.onnx_sha256", source)
     _sha256(c["reference_motion"]["sha256"], "reference_motion.sha256", source)
@@ -376,8 +384,14 @@ def _check_env_field(c: dict, field: str, source: str) -> None:
     except KeyError:
         return  # a field of another control mode; the required ones are checked by check_contract
     env_path = ENV_FIELDS[field]
-    _obey(value, ENV_RULES[env_path], field, source,
-          f"as the env requires of env.{env_path}, the option it carries")
+    rule = ENV_RULES[env_path]
+    # _obey checks each entry of a list: a list where the env takes one number ([8] substeps, [] or [0.6] as a
+    # height) would pass it, then fail as a TypeError in the runtime or be read as some other value.
+    if isinstance(value, list) != (field in _ENV_LIST_FIELDS):
+        shape = "a list of numbers, one per leg joint" if field in _ENV_LIST_FIELDS else "one number, not a list"
+        raise ContractError(f"{source}: {field} is {value!r} but must be {shape} ({rule.describe()}, as the env "
+                            f"requires of env.{env_path}, the option it carries); {_FIX}")
+    _obey(value, rule, field, source, f"as the env requires of env.{env_path}, the option it carries")
 
 
 def _check_env_values(c: dict, source: str) -> None:
