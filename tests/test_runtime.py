@@ -772,3 +772,37 @@ def test_editing_a_returned_command_does_not_change_the_runtimes_next_input():
     assert (edited.time == kept.time).all()
     assert np.array_equal(edited.step(_robots(2)).action, kept.step(_robots(2)).action)
     assert np.array_equal(edited.policy_input(), kept.policy_input())
+
+
+def test_a_reset_or_step_whose_sensors_fail_leaves_the_episode_as_it_was():
+    # The clock and robot count were committed before the observation was built: a reset of 3 robots with sensor
+    # biases drawn for 2 failed (with numpy's broadcast error) but left a 3-robot runtime, and a sensors fault in a
+    # step still advanced the clock.
+    from tocabi_torchrl.runtime import randomization as rnd
+
+    sensors = rnd.SensorModel(rnd.SensorSettings(joint_pos_bias=0.03), 33, np.random.default_rng(0))
+    sensors.reset(np.random.default_rng(1), 2)
+    runtime = PolicyRuntime(_contract("ppo"), sensors=sensors)
+    runtime.reset(_robots(2), (0.5, 0.0))
+    runtime.step(_robots(2))
+    clock, command, given = runtime.time.copy(), runtime.command.copy(), runtime.policy_input()
+    with pytest.raises(ValueError, match=r"'joint_pos' has shape \(3, 33\), expected \(2, 33\).*call reset\(rng, n\)"):
+        runtime.reset(_robots(3), (0.5, 0.0))
+    assert runtime.num_robots == 2
+
+    def fault(signals):
+        raise OSError("IMU timeout")
+
+    for broken, error, message in (
+        (fault, OSError, "IMU timeout"),
+        (lambda s: {**s, "joint_pos": np.zeros((2, 12))}, ContractError,
+         r"returned \(2, 12\) for signal 'joint_pos', expected its input's shape \(2, 33\)"),
+        (lambda s: None, ContractError, "returned NoneType, not a dict"),
+    ):
+        runtime.sensors = broken
+        with pytest.raises(error, match=message):
+            runtime.step(_robots(2), (0.2, 0.0))
+        assert (runtime.time == clock).all() and (runtime.command == command).all()
+        assert np.array_equal(runtime.policy_input(), given)
+    runtime.sensors = sensors
+    runtime.step(_robots(2))

@@ -205,29 +205,35 @@ class PolicyRuntime:
         and zero actions. ``command`` (N, 2) or (2,) is the velocity command [m/s] (vx, vy). Returns the command for
         the first period.
 
-        A refused state, start row or command (:class:`ContractError`) leaves the running episode as it was."""
+        A refused state, start row or command (:class:`ContractError`), or a ``sensors`` callable that fails, leaves
+        the running episode as it was."""
         n = self._check_state(state)
         rows = self.motion.init_rows[0] if init_row is None else init_row
         init_row = self._check_init_row(rows, n)
         command = self._check_command(command, n)
+        time = np.zeros(n, dtype=_F32)
+        obs = self._observe(state, time, init_row, command)
         # Only now that everything passed: a refused reset must not restart the clock or change the robot count.
-        self.init_row, self.time, self.command = init_row, np.zeros(n, dtype=_F32), command
-        zeros = np.zeros((n, len(self.low)), dtype=_F32)
-        self.history.reset(self._observe(state), zeros)
+        self.init_row, self.time, self.command = init_row, time, command
+        self.history.reset(obs, np.zeros((n, len(self.low)), dtype=_F32))
         return self._act()
 
     def step(self, state: RobotState, command=None) -> Command:
         """``state`` after one control period of the last command; returns the command for the next period.
-        ``command`` (optional) replaces the velocity command from this observation on."""
+        ``command`` (optional) replaces the velocity command from this observation on.
+
+        A refused state or command (:class:`ContractError`), or a ``sensors`` callable that fails, leaves the clock,
+        the command and the history as they were: the step may be retried with sound readings."""
         if self._pending is None:
             raise RuntimeError("PolicyRuntime.step without a running episode (before reset, or after a policy output "
                                "with no finite entry): call reset(state, command) first")
         self._check_state(state, self.num_robots)
-        if command is not None:
-            self.set_command(command)
+        command = self.command if command is None else self._check_command(command, self.num_robots)
         rate = _F32(1.0) + _F32(self.rate_gain) * self._pending[:, self.rate_index]
-        self.time = np.remainder(self.time + self.dt * rate, _F32(self.motion.period)).astype(_F32)
-        self.history.push(self._observe(state), self._pending)
+        time = np.remainder(self.time + self.dt * rate, _F32(self.motion.period)).astype(_F32)
+        obs = self._observe(state, time, self.init_row, command)
+        self.time, self.command = time, command
+        self.history.push(obs, self._pending)
         return self._act()
 
     def set_command(self, command) -> None:
@@ -316,8 +322,10 @@ class PolicyRuntime:
                                 "readings")
         return count
 
-    def _observe(self, state: RobotState) -> np.ndarray:
-        phase = self.motion.phase(self.time, self.init_row)
+    def _observe(self, state: RobotState, time: np.ndarray, init_row: np.ndarray, command: np.ndarray) -> np.ndarray:
+        """(N, D) float32 normalised observation of ``state`` at clock ``time`` (N,) [s] from start rows
+        ``init_row`` (N,) under ``command`` (N, 2) [m/s]; the caller commits these only once this succeeded."""
+        phase = self.motion.phase(time, init_row)
         sin, cos = self.observation.phase_features(phase)
         signals = {
             "base_rpy": quat_to_rpy(state.base_quat),
@@ -325,13 +333,28 @@ class PolicyRuntime:
             "joint_vel": state.joint_vel,
             "phase_sin": sin,
             "phase_cos": cos,
-            "command": self.command,
+            "command": command,
             "foot_force": state.foot_force,
             "foot_torque": state.foot_torque,
         }
         if self.sensors is not None:
-            signals = self.sensors(signals)
+            signals = self._sensed(signals)
         return self.observation.normalize(self.observation.raw(signals))
+
+    def _sensed(self, signals: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The ``sensors`` callable's view of ``signals`` {name: (N, *shape)}: every signal back with its shape,
+        else :class:`ContractError` (a wrong shape would fail deep in the observation, or be read silently)."""
+        out = self.sensors(signals)
+        if not isinstance(out, dict):
+            raise ContractError(f"the sensors callable returned {type(out).__name__}, not a dict: return "
+                                "{name: (N, *shape)} with every signal it was given, in its shape")
+        for name, value in signals.items():
+            got = np.shape(out[name]) if name in out else "nothing"
+            if got != np.shape(value):
+                raise ContractError(f"the sensors callable returned {got} for signal {name!r}, expected its input's "
+                                    f"shape {np.shape(value)}: return every signal it was given, in its shape (one "
+                                    f"row per robot; this runtime runs {np.shape(value)[0]})")
+        return out
 
     def _act(self) -> Command:
         obs = self.history.read()

@@ -471,7 +471,12 @@ class SensorModel:
     def __call__(self, signals: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         out = dict(signals)
         for name, bias in self.biases.items():
-            out[name] = np.asarray(out[name], dtype=np.float32) + bias
+            value = np.asarray(out[name], dtype=np.float32)
+            if value.shape != bias.shape:  # numpy's broadcast error would name neither the robots nor the fix
+                raise ValueError(f"SensorModel: signal {name!r} has shape {value.shape}, expected {bias.shape}: its "
+                                 f"biases were drawn for {len(bias)} robot(s); call reset(rng, n) with this "
+                                 "episode's robot count first")
+            out[name] = value + bias
         for name in ("joint_pos", "joint_vel"):
             std, clip = float(getattr(self.settings, f"{name}_noise_std")), getattr(self.settings,
                                                                                    f"{name}_noise_clip")
