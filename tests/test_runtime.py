@@ -806,3 +806,29 @@ def test_a_reset_or_step_whose_sensors_fail_leaves_the_episode_as_it_was():
         assert np.array_equal(runtime.policy_input(), given)
     runtime.sensors = sensors
     runtime.step(_robots(2))
+
+
+def test_sim_to_sim_arguments_are_checked_up_front_and_a_command_may_be_per_robot():
+    # Zero robots, a negative count or perturbation and a per-robot command ended in numpy errors that named no
+    # argument ('need at least one array to stack', 'scale < 0', a TypeError); 0.003 s ran one 4 ms step while the
+    # message for shorter runs asked for at least 0.004.
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+    contract = _contract("ppo")
+    for kw, message in (({"num_robots": 0}, "num_robots must be an int >= 1 .* got 0; pass e.g. num_robots=4"),
+                        ({"num_robots": -1}, "num_robots must be an int >= 1 .* got -1"),
+                        ({"num_robots": 2.0}, r"num_robots must be an int >= 1 .* got 2.0"),
+                        ({"perturbation": -1}, r"perturbation must be a finite number >= 0 .* got -1; pass 0 for none"),
+                        ({"perturbation": float("nan")}, "perturbation must be a finite number >= 0"),
+                        ({"seed": -1}, r"seed must be an int in \[0, 2\*\*63 - 1\]"),
+                        ({"seconds": 0.003}, r"seconds=0.003 is shorter than one control period \(4 ms\).*0.004"),
+                        ({"command": [[0.5, 0.0]] * 3}, r"command has shape \(3, 2\), expected \(2,\) or \(2, 2\)")):
+        with pytest.raises(ValueError, match=message):
+            run_sim2sim(contract, **{"seconds": 0.008, "num_robots": 2, **kw})
+    # The result's length is the simulated one: whole control periods.
+    assert run_sim2sim(contract, seconds=0.005, num_robots=1).seconds == 0.004
+    same = run_sim2sim(contract, seconds=0.02, num_robots=2, command=[[0.5, 0.0], [0.5, 0.0]]).as_dict()
+    assert same == run_sim2sim(contract, seconds=0.02, num_robots=2, command=(0.5, 0.0)).as_dict()
+    apart = run_sim2sim(contract, seconds=0.02, num_robots=2, command=np.array([[0.5, 0.0], [0.0, 0.0]]))
+    # Robot 1 is told to stand: its speed error is measured against 0 m/s, robot 0's against 0.5 m/s.
+    assert apart.speed_tracking_error_mps != same["speed_tracking_error_mps"]

@@ -21,6 +21,7 @@ and start velocities.
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field, fields
@@ -30,6 +31,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
+from ..value_rules import check_seed
 from . import randomization as rnd
 from .policy import PolicyRuntime, RobotState
 
@@ -127,6 +129,7 @@ class Sim2SimResult:
     """Gait-test metrics (as ``evaluation/gait_test.py`` defines them) of a sim-to-sim run; distances in m."""
 
     num_robots: int
+    #: The simulated time: whole control periods, the requested seconds rounded to the nearest.
     seconds: float
     survival: float
     forward_distance_m: float
@@ -227,6 +230,26 @@ def resolve_randomization(randomize, contract: dict) -> rnd.Randomization:
     return chosen
 
 
+def _check_run(seconds, dt: float, num_robots, perturbation, seed) -> int:
+    """Control periods of ``dt`` [s] in ``seconds`` [s]; ``ValueError`` naming the argument and the fix for a
+    length under one period, a robot count that is not an int >= 1, a negative or non-finite ``perturbation``
+    [rad] or a seed outside [0, 2**63 - 1] (numpy's own errors, e.g. 'scale < 0', name neither)."""
+    if isinstance(num_robots, bool) or not isinstance(num_robots, numbers.Integral) or num_robots < 1:
+        raise ValueError(f"num_robots must be an int >= 1 (the robots to simulate), got {num_robots!r}; pass e.g. "
+                         "num_robots=4")
+    if (isinstance(perturbation, bool) or not isinstance(perturbation, numbers.Real) or not math.isfinite(perturbation)
+            or perturbation < 0):
+        raise ValueError(f"perturbation must be a finite number >= 0 (the std [rad] of each robot's initial joint "
+                         f"offsets), got {perturbation!r}; pass 0 for none or e.g. 1e-6")
+    check_seed(seed, "seed")
+    # Below one period the run would still simulate one and report the shorter length.
+    if (isinstance(seconds, bool) or not isinstance(seconds, numbers.Real) or not math.isfinite(seconds)
+            or seconds < dt * (1.0 - 1e-9)):
+        raise ValueError(f"seconds={seconds!r} is shorter than one control period ({dt * 1000:g} ms) or not finite; "
+                         f"pass at least {dt:g}")
+    return round(seconds / dt)
+
+
 def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike | None = None, seconds: float = 8.0,
                 num_robots: int = 4, command: tuple[float, float] = (0.5, 0.0), init_rows=None,
                 remove_meshes: bool = False, motion: str | os.PathLike | None = None, perturbation: float = 0.0,
@@ -236,9 +259,10 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     """Drive ``num_robots`` C MuJoCo robots through the exported policy for ``seconds`` at ``command`` (vx, vy) m/s.
 
     ``model_path``: MJCF (default: the shipped authored model); ``remove_meshes`` strips mesh geoms first (the
-    reference model). ``init_rows``: (num_robots,) start rows of the reference motion (default: the motion's start
-    rows in turn). A robot that meets a termination condition stops counting (as in the gait test) but keeps being
-    simulated.
+    reference model). ``seconds``: at least one control period, run in whole periods (the result's ``seconds``).
+    ``command``: (2,) for every robot or (num_robots, 2), one row per robot, as ``PolicyRuntime`` takes it.
+    ``init_rows``: (num_robots,) start rows of the reference motion (default: the motion's start rows in turn). A
+    robot that meets a termination condition stops counting (as in the gait test) but keeps being simulated.
 
     ``perturbation`` > 0 offsets each robot's initial joint angles by N(0, perturbation²) rad (``seed``): a
     walking gait is chaotic, so a 1e-6 rad offset (or the ~1e-6 difference between ONNX and torch arithmetic) gives
@@ -262,10 +286,10 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     runtime = PolicyRuntime(contract_path, motion=motion)
     c = runtime.contract
     dt = float(c["timing"]["control_dt_s"])
-    steps = round(seconds / dt) if math.isfinite(seconds) else 0
-    if steps < 1:  # no step would run: survival 1 and NaN metrics of no walk at all
-        raise ValueError(f"seconds={seconds!r} is shorter than one control period ({dt * 1000:g} ms) or not finite; "
-                         f"pass at least {dt:g}")
+    steps = _check_run(seconds, dt, num_robots, perturbation, seed)
+    runtime._check_command(command, num_robots)  # ContractError: (2,) or (num_robots, 2) finite speeds
+    # Each robot's commanded forward speed [m/s], in float64 as given (the tracking error's reference).
+    vx = np.broadcast_to(np.asarray(command, dtype=np.float64), (num_robots, 2))[:, 0]
     chosen = resolve_randomization(randomize, c)
     pushes = pushes if pushes is not None and pushes.count > 0 else None
     if pushes is not None:
@@ -329,7 +353,6 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
         d.qacc_warmstart[:] = d.qacc
     held = _state(m, datas, sensors)  # each robot's last finite state
     cmd = runtime.reset(held, command, init_row=init_rows)
-    vx = float(command[0])
     start = np.stack([d.qpos[:3].copy() for d in datas])
     last = start.copy()
     alive = np.ones(num_robots, dtype=bool)
@@ -378,8 +401,8 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     dt = float(c["timing"]["control_dt_s"])
     dist = last - start
     return Sim2SimResult(
-        num_robots=num_robots,
-        seconds=seconds,
+        num_robots=int(num_robots),
+        seconds=round(steps * dt, 9),
         survival=float(alive.mean()),
         forward_distance_m=float(dist[:, 0].mean()),
         lateral_drift_m=float(np.abs(dist[:, 1]).mean()),
