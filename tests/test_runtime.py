@@ -832,3 +832,23 @@ def test_sim_to_sim_arguments_are_checked_up_front_and_a_command_may_be_per_robo
     apart = run_sim2sim(contract, seconds=0.02, num_robots=2, command=np.array([[0.5, 0.0], [0.0, 0.0]]))
     # Robot 1 is told to stand: its speed error is measured against 0 m/s, robot 0's against 0.5 m/s.
     assert apart.speed_tracking_error_mps != same["speed_tracking_error_mps"]
+
+
+def test_a_policy_file_given_to_load_contract_names_the_contract_beside_it(tmp_path):
+    # An .onnx or .pt file read as "not valid JSON ('utf-8' codec can't decode byte ...)", which names no fix.
+    shipped = _contract("ppo")
+    for suffix, kind in ((".onnx", "an ONNX model"), (".pt", "a checkpoint")):
+        with pytest.raises(ContractError, match=rf"{kind}, not a policy contract .*pass the contract beside it, "
+                                                rf"{re.escape(str(shipped))}"):
+            load_contract(shipped.with_suffix(suffix))
+    lone = shutil.copy(shipped.with_suffix(".onnx"), tmp_path / "renamed.bin")  # known by its first bytes too
+    with pytest.raises(ContractError, match=r"renamed.bin is an ONNX model, .*its contract .*renamed.json is missing"):
+        load_contract(lone)
+    checkpoint = shutil.copy(shipped.with_suffix(".pt"), tmp_path / "latest.pt")
+    with pytest.raises(ContractError, match=r"latest.pt is a checkpoint, .*python -m tocabi_torchrl.export "
+                                            r"--checkpoint .*latest.pt --out policy.onnx"):
+        load_contract(checkpoint)
+    module = tmp_path / "walk.ts.pt"
+    module.write_bytes(b"PK\x03\x04 a TorchScript zip")
+    with pytest.raises(ContractError, match=r"walk.ts.pt is a TorchScript module, .*walk.json is missing"):
+        load_contract(module)

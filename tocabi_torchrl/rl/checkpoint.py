@@ -238,15 +238,11 @@ def _check_integrity(path: Path) -> None:
                                      "checkpoint of the run (checkpoints/iter_*.pt)")
 
 
-#: ``ModelProto`` field tags an ONNX file's second field can have (producer name, version, domain, model version, doc,
-#: graph, opsets), after its first: ``ir_version`` (tag 0x08).
-_ONNX_SECOND_TAGS = frozenset(b"\x12\x1a\x22\x28\x32\x3a\x42")
-
-
 def _contract_beside(path: Path) -> Path:
     """The JSON contract an export wrote beside its ``.onnx`` or ``.ts.pt`` file ``path``."""
-    stem = path.name[:-len(".ts.pt")] if path.name.endswith(".ts.pt") else path.stem
-    return path.with_name(f"{stem}.json")
+    from ..runtime.contract import contract_beside  # the runtime's rule, which load_contract's errors follow too
+
+    return contract_beside(path)
 
 
 def _run_config_note(path: Path) -> str | None:
@@ -267,17 +263,16 @@ def _run_config_note(path: Path) -> str | None:
 
 def _exported_kind(path: Path) -> tuple[str, Path | None] | None:
     """``(what it is, its contract)`` when ``path`` is an exported policy, by its suffix or its first bytes."""
+    from ..runtime.contract import CONTRACT_FORMAT, exported_policy_kind
+
     with open(path, "rb") as file:
         head = file.read(16)
-    onnx = len(head) > 2 and head[0] == 0x08 and head[1] < 0x80 and head[2] in _ONNX_SECOND_TAGS
-    if path.suffix == ".onnx" or onnx or path.name.endswith(".ts.pt"):
+    kind = exported_policy_kind(path, head)
+    if kind is not None:
         # A .ts.pt is the export's traced TorchScript module, which torch.load cannot read with weights_only.
         contract = _contract_beside(path)
-        kind = "a TorchScript module" if path.name.endswith(".ts.pt") else "an ONNX model"
         return kind, contract if contract.is_file() else None
     if path.suffix == ".json" or head.lstrip()[:1] == b"{":
-        from ..runtime.contract import CONTRACT_FORMAT
-
         try:
             text = json.loads(path.read_text())
         except (UnicodeDecodeError, json.JSONDecodeError):

@@ -20,7 +20,8 @@ from ..value_rules import (DELAY_APPLIED, ENV_RULES, NON_NEGATIVE, PUSH_KINDS, d
                            trained_under_problems)
 
 __all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ENV_FIELDS", "NORMALIZATION_KINDS", "REQUIRED_KEYS",
-           "RUNTIME_SIGNALS", "ContractError", "check_contract", "load_contract"]
+           "RUNTIME_SIGNALS", "ContractError", "check_contract", "contract_beside", "exported_policy_kind",
+           "load_contract"]
 
 #: ``format`` field of every contract.
 CONTRACT_FORMAT = "tocabi_torchrl.policy_contract"
@@ -104,6 +105,11 @@ _F32_ROUND = struct.Struct("<f")
 MAX_HISTORY_AGE = 1024
 MAX_PHASE_HARMONICS = 64
 _SHA256 = re.compile(r"[0-9a-f]{64}")
+#: ``ModelProto`` field tags an ONNX file's second field can have (producer name, version, domain, model version, doc,
+#: graph, opsets), after its first: ``ir_version`` (tag 0x08).
+_ONNX_SECOND_TAGS = frozenset(b"\x12\x1a\x22\x28\x32\x3a\x42")
+#: The first bytes of a zip file: torch saves checkpoints (``.pt``) as zips.
+_ZIP_MAGIC = b"PK\x03\x04"
 _FIX = "re-export the policy with `python -m tocabi_torchrl.export` (the file was edited or written by another tool?)"
 
 
@@ -118,6 +124,9 @@ def load_contract(path: str | os.PathLike) -> dict:
     path = Path(path)
     if not path.is_file():
         raise ContractError(f"policy contract not found: {path} (export one with `python -m tocabi_torchrl.export`)")
+    wrong = _policy_file_note(path)
+    if wrong is not None:  # its bytes would read as "not valid JSON ('utf-8' codec ...)", which names no fix
+        raise ContractError(wrong)
     try:
         contract = json.loads(path.read_text(), parse_constant=_refuse_constant, parse_float=_finite_float,
                               object_pairs_hook=_unique_keys)
@@ -136,6 +145,50 @@ def load_contract(path: str | os.PathLike) -> dict:
         raise ContractError(f"cannot read policy contract {path}: not valid JSON ({err})") from err
     check_contract(contract, str(path))
     return contract
+
+
+def contract_beside(path: str | os.PathLike) -> Path:
+    """The JSON contract an export writes beside its ``.onnx`` (or ``.ts.pt``) file ``path``; for a shipped policy's
+    checkpoint (``.pt``), the contract of the same name."""
+    path = Path(path)
+    stem = path.name[: -len(".ts.pt")] if path.name.endswith(".ts.pt") else path.stem
+    return path.with_name(f"{stem}.json")
+
+
+def exported_policy_kind(path: str | os.PathLike, head: bytes) -> str | None:
+    """``"an ONNX model"`` or ``"a TorchScript module"`` when ``path`` (whose first bytes are ``head``, 3 or more) is
+    an exported policy file, by its suffix or its first bytes; else None."""
+    path = Path(path)
+    if path.name.endswith(".ts.pt"):
+        return "a TorchScript module"
+    onnx = len(head) > 2 and head[0] == 0x08 and head[1] < 0x80 and head[2] in _ONNX_SECOND_TAGS
+    return "an ONNX model" if path.suffix == ".onnx" or onnx else None
+
+
+def _policy_file_note(path: Path) -> str | None:
+    """The error for ``path`` when it is a policy file (an exported one or a training checkpoint) rather than its
+    contract, naming the contract beside it or how to write one; None otherwise."""
+    try:
+        with open(path, "rb") as file:
+            head = file.read(16)
+    except OSError:
+        return None  # reading it again below says what is wrong
+    kind = exported_policy_kind(path, head)
+    checkpoint = kind is None and (path.suffix == ".pt" or head.startswith(_ZIP_MAGIC))
+    if checkpoint:
+        kind = "a checkpoint" if path.suffix == ".pt" else "a zip file (a checkpoint?)"
+    if kind is None:
+        return None
+    beside = contract_beside(path)
+    if beside.is_file():
+        fix = f"pass the contract beside it, {beside}"
+    elif checkpoint:
+        fix = (f"export it with `python -m tocabi_torchrl.export --checkpoint {path} --out policy.onnx`, which writes "
+               "policy.json beside the .onnx")
+    else:
+        fix = (f"its contract {beside} is missing: export the policy again with `python -m tocabi_torchrl.export`, "
+               "which writes both")
+    return f"{path} is {kind}, not a policy contract (the .json an export writes beside the .onnx): {fix}"
 
 
 class _NonStandardJSON(ValueError):
