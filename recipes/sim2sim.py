@@ -174,7 +174,11 @@ def main(argv: list[str] | None = None) -> dict:
     print(text)
     if args.out:
         try:
-            atomic_write_text(args.out, text + "\n")  # never a half-written file
+            # Never a half-written file, nor one replacing a file created there during the run (--out was free).
+            atomic_write_text(args.out, text + "\n", replace=False)
+        except FileExistsError:
+            sys.exit(f"error: --out {args.out} was created by something else during the run and is left as it is; "
+                     "the metrics are printed above")
         except OSError as err:  # e.g. a full disk or no write permission: the metrics are printed above
             sys.exit(f"error: cannot write --out {args.out} ({err}); the metrics are printed above")
     return result

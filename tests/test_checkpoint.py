@@ -154,6 +154,36 @@ def test_atomic_writes_get_the_permissions_of_a_plain_write(tmp_path):
     assert new.read_text() == '{"a": 1}'
 
 
+def test_an_atomic_write_that_must_not_replace_leaves_a_file_that_appeared_meanwhile(tmp_path, monkeypatch):
+    # A writer checks at its start that its output is free, then writes it: os.replace overwrote a file created in
+    # between. With replace=False the write refuses it instead, and leaves no temporary file.
+    import errno
+
+    import tocabi_torchrl.atomic as atomic
+
+    target = tmp_path / "metrics.json"
+    real_create = atomic._create_temp
+
+    def someone_else_writes_first(path):
+        made = real_create(path)
+        path.write_text("theirs")
+        return made
+
+    monkeypatch.setattr(atomic, "_create_temp", someone_else_writes_first)
+    with pytest.raises(FileExistsError, match="appeared while this one was being written") as info:
+        atomic.atomic_write_text(target, "ours", replace=False)
+    assert info.value.filename == str(target) and target.read_text() == "theirs"
+    assert not list(tmp_path.glob(".*.tmp")), "the refused write left its temporary file behind"
+    assert atomic.atomic_write_text(target, "ours").read_text() == "ours"  # replace=True (the default) replaces
+    monkeypatch.setattr(atomic, "_create_temp", real_create)
+    # A file system without hard links: checked just before the rename instead.
+    monkeypatch.setattr(atomic.os, "link", lambda src, dst: (_ for _ in ()).throw(OSError(errno.EPERM, "no links")))
+    with pytest.raises(FileExistsError):
+        atomic.atomic_write_text(target, "again", replace=False)
+    assert atomic.atomic_write_text(tmp_path / "new.json", "{}", replace=False).read_text() == "{}"
+    assert target.read_text() == "ours" and not list(tmp_path.glob(".*.tmp"))
+
+
 def test_retention_keeps_the_last_k_and_every_mth(tmp_path):
     run, _ = _saved_run(tmp_path, iterations=range(1, 13), checkpoint_keep_last=3, checkpoint_keep_every=5)
     names = sorted(p.name for p in (run / "checkpoints").iterdir())

@@ -64,6 +64,27 @@ def test_shipped_onnx_equals_torch_actor_on_random_and_recorded_observations(nam
         assert np.abs(got - expected).max() <= 1e-5
 
 
+def test_an_export_leaves_an_output_file_that_appeared_while_it_ran(tmp_path, monkeypatch):
+    # The outputs are checked free at the start; the atomic writes then replaced a file created there while the
+    # policy was loaded and traced.
+    from tocabi_torchrl.export import onnx_export
+
+    out = tmp_path / "walk.onnx"
+    trace = onnx_export.export_onnx
+
+    def another_writer_meanwhile(*args, **kwargs):
+        out.with_suffix(".json").write_text("theirs")
+        return trace(*args, **kwargs)
+
+    monkeypatch.setattr(onnx_export, "export_onnx", another_writer_meanwhile)
+    with pytest.raises(SystemExit, match=r"walk.json appeared while the export ran and was left as it is .*export "
+                                         r"again with --overwrite"):
+        export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(out)])
+    assert out.with_suffix(".json").read_text() == "theirs" and not list(tmp_path.glob(".*.tmp"))
+    export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(out), "--overwrite"])
+    load_contract(out.with_suffix(".json"))
+
+
 def test_export_cli_writes_onnx_contract_torchscript_and_refuses_to_overwrite(tmp_path, capsys):
     out = tmp_path / "walk.onnx"
     export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(out), "--torchscript"])

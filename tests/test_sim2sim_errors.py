@@ -73,6 +73,25 @@ def test_an_out_file_that_cannot_be_written_is_one_error_line_after_the_printed_
 
 
 @needs_contract
+def test_an_out_file_created_during_the_run_is_left_as_it_is(capsys, tmp_path):
+    # --out is checked free before the run; the metrics used to replace a file created there meanwhile.
+    out = tmp_path / "m.json"
+    recipe = load_recipe("sim2sim")
+    run = recipe.run_sim2sim
+
+    def another_writer_meanwhile(*args, **kwargs):
+        out.write_text("theirs")
+        return run(*args, **kwargs)
+
+    recipe.run_sim2sim = another_writer_meanwhile
+    with pytest.raises(SystemExit) as info:
+        recipe.main(["--contract", str(CONTRACT), "--seconds", "0.02", "--num_robots", "1", "--out", str(out)])
+    assert str(info.value.code) == (f"error: --out {out} was created by something else during the run and is left "
+                                    "as it is; the metrics are printed above")
+    assert out.read_text() == "theirs" and '"survival": 1.0' in capsys.readouterr().out
+
+
+@needs_contract
 def test_a_missing_onnxruntime_is_one_error_line(monkeypatch):
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # makes `import onnxruntime` fail
     message = str(_run([]).code)

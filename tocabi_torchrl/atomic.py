@@ -5,6 +5,9 @@ flushed and fsynced, then renamed over the target; the folder is fsynced so that
 cut. A crash mid-write leaves at most a ``*.tmp`` file, which :func:`remove_stale_temp_files` clears. The file gets
 the permissions a plain ``open(path, "w")`` would give it: the target's own when it exists, else 0o666 less the umask
 (``mkstemp`` alone would leave every checkpoint, export and config readable by its owner only).
+
+A writer that checked at its start that its target did not exist passes ``replace=False``: the temporary file is then
+hard-linked to the target, which fails if a file of that name appeared meanwhile, instead of renamed over it.
 """
 
 from __future__ import annotations
@@ -24,8 +27,11 @@ __all__ = ["atomic_write_bytes", "atomic_write_text", "remove_stale_temp_files",
 TEMP_SUFFIX = ".tmp"
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temp file in the same folder, fsync, ``os.replace``)."""
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, replace: bool = True) -> Path:
+    """Write ``data`` to ``path`` atomically (temp file in the same folder, fsync, ``os.replace``).
+
+    ``replace=False``: never replace a file at ``path``, even one created while ``data`` was being written; raises
+    ``FileExistsError`` (``filename``: ``path``) and leaves that file as it is."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = _create_temp(path)
@@ -34,19 +40,43 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        if path.exists():  # a rewritten file keeps the mode its owner gave it
-            os.chmod(tmp, path.stat().st_mode & 0o7777)
-        os.replace(tmp, path)
+        if replace:
+            if path.exists():  # a rewritten file keeps the mode its owner gave it
+                os.chmod(tmp, path.stat().st_mode & 0o7777)
+            os.replace(tmp, path)
+        else:
+            _link_new(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    if not replace:
+        Path(tmp).unlink(missing_ok=True)  # the target is its second name now (gone: renamed, no hard links)
     _fsync_dir(path.parent)
     return path
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+def _link_new(tmp: str, path: Path) -> None:
+    """Give the written ``tmp`` the name ``path`` unless that exists: a hard link, which (unlike a rename) fails when
+    the name is taken, atomically."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise FileExistsError(errno.EEXIST, "a file of this name appeared while this one was being written; it was "
+                              "left as it is", str(path)) from None
+    except OSError as err:
+        if err.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK, errno.ENOSYS):
+            raise
+        # A file system without hard links (e.g. FAT, some network mounts): check, then rename, which leaves a
+        # moment for another writer, as a plain write would.
+        if path.exists():
+            raise FileExistsError(errno.EEXIST, "a file of this name appeared while this one was being written; it "
+                                  "was left as it is", str(path)) from None
+        os.replace(tmp, path)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str, replace: bool = True) -> Path:
     """:func:`atomic_write_bytes` for UTF-8 text."""
-    return atomic_write_bytes(path, text.encode("utf-8"))
+    return atomic_write_bytes(path, text.encode("utf-8"), replace)
 
 
 def check_writable(path: str | os.PathLike) -> None:

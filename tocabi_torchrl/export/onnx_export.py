@@ -200,10 +200,11 @@ def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchsc
                   overwrite: bool = False) -> ExportResult:
     """Export ``checkpoint`` to ``out`` (``.onnx``) and the contract ``out`` with ``.json``; with ``torchscript``,
     also a traced TorchScript module ``out`` with ``.ts.pt``. Files are written atomically and never replace an
-    existing file unless ``overwrite``. Without ``torchscript``, an existing ``.ts.pt`` (another export's) counts
-    as an output: it is refused without ``overwrite`` and removed with it, after the new files are written. A
-    policy trained on a motion that is none of the shipped ones gets that motion copied beside ``out`` (where the
-    torch-free runtime looks for it), an other file of its name there replaced only with ``overwrite``.
+    existing file unless ``overwrite``, nor one created while the export runs (``FileExistsError``). Without
+    ``torchscript``, an existing ``.ts.pt`` (another export's) counts as an output: it is refused without
+    ``overwrite`` and removed with it, after the new files are written. A policy trained on a motion that is none of
+    the shipped ones gets that motion copied beside ``out`` (where the torch-free runtime looks for it), an other
+    file of its name there replaced only with ``overwrite``.
 
     Raises :class:`ExportError` for NaN/inf weights or statistics, or a non-finite output (see the module doc)."""
     out = Path(out)
@@ -228,17 +229,24 @@ def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchsc
     except ValueError as err:
         raise ExportError(f"{policy.checkpoint}: the contract would hold a NaN or infinite number ({err}), which is "
                           "not JSON; find it in the run's config or statistics and export a sound checkpoint") from err
-    atomic_write_bytes(out, data)
-    atomic_write_text(contract_path, text + "\n")
-    if motion_copy is not None:  # a motion of the run's own: the runtime reads it beside the .onnx
-        atomic_write_bytes(motion_copy, motion_file.read_bytes())
-    removed = None
-    if torchscript:
-        buffer = io.BytesIO()
-        with torch.no_grad():
-            torch.jit.save(torch.jit.trace(actor.eval(), torch.zeros(1, obs_dim)), buffer)
-        atomic_write_bytes(ts_path, buffer.getvalue())
-    elif ts_path.exists():
-        ts_path.unlink()
-        removed = ts_path
+    # Without overwrite the outputs were free when checked above: a file of their names that appeared during the
+    # export (loading, tracing) is someone else's, and is refused rather than replaced.
+    try:
+        atomic_write_bytes(out, data, replace=overwrite)
+        atomic_write_text(contract_path, text + "\n", replace=overwrite)
+        if motion_copy is not None:  # a motion of the run's own: the runtime reads it beside the .onnx
+            atomic_write_bytes(motion_copy, motion_file.read_bytes(), replace=overwrite)
+        removed = None
+        if torchscript:
+            buffer = io.BytesIO()
+            with torch.no_grad():
+                torch.jit.save(torch.jit.trace(actor.eval(), torch.zeros(1, obs_dim)), buffer)
+            atomic_write_bytes(ts_path, buffer.getvalue(), replace=overwrite)
+        elif overwrite and ts_path.exists():  # without overwrite, a .ts.pt there now is not the one refused above
+            ts_path.unlink()
+            removed = ts_path
+    except FileExistsError as err:
+        raise FileExistsError(f"{err.filename} appeared while the export ran and was left as it is (the export "
+                              "stopped there); export again with --overwrite (overwrite=True from Python) to replace "
+                              "it, or to another file") from None
     return ExportResult(out, contract_path, ts_path if torchscript else None, removed, motion_copy)
