@@ -22,7 +22,7 @@ from tocabi_torchrl.rl import parse_args, preset_config
 from tocabi_torchrl.rl.checkpoint import read_checkpoint
 from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.config import PRESETS
-from tocabi_torchrl.rl.launch import LaunchError, banner, cpu_sized_hint, launch_config
+from tocabi_torchrl.rl.launch import LaunchError, banner, cpu_sized_hint, fallback_said, launch_config
 from tocabi_torchrl.rl.resume import ResumeConfigError
 from tocabi_torchrl.rl.run_dir import RunDirError, open_run
 from tocabi_torchrl.rl.trainer import train
@@ -478,6 +478,20 @@ def test_auto_falls_back_to_the_smoke_run_and_the_banner_says_what_runs():
     # An empty run_dir writes into the working folder; the banner said "run folder /mine".
     empty, given, _ = launch_config(["--run_dir", "", "--name", "mine"], cuda_available=False)
     assert banner(empty, given, torch.device("cpu")).endswith("; run folder mine")
+
+
+def test_a_value_refused_on_the_smoke_fallback_says_the_sizes_are_the_fallbacks():
+    # The user asked for the default preset (4,096 envs); the refusal named 8 envs x 16 steps without saying why.
+    with pytest.raises(ValueError) as info:
+        launch_config(["--ppo.minibatch_size", "4096"], cuda_available=False)
+    message = str(info.value)
+    assert "exceeds the rollout (8 envs" in message and fallback_said("cpu_smoke") in message, message
+    assert message.endswith("pass --device cpu to keep the default preset's sizes)")
+    _, _, note = launch_config([], cuda_available=False)
+    assert note.startswith(fallback_said("cpu_smoke"))  # the note and the error say it in the same words
+    with pytest.raises(ValueError) as info:  # no fallback, nothing to add
+        launch_config(["--preset", "cpu_smoke", "--ppo.minibatch_size", "4096"], cuda_available=False)
+    assert "CUDA" not in str(info.value)
 
 
 def test_a_resumed_gpu_run_without_cuda_says_where_its_device_came_from(finished_run, tmp_path):

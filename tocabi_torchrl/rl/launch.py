@@ -1,10 +1,11 @@
 """From a command line to the run that actually happens on this machine, and the banner that says so.
 
-Only ``--device auto`` with no ``--preset`` given may turn into something else than asked: without a CUDA GPU it runs
-the small ``cpu_smoke`` configuration (keeping the other options given), and the banner says so. An explicit request
-this machine cannot honour (``--device cuda`` without CUDA, a GPU-sized ``--preset`` or resumed run on ``auto``)
-raises :class:`LaunchError` with what to pass instead. Under torchrun (``data_parallel``) there is no fallback: a
-multi-rank launch means GPUs were expected, and no rank prints a banner that could say the run changed.
+Only ``--device auto`` with no ``--preset`` given may turn into something else than asked: without a CUDA GPU it
+runs the small ``cpu_smoke`` configuration (keeping the other options given), and the banner says so, as does an
+error that the options raise against it. An explicit request this machine cannot honour (``--device cuda`` without
+CUDA, a GPU-sized ``--preset`` or resumed run on ``auto``) raises :class:`LaunchError` with what to pass instead.
+Under torchrun (``data_parallel``) there is no fallback: a multi-rank launch means GPUs were expected, and no rank
+prints a banner that could say the run changed.
 """
 
 from __future__ import annotations
@@ -65,15 +66,31 @@ def launch_config(argv: Sequence[str] | None, cuda_available: bool, description:
                 raise LaunchError(f"--preset {preset} is {gpu_sized}, and torch sees no CUDA GPU; at its size a CPU "
                                   f"takes days, so use --preset {min(CPU_SIZED_PRESETS)}, or {cpu_sized_hint(sized)}")
             preset, base = min(CPU_SIZED_PRESETS), {"device": "cpu"}
-            note = (f"No CUDA GPU found and --device auto: running the small CPU smoke configuration (preset {preset})"
-                    " instead of the GPU-sized default; it proves the pipeline and learns nothing useful. The default "
+            note = (f"{fallback_said(preset)}; it proves the pipeline and learns nothing useful. The default "
                     f"preset's size takes days on a CPU; to test a change on it, {cpu_sized_hint(sized)}.")
     if resume:
         return resumed, given, note
     from dataclasses import replace
 
-    cfg = parse_tree(argv, replace(preset_tree(preset), **base), prog, description).validated()
+    cfg = parse_tree(argv, replace(preset_tree(preset), **base), prog, description)
+    try:
+        cfg.validate()
+    except ValueError as err:
+        if note is None:
+            raise
+        # The sizes refused are the fallback's, which the user never asked for (8 envs, not 4,096): say where
+        # they came from. The message is amended in place, so the error keeps its type.
+        err.args = (f"{err} ({fallback_said(preset)}; pass --device cpu to keep the default preset's sizes)",
+                    *err.args[1:])
+        raise
     return cfg, given_options(argv, cfg), note
+
+
+def fallback_said(preset: str) -> str:
+    """What the run says when ``--device auto`` finds no CUDA GPU and runs ``preset`` instead of the default: the
+    start of its note, and the end of an error that the fallback's sizes caused."""
+    return (f"No CUDA GPU found and --device auto: running the small CPU smoke configuration (preset {preset}) "
+            "instead of the GPU-sized default")
 
 
 def cpu_sized_hint(cfg: RunConfig) -> str:
