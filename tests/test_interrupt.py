@@ -99,7 +99,7 @@ def test_the_recipe_says_how_to_resume_and_exits_with_the_signal_status(tmp_path
 def test_a_second_signal_stops_at_once(tmp_path, monkeypatch, capsys):
     from tocabi_torchrl.rl import trainer
 
-    monkeypatch.setattr(trainer, "_REPEAT_GRACE_S", 0.0)
+    # The two signals come within the torchrun grace (1 s): one process has none, or it ignored the second.
     update, calls = trainer._update, []
 
     def signalled_twice(*args, **kwargs):
@@ -117,6 +117,14 @@ def test_a_second_signal_stops_at_once(tmp_path, monkeypatch, capsys):
     assert info.value.code == 130
     assert "stopped at once" in capsys.readouterr().err
     assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_only_a_data_parallel_rank_takes_a_quick_repeat_for_the_same_signal():
+    from tocabi_torchrl.rl.distributed import DistInfo
+    from tocabi_torchrl.rl.trainer import _REPEAT_GRACE_S, _repeat_grace_s
+
+    assert _repeat_grace_s(DistInfo()) == 0.0  # a second Ctrl-C is the user's: it stops at once, as it says
+    assert _repeat_grace_s(DistInfo(rank=1, local_rank=1, world_size=2)) == _REPEAT_GRACE_S > 0
 
 
 def test_a_folder_without_a_checkpoint_is_refused_with_advice_that_can_be_followed(tmp_path):

@@ -496,6 +496,12 @@ class _Progress(StopFlag):
 _REPEAT_GRACE_S = 1.0
 
 
+def _repeat_grace_s(info: DistInfo) -> float:
+    """The grace of :data:`_REPEAT_GRACE_S` for a data-parallel rank, none for one process: without torchrun no copy
+    of a Ctrl-C comes, and a second one is the user's, who was told it stops at once."""
+    return _REPEAT_GRACE_S if info.enabled else 0.0
+
+
 def raised_before_training(err: BaseException) -> bool:
     """Whether :func:`train` raised ``err`` while it set the run up, before it wrote the run folder (a value the
     config's checks let through but the env or the networks refuse): the recipe reports it as one ``error:`` line."""
@@ -527,7 +533,7 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
     try:
         with float32_matmul_precision(cfg.ppo.matmul_precision), \
                 stop_on_signals(progress, "stopping after this iteration's update to save a checkpoint",
-                                repeat_grace_s=_REPEAT_GRACE_S):
+                                repeat_grace_s=_repeat_grace_s(info)):
             return _train(cfg, env, run, info, progress)
     except ValueError as err:
         if not progress.started:
