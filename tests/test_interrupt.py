@@ -4,8 +4,11 @@ that can be followed."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import signal
+import sys
 from pathlib import Path
 
 import pytest
@@ -57,6 +60,21 @@ def test_the_first_signal_sets_the_flag_a_second_stops_at_once_and_the_handlers_
         os.kill(os.getpid(), signal.SIGINT)
     assert flag.stop_signal == "SIGINT"
     assert [interrupt.signal_exit_status(s) for s in (None, "SIGINT", "SIGTERM")] == [0, 130, 143]
+
+
+def test_the_stop_message_gets_a_line_of_its_own_beside_a_progress_bar():
+    from tqdm.auto import tqdm
+
+    # A plain print landed on the bar's line: "...sps=362]SIGINT: stopping".
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        bar = tqdm(total=10, file=sys.stderr)
+        bar.set_postfix(sps="362")
+        with interrupt.stop_on_signals(interrupt.StopFlag(), "stopping"):
+            os.kill(os.getpid(), signal.SIGINT)
+        bar.close()
+    text = err.getvalue()
+    assert text[:text.index("SIGINT: stopping")].endswith("\r"), repr(text)  # the bar cleared first
 
 
 def test_the_library_recipes_keep_their_names_for_the_shared_helpers():

@@ -16,6 +16,8 @@ import threading
 import time
 from collections.abc import Iterator, Mapping
 
+from .logging import print_line
+
 __all__ = ["Interrupted", "StopFlag", "exit_status", "signal_exit_status", "stop_on_signals"]
 
 #: The signals that ask a run to stop at its next safe point.
@@ -38,10 +40,11 @@ class StopFlag:
 def stop_on_signals(flag, message: str = "stopping at the next safe point", repeat_grace_s: float = 0.0
                     ) -> Iterator[None]:
     """While the block runs, the first SIGINT or SIGTERM sets ``flag.stop_signal`` to the signal's name and prints
-    ``"<SIGNAL>: <message> (send it again to stop at once)"`` to stderr; a second one raises ``KeyboardInterrupt``
-    at once. ``flag``: any object with a ``stop_signal`` attribute (:class:`StopFlag`, the library recipes'
-    ``TrainingClock``). A repeat within ``repeat_grace_s`` seconds of the first counts as the same request: torchrun
-    forwards the Ctrl-C its workers already got from the terminal, and that copy must not cut the save short.
+    ``"<SIGNAL>: <message> (send it again to stop at once)"`` to stderr (on a line of its own beside a progress bar:
+    :func:`~.logging.print_line`); a second one raises ``KeyboardInterrupt`` at once. ``flag``: any object with a
+    ``stop_signal`` attribute (:class:`StopFlag`, the library recipes' ``TrainingClock``). A repeat within
+    ``repeat_grace_s`` seconds of the first counts as the same request: torchrun forwards the Ctrl-C its workers
+    already got from the terminal, and that copy must not cut the save short.
 
     The previous handlers are back on exit. Python delivers signals to the main thread only, so elsewhere nothing is
     installed (and the block runs as it would without this)."""
@@ -57,7 +60,7 @@ def stop_on_signals(flag, message: str = "stopping at the next safe point", repe
             raise KeyboardInterrupt
         flag.stop_signal = signal.Signals(signum).name
         first_at.append(time.monotonic())
-        print(f"{flag.stop_signal}: {message} (send it again to stop at once)", file=sys.stderr, flush=True)
+        print_line(f"{flag.stop_signal}: {message} (send it again to stop at once)", file=sys.stderr)
 
     previous = {}
     try:

@@ -26,12 +26,13 @@ import importlib.util
 import json
 import math
 import os
+import sys
 from pathlib import Path
 
 from ..atomic import atomic_write_text
 from .metrics_files import METRICS_DIR
 
-__all__ = ["RunLogger", "keep_edited_config", "make_loggers", "require_loggers", "write_config"]
+__all__ = ["RunLogger", "keep_edited_config", "make_loggers", "print_line", "require_loggers", "write_config"]
 
 #: The package each optional logger imports, and how to install it.
 _LOGGER_PACKAGES = {
@@ -141,6 +142,22 @@ def _wandb_logger(run_dir: Path, cfg):
 def _shown(value, fmt: str) -> str:
     """``value`` formatted, or ``-`` while it is unknown (NaN: no episode has ended yet)."""
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, fmt)
+
+
+def print_line(text: str, file=None) -> None:
+    """Print ``text`` on a line of its own to ``file`` (stdout) while training, beside :class:`RunLogger`'s progress
+    bar if one is drawn: tqdm clears the bar, writes the line and draws the bar again under it, where a plain print
+    lands on the bar's line (``...sps=362]SIGINT: stopping``).
+
+    Fit for a signal handler: it imports nothing (a bar is only drawn once tqdm is imported, so without it a print
+    is enough) and tqdm's write lock is re-entrant."""
+    file = sys.stdout if file is None else file
+    bars = getattr(sys.modules.get("tqdm"), "tqdm", None)
+    if bars is None:
+        print(text, file=file, flush=True)
+        return
+    bars.write(text, file=file)
+    file.flush()
 
 
 class RunLogger:

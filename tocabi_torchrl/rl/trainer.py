@@ -36,7 +36,7 @@ from ..tree import get_path, leaf_paths
 from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, all_reduce_mean, all_reduce_sum,
                           broadcast_module, from_environment, init_distributed, rank_seed)
 from .interrupt import StopFlag, stop_on_signals
-from .logging import RunLogger, require_loggers
+from .logging import RunLogger, print_line, require_loggers
 from .overlap import UpdateOverlap
 from .networks import ConcatInputs, make_mlp
 from .rollout_guard import VALID_KEY, guard_rollout
@@ -745,9 +745,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             share = context["episode"]["masked_frac"] if logged else 0.0
             if share > MASKED_WARNING and info.is_main and not warned_masked:  # once a run: a broken term stays broken
                 warned_masked = True
-                print(f"warning: {100 * share:.1f} % of iteration {it + shift}'s frames were left out of the update: "
-                      "a NaN or inf observation, reward or action (a reward term, controller or env of your own?); "
-                      "metrics column masked_frac follows it", flush=True)
+                print_line(f"warning: {100 * share:.1f} % of iteration {it + shift}'s frames were left out of the "
+                           "update: a NaN or inf observation, reward or action (a reward term, controller or env of "
+                           "your own?); metrics column masked_frac follows it")
             mark_due = train_s >= next_mark
             saved = (it + shift) % cfg.checkpoint_every == 0 or it == iterations
             if overlap is None:
@@ -774,7 +774,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 progress.stop_signal = progress.stop_signal or stop_signal
                 if info.is_main:
                     if stop_signal is None:  # a signal was said when it came, and the caller says what it left
-                        print(f"stopping after {cfg.max_minutes} min (max_minutes)")
+                        print_line(f"stopping after {cfg.max_minutes} min (max_minutes)")
                     if not saved:
                         save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s)
                 break
