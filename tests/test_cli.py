@@ -4,6 +4,7 @@ error naming the nearest option (``tocabi_torchrl.cli``)."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -81,6 +82,25 @@ def test_ppo_walk_help_is_the_fields_docstrings_with_the_presets_values(tmp_path
     assert helps["ppo.lr"].startswith("learning rate (start value of the schedule)")
     assert helps["transforms.reward_weights.body_vel"].startswith("pelvis velocity against the command")
     assert "(default: torque)" in helps["env.control.mode"] and "(default: 200000000)" in helps["total_env_steps"]
+
+
+def test_ppo_walk_help_shows_values_not_sphinx_roles_and_titles_each_section_by_its_own_docstring():
+    from tocabi_torchrl.control.config import MAX_DELAY_SUBSTEPS
+    from tocabi_torchrl.envs.config import CPU_DEFAULT_BACKEND
+
+    env = {**os.environ, "COLUMNS": "100"}
+    out = subprocess.run([sys.executable, str(RECIPES / "ppo_walk.py"), "--help"], env=env, capture_output=True,
+                         text=True, timeout=300).stdout
+    text = _text(out)
+    # ":data:`CPU_DEFAULT_BACKEND`" hid the value it stands for; a role is a link in the docs, noise in a terminal.
+    assert not re.search(r":\w+:`", text), re.search(r".{40}:\w+:`.{40}", text)
+    assert f'(warp on CUDA, "{CPU_DEFAULT_BACKEND}" on the CPU)' in text
+    assert f"high at most {MAX_DELAY_SUBSTEPS}." in text
+    # A "# sections" comment above env, transforms and ppo was each group's title.
+    lines = [line.strip("│ ") for line in out.splitlines()]
+    titles = {line.split()[1]: lines[i + 1] for i, line in enumerate(lines) if line.startswith("╭─ ")}
+    assert titles["env"].startswith("the walking task's env") and titles["ppo"].startswith("PPO:"), titles
+    assert "sections" not in titles.values()
 
 
 def test_a_misspelt_option_of_ppo_walk_is_an_error_naming_the_nearest_option(capsys):

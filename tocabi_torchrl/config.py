@@ -433,10 +433,14 @@ class RunConfig:
     eval_test: str = "standard"
     """which gait test runs when training ends: standard (one command) or robust (diverse starts, four cases of
     eval_envs robots each; docs/evaluation.md)"""
-    # sections
+    # The sections: each has a docstring, the title of its group in --help (a comment above them would be taken
+    # for all three titles).
     env: TocabiWalkConfig = field(default_factory=TocabiWalkConfig)
+    """the walking task's env: worlds, simulation, task, commands, control, scene, pushes, dynamics"""
     transforms: TransformSettings = field(default_factory=TransformSettings)
+    """the env's transforms: observation history, normalisation, clipping and noise; reward terms and weights"""
     ppo: PPOConfig = field(default_factory=PPOConfig)
+    """PPO: rollout, update, learning rate, networks, action noise, torque assist and how the training runs"""
     #: The live web viewer of the training worlds (``--viewer``; the ``viewer`` extra; docs/viewer.md).
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
 
