@@ -124,8 +124,9 @@ def main(argv: list[str] | None = None) -> None:
         model_based = cfg.env.control.mode == "model_based"
         if cfg.eval_at_end or model_based:
             control_dt = load_model(cfg.env.task.model_path).opt.timestep * cfg.env.sim.substeps
-        if cfg.eval_at_end:  # the gait test's length, checked now rather than after the training it follows
-            policy_steps(cfg.eval_seconds, control_dt)
+        if cfg.eval_at_end:  # the gait test's length, checked now rather than after the training it follows; the
+            # config's own checks cannot: one step's length is the model file's timestep × the substeps
+            policy_steps(cfg.eval_seconds, control_dt, option="--eval_seconds")
         if model_based:  # its gains against the control period, its window against the motion: before the banner
             motion = cfg.env.task.motion
             check_settings(cfg.env.control, ReferenceMotion.default() if motion is None

@@ -303,8 +303,9 @@ def test_max_grad_norm_inf_means_no_clipping_and_nan_is_refused():
     ("ppo.actor_hidden", "64 0", "ppo.actor_hidden must be one or more positive layer sizes"),
     ("ppo.lr", "1e-6", "ppo.lr 1e-06 is outside the adaptive schedule's range [1e-05, 0.01]"),
     ("eval_seconds", "inf", "eval_seconds must be a finite number"),
-    ("eval_seconds", "0.001", "seconds=0.001 is shorter than one policy step"),
-    ("env.sim.substeps", "16", "seconds=0.003 is shorter than one policy step (8 ms)"),  # the run's own step
+    # Named as ppo_walk's option: "seconds=0.001" was play.py's.
+    ("eval_seconds", "0.001", "error: --eval_seconds=0.001 is shorter than one policy step (4 ms)"),
+    ("env.sim.substeps", "16", "error: --eval_seconds=0.003 is shorter than one policy step (8 ms)"),  # its own step
 ])
 def test_the_recipe_refuses_values_that_would_train_to_nan_or_fail_after_training(tmp_path, option, value, message):
     # Each of these trained to the end before: to a NaN policy logged with zero losses (lr inf, std_start inf,

@@ -120,13 +120,14 @@ def fixed_command(command: tuple[float, float]):
     return CommandConfig(vx_range=(vx, vx), vx_initial_range=(vx, vx), vy_range=(vy, vy))
 
 
-def policy_steps(seconds: float, dt: float) -> int:
-    """Policy steps in ``seconds``; ``ValueError`` if ``seconds`` is not finite or is less than one step."""
+def policy_steps(seconds: float, dt: float, option: str = "seconds") -> int:
+    """Policy steps in ``seconds``; ``ValueError`` if ``seconds`` is not finite or is less than one step. ``option``:
+    the name the error gives the length, the caller's own (play.py's ``seconds``, ppo_walk's ``--eval_seconds``)."""
     if not math.isfinite(seconds):
-        raise ValueError(f"seconds={seconds!r}: the test's length must be a finite number of seconds (e.g. 8)")
+        raise ValueError(f"{option}={seconds!r}: the test's length must be a finite number of seconds (e.g. 8)")
     steps = int(round(seconds / dt))
     if steps < 1 or seconds < dt * (1.0 - 1e-9):  # 0.003 s would round up to one 4 ms step: refused, as said
-        raise ValueError(f"seconds={seconds:g} is shorter than one policy step ({dt * 1000:g} ms); pass at least "
+        raise ValueError(f"{option}={seconds:g} is shorter than one policy step ({dt * 1000:g} ms); pass at least "
                          f"{dt:g}")
     return steps
 
