@@ -239,9 +239,10 @@ def test_option_prefixes_are_not_expanded(capsys):
 
 
 def test_int_options_take_whole_numbers_written_as_floats(capsys):
-    cfg, _ = parse_args(["--total_env_steps", "2e8", "--ppo.assist_fade_start", "5.0e7", "--env.num_envs", "4096"])
+    cfg, _ = parse_args(["--preset", "torque", "--total_env_steps", "2e8", "--ppo.assist_fade_start", "4.0e7",
+                         "--env.num_envs", "4096"])
     assert cfg.total_env_steps == 200_000_000 and type(cfg.total_env_steps) is int
-    assert cfg.ppo.assist_fade_start == 50_000_000 and cfg.env.num_envs == 4096
+    assert cfg.ppo.assist_fade_start == 40_000_000 and cfg.env.num_envs == 4096
     for argv in (["--total_env_steps", "2.5e0"], ["--env.num_envs", "nan"], ["--total_env_steps", "lots"]):
         with pytest.raises(SystemExit):
             parse_args(argv)

@@ -305,3 +305,24 @@ def test_training_env_relaxes_the_reward_after_its_kicks(tmp_path):
                                          "transforms.kick_relax.seconds=0"):
         preset_config("cpu_smoke", device="cpu", **{"transforms.kick_relax.seconds": 1.0})
 
+
+
+def test_kick_and_assist_options_set_without_kicks_or_assist_are_refused_but_a_presets_own_values_are_not():
+    from tocabi_torchrl.config import PRESETS, preset_config
+
+    # They were accepted and changed nothing, where kick_relax without kicks was refused.
+    for options, match in (({"env.pushes.speed": (2.0, 3.0)}, r"env.pushes.count is 0 \(no kicks\), so the kicks' "
+                                                               r"env.pushes.speed would change nothing"),
+                           ({"ppo.push_ramp": (0, 1000)}, r"the kicks' ppo.push_ramp would change nothing"),
+                           ({"ppo.assist_fade_start": 5, "ppo.assist_fade_end": 10},
+                            r"ppo.torque_assist is 0 \(no assist\), so the assist's schedule ppo.assist_fade_start, "
+                            r"ppo.assist_fade_end would change nothing: set ppo.torque_assist > 0")):
+        with pytest.raises(ValueError, match=match):
+            preset_config("cpu_smoke", **options)
+    with pytest.raises(ValueError, match="the kicks' env.pushes.speed"):  # another value than the preset's too
+        preset_config("robust", **{"env.pushes.count": 0, "env.pushes.speed": (2.0, 3.0)})
+    for name in PRESETS:  # every preset as it is, and with its kicks or assist off, keeps its own values
+        preset_config(name)
+    preset_config("robust", **{"env.pushes.count": 0})
+    preset_config("torque", **{"ppo.torque_assist": 0.0})
+    preset_config("cpu_smoke", **{"env.pushes.count": 2, "env.pushes.speed": (2.0, 3.0), "ppo.push_ramp": (0, 64)})

@@ -520,12 +520,38 @@ class RunConfig:
             # would train exactly as without it.
             raise ValueError("transforms.kick_relax relaxes reward terms after a kick, and env.pushes.count is 0 (no "
                              "kicks): set env.pushes.count > 0, or transforms.kick_relax.seconds=0")
+        # Likewise options that only shape the kicks or schedule the assist: a run that sets them without either
+        # would train exactly as without them.
+        if self.env.pushes.count == 0 and (unused := ", ".join(self._changed_options(KICK_OPTIONS))):
+            raise ValueError(f"env.pushes.count is 0 (no kicks), so the kicks' {unused} would change nothing: set "
+                             f"env.pushes.count > 0, or leave {unused} at the preset's values")
+        if not self.ppo.torque_assist > 0 and (unused := ", ".join(self._changed_options(ASSIST_OPTIONS))):
+            raise ValueError(f"ppo.torque_assist is 0 (no assist), so the assist's schedule {unused} would change "
+                             f"nothing: set ppo.torque_assist > 0, or leave {unused} at the preset's values")
         if self.ppo.minibatch_size > self.frames_per_batch:
             quarter = max(1, self.frames_per_batch // 4)
             raise ValueError(
                 f"ppo.minibatch_size {self.ppo.minibatch_size} exceeds the rollout ({self.env.num_envs} envs × "
                 f"{self.ppo.steps_per_env} steps = {self.frames_per_batch}); lower it (e.g. ppo.minibatch_size="
                 f"{quarter}: four mini-batches per epoch) or collect more (env.num_envs, ppo.steps_per_env)")
+
+    def _changed_options(self, paths: tuple[str, ...]) -> list[str]:
+        """The options of ``paths`` whose value is neither the field's default nor its preset's (``self.preset``):
+        the ones a caller set. A preset's own values are not (``--preset robust --env.pushes.count 0`` keeps the
+        robust preset's kick speeds, and sets none)."""
+        default = RunConfig()
+        changed = [path for path in paths if _get(self, path) != _get(default, path)]
+        if changed and self.preset in PRESETS:  # the preset's tree only when needed: building it takes ~10 ms
+            preset = preset_tree(self.preset)
+            changed = [path for path in changed if _get(self, path) != _get(preset, path)]
+        return changed
+
+
+#: Options that act only with kicks (``env.pushes.count`` > 0) and only with the torque assist
+#: (``ppo.torque_assist`` > 0): :meth:`RunConfig.validate` refuses them set without.
+KICK_OPTIONS = ("env.pushes.window", "env.pushes.speed", "env.pushes.duration", "env.pushes.kind",
+                "env.pushes.calm_fraction", "ppo.push_ramp")
+ASSIST_OPTIONS = ("ppo.assist_fade_start", "ppo.assist_fade_end", "ppo.assist_anchor_decay")
 
 
 def _get(tree: Any, path: str) -> Any:
