@@ -179,6 +179,22 @@ def test_a_resume_keeps_an_edited_config_json_instead_of_writing_over_it(tmp_pat
     assert json.loads((tmp_path / "config.edited.json").read_text())["ppo"]["gamma"] == 0.5  # the first not replaced
 
 
+def test_a_resume_keeps_a_config_json_an_edit_left_unreadable(tmp_path, capsys):
+    # A stray comma or an option of another name made the file unreadable, and the resume wrote over it silently.
+    import json
+
+    cfg = tiny(tmp_path)
+    run_logging.RunLogger(tmp_path, cfg, total_iterations=4).close()
+    written = (tmp_path / "config.json").read_text()
+    for expected, broken in (("config.edited.json", written.replace('"ppo": {', '"ppo": {,,', 1)),
+                             ("config.edited.1.json", json.dumps({**json.loads(written), "learning_rate": 5e-4}))):
+        (tmp_path / "config.json").write_text(broken)
+        run_logging.RunLogger(tmp_path, cfg, total_iterations=4, start_iteration=2).close()
+        assert (tmp_path / expected).read_text() == broken and (tmp_path / "config.json").read_text() == written
+        out = capsys.readouterr().out
+        assert "does not read as a run config (" in out and expected in out
+
+
 def test_wandb_logs_offline_and_a_resume_continues_its_run(tmp_path, monkeypatch):
     pytest.importorskip("wandb")
     monkeypatch.delenv("WANDB_API_KEY", raising=False)

@@ -66,30 +66,35 @@ def write_config(run_dir: str | os.PathLike, cfg) -> Path:
 
 def keep_edited_config(run_dir: str | os.PathLike, cfg) -> Path | None:
     """Before a resumed run writes ``config.json`` again: if the file was edited (an option a resume may not change
-    holds another value than the checkpoint's config), move it to a free ``config.edited[.N].json`` and say so; a
-    resume trains the checkpoint's config, and rewriting the file would silently drop the edit. Returns the new path,
+    holds another value than the checkpoint's config, or the file no longer reads as a config: broken JSON, an
+    unknown option), move it to a free ``config.edited[.N].json`` and say so; a resume trains the checkpoint's
+    config, and rewriting the file would silently drop the edit. Returns the new path,
     or None when nothing was edited."""
     from ..config import config_from_dict
     from .resume import _differences
 
     path = Path(run_dir) / "config.json"
     try:
+        text = path.read_text()
+    except OSError:  # none (or unreadable): no edit to keep
+        return None
+    try:
         # Read as a checkpoint's config is: older files' renamed or missing options are not taken for edits.
-        on_disk = config_from_dict(json.loads(path.read_text()))
-    except (OSError, ValueError, TypeError, AttributeError):  # none, or no config: nothing an edit could be told from
-        return None
-    edited = _differences(on_disk, cfg)  # (path, in the file, the run's), outside what a resume may change
-    if not edited:
-        return None
+        edited = _differences(config_from_dict(json.loads(text)), cfg)  # (path, in the file, the run's)
+    except (ValueError, TypeError, AttributeError) as err:  # an edit that broke the file, or an unknown option
+        what = f"does not read as a run config ({str(err).splitlines()[0][:200]})"
+    else:
+        if not edited:
+            return None
+        shown = ", ".join(f"{k}: {was!r} (the run's: {now!r})" for k, was, now in edited[:3])
+        what = f"was edited ({shown}{f' and {len(edited) - 3} more' if len(edited) > 3 else ''})"
     kept, n = path.with_name("config.edited.json"), 1
     while kept.exists():
         kept, n = path.with_name(f"config.edited.{n}.json"), n + 1
     os.replace(path, kept)
-    shown = ", ".join(f"{k}: {was!r} (the run's: {now!r})" for k, was, now in edited[:3])
-    more = f" and {len(edited) - 3} more" if len(edited) > 3 else ""
-    print(f"{path} was edited ({shown}{more}); a resume trains the checkpoint's config and ignores the file, so the "
-          f"edited file was moved to {kept.name} and config.json is written again. Options a resume may change go on "
-          "the command line; for other changes start a new run (--name NEW).", flush=True)
+    print(f"{path} {what}; a resume trains the checkpoint's config and ignores the file, so the file was moved to "
+          f"{kept.name} and config.json is written again. Options a resume may change go on the command line; for "
+          "other changes start a new run (--name NEW).", flush=True)
     return kept
 
 
