@@ -233,6 +233,35 @@ def test_training_ends_with_the_robust_test_when_asked(tmp_path, capsys):
     assert not (tmp_path / "run" / "eval" / "summary.json").exists()  # the standard test did not run as well
 
 
+def test_the_report_describes_the_kicks_it_ran_and_its_headline_names_settings_not_the_tests():
+    # The case lines were fixed strings: a test of one force kick in 0.2-0.8 s still read "3 kicks of 0.5 m/s in
+    # 2-7 s" beside its own settings, and its headline said "walks" with no word of the weaker kicks.
+    from tocabi_torchrl.evaluation.robust import (CASES, RobustTestConfig, case_summary, report_settings,
+                                                  robust_report_text)
+
+    committed = {"nominal": "command (0.5, 0) m/s", "commands": "training command range re-drawn every 2 s",
+                 "robust_0.5": "command (0.5, 0) m/s, tocabi_lab randomisation, 3 kicks of 0.5 m/s in 2-7 s",
+                 "robust_1.0": "command (0.5, 0) m/s, tocabi_lab randomisation, 3 kicks of 1.0 m/s in 2-7 s"}
+    assert {n: c.describe(RobustTestConfig(), 0.004) for n, c in CASES.items()} == committed  # as reports quote it
+    weak = RobustTestConfig(num_envs=1024, push_count=1, push_window=(0.2, 0.8), push_kind="force",
+                            start_joint_vel_std=0.0)
+    per_env = {k: torch.ones(1) for k in ("forward_m", "lateral_m", "tracking_error_mps", "instant_speed_error_mps",
+                                          "knee_rms_rad", "heading_change_rad")}
+    per_env["alive"] = torch.ones(1, dtype=torch.bool)
+    cases = {n: {**case_summary(c, per_env, weak, 0.004), "checks": {}} for n, c in CASES.items()}
+    assert cases["robust_1.0"]["description"].endswith(", 1 force kick of 1.0 m/s in 0.2-0.8 s")
+    assert cases["nominal"]["description"] == committed["nominal"]
+    headline = robust_report_text({"settings": report_settings(weak), "passes": True, "cases": cases}).splitlines()[0]
+    assert headline == ("robust gait test (8 s, 1024 robots per case): walks; not the test's settings: 1 force kick "
+                        "in 0.2-0.8 s (the test: 3 velocity kicks in 2-7 s); start velocity std 0 rad/s (joints) and "
+                        "0.1 m/s (pelvis) (the test: 0.5 and 0.1)")
+    # Without a pushed case the kicks are no part of the verdict; the test's own settings add nothing.
+    unpushed = {"settings": report_settings(weak), "passes": True, "cases": {"nominal": cases["nominal"]}}
+    assert "kick" not in robust_report_text(unpushed).splitlines()[0]
+    test = {"settings": report_settings(RobustTestConfig()), "passes": True, "cases": cases}
+    assert robust_report_text(test).splitlines()[0] == "robust gait test (8 s, 1024 robots per case): walks"
+
+
 def test_heading_frame_velocity_removes_the_yaw_only():
     import torch
 

@@ -57,8 +57,8 @@ from .output import rounded_against
 __all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking", "RobustCase", "RobustTestConfig",
            "batch_config", "batch_env", "batch_key", "case_checks", "case_config", "case_env", "case_summary",
            "case_worlds", "checkpoint_case", "evaluate_robust", "evaluate_robust_checkpoint", "evaluate_robust_run",
-           "gait_cycle_steps", "heading_frame_velocity", "randomization_applied", "robust_case_config", "robust_passes",
-           "robust_report_text", "run_case"]
+           "gait_cycle_steps", "heading_frame_velocity", "kicks_text", "randomization_applied", "report_settings",
+           "robust_case_config", "robust_passes", "robust_report_text", "run_case", "settings_note"]
 
 #: The seed of every random draw of the robust test (starts, commands, randomisation, pushes). Below 2**32, where the
 #: per-episode draws' key is the seed itself (envs.episode_random.hash_seed), and far from the small seeds the presets
@@ -83,29 +83,58 @@ class RobustCase:
         resample_every: policy steps (4 ms) between command draws when ``command`` is None (500 = 2 s).
         push_speed: velocity change [m/s] of each horizontal kick; 0 = no kicks and no randomisation. Above 0 the
             case also switches the ``tocabi_lab`` randomisation on (:func:`robust_case_config`).
-        description: one line for the report and the docs.
+
+    Its one line for the report is :meth:`describe`, made from the test settings it ran under.
     """
 
     name: str
     command: tuple[float, float] | None = (0.5, 0.0)
     resample_every: int = 500
     push_speed: float = 0.0
-    description: str = ""
 
     @property
     def randomized(self) -> bool:
         return self.push_speed > 0
 
+    def describe(self, test: RobustTestConfig, dt: float) -> str:
+        """One line for the report: the command, and for a pushed case the randomisation and ``test``'s kicks
+        (``dt``: the policy step [s], which turns ``resample_every`` into seconds). Made from the settings run, not
+        written beside them, so a report never describes other kicks than it had.
+
+        >>> CASES["robust_1.0"].describe(RobustTestConfig(), 0.004)
+        'command (0.5, 0) m/s, tocabi_lab randomisation, 3 kicks of 1.0 m/s in 2-7 s'
+        """
+        if self.command is None:
+            return f"training command range re-drawn every {self.resample_every * dt:g} s"
+        text = f"command ({self.command[0]:g}, {self.command[1]:g}) m/s"
+        if not self.randomized:
+            return text
+        kicks = kicks_text(test.push_count, test.push_window, test.push_kind, self.push_speed)
+        return f"{text}, tocabi_lab randomisation, {kicks}"
+
+
+def kicks_text(count: int, window: Sequence[float], kind: str, speed: float | None = None,
+               name_kind: bool = False) -> str:
+    """Kicks in words: ``count`` kicks (of ``speed`` [m/s] when given) in ``window`` (start, end) [s].
+
+    The kind is named when it is not the test's (``RobustTestConfig.push_kind``), or always with ``name_kind``: the
+    test's own kicks read as plain "kicks" in its case lines, as the committed reports have them.
+
+    >>> kicks_text(1, (0.2, 0.8), "force", 0.5)
+    '1 force kick of 0.5 m/s in 0.2-0.8 s'
+    """
+    kind_word = f"{kind} " if name_kind or kind != RobustTestConfig.push_kind else ""
+    # repr keeps the test's "1.0 m/s" (":g" would print "1") and every other speed in full.
+    of = f" of {float(speed)!r} m/s" if speed is not None else ""
+    return f"{count} {kind_word}kick{'' if count == 1 else 's'}{of} in {window[0]:g}-{window[1]:g} s"
+
 
 #: The cases, in report order.
 CASES: dict[str, RobustCase] = {c.name: c for c in (
-    RobustCase("nominal", description="command (0.5, 0) m/s"),
-    RobustCase("commands", command=None, resample_every=500,
-               description="training command range re-drawn every 2 s"),
-    RobustCase("robust_0.5", push_speed=0.5,
-               description="command (0.5, 0) m/s, tocabi_lab randomisation, 3 kicks of 0.5 m/s in 2-7 s"),
-    RobustCase("robust_1.0", push_speed=1.0,
-               description="command (0.5, 0) m/s, tocabi_lab randomisation, 3 kicks of 1.0 m/s in 2-7 s"),
+    RobustCase("nominal"),
+    RobustCase("commands", command=None, resample_every=500),
+    RobustCase("robust_0.5", push_speed=0.5),
+    RobustCase("robust_1.0", push_speed=1.0),
 )}
 
 
@@ -505,12 +534,13 @@ def _distribution(values: torch.Tensor, stats: Sequence[str]) -> dict[str, float
     return out
 
 
-def case_summary(case: RobustCase, per_env: dict[str, torch.Tensor], seconds: float) -> dict:
-    """A case's report entry (without its verdict) from :func:`run_case`'s per-robot values."""
+def case_summary(case: RobustCase, per_env: dict[str, torch.Tensor], test: RobustTestConfig, dt: float) -> dict:
+    """A case's report entry (without its verdict) from :func:`run_case`'s per-robot values, of a case run under
+    ``test``'s settings (``dt``: the policy step [s])."""
     return {
-        "description": case.description,
+        "description": case.describe(test, dt),
         "num_envs": int(per_env["alive"].numel()),
-        "seconds": float(seconds),
+        "seconds": float(test.seconds),
         "command_mps": (list(case.command) if case.command is not None
                         else f"training range (CommandConfig()) re-drawn every {case.resample_every} steps"),
         "randomized": case.randomized,
@@ -561,6 +591,34 @@ def robust_passes(report: dict, cases: tuple[str, ...] | None = None) -> bool:
 
 
 # ------------------------------------------------------------------------------------------------ the test
+def report_settings(test: RobustTestConfig) -> dict:
+    """``test``'s settings as the report records them (``robust.json``'s "settings"; units in the keys)."""
+    return {"num_envs": test.num_envs, "seconds": test.seconds, "start_joint_vel_std_radps": test.start_joint_vel_std,
+            "start_base_vel_std_mps": test.start_base_vel_std, "push_count": test.push_count,
+            "push_window_s": list(test.push_window), "push_kind": test.push_kind}
+
+
+def settings_note(settings: dict, pushed: bool) -> str:
+    """What a verdict's headline adds for a report whose kicks (when ``pushed``: a pushed case ran) or start
+    velocities are not the test's (:class:`RobustTestConfig`'s defaults); "" when they are. Robots per case and
+    the length have notes of their own. A weaker test could otherwise print "walks" as if it were the test.
+
+    A report made before the test recorded ``push_kind`` had force kicks (docs/evaluation.md)."""
+    test = report_settings(RobustTestConfig())
+    notes = []
+    kicks = ("push_count", "push_window_s", "push_kind")
+    ran = {**{k: settings.get(k, test[k]) for k in kicks}, "push_kind": settings.get("push_kind", "force")}
+    if pushed and any(ran[k] != test[k] for k in kicks):
+        ran_words, test_words = (kicks_text(*(s[k] for k in kicks), name_kind=True) for s in (ran, test))
+        notes.append(f"{ran_words} (the test: {test_words})")
+    starts = ("start_joint_vel_std_radps", "start_base_vel_std_mps")
+    if any(settings.get(k, test[k]) != test[k] for k in starts):
+        joint, base = (settings.get(k, test[k]) for k in starts)
+        notes.append(f"start velocity std {joint:g} rad/s (joints) and {base:g} m/s (pelvis) (the test: "
+                     f"{test[starts[0]]:g} and {test[starts[1]]:g})")
+    return f"; not the test's settings: {'; '.join(notes)}" if notes else ""
+
+
 def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: RobustTestConfig = RobustTestConfig(),
                     device: str | torch.device = "auto", envs: dict | None = None,
                     prepare_env: Callable | None = None, progress: bool = True,
@@ -589,10 +647,7 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     report = {"test": "robust", "passes": False, "seed": test.seed, "tested_on": tested_on(device),
-              "settings": {"num_envs": test.num_envs, "seconds": test.seconds,
-                           "start_joint_vel_std_radps": test.start_joint_vel_std,
-                           "start_base_vel_std_mps": test.start_base_vel_std, "push_count": test.push_count,
-                           "push_window_s": list(test.push_window), "push_kind": test.push_kind},
+              "settings": report_settings(test),
               "criteria": {name: {p: f"{op} {v:g}" for p, (op, v) in c.items()} for name, c in ROBUST_CRITERIA.items()},
               "cases": {}}
     if source is not None:
@@ -612,7 +667,7 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
     for name, rows in case_worlds(test).items():
         case = CASES[name]
         per_env = {k: v[rows] for k, v in every.items()}
-        summary = case_summary(case, per_env, test.seconds)
+        summary = case_summary(case, per_env, test, dt)
         if case.randomized:
             summary["randomization"] = randomization_applied(cfg)
         summary["checks"] = case_checks(name, summary) if name in ROBUST_CRITERIA else {}
@@ -694,6 +749,7 @@ def robust_report_text(report: dict, out: str | os.PathLike | None = None) -> st
                      if s["seconds"] <= window[0] else
                      f"; the kicks come at {window[0]:g}-{window[1]:g} s, so some robots met fewer than "
                      f"{s.get('push_count', 3)} in {s['seconds']:g} s")
+    lines[0] += settings_note(s, any(CASES[n].randomized for n in report["cases"] if n in CASES))
     if s["num_envs"] < RobustTestConfig().num_envs:
         lines[0] += f"; {s['num_envs']} robots per case, the test asks for {RobustTestConfig().num_envs:,}"
     left_out = [name for name in ROBUST_CRITERIA if name not in report["cases"]]
