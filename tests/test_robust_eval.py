@@ -262,6 +262,33 @@ def test_the_report_describes_the_kicks_it_ran_and_its_headline_names_settings_n
     assert robust_report_text(test).splitlines()[0] == "robust gait test (8 s, 1024 robots per case): walks"
 
 
+def test_the_distribution_panels_show_a_case_of_one_robot_on_a_fraction_axis(tmp_path):
+    # One robot per case drew a CDF of a single point, which a step line does not show, on a y axis autoscaled to
+    # 0.95-1.05: robust.png's three distribution panels were empty.
+    import numpy as np
+
+    from tocabi_torchrl.evaluation.plots import MARKED_ROBOTS, ecdf, plot_robust, robust_figure
+
+    keys = ("forward_m", "lateral_m", "tracking_error_mps", "instant_speed_error_mps")
+    per_case = {"nominal": {"alive": np.array([True]), **{k: np.array([0.4]) for k in keys}},
+                "commands": {"alive": np.array([True] * 40), **{k: np.linspace(0.1, 0.5, 40) for k in keys}}}
+    report = {"settings": {"seconds": 0.5, "num_envs": 1}, "passes": False,
+              "cases": {"nominal": {"checks": {"lateral_drift_m.p95": {"needs": "<= 0.3"}}}, "commands": {}}}
+    fig = robust_figure(per_case, report)
+    for ax in fig.axes[1:]:
+        assert ax.get_ylim() == (0.0, 1.0)
+        cdfs = {c: [line for line in ax.lines if line.get_color() == c and line.get_drawstyle() == "steps-post"]
+                for c in ("C0", "C1")}  # nominal's and commands' (the dotted thresholds are plain lines)
+        for one in cdfs["C0"]:
+            assert list(one.get_xdata()) == [0.4, 0.4] and list(one.get_ydata()) == [0.0, 1.0]  # a rise, 0 to 1
+            assert one.get_marker() == "o" and list(one.get_markevery()) == [1]  # the robot itself, not the rise
+        assert cdfs["C0"] and cdfs["C1"] and all(line.get_marker() in (None, "None", "") for line in cdfs["C1"])
+    assert MARKED_ROBOTS < 40
+    x, y = ecdf([np.nan])
+    assert x.size == 0 and y.size == 0
+    assert plot_robust(per_case, report, tmp_path / "robust.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_heading_frame_velocity_removes_the_yaw_only():
     import torch
 

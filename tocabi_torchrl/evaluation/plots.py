@@ -15,8 +15,8 @@ import numpy as np
 
 from ..atomic import atomic_write_bytes
 
-__all__ = ["new_figure", "plot_joint_torques", "plot_knee_comparison", "plot_knees", "plot_robust", "plot_vs_height",
-           "save_figure"]
+__all__ = ["MARKED_ROBOTS", "ecdf", "new_figure", "plot_joint_torques", "plot_knee_comparison", "plot_knees",
+           "plot_robust", "plot_vs_height", "robust_figure", "save_figure"]
 
 
 def new_figure(**kwargs):
@@ -69,13 +69,40 @@ def plot_knees(q: np.ndarray, ref: np.ndarray, dt: float, path: Path, command: t
     save_figure(fig, path, title)
 
 
-def plot_robust(per_case: dict, report: dict, path: Path) -> Path:
-    """The robust gait test in one figure: survival per case (bars, its threshold marked), and the CDFs over the
-    robots of forward distance [m], lateral drift |y| [m] and heading-frame speed tracking error [m/s] (of the
-    gait-cycle mean velocity, solid; the instantaneous error, dashed, where ``per_case`` has it), one line per case,
-    the thresholds of :data:`~tocabi_torchrl.evaluation.gait_test.ROBUST_CRITERIA` as dotted lines in the case's
-    colour. ``per_case``: case -> per-robot (N,) tensors or arrays (``robust.run_case``); ``report``: the
-    report whose ``cases`` hold the checks. Saved to ``path``."""
+#: Robots per case up to which the robust figure's CDFs mark each robot: one robot's CDF is a single step, which a
+#: line alone does not show, and a few robots' steps read better as points.
+MARKED_ROBOTS = 32
+
+
+def ecdf(values) -> tuple[np.ndarray, np.ndarray]:
+    """The empirical CDF of ``values`` (N,) over its non-NaN entries, as points for ``step(where="post")``: x sorted
+    with its first value repeated, y = 0, 1/n, ..., 1 (the fraction of robots at or below x), so that the curve
+    rises from 0 at the smallest value (one robot: a vertical line from 0 to 1). Empty arrays when none is finite.
+
+    >>> ecdf([2.0, float("nan"), 1.0])
+    (array([1., 1., 2.]), array([0. , 0.5, 1. ]))
+    """
+    x = np.sort(np.asarray(values, dtype=float))
+    x = x[~np.isnan(x)]
+    if not x.size:
+        return x, x
+    return np.concatenate([x[:1], x]), np.arange(x.size + 1) / x.size
+
+
+def _draw_ecdf(ax, values, **style) -> None:
+    """One CDF of ``values`` on ``ax`` (:func:`ecdf`), each robot marked when there are at most
+    :data:`MARKED_ROBOTS` (the marks sit on the line's points after the first, which is the rise from 0)."""
+    x, y = ecdf(values)
+    if not x.size:
+        return
+    marked = x.size - 1 <= MARKED_ROBOTS
+    ax.step(x, y, where="post", marker="o" if marked else None, markevery=list(range(1, x.size)) if marked else None,
+            markersize=4, clip_on=not marked, **style)  # unclipped: a mark at y = 1 shows whole
+
+
+def robust_figure(per_case: dict, report: dict):
+    """The robust gait test in one figure (see :func:`plot_robust`), returned unsaved: a
+    ``matplotlib.figure.Figure`` whose axes are survival, then the CDFs of distance, drift and tracking error."""
     names = list(per_case)
     colors = {name: f"C{i}" for i, name in enumerate(names)}
     fig = new_figure(figsize=(11, 7.5))
@@ -103,24 +130,37 @@ def plot_robust(per_case: dict, report: dict, path: Path) -> Path:
             keys = [(key, "-")] + ([("instant_speed_error_mps", "--")] if key == "tracking_error_mps"
                                    and "instant_speed_error_mps" in per_case[name] else [])
             for series, style in keys:
-                x = np.sort(fn(np.asarray(per_case[name][series], dtype=float)))
-                x = x[~np.isnan(x)]
-                if x.size:
-                    ax.step(x, np.arange(1, x.size + 1) / x.size, where="post", color=colors[name], ls=style,
-                            label=name if style == "-" else None)
+                _draw_ecdf(ax, fn(np.asarray(per_case[name][series], dtype=float)), color=colors[name], ls=style,
+                           label=name if style == "-" else None)
             for path_, check in report["cases"][name].get("checks", {}).items():
                 if path_.split(".")[0] == metric:
                     ax.axvline(float(check["needs"].split()[1]), color=colors[name], ls=":", lw=1.2)
+        ax.set_ylim(0, 1)  # a fraction: autoscaled, one robot's CDF at 1 showed 0.95-1.05
         ax.set_xlabel(label)
         ax.set_ylabel("fraction of robots")
         ax.grid(alpha=0.3)
     axes[1].legend(loc="lower right", fontsize=8)
-    s = report["settings"]
-    title = (f"Robust gait test ({s['seconds']:g} s, {s['num_envs']} robots per case): "
-             + ("passes" if report["passes"] else "fails"))
-    fig.suptitle(title)
+    fig.suptitle(_robust_title(report))
     fig.tight_layout()
-    return save_figure(fig, path, title)
+    return fig
+
+
+def _robust_title(report: dict) -> str:
+    """The robust figure's title, also its file's metadata title: the test's length, robots and verdict."""
+    s = report["settings"]
+    return (f"Robust gait test ({s['seconds']:g} s, {s['num_envs']} robots per case): "
+            + ("passes" if report["passes"] else "fails"))
+
+
+def plot_robust(per_case: dict, report: dict, path: Path) -> Path:
+    """The robust gait test in one figure: survival per case (bars, its threshold marked), and the CDFs over the
+    robots of forward distance [m], lateral drift |y| [m] and heading-frame speed tracking error [m/s] (of the
+    gait-cycle mean velocity, solid; the instantaneous error, dashed, where ``per_case`` has it), one line per case
+    (each robot marked when a case has few, :data:`MARKED_ROBOTS`), the thresholds of
+    :data:`~tocabi_torchrl.evaluation.gait_test.ROBUST_CRITERIA` as dotted lines in the case's colour.
+    ``per_case``: case -> per-robot (N,) tensors or arrays (``robust.run_case``); ``report``: the report whose
+    ``cases`` hold the checks. Saved to ``path`` (:func:`robust_figure` draws it)."""
+    return save_figure(robust_figure(per_case, report), path, _robust_title(report))
 
 
 # ------------------------------------------------------------------------------------------------ experiment figures
