@@ -100,6 +100,19 @@ def test_a_controller_reused_without_servo_gains_or_with_the_assist_is_refused()
         TocabiWalk(num_envs=1, device="cpu", control_mode="torque", torque_assist=True, leg_controller=DirectTorque())
 
 
+class _TorqueWithGains(DirectTorque):
+    def servo_gains(self):
+        return robot.LEG_KP, robot.LEG_KV
+
+
+def test_a_torque_controller_that_gives_servo_gains_is_refused():
+    # The env made the leg motors servos for any law with gains: a torque law's N·m became targets in rad, and
+    # leg_torque reported the command (0 at a zero action) while the servos applied up to the limits.
+    with pytest.raises(ValueError, match=r"_TorqueWithGains has servo = False .* but servo_gains\(\) gives gains: "
+                                         r"the legs' motors would become position servos"):
+        TocabiWalk(num_envs=1, device="cpu", control_mode="torque", leg_controller=_TorqueWithGains())
+
+
 def test_a_user_controller_replaces_the_configured_one():
     env = TocabiWalk(num_envs=2, device="cpu", control_mode="pd_reference", leg_controller=DirectTorque())
     # a torque law: the leg motors stay motors (no servos), so a zero action applies no leg torque

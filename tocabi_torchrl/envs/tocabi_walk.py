@@ -109,6 +109,12 @@ def _check_leg_controller(law) -> Controller:
         raise ValueError(f"{type(law).__name__} has servo = True but servo_gains() gives None: the legs' actuators "
                          "in the model file are torque motors, which would take its targets [rad] as torques [N·m]; "
                          "return (kp, kv) from servo_gains(), or set servo = False and return torques")
+    if not law.servo and law.servo_gains() is not None:
+        # The env turns the leg motors into servos whenever a law gives gains: its torques [N·m] would be servo
+        # targets [rad], and leg_torque would report them, not the servos' force.
+        raise ValueError(f"{type(law).__name__} has servo = False (it returns torques) but servo_gains() gives gains: "
+                         "the legs' motors would become position servos that take its torques [N·m] as targets "
+                         "[rad]; return None from servo_gains(), or set servo = True and return targets")
     return law
 
 
