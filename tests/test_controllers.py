@@ -214,3 +214,35 @@ def test_a_controller_returning_the_wrong_shape_is_named():
         with pytest.raises(ValueError, match=rf"leg controller Narrow.compute returned \({rows}, {width}\); it must "
                                              r"return a \(3, 12\) tensor"):
             env.rand_step()
+
+
+def test_bad_per_joint_gains_of_a_law_are_named():
+    # A wrong count failed as a raw reshape or index error (or was cut to the first 12 servo gains), and NaN or a
+    # negative kp (a servo that pushes away from its target) was taken without a word.
+    import math
+
+    from tocabi_torchrl.control import AssistedTorque, ComputedTorqueResidual, JointPD
+    from tocabi_torchrl.control.base import ControlContext
+
+    kp, kv, nominal = robot.LEG_KP, robot.LEG_KV, robot.INIT_JOINT_POS[:12]
+    refused = [
+        (JointPD(kp[:6], kv, 0.5, nominal), r"JointPD.servo_gains\(\) kp \[N·m/rad\] must be 12 numbers, one per "
+                                            r"joint of the group, got shape \(6,\)"),
+        (JointPD(400.0, kv, 0.5, nominal), r"JointPD.servo_gains\(\) kp .* got shape \(\)"),
+        (JointPD(-kp, kv, 0.5, nominal), r"JointPD.servo_gains\(\) kp \[N·m/rad\]: each joint's value must be a "
+                                         r"finite number >= 0, got \[0\] = -2000.0"),
+        (JointPD(kp, kv, 0.5, nominal[:3]), r"JointPD nominal \[rad\] must be 12 numbers"),
+    ]
+    for law, message in refused:
+        with pytest.raises(ValueError, match=message):
+            TocabiWalk(num_envs=1, device="cpu", leg_controller=law)
+    with pytest.raises(ValueError, match=r"JointPD scale \[rad per action unit\] must be a finite number, got nan"):
+        JointPD(kp, kv, math.nan, nominal)
+    ctx = ControlContext(num_envs=2, device=torch.device("cpu"), joint_ids=(0, 1), torque_limits=torch.ones(2),
+                         joint_range=torch.tensor([[-1.0, 1.0]] * 2))
+    for law, message in ((AssistedTorque([1.0, math.nan], [1.0, 1.0], 0.5), r"AssistedTorque kp .*\[1\] = nan"),
+                         (AssistedTorque([1.0] * 3, [1.0, 1.0], 0.5), r"AssistedTorque kp .* got shape \(3,\)"),
+                         (ComputedTorqueResidual([1.0, -1.0], lambda ctx: None),
+                          r"ComputedTorqueResidual gain .* >= 0, got \[1\] = -1.0")):
+        with pytest.raises(ValueError, match=message):
+            law.setup(ctx)

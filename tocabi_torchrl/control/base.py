@@ -116,7 +116,7 @@ class Controller(abc.ABC):
         return torch.zeros(len(self.ctx.joint_ids), dtype=torch.float32, device=self.ctx.device)
 
     def servo_gains(self) -> tuple | None:
-        """``(kp, kv)``, J numbers each [N·m/rad, N·m·s/rad], of the position servos this law's targets need, or
+        """``(kp, kv)``, J numbers >= 0 each [N·m/rad, N·m·s/rad], of the position servos this law's targets need, or
         None to keep the actuators of the model file (motors for the legs, servos for the upper body). Read when
         the model is built, before :meth:`setup`."""
         return None

@@ -33,7 +33,8 @@ class ComputedTorqueResidual(Controller):
     def setup(self, ctx: ControlContext) -> None:
         super().setup(ctx)
         self.law = self.make_law(ctx)
-        self._gain = _vector(self.gain, len(ctx.joint_ids), ctx.device)
+        self._gain = _vector(self.gain, len(ctx.joint_ids), ctx.device,
+                             "ComputedTorqueResidual gain [N·m per action unit]", minimum=0.0)
         self._limits = ctx.torque_limits
         #: (N, J) τ_ff of the last step [N·m].
         self.leg_feedforward = torch.zeros(ctx.num_envs, len(ctx.joint_ids), dtype=torch.float32, device=ctx.device)

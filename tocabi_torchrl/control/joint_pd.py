@@ -2,15 +2,51 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from .base import ControlContext, ControlInput, Controller
 
-__all__ = ["JointPD", "PDHold"]
+__all__ = ["JointPD", "PDHold", "per_joint"]
 
 
-def _vector(values, n: int, device: torch.device) -> torch.Tensor:
-    return torch.as_tensor(values, dtype=torch.float32, device=device).reshape(n)
+def per_joint(values, n: int, what: str, minimum: float | None = None) -> torch.Tensor:
+    """``values`` as an (n,) float32 CPU tensor, one finite number per joint of a group (each >= ``minimum`` where
+    given), else a ``ValueError`` naming ``what``. Reads the values on the host: for set-up time, never a step.
+
+    Without it a wrong count failed as a raw reshape or index error, and NaN or a negative gain (a servo that pushes
+    away from its target) was taken without a word."""
+    try:
+        vector = torch.as_tensor(values, dtype=torch.float32).detach().cpu()
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"{what} must be {n} numbers, one per joint of the group, got {values!r}") from None
+    if vector.shape != (n,):
+        raise ValueError(f"{what} must be {n} numbers, one per joint of the group, got shape {tuple(vector.shape)}: "
+                         f"{values!r}")
+    bad = [(i, v) for i, v in enumerate(vector.tolist())
+           if not math.isfinite(v) or (minimum is not None and v < minimum)]
+    if bad:
+        rule = "a finite number" + (f" >= {minimum:g}" if minimum is not None else "")
+        raise ValueError(f"{what}: each joint's value must be {rule}, got "
+                         + ", ".join(f"[{i}] = {v!r}" for i, v in bad))
+    return vector
+
+
+def _vector(values, n: int, device: torch.device, what: str, minimum: float | None = None) -> torch.Tensor:
+    """:func:`per_joint` on ``device``."""
+    return per_joint(values, n, what, minimum).to(device)
+
+
+def _finite(value, what: str) -> float:
+    """``value`` as a finite float, else a ``ValueError`` naming ``what`` (a NaN scale made every command NaN)."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a finite number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise ValueError(f"{what} must be a finite number, got {value!r}")
+    return number
 
 
 class JointPD(Controller):
@@ -18,7 +54,7 @@ class JointPD(Controller):
     inside every physics substep, force-limited to the torque limits.
 
     Args:
-        kp, kv: (J,) servo gains [N·m/rad], [N·m·s/rad].
+        kp, kv: (J,) servo gains [N·m/rad], [N·m·s/rad], each >= 0.
         scale: target offset per unit action [rad].
         nominal: (J,) the fixed centre [rad] (``centre="nominal"``) and the pose a reset world's servos hold.
         centre: ``"nominal"`` (absolute targets around ``nominal``: TocabiLab's position policy, mode ``pd``) or
@@ -30,14 +66,16 @@ class JointPD(Controller):
     def __init__(self, kp, kv, scale: float, nominal, centre: str = "reference", action_dim: int = 12):
         if centre not in ("nominal", "reference"):
             raise ValueError(f"JointPD centre must be 'nominal' or 'reference', got {centre!r}")
-        self.kp, self.kv, self.scale, self.nominal, self.centre = kp, kv, float(scale), nominal, centre
+        self.kp, self.kv, self.nominal, self.centre = kp, kv, nominal, centre
+        self.scale = _finite(scale, "JointPD scale [rad per action unit]")
         self.action_dim = action_dim
 
     def setup(self, ctx: ControlContext) -> None:
         super().setup(ctx)
-        j = len(ctx.joint_ids)
-        self._kp, self._kv = _vector(self.kp, j, ctx.device), _vector(self.kv, j, ctx.device)
-        self._nominal = _vector(self.nominal, j, ctx.device)
+        j, dev = len(ctx.joint_ids), ctx.device
+        self._kp = _vector(self.kp, j, dev, "JointPD kp [N·m/rad]", minimum=0.0)
+        self._kv = _vector(self.kv, j, dev, "JointPD kv [N·m·s/rad]", minimum=0.0)
+        self._nominal = _vector(self.nominal, j, dev, "JointPD nominal [rad]")
         self._low, self._high = ctx.joint_range[:, 0], ctx.joint_range[:, 1]
 
     def compute(self, inp: ControlInput) -> torch.Tensor:

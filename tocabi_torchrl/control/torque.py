@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from .base import ControlContext, ControlInput, Controller
-from .joint_pd import _vector
+from .joint_pd import _finite, _vector
 
 __all__ = ["DirectTorque", "AssistedTorque", "clip_torque"]
 
@@ -46,14 +46,16 @@ class AssistedTorque(Controller):
     """
 
     def __init__(self, kp, kv, scale: float, action_dim: int = 12):
-        self.kp, self.kv, self.scale = kp, kv, float(scale)
+        self.kp, self.kv = kp, kv
+        self.scale = _finite(scale, "AssistedTorque scale [rad per action unit]")
         self.action_dim = action_dim
 
     def setup(self, ctx: ControlContext) -> None:
         super().setup(ctx)
         n, j, dev = ctx.num_envs, len(ctx.joint_ids), ctx.device
         self._limits = ctx.torque_limits
-        self._kp, self._kv = _vector(self.kp, j, dev), _vector(self.kv, j, dev)
+        self._kp = _vector(self.kp, j, dev, "AssistedTorque kp [N·m/rad]", minimum=0.0)
+        self._kv = _vector(self.kv, j, dev, "AssistedTorque kv [N·m·s/rad]", minimum=0.0)
         #: β, a 0-d float32 device scalar.
         self.assist_scale = torch.zeros((), dtype=torch.float32, device=dev)
         self._gain = self.gain(0.0).clone()  # (J,) N·m per unit action at assist_scale

@@ -24,6 +24,7 @@ from torchrl.envs import EnvBase
 
 from .. import robot
 from ..control import ActuatorChain, ControlContext, ControlInput, Controller
+from ..control.joint_pd import per_joint
 from ..device import check_device
 from ..motion import ReferenceMotion
 from ..rotations import quat_rotate_inverse
@@ -76,6 +77,18 @@ def _check_start_survives(task, model_path) -> None:
     if tripped:
         warnings.warn(f"env.task: {'; '.join(tripped)}: the robot's start pose already terminates, so every episode "
                       "ends at its first step; set the threshold past the start pose's value", stacklevel=4)
+
+
+def _leg_servo_gains(law: Controller, gains) -> tuple:
+    """``law.servo_gains()``, checked to be two sequences of 12 gains >= 0, else a ``ValueError`` naming the law:
+    MuJoCo took a negative kp (a servo that pushes away from its target) or NaN without a word, and a wrong count
+    failed as an index error or was cut to the first 12. The values go on as given (float64 into the model)."""
+    name = f"{type(law).__name__}.servo_gains()"
+    if isinstance(gains, torch.Tensor) or not isinstance(gains, (tuple, list)) or len(gains) != 2:
+        raise ValueError(f"{name} must give (kp, kv), two sequences of {robot.NUM_LEG_JOINTS} gains, got {gains!r}")
+    per_joint(gains[0], robot.NUM_LEG_JOINTS, f"{name} kp [N·m/rad]", minimum=0.0)
+    per_joint(gains[1], robot.NUM_LEG_JOINTS, f"{name} kv [N·m·s/rad]", minimum=0.0)
+    return tuple(gains)
 
 
 def _servo_spec(spec, joint_ids, gains):
@@ -220,7 +233,7 @@ class TocabiWalk(EnvBase):
         _check_start_survives(cfg.task, cfg.task.model_path)
         gains = self.leg_controller.servo_gains()
         if gains is not None:
-            spec = _servo_spec(spec, robot.LEG_JOINT_IDS, gains)
+            spec = _servo_spec(spec, robot.LEG_JOINT_IDS, _leg_servo_gains(self.leg_controller, gains))
         obstacles = cfg.scene.obstacles
         check_clear_of_start(obstacles, cfg.task.model_path)
         #: The seed the obstacles' per-world offsets were drawn from (the build seed: ``set_seed`` does not move them).
