@@ -246,3 +246,23 @@ def test_bad_per_joint_gains_of_a_law_are_named():
                           r"ComputedTorqueResidual gain .* >= 0, got \[1\] = -1.0")):
         with pytest.raises(ValueError, match=message):
             law.setup(ctx)
+
+
+def test_a_controller_with_learnable_gains_steps_without_autograd():
+    # Its torques required grad: the C MuJoCo backend failed at the first step ("Can't call numpy() on Tensor that
+    # requires grad"), and the graph reached leg_torque and the observation.
+    from tocabi_torchrl.control import clip_torque
+
+    class LearnedPD(Controller):
+        action_dim = 12
+
+        def __init__(self):
+            self.kp = torch.nn.Parameter(torch.full((12,), 300.0))
+
+        def compute(self, inp):
+            return clip_torque(self.kp * (inp.q_ref + 0.5 * inp.action - inp.q), self.ctx.torque_limits)
+
+    env = TocabiWalk(num_envs=2, device="cpu", control_mode="torque", backend="mujoco", leg_controller=LearnedPD())
+    td = env.rollout(2, break_when_any_done=False)
+    assert not td["next", "leg_torque"].requires_grad and not env.sim.ctrl.requires_grad
+    assert float(td["next", "leg_torque"].abs().max()) > 0

@@ -493,6 +493,10 @@ class TocabiWalk(EnvBase):
         if action.device != self.device:
             raise ValueError(f"action is on {action.device} but the env runs on {self.device}; move it with .to()")
 
+    # No autograd in the step: the physics is not differentiable, and a control law with learnable parameters
+    # (nn.Parameter gains) put its graph into the simulator's controls and the signals, which the C MuJoCo backend
+    # failed to read ("Can't call numpy() on Tensor that requires grad") and which grew a graph across steps.
+    @torch.no_grad()
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
         self._check_action(action)
