@@ -266,3 +266,16 @@ def test_a_controller_with_learnable_gains_steps_without_autograd():
     td = env.rollout(2, break_when_any_done=False)
     assert not td["next", "leg_torque"].requires_grad and not env.sim.ctrl.requires_grad
     assert float(td["next", "leg_torque"].abs().max()) > 0
+
+
+def test_a_pd_nominal_pose_outside_the_joint_range_is_refused():
+    # A pose in degrees was taken: the reset's servos chased it and the pd mode's centre was clipped to the
+    # range's end, driving the legs to their limits.
+    import numpy as np
+
+    degrees = tuple(float(v) for v in np.degrees(robot.INIT_JOINT_POS[:12]))
+    for mode in ("pd", "pd_reference"):
+        with pytest.raises(ValueError, match=r"JointPD nominal \(env.control.pd_nominal\) is outside the model's "
+                                             r"joint range: L_HipPitch_Joint = -13.751 rad .*give radians"):
+            TocabiWalk(num_envs=1, device="cpu", control_mode=mode, pd_nominal=degrees)
+    TocabiWalk(num_envs=1, device="cpu", control_mode="pd")  # the default pose is in range

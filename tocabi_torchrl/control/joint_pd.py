@@ -6,6 +6,7 @@ import math
 
 import torch
 
+from .. import robot
 from .base import ControlContext, ControlInput, Controller
 
 __all__ = ["JointPD", "PDHold", "per_joint"]
@@ -77,6 +78,19 @@ class JointPD(Controller):
         self._kv = _vector(self.kv, j, dev, "JointPD kv [N·m·s/rad]", minimum=0.0)
         self._nominal = _vector(self.nominal, j, dev, "JointPD nominal [rad]")
         self._low, self._high = ctx.joint_range[:, 0], ctx.joint_range[:, 1]
+        self._check_nominal_in_range()
+
+    def _check_nominal_in_range(self) -> None:
+        """A nominal pose outside a joint's range (one in degrees) was taken: the reset's servos chased it and
+        :meth:`compute` clipped the ``pd`` mode's centre to the range's end, so the legs were driven to their
+        limits without a word."""
+        nominal, low, high = (t.cpu().tolist() for t in (self._nominal, self._low, self._high))
+        outside = [f"{robot.JOINT_NAMES[joint]} = {v:.3f} rad (range [{lo:.3f}, {hi:.3f}])"
+                   for joint, v, lo, hi in zip(self.ctx.joint_ids, nominal, low, high) if not lo <= v <= hi]
+        if outside:
+            raise ValueError(f"JointPD nominal (env.control.pd_nominal) is outside the model's joint range: "
+                             f"{', '.join(outside)}; give radians (not degrees) within each joint's range, in "
+                             "robot.JOINT_NAMES order")
 
     def compute(self, inp: ControlInput) -> torch.Tensor:
         centre = self._nominal if self.centre == "nominal" else inp.q_ref
