@@ -132,6 +132,24 @@ def test_config_builds_the_stages_it_names_and_nothing_when_ideal():
             ActuatorConfig(delay_substeps=(4, 20), delay_stride=stride).validate()
 
 
+def test_bad_actuator_ranges_are_named_and_numpy_delays_taken():
+    # A scalar or a wrong count failed as a raw unpack error ("cannot unpack non-iterable float object"), a negative
+    # motor constant (the torque's sign flipped) was taken by the stage though the config refused it, and a numpy
+    # integer delay was refused as not "whole substeps".
+    for bad in (1.2, (0.8, 1.0, 1.2), None):
+        with pytest.raises(ValueError, match=r"env.control.actuators.motor_constant must be two numbers \(low, high\)"):
+            ActuatorConfig(motor_constant=bad).validate()
+    refused = ((lambda: MotorConstant(-1.0, -1.0), r"MotorConstant scale must be \(low, high\) with 0 <= low"),
+               (lambda: MotorConstant("a", 1.0), r"MotorConstant scale must be two numbers"),
+               (lambda: Friction(1.0, (0.0, 0.0)), r"Friction coulomb must be two numbers \(low, high\), got 1.0"),
+               (lambda: Friction((0.0, 0.0), (-1.0, 0.0)), r"Friction viscous must be \(low, high\) with 0 <= low"),
+               (lambda: Delay(2.0, 4, 8), r"Delay low takes a whole number of substeps, got 2.0"))
+    for build, message in refused:
+        with pytest.raises(ValueError, match=message):
+            build()
+    assert Delay(np.int64(4), np.int64(20), np.int64(8), stride=np.int64(8)).values() == [4, 12, 20]
+
+
 def test_a_strided_delay_draws_its_grid_alone_and_each_value_of_it():
     delay = built(Delay(4, 20, 8, stride=8), ctx=context(n=3000))
     counts = torch.bincount(delay.delay, minlength=21)

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import abc
 import math
+import operator
 
 import torch
 
@@ -55,11 +56,27 @@ def _per_joint(tau: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     return values if tau.dim() == 2 else values.unsqueeze(1)
 
 
-def _uniform_range(low: float, high: float, what: str) -> tuple[float, float]:
-    low, high = float(low), float(high)
-    if not (math.isfinite(low) and math.isfinite(high)) or low > high:
-        raise ValueError(f"{what} range must be two finite numbers low <= high, got ({low}, {high})")
+def _uniform_range(pair, what: str) -> tuple[float, float]:
+    """``pair`` as (low, high) floats with 0 <= low <= high, finite, else a ``ValueError`` naming ``what``: every
+    stage's parameter is a scale or a resistance (a negative motor constant flipped the torque's sign), as
+    ``ActuatorConfig`` requires."""
+    try:
+        low, high = (float(v) for v in pair)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be two numbers (low, high), got {pair!r}") from None
+    if not (math.isfinite(low) and math.isfinite(high)) or not 0.0 <= low <= high:
+        raise ValueError(f"{what} must be (low, high) with 0 <= low <= high, finite, got {pair!r}")
     return low, high
+
+
+def _substeps(value, what: str) -> int:
+    """``value`` as an int (a numpy or 0-d tensor integer too), else a ``ValueError`` naming ``what``."""
+    if isinstance(value, bool):
+        raise ValueError(f"Delay {what} takes a whole number of substeps, got {value!r}")
+    try:
+        return operator.index(value)
+    except TypeError:
+        raise ValueError(f"Delay {what} takes a whole number of substeps, got {value!r}") from None
 
 
 class Actuator(abc.ABC):
@@ -93,8 +110,8 @@ class _UniformPerJoint(Actuator):
     #: The ideal actuator's value of each range's parameter (:meth:`nominal`).
     identity: tuple[float, ...] = ()
 
-    def __init__(self, *ranges: tuple[float, float], what: str):
-        self.ranges = [_uniform_range(lo, hi, f"{type(self).__name__} {what}") for lo, hi in ranges]
+    def __init__(self, **ranges: tuple[float, float]):
+        self.ranges = [_uniform_range(pair, f"{type(self).__name__} {name}") for name, pair in ranges.items()]
 
     def setup(self, ctx: ControlContext) -> None:
         super().setup(ctx)
@@ -116,12 +133,13 @@ class _UniformPerJoint(Actuator):
 
 
 class MotorConstant(_UniformPerJoint):
-    """``c · τ`` with the motor-constant scale c ~ U(low, high) per world and joint (1 = the nominal motor)."""
+    """``c · τ`` with the motor-constant scale c ~ U(low, high) per world and joint (1 = the nominal motor;
+    0 <= low <= high)."""
 
     identity = (1.0,)
 
     def __init__(self, low: float = 1.0, high: float = 1.0):
-        super().__init__((low, high), what="scale")
+        super().__init__(scale=(low, high))
 
     @property
     def scale(self) -> torch.Tensor:
@@ -139,10 +157,7 @@ class Friction(_UniformPerJoint):
     identity = (0.0, 0.0)
 
     def __init__(self, coulomb: tuple[float, float] = (0.0, 0.0), viscous: tuple[float, float] = (0.0, 0.0)):
-        super().__init__(coulomb, viscous, what="coulomb/viscous")
-        if min(coulomb[0], viscous[0]) < 0:
-            raise ValueError(f"Friction coefficients must be >= 0 (a resistance), got coulomb={coulomb}, "
-                             f"viscous={viscous}")
+        super().__init__(coulomb=coulomb, viscous=viscous)
 
     def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
         resist = self.values[0] * torch.sign(inp.qd) + self.values[1] * inp.qd
@@ -175,10 +190,8 @@ class Delay(Actuator):
     """
 
     def __init__(self, low: int = 0, high: int = 0, substeps: int = 8, stride: int = 1):
-        for v in (low, high, substeps, stride):
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise ValueError(f"Delay takes whole substeps, got low={low!r}, high={high!r}, substeps={substeps!r}, "
-                                 f"stride={stride!r}")
+        low, high = _substeps(low, "low"), _substeps(high, "high")
+        substeps, stride = _substeps(substeps, "substeps"), _substeps(stride, "stride")
         if not 0 <= low <= high or substeps < 1 or stride < 1 or (high - low) % stride:
             raise ValueError(f"Delay needs 0 <= low <= high substeps, substeps >= 1 and a stride >= 1 that divides "
                              f"high - low, got ({low}, {high}), {substeps}, stride {stride}")

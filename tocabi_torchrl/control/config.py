@@ -51,7 +51,11 @@ class ActuatorConfig:
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad range (``env.control.actuators.<name>``) and what it takes."""
         for name in ("delay_substeps", "motor_constant", "coulomb", "viscous"):
-            low, high = getattr(self, name)
+            try:  # a scalar or a wrong count failed as a raw unpack error
+                low, high = (float(v) for v in getattr(self, name))
+            except (TypeError, ValueError):
+                raise ValueError(f"env.control.actuators.{name} must be two numbers (low, high), got "
+                                 f"{getattr(self, name)!r}") from None
             if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
                 raise ValueError(f"env.control.actuators.{name} must be (low, high) with 0 <= low <= high, finite, "
                                  f"got {getattr(self, name)!r}")
