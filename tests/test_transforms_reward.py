@@ -25,6 +25,7 @@ from tocabi_torchrl.transforms import (
     JointPosTracking,
     JointVelRegulation,
     NeckOrientation,
+    RewardTerm,
     TaskReward,
     TorqueDiffRegulation,
     TorqueRegulation,
@@ -422,3 +423,31 @@ def test_a_term_returning_no_finite_real_tensor_of_the_envs_device_is_named(fn, 
                      batch_size=[2], device="cpu")
     with pytest.raises(error, match=message):
         reward._check_terms(td, nxt)
+
+
+class _PlainHeight(RewardTerm):
+    """A term written as a plain subclass (class attributes, no dataclass): no ``__post_init__`` checks it."""
+
+    name = "height"
+    weight = 0.1
+    next_keys = ("base_pos",)
+
+    def kernel(self, td, next_td):
+        return next_td["base_pos"][:, 2:3]
+
+
+@pytest.mark.parametrize("make,error,message", [
+    # The class itself is callable: it was taken for a function and failed at the first step, naming a TensorDict.
+    (lambda: _PlainHeight, TypeError, r"got the class _PlainHeight as a term; pass an instance, e.g. _PlainHeight\(\)"),
+    # A NaN weight made every reward NaN without a word; a missing name or kernel failed at the first step.
+    (lambda: type("Nan", (_PlainHeight,), {"weight": float("nan")})(), ValueError, "'height' weight must be a finite"),
+    (lambda: type("Text", (_PlainHeight,), {"weight": "0.1"})(), ValueError, "'height' weight must be a finite"),
+    (lambda: type("Nameless", (_PlainHeight,), {"name": None})(), ValueError, "Nameless: name must be a non-empty"),
+    (lambda: type("NoKernel", (RewardTerm,), {"name": "k", "weight": 1.0})(), TypeError, "does not implement kernel"),
+    # A string of keys was read as its letters: "reads ['b', 'a', 's', 'e', ...]".
+    (lambda: type("OneKey", (_PlainHeight,), {"next_keys": "base_pos"})(), TypeError, r"next_keys must be a tuple"),
+])
+def test_a_term_that_is_no_usable_instance_is_refused_when_the_reward_is_built(make, error, message):
+    with pytest.raises(error, match=message):
+        TaskReward([JointPosTracking(), make()])
+    TaskReward([JointPosTracking(), _PlainHeight()])  # the plain subclass itself is a term

@@ -14,7 +14,7 @@ from torchrl.envs.transforms import RewardSum, Transform
 from tocabi_torchrl.signals import SIGNALS
 from tocabi_torchrl.transforms._base import check_specs_once, transforms_before
 from tocabi_torchrl.transforms._checks import check_finite
-from tocabi_torchrl.transforms.reward_terms import SIGNAL_SHAPES, CallableTerm, RewardTerm
+from tocabi_torchrl.transforms.reward_terms import SIGNAL_SHAPES, CallableTerm, RewardTerm, check_term
 from tocabi_torchrl.transforms.kick_relax_config import KickRelax
 
 __all__ = ["TaskReward"]
@@ -116,7 +116,12 @@ class TaskReward(Transform):
 
     @staticmethod
     def _as_term(t) -> RewardTerm:
+        if isinstance(t, type):
+            # A class is callable too: taken for a function, it was called with (td, next_td) as its fields at the
+            # first step, and failed there naming a TensorDict as the term's name.
+            raise TypeError(f"TaskReward got the class {t.__name__} as a term; pass an instance, e.g. {t.__name__}()")
         if isinstance(t, RewardTerm):
+            check_term(t)
             return t
         if callable(t):
             name = getattr(t, "__name__", None)

@@ -48,6 +48,7 @@ __all__ = [
     "CycleVelTracking",
     "FootGap",
     "feet_apart_across_heading",
+    "check_term",
     "REFERENCE_TERMS",
     "SIGNAL_SHAPES",
     "reference_terms",
@@ -89,9 +90,30 @@ class RewardTerm:
             self.torque_scale = _torque_scale(self.torque_scale, self.name)
 
     def _check(self) -> None:
-        if not isinstance(self.name, str) or not self.name:
-            raise ValueError(f"{type(self).__name__}: name must be a non-empty string, got {self.name!r}")
-        self.weight = check_finite(self.weight, f"reward term {self.name!r} weight")
+        self.weight = check_term(self)
+
+
+def check_term(term: RewardTerm) -> float:
+    """``term``'s weight as a float, after checking its name, weight, kernel and keys; raises naming the fix.
+
+    A dataclass term runs it when made; :class:`~.reward.TaskReward` runs it on every term it gets, since a plain
+    subclass (class attributes, no ``__post_init__``) gets no other check: a NaN weight made every reward NaN without a
+    word, and a missing name or kernel surfaced at the first step as a bare ``AttributeError`` or
+    ``NotImplementedError``."""
+    kind = type(term).__name__
+    name = getattr(term, "name", None)
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{kind}: name must be a non-empty string (the ('reward_terms', name) key), got {name!r}")
+    weight = check_finite(getattr(term, "weight", None), f"reward term {name!r} weight")
+    if type(term).kernel is RewardTerm.kernel:
+        # TaskReward calls kernel and applies the weights itself (one multiply for all terms): __call__ is not used.
+        raise TypeError(f"reward term {name!r} ({kind}) does not implement kernel(td, next_td); override kernel, "
+                        "which returns the unweighted (num_envs, 1) value")
+    for attr in ("root_keys", "next_keys"):
+        keys = getattr(term, attr, ())
+        if isinstance(keys, str) or not isinstance(keys, (tuple, list)):  # a str would be read as its letters
+            raise TypeError(f"reward term {name!r} {attr} must be a tuple of keys, e.g. ('base_pos',), got {keys!r}")
+    return weight
 
 
 def _scale(value: float, what: str) -> float:
