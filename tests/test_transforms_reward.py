@@ -396,6 +396,23 @@ def test_a_reward_sum_in_front_of_the_reward_is_refused():
     assert env.rollout(3)["next", "episode_reward"].abs().sum() > 0
 
 
+
+def test_a_second_task_reward_in_the_chain_is_refused():
+    # Appended to a chain that has one, it replaced the reward with its own terms alone, without a word; the first's
+    # terms were still logged as if they counted.
+    from torchrl.envs import Compose, RewardSum
+
+    alive = CallableTerm("alive", lambda td, nxt: torch.ones_like(nxt["reward"]), weight=0.05)
+    for tail in ((TaskReward([alive]), RewardSum()), (RewardSum(), TaskReward([alive]))):
+        env = TransformedEnv(MockTocabiWalk(2), Compose(TaskReward(reference_terms()), *tail))
+        with pytest.raises(ValueError, match=r"a second TaskReward \(\['alive'\]\) comes after one of terms "
+                                             r"\['orientation'.*give one TaskReward all the terms"):
+            env.reset()
+    # One with its own reward and terms keys is a second reward, not a replacement.
+    other = TaskReward([alive], reward_key="alive_reward", terms_key="alive_terms")
+    env = TransformedEnv(MockTocabiWalk(2), Compose(TaskReward(reference_terms()), other))
+    assert env.rollout(2)["next", "reward"].abs().sum() > 0
+
 def test_a_term_reading_an_undeclared_key_of_the_state_at_t_is_named():
     # It worked in env.rollout and failed in training, where the state at t holds only the declared keys, with a
     # KeyError from deep inside tensordict.

@@ -220,6 +220,7 @@ class TaskReward(Transform):
         return tensordict_reset
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        self._check_single_reward()
         for t in transforms_before(self):
             if isinstance(t, RewardSum) and self.reward_key in t.in_keys:
                 # The bare env's reward is 0 by design: a sum taken in front of this transform sums zeros.
@@ -259,6 +260,17 @@ class TaskReward(Transform):
         )
         observation_spec[self.terms_key] = terms_spec
         return observation_spec
+
+    def _check_single_reward(self) -> None:
+        """Refuse a second TaskReward writing this one's reward or terms key: appended to the default chain
+        (``env.append_transform(TaskReward([my_term]))``) it replaced the reward with the new term alone, and the terms'
+        spec with the new term's, while the earlier terms were still computed and logged as if they counted."""
+        for t in transforms_before(self):
+            if isinstance(t, TaskReward) and (t.reward_key == self.reward_key or t.terms_key == self.terms_key):
+                raise ValueError(f"a second TaskReward ({list(self.names)}) comes after one of terms {list(t.names)} "
+                                 f"and would replace its {self.reward_key!r}; give one TaskReward all the terms, e.g. "
+                                 "make_env(reward_terms=(*REFERENCE_TERMS, my_term)) or "
+                                 "default_transforms(reward_terms=...) (docs/extending.md)")
 
     def transform_reward_spec(self, reward_spec: Composite) -> Composite:
         if self.reward_key not in reward_spec.keys(True, True):
