@@ -322,6 +322,20 @@ def test_set_weight_changes_one_term_in_place():
         tr.set_weight("qpoz", 1.0)
 
 
+
+def test_loaded_state_keeps_the_rewards_own_weights():
+    # A checkpoint's weights were loaded over the env's: a resume with a term of one's own re-weighted, or the same
+    # terms in another order, computed the saved weights while the terms and the repr named the new ones.
+    saved = TaskReward([JointPosTracking(), BodyVelTracking()], weights={"qpos": 0.7}).state_dict()
+    reward = TaskReward([BodyVelTracking(), JointPosTracking()], weights={"qpos": 0.0})
+    env = TransformedEnv(MockTocabiWalk(N, seed=2), reward)
+    reward.load_state_dict(saved)
+    torch.testing.assert_close(reward._weights, torch.tensor([0.3, 0.0]))
+    ro = env.rollout(2)
+    assert (ro["next", "reward_terms", "qpos"] == 0).all()
+    torch.testing.assert_close(ro["next", "reward_terms", "body_vel"],
+                               BodyVelTracking()(ro.exclude("next"), ro["next"]))
+
 @pytest.mark.slow
 def test_compiled_reward_matches_eager():
     terms = [JointPosTracking(), FootContactPattern(), ForceDiffThresholdPenalty()]

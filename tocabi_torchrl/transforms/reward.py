@@ -147,6 +147,16 @@ class TaskReward(Transform):
         self.terms = self.terms[:i] + (term,) + self.terms[i + 1 :]
         self._weights[i].fill_(w)
 
+    #: Device copies of this reward's configuration (the terms' weights, which terms a kick relaxes), not learned state.
+    _CONFIG_BUFFERS = ("_weights", "_relaxed")
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # A checkpoint's copies were loaded over the terms': an env built with other weights, or with the same number
+        # of terms in another order, computed the saved weights while its terms and repr named its own. They stay
+        # in the saved state, where a resumed run learns how many terms it trained with (rl/checkpoint.py).
+        own = {prefix + name: getattr(self, name) for name in self._CONFIG_BUFFERS if prefix + name in state_dict}
+        super()._load_from_state_dict({**state_dict, **own}, prefix, *args, **kwargs)
+
     def _weighted_terms(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> torch.Tensor:
         """(num_envs, n_terms) weighted term values, zeroed on terminating steps if configured."""
         kernels = [t.kernel(tensordict, next_tensordict) for t in self.terms]
