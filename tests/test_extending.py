@@ -57,3 +57,16 @@ def test_the_new_task_trained_and_wrote_its_run(namespace):
     run = namespace["cwd"] / "runs" / "stand"
     assert (run / "checkpoints" / "latest.pt").is_file()
     assert (run / "metrics" / "scalars" / "reward_terms" / "pelvis_height.csv").is_file()
+
+
+def test_the_new_tasks_policy_loads_to_act_in_the_env_its_config_builds(namespace):
+    # Play, the gait tests and the export build the env from the run's config, with the built-in reward terms; the
+    # policy reads no reward, yet its checkpoint was refused there for holding the weights of 4 terms, not 13.
+    from tocabi_torchrl.evaluation.record import load_policy
+    from tocabi_torchrl.transforms import TaskReward
+
+    loaded = load_policy(namespace["cwd"] / "runs" / "stand", num_envs=2, device="cpu")
+    td = loaded.env.rollout(2, loaded.actor, break_when_any_done=False)
+    assert td["next", "observation"].shape == (2, 2, 237)
+    reward = next(t for t in loaded.env.transform if isinstance(t, TaskReward))
+    assert len(reward.names) == 13  # the env's own reward, not the checkpoint's

@@ -456,6 +456,8 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
     if saved_transforms and isinstance(transform, nn.Module):
         mine = transform.state_dict()
         saved_transforms = align_transform_state(saved_transforms, mine, path)
+        if optimizer is None:
+            saved_transforms = _without_reward_state(saved_transforms, transform)
         _check_fits({k: v for k, v in saved_transforms.items() if k in mine}, mine, "env transforms", path,
                     hint="another observation layout or normalisation?", allow_missing=True)
     saved_norm = ((state.get("config") or {}).get("transforms") or {}).get("normalization")
@@ -472,6 +474,18 @@ def apply_checkpoint(state: dict, agent, optimizer=None, env=None, path: str | o
                                   "value_head_lr differs?") from err
     if saved_transforms and isinstance(transform, nn.Module):
         transform.load_state_dict(saved_transforms, strict=False)
+
+
+def _without_reward_state(saved: dict, transform: nn.Module) -> dict:
+    """``saved`` without the state of ``transform``'s reward (``TaskReward``), for a policy loaded to act (no
+    optimiser): the policy reads no reward, and the reward keeps its own weights on a load anyway. A run trained with
+    terms of its own was refused by play, the gait tests and the export, whose env its config builds with the
+    built-in terms; a resumed run (with its optimiser) is still told when its terms differ in number."""
+    from ..transforms.reward import TaskReward
+
+    reward = {f"{name}.{buf}" if name else buf for name, module in transform.named_modules()
+              if isinstance(module, TaskReward) for buf in TaskReward._CONFIG_BUFFERS}
+    return {k: v for k, v in saved.items() if k not in reward}
 
 
 def _require_normaliser(saved_norm: str, transform: nn.Module, path) -> None:
@@ -560,7 +574,7 @@ def _check_fits(saved: dict, current: dict, what: str, path, hint: str, allow_mi
             k = terms[0]
             hint = (f"it was trained with {saved[k].shape[0]} reward terms, this env has {current[k].shape[0]}: a run "
                     "trained with terms of its own (build_env(cfg, ..., reward_terms=...)) goes on from Python with "
-                    "an env built with the same terms: train(cfg, env=...), evaluate_policy(..., env=...)")
+                    "an env built with the same terms: train(cfg, env=...)")
         raise CheckpointError(f"checkpoint {path} does not fit this {what} ({hint}): {shown}")
 
 
