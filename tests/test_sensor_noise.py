@@ -149,6 +149,27 @@ def test_transform_refuses_what_it_cannot_do():
         TransformedEnv(make_env(num_envs=2, device="cpu").base_env, alone).reset()
 
 
+
+def test_a_layout_other_than_the_assemblys_is_refused():
+    # Joint velocities before positions (same width): the joint-position bias and noise landed on the velocity
+    # columns, without a word.
+    from torchrl.envs import Compose
+
+    from tocabi_torchrl.transforms import ObsComponent, PhaseEncoding
+
+    swapped = list(REFERENCE_OBS_LAYOUT)
+    swapped[1], swapped[2] = swapped[2], swapped[1]
+    chain = Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(tuple(swapped)), SensorNoise(LAB))
+    with pytest.raises(ValueError, match=r"SensorNoise was given a layout \(blocks \['base_rpy', 'leg_joint_pos'.*"
+                                         r"other than that of the ObservationAssembly in front of it"):
+        TransformedEnv(make_env(num_envs=2, device="cpu").base_env, chain).reset()
+    # The assembly's layout passed on is fine, and so is the same one with other block names.
+    renamed = tuple(ObsComponent(f"block{i}", c.key, c.index) for i, c in enumerate(swapped))
+    for layout in (tuple(swapped), renamed):
+        chain = Compose(PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(tuple(swapped)),
+                        SensorNoise(LAB, layout))
+        assert TransformedEnv(make_env(num_envs=2, device="cpu").base_env, chain).reset()["obs_step"].shape == (2, 37)
+
 # ------------------------------------------------------------------------------------------- distributions
 @pytest.mark.parametrize("signal", ["joint_pos", "base_rpy", "foot_force", "foot_torque"])
 def test_bias_is_uniform_in_its_range_and_differs_between_worlds(signal):

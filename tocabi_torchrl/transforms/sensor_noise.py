@@ -66,7 +66,7 @@ from tocabi_torchrl.transforms._base import transforms_after, transforms_before
 from tocabi_torchrl.transforms._checks import require_spec
 from tocabi_torchrl.transforms.history import ObsActionHistory
 from tocabi_torchrl.transforms.normalize import _Normalization
-from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObsComponent
+from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObservationAssembly, ObsComponent
 # The config lives in a module without torch, for the config tree; this path names it too.
 from tocabi_torchrl.transforms.sensor_noise_config import SENSORS, SensorNoiseConfig
 
@@ -223,6 +223,7 @@ class SensorNoise(Transform):
         copy), or after any other reader of it with nothing behind reading it. A transform in front that only reads
         it (a clean copy for a critic or a log) is fine while the policy input is built behind."""
         key = self.in_keys[0]
+        self._check_layout(key)
         # One that rewrites obs_step in place passes the noise on.
         readers = [t for t in transforms_before(self) if key in t.in_keys and key not in t.out_keys]
         builds_input = [t for t in readers if isinstance(t, (_Normalization, ObsActionHistory))]
@@ -235,6 +236,19 @@ class SensorNoise(Transform):
         raise ValueError(f"SensorNoise comes after {type((builds_input or readers)[-1]).__name__}, {why}, so the noise "
                          "would reach nothing the policy sees; put SensorNoise right after ObservationAssembly (as "
                          "default_transforms does)")
+
+    def _check_layout(self, key: NestedKey) -> None:
+        """Refuse a layout other than that of the ObservationAssembly in front writing ``key``: the columns are mapped
+        from this transform's layout, so with the same width (blocks reordered or swapped) a signal's bias and noise
+        landed on another's columns without a word (joint-position noise on joint velocities)."""
+        assemblies = [t for t in transforms_before(self) if isinstance(t, ObservationAssembly) and key in t.out_keys]
+        columns = lambda layout: [(c.key, c.index) for c in layout]  # noqa: E731 - what each block reads, not its label
+        if assemblies and columns(assemblies[-1].layout) != columns(self.layout):
+            names = lambda layout: [c.name for c in layout]  # noqa: E731
+            raise ValueError(f"SensorNoise was given a layout (blocks {names(self.layout)}) other than that of the "
+                             f"ObservationAssembly in front of it that writes {key!r} (blocks "
+                             f"{names(assemblies[-1].layout)}), so its noise would land on other columns; pass it "
+                             "that layout: SensorNoise(config, assembly.layout)")
 
     def _map_columns(self, spec: Composite) -> None:
         batch = tuple(spec.shape)
