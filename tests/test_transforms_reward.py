@@ -477,6 +477,8 @@ class _PlainHeight(RewardTerm):
     (lambda: type("NoKernel", (RewardTerm,), {"name": "k", "weight": 1.0})(), TypeError, "does not implement kernel"),
     # A string of keys was read as its letters: "reads ['b', 'a', 's', 'e', ...]".
     (lambda: type("OneKey", (_PlainHeight,), {"next_keys": "base_pos"})(), TypeError, r"next_keys must be a tuple"),
+    # The name is the metrics file's too: "a/b" wrote metrics/scalars/reward_terms/a/b.csv into a subfolder.
+    (lambda: type("Slash", (_PlainHeight,), {"name": "a/b"})(), ValueError, r"names the term's metrics file too"),
 ])
 def test_a_term_that_is_no_usable_instance_is_refused_when_the_reward_is_built(make, error, message):
     with pytest.raises(error, match=message):

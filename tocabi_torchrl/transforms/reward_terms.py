@@ -104,6 +104,9 @@ def check_term(term: RewardTerm) -> float:
     name = getattr(term, "name", None)
     if not isinstance(name, str) or not name:
         raise ValueError(f"{kind}: name must be a non-empty string (the ('reward_terms', name) key), got {name!r}")
+    if "/" in name or "\\" in name or name.startswith("."):
+        # The name is also a file name: metrics/scalars/reward_terms/<name>.csv ("a/b" wrote into a subfolder).
+        raise ValueError(f"{kind}: name {name!r} names the term's metrics file too: use no '/', '\\' or leading '.'")
     weight = check_finite(getattr(term, "weight", None), f"reward term {name!r} weight")
     if type(term).kernel is RewardTerm.kernel:
         # TaskReward calls kernel and applies the weights itself (one multiply for all terms): __call__ is not used.
