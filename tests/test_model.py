@@ -236,3 +236,24 @@ def test_env_refuses_a_model_that_is_not_tocabi(tmp_path, mode):
     with pytest.raises(ValueError, match=r"tiny\.xml' is not a TOCABI model: it lacks joint 'L_HipYaw_Joint'.*"
                                          r"and \d+ more; pass a TOCABI MJCF .*JOINT_NAMES, ACTUATOR_NAMES"):
         make_env(1, "cpu", model_path=str(tiny), control_mode=mode)
+
+
+@pytest.mark.parametrize("where,addition,message", [
+    ("</worldbody>", '<body name="ball" pos="2 2 0.1"><freejoint name="ball_joint"/><geom type="sphere" size="0.05"/>'
+     "</body></worldbody>", "has 47 qpos, 45 dofs and 33 actuators where TOCABI has 40, 39 and 33 (extra joints "
+     "['ball_joint'])"),
+    ("</actuator>", '<motor name="extra_motor" joint="L_Knee_Joint"/></actuator>',
+     "has 40 qpos, 39 dofs and 34 actuators where TOCABI has 40, 39 and 33 (extra actuators ['extra_motor'])"),
+])
+def test_a_model_with_joints_or_actuators_beyond_tocabi_is_refused_by_name(tmp_path, where, addition, message):
+    # A prop with a free joint after the robot failed in the env's build as "could not broadcast input array from
+    # shape (40,) into shape (47,)", a second motor at the first reset as "ctrl must have shape (1, 34)".
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    path = tmp_path / "extra.xml"
+    path.write_text(text.replace(where, addition, 1))
+    with pytest.raises(robot.RobotAssetError, match=re.escape(message)):
+        robot.load_model(path)
+    with pytest.raises(robot.RobotAssetError, match=r"extra\.xml has"):
+        from tocabi_torchrl import make_env
+
+        make_env(1, "cpu", model_path=str(path))

@@ -264,6 +264,7 @@ def validate_model(model: "mujoco.MjModel", source: str = "model") -> None:  # n
     missing = missing_names(model)
     if missing:
         raise RobotAssetError(f"{source} lacks {len(missing)} expected name(s): " + ", ".join(missing))
+    _check_no_extras(model, source)
     for j, name in enumerate(JOINT_NAMES):
         jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
         if model.jnt_qposadr[jid] != 7 + j or model.jnt_dofadr[jid] != 6 + j:
@@ -275,6 +276,29 @@ def validate_model(model: "mujoco.MjModel", source: str = "model") -> None:  # n
         if aid != j:
             raise RobotAssetError(f"{source}: actuator {ACTUATOR_NAMES[j]!r} has index {aid}, expected {j}")
     _check_foot_sensors(model, source)
+
+
+def _check_no_extras(model: "mujoco.MjModel", source: str) -> None:  # noqa: F821
+    """Refuse joints and actuators beyond TOCABI's (its 33 and the base's free joint). Everything downstream writes
+    whole rows of TOCABI's sizes (``INIT_QPOS``, one control per joint), so a free-floating prop or a second motor
+    failed later as a numpy broadcast or a reset shape error that named neither the file nor the extra element."""
+    import mujoco
+
+    if (model.nq, model.nv, model.nu) == (7 + NUM_JOINTS, 6 + NUM_JOINTS, NUM_JOINTS):
+        return
+    base = model.body(BASE_BODY).id
+    # The base's free joint may be unnamed: it is told by its body and type, not by a name.
+    robot_joint = [model.joint(j).name in JOINT_NAMES
+                   or (model.jnt_bodyid[j] == base and model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE)
+                   for j in range(model.njnt)]
+    joints = [model.joint(j).name or f"#{j}" for j in range(model.njnt) if not robot_joint[j]]
+    motors = [model.actuator(a).name or f"#{a}" for a in range(model.nu)
+              if model.actuator(a).name not in ACTUATOR_NAMES]
+    extras = "; ".join(f"extra {kind} {names}" for kind, names in (("joints", joints), ("actuators", motors)) if names)
+    raise RobotAssetError(
+        f"{source} has {model.nq} qpos, {model.nv} dofs and {model.nu} actuators where TOCABI has {7 + NUM_JOINTS}, "
+        f"{6 + NUM_JOINTS} and {NUM_JOINTS} ({extras or 'joints of other sizes'}): remove them; a static prop needs "
+        "no joint (boxes: env.scene.obstacles)")
 
 
 def _check_foot_sensors(model: "mujoco.MjModel", source: str) -> None:  # noqa: F821
