@@ -358,3 +358,16 @@ def test_a_binary_file_named_txt_is_a_format_error(tmp_path):
     path.write_bytes(asset_path("motions", "tocabi_walk.npz").read_bytes())
     with pytest.raises(MotionFormatError, match=r"walk.txt: not a text file .*a project motion ends in .npz"):
         load_motion(path)
+
+
+def test_a_motion_shorter_than_two_policy_steps_is_refused_by_the_env(tmp_path):
+    # A sample_rate in another unit (1e7 for 2000) was built and stepped: the 0.36 ms cycle is sampled once per 4 ms
+    # step, so phase, targets and stance jumped to unrelated rows at every step.
+    from tocabi_torchrl import make_env
+
+    path = shipped_with(tmp_path, "sample_rate", np.array(1e7))
+    with pytest.raises(ValueError, match=r"bad_sample_rate.npz: its cycle of 3600 rows at 1e\+07 rows/s lasts "
+                                         r"0.0003599 s, shorter than two policy steps .*set it to at most 449875"):
+        make_env(1, "cpu", motion=path)
+    slow = shipped_with(tmp_path, "sample_rate", np.array(250.0))  # a slower walk of the same rows is fine
+    assert make_env(1, "cpu", motion=slow).base_env.motion.period == pytest.approx(3599 / 250.0)

@@ -146,6 +146,19 @@ def _check_motion_in_range(motion: ReferenceMotion, model) -> None:
                          "are radians (a motion in degrees?), in robot.JOINT_NAMES order")
 
 
+def _check_motion_period(motion: ReferenceMotion, dt: float) -> None:
+    """``ValueError`` for a reference cycle shorter than two policy steps. The env samples the phase clock once a
+    step, so such a cycle is aliased: phase, targets and stance jump to unrelated rows at every step, and training
+    runs on without a word. The usual cause is a ``sample_rate`` in another unit (rows per ms, or a period in µs)."""
+    if motion.period >= 2.0 * dt:
+        return
+    rate = 1.0 / motion.row_dt
+    raise ValueError(f"reference motion {motion.source or '(arrays)'}: its cycle of {motion.num_rows} rows at "
+                     f"{rate:g} rows/s lasts {motion.period:g} s, shorter than two policy steps ({2.0 * dt:g} s; one "
+                     f"step is {dt:g} s): the env would skip through the cycle. sample_rate is rows per second; set "
+                     f"it to at most {motion.cycle_rows / (2.0 * dt):g} so the cycle lasts {2.0 * dt:g} s or more")
+
+
 class TocabiWalk(EnvBase):
     """TOCABI walking task over ``num_envs`` simulated worlds (mujoco-warp or C MuJoCo).
 
@@ -276,6 +289,7 @@ class TocabiWalk(EnvBase):
         motion = cfg.task.motion
         self.motion = ReferenceMotion.default() if motion is None else ReferenceMotion.from_file(motion)
         _check_motion_in_range(self.motion, self.sim.mj_model)
+        _check_motion_period(self.motion, self.dt)
         self.motion = self.motion.to(device)
 
         self.rng = torch.Generator(device=device)
