@@ -216,7 +216,7 @@ def test_unknown_suffix_and_missing_file(tmp_path):
     with pytest.raises(MotionFormatError, match="motion file not found"):
         load_motion(tmp_path / "absent.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(MotionFormatError, match="cannot read as .npz"):
+    with pytest.raises(MotionFormatError, match="not an .npz archive"):
         load_npz(tmp_path / "junk.npz")
 
 
@@ -371,3 +371,28 @@ def test_a_motion_shorter_than_two_policy_steps_is_refused_by_the_env(tmp_path):
         make_env(1, "cpu", motion=path)
     slow = shipped_with(tmp_path, "sample_rate", np.array(250.0))  # a slower walk of the same rows is fine
     assert make_env(1, "cpu", motion=slow).base_env.motion.period == pytest.approx(3599 / 250.0)
+
+
+@pytest.mark.parametrize("content", ["text", "pickle", "npy", "truncated", "empty"])
+def test_a_file_that_is_not_an_npz_archive_is_refused_without_unsafe_advice(tmp_path, content):
+    # np.load falls back to unpickling for a non-zip file; refused, its message advised loading the file unsafely
+    # (allow_pickle or the pickle module), for a motion file from outside.
+    import io
+    import pickle
+
+    shipped = asset_path("motions", "tocabi_walk.npz").read_bytes()
+    npy = io.BytesIO()
+    np.save(npy, np.zeros(3))
+    data = {"text": b"time q0 q1", "pickle": pickle.dumps({"joint_pos": [0.0]}), "npy": npy.getvalue(),
+            "truncated": shipped[: len(shipped) // 2], "empty": b""}[content]
+    path = tmp_path / "walk.npz"
+    path.write_bytes(data)
+    with pytest.raises(MotionFormatError, match=r"walk.npz: not an .npz archive .*motion.save_npz") as info:
+        load_npz(path)
+    assert "allow_pickle" not in str(info.value) and "pickle.load" not in str(info.value)
+
+
+def test_an_object_array_in_a_motion_is_refused_by_field(tmp_path):
+    path = shipped_with(tmp_path, "meta", np.array([{"generator": "mine"}], dtype=object))
+    with pytest.raises(MotionFormatError, match=r"bad_meta.npz: field 'meta' is an object \(pickled\) array"):
+        load_npz(path)

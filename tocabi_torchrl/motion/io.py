@@ -257,11 +257,7 @@ def load_npz(path: str | os.PathLike) -> MotionData:
     p = Path(path)
     if not p.is_file():
         raise MotionFormatError(f"motion file not found: {p}")
-    try:
-        with np.load(p, allow_pickle=False) as npz:
-            fields = {k: npz[k] for k in npz.files}
-    except Exception as err:  # zip/pickle errors: not an npz we can read
-        raise MotionFormatError(f"{p}: cannot read as .npz ({err})") from err
+    fields = _read_npz(p)
     missing = [k for k in _REQUIRED_NPZ if k not in fields]
     if missing:
         raise MotionFormatError(f"{p}: missing field(s) {missing}; a {NPZ_FORMAT} file has {list(_REQUIRED_NPZ)}")
@@ -291,6 +287,40 @@ def load_npz(path: str | os.PathLike) -> MotionData:
         base_pos=None if base_pos is None else _floats(p, "base_pos", base_pos, "a (rows, 3) array of positions [m]"),
         meta=_meta_field(p, fields["meta"]) if "meta" in fields else {},
     ).validate(str(p))
+
+
+def _read_npz(p: Path) -> dict[str, np.ndarray]:
+    """Every array of the archive ``p``, never unpickling anything (no code from a file runs).
+
+    A file that is not a zip at all (text, a pickle, a bare .npy, empty or cut short) is refused before numpy sees
+    it: np.load falls back to pickle for such files, and its refusal then advised loading the file unsafely.
+    """
+    if not zipfile.is_zipfile(p):
+        raise MotionFormatError(f"{p}: not an .npz archive (a zip of .npy arrays): the file is empty, cut short or of "
+                                "another format; write motions with tocabi_torchrl.motion.save_npz (or numpy.savez)")
+    fields: dict[str, np.ndarray] = {}
+    try:
+        with np.load(p, allow_pickle=False) as npz:
+            for name in npz.files:
+                fields[name] = _read_field(p, npz, name)
+    except MotionFormatError:
+        raise
+    except Exception as err:  # a damaged archive (bad CRC, broken header): numpy's own words
+        raise MotionFormatError(f"{p}: cannot read as .npz ({err})") from err
+    return fields
+
+
+def _read_field(p: Path, npz, name: str) -> np.ndarray:
+    """One array of an open archive. numpy refuses an object array with a ValueError about allow_pickle, its only
+    mark (the dtype is unknown until the member is read), so that refusal is told apart by its words."""
+    try:
+        return npz[name]
+    except ValueError as err:
+        if "allow_pickle" not in str(err):
+            raise
+        raise MotionFormatError(f"{p}: field {name!r} is an object (pickled) array, which a motion file may not hold "
+                                "(reading it would run code from the file); store numbers and strings as numeric and "
+                                "str arrays") from err
 
 
 # Converters of the .npz fields: each returns the field in its MotionData type, or raises MotionFormatError naming
