@@ -396,3 +396,21 @@ def test_an_object_array_in_a_motion_is_refused_by_field(tmp_path):
     path = shipped_with(tmp_path, "meta", np.array([{"generator": "mine"}], dtype=object))
     with pytest.raises(MotionFormatError, match=r"bad_meta.npz: field 'meta' is an object \(pickled\) array"):
         load_npz(path)
+
+
+def test_save_npz_writes_numpy_and_path_provenance_and_refuses_meta_it_cannot_read_back(tmp_path):
+    # numpy scalars and paths in meta raised a bare "Object of type float32 is not JSON serializable", and a meta of
+    # None was written as JSON null, which load_npz then refused.
+    from pathlib import Path
+
+    data = motion_data()
+    data.meta = {"scale": np.float32(0.5), "rows": np.int64(12), "offsets": np.arange(2), "source": Path("/a/b.txt")}
+    written = save_npz(tmp_path / "m.npz", data)
+    assert load_npz(written).meta == {"scale": 0.5, "rows": 12, "offsets": [0, 1], "source": "/a/b.txt"}
+    for meta, message in ((None, "meta must be a dict .* got NoneType"),
+                          ({"tool": object()}, r"meta cannot be written as JSON \(object value"),
+                          ({1: "a", "b": 2}, "meta cannot be written as JSON .* str keys")):
+        data.meta = meta
+        with pytest.raises(MotionFormatError, match=f"save_npz: {message}"):
+            save_npz(tmp_path / "other.npz", data)
+    assert not (tmp_path / "other.npz").exists()

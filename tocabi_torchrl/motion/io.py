@@ -427,12 +427,34 @@ def save_npz(path: str | os.PathLike, data: MotionData) -> Path:
         "stance": np.asarray(data.stance, dtype=np.int8),
         "sample_rate": np.array(float(data.sample_rate)),
         "init_rows": np.asarray(data.init_rows, dtype=np.int64),
-        "meta": np.array(json.dumps(data.meta, sort_keys=True)),
+        "meta": np.array(_meta_json(data.meta)),
     }
     if data.base_pos is not None:
         fields["base_pos"] = np.asarray(data.base_pos, dtype=np.float32)
     _write_npz(p, fields)
     return p
+
+
+def _meta_json(meta) -> str:
+    """``meta`` as the JSON object :func:`load_npz` reads back. Provenance often holds numpy scalars or arrays and
+    paths (a parameter taken from an array, the source file), which json refused with a bare TypeError; they are
+    written as plain numbers, lists and strings. A meta that is not a dict was written as JSON the loader refuses."""
+    if not isinstance(meta, dict):
+        raise MotionFormatError(f"save_npz: meta must be a dict (JSON object) of provenance, got "
+                                f"{type(meta).__name__}; use {{}} for none")
+
+    def plain(value):
+        if isinstance(value, (np.generic, np.ndarray)):
+            return value.tolist()
+        if isinstance(value, os.PathLike):
+            return os.fspath(value)
+        raise TypeError(f"{type(value).__name__} value {value!r:.60}")
+
+    try:
+        return json.dumps(meta, sort_keys=True, default=plain)
+    except (TypeError, ValueError) as err:  # an unknown type, or keys of mixed types that cannot be sorted
+        raise MotionFormatError(f"save_npz: meta cannot be written as JSON ({err}); give it str keys and plain "
+                                "strings, numbers, lists and dicts as values") from err
 
 
 def _write_npz(path: Path, fields: dict[str, np.ndarray]) -> None:
