@@ -414,3 +414,19 @@ def test_save_npz_writes_numpy_and_path_provenance_and_refuses_meta_it_cannot_re
         with pytest.raises(MotionFormatError, match=f"save_npz: {message}"):
             save_npz(tmp_path / "other.npz", data)
     assert not (tmp_path / "other.npz").exists()
+
+
+def test_text_fields_stored_as_bytes_are_read_as_text(tmp_path):
+    # joint_names and meta were decoded from bytes but format was not: a file with every string stored as bytes was
+    # refused as "format \"np.bytes_(b'tocabi_torchrl.motion/1')\" is not supported", and bytes that are not UTF-8
+    # raised a bare UnicodeDecodeError naming no file or field.
+    as_bytes = {"format": np.array(NPZ_FORMAT.encode()), "joint_names": np.array([n.encode() for n in JOINT_NAMES]),
+                "meta": np.array(b'{"generator": "mine"}')}
+    data = load_npz(write_npz(tmp_path / "bytes.npz", **as_bytes))
+    assert data.meta == {"generator": "mine"} and data.num_rows == ROWS
+    names = [n.encode() for n in JOINT_NAMES]
+    names[3] = b"\xff\xfeKnee"
+    with pytest.raises(MotionFormatError, match=r"bad.npz: joint_names holds bytes that are not UTF-8 text"):
+        load_npz(write_npz(tmp_path / "bad.npz", joint_names=np.array(names)))
+    with pytest.raises(MotionFormatError, match=r"list.npz: format must be one string, 'tocabi_torchrl.motion/1'"):
+        load_npz(write_npz(tmp_path / "list.npz", format=np.array([NPZ_FORMAT])))

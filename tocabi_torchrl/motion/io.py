@@ -261,7 +261,7 @@ def load_npz(path: str | os.PathLike) -> MotionData:
     missing = [k for k in _REQUIRED_NPZ if k not in fields]
     if missing:
         raise MotionFormatError(f"{p}: missing field(s) {missing}; a {NPZ_FORMAT} file has {list(_REQUIRED_NPZ)}")
-    fmt = str(fields["format"])
+    fmt = _format_field(p, fields["format"])
     if fmt != NPZ_FORMAT:
         raise MotionFormatError(f"{p}: format {fmt!r} is not supported; expected {NPZ_FORMAT!r}")
     names = _joint_names(p, fields["joint_names"])
@@ -329,11 +329,30 @@ def _describe(arr: np.ndarray) -> str:
     return f"dtype {arr.dtype}, shape {arr.shape}"
 
 
+def _text(p: Path, name: str, value: str | bytes) -> str:
+    """One string of a str or bytes field. Other tools (h5py conversions, ``np.array(b"...")``) store text as bytes,
+    which str() would turn into "b'...'" and a bare decode fails on with a UnicodeDecodeError naming no field."""
+    if not isinstance(value, bytes):
+        return str(value)
+    try:
+        return value.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise MotionFormatError(f"{p}: {name} holds bytes that are not UTF-8 text ({err.reason} at byte {err.start}): "
+                                f"{value[:40]!r}; store it as str") from err
+
+
+def _format_field(p: Path, value: np.ndarray) -> str:
+    arr = np.asarray(value)
+    if arr.ndim != 0 or arr.dtype.kind not in "US":
+        raise MotionFormatError(f"{p}: format must be one string, {NPZ_FORMAT!r}, got {_describe(arr)}")
+    return _text(p, "format", arr.item())
+
+
 def _joint_names(p: Path, value: np.ndarray) -> list[str]:
     arr = np.asarray(value)
     if arr.ndim != 1 or arr.dtype.kind not in "US":
         raise MotionFormatError(f"{p}: joint_names must be a 1-D array of joint names (strings), got {_describe(arr)}")
-    return [n.decode() if isinstance(n, bytes) else str(n) for n in arr.tolist()]
+    return [_text(p, "joint_names", n) for n in arr.tolist()]
 
 
 def _floats(p: Path, name: str, value: np.ndarray, must: str) -> np.ndarray:
@@ -383,10 +402,10 @@ def _meta_field(p: Path, value: np.ndarray) -> dict:
     arr = np.asarray(value)
     if arr.ndim != 0 or arr.dtype.kind not in "US":
         raise MotionFormatError(f"{p}: meta must be one string holding a JSON object, got {_describe(arr)}")
-    text = arr.item()
+    text = _text(p, "meta", arr.item())
     try:
-        meta = json.loads(text.decode() if isinstance(text, bytes) else text)
-    except (ValueError, UnicodeDecodeError) as err:  # JSONDecodeError is a ValueError
+        meta = json.loads(text)
+    except ValueError as err:  # JSONDecodeError is a ValueError
         raise MotionFormatError(
             f"{p}: meta must be one string holding a JSON object; it is not valid JSON ({err})"
         ) from err
