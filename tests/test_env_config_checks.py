@@ -96,6 +96,14 @@ def test_a_motion_given_as_a_path_object_is_a_path(tmp_path):
         TocabiWalkConfig().with_flat(motion="  ").validate()
 
 
+@pytest.mark.parametrize("model_path", [5, "", "  "])
+def test_a_model_path_that_is_no_path_is_refused_by_name(model_path):
+    # 5 ended in a raw TypeError when the env loaded the model, and "" in "robot model file not found: .".
+    with pytest.raises(ValueError, match="env.task.model_path must be a path to a MuJoCo XML model"):
+        TocabiWalkConfig().with_flat(model_path=model_path).validate()
+    TocabiWalkConfig().with_flat(model_path=None).validate()
+
+
 def test_numpy_scalars_are_taken_as_plain_numbers():
     cfg = TocabiWalkConfig().with_flat(pd_action_scale=np.float32(0.25), max_episode_steps=np.int64(100),
                                        pd_kp=tuple(np.float32(50.0) for _ in range(12)),

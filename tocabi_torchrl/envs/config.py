@@ -178,6 +178,11 @@ class TaskConfig:
         if motion is not None and (not isinstance(motion, str) or not motion.strip()):
             raise ValueError(f"env.task.motion must be a path to a .npz or reference .txt motion, or none for the "
                              f"shipped cycle, got {self.motion!r}")
+        model = os.fspath(self.model_path) if isinstance(self.model_path, os.PathLike) else self.model_path
+        if model is not None and (not isinstance(model, str) or not model.strip()):
+            # 5 ended in a raw TypeError and "" in "robot model file not found: ."
+            raise ValueError(f"env.task.model_path must be a path to a MuJoCo XML model of TOCABI, or none for the "
+                             f"shipped model, got {self.model_path!r}")
 
     @property
     def diverse_starts(self) -> bool:
