@@ -113,6 +113,25 @@ def test_a_torque_controller_that_gives_servo_gains_is_refused():
         TocabiWalk(num_envs=1, device="cpu", control_mode="torque", leg_controller=_TorqueWithGains())
 
 
+class _ServoAtReference(Controller):
+    servo = True
+    action_dim = 12
+
+    def servo_gains(self):
+        return robot.LEG_KP, robot.LEG_KV
+
+    def compute(self, inp):
+        return inp.q_ref[:, :12] + 0.1 * inp.action
+
+
+def test_a_servo_law_without_a_rest_of_its_own_starts_its_servos_at_the_start_pose():
+    # The base reset_command gave zeros to servo laws too: every reset drove their legs' servos to 0 rad.
+    env = TocabiWalk(num_envs=2, device="cpu", leg_controller=_ServoAtReference())
+    env.reset()
+    legs = torch.as_tensor(robot.INIT_JOINT_POS[list(robot.LEG_JOINT_IDS)], dtype=torch.float32)
+    torch.testing.assert_close(torch.as_tensor(env.sim.ctrl)[:, :12].float().cpu(), legs.expand(2, -1))
+
+
 def test_a_user_controller_replaces_the_configured_one():
     env = TocabiWalk(num_envs=2, device="cpu", control_mode="pd_reference", leg_controller=DirectTorque())
     # a torque law: the leg motors stay motors (no servos), so a zero action applies no leg torque

@@ -33,6 +33,8 @@ from typing import Any
 
 import torch
 
+from .. import robot
+
 __all__ = ["ControlContext", "ControlInput", "Controller"]
 
 
@@ -111,8 +113,12 @@ class Controller(abc.ABC):
         return inp.action
 
     def reset_command(self) -> torch.Tensor:
-        """(J,) the command a reset world starts with: no torque, or for a servo law the targets of its gains'
-        rest (the servos' nominal pose)."""
+        """(J,) the command a reset world starts with: no torque [N·m], or for a servo law (``servo`` True) targets
+        [rad]: here the start pose's joint positions (``robot.INIT_JOINT_POS``), which a law with another rest
+        overrides (``JointPD``: its nominal pose). Zeros once drove a servo law's joints to 0 rad at every reset."""
+        if self.servo:
+            start = robot.INIT_JOINT_POS[list(self.ctx.joint_ids)]
+            return torch.as_tensor(start, dtype=torch.float32, device=self.ctx.device)
         return torch.zeros(len(self.ctx.joint_ids), dtype=torch.float32, device=self.ctx.device)
 
     def servo_gains(self) -> tuple | None:
