@@ -216,6 +216,17 @@ def test_cli_reports_parameters_that_make_no_gait(tmp_path, capsys, argv, option
     assert not out.exists()
 
 
+@pytest.mark.parametrize("name,content", [("ref.npz", b"not a zip"), ("ref.txt", b"1 2 3\n")])
+def test_cli_refuses_a_reference_that_is_no_motion_in_one_line(tmp_path, capsys, name, content):
+    # A corrupt --reference ended in a MotionFormatError traceback.
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(SystemExit) as stop:
+        main(["--out", str(tmp_path / "walk.npz"), "--reference", str(tmp_path / name)])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "--reference: " in err and "Traceback" not in err
+    assert not (tmp_path / "walk.npz").exists()
+
+
 def test_cli_refuses_a_missing_model(tmp_path, capsys):
     with pytest.raises(SystemExit) as stop:
         main(["--out", str(tmp_path / "walk.npz"), "--model", str(tmp_path / "none.xml")])

@@ -218,6 +218,9 @@ def test_unknown_suffix_and_missing_file(tmp_path):
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(MotionFormatError, match="not an .npz archive"):
         load_npz(tmp_path / "junk.npz")
+    shipped = asset_path("motions", "tocabi_walk.npz")
+    (tmp_path / "UPPER.NPZ").write_bytes(open(shipped, "rb").read())  # the suffix's case once refused it
+    assert load_motion(tmp_path / "UPPER.NPZ").joint_pos.shape == load_motion(shipped).joint_pos.shape
 
 
 def test_from_file_dispatches_on_suffix(tmp_path):

@@ -44,7 +44,7 @@ from tocabi_torchrl import robot
 
 from ..cli import RecipeParser
 from .analysis import gait_metrics
-from .io import MotionData, load_motion, save_npz
+from .io import MotionData, MotionFormatError, load_motion, save_npz
 from .kinematics import SIDES, LegGeometry, leg_ik
 from .lipm import periodic_lipm_com
 from .schedule import REFERENCE_WEIGHT_FORCE, force_schedule, stance_schedule
@@ -415,7 +415,10 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{option} {path} exists{shipped}; pass --overwrite to replace it, or give another "
                          f"{option}")
     # Read before anything is written: --reference may name the file --out replaces.
-    reference = load_motion(args.reference) if args.reference is not None else None
+    try:
+        reference = load_motion(args.reference) if args.reference is not None else None
+    except (MotionFormatError, OSError) as err:  # a traceback once; the file is the user's to fix or replace
+        parser.error(f"--reference: {err}")
     cfg = GaitConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(GaitConfig)})
     try:
         data = generate_walk(cfg, model_path=args.model)

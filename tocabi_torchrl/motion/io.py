@@ -172,9 +172,9 @@ def _check_finite(arr: np.ndarray, what: str, columns) -> None:
 def load_motion(path: str | os.PathLike) -> MotionData:
     """Load a ``.txt`` (reference format) or ``.npz`` (project format) motion."""
     p = Path(path)
-    if p.suffix == ".npz":
+    if p.suffix.lower() == ".npz":  # MOTION.NPZ too: the format is the file's, not its name's case
         return load_npz(p)
-    if p.suffix == ".txt":
+    if p.suffix.lower() == ".txt":
         return load_txt(p)
     raise MotionFormatError(f"{p}: unknown motion format {p.suffix!r}; expected .txt (reference) or .npz (project)")
 
