@@ -680,6 +680,20 @@ def test_help_of_resume_names_every_option_a_resume_may_change(capsys):
     assert "ppo.lr_end" not in RESUME_SAFE
 
 
+def test_help_of_a_resume_shows_the_saved_runs_values(finished_run, tmp_path, capsys):
+    # It showed the preset's (4096 envs, 300 M env steps) for a run of 2 envs and 16 steps.
+    from tocabi_torchrl.rl.config import check_command_line
+
+    with pytest.raises(SystemExit):
+        check_command_line(["--resume", str(finished_run), "--help"])
+    text = " ".join(capsys.readouterr().out.replace("│", " ").split())
+    assert re.search(r"--env\.num_envs INT .{0,80}?\(default: 2\)", text), text
+    assert re.search(r"--total_env_steps INT .{0,80}?\(default: 16\)", text), text
+    with pytest.raises(SystemExit):  # a resume that cannot be read still answers, with the preset's values
+        check_command_line(["--resume", str(tmp_path / "none"), "--help"])
+    assert "(default: 4096)" in " ".join(capsys.readouterr().out.replace("│", " ").split())
+
+
 def test_device_cpu_0_trains(tmp_path):
     # It used to be refused at the first env step ("action is on cpu but the env runs on cpu:0"), after the banner.
     recipe("ppo_walk").main(tiny_args(tmp_path, device="cpu:0"))

@@ -205,11 +205,27 @@ def _preset_tree(argv: Sequence[str]) -> RunConfig:
 
 def check_command_line(argv: Sequence[str], prog: str | None = None, description: str = "") -> None:
     """Answer ``--help``, an unknown option or a value of the wrong type now (tyro exits with its message), over
-    the preset's defaults; loads no checkpoint and no torch."""
+    the preset's defaults; loads no checkpoint and no torch, except for ``--resume RUN --help``, whose defaults are
+    the saved run's (the preset's showed 4,096 envs for a run of 8)."""
     try:
-        parse_tree(argv, _preset_tree(argv), prog, description)
+        parse_tree(argv, _help_defaults(argv), prog, description)
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
+
+
+def _help_defaults(argv: Sequence[str]) -> RunConfig:
+    """The tree ``--help`` shows as defaults: the saved run's with ``--resume`` (the preset's if that cannot be read:
+    the run itself then names what is wrong with it), else the preset's."""
+    resume = option_value(argv, "resume")
+    if resume and any(a in ("-h", "--help") for a in argv):
+        from .checkpoint import CheckpointError
+        from .resume import saved_config
+
+        try:
+            return saved_config(resume)
+        except (CheckpointError, OSError, ValueError):  # ResumeConfigError is a ValueError
+            pass
+    return _preset_tree(argv)
 
 
 def parse_args(argv: Sequence[str], prog: str | None = None, description: str = "") -> tuple[RunConfig, dict]:
