@@ -46,6 +46,7 @@ from tqdm.auto import tqdm
 from ..atomic import atomic_write_text
 from ..config import RunConfig
 from ..envs.cycle_velocity import gait_cycle_steps, heading_velocity
+from ..rl.trainer import resolve_device  # gait_test, imported below, imports the trainer already
 from ..rotations import quat_rotate_inverse, quat_to_rpy
 from ..tree import to_dict
 from ..transforms.normalize import freeze_running_statistics
@@ -638,8 +639,6 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
     from .gait_test import policy_dt
     from .plots import plot_robust
 
-    from ..rl.trainer import resolve_device
-
     dt = policy_dt()
     test.validate(dt)
     device = resolve_device(device)  # before the folder is made: "cuda" on a CPU-only machine says to pass "cpu"
@@ -688,7 +687,7 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
     of one run's checkpoints (building them costs more than the test)."""
     from ..rl.checkpoint import config_from_checkpoint
     from ..rl.symmetry import apply_checkpoint_policy
-    from ..rl.trainer import checkpoint_agent, resolve_device
+    from ..rl.trainer import checkpoint_agent
     from .gait_test import policy_dt
 
     device = resolve_device(device)
