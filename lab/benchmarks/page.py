@@ -315,7 +315,8 @@ SOLVER_CAP_RUNS = ("training/robust/h200_run12/time_to_walk_robust.json",
                    "training/robust/h200_run15/time_to_walk_robust.json",
                    "training/robust/h200_run16/time_to_walk_robust.json",
                    "training/robust/h200_run17/time_to_walk_robust.json",
-                   "training/robust/h100_run19/time_to_walk_robust.json")
+                   "training/robust/h100_run19/time_to_walk_robust.json",
+                   "training/robust/h100_run20/time_to_walk_robust.json")
 
 
 def solver_cap_cost(docs: Path) -> list[str]:
