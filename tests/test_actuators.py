@@ -57,6 +57,53 @@ def test_friction_subtracts_coulomb_and_viscous_resistance_against_the_velocity(
     assert float(stage(tau, ControlInput(action=None, qd=torch.zeros(3, 2)))[1, 0]) == 7.0
 
 
+
+def test_friction_without_the_joint_velocity_says_what_it_needs():
+    # A ControlInput without qd died as a raw TypeError inside torch.sign; a (N, 1) qd broadcast silently, every
+    # joint of a world then resisting the first joint's velocity.
+    stage = built(Friction(coulomb=(0.0, 4.0), viscous=(1.0, 3.0)))
+    tau = torch.full((3, 2), 7.0)
+    with pytest.raises(ValueError, match=r"Friction needs the joint velocity before the step, ControlInput.qd of "
+                                         r"shape \(N, J\) = \(3, 2\) \[rad/s\]"):
+        stage(tau, ControlInput(action=None))
+    for qd in (torch.zeros(3, 1), torch.zeros(1, 2), torch.zeros(3, 8, 2)):
+        with pytest.raises(ValueError, match=r"Friction takes ControlInput.qd .* of shape \(N, J\) = \(3, 2\), got"):
+            stage(tau, ControlInput(action=None, qd=qd))
+
+
+@pytest.mark.parametrize("make", [lambda: MotorConstant(0.8, 1.2), lambda: Friction((0.0, 1.0), (0.0, 1.0)),
+                                  Saturation, lambda: Delay(0, 8, 8), lambda: AveragedDelay(0, 8, 8),
+                                  lambda: ActuatorChain([MotorConstant(0.8, 1.2), Saturation()])])
+def test_stages_refuse_a_torque_of_the_wrong_shape_or_device(make):
+    # A (N, 1) or (1, J) torque broadcast silently against the (N, J) parameters: every joint (or world) got one
+    # joint's (world's) command. A torque on another device failed inside torch without naming the stage.
+    stage = built(make())
+    name = type(stage).__name__
+    inp = ControlInput(action=None, qd=torch.zeros(3, 2))
+    for tau in (torch.ones(3, 1), torch.ones(1, 2), torch.ones(3, 3), torch.ones(6), torch.ones(3, 1, 2, 2)):
+        with pytest.raises(ValueError, match=rf"{name} takes tau of shape \(N, J\) = \(3, 2\).*, got "):
+            stage(tau, inp)
+    with pytest.raises(ValueError, match=rf"{name} got tau on meta, its parameters are on cpu"):
+        stage(torch.ones(3, 2, device="meta"), inp)
+    assert stage(torch.ones(3, 2), inp).shape[0] == 3  # the right shape still runs
+
+
+def test_stages_after_a_delay_take_its_substeps_and_a_delay_takes_one_torque():
+    chain = built(ActuatorChain([Delay(0, 8, 8), MotorConstant(0.8, 1.2), Saturation()]))
+    assert chain(torch.ones(3, 2), ControlInput(action=None)).shape == (3, 8, 2)
+    with pytest.raises(ValueError, match=r"Delay takes tau of shape \(N, J\) = \(3, 2\), got \(3, 8, 2\)"):
+        built(Delay(0, 8, 8))(torch.ones(3, 8, 2), ControlInput(action=None))
+
+
+def test_a_chain_takes_stage_instances_and_saturation_its_joints_limits():
+    # A class (or a config) in place of a stage was accepted and failed only at setup or in the first step.
+    for bad in (MotorConstant, ActuatorConfig(motor_constant=(0.8, 1.2))):
+        with pytest.raises(ValueError, match="an actuator chain takes Actuator instances"):
+            ActuatorChain([Saturation(), bad])
+    # One limit for two joints broadcast: both joints clipped at the first joint's limit.
+    with pytest.raises(ValueError, match=r"Saturation takes ControlContext.torque_limits of shape \(J,\) = \(2,\)"):
+        Saturation().setup(dataclasses.replace(context(), torque_limits=torch.tensor([100.0])))
+
 def test_saturation_clips_at_the_joint_limits():
     stage = built(Saturation())
     tau = torch.tensor([[150.0, -60.0], [-150.0, 10.0], [99.0, 50.0]])

@@ -69,6 +69,11 @@ def _uniform_range(pair, what: str) -> tuple[float, float]:
     return low, high
 
 
+def _described(t) -> str:
+    """``t``'s shape and dtype for an error message, or its type when it is not a tensor."""
+    return f"{tuple(t.shape)} {t.dtype}" if isinstance(t, torch.Tensor) else type(t).__name__
+
+
 def _substeps(value, what: str) -> int:
     """``value`` as an int (a numpy or 0-d tensor integer too), else a ``ValueError`` naming ``what``."""
     if isinstance(value, bool):
@@ -88,11 +93,14 @@ class Actuator(abc.ABC):
     def setup(self, ctx: ControlContext) -> None:
         """Allocate the per-world parameters for ``ctx.num_envs`` worlds and ``len(ctx.joint_ids)`` joints."""
         self.ctx = ctx
+        # Resolved once ("cuda" -> "cuda:0"), so that an input's device is checked by one comparison.
+        self._device = torch.empty(0, device=ctx.device).device
 
     @abc.abstractmethod
     def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
         """The torque after this stage: (N, J) or (N, S, J) [N·m] in, the same shape out (:class:`Delay`: (N, J)
-        in, (N, S, J) out)."""
+        in, (N, S, J) out). The built-in stages refuse a torque (or ``ControlInput.qd``) of another shape or on
+        another device than ``ctx.device`` with a ``ValueError``."""
 
     def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
         """Redraw the parameters of the worlds flagged in ``mask`` (N,) bool from ``u`` (N, :attr:`draws`) uniforms
@@ -102,6 +110,22 @@ class Actuator(abc.ABC):
         """Give the worlds flagged in ``mask`` (N,) bool the ideal actuator's parameters (no scale, friction or
         delay), in place: the env's worlds that are not randomised (``TocabiWalk.set_randomized_worlds``). A
         stage without parameters has nothing to do."""
+
+    # The checks below read shapes and devices only (Python attributes: no host sync, nothing captured in a CUDA
+    # graph), and run before any tensor work: a torque of the wrong width broadcast silently against the (N, J)
+    # parameters, and a missing input failed as a raw TypeError deep inside torch.
+    def _check_input(self, what: str, t, substeps: bool = False) -> None:
+        """Raise ``ValueError`` unless ``t`` is an (N, J) tensor (or, with ``substeps``, (N, S, J)) on the stage's
+        device; ``what`` names it in the message."""
+        n, j = self.ctx.num_envs, len(self.ctx.joint_ids)
+        if (isinstance(t, torch.Tensor) and t.dim() in ((2, 3) if substeps else (2,)) and t.shape[0] == n
+                and t.shape[-1] == j):
+            if t.device == self._device:
+                return
+            raise ValueError(f"{type(self).__name__} got {what} on {t.device}, its parameters are on {self._device}: "
+                             "pass it on the env's device (ControlContext.device)")
+        want = f"(N, J) = ({n}, {j})" + (" or (N, S, J)" if substeps else "")
+        raise ValueError(f"{type(self).__name__} takes {what} of shape {want}, got {_described(t)}")
 
 
 class _UniformPerJoint(Actuator):
@@ -147,6 +171,7 @@ class MotorConstant(_UniformPerJoint):
         return self.values[0]
 
     def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        self._check_input("tau", tau, substeps=True)
         return tau * _per_joint(tau, self.values[0])
 
 
@@ -160,6 +185,12 @@ class Friction(_UniformPerJoint):
         super().__init__(coulomb=coulomb, viscous=viscous)
 
     def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        self._check_input("tau", tau, substeps=True)
+        if inp.qd is None:
+            n, j = self.ctx.num_envs, len(self.ctx.joint_ids)
+            raise ValueError(f"Friction needs the joint velocity before the step, ControlInput.qd of shape (N, J) = "
+                             f"({n}, {j}) [rad/s], and got none: pass ControlInput(action=..., qd=...)")
+        self._check_input("ControlInput.qd (the joint velocity before the step)", inp.qd)
         resist = self.values[0] * torch.sign(inp.qd) + self.values[1] * inp.qd
         return tau - _per_joint(tau, resist)
 
@@ -167,7 +198,15 @@ class Friction(_UniformPerJoint):
 class Saturation(Actuator):
     """``clip(τ, ±limit)`` at the joints' torque limits (``ControlContext.torque_limits``)."""
 
+    def setup(self, ctx: ControlContext) -> None:
+        super().setup(ctx)
+        j = len(ctx.joint_ids)
+        if not isinstance(ctx.torque_limits, torch.Tensor) or tuple(ctx.torque_limits.shape) != (j,):
+            raise ValueError(f"Saturation takes ControlContext.torque_limits of shape (J,) = ({j},) [N·m], got "
+                             f"{_described(ctx.torque_limits)}")
+
     def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        self._check_input("tau", tau, substeps=True)
         limits = self.ctx.torque_limits
         return torch.maximum(torch.minimum(tau, limits), -limits)
 
@@ -225,6 +264,7 @@ class Delay(Actuator):
         self.history[:, 0].copy_(tau)
 
     def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        self._check_input("tau", tau)
         self._push(tau)
         return torch.gather(self.history, 1, self._lag)
 
@@ -281,6 +321,7 @@ class AveragedDelay(Delay):
         self._weights.scatter_add_(1, (newer + 1).clamp(max=depth - 1), older_share)
 
     def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        self._check_input("tau", tau)
         self._push(tau)
         return torch.bmm(self._weights.unsqueeze(1), self.history).squeeze(1)
 
@@ -291,6 +332,9 @@ class ActuatorChain(Actuator):
 
     def __init__(self, stages: list[Actuator]):
         self.stages = list(stages)
+        for stage in self.stages:
+            if not isinstance(stage, Actuator):  # a class or a config failed only at setup or the first step
+                raise ValueError(f"an actuator chain takes Actuator instances, got {stage!r}")
         delays = [s for s in self.stages if isinstance(s, Delay)]
         if len(delays) > 1:
             raise ValueError("an actuator chain takes at most one Delay")
@@ -305,6 +349,7 @@ class ActuatorChain(Actuator):
         self.draws = sum(stage.draws for stage in self.stages)
 
     def __call__(self, tau: torch.Tensor, inp: ControlInput) -> torch.Tensor:
+        self._check_input("tau", tau)
         for stage in self.stages:
             tau = stage(tau, inp)
         return tau
