@@ -147,6 +147,39 @@ def test_reset_redraws_only_the_flagged_worlds_and_clears_their_delay_history():
     assert float(delay.history[1].abs().sum()) == 0.0 and float(delay.history[0].abs().sum()) > 0.0
 
 
+
+@pytest.mark.parametrize("make", [lambda: MotorConstant(0.8, 1.2), lambda: Friction((0.0, 1.0), (0.0, 1.0)),
+                                  lambda: Delay(0, 16, 8), lambda: AveragedDelay(0, 16, 8),
+                                  lambda: ActuatorChain([Delay(0, 16, 8), MotorConstant(0.8, 1.2), Saturation()])])
+def test_reset_refuses_draws_and_masks_of_the_wrong_shape(make):
+    # A (N, 1) u gave every joint the same draw, a (1, draws) one every world the same, and a wider one was cut
+    # without a word; a mask of the wrong shape or dtype broadcast or failed inside torch.where.
+    stage = built(make())
+    name, draws = type(stage).__name__, stage.draws
+    for u in (torch.rand(3, 1) if draws > 1 else torch.rand(3, 2), torch.rand(1, draws), torch.rand(3, draws + 1),
+              torch.rand(3), torch.zeros(3, draws, dtype=torch.int64)):
+        with pytest.raises(ValueError, match=rf"{name}.reset takes u of shape \(N, draws\) = \(3, {draws}\)"):
+            stage.reset(ALL, u)
+    with pytest.raises(ValueError, match=rf"{name}.reset got u on meta"):
+        stage.reset(ALL, torch.rand(3, draws, device="meta"))
+    u = torch.rand(3, draws)
+    for mask in (torch.ones(3), torch.ones(1, dtype=torch.bool), torch.ones(3, 1, dtype=torch.bool)):
+        with pytest.raises(ValueError, match=rf"{name}.reset takes mask of shape \(N,\) = \(3,\) torch.bool"):
+            stage.reset(mask, u)
+        with pytest.raises(ValueError, match=rf"{name}.nominal takes mask of shape \(N,\) = \(3,\) torch.bool"):
+            stage.nominal(mask)
+    stage.reset(ALL, u)  # the right shapes still redraw
+    stage.nominal(torch.tensor([True, False, False]))
+
+
+def test_a_narrow_draw_is_refused_before_any_joint_is_written():
+    # The defect the shape check closes: one column per world was broadcast over the joints.
+    stage = built(MotorConstant(0.8, 1.2), ctx=context(limits=(100.0, 50.0, 20.0)))
+    before = stage.scale.clone()
+    with pytest.raises(ValueError, match=r"MotorConstant.reset takes u of shape \(N, draws\) = \(3, 3\)"):
+        stage.reset(ALL, torch.tensor([[0.0], [0.5], [1.0 - 2**-24]]))
+    assert torch.equal(stage.scale, before)  # refused before anything was written
+
 def test_draws_are_in_range_and_differ_between_worlds():
     stage = built(MotorConstant(0.8, 1.2), ctx=context(n=4096))
     scale = stage.scale

@@ -104,16 +104,17 @@ class Actuator(abc.ABC):
 
     def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
         """Redraw the parameters of the worlds flagged in ``mask`` (N,) bool from ``u`` (N, :attr:`draws`) uniforms
-        in [0, 1), in place."""
+        in [0, 1), in place. The built-in stages (and :class:`ActuatorChain`) refuse a mask or u of another shape,
+        a mask that is not bool or a u that is not float with a ``ValueError``."""
 
     def nominal(self, mask: torch.Tensor) -> None:
         """Give the worlds flagged in ``mask`` (N,) bool the ideal actuator's parameters (no scale, friction or
         delay), in place: the env's worlds that are not randomised (``TocabiWalk.set_randomized_worlds``). A
         stage without parameters has nothing to do."""
 
-    # The checks below read shapes and devices only (Python attributes: no host sync, nothing captured in a CUDA
-    # graph), and run before any tensor work: a torque of the wrong width broadcast silently against the (N, J)
-    # parameters, and a missing input failed as a raw TypeError deep inside torch.
+    # The checks below read shapes, dtypes and devices only (Python attributes: no host sync, nothing captured in
+    # a CUDA graph), and run before any tensor work: a torque or draw of the wrong width broadcast silently against
+    # the (N, J) parameters, and a missing input failed as a raw TypeError deep inside torch.
     def _check_input(self, what: str, t, substeps: bool = False) -> None:
         """Raise ``ValueError`` unless ``t`` is an (N, J) tensor (or, with ``substeps``, (N, S, J)) on the stage's
         device; ``what`` names it in the message."""
@@ -126,6 +127,27 @@ class Actuator(abc.ABC):
                              "pass it on the env's device (ControlContext.device)")
         want = f"(N, J) = ({n}, {j})" + (" or (N, S, J)" if substeps else "")
         raise ValueError(f"{type(self).__name__} takes {what} of shape {want}, got {_described(t)}")
+
+    def _check_mask(self, method: str, mask) -> None:
+        """Raise ``ValueError`` unless ``mask`` is an (N,) bool tensor on the stage's device."""
+        n = self.ctx.num_envs
+        if not (isinstance(mask, torch.Tensor) and mask.dtype == torch.bool and tuple(mask.shape) == (n,)):
+            raise ValueError(f"{type(self).__name__}.{method} takes mask of shape (N,) = ({n},) torch.bool, got "
+                             f"{_described(mask)}")
+        if mask.device != self._device:
+            raise ValueError(f"{type(self).__name__}.{method} got mask on {mask.device}, its parameters are on "
+                             f"{self._device}")
+
+    def _check_reset(self, mask, u) -> None:
+        """Raise ``ValueError`` unless ``mask`` is (N,) bool and ``u`` (N, :attr:`draws`) float, both on the stage's
+        device: a narrower u gave every joint the same draw, a (1, draws) one every world the same."""
+        self._check_mask("reset", mask)
+        n = self.ctx.num_envs
+        if not (isinstance(u, torch.Tensor) and u.is_floating_point() and tuple(u.shape) == (n, self.draws)):
+            raise ValueError(f"{type(self).__name__}.reset takes u of shape (N, draws) = ({n}, {self.draws}) "
+                             f"float uniforms in [0, 1), got {_described(u)}")
+        if u.device != self._device:
+            raise ValueError(f"{type(self).__name__}.reset got u on {u.device}, its parameters are on {self._device}")
 
 
 class _UniformPerJoint(Actuator):
@@ -146,12 +168,14 @@ class _UniformPerJoint(Actuator):
                        for lo, _ in self.ranges]
 
     def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
+        self._check_reset(mask, u)
         j = len(self.ctx.joint_ids)
         for i, ((lo, hi), value) in enumerate(zip(self.ranges, self.values)):
             drawn = lo + (hi - lo) * u[:, i * j:(i + 1) * j]
             torch.where(mask.unsqueeze(-1), drawn, value, out=value)
 
     def nominal(self, mask: torch.Tensor) -> None:
+        self._check_mask("nominal", mask)
         for ideal, value in zip(self.identity, self.values):
             value.masked_fill_(mask.unsqueeze(-1), ideal)
 
@@ -273,6 +297,7 @@ class Delay(Actuator):
         return list(range(self.low, self.high + 1, self.stride))
 
     def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
+        self._check_reset(mask, u)
         span = (self.high - self.low) // self.stride + 1
         k = self.low + self.stride * (u[:, 0] * span).long().clamp(max=span - 1)
         torch.where(mask, k, self.delay, out=self.delay)
@@ -280,6 +305,7 @@ class Delay(Actuator):
         self.history.masked_fill_(mask.view(-1, 1, 1), 0.0)
 
     def nominal(self, mask: torch.Tensor) -> None:
+        self._check_mask("nominal", mask)
         self.delay.masked_fill_(mask, 0)
         self._set_lag()
 
@@ -355,12 +381,14 @@ class ActuatorChain(Actuator):
         return tau
 
     def reset(self, mask: torch.Tensor, u: torch.Tensor) -> None:
+        self._check_reset(mask, u)
         start = 0
         for stage in self.stages:
             stage.reset(mask, u[:, start:start + stage.draws])
             start += stage.draws
 
     def nominal(self, mask: torch.Tensor) -> None:
+        self._check_mask("nominal", mask)
         for stage in self.stages:
             stage.nominal(mask)
 
