@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import re
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -18,6 +21,7 @@ from tocabi_torchrl.envs import TocabiWalk, TocabiWalkConfig
 from tocabi_torchrl.sim import MujocoSim, SimConfig
 
 ALL = torch.ones(3, dtype=torch.bool)
+DOC = Path(__file__).resolve().parents[1] / "docs" / "concepts" / "controllers.md"
 
 
 def context(n=3, limits=(100.0, 50.0)):
@@ -281,6 +285,34 @@ def test_an_averaged_delay_is_one_torque_per_step_and_resets_like_the_delay():
     with pytest.raises(ValueError, match="delay_average must be True or False"):
         ActuatorConfig(delay_substeps=(4, 20), delay_average=1).validate()
 
+
+
+def test_the_doc_s_own_stage_runs_in_a_chain_and_the_env_takes_only_the_config_s_stages():
+    # The guide promised a place for "your own actuator model", but the env builds its layer from ActuatorConfig
+    # alone. The guide's example stage must run in a chain of its own as written, and the env must still refuse
+    # any Actuator object (else the guide's "outside the env" is stale).
+    blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
+    block = next((b for b in blocks if "class TorqueOffset(Actuator)" in b), None)
+    assert block is not None, "docs/concepts/controllers.md has no example of a stage of one's own"
+    ns: dict = {}
+    exec(compile(block, str(DOC), "exec"), ns)  # noqa: S102 - the project's own documentation
+    chain, tau = ns["chain"], ns["tau"]
+    motor, offset = chain.stages
+    assert chain.draws == 24 and tau.shape == (4, 12)
+    torch.testing.assert_close(tau, 10.0 * motor.scale + offset.offset)
+    assert float(offset.offset.abs().max()) <= 2.0 and float(offset.offset.abs().min()) > 0.0
+    chain.nominal(torch.tensor([True, False, False, False]))
+    assert float(offset.offset[0].abs().max()) == 0.0 and float(motor.scale[0].sub(1.0).abs().max()) == 0.0
+    # After a Delay, the stage gets (and returns) one torque per substep; only the built-in Delay makes it so.
+    delayed = ActuatorChain([Delay(0, 8, 8), ns["TorqueOffset"](2.0)])
+    delayed.setup(ns["ctx"])
+    delayed.reset(torch.ones(4, dtype=torch.bool), torch.rand(4, delayed.draws))
+    assert delayed.per_substep and delayed(torch.ones(4, 12), ControlInput(action=None)).shape == (4, 8, 12)
+    cfg = TocabiWalkConfig()
+    with pytest.raises(ValueError, match="env.control.actuators must be a ActuatorConfig"):
+        dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode="torque", actuators=chain)).validate()
+    for build in (TocabiWalk.__init__, make_env):
+        assert not [p for p in inspect.signature(build).parameters if "actuator" in p], build
 
 def test_actuators_are_refused_on_servo_modes():
     cfg = TocabiWalkConfig()

@@ -21,10 +21,10 @@ torques, held for the policy step. A :class:`Delay` turns the command into (N, S
 stages after it act on each substep's torque. An :class:`AveragedDelay` holds that torque's mean over the step
 instead: the same impulse per step, (N, J) like the other stages.
 
-Parameters live in (N, J) device tensors that :meth:`Actuator.reset` redraws in place for the flagged worlds from
-uniforms the env supplies (``episode_uniform``: the same draws whichever reset path runs), so a captured step graph
-keeps working across resets. Friction reads the joint velocity before the step, so it is held for the step like the
-command (the PD modes' servos, which run inside the physics, take no actuator stages).
+Parameters live in (N, J) device tensors (a delay's k: (N,)) that :meth:`Actuator.reset` redraws in place for the
+flagged worlds from uniforms the env supplies (``episode_uniform``: the same draws whichever reset path runs), so a
+captured step graph keeps working across resets. Friction reads the joint velocity before the step, so it is held for
+the step like the command (the PD modes' servos, which run inside the physics, take no actuator stages).
 
 >>> import torch
 >>> from tocabi_torchrl.control import ActuatorChain, MotorConstant, Saturation
