@@ -257,3 +257,48 @@ def test_a_model_with_joints_or_actuators_beyond_tocabi_is_refused_by_name(tmp_p
         from tocabi_torchrl import make_env
 
         make_env(1, "cpu", model_path=str(path))
+
+
+# --- the initial-pose caches --------------------------------------------------------------------------------------
+
+_NECK = '<body name="Neck_Link" pos="-0.036 0 0.3795">'
+_LEFT_SOLE = '<geom class="collision" type="box" size="0.15 0.085 0.0135" pos="0.03 0 -0.145"/>'
+
+
+def _taller_neck_and_longer_left_sole(text: str) -> str:
+    """The shipped MJCF with the neck 0.1 m higher and the left sole 2 cm further forward (same byte count)."""
+    assert _NECK in text and _LEFT_SOLE in text
+    return (text.replace(_NECK, _NECK.replace("0.3795", "0.4795"))
+            .replace(_LEFT_SOLE, _LEFT_SOLE.replace('pos="0.03 ', 'pos="0.05 '), 1))
+
+
+def test_initial_pose_facts_follow_a_model_file_rewritten_at_the_same_path(tmp_path):
+    # The caches were keyed by the path: a model regenerated at the same path kept the first file's sole centre and
+    # heights for the rest of the process. The rewrite keeps the size and may keep the modification time.
+    shipped = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    path = tmp_path / "model.xml"
+    path.write_text(shipped)
+    sole = robot.initial_sole_centre(0, path)
+    extents = robot.initial_sole_extents(0, str(path))
+    neck = robot.initial_heights(str(path))["neck_height"]
+    path.write_text(_taller_neck_and_longer_left_sole(shipped))
+    np.testing.assert_allclose(robot.initial_sole_centre(0, path), sole + [0.02, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(robot.initial_sole_extents(0, str(path)), extents, atol=1e-12)
+    np.testing.assert_allclose(robot.initial_sole_centre(1, path), robot.initial_sole_centre(1), atol=1e-12)
+    assert robot.initial_heights(str(path))["neck_height"] == pytest.approx(neck + 0.1, abs=1e-9)
+    path.write_text(shipped)  # and back: the first file's values again
+    np.testing.assert_allclose(robot.initial_sole_centre(0, path), sole, atol=1e-12)
+
+
+def test_initial_heights_follow_the_assets_folder_and_stay_unchanged_by_callers(tmp_path, monkeypatch):
+    shipped = robot.initial_heights()
+    shipped["neck_height"] = 0.0  # a caller's edit of its result used to change what every later call returned
+    assert robot.initial_heights()["neck_height"] == pytest.approx(1.50723, abs=1e-5)
+    # None is the shipped model as $TOCABI_TORCHRL_ASSETS finds it, not the first one found in the process.
+    (tmp_path / "tocabi").mkdir()
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    (tmp_path / "tocabi" / "tocabi.xml").write_text(_taller_neck_and_longer_left_sole(text))
+    monkeypatch.setenv("TOCABI_TORCHRL_ASSETS", str(tmp_path))
+    assert robot.initial_heights()["neck_height"] == pytest.approx(1.60723, abs=1e-5)
+    assert robot.initial_sole_centre(0)[0] == pytest.approx(0.1199, abs=1e-4)
+

@@ -11,6 +11,7 @@ Joint index ``j`` (0..32) maps to ``qpos[7 + j]`` and ``qvel[6 + j]``; the free 
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -322,7 +323,7 @@ def _check_foot_sensors(model: "mujoco.MjModel", source: str) -> None:  # noqa: 
 
 
 # ------------------------------------------------------------------------------------------------ initial pose
-def _initial_pose(model_path: str | None):
+def _initial_pose(model_path: str | os.PathLike | None):
     """``(model, data)`` of the robot model at ``INIT_QPOS``, its kinematics computed (body and geom poses)."""
     import mujoco
 
@@ -333,12 +334,32 @@ def _initial_pose(model_path: str | None):
     return model, data
 
 
-@functools.lru_cache(maxsize=8)
-def _soles(model_path: str | None) -> tuple[np.ndarray, np.ndarray]:
+def _model_file_key(model_path: str | os.PathLike | None) -> tuple[str, str]:
+    """What the initial-pose caches are keyed by: the model file's resolved path and a digest of its bytes.
+
+    A path alone returned a stale result after the file at that path was regenerated or replaced while the process
+    ran, and ``None`` kept the shipped model even after ``$TOCABI_TORCHRL_ASSETS`` pointed elsewhere. The digest,
+    not the modification time: a rewrite within one tick of the file system's clock (a few ms, or 1-2 s on some file
+    systems) keeps the time and often the size. Files the MJCF includes or loads (meshes) are not part of the key.
+    """
+    p = _resolve_model_path(model_path).resolve()
+    try:
+        digest = hashlib.blake2b(p.read_bytes(), digest_size=16).hexdigest()
+    except OSError as err:
+        raise RobotAssetError(f"cannot read robot model file {p}: {err}") from err
+    return str(p), digest
+
+
+def _soles(model_path: str | os.PathLike | None) -> tuple[np.ndarray, np.ndarray]:
     """(2, 3) centres and (2, 3) half extents of the world-axis box around each sole, in ``INIT_QPOS`` [m]."""
+    return _soles_of_file(_model_file_key(model_path))
+
+
+@functools.lru_cache(maxsize=8)
+def _soles_of_file(key: tuple[str, str]) -> tuple[np.ndarray, np.ndarray]:
     import mujoco
 
-    model, data = _initial_pose(model_path)
+    model, data = _initial_pose(key[0])
     centres, extents = [], []
     for foot in FOOT_BODIES:
         b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, foot)
@@ -352,31 +373,32 @@ def _soles(model_path: str | None) -> tuple[np.ndarray, np.ndarray]:
     return np.array(centres), np.array(extents)
 
 
-def _sole_centres(model_path: str | None) -> np.ndarray:
-    return _soles(model_path)[0]
+def initial_heights(model_path: str | os.PathLike | None = None) -> dict[str, float]:
+    """The pelvis and neck heights [m] and the neck's angle from upright [rad] of the robot's initial pose
+    (``INIT_QPOS``): what the early terminations compare with their thresholds. ``model_path`` None = the shipped
+    model; the result is cached per file content, so an edited model file is read again."""
+    return dict(_initial_heights_of_file(_model_file_key(model_path)))  # a copy: the cached dict stays as computed
 
 
 @functools.lru_cache(maxsize=8)
-def initial_heights(model_path: str | None = None) -> dict[str, float]:
-    """The pelvis and neck heights [m] and the neck's angle from upright [rad] of the robot's initial pose
-    (``INIT_QPOS``): what the early terminations compare with their thresholds."""
+def _initial_heights_of_file(key: tuple[str, str]) -> dict[str, float]:
     import mujoco
 
-    model, data = _initial_pose(model_path)
+    model, data = _initial_pose(key[0])
     base, neck = (mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in (BASE_BODY, NECK_BODY))
     w = min(1.0, abs(float(data.xquat[neck][0])))
     return {"pelvis_height": float(data.xpos[base][2]), "neck_height": float(data.xpos[neck][2]),
             "neck_angle": 2.0 * float(np.arccos(w))}
 
 
-def initial_sole_extents(foot: int = 0, model_path: str | None = None) -> np.ndarray:
+def initial_sole_extents(foot: int = 0, model_path: str | os.PathLike | None = None) -> np.ndarray:
     """(3,) half extents [m] along the world axes of a sole's box in the robot's initial pose (``INIT_QPOS``), around
     :func:`initial_sole_centre`; ``foot`` 0 = left, 1 = right."""
-    return _soles(None if model_path is None else str(model_path))[1][foot].copy()
+    return _soles(model_path)[1][foot].copy()
 
 
-def initial_sole_centre(foot: int = 0, model_path: str | None = None) -> np.ndarray:
+def initial_sole_centre(foot: int = 0, model_path: str | os.PathLike | None = None) -> np.ndarray:
     """(3,) world position [m] of a sole's centre (the foot's largest collision box) in the robot's initial pose
     (``INIT_QPOS``); ``foot`` 0 = left, 1 = right; ``model_path`` None = the shipped model. The left sole's
     centre of the shipped model is (0.0999, 0.1025, 0.0148)."""
-    return _sole_centres(None if model_path is None else str(model_path))[foot].copy()
+    return _soles(model_path)[0][foot].copy()
