@@ -100,6 +100,10 @@ def test_com_follows_the_lipm_plan(model):
         ("zmp_travel", float("nan"), "zmp_travel must be a finite number"),
         ("com_height", -0.5, "com_height must be positive"),
         ("com_tolerance", 0.0, "com_tolerance must be positive"),
+        # A rate with no upper bound tried to build a table of billions of rows (tens of GB) before any check.
+        ("sample_rate", 2e9, r"sample_rate must lie in \(0, 10000\] rows per second .*got 2000000000.0"),
+        ("sample_rate", 10_000.5, r"sample_rate must lie in \(0, 10000\]"),
+        ("sample_rate", 1.0, "span two or more rows at sample_rate=1 rows per second"),
     ],
 )
 def test_config_validation(field, value, message):
@@ -186,6 +190,29 @@ def test_cli_writes_motion_and_plot(tmp_path, capsys):
     assert out.stat().st_size < 400_000
 
 
+def test_highest_sample_rate_makes_a_cycle(model):
+    # The bound admits what it documents: a table five times finer than the simulator's 2 kHz.
+    data = generate_walk(GaitConfig(sample_rate=10_000.0), model)
+    assert data.num_rows == 18_000 and data.sample_rate == 10_000.0
+
+
+def test_cli_refuses_a_sample_rate_past_the_bound_before_planning(tmp_path, capsys, monkeypatch):
+    """--sample-rate 2e9 (a typo) went on to plan 3.6e9 rows: tens of GB, or a hang. It is a usage error naming the
+    option and the allowed range, raised before the model is even compiled."""
+
+    def planned(*args, **kwargs):
+        raise AssertionError("the generator went on to compile the model and plan the table")
+
+    monkeypatch.setattr(robot, "load_model", planned)
+    out = tmp_path / "walk.npz"
+    with pytest.raises(SystemExit) as stop:
+        main(["--out", str(out), "--sample-rate", "2e9"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "sample_rate must lie in (0, 10000] rows per second" in err, err
+    assert "got 2000000000.0" in err and "change --sample-rate" in err and not out.exists()
+
+
 def test_cli_help(capsys):
     with pytest.raises(SystemExit) as stop:
         main(["--help"])
@@ -201,6 +228,7 @@ def test_cli_help(capsys):
         (["--zmp-travel", "5"], ["--zmp-travel", "--zmp-offset-x"]),  # the hint once named the step options alone
         (["--sample-rate", "nan"], ["--sample-rate"]),
         (["--dsp-time", "2"], ["--dsp-time", "--step-time"]),
+        (["--sample-rate", "1"], ["--sample-rate", "--dsp-time"]),
     ],
 )
 def test_cli_reports_parameters_that_make_no_gait(tmp_path, capsys, argv, options):

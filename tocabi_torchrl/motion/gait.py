@@ -49,12 +49,17 @@ from .kinematics import SIDES, LegGeometry, leg_ik
 from .lipm import periodic_lipm_com
 from .schedule import REFERENCE_WEIGHT_FORCE, force_schedule, stance_schedule
 
-__all__ = ["GaitConfig", "GaitPlan", "plan_gait", "generate_walk", "model_label", "main"]
+__all__ = ["GaitConfig", "GaitPlan", "MAX_SAMPLE_RATE", "plan_gait", "generate_walk", "model_label", "main"]
 
 #: How the metadata names the shipped model (its path in a source checkout).
 SHIPPED_MODEL = "assets/tocabi/tocabi.xml"
 #: The source checkout that holds this package (tocabi_torchrl/motion/gait.py -> the repository root).
 _REPO = Path(__file__).resolve().parents[2]
+#: The highest ``GaitConfig.sample_rate`` [rows/s]: five times the simulator's 2 kHz physics rate (the shipped model's
+#: 0.5 ms timestep, which the shipped 2,000 rows/s tables match), so a model stepped at down to 0.1 ms still gets a
+#: row per physics step. The env interpolates between rows, so finer rows give the physics nothing new, while the
+#: table and the planning time grow with the rate (a typo such as 2e9 asked for billions of rows).
+MAX_SAMPLE_RATE = 10_000.0
 
 
 @dataclass(frozen=True)
@@ -73,7 +78,8 @@ class GaitConfig:
         zmp_offset_y: centre of pressure outward of the ankle centre (negative: inward, narrows the sway).
         zmp_travel: heel-to-toe roll of the centre of pressure over a foot's stance (touchdown to lift-off);
             it evens out the pelvis speed between single and double support.
-        sample_rate: table rows per second.
+        sample_rate: table rows per second, at most 10000 (``MAX_SAMPLE_RATE``, five times the simulator's 2 kHz
+            physics rate; the shipped table has 2000).
         com_tolerance: stop the pelvis-CoM iteration when the pelvis moves less than this [m].
 
     The three centre-of-pressure numbers are not given by the spec; their defaults (−1 cm, −1.5 cm, 20 cm: the
@@ -117,11 +123,15 @@ class GaitConfig:
         for name in ("step_time", "step_width", "pelvis_height", "sample_rate", "com_tolerance"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.sample_rate > MAX_SAMPLE_RATE:
+            raise ValueError(f"sample_rate must lie in (0, {MAX_SAMPLE_RATE:g}] rows per second (five times the "
+                             f"simulator's 2000 steps per second), got {self.sample_rate}")
         if self.com_height is not None and self.com_height <= 0:
             raise ValueError(f"com_height must be positive (or None for the model's), got {self.com_height}")
         if not 0.0 < self.dsp_time < self.step_time or self.dsp_rows < 2:
             raise ValueError(
-                f"dsp_time {self.dsp_time} must lie in (0, step_time={self.step_time}) and span two or more rows"
+                f"dsp_time {self.dsp_time} must lie in (0, step_time={self.step_time}) and span two or more rows "
+                f"at sample_rate={self.sample_rate:g} rows per second"
             )
         if self.swing_height < 0:
             raise ValueError(f"swing_height must be >= 0, got {self.swing_height}")
