@@ -104,6 +104,7 @@ def test_com_follows_the_lipm_plan(model):
         ("sample_rate", 2e9, r"sample_rate must lie in \(0, 10000\] rows per second .*got 2000000000.0"),
         ("sample_rate", 10_000.5, r"sample_rate must lie in \(0, 10000\]"),
         ("sample_rate", 1.0, "span two or more rows at sample_rate=1 rows per second"),
+        ("step_time", 900.0, r"step_time must be at most 30 s \(the two-step cycle lasts at most 60 s.*got 900.0"),
     ],
 )
 def test_config_validation(field, value, message):
@@ -196,9 +197,16 @@ def test_highest_sample_rate_makes_a_cycle(model):
     assert data.num_rows == 18_000 and data.sample_rate == 10_000.0
 
 
-def test_cli_refuses_a_sample_rate_past_the_bound_before_planning(tmp_path, capsys, monkeypatch):
-    """--sample-rate 2e9 (a typo) went on to plan 3.6e9 rows: tens of GB, or a hang. It is a usage error naming the
-    option and the allowed range, raised before the model is even compiled."""
+@pytest.mark.parametrize("argv,message", [
+    (["--sample-rate", "2e9"], "sample_rate must lie in (0, 10000] rows per second (five times the simulator's 2000 "
+                               "steps per second), got 2000000000.0; change --sample-rate"),
+    (["--step-time", "900"], "step_time must be at most 30 s (the two-step cycle lasts at most 60 s; the reference's "
+                             "step is 0.9 s), got 900.0; change --step-time"),
+])
+def test_cli_refuses_a_table_past_the_bounds_before_planning(tmp_path, capsys, monkeypatch, argv, message):
+    """--sample-rate 2e9 went on to plan 3.6e9 rows (tens of GB, or a hang), a step_time in ms 3.6e6 rows (hours)
+    before the motion's period check refused the result. Both are usage errors naming the option and the allowed
+    range, raised before the model is even compiled."""
 
     def planned(*args, **kwargs):
         raise AssertionError("the generator went on to compile the model and plan the table")
@@ -206,11 +214,11 @@ def test_cli_refuses_a_sample_rate_past_the_bound_before_planning(tmp_path, caps
     monkeypatch.setattr(robot, "load_model", planned)
     out = tmp_path / "walk.npz"
     with pytest.raises(SystemExit) as stop:
-        main(["--out", str(out), "--sample-rate", "2e9"])
+        main(["--out", str(out), *argv])
     assert stop.value.code == 2
     err = capsys.readouterr().err
-    assert "Traceback" not in err and "sample_rate must lie in (0, 10000] rows per second" in err, err
-    assert "got 2000000000.0" in err and "change --sample-rate" in err and not out.exists()
+    assert "Traceback" not in err and f"cannot generate the walk: {message}" in err, err
+    assert not out.exists()
 
 
 def test_cli_help(capsys):

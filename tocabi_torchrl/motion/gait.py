@@ -44,7 +44,7 @@ from tocabi_torchrl import robot
 
 from ..cli import RecipeParser
 from .analysis import gait_metrics
-from .io import MotionData, MotionFormatError, load_motion, save_npz
+from .io import MAX_PERIOD, MotionData, MotionFormatError, load_motion, save_npz
 from .kinematics import SIDES, LegGeometry, leg_ik
 from .lipm import periodic_lipm_com
 from .schedule import REFERENCE_WEIGHT_FORCE, force_schedule, stance_schedule
@@ -67,7 +67,8 @@ class GaitConfig:
     """Gait parameters (defaults: spec §3.6, the reference walk). Lengths in m, times in s.
 
     Attributes:
-        step_time: one step, single plus double support.
+        step_time: one step, single plus double support; at most 30 (the two-step cycle lasts at most 60 s,
+            ``io.MAX_PERIOD``).
         dsp_time: double support per step.
         step_length: forward distance between the ankles in double support (stride = 2 × step_length per cycle).
         step_width: lateral distance between the ankle centres.
@@ -123,6 +124,11 @@ class GaitConfig:
         for name in ("step_time", "step_width", "pelvis_height", "sample_rate", "com_tolerance"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        # The motion file's own check refuses a longer cycle, but only after the table was planned, which for a
+        # step_time in ms (900) took hours.
+        if 2.0 * self.step_time > MAX_PERIOD:
+            raise ValueError(f"step_time must be at most {MAX_PERIOD / 2:g} s (the two-step cycle lasts at most "
+                             f"{MAX_PERIOD:g} s; the reference's step is 0.9 s), got {self.step_time}")
         if self.sample_rate > MAX_SAMPLE_RATE:
             raise ValueError(f"sample_rate must lie in (0, {MAX_SAMPLE_RATE:g}] rows per second (five times the "
                              f"simulator's 2000 steps per second), got {self.sample_rate}")
