@@ -302,3 +302,39 @@ def test_initial_heights_follow_the_assets_folder_and_stay_unchanged_by_callers(
     assert robot.initial_heights()["neck_height"] == pytest.approx(1.60723, abs=1e-5)
     assert robot.initial_sole_centre(0)[0] == pytest.approx(0.1199, abs=1e-4)
 
+
+
+# --- angle units --------------------------------------------------------------------------------------------------
+
+_RADIAN = '<compiler angle="radian" '
+
+
+@pytest.mark.parametrize("compiler", ['<compiler angle="degree" ', "<compiler "], ids=["degree", "mujoco-default"])
+def test_a_model_read_in_degrees_with_ranges_in_radians_is_refused_naming_the_file(tmp_path, compiler):
+    # Every range shrank by 180/π (±3.14 to ±0.055 rad) and the env then refused the shipped walk as "reference
+    # motion ...tocabi_walk.npz: ... outside the model's range ... (a motion in degrees?)": the motion was blamed.
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    assert _RADIAN in text
+    path = tmp_path / "in_degrees.xml"
+    path.write_text(text.replace(_RADIAN, compiler))
+    message = (r"robot model .*in_degrees\.xml: it is compiled with <compiler angle=\"degree\"> \(MuJoCo's default "
+               r"when <compiler> sets no angle\) but its joint ranges are written in radians: L_HipPitch_Joint "
+               r"range=\"-3\.14 3\.14\" becomes \[-0\.055, 0\.055\] rad, which leaves out the initial pose's -0\.240 "
+               r"rad .*Set <compiler angle=\"radian\"> in .*in_degrees\.xml")
+    with pytest.raises(robot.RobotAssetError, match=message):
+        robot.load_model(path)
+    with pytest.raises(robot.RobotAssetError, match=message):
+        robot.load_spec(path)
+
+
+def test_a_model_in_degrees_throughout_compiles_to_the_shipped_ranges(tmp_path, model):
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text().replace(_RADIAN, '<compiler angle="degree" ')
+
+    def in_degrees(match: re.Match) -> str:
+        return ' range="{}"'.format(" ".join(f"{np.degrees(float(v)):.6f}" for v in match[1].split()))
+
+    degrees = re.sub(r' range="([^"]+)"', in_degrees, text)
+    path = tmp_path / "degrees.xml"
+    path.write_text(degrees)
+    np.testing.assert_allclose(robot.load_model(path).jnt_range, model.jnt_range, atol=1e-7)
+    assert robot.load_spec(path).compiler.degree

@@ -316,6 +316,21 @@ def _first_rows(npz_bytes: bytes):
         return data["joint_pos"][:5]
 
 
+def test_cli_refuses_a_model_read_in_degrees_naming_the_model(tmp_path, capsys):
+    # The generator planned on it without a word (its ranges are not used here), and the env later refused the
+    # motion it wrote as "a motion in degrees?".
+    model = tmp_path / "in_degrees.xml"
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    model.write_text(text.replace('angle="radian"', 'angle="degree"'))
+    out = tmp_path / "w.npz"
+    with pytest.raises(SystemExit) as stop:
+        main(["--out", str(out), "--model", str(model), "--sample-rate", "200"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "--model: robot model" in err and "in_degrees.xml" in err, err
+    assert 'Set <compiler angle="radian">' in err and not out.exists()
+
+
 def test_cli_refuses_a_model_whose_legs_differ_from_the_planned_geometry(tmp_path, capsys):
     # It planned with TOCABI's leg lengths on a model of longer legs: replayed there, the feet were 13 cm in the
     # ground and the stance feet slid.

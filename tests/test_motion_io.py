@@ -433,3 +433,18 @@ def test_text_fields_stored_as_bytes_are_read_as_text(tmp_path):
         load_npz(write_npz(tmp_path / "bad.npz", joint_names=np.array(names)))
     with pytest.raises(MotionFormatError, match=r"list.npz: format must be one string, 'tocabi_torchrl.motion/1'"):
         load_npz(write_npz(tmp_path / "list.npz", format=np.array([NPZ_FORMAT])))
+
+
+def test_a_model_read_in_degrees_is_blamed_not_the_motion(tmp_path):
+    # A model file without <compiler angle="radian"> (MuJoCo reads angles in degrees by default) shrank every joint
+    # range by 180/π, and the env refused the shipped walk as "a motion in degrees?": the user went to fix a good
+    # motion file. The message names the model file, the unit and the fix.
+    from tocabi_torchrl import make_env
+    from tocabi_torchrl.robot import RobotAssetError
+
+    model = tmp_path / "no_angle.xml"
+    model.write_text(asset_path("tocabi", "tocabi.xml").read_text().replace(' angle="radian"', ""))
+    with pytest.raises(RobotAssetError, match=r"no_angle\.xml: it is compiled with <compiler angle=\"degree\">.*"
+                                              r"written in radians.*Set <compiler angle=\"radian\">") as info:
+        make_env(num_envs=1, device="cpu", model_path=str(model), motion=str(asset_path("motions", "tocabi_walk.npz")))
+    assert "reference motion" not in str(info.value) and "tocabi_walk.npz" not in str(info.value)

@@ -197,18 +197,27 @@ def _resolve_model_path(path: str | os.PathLike | None) -> Path:
 
 
 def load_spec(path: str | os.PathLike | None = None) -> "mujoco.MjSpec":  # noqa: F821
-    """Parse the MJCF into a ``mujoco.MjSpec`` for scene edits (obstacles, extra sensors) before compiling."""
+    """Parse the MJCF into a ``mujoco.MjSpec`` for scene edits (obstacles, extra sensors) before compiling.
+
+    Raises :class:`RobotAssetError` for a file MuJoCo cannot parse, or one that compiles its radian joint ranges
+    as degrees (see :func:`load_model`)."""
     import mujoco
 
     p = _resolve_model_path(path)
     try:
-        return mujoco.MjSpec.from_file(str(p))
+        spec = mujoco.MjSpec.from_file(str(p))
     except Exception as err:  # mujoco raises ValueError with the parser message
         raise RobotAssetError(f"cannot parse robot model {p}: {err}") from err
+    _check_angle_unit(spec, str(p))
+    return spec
 
 
 def load_model(path: str | os.PathLike | None = None, validate: bool = True) -> "mujoco.MjModel":  # noqa: F821
-    """Compile the robot model (default: the shipped ``assets/tocabi/tocabi.xml``) and check its names."""
+    """Compile the robot model (default: the shipped ``assets/tocabi/tocabi.xml``) and check its names.
+
+    With ``validate``, also refuse a file that reads its joint ranges as degrees (``<compiler angle="degree">``,
+    MuJoCo's default when ``<compiler>`` sets no angle) while they are written in radians: every range would shrink
+    by 180/π and leave out the robot's initial pose."""
     import mujoco
 
     p = _resolve_model_path(path)
@@ -217,8 +226,53 @@ def load_model(path: str | os.PathLike | None = None, validate: bool = True) -> 
     except Exception as err:
         raise RobotAssetError(f"cannot compile robot model {p}: {err}") from err
     if validate:
+        if _initial_pose_outside_ranges(model):
+            # Only then is the file parsed again: the compiled model no longer says which unit it was read in.
+            _check_angle_unit(mujoco.MjSpec.from_file(str(p)), str(p))
         validate_model(model, source=str(p))
     return model
+
+
+#: |range| [rad] up to which a file's joint range numbers read as radians: a full turn (and rounding).
+_RADIAN_LIKE = 2.0 * np.pi + 0.01
+
+
+def _initial_pose_outside_ranges(model: "mujoco.MjModel") -> bool:  # noqa: F821
+    """Whether a limited TOCABI joint of the compiled ``model`` has its ``INIT_JOINT_POS`` entry outside its range."""
+    import mujoco
+
+    for q, name in zip(INIT_JOINT_POS, JOINT_NAMES):
+        jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if jid >= 0 and model.jnt_limited[jid] and not model.jnt_range[jid, 0] <= q <= model.jnt_range[jid, 1]:
+            return True
+    return False
+
+
+def _check_angle_unit(spec: "mujoco.MjSpec", source: str) -> None:  # noqa: F821
+    """:class:`RobotAssetError` for a file that MuJoCo reads in degrees while its TOCABI joint ranges are written in
+    radians: each compiled range is 180/π times too narrow (the shipped ±3.14 becomes ±0.055 rad) and leaves out the
+    initial pose. Not caught here, it surfaced later as a reference motion or a PD nominal pose "outside the model's
+    range", blaming the motion or the pose. A file in degrees with its ranges in degrees passes."""
+    import mujoco
+
+    if not spec.compiler.degree:
+        return
+    ranged = []  # (name, initial position [rad], range as written)
+    for q, name in zip(INIT_JOINT_POS, JOINT_NAMES):
+        joint = spec.joint(name)
+        if joint is not None and joint.limited != mujoco.mjtLimited.mjLIMITED_FALSE and joint.range[0] < joint.range[1]:
+            ranged.append((name, float(q), (float(joint.range[0]), float(joint.range[1]))))
+    if not ranged or max(abs(v) for _, _, r in ranged for v in r) > _RADIAN_LIKE:
+        return  # no ranges, or numbers only degrees make sense of
+    for name, q, (lo, hi) in ranged:
+        lo_rad, hi_rad = np.radians(lo), np.radians(hi)
+        if not lo_rad <= q <= hi_rad and lo <= q <= hi:
+            raise RobotAssetError(
+                f"robot model {source}: it is compiled with <compiler angle=\"degree\"> (MuJoCo's default when "
+                f"<compiler> sets no angle) but its joint ranges are written in radians: {name} range=\"{lo:g} "
+                f"{hi:g}\" becomes [{lo_rad:.3f}, {hi_rad:.3f}] rad, which leaves out the initial pose's {q:.3f} rad "
+                f"(robot.INIT_JOINT_POS) and any walking motion. Set <compiler angle=\"radian\"> in {source} (as the "
+                "shipped assets/tocabi/tocabi.xml does), or write every angle of the file in degrees")
 
 
 @dataclass(frozen=True)
