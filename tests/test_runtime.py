@@ -322,6 +322,43 @@ def test_sim_to_sim_names_what_a_foreign_model_lacks(tmp_path):
         run_sim2sim(_contract("ppo"), model, seconds=0.02, num_robots=1)
 
 
+
+_RADIAN = '<compiler angle="radian" '
+
+
+@pytest.mark.parametrize("compiler", ['<compiler angle="degree" ', "<compiler "], ids=["degree", "mujoco-default"])
+def test_sim_to_sim_refuses_a_model_read_in_degrees_naming_the_file(tmp_path, compiler):
+    # The driver compiles the model itself, not through robot.load_model: such a file (every range 180/π too
+    # narrow, ±3.14 to ±0.055 rad) ran without a word, robots walking backwards against their joint limits.
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    assert _RADIAN in text
+    model = tmp_path / "in_degrees.xml"
+    model.write_text(text.replace(_RADIAN, compiler))
+    message = (r"robot model .*in_degrees\.xml: it is compiled with <compiler angle=\"degree\"> .* but its joint "
+               r"ranges are written in radians: L_HipPitch_Joint range=\"-3\.14 3\.14\" becomes \[-0\.055, 0\.055\] "
+               r"rad, which leaves out the initial pose's -0\.240 rad \(the contract's robot\.initial_qpos\) .*Set "
+               r"<compiler angle=\"radian\"> in .*in_degrees\.xml")
+    for remove_meshes in (False, True):  # the reference model's path goes through strip_meshes
+        with pytest.raises(ValueError, match=message):
+            run_sim2sim(_contract("ppo"), model, seconds=0.02, num_robots=1, remove_meshes=remove_meshes)
+
+
+def test_sim_to_sim_builds_a_model_in_degrees_throughout(tmp_path):
+    from tocabi_torchrl.runtime.mujoco_driver import build_model
+
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text().replace(_RADIAN, '<compiler angle="degree" ')
+
+    def in_degrees(match: re.Match) -> str:
+        return ' range="{}"'.format(" ".join(f"{np.degrees(float(v)):.6f}" for v in match[1].split()))
+
+    model = tmp_path / "degrees.xml"
+    model.write_text(re.sub(r' range="([^"]+)"', in_degrees, text))
+    contract = load_contract(_contract("ppo"))
+    shipped = build_model(contract, robot.asset_path("tocabi", "tocabi.xml"))
+    np.testing.assert_allclose(build_model(contract, model).jnt_range, shipped.jnt_range, atol=1e-7)
+
 def test_reset_refuses_init_rows_that_are_not_rows_of_the_motion():
     # Out-of-range rows used to wrap silently, fractional rows were truncated, and a wrong count, NaN or zero robots
     # surfaced as numpy errors.

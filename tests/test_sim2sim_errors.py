@@ -1,6 +1,7 @@
-"""recipes/sim2sim.py reports a model without the contract's names, a file MuJoCo cannot read, a missing model file, a
-policy file given as the contract, an --out folder that does not exist, an --out file it cannot write and a missing
-onnxruntime in one ``error:`` line (or a usage error), not a traceback."""
+"""recipes/sim2sim.py reports a model without the contract's names, a file MuJoCo cannot read, a model that reads its
+radian joint ranges as degrees, a missing model file, a policy file given as the contract, an --out folder that does
+not exist, an --out file it cannot write and a missing onnxruntime in one ``error:`` line (or a usage error), not a
+traceback."""
 
 from __future__ import annotations
 
@@ -45,6 +46,17 @@ def test_a_file_mujoco_cannot_read_is_one_error_line_naming_it(tmp_path, name, t
     assert message.startswith(f"error: {model}: MuJoCo cannot read it as an MJCF model (")
     assert message.endswith("pass a TOCABI MJCF (.xml)") and "\n" not in message
 
+
+
+@needs_contract
+def test_a_model_read_in_degrees_is_one_error_line_naming_the_file_and_the_fix(tmp_path):
+    # It ran and printed metrics of robots held by joint ranges 180/π too narrow (no <compiler angle="radian">).
+    model = tmp_path / "no_angle.xml"
+    shipped = Path(__file__).resolve().parents[1] / "assets" / "tocabi" / "tocabi.xml"
+    model.write_text(shipped.read_text().replace(' angle="radian"', ""))
+    message = str(_run(["--model", str(model)]).code)
+    assert message.startswith(f"error: robot model {model}: it is compiled with <compiler angle=\"degree\">")
+    assert f'Set <compiler angle="radian"> in {model}' in message and "\n" not in message
 
 def test_an_out_file_in_a_missing_folder_is_refused_before_the_run(capsys, tmp_path):
     # The contract does not exist either: the --out check comes first, so nothing is run (it used to fail with

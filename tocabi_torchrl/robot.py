@@ -13,6 +13,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,6 +52,7 @@ __all__ = [
     "GROUND_FORBIDDEN_BODIES",
     "SELF_COLLISION_BODIES",
     "RobotAssetError",
+    "angle_unit_problem",
     "asset_path",
     "load_model",
     "load_spec",
@@ -249,30 +251,50 @@ def _initial_pose_outside_ranges(model: "mujoco.MjModel") -> bool:  # noqa: F821
 
 
 def _check_angle_unit(spec: "mujoco.MjSpec", source: str) -> None:  # noqa: F821
-    """:class:`RobotAssetError` for a file that MuJoCo reads in degrees while its TOCABI joint ranges are written in
-    radians: each compiled range is 180/π times too narrow (the shipped ±3.14 becomes ±0.055 rad) and leaves out the
-    initial pose. Not caught here, it surfaced later as a reference motion or a PD nominal pose "outside the model's
-    range", blaming the motion or the pose. A file in degrees with its ranges in degrees passes."""
+    """:class:`RobotAssetError` with :func:`angle_unit_problem`'s message, if it finds one."""
+    problem = angle_unit_problem(spec, source)
+    if problem is not None:
+        raise RobotAssetError(problem)
+
+
+def angle_unit_problem(spec: "mujoco.MjSpec", source: str, joint_names: Sequence[str] = JOINT_NAMES,  # noqa: F821
+                       initial=INIT_JOINT_POS, initial_name: str = "robot.INIT_JOINT_POS") -> str | None:
+    """What is wrong with a model file that MuJoCo reads in degrees while its joint ranges are written in radians, or
+    None when nothing is.
+
+    Such a file (``<compiler angle="degree">``, or no angle: MuJoCo's default) compiles each range 180/π times too
+    narrow (the shipped ±3.14 becomes ±0.055 rad), leaving out the initial pose. Not caught, it surfaced later as a
+    reference motion or a PD nominal pose "outside the model's range", blaming the motion or the pose. A file in
+    degrees with its ranges in degrees passes. Reads the uncompiled ``spec`` only (the compiled model no longer says
+    which unit it was read in); imports mujoco and numpy only, so the torch-free runtime uses it too.
+
+    Args:
+        spec: the parsed, uncompiled model file.
+        source: the model file, as the message names it.
+        joint_names: (J,) the joints to look at; names the file lacks are skipped.
+        initial: (J,) the initial pose [rad] of those joints, which every compiled range must hold.
+        initial_name: where ``initial`` comes from, as the message names it.
+    """
     import mujoco
 
     if not spec.compiler.degree:
-        return
+        return None
     ranged = []  # (name, initial position [rad], range as written)
-    for q, name in zip(INIT_JOINT_POS, JOINT_NAMES):
+    for q, name in zip(initial, joint_names):
         joint = spec.joint(name)
         if joint is not None and joint.limited != mujoco.mjtLimited.mjLIMITED_FALSE and joint.range[0] < joint.range[1]:
             ranged.append((name, float(q), (float(joint.range[0]), float(joint.range[1]))))
     if not ranged or max(abs(v) for _, _, r in ranged for v in r) > _RADIAN_LIKE:
-        return  # no ranges, or numbers only degrees make sense of
+        return None  # no ranges, or numbers only degrees make sense of
     for name, q, (lo, hi) in ranged:
         lo_rad, hi_rad = np.radians(lo), np.radians(hi)
         if not lo_rad <= q <= hi_rad and lo <= q <= hi:
-            raise RobotAssetError(
-                f"robot model {source}: it is compiled with <compiler angle=\"degree\"> (MuJoCo's default when "
-                f"<compiler> sets no angle) but its joint ranges are written in radians: {name} range=\"{lo:g} "
-                f"{hi:g}\" becomes [{lo_rad:.3f}, {hi_rad:.3f}] rad, which leaves out the initial pose's {q:.3f} rad "
-                f"(robot.INIT_JOINT_POS) and any walking motion. Set <compiler angle=\"radian\"> in {source} (as the "
-                "shipped assets/tocabi/tocabi.xml does), or write every angle of the file in degrees")
+            return (f"robot model {source}: it is compiled with <compiler angle=\"degree\"> (MuJoCo's default when "
+                    f"<compiler> sets no angle) but its joint ranges are written in radians: {name} range=\"{lo:g} "
+                    f"{hi:g}\" becomes [{lo_rad:.3f}, {hi_rad:.3f}] rad, which leaves out the initial pose's {q:.3f} "
+                    f"rad ({initial_name}) and any walking motion. Set <compiler angle=\"radian\"> in {source} (as the "
+                    "shipped assets/tocabi/tocabi.xml does), or write every angle of the file in degrees")
+    return None
 
 
 @dataclass(frozen=True)

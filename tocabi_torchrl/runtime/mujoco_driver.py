@@ -1,10 +1,11 @@
 """Sim-to-sim: C MuJoCo TOCABI robots driven through :class:`PolicyRuntime`, with the gait-test metrics.
 
-Imports numpy, mujoco and the runtime only (no torch). The robot model is the authored ``assets/tocabi/tocabi.xml``
-or any MJCF with the contract's joint, actuator, body and sensor names, e.g. the reference ``dyros_tocabi.xml`` with
-its mesh geoms removed (:func:`strip_meshes`). Actuators are set up from the contract: leg motors stay motors in
-torque mode and become position servos with the contract's gains in the PD modes; upper-body motors (the reference
-model has no servos) become position servos with ``upper_body.kp``/``kv``, force-limited to their ctrlrange.
+Imports numpy, mujoco, the runtime and the numpy-only ``robot`` facts (no torch). The robot model is the authored
+``assets/tocabi/tocabi.xml`` or any MJCF with the contract's joint, actuator, body and sensor names, e.g. the
+reference ``dyros_tocabi.xml`` with its mesh geoms removed (:func:`strip_meshes`). Actuators are set up from the
+contract: leg motors stay motors in torque mode and become position servos with the contract's gains in the PD
+modes; upper-body motors (the reference model has no servos) become position servos with ``upper_body.kp``/``kv``,
+force-limited to their ctrlrange.
 
 Each control period repeats the training env's simulator step (``sim/mujoco_backend.py``): ``substeps`` × ``mj_step``
 with the command held, then ``mj_forward`` with its constraint solution kept as the next warm start. Terminations are
@@ -31,6 +32,7 @@ from typing import Callable
 import mujoco
 import numpy as np
 
+from .. import robot  # numpy-only (mujoco imported in its functions): robot facts, model-file checks
 from ..value_rules import check_seed
 from . import randomization as rnd
 from .policy import PolicyRuntime, RobotState
@@ -84,8 +86,9 @@ def missing_names(spec: mujoco.MjSpec, contract: dict) -> list[str]:
 def build_model(contract: dict, model_path: str | os.PathLike, remove_meshes: bool = False) -> mujoco.MjModel:
     """Compile ``model_path`` with the actuators the contract's control mode needs (see the module docstring).
 
-    Raises ``ValueError`` when MuJoCo cannot read ``model_path`` as a model, or naming what the model lacks when it is
-    not a TOCABI model with the contract's names."""
+    Raises ``ValueError`` when MuJoCo cannot read ``model_path`` as a model, naming what the model lacks when it is
+    not a TOCABI model with the contract's names, or when it reads its radian joint ranges as degrees (no
+    ``<compiler angle="radian">``): every range would be 180/π times too narrow and leave out the start pose."""
     try:
         spec = (mujoco.MjSpec.from_string(strip_meshes(model_path)) if remove_meshes
                 else mujoco.MjSpec.from_file(str(model_path)))
@@ -100,6 +103,12 @@ def build_model(contract: dict, model_path: str | os.PathLike, remove_meshes: bo
                          "TOCABI MJCF with the contract's robot.joint_names, a <joint>_Motor actuator for each, "
                          "robot.base_body, robot.neck_body and the robot.foot_force_sensors/foot_torque_sensors")
     rob, leg = contract["robot"], contract["action"]["leg"]
+    # As robot.load_model does for the env: the joint limits would hold every robot away from its start pose, and
+    # nothing after this would name the file or its unit.
+    problem = robot.angle_unit_problem(spec, str(model_path), rob["joint_names"], rob["initial_qpos"][7:],
+                                       "the contract's robot.initial_qpos")
+    if problem is not None:
+        raise ValueError(problem)
     # The control mode, not leg.kind, decides: it is what PolicyRuntime computes the leg commands from.
     position = contract["action"]["control_mode"] != "torque"
     motors = [n.replace("_Joint", "_Motor") for n in rob["joint_names"]]
@@ -152,8 +161,6 @@ class _Terminations:
     the env's health check (:data:`HEALTH_WARNINGS`)."""
 
     def __init__(self, model: mujoco.MjModel, contract: dict):
-        from .. import robot  # numpy-only module: body lists
-
         body = lambda n: mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n)
         self.base, self.neck = body(contract["robot"]["base_body"]), body(contract["robot"]["neck_body"])
         self.forbidden = {body(n) for n in robot.GROUND_FORBIDDEN_BODIES} - {-1}
@@ -296,9 +303,7 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
         pushes.validate()
     start_velocity = start_velocity if start_velocity is not None and start_velocity.enabled else None
     if model_path is None:
-        from ..robot import asset_path
-
-        model_path = asset_path("tocabi", "tocabi.xml")
+        model_path = robot.asset_path("tocabi", "tocabi.xml")
     m = build_model(c, Path(model_path), remove_meshes)
     substeps = int(c["timing"]["substeps"])
     if abs(m.opt.timestep * substeps - c["timing"]["control_dt_s"]) > 1e-9:
