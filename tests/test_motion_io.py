@@ -355,6 +355,52 @@ def test_a_motion_in_degrees_is_refused_by_the_env(tmp_path):
         make_env(num_envs=1, device="cpu", motion=str(tmp_path / "deg.npz"))
 
 
+
+def _model_with_range(path, joint: str, low: float, high: float):
+    """The shipped model, written to ``path`` with ``joint``'s range set to [low, high] rad."""
+    text = asset_path("tocabi", "tocabi.xml").read_text()
+    old = f'<joint name="{joint}" axis="0 1 0" range="-3.14 3.14"'
+    assert text.count(old) == 1
+    path.write_text(text.replace(old, old.replace('"-3.14 3.14"', f'"{low:g} {high:g}"')))
+    return path
+
+
+def test_a_model_range_that_leaves_out_the_start_pose_is_blamed_before_the_motion(tmp_path):
+    # A knee range of ±0.5 rad (the start pose bends the knee 0.6 rad) refused the shipped walk as "joint targets are
+    # radians (a motion in degrees?)", naming neither the model file nor its range as a cause.
+    from tocabi_torchrl import make_env
+
+    model = _model_with_range(tmp_path / "narrow.xml", "L_Knee_Joint", -0.5, 0.5)
+    with pytest.raises(ValueError) as info:
+        make_env(num_envs=1, device="cpu", model_path=str(model))
+    message = str(info.value)
+    assert re.fullmatch(r"reference motion .*tocabi_walk\.npz: L_Knee_Joint is [\d.]+ rad at row \d+, outside the "
+                        r"model's range \[-0\.500, 0\.500\] in .*narrow\.xml, which leaves out the robot's initial "
+                        r"pose \(0\.600 rad, robot\.INIT_JOINT_POS\) too: check L_Knee_Joint's range in the model "
+                        r"file \(radians, under <compiler angle=\"radian\">\) before the motion", message), message
+    # With a motion in degrees too, the model's range comes first although the shoulders leave theirs farther.
+    walk = load_motion(asset_path("motions", "tocabi_walk.npz"))
+    save_npz(tmp_path / "deg.npz", MotionData(joint_pos=np.degrees(walk.joint_pos), foot_force=walk.foot_force,
+                                              stance=walk.stance, sample_rate=walk.sample_rate,
+                                              init_rows=walk.init_rows))
+    with pytest.raises(ValueError, match=r"deg\.npz: L_Knee_Joint is .* \(22 joints leave their ranges\), "
+                                         r".*narrow\.xml, which leaves out the robot's initial pose"):
+        make_env(num_envs=1, device="cpu", model_path=str(model), motion=str(tmp_path / "deg.npz"))
+
+
+def test_a_motion_beyond_a_model_range_that_holds_the_start_pose_names_both_files_and_both_checks(tmp_path):
+    from tocabi_torchrl import make_env
+
+    model = _model_with_range(tmp_path / "short.xml", "R_Knee_Joint", 0.0, 0.8)
+    with pytest.raises(ValueError) as info:
+        make_env(num_envs=1, device="cpu", model_path=str(model))
+    message = str(info.value)
+    assert re.fullmatch(r"reference motion .*tocabi_walk\.npz: R_Knee_Joint is [\d.]+ rad at row \d+, outside the "
+                        r"model's range \[0\.000, 0\.800\] in .*short\.xml, which holds the robot's initial pose "
+                        r"\(0\.600 rad\): check the motion \(joint targets are radians, in robot\.JOINT_NAMES order: "
+                        r"a motion in degrees, or of another robot\?\), or, if it is right, R_Knee_Joint's range in "
+                        r"the model file", message), message
+
 def test_a_binary_file_named_txt_is_a_format_error(tmp_path):
     # A renamed .npz raised a raw UnicodeDecodeError.
     path = tmp_path / "walk.txt"
