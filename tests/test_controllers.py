@@ -7,6 +7,7 @@ import dataclasses
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -298,3 +299,52 @@ def test_a_pd_nominal_pose_outside_the_joint_range_is_refused():
                                              r"joint range: L_HipPitch_Joint = -13.751 rad .*give radians"):
             TocabiWalk(num_envs=1, device="cpu", control_mode=mode, pd_nominal=degrees)
     TocabiWalk(num_envs=1, device="cpu", control_mode="pd")  # the default pose is in range
+
+
+def _leg_context(ranges, model_file="narrow.xml"):
+    """A ControlContext of the 12 leg joints with ``ranges`` (12, 2) [rad] as the model's joint ranges."""
+    from tocabi_torchrl.control import ControlContext
+
+    return ControlContext(num_envs=1, device=torch.device("cpu"), joint_ids=robot.LEG_JOINT_IDS,
+                          torque_limits=torch.as_tensor(robot.LEG_TORQUE_LIMITS, dtype=torch.float32),
+                          joint_range=torch.as_tensor(ranges, dtype=torch.float32), model_file=model_file)
+
+
+def test_a_model_range_that_leaves_out_the_start_pose_is_blamed_not_the_pd_nominal_pose():
+    # Knee ranges of ±0.5 rad left out the default nominal (the start pose's 0.6 rad), and the message said "give
+    # radians (not degrees)", sending the user to a good pd_nominal.
+    from tocabi_torchrl.control import JointPD
+
+    ranges = [[-3.14, 3.14]] * 12
+    for knee in (3, 9):
+        ranges[knee] = [-0.5, 0.5]
+    law = JointPD(robot.LEG_KP, robot.LEG_KV, 0.5, robot.INIT_JOINT_POS[:12], centre="nominal")
+    with pytest.raises(ValueError) as info:
+        law.setup(_leg_context(ranges))
+    assert str(info.value) == (
+        "JointPD nominal (env.control.pd_nominal) is outside the model's joint range: L_Knee_Joint = 0.600 rad (range "
+        "[-0.500, 0.500]), R_Knee_Joint = 0.600 rad (range [-0.500, 0.500]), the ranges of narrow.xml; the range of "
+        "L_Knee_Joint, R_Knee_Joint leaves out the robot's initial pose (robot.INIT_JOINT_POS) too: check them in "
+        "narrow.xml")
+    # A pose in degrees as well: each joint gets its own check.
+    nominal = robot.INIT_JOINT_POS[:12].copy()
+    nominal[2] = float(np.degrees(nominal[2]))
+    law = JointPD(robot.LEG_KP, robot.LEG_KV, 0.5, nominal, centre="nominal")
+    with pytest.raises(ValueError, match=r"L_HipPitch_Joint = -13\.751 rad .*; give radians \(not degrees\) within "
+                                         r"each joint's range, in robot\.JOINT_NAMES order; the range of L_Knee_Joint, "
+                                         r"R_Knee_Joint leaves out the robot's initial pose"):
+        law.setup(_leg_context(ranges))
+
+
+def test_the_env_names_its_model_file_when_a_range_leaves_out_the_pd_nominal_pose(tmp_path):
+    # A hip yaw range of [0.005, 0.5] rad: the walk (hip yaw 0) stays within the motion check's 0.01 rad, while the
+    # default nominal (0) is outside; the message named no model file.
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    old = '<joint name="L_HipYaw_Joint" axis="0 0 1" range="-3.14 3.14"'
+    assert text.count(old) == 1
+    model = tmp_path / "yaw.xml"
+    model.write_text(text.replace(old, old.replace('"-3.14 3.14"', '"0.005 0.5"')))
+    with pytest.raises(ValueError, match=r"L_HipYaw_Joint = 0\.000 rad \(range \[0\.005, 0\.500\]\), the ranges of "
+                                         r".*yaw\.xml; the range of L_HipYaw_Joint leaves out the robot's initial "
+                                         r"pose \(robot\.INIT_JOINT_POS\) too: check it in .*yaw\.xml$"):
+        TocabiWalk(num_envs=1, device="cpu", control_mode="pd", model_path=str(model))

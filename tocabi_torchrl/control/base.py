@@ -53,6 +53,7 @@ class ControlContext:
             (``mass_matrix``, ``qfrc_bias``).
         motion: the reference motion (``ReferenceMotion``) on ``device``.
         extras: anything else a law needs from its builder.
+        model_file: the robot model file ``joint_range`` comes from, for messages ("" when not known).
     """
 
     num_envs: int
@@ -64,6 +65,7 @@ class ControlContext:
     sim: Any = None
     motion: Any = None
     extras: dict = dataclasses.field(default_factory=dict)
+    model_file: str = ""
 
 
 @dataclasses.dataclass

@@ -83,14 +83,24 @@ class JointPD(Controller):
     def _check_nominal_in_range(self) -> None:
         """A nominal pose outside a joint's range (one in degrees) was taken: the reset's servos chased it and
         :meth:`compute` clipped the ``pd`` mode's centre to the range's end, so the legs were driven to their
-        limits without a word."""
+        limits without a word. The range may be the faulty side instead: one that leaves out the robot's initial
+        pose (``robot.INIT_JOINT_POS``, the default nominal) too is the model file's, and is named as such."""
         nominal, low, high = (t.cpu().tolist() for t in (self._nominal, self._low, self._high))
-        outside = [f"{robot.JOINT_NAMES[joint]} = {v:.3f} rad (range [{lo:.3f}, {hi:.3f}])"
+        outside = [(robot.JOINT_NAMES[joint], v, lo, hi, lo <= robot.INIT_JOINT_POS[joint] <= hi)
                    for joint, v, lo, hi in zip(self.ctx.joint_ids, nominal, low, high) if not lo <= v <= hi]
-        if outside:
-            raise ValueError(f"JointPD nominal (env.control.pd_nominal) is outside the model's joint range: "
-                             f"{', '.join(outside)}; give radians (not degrees) within each joint's range, in "
-                             "robot.JOINT_NAMES order")
+        if not outside:
+            return
+        model = self.ctx.model_file or "the model file"
+        shown = ", ".join(f"{name} = {v:.3f} rad (range [{lo:.3f}, {hi:.3f}])" for name, v, lo, hi, _ in outside)
+        checks = []
+        if any(holds for *_, holds in outside):
+            checks.append("give radians (not degrees) within each joint's range, in robot.JOINT_NAMES order")
+        narrow = [name for name, *_, holds in outside if not holds]
+        if narrow:
+            checks.append(f"the range of {', '.join(narrow)} leaves out the robot's initial pose "
+                          f"(robot.INIT_JOINT_POS) too: check {'them' if len(narrow) > 1 else 'it'} in {model}")
+        raise ValueError(f"JointPD nominal (env.control.pd_nominal) is outside the model's joint range: {shown}, the "
+                         f"ranges of {model}; {'; '.join(checks)}")
 
     def compute(self, inp: ControlInput) -> torch.Tensor:
         centre = self._nominal if self.centre == "nominal" else inp.q_ref

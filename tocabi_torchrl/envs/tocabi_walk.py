@@ -390,7 +390,8 @@ class TocabiWalk(EnvBase):
         )
         for law, joints, limits, ranges in contexts:
             ctx = ControlContext(num_envs=n, device=dev, joint_ids=tuple(joints), torque_limits=limits,
-                                 joint_range=ranges, dt=self.dt, sim=self.sim, motion=self.motion)
+                                 joint_range=ranges, dt=self.dt, sim=self.sim, motion=self.motion,
+                                 model_file=self._model_file)
             law.setup(ctx)
             if law is self.leg_controller:
                 self.leg_actuators.setup(ctx)
