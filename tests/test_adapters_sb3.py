@@ -114,6 +114,21 @@ def test_non_finite_actions_are_refused_naming_the_rows(env):
     env.step(np.zeros((N, 13), dtype=np.float32))
 
 
+@pytest.mark.parametrize("bad", [np.ones((N, 13), bool), np.full((N, 13), 0.5 + 1j), np.full((N, 13), "0.5"),
+                                 [[None] * 13] * N], ids=["bool", "complex", "text", "objects"])
+def test_actions_that_are_not_real_numbers_are_refused_as_by_the_gymnasium_adapter(env, bad):
+    # They were cast to float32 and stepped: True as a full-scale 1.0, a complex value without its imaginary part
+    # (numpy's warning alone), text parsed as numbers; None ended in a misleading "must be finite".
+    env.reset()
+    steps = env.stepper.env_steps
+    with pytest.raises(TypeError, match=r"actions must be real numbers \(float32\), got an array of"):
+        env.step_async(bad)
+    assert env.stepper.env_steps == steps
+    with pytest.raises(RuntimeError, match="without step_async"):  # nothing was queued
+        env.step_wait()
+    env.step(np.zeros((N, 13), dtype=np.int64))  # integers are real numbers: stepped as float32
+
+
 def test_reset_options_are_refused_as_by_the_gymnasium_adapter(env):
     # SB3's set_options hands them to the next reset, which used to drop them without a word.
     with pytest.raises(ValueError, match=r"TocabiSB3VecEnv.reset takes no options, got \{'x': 1\}"):

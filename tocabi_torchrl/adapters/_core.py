@@ -13,12 +13,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from gymnasium.error import ClosedEnvironmentError, ResetNeeded
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-__all__ = ["EnvClosedError", "ResetNeededError", "StepResult", "TensorStepper"]
+__all__ = ["EnvClosedError", "ResetNeededError", "StepResult", "TensorStepper", "real_actions"]
 
 
 class ResetNeededError(ResetNeeded, RuntimeError):
@@ -27,6 +28,17 @@ class ResetNeededError(ResetNeeded, RuntimeError):
 
 class EnvClosedError(ClosedEnvironmentError, RuntimeError):
     """A call on an env after its ``close`` (gymnasium's ``ClosedEnvironmentError``, and a ``RuntimeError``)."""
+
+
+def real_actions(actions) -> np.ndarray:
+    """``actions`` (a numpy array or nested sequence, e.g. (num_envs, 13)) as a float32 array, or a ``TypeError``
+    unless its values are real numbers (float, int or unsigned). A float32 conversion would drop a complex value's
+    imaginary part with numpy's warning alone, read ``True`` as 1.0 (a full-scale action) and parse text such as
+    ``"0.5"``: none of them is a policy output, so each adapter that takes host arrays refuses them here."""
+    raw = np.asarray(actions)
+    if raw.dtype.kind not in "fiu":
+        raise TypeError(f"actions must be real numbers (float32), got an array of {raw.dtype}")
+    return raw.astype(np.float32, copy=False)
 
 
 @dataclass

@@ -18,7 +18,7 @@ import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from ._build import build_env
-from ._core import StepResult, TensorStepper
+from ._core import StepResult, TensorStepper, real_actions
 from .spaces import box_from_spec
 
 __all__ = ["TocabiVectorEnv", "make_vector_env"]
@@ -96,11 +96,7 @@ class TocabiVectorEnv(VectorEnv):
         """Step every env with ``actions`` (num_envs, 13): a tensor or an array; see the class docstring."""
         self.stepper.check_ready("step()")  # before the actions: a step out of order is no bad action
         if not isinstance(actions, torch.Tensor):
-            raw = np.asarray(actions)
-            # float32 would drop an imaginary part with numpy's warning alone, and read True as 1.0
-            if raw.dtype.kind not in "fiu":
-                raise TypeError(f"actions must be real numbers (float32), got an array of {raw.dtype}")
-            actions = raw.astype(np.float32, copy=False)
+            actions = real_actions(actions)
         elif actions.is_complex() or actions.dtype == torch.bool:
             raise TypeError(f"actions must be real numbers (float32), got a tensor of {actions.dtype}")
         actions = torch.as_tensor(actions, dtype=torch.float32)

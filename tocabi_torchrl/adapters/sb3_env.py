@@ -21,7 +21,7 @@ require("stable_baselines3")
 from stable_baselines3.common.vec_env import VecEnv
 
 from ._build import build_env
-from ._core import TensorStepper
+from ._core import TensorStepper, real_actions
 from .spaces import box_from_spec
 
 __all__ = ["TocabiSB3VecEnv"]
@@ -34,7 +34,8 @@ class TocabiSB3VecEnv(VecEnv):
     (off by default: num_envs dicts of 13 floats per step cost more than the step on a GPU).
 
     Actions are numpy on the host, so their values are checked there: a NaN or ±inf is a ``ValueError`` naming the
-    env rows (not silently acted on as 0 or the bound). ``set_options`` is refused, as ``TocabiVectorEnv.reset``
+    env rows (not silently acted on as 0 or the bound), and an array of booleans, complex numbers or text a
+    ``TypeError``, as ``TocabiVectorEnv.step`` has it. ``set_options`` is refused, as ``TocabiVectorEnv.reset``
     refuses options: the env's reset takes none.
 
     Each ended episode's info holds ``"episode": {"r", "l", "t"}``, as a ``Monitor`` would add: SB3's logger reads
@@ -77,7 +78,7 @@ class TocabiSB3VecEnv(VecEnv):
     def step_async(self, actions: np.ndarray) -> None:
         # Checked here, not at step_wait, so the error points at the call that passed the actions.
         self.stepper.check_ready("step_async()")
-        host = self.stepper.check_action(torch.as_tensor(np.asarray(actions, dtype=np.float32)))
+        host = self.stepper.check_action(torch.as_tensor(real_actions(actions)))
         self._actions = self.stepper.check_finite(host).to(self.device)
 
     def step_wait(self):
