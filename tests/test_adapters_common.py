@@ -365,6 +365,56 @@ def test_the_recipes_gait_test_shows_progress(monkeypatch, tmp_path):
     assert seen == [(True, "policy.pt"), (False, "policy.pt")]  # summary.json names the file it tested
 
 
+def _without_matplotlib(monkeypatch):
+    # As on an install without the viz extra: None in sys.modules makes every import of it an ImportError.
+    import sys
+
+    for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")] + ["matplotlib"]:
+        monkeypatch.setitem(sys.modules, name, None)
+
+
+@pytest.mark.parametrize(("recipe_name", "env_class"), [("train_sb3", "TocabiSB3VecEnv"),
+                                                        ("train_rsl_rl", "TocabiRslRlEnv"),
+                                                        ("train_skrl", "TocabiSkrlEnv")])
+def test_a_recipe_without_matplotlib_stops_before_training_unless_the_gait_test_is_off(monkeypatch, tmp_path,
+                                                                                       recipe_name, env_class):
+    # knees.png needs matplotlib, which no library extra installed: the call trained, saved, ran the gait test's
+    # rollout and then ended in a ModuleNotFoundError traceback, without result.json.
+    from recipe_runner import load_recipe
+
+    from tocabi_torchrl import adapters
+    from tocabi_torchrl.adapters import recipe
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("the recipe went on to build its env and train")
+
+    # Into the module's dict: getattr would run the adapters' lazy import, which needs the library (not in CI).
+    monkeypatch.setitem(vars(adapters), env_class, no_training)
+    _without_matplotlib(monkeypatch)
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_info:
+        load_recipe(recipe_name).main(["--out", str(out), "--device", "cpu", "--num_envs", "2"])
+    message = str(exit_info.value.code)
+    assert message.startswith("error: the gait test draws knees.png with matplotlib, which is not installed")
+    assert 'pip install -e ".[viz]"' in message and "--eval_envs 0" in message and "\n" not in message
+    assert not out.exists()
+    # With the gait test off nothing needs matplotlib: the options pass.
+    parser = recipe.base_parser("x", num_envs=2, iterations=1)
+    recipe.check_args(parser, parser.parse_args(["--out", str(out), "--device", "cpu", "--eval_envs", "0"]))
+
+
+def test_the_gait_test_without_matplotlib_names_the_install_before_its_rollout(monkeypatch, tmp_path):
+    from tocabi_torchrl.adapters import evaluate as ev
+
+    rollouts = []
+    monkeypatch.setattr(ev, "evaluate_policy", lambda *a, **k: rollouts.append(1) or {})
+    monkeypatch.setattr(ev, "gait_passes", lambda summary: False)
+    _without_matplotlib(monkeypatch)
+    with pytest.raises(ImportError, match=r'matplotlib, which is not installed: pip install -e "\.\[viz\]"'):
+        ev.evaluate_actions(lambda obs: obs[:, :13], tmp_path, num_envs=1, device="cpu")
+    assert rollouts == []
+
+
 def test_a_signal_during_training_stops_at_the_next_step_and_the_handlers_come_back(tmp_path):
     import os
     import signal

@@ -13,9 +13,20 @@ from ..evaluation.record import nominal_config
 from ..rl.trainer import resolve_device
 from ._build import task_config
 
-__all__ = ["GAIT_CRITERIA", "evaluate_actions", "evaluate_policy_file", "gait_passes"]
+__all__ = ["GAIT_CRITERIA", "check_plotting", "evaluate_actions", "evaluate_policy_file", "gait_passes"]
 
 # GAIT_CRITERIA and gait_passes are the gait test's own (tocabi_torchrl.evaluation.gait_test), re-exported here.
+
+
+def check_plotting() -> None:
+    """An ``ImportError`` naming the install command unless matplotlib, which draws the gait test's ``knees.png``,
+    is installed. It is no core dependency (the ``viz`` extra's), and the gait test needs it only after its rollout:
+    checked up front, a missing one costs no rollout (minutes on a CPU) and no recipe's training (hours)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise ImportError('the gait test draws knees.png with matplotlib, which is not installed: pip install -e '
+                          '".[viz]" in the repository (or pip install matplotlib)') from None
 
 
 def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str | os.PathLike,
@@ -27,7 +38,9 @@ def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str |
     deterministic (the policy's mean). ``preset``/``task`` must be the ones the policy trained on. Writes
     ``summary.json`` (with ``"checkpoint": source`` when given: the file the policy came from) and ``knees.png`` to
     ``out_dir``, replacing files of those names there (the recipes pass a fresh folder; pass one to keep earlier
-    results), and returns the summary with ``"passes"`` added."""
+    results), and returns the summary with ``"passes"`` added. Without matplotlib an ``ImportError`` names the
+    install command before anything runs (:func:`check_plotting`)."""
+    check_plotting()
     dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
     cfg = nominal_config(task_config(preset, num_envs=num_envs, **(task or {})))  # the robot, not training's draws
 

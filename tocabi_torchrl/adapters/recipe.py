@@ -81,7 +81,9 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace, at_lea
 
     The checks are the project's own: ``config``'s int check and snapshot period (the trainer's), the device as the
     env resolves it (``auto``, ``cpu``, ``cuda``, ``cuda:N``; CUDA only where torch sees a GPU), the preset's name
-    and the gait test's length of at least one policy step."""
+    and the gait test's length of at least one policy step. Unless ``--eval_envs 0``, the gait test after training
+    needs matplotlib (for ``knees.png``): without it the call ends here with one ``error:`` line and the install
+    command, not after training with a traceback."""
     from ..config import _check_int, check_snapshot_minutes, preset_tree
     from ..evaluation.gait_test import policy_dt, policy_steps
     from ..rl.trainer import resolve_device
@@ -111,6 +113,13 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace, at_lea
         resolve_device(args.device)
     except (ValueError, RuntimeError) as err:  # RuntimeError: CUDA asked for where torch sees no GPU
         parser.error(f"--device: {err}" + (" (or 'auto')" if isinstance(err, ValueError) else ""))
+    if args.eval_envs > 0:
+        from .evaluate import check_plotting
+
+        try:
+            check_plotting()
+        except ImportError as err:  # a missing dependency, as adapter() reports one: no usage text
+            raise SystemExit(f"error: {err}; or pass --eval_envs 0 to skip the gait test") from None
 
 
 def check_out_dir(path: str, resume: bool = False) -> Path:
