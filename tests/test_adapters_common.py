@@ -99,6 +99,32 @@ def test_policy_file_round_trip_and_refusals(tmp_path):
         load_policy(tmp_path / "other.pt", "sb3")
 
 
+@pytest.mark.parametrize(("drop", "value", "message"), [
+    ("library", None, r"its 'library' is None, not a library's name"),
+    ("meta", None, r"its 'meta' is not the text of a JSON object"),
+    ("meta", "not json", r"its 'meta' is not the text of a JSON object"),
+    ("meta", 3, r"its 'meta' is not the text of a JSON object"),
+    ("meta", "[1]", r"its 'meta' is not the text of a JSON object"),
+    ("state_dict", None, r"its 'state_dict' is not a dict of named tensors"),
+    ("state_dict", [1], r"its 'state_dict' is not a dict of named tensors"),
+    ("state_dict", {"w": 3}, r"its 'state_dict' is not a dict of named tensors"),
+])
+def test_a_policy_file_with_a_missing_or_wrong_field_is_refused_naming_it(tmp_path, drop, value, message):
+    # A file naming the format with a field missing ended in a KeyError, a JSONDecodeError or a TypeError from inside
+    # load_policy, or loaded a list as the metadata or an int as a weight.
+    from tocabi_torchrl.adapters.policy_file import FORMAT
+
+    payload = {"format": FORMAT, "library": "sb3", "meta": "{}", "state_dict": {"w": torch.zeros(2)}}
+    if value is None:
+        del payload[drop]
+    else:
+        payload[drop] = value
+    torch.save(payload, tmp_path / "policy.pt")
+    with pytest.raises(PolicyFileError, match=r"names tocabi_torchrl\.adapters\.policy/1 but was not written by "
+                                              r"save_policy: " + message):
+        load_policy(tmp_path / "policy.pt", "sb3")
+
+
 class _Payload:
     """Anything that needs code to unpickle."""
 

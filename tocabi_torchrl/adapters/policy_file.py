@@ -41,8 +41,9 @@ def save_policy(path: str | os.PathLike, library: str, state_dict: dict, meta: d
 
 
 def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
-    """``(meta, state_dict)`` of a :func:`save_policy` file trained with ``library``; raises
-    :class:`PolicyFileError` naming what is wrong."""
+    """``(meta, state_dict)`` of a :func:`save_policy` file trained with ``library``: ``meta`` a dict, ``state_dict``
+    {name: tensor}. Raises :class:`PolicyFileError` naming what is wrong (a missing or damaged file, another format
+    or library, a field that is missing or of the wrong kind)."""
     path = Path(path)
     if not path.is_file():
         raise PolicyFileError(f"no policy file at {path}; the recipes write <out>/policy.pt")
@@ -58,6 +59,22 @@ def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
                               f"{load_error_detail(err)})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise PolicyFileError(f"{path} is not a {FORMAT} file")
-    if payload["library"] != library:
-        raise PolicyFileError(f"{path} holds a {payload['library']} policy, not a {library} one")
-    return json.loads(payload["meta"]), payload["state_dict"]
+    # A file that names the format but lacks a field (written by other code, or edited) is refused with the field
+    # named, as the rest of this function does, not with a KeyError or a JSON error from inside it.
+    broken = f"{path} names {FORMAT} but was not written by save_policy"
+    owner = payload.get("library")
+    if not isinstance(owner, str):
+        raise PolicyFileError(f"{broken}: its 'library' is {owner!r}, not a library's name")
+    if owner != library:
+        raise PolicyFileError(f"{path} holds a {owner} policy, not a {library} one")
+    try:
+        meta = json.loads(payload.get("meta"))
+    except (TypeError, ValueError):  # not text, or text that is not JSON
+        meta = None
+    if not isinstance(meta, dict):
+        raise PolicyFileError(f"{broken}: its 'meta' is not the text of a JSON object")
+    state = payload.get("state_dict")
+    if not (isinstance(state, dict) and all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                                            for k, v in state.items())):
+        raise PolicyFileError(f"{broken}: its 'state_dict' is not a dict of named tensors")
+    return meta, state
