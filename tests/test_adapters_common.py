@@ -549,3 +549,23 @@ def test_device_none_is_auto_and_an_index_or_other_type_is_named(monkeypatch):
     with pytest.raises(TypeError, match="device must be 'cpu', 'cuda', 'cuda:K', 'auto', a torch.device, a GPU index "
                                         r"or None \(auto\), got 1.5"):
         build_env(1, 1.5)
+
+
+def test_the_gait_test_takes_a_device_as_the_adapters_do(monkeypatch, tmp_path):
+    # evaluate_actions passed anything but text to torch.device: None (the adapters' "auto") ended in torch's
+    # TypeError, an int became a CUDA device whether or not torch saw one, and 1.5 was torch's error too.
+    from tocabi_torchrl.adapters import evaluate as ev
+
+    devices = []
+    monkeypatch.setattr(ev, "evaluate_policy", lambda *a, **k: devices.append(k["device"]) or {})
+    monkeypatch.setattr(ev, "gait_passes", lambda summary: False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    act = lambda obs: obs[:, :13]  # noqa: E731
+    ev.evaluate_actions(act, tmp_path, num_envs=1, device=None)
+    ev.evaluate_actions(act, tmp_path, num_envs=1, device=torch.device("cpu"))
+    assert devices == [torch.device("cpu")] * 2
+    with pytest.raises(RuntimeError, match="device 'cuda:0' requested but torch sees no CUDA GPU; pass device='cpu'"):
+        ev.evaluate_actions(act, tmp_path, num_envs=1, device=0)
+    with pytest.raises(TypeError, match=r"device must be .* a GPU index or None \(auto\), got 1.5"):
+        ev.evaluate_actions(act, tmp_path, num_envs=1, device=1.5)
+    assert len(devices) == 2

@@ -13,7 +13,7 @@ from ..config import RunConfig, preset_config
 from ..envs.config import ENV_FLAT_PATHS
 from ..transforms.settings import RewardWeights
 
-__all__ = ["build_env", "task_config"]
+__all__ = ["build_env", "env_device", "task_config"]
 
 #: env_options that are sections of the env config (TocabiWalkConfig): reported as env.<section>.
 _ENV_SECTIONS = ("sim", "task", "command", "control", "scene", "pushes", "dynamics")
@@ -36,6 +36,23 @@ def task_config(preset: str = "default", num_envs: int = 4096, **task) -> RunCon
     return preset_config(preset, **{"env.num_envs": num_envs}, **paths)
 
 
+def env_device(device: str | torch.device | int | None) -> torch.device:
+    """The device an adapter or gait test runs on: ``"cpu"``, ``"cuda"``, ``"cuda:K"``, ``"auto"`` or ``None`` (the
+    first CUDA GPU torch sees, else the CPU; ``None`` is SB3's and skrl's "no preference"), a ``torch.device`` or a
+    GPU index. Any other type is a ``TypeError`` naming these; a CUDA device where torch sees none is a
+    ``RuntimeError``."""
+    from ..rl.trainer import resolve_device
+
+    if device is None:
+        device = "auto"
+    elif isinstance(device, numbers.Integral) and not isinstance(device, bool):  # torch's GPU index
+        device = f"cuda:{int(device)}"
+    elif not isinstance(device, (str, torch.device)):
+        raise TypeError(f"device must be 'cpu', 'cuda', 'cuda:K', 'auto', a torch.device, a GPU index or None "
+                        f"(auto), got {device!r}")
+    return resolve_device(device if isinstance(device, str) else str(device))
+
+
 def build_env(num_envs: int, device: str | torch.device | int | None = "cpu", preset: str = "default",
               for_training: bool = True, env_options: dict | None = None, **task) -> tuple[EnvBase, RunConfig]:
     """The walking task of ``preset`` over ``num_envs`` envs on ``device``, as a TorchRL env, and its config.
@@ -49,20 +66,12 @@ def build_env(num_envs: int, device: str | torch.device | int | None = "cpu", pr
     (env fields and sections, the transform settings) are in the returned config.
     """
     from ..rl.trainer import build_env as _trainer_env
-    from ..rl.trainer import resolve_device
 
     # Any integer type (numpy's too: counts often come from arrays), but not bool, which is an int to Python.
     if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or num_envs < 1:
         raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
     num_envs = int(num_envs)
-    if device is None:  # SB3's and skrl's "no preference"
-        device = "auto"
-    elif isinstance(device, numbers.Integral) and not isinstance(device, bool):  # torch's GPU index
-        device = f"cuda:{int(device)}"
-    elif not isinstance(device, (str, torch.device)):
-        raise TypeError(f"device must be 'cpu', 'cuda', 'cuda:K', 'auto', a torch.device, a GPU index or None "
-                        f"(auto), got {device!r}")
-    dev = resolve_device(device if isinstance(device, str) else str(device))
+    dev = env_device(device)
     options = dict(env_options or {})
     own = [k for k in options if k in ("num_envs", "seed", "device", "config", "transforms")]
     if own:

@@ -10,8 +10,7 @@ import torch
 
 from ..evaluation.gait_test import GAIT_CRITERIA, evaluate_policy, gait_passes
 from ..evaluation.record import nominal_config
-from ..rl.trainer import resolve_device
-from ._build import task_config
+from ._build import env_device, task_config
 
 __all__ = ["GAIT_CRITERIA", "check_plotting", "evaluate_actions", "evaluate_policy_file", "gait_passes"]
 
@@ -30,7 +29,7 @@ def check_plotting() -> None:
 
 
 def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str | os.PathLike,
-                     preset: str = "default", num_envs: int = 256, device: str | torch.device = "auto",
+                     preset: str = "default", num_envs: int = 256, device: str | torch.device | int | None = "auto",
                      seconds: float = 8.0, command: tuple[float, float] = (0.5, 0.0), video_envs: int = 0,
                      progress: bool = False, task: dict | None = None,
                      source: str | os.PathLike | None = None) -> dict:
@@ -41,7 +40,7 @@ def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str |
     results), and returns the summary with ``"passes"`` added. Without matplotlib an ``ImportError`` names the
     install command before anything runs (:func:`check_plotting`)."""
     check_plotting()
-    dev = resolve_device(device) if isinstance(device, str) else torch.device(device)
+    dev = env_device(device)  # as the adapters take it: None is "auto", an int a GPU index
     cfg = nominal_config(task_config(preset, num_envs=num_envs, **(task or {})))  # the robot, not training's draws
 
     def actor(td):
@@ -53,7 +52,8 @@ def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str |
     return summary
 
 
-def evaluate_policy_file(load_actor, policy: str, out_dir, num_envs: int = 256, device: str | torch.device = "auto",
+def evaluate_policy_file(load_actor, policy: str, out_dir, num_envs: int = 256,
+                         device: str | torch.device | int | None = "auto",
                          seconds: float = 8.0, command: tuple[float, float] = (0.5, 0.0),
                          progress: bool = True) -> dict:
     """The 8 s gait test of a recipe's ``policy.pt``: ``load_actor(policy)`` (the recipe's loader) gives its metadata
