@@ -39,8 +39,10 @@ class TocabiSB3VecEnv(VecEnv):
     refuses options: the env's reset takes none.
 
     Each ended episode's info holds ``"episode": {"r", "l", "t"}``, as a ``Monitor`` would add: SB3's logger reads
-    it without a ``VecMonitor`` (which would compute the same), and ``evaluate_policy`` counts whole episodes from it;
-    its warning that no ``Monitor`` wraps the env can be silenced with ``evaluate_policy(..., warn=False)``.
+    it without a ``VecMonitor`` (which would compute the same). ``evaluate_policy`` reads that key only under a
+    ``Monitor``, which this env reports it is not (``env_is_wrapped``): it sums the rewards up to each done flag
+    instead, the same episodes (every done is an episode's end); its warning that no ``Monitor`` wraps the env can
+    be silenced with ``evaluate_policy(..., warn=False)``.
 
     Order of calls, as SB3's ``DummyVecEnv`` over gymnasium envs: ``step_async`` before the first ``reset`` is a
     ``gymnasium.error.ResetNeeded``, and ``step``/``reset`` after ``close`` a ``RuntimeError``.
