@@ -140,6 +140,164 @@ def test_reset_options_are_refused_as_by_the_gymnasium_adapter(env):
     assert env.reset().shape == (N, 237)
 
 
+def _per_array_step(r, reward_terms: bool):
+    """What ``step_wait`` returns from the step result ``r``, each array copied to the host on its own: the
+    straightforward computation the packed copy must equal bit for bit."""
+    obs, final_obs = r.obs.cpu().numpy(), r.final_obs.cpu().numpy()
+    done, truncated = r.done.cpu().numpy(), r.truncated.cpu().numpy()
+    infos = [{} for _ in range(len(done))]
+    if reward_terms:
+        terms = {k: v.cpu().numpy() for k, v in r.reward_terms.items()}
+        for i, info in enumerate(infos):
+            info["reward_terms"] = {k: float(v[i]) for k, v in terms.items()}
+    ret, length = r.episode_return.cpu().numpy(), r.episode_length.cpu().numpy()
+    for i in np.flatnonzero(done):
+        infos[i]["terminal_observation"] = final_obs[i]
+        infos[i]["TimeLimit.truncated"] = bool(truncated[i])
+        infos[i]["episode"] = {"r": float(ret[i]), "l": int(length[i])}
+    return obs, r.reward.cpu().numpy(), done, infos
+
+
+def _assert_bit_identical(got, want):
+    """``got`` (step_wait's four results) equals ``want`` (:func:`_per_array_step`'s) in dtypes, shapes and bytes;
+    the episodes' wall-clock ``"t"`` is left out (the two are computed at different times)."""
+    for a, b in zip(got[:3], want[:3]):
+        assert (a.dtype, a.shape, a.tobytes()) == (b.dtype, b.shape, b.tobytes())
+    assert len(got[3]) == len(want[3])
+    for info, ref in zip(got[3], want[3]):
+        assert info.keys() == ref.keys()
+        if "terminal_observation" in ref:
+            a, b = info["terminal_observation"], ref["terminal_observation"]
+            assert (a.dtype, a.shape, a.tobytes()) == (b.dtype, b.shape, b.tobytes())
+            assert type(info["TimeLimit.truncated"]) is bool
+            assert info["TimeLimit.truncated"] is ref["TimeLimit.truncated"]
+            episode = dict(info["episode"])
+            assert type(episode.pop("t")) is float
+            assert {k: (type(v), repr(v)) for k, v in episode.items()} == \
+                   {k: (type(v), repr(v)) for k, v in ref["episode"].items()}
+        if "reward_terms" in ref:
+            assert {k: repr(v) for k, v in info["reward_terms"].items()} == \
+                   {k: repr(v) for k, v in ref["reward_terms"].items()}
+
+
+def _recording(env, monkeypatch) -> list:
+    """Records each StepResult of ``env`` with its per-array reference, computed right after the step."""
+    seen, step = [], env.stepper.step
+
+    def spy(action):
+        r = step(action)
+        seen.append(_per_array_step(r, env.reward_terms_in_infos))
+        return r
+
+    monkeypatch.setattr(env.stepper, "step", spy)
+    return seen
+
+
+@pytest.mark.parametrize("ending", ["truncation", "termination"])
+def test_a_step_returns_what_copying_each_array_returned_bit_for_bit(ending, monkeypatch):
+    # A step now copies one packed buffer (and the ended envs' rows in a second); SB3 must see the same arrays and
+    # infos as when every array was copied on its own.
+    options = {"min_pelvis_height": 5.0} if ending == "termination" else None  # every first step is a fall
+    env = TocabiSB3VecEnv(N, "cpu", max_episode_steps=2, reward_terms_in_infos=True, env_options=options)
+    try:
+        seen = _recording(env, monkeypatch)
+        env.seed(3)
+        env.reset()
+        rng = np.random.default_rng(0)
+        ended, truncated = [], []
+        for _ in range(5):
+            got = env.step(rng.uniform(-1.0, 1.0, (N, 13)).astype(np.float32))
+            _assert_bit_identical(got, seen[-1])
+            ended.append(bool(got[2].all()) if got[2].all() or not got[2].any() else None)
+            truncated += [info["TimeLimit.truncated"] for info in got[3] if "terminal_observation" in info]
+        # The time limit ends every second step's episodes; the fall every step's.
+        assert ended == ([False, True] * 3)[:5] if ending == "truncation" else ended == [True] * 5
+        assert all(t is (ending == "truncation") for t in truncated)
+    finally:
+        env.close()
+
+
+def _crafted_result(seed: int, done, truncated, length):
+    """A StepResult of N envs with values a cast would change: NaNs with payloads, -0.0, lengths past 2**24."""
+    from tocabi_torchrl.adapters._core import StepResult
+
+    g = torch.Generator().manual_seed(seed)
+    obs, final_obs = torch.randn(N, 237, generator=g), torch.randn(N, 237, generator=g)
+    obs.view(torch.int32)[0, :3] = torch.tensor([0x7FC00001, 0x7F800123, -0x7FFF_FFFF - 1])  # NaNs, -0.0
+    final_obs.view(torch.int32)[-1, 5] = 0x7FC0BEEF
+    done, truncated = torch.tensor(done), torch.tensor(truncated)
+    terms = torch.randn(13, N, generator=g).t()  # strided rows, as the env's terms are
+    return StepResult(obs=obs, final_obs=final_obs, reward=torch.tensor([-0.0, 1.5e-40])[:N],
+                      terminated=done & ~truncated, truncated=truncated, done=done,
+                      reward_terms={f"term{k}": terms[:, k] for k in range(13)},
+                      episode_return=torch.randn(N, generator=g), episode_length=torch.tensor(length))
+
+
+def test_only_the_ended_envs_terminal_observations_are_fetched_and_they_are_bit_identical(env, monkeypatch):
+    # The terminal observation, truncation flag, return and length come from a second copy of the ended rows only:
+    # each must land in its own env's info, with nothing cast on the way.
+    results = [_crafted_result(0, [False, True], [False, True], [3, 2 ** 40 + 3]),
+               _crafted_result(1, [True, False], [False, False], [2 ** 24 + 1, 7]),
+               _crafted_result(2, [True, True], [True, False], [5, 2 ** 53 - 1]),
+               _crafted_result(3, [False, False], [False, False], [1, 1])]
+    queue = list(results)
+    monkeypatch.setattr(env.stepper, "step", lambda action: queue.pop(0))
+    env.reset()
+    for r in results:
+        got = env.step(np.zeros((N, 13), dtype=np.float32))
+        _assert_bit_identical(got, _per_array_step(r, reward_terms=True))
+    assert not queue
+
+
+class _HostReads(torch.Tensor):
+    """A tensor counting each read of its values on the host (a copy to the CPU, or a value Python reads), on it
+    and on every tensor computed from it: each is a copy, and a synchronisation on a GPU."""
+
+    reads: list = []
+    _READS = {"cpu", "numpy", "tolist", "item", "__array__", "__bool__", "__float__", "__int__", "__index__",
+              "nonzero", "argwhere", "masked_select"}
+
+    @classmethod
+    def __torch_function__(cls, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        name = getattr(func, "__name__", "")
+        to_cpu = name == "to" and any(isinstance(a, (str, torch.device)) and torch.device(a).type == "cpu"
+                                      for a in (*args[1:], kwargs.get("device", "meta")))
+        mask = name == "__getitem__" and isinstance(args[1], torch.Tensor) and args[1].dtype == torch.bool
+        if name in cls._READS or to_cpu or mask:
+            cls.reads.append(name)
+        out = super().__torch_function__(func, types, args, kwargs)
+        # What was copied to the host is a plain tensor: reading it again costs nothing.
+        return out.as_subclass(torch.Tensor) if name == "cpu" or to_cpu else out
+
+
+def test_a_step_copies_to_the_host_once_and_again_only_where_an_episode_ended(env, monkeypatch):
+    # The docs promise one synchronisation per step; the adapter copied obs, final_obs, done, truncated and reward on
+    # their own (five), each of the 13 reward terms too, and the returns and lengths of every env on a done step.
+    step = env.stepper.step
+
+    def counted(action):
+        r = step(action)
+        for name in ("obs", "final_obs", "reward", "terminated", "truncated", "done", "episode_return",
+                     "episode_length"):
+            setattr(r, name, getattr(r, name).as_subclass(_HostReads))
+        r.reward_terms = {k: v.as_subclass(_HostReads) for k, v in r.reward_terms.items()}
+        return r
+
+    monkeypatch.setattr(env.stepper, "step", counted)
+    monkeypatch.setattr(_HostReads, "reads", [])
+    env.seed(0)
+    env.reset()  # max_episode_steps=2: the second step ends every episode
+    zeros = np.zeros((N, 13), dtype=np.float32)
+    reads = []
+    for _ in range(4):
+        _HostReads.reads.clear()
+        _, _, dones, infos = env.step(zeros)
+        reads.append((bool(dones.any()), list(_HostReads.reads)))
+    assert reads == [(False, ["cpu"]), (True, ["cpu", "cpu"])] * 2
+    assert all("terminal_observation" in info and "reward_terms" in info for info in infos)
+
+
 def test_recipe_trains_two_iterations_with_the_reference_schedule(tmp_path):
     recipe = load_recipe("train_sb3")
     out = tmp_path / "run"

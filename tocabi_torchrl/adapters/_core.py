@@ -19,7 +19,7 @@ from gymnasium.error import ClosedEnvironmentError, ResetNeeded
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-__all__ = ["EnvClosedError", "ResetNeededError", "StepResult", "TensorStepper", "real_actions"]
+__all__ = ["EnvClosedError", "ResetNeededError", "StepResult", "TensorStepper", "real_actions", "to_host"]
 
 
 class ResetNeededError(ResetNeeded, RuntimeError):
@@ -39,6 +39,39 @@ def real_actions(actions) -> np.ndarray:
     if raw.dtype.kind not in "fiu":
         raise TypeError(f"actions must be real numbers (float32), got an array of {raw.dtype}")
     return raw.astype(np.float32, copy=False)
+
+
+#: Each tensor's bytes start at a multiple of this in :func:`to_host`'s buffer, so that every array viewing its span
+#: is aligned for its dtype (8: the widest of float64, int64).
+_HOST_ALIGN = 8
+
+
+def to_host(*tensors: torch.Tensor) -> list[np.ndarray]:
+    """Numpy arrays of ``tensors`` (all on one device, any shapes, dtypes numpy has) from one device->host copy.
+
+    The tensors' bytes are packed into one uint8 tensor on their device and copied once; each array views its own span
+    of that host buffer, with its tensor's shape and dtype. No value is cast on the way, so every array equals
+    ``tensor.cpu().numpy()`` bit for bit (NaN payloads and -0.0 included). On a GPU that is one synchronisation
+    where a copy per tensor would be one each. The arrays are fresh (never views of the env's tensors) and
+    C-contiguous."""
+    if not tensors:
+        return []
+    parts, spans, at = [], [], 0
+    for t in tensors:
+        raw = t.detach().contiguous().reshape(-1).view(torch.uint8)
+        parts.append(raw)
+        pad = -raw.numel() % _HOST_ALIGN
+        if pad:
+            parts.append(raw.new_zeros(pad))
+        spans.append((at, raw.numel()))
+        at += raw.numel() + pad
+    host = torch.cat(parts).cpu().numpy()
+    return [host[start:start + size].view(_numpy_dtype(t.dtype)).reshape(tuple(t.shape))
+            for t, (start, size) in zip(tensors, spans)]
+
+
+def _numpy_dtype(dtype: torch.dtype) -> np.dtype:
+    return torch.empty(0, dtype=dtype).numpy().dtype
 
 
 @dataclass

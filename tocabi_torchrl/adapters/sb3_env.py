@@ -1,8 +1,10 @@
 """Stable-Baselines3's ``VecEnv`` (stable-baselines3 2.x) over the walking task: numpy arrays on the host.
 
 SB3 runs its policy on numpy observations, so every step copies the observation (num_envs × 237 float32), the
-rewards and the done flags from the env's device to the host and the actions back: on a GPU that is two copies
-and one synchronisation per step (the per-library table states it). ``infos`` follow SB3's conventions:
+rewards and the done flags (and the reward terms with ``reward_terms_in_infos``) from the env's device to the host,
+packed into one transfer, and the actions back: on a GPU that is one synchronisation per step (the per-library
+table states it). A step where episodes ended copies the last observation, return, length and truncation flag of
+those envs alone in a second transfer. ``infos`` follow SB3's conventions:
 ``"terminal_observation"`` and ``"TimeLimit.truncated"`` for envs whose episode ended (SB3's PPO bootstraps the
 truncated ones) and ``"episode"`` {``"r"``, ``"l"``, ``"t"``}, which SB3's logger reads (``rollout/ep_rew_mean``).
 """
@@ -21,7 +23,7 @@ require("stable_baselines3")
 from stable_baselines3.common.vec_env import VecEnv
 
 from ._build import build_env
-from ._core import TensorStepper, real_actions
+from ._core import TensorStepper, real_actions, to_host
 from .spaces import box_from_spec
 
 __all__ = ["TocabiSB3VecEnv"]
@@ -89,21 +91,26 @@ class TocabiSB3VecEnv(VecEnv):
             raise RuntimeError("step_wait() called without step_async(actions)")
         r = self.stepper.step(self._actions)
         self._actions = None
-        obs, final_obs = r.obs.cpu().numpy(), r.final_obs.cpu().numpy()
-        done, truncated = r.done.cpu().numpy(), r.truncated.cpu().numpy()
+        terms = list(r.reward_terms.items()) if self.reward_terms_in_infos else []
+        # One device->host copy for what every step returns (a copy per array was one synchronisation each on a GPU).
+        obs, reward, done, *term_values = to_host(r.obs, r.reward, r.done, *(v for _, v in terms))
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
-        if self.reward_terms_in_infos:
-            terms = {k: v.cpu().numpy() for k, v in r.reward_terms.items()}
+        if terms:
             for i, info in enumerate(infos):
-                info["reward_terms"] = {k: float(v[i]) for k, v in terms.items()}
-        if done.any():
-            ret, length = r.episode_return.cpu().numpy(), r.episode_length.cpu().numpy()
+                info["reward_terms"] = {k: float(v[i]) for (k, _), v in zip(terms, term_values)}
+        ended = np.flatnonzero(done)
+        if ended.size:
+            # A second copy only on a step where episodes ended, of those envs' rows alone: their index is on the
+            # host already, so selecting them on the device reads nothing back.
+            rows = torch.as_tensor(ended, device=self.device)
+            final_obs, truncated, ret, length = to_host(r.final_obs[rows], r.truncated[rows], r.episode_return[rows],
+                                                        r.episode_length[rows])
             elapsed = round(time.time() - self._start, 6)
-            for i in np.flatnonzero(done):
-                infos[i]["terminal_observation"] = final_obs[i]
-                infos[i]["TimeLimit.truncated"] = bool(truncated[i])
-                infos[i]["episode"] = {"r": float(ret[i]), "l": int(length[i]), "t": elapsed}
-        return obs, r.reward.cpu().numpy(), done, infos
+            for j, i in enumerate(ended):
+                infos[i]["terminal_observation"] = final_obs[j]
+                infos[i]["TimeLimit.truncated"] = bool(truncated[j])
+                infos[i]["episode"] = {"r": float(ret[j]), "l": int(length[j]), "t": elapsed}
+        return obs, reward, done, infos
 
     def close(self) -> None:
         self._actions = None
