@@ -391,6 +391,33 @@ def test_the_recipes_gait_test_shows_progress(monkeypatch, tmp_path):
     assert seen == [(True, "policy.pt"), (False, "policy.pt")]  # summary.json names the file it tested
 
 
+@pytest.mark.parametrize(("meta", "problem"), [
+    ({"task": {"seed": 0}}, r"its metadata has no 'preset' \(the name of the preset"),
+    ({"preset": "default"}, r"its metadata has no 'task' \(the task options"),
+    ({"preset": 3, "task": {}}, r"its metadata's 'preset' is 3, not the name of the preset"),
+    ({"preset": "default", "task": [1]}, r"its metadata's 'task' is \[1\], not the task options"),
+], ids=["no_preset", "no_task", "preset_not_text", "task_not_a_dict"])
+def test_a_policy_file_without_its_preset_or_task_is_refused_naming_file_field_and_fix(tmp_path, monkeypatch, meta,
+                                                                                       problem):
+    # The recipes always write both; a hand-made or older policy.pt without them ended in a bare KeyError('preset').
+    from tocabi_torchrl.adapters import evaluate as ev
+
+    def no_rollout(*args, **kwargs):
+        raise AssertionError("the gait test ran")
+
+    monkeypatch.setattr(ev, "evaluate_policy", no_rollout)
+    path = save_policy(tmp_path / "policy.pt", "sb3", {"w": torch.zeros(2)}, {"hidden": [4], **meta})
+
+    def load_actor(policy):
+        return load_policy(policy, "sb3")[0], lambda obs: obs[:, :13]
+
+    with pytest.raises(PolicyFileError, match=problem) as refused:
+        ev.evaluate_policy_file(load_actor, str(path), tmp_path / "eval", num_envs=1, device="cpu")
+    message = str(refused.value)
+    assert message.startswith(f"{path}: ") and "save_policy(" in message and "'preset'" in message
+    assert not (tmp_path / "eval").exists()
+
+
 def _without_matplotlib(monkeypatch):
     # As on an install without the viz extra: None in sys.modules makes every import of it an ImportError.
     import sys
