@@ -159,6 +159,36 @@ def test_numpy_mode_refuses_non_finite_actions_naming_the_rows(envs, bad):
     envs.step(_zero(envs))  # nothing was stepped: the env goes on
 
 
+@pytest.mark.parametrize("numpy_mode", [False, True], ids=["tensor_mode", "numpy_mode"])
+def test_both_modes_check_host_actions_alike_whatever_their_type(numpy_mode):
+    # Tensor mode took arrays and CPU tensors too but skipped the finite check numpy mode made: a NaN acted as 0 and
+    # an inf as the bound. Shape, type and values are now checked alike in both modes, for every host action.
+    env = TocabiVectorEnv(N, "cpu", numpy=numpy_mode)
+    try:
+        env.reset(seed=0)
+        bad = np.zeros((N, 13), dtype=np.float32)
+        bad[1, 4], bad[0, 0] = np.nan, -np.inf
+        for actions in (bad, bad.astype(np.float64), bad.tolist(), torch.as_tensor(bad)):
+            with pytest.raises(ValueError, match=r"actions must be finite, but env rows \[0, 1\] hold NaN or inf"):
+                env.step(actions)
+        too_large = np.full((N, 13), 1e39)  # finite as float64, inf once cast to the env's float32
+        with pytest.raises(ValueError, match=r"env rows \[0, 1\] hold NaN or inf"):
+            env.step(too_large)
+        for actions in (np.zeros((N, 12), dtype=np.float32), [[0.0] * 13], torch.zeros(N, 12)):
+            with pytest.raises(ValueError, match=r"actions must have shape \(2, 13\)"):
+                env.step(actions)
+        for actions in (np.zeros((N, 13), bool), np.full((N, 13), "0.5"), torch.zeros(N, 13, dtype=torch.bool)):
+            with pytest.raises(TypeError, match="actions must be real numbers"):
+                env.step(actions)
+        assert env.stepper.env_steps == 0  # nothing was stepped
+        for actions in (np.zeros((N, 13), dtype=np.float32), [[0] * 13] * N, torch.zeros(N, 13, dtype=torch.float64)):
+            obs, *_ = env.step(actions)
+            assert isinstance(obs, np.ndarray if numpy_mode else torch.Tensor)
+        assert env.stepper.env_steps == 3 * N
+    finally:
+        env.close()
+
+
 def test_an_action_that_requires_grad_steps_and_the_next_step_too():
     # The docs' own envs.step(policy(obs)): the action carries the policy's graph, which reached the env's control
     # buffer, and every later step failed, even with zeros and after a reset.

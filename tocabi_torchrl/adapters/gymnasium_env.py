@@ -31,7 +31,8 @@ class TocabiVectorEnv(VectorEnv):
         num_envs: robots simulated at once.
         device: ``"cpu"``, ``"cuda"``, ``"cuda:K"`` or ``"auto"``.
         numpy: return numpy arrays on the host (for numpy-based libraries and gymnasium's checks); by default
-            every returned array is a torch tensor on ``device`` and actions may be tensors there too.
+            every returned array is a torch tensor on ``device``. The mode sets what ``step`` and ``reset`` return,
+            not what ``step`` takes: both modes take the same actions and check them alike (below).
         preset: the task preset (control mode, gains, commands, rewards) of
             :data:`tocabi_torchrl.rl.config.PRESETS`; ``task``: single fields of it (e.g. ``seed=1``).
         episode_statistics: fill ``infos["episode"]``/``["_episode"]`` (below) from the env's own counters, on
@@ -48,9 +49,12 @@ class TocabiVectorEnv(VectorEnv):
     Order of calls, as gymnasium's envs: ``step`` before the first ``reset`` is a ``gymnasium.error.ResetNeeded``,
     and ``step`` or ``reset`` after ``close`` a ``RuntimeError`` (gymnasium's ``ClosedEnvironmentError`` too).
 
-    Actions: a tensor on ``device`` (detached; NaN acts as 0 and ±inf is clipped to the bounds, unchecked so that a
-    GPU step never synchronises) or, in numpy mode, also an array, whose values are checked on the host: a NaN or
-    ±inf is a ``ValueError`` naming the env rows.
+    Actions, in either mode: (num_envs, 13) real numbers, as a numpy array (or nested sequence) or a torch tensor
+    on the host or on ``device``, cast to float32 and detached. A wrong shape is a ``ValueError``; booleans, complex
+    numbers or text a ``TypeError`` (a float32 cast would read ``True`` as 1.0). Actions on the host (an array, a
+    sequence or a CPU tensor) have their values checked there, which costs no synchronisation: a NaN or ±inf is a
+    ``ValueError`` naming the env rows. A tensor on a GPU is not read (that would synchronise every step): there NaN
+    acts as 0 and ±inf is clipped to the action bounds.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
@@ -93,14 +97,16 @@ class TocabiVectorEnv(VectorEnv):
         return self._out(obs), {}
 
     def step(self, actions):
-        """Step every env with ``actions`` (num_envs, 13): a tensor or an array; see the class docstring."""
+        """Step every env with ``actions`` (num_envs, 13): an array or a tensor, in either mode; see the class
+        docstring. Returns ``(obs, reward, terminated, truncated, infos)``."""
         self.stepper.check_ready("step()")  # before the actions: a step out of order is no bad action
         if not isinstance(actions, torch.Tensor):
             actions = real_actions(actions)
         elif actions.is_complex() or actions.dtype == torch.bool:
             raise TypeError(f"actions must be real numbers (float32), got a tensor of {actions.dtype}")
         actions = torch.as_tensor(actions, dtype=torch.float32)
-        if self.numpy and actions.device.type == "cpu":  # on the host already: reading the values costs no sync
+        # On the host already, whatever the mode: reading the values costs no synchronisation.
+        if actions.device.type == "cpu":
             self.stepper.check_finite(self.stepper.check_action(actions))
         r = self.stepper.step(actions.to(self.device))
         return self._out(r.obs), self._out(r.reward), self._out(r.terminated), self._out(r.truncated), self._infos(r)
