@@ -131,6 +131,25 @@ def test_bad_push_settings_are_refused_by_name(bad):
         PushConfig(**bad).validate()
 
 
+@pytest.mark.parametrize("bad, message", [
+    (dict(speed=1.0), r"env.pushes.speed must be \(low, high\).*\[m/s\], got 1.0; for one value give it twice, "
+                      r"e.g. \(1.0, 1.0\)"),
+    (dict(window=(1.0, 2.0, 3.0)), r"env.pushes.window must be \(low, high\).*\[s\], got \(1.0, 2.0, 3.0\)"),
+    (dict(duration=("0.004", "0.004")), r"env.pushes.duration must be \(low, high\).*got \('0.004', '0.004'\)"),
+    (dict(window=(True, 5.0)), r"env.pushes.window must be \(low, high\).*got \(True, 5.0\)"),
+    (dict(speed=(1.4, 0.4)), r"env.pushes.speed must be .*got \(1.4, 0.4\); swapped\? give \(0.4, 1.4\)"),
+])
+def test_a_push_range_that_is_no_ordered_pair_is_refused_by_name(bad, message):
+    # A lone number, three numbers or text failed as a raw unpack or comparison error that named no field, and a
+    # bool passed as 0 or 1. The torch-free runtime's PushSettings has the same rule.
+    from tocabi_torchrl.runtime.randomization import PushSchedule, PushSettings
+
+    with pytest.raises(ValueError, match=message):
+        PushConfig(count=2, **bad).validate()
+    with pytest.raises(ValueError, match=message.replace("env.pushes", "pushes")):
+        PushSchedule(PushSettings(count=2, **bad), dt=0.004, mass=100.0)
+
+
 def _env(pushes: PushConfig, n=2, **task):
     cfg = TocabiWalkConfig()
     cfg = dataclasses.replace(cfg, pushes=pushes, task=dataclasses.replace(cfg.task, **task))

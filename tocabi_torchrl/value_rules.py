@@ -126,11 +126,17 @@ def check_push_settings(pushes: Any, prefix: str) -> None:
     count = pushes.count
     if isinstance(count, bool) or not isinstance(count, int) or not 0 <= count <= 64:
         raise ValueError(f"{prefix}count must be an int in [0, 64] (kicks per episode), got {count!r}")
-    for name in ("window", "speed", "duration"):
-        low, high = getattr(pushes, name)
-        if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
-            raise ValueError(f"{prefix}{name} must be (low, high) with 0 <= low <= high, finite, got "
-                             f"{getattr(pushes, name)!r}")
+    for name, unit in (("window", "s"), ("speed", "m/s"), ("duration", "s")):
+        pair = getattr(pushes, name)
+        # Checked whole, not unpacked: a lone number (speed=1.0), three numbers or text failed as a raw unpack or
+        # comparison error without the field's name, and a bool passed as 0 or 1.
+        numbers_ok = (not isinstance(pair, (str, bytes)) and hasattr(pair, "__len__") and len(pair) == 2
+                      and all(NON_NEGATIVE.allows(v) for v in pair))
+        if not (numbers_ok and pair[0] <= pair[1]):
+            fix = (f"; swapped? give ({pair[1]!r}, {pair[0]!r})" if numbers_ok else
+                   f"; for one value give it twice, e.g. ({pair!r}, {pair!r})" if NON_NEGATIVE.allows(pair) else "")
+            raise ValueError(f"{prefix}{name} must be (low, high) with 0 <= low <= high, finite [{unit}], got "
+                             f"{pair!r}{fix}")
     if pushes.kind not in PUSH_KINDS:
         raise ValueError(f"{prefix}kind must be one of {PUSH_KINDS} (force: on the pelvis; velocity: the whole "
                          f"robot's velocity), got {pushes.kind!r}")
