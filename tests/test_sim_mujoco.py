@@ -7,6 +7,8 @@ imported below and run here against this module's ``sim`` fixture, a MujocoSim o
 
 from __future__ import annotations
 
+import math
+
 import mujoco
 import numpy as np
 import pytest
@@ -183,6 +185,14 @@ def test_sensors_every_substep_changes_nothing_visible(sim):
         (SimConfig(threads=1.5), ValueError, "threads must be a positive int"),
         (SimConfig(device="cuda"), ValueError, "C engine on the CPU.*WarpSim"),
         (SimConfig(device="tpu"), ValueError, "unknown device 'tpu'"),
+        # These were taken: "no" is truthy (sensors in every substep), an infinite tolerance stopped the solver after
+        # one iteration, True set it to 1.0, and text failed as a raw comparison error.
+        (SimConfig(sensors_every_substep="no"), ValueError, "SimConfig.sensors_every_substep must be True or False"),
+        (SimConfig(use_graph="false"), ValueError, "SimConfig.use_graph must be True or False, got 'false'"),
+        (SimConfig(health_overflow_mask=1.5), ValueError, r"SimConfig.health_overflow_mask must be an int.*got 1.5"),
+        (SimConfig(solver_tolerance=math.inf), ValueError, r"SimConfig.solver_tolerance must be a finite number >= 0"),
+        (SimConfig(solver_tolerance=True), ValueError, r"SimConfig.solver_tolerance must be .*got True"),
+        (SimConfig(solver_tolerance="1e-8"), ValueError, r"SimConfig.solver_tolerance must be .*got '1e-8'"),
     ],
 )
 def test_bad_configuration_is_refused(config, error, message):

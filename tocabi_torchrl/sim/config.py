@@ -6,6 +6,8 @@ import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from ..tree import check_field_types
+from ..value_rules import NON_NEGATIVE
 from .buffers import CONTACT_SENSOR_MAXMATCH, NCCDMAX, NCONMAX, NJMAX
 
 if TYPE_CHECKING:
@@ -119,8 +121,15 @@ class SimConfig:
         for name in ("solver_iterations", "solver_ls_iterations", "threads", "nccdmax"):
             if getattr(self, name) is not None:
                 positive_int(name)
-        if self.solver_tolerance is not None and not self.solver_tolerance >= 0.0:
-            raise ValueError(f"SimConfig.solver_tolerance must be >= 0, got {self.solver_tolerance!r}")
+        # The switches and the overflow mask: "no" is truthy (sensors_every_substep="no" evaluated the sensors in
+        # every substep) and 1.5 was cut to 1 when the mask reached the health kernel.
+        check_field_types(self, "SimConfig.")
+        tol = self.solver_tolerance
+        if tol is not None and not NON_NEGATIVE.allows(tol):
+            # inf stopped MuJoCo's solver after one iteration and True set 1.0, both without a word; text failed as
+            # a raw comparison error.
+            raise ValueError(f"SimConfig.solver_tolerance must be {NON_NEGATIVE.describe()} (the solver's "
+                             f"tolerance; None keeps the model file's), got {tol!r}")
         if self.reset_pass not in RESET_PASSES:
             raise ValueError(f"SimConfig.reset_pass must be one of {RESET_PASSES}, got {self.reset_pass!r}")
         cols = self.substep_ctrl
