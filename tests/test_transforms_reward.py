@@ -395,6 +395,21 @@ def test_kick_relaxation_is_off_without_kicks_and_refuses_bad_settings():
         TaskReward(reference_terms(), kick_relax={"seconds": 1.0})
 
 
+@pytest.mark.parametrize("terms, message", [
+    ("qpos", r"transforms.kick_relax.terms must be a tuple of reward term names, got 'qpos'; for one term give "
+             r"\('qpos',\)"),
+    (None, r"transforms.kick_relax.terms must be a tuple of reward term names, got None; e.g. \('qpos', "),
+    (5, r"transforms.kick_relax.terms must be a tuple of reward term names, got 5"),
+])
+def test_kick_relax_terms_that_are_no_tuple_of_names_are_refused_by_name(terms, message):
+    # One name was taken as its letters ('q', 'p', 'o', 's'), and None failed as a raw "not iterable" TypeError.
+    from tocabi_torchrl.transforms import KickRelax
+
+    with pytest.raises(ValueError, match=message):
+        KickRelax(seconds=1.5, terms=terms)
+    assert KickRelax(seconds=1.5, terms=["qpos", "qacc"]).terms == ("qpos", "qacc")
+
+
 def test_a_reward_sum_in_front_of_the_reward_is_refused():
     # The bare env's reward is 0 by design: a RewardSum before TaskReward summed zeros into episode_reward, silently.
     from torchrl.envs import Compose, RewardSum

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 __all__ = ["KickRelax", "KICK_RELAX_TERMS"]
@@ -41,7 +42,13 @@ class KickRelax:
     KEYS = ("kick_age", "kick_speed")
 
     def __post_init__(self):
-        object.__setattr__(self, "terms", tuple(self.terms))
+        terms = self.terms
+        # Before the tuple: one name ("qpos") became its letters ('q', 'p', 'o', 's'), and None failed as a raw
+        # "'NoneType' object is not iterable".
+        if isinstance(terms, (str, bytes)) or not isinstance(terms, Iterable):
+            fix = f"; for one term give ({terms!r},)" if isinstance(terms, str) else f"; e.g. {KICK_RELAX_TERMS}"
+            raise ValueError(f"transforms.kick_relax.terms must be a tuple of reward term names, got {terms!r}{fix}")
+        object.__setattr__(self, "terms", tuple(terms))
         self.validate()
 
     @property
