@@ -169,6 +169,22 @@ def test_the_convex_collision_slots_reach_mujoco_warp_and_a_bad_count_is_named()
     assert default.sim.wp_data.naccdmax == 2 * NCCDMAX
 
 
+@pytest.mark.parametrize("sim, message", [
+    (dict(nccdmax=100), r"env.sim.nccdmax must be <= the default env.sim.nconmax \(48\).*got 100; lower "
+                        r"env.sim.nccdmax or raise env.sim.nconmax to at least 100"),
+    (dict(nccdmax=40, nconmax=20, backend="mujoco"), r"env.sim.nccdmax must be <= env.sim.nconmax \(20\).*got 40"),
+])
+def test_more_convex_collision_slots_than_contacts_are_refused_by_the_env_path(sim, message):
+    # Only the warp backend's SimConfig refused them, at the env's build and as "SimConfig.nccdmax"; the run config
+    # and a config naming the mujoco backend took them.
+    from tocabi_torchrl.config import RunConfig
+    from tocabi_torchrl.tree import replace_paths
+
+    with pytest.raises(ValueError, match=message):
+        replace_paths(RunConfig(), {f"env.sim.{k}": v for k, v in sim.items()}).validate()
+    replace_paths(RunConfig(), {"env.sim.nccdmax": 20, "env.sim.nconmax": 20}).validate()
+
+
 @pytest.mark.parametrize("backend", ["mujoco", "warp"])
 def test_the_solver_iteration_cap_reaches_both_backends_and_a_bad_cap_is_named(backend):
     from tocabi_torchrl.envs import TocabiWalk

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from .. import robot
 from ..cli import suggest_options
 from ..control.config import ActuatorConfig
-from ..sim.config import RESET_PASSES
+from ..sim.config import NCONMAX, RESET_PASSES
 from ..sim.dynamics_config import DynamicsRandomization
 from ..tree import OWN_NUMBER_CHECK, check_field_types
 from ..value_rules import ENV_RULES, check_env_value
@@ -121,6 +121,14 @@ class EnvSimConfig:
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 alias = " (sim_threads)" if name == "threads" else ""
                 raise ValueError(f"env.sim.{name}{alias} must be a positive int or None, got {v!r}")
+        # Here, by its path: otherwise only the warp backend's SimConfig refused it, at the env's build, as
+        # "SimConfig.nccdmax", and a config that names the mujoco backend (which ignores both) passed.
+        nconmax = self.nconmax if self.nconmax is not None else NCONMAX
+        if self.nccdmax is not None and self.nccdmax > nconmax:
+            given = "env.sim.nconmax" if self.nconmax is not None else "the default env.sim.nconmax"
+            raise ValueError(f"env.sim.nccdmax must be <= {given} ({nconmax}): mujoco-warp takes its "
+                             f"convex-collision pairs from each world's contact pool, got {self.nccdmax}; lower "
+                             f"env.sim.nccdmax or raise env.sim.nconmax to at least {self.nccdmax}")
 
 
 @dataclass
