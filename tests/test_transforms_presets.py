@@ -158,6 +158,24 @@ def test_numbers_are_checked_by_name():
     assert transform_config(obs_clip=None).obs_clip is None
 
 
+def test_a_clip_without_a_normaliser_is_refused_by_name():
+    # The normaliser clips its output: with normalization "none" there is none, and the clip was silently not
+    # applied (the raw observation went on).
+    from tocabi_torchrl.config import RunConfig
+    from tocabi_torchrl.transforms import TransformSettings
+    from tocabi_torchrl.tree import replace_paths
+
+    with pytest.raises(ValueError, match=r"^obs_clip 5.0 clips the normalised observation, and normalization is "
+                                         r"'none'.*use normalization 'fixed' or 'running', or obs_clip None"):
+        transform_config(normalization="none", obs_clip=5.0)
+    with pytest.raises(ValueError, match=r"^transforms.obs_clip 5.0 clips .*transforms.normalization is 'none'"):
+        TransformSettings(normalization="none", obs_clip=5.0).validate()
+    with pytest.raises(ValueError, match=r"^transforms.obs_clip 0.5 clips"):
+        replace_paths(RunConfig(), {"transforms.normalization": "none", "transforms.obs_clip": 0.5}).validate()
+    assert transform_config(normalization="none").obs_clip is None
+    assert transform_config(normalization="running", obs_clip=5.0).obs_clip == 5.0
+
+
 def test_reset_returns_policy_input_without_stepping():
     env = _env()
     td = env.reset()

@@ -31,6 +31,13 @@ REFERENCE_TERM_NAMES = ("orientation", "qpos", "qvel", "body_vel", "contact_forc
                         "foot_contact", "contact_force_diff", "force_ref", "force_threshold", "force_diff_threshold")
 
 
+#: The normaliser clips its output, so without one a clip was silently not applied (the raw observation went on,
+#: foot forces of hundreds of N included).
+_CLIP_WITHOUT_NORMALIZATION = ("{prefix}obs_clip {clip!r} clips the normalised observation, and {prefix}normalization "
+                               "is 'none' (no normaliser, so nothing would be clipped): use {prefix}normalization "
+                               "'fixed' or 'running', or {prefix}obs_clip None")
+
+
 @dataclass(frozen=True)
 class TransformConfig:
     """Everything :func:`default_transforms` builds, as plain values.
@@ -97,6 +104,8 @@ class TransformConfig:
         check_field_types(self)
         if (self.obs_mean is None) != (self.obs_var is None):
             raise ValueError("pass both obs_mean and obs_var, or neither (for the reference statistics)")
+        if self.obs_clip is not None and self.normalization == "none":
+            raise ValueError(_CLIP_WITHOUT_NORMALIZATION.format(prefix="", clip=self.obs_clip))
         if self.max_episode_steps is not None:
             check_positive_int(self.max_episode_steps, "max_episode_steps", "or None to only count steps")
         check_positive_int(self.phase_harmonics, "phase_harmonics")
@@ -266,6 +275,8 @@ class TransformSettings:
         if self.obs_clip is not None and not (self.obs_clip > 0 and math.isfinite(self.obs_clip)):
             raise ValueError(f"transforms.obs_clip must be a finite number > 0 (the normalised observation is clipped "
                              f"to [-obs_clip, obs_clip]) or none for no clip, got {self.obs_clip!r}")
+        if self.obs_clip is not None and self.normalization == "none":
+            raise ValueError(_CLIP_WITHOUT_NORMALIZATION.format(prefix="transforms.", clip=self.obs_clip))
         for name, kind in (("sensor_noise", SensorNoiseConfig), ("kick_relax", KickRelax)):
             _section(getattr(self, name), kind, f"transforms.{name}", dicts=False)  # the tree converts dicts
         self.sensor_noise.validate()
