@@ -170,6 +170,17 @@ def test_bad_options_name_the_option_and_the_fix(capsys):
     assert cfg.eval_at_end is False and json.loads(json.dumps(cfg.to_dict()))["eval_at_end"] is False
 
 
+@pytest.mark.parametrize("loggers", [None, 5])
+def test_loggers_that_are_no_tuple_of_names_are_refused_by_name(loggers):
+    # set(None) failed as a raw "'NoneType' object is not iterable" TypeError (a saved config's null, too).
+    with pytest.raises(ValueError, match=rf"loggers must be a tuple of names from \('csv', 'tensorboard', 'wandb'\) "
+                                         rf"\(csv is always written; \(\) for no others\), got {loggers!r}"):
+        preset_config("default", loggers=loggers)
+    saved = {**RunConfig().to_dict(), "loggers": loggers}
+    with pytest.raises(ValueError, match="loggers must be a tuple of names"):
+        config_from_dict(saved).validate()
+
+
 def test_tree_round_trips_through_json():
     cfg = preset_config("torque")
     assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg

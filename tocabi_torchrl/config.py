@@ -496,6 +496,9 @@ class RunConfig:
         if isinstance(self.loggers, str):  # iterated, one name would be read as its letters
             raise ValueError(f"loggers must be a tuple of names, e.g. ({self.loggers!r},), got the string "
                              f"{self.loggers!r}")
+        if not isinstance(self.loggers, (tuple, list)):  # None (a saved null) failed as "not iterable"
+            raise ValueError(f"loggers must be a tuple of names from {LOGGERS} (csv is always written; () for no "
+                             f"others), got {self.loggers!r}")
         bad = set(self.loggers) - set(LOGGERS)
         if bad:
             raise ValueError(f"unknown logger(s) {sorted(bad)}; choose from {', '.join(LOGGERS)}")
