@@ -560,3 +560,48 @@ def _no_capture_warning():
             yield
 
     return ctx()
+
+
+def test_schedules_past_the_budget_are_named_with_their_values_and_the_budget():
+    from tocabi_torchrl.config import schedule_past_budget
+
+    for name in ("default", "torque", "robust", "reference", "model_based", "cpu_smoke"):
+        assert schedule_past_budget(preset_config(name)) == [], name  # every preset's schedules fit its budget
+    # The robust preset's fade ends at 120 M and its kicks reach full strength at 35 M env steps.
+    found = schedule_past_budget(preset_config("robust", total_env_steps=20_000_000))
+    assert len(found) == 3
+    assert found[0].startswith("ppo.assist_fade_start 60,000,000") and "the assist never fades" in found[0]
+    assert found[1].startswith("ppo.assist_fade_end 120,000,000") and "total_env_steps 20,000,000" in found[1]
+    assert found[2].startswith("ppo.push_ramp[1] 35,000,000") and "40 % of their strength" in found[2]
+    [fade_end] = schedule_past_budget(preset_config("robust", total_env_steps=100_000_000))
+    assert "67 % through the fade" in fade_end
+    # Without an assist or kicks their schedules act not at all, and nothing is said about them.
+    assert schedule_past_budget(preset_config("torque", total_env_steps=1_000, **{"ppo.torque_assist": 0.0})) == []
+    assert schedule_past_budget(preset_config("robust", total_env_steps=100_000_000, **{
+        "env.pushes.count": 0, "transforms.kick_relax.seconds": 0.0})) == [fade_end]
+
+
+def test_a_run_whose_schedules_end_past_its_budget_warns_once_at_its_start(tmp_path, monkeypatch):
+    from tocabi_torchrl.rl import trainer
+
+    class Built(Exception):
+        """Raised where the env is built: the run got as far as its start, and trains nothing."""
+
+    def stop(*args, **kwargs):
+        raise Built
+
+    monkeypatch.setattr(trainer, "build_env", stop)
+    kw = {"device": "cpu", "run_dir": str(tmp_path), "eval_at_end": False, "progress_bar": False}
+    cfg = preset_config("torque", total_env_steps=80_000_000, name="past", **kw)
+    with pytest.warns(UserWarning, match="schedules end past its budget") as caught, pytest.raises(Built):
+        trainer.train(cfg)
+    [warning] = [w for w in caught if "past its budget" in str(w.message)]
+    message = str(warning.message)
+    assert "ppo.assist_fade_end 110,000,000" in message and "total_env_steps 80,000,000" in message
+    assert "raise total_env_steps" in message
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a run within its budget starts without the warning
+        with pytest.raises(Built):
+            trainer.train(preset_config("torque", total_env_steps=200_000_000, name="within", **kw))

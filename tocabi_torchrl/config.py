@@ -46,7 +46,8 @@ from .viewer.config import ViewerConfig
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "config_from_dict", "to_dict",
            "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
-           "LOGGERS", "SYMMETRY_MODES", "field_choices", "wall_tag", "check_snapshot_minutes", "LEGACY_VALUES", "MAX_SEED"]
+           "LOGGERS", "SYMMETRY_MODES", "field_choices", "wall_tag", "check_snapshot_minutes", "LEGACY_VALUES",
+           "MAX_SEED", "schedule_past_budget", "schedule_warning"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
@@ -548,6 +549,52 @@ class RunConfig:
             preset = preset_tree(self.preset)
             changed = [path for path in changed if _get(self, path) != _get(preset, path)]
         return changed
+
+
+def schedule_past_budget(cfg: RunConfig) -> list[str]:
+    """The env-step schedules of ``cfg`` that end past its budget (``total_env_steps``), one line each: the field,
+    its value, the budget and what the run ends at; ``[]`` when every schedule ends within it (or acts not at all:
+    no assist, no kicks).
+
+    Not an error: a run may be trained in segments, each resumed with a larger ``total_env_steps``, and a schedule
+    on env steps takes up where it was. The trainer warns with these lines at the run's start. The teacher's pull
+    (``ppo.assist_anchor_decay`` after the fade) is not listed: a pull still decaying at the end is a choice (the
+    robust preset's is at 0.33 of its weight at its budget), where an unfinished fade leaves a policy that never
+    acted alone."""
+    budget, ppo, found = cfg.total_env_steps, cfg.ppo, []
+    if ppo.torque_assist > 0:
+        fade = ppo.assist_fade_end - ppo.assist_fade_start  # > 0: validate() refuses an empty fade with an assist
+        done = min(max((budget - ppo.assist_fade_start) / fade, 0.0), 1.0)
+        ends = f"the run ends {100 * done:.0f} % through the fade, still assisted"
+        for name, what, end in (("assist_fade_start", "the torque assist starts to fade", "the assist never fades"),
+                                ("assist_fade_end", "the torque assist reaches 0, a pure torque policy", ends)):
+            if (value := getattr(ppo, name)) > budget:
+                found.append(f"ppo.{name} {value:,} (where {what}) is past total_env_steps {budget:,}: {end}")
+    if cfg.env.pushes.count > 0:
+        start, full = ppo.push_ramp
+        # push_scale's rule (rl/trainer.py), read at the budget: full from ``full`` on, a step where start == full.
+        if budget >= full:
+            strength = 1.0
+        else:
+            strength = max(0.0, (budget - start) / (full - start)) if full > start else 0.0
+        for index, what, end in ((0, "the kicks start", "the run ends without kicks"),
+                                 (1, "the kicks reach full strength",
+                                  f"the run ends with kicks at {100 * strength:.0f} % of their strength")):
+            if (value := ppo.push_ramp[index]) > budget:
+                found.append(f"ppo.push_ramp[{index}] {value:,} (where {what}) is past total_env_steps {budget:,}: "
+                             f"{end}")
+    return found
+
+
+def schedule_warning(cfg: RunConfig) -> str | None:
+    """The warning a run starts with when :func:`schedule_past_budget` finds schedules past its budget, with how to
+    fix them; ``None`` when it finds none."""
+    found = schedule_past_budget(cfg)
+    if not found:
+        return None
+    return (f"the run's schedules end past its budget: {'; '.join(found)}. Lower them to at most total_env_steps "
+            f"{cfg.total_env_steps:,}, or raise total_env_steps; ignore this if the run is to be resumed with a larger "
+            "total_env_steps, where the schedules go on where they were")
 
 
 #: Options that act only with kicks (``env.pushes.count`` > 0) and only with the torque assist

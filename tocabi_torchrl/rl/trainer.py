@@ -11,6 +11,7 @@ import math
 import numbers
 import signal
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,7 +31,7 @@ from ..device import check_device
 from .actors import action_std, gaussian_head, make_actor, set_action_std
 from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 from .checkpoint import apply_checkpoint, config_from_checkpoint, save_checkpoint
-from ..config import MAX_SEED, RunConfig, wall_tag
+from ..config import MAX_SEED, RunConfig, schedule_warning, wall_tag
 from ..envs.config import TocabiWalkConfig
 from ..tree import get_path, leaf_paths
 from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, all_reduce_mean, all_reduce_sum,
@@ -571,6 +572,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     iterations = budget_iterations(cfg.total_env_steps, frames_per_iteration)
     if run.start_env_steps // frames_per_iteration >= iterations:
         return finished_result(run, cfg)
+    if info.is_main and (warning := schedule_warning(cfg)):
+        # Not refused: a run trained in segments raises total_env_steps as it resumes (config.schedule_past_budget).
+        warnings.warn(warning, UserWarning, stacklevel=3)
     torch.manual_seed(cfg.seed)
     if info.enabled:  # each rank its own worlds; rank 0 keeps the 1-rank run's seed
         cfg = dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info))
