@@ -176,6 +176,39 @@ def test_a_clip_without_a_normaliser_is_refused_by_name():
     assert transform_config(normalization="running", obs_clip=5.0).obs_clip == 5.0
 
 
+def test_a_clip_not_above_zero_is_refused_by_the_config_not_the_normaliser():
+    # It passed the config and was refused only when the normaliser was built ("FixedNormalization clip must be
+    # > 0"), naming no option.
+    from tocabi_torchrl.transforms import TransformSettings
+
+    for clip in (0.0, -1.0, 0):
+        with pytest.raises(ValueError, match=r"^obs_clip must be a finite number > 0 .*or None for no clip"):
+            transform_config(obs_clip=clip)
+        with pytest.raises(ValueError, match=r"^obs_clip must be a finite number > 0"):
+            transform_config(normalization="running", obs_clip=clip)
+        with pytest.raises(ValueError, match=r"^obs_clip must be a finite number > 0"):
+            TransformSettings().transform_config(obs_clip=clip)  # an override goes through the same check
+        with pytest.raises(ValueError, match=r"^transforms.obs_clip must be a finite number > 0"):
+            TransformSettings(obs_clip=clip).validate()
+    assert transform_config(obs_clip=1e-3).obs_clip == 1e-3
+
+
+def test_statistics_without_a_normaliser_are_refused_by_name():
+    # With normalization "none" nothing reads obs_mean/obs_var: they were silently not applied. The running
+    # normaliser starts from them, so there they stay allowed.
+    from tocabi_torchrl.transforms.presets import _normalization
+
+    stats = {"obs_mean": (0.0,) * 37, "obs_var": (1.0,) * 37}
+    with pytest.raises(ValueError, match=r"^obs_mean/obs_var are the normaliser's statistics, and normalization is "
+                                         r"'none'.*or leave obs_mean and obs_var None"):
+        transform_config(normalization="none", **stats)
+    running = transform_config(normalization="running", **stats)
+    assert running.obs_mean == stats["obs_mean"]
+    assert _normalization(running) is not None
+    assert transform_config(normalization="fixed", **stats).obs_var == stats["obs_var"]
+    assert _normalization(transform_config(normalization="none")) is None
+
+
 def test_reset_returns_policy_input_without_stepping():
     env = _env()
     td = env.reset()

@@ -36,6 +36,9 @@ REFERENCE_TERM_NAMES = ("orientation", "qpos", "qvel", "body_vel", "contact_forc
 _CLIP_WITHOUT_NORMALIZATION = ("{prefix}obs_clip {clip!r} clips the normalised observation, and {prefix}normalization "
                                "is 'none' (no normaliser, so nothing would be clipped): use {prefix}normalization "
                                "'fixed' or 'running', or {prefix}obs_clip None")
+#: A clip <= 0 passed the config and was refused only when the normaliser was built, without the option's path.
+_CLIP_NOT_POSITIVE = ("{prefix}obs_clip must be a finite number > 0 (the normalised observation is clipped to "
+                      "[-obs_clip, obs_clip]) or None for no clip, got {clip!r}")
 
 
 @dataclass(frozen=True)
@@ -47,8 +50,10 @@ class TransformConfig:
         obs_layout: blocks of the per-step observation (:data:`REFERENCE_OBS_LAYOUT`: 37 values).
         normalization: ``"fixed"`` (reference statistics or ``obs_mean``/``obs_var``), ``"running"`` (running
             statistics, initialised from ``obs_mean``/``obs_var`` when given) or ``"none"``.
-        obs_mean, obs_var: statistics for the normalisation (default: the reference's, spec §7.1).
-        obs_clip: optional clip of the normalised observation (the reference has none).
+        obs_mean, obs_var: statistics for the normalisation, one per per-step observation value (default: the
+            reference's, spec §7.1); refused with ``normalization="none"``, which reads none.
+        obs_clip: optional clip of the normalised observation, > 0 (the reference has none); refused with
+            ``normalization="none"``, which has nothing to clip.
         history: observation + action history layout (:data:`REFERENCE_HISTORY`: 5 obs every 2 steps + 4 actions).
         reward_terms: term names from :data:`REFERENCE_TERM_NAMES` and/or :class:`RewardTerm` instances / callables.
         reward_weights: ``{term name: weight}`` overrides.
@@ -104,8 +109,15 @@ class TransformConfig:
         check_field_types(self)
         if (self.obs_mean is None) != (self.obs_var is None):
             raise ValueError("pass both obs_mean and obs_var, or neither (for the reference statistics)")
+        if self.obs_clip is not None and not self.obs_clip > 0:  # check_field_types refused NaN and inf
+            raise ValueError(_CLIP_NOT_POSITIVE.format(prefix="", clip=self.obs_clip))
         if self.obs_clip is not None and self.normalization == "none":
             raise ValueError(_CLIP_WITHOUT_NORMALIZATION.format(prefix="", clip=self.obs_clip))
+        if self.obs_mean is not None and self.normalization == "none":
+            # Without a normaliser nothing reads them, so statistics given for it were silently not applied.
+            raise ValueError("obs_mean/obs_var are the normaliser's statistics, and normalization is 'none' (no "
+                             "normaliser, so they would not be used): use normalization 'fixed' (these statistics) or "
+                             "'running' (starting from them), or leave obs_mean and obs_var None")
         if self.max_episode_steps is not None:
             check_positive_int(self.max_episode_steps, "max_episode_steps", "or None to only count steps")
         check_positive_int(self.phase_harmonics, "phase_harmonics")
@@ -273,8 +285,7 @@ class TransformSettings:
             raise ValueError(f"transforms.normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
         self.reward_weight_map()
         if self.obs_clip is not None and not (self.obs_clip > 0 and math.isfinite(self.obs_clip)):
-            raise ValueError(f"transforms.obs_clip must be a finite number > 0 (the normalised observation is clipped "
-                             f"to [-obs_clip, obs_clip]) or none for no clip, got {self.obs_clip!r}")
+            raise ValueError(_CLIP_NOT_POSITIVE.format(prefix="transforms.", clip=self.obs_clip))
         if self.obs_clip is not None and self.normalization == "none":
             raise ValueError(_CLIP_WITHOUT_NORMALIZATION.format(prefix="transforms.", clip=self.obs_clip))
         for name, kind in (("sensor_noise", SensorNoiseConfig), ("kick_relax", KickRelax)):
