@@ -267,3 +267,36 @@ def test_preset_is_the_training_preset_as_everywhere_else():
         make_env(num_envs=1, device="cpu", preset="tocabilab")
     with pytest.raises(TypeError, match="preset='torque' or the sections config=/transforms=, not both"):
         make_env(num_envs=1, device="cpu", preset="torque", transforms=TransformSettings())
+
+
+def test_a_reward_terms_list_that_leaves_out_the_presets_extra_terms_is_refused_by_name():
+    # A given list replaced every term, and the robust preset's heading and foot_gap terms were silently dropped.
+    from tocabi_torchrl.config import preset_tree
+    from tocabi_torchrl.transforms import CallableTerm, TaskReward
+    from tocabi_torchrl.transforms.reward_terms import FootGap, HeadingHold
+    from tocabi_torchrl.transforms.settings import REFERENCE_TERM_NAMES
+
+    height = CallableTerm("height", lambda td, nxt: nxt["base_pos"][:, 2:3], weight=0.1)
+    with pytest.raises(ValueError, match=r"leaves out \['heading', 'foot_gap'\].*transforms.heading_weight 0.3, "
+                                         r"transforms.foot_gap_weight 0.3.*extra_reward_terms\(\).*weights to 0"):
+        make_env(num_envs=1, device="cpu", preset="robust", reward_terms=(*REFERENCE_TERM_NAMES, height))
+    settings = preset_tree("robust").transforms
+    extra = settings.extra_reward_terms()
+    assert [type(t) for t in extra] == [HeadingHold, FootGap]
+    assert [(t.weight, t.name) for t in extra] == [(0.3, "heading"), (0.3, "foot_gap")]
+    with pytest.raises(ValueError, match=r"leaves out \['foot_gap'\]"):  # one kept by a term of that name
+        settings.transform_config(reward_terms=(*REFERENCE_TERM_NAMES, HeadingHold(weight=1.0)))
+    # Kept: the settings' own objects, or the weights at 0 for none; without extra terms any list is taken.
+    kept = settings.transform_config(reward_terms=(*REFERENCE_TERM_NAMES, height, *extra)).reward_terms
+    assert kept[-3:] == (height, *extra)
+    import dataclasses
+
+    off = dataclasses.replace(settings, heading_weight=0.0, foot_gap_weight=0.0)
+    assert off.extra_reward_terms() == ()
+    assert off.transform_config(reward_terms=("qpos", height)).reward_terms == ("qpos", height)
+    assert TransformSettings().transform_config(reward_terms=("qpos",)).reward_terms == ("qpos",)
+    # Without reward_terms the settings' list is unchanged: the reference's terms and the extra ones.
+    assert settings.transform_config().reward_terms == (*REFERENCE_TERM_NAMES, *extra)
+    env = make_env(num_envs=1, device="cpu", preset="robust", reward_terms=(*REFERENCE_TERM_NAMES, height, *extra))
+    reward = next(t for t in env.transform if isinstance(t, TaskReward))
+    assert [t.name for t in reward.terms][-3:] == ["height", "heading", "foot_gap"]

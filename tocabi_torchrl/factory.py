@@ -64,6 +64,12 @@ def make_env(
             :class:`~tocabi_torchrl.transforms.TransformConfig` (e.g. ``reward_weights={"qpos": 0.5}``, which
             re-weights the named terms on top of the settings' weights,
             ``normalization="running"``, ``history=HistoryLayout(...)``); a name in neither raises.
+            ``reward_terms`` replaces every reward term, and a list that leaves out a term beyond the reference's
+            that the transform settings switch on (the robust preset's ``heading`` and ``foot_gap``: its
+            ``heading_weight``, ``foot_gap_weight``, ``cycle_vel_weight`` > 0) raises ``ValueError`` naming them,
+            rather than dropping them silently: keep them with ``reward_terms=(..., *settings.extra_reward_terms())``
+            (``settings = tocabi_torchrl.config.preset_tree(preset).transforms``), or leave them out by passing
+            ``config=`` and ``transforms=`` of that tree with their weights set to 0.
 
     The env's ``task.max_episode_steps`` is the one truncation clock: the transforms' ``StepCounter`` only counts.
     """

@@ -321,15 +321,41 @@ class TransformSettings:
                    ("foot_gap", self.foot_gap_weight))
         return tuple(name for name, weight in weights if isinstance(weight, (int, float)) and weight > 0)
 
+    def extra_reward_terms(self) -> tuple:
+        """The reward terms beyond the reference's that these settings switch on (their weight > 0), as the
+        ``RewardTerm`` objects :meth:`transform_config` adds: ``HeadingHold``, ``CycleVelTracking``, ``FootGap``
+        (``reward_terms``; imports torch). What to add to a ``reward_terms`` list of one's own to keep them."""
+        if not self.extra_terms():
+            return ()
+        # Imported here: the terms need torch, which reading the config tree does not.
+        from tocabi_torchrl.transforms.reward_terms import CycleVelTracking, FootGap, HeadingHold
+
+        extra = []
+        if self.heading_weight > 0:
+            extra.append(HeadingHold(weight=float(self.heading_weight), scale=float(self.heading_scale)))
+        if self.cycle_vel_weight > 0:
+            extra.append(CycleVelTracking(weight=float(self.cycle_vel_weight), scale=float(self.cycle_vel_scale)))
+        if self.foot_gap_weight > 0:
+            extra.append(FootGap(weight=float(self.foot_gap_weight), min_gap=float(self.foot_gap_min)))
+        return tuple(extra)
+
     def transform_config(self, **overrides) -> TransformConfig:
         """The :class:`TransformConfig` these settings select, with ``overrides`` (its field names) on top.
         ``reward_weights`` and ``reward_scales`` given here set the named terms on top of these settings' own
         weights and scales (the default's ``body_vel`` weight 0.9 stays unless named); with ``reward_terms`` given,
         the settings' own apply to the terms among them. ``max_episode_steps`` is ``None`` unless overridden: the
-        env is the truncation clock."""
+        env is the truncation clock.
+
+        ``reward_terms`` replaces the terms, and must hold each term beyond the reference's that these settings
+        switch on (:meth:`extra_reward_terms`, e.g. the robust preset's heading and foot_gap), or a term of that
+        name: ``ValueError`` naming the ones left out, so that a list does not silently drop them. Keep them with
+        ``reward_terms=(..., *settings.extra_reward_terms())``, or set their weights (``heading_weight``,
+        ``cycle_vel_weight``, ``foot_gap_weight``) to 0 to leave them out."""
         self.validate()
         weights = self.reward_weight_map()
         scales = {} if self.body_vel_scale is None else {"body_vel": float(self.body_vel_scale)}
+        # A term that is off is not added, so a config without it computes what it always did.
+        extra = self.extra_reward_terms()
         if overrides.get("reward_terms") is not None:
             # Terms without body_vel once ended in "weights given for unknown term(s) ['body_vel']", a weight the
             # caller never gave: these settings' own weights and scales only reach the built-in terms named in use. A
@@ -337,6 +363,7 @@ class TransformSettings:
             in_use = {t for t in overrides["reward_terms"] if isinstance(t, str)}
             weights = {name: w for name, w in weights.items() if name in in_use}
             scales = {name: v for name, v in scales.items() if name in in_use}
+            _check_extra_terms_kept(extra, overrides["reward_terms"])
         # On top, not instead: {"qpos": 0.5} replacing the map silently put body_vel back to the reference's 0.3
         # (weights), and the robust preset's body_vel sharpness 8.0 back to 3.0 (scales).
         weights.update(overrides.pop("reward_weights", None) or {})
@@ -345,17 +372,27 @@ class TransformSettings:
                       zero_reward_on_terminated=self.zero_reward_on_terminated, compile_reward=self.compile_reward,
                       reward_weights=weights, max_episode_steps=None, sensor_noise=self.sensor_noise,
                       kick_relax=self.kick_relax, reward_scales=scales)
-        # A term that is off is not added, so a config without it computes what it always did.
-        extra = []
-        if self.extra_terms():
-            # Imported here: the terms need torch, which reading the config tree does not.
-            from tocabi_torchrl.transforms.reward_terms import CycleVelTracking, FootGap, HeadingHold
-
-            if self.heading_weight > 0:
-                extra.append(HeadingHold(weight=float(self.heading_weight), scale=float(self.heading_scale)))
-            if self.cycle_vel_weight > 0:
-                extra.append(CycleVelTracking(weight=float(self.cycle_vel_weight), scale=float(self.cycle_vel_scale)))
-            if self.foot_gap_weight > 0:
-                extra.append(FootGap(weight=float(self.foot_gap_weight), min_gap=float(self.foot_gap_min)))
+        if extra:
             values["reward_terms"] = (*REFERENCE_TERM_NAMES, *extra)
         return transform_config(self.history, **{**values, **overrides})
+
+
+#: The settings' weight of each term beyond the reference's, by the term's name (for the messages).
+_EXTRA_WEIGHTS = {"heading": "heading_weight", "cycle_vel": "cycle_vel_weight", "foot_gap": "foot_gap_weight"}
+
+
+def _check_extra_terms_kept(extra: Sequence, given) -> None:
+    """Raise ``ValueError`` if the ``reward_terms`` list ``given`` leaves out a term of ``extra`` (the settings'
+    terms beyond the reference's) and holds no term of its name: a given list replaces every term, and the settings'
+    extra terms were silently dropped."""
+    names = {t if isinstance(t, str) else getattr(t, "name", getattr(t, "__name__", None)) for t in given}
+    dropped = [t for t in extra if t.name not in names]
+    if not dropped:
+        return
+    switches = ", ".join(f"transforms.{_EXTRA_WEIGHTS[t.name]} {t.weight:g}" for t in dropped)
+    raise ValueError(
+        f"reward_terms replaces the reward terms and leaves out {[t.name for t in dropped]}, which these transform "
+        f"settings switch on ({switches}): to keep them, add them to reward_terms ({', '.join(map(repr, dropped))}; "
+        "TransformSettings.extra_reward_terms() gives them as configured); to leave them out, set those weights to 0 "
+        "in the settings (with make_env's preset=, pass config= and transforms= of "
+        "tocabi_torchrl.config.preset_tree(preset) with the weights changed instead)")
