@@ -9,6 +9,7 @@ import pytest
 import torch
 from gymnasium.utils.env_checker import check_space_limit, data_equivalence
 from gymnasium.vector import AutoresetMode
+from host_reads import HostReads, counting_reads, crafted_step_result
 
 import tocabi_torchrl.adapters  # noqa: F401  (registers TocabiWalk-v0)
 from tocabi_torchrl.adapters import TocabiVectorEnv
@@ -258,3 +259,111 @@ def test_make_vec_imports_the_adapters_itself_with_the_module_prefix():
         assert isinstance(env.unwrapped, TocabiVectorEnv) and env.num_envs == 1
     finally:
         env.close()
+
+
+def _per_array_step(r, episode_statistics: bool):
+    """What numpy mode's ``step`` returns from the step result ``r``, each array copied to the host on its own: the
+    straightforward computation the packed copies must equal bit for bit."""
+    done = r.done.cpu().numpy()
+    infos = {"reward_terms": {k: v.cpu().numpy() for k, v in r.reward_terms.items()},
+             "final_obs": r.final_obs.cpu().numpy(), "_final_obs": done}
+    if episode_statistics:
+        infos["episode"] = {"r": torch.where(r.done, r.episode_return, 0.0).cpu().numpy(),
+                            "l": torch.where(r.done, r.episode_length, 0).cpu().numpy()}
+        infos["_episode"] = done
+    return r.obs.cpu().numpy(), r.reward.cpu().numpy(), r.terminated.cpu().numpy(), r.truncated.cpu().numpy(), infos
+
+
+def _assert_bit_identical(got, want):
+    """``got`` and ``want`` (``step``'s five results) hold arrays of equal dtypes, shapes and bytes under the same
+    keys; the done flags are one array in both ``"_final_obs"`` and ``"_episode"``, as before."""
+    def flat(x, at=()):
+        if isinstance(x, dict):
+            return {k: v for key in x for k, v in flat(x[key], (*at, key)).items()}
+        if isinstance(x, (tuple, list)):
+            return {k: v for i, item in enumerate(x) for k, v in flat(item, (*at, i)).items()}
+        return {at: x}
+
+    got, want = flat(got), flat(want)
+    assert got.keys() == want.keys()
+    for key, b in want.items():
+        a = got[key]
+        assert type(a) is np.ndarray and a.flags.c_contiguous, key
+        assert (a.dtype, a.shape, a.tobytes()) == (b.dtype, b.shape, b.tobytes()), key
+    if (4, "_episode") in got:
+        assert got[4, "_episode"] is got[4, "_final_obs"]
+
+
+@pytest.mark.parametrize("episode_statistics", [True, False], ids=["statistics", "no_statistics"])
+@pytest.mark.parametrize("ending", ["truncation", "termination", "some_envs"])
+def test_numpy_mode_returns_what_copying_each_array_returned_bit_for_bit(ending, episode_statistics, monkeypatch):
+    # Numpy mode copies one packed buffer per step (and the ended envs' last observations in a second); it must
+    # return the arrays that copying each of them on its own returned, in every row, ended or not.
+    options = {"min_pelvis_height": 5.0} if ending == "termination" else None  # every first step is a fall
+    env = TocabiVectorEnv(N, "cpu", numpy=True, max_episode_steps=2, env_options=options,
+                          episode_statistics=episode_statistics)
+    try:
+        seen, step = [], env.stepper.step
+
+        def spy(action):
+            r = step(action)
+            seen.append(_per_array_step(r, episode_statistics))
+            return r
+
+        monkeypatch.setattr(env.stepper, "step", spy)
+        env.reset(seed=3)
+        rng = np.random.default_rng(0)
+        if ending == "some_envs":  # one step in, restart env 0 alone: from then on the envs end on different steps
+            env.step(np.zeros((N, 13), dtype=np.float32))
+            td = env.stepper._td.clone().set("_reset", torch.tensor([[True], [False]]))
+            env.stepper._td = env.torchrl_env.reset(td)
+        dones = []
+        for _ in range(5):
+            got = env.step(rng.uniform(-1.0, 1.0, (N, 13)).astype(np.float32))
+            _assert_bit_identical(got, seen[-1])
+            dones.append(got[4]["_final_obs"].tolist())
+        want = {"truncation": [[False, False], [True, True]] * 3, "termination": [[True, True]] * 5,
+                "some_envs": [[False, True], [True, False]] * 3}[ending]
+        assert dones == want[:5]
+    finally:
+        env.close()
+
+
+def test_numpy_mode_puts_each_ended_envs_last_observation_in_its_own_row_bit_for_bit(monkeypatch):
+    # The ended envs' rows come from a second copy: each must land in its own row, with nothing cast on the way
+    # (NaN payloads, -0.0, a subnormal reward, lengths past 2**24). The rows whose episode goes on are the
+    # observation's, as TorchRL's partial reset leaves them.
+    results = [crafted_step_result(N, 0, [False, True], [False, True], [3, 2 ** 40 + 3]),
+               crafted_step_result(N, 1, [True, False], [False, False], [2 ** 24 + 1, 7]),
+               crafted_step_result(N, 2, [True, True], [True, False], [5, 2 ** 53 - 1]),
+               crafted_step_result(N, 3, [False, False], [False, False], [1, 1])]
+    for r in results:
+        r.final_obs = torch.where(r.done.unsqueeze(-1), r.final_obs, r.obs)
+    env = TocabiVectorEnv(N, "cpu", numpy=True)
+    try:
+        queue = list(results)
+        monkeypatch.setattr(env.stepper, "step", lambda action: queue.pop(0))
+        env.reset(seed=0)
+        for r in results:
+            got = env.step(np.zeros((N, 13), dtype=np.float32))
+            _assert_bit_identical(got, _per_array_step(r, episode_statistics=True))
+            assert not np.shares_memory(got[4]["final_obs"], got[0])  # two arrays, as two copies made them
+        assert not queue
+    finally:
+        env.close()
+
+
+def test_numpy_mode_copies_a_step_to_the_host_once_and_again_only_where_an_episode_ended(envs, monkeypatch):
+    # Numpy mode copied each array on its own: obs, reward, both flags, the 13 reward terms, the final observations,
+    # the done flags and the episode statistics, some 20 synchronisations a step on a GPU.
+    env = envs.unwrapped
+    step = env.stepper.step
+    monkeypatch.setattr(env.stepper, "step", lambda action: counting_reads(step(action)))
+    monkeypatch.setattr(HostReads, "reads", [])
+    env.reset(seed=0)  # max_episode_steps=3: every third step ends every episode
+    reads = []
+    for _ in range(6):
+        HostReads.reads.clear()
+        *_, infos = env.step(_zero(envs))
+        reads.append((bool(infos["_final_obs"].any()), list(HostReads.reads)))
+    assert reads == [(False, ["cpu"]), (False, ["cpu"]), (True, ["cpu", "cpu"])] * 2

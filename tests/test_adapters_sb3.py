@@ -12,6 +12,7 @@ import torch
 
 pytest.importorskip("stable_baselines3")
 
+from host_reads import HostReads, counting_reads, crafted_step_result
 from recipe_runner import load_recipe
 from stable_baselines3.common.utils import check_for_correct_spaces
 from stable_baselines3.common.vec_env import VecCheckNan, VecEnv, VecMonitor
@@ -217,29 +218,13 @@ def test_a_step_returns_what_copying_each_array_returned_bit_for_bit(ending, mon
         env.close()
 
 
-def _crafted_result(seed: int, done, truncated, length):
-    """A StepResult of N envs with values a cast would change: NaNs with payloads, -0.0, lengths past 2**24."""
-    from tocabi_torchrl.adapters._core import StepResult
-
-    g = torch.Generator().manual_seed(seed)
-    obs, final_obs = torch.randn(N, 237, generator=g), torch.randn(N, 237, generator=g)
-    obs.view(torch.int32)[0, :3] = torch.tensor([0x7FC00001, 0x7F800123, -0x7FFF_FFFF - 1])  # NaNs, -0.0
-    final_obs.view(torch.int32)[-1, 5] = 0x7FC0BEEF
-    done, truncated = torch.tensor(done), torch.tensor(truncated)
-    terms = torch.randn(13, N, generator=g).t()  # strided rows, as the env's terms are
-    return StepResult(obs=obs, final_obs=final_obs, reward=torch.tensor([-0.0, 1.5e-40])[:N],
-                      terminated=done & ~truncated, truncated=truncated, done=done,
-                      reward_terms={f"term{k}": terms[:, k] for k in range(13)},
-                      episode_return=torch.randn(N, generator=g), episode_length=torch.tensor(length))
-
-
 def test_only_the_ended_envs_terminal_observations_are_fetched_and_they_are_bit_identical(env, monkeypatch):
     # The terminal observation, truncation flag, return and length come from a second copy of the ended rows only:
     # each must land in its own env's info, with nothing cast on the way.
-    results = [_crafted_result(0, [False, True], [False, True], [3, 2 ** 40 + 3]),
-               _crafted_result(1, [True, False], [False, False], [2 ** 24 + 1, 7]),
-               _crafted_result(2, [True, True], [True, False], [5, 2 ** 53 - 1]),
-               _crafted_result(3, [False, False], [False, False], [1, 1])]
+    results = [crafted_step_result(N, 0, [False, True], [False, True], [3, 2 ** 40 + 3]),
+               crafted_step_result(N, 1, [True, False], [False, False], [2 ** 24 + 1, 7]),
+               crafted_step_result(N, 2, [True, True], [True, False], [5, 2 ** 53 - 1]),
+               crafted_step_result(N, 3, [False, False], [False, False], [1, 1])]
     queue = list(results)
     monkeypatch.setattr(env.stepper, "step", lambda action: queue.pop(0))
     env.reset()
@@ -249,51 +234,21 @@ def test_only_the_ended_envs_terminal_observations_are_fetched_and_they_are_bit_
     assert not queue
 
 
-class _HostReads(torch.Tensor):
-    """A tensor counting each read of its values on the host (a copy to the CPU, or a value Python reads), on it
-    and on every tensor computed from it: each is a copy, and a synchronisation on a GPU."""
-
-    reads: list = []
-    _READS = {"cpu", "numpy", "tolist", "item", "__array__", "__bool__", "__float__", "__int__", "__index__",
-              "nonzero", "argwhere", "masked_select"}
-
-    @classmethod
-    def __torch_function__(cls, func, types, args=(), kwargs=None):
-        kwargs = kwargs or {}
-        name = getattr(func, "__name__", "")
-        to_cpu = name == "to" and any(isinstance(a, (str, torch.device)) and torch.device(a).type == "cpu"
-                                      for a in (*args[1:], kwargs.get("device", "meta")))
-        mask = name == "__getitem__" and isinstance(args[1], torch.Tensor) and args[1].dtype == torch.bool
-        if name in cls._READS or to_cpu or mask:
-            cls.reads.append(name)
-        out = super().__torch_function__(func, types, args, kwargs)
-        # What was copied to the host is a plain tensor: reading it again costs nothing.
-        return out.as_subclass(torch.Tensor) if name == "cpu" or to_cpu else out
-
-
 def test_a_step_copies_to_the_host_once_and_again_only_where_an_episode_ended(env, monkeypatch):
     # The docs promise one synchronisation per step; the adapter copied obs, final_obs, done, truncated and reward on
     # their own (five), each of the 13 reward terms too, and the returns and lengths of every env on a done step.
     step = env.stepper.step
 
-    def counted(action):
-        r = step(action)
-        for name in ("obs", "final_obs", "reward", "terminated", "truncated", "done", "episode_return",
-                     "episode_length"):
-            setattr(r, name, getattr(r, name).as_subclass(_HostReads))
-        r.reward_terms = {k: v.as_subclass(_HostReads) for k, v in r.reward_terms.items()}
-        return r
-
-    monkeypatch.setattr(env.stepper, "step", counted)
-    monkeypatch.setattr(_HostReads, "reads", [])
+    monkeypatch.setattr(env.stepper, "step", lambda action: counting_reads(step(action)))
+    monkeypatch.setattr(HostReads, "reads", [])
     env.seed(0)
     env.reset()  # max_episode_steps=2: the second step ends every episode
     zeros = np.zeros((N, 13), dtype=np.float32)
     reads = []
     for _ in range(4):
-        _HostReads.reads.clear()
+        HostReads.reads.clear()
         _, _, dones, infos = env.step(zeros)
-        reads.append((bool(dones.any()), list(_HostReads.reads)))
+        reads.append((bool(dones.any()), list(HostReads.reads)))
     assert reads == [(False, ["cpu"]), (True, ["cpu", "cpu"])] * 2
     assert all("terminal_observation" in info and "reward_terms" in info for info in infos)
 

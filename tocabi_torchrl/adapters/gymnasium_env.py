@@ -7,6 +7,12 @@ Autoreset mode: ``AutoresetMode.SAME_STEP`` (``metadata["autoreset_mode"]``). An
 ``step`` is reset inside that same call: the returned observation is the reset one, and the episode's last
 observation is in ``infos["final_obs"]`` (rows flagged by ``infos["_final_obs"]``). That is TorchRL's
 ``step_and_maybe_reset``, so no step is spent on a dummy transition.
+
+Devices: by default every array stays a torch tensor on the env's device. In numpy mode (``numpy=True``) a step
+copies what it returns to the host packed into one transfer (the observation, reward, termination and truncation
+flags, the 13 reward terms, the done flags and the episode statistics): on a GPU that is one synchronisation per step.
+A step where episodes ended copies those envs' last observations alone in a second transfer; the other rows of
+``infos["final_obs"]`` are the observation's (their episodes go on).
 """
 
 from __future__ import annotations
@@ -18,7 +24,7 @@ import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from ._build import build_env
-from ._core import StepResult, TensorStepper, real_actions
+from ._core import StepResult, TensorStepper, real_actions, to_host
 from .spaces import box_from_spec
 
 __all__ = ["TocabiVectorEnv", "make_vector_env"]
@@ -109,23 +115,42 @@ class TocabiVectorEnv(VectorEnv):
         if actions.device.type == "cpu":
             self.stepper.check_finite(self.stepper.check_action(actions))
         r = self.stepper.step(actions.to(self.device))
-        return self._out(r.obs), self._out(r.reward), self._out(r.terminated), self._out(r.truncated), self._infos(r)
+        return self._host_step(r) if self.numpy else self._device_step(r)
 
-    def _infos(self, r: StepResult) -> dict[str, Any]:
-        done = self._out(r.done)
-        infos = {
-            "reward_terms": {k: self._out(v) for k, v in r.reward_terms.items()},
-            "final_obs": self._out(r.final_obs),
-            "_final_obs": done,
-        }
+    def _episode(self, r: StepResult) -> dict[str, torch.Tensor]:
+        # 0 where no episode ended, as RecordEpisodeStatistics has it (the running values once sat there, and a mean
+        # over the rows logged partial returns). The key is there every step: leaving it out of steps with no ended
+        # episode would read the device.
+        return {"r": torch.where(r.done, r.episode_return, 0.0), "l": torch.where(r.done, r.episode_length, 0)}
+
+    def _device_step(self, r: StepResult) -> tuple:
+        """``step``'s results as tensors on the env's device (fresh each step, never views of the env's state)."""
+        infos = {"reward_terms": dict(r.reward_terms), "final_obs": r.final_obs, "_final_obs": r.done}
         if self.episode_statistics:
-            # 0 where no episode ended, as RecordEpisodeStatistics has it (the running values once sat there, and a
-            # mean over the rows logged partial returns). The key is there every step: leaving it out of steps with
-            # no ended episode would read the device.
-            infos["episode"] = {"r": self._out(torch.where(r.done, r.episode_return, 0.0)),
-                                "l": self._out(torch.where(r.done, r.episode_length, 0))}
-            infos["_episode"] = done
-        return infos
+            infos["episode"], infos["_episode"] = self._episode(r), r.done
+        return r.obs, r.reward, r.terminated, r.truncated, infos
+
+    def _host_step(self, r: StepResult) -> tuple:
+        """``step``'s results as numpy arrays, equal bit for bit to each tensor's own ``.cpu().numpy()``, from one
+        device->host copy, and a second one of the ended envs' last observations on a step where episodes ended (a
+        copy per array was one synchronisation each on a GPU, some 20 a step)."""
+        names = list(r.reward_terms)
+        episode = list(self._episode(r).values()) if self.episode_statistics else []
+        obs, reward, terminated, truncated, done, *rest = to_host(
+            r.obs, r.reward, r.terminated, r.truncated, r.done, *r.reward_terms.values(), *episode)
+        terms, episode = rest[:len(names)], rest[len(names):]
+        # Where no episode ended, the last observation is the one to act on: TorchRL's partial reset keeps those
+        # rows as they were (``step_and_maybe_reset``), so only the ended rows need reading.
+        final_obs = obs.copy()
+        ended = np.flatnonzero(done)
+        if ended.size:
+            # Their index is on the host already, so selecting them on the device reads nothing back.
+            rows = torch.as_tensor(ended, device=self.device)
+            final_obs[ended] = to_host(r.final_obs[rows])[0]
+        infos = {"reward_terms": dict(zip(names, terms)), "final_obs": final_obs, "_final_obs": done}
+        if self.episode_statistics:
+            infos["episode"], infos["_episode"] = dict(zip(("r", "l"), episode)), done
+        return obs, reward, terminated, truncated, infos
 
     def _out(self, x: torch.Tensor):
         # Fresh tensors from the env each step (never views of its state), so handing them out is safe.

@@ -1,0 +1,58 @@
+"""What the adapters' host copies are checked with: a tensor that counts each read of its values on the host, and a
+crafted step result holding values a cast would change (for the tests of the numpy adapters, SB3's and gymnasium's
+numpy mode)."""
+
+from __future__ import annotations
+
+import torch
+
+from tocabi_torchrl.adapters._core import StepResult
+
+#: The StepResult fields that are tensors (``reward_terms`` is a dict of them).
+STEP_TENSORS = ("obs", "final_obs", "reward", "terminated", "truncated", "done", "episode_return", "episode_length")
+
+
+class HostReads(torch.Tensor):
+    """A tensor counting each read of its values on the host (a copy to the CPU, or a value Python reads), on it
+    and on every tensor computed from it: each is a copy, and a synchronisation on a GPU. The names of the reads
+    collect in :attr:`reads` (a test resets it with ``monkeypatch.setattr(HostReads, "reads", [])``)."""
+
+    reads: list = []
+    _READS = {"cpu", "numpy", "tolist", "item", "__array__", "__bool__", "__float__", "__int__", "__index__",
+              "nonzero", "argwhere", "masked_select"}
+
+    @classmethod
+    def __torch_function__(cls, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        name = getattr(func, "__name__", "")
+        to_cpu = name == "to" and any(isinstance(a, (str, torch.device)) and torch.device(a).type == "cpu"
+                                      for a in (*args[1:], kwargs.get("device", "meta")))
+        mask = name == "__getitem__" and isinstance(args[1], torch.Tensor) and args[1].dtype == torch.bool
+        if name in cls._READS or to_cpu or mask:
+            cls.reads.append(name)
+        out = super().__torch_function__(func, types, args, kwargs)
+        # What was copied to the host is a plain tensor: reading it again costs nothing.
+        return out.as_subclass(torch.Tensor) if name == "cpu" or to_cpu else out
+
+
+def counting_reads(r: StepResult) -> StepResult:
+    """``r`` with every tensor (reward terms included) a :class:`HostReads`, in place; returns ``r``."""
+    for name in STEP_TENSORS:
+        setattr(r, name, getattr(r, name).as_subclass(HostReads))
+    r.reward_terms = {k: v.as_subclass(HostReads) for k, v in r.reward_terms.items()}
+    return r
+
+
+def crafted_step_result(n: int, seed: int, done, truncated, length) -> StepResult:
+    """A StepResult of ``n`` (1 or 2) envs with values a cast would change: NaNs with payloads, -0.0, a subnormal
+    reward, lengths past 2**24. ``done``/``truncated``: (n,) bools; ``length``: (n,) ints [policy steps]."""
+    g = torch.Generator().manual_seed(seed)
+    obs, final_obs = torch.randn(n, 237, generator=g), torch.randn(n, 237, generator=g)
+    obs.view(torch.int32)[0, :3] = torch.tensor([0x7FC00001, 0x7F800123, -0x7FFF_FFFF - 1])  # NaNs, -0.0
+    final_obs.view(torch.int32)[-1, 5] = 0x7FC0BEEF
+    done, truncated = torch.tensor(done), torch.tensor(truncated)
+    terms = torch.randn(13, n, generator=g).t()  # strided rows, as the env's terms are
+    return StepResult(obs=obs, final_obs=final_obs, reward=torch.tensor([-0.0, 1.5e-40])[:n],
+                      terminated=done & ~truncated, truncated=truncated, done=done,
+                      reward_terms={f"term{k}": terms[:, k] for k in range(13)},
+                      episode_return=torch.randn(n, generator=g), episode_length=torch.tensor(length))
