@@ -63,7 +63,7 @@ if __name__ == "__main__":  # --help or a misspelt option answers before torch a
 import torch  # noqa: E402
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
-from tocabi_torchrl.adapters.policy_file import load_policy, save_policy  # noqa: E402
+from tocabi_torchrl.adapters.policy_file import load_policy, require_meta, save_policy  # noqa: E402
 from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
     adapter,
@@ -265,6 +265,13 @@ def main(argv=None) -> dict:
     return result
 
 
+#: The metadata fields :func:`load_actor` rebuilds the actor from: {name: (kind, what it holds)} (see
+#: :func:`tocabi_torchrl.adapters.policy_file.require_meta`).
+POLICY_FIELDS = {"obs_dim": ("count", "the observation size, e.g. 237"),
+                 "num_actions": ("count", "the action size, e.g. 13"),
+                 "train_cfg": ("object", "the rsl_rl runner configuration the policy trained with")}
+
+
 def load_actor(policy: str):
     """``(meta, act)`` for a ``policy.pt`` this recipe wrote: rsl_rl's actor rebuilt from the metadata, and ``act``
     its deterministic output (the Gaussian mean) for (num_envs, 237) observations on any device."""
@@ -274,6 +281,7 @@ def load_actor(policy: str):
 
     require("rsl_rl")
     meta, state = load_policy(policy, "rsl_rl")
+    require_meta(meta, POLICY_FIELDS, policy, "load_actor needs to rebuild the network")
     actor = make_actor(meta["obs_dim"], meta["num_actions"], meta["train_cfg"])
     actor.load_state_dict(state)
     actor.eval()

@@ -57,7 +57,7 @@ if __name__ == "__main__":  # --help or a misspelt option answers before torch a
 import torch  # noqa: E402
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
-from tocabi_torchrl.adapters.policy_file import load_policy, save_policy  # noqa: E402
+from tocabi_torchrl.adapters.policy_file import load_policy, require_meta, save_policy  # noqa: E402
 from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
     adapter,
@@ -272,6 +272,14 @@ def main(argv=None) -> dict:
     return result
 
 
+#: The metadata fields :func:`load_actor` rebuilds the network from: {name: (kind, what it holds)} (see
+#: :func:`tocabi_torchrl.adapters.policy_file.require_meta`).
+POLICY_FIELDS = {"obs_dim": ("count", "the observation size, e.g. 237"),
+                 "action_low": ("numbers", "the action space's lower bounds, one per action"),
+                 "action_high": ("numbers", "the action space's upper bounds, one per action"),
+                 "hidden": ("sizes", "the hidden layer widths, e.g. [256, 256]")}
+
+
 def load_actor(policy: str):
     """``(meta, act)`` for a ``policy.pt`` this recipe wrote: SB3's policy network rebuilt from the metadata, and
     ``act`` its Gaussian mean (SB3's deterministic action) for (num_envs, 237) observations on any device."""
@@ -283,6 +291,7 @@ def load_actor(policy: str):
     from stable_baselines3.common.policies import ActorCriticPolicy
 
     meta, state = load_policy(policy, "sb3")
+    require_meta(meta, POLICY_FIELDS, policy, "load_actor needs to rebuild the network")
     obs_space = spaces.Box(-float("inf"), float("inf"), (meta["obs_dim"],))
     act_space = spaces.Box(torch.tensor(meta["action_low"]).numpy(), torch.tensor(meta["action_high"]).numpy())
     net = ActorCriticPolicy(obs_space, act_space, lr_schedule=LinearLR(0.0, 0.0),

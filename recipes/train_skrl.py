@@ -48,7 +48,7 @@ import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
-from tocabi_torchrl.adapters.policy_file import load_policy, save_policy  # noqa: E402
+from tocabi_torchrl.adapters.policy_file import load_policy, require_meta, save_policy  # noqa: E402
 from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
     adapter,
@@ -191,6 +191,14 @@ def main(argv=None) -> dict:
     return result
 
 
+#: The metadata fields :func:`load_actor` rebuilds the network from: {name: (kind, what it holds)} (see
+#: :func:`tocabi_torchrl.adapters.policy_file.require_meta`).
+POLICY_FIELDS = {"obs_dim": ("count", "the observation size, e.g. 237"),
+                 "action_low": ("numbers", "the action space's lower bounds, one per action"),
+                 "action_high": ("numbers", "the action space's upper bounds, one per action"),
+                 "hidden": ("sizes", "the hidden layer widths, e.g. [256, 256]")}
+
+
 def load_actor(policy: str):
     """``(meta, act)`` for a ``policy.pt`` this recipe wrote: skrl's policy model rebuilt from the metadata, and
     ``act`` its Gaussian mean (skrl's ``"mean_actions"``) for (num_envs, 237) observations on any device."""
@@ -200,6 +208,7 @@ def load_actor(policy: str):
 
     require("skrl")
     meta, state = load_policy(policy, "skrl")
+    require_meta(meta, POLICY_FIELDS, policy, "load_actor needs to rebuild the network")
     obs_space = spaces.Box(-float("inf"), float("inf"), (meta["obs_dim"],))
     act_space = spaces.Box(torch.tensor(meta["action_low"]).numpy(), torch.tensor(meta["action_high"]).numpy())
     net = make_models(obs_space, act_space, "cpu", tuple(meta["hidden"]))["policy"]

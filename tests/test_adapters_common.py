@@ -418,6 +418,58 @@ def test_a_policy_file_without_its_preset_or_task_is_refused_naming_file_field_a
     assert not (tmp_path / "eval").exists()
 
 
+#: A complete metadata of each recipe's policy.pt (the fields its load_actor reads), and the library it loads.
+_ACTOR_META = {
+    "train_sb3": ("sb3", "stable_baselines3", {"obs_dim": 237, "action_low": [-1.0] * 13, "action_high": [1.0] * 13,
+                                               "hidden": [8, 8]}),
+    "train_skrl": ("skrl", "skrl", {"obs_dim": 237, "action_low": [-1.0] * 13, "action_high": [1.0] * 13,
+                                    "hidden": [8, 8]}),
+    "train_rsl_rl": ("rsl_rl", "rsl_rl", {"obs_dim": 237, "num_actions": 13, "train_cfg": {}}),
+}
+
+
+@pytest.mark.parametrize(("recipe_name", "field", "value", "problem"), [
+    ("train_sb3", "obs_dim", None, r"has no 'obs_dim' \(the observation size"),
+    ("train_sb3", "hidden", "256,256", r"'hidden' is '256,256', not the hidden layer widths.*list of positive ints"),
+    ("train_sb3", "action_low", [True] * 13, r"'action_low' is \[True, .*, not the action space's lower bounds"),
+    ("train_skrl", "action_high", None, r"has no 'action_high' \(the action space's upper bounds"),
+    ("train_skrl", "obs_dim", 237.0, r"'obs_dim' is 237.0, not the observation size.*a positive int"),
+    ("train_rsl_rl", "num_actions", None, r"has no 'num_actions' \(the action size"),
+    ("train_rsl_rl", "train_cfg", [], r"'train_cfg' is \[\], not the rsl_rl runner configuration"),
+])
+def test_a_recipes_load_actor_refuses_a_policy_file_missing_a_field_naming_file_field_and_fix(
+        tmp_path, recipe_name, field, value, problem):
+    # A hand-made or older policy.pt without a field load_actor reads ended in a bare KeyError('obs_dim') (or a
+    # TypeError from inside the library's network), naming neither the file nor what to add.
+    library, module, complete = _ACTOR_META[recipe_name]
+    pytest.importorskip(module)
+    from recipe_runner import load_recipe
+
+    meta = {"preset": "default", "task": {"seed": 0}, **complete}
+    if value is None:
+        del meta[field]
+    else:
+        meta[field] = value
+    path = save_policy(tmp_path / "policy.pt", library, {"w": torch.zeros(2)}, meta)
+    with pytest.raises(PolicyFileError, match=problem) as refused:
+        load_recipe(recipe_name).load_actor(str(path))
+    message = str(refused.value)
+    assert message.startswith(f"{path}: ") and "load_actor needs to rebuild the network" in message
+    assert f"save_policy(new_path, library, state_dict, {{**meta, '{field}': " in message
+
+
+@pytest.mark.parametrize("meta", [["obs_dim"], {"obs_dim": 237, "hidden": [8, 0]}, {"obs_dim": True}],
+                         ids=["not_a_dict", "zero_width", "bool_count"])
+def test_require_meta_refuses_what_the_recipes_never_write(meta):
+    from tocabi_torchrl.adapters.policy_file import require_meta
+
+    fields = {"obs_dim": ("count", "the observation size"), "hidden": ("sizes", "the hidden layer widths")}
+    with pytest.raises(PolicyFileError, match=r"^policy\.pt: its metadata"):
+        require_meta(meta, fields, "policy.pt", "the loader needs to rebuild the network")
+    complete = {"obs_dim": 237, "hidden": [8, 8], "extra": 1}
+    assert require_meta(complete, fields, "policy.pt", "the loader needs them") is complete
+
+
 def _without_matplotlib(monkeypatch):
     # As on an install without the viz extra: None in sys.modules makes every import of it an ImportError.
     import sys

@@ -11,7 +11,7 @@ import torch
 from ..evaluation.gait_test import GAIT_CRITERIA, evaluate_policy, gait_passes
 from ..evaluation.record import nominal_config
 from ._build import env_device, task_config
-from .policy_file import PolicyFileError
+from .policy_file import require_meta
 
 __all__ = ["GAIT_CRITERIA", "check_plotting", "evaluate_actions", "evaluate_policy_file", "gait_passes"]
 
@@ -61,34 +61,21 @@ def evaluate_policy_file(load_actor, policy: str, out_dir, num_envs: int = 256,
     (preset, task) and a deterministic ``act(obs) -> action``, which :func:`evaluate_actions` runs. ``progress``: a
     progress bar of the rollout (on by default: the recipes' gait test runs for minutes on a CPU).
 
-    A metadata without a ``preset`` (str) or ``task`` (dict) is a :class:`PolicyFileError` naming the file, the
-    field and how to add it, before anything runs."""
+    A metadata without a ``preset`` (str) or ``task`` (dict) is a :class:`~.policy_file.PolicyFileError` naming the
+    file, the field and how to add it, before anything runs."""
     meta, act = load_actor(policy)
     _check_task_fields(policy, meta)
     return evaluate_actions(act, out_dir, preset=meta["preset"], num_envs=num_envs, device=device, seconds=seconds,
                             command=command, progress=progress, task=meta["task"], source=policy)
 
 
-#: The metadata fields the gait test rebuilds a policy's task from: (name, type, what it holds).
-_TASK_FIELDS = (("preset", str, "the name of the preset the policy trained on, e.g. 'default'"),
-                ("task", dict, "the task options it trained with, e.g. {'seed': 0}"))
+#: The metadata fields the gait test rebuilds a policy's task from: {name: (kind, what it holds)}.
+_TASK_FIELDS = {"preset": ("text", "the name of the preset the policy trained on, e.g. 'default'"),
+                "task": ("object", "the task options it trained with, e.g. {'seed': 0}")}
 
 
 def _check_task_fields(policy, meta) -> None:
-    """A :class:`PolicyFileError` unless ``meta`` holds ``preset`` (str) and ``task`` (dict of str keys). The
-    recipes always write both; a hand-made or older file may lack them, which ended in a bare ``KeyError``."""
-    if not isinstance(meta, dict):
-        raise PolicyFileError(f"{policy}: its metadata is {type(meta).__name__}, not a dict holding 'preset' and "
-                              "'task'")
-    for name, kind, what in _TASK_FIELDS:
-        if name not in meta:
-            problem = f"its metadata has no '{name}' ({what})"
-        elif not isinstance(meta[name], kind) or (kind is dict and not all(isinstance(k, str) for k in meta[name])):
-            problem = f"its metadata's '{name}' is {meta[name]!r}, not {what}"
-        else:
-            continue
-        raise PolicyFileError(
-            f"{policy}: {problem}, which the gait test needs to rebuild the policy's task. The recipes write "
-            "'preset' and 'task' into every policy.pt; for a hand-made or older file, load it with load_policy and "
-            "save it again with both set: save_policy(new_path, library, state_dict, {**meta, 'preset': "
-            "'<preset>', 'task': {'seed': <seed>}})")
+    """A :class:`~.policy_file.PolicyFileError` (:func:`~.policy_file.require_meta`'s) unless ``meta`` holds
+    ``preset`` (str) and ``task`` (dict of str keys). The recipes always write both; a hand-made or older file may
+    lack them, which ended in a bare ``KeyError``."""
+    require_meta(meta, _TASK_FIELDS, policy, "the gait test needs to rebuild the policy's task")

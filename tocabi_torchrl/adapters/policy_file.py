@@ -18,7 +18,7 @@ import torch
 from ..atomic import atomic_write_bytes
 from ..integrity import zip_damage
 
-__all__ = ["FORMAT", "PolicyFileError", "load_policy", "save_policy"]
+__all__ = ["FORMAT", "META_KINDS", "PolicyFileError", "load_policy", "require_meta", "save_policy"]
 
 FORMAT = "tocabi_torchrl.adapters.policy/1"
 
@@ -78,3 +78,42 @@ def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
                                             for k, v in state.items())):
         raise PolicyFileError(f"{broken}: its 'state_dict' is not a dict of named tensors")
     return meta, state
+
+
+def _real(v) -> bool:
+    return type(v) in (int, float)  # JSON's numbers; bool is an int subclass, and True is no bound
+
+
+#: The kinds of metadata field :func:`require_meta` checks: {kind: (test of a JSON value, what it must be)}.
+META_KINDS = {
+    "text": (lambda v: isinstance(v, str), "text"),
+    "count": (lambda v: type(v) is int and v > 0, "a positive int"),
+    "sizes": (lambda v: isinstance(v, list) and all(type(x) is int and x > 0 for x in v), "a list of positive ints"),
+    "numbers": (lambda v: isinstance(v, list) and len(v) > 0 and all(_real(x) for x in v), "a list of numbers"),
+    "object": (lambda v: isinstance(v, dict) and all(isinstance(k, str) for k in v), "a JSON object"),
+}
+
+
+def require_meta(meta, fields: dict[str, tuple[str, str]], path, needed_for: str) -> dict:
+    """``meta`` if it holds every field of ``fields`` {name: (kind, what it holds)}, each of its kind in
+    :data:`META_KINDS` (e.g. ``{"obs_dim": ("count", "the observation size, e.g. 237")}``); else a
+    :class:`PolicyFileError` naming the file ``path``, the first missing or ill-typed field, what it is
+    ``needed_for`` (e.g. "the loader needs to rebuild the network") and how to add it. The recipes write every field
+    their loader reads; a hand-made or older file may lack some, which ended in a bare ``KeyError`` or ``TypeError``
+    from inside the loader."""
+    names = ", ".join(f"'{name}'" for name in fields)
+    if not isinstance(meta, dict):
+        raise PolicyFileError(f"{path}: its metadata is {type(meta).__name__}, not a dict holding {names}")
+    for name, (kind, what) in fields.items():
+        test, kind_text = META_KINDS[kind]
+        if name not in meta:
+            problem = f"its metadata has no '{name}' ({what}; {kind_text})"
+        elif not test(meta[name]):
+            problem = f"its metadata's '{name}' is {meta[name]!r}, not {what} ({kind_text})"
+        else:
+            continue
+        raise PolicyFileError(
+            f"{path}: {problem}, which {needed_for}. The recipes write {names} into every policy.pt; for a "
+            f"hand-made or older file, load it with load_policy and save it again with '{name}' set: "
+            f"save_policy(new_path, library, state_dict, {{**meta, '{name}': <{kind_text}>}})")
+    return meta
