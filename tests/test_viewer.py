@@ -522,3 +522,19 @@ def test_the_viewer_banner_names_the_backend_it_runs(capsys):
     serve_policy(SHIPPED_POLICY, num_envs=1, device="cpu", host="127.0.0.1", port=0, stop=stop)
     banner = capsys.readouterr().out
     assert "robots on cpu (mujoco backend)" in banner, banner
+
+
+@pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="shipped policy not present")
+def test_serving_a_policy_closes_its_env_when_the_page_stops():
+    # The CPU backend's worker threads stayed after serve_policy returned, a garbage collection included.
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed: pip install -e '.[viewer]'")
+    from tocabi_torchrl.viewer.play import serve_policy
+
+    before = set(threading.enumerate())
+    pages = []
+    stop = threading.Event()
+    stop.set()
+    serve_policy(SHIPPED_POLICY, num_envs=4, device="cpu", host="127.0.0.1", port=0, stop=stop, ready=pages.append)
+    assert len(pages) == 1
+    left = [t.name for t in set(threading.enumerate()) - before if t.is_alive()]
+    assert not [name for name in left if name.startswith("MujocoSim")], left

@@ -177,7 +177,8 @@ def serve_policy(path, num_envs: int = 64, device: str = "auto", host: str = "12
     """Load the checkpoint or run folder ``path`` with ``num_envs`` worlds and serve its live page on ``host``:
     ``port`` until Ctrl-C (or ``stop``). Prints the URL. ``backend`` replaces the checkpoint's ``env.sim.backend``
     (``"mujoco"``: C MuJoCo on the CPU). ``ready``: called with the :class:`LivePage` once the page is up. Ctrl-C
-    stops the page and raises ``KeyboardInterrupt`` on to the caller (a command line exits 130 on it)."""
+    stops the page and raises ``KeyboardInterrupt`` on to the caller (a command line exits 130 on it). However it
+    ends, the page stops and the env is closed (the CPU backend's worker threads go with it)."""
     from ..evaluation.record import load_policy
     from ..rl.trainer import resolve_device
     from .extra import require_viser
@@ -186,14 +187,19 @@ def serve_policy(path, num_envs: int = 64, device: str = "auto", host: str = "12
     require_viser()  # before minutes of loading: the missing extra and a bad address are said at once
     check_address(host, port)
     policy = load_policy(path, num_envs, resolve_device(device), command=command, backend=backend)
-    server = start_server(host, port)
     try:
-        live = LivePage(policy.env, policy.actor, server, command=command)
-        print(f"viewer: {policy.path} with {num_envs} robots on {policy.env.device} "
-              f"({live.base.backend} backend); open {page_url(host, server.get_port())} "
-              "(Ctrl-C stops)", flush=True)
-        if ready is not None:
-            ready(live)
-        live.run(stop)
+        server = start_server(host, port)
+        try:
+            live = LivePage(policy.env, policy.actor, server, command=command)
+            print(f"viewer: {policy.path} with {num_envs} robots on {policy.env.device} "
+                  f"({live.base.backend} backend); open {page_url(host, server.get_port())} "
+                  "(Ctrl-C stops)", flush=True)
+            if ready is not None:
+                ready(live)
+            live.run(stop)
+        finally:
+            server.stop()
     finally:
-        server.stop()
+        # The simulator's worker threads outlive the env's last reference (they held on after a gc.collect()), so a
+        # caller that serves again, or goes on with other work, would keep one idle pool per page served.
+        policy.env.close(raise_if_closed=False)
