@@ -538,3 +538,42 @@ def test_serving_a_policy_closes_its_env_when_the_page_stops():
     assert len(pages) == 1
     left = [t.name for t in set(threading.enumerate()) - before if t.is_alive()]
     assert not [name for name in left if name.startswith("MujocoSim")], left
+
+
+def test_a_training_run_that_fails_to_start_stops_its_live_page(tmp_path, monkeypatch):
+    # A failure between the page's start and the training loop (here the logger) left it served, its port bound and
+    # its drawing thread running in the process.
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.rl import trainer
+    from tocabi_torchrl.viewer.training import TrainingView
+
+    views = []
+
+    def live_view(cfg, env):
+        views.append(TrainingView(cfg.viewer, env.base_env.sim))
+        return views[-1]
+
+    def no_logger(*args, **kwargs):
+        raise OSError("cannot write the run's logs")
+
+    monkeypatch.setattr(trainer, "_live_view", live_view)
+    monkeypatch.setattr(trainer, "RunLogger", no_logger)
+    cfg = preset_config("cpu_smoke", device="cpu", total_env_steps=8 * 16 * 2, eval_at_end=False, progress_bar=False,
+                        run_dir=str(tmp_path), name="viewer_fail")
+    port = _free_port()
+    cfg.viewer.enabled, cfg.viewer.port = True, port
+    with pytest.raises(OSError, match="cannot write the run's logs"):
+        trainer.train(cfg)
+    (view,) = views
+    assert view._stop.is_set() and not view._thread.is_alive()
+
+    def port_free() -> bool:
+        with socket.socket() as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                return False
+        return True
+
+    _wait(port_free, 10.0, "the page's port to be free again")  # viser's server thread ends within its stop()'s 1 s

@@ -635,11 +635,21 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     policy = agent.actor if overlap is None else overlap.collect_actor
     # The live viewer (rank 0): a policy that also ticks its pose stream, a host copy off the training stream.
     live = _live_view(cfg, env) if cfg.viewer.enabled and info.is_main else None
-    collector = make_collector(cfg, env, policy if live is None else live.wrap(policy), device,
-                               (iterations - start_iter) * cfg.frames_per_batch)
-    progress.started = True  # the logger writes config.json: from here on the run folder holds the run
-    logger = (RunLogger(run_dir, cfg, total_iterations=iterations + shift, start_iteration=start_iter + shift)
-              if info.is_main else None)
+    collector = None
+    try:
+        collector = make_collector(cfg, env, policy if live is None else live.wrap(policy), device,
+                                   (iterations - start_iter) * cfg.frames_per_batch)
+        progress.started = True  # the logger writes config.json: from here on the run folder holds the run
+        logger = (RunLogger(run_dir, cfg, total_iterations=iterations + shift, start_iteration=start_iter + shift)
+                  if info.is_main else None)
+    except BaseException:
+        # The loop's finally below is not reached yet: without this a failed start (a logger that cannot open,
+        # Ctrl-C while the collector is built) left the page served and its drawing thread running.
+        if collector is not None:
+            collector.shutdown()
+        if live is not None:
+            live.close()
+        raise
     lr = get_lr(optimizer.param_groups[0])
     t_start = time.perf_counter()
     metrics: dict = {}
