@@ -577,3 +577,38 @@ def test_a_training_run_that_fails_to_start_stops_its_live_page(tmp_path, monkey
         return True
 
     _wait(port_free, 10.0, "the page's port to be free again")  # viser's server thread ends within its stop()'s 1 s
+
+
+def test_a_port_with_every_port_after_it_taken_is_refused_not_waited_on():
+    # viser moves up from a taken port; past 65535 it fails outside its retry and start_server waited for ever.
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+    from tocabi_torchrl.viewer.server import start_server
+
+    held = []
+    for port in (65534, 65535):
+        sock = socket.socket()
+        try:
+            sock.bind(("127.0.0.1", port))
+            sock.listen()
+            held.append(sock)
+        except OSError:  # taken already, as the test needs it
+            sock.close()
+    outcome = {}
+
+    def start():
+        try:
+            outcome["server"] = start_server("127.0.0.1", 65534)
+        except ValueError as err:
+            outcome["error"] = str(err)
+
+    try:
+        worker = threading.Thread(target=start, daemon=True)
+        worker.start()
+        worker.join(timeout=30)
+        assert not worker.is_alive(), "start_server waited for a port that cannot come"
+        assert "viewer port 65534 is taken and so is every port after it" in outcome.get("error", ""), outcome
+    finally:
+        if "server" in outcome:
+            outcome["server"].stop()
+        for sock in held:
+            sock.close()

@@ -45,6 +45,10 @@ def check_address(host: str, port: int) -> None:
                      "machine only; reach it via ssh -L) or 0.0.0.0 (every interface)") from None
 
 
+#: Ports viser tries, from the one asked for upwards, before it gives up.
+_VISER_TRIES = 1000
+
+
 def _taken(host: str, port: int) -> bool:
     """Whether ``port`` on ``host`` cannot be bound now."""
     try:
@@ -59,9 +63,12 @@ def start_server(host: str = "127.0.0.1", port: int = 8080, label: str = "tocabi
     """A running ``viser.ViserServer`` on ``host``:``port`` (raises :class:`~.extra.ViewerUnavailable` without the
     extra). viser moves to the next free port when ``port`` is taken: the port it got is ``server.get_port()``."""
     check_address(host, port)
-    if port == 65535 and _taken(host, port):  # viser would try 65536, fail outside its retry and wait for ever
-        raise ValueError(f"viewer port {port} is taken and is the last port, so no next one is free to move to: pass "
-                         "another --viewer_port")
+    # viser tries `port` and up to 999 ports after it; one past 65535 fails outside its retry and it then waits for
+    # ever. Near the top of the range, refuse when every port left is taken (65534 with 65534 and 65535 taken hung).
+    if port and port + _VISER_TRIES > 65536 and all(_taken(host, p) for p in range(port, 65536)):
+        last = "and is the last port" if port == 65535 else "and so is every port after it up to 65535"
+        raise ValueError(f"viewer port {port} is taken {last}, so no next one is free to move to: pass another "
+                         "--viewer_port")
     viser = require_viser()
     server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
     server.gui.configure_theme(control_width="large", show_share_button=False)
