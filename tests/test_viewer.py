@@ -612,3 +612,20 @@ def test_a_port_with_every_port_after_it_taken_is_refused_not_waited_on():
             outcome["server"].stop()
         for sock in held:
             sock.close()
+
+
+@pytest.mark.parametrize("given", ["file", "folder"])
+def test_a_library_recipes_policy_file_is_named_as_such_by_play(given, tmp_path, capsys):
+    # train_sb3.py's <out>/policy.pt was "lacks ['iteration', ...] (not a tocabi-torchrl training checkpoint?)" and
+    # its --out folder "checkpoint not found: <out>/latest.pt": neither said what the file is or where to look.
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+    from tocabi_torchrl.adapters.policy_file import save_policy
+
+    policy = save_policy(tmp_path / "policy.pt", "sb3", {"mlp.weight": torch.zeros(2, 2)}, {"preset": "default"})
+    target = policy if given == "file" else tmp_path
+    with pytest.raises(SystemExit) as exc:
+        recipe("play").main(["--checkpoint", str(target), "--viewer", "--device", "cpu", "--viewer_port", "0"])
+    message = str(exc.value.code)
+    assert f"{policy} is the policy file of recipes/train_sb3.py" in message, message
+    assert "recipes/ppo_walk.py" in message and "<out>/eval/" in message
+    assert "viewer:" not in capsys.readouterr().out  # refused before a page was served

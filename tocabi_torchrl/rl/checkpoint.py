@@ -187,11 +187,14 @@ def prune_checkpoints(folder: str | os.PathLike, keep_last: int, keep_every: int
 def checkpoint_file(path: str | os.PathLike) -> Path:
     """The ``.pt`` file meant by ``path``: the file itself, or of a run folder ``checkpoints/latest.pt`` (the newest
     ``iter_*.pt`` where that is missing)."""
-    path = Path(path)
+    path = given = Path(path)
     if path.is_dir():
         folder = path / "checkpoints" if (path / "checkpoints").is_dir() else path
         path = _newest_checkpoint(folder)
     if not path.is_file():
+        note = _library_folder_note(given) if given.is_dir() else None
+        if note is not None:
+            raise CheckpointError(f"checkpoint not found in {given}: {note}")
         raise CheckpointError(f"checkpoint not found: {path} (pass a .pt file or a run folder with checkpoints/)")
     return path
 
@@ -330,6 +333,37 @@ def _load_failure(path: Path, err: Exception) -> tuple[str, bool]:
             f"file): {type(err).__name__}: {detail[:160]}"), False
 
 
+#: Who reads a training checkpoint and where one comes from, for the message about a file that is not one.
+_READERS = ("play.py (its gait tests and --viewer) and the export read the checkpoints recipes/ppo_walk.py writes "
+            "(<run>/checkpoints/) and the shipped policies (play.py --policy ppo)")
+
+
+def _library_policy_note(state: dict, path: Path) -> str | None:
+    """What to say of ``state`` when it is the ``policy.pt`` a library recipe writes (``recipes/train_sb3.py``,
+    ``train_rsl_rl.py``, ``train_skrl.py``: :mod:`tocabi_torchrl.adapters.policy_file`); ``None`` otherwise."""
+    from ..adapters.policy_file import FORMAT
+
+    if state.get("format") != FORMAT:
+        return None
+    library = state.get("library")
+    recipe = f"recipes/train_{library}.py" if library in ("sb3", "rsl_rl", "skrl") else "a library recipe"
+    return (f"{path} is the policy file of {recipe}, whose network is that library's, not a tocabi-torchrl training "
+            f"checkpoint: {_READERS}; the library recipe ran its own gait test when its training ended (<out>/eval/)")
+
+
+def _library_folder_note(folder: Path) -> str | None:
+    """:func:`_library_policy_note` of ``folder/policy.pt`` (a library recipe's ``--out`` folder holds one and no
+    ``checkpoints/``); ``None`` when there is no such file or it is something else."""
+    policy = folder / "policy.pt"
+    if not policy.is_file():
+        return None
+    try:
+        state = torch.load(policy, map_location="cpu", weights_only=True)  # tensors and plain values only
+    except Exception:  # noqa: BLE001 - not readable: the plain not-found message stands
+        return None
+    return _library_policy_note(state, policy) if isinstance(state, dict) else None
+
+
 def _check_layout(state, path: Path) -> None:
     if not isinstance(state, dict):
         raise CheckpointError(f"checkpoint {path} holds a {type(state).__name__}, not a tocabi-torchrl checkpoint")
@@ -342,6 +376,9 @@ def _check_layout(state, path: Path) -> None:
     expected = {"iteration": int, "env_steps": int, "agent": dict, "config": dict}
     missing = [k for k in expected if k not in state]
     if missing:
+        library_policy = _library_policy_note(state, path)
+        if library_policy is not None:
+            raise CheckpointError(library_policy)
         raise CheckpointError(f"checkpoint {path} lacks {missing}; it has {sorted(state)} (not a tocabi-torchrl "
                               "training checkpoint?)")
     for key, kind in expected.items():
