@@ -629,3 +629,30 @@ def test_a_library_recipes_policy_file_is_named_as_such_by_play(given, tmp_path,
     assert f"{policy} is the policy file of recipes/train_sb3.py" in message, message
     assert "recipes/ppo_walk.py" in message and "<out>/eval/" in message
     assert "viewer:" not in capsys.readouterr().out  # refused before a page was served
+
+
+@pytest.mark.skipif(not ONNX_POLICY.is_file(), reason="shipped ONNX policy not present")
+def test_the_exported_policy_page_draws_at_most_the_first_max_shown_robots(monkeypatch):
+    # A checkpoint's page draws the first 256 robots; an exported policy's drew every robot the driver ran.
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+    pytest.importorskip("onnxruntime", reason="the export extra (onnxruntime) is not installed")
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+    from tocabi_torchrl.viewer import exported
+    from tocabi_torchrl.viewer.config import MAX_SHOWN
+    from tocabi_torchrl.viewer.play import MAX_SHOWN as PLAY_MAX_SHOWN
+    from tocabi_torchrl.viewer.server import start_server
+
+    assert MAX_SHOWN == PLAY_MAX_SHOWN == 256
+    monkeypatch.setattr(exported, "MAX_SHOWN", 2)  # 3 robots run, 2 drawn: the cap without simulating 257
+    server = start_server("127.0.0.1", _free_port())
+    try:
+        watch = exported.ExportedWatch(server, dt=0.004, fps=1e6, real_time=False)
+        last = []
+        run_sim2sim(exported.contract_of(ONNX_POLICY), seconds=0.008, num_robots=3,
+                    on_step=lambda step, model, datas: (watch(step, model, datas), last.append(datas)))
+        assert watch.scene.num_worlds == 2 and watch.frames == 2
+        mesh = watch.scene.meshes[0]
+        drawn = np.stack([d.xpos for d in last[-1][:2]])[:, mesh.body] + watch.scene.offsets
+        np.testing.assert_allclose(watch.scene.handles[0].batched_positions, drawn, atol=1e-6)
+    finally:
+        server.stop()

@@ -5,11 +5,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["ViewerConfig", "MAX_STREAM_WORLDS", "expand_viewer_flag"]
+__all__ = ["ViewerConfig", "MAX_STREAM_WORLDS", "MAX_SHOWN", "expand_viewer_flag"]
 
 #: At most this many training worlds are copied to the host for the viewer (the issue's bound: 64 robots drawn at
 #: 30 fps cost ~65 KB a copy; more would crowd the page without showing anything new).
 MAX_STREAM_WORLDS = 64
+#: The most robots a policy's page draws (the first worlds; the simulation may run more): a checkpoint's
+#: (``play.py --viewer``) and an exported policy's (``sim2sim.py --viewer``) alike.
+MAX_SHOWN = 256
 
 
 @dataclass

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import robot
+from .config import MAX_SHOWN
 from .controls import WorldControls
 from .geometry import body_meshes
 from .overlays import MetricsPanel
@@ -35,7 +36,8 @@ def contract_of(path: str | Path) -> Path:
 
 
 class ExportedWatch:
-    """``on_step`` of :func:`~tocabi_torchrl.runtime.mujoco_driver.run_sim2sim`: draws its robots on ``server``.
+    """``on_step`` of :func:`~tocabi_torchrl.runtime.mujoco_driver.run_sim2sim`: draws its robots (the first
+    :data:`~.config.MAX_SHOWN`) on ``server``.
 
     Args:
         server: a running ``viser.ViserServer``.
@@ -55,12 +57,16 @@ class ExportedWatch:
 
     def __call__(self, step: int, model, datas: list) -> None:
         if self.scene is None:  # the driver compiles the model: the scene is built from the first call's
-            self.controls = WorldControls(self.server, len(datas))
-            self.scene = RobotScene(self.server, body_meshes(model), len(datas))
+            # The first MAX_SHOWN robots, as a checkpoint's page: every robot of a 1,000-robot run was sent each
+            # frame and drawn by the browser, which the page's cap exists to spare.
+            shown = min(len(datas), MAX_SHOWN)
+            self.controls = WorldControls(self.server, shown)
+            self.scene = RobotScene(self.server, body_meshes(model), shown)
             self._pelvis = model.body(robot.BASE_BODY).id
             self._clock = time.perf_counter()
         now = time.perf_counter()
         if now >= self._next_frame:
+            datas = datas[:self.scene.num_worlds]
             xpos = np.stack([d.xpos for d in datas])
             self.scene.update(xpos, np.stack([d.xquat for d in datas]))
             sel = min(self.controls.selected, len(datas) - 1)

@@ -18,15 +18,13 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from .. import robot
+from .config import MAX_SHOWN
 from .controls import PlayControls
 from .geometry import body_meshes
 from .overlays import GAIT_ROWS, KneeTrace, MetricsPanel
 from .scene import RobotScene, follow
 
 __all__ = ["LivePage", "MAX_SHOWN"]
-
-#: The most robots drawn on the page (the first worlds); the env may simulate more.
-MAX_SHOWN = 256
 
 
 class LivePage:
