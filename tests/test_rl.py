@@ -218,6 +218,32 @@ def test_two_tiny_iterations_write_a_loadable_checkpoint(tmp_path):
     assert train(cfg2).iterations == 3
 
 
+def test_train_closes_the_env_it_built_when_its_start_fails(tmp_path, monkeypatch):
+    # The collector's shutdown closes the env after a run; a start that failed before the collector existed (here the
+    # logger) left the env it had built open, and on the CPU backend its worker threads outlived the call.
+    import threading
+
+    from tocabi_torchrl.rl import trainer
+
+    def sim_threads() -> set[int]:
+        return {t.ident for t in threading.enumerate() if t.name.startswith("MujocoSim")}
+
+    before = sim_threads()
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
+                        "ppo.minibatch_size": 8},
+                        total_env_steps=8, run_dir=str(tmp_path), name="closes", progress_bar=False, eval_at_end=False)
+    trainer.train(cfg)
+    assert sim_threads() == before
+
+    def no_logger(*args, **kwargs):
+        raise OSError("cannot write the run's logs")
+
+    monkeypatch.setattr(trainer, "RunLogger", no_logger)
+    with pytest.raises(OSError, match="cannot write"):
+        trainer.train(preset_config("cpu_smoke", **{**cfg.to_dict(), "name": "fails"}))
+    assert sim_threads() == before
+
+
 def test_evaluation_and_curves_from_a_tiny_run(tmp_path):
     from tocabi_torchrl.rl.curves import plot_curves
     from tocabi_torchrl.evaluation.gait_test import evaluate_run

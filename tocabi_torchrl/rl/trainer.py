@@ -490,6 +490,8 @@ class _Progress(StopFlag):
         self.started = False
         #: The run folder :func:`_train` opened (its claim is let go when :func:`train` returns).
         self.run: RunFolder | None = None
+        #: The env :func:`_train` built itself (None when the caller gave one): closed when :func:`train` returns.
+        self.built_env: EnvBase | None = None
 
 
 #: A repeated signal within this many seconds of the first is the same request (:func:`~.interrupt.stop_on_signals`):
@@ -544,6 +546,10 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
         for folder in (run, progress.run):
             if folder is not None:
                 folder.release()
+        if progress.built_env is not None:
+            # Nothing returned holds it; on the CPU backend its worker threads would outlive the call otherwise (a
+            # notebook training twice kept both envs' threads), failed starts included.
+            progress.built_env.close(raise_if_closed=False)
 
 
 def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: DistInfo,
@@ -580,7 +586,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         cfg = dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info))
     if env is not None:
         check_given_env(cfg, env)
-    env = env if env is not None else build_env(cfg, device, for_training=True)
+    if env is None:
+        env = progress.built_env = build_env(cfg, device, for_training=True)
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim = env.action_spec.shape[-1]
     agent = build_agent(cfg, obs_dim, act_dim, device)
