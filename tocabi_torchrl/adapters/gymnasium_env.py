@@ -10,7 +10,8 @@ observation is in ``infos["final_obs"]`` (rows flagged by ``infos["_final_obs"]`
 
 Devices: by default every array stays a torch tensor on the env's device. In numpy mode (``numpy=True``) a step
 copies what it returns to the host packed into one transfer (the observation, reward, termination and truncation
-flags, the 13 reward terms, the done flags and the episode statistics): on a GPU that is one synchronisation per step.
+flags, every reward term (the reference's 13; the robust preset adds two), the done flags and the episode
+statistics): on a GPU that is one synchronisation per step.
 A step where episodes ended copies those envs' last observations alone in a second transfer; the other rows of
 ``infos["final_obs"]`` are the observation's (their episodes go on).
 """
