@@ -889,3 +889,24 @@ def test_a_policy_file_given_to_load_contract_names_the_contract_beside_it(tmp_p
     module.write_bytes(b"PK\x03\x04 a TorchScript zip")
     with pytest.raises(ContractError, match=r"walk.ts.pt is a TorchScript module, .*walk.json is missing"):
         load_contract(module)
+
+
+def test_a_renamed_pair_runs_the_onnx_of_its_name_not_the_recorded_one(tmp_path):
+    # The contract records the .onnx it was exported with; after my.onnx + my.json were renamed from it, a file of
+    # the old name beside them (another policy) ran instead of my.onnx, and a wrong my.onnx was never looked at.
+    shipped = robot.asset_path("policies", "tocabi_walk_torque.json")
+    shutil.copy(shipped, tmp_path / "my.json")
+    shutil.copy(shipped.with_suffix(".onnx"), tmp_path / "my.onnx")
+    old = shutil.copy(robot.asset_path("policies", "tocabi_walk_ppo.onnx"), tmp_path / "tocabi_walk_torque.onnx")
+    assert load_contract(tmp_path / "my.json")["policy"]["onnx_file"] == "tocabi_walk_torque.onnx"
+    assert PolicyRuntime(tmp_path / "my.json").onnx_path == tmp_path / "my.onnx"
+    assert PolicyRuntime(tmp_path / "my.json", onnx=tmp_path / "my.onnx").onnx_path == tmp_path / "my.onnx"
+    with pytest.raises(ContractError, match=r"tocabi_walk_torque\.onnx does not match the sha256"):
+        PolicyRuntime(tmp_path / "my.json", onnx=old)
+    # The named file is another policy while the recorded one is the contract's: refused, naming the named file.
+    shutil.copy(old, tmp_path / "my.onnx")
+    shutil.copy(shipped.with_suffix(".onnx"), old)
+    with pytest.raises(ContractError, match=r"my\.onnx does not match the sha256 .*records tocabi_walk_torque\.onnx"):
+        PolicyRuntime(tmp_path / "my.json")
+    with pytest.raises(ContractError, match=r"ONNX file .*absent\.onnx not found"):
+        PolicyRuntime(tmp_path / "my.json", onnx=tmp_path / "absent.onnx")

@@ -18,7 +18,7 @@ from .contract import ContractError, load_contract
 from .motion import RuntimeMotion, file_sha256
 from .observation import History, ObservationBuilder, quat_to_rpy
 
-__all__ = ["Command", "PolicyRuntime", "RobotState"]
+__all__ = ["Command", "PolicyRuntime", "RobotState", "resolve_onnx"]
 
 _F32 = np.float32
 
@@ -97,11 +97,43 @@ def _same(said, found) -> bool:
     return said == found if isinstance(found, int) else abs(said - found) <= 1e-9 * max(1.0, abs(found))
 
 
+def resolve_onnx(contract_path: Path, contract: dict, onnx: str | os.PathLike | None = None,
+                 check_hash: bool = True) -> Path:
+    """The ONNX file a contract (read from ``contract_path``) runs: ``onnx`` when given, else the ``.onnx`` of the
+    contract's stem beside it when that exists, else the file the contract's ``policy.onnx_file`` names beside it.
+
+    A renamed pair (``my.onnx`` + ``my.json``) keeps the old name in ``policy.onnx_file``; a file of that old name
+    may still lie beside it holding another policy, so the recorded name is only the fallback, never a substitute
+    for the file the user named. With ``check_hash`` the chosen file must have the contract's ``onnx_sha256``, else
+    :class:`ContractError` naming that file."""
+    recorded = contract_path.parent / contract["policy"]["onnx_file"]
+    if onnx is not None:
+        chosen = Path(onnx)
+        if not chosen.is_file():
+            raise ContractError(f"ONNX file {chosen} not found")
+    else:
+        stem = contract_path.with_suffix(".onnx")
+        chosen = stem if stem.is_file() else recorded
+        if not chosen.is_file():
+            raise ContractError(f"{contract_path}: ONNX file {recorded.name} (the contract's policy.onnx_file) not "
+                                f"found beside the contract, nor {stem.name}; pass the .onnx it belongs to")
+    if check_hash and contract["policy"]["onnx_sha256"] != file_sha256(chosen):
+        renamed = (f" (the contract records {recorded.name}: a renamed pair is fine, but the .onnx must be the one "
+                   "exported with it)" if chosen.name != recorded.name else "")
+        raise ContractError(f"{chosen} does not match the sha256 in {contract_path}{renamed}: the contract belongs to "
+                            "another export; re-export both together")
+    return chosen
+
+
 class PolicyRuntime:
     """An exported policy with its contract, its phase clock and its observation history for N robots.
 
     Args:
-        contract: path of the contract JSON (the ONNX file is looked up beside it, as ``policy.onnx_file`` says).
+        contract: path of the contract JSON.
+        onnx: the ONNX file to run; default: the one beside the contract, of the contract's own stem when there is
+            one (a pair renamed together: the contract still records its old ``policy.onnx_file``), else the file
+            ``policy.onnx_file`` names. Whichever runs must have the contract's ``policy.onnx_sha256``: a file of
+            the recorded name is never run in place of the one of the contract's stem or the one given.
         motion: the reference motion file; default: the shipped motion of the name the contract gives. Its sha256
             must match the contract's.
         threads: onnxruntime intra-op threads.
@@ -118,16 +150,11 @@ class PolicyRuntime:
     """
 
     def __init__(self, contract: str | os.PathLike, motion: str | os.PathLike | None = None, threads: int = 1,
-                 check_onnx_hash: bool = True, sensors=None):
+                 check_onnx_hash: bool = True, sensors=None, onnx: str | os.PathLike | None = None):
         path = Path(contract)
         self.sensors = sensors
         self.contract = c = load_contract(path)
-        self.onnx_path = path.parent / c["policy"]["onnx_file"]
-        if not self.onnx_path.is_file():
-            raise ContractError(f"{path}: ONNX file {self.onnx_path} not found beside the contract")
-        if check_onnx_hash and c["policy"]["onnx_sha256"] != file_sha256(self.onnx_path):
-            raise ContractError(f"{self.onnx_path} does not match the sha256 in {path}: the contract belongs to "
-                                "another export; re-export both together")
+        self.onnx_path = resolve_onnx(path, c, onnx, check_onnx_hash)
         self.session = _onnx_session(self.onnx_path, threads, as_exported=check_onnx_hash,
                                      opset=c["policy"].get("opset"))
         pol = c["policy"]
