@@ -218,7 +218,9 @@ def serve_exported(args: argparse.Namespace) -> None:
     except ValueError as err:
         sys.exit(f"error: {err}")
     sim2sim = _recipe("sim2sim")
-    sim2sim.main(["--contract", str(contract), "--num_robots", str(args.num_envs or VIEWER_ENVS),
+    # The .onnx named runs, not the file the contract records (a renamed pair keeps the old name there).
+    named = ["--onnx", args.checkpoint] if Path(args.checkpoint).suffix == ".onnx" else []
+    sim2sim.main(["--contract", str(contract), *named, "--num_robots", str(args.num_envs or VIEWER_ENVS),
                   "--seconds", str(args.seconds), "--vx", str(args.vx), "--vy", str(args.vy), "--viewer",
                   "--viewer_host", args.viewer_host, "--viewer_port", str(args.viewer_port)])
 

@@ -37,6 +37,9 @@ REFERENCE_MODEL = Path(__file__).resolve().parents[1].parent / "shared" / "refer
 def build_parser() -> argparse.ArgumentParser:
     parser = RecipeParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--contract", required=True, help="policy contract .json (the .onnx lies beside it)")
+    parser.add_argument("--onnx", default=None,
+                        help="the .onnx to run (default: the one beside the contract, of its name); it must be the "
+                             "one exported with the contract (its sha256)")
     parser.add_argument("--model", default="authored", help="authored, reference, or an MJCF path (default: authored)")
     parser.add_argument("--seconds", type=float, default=8.0, help="simulated time [s] (default: 8)")
     parser.add_argument("--num_robots", type=int, default=4,
@@ -67,8 +70,7 @@ if __name__ == "__main__":  # --help or a misspelt option answers before mujoco 
 
 from tocabi_torchrl.atomic import atomic_write_text  # noqa: E402
 from tocabi_torchrl.evaluation.output import json_safe  # noqa: E402
-from tocabi_torchrl.runtime import ContractError  # noqa: E402
-from tocabi_torchrl.runtime.contract import load_contract  # noqa: E402
+from tocabi_torchrl.runtime import ContractError, PolicyRuntime  # noqa: E402
 from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim  # noqa: E402
 from tocabi_torchrl.runtime.randomization import ROBUST_START, PushSettings  # noqa: E402
 from tocabi_torchrl.value_rules import MAX_SEED  # noqa: E402
@@ -147,13 +149,16 @@ def main(argv: list[str] | None = None) -> dict:
         model, strip = REFERENCE_MODEL, True
     server = bar = None
     try:
-        dt, draw = float(load_contract(args.contract)["timing"]["control_dt_s"]), None
+        # The whole policy (contract, the .onnx that runs and its hash, onnxruntime, motion) is checked before a
+        # page is served: a failure after the URL is printed would leave a page that never shows a robot.
+        runtime = PolicyRuntime(args.contract, onnx=args.onnx)
+        dt, draw = float(runtime.contract["timing"]["control_dt_s"]), None
         if args.viewer:  # the missing extra is an ImportError, said before the run
             server, draw = watch(args, dt)
         bar, on_step = progress(args, dt, draw)
         pushes = (PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed), kind=args.push_kind)
                   if args.pushes else None)
-        result = run_sim2sim(args.contract, model, seconds=args.seconds, num_robots=args.num_robots,
+        result = run_sim2sim(args.contract, model, seconds=args.seconds, num_robots=args.num_robots, onnx=args.onnx,
                              command=(args.vx, args.vy), remove_meshes=strip, seed=args.seed,
                              randomize=args.randomize, pushes=pushes,
                              start_velocity=ROBUST_START if args.start_noise else None, on_step=on_step).as_dict()

@@ -262,7 +262,8 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
                 remove_meshes: bool = False, motion: str | os.PathLike | None = None, perturbation: float = 0.0,
                 seed: int = 0, randomize: str | rnd.Randomization = "none", pushes: rnd.PushSettings | None = None,
                 start_velocity: rnd.StartVelocity | None = None,
-                on_step: Callable[[int, mujoco.MjModel, list], None] | None = None) -> Sim2SimResult:
+                on_step: Callable[[int, mujoco.MjModel, list], None] | None = None,
+                onnx: str | os.PathLike | None = None) -> Sim2SimResult:
     """Drive ``num_robots`` C MuJoCo robots through the exported policy for ``seconds`` at ``command`` (vx, vy) m/s.
 
     ``model_path``: MJCF (default: the shipped authored model); ``remove_meshes`` strips mesh geoms first (the
@@ -287,10 +288,13 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
       "velocity" on every body by the robot's own masses; None or count 0: none).
     * ``start_velocity``: start joint and pelvis velocities (``StartVelocity``, e.g. ``ROBUST_START``; None: at rest).
 
+    ``onnx``: the ONNX file to run (default: the one beside the contract, as :class:`PolicyRuntime` resolves it);
+    it must have the contract's sha256.
+
     ``on_step(step, model, datas)``: called after each control period with its 0-based index, the compiled model and
     the robots' ``MjData`` (read them, do not write; the live viewer draws them: docs/viewer.md).
     """
-    runtime = PolicyRuntime(contract_path, motion=motion)
+    runtime = PolicyRuntime(contract_path, motion=motion, onnx=onnx)
     c = runtime.contract
     dt = float(c["timing"]["control_dt_s"])
     steps = _check_run(seconds, dt, num_robots, perturbation, seed)
