@@ -390,6 +390,21 @@ def test_policy_names_a_shipped_policy_or_says_which_there_are(tmp_path):
         resolve_policy("no_such_policy")
 
 
+def test_a_bad_port_names_the_option_that_set_it_and_an_empty_policy_is_refused():
+    # The port error said "viewer port" whichever of --viewer_port and the config's viewer.port set it; "" was
+    # the current folder, looked up as a run ("checkpoint not found: ./latest.pt").
+    from tocabi_torchrl.viewer.policy_source import resolve_policy
+    from tocabi_torchrl.viewer.server import check_address
+
+    with pytest.raises(ValueError, match=r"^--viewer_port must be an int in \[0, 65535\]"):
+        check_address("127.0.0.1", 70000)
+    with pytest.raises(ValueError, match=r"^viewer\.port must be an int in \[0, 65535\]"):
+        check_address("127.0.0.1", -1, "viewer.port")
+    for empty in ("", "  "):
+        with pytest.raises(ValueError, match="--policy is empty: give a shipped policy"):
+            resolve_policy(empty)
+
+
 # ------------------------------------------------------------------------------------------------ exported policies
 ONNX_POLICY = REPO / "assets" / "policies" / "tocabi_walk_ppo.onnx"
 
@@ -429,6 +444,30 @@ def test_play_viewer_of_an_onnx_policy_runs_the_torch_free_driver(capsys):
                          "--viewer_port", str(_free_port())])
     out = capsys.readouterr().out
     assert "viewer: 2 robots of" in out and '"survival"' in out  # the page was served, then sim2sim's metrics
+
+
+@pytest.mark.skipif(not ONNX_POLICY.is_file(), reason="shipped ONNX policy not present")
+def test_play_viewer_of_a_renamed_onnx_runs_that_file_and_checks_it_before_serving(tmp_path, monkeypatch, capsys):
+    # A renamed pair's contract still records the old .onnx: the old file of that name ran instead of the one
+    # named, and the page was served (its URL printed) before a missing or wrong .onnx was found.
+    pytest.importorskip("onnxruntime", reason="the export extra (onnxruntime) is not installed")
+    import shutil
+
+    import tocabi_torchrl.viewer.server as server
+
+    shutil.copy(ONNX_POLICY.with_suffix(".json"), tmp_path / "mine.json")
+    shutil.copy(REPO / "assets" / "policies" / "tocabi_walk_torque.onnx", tmp_path / "mine.onnx")  # not ppo's
+    shutil.copy(ONNX_POLICY, tmp_path / ONNX_POLICY.name)  # the recorded name, holding the contract's policy
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the page was served before the policy was checked")
+
+    monkeypatch.setattr(server, "start_server", refuse)
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--checkpoint", str(tmp_path / "mine.onnx"), "--viewer", "--num_envs", "1",
+                             "--seconds", "0.02", "--viewer_port", "0"])
+    assert "mine.onnx does not match the sha256" in str(info.value.code)
+    assert "viewer:" not in capsys.readouterr().out
 
 
 class _Camera:
