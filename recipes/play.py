@@ -110,6 +110,8 @@ def main(argv: list[str] | None = None) -> None:
     if not (math.isfinite(args.vx) and math.isfinite(args.vy)):
         parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
     parser.refuse_without(args, args.viewer, "--viewer", ("viewer_host", "viewer_port"))
+    if args.checkpoint is not None and not args.checkpoint.strip():  # Path("") would be the current folder
+        parser.error("--checkpoint is empty: give a run folder or a checkpoint .pt file")
     if args.policy is not None:
         from tocabi_torchrl.viewer.policy_source import resolve_policy
 

@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> None:
                                          data_parallel=dist_info.enabled, prog="ppo_walk.py")
         if cfg.viewer.enabled:  # said now, not after the env is built
             require_viser()
-            check_address(cfg.viewer.host, cfg.viewer.port)
+            check_address(cfg.viewer.host, cfg.viewer.port, "viewer.port")
         unused = sorted(p for p in given if p.startswith("viewer.") and p != "viewer.enabled")
         if unused and not cfg.viewer.enabled:  # as play.py's and sim2sim.py's --viewer_port without --viewer
             raise ValueError(f"{', '.join('--' + p for p in unused)} set the live viewer, which is off: add --viewer, "

@@ -455,3 +455,12 @@ def test_ctrl_c_in_a_checkpoint_viewer_exits_130_while_loading_or_serving(monkey
     with pytest.raises(SystemExit) as info:
         recipe("play").main(["--policy", "ppo", "--viewer", "--device", "cpu"])
     assert info.value.code == 130 and "viewer stopped (Ctrl-C)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("option", ["--policy", "--checkpoint"])
+def test_play_refuses_an_empty_policy_or_checkpoint_path(option, capsys):
+    # "" is the current folder as a path: it was looked up as a run and reported "checkpoint not found: ./latest.pt".
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main([option, ""])
+    assert info.value.code == 2
+    assert f"{option} is empty" in capsys.readouterr().err

@@ -177,7 +177,7 @@ def test_a_viewer_address_it_cannot_serve_on_is_one_error_line_not_a_hang():
     # viser, given a host that is not this machine's or a port out of range, tried a thousand ports and then waited
     # for ever (the training, play and sim2sim viewers alike); checked before viser is loaded.
     assert str(_run(["--viewer", "--viewer_port", "99999"]).code) == (
-        "error: viewer port must be an int in [0, 65535], got 99999")
+        "error: --viewer_port must be an int in [0, 65535] (0: any free port), got 99999")
     assert str(_run(["--viewer", "--viewer_host", "10.9.9.9"]).code).startswith(
         "error: the viewer cannot serve on host '10.9.9.9'")
 

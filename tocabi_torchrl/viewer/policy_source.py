@@ -23,6 +23,9 @@ def resolve_policy(name: str | os.PathLike) -> Path:
     """The file or run folder ``name`` stands for: an existing path as given, else a shipped policy by its short
     name or file stem (``ppo`` or ``tocabi_walk_ppo``; ``ppo.onnx`` for its exported model). Raises ``ValueError``
     listing the shipped names when it is neither."""
+    if not str(name).strip():  # Path("") is the current folder, which would then be looked up as a run
+        raise ValueError("--policy is empty: give a shipped policy (" + ", ".join(shipped_policies()) + "), a run "
+                         "folder or a checkpoint file")
     path = Path(name)
     if path.exists():
         return path

@@ -21,12 +21,13 @@ def page_url(host: str, port: int) -> str:
     return f"http://[{shown}]:{port}" if ":" in shown else f"http://{shown}:{port}"
 
 
-def check_address(host: str, port: int) -> None:
+def check_address(host: str, port: int, option: str = "--viewer_port") -> None:
     """``ValueError`` unless the viewer can serve on ``host``:``port``: a port in [0, 65535] and a host that is an
-    address of this machine. viser, given another, tries a thousand ports and then waits for ever without saying so
+    address of this machine. ``option``: where the port was set (``--viewer_port``, or ``viewer.port`` in a run's
+    config), named in the error. viser, given another, tries a thousand ports and then waits for ever without saying so
     (a cloud machine's public address is a natural thing to type)."""
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
-        raise ValueError(f"viewer port must be an int in [0, 65535], got {port!r}")
+        raise ValueError(f"{option} must be an int in [0, 65535] (0: any free port), got {port!r}")
     found, last = [], OSError(f"{host!r} resolves to no address")
     try:
         found = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
@@ -59,16 +60,17 @@ def _taken(host: str, port: int) -> bool:
         return True
 
 
-def start_server(host: str = "127.0.0.1", port: int = 8080, label: str = "tocabi-torchrl"):
+def start_server(host: str = "127.0.0.1", port: int = 8080, label: str = "tocabi-torchrl",
+                 option: str = "--viewer_port"):
     """A running ``viser.ViserServer`` on ``host``:``port`` (raises :class:`~.extra.ViewerUnavailable` without the
-    extra). viser moves to the next free port when ``port`` is taken: the port it got is ``server.get_port()``."""
-    check_address(host, port)
+    extra); ``option`` names where the port was set in its errors (``--viewer_port`` or ``viewer.port``). viser moves to the next free port when ``port`` is taken: the port it got is ``server.get_port()``."""
+    check_address(host, port, option)
     # viser tries `port` and up to 999 ports after it; one past 65535 fails outside its retry and it then waits for
     # ever. Near the top of the range, refuse when every port left is taken (65534 with 65534 and 65535 taken hung).
     if port and port + _VISER_TRIES > 65536 and all(_taken(host, p) for p in range(port, 65536)):
         last = "and is the last port" if port == 65535 else "and so is every port after it up to 65535"
-        raise ValueError(f"viewer port {port} is taken {last}, so no next one is free to move to: pass another "
-                         "--viewer_port")
+        raise ValueError(f"viewer port {port} is taken {last}, so no next one is free to move to: set another "
+                         f"{option}")
     viser = require_viser()
     server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
     server.gui.configure_theme(control_width="large", show_share_button=False)

@@ -49,7 +49,7 @@ class TrainingView:
         cfg.validate()
         self.cfg = cfg
         self.stream = PoseStream(sim, min(cfg.worlds, sim.num_worlds), cfg.every)
-        self.server = start_server(cfg.host, cfg.port)
+        self.server = start_server(cfg.host, cfg.port, option="viewer.port")
         self.controls = WorldControls(self.server, self.stream.worlds)
         self.panel = MetricsPanel(self.server, "training: waiting for the first logged iteration…")
         self.scene = RobotScene(self.server, body_meshes(sim.mj_model), self.stream.worlds)
