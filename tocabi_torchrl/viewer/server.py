@@ -63,7 +63,8 @@ def _taken(host: str, port: int) -> bool:
 def start_server(host: str = "127.0.0.1", port: int = 8080, label: str = "tocabi-torchrl",
                  option: str = "--viewer_port"):
     """A running ``viser.ViserServer`` on ``host``:``port`` (raises :class:`~.extra.ViewerUnavailable` without the
-    extra); ``option`` names where the port was set in its errors (``--viewer_port`` or ``viewer.port``). viser moves to the next free port when ``port`` is taken: the port it got is ``server.get_port()``."""
+    extra); ``option`` names where the port was set in its errors (``--viewer_port`` or ``viewer.port``). viser
+    moves to the next free port when ``port`` is taken: the port it got is ``server.get_port()``."""
     check_address(host, port, option)
     # viser tries `port` and up to 999 ports after it; one past 65535 fails outside its retry and it then waits for
     # ever. Near the top of the range, refuse when every port left is taken (65534 with 65534 and 65535 taken hung).
