@@ -63,7 +63,7 @@ if __name__ == "__main__":  # --help or a misspelt option answers before torch a
 import torch  # noqa: E402
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
-from tocabi_torchrl.adapters.policy_file import load_policy, require_meta, save_policy  # noqa: E402
+from tocabi_torchrl.adapters.policy_file import load_network, load_policy, require_meta, save_policy  # noqa: E402
 from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
     adapter,
@@ -270,6 +270,9 @@ def main(argv=None) -> dict:
 POLICY_FIELDS = {"obs_dim": ("count", "the observation size, e.g. 237"),
                  "num_actions": ("count", "the action size, e.g. 13"),
                  "train_cfg": ("object", "the rsl_rl runner configuration the policy trained with")}
+#: The keys of ``train_cfg`` that :func:`make_actor` reads.
+TRAIN_CFG_FIELDS = {"actor": ("object", "the actor's settings, e.g. {'hidden_dims': [400, 200, 100], ...}"),
+                    "obs_groups": ("object", "the observation groups, e.g. {'actor': ['policy'], ...}")}
 
 
 def load_actor(policy: str):
@@ -282,8 +285,10 @@ def load_actor(policy: str):
     require("rsl_rl")
     meta, state = load_policy(policy, "rsl_rl")
     require_meta(meta, POLICY_FIELDS, policy, "load_actor needs to rebuild the network")
-    actor = make_actor(meta["obs_dim"], meta["num_actions"], meta["train_cfg"])
-    actor.load_state_dict(state)
+    require_meta(meta["train_cfg"], TRAIN_CFG_FIELDS, policy, "make_actor needs to rebuild the network",
+                 within="train_cfg")
+    actor = load_network(policy, meta, tuple(POLICY_FIELDS),
+                         lambda: make_actor(meta["obs_dim"], meta["num_actions"], meta["train_cfg"]), state)
     actor.eval()
 
     def act(obs):  # the env clips the mean to the action bounds

@@ -57,7 +57,13 @@ if __name__ == "__main__":  # --help or a misspelt option answers before torch a
 import torch  # noqa: E402
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
-from tocabi_torchrl.adapters.policy_file import load_policy, require_meta, save_policy  # noqa: E402
+from tocabi_torchrl.adapters.policy_file import (  # noqa: E402
+    action_bounds,
+    load_network,
+    load_policy,
+    require_meta,
+    save_policy,
+)
 from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
     adapter,
@@ -293,10 +299,9 @@ def load_actor(policy: str):
     meta, state = load_policy(policy, "sb3")
     require_meta(meta, POLICY_FIELDS, policy, "load_actor needs to rebuild the network")
     obs_space = spaces.Box(-float("inf"), float("inf"), (meta["obs_dim"],))
-    act_space = spaces.Box(torch.tensor(meta["action_low"]).numpy(), torch.tensor(meta["action_high"]).numpy())
-    net = ActorCriticPolicy(obs_space, act_space, lr_schedule=LinearLR(0.0, 0.0),
-                            **policy_kwargs(tuple(meta["hidden"])))
-    net.load_state_dict(state)
+    act_space = spaces.Box(*(bound.numpy() for bound in action_bounds(meta, policy)))
+    net = load_network(policy, meta, tuple(POLICY_FIELDS), lambda: ActorCriticPolicy(
+        obs_space, act_space, lr_schedule=LinearLR(0.0, 0.0), **policy_kwargs(tuple(meta["hidden"]))), state)
     net.eval()
 
     def act(obs):  # the env clips the mean to the action bounds, as SB3's predict() would

@@ -48,7 +48,13 @@ import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
-from tocabi_torchrl.adapters.policy_file import load_policy, require_meta, save_policy  # noqa: E402
+from tocabi_torchrl.adapters.policy_file import (  # noqa: E402
+    action_bounds,
+    load_network,
+    load_policy,
+    require_meta,
+    save_policy,
+)
 from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     TrainingClock,
     adapter,
@@ -210,9 +216,9 @@ def load_actor(policy: str):
     meta, state = load_policy(policy, "skrl")
     require_meta(meta, POLICY_FIELDS, policy, "load_actor needs to rebuild the network")
     obs_space = spaces.Box(-float("inf"), float("inf"), (meta["obs_dim"],))
-    act_space = spaces.Box(torch.tensor(meta["action_low"]).numpy(), torch.tensor(meta["action_high"]).numpy())
-    net = make_models(obs_space, act_space, "cpu", tuple(meta["hidden"]))["policy"]
-    net.load_state_dict(state)
+    act_space = spaces.Box(*(bound.numpy() for bound in action_bounds(meta, policy)))
+    net = load_network(policy, meta, tuple(POLICY_FIELDS),
+                       lambda: make_models(obs_space, act_space, "cpu", tuple(meta["hidden"]))["policy"], state)
     net.eval()
 
     def act(obs):  # the env clips the mean to the action bounds

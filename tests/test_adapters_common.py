@@ -648,3 +648,78 @@ def test_the_gait_test_takes_a_device_as_the_adapters_do(monkeypatch, tmp_path):
     with pytest.raises(TypeError, match=r"device must be .* a GPU index or None \(auto\), got 1.5"):
         ev.evaluate_actions(act, tmp_path, num_envs=1, device=1.5)
     assert len(devices) == 2
+
+
+def _saved_policy(tmp_path, recipe_name: str, meta_changes: dict, train_cfg: dict | None = None):
+    """A policy.pt whose state_dict is a real network of ``recipe_name`` (built from :data:`_ACTOR_META`'s sizes, or
+    from ``train_cfg`` for rsl_rl) and whose metadata is the complete one with ``meta_changes``."""
+    library, module, complete = _ACTOR_META[recipe_name]
+    pytest.importorskip(module)
+    from recipe_runner import load_recipe
+
+    recipe = load_recipe(recipe_name)
+    meta = {"preset": "default", "task": {"seed": 0}, **complete}
+    if recipe_name == "train_rsl_rl":
+        meta["train_cfg"] = train_cfg
+        net = recipe.make_actor(237, 13, train_cfg)
+    else:
+        from gymnasium import spaces
+
+        obs_space, act_space = spaces.Box(-1.0, 1.0, (237,)), spaces.Box(-1.0, 1.0, (13,))
+        if recipe_name == "train_sb3":
+            from stable_baselines3.common.policies import ActorCriticPolicy
+
+            net = ActorCriticPolicy(obs_space, act_space, lr_schedule=recipe.LinearLR(0.0, 0.0),
+                                    **recipe.policy_kwargs((8, 8)))
+        else:
+            net = recipe.make_models(obs_space, act_space, "cpu", (8, 8))["policy"]
+    meta.update(meta_changes)
+    return recipe, save_policy(tmp_path / "policy.pt", library, net.state_dict(), meta)
+
+
+def _rsl_rl_cfg(**actor) -> dict:
+    return {"obs_groups": {"actor": ["policy"], "critic": ["critic"]},
+            "actor": {"class_name": "MLPModel", "hidden_dims": [8, 8], "activation": "elu",
+                      "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": 0.2, "learn_std": False},
+                      **actor}}
+
+
+@pytest.mark.parametrize(("recipe_name", "changes", "problem"), [
+    ("train_sb3", {}, None),
+    ("train_sb3", {"hidden": [16, 16]}, r"does not fit the network its metadata describes \(obs_dim=237, "
+     r"action_low=\[13 numbers\], action_high=\[13 numbers\], hidden=\[16, 16\]\): "
+     r"'mlp_extractor\.policy_net\.0\.weight' is \(8, 237\) in the file but \(16, 237\) in the network"),
+    ("train_sb3", {"action_low": [-1.0] * 12}, r"'action_low' has 12 bounds but 'action_high' has 13"),
+    ("train_sb3", {"action_low": [1.0] * 13, "action_high": [-1.0] * 13},
+     r"'action_low' is above 'action_high' \(or NaN\) at 13 action\(s\), first action 0: 1\.0 > -1\.0"),
+    ("train_skrl", {}, None),
+    ("train_skrl", {"hidden": [8]}, r"hidden=\[8\]\): 'net\.2\.weight' is \(8, 8\) in the file but \(13, 8\) in the "
+     r"network.*the file has 2 tensor\(s\) the network lacks \(\['net\.4\.weight', 'net\.4\.bias'\]\)"),
+    ("train_skrl", {"obs_dim": 236}, r"'net\.0\.weight' is \(8, 237\) in the file but \(8, 236\) in the network"),
+    ("train_skrl", {"action_high": [1.0] * 14}, r"'action_low' has 13 bounds but 'action_high' has 14"),
+    ("train_rsl_rl", {}, None),
+    ("train_rsl_rl", {"num_actions": 12}, r"num_actions=12.*'distribution\.std_param' is \(13,\) in the file but "
+     r"\(12,\) in the network"),
+    ("train_rsl_rl", {"train_cfg": {"obs_groups": {"actor": ["policy"]}}},
+     r"its metadata's 'train_cfg' has no 'actor' \(the actor's settings.*which make_actor needs to rebuild the "
+     r"network.*\{\*\*meta, 'train_cfg': \{\*\*meta\['train_cfg'\], 'actor': <a JSON object>\}\}"),
+    ("train_rsl_rl", {"train_cfg": _rsl_rl_cfg(hidden_dimz=[8, 8])},
+     r"the network its metadata describes \(obs_dim=237, num_actions=13, train_cfg=.*\) cannot be built: "
+     r"TypeError: .*hidden_dimz"),
+    ("train_rsl_rl", {"train_cfg": _rsl_rl_cfg(hidden_dims=[4, 8])}, r"'mlp\.0\.weight' is \(8, 237\) in the file "
+     r"but \(4, 237\) in the network"),
+])
+def test_a_recipes_load_actor_refuses_metadata_that_does_not_fit_the_weights_naming_file_fields_and_fix(
+        tmp_path, recipe_name, changes, problem):
+    # A field of the right kind but a value that does not fit the saved weights (other hidden widths, bounds of
+    # another length, a train_cfg without 'actor') ended in torch's size-mismatch RuntimeError, gymnasium's Box error
+    # or a KeyError from inside make_actor, none naming the file or the field to fix.
+    recipe, path = _saved_policy(tmp_path, recipe_name, changes, _rsl_rl_cfg())
+    if problem is None:  # the metadata the weights were saved with loads, and the actor acts
+        meta, act = recipe.load_actor(str(path))
+        assert act(torch.zeros(2, 237)).shape == (2, 13)
+        return
+    with pytest.raises(PolicyFileError, match=problem) as refused:
+        recipe.load_actor(str(path))
+    message = str(refused.value)
+    assert message.startswith(f"{path}: ") and "save_policy(new_path, library, state_dict, {**meta, " in message

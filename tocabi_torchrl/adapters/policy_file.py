@@ -18,7 +18,8 @@ import torch
 from ..atomic import atomic_write_bytes
 from ..integrity import zip_damage
 
-__all__ = ["FORMAT", "META_KINDS", "PolicyFileError", "load_policy", "require_meta", "save_policy"]
+__all__ = ["FORMAT", "META_KINDS", "PolicyFileError", "action_bounds", "load_network", "load_policy", "require_meta",
+           "save_policy"]
 
 FORMAT = "tocabi_torchrl.adapters.policy/1"
 
@@ -94,26 +95,96 @@ META_KINDS = {
 }
 
 
-def require_meta(meta, fields: dict[str, tuple[str, str]], path, needed_for: str) -> dict:
+def require_meta(meta, fields: dict[str, tuple[str, str]], path, needed_for: str, within: str | None = None) -> dict:
     """``meta`` if it holds every field of ``fields`` {name: (kind, what it holds)}, each of its kind in
     :data:`META_KINDS` (e.g. ``{"obs_dim": ("count", "the observation size, e.g. 237")}``); else a
     :class:`PolicyFileError` naming the file ``path``, the first missing or ill-typed field, what it is
-    ``needed_for`` (e.g. "the loader needs to rebuild the network") and how to add it. The recipes write every field
-    their loader reads; a hand-made or older file may lack some, which ended in a bare ``KeyError`` or ``TypeError``
-    from inside the loader."""
+    ``needed_for`` (e.g. "the loader needs to rebuild the network") and how to add it. With ``within`` (a field's
+    name), ``meta`` is that field's JSON object and the fields named are its keys (e.g. ``train_cfg``'s
+    ``"actor"``). The recipes write every field their loader reads; a hand-made or older file may lack some, which
+    ended in a bare ``KeyError`` or ``TypeError`` from inside the loader."""
     names = ", ".join(f"'{name}'" for name in fields)
+    where = "its metadata" if within is None else f"its metadata's '{within}'"
     if not isinstance(meta, dict):
-        raise PolicyFileError(f"{path}: its metadata is {type(meta).__name__}, not a dict holding {names}")
+        raise PolicyFileError(f"{path}: {where} is {type(meta).__name__}, not a dict holding {names}")
     for name, (kind, what) in fields.items():
         test, kind_text = META_KINDS[kind]
         if name not in meta:
-            problem = f"its metadata has no '{name}' ({what}; {kind_text})"
+            problem = f"{where} has no '{name}' ({what}; {kind_text})"
         elif not test(meta[name]):
-            problem = f"its metadata's '{name}' is {meta[name]!r}, not {what} ({kind_text})"
+            field = f"its metadata's '{name}'" if within is None else f"{where}['{name}']"
+            problem = f"{field} is {meta[name]!r}, not {what} ({kind_text})"
         else:
             continue
+        if within is None:
+            written, update = f"{names} into every policy.pt", f"'{name}': <{kind_text}>"
+        else:
+            written = f"{names} into every policy.pt's '{within}'"
+            update = f"'{within}': {{**meta['{within}'], '{name}': <{kind_text}>}}"
         raise PolicyFileError(
-            f"{path}: {problem}, which {needed_for}. The recipes write {names} into every policy.pt; for a "
-            f"hand-made or older file, load it with load_policy and save it again with '{name}' set: "
-            f"save_policy(new_path, library, state_dict, {{**meta, '{name}': <{kind_text}>}})")
+            f"{path}: {problem}, which {needed_for}. The recipes write {written}; for a hand-made or older file, "
+            f"load it with load_policy and save it again with '{name}' set: "
+            f"save_policy(new_path, library, state_dict, {{**meta, {update}}})")
     return meta
+
+
+def action_bounds(meta: dict, path) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(low, high)``: the (num_actions,) float32 tensors of ``meta``'s ``action_low`` and ``action_high`` (the
+    action space's bounds, in the env's action units), after :func:`require_meta` checked they are lists of numbers.
+    Raises :class:`PolicyFileError` naming the file when their lengths differ or a low bound is above its high one,
+    which gymnasium's ``Box`` refused with its own error naming neither the file nor the fields."""
+    low = torch.tensor(meta["action_low"], dtype=torch.float32)
+    high = torch.tensor(meta["action_high"], dtype=torch.float32)
+    fix = ("set both to the bounds of the env the policy trained in (one per action, e.g. 13 for TOCABI): "
+           "save_policy(new_path, library, state_dict, {**meta, 'action_low': [...], 'action_high': [...]})")
+    if low.shape != high.shape:
+        raise PolicyFileError(f"{path}: its metadata's 'action_low' has {low.numel()} bounds but 'action_high' has "
+                              f"{high.numel()}; they must have one each per action: {fix}")
+    above = torch.nonzero(~(low <= high)).flatten().tolist()  # ~(<=) also catches NaN
+    if above:
+        i = above[0]
+        raise PolicyFileError(f"{path}: its metadata's 'action_low' is above 'action_high' (or NaN) at {len(above)} "
+                              f"action(s), first action {i}: {low[i].item()} > {high[i].item()}; {fix}")
+    return low, high
+
+
+def _shown(value, limit: int = 80) -> str:
+    if isinstance(value, list) and len(value) > 4 and all(_real(x) for x in value):
+        return f"[{len(value)} numbers]"  # 13 action bounds would hide the sizes that matter
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def load_network(path, meta: dict, fields: tuple[str, ...], build, state: dict) -> torch.nn.Module:
+    """``build()`` (the library's network rebuilt from the metadata ``fields`` of ``meta``, e.g. ``("obs_dim",
+    "hidden")``) with ``state`` {name: tensor} loaded into it. Raises :class:`PolicyFileError` naming the file
+    ``path``, ``fields`` with their values, the tensors that differ (their shapes in the file and in the network,
+    missing and unexpected names) and the fix, where the library or ``load_state_dict`` raised its own error (a
+    field of the right kind but a value that does not match the saved weights: other hidden widths, another
+    observation or action size)."""
+    described = ", ".join(f"{name}={_shown(meta.get(name))}" for name in fields)
+    names = ", ".join(f"'{name}'" for name in fields)
+    fix = (f"The weights and the metadata must come from the same training: use the policy.pt the recipe wrote with "
+           f"these weights, or save this one again with {names} set to what the weights were trained with: "
+           f"save_policy(new_path, library, state_dict, {{**meta, ...}})")
+    try:
+        net = build()
+    except (KeyError, TypeError, ValueError, IndexError) as err:  # the library's own check of a field's value
+        raise PolicyFileError(f"{path}: the network its metadata describes ({described}) cannot be built: "
+                              f"{type(err).__name__}: {err}. {fix}") from None
+    expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    got = {k: tuple(v.shape) for k, v in state.items()}
+    problems = [f"'{k}' is {got[k]} in the file but {shape} in the network"
+                for k, shape in expected.items() if k in got and got[k] != shape]
+    missing = [k for k in expected if k not in got]
+    unexpected = [k for k in got if k not in expected]
+    if missing:
+        problems.append(f"the file lacks {len(missing)} tensor(s) the network has ({_shown(missing)})")
+    if unexpected:
+        problems.append(f"the file has {len(unexpected)} tensor(s) the network lacks ({_shown(unexpected)})")
+    if problems:
+        shown = "; ".join(problems[:3]) + (f"; and {len(problems) - 3} more" if len(problems) > 3 else "")
+        raise PolicyFileError(f"{path}: its state_dict does not fit the network its metadata describes "
+                              f"({described}): {shown}. {fix}")
+    net.load_state_dict(state)
+    return net
