@@ -209,6 +209,42 @@ def test_statistics_without_a_normaliser_are_refused_by_name():
     assert _normalization(transform_config(normalization="none")) is None
 
 
+
+@pytest.mark.parametrize("normalization", ["fixed", "running"])
+def test_statistics_of_another_length_than_the_observation_are_refused_by_the_config(normalization):
+    # A wrong length passed the config and failed only once the transforms met the env's spec, with a message naming
+    # FixedNormalization (or RunningNormalization) rather than obs_mean/obs_var; mean and var of different lengths
+    # were refused only by the normaliser's own check.
+    with pytest.raises(ValueError, match=r"^obs_mean/obs_var have 36 values each but the per-step observation has 37 "
+                                         r"\(the reference obs_layout: 35 values \+ sin and cos of phase_harmonics=1\)"
+                                         r"; pass 37 of each, or leave both None"):
+        transform_config(normalization=normalization, obs_mean=(0.0,) * 36, obs_var=(1.0,) * 36)
+    with pytest.raises(ValueError, match=r"per-step observation has 39 .*phase_harmonics=2\); pass 39 of each"):
+        transform_config(normalization=normalization, phase_harmonics=2, obs_mean=(0.0,) * 37, obs_var=(1.0,) * 37)
+    with pytest.raises(ValueError, match=r"^obs_mean has 37 values but obs_var has 36; pass one mean and one "):
+        transform_config(normalization=normalization, obs_mean=(0.0,) * 37, obs_var=(1.0,) * 36)
+    # The size the config names is the one the env's observation has.
+    cfg = transform_config(normalization=normalization, phase_harmonics=2, obs_mean=(0.0,) * 39, obs_var=(1.0,) * 39)
+    assert cfg.step_obs_size() == 39
+    assert _env(**{"normalization": normalization, "phase_harmonics": 2, "obs_mean": (0.0,) * 39,
+                   "obs_var": (1.0,) * 39}).observation_spec["obs_step"].shape == (N, 39)
+
+
+@pytest.mark.parametrize("normalization", ["fixed", "running"])
+def test_statistics_for_a_layout_of_another_size_are_refused_naming_them_when_the_env_is_known(normalization):
+    # The config cannot size another obs_layout (the env's signals do), so the normaliser names the statistics'
+    # option once it meets the env's observation spec.
+    layout = REFERENCE_OBS_LAYOUT[:-1]  # 35 values: no foot_torque_y
+    stats = {"obs_layout": layout, "obs_mean": (0.0,) * 37, "obs_var": (1.0,) * 37}
+    cfg = transform_config(normalization=normalization, **stats)
+    assert cfg.step_obs_size() is None
+    with pytest.raises(ValueError, match=r"^obs_mean/obs_var have 37 values each but the per-step observation "
+                                         r"'obs_step' has 35 \(shape \(4, 35\), set by obs_layout and "
+                                         r"phase_harmonics\); pass 35 of each, or leave both None"):
+        _env(normalization=normalization, **stats).observation_spec
+    assert _env(normalization=normalization, obs_layout=layout, obs_mean=(0.0,) * 35,
+                obs_var=(1.0,) * 35).observation_spec["obs_step_norm"].shape == (N, 35)
+
 def test_reset_returns_policy_input_without_stepping():
     env = _env()
     td = env.reset()

@@ -70,6 +70,8 @@ class _Normalization(CallOnReset):
         super().__init__(in_keys=[in_key], out_keys=[out_key])
         self.eps = check_positive(eps, f"{type(self).__name__} eps")
         self.clip = None if clip is None else check_positive(clip, f"{type(self).__name__} clip")
+        # The option the statistics came from (e.g. "obs_mean/obs_var"), named when their length does not fit.
+        self.stats_source: str | None = None
 
     def _num_stats(self) -> int:
         raise NotImplementedError
@@ -83,6 +85,12 @@ class _Normalization(CallOnReset):
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         spec = require_spec(observation_spec, self.in_keys[0], self)
         dim = spec.shape[-1] if len(spec.shape) else 0
+        if dim != self._num_stats() and self.stats_source is not None:
+            raise ValueError(
+                f"{self.stats_source} have {self._num_stats()} values each but the per-step observation "
+                f"{self.in_keys[0]!r} has {dim} (shape {tuple(spec.shape)}, set by obs_layout and phase_harmonics); "
+                f"pass {dim} of each, or leave both None"
+            )
         if dim != self._num_stats():
             raise ValueError(
                 f"{type(self).__name__} holds {self._num_stats()} statistics but {self.in_keys[0]!r} has {dim} values "

@@ -56,10 +56,14 @@ def _normalization(cfg: TransformConfig) -> Transform | None:
                 "normalization='fixed' needs obs_mean/obs_var for a changed observation layout or phase_harmonics; "
                 "pass them, or use normalization='running' or 'none'"
             )
-        return FixedNormalization("obs_step", "obs_step_norm", mean=mean, var=var, clip=cfg.obs_clip)
-    if cfg.normalization == "running":
-        return RunningNormalization("obs_step", "obs_step_norm", init_mean=mean, init_var=var, clip=cfg.obs_clip)
-    return None
+        norm = FixedNormalization("obs_step", "obs_step_norm", mean=mean, var=var, clip=cfg.obs_clip)
+    elif cfg.normalization == "running":
+        norm = RunningNormalization("obs_step", "obs_step_norm", init_mean=mean, init_var=var, clip=cfg.obs_clip)
+    else:
+        return None
+    if cfg.obs_mean is not None:  # a layout the config cannot size is checked once the env's spec is known
+        norm.stats_source = "obs_mean/obs_var"
+    return norm
 
 
 def _reward_terms(cfg: TransformConfig) -> list[RewardTerm]:

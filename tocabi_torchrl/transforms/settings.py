@@ -51,7 +51,8 @@ class TransformConfig:
         normalization: ``"fixed"`` (reference statistics or ``obs_mean``/``obs_var``), ``"running"`` (running
             statistics, initialised from ``obs_mean``/``obs_var`` when given) or ``"none"``.
         obs_mean, obs_var: statistics for the normalisation, one per per-step observation value (default: the
-            reference's, spec §7.1); refused with ``normalization="none"``, which reads none.
+            reference's, spec §7.1); refused with ``normalization="none"``, which reads none, and with a length
+            other than :meth:`step_obs_size` (when the config sets it, else once the env's observation is known).
         obs_clip: optional clip of the normalised observation, > 0 (the reference has none); refused with
             ``normalization="none"``, which has nothing to clip.
         history: observation + action history layout (:data:`REFERENCE_HISTORY`: 5 obs every 2 steps + 4 actions).
@@ -121,6 +122,8 @@ class TransformConfig:
         if self.max_episode_steps is not None:
             check_positive_int(self.max_episode_steps, "max_episode_steps", "or None to only count steps")
         check_positive_int(self.phase_harmonics, "phase_harmonics")
+        if self.obs_mean is not None:
+            self._check_stats_length()
         for t in self.reward_terms:
             if isinstance(t, str) and t not in REFERENCE_TERM_NAMES:
                 raise KeyError(
@@ -131,6 +134,35 @@ class TransformConfig:
             if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 < scale < math.inf:
                 raise ValueError(f"reward_scales[{name!r}] must be a finite number > 0 (the term's kernel scale), "
                                  f"got {scale!r}")
+
+    def step_obs_size(self) -> int | None:
+        """The number of per-step observation values (``obs_step``'s last dim, which ``obs_mean``/``obs_var`` hold
+        one statistic each for) where the config alone sets it: the reference ``obs_layout`` reads TOCABI's
+        fixed-size signals plus ``phase_harmonics`` sines and cosines (37 values with 1 harmonic); ``None`` for
+        another layout, whose size the env's signal shapes set."""
+        if self.obs_layout != REFERENCE_OBS_LAYOUT:
+            return None
+        return _REFERENCE_NON_PHASE_VALUES + 2 * self.phase_harmonics
+
+    def _check_stats_length(self) -> None:
+        # A wrong length passed here and failed only once the transforms met an env's observation spec, naming the
+        # normaliser's class rather than these fields.
+        n_mean, n_var = len(self.obs_mean), len(self.obs_var)
+        if n_mean != n_var:
+            raise ValueError(f"obs_mean has {n_mean} values but obs_var has {n_var}; pass one mean and one variance "
+                             "per per-step observation value")
+        size = self.step_obs_size()
+        if size is not None and n_mean != size:
+            raise ValueError(
+                f"obs_mean/obs_var have {n_mean} values each but the per-step observation has {size} (the reference "
+                f"obs_layout: {_REFERENCE_NON_PHASE_VALUES} values + sin and cos of phase_harmonics="
+                f"{self.phase_harmonics}); pass {size} of each, or leave both None (normalization 'fixed' then uses "
+                "the reference statistics with 1 harmonic, 'running' starts from mean 0 and variance 1)")
+
+
+#: The reference per-step observation's values other than the phase's sin and cos: base rpy 3, leg joint positions
+#: and velocities 12 + 12, command 2, foot force z 2, foot torques x and y 2 + 2.
+_REFERENCE_NON_PHASE_VALUES = 35
 
 
 def _section(value, kind: type, where: str, dicts: bool = True):
