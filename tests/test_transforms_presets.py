@@ -245,6 +245,7 @@ def test_statistics_for_a_layout_of_another_size_are_refused_naming_them_when_th
     assert _env(normalization=normalization, obs_layout=layout, obs_mean=(0.0,) * 35,
                 obs_var=(1.0,) * 35).observation_spec["obs_step_norm"].shape == (N, 35)
 
+
 def test_reset_returns_policy_input_without_stepping():
     env = _env()
     td = env.reset()
