@@ -4,15 +4,17 @@
 still with its CRC). ``torch.load`` never checks those CRCs, so bits flipped on disk or in a copy inside a tensor's
 data load silently as slightly different weights: a policy that exports, evaluates and resumes as if nothing were
 wrong. :func:`zip_damage` reads every entry once and compares its CRC (about a millisecond per megabyte), so each
-reader can refuse such a file before unpickling it. It imports only the standard library.
+reader can refuse such a file before unpickling it. :func:`load_error_detail` gives the readable line of a load that
+failed. The module imports only the standard library.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import zipfile
 
-__all__ = ["zip_damage"]
+__all__ = ["load_error_detail", "zip_damage"]
 
 
 def zip_damage(path: str | os.PathLike) -> str | None:
@@ -29,3 +31,16 @@ def zip_damage(path: str | os.PathLike) -> str | None:
         # a damaged local header or entry size: the archive's directory no longer matches its contents
         return f"its zip structure is damaged ({type(err).__name__}: {err})"
     return None if bad is None else f"entry {bad!r} fails its CRC-32 check (its bytes changed after it was written)"
+
+
+def load_error_detail(err: Exception) -> str:
+    """The line of a failed ``torch.load(weights_only=True)`` that says what is wrong (the refused global, or what
+    could not be read), without torch's advice to turn ``weights_only`` off, which must not be followed for a file
+    from outside, and without its terminal colour codes."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(err))
+    lines = [line.strip() for line in text.splitlines()]
+    found = (next((line for line in lines if "GLOBAL" in line), None)
+             or next((line for line in lines if "Unsupported" in line), None))
+    if found is None:
+        return text.split(". ")[0].strip()
+    return found.removeprefix("WeightsUnpickler error: ").split(" by default")[0]

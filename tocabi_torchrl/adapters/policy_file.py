@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from ..atomic import atomic_write_bytes
-from ..integrity import zip_damage
+from ..integrity import load_error_detail, zip_damage
 
 __all__ = ["FORMAT", "META_KINDS", "PolicyFileError", "action_bounds", "load_network", "load_policy", "require_meta",
            "save_policy"]
@@ -54,8 +54,6 @@ def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # corrupt, truncated or a pickle that needs code: refuse it
-        from ..rl.checkpoint import load_error_detail  # what is wrong, not torch's advice to load it unsafely
-
         raise PolicyFileError(f"{path} is not a readable policy file ({type(err).__name__}: "
                               f"{load_error_detail(err)})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:

@@ -35,7 +35,7 @@ from torch import nn
 
 from ..atomic import atomic_write_bytes
 from ..config import ConfigError, RunConfig, config_from_dict
-from ..integrity import zip_damage
+from ..integrity import load_error_detail, zip_damage
 
 __all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_checkpoint", "apply_checkpoint",
            "checkpoint_file", "config_from_checkpoint", "align_transform_state", "prune_checkpoints", "run_folder_of",
@@ -300,19 +300,6 @@ def verified_checkpoint_file(path: str | os.PathLike, sim2sim_options: str = "")
         raise CheckpointError(note)
     _check_integrity(path)
     return path
-
-
-def load_error_detail(err: Exception) -> str:
-    """The line of a failed ``torch.load(weights_only=True)`` that says what is wrong (the refused global, or what
-    could not be read), without torch's advice to turn ``weights_only`` off, which must not be followed for a file
-    from outside, and without its terminal colour codes."""
-    text = re.sub(r"\x1b\[[0-9;]*m", "", str(err))
-    lines = [line.strip() for line in text.splitlines()]
-    found = (next((line for line in lines if "GLOBAL" in line), None)
-             or next((line for line in lines if "Unsupported" in line), None))
-    if found is None:
-        return text.split(". ")[0].strip()
-    return found.removeprefix("WeightsUnpickler error: ").split(" by default")[0]
 
 
 def _load_failure(path: Path, err: Exception) -> tuple[str, bool]:
