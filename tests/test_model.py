@@ -10,6 +10,7 @@ import pytest
 
 from tocabi_torchrl import robot
 
+from model_files import DEGREE_COMPILERS, shipped_model_in_degrees, shipped_model_read_as
 from reference_data import load_reference_model
 
 
@@ -306,17 +307,11 @@ def test_initial_heights_follow_the_assets_folder_and_stay_unchanged_by_callers(
 
 # --- angle units --------------------------------------------------------------------------------------------------
 
-_RADIAN = '<compiler angle="radian" '
-
-
-@pytest.mark.parametrize("compiler", ['<compiler angle="degree" ', "<compiler "], ids=["degree", "mujoco-default"])
+@pytest.mark.parametrize("compiler", DEGREE_COMPILERS.values(), ids=DEGREE_COMPILERS.keys())
 def test_a_model_read_in_degrees_with_ranges_in_radians_is_refused_naming_the_file(tmp_path, compiler):
     # Every range shrank by 180/π (±3.14 to ±0.055 rad) and the env then refused the shipped walk as "reference
     # motion ...tocabi_walk.npz: ... outside the model's range ... (a motion in degrees?)": the motion was blamed.
-    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
-    assert _RADIAN in text
-    path = tmp_path / "in_degrees.xml"
-    path.write_text(text.replace(_RADIAN, compiler))
+    path = shipped_model_read_as(tmp_path, compiler)
     message = (r"robot model .*in_degrees\.xml: it is compiled with <compiler angle=\"degree\"> \(MuJoCo's default "
                r"when <compiler> sets no angle\) but its joint ranges are written in radians: L_HipPitch_Joint "
                r"range=\"-3\.14 3\.14\" becomes \[-0\.055, 0\.055\] rad, which leaves out the initial pose's -0\.240 "
@@ -328,13 +323,6 @@ def test_a_model_read_in_degrees_with_ranges_in_radians_is_refused_naming_the_fi
 
 
 def test_a_model_in_degrees_throughout_compiles_to_the_shipped_ranges(tmp_path, model):
-    text = robot.asset_path("tocabi", "tocabi.xml").read_text().replace(_RADIAN, '<compiler angle="degree" ')
-
-    def in_degrees(match: re.Match) -> str:
-        return ' range="{}"'.format(" ".join(f"{np.degrees(float(v)):.6f}" for v in match[1].split()))
-
-    degrees = re.sub(r' range="([^"]+)"', in_degrees, text)
-    path = tmp_path / "degrees.xml"
-    path.write_text(degrees)
+    path = shipped_model_in_degrees(tmp_path)
     np.testing.assert_allclose(robot.load_model(path).jnt_range, model.jnt_range, atol=1e-7)
     assert robot.load_spec(path).compiler.degree

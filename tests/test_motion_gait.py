@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from model_files import DEGREE_COMPILERS, shipped_model_read_as
 from reference_data import reference_file
 
 from tocabi_torchrl import robot
@@ -319,9 +320,7 @@ def _first_rows(npz_bytes: bytes):
 def test_cli_refuses_a_model_read_in_degrees_naming_the_model(tmp_path, capsys):
     # The generator planned on it without a word (its ranges are not used here), and the env later refused the
     # motion it wrote as "a motion in degrees?".
-    model = tmp_path / "in_degrees.xml"
-    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
-    model.write_text(text.replace('angle="radian"', 'angle="degree"'))
+    model = shipped_model_read_as(tmp_path, DEGREE_COMPILERS["degree"])
     out = tmp_path / "w.npz"
     with pytest.raises(SystemExit) as stop:
         main(["--out", str(out), "--model", str(model), "--sample-rate", "200"])

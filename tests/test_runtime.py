@@ -17,6 +17,7 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
+from model_files import DEGREE_COMPILERS, shipped_model_in_degrees, shipped_model_read_as
 from reference_data import REFERENCE_DIR
 
 from tocabi_torchrl import robot
@@ -323,19 +324,13 @@ def test_sim_to_sim_names_what_a_foreign_model_lacks(tmp_path):
 
 
 
-_RADIAN = '<compiler angle="radian" '
-
-
-@pytest.mark.parametrize("compiler", ['<compiler angle="degree" ', "<compiler "], ids=["degree", "mujoco-default"])
+@pytest.mark.parametrize("compiler", DEGREE_COMPILERS.values(), ids=DEGREE_COMPILERS.keys())
 def test_sim_to_sim_refuses_a_model_read_in_degrees_naming_the_file(tmp_path, compiler):
     # The driver compiles the model itself, not through robot.load_model: such a file (every range 180/π too
     # narrow, ±3.14 to ±0.055 rad) ran without a word, robots walking backwards against their joint limits.
     from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
 
-    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
-    assert _RADIAN in text
-    model = tmp_path / "in_degrees.xml"
-    model.write_text(text.replace(_RADIAN, compiler))
+    model = shipped_model_read_as(tmp_path, compiler)
     message = (r"robot model .*in_degrees\.xml: it is compiled with <compiler angle=\"degree\"> .* but its joint "
                r"ranges are written in radians: L_HipPitch_Joint range=\"-3\.14 3\.14\" becomes \[-0\.055, 0\.055\] "
                r"rad, which leaves out the initial pose's -0\.240 rad \(the contract's robot\.initial_qpos\) .*Set "
@@ -348,13 +343,7 @@ def test_sim_to_sim_refuses_a_model_read_in_degrees_naming_the_file(tmp_path, co
 def test_sim_to_sim_builds_a_model_in_degrees_throughout(tmp_path):
     from tocabi_torchrl.runtime.mujoco_driver import build_model
 
-    text = robot.asset_path("tocabi", "tocabi.xml").read_text().replace(_RADIAN, '<compiler angle="degree" ')
-
-    def in_degrees(match: re.Match) -> str:
-        return ' range="{}"'.format(" ".join(f"{np.degrees(float(v)):.6f}" for v in match[1].split()))
-
-    model = tmp_path / "degrees.xml"
-    model.write_text(re.sub(r' range="([^"]+)"', in_degrees, text))
+    model = shipped_model_in_degrees(tmp_path)
     contract = load_contract(_contract("ppo"))
     shipped = build_model(contract, robot.asset_path("tocabi", "tocabi.xml"))
     np.testing.assert_allclose(build_model(contract, model).jnt_range, shipped.jnt_range, atol=1e-7)

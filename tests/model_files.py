@@ -1,0 +1,41 @@
+"""The shipped robot model rewritten with another ``<compiler>`` angle unit, for the angle-unit tests."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from tocabi_torchrl import robot
+
+#: The opening of the shipped model's compiler element, which states its unit.
+RADIAN = '<compiler angle="radian" '
+#: Compiler openings that read the shipped model's radian ranges as degrees: said outright, and MuJoCo's default.
+DEGREE_COMPILERS = {"degree": '<compiler angle="degree" ', "mujoco-default": "<compiler "}
+
+
+def shipped_text() -> str:
+    """The shipped MJCF, checked to state its radian unit where :data:`RADIAN` replaces it."""
+    text = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    assert RADIAN in text
+    return text
+
+
+def shipped_model_read_as(folder: Path, compiler: str, name: str = "in_degrees.xml") -> Path:
+    """The shipped model with ``compiler`` in place of :data:`RADIAN`, written to ``folder / name``."""
+    path = folder / name
+    path.write_text(shipped_text().replace(RADIAN, compiler))
+    return path
+
+
+def shipped_model_in_degrees(folder: Path, name: str = "degrees.xml") -> Path:
+    """The shipped model written in degrees throughout (its compiler and every joint range), to ``folder / name``:
+    the same robot, which the angle-unit check must accept."""
+    def in_degrees(match: re.Match) -> str:
+        return ' range="{}"'.format(" ".join(f"{np.degrees(float(v)):.6f}" for v in match[1].split()))
+
+    path = folder / name
+    text = shipped_text().replace(RADIAN, DEGREE_COMPILERS["degree"])
+    path.write_text(re.sub(r' range="([^"]+)"', in_degrees, text))
+    return path
