@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> dict:
         bar, on_step = progress(args, dt, draw)
         pushes = (PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed), kind=args.push_kind)
                   if args.pushes else None)
-        result = run_sim2sim(args.contract, model, seconds=args.seconds, num_robots=args.num_robots, onnx=args.onnx,
+        result = run_sim2sim(runtime, model, seconds=args.seconds, num_robots=args.num_robots,  # the one checked
                              command=(args.vx, args.vy), remove_meshes=strip, seed=args.seed,
                              randomize=args.randomize, pushes=pushes,
                              start_velocity=ROBUST_START if args.start_noise else None, on_step=on_step).as_dict()

@@ -899,3 +899,26 @@ def test_a_renamed_pair_runs_the_onnx_of_its_name_not_the_recorded_one(tmp_path)
         PolicyRuntime(tmp_path / "my.json")
     with pytest.raises(ContractError, match=r"ONNX file .*absent\.onnx not found"):
         PolicyRuntime(tmp_path / "my.json", onnx=tmp_path / "absent.onnx")
+
+
+def test_run_sim2sim_takes_a_built_runtime_and_gives_the_numbers_of_the_path_based_call():
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+    contract = _contract("torque")  # a torque policy: tocabi_lab randomises it
+    kw = {"seconds": 0.04, "perturbation": 1e-6, "seed": 2}
+    fresh = PolicyRuntime(contract)
+    assert run_sim2sim(fresh, num_robots=2, **kw).as_dict() == run_sim2sim(contract, num_robots=2, **kw).as_dict()
+    # Reused for another robot count, and after a run with sensor randomisation (the run's sensors do not stay).
+    noisy = run_sim2sim(fresh, num_robots=3, randomize="tocabi_lab", **kw).as_dict()
+    assert fresh.sensors is None and fresh.num_robots == 3
+    assert noisy == run_sim2sim(contract, num_robots=3, randomize="tocabi_lab", **kw).as_dict()
+    assert run_sim2sim(fresh, num_robots=1, **kw).as_dict() == run_sim2sim(contract, num_robots=1, **kw).as_dict()
+    # The same file as onnx= is what runs anyway; another file or a motion contradicts the runtime.
+    assert run_sim2sim(fresh, num_robots=1, onnx=fresh.onnx_path, **kw).num_robots == 1
+    other = _contract("ppo").with_suffix(".onnx")
+    with pytest.raises(ValueError, match="onnx=.* with a PolicyRuntime that runs"):
+        run_sim2sim(fresh, num_robots=1, onnx=other, **kw)
+    with pytest.raises(ValueError, match="motion=.* with a PolicyRuntime"):
+        run_sim2sim(fresh, num_robots=1, motion=contract, **kw)
+    with pytest.raises(ValueError, match="sensors of its own"):
+        run_sim2sim(PolicyRuntime(contract, sensors=lambda state: state), num_robots=1, **kw)

@@ -229,3 +229,24 @@ def test_metrics_of_no_surviving_robot_are_null_in_strict_json(capsys, tmp_path)
                                           "--num_robots", "1"])
     printed = json.loads(capsys.readouterr().out, parse_constant=lambda name: pytest.fail(f"non-standard {name}"))
     assert result["survival"] == 0.0 and printed["knee_rms_rad"] is None
+
+
+@needs_contract
+def test_the_recipe_loads_the_policy_once_and_runs_the_runtime_it_checked(monkeypatch, capsys):
+    # The recipe built a PolicyRuntime to check the policy before serving a page, and run_sim2sim loaded it again.
+    from tocabi_torchrl.runtime import PolicyRuntime
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+    built = []
+    init = PolicyRuntime.__init__
+
+    def counting_init(self, *args, **kwargs):
+        built.append(self)
+        init(self, *args, **kwargs)
+
+    monkeypatch.setattr(PolicyRuntime, "__init__", counting_init)
+    argv = ["--contract", str(CONTRACT), "--seconds", "0.04", "--num_robots", "2", "--seed", "3"]
+    result = load_recipe("sim2sim").main(argv)
+    assert len(built) == 1
+    result.pop("model")
+    assert result == run_sim2sim(CONTRACT, seconds=0.04, num_robots=2, seed=3).as_dict()

@@ -257,8 +257,8 @@ def _check_run(seconds, dt: float, num_robots, perturbation, seed) -> int:
     return round(seconds / dt)
 
 
-def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike | None = None, seconds: float = 8.0,
-                num_robots: int = 4, command: tuple[float, float] = (0.5, 0.0), init_rows=None,
+def run_sim2sim(contract_path: str | os.PathLike | PolicyRuntime, model_path: str | os.PathLike | None = None,
+                seconds: float = 8.0, num_robots: int = 4, command: tuple[float, float] = (0.5, 0.0), init_rows=None,
                 remove_meshes: bool = False, motion: str | os.PathLike | None = None, perturbation: float = 0.0,
                 seed: int = 0, randomize: str | rnd.Randomization = "none", pushes: rnd.PushSettings | None = None,
                 start_velocity: rnd.StartVelocity | None = None,
@@ -291,10 +291,43 @@ def run_sim2sim(contract_path: str | os.PathLike, model_path: str | os.PathLike 
     ``onnx``: the ONNX file to run (default: the one beside the contract, as :class:`PolicyRuntime` resolves it);
     it must have the contract's sha256.
 
+    ``contract_path`` may instead be a :class:`PolicyRuntime` already built (a caller that checked the policy first
+    need not load it again): the run uses its contract, ONNX session and motion, and :meth:`PolicyRuntime.reset`
+    starts its episode for ``num_robots`` robots, so a runtime built but never stepped, or one left by an earlier
+    run, gives exactly the numbers of the path-based call. Its ``motion`` and ONNX file were fixed when it was built:
+    ``motion`` must then be None and ``onnx`` None or that same file (ValueError otherwise), and it must have no
+    ``sensors`` of its own (the run sets them from ``randomize`` and puts None back when it ends).
+
     ``on_step(step, model, datas)``: called after each control period with its 0-based index, the compiled model and
     the robots' ``MjData`` (read them, do not write; the live viewer draws them: docs/viewer.md).
     """
-    runtime = PolicyRuntime(contract_path, motion=motion, onnx=onnx)
+    if not isinstance(contract_path, PolicyRuntime):
+        runtime = PolicyRuntime(contract_path, motion=motion, onnx=onnx)
+    else:
+        runtime = _given_runtime(contract_path, motion, onnx)
+    try:
+        return _run(runtime, model_path, seconds, num_robots, command, init_rows, remove_meshes, perturbation, seed,
+                    randomize, pushes, start_velocity, on_step)
+    finally:
+        runtime.sensors = None  # the run's sensor model (if any) does not outlive it
+
+
+def _given_runtime(runtime: PolicyRuntime, motion, onnx) -> PolicyRuntime:
+    """``runtime`` for :func:`run_sim2sim`, once no other argument contradicts it."""
+    if motion is not None:
+        raise ValueError(f"run_sim2sim: motion={str(motion)!r} with a PolicyRuntime, whose motion was loaded when it "
+                         "was built: pass motion= to PolicyRuntime, or the contract path here")
+    if onnx is not None and Path(onnx).resolve() != Path(runtime.onnx_path).resolve():
+        raise ValueError(f"run_sim2sim: onnx={str(onnx)!r} with a PolicyRuntime that runs {runtime.onnx_path}: leave "
+                         "onnx out (the runtime's file runs), or pass the contract path here")
+    if runtime.sensors is not None:
+        raise ValueError("run_sim2sim: the PolicyRuntime has sensors of its own; the run sets them from randomize= "
+                         "(build the runtime with sensors=None)")
+    return runtime
+
+
+def _run(runtime: PolicyRuntime, model_path, seconds, num_robots, command, init_rows, remove_meshes, perturbation,
+         seed, randomize, pushes, start_velocity, on_step) -> Sim2SimResult:
     c = runtime.contract
     dt = float(c["timing"]["control_dt_s"])
     steps = _check_run(seconds, dt, num_robots, perturbation, seed)
