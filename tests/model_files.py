@@ -1,4 +1,5 @@
-"""The shipped robot model rewritten with another ``<compiler>`` angle unit, for the angle-unit tests."""
+"""The shipped robot model rewritten with another ``<compiler>`` angle unit or a joint range, for the model-file
+checks' tests."""
 
 from __future__ import annotations
 
@@ -38,4 +39,13 @@ def shipped_model_in_degrees(folder: Path, name: str = "degrees.xml") -> Path:
     path = folder / name
     text = shipped_text().replace(RADIAN, DEGREE_COMPILERS["degree"])
     path.write_text(re.sub(r' range="([^"]+)"', in_degrees, text))
+    return path
+
+
+def shipped_model_with_range(path: Path, joint: str, low: float, high: float) -> Path:
+    """The shipped model, written to ``path`` with ``joint``'s range set to [low, high] rad."""
+    text = shipped_text()
+    old = f'<joint name="{joint}" axis="0 1 0" range="-3.14 3.14"'
+    assert text.count(old) == 1
+    path.write_text(text.replace(old, old.replace('"-3.14 3.14"', f'"{low:g} {high:g}"')))
     return path

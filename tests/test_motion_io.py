@@ -5,6 +5,7 @@ import re
 
 import numpy as np
 import pytest
+from model_files import shipped_model_with_range
 from reference_data import reference_file
 
 from tocabi_torchrl.robot import INIT_JOINT_POS, JOINT_NAMES, asset_path
@@ -355,22 +356,12 @@ def test_a_motion_in_degrees_is_refused_by_the_env(tmp_path):
         make_env(num_envs=1, device="cpu", motion=str(tmp_path / "deg.npz"))
 
 
-
-def _model_with_range(path, joint: str, low: float, high: float):
-    """The shipped model, written to ``path`` with ``joint``'s range set to [low, high] rad."""
-    text = asset_path("tocabi", "tocabi.xml").read_text()
-    old = f'<joint name="{joint}" axis="0 1 0" range="-3.14 3.14"'
-    assert text.count(old) == 1
-    path.write_text(text.replace(old, old.replace('"-3.14 3.14"', f'"{low:g} {high:g}"')))
-    return path
-
-
 def test_a_model_range_that_leaves_out_the_start_pose_is_blamed_before_the_motion(tmp_path):
     # A knee range of ±0.5 rad (the start pose bends the knee 0.6 rad) refused the shipped walk as "joint targets are
     # radians (a motion in degrees?)", naming neither the model file nor its range as a cause.
     from tocabi_torchrl import make_env
 
-    model = _model_with_range(tmp_path / "narrow.xml", "L_Knee_Joint", -0.5, 0.5)
+    model = shipped_model_with_range(tmp_path / "narrow.xml", "L_Knee_Joint", -0.5, 0.5)
     with pytest.raises(ValueError) as info:
         make_env(num_envs=1, device="cpu", model_path=str(model))
     message = str(info.value)
@@ -391,7 +382,7 @@ def test_a_model_range_that_leaves_out_the_start_pose_is_blamed_before_the_motio
 def test_a_motion_beyond_a_model_range_that_holds_the_start_pose_names_both_files_and_both_checks(tmp_path):
     from tocabi_torchrl import make_env
 
-    model = _model_with_range(tmp_path / "short.xml", "R_Knee_Joint", 0.0, 0.8)
+    model = shipped_model_with_range(tmp_path / "short.xml", "R_Knee_Joint", 0.0, 0.8)
     with pytest.raises(ValueError) as info:
         make_env(num_envs=1, device="cpu", model_path=str(model))
     message = str(info.value)

@@ -17,7 +17,7 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
-from model_files import DEGREE_COMPILERS, shipped_model_in_degrees, shipped_model_read_as
+from model_files import DEGREE_COMPILERS, shipped_model_in_degrees, shipped_model_read_as, shipped_model_with_range
 from reference_data import REFERENCE_DIR
 
 from tocabi_torchrl import robot
@@ -347,6 +347,36 @@ def test_sim_to_sim_builds_a_model_in_degrees_throughout(tmp_path):
     contract = load_contract(_contract("ppo"))
     shipped = build_model(contract, robot.asset_path("tocabi", "tocabi.xml"))
     np.testing.assert_allclose(build_model(contract, model).jnt_range, shipped.jnt_range, atol=1e-7)
+
+
+def test_sim_to_sim_refuses_a_model_range_that_leaves_out_the_start_pose(tmp_path):
+    # A radians model with a knee limited to ±0.5 rad (the contract's start pose bends it 0.6 rad) ran without a word,
+    # every robot held off its start pose by the limit, and reported the limit's gait as the policy's.
+    from tocabi_torchrl.runtime.mujoco_driver import build_model, run_sim2sim
+
+    model = shipped_model_with_range(tmp_path / "narrow.xml", "L_Knee_Joint", -0.5, 0.5)
+    message = (r"robot model .*narrow\.xml: L_Knee_Joint's range \[-0\.500, 0\.500\] rad leaves out the initial pose's "
+               r"0\.600 rad \(the contract's robot\.initial_qpos\): check L_Knee_Joint's range in the model file "
+               r"\(radians, under <compiler angle=\"radian\">\); the robot could not start from that pose")
+    with pytest.raises(ValueError, match=message):
+        build_model(load_contract(_contract("ppo")), model)
+    with pytest.raises(ValueError, match=message):
+        run_sim2sim(_contract("ppo"), model, seconds=0.02, num_robots=1)
+
+
+def test_sim_to_sim_refuses_a_motion_beyond_a_model_range_naming_both_files(tmp_path):
+    # A range that holds the start pose but not the walk's knee bend: the joint limit would clip the motion's targets.
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+    model = shipped_model_with_range(tmp_path / "short.xml", "R_Knee_Joint", 0.0, 0.8)
+    with pytest.raises(ValueError) as info:
+        run_sim2sim(_contract("ppo"), model, seconds=0.02, num_robots=1)
+    message = str(info.value)
+    assert re.fullmatch(r"reference motion .*tocabi_walk\.npz: R_Knee_Joint is [\d.]+ rad at row \d+, outside the "
+                        r"model's range \[0\.000, 0\.800\] in .*short\.xml, which holds the robot's initial pose "
+                        r"\(0\.600 rad\): check the motion \(joint targets are radians, in the contract's "
+                        r"robot\.joint_names order: a motion in degrees, or of another robot\?\), or, if it is right, "
+                        r"R_Knee_Joint's range in the model file", message), message
 
 def test_reset_refuses_init_rows_that_are_not_rows_of_the_motion():
     # Out-of-range rows used to wrap silently, fractional rows were truncated, and a wrong count, NaN or zero robots

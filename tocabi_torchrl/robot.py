@@ -53,6 +53,8 @@ __all__ = [
     "SELF_COLLISION_BODIES",
     "RobotAssetError",
     "angle_unit_problem",
+    "initial_pose_range_problem",
+    "motion_range_problem",
     "asset_path",
     "load_model",
     "load_spec",
@@ -295,6 +297,85 @@ def angle_unit_problem(spec: "mujoco.MjSpec", source: str, joint_names: Sequence
                     f"rad ({initial_name}) and any walking motion. Set <compiler angle=\"radian\"> in {source} (as the "
                     "shipped assets/tocabi/tocabi.xml does), or write every angle of the file in degrees")
     return None
+
+
+def _ranges(model: "mujoco.MjModel", joint_names: Sequence[str]):  # noqa: F821
+    """(low, high, limited) of the named joints of the compiled ``model``, each (J,) in ``joint_names`` order."""
+    ids = [model.joint(name).id for name in joint_names]
+    return model.jnt_range[ids, 0], model.jnt_range[ids, 1], model.jnt_limited[ids].astype(bool)
+
+
+def initial_pose_range_problem(model: "mujoco.MjModel", model_file: str,  # noqa: F821
+                               joint_names: Sequence[str] = JOINT_NAMES, initial=INIT_JOINT_POS,
+                               initial_name: str = "robot.INIT_JOINT_POS") -> str | None:
+    """What is wrong with a compiled ``model`` (of ``model_file``) whose joint ranges leave out the initial pose
+    (beyond 1e-6 rad), or None when every limited joint holds it. Such a model holds the robot away from its start
+    pose from the first step, and every metric after that measures the joint limit, not the policy.
+
+    Args:
+        model: the compiled model, with every name of ``joint_names``.
+        model_file: the model file, as the message names it.
+        joint_names: (J,) the joints to look at.
+        initial: (J,) the initial pose [rad] of those joints.
+        initial_name: where ``initial`` comes from, as the message names it.
+    """
+    low, high, limited = _ranges(model, joint_names)
+    q = np.asarray(initial, dtype=np.float64)
+    beyond = np.maximum(q - high, low - q) * limited  # (J,) [rad] past the range, <= 0 inside
+    if not (beyond > 1e-6).any():
+        return None
+    j = int(np.argmax(beyond))
+    others = f" ({int((beyond > 1e-6).sum())} joints leave out theirs)" if (beyond > 1e-6).sum() > 1 else ""
+    return (f"robot model {model_file}: {joint_names[j]}'s range [{low[j]:.3f}, {high[j]:.3f}] rad leaves out the "
+            f"initial pose's {q[j]:.3f} rad ({initial_name}){others}: check {joint_names[j]}'s range in the model file "
+            "(radians, under <compiler angle=\"radian\">); the robot could not start from that pose")
+
+
+def motion_range_problem(model: "mujoco.MjModel", model_file: str, joint_pos, motion_source: str,  # noqa: F821
+                         joint_names: Sequence[str] = JOINT_NAMES, initial=INIT_JOINT_POS,
+                         initial_name: str = "robot.INIT_JOINT_POS") -> str | None:
+    """What is wrong with a reference motion whose joint targets [rad] leave a limited joint's range in ``model``
+    (the compiled ``model_file``) by more than 0.01 rad, or None when none does. Names the joint, its value and row,
+    the range and both files.
+
+    Either file may be at fault: a motion in degrees or of another robot (which the servos and the imitation reward
+    would chase), or a model whose range is too narrow. A range that leaves out the robot's initial pose as well is
+    the model's fault whatever the motion holds, so such a joint is named first and the message sends the user to the
+    model file; otherwise it names both checks. Imports numpy only, so the torch-free runtime uses it too.
+
+    Args:
+        model: the compiled model, with every name of ``joint_names``.
+        model_file: the model file, as the message names it.
+        joint_pos: (R, J) the motion's joint targets [rad] in ``joint_names`` order.
+        motion_source: the motion file, as the message names it.
+        joint_names: (J,) the motion's joints.
+        initial: (J,) the initial pose [rad] of those joints.
+        initial_name: where ``initial`` comes from, as the message names it.
+    """
+    low, high, limited = _ranges(model, joint_names)
+    q = np.asarray(joint_pos)
+    beyond = np.maximum(q - high, low - q) * limited  # (rows, J) [rad] past the range, <= 0 inside
+    left = beyond.max(0) > 0.01  # (J,) the joints the motion leaves
+    if not left.any():
+        return None
+    init = np.asarray(initial, dtype=np.float64)
+    narrow = left & limited & ((init < low) | (init > high))  # ranges that leave out the start pose too
+    j = int(np.argmax(np.where(narrow if narrow.any() else left, beyond.max(0), -np.inf)))
+    row, name = int(np.argmax(beyond[:, j])), joint_names[j]
+    others = f" ({int(left.sum())} joints leave their ranges)" if left.sum() > 1 else ""
+    head = (f"reference motion {motion_source}: {name} is {q[row, j]:.3f} rad at row {row}{others}, "
+            f"outside the model's range [{low[j]:.3f}, {high[j]:.3f}] in {model_file}")
+    if narrow[j]:
+        return (f"{head}, which leaves out the robot's initial pose ({init[j]:.3f} rad, {initial_name}) too: check "
+                f"{name}'s range in the model file (radians, under <compiler angle=\"radian\">) before the motion")
+    return (f"{head}, which holds the robot's initial pose ({init[j]:.3f} rad): check the motion (joint targets are "
+            f"radians, in {_order_name(initial_name)} order: a motion in degrees, or of another robot?), or, if it is "
+            f"right, {name}'s range in the model file")
+
+
+def _order_name(initial_name: str) -> str:
+    """Where the joint order comes from, for :func:`motion_range_problem`'s message."""
+    return "robot.JOINT_NAMES" if initial_name == "robot.INIT_JOINT_POS" else "the contract's robot.joint_names"
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,6 @@ import contextlib
 import operator
 import warnings
 
-import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded
@@ -132,36 +131,11 @@ def _check_leg_controller(law) -> Controller:
 
 
 def _check_motion_in_range(motion: ReferenceMotion, model, model_file: str) -> None:
-    """``ValueError`` for a reference motion whose joint targets [rad] leave a limited joint's range in ``model`` (the
-    compiled ``model_file``) by more than 0.01 rad, naming the joint, its value and row, the range and both files.
-
-    Either file may be at fault: a motion in degrees or of another robot (which the servos and the imitation reward
-    would chase), or a model whose range is too narrow. A range that leaves out the robot's initial pose
-    (``robot.INIT_JOINT_POS``) as well is the model's fault whatever the motion holds, so such a joint is named first
-    and the message sends the user to the model file; otherwise it names both checks.
-    """
-    ids = [model.joint(name).id for name in robot.JOINT_NAMES]
-    low, high = model.jnt_range[ids, 0], model.jnt_range[ids, 1]
-    limited = model.jnt_limited[ids].astype(bool)
-    q = motion.joint_pos.cpu().numpy()
-    beyond = np.maximum(q - high, low - q) * limited  # (rows, 33) [rad] past the range, <= 0 inside
-    left = beyond.max(0) > 0.01  # (33,) the joints the motion leaves
-    if not left.any():
-        return
-    init = robot.INIT_JOINT_POS
-    narrow = left & limited & ((init < low) | (init > high))  # ranges that leave out the start pose too
-    j = int(np.argmax(np.where(narrow if narrow.any() else left, beyond.max(0), -np.inf)))
-    row, name = int(np.argmax(beyond[:, j])), robot.JOINT_NAMES[j]
-    others = f" ({int(left.sum())} joints leave their ranges)" if left.sum() > 1 else ""
-    head = (f"reference motion {motion.source or '(arrays)'}: {name} is {q[row, j]:.3f} rad at row {row}{others}, "
-            f"outside the model's range [{low[j]:.3f}, {high[j]:.3f}] in {model_file}")
-    if narrow[j]:
-        raise ValueError(f"{head}, which leaves out the robot's initial pose ({init[j]:.3f} rad, robot.INIT_JOINT_POS) "
-                         f"too: check {name}'s range in the model file (radians, under <compiler angle=\"radian\">) "
-                         "before the motion")
-    raise ValueError(f"{head}, which holds the robot's initial pose ({init[j]:.3f} rad): check the motion (joint "
-                     "targets are radians, in robot.JOINT_NAMES order: a motion in degrees, or of another robot?), "
-                     f"or, if it is right, {name}'s range in the model file")
+    """``ValueError`` with :func:`robot.motion_range_problem`'s message, if it finds one: a reference motion whose
+    joint targets leave a limited joint's range in ``model`` (the compiled ``model_file``)."""
+    problem = robot.motion_range_problem(model, model_file, motion.joint_pos.cpu().numpy(), motion.source or "(arrays)")
+    if problem is not None:
+        raise ValueError(problem)
 
 
 def _check_motion_period(motion: ReferenceMotion, dt: float) -> None:

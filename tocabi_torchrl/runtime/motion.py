@@ -36,9 +36,11 @@ class RuntimeMotion:
         joint_pos: (R, J) joint targets [rad] in the contract's joint order.
         row_dt: seconds between rows.
         init_rows: start rows allowed by the motion.
+        source: the file it was read from, for messages ("" for arrays).
     """
 
-    def __init__(self, joint_pos: np.ndarray, row_dt: float, init_rows: np.ndarray):
+    def __init__(self, joint_pos: np.ndarray, row_dt: float, init_rows: np.ndarray, source: str = ""):
+        self.source = source
         self.joint_pos = np.asarray(joint_pos, dtype=_F32)
         self.row_dt = float(row_dt)
         self.init_rows = np.asarray(init_rows, dtype=np.int64).reshape(-1)
@@ -71,10 +73,11 @@ class RuntimeMotion:
                 cols = [names.index(n) for n in joint_names]
                 # float64 on disk -> float32, as ReferenceMotion does
                 joint_pos = np.asarray(npz["joint_pos"], dtype=np.float64)[:, cols]
-                return cls(joint_pos, 1.0 / float(npz["sample_rate"]), npz["init_rows"])
+                return cls(joint_pos, 1.0 / float(npz["sample_rate"]), npz["init_rows"], str(path))
         table = np.loadtxt(path)  # reference text format: time, 33 joints, 2 forces; start rows 0 and R/2
         rows = table.shape[0]
-        return cls(table[:, 1 : 1 + len(joint_names)], float(table[1, 0] - table[0, 0]), np.array([0, rows // 2]))
+        return cls(table[:, 1 : 1 + len(joint_names)], float(table[1, 0] - table[0, 0]), np.array([0, rows // 2]),
+                   str(path))
 
     def _cycle_position(self, time: np.ndarray) -> np.ndarray:
         n = _F32(self.cycle_rows)

@@ -87,8 +87,9 @@ def build_model(contract: dict, model_path: str | os.PathLike, remove_meshes: bo
     """Compile ``model_path`` with the actuators the contract's control mode needs (see the module docstring).
 
     Raises ``ValueError`` when MuJoCo cannot read ``model_path`` as a model, naming what the model lacks when it is
-    not a TOCABI model with the contract's names, or when it reads its radian joint ranges as degrees (no
-    ``<compiler angle="radian">``): every range would be 180/π times too narrow and leave out the start pose."""
+    not a TOCABI model with the contract's names, when it reads its radian joint ranges as degrees (no
+    ``<compiler angle="radian">``): every range would be 180/π times too narrow and leave out the start pose, or
+    when a joint range leaves out the contract's start pose (``robot.initial_qpos``) in any unit."""
     try:
         spec = (mujoco.MjSpec.from_string(strip_meshes(model_path)) if remove_meshes
                 else mujoco.MjSpec.from_file(str(model_path)))
@@ -130,6 +131,12 @@ def build_model(contract: dict, model_path: str | os.PathLike, remove_meshes: bo
         jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
         if jid < 0 or model.jnt_qposadr[jid] != 7 + j or model.actuator(motors[j]).id != j:
             raise ValueError(f"{model_path}: joint/actuator {name!r} is missing or out of the contract's order")
+    # A radian model whose ranges leave out the start pose (a knee limited to ±0.5 rad, the pose bending it 0.6 rad)
+    # ran on, every robot held off its start pose by the limit, and reported the limit's gait as the policy's.
+    problem = robot.initial_pose_range_problem(model, str(model_path), rob["joint_names"], rob["initial_qpos"][7:],
+                                               "the contract's robot.initial_qpos")
+    if problem is not None:
+        raise ValueError(problem)
     return model
 
 
@@ -342,6 +349,12 @@ def _run(runtime: PolicyRuntime, model_path, seconds, num_robots, command, init_
     if model_path is None:
         model_path = robot.asset_path("tocabi", "tocabi.xml")
     m = build_model(c, Path(model_path), remove_meshes)
+    # As the env does: a motion beyond the model's ranges would have its targets clipped by the joint limits.
+    problem = robot.motion_range_problem(m, str(model_path), runtime.motion.joint_pos, runtime.motion.source,
+                                         c["robot"]["joint_names"], c["robot"]["initial_qpos"][7:],
+                                         "the contract's robot.initial_qpos")
+    if problem is not None:
+        raise ValueError(problem)
     substeps = int(c["timing"]["substeps"])
     if abs(m.opt.timestep * substeps - c["timing"]["control_dt_s"]) > 1e-9:
         raise ValueError(f"{model_path}: timestep {m.opt.timestep} × {substeps} substeps is not the contract's "
