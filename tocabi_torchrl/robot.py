@@ -333,7 +333,8 @@ def initial_pose_range_problem(model: "mujoco.MjModel", model_file: str,  # noqa
 
 def motion_range_problem(model: "mujoco.MjModel", model_file: str, joint_pos, motion_source: str,  # noqa: F821
                          joint_names: Sequence[str] = JOINT_NAMES, initial=INIT_JOINT_POS,
-                         initial_name: str = "robot.INIT_JOINT_POS") -> str | None:
+                         initial_name: str = "robot.INIT_JOINT_POS",
+                         order_name: str = "robot.JOINT_NAMES") -> str | None:
     """What is wrong with a reference motion whose joint targets [rad] leave a limited joint's range in ``model``
     (the compiled ``model_file``) by more than 0.01 rad, or None when none does. Names the joint, its value and row,
     the range and both files.
@@ -351,6 +352,7 @@ def motion_range_problem(model: "mujoco.MjModel", model_file: str, joint_pos, mo
         joint_names: (J,) the motion's joints.
         initial: (J,) the initial pose [rad] of those joints.
         initial_name: where ``initial`` comes from, as the message names it.
+        order_name: where ``joint_names`` comes from, as the message names it.
     """
     low, high, limited = _ranges(model, joint_names)
     q = np.asarray(joint_pos)
@@ -369,13 +371,8 @@ def motion_range_problem(model: "mujoco.MjModel", model_file: str, joint_pos, mo
         return (f"{head}, which leaves out the robot's initial pose ({init[j]:.3f} rad, {initial_name}) too: check "
                 f"{name}'s range in the model file (radians, under <compiler angle=\"radian\">) before the motion")
     return (f"{head}, which holds the robot's initial pose ({init[j]:.3f} rad): check the motion (joint targets are "
-            f"radians, in {_order_name(initial_name)} order: a motion in degrees, or of another robot?), or, if it is "
+            f"radians, in {order_name} order: a motion in degrees, or of another robot?), or, if it is "
             f"right, {name}'s range in the model file")
-
-
-def _order_name(initial_name: str) -> str:
-    """Where the joint order comes from, for :func:`motion_range_problem`'s message."""
-    return "robot.JOINT_NAMES" if initial_name == "robot.INIT_JOINT_POS" else "the contract's robot.joint_names"
 
 
 @dataclass(frozen=True)

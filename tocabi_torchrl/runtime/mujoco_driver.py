@@ -352,7 +352,7 @@ def _run(runtime: PolicyRuntime, model_path, seconds, num_robots, command, init_
     # As the env does: a motion beyond the model's ranges would have its targets clipped by the joint limits.
     problem = robot.motion_range_problem(m, str(model_path), runtime.motion.joint_pos, runtime.motion.source,
                                          c["robot"]["joint_names"], c["robot"]["initial_qpos"][7:],
-                                         "the contract's robot.initial_qpos")
+                                         "the contract's robot.initial_qpos", "the contract's robot.joint_names")
     if problem is not None:
         raise ValueError(problem)
     substeps = int(c["timing"]["substeps"])
