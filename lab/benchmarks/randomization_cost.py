@@ -30,7 +30,8 @@ from . import common
 NAME = "randomization_cost"
 
 #: Every randomisation and perturbation piece at its identity, as ``--set`` items of the training config.
-OFF = ("env.control.actuators.delay_substeps=0 0", "env.control.actuators.motor_constant=1 1",
+OFF = ("env.control.actuators.delay_substeps=0 0", "env.control.actuators.delay_stride=1",
+       "env.control.actuators.delay_average=false", "env.control.actuators.motor_constant=1 1",
        "env.dynamics.mass_scale=1 1", "env.dynamics.joint_damping=0 0", "env.dynamics.armature_scale=1 1",
        "env.dynamics.friction_scale=1 1", "transforms.sensor_noise.joint_pos_bias=0",
        "transforms.sensor_noise.joint_pos_noise_std=0", "transforms.sensor_noise.joint_vel_noise_std=0",

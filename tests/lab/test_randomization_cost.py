@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from lab.benchmarks import common, randomization_cost
 
 
@@ -32,6 +34,19 @@ def test_off_switches_every_piece_off_and_on_is_the_preset_with_full_kicks():
     named = {item.partition("=")[0] for item in randomization_cost.OFF}
     differ = {path for path in leaf_paths(on) if get_path(on, path) != get_path(off, path)}
     assert differ and differ <= named, differ - named
+
+
+@pytest.mark.parametrize("shape", ["env.control.actuators.delay_stride=2", "env.control.actuators.delay_average=true"])
+def test_off_is_valid_when_the_measured_preset_shapes_its_delay(shape):
+    # A delay grid or averaged delay without a delay is refused by the config: off must reset them with the delay, or
+    # a measurement of a delay-shaping variant dies at its first off child.
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.control.config import ActuatorConfig
+
+    sets = randomization_cost.variants("robust", [shape])
+    on, off = _config(sets["on"]), _config(sets["off"])
+    assert on.env.control.actuators != preset_config("robust").env.control.actuators  # the shaping reached on
+    assert off.env.control.actuators == ActuatorConfig()
 
 
 def test_it_measures_both_variants_alternately_and_reports_their_ratio(tmp_path):
