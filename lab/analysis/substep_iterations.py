@@ -1,8 +1,8 @@
 """Solver iterations per physics substep when the leg actuators' delay spreads the torque changes over a control
 period: C MuJoCo robots driven by an exported policy through the torch-free runtime (``recipes/sim2sim.py``'s
 driver), the delay off, of one whole control period, the TOCABI lab's 4-20 substeps, those on a grid of one
-period (4, 12 and 20 substeps: ``env.control.actuators.delay_stride``), and the lab's 4-20 substeps averaged over
-each period (``env.control.actuators.delay_average``).
+period (4, 12 and 20 substeps: ``env.control.actuators.delay_stride``) and of two substeps (4, 6, ..., 20), and
+the lab's 4-20 substeps averaged over each period (``env.control.actuators.delay_average``).
 
 Each substep's Newton solve starts from the previous substep's acceleration, which a jump in the commanded torque
 makes stale, so the substep a jump lands in takes more iterations. Without a delay every robot's torque jumps at
@@ -94,6 +94,7 @@ def variants(substeps: int) -> dict[str, rnd.Randomization]:
     """The actuator layers compared: none, a delay of exactly one control period (every jump back at substep 0),
     the TOCABI lab's delay (``rnd.TOCABI_LAB``'s range, motor constant left at 1), and the same range on a grid of
     one control period (``ActuatorConfig.delay_stride`` = S: 4, 12, 20 substeps, every jump in the same substep),
+    on a grid of two substeps (4, 6, ..., 20: 1 ms steps of 0.5 ms substeps, jumps in the even substeps alone),
     and the lab's range averaged over each period (``ActuatorConfig.delay_average``: every jump at substep 0)."""
     lab = rnd.TOCABI_LAB.actuators.delay_substeps
     return {"no delay": rnd.Randomization(),
@@ -101,6 +102,8 @@ def variants(substeps: int) -> dict[str, rnd.Randomization]:
             "tocabi_lab delay": rnd.Randomization(actuators=rnd.ActuatorSettings(delay_substeps=lab)),
             "tocabi_lab delay, one-period grid": rnd.Randomization(
                 actuators=rnd.ActuatorSettings(delay_substeps=lab, delay_stride=substeps)),
+            "tocabi_lab delay, two-substep grid": rnd.Randomization(
+                actuators=rnd.ActuatorSettings(delay_substeps=lab, delay_stride=2)),
             "tocabi_lab delay, averaged per period": rnd.Randomization(
                 actuators=rnd.ActuatorSettings(delay_substeps=lab, delay_average=True))}
 

@@ -29,7 +29,8 @@ def test_counting_restores_mj_step_even_after_an_error():
 def test_a_delay_moves_the_costly_substep_and_a_whole_period_keeps_it(tmp_path):
     """Two robots, 0.2 s: without a delay the torque jump makes substep 0 the costliest; a delay of one period
     brings the jump back there; the TOCABI lab's delay moves it off substep 0 (its warm start there is the solution
-    of the same torque), on a one-period grid onto one substep for every robot, and averaged per period back onto
+    of the same torque), on a one-period grid onto one substep for every robot, on a two-substep grid onto the even
+    substeps, and averaged per period back onto
     substep 0. The report names its command and is never written over."""
     out = tmp_path / "it.json"
     substep_iterations.main(["--num_robots", "2", "--seconds", "0.2", "--out", str(out)])
@@ -43,6 +44,9 @@ def test_a_delay_moves_the_costly_substep_and_a_whole_period_keeps_it(tmp_path):
     assert lab["mean_per_substep"][0] < min(none["mean_per_substep"])
     # On the grid (4, 12, 20 substeps) every robot's jump lands in substep 4.
     assert grid["delay_stride"] == 8 and grid["mean_per_substep"][4] == max(grid["mean_per_substep"])
+    # On the two-substep grid (4, 6, ..., 20) the jumps land in even substeps only: the costliest substep is even.
+    two = by["tocabi_lab delay, two-substep grid"]
+    assert two["delay_stride"] == 2 and two["mean_per_substep"].index(max(two["mean_per_substep"])) % 2 == 0
     # Averaged over each period, the torque changes only at the period's start: substep 0 is the costliest again.
     mean = by["tocabi_lab delay, averaged per period"]
     assert mean["delay_average"] and mean["mean_per_substep"][0] == max(mean["mean_per_substep"])
