@@ -271,7 +271,7 @@ def randomization_cost(docs: Path) -> list[str]:
             f"at its identity ({how}, {m['num_envs']:,} envs); this {verdict} the 0.95x target.", "", *rows, "",
             *_source(RANDOMIZATION_COST, m["command"], m["date"], m["gpu"],
                      "benchmarks/randomization/randomization_cost.md"), "", *split, *delay_average_cost(docs),
-            *solver_cap_cost(docs)]
+            *solver_cap_cost(docs), *envs_16k_cost(docs)]
 
 
 #: The last ``randomization_cost`` run with ``--pieces`` and ``--physics`` (each piece alone; the solver's share).
@@ -317,6 +317,29 @@ SOLVER_CAP_RUNS = ("training/robust/h200_run12/time_to_walk_robust.json",
                    "training/robust/h200_run17/time_to_walk_robust.json",
                    "training/robust/h100_run19/time_to_walk_robust.json",
                    "training/robust/h100_run20/time_to_walk_robust.json")
+
+
+ENVS_16K = "benchmarks/randomization/envs_16k"
+#: ``randomization_cost`` at 16,384 envs: (report, how the delay is drawn).
+ENVS_16K_REPORTS = ((f"{ENVS_16K}/delay_every_substep.json", "the delay on every substep, as the preset"),
+                    (f"{ENVS_16K}/delay_1ms_grid.json",
+                     "the delay on a 1 ms grid (`env.control.actuators.delay_stride=2`)"))
+
+
+def envs_16k_cost(docs: Path) -> list[str]:
+    """The preset's cost at 16,384 envs, with the delay on every substep and on a 1 ms grid, when committed."""
+    lines = []
+    for path, how in (r for r in ENVS_16K_REPORTS if (docs / r[0]).is_file()):
+        d = _load(path, docs)
+        m, s = d["meta"], d["summary"]
+        rounds = ", ".join(f"{r:.3f}" for r in s["round_on_over_off"])
+        lines.append(f"- At {m['num_envs']:,} envs with {how}: **{s['on_over_off']:.3f}x** ({m['rounds']} rounds, "
+                     f"seeds {', '.join(map(str, m['seeds']))}: {rounds}; {m['date']}, {m['gpu']}; "
+                     f"[report]({path.removesuffix('.json')}.md)).")
+    if lines:
+        lines += [f"- The preset keeps 4,096 envs and the delay on every substep until a from-scratch run at 16,384 "
+                  f"envs passes the robust gait test ([details]({ENVS_16K}/README.md)).", ""]
+    return lines
 
 
 def solver_cap_cost(docs: Path) -> list[str]:

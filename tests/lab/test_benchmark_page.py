@@ -169,6 +169,25 @@ def test_the_capped_solver_cost_appears_only_once_measured(tmp_path):
     assert "also" not in "\n".join(page.solver_cap_cost(tmp_path)).split("`robust_v12`")[1]
 
 
+def test_the_16k_env_costs_appear_only_once_measured(tmp_path):
+    import json
+
+    page = _page_module()
+    assert page.envs_16k_cost(tmp_path) == []
+    meta = {"preset": "robust", "rounds": 2, "num_envs": 16384, "command": "python -m x", "date": "2026-12-05",
+            "gpu": "NVIDIA H100 80GB HBM3", "seeds": [0, 1]}
+    summary = {"on_median": 155_000.0, "off_median": 158_000.0, "on_over_off": 0.981,
+               "round_on_over_off": [0.978, 0.984]}
+    grid = tmp_path / page.ENVS_16K_REPORTS[1][0]
+    grid.parent.mkdir(parents=True)
+    grid.write_text(json.dumps({"meta": meta, "summary": summary, "results": []}))
+    lines = page.envs_16k_cost(tmp_path)
+    assert len([line for line in lines if line.startswith("- At 16,384 envs")]) == 1  # the other is not committed
+    assert "1 ms grid (`env.control.actuators.delay_stride=2`): **0.981x** (2 rounds, seeds 0, 1: 0.978, 0.984" in (
+        lines[0])
+    assert "The preset keeps 4,096 envs" in lines[1]
+
+
 def test_docstring_examples_run():
     import doctest
 
