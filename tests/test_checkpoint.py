@@ -78,6 +78,18 @@ def test_unreadable_files_raise_checkpoint_error_naming_the_file(tmp_path, kind)
         load_checkpoint(bad, agent)
 
 
+def test_a_device_it_cannot_load_onto_is_said_not_read_as_a_damaged_file(tmp_path):
+    # torch.load's own failure for the device was reported as a truncated or corrupt checkpoint (and a resume then
+    # offered another checkpoint of the run in its place).
+    run, _ = _saved_run(tmp_path)
+    with pytest.raises(ValueError, match=r"unknown device 'cude': use 'cuda', 'cuda:K' or 'cpu'"):
+        read_checkpoint(run, device="cude")
+    if not torch.cuda.is_available():
+        with pytest.raises(RuntimeError, match=r"torch sees no CUDA GPU; pass device='cpu'") as raised:
+            read_checkpoint(run, device="cuda")
+        assert not isinstance(raised.value, CheckpointError)
+    assert read_checkpoint(run, device=torch.device("cpu"))["iteration"] == 1
+
 def test_saved_checkpoints_are_versioned_and_load_with_weights_only(tmp_path):
     run, agent = _saved_run(tmp_path)
     state = torch.load(run / "checkpoints" / "latest.pt", weights_only=True)

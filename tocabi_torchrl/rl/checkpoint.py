@@ -35,6 +35,7 @@ from torch import nn
 
 from ..atomic import atomic_write_bytes
 from ..config import ConfigError, RunConfig, config_from_dict
+from ..device import check_device
 from ..integrity import load_error_detail, zip_damage
 
 __all__ = ["save_checkpoint", "write_policy_file", "load_checkpoint", "read_checkpoint", "apply_checkpoint",
@@ -218,10 +219,15 @@ def run_folder_of(checkpoint: str | os.PathLike) -> Path:
 def read_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu") -> dict:
     """Load and check the checkpoint at ``path`` (a file or a run folder) without running code from it.
 
-    Returns the state dict with ``schema_version`` filled in (0 for files written before it existed). Raises
-    :class:`CheckpointError` naming the file for a missing, truncated, foreign or malformed file, and for one whose
-    actor or critic weights or normalisation statistics hold NaN or inf (a diverged run).
+    ``device``: where the tensors are loaded ("cpu", "cuda", "cuda:K" or a ``torch.device``); one that is unknown
+    or absent raises ``ValueError`` / ``RuntimeError`` (:func:`~tocabi_torchrl.device.check_device`) before the file
+    is read. Returns the state dict with ``schema_version`` filled in (0 for files written before it existed).
+    Raises :class:`CheckpointError` naming the file for a missing, truncated, foreign or malformed file, and for one
+    whose actor or critic weights or normalisation statistics hold NaN or inf (a diverged run).
     """
+    # Checked first: torch.load's own failure for "cuda" on a CPU-only machine read as a damaged file, and a resume
+    # then pointed at another checkpoint of the run as if this one were broken.
+    device = check_device(device)
     path = verified_checkpoint_file(path)
     try:
         state = torch.load(path, map_location=device, weights_only=True)
