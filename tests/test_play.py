@@ -360,6 +360,23 @@ def test_a_missing_video_writer_names_the_viz_extra_not_egl(tmp_path, monkeypatc
     assert '.[viz]' in said and "libegl1" not in said
 
 
+@needs_policy
+def test_a_gait_test_of_an_env_at_another_command_is_refused_not_reported_at_this_one(tmp_path):
+    # An env built at (0.5, 0) m/s tested with command=(0.2, 0) wrote a summary of a 0.2 m/s test, its speed error
+    # measured against a command no robot had.
+    from tocabi_torchrl.evaluation.gait_test import evaluate_policy
+    from tocabi_torchrl.evaluation.record import load_policy
+
+    policy = load_policy(SHIPPED_POLICY, 2, "cpu", nominal=True)  # the standard test's (0.5, 0) m/s
+    with pytest.raises(ValueError, match=r"command=\(0\.2, 0\.0\) m/s, but the env commands \(0\.5, 0\) m/s to "
+                                         r"robot 0 at its reset \(2 of 2 robots differ\).*load_policy"):
+        evaluate_policy(policy.actor, policy.cfg, tmp_path / "e", env=policy.env, command=(0.2, 0.0), seconds=0.02,
+                        video_envs=0, progress=False)
+    assert not (tmp_path / "e").exists()
+    summary = evaluate_policy(policy.actor, policy.cfg, tmp_path / "e", env=policy.env, command=(0.5, 0.0),
+                              seconds=0.02, video_envs=0, progress=False)
+    assert summary["command_mps"] == [0.5, 0.0]
+
 def test_no_robots_is_refused_not_the_runs_4096(tmp_path):
     # evaluate_run(num_envs=0) built the run's 4,096 worlds: half an hour and more on a CPU, without a word.
     from tocabi_torchrl.evaluation.gait_test import evaluate_run

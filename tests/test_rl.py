@@ -441,11 +441,12 @@ def test_gait_test_stops_once_every_robot_has_fallen(tmp_path):
     # An untrained torque policy applies almost no leg torque: every robot falls within the first second, and the
     # 8 s test stops there with the same metrics (fallen robots count for nothing after their fall).
     from tocabi_torchrl.evaluation.gait_test import evaluate_policy
+    from tocabi_torchrl.evaluation.record import fixed_command
     from tocabi_torchrl.rl.trainer import build_agent, build_env
 
     cfg = preset_config("cpu_smoke", device="cpu", **{"env.control.mode": "torque"})
     device = torch.device("cpu")
-    env = build_env(cfg, device, num_envs=2)
+    env = build_env(cfg, device, num_envs=2, command=fixed_command((0.5, 0.0)))  # the test's command
     agent = build_agent(cfg, 237, 13, device)
     calls = []
     step = env.step

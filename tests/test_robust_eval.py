@@ -801,7 +801,7 @@ def test_the_gait_tests_refuse_an_env_whose_running_normaliser_never_saw_a_step(
     # the checkpoint's env) without a word.
     from tocabi_torchrl.config import preset_config
     from tocabi_torchrl.evaluation.gait_test import evaluate_policy
-    from tocabi_torchrl.evaluation.record import nominal_config
+    from tocabi_torchrl.evaluation.record import fixed_command, nominal_config
     from tocabi_torchrl.evaluation.robust import RobustTestConfig, evaluate_robust
     from tocabi_torchrl.rl.trainer import build_agent, build_env
 
@@ -813,7 +813,7 @@ def test_the_gait_tests_refuse_an_env_whose_running_normaliser_never_saw_a_step(
     test = RobustTestConfig(num_envs=1, seconds=0.1, cases=("nominal",))
     with pytest.raises(ValueError, match="starting statistics"):
         evaluate_robust(agent.actor, cfg, tmp_path / "b", test=test, device="cpu", progress=False)
-    env = build_env(nominal_config(cfg), torch.device("cpu"), num_envs=2)
+    env = build_env(nominal_config(cfg), torch.device("cpu"), num_envs=2, command=fixed_command((0.5, 0.0)))
     env.rollout(2, agent.actor)  # statistics that have seen steps, as a trained policy's have
     summary = evaluate_policy(agent.actor, cfg, tmp_path / "c", device="cpu", seconds=0.1, video_envs=0, env=env,
                               progress=False)

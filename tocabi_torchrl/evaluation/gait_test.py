@@ -36,8 +36,8 @@ from .plots import plot_knees
 from .record import KNEES, GaitMetrics, fixed_command, load_policy, policy_steps, require_trained_statistics
 from .video import render_video
 
-__all__ = ["evaluate_policy", "evaluate_run", "default_eval_dir", "fresh_eval_dir", "eval_out_dir", "policy_dt",
-           "summary_json", "GAIT_CRITERIA", "ROBUST_CRITERIA", "gait_passes", "tested_on"]
+__all__ = ["check_env_command", "evaluate_policy", "evaluate_run", "default_eval_dir", "fresh_eval_dir",
+           "eval_out_dir", "policy_dt", "summary_json", "GAIT_CRITERIA", "ROBUST_CRITERIA", "gait_passes", "tested_on"]
 
 #: Pass thresholds of the gait test at (0.5, 0) m/s (issue 19): a policy walks when its summary meets all of them
 #: (and, in the time-to-walk benchmark, keeps ``survival`` at (0.2, 0) and (0.7, 0.1) too).
@@ -84,6 +84,23 @@ def check_video_envs(video_envs) -> None:
         raise ValueError(f"video_envs must be an int >= 0 (robots in the video; 0 for none), got {video_envs!r}")
 
 
+def check_env_command(held: torch.Tensor, command: tuple[float, float]) -> None:
+    """``ValueError`` unless every robot holds ``command`` = (vx, vy) [m/s]: ``held`` is the env's (N, 2)
+    ``"command"`` [m/s] after its reset. The summary states ``command`` and measures the speed error against it, so
+    an env built at another command (or with the training's command ranges) would be reported as a test it was
+    not."""
+    want = held.new_tensor([float(command[0]), float(command[1])])
+    off = ~((held - want).abs() <= 1e-5).all(-1)  # a NaN command is off too
+    if bool(off.any()):
+        first = int(off.nonzero()[0, 0])
+        vx, vy = (float(v) for v in held[first])
+        raise ValueError(f"command={tuple(command)} m/s, but the env commands ({vx:g}, {vy:g}) m/s to robot {first} "
+                         f"at its reset ({int(off.sum())} of {held.shape[0]} robots differ): the summary would report "
+                         "a test at a command that did not run. Build the env at this command (load_policy(..., "
+                         "command=command), or build_env(cfg, device, command=fixed_command(command))), or leave "
+                         "env out")
+
+
 def evaluate_policy(
     actor,
     cfg: RunConfig,
@@ -103,7 +120,8 @@ def evaluate_policy(
     nominal robot is the env of ``load_policy(..., nominal=True)``, which :func:`evaluate_run` uses (or, for a
     policy without running normalisation, one built from ``nominal_config(cfg)``); a training config's kicks and
     randomisation stay on otherwise. An env whose running normaliser never saw a step (built from the config, not
-    loaded with the checkpoint's statistics) raises ``ValueError`` (:func:`.record.require_trained_statistics`).
+    loaded with the checkpoint's statistics) raises ``ValueError`` (:func:`.record.require_trained_statistics`), and
+    so does one whose robots are not commanded ``command`` [m/s] (:func:`check_env_command`).
     ``device``: "auto" (the GPU if torch sees one, else the CPU), "cuda", "cuda:K" or "cpu". ``seconds`` must cover
     at least one policy step; ``progress`` shows bars for the rollout and the rendering; ``source``, the checkpoint
     tested, is recorded in the summary as ``checkpoint``.
@@ -117,9 +135,10 @@ def evaluate_policy(
     base = env.base_env
     steps = policy_steps(seconds, base.dt)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
+        check_env_command(td["command"], command)
+        out.mkdir(parents=True, exist_ok=True)
         metrics = GaitMetrics(td["base_pos"], command, base.dt)
         trace_q, trace_ref, frames_qpos = [], [], []
         video_every = max(1, int(round(1.0 / (30.0 * base.dt))))
