@@ -201,6 +201,47 @@ def test_the_video_drops_shadows_only_where_a_tile_is_slow(tmp_path, capsys, mon
     assert ("rendering video (no shadows: software OpenGL)" in capsys.readouterr().err) is not shadows
 
 
+def test_a_video_stopped_while_encoding_leaves_the_earlier_one_whole(tmp_path, monkeypatch, model):
+    # imageio wrote walk.mp4 in place: a run stopped while encoding (--overwrite of an earlier test) left half a video
+    # under the earlier one's name.
+    import imageio.v2 as imageio
+    import mujoco
+
+    from tocabi_torchrl.evaluation import video as eval_video
+
+    class Renderer:  # no OpenGL needed: one grey tile per robot
+        def __init__(self, model, height, width, **kwargs):
+            self.shape, self.scene = (height, width, 3), SimpleNamespace(flags=np.ones(32, bool))
+
+        def update_scene(self, *args, **kwargs):
+            pass
+
+        def render(self):
+            return np.full(self.shape, 128, np.uint8)
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(eval_video, "_failure", None)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    monkeypatch.setattr(mujoco, "Renderer", Renderer)
+    qpos = np.tile(model.qpos0, (4, 2, 1))
+    path = eval_video.render_video(model, qpos, 30, tmp_path, width=64, height=48, progress=False, shadows=False)
+    assert path == tmp_path / "walk.mp4" and len(imageio.mimread(path)) == 4
+    assert imageio.imread(tmp_path / "walk_frame.png").shape == (48, 128, 3)
+    earlier = path.read_bytes()
+    write = imageio.mimwrite
+
+    def stopped(uri, frames, **kwargs):  # the encoder gets one frame out, then Ctrl-C
+        write(uri, frames[:1], **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(imageio, "mimwrite", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        eval_video.render_video(model, qpos, 30, tmp_path, width=64, height=48, progress=False, shadows=False)
+    assert path.read_bytes() == earlier, "the earlier video was replaced by a cut-off one"
+    assert not list(tmp_path.glob(".*.tmp"))
+
 def test_play_help_shows_every_default():
     parser = recipe("play").build_parser()
     for action in parser._actions:

@@ -19,6 +19,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .. import robot
+from ..atomic import atomic_write_bytes
 from ..render_gl import offscreen_unavailable
 
 __all__ = ["CAMERA_POS", "SHADOW_BUDGET_S", "RenderingUnavailable", "free_camera", "label_image", "render_stills", "render_timelapse",
@@ -80,7 +81,9 @@ def _gl(call, *args, **kwargs):
 @_guarded
 def render_video(model, qpos: np.ndarray, fps: float, out: Path, width: int = 480, height: int = 360,
                   progress: bool = True, mocap_pos: np.ndarray | None = None, shadows: bool | None = None) -> Path:
-    """Render (T, k, nq) joint states of k robots side by side (one camera each) into an mp4 or a gif.
+    """Render (T, k, nq) joint states of k robots side by side (one camera each) into ``out/walk.mp4``, or
+    ``out/walk.gif`` without an mp4 writer, at ``fps`` frames per second, and its middle frame into
+    ``out/walk_frame.png``; each file is written atomically. Returns the video's path.
 
     ``mocap_pos``: (k, nmocap, 3) positions [m] of the model's mocap bodies in each robot's world (the obstacles of a
     jittered scene, ``sim.world_mocap_pos``); ``None`` shows them where the model puts them. ``shadows``: ``None``
@@ -116,14 +119,15 @@ def render_video(model, qpos: np.ndarray, fps: float, out: Path, width: int = 48
             frames.append(np.concatenate([tile(q, i) for i, q in enumerate(step)], axis=1))
     finally:  # its OpenGL context goes too when a frame fails: rendering may go on in this process
         renderer.close()
+    # Encoded in memory and then written atomically: a run stopped while encoding (or a full disk) leaves the
+    # earlier video whole, not half an mp4 under its name.
     try:
-        path = out / "walk.mp4"
-        imageio.mimwrite(path, frames, fps=fps, macro_block_size=1)
+        path, data = out / "walk.mp4", imageio.mimwrite("<bytes>", frames, format=".mp4", fps=fps, macro_block_size=1)
     except Exception:  # no mp4 writer (imageio-ffmpeg, in the `viz` extra): fall back to a gif
-        path.unlink(missing_ok=True)
-        path = out / "walk.gif"
-        imageio.mimwrite(path, frames[::2], duration=2.0 / fps)
-    imageio.imwrite(out / "walk_frame.png", frames[len(frames) // 2])
+        (out / "walk.mp4").unlink(missing_ok=True)  # an earlier test's video would pass for this one's
+        path, data = out / "walk.gif", imageio.mimwrite("<bytes>", frames[::2], format=".gif", duration=2.0 / fps)
+    atomic_write_bytes(path, data)
+    atomic_write_bytes(out / "walk_frame.png", imageio.imwrite("<bytes>", frames[len(frames) // 2], format=".png"))
     return path
 
 
@@ -244,14 +248,14 @@ def label_image(image: np.ndarray, text: str) -> np.ndarray:
 
 
 def save_strip(images: list[np.ndarray], path: Path) -> Path:
-    """Write images of one size side by side (one row) to ``path``; a list of rows (lists) stacks the rows,
-    padding short rows with white."""
+    """Write images of one size side by side (one row) to ``path`` (atomically; format from its suffix, PNG without
+    one); a list of rows (lists) stacks the rows, padding short rows with white."""
     import imageio.v2 as imageio
 
     rows = images if images and isinstance(images[0], list) else [images]
     width = max(len(row) for row in rows)
     blank = np.full_like(rows[0][0], 255)
     strip = np.concatenate([np.concatenate(row + [blank] * (width - len(row)), axis=1) for row in rows], axis=0)
-    imageio.imwrite(path, strip)
-    return Path(path)
+    path = Path(path)
+    return atomic_write_bytes(path, imageio.imwrite("<bytes>", strip, format=path.suffix or ".png"))
 
