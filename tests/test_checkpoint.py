@@ -234,6 +234,24 @@ def test_policy_file_keeps_the_policy_and_drops_training_state(tmp_path):
     assert shipped["config"] == full["config"] and shipped["config"]["ppo"]["overlap_update"] is False
 
 
+def test_a_policy_file_that_appears_while_one_is_written_is_not_replaced(tmp_path, monkeypatch):
+    # write_policy_file checked that `out` was free, then renamed its file over whatever was there by then.
+    import tocabi_torchrl.rl.checkpoint as checkpoint
+
+    run, _ = _saved_run(tmp_path)
+    out = tmp_path / "policy.pt"
+    real = checkpoint.config_from_checkpoint
+
+    def another_export_writes_first(*args, **kwargs):  # runs after the existence check, before the write
+        out.write_bytes(b"theirs")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(checkpoint, "config_from_checkpoint", another_export_writes_first)
+    with pytest.raises(FileExistsError, match="appeared while this one was being written"):
+        checkpoint.write_policy_file(run, out)
+    assert out.read_bytes() == b"theirs" and not list(tmp_path.glob(".*.tmp"))
+    assert read_checkpoint(checkpoint.write_policy_file(run, out, overwrite=True))["iteration"] == 1
+
 @pytest.mark.parametrize("part, key, value", [
     ("actor", None, float("nan")), ("critic", None, float("inf")),
     ("transforms", "transforms.3.var", float("nan")), ("transforms", "transforms.3.loc", float("-inf")),

@@ -164,7 +164,8 @@ def write_policy_file(checkpoint: str | os.PathLike, out: str | os.PathLike, ove
               "agent": {part: state["agent"][part] for part in ("actor", "critic")}}
     buffer = io.BytesIO()
     torch.save(policy, buffer)
-    return atomic_write_bytes(out, buffer.getvalue())
+    # Without overwrite, a file that appeared at `out` since the check above (another export) is refused, not replaced.
+    return atomic_write_bytes(out, buffer.getvalue(), replace=overwrite)
 
 
 def prune_checkpoints(folder: str | os.PathLike, keep_last: int, keep_every: int) -> list[Path]:
