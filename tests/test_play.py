@@ -418,6 +418,29 @@ def test_a_gait_test_of_an_env_at_another_command_is_refused_not_reported_at_thi
                               seconds=0.02, video_envs=0, progress=False)
     assert summary["command_mps"] == [0.5, 0.0]
 
+@needs_policy
+def test_a_policy_of_another_observation_size_is_refused_at_the_call(tmp_path):
+    # Both gait tests let torch's "mat1 and mat2 shapes cannot be multiplied" out of the network's first layer.
+    from tensordict.nn import TensorDictModule
+
+    from tocabi_torchrl.evaluation.gait_test import evaluate_policy
+    from tocabi_torchrl.evaluation.record import load_policy
+    from tocabi_torchrl.evaluation.robust import run_case
+
+    policy = load_policy(SHIPPED_POLICY, 2, "cpu", nominal=True)
+    other = TensorDictModule(torch.nn.Linear(10, 13), in_keys=["observation"], out_keys=["action"])
+    said = r"cannot act on this env's observation of 237 values per robot \(mat1 and mat2.*policy's own config"
+    with pytest.raises(ValueError, match=said):
+        evaluate_policy(other, policy.cfg, tmp_path / "e", env=policy.env, seconds=0.02, video_envs=0, progress=False)
+    with pytest.raises(ValueError, match=said):
+        run_case(other, policy.env, 0.02, progress=False)
+
+    def broken(td):  # a policy's own failure is not taken for a size mismatch
+        raise RuntimeError("a bug in the policy")
+
+    with pytest.raises(RuntimeError, match="a bug in the policy"):
+        run_case(broken, policy.env, 0.02, progress=False)
+
 def test_no_robots_is_refused_not_the_runs_4096(tmp_path):
     # evaluate_run(num_envs=0) built the run's 4,096 worlds: half an hour and more on a CPU, without a word.
     from tocabi_torchrl.evaluation.gait_test import evaluate_run

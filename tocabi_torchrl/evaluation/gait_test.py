@@ -33,7 +33,8 @@ from ..rl.checkpoint import checkpoint_file, read_checkpoint, run_folder_of
 from ..rl.trainer import build_env, resolve_device
 from .output import OutputExistsError, json_safe, rounded_against
 from .plots import plot_knees
-from .record import KNEES, GaitMetrics, fixed_command, load_policy, policy_steps, require_trained_statistics
+from .record import (KNEES, GaitMetrics, first_action, fixed_command, load_policy, policy_steps,
+                     require_trained_statistics)
 from .video import render_video
 
 __all__ = ["check_env_command", "evaluate_policy", "evaluate_run", "default_eval_dir", "fresh_eval_dir",
@@ -143,7 +144,7 @@ def evaluate_policy(
         trace_q, trace_ref, frames_qpos = [], [], []
         video_every = max(1, int(round(1.0 / (30.0 * base.dt))))
         for k in tqdm(range(steps), desc="gait test", unit="step", disable=not progress, leave=False):
-            td = env.step(actor(td))
+            td = env.step(actor(td) if k else first_action(actor, td))
             nxt = td["next"]
             alive = metrics.update(nxt)
             if k * base.dt < 6.0:

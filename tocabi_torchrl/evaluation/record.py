@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,8 +22,8 @@ from .. import robot
 from ..config import RunConfig
 from ..transforms.normalize import freeze_running_statistics, untrained_running_normalizers
 
-__all__ = ["GaitMetrics", "LoadedPolicy", "load_policy", "fixed_command", "policy_steps", "require_trained_statistics",
-           "LEG_JOINTS", "KNEES"]
+__all__ = ["GaitMetrics", "LoadedPolicy", "load_policy", "fixed_command", "first_action", "policy_steps",
+           "require_trained_statistics", "LEG_JOINTS", "KNEES"]
 
 #: The 12 leg joints, in action order.
 LEG_JOINTS: tuple[str, ...] = tuple(robot.JOINT_NAMES[robot.LEGS])
@@ -130,6 +131,25 @@ def policy_steps(seconds: float, dt: float, option: str = "seconds") -> int:
         raise ValueError(f"{option}={seconds:g} is shorter than one policy step ({dt * 1000:g} ms); pass at least "
                          f"{dt:g}")
     return steps
+
+
+def first_action(actor, td):
+    """``actor(td)`` for a rollout's first step, with a policy that does not fit the env's ``"observation"`` (N, D)
+    said at the call: ``ValueError`` naming D and the fix instead of torch's shape error from inside the network (a
+    policy trained with another observation layout than the config the env was built from). A wrong action size is
+    the env's to refuse, at its step."""
+    try:
+        return actor(td)
+    except RuntimeError as err:
+        observation = td.get("observation", None)
+        # torch's words for tensors that do not fit ("mat1 and mat2 shapes cannot be multiplied", "The size of
+        # tensor a (10) must match ..."); anything else (out of memory, a bug in the policy) is passed on as it is.
+        if observation is None or not re.search(r"shape|size of tensor|size mismatch|input of size", str(err)):
+            raise
+        raise ValueError(f"the policy cannot act on this env's observation of {observation.shape[-1]} values per robot "
+                         f"({err}): it was trained with another observation layout than the config the env was built "
+                         "from. Build the env from the policy's own config (load_policy, or config_from_checkpoint "
+                         "of its checkpoint)") from err
 
 
 def require_trained_statistics(env) -> None:

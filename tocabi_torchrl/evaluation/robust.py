@@ -52,7 +52,8 @@ from ..tree import to_dict
 from ..transforms.normalize import freeze_running_statistics
 from ..value_rules import NON_NEGATIVE, PUSH_KINDS, Range, check_seed
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
-from .record import GaitMetrics, fixed_command, nominal_config, policy_steps, require_trained_statistics
+from .record import (GaitMetrics, first_action, fixed_command, nominal_config, policy_steps,
+                     require_trained_statistics)
 from .output import rounded_against
 
 __all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking", "RobustCase", "RobustTestConfig",
@@ -501,10 +502,11 @@ def run_case(actor, env, seconds: float, desc: str = "robust test", progress: bo
         cycle = CycleMeanTracking(env.num_envs, gait_cycle_steps(base.motion.period, dt), td["base_pos"].device)
         heading = torch.zeros(env.num_envs, device=td["base_pos"].device)  # pelvis yaw at the last alive step
         for k in tqdm(range(steps), desc=desc, unit="step", disable=not progress, leave=False):
+            action = actor(td) if k else first_action(actor, td)
             if autoreset:
-                td, carry = env.step_and_maybe_reset(actor(td))
+                td, carry = env.step_and_maybe_reset(action)
             else:
-                td = env.step(actor(td))
+                td = env.step(action)
             nxt = td["next"]
             alive = metrics.update(nxt)
             velocity = heading_frame_velocity(nxt["base_quat"], nxt["base_lin_vel"])
