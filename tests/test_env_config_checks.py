@@ -130,6 +130,46 @@ def test_numpy_scalars_are_taken_as_plain_numbers():
         env.to("meta")
 
 
+@pytest.mark.parametrize("number, count", [(torch.tensor(0.5), torch.tensor(3)), (np.float32(0.5), np.int64(3))],
+                         ids=["0-d tensors", "numpy scalars"])
+def test_every_section_takes_0d_tensors_and_numpy_scalars_as_plain_numbers(number, count):
+    # PushConfig, SimConfig and the config tree refused a 0-d tensor that DynamicsRandomization took (text too,
+    # through float()) and kept as a tensor; SimConfig and EnvSimConfig refused a numpy int that the tree took. One
+    # rule now: the number it holds, stored as a plain number, on every path.
+    from tocabi_torchrl.config import RunConfig
+    from tocabi_torchrl.envs.config import EnvSimConfig, PushConfig
+    from tocabi_torchrl.sim import SimConfig
+    from tocabi_torchrl.sim.dynamics_config import DynamicsRandomization
+
+    pushes = PushConfig(count=count, speed=(number, 1.0), calm_fraction=number)
+    pushes.validate()
+    assert (pushes.count, pushes.speed, pushes.calm_fraction) == (3, (0.5, 1.0), 0.5)
+    assert type(pushes.count) is int and type(pushes.speed[0]) is float and type(pushes.calm_fraction) is float
+    dynamics = DynamicsRandomization(mass_scale=(number, 1.0))
+    dynamics.validate()
+    assert dynamics.mass_scale == (0.5, 1.0) and type(dynamics.mass_scale[0]) is float
+    sim = SimConfig(num_worlds=count, threads=count, solver_tolerance=number)
+    sim.validate()
+    assert (sim.num_worlds, sim.threads, sim.solver_tolerance) == (3, 3, 0.5) and type(sim.num_worlds) is int
+    env_sim = EnvSimConfig(substeps=count, threads=count)
+    env_sim.validate()
+    assert (env_sim.substeps, env_sim.threads) == (3, 3) and type(env_sim.threads) is int
+    run = RunConfig()
+    run.env.pushes, run.env.control.pd_action_scale = PushConfig(count=count, speed=(number, number)), number
+    run.validate()
+    assert run.env.pushes.speed == (0.5, 0.5) and type(run.env.control.pd_action_scale) is float
+    # A bool, a NaN or a 1-element tensor is no number on any path.
+    for bad in (torch.tensor(True), torch.tensor(math.nan), torch.tensor([0.5])):
+        with pytest.raises(ValueError, match="env.pushes.speed"):
+            PushConfig(count=1, speed=(bad, 1.0)).validate()
+        with pytest.raises(ValueError, match=r"env.dynamics.mass_scale\[0\]"):
+            DynamicsRandomization(mass_scale=(bad, 1.0)).validate()
+        with pytest.raises(ValueError, match="SimConfig.solver_tolerance"):
+            SimConfig(solver_tolerance=bad).validate()
+    with pytest.raises(ValueError, match=r"env.dynamics.mass_scale\[0\] must be a finite number.*got '0.8'"):
+        DynamicsRandomization(mass_scale=("0.8", 1.0)).validate()
+
+
 @dataclass(frozen=True)
 class _Item:
     gain: float = 1.0

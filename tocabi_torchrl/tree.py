@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from .value_rules import plain_number
+
 __all__ = ["OWN_NUMBER_CHECK", "ConfigError", "build_items", "check_field_types", "from_dict", "get_path", "item_type",
            "leaf_paths", "leaf_types", "replace_paths", "to_dict"]
 
@@ -246,21 +248,24 @@ def _field_hints(cls: type) -> dict[str, Any]:
 
 def _number(kind: type, value: Any, where: str) -> Any:
     """``value`` as a plain Python number of ``kind`` (``float``: any finite real, ints too; ``int``: an int), or a
-    ``ValueError`` naming ``where``, the value and what is accepted. A bool is refused (``True`` is not a gain)."""
-    if isinstance(value, (bool, np.bool_)):
+    ``ValueError`` naming ``where``, the value and what is accepted. A bool is refused (``True`` is not a gain); a
+    numpy scalar or a 0-d array or tensor counts as the number it holds (:func:`~tocabi_torchrl.value_rules
+    .plain_number`)."""
+    plain = plain_number(value)
+    if isinstance(plain, bool):
         ok = False
     elif kind is int:
-        ok = isinstance(value, numbers.Integral)
+        ok = isinstance(plain, numbers.Integral)
     else:
         try:
-            ok = isinstance(value, numbers.Real) and math.isfinite(value)
+            ok = isinstance(plain, numbers.Real) and math.isfinite(plain)
         except OverflowError:  # an int too large for a float
             ok = False
     if not ok:
         accepted = ("an int (not a float, a bool or text)" if kind is int
                     else "a finite number, an int or a float (not NaN, inf, a bool or text)")
         raise ValueError(f"{where} must be {accepted}, got {value!r}")
-    return value.item() if isinstance(value, np.generic) else value
+    return plain
 
 
 def _number_kinds(kind: Any) -> tuple[tuple[Any, ...], bool] | None:
@@ -300,11 +305,10 @@ def check_field_types(tree, prefix: str = "") -> None:
     float]``, ``Sequence[float]``) finite entries of the annotated length. Without it a gain of NaN ends every
     episode at its first step, an inf command reaches the observation and a number given as text (``"0.6"``) fails
     later as a raw ``TypeError``. ``None`` is taken where the annotation allows it (``float | None``); numpy scalars
-    are taken, as plain Python values (frozen trees too); a section (a dataclass field) that is not an instance of
-    its class (None, a dict, a number) is named (each failed later as an ``AttributeError``); fields of other types
-    are left alone, and so is a number
-    field whose metadata holds :data:`OWN_NUMBER_CHECK` (its section's ``validate`` checks it, with a better
-    message)."""
+    and 0-d arrays or tensors are taken, as plain Python values (frozen trees too); a section (a dataclass field)
+    that is not an instance of its class (None, a dict, a number) is named (each failed later as an
+    ``AttributeError``); fields of other types are left alone, and so is a number field whose metadata holds
+    :data:`OWN_NUMBER_CHECK` (its section's ``validate`` checks it, with a better message)."""
     hints = _field_hints(type(tree))
     for f in dataclasses.fields(tree):
         value = getattr(tree, f.name)
@@ -322,9 +326,9 @@ def check_field_types(tree, prefix: str = "") -> None:
                              "replace_paths (and by make_env's section keywords)")
         tuple_kinds = _number_kinds(kind)
         if kind is bool:
-            if not isinstance(value, (bool, np.bool_)):
+            plain = plain_number(value)
+            if not isinstance(plain, bool):
                 raise ValueError(f"{where} must be True or False, got {value!r}")
-            plain = bool(value)
         elif f.metadata.get("check_numbers", True) is False:
             continue
         elif kind in (int, float):

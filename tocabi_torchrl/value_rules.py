@@ -14,7 +14,20 @@ from typing import Any
 
 __all__ = ["DELAY_APPLIED", "ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT",
            "PUSH_KINDS", "Range", "check_push_settings", "TRAINED_UNDER_RULES", "check_env_value", "check_seed",
-           "trained_under_problems"]
+           "plain_number", "trained_under_problems"]
+
+
+def plain_number(value: Any) -> Any:
+    """``value`` as a plain Python value where it is a numpy scalar, or a 0-d numpy array or torch tensor
+    (``value.item()``), else ``value`` itself. Every number check of the configs reads values through this, so a
+    sweep's ``np.float32(0.5)`` or ``torch.tensor(0.5)`` is taken alike on every path (the whole tree, one section,
+    the runtime's settings) and stored as a plain number. Duck-typed: this module imports neither numpy nor torch."""
+    if getattr(value, "ndim", None) == 0 and callable(getattr(value, "item", None)):
+        try:
+            return value.item()
+        except (TypeError, ValueError, RuntimeError):  # e.g. a tensor without data (device "meta"): left to refuse
+            return value
+    return value
 
 
 @dataclass(frozen=True)
@@ -29,7 +42,9 @@ class Range:
     integer: bool = False
 
     def allows(self, value: Any) -> bool:
-        """Whether ``value`` obeys the rule (text, NaN, inf and bools do not)."""
+        """Whether ``value`` obeys the rule (text, NaN, inf and bools do not; numpy scalars and 0-d arrays or tensors
+        are read as the plain number they hold, :func:`plain_number`)."""
+        value = plain_number(value)
         if isinstance(value, bool) or not isinstance(value, numbers.Integral if self.integer else numbers.Real):
             return False
         try:
@@ -123,7 +138,7 @@ def check_push_settings(pushes: Any, prefix: str) -> None:
     """Raise ``ValueError`` naming the first bad field (``{prefix}<name>``) of a kicks' settings and what it takes:
     ``count``, ``window``, ``speed``, ``duration``, ``kind`` and ``calm_fraction`` as ``PushConfig`` (the env's) and
     ``PushSettings`` (the torch-free runtime's) both hold them."""
-    count = pushes.count
+    count = plain_number(pushes.count)
     if isinstance(count, bool) or not isinstance(count, int) or not 0 <= count <= 64:
         raise ValueError(f"{prefix}count must be an int in [0, 64] (kicks per episode), got {count!r}")
     for name, unit in (("window", "s"), ("speed", "m/s"), ("duration", "s")):

@@ -106,6 +106,9 @@ class EnvSimConfig:
     """the Newton solver's iteration cap per substep; none = the model's (20)"""
 
     def validate(self) -> None:
+        # Every number by its type first, as the whole tree does (a numpy int or a 0-d tensor kept as a plain int):
+        # alone, a section named only the ints it checks below.
+        check_field_types(self, "env.sim.")
         if self.backend not in BACKENDS:
             raise ValueError(f"unknown env.sim.backend {self.backend!r}; choose one of {BACKENDS}")
         if self.reset_pass not in RESET_PASSES:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..tree import check_field_types
 from ..value_rules import PUSH_KINDS, check_push_settings
 
 __all__ = ["PushConfig", "PUSH_KINDS"]
@@ -44,3 +45,6 @@ class PushConfig:
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field (``env.pushes.<name>``) and what it takes."""
         check_push_settings(self, "env.pushes.")
+        # Stored as plain numbers: a numpy scalar or a 0-d tensor passed the rules above as the number it holds, as it
+        # does in the whole config tree, and the kicks' draws and the policy contract take plain numbers.
+        check_field_types(self, "env.pushes.")

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from ..tree import check_field_types
-from ..value_rules import NON_NEGATIVE
+from ..value_rules import NON_NEGATIVE, plain_number
 from .buffers import CONTACT_SENSOR_MAXMATCH, NCCDMAX, NCONMAX, NJMAX
 
 if TYPE_CHECKING:
@@ -112,9 +112,11 @@ class SimConfig:
         """Raise ``ValueError`` naming the first bad field and what it should be."""
 
         def positive_int(name: str) -> None:
-            v = getattr(self, name)
+            # A numpy int or a 0-d tensor counts as the int it holds, as in the env's config tree, and is kept as one.
+            v = plain_number(getattr(self, name))
             if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-                raise ValueError(f"SimConfig.{name} must be a positive int, got {v!r}")
+                raise ValueError(f"SimConfig.{name} must be a positive int, got {getattr(self, name)!r}")
+            setattr(self, name, v)
 
         for name in ("num_worlds", "substeps", "nconmax", "njmax", "contact_sensor_maxmatch"):
             positive_int(name)
@@ -130,6 +132,7 @@ class SimConfig:
             # a raw comparison error.
             raise ValueError(f"SimConfig.solver_tolerance must be {NON_NEGATIVE.describe()} (the solver's "
                              f"tolerance; None keeps the model file's), got {tol!r}")
+        self.solver_tolerance = plain_number(tol)
         if self.reset_pass not in RESET_PASSES:
             raise ValueError(f"SimConfig.reset_pass must be one of {RESET_PASSES}, got {self.reset_pass!r}")
         cols = self.substep_ctrl

@@ -7,6 +7,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from ..tree import check_field_types
+
 __all__ = ["DynamicsRandomization"]
 
 _RANGES = ("mass_scale", "joint_damping", "armature_scale", "friction_scale")
@@ -37,6 +39,9 @@ class DynamicsRandomization:
 
     def validate(self, prefix: str = "env.dynamics.") -> None:
         """Raise ``ValueError`` naming the first bad range (``<prefix><name>``) and what it takes."""
+        # Two numbers each, as in the whole config tree: float() took text ("0.8") and bools here, and a numpy scalar
+        # or a 0-d tensor stayed one; they are stored as plain numbers.
+        check_field_types(self, prefix)
         for name in _RANGES:
             value = getattr(self, name)
             try:
