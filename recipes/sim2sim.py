@@ -73,7 +73,7 @@ from tocabi_torchrl.evaluation.output import json_safe  # noqa: E402
 from tocabi_torchrl.runtime import ContractError, PolicyRuntime  # noqa: E402
 from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim  # noqa: E402
 from tocabi_torchrl.runtime.randomization import ROBUST_START, PushSettings  # noqa: E402
-from tocabi_torchrl.value_rules import MAX_SEED  # noqa: E402
+from tocabi_torchrl.value_rules import MAX_SEED, PUSH_SPEED  # noqa: E402
 
 
 def watch(args: argparse.Namespace, dt: float):
@@ -119,8 +119,9 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--vx and --vy must be finite speeds [m/s], got {args.vx} and {args.vy}")
     if not 0 <= args.pushes <= 64:
         parser.error(f"--pushes must be an int in [0, 64] (kicks per robot), got {args.pushes}")
-    if not 0 <= args.push_speed < math.inf:
-        parser.error(f"--push_speed must be a finite velocity change >= 0 [m/s], got {args.push_speed}")
+    if not PUSH_SPEED.allows(args.push_speed):  # the kicks' own rule, said with the option's name
+        parser.error(f"--push_speed must be a finite velocity change >= 0 and <= {PUSH_SPEED.high:g} [m/s], got "
+                     f"{args.push_speed}{PUSH_SPEED.because(args.push_speed)}")
     parser.refuse_without(args, args.pushes > 0, "--pushes N", ("push_speed", "push_kind"))
     parser.refuse_without(args, args.viewer, "--viewer", ("viewer_host", "viewer_port"))
     if not 0 <= args.seed <= MAX_SEED:

@@ -83,6 +83,31 @@ def test_defaults_are_off_and_bad_ranges_name_their_path():
         SimConfig(per_world_fields=("body_pos",)).validate()
 
 
+@pytest.mark.parametrize("name, bound", [("mass_scale", 5.0), ("joint_damping", 100.0), ("armature_scale", 5.0),
+                                         ("friction_scale", 5.0)])
+def test_a_range_past_its_sanity_bound_is_refused_alike_by_the_env_the_runtime_and_a_contract(mj, name, bound):
+    # mass_scale=(0.8, 12), a typo for 1.2, ran on every path and simulated a robot 12x its weight. One rule
+    # (value_rules.DYNAMICS_RANGES) for the training config, the torch-free runtime's settings and a contract's
+    # trained_under section: the bound itself is taken by all three, above it refused by all three, by name.
+    from tocabi_torchrl.runtime import randomization as rnd
+    from tocabi_torchrl.value_rules import trained_under_problems
+
+    section = rnd.trained_under_section(rnd.Randomization(), rnd.PushSettings(), rnd.StartVelocity(), 0.0005, 104.5)
+    ok, bad = (0.5, bound), (0.5, bound * 2.4)
+    DynamicsRandomization(**{name: ok}).validate()
+    rnd.DynamicsSettings(**{name: ok}).validate()
+    assert trained_under_problems({**section, "dynamics": {**section["dynamics"], name: {"range": list(ok)}}}) == []
+    why = rf"above the bound {bound:g}; .*a typo\?"
+    with pytest.raises(ValueError, match=rf"env.dynamics.{name} is \(0.5, {bad[1]}\), {why}"):
+        DynamicsRandomization(**{name: bad}).validate()
+    with pytest.raises(ValueError, match=rf"^dynamics.{name} is \(0.5, {bad[1]}\), {why}"):
+        rnd.WorldDynamics(rnd.DynamicsSettings(**{name: bad}), mj)  # a given Randomization is checked too
+    problems = trained_under_problems({**section, "dynamics": {**section["dynamics"], name: {"range": list(bad)}}})
+    assert len(problems) == 1 and problems[0].startswith(f"trained_under.dynamics.{name}.range is [0.5, {bad[1]}] "
+                                                         f"but each end must be a finite number ")
+    assert problems[0].endswith("a typo?") and f"{bound:g}]" in problems[0]
+
+
 def test_a_simulator_without_the_fields_is_refused(mj):
     sim = MujocoSim(SimConfig(num_worlds=1, threads=1))
     assert sim.model_fields == {}

@@ -150,6 +150,30 @@ def test_a_push_range_that_is_no_ordered_pair_is_refused_by_name(bad, message):
         PushSchedule(PushSettings(count=2, **bad), dt=0.004, mass=100.0)
 
 
+def test_a_kick_past_the_sanity_bound_is_refused_alike_by_the_env_the_runtime_and_a_contract():
+    # speed=(0.4, 140), a typo for 1.4, ran and launched the robot. One rule (value_rules.PUSH_SPEED) for the
+    # training config, the torch-free runtime's settings and a contract's trained_under.pushes.speed_mps.
+    from tocabi_torchrl.runtime import randomization as rnd
+    from tocabi_torchrl.value_rules import trained_under_problems
+
+    def stated(speed):
+        section = rnd.trained_under_section(rnd.Randomization(), rnd.PushSettings(count=2), rnd.StartVelocity(),
+                                            0.0005, 104.5)
+        return trained_under_problems({**section, "pushes": {**section["pushes"], "speed_mps": list(speed)}})
+
+    PushConfig(count=2, speed=(0.4, 10.0)).validate()
+    rnd.PushSettings(count=2, speed=(0.4, 10.0)).validate()
+    assert stated((0.4, 10.0)) == []
+    why = r"above the bound 10 m/s; a kick above 10 m/s launches the 104.5 kg robot .*a typo\?"
+    with pytest.raises(ValueError, match=rf"env.pushes.speed is \(0.4, 140\), {why}"):
+        PushConfig(count=2, speed=(0.4, 140)).validate()
+    with pytest.raises(ValueError, match=rf"^pushes.speed is \(0.4, 140\), {why}"):
+        rnd.PushSchedule(rnd.PushSettings(count=2, speed=(0.4, 140)), dt=0.004, mass=104.5)
+    (problem,) = stated((0.4, 140))
+    assert problem.startswith("trained_under.pushes.speed_mps is [0.4, 140] but each end must be a finite number in "
+                              "[0, 10]; a kick above 10 m/s") and problem.endswith("a typo?")
+
+
 def _env(pushes: PushConfig, n=2, **task):
     cfg = TocabiWalkConfig()
     cfg = dataclasses.replace(cfg, pushes=pushes, task=dataclasses.replace(cfg.task, **task))

@@ -529,8 +529,9 @@ def _edit(section: dict, dotted: str, value) -> dict:
 
 @pytest.mark.parametrize("dotted, value, message", [
     ("dynamics.mass_scale.range", [1.2, 0.8], r"trained_under.dynamics.mass_scale.range is \[1.2, 0.8\]: low > high"),
-    ("dynamics.mass_scale.range", [0.0, 1.2], "each end must be a finite number > 0"),
-    ("dynamics.joint_damping.range", [-1.0, 2.9], "each end must be a finite number >= 0"),
+    ("dynamics.mass_scale.range", [0.0, 1.2], r"each end must be a finite number in \(0, 5\]"),
+    ("dynamics.mass_scale.range", [0.8, 12.0], r"each end must be a finite number in \(0, 5\]; links above 5x"),
+    ("dynamics.joint_damping.range", [-1.0, 2.9], r"each end must be a finite number in \[0, 100\]"),
     ("actuators.delay.substeps", [4.5, 20], r"each end must be an int in \[0, 400\]"),
     ("actuators.delay.ms", [2.0, 11.0], r"delay.ms is \[2.0, 11.0\] but substeps \[4, 20\]"),
     ("actuators.motor_constant", "on", r"motor_constant is 'on' but must be \"off\" or an object"),
@@ -539,6 +540,7 @@ def _edit(section: dict, dotted: str, value) -> dict:
     ("sensor_noise.foot_force_bias.half_width", -1.0, "half_width is -1.0 but must be a finite number >= 0"),
     ("pushes.count", 0, "pushes.count is 0 but must be an int in \\[1, 64\\]"),
     ("pushes.speed_mps", [0.5], r"speed_mps is \[0.5\] but must be a \[low, high\] pair"),
+    ("pushes.speed_mps", [0.4, 140.0], r"speed_mps is \[0.4, 140.0\] but each end .*\[0, 10\]; a kick above 10 m/s"),
     ("pushes.calm_fraction", 1.0, r"calm_fraction is 1.0 but must be a finite number in \[0, 1\)"),
     ("start_velocity.joint_std_radps", 11.0, r"joint_std_radps is 11.0 but must be a finite number in \[0, 10\]"),
     ("dynamics", None, "trained_under.dynamics is None, not an object"),
@@ -637,6 +639,7 @@ def test_the_recipe_runs_randomised_and_pushed_robots_without_torch():
     (["--pushes", "2.5"], "argument --pushes: invalid int value"),
     (["--push_speed", "nan"], "--push_speed must be a finite velocity change >= 0"),
     (["--push_speed", "-0.5"], "--push_speed must be a finite velocity change >= 0"),
+    (["--push_speed", "140"], r"--push_speed must be .* <= 10 \[m/s\], got 140.0; a kick above 10 m/s launches"),
     (["--seed", "-1"], r"--seed must be an int in \[0, 2\*\*63 - 1\]"),
 ])
 def test_bad_option_values_are_one_error_line(argv, message, capsys):

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 __all__ = ["DELAY_APPLIED", "ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT",
-           "PUSH_KINDS", "Range", "check_push_settings", "TRAINED_UNDER_RULES", "check_env_value", "check_seed",
-           "plain_number", "trained_under_problems"]
+           "PUSH_KINDS", "PUSH_SPEED", "DYNAMICS_OFF", "DYNAMICS_RANGES", "Range", "check_dynamics_ranges",
+           "check_push_settings", "TRAINED_UNDER_RULES", "check_env_value", "check_seed", "plain_number",
+           "trained_under_problems"]
 
 
 def plain_number(value: Any) -> Any:
@@ -33,13 +34,15 @@ def plain_number(value: Any) -> Any:
 @dataclass(frozen=True)
 class Range:
     """A real number in ``[low, high]`` (an end excluded where ``low_open``/``high_open``), always finite, and an
-    int where ``integer``. A bool is refused either way: ``True`` is not a gain."""
+    int where ``integer``. A bool is refused either way: ``True`` is not a gain. ``why``: what a value beyond a
+    sanity bound would do, said in the messages (:meth:`because`)."""
 
     low: float = -math.inf
     high: float = math.inf
     low_open: bool = False
     high_open: bool = False
     integer: bool = False
+    why: str = ""
 
     def allows(self, value: Any) -> bool:
         """Whether ``value`` obeys the rule (text, NaN, inf and bools do not; numpy scalars and 0-d arrays or tensors
@@ -68,10 +71,17 @@ class Range:
             return f"{kind} {'<' if self.high_open else '<='} {high}"
         return f"{kind} in {'(' if self.low_open else '['}{low}, {high}{')' if self.high_open else ']'}"
 
+    def because(self, *values: Any) -> str:
+        """``"; <why>"`` where one of ``values`` is a finite number above the upper bound and the rule says why it
+        has that bound, else ``""``: a message's ending (a NaN or text is wrong for another reason)."""
+        above = [v for v in map(plain_number, values) if isinstance(v, numbers.Real) and not isinstance(v, bool)
+                 and math.isfinite(v) and (v >= self.high if self.high_open else v > self.high)]
+        return f"; {self.why}" if self.why and above else ""
+
     def check(self, value: Any, where: str) -> None:
         """Raise ``ValueError`` naming ``where``, the allowed values and ``value`` unless the rule allows it."""
         if not self.allows(value):
-            raise ValueError(f"{where} must be {self.describe()}, got {value!r}")
+            raise ValueError(f"{where} must be {self.describe()}, got {value!r}{self.because(value)}")
 
 
 def _text(bound: float) -> str:
@@ -129,6 +139,64 @@ RPY_BIAS = Range(low=0.0, high=math.pi)
 #: ``PushConfig.calm_fraction``: the probability of an episode without kicks; 1 would be no kicks (``count`` 0).
 CALM_FRACTION = Range(low=0.0, high=1.0, high_open=True)
 
+#: The fastest kick [m/s] (``PushConfig.speed``, ``PushSettings.speed``, a contract's ``trained_under.pushes
+#: .speed_mps``): a sanity bound, far above any kick a walking robot recovers from, that catches a typo such as
+#: ``speed=(0.4, 140)``, which ran and launched the robot.
+PUSH_SPEED = Range(low=0.0, high=10.0, why="a kick above 10 m/s launches the 104.5 kg robot (the robust gait test "
+                   "kicks at 0.5 and 1 m/s, the TOCABI lab's largest impulse, 250 N·s, is about 2.4 m/s): a typo?")
+
+#: The identity of each range of the per-world dynamics (``DynamicsRandomization``, ``DynamicsSettings``): the value
+#: that changes nothing.
+DYNAMICS_OFF = {"mass_scale": (1.0, 1.0), "joint_damping": (0.0, 0.0), "armature_scale": (1.0, 1.0),
+                "friction_scale": (1.0, 1.0)}
+#: The rule of each end of each range of the per-world dynamics: the env's ``DynamicsRandomization``, the torch-free
+#: runtime's ``DynamicsSettings`` and a contract's ``trained_under.dynamics.<name>.range`` all check with these. The
+#: upper bounds are sanity bounds, generous against any randomisation (the TOCABI lab's: mass and armature ×0.8-1.2,
+#: damping +0-2.9 N·m·s/rad), that catch a typo such as ``mass_scale=(0.8, 12)``, which ran and simulated nonsense.
+DYNAMICS_RANGES: dict[str, Range] = {
+    "mass_scale": Range(low=0.0, low_open=True, high=5.0,
+                        why="links above 5x their mass (a robot of over 500 kg) leave the leg motors (166-333 N·m) "
+                            "nothing to walk with: a typo?"),
+    "joint_damping": Range(low=0.0, high=100.0,
+                           why="100 N·m·s/rad added already resists a joint at 3 rad/s with 300 N·m, about a leg "
+                               "motor's whole torque (166-333 N·m): a typo?"),
+    "armature_scale": Range(low=0.0, high=5.0,
+                            why="above 5x the model's reflected rotor inertia (up to 1.09 kg·m² at a knee) the "
+                                "joints answer their motors like no motor of this robot: a typo?"),
+    "friction_scale": Range(low=0.0, high=5.0,
+                            why="above 5x the model's sliding friction (1.0) the feet are glued to the floor: a "
+                                "typo?"),
+}
+
+
+def _pair_problem(pair: Any, rule: Range) -> str | None:
+    """What is wrong with ``(low, high)`` under ``rule`` (each end obeys it, low <= high), or None: ``"shape"``
+    (not two entries), ``"ends"`` (an end breaks the rule below or is no finite number), ``"bound"`` (only above
+    ``rule.high``, the sanity bound), ``"order"`` (low > high)."""
+    if isinstance(pair, (str, bytes)) or not hasattr(pair, "__len__") or len(pair) != 2:
+        return "shape"
+    if not all(replace(rule, high=math.inf, high_open=False).allows(v) for v in pair):
+        return "ends"
+    if not all(rule.allows(v) for v in pair):
+        return "bound"
+    return "order" if plain_number(pair[0]) > plain_number(pair[1]) else None
+
+
+def check_dynamics_ranges(dynamics: Any, prefix: str) -> None:
+    """Raise ``ValueError`` naming the first bad range (``{prefix}<name>``) of the per-world dynamics and what it
+    takes (:data:`DYNAMICS_RANGES`), as ``DynamicsRandomization`` (the env's) and ``DynamicsSettings`` (the
+    torch-free runtime's) both hold them: each ``(low, high)`` with both ends obeying the range's rule, low <= high."""
+    for name, rule in DYNAMICS_RANGES.items():
+        value = getattr(dynamics, name)
+        problem = _pair_problem(value, rule)
+        if problem == "bound":
+            raise ValueError(f"{prefix}{name} is {value!r}, above the bound {_text(rule.high)}{rule.because(*value)}")
+        if problem is not None:
+            low = f"0 {'<' if rule.low_open else '<='} low"
+            raise ValueError(f"{prefix}{name} must be (low, high) with {low} <= high <= {_text(rule.high)}, finite, "
+                             f"got {value!r} ({DYNAMICS_OFF[name]} turns it off)")
+
+
 #: The start time [s] of a calm episode's kicks, past any episode: the env's ``Pushes`` and the torch-free runtime's
 #: ``PushSchedule`` both give a calm episode's kicks this time, so that none ever begins.
 CALM_NEVER_S = 1.0e9
@@ -141,15 +209,18 @@ def check_push_settings(pushes: Any, prefix: str) -> None:
     count = plain_number(pushes.count)
     if isinstance(count, bool) or not isinstance(count, int) or not 0 <= count <= 64:
         raise ValueError(f"{prefix}count must be an int in [0, 64] (kicks per episode), got {count!r}")
-    for name, unit in (("window", "s"), ("speed", "m/s"), ("duration", "s")):
+    for name, unit, rule in (("window", "s", NON_NEGATIVE), ("speed", "m/s", PUSH_SPEED),
+                             ("duration", "s", NON_NEGATIVE)):
         pair = getattr(pushes, name)
         # Checked whole, not unpacked: a lone number (speed=1.0), three numbers or text failed as a raw unpack or
         # comparison error without the field's name, and a bool passed as 0 or 1.
-        numbers_ok = (not isinstance(pair, (str, bytes)) and hasattr(pair, "__len__") and len(pair) == 2
-                      and all(NON_NEGATIVE.allows(v) for v in pair))
-        if not (numbers_ok and pair[0] <= pair[1]):
-            fix = (f"; swapped? give ({pair[1]!r}, {pair[0]!r})" if numbers_ok else
-                   f"; for one value give it twice, e.g. ({pair!r}, {pair!r})" if NON_NEGATIVE.allows(pair) else "")
+        problem = _pair_problem(pair, rule)
+        if problem == "bound":
+            raise ValueError(f"{prefix}{name} is {pair!r}, above the bound {_text(rule.high)} {unit}"
+                             f"{rule.because(*pair)}")
+        if problem is not None:
+            fix = (f"; swapped? give ({pair[1]!r}, {pair[0]!r})" if problem == "order" else
+                   f"; for one value give it twice, e.g. ({pair!r}, {pair!r})" if rule.allows(pair) else "")
             raise ValueError(f"{prefix}{name} must be (low, high) with 0 <= low <= high, finite [{unit}], got "
                              f"{pair!r}{fix}")
     if pushes.kind not in PUSH_KINDS:
@@ -209,12 +280,7 @@ TRAINED_UNDER_RULES: dict[str, dict[str, dict[str, tuple[Range, str]]]] = {
         "friction": {"coulomb_nm": (NON_NEGATIVE, "pair"), "viscous_nms_per_rad": (NON_NEGATIVE, "pair")},
         "saturation": {},
     },
-    "dynamics": {
-        "mass_scale": {"range": (POSITIVE, "pair")},
-        "joint_damping": {"range": (NON_NEGATIVE, "pair")},
-        "armature_scale": {"range": (NON_NEGATIVE, "pair")},
-        "friction_scale": {"range": (NON_NEGATIVE, "pair")},
-    },
+    "dynamics": {name: {"range": (rule, "pair")} for name, rule in DYNAMICS_RANGES.items()},
     "sensor_noise": {
         "joint_pos_bias": {"half_width": (NON_NEGATIVE, "one")},
         "joint_pos_noise": {"std": (NON_NEGATIVE, "one"), "clip": (POSITIVE, "nullable")},
@@ -225,7 +291,7 @@ TRAINED_UNDER_RULES: dict[str, dict[str, dict[str, tuple[Range, str]]]] = {
     },
     "pushes": {
         "pushes": {"count": (Range(low=1, high=64, integer=True), "one"), "window_s": (NON_NEGATIVE, "pair"),
-                   "speed_mps": (NON_NEGATIVE, "pair"), "duration_s": (NON_NEGATIVE, "pair"),
+                   "speed_mps": (PUSH_SPEED, "pair"), "duration_s": (NON_NEGATIVE, "pair"),
                    "robot_mass_kg": (POSITIVE, "one"), "ramp_env_steps": (Range(low=0, integer=True), "pair"),
                    "calm_fraction": (CALM_FRACTION, "optional")},
     },
@@ -284,7 +350,7 @@ def _field_problems(value: Any, rule: Range, shape: str, where: str) -> list[str
         return [f"{where} is {value!r} but must be a [low, high] pair"]
     bad = [v for v in value if not rule.allows(v)]
     if bad:
-        return [f"{where} is {value!r} but each end must be {rule.describe()}"]
+        return [f"{where} is {value!r} but each end must be {rule.describe()}{rule.because(*value)}"]
     if value[0] > value[1]:
         return [f"{where} is {value!r}: low > high (swapped?)"]
     return []

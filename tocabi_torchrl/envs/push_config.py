@@ -20,7 +20,8 @@ class PushConfig:
         count: kicks per episode.
         window: (start, end) [s] of episode time over which the kicks are spread (kick j in the j-th share); the env
             refuses an end past its episode (``env.task.max_episode_steps``), whose last kicks would never come.
-        speed: (low, high) [m/s] the velocity change of the whole robot, drawn per kick (impulse = speed × mass).
+        speed: (low, high) [m/s] the velocity change of the whole robot, drawn per kick (impulse = speed × mass);
+            at most 10 m/s, a sanity bound (``value_rules.PUSH_SPEED``).
         duration: (low, high) [s] how long each kick's force acts, drawn per kick (rounded to whole policy steps,
             at least one).
         kind: how the kick acts. ``"force"``: a force on the pelvis alone (the TOCABI lab's pushes): the robot's

@@ -39,7 +39,7 @@ from dataclasses import dataclass, fields
 import mujoco
 import numpy as np
 
-from ..value_rules import CALM_NEVER_S, DELAY_APPLIED, check_push_settings
+from ..value_rules import CALM_NEVER_S, DELAY_APPLIED, DYNAMICS_OFF, check_dynamics_ranges, check_push_settings
 
 __all__ = ["ROBUST_START", "STREAMS", "TOCABI_LAB", "ActuatorLayer", "ActuatorSettings", "DynamicsSettings",
            "PushSchedule", "PushSettings", "Randomization", "SensorModel", "SensorSettings", "StartVelocity",
@@ -101,8 +101,12 @@ class DynamicsSettings:
     armature_scale: tuple[float, float] = (1.0, 1.0)
     friction_scale: tuple[float, float] = (1.0, 1.0)
 
-    _OFF = {"mass_scale": (1.0, 1.0), "joint_damping": (0.0, 0.0), "armature_scale": (1.0, 1.0),
-            "friction_scale": (1.0, 1.0)}
+    _OFF = DYNAMICS_OFF
+
+    def validate(self, prefix: str = "dynamics.") -> None:
+        """Raise ``ValueError`` naming the first bad range and what it takes (``DynamicsRandomization.validate``'s
+        rules): a given ``Randomization`` is checked as the training config and a contract are."""
+        check_dynamics_ranges(self, prefix)
 
     def on(self, name: str) -> bool:
         return tuple(float(v) for v in getattr(self, name)) != self._OFF[name]
@@ -407,6 +411,7 @@ class WorldDynamics:
     (``dofs``: every dof but the free joint's)."""
 
     def __init__(self, settings: DynamicsSettings, model: mujoco.MjModel):
+        settings.validate()
         self.settings, self.model = settings, model
         self.bodies = np.array([b for b in range(1, model.nbody) if model.body_mocapid[b] < 0], dtype=np.int64)
         self.dofs = np.array([d for d in range(model.nv) if model.jnt_type[model.dof_jntid[d]]

@@ -4,17 +4,16 @@ table of what each range draws and ``WorldDynamics``, which draws them."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 from ..tree import check_field_types
+from ..value_rules import DYNAMICS_OFF, check_dynamics_ranges
 
 __all__ = ["DynamicsRandomization"]
 
 _RANGES = ("mass_scale", "joint_damping", "armature_scale", "friction_scale")
 #: The identity of each range: the value that changes nothing.
-_OFF = {"mass_scale": (1.0, 1.0), "joint_damping": (0.0, 0.0), "armature_scale": (1.0, 1.0),
-        "friction_scale": (1.0, 1.0)}
+_OFF = DYNAMICS_OFF
 #: The simulator's per-world model fields each range writes.
 _FIELDS = {"mass_scale": ("body_mass", "body_inertia", "body_subtreemass"), "joint_damping": ("dof_damping",),
            "armature_scale": ("dof_armature",), "friction_scale": ("geom_friction",)}
@@ -26,10 +25,12 @@ class DynamicsRandomization:
     Each is ``(low, high)`` of a uniform draw; the defaults change nothing.
 
     Attributes:
-        mass_scale: scale of each body's mass and inertia tensor (> 0).
-        joint_damping: damping [N·m·s/rad] added to each joint dof's (>= 0).
-        armature_scale: scale of each joint dof's armature (>= 0).
-        friction_scale: scale of every geom's sliding friction, one per world (>= 0).
+        mass_scale: scale of each body's mass and inertia tensor (> 0, <= 5).
+        joint_damping: damping [N·m·s/rad] added to each joint dof's (>= 0, <= 100).
+        armature_scale: scale of each joint dof's armature (>= 0, <= 5).
+        friction_scale: scale of every geom's sliding friction, one per world (>= 0, <= 5).
+
+    The upper bounds are sanity bounds (``value_rules.DYNAMICS_RANGES``, which says what lies beyond each).
     """
 
     mass_scale: tuple[float, float] = (1.0, 1.0)
@@ -42,17 +43,8 @@ class DynamicsRandomization:
         # Two numbers each, as in the whole config tree: float() took text ("0.8") and bools here, and a numpy scalar
         # or a 0-d tensor stayed one; they are stored as plain numbers.
         check_field_types(self, prefix)
-        for name in _RANGES:
-            value = getattr(self, name)
-            try:
-                low, high = (float(v) for v in value)
-            except (TypeError, ValueError):
-                raise ValueError(f"{prefix}{name} must be two numbers (low, high), got {value!r}") from None
-            least = 0.0 if name != "mass_scale" else math.ulp(0.0)
-            if not (math.isfinite(low) and math.isfinite(high)) or low < least or low > high:
-                bound = "0 < low" if name == "mass_scale" else "0 <= low"
-                raise ValueError(f"{prefix}{name} must be (low, high) with {bound} <= high, finite, got {value!r} "
-                                 f"({_OFF[name]} turns it off)")
+        # The rules the torch-free runtime and a policy contract's trained_under section check with too.
+        check_dynamics_ranges(self, prefix)
 
     def on(self, name: str) -> bool:
         """Whether range ``name`` changes anything (it differs from its identity)."""
