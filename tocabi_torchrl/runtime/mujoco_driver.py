@@ -306,7 +306,15 @@ def run_sim2sim(contract_path: str | os.PathLike | PolicyRuntime, model_path: st
     ``sensors`` of its own (the run sets them from ``randomize`` and puts None back when it ends).
 
     ``on_step(step, model, datas)``: called after each control period with its 0-based index, the compiled model and
-    the robots' ``MjData`` (read them, do not write; the live viewer draws them: docs/viewer.md).
+    the robots' ``MjData`` (read them, do not write; the live viewer draws them: docs/viewer.md). Every argument is
+    checked before its first call. A viewer is the caller's, though: its page is served when the caller starts it,
+    before this call, so a policy given here as a path would be checked only after that page is up (and a bad one
+    would leave a page that never shows a robot). Check the policy first, by building the runtime, then start the
+    viewer and pass the runtime, as ``recipes/sim2sim.py --viewer`` does::
+
+        runtime = PolicyRuntime("policy.json")  # contract, ONNX file and hash, onnxruntime, motion: raises here
+        server = start_server(host, port)  # tocabi_torchrl.viewer.server: the page from here on
+        run_sim2sim(runtime, on_step=ExportedWatch(server, runtime.contract["timing"]["control_dt_s"]))
     """
     if not isinstance(contract_path, PolicyRuntime):
         runtime = PolicyRuntime(contract_path, motion=motion, onnx=onnx)
