@@ -42,6 +42,23 @@ def shipped_model_in_degrees(folder: Path, name: str = "degrees.xml") -> Path:
     return path
 
 
+def shipped_model_mixing_units(folder: Path, name: str = "mixed.xml", narrow: str | None = None) -> Path:
+    """The shipped model read in degrees with every joint range in degrees but the legs' (``-3.14 3.14``), left in
+    radians, to ``folder / name``; with ``narrow``, instead every range in degrees and that joint's ±3 degrees."""
+    def unit(match: re.Match) -> str:
+        if narrow is None and match[1] == "-3.14 3.14":
+            return match[0]
+        return ' range="{}"'.format(" ".join(f"{np.degrees(float(v)):.6f}" for v in match[1].split()))
+
+    path = folder / name
+    text = re.sub(r' range="([^"]+)"', unit, shipped_text().replace(RADIAN, DEGREE_COMPILERS["degree"]))
+    if narrow is not None:
+        text, n = re.subn(rf'(<joint name="{narrow}"[^>]* range=")[^"]+"', r'\g<1>-3 3"', text)
+        assert n == 1
+    path.write_text(text)
+    return path
+
+
 def shipped_model_with_range(path: Path, joint: str, low: float, high: float) -> Path:
     """The shipped model, written to ``path`` with ``joint``'s range set to [low, high] rad."""
     text = shipped_text()

@@ -10,7 +10,7 @@ import pytest
 
 from tocabi_torchrl import robot
 
-from model_files import DEGREE_COMPILERS, shipped_model_in_degrees, shipped_model_read_as
+from model_files import DEGREE_COMPILERS, shipped_model_in_degrees, shipped_model_mixing_units, shipped_model_read_as
 from reference_data import load_reference_model
 
 
@@ -320,6 +320,27 @@ def test_a_model_read_in_degrees_with_ranges_in_radians_is_refused_naming_the_fi
         robot.load_model(path)
     with pytest.raises(robot.RobotAssetError, match=message):
         robot.load_spec(path)
+
+
+def test_a_model_in_degrees_mixing_in_radian_ranges_is_refused_naming_both_units(tmp_path):
+    # The check gave up on any range beyond a full turn (only degrees make sense of it), so a file in degrees with
+    # the legs' ranges left in radians compiled them to ±0.055 rad, and the env blamed the shipped walk ("reference
+    # motion ... outside the model's range ... check R_Knee_Joint's range (radians, under angle=radian)").
+    path = shipped_model_mixing_units(tmp_path)
+    message = (r"robot model .*mixed\.xml: it is compiled with <compiler angle=\"degree\"> .* and mixes units in its "
+               r"joint ranges: Waist1_Joint range=\"-119\.977 119\.977\" is in degrees, but L_HipPitch_Joint "
+               r"range=\"-3\.14 3\.14\" becomes \[-0\.055, 0\.055\] rad, which leaves out the initial pose's -0\.240 "
+               r"rad \(robot\.INIT_JOINT_POS\) and any walking motion: written in radians\? 5 more joints' ranges "
+               r"look the same \(L_Knee_Joint, L_AnklePitch_Joint, R_HipPitch_Joint, R_Knee_Joint, "
+               r"R_AnklePitch_Joint\)\. Write each such range in degrees too \(L_HipPitch_Joint: "
+               r"range=\"-179\.909 179\.909\"\)")
+    with pytest.raises(robot.RobotAssetError, match=message):
+        robot.load_model(path)
+    with pytest.raises(robot.RobotAssetError, match=message):
+        robot.load_spec(path)
+    # No false alarm: a joint of a file in degrees with a narrow range (±3 degrees) that holds the initial pose.
+    narrow = shipped_model_mixing_units(tmp_path, "narrow.xml", narrow="Waist1_Joint")
+    assert robot.load_model(narrow).joint("Waist1_Joint").range[1] == pytest.approx(np.radians(3.0))
 
 
 def test_a_model_in_degrees_throughout_compiles_to_the_shipped_ranges(tmp_path, model):

@@ -17,7 +17,8 @@ import pytest
 
 pytest.importorskip("onnxruntime")
 
-from model_files import DEGREE_COMPILERS, shipped_model_in_degrees, shipped_model_read_as, shipped_model_with_range
+from model_files import (DEGREE_COMPILERS, shipped_model_in_degrees, shipped_model_mixing_units, shipped_model_read_as,
+                         shipped_model_with_range)
 from reference_data import REFERENCE_DIR
 
 from tocabi_torchrl import robot
@@ -338,6 +339,18 @@ def test_sim_to_sim_refuses_a_model_read_in_degrees_naming_the_file(tmp_path, co
     for remove_meshes in (False, True):  # the reference model's path goes through strip_meshes
         with pytest.raises(ValueError, match=message):
             run_sim2sim(_contract("ppo"), model, seconds=0.02, num_robots=1, remove_meshes=remove_meshes)
+
+
+def test_sim_to_sim_refuses_a_model_in_degrees_with_radian_ranges_mixed_in(tmp_path):
+    # It gave up on the unit (a range beyond a full turn is in degrees) and said only that the knee's range left out
+    # the start pose, to be checked "in radians, under <compiler angle=\"radian\">", which would break the others.
+    from tocabi_torchrl.runtime.mujoco_driver import build_model
+
+    message = (r"robot model .*mixed\.xml: .* mixes units in its joint ranges: Waist1_Joint range=\"-119\.977 "
+               r"119\.977\" is in degrees, but L_HipPitch_Joint range=\"-3\.14 3\.14\" becomes .*the contract's "
+               r"robot\.initial_qpos.*Write each such range in degrees too")
+    with pytest.raises(ValueError, match=message):
+        build_model(load_contract(_contract("ppo")), shipped_model_mixing_units(tmp_path))
 
 
 def test_sim_to_sim_builds_a_model_in_degrees_throughout(tmp_path):

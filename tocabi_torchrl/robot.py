@@ -267,8 +267,10 @@ def angle_unit_problem(spec: "mujoco.MjSpec", source: str, joint_names: Sequence
     Such a file (``<compiler angle="degree">``, or no angle: MuJoCo's default) compiles each range 180/π times too
     narrow (the shipped ±3.14 becomes ±0.055 rad), leaving out the initial pose. Not caught, it surfaced later as a
     reference motion or a PD nominal pose "outside the model's range", blaming the motion or the pose. A file in
-    degrees with its ranges in degrees passes. Reads the uncompiled ``spec`` only (the compiled model no longer says
-    which unit it was read in); imports mujoco and numpy only, so the torch-free runtime uses it too.
+    degrees with its ranges in degrees passes; one that mixes the units (ranges beyond a full turn, so in degrees,
+    beside ranges that hold the initial pose only when read as radians) is named as such, with the joint to rewrite.
+    Reads the uncompiled ``spec`` only (the compiled model no longer says which unit it was read in); imports mujoco
+    and numpy only, so the torch-free runtime uses it too.
 
     Args:
         spec: the parsed, uncompiled model file.
@@ -286,17 +288,34 @@ def angle_unit_problem(spec: "mujoco.MjSpec", source: str, joint_names: Sequence
         joint = spec.joint(name)
         if joint is not None and joint.limited != mujoco.mjtLimited.mjLIMITED_FALSE and joint.range[0] < joint.range[1]:
             ranged.append((name, float(q), (float(joint.range[0]), float(joint.range[1]))))
-    if not ranged or max(abs(v) for _, _, r in ranged for v in r) > _RADIAN_LIKE:
-        return None  # no ranges, or numbers only degrees make sense of
-    for name, q, (lo, hi) in ranged:
-        lo_rad, hi_rad = np.radians(lo), np.radians(hi)
-        if not lo_rad <= q <= hi_rad and lo <= q <= hi:
-            return (f"robot model {source}: it is compiled with <compiler angle=\"degree\"> (MuJoCo's default when "
-                    f"<compiler> sets no angle) but its joint ranges are written in radians: {name} range=\"{lo:g} "
-                    f"{hi:g}\" becomes [{lo_rad:.3f}, {hi_rad:.3f}] rad, which leaves out the initial pose's {q:.3f} "
-                    f"rad ({initial_name}) and any walking motion. Set <compiler angle=\"radian\"> in {source} (as the "
-                    "shipped assets/tocabi/tocabi.xml does), or write every angle of the file in degrees")
-    return None
+    # A range with a number beyond a full turn is in degrees: only degrees make sense of it.
+    in_degrees = [(name, r) for name, _, r in ranged if max(abs(v) for v in r) > _RADIAN_LIKE]
+    # A joint is blamed only where its range, read in degrees, leaves out the initial pose that its numbers read as
+    # radians hold: such a model is refused either way (the pose is outside its compiled range), so no usable file
+    # is; the check just names the unit rather than the range. A file in degrees throughout passes, tiny ranges
+    # that hold the pose included.
+    radian_like = [(name, q, (lo, hi)) for name, q, (lo, hi) in ranged if max(abs(lo), abs(hi)) <= _RADIAN_LIKE
+                   and not np.radians(lo) <= q <= np.radians(hi) and lo <= q <= hi]
+    if not radian_like:
+        return None
+    name, q, (lo, hi) = radian_like[0]
+    lo_rad, hi_rad = np.radians(lo), np.radians(hi)
+    becomes = (f"{name} range=\"{lo:g} {hi:g}\" becomes [{lo_rad:.3f}, {hi_rad:.3f}] rad, which leaves out the "
+               f"initial pose's {q:.3f} rad ({initial_name}) and any walking motion")
+    head = (f"robot model {source}: it is compiled with <compiler angle=\"degree\"> (MuJoCo's default when <compiler> "
+            "sets no angle)")
+    if not in_degrees:
+        return (f"{head} but its joint ranges are written in radians: {becomes}. Set <compiler angle=\"radian\"> in "
+                f"{source} (as the shipped assets/tocabi/tocabi.xml does), or write every angle of the file in degrees")
+    # Mixed: switching the compiler to radians would break the ranges in degrees, so the fix is per joint.
+    other, (dlo, dhi) = in_degrees[0]
+    more = [n for n, _, _ in radian_like[1:]]
+    also = (f" {len(more)} more joints' ranges look the same ({', '.join(more[:5])}{', ...' if len(more) > 5 else ''})."
+            if more else "")
+    return (f"{head} and mixes units in its joint ranges: {other} range=\"{dlo:g} {dhi:g}\" is in degrees, but "
+            f"{becomes}: written in radians?{also} Write {'each such range' if more else 'it'} in degrees too "
+            f"({name}: range=\"{np.degrees(lo):.6g} {np.degrees(hi):.6g}\"), as every angle of a file in degrees; or, "
+            f"for radians, set <compiler angle=\"radian\"> and write every angle of {source} in radians")
 
 
 def _ranges(model: "mujoco.MjModel", joint_names: Sequence[str]):  # noqa: F821
