@@ -291,6 +291,29 @@ def test_running_normalization_masked_update():
         torch.testing.assert_close(a, b)
 
 
+def _running_env(**norm_kwargs) -> TransformedEnv:
+    return TransformedEnv(MockTocabiWalk(4, terminate_prob=0.5), Compose(
+        PhaseEncoding(), BaseEulerAngles(), ObservationAssembly(), RunningNormalization(**norm_kwargs)))
+
+
+def test_running_normalization_learns_from_the_mask_keys_rows_and_names_a_bad_mask_key():
+    env = _running_env(mask_key="terminated", mask_invert=True, init_count=1e-6)
+    norm = env.transform[-1]
+    td = env.rand_step(env.reset())
+    kept = ~td["next", "terminated"].squeeze(-1)
+    assert norm.count.item() == pytest.approx(int(kept.sum()), abs=1e-5)
+    # A misspelt key was read as no mask: every row went into the statistics without a word (and with
+    # mask_invert=True the step failed on ~None).
+    for invert in (False, True):
+        env = _running_env(mask_key="terminatd", mask_invert=invert)
+        with pytest.raises(KeyError, match="mask_key 'terminatd' is not in the step's output"):
+            env.rand_step(env.reset())
+        assert env.transform[-1].count.item() == 1.0  # nothing learnt
+    env = _running_env(mask_key="base_pos")  # (num_envs, 3) float: no flags
+    with pytest.raises(ValueError, match=r"mask_key 'base_pos' must be \(4, 1\) bool flags, got \(4, 3\)"):
+        env.rand_step(env.reset())
+
+
 def test_quat_to_rpy_matches_the_reference_formulas_on_random_quaternions():
     import numpy as np
 

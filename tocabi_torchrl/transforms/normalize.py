@@ -269,12 +269,26 @@ class RunningNormalization(_Normalization):
         next_tensordict.set(self.out_keys[0], self._normalize(x, loc, scale))
         return next_tensordict
 
+    def _step_mask(self, next_tensordict: TensorDictBase) -> torch.Tensor:
+        """``mask_key``'s (num_envs, 1) bool rows to learn from, checked on metadata only (no device read)."""
+        mask = next_tensordict.get(self.mask_key, None)
+        want = (*next_tensordict.batch_size, 1)
+        if mask is None:
+            # tensordict's get gives None for a missing key: a misspelt mask_key learnt from every row without a
+            # word (and with mask_invert failed on ~None).
+            raise KeyError(f"RunningNormalization mask_key {self.mask_key!r} is not in the step's output; pass a key "
+                           f"of the step's (num_envs, 1) bool flags, e.g. 'terminated', or mask_key=None. Available: "
+                           f"{sorted(str(k) for k in next_tensordict.keys(True, True))}")
+        if mask.dtype != torch.bool or tuple(mask.shape) != want:
+            raise ValueError(f"RunningNormalization mask_key {self.mask_key!r} must be {want} bool flags, got "
+                             f"{tuple(mask.shape)} {mask.dtype}; pass a key of the step's done-like flags")
+        return ~mask if self.mask_invert else mask
+
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         if not self.frozen:
             mask = None
             if self.mask_key is not None:
-                mask = next_tensordict.get(self.mask_key)
-                mask = ~mask if self.mask_invert else mask
+                mask = self._step_mask(next_tensordict)
             healthy = next_tensordict.get(self.health_key, None) if self.health_key is not None else None
             if healthy is not None:
                 mask = healthy if mask is None else mask & healthy
