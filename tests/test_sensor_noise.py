@@ -425,3 +425,20 @@ def test_a_reset_without_mask_redraws_every_world():
     first = _noise_stage(env).biases["foot_force"].clone()
     env.reset(TensorDict({}, batch_size=[2]))
     assert not (first == _noise_stage(env).biases["foot_force"]).flatten(1).all(-1).any()
+
+
+def test_a_clone_of_a_used_chain_draws_for_its_own_env():
+    # torchrl's clone is shallow: a clone of a SensorNoise that had run kept the first env's counters and shared its
+    # bias buffer, so the second env's resets redrew the first env's biases in place.
+    from tocabi_torchrl.envs import TocabiWalk
+
+    first = make_env(num_envs=2, device="cpu", seed=5, sensor_noise=LAB)
+    first.reset()
+    stage = _noise_stage(first)
+    before = stage.biases["joint_pos"].clone()
+    second = TransformedEnv(TocabiWalk(2, device="cpu", seed=6), first.transform.clone())
+    td = second.reset()
+    assert torch.equal(stage.biases["joint_pos"], before)
+    copy = _noise_stage(second)
+    assert not torch.equal(copy.biases["joint_pos"], before)  # its own seed's draw
+    _check_observed_perturbation(second, td)

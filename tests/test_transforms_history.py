@@ -114,6 +114,24 @@ def test_auto_resets_in_rollout_follow_each_envs_episode():
         _check(ro[:, t], REFERENCE_HISTORY)  # root: after a reset, the refilled history
 
 
+def test_a_clone_of_a_used_history_keeps_its_own_buffers():
+    # torchrl's clone is shallow: a clone of a history that had run shared its rings, so a second env's reset and
+    # steps rewrote the first env's history in place.
+    first = _env(REFERENCE_HISTORY)
+    td = first.reset()
+    for _ in range(3):
+        td = step_mdp(first.step(_act(td)))
+    history = first.transform
+    before = history._obs.buf.clone(), history._act.buf.clone()
+    second = TransformedEnv(MockTocabiWalk(N, mode="random"), history.clone())
+    second.rollout(3)
+    assert torch.equal(history._obs.buf, before[0]) and torch.equal(history._act.buf, before[1])
+    for _ in range(9):  # the first env's policy input still follows its own episodes only
+        td = first.step(_act(td))
+        _check(td["next"], REFERENCE_HISTORY)
+        td = step_mdp(td)
+
+
 def test_history_specs_and_errors():
     check_env_specs(_env(REFERENCE_HISTORY))
     with pytest.raises(ValueError, match="num_obs"):

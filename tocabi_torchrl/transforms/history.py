@@ -145,6 +145,14 @@ class ObsActionHistory(Transform):
         next_tensordict.set(self.out_keys[0], self._output())
         return next_tensordict
 
+    def clone(self) -> ObsActionHistory:
+        """A copy with no history yet: its first reset fills its own buffers."""
+        copy = super().clone()
+        # torchrl's clone is shallow: the copy shared these rings, whose buffers are written in place, so a second
+        # env's resets and steps rewrote the first env's history.
+        copy._obs = copy._act = None
+        return copy
+
     def __repr__(self) -> str:
         lay = self.layout
         return (

@@ -472,6 +472,14 @@ class SensorNoise(Transform):
         next_tensordict.set(self.out_keys[0], self._perturbed(next_tensordict.get(self.in_keys[0])))
         return next_tensordict
 
+    def clone(self) -> SensorNoise:
+        """A copy bound to no env yet: its first reset maps its env's counters and draws its own biases."""
+        copy = super().clone()
+        # torchrl's clone is shallow: the copy kept the env's counters and shared the bias and noise buffers, so a
+        # second env's resets redrew the first env's biases in place.
+        copy._source, copy._worlds, copy._index, copy.biases, copy._next_drawn = None, None, {}, {}, False
+        return copy
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Stored data (a replay buffer sample) passes unchanged: the noise belongs to the env's steps, keyed on
         its counters, and a stored ``obs_step`` already holds it."""
