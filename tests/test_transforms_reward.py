@@ -323,6 +323,23 @@ def test_set_weight_changes_one_term_in_place():
 
 
 
+def test_a_clone_keeps_its_own_weights_and_kick_relaxation():
+    # torchrl's clone is shallow: a clone shared the weights and relaxed-terms buffers, which set_weight and an env
+    # without kicks change in place, so the original then computed the clone's weights under its own terms' names.
+    from tocabi_torchrl.transforms import KickRelax
+
+    relax = KickRelax(seconds=2.0, terms=("qpos",))
+    original = TaskReward(reference_terms(), kick_relax=relax)
+    copy = original.clone()
+    copy.set_weight("qpos", 0.0)
+    TransformedEnv(MockTocabiWalk(N), copy).rollout(1)  # no kicks: the copy's relaxation is off
+    td, nxt = _kicked_pair([1.0] * N, [1.0] * N)
+    got = original._weighted_terms(td, nxt)[:, original.names.index("qpos")]
+    want = 0.5 * JointPosTracking()(td, nxt).squeeze(-1)  # half-way through a full kick's relaxation
+    torch.testing.assert_close(got, want)
+    assert copy.kick_relax is None and original.kick_relax is relax
+
+
 def test_loaded_state_keeps_the_rewards_own_weights():
     # A checkpoint's weights were loaded over the env's: a resume with a term of one's own re-weighted, or the same
     # terms in another order, computed the saved weights while the terms and the repr named the new ones.

@@ -150,6 +150,16 @@ class TaskReward(Transform):
     #: Device copies of this reward's configuration (the terms' weights, which terms a kick relaxes), not learned state.
     _CONFIG_BUFFERS = ("_weights", "_relaxed")
 
+    def clone(self) -> TaskReward:
+        copy = super().clone()
+        # torchrl's clone is shallow: the copy shared these buffers, which set_weight and an env without kicks change
+        # in place, so the original computed the copy's weights while its terms and repr named its own. The compiled
+        # function is bound to the original.
+        for name in self._CONFIG_BUFFERS:
+            setattr(copy, name, getattr(self, name).clone())
+        copy._compiled = None
+        return copy
+
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # A checkpoint's copies were loaded over the terms': an env built with other weights, or with the same number
         # of terms in another order, computed the saved weights while its terms and repr named its own. They stay
