@@ -283,6 +283,21 @@ def test_task_reward_errors_name_the_problem():
         TransformedEnv(MockTocabiWalk(N), TaskReward([needs])).observation_spec
 
 
+@pytest.mark.parametrize("key, error, message", [
+    ("terminatd", KeyError, "zeroes the reward where 'terminatd' is True, and the step has no such key"),
+    ("foot_contact", ValueError, rf"'foot_contact' must be \({N}, 1\) bool flags, got \({N}, 2\) torch.bool"),
+    ("phase", ValueError, rf"'phase' must be \({N}, 1\) bool flags, got \({N}, 1\) torch.float32"),
+])
+def test_a_terminated_key_that_is_no_termination_flags_is_named_at_the_first_step(key, error, message):
+    # A missing key failed inside torch.where with a bare TypeError; flags of another shape broadcast along the terms.
+    env = TransformedEnv(MockTocabiWalk(N), TaskReward(reference_terms(), terminated_key=key))
+    with pytest.raises(error, match=message):
+        env.rollout(1)
+    # Without zeroing nothing reads the key.
+    env = TransformedEnv(MockTocabiWalk(N), TaskReward(reference_terms(), terminated_key=key, zero_on_terminated=False))
+    assert env.rollout(1)["next", "reward"].shape == (N, 1, 1)
+
+
 def test_per_joint_torque_scale_option():
     td, nxt = _pair()
     nxt["applied_action"][0, 0] = 1.0

@@ -218,8 +218,23 @@ class TaskReward(Transform):
                 raise ValueError(f"reward term {t.name!r} returned NaN or inf in every env at the first step: guard "
                                  "its division, log or sqrt")
 
+    def _check_terminated(self, next_tensordict: TensorDictBase) -> None:
+        """The flags ``zero_on_terminated`` reads: (num_envs, 1) bool (metadata only, no device read)."""
+        flags = next_tensordict.get(self.terminated_key, None)
+        want = (*next_tensordict.batch_size, 1)
+        if flags is None:
+            # A missing key failed inside torch.where with a bare TypeError.
+            raise KeyError(f"TaskReward zeroes the reward where {self.terminated_key!r} is True, and the step has no "
+                           f"such key; pass terminated_key= the env's termination flags, or zero_on_terminated=False")
+        if flags.dtype != torch.bool or tuple(flags.shape) != want:
+            # (num_envs,) flags broadcast along the terms instead: with as many envs as terms, without an error.
+            raise ValueError(f"TaskReward terminated_key {self.terminated_key!r} must be {want} bool flags, got "
+                             f"{tuple(flags.shape)} {flags.dtype}; pass the env's termination flags")
+
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         if not self._checked:
+            if self.zero_on_terminated:
+                self._check_terminated(next_tensordict)
             self._check_terms(tensordict, next_tensordict)  # once, eagerly: clear errors before any compilation
             self._checked = True
         if self.compile and self._compiled is None:
