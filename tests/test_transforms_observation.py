@@ -145,6 +145,19 @@ def test_assembly_errors():
 
 
 
+@pytest.mark.parametrize("index, fix", [
+    (slice(0, 12), r"pass \(slice\(0, 12, None\),\)"),
+    (2, r"pass \(2,\)"),
+    ([slice(0, 12)], r"pass a tuple, e.g. \(slice\(0, 12\),\)"),
+])
+def test_an_observation_block_index_that_is_no_tuple_is_named_with_the_tuple_to_pass(index, fix):
+    # A lone slice failed as a bare "'slice' object is not iterable"; a list was accepted and failed only once an env
+    # was attached ("can only concatenate tuple (not "list") to tuple").
+    with pytest.raises(TypeError, match=r"ObsComponent 'legs': index must be a tuple of ints, slices or Ellipsis.*"
+                                        + fix):
+        ObsComponent("legs", "joint_pos", index)
+
+
 def test_a_hand_built_chain_names_its_mistake_at_the_first_reset():
     # Specs are computed lazily: a chain whose specs nobody read once failed at its first reset on the missing key
     # ("'NoneType' object is not subscriptable"), not with the spec check's message naming the fix.

@@ -37,6 +37,13 @@ class ObsComponent:
     index: tuple = ()
 
     def __post_init__(self):
+        if not isinstance(self.index, tuple):
+            # A lone slice or int failed here as a bare "not iterable" TypeError, and a list passed and failed once
+            # an env was attached, concatenated to the batch's index inside ObservationAssembly.
+            one = isinstance(self.index, (slice, int)) or self.index is Ellipsis
+            fix = f"({self.index!r},)" if one else "a tuple, e.g. (slice(0, 12),)"
+            raise TypeError(f"ObsComponent {self.name!r}: index must be a tuple of ints, slices or Ellipsis, got "
+                            f"{self.index!r}; pass {fix}")
         for i in self.index:
             if not (isinstance(i, slice) or i is Ellipsis or (isinstance(i, int) and not isinstance(i, bool))):
                 raise TypeError(
