@@ -231,6 +231,20 @@ def test_running_normalization_tracks_batch_statistics():
     assert norm.count.item() == pytest.approx(320, rel=1e-6)
 
 
+@pytest.mark.parametrize("kwargs, error, message", [
+    (dict(dim=2.5), ValueError, r"RunningNormalization dim \(D, the observation's values\) must be an integer >= 1, "
+                                r"got 2.5; or None to size the statistics from the observation"),
+    (dict(dim=0), ValueError, "dim .* must be an integer >= 1, got 0"),
+    (dict(dim=3, init_mean=[0.0] * 2), ValueError, "dim=3 but init_mean has 2 values; pass 3 values"),
+    (dict(dim=3, init_var=[1.0] * 2), ValueError, "dim=3 but init_var has 2 values; pass 3 values"),
+])
+def test_running_normalization_names_a_dim_that_does_not_fit(kwargs, error, message):
+    # A float dim failed as a bare "can't multiply sequence by non-int"; a dim other than init_mean's length was
+    # named as a mean and a var of unequal lengths, a var the caller never gave; dim=0 was taken for "unsized".
+    with pytest.raises(error, match=message):
+        RunningNormalization(**kwargs)
+    assert RunningNormalization(dim=2, init_mean=[[1.0, 2.0]]).mean.tolist() == [1.0, 2.0]  # flattened, as before
+
 def test_running_normalization_count_is_float64_and_exact_past_2_24_samples():
     # A float32 count rounded each 3-sample update away once it passed 2**24 samples (16,777,216 -> 16,778,216
     # after 1000 updates, instead of 16,780,216), skewing the update's weights.

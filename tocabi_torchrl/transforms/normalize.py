@@ -15,7 +15,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import Composite, Unbounded
 
 from tocabi_torchrl.transforms._base import CallOnReset
-from tocabi_torchrl.transforms._checks import check_positive, require_spec
+from tocabi_torchrl.transforms._checks import check_positive, check_positive_int, require_spec
 
 __all__ = ["REFERENCE_OBS_MEAN", "REFERENCE_OBS_VAR", "FixedNormalization", "RunningNormalization",
            "freeze_running_statistics", "running_normalizers", "untrained_running_normalizers"]
@@ -181,6 +181,16 @@ class RunningNormalization(_Normalization):
         health_key: NestedKey | None = "healthy",
     ):
         super().__init__(in_key, out_key, eps, clip)
+        if dim is not None:
+            # A float dim failed as a bare "can't multiply sequence by non-int", and a dim other than init_mean's
+            # length was named as a mean and var of unequal lengths, a var the caller never gave.
+            check_positive_int(dim, "RunningNormalization dim (D, the observation's values)",
+                               "or None to size the statistics from the observation")
+            for name, given in (("init_mean", init_mean), ("init_var", init_var)):
+                count = None if given is None else torch.as_tensor(given).numel()
+                if count is not None and count != dim:
+                    raise ValueError(f"RunningNormalization: dim={dim} but {name} has {count} values; pass {dim} "
+                                     "values, or leave dim None to take init_mean's length")
         if init_mean is not None and dim is None:
             dim = len(init_mean)
         if dim is not None:
