@@ -440,3 +440,36 @@ def test_a_checkpoint_of_another_shipped_motion_says_so():
     with pytest.raises(CheckpointError, match=r"sha256 000000000000\.\.\., but the env's motion .*tocabi_walk.npz "
                                               r"is another file .*the shipped motion is not the one"):
         apply_checkpoint({**state, "motion_sha256": "0" * 64}, agent, env=env)
+
+
+def test_the_contract_states_the_upper_body_gains_of_the_model_the_policy_trained_on(tmp_path):
+    # The env holds the upper body with the training model's own position servos; the contract used to state the
+    # shipped model's gains whatever env.task.model_path the run trained on, and sim2sim applied those.
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.export import export_policy
+    from tocabi_torchrl.rl.checkpoint import save_checkpoint
+    from tocabi_torchrl.rl.trainer import build_agent, build_env
+
+    shipped = robot.asset_path("tocabi", "tocabi.xml").read_text()
+    waist = '<position name="Waist1_Motor" joint="Waist1_Joint" kp="6000" kv="200"'
+    assert waist in shipped
+    model = tmp_path / "stiff_waist.xml"
+    model.write_text(shipped.replace(waist, waist.replace('kp="6000" kv="200"', 'kp="7000" kv="250"')))
+    cfg = preset_config("default", **{"env.control.mode": "torque", "env.num_envs": 1, "ppo.minibatch_size": 48,
+                                      "ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,),
+                                      "env.task.model_path": str(model)}, device="cpu")
+    env = build_env(cfg, torch.device("cpu"), num_envs=1)
+    ckpt = save_checkpoint(tmp_path / "run", 0, 0, build_agent(cfg, 237, 13, torch.device("cpu")), None, env, cfg)
+    upper = load_contract(export_policy(ckpt, tmp_path / "p.onnx").contract)["upper_body"]
+    assert upper["kp"] == [7000.0, *robot.UPPER_KP[1:].tolist()]
+    assert upper["kv"] == [250.0, *robot.UPPER_KV[1:].tolist()]
+
+    # A model whose waist is a motor: the env sent it target angles as torques, which no contract can describe.
+    model.write_text(shipped.replace(waist + ' forcerange="-303 303"/>',
+                                     '<motor name="Waist1_Motor" joint="Waist1_Joint" ctrlrange="-303 303"/>'))
+    cfg.env.task.model_path = str(model)
+    env = build_env(cfg, torch.device("cpu"), num_envs=1)
+    ckpt = save_checkpoint(tmp_path / "motor", 0, 0, build_agent(cfg, 237, 13, torch.device("cpu")), None, env, cfg)
+    with pytest.raises(ValueError, match=r"actuator 'Waist1_Motor' is not a position servo"):
+        export_policy(ckpt, tmp_path / "m.onnx")
+    assert not (tmp_path / "m.onnx").exists()

@@ -11,6 +11,7 @@ import hashlib
 import json
 from pathlib import Path
 
+import mujoco
 import numpy as np
 
 from .. import __version__, robot
@@ -162,6 +163,27 @@ def _trained_under(policy, cfg, model) -> dict:
                                      solver_iterations=getattr(getattr(cfg, "sim", None), "solver_iterations", None))
 
 
+def _upper_gains(model) -> dict[str, list[float]]:
+    """``kp`` and ``kv`` of the upper body's position servos in ``model``, the compiled model the policy trained on:
+    the env sends them the reference targets (``control.PDHold``) and their gains come from the model file
+    (``env.task.model_path``), not from ``robot.UPPER_KP``/``UPPER_KV``, the shipped model's."""
+    kp, kv = [], []
+    for name in robot.ACTUATOR_NAMES[robot.NUM_LEG_JOINTS :]:
+        act = model.actuator(name)
+        gain, bias = act.gainprm, act.biasprm
+        # A MuJoCo position servo: force = kp * ctrl - kp * q - kv * qdot.
+        servo = (int(act.gaintype[0]) == mujoco.mjtGain.mjGAIN_FIXED and int(act.biastype[0]) ==
+                 mujoco.mjtBias.mjBIAS_AFFINE and bias[0] == 0 and bias[1] == -gain[0] and gain[0] > 0
+                 and bias[2] <= 0)
+        if not servo:
+            raise ValueError(f"the training model's actuator {name!r} is not a position servo (gain {gain[:3]}, bias "
+                             f"{bias[:3]}), so the upper body it held has no gains the contract can state: export a "
+                             "policy trained on a model whose upper-body actuators are <position> servos")
+        kp.append(float(gain[0]))
+        kv.append(float(-bias[2]))
+    return {"kp": kp, "kv": kv}
+
+
 def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, output_name: str, opset: int) -> dict:
     """The contract of a :class:`~tocabi_torchrl.export.onnx_export.LoadedPolicy` exported to ``onnx_file``."""
     env = policy.env
@@ -228,8 +250,7 @@ def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, ou
                            "rule": "after each control period: t = (t + control_dt_s * (1 + gain * action[index])) "
                                    "mod reference_motion.period_s"},
         },
-        "upper_body": {"hold": "reference_motion joint targets at the period's start clock",
-                       "kp": [float(v) for v in robot.UPPER_KP], "kv": [float(v) for v in robot.UPPER_KV]},
+        "upper_body": {"hold": "reference_motion joint targets at the period's start clock", **_upper_gains(model)},
         "observation": observation,
         "reference_motion": {
             "name": motion_file.name, "sha256": file_sha256(motion_file), "rows": motion.num_rows,
