@@ -197,6 +197,19 @@ def test_contract_joint_count_mismatch_fails_clearly(contract_copy):
         load_contract(_write(path, c))
 
 
+def test_contract_joint_order_other_than_the_trained_one_fails_clearly(contract_copy):
+    # Legs swapped consistently in every joint list loaded without a word: the runtime reads joints by position, so
+    # the policy saw the right leg's angles as the left's and its left-leg actions drove the right leg.
+    path, c = contract_copy
+    legs = c["robot"]["leg_joint_names"]
+    c["robot"]["leg_joint_names"] = legs[6:] + legs[:6]
+    c["robot"]["joint_names"] = c["robot"]["leg_joint_names"] + c["robot"]["upper_joint_names"]
+    with pytest.raises(ContractError, match=r"entries\[3\] is 'leg_joint_pos\[L_HipYaw_Joint\]', element 0 of "
+                                            r"joint_pos, but robot.joint_names\[0\] is 'R_HipYaw_Joint'.*Keep the "
+                                            r"exported joint order"):
+        load_contract(_write(path, c))
+
+
 def test_robot_state_with_another_joint_count_fails_clearly():
     runtime = PolicyRuntime(_contract("ppo"))
     state = RobotState(base_quat=np.array([[1.0, 0, 0, 0]]), joint_pos=np.zeros((1, 32)),

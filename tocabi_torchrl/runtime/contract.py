@@ -236,7 +236,8 @@ def check_contract(contract, source: str = "contract") -> None:
     Consistency: the lengths of every per-joint and per-entry list; every number finite; ``scale`` > 0,
     ``low`` <= ``high``, ``clip`` null or > 0, positive timing; ``action.leg`` of the kind and center its control
     mode implies; observation entries that name a signal the runtime builds, with that signal's shape, and an
-    element inside it; non-negative integer history ages; the phase-rate action after the leg actions; both sha256
+    element inside it, a joint entry's name naming the joint at its element in ``robot.joint_names``; non-negative
+    integer history ages; the phase-rate action after the leg actions; both sha256
     hashes 64 lowercase hex digits; ``policy.onnx_file`` and ``reference_motion.name`` plain file names; every value
     the env config also constrains (:data:`ENV_FIELDS`: gains, action scale, nominal pose, substeps, phase-rate gain,
     termination limits) by the env's own rule, each one number or a list as the env takes it, and the upper-body
@@ -396,6 +397,7 @@ def _check_consistency(c: dict, source: str) -> None:
         _obey(gains, NON_NEGATIVE, f"upper_body.{key}", source,
               "a servo gain, as the legs' env.control.pd_kp/pd_kv: a negative one pushes the joint off its target")
     _check_observation(obs, len(joints), source)
+    _check_joint_entry_names(obs["entries"], joints, source)
     hist = obs["history"]
     step_dim = obs["step_dim"]
     expected = len(hist["obs_ages"]) * step_dim + len(hist["action_ages"]) * act["dim"]
@@ -576,6 +578,25 @@ def _check_observation(obs: dict, num_joints: int, source: str) -> None:
             raise ContractError(f"{source}: observation.history.{key} is {ages!r}; it must be a list of integer ages "
                                 f"in [0, {MAX_HISTORY_AGE}] control periods"
                                 f"{' (at least one)' if key == 'obs_ages' else ''}; {_FIX}")
+
+
+def _check_joint_entry_names(entries: list, joints: list, source: str) -> None:
+    """Refuse a joint entry whose name (``leg_joint_pos[L_Knee_Joint]``, as the export writes it) names another joint
+    than ``robot.joint_names[element]``: the runtime reads joint signals by position in ``robot.joint_names``, so a
+    reordered list (edited to match a robot's own joint order) would feed the policy other joints' angles, and drive
+    other joints with its leg actions, without a word."""
+    known = set(joints)
+    for i, entry in enumerate(entries):
+        name = entry.get("name")
+        if entry["signal"] not in ("joint_pos", "joint_vel") or not isinstance(name, str) or not name.endswith("]"):
+            continue
+        joint = name[name.rfind("[") + 1 : -1]
+        if joint in known and joint != joints[entry["element"]]:
+            raise ContractError(f"{source}: observation.entries[{i}] is {name!r}, element {entry['element']} of "
+                                f"{entry['signal']}, but robot.joint_names[{entry['element']}] is "
+                                f"{joints[entry['element']]!r}: robot.joint_names is not in the order the policy was "
+                                "trained with. Keep the exported joint order (leg_joint_names, upper_joint_names) and "
+                                "pass the robot's readings in it; re-export the policy if the contract was edited")
 
 
 def _check_trained_under(contract: dict, source: str) -> None:
