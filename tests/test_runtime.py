@@ -267,9 +267,17 @@ def test_the_sim_to_sim_driver_holds_a_diverged_robots_last_finite_state():
 
 def test_contract_not_json_or_input_size_mismatch_or_foreign_files_fail_clearly(contract_copy, tmp_path):
     path, c = contract_copy
-    path.write_text("{ not json")
-    with pytest.raises(ContractError, match="not valid JSON"):
+    path.write_text("{ not json }")
+    with pytest.raises(ContractError, match=r"not valid JSON .*damaged or was edited \(corrupt\); copy the contract "
+                                            r"again .*or re-export the policy"):
         load_contract(path)
+    # A copy cut short used to say only where the parser stopped, which names no fix.
+    text = json.dumps(c, indent=1)
+    for cut, said in ((len(text) // 2, "ends before its JSON object does"), (0, "is empty")):
+        path.write_text(text[:cut])
+        with pytest.raises(ContractError, match=rf"p\.json: not valid JSON .*{said} \(truncated\); copy the "
+                                                r"contract again .*or re-export the policy"):
+            load_contract(path)
     bad = json.loads(json.dumps(c))
     bad["observation"]["history"]["obs_ages"] = [4, 2, 0]
     with pytest.raises(ContractError, match="policy.input_dim is 237 but the history holds"):

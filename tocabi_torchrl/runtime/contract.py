@@ -128,8 +128,9 @@ def load_contract(path: str | os.PathLike) -> dict:
     if wrong is not None:  # its bytes would read as "not valid JSON ('utf-8' codec ...)", which names no fix
         raise ContractError(wrong)
     try:
-        contract = json.loads(path.read_text(), parse_constant=_refuse_constant, parse_float=_finite_float,
-                              object_pairs_hook=_unique_keys)
+        # JSON is UTF-8 by definition: the platform's default encoding (cp1252 on Windows) would misread it.
+        contract = json.loads(path.read_text(encoding="utf-8"), parse_constant=_refuse_constant,
+                              parse_float=_finite_float, object_pairs_hook=_unique_keys)
     except _DuplicateKey as err:
         raise ContractError(f"cannot read policy contract {path}: key {err} appears twice in one object (JSON readers "
                             "disagree on which one counts: Python takes the last, some C++ readers the first); keep "
@@ -141,8 +142,17 @@ def load_contract(path: str | os.PathLike) -> dict:
         raise ContractError(f"cannot read policy contract {path}: it holds the non-standard JSON value {err} (a NaN "
                             "or infinite number, which C++ JSON readers refuse and which would poison the policy "
                             "input); the exported policy is broken: re-export it from a sound checkpoint") from err
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ContractError(f"cannot read policy contract {path}: not valid JSON ({err})") from err
+    except OSError as err:
+        raise ContractError(f"cannot read policy contract {path}: {err}") from err
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        # An interrupted copy or download leaves a file that is empty or ends mid-object (a whole contract, one JSON
+        # object, ends with "}"): say so, and how to get a whole one.
+        text = err.doc.rstrip() if isinstance(err, json.JSONDecodeError) else "}"
+        what = ("it is empty (truncated" if not text else "it ends before its JSON object does (truncated"
+                if not text.endswith("}") else "the file is damaged or was edited (corrupt")
+        raise ContractError(f"cannot read policy contract {path}: not valid JSON ({err}): {what}); copy the "
+                            "contract again from where it was exported, or re-export the policy with `python -m "
+                            "tocabi_torchrl.export` (it writes the .onnx and its .json together)") from err
     check_contract(contract, str(path))
     return contract
 
