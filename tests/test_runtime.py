@@ -690,6 +690,25 @@ def test_an_onnx_output_that_is_not_the_contracts_is_refused(outputs, output_nam
         PolicyRuntime(_write(path, c), check_onnx_hash=False)
 
 
+def test_a_text_motion_has_the_row_spacing_training_reads(tmp_path):
+    # The runtime took the first time step of a .txt motion as its row spacing: with times printed to 7 decimals at
+    # 3000 rows/s (0.0003333 s) its cycle lasted 1.19955 s where training's lasted 1.19967 s, and a policy trained on
+    # the file was refused as if its contract had been edited.
+    from tocabi_torchrl.motion.io import load_npz, load_txt
+    from tocabi_torchrl.runtime.motion import RuntimeMotion
+
+    data = load_npz(robot.asset_path("motions", "tocabi_walk.npz"))
+    rows = data.joint_pos.shape[0]
+    path = tmp_path / "walk_3000hz.txt"
+    np.savetxt(path, np.column_stack([np.arange(rows) / 3000.0, data.joint_pos, data.foot_force]), fmt="%.7f")
+    trained = load_txt(path)
+    loaded = RuntimeMotion.from_file(path, list(robot.JOINT_NAMES))
+    assert trained.sample_rate == 3000.0
+    assert loaded.row_dt == 1.0 / trained.sample_rate
+    assert loaded.period == pytest.approx((rows - 1) / trained.sample_rate, rel=1e-12)
+    assert loaded.init_rows.tolist() == trained.init_rows.tolist()
+
+
 def test_a_motion_of_ones_own_is_found_beside_the_contract(contract_copy):
     # Only the shipped motions were looked in: a policy trained on its own motion could not run, though the
     # contract's check says the motion is a file beside the contract.

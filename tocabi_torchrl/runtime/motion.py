@@ -29,6 +29,14 @@ def file_sha256(path: str | os.PathLike) -> str:
     return digest.hexdigest()
 
 
+def _text_sample_rate(time: np.ndarray) -> float:
+    """Rows per second of a text motion's time column [s], as training reads it (``motion.io._sample_rate_of``): over
+    the whole column, snapped to a whole rate when within 1e-6 of one. Printed times carry rounding (0.0003333 for
+    1/3000 s), so the first step alone gives another period than the one the policy was trained with."""
+    rate = (time.size - 1) / float(time[-1] - time[0])
+    return float(round(rate)) if abs(rate - round(rate)) < 1e-6 * rate else float(rate)
+
+
 class RuntimeMotion:
     """A cyclic reference motion: (R, J) joint targets at ``row_dt`` spacing, and the rows an episode starts at.
 
@@ -76,7 +84,7 @@ class RuntimeMotion:
                 return cls(joint_pos, 1.0 / float(npz["sample_rate"]), npz["init_rows"], str(path))
         table = np.loadtxt(path)  # reference text format: time, 33 joints, 2 forces; start rows 0 and R/2
         rows = table.shape[0]
-        return cls(table[:, 1 : 1 + len(joint_names)], float(table[1, 0] - table[0, 0]), np.array([0, rows // 2]),
+        return cls(table[:, 1 : 1 + len(joint_names)], 1.0 / _text_sample_rate(table[:, 0]), np.array([0, rows // 2]),
                    str(path))
 
     def _cycle_position(self, time: np.ndarray) -> np.ndarray:
