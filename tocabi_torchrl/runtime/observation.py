@@ -74,6 +74,8 @@ class ObservationBuilder:
         return np.sin(angle), np.cos(angle)
 
     def normalize(self, raw: np.ndarray) -> np.ndarray:
+        """(N, D) raw observation (the contract's units) -> (N, D) float32 (raw - mean) / scale, clipped to ±clip when
+        the contract gives one (``FixedNormalization``; ``scale`` already holds sqrt(var + eps))."""
         out = (raw - self.mean) / self.scale
         if self.clip is not None:
             out = np.clip(out, -self.clip, self.clip)
@@ -95,11 +97,15 @@ class History:
         self._act: np.ndarray | None = None
 
     def reset(self, obs: np.ndarray, action: np.ndarray) -> None:
+        """Fill every slot with ``obs`` (N, D) float32, the normalised first observation, and ``action`` (N, A)
+        float32, the reset action (zeros)."""
         self._obs = np.repeat(obs[:, None, :], int(self.obs_ages.max()) + 1, axis=1)
         length = int(self.action_ages.max()) + 1 if self.action_ages.size else 1
         self._act = np.repeat(action[:, None, :], length, axis=1)
 
     def push(self, obs: np.ndarray, action: np.ndarray) -> None:
+        """Age every slot by one period and store ``obs`` (N, D), the normalised observation after the period, and
+        ``action`` (N, A), the clipped action applied in it, at age 0."""
         if self._obs is None:
             raise RuntimeError("History.push before reset: call PolicyRuntime.reset first")
         self._obs = np.roll(self._obs, 1, axis=1)

@@ -134,8 +134,9 @@ class PolicyRuntime:
             one (a pair renamed together: the contract still records its old ``policy.onnx_file``), else the file
             ``policy.onnx_file`` names. Whichever runs must have the contract's ``policy.onnx_sha256``: a file of
             the recorded name is never run in place of the one of the contract's stem or the one given.
-        motion: the reference motion file; default: the shipped motion of the name the contract gives. Its sha256
-            must match the contract's.
+        motion: the reference motion file; default: the file of the name the contract gives (``reference_motion.name``)
+            beside the ONNX file (where the export copies a motion of the run's own), else the shipped motion of that
+            name (also when the one beside it has another hash). Its sha256 must match the contract's.
         threads: onnxruntime intra-op threads.
         check_onnx_hash: check the ONNX file against the contract's ``policy.onnx_sha256`` (which every contract
             must give); pass False only to run an ONNX file knowingly swapped in beside the contract.
