@@ -119,6 +119,30 @@ def test_masked_reset_touches_only_flagged(env):
     assert not torch.equal(after["joint_vel"][0], before["joint_vel"][0])
 
 
+@pytest.mark.parametrize("flags, got", [
+    (torch.tensor([[0.5], [0.0]]), r"\(2, 1\) torch.float32 on cpu"),  # was cast to bool: world 0 restarted
+    (torch.tensor([[1], [0]]), r"\(2, 1\) torch.int64"),
+    (torch.ones(2, 2, dtype=torch.bool), r"\(2, 2\) torch.bool"),  # failed in a reshape
+    (torch.ones(1, 2, dtype=torch.bool), r"\(1, 2\) torch.bool"),  # was reshaped to (2,) without a word
+    (torch.ones(4, dtype=torch.bool), r"\(4,\) torch.bool"),
+    (torch.ones(2, 1, dtype=torch.bool, device="meta"), r"\(2, 1\) torch.bool on meta"),  # failed mid-reset
+])
+def test_a_reset_mask_of_another_shape_dtype_or_device_is_refused_before_anything_moves(flags, got):
+    e = TocabiWalk(num_envs=2, device="cpu", seed=0, backend="mujoco", control_mode="torque")
+    e.reset()
+    e.step(_zero_action(e))
+    steps, episodes = e.episode_step.clone(), e.episode_count.clone()
+    with pytest.raises(ValueError, match=rf"'_reset' mask must be a \(2, 1\) bool tensor on cpu.*got {got}"):
+        e._reset(TensorDict({"_reset": flags}, batch_size=[]), seed=5)
+    assert torch.equal(e.episode_step, steps) and torch.equal(e.episode_count, episodes)
+    assert e._seed == 0  # the refused reset's seed was not taken either
+    # Both of TorchRL's layouts of a good mask still reset just the flagged worlds.
+    for good in (torch.tensor([[True], [False]]), torch.tensor([True, False])):
+        e.step(_zero_action(e))
+        e._reset(TensorDict({"_reset": good}, batch_size=[]))
+        assert e.episode_step.tolist() == [0, int(e.episode_step[1])] and int(e.episode_step[1]) > 0
+
+
 def test_truncation_with_short_episodes(backend):
     e = TocabiWalk(num_envs=2, device="cpu", seed=0, max_episode_steps=5, backend=backend, control_mode="torque")
     e.reset()

@@ -717,12 +717,10 @@ class TocabiWalk(EnvBase):
 
     # ------------------------------------------------------------------------------------------------ resets
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = self._reset_mask(tensordict)  # checked before any state moves: a refused reset changes nothing
         seed = kwargs.pop("seed", None)
         if seed is not None:  # reset(seed=s) is set_seed(s) then the reset (it was ignored, without a word)
             self._set_seed(seed)
-        mask = self._all
-        if tensordict is not None and "_reset" in tensordict.keys():
-            mask = tensordict.get("_reset").reshape(self.num_envs).to(torch.bool)
         # Random start row and first command from (seed, env, episode): identical whichever reset path runs.
         draws = self._draws(self._seed_t, self._env_ids, self.episode_count)
         u = draws[0]
@@ -773,6 +771,22 @@ class TocabiWalk(EnvBase):
         false = torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device)
         out.update({"terminated": false, "truncated": false.clone(), "done": false.clone()})
         return out
+
+    def _reset_mask(self, tensordict: TensorDictBase | None) -> torch.Tensor:
+        """(num_envs,) bool: the worlds a reset restarts, every world or the input's ``"_reset"`` flags, which must be
+        (num_envs, 1) or (num_envs,) bool on the env's device. Metadata only, no host synchronisation. A float or int
+        mask was cast to bool without a word (0.5 restarted its world), a wrong size failed in a reshape, and a mask
+        on another device failed part way through the reset, in an op that named neither."""
+        if tensordict is None or "_reset" not in tensordict.keys():
+            return self._all
+        flags, n = tensordict.get("_reset"), self.num_envs
+        shape = tuple(flags.shape) if isinstance(flags, torch.Tensor) else None
+        if shape not in ((n, 1), (n,)) or flags.dtype != torch.bool or flags.device != self.device:
+            got = f"{shape} {flags.dtype} on {flags.device}" if shape is not None else type(flags).__name__
+            raise ValueError(f"the reset's '_reset' mask must be a ({n}, 1) bool tensor on {self.device}, one flag per "
+                             f"world (True: restart it), got {got}; e.g. td.set('_reset', done) with the step's "
+                             "(num_envs, 1) done flags")
+        return flags.reshape(n)
 
     def _start_velocities(self, u: torch.Tensor) -> torch.Tensor:
         """(M, nv) start velocities from (M, 2·(3 + joints)) uniforms (one row per world's episode, or per pooled
