@@ -538,6 +538,16 @@ def test_a_step_without_an_action_names_the_key_and_its_shape():
         e.step(e.reset().set_non_tensor("action", [0.0] * 13))
 
 
+def test_a_step_before_the_first_reset_is_refused():
+    # It stepped the model's initial state with a 0 m/s command (outside the configured ranges) and no start row.
+    e = TocabiWalk(num_envs=2, device="cpu", seed=0, backend="mujoco", control_mode="torque")
+    with pytest.raises(RuntimeError, match=r"step before the first reset.*call env.reset\(\) first"):
+        e.step(_zero_action(e))
+    assert int(e.episode_step.sum()) == 0  # nothing moved
+    e.reset()
+    assert e.step(_zero_action(e))["next", "episode_step"].tolist() == [[1], [1]]
+
+
 def test_close_stops_the_simulators_worker_threads():
     # torchrl's close only set is_closed: the CPU backend's thread pool lived on until garbage collection.
     env = TocabiWalk(num_envs=4, device="cpu", sim_threads=2, backend="mujoco")

@@ -386,6 +386,7 @@ class TocabiWalk(EnvBase):
         # Episodes started per env: with the env index and the seed it keys the reset's random draws.
         self._env_ids = torch.arange(n, dtype=torch.int64, device=dev)
         self._leg_cmd_checked = False  # the leg controller's output shape, checked at the first step
+        self._was_reset = False  # a host flag: a step before the first reset is refused (see _step)
         self.episode_count = torch.zeros(n, dtype=torch.int64, device=dev)
         #: With ``env.task.cycle_velocity``: the rolling error over each world's last gait cycle, whose mean at
         #: ``episode_step`` is the ``cycle_vel_error`` signal, (N, 2) [m/s]; None without it.
@@ -510,6 +511,11 @@ class TocabiWalk(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
         self._check_action(action)
+        if not self._was_reset:
+            # Before it, the worlds hold the model's initial state with no command drawn (0 m/s, outside every
+            # range), no start row and the upper-body servos at 0: a step ran from there without a word.
+            raise RuntimeError("TocabiWalk.step before the first reset: no episode has started (no start row or "
+                               "velocity command drawn yet); call env.reset() first (rollout() and collectors do)")
         action = action.detach()  # a policy's output: its graph must not reach the sim buffers
         a = torch.nan_to_num(action.to(torch.float32), nan=0.0).clamp(self._act_low, self._act_high)
 
@@ -770,6 +776,7 @@ class TocabiWalk(EnvBase):
         out = self._observe()
         false = torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device)
         out.update({"terminated": false, "truncated": false.clone(), "done": false.clone()})
+        self._was_reset = True
         return out
 
     def _reset_mask(self, tensordict: TensorDictBase | None) -> torch.Tensor:
