@@ -284,6 +284,25 @@ def test_command_reference_ramp_survives_reset():
     assert torch.equal(c2.ramp_pos, c2.ramp_len), "the default preset ends a ramp at reset"
 
 
+def test_pin_refuses_a_mask_of_another_shape_and_hold_and_pin_a_command_that_is_no_speed():
+    c = _command(CommandConfig(), n=3, seed=0)
+    before = [t.clone() for t in (*c._range, *c._initial_range, c.value)]
+    for envs in (torch.tensor([True]), torch.tensor([[True], [False], [False]]), torch.tensor([1, 0, 0])):
+        # The (1,) mask broadcast to every env and pinned all three; the (3, 1) one failed in a where.
+        with pytest.raises(ValueError, match=r"pin takes a \(3,\) bool tensor"):
+            c.pin(envs, (0.4, -0.1))
+    for bad in ((math.nan, 0.0), (0.5, math.inf), (50.0, 0.0)):  # NaN reached every observation; 50: km/h?
+        with pytest.raises(ValueError, match=r"finite speeds in m/s within ±10"):
+            c.pin(torch.tensor([True, False, False]), bad)
+        with pytest.raises(ValueError, match=r"finite speeds in m/s within ±10"):
+            c.hold(*bad)
+    for kept, was in zip((*c._range, *c._initial_range, c.value), before):
+        assert torch.equal(kept, was)
+    c.pin(torch.tensor([False, True, False]), (0.4, -0.1))  # a good mask pins its env alone
+    c.reset(torch.ones(3, dtype=torch.bool))
+    assert c.value[1].tolist() == pytest.approx([0.4, -0.1]) and c.value[0].tolist() != pytest.approx([0.4, -0.1])
+
+
 # --- bad input ------------------------------------------------------------------------------------------------
 
 

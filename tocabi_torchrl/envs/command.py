@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 
-from .command_config import CommandConfig
+from .command_config import MAX_COMMAND_MPS, CommandConfig
 
 __all__ = ["CommandConfig", "VelocityCommand"]
 
@@ -48,11 +50,25 @@ class VelocityCommand:
         """Hold ``command`` = (vx, vy) [m/s] in the envs flagged in ``envs`` (num_envs,) bool, from their next draw
         on (reset or resample): their ranges become that one value, so one env can hold fixed-command and
         re-drawn-command robots side by side (the robust gait test). In place."""
-        value = torch.tensor([float(command[0]), float(command[1])], device=self.value.device)
+        n = self.value.shape[0]
+        if not isinstance(envs, torch.Tensor) or envs.dtype != torch.bool or tuple(envs.shape) != (n,):
+            # A (1,) mask broadcast to every env and pinned them all; a (num_envs, 1) one failed in a where.
+            raise ValueError(f"VelocityCommand.pin takes a ({n},) bool tensor (one flag per env), got "
+                             f"{getattr(envs, 'dtype', type(envs).__name__)} {tuple(getattr(envs, 'shape', ()))}")
+        value = self._command_tensor("VelocityCommand.pin", *command)
         m = envs.to(self.value.device).unsqueeze(-1)
         for lo, span in (self._range, self._initial_range):
             torch.where(m, value, lo, out=lo)
             span.masked_fill_(m, 0.0)
+
+    def _command_tensor(self, what: str, vx: float, vy: float) -> torch.Tensor:
+        """(2,) float32 (vx, vy) [m/s] on the device, else a ``ValueError``: a NaN or inf reached the observation of
+        every world it was given to, and a speed past the config's sanity bound is another unit (km/h, mm/s)."""
+        value = (float(vx), float(vy))
+        if not all(math.isfinite(v) and abs(v) <= MAX_COMMAND_MPS for v in value):
+            raise ValueError(f"{what}: the command (vx, vy) must be finite speeds in m/s within "
+                             f"±{MAX_COMMAND_MPS:g} (the default ranges end at 0.7 m/s), got {value}")
+        return torch.tensor(value, device=self.value.device)
 
     def _sample(self, rng: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
         u = torch.rand(self.value.shape, device=self.value.device, generator=self.gen)
@@ -76,7 +92,7 @@ class VelocityCommand:
 
         Writes the value, the ramp's end points and both sampling ranges in place (a captured step keeps reading the
         same tensors): a resample then draws (vx, vy) again, and a ramp runs from it to itself."""
-        v = torch.tensor([float(vx), float(vy)], device=self.value.device)
+        v = self._command_tensor("VelocityCommand.hold", vx, vy)
         for t in (self.value, self.start, self.final):
             t.copy_(v.expand_as(t))
         for lo, span in (self._range, self._initial_range):
