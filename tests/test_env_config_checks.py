@@ -31,6 +31,9 @@ BAD = [
     ({"phase_rate_gain": "1"}, r"env.task.phase_rate_gain must be a finite number.*got '1'"),
     ({"phase_rate_gain": NAN}, r"env.task.phase_rate_gain must be a finite number.*got nan"),
     ({"phase_rate_gain": True}, r"env.task.phase_rate_gain must be a finite number.*got True"),
+    # A tilt in degrees: the neck's angle never passed 60 rad, so the neck-tilt termination was off without a word.
+    ({"max_neck_angle": 60.0}, r"env.task.max_neck_angle must be a finite number in \[0, 3.14.*got 60.0; the neck's "
+                               r"rotation from upright \(yaw included\) is at most π rad.*give it in rad"),
     ({"max_episode_steps": 1000.0}, r"env.task.max_episode_steps must be an int \(not a float.*got 1000.0"),
     ({"command": CommandConfig(vx_range=(0.0, INF))}, r"env.command.vx_range\[1\] must be a finite number"),
     ({"command": CommandConfig(vx_range=(NAN, 0.7))}, r"env.command.vx_range\[0\] must be a finite number"),

@@ -101,7 +101,9 @@ ENV_RULES: dict[str, Range] = {
     "task.phase_rate_gain": Range(low=0.0, high=100.0, high_open=True),
     "task.min_pelvis_height": NON_NEGATIVE,
     "task.min_neck_height": NON_NEGATIVE,
-    "task.max_neck_angle": NON_NEGATIVE,
+    "task.max_neck_angle": Range(low=0.0, high=math.pi, why="the neck's rotation from upright (yaw included) is at "
+                                 "most π rad (180°), so a larger threshold never ends an episode: give it in rad "
+                                 "(1.0 rad is 57°)"),
     "control.pd_kp": NON_NEGATIVE,
     "control.pd_kv": NON_NEGATIVE,
     "control.pd_action_scale": NON_NEGATIVE,
