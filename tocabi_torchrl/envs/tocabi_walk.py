@@ -175,7 +175,8 @@ class TocabiWalk(EnvBase):
 
     Output keys and units: ``docs/concepts/env-and-signals.md``. ``done``/``terminated``/``truncated`` are (N, 1) bool; the reward of
     the bare env is 0 (the task reward is the ``TaskReward`` transform). Resets follow TorchRL's ``"_reset"``
-    mask and touch only the flagged worlds, without host synchronisation.
+    mask, (N, 1) bool on ``device``, and touch only the flagged worlds, without host synchronisation; a step before
+    the first reset raises ``RuntimeError``.
     """
 
     batch_locked = True
