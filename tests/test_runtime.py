@@ -805,7 +805,8 @@ def test_policy_input_and_set_command_before_reset_say_to_reset_first():
     ("action.phase_rate.gain", -1.0, r"action.phase_rate.gain is -1.0 but must be a finite number in \[0, 100\)"),
     ("timing.substeps", 0, r"timing.substeps is 0 but must be an int >= 1"),
     ("termination.min_pelvis_height", -0.6, r"termination.min_pelvis_height is -0.6 but must be a finite number >= 0"),
-    ("termination.max_neck_angle", "1", r"termination.max_neck_angle is '1' but must be a finite number >= 0"),
+    ("termination.max_neck_angle", "1",
+     r"termination.max_neck_angle is '1' but must be a finite number in \[0, 3\.14159\d*\]"),
     ("upper_body.kp.3", -400.0, r"upper_body.kp\[3\] is -400.0 but must be a finite number >= 0"),
     # A list where the env takes one number passed entry by entry: [8] substeps ended in a TypeError, [] as a height
     # in run_sim2sim's ValueError, [0.6] loaded as if it were 0.6.
