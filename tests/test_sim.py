@@ -25,7 +25,9 @@ from tocabi_torchrl.sim import (
     WarpSim,
     add_contact_sensors,
 )
+from tocabi_torchrl.sim.buffers import permanent_constraint_rows
 from tocabi_torchrl.sim.kernel_cache import announce_compile_if_cold, quiet_warp_info
+from tocabi_torchrl.sim.model import compile_model
 
 from warp_substeps import after_each_substep
 
@@ -361,6 +363,14 @@ def test_constraint_overflow_marks_only_that_world_with_a_clear_error():
     assert sim.healthy.tolist() == [True, False]
     with pytest.raises(SimOverflowError, match=r"1 world\(s\).*worlds 1;.*njmax=45.*NEFC.*raise SimConfig.njmax"):
         sim.check_overflow()
+
+
+def test_njmax_below_the_rows_of_every_state_is_refused_at_construction():
+    # TOCABI has 33 friction-loss rows in every state. Below that the simulator was built with every world
+    # overflowed and unhealthy, so every episode ended at its first step without a word.
+    assert permanent_constraint_rows(compile_model(None, SimConfig())) == 33
+    with pytest.raises(ValueError, match=r"njmax=32 cannot hold the 33 constraint rows .*friction loss.*raise njmax"):
+        WarpSim(SimConfig(num_worlds=1, njmax=32))
 
 
 def test_contact_pool_overflow_marks_every_world_unhealthy():

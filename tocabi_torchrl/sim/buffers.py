@@ -10,7 +10,7 @@ standing, falling, thrashing and tangled scenarios and records the per-substep p
 
 from __future__ import annotations
 
-__all__ = ["NCONMAX", "NCCDMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH"]
+__all__ = ["NCONMAX", "NCCDMAX", "NJMAX", "CONTACT_SENSOR_MAXMATCH", "permanent_constraint_rows"]
 
 #: Contacts per world, pooled over worlds (``naconmax = nconmax * num_worlds``). Measured in mujoco-warp, per substep:
 #: 8 per standing robot (4 per sole); one world peaks at 28 lying on its back, 41 after a hard fall on its front and
@@ -34,3 +34,23 @@ NJMAX = 224
 #: Slots per contact sensor in mujoco-warp's matching pass. The ``found`` counts used here stay exact beyond it (only
 #: the CONTACT_MATCH flag is raised); 64 covers every contact of a fallen robot (at most 48 measured).
 CONTACT_SENSOR_MAXMATCH = 64
+
+
+def permanent_constraint_rows(mj) -> int:
+    """Constraint rows every world of ``mj`` holds in every state: one per dof and tendon with friction loss and the
+    rows of the active equality constraints (connect 3, weld 6, joint and tendon 1; flex ones not counted, so this
+    is a lower bound). An ``njmax`` below it overflows in every world from the first step, before any contact."""
+    import mujoco  # here, not at the top: the config tree reads this module without MuJoCo
+
+    off = int(mj.opt.disableflags)
+    dsbl = mujoco.mjtDisableBit
+    if off & int(dsbl.mjDSBL_CONSTRAINT):
+        return 0
+    rows = 0
+    if not off & int(dsbl.mjDSBL_FRICTIONLOSS):
+        rows += int((mj.dof_frictionloss > 0).sum()) + int((mj.tendon_frictionloss > 0).sum())
+    if not off & int(dsbl.mjDSBL_EQUALITY):
+        eq = mujoco.mjtEq
+        size = {int(eq.mjEQ_CONNECT): 3, int(eq.mjEQ_WELD): 6, int(eq.mjEQ_JOINT): 1, int(eq.mjEQ_TENDON): 1}
+        rows += sum(size.get(int(t), 0) for t, on in zip(mj.eq_type, mj.eq_active0) if on)
+    return rows

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from .buffers import NJMAX, permanent_constraint_rows
 from .config import SimConfig
 from .contacts import ContactLayout, contact_layout
 from .graph import Recorded
@@ -147,6 +148,14 @@ class WarpSim(SimViews):
         self.num_worlds = n = cfg.num_worlds
 
         mj = compile_model(model, cfg)
+        permanent = permanent_constraint_rows(mj)
+        if cfg.njmax < permanent:
+            # Else every world overflows from the first pass on, and healthy=False ends every episode at its first
+            # step, with nothing said unless check_overflow is called.
+            raise ValueError(
+                f"SimConfig.njmax={cfg.njmax} cannot hold the {permanent} constraint rows every world of this model "
+                f"has in every state (friction loss, equality constraints), before any contact or joint limit: raise "
+                f"njmax (env.sim.njmax); the default {NJMAX} was measured for TOCABI (docs/benchmarks/sim_buffers.md)")
         check_fits(n, warp_world_bytes(mj, cfg.nconmax, cfg.njmax, cfg.ccd_per_world), self.device, "mujoco-warp")
         self.mj_model = mj
         self.contact_layout: ContactLayout = contact_layout(mj)
