@@ -8,6 +8,7 @@ imported below and run here against this module's ``sim`` fixture, a MujocoSim o
 from __future__ import annotations
 
 import math
+import re
 
 import mujoco
 import numpy as np
@@ -206,3 +207,16 @@ def test_models_and_solver_overrides_as_in_warp():
     assert s.mj_model.opt.iterations == 7 and model.opt.iterations != 7
     with pytest.raises(ValueError, match="add_contact_sensors"):
         MujocoSim(SimConfig(), model=robot.load_model())
+
+
+def test_a_model_of_another_robot_is_refused_as_not_tocabi(tmp_path):
+    # These failed looking up the contact sensors' bodies: a long list with base_link twice, naming neither the file
+    # nor that the model is not TOCABI (an MjModel was told to add the contact sensors, which then failed so).
+    other = tmp_path / "other.xml"
+    other.write_text('<mujoco><worldbody><body name="ball"><freejoint/><geom size="0.1"/></body></worldbody></mujoco>')
+    sources = ((other, re.escape(repr(str(other)))), (mujoco.MjSpec.from_file(str(other)), "mujoco.MjSpec"),
+               (mujoco.MjModel.from_xml_path(str(other)), "mujoco.MjModel"))
+    for source, where in sources:
+        with pytest.raises(robot.RobotAssetError, match=f"{where}.* is not a TOCABI model: it lacks joint "
+                                                         r"'L_HipYaw_Joint'.* and \d+ more; pass a TOCABI MJCF"):
+            MujocoSim(SimConfig(), model=source)
