@@ -220,3 +220,18 @@ def test_a_model_of_another_robot_is_refused_as_not_tocabi(tmp_path):
         with pytest.raises(robot.RobotAssetError, match=f"{where}.* is not a TOCABI model: it lacks joint "
                                                          r"'L_HipYaw_Joint'.* and \d+ more; pass a TOCABI MJCF"):
             MujocoSim(SimConfig(), model=source)
+
+
+def test_per_substep_controls_are_left_in_ctrl_after_a_step_as_in_warp():
+    # WarpSim's substeps write the substep_ctrl columns of ctrl itself (the memory its physics reads), so after a step
+    # they hold the last substep's controls, which the post-step forward pass used. Here they kept the caller's
+    # values, so a forward() of the unchanged state recomputed it with other torques: the foot F/T moved by 12 N.
+    sim = MujocoSim(SimConfig(num_worlds=2, threads=1, substep_ctrl=(0, 1)))
+    _reset_standing(sim)
+    _pd_hold(sim)
+    sim.substep_ctrl.copy_(torch.linspace(-50.0, 50.0, 8).view(1, 8, 1).expand(2, 8, 2))
+    sim.step()
+    assert torch.equal(sim.ctrl[:, :2], torch.full((2, 2), 50.0))
+    after_step = sim.foot_force.clone()
+    sim.forward()
+    torch.testing.assert_close(sim.foot_force, after_step, rtol=0, atol=1e-3)

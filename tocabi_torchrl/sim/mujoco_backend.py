@@ -338,6 +338,10 @@ class MujocoSim(SimViews):
         """Advance every world by one control period (``substeps`` physics steps) with the current ``ctrl``."""
         self._run(self._step_world, None, *self._host_inputs())
         self._fields_were_taken(None)
+        if self._substep_cols:
+            # As in WarpSim, whose substeps write these columns of the ctrl the physics reads: they hold the last
+            # substep's controls, which the post-step forward pass used, so a later forward() uses them too.
+            self._ctrl[:, self._substep_cols] = self._substep_ctrl_t[:, -1]
         self._publish()
 
     def forward(self) -> None:

@@ -183,7 +183,8 @@ class SimViews(abc.ABC):
     substep_ctrl = property(
         lambda self: self._substep_ctrl_t,
         doc="(N, substeps, k) controls of the ``SimConfig.substep_ctrl`` actuators in each physics substep of the "
-            "next step (their ``ctrl`` entries are ignored), or None when the config names none.",
+            "next step (their ``ctrl`` entries are ignored by the step, which leaves the last substep's controls "
+            "there for the post-step forward pass), or None when the config names none.",
     )
 
     def _substep_columns(self, mj: mujoco.MjModel) -> tuple[int, ...]:
