@@ -210,6 +210,26 @@ def test_per_world_rows_at_nominal_step_exactly_like_the_shared_model(backend):
         assert torch.equal(getattr(rows, name), getattr(shared, name)), name
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_model_fields_are_written_in_place_and_cannot_be_rebound(backend):
+    # A rebound entry was taken without a word and reached no world: WarpSim's kernels and MujocoSim's worker threads
+    # read the first tensor's memory (and MujocoSim then compared later writes against the new one).
+    from tocabi_torchrl.sim import WarpSim
+
+    make = MujocoSim if backend == "mujoco" else WarpSim
+    sim = make(SimConfig(num_worlds=2, threads=1, per_world_fields=("dof_damping",)))
+    rows = sim.model_fields["dof_damping"]
+    with pytest.raises(TypeError):
+        sim.model_fields["dof_damping"] = rows + 5.0
+    with pytest.raises(TypeError):
+        del sim.model_fields["dof_damping"]
+    rows[1] += 5.0  # in place: world 1's physics from its next step on
+    sim.step()
+    if backend == "mujoco":
+        assert torch.equal(torch.from_numpy(sim._world_models[1].dof_damping), rows[1])
+        assert torch.equal(torch.from_numpy(sim._world_models[0].dof_damping), rows[0])
+
+
 def test_a_heavier_world_presses_harder_on_its_feet():
     # Standing still (the "pd" mode holds the nominal pose), each world's feet carry its own weight.
     cfg = env_config(DynamicsRandomization(mass_scale=(0.8, 1.2)), backend="mujoco", control_mode="pd")

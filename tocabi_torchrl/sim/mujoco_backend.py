@@ -36,7 +36,9 @@ from __future__ import annotations
 
 import copy
 import weakref
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
+from types import MappingProxyType
 from typing import Callable
 
 import mujoco
@@ -137,11 +139,12 @@ class MujocoSim(SimViews):
         self._field_rows = {name: t.numpy() for name, t in self._model_fields.items()}  # read by the worker threads
 
     @property
-    def model_fields(self) -> dict[str, torch.Tensor]:
+    def model_fields(self) -> Mapping[str, torch.Tensor]:
         """``{name: (N, ...) float64}`` each world's row of the ``SimConfig.per_world_fields`` model fields (as
-        ``WarpSim.model_fields``, in the C engine's float64): write rows in place to change a world's physics from
-        its next step, reset or forward pass. Empty when the config names none."""
-        return self._model_fields
+        ``WarpSim.model_fields``, in the C engine's float64), a read-only mapping: write rows in place to change a
+        world's physics from its next step, reset or forward pass. Empty when the config names none."""
+        # Read-only: a rebound entry would reach no world's physics (the models read the first tensor).
+        return MappingProxyType(self._model_fields)
 
     def _changed_fields(self) -> np.ndarray | None:
         """(N,) bool: worlds whose ``model_fields`` rows differ from what their models hold (None without any)."""

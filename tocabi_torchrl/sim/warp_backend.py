@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from types import MappingProxyType
 
 import mujoco
 import mujoco_warp as mjw
@@ -238,11 +239,12 @@ class WarpSim(SimViews):
         return views
 
     @property
-    def model_fields(self) -> dict[str, torch.Tensor]:
-        """``{name: (N, ...) float32}`` each world's row of the ``SimConfig.per_world_fields`` model fields (views of
-        the model's arrays: write rows in place to change a world's physics from its next step, reset or forward
-        pass; never rebind them, the recorded graphs read this memory). Empty when the config names none."""
-        return self._model_fields
+    def model_fields(self) -> Mapping[str, torch.Tensor]:
+        """``{name: (N, ...) float32}`` each world's row of the ``SimConfig.per_world_fields`` model fields, a
+        read-only mapping of views of the model's arrays: write rows in place to change a world's physics from its
+        next step, reset or forward pass (the recorded graphs read this memory). Empty when the config names none."""
+        # Read-only: a rebound entry would reach no world's physics (the models read the first tensor).
+        return MappingProxyType(self._model_fields)
 
     def _make_views(self, mj: mujoco.MjModel) -> None:
         d, t = self.wp_data, wp.to_torch
