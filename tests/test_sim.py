@@ -268,6 +268,24 @@ def test_reset_rejects_bad_arguments(sim):
         sim.reset(mask, qpos, qvel, torch.zeros(N, 12))
 
 
+def test_reset_refuses_a_non_finite_state_of_a_flagged_world(sim):
+    # On the CPU, where reading it costs no device sync. Such a world started diverged without a word: unhealthy, and
+    # on C MuJoCo put back to the model's default pose (not the one asked for) by its next step.
+    _reset_standing(sim)
+    before = sim.qpos.clone()
+    mask, qpos, qvel = torch.ones(N, dtype=torch.bool), _init_qpos(), torch.zeros(N, sim.nv)
+    qpos[2, 2] = float("nan")
+    with pytest.raises(ValueError, match=r"qpos holds NaN or inf for 1 flagged world\(s\) \(2\); .*pass finite"):
+        sim.reset(mask, qpos, qvel)
+    with pytest.raises(ValueError, match=r"qvel holds NaN or inf for 4 flagged world\(s\) \(0, 1, 2, 3\)"):
+        sim.reset(mask, _init_qpos(), torch.full((sim.nv,), float("inf")))
+    with pytest.raises(ValueError, match=r"ctrl holds NaN or inf for 1 flagged world\(s\) \(1\)"):
+        sim.reset(mask, _init_qpos(), qvel, torch.zeros(N, sim.nu).index_fill_(0, torch.tensor([1]), float("nan")))
+    assert torch.equal(sim.qpos, before) and sim.healthy.all(), "a refused reset writes nothing"
+    sim.reset(torch.tensor([True, True, False, True]), qpos, qvel)  # an unflagged row is not read
+    assert sim.healthy.all()
+
+
 # -------------------------------------------------------------------------------------------------- contacts
 def test_standing_robot_feet_in_contact_and_forces_carry_the_weight(sim):
     _reset_standing(sim)

@@ -27,6 +27,7 @@ from test_sim import (  # noqa: F401  (imported tests run against this module's 
     test_infinite_velocity_flags_only_that_world,
     test_masked_reset_touches_only_flagged_worlds,
     test_reset_rejects_bad_arguments,
+    test_reset_refuses_a_non_finite_state_of_a_flagged_world,
     test_robot_dropped_on_its_back_reports_forbidden_contact,
     test_standing_robot_feet_in_contact_and_forces_carry_the_weight,
 )

@@ -362,7 +362,7 @@ class MujocoSim(SimViews):
     ) -> None:
         """Put the flagged worlds into the given state; the others stay bit-identical (same contract as
         :meth:`WarpSim.reset <tocabi_torchrl.sim.WarpSim.reset>`: (N,) bool mask, (N, nq)/(nq,) qpos, (N, nv)/(nv,)
-        qvel, optional (N, nu)/(nu,) ctrl, zeros if ``None``).
+        qvel, optional (N, nu)/(nu,) ctrl, zeros if ``None``; NaN or inf in a flagged world's rows is refused).
 
         A flagged world is cleared by ``mj_resetData`` (time, activations, warm start, warning counters), takes the
         given state, and a forward pass fills positions, sensors and flags.

@@ -123,12 +123,29 @@ class SimViews(abc.ABC):
 
     # ------------------------------------------------------------------------------------------- reset arguments
     def _check_reset_args(self, mask, qpos, qvel, ctrl) -> None:
-        """Raise a clear error for a wrong type, device, shape or dtype of :meth:`reset`'s arguments."""
+        """Raise a clear error for a wrong type, device, shape or dtype of :meth:`reset`'s arguments, and on the CPU
+        for NaN or inf in a flagged world's state (on a GPU such a world is reported by ``healthy``)."""
         self._check_tensor("mask", mask, (self.num_worlds,), allow_row=False, dtype=torch.bool)
         self._check_tensor("qpos", qpos, (self.num_worlds, self.nq))
         self._check_tensor("qvel", qvel, (self.num_worlds, self.nv))
         if ctrl is not None:
             self._check_tensor("ctrl", ctrl, (self.num_worlds, self.nu))
+        if self.device.type == "cpu":  # on a GPU this would read device values on the host: a sync in every reset
+            self._check_finite_reset(mask, qpos, qvel, ctrl)
+
+    def _check_finite_reset(self, mask, qpos, qvel, ctrl) -> None:
+        """Refuse NaN or inf in a flagged world's reset state. It started diverged without a word: unhealthy, and on
+        C MuJoCo put back to the model's default pose (qpos0) by its next step."""
+        for name, value in (("qpos", qpos), ("qvel", qvel), ("ctrl", ctrl)):
+            if value is None:
+                continue
+            bad = ~torch.isfinite(value).all(dim=-1)  # (N,) per world, or () for one row that every world takes
+            bad = bad & mask if bad.dim() else mask & bad
+            if bad.any():
+                worlds = torch.nonzero(bad).flatten().tolist()
+                shown = ", ".join(map(str, worlds[:8])) + (" ..." if len(worlds) > 8 else "")
+                raise ValueError(f"reset: {name} holds NaN or inf for {len(worlds)} flagged world(s) ({shown}); a "
+                                 "world cannot start from a non-finite state: pass finite values in the flagged rows")
 
     def _check_tensor(self, name, value, shape, allow_row: bool = True, dtype: torch.dtype | None = None) -> None:
         if not isinstance(value, torch.Tensor):

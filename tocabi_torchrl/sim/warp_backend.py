@@ -396,6 +396,9 @@ class WarpSim(SimViews):
             qvel: (N, nv) or (nv,) initial velocities.
             ctrl: (N, nu) or (nu,) controls to start with; zeros if ``None``.
 
+        On the CPU, NaN or inf in a flagged world's qpos, qvel or ctrl is refused (``ValueError``); on a GPU it is
+        not read (that would sync) and the world reports ``healthy`` False.
+
         Everything else of a flagged world is cleared as by ``mujoco_warp.reset_data`` (time, activations, warm
         start, applied forces, overflow flags), then a forward pass fills positions, sensors and flags.
         """
