@@ -495,6 +495,18 @@ def test_a_value_refused_on_the_smoke_fallback_says_the_sizes_are_the_fallbacks(
     assert "CUDA" not in str(info.value)
 
 
+def test_a_value_wrong_on_every_preset_is_not_blamed_on_the_smoke_fallback():
+    # --max_minutes -5 was refused with "(No CUDA GPU found ...; pass --device cpu to keep the default preset's
+    # sizes)" appended: that fix changes nothing, the value itself is wrong.
+    for argv, start in ((["--max_minutes", "-5"], "max_minutes must be >= 0"),
+                        (["--ppo.lr", "-1"], "ppo.lr must be > 0")):
+        with pytest.raises(ValueError) as info:
+            launch_config(argv, cuda_available=False)
+        assert str(info.value).startswith(start) and "CUDA" not in str(info.value), str(info.value)
+    with pytest.raises(ValueError, match="pass --device cpu to keep"):  # the fallback's size: still said
+        launch_config(["--ppo.minibatch_size", "4096"], cuda_available=False)
+
+
 def test_a_resumed_gpu_run_without_cuda_says_where_its_device_came_from(finished_run, tmp_path):
     # The run's device comes from its checkpoint, not from the command line: the message must not tell the user to
     # leave --device out (they did) for a smoke run (a resume never falls back to one).

@@ -76,7 +76,7 @@ def launch_config(argv: Sequence[str] | None, cuda_available: bool, description:
     try:
         cfg.validate()
     except ValueError as err:
-        if note is None:
+        if note is None or _refused_without_fallback(argv, str(err), prog, description):
             raise
         # The sizes refused are the fallback's, which the user never asked for (8 envs, not 4,096): say where
         # they came from. The message is amended in place, so the error keeps its type.
@@ -84,6 +84,19 @@ def launch_config(argv: Sequence[str] | None, cuda_available: bool, description:
                     *err.args[1:])
         raise
     return cfg, given_options(argv, cfg), note
+
+
+def _refused_without_fallback(argv: Sequence[str], message: str, prog: str | None, description: str) -> bool:
+    """Whether the same options on the default preset with ``--device cpu`` are refused with the same ``message``:
+    then the value given is wrong whatever the preset (``--max_minutes -5``), and blaming the fallback's sizes, with
+    ``--device cpu`` as the fix, would send the user after the wrong option."""
+    from dataclasses import replace
+
+    try:
+        parse_tree(argv, replace(preset_tree("default"), device="cpu"), prog, description).validate()
+    except ValueError as err:
+        return str(err) == message
+    return False
 
 
 def fallback_said(preset: str) -> str:
