@@ -481,6 +481,14 @@ def test_auto_falls_back_to_the_smoke_run_and_the_banner_says_what_runs():
     assert banner(empty, given, torch.device("cpu")).endswith("; run folder mine")
 
 
+def test_the_smoke_fallback_note_says_it_will_not_walk_and_how_the_full_run_is_made():
+    # The note said what runs and how to shrink the default preset for a CPU, but not that the same command on a
+    # GPU machine is the run that learns to walk: a newcomer was left to find it in the docs.
+    _, _, note = launch_config([], cuda_available=False)
+    assert "it will not walk" in note
+    assert "On a machine with a CUDA GPU the same command trains the default preset (4,096 envs" in note, note
+
+
 def test_a_value_refused_on_the_smoke_fallback_says_the_sizes_are_the_fallbacks():
     # The user asked for the default preset (4,096 envs); the refusal named 8 envs x 16 steps without saying why.
     with pytest.raises(ValueError) as info:

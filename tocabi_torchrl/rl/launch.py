@@ -66,8 +66,12 @@ def launch_config(argv: Sequence[str] | None, cuda_available: bool, description:
                 raise LaunchError(f"--preset {preset} is {gpu_sized}, and torch sees no CUDA GPU; at its size a CPU "
                                   f"takes days, so use --preset {min(CPU_SIZED_PRESETS)}, or {cpu_sized_hint(sized)}")
             preset, base = min(CPU_SIZED_PRESETS), {"device": "cpu"}
-            note = (f"{fallback_said(preset)}; it proves the pipeline and learns nothing useful. The default "
-                    f"preset's size takes days on a CPU; to test a change on it, {cpu_sized_hint(sized)}.")
+            # What runs instead, that it will not walk, and where the run that does happens: the same command on a
+            # machine with a GPU (a newcomer reads this note only, not docs/training.md).
+            note = (f"{fallback_said(preset)}; it proves the pipeline and learns nothing useful (it will not walk). "
+                    f"On a machine with a CUDA GPU the same command trains the default preset ({sized.env.num_envs:,} "
+                    f"envs, {sized.total_env_steps:,} env steps), which learns to walk. Its size takes days on a "
+                    f"CPU; to test a change on it, {cpu_sized_hint(sized)}.")
     if resume:
         return resumed, given, note
     from dataclasses import replace
