@@ -87,6 +87,7 @@ from tocabi_torchrl.rl.checkpoint import verified_checkpoint_file  # noqa: E402
 from tocabi_torchrl.rl.trainer import resolve_device  # noqa: E402
 from tocabi_torchrl.evaluation.gait_test import eval_out_dir, evaluate_run, gait_report_text, policy_dt  # noqa: E402
 from tocabi_torchrl.evaluation.output import remove_if_empty  # noqa: E402
+from tocabi_torchrl.evaluation.plots import check_plotting  # noqa: E402
 from tocabi_torchrl.evaluation.record import policy_steps  # noqa: E402
 
 
@@ -141,6 +142,7 @@ def main(argv: list[str] | None = None) -> None:
         check_device("cpu" if args.device == "auto" else args.device)
         policy_steps(args.seconds, policy_dt())
         verified_checkpoint_file(args.checkpoint, sim2sim_options(args))
+        check_plotting()  # knees.png / robust.png: said before the test, not as a traceback after its rollout
         out = eval_out_dir(args.checkpoint, args.out, args.overwrite)
         made = not out.exists()  # a folder the test makes and leaves empty goes on Ctrl-C; one given stays
         print(f"results go to {out}/", flush=True)
@@ -159,7 +161,8 @@ def main(argv: list[str] | None = None) -> None:
         summary = evaluate_run(args.checkpoint, num_envs=args.num_envs, device=args.device, seconds=args.seconds,
                                command=(args.vx, args.vy), video_envs=min(args.video_envs, args.num_envs),
                                out_dir=out)
-    except (ValueError, RuntimeError) as err:  # bad or diverged checkpoint, --out with results, short --seconds, device
+    except (ValueError, RuntimeError, ImportError) as err:  # a bad or diverged checkpoint, --out with results, short
+        # --seconds, the device, no matplotlib
         sys.exit(f"error: {err}")
     except OSError as err:  # an --out that is a file, or cannot be created or written
         sys.exit(f"error: cannot write the evaluation to {err.filename or args.out}: {err.strerror or err}; pass "

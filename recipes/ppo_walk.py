@@ -57,6 +57,7 @@ from tocabi_torchrl.rl.checkpoint import CheckpointError, checkpoint_file  # noq
 from tocabi_torchrl.rl.distributed import ending, from_environment, shutdown  # noqa: E402
 from tocabi_torchrl.evaluation.gait_test import eval_out_dir, evaluate_run, gait_report_text  # noqa: E402
 from tocabi_torchrl.evaluation.output import remove_if_empty  # noqa: E402
+from tocabi_torchrl.evaluation.plots import check_plotting  # noqa: E402
 from tocabi_torchrl.evaluation.record import policy_steps  # noqa: E402
 from tocabi_torchrl.rl.interrupt import signal_exit_status  # noqa: E402
 from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
@@ -127,6 +128,8 @@ def main(argv: list[str] | None = None) -> None:
         if cfg.eval_at_end:  # the gait test's length, checked now rather than after the training it follows; the
             # config's own checks cannot: one step's length is the model file's timestep × the substeps
             policy_steps(cfg.eval_seconds, control_dt, option="--eval_seconds")
+        if cfg.eval_at_end and not dist_info.enabled:  # its plots' library: said now, not after hours of training
+            check_plotting("; or train without the test at the end: --eval_at_end false")
         if model_based:  # its gains against the control period, its window against the motion: before the banner
             motion = cfg.env.task.motion
             check_settings(cfg.env.control, ReferenceMotion.default() if motion is None

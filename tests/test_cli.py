@@ -134,6 +134,19 @@ def test_a_value_the_config_refuses_is_one_error_line_naming_the_option(capsys):
         assert "\n" not in str(info.value.code)
 
 
+def test_ppo_walk_without_matplotlib_is_refused_before_training_unless_the_test_at_the_end_is_off(tmp_path,
+                                                                                                 monkeypatch):
+    # The gait test after training draws knees.png: without the viz extra the run trained (hours on a GPU preset),
+    # then ended in a ModuleNotFoundError traceback. The library recipes already said so up front.
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # what an install without the viz extra imports
+    with pytest.raises(SystemExit) as info:
+        load_recipe("ppo_walk").main(["--preset", "cpu_smoke", "--run_dir", str(tmp_path)])
+    message = str(info.value.code)
+    assert message.startswith('error: the gait test draws knees.png with matplotlib, which is not installed: pip '
+                              'install -e ".[viz]"') and message.endswith("--eval_at_end false"), message
+    assert not any(tmp_path.iterdir())  # refused before the run folder
+
+
 @pytest.mark.parametrize("recipe, argv, nearest", [
     ("train_rsl_rl", ["--out", "o", "--learnig_rate", "1e-3"], "--learning_rate"),
     ("play", ["--checkpoint", "c", "--vxx", "0.3"], "--vx"),

@@ -545,3 +545,17 @@ def test_play_refuses_an_empty_policy_or_checkpoint_path(option, capsys):
         recipe("play").main([option, ""])
     assert info.value.code == 2
     assert f"{option} is empty" in capsys.readouterr().err
+
+
+@needs_policy
+def test_play_without_matplotlib_says_the_install_before_the_test(tmp_path, monkeypatch):
+    # knees.png is drawn after the rollout: without the viz extra, play ran the whole test (minutes on a CPU) and then
+    # stopped with a ModuleNotFoundError traceback, leaving a folder with summary.json alone.
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # what an install without the viz extra imports
+    out = tmp_path / "eval"
+    with pytest.raises(SystemExit) as info:
+        recipe("play").main(["--policy", "ppo", "--num_envs", "1", "--seconds", "0.1", "--video_envs", "0",
+                             "--device", "cpu", "--out", str(out)])
+    assert str(info.value.code).startswith("error: the gait test draws knees.png with matplotlib, which is not "
+                                           'installed: pip install -e ".[viz]"'), info.value.code
+    assert not out.exists()

@@ -9,24 +9,15 @@ from collections.abc import Callable
 import torch
 
 from ..evaluation.gait_test import GAIT_CRITERIA, evaluate_policy, gait_passes
+from ..evaluation.plots import check_plotting
 from ..evaluation.record import nominal_config
 from ._build import env_device, task_config
 from .policy_file import require_meta
 
 __all__ = ["GAIT_CRITERIA", "check_plotting", "evaluate_actions", "evaluate_policy_file", "gait_passes"]
 
-# GAIT_CRITERIA and gait_passes are the gait test's own (tocabi_torchrl.evaluation.gait_test), re-exported here.
-
-
-def check_plotting() -> None:
-    """An ``ImportError`` naming the install command unless matplotlib, which draws the gait test's ``knees.png``,
-    is installed. It is no core dependency (the ``viz`` extra's), and the gait test needs it only after its rollout:
-    checked up front, a missing one costs no rollout (minutes on a CPU) and no recipe's training (hours)."""
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        raise ImportError('the gait test draws knees.png with matplotlib, which is not installed: pip install -e '
-                          '".[viz]" in the repository (or pip install matplotlib)') from None
+# GAIT_CRITERIA and gait_passes are the gait test's own (tocabi_torchrl.evaluation.gait_test), check_plotting its
+# figures' (evaluation.plots), re-exported here.
 
 
 def evaluate_actions(act: Callable[[torch.Tensor], torch.Tensor], out_dir: str | os.PathLike,

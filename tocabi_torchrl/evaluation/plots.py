@@ -15,8 +15,20 @@ import numpy as np
 
 from ..atomic import atomic_write_bytes
 
-__all__ = ["MARKED_ROBOTS", "ecdf", "new_figure", "plot_joint_torques", "plot_knee_comparison", "plot_knees",
-           "plot_robust", "plot_vs_height", "robust_figure", "save_figure"]
+__all__ = ["MARKED_ROBOTS", "check_plotting", "ecdf", "new_figure", "plot_joint_torques", "plot_knee_comparison",
+           "plot_knees", "plot_robust", "plot_vs_height", "robust_figure", "save_figure"]
+
+
+def check_plotting(instead: str = "") -> None:
+    """An ``ImportError`` naming the install command unless matplotlib, which draws the gait tests' ``knees.png`` and
+    ``robust.png``, is installed; ``instead``: what the caller may do without it, appended. It is no core dependency
+    (the ``viz`` extra's), and the gait test needs it only after its rollout: checked up front, a missing one costs no
+    rollout (minutes on a CPU) and no recipe's training (hours)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise ImportError('the gait test draws knees.png with matplotlib, which is not installed: pip install -e '
+                          f'".[viz]" in the repository (or pip install matplotlib){instead}') from None
 
 
 def new_figure(**kwargs):
