@@ -532,6 +532,16 @@ def test_a_resumed_gpu_run_without_cuda_says_where_its_device_came_from(finished
     assert cfg.device == "cpu"
 
 
+def test_a_resume_given_cuda_without_cuda_does_not_offer_the_smoke_run(finished_run):
+    # "--resume RUN --device cuda" said "(or leave --device out for the small CPU smoke run)": a resume never falls
+    # back to it, and leaving --device out continues on the run's own device.
+    with pytest.raises(LaunchError) as info:
+        launch_config(["--resume", str(finished_run), "--device", "cuda"], cuda_available=False)
+    assert str(info.value).endswith("pass --device cpu to continue the run on the CPU"), str(info.value)
+    with pytest.raises(LaunchError, match=r"leave --device out for the small CPU smoke run\)$"):  # a new run does
+        launch_config(["--device", "cuda"], cuda_available=False)
+
+
 def test_torchrun_without_cuda_refuses_the_smoke_fallback():
     # Under torchrun no rank prints the banner that would say the run changed; the request is refused instead.
     with pytest.raises(LaunchError, match="torchrun started several ranks.*--device cpu"):

@@ -50,8 +50,11 @@ def launch_config(argv: Sequence[str] | None, cuda_available: bool, description:
             raise LaunchError(f"the resumed run {resume} was trained with --device {device}, and torch sees no CUDA "
                               "GPU on this machine; pass --device cpu to continue it on the CPU")
         if device.startswith("cuda"):
+            # A resume never falls back to the smoke run: leaving --device out there means the run's saved device.
+            instead = ("to continue the run on the CPU" if resume else
+                       "(or leave --device out for the small CPU smoke run)")
             raise LaunchError(f"--device {device} was requested but torch sees no CUDA GPU on this machine; pass "
-                              "--device cpu (or leave --device out for the small CPU smoke run)")
+                              f"--device cpu {instead}")
         if device == "auto" and data_parallel:
             raise LaunchError("torchrun started several ranks but torch sees no CUDA GPU on this machine; pass "
                               "--device cpu for a data-parallel run on the CPU (gloo), with --preset cpu_smoke for the"
