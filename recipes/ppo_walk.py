@@ -60,7 +60,7 @@ from tocabi_torchrl.evaluation.output import remove_if_empty  # noqa: E402
 from tocabi_torchrl.evaluation.plots import check_plotting  # noqa: E402
 from tocabi_torchrl.evaluation.record import policy_steps  # noqa: E402
 from tocabi_torchrl.rl.interrupt import signal_exit_status  # noqa: E402
-from tocabi_torchrl.rl.launch import banner, launch_config  # noqa: E402
+from tocabi_torchrl.rl.launch import banner, cpu_size_note, launch_config  # noqa: E402
 from tocabi_torchrl.rl.logging import require_loggers  # noqa: E402
 from tocabi_torchrl.rl.run_dir import holds_checkpoint, open_run  # noqa: E402
 from tocabi_torchrl.rl.trainer import finished_result, raised_before_training, resolve_device, train  # noqa: E402
@@ -170,6 +170,8 @@ def main(argv: list[str] | None = None) -> None:
     if note:
         print(note, flush=True)
     print(banner(cfg, given, device), flush=True)
+    if slow := cpu_size_note(cfg, device):  # asked for, so it runs; said, so that a still bar is not read as a hang
+        print(slow, flush=True)
     try:
         result = train(cfg, run=run)
     except (MotionFormatError, RobotAssetError, CheckpointError) as err:  # a bad motion, model or resumed file

@@ -443,6 +443,25 @@ def test_explicit_cuda_or_gpu_preset_without_cuda_is_refused(finished_run):
     assert cfg.preset == "reference" and note is None
 
 
+def test_a_gpu_sized_run_asked_for_on_the_cpu_runs_and_says_its_iterations_take_minutes(tmp_path, capsys,
+                                                                                       monkeypatch):
+    # It ran as asked, with a progress bar that first moved after about 5 minutes (4,096 envs, 2 cores) and nothing
+    # saying why: read as a hang. Said after the banner, before the first iteration; small runs say nothing.
+    module = recipe("ppo_walk")
+
+    def stop(cfg, run):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(module, "train", stop)
+    for envs, said in ((65, True), (64, False)):
+        with pytest.raises(SystemExit):
+            module.main(tiny_args(tmp_path, name=f"n{envs}", **{"env.num_envs": envs, "device": "cpu"}))
+        out = capsys.readouterr().out
+        assert ("note: 65 envs on the CPU: each iteration of" in out) is said, out
+        if said:
+            assert out.index("training n65") < out.index("note: 65 envs") and "--env.num_envs 8" in out
+
+
 @pytest.mark.parametrize("preset", sorted(set(PRESETS) - {"cpu_smoke"}))
 def test_the_cpu_hint_of_each_gpu_preset_is_a_run_that_ends_and_uses_every_frame(preset):
     # One hint for all: it gave --preset reference a mini-batch of 96, which leaves frames of its 16,384-step rollout

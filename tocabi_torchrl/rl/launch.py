@@ -16,10 +16,13 @@ from pathlib import Path
 from ..config import RunConfig, preset_config, preset_tree
 from .config import PRESETS, given_options, option_value, parse_tree, resume_config
 
-__all__ = ["LaunchError", "CPU_SIZED_PRESETS", "launch_config", "banner"]
+__all__ = ["LaunchError", "CPU_SIZED_PRESETS", "CPU_WORLDS", "launch_config", "banner", "cpu_size_note"]
 
 #: Presets that run in minutes on a CPU; every other preset is sized for a GPU.
 CPU_SIZED_PRESETS = frozenset({"cpu_smoke"})
+#: The most worlds a run on the CPU gets without a note: beyond, an iteration takes minutes (the default preset's
+#: 4,096 envs × 48 steps took about 5 minutes per iteration on 2 cores).
+CPU_WORLDS = 64
 
 
 class LaunchError(ValueError):
@@ -132,6 +135,24 @@ def cpu_sized_hint(cfg: RunConfig) -> str:
         options.append(f"--ppo.minibatch_size {frames // 4 if frames % 4 == 0 else frames}")
     options.append(f"--total_env_steps {frames * (10 if frames <= 1000 else 1)}")
     return f"pass {' '.join(options)} --eval_envs 2 --eval_seconds 1 (docs/training.md: On a CPU)"
+
+
+def cpu_size_note(cfg: RunConfig, device) -> str | None:
+    """A note for a run of more than :data:`CPU_WORLDS` envs on the CPU (``device``: a ``torch.device`` or its
+    name), or None: asked for explicitly (``--device cpu``), it runs as asked, but its progress bar first moves after
+    an iteration of minutes, and a user who expected seconds should hear why and how to run a size that ends.
+
+    >>> from tocabi_torchrl.config import preset_config
+    >>> cpu_size_note(preset_config("default"), "cpu").split(" takes")[0]
+    'note: 4,096 envs on the CPU: each iteration of 196,608 env steps'
+    >>> cpu_size_note(preset_config("default"), "cuda") is None, cpu_size_note(preset_config("cpu_smoke"), "cpu")
+    (True, None)
+    """
+    if getattr(device, "type", str(device).split(":")[0]) != "cpu" or cfg.env.num_envs <= CPU_WORLDS:
+        return None
+    return (f"note: {cfg.env.num_envs:,} envs on the CPU: each iteration of {cfg.frames_per_batch:,} env steps takes "
+            "minutes (the progress bar moves once per iteration); to test a change, "
+            f"{cpu_sized_hint(cfg).replace('--device cpu ', '')}")
 
 
 def banner(cfg: RunConfig, given: dict, device) -> str:
