@@ -140,7 +140,7 @@ def test_every_section_takes_0d_tensors_and_numpy_scalars_as_plain_numbers(numbe
     # through float()) and kept as a tensor; SimConfig and EnvSimConfig refused a numpy int that the tree took. One
     # rule now: the number it holds, stored as a plain number, on every path.
     from tocabi_torchrl.config import RunConfig
-    from tocabi_torchrl.envs.config import EnvSimConfig, PushConfig
+    from tocabi_torchrl.envs.config import ControlConfig, EnvSimConfig, PushConfig, TaskConfig
     from tocabi_torchrl.sim import SimConfig
     from tocabi_torchrl.sim.dynamics_config import DynamicsRandomization
 
@@ -157,6 +157,11 @@ def test_every_section_takes_0d_tensors_and_numpy_scalars_as_plain_numbers(numbe
     env_sim = EnvSimConfig(substeps=count, threads=count)
     env_sim.validate()
     assert (env_sim.substeps, env_sim.threads) == (3, 3) and type(env_sim.threads) is int
+    # The task and control sections alone kept the tensor (the whole tree converted it).
+    task, control = TaskConfig(phase_rate_gain=number), ControlConfig(pd_action_scale=number)
+    task.validate()
+    control.validate()
+    assert type(task.phase_rate_gain) is float and type(control.pd_action_scale) is float
     run = RunConfig()
     run.env.pushes, run.env.control.pd_action_scale = PushConfig(count=count, speed=(number, number)), number
     run.validate()

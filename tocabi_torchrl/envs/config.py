@@ -176,6 +176,9 @@ class TaskConfig:
     reward term reads it)"""
 
     def validate(self) -> None:
+        # Every number by its type first, as the whole tree does (a numpy scalar or a 0-d tensor kept as a plain
+        # number): alone, the section kept a tensor where the env's tree stored a float.
+        check_field_types(self, "env.task.")
         m = self.max_episode_steps
         if isinstance(m, bool) or not isinstance(m, int) or m < 1:
             raise ValueError(f"env.task.max_episode_steps must be an int >= 1, got {m!r}")
@@ -286,6 +289,7 @@ class ControlConfig:
     actuators: ActuatorConfig = field(default_factory=ActuatorConfig)
 
     def validate(self) -> None:
+        check_field_types(self, "env.control.")  # as the task's: numbers stored as plain numbers, named by path
         if self.mode not in CONTROL_MODES:
             raise ValueError(f"unknown env.control.mode (control_mode) {self.mode!r}; choose one of {CONTROL_MODES}")
         for name in ("pd_kp", "pd_kv", "pd_nominal"):
