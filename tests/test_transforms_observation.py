@@ -60,6 +60,13 @@ def test_phase_encoding_harmonics():
         PhaseEncoding(harmonics=0)
 
 
+@pytest.mark.parametrize("out_keys", ["sc", "phase_sin", ("phase_sin",), None])
+def test_phase_encoding_refuses_out_keys_not_a_pair(out_keys):
+    # "sc" has length 2: it was taken as the keys 's' and 'c'.
+    with pytest.raises(ValueError, match="two out_keys"):
+        PhaseEncoding(out_keys=out_keys)
+
+
 @pytest.mark.parametrize("rpy", [(0.1, -0.2, 0.3), (-2.5, 1.2, -3.0), (0.0, 0.0, 2.0), (3.0, -0.5, 0.0)])
 def test_quat_to_rpy_fixed_xyz(rpy):
     q = torch.tensor([_quat_from_rpy(*rpy)], dtype=torch.float64)

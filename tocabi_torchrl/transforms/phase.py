@@ -35,8 +35,10 @@ class PhaseEncoding(CallOnReset):
         harmonics: int = 1,
     ):
         check_positive_int(harmonics, "PhaseEncoding harmonics", "use harmonics=1 for the reference sin/cos pair")
-        if len(out_keys) != 2:
-            raise ValueError(f"PhaseEncoding needs two out_keys (sin key, cos key), got {out_keys!r}")
+        # A str is refused, not split: "sc" would have passed the length check as the keys 's' and 'c'.
+        if isinstance(out_keys, str) or not isinstance(out_keys, (tuple, list)) or len(out_keys) != 2:
+            raise ValueError(f"PhaseEncoding needs two out_keys (sin key, cos key), e.g. ('phase_sin', 'phase_cos'), "
+                             f"got {out_keys!r}")
         super().__init__(in_keys=[in_key], out_keys=list(out_keys))
         self.harmonics = harmonics
         # A buffer so that TransformedEnv moves it to the env's device once, instead of a copy every step.
