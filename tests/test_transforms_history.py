@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from mock_env import MockTocabiWalk
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
-from tocabi_torchrl.transforms import REFERENCE_HISTORY, TOCABILAB_HISTORY, HistoryLayout, ObsActionHistory
+from tocabi_torchrl.transforms import (
+    REFERENCE_HISTORY,
+    TOCABILAB_HISTORY,
+    HistoryLayout,
+    ObsActionHistory,
+    PhaseEncoding,
+)
 
 N = 4
 OBS_DIM = 2  # the mock's "command": every entry of env i after its step k equals k + 100·i
@@ -130,6 +137,19 @@ def test_a_clone_of_a_used_history_keeps_its_own_buffers():
         td = first.step(_act(td))
         _check(td["next"], REFERENCE_HISTORY)
         td = step_mdp(td)
+
+
+def test_counts_take_numpy_and_0d_integers_as_plain_ints():
+    # The config tree reads a sweep's np.int64 or a 0-d tensor as the int it holds; the transforms' own checks
+    # refused them, so HistoryLayout(num_obs=np.int64(5)) failed while the same value passed through the tree.
+    layout = HistoryLayout(num_obs=np.int64(5), stride=torch.tensor(2), num_actions=np.array(4))
+    assert layout == REFERENCE_HISTORY
+    assert all(type(v) is int for v in (layout.num_obs, layout.stride, layout.num_actions))
+    assert type(HistoryLayout(num_obs=np.int32(3)).num_actions) is int
+    assert type(PhaseEncoding(harmonics=np.int64(2)).harmonics) is int
+    for bad in (True, np.bool_(True), 5.0, np.float64(5.0), np.int64(0), torch.tensor([5])):
+        with pytest.raises(ValueError, match="num_obs"):
+            HistoryLayout(num_obs=bad)
 
 
 def test_history_specs_and_errors():

@@ -6,6 +6,8 @@ import math
 from numbers import Real
 from typing import TYPE_CHECKING
 
+from tocabi_torchrl.value_rules import plain_number
+
 if TYPE_CHECKING:  # annotations only: the config's checks (check_positive_int) need no torch
     from tensordict.utils import NestedKey
     from torchrl.data import Composite, TensorSpec
@@ -46,9 +48,13 @@ def require_spec(
 
 
 def check_positive_int(value: object, what: str, fix: str = "") -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    """``value`` as a plain int >= 1; raises naming ``what``. A numpy integer or a 0-d array or tensor is taken as the
+    int it holds (:func:`~tocabi_torchrl.value_rules.plain_number`), as the config tree takes it, and a bool is not
+    a count. Callers store the returned value, so no numpy scalar is kept."""
+    plain = plain_number(value)
+    if isinstance(plain, bool) or not isinstance(plain, int) or plain < 1:
         raise ValueError(f"{what} must be an integer >= 1, got {value!r}" + (f"; {fix}" if fix else ""))
-    return value
+    return plain
 
 
 def check_finite(value: object, what: str) -> float:

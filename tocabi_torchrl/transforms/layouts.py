@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.transforms._checks import check_positive_int
+from tocabi_torchrl.value_rules import plain_number
 
 if TYPE_CHECKING:
     from tensordict.utils import NestedKey
@@ -81,13 +82,18 @@ class HistoryLayout:
     num_actions: int | None = None
 
     def __post_init__(self):
-        check_positive_int(self.num_obs, "HistoryLayout num_obs (K)", "use num_obs=1 for no observation history")
-        check_positive_int(self.stride, "HistoryLayout stride", "use stride=1 for consecutive steps")
+        # Stored as plain ints: a sweep's np.int64 is taken as the config tree takes it, and kept out of the layout.
+        object.__setattr__(self, "num_obs", check_positive_int(
+            self.num_obs, "HistoryLayout num_obs (K)", "use num_obs=1 for no observation history"))
+        object.__setattr__(self, "stride", check_positive_int(
+            self.stride, "HistoryLayout stride", "use stride=1 for consecutive steps"))
         if self.num_actions is None:
             object.__setattr__(self, "num_actions", self.num_obs - 1)
-        m = self.num_actions
+        m = plain_number(self.num_actions)
         if isinstance(m, bool) or not isinstance(m, int) or m < 0:
-            raise ValueError(f"HistoryLayout num_actions must be an integer >= 0 (or None for num_obs - 1), got {m!r}")
+            raise ValueError(f"HistoryLayout num_actions must be an integer >= 0 (or None for num_obs - 1), "
+                             f"got {self.num_actions!r}")
+        object.__setattr__(self, "num_actions", m)
 
     @property
     def obs_ages(self) -> tuple[int, ...]:

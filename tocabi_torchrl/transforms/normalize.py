@@ -184,8 +184,8 @@ class RunningNormalization(_Normalization):
         if dim is not None:
             # A float dim failed as a bare "can't multiply sequence by non-int", and a dim other than init_mean's
             # length was named as a mean and var of unequal lengths, a var the caller never gave.
-            check_positive_int(dim, "RunningNormalization dim (D, the observation's values)",
-                               "or None to size the statistics from the observation")
+            dim = check_positive_int(dim, "RunningNormalization dim (D, the observation's values)",
+                                     "or None to size the statistics from the observation")
             for name, given in (("init_mean", init_mean), ("init_var", init_var)):
                 count = None if given is None else torch.as_tensor(given).numel()
                 if count is not None and count != dim:

@@ -34,7 +34,8 @@ class PhaseEncoding(CallOnReset):
         out_keys: tuple[NestedKey, NestedKey] = ("phase_sin", "phase_cos"),
         harmonics: int = 1,
     ):
-        check_positive_int(harmonics, "PhaseEncoding harmonics", "use harmonics=1 for the reference sin/cos pair")
+        harmonics = check_positive_int(harmonics, "PhaseEncoding harmonics",
+                                       "use harmonics=1 for the reference sin/cos pair")
         # A str is refused, not split: "sc" would have passed the length check as the keys 's' and 'c'.
         if isinstance(out_keys, str) or not isinstance(out_keys, (tuple, list)) or len(out_keys) != 2:
             raise ValueError(f"PhaseEncoding needs two out_keys (sin key, cos key), e.g. ('phase_sin', 'phase_cos'), "
