@@ -14,6 +14,7 @@ from torchrl.envs.utils import check_env_specs, step_mdp
 from tocabi_torchrl.transforms import (
     HISTORIES,
     REFERENCE_OBS_LAYOUT,
+    REFERENCE_OBS_MEAN,
     REFERENCE_TERMS,
     CallableTerm,
     HistoryLayout,
@@ -228,6 +229,30 @@ def test_statistics_of_another_length_than_the_observation_are_refused_by_the_co
     assert cfg.step_obs_size() == 39
     assert _env(**{"normalization": normalization, "phase_harmonics": 2, "obs_mean": (0.0,) * 39,
                    "obs_var": (1.0,) * 39}).observation_spec["obs_step"].shape == (N, 39)
+
+
+def test_the_statistics_length_error_says_what_leaving_them_none_gives():
+    # The message said 'running' starts from mean 0 and variance 1, but with the reference layout and 1 harmonic it
+    # starts from the reference statistics; with another harmonic count 'fixed' has none to fall back on.
+    def message(normalization, harmonics, n):
+        with pytest.raises(ValueError) as err:
+            transform_config(normalization=normalization, phase_harmonics=harmonics, obs_mean=(0.0,) * n,
+                             obs_var=(1.0,) * n)
+        return str(err.value)
+
+    assert message("running", 1, 36).endswith("pass 37 of each, or leave both None for the reference statistics "
+                                              "(normalization 'running' starts from them)")
+    assert message("fixed", 1, 36).endswith("pass 37 of each, or leave both None for the reference statistics")
+    assert message("running", 2, 37).endswith("pass 39 of each, or leave both None (normalization 'running' then "
+                                              "starts from mean 0 and variance 1)")
+    assert "leave both None" not in message("fixed", 2, 37)
+    # What the messages say is what leaving both None builds.
+    from tocabi_torchrl.transforms.presets import _normalization
+
+    reference = _normalization(transform_config(normalization="running"))
+    torch.testing.assert_close(reference.mean, torch.as_tensor(REFERENCE_OBS_MEAN, dtype=reference.mean.dtype))
+    with pytest.raises(ValueError, match="normalization='fixed' needs obs_mean/obs_var"):
+        _normalization(transform_config(normalization="fixed", phase_harmonics=2))
 
 
 @pytest.mark.parametrize("normalization", ["fixed", "running"])

@@ -153,11 +153,21 @@ class TransformConfig:
                              "per per-step observation value")
         size = self.step_obs_size()
         if size is not None and n_mean != size:
+            # What None gives follows presets._normalization: the reference statistics exist for the reference
+            # layout with 1 harmonic only; 'running' starts from them there, and from mean 0, variance 1 otherwise.
+            if self.phase_harmonics == 1:
+                running = self.normalization == "running"
+                fallback = (", or leave both None for the reference statistics"
+                            + (" (normalization 'running' starts from them)" if running else ""))
+            elif self.normalization == "running":
+                fallback = ", or leave both None (normalization 'running' then starts from mean 0 and variance 1)"
+            else:
+                fallback = (f" (the reference statistics are for phase_harmonics=1, so normalization "
+                            f"'{self.normalization}' needs them)")
             raise ValueError(
                 f"obs_mean/obs_var have {n_mean} values each but the per-step observation has {size} (the reference "
                 f"obs_layout: {_REFERENCE_NON_PHASE_VALUES} values + sin and cos of phase_harmonics="
-                f"{self.phase_harmonics}); pass {size} of each, or leave both None (normalization 'fixed' then uses "
-                "the reference statistics with 1 harmonic, 'running' starts from mean 0 and variance 1)")
+                f"{self.phase_harmonics}); pass {size} of each{fallback}")
 
 
 #: The reference per-step observation's values other than the phase's sin and cos: base rpy 3, leg joint positions
