@@ -50,6 +50,21 @@ def test_tensors_are_updated_in_place(sim):
     check_backend(sim)
 
 
+def test_reset_takes_a_state_that_requires_grad_as_data(sim):
+    # MujocoSim failed in numpy() ("Can't call numpy() on Tensor that requires grad"), and WarpSim's staging
+    # buffers were left in the caller's autograd graph: a start state is data.
+    qpos = torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32).expand(N, -1).clone()
+    qvel, ctrl = torch.zeros(N, sim.nv), torch.full((N, sim.nu), 0.5)
+    mask = torch.ones(N, dtype=torch.bool)
+    sim.reset(mask, qpos, qvel, ctrl)
+    want = {t.name: getattr(sim, t.name).clone() for t in SIM_TENSORS}
+    sim.reset(mask, *(x.clone().requires_grad_() for x in (qpos, qvel, ctrl)))
+    for t in SIM_TENSORS:
+        assert torch.equal(getattr(sim, t.name), want[t.name]), t.name
+    held = [k for k, v in vars(sim).items() if isinstance(v, torch.Tensor) and v.requires_grad]
+    assert not held and not any(getattr(sim, t.name).requires_grad for t in SIM_TENSORS), held
+
+
 def test_methods_share_one_signature():
     for name in ("step", "forward", "reset", "check_overflow"):
         want = inspect.signature(getattr(SimBackend, name))

@@ -370,7 +370,10 @@ class MujocoSim(SimViews):
         self._check_reset_args(mask, qpos, qvel, ctrl)
         n = self.num_worlds
         rows = np.flatnonzero(mask.numpy())
-        ctrl = torch.zeros(self.nu) if ctrl is None else ctrl
+        # A start state is data, not graph: one that requires grad failed in numpy(), and would have put ctrl's
+        # buffer into the caller's autograd graph, where WarpSim takes it as a plain copy.
+        ctrl = torch.zeros(self.nu) if ctrl is None else ctrl.detach()
+        qpos, qvel = qpos.detach(), qvel.detach()
         qpos, qvel, ctrl = (x.to(torch.float32).expand(n, -1) for x in (qpos, qvel, ctrl))
         idx = torch.from_numpy(rows)
         self._ctrl[idx] = ctrl[idx]

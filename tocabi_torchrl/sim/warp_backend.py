@@ -403,13 +403,14 @@ class WarpSim(SimViews):
         start, applied forces, overflow flags), then a forward pass fills positions, sensors and flags.
         """
         self._check_reset_args(mask, qpos, qvel, ctrl)
+        # Detached: a copy from a tensor that requires grad would leave the staging buffers in its autograd graph.
         self._reset_mask_t.copy_(mask)
-        self._reset_qpos_t.copy_(qpos)
-        self._reset_qvel_t.copy_(qvel)
+        self._reset_qpos_t.copy_(qpos.detach())
+        self._reset_qvel_t.copy_(qvel.detach())
         if ctrl is None:
             self._reset_ctrl_t.zero_()
         else:
-            self._reset_ctrl_t.copy_(ctrl)
+            self._reset_ctrl_t.copy_(ctrl.detach())
         self._reset_graph()
 
     def register_start_states(self, qpos: torch.Tensor, qvel: torch.Tensor, ctrl: torch.Tensor,
