@@ -540,9 +540,22 @@ def test_the_env_cache_keeps_one_env_per_kind_of_policy():
 
     test = RobustTestConfig(num_envs=2, seconds=1.0)
     torque, pd = preset_config("torque"), preset_config("default")
-    assert batch_key(test, torque) != batch_key(test, pd)
-    assert batch_key(test, torque) == batch_key(test, preset_config("torque", **{"ppo.lr": 1e-3}))  # same env
-    assert batch_key(test, torque) != batch_key(test, preset_config("torque", **{"ppo.critic_privileged": True}))
+    assert batch_key(test, torque, "cpu") != batch_key(test, pd, "cpu")
+    same = preset_config("torque", **{"ppo.lr": 1e-3})
+    assert batch_key(test, torque, "cpu") == batch_key(test, same, torch.device("cpu"))  # same env
+    privileged = preset_config("torque", **{"ppo.critic_privileged": True})
+    assert batch_key(test, torque, "cpu") != batch_key(test, privileged, "cpu")
+
+
+def test_the_env_cache_keeps_one_env_per_device():
+    # The key held no device: a cache shared by tests on two devices handed the first device's env to the second.
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, batch_key
+
+    test, cfg = RobustTestConfig(num_envs=2, seconds=1.0), preset_config("torque")
+    assert batch_key(test, cfg, "cpu") != batch_key(test, cfg, "cuda:0")
+    assert batch_key(test, cfg, "cuda:0") != batch_key(test, cfg, "cuda:1")
+    assert batch_key(test, cfg, "cuda:1") == batch_key(test, cfg, torch.device("cuda", 1))
 
 
 def test_saved_normaliser_statistics_follow_their_transform_when_sensor_noise_shifts_the_chain():

@@ -334,16 +334,17 @@ def batch_config(cfg: RunConfig, test: RobustTestConfig = RobustTestConfig()) ->
     return robust_case_config(out, fastest, test) if fastest > 0 else out
 
 
-def batch_key(test: RobustTestConfig, cfg: RunConfig) -> tuple:
+def batch_key(test: RobustTestConfig, cfg: RunConfig, device: torch.device | str) -> tuple:
     """The key :func:`evaluate_robust` keeps a test's :func:`batch_env` under in its ``envs`` cache: the test's
-    size and cases and the env and transform sections of the policy's :func:`batch_config`, so that a policy of
+    size and cases, the env and transform sections of the policy's :func:`batch_config`, so that a policy of
     another control mode, observation or normalisation never meets an env built for another (a PD policy run in a
-    torque env once fell in every case)."""
+    torque env once fell in every case), and the ``device`` the env is built on, so that a cache shared across
+    devices never hands back an env on another device than the one asked for."""
     built = batch_config(cfg, test)
     sections = json.dumps({"env": to_dict(built.env), "transforms": to_dict(built.transforms),
                            "ppo": [cfg.ppo.critic_privileged, cfg.ppo.assist_pd_sensed]},  # what build_env reads
                           sort_keys=True)
-    return ("batch", tuple(test.cases), test.num_envs, test.push_kind, sections)
+    return ("batch", str(torch.device(device)), tuple(test.cases), test.num_envs, test.push_kind, sections)
 
 
 def case_worlds(test: RobustTestConfig, device: torch.device | str = "cpu") -> dict[str, slice]:
@@ -654,7 +655,7 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
     if source is not None:
         report["checkpoint"] = str(source)
     per_case = {}
-    key = batch_key(test, cfg)
+    key = batch_key(test, cfg, device)
     if key not in envs:
         envs[key] = batch_env(cfg, device, test)
     env = envs[key]
@@ -696,7 +697,7 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
     cfg = config_from_checkpoint(state, path)
     test.validate(policy_dt())
     envs = {} if envs is None else envs
-    key = batch_key(test, cfg)
+    key = batch_key(test, cfg, device)
     if key not in envs:  # the agent's sizes come from the env
         envs[key] = batch_env(cfg, device, test)
     env = envs[key]
