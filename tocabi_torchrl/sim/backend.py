@@ -71,7 +71,8 @@ SIM_TENSORS: tuple[SimTensor, ...] = (
     SimTensor("xfrc_applied", ("N", "nbody", 6), _F32, "external force [N] and torque [N·m] on each body, in the world "
               "frame at the body's centre of mass; an input like ctrl (held until changed, zeroed at reset)"),
     SimTensor("qfrc_bias", ("N", "nv"), _F32, "bias force c(q, q̇) of the current state: gravity, Coriolis and "
-              "centrifugal [N, N·m] (M·q̈ + c = applied + passive + constraint forces)"),
+              "centrifugal [N, N·m]: the free joint's first 3 entries are forces [N], the rest torques [N·m] "
+              "(M·q̈ + c = applied + passive + constraint forces)"),
 )
 
 #: The plain attributes and the methods of the interface (the tensors are :data:`SIM_TENSORS`).

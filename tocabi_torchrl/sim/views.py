@@ -176,7 +176,8 @@ class SimViews(abc.ABC):
     foot_pos = property(lambda self: self._foot_pos, doc="(N, 2, 3) Foot_Link origins in the world [m], [L, R].")
     foot_force = property(lambda self: self._foot_force, doc="(N, 2, 3) foot F/T force, site frame [N], [L, R].")
     foot_torque = property(lambda self: self._foot_torque, doc="(N, 2, 3) foot F/T torque, site frame [N·m].")
-    foot_contact = property(lambda self: self._foot_contact, doc="(N, 2) bool foot-ground contact, [L, R].")
+    foot_contact = property(lambda self: self._foot_contact,
+                            doc="(N, 2) bool foot touches the ground or an obstacle, [L, R].")
     forbidden_ground_contact = property(lambda self: self._forbidden,
                                         doc="(N,) bool forbidden contact with the ground or a scene body.")
     self_collision = property(lambda self: self._self_collision, doc="(N,) bool self collision.")
@@ -191,7 +192,9 @@ class SimViews(abc.ABC):
         lambda self: self._mass_matrix,
         doc="(N, nC) joint-space inertia M(q) of the current state, MuJoCo's sparse lower-triangle (CSR) layout.",
     )
-    qfrc_bias = property(lambda self: self._qfrc_bias, doc="(N, nv) bias force c(q, q̇): gravity, Coriolis [N·m].")
+    qfrc_bias = property(lambda self: self._qfrc_bias,
+                         doc="(N, nv) bias force c(q, q̇): gravity, Coriolis and centrifugal [N, N·m] (the free "
+                             "joint's first 3 entries are forces [N], the rest torques [N·m]).")
     xfrc_applied = property(
         lambda self: self._xfrc_t,
         doc="(N, nbody, 6) external force [N] and torque [N·m] per body (world frame, at the body's centre of mass): "

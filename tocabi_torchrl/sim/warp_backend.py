@@ -115,7 +115,8 @@ class WarpSim(SimViews):
     foot_pos                   (N, 2, 3)        ``robot.FOOT_BODIES`` origins [m], world frame, [left, right]
     foot_force / foot_torque   (N, 2, 3)        foot F/T sensors [N] / [N·m], site frame, [left, right]
     contact_counts             (N, k)           the ``found`` counts of the contact sensors (see contact_layout)
-    foot_contact               (N, 2) bool      a foot body touches a world-body geom, [left, right]
+    foot_contact               (N, 2) bool      a foot body touches the ground (a world-body geom) or an
+                                                obstacle (a scene body outside the robot), [left, right]
     forbidden_ground_contact   (N,) bool        a ``robot.GROUND_FORBIDDEN_BODIES`` body touches the ground
                                                 (or a scene body outside the robot: an obstacle)
     self_collision             (N,) bool        two ``robot.SELF_COLLISION_BODIES`` bodies touch
@@ -128,7 +129,9 @@ class WarpSim(SimViews):
     mass_matrix                (N, nC=396)      joint-space inertia M(q) of the current state (``wp_data.M``: MuJoCo's
                                                 sparse lower triangle, rows ``mj_model.M_rowadr``/``M_rownnz``,
                                                 columns ``M_colind``)
-    qfrc_bias                  (N, nv)          bias force c(q, q̇) of the current state (``wp_data.qfrc_bias``)
+    qfrc_bias                  (N, nv)          bias force c(q, q̇) of the current state: gravity, Coriolis and
+                                                centrifugal [N, N·m] (the free joint's first 3 entries are forces
+                                                [N], the rest torques [N·m]; ``wp_data.qfrc_bias``)
     time                       (N,)             simulated time since the world's last reset [s]
     model_fields[name]         (N, ...)         each world's row of model field ``name``, one per name of
                                                 ``SimConfig.per_world_fields`` (e.g. ``body_mass`` (N, nbody) [kg],
