@@ -322,6 +322,62 @@ def test_wrong_signal_shape_is_reported_when_the_env_is_built():
         env.observation_spec
 
 
+def _mock_with_specs(**specs):
+    """A mock env whose observation spec has these keys replaced or added: {key: per-env shape}."""
+    from torchrl.data import Unbounded
+
+    class Respecified(MockTocabiWalk):
+        def _make_specs(self):
+            super()._make_specs()
+            spec = self.observation_spec.clone()
+            for key, shape in specs.items():
+                spec[key] = Unbounded(shape=(N, *shape))
+            self.observation_spec = spec
+
+    return Respecified(N)
+
+
+@pytest.mark.parametrize("term, specs, message", [
+    ("cycle_vel", {"cycle_vel_error": (1,)}, r"reward term 'cycle_vel' expects 'cycle_vel_error' of shape "
+                                             r"\('num_envs', 2\).*spec has \(3, 1\)"),
+    ("foot_gap", {"foot_pos": (6,)}, r"reward term 'foot_gap' expects 'foot_pos' of shape \('num_envs', 2, 3\)"),
+    ("relax", {"kick_age": (), "kick_speed": ()}, r"kick_relax expects 'kick_age' of shape \('num_envs', 1\).*"
+                                                  r"spec has \(3,\); fix the env signal$"),
+])
+def test_every_signal_a_term_reads_is_shape_checked_when_the_env_is_built(term, specs, message):
+    # Only the signals the 13 reference terms read were checked: a (num_envs, 1) cycle_vel_error summed to a
+    # plausible reward, and (num_envs,) kick signals broadcast along the terms.
+    from torchrl.envs import Compose
+
+    from tocabi_torchrl.transforms import BaseEulerAngles, CycleVelTracking, FootGap, KickRelax
+
+    terms = {"cycle_vel": [CycleVelTracking(weight=1.0)], "foot_gap": [FootGap(weight=1.0)]}.get(
+        term, reference_terms())
+    relax = KickRelax(seconds=1.0, terms=("qpos",)) if term == "relax" else None
+    env = TransformedEnv(_mock_with_specs(**specs), Compose(BaseEulerAngles(), TaskReward(terms, kick_relax=relax)))
+    with pytest.raises(ValueError, match=message):
+        env.observation_spec
+
+
+def test_the_first_step_checks_the_shapes_of_the_signals_it_reads():
+    # A step can write another shape than its spec says. With (num_envs,) kick signals and as many terms as envs,
+    # the relaxation broadcast along the terms: no error, each env's terms scaled by the other envs' kicks.
+    from tocabi_torchrl.transforms import KickRelax
+
+    terms = reference_terms(("qpos", "body_vel", "orientation"))
+    assert len(terms) == N
+    reward = TaskReward(terms, kick_relax=KickRelax(seconds=2.0, terms=("qpos",)))
+    td, nxt = _kicked_pair([0.0] * N, [1.0] * N)
+    nxt["kick_age"] = nxt["kick_age"].squeeze(-1)
+    with pytest.raises(ValueError, match=r"kick_relax expects 'kick_age' of shape \('num_envs', 1\).*but the "
+                                         r"step's result holds \(3,\)"):
+        reward._step(td, nxt)
+    td, nxt = _pair()
+    nxt["joint_pos"] = nxt["joint_pos"][:, :12]
+    with pytest.raises(ValueError, match=r"reward term 'qpos' expects 'joint_pos' of shape \('num_envs', 33\)"):
+        TaskReward(terms)._step(td, nxt)
+
+
 def test_set_weight_changes_one_term_in_place():
     tr = TaskReward(reference_terms())
     env = TransformedEnv(MockTocabiWalk(N, seed=5), tr)

@@ -1,9 +1,10 @@
 """The signal table: every tensor ``TocabiWalk`` returns, with its shape, dtype, unit and meaning, in one place.
 
-The env's observation, done and reward specs (``TocabiWalk._make_specs``), the reward terms' shape checks
-(``transforms.reward_terms.SIGNAL_SHAPES``), the transforms' test stand-in (``tests/mock_env.py``) and the table in
-``docs/concepts/env-and-signals.md`` (``python -m tocabi_torchrl.signals_doc``) are all made from these rows. Adding a signal is a row
-here and the line of ``TocabiWalk._observe`` that computes it; the env refuses to build when the two disagree.
+The env's observation, done and reward specs (``TocabiWalk._make_specs``), the reward's shape checks of every
+signal its terms read (``transforms.reward.TaskReward``), the transforms' test stand-in (``tests/mock_env.py``) and
+the table in ``docs/concepts/env-and-signals.md`` (``python -m tocabi_torchrl.signals_doc``) are all made from these
+rows. Adding a signal is a row here and the line of ``TocabiWalk._observe`` that computes it; the env refuses to build
+when the two disagree.
 
 Shapes are per env: the env's tensors are ``(num_envs, *shape)``. Joint-sized signals follow ``robot.JOINT_NAMES``;
 pairs of feet are [left, right].

@@ -14,7 +14,7 @@ from torchrl.envs.transforms import RewardSum, Transform
 from tocabi_torchrl.signals import SIGNALS
 from tocabi_torchrl.transforms._base import check_specs_once, transforms_before
 from tocabi_torchrl.transforms._checks import check_finite
-from tocabi_torchrl.transforms.reward_terms import SIGNAL_SHAPES, CallableTerm, RewardTerm, check_term
+from tocabi_torchrl.transforms.reward_terms import CallableTerm, RewardTerm, check_term
 from tocabi_torchrl.transforms.kick_relax_config import KickRelax
 
 __all__ = ["TaskReward"]
@@ -182,6 +182,27 @@ class TaskReward(Transform):
             stacked = torch.where(next_tensordict.get(self.terminated_key), 0.0, stacked)
         return stacked
 
+    def _signal_reads(self) -> list[tuple[str, str, tuple[int, ...], bool]]:
+        """(reader, key, per-env shape, read from the root) of every signal of the table (``signals.SIGNALS``) that a
+        term or the kick relaxation reads. Every one, not only the reference terms': a (num_envs,) kick_age
+        broadcast along the terms, and a (num_envs, 1) cycle_vel_error summed to a plausible value."""
+        reads = [(f"reward term {t.name!r}", k, root) for t in self.terms
+                 for root, keys in ((True, t.root_keys), (False, t.next_keys)) for k in keys]
+        if self.kick_relax is not None:
+            reads += [("kick_relax", k, False) for k in KickRelax.KEYS]
+        return [(reader, k, SIGNALS[k].shape, root) for reader, k, root in reads if isinstance(k, str) and k in SIGNALS]
+
+    def _check_signals(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> None:
+        """The first step's signals against the table's shapes: the spec check does not see a step that writes
+        another shape than its spec says. Metadata only, no device read; a missing key is left to
+        :meth:`_check_terms`, which names the declaration to fix."""
+        batch = tuple(next_tensordict.batch_size)
+        for reader, key, want, root in self._signal_reads():
+            value = (tensordict if root else next_tensordict).get(key, None)
+            if isinstance(value, torch.Tensor) and tuple(value.shape) != (*batch, *want):
+                where = "state at t" if root else "step's result"
+                raise ValueError(_wrong_shape(reader, key, want, f"the {where} holds {tuple(value.shape)}"))
+
     def _check_terms(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> None:
         want = (*next_tensordict.batch_size, 1)
         for t in self.terms:
@@ -235,6 +256,7 @@ class TaskReward(Transform):
         if not self._checked:
             if self.zero_on_terminated:
                 self._check_terminated(next_tensordict)
+            self._check_signals(tensordict, next_tensordict)  # before the kernels read them
             self._check_terms(tensordict, next_tensordict)  # once, eagerly: clear errors before any compilation
             self._checked = True
         if self.compile and self._compiled is None:
@@ -279,15 +301,10 @@ class TaskReward(Transform):
                     + "drop the term, or add the signal to the env (see docs/concepts/env-and-signals.md)"
                 )
         batch = tuple(observation_spec.shape)
-        for t in self.terms:
-            for k in (*t.root_keys, *t.next_keys):
-                want = SIGNAL_SHAPES.get(k) if isinstance(k, str) else None
-                got = tuple(observation_spec[k].shape)
-                if want is not None and got != (*batch, *want):
-                    raise ValueError(
-                        f"reward term {t.name!r} expects {k!r} of shape {('num_envs', *want)} (docs/concepts/env-and-signals.md), but "
-                        f"the environment's spec has {got}; fix the env signal or use a term written for it"
-                    )
+        for reader, key, want, _ in self._signal_reads():
+            got = tuple(observation_spec[key].shape)
+            if got != (*batch, *want):
+                raise ValueError(_wrong_shape(reader, key, want, f"the environment's spec has {got}"))
         terms_spec = Composite(
             {n: Unbounded(shape=(*batch, 1), dtype=torch.float32, device=observation_spec.device) for n in self.names},
             shape=batch,
@@ -318,3 +335,9 @@ class TaskReward(Transform):
         inner = ", ".join(f"{t.name}={t.weight:g}" for t in self.terms)
         relax = "" if self.kick_relax is None else f", kick_relax={self.kick_relax}"
         return f"{type(self).__name__}({inner}, zero_on_terminated={self.zero_on_terminated}{relax})"
+
+
+def _wrong_shape(reader: str, key: str, want: tuple[int, ...], got: str) -> str:
+    fix = "fix the env signal" + (" or use a term written for it" if reader.startswith("reward term") else "")
+    return (f"{reader} expects {key!r} of shape {('num_envs', *want)} (docs/concepts/env-and-signals.md), but {got}; "
+            f"{fix}")
