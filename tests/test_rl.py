@@ -502,3 +502,11 @@ def test_the_adaptive_rate_stops_at_ppo_lr_min(tmp_path):
     train(cfg)
     rates = [float(r["lr"]) for r in read_metrics(tmp_path / "floor")]
     assert rates[0] == pytest.approx(2e-4 / 1.5) and rates[1:] == pytest.approx([1e-4] * (len(rates) - 1))
+
+
+def test_a_zero_value_loss_weight_is_refused_before_the_run_starts():
+    # TorchRL's ClipPPOLoss drops its critic term at critic_coeff 0: the critic GAE reads never learned, and the
+    # first update failed with a KeyError on "loss_critic", after config.json and the metrics folder were written.
+    with pytest.raises(ValueError, match=r"ppo.value_coef must be > 0 .*got 0.0"):
+        preset_config("cpu_smoke", **{"ppo.value_coef": 0.0})
+    assert preset_config("reference").ppo.value_coef == 0.5  # a positive weight stays accepted

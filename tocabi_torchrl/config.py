@@ -125,7 +125,7 @@ class PPOConfig:
     entropy_coef: float = 0.0
     """entropy bonus weight; 0 = none"""
     value_coef: float = 1.0
-    """value loss weight"""
+    """value loss weight (> 0)"""
     value_loss: str = "l2"
     """value loss function: l2, smooth_l1 or l1"""
     #: Gradient-norm clip; inf = no clipping (the one number of the tree allowed to be infinite).
@@ -329,9 +329,15 @@ class PPOConfig:
         if self.grad_sync == "ddp" and self.update_graph:
             raise ValueError("ppo.grad_sync=ddp runs the update step eagerly (DDP's gradient hooks cannot be captured "
                              "in a CUDA graph): set ppo.update_graph=false as well")
-        for name in ("entropy_coef", "value_coef", "value_head_lr", "lr_end", "value_out_gain", "symmetry_loss"):
+        for name in ("entropy_coef", "value_head_lr", "lr_end", "value_out_gain", "symmetry_loss"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"ppo.{name} must be >= 0, got {getattr(self, name)!r}")
+        if not self.value_coef > 0:
+            # TorchRL's ClipPPOLoss drops its critic term at 0: the critic GAE reads would never learn, and the first
+            # update failed on the missing loss_critic, after the run folder was written.
+            raise ValueError(f"ppo.value_coef must be > 0 (the value loss's weight: the critic whose values GAE's "
+                             f"advantages read learns from that loss alone), got {self.value_coef!r}; give e.g. 0.5 "
+                             f"or the default 1.0")
         if self.std_mode == "scheduled" and not 0 <= self.std_hold < 1:
             raise ValueError(f"ppo.std_hold is the fraction of training still left when the scheduled std reaches "
                              f"std_end, in [0, 1), got {self.std_hold!r}")
