@@ -145,6 +145,46 @@ def test_a_broken_frame_cannot_poison_the_ppo_update():
         assert torch.isfinite(p).all(), name
 
 
+def test_a_masked_frame_moves_neither_the_kl_nor_the_clip_fraction():
+    # The adaptive learning rate reads kl_approx; TorchRL averaged it (and clip_fraction) over every frame, the
+    # masked ones included, whose log-ratio compares the stored mean with the policy at a sanitised observation: a
+    # few NaN-observation frames at a small std read as a KL far above the target and held the rate at its floor.
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.rollout_guard import VALID_KEY, guard_rollout
+    from tocabi_torchrl.rl.symmetry import PolicyInputMirror, SignedPermutation, SymmetryAugmentLoss, action_mirror_map
+    from tocabi_torchrl.rl.trainer import _loss_keys, build_agent, estimate_advantages, make_loss
+
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
+                        "ppo.minibatch_size": 32})
+    torch.manual_seed(0)
+    agent = build_agent(cfg, 237, 13, torch.device("cpu"))
+    obs = torch.randn(4, 9, 237)
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        td = agent.actor(TensorDict({"observation": obs[:, :-1].clone()}, batch_size=[4, 8]))
+    done = torch.zeros(4, 8, 1, dtype=torch.bool)
+    td["next"] = TensorDict({"observation": obs[:, 1:].clone(), "reward": torch.randn(4, 8, 1), "done": done,
+                             "terminated": done.clone(), "truncated": done.clone()}, batch_size=[4, 8])
+    td.refine_names(None, "time")
+    td["observation"][2, 6, 0] = math.nan  # its stored mean, action and log-probability are NaN too
+    td["loc"][2, 6] = td["action"][2, 6] = math.nan
+    td["action_log_prob"][2, 6] = math.nan
+    loss_module, advantage = make_loss(cfg, agent)
+    guard_rollout(td)
+    estimate_advantages(advantage, td)
+    flat = td.select(*_loss_keys(loss_module, td)).reshape(-1)
+    masked = int((~flat[VALID_KEY].squeeze(-1)).nonzero()[0])
+    mirrored = SymmetryAugmentLoss(loss_module, PolicyInputMirror(), SignedPermutation(*action_mirror_map()))
+    for loss in (loss_module, mirrored):
+        seen = []
+        with torch.no_grad():
+            for value in (0.0, 30.0):  # the policy's mean at the masked frame moves far from the stored one
+                batch = flat.clone()
+                batch["observation"][masked] = value
+                out = loss(batch)
+                seen.append((float(out["kl_approx"]), float(out["clip_fraction"])))
+        assert seen[0] == pytest.approx(seen[1], rel=1e-6, abs=1e-9), (type(loss).__name__, seen)
+
+
 def test_a_reward_term_that_returns_nan_is_said_not_trained_on_silently(tmp_path, capsys):
     # Every frame was masked out of the update, the losses were 0 and the progress lines said nothing.
     from tocabi_torchrl.rl import preset_config

@@ -11,7 +11,8 @@ every parameter.
 observations and reward 0, the action replaced by the distribution's mean with its log-probability, so every loss
 term stays finite; the loss leaves them out through TorchRL's loss mask (``loss_module.loss_mask_key = VALID_KEY``),
 and each mini-batch's advantage normalisation through the same mask under the key it reads
-(:func:`~tocabi_torchrl.rl.trainer.estimate_advantages`).
+(:func:`~tocabi_torchrl.rl.trainer.estimate_advantages`). The update's ``kl_approx`` and ``clip_fraction``, which the
+KL-adaptive learning rate reads, are means over the usable frames too (:class:`GuardedClipPPOLoss`).
 Masks and ``torch.where`` only: no host reads, no shapes that depend on the data.
 """
 
@@ -21,8 +22,10 @@ import math
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.objectives import ClipPPOLoss
 
-__all__ = ["VALID_KEY", "MAX_SAMPLE_Z", "guard_rollout", "mean_over_valid"]
+__all__ = ["VALID_KEY", "MAX_SAMPLE_Z", "guard_rollout", "mean_over_valid", "ratio_statistics",
+           "GuardedClipPPOLoss"]
 
 #: Key of the (…, 1) bool mask of usable frames written by :func:`guard_rollout`.
 VALID_KEY = "frame_valid"
@@ -39,6 +42,42 @@ def mean_over_valid(values: torch.Tensor, td: TensorDictBase, mask_key: str | No
         return values.mean()
     valid = td[mask_key].reshape(values.shape)
     return torch.where(valid, values, 0.0).sum() / valid.sum().clamp_min(1)
+
+
+def ratio_statistics(log_weight: torch.Tensor, kl_approx: torch.Tensor, clip_bounds, td: TensorDictBase,
+                     mask_key: str | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(kl_approx, clip_fraction)`` of a PPO loss's per-frame log-ratios ``log_weight`` and KL estimates
+    ``kl_approx`` (B, 1), as means over the frames of ``td`` (B,) that ``mask_key`` marks usable (see
+    :func:`mean_over_valid`), detached; ``clip_bounds`` the loss's ``(low, high)`` log-ratio clip."""
+    log_weight = log_weight.detach().reshape(-1)
+    low, high = clip_bounds
+    clipped = (log_weight.clamp(low, high) != log_weight).to(log_weight.dtype)
+    return (mean_over_valid(kl_approx.detach().reshape(-1), td, mask_key), mean_over_valid(clipped, td, mask_key))
+
+
+class GuardedClipPPOLoss(ClipPPOLoss):
+    """TorchRL's ``ClipPPOLoss`` whose logged ``kl_approx`` and ``clip_fraction`` leave out the frames its
+    ``loss_mask_key`` masks, as its loss terms do. TorchRL (0.14) averages both over every frame: a masked frame's
+    log-ratio compares its stored (sanitised) mean with the policy at a sanitised observation, so a few of them at a
+    small std read as a KL far above ``desired_kl``, and the adaptive learning rate fell for frames the update never
+    used. The per-frame values come from ``_log_weight`` (TorchRL 0.14's log-ratio), recorded as the loss runs."""
+
+    _frame_ratios: tuple | None = None
+
+    def _log_weight(self, tensordict, adv_shape):
+        self._frame_ratios = out = super()._log_weight(tensordict, adv_shape)
+        return out
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        self._frame_ratios = None
+        out = super().forward(tensordict)
+        if self._frame_ratios is not None:
+            log_weight, _, kl_approx, _ = self._frame_ratios
+            self._frame_ratios = None  # the autograd graph it holds is not kept until the next step
+            kl, clipped = ratio_statistics(log_weight, kl_approx, self._clip_bounds, tensordict, self.loss_mask_key)
+            out.set("kl_approx", kl)
+            out.set("clip_fraction", clipped)
+        return out
 
 
 def _finite_rows(x: torch.Tensor, event_dims: int) -> torch.Tensor:

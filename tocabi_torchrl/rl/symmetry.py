@@ -42,7 +42,7 @@ from .. import robot
 from ..config import SYMMETRY_MODES
 from ..transforms.layouts import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT, HistoryLayout, ObsComponent
 from ..transforms.privileged import PRIVILEGED_MIRROR
-from .rollout_guard import mean_over_valid
+from .rollout_guard import mean_over_valid, ratio_statistics
 
 __all__ = ["SYMMETRY_MODES", "ACTION_DIM", "obs_step_mirror_map", "action_mirror_map", "policy_input_mirror_map",
            "SignedPermutation", "PolicyInputMirror", "mirror_qpos", "mirror_qvel", "SymmetryAugmentLoss",
@@ -448,10 +448,11 @@ class SymmetryAugmentLoss(nn.Module):
         if self._last_log_weight is not None:
             log_weight, _, kl_approx, _ = self._last_log_weight
             self._last_log_weight = None
-            original = log_weight[:b].detach()
-            low, high = self.ppo_loss._clip_bounds
-            out.set("kl_approx", kl_approx[:b].detach().mean())
-            out.set("clip_fraction", (original.clamp(low, high) != original).to(original.dtype).mean())
+            # Over the original frames the loss mask keeps, as the PPO terms are (rollout_guard.GuardedClipPPOLoss).
+            kl, clipped = ratio_statistics(log_weight[:b], kl_approx[:b], self.ppo_loss._clip_bounds, td,
+                                           self.loss_mask_key)
+            out.set("kl_approx", kl)
+            out.set("clip_fraction", clipped)
         if self.mirror_loss > 0:
             out.set("loss_symmetry", self.mirror_loss * self._mirror_loss(td))
         return out

@@ -40,7 +40,7 @@ from .interrupt import StopFlag, stop_on_signals
 from .logging import RunLogger, print_line, require_loggers
 from .overlap import UpdateOverlap
 from .networks import ConcatInputs, make_mlp
-from .rollout_guard import VALID_KEY, guard_rollout
+from .rollout_guard import VALID_KEY, GuardedClipPPOLoss, guard_rollout
 from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
 from ..transforms.normalize import RunningNormalization
@@ -445,7 +445,7 @@ def make_loss(cfg: RunConfig, agent: Agent, env: EnvBase | None = None,
     ppo = cfg.ppo
     advantage = GAE(gamma=ppo.gamma, lmbda=ppo.gae_lambda, value_network=agent.critic, average_gae=False,
                     value_chunk_size=_VALUE_CHUNK_FRAMES // ppo.steps_per_env or 1)
-    loss_module = ClipPPOLoss(
+    loss_module = GuardedClipPPOLoss(
         agent.actor,
         agent.critic,
         clip_epsilon=ppo.clip_epsilon,
