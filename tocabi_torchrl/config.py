@@ -749,7 +749,7 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         # (0.827 under the test's 1.0 m/s kicks at 1,024 robots, commands and robust_0.5 passing), and worse from 20
         # minutes on, once its pull (30 M env steps after the fade) had gone: PPO alone let the velocity-tracking
         # term fall from 0.74-0.76 to 0.61-0.65 per step, and the robots walked too fast, drifted and fell more
-        # (docs/training/robust/h200_run8). So the pull decays over 90 M env steps: 0.78 at 140 M, 0.33 at the
+        # (docs/training/robust/h200_run8). So the pull decays over 90 M env steps: 0.78 at 140 M, 0.11 at the
         # budget's 200 M. Half of that run's falls under the 1.0 m/s kicks were the feet touching (a
         # self-collision), so a foot-gap term (transforms.foot_gap_weight, reward_terms.FootGap) pays for keeping
         # the feet at least 0.24 m apart across the heading, where the reference walk keeps 0.25 m.
