@@ -563,8 +563,15 @@ def test_a_step_before_the_first_reset_is_refused():
     with pytest.raises(RuntimeError, match=r"step before the first reset.*call env.reset\(\) first"):
         e.step(_zero_action(e))
     assert int(e.episode_step.sum()) == 0  # nothing moved
-    e.reset()
+    # A first reset that leaves a world out would let that world step unstarted: refused, and a full mask is fine.
+    partial = TensorDict({"_reset": torch.tensor([[True], [False]])}, batch_size=[2])
+    with pytest.raises(ValueError, match=r"first reset must restart every world .*flags 1 of 2"):
+        e.reset(partial)
+    with pytest.raises(RuntimeError, match="step before the first reset"):
+        e.step(_zero_action(e))
+    e.reset(TensorDict({"_reset": torch.ones(2, 1, dtype=torch.bool)}, batch_size=[2]))
     assert e.step(_zero_action(e))["next", "episode_step"].tolist() == [[1], [1]]
+    e.reset(partial)  # later partial resets are what autoreset does
 
 
 def test_close_stops_the_simulators_worker_threads():

@@ -725,6 +725,11 @@ class TocabiWalk(EnvBase):
     # ------------------------------------------------------------------------------------------------ resets
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = self._reset_mask(tensordict)  # checked before any state moves: a refused reset changes nothing
+        if not self._was_reset and mask is not self._all and not bool(mask.all()):
+            # One read, at the first reset only: a first reset that left worlds out let them step from the model's
+            # initial state with no command drawn, which the step-before-reset refusal exists to catch.
+            raise ValueError("the env's first reset must restart every world (its '_reset' mask flags "
+                             f"{int(mask.sum())} of {self.num_envs}); call env.reset() without a mask first")
         seed = kwargs.pop("seed", None)
         if seed is not None:  # reset(seed=s) is set_seed(s) then the reset (it was ignored, without a word)
             self._set_seed(seed)
