@@ -60,7 +60,9 @@ class GuardedClipPPOLoss(ClipPPOLoss):
     ``loss_mask_key`` masks, as its loss terms do. TorchRL (0.14) averages both over every frame: a masked frame's
     log-ratio compares its stored (sanitised) mean with the policy at a sanitised observation, so a few of them at a
     small std read as a KL far above ``desired_kl``, and the adaptive learning rate fell for frames the update never
-    used. The per-frame values come from ``_log_weight`` (TorchRL 0.14's log-ratio), recorded as the loss runs."""
+    used. The per-frame values come from ``_log_weight`` (TorchRL 0.14's log-ratio), recorded as the loss runs. The
+    mask is the entry ``loss_mask_key`` names (the trainer's :data:`VALID_KEY`); TorchRL's default ``"auto"``, which
+    names no one entry, leaves both statistics plain means over every frame, as before."""
 
     _frame_ratios: tuple | None = None
 
