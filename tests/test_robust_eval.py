@@ -547,7 +547,7 @@ def test_the_env_cache_keeps_one_env_per_kind_of_policy():
     assert batch_key(test, torque, "cpu") != batch_key(test, privileged, "cpu")
 
 
-def test_the_env_cache_keeps_one_env_per_device():
+def test_the_env_cache_keeps_one_env_per_device(monkeypatch):
     # The key held no device: a cache shared by tests on two devices handed the first device's env to the second.
     from tocabi_torchrl.config import preset_config
     from tocabi_torchrl.evaluation.robust import RobustTestConfig, batch_key
@@ -556,6 +556,9 @@ def test_the_env_cache_keeps_one_env_per_device():
     assert batch_key(test, cfg, "cpu") != batch_key(test, cfg, "cuda:0")
     assert batch_key(test, cfg, "cuda:0") != batch_key(test, cfg, "cuda:1")
     assert batch_key(test, cfg, "cuda:1") == batch_key(test, cfg, torch.device("cuda", 1))
+    # "cuda" is the current GPU: the same key as its index, not a second large env for the same card.
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 1)
+    assert batch_key(test, cfg, "cuda") == batch_key(test, cfg, "cuda:1")
 
 
 def test_saved_normaliser_statistics_follow_their_transform_when_sensor_noise_shifts_the_chain():

@@ -344,7 +344,10 @@ def batch_key(test: RobustTestConfig, cfg: RunConfig, device: torch.device | str
     sections = json.dumps({"env": to_dict(built.env), "transforms": to_dict(built.transforms),
                            "ppo": [cfg.ppo.critic_privileged, cfg.ppo.assist_pd_sensed]},  # what build_env reads
                           sort_keys=True)
-    return ("batch", str(torch.device(device)), tuple(test.cases), test.num_envs, test.push_kind, sections)
+    place = torch.device(device)
+    if place.type == "cuda" and place.index is None:  # "cuda" is the current GPU: one env, not one per spelling
+        place = torch.device("cuda", torch.cuda.current_device())
+    return ("batch", str(place), tuple(test.cases), test.num_envs, test.push_kind, sections)
 
 
 def case_worlds(test: RobustTestConfig, device: torch.device | str = "cpu") -> dict[str, slice]:
