@@ -334,6 +334,15 @@ def test_sensed_assist_pd_subtracts_the_encoder_bias_times_the_stiffness():
     assert float((out[0] - out[1]).abs().max()) > 0.1  # the bias matters: > 10 % of a limit
 
 
+def test_teacher_options_need_the_teacher_target():
+    # With assist_target "rollout" there is no teacher: the pull's decay and the hold through it trained exactly as
+    # without them.
+    for option, value in (("ppo.assist_anchor_decay", 1000), ("ppo.assist_lr_hold", "pull")):
+        with pytest.raises(ValueError, match=r"about the teacher's pull, and ppo.assist_target='rollout' has no "):
+            preset_config("torque", **{"ppo.assist_target": "rollout", option: value})
+    preset_config("torque", **{"ppo.assist_target": "rollout", "ppo.assist_anchor_decay": 0})
+
+
 def test_assist_pd_sensed_needs_the_assist():
     with pytest.raises(ValueError, match="assist_pd_sensed .* needs ppo.torque_assist > 0"):
         preset_config("default", **{"ppo.assist_pd_sensed": True})
@@ -351,7 +360,7 @@ def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_pat
                         "ppo.minibatch_size": 16, "ppo.epochs": 1},
                         total_env_steps=4 * frames, **{"ppo.assist_fade_start": frames,
                                                        "ppo.assist_fade_end": 3 * frames,
-                        "ppo.assist_target": target, "ppo.assist_anchor_decay": frames,
+                        "ppo.assist_target": target, "ppo.assist_anchor_decay": frames if target == "teacher" else 0,
                         "ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,)}, run_dir=str(tmp_path), name="t",
                         eval_at_end=False, progress_bar=False, checkpoint_every=1, checkpoint_keep_last=0,
                         **{"ppo.cuda_graph": "off"})

@@ -320,6 +320,13 @@ class PPOConfig:
         if self.symmetry_loss > 0 and self.symmetry != "augment":
             raise ValueError(f"ppo.symmetry_loss > 0 works with ppo.symmetry='augment' (whose mirrors it uses), got "
                              f"ppo.symmetry={self.symmetry!r}: set both, or leave ppo.symmetry_loss at 0")
+        if self.assist_target == "rollout" and (self.assist_anchor_decay > 0 or self.assist_lr_hold == "pull"):
+            # Both act on the frozen teacher the "teacher" target copies from; "rollout" has none, so they trained
+            # exactly as without them, without a word.
+            given = "ppo.assist_anchor_decay > 0" if self.assist_anchor_decay > 0 else "ppo.assist_lr_hold='pull'"
+            raise ValueError(f"{given} is about the teacher's pull, and ppo.assist_target='rollout' has no teacher: "
+                             "use ppo.assist_target='teacher', or leave assist_anchor_decay at 0 and assist_lr_hold "
+                             "at 'fade'")
         if self.assist_pd_sensed and not self.torque_assist > 0:
             raise ValueError("ppo.assist_pd_sensed is about the torque assist's PD and needs ppo.torque_assist > 0; "
                              "leave it false without the assist")
