@@ -392,6 +392,7 @@ def test_a_motion_beyond_a_model_range_that_holds_the_start_pose_names_both_file
                         r"a motion in degrees, or of another robot\?\), or, if it is right, R_Knee_Joint's range in "
                         r"the model file", message), message
 
+
 def test_a_binary_file_named_txt_is_a_format_error(tmp_path):
     # A renamed .npz raised a raw UnicodeDecodeError.
     path = tmp_path / "walk.txt"

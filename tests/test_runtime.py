@@ -412,6 +412,7 @@ def test_sim_to_sim_refuses_a_motion_beyond_a_model_range_naming_both_files(tmp_
                         r"robot\.joint_names order: a motion in degrees, or of another robot\?\), or, if it is right, "
                         r"R_Knee_Joint's range in the model file", message), message
 
+
 def test_reset_refuses_init_rows_that_are_not_rows_of_the_motion():
     # Out-of-range rows used to wrap silently, fractional rows were truncated, and a wrong count, NaN or zero robots
     # surfaced as numpy errors.

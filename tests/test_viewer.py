@@ -227,10 +227,9 @@ def test_the_tapped_policy_ticks_once_per_call_and_acts_as_the_policy():
     assert list(tapped.parameters()) == list(policy.parameters())
 
 
-@pytest.mark.slow
-def test_a_training_run_with_the_viewer_streams_its_worlds_and_shows_its_metrics(tmp_path, monkeypatch):
-    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
-    from tocabi_torchrl.config import preset_config
+def _record_live_views(monkeypatch) -> list:
+    """Make training runs start their live page through ``TrainingView`` as usual, keeping each view in the list
+    returned, for the test to inspect."""
     from tocabi_torchrl.rl import trainer
     from tocabi_torchrl.viewer.training import TrainingView
 
@@ -241,6 +240,16 @@ def test_a_training_run_with_the_viewer_streams_its_worlds_and_shows_its_metrics
         return views[-1]
 
     monkeypatch.setattr(trainer, "_live_view", live_view)
+    return views
+
+
+@pytest.mark.slow
+def test_a_training_run_with_the_viewer_streams_its_worlds_and_shows_its_metrics(tmp_path, monkeypatch):
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.rl import trainer
+
+    views = _record_live_views(monkeypatch)
     cfg = preset_config("cpu_smoke", device="cpu", total_env_steps=8 * 16 * 2, eval_at_end=False, progress_bar=False,
                         run_dir=str(tmp_path), name="viewer_run")
     cfg.viewer.enabled, cfg.viewer.port, cfg.viewer.worlds, cfg.viewer.every = True, _free_port(), 4, 5
@@ -585,18 +594,11 @@ def test_a_training_run_that_fails_to_start_stops_its_live_page(tmp_path, monkey
     pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
     from tocabi_torchrl.config import preset_config
     from tocabi_torchrl.rl import trainer
-    from tocabi_torchrl.viewer.training import TrainingView
-
-    views = []
-
-    def live_view(cfg, env):
-        views.append(TrainingView(cfg.viewer, env.base_env.sim))
-        return views[-1]
 
     def no_logger(*args, **kwargs):
         raise OSError("cannot write the run's logs")
 
-    monkeypatch.setattr(trainer, "_live_view", live_view)
+    views = _record_live_views(monkeypatch)
     monkeypatch.setattr(trainer, "RunLogger", no_logger)
     cfg = preset_config("cpu_smoke", device="cpu", total_env_steps=8 * 16 * 2, eval_at_end=False, progress_bar=False,
                         run_dir=str(tmp_path), name="viewer_fail")
