@@ -211,6 +211,35 @@ def test_cuda_graph_option_is_checked():
         SyncFreeResetEnv(env.base_env, cuda_graph=True, graph_warmup=0)
 
 
+def test_a_captured_step_is_captured_again_when_a_world_turns_ideal():
+    # The reset gives set_randomized_worlds' ideal worlds the nominal robot behind a Python branch, which a CUDA graph
+    # freezes: a step captured while every world was randomised kept drawing dynamics for the new ideal worlds.
+    from tocabi_torchrl.sim.dynamics_config import DynamicsRandomization
+
+    env = make_env(num_envs=2, device="cpu", seed=0, sync_free_resets=True, max_episode_steps=4,
+                   dynamics=DynamicsRandomization(mass_scale=(0.8, 1.2)))
+    capturer = EmulatedCapture()
+    env.set_cuda_graph(True, capturer=capturer)
+    td, action = env.reset(), torch.zeros(2, 13)
+
+    def steps(k):
+        nonlocal td
+        for _ in range(k):
+            _, td = env.step_and_maybe_reset(td.set("action", action))
+
+    steps(3)
+    assert env.graph_captured and len(capturer.captures) == 1
+    env.base_env.set_randomized_worlds(torch.tensor([True, False]))
+    steps(1)
+    assert not env.graph_captured  # dropped: the next capture takes the branch as it is now
+    steps(3)
+    assert env.graph_captured and len(capturer.captures) == 2
+    assert float(env.base_env.dynamics.mass_scale[1].max()) == 1.0  # world 1 reset (step 4) as the ideal robot
+    env.base_env.set_randomized_worlds(torch.tensor([True, False]))  # the same branch: the capture stays
+    steps(1)
+    assert env.graph_captured and len(capturer.captures) == 2
+
+
 def test_graph_wiring_matches_eager_on_cpu():
     # The CUDA-graph path of SyncFreeResetEnv (warm-up count, key check, static input copy, fresh outputs, carry)
     # with an emulated capture: it must reproduce the eager sync-free path exactly, resets included.

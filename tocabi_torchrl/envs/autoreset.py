@@ -48,6 +48,8 @@ class SyncFreeResetEnv(TransformedEnv):
                                     self._build_step_graph, warmup=graph_warmup, capturer=capturer,
                                     warmup_option="graph_warmup")
         self._cuda_graph = bool(cuda_graph)
+        # The base env's count of Python-side settings the captured step reads (TocabiWalk.graph_settings).
+        self._graph_settings = getattr(self.base_env, "graph_settings", 0)
 
     @property
     def cuda_graph(self) -> bool:
@@ -84,6 +86,10 @@ class SyncFreeResetEnv(TransformedEnv):
     def _step_and_maybe_reset(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
         if tensordict.device != self.device:
             tensordict = tensordict.to(self.device)
+        settings = getattr(self.base_env, "graph_settings", 0)  # a Python int: no device read
+        if settings != self._graph_settings:  # a setting the capture froze has changed: capture again
+            self._graph_settings = settings
+            self.invalidate_graph()
         if not self.cuda_graph:
             return self._eager_step_and_maybe_reset(tensordict)
         graph = self._capture.replayer

@@ -314,6 +314,9 @@ class TocabiWalk(EnvBase):
         #: the ideal robot (all True unless :meth:`set_randomized_worlds` says otherwise).
         self.randomized_worlds = torch.ones(num_envs, dtype=torch.bool, device=device)
         self._some_nominal = False
+        #: Counts changes of the Python-side settings a captured step reads (today: whether some world is ideal,
+        #: :meth:`set_randomized_worlds`); ``SyncFreeResetEnv`` captures its step again when it moves.
+        self.graph_settings = 0
         #: Whether the torque assist's PD reads the sensed joint positions (:meth:`sense_assist_joints`).
         self.assist_reads_sensed = False
         self._init_buffers()
@@ -815,7 +818,8 @@ class TocabiWalk(EnvBase):
         actuator draws (``env.control.actuators``) and the sensor noise of ``transforms.sensor_noise``; a False world
         is the ideal robot (the model's dynamics, ideal actuators, exact sensors) from its next reset on. Kicks are
         set per world with ``pushes.world_scale``. One env can so hold nominal and randomised robots side by side
-        (the robust gait test runs its cases in one batch). In place: a captured step follows it.
+        (the robust gait test runs its cases in one batch). In place: a captured step follows it
+        (``SyncFreeResetEnv`` captures again when the first world turns ideal or the last back).
 
         >>> import torch
         >>> from tocabi_torchrl import make_env
@@ -837,7 +841,12 @@ class TocabiWalk(EnvBase):
                              f"{self._pool}), whose states hold randomised dynamics; build the env with "
                              "env.sim.start_pool=0 to hold ideal robots beside randomised ones")
         self.randomized_worlds.copy_(worlds.to(self.device))
-        self._some_nominal = not bool(worlds.all())  # a host read, here at set-up, never in a step
+        some_nominal = not bool(worlds.all())  # a host read, here at set-up, never in a step
+        if some_nominal != self._some_nominal:
+            # The reset's nominal() branch is Python: a step captured before this would keep giving the new
+            # ideal worlds drawn dynamics and actuators (only the sensor flags, a tensor, would follow).
+            self.graph_settings += 1
+        self._some_nominal = some_nominal
 
     def set_push_scale(self, scale: float) -> None:
         """Scale every kick of ``env.pushes`` by ``scale`` in [0, 1] from the next step on (a curriculum; in place,
