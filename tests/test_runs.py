@@ -406,6 +406,17 @@ def test_a_new_run_folder_must_be_named_inside_run_dir_but_old_runs_so_named_sti
     assert open_run(cfg).start_iteration == 2
 
 
+def test_a_resume_never_writes_into_an_existing_folder_outside_run_dir(finished_run, tmp_path):
+    # Only a run folder is exempt from the name rule: an existing folder that holds no run is a new run folder, and
+    # --name ../elsewhere would put the resumed run's files there, outside run_dir.
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "runs").mkdir()
+    cfg, _ = parse_args(["--resume", str(finished_run), "--run_dir", str(tmp_path / "runs"), "--name", "../elsewhere"])
+    with pytest.raises(RunDirError, match=r"name must be one folder name inside run_dir .*got '../elsewhere'"):
+        open_run(cfg)
+    assert not any((tmp_path / "elsewhere").iterdir())
+
+
 @pytest.mark.slow  # a training process, then its resume
 def test_a_sigkilled_run_leaves_loadable_checkpoints_and_resumes_at_the_next_iteration(tmp_path, capsys):
     # Issue 20 (formerly the soak's kill_resume mode): SIGKILL somewhere in an iteration once two checkpoints exist;

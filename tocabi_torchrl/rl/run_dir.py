@@ -119,9 +119,9 @@ def _newer_checkpoint(folder: Path, iteration: int) -> tuple[int, Path] | None:
 
 def check_run_name(name: str) -> None:
     """``RunDirError`` unless ``name`` is one folder name, so that ``run_dir/name`` stays inside ``run_dir`` (the
-    benchmarks clear that folder before timing). Checked for a new run and for a resume into a new folder, not on
-    load or a resume into the run's existing folder: a run made before the rule under a name like ``sweeps/lr3``
-    still loads, resumes and exports."""
+    benchmarks clear that folder before timing). Checked for a new run and for a resume into a folder that holds no
+    run (new or not), not on load or a resume into the run's existing folder: a run made before the rule under a name
+    like ``sweeps/lr3`` still loads, resumes and exports."""
     if not isinstance(name, str) or name in ("", ".", "..") or "/" in name or "\\" in name:
         raise RunDirError(f"name must be one folder name inside run_dir (no '/', '..' or absolute path), got "
                           f"{name!r}; put the folder's parent in run_dir instead")
@@ -154,7 +154,9 @@ def open_run(cfg: RunConfig, writer: bool = True) -> RunFolder:
     the run ends) or the end of the process lets it go.
     """
     path = Path(cfg.run_dir) / cfg.name
-    if writer and not (cfg.resume and path.is_dir()):
+    # The exception is for a run folder (a resume into another run's is refused below): any existing folder would let
+    # ``--name ../elsewhere`` write a run outside run_dir.
+    if writer and not (cfg.resume and path.is_dir() and holds_run(path)):
         check_run_name(cfg.name)
     for folder in (Path(cfg.run_dir), path):
         if writer and folder.exists() and not folder.is_dir():
