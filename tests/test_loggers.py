@@ -98,6 +98,25 @@ def test_the_curves_command_names_a_missing_path_or_a_csv_it_cannot_plot(tmp_pat
     assert (tmp_path / "knees.png").read_bytes().startswith(b"\x89PNG")
 
 
+def test_the_curves_show_a_value_that_has_no_neighbour_to_draw_a_line_to(tmp_path, monkeypatch):
+    # A line through one point draws nothing: a run of one logged iteration plotted three empty panels.
+    from tocabi_torchrl.evaluation import plots
+    from tocabi_torchrl.rl import curves
+
+    figures = []
+    monkeypatch.setattr(plots, "save_figure", lambda fig, path, *a, **k: figures.append(fig) or path)
+    (tmp_path / "m.csv").write_text("iteration,env_steps,episode_return,episode_length,reward,reward_terms/qpos\n"
+                                    "1,10,1,5,0.1,0.3\n2,20,2,6,0.2,nan\n3,30,3,7,0.3,0.2\n")
+    (tmp_path / "one.csv").write_text("iteration,env_steps,episode_return,episode_length,reward\n1,10,1,5,0.1\n")
+    curves.plot_curves(tmp_path / "one.csv", tmp_path / "one.png")
+    curves.plot_curves(tmp_path / "m.csv", tmp_path / "m.png")
+    one, gaps = ({line.get_label(): line for ax in fig.axes for line in ax.get_lines()} for fig in figures)
+    for line in one.values():
+        assert line.get_marker() not in ("None", "", " ", None) and list(line.get_markevery()) == [0]
+    # Only the lone values get a dot; a curve stays a plain line.
+    assert list(gaps["qpos"].get_markevery()) == [0, 2] and gaps["reward per step"].get_marker() == "None"
+
+
 def test_trim_cuts_both_layouts_back_to_the_checkpoint(tmp_path):
     scalars = tmp_path / "metrics" / "scalars"
     scalars.mkdir(parents=True)

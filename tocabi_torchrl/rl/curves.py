@@ -12,6 +12,7 @@ The metrics are read by :func:`~tocabi_torchrl.rl.metrics_files.read_metrics` (r
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from ..cli import RecipeParser
@@ -49,6 +50,15 @@ def steady_rate(rows: list[dict[str, str]], skip: int = 1) -> float | None:
     return (float(b["env_steps"]) - float(a["env_steps"])) / (float(b["wall_s"]) - float(a["wall_s"]))
 
 
+def _plot(ax, x: list[float], y: list[float], **kwargs) -> None:
+    """``ax.plot(x, y)`` with a dot on each value that has no finite neighbour: a line draws nothing through a lone
+    point, so a run of one logged row (or a value between NaNs) would leave its panel empty."""
+    finite = [math.isfinite(a) and math.isfinite(b) for a, b in zip(x, y)]
+    lone = [i for i, f in enumerate(finite)
+            if f and not (i > 0 and finite[i - 1]) and not (i + 1 < len(finite) and finite[i + 1])]
+    ax.plot(x, y, **({"marker": "o", "markersize": 3, "markevery": lone} if lone else {}), **kwargs)
+
+
 def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
     """Plot episode return/length and the per-term rewards against env steps (millions); ``metrics``: what
     :func:`read_metrics` reads (a run folder or a metrics file)."""
@@ -63,24 +73,25 @@ def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
     ep_steps, ep_return, ep_length = (list(c) for c in zip(*ep)) if ep else ([], [], [])
     fig = new_figure(figsize=(15, 4))
     axes = fig.subplots(1, 3)
-    axes[0].plot(ep_steps, ep_return, label="episode return")
+    _plot(axes[0], ep_steps, ep_return, label="episode return")
     axes[0].set_ylabel("episode return")
     twin = axes[0].twinx()
-    twin.plot(ep_steps, ep_length, color="tab:orange", alpha=0.7, label="episode length")
+    _plot(twin, ep_steps, ep_length, color="tab:orange", alpha=0.7, label="episode length")
     twin.set_ylabel("episode length [steps]")
     axes[0].set_title("Total reward (sum over an episode)")
-    axes[1].plot(steps, data["reward"], color="k", label="reward per step")
+    _plot(axes[1], steps, data["reward"], color="k", label="reward per step")
     for term in IMITATION_TERMS:
         key = f"reward_terms/{term}"
         if key in data:
-            axes[1].plot(steps, data[key], label=term)
+            _plot(axes[1], steps, data[key], label=term)
     axes[1].set_title("Reward per step: total and imitation terms")
     axes[1].legend(fontsize=8)
     for key in data:
         if key.startswith("reward_terms/") and key[13:] not in IMITATION_TERMS:
-            axes[2].plot(steps, data[key], label=key[13:])
+            _plot(axes[2], steps, data[key], label=key[13:])
     axes[2].set_title("Reward per step: other terms")
-    axes[2].legend(fontsize=7, ncol=2)
+    if axes[2].get_lines():  # an empty legend only warns
+        axes[2].legend(fontsize=7, ncol=2)
     for ax in axes:
         ax.set_xlabel("env steps [millions]")
         ax.grid(alpha=0.3)
