@@ -242,6 +242,54 @@ def test_a_video_stopped_while_encoding_leaves_the_earlier_one_whole(tmp_path, m
     assert path.read_bytes() == earlier, "the earlier video was replaced by a cut-off one"
     assert not list(tmp_path.glob(".*.tmp"))
 
+
+def test_the_gif_without_an_mp4_writer_plays_at_the_rollouts_speed(tmp_path, monkeypatch, model):
+    # The fallback passed its frame time in seconds (2/fps) where imageio's GIF writer takes milliseconds: every frame
+    # was stored with 0 ms, so viewers played the walk at their own speed, not the simulated one.
+    import imageio.v2 as imageio
+    import mujoco
+    from PIL import Image
+
+    from tocabi_torchrl.evaluation import video as eval_video
+
+    class Renderer:  # no OpenGL needed: a tile of another grey each frame (the GIF writer merges equal frames)
+        def __init__(self, model, height, width, **kwargs):
+            self.shape, self.scene = (height, width, 3), SimpleNamespace(flags=np.ones(32, bool))
+            self.drawn = 0
+
+        def update_scene(self, *args, **kwargs):
+            pass
+
+        def render(self):
+            self.drawn += 1
+            return np.full(self.shape, 3 * self.drawn, np.uint8)
+
+        def close(self):
+            pass
+
+    write = imageio.mimwrite
+
+    def no_mp4(uri, frames, format=None, **kwargs):  # an install without imageio-ffmpeg
+        if format == ".mp4":
+            raise ValueError("no ffmpeg")
+        return write(uri, frames, format=format, **kwargs)
+
+    monkeypatch.setattr(eval_video, "_failure", None)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    monkeypatch.setattr(mujoco, "Renderer", Renderer)
+    monkeypatch.setattr(imageio, "mimwrite", no_mp4)
+    fps, frames = 31.25, 40  # the gait test's frame rate at 4 ms steps; 1.28 s of rollout
+    path = eval_video.render_video(model, np.tile(model.qpos0, (frames, 1, 1)), fps, tmp_path, width=32, height=24,
+                                   progress=False, shadows=False)
+    assert path == tmp_path / "walk.gif"
+    gif = Image.open(path)
+    shown = []
+    for k in range(gif.n_frames):
+        gif.seek(k)
+        shown.append(gif.info.get("duration", 0))  # no entry: 0 ms
+    assert len(shown) == frames // 2 and min(shown) > 0
+    assert abs(sum(shown) - 1000.0 * frames / fps) <= 10.0, shown  # it lasts as long as the rollout
+
 def test_play_help_shows_every_default():
     parser = recipe("play").build_parser()
     for action in parser._actions:

@@ -125,10 +125,23 @@ def render_video(model, qpos: np.ndarray, fps: float, out: Path, width: int = 48
         path, data = out / "walk.mp4", imageio.mimwrite("<bytes>", frames, format=".mp4", fps=fps, macro_block_size=1)
     except Exception:  # no mp4 writer (imageio-ffmpeg, in the `viz` extra): fall back to a gif
         (out / "walk.mp4").unlink(missing_ok=True)  # an earlier test's video would pass for this one's
-        path, data = out / "walk.gif", imageio.mimwrite("<bytes>", frames[::2], format=".gif", duration=2.0 / fps)
+        path, data = out / "walk.gif", imageio.mimwrite("<bytes>", frames[::2], format=".gif",
+                                                        duration=_gif_durations(len(frames[::2]), fps / 2.0))
     atomic_write_bytes(path, data)
     atomic_write_bytes(out / "walk_frame.png", imageio.imwrite("<bytes>", frames[len(frames) // 2], format=".png"))
     return path
+
+
+def _gif_durations(count: int, fps: float) -> list[int]:
+    """How long each of ``count`` GIF frames shows [ms] for them to play at ``fps`` frames per second.
+
+    imageio's GIF writer (Pillow) takes milliseconds, not seconds: a duration of ``2 / fps`` s was read as 0.06 ms
+    and stored as 0, which viewers play as fast as they can or at their own default speed. A GIF stores hundredths
+    of a second, so each frame shows a multiple of 10 ms, chosen so that the running sum stays on the frames' times
+    (15.625 fps: 60 and 70 ms in turn, 64 ms on average) and the video lasts as long as the rollout did.
+    """
+    ends = np.round(np.arange(1, count + 1) * (100.0 / fps)) * 10  # each frame's end time, in whole 10 ms [ms]
+    return np.diff(ends, prepend=0.0).astype(int).tolist()
 
 
 def _shadows_in_budget(render_tile) -> bool:
