@@ -264,6 +264,24 @@ def test_cli_refuses_a_reference_that_is_no_motion_in_one_line(tmp_path, capsys,
     assert not (tmp_path / "walk.npz").exists()
 
 
+def test_cli_without_matplotlib_refuses_plot_before_writing_anything(tmp_path, capsys, monkeypatch):
+    # The figure is drawn after --out is written: without matplotlib (the viz extra) --plot ended in a traceback
+    # after the planning, leaving a motion that the rerun without --plot then had to --overwrite.
+    import sys
+
+    def planned(*args, **kwargs):
+        raise AssertionError("the generator went on to compile the model and plan the table")
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # what an install without the viz extra imports
+    monkeypatch.setattr(robot, "load_model", planned)
+    out = tmp_path / "walk.npz"
+    with pytest.raises(SystemExit) as stop:
+        main(["--out", str(out), "--plot", str(tmp_path / "legs.png"), "--sample-rate", "200"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "--plot needs matplotlib" in err and "pip install" in err, err
+    assert not out.exists()
+
+
 def test_cli_refuses_a_missing_model(tmp_path, capsys):
     with pytest.raises(SystemExit) as stop:
         main(["--out", str(tmp_path / "walk.npz"), "--model", str(tmp_path / "none.xml")])

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import json
 import math
 import os
@@ -423,6 +424,11 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{option} {path} is a folder; give a file name")
     if args.plot is not None and args.plot.suffix.lower() != ".png":
         parser.error(f"--plot {args.plot}: give a .png file")
+    if args.plot is not None and importlib.util.find_spec("matplotlib") is None:
+        # Said before planning: the figure is drawn after --out is written, where a missing matplotlib ended in a
+        # traceback, leaving a motion that a rerun then had to --overwrite.
+        parser.error(f"--plot needs matplotlib, which is not installed: pip install -e \".[viz]\" in the repository "
+                     "(or pip install matplotlib), or leave --plot out")
     out = Path(args.out or robot.asset_path("motions", "tocabi_walk.npz"))
     out = out if out.suffix == ".npz" else out.with_name(out.name + ".npz")  # what save_npz writes
     for option, path in (("--out", out), ("--plot", args.plot)):
