@@ -219,6 +219,14 @@ def test_assets_folder_override(tmp_path, monkeypatch):
     assert robot.load_model().nu == 33
 
 
+def test_an_assets_folder_override_without_the_model_is_named(tmp_path, monkeypatch):
+    # A mistyped $TOCABI_TORCHRL_ASSETS surfaced as "robot model file not found ... (pass an existing MJCF path, or
+    # None for the default)" to a caller who had passed None, naming neither the variable nor its value.
+    monkeypatch.setenv("TOCABI_TORCHRL_ASSETS", str(tmp_path / "asets"))
+    with pytest.raises(robot.RobotAssetError, match=r"\$TOCABI_TORCHRL_ASSETS is .*asets'.*holds no tocabi/ folder"):
+        robot.load_model()
+
+
 def test_missing_names_checks_a_spec_without_compiling(tmp_path):
     assert robot.missing_names(robot.load_spec()) == [] and robot.missing_names(robot.load_model()) == []
     text = robot.asset_path("tocabi", "tocabi.xml").read_text().replace('name="L_Knee_Motor"', 'name="Other_Motor"')

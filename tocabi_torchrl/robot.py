@@ -177,7 +177,14 @@ def _assets_root() -> Path:
     ``tocabi_torchrl/_assets`` (see ``pyproject.toml``). ``$TOCABI_TORCHRL_ASSETS`` overrides both.
     """
     if os.environ.get(_ASSET_ENV):
-        return Path(os.environ[_ASSET_ENV])
+        root = Path(os.environ[_ASSET_ENV])
+        # Said here, naming the variable: a mistyped folder surfaced as "robot model file not found ... (pass an
+        # existing MJCF path, or None for the default)" to a caller who had passed None.
+        if not (root / "tocabi").is_dir():
+            raise RobotAssetError(f"${_ASSET_ENV} is {str(root)!r}, which holds no tocabi/ folder; point it at the "
+                                  "folder that holds tocabi/tocabi.xml (and motions/), or unset it for the shipped "
+                                  "assets")
+        return root
     here = Path(__file__).resolve().parent
     for candidate in (here / "_assets", here.parent / "assets"):
         if (candidate / "tocabi").is_dir():
