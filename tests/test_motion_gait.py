@@ -381,6 +381,34 @@ def test_self_contacts_refuses_a_stride_that_is_not_a_positive_int(model, walk, 
         self_contacts(model, walk.joint_pos[:3], walk.base_pos[:3], every=every)
 
 
+def test_an_interrupted_plot_leaves_the_earlier_figure_whole(tmp_path, monkeypatch):
+    # The figure was drawn straight into its file: a run stopped while saving (regenerating the docs' figure with
+    # --overwrite) left half a PNG under its name.
+    from pathlib import Path
+
+    from matplotlib.figure import Figure
+
+    from tocabi_torchrl.motion.plot import plot_leg_joints
+
+    walk = load_npz(robot.asset_path("motions", "tocabi_walk.npz"))
+    png = tmp_path / "legs.png"
+    plot_leg_joints(walk, None, png, dpi=20)
+    earlier = png.read_bytes()
+    assert earlier[:4] == b"\x89PNG"
+
+    def stopped(self, fname, **kwargs):  # the first bytes are out, then Ctrl-C
+        if hasattr(fname, "write"):
+            fname.write(b"\x89PNG cut short")
+        else:
+            Path(fname).write_bytes(b"\x89PNG cut short")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Figure, "savefig", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        plot_leg_joints(walk, None, png, dpi=20)
+    assert png.read_bytes() == earlier, "the earlier figure was replaced by a cut-off one"
+
+
 def test_plotting_leaves_the_callers_matplotlib_backend_alone(tmp_path, walk):
     import matplotlib
 

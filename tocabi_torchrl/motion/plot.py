@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 
@@ -9,6 +10,7 @@ import numpy as np
 
 from tocabi_torchrl.robot import JOINT_NAMES
 
+from ..atomic import atomic_write_bytes
 from .io import MotionData
 from .schedule import DOUBLE_SUPPORT
 
@@ -54,5 +56,8 @@ def plot_leg_joints(
     fig.tight_layout()
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=dpi)
-    return out
+    # Rendered in memory, then written atomically: an interrupted run leaves the earlier figure (e.g. the docs' one,
+    # regenerated with --overwrite) whole, never half a PNG.
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format=out.suffix[1:].lower() or "png", dpi=dpi)
+    return atomic_write_bytes(out, buffer.getvalue())
