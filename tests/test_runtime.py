@@ -23,6 +23,7 @@ from reference_data import REFERENCE_DIR
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.runtime import ContractError, PolicyRuntime, RobotState, load_contract
+from tocabi_torchrl.runtime.contract import content_sha256
 
 POLICIES = ("ppo", "torque")
 #: Robots per side in the walking comparison (each its own 1e-6 perturbation of a chaotic gait).
@@ -167,6 +168,14 @@ def contract_copy(tmp_path):
 
 
 def _write(path, contract):
+    """Write ``contract`` to ``path`` with its ``content_sha256`` recomputed, as if exported so: the checks behind
+    the hash (which still guard a contract of version 1) see the edit. ``_write_edited`` keeps the exported hash."""
+    if isinstance(contract, dict) and "content_sha256" in contract:
+        contract = {**contract, "content_sha256": content_sha256(contract)}
+    return _write_edited(path, contract)
+
+
+def _write_edited(path, contract):
     path.write_text(json.dumps(contract))
     return path
 
@@ -634,6 +643,99 @@ def test_structurally_wrong_contracts_are_refused_on_load(change, message, contr
     path, c = contract_copy
     with pytest.raises(ContractError, match=message):
         load_contract(_write(path, _mutated(c, change)))
+
+
+def _nudged(dotted: str, factor: float = 1.0, offset: float = 0.0):
+    """An edit of a contract number ``dotted`` to number * factor + offset: a value every other check accepts."""
+    def change(c):
+        *parents, last = dotted.split(".")
+        node = c
+        for part in parents:
+            node = node[int(part)] if isinstance(node, list) else node[part]
+        key = int(last) if isinstance(node, list) else last
+        node[key] = node[key] * factor + offset
+
+    return change
+
+
+def _doubled_timing(c):
+    c["timing"].update(physics_dt_s=0.001, control_dt_s=0.008, control_hz=125.0)
+
+
+@pytest.mark.parametrize("name,change", [
+    ("ppo", _nudged("observation.normalization.mean.0", offset=0.01)),
+    ("ppo", _nudged("observation.normalization.mean.20", factor=1.5)),
+    ("ppo", _nudged("observation.normalization.scale.5", factor=1.5)),
+    ("ppo", _set("observation.normalization.clip", 5.0)),
+    ("ppo", _set("observation.entries.0.element", 1)),
+    ("ppo", _set("observation.history.obs_ages", [6, 8, 4, 2, 0])),
+    ("ppo", _nudged("action.leg.action_scale", factor=1.5)),
+    ("ppo", _nudged("action.leg.kp.3", factor=1.2)),
+    ("ppo", _nudged("action.leg.kv.3", factor=1.2)),
+    ("ppo", _nudged("action.leg.joint_range.3.0", offset=-0.01)),
+    ("ppo", _set("action.high.0", 0.5)),
+    ("ppo", _nudged("action.phase_rate.gain", factor=0.5)),
+    ("ppo", _nudged("upper_body.kp.0", factor=1.1)),
+    ("ppo", _nudged("robot.initial_qpos.2", offset=0.01)),
+    ("ppo", _doubled_timing),
+    ("ppo", _set("reference_motion.init_rows", [0, 1700])),
+    ("ppo", lambda c: c["policy"].update(onnx_sha256=load_contract(_contract("torque"))["policy"]["onnx_sha256"])),
+    ("torque", _nudged("action.leg.torque_limits_nm.0", factor=0.9)),
+], ids=["mean", "mean_factor", "scale", "clip", "entry_element", "obs_ages", "action_scale", "kp", "kv", "joint_range",
+        "action_high", "phase_gain", "upper_kp", "initial_qpos", "timing", "init_rows", "onnx_sha256", "torque_limit"])
+def test_a_contract_value_edited_after_export_is_refused(name, change, tmp_path):
+    # Each of these passes every other check and changes what the robot does (or, for onnx_sha256, pairs the
+    # statistics with another network): an edited or corrupted contract used to load without a word.
+    for suffix in (".json", ".onnx"):
+        shutil.copy(_contract(name).with_suffix(suffix), tmp_path / f"p{suffix}")
+    path = tmp_path / "p.json"
+    c = json.loads(path.read_text())
+    with pytest.raises(ContractError, match=r"p\.json: contract values changed after export: content_sha256 does not "
+                                            r"match .*re-export the policy"):
+        load_contract(_write_edited(path, _mutated(c, change)))
+    # The hash is what refuses it: with a fresh one the edit passes load_contract.
+    load_contract(_write(path, _mutated(c, change)))
+
+
+@pytest.mark.parametrize("name", ["ppo", "torque", "robust"])
+def test_an_untouched_contract_loads_whatever_its_layout_and_unhashed_fields(name, tmp_path):
+    # Indentation, key order, the recorded ONNX name and the sections the driver alone reads are not what the policy
+    # computes: they may differ from the export's file.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the shipped contracts are of the current version: no warning
+        shipped = load_contract(_contract(name))
+    assert shipped["contract_version"] == 2 and shipped["content_sha256"] == content_sha256(shipped)
+    shutil.copy(_contract(name).with_suffix(".onnx"), tmp_path / "p.onnx")
+    c = json.loads(_contract(name).read_text())
+    c["policy"]["onnx_file"] = "p.onnx"
+    c["termination"]["min_neck_height"] = 0.9
+    c.pop("trained_under")
+    path = tmp_path / "p.json"
+    path.write_text(json.dumps(dict(reversed(list(c.items()))), separators=(",", ":")))
+    runtime = PolicyRuntime(path)
+    assert runtime.contract["content_sha256"] == shipped["content_sha256"]
+
+
+def test_a_version_1_contract_loads_with_a_warning_and_version_2_needs_its_hash(contract_copy):
+    # Version 1 (exported before content_sha256) keeps loading, saying its values are unchecked; version 2 without
+    # its hash, or with one that is no sha256, is refused.
+    path, c = contract_copy
+    older = {k: v for k, v in c.items() if k != "content_sha256"}
+    older["contract_version"] = 1
+    with pytest.warns(UserWarning, match=r"p\.json: contract_version 1 has no content_sha256, so an edit of its "
+                                         r"values .* cannot be detected; re-export"):
+        runtime = PolicyRuntime(_write_edited(path, older))
+    current = PolicyRuntime(_contract("ppo"))
+    state = _robots(2, joint_vel=np.full((2, 33), 0.1))
+    assert np.array_equal(runtime.reset(state, (0.5, 0.0)).leg, current.reset(state, (0.5, 0.0)).leg)
+    with pytest.raises(ContractError, match=r"missing required key\(s\) \['content_sha256'\]"):
+        load_contract(_write_edited(path, {k: v for k, v in c.items() if k != "content_sha256"}))
+    with pytest.raises(ContractError, match="contract_version 1 has no content_sha256 .*the version was edited"):
+        load_contract(_write_edited(path, {**c, "contract_version": 1}))
+    with pytest.raises(ContractError, match="content_sha256 is 'abc', not a sha256"):
+        load_contract(_write_edited(path, {**c, "content_sha256": "abc"}))
 
 
 def test_a_missing_observation_signal_is_a_contract_error():

@@ -15,7 +15,8 @@ import mujoco
 import numpy as np
 
 from .. import __version__, robot
-from ..runtime.contract import CONTRACT_FORMAT, CONTRACT_VERSION, NORMALIZATION_KINDS, check_contract
+from ..runtime.contract import (CONTRACT_FORMAT, CONTRACT_VERSION, NORMALIZATION_KINDS, check_contract,
+                                content_sha256)
 from ..runtime.motion import file_sha256
 
 __all__ = ["SIGNAL_DOCS", "ExportError", "build_contract", "config_sha256", "sha256_bytes"]
@@ -185,7 +186,8 @@ def _upper_gains(model) -> dict[str, list[float]]:
 
 
 def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, output_name: str, opset: int) -> dict:
-    """The contract of a :class:`~tocabi_torchrl.export.onnx_export.LoadedPolicy` exported to ``onnx_file``."""
+    """The contract of a :class:`~tocabi_torchrl.export.onnx_export.LoadedPolicy` exported to ``onnx_file``, with its
+    ``content_sha256`` (:func:`~tocabi_torchrl.runtime.contract.content_sha256`)."""
     env = policy.env
     base = env.base_env
     cfg = base.cfg
@@ -266,5 +268,9 @@ def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, ou
                         "self_collision": bool(cfg.task.terminate_on_self_collision)},
         "trained_under": _trained_under(policy, cfg, model),
     }
+    # Beside the version, where a reader looks first: the hash of every value that sets the policy's input or action.
+    digest = content_sha256(contract)
+    head = {k: contract.pop(k) for k in ("format", "contract_version")}
+    contract = {**head, "content_sha256": digest, **contract}
     check_contract(contract, "exported contract")
     return contract

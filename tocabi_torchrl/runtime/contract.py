@@ -9,25 +9,36 @@ contract before loading anything else.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
 import re
 import struct
+import warnings
 from pathlib import Path
 
 from ..value_rules import (DELAY_APPLIED, ENV_RULES, NON_NEGATIVE, PUSH_KINDS, delay_grid_problem,
                            trained_under_problems)
 
-__all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ENV_FIELDS", "NORMALIZATION_KINDS", "REQUIRED_KEYS",
-           "RUNTIME_SIGNALS", "ContractError", "check_contract", "contract_beside", "exported_policy_kind",
-           "load_contract"]
+__all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ENV_FIELDS", "NORMALIZATION_KINDS", "READABLE_VERSIONS",
+           "REQUIRED_KEYS", "RUNTIME_SIGNALS", "UNHASHED_KEYS", "ContractError", "check_contract", "content_sha256",
+           "contract_beside", "exported_policy_kind", "load_contract"]
 
 #: ``format`` field of every contract.
 CONTRACT_FORMAT = "tocabi_torchrl.policy_contract"
-#: Layout version of the contract. Bump it when a field changes meaning; readers refuse other versions. An added
-#: optional section (``trained_under``) changes no field's meaning: older contracts without it still load.
-CONTRACT_VERSION = 1
+#: Layout version of the contract. Bump it when a field changes meaning; readers refuse versions they do not know. An
+#: added optional section (``trained_under``) changes no field's meaning: older contracts without it still load.
+#: Version 2 added ``content_sha256``, required from then on.
+CONTRACT_VERSION = 2
+#: Versions this reader loads: a version 1 contract (exported before ``content_sha256`` existed) loads with a warning
+#: that its values are not covered by a hash.
+READABLE_VERSIONS = (1, 2)
+#: What ``content_sha256`` leaves out (dotted paths): the hash itself; ``policy.onnx_file``, a name only (the file's
+#: bytes are bound by ``policy.onnx_sha256``, which is covered, and a pair may be renamed); and the sections that set
+#: what the sim-to-sim driver measures and randomises, not the policy's action (``termination``, ``trained_under``).
+#: Everything else is covered: every value the runtime or a controller applies to compute or apply the action.
+UNHASHED_KEYS: tuple[str, ...] = ("content_sha256", "policy.onnx_file", "termination", "trained_under")
 
 #: Top-level keys and the nested keys the runtime relies on (``"a.b"`` = key ``b`` of section ``a``).
 REQUIRED_KEYS: tuple[str, ...] = (
@@ -120,7 +131,8 @@ class ContractError(ValueError):
 def load_contract(path: str | os.PathLike) -> dict:
     """Read and check the contract JSON at ``path``; raises :class:`ContractError` naming the file and the problem.
 
-    The file must be standard JSON: ``NaN``/``Infinity`` (which Python's json module would accept) are refused."""
+    The file must be standard JSON: ``NaN``/``Infinity`` (which Python's json module would accept) are refused. A
+    contract of version 1 (no ``content_sha256``) loads with a ``UserWarning``: its values are not covered by a hash."""
     path = Path(path)
     if not path.is_file():
         raise ContractError(f"policy contract not found: {path} (export one with `python -m tocabi_torchrl.export`)")
@@ -154,6 +166,10 @@ def load_contract(path: str | os.PathLike) -> dict:
                             "contract again from where it was exported, or re-export the policy with `python -m "
                             "tocabi_torchrl.export` (it writes the .onnx and its .json together)") from err
     check_contract(contract, str(path))
+    if contract["contract_version"] == 1:
+        warnings.warn(f"{path}: contract_version 1 has no content_sha256, so an edit of its values (normalisation "
+                      "statistics, gains, action scale, ...) cannot be detected; re-export the policy with `python -m "
+                      "tocabi_torchrl.export` to get a contract whose values are checked", UserWarning, stacklevel=2)
     return contract
 
 
@@ -239,6 +255,28 @@ def _get(contract: dict, dotted: str):
     return node
 
 
+def _covered(node: dict, left_out: tuple[str, ...]) -> dict:
+    """``node`` without the dotted paths ``left_out`` (relative to it)."""
+    out = {}
+    for key, value in node.items():
+        if key in left_out:
+            continue
+        inner = tuple(p[len(key) + 1 :] for p in left_out if p.startswith(f"{key}."))
+        out[key] = _covered(value, inner) if inner and isinstance(value, dict) else value
+    return out
+
+
+def content_sha256(contract: dict) -> str:
+    """sha256 of the contract's values that set the policy's input and action: every field but
+    :data:`UNHASHED_KEYS`, as canonical JSON (sorted keys, no spaces, ASCII, each number as Python's ``json``
+    writes it: the shortest text that reads back as the same double). A contract read back from its file gives the
+    hash it was written with, whatever its indentation or key order."""
+    # NaN is allowed here only so that the export reaches its own refusal of a non-finite value (a contract file
+    # never holds one: load_contract refuses it first).
+    text = json.dumps(_covered(contract, UNHASHED_KEYS), sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode("ascii")).hexdigest()
+
+
 def check_contract(contract, source: str = "contract") -> None:
     """Check a contract's format, version, keys and internal consistency; raises :class:`ContractError` saying what
     is wrong and how to fix it.
@@ -254,19 +292,24 @@ def check_contract(contract, source: str = "contract") -> None:
     gains >= 0; the optional ``robot.actuator_names`` (one distinct name per joint) and ``policy.opset`` (an
     integer >= 1) when given. The optional ``trained_under`` section (what the policy was trained under; a contract
     without it states nothing and loads as before) by ``value_rules.trained_under_problems``, its delay in ms
-    against its substeps, and no actuator stages in the PD modes."""
+    against its substeps, and no actuator stages in the PD modes. Last, ``content_sha256`` (version 2 on) against
+    the values it covers (:func:`content_sha256`): a value edited after export is refused, whatever it is."""
     if not isinstance(contract, dict):
         raise ContractError(f"{source}: a policy contract is a JSON object, got {type(contract).__name__}")
     if contract.get("format") != CONTRACT_FORMAT:
         raise ContractError(f"{source}: format is {contract.get('format')!r}, expected {CONTRACT_FORMAT!r} (not a "
                             "tocabi-torchrl policy contract?)")
     version = contract.get("contract_version")
-    if isinstance(version, bool) or version != CONTRACT_VERSION:  # True == 1 in Python
-        raise ContractError(f"{source}: contract_version {version!r} is not supported; this runtime reads version "
-                            f"{CONTRACT_VERSION}. Re-export the policy with this package version, or use the "
-                            "tocabi-torchrl version that wrote it")
+    if isinstance(version, bool) or version not in READABLE_VERSIONS:  # True == 1 in Python
+        readable = ", ".join(map(str, READABLE_VERSIONS))
+        raise ContractError(f"{source}: contract_version {version!r} is not supported; this runtime reads versions "
+                            f"{readable}. Re-export the policy with this package version, or use the tocabi-torchrl "
+                            "version that wrote it")
+    if version == 1 and "content_sha256" in contract:
+        raise ContractError(f"{source}: contract_version 1 has no content_sha256 (version 2 added it): the version "
+                            f"was edited; {_FIX}")
     missing = []
-    for key in REQUIRED_KEYS:
+    for key in (*REQUIRED_KEYS, *(("content_sha256",) if version >= 2 else ())):
         try:
             _get(contract, key)
         except KeyError:
@@ -275,12 +318,27 @@ def check_contract(contract, source: str = "contract") -> None:
         raise ContractError(f"{source}: missing required key(s) {missing}; re-export the policy")
     _check_unknown_keys(contract, source)
     _check_consistency(contract, source)
+    if version >= 2:
+        _check_content_hash(contract, source)
+
+
+def _check_content_hash(contract: dict, source: str) -> None:
+    """Refuse a contract whose ``content_sha256`` is not that of its values: every other check passes a plausible
+    edit (a normalisation mean, a gain, an action scale), which would silently change what the robot does."""
+    _sha256(contract["content_sha256"], "content_sha256", source)
+    if contract["content_sha256"] != content_sha256(contract):
+        raise ContractError(f"{source}: contract values changed after export: content_sha256 does not match the "
+                            "values it covers (everything that sets the policy's input or action: normalisation "
+                            "statistics, action bounds, scale and gains, joint order, history, timing, motion; all but "
+                            f"{', '.join(UNHASHED_KEYS[1:])}). The file was edited or corrupted: copy the contract "
+                            "again from where it was exported, or re-export the policy with `python -m "
+                            "tocabi_torchrl.export` (it writes the .onnx and its .json together)")
 
 
 def _check_unknown_keys(contract: dict, source: str) -> None:
     """Refuse a key no export writes in a section the runtime reads: a misspelt optional key (``self_colision``)
     would be ignored without a word."""
-    known = {*REQUIRED_KEYS, *OPTIONAL_KEYS}
+    known = {*REQUIRED_KEYS, *OPTIONAL_KEYS, "content_sha256"}
     sections = {""} | {key.rsplit(".", 1)[0] for key in known if "." in key} - {"action.leg"}
     for section in sorted(sections):
         node = contract if not section else _get(contract, section)
