@@ -9,8 +9,9 @@ skrl is this project's fourth library rather than rl_games: it is pure PyTorch o
 env's device tensors as they are, where rl_games builds on the unmaintained ``gym`` package and its own env
 registry. Hyper-parameters mirror the TorchRL ``default`` preset (48-step rollouts, 5 epochs, mini-batches of
 49,152 at 4,096 envs, gamma 0.995, lambda 0.95, KL-adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks
-initialised as the preset's, time-limit bootstrapping); the std is learned from 0.2. Writes skrl's own logs and
-checkpoints under <out>/skrl, the policy as <out>/policy.pt (tensors only) and the gait test under <out>/eval/.
+initialised as the preset's, time-limit bootstrapping from the ended episode's last observation); the std is learned
+from 0.2. Writes skrl's own logs and checkpoints under <out>/skrl, the policy as <out>/policy.pt (tensors only) and
+the gait test under <out>/eval/.
 
 ``--resume`` continues the run in ``--out`` from skrl's agent checkpoint of its previous call (``--max_minutes``
 caps the total training time over all calls):
@@ -109,6 +110,25 @@ def make_models(observation_space, action_space, device, hidden: tuple[int, ...]
     return {"policy": Policy().to(device), "value": Value().to(device)}
 
 
+def time_limit_ppo():
+    """skrl's PPO, bootstrapping a time-out from the value of the ended episode's last observation.
+
+    With ``time_limit_bootstrap`` skrl adds ``discount · V(next_observations)`` to a truncated step's reward. An
+    autoresetting env (this one, as Isaac Lab's) returns the next episode's first observation there, so skrl's own
+    PPO bootstrapped from the value of an unrelated start. This one takes that value from ``infos["final_obs"]``
+    (num_envs, 237), where the episode ran out of time, and keeps ``next_observations`` as the observation acted on
+    next (the rollout's last value is taken from it)."""
+    from skrl.agents.torch.ppo import PPO
+
+    class TimeLimitPPO(PPO):
+        def record_transition(self, *, next_observations, infos, **kwargs):
+            super().record_transition(next_observations=infos["final_obs"], infos=infos, **kwargs)
+            if self.training:
+                self._current_next_observations = next_observations
+
+    return TimeLimitPPO
+
+
 def main(argv=None) -> dict:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -118,7 +138,7 @@ def main(argv=None) -> dict:
                      "normalises the rollout's advantages)")
     # The adapter checks the installed skrl version before any of skrl's own modules is imported.
     TocabiSkrlEnv = adapter("TocabiSkrlEnv")
-    from skrl.agents.torch.ppo import PPO, PPO_CFG
+    from skrl.agents.torch.ppo import PPO_CFG
     from skrl.memories.torch import RandomMemory
     from skrl.resources.schedulers.torch import KLAdaptiveLR
     from skrl.trainers.torch import SequentialTrainer
@@ -147,8 +167,8 @@ def main(argv=None) -> dict:
         experiment={"directory": str(out / "skrl"), "experiment_name": "ppo" if calls == 0 else fresh_dir(out / "skrl" / f"ppo_call{calls + 1}").name,
                     "write_interval": args.rollouts, "checkpoint_interval": 100 * args.rollouts})
     memory = RandomMemory(memory_size=args.rollouts, num_envs=env.num_envs, device=env.device)
-    agent = PPO(models=models, memory=memory, observation_space=env.observation_space,
-                action_space=env.action_space, device=env.device, cfg=cfg)
+    agent = time_limit_ppo()(models=models, memory=memory, observation_space=env.observation_space,
+                             action_space=env.action_space, device=env.device, cfg=cfg)
     done_before = int(prior.get("iterations", 0))
     if prior:
         # skrl's own load of its own save: policy (with its learned std), value and Adam, whose param groups hold

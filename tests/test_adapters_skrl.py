@@ -150,3 +150,40 @@ def test_resume_of_the_top_seed(tmp_path):
              "--eval_envs", "0", "--seed", str(2 ** 32 - 1)]
     recipe.main([*small, "--iterations", "1"])
     assert recipe.main([*small, "--iterations", "2", "--resume"])["train"]["iterations"] == 2
+
+
+def test_recipe_bootstraps_a_time_out_from_the_ended_episodes_last_observation(tmp_path, monkeypatch):
+    # skrl's time_limit_bootstrap adds discount * V(next_observations), which the autoresetting env returns as the
+    # next episode's first observation; the recipe's agent takes V of infos["final_obs"], the state where time ran
+    # out, and still acts on (and takes the rollout's last value from) next_observations.
+    from skrl.trainers.torch.base import Trainer
+
+    recipe = load_recipe("train_skrl")
+    built = {}
+
+    def spy(self):
+        built["agent"], built["env"] = self.agents, self.env
+        raise _Stop  # the agent as main() builds it, in training mode, before any step
+
+    monkeypatch.setattr(Trainer, "train", spy)
+    with pytest.raises(_Stop):
+        recipe.main(["--out", str(tmp_path / "run"), "--device", "cpu", "--num_envs", "2", "--rollouts", "4",
+                     "--hidden", "8", "--eval_envs", "0", "--iterations", "1"])
+    agent, env = built["agent"], built["env"]
+    try:
+        obs, _ = env.reset()
+        agent.act(obs, None, timestep=0, timesteps=4)
+        generator = torch.Generator().manual_seed(0)
+        next_obs, final_obs = (torch.randn(N, 237, generator=generator) for _ in range(2))
+        truncated = torch.tensor([[True], [False]])
+        agent.record_transition(observations=obs, states=None, actions=torch.zeros(N, 13), rewards=torch.ones(N, 1),
+                                next_observations=next_obs, next_states=None, terminated=torch.zeros(N, 1, dtype=bool),
+                                truncated=truncated, infos={"final_obs": final_obs, "_final_obs": truncated[:, 0]},
+                                timestep=0, timesteps=4)
+        with torch.no_grad():
+            value = agent.value.act({"observations": final_obs, "states": None}, role="value")[0]
+        stored = agent.memory.get_tensor_by_name("rewards")[0]
+        torch.testing.assert_close(stored, torch.ones(N, 1) + 0.995 * value * truncated)
+        assert agent._current_next_observations is next_obs
+    finally:
+        env.close()
