@@ -243,7 +243,7 @@ def test_resume_loads_only_a_state_the_recipe_wrote(tmp_path):
     written = write_resume(out, b"state bytes", COUNTERS)
     assert read_resume(out)["state"] == "resume/state_call1.pt" and written.read_bytes() == b"state bytes"
     (tmp_path / "crafted.pt").write_bytes(b"not ours")
-    for state in ("../crafted.pt", str(tmp_path / "crafted.pt"), "resume/missing.pt"):
+    for state in ("../crafted.pt", str(tmp_path / "crafted.pt")):
         (out / "resume.json").write_text(json.dumps({**COUNTERS, "state": state}))
         with pytest.raises(SystemExit, match="a resume loads only a state this recipe wrote"):
             read_resume(out)
@@ -265,6 +265,17 @@ def test_resume_loads_only_a_state_the_recipe_wrote(tmp_path):
     for torch_state in (False, True):
         with pytest.raises(SystemExit, match="is damaged: entry .* fails its CRC-32 check"):
             read_resume(out, torch_state=torch_state)
+
+
+def test_a_missing_resume_state_is_named_as_missing(tmp_path):
+    # A state file deleted, or not copied with the run folder, was reported as one from outside resume/.
+    out = tmp_path / "run"
+    out.mkdir()
+    write_resume(out, b"state bytes", COUNTERS)
+    (out / "resume" / "state_call1.pt").unlink()
+    with pytest.raises(SystemExit, match=r"names 'resume/state_call1\.pt' as its state file, but .*state_call1\.pt "
+                                         r"is missing; restore it \(copy the whole run folder\) or start a new --out"):
+        read_resume(out)
 
 
 def test_training_clock_saves_snapshots_and_stops(tmp_path):

@@ -198,9 +198,12 @@ def read_resume(out: Path, torch_state: bool = False) -> dict:
         if not ok(prior[name]):
             raise SystemExit(f"error: {path} has {name}={prior[name]!r}, which must be {kind}; {fix}")
     state = (out / prior["state"]).resolve()
-    if state.parent != (out / "resume").resolve() or not state.is_file():
+    if state.parent != (out / "resume").resolve():
         raise SystemExit(f"error: {path} names {prior['state']!r} as its state file; a resume loads only a state this "
                          f"recipe wrote into {out / 'resume'}/ (start a new --out instead)")
+    if not state.is_file():  # deleted, or left behind when the run folder was copied
+        raise SystemExit(f"error: {path} names {prior['state']!r} as its state file, but {state} is missing; restore "
+                         f"it (copy the whole run folder) or start a new --out")
     from ..integrity import zip_damage
 
     damage = zip_damage(state)
