@@ -57,6 +57,7 @@ if __name__ == "__main__":  # --help or a misspelt option answers before torch a
 import torch  # noqa: E402
 
 from tocabi_torchrl.adapters.evaluate import evaluate_policy_file  # noqa: E402
+from tocabi_torchrl.atomic import atomic_write_bytes  # noqa: E402
 from tocabi_torchrl.adapters.policy_file import (  # noqa: E402
     action_bounds,
     load_network,
@@ -268,7 +269,8 @@ def main(argv=None) -> dict:
     def save_sb3_zip(tag: str) -> None:  # SB3's own zip, for SB3's tools only: a resume never reads it
         buffer = io.BytesIO()
         model.save(buffer)
-        keep_previous(out / "sb3_model.zip", tag).write_bytes(buffer.getvalue())
+        # Atomic, as the call's other files: a call killed (or a disk full) mid-write leaves no zip cut short.
+        atomic_write_bytes(keep_previous(out / "sb3_model.zip", tag), buffer.getvalue())
 
     result = finish_call(out, args, meta, settings, training_state(model), save, evaluate, interrupted,
                          also_save=save_sb3_zip)

@@ -274,6 +274,34 @@ def test_recipe_trains_two_iterations_with_the_reference_schedule(tmp_path):
     torch.testing.assert_close(act(obs), model.policy._predict(obs, deterministic=True))
 
 
+def test_the_sb3_zip_is_written_atomically(tmp_path, monkeypatch):
+    # A write that fails part way (a disk full here, a killed call alike) left a zip cut short under the name SB3's
+    # tools load; written atomically, no sb3_model.zip appears and the resume point the call wrote first stays.
+    import resource
+
+    recipe = load_recipe("train_sb3")
+    finish_call = recipe.finish_call
+
+    def disk_full_for_the_zip(*args, also_save, **kwargs):
+        def limited(tag):
+            soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+            resource.setrlimit(resource.RLIMIT_FSIZE, (1000, hard))  # Python ignores SIGXFSZ: writes fail EFBIG
+            try:
+                also_save(tag)
+            finally:
+                resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+
+        return finish_call(*args, also_save=limited, **kwargs)
+
+    monkeypatch.setattr(recipe, "finish_call", disk_full_for_the_zip)
+    out = tmp_path / "run"
+    with pytest.raises(OSError):
+        recipe.main(["--out", str(out), "--device", "cpu", "--num_envs", "2", "--iterations", "1", "--n_steps", "4",
+                     "--batch_size", "4", "--hidden", "8", "--eval_envs", "0"])
+    assert not (out / "sb3_model.zip").exists() and not list(out.glob("*.tmp"))
+    assert read_resume(out)["calls"] == 1 and load_policy(out / "policy.pt", "sb3")
+
+
 def test_recipe_resumes_the_same_run_and_its_schedules(tmp_path):
     # The first call's time is up after one of two iterations; a resumed call trains the second: counters are
     # cumulative, the second call starts from the first call's weights and Adam state, and the schedules' position
