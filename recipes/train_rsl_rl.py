@@ -211,7 +211,8 @@ def main(argv=None) -> dict:
     if prior:
         # rsl_rl's own load: actor, critic, optimizer (with the adaptive learning rate in its param groups) and the
         # iteration counter, which we set to the number of completed updates so the next one gets a new index.
-        runner.load(str(out / prior["state"]), map_location=str(env.device))
+        # The bytes read_resume checked (tensors only), not the file again: rsl_rl's load unpickles what it reads.
+        runner.load(io.BytesIO(prior["state_bytes"]), map_location=str(env.device))
         runner.current_learning_iteration = done_before
     updates = [0]
     update = runner.alg.update

@@ -173,7 +173,8 @@ def main(argv=None) -> dict:
     if prior:
         # skrl's own load of its own save: policy (with its learned std), value and Adam, whose param groups hold
         # the KL-adaptive learning rate; the scheduler keeps no other state.
-        agent.load(str(out / prior["state"]))
+        # The bytes read_resume checked (tensors only), not the file again: skrl's load unpickles what it reads.
+        agent.load(io.BytesIO(prior["state_bytes"]))
     updates = [0]
     update = agent.update
 

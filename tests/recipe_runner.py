@@ -1,5 +1,6 @@
 """Loads a recipe script (``recipes/<name>.py``, or one of the lab's tools in :data:`LAB_SCRIPTS`) as a fresh module,
-for the tests that run it, and checks that a recipe's networks start as the preset's."""
+for the tests that run it, checks that a recipe's networks start as the preset's, and gives the tests of its resume a
+pickled object that runs code (:class:`TouchMarker`)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,19 @@ def load_recipe(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+class TouchMarker:
+    """Unpickled, runs ``touch <marker>``: what a crafted state file would do if a resume unpickled it."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        import os
+        import shlex
+
+        return os.system, (f"touch {shlex.quote(self.marker)}",)
 
 
 def assert_preset_init(net: torch.nn.Module, out_gain: float, num_layers: int = 4) -> None:

@@ -10,7 +10,7 @@ import torch
 
 pytest.importorskip("rsl_rl")
 
-from recipe_runner import assert_preset_init, load_recipe
+from recipe_runner import TouchMarker, assert_preset_init, load_recipe
 from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
@@ -352,3 +352,23 @@ def test_a_sigterm_saves_the_call_and_resume_continues(tmp_path, monkeypatch, ca
     monkeypatch.setattr(recipe, "TrainingClock", real_clock)
     second = recipe.main([*small, "--resume"])["train"]  # seed 2**32 - 1 + 1 wraps to 0
     assert (second["iterations"], second["env_steps"], second["calls"]) == (2, 20, 2)
+
+
+def test_resume_loads_the_state_it_checked_not_a_file_replaced_after(tmp_path, monkeypatch):
+    # The state file was checked (tensors only) before the env was built and read again by rsl_rl's unpickling load
+    # after: a file replaced in between ran its code. The library now loads the bytes that were checked.
+    recipe = load_recipe("train_rsl_rl")
+    out, marker = tmp_path / "run", tmp_path / "ran"
+    small = ["--out", str(out), "--device", "cpu", "--num_envs", "2", "--steps_per_env", "4", "--hidden", "8",
+             "--eval_envs", "0"]
+    recipe.main([*small, "--iterations", "1"])
+    read_resume = recipe.read_resume
+
+    def checked_then_replaced(*a, **k):
+        prior = read_resume(*a, **k)
+        torch.save({"iter": 1, "payload": TouchMarker(marker)}, out / prior["state"])
+        return prior
+
+    monkeypatch.setattr(recipe, "read_resume", checked_then_replaced)
+    second = recipe.main([*small, "--iterations", "2", "--resume"])["train"]
+    assert not marker.exists() and second["iterations"] == 2

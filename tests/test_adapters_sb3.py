@@ -13,7 +13,7 @@ import torch
 pytest.importorskip("stable_baselines3")
 
 from host_reads import HostReads, counting_reads, crafted_step_result
-from recipe_runner import load_recipe
+from recipe_runner import TouchMarker, load_recipe
 from stable_baselines3.common.utils import check_for_correct_spaces
 from stable_baselines3.common.vec_env import VecCheckNan, VecEnv, VecMonitor
 
@@ -393,19 +393,6 @@ def test_an_interrupted_call_saves_its_resume_state_and_resumes(tmp_path, monkey
     assert second["train"]["sb3_num_timesteps"] == 16 and "interrupted" not in second
 
 
-class _TouchMarker:
-    """Unpickled, runs ``touch <marker>``: what a crafted resume state would do if a resume unpickled it."""
-
-    def __init__(self, marker):
-        self.marker = str(marker)
-
-    def __reduce__(self):
-        import os
-        import shlex
-
-        return os.system, (f"touch {shlex.quote(self.marker)}",)
-
-
 def _sb3_zip_with_payload(zip_path, payload) -> bytes:
     # SB3's own zip with its "data" entry's ep_success_buffer replaced by a serialized object, as SB3 writes one
     # (base64 of a pickle), which SB3's load unpickles.
@@ -439,10 +426,10 @@ def test_resume_refuses_a_crafted_state_file_without_running_it(tmp_path, kind):
     recipe.main(small)
     state = out / "resume" / "state_call1.pt"
     if kind == "sb3_zip":
-        state.write_bytes(_sb3_zip_with_payload(out / "sb3_model.zip", _TouchMarker(marker)))
+        state.write_bytes(_sb3_zip_with_payload(out / "sb3_model.zip", TouchMarker(marker)))
         expected = r"is a Stable-Baselines3 zip.*start a new --out"
     else:
-        torch.save({"num_timesteps": _TouchMarker(marker), "policy": {}}, state)
+        torch.save({"num_timesteps": TouchMarker(marker), "policy": {}}, state)
         expected = r"does not load as tensors only.*start a new --out"
     with pytest.raises(SystemExit, match=expected) as refused:
         recipe.main([*small, "--resume"])

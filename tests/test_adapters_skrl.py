@@ -10,7 +10,7 @@ import torch
 
 pytest.importorskip("skrl")
 
-from recipe_runner import assert_preset_init, load_recipe
+from recipe_runner import TouchMarker, assert_preset_init, load_recipe
 from skrl.envs.wrappers.torch.base import Wrapper
 
 from tocabi_torchrl.adapters import TocabiSkrlEnv
@@ -187,3 +187,23 @@ def test_recipe_bootstraps_a_time_out_from_the_ended_episodes_last_observation(t
         assert agent._current_next_observations is next_obs
     finally:
         env.close()
+
+
+def test_resume_loads_the_state_it_checked_not_a_file_replaced_after(tmp_path, monkeypatch):
+    # The state file was checked (tensors only) before the env was built and read again by skrl's unpickling load
+    # after: a file replaced in between ran its code. The agent now loads the bytes that were checked.
+    recipe = load_recipe("train_skrl")
+    out, marker = tmp_path / "run", tmp_path / "ran"
+    small = ["--out", str(out), "--device", "cpu", "--num_envs", "2", "--rollouts", "2", "--hidden", "8",
+             "--eval_envs", "0"]
+    recipe.main([*small, "--iterations", "1"])
+    read_resume = recipe.read_resume
+
+    def checked_then_replaced(*a, **k):
+        prior = read_resume(*a, **k)
+        torch.save({"policy": TouchMarker(marker)}, out / prior["state"])
+        return prior
+
+    monkeypatch.setattr(recipe, "read_resume", checked_then_replaced)
+    second = recipe.main([*small, "--iterations", "2", "--resume"])["train"]
+    assert not marker.exists() and second["iterations"] == 2

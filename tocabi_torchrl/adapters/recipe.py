@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import json
 import math
 import sys
@@ -182,7 +183,10 @@ def read_resume(out: Path, torch_state: bool = False) -> dict:
     an existing file inside ``<out>/resume/``, or ``SystemExit`` says so (a resume.json pointing elsewhere is
     refused before anything is loaded). ``torch_state``: the file is a torch checkpoint (rsl_rl's, skrl's), and it
     must load with ``torch.load(weights_only=True)`` (tensors and plain containers only), so the library's own
-    unpickling loader then meets nothing that could run code."""
+    unpickling loader then meets nothing that could run code. The file is read once: with ``torch_state`` the
+    returned dict also holds ``state_bytes``, the bytes checked, which the recipe hands to the library's loader
+    (``io.BytesIO``) instead of the path, so that a file replaced after the check (the env takes a while to build)
+    is never unpickled."""
     out = Path(out)
     path = out / "resume.json"
     fix = "restore the file this recipe wrote, or start a new --out"
@@ -206,17 +210,19 @@ def read_resume(out: Path, torch_state: bool = False) -> dict:
                          f"it (copy the whole run folder) or start a new --out")
     from ..integrity import zip_damage
 
-    damage = zip_damage(state)
+    data = state.read_bytes()
+    damage = zip_damage(io.BytesIO(data))
     if damage is not None:  # bits changed on disk or in a copy: torch.load would read other weights silently
         raise SystemExit(f"error: {state} is damaged: {damage}; restore the file from a copy or start a new --out")
     if torch_state:
         import torch
 
         try:
-            torch.load(state, map_location="cpu", weights_only=True)
+            torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
         except Exception as err:  # any refusal means the file is not what this recipe wrote
             raise SystemExit(f"error: {state} does not load as tensors only ({type(err).__name__}: {err}); a resume "
                              "never unpickles other objects (start a new --out instead)") from err
+        return {**prior, "state_bytes": data}
     return prior
 
 
