@@ -160,7 +160,7 @@ def main(argv: list[str] | None = None) -> None:
         args.num_envs = args.num_envs or TESTS["standard"]
         summary = evaluate_run(args.checkpoint, num_envs=args.num_envs, device=args.device, seconds=args.seconds,
                                command=(args.vx, args.vy), video_envs=min(args.video_envs, args.num_envs),
-                               out_dir=out)
+                               out_dir=out, replace=args.overwrite)  # without it eval_out_dir refused earlier results
     except (ValueError, RuntimeError, ImportError) as err:  # a bad or diverged checkpoint, --out with results, short
         # --seconds, the device, no matplotlib
         sys.exit(f"error: {err}")

@@ -573,6 +573,24 @@ def test_a_negative_video_size_and_a_file_as_results_folder_are_refused_before_a
         evaluate_robust_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.1, out_dir=afile)
 
 
+def test_evaluate_run_replaces_an_earlier_summary_only_when_asked(tmp_path):
+    # evaluate_run(out_dir=...) replaced a folder's earlier summary.json without a word.
+    from tocabi_torchrl.evaluation.gait_test import evaluate_run
+    from tocabi_torchrl.evaluation.output import OutputExistsError
+
+    out = tmp_path / "e"
+    out.mkdir()
+    (out / "summary.json").write_text('{"earlier": true}')
+    with pytest.raises(OutputExistsError, match=r"e/summary.json holds an earlier evaluation's results; nothing was "
+                                                r"overwritten. Pass replace=True"):
+        evaluate_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.02, video_envs=0, out_dir=out,
+                     progress=False)
+    assert (out / "summary.json").read_text() == '{"earlier": true}'
+    summary = evaluate_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.02, video_envs=0, out_dir=out,
+                           progress=False, replace=True)
+    assert json.loads((out / "summary.json").read_text())["num_envs"] == summary["num_envs"] == 1
+
+
 def test_ctrl_c_in_a_checkpoint_viewer_exits_130_while_loading_or_serving(monkeypatch, capsys):
     # Serving, Ctrl-C printed "viewer stopped" and exited 0; while loading it was a 67-line traceback.
     import tocabi_torchrl.viewer.play as viewer_play

@@ -203,8 +203,9 @@ def gait(library: str, snapshot: str, out: Path, args, command) -> dict:
     if library == "torchrl":
         from tocabi_torchrl.evaluation.gait_test import evaluate_run
 
+        # replace: a command whose test a killed call left unrecorded is tested again into its own folder
         return evaluate_run(snapshot, num_envs=args.eval_envs, device=args.device, out_dir=out, command=command,
-                            video_envs=0, progress=False, seconds=args.eval_seconds)
+                            video_envs=0, progress=False, seconds=args.eval_seconds, replace=True)
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(f"train_{library}", ROOT / f"recipes/train_{library}.py")

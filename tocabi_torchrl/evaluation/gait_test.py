@@ -38,7 +38,8 @@ from .record import (KNEES, GaitMetrics, first_action, fixed_command, load_polic
 from .video import render_video
 
 __all__ = ["check_env_command", "evaluate_policy", "evaluate_run", "default_eval_dir", "fresh_eval_dir",
-           "eval_out_dir", "policy_dt", "summary_json", "GAIT_CRITERIA", "ROBUST_CRITERIA", "gait_passes", "tested_on"]
+           "eval_out_dir", "policy_dt", "summary_json", "RESULT_FILES", "GAIT_CRITERIA", "ROBUST_CRITERIA",
+           "gait_passes", "tested_on"]
 
 #: Pass thresholds of the gait test at (0.5, 0) m/s (issue 19): a policy walks when its summary meets all of them
 #: (and, in the time-to-walk benchmark, keeps ``survival`` at (0.2, 0) and (0.7, 0.1) too).
@@ -194,14 +195,26 @@ def evaluate_policy(
     return summary
 
 
+#: The files a standard gait test writes into its folder (:func:`evaluate_policy`, :func:`.video.render_video`).
+RESULT_FILES = ("summary.json", "knees.png", "walk.mp4", "walk.gif", "walk_frame.png")
+
+
 def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "auto",
-                 out_dir: str | os.PathLike | None = None, **kwargs) -> dict:
-    """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``out_dir`` as given (files of
-    the same name replaced), or by default to :func:`fresh_eval_dir` (``<run>/eval/``, or ``eval_2/``, ... when
-    earlier results are there). Raises ``CheckpointError`` for a bad file and ``ValueError`` for ``seconds`` below
-    one policy step, ``video_envs`` below 0 or an ``out_dir`` that is a file, before building anything."""
+                 out_dir: str | os.PathLike | None = None, replace: bool = False, **kwargs) -> dict:
+    """Load ``run`` (a run folder or checkpoint file) and evaluate it; results go to ``out_dir`` as given, or by
+    default to :func:`fresh_eval_dir` (``<run>/eval/``, or ``eval_2/``, ... when earlier results are there). An
+    ``out_dir`` that already holds a test's results (:data:`RESULT_FILES`) raises
+    :class:`~.output.OutputExistsError` unless ``replace`` (then files of the same name are replaced, others stay).
+    Raises ``CheckpointError`` for a bad file and ``ValueError`` for ``seconds`` below one policy step,
+    ``video_envs`` below 0 or an ``out_dir`` that is a file, before building anything."""
     if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ValueError(f"out_dir {out_dir} is a file, not a folder: give a folder for the results")
+    held = [] if out_dir is None or replace else [Path(out_dir) / n for n in RESULT_FILES]
+    held = [path for path in held if path.exists()]
+    if held:
+        raise OutputExistsError(f"{held[0]} holds an earlier evaluation's results; nothing was overwritten. Pass "
+                                "replace=True to replace the files of the same name, another out_dir, or none (a "
+                                "fresh eval/, eval_2/, ... folder)")
     if "video_envs" in kwargs:
         check_video_envs(kwargs["video_envs"])
     ckpt = checkpoint_file(run)
