@@ -297,6 +297,37 @@ def test_every_control_mode_exports(tmp_path):
     assert torque["kind"] == "torque" and torque["torque_limits_nm"] == pytest.approx(list(robot.LEG_TORQUE_LIMITS))
 
 
+def test_export_warns_for_a_checkpoint_saved_while_the_torque_assist_was_on(tmp_path):
+    # A checkpoint saved mid-fade exported without a word, though its policy trained with assist torque added to its
+    # leg torques that the exported policy never gets.
+    import warnings
+
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.export.onnx_export import export_policy
+    from tocabi_torchrl.rl.checkpoint import save_checkpoint
+    from tocabi_torchrl.rl.trainer import assist_schedule, build_agent, build_env
+
+    cfg = preset_config("default", **{"env.control.mode": "torque", "env.num_envs": 1, "ppo.minibatch_size": 48,
+                        "ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,), "ppo.torque_assist": 1.0,
+                        "ppo.assist_fade_start": 1000, "ppo.assist_fade_end": 3000}, device="cpu")
+    env = build_env(cfg, torch.device("cpu"), num_envs=1)
+    agent = build_agent(cfg, 237, 13, torch.device("cpu"))
+    beta = assist_schedule(cfg, env)(2000)
+    assert 0 < beta < 1
+    fading = save_checkpoint(tmp_path / "fading", 1, 2000, agent, None, env, cfg)
+    said = (r"saved at 2,000 env steps, while the torque assist was still on: "
+            rf"β = {beta:.3f} \(it fades from 1 at 1,000 to 0 at 3,000 env steps\).*export a checkpoint saved after "
+            r"3,000 env steps")
+    with pytest.warns(UserWarning, match=said) as recorded:
+        result = export_policy(fading, tmp_path / "fading.onnx")
+    assert [type(w.message).__name__ for w in recorded if "torque assist" in str(w.message)] == ["AssistFadeWarning"]
+    assert result.assist == pytest.approx(beta)
+    faded = save_checkpoint(tmp_path / "faded", 2, 3000, agent, None, env, cfg)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*torque assist")
+        assert export_policy(faded, tmp_path / "faded.onnx").assist == 0.0
+
+
 def test_export_refuses_a_non_onnx_output_and_a_bad_checkpoint(tmp_path):
     with pytest.raises(SystemExit, match=r"\.onnx"):
         export_main(["--checkpoint", str(_policy_file("ppo", ".pt")), "--out", str(tmp_path / "x.bin")])

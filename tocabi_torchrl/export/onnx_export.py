@@ -7,7 +7,8 @@ the Gaussian mean, unclipped; the contract says how to build the input and how t
 
 :func:`export_policy` refuses (:class:`ExportError`) a checkpoint whose actor weights or transform statistics hold
 NaN or inf, and an ONNX graph whose output on representative inputs is not finite; everything it writes is
-standard JSON (no ``NaN``/``Infinity``).
+standard JSON (no ``NaN``/``Infinity``). It warns (:class:`AssistFadeWarning`) for a checkpoint saved while the torque
+assist was still on: the exported policy runs without it.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,15 +32,18 @@ __all__ = [
     "ONNX_INPUT",
     "ONNX_OPSET",
     "ONNX_OUTPUT",
+    "AssistFadeWarning",
     "DeterministicActor",
     "ExportError",
     "ExportResult",
     "LoadedPolicy",
+    "assist_at_checkpoint",
     "check_finite_policy",
     "check_onnx_output",
     "export_onnx",
     "export_policy",
     "load_policy",
+    "warn_if_assisted",
 ]
 
 ONNX_INPUT = "observation"
@@ -155,6 +160,40 @@ def check_onnx_output(data: bytes, actor: nn.Module, obs_dim: int, checkpoint: P
                           "(checkpoints/iter_*.pt)")
 
 
+class AssistFadeWarning(UserWarning):
+    """The exported checkpoint was trained with the torque assist still on (β > 0), which the export leaves out."""
+
+
+def assist_at_checkpoint(policy: LoadedPolicy) -> float:
+    """β of the torque assist (``rl/assist.py``) that ``policy``'s training env applied when its checkpoint was
+    saved (the trainer's schedule at the checkpoint's ``env_steps``): 0 for a run without the assist or past its
+    fade, up to ``ppo.torque_assist`` before the fade."""
+    from ..rl.trainer import assist_schedule
+
+    schedule = assist_schedule(policy.config, policy.env)
+    return 0.0 if schedule is None else float(schedule(policy.env_steps))
+
+
+def warn_if_assisted(policy: LoadedPolicy) -> float:
+    """Warn (:class:`AssistFadeWarning`) when ``policy`` was trained with the torque assist still on; returns β.
+
+    The assist adds β·limit·PD(reference) to the legs' torques in training only: the exported policy (the
+    runtime, sim2sim, the real robot) gets pure torques, as the gait tests do. A policy saved mid-fade may walk
+    without it (the robust preset's shipped policy, at β ≈ 0.05, passes the robust test): the gait test says."""
+    beta = assist_at_checkpoint(policy)
+    if beta > 0.0:
+        ppo = policy.config.ppo
+        warnings.warn(f"{policy.checkpoint} was saved at {policy.env_steps:,} env steps, while the torque assist "
+                      f"was still on: β = {beta:.3f} (it fades from {ppo.torque_assist:g} at "
+                      f"{ppo.assist_fade_start:,} to 0 at {ppo.assist_fade_end:,} env steps). The policy trained with "
+                      "β·limit·PD assist torque added to its leg torques; the exported policy runs without it. Check "
+                      f"that it walks without the assist (python recipes/play.py --checkpoint {policy.checkpoint}, "
+                      f"which tests it as exported), or export a checkpoint saved after {ppo.assist_fade_end:,} env "
+                      "steps",
+                      AssistFadeWarning, stacklevel=3)
+    return beta
+
+
 @dataclass
 class ExportResult:
     """What :func:`export_policy` wrote, and the stale TorchScript file it removed (``removed_torchscript``)."""
@@ -166,6 +205,9 @@ class ExportResult:
     #: The policy's reference motion, copied beside the ``.onnx`` when it is none of the shipped motions (the
     #: torch-free runtime looks there, then among the shipped ones); None when a shipped motion is the policy's.
     motion: Path | None = None
+    #: β of the torque assist the policy trained with at its checkpoint (0: none, a pure torque or PD policy); the
+    #: export runs without it (:func:`warn_if_assisted`).
+    assist: float = 0.0
 
 
 def _motion_beside(motion_file: Path, out: Path, overwrite: bool) -> Path | None:
@@ -206,7 +248,8 @@ def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchsc
     the shipped ones gets that motion copied beside ``out`` (where the torch-free runtime looks for it), an other
     file of its name there replaced only with ``overwrite``.
 
-    Raises :class:`ExportError` for NaN/inf weights or statistics, or a non-finite output (see the module doc)."""
+    Raises :class:`ExportError` for NaN/inf weights or statistics, or a non-finite output (see the module doc).
+    Warns (:class:`AssistFadeWarning`) for a checkpoint saved with the torque assist still on (``result.assist``)."""
     out = Path(out)
     if out.suffix != ".onnx":
         raise ValueError(f"--out must name a .onnx file, got {out}")
@@ -217,6 +260,7 @@ def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchsc
     policy = load_policy(checkpoint)
     actor = DeterministicActor(policy.agent.actor)
     check_finite_policy(actor, policy.env, policy.checkpoint)
+    assist = warn_if_assisted(policy)
     obs_dim = policy.env.observation_spec["observation"].shape[-1]
     motion_file = Path(policy.env.base_env.motion.source)
     motion_copy = _motion_beside(motion_file, out, overwrite)
@@ -249,4 +293,4 @@ def export_policy(checkpoint: str | os.PathLike, out: str | os.PathLike, torchsc
         raise FileExistsError(f"{err.filename} appeared while the export ran and was left as it is (the export "
                               "stopped there); export again with --overwrite (overwrite=True from Python) to replace "
                               "it, or to another file") from None
-    return ExportResult(out, contract_path, ts_path if torchscript else None, removed, motion_copy)
+    return ExportResult(out, contract_path, ts_path if torchscript else None, removed, motion_copy, assist)
