@@ -133,6 +133,28 @@ def test_numpy_scalars_are_taken_as_plain_numbers():
         env.to("meta")
 
 
+def test_num_envs_is_read_as_the_config_reads_numbers():
+    # TocabiWalk took torch.tensor(True) as 1 world and torch.tensor([2]) as 2 (operator.index), which the config
+    # refuses; the config refused torch.tensor(4) and np.int64(4) as env.num_envs, which every other int field takes.
+    for count in (torch.tensor(4), np.int64(4), np.array(4), torch.tensor(4, dtype=torch.uint8)):
+        env = TocabiWalk(num_envs=count, device="cpu")
+        assert type(env.num_envs) is int and env.num_envs == 4 and env.batch_size == torch.Size([4])
+        cfg = TocabiWalkConfig().with_flat(num_envs=count)
+        cfg.validate()
+        assert type(cfg.num_envs) is int and cfg.num_envs == 4
+    for bad in (torch.tensor(True), np.bool_(True), torch.tensor(4.5), 4.5, True, -1, 0, "4"):
+        with pytest.raises(ValueError, match=r"num_envs must be a positive int \(a numpy integer or 0-d integer "
+                                             r"tensor is taken too\), got "):
+            TocabiWalk(num_envs=bad, device="cpu")
+    for one in (torch.tensor([4]), np.array([4])):
+        with pytest.raises(ValueError, match=r"an array or tensor of shape \(1,\): pass the count itself"):
+            TocabiWalk(num_envs=one, device="cpu")
+        with pytest.raises(ValueError, match="env.num_envs must be a positive int"):
+            TocabiWalkConfig().with_flat(num_envs=one).validate()
+    with pytest.raises(ValueError, match="env.num_envs must be a positive int, got tensor\\(True\\)"):
+        TocabiWalkConfig().with_flat(num_envs=torch.tensor(True)).validate()
+
+
 @pytest.mark.parametrize("number, count", [(torch.tensor(0.5), torch.tensor(3)), (np.float32(0.5), np.int64(3))],
                          ids=["0-d tensors", "numpy scalars"])
 def test_every_section_takes_0d_tensors_and_numpy_scalars_as_plain_numbers(number, count):

@@ -13,7 +13,7 @@ from ..control.config import ActuatorConfig
 from ..sim.config import NCONMAX, RESET_PASSES
 from ..sim.dynamics_config import DynamicsRandomization
 from ..tree import OWN_NUMBER_CHECK, check_field_types
-from ..value_rules import ENV_RULES, check_env_value
+from ..value_rules import ENV_RULES, check_env_value, plain_number
 from .command_config import CommandConfig
 from .push_config import PushConfig
 
@@ -507,9 +507,10 @@ class TocabiWalkConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad option (as its path, e.g. ``env.control.mode``) and the fix."""
-        n = self.num_envs
+        n = plain_number(self.num_envs)  # a numpy or 0-d tensor integer, as every other int field takes it
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"env.num_envs must be a positive int, got {n!r}")
+            raise ValueError(f"env.num_envs must be a positive int, got {self.num_envs!r}")
+        self.num_envs = n
         # Before the sections' own checks, which compare and convert these values: every switch is then a bool and
         # every number a finite real (or an int where one is declared), named by its path when it is not.
         check_field_types(self, "env.")

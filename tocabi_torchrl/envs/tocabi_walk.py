@@ -12,8 +12,6 @@ captured CUDA graph on GPU); advance the phase clock by dt·(1 + a13); evaluate 
 
 from __future__ import annotations
 
-import contextlib
-import operator
 import warnings
 
 import torch
@@ -30,6 +28,7 @@ from ..rotations import quat_rotate_inverse
 from ..signals import EPISODE_FLAGS, REWARD, SIGNALS, SignalTable
 from ..sim import MujocoSim, SimBackend, SimConfig, WarpSim
 from ..sim.dynamics import WorldDynamics
+from ..value_rules import plain_number
 from .command import VelocityCommand
 from .config import TocabiWalkConfig, resolve_backend
 from .controllers import leg_actuator_chain, leg_law, upper_body_law
@@ -151,6 +150,20 @@ def _check_motion_period(motion: ReferenceMotion, dt: float) -> None:
                      f"it to at most {motion.cycle_rows / (2.0 * dt):g} so the cycle lasts {2.0 * dt:g} s or more")
 
 
+def positive_count(num_envs) -> int:
+    """``num_envs`` as a plain int >= 1, read as the config reads numbers (:func:`~tocabi_torchrl.value_rules
+    .plain_number`: a numpy integer or a 0-d integer array or tensor is the int it holds), or a ``ValueError``
+    naming the value. ``operator.index`` would also take ``torch.tensor(True)`` (1 world) and a 1-element tensor of
+    shape (1,), which the config refuses."""
+    plain = plain_number(num_envs)
+    if isinstance(plain, bool) or not isinstance(plain, int) or plain <= 0:
+        shaped = getattr(num_envs, "ndim", 0) or 0
+        hint = f" (an array or tensor of shape {tuple(num_envs.shape)}: pass the count itself)" if shaped else ""
+        raise ValueError(f"num_envs must be a positive int (a numpy integer or 0-d integer tensor is taken too), got "
+                         f"{num_envs!r}{hint}")
+    return plain
+
+
 class TocabiWalk(EnvBase):
     """TOCABI walking task over ``num_envs`` simulated worlds (mujoco-warp or C MuJoCo).
 
@@ -197,11 +210,8 @@ class TocabiWalk(EnvBase):
         leg_controller: Controller | None = None,
         **overrides,
     ):
-        if num_envs is not None and not isinstance(num_envs, (bool, int)):
-            with contextlib.suppress(TypeError):  # a numpy or 0-d tensor integer is an int here; the rest is refused
-                num_envs = operator.index(num_envs)
-        if num_envs is not None and (isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs <= 0):
-            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+        if num_envs is not None:
+            num_envs = positive_count(num_envs)
         device = check_device(device)
         if config is not None and not isinstance(config, TocabiWalkConfig):
             raise TypeError(f"config must be a TocabiWalkConfig, got {type(config).__name__}; pass settings as "
