@@ -20,7 +20,8 @@ overwritten: continue it with --resume, or give the new run another --name. --re
 options; only budget, logging, checkpoint, eval and device options and how the same computation runs (CUDA graphs,
 gradient sync, stored env signals, CPU threads, reset pass) may be given again with other values (--help lists them).
 Ctrl-C or SIGTERM stops the run after the iteration in progress, saves a checkpoint of it, skips the final evaluation,
-says how to --resume it and exits with status 130 (Ctrl-C) or 143 (SIGTERM); a second one stops at once.
+says how to --resume it and exits with status 130 (Ctrl-C) or 143 (SIGTERM); a second one stops at once. Ctrl-C
+before training starts ends the recipe at once (status 130), no run written.
 """
 
 from __future__ import annotations
@@ -30,7 +31,18 @@ import signal
 import sys
 import threading
 
-from tocabi_torchrl.render_gl import choose_gl_backend_or_exit
+
+def _stopped_before_training(signum, frame) -> None:
+    """Ctrl-C before training starts (imports, checks, the run folder's claim): nothing of the run is written yet,
+    so the process ends at once with a line instead of a traceback. A claim taken goes with it (at exit)."""
+    print("\nstopped (Ctrl-C) before training started; no run was written", file=sys.stderr, flush=True)
+    sys.exit(130)  # 128 + SIGINT, as every Ctrl-C stop of a run
+
+
+if __name__ == "__main__":  # first: the imports below take seconds (torch, mujoco), and a Ctrl-C then is a stop too
+    signal.signal(signal.SIGINT, _stopped_before_training)
+
+from tocabi_torchrl.render_gl import choose_gl_backend_or_exit  # noqa: E402
 
 choose_gl_backend_or_exit()  # before mujoco is imported: headless video of the final evaluation
 
@@ -106,6 +118,13 @@ def ranks_done_text(result, cfg, world_size: int) -> str:
     return f"done on {world_size} ranks: {done_text(result)}{test}"
 
 
+def training_stops_on_ctrl_c() -> None:
+    """From here on Ctrl-C is training's (it saves a checkpoint, rl/interrupt.py) and then the gait test's
+    (``KeyboardInterrupt``): the early stop of :func:`_stopped_before_training` no longer applies."""
+    if signal.getsignal(signal.SIGINT) is _stopped_before_training:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def main(argv: list[str] | None = None) -> None:
     # Everything that can stop the run before it starts is checked here and reported as one line (exit status 1):
     # bad values, a request this machine cannot honour, an existing run folder, an unreadable or changed --resume.
@@ -142,6 +161,7 @@ def main(argv: list[str] | None = None) -> None:
         # Data-parallel: train() joins the process group, lets rank 0 alone check and write the run folder, and
         # makes every rank stop if it cannot start.
         expected = (ValueError, RuntimeError, ImportError)
+        training_stops_on_ctrl_c()
         try:
             # Any failure ends every rank (an NCCL rank left waiting would never time out); on NCCL the process
             # ends inside ending(), after the last output.
@@ -172,6 +192,7 @@ def main(argv: list[str] | None = None) -> None:
     print(banner(cfg, given, device), flush=True)
     if slow := cpu_size_note(cfg, device):  # asked for, so it runs; said, so that a still bar is not read as a hang
         print(slow, flush=True)
+    training_stops_on_ctrl_c()
     try:
         result = train(cfg, run=run)
     except (MotionFormatError, RobotAssetError, CheckpointError) as err:  # a bad motion, model or resumed file

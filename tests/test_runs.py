@@ -417,6 +417,59 @@ def test_a_resume_never_writes_into_an_existing_folder_outside_run_dir(finished_
     assert not any((tmp_path / "elsewhere").iterdir())
 
 
+# The recipe run in a child process that pauses, with a line on stdout, where the Ctrl-C is to come: at its first
+# import of torch (the seconds of imports), or once the run folder is claimed (the real open_run, then a wait).
+_PAUSED_RECIPE = """
+import runpy, sys, time
+
+where, recipe = sys.argv[1], sys.argv[2]
+if where == "importing":
+    class Pause:
+        def find_spec(self, name, path=None, target=None):
+            if name == "torch":
+                sys.meta_path.remove(self)
+                print("paused", flush=True)
+                time.sleep(60)
+            return None
+
+    sys.meta_path.insert(0, Pause())
+else:
+    import tocabi_torchrl.rl.run_dir as run_dir
+
+    claim = run_dir.open_run
+
+    def open_and_pause(*args, **kwargs):
+        run = claim(*args, **kwargs)
+        print("paused", flush=True)
+        time.sleep(60)
+        return run
+
+    run_dir.open_run = open_and_pause
+sys.argv = [recipe, *sys.argv[3:]]
+runpy.run_path(recipe, run_name="__main__")
+"""
+
+
+@pytest.mark.parametrize("where", ["importing", pytest.param("claimed", marks=pytest.mark.slow)])
+def test_ctrl_c_before_training_starts_exits_130_with_one_line(tmp_path, where):
+    # Ctrl-C in the recipe's first seconds (imports, checks, the run folder's claim) printed a KeyboardInterrupt
+    # traceback; later it stopped cleanly.
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (str(RECIPES.parent), os.getenv("PYTHONPATH"))))}
+    proc = subprocess.Popen([sys.executable, "-c", _PAUSED_RECIPE, where, str(RECIPES / "ppo_walk.py"),
+                             *tiny_args(tmp_path)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout.readline() == "paused\n"
+        assert (tmp_path / ".run.claim").exists() == (where == "claimed")
+        os.kill(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and err.strip() == "stopped (Ctrl-C) before training started; no run was written"
+    assert not (tmp_path / "run").exists() and not (tmp_path / ".run.claim").exists()  # nothing made, nothing held
+
+
 @pytest.mark.slow  # a training process, then its resume
 def test_a_sigkilled_run_leaves_loadable_checkpoints_and_resumes_at_the_next_iteration(tmp_path, capsys):
     # Issue 20 (formerly the soak's kill_resume mode): SIGKILL somewhere in an iteration once two checkpoints exist;
