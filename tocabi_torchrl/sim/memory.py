@@ -16,11 +16,15 @@ import os
 import mujoco
 import torch
 
-__all__ = ["available_bytes", "check_fits", "epa_slot_bytes", "mujoco_world_bytes", "warp_world_bytes", "MUJOCO_OVERHEAD"]
+__all__ = ["available_bytes", "check_fits", "epa_slot_bytes", "mujoco_world_bytes", "warp_world_bytes",
+           "MUJOCO_OVERHEAD", "MODEL_OVERHEAD"]
 
 #: Resident memory of a C MuJoCo world over the bytes its ``MjData`` uses (buffer, used arena and stack): the Python
 #: binding's arrays and the allocator. Measured for TOCABI: 636 kB RSS per ``MjData`` against 235 kB used (2.7×).
 MUJOCO_OVERHEAD = 3.0
+#: Resident memory of a copied ``MjModel`` over its ``nbuffer``: the binding's array objects and the allocator.
+#: Measured for TOCABI (MuJoCo 4.0.1): 1,061-1,077 KiB RSS per copy against 878 KiB of buffer (1.21×).
+MODEL_OVERHEAD = 1.25
 
 
 def available_bytes(device: torch.device) -> int | None:
@@ -57,14 +61,21 @@ def check_fits(num_worlds: int, bytes_per_world: int, device: torch.device, what
             f"{max(available // bytes_per_world, 0):,}")
 
 
-def mujoco_world_bytes(mj: mujoco.MjModel) -> int:
+def mujoco_world_bytes(mj: mujoco.MjModel, per_world_fields: tuple[str, ...] = ()) -> int:
     """Resident bytes of one C MuJoCo world of ``mj``: its ``MjData`` after a forward pass (buffer, used arena and
-    stack) times :data:`MUJOCO_OVERHEAD`, plus the backend's float64 staging and float32 tensors."""
+    stack) times :data:`MUJOCO_OVERHEAD`, plus the backend's float64 staging and float32 tensors. With
+    ``per_world_fields`` (``SimConfig.per_world_fields``: dynamics randomisation) also the world's own model copy
+    (``nbuffer`` times :data:`MODEL_OVERHEAD`) and its two float64 rows of those fields (the rows the user writes
+    and the rows its model took)."""
     probe = mujoco.MjData(mj)
     mujoco.mj_forward(mj, probe)
     used = probe.nbuffer + probe.maxuse_arena + probe.maxuse_stack
     per_row = mj.nq + mj.nv + mj.nsensordata + 7 * mj.nbody + mj.nu + 1  # qpos, qvel, sensors, xpos+xquat, forces
-    return int(MUJOCO_OVERHEAD * used) + 12 * per_row + 4 * (mj.nq + mj.nv + mj.nu)
+    world = int(MUJOCO_OVERHEAD * used) + 12 * per_row + 4 * (mj.nq + mj.nv + mj.nu)
+    if per_world_fields:
+        rows = sum(getattr(mj, name).size for name in per_world_fields)
+        world += int(MODEL_OVERHEAD * mj.nbuffer) + 2 * 8 * rows
+    return world
 
 
 def warp_world_bytes(mj: mujoco.MjModel, nconmax: int, njmax: int, nccdmax: int = 0) -> int:

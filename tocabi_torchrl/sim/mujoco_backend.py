@@ -93,8 +93,7 @@ class MujocoSim(SimViews):
         self.threads = min(cfg.resolved_threads(), n)
 
         mj = compile_model(model, cfg)
-        own_models = mj.nbuffer if cfg.per_world_fields else 0  # a model per world
-        check_fits(n, mujoco_world_bytes(mj) + own_models, self.device, "C MuJoCo")
+        check_fits(n, mujoco_world_bytes(mj, tuple(cfg.per_world_fields)), self.device, "C MuJoCo")
         self.mj_model = mj
         self.contact_layout: ContactLayout = contact_layout(mj)
         #: (N, nmocap, 3) float64 mocap positions each world starts and resets with, or None (the model's).
