@@ -20,8 +20,10 @@ piece                       what the driver does                                
 :class:`SensorModel`        the policy's observation signals + bias (fixed per episode) +     biases at reset,
                             noise (fresh every control period, clipped); the metrics and      noise every period
                             terminations read the true state
-:class:`PushSchedule`       horizontal kicks of impulse speed × robot mass on the pelvis,     per robot at reset
-                            ``MjData.xfrc_applied`` held for whole control periods
+:class:`PushSchedule`       horizontal kicks of impulse speed × robot mass, held for whole    per robot at reset
+                            control periods in ``MjData.xfrc_applied``: on the pelvis
+                            (``kind`` "force") or on every body by its mass (``kind``
+                            "velocity", the robust gait test's)
 :func:`start_velocities`    N(0, σ²) joint velocities and pelvis linear velocity at reset     per robot at reset
 =========================== ================================================================= ====================
 
