@@ -18,6 +18,10 @@ sensors ...`` also measures ``off`` with each named piece switched on alone (``o
 costs what. ``--physics`` also measures each variant's physics alone (``solver_load`` in a child process: the
 trainer's steps run eagerly, timed, with the solver iterations of the slowest world), to tell what of the cost is
 the physics of kicked, randomised robots and what the rest of the step.
+
+The report goes to ``<out>/<name>.{json,md}``; one that is there already (the committed one, or the previous variant's
+of a series of ``--set`` measurements) is refused before anything is measured unless ``--overwrite``: give each
+measurement its own ``--name``.
 """
 
 from __future__ import annotations
@@ -113,7 +117,8 @@ def main(argv=None) -> None:
     p.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run of the script")
     p.add_argument("--run_dir", default="/tmp/tocabi_bench_runs", help="scratch folder of the training runs")
     p.add_argument("--out", default=str(common.DOCS / "randomization"))
-    p.add_argument("--name", default=NAME)
+    p.add_argument("--name", default=NAME, help=f"the report's file name, <out>/<name>.json (default: {NAME})")
+    p.add_argument("--overwrite", action="store_true", help="replace a report <out>/<name>.json that exists already")
     args = p.parse_args(argv)
     if args.rounds < 1 or args.num_envs < 1:
         p.error(f"--rounds and --num_envs take values >= 1, got {args.rounds} and {args.num_envs}")
@@ -125,6 +130,12 @@ def main(argv=None) -> None:
     sets = variants(args.preset, args.set, tuple(args.pieces))
     for items in sets.values():
         common.parse_overrides(items)  # a bad path or value fails here, before any measurement
+    out = common.report_dir(args.out, args.device)
+    if (out / f"{args.name}.json").exists() and not args.overwrite:
+        # Minutes of measurement would otherwise replace the committed report, or a series of --set variants each
+        # the one before it, unsaid.
+        p.error(f"{out / args.name}.json exists; pass --overwrite to replace it, or --name another name (or --out "
+                "another folder)")
     results = []
     for r, seed in enumerate(seeds):
         for name in (list(sets) if r % 2 == 0 else list(sets)[::-1]):
@@ -154,7 +165,7 @@ def main(argv=None) -> None:
     meta = common.meta(NAME, argv, args.device, preset=args.preset, num_envs=args.num_envs, rounds=args.rounds,
                        seeds=seeds)
     data = {"meta": meta, "summary": summary, "results": results, **({"physics": physics} if physics else {})}
-    print(common.publish(args.out, args.name, data, render, measured_on=args.device))
+    print(common.publish(out, args.name, data, render))
 
 
 if __name__ == "__main__":

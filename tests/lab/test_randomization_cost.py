@@ -157,3 +157,26 @@ def test_each_round_trains_its_own_seed_and_the_ratio_is_the_median_of_the_round
     for bad in (["--rounds", "2", "--seeds", "1"], ["--set", "seed=3"]):
         with pytest.raises(SystemExit):
             randomization_cost.main(["--device", "cpu", *bad, "--out", str(tmp_path / "no")])
+
+
+def test_a_report_there_already_is_refused_before_any_measurement_unless_overwrite(tmp_path, monkeypatch, capsys):
+    # A series of --set variants into the default --out once kept only the last: each replaced the one before it
+    # (and the first the committed report) without a word.
+    import pytest
+
+    calls = []
+
+    def fake_child(module, args, env=None, nproc=None):
+        calls.append(module)
+        return {"train_env_steps_per_s": 100.0}
+
+    monkeypatch.setattr(common, "run_child", fake_child)
+    (tmp_path / "randomization_cost.json").write_text('{"earlier": true}')
+    argv = ["--device", "cpu", "--num_envs", "8", "--rounds", "1", "--out", str(tmp_path), "--run_dir",
+            str(tmp_path / "runs")]
+    with pytest.raises(SystemExit) as stop:
+        randomization_cost.main(argv)
+    assert stop.value.code == 2 and "pass --overwrite to replace it" in capsys.readouterr().err
+    assert not calls and json.loads((tmp_path / "randomization_cost.json").read_text()) == {"earlier": True}
+    randomization_cost.main([*argv, "--overwrite"])
+    assert calls and "summary" in json.loads((tmp_path / "randomization_cost.json").read_text())
