@@ -127,8 +127,9 @@ def eval_part(args, command: str) -> None:
         # Marks before --from_minutes are left out: a GPU's test of each costs about a minute, and a screen may
         # already have shown that they cannot pass (a torque run before its assist has faded). Marks are whole
         # seconds: half a second of slack for a minute count that floating point puts a hair past one.
-        for ckpt in [p for p in sorted((run_dir / "checkpoints").glob("wall_*.pt"))
-                     if p.stem not in evals and wall_seconds(p.stem) + 0.5 >= 60.0 * args.from_minutes]:
+        walls = sorted((run_dir / "checkpoints").glob("wall_*.pt"))
+        marks = [p for p in walls if wall_seconds(p.stem) + 0.5 >= 60.0 * args.from_minutes]
+        for ckpt in [p for p in marks if p.stem not in evals]:
             (_evaluate_robust if test in TEST_CASES else _evaluate)(ckpt, evals, envs, args)
             common.write_json(evals_file, record)
         if args.follow_pid and _alive(args.follow_pid):
@@ -137,6 +138,13 @@ def eval_part(args, command: str) -> None:
             args.follow_pid = 0  # the trainer has ended: one more pass for what it wrote last
         else:
             break
+    if not marks:  # else it ended on "time to walk: null", as if every mark had been tested and failed
+        raise ValueError(
+            f"{run_dir / 'checkpoints'} holds no wall_*.pt checkpoint to test (train with --every > 0; a run "
+            "copied from another machine needs them too, also with --reports: each mark's training time and env "
+            "steps are read from its checkpoint)" if not walls else
+            f"no checkpoint of {run_dir} is of minute {args.from_minutes:g} or later (--from_minutes); its last is "
+            f"{walls[-1].stem} ({wall_seconds(walls[-1].stem) / 60:g} min)")
     record.setdefault("eval_commands", []).append(command)
     record["time_to_walk"] = first_walk(record)
     common.write_json(evals_file, record)

@@ -269,3 +269,20 @@ def test_time_to_walk_renders_a_robust_report_with_a_missing_case_and_a_first_pa
     assert x == [3.0, 6.0] and math.isnan(y[0]) and y[1] == pytest.approx(90.0)
     assert pushed["lines"]["robust_x (tested on a CPU), robust_0.5"][1] == pytest.approx([98.0, 98.0])
     assert [(h[0], h[2]) for h in pushed["hlines"]] == [(97.0, "--"), (85.0, ":")] and pushed["vlines"] == [6.0]
+
+
+def test_time_to_walk_eval_of_no_checkpoint_says_so(tmp_path, monkeypatch, capsys):
+    # A run folder copied back without its checkpoints (the robust reports beside it), or a --from_minutes past the
+    # last mark, once ended on "time to walk: null" as if every mark had been tested and failed.
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "runs/time_to_walk/r"
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "train.json").write_text(json.dumps({"preset": "robust", "train_seconds": 120.0}))
+    (tmp_path / "verdict").mkdir()
+    run = functools.partial(_time_to_walk_here, capsys, "eval", "--name", "r", "--test", "robust", "--reports",
+                            str(tmp_path / "verdict"))
+    run(error="holds no wall_*.pt checkpoint to test")
+    (folder / "checkpoints" / "wall_00060s.pt").write_bytes(b"")  # not read: no mark is of minute 5 or later
+    run("--from_minutes", "5", error="no checkpoint of runs/time_to_walk/r is of minute 5 or later (--from_minutes); "
+                                     "its last is wall_00060s (1 min)")
+    assert not (folder / "evals_robust.json").exists()
