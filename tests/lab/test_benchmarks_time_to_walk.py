@@ -286,3 +286,30 @@ def test_time_to_walk_eval_of_no_checkpoint_says_so(tmp_path, monkeypatch, capsy
     run("--from_minutes", "5", error="no checkpoint of runs/time_to_walk/r is of minute 5 or later (--from_minutes); "
                                      "its last is wall_00060s (1 min)")
     assert not (folder / "evals_robust.json").exists()
+
+
+def test_time_to_walk_report_says_how_long_and_on_how_many_robots_a_screen_tested(tmp_path, monkeypatch):
+    # A CPU screen's report (eval --num_envs 4 --seconds 0.5) read "survival over 8 s" on its plots, and its text
+    # gave the 8 s, 256-robot test as what its checkpoints had passed or not.
+    drawn = {}
+    monkeypatch.setattr(time_to_walk.common, "plot", lambda path, panels, title="": drawn.update(panels=panels))
+    main = {"seconds": 0.5, "num_envs": 4, "survival": 0.0, "forward_distance_m": 0.1, "lateral_drift_m": 0.0,
+            "knee_rms_rad": 0.5}
+    evaluation = {"train_seconds": 60.0, "env_steps": 100, "iteration": 1, "device": "cpu", "walks": False,
+                  "commands": {"0.5,0.0": main}}
+    record = {"preset": "torque", "gpu": "cpu", "train_seconds": 60.0, "evaluations": {"wall_00060s": evaluation}}
+    text = time_to_walk.render({"command": "x", "records": [record]}, tmp_path)
+    assert "Tested with 4 robots for 0.5 s, not the test's 256 for 8 s: a screen" in text
+    assert [p["ylabel"] for p in drawn["panels"]] == ["survival over 0.5 s at (0.5, 0) m/s [%]",
+                                                      "forward distance in 0.5 s [m]"]
+    robust = {**evaluation, "test": "robust", "settings": {"num_envs": 64, "seconds": 8.0},
+              "cases": {"nominal": {"survival": 0.5}}}
+    text = time_to_walk.render({"command": "x", "test": "robust",
+                                "records": [{**record, "evaluations": {"wall_00060s": robust}}]}, tmp_path)
+    assert "Tested with 64 robots per case for 8 s, not the test's 1,024 for 8 s" in text
+    assert drawn["panels"][2]["ylabel"] == "survival over 8 s under three kicks [%]"
+    # The test's own sizes (every committed report): no note.
+    full = {**robust, "settings": {"num_envs": 1024, "seconds": 8.0}}
+    text = time_to_walk.render({"command": "x", "test": "robust",
+                                "records": [{**record, "evaluations": {"wall_00060s": full}}]}, tmp_path)
+    assert "Tested with" not in text
