@@ -124,6 +124,7 @@ def eval_part(args, command: str) -> None:
     evals_file = run_dir / EVALS[test]
     record = _load(evals_file)
     evals, envs = record.setdefault("evaluations", {}), {}
+    _refuse_other_sizes(evals, evals_file, test, args)
     while True:
         # Checkpoints are written atomically (a temporary file, then a rename): a wall_*.pt is complete.
         # Marks before --from_minutes are left out: a GPU's test of each costs about a minute, and a screen may
@@ -151,6 +152,20 @@ def eval_part(args, command: str) -> None:
     record["time_to_walk"] = first_walk(record)
     common.write_json(evals_file, record)
     print("time to walk:", json.dumps(record["time_to_walk"]))
+
+
+def _refuse_other_sizes(evals: dict, evals_file: Path, test: str, args) -> None:
+    """Raise ``ValueError`` when a checkpoint of ``evals`` was tested with other robots or another length than this
+    call tests: its marks are skipped as tested, so a screen's verdicts (a CPU's 4 robots for 0.5 s) would stand in
+    one record beside the test's, and could be its time to walk."""
+    want = (args.num_envs or SIZES[test][0], args.seconds)
+    for name, e in sorted(evals.items()):
+        ran = e.get("settings") if test in TEST_CASES else e.get("commands", {}).get(key(MAIN_COMMAND))
+        had = ((ran or {}).get("num_envs"), (ran or {}).get("seconds"))
+        if None not in had and had != want:
+            raise ValueError(f"{evals_file} holds {name} tested with {had[0]} robots for {had[1]:g} s, this call "
+                             f"tests {want[0]} for {want[1]:g} s: pass --num_envs {had[0]} --seconds {had[1]:g} to "
+                             "go on with that record, or move the file away to start another")
 
 
 def _alive(pid: int) -> bool:

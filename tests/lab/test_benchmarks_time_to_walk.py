@@ -313,3 +313,23 @@ def test_time_to_walk_report_says_how_long_and_on_how_many_robots_a_screen_teste
     text = time_to_walk.render({"command": "x", "test": "robust",
                                 "records": [{**record, "evaluations": {"wall_00060s": full}}]}, tmp_path)
     assert "Tested with" not in text
+
+
+def test_time_to_walk_eval_keeps_one_size_of_test_in_a_record(tmp_path, monkeypatch, capsys):
+    # A CPU screen (4 robots, 0.5 s) recorded its marks in evals_robust.json; a later call at the test's sizes skipped
+    # them as tested, so the record mixed the screen's verdicts with the test's and its time to walk could be a
+    # screen's.
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "runs/time_to_walk/r"
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "checkpoints" / "wall_00060s.pt").write_bytes(b"")
+    screen = {"train_seconds": 60.0, "env_steps": 1, "iteration": 1, "device": "cpu", "test": "robust",
+              "settings": {"num_envs": 4, "seconds": 0.5}, "cases": {}, "walks": True}
+    (folder / "evals_robust.json").write_text(json.dumps({"evaluations": {"wall_00060s": screen}}))
+    (tmp_path / "verdict").mkdir()
+    run = functools.partial(_time_to_walk_here, capsys, "eval", "--name", "r", "--test", "robust", "--reports",
+                            str(tmp_path / "verdict"))
+    run(error="holds wall_00060s tested with 4 robots for 0.5 s, this call tests 1024 for 8 s: pass --num_envs 4 "
+              "--seconds 0.5")
+    assert "eval_commands" not in json.loads((folder / "evals_robust.json").read_text())
+    assert "time to walk" in run("--num_envs", "4", "--seconds", "0.5")  # the same sizes go on with it
