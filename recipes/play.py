@@ -154,7 +154,8 @@ def main(argv: list[str] | None = None) -> None:
                 print(f"note: {TESTS['robust']:,} robots per case for {args.seconds:g} s take hours on a CPU; "
                       "--num_envs 4 takes about a minute (a smaller sample of the same test)", flush=True)
             report = evaluate_robust_run(args.checkpoint, num_envs=args.num_envs or TESTS["robust"],
-                                         device=args.device, seconds=args.seconds, out_dir=out)
+                                         device=args.device, seconds=args.seconds, out_dir=out,
+                                         replace=args.overwrite)  # without it eval_out_dir refused earlier results
             print(robust_report_text(report, out))
             return
         args.num_envs = args.num_envs or TESTS["standard"]

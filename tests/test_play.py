@@ -591,6 +591,29 @@ def test_evaluate_run_replaces_an_earlier_summary_only_when_asked(tmp_path):
     assert json.loads((out / "summary.json").read_text())["num_envs"] == summary["num_envs"] == 1
 
 
+@needs_policy
+def test_evaluate_robust_run_replaces_an_earlier_report_only_when_asked(tmp_path, capsys):
+    # evaluate_robust_run(out_dir=...) replaced a folder's earlier robust.json and robust.png without a word.
+    from tocabi_torchrl.evaluation.output import OutputExistsError
+    from tocabi_torchrl.evaluation.robust import evaluate_robust_run
+
+    out = tmp_path / "e"
+    out.mkdir()
+    (out / "robust.png").write_text("earlier")
+    with pytest.raises(OutputExistsError, match=r"e/robust.png holds an earlier evaluation's results; nothing was "
+                                                r"overwritten. Pass replace=True"):
+        evaluate_robust_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.02, out_dir=out, cases=["nominal"],
+                            progress=False)
+    assert (out / "robust.png").read_text() == "earlier" and not (out / "robust.json").exists()
+    report = evaluate_robust_run(SHIPPED_POLICY, num_envs=1, device="cpu", seconds=0.02, out_dir=out,
+                                 cases=["nominal"], progress=False, replace=True)
+    assert json.loads((out / "robust.json").read_text())["settings"]["num_envs"] == report["settings"]["num_envs"]
+    # play.py's --overwrite, which eval_out_dir asks for, reaches the robust test too
+    recipe("play").main(["--checkpoint", str(SHIPPED_POLICY), "--test", "robust", "--num_envs", "1", "--seconds",
+                         "0.02", "--device", "cpu", "--out", str(out), "--overwrite"])
+    assert f"results: {out / 'robust.json'}" in capsys.readouterr().out
+
+
 def test_ctrl_c_in_a_checkpoint_viewer_exits_130_while_loading_or_serving(monkeypatch, capsys):
     # Serving, Ctrl-C printed "viewer stopped" and exited 0; while loading it was a 67-line traceback.
     import tocabi_torchrl.viewer.play as viewer_play

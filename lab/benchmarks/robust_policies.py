@@ -83,8 +83,10 @@ def measure(policy: Path, out: Path, num_envs: int, seconds: float, device: str,
 
     label = label or policy.stem
     start = time.perf_counter()
+    # replace: main refused an --out holding a table unless --overwrite; a policy's report that a stopped call left
+    # without its table row is tested again into its own folder
     report = evaluate_robust_run(policy, num_envs=num_envs, device=device, out_dir=out / label, seconds=seconds,
-                                 cases=cases)
+                                 cases=cases, replace=True)
     took = time.perf_counter() - start
     run = tuple(report["cases"])
     # Some cases alone: whether the policy passes those (the report's own "passes" is the whole test's).

@@ -361,7 +361,7 @@ def test_robust_policies_keeps_the_table_of_the_policies_it_finished(tmp_path, m
     from lab.benchmarks import robust_policies
     from tocabi_torchrl.evaluation import robust
 
-    def run(policy, num_envs, device, out_dir, seconds, cases):
+    def run(policy, num_envs, device, out_dir, seconds, cases, replace):
         if policy.stem == "second":
             raise KeyboardInterrupt
         case = {"passes": True, "survival": 1.0, "forward_distance_m": {"mean": 4.0},
@@ -394,7 +394,7 @@ def test_robust_policies_tells_same_named_files_apart_and_never_replaces_a_table
     from lab.benchmarks import robust_policies
     from tocabi_torchrl.evaluation import robust
 
-    def run(policy, num_envs, device, out_dir, seconds, cases):
+    def run(policy, num_envs, device, out_dir, seconds, cases, replace):
         out_dir.mkdir(parents=True)  # as the test writes its report: a second policy here would collide
         case = {"passes": True, "survival": 1.0, "checks": {"survival": {"value": 1.0, "needs": ">= 0.99",
                                                                           "pass": True}}}
@@ -442,7 +442,7 @@ def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, mon
 
     seen = {}
 
-    def run(policy, num_envs, device, out_dir, seconds, cases):
+    def run(policy, num_envs, device, out_dir, seconds, cases, replace):
         seen["cases"] = cases
         case = {"passes": True, "survival": 1.0, "checks": {"survival": {"value": 1.0, "needs": ">= 0.99",
                                                                           "pass": True}}}

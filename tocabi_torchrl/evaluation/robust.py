@@ -54,13 +54,13 @@ from ..value_rules import NON_NEGATIVE, PUSH_KINDS, Range, check_seed
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
 from .record import (GaitMetrics, first_action, fixed_command, nominal_config, policy_steps,
                      require_trained_statistics)
-from .output import rounded_against
+from .output import OutputExistsError, rounded_against
 
-__all__ = ["CASES", "EVAL_SEED", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking", "RobustCase", "RobustTestConfig",
-           "batch_config", "batch_env", "batch_key", "case_checks", "case_config", "case_env", "case_summary",
-           "case_worlds", "checkpoint_case", "evaluate_robust", "evaluate_robust_checkpoint", "evaluate_robust_run",
-           "gait_cycle_steps", "heading_frame_velocity", "kicks_text", "randomization_applied", "report_settings",
-           "robust_case_config", "robust_passes", "robust_report_text", "run_case", "settings_note"]
+__all__ = ["CASES", "EVAL_SEED", "ROBUST_FILES", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking", "RobustCase",
+           "RobustTestConfig", "batch_config", "batch_env", "batch_key", "case_checks", "case_config", "case_env",
+           "case_summary", "case_worlds", "checkpoint_case", "evaluate_robust", "evaluate_robust_checkpoint",
+           "evaluate_robust_run", "gait_cycle_steps", "heading_frame_velocity", "kicks_text", "randomization_applied",
+           "report_settings", "robust_case_config", "robust_passes", "robust_report_text", "run_case", "settings_note"]
 
 #: The seed of every random draw of the robust test (starts, commands, randomisation, pushes). Below 2**32, where the
 #: per-episode draws' key is the seed itself (envs.episode_random.hash_seed), and far from the small seeds the presets
@@ -70,6 +70,8 @@ EVAL_SEED = 2_971_215_073
 _KICKS = Range(low=1, high=64, integer=True)
 #: File names of the report and its figure in the evaluation folder.
 ROBUST_JSON, ROBUST_PNG = "robust.json", "robust.png"
+#: The files the robust test writes into its folder (:func:`evaluate_robust`).
+ROBUST_FILES = (ROBUST_JSON, ROBUST_PNG)
 #: Percentiles the report gives of each distribution.
 PERCENTILES = (5, 50, 95)
 
@@ -712,11 +714,13 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
 
 def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: str = "auto",
                         out_dir: str | os.PathLike | None = None, seconds: float = 8.0,
-                        cases: Sequence[str] | None = None, progress: bool = True) -> dict:
+                        cases: Sequence[str] | None = None, progress: bool = True, replace: bool = False) -> dict:
     """Load ``run`` (a run folder or checkpoint file) and run the robust test (``num_envs`` robots per case,
     ``seconds`` each, ``cases`` of :data:`CASES`, default all). Results go to ``out_dir`` as given, or by default to
-    :func:`.gait_test.fresh_eval_dir`. Raises ``CheckpointError`` for a bad file and ``ValueError`` for a bad
-    setting, before building anything."""
+    :func:`.gait_test.fresh_eval_dir`. An ``out_dir`` that already holds a test's results (:data:`ROBUST_FILES`)
+    raises :class:`~.output.OutputExistsError` unless ``replace`` (then files of the same name are replaced, others
+    stay). Raises ``CheckpointError`` for a bad file and ``ValueError`` for a bad setting, before building
+    anything."""
     from ..rl.checkpoint import checkpoint_file, read_checkpoint
     from .gait_test import policy_dt
 
@@ -730,6 +734,12 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
     test.validate(policy_dt())
     if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ValueError(f"out_dir {out_dir} is a file, not a folder: give a folder for the results")
+    held = [] if out_dir is None or replace else [Path(out_dir) / n for n in ROBUST_FILES]
+    held = [path for path in held if path.exists()]
+    if held:
+        raise OutputExistsError(f"{held[0]} holds an earlier evaluation's results; nothing was overwritten. Pass "
+                                "replace=True to replace the files of the same name, another out_dir, or none (a "
+                                "fresh eval/, eval_2/, ... folder)")
     ckpt = checkpoint_file(run)
     state = read_checkpoint(ckpt)
     return evaluate_robust_checkpoint(state, ckpt, fresh_eval_dir(ckpt) if out_dir is None else out_dir, test=test,
