@@ -236,7 +236,7 @@ def test_gymnasiums_episode_statistics_wrapper_applies_with_the_option_off():
         assert set(infos["episode"]) == {"r", "l", "t"} and len(env.return_queue) == N
     finally:
         env.close()
-    with pytest.raises(ValueError, match="num_envs must be a positive int, got True"):
+    with pytest.raises(ValueError, match="num_envs must be a positive int .*, got True"):
         TocabiVectorEnv(True, "cpu")
 
 

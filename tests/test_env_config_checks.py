@@ -155,6 +155,26 @@ def test_num_envs_is_read_as_the_config_reads_numbers():
         TocabiWalkConfig().with_flat(num_envs=torch.tensor(True)).validate()
 
 
+def test_build_env_reads_num_envs_as_the_env_does():
+    # rl.trainer.build_env and the adapters' build_env took np.int64(2) but refused torch.tensor(2), which TocabiWalk
+    # and its config take; now all read the count alike and refuse what they refuse.
+    from tocabi_torchrl.adapters._build import build_env as adapter_env
+    from tocabi_torchrl.rl.trainer import build_env as trainer_env
+
+    cfg = preset_config("cpu_smoke", device="cpu")
+    env, task = adapter_env(torch.tensor(2), "cpu")
+    assert env.batch_size == torch.Size([2]) and type(task.env.num_envs) is int and task.env.num_envs == 2
+    assert trainer_env(cfg, "cpu", num_envs=np.array(3)).batch_size == torch.Size([3])
+    for bad in (torch.tensor(True), np.bool_(True), torch.tensor(2.0), 2.0, 0, -1, torch.tensor([2]), np.array([2])):
+        with pytest.raises(ValueError, match=r"num_envs must be a positive int \(a numpy integer or 0-d integer "
+                                             r"tensor is taken too\), got "):
+            adapter_env(bad, "cpu")
+        with pytest.raises(ValueError, match=r"num_envs must be a positive int .*; None for the run's env.num_envs"):
+            trainer_env(cfg, "cpu", num_envs=bad)
+    with pytest.raises(ValueError, match=r"shape \(1,\): pass the count itself"):
+        adapter_env(torch.tensor([2]), "cpu")
+
+
 @pytest.mark.parametrize("number, count", [(torch.tensor(0.5), torch.tensor(3)), (np.float32(0.5), np.int64(3))],
                          ids=["0-d tensors", "numpy scalars"])
 def test_every_section_takes_0d_tensors_and_numpy_scalars_as_plain_numbers(number, count):

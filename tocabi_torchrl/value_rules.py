@@ -15,7 +15,7 @@ from typing import Any
 __all__ = ["DELAY_APPLIED", "ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT",
            "PUSH_KINDS", "PUSH_SPEED", "DYNAMICS_OFF", "DYNAMICS_RANGES", "Range", "check_dynamics_ranges",
            "check_push_settings", "TRAINED_UNDER_RULES", "check_env_value", "check_seed", "plain_number",
-           "trained_under_problems"]
+           "positive_count", "trained_under_problems"]
 
 
 def plain_number(value: Any) -> Any:
@@ -29,6 +29,20 @@ def plain_number(value: Any) -> Any:
         except (TypeError, ValueError, RuntimeError):  # e.g. a tensor without data (device "meta"): left to refuse
             return value
     return value
+
+
+def positive_count(num_envs: Any, fix: str = "") -> int:
+    """``num_envs`` as a plain int >= 1, read as the config reads numbers (:func:`plain_number`: a numpy integer or a
+    0-d integer array or tensor is the int it holds), or a ``ValueError`` naming the value, then ``fix`` (the
+    caller's advice, e.g. "; None for the run's env.num_envs"). ``operator.index`` would also take
+    ``torch.tensor(True)`` (1 world) and a 1-element tensor of shape (1,), which the config refuses."""
+    plain = plain_number(num_envs)
+    if isinstance(plain, bool) or not isinstance(plain, int) or plain <= 0:
+        shaped = getattr(num_envs, "ndim", 0) or 0
+        hint = f" (an array or tensor of shape {tuple(num_envs.shape)}: pass the count itself)" if shaped else ""
+        raise ValueError(f"num_envs must be a positive int (a numpy integer or 0-d integer tensor is taken too), got "
+                         f"{num_envs!r}{hint}{fix}")
+    return plain
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ from torchrl.envs import EnvBase
 from ..config import RunConfig, preset_config
 from ..envs.config import ENV_FLAT_PATHS
 from ..transforms.settings import RewardWeights
+from ..value_rules import positive_count
 
 __all__ = ["build_env", "env_device", "task_config"]
 
@@ -67,10 +68,9 @@ def build_env(num_envs: int, device: str | torch.device | int | None = "cpu", pr
     """
     from ..rl.trainer import build_env as _trainer_env
 
-    # Any integer type (numpy's too: counts often come from arrays), but not bool, which is an int to Python.
-    if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or num_envs < 1:
-        raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
-    num_envs = int(num_envs)
+    # Any integer type (numpy's, a 0-d tensor's: counts often come from arrays), but not bool, which is an int to
+    # Python, nor a shaped array
+    num_envs = positive_count(num_envs)
     dev = env_device(device)
     options = dict(env_options or {})
     own = [k for k in options if k in ("num_envs", "seed", "device", "config", "transforms")]

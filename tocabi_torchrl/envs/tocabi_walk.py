@@ -28,7 +28,7 @@ from ..rotations import quat_rotate_inverse
 from ..signals import EPISODE_FLAGS, REWARD, SIGNALS, SignalTable
 from ..sim import MujocoSim, SimBackend, SimConfig, WarpSim
 from ..sim.dynamics import WorldDynamics
-from ..value_rules import plain_number
+from ..value_rules import positive_count
 from .command import VelocityCommand
 from .config import TocabiWalkConfig, resolve_backend
 from .controllers import leg_actuator_chain, leg_law, upper_body_law
@@ -148,20 +148,6 @@ def _check_motion_period(motion: ReferenceMotion, dt: float) -> None:
                      f"{rate:g} rows/s lasts {motion.period:g} s, shorter than two policy steps ({2.0 * dt:g} s; one "
                      f"step is {dt:g} s): the env would skip through the cycle. sample_rate is rows per second; set "
                      f"it to at most {motion.cycle_rows / (2.0 * dt):g} so the cycle lasts {2.0 * dt:g} s or more")
-
-
-def positive_count(num_envs) -> int:
-    """``num_envs`` as a plain int >= 1, read as the config reads numbers (:func:`~tocabi_torchrl.value_rules
-    .plain_number`: a numpy integer or a 0-d integer array or tensor is the int it holds), or a ``ValueError``
-    naming the value. ``operator.index`` would also take ``torch.tensor(True)`` (1 world) and a 1-element tensor of
-    shape (1,), which the config refuses."""
-    plain = plain_number(num_envs)
-    if isinstance(plain, bool) or not isinstance(plain, int) or plain <= 0:
-        shaped = getattr(num_envs, "ndim", 0) or 0
-        hint = f" (an array or tensor of shape {tuple(num_envs.shape)}: pass the count itself)" if shaped else ""
-        raise ValueError(f"num_envs must be a positive int (a numpy integer or 0-d integer tensor is taken too), got "
-                         f"{num_envs!r}{hint}")
-    return plain
 
 
 class TocabiWalk(EnvBase):

@@ -8,7 +8,6 @@ import contextlib
 import dataclasses
 import inspect
 import math
-import numbers
 import signal
 import time
 import warnings
@@ -34,6 +33,7 @@ from .checkpoint import apply_checkpoint, config_from_checkpoint, save_checkpoin
 from ..config import MAX_SEED, RunConfig, schedule_warning, wall_tag
 from ..envs.config import TocabiWalkConfig
 from ..tree import get_path, leaf_paths
+from ..value_rules import positive_count
 from .distributed import (DistInfo, GradientAllReduce, RunningStatsSync, agree, all_reduce_mean, all_reduce_sum,
                           broadcast_module, from_environment, init_distributed, rank_seed)
 from .interrupt import StopFlag, stop_on_signals
@@ -199,11 +199,9 @@ def build_env(cfg: RunConfig, device: torch.device | str, num_envs: int | None =
     """
     from .. import make_env
 
-    if num_envs is None:
-        num_envs = cfg.env.num_envs
-    elif isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or num_envs < 1:  # 0 meant 4,096
-        raise ValueError(f"num_envs must be a positive int (worlds to build), got {num_envs!r}; None for the run's "
-                         f"env.num_envs ({cfg.env.num_envs})")
+    # 0 once meant 4,096; a count read as the config reads it (a 0-d integer tensor as well as a numpy integer)
+    num_envs = cfg.env.num_envs if num_envs is None else positive_count(
+        num_envs, f"; None for the run's env.num_envs ({cfg.env.num_envs})")
     num_envs, device = int(num_envs), torch.device(device)  # a name ("cuda") works as well as a torch.device
     if device.type == "cuda":
         plan = plan_graphs(cfg, device, num_envs, sync_free_resets=env_overrides.get("sync_free_resets") is not False,
