@@ -85,6 +85,25 @@ def test_a_recipe_without_its_library_ends_in_one_error_line(monkeypatch, tmp_pa
     assert "\n" not in message and not (tmp_path / "out").exists()
 
 
+def test_a_policy_or_resume_state_that_appears_after_the_check_is_never_replaced(tmp_path, monkeypatch):
+    # save_policy and write_resume checked that their file did not exist, then wrote with replace allowed: a file
+    # another call wrote in between was overwritten. Here the check misses it, as it would in that moment.
+    from pathlib import Path
+
+    policy, state = tmp_path / "policy.pt", tmp_path / "resume" / "state_call1.pt"
+    real = Path.exists
+    monkeypatch.setattr(Path, "exists", lambda self, *a, **k: self not in (policy, state) and real(self, *a, **k))
+    state.parent.mkdir()
+    for path in (policy, state):
+        path.write_bytes(b"another call's")
+    with pytest.raises(FileExistsError, match="appeared while this one was being written"):
+        save_policy(policy, "sb3", {"w": torch.zeros(2)}, {"hidden": [4]})
+    with pytest.raises(FileExistsError, match="appeared while this one was being written"):
+        write_resume(tmp_path, b"state bytes", COUNTERS)
+    assert policy.read_bytes() == state.read_bytes() == b"another call's"
+    assert not (tmp_path / "resume.json").is_file() and sorted(p.name for p in tmp_path.rglob("*.tmp")) == []
+
+
 def test_policy_file_round_trip_and_refusals(tmp_path):
     state = {"w": torch.arange(6.0).reshape(2, 3)}
     path = save_policy(tmp_path / "policy.pt", "sb3", state, {"hidden": [4]})

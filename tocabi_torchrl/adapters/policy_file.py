@@ -30,7 +30,7 @@ class PolicyFileError(ValueError):
 
 def save_policy(path: str | os.PathLike, library: str, state_dict: dict, meta: dict) -> Path:
     """Write ``state_dict`` (tensors) and ``meta`` (JSON-able: preset, task options, network sizes) atomically;
-    refuses to replace an existing file."""
+    refuses to replace an existing file (``FileExistsError``), even one that appears while this one is written."""
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path} exists; choose another output folder (policies are never overwritten)")
@@ -38,7 +38,8 @@ def save_policy(path: str | os.PathLike, library: str, state_dict: dict, meta: d
                "state_dict": {k: v.detach().cpu() for k, v in state_dict.items()}}
     buffer = io.BytesIO()
     torch.save(payload, buffer)
-    return atomic_write_bytes(path, buffer.getvalue())
+    # replace=False: a file that appeared at `path` since the check above (another call's) is refused, not replaced
+    return atomic_write_bytes(path, buffer.getvalue(), replace=False)
 
 
 def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:

@@ -234,7 +234,7 @@ def write_resume(out: Path, state: bytes, counters: dict) -> Path:
     path = Path(out) / "resume" / f"state_call{int(counters['calls'])}.pt"
     if path.exists():
         raise FileExistsError(f"{path} exists; a resume state is never overwritten")
-    atomic_write_bytes(path, state)
+    atomic_write_bytes(path, state, replace=False)  # nor one that appears after the check above
     write_json(Path(out) / "resume.json", {**counters, "state": str(path.relative_to(out))})
     return path
 
