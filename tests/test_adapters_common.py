@@ -60,6 +60,21 @@ def test_the_adapter_import_itself_checks_the_version(monkeypatch):
         from tocabi_torchrl.adapters import TocabiSB3VecEnv  # noqa: F401
 
 
+def test_importing_the_adapters_checks_gymnasiums_version(monkeypatch):
+    # gymnasium's range in SUPPORTED was never checked: an older gymnasium failed with a bare ImportError
+    # (gymnasium.vector has no AutoresetMode before 1.1) naming neither the version nor the fix.
+    import sys
+
+    real = importlib.metadata.version
+    monkeypatch.setattr(importlib.metadata, "version", lambda name: "0.29.1" if name == "gymnasium" else real(name))
+    for name in [m for m in sys.modules if m == "tocabi_torchrl.adapters" or m.startswith("tocabi_torchrl.adapters.")]:
+        monkeypatch.delitem(sys.modules, name)  # put back as they were afterwards
+    with pytest.raises(ImportError, match=r"gymnasium 0.29.1 is installed, but .* supports gymnasium>=1.1,<2.0 .*"
+                                          r"pip install 'gymnasium>=1.1,<2.0'") as err:
+        import tocabi_torchrl.adapters  # noqa: F401
+    assert type(err.value).__name__ == "LibraryVersionError"
+
+
 @pytest.mark.parametrize(("recipe_name", "module", "dist"), [("train_sb3", "sb3_env", "stable-baselines3"),
                                                             ("train_rsl_rl", "rsl_rl_env", "rsl-rl-lib"),
                                                             ("train_skrl", "skrl_env", "skrl")])

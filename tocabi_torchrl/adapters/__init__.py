@@ -14,15 +14,20 @@ adapter                    library interface                        data
 
 Importing this package registers ``TocabiWalk-v0`` with gymnasium (``gymnasium.make_vec("TocabiWalk-v0",
 num_envs=...)``); the library adapters import their library only when used, and check its version
-(``_versions.SUPPORTED``). ``docs/other-libraries.md`` has the details.
+(``_versions.SUPPORTED``); gymnasium's is checked on importing this package. ``docs/other-libraries.md`` has the
+details.
 """
 
 from __future__ import annotations
 
-import gymnasium as _gymnasium
+from ._versions import SUPPORTED, LibraryVersionError, require
 
-from ._build import build_env, task_config
-from ._versions import SUPPORTED, LibraryVersionError
+# gymnasium, a core dependency, has its version checked as the optional libraries do, before any adapter module
+# (each imported after this package) uses it: an older one (before 1.1, no AutoresetMode) failed with a bare
+# ImportError naming neither the version nor the fix.
+_gymnasium = require("gymnasium")
+
+from ._build import build_env, task_config  # noqa: E402 (after the check above)
 
 # What a star import takes: the core (gymnasium is a core dependency). The rsl_rl, SB3 and skrl adapters import
 # their optional library, so they are imported by name only (``from tocabi_torchrl.adapters import TocabiRslRlEnv``):
