@@ -939,6 +939,39 @@ def test_a_second_run_of_the_same_name_started_at_once_is_refused(tmp_path):
     assert not (tmp_path / ".same.claim").exists() and not (tmp_path / "same").exists()
 
 
+@pytest.mark.parametrize("cause", ["another_users_claim", "read_only_folder"])
+def test_a_claim_file_that_cannot_be_opened_is_said_with_its_fix(tmp_path, monkeypatch, cause):
+    # Another user's claim file in a shared run_dir, or a run_dir this user may not write in, was a raw
+    # PermissionError traceback. These tests may run as root, whom permissions do not stop: the open is refused here.
+    from tocabi_torchrl.atomic import claim_path
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.run_dir import RunDirError, open_run
+
+    claim = tmp_path / ".shared.claim"
+    if cause == "another_users_claim":
+        claim.write_text("4242")
+    real = os.open
+
+    def refused(path, *args, **kwargs):
+        if Path(path) == claim:
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", refused)
+    why = (rf"cannot open the claim file {re.escape(str(claim))}: it belongs to another user .*remove the file \(or "
+           r"ask its owner to\)"
+           if cause == "another_users_claim" else
+           rf"cannot create the claim file {re.escape(str(claim))}: this user may not write in "
+           rf"{re.escape(str(tmp_path))}")
+    with pytest.raises(PermissionError, match=why) as err:
+        claim_path(tmp_path / "shared")
+    assert err.value.filename == str(claim)
+    cfg = preset_config("cpu_smoke", device="cpu", run_dir=str(tmp_path), name="shared")
+    with pytest.raises(RunDirError, match=why + r"\. To write this run elsewhere, pass --run_dir \(and --name\)"):
+        open_run(cfg)
+    assert not (tmp_path / "shared").exists()
+
+
 def test_a_run_of_its_own_reward_terms_resumed_by_the_recipe_is_told_how_to_go_on(tmp_path):
     # It was a CheckpointError traceback blaming "another observation layout or normalisation?".
     from tocabi_torchrl.rl import preset_config

@@ -144,17 +144,17 @@ def claim_path(path: str | os.PathLike) -> tuple[Path | None, int | None]:
     messages. Returns ``(the claim file, None)``, or ``(None, the holder's process id)`` while another process holds
     the lock (``None`` as the id if it has not written it yet). The kernel drops the lock when its process ends,
     however it ends, so a killed run's claim is free at once; a process may claim a folder it holds again (each
-    :func:`release_claim` undoes one claim)."""
+    :func:`release_claim` undoes one claim). Raises ``PermissionError`` (``filename``: the claim file) saying why
+    when the claim file cannot be created or opened."""
     claim = Path(path).absolute()
     claim = claim.parent / f".{claim.name}.claim"
     if claim in _HELD:
         _HELD[claim][1] += 1
         return claim, None
-    claim.parent.mkdir(parents=True, exist_ok=True)
     import fcntl  # POSIX; imported here so that the module loads anywhere
 
     for _ in range(5):
-        fd = os.open(claim, os.O_CREAT | os.O_RDWR, 0o644)
+        fd = _open_claim(claim)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -174,6 +174,26 @@ def claim_path(path: str | os.PathLike) -> tuple[Path | None, int | None]:
         _HELD[claim] = [fd, 1]
         return claim, None
     return None, None
+
+
+def _open_claim(claim: Path) -> int:
+    """The claim file ``claim`` opened for reading and writing (created if missing, with its folder). A
+    ``PermissionError`` says which of the two usual causes it is, for a shared folder: another user's claim file,
+    which this user may not write (one of their processes is writing there, or ended without removing it), or a
+    folder this user may not write in."""
+    try:
+        claim.parent.mkdir(parents=True, exist_ok=True)
+        return os.open(claim, os.O_CREAT | os.O_RDWR, 0o644)
+    except PermissionError as err:
+        folder = claim.with_name(claim.name[1:-len(".claim")])
+        if os.path.lexists(claim):
+            why = (f"cannot open the claim file {claim}: it belongs to another user (one of their processes is writing "
+                   f"into {folder}, or one ended without removing it); if none is, remove the file (or ask its owner "
+                   "to)")
+        else:
+            where = f"write in {claim.parent}" if claim.parent.is_dir() else f"create {claim.parent}"
+            why = f"cannot create the claim file {claim}: this user may not {where}"
+        raise PermissionError(err.errno, why, str(claim)) from None
 
 
 def release_claim(claim: str | os.PathLike) -> None:

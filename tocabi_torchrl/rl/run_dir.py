@@ -71,8 +71,14 @@ class RunFolder:
 def claim_run_folder(path: Path) -> Path:
     """Claim the run folder ``path`` for this process (:func:`~tocabi_torchrl.atomic.claim_path`), so that a second
     run started with the same name before this one has written its files is refused instead of writing into the
-    same folder (:class:`RunDirError` naming the other process). Returns the claim file."""
-    claim, owner = claim_path(path)
+    same folder (:class:`RunDirError` naming the other process). A claim file that cannot be opened (another user's
+    in a shared folder, or a folder this user may not write in) is a :class:`RunDirError` too, saying which and the
+    fix. Returns the claim file."""
+    try:
+        claim, owner = claim_path(path)
+    except PermissionError as err:
+        raise RunDirError(f"{err.strerror}. To write this run elsewhere, pass --run_dir (and --name) naming a folder "
+                          "you can write") from None
     if claim is None:
         who = f"process {owner}" if owner is not None else "a process starting now"
         raise RunDirError(f"another run ({who}) is writing into {path} (it holds {path.parent / f'.{path.name}.claim'}"
