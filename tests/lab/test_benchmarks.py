@@ -491,3 +491,21 @@ def test_robust_policies_refuses_an_out_that_is_a_file_before_any_test(tmp_path)
         robust_policies.main(["--policies", str(policy), "--device", "cpu", "--num_envs", "1", "--out",
                               str(tmp_path / "f")])
     assert stop.value.code == 2
+
+
+def test_steady_rate_skips_rows_without_time_and_never_divides_by_zero(tmp_path):
+    # The benchmarks' env-steps/s (time_to_walk, train_throughput) ended in a ZeroDivisionError for two rows logged
+    # at one wall_s, and in a ValueError for a row whose wall_s cell is empty.
+    from lab.benchmarks.time_to_walk import steady_rate
+    from tocabi_torchrl.rl.curves import read_metrics
+
+    path = tmp_path / "metrics.csv"
+    path.write_text("iteration,wall_s,env_steps\n1,1.0,100\n2,,200\n3,2.0,300\n4,4.0,700\n")
+    rows = read_metrics(path)
+    assert rows[1]["wall_s"] == ""
+    assert steady_rate(rows, skip=1) == pytest.approx((700 - 300) / (4.0 - 2.0))  # the row without a time left out
+    same = [{"wall_s": "3.0", "env_steps": "100"}, {"wall_s": "5.0", "env_steps": "200"},
+            {"wall_s": "5.0", "env_steps": "300"}]
+    assert steady_rate(same, skip=1) is None  # no time between the two rows measured
+    assert steady_rate(same, skip=0) == pytest.approx((300 - 100) / (5.0 - 3.0))
+    assert steady_rate([{"wall_s": "", "env_steps": ""}] * 4, skip=1) is None

@@ -35,19 +35,32 @@ def metric_columns(path: str | Path) -> dict[str, list[float]]:
     return {k: [float(r[k]) if r.get(k) not in (None, "") else float("nan") for r in rows] for k in names}
 
 
+def _number(row: dict[str, str], key: str) -> float | None:
+    """``row[key]`` as a finite float, or None where the cell is empty, missing or not a finite number."""
+    try:
+        value = float(row.get(key, ""))
+    except (TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) else None
+
+
 def steady_rate(rows: list[dict[str, str]], skip: int = 1) -> float | None:
     """Env-steps/s from the ``skip``-th of ``read_metrics`` rows to the last, within the longest process segment
-    (``wall_s`` restarts when a run resumes), leaving out warm-up iterations; None with too few rows."""
-    segments: list[list[dict[str, str]]] = [[]]
-    for row in rows:
-        if segments[-1] and float(row["wall_s"]) < float(segments[-1][-1]["wall_s"]):
+    (``wall_s`` restarts when a run resumes), leaving out warm-up iterations; None with too few rows, or when the
+    two rows' ``wall_s`` are equal (no time measured between them). Rows without a number in ``wall_s`` or
+    ``env_steps`` (an empty cell) are left out, as if not logged."""
+    timed = [(wall, steps) for row in rows
+             if (wall := _number(row, "wall_s")) is not None and (steps := _number(row, "env_steps")) is not None]
+    segments: list[list[tuple[float, float]]] = [[]]
+    for wall, steps in timed:
+        if segments[-1] and wall < segments[-1][-1][0]:
             segments.append([])
-        segments[-1].append(row)
-    rows = max(segments, key=len)
-    if len(rows) <= skip + 1:
+        segments[-1].append((wall, steps))
+    timed = max(segments, key=len)
+    if len(timed) <= skip + 1:
         return None
-    a, b = rows[skip], rows[-1]
-    return (float(b["env_steps"]) - float(a["env_steps"])) / (float(b["wall_s"]) - float(a["wall_s"]))
+    (wall_a, steps_a), (wall_b, steps_b) = timed[skip], timed[-1]
+    return (steps_b - steps_a) / (wall_b - wall_a) if wall_b > wall_a else None
 
 
 def _plot(ax, x: list[float], y: list[float], **kwargs) -> None:
