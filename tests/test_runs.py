@@ -3,6 +3,7 @@ refused, clear messages for missing loggers, progress shows '-' until an episode
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import math
 import os
@@ -19,7 +20,7 @@ import torch
 from recipe_runner import load_recipe as recipe
 
 from tocabi_torchrl.rl import parse_args, preset_config
-from tocabi_torchrl.rl.checkpoint import read_checkpoint
+from tocabi_torchrl.rl.checkpoint import CheckpointError, read_checkpoint
 from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.config import PRESETS
 from tocabi_torchrl.rl.launch import LaunchError, banner, cpu_sized_hint, fallback_said, launch_config
@@ -932,7 +933,7 @@ def test_a_second_run_of_the_same_name_started_at_once_is_refused(tmp_path):
     run = open_run(cfg)  # killed: the kernel dropped its lock, and the claim is this run's at once
     assert (tmp_path / ".same.claim").read_text() == str(os.getpid())
     # A second open_run of the folder in this process that fails let the first run's claim go with it.
-    with pytest.raises(Exception):
+    with pytest.raises(CheckpointError, match="checkpoint not found"):
         open_run(dataclasses.replace(cfg, resume=str(tmp_path / "missing.pt")))
     assert (tmp_path / ".same.claim").is_file()
     run.release()
