@@ -6,14 +6,15 @@ report the first training time (and env steps) at which the gait test passes.
     python -m lab.benchmarks.time_to_walk eval --preset torque --test robust    # the robust gait test (evals_robust.json)
     python -m lab.benchmarks.time_to_walk eval --preset robust --test robust --from_minutes 15   # skip earlier marks
     python -m lab.benchmarks.time_to_walk eval --preset torque --test diverse   # its nominal and commands cases only
-    python -m lab.benchmarks.time_to_walk report --runs runs/time_to_walk/torque ...   # time_to_walk.{json,md,png}
+    python -m lab.benchmarks.time_to_walk report --overwrite --runs runs/time_to_walk/torque ...   # time_to_walk.*
     torchrun --standalone --nproc_per_node 2 -m lab.benchmarks.time_to_walk train --preset default --name default_2gpu
 
 ``train`` resumes ``runs/time_to_walk/<name>`` until ``--budget_minutes`` of training are used, data-parallel under
 torchrun (rank 0 writes ``train.json``; ``train_over_raw`` divides by ranks x one GPU's raw rate). ``eval`` writes the
 gait tests of each ``wall_*.pt`` to ``evals.json`` beside it, so both parts may run at once; ``--test robust`` runs
 the robust gait test (docs/evaluation.md) instead and keeps its results apart, in ``evals_robust.json`` (``report
---test robust`` reads those). More: docs/benchmarks.md.
+--test robust`` reads those). ``report`` refuses to replace a report that ``--out`` holds already (the committed one
+holds several runs; a report holds only its ``--runs``) unless ``--overwrite``. More: docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -435,7 +436,15 @@ def report_part(args, command: str) -> None:
     # Runs trained on the CPU (smoke runs) are kept out of the published GPU results; GPU runs copied back are not.
     cpu = data["records"] and all(r.get("gpu") == "cpu" for r in data["records"])
     out = common.report_dir(args.out, "cpu" if cpu else None)
-    text = common.publish(out, "time_to_walk" if test == "standard" else f"time_to_walk_{test}", data, render)
+    name = "time_to_walk" if test == "standard" else f"time_to_walk_{test}"
+    # The committed report holds several runs: one of fewer runs would replace it (and its plots) unsaid.
+    taken = [out / f for f in (f"{name}.json", f"{name}.md", f"{name}.png",
+                               *(["time_to_walk_curves.png"] if args.curves else [])) if (out / f).exists()]
+    if taken and not getattr(args, "overwrite", False):
+        raise ValueError(f"{out} holds {', '.join(p.name for p in taken)} already; pass --overwrite to replace "
+                         "them (the report holds only the --runs given: name every run it should keep), or --out "
+                         "another folder")
+    text = common.publish(out, name, data, render)
     if args.curves:
         plot_curves([Path(p) for p in args.curves], out / "time_to_walk_curves.png")
     print(text)
@@ -488,6 +497,8 @@ def main(argv=None) -> None:
     r.add_argument("--out", default=str(common.DOCS), help="folder of the tables and plots (default: docs/benchmarks)")
     r.add_argument("--test", choices=tuple(EVALS), default="standard",
                    help="which gait test's evaluations to report (default: standard)")
+    r.add_argument("--overwrite", action="store_true",
+                   help="replace report files that --out holds already (default: refuse)")
     args = parser.parse_args(argv)
     if args.part == "train" and not 0 < args.minutes < math.inf:  # the config reads max_minutes 0 as no time limit
         parser.error(f"--minutes must be a positive number of training minutes, got {args.minutes}")

@@ -333,3 +333,28 @@ def test_time_to_walk_eval_keeps_one_size_of_test_in_a_record(tmp_path, monkeypa
               "--seconds 0.5")
     assert "eval_commands" not in json.loads((folder / "evals_robust.json").read_text())
     assert "time to walk" in run("--num_envs", "4", "--seconds", "0.5")  # the same sizes go on with it
+
+
+def _gpu_run(folder, preset: str) -> str:
+    """A run folder as the train part leaves it on a GPU (no evaluations yet): its path."""
+    folder.mkdir(parents=True)
+    (folder / "train.json").write_text(json.dumps({"preset": preset, "gpu": "NVIDIA H200", "train_seconds": 60.0,
+                                                   "commands": [f"python -m x {preset}"], "config": {}}))
+    return str(folder)
+
+
+def test_time_to_walk_report_replaces_an_existing_report_only_with_overwrite(tmp_path, monkeypatch, capsys):
+    # With its default --out, a report of one run silently replaced the committed report of five (and its plots).
+    monkeypatch.setattr(time_to_walk.common, "plot", lambda path, panels, title="": path.write_text("plot"))
+    out = tmp_path / "out"
+    first, second = _gpu_run(tmp_path / "a", "torque"), _gpu_run(tmp_path / "b", "default")
+    _time_to_walk_here(capsys, "report", "--runs", first, second, "--out", str(out))
+    kept = (out / "time_to_walk.json").read_text()
+    _time_to_walk_here(capsys, "report", "--runs", second, "--out", str(out),
+                       error=f"{out} holds time_to_walk.json, time_to_walk.md, time_to_walk.png already; pass "
+                             "--overwrite to replace them")
+    assert (out / "time_to_walk.json").read_text() == kept
+    # Another test's report has files of its own: not refused.
+    _time_to_walk_here(capsys, "report", "--runs", second, "--test", "robust", "--out", str(out))
+    _time_to_walk_here(capsys, "report", "--overwrite", "--runs", second, "--out", str(out))
+    assert [r["preset"] for r in json.loads((out / "time_to_walk.json").read_text())["records"]] == ["default"]
