@@ -105,8 +105,9 @@ def train_part(args, command: str) -> None:
               "commands": [], **record}  # what the first call recorded stays
     record["commands"].append(command)
     # Any CUDA device string ("cuda", "cuda:1") is a GPU run: its GPU named, its raw ceiling measured on it.
+    # The date the training last ran: docs/benchmarks.md gives each run's date beside its result.
     record.update(gpu=tested_on(args.device), env_steps=result.env_steps, train_seconds=prior_s + result.wall_seconds,
-                  train_env_steps_per_s=steady_rate(rows, skip=3))
+                  train_env_steps_per_s=steady_rate(rows, skip=3), date=time.strftime("%Y-%m-%d"))
     if "raw_policy_steps_per_s" not in record and args.raw_steps > 0 and args.device.startswith("cuda"):
         record["raw_policy_steps_per_s"] = common.raw_policy_steps_per_second(cfg.env.num_envs, args.raw_steps,
                                                                               args.device)

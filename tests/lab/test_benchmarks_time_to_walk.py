@@ -183,11 +183,12 @@ def test_time_to_walk_trains_on_two_ranks_under_torchrun(tmp_path, monkeypatch, 
     _time_to_walk_here(capsys, *train, error="was trained on 2 rank(s) so far, this call has 1")
 
 
-def test_time_to_walk_train_on_any_cuda_device_records_its_gpu_and_raw_ceiling(tmp_path, monkeypatch):
-    # `--device cuda:1` once recorded the GPU as "cpu" and skipped the raw ceiling; the report then went to
-    # runs/benchmarks_cpu as a CPU smoke run's. The trainer and the GPU are stand-ins here.
+def _stand_in_training(tmp_path, monkeypatch) -> list[str]:
+    """The trainer, the raw ceiling and a GPU as stand-ins, ``runs/`` under ``tmp_path``: the devices the raw
+    ceiling is measured on (filled as it is)."""
     monkeypatch.chdir(tmp_path)
-    cfg = SimpleNamespace(resume="", max_minutes=1.0, env=SimpleNamespace(num_envs=4096), to_dict=dict)
+    cfg = SimpleNamespace(resume="", max_minutes=1.0, env=SimpleNamespace(num_envs=4096),
+                          to_dict=lambda: {"env": {"num_envs": 4096}})
     rows = [{"env_steps": str(4096 * 48 * i), "wall_s": str(1.5 * i)} for i in range(1, 8)]
     raw_on = []
     monkeypatch.setattr(common, "config", lambda preset, **kw: cfg)
@@ -198,6 +199,13 @@ def test_time_to_walk_train_on_any_cuda_device_records_its_gpu_and_raw_ceiling(t
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(common, "DOCS", tmp_path / "docs")
     monkeypatch.setattr(common, "CPU_OUT", tmp_path / "cpu")
+    return raw_on
+
+
+def test_time_to_walk_train_on_any_cuda_device_records_its_gpu_and_raw_ceiling(tmp_path, monkeypatch):
+    # `--device cuda:1` once recorded the GPU as "cpu" and skipped the raw ceiling; the report then went to
+    # runs/benchmarks_cpu as a CPU smoke run's. The trainer and the GPU are stand-ins here.
+    raw_on = _stand_in_training(tmp_path, monkeypatch)
     time_to_walk.main(["train", "--preset", "default", "--device", "cuda:1", "--every", "0"])
     record = json.loads((tmp_path / "runs/time_to_walk/default/train.json").read_text())
     assert record["gpu"] == "GPU 1" and raw_on == ["cuda:1"] and record["raw_policy_steps_per_s"] == 180_000.0
@@ -358,3 +366,19 @@ def test_time_to_walk_report_replaces_an_existing_report_only_with_overwrite(tmp
     _time_to_walk_here(capsys, "report", "--runs", second, "--test", "robust", "--out", str(out))
     _time_to_walk_here(capsys, "report", "--overwrite", "--runs", second, "--out", str(out))
     assert [r["preset"] for r in json.loads((out / "time_to_walk.json").read_text())["records"]] == ["default"]
+
+
+def test_a_new_time_to_walk_report_renders_on_the_benchmarks_page(tmp_path, monkeypatch):
+    # train.json recorded no date, so docs/benchmarks.md failed on a report of a new run with KeyError: 'date'.
+    from lab.benchmarks import page
+
+    _stand_in_training(tmp_path, monkeypatch)
+    time_to_walk.main(["train", "--preset", "default", "--device", "cuda", "--every", "0"])
+    docs = tmp_path / "docs"
+    time_to_walk.main(["report", "--runs", "runs/time_to_walk/default", "--out", str(docs / "benchmarks")])
+    robust = docs / page.ROBUST_TIME_TO_WALK  # the section's other report, as committed
+    robust.parent.mkdir(parents=True)
+    shutil.copy(page.DOCS / page.ROBUST_TIME_TO_WALK, robust)
+    date = json.loads((tmp_path / "runs/time_to_walk/default/train.json").read_text())["date"]
+    row = next(line for line in page.time_to_walk(docs) if line.startswith("| `default`"))
+    assert row.endswith(f"| {date} |") and "| 4,096 |" in row
