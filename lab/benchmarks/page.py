@@ -42,7 +42,12 @@ substeps. Commands are as they were run; the benchmark scripts now live in `lab/
 its JSON. This page is written by `python -m lab.benchmarks.page` from the same files (do not edit it by hand)."""
 
 
+#: The reports the section being rendered has read so far (docs-relative), for :func:`render`'s error message.
+_READ: list[str] = []
+
+
 def _load(rel: str, docs: Path) -> dict | list:
+    _READ.append(rel)
     return json.loads((docs / rel).read_text())
 
 
@@ -115,20 +120,38 @@ def several_gpus(docs: Path) -> list[str]:
     return [*out, "", *sources]
 
 
+def _ratio(r: dict) -> str:
+    """A run's train / raw cell: "–" where its raw ceiling was not measured (trained with ``--raw_steps 0``)."""
+    return "–" if r.get("train_over_raw") is None else f"{r['train_over_raw']:.2f}"
+
+
+def _require(r: dict, fields: tuple[str, ...], rel: str) -> None:
+    """Raise ``ValueError`` naming ``docs/<rel>``, the run and each of ``fields`` that its record ``r`` lacks."""
+    missing = [f for f in fields if f not in r]
+    if missing:
+        run = r.get("name", r.get("preset", "?"))
+        date = (" (the date: the day its training last ran, as time_to_walk train records it)"
+                if "date" in missing else "")
+        raise ValueError(f"docs/{rel}: the record of run {run!r} has no {', '.join(map(repr, missing))}, which this "
+                         f"page shows{date}: add it to the run's train.json and render the report again")
+
+
 def time_to_walk(docs: Path) -> list[str]:
-    d = _load("benchmarks/time_to_walk.json", docs)
+    rel = "benchmarks/time_to_walk.json"
+    d = _load(rel, docs)
     rows = ["| preset | GPUs | envs per GPU | first passes the gait test at | env steps | train / raw | date |",
             "|---|---|---:|---:|---:|---:|---|"]
     cmds = []
     for r in d["records"]:
+        # Every row carries its date (the page's rule); a record from an older train.json may lack it.
+        _require(r, ("preset", "gpu", "config", "train_seconds", "commands", "date"), rel)
         gpus = f"{r.get('gpus', 1)} x {r['gpu']}"
         envs = r["config"].get("env", {}).get("num_envs") or r["config"].get("num_envs")
         ttw = r["time_to_walk"]
         walks = (f"**{ttw['train_minutes']:.1f} min**" if ttw
                  else f"not yet when the run ended ({r['train_seconds'] / 60:.1f} min)")
         steps = f"{ttw['env_steps'] / 1e6:.0f} M" if ttw else "–"
-        rows.append(f"| `{r['preset']}` | {gpus} | {envs:,} | {walks} | {steps} | {r['train_over_raw']:.2f} | "
-                    f"{r['date']} |")
+        rows.append(f"| `{r['preset']}` | {gpus} | {envs:,} | {walks} | {steps} | {_ratio(r)} | {r['date']} |")
         train = r["commands"][0] if isinstance(r["commands"], list) else r["commands"]
         cmds.append(f"- `{r.get('name', r['preset'])}`: `{train}`")
     return ["## Time to walk (training minutes until a checkpoint passes the 8 s gait test)", "",
@@ -156,8 +179,9 @@ def _robust_time_to_walk(docs: Path) -> list[str]:
                      f"and kicks; {'/'.join(f'{n:,}' for n in robots)} robots per case; checkpoints from "
                      f"{min(e['train_seconds'] for e in r['evaluations'].values()) / 60:.0f} training minutes on), "
                      f"`{r['preset']}` on "
-                     f"{r.get('gpus', 1)} x {r['gpu']} at {envs:,} envs first passes at {walks}, training at "
-                     f"{r['train_over_raw']:.2f}x raw mujoco-warp.")
+                     f"{r.get('gpus', 1)} x {r['gpu']} at {envs:,} envs first passes at {walks}"
+                     + ("." if r.get("train_over_raw") is None else
+                        f", training at {r['train_over_raw']:.2f}x raw mujoco-warp."))
         lines.append("")
         lines += [f"- training command: `{c}`" for c in r["commands"]]
     md = ROBUST_TIME_TO_WALK.replace(".json", ".md")
@@ -763,7 +787,15 @@ SECTIONS: tuple[Callable[[Path], list[str]], ...] = (
 def render(docs: Path = DOCS) -> str:
     """The markdown of docs/benchmarks.md from the committed reports under ``docs``."""
     parts = [HEADER]
-    parts += ["\n".join(section(docs)) for section in SECTIONS]
+    for section in SECTIONS:
+        _READ.clear()
+        try:
+            parts.append("\n".join(section(docs)))
+        except (KeyError, IndexError) as err:  # a report rewritten without a field or row this page shows
+            files = ", ".join(f"docs/{rel}" for rel in dict.fromkeys(_READ)) or "its reports"
+            raise ValueError(f"the {section.__name__} section: {files} lack(s) {err} ({type(err).__name__}), which "
+                             "the page shows: add it to the report, or change what lab/benchmarks/page.py "
+                             "reads") from err
     return "\n\n".join(parts) + "\n"
 
 
@@ -771,7 +803,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--check", action="store_true", help="only report whether docs/benchmarks.md is current")
     args = p.parse_args(argv)
-    text = render()
+    try:
+        text = render()
+    except ValueError as err:  # a report the page cannot show: named, not a traceback
+        p.exit(1, f"error: {err}\n")
     if args.check:
         current = PAGE.is_file() and PAGE.read_text() == text
         print(f"{PAGE} is {'current' if current else 'stale: run python -m lab.benchmarks.page'}")

@@ -193,3 +193,39 @@ def test_docstring_examples_run():
 
     result = doctest.testmod(_page_module())
     assert result.attempted >= 1 and result.failed == 0
+
+
+def test_a_report_without_a_field_the_page_shows_is_named_not_a_key_error(tmp_path, monkeypatch, capsys):
+    """A time_to_walk report of runs whose train.json has no date (older runs) or no raw ceiling (``--raw_steps 0``)
+    once ended the page with ``KeyError: 'date'``; any other report without a field the page shows, likewise."""
+    import json
+    import shutil
+
+    import pytest
+
+    page = _page_module()
+    robust = tmp_path / page.ROBUST_TIME_TO_WALK  # the section's other report, as committed
+    robust.parent.mkdir(parents=True)
+    shutil.copy(page.DOCS / page.ROBUST_TIME_TO_WALK, robust)
+    record = {"preset": "torque", "gpu": "NVIDIA H200", "config": {"env": {"num_envs": 4096}}, "train_seconds": 600.0,
+              "commands": ["python -m x"], "time_to_walk": None, "date": "2026-12-05"}
+    path = tmp_path / "benchmarks/time_to_walk.json"
+    path.parent.mkdir()
+    path.write_text(json.dumps({"command": "python -m r --runs a", "records": [record]}))
+    row = next(line for line in page.time_to_walk(tmp_path) if line.startswith("| `torque`"))
+    assert row.endswith("| – | 2026-12-05 |")  # no raw ceiling measured: no ratio, not a crash
+    del record["date"]
+    path.write_text(json.dumps({"command": "python -m r --runs a", "records": [record]}))
+    with pytest.raises(ValueError, match="docs/benchmarks/time_to_walk.json: the record of run 'torque' has no "
+                                         "'date', which this page shows"):
+        page.time_to_walk(tmp_path)
+    (tmp_path / "benchmarks/env_throughput.json").write_text(json.dumps(
+        {"meta": {"command": "c", "date": "d", "gpu": "g"}, "results": [{"num_envs": 8}]}))
+    monkeypatch.setattr(page, "SECTIONS", (page.env_throughput,))
+    with pytest.raises(ValueError, match="the env_throughput section: docs/benchmarks/env_throughput.json lack"
+                                         "\\(s\\) 'raw_policy_steps_per_s' \\(KeyError\\)"):
+        page.render(tmp_path)
+    monkeypatch.setattr(page, "render", lambda: page.time_to_walk(tmp_path))  # the command: one line, exit 1
+    with pytest.raises(SystemExit) as stop:
+        page.main([])
+    assert stop.value.code == 1 and capsys.readouterr().err.startswith("error: docs/benchmarks/time_to_walk.json")
