@@ -127,6 +127,7 @@ def eval_part(args, command: str) -> None:
     record = _load(evals_file)
     evals, envs = record.setdefault("evaluations", {}), {}
     _refuse_other_sizes(evals, evals_file, test, args)
+    recorded = []  # the marks this call adds (a mark without a robust report is left out)
     while True:
         # Checkpoints are written atomically (a temporary file, then a rename): a wall_*.pt is complete.
         # Marks before --from_minutes are left out: a GPU's test of each costs about a minute, and a screen may
@@ -136,7 +137,9 @@ def eval_part(args, command: str) -> None:
         marks = [p for p in walls if wall_seconds(p.stem) + 0.5 >= 60.0 * args.from_minutes]
         for ckpt in [p for p in marks if p.stem not in evals]:
             (_evaluate_robust if test in TEST_CASES else _evaluate)(ckpt, evals, envs, args)
-            common.write_json(evals_file, record)
+            if ckpt.stem in evals:
+                recorded.append(ckpt.stem)
+                common.write_json(evals_file, record)
         if args.follow_pid and _alive(args.follow_pid):
             time.sleep(10.0)
         elif args.follow_pid:
@@ -150,9 +153,12 @@ def eval_part(args, command: str) -> None:
             "steps are read from its checkpoint)" if not walls else
             f"no checkpoint of {run_dir} is of minute {args.from_minutes:g} or later (--from_minutes); its last is "
             f"{walls[-1].stem} ({wall_seconds(walls[-1].stem) / 60:g} min)")
-    record.setdefault("eval_commands", []).append(command)
     record["time_to_walk"] = first_walk(record)
-    common.write_json(evals_file, record)
+    if recorded:  # the record lists the commands that made it: one that added nothing is none of them
+        record.setdefault("eval_commands", []).append(command)
+        common.write_json(evals_file, record)
+    else:
+        print(f"nothing recorded: each checkpoint to test is in {evals_file} already or was left out", flush=True)
     print("time to walk:", json.dumps(record["time_to_walk"]))
 
 

@@ -138,7 +138,7 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
                                                      "settings": {**FULL_TEST, "push_count": 1}, "cases": cases}))
     text = run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(partial.parent))
     assert "left out (its kicks are not the test's: test the checkpoint again)" in text
-    assert walls[0] not in json.loads((folder / "evals_robust.json").read_text())["evaluations"]
+    assert not (folder / "evals_robust.json").exists()  # each mark left out: nothing recorded, nothing written
     (tmp_path / "evals_robust.json").replace(folder / "evals_robust.json")
     (folder / "evals_diverse.json").unlink()  # tested here: only the two unperturbed cases run
     run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "diverse", "--num_envs", "2", "--seconds", "0.2")
@@ -382,3 +382,21 @@ def test_a_new_time_to_walk_report_renders_on_the_benchmarks_page(tmp_path, monk
     date = json.loads((tmp_path / "runs/time_to_walk/default/train.json").read_text())["date"]
     row = next(line for line in page.time_to_walk(docs) if line.startswith("| `default`"))
     assert row.endswith(f"| {date} |") and "| 4,096 |" in row
+
+
+def test_time_to_walk_eval_that_records_nothing_adds_no_command(tmp_path, monkeypatch, capsys):
+    # An eval whose marks were all tested already, or left out for want of a report, still added its command to
+    # the record's eval_commands, which the report lists as the commands that made it.
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "runs/time_to_walk/r"
+    (folder / "checkpoints").mkdir(parents=True)
+    for stem in ("wall_00060s", "wall_00120s"):  # the second has no report to read: left out
+        (folder / "checkpoints" / f"{stem}.pt").write_bytes(b"")
+    tested = {"train_seconds": 60.0, "env_steps": 1, "iteration": 1, "device": "cpu", "test": "robust",
+              "settings": {"num_envs": 1024, "seconds": 8.0}, "cases": {}, "walks": False}
+    (folder / "evals_robust.json").write_text(json.dumps({"evaluations": {"wall_00060s": tested}}))
+    (tmp_path / "verdict").mkdir()
+    monkeypatch.setattr(common, "read_checkpoint", lambda path: {})
+    text = _time_to_walk_here(capsys, "eval", "--name", "r", "--test", "robust", "--reports", str(tmp_path / "verdict"))
+    assert "eval_commands" not in json.loads((folder / "evals_robust.json").read_text()), "a command recorded nothing"
+    assert "wall_00120s: no " in text and "nothing recorded" in text
