@@ -111,6 +111,9 @@ def train_part(args, command: str) -> None:
     if "raw_policy_steps_per_s" not in record and args.raw_steps > 0 and args.device.startswith("cuda"):
         record["raw_policy_steps_per_s"] = common.raw_policy_steps_per_second(cfg.env.num_envs, args.raw_steps,
                                                                               args.device)
+    elif "raw_policy_steps_per_s" not in record and args.raw_steps > 0:
+        print(f"--raw_steps {args.raw_steps} skipped: the raw mujoco-warp ceiling is timed on a GPU only, so "
+              "train.json gets no raw rate and no train / raw on this device", flush=True)
     if record.get("train_env_steps_per_s") and record.get("raw_policy_steps_per_s"):
         record["train_over_raw"] = record["train_env_steps_per_s"] / (record["gpus"] * record["raw_policy_steps_per_s"])
     common.write_json(run_dir / "train.json", record)
@@ -474,7 +477,8 @@ def main(argv=None) -> None:
     t.add_argument("--every", type=float, default=2.0,
                    help="minutes between evaluated checkpoints (default: 2; 0: none)")
     t.add_argument("--log_every", type=int, default=5, help="iterations between logged rows (default: 5)")
-    t.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (default: 200; 0: skip)")
+    t.add_argument("--raw_steps", type=int, default=200,
+                   help="raw mujoco-warp steps timed, on a GPU only (default: 200; 0: skip)")
     t.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE",
                    help="config overrides on top of the preset (ablations); a run continues only with the same ones")
     what = "gait tests of every wall-clock checkpoint of a preset's run"

@@ -400,3 +400,12 @@ def test_time_to_walk_eval_that_records_nothing_adds_no_command(tmp_path, monkey
     text = _time_to_walk_here(capsys, "eval", "--name", "r", "--test", "robust", "--reports", str(tmp_path / "verdict"))
     assert "eval_commands" not in json.loads((folder / "evals_robust.json").read_text()), "a command recorded nothing"
     assert "wall_00120s: no " in text and "nothing recorded" in text
+
+
+def test_time_to_walk_train_says_when_it_skips_the_raw_ceiling(tmp_path, monkeypatch, capsys):
+    # On the CPU --raw_steps was skipped without a word: train.json then had no raw rate and no train / raw.
+    raw_on = _stand_in_training(tmp_path, monkeypatch)
+    text = _time_to_walk_here(capsys, "train", "--preset", "default", "--device", "cpu", "--every", "0")
+    assert raw_on == [] and "--raw_steps 200 skipped: the raw mujoco-warp ceiling is timed on a GPU only" in text
+    assert "skipped" not in _time_to_walk_here(capsys, "train", "--preset", "default", "--device", "cpu", "--every",
+                                               "0", "--raw_steps", "0", "--name", "asked")  # asked for: no word
