@@ -280,9 +280,13 @@ def first_walk(record: dict) -> dict | None:
 def read_run(folder: Path, test: str = "standard") -> dict:
     """A run's ``train.json`` and the evaluations of ``test`` (:data:`EVALS`: ``evals.json``, ``evals_robust.json``
     or ``evals_diverse.json``) as one record (``time_to_walk`` recomputed from the evaluations)."""
-    record = {**_load(folder / "train.json"), **_load(folder / EVALS[test])}
+    train = _load(folder / "train.json")
+    record = {**train, **_load(folder / EVALS[test])}
     if not record:
         raise SystemExit(f"error: {folder}: no train.json or {EVALS[test]} (run the train and eval parts first)")
+    if not train:  # an eval beside a run's first training call writes its evaluations before train.json is there
+        raise SystemExit(f"error: {folder}: no train.json, only {EVALS[test]}; the train part writes it when a "
+                         "training call ends: report after that (or copy it with the run)")
     return {**record, "time_to_walk": first_walk(record)}
 
 

@@ -409,3 +409,14 @@ def test_time_to_walk_train_says_when_it_skips_the_raw_ceiling(tmp_path, monkeyp
     assert raw_on == [] and "--raw_steps 200 skipped: the raw mujoco-warp ceiling is timed on a GPU only" in text
     assert "skipped" not in _time_to_walk_here(capsys, "train", "--preset", "default", "--device", "cpu", "--every",
                                                "0", "--raw_steps", "0", "--name", "asked")  # asked for: no word
+
+
+def test_time_to_walk_report_of_a_run_without_train_json_says_so(tmp_path, capsys):
+    # Evaluations written beside a run's first training call (eval --follow_pid), before its train.json: the report
+    # ended on KeyError: 'preset'.
+    folder = tmp_path / "r"
+    folder.mkdir()
+    (folder / "evals.json").write_text(json.dumps({"evaluations": {}}))
+    _time_to_walk_here(capsys, "report", "--runs", str(folder), "--out", str(tmp_path / "out"),
+                       error=f"{folder}: no train.json, only evals.json; the train part writes it when a training call "
+                             "ends")
