@@ -304,3 +304,25 @@ def test_a_config_edited_in_place_leaves_presets_and_the_lab_set_alone():
     term = CallableTerm("up", lambda td, nxt: nxt["base_pos"][:, 2:3], weight=0.5)
     mine = tree_replace_paths(TransformConfig(), {"reward_terms": ("qpos", term)})
     assert mine.reward_terms[1] == term and mine.reward_terms[1].fn is term.fn  # leaves are the very objects
+
+
+def test_options_of_a_schedule_or_std_mode_the_run_does_not_use_are_refused():
+    # --ppo.lr_end 1e-6 under the default's adaptive schedule, or --ppo.std_end under a learned std, trained exactly
+    # as without it, without a word.
+    for path, value, switch in (("ppo.lr_end", 1e-6, "ppo.lr_schedule 'linear'"),
+                                ("ppo.lr_min", 1e-4, "ppo.lr_schedule 'adaptive'"),
+                                ("ppo.desired_kl", 0.02, "ppo.lr_schedule 'adaptive'")):
+        with pytest.raises(ValueError, match=rf"ppo.lr_schedule is 'fixed', so {path} \(read by {switch} only\) "
+                                             rf"would change nothing: set ppo.lr_schedule="):
+            preset_config("default", **{"ppo.lr_schedule": "fixed", path: value})
+    with pytest.raises(ValueError, match=r"ppo.lr_schedule is 'adaptive', so ppo.lr_end .* set ppo.lr_schedule=linear"):
+        preset_config("default", **{"ppo.lr_end": 1e-6})
+    with pytest.raises(ValueError, match=r"ppo.std_mode is 'learned', so ppo.std_end, ppo.std_hold .*scheduled"):
+        preset_config("default", **{"ppo.std_mode": "learned", "ppo.std_end": 0.1, "ppo.std_hold": 0.2})
+    with pytest.raises(ValueError, match=r"ppo.lr_schedule is 'linear', so ppo.assist_lr_hold"):
+        preset_config("torque", **{"ppo.lr_schedule": "linear", "ppo.assist_lr_hold": "pull"})
+    # Under the mode that reads them they are taken; a preset's own values stay valid under another mode.
+    assert preset_config("default", **{"ppo.lr_schedule": "linear", "ppo.lr_end": 1e-6}).ppo.lr_end == 1e-6
+    assert preset_config("reference", **{"ppo.lr_schedule": "adaptive", "ppo.lr": 1e-4}).ppo.lr_end == 2e-7
+    assert preset_config("robust", **{"ppo.lr_schedule": "fixed"}).ppo.lr_min == 5e-5
+    assert preset_config("default", **{"ppo.std_mode": "learned"}).ppo.std_end == 0.05

@@ -545,6 +545,13 @@ class RunConfig:
         if not self.ppo.torque_assist > 0 and (unused := ", ".join(self._changed_options(ASSIST_OPTIONS))):
             raise ValueError(f"ppo.torque_assist is 0 (no assist), so the assist's schedule {unused} would change "
                              f"nothing: set ppo.torque_assist > 0, or leave {unused} at the preset's values")
+        # And the options of a learning-rate schedule or an action-std mode the run does not use: --ppo.lr_end 1e-6
+        # under the default's adaptive schedule trained exactly as without it.
+        for switch, mode, paths in MODE_OPTIONS:
+            if _get(self, switch) != mode and (unused := ", ".join(self._changed_options(paths))):
+                raise ValueError(f"{switch} is {_get(self, switch)!r}, so {unused} (read by {switch} {mode!r} only) "
+                                 f"would change nothing: set {switch}={mode}, or leave {unused} at the preset's "
+                                 f"values")
         if self.ppo.minibatch_size > self.frames_per_batch:
             quarter = max(1, self.frames_per_batch // 4)
             raise ValueError(
@@ -615,6 +622,11 @@ def schedule_warning(cfg: RunConfig) -> str | None:
 KICK_OPTIONS = ("env.pushes.window", "env.pushes.speed", "env.pushes.duration", "env.pushes.kind",
                 "env.pushes.calm_fraction", "ppo.push_ramp")
 ASSIST_OPTIONS = ("ppo.assist_fade_start", "ppo.assist_fade_end", "ppo.assist_anchor_decay")
+#: Options read under one learning-rate schedule or action-std mode only, as ``(switch, mode, paths)``:
+#: :meth:`RunConfig.validate` refuses them set under another mode.
+MODE_OPTIONS = (("ppo.lr_schedule", "linear", ("ppo.lr_end",)),
+                ("ppo.lr_schedule", "adaptive", ("ppo.lr_min", "ppo.desired_kl", "ppo.assist_lr_hold")),
+                ("ppo.std_mode", "scheduled", ("ppo.std_end", "ppo.std_hold")))
 
 
 def _get(tree: Any, path: str) -> Any:
