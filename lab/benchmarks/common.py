@@ -10,12 +10,14 @@ import contextlib
 import json
 import os
 import platform
+import re
 import resource
 import shutil
 import subprocess
 import sys
 import threading
 import time
+import typing
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -31,7 +33,7 @@ from tocabi_torchrl.rl.curves import read_metrics
 from tocabi_torchrl.evaluation.gait_test import evaluate_policy
 from tocabi_torchrl.evaluation.output import json_safe
 from tocabi_torchrl.evaluation.record import fixed_command, nominal_config
-from tocabi_torchrl.tree import get_path, leaf_types
+from tocabi_torchrl.tree import get_path, item_type, leaf_types
 
 GIB = 2**30
 #: Raw policy steps run before the ceiling is measured (the robots settle onto the floor first).
@@ -196,19 +198,31 @@ read_checkpoint = checkpoint.read_checkpoint  # a checkpoint (file or run folder
 
 
 def parse_overrides(items: Sequence[str]) -> dict:
-    """``PATH=VALUE`` strings (a path of the config tree such as ``ppo.lr`` or ``env.num_envs``; a tuple's entries
-    space-separated) typed by the tree, as ``recipes/ppo_walk.py``'s ``--PATH VALUE`` would read them, by path."""
-    paths, argv = set(leaf_types(RunConfig())), []
+    """``PATH=VALUE`` strings (a path of the config tree such as ``ppo.lr`` or ``env.num_envs``) typed by the tree,
+    as ``recipes/ppo_walk.py``'s ``--PATH VALUE`` would read them, by path. A tuple's entries are separated by spaces
+    or commas (``delay_substeps=4 20``, ``=4,20``, ``=(4, 20)``); any other value is one argument, spaces and all
+    (a name, a path, ``env.scene.obstacles``' JSON)."""
+    kinds = leaf_types(RunConfig())
+    argv = []
     for item in items:
         field, _, value = item.partition("=")
-        if field not in paths:
-            near = suggest_options(field, paths)
+        if field not in kinds:
+            near = suggest_options(field, kinds)
             hint = f"; did you mean {' or '.join(near)}?" if near else ""
             raise SystemExit(f"error: --set {item}: the training config has no option {field!r}{hint} (options are "
                              "dotted paths such as ppo.lr or env.num_envs: recipes/ppo_walk.py --help)")
-        argv += [f"--{field}", *value.split()]
+        argv += [f"--{field}", *_set_arguments(kinds[field], value)]
     cfg = parse_tree(argv, RunConfig())
     return {field: get_path(cfg, field) for field in (item.partition("=")[0] for item in items)}
+
+
+def _set_arguments(kind, value: str) -> list[str]:
+    """The command-line arguments of a ``--set`` value for a leaf annotated ``kind``: a tuple of plain values (not
+    of items, which take JSON) split at spaces and commas, brackets around it dropped; anything else whole. Splitting
+    every value at spaces broke a JSON list or a name with spaces into stray arguments."""
+    if typing.get_origin(kind) is tuple and item_type(kind) is None:
+        return [v for v in re.split(r"[\s,]+", value.strip().strip("()[]")) if v]
+    return [value]
 
 
 def train(cfg, env=None, wrap_policy: Callable | None = None):

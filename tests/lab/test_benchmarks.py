@@ -61,6 +61,20 @@ def test_unknown_override_is_named():
         "ppo.cuda_graph": "on", "ppo.actor_hidden": (8, 8), "total_env_steps": 2000}
 
 
+def test_a_set_value_splits_only_for_a_tuple_and_a_tuple_takes_commas():
+    # Every value was split at spaces: JSON with spaces (as --help writes env.scene.obstacles) or a name with a space
+    # broke into stray arguments, and a tuple written 4,20 (the committed reports' commands) did not parse.
+    box = '[{"size": [0.3, 0.6, 0.012], "pos": [0.7, 0.1]}]'
+    got = common.parse_overrides([f"env.scene.obstacles={box}", "name=my run", "env.task.motion=/tmp/a b.npz",
+                                  "env.control.actuators.delay_substeps=4,20", "env.pushes.speed=(0.4, 1.4)",
+                                  "ppo.actor_hidden=[64,32]", "ppo.critic_hidden=16 8", "loggers=csv,tensorboard"])
+    assert [(b.size, b.pos) for b in got["env.scene.obstacles"]] == [((0.3, 0.6, 0.012), (0.7, 0.1))]
+    assert (got["name"], got["env.task.motion"]) == ("my run", "/tmp/a b.npz")
+    assert (got["env.control.actuators.delay_substeps"], got["env.pushes.speed"]) == ((4, 20), (0.4, 1.4))
+    assert (got["ppo.actor_hidden"], got["ppo.critic_hidden"]) == ((64, 32), (16, 8))
+    assert got["loggers"] == ("csv", "tensorboard")
+
+
 def test_a_cpu_measurement_does_not_replace_the_published_gpu_reports(tmp_path, monkeypatch, capsys):
     # docs/benchmarks.md gives CPU commands whose default --out is docs/benchmarks: a report measured on the CPU goes
     # to runs/benchmarks_cpu instead. GPU results merged or re-rendered on a CPU machine (mjlab_peer's merge,
