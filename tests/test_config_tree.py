@@ -326,3 +326,15 @@ def test_options_of_a_schedule_or_std_mode_the_run_does_not_use_are_refused():
     assert preset_config("reference", **{"ppo.lr_schedule": "adaptive", "ppo.lr": 1e-4}).ppo.lr_end == 2e-7
     assert preset_config("robust", **{"ppo.lr_schedule": "fixed"}).ppo.lr_min == 5e-5
     assert preset_config("default", **{"ppo.std_mode": "learned"}).ppo.std_end == 0.05
+
+
+def test_an_optional_option_takes_none_in_any_case():
+    # The help and the config's messages write it "none" (env.sim.nconmax: "none = the measured default"): tyro's
+    # rule refused it for a number and read it as a motion file named "none", which failed after the banner.
+    cfg, _ = parse_args(["--preset", "cpu_smoke", "--env.sim.nconmax", "none", "--env.sim.threads", "NONE",
+                         "--env.task.motion", "none", "--transforms.obs_clip", "none",
+                         "--transforms.reward_weights.qpos", "None"], prog="ppo_walk.py")
+    assert (cfg.env.sim.nconmax, cfg.env.sim.threads, cfg.env.task.motion, cfg.transforms.obs_clip) == (None,) * 4
+    assert cfg.transforms.reward_weights.qpos is None
+    cfg, _ = parse_args(["--preset", "cpu_smoke", "--env.sim.nconmax", "64", "--env.task.motion", "walk.npz"])
+    assert (cfg.env.sim.nconmax, cfg.env.task.motion) == (64, "walk.npz")

@@ -12,7 +12,7 @@
 given overrides it. With ``--resume`` the defaults are the saved run's instead, and an option other than
 :data:`~tocabi_torchrl.rl.resume.RESUME_SAFE` may not change (``ResumeConfigError`` names it). Values are typed by
 the fields: tuples are space-separated (``--ppo.actor_hidden 256 256``, ``--loggers csv tensorboard``), switches take
-true/false, an optional number takes None, an int also takes a whole number written as a float (``2e8``), and
+true/false, an optional value takes None (any case), an int also takes a whole number written as a float (``2e8``), and
 ``--env.scene.obstacles`` takes JSON. The config's own rules (``RunConfig.validate``) then check the values.
 
 This module and the config modules import no torch: ``--help`` answers in a fraction of a second.
@@ -82,6 +82,15 @@ def _whole(text: str) -> int:
     return int(number)
 
 
+def _none(text: str) -> None:
+    """The ``None`` of an optional option, in any case: the help and the config's messages write it ``none``
+    (``env.sim.nconmax``: "none = the measured default"), which tyro's own rule refused for a number and read as a
+    file name for a path (``--env.task.motion none``)."""
+    if text.strip().lower() == "none":
+        return None
+    raise ValueError(f"expected None, got {text!r}")
+
+
 def _switch(text: str) -> bool:
     if text.lower() in _TRUE:
         return True
@@ -141,8 +150,8 @@ def _readable_struct_rule(registry):
 
 
 def _registry():
-    """tyro's rules for the leaves whose text it would read otherwise: ints (``2e8``), switches (any case) and
-    tuples of dataclass items (``env.scene.obstacles``: JSON); and for the help of every option
+    """tyro's rules for the leaves whose text it would read otherwise: ints (``2e8``), switches and None (any case)
+    and tuples of dataclass items (``env.scene.obstacles``: JSON); and for the help of every option
     (:func:`readable_help`)."""
     import tyro
     from tyro.constructors import PrimitiveConstructorSpec
@@ -157,6 +166,9 @@ def _registry():
             return PrimitiveConstructorSpec(nargs=1, metavar="INT", instance_from_str=lambda a: _whole(a[0]),
                                             is_instance=lambda v: isinstance(v, int) and not isinstance(v, bool),
                                             str_from_instance=lambda v: [str(v)])
+        if kind is type(None):  # the None of an optional leaf (int | None, str | None, ...)
+            return PrimitiveConstructorSpec(nargs=1, metavar="{None}", instance_from_str=lambda a: _none(a[0]),
+                                            is_instance=lambda v: v is None, str_from_instance=lambda v: ["None"])
         if kind is bool:
             return PrimitiveConstructorSpec(nargs=1, metavar="{true,false}", instance_from_str=lambda a: _switch(a[0]),
                                             is_instance=lambda v: isinstance(v, bool),
