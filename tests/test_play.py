@@ -159,12 +159,17 @@ def test_a_shipped_policy_writes_outside_the_source_tree_and_titles_the_plot_wit
 
 
 def test_rendering_shows_progress(tmp_path, capsys, model):
-    from tocabi_torchrl.evaluation.video import render_video
+    from tocabi_torchrl.evaluation import video as eval_video
 
+    reason = eval_video.rendering_unavailable()
+    if reason is not None:
+        pytest.skip(f"no offscreen rendering here: {reason}")
     qpos = np.tile(model.qpos0, (3, 1, 1))
     try:
-        render_video(model, qpos, 30, tmp_path, width=64, height=48)
-    except Exception as err:  # noqa: BLE001 - no OpenGL backend on this machine
+        eval_video.render_video(model, qpos, 30, tmp_path, width=64, height=48)
+    except Exception as err:  # noqa: BLE001 - skip on OpenGL's failure only (the module remembers those)
+        if eval_video._failure is None:
+            raise  # not OpenGL: a bug in the video code, which a skip would hide
         pytest.skip(f"no offscreen rendering here: {err}")
     assert "rendering video" in capsys.readouterr().err
 
