@@ -190,7 +190,7 @@ def test_an_atomic_write_that_must_not_replace_leaves_a_file_that_appeared_meanw
     monkeypatch.setattr(atomic, "_create_temp", real_create)
     # A file system without hard links: checked just before the rename instead.
     monkeypatch.setattr(atomic.os, "link", lambda src, dst: (_ for _ in ()).throw(OSError(errno.EPERM, "no links")))
-    with pytest.raises(FileExistsError):
+    with pytest.raises(FileExistsError, match="appeared while this one was being written"):
         atomic.atomic_write_text(target, "again", replace=False)
     assert atomic.atomic_write_text(tmp_path / "new.json", "{}", replace=False).read_text() == "{}"
     assert target.read_text() == "ours" and not list(tmp_path.glob(".*.tmp"))

@@ -219,9 +219,9 @@ def test_model_fields_are_written_in_place_and_cannot_be_rebound(backend):
     make = MujocoSim if backend == "mujoco" else WarpSim
     sim = make(SimConfig(num_worlds=2, threads=1, per_world_fields=("dof_damping",)))
     rows = sim.model_fields["dof_damping"]
-    with pytest.raises(TypeError):
+    with pytest.raises(TypeError, match="does not support item assignment"):
         sim.model_fields["dof_damping"] = rows + 5.0
-    with pytest.raises(TypeError):
+    with pytest.raises(TypeError, match="does not support item deletion"):
         del sim.model_fields["dof_damping"]
     rows[1] += 5.0  # in place: world 1's physics from its next step on
     sim.step()

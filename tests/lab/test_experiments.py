@@ -646,7 +646,7 @@ def test_a_failure_outside_opengl_leaves_rendering_on(model, monkeypatch):
     monkeypatch.undo()  # MuJoCo's own renderer refuses an image beyond its offscreen buffer, before any OpenGL
     monkeypatch.setattr(eval_video, "_failure", None)
     monkeypatch.delenv("MUJOCO_GL", raising=False)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="framebuffer width"):
         eval_video.render_stills(model, q, width=int(model.vis.global_.offwidth) + 1)
     assert eval_video._failure is None
 

@@ -20,7 +20,7 @@ def test_docstring_examples_run():
 
 def test_solving_restores_mj_step_even_after_an_error():
     step = mujoco.mj_step
-    with pytest.raises(RuntimeError), solver_tolerance.solved_with(1e-6):
+    with pytest.raises(RuntimeError, match="boom"), solver_tolerance.solved_with(1e-6):
         assert mujoco.mj_step is not step
         raise RuntimeError("boom")
     assert mujoco.mj_step is step

@@ -20,7 +20,7 @@ def test_docstring_examples_run():
 
 def test_counting_restores_mj_step_even_after_an_error():
     step = mujoco.mj_step
-    with pytest.raises(RuntimeError), substep_iterations.counted_steps():
+    with pytest.raises(RuntimeError, match="boom"), substep_iterations.counted_steps():
         assert mujoco.mj_step is not step
         raise RuntimeError("boom")
     assert mujoco.mj_step is step
