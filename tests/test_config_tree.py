@@ -113,7 +113,7 @@ def test_env_and_recipe_share_their_defaults():
     assert RunConfig() == dataclasses.replace(default, preset="default")
 
 
-def test_command_line_sets_nested_options_over_the_preset():
+def test_command_line_sets_nested_options_over_the_preset(capsys):
     cfg, given = parse_args(["--preset", "cpu_smoke", "--ppo.lr", "3e-4", "--env.num_envs", "4",
                              "--env.control.mode", "torque", "--env.command.vx_range", "0.1", "0.3",
                              "--ppo.minibatch_size", "16", "--env.task.motion", "None",
@@ -127,6 +127,7 @@ def test_command_line_sets_nested_options_over_the_preset():
     for argv in (["--num_envs", "4"], ["--lr", "3e-4"], ["--command_preset", "reference"]):
         with pytest.raises(SystemExit):
             parse_args(argv)
+        assert f"Unrecognized options: {argv[0]}" in " ".join(capsys.readouterr().err.replace("│", " ").split())
 
 
 def test_bad_options_name_the_option_and_the_fix(capsys):

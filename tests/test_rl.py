@@ -93,7 +93,7 @@ def test_unknown_preset_and_field():
         preset_config("default", learning_rate=1e-3)
 
 
-def test_command_line_overrides():
+def test_command_line_overrides(capsys):
     cfg, _ = parse_args(["--preset", "reference", "--env.num_envs", "16", "--ppo.actor_hidden", "64", "32",
                          "--eval_at_end", "false", "--transforms.reward_weights.body_vel", "0.9",
                          "--transforms.reward_weights.qpos", "0.5"])
@@ -103,6 +103,7 @@ def test_command_line_overrides():
     assert cfg.eval_at_end is False and cfg.ppo.minibatch_size == 128 and cfg.ppo.value_head_lr == 5e-4
     with pytest.raises(SystemExit):
         parse_args(["--env.num_envs", "many"])
+    assert "Error parsing --env.num_envs: expected an int" in " ".join(capsys.readouterr().err.split())
 
 
 @pytest.mark.parametrize("value, mode", [(True, "on"), (False, "off"), ("true", "on"), ("False", "off"),

@@ -124,7 +124,7 @@ def test_env_throughput_smoke(tmp_path):
     assert "env_reduced.png" in (tmp_path / "env_reduced.md").read_text()
 
 
-def test_overlap_probe_runs_on_the_cpu_and_its_update_trains(tmp_path):
+def test_overlap_probe_runs_on_the_cpu_and_its_update_trains(tmp_path, capsys):
     # The probe's GPU question (two CUDA streams) has no CPU answer; on the CPU it runs serially end to end.
     data = overlap_probe.main(["--device", "cpu", "--num_envs", "2", "--repeats", "1", "--out", str(tmp_path)])
     (r,) = data["results"]
@@ -141,6 +141,7 @@ def test_overlap_probe_runs_on_the_cpu_and_its_update_trains(tmp_path):
         return
     with pytest.raises(SystemExit):
         overlap_probe.main(["--num_envs", "2", "--out", str(tmp_path)])  # cuda asked, none here: named, not a trace
+    assert "--device cuda: torch sees no CUDA GPU here" in capsys.readouterr().err
 
 
 def test_step_timeline_marks_every_phase_of_the_real_trainer(tmp_path, monkeypatch):
@@ -335,7 +336,7 @@ def test_override_path():
     assert field_choices()["env.sim.reset_pass"] == ("full", "reduced")
 
 
-def test_robust_policies_table_names_each_case_and_its_verdict(tmp_path):
+def test_robust_policies_table_names_each_case_and_its_verdict(tmp_path, capsys):
     """lab.benchmarks.robust_policies on the CPU (2 robots per case, 0.1 s): one row per policy and case, a ✗ on a
     missed threshold, each policy's own report beside the table."""
     import json
@@ -365,6 +366,7 @@ def test_robust_policies_table_names_each_case_and_its_verdict(tmp_path):
         robust_policies.main(["--policies", str(policy), str(tmp_path / "notes.pt"), "--device", "cpu", "--out",
                               str(tmp_path / "again")])
     assert stop.value.code == 2 and not (tmp_path / "again").exists()
+    assert f"cannot read checkpoint {tmp_path / 'notes.pt'}" in capsys.readouterr().err
 
 
 def test_robust_policies_keeps_the_table_of_the_policies_it_finished(tmp_path, monkeypatch):
@@ -494,7 +496,7 @@ def test_robust_policies_cells_never_round_a_miss_to_read_as_its_limit(tmp_path)
     assert _cell(None, {"needs": ">= 0.97", "pass": False}, ".3f") == "- ✗" and _cell(4.1, None, ".2f") == "4.10"
 
 
-def test_robust_policies_refuses_an_out_that_is_a_file_before_any_test(tmp_path):
+def test_robust_policies_refuses_an_out_that_is_a_file_before_any_test(tmp_path, capsys):
     from lab.benchmarks import robust_policies
 
     policy = robust_policies.POLICIES / "tocabi_walk_ppo.pt"
@@ -504,7 +506,7 @@ def test_robust_policies_refuses_an_out_that_is_a_file_before_any_test(tmp_path)
     with pytest.raises(SystemExit) as stop:
         robust_policies.main(["--policies", str(policy), "--device", "cpu", "--num_envs", "1", "--out",
                               str(tmp_path / "f")])
-    assert stop.value.code == 2
+    assert stop.value.code == 2 and f"--out {tmp_path / 'f'} is a file, not a folder" in capsys.readouterr().err
 
 
 def test_steady_rate_skips_rows_without_time_and_never_divides_by_zero(tmp_path):

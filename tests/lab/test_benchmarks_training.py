@@ -105,9 +105,11 @@ def test_train_throughput_counts_the_whole_set_up_and_the_cores_of_the_timed_tra
     assert trainer.make_collector(None) == "collector"  # the trainer is itself again
 
 
-def test_train_throughput_ceiling_refuses_several_ranks_and_a_captured_env_step(tmp_path):
+def test_train_throughput_ceiling_refuses_several_ranks_and_a_captured_env_step(tmp_path, capsys):
     with pytest.raises(SystemExit):
         train_throughput.main(["--device", "cpu", "--num_envs", "8", "--nproc", "2", "--ceiling"])
+    assert "--ceiling times the physics of one rank's timed training iterations: use --nproc 1" in \
+        capsys.readouterr().err
     with pytest.raises(SystemExit, match="ppo.cuda_graph=off"):
         train_throughput.measure(8, 1, 1, 0, "cpu", str(tmp_path), {"ppo.cuda_graph": "on"}, ceiling=True)
 

@@ -124,7 +124,7 @@ def test_physics_measures_each_variant_in_a_solver_load_child_and_reports_the_ra
     assert "Physics time off / on = **0.800**" in text and "| on | 2.500 | 7.00 |" in text
 
 
-def test_each_round_trains_its_own_seed_and_the_ratio_is_the_median_of_the_rounds(tmp_path, monkeypatch):
+def test_each_round_trains_its_own_seed_and_the_ratio_is_the_median_of_the_rounds(tmp_path, monkeypatch, capsys):
     # One seed's first iterations are one sample of how hard the flailing robots' physics is: the rounds differ in
     # seed, both variants of a round share it, and the ratio is the median of the rounds' own ratios.
     rates = {("on", 0): 90.0, ("off", 0): 100.0, ("on", 1): 99.0, ("off", 1): 110.0, ("on", 2): 50.0,
@@ -154,9 +154,14 @@ def test_each_round_trains_its_own_seed_and_the_ratio_is_the_median_of_the_round
     assert seen == [("on", 2), ("off", 2)]
     import pytest
 
-    for bad in (["--rounds", "2", "--seeds", "1"], ["--set", "seed=3"]):
+    capsys.readouterr()
+    seen.clear()
+    for bad, said in ((["--rounds", "2", "--seeds", "1"], "--seeds takes one seed per round: 2 round(s), got 1"),
+                      (["--set", "seed=3"], "set the rounds' seeds with --seeds, not --set seed=...")):
         with pytest.raises(SystemExit):
             randomization_cost.main(["--device", "cpu", *bad, "--out", str(tmp_path / "no")])
+        assert said in capsys.readouterr().err
+    assert seen == [] and not (tmp_path / "no").exists()  # refused before any run
 
 
 def test_a_report_there_already_is_refused_before_any_measurement_unless_overwrite(tmp_path, monkeypatch, capsys):
