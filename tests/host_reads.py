@@ -1,10 +1,15 @@
 """What the adapters' host copies are checked with: a tensor that counts each read of its values on the host, and a
 crafted step result holding values a cast would change (for the tests of the numpy adapters, SB3's and gymnasium's
-numpy mode)."""
+numpy mode). And what the training step's per-step paths are checked with on CPU: a dispatch mode recording each op
+that would synchronise with the host on CUDA (:class:`HostSyncOps`)."""
 
 from __future__ import annotations
 
+import functools
+import traceback
+
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from tocabi_torchrl.adapters._core import StepResult
 
@@ -33,6 +38,42 @@ class HostReads(torch.Tensor):
         out = super().__torch_function__(func, types, args, kwargs)
         # What was copied to the host is a plain tensor: reading it again costs nothing.
         return out.as_subclass(torch.Tensor) if name == "cpu" or to_cpu else out
+
+
+class HostSyncOps(TorchDispatchMode):
+    """Records the ops that synchronise with the host on CUDA, on any device (a CPU stand-in for
+    ``torch.cuda.set_sync_debug_mode("error")``): a value read on the host (``item``, ``bool``, ``float``, ``if t``),
+    data-dependent shapes (``nonzero``, boolean-mask indexing, ``masked_select``, ``unique``) and tensors made from
+    host data (``torch.tensor(list)``: a blocking host-to-device copy on CUDA, refused inside a graph capture).
+    :attr:`hits` holds ``"op at file:line"`` (the innermost frame of the package). :meth:`exempt` wraps a
+    callable so that what it does is not recorded (e.g. the CPU physics backend, which is host code by design)."""
+
+    OPS = {"_local_scalar_dense", "is_nonzero", "nonzero", "masked_select", "unique", "_unique2", "lift_fresh"}
+
+    def __init__(self):
+        super().__init__()
+        self.hits: list[str] = []
+        self._paused = 0
+
+    def exempt(self, fn):
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            self._paused += 1
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self._paused -= 1
+        return wrapper
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func.overloadpacket.__name__
+        bool_index = name in ("index", "index_put", "index_put_") and any(
+            isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else ()))
+        if not self._paused and (name in self.OPS or bool_index):
+            frames = [f for f in traceback.extract_stack() if "tocabi_torchrl" in f.filename]
+            self.hits.append(f"{name} at {frames[-1].filename.rsplit('tocabi_torchrl', 1)[-1]}:{frames[-1].lineno}"
+                             if frames else name)
+        return func(*args, **(kwargs or {}))
 
 
 def counting_reads(r: StepResult) -> StepResult:

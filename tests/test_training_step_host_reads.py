@@ -1,0 +1,86 @@
+"""The per-step paths of a training iteration under the robust preset, and under the options a run adds to it, hold
+no op that synchronises with the host on CUDA: the collector's step (the sync-free env step with its transforms, the
+masked reset, through the emulated capture's replays, and the actor) and the PPO mini-batch step (loss, backward,
+clipping). On CPU, with the dispatch-level stand-in for ``torch.cuda.set_sync_debug_mode("error")``
+(``host_reads.HostSyncOps``); the GPU tests check the same at their own configurations.
+
+What stays out of the check: the C MuJoCo backend (host code by design: the GPU runs mujoco-warp's recorded graphs)
+and the optimiser's own step (on the CPU Adam counts its steps on the host; the captured update's Adam is the
+capturable one, which keeps them on the device). Once per iteration, outside any capture, the trainer reads the
+losses, the episode metrics and the action std for its log, and TorchRL's GAE asks whether a next observation holds
+NaN: those are not per step."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from graph_emulation import EmulatedCapture
+from host_reads import HostSyncOps
+
+from tocabi_torchrl.rl import preset_config
+from tocabi_torchrl.rl.actors import gaussian_head
+from tocabi_torchrl.rl.rollout_guard import guard_rollout
+from tocabi_torchrl.rl.symmetry import SymmetryAugmentLoss
+from tocabi_torchrl.rl.trainer import (_loss_keys, _update_losses, build_agent, build_env, estimate_advantages,
+                                       make_collector, make_loss, make_optimizer)
+from tocabi_torchrl.rl.update_step import MinibatchStep
+
+N, T = 4, 6
+#: The robust preset at a tiny size, with the next GPU runs' overrides; kicks at full strength from the first steps.
+TINY = {"env.num_envs": N, "env.control.actuators.delay_stride": 2, "ppo.steps_per_env": T, "ppo.minibatch_size": 8,
+        "ppo.epochs": 2, "ppo.actor_hidden": (16, 16), "ppo.critic_hidden": (16, 16), "ppo.push_ramp": (0, 1),
+        "env.pushes.window": (0.004, 0.02), "env.task.max_episode_steps": 6}
+OPTIONS = {
+    "robust": {},
+    "equivariant": {"ppo.symmetry": "equivariant"},
+    "kick_relax-averaged_delay-running": {"transforms.kick_relax.seconds": 0.012,
+                                          "env.control.actuators.delay_average": True,
+                                          "transforms.normalization": "running"},
+}
+
+
+@pytest.mark.parametrize("option", list(OPTIONS))
+def test_the_robust_training_step_reads_nothing_on_the_host(option):
+    cfg = preset_config("robust", **TINY, **OPTIONS[option], device="cpu")
+    device = torch.device("cpu")
+    torch.manual_seed(0)
+    probe = HostSyncOps()
+    env = build_env(cfg, device, for_training=True, sync_free_resets=True)
+    env.set_cuda_graph(True, capturer=EmulatedCapture())
+    base = env.base_env
+    for name in ("step", "reset", "forward"):  # the CPU physics backend: host code by design
+        setattr(base.sim, name, probe.exempt(getattr(base.sim, name)))
+    base.set_torque_assist(0.5)  # mid-fade: the assist's PD and the policy's torques both act
+    base.set_push_scale(1.0)
+    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
+    loss_module, advantage = make_loss(cfg, agent, env)
+    optimizer = make_optimizer(cfg, agent, device)
+    optimizer.step = probe.exempt(optimizer.step)
+    params = [p for g in optimizer.param_groups for p in g["params"]]
+    step = MinibatchStep(loss_module, optimizer, params, cfg.ppo.max_grad_norm, use_graph=True,
+                         capturer=EmulatedCapture())
+    collector = make_collector(cfg, env, agent.actor, device, total_frames=3 * N * T)
+    try:
+        rollouts = iter(collector)
+        batch = next(rollouts)  # the warm-up and the capture of the env step
+        assert env.graph_captured
+        with probe:
+            batch = next(rollouts)  # replays only
+        assert batch["next", "done"].any(), "the masked reset must have reset some worlds"
+    finally:
+        collector.shutdown()
+    # The update between the rollouts, as the trainer runs it, with the teacher pulling at the fade's next step.
+    agent.teacher.anchor(gaussian_head(agent.actor).mean_net, base.assist_gain(0.5), 0.5)
+    loss_module.set_step(base.assist_gain(0.5), base.assist_gain(0.4), 0.5, 0.4, 1.0)
+    work = batch.clone(False)
+    guard_rollout(work)
+    estimate_advantages(advantage, work)
+    flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
+    _update_losses(cfg, flat, step)  # three eager warm-up steps, the capture and a replay
+    assert step.captured and "loss_absorb" in step.stat_keys
+    augmented = any(isinstance(m, SymmetryAugmentLoss) for m in loss_module.modules())
+    assert augmented == (cfg.ppo.symmetry == "augment")
+    with probe:
+        for k in range(2):
+            step(flat[k * 8:(k + 1) * 8])
+    assert probe.hits == [], sorted(set(probe.hits))
