@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from tocabi_torchrl.rl.atomic import atomic_write_text
+from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.evaluation.record import GaitMetrics, load_policy, policy_steps
 
 LIMIT_M = 0.3
