@@ -1,13 +1,22 @@
 """The model_based law at zero (or small random) residual vs pd_reference: survival and leg tracking, C MuJoCo.
 
-Wrote zero_action.json (docs/training.md's table), ~40 min on 2 cores:
+Wrote zero_action.json (docs/training.md's table), ~40 min on 2 cores (an existing file is never replaced):
 ``PYTHONPATH=. python lab/analysis/mb_zero_action.py docs/training/model_based/zero_action.json``
 """
-import json, subprocess, sys, time
-import numpy as np, torch
+import argparse
+import json
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
 from tensordict import TensorDict
+
+from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.envs import TocabiWalk
 from tocabi_torchrl.envs.config import MB_OMEGA
+
 
 def run(noise, steps, n, **kw):
     env = TocabiWalk(num_envs=n, device="cpu", seed=0, backend="mujoco", max_episode_steps=10**6, sim_threads=1, **kw)
@@ -26,7 +35,27 @@ def run(noise, steps, n, **kw):
             "survived_all_steps": alive.float().mean().item(), "mean_abs_leg_error_rad": float(np.mean(err))}
 
 
-if __name__ == "__main__":
+def out_path(doc: str, argv=None) -> Path:
+    """The JSON to write, from the command line (``--help`` answers, a missing or existing path is refused) before
+    the ``doc`` script's cases run for minutes."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("out", type=Path, help="the JSON to write (an existing file is never replaced)")
+    out = parser.parse_args(argv).out
+    if out.exists():
+        parser.error(f"{out} exists; give another path or remove it first (results are never overwritten)")
+    return out
+
+
+def write(out: Path, doc: dict) -> None:
+    """``doc`` with the commit it was measured at, written to ``out`` atomically (a run killed meanwhile leaves
+    nothing half-written)."""
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    atomic_write_text(out, json.dumps({**doc, "commit": commit}, indent=1) + "\n")
+    print(f"wrote {out}")
+
+
+def main(argv=None) -> dict:
+    out = out_path(__doc__, argv)
     W = np.array(MB_OMEGA)
     cases = [("pd_reference", dict(control_mode="pd_reference"))]
     cases += [(f"model_based omega x{s:g}, zeta {z:g}", dict(control_mode="model_based", mb_omega=tuple(W * s), mb_zeta=(z,) * 12))
@@ -39,9 +68,13 @@ if __name__ == "__main__":
             r = run(st["residual_std"], st["steps"], st["num_envs"], **kw)
             results.append({"case": name, **st, **r})
             print(results[-1], f"{time.time() - t0:.0f}s", flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     doc = {"what": "model_based law vs pd_reference with the leg actions at 0 (or N(0, std) per step), phase action 0; "
                    "C MuJoCo on the CPU, TocabiWalk(seed=0), default command schedule, episodes never truncated; "
                    "mean |q_leg - q_ref| over the robots still alive",
-           "omega_default_rad_s": list(MB_OMEGA), "commit": commit, "results": results}
-    open(sys.argv[1], "w").write(json.dumps(doc, indent=1) + "\n")
+           "omega_default_rad_s": list(MB_OMEGA), "results": results}
+    write(out, doc)
+    return doc
+
+
+if __name__ == "__main__":
+    main()

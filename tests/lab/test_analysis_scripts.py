@@ -16,3 +16,32 @@ def test_drift_spread_loads_and_refuses_an_existing_out(tmp_path):
     with pytest.raises(SystemExit, match="exists"):
         drift_spread.main(["no_such.pt", "--out", str(out)])
     assert out.read_text() == "{}\n"
+
+
+@pytest.mark.parametrize("name, cases", [("mb_zero_action", 14), ("mb_residual_gain", 6)])
+def test_model_based_scripts_parse_before_running_and_never_overwrite(name, cases, tmp_path, monkeypatch):
+    # They ran every case (up to 40 minutes) before reading sys.argv[1]: --help ran them all and wrote a file named
+    # "--help", no path ended in IndexError, and the documented command replaced the committed JSON (in place: a kill
+    # mid-write left it cut short). mb_residual_gain.py imported a module that no longer exists.
+    import importlib
+
+    script = importlib.import_module(f"lab.analysis.{name}")
+    ran = []
+    monkeypatch.setattr(script, "run", lambda noise, steps, n, **kw: ran.append(kw) or {"mean_steps_alive": 1.0})
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as help_exit:
+        script.main(["--help"])
+    assert help_exit.value.code == 0
+    with pytest.raises(SystemExit) as missing:
+        script.main([])
+    assert missing.value.code == 2
+    committed = tmp_path / "committed.json"
+    committed.write_text("{}\n")
+    with pytest.raises(SystemExit) as refused:
+        script.main([str(committed)])
+    assert refused.value.code == 2 and committed.read_text() == "{}\n"
+    assert ran == [] and sorted(p.name for p in tmp_path.iterdir()) == ["committed.json"]
+
+    script.main([str(tmp_path / "new.json")])
+    report = json.loads((tmp_path / "new.json").read_text())
+    assert len(ran) == cases and len(report["results"]) == cases and "commit" in report
