@@ -43,6 +43,8 @@ from tocabi_torchrl.evaluation import robust
 from tocabi_torchrl.transforms.reward_terms import feet_apart_across_heading
 from tocabi_torchrl.value_rules import PUSH_KINDS
 
+from lab.analysis.reports import check_paths
+
 SECTORS = ("forward (+x)", "left (+y)", "back (-x)", "right (-y)")
 #: Upper edges [s] of the bins of the time since a robot's previous kick (the last bin is open): whether a kick is
 #: deadlier when the robot has not recovered from the one before.
@@ -287,6 +289,7 @@ def main(argv=None) -> int:
                         "after the others: does the critic see a fall coming?")
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
     args = p.parse_args(argv)
+    check_paths(p, args.checkpoint, args.out)  # before the rollouts: a report is never written over
     if args.case not in robust.CASES or not robust.CASES[args.case].randomized:
         pushed = sorted(n for n, c in robust.CASES.items() if c.randomized)
         p.error(f"--case must be a pushed case of the robust test, one of {pushed}; got {args.case!r}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import doctest
 import math
 
+import pytest
 import torch
 
 from lab.analysis import kick_falls
@@ -68,3 +69,17 @@ def test_noting_terminations_notes_each_robots_first_condition_and_restores_the_
             tocabi_walk.termination_flags(pelvis_height=None)  # the env calls it by keyword, once per step
     assert first == {1: (1, "neck_tilt"), 0: (2, "neck_tilt")}
     assert tocabi_walk.termination_flags is fake
+
+
+def test_an_existing_report_or_a_missing_checkpoint_is_refused_before_any_rollout(tmp_path, monkeypatch):
+    # --out was written over whatever was there (a committed kick_falls.json), after minutes of rollouts.
+    monkeypatch.setattr(kick_falls, "measure", lambda *a, **k: pytest.fail("ran a rollout"))
+    checkpoint, out = tmp_path / "policy.pt", tmp_path / "kick_falls.json"
+    checkpoint.write_bytes(b"")
+    out.write_text("{}\n")
+    with pytest.raises(SystemExit) as refused:
+        kick_falls.main(["--checkpoint", str(checkpoint), "--out", str(out)])
+    assert refused.value.code == 2 and out.read_text() == "{}\n"
+    with pytest.raises(SystemExit) as missing:
+        kick_falls.main(["--checkpoint", str(checkpoint), str(tmp_path / "no_such.pt")])
+    assert missing.value.code == 2
