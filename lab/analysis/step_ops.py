@@ -112,6 +112,20 @@ def _is_kernel(event) -> bool:
     return True
 
 
+def read_before(parser: argparse.ArgumentParser, path: Path) -> dict:
+    """The earlier report ``--before`` names, checked before the count (a minute of work it would otherwise lose
+    at the end): ``parser.error`` naming the file when it is missing or not a report of this script."""
+    try:
+        before = json.loads(path.read_text())
+        before["meta"]["code"]  # noqa: B018 - what main reads of it: the commit and each row's "what"
+        if not all("what" in row for row in before["results"]):
+            raise KeyError("what")
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        parser.error(f"--before {path}: not a report of lab/analysis/step_ops.py ({type(err).__name__}: {err}); "
+                     "give a JSON this script wrote with --out")
+    return before
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--num_envs", type=int, default=32, help="envs (the count does not depend on it)")
@@ -124,7 +138,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.out is not None and args.out.exists() and not args.overwrite:
         p.error(f"{args.out} exists; pass --overwrite to replace it, or --out another path")
-    before = json.loads(args.before.read_text()) if args.before is not None else None
+    before = read_before(p, args.before) if args.before is not None else None
     torch.set_num_threads(1)
     robust = preset_tree("robust")
     off = replace_paths(robust, OFF)

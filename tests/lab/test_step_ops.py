@@ -45,3 +45,18 @@ def test_the_page_shows_kernels_where_the_report_has_them(tmp_path):
     lines = page.step_ops(tmp_path)
     head = next(line for line in lines if line.startswith("| switched on"))
     assert head.count("|") - 1 == 5 and "| nothing | 10 (+0) | 6 (+0) | 12 | - |" in lines
+
+
+@pytest.mark.parametrize("text", [None, "not json", '{"results": []}', "[1, 2]",
+                                  '{"meta": {"code": "a"}, "results": [{}]}'])
+def test_a_before_report_that_is_not_one_is_refused_before_the_count(text, tmp_path, monkeypatch, capsys):
+    # It was read with json.loads at the start (a traceback for a missing or non-JSON file) and its meta and rows
+    # only after the count: a KeyError after a minute of work, and no report written.
+    monkeypatch.setattr(step_ops, "ops_per_step", lambda *a, **k: pytest.fail("counted before checking --before"))
+    before = tmp_path / "before.json"
+    if text is not None:
+        before.write_text(text)
+    with pytest.raises(SystemExit) as refused:
+        step_ops.main(["--before", str(before), "--out", str(tmp_path / "out.json")])
+    assert refused.value.code == 2 and f"--before {before}" in capsys.readouterr().err
+    assert not (tmp_path / "out.json").exists()
