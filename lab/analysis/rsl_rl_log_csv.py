@@ -57,6 +57,10 @@ def main(argv: list[str]) -> int:
         print(__doc__.split("\n\n")[1], file=sys.stderr)
         return 2
     logs, out = [Path(a) for a in argv[:-1]], Path(argv[-1])
+    if out.suffix != ".csv":  # LOG LOG without OUT.csv would write the CSV over the last log
+        print(f"error: the last argument is the CSV to write and must end in .csv, got {out}; give "
+              "LOG [LOG ...] OUT.csv", file=sys.stderr)
+        return 2
     rows = parse(itertools.chain.from_iterable(_lines(p) for p in logs))
     if not rows:
         print(f"error: {', '.join(map(str, logs))}: no 'Learning iteration' blocks: rsl_rl console logs?",

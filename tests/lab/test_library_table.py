@@ -395,6 +395,10 @@ def test_rsl_rl_console_logs_become_one_csv_row_per_iteration(tmp_path):
     (tmp_path / "other.log").write_text("no blocks here\n")
     assert tool.main([str(tmp_path / "other.log"), str(tmp_path / "o.csv")]) == 1
     assert not (tmp_path / "o.csv").exists()
+    # Two logs and no OUT.csv: the last log was taken for the output and replaced by the CSV.
+    log = (tmp_path / "a.log").read_text()
+    assert tool.main([str(tmp_path / "a.log"), str(tmp_path / "other.log")]) == 2
+    assert (tmp_path / "other.log").read_text() == "no blocks here\n" and (tmp_path / "a.log").read_text() == log
 
 
 def test_skrl_scalars_of_a_row_become_one_csv_row_per_call_and_timestep(tmp_path):
