@@ -132,6 +132,7 @@ from lab.experiments.common import (  # noqa: E402
     earlier_table,
     parse_controllers,
     prepare_out_dir,
+    replace_atomically,
     slug,
     write_atomic,
     write_table,
@@ -254,7 +255,8 @@ def render_examples(result: dict, label: str, height_mm: float, args, out) -> li
         stills = [label_image(im, f"{label}, {height_mm:g} mm, robot {ex['env']} ({kind}): {text}")
                   for im, text in zip(stills, ex["labels"])]
         path = out / f"frames_{slug(label)}_{height_mm:g}mm_{kind}.png"
-        save_strip(stills, path)
+        # atomically: a run killed mid-write (or a full disk) leaves the earlier strip of a resumed run whole
+        replace_atomically(path, lambda tmp, stills=stills: save_strip(stills, tmp))
         written.append(path.name)
     return written
 

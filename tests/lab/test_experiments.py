@@ -794,3 +794,27 @@ def test_experiment_files_are_replaced_whole_or_not_at_all(tmp_path, monkeypatch
     assert image.read_bytes() == b"earlier" and seen == [".png"]
     assert replace_atomically(image, lambda tmp: tmp.write_bytes(b"new")).read_bytes() == b"new"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frames.png", "table.md"]
+
+
+def test_obstacle_frame_strips_are_replaced_atomically(tmp_path, monkeypatch):
+    # save_strip wrote straight into frames_<label>_<h>mm_<kind>.png: a write cut short (killed, disk full) left a
+    # broken image in place of a resumed run's earlier strip; compare_gaits' strips were already atomic.
+    import argparse
+
+    recipe = load_recipe("obstacle_test")
+    monkeypatch.setattr(recipe, "render_stills", lambda *a, **k: [np.zeros((4, 4, 3), np.uint8)])
+    monkeypatch.setattr(recipe, "label_image", lambda image, text: image)
+
+    def cut_short(images, path):
+        Path(path).write_bytes(b"half a png")
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(recipe, "save_strip", cut_short)
+    earlier = tmp_path / "frames_torque_12mm_pass.png"
+    earlier.write_bytes(b"the earlier strip")
+    result = {"model": None, "examples": {"pass": {"qpos": np.zeros((1, 3)), "labels": ["start"], "env": 0,
+                                                   "mocap_pos": None}}}
+    args = argparse.Namespace(frame_width=4, frame_height=4, fovy=25.0)
+    with pytest.raises(OSError, match="No space"):
+        recipe.render_examples(result, "torque", 12.0, args, tmp_path)
+    assert earlier.read_bytes() == b"the earlier strip" and [p.name for p in tmp_path.iterdir()] == [earlier.name]
