@@ -339,3 +339,22 @@ def test_an_optional_option_takes_none_in_any_case():
     assert cfg.transforms.reward_weights.qpos is None
     cfg, _ = parse_args(["--preset", "cpu_smoke", "--env.sim.nconmax", "64", "--env.task.motion", "walk.npz"])
     assert (cfg.env.sim.nconmax, cfg.env.task.motion) == (64, "walk.npz")
+
+
+def test_a_tuple_joined_by_commas_is_refused_with_how_to_write_it():
+    # --ppo.actor_hidden 256,256 (as the library recipes' --hidden takes it) ended in tyro's "Could not find valid
+    # parse", which did not say that a tuple's values are separated by spaces.
+    from tocabi_torchrl.rl.config import check_command_line
+
+    for argv, fix in ((["--ppo.actor_hidden", "256,256"], "--ppo.actor_hidden 256 256"),
+                      (["--env.command.vx_range=0.1,0.3"], "--env.command.vx_range 0.1 0.3"),
+                      (["--loggers", "csv,", "tensorboard", "--ppo.lr", "1e-4"], "--loggers csv tensorboard")):
+        name = fix.split()[0]
+        with pytest.raises(ValueError, match=rf"^{name} takes its values separated by spaces, not commas: {fix}$"):
+            parse_args(argv)
+        with pytest.raises(SystemExit, match=rf"^error: {name} takes its values separated by spaces"):
+            check_command_line(argv, prog="ppo_walk.py")
+    # Space-separated values, and the JSON of a tuple of items, are read as before.
+    cfg, _ = parse_args(["--preset", "cpu_smoke", "--ppo.actor_hidden", "32", "16",
+                         "--env.scene.obstacles", '[{"pos": [1, 0]}, {"pos": [2, 0]}]'])
+    assert cfg.ppo.actor_hidden == (32, 16) and len(cfg.env.scene.obstacles) == 2

@@ -11,7 +11,8 @@
 ``--preset NAME`` is read first: the options' defaults (and ``--help``'s) are that preset's, and every other option
 given overrides it. With ``--resume`` the defaults are the saved run's instead, and an option other than
 :data:`~tocabi_torchrl.rl.resume.RESUME_SAFE` may not change (``ResumeConfigError`` names it). Values are typed by
-the fields: tuples are space-separated (``--ppo.actor_hidden 256 256``, ``--loggers csv tensorboard``), switches take
+the fields: tuples are space-separated (``--ppo.actor_hidden 256 256``, ``--loggers csv tensorboard``; ``256,256`` is
+refused with how to write it), switches take
 true/false, an optional value takes None (any case), an int also takes a whole number written as a float (``2e8``), and
 ``--env.scene.obstacles`` takes JSON. The config's own rules (``RunConfig.validate``) then check the values.
 
@@ -30,7 +31,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from ..config import PRESETS, PPOConfig, RunConfig, preset_config, preset_tree
-from ..tree import ConfigError, build_items, get_path, item_type, leaf_paths, to_dict
+from ..tree import ConfigError, build_items, get_path, item_type, leaf_paths, leaf_types, to_dict
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_config", "preset_tree", "parse_args", "parse_tree",
            "check_command_line",
@@ -197,11 +198,36 @@ def _registry():
     return registry
 
 
+def _refuse_commas(argv: Sequence[str], default: RunConfig) -> None:
+    """Raise ``ValueError`` for a tuple option whose values are joined by commas (``--ppo.actor_hidden 256,256``),
+    saying how to write them: tyro's own message ("Could not find valid parse") gave no fix, and the library
+    recipes' ``--hidden`` takes ``256,256``. Refused rather than split: ``1,024`` would have read as (1, 24)."""
+    tuples = {path for path, kind in leaf_types(default).items()
+              if typing.get_origin(kind) is tuple and item_type(kind) is None}  # JSON items keep their commas
+    for i, token in enumerate(argv):
+        if not token.startswith("--"):
+            continue
+        name, eq, attached = token[2:].partition("=")
+        path = name.replace("-", "_")
+        if path not in tuples:
+            continue
+        values = [attached] if eq else []
+        for value in argv[i + 1:] if not eq else ():
+            if value.startswith("--") or value == "-h":
+                break
+            values.append(value)
+        if any("," in value for value in values):
+            parts = [p for v in values for p in re.split(r"[\s,]+", v.strip("()[] ")) if p]
+            raise ValueError(f"--{name} takes its values separated by spaces, not commas: --{name} {' '.join(parts)}")
+
+
 def parse_tree(argv: Sequence[str], default: RunConfig, prog: str | None = None, description: str = "") -> RunConfig:
-    """``default`` with the options of ``argv`` applied (tyro; ``--help`` and bad options exit with its message).
-    Not validated."""
+    """``default`` with the options of ``argv`` applied (tyro; ``--help`` and bad options exit with its message;
+    a tuple's values joined by commas raise ``ValueError`` saying to separate them by spaces). Not validated."""
     import tyro
 
+    if not any(a in ("-h", "--help") for a in argv):  # --help answers whatever the values
+        _refuse_commas(argv, default)
     text = HOW_TO.format(presets=", ".join(sorted(PRESETS)))
     return tyro.cli(RunConfig, default=default, args=list(argv), prog=prog, use_underscores=True,
                     description=f"{description}\n\n{text}" if description else text,
