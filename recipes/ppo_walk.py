@@ -71,6 +71,7 @@ from tocabi_torchrl.evaluation.gait_test import eval_out_dir, evaluate_run, gait
 from tocabi_torchrl.evaluation.output import remove_if_empty  # noqa: E402
 from tocabi_torchrl.evaluation.plots import check_plotting  # noqa: E402
 from tocabi_torchrl.evaluation.record import policy_steps  # noqa: E402
+from tocabi_torchrl.rl.config import repeated_options  # noqa: E402
 from tocabi_torchrl.rl.interrupt import signal_exit_status  # noqa: E402
 from tocabi_torchrl.rl.launch import banner, cpu_size_note, launch_config  # noqa: E402
 from tocabi_torchrl.rl.logging import require_loggers  # noqa: E402
@@ -134,6 +135,8 @@ def main(argv: list[str] | None = None) -> None:
         argv = expand_viewer_flag(sys.argv[1:] if argv is None else argv)
         cfg, given, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0],
                                          data_parallel=dist_info.enabled, prog="ppo_walk.py")
+        for line in repeated_options(argv) if dist_info.is_main else ():  # said once, not by every rank
+            print(f"warning: {line}", file=sys.stderr, flush=True)
         if cfg.viewer.enabled:  # said now, not after the env is built
             require_viser()
             check_address(cfg.viewer.host, cfg.viewer.port, "viewer.port")

@@ -134,6 +134,18 @@ def test_a_value_the_config_refuses_is_one_error_line_naming_the_option(capsys):
         assert "\n" not in str(info.value.code)
 
 
+def test_an_option_given_twice_on_ppo_walk_keeps_the_last_and_says_so(tmp_path, capsys):
+    # --ppo.lr 1e-4 --ppo.lr 2e-4 trained with 2e-4 without a word. A warning, not a refusal: a script may append its
+    # overrides after its defaults. (--viewer.port without --viewer then stops the run before anything is built.)
+    with pytest.raises(SystemExit, match="^error: --viewer.port set the live viewer"):
+        load_recipe("ppo_walk").main(["--preset", "cpu_smoke", "--run_dir", str(tmp_path), "--ppo.lr", "1e-4",
+                                      "--ppo.actor_hidden", "8", "8", "--ppo.lr=2e-4", "--ppo.actor-hidden", "16",
+                                      "--viewer.port", "9000"])
+    assert capsys.readouterr().err.splitlines() == [
+        "warning: --ppo.lr is given 2 times; the last applies: --ppo.lr 2e-4",
+        "warning: --ppo.actor_hidden is given 2 times; the last applies: --ppo.actor_hidden 16"]
+
+
 def test_ppo_walk_without_matplotlib_is_refused_before_training_unless_the_test_at_the_end_is_off(tmp_path,
                                                                                                  monkeypatch):
     # The gait test after training draws knees.png: without the viz extra the run trained (hours on a GPU preset),

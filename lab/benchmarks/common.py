@@ -201,7 +201,7 @@ def parse_overrides(items: Sequence[str]) -> dict:
     """``PATH=VALUE`` strings (a path of the config tree such as ``ppo.lr`` or ``env.num_envs``) typed by the tree,
     as ``recipes/ppo_walk.py``'s ``--PATH VALUE`` would read them, by path. A tuple's entries are separated by spaces
     or commas (``delay_substeps=4 20``, ``=4,20``, ``=(4, 20)``); any other value is one argument, spaces and all
-    (a name, a path, ``env.scene.obstacles``' JSON)."""
+    (a name, a path, ``env.scene.obstacles``' JSON). A path given twice keeps its last value, with a warning."""
     kinds = leaf_types(RunConfig())
     argv = []
     for item in items:
@@ -212,8 +212,14 @@ def parse_overrides(items: Sequence[str]) -> dict:
             raise SystemExit(f"error: --set {item}: the training config has no option {field!r}{hint} (options are "
                              "dotted paths such as ppo.lr or env.num_envs: recipes/ppo_walk.py --help)")
         argv += [f"--{field}", *_set_arguments(kinds[field], value)]
+    # A path given twice keeps its last value (a script may append its overrides on purpose): said, not silent.
+    last = {item.partition("=")[0]: item for item in items}
+    for field, item in last.items():
+        if (times := sum(i.partition("=")[0] == field for i in items)) > 1 and os.environ.get("RANK", "0") == "0":
+            print(f"warning: --set {field} is given {times} times; the last applies: {item}", file=sys.stderr,
+                  flush=True)
     cfg = parse_tree(argv, RunConfig())
-    return {field: get_path(cfg, field) for field in (item.partition("=")[0] for item in items)}
+    return {field: get_path(cfg, field) for field in last}
 
 
 def _set_arguments(kind, value: str) -> list[str]:

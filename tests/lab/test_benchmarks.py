@@ -61,6 +61,17 @@ def test_unknown_override_is_named():
         "ppo.cuda_graph": "on", "ppo.actor_hidden": (8, 8), "total_env_steps": 2000}
 
 
+def test_a_set_path_given_twice_keeps_the_last_and_says_so(capsys):
+    # --set ppo.lr=1e-4 ppo.lr=2e-4 kept 2e-4 without a word; a script may append overrides on purpose, so it is a
+    # warning, not a refusal.
+    got = common.parse_overrides(["ppo.lr=1e-4", "ppo.actor_hidden=8 8", "ppo.lr=2e-4", "ppo.lr=3e-4"])
+    assert got == {"ppo.lr": 3e-4, "ppo.actor_hidden": (8, 8)}
+    assert capsys.readouterr().err.splitlines() == [
+        "warning: --set ppo.lr is given 3 times; the last applies: ppo.lr=3e-4"]
+    common.parse_overrides(["ppo.lr=1e-4", "ppo.actor_hidden=8 8"])
+    assert capsys.readouterr().err == ""
+
+
 def test_a_set_value_splits_only_for_a_tuple_and_a_tuple_takes_commas():
     # Every value was split at spaces: JSON with spaces (as --help writes env.scene.obstacles) or a name with a space
     # broke into stray arguments, and a tuple written 4,20 (the committed reports' commands) did not parse.

@@ -10,11 +10,12 @@
 
 ``--preset NAME`` is read first: the options' defaults (and ``--help``'s) are that preset's, and every other option
 given overrides it. With ``--resume`` the defaults are the saved run's instead, and an option other than
-:data:`~tocabi_torchrl.rl.resume.RESUME_SAFE` may not change (``ResumeConfigError`` names it). Values are typed by
-the fields: tuples are space-separated (``--ppo.actor_hidden 256 256``, ``--loggers csv tensorboard``; ``256,256`` is
-refused with how to write it), switches take
-true/false, an optional value takes None (any case), an int also takes a whole number written as a float (``2e8``), and
-``--env.scene.obstacles`` takes JSON. The config's own rules (``RunConfig.validate``) then check the values.
+:data:`~tocabi_torchrl.rl.resume.RESUME_SAFE` may not change (``ResumeConfigError`` names it). Values are typed by the
+fields: tuples are space-separated (``--ppo.actor_hidden 256 256``, ``--loggers csv tensorboard``; ``256,256`` is
+refused with how to write it), switches take true/false, an optional value takes None (any case), an int also takes a
+whole number written as a float (``2e8``), and ``--env.scene.obstacles`` takes JSON. An option given twice keeps its
+last value, and ppo_walk says so (:func:`repeated_options`). The config's own rules (``RunConfig.validate``) then
+check the values.
 
 This module and the config modules import no torch: ``--help`` answers in a fraction of a second.
 """
@@ -34,7 +35,7 @@ from ..config import PRESETS, PPOConfig, RunConfig, preset_config, preset_tree
 from ..tree import ConfigError, build_items, get_path, item_type, leaf_paths, leaf_types, to_dict
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_config", "preset_tree", "parse_args", "parse_tree",
-           "check_command_line",
+           "check_command_line", "repeated_options",
            "given_options", "option_value", "resume_config", "ConfigError"]
 
 #: What ``--help`` says above the options (the recipe's own first line comes before it).
@@ -56,6 +57,25 @@ def option_value(argv: Sequence[str], name: str) -> str | None:
         elif token.startswith(flag + "="):
             value = token[len(flag) + 1:]
     return value
+
+
+def repeated_options(argv: Sequence[str]) -> list[str]:
+    """One line for each option that ``argv`` gives more than once: its name, how often, and the value that applies
+    (the last, as tyro keeps it). A warning, not a refusal: a script may append its overrides after its defaults on
+    purpose; but a repeat by mistake used to change the run without a word."""
+    seen: dict[str, list[str]] = {}
+    for i, token in enumerate(argv):
+        if not token.startswith("--") or token == "--":
+            continue
+        name, eq, attached = token[2:].partition("=")
+        values = [attached] if eq else []
+        for value in argv[i + 1:] if not eq else ():
+            if value.startswith("--"):
+                break
+            values.append(value)
+        seen.setdefault(name.replace("-", "_"), []).append(" ".join(values))
+    return [f"--{name} is given {len(values)} times; the last applies: --{name} {values[-1]}".rstrip()
+            for name, values in seen.items() if len(values) > 1]
 
 
 def given_options(argv: Sequence[str], cfg: RunConfig) -> dict[str, Any]:
