@@ -358,3 +358,14 @@ def test_a_tuple_joined_by_commas_is_refused_with_how_to_write_it():
     cfg, _ = parse_args(["--preset", "cpu_smoke", "--ppo.actor_hidden", "32", "16",
                          "--env.scene.obstacles", '[{"pos": [1, 0]}, {"pos": [2, 0]}]'])
     assert cfg.ppo.actor_hidden == (32, 16) and len(cfg.env.scene.obstacles) == 2
+
+
+def test_eval_envs_0_names_the_fix_with_and_without_the_test_at_the_end():
+    # --eval_at_end false --eval_envs 0 was refused as "eval_envs must be a positive int", which gave no way out.
+    with pytest.raises(ValueError, match=r"got 0; eval_at_end is false, so no test runs at the end and eval_envs is "
+                                         r"not needed: leave it at the preset's value \(leave --eval_envs out\)$"):
+        parse_args(["--preset", "cpu_smoke", "--eval_at_end", "false", "--eval_envs", "0"])
+    with pytest.raises(ValueError, match=r"got 0; for no test at the end, set eval_at_end=false instead$"):
+        parse_args(["--preset", "cpu_smoke", "--eval_envs", "0"])
+    cfg, _ = parse_args(["--preset", "cpu_smoke", "--eval_at_end", "false"])
+    assert cfg.eval_envs == preset_config("cpu_smoke").eval_envs

@@ -494,7 +494,10 @@ class RunConfig:
         accepted values."""
         check_field_types(self)  # the whole tree: every switch a bool, every number finite, named by its path
         if isinstance(self.eval_envs, bool) or not isinstance(self.eval_envs, int) or self.eval_envs < 1:
-            hint = "; for no test at the end, set eval_at_end=false instead" if self.eval_at_end else ""
+            # The fix either way: a refusal that gave none left a user of --eval_at_end false --eval_envs 0 stuck.
+            hint = ("; for no test at the end, set eval_at_end=false instead" if self.eval_at_end else
+                    "; eval_at_end is false, so no test runs at the end and eval_envs is not needed: leave it at the "
+                    "preset's value (leave --eval_envs out)")
             raise ValueError(f"eval_envs must be a positive int (robots in the gait test at the end), got "
                              f"{self.eval_envs!r}{hint}")
         for name in ("log_every", "checkpoint_every", "total_env_steps"):
