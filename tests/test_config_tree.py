@@ -369,3 +369,24 @@ def test_eval_envs_0_names_the_fix_with_and_without_the_test_at_the_end():
         parse_args(["--preset", "cpu_smoke", "--eval_envs", "0"])
     cfg, _ = parse_args(["--preset", "cpu_smoke", "--eval_at_end", "false"])
     assert cfg.eval_envs == preset_config("cpu_smoke").eval_envs
+
+
+def test_a_named_value_takes_any_case_and_is_kept_as_listed(tmp_path):
+    # --ppo.lr_schedule Linear was refused (the allowed names listed) while --ppo.cuda_graph OFF was taken.
+    from tocabi_torchrl.config import field_choices
+
+    cfg, given = parse_args(["--preset", "cpu_smoke", "--ppo.lr_schedule", "Linear", "--ppo.lr_end", "1e-6",
+                             "--env.control.mode", "PD_Reference", "--ppo.activation", "ELU", "--eval_test", "Robust"])
+    assert (cfg.ppo.lr_schedule, cfg.env.control.mode, cfg.ppo.activation, cfg.eval_test) == \
+        ("linear", "pd_reference", "elu", "robust")
+    assert given["ppo.lr_schedule"] == "linear"
+    saved = json.loads(json.dumps(cfg.to_dict()))  # what config.json holds: the listed spelling
+    assert (saved["ppo"]["lr_schedule"], saved["env"]["control"]["mode"]) == ("linear", "pd_reference")
+    assert config_from_dict(saved).validated() == cfg
+    # The Python API and the lab's --set read the same way; a name listed in no case is still refused.
+    assert preset_config("default", **{"ppo.std_mode": "Learned"}).ppo.std_mode == "learned"
+    for path, allowed in field_choices().items():
+        assert len({choice.lower() for choice in allowed}) == len(allowed), path  # no two differ in case only
+    with pytest.raises(ValueError, match=r"ppo.lr_schedule must be one of \('fixed', 'linear', 'adaptive'\), got "
+                                         r"'Linearly'"):
+        parse_args(["--ppo.lr_schedule", "Linearly"])

@@ -46,8 +46,8 @@ from .viewer.config import ViewerConfig
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "config_from_dict", "to_dict",
            "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
-           "LOGGERS", "SYMMETRY_MODES", "field_choices", "wall_tag", "check_snapshot_minutes", "LEGACY_VALUES",
-           "MAX_SEED", "schedule_past_budget", "schedule_warning"]
+           "LOGGERS", "SYMMETRY_MODES", "field_choices", "canonical_choices", "wall_tag", "check_snapshot_minutes",
+           "LEGACY_VALUES", "MAX_SEED", "schedule_past_budget", "schedule_warning"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
@@ -493,6 +493,7 @@ class RunConfig:
         """Raise ``ValueError`` naming the first bad option by its path (``ppo.lr``, ``env.control.mode``) and the
         accepted values."""
         check_field_types(self)  # the whole tree: every switch a bool, every number finite, named by its path
+        canonical_choices(self)  # before the sections' own checks, which compare the names
         if isinstance(self.eval_envs, bool) or not isinstance(self.eval_envs, int) or self.eval_envs < 1:
             # The fix either way: a refusal that gave none left a user of --eval_at_end false --eval_envs 0 stuck.
             hint = ("; for no test at the end, set eval_at_end=false instead" if self.eval_at_end else
@@ -662,6 +663,21 @@ def field_choices() -> dict[str, tuple[str, ...]]:
             "env.sim.backend": ("warp", "mujoco", "auto"),
             "env.sim.reset_pass": RESET_PASSES, "ppo.grad_sync": GRAD_SYNCS,
             "ppo.matmul_precision": MATMUL_PRECISIONS, "eval_test": EVAL_TESTS, "ppo.symmetry": SYMMETRY_MODES}
+
+
+def canonical_choices(cfg: RunConfig) -> RunConfig:
+    """``cfg`` with each :func:`field_choices` value given in another case set to its listed spelling, in place
+    (``Linear`` -> ``linear``), as ``ppo.cuda_graph`` always took any case: ``--ppo.lr_schedule Linear`` was refused
+    while ``--ppo.cuda_graph OFF`` was taken. A value listed in no case is left for ``validate`` to refuse."""
+    for path, allowed in field_choices().items():
+        *parents, name = path.split(".")
+        owner = _get(cfg, ".".join(parents)) if parents else cfg
+        value = getattr(owner, name)
+        if isinstance(value, str) and value not in allowed:
+            same = [choice for choice in allowed if choice.lower() == value.lower()]
+            if same:
+                setattr(owner, name, same[0])
+    return cfg
 
 
 # ---------------------------------------------------------------------------------------------------------- presets

@@ -12,10 +12,10 @@
 given overrides it. With ``--resume`` the defaults are the saved run's instead, and an option other than
 :data:`~tocabi_torchrl.rl.resume.RESUME_SAFE` may not change (``ResumeConfigError`` names it). Values are typed by the
 fields: tuples are space-separated (``--ppo.actor_hidden 256 256``, ``--loggers csv tensorboard``; ``256,256`` is
-refused with how to write it), switches take true/false, an optional value takes None (any case), an int also takes a
-whole number written as a float (``2e8``), and ``--env.scene.obstacles`` takes JSON. An option given twice keeps its
-last value, and ppo_walk says so (:func:`repeated_options`). The config's own rules (``RunConfig.validate``) then
-check the values.
+refused with how to write it), switches take true/false, an optional value takes None (any case), a name
+(``--ppo.lr_schedule``) any case, an int also takes a whole number written as a float (``2e8``), and
+``--env.scene.obstacles`` takes JSON. An option given twice keeps its last value, and ppo_walk says so
+(:func:`repeated_options`). The config's own rules (``RunConfig.validate``) then check the values.
 
 This module and the config modules import no torch: ``--help`` answers in a fraction of a second.
 """
@@ -31,7 +31,7 @@ import typing
 from collections.abc import Sequence
 from typing import Any
 
-from ..config import PRESETS, PPOConfig, RunConfig, preset_config, preset_tree
+from ..config import PRESETS, PPOConfig, RunConfig, canonical_choices, preset_config, preset_tree
 from ..tree import ConfigError, build_items, get_path, item_type, leaf_paths, leaf_types, to_dict
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_config", "preset_tree", "parse_args", "parse_tree",
@@ -243,15 +243,17 @@ def _refuse_commas(argv: Sequence[str], default: RunConfig) -> None:
 
 def parse_tree(argv: Sequence[str], default: RunConfig, prog: str | None = None, description: str = "") -> RunConfig:
     """``default`` with the options of ``argv`` applied (tyro; ``--help`` and bad options exit with its message;
-    a tuple's values joined by commas raise ``ValueError`` saying to separate them by spaces). Not validated."""
+    a tuple's values joined by commas raise ``ValueError`` saying to separate them by spaces). Not validated, but a
+name of a few (``ppo.lr_schedule``) given in another case is spelt as listed (``Linear`` -> ``linear``)."""
     import tyro
 
     if not any(a in ("-h", "--help") for a in argv):  # --help answers whatever the values
         _refuse_commas(argv, default)
     text = HOW_TO.format(presets=", ".join(sorted(PRESETS)))
-    return tyro.cli(RunConfig, default=default, args=list(argv), prog=prog, use_underscores=True,
-                    description=f"{description}\n\n{text}" if description else text,
-                    config=(tyro.conf.FlagConversionOff,), registry=_registry())
+    cfg = tyro.cli(RunConfig, default=default, args=list(argv), prog=prog, use_underscores=True,
+                   description=f"{description}\n\n{text}" if description else text,
+                   config=(tyro.conf.FlagConversionOff,), registry=_registry())
+    return canonical_choices(cfg)  # a name in any case as listed (a resume compares it with the saved one)
 
 
 def _preset_tree(argv: Sequence[str]) -> RunConfig:
