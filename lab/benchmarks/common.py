@@ -396,6 +396,16 @@ def page(title: str, data: dict, body: str) -> str:
     return f"# {title} ({m['gpu']}, {m['date']})\n\nCommand: `{m['command']}`\n\n{body.strip()}\n"
 
 
+def read_json(path: str | Path, fix: str):
+    """The JSON of ``path``, a file a benchmark wrote (a run's ``train.json``, a measurement's result). Invalid JSON
+    (a file cut short by a copy, or edited by hand) raises ``ValueError`` naming the file and ``fix``, what writes it
+    again: the decoder's message alone named neither, and where it was not caught it ended in a traceback."""
+    try:
+        return json.loads(Path(path).read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not valid JSON ({err}): the file is damaged; {fix}") from None
+
+
 def write_json(path: str | Path, data: dict) -> Path:
     """``data`` as strict JSON (a NaN or infinite number as ``null``: bare ``NaN`` tokens are not JSON, and a
     case shorter than a gait cycle has no tracking error), written atomically."""

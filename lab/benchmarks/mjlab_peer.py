@@ -193,7 +193,11 @@ def merge(path: Path, ours_path: Path) -> dict:
     from lab.benchmarks import common
     from tocabi_torchrl import robot
 
-    data, ours = (json.loads(Path(p).read_text()) for p in (path, ours_path))
+    try:  # a damaged report is named, not a decoder's traceback
+        data, ours = (common.read_json(p, f"write it again with {tool}") for p, tool in
+                      ((path, "lab.benchmarks.mjlab_peer"), (ours_path, "lab.benchmarks.train_throughput")))
+    except ValueError as err:
+        raise SystemExit(f"mjlab_peer: {err}") from None
     n = data["results"][0]["num_envs"]
     rows = [r for r in ours["results"] if r["num_envs"] == n and r.get("gpus", 1) == 1 and not r["overrides"]
             and r.get("ratio_train_over_raw")]

@@ -15,7 +15,6 @@ Same recipe everywhere: the default preset, rollouts of at least 2,048 transitio
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
 import sys
@@ -29,11 +28,20 @@ OOM = ("out of memory", "outofmemory", "cudaerrormemoryallocation", "failed to a
 STATUSES = ("ok", "partial", "oom", "error")  # a record's; oom and error records have no rates
 
 
+def _read(path: Path) -> dict:
+    """One measurement's result file; where it is no JSON, one ``error:`` line naming it (it was a traceback)."""
+    try:
+        return common.read_json(path, "remove it and run that measurement again (without --report), which writes it "
+                                      "anew")
+    except ValueError as err:
+        raise SystemExit(f"error: {err}") from None
+
+
 def run(kind: str, backend: str, n: int, args) -> dict:
     """Measure in a fresh ``train_throughput`` process and write the result (skipped where one exists and its status
     is not in ``--redo``); running out of device memory is a result too (``oom``)."""
     path = Path(args.results) / f"{kind}_{backend}_{n:07d}.json"
-    if path.is_file() and (record := json.loads(path.read_text()))["status"] not in args.redo:
+    if path.is_file() and (record := _read(path))["status"] not in args.redo:
         print(f"kept {path.name} (status {record['status']}; --redo {record['status']} measures it again)", flush=True)
         return record
     base = common.config("default")
@@ -70,7 +78,7 @@ def run(kind: str, backend: str, n: int, args) -> dict:
 
 
 def render(folder: Path, out: Path) -> str:
-    rec = {(r["kind"], r["backend"], r["num_envs"]): r for r in map(json.loads, map(Path.read_text, folder.iterdir()))}
+    rec = {(r["kind"], r["backend"], r["num_envs"]): r for r in map(_read, folder.iterdir())}
     get = lambda kind, backend: sorted((k[2], r) for k, r in rec.items() if k[:2] == (kind, backend))
     # The rates come from measured records only; a time run that ran out of memory or failed is a status-only row.
     measured = lambda kind, backend: [(n, r) for n, r in get(kind, backend) if r["status"] in ("ok", "partial")]

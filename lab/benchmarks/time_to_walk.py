@@ -60,8 +60,16 @@ def walks(evaluation: dict) -> bool:
             and all(key(c) in runs and runs[key(c)]["survival"] >= CRITERIA["survival"] for c in OTHER_COMMANDS))
 
 
-def _load(path: Path) -> dict:
-    return json.loads(path.read_text()) if path.is_file() else {}
+def _load(path: Path, fix: str) -> dict:
+    """The record ``path`` holds, ``{}`` where there is none; ``ValueError`` naming it and ``fix`` where it is no
+    JSON."""
+    return common.read_json(path, fix) if path.is_file() else {}
+
+
+def _rewrite(part: str, test: str = "standard") -> str:
+    """How a damaged record of ``part`` ("train" or "eval", of the gait test ``test``) is written again."""
+    again = f" (--test {test})" if test != "standard" else ""
+    return f"move it away and run the {part} part again{again}, which writes it anew"
 
 
 def _as_set(overrides: dict) -> str:
@@ -70,7 +78,7 @@ def _as_set(overrides: dict) -> str:
 
 def train_part(args, command: str) -> None:
     run_dir, info = RUNS / args.name, from_environment()
-    record, latest = _load(run_dir / "train.json"), run_dir / "checkpoints" / "latest.pt"
+    record, latest = _load(run_dir / "train.json", _rewrite("train")), run_dir / "checkpoints" / "latest.pt"
     prior_s = float(common.read_checkpoint(latest).get("train_seconds", 0.0)) if latest.is_file() else 0.0
     left_min = args.budget_minutes - prior_s / 60.0
     if left_min <= 0:  # every rank reads the same checkpoint, so all stop here alike
@@ -127,7 +135,7 @@ def eval_part(args, command: str) -> None:
         raise ValueError(f"{run_dir}: no such run folder; name the trained run with --name (or --preset)")
     test = getattr(args, "test", "standard")
     evals_file = run_dir / EVALS[test]
-    record = _load(evals_file)
+    record = _load(evals_file, _rewrite("eval", test))
     evals, envs = record.setdefault("evaluations", {}), {}
     _refuse_other_sizes(evals, evals_file, test, args)
     recorded = []  # the marks this call adds (a mark without a robust report is left out)
@@ -224,10 +232,7 @@ def _evaluate_robust(ckpt: Path, evals: dict, envs: dict, args) -> None:
             print(f"{ckpt.stem}: no {' or '.join(map(str, candidates))}; left out", flush=True)
             return
         found = found[0]
-        try:
-            report = _load(found)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{found} is not valid JSON ({err}); write it again with lab.benchmarks.robust_policies")
+        report = _load(found, "write it again with lab.benchmarks.robust_policies")
         if not report:
             print(f"{ckpt.stem}: {found} is empty; left out", flush=True)
             return
@@ -280,8 +285,8 @@ def first_walk(record: dict) -> dict | None:
 def read_run(folder: Path, test: str = "standard") -> dict:
     """A run's ``train.json`` and the evaluations of ``test`` (:data:`EVALS`: ``evals.json``, ``evals_robust.json``
     or ``evals_diverse.json``) as one record (``time_to_walk`` recomputed from the evaluations)."""
-    train = _load(folder / "train.json")
-    record = {**train, **_load(folder / EVALS[test])}
+    train = _load(folder / "train.json", _rewrite("train"))
+    record = {**train, **_load(folder / EVALS[test], _rewrite("eval", test))}
     if not record:
         raise SystemExit(f"error: {folder}: no train.json or {EVALS[test]} (run the train and eval parts first)")
     if not train:  # an eval beside a run's first training call writes its evaluations before train.json is there

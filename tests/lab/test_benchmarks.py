@@ -7,6 +7,7 @@ busy for longer than the rest of the suite took on the other."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -536,3 +537,24 @@ def test_steady_rate_skips_rows_without_time_and_never_divides_by_zero(tmp_path)
     assert steady_rate(same, skip=1) is None  # no time between the two rows measured
     assert steady_rate(same, skip=0) == pytest.approx((300 - 100) / (5.0 - 3.0))
     assert steady_rate([{"wall_s": "", "env_steps": ""}] * 4, skip=1) is None
+
+
+def test_a_damaged_result_file_of_scaling_or_mjlab_peer_is_one_line_naming_it(tmp_path):
+    # Invalid JSON in a measurement's result file (a copy cut short, a hand edit) ended in a JSONDecodeError
+    # traceback that named no file.
+    results = tmp_path / "scaling"
+    results.mkdir()
+    damaged = results / "time_gpu_0004096.json"
+    damaged.write_text("{,")
+    args = SimpleNamespace(results=str(results), redo=[])
+    for call in (lambda: scaling.main(["--report", "--results", str(results)]),
+                 lambda: scaling.run("time", "gpu", 4096, args)):
+        with pytest.raises(SystemExit, match=rf"^error: {re.escape(str(damaged))} is not valid JSON \(.*\): the file "
+                                             r"is damaged; remove it and run that measurement again"):
+            call()
+    ours, peer = tmp_path / "ours.json", tmp_path / "peer.json"
+    ours.write_text(json.dumps({"results": []}))
+    peer.write_text("")
+    with pytest.raises(SystemExit, match=rf"^mjlab_peer: {re.escape(str(peer))} is not valid JSON \(.*\): the file "
+                                         r"is damaged; write it again with lab.benchmarks.mjlab_peer$"):
+        mjlab_peer.merge(peer, ours)

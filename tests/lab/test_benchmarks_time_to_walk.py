@@ -420,3 +420,24 @@ def test_time_to_walk_report_of_a_run_without_train_json_says_so(tmp_path, capsy
     _time_to_walk_here(capsys, "report", "--runs", str(folder), "--out", str(tmp_path / "out"),
                        error=f"{folder}: no train.json, only evals.json; the train part writes it when a training call "
                              "ends")
+
+
+def test_time_to_walk_names_a_damaged_run_file_and_how_to_write_it_again(tmp_path, monkeypatch, capsys):
+    # Invalid JSON in train.json or evals.json (a copy cut short, a hand edit) ended on the decoder's message alone,
+    # "error: Expecting value: line 1 column 1 (char 0)", which named neither the file nor what to do.
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "runs/time_to_walk/r"
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "train.json").write_text("{,")
+    (folder / "evals.json").write_text(json.dumps({"evaluations": {}}))
+    report = functools.partial(_time_to_walk_here, capsys, "report", "--runs", str(folder), "--out",
+                               str(tmp_path / "out"))
+    damaged = "is not valid JSON (Expecting property name enclosed in double quotes: line 1 column 2 (char 1)): the " \
+              "file is damaged; move it away and run the {} part again"
+    report(error=f"runs/time_to_walk/r/train.json {damaged.format('train')}, which writes it anew")
+    (folder / "train.json").write_text(json.dumps({"preset": "cpu_smoke"}))
+    (folder / "evals_robust.json").write_text("{,")
+    report("--test", "robust", error=f"runs/time_to_walk/r/evals_robust.json {damaged.format('eval')} (--test robust)")
+    (folder / "evals.json").write_text("{,")
+    _time_to_walk_here(capsys, "eval", "--name", "r", "--device", "cpu",
+                       error=f"runs/time_to_walk/r/evals.json {damaged.format('eval')}, which writes it anew")
