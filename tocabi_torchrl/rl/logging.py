@@ -14,7 +14,9 @@ Each logged iteration's metrics go to :mod:`torchrl.record.loggers` instances, `
 - ``WandbLogger`` on ``--loggers wandb``: project ``tocabi-torchrl``, the run's name and config, files in
   ``<run>/wandb/``. Offline (``mode="offline"`` passed to ``wandb.init``, not the process-wide ``WANDB_MODE`` that
   torchrl's ``offline=True`` sets) unless ``WANDB_API_KEY`` is set. The W&B run id is kept in
-  ``<run>/wandb_run_id``, so a resumed run goes on in the same W&B run.
+  ``<run>/wandb_run_id``, so a resumed run goes on in the same W&B run. W&B keeps every row it was sent: the rows a
+  killed run logged after its checkpoint stay there, and the resumed run logs those iterations again (two rows per
+  ``step``; docs/training.md, "Loggers", says what to do). Delete the id file before resuming for a new W&B run.
 
 A requested logger whose package is missing is refused before the run starts (:func:`require_loggers`), with the
 command that installs it. In a data-parallel run only rank 0 makes a :class:`RunLogger` (the trainer's choice).
