@@ -1,14 +1,18 @@
 """What the adapters' host copies are checked with: a tensor that counts each read of its values on the host, and a
 crafted step result holding values a cast would change (for the tests of the numpy adapters, SB3's and gymnasium's
 numpy mode). And what the training step's per-step paths are checked with on CPU: a dispatch mode recording each op
-that would synchronise with the host on CUDA (:class:`HostSyncOps`)."""
+that would synchronise with the host on CUDA (:class:`HostSyncOps`), and a function mode recording where values are
+read into Python (:class:`HostValueReads`)."""
 
 from __future__ import annotations
 
+import collections
 import functools
+import os
 import traceback
 
 import torch
+from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from tocabi_torchrl.adapters._core import StepResult
@@ -73,6 +77,39 @@ class HostSyncOps(TorchDispatchMode):
             frames = [f for f in traceback.extract_stack() if "tocabi_torchrl" in f.filename]
             self.hits.append(f"{name} at {frames[-1].filename.rsplit('tocabi_torchrl', 1)[-1]}:{frames[-1].lineno}"
                              if frames else name)
+        return func(*args, **(kwargs or {}))
+
+
+class HostValueReads(TorchFunctionMode):
+    """Records each read of a tensor's values into Python (``tolist``, ``item``, ``cpu``, ``bool``, ``float``, ``int``,
+    ``numpy``) while active, by the innermost frame of the package or of TorchRL: :attr:`sites` counts them by that
+    frame's function name. Where :class:`HostSyncOps` sees ops at the dispatch level, this sees the calls that bring
+    values to the host (a ``.cpu().tolist()`` of a CPU tensor dispatches nothing). :meth:`exempt` as there;
+    :attr:`recording` off records nothing."""
+
+    READS = {"tolist", "item", "cpu", "numpy", "__bool__", "__float__", "__int__", "__index__"}
+
+    def __init__(self):
+        super().__init__()
+        self.sites: collections.Counter = collections.Counter()
+        self.recording = True
+        self._paused = 0
+
+    def exempt(self, fn):
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            self._paused += 1
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self._paused -= 1
+        return wrapper
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        if self.recording and not self._paused and getattr(func, "__name__", "") in self.READS:
+            frames = [f for f in traceback.extract_stack()[:-1]
+                      if "tocabi_torchrl" in f.filename or f"torchrl{os.sep}" in f.filename]
+            self.sites[frames[-1].name if frames else "?"] += 1
         return func(*args, **(kwargs or {}))
 
 

@@ -8,14 +8,17 @@ What stays out of the check: the C MuJoCo backend (host code by design: the GPU 
 and the optimiser's own step (on the CPU Adam counts its steps on the host; the captured update's Adam is the
 capturable one, which keeps them on the device). Once per iteration, outside any capture, the trainer reads the
 losses, the episode metrics and the action std for its log, and TorchRL's GAE asks whether a next observation holds
-NaN: those are not per step."""
+NaN: those are not per step. The last test checks that a whole iteration reads only those on the host, and that
+docs/architecture.md lists each."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 import torch
 from graph_emulation import EmulatedCapture
-from host_reads import HostSyncOps
+from host_reads import HostSyncOps, HostValueReads
 
 from tocabi_torchrl.rl import preset_config
 from tocabi_torchrl.rl.actors import gaussian_head
@@ -84,3 +87,50 @@ def test_the_robust_training_step_reads_nothing_on_the_host(option):
         for k in range(2):
             step(flat[k * 8:(k + 1) * 8])
     assert probe.hits == [], sorted(set(probe.hits))
+
+
+#: Where a training iteration reads values on the host, once per iteration (docs/architecture.md, "What the host reads
+#: while training", lists them): the frame names :class:`host_reads.HostValueReads` records.
+ITERATION_READS = {"_sanitize_next_obs_nan": "`_sanitize_next_obs_nan`", "_update": "`rl.trainer._update`",
+                   "_episode_metrics": "`rl.trainer._episode_metrics`",
+                   "settle": "`settle`, inside `rl.trainer._train`"}
+
+
+def test_a_training_iteration_reads_on_the_host_only_what_the_architecture_page_lists(tmp_path, monkeypatch):
+    import tocabi_torchrl.rl.trainer as trainer
+
+    iterations = 2
+    cfg = preset_config("default", device="cpu", run_dir=str(tmp_path), progress_bar=False, eval_at_end=False,
+                        **{"env.num_envs": N, "ppo.steps_per_env": T, "ppo.minibatch_size": 8, "ppo.epochs": 2,
+                           "ppo.actor_hidden": (16, 16), "ppo.critic_hidden": (16, 16), "ppo.critic_privileged": True,
+                           "total_env_steps": iterations * N * T})
+    probe = HostValueReads()
+    env = build_env(cfg, torch.device("cpu"), for_training=True, sync_free_resets=True)  # the GPU's env step
+    for name in ("step", "reset", "forward"):  # the CPU physics backend: host code by design
+        setattr(env.base_env.sim, name, probe.exempt(getattr(env.base_env.sim, name)))
+    make_optimizer = trainer.make_optimizer
+
+    def optimizer_with_exempt_step(*args, **kwargs):  # on the CPU Adam counts its steps on the host
+        optimizer = make_optimizer(*args, **kwargs)
+        optimizer.step = probe.exempt(optimizer.step)
+        return optimizer
+
+    monkeypatch.setattr(trainer, "make_optimizer", optimizer_with_exempt_step)
+    monkeypatch.setattr(trainer, "save_checkpoint", probe.exempt(trainer.save_checkpoint))  # its iterations only
+    estimate = trainer.estimate_advantages
+
+    def from_the_first_advantages(*args, **kwargs):  # the run's start-up reads are before it; rollouts 2.. after it
+        probe.recording = True
+        return estimate(*args, **kwargs)
+
+    monkeypatch.setattr(trainer, "estimate_advantages", from_the_first_advantages)
+    probe.recording = False
+    with probe:
+        result = trainer.train(cfg, env)
+    assert result.iterations == iterations
+    assert set(probe.sites) == set(ITERATION_READS), probe.sites
+    assert probe.sites["_sanitize_next_obs_nan"] == 2 * iterations  # the critic's observation and privileged state
+    page = (Path(__file__).resolve().parents[1] / "docs" / "architecture.md").read_text()
+    assert "## What the host reads while training" in page, "docs/architecture.md lost its section on host reads"
+    section = page.split("## What the host reads while training", 1)[1].split("\n## ", 1)[0]
+    assert all(name in section for name in ITERATION_READS.values())
