@@ -4,6 +4,8 @@ is covered by the GPU tests in test_make_env.py, test_update_step.py and test_to
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 from graph_emulation import EmulatedCapture, FailingCapture
@@ -30,6 +32,15 @@ def test_plan_graphs_is_the_one_decision():
     assert not plan_graphs(cfg(compile_reward=True), CUDA).env_step
     assert plan_graphs(cfg("on", n=4096, compile_reward=True), CUDA).env_step  # "on": make_env says why it cannot
     assert not plan_graphs(cfg("off"), CUDA).env_step and not plan_graphs(cfg(update=False), CUDA).update
+
+
+def test_the_training_and_architecture_pages_state_the_env_graph_limit():
+    # Above it a training run's env step is eager while its update is captured: the pages say where that starts.
+    docs = Path(__file__).resolve().parents[1] / "docs"
+    for page in ("training.md", "architecture.md"):
+        text = " ".join((docs / page).read_text().split())
+        assert f"up to {ENV_GRAPH_AUTO_MAX_ENVS} envs" in text and "ENV_GRAPH_AUTO_MAX_ENVS" in text, page
+        assert "runs eagerly while the update is captured" in text or "eagerly, op by op" in text, page
 
 
 def test_blockers_name_each_reason_and_make_env_raises_them_all():
