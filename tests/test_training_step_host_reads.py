@@ -134,3 +134,63 @@ def test_a_training_iteration_reads_on_the_host_only_what_the_architecture_page_
     assert "## What the host reads while training" in page, "docs/architecture.md lost its section on host reads"
     section = page.split("## What the host reads while training", 1)[1].split("\n## ", 1)[0]
     assert all(name in section for name in ITERATION_READS.values())
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("option", list(OPTIONS))
+def test_the_robust_training_step_never_syncs_on_cuda(option):
+    """The CUDA twin of the CPU check above, under ``torch.cuda.set_sync_debug_mode("error")``: the captured env step
+    with its masked resets and the actor (the collector's inner step, called directly so that a synchronisation of
+    the collector's own bookkeeping is not counted), then replays of the captured PPO mini-batch step."""
+    n = 64
+    cfg = preset_config("robust", **{**TINY, "env.num_envs": n, "ppo.minibatch_size": 96}, **OPTIONS[option],
+                        device="cuda")
+    device = torch.device("cuda")
+    torch.manual_seed(0)
+    env = build_env(cfg, device, for_training=True, sync_free_resets=True)
+    env.set_cuda_graph(True)
+    base = env.base_env
+    base.set_torque_assist(0.5)
+    base.set_push_scale(1.0)
+    agent = build_agent(cfg, env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1], device)
+    loss_module, advantage = make_loss(cfg, agent, env)
+    optimizer = make_optimizer(cfg, agent, device)
+    params = [p for g in optimizer.param_groups for p in g["params"]]
+    step = MinibatchStep(loss_module, optimizer, params, cfg.ppo.max_grad_norm, use_graph=True)
+    collector = make_collector(cfg, env, agent.actor, device, total_frames=2 * n * T)
+    try:
+        batch = next(iter(collector))  # the warm-up and the capture of the env step
+    finally:
+        collector.shutdown()
+    assert env.graph_captured
+    td = env.reset()
+    steps = []
+    with torch.no_grad():
+        for _ in range(3):  # eager warm-up of the actor's first calls outside the check
+            out, td = env.step_and_maybe_reset(agent.actor(td))
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("error")
+        try:
+            for _ in range(2 * T):  # crosses the 6-step episodes: every world resets inside the captured step
+                out, td = env.step_and_maybe_reset(agent.actor(td))
+                steps.append(out["next", "done"])
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+    assert bool(torch.stack(steps).any())
+    agent.teacher.anchor(gaussian_head(agent.actor).mean_net, base.assist_gain(0.5), 0.5)
+    loss_module.set_step(base.assist_gain(0.5), base.assist_gain(0.4), 0.5, 0.4, 1.0)
+    work = batch.clone(False)
+    guard_rollout(work)
+    estimate_advantages(advantage, work)
+    flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
+    _update_losses(cfg, flat, step)  # eager warm-up steps, the capture and replays
+    assert step.captured
+    mbs = [flat[k * 96:(k + 1) * 96] for k in range(2)]
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for mb in mbs:
+            step(mb)
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
