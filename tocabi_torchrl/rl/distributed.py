@@ -153,7 +153,11 @@ def ending(info: DistInfo, expected: tuple[type[BaseException], ...] = ()):
 
 
 def rank_seed(seed: int, info: DistInfo) -> int:
-    """The seed of this rank's worlds and mini-batch shuffles: ``seed + rank`` (rank 0 reproduces a 1-rank run)."""
+    """The seed of this rank's worlds, exploration noise and mini-batch shuffles: ``seed + rank``.
+
+    Rank 0's worlds draw as a 1-rank run's with the same seed; its exploration noise and mini-batch order do not: a
+    data-parallel run reseeds torch with this seed after the weights are built and broadcast, where a 1-rank run goes
+    on with the stream its weight initialisation left."""
     return seed + info.rank
 
 

@@ -580,7 +580,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         # Not refused: a run trained in segments raises total_env_steps as it resumes (config.schedule_past_budget).
         warnings.warn(warning, UserWarning, stacklevel=3)
     torch.manual_seed(cfg.seed)
-    if info.enabled:  # each rank its own worlds; rank 0 keeps the 1-rank run's seed
+    if info.enabled:  # each rank its own worlds; rank 0 keeps the 1-rank run's seed (and so its worlds)
         cfg = dataclasses.replace(cfg, seed=rank_seed(cfg.seed, info))
     if env is not None:
         check_given_env(cfg, env)
