@@ -2,7 +2,7 @@
 
     python -m lab.experiments.compare_gaits                                    # the three shipped policies, 256 robots each
     python -m lab.experiments.compare_gaits --policy PD=runs/ppo_walk --policy torque=runs/torque/checkpoints/latest.pt
-    python -m lab.experiments.compare_gaits --device cpu --num_envs 16 --out docs/experiments/compare_gaits_cpu16
+    python -m lab.experiments.compare_gaits --device cpu --num_envs 16 --out runs/experiments/compare_gaits_cpu16
 
 Each controller (``--policy LABEL=PATH``, a .pt file or a run folder; default: the shipped PD-residual, torque
 and model-based policies) runs its deterministic policy in ``--num_envs`` robots. The table averages over every
