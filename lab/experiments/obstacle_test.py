@@ -312,6 +312,16 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--max_mm must be a finite height >= 0 (the cap of the heights tried), got {args.max_mm:g}")
     if math.isnan(args.fail_below):  # (0 means no height fails, above 1 that every one does: both have their uses)
         parser.error("--fail_below must be a number: a controller fails a height when its pass rate is below it")
+    # The box checks its own sizes only when the first height is measured, after --out was made: checked here first.
+    if not math.isfinite(args.distance):
+        parser.error(f"--distance must be a finite distance [m] (box centre ahead of the left sole), got "
+                     f"{args.distance:g}")
+    for flag, value in (("--box_length", args.box_length), ("--box_width", args.box_width)):
+        if not math.isfinite(value) or value <= 0:
+            parser.error(f"{flag} must be a finite length > 0 [m], got {value:g}")
+    if not math.isfinite(args.jitter) or args.jitter < 0:
+        parser.error(f"--jitter must be a finite half-range >= 0 [m] (0: every robot's box at the same place), got "
+                     f"{args.jitter:g}")
     if args.resume and args.overwrite:
         parser.error("--resume keeps the earlier table's rows, --overwrite replaces them: pass one of them")
     try:

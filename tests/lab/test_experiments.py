@@ -376,6 +376,22 @@ def test_obstacle_test_refuses_an_empty_torque_window_or_a_step_that_never_raise
     assert re.search(message, capsys.readouterr().err)
 
 
+@pytest.mark.parametrize("flags, message", [
+    (["--distance", "nan"], "--distance must be a finite distance"),
+    (["--box_length", "-0.3"], "--box_length must be a finite length > 0"),
+    (["--box_width", "0"], "--box_width must be a finite length > 0"),
+    (["--jitter", "-0.05"], "--jitter must be a finite half-range >= 0"),
+])
+def test_obstacle_test_refuses_a_bad_box_before_making_its_folder(flags, message, tmp_path, capsys):
+    # Before: the box's sizes were checked only when the first height was measured, after --out had been made, so
+    # a bad value left a folder behind and its error named BoxObstacle's fields, not the flag.
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit):
+        load_recipe("obstacle_test").main(["--device", "cpu", "--out", str(out), *flags])
+    assert re.search(message, capsys.readouterr().err)
+    assert not out.exists()
+
+
 # ------------------------------------------------------------------------------------------------ resuming
 def _tiny_obstacle_run(out: Path, heights: str, *extra: str) -> list[str]:
     """The cheapest obstacle run that exercises the recipe: one robot, 0.2 s (it does not reach the box), tiny
