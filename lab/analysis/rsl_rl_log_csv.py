@@ -2,6 +2,7 @@
 (issue 22).
 
     python lab/analysis/rsl_rl_log_csv.py LOG [LOG ...] OUT.csv     # LOGs in order; .xz ones are read as such
+    python lab/analysis/rsl_rl_log_csv.py --overwrite LOG OUT.csv   # replace an existing OUT.csv (else refused)
 
 rsl_rl prints a ~30-line block per iteration; the table keeps the signals that tell rows apart (episode length,
 reward, the imitation term ``qpos``, the velocity term ``body_vel``, the action std, the value loss) and the rate.
@@ -52,7 +53,10 @@ def _lines(path: Path):
 
 
 def main(argv: list[str]) -> int:
-    """Write the CSV; an error, not an empty file, when the logs hold no iteration block."""
+    """Write the CSV; an error, not an empty file, when the logs hold no iteration block, and an error, not a
+    replaced file, when OUT.csv exists without ``--overwrite``."""
+    overwrite = "--overwrite" in argv
+    argv = [a for a in argv if a != "--overwrite"]
     if len(argv) < 2:
         print(__doc__.split("\n\n")[1], file=sys.stderr)
         return 2
@@ -60,6 +64,9 @@ def main(argv: list[str]) -> int:
     if out.suffix != ".csv":  # LOG LOG without OUT.csv would write the CSV over the last log
         print(f"error: the last argument is the CSV to write and must end in .csv, got {out}; give "
               "LOG [LOG ...] OUT.csv", file=sys.stderr)
+        return 2
+    if out.exists() and not overwrite:
+        print(f"error: {out} exists; pass --overwrite to replace it, or give another OUT.csv", file=sys.stderr)
         return 2
     rows = parse(itertools.chain.from_iterable(_lines(p) for p in logs))
     if not rows:

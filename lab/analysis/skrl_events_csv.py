@@ -1,6 +1,7 @@
 """skrl's TensorBoard scalars of a table row (issue 22), over its calls, as one CSV row per logged timestep.
 
-    python lab/analysis/skrl_events_csv.py RUN_DIR OUT.csv      # RUN_DIR: the row's run folder
+    python lab/analysis/skrl_events_csv.py RUN_DIR OUT.csv                # RUN_DIR: the row's run folder
+    python lab/analysis/skrl_events_csv.py --overwrite RUN_DIR OUT.csv    # replace an existing OUT.csv (else refused)
 
 skrl prints nothing per iteration; what it logs goes to ``RUN_DIR/skrl/ppo/`` for the first call and
 ``ppo_call<k>/`` for call k (recipes/train_skrl.py). Its trainer timestep restarts at 0 each call, so ``call`` and
@@ -52,11 +53,21 @@ def read(run: Path) -> list[dict]:
 
 
 def main(argv: list[str]) -> int:
-    """Write the CSV; an error, not an empty file, when the folder holds no skrl scalars."""
+    """Write the CSV; an error, not an empty file, when the folder holds no skrl scalars, and an error, not a
+    replaced file, when OUT.csv exists without ``--overwrite``."""
+    overwrite = "--overwrite" in argv
+    argv = [a for a in argv if a != "--overwrite"]
     if len(argv) != 2:
         print(__doc__.split("\n\n")[1], file=sys.stderr)
         return 2
     run, out = Path(argv[0]), Path(argv[1])
+    if out.suffix != ".csv":  # the arguments swapped, or a file not meant for it, would be written over
+        print(f"error: the second argument is the CSV to write and must end in .csv, got {out}; give "
+              "RUN_DIR OUT.csv", file=sys.stderr)
+        return 2
+    if out.exists() and not overwrite:
+        print(f"error: {out} exists; pass --overwrite to replace it, or give another OUT.csv", file=sys.stderr)
+        return 2
     rows = read(run) if run.is_dir() else []
     if not rows:
         print(f"error: {run}: no skrl scalars under skrl/ppo*/ (a table row's run folder of skrl?)", file=sys.stderr)

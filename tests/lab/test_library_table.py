@@ -399,6 +399,12 @@ def test_rsl_rl_console_logs_become_one_csv_row_per_iteration(tmp_path):
     log = (tmp_path / "a.log").read_text()
     assert tool.main([str(tmp_path / "a.log"), str(tmp_path / "other.log")]) == 2
     assert (tmp_path / "other.log").read_text() == "no blocks here\n" and (tmp_path / "a.log").read_text() == log
+    # An existing CSV: once replaced without a word, now refused unless --overwrite.
+    (tmp_path / "kept.csv").write_text("hand-made\n")
+    assert tool.main([str(tmp_path / "a.log"), str(tmp_path / "kept.csv")]) == 2
+    assert (tmp_path / "kept.csv").read_text() == "hand-made\n"
+    assert tool.main(["--overwrite", str(tmp_path / "a.log"), str(tmp_path / "kept.csv")]) == 0
+    assert len(list(csv.DictReader((tmp_path / "kept.csv").open()))) == 2
 
 
 def test_skrl_scalars_of_a_row_become_one_csv_row_per_call_and_timestep(tmp_path):
@@ -426,6 +432,12 @@ def test_skrl_scalars_of_a_row_become_one_csv_row_per_call_and_timestep(tmp_path
     assert rows[0]["action_std"] == "0.05" and rows[0]["value_loss"] == ""
     assert tool.main([str(tmp_path / "empty"), str(tmp_path / "o.csv")]) == 1
     assert not (tmp_path / "o.csv").exists()
+    # An existing CSV: once replaced without a word, now refused unless --overwrite; an output not ending in .csv
+    # (the arguments swapped, say) is refused too.
+    out.write_text("hand-made\n")
+    assert tool.main([str(run), str(out)]) == 2 and out.read_text() == "hand-made\n"
+    assert tool.main([str(run), str(tmp_path / "notes.txt")]) == 2 and not (tmp_path / "notes.txt").exists()
+    assert tool.main(["--overwrite", str(run), str(out)]) == 0 and len(list(csv.DictReader(out.open()))) == 3
 
 
 #: A gait-test summary that passes every threshold.
