@@ -194,6 +194,25 @@ def test_a_bad_value_or_a_missing_option_is_one_error_line(capsys):
         "demo.py: demo.py --help lists every option"]
 
 
+def test_the_recipes_named_values_take_any_case_and_give_the_listed_spelling(capsys):
+    # --test Robust and --lr_schedule Adaptive were "invalid choice" errors, while the config's named values
+    # (--ppo.lr_schedule Adaptive) take any case.
+    play = load_recipe("play").build_parser().parse_args(["--checkpoint", "r", "--test", "Robust", "--backend",
+                                                          "MUJOCO"])
+    assert (play.test, play.backend) == ("robust", "mujoco")
+    rsl = load_recipe("train_rsl_rl").build_parser().parse_args(["--out", "r", "--lr_schedule", "Adaptive",
+                                                                 "--std", "LEARNED"])
+    assert (rsl.lr_schedule, rsl.std) == ("adaptive", "learned")
+    sim = load_recipe("sim2sim").build_parser().parse_args(["--contract", "c.json", "--randomize", "TocaBi_Lab",
+                                                            "--push_kind", "Force"])
+    assert (sim.randomize, sim.push_kind) == ("tocabi_lab", "force")
+    parser = RecipeParser(prog="demo.py")
+    parser.add_argument("--mode", choices=("a", "b"))
+    with pytest.raises(SystemExit) as info:  # a value listed in no case is still refused, as given
+        parser.parse_args(["--mode", "C"])
+    assert info.value.code == 2 and "argument --mode: invalid choice: 'C'" in capsys.readouterr().err
+
+
 def test_every_shared_library_recipe_option_with_a_default_shows_it():
     # --eval_envs, --max_minutes, --checkpoint_minutes and --device used to leave their defaults out of --help.
     from tocabi_torchrl.config import PRESETS

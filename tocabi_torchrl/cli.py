@@ -30,7 +30,10 @@ class RecipeParser(argparse.ArgumentParser):
     2, as argparse's.
 
     Options are taken by their full names only (``allow_abbrev`` defaults to False): an abbreviation would silently
-    pick an option (``--num_env 8`` meaning ``--num_envs``), where a misspelt one should be the error above."""
+    pick an option (``--num_env 8`` meaning ``--num_envs``), where a misspelt one should be the error above.
+
+    An option of named values (string ``choices``) takes them in any case and gives the listed spelling
+    (``--test Robust`` -> ``"robust"``), as the config's named values do (``--ppo.lr_schedule Linear``)."""
 
     def __init__(self, *args, **kwargs):
         kwargs.setdefault("allow_abbrev", False)
@@ -52,6 +55,17 @@ class RecipeParser(argparse.ArgumentParser):
         if guesses:
             message += f"; did you mean {' or '.join(dict.fromkeys(guesses))}?"
         return message
+
+    def _get_value(self, action: argparse.Action, arg_string: str):
+        # argparse's own conversion, then a named value given in another case -> its listed spelling; a value listed
+        # in no case (or in two) is left for argparse's "invalid choice" error.
+        value = super()._get_value(action, arg_string)
+        choices = action.choices
+        if isinstance(value, str) and choices is not None and value not in choices:
+            same = [c for c in choices if isinstance(c, str) and c.lower() == value.lower()]
+            if len(same) == 1:
+                return same[0]
+        return value
 
     def refuse_without(self, args: argparse.Namespace, on: bool, switch: str, names: Iterable[str]) -> None:
         """An error for each option of ``names`` given another value than its default while ``switch`` (the option
