@@ -39,6 +39,10 @@ purpose, goes to the residual ``g·a``, i.e. to the policy:
   the default ω) holds the stance leg near the reference until it does.
 - Joint damping (2 N·m·s/rad) and friction loss (≤ 8.2 N·m), small next to the limits (166-333 N·m).
 
+What it knows is privileged: under ``env.dynamics`` M and ``qfrc_bias`` are each world's drawn model (masses,
+inertias, armature), and q, q̇ are the true joints, never the sensed ones (docs/concepts/controllers.md, "What the
+model-based law knows").
+
 All of it is tensor ops on preallocated buffers (the block gather, one batched 12 × 12 matrix-vector product, the
 table lookups), masks instead of branches, so the mode keeps the env's step capturable as one CUDA graph.
 """
