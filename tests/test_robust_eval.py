@@ -870,3 +870,21 @@ def test_the_gait_tests_check_device_and_out_folder_before_building_or_making_an
         gait_test.evaluate_run(policy, num_envs=1, device="cpu", out_dir=tmp_path / "f")
     with pytest.raises(ValueError, match="video_envs must be an int >= 0"):
         gait_test.evaluate_run(policy, num_envs=1, device="cpu", out_dir=tmp_path / "v", video_envs=-1)
+
+
+def test_the_gait_tests_judge_falls_by_the_tasks_rules_whatever_the_policy_trained_with():
+    # The fall rules came from the tested policy's own config: a policy trained with a lower pelvis limit or without
+    # the contact terminations was judged by them, and survived falls every other policy failed on.
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.envs.config import TaskConfig
+    from tocabi_torchrl.evaluation.record import FALL_RULES, nominal_config
+    from tocabi_torchrl.evaluation.robust import CASES, case_config
+    from tocabi_torchrl.tree import replace_paths
+
+    loose = {"env.task.min_pelvis_height": 0.3, "env.task.min_neck_height": 0.4, "env.task.max_neck_angle": 2.5,
+             "env.task.terminate_on_forbidden_contact": False, "env.task.terminate_on_self_collision": False}
+    cfg = replace_paths(preset_config("robust"), loose)
+    assert all(getattr(cfg.env.task, name) != getattr(TaskConfig, name) for name in FALL_RULES)
+    for judged in (nominal_config(cfg), *(case_config(cfg, case) for case in CASES)):
+        assert {name: getattr(judged.env.task, name) for name in FALL_RULES} == {
+            name: getattr(TaskConfig, name) for name in FALL_RULES}

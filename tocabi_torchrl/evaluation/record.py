@@ -164,19 +164,27 @@ def require_trained_statistics(env) -> None:
                          "test the checkpoint with evaluate_run / evaluate_robust_run")
 
 
+#: The task's fall rules (``TaskConfig`` fields), which the gait tests keep at their defaults.
+FALL_RULES = ("min_pelvis_height", "min_neck_height", "max_neck_angle", "terminate_on_forbidden_contact",
+              "terminate_on_self_collision")
+
+
 def nominal_config(cfg: RunConfig) -> RunConfig:
     """``cfg`` without the perturbations a training may add: ideal actuators, no kicks, no dynamics randomisation, no
     sensor noise, starts at rest, no start pool, and the model's own solver (no training iteration cap). The gait
     tests run on it (the robust test's cases then add their own draws): a policy is tested on the robot, not on its
-    training's draws."""
+    training's draws. What counts as a fall is the task's default (:data:`FALL_RULES`), whatever the training used:
+    a policy trained with looser terminations is judged by the same falls as every other."""
     from ..control.config import ActuatorConfig
+    from ..envs.config import TaskConfig
     from ..envs.push_config import PushConfig
     from ..sim.dynamics_config import DynamicsRandomization
     from ..transforms.sensor_noise_config import SensorNoiseConfig
 
     env = cfg.env
+    falls = {name: getattr(TaskConfig, name) for name in FALL_RULES}
     env = dataclasses.replace(
-        env, task=dataclasses.replace(env.task, start_joint_vel_std=0.0, start_base_vel_std=0.0),
+        env, task=dataclasses.replace(env.task, start_joint_vel_std=0.0, start_base_vel_std=0.0, **falls),
         control=dataclasses.replace(env.control, actuators=ActuatorConfig()), pushes=PushConfig(),
         dynamics=DynamicsRandomization(), sim=dataclasses.replace(env.sim, start_pool=0, solver_iterations=None))
     return dataclasses.replace(cfg, env=env, transforms=dataclasses.replace(cfg.transforms,
