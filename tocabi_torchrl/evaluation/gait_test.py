@@ -31,7 +31,7 @@ from ..render_gl import NO_GL_FIX
 from ..transforms.normalize import freeze_running_statistics
 from ..rl.checkpoint import checkpoint_file, read_checkpoint, run_folder_of
 from ..rl.trainer import build_env, resolve_device
-from .output import OutputExistsError, json_safe, rounded_against
+from .output import OutputExistsError, check_results_folder, json_safe, rounded_against
 from .plots import plot_knees
 from .record import (KNEES, GaitMetrics, first_action, fixed_command, load_policy, policy_steps,
                      require_trained_statistics)
@@ -207,14 +207,7 @@ def evaluate_run(run: str | os.PathLike, num_envs: int = 256, device: str = "aut
     :class:`~.output.OutputExistsError` unless ``replace`` (then files of the same name are replaced, others stay).
     Raises ``CheckpointError`` for a bad file and ``ValueError`` for ``seconds`` below one policy step,
     ``video_envs`` below 0 or an ``out_dir`` that is a file, before building anything."""
-    if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
-        raise ValueError(f"out_dir {out_dir} is a file, not a folder: give a folder for the results")
-    held = [] if out_dir is None or replace else [Path(out_dir) / n for n in RESULT_FILES]
-    held = [path for path in held if path.exists()]
-    if held:
-        raise OutputExistsError(f"{held[0]} holds an earlier evaluation's results; nothing was overwritten. Pass "
-                                "replace=True to replace the files of the same name, another out_dir, or none (a "
-                                "fresh eval/, eval_2/, ... folder)")
+    check_results_folder(out_dir, RESULT_FILES, replace)
     if "video_envs" in kwargs:
         check_video_envs(kwargs["video_envs"])
     ckpt = checkpoint_file(run)

@@ -3,12 +3,28 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
-__all__ = ["OutputExistsError", "json_safe", "remove_if_empty", "rounded_against"]
+__all__ = ["OutputExistsError", "check_results_folder", "json_safe", "remove_if_empty", "rounded_against"]
 
 
 class OutputExistsError(RuntimeError):
     """The output folder holds earlier results that this run would overwrite."""
+
+
+def check_results_folder(out_dir, names, replace: bool) -> None:
+    """Before an evaluation builds anything: ``ValueError`` if ``out_dir`` is a file, :class:`OutputExistsError` if it
+    holds one of the evaluation's result files ``names`` and not ``replace``. ``out_dir`` None (a fresh folder) passes."""
+    if out_dir is None:
+        return
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"out_dir {out_dir} is a file, not a folder: give a folder for the results")
+    held = [] if replace else [out_dir / name for name in names if (out_dir / name).exists()]
+    if held:
+        raise OutputExistsError(f"{held[0]} holds an earlier evaluation's results; nothing was overwritten. Pass "
+                                "replace=True to replace the files of the same name, another out_dir, or none (a "
+                                "fresh eval/, eval_2/, ... folder)")
 
 
 def json_safe(value):

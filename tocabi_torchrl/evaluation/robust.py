@@ -54,7 +54,7 @@ from ..value_rules import NON_NEGATIVE, PUSH_KINDS, Range, check_seed
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
 from .record import (GaitMetrics, first_action, fixed_command, nominal_config, policy_steps,
                      require_trained_statistics)
-from .output import OutputExistsError, rounded_against
+from .output import check_results_folder, rounded_against
 
 __all__ = ["CASES", "EVAL_SEED", "ROBUST_FILES", "ROBUST_JSON", "ROBUST_PNG", "CycleMeanTracking", "RobustCase",
            "RobustTestConfig", "batch_config", "batch_env", "batch_key", "case_checks", "case_config", "case_env",
@@ -732,14 +732,7 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
         cases = tuple(sorted(named, key=lambda c: order.index(c) if c in order else len(order)))
     test = RobustTestConfig(num_envs=num_envs, seconds=seconds, cases=cases)
     test.validate(policy_dt())
-    if out_dir is not None and Path(out_dir).exists() and not Path(out_dir).is_dir():
-        raise ValueError(f"out_dir {out_dir} is a file, not a folder: give a folder for the results")
-    held = [] if out_dir is None or replace else [Path(out_dir) / n for n in ROBUST_FILES]
-    held = [path for path in held if path.exists()]
-    if held:
-        raise OutputExistsError(f"{held[0]} holds an earlier evaluation's results; nothing was overwritten. Pass "
-                                "replace=True to replace the files of the same name, another out_dir, or none (a "
-                                "fresh eval/, eval_2/, ... folder)")
+    check_results_folder(out_dir, ROBUST_FILES, replace)
     ckpt = checkpoint_file(run)
     state = read_checkpoint(ckpt)
     return evaluate_robust_checkpoint(state, ckpt, fresh_eval_dir(ckpt) if out_dir is None else out_dir, test=test,
