@@ -44,7 +44,23 @@ class HostReads(torch.Tensor):
         return out.as_subclass(torch.Tensor) if name == "cpu" or to_cpu else out
 
 
-class HostSyncOps(TorchDispatchMode):
+class _Exempting:
+    """:meth:`exempt` for the recording modes below: what a wrapped callable does is not recorded."""
+
+    _paused = 0
+
+    def exempt(self, fn):
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            self._paused += 1
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self._paused -= 1
+        return wrapper
+
+
+class HostSyncOps(_Exempting, TorchDispatchMode):
     """Records the ops that synchronise with the host on CUDA, on any device (a CPU stand-in for
     ``torch.cuda.set_sync_debug_mode("error")``): a value read on the host (``item``, ``bool``, ``float``, ``if t``),
     data-dependent shapes (``nonzero``, boolean-mask indexing, ``masked_select``, ``unique``) and tensors made from
@@ -59,16 +75,6 @@ class HostSyncOps(TorchDispatchMode):
         self.hits: list[str] = []
         self._paused = 0
 
-    def exempt(self, fn):
-        @functools.wraps(fn)
-        def wrapper(*args, **kwargs):
-            self._paused += 1
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                self._paused -= 1
-        return wrapper
-
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = func.overloadpacket.__name__
         bool_index = name in ("index", "index_put", "index_put_") and any(
@@ -80,7 +86,7 @@ class HostSyncOps(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-class HostValueReads(TorchFunctionMode):
+class HostValueReads(_Exempting, TorchFunctionMode):
     """Records each read of a tensor's values into Python (``tolist``, ``item``, ``cpu``, ``bool``, ``float``, ``int``,
     ``numpy``) while active, by the innermost frame of the package or of TorchRL: :attr:`sites` counts them by that
     frame's function name. Where :class:`HostSyncOps` sees ops at the dispatch level, this sees the calls that bring
@@ -94,16 +100,6 @@ class HostValueReads(TorchFunctionMode):
         self.sites: collections.Counter = collections.Counter()
         self.recording = True
         self._paused = 0
-
-    def exempt(self, fn):
-        @functools.wraps(fn)
-        def wrapper(*args, **kwargs):
-            self._paused += 1
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                self._paused -= 1
-        return wrapper
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         if self.recording and not self._paused and getattr(func, "__name__", "") in self.READS:
