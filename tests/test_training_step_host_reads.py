@@ -42,6 +42,17 @@ OPTIONS = {
 }
 
 
+def _update_inputs(agent, base, loss_module, advantage, batch):
+    """The flat mini-batch source of the update between two rollouts, as the trainer makes it, with the teacher
+    pulling at the fade's next step."""
+    agent.teacher.anchor(gaussian_head(agent.actor).mean_net, base.assist_gain(0.5), 0.5)
+    loss_module.set_step(base.assist_gain(0.5), base.assist_gain(0.4), 0.5, 0.4, 1.0)
+    work = batch.clone(False)
+    guard_rollout(work)
+    estimate_advantages(advantage, work)
+    return work.select(*_loss_keys(loss_module, work)).reshape(-1)
+
+
 @pytest.mark.parametrize("option", list(OPTIONS))
 def test_the_robust_training_step_reads_nothing_on_the_host(option):
     cfg = preset_config("robust", **TINY, **OPTIONS[option], device="cpu")
@@ -72,13 +83,7 @@ def test_the_robust_training_step_reads_nothing_on_the_host(option):
         assert batch["next", "done"].any(), "the masked reset must have reset some worlds"
     finally:
         collector.shutdown()
-    # The update between the rollouts, as the trainer runs it, with the teacher pulling at the fade's next step.
-    agent.teacher.anchor(gaussian_head(agent.actor).mean_net, base.assist_gain(0.5), 0.5)
-    loss_module.set_step(base.assist_gain(0.5), base.assist_gain(0.4), 0.5, 0.4, 1.0)
-    work = batch.clone(False)
-    guard_rollout(work)
-    estimate_advantages(advantage, work)
-    flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
+    flat = _update_inputs(agent, base, loss_module, advantage, batch)
     _update_losses(cfg, flat, step)  # three eager warm-up steps, the capture and a replay
     assert step.captured and "loss_absorb" in step.stat_keys
     augmented = any(isinstance(m, SymmetryAugmentLoss) for m in loss_module.modules())
@@ -178,12 +183,7 @@ def test_the_robust_training_step_never_syncs_on_cuda(option):
         finally:
             torch.cuda.set_sync_debug_mode(0)
     assert bool(torch.stack(steps).any())
-    agent.teacher.anchor(gaussian_head(agent.actor).mean_net, base.assist_gain(0.5), 0.5)
-    loss_module.set_step(base.assist_gain(0.5), base.assist_gain(0.4), 0.5, 0.4, 1.0)
-    work = batch.clone(False)
-    guard_rollout(work)
-    estimate_advantages(advantage, work)
-    flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
+    flat = _update_inputs(agent, base, loss_module, advantage, batch)
     _update_losses(cfg, flat, step)  # eager warm-up steps, the capture and replays
     assert step.captured
     mbs = [flat[k * 96:(k + 1) * 96] for k in range(2)]
