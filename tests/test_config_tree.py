@@ -307,6 +307,23 @@ def test_a_config_edited_in_place_leaves_presets_and_the_lab_set_alone():
     assert mine.reward_terms[1] == term and mine.reward_terms[1].fn is term.fn  # leaves are the very objects
 
 
+def test_a_saved_option_that_changes_nothing_is_read_with_a_warning_and_a_new_run_still_refuses_it():
+    # A run saved before the rule with --ppo.lr_end under the adaptive schedule (or a kick speed without kicks)
+    # could not be resumed any more ("breaks a rule"), though it trained exactly as without the option.
+    from tocabi_torchrl.config import UnusedOptionError, preset_tree
+    from tocabi_torchrl.rl.checkpoint import config_from_checkpoint
+    from tocabi_torchrl.tree import replace_paths as tree_replace_paths
+
+    unused = {"ppo.lr_end": 1e-6, "ppo.std_mode": "learned", "ppo.std_hold": 0.3, "env.pushes.speed": (0.1, 0.2)}
+    state = {"config": to_dict(tree_replace_paths(preset_tree("default"), unused))}  # as an older version saved it
+    with pytest.warns(UserWarning, match=r"changes nothing, kept as saved: .*ppo.lr_end"):
+        cfg = config_from_checkpoint(state, "old.pt", strict=True)
+    assert (cfg.ppo.lr_end, cfg.ppo.std_hold, cfg.env.pushes.speed) == (1e-6, 0.3, (0.1, 0.2))
+    for path, value in (("ppo.lr_end", "1e-6"), ("env.pushes.speed", "0.1 0.2")):
+        with pytest.raises(UnusedOptionError, match=f"{path} .*would change nothing"):
+            parse_args([f"--{path}", *value.split()])
+
+
 def test_options_of_a_schedule_or_std_mode_the_run_does_not_use_are_refused():
     # --ppo.lr_end 1e-6 under the default's adaptive schedule, or --ppo.std_end under a learned std, trained exactly
     # as without it, without a word.

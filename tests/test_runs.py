@@ -769,6 +769,25 @@ def test_a_checkpoint_older_than_a_value_rule_evaluates_with_a_warning_and_resum
         config_from_checkpoint(state, run)
 
 
+def test_a_run_saved_with_an_option_that_changes_nothing_resumes_with_a_warning(finished_run, tmp_path):
+    # Saved before the rule that refuses it: ppo.lr_end under the adaptive schedule trained as without it, and the
+    # resume was refused as if the run could not go on.
+    run = copy_of(finished_run, tmp_path)
+    for file in (run / "checkpoints").glob("*.pt"):
+        state = torch.load(file, weights_only=True)
+        state["config"]["ppo"]["lr_end"] = 1e-6
+        torch.save(state, file)
+    with pytest.warns(UserWarning, match=r"changes nothing, kept as saved: ppo.lr_schedule is 'adaptive', so "
+                                         r"ppo.lr_end"):
+        cfg, _ = parse_args(["--resume", str(run), "--total_env_steps", "24"])
+    assert (cfg.ppo.lr_schedule, cfg.ppo.lr_end) == ("adaptive", 1e-6)
+    with pytest.warns(UserWarning, match="changes nothing"):
+        recipe("ppo_walk").main(["--resume", str(run), "--total_env_steps", "24"])
+    assert iterations_logged(run) == [1, 2, 3]
+    with pytest.raises(ResumeConfigError, match="ppo.lr_end"):  # changing it is refused as any other option
+        parse_args(["--resume", str(run), "--ppo.lr_end", "1e-5"])
+
+
 def test_help_lists_the_choices_of_every_option_that_takes_one_of_a_few_names(capsys):
     # field_choices says --help lists them; env.control.mode, ppo.value_loss, ppo.activation, ppo.lr_schedule,
     # ppo.grad_sync and --loggers did not.

@@ -27,6 +27,7 @@ from __future__ import annotations
 import difflib
 import math
 import numbers
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -45,7 +46,7 @@ from .value_rules import MAX_SEED, POSITIVE, check_seed
 from .viewer.config import ViewerConfig
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "config_from_dict", "to_dict",
-           "ConfigError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
+           "ConfigError", "UnusedOptionError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
            "LOGGERS", "SYMMETRY_MODES", "field_choices", "canonical_choices", "wall_tag", "check_snapshot_minutes",
            "LEGACY_VALUES", "MAX_SEED", "schedule_past_budget", "schedule_warning"]
 
@@ -489,9 +490,14 @@ class RunConfig:
         self.validate()
         return self
 
-    def validate(self) -> None:
+    def validate(self, allow_unused: bool = False) -> None:
         """Raise ``ValueError`` naming the first bad option by its path (``ppo.lr``, ``env.control.mode``) and the
-        accepted values."""
+        accepted values.
+
+        An option set where it changes nothing (a kick's speed without kicks, ``ppo.lr_end`` under the adaptive
+        schedule) raises :class:`UnusedOptionError`; with ``allow_unused`` it is a warning. That is for a saved run
+        (resumed, evaluated, exported): it trained exactly as without the option, and versions before the rule
+        saved such options."""
         check_field_types(self)  # the whole tree: every switch a bool, every number finite, named by its path
         canonical_choices(self)  # before the sections' own checks, which compare the names
         if isinstance(self.eval_envs, bool) or not isinstance(self.eval_envs, int) or self.eval_envs < 1:
@@ -539,23 +545,22 @@ class RunConfig:
         if self.transforms.kick_relax.enabled and self.env.pushes.count == 0:
             # Not an error in the env (a gait test builds the trained env without its kicks), but a run that sets it
             # would train exactly as without it.
-            raise ValueError("transforms.kick_relax relaxes reward terms after a kick, and env.pushes.count is 0 (no "
-                             "kicks): set env.pushes.count > 0, or transforms.kick_relax.seconds=0")
+            _unused("transforms.kick_relax relaxes reward terms after a kick, and env.pushes.count is 0 (no kicks): "
+                    "set env.pushes.count > 0, or transforms.kick_relax.seconds=0", allow_unused)
         # Likewise options that only shape the kicks or schedule the assist: a run that sets them without either
         # would train exactly as without them.
         if self.env.pushes.count == 0 and (unused := ", ".join(self._changed_options(KICK_OPTIONS))):
-            raise ValueError(f"env.pushes.count is 0 (no kicks), so the kicks' {unused} would change nothing: set "
-                             f"env.pushes.count > 0, or leave {unused} at the preset's values")
+            _unused(f"env.pushes.count is 0 (no kicks), so the kicks' {unused} would change nothing: set "
+                    f"env.pushes.count > 0, or leave {unused} at the preset's values", allow_unused)
         if not self.ppo.torque_assist > 0 and (unused := ", ".join(self._changed_options(ASSIST_OPTIONS))):
-            raise ValueError(f"ppo.torque_assist is 0 (no assist), so the assist's schedule {unused} would change "
-                             f"nothing: set ppo.torque_assist > 0, or leave {unused} at the preset's values")
+            _unused(f"ppo.torque_assist is 0 (no assist), so the assist's schedule {unused} would change nothing: "
+                    f"set ppo.torque_assist > 0, or leave {unused} at the preset's values", allow_unused)
         # And the options of a learning-rate schedule or an action-std mode the run does not use: --ppo.lr_end 1e-6
         # under the default's adaptive schedule trained exactly as without it.
         for switch, mode, paths in MODE_OPTIONS:
             if _get(self, switch) != mode and (unused := ", ".join(self._changed_options(paths))):
-                raise ValueError(f"{switch} is {_get(self, switch)!r}, so {unused} (read by {switch} {mode!r} only) "
-                                 f"would change nothing: set {switch}={mode}, or leave {unused} at the preset's "
-                                 f"values")
+                _unused(f"{switch} is {_get(self, switch)!r}, so {unused} (read by {switch} {mode!r} only) would "
+                        f"change nothing: set {switch}={mode}, or leave {unused} at the preset's values", allow_unused)
         if self.ppo.minibatch_size > self.frames_per_batch:
             quarter = max(1, self.frames_per_batch // 4)
             raise ValueError(
@@ -631,6 +636,19 @@ ASSIST_OPTIONS = ("ppo.assist_fade_start", "ppo.assist_fade_end", "ppo.assist_an
 MODE_OPTIONS = (("ppo.lr_schedule", "linear", ("ppo.lr_end",)),
                 ("ppo.lr_schedule", "adaptive", ("ppo.lr_min", "ppo.desired_kl", "ppo.assist_lr_hold")),
                 ("ppo.std_mode", "scheduled", ("ppo.std_end", "ppo.std_hold")))
+
+
+class UnusedOptionError(ConfigError):
+    """An option set where it changes nothing (:meth:`RunConfig.validate`): refused on a new run's command line, a
+    warning for a saved run (``validate(allow_unused=True)``), which trained exactly as without it."""
+
+
+def _unused(message: str, allow: bool) -> None:
+    """Raise :class:`UnusedOptionError` with ``message``, or warn with it when ``allow``."""
+    if not allow:
+        raise UnusedOptionError(message)
+    warnings.warn(f"the saved config sets an option that changes nothing, kept as saved: {message}", UserWarning,
+                  stacklevel=3)
 
 
 def _get(tree: Any, path: str) -> Any:

@@ -430,7 +430,8 @@ def config_from_checkpoint(state: dict, path: str | os.PathLike = "<checkpoint>"
     The value rules of ``RunConfig.validate`` (ranges, combinations) may be newer than the run: a saved value that
     breaks one is a warning naming the rule, so that evaluating or exporting the run still works (the default). With
     ``strict`` (what ``--resume`` uses: the run would train on with those values, which it may not change) it is a
-    :class:`CheckpointError` that says so and what can be done instead."""
+    :class:`CheckpointError` that says so and what can be done instead. A saved option that changes nothing (the
+    run's ``config.UnusedOptionError``) is a warning either way: the run trains on exactly as without it."""
     import warnings
 
     from ..tree import check_field_types
@@ -450,7 +451,7 @@ def config_from_checkpoint(state: dict, path: str | os.PathLike = "<checkpoint>"
     except (TypeError, ValueError) as err:
         raise CheckpointError(f"checkpoint {path}: the saved config is invalid: {err}") from err
     try:
-        cfg.validate()
+        cfg.validate(allow_unused=True)
     except (TypeError, ValueError) as err:
         if strict:
             raise CheckpointError(

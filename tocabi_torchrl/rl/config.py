@@ -313,4 +313,7 @@ def resume_config(resume: str, argv: Sequence[str] = (), prog: str | None = None
     saved = saved_config(resume)
     cfg = parse_tree(argv, saved, prog, description)
     check_resume_config(saved, cfg, checkpoint_file(resume))
-    return cfg.validated(), given_options(argv, cfg)
+    # The saved options that change nothing (a warning as read) are not new ones: none is resume-safe, so the check
+    # above refused any that the command line changed.
+    cfg.validate(allow_unused=True)
+    return cfg, given_options(argv, cfg)

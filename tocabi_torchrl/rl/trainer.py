@@ -528,7 +528,7 @@ def train(cfg: RunConfig, env: EnvBase | None = None, run: RunFolder | None = No
     at once. Data-parallel ranks agree at each iteration's end whether any of them was asked to stop (one small
     all-reduce per iteration), so they all stop at the same iteration.
     """
-    cfg.validate()
+    cfg.validate(allow_unused=bool(cfg.resume))  # a resumed run's saved options are checked against the checkpoint's
     info = dist_info if dist_info is not None else from_environment()
     progress = _Progress()
     try:
