@@ -32,10 +32,16 @@ import sys
 import threading
 
 
+#: What :func:`_stopped_before_training` says of the run folder: a new run's is not written before training, but a
+#: resume's open_run tidies it (cuts the metrics back to the checkpoint), so main() sets the resume's line.
+_LEFT_BEHIND = {"note": "no run was written"}
+RESUME_LEFT_BEHIND = "no iteration ran; the same command resumes the run"
+
+
 def _stopped_before_training(signum, frame) -> None:
-    """Ctrl-C before training starts (imports, checks, the run folder's claim): nothing of the run is written yet,
-    so the process ends at once with a line instead of a traceback. A claim taken goes with it (at exit)."""
-    print("\nstopped (Ctrl-C) before training started; no run was written", file=sys.stderr, flush=True)
+    """Ctrl-C before training starts (imports, checks, the run folder's claim): no iteration has run, so the process
+    ends at once with a line instead of a traceback. A claim taken goes with it (at exit)."""
+    print(f"\nstopped (Ctrl-C) before training started; {_LEFT_BEHIND['note']}", file=sys.stderr, flush=True)
     sys.exit(130)  # 128 + SIGINT, as every Ctrl-C stop of a run
 
 
@@ -135,6 +141,8 @@ def main(argv: list[str] | None = None) -> None:
         argv = expand_viewer_flag(sys.argv[1:] if argv is None else argv)
         cfg, given, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0],
                                          data_parallel=dist_info.enabled, prog="ppo_walk.py")
+        if cfg.resume:
+            _LEFT_BEHIND["note"] = RESUME_LEFT_BEHIND
         for line in repeated_options(argv) if dist_info.is_main else ():  # said once, not by every rank
             print(f"warning: {line}", file=sys.stderr, flush=True)
         if cfg.viewer.enabled:  # said now, not after the env is built

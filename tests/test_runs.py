@@ -451,24 +451,35 @@ runpy.run_path(recipe, run_name="__main__")
 """
 
 
-@pytest.mark.parametrize("where", ["importing", pytest.param("claimed", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("where", ["importing", pytest.param("claimed", marks=pytest.mark.slow),
+                                   pytest.param("resumed", marks=pytest.mark.slow)])
 def test_ctrl_c_before_training_starts_exits_130_with_one_line(tmp_path, where):
     # Ctrl-C in the recipe's first seconds (imports, checks, the run folder's claim) printed a KeyboardInterrupt
-    # traceback; later it stopped cleanly.
+    # traceback; later it stopped cleanly. On a resume it said "no run was written" after open_run had tidied the
+    # run folder (its metrics cut back to the checkpoint).
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (str(RECIPES.parent), os.getenv("PYTHONPATH"))))}
-    proc = subprocess.Popen([sys.executable, "-c", _PAUSED_RECIPE, where, str(RECIPES / "ppo_walk.py"),
-                             *tiny_args(tmp_path)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+    args = tiny_args(tmp_path)
+    if where == "resumed":
+        recipe("ppo_walk").main(args)
+        args = ["--resume", str(tmp_path / "run"), "--total_env_steps", "24"]
+    proc = subprocess.Popen([sys.executable, "-c", _PAUSED_RECIPE, "importing" if where == "importing" else "claimed",
+                             str(RECIPES / "ppo_walk.py"), *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline() == "paused\n"
-        assert (tmp_path / ".run.claim").exists() == (where == "claimed")
+        assert (tmp_path / ".run.claim").exists() == (where != "importing")
         os.kill(proc.pid, signal.SIGINT)
         out, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
     assert proc.returncode == 130, err
-    assert "Traceback" not in err and err.strip() == "stopped (Ctrl-C) before training started; no run was written"
-    assert not (tmp_path / "run").exists() and not (tmp_path / ".run.claim").exists()  # nothing made, nothing held
+    left = "no iteration ran; the same command resumes the run" if where == "resumed" else "no run was written"
+    assert "Traceback" not in err and err.strip() == f"stopped (Ctrl-C) before training started; {left}"
+    assert not (tmp_path / ".run.claim").exists()  # nothing held
+    assert (tmp_path / "run").exists() == (where == "resumed")  # nothing made
+    if where == "resumed":
+        recipe("ppo_walk").main(args)  # as it said
+        assert iterations_logged(tmp_path / "run") == [1, 2, 3]
 
 
 @pytest.mark.slow  # a training process, then its resume
