@@ -407,3 +407,19 @@ def test_a_named_value_takes_any_case_and_is_kept_as_listed(tmp_path):
     with pytest.raises(ValueError, match=r"ppo.lr_schedule must be one of \('fixed', 'linear', 'adaptive'\), got "
                                          r"'Linearly'"):
         parse_args(["--ppo.lr_schedule", "Linearly"])
+
+
+def test_every_option_that_takes_one_of_a_few_names_takes_any_case():
+    # --env.pushes.kind Velocity and transforms.normalization=Running were refused: their names were checked by
+    # their sections alone, not listed with the others the rule covers.
+    from tocabi_torchrl.config import field_choices
+    from tocabi_torchrl.tree import leaf_types
+
+    cfg, _ = parse_args(["--preset", "robust", "--env.pushes.kind", "Velocity",
+                         "--transforms.normalization", "Running"])
+    assert (cfg.env.pushes.kind, cfg.transforms.normalization) == ("velocity", "running")
+    assert preset_config("default", **{"transforms.normalization": "NONE"}).transforms.normalization == "none"
+    # Every str leaf but the free-text ones (names, folders, files, devices, hosts) lists its names.
+    free = {"preset", "name", "run_dir", "device", "resume", "env.task.motion", "env.task.model_path", "viewer.host"}
+    named = {path for path, kind in leaf_types(RunConfig()).items() if kind is str or kind == str | None}
+    assert named - free <= set(field_choices()), named - free - set(field_choices())

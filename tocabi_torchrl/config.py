@@ -671,9 +671,11 @@ EVAL_TESTS = ("standard", "robust")
 def field_choices() -> dict[str, tuple[str, ...]]:
     """The allowed values of each option that takes one of a few names (checked by ``validate``, listed by
     ``--help``), by path."""
-    from .transforms.settings import HISTORIES
+    from .transforms.settings import HISTORIES, NORMALIZATIONS
+    from .value_rules import PUSH_KINDS
 
-    return {"ppo.lr_schedule": LR_SCHEDULES, "ppo.std_mode": STD_MODES, "env.control.mode": CONTROL_MODES,
+    return {"env.pushes.kind": PUSH_KINDS, "transforms.normalization": NORMALIZATIONS,
+            "ppo.lr_schedule": LR_SCHEDULES, "ppo.std_mode": STD_MODES, "env.control.mode": CONTROL_MODES,
             "env.control.upper_body": UPPER_BODY_LAWS,
             "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.history": tuple(HISTORIES),
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
@@ -686,7 +688,9 @@ def field_choices() -> dict[str, tuple[str, ...]]:
 def canonical_choices(cfg: RunConfig) -> RunConfig:
     """``cfg`` with each :func:`field_choices` value given in another case set to its listed spelling, in place
     (``Linear`` -> ``linear``), as ``ppo.cuda_graph`` always took any case: ``--ppo.lr_schedule Linear`` was refused
-    while ``--ppo.cuda_graph OFF`` was taken. A value listed in no case is left for ``validate`` to refuse."""
+    while ``--ppo.cuda_graph OFF`` was taken. A value listed in no case is left for ``validate`` to refuse. The run
+    config's (command line, :func:`preset_config`, saved configs) only: the env's own config (``TocabiWalkConfig``,
+    ``TocabiWalk(control_mode=...)``) takes the listed spelling and refuses another, naming the choices."""
     for path, allowed in field_choices().items():
         *parents, name = path.split(".")
         owner = _get(cfg, ".".join(parents)) if parents else cfg

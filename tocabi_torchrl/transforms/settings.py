@@ -21,10 +21,11 @@ from tocabi_torchrl.transforms.layouts import (REFERENCE_HISTORY, REFERENCE_OBS_
 from tocabi_torchrl.transforms.sensor_noise_config import SensorNoiseConfig
 from tocabi_torchrl.tree import check_field_types
 
-__all__ = ["TransformConfig", "TransformSettings", "RewardWeights", "HISTORIES", "transform_config",
+__all__ = ["TransformConfig", "TransformSettings", "RewardWeights", "HISTORIES", "NORMALIZATIONS", "transform_config",
            "REFERENCE_TERM_NAMES"]
 
-_NORMALIZATIONS = ("fixed", "running", "none")
+#: The observation normalisations (``transforms.normalization``).
+NORMALIZATIONS = ("fixed", "running", "none")
 #: The names of ``reward_terms.REFERENCE_TERMS`` (the reference's terms, in its order), here so that the config checks
 #: a term name without the terms' torch code; tests/test_transforms_presets.py checks that the two agree.
 REFERENCE_TERM_NAMES = ("orientation", "qpos", "qvel", "body_vel", "contact_force", "torque", "torque_diff", "qacc",
@@ -96,8 +97,8 @@ class TransformConfig:
         for name in ("obs_mean", "obs_var"):
             if getattr(self, name) is not None:
                 object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
-        if self.normalization not in _NORMALIZATIONS:
-            raise ValueError(f"normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
+        if self.normalization not in NORMALIZATIONS:
+            raise ValueError(f"normalization must be one of {NORMALIZATIONS}, got {self.normalization!r}")
         for name, kind in (("sensor_noise", SensorNoiseConfig), ("kick_relax", KickRelax)):
             object.__setattr__(self, name, _section(getattr(self, name), kind, name))
         if not isinstance(self.history, HistoryLayout):  # before the general check: this one names the layouts
@@ -323,8 +324,8 @@ class TransformSettings:
         """Raise ``ValueError`` naming the first bad option and the accepted values."""
         if self.history not in HISTORIES:
             raise ValueError(f"unknown transforms.history {self.history!r}; choose one of {list(HISTORIES)}")
-        if self.normalization not in _NORMALIZATIONS:
-            raise ValueError(f"transforms.normalization must be one of {_NORMALIZATIONS}, got {self.normalization!r}")
+        if self.normalization not in NORMALIZATIONS:
+            raise ValueError(f"transforms.normalization must be one of {NORMALIZATIONS}, got {self.normalization!r}")
         self.reward_weight_map()
         if self.obs_clip is not None and not (self.obs_clip > 0 and math.isfinite(self.obs_clip)):
             raise ValueError(_CLIP_NOT_POSITIVE.format(prefix="transforms.", clip=self.obs_clip))
