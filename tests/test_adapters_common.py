@@ -768,3 +768,36 @@ def test_a_recipes_load_actor_refuses_metadata_that_does_not_fit_the_weights_nam
         recipe.load_actor(str(path))
     message = str(refused.value)
     assert message.startswith(f"{path}: ") and "save_policy(new_path, library, state_dict, {**meta, " in message
+
+
+def test_pyproject_declares_the_supported_ranges():
+    # The adapters refuse a version outside SUPPORTED; pyproject declaring a wider range (gymnasium>=1.1 with no cap)
+    # let pip install a version that the first import then refuses.
+    import pathlib
+    import re
+
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11 on
+
+    project = tomllib.loads((pathlib.Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]
+    groups = {"": project["dependencies"], **project["optional-dependencies"]}
+    for module, (dist, low, high, extra) in _versions.SUPPORTED.items():
+        declared = {}  # group -> (lowest, first excluded) of each requirement naming dist
+        for group, requirements in groups.items():
+            for requirement in requirements:
+                match = re.fullmatch(rf"{re.escape(dist)}(?![\w.-])(.*)", requirement)
+                if match:
+                    bounds = dict((op, v) for op, v in re.findall(r"(>=|<)\s*([\w.]+)", match.group(1)))
+                    declared[group] = (bounds.get(">="), bounds.get("<"))
+        assert extra in declared, f"{dist} is not declared in pyproject's {extra or 'dependencies'}"
+        for group, (lo, hi) in declared.items():
+            where = f"{dist} in pyproject's {group or 'dependencies'}"
+            assert lo is not None and hi is not None, f"{where} has no upper or lower bound; SUPPORTED: >={low},<{high}"
+            assert _same_version(lo, low) and _same_version(hi, high), (
+                f"{where}: >={lo},<{hi}; SUPPORTED: >={low},<{high}")
+
+
+def _same_version(a: str, b: str) -> bool:
+    """Equal as release versions: "6" is "6.0"."""
+    a, b = _versions._parse(a), _versions._parse(b)
+    width = max(len(a), len(b))
+    return a + (0,) * (width - len(a)) == b + (0,) * (width - len(b))

@@ -15,7 +15,8 @@ from types import ModuleType
 __all__ = ["SUPPORTED", "LibraryVersionError", "require", "version_in_range"]
 
 #: import name -> (distribution name, lowest supported version (inclusive), first unsupported version, extra).
-#: Tested with rsl-rl-lib 5.5.1, stable-baselines3 2.9.2 and skrl 2.1.1 (the pyproject extras carry the same ranges).
+#: Tested with rsl-rl-lib 5.5.1, stable-baselines3 2.9.2 and skrl 2.1.1 (pyproject.toml
+#: declares the same ranges, gymnasium's in the core dependencies: tests/test_adapters_common.py checks).
 SUPPORTED: dict[str, tuple[str, str, str, str]] = {
     "rsl_rl": ("rsl-rl-lib", "5.0", "6.0", "rsl_rl"),
     "stable_baselines3": ("stable-baselines3", "2.3", "3.0", "sb3"),
