@@ -149,27 +149,28 @@ def training_state(model) -> bytes:
     return buffer.getvalue()
 
 
-def _is_sb3_zip(path: Path) -> bool:
+def _is_sb3_zip(data: bytes) -> bool:
     # Only the archive's names are read: SB3's zip holds its pickled objects in "data", torch's own zip in data.pkl.
     try:
-        with zipfile.ZipFile(path) as archive:
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
             names = set(archive.namelist())
     except (zipfile.BadZipFile, OSError):
         return False
     return "_stable_baselines3_version" in names or {"data", "policy.pth"} <= names
 
 
-def read_training_state(path: Path) -> dict:
-    """The resume state :func:`training_state` wrote to ``path``, read with ``torch.load(weights_only=True)``: tensors
-    and plain values only, so nothing in the file can run code. Anything else ends the call with a one-line
-    ``SystemExit``, before the env is built: an SB3 zip (the state file of this recipe's earlier versions, which
-    only SB3's unpickling loader reads), a file that does not load as tensors, or one lacking a field."""
+def read_training_state(path: Path, data: bytes) -> dict:
+    """The resume state :func:`training_state` wrote to ``path``, given as its bytes ``data`` (those ``read_resume``
+    checked, not the file read again), read with ``torch.load(weights_only=True)``: tensors and plain values only,
+    so nothing in the file can run code. Anything else ends the call with a one-line ``SystemExit``, before the env
+    is built: an SB3 zip (the state file of this recipe's earlier versions, which only SB3's unpickling loader
+    reads), a file that does not load as tensors, or one lacking a field."""
     fix = "start a new --out (this run cannot be resumed)"
-    if _is_sb3_zip(path):
+    if _is_sb3_zip(data):
         raise SystemExit(f"error: {path} is a Stable-Baselines3 zip, the resume state of an older train_sb3.py; "
                          f"--resume reads tensors only and never unpickles SB3's saved objects: {fix}")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as err:  # any refusal means the file is not what this recipe wrote
         first = (str(err).strip().splitlines() or [""])[0]
         raise SystemExit(f"error: {path} does not load as tensors only ({type(err).__name__}: {first}); a resume "
@@ -214,8 +215,9 @@ def main(argv=None) -> dict:
     TocabiSB3VecEnv = adapter("TocabiSB3VecEnv")  # checks the stable-baselines3 version
 
     out = check_out_dir(args.out, args.resume)  # created once the env is built: a failed call leaves no folder
-    prior = read_resume(out) if args.resume else {}
-    state = read_training_state(out / prior["state"]) if prior else None
+    prior = read_resume(out, keep_bytes=True) if args.resume else {}
+    # The bytes read_resume checked (intact zip), not the file again: one replaced in between is never loaded.
+    state = read_training_state(out / prior["state"], prior["state_bytes"]) if prior else None
     calls = int(prior.get("calls", 0))
     settings = {"num_envs": args.num_envs, "preset": args.preset, "hidden": list(args.hidden), "n_steps": args.n_steps,
                 "batch_size": args.batch_size, "epochs": args.epochs, "iterations": args.iterations, "seed": args.seed}

@@ -441,6 +441,26 @@ def test_resume_refuses_a_crafted_state_file_without_running_it(tmp_path, kind):
     assert read_resume(out)["calls"] == 1 and not (out / "policy_call1.pt").exists()  # nothing ran or was written
 
 
+def test_resume_loads_the_state_it_checked_not_a_file_replaced_after(tmp_path, monkeypatch):
+    # read_resume checked the state file's bytes (an intact zip), then the recipe read the file again: a file
+    # replaced in between was what got loaded. The recipe now loads the bytes that were checked.
+    recipe = load_recipe("train_sb3")
+    out, marker = tmp_path / "run", tmp_path / "ran"
+    small = ["--out", str(out), "--device", "cpu", "--num_envs", "2", "--n_steps", "4", "--batch_size", "4",
+             "--hidden", "8", "--eval_envs", "0"]
+    recipe.main([*small, "--iterations", "1"])
+    read_resume = recipe.read_resume
+
+    def checked_then_replaced(*a, **k):
+        prior = read_resume(*a, **k)
+        torch.save({"num_timesteps": TouchMarker(marker), "policy": {}}, out / prior["state"])
+        return prior
+
+    monkeypatch.setattr(recipe, "read_resume", checked_then_replaced)
+    second = recipe.main([*small, "--iterations", "1", "--resume"])["train"]
+    assert not marker.exists() and second["calls"] == 2
+
+
 def test_a_switch_that_is_not_a_bool_is_refused():
     # bool("no") is True: reward_terms_in_infos="no" switched the per-env dicts on.
     with pytest.raises(ValueError, match="reward_terms_in_infos must be True or False, got 'no'"):

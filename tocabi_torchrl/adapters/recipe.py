@@ -173,7 +173,7 @@ RESUME_FIELDS = {
 }
 
 
-def read_resume(out: Path, torch_state: bool = False) -> dict:
+def read_resume(out: Path, torch_state: bool = False, keep_bytes: bool = False) -> dict:
     """The counters of ``<out>/resume.json``: ``env_steps``, ``train_seconds``, ``iterations``, ``snapshots``,
     ``calls``, ``state`` (the library state file, relative to ``out``) and ``settings`` (the options to check).
 
@@ -183,10 +183,10 @@ def read_resume(out: Path, torch_state: bool = False) -> dict:
     an existing file inside ``<out>/resume/``, or ``SystemExit`` says so (a resume.json pointing elsewhere is
     refused before anything is loaded). ``torch_state``: the file is a torch checkpoint (rsl_rl's, skrl's), and it
     must load with ``torch.load(weights_only=True)`` (tensors and plain containers only), so the library's own
-    unpickling loader then meets nothing that could run code. The file is read once: with ``torch_state`` the
-    returned dict also holds ``state_bytes``, the bytes checked, which the recipe hands to the library's loader
-    (``io.BytesIO``) instead of the path, so that a file replaced after the check (the env takes a while to build)
-    is never unpickled."""
+    unpickling loader then meets nothing that could run code. The file is read once: with ``torch_state`` (or
+    ``keep_bytes``, for a recipe that checks the state itself) the returned dict also holds ``state_bytes``, the
+    bytes checked, which the recipe hands to the library's loader (``io.BytesIO``) instead of the path, so that a
+    file replaced after the check (the env takes a while to build) is never unpickled or loaded."""
     out = Path(out)
     path = out / "resume.json"
     fix = "restore the file this recipe wrote, or start a new --out"
@@ -223,7 +223,7 @@ def read_resume(out: Path, torch_state: bool = False) -> dict:
             raise SystemExit(f"error: {state} does not load as tensors only ({type(err).__name__}: {err}); a resume "
                              "never unpickles other objects (start a new --out instead)") from err
         return {**prior, "state_bytes": data}
-    return prior
+    return {**prior, "state_bytes": data} if keep_bytes else prior
 
 
 def write_resume(out: Path, state: bytes, counters: dict) -> Path:
