@@ -318,7 +318,9 @@ def main(argv=None) -> int:
                                 text=True).stdout.strip()
         meta = {"command": " ".join(["python", "lab/analysis/kick_falls.py", *(argv or sys.argv[1:])]),
                 "date": time.strftime("%Y-%m-%d"), "code": commit, "hardware": "CPU (C MuJoCo)"}
-        atomic_write_text(args.out, json.dumps({"meta": meta, "results": results}, indent=1, allow_nan=False) + "\n")
+        # replace=False: nor over a file that appeared there during the rollouts
+        atomic_write_text(args.out, json.dumps({"meta": meta, "results": results}, indent=1, allow_nan=False) + "\n",
+                          replace=False)
     return 0
 
 

@@ -48,9 +48,10 @@ def out_path(doc: str, argv=None) -> Path:
 
 def write(out: Path, doc: dict) -> None:
     """``doc`` with the commit it was measured at, written to ``out`` atomically (a run killed meanwhile leaves
-    nothing half-written)."""
+    nothing half-written), never over a file: not even one that appeared at ``out`` after :func:`out_path` checked it
+    (``FileExistsError``)."""
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    atomic_write_text(out, json.dumps({**doc, "commit": commit}, indent=1) + "\n")
+    atomic_write_text(out, json.dumps({**doc, "commit": commit}, indent=1) + "\n", replace=False)
     print(f"wrote {out}")
 
 

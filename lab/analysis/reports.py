@@ -27,10 +27,10 @@ def check_paths(parser: argparse.ArgumentParser, checkpoints: Sequence[Path], ou
 def write_report(out: Path, script: str, argv: Sequence[str] | None, results: list, meta: dict | None = None) -> None:
     """Write ``{"command", "results"}`` (and ``"meta"`` when given: date, hardware, versions) to ``out`` atomically;
     the command is ``script`` (its path from the project root) run with ``argv`` (the process's own arguments when
-    None)."""
+    None). Never over a file: one that appeared at ``out`` after :func:`check_paths` raises ``FileExistsError``."""
     command = f"PYTHONPATH=. python {script} " + " ".join(sys.argv[1:] if argv is None else argv)
     report = {"command": command, **({"meta": meta} if meta else {}), "results": results}
-    atomic_write_text(out, json.dumps(report, indent=2) + "\n")
+    atomic_write_text(out, json.dumps(report, indent=2) + "\n", replace=False)
     print(f"wrote {out}")
 
 

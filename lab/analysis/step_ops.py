@@ -164,7 +164,9 @@ def main(argv=None) -> int:
             for r in results:
                 r["ops_per_step_before"] = earlier.get(r["what"], {}).get("ops_per_step")
                 r["kernels_per_step_before"] = earlier.get(r["what"], {}).get("kernels_per_step")
-        atomic_write_text(args.out, json.dumps({"meta": meta, "results": results}, indent=1) + "\n")
+        # Without --overwrite, nor over a file that appeared there while counting.
+        atomic_write_text(args.out, json.dumps({"meta": meta, "results": results}, indent=1) + "\n",
+                          replace=args.overwrite)
     return 0
 
 

@@ -406,10 +406,11 @@ def read_json(path: str | Path, fix: str):
         raise ValueError(f"{path} is not valid JSON ({err}): the file is damaged; {fix}") from None
 
 
-def write_json(path: str | Path, data: dict) -> Path:
+def write_json(path: str | Path, data: dict, replace: bool = True) -> Path:
     """``data`` as strict JSON (a NaN or infinite number as ``null``: bare ``NaN`` tokens are not JSON, and a
-    case shorter than a gait cycle has no tracking error), written atomically."""
-    return atomic_write_text(Path(path), json.dumps(json_safe(data), indent=2, allow_nan=False) + "\n")
+    case shorter than a gait cycle has no tracking error), written atomically; ``replace=False``: never over a file
+    at ``path``, even one that appeared while writing (``FileExistsError``)."""
+    return atomic_write_text(Path(path), json.dumps(json_safe(data), indent=2, allow_nan=False) + "\n", replace)
 
 
 def report_dir(out: str | Path, measured_on: str | None = None) -> Path:
@@ -430,14 +431,16 @@ def report_dir(out: str | Path, measured_on: str | None = None) -> Path:
 
 
 def publish(out: str | Path, name: str, data: dict, render: Callable[[dict, Path], str],
-            measured_on: str | None = None) -> str:
+            measured_on: str | None = None, replace: bool = True) -> str:
     """Write ``<out>/<name>.json`` and its page ``render(data, out)`` as ``<name>.md`` (atomically, saying where);
-    ``out`` as :func:`report_dir` gives it for ``measured_on``."""
+    ``out`` as :func:`report_dir` gives it for ``measured_on``. ``replace=False`` (a script that checked at its
+    start that the report is not there, and was not given ``--overwrite``): neither file is written over, not even
+    one that appeared during the measurement (``FileExistsError``)."""
     out = report_dir(out, measured_on)
     out.mkdir(parents=True, exist_ok=True)  # render may write plots beside the page
     text = render(data, out)  # first: a page that fails to render replaces nothing (JSON and page stay one pair)
-    write_json(out / f"{name}.json", data)
-    atomic_write_text(out / f"{name}.md", text)
+    write_json(out / f"{name}.json", data, replace)
+    atomic_write_text(out / f"{name}.md", text, replace)
     print(f"wrote {out / name}.json and .md", flush=True)
     return text
 

@@ -131,10 +131,11 @@ def main(argv=None) -> None:
     for items in sets.values():
         common.parse_overrides(items)  # a bad path or value fails here, before any measurement
     out = common.report_dir(args.out, args.device)
-    if (out / f"{args.name}.json").exists() and not args.overwrite:
+    taken = [out / f"{args.name}.{ext}" for ext in ("json", "md") if (out / f"{args.name}.{ext}").exists()]
+    if taken and not args.overwrite:
         # Minutes of measurement would otherwise replace the committed report, or a series of --set variants each
         # the one before it, unsaid.
-        p.error(f"{out / args.name}.json exists; pass --overwrite to replace it, or --name another name (or --out "
+        p.error(f"{taken[0]} exists; pass --overwrite to replace it, or --name another name (or --out "
                 "another folder)")
     results = []
     for r, seed in enumerate(seeds):
@@ -165,7 +166,8 @@ def main(argv=None) -> None:
     meta = common.meta(NAME, argv, args.device, preset=args.preset, num_envs=args.num_envs, rounds=args.rounds,
                        seeds=seeds)
     data = {"meta": meta, "summary": summary, "results": results, **({"physics": physics} if physics else {})}
-    print(common.publish(out, args.name, data, render))
+    # Without --overwrite, nor over a report that appeared during the measurement.
+    print(common.publish(out, args.name, data, render, replace=args.overwrite))
 
 
 if __name__ == "__main__":

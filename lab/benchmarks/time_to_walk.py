@@ -463,7 +463,7 @@ def report_part(args, command: str) -> None:
         raise ValueError(f"{out} holds {', '.join(p.name for p in taken)} already; pass --overwrite to replace "
                          "them (the report holds only the --runs given: name every run it should keep), or --out "
                          "another folder")
-    text = common.publish(out, name, data, render)
+    text = common.publish(out, name, data, render, replace=bool(getattr(args, "overwrite", False)))
     if args.curves:
         plot_curves([Path(p) for p in args.curves], out / "time_to_walk_curves.png")
     print(text)

@@ -45,3 +45,19 @@ def test_model_based_scripts_parse_before_running_and_never_overwrite(name, case
     script.main([str(tmp_path / "new.json")])
     report = json.loads((tmp_path / "new.json").read_text())
     assert len(ran) == cases and len(report["results"]) == cases and "commit" in report
+
+
+def test_model_based_scripts_never_replace_a_report_that_appears_while_they_run(tmp_path, monkeypatch):
+    # out_path checked the path at the start; the write, minutes later, replaced a file that had appeared since.
+    from lab.analysis import mb_zero_action
+
+    out = tmp_path / "new.json"
+
+    def run(noise, steps, n, **kw):
+        out.exists() or out.write_text("{}\n")  # another run's report, written meanwhile
+        return {"mean_steps_alive": 1.0}
+
+    monkeypatch.setattr(mb_zero_action, "run", run)
+    with pytest.raises(FileExistsError):
+        mb_zero_action.main([str(out)])
+    assert out.read_text() == "{}\n" and sorted(p.name for p in tmp_path.iterdir()) == ["new.json"]

@@ -185,3 +185,22 @@ def test_a_report_there_already_is_refused_before_any_measurement_unless_overwri
     assert not calls and json.loads((tmp_path / "randomization_cost.json").read_text()) == {"earlier": True}
     randomization_cost.main([*argv, "--overwrite"])
     assert calls and "summary" in json.loads((tmp_path / "randomization_cost.json").read_text())
+
+
+def test_a_report_that_appears_during_the_measurement_is_replaced_only_with_overwrite(tmp_path, monkeypatch):
+    # The report was checked for before the minutes of measurement and written with replace after them: one that
+    # appeared in between (another variant's, measured beside) was replaced unsaid.
+    report = tmp_path / "randomization_cost.json"
+
+    def measure(module, args, raw_steps, run_name, items):
+        report.exists() or report.write_text("{}\n")
+        return {"train_env_steps_per_s": 100.0}
+
+    monkeypatch.setattr(randomization_cost, "_measure", measure)
+    argv = ["--device", "cpu", "--rounds", "1", "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs")]
+    with pytest.raises(FileExistsError):
+        randomization_cost.main(argv)
+    assert report.read_text() == "{}\n" and not (tmp_path / "randomization_cost.md").exists()
+    report.unlink()
+    randomization_cost.main([*argv, "--overwrite"])
+    assert json.loads(report.read_text())["summary"]["on_over_off"] == 1.0

@@ -31,6 +31,22 @@ def test_it_refuses_to_overwrite_without_being_asked(tmp_path):
     assert out.read_text() == "{}"
 
 
+def test_a_report_that_appears_during_the_count_is_not_replaced(tmp_path, monkeypatch):
+    # The check ran at the start and the write, after the count, replaced whatever had appeared at --out since.
+    out = tmp_path / "step_ops.json"
+
+    def count(cfg, num_envs, steps):
+        out.exists() or out.write_text("{}")  # another run's report, written while this one counts
+        return 10.0, 5.0, {}
+
+    monkeypatch.setattr(step_ops, "ops_per_step", count)
+    with pytest.raises(FileExistsError):
+        step_ops.main(["--out", str(out)])
+    assert out.read_text() == "{}"
+    step_ops.main(["--out", str(out), "--overwrite"])  # asked for: replaced
+    assert json.loads(out.read_text())["results"]
+
+
 def test_the_page_shows_kernels_where_the_report_has_them(tmp_path):
     name = tmp_path / "benchmarks" / "randomization" / "step_ops.json"
     name.parent.mkdir(parents=True)
