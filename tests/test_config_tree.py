@@ -324,6 +324,37 @@ def test_a_saved_option_that_changes_nothing_is_read_with_a_warning_and_a_new_ru
             parse_args([f"--{path}", *value.split()])
 
 
+def test_a_saved_ppo_option_that_changes_nothing_is_read_with_a_warning_and_a_new_run_still_refuses_it():
+    # PPOConfig's own "changes nothing" rules (the teacher's options under assist_target 'rollout', the assist's PD
+    # or lr bound without the assist, the mirror loss without augment) stayed hard errors: a run saved before them
+    # could not be resumed ("breaks a rule"), though it trained exactly as without the option.
+    from tocabi_torchrl.config import UnusedOptionError
+    from tocabi_torchrl.rl.checkpoint import config_from_checkpoint
+    from tocabi_torchrl.tree import replace_paths as tree_replace_paths
+
+    for preset, unused, match in (
+            ("torque", {"ppo.assist_target": "rollout"}, "assist_anchor_decay > 0 is about the teacher"),
+            ("torque", {"ppo.assist_target": "rollout", "ppo.assist_anchor_decay": 0, "ppo.assist_lr_hold": "pull"},
+             "assist_lr_hold='pull' is about the teacher"),
+            ("default", {"ppo.assist_pd_sensed": True}, "assist_pd_sensed is about the torque assist"),
+            ("default", {"ppo.assist_lr_max": 1e-4}, "assist_lr_max 0.0001 bounds"),
+            ("default", {"ppo.symmetry_loss": 0.1}, "symmetry_loss > 0 works with")):
+        state = {"config": to_dict(tree_replace_paths(preset_tree(preset), unused))}  # as an older version saved it
+        with pytest.warns(UserWarning, match=f"changes nothing, kept as saved: .*{match}"):
+            cfg = config_from_checkpoint(state, "old.pt", strict=True)
+        assert all(get_path(cfg, path) == value for path, value in unused.items())
+        argv = ["--preset", preset]
+        for path, value in unused.items():
+            argv += [f"--{path}", str(value).lower() if isinstance(value, bool) else str(value)]
+        with pytest.raises(UnusedOptionError, match=match):
+            parse_args(argv)
+    # A real inconsistency stays a hard error on resume: an equivariant actor made symmetric again.
+    state = {"config": to_dict(tree_replace_paths(preset_tree("default"), {"ppo.symmetry": "equivariant",
+                                                                           "ppo.symmetric_policy": True}))}
+    with pytest.raises(Exception, match="symmetric already"):
+        config_from_checkpoint(state, "old.pt", strict=True)
+
+
 def test_options_of_a_schedule_or_std_mode_the_run_does_not_use_are_refused():
     # --ppo.lr_end 1e-6 under the default's adaptive schedule, or --ppo.std_end under a learned std, trained exactly
     # as without it, without a word.

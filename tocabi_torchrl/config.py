@@ -294,8 +294,10 @@ class PPOConfig:
             text = str(value).strip().lower()
             self.cuda_graph = _GRAPH_ALIASES.get(text, text)
 
-    def validate(self) -> None:
-        """Raise ``ValueError`` naming the first bad option (``ppo.NAME``) and the accepted values."""
+    def validate(self, allow_unused: bool = False) -> None:
+        """Raise ``ValueError`` naming the first bad option (``ppo.NAME``) and the accepted values; an option set
+        where it changes nothing raises :class:`UnusedOptionError`, a warning with ``allow_unused`` (as
+        :meth:`RunConfig.validate`)."""
         for name in ("steps_per_env", "epochs", "minibatch_size"):
             _check_int(self, name, 1, "ppo.")
         for name, low, high in (("gamma", 0.0, 1.0), ("gae_lambda", 0.0, 1.0), ("clip_epsilon", 0.0, 1.0)):
@@ -319,18 +321,18 @@ class PPOConfig:
             raise ValueError("ppo.symmetric_policy makes a trained actor symmetric; with ppo.symmetry='equivariant' "
                              "it is symmetric already: leave ppo.symmetric_policy false")
         if self.symmetry_loss > 0 and self.symmetry != "augment":
-            raise ValueError(f"ppo.symmetry_loss > 0 works with ppo.symmetry='augment' (whose mirrors it uses), got "
-                             f"ppo.symmetry={self.symmetry!r}: set both, or leave ppo.symmetry_loss at 0")
+            _unused(f"ppo.symmetry_loss > 0 works with ppo.symmetry='augment' (whose mirrors it uses), got "
+                    f"ppo.symmetry={self.symmetry!r}: set both, or leave ppo.symmetry_loss at 0", allow_unused)
         if self.assist_target == "rollout" and (self.assist_anchor_decay > 0 or self.assist_lr_hold == "pull"):
             # Both act on the frozen teacher the "teacher" target copies from; "rollout" has none, so they trained
             # exactly as without them, without a word.
             given = "ppo.assist_anchor_decay > 0" if self.assist_anchor_decay > 0 else "ppo.assist_lr_hold='pull'"
-            raise ValueError(f"{given} is about the teacher's pull, and ppo.assist_target='rollout' has no teacher: "
-                             "use ppo.assist_target='teacher', or leave assist_anchor_decay at 0 and assist_lr_hold "
-                             "at 'fade'")
+            _unused(f"{given} is about the teacher's pull, and ppo.assist_target='rollout' has no teacher: use "
+                    "ppo.assist_target='teacher', or leave assist_anchor_decay at 0 and assist_lr_hold at 'fade'",
+                    allow_unused)
         if self.assist_pd_sensed and not self.torque_assist > 0:
-            raise ValueError("ppo.assist_pd_sensed is about the torque assist's PD and needs ppo.torque_assist > 0; "
-                             "leave it false without the assist")
+            _unused("ppo.assist_pd_sensed is about the torque assist's PD and needs ppo.torque_assist > 0; leave it "
+                    "false without the assist", allow_unused)
         if self.torque_assist > 0 and not 0 <= self.assist_fade_start < self.assist_fade_end:
             raise ValueError(f"ppo.torque_assist > 0 needs 0 <= assist_fade_start < assist_fade_end (env "
                              f"steps), got {self.assist_fade_start}, {self.assist_fade_end}")
@@ -374,10 +376,10 @@ class PPOConfig:
             raise ValueError(f"ppo.assist_lr_max must be 0 (no bound) or a number in [ppo.lr_min = {self.lr_min:g}, "
                              f"{high:g}] (the held adaptive rate's ceiling), got {self.assist_lr_max!r}")
         if self.assist_lr_max and (self.lr_schedule != "adaptive" or not self.torque_assist):
-            raise ValueError(f"ppo.assist_lr_max {self.assist_lr_max:g} bounds the adaptive rate the torque assist's "
-                             f"hold keeps, and this run has no such hold (ppo.lr_schedule {self.lr_schedule!r}, "
-                             f"ppo.torque_assist {self.torque_assist:g}); set it to 0, or train with the adaptive "
-                             f"schedule and an assist")
+            _unused(f"ppo.assist_lr_max {self.assist_lr_max:g} bounds the adaptive rate the torque assist's hold "
+                    f"keeps, and this run has no such hold (ppo.lr_schedule {self.lr_schedule!r}, ppo.torque_assist "
+                    f"{self.torque_assist:g}); set it to 0, or train with the adaptive schedule and an assist",
+                    allow_unused)
         if self.lr_schedule == "adaptive" and not low <= self.lr <= high:
             # The rule keeps the rate inside this range: from outside it, its first clamp would move the rate the
             # wrong way (up when the KL says down).
@@ -528,7 +530,7 @@ class RunConfig:
             raise ValueError(f"unknown logger(s) {sorted(bad)}; choose from {', '.join(LOGGERS)}")
         self.env.validate()
         self.transforms.validate()
-        self.ppo.validate()
+        self.ppo.validate(allow_unused)
         self.viewer.validate()
         for path, allowed in field_choices().items():
             value = _get(self, path)
