@@ -19,6 +19,7 @@ import pytest
 import torch
 from graph_emulation import EmulatedCapture
 from host_reads import HostSyncOps, HostValueReads
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from tocabi_torchrl.rl import preset_config
 from tocabi_torchrl.rl.actors import gaussian_head
@@ -167,11 +168,12 @@ def test_the_robust_training_step_never_syncs_on_cuda(option):
     try:
         batch = next(iter(collector))  # the warm-up and the capture of the env step
     finally:
-        collector.shutdown()
+        collector.shutdown(close_env=False)
     assert env.graph_captured
     td = env.reset()
     steps = []
-    with torch.no_grad():
+    # The collector's policy samples (Normal sample and log-prob): the same exploration mode here.
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         for _ in range(3):  # eager warm-up of the actor's first calls outside the check
             out, td = env.step_and_maybe_reset(agent.actor(td))
         torch.cuda.synchronize()
