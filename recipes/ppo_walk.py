@@ -34,7 +34,8 @@ import threading
 
 #: What :func:`_stopped_before_training` says of the run folder: a new run's is not written before training, but a
 #: resume's open_run tidies it (cuts the metrics back to the checkpoint), so main() sets the resume's line.
-_LEFT_BEHIND = {"note": "no run was written"}
+NEW_RUN_LEFT_BEHIND = "no run was written"
+_LEFT_BEHIND = {"note": NEW_RUN_LEFT_BEHIND}
 RESUME_LEFT_BEHIND = "no iteration ran; the same command resumes the run"
 
 
@@ -141,8 +142,7 @@ def main(argv: list[str] | None = None) -> None:
         argv = expand_viewer_flag(sys.argv[1:] if argv is None else argv)
         cfg, given, note = launch_config(argv, torch.cuda.is_available(), description=__doc__.split("\n\n")[0],
                                          data_parallel=dist_info.enabled, prog="ppo_walk.py")
-        if cfg.resume:
-            _LEFT_BEHIND["note"] = RESUME_LEFT_BEHIND
+        _LEFT_BEHIND["note"] = RESUME_LEFT_BEHIND if cfg.resume else NEW_RUN_LEFT_BEHIND  # this call's, not the last
         for line in repeated_options(argv) if dist_info.is_main else ():  # said once, not by every rank
             print(f"warning: {line}", file=sys.stderr, flush=True)
         if cfg.viewer.enabled:  # said now, not after the env is built
