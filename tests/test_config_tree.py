@@ -316,7 +316,7 @@ def test_a_saved_option_that_changes_nothing_is_read_with_a_warning_and_a_new_ru
 
     unused = {"ppo.lr_end": 1e-6, "ppo.std_mode": "learned", "ppo.std_hold": 0.3, "env.pushes.speed": (0.1, 0.2)}
     state = {"config": to_dict(tree_replace_paths(preset_tree("default"), unused))}  # as an older version saved it
-    with pytest.warns(UserWarning, match=r"changes nothing, kept as saved: .*ppo.lr_end"):
+    with pytest.warns(UserWarning, match=r"changes nothing; it is kept as saved .*: .*ppo.lr_end"):
         cfg = config_from_checkpoint(state, "old.pt", strict=True)
     assert (cfg.ppo.lr_end, cfg.ppo.std_hold, cfg.env.pushes.speed) == (1e-6, 0.3, (0.1, 0.2))
     for path, value in (("ppo.lr_end", "1e-6"), ("env.pushes.speed", "0.1 0.2")):
@@ -340,7 +340,7 @@ def test_a_saved_ppo_option_that_changes_nothing_is_read_with_a_warning_and_a_ne
             ("default", {"ppo.assist_lr_max": 1e-4}, "assist_lr_max 0.0001 bounds"),
             ("default", {"ppo.symmetry_loss": 0.1}, "symmetry_loss > 0 works with")):
         state = {"config": to_dict(tree_replace_paths(preset_tree(preset), unused))}  # as an older version saved it
-        with pytest.warns(UserWarning, match=f"changes nothing, kept as saved: .*{match}"):
+        with pytest.warns(UserWarning, match=f"changes nothing; it is kept as saved .*: .*{match}"):
             cfg = config_from_checkpoint(state, "old.pt", strict=True)
         assert all(get_path(cfg, path) == value for path, value in unused.items())
         argv = ["--preset", preset]

@@ -649,8 +649,10 @@ def _unused(message: str, allow: bool) -> None:
     """Raise :class:`UnusedOptionError` with ``message``, or warn with it when ``allow``."""
     if not allow:
         raise UnusedOptionError(message)
-    warnings.warn(f"the saved config sets an option that changes nothing, kept as saved: {message}", UserWarning,
-                  stacklevel=3)
+    # One location for every reader of a saved config (checkpoint, resume, trainer): Python's default filter then says
+    # it once per process, not once per reader.
+    warnings.warn(f"the saved config sets an option that changes nothing; it is kept as saved (the run trains as "
+                  f"without it, and a resume cannot change it): {message}", UserWarning, stacklevel=1)
 
 
 def _get(tree: Any, path: str) -> Any:
