@@ -38,12 +38,12 @@ from pathlib import Path
 
 import torch
 
-from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.evaluation import robust
 from tocabi_torchrl.transforms.reward_terms import feet_apart_across_heading
 from tocabi_torchrl.value_rules import PUSH_KINDS
 
 from lab.analysis.reports import check_paths
+from lab.new_files import write_new_files
 
 SECTORS = ("forward (+x)", "left (+y)", "back (-x)", "right (-y)")
 #: Upper edges [s] of the bins of the time since a robot's previous kick (the last bin is open): whether a kick is
@@ -318,9 +318,8 @@ def main(argv=None) -> int:
                                 text=True).stdout.strip()
         meta = {"command": " ".join(["python", "lab/analysis/kick_falls.py", *(argv or sys.argv[1:])]),
                 "date": time.strftime("%Y-%m-%d"), "code": commit, "hardware": "CPU (C MuJoCo)"}
-        # replace=False: nor over a file that appeared there during the rollouts
-        atomic_write_text(args.out, json.dumps({"meta": meta, "results": results}, indent=1, allow_nan=False) + "\n",
-                          replace=False)
+        # Nor over a file that appeared there during the rollouts: the results then go beside it.
+        write_new_files({args.out: json.dumps({"meta": meta, "results": results}, indent=1, allow_nan=False) + "\n"})
     return 0
 
 

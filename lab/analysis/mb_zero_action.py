@@ -13,9 +13,10 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from tocabi_torchrl.atomic import atomic_write_text
 from tocabi_torchrl.envs import TocabiWalk
 from tocabi_torchrl.envs.config import MB_OMEGA
+
+from lab.new_files import write_new_files
 
 
 def run(noise, steps, n, **kw):
@@ -48,11 +49,11 @@ def out_path(doc: str, argv=None) -> Path:
 
 def write(out: Path, doc: dict) -> None:
     """``doc`` with the commit it was measured at, written to ``out`` atomically (a run killed meanwhile leaves
-    nothing half-written), never over a file: not even one that appeared at ``out`` after :func:`out_path` checked it
-    (``FileExistsError``)."""
+    nothing half-written), never over a file: one that appeared at ``out`` after :func:`out_path` checked it is left
+    as it is and the results go beside it (:func:`lab.new_files.write_new_files` says where)."""
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    atomic_write_text(out, json.dumps({**doc, "commit": commit}, indent=1) + "\n", replace=False)
-    print(f"wrote {out}")
+    written = write_new_files({out: json.dumps({**doc, "commit": commit}, indent=1) + "\n"})[0]
+    print(f"wrote {written}")
 
 
 def main(argv=None) -> dict:

@@ -12,7 +12,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from tocabi_torchrl.atomic import atomic_write_text
+from lab.new_files import write_new_files
 
 
 def check_paths(parser: argparse.ArgumentParser, checkpoints: Sequence[Path], out: Path | None) -> None:
@@ -27,11 +27,12 @@ def check_paths(parser: argparse.ArgumentParser, checkpoints: Sequence[Path], ou
 def write_report(out: Path, script: str, argv: Sequence[str] | None, results: list, meta: dict | None = None) -> None:
     """Write ``{"command", "results"}`` (and ``"meta"`` when given: date, hardware, versions) to ``out`` atomically;
     the command is ``script`` (its path from the project root) run with ``argv`` (the process's own arguments when
-    None). Never over a file: one that appeared at ``out`` after :func:`check_paths` raises ``FileExistsError``."""
+    None). Never over a file: when one appeared at ``out`` after :func:`check_paths`, the report goes beside it
+    (:func:`lab.new_files.write_new_files` says where)."""
     command = f"PYTHONPATH=. python {script} " + " ".join(sys.argv[1:] if argv is None else argv)
     report = {"command": command, **({"meta": meta} if meta else {}), "results": results}
-    atomic_write_text(out, json.dumps(report, indent=2) + "\n", replace=False)
-    print(f"wrote {out}")
+    written = write_new_files({out: json.dumps(report, indent=2) + "\n"})[0]
+    print(f"wrote {written}")
 
 
 def sim2sim_parser(doc: str, contract: Path, seed_help: str) -> argparse.ArgumentParser:

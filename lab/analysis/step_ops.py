@@ -40,6 +40,8 @@ from tocabi_torchrl.sim.dynamics_config import DynamicsRandomization
 from tocabi_torchrl.transforms.sensor_noise_config import SensorNoiseConfig
 from tocabi_torchrl.tree import replace_paths
 
+from lab.new_files import write_new_files
+
 #: Ops that launch no kernel: views and shape bookkeeping.
 VIEWS = frozenset({
     "alias", "as_strided", "chunk", "detach", "empty", "empty_like", "empty_strided", "expand", "expand_as",
@@ -164,9 +166,11 @@ def main(argv=None) -> int:
             for r in results:
                 r["ops_per_step_before"] = earlier.get(r["what"], {}).get("ops_per_step")
                 r["kernels_per_step_before"] = earlier.get(r["what"], {}).get("kernels_per_step")
-        # Without --overwrite, nor over a file that appeared there while counting.
-        atomic_write_text(args.out, json.dumps({"meta": meta, "results": results}, indent=1) + "\n",
-                          replace=args.overwrite)
+        text = json.dumps({"meta": meta, "results": results}, indent=1) + "\n"
+        if args.overwrite:
+            atomic_write_text(args.out, text)
+        else:  # nor over a file that appeared there while counting: the results then go beside it
+            write_new_files({args.out: text})
     return 0
 
 

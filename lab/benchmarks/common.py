@@ -35,6 +35,8 @@ from tocabi_torchrl.evaluation.output import json_safe
 from tocabi_torchrl.evaluation.record import fixed_command, nominal_config
 from tocabi_torchrl.tree import get_path, item_type, leaf_types
 
+from lab.new_files import write_new_files
+
 GIB = 2**30
 #: Raw policy steps run before the ceiling is measured (the robots settle onto the floor first).
 RAW_WARMUP = 20
@@ -408,9 +410,15 @@ def read_json(path: str | Path, fix: str):
 
 def write_json(path: str | Path, data: dict, replace: bool = True) -> Path:
     """``data`` as strict JSON (a NaN or infinite number as ``null``: bare ``NaN`` tokens are not JSON, and a
-    case shorter than a gait cycle has no tracking error), written atomically; ``replace=False``: never over a file
-    at ``path``, even one that appeared while writing (``FileExistsError``)."""
-    return atomic_write_text(Path(path), json.dumps(json_safe(data), indent=2, allow_nan=False) + "\n", replace)
+    case shorter than a gait cycle has no tracking error), written atomically; returns the path written.
+    ``replace=False``: never over a file at ``path``; one that appeared since the script checked is left as it is and
+    the JSON goes beside it (:func:`lab.new_files.write_new_files` says where)."""
+    text = _json_text(data)
+    return atomic_write_text(Path(path), text) if replace else write_new_files({Path(path): text})[0]
+
+
+def _json_text(data: dict) -> str:
+    return json.dumps(json_safe(data), indent=2, allow_nan=False) + "\n"
 
 
 def report_dir(out: str | Path, measured_on: str | None = None) -> Path:
@@ -434,14 +442,19 @@ def publish(out: str | Path, name: str, data: dict, render: Callable[[dict, Path
             measured_on: str | None = None, replace: bool = True) -> str:
     """Write ``<out>/<name>.json`` and its page ``render(data, out)`` as ``<name>.md`` (atomically, saying where);
     ``out`` as :func:`report_dir` gives it for ``measured_on``. ``replace=False`` (a script that checked at its
-    start that the report is not there, and was not given ``--overwrite``): neither file is written over, not even
-    one that appeared during the measurement (``FileExistsError``)."""
+    start that the report is not there, and was not given ``--overwrite``): neither file is written over; when
+    either appeared during the measurement, both go beside their names as a pair (:func:`lab.new_files.write_new_files`
+    says where), so that no minutes of results are lost and no JSON is left without its page."""
     out = report_dir(out, measured_on)
     out.mkdir(parents=True, exist_ok=True)  # render may write plots beside the page
     text = render(data, out)  # first: a page that fails to render replaces nothing (JSON and page stay one pair)
-    write_json(out / f"{name}.json", data, replace)
-    atomic_write_text(out / f"{name}.md", text, replace)
-    print(f"wrote {out / name}.json and .md", flush=True)
+    if replace:
+        write_json(out / f"{name}.json", data)
+        atomic_write_text(out / f"{name}.md", text)
+        print(f"wrote {out / name}.json and .md", flush=True)
+    else:  # both names checked before either is written: a page that appeared leaves no JSON without its page
+        written = write_new_files({out / f"{name}.json": _json_text(data), out / f"{name}.md": text})
+        print(f"wrote {written[0]} and {written[1]}", flush=True)
     return text
 
 

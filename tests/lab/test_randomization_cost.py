@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 
@@ -187,9 +188,11 @@ def test_a_report_there_already_is_refused_before_any_measurement_unless_overwri
     assert calls and "summary" in json.loads((tmp_path / "randomization_cost.json").read_text())
 
 
-def test_a_report_that_appears_during_the_measurement_is_replaced_only_with_overwrite(tmp_path, monkeypatch):
+def test_a_report_that_appears_during_the_measurement_is_replaced_only_with_overwrite(tmp_path, monkeypatch,
+                                                                                      capsys):
     # The report was checked for before the minutes of measurement and written with replace after them: one that
-    # appeared in between (another variant's, measured beside) was replaced unsaid.
+    # appeared in between (another variant's, measured beside) was replaced unsaid; then refused with
+    # FileExistsError, losing the measurement. The pair goes beside it now, and one line says where.
     report = tmp_path / "randomization_cost.json"
 
     def measure(module, args, raw_steps, run_name, items):
@@ -198,9 +201,14 @@ def test_a_report_that_appears_during_the_measurement_is_replaced_only_with_over
 
     monkeypatch.setattr(randomization_cost, "_measure", measure)
     argv = ["--device", "cpu", "--rounds", "1", "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs")]
-    with pytest.raises(FileExistsError):
-        randomization_cost.main(argv)
+    randomization_cost.main(argv)
     assert report.read_text() == "{}\n" and not (tmp_path / "randomization_cost.md").exists()
+    beside = tmp_path / f"randomization_cost.{os.getpid()}.json"
+    assert json.loads(beside.read_text())["summary"]["on_over_off"] == 1.0
+    page = tmp_path / f"randomization_cost.{os.getpid()}.md"
+    assert page.is_file()
+    warning = capsys.readouterr().err
+    assert f"{report} appeared" in warning and str(beside) in warning and str(page) in warning
     report.unlink()
     randomization_cost.main([*argv, "--overwrite"])
     assert json.loads(report.read_text())["summary"]["on_over_off"] == 1.0

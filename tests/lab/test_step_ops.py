@@ -31,8 +31,9 @@ def test_it_refuses_to_overwrite_without_being_asked(tmp_path):
     assert out.read_text() == "{}"
 
 
-def test_a_report_that_appears_during_the_count_is_not_replaced(tmp_path, monkeypatch):
-    # The check ran at the start and the write, after the count, replaced whatever had appeared at --out since.
+def test_a_report_that_appears_during_the_count_is_not_replaced(tmp_path, monkeypatch, capsys):
+    # The check ran at the start and the write, after the count, replaced whatever had appeared at --out since; then
+    # it refused with FileExistsError, losing the count. The results go beside it now, and one line says where.
     out = tmp_path / "step_ops.json"
 
     def count(cfg, num_envs, steps):
@@ -40,9 +41,12 @@ def test_a_report_that_appears_during_the_count_is_not_replaced(tmp_path, monkey
         return 10.0, 5.0, {}
 
     monkeypatch.setattr(step_ops, "ops_per_step", count)
-    with pytest.raises(FileExistsError):
-        step_ops.main(["--out", str(out)])
+    step_ops.main(["--out", str(out)])
     assert out.read_text() == "{}"
+    beside = sorted(tmp_path.glob("step_ops.*.json"))
+    assert len(beside) == 1 and json.loads(beside[0].read_text())["results"]
+    warning = capsys.readouterr().err
+    assert f"{out} appeared" in warning and str(beside[0]) in warning
     step_ops.main(["--out", str(out), "--overwrite"])  # asked for: replaced
     assert json.loads(out.read_text())["results"]
 
