@@ -754,16 +754,21 @@ def test_equal_reward_weights_written_otherwise_resume(tmp_path):
         parse_args(["--resume", str(tmp_path / "run"), "--transforms.reward_weights.qpos", "0.6"])
 
 
+def saved_with(run: Path, name: str, value) -> Path:
+    """``run`` with ``ppo.<name>`` set to ``value`` in every checkpoint's saved config (a run an older version saved)."""
+    for file in (run / "checkpoints").glob("*.pt"):
+        state = torch.load(file, weights_only=True)
+        state["config"]["ppo"][name] = value
+        torch.save(state, file)
+    return run
+
+
 def test_a_checkpoint_older_than_a_value_rule_evaluates_with_a_warning_and_resume_explains(finished_run, tmp_path):
     # What /tmp/audit_cli/oldckpt.py did: a run saved before the adaptive schedule's range rule, with ppo.lr 1e-6.
     from tocabi_torchrl.rl.checkpoint import CheckpointError, config_from_checkpoint
     from tocabi_torchrl.evaluation.record import load_policy
 
-    run = copy_of(finished_run, tmp_path)
-    for file in (run / "checkpoints").glob("*.pt"):
-        state = torch.load(file, weights_only=True)
-        state["config"]["ppo"]["lr"] = 1e-6
-        torch.save(state, file)
+    run = saved_with(copy_of(finished_run, tmp_path), "lr", 1e-6)
     state = read_checkpoint(run)
     with pytest.warns(UserWarning, match=r"breaks a rule .*ppo.lr 1e-06 is outside the adaptive schedule's range"):
         assert config_from_checkpoint(state, run).ppo.lr == 1e-6
@@ -783,11 +788,7 @@ def test_a_checkpoint_older_than_a_value_rule_evaluates_with_a_warning_and_resum
 def test_a_run_saved_with_an_option_that_changes_nothing_resumes_with_a_warning(finished_run, tmp_path):
     # Saved before the rule that refuses it: ppo.lr_end under the adaptive schedule trained as without it, and the
     # resume was refused as if the run could not go on.
-    run = copy_of(finished_run, tmp_path)
-    for file in (run / "checkpoints").glob("*.pt"):
-        state = torch.load(file, weights_only=True)
-        state["config"]["ppo"]["lr_end"] = 1e-6
-        torch.save(state, file)
+    run = saved_with(copy_of(finished_run, tmp_path), "lr_end", 1e-6)
     with pytest.warns(UserWarning, match=r"changes nothing; it is kept as saved .*: ppo.lr_schedule is 'adaptive', "
                                          r"so ppo.lr_end"):
         cfg, _ = parse_args(["--resume", str(run), "--total_env_steps", "24"])
