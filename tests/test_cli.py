@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from recipe_runner import load_recipe
 
-from tocabi_torchrl.cli import RecipeParser, base_parser, suggest_options
+from tocabi_torchrl.cli import RecipeParser, base_parser, listed_spelling, suggest_options
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 #: The recipes whose parser is written out in the recipe (ppo_walk's is generated from the run config tree: see
@@ -244,3 +244,11 @@ def test_the_package_command_lines_take_full_option_names_only(tmp_path, capsys)
             main(argv)
         assert info.value.code == 2 and "did you mean" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_listed_spelling_takes_one_match_in_any_case_and_nothing_else():
+    # The one rule the recipes' options and the run config's named values share.
+    assert listed_spelling("LINEAR", ("linear", "adaptive")) == "linear"
+    assert listed_spelling("cosine", ("linear", "adaptive")) is None
+    assert listed_spelling("ab", ("AB", "ab", 3)) is None  # two spellings: the caller's own error names them
+    assert listed_spelling("x", ("X", 3)) == "X"  # non-string choices are skipped

@@ -13,7 +13,7 @@ import os
 import sys
 from collections.abc import Iterable, Sequence
 
-__all__ = ["RecipeParser", "add_viewer_options", "base_parser", "hidden_sizes", "suggest_options"]
+__all__ = ["RecipeParser", "add_viewer_options", "base_parser", "hidden_sizes", "listed_spelling", "suggest_options"]
 
 
 def suggest_options(given: str, known: Iterable[str], limit: int = 2) -> list[str]:
@@ -21,6 +21,14 @@ def suggest_options(given: str, known: Iterable[str], limit: int = 2) -> list[st
     ``=value`` attached to ``given`` is ignored."""
     name = given.split("=", 1)[0]
     return difflib.get_close_matches(name, sorted(set(known)), n=limit, cutoff=0.7)
+
+
+def listed_spelling(value: str, choices: Iterable) -> str | None:
+    """The one string of ``choices`` equal to ``value`` but for case (``"Linear"`` -> ``"linear"``), or None when
+    none is, or more than one (then the caller's own "invalid choice" error stands). The recipes' options and the run
+    config (:func:`tocabi_torchrl.config.canonical_choices`) both take named values in any case through this."""
+    same = [choice for choice in choices if isinstance(choice, str) and choice.lower() == value.lower()]
+    return same[0] if len(same) == 1 else None
 
 
 class RecipeParser(argparse.ArgumentParser):
@@ -62,9 +70,7 @@ class RecipeParser(argparse.ArgumentParser):
         value = super()._get_value(action, arg_string)
         choices = action.choices
         if isinstance(value, str) and choices is not None and value not in choices:
-            same = [c for c in choices if isinstance(c, str) and c.lower() == value.lower()]
-            if len(same) == 1:
-                return same[0]
+            return listed_spelling(value, choices) or value
         return value
 
     def refuse_without(self, args: argparse.Namespace, on: bool, switch: str, names: Iterable[str]) -> None:

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
+from .cli import listed_spelling
 from .envs.command_config import CommandConfig
 from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, UPPER_BODY_LAWS, TocabiWalkConfig
 from .envs.push_config import PushConfig
@@ -699,10 +700,8 @@ def canonical_choices(cfg: RunConfig) -> RunConfig:
         *parents, name = path.split(".")
         owner = _get(cfg, ".".join(parents)) if parents else cfg
         value = getattr(owner, name)
-        if isinstance(value, str) and value not in allowed:
-            same = [choice for choice in allowed if choice.lower() == value.lower()]
-            if same:
-                setattr(owner, name, same[0])
+        if isinstance(value, str) and value not in allowed and (listed := listed_spelling(value, allowed)):
+            setattr(owner, name, listed)
     return cfg
 
 
