@@ -199,11 +199,13 @@ def run_config(n: int, iterations: int, overrides: dict, run_dir: str, name: str
 read_checkpoint = checkpoint.read_checkpoint  # a checkpoint (file or run folder) as a dict, loaded weights-only
 
 
-def parse_overrides(items: Sequence[str]) -> dict:
+def parse_overrides(items: Sequence[str], *, warn_repeats: bool = True) -> dict:
     """``PATH=VALUE`` strings (a path of the config tree such as ``ppo.lr`` or ``env.num_envs``) typed by the tree,
     as ``recipes/ppo_walk.py``'s ``--PATH VALUE`` would read them, by path. A tuple's entries are separated by spaces
     or commas (``delay_substeps=4 20``, ``=4,20``, ``=(4, 20)``); any other value is one argument, spaces and all
-    (a name, a path, ``env.scene.obstacles``' JSON). A path given twice keeps its last value, with a warning."""
+    (a name, a path, ``env.scene.obstacles``' JSON). A path given twice keeps its last value, with a warning
+    (``warn_repeats=False``: a script that appends its own overrides to the user's on purpose checks the user's
+    items alone, so that the warning names only what the user gave twice)."""
     kinds = leaf_types(RunConfig())
     argv = []
     for item in items:
@@ -214,10 +216,11 @@ def parse_overrides(items: Sequence[str]) -> dict:
             raise SystemExit(f"error: --set {item}: the training config has no option {field!r}{hint} (options are "
                              "dotted paths such as ppo.lr or env.num_envs: recipes/ppo_walk.py --help)")
         argv += [f"--{field}", *_set_arguments(kinds[field], value)]
-    # A path given twice keeps its last value (a script may append its overrides on purpose): said, not silent.
+    # A path given twice keeps its last value: said, not silent.
     last = {item.partition("=")[0]: item for item in items}
     for field, item in last.items():
-        if (times := sum(i.partition("=")[0] == field for i in items)) > 1 and os.environ.get("RANK", "0") == "0":
+        if (warn_repeats and (times := sum(i.partition("=")[0] == field for i in items)) > 1
+                and os.environ.get("RANK", "0") == "0"):
             print(f"warning: --set {field} is given {times} times; the last applies: {item}", file=sys.stderr,
                   flush=True)
     cfg = parse_tree(argv, RunConfig())

@@ -128,8 +128,11 @@ def main(argv=None) -> None:
     if len(seeds) != args.rounds:
         p.error(f"--seeds takes one seed per round: {args.rounds} round(s), got {len(seeds)} seed(s)")
     sets = variants(args.preset, args.set, tuple(args.pieces))
+    common.parse_overrides(args.set)  # an option the user gave twice is said once, here
     for items in sets.values():
-        common.parse_overrides(items)  # a bad path or value fails here, before any measurement
+        # A bad path or value fails here, before any measurement. ``off`` replaces the user's randomisation
+        # settings on purpose (its identity items come last): no warning for those.
+        common.parse_overrides(items, warn_repeats=False)
     out = common.report_dir(args.out, args.device)
     taken = [out / f"{args.name}.{ext}" for ext in ("json", "md") if (out / f"{args.name}.{ext}").exists()]
     if taken and not args.overwrite:

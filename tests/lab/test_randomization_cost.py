@@ -212,3 +212,25 @@ def test_a_report_that_appears_during_the_measurement_is_replaced_only_with_over
     report.unlink()
     randomization_cost.main([*argv, "--overwrite"])
     assert json.loads(report.read_text())["summary"]["on_over_off"] == 1.0
+
+
+def test_a_user_setting_that_off_replaces_is_not_called_given_twice(tmp_path, monkeypatch, capsys):
+    # --set env.control.actuators.delay_stride=2 printed "delay_stride is given 2 times; the last applies:
+    # delay_stride=1" (off's identity item), which read as if the user's setting were lost in both variants.
+    sent = {}
+
+    def fake_child(module, args, env=None, nproc=None):
+        items = args[args.index("--set") + 1:]
+        sent["off" if "env.pushes.count=0" in items else "on"] = items
+        return {"train_env_steps_per_s": 100.0}
+
+    monkeypatch.setattr(common, "run_child", fake_child)
+    argv = ["--device", "cpu", "--num_envs", "8", "--rounds", "1", "--out", str(tmp_path), "--run_dir",
+            str(tmp_path / "runs"), "--set", "env.control.actuators.delay_stride=2"]
+    randomization_cost.main(argv)
+    assert "given 2 times" not in capsys.readouterr().err
+    assert "env.control.actuators.delay_stride=2" in sent["on"]
+    assert sent["off"].index("env.control.actuators.delay_stride=1") > sent["off"].index(
+        "env.control.actuators.delay_stride=2")  # off's identity comes last and applies
+    randomization_cost.main([*argv, "ppo.lr=1e-4", "ppo.lr=2e-4", "--name", "twice"])
+    assert capsys.readouterr().err.count("ppo.lr is given 2 times") == 1  # the user's own repeat, said once
