@@ -78,7 +78,9 @@ def labels(policies: list[Path]) -> list[str]:
 
 
 def measure(policy: Path, out: Path, num_envs: int, seconds: float, device: str,
-            cases: tuple[str, ...] | None = None, label: str | None = None) -> dict:
+            cases: tuple[str, ...] | None = None, label: str | None = None, envs: dict | None = None) -> dict:
+    """The robust test of one policy into ``out/label``, and its table row. ``envs``: the test envs kept across the
+    policies of one call (evaluate_robust_run's), so that marks of one run share one env."""
     from tocabi_torchrl.evaluation.robust import CASES, evaluate_robust_run, robust_passes
 
     label = label or policy.stem
@@ -86,7 +88,7 @@ def measure(policy: Path, out: Path, num_envs: int, seconds: float, device: str,
     # replace: main refused an --out holding a table unless --overwrite; a policy's report that a stopped call left
     # without its table row is tested again into its own folder
     report = evaluate_robust_run(policy, num_envs=num_envs, device=device, out_dir=out / label, seconds=seconds,
-                                 cases=cases, replace=True)
+                                 cases=cases, replace=True, envs=envs)
     took = time.perf_counter() - start
     run = tuple(report["cases"])
     # Some cases alone: whether the policy passes those (the report's own "passes" is the whole test's).
@@ -218,9 +220,10 @@ def main(argv=None) -> None:
     names = labels([Path(p) for p in args.policies])
     data = {"meta": common.meta(NAME, argv, on=args.device, num_envs=args.num_envs, seconds=args.seconds),
             "results": []}
+    envs: dict = {}  # one env per kind of policy (evaluation.robust.batch_key), built once for all its marks
     for i, policy in enumerate(args.policies):
         data["results"].append(measure(Path(policy), out, args.num_envs, args.seconds, args.device,
-                                       args.cases and tuple(args.cases), names[i]))
+                                       args.cases and tuple(args.cases), names[i], envs))
         # The table after every policy, not only at the end: a call stopped partway (a time limit, Ctrl-C) keeps the
         # table of the policies it finished, and says how many it was asked for.
         left = len(args.policies) - i - 1

@@ -381,6 +381,37 @@ def test_robust_policies_table_names_each_case_and_its_verdict(tmp_path, capsys)
     assert f"cannot read checkpoint {tmp_path / 'notes.pt'}" in capsys.readouterr().err
 
 
+def test_robust_policies_builds_one_env_for_the_marks_of_a_run_and_each_gets_its_numbers_alone(tmp_path,
+                                                                                                monkeypatch):
+    """The marks of one run (one kind of policy) are tested in one env, built once (on the GPU its build and capture
+    took longer than the test of a mark); each mark's report is the one it gets tested alone."""
+    import json
+    import shutil
+
+    from lab.benchmarks import robust_policies
+    from tocabi_torchrl.evaluation import robust
+
+    policy = robust_policies.POLICIES / "tocabi_walk_robust.pt"
+    if not policy.is_file():
+        pytest.skip("shipped policy not present")
+    marks = [tmp_path / f"mark_{i}.pt" for i in range(2)]
+    for mark in marks:
+        shutil.copyfile(policy, mark)
+    built = []
+    real = robust.batch_env
+    monkeypatch.setattr(robust, "batch_env", lambda *a, **k: built.append(1) or real(*a, **k))
+    argv = ["--num_envs", "2", "--seconds", "0.3", "--device", "cpu", "--cases", "nominal", "robust_1.0"]
+    robust_policies.main(["--policies", *map(str, marks), *argv, "--out", str(tmp_path / "both")])
+    assert len(built) == 1
+    robust_policies.main(["--policies", str(marks[1]), *argv, "--out", str(tmp_path / "alone")])
+
+    def cases(folder):
+        return json.loads((folder / "robust.json").read_text())["cases"]
+
+    assert cases(tmp_path / "both" / "mark_1") == cases(tmp_path / "alone" / "mark_1")
+    assert cases(tmp_path / "both" / "mark_0") == cases(tmp_path / "both" / "mark_1")  # same weights, same robots
+
+
 def test_robust_policies_keeps_the_table_of_the_policies_it_finished(tmp_path, monkeypatch):
     """A call stopped partway (here the second policy's test raises, as a time limit's signal would stop it) leaves
     the table of the first policy, marked partial; a finished call's table is not marked."""
@@ -389,7 +420,7 @@ def test_robust_policies_keeps_the_table_of_the_policies_it_finished(tmp_path, m
     from lab.benchmarks import robust_policies
     from tocabi_torchrl.evaluation import robust
 
-    def run(policy, num_envs, device, out_dir, seconds, cases, replace):
+    def run(policy, num_envs, device, out_dir, seconds, cases, replace, envs=None):
         if policy.stem == "second":
             raise KeyboardInterrupt
         case = {"passes": True, "survival": 1.0, "forward_distance_m": {"mean": 4.0},
@@ -422,7 +453,7 @@ def test_robust_policies_tells_same_named_files_apart_and_never_replaces_a_table
     from lab.benchmarks import robust_policies
     from tocabi_torchrl.evaluation import robust
 
-    def run(policy, num_envs, device, out_dir, seconds, cases, replace):
+    def run(policy, num_envs, device, out_dir, seconds, cases, replace, envs=None):
         out_dir.mkdir(parents=True)  # as the test writes its report: a second policy here would collide
         case = {"passes": True, "survival": 1.0, "checks": {"survival": {"value": 1.0, "needs": ">= 0.99",
                                                                           "pass": True}}}
@@ -470,7 +501,7 @@ def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, mon
 
     seen = {}
 
-    def run(policy, num_envs, device, out_dir, seconds, cases, replace):
+    def run(policy, num_envs, device, out_dir, seconds, cases, replace, envs=None):
         seen["cases"] = cases
         case = {"passes": True, "survival": 1.0, "checks": {"survival": {"value": 1.0, "needs": ">= 0.99",
                                                                           "pass": True}}}

@@ -714,13 +714,16 @@ def evaluate_robust_checkpoint(state: dict, path: str | os.PathLike, out_dir: st
 
 def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: str = "auto",
                         out_dir: str | os.PathLike | None = None, seconds: float = 8.0,
-                        cases: Sequence[str] | None = None, progress: bool = True, replace: bool = False) -> dict:
+                        cases: Sequence[str] | None = None, progress: bool = True, replace: bool = False,
+                        envs: dict | None = None) -> dict:
     """Load ``run`` (a run folder or checkpoint file) and run the robust test (``num_envs`` robots per case,
     ``seconds`` each, ``cases`` of :data:`CASES`, default all). Results go to ``out_dir`` as given, or by default to
     :func:`.gait_test.fresh_eval_dir`. An ``out_dir`` that already holds a test's results (:data:`ROBUST_FILES`)
     raises :class:`~.output.OutputExistsError` unless ``replace`` (then files of the same name are replaced, others
-    stay). Raises ``CheckpointError`` for a bad file and ``ValueError`` for a bad setting, before building
-    anything."""
+    stay). ``envs``: as :func:`evaluate_robust`'s, a dict that keeps the test's env for the next policy tested with
+    it (the same robots and draws; building the env, and on CUDA capturing its step, takes longer than the test at
+    1,024 robots per case). Raises ``CheckpointError`` for a bad file and ``ValueError`` for a bad setting, before
+    building anything."""
     from ..rl.checkpoint import checkpoint_file, read_checkpoint
     from .gait_test import policy_dt
 
@@ -736,7 +739,7 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
     ckpt = checkpoint_file(run)
     state = read_checkpoint(ckpt)
     return evaluate_robust_checkpoint(state, ckpt, fresh_eval_dir(ckpt) if out_dir is None else out_dir, test=test,
-                                      device=device, progress=progress)
+                                      device=device, envs=envs, progress=progress)
 
 
 def robust_report_text(report: dict, out: str | os.PathLike | None = None) -> str:
