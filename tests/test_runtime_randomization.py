@@ -475,6 +475,36 @@ def test_the_actuator_layer_is_refused_for_a_pd_policy_and_trained_needs_the_sec
     assert run_sim2sim(_contract("ppo"), seconds=0.02, num_robots=1, randomize=pd).survival == 1.0
 
 
+_A, _S = rnd.ActuatorSettings, rnd.SensorSettings
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    # Each ran as given before the run checked them: a negative delay as none, a stride off the range's grid as its
+    # low end alone, a negative motor constant reversed the torques, negative friction pushed the joints.
+    (dict(randomize=rnd.Randomization(actuators=_A(delay_substeps=(-4, 2)))), r"randomize.actuators.delay_substeps"),
+    (dict(randomize=rnd.Randomization(actuators=_A(delay_substeps=(2, 4), delay_stride=3))),
+     r"randomize.actuators.delay_stride: stride 3 does not divide"),
+    (dict(randomize=rnd.Randomization(actuators=_A(delay_substeps=(2, 4), delay_stride=0))),
+     r"randomize.actuators.delay_stride: stride 0"),  # was a ZeroDivisionError
+    (dict(randomize=rnd.Randomization(actuators=_A(motor_constant=(-1.0, 0.5)))),
+     r"randomize.actuators.motor_constant must be \(low, high\) with 0 <= low"),
+    (dict(randomize=rnd.Randomization(actuators=_A(coulomb=(-5.0, 0.0)))), r"randomize.actuators.coulomb"),
+    (dict(randomize=rnd.Randomization(actuators=_A(delay_substeps=(0, 10**6)))), r"reaches past 400 substeps"),
+    # A negative or NaN σ or bias was read as off; a negative clip added a constant -clip to every joint angle.
+    (dict(randomize=rnd.Randomization(sensors=_S(joint_pos_noise_std=-0.1))), r"randomize.sensors.joint_pos_noise_std"),
+    (dict(randomize=rnd.Randomization(sensors=_S(joint_pos_bias=math.nan))), r"randomize.sensors.joint_pos_bias"),
+    (dict(randomize=rnd.Randomization(sensors=_S(joint_pos_noise_std=0.1, joint_pos_noise_clip=-1.0))),
+     r"randomize.sensors.joint_pos_noise_clip must be a finite number > 0, or None"),
+    # A NaN start velocity was refused as a failed sensor; a count of -1 ran without kicks.
+    (dict(start_velocity=rnd.StartVelocity(joint_std=math.nan)), r"start_velocity.joint_std \[rad/s\] must be"),
+    (dict(start_velocity=rnd.StartVelocity(base_std=-0.1)), r"start_velocity.base_std \[m/s\] must be"),
+    (dict(pushes=rnd.PushSettings(count=-1)), r"pushes.count must be an int in \[0, 64\]"),
+])
+def test_a_given_randomisation_out_of_range_is_refused_by_name(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        run_sim2sim(_contract("torque"), seconds=0.004, num_robots=1, **kwargs)
+
+
 # ------------------------------------------------------------------------------------------------ the contract
 def test_a_velocity_kick_contract_round_trips_and_an_unknown_kind_is_refused(tmp_path):
     section = json.loads(json.dumps(_lab_section(count=3, speed=(0.5, 1.0), kind="velocity")))

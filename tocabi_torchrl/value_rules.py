@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 __all__ = ["DELAY_APPLIED", "ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT",
-           "PUSH_KINDS", "PUSH_SPEED", "DYNAMICS_OFF", "DYNAMICS_RANGES", "Range", "check_dynamics_ranges",
-           "check_push_settings", "TRAINED_UNDER_RULES", "check_env_value", "check_seed", "plain_number",
-           "positive_count", "trained_under_problems"]
+           "PUSH_KINDS", "PUSH_SPEED", "DYNAMICS_OFF", "DYNAMICS_RANGES", "START_VEL_STD", "Range",
+           "check_actuator_ranges", "check_dynamics_ranges", "check_push_settings", "check_sensor_noise",
+           "TRAINED_UNDER_RULES", "check_env_value", "check_seed", "plain_number", "positive_count",
+           "trained_under_problems"]
 
 
 def plain_number(value: Any) -> Any:
@@ -280,6 +281,61 @@ def check_seed(seed: Any, where: str = "seed") -> int:
 #: contract's ``trained_under.actuators.delay.substeps``): it keeps that many past torques of every robot.
 MAX_DELAY_SUBSTEPS = 400
 
+
+def check_actuator_ranges(actuators: Any, prefix: str) -> None:
+    """Raise ``ValueError`` naming the first bad field (``{prefix}<name>``) of the legs' actuator layer and what it
+    takes, as ``ActuatorConfig`` (the env's) and ``ActuatorSettings`` (the torch-free runtime's) both hold it: each
+    range (low, high) with 0 <= low <= high, finite; the delay in whole substeps up to :data:`MAX_DELAY_SUBSTEPS`, on
+    a grid its stride divides; ``delay_average`` a bool; neither it nor a stride without a delay."""
+    for name in ("delay_substeps", "motor_constant", "coulomb", "viscous"):
+        try:  # a scalar or a wrong count failed as a raw unpack error
+            low, high = (float(v) for v in getattr(actuators, name))
+        except (TypeError, ValueError):
+            raise ValueError(f"{prefix}{name} must be two numbers (low, high), got "
+                             f"{getattr(actuators, name)!r}") from None
+        if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
+            raise ValueError(f"{prefix}{name} must be (low, high) with 0 <= low <= high, finite, "
+                             f"got {getattr(actuators, name)!r}")
+    delay = actuators.delay_substeps
+    if any(isinstance(v, bool) or int(v) != v for v in delay):
+        raise ValueError(f"{prefix}delay_substeps takes whole substeps, got {delay!r}")
+    if delay[1] > MAX_DELAY_SUBSTEPS:
+        raise ValueError(f"{prefix}delay_substeps {delay!r} reaches past "
+                         f"{MAX_DELAY_SUBSTEPS} substeps (0.2 s at 0.5 ms): the delay keeps that many past torques "
+                         "of every world in memory; the TOCABI lab's delay is 4-20 substeps")
+    problem = delay_grid_problem(*(int(v) for v in delay), actuators.delay_stride)
+    if problem:
+        raise ValueError(f"{prefix}delay_stride: {problem}")
+    if not isinstance(actuators.delay_average, bool):
+        raise ValueError(f"{prefix}delay_average must be True or False, got {actuators.delay_average!r}")
+    if tuple(delay) == (0, 0) and (actuators.delay_average or actuators.delay_stride != 1):
+        # Both shape the delay; without one they would be silently ignored.
+        raise ValueError(f"{prefix}delay_average {actuators.delay_average} / delay_stride "
+                         f"{actuators.delay_stride} shape a torque delay, but delay_substeps is (0, 0): set a delay "
+                         "(e.g. delay_substeps=(4, 20)) or leave them at False / 1")
+
+
+def check_sensor_noise(sensors: Any, prefix: str) -> None:
+    """Raise ``ValueError`` naming the first bad value (``{prefix}<name>``) of the sensor biases and noise, as
+    ``SensorNoiseConfig`` (the env's) and ``SensorSettings`` (the torch-free runtime's) both hold them (dataclasses of
+    the same fields): every bias and σ a finite number >= 0, every clip None or > 0, the IMU bias at most π."""
+    for f in fields(sensors):
+        value = getattr(sensors, f.name)
+        if value is None and f.name.endswith("_clip"):
+            continue
+        ok = (not isinstance(value, bool) and isinstance(value, numbers.Real) and math.isfinite(value)
+              and (value > 0 if f.name.endswith("_clip") else value >= 0))
+        if not ok:
+            what = ("a finite number > 0, or None for no clip" if f.name.endswith("_clip")
+                    else "a finite number >= 0 (0 = off)")
+            raise ValueError(f"{prefix}{f.name} must be {what}, got {value!r}")
+    RPY_BIAS.check(sensors.base_rpy_bias, f"{prefix}base_rpy_bias")
+
+
+#: The std of the start velocities (``TaskConfig.start_joint_vel_std`` [rad/s] and ``start_base_vel_std`` [m/s], the
+#: runtime's ``StartVelocity``, a contract's ``trained_under.start_velocity``).
+START_VEL_STD = Range(low=0.0, high=10.0)
+
 #: The ``trained_under`` section of a policy contract (what the policy was trained under: actuator layer, dynamics,
 #: sensor noise, pushes, start velocities; ``runtime/randomization.py`` writes and reads it) -> per item, the rule of
 #: each numeric field, and whether the field is a ``[low, high]`` pair (then low <= high too), may be null or may be
@@ -312,8 +368,7 @@ TRAINED_UNDER_RULES: dict[str, dict[str, dict[str, tuple[Range, str]]]] = {
                    "calm_fraction": (CALM_FRACTION, "optional")},
     },
     "start_velocity": {
-        "start_velocity": {"joint_std_radps": (Range(low=0.0, high=10.0), "one"),
-                           "base_std_mps": (Range(low=0.0, high=10.0), "one")},
+        "start_velocity": {"joint_std_radps": (START_VEL_STD, "one"), "base_std_mps": (START_VEL_STD, "one")},
     },
 }
 

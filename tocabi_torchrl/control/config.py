@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from ..value_rules import MAX_DELAY_SUBSTEPS, delay_grid_problem
+from ..value_rules import MAX_DELAY_SUBSTEPS, check_actuator_ranges
 
 if TYPE_CHECKING:
     from .actuators import ActuatorChain
@@ -50,31 +49,7 @@ class ActuatorConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad range (``env.control.actuators.<name>``) and what it takes."""
-        for name in ("delay_substeps", "motor_constant", "coulomb", "viscous"):
-            try:  # a scalar or a wrong count failed as a raw unpack error
-                low, high = (float(v) for v in getattr(self, name))
-            except (TypeError, ValueError):
-                raise ValueError(f"env.control.actuators.{name} must be two numbers (low, high), got "
-                                 f"{getattr(self, name)!r}") from None
-            if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or low > high:
-                raise ValueError(f"env.control.actuators.{name} must be (low, high) with 0 <= low <= high, finite, "
-                                 f"got {getattr(self, name)!r}")
-        if any(isinstance(v, bool) or int(v) != v for v in self.delay_substeps):
-            raise ValueError(f"env.control.actuators.delay_substeps takes whole substeps, got {self.delay_substeps!r}")
-        if self.delay_substeps[1] > MAX_DELAY_SUBSTEPS:
-            raise ValueError(f"env.control.actuators.delay_substeps {self.delay_substeps!r} reaches past "
-                             f"{MAX_DELAY_SUBSTEPS} substeps (0.2 s at 0.5 ms): the delay keeps that many past torques "
-                             "of every world in memory; the TOCABI lab's delay is 4-20 substeps")
-        problem = delay_grid_problem(*(int(v) for v in self.delay_substeps), self.delay_stride)
-        if problem:
-            raise ValueError(f"env.control.actuators.delay_stride: {problem}")
-        if not isinstance(self.delay_average, bool):
-            raise ValueError(f"env.control.actuators.delay_average must be True or False, got {self.delay_average!r}")
-        if tuple(self.delay_substeps) == (0, 0) and (self.delay_average or self.delay_stride != 1):
-            # Both shape the delay; without one they would be silently ignored.
-            raise ValueError(f"env.control.actuators.delay_average {self.delay_average} / delay_stride "
-                             f"{self.delay_stride} shape a torque delay, but delay_substeps is (0, 0): set a delay "
-                             "(e.g. delay_substeps=(4, 20)) or leave them at False / 1")
+        check_actuator_ranges(self, "env.control.actuators.")
 
     @property
     def ideal(self) -> bool:

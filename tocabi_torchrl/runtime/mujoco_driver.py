@@ -220,7 +220,9 @@ def resolve_randomization(randomize, contract: dict) -> rnd.Randomization:
     """The :class:`~tocabi_torchrl.runtime.randomization.Randomization` that ``randomize`` names (one of
     :data:`RANDOMIZE`, or an instance) for a policy with ``contract``. Raises ``ValueError`` saying what to use
     instead for an unknown name, ``"trained"`` with a contract that does not state what the policy was trained
-    under, and actuator stages for a PD policy (the training env applies them to torque commands only)."""
+    under, actuator stages for a PD policy (the training env applies them to torque commands only), and an instance
+    whose values the training config would refuse (:meth:`~tocabi_torchrl.runtime.randomization.Randomization
+    .validate`, naming the field)."""
     if isinstance(randomize, rnd.Randomization):
         chosen, name = randomize, "the given randomisation"
     elif randomize == "none":
@@ -236,6 +238,8 @@ def resolve_randomization(randomize, contract: dict) -> rnd.Randomization:
         chosen, name = rnd.TOCABI_LAB, "tocabi_lab"
     else:
         raise ValueError(f"randomize is {randomize!r}; choose one of {list(RANDOMIZE)}")
+    # Before anything is built: a negative motor constant or friction, a NaN bias or a negative clip ran as given.
+    chosen.validate()
     mode = contract["action"]["control_mode"]
     if chosen.actuators.enabled and mode != "torque":
         raise ValueError(f"{name} has an actuator layer (delay, motor constant, friction), which acts on torque "
@@ -350,9 +354,11 @@ def _run(runtime: PolicyRuntime, model_path, seconds, num_robots, command, init_
     # Each robot's commanded forward speed [m/s], in float64 as given (the tracking error's reference).
     vx = np.broadcast_to(np.asarray(command, dtype=np.float64), (num_robots, 2))[:, 0]
     chosen = resolve_randomization(randomize, c)
-    pushes = pushes if pushes is not None and pushes.count > 0 else None
-    if pushes is not None:
+    if pushes is not None:  # a count of -1 read as no kicks
         pushes.validate()
+    pushes = pushes if pushes is not None and pushes.count > 0 else None
+    if start_velocity is not None:  # a NaN std read as none, then failed as a sensor
+        start_velocity.validate()
     start_velocity = start_velocity if start_velocity is not None and start_velocity.enabled else None
     if model_path is None:
         model_path = robot.asset_path("tocabi", "tocabi.xml")

@@ -41,7 +41,8 @@ from dataclasses import dataclass, fields
 import mujoco
 import numpy as np
 
-from ..value_rules import CALM_NEVER_S, DELAY_APPLIED, DYNAMICS_OFF, check_dynamics_ranges, check_push_settings
+from ..value_rules import (CALM_NEVER_S, DELAY_APPLIED, DYNAMICS_OFF, START_VEL_STD, check_actuator_ranges,
+                           check_dynamics_ranges, check_push_settings, check_sensor_noise)
 
 __all__ = ["ROBUST_START", "STREAMS", "TOCABI_LAB", "ActuatorLayer", "ActuatorSettings", "DynamicsSettings",
            "PushSchedule", "PushSettings", "Randomization", "SensorModel", "SensorSettings", "StartVelocity",
@@ -73,6 +74,11 @@ class ActuatorSettings:
     coulomb: tuple[float, float] = (0.0, 0.0)
     viscous: tuple[float, float] = (0.0, 0.0)
     saturate: bool = True
+
+    def validate(self, prefix: str = "actuators.") -> None:
+        """Raise ``ValueError`` naming the first bad field and what it takes (``ActuatorConfig.validate``'s rules):
+        a negative motor constant or friction, or a delay off its stride's grid, would otherwise run as given."""
+        check_actuator_ranges(self, prefix)
 
     @property
     def delay_on(self) -> bool:
@@ -133,6 +139,11 @@ class SensorSettings:
     foot_force_bias: float = 0.0
     foot_torque_bias: float = 0.0
 
+    def validate(self, prefix: str = "sensors.") -> None:
+        """Raise ``ValueError`` naming the first bad value and what it takes (``SensorNoiseConfig.validate``'s
+        rules): a negative or NaN bias or σ would otherwise be read as off, a negative clip as a constant offset."""
+        check_sensor_noise(self, prefix)
+
     @property
     def enabled(self) -> bool:
         return any(getattr(self, n) > 0 for n in ("joint_pos_bias", "joint_pos_noise_std", "joint_vel_noise_std",
@@ -167,6 +178,12 @@ class StartVelocity:
     joint_std: float = 0.0
     base_std: float = 0.0
 
+    def validate(self, prefix: str = "start_velocity.") -> None:
+        """Raise ``ValueError`` unless both stds are in [0, 10] (``TaskConfig.start_*_vel_std``'s rule): a NaN one
+        would start every robot with NaN velocities, refused later as a failed sensor."""
+        for name, unit in (("joint_std", "rad/s"), ("base_std", "m/s")):
+            START_VEL_STD.check(getattr(self, name), f"{prefix}{name} [{unit}]")
+
     @property
     def enabled(self) -> bool:
         return self.joint_std > 0 or self.base_std > 0
@@ -179,6 +196,12 @@ class Randomization:
     actuators: ActuatorSettings = ActuatorSettings()
     dynamics: DynamicsSettings = DynamicsSettings()
     sensors: SensorSettings = SensorSettings()
+
+    def validate(self, prefix: str = "randomize.") -> None:
+        """Raise ``ValueError`` naming the first bad field of any piece (``{prefix}actuators.<name>`` etc.)."""
+        self.actuators.validate(f"{prefix}actuators.")
+        self.dynamics.validate(f"{prefix}dynamics.")
+        self.sensors.validate(f"{prefix}sensors.")
 
     @property
     def enabled(self) -> bool:
@@ -464,6 +487,7 @@ class SensorModel:
     SHAPES = {"joint_pos": None, "base_rpy": (3,), "foot_force": (2, 3), "foot_torque": (2, 3)}
 
     def __init__(self, settings: SensorSettings, num_joints: int, noise_rng: np.random.Generator):
+        settings.validate()
         self.settings, self.num_joints, self.noise_rng = settings, int(num_joints), noise_rng
         self.biases: dict[str, np.ndarray] = {}
 

@@ -6,11 +6,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
-from numbers import Real
+from dataclasses import dataclass
 
 from tocabi_torchrl import robot
-from tocabi_torchrl.value_rules import RPY_BIAS
+from tocabi_torchrl.value_rules import check_sensor_noise
 
 __all__ = ["SensorNoiseConfig", "SENSORS"]
 
@@ -63,17 +62,7 @@ class SensorNoiseConfig:
 
     def validate(self, prefix: str = "transforms.sensor_noise.") -> None:
         """Raise ``ValueError`` naming the first bad value by its path (``transforms.sensor_noise.<name>``)."""
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if value is None and f.name.endswith("_clip"):
-                continue
-            ok = (not isinstance(value, bool) and isinstance(value, Real) and math.isfinite(value)
-                  and (value > 0 if f.name.endswith("_clip") else value >= 0))
-            if not ok:
-                what = ("a finite number > 0, or None for no clip" if f.name.endswith("_clip")
-                        else "a finite number >= 0 (0 = off)")
-                raise ValueError(f"{prefix}{f.name} must be {what}, got {value!r}")
-        RPY_BIAS.check(self.base_rpy_bias, f"{prefix}base_rpy_bias")
+        check_sensor_noise(self, prefix)
 
     @property
     def enabled(self) -> bool:
