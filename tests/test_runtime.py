@@ -1088,6 +1088,24 @@ def test_a_renamed_pair_runs_the_onnx_of_its_name_not_the_recorded_one(tmp_path)
         PolicyRuntime(tmp_path / "my.json", onnx=tmp_path / "absent.onnx")
 
 
+def test_a_folder_given_for_a_policy_file_is_named_a_folder_with_the_files_it_holds(tmp_path):
+    # A folder passed as the contract, the .onnx or the motion was reported "not found", and the user went looking
+    # for a file that was there; the message now says it is a folder and lists the files of the kind it holds.
+    shipped = robot.asset_path("policies", "tocabi_walk_torque.json")
+    shutil.copy(shipped, tmp_path / "walk.json")
+    shutil.copy(shipped.with_suffix(".onnx"), tmp_path / "walk.onnx")
+    with pytest.raises(ContractError, match=r"policy contract .* is a folder, not a file \(it holds walk\.json\): "
+                                            r"pass the \.json file itself"):
+        PolicyRuntime(tmp_path)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ContractError, match=r"ONNX file .*empty is a folder, not a file \(it holds no \.onnx file\)"):
+        PolicyRuntime(tmp_path / "walk.json", onnx=tmp_path / "empty")
+    with pytest.raises(ContractError, match=r"ONNX file .* is a folder, not a file \(it holds walk\.onnx\)"):
+        PolicyRuntime(tmp_path / "walk.json", onnx=tmp_path)
+    with pytest.raises(ContractError, match=r"reference motion .*empty is a folder, not a file"):
+        PolicyRuntime(tmp_path / "walk.json", motion=tmp_path / "empty")
+
+
 def test_run_sim2sim_takes_a_built_runtime_and_gives_the_numbers_of_the_path_based_call():
     from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
 

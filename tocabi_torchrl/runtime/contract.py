@@ -23,7 +23,7 @@ from ..value_rules import (DELAY_APPLIED, ENV_RULES, NON_NEGATIVE, PUSH_KINDS, d
 
 __all__ = ["CONTRACT_FORMAT", "CONTRACT_VERSION", "ENV_FIELDS", "NORMALIZATION_KINDS", "READABLE_VERSIONS",
            "REQUIRED_KEYS", "RUNTIME_SIGNALS", "UNHASHED_KEYS", "ContractError", "check_contract", "content_sha256",
-           "contract_beside", "exported_policy_kind", "load_contract"]
+           "contract_beside", "exported_policy_kind", "folder_note", "load_contract"]
 
 #: ``format`` field of every contract.
 CONTRACT_FORMAT = "tocabi_torchrl.policy_contract"
@@ -128,6 +128,17 @@ class ContractError(ValueError):
     """A policy contract is malformed, from another version, or does not fit the policy or robot it is used with."""
 
 
+def folder_note(path: Path, what: str, suffix: str) -> str | None:
+    """For a ``path`` that is a folder, not the ``what`` file it should be: the error, naming the ``suffix`` files it
+    holds; None otherwise. Reported as "not found", a folder has the user look for a file that is there."""
+    if not path.is_dir():
+        return None
+    held = sorted(p.name for p in path.glob(f"*{suffix}") if p.is_file())
+    inside = (f"it holds {', '.join(held[:6])}{', ...' if len(held) > 6 else ''}" if held
+              else f"it holds no {suffix} file")
+    return f"{what} {path} is a folder, not a file ({inside}): pass the {suffix} file itself"
+
+
 def load_contract(path: str | os.PathLike) -> dict:
     """Read and check the contract JSON at ``path``; raises :class:`ContractError` naming the file and the problem.
 
@@ -135,7 +146,8 @@ def load_contract(path: str | os.PathLike) -> dict:
     contract of version 1 (no ``content_sha256``) loads with a ``UserWarning``: its values are not covered by a hash."""
     path = Path(path)
     if not path.is_file():
-        raise ContractError(f"policy contract not found: {path} (export one with `python -m tocabi_torchrl.export`)")
+        raise ContractError(folder_note(path, "policy contract", ".json") or f"policy contract not found: {path} "
+                            "(export one with `python -m tocabi_torchrl.export`)")
     wrong = _policy_file_note(path)
     if wrong is not None:  # its bytes would read as "not valid JSON ('utf-8' codec ...)", which names no fix
         raise ContractError(wrong)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .contract import ContractError
+from .contract import ContractError, folder_note
 
 __all__ = ["RuntimeMotion", "file_sha256"]
 
@@ -63,7 +63,8 @@ class RuntimeMotion:
         ``check_contract`` requires to be a sha256)."""
         path = Path(path)
         if not path.is_file():
-            raise ContractError(f"reference motion not found: {path}; pass the file the contract names")
+            raise ContractError(folder_note(path, "reference motion", ".npz") or f"reference motion not found: "
+                                f"{path}; pass the file the contract names")
         if sha256 is not None and (not isinstance(sha256, str) or len(sha256) != 64):
             raise ContractError(f"reference motion hash {sha256!r} is not a sha256 (64 hex digits): pass the "
                                 "contract's reference_motion.sha256, or None to skip the check")

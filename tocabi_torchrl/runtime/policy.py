@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .contract import ContractError, load_contract
+from .contract import ContractError, folder_note, load_contract
 from .motion import RuntimeMotion, file_sha256
 from .observation import History, ObservationBuilder, quat_to_rpy
 
@@ -110,7 +110,7 @@ def resolve_onnx(contract_path: Path, contract: dict, onnx: str | os.PathLike | 
     if onnx is not None:
         chosen = Path(onnx)
         if not chosen.is_file():
-            raise ContractError(f"ONNX file {chosen} not found")
+            raise ContractError(folder_note(chosen, "ONNX file", ".onnx") or f"ONNX file {chosen} not found")
     else:
         stem = contract_path.with_suffix(".onnx")
         chosen = stem if stem.is_file() else recorded
