@@ -1021,6 +1021,32 @@ def test_a_reset_or_step_whose_sensors_fail_leaves_the_episode_as_it_was():
     runtime.step(_robots(2))
 
 
+def test_a_sensors_callable_returning_nan_is_refused_by_name_and_leaves_the_episode():
+    # A NaN from the sensors callable (a bias or noise model's bug) reached the policy, whose all-NaN output was
+    # then reported as a broken network to re-export, and ended the episode.
+    runtime = PolicyRuntime(_contract("ppo"))
+    runtime.reset(_robots(2), (0.5, 0.0))
+    clock, given = runtime.time.copy(), runtime.policy_input()
+
+    def nan_for_robot_1(signals):
+        vel = signals["joint_vel"].astype(np.float64)
+        vel[1, 0] = np.nan
+        return {**signals, "joint_vel": vel}
+
+    as_text = lambda s: {**s, "command": s["command"].astype(str)}  # noqa: E731
+    for broken, message in (
+        (nan_for_robot_1, r"returned NaN or inf \(in float32\) for signal 'joint_vel' of robot\(s\) \[1\].*fix the "
+                          "sensors callable"),
+        (as_text, r"returned dtype <U\d+ for signal 'command'"),
+    ):
+        runtime.sensors = broken
+        with pytest.raises(ContractError, match=message):
+            runtime.step(_robots(2))
+        assert (runtime.time == clock).all() and np.array_equal(runtime.policy_input(), given)
+    runtime.sensors = None
+    runtime.step(_robots(2))
+
+
 def test_sim_to_sim_arguments_are_checked_up_front_and_a_command_may_be_per_robot():
     # Zero robots, a negative count or perturbation and a per-robot command ended in numpy errors that named no
     # argument ('need at least one array to stack', 'scale < 0', a TypeError); 0.003 s ran one 4 ms step while the

@@ -142,7 +142,8 @@ class PolicyRuntime:
             must give); pass False only to run an ONNX file knowingly swapped in beside the contract.
         sensors: optional callable that maps the observation's signals ``{name: (N, *shape)}`` (in the contract's
             units) to the signals the policy observes, e.g. a simulation's sensor biases and noise
-            (:class:`~tocabi_torchrl.runtime.randomization.SensorModel`). The state is checked before it runs.
+            (:class:`~tocabi_torchrl.runtime.randomization.SensorModel`). The state is checked before it runs, and what
+            it returns after: every signal in its shape, finite in float32.
 
     Raises :class:`~tocabi_torchrl.runtime.contract.ContractError` for a bad contract, a missing or mismatched
     ONNX file (hash, input or output name and width) or motion, a robot state that is not N rows of finite
@@ -370,8 +371,9 @@ class PolicyRuntime:
         return self.observation.normalize(self.observation.raw(signals))
 
     def _sensed(self, signals: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """The ``sensors`` callable's view of ``signals`` {name: (N, *shape)}: every signal back with its shape,
-        else :class:`ContractError` (a wrong shape would fail deep in the observation, or be read silently)."""
+        """The ``sensors`` callable's view of ``signals`` {name: (N, *shape)}: every signal back with its shape, as
+        finite float32 numbers, else :class:`ContractError` (a wrong shape would fail deep in the observation, or be
+        read silently; a NaN would reach the policy and be reported as a broken network)."""
         out = self.sensors(signals)
         if not isinstance(out, dict):
             raise ContractError(f"the sensors callable returned {type(out).__name__}, not a dict: return "
@@ -382,6 +384,16 @@ class PolicyRuntime:
                 raise ContractError(f"the sensors callable returned {got} for signal {name!r}, expected its input's "
                                     f"shape {np.shape(value)}: return every signal it was given, in its shape (one "
                                     f"row per robot; this runtime runs {np.shape(value)[0]})")
+            sensed = np.asarray(out[name])
+            if sensed.dtype.kind not in "iuf":
+                raise ContractError(f"the sensors callable returned dtype {sensed.dtype} for signal {name!r}: return "
+                                    "real numbers (a float array)")
+            with np.errstate(over="ignore"):  # beyond float32's range is inf in the observation
+                finite = np.isfinite(sensed.astype(_F32)).reshape(len(sensed), -1).all(-1)
+            if not finite.all():
+                raise ContractError(f"the sensors callable returned NaN or inf (in float32) for signal {name!r} of "
+                                    f"robot(s) {np.flatnonzero(~finite).tolist()}, whose true readings are finite: fix "
+                                    "the sensors callable (its bias or noise); the policy is not run on them")
         return out
 
     def _act(self) -> Command:
