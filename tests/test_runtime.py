@@ -274,6 +274,25 @@ def test_the_sim_to_sim_driver_holds_a_diverged_robots_last_finite_state():
     assert same is held and finite.all()
 
 
+def test_a_contract_resaved_with_a_byte_order_mark_or_as_utf16_is_named_so(tmp_path):
+    # An editor or shell (Windows PowerShell's > writes UTF-16, its Out-File -Encoding utf8 a UTF-8 BOM) re-saved a
+    # sound contract; it was called "damaged or edited (corrupt)", with Python's codec error as the only hint.
+    text = robot.asset_path("policies", "tocabi_walk_torque.json").read_text(encoding="utf-8")
+    path = tmp_path / "walk.json"
+    for data, said in ((b"\xef\xbb\xbf" + text.encode(), "with a UTF-8 byte order mark"),
+                       (text.encode("utf-16"), r"as UTF-16 \(little-endian\)"),
+                       (text.encode("utf-16-be"), r"as UTF-16 \(it starts with a zero byte beside a character\)")):
+        path.write_bytes(data)
+        with pytest.raises(ContractError, match=rf"walk\.json: it is saved {said}, not as the UTF-8 without a byte "
+                                                r"order mark .*save it as UTF-8 without BOM"):
+            load_contract(path)
+    path.write_bytes(bytes(64))  # zeros, as a write lost in a power cut leaves: no text, cut short
+    with pytest.raises(ContractError, match=r"not valid JSON .*ends before its JSON object does \(truncated\)"):
+        load_contract(path)
+    path.write_text(text, encoding="utf-8")
+    assert load_contract(path)["action"]["control_mode"] == "torque"
+
+
 def test_contract_not_json_or_input_size_mismatch_or_foreign_files_fail_clearly(contract_copy, tmp_path):
     path, c = contract_copy
     path.write_text("{ not json }")

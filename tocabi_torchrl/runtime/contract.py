@@ -151,6 +151,12 @@ def load_contract(path: str | os.PathLike) -> dict:
     wrong = _policy_file_note(path)
     if wrong is not None:  # its bytes would read as "not valid JSON ('utf-8' codec ...)", which names no fix
         raise ContractError(wrong)
+    encoding = _encoding_note(path)
+    if encoding is not None:  # it would read as "not valid JSON" and "damaged or edited": its values may be sound
+        raise ContractError(f"cannot read policy contract {path}: it is saved {encoding}, not as the UTF-8 without a "
+                            "byte order mark that an export writes and JSON readers expect (an editor or shell saved "
+                            "it so, e.g. Windows PowerShell's > or Out-File): save it as UTF-8 without BOM, or copy "
+                            "the contract again from where it was exported")
     try:
         # JSON is UTF-8 by definition: the platform's default encoding (cp1252 on Windows) would misread it.
         contract = json.loads(path.read_text(encoding="utf-8"), parse_constant=_refuse_constant,
@@ -227,6 +233,26 @@ def _policy_file_note(path: Path) -> str | None:
         fix = (f"its contract {beside} is missing: export the policy again with `python -m tocabi_torchrl.export`, "
                "which writes both")
     return f"{path} is {kind}, not a policy contract (the .json an export writes beside the .onnx): {fix}"
+
+
+#: Byte order marks an editor or shell may put at the start of a re-saved file -> the encoding they mean.
+_BOMS = ((b"\xef\xbb\xbf", "with a UTF-8 byte order mark"), (b"\xff\xfe", "as UTF-16 (little-endian)"),
+         (b"\xfe\xff", "as UTF-16 (big-endian)"))
+
+
+def _encoding_note(path: Path) -> str | None:
+    """How ``path`` is encoded when it starts with a byte order mark or as UTF-16 (``"as UTF-16 (little-endian)"``),
+    else None (UTF-8, or not text at all: the JSON reader says what is wrong)."""
+    try:
+        with open(path, "rb") as file:
+            head = file.read(3)
+    except OSError:
+        return None  # reading it again below says what is wrong
+    # UTF-16 text without a mark: a zero byte beside a character ("{" is 00 7b or 7b 00). A file of zeros (a write
+    # lost in a power cut) is no text: the JSON reader calls it truncated.
+    if len(head) >= 2 and (head[0] == 0) != (head[1] == 0):
+        return "as UTF-16 (it starts with a zero byte beside a character)"
+    return next((said for bom, said in _BOMS if head.startswith(bom)), None)
 
 
 class _NonStandardJSON(ValueError):
