@@ -1172,3 +1172,14 @@ def test_run_sim2sim_takes_a_built_runtime_and_gives_the_numbers_of_the_path_bas
         run_sim2sim(fresh, num_robots=1, motion=contract, **kw)
     with pytest.raises(ValueError, match="sensors of its own"):
         run_sim2sim(PolicyRuntime(contract, sensors=lambda state: state), num_robots=1, **kw)
+
+
+def test_an_on_step_that_is_not_callable_is_refused_before_anything_is_built(tmp_path):
+    # It failed with "TypeError: 'int' object is not callable" at the first control period, after the policy, the
+    # model and every robot were built. Missing files show that the check comes first.
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+    for hook, shown in ((3, "int 3"), ("print", "str 'print'")):
+        with pytest.raises(ValueError, match=rf"on_step must be None or a callable on_step\(step, model, datas\) "
+                                             rf".* got {shown}; pass a function"):
+            run_sim2sim(tmp_path / "missing.json", model_path=tmp_path / "missing.xml", on_step=hook)

@@ -320,6 +320,7 @@ def run_sim2sim(contract_path: str | os.PathLike | PolicyRuntime, model_path: st
         server = start_server(host, port)  # tocabi_torchrl.viewer.server: the page from here on
         run_sim2sim(runtime, on_step=ExportedWatch(server, runtime.contract["timing"]["control_dt_s"]))
     """
+    _check_hook(on_step)  # before the policy, the model and the robots are built
     if not isinstance(contract_path, PolicyRuntime):
         runtime = PolicyRuntime(contract_path, motion=motion, onnx=onnx)
     else:
@@ -329,6 +330,16 @@ def run_sim2sim(contract_path: str | os.PathLike | PolicyRuntime, model_path: st
                     randomize, pushes, start_velocity, on_step)
     finally:
         runtime.sensors = None  # the run's sensor model (if any) does not outlive it
+
+
+def _check_hook(on_step) -> None:
+    """``ValueError`` (the driver's error for a bad argument) for an ``on_step`` that is neither None nor callable:
+    it was first called after the model and every robot were built and a control period was simulated, and failed
+    there with Python's bare "'int' object is not callable"."""
+    if on_step is not None and not callable(on_step):
+        raise ValueError(f"on_step must be None or a callable on_step(step, model, datas) called after each control "
+                         f"period, got {type(on_step).__name__} {on_step!r:.80}; pass a function (or the viewer's "
+                         "ExportedWatch), or None")
 
 
 def _given_runtime(runtime: PolicyRuntime, motion, onnx) -> PolicyRuntime:
