@@ -505,6 +505,21 @@ def test_a_given_randomisation_out_of_range_is_refused_by_name(kwargs, message):
         run_sim2sim(_contract("torque"), seconds=0.004, num_robots=1, **kwargs)
 
 
+def test_settings_of_another_type_are_refused_by_name_before_anything_is_built(tmp_path):
+    # A dict of the fields failed with "AttributeError: 'dict' object has no attribute 'validate'" after the policy
+    # was loaded. Missing files show that the check comes first.
+    missing = {"contract_path": tmp_path / "missing.json", "model_path": tmp_path / "missing.xml"}
+    for kwargs, message in (
+            (dict(pushes={"count": 3}), r"pushes must be None or a PushSettings \(tocabi_torchrl.runtime."
+                                        r"randomization.PushSettings\(count=3, .*\), got dict \{'count': 3\} \(for a "
+                                        r"dict of its fields: PushSettings\(\*\*fields\)\)"),
+            (dict(start_velocity={"joint_std": 0.5}), r"start_velocity must be None or a StartVelocity .*got dict"),
+            (dict(start_velocity=0.5), r"start_velocity must be None or a StartVelocity .*ROBUST_START\), got float "
+                                       r"0.5$")):
+        with pytest.raises(ValueError, match=message):
+            run_sim2sim(**missing, **kwargs)
+
+
 # ------------------------------------------------------------------------------------------------ the contract
 def test_a_velocity_kick_contract_round_trips_and_an_unknown_kind_is_refused(tmp_path):
     section = json.loads(json.dumps(_lab_section(count=3, speed=(0.5, 1.0), kind="velocity")))

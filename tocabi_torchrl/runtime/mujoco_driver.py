@@ -237,7 +237,8 @@ def resolve_randomization(randomize, contract: dict) -> rnd.Randomization:
     elif randomize == "tocabi_lab":
         chosen, name = rnd.TOCABI_LAB, "tocabi_lab"
     else:
-        raise ValueError(f"randomize is {randomize!r}; choose one of {list(RANDOMIZE)}")
+        raise ValueError(f"randomize is {randomize!r}; choose one of {list(RANDOMIZE)} or pass a "
+                         "tocabi_torchrl.runtime.randomization.Randomization")
     # Before anything is built: a negative motor constant or friction, a NaN bias or a negative clip ran as given.
     chosen.validate()
     mode = contract["action"]["control_mode"]
@@ -321,6 +322,7 @@ def run_sim2sim(contract_path: str | os.PathLike | PolicyRuntime, model_path: st
         run_sim2sim(runtime, on_step=ExportedWatch(server, runtime.contract["timing"]["control_dt_s"]))
     """
     _check_hook(on_step)  # before the policy, the model and the robots are built
+    _check_settings(pushes, start_velocity)
     if not isinstance(contract_path, PolicyRuntime):
         runtime = PolicyRuntime(contract_path, motion=motion, onnx=onnx)
     else:
@@ -340,6 +342,18 @@ def _check_hook(on_step) -> None:
         raise ValueError(f"on_step must be None or a callable on_step(step, model, datas) called after each control "
                          f"period, got {type(on_step).__name__} {on_step!r:.80}; pass a function (or the viewer's "
                          "ExportedWatch), or None")
+
+
+def _check_settings(pushes, start_velocity) -> None:
+    """``ValueError`` for ``pushes``/``start_velocity`` that are neither None nor the settings classes: a dict of
+    their fields failed with "'dict' object has no attribute 'validate'" (the values are checked in the run)."""
+    for name, value, cls, example in (("pushes", pushes, rnd.PushSettings, "PushSettings(count=3, window=(2.0, 7.0))"),
+                                      ("start_velocity", start_velocity, rnd.StartVelocity,
+                                       "StartVelocity(joint_std=0.5, base_std=0.1), or ROBUST_START")):
+        if value is not None and not isinstance(value, cls):
+            fields_given = f" (for a dict of its fields: {cls.__name__}(**fields))" if isinstance(value, dict) else ""
+            raise ValueError(f"{name} must be None or a {cls.__name__} (tocabi_torchrl.runtime.randomization."
+                             f"{example}), got {type(value).__name__} {value!r:.80}{fields_given}")
 
 
 def _given_runtime(runtime: PolicyRuntime, motion, onnx) -> PolicyRuntime:
