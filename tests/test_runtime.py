@@ -1183,3 +1183,20 @@ def test_an_on_step_that_is_not_callable_is_refused_before_anything_is_built(tmp
         with pytest.raises(ValueError, match=rf"on_step must be None or a callable on_step\(step, model, datas\) "
                                              rf".* got {shown}; pass a function"):
             run_sim2sim(tmp_path / "missing.json", model_path=tmp_path / "missing.xml", on_step=hook)
+
+
+def test_a_state_that_is_not_a_robot_state_is_refused_by_name():
+    # A dict of the fields, or None (a failed read), gave "AttributeError: 'dict' object has no attribute
+    # 'base_quat'" from reset and step, naming neither the argument nor RobotState.
+    runtime = PolicyRuntime(_contract("ppo"))
+    fields = vars(_robots(1))
+    for call in (lambda state: runtime.reset(state, (0.5, 0.0)), lambda state: runtime.step(state)):
+        with pytest.raises(ContractError, match=r"state must be a RobotState \(tocabi_torchrl.runtime.RobotState\("
+                                                r"base_quat=.*\), got dict \(for a dict of its fields: "
+                                                r"RobotState\(\*\*fields\)\) without base_quat, joint_pos"):
+            call(dict(fields))
+        with pytest.raises(ContractError, match=r"state must be a RobotState .* got NoneType without base_quat"):
+            call(None)
+        runtime.reset(RobotState(**fields), (0.5, 0.0))  # for step: a running episode
+    # An object with the fields is read as a RobotState, as before.
+    runtime.step(__import__("types").SimpleNamespace(**fields))

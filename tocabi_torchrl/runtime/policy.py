@@ -146,9 +146,9 @@ class PolicyRuntime:
             it returns after: every signal in its shape, finite in float32.
 
     Raises :class:`~tocabi_torchrl.runtime.contract.ContractError` for a bad contract, a missing or mismatched
-    ONNX file (hash, input or output name and width) or motion, a robot state that is not N rows of finite
-    float32-representable readings with unit-length quaternions, and a policy output with no finite entry for
-    some robot.
+    ONNX file (hash, input or output name and width) or motion, a robot state that is not a :class:`RobotState`
+    (or an object with its fields) of N rows of finite float32-representable readings with unit-length quaternions,
+    and a policy output with no finite entry for some robot.
     """
 
     def __init__(self, contract: str | os.PathLike, motion: str | os.PathLike | None = None, threads: int = 1,
@@ -314,6 +314,14 @@ class PolicyRuntime:
                             f"the reference motion's cycle (its start rows are {self.motion.init_rows.tolist()})")
 
     def _check_state(self, state: RobotState, n: int | None = None) -> int:
+        if not isinstance(state, RobotState):  # one isinstance per step; an object with the fields is read as one
+            missing = [f for f in ("base_quat", "joint_pos", "joint_vel", "foot_force", "foot_torque")
+                       if not hasattr(state, f)]
+            if missing:  # a dict or None failed with AttributeError: 'dict' object has no attribute 'base_quat'
+                as_dict = " (for a dict of its fields: RobotState(**fields))" if isinstance(state, dict) else ""
+                raise ContractError(f"state must be a RobotState (tocabi_torchrl.runtime.RobotState(base_quat=..., "
+                                    "joint_pos=..., joint_vel=..., foot_force=..., foot_torque=...), one row per "
+                                    f"robot), got {type(state).__name__}{as_dict} without {', '.join(missing)}")
         j = len(self.joint_names)
         shapes = {"base_quat": (4,), "joint_pos": (j,), "joint_vel": (j,), "foot_force": (2, 3),
                   "foot_torque": (2, 3)}
