@@ -1200,3 +1200,13 @@ def test_a_state_that_is_not_a_robot_state_is_refused_by_name():
         runtime.reset(RobotState(**fields), (0.5, 0.0))  # for step: a running episode
     # An object with the fields is read as a RobotState, as before.
     runtime.step(__import__("types").SimpleNamespace(**fields))
+
+
+def test_onnx_threads_must_be_an_int_of_at_least_zero(tmp_path):
+    # "2" failed with onnxruntime's own "incompatible function arguments" TypeError, and -1 was taken silently. A
+    # missing contract shows that the check comes first.
+    for threads, shown in (("2", "str '2'"), (-1, "int -1"), (1.5, "float 1.5"), (True, "bool True")):
+        with pytest.raises(ValueError, match=rf"threads must be an int >= 0 \(onnxruntime's intra-op threads; 0: its "
+                                             rf"own default\), got {re.escape(shown)}; pass e.g. threads=1"):
+            PolicyRuntime(tmp_path / "missing.json", threads=threads)
+    assert PolicyRuntime(_contract("ppo"), threads=np.int64(2)).session is not None  # numpy ints as before

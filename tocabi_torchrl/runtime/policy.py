@@ -8,6 +8,7 @@ are those of ``TocabiWalk._step`` and the default transforms, in the same order 
 
 from __future__ import annotations
 
+import numbers
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -137,7 +138,8 @@ class PolicyRuntime:
         motion: the reference motion file; default: the file of the name the contract gives (``reference_motion.name``)
             beside the ONNX file (where the export copies a motion of the run's own), else the shipped motion of that
             name (also when the one beside it has another hash). Its sha256 must match the contract's.
-        threads: onnxruntime intra-op threads.
+        threads: onnxruntime intra-op threads, an int >= 0 (0: onnxruntime's own default); ``ValueError``
+            otherwise.
         check_onnx_hash: check the ONNX file against the contract's ``policy.onnx_sha256`` (which every contract
             must give); pass False only to run an ONNX file knowingly swapped in beside the contract.
         sensors: optional callable that maps the observation's signals ``{name: (N, *shape)}`` (in the contract's
@@ -153,11 +155,15 @@ class PolicyRuntime:
 
     def __init__(self, contract: str | os.PathLike, motion: str | os.PathLike | None = None, threads: int = 1,
                  check_onnx_hash: bool = True, sensors=None, onnx: str | os.PathLike | None = None):
+        # Before anything is loaded: onnxruntime's TypeError for "2" names no argument, and it takes -1 silently.
+        if isinstance(threads, bool) or not isinstance(threads, numbers.Integral) or threads < 0:
+            raise ValueError(f"threads must be an int >= 0 (onnxruntime's intra-op threads; 0: its own default), got "
+                             f"{type(threads).__name__} {threads!r}; pass e.g. threads=1")
         path = Path(contract)
         self.sensors = sensors
         self.contract = c = load_contract(path)
         self.onnx_path = resolve_onnx(path, c, onnx, check_onnx_hash)
-        self.session = _onnx_session(self.onnx_path, threads, as_exported=check_onnx_hash,
+        self.session = _onnx_session(self.onnx_path, int(threads), as_exported=check_onnx_hash,
                                      opset=c["policy"].get("opset"))
         pol = c["policy"]
         for kind, ios, name, dim in (("input", self.session.get_inputs(), pol["input_name"], pol["input_dim"]),
