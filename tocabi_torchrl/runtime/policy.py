@@ -54,6 +54,11 @@ class Command:
         leg_kind: ``"torque"`` or ``"position"``.
         upper_targets: (N, U) float32 upper-body target angles [rad] for the upper-body PD.
         reference: (N, J) float32 reference joint angles [rad] at this period's start (for logging/metrics).
+
+    ``upper_targets`` is a view of ``reference[:, L:]`` (the upper body's reference columns), not a copy: an
+    in-place edit of one (e.g. clipping the upper-body targets) changes the other, so log ``reference`` before such
+    an edit or edit a copy (``cmd.upper_targets = cmd.upper_targets.copy()`` first). The runtime keeps neither: its
+    next step is the same either way. ``action`` and ``leg`` are arrays of their own.
     """
 
     action: np.ndarray
