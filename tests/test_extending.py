@@ -3,11 +3,11 @@ logged, the new controller's torques are what its law gives, and the new task tr
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import pytest
 import torch
+from doc_blocks import python_blocks, run_python_blocks
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 
@@ -15,14 +15,10 @@ DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 @pytest.fixture(scope="module")
 def namespace(tmp_path_factory):
     """Every python block of the page executed in one namespace (the task writes runs/ under a temporary cwd)."""
-    blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.DOTALL)
-    assert len(blocks) == 3, "extending.md has a reward term, a controller and a task block"
-    ns: dict = {}
-    with pytest.MonkeyPatch.context() as mp:
-        mp.chdir(tmp_path_factory.mktemp("extending"))
-        for block in blocks:
-            exec(compile(block, str(DOC), "exec"), ns)  # noqa: S102 - the project's own documentation
-        ns["cwd"] = Path.cwd()
+    assert len(python_blocks(DOC)) == 3, "extending.md has a reward term, a controller and a task block"
+    cwd = tmp_path_factory.mktemp("extending")
+    ns = run_python_blocks(DOC, cwd)
+    ns["cwd"] = cwd
     return ns
 
 
