@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
-import re
 from pathlib import Path
 
 import mujoco
 import numpy as np
 import pytest
 import torch
+from doc_blocks import python_blocks
 
 from tocabi_torchrl import make_env, robot
 from tocabi_torchrl.control import (ActuatorChain, ActuatorConfig, ControlInput, Delay, Friction, MotorConstant,
@@ -291,7 +291,7 @@ def test_the_doc_s_own_stage_runs_in_a_chain_and_the_env_takes_only_the_config_s
     # The guide promised a place for "your own actuator model", but the env builds its layer from ActuatorConfig
     # alone. The guide's example stage must run in a chain of its own as written, and the env must still refuse
     # any Actuator object (else the guide's "outside the env" is stale).
-    blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
+    blocks = python_blocks(DOC)
     block = next((b for b in blocks if "class TorqueOffset(Actuator)" in b), None)
     assert block is not None, "docs/concepts/controllers.md has no example of a stage of one's own"
     ns: dict = {}

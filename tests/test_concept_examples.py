@@ -5,7 +5,6 @@ in detail; here every block of both pages runs, the first ones included."""
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 
 import torch
@@ -14,10 +13,10 @@ from doc_blocks import python_blocks, run_python_blocks
 CONCEPTS = Path(__file__).resolve().parents[1] / "docs" / "concepts"
 
 
-def test_the_transforms_page_s_blocks_build_envs_that_step():
+def test_the_transforms_page_s_blocks_build_envs_that_step(tmp_path):
     page = CONCEPTS / "transforms.md"
     assert len(python_blocks(page)) == 2, "transforms.md has a keyword block and a composed-by-hand block"
-    ns = run_python_blocks(page, Path(tempfile.mkdtemp()))
+    ns = run_python_blocks(page, tmp_path)
     td = ns["env"].rollout(2, break_when_any_done=False)
     terms = td["next", "reward_terms"]
     assert sorted(terms.keys()) == ["alive", "body_vel", "foot_contact", "orientation", "qpos"]
@@ -30,11 +29,11 @@ def test_the_transforms_page_s_blocks_build_envs_that_step():
     assert td["next", "observation"].shape[:2] == (2, 2) and "body_vel" in td["next", "reward_terms"].keys()
 
 
-def test_the_controllers_page_s_blocks_build_envs_that_step():
+def test_the_controllers_page_s_blocks_build_envs_that_step(tmp_path):
     page = CONCEPTS / "controllers.md"
     assert len(python_blocks(page)) == 3, "controllers.md has an actuator config, a stage and a controller block"
     first = python_blocks(page)[0]
-    ns = run_python_blocks(page, Path(tempfile.mkdtemp()))
+    ns = run_python_blocks(page, tmp_path)
     assert ns["tau"].shape == (4, 12) and ns["chain"].draws == 24  # as the stage block's comments say
     td = ns["env"].rollout(2, break_when_any_done=False)  # the last block's env: the controller of one's own
     assert td["next", "leg_torque"].shape == (8, 2, 12)

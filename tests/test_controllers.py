@@ -4,12 +4,12 @@ trains two PPO iterations on the CPU; a bad controller is refused by name."""
 from __future__ import annotations
 
 import dataclasses
-import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from doc_blocks import python_blocks
 
 from tocabi_torchrl import robot
 from tocabi_torchrl.control import Controller, DirectTorque
@@ -20,7 +20,7 @@ DOC = Path(__file__).resolve().parents[1] / "docs" / "concepts" / "controllers.m
 
 def _doc_example() -> dict:
     """Run the python block of docs/concepts/controllers.md that defines PDFeedForward; return its namespace."""
-    blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
+    blocks = python_blocks(DOC)
     block = next(b for b in blocks if "class PDFeedForward" in b)
     namespace: dict = {}
     exec(compile(block, str(DOC), "exec"), namespace)  # noqa: S102 - the project's own documentation
