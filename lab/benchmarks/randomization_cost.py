@@ -6,18 +6,18 @@ without them, in one run (issue "Robust walking": >= 0.95x).
 Each round measures two variants, each in a fresh child process of ``train_throughput`` (the steady training rate
 after ``--warmup`` iterations, then the raw mujoco-warp ceiling of standing robots): ``on``, the preset as committed
 but with its kicks at full strength from the first step (``ppo.push_ramp=0 0``: a run of a few iterations would
-otherwise end before its curriculum lets a kick through), and ``off``, the same with every piece of
-:data:`OFF` at its identity (actuator layer, dynamics, sensor biases and noise, pushes, diverse starts). The order
-alternates by round (on, off, then off, on, ...), so that neither variant always runs first and a drift of the GPU's
-clocks hits both. Each round trains its own seed (``--seeds``; round r the seed r − 1 by default), the same for
-every variant of the round: the first iterations of a run are a few seconds of robots flailing under one initial
-policy, and how hard their physics is to solve depends on that policy (on an H200 at 4,096 envs, one round each of
-seeds 0-4 gave 0.941-0.956 for the same preset, docs/benchmarks/randomization/delay_average_cost). Reports every
-measurement, each round's ratio, and their median. ``--pieces dynamics
-sensors ...`` also measures ``off`` with each named piece switched on alone (``off+<piece>``), to see which piece
-costs what. ``--physics`` also measures each variant's physics alone (``solver_load`` in a child process: the
-trainer's steps run eagerly, timed, with the solver iterations of the slowest world), to tell what of the cost is
-the physics of kicked, randomised robots and what the rest of the step.
+otherwise end before its curriculum lets a kick through; a ``--set ppo.push_ramp`` applies instead), and ``off``,
+the same with every piece of :data:`OFF` at its identity (actuator layer, dynamics, sensor biases and noise, pushes,
+diverse starts). The order alternates by round (on, off, then off, on, ...), so that neither variant always runs
+first and a drift of the GPU's clocks hits both. Each round trains its own seed (``--seeds``; round r the seed r − 1
+by default), the same for every variant of the round: the first iterations of a run are a few seconds of robots
+flailing under one initial policy, and how hard their physics is to solve depends on that policy (on an H200 at
+4,096 envs, one round each of seeds 0-4 gave 0.941-0.956 for the same preset,
+docs/benchmarks/randomization/delay_average_cost). Reports every measurement, each round's ratio, and their median.
+``--pieces dynamics sensors ...`` also measures ``off`` with each named piece switched on alone (``off+<piece>``),
+to see which piece costs what. ``--physics`` also measures each variant's physics alone (``solver_load`` in a child
+process: the trainer's steps run eagerly, timed, with the solver iterations of the slowest world), to tell what of
+the cost is the physics of kicked, randomised robots and what the rest of the step.
 
 The report goes to ``<out>/<name>.{json,md}``; one that is there already (the committed one, or the previous variant's
 of a series of ``--set`` measurements) is refused before anything is measured unless ``--overwrite``: give each
@@ -55,11 +55,12 @@ def variants(preset: str, extra: list[str], pieces: tuple[str, ...] = ()) -> dic
     unknown = [name for name in pieces if name not in PIECES]
     if unknown:
         raise ValueError(f"unknown piece(s) {unknown}; choose from {list(PIECES)}")
-    base = [f"preset={preset}", *extra]
-    out = {"on": [*base, *FULL_KICKS], "off": [*base, *FULL_KICKS, *OFF]}
+    # The user's items after FULL_KICKS: a --set ppo.push_ramp applies in every variant (it was replaced, unsaid).
+    base = [f"preset={preset}", *FULL_KICKS, *extra]
+    out = {"on": [*base], "off": [*base, *OFF]}
     for name in pieces:
         kept = [item for item in OFF if not item.startswith(PIECES[name])]
-        out[f"off+{name}"] = [*base, *FULL_KICKS, *kept]
+        out[f"off+{name}"] = [*base, *kept]
     return out
 
 

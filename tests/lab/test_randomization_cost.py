@@ -234,3 +234,21 @@ def test_a_user_setting_that_off_replaces_is_not_called_given_twice(tmp_path, mo
         "env.control.actuators.delay_stride=2")  # off's identity comes last and applies
     randomization_cost.main([*argv, "ppo.lr=1e-4", "ppo.lr=2e-4", "--name", "twice"])
     assert capsys.readouterr().err.count("ppo.lr is given 2 times") == 1  # the user's own repeat, said once
+
+
+def test_a_user_s_push_ramp_applies_in_every_variant(tmp_path, monkeypatch, capsys):
+    # The variants' own ppo.push_ramp=0 0 came after the user's --set items and replaced a --set ppo.push_ramp in
+    # every variant; with the repeat warning kept to the user's own items, without a word.
+    sent = {}
+
+    def fake_child(module, args, env=None, nproc=None):
+        items = args[args.index("--set") + 1:]
+        sent["off" if "env.pushes.count=0" in items else "on"] = common.parse_overrides(items, warn_repeats=False)
+        return {"train_env_steps_per_s": 100.0}
+
+    monkeypatch.setattr(common, "run_child", fake_child)
+    randomization_cost.main(["--device", "cpu", "--num_envs", "8", "--rounds", "1", "--out", str(tmp_path),
+                             "--run_dir", str(tmp_path / "runs"), "--set", "ppo.push_ramp=100 200"])
+    assert sent["on"]["ppo.push_ramp"] == sent["off"]["ppo.push_ramp"] == (100, 200)
+    assert "given 2 times" not in capsys.readouterr().err
+    assert common.parse_overrides(randomization_cost.variants("robust", [])["on"])["ppo.push_ramp"] == (0, 0)
