@@ -7,10 +7,11 @@ beside them), one table.
 
 Each policy gets ``tocabi_torchrl.evaluation.robust`` (four cases of ``--num_envs`` robots, 8 s, one batch): its
 ``robust.json`` and ``robust.png`` go to ``<out>/<policy>/``, the table of every policy and case to
-``<out>/robust_policies.{json,md,png}`` with the command, date and hardware, and the seconds each test took (two
-policies of one file name, e.g. two runs' ``latest.pt``, are told apart by their run folder's name). The table is
-written again after each policy, so a call stopped partway keeps the policies it finished (marked partial). An
-``--out`` that holds a table already is refused unless ``--overwrite``.
+``<out>/robust_policies.{json,md,png}`` with the command, date and hardware, and the seconds each test took (the
+policies of one kind share one test env, so the first one's seconds include its build; two policies of one file
+name, e.g. two runs' ``latest.pt``, are told apart by their run folder's name). The table is written again after
+each policy, so a call stopped partway keeps the policies it finished (marked partial). An ``--out`` that holds a
+table already is refused unless ``--overwrite``.
 ``--cases nominal commands`` runs those cases alone (the ``diverse`` verdict of ``time_to_walk``); a policy then
 passes those cases, not the robust test. A case has the full test's start states and draws only when every case
 before it in the test's order runs too (``nominal commands`` do, though the commands case's re-drawn commands
@@ -80,7 +81,8 @@ def labels(policies: list[Path]) -> list[str]:
 def measure(policy: Path, out: Path, num_envs: int, seconds: float, device: str,
             cases: tuple[str, ...] | None = None, label: str | None = None, envs: dict | None = None) -> dict:
     """The robust test of one policy into ``out/label``, and its table row. ``envs``: the test envs kept across the
-    policies of one call (evaluate_robust_run's), so that marks of one run share one env."""
+    policies of one call (evaluate_robust_run's), so that marks of one run share one env; a row's seconds then
+    include the env's build for the first policy of its kind only."""
     from tocabi_torchrl.evaluation.robust import CASES, evaluate_robust_run, robust_passes
 
     label = label or policy.stem
@@ -173,7 +175,8 @@ def _plot(data: dict, path: Path) -> None:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m lab.benchmarks.robust_policies", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m lab.benchmarks.robust_policies",
+                                     description=__doc__.split("\n")[0])
     parser.add_argument("--policies", nargs="+", default=[str(POLICIES / f"{p}.pt") for p in SHIPPED],
                         help="checkpoints or run folders, which replace the default: the three shipped policies "
                              "trained on the nominal robot (assets/policies/*.pt but the robust one)")

@@ -721,8 +721,8 @@ def evaluate_robust_run(run: str | os.PathLike, num_envs: int = 1024, device: st
     :func:`.gait_test.fresh_eval_dir`. An ``out_dir`` that already holds a test's results (:data:`ROBUST_FILES`)
     raises :class:`~.output.OutputExistsError` unless ``replace`` (then files of the same name are replaced, others
     stay). ``envs``: as :func:`evaluate_robust`'s, a dict that keeps the test's env for the next policy tested with
-    it (the same robots and draws; building the env, and on CUDA capturing its step, takes longer than the test at
-    1,024 robots per case). Raises ``CheckpointError`` for a bad file and ``ValueError`` for a bad setting, before
+    it (the same robots and draws; the build is saved, while on CUDA each policy's step is captured again, with its
+    normaliser frozen). Raises ``CheckpointError`` for a bad file and ``ValueError`` for a bad setting, before
     building anything."""
     from ..rl.checkpoint import checkpoint_file, read_checkpoint
     from .gait_test import policy_dt
