@@ -518,6 +518,13 @@ def test_settings_of_another_type_are_refused_by_name_before_anything_is_built(t
                                        r"0.5$")):
         with pytest.raises(ValueError, match=message):
             run_sim2sim(**missing, **kwargs)
+    # A run config's PushConfig (its fields are PushSettings' own) is named with the conversion that takes it.
+    from tocabi_torchrl.envs.push_config import PushConfig
+
+    with pytest.raises(ValueError, match=r"for a training config's PushConfig: tocabi_torchrl.runtime.randomization"
+                                         r".settings_from\(PushSettings, value, 'pushes'\)"):
+        run_sim2sim(**missing, pushes=PushConfig(count=3))
+    assert rnd.settings_from(rnd.PushSettings, PushConfig(count=3), "pushes") == rnd.PushSettings(count=3)
 
 
 # ------------------------------------------------------------------------------------------------ the contract

@@ -25,7 +25,7 @@ import math
 import numbers
 import os
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -351,7 +351,10 @@ def _check_settings(pushes, start_velocity) -> None:
                                       ("start_velocity", start_velocity, rnd.StartVelocity,
                                        "StartVelocity(joint_std=0.5, base_std=0.1), or ROBUST_START")):
         if value is not None and not isinstance(value, cls):
-            fields_given = f" (for a dict of its fields: {cls.__name__}(**fields))" if isinstance(value, dict) else ""
+            fields_given = (f" (for a dict of its fields: {cls.__name__}(**fields))" if isinstance(value, dict)
+                            else f" (for a training config's {type(value).__name__}: tocabi_torchrl.runtime."
+                                 f"randomization.settings_from({cls.__name__}, value, '{name}'))"
+                            if is_dataclass(value) else "")
             raise ValueError(f"{name} must be None or a {cls.__name__} (tocabi_torchrl.runtime.randomization."
                              f"{example}), got {type(value).__name__} {value!r:.80}{fields_given}")
 
