@@ -454,3 +454,20 @@ def test_every_option_that_takes_one_of_a_few_names_takes_any_case():
     free = {"preset", "name", "run_dir", "device", "resume", "env.task.motion", "env.task.model_path", "viewer.host"}
     named = {path for path, kind in leaf_types(RunConfig()).items() if kind is str or kind == str | None}
     assert named - free <= set(field_choices()), named - free - set(field_choices())
+
+
+def test_the_env_and_the_runtime_refuse_the_same_start_velocity_stds():
+    # One rule (value_rules.START_VEL_STD) for the env's start velocities and the torch-free runtime's.
+    from tocabi_torchrl.envs.config import TaskConfig
+    from tocabi_torchrl.runtime.randomization import StartVelocity
+
+    for value in (-0.1, 10.5):
+        with pytest.raises(ValueError, match=r"env.task.start_base_vel_std \(a std\) must be a finite number in \[0"):
+            TaskConfig(start_base_vel_std=value).validate()
+        with pytest.raises(ValueError, match=r"start_velocity.base_std \[m/s\] must be a finite number in \[0"):
+            StartVelocity(base_std=value).validate()
+    for config in (TaskConfig(start_base_vel_std=float("inf")), StartVelocity(base_std=float("nan"))):
+        with pytest.raises(ValueError, match="base_std|base_vel_std"):
+            config.validate()
+    TaskConfig(start_base_vel_std=10.0).validate()
+    StartVelocity(base_std=10.0).validate()

@@ -13,7 +13,7 @@ from ..control.config import ActuatorConfig
 from ..sim.config import NCONMAX, RESET_PASSES
 from ..sim.dynamics_config import DynamicsRandomization
 from ..tree import OWN_NUMBER_CHECK, check_field_types
-from ..value_rules import ENV_RULES, check_env_value, plain_number
+from ..value_rules import ENV_RULES, START_VEL_STD, check_env_value, plain_number
 from .command_config import CommandConfig
 from .push_config import PushConfig
 
@@ -184,10 +184,8 @@ class TaskConfig:
             raise ValueError(f"env.task.max_episode_steps must be an int >= 1, got {m!r}")
         for name in ("min_pelvis_height", "min_neck_height", "max_neck_angle", "phase_rate_gain"):
             check_env_value(f"task.{name}", getattr(self, name))
-        for name in ("start_joint_vel_std", "start_base_vel_std"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and 0 <= value <= 10):
-                raise ValueError(f"env.task.{name} must be a std in [0, 10], got {value!r}")
+        for name in ("start_joint_vel_std", "start_base_vel_std"):  # the runtime's StartVelocity has the same rule
+            START_VEL_STD.check(getattr(self, name), f"env.task.{name} (a std)")
         motion = os.fspath(self.motion) if isinstance(self.motion, os.PathLike) else self.motion
         if motion is not None and (not isinstance(motion, str) or not motion.strip()):
             raise ValueError(f"env.task.motion must be a path to a .npz or reference .txt motion, or none for the "
