@@ -11,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -1199,7 +1200,7 @@ def test_a_state_that_is_not_a_robot_state_is_refused_by_name():
             call(None)
         runtime.reset(RobotState(**fields), (0.5, 0.0))  # for step: a running episode
     # An object with the fields is read as a RobotState, as before.
-    runtime.step(__import__("types").SimpleNamespace(**fields))
+    runtime.step(SimpleNamespace(**fields))
 
 
 def test_onnx_threads_must_be_an_int_of_at_least_zero(tmp_path):
