@@ -51,13 +51,16 @@ def spread(path: str, num_envs: int, seconds: float, kick_seconds: float, kick_s
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("checkpoints", nargs="+")
-    parser.add_argument("--num_envs", type=int, default=256)
-    parser.add_argument("--seconds", type=float, default=8.0)
-    parser.add_argument("--kick_seconds", type=float, default=0.1)
-    parser.add_argument("--kick_std", type=float, default=0.01)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("checkpoints", nargs="+", help="policy checkpoints (.pt) to measure, one after another")
+    parser.add_argument("--num_envs", type=int, default=256,
+                        help="robots per checkpoint (default: 256, the gait test's)")
+    parser.add_argument("--seconds", type=float, default=8.0, help="length of each walk [s] (default: 8)")
+    parser.add_argument("--kick_seconds", type=float, default=0.1,
+                        help="the first seconds of the walk, in which the action gets the noise [s] (default: 0.1)")
+    parser.add_argument("--kick_std", type=float, default=0.01,
+                        help="std of that Gaussian noise, in normalised action units (default: 0.01)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the noise's draws (default: 0)")
+    parser.add_argument("--out", type=Path, required=True, help="JSON to write (must not exist yet)")
     args = parser.parse_args(argv)
     if args.out.exists():
         raise SystemExit(f"error: {args.out} exists; give another --out (results are never overwritten)")

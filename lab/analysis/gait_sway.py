@@ -79,11 +79,12 @@ def measure(path: Path, num_envs: int, seconds: float, tail: float) -> dict:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--policy", type=Path, default=SHIPPED)
-    parser.add_argument("--num_envs", type=int, default=24)
-    parser.add_argument("--seconds", type=float, default=8.0)
+    parser.add_argument("--policy", type=Path, default=SHIPPED,
+                        help="policy checkpoint (.pt) (default: the shipped assets/policies/tocabi_walk_ppo.pt)")
+    parser.add_argument("--num_envs", type=int, default=24, help="robots in the case (default: 24)")
+    parser.add_argument("--seconds", type=float, default=8.0, help="length of the case [s] (default: 8)")
     parser.add_argument("--tail", type=float, default=4.0, help="seconds at the end the sway is measured over")
-    parser.add_argument("--out", type=Path)
+    parser.add_argument("--out", type=Path, help="JSON to write, must not exist yet (default: print only)")
     args = parser.parse_args(argv)
     if args.out is not None and args.out.exists():
         raise SystemExit(f"error: {args.out} exists; give another --out (results are never overwritten)")

@@ -40,7 +40,7 @@ def sim2sim_parser(doc: str, contract: Path, seed_help: str) -> argparse.Argumen
     ``--seconds``, ``--seed`` and ``--out``; add the script's own, then read them with :func:`sim2sim_args`."""
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--contract", type=Path, default=contract, help="exported policy's contract (.json)")
-    parser.add_argument("--num_robots", type=int, default=32)
+    parser.add_argument("--num_robots", type=int, default=32, help="robots per run (default: 32)")
     parser.add_argument("--seconds", type=float, default=4.0, help="length of each run [s]")
     parser.add_argument("--seed", type=int, default=7, help=seed_help)
     parser.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")

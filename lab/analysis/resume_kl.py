@@ -102,7 +102,8 @@ def main(argv=None) -> int:
     """The command line (module docstring); writes ``--out`` when given. Returns the exit status."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", required=True, type=Path, help="a run's checkpoint with its optimiser (latest.pt)")
-    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=tuple(VARIANTS))
+    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=tuple(VARIANTS),
+                   help="variants to resume, one after another (default: all)")
     p.add_argument("--num_envs", type=int, default=64, help="robots (a divisor of the run's count)")
     p.add_argument("--iterations", type=int, default=12, help="PPO iterations after the resume")
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")

@@ -325,7 +325,8 @@ def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Call
     ``--child`` it measures the first env count, prints the record as the ``RESULT`` line :func:`run_child` reads and
     publishes nothing (another benchmark's measurement in a process of its own)."""
     parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
-    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096])
+    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096],
+                        help="robot counts, one measurement each (default: 4096)")
     parser.add_argument("--iterations", type=int, default=3, help="training iterations measured")
     parser.add_argument("--warmup", type=int, default=3, help=f"training iterations first, not measured (>= {min_warmup})")
     parser.add_argument("--raw_steps", type=int, default=200,
@@ -335,9 +336,11 @@ def trainer_benchmark(argv, name: str, doc: str, measure: Callable, render: Call
                         help="config overrides (ablations): dotted paths, e.g. ppo.cuda_graph=off; preset=NAME "
                              "measures that training preset (default: default)")
     parser.add_argument("--device", default="cuda", help=device_help)
-    parser.add_argument("--run_dir", default=f"/tmp/tocabi_bench_runs/{name}")
-    parser.add_argument("--out", default=str(DOCS))
-    parser.add_argument("--name", default=name)
+    parser.add_argument("--run_dir", default=f"/tmp/tocabi_bench_runs/{name}",
+                        help=f"scratch folder of the training runs (default: /tmp/tocabi_bench_runs/{name})")
+    parser.add_argument("--out", default=str(DOCS), help="folder of the report <name>.json and .md (default: "
+                        "docs/benchmarks; a CPU measurement goes to runs/benchmarks_cpu instead)")
+    parser.add_argument("--name", default=name, help=f"the report's file name, <out>/<name>.json (default: {name})")
     parser.add_argument("--child", action="store_true", help="measure the first env count, report it, publish "
                                                              "nothing (internal: common.run_child)")
     args = parser.parse_args(argv)

@@ -72,14 +72,17 @@ def render(data: dict, out) -> str:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--num_envs", type=int, nargs="+", default=[1024, 4096, 16384])
-    parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--num_envs", type=int, nargs="+", default=[1024, 4096, 16384],
+                        help="robot counts, one measurement each (default: 1024 4096 16384)")
+    parser.add_argument("--steps", type=int, default=200,
+                        help="policy steps timed per env and step kind, after 10 untimed (default: 200)")
     parser.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
     parser.add_argument("--device", default="cuda", help="cuda, or cpu (a smoke run, or the CPU backends)")
     parser.add_argument("--backend", default="auto", choices=("auto", "warp", "mujoco"), help="physics backend")
     parser.add_argument("--reset_pass", default="full", choices=RESET_PASSES, help="env.sim.reset_pass of the envs")
     parser.add_argument("--name", default=NAME, help="report name (<out>/<name>.json, .md, .png)")
-    parser.add_argument("--out", default=str(common.DOCS))
+    parser.add_argument("--out", default=str(common.DOCS), help="folder of the report (default: docs/benchmarks; "
+                        "a CPU measurement goes to runs/benchmarks_cpu instead)")
     args = parser.parse_args(argv)
     if args.steps < 1 or args.raw_steps < 0 or min(args.num_envs) < 1:
         parser.error(f"--steps must be >= 1, --raw_steps >= 0 and --num_envs >= 1, got {args.steps}, "

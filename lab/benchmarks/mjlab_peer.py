@@ -107,14 +107,16 @@ def raw_rate(base, steps: int, sync, warmup: int = 10) -> float:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--task", default=TASK)
-    parser.add_argument("--num_envs", type=int, default=4096)
+    parser.add_argument("--task", default=TASK, help=f"mjlab's registered task to train (default: {TASK})")
+    parser.add_argument("--num_envs", type=int, default=4096, help="robots (parallel envs) (default: 4096)")
     parser.add_argument("--iterations", type=int, default=10, help="timed PPO iterations")
     parser.add_argument("--warmup", type=int, default=3, help="PPO iterations before the timed ones")
     parser.add_argument("--raw_steps", type=int, default=200, help="raw policy steps timed (0: no raw ceiling)")
     parser.add_argument("--device", default="cuda:0", help="as mjlab's train.py names it; cpu for a smoke run")
     parser.add_argument("--run_dir", default="/tmp/mjlab_peer_runs", help="scratch folder of rsl_rl's logs")
-    parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--out", type=Path, default=OUT,
+                        help="the report's JSON file; with --ours its page .md goes beside it (default: "
+                             "docs/benchmarks/mjlab_peer.json; off CUDA runs/benchmarks_cpu/mjlab_peer.json)")
     parser.add_argument("--ours", type=Path, help="our env only: merge this train_throughput report into --out")
     args = parser.parse_args(argv)
     if args.ours:

@@ -120,12 +120,15 @@ def render(data: dict, out: Path) -> str:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096, 16384])
-    parser.add_argument("--preset", default="default")
+    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096, 16384],
+                        help="robot counts (worlds), one measurement each (default: 4096 16384)")
+    parser.add_argument("--preset", default="default", help="training preset whose steps per env, networks, epochs "
+                        "and mini-batch size are measured (default: default)")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median reported)")
-    parser.add_argument("--device", default="cuda")
-    parser.add_argument("--name", default=NAME)
-    parser.add_argument("--out", default=str(common.DOCS))
+    parser.add_argument("--device", default="cuda", help="cuda, or cpu to check only that the probe runs")
+    parser.add_argument("--name", default=NAME, help=f"the report's file name, <out>/<name>.json (default: {NAME})")
+    parser.add_argument("--out", default=str(common.DOCS), help="folder of the report <name>.json and .md (default: "
+                        "docs/benchmarks; a CPU measurement goes to runs/benchmarks_cpu instead)")
     args = parser.parse_args(argv)
     common.require_cuda(parser, args.device, "two CUDA streams are what is measured; --device cpu only checks "
                                              "that the probe runs")

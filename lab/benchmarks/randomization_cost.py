@@ -103,10 +103,10 @@ def _measure(module: str, args, raw_steps: int, run_name: str, items: list[str])
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--preset", default="robust", help="the training preset whose randomisation is measured")
-    p.add_argument("--num_envs", type=int, default=4096)
+    p.add_argument("--num_envs", type=int, default=4096, help="robots (parallel envs) of every measurement")
     p.add_argument("--rounds", type=int, default=2, help="alternating on/off measurements of each variant")
-    p.add_argument("--iterations", type=int, default=10)
-    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--iterations", type=int, default=10, help="timed PPO iterations per measurement")
+    p.add_argument("--warmup", type=int, default=3, help="untimed PPO iterations before the timed ones")
     p.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed per measurement (0: skip)")
     p.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE", help="more overrides, for both variants")
     p.add_argument("--seeds", type=int, nargs="*", default=None,
@@ -117,7 +117,9 @@ def main(argv=None) -> None:
                    help="also measure each variant's physics alone (solver_load: eager steps, solver iterations)")
     p.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run of the script")
     p.add_argument("--run_dir", default="/tmp/tocabi_bench_runs", help="scratch folder of the training runs")
-    p.add_argument("--out", default=str(common.DOCS / "randomization"))
+    p.add_argument("--out", default=str(common.DOCS / "randomization"),
+                   help="folder of the report <name>.json and .md (default: docs/benchmarks/randomization; "
+                        "a CPU measurement goes to runs/benchmarks_cpu/randomization instead)")
     p.add_argument("--name", default=NAME, help=f"the report's file name, <out>/<name>.json (default: {NAME})")
     p.add_argument("--overwrite", action="store_true", help="replace a report <out>/<name>.json that exists already")
     args = p.parse_args(argv)

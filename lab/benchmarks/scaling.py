@@ -160,14 +160,20 @@ def _plot(measured, raw, fit, out: Path) -> None:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--kind", choices=("time", "memory", "raw"), default="time")
-    parser.add_argument("--backend", choices=("gpu", "cpu"), default="gpu")
-    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096])
+    parser.add_argument("--kind", choices=("time", "memory", "raw"), default="time",
+                        help="time: train 983,040 env-steps; memory: 3 iterations, memory peaks; raw: the raw "
+                             "mujoco-warp ceiling alone (default: time)")
+    parser.add_argument("--backend", choices=("gpu", "cpu"), default="gpu",
+                        help="gpu (mujoco-warp) or cpu (C MuJoCo, no GPU visible) (default: gpu)")
+    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096],
+                        help="robot counts, each measured in a fresh process, in the order given (default: 4096)")
     parser.add_argument("--max_minutes", type=float, default=9.0, help="a training run's own time limit")
     parser.add_argument("--redo", nargs="*", default=[], choices=STATUSES,
                         help="measure results of these statuses again")
     parser.add_argument("--hidden", default="", help="actor and critic sizes, e.g. 64,64 (default: the preset's)")
-    parser.add_argument("--results", default=str(common.DOCS / "scaling"))
+    parser.add_argument("--results", default=str(common.DOCS / "scaling"),
+                        help="folder of the per-measurement <kind>_<backend>_<envs>.json; --report writes "
+                             "scaling.{md,png} into its parent (default: docs/benchmarks/scaling)")
     parser.add_argument("--run_dir", default="/tmp/tocabi_scaling_runs", help="scratch folder of the training runs")
     parser.add_argument("--report", action="store_true", help="render scaling.{md,png} beside --results")
     args = parser.parse_args(argv)

@@ -187,7 +187,10 @@ def render(data: dict, out: Path) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--normalization", default="running", choices=("running", "fixed"))
+    parser.add_argument("--normalization", default="running", choices=("running", "fixed"),
+                        help="observation normaliser (transforms.normalization): running statistics updated in "
+                             "training, which the faults must not poison, or the fixed reference ones "
+                             "(default: running)")
     for name, default, text in (("preset", "default", "training preset"), ("num_envs", 16384, "worlds"),
                                 ("minutes", 8.0, "training time"), ("device", "cuda", "cuda or cpu"),
                                 ("fault_every", 1000, "policy steps between faults"), ("seed", 0, "fault placement"),

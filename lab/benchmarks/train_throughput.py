@@ -163,17 +163,20 @@ def render(data: dict, out) -> str:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096, 16384])
-    parser.add_argument("--iterations", type=int, default=10)
-    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096, 16384],
+                        help="robot counts (per rank), each measured in a fresh process (default: 4096 16384)")
+    parser.add_argument("--iterations", type=int, default=10,
+                        help="timed PPO iterations per measurement (the steady rate is taken over them)")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed PPO iterations before the timed ones")
     parser.add_argument("--raw_steps", type=int, default=200, help="raw mujoco-warp steps timed (0: skip)")
     parser.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE",
                         help="config overrides (ablations): dotted paths, e.g. ppo.cuda_graph=off; preset=NAME "
                              "measures that training preset (default: default)")
     parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run of the script")
     parser.add_argument("--run_dir", default="/tmp/tocabi_bench_runs", help="scratch folder of the training runs")
-    parser.add_argument("--out", default=str(common.DOCS))
-    parser.add_argument("--name", default=NAME)
+    parser.add_argument("--out", default=str(common.DOCS), help="folder of the report <name>.json and .md (default: "
+                        "docs/benchmarks; a CPU measurement goes to runs/benchmarks_cpu instead)")
+    parser.add_argument("--name", default=NAME, help=f"the report's file name, <out>/<name>.json (default: {NAME})")
     parser.add_argument("--nproc", type=int, nargs="+", default=[1],
                         help="data-parallel ranks (GPUs) per measurement; each K > 1 runs under torchrun")
     parser.add_argument("--ceiling", action="store_true",

@@ -125,7 +125,8 @@ separate process training the same config without any viewer. Requirement: strea
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096])
+    parser.add_argument("--num_envs", type=int, nargs="+", default=[4096],
+                        help="robot counts, each measured in a fresh process (default: 4096)")
     parser.add_argument("--iterations", type=int, default=24, help="timed iterations (a multiple of 4: ABBA blocks)")
     parser.add_argument("--warmup", type=int, default=4, help="iterations first, streaming, not timed")
     parser.add_argument("--worlds", type=int, default=16, help="worlds streamed (viewer.worlds, <= 64)")
@@ -135,7 +136,8 @@ def main(argv=None) -> None:
                         help="also train the same config without any viewer, in another process")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="config overrides")
     parser.add_argument("--device", default="cuda", help="cuda, or cpu for a smoke run of the script")
-    parser.add_argument("--run_dir", default=f"/tmp/tocabi_bench_runs/{NAME}")
+    parser.add_argument("--run_dir", default=f"/tmp/tocabi_bench_runs/{NAME}",
+                        help=f"scratch folder of the training runs (default: /tmp/tocabi_bench_runs/{NAME})")
     parser.add_argument("--out", required=True, help="folder of viewer_overhead.{json,md,png}")
     parser.add_argument("--child", choices=("alternating", "baseline"), help="one run in this process (internal)")
     args = parser.parse_args(argv)

@@ -66,7 +66,8 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m lab.benchmarks.viewer_play", description=__doc__.split("\n")[0])
     parser.add_argument("--num_envs", type=int, nargs="+", default=[64], help="robots on the page")
     parser.add_argument("--seconds", type=float, default=10.0, help="how long to count [s]")
-    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--device", default="cuda", help="device of the robots and the policy: cuda or cpu "
+                        "(default: cuda)")
     parser.add_argument("--backend", default=None, help="warp or mujoco (default: the device's)")
     parser.add_argument("--out", default=str(common.DOCS / "viewer_overhead"), help="folder of the report")
     args = parser.parse_args(argv)

@@ -507,7 +507,8 @@ def main(argv=None) -> None:
                         ", ".join(LIBRARIES))
     parser.add_argument("--num_envs", default="4096", help="comma-separated env counts (default: 4096)")
     parser.add_argument("--preset", default="default", help="task preset, a name of tocabi_torchrl.config.PRESETS (default: default)")
-    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--device", default="cuda", help="device of the training and the gait tests: cuda or cpu "
+                        "(default: cuda)")
     parser.add_argument("--max_minutes", type=float, default=30.0,
                         help="training cap of a row [min], summed over calls (default: 30)")
     parser.add_argument("--minutes", type=float, default=0.0,
@@ -517,7 +518,7 @@ def main(argv=None) -> None:
     parser.add_argument("--checkpoint_minutes", type=float, default=1.0,
                         help="snapshot period [min], at least 1/60: the snapshots are named by whole seconds "
                              "(default: 1)")
-    parser.add_argument("--eval_envs", type=int, default=256)
+    parser.add_argument("--eval_envs", type=int, default=256, help="robots in each gait test (default: 256)")
     parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
     parser.add_argument("--eval_minutes", type=float, default=0.0,
                         help="start no new gait test (one snapshot at one command) after this many minutes of "

@@ -273,9 +273,9 @@ def main(argv: list[str] | None = None) -> None:
     """CLI: measure the scenarios and write ``sim_buffers.{json,md}``, or re-render the markdown ``--from-json``."""
     p = argparse.ArgumentParser(prog="python -m lab.sim_measure.measure_buffers",
                                 description=__doc__.splitlines()[0])
-    p.add_argument("--num-worlds", type=_count, default=16)
+    p.add_argument("--num-worlds", type=_count, default=16, help="robots (worlds) per scenario (default: 16)")
     p.add_argument("--steps", type=_count, default=300, help="policy steps per scenario")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="device mujoco-warp runs on: cpu or cuda (default: cpu)")
     # choices + nargs="+": a misspelt or missing name is refused before minutes of measuring, not at its turn.
     p.add_argument("--scenarios", nargs="+", choices=list(SCENARIOS), default=list(SCENARIOS), metavar="NAME",
                    help=f"scenarios to measure (default: all of {', '.join(SCENARIOS)})")
