@@ -30,7 +30,7 @@ from tocabi_torchrl.rl.trainer import (_loss_keys, _update_losses, build_agent, 
 from tocabi_torchrl.rl.update_step import MinibatchStep
 
 N, T = 4, 6
-#: The robust preset at a tiny size, with the next GPU runs' overrides; kicks at full strength from the first steps.
+#: The robust preset at a tiny size, with the delay grid of runs 21-22; kicks at full strength from the first steps.
 TINY = {"env.num_envs": N, "env.control.actuators.delay_stride": 2, "ppo.steps_per_env": T, "ppo.minibatch_size": 8,
         "ppo.epochs": 2, "ppo.actor_hidden": (16, 16), "ppo.critic_hidden": (16, 16), "ppo.push_ramp": (0, 1),
         "env.pushes.window": (0.004, 0.02), "env.task.max_episode_steps": 6}
