@@ -888,3 +888,29 @@ def test_the_gait_tests_judge_falls_by_the_tasks_rules_whatever_the_policy_train
     for judged in (nominal_config(cfg), *(case_config(cfg, case) for case in CASES)):
         assert {name: getattr(judged.env.task, name) for name in FALL_RULES} == {
             name: getattr(TaskConfig, name) for name in FALL_RULES}
+
+
+@needs_policy
+def test_a_shared_test_env_gives_each_checkpoint_the_built_state_it_does_not_hold(tmp_path):
+    """Checkpoints tested one after another in one cached env (``envs=``): transform state loads leniently, so a
+    checkpoint without a buffer (here one saved without its env, ``save_checkpoint(..., env=None)``: no transform
+    state) kept what the checkpoint before it had loaded (here fixed normaliser statistics of its own) instead of
+    the value the env was built with, which a fresh env gives it."""
+    from tocabi_torchrl.evaluation.robust import RobustTestConfig, evaluate_robust_checkpoint
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint
+    from tocabi_torchrl.rl.symmetry import find_normalization
+    from tocabi_torchrl.transforms.normalize import FixedNormalization
+
+    saved = torch.load(REPO / "assets" / "policies" / "tocabi_walk_torque.pt", map_location="cpu", weights_only=True)
+    own = {k: v + 1.0 if k.endswith((".loc", ".scale")) else v for k, v in saved["transforms"].items()}
+    torch.save({**saved, "transforms": own}, tmp_path / "own_stats.pt")
+    torch.save({**saved, "transforms": {}}, tmp_path / "no_env.pt")
+    test = RobustTestConfig(num_envs=1, seconds=0.02, cases=("nominal",))
+    envs: dict = {}
+    for name in ("own_stats", "no_env"):
+        path = tmp_path / f"{name}.pt"
+        evaluate_robust_checkpoint(read_checkpoint(path), path, tmp_path / name, test=test, device="cpu", envs=envs,
+                                   progress=False)
+    (env,) = envs.values()
+    norm, built = find_normalization(env), FixedNormalization()
+    assert torch.equal(norm.loc, built.loc) and torch.equal(norm.scale, built.scale)

@@ -35,6 +35,7 @@ import dataclasses
 import json
 import math
 import os
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -359,6 +360,25 @@ def case_worlds(test: RobustTestConfig, device: torch.device | str = "cpu") -> d
     return {name: slice(i * n, (i + 1) * n) for i, name in enumerate(test.cases)}
 
 
+#: Each :func:`batch_env`'s transform state as built (by its transform chain), restored before every policy tested
+#: in it (:func:`_restore_built_state`).
+_BUILT_STATE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _restore_built_state(env) -> None:
+    """Put ``env``'s transform state back to what :func:`batch_env` built (nothing for another env), in place.
+
+    Checkpoint state loads leniently (a resumed run may add transforms): in an env kept for the next policy
+    (``evaluate_robust(..., envs=)``), a buffer that a checkpoint lacks (one saved without its env, say) would keep
+    the value the policy before it loaded (its fixed normaliser statistics, say), and a running normaliser would
+    look trained to a policy given without ``prepare_env``. Buffers are copied into, so their storage (which a
+    captured step graph reads) stays."""
+    transform = getattr(env, "transform", None)
+    built = _BUILT_STATE.get(transform) if transform is not None else None
+    if built is not None:
+        transform.load_state_dict(built)
+
+
 def batch_env(cfg: RunConfig, device: torch.device | str, test: RobustTestConfig = RobustTestConfig()):
     """One env of ``len(test.cases) × test.num_envs`` robots that runs every case at once (:func:`case_worlds`
     says whose worlds are whose): one batch keeps the GPU busier than a case at a time (at 1,024 robots the
@@ -388,6 +408,7 @@ def batch_env(cfg: RunConfig, device: torch.device | str, test: RobustTestConfig
     base.set_randomized_worlds(randomized.to(base.device))
     if base.pushes is not None:
         base.pushes.world_scale.copy_(kick.to(base.device))
+    _BUILT_STATE[env.transform] = {k: v.clone() for k, v in env.transform.state_dict().items()}
     return env
 
 
@@ -639,11 +660,12 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
     file).
 
     Every case runs at once in one env (:func:`batch_env`). ``envs``: a dict to keep that env in for reuse (e.g.
-    across checkpoints; built and stored under :func:`batch_key` when missing). ``prepare_env(env)``: called on the
-    env before the rollout, e.g. to load a checkpoint's normaliser statistics into it (without it, an env whose
-    running normaliser never saw a step raises ``ValueError``). ``device``: "auto" (the GPU if torch sees one, else
-    the CPU), "cuda", "cuda:K" or "cpu". ``progress``: a bar. ``source``: the checkpoint tested, recorded in the
-    report as ``checkpoint``."""
+    across checkpoints; built and stored under :func:`batch_key` when missing; its transform state is put back to
+    the state it was built with before each policy, so no policy meets what one before it loaded).
+    ``prepare_env(env)``: called on the env before the rollout, e.g. to load a checkpoint's normaliser statistics
+    into it (without it, an env whose running normaliser never saw a step raises ``ValueError``). ``device``:
+    "auto" (the GPU if torch sees one, else the CPU), "cuda", "cuda:K" or "cpu". ``progress``: a bar. ``source``:
+    the checkpoint tested, recorded in the report as ``checkpoint``."""
     from .gait_test import policy_dt
     from .plots import plot_robust
 
@@ -664,6 +686,7 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
     if key not in envs:
         envs[key] = batch_env(cfg, device, test)
     env = envs[key]
+    _restore_built_state(env)  # nothing a policy tested before in this env loaded stays for this one
     if prepare_env is not None:
         prepare_env(env)
     require_trained_statistics(env)  # without prepare_env, a running normaliser has no checkpoint's statistics
