@@ -35,7 +35,6 @@ import dataclasses
 import json
 import math
 import os
-import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -360,9 +359,8 @@ def case_worlds(test: RobustTestConfig, device: torch.device | str = "cpu") -> d
     return {name: slice(i * n, (i + 1) * n) for i, name in enumerate(test.cases)}
 
 
-#: Each :func:`batch_env`'s transform state as built (by its transform chain), restored before every policy tested
-#: in it (:func:`_restore_built_state`).
-_BUILT_STATE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+#: The attribute a :func:`batch_env` keeps its transform state as built in (:func:`_restore_built_state`).
+_BUILT_STATE = "_robust_built_transform_state"
 
 
 def _restore_built_state(env) -> None:
@@ -373,10 +371,9 @@ def _restore_built_state(env) -> None:
     the value the policy before it loaded (its fixed normaliser statistics, say), and a running normaliser would
     look trained to a policy given without ``prepare_env``. Buffers are copied into, so their storage (which a
     captured step graph reads) stays."""
-    transform = getattr(env, "transform", None)
-    built = _BUILT_STATE.get(transform) if transform is not None else None
+    built = getattr(env, _BUILT_STATE, None)
     if built is not None:
-        transform.load_state_dict(built)
+        env.transform.load_state_dict(built)
 
 
 def batch_env(cfg: RunConfig, device: torch.device | str, test: RobustTestConfig = RobustTestConfig()):
@@ -408,7 +405,7 @@ def batch_env(cfg: RunConfig, device: torch.device | str, test: RobustTestConfig
     base.set_randomized_worlds(randomized.to(base.device))
     if base.pushes is not None:
         base.pushes.world_scale.copy_(kick.to(base.device))
-    _BUILT_STATE[env.transform] = {k: v.clone() for k, v in env.transform.state_dict().items()}
+    setattr(env, _BUILT_STATE, {k: v.clone() for k, v in env.transform.state_dict().items()})
     return env
 
 
