@@ -30,10 +30,11 @@ from tocabi_torchrl.config import RunConfig
 from tocabi_torchrl.rl import checkpoint, trainer
 from tocabi_torchrl.rl.config import PRESETS, parse_tree, preset_config
 from tocabi_torchrl.rl.curves import read_metrics
+from tocabi_torchrl.evaluation.env_reuse import remember_built_state, restore_built_state
 from tocabi_torchrl.evaluation.gait_test import evaluate_policy
 from tocabi_torchrl.evaluation.output import json_safe
 from tocabi_torchrl.evaluation.record import fixed_command, nominal_config
-from tocabi_torchrl.tree import get_path, item_type, leaf_types
+from tocabi_torchrl.tree import get_path, item_type, leaf_types, to_dict
 
 from lab.new_files import write_new_files
 
@@ -367,12 +368,19 @@ def build_env(cfg, **kwargs):
 
 
 def gait_test(state: dict, path, command, out, num_envs: int, seconds: float, device: str, envs: dict) -> dict:
-    """The evaluation summary of checkpoint ``state`` at a fixed command; ``envs`` caches one env per command across
-    checkpoints (building one costs more than the test)."""
+    """The evaluation summary of checkpoint ``state`` at a fixed command; ``envs`` caches one env per command and
+    checkpoint config across checkpoints (building one costs more than the test)."""
     cfg, device = nominal_config(checkpoint.config_from_checkpoint(state, path)), torch.device(device)
-    if command not in envs:
-        envs[command] = trainer.build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
-    env = envs[command]
+    # Keyed by what build_env reads too: a checkpoint of another control mode or observation never meets an env
+    # built for another run's (a PD policy in a torque env falls).
+    key = (command, str(device), num_envs, json.dumps({"env": to_dict(cfg.env), "transforms": to_dict(cfg.transforms),
+                                                       "ppo": [cfg.ppo.critic_privileged, cfg.ppo.assist_pd_sensed]},
+                                                      sort_keys=True))
+    if key not in envs:
+        envs[key] = trainer.build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
+        remember_built_state(envs[key])
+    env = envs[key]
+    restore_built_state(env)  # nothing the checkpoint before this one loaded into the env stays
     agent = trainer.checkpoint_agent(state, cfg, env, path)
     return evaluate_policy(agent.actor, cfg, out, num_envs=num_envs, device=device, seconds=seconds, command=command,
                            video_envs=0, env=env, progress=False, source=path)

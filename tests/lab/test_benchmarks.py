@@ -589,3 +589,29 @@ def test_a_damaged_result_file_of_scaling_or_mjlab_peer_is_one_line_naming_it(tm
     with pytest.raises(SystemExit, match=rf"^mjlab_peer: {re.escape(str(peer))} is not valid JSON \(.*\): the file "
                                          r"is damaged; write it again with lab.benchmarks.mjlab_peer$"):
         mjlab_peer.merge(peer, ours)
+
+
+def test_gait_test_keeps_an_env_per_checkpoint_config_and_gives_each_its_built_state(tmp_path):
+    """common.gait_test caches its envs across a run's checkpoints. Keyed by the command alone, a PD checkpoint after
+    a torque one got the torque env; and transform state loads leniently, so a checkpoint saved without its env kept
+    the normaliser statistics the checkpoint before it had loaded."""
+    from tocabi_torchrl.rl.checkpoint import read_checkpoint
+    from tocabi_torchrl.rl.symmetry import find_normalization
+    from tocabi_torchrl.transforms.normalize import FixedNormalization
+
+    policies = Path(common.__file__).parents[2] / "assets" / "policies"
+    saved = torch.load(policies / "tocabi_walk_torque.pt", map_location="cpu", weights_only=True)
+    own = {k: v + 1.0 if k.endswith((".loc", ".scale")) else v for k, v in saved["transforms"].items()}
+    torch.save({**saved, "transforms": own}, tmp_path / "own_stats.pt")
+    torch.save({**saved, "transforms": {}}, tmp_path / "no_env.pt")
+    envs: dict = {}
+    for name in ("own_stats", "no_env"):
+        path = tmp_path / f"{name}.pt"
+        common.gait_test(read_checkpoint(path), path, (0.5, 0.0), tmp_path / name, 1, 0.02, "cpu", envs)
+    (env,) = envs.values()
+    norm, built = find_normalization(env), FixedNormalization()
+    assert torch.equal(norm.loc, built.loc) and torch.equal(norm.scale, built.scale)
+    pd = policies / "tocabi_walk_ppo.pt"
+    common.gait_test(read_checkpoint(pd), pd, (0.5, 0.0), tmp_path / "pd", 1, 0.02, "cpu", envs)
+    modes = sorted(e.base_env.cfg.control.mode for e in envs.values())
+    assert len(envs) == 2 and len(set(modes)) == 2, modes

@@ -51,6 +51,7 @@ from ..rotations import quat_rotate_inverse, quat_to_rpy
 from ..tree import to_dict
 from ..transforms.normalize import freeze_running_statistics
 from ..value_rules import NON_NEGATIVE, PUSH_KINDS, Range, check_seed
+from .env_reuse import remember_built_state, restore_built_state
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
 from .record import (GaitMetrics, first_action, fixed_command, nominal_config, policy_steps,
                      require_trained_statistics)
@@ -359,23 +360,6 @@ def case_worlds(test: RobustTestConfig, device: torch.device | str = "cpu") -> d
     return {name: slice(i * n, (i + 1) * n) for i, name in enumerate(test.cases)}
 
 
-#: The attribute a :func:`batch_env` keeps its transform state as built in (:func:`_restore_built_state`).
-_BUILT_STATE = "_robust_built_transform_state"
-
-
-def _restore_built_state(env) -> None:
-    """Put ``env``'s transform state back to what :func:`batch_env` built (nothing for another env), in place.
-
-    Checkpoint state loads leniently (a resumed run may add transforms): in an env kept for the next policy
-    (``evaluate_robust(..., envs=)``), a buffer that a checkpoint lacks (one saved without its env, say) would keep
-    the value the policy before it loaded (its fixed normaliser statistics, say), and a running normaliser would
-    look trained to a policy given without ``prepare_env``. Buffers are copied into, so their storage (which a
-    captured step graph reads) stays."""
-    built = getattr(env, _BUILT_STATE, None)
-    if built is not None:
-        env.transform.load_state_dict(built)
-
-
 def batch_env(cfg: RunConfig, device: torch.device | str, test: RobustTestConfig = RobustTestConfig()):
     """One env of ``len(test.cases) × test.num_envs`` robots that runs every case at once (:func:`case_worlds`
     says whose worlds are whose): one batch keeps the GPU busier than a case at a time (at 1,024 robots the
@@ -405,7 +389,7 @@ def batch_env(cfg: RunConfig, device: torch.device | str, test: RobustTestConfig
     base.set_randomized_worlds(randomized.to(base.device))
     if base.pushes is not None:
         base.pushes.world_scale.copy_(kick.to(base.device))
-    setattr(env, _BUILT_STATE, {k: v.clone() for k, v in env.transform.state_dict().items()})
+    remember_built_state(env)  # put back before each policy tested in it (evaluate_robust)
     return env
 
 
@@ -683,7 +667,7 @@ def evaluate_robust(actor, cfg: RunConfig, out_dir: str | os.PathLike, test: Rob
     if key not in envs:
         envs[key] = batch_env(cfg, device, test)
     env = envs[key]
-    _restore_built_state(env)  # nothing a policy tested before in this env loaded stays for this one
+    restore_built_state(env)  # nothing a policy tested before in this env loaded stays for this one
     if prepare_env is not None:
         prepare_env(env)
     require_trained_statistics(env)  # without prepare_env, a running normaliser has no checkpoint's statistics
