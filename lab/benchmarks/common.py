@@ -30,11 +30,11 @@ from tocabi_torchrl.config import RunConfig
 from tocabi_torchrl.rl import checkpoint, trainer
 from tocabi_torchrl.rl.config import PRESETS, parse_tree, preset_config
 from tocabi_torchrl.rl.curves import read_metrics
-from tocabi_torchrl.evaluation.env_reuse import remember_built_state, restore_built_state
+from tocabi_torchrl.evaluation.env_reuse import build_sections, remember_built_state, restore_built_state
 from tocabi_torchrl.evaluation.gait_test import evaluate_policy
 from tocabi_torchrl.evaluation.output import json_safe
 from tocabi_torchrl.evaluation.record import fixed_command, nominal_config
-from tocabi_torchrl.tree import get_path, item_type, leaf_types, to_dict
+from tocabi_torchrl.tree import get_path, item_type, leaf_types
 
 from lab.new_files import write_new_files
 
@@ -371,11 +371,7 @@ def gait_test(state: dict, path, command, out, num_envs: int, seconds: float, de
     """The evaluation summary of checkpoint ``state`` at a fixed command; ``envs`` caches one env per command and
     checkpoint config across checkpoints (building one costs more than the test)."""
     cfg, device = nominal_config(checkpoint.config_from_checkpoint(state, path)), torch.device(device)
-    # Keyed by what build_env reads too: a checkpoint of another control mode or observation never meets an env
-    # built for another run's (a PD policy in a torque env falls).
-    key = (command, str(device), num_envs, json.dumps({"env": to_dict(cfg.env), "transforms": to_dict(cfg.transforms),
-                                                       "ppo": [cfg.ppo.critic_privileged, cfg.ppo.assist_pd_sensed]},
-                                                      sort_keys=True))
+    key = (command, str(device), num_envs, build_sections(cfg))  # a checkpoint of another config gets its own env
     if key not in envs:
         envs[key] = trainer.build_env(cfg, device, num_envs=num_envs, command=fixed_command(command))
         remember_built_state(envs[key])

@@ -3,7 +3,8 @@
 A checkpoint's transform state loads leniently (a resumed run may add transforms, ``apply_checkpoint``), so in an env
 kept for the next policy a buffer that a checkpoint lacks (one saved without its env, say) would keep what the policy
 before it loaded (its fixed normaliser statistics, say), and a running normaliser would look trained to a policy
-given none. An evaluation that reuses an env calls :func:`remember_built_state` once when it builds it and
+given none. An evaluation that reuses an env keeps it under a key with :func:`build_sections` (so that a policy of
+another config never meets it), calls :func:`remember_built_state` once when it builds it and
 :func:`restore_built_state` before each policy.
 
 >>> import torch
@@ -21,6 +22,10 @@ given none. An evaluation that reuses an env calls :func:`remember_built_state` 
 """
 from __future__ import annotations
 
+import json
+
+from ..tree import to_dict
+
 #: The attribute the env keeps its built transform state in.
 _BUILT_STATE = "_built_transform_state"
 
@@ -36,3 +41,11 @@ def restore_built_state(env) -> None:
     built = getattr(env, _BUILT_STATE, None)
     if built is not None:
         env.transform.load_state_dict(built)
+
+
+def build_sections(cfg) -> str:
+    """What building a run config's env reads (its ``env`` and ``transforms`` sections, the privileged critic's
+    observation and the assist's sensed joints), as a string for a cache key: a policy of another control mode,
+    observation or normalisation never meets an env built for another (a PD policy run in a torque env falls)."""
+    return json.dumps({"env": to_dict(cfg.env), "transforms": to_dict(cfg.transforms),
+                       "ppo": [cfg.ppo.critic_privileged, cfg.ppo.assist_pd_sensed]}, sort_keys=True)

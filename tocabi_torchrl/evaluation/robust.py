@@ -32,7 +32,6 @@ its episode, so the same policy gets the same numbers from the same robot count 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 from collections.abc import Callable, Sequence
@@ -48,10 +47,9 @@ from ..config import RunConfig
 from ..envs.cycle_velocity import gait_cycle_steps, heading_velocity
 from ..rl.trainer import resolve_device  # gait_test, imported below, imports the trainer already
 from ..rotations import quat_rotate_inverse, quat_to_rpy
-from ..tree import to_dict
 from ..transforms.normalize import freeze_running_statistics
 from ..value_rules import NON_NEGATIVE, PUSH_KINDS, Range, check_seed
-from .env_reuse import remember_built_state, restore_built_state
+from .env_reuse import build_sections, remember_built_state, restore_built_state
 from .gait_test import ROBUST_CRITERIA, fresh_eval_dir, length_note, summary_json, tested_on
 from .record import (GaitMetrics, first_action, fixed_command, nominal_config, policy_steps,
                      require_trained_statistics)
@@ -343,10 +341,7 @@ def batch_key(test: RobustTestConfig, cfg: RunConfig, device: torch.device | str
     another control mode, observation or normalisation never meets an env built for another (a PD policy run in a
     torque env once fell in every case), and the ``device`` the env is built on, so that a cache shared across
     devices never hands back an env on another device than the one asked for."""
-    built = batch_config(cfg, test)
-    sections = json.dumps({"env": to_dict(built.env), "transforms": to_dict(built.transforms),
-                           "ppo": [cfg.ppo.critic_privileged, cfg.ppo.assist_pd_sensed]},  # what build_env reads
-                          sort_keys=True)
+    sections = build_sections(batch_config(cfg, test))
     place = torch.device(device)
     if place.type == "cuda" and place.index is None:  # "cuda" is the current GPU: one env, not one per spelling
         place = torch.device("cuda", torch.cuda.current_device())
