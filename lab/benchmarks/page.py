@@ -363,9 +363,9 @@ def envs_16k_cost(docs: Path) -> list[str]:
                      f"seeds {', '.join(map(str, m['seeds']))}: {rounds}; {m['date']}, {m['gpu']}; "
                      f"[report]({path.removesuffix('.json')}.md)).")
     if lines:
-        lines += [f"- The preset keeps 4,096 envs and the delay on every substep: from-scratch runs at 16,384 envs with "
-                  f"48 and with 12 steps per env fell four to twenty times as often per env step as the preset at "
-                  f"4,096 and were stopped at 8 minutes ([details]({ENVS_16K}/README.md)).", ""]
+        lines += [f"- The preset keeps 4,096 envs and the delay on every substep: from-scratch runs at 16,384 envs "
+                  f"with 48 and with 12 steps per env fell four to twenty times as often per env step as the preset "
+                  f"at 4,096 and were stopped at 8 minutes ([details]({ENVS_16K}/README.md)).", ""]
     return lines
 
 
