@@ -801,3 +801,47 @@ def _same_version(a: str, b: str) -> bool:
     a, b = _versions._parse(a), _versions._parse(b)
     width = max(len(a), len(b))
     return a + (0,) * (width - len(a)) == b + (0,) * (width - len(b))
+
+
+def test_the_robust_gait_test_runs_on_any_librarys_policy(tmp_path):
+    # The recipes' policies (another library's network) could only get the standard test: play.py refuses their
+    # files, so a --preset robust run had no way to the robust test's verdict.
+    from tocabi_torchrl.adapters.evaluate import evaluate_actions
+    from tocabi_torchrl.evaluation.robust import CASES, robust_passes
+
+    def act(obs):  # (N, 237) -> (N, 13): the zero action, deterministic as a policy's mean
+        return torch.zeros(obs.shape[0], 13, device=obs.device)
+
+    report = evaluate_actions(act, tmp_path, num_envs=2, device="cpu", seconds=0.1, progress=False, test="robust",
+                              source="policy.pt")
+    saved = json.loads((tmp_path / "robust.json").read_text())
+    assert (tmp_path / "robust.png").is_file() and not (tmp_path / "summary.json").exists()
+    assert report["test"] == saved["test"] == "robust" and saved["checkpoint"] == "policy.pt"
+    assert list(saved["cases"]) == list(CASES) and saved["settings"]["num_envs"] == 2
+    assert report["passes"] is saved["passes"] is robust_passes(saved)
+
+
+def test_a_gait_test_the_recipes_do_not_know_or_a_standard_option_for_the_robust_one_is_refused(tmp_path):
+    # Each is named with its fix before any policy loads or env is built; a command would have been ignored by the
+    # robust test, whose commands are its cases'.
+    from tocabi_torchrl.adapters.evaluate import evaluate_actions, evaluate_policy_file
+
+    def load_actor(policy):
+        raise AssertionError("the policy loaded before its test's options were checked")
+
+    act = lambda obs: obs[:, :13]  # noqa: E731
+    with pytest.raises(ValueError, match=r"test must be 'standard' \(the 8 s test at one command\) or 'robust' .*"
+                                         r"got 'Robust'"):
+        evaluate_actions(act, tmp_path, num_envs=1, device="cpu", test="Robust")
+    with pytest.raises(ValueError, match=r"test must be 'standard' .* or 'robust' .*got 'pushed'"):
+        evaluate_policy_file(load_actor, "policy.pt", tmp_path, num_envs=1, device="cpu", test="pushed")
+    fix = r"the robust test's commands are its cases' \(leave command out, or pass test='standard'\)"
+    with pytest.raises(ValueError, match=r"command=\(0\.3, 0\.0\) sets the standard test's command; " + fix):
+        evaluate_actions(act, tmp_path, num_envs=1, device="cpu", command=(0.3, 0.0), test="robust")
+    with pytest.raises(ValueError, match=r"command=\(0\.3, 0\.0\) sets the standard test's command; " + fix):
+        evaluate_policy_file(load_actor, "policy.pt", tmp_path, num_envs=1, device="cpu", command=(0.3, 0.0),
+                             test="robust")
+    with pytest.raises(ValueError, match=r"video_envs=2 sets the standard test's video; the robust test records none "
+                                         r"\(leave video_envs out, or pass test='standard'\)"):
+        evaluate_actions(act, tmp_path, num_envs=1, device="cpu", video_envs=2, test="robust")
+    assert list(tmp_path.iterdir()) == []
