@@ -15,7 +15,7 @@ first half of the preset's env-step budget, then 0.05), set after each update fr
 learned. ``--std learned`` is rsl_rl's own way (a learned std starting at 0.2); on one H200 it fell to 0.03 and the
 policy had not walked after 22 minutes (docs/other-libraries.md). Writes rsl_rl's own logs and model_*.pt under
 <out>/rsl_rl, the policy as <out>/policy.pt (tensors only, tocabi_torchrl.adapters.policy_file) and the gait test
-under <out>/eval/.
+under <out>/eval/ (``--eval_test robust``: the robust gait test, robust.json and robust.png, docs/evaluation.md).
 
 A run can be split over several calls: ``--resume`` continues the run in ``--out`` from the state its previous call
 saved (see ``tocabi_torchrl.adapters.recipe``), with ``--max_minutes`` the cap on the total training time:
@@ -70,6 +70,7 @@ from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     call_seed,
     check_args,
     check_out_dir,
+    eval_text,
     exit_status,
     finish_call,
     fresh_dir,
@@ -262,7 +263,7 @@ def main(argv=None) -> dict:
     result = finish_call(out, args, meta, settings, buffer.getvalue(), save, evaluate, interrupted)
     env.close()
     print(f"rsl_rl: {meta['iterations']} PPO iterations in {seconds:.1f} s of training; gait test: "
-          f"{result.get('eval', 'skipped')}")
+          f"{eval_text(result)}")
     return result
 
 
@@ -299,7 +300,8 @@ def load_actor(policy: str):
     return meta, act
 
 
-#: ``evaluate(policy, out_dir, **options)``: the 8 s gait test of a ``policy.pt`` this recipe wrote.
+#: ``evaluate(policy, out_dir, **options)``: the gait test (``test="standard"`` or ``"robust"``) of a ``policy.pt``
+#: this recipe wrote.
 evaluate = functools.partial(evaluate_policy_file, load_actor)
 
 

@@ -11,7 +11,8 @@ critic (orthogonal init, value head gain 0.01), LR 1e-5 -> 2e-7 linear with the 
 the scheduled (not learned) std: 0.1 -> 0.05 over the first half of training, then 0.05, set before each update.
 SB3 keeps numpy arrays on the host: each step copies observations and rewards off the env's device (stated in the
 per-library table). Writes SB3's own zip (<out>/sb3_model.zip: loading it unpickles SB3's saved objects, so load
-only your own), the policy as <out>/policy.pt (tensors only) and the gait test under <out>/eval/.
+only your own), the policy as <out>/policy.pt (tensors only) and the gait test under <out>/eval/ (``--eval_test
+robust``: the robust gait test, robust.json and robust.png, docs/evaluation.md).
 
 ``--resume`` continues the run in ``--out`` from the training state its previous call saved in <out>/resume/:
 the policy's weights (the scheduled std included), the Adam state of both parameter groups, ``num_timesteps`` and
@@ -71,6 +72,7 @@ from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     call_seed,
     check_args,
     check_out_dir,
+    eval_text,
     exit_status,
     finish_call,
     keep_previous,
@@ -278,7 +280,7 @@ def main(argv=None) -> dict:
                          also_save=save_sb3_zip)
     env.close()
     print(f"sb3: {meta['env_steps']} env steps in {meta['train_seconds']:.1f} s; gait test: "
-          f"{result.get('eval', 'skipped')}")
+          f"{eval_text(result)}")
     return result
 
 
@@ -314,7 +316,8 @@ def load_actor(policy: str):
     return meta, act
 
 
-#: ``evaluate(policy, out_dir, **options)``: the 8 s gait test of a ``policy.pt`` this recipe wrote.
+#: ``evaluate(policy, out_dir, **options)``: the gait test (``test="standard"`` or ``"robust"``) of a ``policy.pt``
+#: this recipe wrote.
 evaluate = functools.partial(evaluate_policy_file, load_actor)
 
 

@@ -11,7 +11,8 @@ registry. Hyper-parameters mirror the TorchRL ``default`` preset (48-step rollou
 49,152 at 4,096 envs, gamma 0.995, lambda 0.95, KL-adaptive LR from 1e-3 at KL 0.01, 400-200-100 ELU networks
 initialised as the preset's, time-limit bootstrapping from the ended episode's last observation); the std is learned
 from 0.2. Writes skrl's own logs and checkpoints under <out>/skrl, the policy as <out>/policy.pt (tensors only) and
-the gait test under <out>/eval/.
+the gait test under <out>/eval/ (``--eval_test robust``: the robust gait test, robust.json and robust.png,
+docs/evaluation.md).
 
 ``--resume`` continues the run in ``--out`` from skrl's agent checkpoint of its previous call (``--max_minutes``
 caps the total training time over all calls):
@@ -62,6 +63,7 @@ from tocabi_torchrl.adapters.recipe import (  # noqa: E402
     call_seed,
     check_args,
     check_out_dir,
+    eval_text,
     exit_status,
     finish_call,
     fresh_dir,
@@ -214,7 +216,7 @@ def main(argv=None) -> dict:
     result = finish_call(out, args, meta, settings, buffer.getvalue(), save, evaluate, interrupted)
     env.close()
     print(f"skrl: {meta['env_steps']} env steps in {meta['train_seconds']:.1f} s; gait test: "
-          f"{result.get('eval', 'skipped')}")
+          f"{eval_text(result)}")
     return result
 
 
@@ -249,7 +251,8 @@ def load_actor(policy: str):
     return meta, act
 
 
-#: ``evaluate(policy, out_dir, **options)``: the 8 s gait test of a ``policy.pt`` this recipe wrote.
+#: ``evaluate(policy, out_dir, **options)``: the gait test (``test="standard"`` or ``"robust"``) of a ``policy.pt``
+#: this recipe wrote.
 evaluate = functools.partial(evaluate_policy_file, load_actor)
 
 

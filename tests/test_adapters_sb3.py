@@ -465,3 +465,27 @@ def test_a_switch_that_is_not_a_bool_is_refused():
     # bool("no") is True: reward_terms_in_infos="no" switched the per-env dicts on.
     with pytest.raises(ValueError, match="reward_terms_in_infos must be True or False, got 'no'"):
         TocabiSB3VecEnv(2, "cpu", reward_terms_in_infos="no")
+
+
+def test_recipe_runs_the_robust_gait_test_and_a_resume_may_test_otherwise(tmp_path, capsys):
+    # --eval_test robust: a --preset robust run trained through a library got only the standard test's verdict (and
+    # play.py refuses its policy.pt). The option is no training setting: a resume with another test is not refused,
+    # and the earlier call's results are kept beside the new ones.
+    import json
+
+    recipe = load_recipe("train_sb3")
+    out = tmp_path / "run"
+    small = ["--out", str(out), "--device", "cpu", "--num_envs", "2", "--iterations", "1", "--n_steps", "4",
+             "--batch_size", "4", "--hidden", "8", "--eval_envs", "2", "--eval_seconds", "0.1"]
+    result = recipe.main([*small, "--eval_test", "robust"])
+    report = json.loads((out / "eval" / "robust.json").read_text())
+    assert result["eval"]["test"] == report["test"] == "robust" and not (out / "eval" / "summary.json").exists()
+    assert report["checkpoint"] == str(out / "policy.pt") and report["settings"]["num_envs"] == 2
+    assert json.loads((out / "result.json").read_text())["eval"]["passes"] == report["passes"]
+    printed = capsys.readouterr().out
+    assert "robust gait test (0.1 s, 2 robots per case)" in printed and "nominal     survival" in printed
+    assert f"results: {out / 'eval' / 'robust.json'}" in printed
+    assert "gait test: robust, does not walk yet (report above)" in printed  # 0.1 s walks no 2.6 m
+    again = recipe.main([*small, "--resume"])  # the standard test, on the same policy
+    assert again["train"]["calls"] == 2 and (out / "eval" / "summary.json").is_file()
+    assert (out / "eval_call1" / "robust.json").is_file()  # the first call's, kept

@@ -116,8 +116,14 @@ def base_parser(description: str, num_envs: int, iterations: int,
                         help="continue the run in --out (from its resume.json) instead of starting a new one; the "
                              "task and network options must be the ones it started with")
     parser.add_argument("--eval_envs", type=int, default=256,
-                        help="robots in the final 8 s gait test (default: 256; 0 = skip it)")
-    parser.add_argument("--eval_seconds", type=float, default=8.0, help="length of the gait test [s] (default: 8)")
+                        help="robots in the gait test after training, per case in the robust test (default: 256; "
+                             "0 = skip it)")
+    parser.add_argument("--eval_seconds", type=float, default=8.0,
+                        help="length of the gait test [s], of each case in the robust test (default: 8)")
+    parser.add_argument("--eval_test", choices=("standard", "robust"), default="standard",
+                        help="the gait test after training: standard, the 8 s test at one command (summary.json, "
+                             "knees.png); robust, diverse starts with the nominal, changing-command, randomised and "
+                             "pushed cases (robust.json, robust.png; docs/evaluation.md) (default: standard)")
     return parser
 
 

@@ -38,6 +38,7 @@ __all__ = [
     "call_seed",
     "check_args",
     "check_out_dir",
+    "eval_text",
     "exit_status",
     "finish_call",
     "fresh_dir",
@@ -250,9 +251,10 @@ def finish_call(out: Path, args: argparse.Namespace, meta: dict, settings: dict,
     training ``state`` and ``resume.json`` (:func:`write_resume`, with ``settings`` and ``meta``'s counters), then
     ``policy.pt`` by ``save(path)`` (and the recipe's own files by ``also_save(tag)``, ``tag`` naming this call for
     :func:`keep_previous`), then unless ``interrupted`` (what stopped the call) or ``--eval_envs 0`` the
-    gait test ``evaluate(policy, out_dir, num_envs=, device=, seconds=)``, then ``result.json``. A resumed call keeps
-    the earlier call's files (:func:`keep_previous`). ``meta["calls"]`` is this call's count; returns ``result``
-    (``{"train": meta, "eval": ... or "interrupted": ...}``)."""
+    gait test ``evaluate(policy, out_dir, num_envs=, device=, seconds=, test=)`` (``--eval_test``; the robust test's
+    report is printed), then ``result.json``. A resumed call keeps the earlier call's files (:func:`keep_previous`).
+    ``meta["calls"]`` is this call's count; returns ``result`` (``{"train": meta, "eval": ... or "interrupted":
+    ...}``)."""
     calls = int(meta["calls"]) - 1  # earlier calls: their files get this tag
     write_resume(out, state, {"settings": settings, **{k: meta[k] for k in RESUME_COUNTERS}})
     save(keep_previous(out / "policy.pt", f"call{calls}"))
@@ -262,10 +264,24 @@ def finish_call(out: Path, args: argparse.Namespace, meta: dict, settings: dict,
     if interrupted is not None:
         result["interrupted"] = interrupted
     elif args.eval_envs > 0:
-        result["eval"] = evaluate(out / "policy.pt", keep_previous(out / "eval", f"call{calls}"),
-                                  num_envs=args.eval_envs, device=args.device, seconds=args.eval_seconds)
+        folder = keep_previous(out / "eval", f"call{calls}")
+        result["eval"] = evaluate(out / "policy.pt", folder, num_envs=args.eval_envs, device=args.device,
+                                  seconds=args.eval_seconds, test=args.eval_test)
+        if args.eval_test == "robust":
+            from ..evaluation.robust import robust_report_text
+
+            print(robust_report_text(result["eval"], folder), flush=True)
     write_json(keep_previous(out / "result.json", f"call{calls}"), result)
     return result
+
+
+def eval_text(result: dict):
+    """What a recipe's last line says of its gait test: the standard test's summary, the robust test's verdict (its
+    report, printed by :func:`finish_call`, has the rest), or ``"skipped"``."""
+    report = result.get("eval", "skipped")
+    if isinstance(report, dict) and report.get("test") == "robust":
+        return f"robust, {'walks' if report['passes'] else 'does not walk yet'} (report above)"
+    return report
 
 
 def keep_previous(path: Path, tag: str) -> Path:
