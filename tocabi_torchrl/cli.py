@@ -91,6 +91,11 @@ class RecipeParser(argparse.ArgumentParser):
         return f"python {script} --help" if script and script.endswith(".py") else f"{self.prog} --help"
 
 
+#: The gait tests an evaluation can run (docs/evaluation.md): the run config's ``eval_test``, the library recipes'
+#: ``--eval_test`` and ``adapters.evaluate``'s ``test`` (here, in the stdlib-only module every one of them imports).
+GAIT_TESTS = ("standard", "robust")
+
+
 def base_parser(description: str, num_envs: int, iterations: int,
                 presets: Iterable[str] = ()) -> argparse.ArgumentParser:
     """Options every library recipe takes: envs, device, iteration budget, seed, output folder, gait test size.
@@ -120,7 +125,7 @@ def base_parser(description: str, num_envs: int, iterations: int,
                              "0 = skip it)")
     parser.add_argument("--eval_seconds", type=float, default=8.0,
                         help="length of the gait test [s], of each case in the robust test (default: 8)")
-    parser.add_argument("--eval_test", choices=("standard", "robust"), default="standard",
+    parser.add_argument("--eval_test", choices=GAIT_TESTS, default="standard",
                         help="the gait test after training: standard, the 8 s test at one command (summary.json, "
                              "knees.png); robust, diverse starts with the nominal, changing-command, randomised and "
                              "pushed cases (robust.json, robust.png; docs/evaluation.md) (default: standard)")

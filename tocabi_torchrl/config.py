@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
-from .cli import listed_spelling
+from .cli import GAIT_TESTS, listed_spelling
 from .envs.command_config import CommandConfig
 from .envs.config import CONTROL_MODES, MB_RESIDUAL_GAIN_PD, UPPER_BODY_LAWS, TocabiWalkConfig
 from .envs.push_config import PushConfig
@@ -670,7 +670,7 @@ def _check_int(obj: Any, name: str, low: int, prefix: str = "") -> None:
 
 
 #: The gait tests the end-of-training evaluation can run (``eval_test``; docs/evaluation.md).
-EVAL_TESTS = ("standard", "robust")
+EVAL_TESTS = GAIT_TESTS
 
 
 def field_choices() -> dict[str, tuple[str, ...]]:

@@ -9,6 +9,7 @@ from collections.abc import Callable
 
 import torch
 
+from ..cli import GAIT_TESTS
 from ..evaluation.gait_test import GAIT_CRITERIA, evaluate_policy, gait_passes
 from ..evaluation.plots import check_plotting
 from ..evaluation.record import nominal_config
@@ -18,7 +19,7 @@ from .policy_file import require_meta
 __all__ = ["GAIT_CRITERIA", "TESTS", "check_plotting", "evaluate_actions", "evaluate_policy_file", "gait_passes"]
 
 #: The gait tests a policy can be given (``test=``), as ``recipes/play.py --test`` names them.
-TESTS = ("standard", "robust")
+TESTS = GAIT_TESTS
 
 # GAIT_CRITERIA and gait_passes are the gait test's own (tocabi_torchrl.evaluation.gait_test), check_plotting its
 # figures' (evaluation.plots), re-exported here.
