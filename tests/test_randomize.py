@@ -31,7 +31,7 @@ def test_tocabi_lab_switches_on_every_piece_with_the_labs_numbers():
 def test_the_robust_preset_builds_an_env_with_everything_on_and_steps_it():
     from tocabi_torchrl.rl.trainer import build_env
 
-    cfg = preset_config("robust", device="cpu", **{"env.num_envs": 4, "ppo.minibatch_size": 64})
+    cfg = preset_config("robust", device="cpu", **{"env.num_envs": 4, "ppo.minibatch_size": 48})
     assert cfg.env.control.mode == "torque" and cfg.ppo.torque_assist == 1.0  # the torque preset's training
     assert cfg.env.pushes.count > 0 and cfg.ppo.push_ramp[1] > cfg.ppo.push_ramp[0] > 0
     assert cfg.eval_test == "robust" and cfg.eval_envs == 1024  # its verdict is the robust gait test, at full size

@@ -425,8 +425,9 @@ def test_the_adaptive_rate_is_held_through_the_fade_or_also_the_teachers_pull(tm
 
 
 def test_ppo_assist_lr_max_is_0_or_a_rate_between_the_floor_and_the_start():
-    assert preset_config("robust").ppo.assist_lr_max == 0.0
-    assert preset_config("robust", **{"ppo.assist_lr_max": 7.5e-5}).ppo.assist_lr_max == 7.5e-5
+    assert preset_config("robust").ppo.assist_lr_max == 7.5e-5  # run 9's held rate (docs/training/robust)
+    assert preset_config("robust", **{"ppo.assist_lr_max": 0}).ppo.assist_lr_max == 0.0  # no bound
+    assert preset_config("robust", **{"ppo.assist_lr_max": 1e-4}).ppo.assist_lr_max == 1e-4
     # Above ppo.lr (1e-3) is allowed: the rule may have raised the rate before the hold.
     assert preset_config("robust", **{"ppo.assist_lr_max": 2e-3}).ppo.assist_lr_max == 2e-3
     for bad in (1e-6, 2e-2, -1e-4, float("nan"), True):
@@ -437,6 +438,9 @@ def test_ppo_assist_lr_max_is_0_or_a_rate_between_the_floor_and_the_start():
         preset_config("robust", **{"ppo.assist_lr_max": 1e-4, "ppo.lr_schedule": "linear"})
     with pytest.raises(ValueError, match="this run has no such hold"):
         preset_config("default", **{"ppo.assist_lr_max": 1e-4})
+    # The robust preset's own bound stays valid under another schedule, as a preset's values do: only a bound the
+    # caller sets is refused there.
+    assert preset_config("robust", **{"ppo.lr_schedule": "linear"}).ppo.assist_lr_max == 7.5e-5
 
 
 def test_a_resumed_run_keeps_its_teacher(tmp_path):

@@ -376,11 +376,6 @@ class PPOConfig:
                 self.assist_lr_max == 0 or self.lr_min <= self.assist_lr_max <= high):
             raise ValueError(f"ppo.assist_lr_max must be 0 (no bound) or a number in [ppo.lr_min = {self.lr_min:g}, "
                              f"{high:g}] (the held adaptive rate's ceiling), got {self.assist_lr_max!r}")
-        if self.assist_lr_max and (self.lr_schedule != "adaptive" or not self.torque_assist):
-            _unused(f"ppo.assist_lr_max {self.assist_lr_max:g} bounds the adaptive rate the torque assist's hold "
-                    f"keeps, and this run has no such hold (ppo.lr_schedule {self.lr_schedule!r}, ppo.torque_assist "
-                    f"{self.torque_assist:g}); set it to 0, or train with the adaptive schedule and an assist",
-                    allow_unused)
         if self.lr_schedule == "adaptive" and not low <= self.lr <= high:
             # The rule keeps the rate inside this range: from outside it, its first clamp would move the rate the
             # wrong way (up when the KL says down).
@@ -558,6 +553,15 @@ class RunConfig:
         if not self.ppo.torque_assist > 0 and (unused := ", ".join(self._changed_options(ASSIST_OPTIONS))):
             _unused(f"ppo.torque_assist is 0 (no assist), so the assist's schedule {unused} would change nothing: "
                     f"set ppo.torque_assist > 0, or leave {unused} at the preset's values", allow_unused)
+        # The bound on the held rate where no hold keeps an adaptive rate; like the options above, a preset's own
+        # bound stays valid under another schedule (the robust preset's, with --ppo.lr_schedule fixed).
+        ppo = self.ppo
+        if ppo.assist_lr_max and (ppo.lr_schedule != "adaptive" or not ppo.torque_assist) and \
+                self._changed_options(("ppo.assist_lr_max",)):
+            _unused(f"ppo.assist_lr_max {ppo.assist_lr_max:g} bounds the adaptive rate the torque assist's hold "
+                    f"keeps, and this run has no such hold (ppo.lr_schedule {ppo.lr_schedule!r}, ppo.torque_assist "
+                    f"{ppo.torque_assist:g}); set it to 0, or train with the adaptive schedule and an assist",
+                    allow_unused)
         # And the options of a learning-rate schedule or an action-std mode the run does not use: --ppo.lr_end 1e-6
         # under the default's adaptive schedule trained exactly as without it.
         for switch, mode, paths in MODE_OPTIONS:
@@ -819,6 +823,17 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "ppo.assist_anchor_decay": 90_000_000, "transforms.foot_gap_weight": 0.3,
         # Its verdict at the end of training: the robust gait test at its own size (1,024 robots per case).
         "eval_test": "robust", "eval_envs": 1024,
+        # 16,384 robots, so that the randomisation costs under 5 % of the training rate: at 4,096 the torque delay
+        # (a world's delayed torque jumps in some substep, and every world iterates until the slowest converges)
+        # cost 7.3 % (0.927x); at 16,384, with the delay on a 1 ms grid (env.control.actuators.delay_stride 2:
+        # 2-10 ms in 1 ms steps), 1.9 % (0.981x, docs/benchmarks/randomization/envs_16k). 12 steps per env keep
+        # the 4,096-robot run's PPO iterations per env step (196,608 samples per update). Two runs at 16,384 with the
+        # rate rules of 4,096 fell 4-20x as often per env step as run 9 (docs/training/robust/h100_run21,
+        # h200_run22): their KL-adaptive rate sat 2-4x below run 9's. A KL target of 0.02 keeps it up, and the held
+        # rate is bounded at run 9's 7.5e-5 while the teacher pulls; the twenty-third run passed the robust gait test
+        # from its 13-minute mark (docs/training/robust/h100_run23).
+        "env.num_envs": 16_384, "env.control.actuators.delay_stride": 2, "ppo.steps_per_env": 12,
+        "ppo.desired_kl": 0.02, "ppo.assist_lr_max": 7.5e-5,
     }),
     # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
     "cpu_smoke": MappingProxyType({

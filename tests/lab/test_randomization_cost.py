@@ -37,7 +37,7 @@ def test_off_switches_every_piece_off_and_on_is_the_preset_with_full_kicks():
     assert differ and differ <= named, differ - named
 
 
-@pytest.mark.parametrize("shape", ["env.control.actuators.delay_stride=2", "env.control.actuators.delay_average=true"])
+@pytest.mark.parametrize("shape", ["env.control.actuators.delay_stride=4", "env.control.actuators.delay_average=true"])
 def test_off_is_valid_when_the_measured_preset_shapes_its_delay(shape):
     # A delay grid or averaged delay without a delay is refused by the config: off must reset them with the delay, or
     # a measurement of a delay-shaping variant dies at its first off child.
