@@ -185,7 +185,28 @@ def test_the_16k_env_costs_appear_only_once_measured(tmp_path):
     assert len([line for line in lines if line.startswith("- At 16,384 envs")]) == 1  # the other is not committed
     assert "1 ms grid (`env.control.actuators.delay_stride=2`): **0.981x** (2 rounds, seeds 0, 1: 0.978, 0.984" in (
         lines[0])
-    assert "The preset keeps 4,096 envs" in lines[1]
+    assert "The preset takes the last row's settings" in lines[1] and page.PRESET_RUN in lines[1]
+
+
+def test_the_committed_presets_cost_leads_once_measured(tmp_path):
+    import json
+
+    page = _page_module()
+    assert page.preset_cost(tmp_path) == []
+    meta = {"preset": "robust", "rounds": 2, "num_envs": 16384, "command": "python -m x --num_envs 16384",
+            "date": "2026-12-06", "gpu": "NVIDIA H200", "seeds": [0, 1]}
+    summary = {"on_median": 160_348.0, "off_median": 163_523.0, "on_over_off": 0.981,
+               "round_on_over_off": [0.977, 0.985]}
+    report = tmp_path / page.PRESET_COST
+    report.parent.mkdir(parents=True)
+    report.write_text(json.dumps({"meta": meta, "summary": summary, "results": []}))
+    text = "\n".join(page.preset_cost(tmp_path))
+    assert "committed `robust` preset on" in text and "16,384 envs), training runs at **0.981x**" in text
+    assert "0.977, 0.985; on 160k against off 164k" in text and "this meets the 0.95x target" in text
+    assert "- command: `python -m x --num_envs 16384`" in text and "hardware: NVIDIA H200" in text
+    summary["on_over_off"] = 0.94
+    report.write_text(json.dumps({"meta": meta, "summary": summary, "results": []}))
+    assert "this misses the 0.95x target" in "\n".join(page.preset_cost(tmp_path))
 
 
 def test_docstring_examples_run():
