@@ -160,7 +160,7 @@ def test_a_trainer_env_pays_the_term_from_the_signal(tmp_path):
     from tocabi_torchrl.rl.trainer import build_env
 
     cfg = preset_config("robust", **{"transforms.cycle_vel_weight": 0.5, "transforms.cycle_vel_scale": 1.0,
-                                     "env.task.cycle_velocity": True, "env.num_envs": 2, "ppo.minibatch_size": 32,
+                                     "env.task.cycle_velocity": True, "env.num_envs": 2, "ppo.minibatch_size": 24,
                                      "env.sim.start_pool": 0, "device": "cpu"})
     env = build_env(cfg, torch.device("cpu"), num_envs=2)
     nxt = env.rollout(5)["next"]

@@ -85,7 +85,7 @@ def test_the_agent_built_on_another_device_acts_there_with_its_teacher():
 
     meta = torch.device("meta")
     cfg = preset_config("robust", device="cpu", **{"ppo.symmetry": "equivariant", "env.num_envs": 4,
-                                                   "ppo.minibatch_size": 64})
+                                                   "ppo.minibatch_size": 48})
     agent = build_agent(cfg, 237, 13, meta)
     tensors = (*agent.actor.parameters(), *agent.actor.buffers(), *agent.teacher.buffers())
     assert {t.device.type for t in tensors} == {"meta"}
@@ -108,13 +108,13 @@ def test_build_agent_wraps_the_mean_network_and_the_teacher_copies_it():
     from tocabi_torchrl.rl.trainer import build_agent
 
     cfg = preset_config("robust", device="cpu", **{"ppo.symmetry": "equivariant", "env.num_envs": 4,
-                                                   "ppo.minibatch_size": 64})
+                                                   "ppo.minibatch_size": 48})
     agent = build_agent(cfg, 237, 13, CPU)
     assert isinstance(gaussian_head(agent.actor).mean_net, EquivariantMean)
     assert isinstance(agent.teacher.mean_net, EquivariantMean)  # the frozen teacher is symmetric too
     with pytest.raises(ValueError, match="mirrors a policy input of 237 values"):
         build_agent(cfg, 200, 13, CPU)
-    plain = build_agent(preset_config("robust", device="cpu", **{"env.num_envs": 4, "ppo.minibatch_size": 64}),
+    plain = build_agent(preset_config("robust", device="cpu", **{"env.num_envs": 4, "ppo.minibatch_size": 48}),
                         237, 13, CPU)
     assert not isinstance(gaussian_head(plain.actor).mean_net, EquivariantMean)
 
@@ -137,7 +137,7 @@ def test_the_teacher_taken_from_an_equivariant_actor_keeps_its_mirror_and_symmet
     from tocabi_torchrl.rl.trainer import build_agent
 
     cfg = preset_config("robust", device="cpu", **{"ppo.symmetry": "equivariant", "env.num_envs": 4,
-                                                   "ppo.minibatch_size": 64})
+                                                   "ppo.minibatch_size": 48})
     agent = build_agent(cfg, 237, 13, CPU)
     actor_mean = gaussian_head(agent.actor).mean_net
     d = actor_mean.obs_mirror.obs_dim
