@@ -29,6 +29,10 @@ def _plain(cfg) -> dict:
     return json.loads(json.dumps({k: v for k, v in to_dict(cfg).items() if k not in RUN_MECHANICS}))
 
 
+def _record_name() -> str:
+    return json.loads((RECORD / "config.json").read_text())["name"]
+
+
 def test_robust_preset_is_the_passing_runs_config():
     record = config_from_dict(json.loads((RECORD / "config.json").read_text()))
     assert record.preset == "robust"
@@ -42,12 +46,8 @@ def test_the_record_is_the_run_that_passed():
     report = json.loads((RECORD / "time_to_walk_robust.json").read_text())
     assert report["test"] == "robust"
     (run,) = report["records"]
-    assert run["name"] == record_name() and run["preset"] == "robust"
+    assert run["name"] == _record_name() and run["preset"] == "robust"
     assert run["time_to_walk"] is not None and run["time_to_walk"]["train_minutes"] <= 30.0
-
-
-def record_name() -> str:
-    return json.loads((RECORD / "config.json").read_text())["name"]
 
 
 def test_the_comparison_sees_a_changed_value():
