@@ -250,3 +250,28 @@ def test_a_report_without_a_field_the_page_shows_is_named_not_a_key_error(tmp_pa
     with pytest.raises(SystemExit) as stop:
         page.main([])
     assert stop.value.code == 1 and capsys.readouterr().err.startswith("error: docs/benchmarks/time_to_walk.json")
+
+
+def test_the_presets_cost_report_measured_the_committed_presets_step():
+    """The page calls PRESET_COST the committed robust preset's cost: what that run set on its command line (the env
+    count and ``--set`` items) must be the preset's own values, or the preset has moved on and the page's claim is
+    stale (measure the preset again and point PRESET_COST at the new report)."""
+    import json
+    import shlex
+
+    from lab.benchmarks.common import parse_overrides
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.tree import get_path
+
+    page = _page_module()
+    meta = json.loads((page.DOCS / page.PRESET_COST).read_text())["meta"]
+    argv = shlex.split(meta["command"])
+    sets = argv[argv.index("--set") + 1:]
+    sets = sets[:next((i for i, a in enumerate(sets) if a.startswith("--")), len(sets))]
+    measured = {"env.num_envs": meta["num_envs"], **parse_overrides(sets)}
+    assert meta["preset"] == "robust" and set(measured) >= {"env.num_envs", "env.control.actuators.delay_stride",
+                                                             "ppo.steps_per_env"}
+    preset = preset_config("robust")
+    stale = {path: (value, get_path(preset, path)) for path, value in measured.items()
+             if get_path(preset, path) != value}
+    assert not stale, f"{page.PRESET_COST} measured (value, preset's now): {stale}"
