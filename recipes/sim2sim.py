@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -126,6 +127,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.refuse_without(args, args.viewer, "--viewer", ("viewer_host", "viewer_port"))
     if not 0 <= args.seed <= MAX_SEED:
         parser.error(f"--seed must be an int in [0, 2**63 - 1], got {args.seed}")
+    if args.out is not None and not args.out.strip():  # "--out $OUT" with OUT unset would write nothing
+        parser.error("--out is empty; give a JSON file to write the metrics to (e.g. --out sim2sim.json), or leave "
+                     "--out out")
+    if args.out and (Path(args.out).is_dir() or args.out.endswith(("/", os.sep))):
+        # A missing "runs/" would otherwise be written as a file named runs.
+        parser.error(f"--out {args.out} is a folder; give a file name, e.g. --out "
+                     f"{Path(args.out) / 'sim2sim.json'}")
     if args.out and Path(args.out).exists():
         parser.error(f"--out {args.out} exists; choose another file")
     if args.out and not Path(args.out).parent.is_dir():  # checked now, not after the whole run

@@ -1,7 +1,7 @@
 """recipes/sim2sim.py reports a model without the contract's names, a file MuJoCo cannot read, a model that reads its
 radian joint ranges as degrees, a missing model file, a policy file given as the contract, an --out folder that does
-not exist, an --out file it cannot write and a missing onnxruntime in one ``error:`` line (or a usage error), not a
-traceback."""
+not exist, an --out that is empty or a folder, an --out file it cannot write and a missing onnxruntime in one
+``error:`` line (or a usage error), not a traceback."""
 
 from __future__ import annotations
 
@@ -66,6 +66,20 @@ def test_an_out_file_in_a_missing_folder_is_refused_before_the_run(capsys, tmp_p
         load_recipe("sim2sim").main(["--contract", str(tmp_path / "missing.json"), "--out", str(out)])
     assert info.value.code == 2
     assert f"--out {out}: folder {out.parent} does not exist" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind", ["empty", "missing folder/", "existing folder"])
+def test_an_out_that_is_empty_or_a_folder_is_refused_before_the_run(capsys, tmp_path, kind):
+    # "--out ''" ran and wrote nothing; "--out runs/" (a folder not yet made) wrote the metrics to a file named runs.
+    # The contract does not exist: the --out check comes first, so nothing is run.
+    out = {"empty": "", "missing folder/": f"{tmp_path / 'runs'}/", "existing folder": str(tmp_path)}[kind]
+    with pytest.raises(SystemExit) as info:
+        load_recipe("sim2sim").main(["--contract", str(tmp_path / "missing.json"), "--out", out])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert ("--out is empty; give a JSON file" in err if kind == "empty"
+            else f"--out {out} is a folder; give a file name, e.g. --out {Path(out) / 'sim2sim.json'}" in err)
+    assert not (tmp_path / "runs").exists()
 
 
 @needs_contract
