@@ -14,10 +14,11 @@ numpy, mujoco, onnxruntime and tqdm only (`pip install -e ".[export]"`); torch i
 ``--randomize`` (default ``none``: the nominal robot, numbers exactly as without it) draws per robot at the reset:
 ``trained`` what the contract's ``trained_under`` section states, ``tocabi_lab`` the TOCABI lab's actuator delay and
 motor constant (torque policies), link masses, damping, armature and sensor biases and noise. ``--pushes N`` kicks
-every robot N times at random times in 2-7 s, each a velocity change of ``--push_speed`` m/s in a random horizontal
-direction, within one control period (``--push_kind velocity``, the robust gait test's: the whole robot's velocity
-changes; ``force``: an impulse of the same momentum on the pelvis alone); ``--start_noise`` starts the robots with
-the robust gait test's N(0, 0.5 rad/s) joint and N(0, 0.1 m/s) pelvis velocities; ``--seed`` seeds every draw (docs/concepts/randomization.md, "Sim-to-sim with randomisation").
+every robot N times at random times in 2-7 s (so ``--seconds`` must last past 7 s), each a velocity change of
+``--push_speed`` m/s in a random horizontal direction, within one control period (``--push_kind velocity``, the
+robust gait test's: the whole robot's velocity changes; ``force``: an impulse of the same momentum on the pelvis
+alone); ``--start_noise`` starts the robots with the robust gait test's N(0, 0.5 rad/s) joint and N(0, 0.1 m/s)
+pelvis velocities; ``--seed`` seeds every draw (docs/concepts/randomization.md, "Sim-to-sim with randomisation").
 """
 
 from __future__ import annotations
@@ -162,6 +163,14 @@ def main(argv: list[str] | None = None) -> dict:
         # page is served: a failure after the URL is printed would leave a page that never shows a robot.
         runtime = PolicyRuntime(args.contract, onnx=args.onnx)
         dt, draw = float(runtime.contract["timing"]["control_dt_s"]), None
+        window = PushSettings().window  # the kicks' times [s]
+        if args.pushes and round(args.seconds / dt) <= round(window[1] / dt):
+            # Kicks after the run's end never start: --seconds 1 ran with no kick at all and reported the survival
+            # of an unpushed walk, with only "kicks_started": 0 in the metrics to tell.
+            parser.error(f"--pushes {args.pushes} kicks each robot at random times in {window[0]:g}-{window[1]:g} s "
+                         f"(kick j in the j-th share), but --seconds {args.seconds:g} ends the run before "
+                         f"{'any' if args.seconds <= window[0] else 'all'} of them: pass --seconds "
+                         f"{window[1] + 1:g} or more (the default is 8), or leave --pushes out")
         if args.viewer:  # the missing extra is an ImportError, said before the run
             server, draw = watch(args, dt)
         bar, on_step = progress(args, dt, draw)

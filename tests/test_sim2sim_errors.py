@@ -227,6 +227,15 @@ def test_an_option_its_switch_is_missing_for_is_refused_not_ignored(argv, messag
 
 
 @needs_contract
+@pytest.mark.parametrize("seconds, when", [("0.02", "any"), ("7", "all")])
+def test_pushes_in_a_run_that_ends_before_them_are_refused(seconds, when, capsys):
+    # --pushes 3 --seconds 1 ran with no kick (they fall in 2-7 s) and reported the unpushed walk's survival, exit 0.
+    assert _run(["--pushes", "3", "--seconds", seconds]).code == 2
+    assert (f"--pushes 3 kicks each robot at random times in 2-7 s (kick j in the j-th share), but --seconds "
+            f"{seconds} ends the run before {when} of them: pass --seconds 8 or more" in capsys.readouterr().err)
+
+
+@needs_contract
 def test_metrics_of_no_surviving_robot_are_null_in_strict_json(capsys, tmp_path):
     # A robot that fell in the first period has no speed or knee error: printed as NaN, which strict JSON readers
     # (and the contract's own rule) refuse.
