@@ -346,8 +346,11 @@ def _robust_table(evals: list, test: str = "robust") -> str:
 
 def _not_within(r: dict) -> str:
     """The time-to-walk cell of a run with no passing checkpoint: "not within" its training minutes, or, when
-    checkpoints of its last training minutes were not tested yet, only up to the last tested one."""
+    checkpoints of its last training minutes were not tested yet, only up to the last tested one; "not tested" when
+    none was (its evaluations of another test only, or the eval part not run yet)."""
     trained = r.get("train_seconds", 0)
+    if not r.get("evaluations"):  # no checkpoint tested: not a miss (a report without --test robust of a robust run)
+        return "not tested"
     tested = max((e["train_seconds"] for e in r.get("evaluations", {}).values()), default=trained)
     every = 60 * (r.get("config", {}).get("checkpoint_minutes") or 0)
     if every and tested + every < trained:  # a later mark exists, untested

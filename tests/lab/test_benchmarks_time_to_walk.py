@@ -441,3 +441,16 @@ def test_time_to_walk_names_a_damaged_run_file_and_how_to_write_it_again(tmp_pat
     (folder / "evals.json").write_text("{,")
     _time_to_walk_here(capsys, "eval", "--name", "r", "--device", "cpu",
                        error=f"runs/time_to_walk/r/evals.json {damaged.format('eval')}, which writes it anew")
+
+
+def test_time_to_walk_report_of_an_untested_run_says_not_tested(tmp_path, monkeypatch, capsys):
+    # A robust run reported without --test robust (its evaluations in evals_robust.json, none in evals.json) read
+    # "not within 1.0 min", as if each of its checkpoints had failed the standard gait test.
+    monkeypatch.setattr(time_to_walk.common, "plot", lambda path, panels, title="": path.write_text("plot"))
+    folder = _gpu_run(tmp_path / "r", "robust")
+    (tmp_path / "r" / "evals_robust.json").write_text(json.dumps({"evaluations": {"wall_00060s": {
+        "train_seconds": 60.0, "env_steps": 1, "iteration": 1, "test": "robust", "cases": {}, "walks": True}}}))
+    text = _time_to_walk_here(capsys, "report", "--runs", folder, "--out", str(tmp_path / "out"))
+    assert "| robust | NVIDIA H200 | not tested |" in text and "not within" not in text
+    text = _time_to_walk_here(capsys, "report", "--test", "robust", "--runs", folder, "--out", str(tmp_path / "out"))
+    assert "| robust | NVIDIA H200 | 1.0 |" in text
