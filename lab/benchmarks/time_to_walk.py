@@ -164,6 +164,8 @@ def eval_part(args, command: str) -> None:
             "steps are read from its checkpoint)" if not walls else
             f"no checkpoint of {run_dir} is of minute {args.from_minutes:g} or later (--from_minutes); its last is "
             f"{walls[-1].stem} ({wall_seconds(walls[-1].stem) / 60:g} min)")
+    if not recorded:
+        _refuse_empty_reports(args.reports or (), run_dir)
     record["time_to_walk"] = first_walk(record)
     if recorded:  # the record lists the commands that made it: one that added nothing is none of them
         record.setdefault("eval_commands", []).append(command)
@@ -185,6 +187,19 @@ def _refuse_other_sizes(evals: dict, evals_file: Path, test: str, args) -> None:
             raise ValueError(f"{evals_file} holds {name} tested with {had[0]} robots for {had[1]:g} s, this call "
                              f"tests {want[0]} for {want[1]:g} s: pass --num_envs {had[0]} --seconds {had[1]:g} to "
                              "go on with that record, or move the file away to start another")
+
+
+def _refuse_empty_reports(folders, run_dir: Path) -> None:
+    """Raise ``ValueError`` for a ``--reports`` folder without any ``<checkpoint>/robust.json``: a call that read
+    nothing from it (the folder above robust_policies' --out, say) would end on "time to walk: null"."""
+    from tocabi_torchrl.evaluation.robust import ROBUST_JSON
+
+    for folder in map(Path, folders):
+        if not any(folder.glob(f"*/{ROBUST_JSON}")):
+            below = sorted({str(p.parent.parent) for p in folder.glob(f"*/*/{ROBUST_JSON}")})
+            raise ValueError(f"--reports {folder} holds no <checkpoint>/{ROBUST_JSON}, so nothing of {run_dir} was "
+                             "read: pass the folder lab.benchmarks.robust_policies --out wrote"
+                             + (f" (reports lie in {', '.join(below)})" if below else ""))
 
 
 def _alive(pid: int) -> bool:

@@ -334,7 +334,8 @@ def test_time_to_walk_eval_keeps_one_size_of_test_in_a_record(tmp_path, monkeypa
     screen = {"train_seconds": 60.0, "env_steps": 1, "iteration": 1, "device": "cpu", "test": "robust",
               "settings": {"num_envs": 4, "seconds": 0.5}, "cases": {}, "walks": True}
     (folder / "evals_robust.json").write_text(json.dumps({"evaluations": {"wall_00060s": screen}}))
-    (tmp_path / "verdict").mkdir()
+    (tmp_path / "verdict/wall_00060s").mkdir(parents=True)  # the screened mark's report, not read again
+    (tmp_path / "verdict/wall_00060s/robust.json").write_text("{}")
     run = functools.partial(_time_to_walk_here, capsys, "eval", "--name", "r", "--test", "robust", "--reports",
                             str(tmp_path / "verdict"))
     run(error="holds wall_00060s tested with 4 robots for 0.5 s, this call tests 1024 for 8 s: pass --num_envs 4 "
@@ -395,7 +396,8 @@ def test_time_to_walk_eval_that_records_nothing_adds_no_command(tmp_path, monkey
     tested = {"train_seconds": 60.0, "env_steps": 1, "iteration": 1, "device": "cpu", "test": "robust",
               "settings": {"num_envs": 1024, "seconds": 8.0}, "cases": {}, "walks": False}
     (folder / "evals_robust.json").write_text(json.dumps({"evaluations": {"wall_00060s": tested}}))
-    (tmp_path / "verdict").mkdir()
+    (tmp_path / "verdict/wall_00060s").mkdir(parents=True)  # the tested mark's report, not read again
+    (tmp_path / "verdict/wall_00060s/robust.json").write_text("{}")
     monkeypatch.setattr(common, "read_checkpoint", lambda path: {})
     text = _time_to_walk_here(capsys, "eval", "--name", "r", "--test", "robust", "--reports", str(tmp_path / "verdict"))
     assert "eval_commands" not in json.loads((folder / "evals_robust.json").read_text()), "a command recorded nothing"
@@ -454,3 +456,20 @@ def test_time_to_walk_report_of_an_untested_run_says_not_tested(tmp_path, monkey
     assert "| robust | NVIDIA H200 | not tested |" in text and "not within" not in text
     text = _time_to_walk_here(capsys, "report", "--test", "robust", "--runs", folder, "--out", str(tmp_path / "out"))
     assert "| robust | NVIDIA H200 | 1.0 |" in text
+
+
+def test_time_to_walk_eval_refuses_a_reports_folder_without_reports(tmp_path, monkeypatch, capsys):
+    # --reports at the folder above robust_policies' --out (verdicts/ rather than verdicts/g00960) left every mark
+    # out and ended on "time to walk: null", exit status 0, as if no checkpoint had passed.
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "runs/time_to_walk/r"
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "checkpoints" / "wall_00060s.pt").write_bytes(b"")
+    (tmp_path / "verdicts/g00060/wall_00060s").mkdir(parents=True)
+    (tmp_path / "verdicts/g00060/wall_00060s/robust.json").write_text("{}")
+    monkeypatch.setattr(common, "read_checkpoint", lambda path: {})
+    _time_to_walk_here(capsys, "eval", "--name", "r", "--test", "robust", "--reports", "verdicts",
+                       error="--reports verdicts holds no <checkpoint>/robust.json, so nothing of runs/time_to_walk/r "
+                             "was read: pass the folder lab.benchmarks.robust_policies --out wrote (reports lie in "
+                             "verdicts/g00060)")
+    assert not (folder / "evals_robust.json").exists()
