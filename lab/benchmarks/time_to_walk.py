@@ -546,6 +546,8 @@ def main(argv=None) -> None:
     for folder in reports or ():
         if not Path(folder).is_dir():
             parser.error(f"--reports {folder}: no such folder (the --out of lab.benchmarks.robust_policies)")
+    if args.part == "report" and Path(args.out).exists() and not Path(args.out).is_dir():
+        parser.error(f"--out {args.out} is a file: the report is a folder of tables and plots; name a folder")
     if args.part != "report" and not reports:
         common.require_cuda(parser, args.device, "time to walk is measured on a GPU (pass --device cpu for a smoke "
                                                  "test of the script)")

@@ -473,3 +473,13 @@ def test_time_to_walk_eval_refuses_a_reports_folder_without_reports(tmp_path, mo
                              "was read: pass the folder lab.benchmarks.robust_policies --out wrote (reports lie in "
                              "verdicts/g00060)")
     assert not (folder / "evals_robust.json").exists()
+
+
+def test_time_to_walk_report_into_a_file_is_refused(tmp_path, capsys):
+    # --out naming a file (the report's .md, say) ended on a FileExistsError traceback from mkdir.
+    (tmp_path / "time_to_walk.md").write_text("kept")
+    with pytest.raises(SystemExit) as stop:
+        time_to_walk.main(["report", "--runs", _gpu_run(tmp_path / "r", "torque"), "--out",
+                           str(tmp_path / "time_to_walk.md")])
+    assert stop.value.code == 2 and "is a file: the report is a folder" in capsys.readouterr().err
+    assert (tmp_path / "time_to_walk.md").read_text() == "kept"
