@@ -74,6 +74,17 @@ def test_read_metrics_joins_scalar_files_and_reads_older_wide_files(tmp_path):
     assert read_metrics(tmp_path / "nothing") == []
 
 
+def test_read_metrics_leaves_out_a_wide_row_cut_short(tmp_path):
+    # A wide metrics.csv cut mid-line (a killed run, a partial copy) gave its last row's cut value ("1.5e-": "could
+    # not convert string to float" from the curves and run_compare) or a shortened number, read as logged.
+    (tmp_path / "metrics.csv").write_text("iteration,env_steps,reward\n1,10,0.25\n2,20,1.5e-")
+    assert read_metrics(tmp_path / "metrics.csv") == [{"iteration": "1", "env_steps": "10", "reward": "0.25"}]
+    # Resumed after the kill: the cut line runs into the header the resumed run appended, one field too many.
+    (tmp_path / "metrics.csv").write_text("iteration,env_steps,reward\n1,10,0.25\n2,2iteration,env_steps,reward\n"
+                                          "2,20,0.5\n")
+    assert [r["reward"] for r in read_metrics(tmp_path / "metrics.csv")] == ["0.25", "0.5"]
+
+
 def test_the_curves_command_names_a_missing_path_or_a_csv_it_cannot_plot(tmp_path, capsys):
     from tocabi_torchrl.rl import curves
 

@@ -74,8 +74,15 @@ def trim_metrics(run_folder: str | os.PathLike, last_iteration: int) -> int:
 
 # ------------------------------------------------------------------------------------------------ wide metrics.csv
 def _read_wide(file: Path) -> list[dict[str, str]]:
+    # A line cut short by a kill (a partial copy) is not read, as in the per-scalar files: a last line without its
+    # newline (csv.writer ends each row with one) may end in a cut number, and a row of another field count than
+    # the header lacks values (DictReader fills missing fields with None, keeps extra ones under the key None).
     with open(file, newline="") as f:
-        return [r for r in csv.DictReader(f) if r.get("iteration") not in (None, "", "iteration")]
+        lines = f.read().splitlines(keepends=True)
+    if lines and not lines[-1].endswith("\n"):
+        lines.pop()
+    return [r for r in csv.DictReader(lines)
+            if r.get("iteration") not in (None, "", "iteration") and None not in r and None not in r.values()]
 
 
 def _trim_wide(file: Path, last_iteration: int) -> int:
