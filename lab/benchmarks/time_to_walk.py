@@ -31,7 +31,7 @@ from tocabi_torchrl.config import wall_seconds
 from tocabi_torchrl.evaluation.gait_test import GAIT_CRITERIA as CRITERIA
 from tocabi_torchrl.evaluation.gait_test import ROBUST_CRITERIA, tested_on
 from tocabi_torchrl.evaluation.gait_test import gait_passes as passes_main
-from tocabi_torchrl.rl.curves import read_metrics, steady_rate
+from tocabi_torchrl.rl.curves import metric_columns, steady_rate
 from tocabi_torchrl.rl.distributed import DistInfo, ending, from_environment
 
 from . import common
@@ -459,10 +459,18 @@ def render(data: dict, out: Path) -> str:
 
 
 def plot_curves(metrics: list[Path], path: Path) -> None:
-    """Reward per step and the imitation (qpos) reward against env steps, one line per run (TocabiLab figs 4.2-4.3)."""
-    runs = {p.stem: read_metrics(p) for p in metrics}
-    common.plot(path, [{"lines": {name: ([int(float(r["env_steps"])) for r in rows], [float(r[column]) for r in rows])
-                                  for name, rows in runs.items()}, "xscale": "log", "xlabel": "env steps", "ylabel": y}
+    """Reward per step and the imitation (qpos) reward against env steps, one line per run (TocabiLab figs 4.2-4.3);
+    a run that did not log a panel's column is left out of that panel. ``ValueError`` naming a path that is no run
+    folder or metrics file, or holds no logged row: the plot would be empty for it, unsaid."""
+    runs = {}
+    for p in metrics:
+        if not p.exists():
+            raise ValueError(f"--curves {p}: no such run folder or metrics file")
+        runs[p.stem] = metric_columns(p)  # ValueError naming p when it holds no metric rows
+    path.parent.mkdir(parents=True, exist_ok=True)
+    common.plot(path, [{"lines": {name: (c["env_steps"], c[column]) for name, c in runs.items()
+                                  if column in c and "env_steps" in c},
+                        "xscale": "log", "xlabel": "env steps", "ylabel": y}
                        for column, y in (("reward", "reward per step"),
                                              ("reward_terms/qpos", "imitation reward per step (qpos term, max 0.35)"))])
 
@@ -481,9 +489,9 @@ def report_part(args, command: str) -> None:
         raise ValueError(f"{out} holds {', '.join(p.name for p in taken)} already; pass --overwrite to replace "
                          "them (the report holds only the --runs given: name every run it should keep), or --out "
                          "another folder")
-    text = common.publish(out, name, data, render, replace=bool(getattr(args, "overwrite", False)))
-    if args.curves:
+    if args.curves:  # first: a --curves path it cannot read leaves no report written
         plot_curves([Path(p) for p in args.curves], out / "time_to_walk_curves.png")
+    text = common.publish(out, name, data, render, replace=bool(getattr(args, "overwrite", False)))
     print(text)
 
 

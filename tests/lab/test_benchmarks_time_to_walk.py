@@ -483,3 +483,20 @@ def test_time_to_walk_report_into_a_file_is_refused(tmp_path, capsys):
                            str(tmp_path / "time_to_walk.md")])
     assert stop.value.code == 2 and "is a file: the report is a folder" in capsys.readouterr().err
     assert (tmp_path / "time_to_walk.md").read_text() == "kept"
+
+
+def test_time_to_walk_report_names_curves_it_cannot_read(tmp_path, monkeypatch, capsys):
+    # --curves of a path that does not exist (or holds no logged row) drew an empty figure unsaid; one whose run
+    # logged no qpos term ended on KeyError: 'reward_terms/qpos' after the report was written.
+    plotted = {}
+    monkeypatch.setattr(time_to_walk.common, "plot", lambda path, panels, title="": plotted.update({path.name: panels}))
+    run, out = _gpu_run(tmp_path / "r", "torque"), tmp_path / "out"
+    report = functools.partial(_time_to_walk_here, capsys, "report", "--runs", run, "--out", str(out), "--curves")
+    report(str(tmp_path / "nope"), error=f"--curves {tmp_path / 'nope'}: no such run folder or metrics file")
+    (tmp_path / "empty").mkdir()
+    report(str(tmp_path / "empty"), error="holds no metric rows")
+    assert not plotted and not (out.exists() and any(out.iterdir()))
+    (tmp_path / "m.csv").write_text("iteration,env_steps,reward\n1,10,0.5\n2,20,0.75\n")  # no reward_terms/qpos
+    report(str(tmp_path / "m.csv"))
+    reward, qpos = plotted["time_to_walk_curves.png"]
+    assert reward["lines"] == {"m": ([10.0, 20.0], [0.5, 0.75])} and qpos["lines"] == {}
