@@ -552,8 +552,9 @@ def main(argv=None) -> None:
     if reports and args.test not in TEST_CASES:
         parser.error("--reports reads robust gait test reports: pass --test robust (or diverse) with it")
     for folder in reports or ():
-        if not Path(folder).is_dir():
-            parser.error(f"--reports {folder}: no such folder (the --out of lab.benchmarks.robust_policies)")
+        if not Path(folder).is_dir():  # a file given (its robust_policies.json, say) is not "no such folder"
+            what = "a file, not a folder: pass the folder holding it" if Path(folder).exists() else "no such folder"
+            parser.error(f"--reports {folder}: {what} (the --out of lab.benchmarks.robust_policies)")
     if args.part == "report" and Path(args.out).exists() and not Path(args.out).is_dir():
         parser.error(f"--out {args.out} is a file: the report is a folder of tables and plots; name a folder")
     if args.part != "report" and not reports:

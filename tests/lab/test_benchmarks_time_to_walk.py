@@ -500,3 +500,13 @@ def test_time_to_walk_report_names_curves_it_cannot_read(tmp_path, monkeypatch, 
     report(str(tmp_path / "m.csv"))
     reward, qpos = plotted["time_to_walk_curves.png"]
     assert reward["lines"] == {"m": ([10.0, 20.0], [0.5, 0.75])} and qpos["lines"] == {}
+
+
+def test_time_to_walk_eval_names_a_reports_file_as_a_file(tmp_path, capsys):
+    # --reports at robust_policies' robust_policies.json, a file there, was refused as "no such folder".
+    (tmp_path / "robust_policies.json").write_text("{}")
+    for given, said in (("robust_policies.json", "a file, not a folder: pass the folder holding it"),
+                        ("nope", "no such folder")):
+        with pytest.raises(SystemExit) as stop:
+            time_to_walk.main(["eval", "--test", "robust", "--reports", str(tmp_path / given)])
+        assert stop.value.code == 2 and f"--reports {tmp_path / given}: {said}" in capsys.readouterr().err
