@@ -31,6 +31,7 @@ from tocabi_torchrl.config import wall_seconds
 from tocabi_torchrl.evaluation.gait_test import GAIT_CRITERIA as CRITERIA
 from tocabi_torchrl.evaluation.gait_test import ROBUST_CRITERIA, tested_on
 from tocabi_torchrl.evaluation.gait_test import gait_passes as passes_main
+from tocabi_torchrl.rl.checkpoint import CheckpointError
 from tocabi_torchrl.rl.curves import metric_columns, steady_rate
 from tocabi_torchrl.rl.distributed import DistInfo, ending, from_environment
 
@@ -566,11 +567,13 @@ def main(argv=None) -> None:
     command = " ".join(["python -m lab.benchmarks.time_to_walk", *argv])
     info = from_environment() if args.part == "train" else DistInfo()  # only training runs data-parallel
     try:
-        with ending(info, expected=(ValueError,)):  # every rank ends, also on a failure (NCCL: the process, here)
+        # Every rank ends, also on a failure (NCCL: the process, here); a damaged checkpoint (a wall_*.pt copied in
+        # part) is said in one line, as a refused input is.
+        with ending(info, expected=(ValueError, CheckpointError)):
             {"train": train_part, "eval": eval_part, "report": report_part}[args.part](args, command)
             if info.is_main:
                 print(f"[{args.part} took {time.time() - t0:.0f} s]", flush=True)
-    except ValueError as err:
+    except (ValueError, CheckpointError) as err:
         sys.exit(1 if info.enabled else f"error: {err}")  # ending() has said it on each rank
 
 

@@ -510,3 +510,14 @@ def test_time_to_walk_eval_names_a_reports_file_as_a_file(tmp_path, capsys):
         with pytest.raises(SystemExit) as stop:
             time_to_walk.main(["eval", "--test", "robust", "--reports", str(tmp_path / given)])
         assert stop.value.code == 2 and f"--reports {tmp_path / given}: {said}" in capsys.readouterr().err
+
+
+def test_time_to_walk_eval_names_a_damaged_checkpoint_in_one_line(tmp_path, monkeypatch, capsys):
+    # A wall_*.pt copied in part ended the eval on a DamagedCheckpointError traceback.
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "runs/time_to_walk/r"
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "checkpoints" / "wall_00060s.pt").write_bytes(b"PK\x03\x04 cut short")
+    (tmp_path / "verdict/wall_00060s").mkdir(parents=True)
+    _time_to_walk_here(capsys, "eval", "--name", "r", "--test", "robust", "--reports", "verdict",
+                       error="cannot read checkpoint runs/time_to_walk/r/checkpoints/wall_00060s.pt: not a complete")
