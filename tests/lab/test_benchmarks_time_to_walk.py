@@ -323,14 +323,21 @@ def test_time_to_walk_report_says_how_long_and_on_how_many_robots_a_screen_teste
     assert "Tested with" not in text
 
 
+def _run_with_one_mark(tmp_path, monkeypatch, content: bytes):
+    """``runs/time_to_walk/r`` under ``tmp_path`` (the working folder from now on) with one 1-minute mark holding
+    ``content``; returns the run folder."""
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "runs/time_to_walk/r"
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "checkpoints" / "wall_00060s.pt").write_bytes(content)
+    return folder
+
+
 def test_time_to_walk_eval_keeps_one_size_of_test_in_a_record(tmp_path, monkeypatch, capsys):
     # A CPU screen (4 robots, 0.5 s) recorded its marks in evals_robust.json; a later call at the test's sizes skipped
     # them as tested, so the record mixed the screen's verdicts with the test's and its time to walk could be a
     # screen's.
-    monkeypatch.chdir(tmp_path)
-    folder = tmp_path / "runs/time_to_walk/r"
-    (folder / "checkpoints").mkdir(parents=True)
-    (folder / "checkpoints" / "wall_00060s.pt").write_bytes(b"")
+    folder = _run_with_one_mark(tmp_path, monkeypatch, b"")
     screen = {"train_seconds": 60.0, "env_steps": 1, "iteration": 1, "device": "cpu", "test": "robust",
               "settings": {"num_envs": 4, "seconds": 0.5}, "cases": {}, "walks": True}
     (folder / "evals_robust.json").write_text(json.dumps({"evaluations": {"wall_00060s": screen}}))
@@ -461,10 +468,7 @@ def test_time_to_walk_report_of_an_untested_run_says_not_tested(tmp_path, monkey
 def test_time_to_walk_eval_refuses_a_reports_folder_without_reports(tmp_path, monkeypatch, capsys):
     # --reports at the folder above robust_policies' --out (verdicts/ rather than verdicts/g00960) left every mark
     # out and ended on "time to walk: null", exit status 0, as if no checkpoint had passed.
-    monkeypatch.chdir(tmp_path)
-    folder = tmp_path / "runs/time_to_walk/r"
-    (folder / "checkpoints").mkdir(parents=True)
-    (folder / "checkpoints" / "wall_00060s.pt").write_bytes(b"")
+    folder = _run_with_one_mark(tmp_path, monkeypatch, b"")
     (tmp_path / "verdicts/g00060/wall_00060s").mkdir(parents=True)
     (tmp_path / "verdicts/g00060/wall_00060s/robust.json").write_text("{}")
     monkeypatch.setattr(common, "read_checkpoint", lambda path: {})
@@ -514,10 +518,7 @@ def test_time_to_walk_eval_names_a_reports_file_as_a_file(tmp_path, capsys):
 
 def test_time_to_walk_eval_names_a_damaged_checkpoint_in_one_line(tmp_path, monkeypatch, capsys):
     # A wall_*.pt copied in part ended the eval on a DamagedCheckpointError traceback.
-    monkeypatch.chdir(tmp_path)
-    folder = tmp_path / "runs/time_to_walk/r"
-    (folder / "checkpoints").mkdir(parents=True)
-    (folder / "checkpoints" / "wall_00060s.pt").write_bytes(b"PK\x03\x04 cut short")
+    _run_with_one_mark(tmp_path, monkeypatch, b"PK\x03\x04 cut short")
     (tmp_path / "verdict/wall_00060s").mkdir(parents=True)
     _time_to_walk_here(capsys, "eval", "--name", "r", "--test", "robust", "--reports", "verdict",
                        error="cannot read checkpoint runs/time_to_walk/r/checkpoints/wall_00060s.pt: not a complete")
