@@ -206,6 +206,12 @@ def main(argv=None) -> None:
     from tocabi_torchrl.rl.checkpoint import CheckpointError
 
     common.require_cuda(parser, args.device, "pass --device cpu")
+    from tocabi_torchrl.device import check_device
+
+    try:  # a misspelt device ("gpu") or a cuda:K past the GPUs: one line now, not a traceback from the first test
+        check_device(args.device)
+    except (ValueError, RuntimeError) as err:
+        parser.error(f"--device: {err}")
     out = common.report_dir(args.out, args.device)
     if out.exists() and not out.is_dir():
         parser.error(f"--out {out} is a file, not a folder: give a folder for the reports")

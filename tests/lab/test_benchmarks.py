@@ -491,6 +491,21 @@ def test_robust_policies_tells_same_named_files_apart_and_never_replaces_a_table
         assert "--device cuda: torch sees no CUDA GPU here; pass --device cpu" in capsys.readouterr().err
 
 
+def test_robust_policies_refuses_an_unknown_device_before_any_test(tmp_path, monkeypatch, capsys):
+    """--device gpu (a misspelling) once passed every check and ended the call with a traceback from the first
+    policy's test; it is one usage line now, and no test runs."""
+    from lab.benchmarks import robust_policies
+    from tocabi_torchrl.evaluation import robust
+
+    monkeypatch.setattr(robust, "evaluate_robust_run", lambda *a, **k: pytest.fail("a test ran"))
+    monkeypatch.setattr(robust_policies, "check_policy", lambda path: None)  # a stand-in file, not a checkpoint
+    (tmp_path / "a.pt").touch()
+    with pytest.raises(SystemExit) as stop:
+        robust_policies.main(["--policies", str(tmp_path / "a.pt"), "--device", "gpu", "--out", str(tmp_path / "o")])
+    assert stop.value.code == 2 and not (tmp_path / "o").exists()
+    assert "--device: unknown device 'gpu'" in capsys.readouterr().err
+
+
 def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, monkeypatch, capsys):
     """--cases: only those cases run, and a policy passes or fails those cases (not the whole test, which a report of
     two cases can never pass); an unknown case is refused by name."""
