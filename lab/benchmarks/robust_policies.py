@@ -9,9 +9,9 @@ Each policy gets ``tocabi_torchrl.evaluation.robust`` (four cases of ``--num_env
 ``robust.json`` and ``robust.png`` go to ``<out>/<policy>/``, the table of every policy and case to
 ``<out>/robust_policies.{json,md,png}`` with the command, date and hardware, and the seconds each test took (the
 policies of one kind share one test env, so the first one's seconds include its build; two policies of one file
-name, e.g. two runs' ``latest.pt``, are told apart by their run folder's name). The table is written again after
-each policy, so a call stopped partway keeps the policies it finished (marked partial). An ``--out`` that holds a
-table already is refused unless ``--overwrite``.
+name, e.g. two runs' ``latest.pt``, are told apart by their run folder's name; one checkpoint named twice is
+refused). The table is written again after each policy, so a call stopped partway keeps the policies it finished
+(marked partial). An ``--out`` that holds a table already is refused unless ``--overwrite``.
 ``--cases nominal commands`` runs those cases alone (the ``diverse`` verdict of ``time_to_walk``); a policy then
 passes those cases, not the robust test. A case has the full test's start states and draws only when every case
 before it in the test's order runs too (``nominal commands`` do, though the commands case's re-drawn commands
@@ -203,7 +203,7 @@ def main(argv=None) -> None:
         parser.error(f"--num_envs must be >= 1 and --seconds > 0, got {args.num_envs} and {args.seconds}")
     from tocabi_torchrl.evaluation.gait_test import policy_dt
     from tocabi_torchrl.evaluation.robust import RobustTestConfig
-    from tocabi_torchrl.rl.checkpoint import CheckpointError
+    from tocabi_torchrl.rl.checkpoint import CheckpointError, checkpoint_file
 
     common.require_cuda(parser, args.device, "pass --device cpu")
     from tocabi_torchrl.device import check_device
@@ -224,6 +224,12 @@ def main(argv=None) -> None:
                          cases=tuple(c for c in CASES if c in (args.cases or CASES))).validate(policy_dt())
         for policy in args.policies:
             check_policy(policy)
+        # One file named twice (a run folder and its latest.pt, a repeated path) would be tested twice into two rows
+        # of the same numbers, each under a made-up name.
+        files = [checkpoint_file(policy).resolve() for policy in args.policies]
+        twice = sorted({p for p, f in zip(args.policies, files) if files.count(f) > 1})
+        if twice:
+            parser.error(f"--policies names one checkpoint more than once ({', '.join(twice)}); give each policy once")
     except (ValueError, CheckpointError) as err:
         parser.error(str(err))
     names = labels([Path(p) for p in args.policies])

@@ -506,6 +506,25 @@ def test_robust_policies_refuses_an_unknown_device_before_any_test(tmp_path, mon
     assert "--device: unknown device 'gpu'" in capsys.readouterr().err
 
 
+def test_robust_policies_refuses_one_checkpoint_named_twice(tmp_path, monkeypatch, capsys):
+    """A run folder and its latest.pt (or one path twice) were tested twice, two rows of the same numbers under
+    made-up names; now refused before any test. Two runs' latest.pt stay two policies."""
+    from lab.benchmarks import robust_policies
+    from tocabi_torchrl.evaluation import robust
+
+    monkeypatch.setattr(robust, "evaluate_robust_run", lambda *a, **k: pytest.fail("a test ran"))
+    monkeypatch.setattr(robust_policies, "check_policy", lambda path: None)  # stand-in files, not checkpoints
+    (tmp_path / "run" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "run" / "checkpoints" / "latest.pt").touch()
+    (tmp_path / "b.pt").touch()
+    for policies in (["run", "run/checkpoints/latest.pt"], ["b.pt", "b.pt"]):
+        with pytest.raises(SystemExit) as stop:
+            robust_policies.main(["--policies", *(str(tmp_path / p) for p in policies), "--device", "cpu", "--out",
+                                  str(tmp_path / "o")])
+        assert stop.value.code == 2 and not (tmp_path / "o").exists()
+        assert "--policies names one checkpoint more than once" in capsys.readouterr().err
+
+
 def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, monkeypatch, capsys):
     """--cases: only those cases run, and a policy passes or fails those cases (not the whole test, which a report of
     two cases can never pass); an unknown case is refused by name."""
