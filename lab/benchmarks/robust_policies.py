@@ -232,6 +232,10 @@ def main(argv=None) -> None:
             parser.error(f"--policies names one checkpoint more than once ({', '.join(twice)}); give each policy once")
     except (ValueError, CheckpointError) as err:
         parser.error(str(err))
+    try:  # a folder that cannot be made (a file on its path, no permission): said now, not after an env build
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        parser.error(f"--out {out}: cannot create the folder ({err.strerror or err}); give a folder that can be made")
     names = labels([Path(p) for p in args.policies])
     data = {"meta": common.meta(NAME, argv, on=args.device, num_envs=args.num_envs, seconds=args.seconds),
             "results": []}

@@ -525,6 +525,22 @@ def test_robust_policies_refuses_one_checkpoint_named_twice(tmp_path, monkeypatc
         assert "--policies names one checkpoint more than once" in capsys.readouterr().err
 
 
+def test_robust_policies_refuses_an_out_that_cannot_be_made_before_any_test(tmp_path, monkeypatch, capsys):
+    """An --out below a file once passed every check and ended the call with a NotADirectoryError traceback from
+    inside the first policy's test (after its env build); it is one usage line now, before any test."""
+    from lab.benchmarks import robust_policies
+    from tocabi_torchrl.evaluation import robust
+
+    monkeypatch.setattr(robust, "evaluate_robust_run", lambda *a, **k: pytest.fail("a test ran"))
+    monkeypatch.setattr(robust_policies, "check_policy", lambda path: None)  # a stand-in file, not a checkpoint
+    (tmp_path / "a.pt").touch()
+    with pytest.raises(SystemExit) as stop:
+        robust_policies.main(["--policies", str(tmp_path / "a.pt"), "--device", "cpu", "--out",
+                              str(tmp_path / "a.pt" / "reports")])
+    assert stop.value.code == 2
+    assert f"--out {tmp_path / 'a.pt' / 'reports'}: cannot create the folder" in capsys.readouterr().err
+
+
 def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, monkeypatch, capsys):
     """--cases: only those cases run, and a policy passes or fails those cases (not the whole test, which a report of
     two cases can never pass); an unknown case is refused by name."""
