@@ -205,6 +205,8 @@ def main(argv=None) -> None:
     from tocabi_torchrl.evaluation.robust import RobustTestConfig
     from tocabi_torchrl.rl.checkpoint import CheckpointError, checkpoint_file
 
+    if not args.out.strip():  # Path("") is the current folder: an unset variable in "--out $DIR" wrote the table there
+        parser.error("--out is empty: give a folder for the reports (or leave --out out for the default)")
     common.require_cuda(parser, args.device, "pass --device cpu")
     from tocabi_torchrl.device import check_device
 

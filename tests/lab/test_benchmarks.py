@@ -541,6 +541,21 @@ def test_robust_policies_refuses_an_out_that_cannot_be_made_before_any_test(tmp_
     assert f"--out {tmp_path / 'a.pt' / 'reports'}: cannot create the folder" in capsys.readouterr().err
 
 
+def test_robust_policies_refuses_an_empty_out(tmp_path, monkeypatch, capsys):
+    """--out "" (an unset variable in --out "$DIR") once wrote the reports and the table into the current folder;
+    it is refused now, before any test."""
+    from lab.benchmarks import robust_policies
+    from tocabi_torchrl.evaluation import robust
+
+    monkeypatch.setattr(robust, "evaluate_robust_run", lambda *a, **k: pytest.fail("a test ran"))
+    monkeypatch.setattr(robust_policies, "check_policy", lambda path: None)  # a stand-in file, not a checkpoint
+    (tmp_path / "a.pt").touch()
+    monkeypatch.setattr(robust_policies.common, "publish", lambda *a, **k: pytest.fail("a table was written"))
+    with pytest.raises(SystemExit) as stop:
+        robust_policies.main(["--policies", str(tmp_path / "a.pt"), "--device", "cpu", "--out", ""])
+    assert stop.value.code == 2 and "--out is empty" in capsys.readouterr().err
+
+
 def test_robust_policies_runs_the_cases_asked_for_and_judges_those(tmp_path, monkeypatch, capsys):
     """--cases: only those cases run, and a policy passes or fails those cases (not the whole test, which a report of
     two cases can never pass); an unknown case is refused by name."""
