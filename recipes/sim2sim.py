@@ -163,19 +163,19 @@ def main(argv: list[str] | None = None) -> dict:
         # page is served: a failure after the URL is printed would leave a page that never shows a robot.
         runtime = PolicyRuntime(args.contract, onnx=args.onnx)
         dt, draw = float(runtime.contract["timing"]["control_dt_s"]), None
-        window = PushSettings().window  # the kicks' times [s]
-        if args.pushes and round(args.seconds / dt) <= round(window[1] / dt):
+        pushes = (PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed), kind=args.push_kind)
+                  if args.pushes else None)
+        if pushes and round(args.seconds / dt) <= round(pushes.window[1] / dt):
             # Kicks after the run's end never start: --seconds 1 ran with no kick at all and reported the survival
             # of an unpushed walk, with only "kicks_started": 0 in the metrics to tell.
-            parser.error(f"--pushes {args.pushes} kicks each robot at random times in {window[0]:g}-{window[1]:g} s "
+            start, end = pushes.window  # the kicks' times [s]
+            parser.error(f"--pushes {args.pushes} kicks each robot at random times in {start:g}-{end:g} s "
                          f"(kick j in the j-th share), but --seconds {args.seconds:g} ends the run before "
-                         f"{'any' if args.seconds <= window[0] else 'all'} of them: pass --seconds "
-                         f"{window[1] + 1:g} or more (the default is 8), or leave --pushes out")
+                         f"{'any' if args.seconds <= start else 'all'} of them: pass --seconds "
+                         f"{end + 1:g} or more (the default is 8), or leave --pushes out")
         if args.viewer:  # the missing extra is an ImportError, said before the run
             server, draw = watch(args, dt)
         bar, on_step = progress(args, dt, draw)
-        pushes = (PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed), kind=args.push_kind)
-                  if args.pushes else None)
         result = run_sim2sim(runtime, model, seconds=args.seconds, num_robots=args.num_robots,  # the one checked
                              command=(args.vx, args.vy), remove_meshes=strip, seed=args.seed,
                              randomize=args.randomize, pushes=pushes,
