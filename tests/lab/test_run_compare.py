@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import doctest
+import shutil
 from pathlib import Path
 
 import pytest
@@ -41,3 +42,13 @@ def test_out_is_written_and_never_overwritten(tmp_path, capsys):
     with pytest.raises(SystemExit):
         run_compare.main([str(ROBUST / "h200_run9"), "--metrics", "kl", "--out", str(out)])
     assert "exists already" in capsys.readouterr().err
+
+
+def test_a_run_named_twice_is_refused_and_same_named_runs_get_their_parent_in_the_header(tmp_path):
+    with pytest.raises(ValueError, match="more than once"):
+        run_compare.compare([ROBUST / "h200_run9", str(ROBUST / "h200_run9") + "/"], [0, 20e6], ["lr"])
+    for gpu in ("a", "b"):  # one run's metrics copied under two folders of the same run name
+        shutil.copytree(ROBUST / "h200_run9" / "metrics", tmp_path / gpu / "h200_run9" / "metrics")
+    text = run_compare.compare([tmp_path / "a" / "h200_run9", tmp_path / "b" / "h200_run9" / "metrics"],
+                               [0, 20e6], ["lr"])
+    assert text.splitlines()[2] == "| env steps | a/h200_run9 | b/h200_run9 |"
