@@ -556,6 +556,9 @@ def main(argv=None) -> None:
         if not Path(folder).is_dir():  # a file given (its robust_policies.json, say) is not "no such folder"
             what = "a file, not a folder: pass the folder holding it" if Path(folder).exists() else "no such folder"
             parser.error(f"--reports {folder}: {what} (the --out of lab.benchmarks.robust_policies)")
+    if args.part == "report" and len({Path(p).resolve() for p in args.runs}) < len(args.runs):
+        parser.error(f"--runs {' '.join(args.runs)} names the same run more than once (each would be a row of the "
+                     "table); give each run once")
     if args.part == "report" and Path(args.out).exists() and not Path(args.out).is_dir():
         parser.error(f"--out {args.out} is a file: the report is a folder of tables and plots; name a folder")
     if args.part != "report" and not reports:

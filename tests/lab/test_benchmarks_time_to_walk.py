@@ -522,3 +522,12 @@ def test_time_to_walk_eval_names_a_damaged_checkpoint_in_one_line(tmp_path, monk
     (tmp_path / "verdict/wall_00060s").mkdir(parents=True)
     _time_to_walk_here(capsys, "eval", "--name", "r", "--test", "robust", "--reports", "verdict",
                        error="cannot read checkpoint runs/time_to_walk/r/checkpoints/wall_00060s.pt: not a complete")
+
+
+def test_time_to_walk_report_refuses_a_run_named_twice(tmp_path, capsys):
+    # `--runs X X/` listed the one run twice in the table.
+    run = _gpu_run(tmp_path / "r", "torque")
+    with pytest.raises(SystemExit) as stop:
+        time_to_walk.main(["report", "--runs", run, run + "/", "--out", str(tmp_path / "out")])
+    assert stop.value.code == 2 and "the same run more than once" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
