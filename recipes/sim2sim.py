@@ -182,6 +182,9 @@ def main(argv: list[str] | None = None) -> dict:
                              start_velocity=ROBUST_START if args.start_noise else None, on_step=on_step).as_dict()
     except (ContractError, ValueError, ImportError) as err:  # bad contract or model, or onnxruntime missing
         sys.exit(f"error: {err}")
+    except MemoryError:  # numpy's bare MemoryError named neither the option nor what to do
+        sys.exit(f"error: not enough memory for {args.num_robots:,} robots over {args.seconds:g} s on this machine: "
+                 "lower --num_robots (or --seconds)")
     except KeyboardInterrupt:  # 130, as for any Ctrl-C stop (sys.exit with a message would say 1)
         print("stopped (Ctrl-C)", file=sys.stderr)
         sys.exit(130)

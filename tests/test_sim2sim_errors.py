@@ -273,3 +273,18 @@ def test_the_recipe_loads_the_policy_once_and_runs_the_runtime_it_checked(monkey
     assert len(built) == 1
     result.pop("model")
     assert result == run_sim2sim(CONTRACT, seconds=0.04, num_robots=2, seed=3).as_dict()
+
+
+@needs_contract
+def test_robots_that_do_not_fit_in_memory_are_one_error_line_naming_the_option(monkeypatch):
+    # A huge --num_robots ended in numpy's bare MemoryError traceback.
+    recipe = load_recipe("sim2sim")
+
+    def out_of_memory(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(recipe, "run_sim2sim", out_of_memory)
+    with pytest.raises(SystemExit) as info:
+        recipe.main(["--contract", str(CONTRACT), "--seconds", "0.02", "--num_robots", "1000000000"])
+    assert str(info.value.code) == ("error: not enough memory for 1,000,000,000 robots over 0.02 s on this machine: "
+                                    "lower --num_robots (or --seconds)")
