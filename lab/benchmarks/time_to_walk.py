@@ -77,6 +77,14 @@ def _as_set(overrides: dict) -> str:
     return " ".join(f"{k}={v}" for k, v in overrides.items()) or "(none)"
 
 
+def run_mechanics(args, latest: Path, left_min: float) -> dict:
+    """The run-config fields each train call sets for itself: where and how long it runs, not what it trains (a
+    run's recorded config differs from its preset's in these and its ``--set`` overrides alone)."""
+    return {"run_dir": str(RUNS), "name": args.name, "device": args.device, "eval_at_end": False,
+            "progress_bar": False, "log_every": args.log_every, "checkpoint_minutes": args.every,
+            "max_minutes": min(args.minutes, left_min), "resume": str(latest) if latest.is_file() else ""}
+
+
 def train_part(args, command: str) -> None:
     run_dir, info = RUNS / args.name, from_environment()
     record, latest = _load(run_dir / "train.json", _rewrite("train")), run_dir / "checkpoints" / "latest.pt"
@@ -96,10 +104,7 @@ def train_part(args, command: str) -> None:
     if record.get("overrides", recorded) != recorded:  # one run trains one config from scratch to the end
         raise ValueError(f"{args.name} was trained with --set {_as_set(record['overrides'])} so far, this call has "
                          f"--set {_as_set(overrides)}: continue it with the same, or start another run with --name")
-    cfg = common.config(args.preset, **{**overrides, "run_dir": str(RUNS), "name": args.name, "device": args.device,
-                                        "eval_at_end": False, "progress_bar": False, "log_every": args.log_every,
-                                        "checkpoint_minutes": args.every, "max_minutes": min(args.minutes, left_min),
-                                        "resume": str(latest) if latest.is_file() else ""})
+    cfg = common.config(args.preset, **{**overrides, **run_mechanics(args, latest, left_min)})
     if info.is_main:
         print(f"{args.name}: training {'from ' + str(latest) if cfg.resume else 'from scratch'} on {info.world_size} "
               f"rank(s), {prior_s / 60:.1f} of {args.budget_minutes} min used, this call up to {cfg.max_minutes:.1f} "
