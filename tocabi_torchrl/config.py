@@ -49,7 +49,7 @@ from .viewer.config import ViewerConfig
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "config_from_dict", "to_dict",
            "ConfigError", "UnusedOptionError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
            "LOGGERS", "SYMMETRY_MODES", "field_choices", "canonical_choices", "wall_tag", "check_snapshot_minutes",
-           "LEGACY_VALUES", "MAX_SEED", "schedule_past_budget", "schedule_warning"]
+           "LEGACY_VALUES", "MAX_SEED", "KL_ADAPT_MODES", "schedule_past_budget", "schedule_warning"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
@@ -63,6 +63,9 @@ STD_MODES = ("scheduled", "learned")
 ASSIST_TARGETS = ("rollout", "teacher")
 #: How long the adaptive learning rate is held around the torque assist's fade (``ppo.assist_lr_hold``).
 ASSIST_LR_HOLDS = ("fade", "pull")
+#: When the adaptive learning-rate rule acts (``ppo.kl_adapt_every``): once per iteration, or before every mini-batch
+#: step.
+KL_ADAPT_MODES = ("iteration", "minibatch")
 LOGGERS = ("csv", "tensorboard", "wandb")
 #: Left-right symmetry in PPO (``ppo.symmetry``; rl/symmetry.py): none, each mini-batch doubled with its mirror, or a
 #: mean action symmetric by construction.
@@ -142,6 +145,14 @@ class PPOConfig:
     """learning-rate schedule: adaptive (from the KL to desired_kl), linear (lr to lr_end) or fixed"""
     desired_kl: float = 0.01
     """KL target of the adaptive schedule"""
+    #: "iteration" applies the rule once per update, from its mean KL: a run of too-large mini-batch steps goes on at
+    #: the same rate to the update's end. "minibatch" applies it before every mini-batch step, from that mini-batch's
+    #: KL to the rollout's policy (rsl_rl's rule), so the rate falls within the update that overshoots; it runs on the
+    #: device inside the (captured) step, and one rank's KL would set one rank's rate, so it trains on one GPU only.
+    #: (The torque preset at 16,384 envs broke in one update of KL 4.3e4, docs/training/torque/h100_16k_run1.)
+    kl_adapt_every: str = "iteration"
+    """when the adaptive rule sets the learning rate: once per iteration from the update's mean KL, or before every
+    mini-batch step from that mini-batch's KL (minibatch, as rsl_rl; one GPU only)"""
     #: The adaptive rule's floor. At a small action σ one step of the mean is a large KL, and the rule can sit at
     #: its floor for the rest of a run (the robust preset's sixth run: 1e-5 for its last seven minutes,
     #: docs/training/robust/h200_run6); a higher floor keeps it learning, PPO's ratio clip bounding each update.
@@ -641,7 +652,8 @@ ASSIST_OPTIONS = ("ppo.assist_fade_start", "ppo.assist_fade_end", "ppo.assist_an
 #: Options read under one learning-rate schedule or action-std mode only, as ``(switch, mode, paths)``:
 #: :meth:`RunConfig.validate` refuses them set under another mode.
 MODE_OPTIONS = (("ppo.lr_schedule", "linear", ("ppo.lr_end",)),
-                ("ppo.lr_schedule", "adaptive", ("ppo.lr_min", "ppo.desired_kl", "ppo.assist_lr_hold")),
+                ("ppo.lr_schedule", "adaptive", ("ppo.lr_min", "ppo.desired_kl", "ppo.assist_lr_hold",
+                                                   "ppo.kl_adapt_every")),
                 ("ppo.std_mode", "scheduled", ("ppo.std_end", "ppo.std_hold")))
 
 
@@ -689,6 +701,7 @@ def field_choices() -> dict[str, tuple[str, ...]]:
             "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.history": tuple(HISTORIES),
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
             "ppo.assist_target": ASSIST_TARGETS, "ppo.assist_lr_hold": ASSIST_LR_HOLDS,
+            "ppo.kl_adapt_every": KL_ADAPT_MODES,
             "env.sim.backend": ("warp", "mujoco", "auto"),
             "env.sim.reset_pass": RESET_PASSES, "ppo.grad_sync": GRAD_SYNCS,
             "ppo.matmul_precision": MATMUL_PRECISIONS, "eval_test": EVAL_TESTS, "ppo.symmetry": SYMMETRY_MODES}

@@ -47,7 +47,7 @@ from ..transforms.normalize import RunningNormalization
 from ..transforms.privileged import PRIVILEGED_DIM, PrivilegedState
 from .symmetry import (SymmetryAugmentLoss, apply_checkpoint_policy, find_normalization, make_equivariant_mean,
                        make_symmetry_loss, refresh_statistics, set_equivariant_statistics)
-from .update_step import (MinibatchStep, adapt_lr, get_lr, make_capturable_adam, optimizer_mode,
+from .update_step import (MinibatchKLRule, MinibatchStep, adapt_lr, get_lr, make_capturable_adam, optimizer_mode,
                           restore_optimizer_mode, set_lr)
 
 __all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer",
@@ -405,8 +405,17 @@ def make_optimizer(cfg: RunConfig, agent: Agent, device: torch.device) -> torch.
     """Adam over the actor and critic (with the reference's separate value-head group when configured)."""
     if plan_graphs(cfg, device).update:
         return make_capturable_adam(_param_groups(agent, cfg), cfg.ppo.adam_eps, device)
+    groups = _param_groups(agent, cfg)
+    if _minibatch_kl(cfg):  # the rule sets the rate on the device: a tensor the fused step reads
+        groups = [{**g, "lr": torch.tensor(float(g["lr"]), device=device)} for g in groups]
+        return torch.optim.Adam(groups, eps=cfg.ppo.adam_eps, fused=True)
     # Fused Adam: one kernel per step for all parameters instead of a handful per tensor (the update is launch-bound).
-    return torch.optim.Adam(_param_groups(agent, cfg), eps=cfg.ppo.adam_eps, fused=device.type == "cuda")
+    return torch.optim.Adam(groups, eps=cfg.ppo.adam_eps, fused=device.type == "cuda")
+
+
+def _minibatch_kl(cfg: RunConfig) -> bool:
+    """Whether the adaptive rule runs before every mini-batch step (``ppo.kl_adapt_every``)."""
+    return cfg.ppo.lr_schedule == "adaptive" and cfg.ppo.kl_adapt_every == "minibatch"
 
 
 def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.optim.Optimizer,
@@ -429,8 +438,12 @@ def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.
             step_loss = DistributedDataParallel(loss_module, device_ids=ids, **{no_sync: False})
         else:
             sync = GradientAllReduce(dist_info)
+    kl_rule = None
+    if _minibatch_kl(cfg):
+        kl_rule = MinibatchKLRule([g for g in optimizer.param_groups if not g.get("fixed")], cfg.ppo.desired_kl,
+                                  cfg.ppo.lr_min, device)
     return MinibatchStep(step_loss, optimizer, params, cfg.ppo.max_grad_norm,
-                         use_graph=plan_graphs(cfg, device).update, grad_sync=sync)
+                         use_graph=plan_graphs(cfg, device).update, grad_sync=sync, kl_rule=kl_rule)
 
 
 def make_loss(cfg: RunConfig, agent: Agent, env: EnvBase | None = None,
@@ -556,6 +569,10 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         raise ValueError(f"seed {cfg.seed}: rank r of a data-parallel run seeds its worlds with seed + r, which must "
                          f"stay <= {MAX_SEED} (2**63 - 1) on all {info.world_size} ranks; give a seed of at most "
                          f"{MAX_SEED - info.world_size + 1}")
+    if _minibatch_kl(cfg) and info.enabled:
+        raise ValueError(f"ppo.kl_adapt_every='minibatch' sets each rank's rate from its own mini-batch's KL, so the "
+                         f"ranks' rates would part; this run has {info.world_size} ranks: train it on one GPU, or "
+                         "set ppo.kl_adapt_every=iteration")
     if cfg.ppo.overlap_update and info.enabled:
         raise ValueError(f"ppo.overlap_update runs on one rank; this run has {info.world_size}: set "
                          "ppo.overlap_update=false for a data-parallel run")
@@ -673,7 +690,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         # rule would read it as too large a step and starve the absorption (the LR fell to 1e-5 on the H100 and
         # the gait broke), so the learning rate is held there (and, with assist_lr_hold "pull", while the
         # teacher's pull decays after the fade: the same reading of an intended move).
-        if ppo.lr_schedule == "adaptive" and not ctx["fading"]:
+        if update_step.kl_rule is not None:  # the rule ran before each mini-batch step, on the device
+            lr = get_lr(update_step.kl_rule.groups[0])
+        elif ppo.lr_schedule == "adaptive" and not ctx["fading"]:
             lr = adapt_lr(lr, stats["kl"], ppo.desired_kl, ppo.lr_min)
             _set_scheduled_lr(optimizer, lr)
         if ctx["episode"] is None:
@@ -738,6 +757,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                     # Held from here on, so bounded before this update (ppo.assist_lr_max).
                     lr = ppo.assist_lr_max
                     _set_scheduled_lr(optimizer, lr)
+            if update_step.kl_rule is not None:  # held while β fades (and the pull decays), as the host rule is
+                update_step.kl_rule.set_enabled(not fading)
             if overlap is None:
                 stats = _update(cfg, flat, update_step, info)
             else:

@@ -19,7 +19,7 @@ from tensordict import TensorDictBase
 from ..config import ADAPTIVE_LR_RANGE
 from ..cuda_graphs import CUDA_GRAPHS, Capturer, WarmCapture
 
-__all__ = ["MinibatchStep", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam", "optimizer_mode",
+__all__ = ["MinibatchStep", "MinibatchKLRule", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam", "optimizer_mode",
            "restore_optimizer_mode", "set_lr", "get_lr", "adapt_lr"]
 
 #: The loss outputs averaged into the update's log line, in this order.
@@ -81,6 +81,50 @@ def adapt_lr(lr: float, kl: float, desired_kl: float, floor: float | None = None
     return lr
 
 
+class MinibatchKLRule:
+    """The adaptive rule of :func:`adapt_lr` applied on the device before every mini-batch step
+    (``ppo.kl_adapt_every="minibatch"``, rsl_rl's schedule): the step's KL to the rollout's policy, measured by the
+    loss before the step, divides the rate by 1.5 above twice ``desired_kl`` and multiplies it by 1.5 below half of
+    it, within [``floor``, 1e-2], in the tensor learning rate of every scheduled parameter group. Tensor operations
+    only (no host read), so a captured step replays it.
+
+    ``enabled`` (a 0-d float tensor on the device, 1 or 0): the trainer sets it once per iteration from the host
+    (:meth:`set_enabled`, a fill, no read), 0 while the torque assist's hold keeps the rate (``ppo.assist_lr_hold``).
+
+    >>> import torch
+    >>> group = {"lr": torch.tensor(1e-3)}
+    >>> rule = MinibatchKLRule([group], desired_kl=0.01, floor=1e-5, device="cpu")
+    >>> rule(torch.tensor(0.05))  # KL above twice the target: the rate falls before this step
+    >>> round(float(group["lr"]), 6)
+    0.000667
+    >>> rule.set_enabled(False); rule(torch.tensor(0.05)); round(float(group["lr"]), 6)  # held: unchanged
+    0.000667
+    """
+
+    def __init__(self, groups: list[dict], desired_kl: float, floor: float | None, device) -> None:
+        if not groups or not all(isinstance(g["lr"], torch.Tensor) for g in groups):
+            raise ValueError("MinibatchKLRule needs parameter groups whose learning rate is a tensor "
+                             "(make_capturable_adam, or torch.optim.Adam given tensor rates)")
+        self.groups = groups
+        self.desired_kl = float(desired_kl)
+        low, self.high = ADAPTIVE_LR_RANGE
+        self.low = low if floor is None else max(low, float(floor))
+        self.enabled = torch.ones((), device=device)
+
+    def set_enabled(self, on: bool) -> None:
+        self.enabled.fill_(1.0 if on else 0.0)
+
+    def __call__(self, kl: torch.Tensor) -> None:
+        kl = kl.detach()
+        down = (kl > 2.0 * self.desired_kl) & (self.enabled > 0)
+        up = (kl < 0.5 * self.desired_kl) & (self.enabled > 0)
+        for group in self.groups:
+            lr = group["lr"]
+            new = torch.where(down, (lr / 1.5).clamp(min=self.low),
+                              torch.where(up, (lr * 1.5).clamp(max=self.high), lr))
+            lr.copy_(new)
+
+
 def get_lr(group: dict) -> float:
     """A parameter group's learning rate as a float (a host read when it lives on the device)."""
     lr = group["lr"]
@@ -103,13 +147,16 @@ class MinibatchStep:
             captured and runs eagerly.
         grad_sync: called with ``params`` between ``backward`` and clipping, e.g.
             :class:`~tocabi_torchrl.rl.distributed.GradientAllReduce` in a data-parallel run (captured with the step).
+        kl_rule: a :class:`MinibatchKLRule` applied to the loss's ``kl_approx`` before the optimiser step (None: the
+            trainer adapts the rate once per iteration, if at all).
         capturer: how to capture (:data:`~tocabi_torchrl.cuda_graphs.CUDA_GRAPHS`).
     """
 
     def __init__(self, loss_module, optimizer: torch.optim.Optimizer, params: list[torch.Tensor],
                  max_grad_norm: float, use_graph: bool = False, warmup: int = 3, grad_sync=None,
-                 capturer: Capturer = CUDA_GRAPHS):
+                 capturer: Capturer = CUDA_GRAPHS, kl_rule: MinibatchKLRule | None = None):
         self.loss_module, self.optimizer, self.params = loss_module, optimizer, params
+        self.kl_rule = kl_rule
         self.max_grad_norm = max_grad_norm
         self.use_graph = use_graph
         self.grad_sync = grad_sync
@@ -134,6 +181,8 @@ class MinibatchStep:
         if self.grad_sync is not None:
             self.grad_sync(self.params)
         torch.nn.utils.clip_grad_norm_(self.params, self.max_grad_norm)
+        if self.kl_rule is not None:  # this step's rate, from the KL its mini-batch had before it
+            self.kl_rule(losses["kl_approx"])
         self.optimizer.step()
         self.stat_keys = STAT_KEYS + tuple(k for k in EXTRA_STAT_KEYS if k in names)
         return torch.stack([losses[k].detach() for k in self.stat_keys])
