@@ -26,7 +26,7 @@ from tocabi_torchrl.rl.actors import gaussian_head
 from tocabi_torchrl.rl.rollout_guard import guard_rollout
 from tocabi_torchrl.rl.symmetry import SymmetryAugmentLoss
 from tocabi_torchrl.rl.trainer import (_loss_keys, _update_losses, build_agent, build_env, estimate_advantages,
-                                       make_collector, make_loss, make_optimizer)
+                                       make_collector, make_loss, make_optimizer, make_update_step)
 from tocabi_torchrl.rl.update_step import MinibatchStep
 
 N, T = 4, 6
@@ -40,6 +40,8 @@ OPTIONS = {
     "kick_relax-averaged_delay-running": {"transforms.kick_relax.seconds": 0.012,
                                           "env.control.actuators.delay_average": True,
                                           "transforms.normalization": "running"},
+    # The adaptive rate set inside the captured step (rl/update_step.MinibatchKLRule).
+    "kl_adapt_every_minibatch": {"ppo.kl_adapt_every": "minibatch"},
 }
 
 
@@ -72,8 +74,10 @@ def test_the_robust_training_step_reads_nothing_on_the_host(option):
     optimizer = make_optimizer(cfg, agent, device)
     optimizer.step = probe.exempt(optimizer.step)
     params = [p for g in optimizer.param_groups for p in g["params"]]
+    kl_rule = make_update_step(cfg, loss_module, optimizer, device).kl_rule  # the trainer's, if the option sets one
     step = MinibatchStep(loss_module, optimizer, params, cfg.ppo.max_grad_norm, use_graph=True,
-                         capturer=EmulatedCapture())
+                         capturer=EmulatedCapture(), kl_rule=kl_rule)
+    assert (step.kl_rule is not None) == (option == "kl_adapt_every_minibatch")
     collector = make_collector(cfg, env, agent.actor, device, total_frames=3 * N * T)
     try:
         rollouts = iter(collector)
@@ -163,7 +167,8 @@ def test_the_robust_training_step_never_syncs_on_cuda(option):
     loss_module, advantage = make_loss(cfg, agent, env)
     optimizer = make_optimizer(cfg, agent, device)
     params = [p for g in optimizer.param_groups for p in g["params"]]
-    step = MinibatchStep(loss_module, optimizer, params, cfg.ppo.max_grad_norm, use_graph=True)
+    step = MinibatchStep(loss_module, optimizer, params, cfg.ppo.max_grad_norm, use_graph=True,
+                         kl_rule=make_update_step(cfg, loss_module, optimizer, device).kl_rule)
     collector = make_collector(cfg, env, agent.actor, device, total_frames=2 * n * T)
     try:
         batch = next(iter(collector))  # the warm-up and the capture of the env step
