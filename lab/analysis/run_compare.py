@@ -62,15 +62,16 @@ def compare(runs: Sequence[str | Path], spans: Sequence[float], metrics: Sequenc
         raise ValueError(f"spans must be two or more increasing env-step bounds, got {list(spans)}")
     if not runs or not metrics:
         raise ValueError("give at least one run and one metric")
-    twice = sorted({str(r) for r in runs if sum(Path(q).resolve() == Path(r).resolve() for q in runs) > 1})
+    # A run is its folder, given as such or as its metrics/ folder, wherever the path was typed from.
+    folders = [Path(r).resolve().parent if Path(r).resolve().name == "metrics" else Path(r).resolve() for r in runs]
+    twice = sorted({str(r) for r, f in zip(runs, folders) if folders.count(f) > 1})
     if twice:
-        raise ValueError(f"{', '.join(twice)} named more than once; give each run once")
+        raise ValueError(f"{', '.join(twice)} name the same run; give each run once")
     columns = {Path(r): metric_columns(r) for r in runs}
     logged = set().union(*(c.keys() for c in columns.values()))
     unknown = [m for m in metrics if m not in logged]
     if unknown:
         raise ValueError(f"no run logged {unknown}; the runs log: {', '.join(sorted(logged))}")
-    folders = [p.parent if p.name == "metrics" else p for p in columns]
     names = [f.name for f in folders]
     # Two runs of one name (h200/robust_v1, h100/robust_v1) get their parent folder in the header too.
     names = [f"{f.parent.name}/{n}" if names.count(n) > 1 else n for f, n in zip(folders, names)]

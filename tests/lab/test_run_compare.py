@@ -44,11 +44,15 @@ def test_out_is_written_and_never_overwritten(tmp_path, capsys):
     assert "exists already" in capsys.readouterr().err
 
 
-def test_a_run_named_twice_is_refused_and_same_named_runs_get_their_parent_in_the_header(tmp_path):
-    with pytest.raises(ValueError, match="more than once"):
-        run_compare.compare([ROBUST / "h200_run9", str(ROBUST / "h200_run9") + "/"], [0, 20e6], ["lr"])
+def test_a_run_named_twice_is_refused_and_same_named_runs_get_their_parent_in_the_header(tmp_path, monkeypatch):
+    for again in (str(ROBUST / "h200_run9") + "/", ROBUST / "h200_run9" / "metrics"):
+        with pytest.raises(ValueError, match="name the same run"):
+            run_compare.compare([ROBUST / "h200_run9", again], [0, 20e6], ["lr"])
     for gpu in ("a", "b"):  # one run's metrics copied under two folders of the same run name
         shutil.copytree(ROBUST / "h200_run9" / "metrics", tmp_path / gpu / "h200_run9" / "metrics")
     text = run_compare.compare([tmp_path / "a" / "h200_run9", tmp_path / "b" / "h200_run9" / "metrics"],
                                [0, 20e6], ["lr"])
+    assert text.splitlines()[2] == "| env steps | a/h200_run9 | b/h200_run9 |"
+    monkeypatch.chdir(tmp_path / "a")  # typed relative to the current folder: named by the real parent still
+    text = run_compare.compare(["h200_run9", tmp_path / "b" / "h200_run9"], [0, 20e6], ["lr"])
     assert text.splitlines()[2] == "| env steps | a/h200_run9 | b/h200_run9 |"
