@@ -176,15 +176,17 @@ def main(argv: list[str] | None = None) -> dict:
         if args.viewer:  # the missing extra is an ImportError, said before the run
             server, draw = watch(args, dt)
         bar, on_step = progress(args, dt, draw)
-        result = run_sim2sim(runtime, model, seconds=args.seconds, num_robots=args.num_robots,  # the one checked
-                             command=(args.vx, args.vy), remove_meshes=strip, seed=args.seed,
-                             randomize=args.randomize, pushes=pushes,
-                             start_velocity=ROBUST_START if args.start_noise else None, on_step=on_step).as_dict()
+        try:
+            result = run_sim2sim(runtime, model, seconds=args.seconds, num_robots=args.num_robots,  # the one checked
+                                 command=(args.vx, args.vy), remove_meshes=strip, seed=args.seed,
+                                 randomize=args.randomize, pushes=pushes,
+                                 start_velocity=ROBUST_START if args.start_noise else None,
+                                 on_step=on_step).as_dict()
+        except MemoryError:  # numpy's bare MemoryError named neither the option nor what to do
+            sys.exit(f"error: not enough memory for {args.num_robots:,} robots over {args.seconds:g} s on this "
+                     "machine: lower --num_robots (or --seconds)")
     except (ContractError, ValueError, ImportError) as err:  # bad contract or model, or onnxruntime missing
         sys.exit(f"error: {err}")
-    except MemoryError:  # numpy's bare MemoryError named neither the option nor what to do
-        sys.exit(f"error: not enough memory for {args.num_robots:,} robots over {args.seconds:g} s on this machine: "
-                 "lower --num_robots (or --seconds)")
     except KeyboardInterrupt:  # 130, as for any Ctrl-C stop (sys.exit with a message would say 1)
         print("stopped (Ctrl-C)", file=sys.stderr)
         sys.exit(130)
