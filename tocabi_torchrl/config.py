@@ -147,12 +147,13 @@ class PPOConfig:
     """KL target of the adaptive schedule"""
     #: "iteration" applies the rule once per update, from its mean KL: a run of too-large mini-batch steps goes on at
     #: the same rate to the update's end. "minibatch" applies it before every mini-batch step, from that mini-batch's
-    #: KL to the rollout's policy (rsl_rl's rule), so the rate falls within the update that overshoots; it runs on the
-    #: device inside the (captured) step, and one rank's KL would set one rank's rate, so it trains on one GPU only.
+    #: KL to the rollout's policy (rsl_rl's schedule, on the loss's KL estimate), so the rate falls within the update
+    #: that overshoots; it runs on the device inside the (captured) step, and one rank's KL would set one rank's
+    #: rate, so it trains on one GPU only.
     #: (The torque preset at 16,384 envs broke in one update of KL 4.3e4, docs/training/torque/h100_16k_run1.)
     kl_adapt_every: str = "iteration"
     """when the adaptive rule sets the learning rate: once per iteration from the update's mean KL, or before every
-    mini-batch step from that mini-batch's KL (minibatch, as rsl_rl; one GPU only)"""
+    mini-batch step from that mini-batch's KL (minibatch, rsl_rl's schedule; one GPU only)"""
     #: The adaptive rule's floor. At a small action σ one step of the mean is a large KL, and the rule can sit at
     #: its floor for the rest of a run (the robust preset's sixth run: 1e-5 for its last seven minutes,
     #: docs/training/robust/h200_run6); a higher floor keeps it learning, PPO's ratio clip bounding each update.
