@@ -19,8 +19,8 @@ from tensordict import TensorDictBase
 from ..config import ADAPTIVE_LR_RANGE
 from ..cuda_graphs import CUDA_GRAPHS, Capturer, WarmCapture
 
-__all__ = ["MinibatchStep", "MinibatchKLRule", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam", "optimizer_mode",
-           "restore_optimizer_mode", "set_lr", "get_lr", "adapt_lr"]
+__all__ = ["MinibatchStep", "MinibatchKLRule", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam",
+           "optimizer_mode", "restore_optimizer_mode", "set_lr", "get_lr", "adapt_lr"]
 
 #: The loss outputs averaged into the update's log line, in this order.
 STAT_KEYS = ("loss_objective", "loss_critic", "kl_approx", "clip_fraction")
@@ -67,6 +67,12 @@ def set_lr(group: dict, lr: float) -> None:
         group["lr"] = lr
 
 
+#: The adaptive rule's numbers (rsl_rl's): the rate is divided by LR_FACTOR when the KL is above KL_ABOVE times the
+#: target, multiplied by it below KL_BELOW times the target. :func:`adapt_lr` (host) and :class:`MinibatchKLRule`
+#: (device) both read them.
+KL_ABOVE, KL_BELOW, LR_FACTOR = 2.0, 0.5, 1.5
+
+
 def adapt_lr(lr: float, kl: float, desired_kl: float, floor: float | None = None) -> float:
     """The KL-adaptive learning-rate rule of the ``adaptive`` schedule, applied once per iteration: the rate divided
     by 1.5 when the update's KL is above twice ``desired_kl``, multiplied by 1.5 when below half of it, within
@@ -74,10 +80,10 @@ def adapt_lr(lr: float, kl: float, desired_kl: float, floor: float | None = None
     and not below ``floor`` (``ppo.lr_min``) when given."""
     low, high = ADAPTIVE_LR_RANGE
     low = low if floor is None else max(low, floor)
-    if kl > 2.0 * desired_kl:
-        return max(lr / 1.5, low)
-    if kl < 0.5 * desired_kl:
-        return min(lr * 1.5, high)
+    if kl > KL_ABOVE * desired_kl:
+        return max(lr / LR_FACTOR, low)
+    if kl < KL_BELOW * desired_kl:
+        return min(lr * LR_FACTOR, high)
     return lr
 
 
@@ -85,8 +91,8 @@ class MinibatchKLRule:
     """The adaptive rule of :func:`adapt_lr` applied on the device before every mini-batch step
     (``ppo.kl_adapt_every="minibatch"``, rsl_rl's schedule): the step's KL to the rollout's policy, the loss's
     estimate ``kl_approx`` before the step (rsl_rl computes the Gaussians' KL), divides the rate by 1.5 above twice
-    ``desired_kl`` and multiplies it by 1.5 below half of it, within [``floor``, 1e-2], in the tensor learning rate of every scheduled parameter group. Tensor operations
-    only (no host read), so a captured step replays it.
+    ``desired_kl`` and multiplies it by 1.5 below half of it, within [``floor``, 1e-2], in the tensor learning rate
+    of every scheduled parameter group. Tensor operations only (no host read), so a captured step replays it.
 
     ``enabled`` (a 0-d float tensor on the device, 1 or 0): the trainer sets it once per iteration from the host
     (:meth:`set_enabled`, a fill, no read), 0 while the torque assist's hold keeps the rate (``ppo.assist_lr_hold``).
@@ -116,12 +122,12 @@ class MinibatchKLRule:
 
     def __call__(self, kl: torch.Tensor) -> None:
         kl = kl.detach()
-        down = (kl > 2.0 * self.desired_kl) & (self.enabled > 0)
-        up = (kl < 0.5 * self.desired_kl) & (self.enabled > 0)
+        down = (kl > KL_ABOVE * self.desired_kl) & (self.enabled > 0)
+        up = (kl < KL_BELOW * self.desired_kl) & (self.enabled > 0)
         for group in self.groups:
             lr = group["lr"]
-            new = torch.where(down, (lr / 1.5).clamp(min=self.low),
-                              torch.where(up, (lr * 1.5).clamp(max=self.high), lr))
+            new = torch.where(down, (lr / LR_FACTOR).clamp(min=self.low),
+                              torch.where(up, (lr * LR_FACTOR).clamp(max=self.high), lr))
             lr.copy_(new)
 
 
