@@ -759,6 +759,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                     _set_scheduled_lr(optimizer, lr)
             if update_step.kl_rule is not None:  # held while β fades (and the pull decays), as the host rule is
                 update_step.kl_rule.set_enabled(not fading)
+                update_step.kl_rule.start_update()
             if overlap is None:
                 stats = _update(cfg, flat, update_step, info)
             else:

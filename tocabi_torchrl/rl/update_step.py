@@ -96,6 +96,9 @@ class MinibatchKLRule:
 
     ``enabled`` (a 0-d float tensor on the device, 1 or 0): the trainer sets it once per iteration from the host
     (:meth:`set_enabled`, a fill, no read), 0 while the torque assist's hold keeps the rate (``ppo.assist_lr_hold``).
+    As in rsl_rl, where the first mini-batch of an update reads a KL of exactly 0 and the rate is raised only on a KL
+    above 0, the first step after :meth:`start_update` keeps the rate (the estimate there is rounding noise about 0)
+    and a KL estimate of 0 or less never raises it.
 
     >>> import torch
     >>> group = {"lr": torch.tensor(1e-3)}
@@ -116,14 +119,21 @@ class MinibatchKLRule:
         low, self.high = ADAPTIVE_LR_RANGE
         self.low = low if floor is None else max(low, float(floor))
         self.enabled = torch.ones((), device=device)
+        self.first = torch.zeros((), device=device)  # 1: the next step is an update's first (start_update)
 
     def set_enabled(self, on: bool) -> None:
         self.enabled.fill_(1.0 if on else 0.0)
 
+    def start_update(self) -> None:
+        """Mark the next step as its update's first, whose rate stays (a fill, no read)."""
+        self.first.fill_(1.0)
+
     def __call__(self, kl: torch.Tensor) -> None:
         kl = kl.detach()
-        down = (kl > KL_ABOVE * self.desired_kl) & (self.enabled > 0)
-        up = (kl < KL_BELOW * self.desired_kl) & (self.enabled > 0)
+        acts = (self.enabled > 0) & (self.first == 0)
+        self.first.zero_()
+        down = (kl > KL_ABOVE * self.desired_kl) & acts
+        up = (kl < KL_BELOW * self.desired_kl) & (kl > 0) & acts
         for group in self.groups:
             lr = group["lr"]
             new = torch.where(down, (lr / LR_FACTOR).clamp(min=self.low),
