@@ -111,13 +111,15 @@ def train_part(args, command: str) -> None:
               "min", flush=True)
     if info.enabled:  # what launched this call, as it must be repeated
         command = command.replace("python -m", f"torchrun --standalone --nproc_per_node {info.world_size} -m", 1)
-    result, rows = common.train(cfg)
-    if not info.is_main:  # rank 0 logged the rows and keeps the record
-        return
     named = {"name": args.name} if args.name != args.preset else {}  # a run in its preset's folder is named by it
     record = {"preset": args.preset, **named, "gpus": info.world_size, "overrides": recorded, "config": cfg.to_dict(),
               "commands": [], **record}  # what the first call recorded stays
-    record["commands"].append(command)
+    record["commands"] = [*record["commands"], command]
+    if info.is_main:  # before training: a call killed after its last checkpoint still names itself in the record
+        common.write_json(run_dir / "train.json", record)
+    result, rows = common.train(cfg)
+    if not info.is_main:  # rank 0 logged the rows and keeps the record
+        return
     # Any CUDA device string ("cuda", "cuda:1") is a GPU run: its GPU named, its raw ceiling measured on it.
     # The date the training last ran: docs/benchmarks.md gives each run's date beside its result.
     record.update(gpu=tested_on(args.device), env_steps=result.env_steps, train_seconds=prior_s + result.wall_seconds,
@@ -310,9 +312,11 @@ def read_run(folder: Path, test: str = "standard") -> dict:
     record = {**train, **_load(folder / EVALS[test], _rewrite("eval", test))}
     if not record:
         raise SystemExit(f"error: {folder}: no train.json or {EVALS[test]} (run the train and eval parts first)")
-    if not train:  # an eval beside a run's first training call writes its evaluations before train.json is there
-        raise SystemExit(f"error: {folder}: no train.json, only {EVALS[test]}; the train part writes it when a "
-                         "training call ends: report after that (or copy it with the run)")
+    if "train_seconds" not in train:  # the first training call has not ended (or was stopped before it wrote them)
+        have = "only " + EVALS[test] if not train else "a train.json of a training call that has not ended"
+        raise SystemExit(f"error: {folder}: no training result, {have}; the train part records it when a training "
+                         "call ends: report after that (a stopped call: run the train part again, it resumes from "
+                         "the last checkpoint), or copy train.json with the run")
     return {**record, "time_to_walk": first_walk(record)}
 
 

@@ -427,8 +427,32 @@ def test_time_to_walk_report_of_a_run_without_train_json_says_so(tmp_path, capsy
     folder.mkdir()
     (folder / "evals.json").write_text(json.dumps({"evaluations": {}}))
     _time_to_walk_here(capsys, "report", "--runs", str(folder), "--out", str(tmp_path / "out"),
-                       error=f"{folder}: no train.json, only evals.json; the train part writes it when a training call "
-                             "ends")
+                       error=f"{folder}: no training result, only evals.json; the train part records it when a "
+                             "training call ends")
+
+
+def test_time_to_walk_a_call_stopped_while_training_keeps_its_command(tmp_path, monkeypatch, capsys):
+    # A first call killed after its last checkpoint, before it wrote train.json, left no record of its command: the
+    # resumed run's record named the second call alone. The record is written before training now.
+    _stand_in_training(tmp_path, monkeypatch)
+    train = common.train
+    folder = tmp_path / "runs/time_to_walk/default"
+
+    def stopped(cfg):
+        raise KeyboardInterrupt  # as a kill would end it: after the command was recorded, before the result
+
+    monkeypatch.setattr(common, "train", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        time_to_walk.main(["train", "--preset", "default", "--device", "cuda", "--every", "0", "--minutes", "7.5"])
+    record = json.loads((folder / "train.json").read_text())
+    assert [c.split("--minutes ")[1][:3] for c in record["commands"]] == ["7.5"] and "train_seconds" not in record
+    _time_to_walk_here(capsys, "report", "--runs", str(folder), "--out", str(tmp_path / "out"),
+                       error="no training result, a train.json of a training call that has not ended")
+    monkeypatch.setattr(common, "train", train)
+    time_to_walk.main(["train", "--preset", "default", "--device", "cuda", "--every", "0", "--minutes", "4.5"])
+    record = json.loads((folder / "train.json").read_text())
+    assert [c.split("--minutes ")[1][:3] for c in record["commands"]] == ["7.5", "4.5"]
+    assert record["train_seconds"] == 10.5 and record["raw_policy_steps_per_s"] == 180_000.0
 
 
 def test_time_to_walk_names_a_damaged_run_file_and_how_to_write_it_again(tmp_path, monkeypatch, capsys):
