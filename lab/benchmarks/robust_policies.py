@@ -17,6 +17,10 @@ passes those cases, not the robust test. A case has the full test's start states
 before it in the test's order runs too (``nominal commands`` do, though the commands case's re-drawn commands
 differ with the number of cases); another subset (``--cases nominal robust_1.0``) draws other robots of the same
 distribution: a screen, not the verdict.
+``--stop_on_fail`` tests the policies in the order given and stops after the first that does not pass: given a run's
+marks from the last back (``wall_00720s.pt wall_00690s.pt ...``), it finds the earliest mark of the passing run of
+marks at the end without testing the marks before a failure (the time-to-walk search; a mark before that failure
+may pass again, untested). The table names the mark it stopped at.
 """
 
 from __future__ import annotations
@@ -132,8 +136,11 @@ def render(data: dict, out: Path) -> str:
             cells = [_cell(c.get(path), c["checks"].get(path), spec) for _, path, spec in COLUMNS]
             rows.append([r["policy"], name, *cells, "pass" if c["passes"] else "FAIL"])
     lines = [common.table(["policy", "case", *[label for label, _, _ in COLUMNS], "case verdict"], rows), ""]
-    untested = data["meta"].get("untested", 0)
-    if untested:
+    untested, stopped = data["meta"].get("untested", 0), data["meta"].get("stopped_on_fail")
+    if stopped:
+        lines.insert(0, f"Stopped on the first policy that did not pass, {stopped} (--stop_on_fail): {untested} more "
+                        f"polic{'ies' if untested > 1 else 'y'} of the command not tested.\n")
+    elif untested:
         lines.insert(0, f"Partial: {untested} more polic{'ies' if untested > 1 else 'y'} of the command not tested "
                         "yet (the table is written after each policy).\n")
     lines += [f"- {r['policy']}: {'passes' if r['passes'] else 'does not pass'} {_what(r['cases'])}; "
@@ -190,6 +197,9 @@ def main(argv=None) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace a table --out holds already")
     parser.add_argument("--cases", nargs="+", default=None, metavar="CASE",
                         help="run these cases alone (default: all four), e.g. nominal commands")
+    parser.add_argument("--stop_on_fail", action="store_true",
+                        help="stop after the first policy (in the order given) that does not pass; with a run's "
+                             "marks from the last back, the earliest mark of its passing run of marks at the end")
     args = parser.parse_args(argv)
     from tocabi_torchrl.evaluation.robust import CASES
 
@@ -248,11 +258,17 @@ def main(argv=None) -> None:
         # The table after every policy, not only at the end: a call stopped partway (a time limit, Ctrl-C) keeps the
         # table of the policies it finished, and says how many it was asked for.
         left = len(args.policies) - i - 1
+        stop = args.stop_on_fail and left and not data["results"][-1]["passes"]
         if left:
             data["meta"]["untested"] = left
         else:
             data["meta"].pop("untested", None)
+        if stop:
+            data["meta"]["stopped_on_fail"] = names[i]
         text = common.publish(out, NAME, data, render)
+        if stop:
+            print(f"stopped after {names[i]}, which does not pass (--stop_on_fail): {left} more not tested", flush=True)
+            break
     print(text)
 
 

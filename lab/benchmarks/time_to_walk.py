@@ -172,6 +172,7 @@ def eval_part(args, command: str) -> None:
             "steps are read from its checkpoint)" if not walls else
             f"no checkpoint of {run_dir} is of minute {args.from_minutes:g} or later (--from_minutes); its last is "
             f"{walls[-1].stem} ({wall_seconds(walls[-1].stem) / 60:g} min)")
+    _say_reports_without_checkpoints(args.reports or (), walls, run_dir)
     if not recorded:
         _refuse_empty_reports(args.reports or (), run_dir)
     record["time_to_walk"] = first_walk(record)
@@ -195,6 +196,20 @@ def _refuse_other_sizes(evals: dict, evals_file: Path, test: str, args) -> None:
             raise ValueError(f"{evals_file} holds {name} tested with {had[0]} robots for {had[1]:g} s, this call "
                              f"tests {want[0]} for {want[1]:g} s: pass --num_envs {had[0]} --seconds {had[1]:g} to "
                              "go on with that record, or move the file away to start another")
+
+
+def _say_reports_without_checkpoints(folders, walls: list[Path], run_dir: Path) -> None:
+    """Name each mark of ``--reports`` whose checkpoint the run folder lacks: its training time and env steps are
+    read from the checkpoint, so it is left out (a mark copied back without its ``wall_*.pt``)."""
+    from tocabi_torchrl.evaluation.robust import ROBUST_JSON
+
+    have = {p.stem for p in walls}
+    for folder in folders:
+        for report in sorted(Path(folder).glob(f"wall_*s/{ROBUST_JSON}")):
+            mark = report.parent.name
+            if mark not in have:
+                print(f"{mark}: a report in {folder} but no {run_dir / 'checkpoints' / mark}.pt; left out (its "
+                      "training time and env steps are read from the checkpoint: copy it into the run)", flush=True)
 
 
 def _refuse_empty_reports(folders, run_dir: Path) -> None:
@@ -312,7 +327,7 @@ def read_run(folder: Path, test: str = "standard") -> dict:
     record = {**train, **_load(folder / EVALS[test], _rewrite("eval", test))}
     if not record:
         raise SystemExit(f"error: {folder}: no train.json or {EVALS[test]} (run the train and eval parts first)")
-    if "train_seconds" not in train:  # the first training call has not ended (or was stopped before it wrote them)
+    if not train or ("commands" in train and "train_seconds" not in train):  # the first call has not ended yet
         have = "only " + EVALS[test] if not train else "a train.json of a training call that has not ended"
         raise SystemExit(f"error: {folder}: no training result, {have}; the train part records it when a training "
                          "call ends: report after that (a stopped call: run the train part again, it resumes from "

@@ -444,6 +444,42 @@ def test_robust_policies_keeps_the_table_of_the_policies_it_finished(tmp_path, m
     assert "untested" not in data["meta"] and "Partial" not in (tmp_path / "robust_policies.md").read_text()
 
 
+def test_robust_policies_stop_on_fail_tests_a_run_back_to_its_first_failing_mark(tmp_path, monkeypatch, capsys):
+    """--stop_on_fail: a run's marks from the last back are tested until one fails; the marks before it are left
+    untested and the table says where it stopped. Without the option every mark is tested."""
+    import json
+
+    from lab.benchmarks import robust_policies
+    from tocabi_torchrl.evaluation import robust
+
+    tested = []
+
+    def run(policy, num_envs, device, out_dir, seconds, cases, replace, envs=None):
+        tested.append(policy.stem)
+        ok = policy.stem != "wall_00600s"  # 12 and 11 minutes pass, 10 does not, 9 would pass again
+        check = {"value": 1.0 if ok else 0.5, "needs": ">= 0.99", "pass": ok}
+        case = {"passes": ok, "survival": check["value"], "forward_distance_m": {"mean": 4.0},
+                "lateral_drift_m": {"p95": 0.1}, "checks": {"survival": check}}
+        return {"passes": ok, "settings": {"push_kind": "velocity"}, "cases": {name: case for name in cases}}
+
+    monkeypatch.setattr(robust, "evaluate_robust_run", run)
+    monkeypatch.setattr(robust_policies, "check_policy", lambda path: None)  # stand-in files, not checkpoints
+    marks = [tmp_path / f"wall_00{s}s.pt" for s in (720, 660, 600, 540)]
+    for mark in marks:
+        mark.touch()
+    argv = ["--policies", *map(str, marks), "--cases", "nominal", "--device", "cpu"]
+    robust_policies.main([*argv, "--stop_on_fail", "--out", str(tmp_path / "a")])
+    assert tested == ["wall_00720s", "wall_00660s", "wall_00600s"]
+    data = json.loads((tmp_path / "a/robust_policies.json").read_text())
+    assert data["meta"]["untested"] == 1 and data["meta"]["stopped_on_fail"] == "wall_00600s"
+    page = (tmp_path / "a/robust_policies.md").read_text()
+    assert "Stopped on the first policy that did not pass, wall_00600s (--stop_on_fail): 1 more policy" in page
+    assert "Partial" not in page and "stopped after wall_00600s" in capsys.readouterr().out
+    tested.clear()
+    robust_policies.main([*argv, "--out", str(tmp_path / "b")])
+    assert len(tested) == 4 and "untested" not in json.loads((tmp_path / "b/robust_policies.json").read_text())["meta"]
+
+
 def test_robust_policies_tells_same_named_files_apart_and_never_replaces_a_table_unasked(tmp_path, monkeypatch,
                                                                                         capsys):
     """Two runs' latest.pt used to share one report folder and one row name; a second call into the same --out

@@ -138,6 +138,16 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
                                                      "settings": {**FULL_TEST, "push_count": 1}, "cases": cases}))
     text = run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(partial.parent))
     assert "left out (its kicks are not the test's: test the checkpoint again)" in text
+    # A mark's report copied back without its checkpoint was left out without a word.
+    orphan = partial.parent / "wall_99999s"
+    orphan.mkdir()
+    (orphan / "robust.json").write_text(json.dumps({"test": "robust", "tested_on": "NVIDIA H200",
+                                                    "settings": FULL_TEST, "cases": cases}))
+    text = run("eval", "--preset", "cpu_smoke", "--device", "cpu", "--test", "robust", "--reports", str(partial.parent))
+    missing = "runs/time_to_walk/cpu_smoke/checkpoints/wall_99999s.pt"
+    assert f"wall_99999s: a report in {partial.parent} but no {missing}; left out" in text
+    assert f"{walls[0]}: a report" not in text
+    shutil.rmtree(orphan)
     assert not (folder / "evals_robust.json").exists()  # each mark left out: nothing recorded, nothing written
     (tmp_path / "evals_robust.json").replace(folder / "evals_robust.json")
     (folder / "evals_diverse.json").unlink()  # tested here: only the two unperturbed cases run
