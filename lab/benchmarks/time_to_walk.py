@@ -10,7 +10,8 @@ report the first training time (and env steps) at which the gait test passes.
     torchrun --standalone --nproc_per_node 2 -m lab.benchmarks.time_to_walk train --preset default --name default_2gpu
 
 ``train`` resumes ``runs/time_to_walk/<name>`` until ``--budget_minutes`` of training are used, data-parallel under
-torchrun (rank 0 writes ``train.json``; ``train_over_raw`` divides by ranks x one GPU's raw rate). ``eval`` writes the
+torchrun (rank 0 writes ``train.json``: the call's command before it trains, so that a call stopped partway is
+still listed, its results when it ends; ``train_over_raw`` divides by ranks x one GPU's raw rate). ``eval`` writes the
 gait tests of each ``wall_*.pt`` to ``evals.json`` beside it, so both parts may run at once; ``--test robust`` runs
 the robust gait test (docs/evaluation.md) instead and keeps its results apart, in ``evals_robust.json`` (``report
 --test robust`` reads those). ``report`` refuses to replace a report that ``--out`` holds already (the committed one
