@@ -78,6 +78,14 @@ def _as_set(overrides: dict) -> str:
     return " ".join(f"{k}={v}" for k, v in overrides.items()) or "(none)"
 
 
+def _restore(path: Path, before: dict) -> None:
+    """``train.json`` as it was before a train call that left no checkpoint: removed where there was none."""
+    if before:
+        common.write_json(path, before)
+    else:
+        path.unlink(missing_ok=True)
+
+
 def run_mechanics(args, latest: Path, left_min: float) -> dict:
     """The run-config fields each train call sets for itself: where and how long it runs, not what it trains (a
     run's recorded config differs from its preset's in these and its ``--set`` overrides alone)."""
@@ -113,12 +121,21 @@ def train_part(args, command: str) -> None:
     if info.enabled:  # what launched this call, as it must be repeated
         command = command.replace("python -m", f"torchrun --standalone --nproc_per_node {info.world_size} -m", 1)
     named = {"name": args.name} if args.name != args.preset else {}  # a run in its preset's folder is named by it
+    before = record  # as the last call left it ({} before the first)
     record = {"preset": args.preset, **named, "gpus": info.world_size, "overrides": recorded, "config": cfg.to_dict(),
               "commands": [], **record}  # what the first call recorded stays
     record["commands"] = [*record["commands"], command]
     if info.is_main:  # before training: a call killed after its last checkpoint still names itself in the record
         common.write_json(run_dir / "train.json", record)
-    result, rows = common.train(cfg)
+    saved = latest.stat().st_mtime_ns if latest.is_file() else None
+    try:
+        result, rows = common.train(cfg)
+    except Exception:
+        # A call that failed before its first checkpoint (a bad device, out of memory at the build) trained nothing
+        # the run keeps: the record goes back to what it was. One stopped by a signal or Ctrl-C stays listed.
+        if info.is_main and (latest.stat().st_mtime_ns if latest.is_file() else None) == saved:
+            _restore(run_dir / "train.json", before)
+        raise
     if not info.is_main:  # rank 0 logged the rows and keeps the record
         return
     # Any CUDA device string ("cuda", "cuda:1") is a GPU run: its GPU named, its raw ceiling measured on it.

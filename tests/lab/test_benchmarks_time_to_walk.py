@@ -451,11 +451,22 @@ def test_time_to_walk_a_call_stopped_while_training_keeps_its_command(tmp_path, 
     def stopped(cfg):
         raise KeyboardInterrupt  # as a kill would end it: after the command was recorded, before the result
 
+    def failed(cfg):
+        raise RuntimeError("CUDA out of memory")  # before any checkpoint: the call trained nothing
+
+    monkeypatch.setattr(common, "train", failed)
+    with pytest.raises(RuntimeError):
+        time_to_walk.main(["train", "--preset", "default", "--device", "cuda", "--every", "0", "--minutes", "1.0"])
+    assert not (folder / "train.json").exists()  # the failed first call left no record of a run
     monkeypatch.setattr(common, "train", stopped)
     with pytest.raises(KeyboardInterrupt):
         time_to_walk.main(["train", "--preset", "default", "--device", "cuda", "--every", "0", "--minutes", "7.5"])
     record = json.loads((folder / "train.json").read_text())
     assert [c.split("--minutes ")[1][:3] for c in record["commands"]] == ["7.5"] and "train_seconds" not in record
+    monkeypatch.setattr(common, "train", failed)
+    with pytest.raises(RuntimeError):
+        time_to_walk.main(["train", "--preset", "default", "--device", "cuda", "--every", "0", "--minutes", "2.0"])
+    assert json.loads((folder / "train.json").read_text()) == record  # put back as the stopped call left it
     _time_to_walk_here(capsys, "report", "--runs", str(folder), "--out", str(tmp_path / "out"),
                        error="no training result, a train.json of a training call that has not ended")
     monkeypatch.setattr(common, "train", train)
