@@ -303,9 +303,9 @@ def test_each_update_runs_with_the_linear_lr_and_std_of_the_progress_after_its_r
         std_now[0] = std
         set_std(actor, std)
 
-    def recording(cfg, flat, step, info=None):
+    def recording(cfg, flat, step, *rest):
         seen.append((step.optimizer.param_groups[0]["lr"], std_now[0]))
-        return update(cfg, flat, step, info)
+        return update(cfg, flat, step, *rest)
 
     monkeypatch.setattr(trainer, "_update", recording)
     monkeypatch.setattr(trainer, "set_action_std", setting)

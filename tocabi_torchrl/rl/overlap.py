@@ -15,7 +15,9 @@ then reads the learner (GAE's critic, the teacher, the symmetry's statistics), s
 copies the learner's actor into the collector's (on the training stream), and :meth:`launch` starts the update on
 the side stream after everything queued on the training stream so far. What the update reads (the rollout's
 flattened copy) is kept alive until :meth:`finish`, so the allocator cannot hand its memory to the next rollout while
-the side stream still reads it. On a CPU there is no stream: :meth:`launch` runs the update at once, in the same
+the side stream still reads it. The losses come back through pinned memory (:class:`~.deferred_read.DeferredRead`,
+copied on the side stream): :meth:`finish` waits for that update alone, not for the rollout queued on the training
+stream since. On a CPU there is no stream: :meth:`launch` runs the update at once, in the same
 order, so a CPU run trains exactly as a GPU run would without the concurrency.
 
 >>> import torch
@@ -42,6 +44,8 @@ from typing import Any
 
 import torch
 
+from .deferred_read import DeferredRead
+
 __all__ = ["UpdateOverlap"]
 
 
@@ -61,7 +65,8 @@ class UpdateOverlap:
         self.collect_actor.requires_grad_(False)
         self._learner = actor
         self._pairs = _state_pairs(self.collect_actor, actor)
-        self._pending: tuple[Any, torch.Tensor, Any, Any] | None = None
+        self._pending: tuple[Any, DeferredRead, Any, Any] | None = None
+        self._losses = DeferredRead()
         #: Set to a list to record each update's (start, done) CUDA events on the side stream (a benchmark's timeline;
         #: None: nothing recorded).
         self.spans: list[tuple[torch.cuda.Event, torch.cuda.Event]] | None = None
@@ -86,14 +91,17 @@ class UpdateOverlap:
         if self._pending is not None:
             raise RuntimeError("UpdateOverlap.launch() with an update in flight: call finish() first")
         if self.stream is None:
-            self._pending = (None, update(), keep, None)
+            self._losses.start(update())
+            self._pending = (None, self._losses, keep, None)
             return
         ready = torch.cuda.current_stream(self.device).record_event()
         with torch.cuda.stream(self.stream):
             self.stream.wait_event(ready)
             start = self.stream.record_event(torch.cuda.Event(enable_timing=True)) if self.spans is not None else None
             try:
-                losses = update()
+                # Read back through pinned memory on this stream: finish() then waits for the update alone, where a
+                # .tolist() there would wait for the rollout queued on the training stream since.
+                self._losses.start(update())
             except BaseException:
                 # Kernels it queued may still read what the caller is about to free: let them end first.
                 self.stream.synchronize()
@@ -101,7 +109,7 @@ class UpdateOverlap:
             done = self.stream.record_event(torch.cuda.Event(enable_timing=self.spans is not None))
         if self.spans is not None:
             self.spans.append((start, done))
-        self._pending = (done, losses, keep, None)
+        self._pending = (done, self._losses, keep, None)
 
     def annotate(self, context: Any) -> None:
         """Give the in-flight update a ``context`` (what the host learnt after launching it) for :meth:`finish`."""
@@ -117,7 +125,7 @@ class UpdateOverlap:
         done, losses, _keep, context = self._pending
         if done is not None:
             done.synchronize()
-        values = losses.tolist()
+        values = losses.values()
         self._pending = None
         return values, context
 

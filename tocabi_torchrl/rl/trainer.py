@@ -22,7 +22,6 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, SelectTransform
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
-from torchrl.objectives.value import GAE
 
 from .. import robot
 from ..cuda_graphs import plan_graphs
@@ -30,6 +29,8 @@ from ..device import check_device
 from .actors import action_std, gaussian_head, make_actor, set_action_std
 from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 from .checkpoint import apply_checkpoint, config_from_checkpoint, save_checkpoint
+from .deferred_read import DeferredRead
+from .gae import SyncFreeGAE
 from ..config import MAX_SEED, RunConfig, schedule_warning, wall_tag
 from ..envs.config import TocabiWalkConfig
 from ..tree import get_path, leaf_paths
@@ -348,12 +349,20 @@ MASKED_WARNING = 0.01
 
 def _episode_metrics(batch: TensorDictBase, dist_info: DistInfo | None = None,
                      masked_frac: torch.Tensor | None = None) -> dict[str, float]:
-    """Mean return and length of the episodes that ended in this batch, their count, and per-step means (one host
-    read per iteration). In a data-parallel run the episode values are over every rank's finished episodes (sums
-    merged, then divided: a rank that finished more episodes weighs more) and ``episodes_finished`` is their total;
-    the per-step means are averaged over the ranks (equal batch sizes, so that is exact). ``masked_frac``: the share
-    of the rollout's frames :func:`~tocabi_torchrl.rl.rollout_guard.guard_rollout` left out of the update, a 0-d
-    device tensor read with the rest."""
+    """:func:`_episode_values` read on the host (one read), by name."""
+    names, values = _episode_values(batch, dist_info, masked_frac)
+    return dict(zip(names, values.cpu().tolist()))
+
+
+def _episode_values(batch: TensorDictBase, dist_info: DistInfo | None = None,
+                    masked_frac: torch.Tensor | None = None) -> tuple[list[str], torch.Tensor]:
+    """Mean return and length of the episodes that ended in this batch, their count, and per-step means: their names
+    and one (K,) float32 device tensor, for one host read per iteration. In a data-parallel run the episode values
+    are over every rank's finished episodes (sums merged, then divided: a rank that finished more episodes weighs
+    more) and ``episodes_finished`` is their total; the per-step means are averaged over the ranks (equal batch
+    sizes, so that is exact). ``masked_frac``: the share of the rollout's frames
+    :func:`~tocabi_torchrl.rl.rollout_guard.guard_rollout` left out of the update, a 0-d device tensor read with
+    the rest."""
     done = batch["next", "done"].squeeze(-1)
     sums = {"episodes_finished": done.sum()}
     if ("next", "episode_reward") in batch.keys(True):
@@ -374,8 +383,7 @@ def _episode_metrics(batch: TensorDictBase, dist_info: DistInfo | None = None,
     count = summed[0]
     # NaN when no episode ended (long episodes outlast an iteration), so plots skip the point.
     per_episode = torch.where(count > 0, summed[1:] / count.clamp_min(1), torch.nan)
-    values = torch.cat([count.unsqueeze(0), per_episode, averaged]).cpu().tolist()
-    return dict(zip([*sums, *means], values))
+    return [*sums, *means], torch.cat([count.unsqueeze(0), per_episode, averaged])
 
 
 def make_collector(cfg: RunConfig, env: EnvBase, actor: torch.nn.Module, device: torch.device,
@@ -447,14 +455,14 @@ def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.
 
 
 def make_loss(cfg: RunConfig, agent: Agent, env: EnvBase | None = None,
-              ) -> tuple[ClipPPOLoss | SymmetryAugmentLoss | AssistAbsorbLoss, GAE]:
+              ) -> tuple[ClipPPOLoss | SymmetryAugmentLoss | AssistAbsorbLoss, SyncFreeGAE]:
     """The clipped PPO loss (in :class:`~tocabi_torchrl.rl.symmetry.SymmetryAugmentLoss` with ``cfg.ppo.symmetry``
     "augment", which needs the training ``env`` for its layout and normaliser; then in :class:`AssistAbsorbLoss` when
     ``cfg.ppo.torque_assist`` > 0) and the GAE value estimator of :func:`train`."""
     # The critic runs over the rollout in chunks of ~64k frames (along the env dim): unchunked, TorchRL stacks
     # observations and next observations and keeps (2 · frames, 400) activations, ~6 GB at 16384 envs.
     ppo = cfg.ppo
-    advantage = GAE(gamma=ppo.gamma, lmbda=ppo.gae_lambda, value_network=agent.critic, average_gae=False,
+    advantage = SyncFreeGAE(gamma=ppo.gamma, lmbda=ppo.gae_lambda, value_network=agent.critic, average_gae=False,
                     value_chunk_size=_VALUE_CHUNK_FRAMES // ppo.steps_per_env or 1)
     loss_module = GuardedClipPPOLoss(
         agent.actor,
@@ -679,26 +687,35 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     mark_s = 60.0 * cfg.checkpoint_minutes
     next_mark = (int(prior_train_s // mark_s) + 1) * mark_s if mark_s else float("inf")
     warned_masked = False
+    episodes = DeferredRead()  # the logged episode metrics, one iteration's at a time
 
     def settle(stats: dict[str, float], ctx: dict) -> None:
         """What needs an update's losses (``stats``, by log name): the adaptive learning rate for the next update,
         and the iteration's log row. Right after the update, or (overlap_update) once the next rollout has been
         collected; ``ctx``: what the iteration knew without them."""
-        nonlocal lr, metrics
+        nonlocal lr, metrics, warned_masked
         stats = {**stats, **ctx["extra"]}
+        std = stats.pop("action_std")  # read with the losses (_update_stats)
         # While the assist fades, the KL also measures the intended move to the next β's actions; the adaptive
         # rule would read it as too large a step and starve the absorption (the LR fell to 1e-5 on the H100 and
         # the gait broke), so the learning rate is held there (and, with assist_lr_hold "pull", while the
         # teacher's pull decays after the fade: the same reading of an intended move).
         if update_step.kl_rule is not None:  # the rule ran before each mini-batch step, on the device
-            lr = get_lr(update_step.kl_rule.groups[0])
+            lr = stats.pop("lr")
         elif ppo.lr_schedule == "adaptive" and not ctx["fading"]:
             lr = adapt_lr(lr, stats["kl"], ppo.desired_kl, ppo.lr_min)
             _set_scheduled_lr(optimizer, lr)
         if ctx["episode"] is None:
             return
-        metrics = {**ctx["episode"], **stats}
-        metrics.update(lr=lr, action_std=float(action_std(agent.actor).mean()), **ctx["progress"])
+        # Copied to the host when the rollout ended, read here: with the overlap, an iteration later.
+        episode = dict(zip(ctx["episode"], episodes.values()))
+        if episode["masked_frac"] > MASKED_WARNING and info.is_main and not warned_masked:  # a broken term stays broken
+            warned_masked = True
+            print_line(f"warning: {100 * episode['masked_frac']:.1f} % of iteration {ctx['row']}'s frames were left "
+                       "out of the update: a NaN or inf observation, reward or action (a reward term, controller or "
+                       "env of your own?); metrics column masked_frac follows it")
+        metrics = {**episode, **stats}
+        metrics.update(lr=lr, action_std=std, **ctx["progress"])
         if logger is not None:
             logger.log(ctx["row"], metrics)
         if live is not None:
@@ -761,10 +778,10 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 update_step.kl_rule.set_enabled(not fading)
                 update_step.kl_rule.start_update()
             if overlap is None:
-                stats = _update(cfg, flat, update_step, info)
+                stats = _update(cfg, flat, update_step, info, agent.actor)
             else:
                 overlap.refresh()  # the next rollout acts with the learner as it is before this update
-                overlap.launch(lambda: _update_losses(cfg, flat, update_step), keep=flat)
+                overlap.launch(lambda: _update_stats(cfg, flat, update_step, agent.actor), keep=flat)
             # Nothing of this rollout's copy outlives its update: the next rollout is collected without it.
             del work, flat
             if assist is not None:
@@ -777,18 +794,14 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             elapsed = time.perf_counter() - t_start
             train_s = prior_train_s + elapsed
             logged = (it + shift) % cfg.log_every == 0 or it == iterations
-            context = {"extra": extra, "fading": fading, "row": it + shift,
-                       # Read now: the collector overwrites `batch` with the next rollout.
-                       "episode": _episode_metrics(batch, info, masked) if logged else None,
+            names = None
+            if logged:  # computed now (the collector overwrites `batch` with the next rollout), read in settle
+                names, values = _episode_values(batch, info, masked)
+                episodes.start(values)
+            context = {"extra": extra, "fading": fading, "row": it + shift, "episode": names,
                        "progress": dict(env_steps=env_steps,
                                         env_steps_per_s=(env_steps - run.start_env_steps) / elapsed,
                                         update_s=time.perf_counter() - t_collect, wall_s=elapsed, train_s=train_s)}
-            share = context["episode"]["masked_frac"] if logged else 0.0
-            if share > MASKED_WARNING and info.is_main and not warned_masked:  # once a run: a broken term stays broken
-                warned_masked = True
-                print_line(f"warning: {100 * share:.1f} % of iteration {it + shift}'s frames were left out of the "
-                           "update: a NaN or inf observation, reward or action (a reward term, controller or env of "
-                           "your own?); metrics column masked_frac follows it")
             mark_due = train_s >= next_mark
             saved = (it + shift) % cfg.checkpoint_every == 0 or it == iterations
             if overlap is None:
@@ -892,7 +905,7 @@ def _set_scheduled_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
             set_lr(group, lr)
 
 
-def estimate_advantages(estimator: GAE, batch: TensorDictBase) -> None:
+def estimate_advantages(estimator: SyncFreeGAE, batch: TensorDictBase) -> None:
     """GAE's ``advantage`` and ``value_target`` into a guarded rollout ``batch`` (no gradients), and the guard's
     mask where ClipPPOLoss's advantage normalisation reads it (:data:`NORM_MASK_KEY`), not from the loss mask: without
     it a masked frame's advantage still moved each mini-batch's mean and std. Set after GAE, which reads that key as
@@ -909,16 +922,38 @@ def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBas
 
 
 def _finished(overlap: UpdateOverlap, step: MinibatchStep) -> tuple[dict[str, float], dict]:
-    """The in-flight update's losses by log name and its context, once it is done (a host wait)."""
+    """The in-flight update's :func:`_update_stats` by log name and its context, once it is done (a host wait for
+    that update alone)."""
     values, context = overlap.finish()
-    return {_STAT_NAMES.get(k, k): v for k, v in zip(step.stat_keys, values)}, context
+    return dict(zip(_stat_names(step, with_actor=True), values)), context
 
 
-def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep,
-            dist_info: DistInfo | None = None) -> dict[str, float]:
-    """:func:`_update_losses` read on the host, by log name."""
-    mean = _update_losses(cfg, flat, step, dist_info).tolist()
-    return {_STAT_NAMES.get(k, k): v for k, v in zip(step.stat_keys, mean)}
+def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, dist_info: DistInfo | None = None,
+            actor: ProbabilisticActor | None = None) -> dict[str, float]:
+    """:func:`_update_stats` read on the host, by log name."""
+    values = _update_stats(cfg, flat, step, actor, dist_info).tolist()  # first: the step's losses name themselves
+    return dict(zip(_stat_names(step, with_actor=actor is not None), values))
+
+
+def _update_stats(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, actor: ProbabilisticActor | None = None,
+                  dist_info: DistInfo | None = None) -> torch.Tensor:
+    """The update (:func:`_update_losses`) and, given the ``actor``, what the trainer reads with its losses, as one
+    float64 device tensor named by :func:`_stat_names`: the actor's mean std after it (the logged ``action_std``) and,
+    with ``ppo.kl_adapt_every`` "minibatch", the learning rate the device-side rule left. One host read takes them
+    all; float64 keeps each value as a read of its own would give it."""
+    losses = _update_losses(cfg, flat, step, dist_info).to(torch.float64)
+    if actor is None:
+        return losses
+    after = [action_std(actor).mean()]
+    if step.kl_rule is not None:
+        after.append(torch.as_tensor(step.kl_rule.groups[0]["lr"], device=losses.device))
+    return torch.cat([losses, torch.stack([v.to(torch.float64) for v in after])])
+
+
+def _stat_names(step: MinibatchStep, with_actor: bool) -> list[str]:
+    """The log names of :func:`_update_stats`' values (the step's losses are known once it has run)."""
+    extra = ("action_std", *(("lr",) if step.kl_rule is not None else ())) if with_actor else ()
+    return [*(_STAT_NAMES.get(k, k) for k in step.stat_keys), *extra]
 
 
 def _update_losses(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep,
