@@ -33,7 +33,7 @@ def signal_during_update(monkeypatch, at: int, signals=(signal.SIGINT,)):
     """Send ``signals`` to this process during the ``at``-th update: what Ctrl-C (or a scheduler's SIGTERM) does."""
     from tocabi_torchrl.rl import trainer
 
-    update, calls = trainer._update, []
+    update, calls = trainer._update_stats, []
 
     def update_then_signal(*args, **kwargs):
         calls.append(1)
@@ -42,7 +42,7 @@ def signal_during_update(monkeypatch, at: int, signals=(signal.SIGINT,)):
                 os.kill(os.getpid(), sig)
         return update(*args, **kwargs)
 
-    monkeypatch.setattr(trainer, "_update", update_then_signal)
+    monkeypatch.setattr(trainer, "_update_stats", update_then_signal)
 
 
 def test_the_first_signal_sets_the_flag_a_second_stops_at_once_and_the_handlers_come_back():
@@ -118,7 +118,7 @@ def test_a_second_signal_stops_at_once(tmp_path, monkeypatch, capsys):
     from tocabi_torchrl.rl import trainer
 
     # The two signals come within the torchrun grace (1 s): one process has none, or it ignored the second.
-    update, calls = trainer._update, []
+    update, calls = trainer._update_stats, []
 
     def signalled_twice(*args, **kwargs):
         calls.append(1)
@@ -129,7 +129,7 @@ def test_a_second_signal_stops_at_once(tmp_path, monkeypatch, capsys):
             os.kill(os.getpid(), signal.SIGINT)  # before the iteration's end: no checkpoint of it
         return out
 
-    monkeypatch.setattr(trainer, "_update", signalled_twice)
+    monkeypatch.setattr(trainer, "_update_stats", signalled_twice)
     with pytest.raises(SystemExit) as info:
         recipe("ppo_walk").main(tiny_args(tmp_path))
     assert info.value.code == 130

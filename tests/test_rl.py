@@ -297,7 +297,7 @@ def test_each_update_runs_with_the_linear_lr_and_std_of_the_progress_after_its_r
     # before update k. They were set after the update, so update k ran with P_(k-1)'s: one iteration behind.
     from tocabi_torchrl.rl import trainer
 
-    seen, std_now, update, set_std = [], [0.1], trainer._update, trainer.set_action_std
+    seen, std_now, update, set_std = [], [0.1], trainer._update_stats, trainer.set_action_std
 
     def setting(actor, std):
         std_now[0] = std
@@ -307,7 +307,7 @@ def test_each_update_runs_with_the_linear_lr_and_std_of_the_progress_after_its_r
         seen.append((step.optimizer.param_groups[0]["lr"], std_now[0]))
         return update(cfg, flat, step, *rest)
 
-    monkeypatch.setattr(trainer, "_update", recording)
+    monkeypatch.setattr(trainer, "_update_stats", recording)
     monkeypatch.setattr(trainer, "set_action_std", setting)
     cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 2, "ppo.steps_per_env": 4,
                         "ppo.minibatch_size": 8},

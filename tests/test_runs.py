@@ -735,7 +735,7 @@ def test_a_value_refused_while_the_run_is_set_up_is_one_error_line_and_a_bug_in_
         recipe("ppo_walk").main(tiny_args(tmp_path, name="setup"))
     assert not (tmp_path / "setup").exists()
     monkeypatch.undo()
-    monkeypatch.setattr(trainer, "_update", refusing)
+    monkeypatch.setattr(trainer, "_update_stats", refusing)
     with pytest.raises(ValueError, match="clip must be > 0"):  # not turned into an error line: its traceback shows
         recipe("ppo_walk").main(tiny_args(tmp_path, name="training"))
 

@@ -1,6 +1,6 @@
 """The reads between two rollouts that no longer make the host wait for the GPU's queue: TorchRL's GAE without its
-NaN check (rl/gae.py) and the deferred host copies (rl/deferred_read.py), with ``ppo.overlap_update`` the only reads
-of an iteration (tests/test_training_step_host_reads.py counts them on the CPU)."""
+NaN check (rl/gae.py) and the deferred host copies (rl/deferred_read.py), an iteration's only reads
+(tests/test_training_step_host_reads.py counts them on the CPU)."""
 
 from __future__ import annotations
 
@@ -58,6 +58,21 @@ def test_sync_free_gae_gives_torchrls_advantages_without_a_host_read(nan):
     assert torch.isfinite(got["advantage"]).all()
 
 
+def test_sync_free_gae_replaces_in_place_where_it_can_and_in_a_copy_where_it_cannot():
+    data = _rollout(nan=True)
+    nxt = data["next", "observation"]
+    out = SyncFreeGAE._sanitize_next_obs_nan(data, ["observation"])
+    assert out is data and out["next", "observation"] is nxt  # the rollout's own tensor, its NaN row replaced
+    assert torch.equal(nxt[1, 2], data["observation"][1, 2]) and torch.isfinite(nxt).all()
+    # A next observation that shares memory across entries (expanded) cannot take the write: a copy, as TorchRL's.
+    data = _rollout()
+    row = torch.tensor([1.0, float("nan"), 2.0, 3.0])
+    data["next"].set("observation", row.expand(3, 5, 4), inplace=False)
+    out = SyncFreeGAE._sanitize_next_obs_nan(data, ["observation"])
+    assert out is not data and torch.isnan(data["next", "observation"]).any()  # the caller's is left as it was
+    assert torch.equal(out["next", "observation"][..., 1], data["observation"][..., 1])
+
+
 def test_deferred_read_hands_back_one_read_at_a_time():
     read = DeferredRead()
     with pytest.raises(RuntimeError, match="no read started"):
@@ -108,30 +123,42 @@ class _CudaReads(TorchFunctionMode):
         return func(*args, **(kwargs or {}))
 
 
+OPTIONS = {"update_inline": {}, "overlap_update": {"ppo.overlap_update": True},
+           "overlap_minibatch_kl_privileged": {"ppo.overlap_update": True, "ppo.kl_adapt_every": "minibatch",
+                                               "ppo.critic_privileged": True}}
+
+
 @pytest.mark.gpu
 @CUDA
-def test_overlapped_training_reads_no_cuda_value_between_rollouts(tmp_path, monkeypatch):
-    """With ``ppo.overlap_update`` on CUDA, from the first rollout's end on, nothing of the training loop reads a CUDA
-    tensor's values on the host (checkpoints aside): the losses and the episode metrics come back through pinned
-    memory, GAE no longer asks whether a next observation holds NaN, and the env step and the update read nothing."""
+@pytest.mark.parametrize("option", list(OPTIONS))
+def test_training_reads_no_cuda_value_between_rollouts(tmp_path, monkeypatch, option):
+    """On CUDA, from the first rollout's end on, nothing of the training loop reads a CUDA tensor's values on the host
+    or synchronises (``torch.cuda.set_sync_debug_mode("error")``; checkpoints aside, and the waits for the deferred
+    copies' own events, which that mode does not count), with the update on the training stream or beside the next
+    rollout: the losses and the episode metrics come back through pinned memory, GAE no longer asks whether a next
+    observation holds NaN, and the env step and the update read nothing."""
     from tocabi_torchrl.rl import preset_config, trainer
 
     cfg = preset_config("cpu_smoke", device="cuda", run_dir=str(tmp_path), name="o", progress_bar=False,
                         eval_at_end=False, log_every=1, checkpoint_every=100, total_env_steps=4 * 8 * 16,
-                        **{"ppo.overlap_update": True})
+                        **OPTIONS[option])
     probe = _CudaReads()
     estimate, save = trainer.estimate_advantages, trainer.save_checkpoint
 
+    def watching(on: bool) -> None:
+        probe.on = on
+        torch.cuda.set_sync_debug_mode("error" if on else 0)
+
     def from_the_first_advantages(*args, **kwargs):  # start-up reads come before it
-        probe.on = True
+        watching(True)
         return estimate(*args, **kwargs)
 
     def saving(*args, **kwargs):  # a checkpoint copies the state to the host by design
-        probe.on = False
+        watching(False)
         try:
             return save(*args, **kwargs)
         finally:
-            probe.on = True
+            watching(True)
 
     make_collector = trainer.make_collector
 
@@ -140,7 +167,7 @@ def test_overlapped_training_reads_no_cuda_value_between_rollouts(tmp_path, monk
         shutdown = collector.shutdown
 
         def shutting_down(*a, **k):
-            probe.on = False
+            watching(False)
             return shutdown(*a, **k)
 
         collector.shutdown = shutting_down
@@ -149,7 +176,10 @@ def test_overlapped_training_reads_no_cuda_value_between_rollouts(tmp_path, monk
     monkeypatch.setattr(trainer, "estimate_advantages", from_the_first_advantages)
     monkeypatch.setattr(trainer, "save_checkpoint", saving)
     monkeypatch.setattr(trainer, "make_collector", collector_off_at_shutdown)
-    with probe:
-        result = trainer.train(cfg)
+    try:
+        with probe:
+            result = trainer.train(cfg)
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
     assert result.iterations == 4
     assert probe.reads == [], probe.reads

@@ -100,15 +100,14 @@ def test_the_robust_training_step_reads_nothing_on_the_host(option):
 
 #: Where a training iteration reads values on the host, once per iteration (docs/architecture.md, "What the host reads
 #: while training", lists them): the frame names :class:`host_reads.HostValueReads` records.
-ITERATION_READS = {"_update": "`rl.trainer._update`", "values": "`rl.deferred_read.DeferredRead.values`"}
+ITERATION_READS = {"values": "`rl.deferred_read.DeferredRead.values`"}
 
 
 @pytest.mark.parametrize("overlap", [False, True], ids=["update_inline", "overlap_update"])
 def test_a_training_iteration_reads_on_the_host_only_what_the_architecture_page_lists(tmp_path, monkeypatch, overlap):
     """Per iteration: the update's losses (with the action std and, on the device rule, the learning rate) and the
-    logged episode metrics; TorchRL's GAE read whether a next observation held NaN (rl/gae.py: no longer). With
-    ``ppo.overlap_update`` both come back through :class:`DeferredRead` alone, which on CUDA waits for its own copy,
-    not for the rollout queued since."""
+    logged episode metrics, both through :class:`DeferredRead`, which on CUDA waits for its own copy, not for the
+    rollout queued since; TorchRL's GAE read whether a next observation held NaN (rl/gae.py: no longer)."""
     import tocabi_torchrl.rl.trainer as trainer
 
     iterations = 2
@@ -140,8 +139,8 @@ def test_a_training_iteration_reads_on_the_host_only_what_the_architecture_page_
     with probe:
         result = trainer.train(cfg, env)
     assert result.iterations == iterations
-    # Inline: the update's one read and the episode metrics' (each iteration logs); with the overlap, both deferred.
-    assert probe.sites == ({"values": 2 * iterations} if overlap else {"_update": iterations, "values": iterations})
+    # The update's losses and the episode metrics (each iteration logs), both deferred, with or without the overlap.
+    assert probe.sites == {"values": 2 * iterations}
     page = (Path(__file__).resolve().parents[1] / "docs" / "architecture.md").read_text()
     assert "## What the host reads while training" in page, "docs/architecture.md lost its section on host reads"
     section = page.split("## What the host reads while training", 1)[1].split("\n## ", 1)[0]

@@ -77,7 +77,7 @@ def marked_trainer(timeline: Timeline):
     """The trainer's functions, and the env, simulator, actor and GAE it builds, with marks around them; all put
     back on exit, also after an error."""
     trainer = common.trainer
-    saved = {k: getattr(trainer, k) for k in ("make_collector", "make_loss", "guard_rollout", "_update")}
+    saved = {k: getattr(trainer, k) for k in ("make_collector", "make_loss", "guard_rollout", "_update_stats")}
     undo: list = []
     mark = {phase: (lambda p=phase: timeline.step_mark(p)) for phase in STEP_PHASES}
     policy, between, env_in, physics, signals, reset, reset_sim, reset_obs, merge, storage = STEP_PHASES
@@ -107,14 +107,14 @@ def marked_trainer(timeline: Timeline):
 
     def update(*args, **kwargs):
         timeline.mark(ITERATION_PHASES[3])
-        stats = saved["_update"](*args, **kwargs)  # ends with a host read of the losses
+        stats = saved["_update_stats"](*args, **kwargs)  # queued: its losses are read an iteration later
         timeline.iteration_ends.append(len(timeline.marks))
         timeline.mark(ITERATION_PHASES[4])
         timeline.collecting = True
         return stats
 
     with common.trainer_patched({"make_collector": make_collector, "make_loss": make_loss,
-                                 "guard_rollout": guard_rollout, "_update": update}, undo):
+                                 "guard_rollout": guard_rollout, "_update_stats": update}, undo):
         yield
 
 

@@ -161,7 +161,7 @@ def test_step_timeline_marks_every_phase_of_the_real_trainer(tmp_path, monkeypat
     # runs every step and every phase is marked.
     from tocabi_torchrl.rl import trainer
 
-    originals = {k: getattr(trainer, k) for k in ("make_collector", "make_loss", "guard_rollout", "_update")}
+    originals = {k: getattr(trainer, k) for k in ("make_collector", "make_loss", "guard_rollout", "_update_stats")}
     build_env = trainer.build_env
     monkeypatch.setattr(trainer, "build_env",
                         lambda cfg, device, **kw: build_env(cfg, device, **{"sync_free_resets": True, **kw}))
@@ -188,7 +188,7 @@ def test_solver_load_counts_the_trainer_and_the_raw_ceiling_on_warps_cpu(tmp_pat
 
     if not warp_cpu_available():
         pytest.skip("warp's CPU device is not available here")
-    originals = {k: getattr(trainer, k) for k in ("make_collector", "_update")}
+    originals = {k: getattr(trainer, k) for k in ("make_collector", "_update_stats")}
     args = ["--device", "cpu", "--num_envs", "4", "--iterations", "2", "--warmup", "1", "--raw_steps", "3",
             "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs"), "--set", "ppo.steps_per_env=6",
             "ppo.actor_hidden=8 8"]

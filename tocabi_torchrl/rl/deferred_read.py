@@ -5,7 +5,7 @@ queued before it on that stream has run, and the GPU then idles until the host q
 gap is the host's whole work of the iteration (GAE, the update's launch, the log): the stream drains, then waits.
 :class:`DeferredRead` queues the copy into pinned host memory instead (``non_blocking``), with an event after it, and
 :meth:`DeferredRead.values` waits for that event alone, where the numbers are needed (the next iteration's log, the
-learning rate of the update after next). On the CPU the numbers are read when asked for.
+learning rate of the next update). On the CPU the numbers are read when asked for.
 
 >>> import torch
 >>> read = DeferredRead()

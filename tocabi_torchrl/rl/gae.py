@@ -34,7 +34,10 @@ class SyncFreeGAE(GAE):
     @staticmethod
     def _sanitize_next_obs_nan(data: TensorDictBase, in_keys: list) -> TensorDictBase:
         """``data`` with the NaN entries of ``("next", k)`` replaced by ``k``'s, in place, for each floating-point
-        ``k`` of ``in_keys`` whose next value has its shape."""
+        ``k`` of ``in_keys`` whose next value has its shape. A next value that cannot be written in place (it needs
+        gradients, was made in inference mode, shares memory across entries or has another dtype than ``k``) is
+        replaced as TorchRL does, in a shallow copy of ``data``."""
+        copied = False
         for k in in_keys:
             root = data.get(k, default=None)
             if root is None or not root.is_floating_point():
@@ -43,5 +46,11 @@ class SyncFreeGAE(GAE):
             nxt = data.get(next_k, default=None)
             if nxt is None or nxt.shape != root.shape:
                 continue
-            data.set_(next_k, torch.where(torch.isnan(nxt), root, nxt, out=nxt))
+            nan = torch.isnan(nxt)
+            if nxt.requires_grad or nxt.is_inference() or nxt.dtype != root.dtype or 0 in nxt.stride():
+                if not copied:
+                    data, copied = data.copy(), True
+                data.set(next_k, torch.where(nan, root, nxt))
+            else:
+                data.set_(next_k, torch.where(nan, root, nxt, out=nxt))
         return data

@@ -56,15 +56,20 @@ class UpdateOverlap:
         device: the training device.
         actor: the learner's actor; :attr:`collect_actor` is a copy of it (parameters and buffers, e.g. the scheduled
             action std) that the collector acts with, refreshed by :meth:`refresh`.
+        side_stream: False: no overlap (``ppo.overlap_update`` off). :meth:`launch` queues the update on the training
+            stream, the collector acts with the learner itself (:attr:`collect_actor` is ``actor``, :meth:`refresh`
+            copies nothing), and only the read of its losses waits for the next rollout to be queued: the trainer
+            then never waits for the GPU's queue between two rollouts, and trains exactly as it reads at once.
     """
 
-    def __init__(self, device: torch.device, actor: torch.nn.Module):
+    def __init__(self, device: torch.device, actor: torch.nn.Module, side_stream: bool = True):
         self.device = device
-        self.stream = torch.cuda.Stream(device) if device.type == "cuda" else None
-        self.collect_actor = copy.deepcopy(actor)
-        self.collect_actor.requires_grad_(False)
+        self.stream = torch.cuda.Stream(device) if device.type == "cuda" and side_stream else None
+        self.collect_actor = copy.deepcopy(actor) if side_stream else actor
+        if side_stream:
+            self.collect_actor.requires_grad_(False)
         self._learner = actor
-        self._pairs = _state_pairs(self.collect_actor, actor)
+        self._pairs = _state_pairs(self.collect_actor, actor) if side_stream else []
         self._pending: tuple[Any, DeferredRead, Any, Any] | None = None
         self._losses = DeferredRead()
         #: Set to a list to record each update's (start, done) CUDA events on the side stream (a benchmark's timeline;
@@ -85,7 +90,8 @@ class UpdateOverlap:
             torch._foreach_copy_([dst for dst, _ in self._pairs], [src for _, src in self._pairs])
 
     def launch(self, update: Callable[[], torch.Tensor], keep: Any) -> None:
-        """Start ``update()`` (which returns a device tensor of its losses) on the side stream, after the work
+        """Start ``update()`` (which returns a 1-D device tensor of the numbers to read back: its losses and what
+        the caller reads with them) on the side stream (without one: at once, on the current stream), after the work
         already queued on the current stream; ``keep`` (what the update reads) stays referenced until
         :meth:`finish`, which also hands back the context :meth:`annotate` gave it (None without one)."""
         if self._pending is not None:
@@ -118,7 +124,7 @@ class UpdateOverlap:
         self._pending = (*self._pending[:3], context)
 
     def finish(self) -> tuple[list[float], Any] | None:
-        """Wait (host) for the update in flight and return its losses as floats and its ``context``; None when no
+        """Wait (host) for the update in flight and return its numbers as floats and its ``context``; None when no
         update is in flight. Releases what :meth:`launch` kept."""
         if self._pending is None:
             return None

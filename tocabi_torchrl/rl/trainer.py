@@ -463,7 +463,7 @@ def make_loss(cfg: RunConfig, agent: Agent, env: EnvBase | None = None,
     # observations and next observations and keeps (2 · frames, 400) activations, ~6 GB at 16384 envs.
     ppo = cfg.ppo
     advantage = SyncFreeGAE(gamma=ppo.gamma, lmbda=ppo.gae_lambda, value_network=agent.critic, average_gae=False,
-                    value_chunk_size=_VALUE_CHUNK_FRAMES // ppo.steps_per_env or 1)
+                            value_chunk_size=_VALUE_CHUNK_FRAMES // ppo.steps_per_env or 1)
     loss_module = GuardedClipPPOLoss(
         agent.actor,
         agent.critic,
@@ -660,9 +660,11 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     # One host read at start-up; from then on the trainer knows when it takes the teacher.
     teacher_taken = agent.teacher is not None and bool(agent.teacher.anchored)
 
-    # With ppo.overlap_update the collector acts with a copy of the actor taken before each update (rl/overlap.py).
-    overlap = UpdateOverlap(device, agent.actor) if ppo.overlap_update else None
-    policy = agent.actor if overlap is None else overlap.collect_actor
+    # Each update's losses are read once the next rollout is queued, so that no read between two rollouts waits for
+    # the GPU's queue. With ppo.overlap_update the update itself runs beside that rollout, on a side stream, and the
+    # collector acts with a copy of the actor taken before each update (rl/overlap.py).
+    overlap = UpdateOverlap(device, agent.actor, side_stream=ppo.overlap_update)
+    policy = overlap.collect_actor
     # The live viewer (rank 0): a policy that also ticks its pose stream, a host copy off the training stream.
     live = _live_view(cfg, env) if cfg.viewer.enabled and info.is_main else None
     collector = None
@@ -691,8 +693,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
 
     def settle(stats: dict[str, float], ctx: dict) -> None:
         """What needs an update's losses (``stats``, by log name): the adaptive learning rate for the next update,
-        and the iteration's log row. Right after the update, or (overlap_update) once the next rollout has been
-        collected; ``ctx``: what the iteration knew without them."""
+        and the iteration's log row. Once the next rollout has been queued (or before a checkpoint, a stop or the
+        end); ``ctx``: what the iteration knew without them."""
         nonlocal lr, metrics, warned_masked
         stats = {**stats, **ctx["extra"]}
         std = stats.pop("action_std")  # read with the losses (_update_stats)
@@ -707,8 +709,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             _set_scheduled_lr(optimizer, lr)
         if ctx["episode"] is None:
             return
-        # Copied to the host when the rollout ended, read here: with the overlap, an iteration later.
-        episode = dict(zip(ctx["episode"], episodes.values()))
+        # Copied to the host when the rollout ended, read here, an iteration later.
+        episode = dict(zip(ctx["episode"], episodes.values(), strict=True))
         if episode["masked_frac"] > MASKED_WARNING and info.is_main and not warned_masked:  # a broken term stays broken
             warned_masked = True
             print_line(f"warning: {100 * episode['masked_frac']:.1f} % of iteration {ctx['row']}'s frames were left "
@@ -724,7 +726,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
     try:
         for it, batch in enumerate(collector, start=start_iter + 1):
             t_collect = time.perf_counter()
-            if overlap is not None and overlap.in_flight:  # the previous update, run while this rollout was collected
+            if overlap.in_flight:  # the previous update, queued before this rollout (or run beside it)
                 settle(*_finished(overlap, update_step))
             env_steps += batch.numel() * info.world_size
             progress_remaining = 1.0 - it / iterations
@@ -740,7 +742,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             estimate_advantages(advantage, work)
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
             flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
-            if overlap is not None:
+            if ppo.overlap_update:
                 # The update reads it on the side stream while the collector refills `batch`: its own memory.
                 flat = flat.clone()
             extra: dict[str, float] = {}
@@ -777,11 +779,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             if update_step.kl_rule is not None:  # held while β fades (and the pull decays), as the host rule is
                 update_step.kl_rule.set_enabled(not fading)
                 update_step.kl_rule.start_update()
-            if overlap is None:
-                stats = _update(cfg, flat, update_step, info, agent.actor)
-            else:
+            if ppo.overlap_update:
                 overlap.refresh()  # the next rollout acts with the learner as it is before this update
-                overlap.launch(lambda: _update_stats(cfg, flat, update_step, agent.actor), keep=flat)
+            overlap.launch(lambda: _update_stats(cfg, flat, update_step, agent.actor, info), keep=flat)
             # Nothing of this rollout's copy outlives its update: the next rollout is collected without it.
             del work, flat
             if assist is not None:
@@ -789,7 +789,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             if pushes:
                 extra["push_scale"] = push_scale(ppo.push_ramp, env_steps - batch.numel() * info.world_size)
                 env.base_env.set_push_scale(push_scale(ppo.push_ramp, env_steps))
-            if overlap is None:
+            if not ppo.overlap_update:
                 collector.update_policy_weights_()
             elapsed = time.perf_counter() - t_start
             train_s = prior_train_s + elapsed
@@ -804,12 +804,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                                         update_s=time.perf_counter() - t_collect, wall_s=elapsed, train_s=train_s)}
             mark_due = train_s >= next_mark
             saved = (it + shift) % cfg.checkpoint_every == 0 or it == iterations
-            if overlap is None:
-                settle(stats, context)
-            else:
-                overlap.annotate(context)
-                if mark_due or saved:  # a checkpoint holds the learner after this update
-                    settle(*_finished(overlap, update_step))
+            overlap.annotate(context)
+            if mark_due or saved:  # a checkpoint holds the learner after this update, and the rate after it
+                settle(*_finished(overlap, update_step))
             # Checkpoints hold rank 0's state, which every rank shares (parameters, optimiser, statistics).
             if mark_due:
                 if info.is_main:
@@ -823,7 +820,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             time_up, stop_signal = _stop_requests(bool(cfg.max_minutes) and elapsed > 60.0 * cfg.max_minutes,
                                                   progress.stop_signal, info, device)
             if time_up or stop_signal is not None:
-                if overlap is not None and overlap.in_flight:  # the checkpoint below holds the learner after it
+                if overlap.in_flight:  # the checkpoint below holds the learner after it
                     settle(*_finished(overlap, update_step))
                 progress.stop_signal = progress.stop_signal or stop_signal
                 if info.is_main:
@@ -832,11 +829,11 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                     if not saved:
                         save_checkpoint(run_dir, it + shift, env_steps, agent, optimizer, env, cfg, train_s)
                 break
-        if overlap is not None and overlap.in_flight:  # the collector ran out: the last update's row
+        if overlap.in_flight:  # the collector ran out: the last update's row
             settle(*_finished(overlap, update_step))
     finally:
         env_graph = bool(getattr(env, "graph_captured", False))
-        if overlap is not None and overlap.in_flight:  # an error: let the side stream end before anything is freed
+        if overlap.in_flight:  # an error: let the update end before anything is freed
             with contextlib.suppress(Exception):  # the error that got here is the one to report
                 overlap.finish()
         collector.shutdown()
@@ -861,8 +858,9 @@ def _live_view(cfg: RunConfig, env: EnvBase):
 def _stop_requests(time_up: bool, stop_signal: str | None, info: DistInfo,
                    device: torch.device) -> tuple[bool, str | None]:
     """Whether any rank's ``max_minutes`` are up, and the stop signal any rank got (the highest-numbered one), from
-    this rank's own: one all-reduce of two ints in a data-parallel run, at the iteration's end, after the update's
-    statistics were read to the host (so it waits for no GPU work); nothing is exchanged with one rank."""
+    this rank's own: one all-reduce of two ints in a data-parallel run, at the iteration's end (its read waits for
+    the work queued before it, the update included: a data-parallel iteration's one wait); nothing is exchanged with
+    one rank."""
     signum = int(signal.Signals[stop_signal]) if stop_signal is not None else 0
     if info.enabled:
         flags = torch.tensor([int(time_up), signum], dtype=torch.int32, device=device)
@@ -925,14 +923,14 @@ def _finished(overlap: UpdateOverlap, step: MinibatchStep) -> tuple[dict[str, fl
     """The in-flight update's :func:`_update_stats` by log name and its context, once it is done (a host wait for
     that update alone)."""
     values, context = overlap.finish()
-    return dict(zip(_stat_names(step, with_actor=True), values)), context
+    return dict(zip(_stat_names(step, with_actor=True), values, strict=True)), context
 
 
 def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, dist_info: DistInfo | None = None,
             actor: ProbabilisticActor | None = None) -> dict[str, float]:
     """:func:`_update_stats` read on the host, by log name."""
     values = _update_stats(cfg, flat, step, actor, dist_info).tolist()  # first: the step's losses name themselves
-    return dict(zip(_stat_names(step, with_actor=actor is not None), values))
+    return dict(zip(_stat_names(step, with_actor=actor is not None), values, strict=True))
 
 
 def _update_stats(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, actor: ProbabilisticActor | None = None,
