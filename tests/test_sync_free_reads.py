@@ -183,3 +183,35 @@ def test_training_reads_no_cuda_value_between_rollouts(tmp_path, monkeypatch, op
         torch.cuda.set_sync_debug_mode(0)
     assert result.iterations == 4
     assert probe.reads == [], probe.reads
+
+
+@pytest.mark.parametrize("overlap", [False, True], ids=["update_inline", "overlap_update"])
+def test_an_error_in_the_next_rollout_still_logs_the_update_before_it(tmp_path, monkeypatch, overlap):
+    """The update's row is written once the next rollout is queued; an error while that rollout is collected (a
+    crash, a second Ctrl-C) still writes it, the row someone diagnosing the crash reads first."""
+    from tocabi_torchrl.rl import preset_config, trainer
+    from tocabi_torchrl.rl.metrics_files import read_metrics
+
+    make_collector = trainer.make_collector
+
+    class FailingSecondRollout:
+        def __init__(self, collector):
+            self._collector = collector
+
+        def __getattr__(self, name):
+            return getattr(self._collector, name)
+
+        def __iter__(self):
+            for k, batch in enumerate(self._collector):
+                if k == 1:
+                    raise RuntimeError("the env broke in the second rollout")
+                yield batch
+
+    monkeypatch.setattr(trainer, "make_collector", lambda *a, **k: FailingSecondRollout(make_collector(*a, **k)))
+    cfg = preset_config("cpu_smoke", device="cpu", run_dir=str(tmp_path), name="e", progress_bar=False,
+                        eval_at_end=False, log_every=1, checkpoint_every=100, total_env_steps=4 * 8 * 16,
+                        **{"ppo.overlap_update": overlap})
+    with pytest.raises(RuntimeError, match="second rollout"):
+        trainer.train(cfg)
+    rows = read_metrics(tmp_path / "e")
+    assert [int(r["iteration"]) for r in rows] == [1] and float(rows[0]["kl"]) == float(rows[0]["kl"])

@@ -682,6 +682,7 @@ def train_over_ceiling(docs: Path) -> list[str]:
             "target | train / raw standing |", "|---:|---:|---:|---:|---:|---:|---:|"]
     split = ["| envs | whole policy step [ms] | physics | PPO update (last iteration's, per policy step) | the rest |",
              "|---:|---:|---:|---:|---:|"]
+    gpu_timed = True
     for r in d["results"]:
         target = CEILING_TARGETS.get(r["num_envs"])
         met = "" if target is None else (" (met)" if r["ratio_train_over_ceiling"] >= target else " (missed)")
@@ -690,14 +691,19 @@ def train_over_ceiling(docs: Path) -> list[str]:
                     f"{'-' if target is None else f'{target:g}{met}'} | "
                     + ("-" if r.get("ratio_train_over_raw") is None else f"{r['ratio_train_over_raw']:.3f}") + " |")
         if r.get("update_s_last") and r.get("iterations") and r.get("env_steps") and r.get("gpus", 1) == 1:
-            # One GPU: every env takes env_steps / iterations / num_envs policy steps per iteration.
+            # One GPU: every env takes env_steps / iterations / num_envs policy steps per iteration. A result with
+            # update_ms_last timed the update's own work (CUDA events around it); older ones the host's wait for it.
             step = r["num_envs"] * 1e3 / r["train_env_steps_per_s"]
-            update = r["update_s_last"] * 1e3 / (r["env_steps"] / r["iterations"] / r["num_envs"])
+            gpu_timed = gpu_timed and "update_ms_last" in r
+            update = (r["update_ms_last"] if "update_ms_last" in r else r["update_s_last"] * 1e3) / (
+                r["env_steps"] / r["iterations"] / r["num_envs"])
             physics = r["physics_ms_per_policy_step"]
             split.append(f"| {r['num_envs']:,} | {step:.2f} | {physics:.2f} | {update:.2f} | "
                          f"{step - physics - update:.2f} |")
-    split = ["", "Where a training step's time goes (ms per policy step of all envs; the update is its last "
-             "iteration's host time from the rollout's end (GAE and the update) over the iteration's policy steps, "
+    update_is = ("its last iteration's GPU time (CUDA events around it) over the iteration's policy steps"
+                 if gpu_timed else "its last iteration's host time from the rollout's end (GAE and the update) over "
+                 "the iteration's policy steps")
+    split = ["", f"Where a training step's time goes (ms per policy step of all envs; the update is {update_is}, "
              "the rest is everything else: policy, observations, rewards, resets):", "",
              *split] if len(split) > 2 else []
     return ["", "Training against that ceiling in the same run: the simulator's step timed in place (CUDA events) "

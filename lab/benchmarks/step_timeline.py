@@ -13,16 +13,17 @@ also holds the host's lag, and the ~10 event records per step add a little host 
 
 Phases per policy step: the policy's forward; the collector's work between policy and env; the env before the physics
 (action checks, controls); the physics (``sim.step``: 8 substeps and the step's forward pass); signals, rewards,
-transforms and ``step_mdp``; the masked reset (every step, all worlds, in the sync-free env of GPU training) in
-three parts: the env's bookkeeping up to the simulator's reset, the simulator's reset (full or reduced pass) and the
-observation after it; the reset's merge; the collector's storage until the next step (the last step's also holds the end of the rollout: the
-collector's stacking, the trainer's shallow copy and, on several ranks, the statistics sync). Per iteration: the
-rollout guard; GAE; the selection of the loss's keys and the flattening (and the torque assist's bookkeeping); the
-PPO update (mini-batch gathers included); the iteration's end (learning rate, std, metrics, logging). Reported in ms
-per policy step of all envs (iteration phases divided by the rollout length), beside raw mujoco-warp's policy step
-measured in the same process. The env step must run eagerly: a captured step (``ppo.cuda_graph`` "on", or "auto" at
-up to ``cuda_graphs.ENV_GRAPH_AUTO_MAX_ENVS`` envs) has no points to mark and is refused. Off CUDA the marks are
-host clocks (a smoke run).
+transforms and ``step_mdp``; the masked reset (every step, all worlds, in the sync-free env of GPU training) in three
+parts: the env's bookkeeping up to the simulator's reset, the simulator's reset (full or reduced pass) and the
+observation after it; the reset's merge; the collector's storage until the next step (the last step's also holds the
+end of the rollout: the collector's stacking, the trainer's shallow copy, the read of the previous update's numbers
+with its learning rate and log row, and, on several ranks, the statistics sync). Per iteration: the rollout guard;
+GAE; the selection of the loss's keys and the flattening (and the torque assist's bookkeeping, the scheduled rate and
+std); the PPO update (mini-batch gathers included); the iteration's end (the assist and kick schedules, the metrics'
+copy, checkpoints). Reported in ms per policy step of all envs (iteration phases divided by the rollout length),
+beside raw mujoco-warp's policy step measured in the same process. The env step must run eagerly: a captured step
+(``ppo.cuda_graph`` "on", or "auto" at up to ``cuda_graphs.ENV_GRAPH_AUTO_MAX_ENVS`` envs) has no points to mark and
+is refused. Off CUDA the marks are host clocks (a smoke run).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ STEP_PHASES = ("policy forward", "collector between policy and env", "env before
                "signals, rewards, transforms, step_mdp", "masked reset: env before the simulator",
                "masked reset: simulator", "masked reset: observation", "reset merge", "collector storage")
 ITERATION_PHASES = ("rollout guard", "GAE", "loss keys and flattening", "PPO update",
-                    "iteration end (LR, std, metrics, logging)")
+                    "iteration end (assist, kicks, metrics copy, checkpoints)")
 
 
 class Timeline:

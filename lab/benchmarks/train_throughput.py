@@ -54,7 +54,7 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                                 info.world_size)
         if info.is_main:  # the benchmark's own scratch run: start afresh
             shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
-        physics, overlaps = None, []
+        physics, overlaps, update_marks = None, [], []
         patches = {}
         if ceiling:
             at = common.trainer.resolve_device(device)
@@ -73,6 +73,16 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                     overlaps.append(self)
 
             patches["UpdateOverlap"] = RecordedOverlap
+            cuda, update_stats = at.type == "cuda", common.trainer._update_stats
+
+            def timed_update(*args, **kwargs):
+                """The update's own time: marks on the stream it is queued on (the side stream's, overlapped)."""
+                start = common.stamp(cuda)
+                out = update_stats(*args, **kwargs)
+                update_marks.append((start, common.stamp(cuda)))
+                return out
+
+            patches["_update_stats"] = timed_update
         # The physics is timed from the end of iteration max(warmup, 1) on: the iterations of the steady rate.
         with (solver_load.recorded_trainer(physics, max(warmup, 1)) if physics else contextlib.nullcontext(),
               common.trainer_patched(patches, [])):
@@ -101,6 +111,12 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
             ms, alone = uncontended_ms(physics, [span for o in overlaps for span in o.spans],
                                        overlaps[0].origin if overlaps else None)
             rate, top = record["train_env_steps_per_s"], n * 1e3 / ms
+            # The update's GPU time, now that the host no longer waits for it between rollouts (beside the rollout,
+            # with the overlap, it is no part of the step: the host's wait for it stays the measure there).
+            if update_marks and not cfg.ppo.overlap_update:
+                if at.type == "cuda":
+                    torch.cuda.synchronize(at)
+                record["update_ms_last"] = common.elapsed_ms(*update_marks[-1], at.type == "cuda")
             record.update(physics_ms_per_policy_step=ms, physics_steps_timed=alone,
                           physics_steps_recorded=len(physics.spans), ceiling_env_steps_per_s=top,
                           ratio_train_over_ceiling=rate / top if rate else None)

@@ -108,6 +108,13 @@ def test_train_over_ceiling_joins_the_solver_load_section_with_its_targets(tmp_p
     # 4,096 / 150k/s = 27.31 ms a step: 24.00 physics, 96 ms / 48 steps = 2.00 update, 1.31 the rest; the row without
     # an update time has no split.
     assert "| 4,096 | 27.31 | 24.00 | 2.00 | 1.31 |" in text and "| 16,384 | 86.23 |" not in text
+    assert "host time from the rollout's end" in text
+    # A result that timed the update itself (CUDA events around it): its GPU time, and the label says so.
+    rows[0]["update_ms_last"] = 48.0  # 1.00 ms a policy step
+    (tmp_path / page.TRAIN_OVER_CEILING).write_text(json.dumps(
+        {"meta": {"command": "python -m x --ceiling", "date": "2026-12-07", "gpu": "NVIDIA H200"}, "results": rows}))
+    text = "\n".join(page.train_over_ceiling(tmp_path))
+    assert "| 4,096 | 27.31 | 24.00 | 1.00 | 2.31 |" in text and "GPU time (CUDA events around it)" in text
     assert "With options that no preset uses yet" not in text  # no variant report: no line
     # A variant report per env count, read in env-count order (16384 after 4096, not before it as text).
     variant = tmp_path / page.TRAIN_OVER_CEILING_OVERLAP

@@ -144,12 +144,19 @@ def test_train_throughput_ceiling_times_the_physics_of_the_timed_iterations_in_p
                            "ppo.overlap_update=true", "--out", str(tmp_path), "--run_dir", str(tmp_path / "runs")])
     (r,) = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
     assert r["physics_steps_timed"] == r["physics_steps_recorded"] == 16 and r["physics_ms_per_policy_step"] > 0
+    assert "update_ms_last" not in r  # overlapped: the update is no part of the step, the host's wait is the measure
     assert r["ceiling_env_steps_per_s"] == pytest.approx(8e3 / r["physics_ms_per_policy_step"])
     # The physics is part of the training step: training cannot outrun it.
     assert 0 < r["ratio_train_over_ceiling"] < 1
     assert r["ratio_train_over_ceiling"] == pytest.approx(r["train_env_steps_per_s"] / r["ceiling_env_steps_per_s"])
     page = (tmp_path / "train_throughput.md").read_text()
     assert "| train / ceiling |" in page and f"| {r['ratio_train_over_ceiling']:.3f} |" in page
+    # Inline, the update's own time is recorded (GPU events around it on CUDA, the host's clock here).
+    train_throughput.main(["--device", "cpu", "--num_envs", "8", "--iterations", "2", "--warmup", "1", "--ceiling",
+                           "--raw_steps", "0", "--set", "ppo.steps_per_env=8", "ppo.actor_hidden=8 8",
+                           "--out", str(tmp_path / "inline"), "--run_dir", str(tmp_path / "runs")])
+    (r,) = json.loads((tmp_path / "inline" / "train_throughput.json").read_text())["results"]
+    assert r["update_ms_last"] > 0
     # The phase benchmarks time one phase at a time: they refuse an overlapped run.
     with pytest.raises(SystemExit, match="ppo.overlap_update=false"):
         common.eager_step_config("step_timeline", 8, 2, {"ppo.overlap_update": True}, str(tmp_path), "t", "cpu")

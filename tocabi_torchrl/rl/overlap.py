@@ -50,7 +50,7 @@ __all__ = ["UpdateOverlap"]
 
 
 class UpdateOverlap:
-    """One update in flight at a time on a side stream (CUDA), or run inline (CPU).
+    """One update in flight at a time on a side stream (CUDA), or run inline (CPU, or ``side_stream=False``).
 
     Args:
         device: the training device.
@@ -86,6 +86,8 @@ class UpdateOverlap:
         :meth:`finish`: the copy must not race an update."""
         if self._pending is not None:
             raise RuntimeError("UpdateOverlap.refresh() while an update is in flight: call finish() first")
+        if not self._pairs:  # side_stream=False: the collector acts with the learner itself
+            return
         with torch.no_grad():
             torch._foreach_copy_([dst for dst, _ in self._pairs], [src for _, src in self._pairs])
 

@@ -781,8 +781,10 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 update_step.kl_rule.start_update()
             if ppo.overlap_update:
                 overlap.refresh()  # the next rollout acts with the learner as it is before this update
-            overlap.launch(lambda: _update_stats(cfg, flat, update_step, agent.actor, info), keep=flat)
-            # Nothing of this rollout's copy outlives its update: the next rollout is collected without it.
+            # On its side stream the update reads `flat` while the next rollout is collected: kept until it is done.
+            # On the training stream the stream's order protects it: nothing of this rollout's copy is kept.
+            overlap.launch(lambda: _update_stats(cfg, flat, update_step, agent.actor, info),
+                           keep=flat if ppo.overlap_update else None)
             del work, flat
             if assist is not None:
                 env.base_env.set_torque_assist(beta_next)
@@ -833,9 +835,12 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             settle(*_finished(overlap, update_step))
     finally:
         env_graph = bool(getattr(env, "graph_captured", False))
-        if overlap.in_flight:  # an error: let the update end before anything is freed
+        if overlap.in_flight:  # an error: let the update end before anything is freed, and log its row
             with contextlib.suppress(Exception):  # the error that got here is the one to report
-                overlap.finish()
+                settle(*_finished(overlap, update_step))
+            if overlap.in_flight:  # the row could not be written: the wait alone
+                with contextlib.suppress(Exception):
+                    overlap.finish()
         collector.shutdown()
         if logger is not None:
             logger.close()
