@@ -933,7 +933,8 @@ def _finished(overlap: UpdateOverlap, step: MinibatchStep) -> tuple[dict[str, fl
 
 def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, dist_info: DistInfo | None = None,
             actor: ProbabilisticActor | None = None) -> dict[str, float]:
-    """:func:`_update_stats` read on the host, by log name."""
+    """:func:`_update_stats` read on the host at once, by log name: one update as a single call (the trainer itself
+    reads an update's numbers once the next rollout is queued, through :class:`UpdateOverlap`)."""
     values = _update_stats(cfg, flat, step, actor, dist_info).tolist()  # first: the step's losses name themselves
     return dict(zip(_stat_names(step, with_actor=actor is not None), values, strict=True))
 
