@@ -70,7 +70,7 @@ class UpdateOverlap:
             self.collect_actor.requires_grad_(False)
         self._learner = actor
         self._pairs = _state_pairs(self.collect_actor, actor) if side_stream else []
-        self._pending: tuple[Any, DeferredRead, Any, Any] | None = None
+        self._pending: tuple[Any, Any, Any] | None = None  # (done event or None, what it keeps, its context)
         self._losses = DeferredRead()
         #: Set to a list to record each update's (start, done) CUDA events on the side stream (a benchmark's timeline;
         #: None: nothing recorded).
@@ -100,7 +100,7 @@ class UpdateOverlap:
             raise RuntimeError("UpdateOverlap.launch() with an update in flight: call finish() first")
         if self.stream is None:
             self._losses.start(update())
-            self._pending = (None, self._losses, keep, None)
+            self._pending = (None, keep, None)
             return
         ready = torch.cuda.current_stream(self.device).record_event()
         with torch.cuda.stream(self.stream):
@@ -117,23 +117,23 @@ class UpdateOverlap:
             done = self.stream.record_event(torch.cuda.Event(enable_timing=self.spans is not None))
         if self.spans is not None:
             self.spans.append((start, done))
-        self._pending = (done, self._losses, keep, None)
+        self._pending = (done, keep, None)
 
     def annotate(self, context: Any) -> None:
         """Give the in-flight update a ``context`` (what the host learnt after launching it) for :meth:`finish`."""
         if self._pending is None:
             raise RuntimeError("UpdateOverlap.annotate() with no update in flight")
-        self._pending = (*self._pending[:3], context)
+        self._pending = (*self._pending[:2], context)
 
     def finish(self) -> tuple[list[float], Any] | None:
         """Wait (host) for the update in flight and return its numbers as floats and its ``context``; None when no
         update is in flight. Releases what :meth:`launch` kept."""
         if self._pending is None:
             return None
-        done, losses, _keep, context = self._pending
-        if done is not None:
+        done, _keep, context = self._pending
+        if done is not None:  # the update's end (the copy's own event comes just before it)
             done.synchronize()
-        values = losses.values()
+        values = self._losses.values()
         self._pending = None
         return values, context
 
