@@ -127,13 +127,16 @@ def train_part(args, command: str) -> None:
     record["commands"] = [*record["commands"], command]
     if info.is_main:  # before training: a call killed after its last checkpoint still names itself in the record
         common.write_json(run_dir / "train.json", record)
-    saved = latest.stat().st_mtime_ns if latest.is_file() else None
+    def saved_at() -> int | None:
+        return latest.stat().st_mtime_ns if latest.is_file() else None
+
+    saved = saved_at()
     try:
         result, rows = common.train(cfg)
     except Exception:
         # A call that failed before its first checkpoint (a bad device, out of memory at the build) trained nothing
         # the run keeps: the record goes back to what it was. One stopped by a signal or Ctrl-C stays listed.
-        if info.is_main and (latest.stat().st_mtime_ns if latest.is_file() else None) == saved:
+        if info.is_main and saved_at() == saved:
             _restore(run_dir / "train.json", before)
         raise
     if not info.is_main:  # rank 0 logged the rows and keeps the record

@@ -82,7 +82,8 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                 update_marks.append((start, common.stamp(cuda)))
                 return out
 
-            patches["_update_stats"] = timed_update
+            if not cfg.ppo.overlap_update:  # beside the rollout the update is no part of the step (below)
+                patches["_update_stats"] = timed_update
         # The physics is timed from the end of iteration max(warmup, 1) on: the iterations of the steady rate.
         with (solver_load.recorded_trainer(physics, max(warmup, 1)) if physics else contextlib.nullcontext(),
               common.trainer_patched(patches, [])):
@@ -113,7 +114,7 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
             rate, top = record["train_env_steps_per_s"], n * 1e3 / ms
             # The update's GPU time, now that the host no longer waits for it between rollouts (beside the rollout,
             # with the overlap, it is no part of the step: the host's wait for it stays the measure there).
-            if update_marks and not cfg.ppo.overlap_update:
+            if update_marks:
                 if at.type == "cuda":
                     torch.cuda.synchronize(at)
                 record["update_ms_last"] = common.elapsed_ms(*update_marks[-1], at.type == "cuda")
