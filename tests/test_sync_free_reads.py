@@ -73,6 +73,21 @@ def test_sync_free_gae_replaces_in_place_where_it_can_and_in_a_copy_where_it_can
     assert torch.equal(out["next", "observation"][..., 1], data["observation"][..., 1])
 
 
+def test_the_trainers_gae_keeps_gamma_and_lambda_on_the_critics_device():
+    """Built without a device, TorchRL's GAE keeps gamma and lambda on the default device and copies them to the
+    reward's on its first call: on CUDA a blocking host-to-device copy inside the first iteration. Built under another
+    default device (meta here, standing for the CPU beside a CUDA critic), the trainer's still puts them by the
+    critic."""
+    from tocabi_torchrl.rl import preset_config
+    from tocabi_torchrl.rl.trainer import build_agent, make_loss
+
+    cfg = preset_config("cpu_smoke", device="cpu")
+    agent = build_agent(cfg, 17, 5, torch.device("cpu"))
+    with torch.device("meta"):
+        _, advantage = make_loss(cfg, agent)
+    assert advantage.gamma.device.type == advantage.lmbda.device.type == "cpu"
+
+
 def test_deferred_read_hands_back_one_read_at_a_time():
     read = DeferredRead()
     with pytest.raises(RuntimeError, match="no read started"):
