@@ -14,7 +14,8 @@ training visits, on the same model in the same run. Its rate, ``num_envs`` over 
 could reach were everything but the physics free; ``train / ceiling`` stands beside ``train / raw``. With
 ``ppo.overlap_update`` only the steps that ran while no update ran beside them count (each update's span is recorded
 on its stream), so the ceiling is the physics alone. It needs the eager env step (at 4,096 envs and more the
-trainer's default), one rank.
+trainer's default), one rank. It also splits the host's time between two rollouts (:func:`update_host_split`): queuing
+the update, waiting for it, and, with the overlap, the update's GPU span on its side stream.
 
     python -m lab.benchmarks.train_throughput --num_envs 4096 16384 --ceiling --name train_over_ceiling
 """
@@ -62,15 +63,27 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
             physics = solver_load.Recorder(at, counts=False)
 
             class RecordedOverlap(common.trainer.UpdateOverlap):
-                """ppo.overlap_update's updates, with the spans they ran in on their stream."""
+                """The trainer's updates (inline or ``ppo.overlap_update``'s), with the spans they ran in on the side
+                stream, and the host's time in each launch (queuing the update) and each finish (waiting for it)."""
 
                 def __init__(self, *args, **kwargs):
                     super().__init__(*args, **kwargs)
-                    self.spans = []
+                    self.spans, self.launch_s, self.finish_s = [], [], []
                     # Before any rollout or update: every later event of either stream comes after it.
                     self.origin = (torch.cuda.current_stream(self.device).record_event(
                         torch.cuda.Event(enable_timing=True)) if self.stream is not None else None)
                     overlaps.append(self)
+
+                def launch(self, *args, **kwargs):
+                    t = time.perf_counter()
+                    super().launch(*args, **kwargs)
+                    self.launch_s.append(time.perf_counter() - t)
+
+                def finish(self):
+                    t = time.perf_counter()
+                    out = super().finish()
+                    self.finish_s.append(time.perf_counter() - t)
+                    return out
 
             patches["UpdateOverlap"] = RecordedOverlap
             cuda, update_stats = at.type == "cuda", common.trainer._update_stats
@@ -120,11 +133,32 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                 record["update_ms_last"] = common.elapsed_ms(*update_marks[-1], at.type == "cuda")
             record.update(physics_ms_per_policy_step=ms, physics_steps_timed=alone,
                           physics_steps_recorded=len(physics.spans), ceiling_env_steps_per_s=top,
-                          ratio_train_over_ceiling=rate / top if rate else None)
+                          ratio_train_over_ceiling=rate / top if rate else None, **update_host_split(overlaps))
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
     rate = record.get("train_env_steps_per_s")
     return {**record, "raw_policy_steps_per_s": raw,
             "ratio_train_over_raw": rate / (info.world_size * raw) if raw and rate else None}
+
+
+def update_host_split(overlaps: list) -> dict[str, float]:
+    """Where the host's time between two rollouts goes, as medians over the run's updates after the first (the first
+    captures the update's graph): ``update_launch_ms`` queuing an update (with the overlap, on its side stream),
+    ``update_finish_ms`` waiting for it to end (with the overlap, at the next rollout's end; inline, the read of its
+    numbers, which comes after the next rollout is queued) and, with the overlap, ``update_span_ms``: its GPU time
+    from its first kernel's start to its last's end on the side stream, time it waited beside the rollout included
+    (the events have completed: :func:`uncontended_ms` synchronised)."""
+    if not overlaps:
+        return {}
+    o = overlaps[0]
+
+    def median_ms(values: list[float]) -> float | None:
+        later = sorted(values[1:] or values)
+        return 1e3 * later[len(later) // 2] if later else None
+
+    out = {"update_launch_ms": median_ms(o.launch_s), "update_finish_ms": median_ms(o.finish_s)}
+    if o.spans:
+        out["update_span_ms"] = median_ms([a.elapsed_time(b) / 1e3 for a, b in o.spans])
+    return {k: v for k, v in out.items() if v is not None}
 
 
 def uncontended_ms(physics: solver_load.Recorder, updates: list[tuple], origin=None) -> tuple[float, int]:

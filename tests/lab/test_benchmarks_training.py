@@ -145,6 +145,10 @@ def test_train_throughput_ceiling_times_the_physics_of_the_timed_iterations_in_p
     (r,) = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
     assert r["physics_steps_timed"] == r["physics_steps_recorded"] == 16 and r["physics_ms_per_policy_step"] > 0
     assert "update_ms_last" not in r  # overlapped: the update is no part of the step, the host's wait is the measure
+    # The host's time between rollouts, split: queuing the update (on the CPU: running it), then waiting for it.
+    # Three updates: the medians leave the first out.
+    assert r["update_launch_ms"] > 0 and r["update_finish_ms"] >= 0
+    assert "update_span_ms" not in r  # no side stream on the CPU
     assert r["ceiling_env_steps_per_s"] == pytest.approx(8e3 / r["physics_ms_per_policy_step"])
     # The physics is part of the training step: training cannot outrun it.
     assert 0 < r["ratio_train_over_ceiling"] < 1
