@@ -27,6 +27,7 @@ import contextlib
 import json
 import os
 import shutil
+import statistics
 import time
 from pathlib import Path
 
@@ -141,23 +142,22 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
 
 
 def update_host_split(overlaps: list) -> dict[str, float]:
-    """Where the host's time between two rollouts goes, as medians over the run's updates after the first (the first
-    captures the update's graph): ``update_launch_ms`` queuing an update (with the overlap, on its side stream),
-    ``update_finish_ms`` waiting for it to end (with the overlap, at the next rollout's end; inline, the read of its
-    numbers, which comes after the next rollout is queued) and, with the overlap, ``update_span_ms``: its GPU time
-    from its first kernel's start to its last's end on the side stream, time it waited beside the rollout included
-    (the events have completed: :func:`uncontended_ms` synchronised)."""
+    """Where the host's time between two rollouts goes, as medians over the run's updates but the first (it captures
+    the update's graph) and the last (the run's end reads it at once, with no rollout between): ``update_launch_ms``
+    queuing an update (with the overlap, on its side stream), ``update_finish_ms`` waiting for it once the next
+    rollout is collected (inline: the read of its numbers) and, with the overlap, ``update_span_ms``: its GPU time from
+    its start to its end on the side stream, time it waited beside the rollout included (the events have completed:
+    :func:`uncontended_ms` synchronised). Empty without updates."""
     if not overlaps:
         return {}
     o = overlaps[0]
 
-    def median_ms(values: list[float]) -> float | None:
-        later = sorted(values[1:] or values)
-        return 1e3 * later[len(later) // 2] if later else None
+    def median_ms(seconds: list[float]) -> float | None:
+        middle = seconds[1:-1] if len(seconds) > 2 else seconds
+        return 1e3 * statistics.median(middle) if middle else None
 
-    out = {"update_launch_ms": median_ms(o.launch_s), "update_finish_ms": median_ms(o.finish_s)}
-    if o.spans:
-        out["update_span_ms"] = median_ms([a.elapsed_time(b) / 1e3 for a, b in o.spans])
+    out = {"update_launch_ms": median_ms(o.launch_s), "update_finish_ms": median_ms(o.finish_s),
+           "update_span_ms": median_ms([a.elapsed_time(b) / 1e3 for a, b in o.spans])}
     return {k: v for k, v in out.items() if v is not None}
 
 

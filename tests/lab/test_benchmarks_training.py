@@ -135,6 +135,27 @@ def test_the_ceiling_counts_only_the_steps_no_update_ran_beside():
     assert steps == 2 and ms == pytest.approx(1.5)
 
 
+def test_the_host_split_takes_medians_without_the_first_and_the_last_update():
+    # The first update captures its graph, the last is read at once at the run's end: neither is a steady one.
+    class Mark:
+        def __init__(self, at):
+            self.at = at
+
+        def elapsed_time(self, other):
+            return other.at - self.at
+
+    spans = [(Mark(0.0), Mark(d)) for d in (90.0, 20.0, 30.0, 40.0, 500.0)]  # ms on the side stream
+    overlap = SimpleNamespace(launch_s=[9.0, 0.002, 0.004, 0.003, 0.5], finish_s=[0.0, 0.010, 0.030, 0.020, 0.6],
+                              spans=spans)
+    split = train_throughput.update_host_split([overlap])
+    assert split == pytest.approx({"update_launch_ms": 3.0, "update_finish_ms": 20.0, "update_span_ms": 30.0})
+    # Inline (no side stream, no spans) and with two updates only (both kept): no span, and the plain median.
+    inline = SimpleNamespace(launch_s=[0.001, 0.003], finish_s=[0.0, 0.002], spans=[])
+    assert train_throughput.update_host_split([inline]) == pytest.approx({"update_launch_ms": 2.0,
+                                                                          "update_finish_ms": 1.0})
+    assert train_throughput.update_host_split([]) == {}
+
+
 def test_train_throughput_ceiling_times_the_physics_of_the_timed_iterations_in_place(tmp_path):
     # --ceiling: the simulator's own time over exactly the steady rate's iterations (2 timed iterations of 8 envs x 8
     # steps: 16 policy steps), its ceiling num_envs / time, and train / ceiling beside train / raw. The run overlaps
@@ -145,8 +166,8 @@ def test_train_throughput_ceiling_times_the_physics_of_the_timed_iterations_in_p
     (r,) = json.loads((tmp_path / "train_throughput.json").read_text())["results"]
     assert r["physics_steps_timed"] == r["physics_steps_recorded"] == 16 and r["physics_ms_per_policy_step"] > 0
     assert "update_ms_last" not in r  # overlapped: the update is no part of the step, the host's wait is the measure
-    # The host's time between rollouts, split: queuing the update (on the CPU: running it), then waiting for it.
-    # Three updates: the medians leave the first out.
+    # The host's time between rollouts, split: queuing the update (on the CPU: running it), then waiting for it
+    # (update_host_split, below: three updates, so the medians are the second's).
     assert r["update_launch_ms"] > 0 and r["update_finish_ms"] >= 0
     assert "update_span_ms" not in r  # no side stream on the CPU
     assert r["ceiling_env_steps_per_s"] == pytest.approx(8e3 / r["physics_ms_per_policy_step"])

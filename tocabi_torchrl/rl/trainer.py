@@ -461,12 +461,12 @@ def make_loss(cfg: RunConfig, agent: Agent, env: EnvBase | None = None,
     ``cfg.ppo.torque_assist`` > 0) and the GAE value estimator of :func:`train`."""
     # The critic runs over the rollout in chunks of ~64k frames (along the env dim): unchunked, TorchRL stacks
     # observations and next observations and keeps (2 · frames, 400) activations, ~6 GB at 16384 envs.
-    # gamma and lambda are made on the critic's device: GAE would otherwise copy them there, a blocking host-to-device
-    # copy, on its first call, inside the first iteration's window that must not wait for the GPU.
+    # gamma and lambda are made on the critic's device, where train() collects the rollout: GAE would otherwise copy
+    # them to the rewards' device on its first call, a blocking host-to-device copy inside the first iteration.
     ppo = cfg.ppo
     advantage = SyncFreeGAE(gamma=ppo.gamma, lmbda=ppo.gae_lambda, value_network=agent.critic, average_gae=False,
                             value_chunk_size=_VALUE_CHUNK_FRAMES // ppo.steps_per_env or 1,
-                            device=next(agent.critic.parameters()).device)
+                            device=next(iter(agent.critic.parameters()), torch.empty(0)).device)
     loss_module = GuardedClipPPOLoss(
         agent.actor,
         agent.critic,
