@@ -228,7 +228,7 @@ def test_absorb_loss_moves_the_mean_to_its_target():
     gain_now, gain_next = torch.full((12,), 2.0), torch.full((12,), 1.0)
     loss.set_step(gain_now, gain_next, 0.2, 0.1, weight=0.0)
     assert loss(td)["loss_absorb"].item() == 0.0  # weight 0: no pull
-    loss.weight.fill_(1.0)
+    loss.set_step(gain_now, gain_next, 0.2, 0.1, weight=1.0)
     opt = torch.optim.Adam(head.parameters(), lr=3e-3)
     for _ in range(400):
         opt.zero_grad()
@@ -492,6 +492,96 @@ def test_teacher_target_is_the_action_applying_the_teacher_torque():
             p.add_(1.0)
     torch.testing.assert_close(teacher.torque(obs, leg_assist, limits), expected)
     assert not any(p.requires_grad for p in teacher.parameters())
+
+
+def test_at_weight_zero_the_absorb_term_is_skipped_and_the_update_is_unchanged():
+    """Before the fade the term's weight is 0: the loss skips the actor's second forward and the teacher's, and an
+    optimiser step gives bit for bit the parameters the computed-and-zeroed term gives. The step captures again when
+    the term switches (graph_key)."""
+    limits = torch.full((12,), 2.0)
+    obs, assist = torch.randn(64, 6, generator=torch.Generator().manual_seed(0)), 0.3 * torch.ones(64, 12)
+
+    def one_step(skip: bool) -> tuple[torch.Tensor, int, int]:
+        torch.manual_seed(0)
+        actor = make_actor(6, 13, hidden=(16,), init_std=0.1)
+        head, teacher = gaussian_head(actor), AssistTeacher(gaussian_head(make_actor(6, 13, hidden=(8,))).mean_net,
+                                                            limits)
+        calls = {"head": 0, "teacher": 0}
+        head.register_forward_hook(lambda *_: calls.__setitem__("head", calls["head"] + 1))
+        torque = teacher.torque
+
+        def counted_torque(*args):
+            calls["teacher"] += 1
+            return torque(*args)
+
+        teacher.torque = counted_torque
+
+        class PPO(torch.nn.Module):  # a loss of the actor's own, so that its gradients are what the step applies
+            in_keys = ("observation",)
+
+            def forward(self, td):
+                return TensorDict({"loss_objective": head.mean_net(td["observation"]).square().mean()},
+                                  batch_size=[])
+
+        loss = AssistAbsorbLoss(PPO(), head, limits, teacher=teacher)
+        loss.set_step(limits, 0.5 * limits, 1.0, 0.9, weight=0.0)
+        assert loss.graph_key is False
+        if not skip:
+            loss._active = True  # the term computed at weight 0, as before it was skipped
+        with torch.no_grad():
+            loc, scale = head(obs)
+        calls["head"] = 0
+        td = TensorDict({"observation": obs, "loc": loc, "scale": scale, "next": {"leg_assist": assist}},
+                        batch_size=[64])
+        opt = torch.optim.Adam(actor.parameters(), lr=1e-2)
+        out = loss(td)
+        assert out["loss_absorb"].item() == 0.0
+        (out["loss_objective"] + out["loss_absorb"]).backward()
+        opt.step()
+        return torch.cat([p.detach().flatten() for p in actor.parameters()]), calls["head"], calls["teacher"]
+
+    skipped, computed = one_step(skip=True), one_step(skip=False)
+    assert skipped[1:] == (0, 0) and computed[1:] == (1, 1)
+    torch.testing.assert_close(skipped[0], computed[0], rtol=0, atol=0)
+
+
+def test_the_update_step_captures_again_when_the_absorb_term_switches():
+    from graph_emulation import EmulatedCapture
+
+    from tocabi_torchrl.rl.update_step import MinibatchStep
+
+    torch.manual_seed(0)
+    actor = make_actor(6, 13, hidden=(8,))
+    head = gaussian_head(actor)
+
+    class PPO(torch.nn.Module):
+        in_keys = ("observation",)
+
+        def forward(self, td):
+            return TensorDict({"loss_objective": head.mean_net(td["observation"]).square().mean(),
+                               "loss_critic": torch.zeros(()), "kl_approx": torch.zeros(()),
+                               "clip_fraction": torch.zeros(())}, batch_size=[])
+
+    limits = torch.full((12,), 2.0)
+    loss = AssistAbsorbLoss(PPO(), head, limits)
+    opt = torch.optim.Adam(actor.parameters(), lr=1e-3)
+    step = MinibatchStep(loss, opt, list(actor.parameters()), 1.0, use_graph=True, warmup=1,
+                         capturer=EmulatedCapture())
+    obs = torch.randn(32, 6)
+    with torch.no_grad():
+        loc, scale = head(obs)
+    mb = TensorDict({"observation": obs, "loc": loc, "scale": scale, "next": {"leg_assist": torch.zeros(32, 12)}},
+                    batch_size=[32])
+    loss.set_step(limits, limits, 1.0, 1.0, weight=0.0)
+    for _ in range(3):  # one warm-up step, the capture, a replay
+        step(mb)
+    assert step.captured and step._capture.capturer.captures == ["joined"]
+    loss.set_step(limits, 0.5 * limits, 1.0, 0.9, weight=1.0)  # the fade begins: the term is computed from now on
+    step(mb)
+    assert not step.captured  # warming up again
+    step(mb)
+    assert step.captured and step._capture.capturer.captures == ["joined", "joined"]
+    assert "loss_absorb" in step.stat_keys
 
 
 def test_teacher_weight_holds_through_the_fade_then_decays():

@@ -141,7 +141,9 @@ class AssistAbsorbLoss(nn.Module):
     σ) to the current one. ``loc`` and σ (``scale``) are the rollout's, ``leg_assist`` the env's signal of the step the
     action was taken in (``("next", "leg_assist")``). The gains, β, β' and ``weight`` are device buffers the trainer
     sets in place before each update (:meth:`set_step`; a captured update step reads them). Frames the PPO loss masks
-    out (its ``loss_mask_key``) are left out here too.
+    out (its ``loss_mask_key``) are left out here too. While ``weight`` is 0 (before the fade) the term is not
+    computed: ``loss_absorb`` is 0 and the gradients are those the zeroed term would give, without the actor's second
+    forward and the teacher's (set it through :meth:`set_step`, which also switches :attr:`graph_key`).
 
     With a ``teacher``, ``T`` is instead the torque the teacher applies in the frame's state
     (:meth:`AssistTeacher.torque`): the actor is pulled towards the action that applies it at β'.
@@ -166,6 +168,14 @@ class AssistAbsorbLoss(nn.Module):
         self.register_buffer("beta_now", torch.zeros((), device=device))
         self.register_buffer("beta_next", torch.zeros((), device=device))
         self.register_buffer("weight", torch.zeros((), device=device))
+        self._active = False  # weight > 0: see graph_key
+
+    @property
+    def graph_key(self) -> bool:
+        """Whether the term is computed (its weight > 0, :meth:`set_step`): the two cases run different operations,
+        so a captured update step (:class:`~tocabi_torchrl.rl.update_step.MinibatchStep`) captures again when this
+        changes."""
+        return self._active
 
     def set_step(self, gain_now: torch.Tensor, gain_next: torch.Tensor, beta_now: float, beta_next: float,
                  weight: float) -> None:
@@ -177,6 +187,7 @@ class AssistAbsorbLoss(nn.Module):
         self.beta_now.fill_(beta_now)
         self.beta_next.fill_(beta_next)
         self.weight.fill_(weight)
+        self._active = float(weight) > 0.0
 
     def target(self, loc: torch.Tensor, leg_assist: torch.Tensor, torque: torch.Tensor | None = None) -> torch.Tensor:
         """(…, 12) the action at β' nearest to the rollout's mean ``loc`` (…, 12) that applies ``torque`` (…, 12)
@@ -206,6 +217,11 @@ class AssistAbsorbLoss(nn.Module):
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         out = self.ppo_loss(td)
+        if not self._active:
+            # At weight 0 the term is 0 and adds exact zeros to every gradient: the actor's second forward and the
+            # teacher's (about a quarter of the robust preset's update) are skipped, the update unchanged.
+            out["loss_absorb"] = torch.zeros_like(self.weight)
+            return out
         legs = robot.NUM_LEG_JOINTS
         loc, _ = self.head(td["observation"])
         # NaN-free before squaring: a broken frame is masked below, but 0 × NaN would still reach the gradients.

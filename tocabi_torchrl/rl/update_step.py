@@ -154,7 +154,9 @@ class MinibatchStep:
 
     Args:
         loss_module: a TorchRL PPO loss (its outputs must include :data:`STAT_KEYS`); the minimised total is the sum
-            of its ``loss_*`` outputs.
+            of its ``loss_*`` outputs. A loss with a ``graph_key`` attribute (the assist's
+            :class:`~tocabi_torchrl.rl.assist.AssistAbsorbLoss`) runs other operations when that changes: the step
+            then warms up and captures again.
         optimizer: the optimiser of ``params`` (capturable, see :func:`make_capturable_adam`, when ``use_graph``).
         params: the parameters whose gradient norm is clipped to ``max_grad_norm``.
         use_graph: capture the step as a CUDA graph after ``warmup`` eager steps (where ``capturer`` supports the
@@ -179,6 +181,7 @@ class MinibatchStep:
         self.stat_keys: tuple[str, ...] = STAT_KEYS
         self._capture = WarmCapture("MinibatchStep", "the PPO update", self._compute, self._build, warmup=warmup,
                                     capturer=capturer)
+        self._graph_key = None
 
     @property
     def captured(self) -> bool:
@@ -204,6 +207,12 @@ class MinibatchStep:
         return torch.stack([losses[k].detach() for k in self.stat_keys])
 
     def __call__(self, mb: TensorDictBase) -> torch.Tensor:
+        key = getattr(self.loss_module, "graph_key", None)
+        if key != self._graph_key:
+            # The loss now runs other operations (the assist's absorb term switched on or off): a graph captured
+            # before would replay the old ones, so the step warms up and captures again.
+            self._graph_key = key
+            self._capture.reset()
         if not self.use_graph or self._capture.gave_up or not self._capture.capturer.supports(mb.device):
             return self._compute(mb)
         return self._capture.run(mb.device, mb)
