@@ -114,21 +114,24 @@ def test_train_throughput_ceiling_refuses_several_ranks_and_a_captured_env_step(
         train_throughput.measure(8, 1, 1, 0, "cpu", str(tmp_path), {"ppo.cuda_graph": "on"}, ceiling=True)
 
 
+class _Mark:
+    """A stand-in for a completed CUDA event at ``at`` ms on one clock."""
+
+    def __init__(self, at):
+        self.at = at
+
+    def elapsed_time(self, other):
+        return other.at - self.at
+
+
 def test_the_ceiling_counts_only_the_steps_no_update_ran_beside():
     # Times on one clock (ms from the origin): steps at 0-1, 2-3 and 5-6; an update ran from 2.5 to 5.5, beside the
     # second and the third, so the ceiling is the first step's 1 ms alone.
-    class Mark:
-        def __init__(self, at):
-            self.at = at
-
-        def elapsed_time(self, other):
-            return other.at - self.at
-
-    physics = SimpleNamespace(cuda=True, spans=[(Mark(0.0), Mark(1.0)), (Mark(2.0), Mark(3.5)),
-                                                  (Mark(5.0), Mark(6.5))], summary=lambda n: {})
-    assert train_throughput.uncontended_ms(physics, [(Mark(2.5), Mark(5.5))], Mark(-1.0)) == (1.0, 1)
+    physics = SimpleNamespace(cuda=True, spans=[(_Mark(0.0), _Mark(1.0)), (_Mark(2.0), _Mark(3.5)),
+                                                  (_Mark(5.0), _Mark(6.5))], summary=lambda n: {})
+    assert train_throughput.uncontended_ms(physics, [(_Mark(2.5), _Mark(5.5))], _Mark(-1.0)) == (1.0, 1)
     with pytest.raises(RuntimeError, match="every timed simulator step ran beside an update"):
-        train_throughput.uncontended_ms(physics, [(Mark(-0.5), Mark(9.0))], Mark(-1.0))
+        train_throughput.uncontended_ms(physics, [(_Mark(-0.5), _Mark(9.0))], _Mark(-1.0))
     physics.cuda = False  # host clocks, no updates beside: every step
     physics.spans = [(0.0, 0.001), (0.002, 0.004)]
     ms, steps = train_throughput.uncontended_ms(physics, [])
@@ -137,14 +140,7 @@ def test_the_ceiling_counts_only_the_steps_no_update_ran_beside():
 
 def test_the_host_split_takes_medians_without_the_first_and_the_last_update():
     # The first update captures its graph, the last is read at once at the run's end: neither is a steady one.
-    class Mark:
-        def __init__(self, at):
-            self.at = at
-
-        def elapsed_time(self, other):
-            return other.at - self.at
-
-    spans = [(Mark(0.0), Mark(d)) for d in (90.0, 20.0, 30.0, 40.0, 500.0)]  # ms on the side stream
+    spans = [(_Mark(0.0), _Mark(d)) for d in (90.0, 20.0, 30.0, 40.0, 500.0)]  # ms on the side stream
     overlap = SimpleNamespace(launch_s=[9.0, 0.002, 0.004, 0.003, 0.5], finish_s=[0.0, 0.010, 0.030, 0.020, 0.6],
                               spans=spans)
     split = train_throughput.update_host_split([overlap])
