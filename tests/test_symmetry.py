@@ -470,8 +470,10 @@ def test_symmetry_sits_inside_the_torque_assist_loss():
     mirrored = loss.ppo_loss.mirror_batch(td)
     torch.testing.assert_close(mirrored["next", "leg_assist"][:, 0], -td["next", "leg_assist"][:, 6])
     torch.testing.assert_close(mirrored["scale"][:, :6], td["scale"][:, 6:12])
+    base = env.base_env
+    loss.set_step(base.assist_gain(1.0), base.assist_gain(0.9), 1.0, 0.9, 1.0)  # the fade: the term is computed
     out = loss(td)
-    assert torch.isfinite(out["loss_objective"]) and "loss_absorb" in out
+    assert torch.isfinite(out["loss_objective"]) and torch.isfinite(out["loss_absorb"]) and out["loss_absorb"] > 0
     with pytest.raises(ValueError, match="pass the training env"):
         make_loss(cfg, agent)
 

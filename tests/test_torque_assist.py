@@ -545,6 +545,27 @@ def test_at_weight_zero_the_absorb_term_is_skipped_and_the_update_is_unchanged()
     torch.testing.assert_close(skipped[0], computed[0], rtol=0, atol=0)
 
 
+def test_an_infinite_rollout_mean_leaves_the_absorb_gradients_finite():
+    """A frame whose rollout mean is infinite (a broken world; the rollout guard checks the action, not ``loc``)
+    pulls towards a finite target: its squared distance would otherwise overflow and 0 × inf reach the gradients."""
+    torch.manual_seed(0)
+    head = gaussian_head(make_actor(6, 13, hidden=(8,), init_std=0.1))
+    limits = torch.full((12,), 2.0)
+    loss = AssistAbsorbLoss(_NoPPO(), head, limits)
+    obs = torch.randn(16, 6)
+    with torch.no_grad():
+        loc, scale = head(obs)
+    loc[3, :] = float("inf")
+    loc[5, :] = -float("inf")
+    td = TensorDict({"observation": obs, "loc": loc, "scale": scale, "next": {"leg_assist": torch.zeros(16, 12)}},
+                    batch_size=[16])
+    loss.set_step(limits, 0.5 * limits, 1.0, 0.9, weight=1.0)
+    out = loss(td)
+    out["loss_absorb"].backward()
+    assert torch.isfinite(out["loss_absorb"])
+    assert all(torch.isfinite(p.grad).all() for p in head.parameters() if p.grad is not None)
+
+
 def test_the_update_step_captures_again_when_the_absorb_term_switches():
     from graph_emulation import EmulatedCapture
 
@@ -582,6 +603,14 @@ def test_the_update_step_captures_again_when_the_absorb_term_switches():
     step(mb)
     assert step.captured and step._capture.capturer.captures == ["joined", "joined"]
     assert "loss_absorb" in step.stat_keys
+    loss.set_step(limits, 0.5 * limits, 0.9, 0.8, weight=0.5)  # the pull decays: the same operations, no capture
+    step(mb)
+    assert step.captured and len(step._capture.capturer.captures) == 2
+    loss.set_step(limits, limits, 0.0, 0.0, weight=0.0)  # the pull has gone: skipped again, captured again
+    step(mb)
+    assert not step.captured
+    step(mb)
+    assert step.captured and len(step._capture.capturer.captures) == 3
 
 
 def test_teacher_weight_holds_through_the_fade_then_decays():
@@ -650,6 +679,53 @@ def test_gpu_torque_preset_trains_with_the_captured_absorbing_update(tmp_path):
     absorb = [float(r["loss_absorb"]) for r in rows]
     assert absorb[0] == 0.0 and all(a > 0 for a in absorb[1:4]) and absorb[4] == 0.0
     assert all(torch.isfinite(torch.tensor([float(r["loss_policy"]), float(r["loss_value"])])).all() for r in rows)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_gpu_captured_update_matches_eager_across_the_absorb_switches():
+    """The captured step replays what the eager step computes while the absorb term switches on (a new capture), its
+    weight changes (the same graph) and it switches off again (another capture)."""
+    from tocabi_torchrl.rl.update_step import MinibatchStep, make_capturable_adam
+
+    def build(use_graph: bool):
+        torch.manual_seed(0)
+        actor = make_actor(6, 13, hidden=(32,), init_std=0.1).cuda()
+        head = gaussian_head(actor)
+
+        class PPO(torch.nn.Module):
+            in_keys = ("observation",)
+
+            def forward(self, td):
+                zero = torch.zeros((), device="cuda")
+                return TensorDict({"loss_objective": head.mean_net(td["observation"]).square().mean(),
+                                   "loss_critic": zero, "kl_approx": zero, "clip_fraction": zero}, batch_size=[])
+
+        loss = AssistAbsorbLoss(PPO(), head, torch.full((12,), 2.0, device="cuda"))
+        params = list(actor.parameters())
+        opt = make_capturable_adam([{"params": params, "lr": 1e-3}], eps=1e-8, device=torch.device("cuda"))
+        return actor, loss, MinibatchStep(loss, opt, params, 1.0, use_graph=use_graph)
+
+    g = torch.Generator().manual_seed(1)
+    obs = torch.randn(256, 6, generator=g).cuda()
+    runs = []
+    for use_graph in (False, True):
+        actor, loss, step = build(use_graph)
+        with torch.no_grad():
+            loc, scale = gaussian_head(actor)(obs)
+        mb = TensorDict({"observation": obs, "loc": loc, "scale": scale,
+                         "next": {"leg_assist": 0.3 * torch.ones(256, 12, device="cuda")}}, batch_size=[256])
+        limits = loss.limits
+        absorbs = []
+        for weight in [0.0] * 5 + [1.0] * 5 + [0.5] * 3 + [0.0] * 5:
+            loss.set_step(limits, 0.5 * limits, 1.0, 0.9, weight=weight)
+            stats = step(mb)
+            absorbs.append(float(stats[list(step.stat_keys).index("loss_absorb")]))
+        runs.append((torch.cat([p.detach().flatten() for p in actor.parameters()]), absorbs, step))
+    (eager_params, eager_absorb, _), (graph_params, graph_absorb, graphed) = runs
+    assert graphed.captured
+    assert graph_absorb == pytest.approx(eager_absorb, rel=1e-4, abs=1e-6) and max(graph_absorb) > 0
+    torch.testing.assert_close(graph_params, eager_params, rtol=1e-4, atol=1e-5)
 
 
 def _no_capture_warning():

@@ -141,9 +141,10 @@ class AssistAbsorbLoss(nn.Module):
     σ) to the current one. ``loc`` and σ (``scale``) are the rollout's, ``leg_assist`` the env's signal of the step the
     action was taken in (``("next", "leg_assist")``). The gains, β, β' and ``weight`` are device buffers the trainer
     sets in place before each update (:meth:`set_step`; a captured update step reads them). Frames the PPO loss masks
-    out (its ``loss_mask_key``) are left out here too. While ``weight`` is 0 (before the fade) the term is not
-    computed: ``loss_absorb`` is 0 and the gradients are those the zeroed term would give, without the actor's second
-    forward and the teacher's (set it through :meth:`set_step`, which also switches :attr:`graph_key`).
+    out (its ``loss_mask_key``) are left out here too. While ``weight`` is 0 (before the fade, and once the teacher's
+    pull has decayed) the term is not computed: ``loss_absorb`` is 0 and the gradients are those the zeroed term would
+    give, without the actor's second forward and the teacher's (set it through :meth:`set_step`, which also switches
+    :attr:`graph_key`).
 
     With a ``teacher``, ``T`` is instead the torque the teacher applies in the frame's state
     (:meth:`AssistTeacher.torque`): the actor is pulled towards the action that applies it at β'.
@@ -218,16 +219,19 @@ class AssistAbsorbLoss(nn.Module):
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         out = self.ppo_loss(td)
         if not self._active:
-            # At weight 0 the term is 0 and adds exact zeros to every gradient: the actor's second forward and the
-            # teacher's (about a quarter of the robust preset's update) are skipped, the update unchanged.
+            # At weight 0 the term is 0 and adds exact zeros to every gradient (its distances are finite): the actor's
+            # second forward and the teacher's (about a quarter of the robust preset's update) are skipped, the update
+            # unchanged.
             out["loss_absorb"] = torch.zeros_like(self.weight)
             return out
         legs = robot.NUM_LEG_JOINTS
         loc, _ = self.head(td["observation"])
-        # NaN-free before squaring: a broken frame is masked below, but 0 × NaN would still reach the gradients.
+        # Finite before squaring: a broken frame is masked below, but 0 × NaN would still reach the gradients, and so
+        # would 0 × inf from an infinite rollout mean (as the float32 maximum, its squared distance overflows).
         leg_assist = td["next", "leg_assist"]
         torque = None if self.teacher is None else self.teacher.torque(td["observation"], leg_assist, self.limits)
-        target = torch.nan_to_num(self.target(td["loc"][..., :legs], leg_assist, torque))
+        target = torch.nan_to_num(self.target(td["loc"][..., :legs], leg_assist, torque), nan=0.0, posinf=0.0,
+                                  neginf=0.0)
         scale = torch.nan_to_num(td["scale"][..., :legs], nan=1.0).clamp_min(1e-6)
         kl = 0.5 * ((loc[..., :legs] - target) / scale).pow(2).sum(-1)
         # Frames the rollout guard marked unusable (a faulted world) pull the actor nowhere, as in the PPO terms.

@@ -156,7 +156,8 @@ class MinibatchStep:
         loss_module: a TorchRL PPO loss (its outputs must include :data:`STAT_KEYS`); the minimised total is the sum
             of its ``loss_*`` outputs. A loss with a ``graph_key`` attribute (the assist's
             :class:`~tocabi_torchrl.rl.assist.AssistAbsorbLoss`) runs other operations when that changes: the step
-            then warms up and captures again.
+            then warms up and captures again. (A loss wrapped in ``DistributedDataParallel`` hides the attribute; such
+            a step is never captured: ``ppo.grad_sync`` "ddp" needs ``ppo.update_graph`` false.)
         optimizer: the optimiser of ``params`` (capturable, see :func:`make_capturable_adam`, when ``use_graph``).
         params: the parameters whose gradient norm is clipped to ``max_grad_norm``.
         use_graph: capture the step as a CUDA graph after ``warmup`` eager steps (where ``capturer`` supports the
