@@ -494,6 +494,23 @@ def test_teacher_target_is_the_action_applying_the_teacher_torque():
     assert not any(p.requires_grad for p in teacher.parameters())
 
 
+class _MeanSquarePPO(torch.nn.Module):
+    """A stand-in PPO loss of the actor's own mean (so its gradients are what a step applies), with the statistics a
+    mini-batch step reads (zeros)."""
+
+    in_keys = ("observation",)
+
+    def __init__(self, head):
+        super().__init__()
+        self.mean_net = head.mean_net
+
+    def forward(self, td):
+        loc = self.mean_net(td["observation"])
+        zero = loc.new_zeros(())
+        return TensorDict({"loss_objective": loc.square().mean(), "loss_critic": zero, "kl_approx": zero,
+                           "clip_fraction": zero}, batch_size=[])
+
+
 def test_at_weight_zero_the_absorb_term_is_skipped_and_the_update_is_unchanged():
     """Before the fade the term's weight is 0: the loss skips the actor's second forward and the teacher's, and an
     optimiser step gives bit for bit the parameters the computed-and-zeroed term gives. The step captures again when
@@ -516,14 +533,7 @@ def test_at_weight_zero_the_absorb_term_is_skipped_and_the_update_is_unchanged()
 
         teacher.torque = counted_torque
 
-        class PPO(torch.nn.Module):  # a loss of the actor's own, so that its gradients are what the step applies
-            in_keys = ("observation",)
-
-            def forward(self, td):
-                return TensorDict({"loss_objective": head.mean_net(td["observation"]).square().mean()},
-                                  batch_size=[])
-
-        loss = AssistAbsorbLoss(PPO(), head, limits, teacher=teacher)
+        loss = AssistAbsorbLoss(_MeanSquarePPO(head), head, limits, teacher=teacher)
         loss.set_step(limits, 0.5 * limits, 1.0, 0.9, weight=0.0)
         assert loss.graph_key is False
         if not skip:
@@ -575,16 +585,8 @@ def test_the_update_step_captures_again_when_the_absorb_term_switches():
     actor = make_actor(6, 13, hidden=(8,))
     head = gaussian_head(actor)
 
-    class PPO(torch.nn.Module):
-        in_keys = ("observation",)
-
-        def forward(self, td):
-            return TensorDict({"loss_objective": head.mean_net(td["observation"]).square().mean(),
-                               "loss_critic": torch.zeros(()), "kl_approx": torch.zeros(()),
-                               "clip_fraction": torch.zeros(())}, batch_size=[])
-
     limits = torch.full((12,), 2.0)
-    loss = AssistAbsorbLoss(PPO(), head, limits)
+    loss = AssistAbsorbLoss(_MeanSquarePPO(head), head, limits)
     opt = torch.optim.Adam(actor.parameters(), lr=1e-3)
     step = MinibatchStep(loss, opt, list(actor.parameters()), 1.0, use_graph=True, warmup=1,
                          capturer=EmulatedCapture())
@@ -693,15 +695,7 @@ def test_gpu_captured_update_matches_eager_across_the_absorb_switches():
         actor = make_actor(6, 13, hidden=(32,), init_std=0.1).cuda()
         head = gaussian_head(actor)
 
-        class PPO(torch.nn.Module):
-            in_keys = ("observation",)
-
-            def forward(self, td):
-                zero = torch.zeros((), device="cuda")
-                return TensorDict({"loss_objective": head.mean_net(td["observation"]).square().mean(),
-                                   "loss_critic": zero, "kl_approx": zero, "clip_fraction": zero}, batch_size=[])
-
-        loss = AssistAbsorbLoss(PPO(), head, torch.full((12,), 2.0, device="cuda"))
+        loss = AssistAbsorbLoss(_MeanSquarePPO(head), head, torch.full((12,), 2.0, device="cuda"))
         params = list(actor.parameters())
         opt = make_capturable_adam([{"params": params, "lr": 1e-3}], eps=1e-8, device=torch.device("cuda"))
         return actor, loss, MinibatchStep(loss, opt, params, 1.0, use_graph=use_graph)
