@@ -18,7 +18,7 @@ CASES = {
     "default": ("default", {}, None),
     "pd": ("default", {"mode": "pd"}, None),
     "torque": ("reference", {}, None),
-    "torque_assist": ("torque", {"torque_assist": True}, 0.4),
+    "torque_assist": ("torque_ideal", {"torque_assist": True}, 0.4),
     "model_based": ("model_based", {}, None),
 }
 NUM_ENVS, STEPS, EPISODE_STEPS, SEED = 4, 24, 10, 3

@@ -102,7 +102,7 @@ def test_the_minibatch_rule_is_held_while_the_teacher_pulls(tmp_path):
 
     n, steps = 4, 8
     frames = n * steps
-    cfg = preset_config("torque", device="cpu", total_env_steps=7 * frames, run_dir=str(tmp_path), name="t",
+    cfg = preset_config("torque_ideal", device="cpu", total_env_steps=7 * frames, run_dir=str(tmp_path), name="t",
                         eval_at_end=False, progress_bar=False, checkpoint_every=1000,
                         **{"env.num_envs": n, "ppo.steps_per_env": steps, "ppo.minibatch_size": 8,
                            "ppo.epochs": 1, "ppo.desired_kl": 1e-12, "ppo.kl_adapt_every": "minibatch",

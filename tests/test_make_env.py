@@ -280,7 +280,7 @@ def test_preset_is_the_training_preset_as_everywhere_else():
         reward = next(t for t in env.transform if isinstance(t, TaskReward))
         return {t.name: t.weight for t in reward.terms}
 
-    for name in ("torque", "reference"):
+    for name in ("torque_ideal", "reference"):
         tree = preset_tree(name)
         e = make_env(num_envs=1, device="cpu", seed=0, preset=name, backend="mujoco", max_episode_steps=9)
         cfg = e.base_env.cfg
@@ -289,7 +289,7 @@ def test_preset_is_the_training_preset_as_everywhere_else():
         assert weights(e) == want
     assert weights(e)["body_vel"] != 0.9  # the reference preset's reference weights, not the default's
     with pytest.raises(ValueError, match=r"unknown training preset 'banana'; choose one of \['cpu_smoke', 'default', "
-                                         r"'model_based', 'reference', 'robust', 'torque'\]"):
+                                         r"'model_based', 'reference', 'robust', 'torque', 'torque_ideal'\]"):
         make_env(num_envs=1, device="cpu", preset="banana")
     with pytest.raises(ValueError, match=r"'tocabilab' is a transforms history layout: pass "
                                          r"transforms=TransformSettings\(history='tocabilab'\)"):

@@ -367,5 +367,5 @@ def test_kick_and_assist_options_set_without_kicks_or_assist_are_refused_but_a_p
     for name in PRESETS:  # every preset as it is, and with its kicks or assist off, keeps its own values
         preset_config(name)
     preset_config("robust", **{"env.pushes.count": 0})
-    preset_config("torque", **{"ppo.torque_assist": 0.0})
+    preset_config("torque_ideal", **{"ppo.torque_assist": 0.0})
     preset_config("cpu_smoke", **{"env.pushes.count": 2, "env.pushes.speed": (2.0, 3.0), "ppo.push_ramp": (0, 64)})

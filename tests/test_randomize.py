@@ -12,7 +12,7 @@ from tocabi_torchrl.randomize import tocabi_lab
 
 
 def test_tocabi_lab_switches_on_every_piece_with_the_labs_numbers():
-    cfg = tocabi_lab(preset_tree("torque"))
+    cfg = tocabi_lab(preset_tree("torque_ideal"))
     act, dyn, sensors = cfg.env.control.actuators, cfg.env.dynamics, cfg.transforms.sensor_noise
     assert act.delay_substeps == (4, 20) and cfg.env.sim.substeps == 8  # 2-10 ms in 0.5 ms substeps
     assert act.motor_constant == (0.8, 1.2)
@@ -23,7 +23,7 @@ def test_tocabi_lab_switches_on_every_piece_with_the_labs_numbers():
     # an env config gets the env's share; the existing presets keep every piece off
     env = tocabi_lab(TocabiWalkConfig(control=cfg.env.control))
     assert env.dynamics == dyn and env.control.actuators == act
-    plain = preset_tree("torque")
+    plain = preset_tree("torque_ideal")
     assert plain.env.control.actuators.ideal and not plain.env.dynamics.enabled
     assert not plain.transforms.sensor_noise.enabled and plain.env.pushes.count == 0
 

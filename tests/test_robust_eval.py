@@ -539,11 +539,11 @@ def test_the_env_cache_keeps_one_env_per_kind_of_policy():
     from tocabi_torchrl.evaluation.robust import RobustTestConfig, batch_key
 
     test = RobustTestConfig(num_envs=2, seconds=1.0)
-    torque, pd = preset_config("torque"), preset_config("default")
+    torque, pd = preset_config("torque_ideal"), preset_config("default")
     assert batch_key(test, torque, "cpu") != batch_key(test, pd, "cpu")
-    same = preset_config("torque", **{"ppo.lr": 1e-3})
+    same = preset_config("torque_ideal", **{"ppo.lr": 1e-3})
     assert batch_key(test, torque, "cpu") == batch_key(test, same, torch.device("cpu"))  # same env
-    privileged = preset_config("torque", **{"ppo.critic_privileged": True})
+    privileged = preset_config("torque_ideal", **{"ppo.critic_privileged": True})
     assert batch_key(test, torque, "cpu") != batch_key(test, privileged, "cpu")
 
 
@@ -552,7 +552,7 @@ def test_the_env_cache_keeps_one_env_per_device(monkeypatch):
     from tocabi_torchrl.config import preset_config
     from tocabi_torchrl.evaluation.robust import RobustTestConfig, batch_key
 
-    test, cfg = RobustTestConfig(num_envs=2, seconds=1.0), preset_config("torque")
+    test, cfg = RobustTestConfig(num_envs=2, seconds=1.0), preset_config("torque_ideal")
     assert batch_key(test, cfg, "cpu") != batch_key(test, cfg, "cuda:0")
     assert batch_key(test, cfg, "cuda:0") != batch_key(test, cfg, "cuda:1")
     assert batch_key(test, cfg, "cuda:1") == batch_key(test, cfg, torch.device("cuda", 1))
@@ -595,7 +595,7 @@ def test_the_captured_path_gives_the_eager_path_numbers():
     from tocabi_torchrl.rl.trainer import build_env
 
     test = RobustTestConfig(num_envs=6, seconds=1.2)
-    cfg = case_config(preset_tree("torque"), "robust_1.0", test)
+    cfg = case_config(preset_tree("torque_ideal"), "robust_1.0", test)
     env = build_env(cfg, torch.device("cpu"), num_envs=6, sync_free_resets=True)
 
     def actor(td):
@@ -618,7 +618,7 @@ def _batch(num_envs: int = 3):
     from tocabi_torchrl.evaluation.robust import RobustTestConfig, batch_env
 
     test = RobustTestConfig(num_envs=num_envs, seconds=0.2)
-    cfg = preset_tree("torque")
+    cfg = preset_tree("torque_ideal")
     return cfg, test, batch_env(cfg, "cpu", test)
 
 

@@ -345,7 +345,7 @@ def test_the_mirror_loss_measures_and_pulls_the_mean_action_towards_symmetry():
     with pytest.raises(ValueError, match="needs the actor's head"):
         SymmetryAugmentLoss(spy, pin, act, mirror_loss=1.0)
     with pytest.raises(ValueError, match="ppo.symmetry_loss > 0 works with ppo.symmetry='augment'"):
-        preset_config("torque", **{"ppo.symmetry_loss": 0.5})
+        preset_config("torque_ideal", **{"ppo.symmetry_loss": 0.5})
     for bad in (-1.0, float("inf"), True):
         with pytest.raises(ValueError, match="ppo.symmetry_loss must be"):
             preset_config("robust", **{"ppo.symmetry_loss": bad})
@@ -452,7 +452,7 @@ def test_symmetry_sits_inside_the_torque_assist_loss():
     from tocabi_torchrl.rl.assist import AssistAbsorbLoss
     from tocabi_torchrl.rl.trainer import build_agent, build_env, make_loss
 
-    cfg = preset_config("torque", device="cpu", **{"ppo.symmetry": "augment", "env.num_envs": 2,
+    cfg = preset_config("torque_ideal", device="cpu", **{"ppo.symmetry": "augment", "env.num_envs": 2,
                                                    "ppo.minibatch_size": 16, "ppo.steps_per_env": 8,
                                                    "ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,),
                                                    "env.sim.backend": "mujoco"})

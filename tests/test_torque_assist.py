@@ -251,11 +251,11 @@ def test_absorb_loss_moves_the_mean_to_its_target():
 ])
 def test_torque_preset_rejects_bad_assist_settings(overrides, match):
     with pytest.raises(ValueError, match=match):
-        preset_config("torque", **overrides)
+        preset_config("torque_ideal", **overrides)
 
 
 def test_torque_preset_is_the_reference_action_space_with_a_fading_assist():
-    cfg = preset_config("torque")
+    cfg = preset_config("torque_ideal")
     assert cfg.env.control.mode == "torque" and cfg.ppo.torque_assist == 1.0
     assert 0 < cfg.ppo.assist_fade_start < cfg.ppo.assist_fade_end < cfg.total_env_steps
     assert cfg.transforms.history == "reference"  # 13 reference reward terms, reference observation
@@ -339,8 +339,8 @@ def test_teacher_options_need_the_teacher_target():
     # without them.
     for option, value in (("ppo.assist_anchor_decay", 1000), ("ppo.assist_lr_hold", "pull")):
         with pytest.raises(ValueError, match=r"about the teacher's pull, and ppo.assist_target='rollout' has no "):
-            preset_config("torque", **{"ppo.assist_target": "rollout", option: value})
-    preset_config("torque", **{"ppo.assist_target": "rollout", "ppo.assist_anchor_decay": 0})
+            preset_config("torque_ideal", **{"ppo.assist_target": "rollout", option: value})
+    preset_config("torque_ideal", **{"ppo.assist_target": "rollout", "ppo.assist_anchor_decay": 0})
 
 
 def test_assist_pd_sensed_needs_the_assist():
@@ -356,7 +356,7 @@ def test_training_fades_the_assist_and_builds_evaluation_envs_without_it(tmp_pat
 
     n, steps = 4, 8
     frames = n * steps
-    cfg = preset_config("torque", device="cpu", **{"env.num_envs": n, "ppo.steps_per_env": steps,
+    cfg = preset_config("torque_ideal", device="cpu", **{"env.num_envs": n, "ppo.steps_per_env": steps,
                         "ppo.minibatch_size": 16, "ppo.epochs": 1},
                         total_env_steps=4 * frames, **{"ppo.assist_fade_start": frames,
                                                        "ppo.assist_fade_end": 3 * frames,
@@ -399,7 +399,7 @@ def test_the_adaptive_rate_is_held_through_the_fade_or_also_the_teachers_pull(tm
 
     n, steps = 4, 8
     frames = n * steps
-    cfg = preset_config("torque", device="cpu", **{"env.num_envs": n, "ppo.steps_per_env": steps,
+    cfg = preset_config("torque_ideal", device="cpu", **{"env.num_envs": n, "ppo.steps_per_env": steps,
                         "ppo.minibatch_size": 16, "ppo.epochs": 1, "ppo.desired_kl": 1e-12},
                         total_env_steps=6 * frames, **{"ppo.assist_fade_start": frames,
                                                        "ppo.assist_fade_end": 2 * frames,
@@ -452,11 +452,11 @@ def test_a_resumed_run_keeps_its_teacher(tmp_path):
           "ppo.assist_fade_start": frames, "ppo.assist_fade_end": 5 * frames, "ppo.actor_hidden": (16,),
           "ppo.critic_hidden": (16,), "run_dir": str(tmp_path), "name": "r", "eval_at_end": False,
           "progress_bar": False, "checkpoint_every": 1, "checkpoint_keep_last": 0, "ppo.cuda_graph": "off"}
-    first = train(preset_config("torque", total_env_steps=2 * frames, **kw))  # the teacher is taken in iteration 2
+    first = train(preset_config("torque_ideal", total_env_steps=2 * frames, **kw))  # the teacher is taken in iteration 2
     folder = first.run_dir / "checkpoints"
     taken = torch.load(folder / "iter_000002.pt", weights_only=True)["agent"]["teacher"]
     assert taken["anchored"]
-    train(preset_config("torque", total_env_steps=4 * frames, resume=str(folder / "latest.pt"), **kw))
+    train(preset_config("torque_ideal", total_env_steps=4 * frames, resume=str(folder / "latest.pt"), **kw))
     kept = torch.load(folder / "iter_000004.pt", weights_only=True)["agent"]
     for k, v in taken.items():
         torch.testing.assert_close(kept["teacher"][k], v, rtol=0, atol=0)  # not taken again from the moved actor
@@ -622,9 +622,9 @@ def test_teacher_weight_holds_through_the_fade_then_decays():
     with pytest.raises(ValueError, match="anchor_decay"):
         AssistSchedule(1.0, fade_start=0, fade_end=1, anchor_decay=-1)
     with pytest.raises(ValueError, match="assist_target"):
-        preset_config("torque", **{"ppo.assist_target": "teachr"})
+        preset_config("torque_ideal", **{"ppo.assist_target": "teachr"})
     with pytest.raises(ValueError, match="assist_anchor_decay"):
-        preset_config("torque", **{"ppo.assist_anchor_decay": -5})
+        preset_config("torque_ideal", **{"ppo.assist_anchor_decay": -5})
 
 
 def test_wall_clock_checkpoints_carry_the_training_time(tmp_path, monkeypatch):
@@ -665,7 +665,7 @@ def test_gpu_torque_preset_trains_with_the_captured_absorbing_update(tmp_path):
 
     n, steps = 512, 16
     frames = n * steps
-    cfg = preset_config("torque", device="cuda", **{"env.num_envs": n, "ppo.steps_per_env": steps,
+    cfg = preset_config("torque_ideal", device="cuda", **{"env.num_envs": n, "ppo.steps_per_env": steps,
                         "ppo.minibatch_size": frames // 4},
                         total_env_steps=5 * frames, **{"ppo.assist_fade_start": frames,
                                                        "ppo.assist_fade_end": 4 * frames,
@@ -749,7 +749,7 @@ def test_schedules_past_the_budget_are_named_with_their_values_and_the_budget():
     [fade_end] = schedule_past_budget(preset_config("robust", total_env_steps=100_000_000))
     assert "67 % through the fade" in fade_end
     # Without an assist or kicks their schedules act not at all, and nothing is said about them.
-    assert schedule_past_budget(preset_config("torque", total_env_steps=1_000, **{"ppo.torque_assist": 0.0})) == []
+    assert schedule_past_budget(preset_config("torque_ideal", total_env_steps=1_000, **{"ppo.torque_assist": 0.0})) == []
     assert schedule_past_budget(preset_config("robust", total_env_steps=100_000_000, **{
         "env.pushes.count": 0, "transforms.kick_relax.seconds": 0.0})) == [fade_end]
 
@@ -765,7 +765,7 @@ def test_a_run_whose_schedules_end_past_its_budget_warns_once_at_its_start(tmp_p
 
     monkeypatch.setattr(trainer, "build_env", stop)
     kw = {"device": "cpu", "run_dir": str(tmp_path), "eval_at_end": False, "progress_bar": False}
-    cfg = preset_config("torque", total_env_steps=80_000_000, name="past", **kw)
+    cfg = preset_config("torque_ideal", total_env_steps=80_000_000, name="past", **kw)
     with pytest.warns(UserWarning, match="schedules end past its budget") as caught, pytest.raises(Built):
         trainer.train(cfg)
     [warning] = [w for w in caught if "past its budget" in str(w.message)]
@@ -777,4 +777,4 @@ def test_a_run_whose_schedules_end_past_its_budget_warns_once_at_its_start(tmp_p
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a run within its budget starts without the warning
         with pytest.raises(Built):
-            trainer.train(preset_config("torque", total_env_steps=200_000_000, name="within", **kw))
+            trainer.train(preset_config("torque_ideal", total_env_steps=200_000_000, name="within", **kw))

@@ -732,6 +732,87 @@ _TORQUE = {
     "total_env_steps": 200_000_000,
 }
 
+# The robust recipe: torque control trained for the real robot, under the TOCABI lab's uncertainty model (randomize.tocabi_lab: motor
+# constant, 2-10 ms torque delay, link masses, joint damping, armature, sensor biases and encoder noise, drawn per
+# world at every reset), diverse starts (the robust gait test's start velocities) and pushes: sixteen velocity
+# kicks per 32 s episode, each of 0.4-1.4 m/s within one 4 ms step, the test's kind of kick (every body's velocity
+# changes alike; 40 % of them at 1.0 m/s or more): twice the fourth run's eight, so twice the recoveries to learn
+# from per training minute, 1.9 s apart on average (the test's three: 1.7 s). (The third and fourth runs kicked
+# the pelvis alone, 0.3-1.2 m/s over 4-200 ms and 0.3-1.3 m/s over 4-40 ms: the same momentum, but the limbs lag
+# and the joints are kicked too; docs/training/robust/h200_run4.) The kicks ramp in from 10 M to 35 M env
+# steps, while the legs are still PD residuals (β = 1), so that the frozen teacher the fade copies from (taken at
+# its start, 60 M) already recovers from them; the assist then fades into pure torques from 60 M to 120 M. (The
+# first run ramped four kicks in from 60 M to 120 M, during the fade and after the teacher was taken: its
+# pure-torque policy fell every ~1,700 steps and did not walk in 24 minutes, docs/training/robust/h200_run1.)
+# The adaptive learning rate is held until the teacher's pull has decayed (ppo.assist_lr_hold "pull"): the fourth
+# run's fell to its 1e-5 floor as the fade ended and stayed there from 122 M to 149 M env steps. The assist's PD
+# reads the joint positions the policy senses (ppo.assist_pd_sensed): in the fifth run the assisted policy
+# survived 0.75-0.80 of the test's 1.0 m/s kicks at β 0.93-0.39 and the pure-torque one 0.52-0.53, the fade's
+# copy loss (0.9 at β 0.44, 148 at β 0: the torques 0.25 of the limits apart, RMS) the size of what the
+# encoder biases make of the PD on true positions. The kicks reach full strength at 35 M env steps (the fifth
+# run: 55 M), so the policy the fade copies from has trained on them for 25 M steps, not 5 M.
+# Left-right symmetry augmentation, for a gait without a sideways bias. An asymmetric critic
+# (transforms/privileged.py): the policy's sensors are biased and noisy, the critic reads the true pelvis velocity,
+# height, orientation and foot loads, so that a kicked or heavier robot's state is valued as such. For the test's
+# drift, a heading-hold term (0.3·exp(-20·ψ²), ψ the pelvis yaw): the second run's pure-torque policy turned 0.29
+# rad on average in the test's 8 s, every robot to the same side, and drifted 0.74 m (p95), unseen by the
+# pelvis-frame velocity term. For the test's changing commands, a command every 2 s (the test's rate; the default
+# draws one per 8 s) and a sharper and heavier velocity-tracking term (1.5·exp(-8·‖v − cmd‖²); the reference's
+# 0.3·exp(-3·‖v − cmd‖²) barely pays for the last 0.1 m/s: the shipped policies walk at 0.36-0.42 m/s when asked for
+# 0.5, and the second run at 0.37 with 0.9·exp(-8·‖v − cmd‖²)). Verdict: the robust gait test
+# (evaluation/robust.py).
+_ROBUST = {
+    **_TORQUE,
+    **tocabi_lab_paths(),
+    "env.command.resample_every": 500, "transforms.body_vel_scale": 8.0,
+    "transforms.reward_weights.body_vel": 1.5, "transforms.heading_weight": 0.3,
+    "env.pushes": PushConfig(count=16, window=(1.0, 31.0), speed=(0.4, 1.4), duration=(0.004, 0.004),
+                             kind="velocity"),
+    "ppo.assist_lr_hold": "pull", "ppo.assist_pd_sensed": True,
+    "ppo.push_ramp": (10_000_000, 35_000_000),
+    "ppo.assist_fade_start": 60_000_000, "ppo.assist_fade_end": 120_000_000,
+    "ppo.symmetry": "augment", "ppo.critic_privileged": True,
+    "env.task.start_joint_vel_std": 0.5, "env.task.start_base_vel_std": 0.1,
+    # Each world's start velocities and dynamics from 16 drawn at build, so that resets keep the reduced pass
+    # (env.sim.start_pool; the full pass took 1.15 ms a step more at 4,096 envs on an H100, docs/benchmarks.md;
+    # the fourth run, with the pool, trained at 117,215 env steps/s, the third, without, at 110,263, both on one
+    # H200); a run meets 65,536 robots.
+    "env.sim.start_pool": 16,
+    # The sixth run (these settings without the two below) passed nominal, commands and robust_0.5 and kept 0.693
+    # under 1.0 m/s kicks (docs/training/robust/h200_run6): its robots survived a lone 1.0 m/s kick and fell on
+    # a fifth of the kicks that came within 2 s of the previous one, a second after the kick on average, and its
+    # learning rate sat at the 1e-5 floor for the last seven minutes. The seventh run relaxed the clocked and
+    # smoothness terms for 1.5 s after a kick (transforms.kick_relax) and fell 1.7-1.8x as often in training, 0.44
+    # under the test's 1.0 m/s kicks at 18 minutes against the sixth's 0.84 (docs/training/robust/h200_run7):
+    # the relaxation takes reward from the recovering robot, so surviving a kick is worth less. So no relaxation;
+    # instead a longer horizon: at gamma 0.995 (0.8 s) a fall 1 s after a kick weighs 0.29 of its cost and the
+    # next kick, 1-2 s on, is nearly out of sight; at 0.997 (1.3 s) 0.47. The adaptive rate keeps at least 5e-5
+    # (ppo.lr_min).
+    "ppo.gamma": 0.997, "ppo.lr_min": 5e-5,
+    # The eighth run (these settings without the two below) was best at 18 minutes, while the teacher still pulled
+    # (0.827 under the test's 1.0 m/s kicks at 1,024 robots, commands and robust_0.5 passing), and worse from 20
+    # minutes on, once its pull (30 M env steps after the fade) had gone: PPO alone let the velocity-tracking
+    # term fall from 0.74-0.76 to 0.61-0.65 per step, and the robots walked too fast, drifted and fell more
+    # (docs/training/robust/h200_run8). So the pull decays over 90 M env steps: 0.78 at 140 M, 0.11 at the
+    # budget's 200 M. Half of that run's falls under the 1.0 m/s kicks were the feet touching (a
+    # self-collision), so a foot-gap term (transforms.foot_gap_weight, reward_terms.FootGap) pays for keeping
+    # the feet at least 0.24 m apart across the heading, where the reference walk keeps 0.25 m.
+    "ppo.assist_anchor_decay": 90_000_000, "transforms.foot_gap_weight": 0.3,
+    # Its verdict at the end of training: the robust gait test at its own size (1,024 robots per case).
+    "eval_test": "robust", "eval_envs": 1024,
+    # 16,384 robots, so that the randomisation costs under 5 % of the training rate: at 4,096 the torque delay
+    # (a world's delayed torque jumps in some substep, and every world iterates until the slowest converges)
+    # cost 7.3 % (0.927x); at 16,384, with the delay on a 1 ms grid (env.control.actuators.delay_stride 2:
+    # 2-10 ms in 1 ms steps), 1.9 % (0.981x, docs/benchmarks/randomization/envs_16k). 12 steps per env keep
+    # the 4,096-robot run's PPO iterations per env step (196,608 samples per update). Two runs at 16,384 with the
+    # rate rules of 4,096 fell 4-20x as often per env step as run 9 (docs/training/robust/h100_run21,
+    # h200_run22): their KL-adaptive rate sat 2-4x below run 9's. A KL target of 0.02 keeps it up, and the held
+    # rate is bounded at run 9's 7.5e-5 while the teacher pulls; the twenty-third run passed the robust gait test
+    # from its 13-minute mark (docs/training/robust/h100_run23).
+    "env.num_envs": 16_384, "env.control.actuators.delay_stride": 2, "ppo.steps_per_env": 12,
+    "ppo.desired_kl": 0.02, "ppo.assist_lr_max": 7.5e-5,
+}
+
 PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # Residual imitation (pd_reference: leg servos with the robot's gains track the reference walk plus the policy's
     # correction), the velocity-tracking reward tripled (0.3 -> 0.9, so that following a 0.5 m/s command pays more
@@ -748,6 +829,15 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "ppo.activation": "relu", "ppo.value_out_gain": 0.01, "ppo.value_coef": 0.5, "ppo.value_loss": "l2",
         "ppo.max_grad_norm": 0.5, "ppo.std_start": 0.1, "ppo.std_end": 0.05, "ppo.std_hold": 0.5,
     }),
+    # The torque policy for the real robot: the robust recipe (above) with the update's matrix products in TF32
+    # (ppo.matmul_precision "high"), the same training with a faster update. Verdict: the robust gait test's
+    # diverse-start nominal and commands cases (evaluation/robust.py; docs/training.md).
+    "torque": MappingProxyType({**_ROBUST, "ppo.matmul_precision": "high"}),
+    # The robust recipe in full float32, as the runs of docs/training/robust/ trained: the twenty-third passed the
+    # robust gait test's nominal and commands cases at its 12-minute mark (the first it tested) and every case from
+    # its 13-minute mark (docs/training/robust/h100_run23).
+    "robust": MappingProxyType(_ROBUST),
+    # The torque preset of before the uncertainty model, on a perfect robot (no randomisation, noise, delay or kicks).
     # The reference's action space (12 normalised leg torques + phase rate) learned from scratch on one GPU: the
     # default's PPO on an assisted torque env whose leg actions start as the residual-PD preset's position residuals
     # (β = 1 for 50 M steps) and morph into torques by 110 M (geometric in the action gain, learning rate held), a
@@ -756,7 +846,7 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # The pull copies a frozen β = 1 teacher (DAgger) and fades out over 30 M steps after the fade. Run 5 of
     # docs/training.md: walks at 24.0 min of training on an H100 (178.7 M steps). A teacher taken at 75 M
     # (run 6) went faster (3.3-3.4 m in the 8 s test) but drifted 0.30-0.34 m, just past the limit, to its end.
-    "torque": MappingProxyType(_TORQUE),
+    "torque_ideal": MappingProxyType(_TORQUE),
     # Residual torque on a computed-torque law (env.control.mode "model_based", envs/model_based.py): the 12 leg
     # actions add g·a to τ_ff = M_LL·(q̈_ref + ω²·(q_ref − q) + 2ζω·(q̇_ref − q̇)) + c_L from the simulator's own
     # inertia and bias forces. The default's PPO, unchanged; no torque assist: the feed-forward law is itself the
@@ -768,86 +858,6 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     "model_based": MappingProxyType({
         "env.control.mode": "model_based", "env.control.mb_residual_gain": MB_RESIDUAL_GAIN_PD,
         "total_env_steps": 200_000_000,
-    }),
-    # The torque preset trained for the real robot: the TOCABI lab's uncertainty model (randomize.tocabi_lab: motor
-    # constant, 2-10 ms torque delay, link masses, joint damping, armature, sensor biases and encoder noise, drawn per
-    # world at every reset), diverse starts (the robust gait test's start velocities) and pushes: sixteen velocity
-    # kicks per 32 s episode, each of 0.4-1.4 m/s within one 4 ms step, the test's kind of kick (every body's velocity
-    # changes alike; 40 % of them at 1.0 m/s or more): twice the fourth run's eight, so twice the recoveries to learn
-    # from per training minute, 1.9 s apart on average (the test's three: 1.7 s). (The third and fourth runs kicked
-    # the pelvis alone, 0.3-1.2 m/s over 4-200 ms and 0.3-1.3 m/s over 4-40 ms: the same momentum, but the limbs lag
-    # and the joints are kicked too; docs/training/robust/h200_run4.) The kicks ramp in from 10 M to 35 M env
-    # steps, while the legs are still PD residuals (β = 1), so that the frozen teacher the fade copies from (taken at
-    # its start, 60 M) already recovers from them; the assist then fades into pure torques from 60 M to 120 M. (The
-    # first run ramped four kicks in from 60 M to 120 M, during the fade and after the teacher was taken: its
-    # pure-torque policy fell every ~1,700 steps and did not walk in 24 minutes, docs/training/robust/h200_run1.)
-    # The adaptive learning rate is held until the teacher's pull has decayed (ppo.assist_lr_hold "pull"): the fourth
-    # run's fell to its 1e-5 floor as the fade ended and stayed there from 122 M to 149 M env steps. The assist's PD
-    # reads the joint positions the policy senses (ppo.assist_pd_sensed): in the fifth run the assisted policy
-    # survived 0.75-0.80 of the test's 1.0 m/s kicks at β 0.93-0.39 and the pure-torque one 0.52-0.53, the fade's
-    # copy loss (0.9 at β 0.44, 148 at β 0: the torques 0.25 of the limits apart, RMS) the size of what the
-    # encoder biases make of the PD on true positions. The kicks reach full strength at 35 M env steps (the fifth
-    # run: 55 M), so the policy the fade copies from has trained on them for 25 M steps, not 5 M.
-    # Left-right symmetry augmentation, for a gait without a sideways bias. An asymmetric critic
-    # (transforms/privileged.py): the policy's sensors are biased and noisy, the critic reads the true pelvis velocity,
-    # height, orientation and foot loads, so that a kicked or heavier robot's state is valued as such. For the test's
-    # drift, a heading-hold term (0.3·exp(-20·ψ²), ψ the pelvis yaw): the second run's pure-torque policy turned 0.29
-    # rad on average in the test's 8 s, every robot to the same side, and drifted 0.74 m (p95), unseen by the
-    # pelvis-frame velocity term. For the test's changing commands, a command every 2 s (the test's rate; the default
-    # draws one per 8 s) and a sharper and heavier velocity-tracking term (1.5·exp(-8·‖v − cmd‖²); the reference's
-    # 0.3·exp(-3·‖v − cmd‖²) barely pays for the last 0.1 m/s: the shipped policies walk at 0.36-0.42 m/s when asked for
-    # 0.5, and the second run at 0.37 with 0.9·exp(-8·‖v − cmd‖²)). Verdict: the robust gait test
-    # (evaluation/robust.py).
-    "robust": MappingProxyType({
-        **_TORQUE,
-        **tocabi_lab_paths(),
-        "env.command.resample_every": 500, "transforms.body_vel_scale": 8.0,
-        "transforms.reward_weights.body_vel": 1.5, "transforms.heading_weight": 0.3,
-        "env.pushes": PushConfig(count=16, window=(1.0, 31.0), speed=(0.4, 1.4), duration=(0.004, 0.004),
-                                 kind="velocity"),
-        "ppo.assist_lr_hold": "pull", "ppo.assist_pd_sensed": True,
-        "ppo.push_ramp": (10_000_000, 35_000_000),
-        "ppo.assist_fade_start": 60_000_000, "ppo.assist_fade_end": 120_000_000,
-        "ppo.symmetry": "augment", "ppo.critic_privileged": True,
-        "env.task.start_joint_vel_std": 0.5, "env.task.start_base_vel_std": 0.1,
-        # Each world's start velocities and dynamics from 16 drawn at build, so that resets keep the reduced pass
-        # (env.sim.start_pool; the full pass took 1.15 ms a step more at 4,096 envs on an H100, docs/benchmarks.md;
-        # the fourth run, with the pool, trained at 117,215 env steps/s, the third, without, at 110,263, both on one
-        # H200); a run meets 65,536 robots.
-        "env.sim.start_pool": 16,
-        # The sixth run (these settings without the two below) passed nominal, commands and robust_0.5 and kept 0.693
-        # under 1.0 m/s kicks (docs/training/robust/h200_run6): its robots survived a lone 1.0 m/s kick and fell on
-        # a fifth of the kicks that came within 2 s of the previous one, a second after the kick on average, and its
-        # learning rate sat at the 1e-5 floor for the last seven minutes. The seventh run relaxed the clocked and
-        # smoothness terms for 1.5 s after a kick (transforms.kick_relax) and fell 1.7-1.8x as often in training, 0.44
-        # under the test's 1.0 m/s kicks at 18 minutes against the sixth's 0.84 (docs/training/robust/h200_run7):
-        # the relaxation takes reward from the recovering robot, so surviving a kick is worth less. So no relaxation;
-        # instead a longer horizon: at gamma 0.995 (0.8 s) a fall 1 s after a kick weighs 0.29 of its cost and the
-        # next kick, 1-2 s on, is nearly out of sight; at 0.997 (1.3 s) 0.47. The adaptive rate keeps at least 5e-5
-        # (ppo.lr_min).
-        "ppo.gamma": 0.997, "ppo.lr_min": 5e-5,
-        # The eighth run (these settings without the two below) was best at 18 minutes, while the teacher still pulled
-        # (0.827 under the test's 1.0 m/s kicks at 1,024 robots, commands and robust_0.5 passing), and worse from 20
-        # minutes on, once its pull (30 M env steps after the fade) had gone: PPO alone let the velocity-tracking
-        # term fall from 0.74-0.76 to 0.61-0.65 per step, and the robots walked too fast, drifted and fell more
-        # (docs/training/robust/h200_run8). So the pull decays over 90 M env steps: 0.78 at 140 M, 0.11 at the
-        # budget's 200 M. Half of that run's falls under the 1.0 m/s kicks were the feet touching (a
-        # self-collision), so a foot-gap term (transforms.foot_gap_weight, reward_terms.FootGap) pays for keeping
-        # the feet at least 0.24 m apart across the heading, where the reference walk keeps 0.25 m.
-        "ppo.assist_anchor_decay": 90_000_000, "transforms.foot_gap_weight": 0.3,
-        # Its verdict at the end of training: the robust gait test at its own size (1,024 robots per case).
-        "eval_test": "robust", "eval_envs": 1024,
-        # 16,384 robots, so that the randomisation costs under 5 % of the training rate: at 4,096 the torque delay
-        # (a world's delayed torque jumps in some substep, and every world iterates until the slowest converges)
-        # cost 7.3 % (0.927x); at 16,384, with the delay on a 1 ms grid (env.control.actuators.delay_stride 2:
-        # 2-10 ms in 1 ms steps), 1.9 % (0.981x, docs/benchmarks/randomization/envs_16k). 12 steps per env keep
-        # the 4,096-robot run's PPO iterations per env step (196,608 samples per update). Two runs at 16,384 with the
-        # rate rules of 4,096 fell 4-20x as often per env step as run 9 (docs/training/robust/h100_run21,
-        # h200_run22): their KL-adaptive rate sat 2-4x below run 9's. A KL target of 0.02 keeps it up, and the held
-        # rate is bounded at run 9's 7.5e-5 while the teacher pulls; the twenty-third run passed the robust gait test
-        # from its 13-minute mark (docs/training/robust/h100_run23).
-        "env.num_envs": 16_384, "env.control.actuators.delay_stride": 2, "ppo.steps_per_env": 12,
-        "ppo.desired_kl": 0.02, "ppo.assist_lr_max": 7.5e-5,
     }),
     # What a CPU-only machine can run in a minute or two: proves the whole pipeline, learns nothing useful.
     "cpu_smoke": MappingProxyType({
