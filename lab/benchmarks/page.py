@@ -136,6 +136,16 @@ def _require(r: dict, fields: tuple[str, ...], rel: str) -> None:
                          f"page shows{date}: add it to the run's train.json and render the report again")
 
 
+#: Presets renamed since a committed run: the name then -> (the date from which it means another recipe, its name now).
+RENAMED_PRESETS = {"torque": ("2026-12-06", "torque_ideal")}
+
+
+def _preset_then(name: str, date: str) -> str:
+    """``name`` as a table cell, with its name now where a run of before a rename trained it."""
+    since, now = RENAMED_PRESETS.get(name, ("", name))
+    return f"`{name}` (now `{now}`)" if date < since else f"`{name}`"
+
+
 def time_to_walk(docs: Path) -> list[str]:
     rel = "benchmarks/time_to_walk.json"
     d = _load(rel, docs)
@@ -151,7 +161,8 @@ def time_to_walk(docs: Path) -> list[str]:
         walks = (f"**{ttw['train_minutes']:.1f} min**" if ttw
                  else f"not yet when the run ended ({r['train_seconds'] / 60:.1f} min)")
         steps = f"{ttw['env_steps'] / 1e6:.0f} M" if ttw else "–"
-        rows.append(f"| `{r['preset']}` | {gpus} | {envs:,} | {walks} | {steps} | {_ratio(r)} | {r['date']} |")
+        rows.append(f"| {_preset_then(r['preset'], r['date'])} | {gpus} | {envs:,} | {walks} | {steps} | {_ratio(r)} "
+                    f"| {r['date']} |")
         train = r["commands"][0] if isinstance(r["commands"], list) else r["commands"]
         cmds.append(f"- `{r.get('name', r['preset'])}`: `{train}`")
     return ["## Time to walk (training minutes until a checkpoint passes the 8 s gait test)", "",
@@ -195,9 +206,10 @@ def library_table(docs: Path) -> list[str]:
             "|---|---|---|---:|---:|---:|---|---|"]
     for r in sorted(d, key=lambda r: (r["preset"] != "default", r["library"], r["num_envs"])):
         walks = f"{r['walks_minutes']:.1f}" if r.get("walks_minutes") else f"no (within {r['cap_minutes']:.0f})"
-        date = Path(r["run"]).name.split("_")[-2]
-        rows.append(f"| {r['library']} | {r['version']} | `{r['preset']}` | {r['num_envs']:,} | "
-                    f"{_k(r['env_steps_per_s'])} | {walks} | {r['device']} | {date[:4]}-{date[4:6]}-{date[6:]} |")
+        stamp = Path(r["run"]).name.split("_")[-2]
+        date = f"{stamp[:4]}-{stamp[4:6]}-{stamp[6:]}"
+        rows.append(f"| {r['library']} | {r['version']} | {_preset_then(r['preset'], date)} | {r['num_envs']:,} | "
+                    f"{_k(r['env_steps_per_s'])} | {walks} | {r['device']} | {date} |")
     return ["## Other RL libraries on the same task (one GPU per row, 30-minute cap)", "", *rows, "",
             "- command: `python -m lab.library_table --libraries LIB --preset PRESET --num_envs N` "
             "(every row's own commands: [adapters_table.md](adapters_table.md))",
