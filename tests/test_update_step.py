@@ -69,6 +69,93 @@ def test_emulated_replay_wiring_matches_the_eager_step(masked):
     assert not torch.equal(_params(eager_agent), _params(_setup("cpu", update_graph=False)[1])), "nothing trained"
 
 
+def _emulated(setup):
+    _, agent, plain = setup
+    return agent, MinibatchStep(plain.loss_module, plain.optimizer, plain.params, plain.max_grad_norm, use_graph=True,
+                                capturer=EmulatedCapture())
+
+
+@pytest.mark.parametrize("masked", [False, True], ids=["unmasked", "masked"])
+def test_kept_rows_step_as_fresh_mini_batches_do_and_refill_in_place(masked):
+    """keep() + on_rows(idx) (the gather inside the replay) trains exactly as step(flat[idx]): over two rollouts, the
+    second copied into the same buffer, which the replays then read."""
+    cfg, eager_agent, eager = _setup("cpu", update_graph=False)
+    emu_agent, emu = _emulated(_setup("cpu", update_graph=False))
+    first, second = _rollout(512, "cpu", masked=masked), _rollout(512, "cpu", masked=masked).apply(lambda x: x.flip(0))
+    for it, flat in enumerate((first, second)):
+        rows = emu.keep(flat)
+        assert rows is emu.rows and not any(rows.get(k) is flat.get(k) for k in flat.keys(True, True))  # a copy
+        if it:
+            assert rows is kept, "the same layout is copied into the same buffer"
+        kept = rows
+        torch.manual_seed(3 + it)
+        stats_eager = _update(cfg, flat, eager)
+        torch.manual_seed(3 + it)
+        stats_emu = _update(cfg, rows, emu)
+        assert stats_eager == pytest.approx(stats_emu, rel=1e-6)
+        torch.testing.assert_close(_params(eager_agent), _params(emu_agent), rtol=0, atol=0)
+    # Only the rows path ran and was captured once: 8 steps, 3 of them the warm-up.
+    assert emu._rows_capture.captured and emu._rows_capture.capturer.captures == ["joined"]
+    assert not emu._capture.captured
+
+
+def test_kept_rows_of_another_layout_get_a_new_buffer_and_capture():
+    _, _, step = _setup("cpu", update_graph=False)
+    _, emu = _emulated(_setup("cpu", update_graph=False))
+    idx = torch.arange(128)
+    rows = emu.keep(_rollout(512, "cpu"))
+    for _ in range(4):  # warm-up and capture
+        emu.on_rows(idx)
+    assert emu._rows_capture.captured
+    for other in (_rollout(1024, "cpu"), _rollout(1024, "cpu", masked=True),
+                  _rollout(1024, "cpu", masked=True).apply(lambda x: x.double() if x.is_floating_point() else x)):
+        new = emu.keep(other)
+        assert new is not rows and not emu._rows_capture.captured, "a capture of the old buffer would read freed memory"
+        torch.testing.assert_close(new.to_dict(), other.to_dict(), rtol=0, atol=0)
+        rows = new
+    with pytest.raises(RuntimeError, match=r"on_rows\(\) before keep\(\)"):
+        step.on_rows(idx)
+
+
+def test_a_replayed_rows_step_queues_one_copy_per_mini_batch():
+    """What the host launches per captured mini-batch on rows it keeps: the index copy, then the replay; no gather
+    or copy per rollout key (which kept an overlapped update's host launching for as long as the update ran)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Count(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.ops = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.ops.append(str(func.overloadpacket.__name__))
+            return func(*args, **(kwargs or {}))
+
+    class Replays(EmulatedCapture):  # a replay that launches nothing, counted
+        def capture(self, fn, **kwargs):
+            replay, result = super().capture(fn, **kwargs)
+            self.replays = 0
+
+            def counted():
+                self.replays += 1
+
+            return counted, result
+
+    _, _, plain = _setup("cpu", update_graph=False)
+    step = MinibatchStep(plain.loss_module, plain.optimizer, plain.params, plain.max_grad_norm, use_graph=True,
+                         capturer=Replays())
+    step.keep(_rollout(512, "cpu", masked=True))
+    idx = torch.randperm(512)[:128]
+    for _ in range(4):
+        step.on_rows(idx)
+    other, capturer = idx.flip(0), step._rows_capture.capturer
+    capturer.replays = 0  # the capturing call replayed once
+    with Count() as count:
+        step.on_rows(idx)
+        step.on_rows(other)
+    assert count.ops == ["copy_", "copy_"] and capturer.replays == 2
+
+
 def test_the_masks_reach_the_loss():
     """The same rollout with some frames marked invalid updates differently: the masks are read, not dropped."""
     results = []
@@ -174,6 +261,34 @@ def test_captured_update_matches_eager_without_syncs(masked):
     before = _params(graph_agent).clone()
     graphed(flat[: cfg.ppo.minibatch_size])
     torch.testing.assert_close(_params(graph_agent), before, rtol=0, atol=0)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_captured_rows_update_matches_eager_without_syncs():
+    """The graph that gathers its mini-batch from the kept rollout computes what the eager step computes on the
+    gathered rows, reads a second rollout copied into the same buffer, and replays without a host synchronisation."""
+    cfg, eager_agent, eager = _setup("cuda", update_graph=False)
+    _, graph_agent, graphed = _setup("cuda", update_graph=True)
+    for it in range(2):  # 16 steps: 3 eager warm-up steps, the capture, then replays; the second on new rows
+        flat = _rollout(512, "cuda", masked=True)
+        flat = flat.apply(lambda x: x.flip(0)) if it else flat
+        rows = graphed.keep(flat)
+        torch.manual_seed(10 + it)
+        stats_eager = _update(cfg, flat, eager)
+        torch.manual_seed(10 + it)
+        stats_graph = _update(cfg, rows, graphed)
+        assert stats_graph == pytest.approx(stats_eager, rel=1e-4, abs=1e-6)
+    assert graphed._rows_capture.captured and not graphed._capture.captured
+    idx = torch.randperm(flat.shape[0], device="cuda")[: cfg.ppo.minibatch_size]
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        graphed.on_rows(idx)  # copies the index in and launches one graph
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    eager(flat[idx])
+    torch.testing.assert_close(_params(graph_agent), _params(eager_agent), rtol=1e-4, atol=1e-5)
 
 
 def test_the_run_trains_at_its_matmul_precision_and_puts_the_setting_back(monkeypatch):

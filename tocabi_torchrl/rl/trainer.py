@@ -746,8 +746,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
             flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
             if ppo.overlap_update:
-                # The update reads it on the side stream while the collector refills `batch`: its own memory.
-                flat = flat.clone()
+                # The update reads it on the side stream while the collector refills `batch`: its own memory, the
+                # step's, from which a captured step gathers each mini-batch inside its graph (MinibatchStep.keep).
+                flat = update_step.keep(flat)
             extra: dict[str, float] = {}
             if assist is not None:
                 # This rollout ran with β(steps before it); the next runs with β(now): the update absorbs the gap.
@@ -970,11 +971,13 @@ def _update_losses(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep,
     every rank adapts its learning rate alike."""
     n, mb, epochs = flat.shape[0], cfg.ppo.minibatch_size, cfg.ppo.epochs
     num_mb = max(1, n // mb)
+    kept = flat is step.rows  # the step gathers its mini-batches itself (MinibatchStep.keep)
     sums = None
     for _ in range(epochs):
         perm = torch.randperm(n, device=flat.device)
         for k in range(num_mb):
-            stats = step(flat[perm[k * mb : (k + 1) * mb]])
+            idx = perm[k * mb : (k + 1) * mb]
+            stats = step.on_rows(idx) if kept else step(flat[idx])
             sums = stats.clone() if sums is None else sums.add_(stats)
     mean = sums / (epochs * num_mb)
     if dist_info is not None:

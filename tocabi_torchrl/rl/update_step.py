@@ -9,6 +9,12 @@ Warm-up, capture and fallback are :class:`tocabi_torchrl.cuda_graphs.WarmCapture
 step adds: the graph reads its mini-batch from static buffers (each step copies the next mini-batch in); gradients
 live in the graph's memory pool, so nothing outside may set them to ``None``; the optimiser is capturable with a
 tensor learning rate (:func:`make_capturable_adam`), which the trainer changes in place (:func:`set_lr`).
+
+A rollout kept by the step (:meth:`MinibatchStep.keep`) lets the graph gather each mini-batch itself
+(:meth:`MinibatchStep.on_rows`): the host then queues one index copy and one replay per mini-batch instead of a
+gather and a copy per rollout key, so an update overlapped with the next rollout (``ppo.overlap_update``) is queued
+in a moment and the host goes on to the rollout, where a gather per key and mini-batch kept it launching for about
+as long as the update ran on the GPU.
 """
 
 from __future__ import annotations
@@ -182,6 +188,11 @@ class MinibatchStep:
         self.stat_keys: tuple[str, ...] = STAT_KEYS
         self._capture = WarmCapture("MinibatchStep", "the PPO update", self._compute, self._build, warmup=warmup,
                                     capturer=capturer)
+        #: The same step with the mini-batch gathered inside the graph from :attr:`rows` (:meth:`on_rows`).
+        self._rows_capture = WarmCapture("MinibatchStep", "the PPO update", self._compute_rows, self._build_rows,
+                                         warmup=warmup, capturer=capturer)
+        #: The rollout :meth:`keep` copied in, ``(n,)`` rows; None until then.
+        self.rows: TensorDictBase | None = None
         self._graph_key = None
 
     @property
@@ -208,15 +219,58 @@ class MinibatchStep:
         return torch.stack([losses[k].detach() for k in self.stat_keys])
 
     def __call__(self, mb: TensorDictBase) -> torch.Tensor:
+        self._follow_graph_key()
+        if not self.use_graph or self._capture.gave_up or not self._capture.capturer.supports(mb.device):
+            return self._compute(mb)
+        return self._capture.run(mb.device, mb)
+
+    def keep(self, flat: TensorDictBase) -> TensorDictBase:
+        """Copy the rollout ``flat`` (``(n,)`` rows: the loss's keys) into :attr:`rows`, the step's own buffer, and
+        return it; the buffer is reused while the keys, shapes, dtypes and device stay (a captured :meth:`on_rows`
+        reads it by address), and allocated anew, with a new capture, when they change. The copy runs on the current
+        stream; the caller makes sure no update still reads the previous contents (the overlap's ``finish``)."""
+        if self.rows is not None and _same_layout(self.rows, flat):
+            self.rows.update_(flat)
+        else:
+            self.rows = flat.clone()
+            self._rows_capture.reset()  # a graph captured on the old buffer would read memory given back
+        return self.rows
+
+    def on_rows(self, idx: torch.Tensor) -> torch.Tensor:
+        """``self(self.rows[idx])``: one optimiser step on the rows ``idx`` (``(minibatch,)`` int64, on the rows'
+        device) of the kept rollout (:meth:`keep`). Captured, the gather is part of the graph: the host copies
+        ``idx`` in and launches the replay, nothing per rollout key."""
+        if self.rows is None:
+            raise RuntimeError("MinibatchStep.on_rows() before keep(): keep the rollout first")
+        self._follow_graph_key()
+        device = self.rows.device
+        if not self.use_graph or self._rows_capture.gave_up or not self._rows_capture.capturer.supports(device):
+            return self._compute_rows(idx)
+        return self._rows_capture.run(device, idx)
+
+    def _follow_graph_key(self) -> None:
         key = getattr(self.loss_module, "graph_key", None)
         if key != self._graph_key:
             # The loss now runs other operations (the assist's absorb term switched on or off): a graph captured
             # before would replay the old ones, so the step warms up and captures again.
             self._graph_key = key
             self._capture.reset()
-        if not self.use_graph or self._capture.gave_up or not self._capture.capturer.supports(mb.device):
-            return self._compute(mb)
-        return self._capture.run(mb.device, mb)
+            self._rows_capture.reset()
+
+    def _compute_rows(self, idx: torch.Tensor) -> torch.Tensor:
+        return self._compute(self.rows[idx])
+
+    def _build_rows(self, args, stream, mode: str):
+        static_idx = args[0].clone()
+        replay, stats = self._rows_capture.capturer.capture(lambda: self._compute_rows(static_idx),
+                                                            device=static_idx.device, stream=stream, mode=mode)
+
+        def step(idx: torch.Tensor) -> torch.Tensor:
+            static_idx.copy_(idx)
+            replay()
+            return stats
+
+        return step
 
     def _build(self, args, stream, mode: str):
         static_mb = args[0].clone()
@@ -229,3 +283,17 @@ class MinibatchStep:
             return stats
 
         return step
+
+
+def _same_layout(a: TensorDictBase, b: TensorDictBase) -> bool:
+    """Whether two tensordicts have the same keys, batch size, and leaf shapes, dtypes and devices (host metadata)."""
+    if a.batch_size != b.batch_size:
+        return False
+    keys = list(a.keys(True, True))
+    if set(keys) != set(b.keys(True, True)):
+        return False
+    for k in keys:
+        x, y = a.get(k), b.get(k)
+        if x.shape != y.shape or x.dtype != y.dtype or x.device != y.device:
+            return False
+    return True
