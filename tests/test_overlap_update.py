@@ -31,7 +31,7 @@ def test_each_rollout_acts_with_the_actor_of_the_update_before_or_its_own(tmp_pa
     # it was before the previous update (snapshots[k - 1] for rollout k + 1), without it the learner itself.
     from tocabi_torchrl.rl import trainer
 
-    agents, snapshots, checks = [], [], []
+    agents, snapshots, checks, kept = [], [], [], []
     build, losses = trainer.build_agent, trainer._update_losses
 
     def building(*args, **kwargs):
@@ -39,6 +39,7 @@ def test_each_rollout_acts_with_the_actor_of_the_update_before_or_its_own(tmp_pa
         return agents[-1]
 
     def recording(cfg, flat, step, info=None):
+        kept.append(flat is step.rows)  # with the overlap the update steps on the rollout its step keeps
         actor = agents[0].actor
         if snapshots:
             with torch.no_grad():
@@ -55,6 +56,7 @@ def test_each_rollout_acts_with_the_actor_of_the_update_before_or_its_own(tmp_pa
     assert result.iterations == 4 and len(checks) == 3
     expected = {"before_previous": True, "learner": False} if overlap else {"before_previous": False, "learner": True}
     assert checks == [expected] * 3
+    assert kept == [overlap] * 4
 
 
 def test_an_overlapped_run_logs_every_update_checkpoints_the_learner_and_resumes(tmp_path):

@@ -85,9 +85,10 @@ def test_kept_rows_step_as_fresh_mini_batches_do_and_refill_in_place(masked):
     for it, flat in enumerate((first, second)):
         rows = emu.keep(flat)
         assert rows is emu.rows and not any(rows.get(k) is flat.get(k) for k in flat.keys(True, True))  # a copy
-        if it:
-            assert rows is kept, "the same layout is copied into the same buffer"
-        kept = rows
+        ptrs = [rows.get(k).data_ptr() for k in sorted(rows.keys(True, True), key=str)]
+        if it:  # a captured graph reads the buffer by address: the same layout is copied into the same memory
+            assert rows is kept and ptrs == kept_ptrs
+        kept, kept_ptrs = rows, ptrs
         torch.manual_seed(3 + it)
         stats_eager = _update(cfg, flat, eager)
         torch.manual_seed(3 + it)
@@ -113,8 +114,33 @@ def test_kept_rows_of_another_layout_get_a_new_buffer_and_capture():
         assert new is not rows and not emu._rows_capture.captured, "a capture of the old buffer would read freed memory"
         torch.testing.assert_close(new.to_dict(), other.to_dict(), rtol=0, atol=0)
         rows = new
+        for _ in range(4):  # captured again, on the new buffer
+            emu.on_rows(idx)
+        assert emu._rows_capture.captured
     with pytest.raises(RuntimeError, match=r"on_rows\(\) before keep\(\)"):
         step.on_rows(idx)
+
+
+def test_a_loss_that_changes_its_operations_recaptures_the_rows_step():
+    """A loss whose graph_key changes (the assist's absorb term switching) runs other operations: the rows step warms
+    up and captures again, as the mini-batch step does."""
+    _, _, plain = _setup("cpu", update_graph=False)
+    step = MinibatchStep(plain.loss_module, plain.optimizer, plain.params, plain.max_grad_norm, use_graph=True,
+                         capturer=EmulatedCapture())
+    step.keep(_rollout(512, "cpu"))
+    idx = torch.arange(128)
+    for _ in range(4):
+        step.on_rows(idx)
+    assert step._rows_capture.captured
+    plain.loss_module.graph_key = "another"  # what AssistAbsorbLoss.graph_key reports after a switch
+    try:
+        step.on_rows(idx)
+        assert not step._rows_capture.captured
+        for _ in range(3):
+            step.on_rows(idx)
+        assert step._rows_capture.captured and step._rows_capture.capturer.captures == ["joined", "joined"]
+    finally:
+        del plain.loss_module.graph_key
 
 
 def test_a_replayed_rows_step_queues_one_copy_per_mini_batch():
@@ -154,6 +180,34 @@ def test_a_replayed_rows_step_queues_one_copy_per_mini_batch():
         step.on_rows(idx)
         step.on_rows(other)
     assert count.ops == ["copy_", "copy_"] and capturer.replays == 2
+
+
+def test_a_mini_batch_built_without_a_device_is_captured_on_its_tensors_device():
+    """A TensorDict built without ``device=`` reports None; the step captures on its tensors' device all the same
+    (it used to run eagerly for good, silently)."""
+
+    class DeviceCapture(EmulatedCapture):  # captures where the real one would: on one device type only
+        def supports(self, device) -> bool:
+            return device is not None and device.type == "cpu"
+
+    _, _, plain = _setup("cpu", update_graph=False)
+    step = MinibatchStep(plain.loss_module, plain.optimizer, plain.params, plain.max_grad_norm, use_graph=True,
+                         capturer=DeviceCapture())
+    flat = _rollout(512, "cpu")
+    mb = TensorDict(flat[:128].to_dict(), batch_size=[128])
+    assert mb.device is None
+    for _ in range(4):
+        step(mb)
+    assert step.captured and step._capture.capturer.captures == ["joined"]
+    rows = TensorDict(flat.to_dict(), batch_size=[512])
+    assert step.keep(rows).device is None
+    for _ in range(4):
+        step.on_rows(torch.arange(128))
+    assert step._rows_capture.captured
+    with pytest.raises(ValueError, match="the captured step takes 128 rows, got 64"):
+        step.on_rows(torch.arange(64))
+    with pytest.raises(ValueError, match="1-D int64"):
+        step.on_rows(torch.arange(128, dtype=torch.int32))
 
 
 def test_the_masks_reach_the_loss():

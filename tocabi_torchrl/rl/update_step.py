@@ -197,8 +197,8 @@ class MinibatchStep:
 
     @property
     def captured(self) -> bool:
-        """Whether the step now replays a captured CUDA graph."""
-        return self._capture.captured
+        """Whether the step now replays a captured CUDA graph (of :meth:`__call__` or of :meth:`on_rows`)."""
+        return self._capture.captured or self._rows_capture.captured
 
     def _compute(self, mb: TensorDictBase) -> torch.Tensor:
         # Set to None, not zeroed: the first backward (the capture's, when captured) allocates them, in the graph's
@@ -220,9 +220,10 @@ class MinibatchStep:
 
     def __call__(self, mb: TensorDictBase) -> torch.Tensor:
         self._follow_graph_key()
-        if not self.use_graph or self._capture.gave_up or not self._capture.capturer.supports(mb.device):
+        device = _device_of(mb)
+        if not self.use_graph or self._capture.gave_up or not self._capture.capturer.supports(device):
             return self._compute(mb)
-        return self._capture.run(mb.device, mb)
+        return self._capture.run(device, mb)
 
     def keep(self, flat: TensorDictBase) -> TensorDictBase:
         """Copy the rollout ``flat`` (``(n,)`` rows: the loss's keys) into :attr:`rows`, the step's own buffer, and
@@ -242,8 +243,11 @@ class MinibatchStep:
         ``idx`` in and launches the replay, nothing per rollout key."""
         if self.rows is None:
             raise RuntimeError("MinibatchStep.on_rows() before keep(): keep the rollout first")
+        if idx.dim() != 1 or idx.dtype != torch.int64:
+            raise ValueError(f"MinibatchStep.on_rows(idx): idx must be a 1-D int64 tensor of row indices, got "
+                             f"{idx.dtype} of shape {tuple(idx.shape)}")
         self._follow_graph_key()
-        device = self.rows.device
+        device = _device_of(self.rows)
         if not self.use_graph or self._rows_capture.gave_up or not self._rows_capture.capturer.supports(device):
             return self._compute_rows(idx)
         return self._rows_capture.run(device, idx)
@@ -263,9 +267,12 @@ class MinibatchStep:
     def _build_rows(self, args, stream, mode: str):
         static_idx = args[0].clone()
         replay, stats = self._rows_capture.capturer.capture(lambda: self._compute_rows(static_idx),
-                                                            device=static_idx.device, stream=stream, mode=mode)
+                                                            device=_device_of(self.rows), stream=stream, mode=mode)
 
         def step(idx: torch.Tensor) -> torch.Tensor:
+            if idx.shape != static_idx.shape:  # copy_ would broadcast one index, or fail on another length
+                raise ValueError(f"MinibatchStep.on_rows(idx): the captured step takes {static_idx.shape[0]} rows, "
+                                 f"got {idx.shape[0]}; keep every mini-batch the size of the first")
             static_idx.copy_(idx)
             replay()
             return stats
@@ -274,7 +281,7 @@ class MinibatchStep:
 
     def _build(self, args, stream, mode: str):
         static_mb = args[0].clone()
-        replay, stats = self._capture.capturer.capture(lambda: self._compute(static_mb), device=static_mb.device,
+        replay, stats = self._capture.capturer.capture(lambda: self._compute(static_mb), device=_device_of(static_mb),
                                                        stream=stream, mode=mode)
 
         def step(mb: TensorDictBase) -> torch.Tensor:
@@ -283,6 +290,14 @@ class MinibatchStep:
             return stats
 
         return step
+
+
+def _device_of(td: TensorDictBase) -> torch.device | None:
+    """The tensordict's device, or, for one built without ``device=``, its first leaf's (None when it has none)."""
+    if td.device is not None:
+        return td.device
+    leaf = next(iter(td.values(True, True)), None)
+    return None if leaf is None else leaf.device
 
 
 def _same_layout(a: TensorDictBase, b: TensorDictBase) -> bool:
