@@ -14,8 +14,9 @@ Order, per iteration (host): :meth:`finish` waits for the previous update and ha
 then reads the learner (GAE's critic, the teacher, the symmetry's statistics), sets its schedules, :meth:`refresh`
 copies the learner's actor into the collector's (on the training stream), and :meth:`launch` starts the update on
 the side stream after everything queued on the training stream so far. What the update reads (the rollout's
-flattened copy) is kept alive until :meth:`finish`, so the allocator cannot hand its memory to the next rollout while
-the side stream still reads it. The losses come back through pinned memory (:class:`~.deferred_read.DeferredRead`,
+flattened copy: the trainer's is the update step's own buffer, ``MinibatchStep.keep``) is not written again before
+:meth:`finish`, and :meth:`launch`'s ``keep`` holds a reference until then, so the allocator cannot hand memory the
+side stream still reads to the next rollout. The losses come back through pinned memory (:class:`~.deferred_read.DeferredRead`,
 copied on the side stream): :meth:`finish` waits for that update alone, not for the rollout queued on the training
 stream since. On a CPU there is no stream: :meth:`launch` runs the update at once, in the same
 order, so a CPU run trains exactly as a GPU run would without the concurrency.

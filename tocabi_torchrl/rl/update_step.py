@@ -12,9 +12,9 @@ tensor learning rate (:func:`make_capturable_adam`), which the trainer changes i
 
 A rollout kept by the step (:meth:`MinibatchStep.keep`) lets the graph gather each mini-batch itself
 (:meth:`MinibatchStep.on_rows`): the host then queues one index copy and one replay per mini-batch instead of a
-gather and a copy per rollout key, so an update overlapped with the next rollout (``ppo.overlap_update``) is queued
-in a moment and the host goes on to the rollout, where a gather per key and mini-batch kept it launching for about
-as long as the update ran on the GPU.
+gather and a copy per rollout key. An update overlapped with the next rollout (``ppo.overlap_update``) uses it: at
+4,096 envs on an H100 the host queued the update in 1.7 ms instead of 39
+(docs/benchmarks/train_over_ceiling_overlap).
 """
 
 from __future__ import annotations
