@@ -46,8 +46,8 @@ from .tree import to_dict as _tree_to_dict
 from .value_rules import MAX_SEED, POSITIVE, check_seed
 from .viewer.config import ViewerConfig
 
-__all__ = ["RunConfig", "PPOConfig", "PRESETS", "preset_tree", "preset_config", "config_from_dict", "to_dict",
-           "ConfigError", "UnusedOptionError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
+__all__ = ["RunConfig", "PPOConfig", "PRESETS", "RENAMED_PRESETS", "preset_now", "preset_tree", "preset_config",
+           "config_from_dict", "to_dict", "ConfigError", "UnusedOptionError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
            "LOGGERS", "SYMMETRY_MODES", "field_choices", "canonical_choices", "wall_tag", "check_snapshot_minutes",
            "LEGACY_VALUES", "MAX_SEED", "KL_ADAPT_MODES", "schedule_past_budget", "schedule_warning"]
 
@@ -866,6 +866,22 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "ppo.actor_hidden": (64, 64), "ppo.critic_hidden": (64, 64),
     }),
 })
+
+
+#: Presets renamed since runs of theirs were recorded: the name then -> (the first date, ISO, on which it named
+#: another recipe, its name now). For reading records written before (benchmark pages, the library table); a saved
+#: run holds its whole config tree, so resuming or playing one never reads its preset's name.
+RENAMED_PRESETS: Mapping[str, tuple[str, str]] = MappingProxyType({"torque": ("2026-12-06", "torque_ideal")})
+
+
+def preset_now(name: str, date: str) -> str:
+    """The name now of the preset a run recorded as ``name`` on ``date`` (ISO, ``YYYY-MM-DD``) trained.
+
+    >>> preset_now("torque", "2026-11-27"), preset_now("torque", "2026-12-07"), preset_now("default", "2026-11-27")
+    ('torque_ideal', 'torque', 'default')
+    """
+    since, now = RENAMED_PRESETS.get(name, ("", name))
+    return now if date < since else name
 
 
 def preset_tree(name: str) -> RunConfig:

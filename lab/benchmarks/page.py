@@ -16,6 +16,8 @@ import sys
 from pathlib import Path
 from collections.abc import Callable
 
+from tocabi_torchrl.config import preset_now
+
 #: The repository's docs/ folder (the page links relative to it).
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 PAGE = DOCS / "benchmarks.md"
@@ -136,14 +138,10 @@ def _require(r: dict, fields: tuple[str, ...], rel: str) -> None:
                          f"page shows{date}: add it to the run's train.json and render the report again")
 
 
-#: Presets renamed since a committed run: the name then -> (the date from which it means another recipe, its name now).
-RENAMED_PRESETS = {"torque": ("2026-12-06", "torque_ideal")}
-
-
 def _preset_then(name: str, date: str) -> str:
     """``name`` as a table cell, with its name now where a run of before a rename trained it."""
-    since, now = RENAMED_PRESETS.get(name, ("", name))
-    return f"`{name}` (now `{now}`)" if date < since else f"`{name}`"
+    now = preset_now(name, date)
+    return f"`{name}` (now `{now}`)" if now != name else f"`{name}`"
 
 
 def time_to_walk(docs: Path) -> list[str]:

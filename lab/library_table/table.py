@@ -84,8 +84,12 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
             cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--resume",
                    str(out / "checkpoints" / "latest.pt"), *common]
         else:
+            from tocabi_torchrl.config import preset_config
+
+            # 49,152 (a quarter of the presets' own rollouts) at most, and no more than the rollout at this env count.
+            steps = preset_config(args.preset).ppo.steps_per_env
             cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--preset", args.preset,
-                   "--env.num_envs", str(num_envs), "--ppo.minibatch_size", str(min(49152, 48 * num_envs)), *common]
+                   "--env.num_envs", str(num_envs), "--ppo.minibatch_size", str(min(49152, steps * num_envs)), *common]
     else:
         # The library recipes' --max_minutes caps the training time summed over --resume calls.
         cmd = [sys.executable, str(ROOT / f"recipes/train_{library}.py"), "--out", str(out), "--num_envs",
@@ -359,7 +363,24 @@ def load_rows(path: Path) -> list[dict]:
         missing = [k for k in ("library", "preset", "num_envs") if k not in row]
         if missing:
             raise ValueError(f"{path}: row {i} has no {', '.join(map(repr, missing))}")
+        rename_old_preset(row)
     return rows
+
+
+def rename_old_preset(row: dict) -> bool:
+    """Give a row of a preset renamed since its run (``config.RENAMED_PRESETS``) the preset's name now, keeping the
+    name it ran under as ``preset_then`` (its commands keep it too); True if it was one. The run's date is its
+    folder's stamp (``<library>_<preset>_<envs>_<YYYYMMDD>_<HHMMSS>``)."""
+    from tocabi_torchrl.config import preset_now
+
+    stamp = Path(str(row.get("run", ""))).name.split("_")[-2:-1]
+    if not stamp or len(stamp[0]) != 8 or not stamp[0].isdigit():
+        return False
+    now = preset_now(row["preset"], f"{stamp[0][:4]}-{stamp[0][4:6]}-{stamp[0][6:]}")
+    if now == row["preset"]:
+        return False
+    row["preset_then"], row["preset"] = row["preset"], now
+    return True
 
 
 def save_rows(json_path: Path, rows: list[dict], mine: set[tuple], md_path: Path | None = None) -> list[dict]:
@@ -437,7 +458,8 @@ def table_row(r: dict) -> tuple[str, tuple[str, str] | None]:
     if test and (test["seconds"], test["num_envs"]) != (8.0, 256):  # not the table's test: say which it was
         walks += f" (gait test {test['seconds']:g} s, {test['num_envs']} robots)"
     commands = r.get("commands") or [r.get("command", "")]
-    line = (f"| {r['library']} | {r.get('version', '')} | {r['preset']} | {r['num_envs']:,} | "
+    preset = f"{r['preset']} (run as {r['preset_then']})" if r.get("preset_then") else r["preset"]
+    line = (f"| {r['library']} | {r.get('version', '')} | {preset} | {r['num_envs']:,} | "
             f"{rate} | {walks} | {r.get('train_seconds', 0) / 60:.1f} | "
             f"{r.get('calls', 1)} | {r['device'] or '-'} | {'; '.join(f'`{c}`' for c in commands)} |")
     return line, ((r["library"], r["notes"]) if r.get("notes") else None)

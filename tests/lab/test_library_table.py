@@ -659,3 +659,31 @@ def test_eval_minutes_bound_the_whole_calls_testing_and_nan_survival_fails(torch
     torchrl_table.main(torchrl_args(tmp_path, "--num_envs", "2,3", "--minutes", str(3 / 60), "--eval_minutes", "2.5"))
     assert len(torchrl_table.tested) == 3  # 2.5 minutes for the call: three tests started, not three a row
     assert all(r.get("walks_minutes") is None for r in rows(tmp_path))  # NaN survival at a second command fails
+
+
+def test_rows_of_a_renamed_preset_read_as_its_name_now_and_keep_the_one_they_ran_under(tmp_path):
+    # The torque preset of before 2026-12-06 is torque_ideal now: its rows are that preset's, not the new torque's.
+    table = load_recipe("library_table")
+    row = {"library": "skrl", "version": "2.1.1", "preset": "torque", "num_envs": 4096, "env_steps_per_s": 109749.0,
+           "train_seconds": 1800.0, "cap_minutes": 30.0, "status": "final", "calls": 4, "device": "NVIDIA H200",
+           "commands": ["python recipes/library_table.py --libraries skrl --preset torque"]}
+    old = {**row, "run": str(tmp_path / "runs" / "skrl_torque_4096_20261128_092928")}
+    new = {**row, "run": str(tmp_path / "runs" / "skrl_torque_4096_20261207_101010")}
+    (tmp_path / "table.json").write_text(json.dumps([old, new]))
+    first, second = table.load_rows(tmp_path / "table.json")
+    assert (first["preset"], first["preset_then"]) == ("torque_ideal", "torque")
+    assert second["preset"] == "torque" and "preset_then" not in second
+    assert first["commands"] == old["commands"]  # what was run, as it was run
+    assert table.row_key(first) != table.row_key(second)
+    table.report([first, second], tmp_path / "table.md")
+    text = (tmp_path / "table.md").read_text()
+    assert "| skrl | 2.1.1 | torque_ideal (run as torque) | 4,096 |" in text and "| skrl | 2.1.1 | torque | 4,096 |" in text
+
+
+def test_a_torchrl_rows_mini_batch_fits_the_presets_own_rollout(torchrl_table, tmp_path):
+    # The torque preset collects 12 steps per env (the default 48): 2 envs make a rollout of 24, not 96.
+    for preset, size in (("default", "96"), ("torque", "24")):
+        torchrl_table.ppo_walk.commands.clear()
+        torchrl_table.main(torchrl_args(tmp_path / preset, "--minutes", str(1 / 60), "--preset", preset))
+        cmd = torchrl_table.ppo_walk.commands[0]
+        assert cmd[cmd.index("--ppo.minibatch_size") + 1] == size, preset
