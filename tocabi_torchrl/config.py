@@ -47,8 +47,8 @@ from .value_rules import MAX_SEED, POSITIVE, check_seed
 from .viewer.config import ViewerConfig
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "RENAMED_PRESETS", "preset_now", "preset_tree", "preset_config",
-           "config_from_dict", "to_dict", "ConfigError", "UnusedOptionError", "LR_SCHEDULES", "STD_MODES", "ENV_GRAPH_MODES",
-           "LOGGERS", "SYMMETRY_MODES", "field_choices", "canonical_choices", "wall_tag", "check_snapshot_minutes",
+           "config_from_dict", "to_dict", "ConfigError", "UnusedOptionError", "LR_SCHEDULES", "STD_MODES",
+           "ENV_GRAPH_MODES", "LOGGERS", "SYMMETRY_MODES", "field_choices", "canonical_choices", "wall_tag", "check_snapshot_minutes",
            "LEGACY_VALUES", "MAX_SEED", "KL_ADAPT_MODES", "schedule_past_budget", "schedule_warning"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
@@ -829,9 +829,10 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
         "ppo.activation": "relu", "ppo.value_out_gain": 0.01, "ppo.value_coef": 0.5, "ppo.value_loss": "l2",
         "ppo.max_grad_norm": 0.5, "ppo.std_start": 0.1, "ppo.std_end": 0.05, "ppo.std_hold": 0.5,
     }),
-    # The torque policy for the real robot: the robust recipe (above) with the update's matrix products in TF32
-    # (ppo.matmul_precision "high"), the same training with a faster update. Verdict: the robust gait test's
-    # diverse-start nominal and commands cases (evaluation/robust.py; docs/training.md).
+    # The torque policy for the real robot: the robust recipe (above) with float32 matrix products in TF32 while it
+    # trains (ppo.matmul_precision "high": the update's above all, and the rollout's networks; the simulator is
+    # untouched), the same training with a faster update. Verdict: the robust gait test's diverse-start nominal and
+    # commands cases (evaluation/robust.py; docs/training.md).
     "torque": MappingProxyType({**_ROBUST, "ppo.matmul_precision": "high"}),
     # The robust recipe in full float32, as the runs of docs/training/robust/ trained: the twenty-third passed the
     # robust gait test's nominal and commands cases at its 12-minute mark (the first it tested) and every case from

@@ -162,7 +162,9 @@ def time_to_walk(docs: Path) -> list[str]:
         rows.append(f"| {_preset_then(r['preset'], r['date'])} | {gpus} | {envs:,} | {walks} | {steps} | {_ratio(r)} "
                     f"| {r['date']} |")
         train = r["commands"][0] if isinstance(r["commands"], list) else r["commands"]
-        cmds.append(f"- `{r.get('name', r['preset'])}`: `{train}`")
+        now = preset_now(r["preset"], r["date"])
+        again = f" (now `--preset {now}`)" if now != r["preset"] else ""
+        cmds.append(f"- `{r.get('name', r['preset'])}`: `{train}`{again}")
     return ["## Time to walk (training minutes until a checkpoint passes the 8 s gait test)", "",
             "Checkpoints are gait-tested every 2 training minutes (256 robots, command (0.5, 0) m/s, 8 s).", "",
             *rows, "", "Training commands (the first of each run):", "", *cmds, "",
@@ -244,7 +246,8 @@ def scaling(docs: Path) -> list[str]:
 
 def randomization(docs: Path) -> list[str]:
     d = _load("benchmarks/randomization/train_throughput.json", docs)
-    rows = ["| what is randomised (torque preset) | env-steps/s | over nothing randomised |", "|---|---:|---:|"]
+    rows = ["| what is randomised (the perfect-robot torque preset, now `torque_ideal`) | env-steps/s "
+            "| over nothing randomised |", "|---|---:|---:|"]
     rows += [f"| {r['what']} | {_k(r['train_env_steps_per_s'])} | {r['over_plain']:.2f} |" for r in d["results"]]
     m = d["meta"]
     latest = [*preset_cost(docs), *(randomization_cost(docs) if (docs / RANDOMIZATION_COST).is_file() else [])]

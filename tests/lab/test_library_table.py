@@ -677,7 +677,8 @@ def test_rows_of_a_renamed_preset_read_as_its_name_now_and_keep_the_one_they_ran
     assert table.row_key(first) != table.row_key(second)
     table.report([first, second], tmp_path / "table.md")
     text = (tmp_path / "table.md").read_text()
-    assert "| skrl | 2.1.1 | torque_ideal (run as torque) | 4,096 |" in text and "| skrl | 2.1.1 | torque | 4,096 |" in text
+    assert "| skrl | 2.1.1 | torque_ideal (run as torque) | 4,096 |" in text
+    assert "| skrl | 2.1.1 | torque | 4,096 |" in text
 
 
 def test_a_torchrl_rows_mini_batch_fits_the_presets_own_rollout(torchrl_table, tmp_path):
