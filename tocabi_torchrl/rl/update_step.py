@@ -293,7 +293,10 @@ class MinibatchStep:
 
 
 def _device_of(td: TensorDictBase) -> torch.device | None:
-    """The tensordict's device, or, for one built without ``device=``, its first leaf's (None when it has none)."""
+    """The tensordict's device, or, for one built without ``device=``, its first leaf's (None when it has none, or
+    for what a stand-in loss takes instead of a tensordict)."""
+    if not isinstance(td, TensorDictBase):
+        return getattr(td, "device", None)
     if td.device is not None:
         return td.device
     leaf = next(iter(td.values(True, True)), None)
