@@ -48,8 +48,9 @@ from .viewer.config import ViewerConfig
 
 __all__ = ["RunConfig", "PPOConfig", "PRESETS", "RENAMED_PRESETS", "preset_now", "preset_tree", "preset_config",
            "config_from_dict", "to_dict", "ConfigError", "UnusedOptionError", "LR_SCHEDULES", "STD_MODES",
-           "ENV_GRAPH_MODES", "LOGGERS", "SYMMETRY_MODES", "field_choices", "canonical_choices", "wall_tag", "check_snapshot_minutes",
-           "LEGACY_VALUES", "MAX_SEED", "KL_ADAPT_MODES", "schedule_past_budget", "schedule_warning"]
+           "ENV_GRAPH_MODES", "LOGGERS", "SYMMETRY_MODES", "field_choices", "canonical_choices", "wall_tag",
+           "check_snapshot_minutes", "LEGACY_VALUES", "MAX_SEED", "KL_ADAPT_MODES", "schedule_past_budget",
+           "schedule_warning"]
 
 LR_SCHEDULES = ("fixed", "linear", "adaptive")
 ENV_GRAPH_MODES = ("auto", "on", "off")
@@ -732,35 +733,33 @@ _TORQUE = {
     "total_env_steps": 200_000_000,
 }
 
-# The robust recipe: torque control trained for the real robot, under the TOCABI lab's uncertainty model (randomize.tocabi_lab: motor
-# constant, 2-10 ms torque delay, link masses, joint damping, armature, sensor biases and encoder noise, drawn per
-# world at every reset), diverse starts (the robust gait test's start velocities) and pushes: sixteen velocity
-# kicks per 32 s episode, each of 0.4-1.4 m/s within one 4 ms step, the test's kind of kick (every body's velocity
-# changes alike; 40 % of them at 1.0 m/s or more): twice the fourth run's eight, so twice the recoveries to learn
-# from per training minute, 1.9 s apart on average (the test's three: 1.7 s). (The third and fourth runs kicked
-# the pelvis alone, 0.3-1.2 m/s over 4-200 ms and 0.3-1.3 m/s over 4-40 ms: the same momentum, but the limbs lag
-# and the joints are kicked too; docs/training/robust/h200_run4.) The kicks ramp in from 10 M to 35 M env
-# steps, while the legs are still PD residuals (β = 1), so that the frozen teacher the fade copies from (taken at
-# its start, 60 M) already recovers from them; the assist then fades into pure torques from 60 M to 120 M. (The
-# first run ramped four kicks in from 60 M to 120 M, during the fade and after the teacher was taken: its
-# pure-torque policy fell every ~1,700 steps and did not walk in 24 minutes, docs/training/robust/h200_run1.)
-# The adaptive learning rate is held until the teacher's pull has decayed (ppo.assist_lr_hold "pull"): the fourth
-# run's fell to its 1e-5 floor as the fade ended and stayed there from 122 M to 149 M env steps. The assist's PD
-# reads the joint positions the policy senses (ppo.assist_pd_sensed): in the fifth run the assisted policy
-# survived 0.75-0.80 of the test's 1.0 m/s kicks at β 0.93-0.39 and the pure-torque one 0.52-0.53, the fade's
-# copy loss (0.9 at β 0.44, 148 at β 0: the torques 0.25 of the limits apart, RMS) the size of what the
-# encoder biases make of the PD on true positions. The kicks reach full strength at 35 M env steps (the fifth
-# run: 55 M), so the policy the fade copies from has trained on them for 25 M steps, not 5 M.
-# Left-right symmetry augmentation, for a gait without a sideways bias. An asymmetric critic
+# The robust recipe: torque control trained for the real robot, under the TOCABI lab's uncertainty model
+# (randomize.tocabi_lab: motor constant, 2-10 ms torque delay, link masses, joint damping, armature, sensor biases and
+# encoder noise, drawn per world at every reset), diverse starts (the robust gait test's start velocities) and pushes:
+# sixteen velocity kicks per 32 s episode, each of 0.4-1.4 m/s within one 4 ms step, the test's kind of kick (every
+# body's velocity changes alike; 40 % of them at 1.0 m/s or more): twice the fourth run's eight, so twice the recoveries
+# to learn from per training minute, 1.9 s apart on average (the test's three: 1.7 s). (The third and fourth runs kicked
+# the pelvis alone, 0.3-1.2 m/s over 4-200 ms and 0.3-1.3 m/s over 4-40 ms: the same momentum, but the limbs lag and the
+# joints are kicked too; docs/training/robust/h200_run4.) The kicks ramp in from 10 M to 35 M env steps, while the legs
+# are still PD residuals (β = 1), so that the frozen teacher the fade copies from (taken at its start, 60 M) already
+# recovers from them; the assist then fades into pure torques from 60 M to 120 M. (The first run ramped four kicks in
+# from 60 M to 120 M, during the fade and after the teacher was taken: its pure-torque policy fell every ~1,700 steps
+# and did not walk in 24 minutes, docs/training/robust/h200_run1.) The adaptive learning rate is held until the
+# teacher's pull has decayed (ppo.assist_lr_hold "pull"): the fourth run's fell to its 1e-5 floor as the fade ended and
+# stayed there from 122 M to 149 M env steps. The assist's PD reads the joint positions the policy senses
+# (ppo.assist_pd_sensed): in the fifth run the assisted policy survived 0.75-0.80 of the test's 1.0 m/s kicks at β
+# 0.93-0.39 and the pure-torque one 0.52-0.53, the fade's copy loss (0.9 at β 0.44, 148 at β 0: the torques 0.25 of the
+# limits apart, RMS) the size of what the encoder biases make of the PD on true positions. The kicks reach full strength
+# at 35 M env steps (the fifth run: 55 M), so the policy the fade copies from has trained on them for 25 M steps, not 5
+# M. Left-right symmetry augmentation, for a gait without a sideways bias. An asymmetric critic
 # (transforms/privileged.py): the policy's sensors are biased and noisy, the critic reads the true pelvis velocity,
-# height, orientation and foot loads, so that a kicked or heavier robot's state is valued as such. For the test's
-# drift, a heading-hold term (0.3·exp(-20·ψ²), ψ the pelvis yaw): the second run's pure-torque policy turned 0.29
-# rad on average in the test's 8 s, every robot to the same side, and drifted 0.74 m (p95), unseen by the
-# pelvis-frame velocity term. For the test's changing commands, a command every 2 s (the test's rate; the default
-# draws one per 8 s) and a sharper and heavier velocity-tracking term (1.5·exp(-8·‖v − cmd‖²); the reference's
-# 0.3·exp(-3·‖v − cmd‖²) barely pays for the last 0.1 m/s: the shipped policies walk at 0.36-0.42 m/s when asked for
-# 0.5, and the second run at 0.37 with 0.9·exp(-8·‖v − cmd‖²)). Verdict: the robust gait test
-# (evaluation/robust.py).
+# height, orientation and foot loads, so that a kicked or heavier robot's state is valued as such. For the test's drift,
+# a heading-hold term (0.3·exp(-20·ψ²), ψ the pelvis yaw): the second run's pure-torque policy turned 0.29 rad on
+# average in the test's 8 s, every robot to the same side, and drifted 0.74 m (p95), unseen by the pelvis-frame velocity
+# term. For the test's changing commands, a command every 2 s (the test's rate; the default draws one per 8 s) and a
+# sharper and heavier velocity-tracking term (1.5·exp(-8·‖v − cmd‖²); the reference's 0.3·exp(-3·‖v − cmd‖²) barely pays
+# for the last 0.1 m/s: the shipped policies walk at 0.36-0.42 m/s when asked for 0.5, and the second run at 0.37 with
+# 0.9·exp(-8·‖v − cmd‖²)). Verdict: the robust gait test (evaluation/robust.py).
 _ROBUST = {
     **_TORQUE,
     **tocabi_lab_paths(),
@@ -871,7 +870,8 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
 
 #: Presets renamed since runs of theirs were recorded: the name then -> (the first date, ISO, on which it named
 #: another recipe, its name now). For reading records written before (benchmark pages, the library table); a saved
-#: run holds its whole config tree, so resuming or playing one never reads its preset's name.
+#: run holds its whole config tree, so resuming or playing one never reads its preset's name. A date is a day: a run
+#: recorded on the rename's day counts as one of after it.
 RENAMED_PRESETS: Mapping[str, tuple[str, str]] = MappingProxyType({"torque": ("2026-12-06", "torque_ideal")})
 
 
