@@ -94,23 +94,6 @@ def run_mechanics(args, latest: Path, left_min: float) -> dict:
             "max_minutes": min(args.minutes, left_min), "resume": str(latest) if latest.is_file() else ""}
 
 
-def _changed_paths(was: dict, now: dict, skip: set[str], prefix: str = "") -> list[str]:
-    """Dotted paths whose values differ between a run's recorded config ``was`` and the config ``now`` (both
-    ``to_dict`` trees), leaving out the top-level ``skip`` and paths only one of them has (options added to the code
-    since, at their defaults, or dropped)."""
-    out = []
-    for key in was.keys() & now.keys():
-        path = f"{prefix}{key}"
-        if not prefix and key in skip:
-            continue
-        a, b = was[key], now[key]
-        if isinstance(a, dict) and isinstance(b, dict):
-            out += _changed_paths(a, b, skip, prefix=f"{path}.")
-        elif json.loads(json.dumps(a)) != json.loads(json.dumps(b)):
-            out.append(path)
-    return sorted(out)
-
-
 def train_part(args, command: str) -> None:
     run_dir, info = RUNS / args.name, from_environment()
     record, latest = _load(run_dir / "train.json", _rewrite("train")), run_dir / "checkpoints" / "latest.pt"
@@ -131,14 +114,6 @@ def train_part(args, command: str) -> None:
         raise ValueError(f"{args.name} was trained with --set {_as_set(record['overrides'])} so far, this call has "
                          f"--set {_as_set(overrides)}: continue it with the same, or start another run with --name")
     cfg = common.config(args.preset, **{**overrides, **run_mechanics(args, latest, left_min)})
-    if "config" in record:  # a preset changed since the run began must not switch what it trains
-        changed = _changed_paths(record["config"], cfg.to_dict(), skip=set(run_mechanics(args, latest, left_min)))
-        if changed:
-            raise ValueError(f"{args.name} trained another config than --preset {args.preset}"
-                             f"{' --set ' + _as_set(overrides) if overrides else ''} builds now: "
-                             f"{', '.join(changed[:6])}{' ...' if len(changed) > 6 else ''} differ (the preset changed "
-                             "since, or another preset was named): continue it with the preset and --set it began "
-                             "with, or start another run with --name")
     if info.is_main:
         print(f"{args.name}: training {'from ' + str(latest) if cfg.resume else 'from scratch'} on {info.world_size} "
               f"rank(s), {prior_s / 60:.1f} of {args.budget_minutes} min used, this call up to {cfg.max_minutes:.1f} "

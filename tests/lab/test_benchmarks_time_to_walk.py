@@ -73,18 +73,6 @@ def test_time_to_walk_train_resume_eval_report(tmp_path, monkeypatch, capsys):
     # Continuing it with other overrides would mix two configs in one time-to-walk record.
     run("train", "--preset", "cpu_smoke", "--device", "cpu", "--every", "0",
         error="trained with --set total_env_steps=2560 so far, this call has --set (none)")
-    # Nor may a preset changed since the run began switch what it trains (the torque preset became the robust
-    # recipe): a recorded value that differs is named.
-    saved = (folder / "train.json").read_text()
-    changed = json.loads(saved)
-    changed["config"]["ppo"]["gamma"] = 0.5
-    (folder / "train.json").write_text(json.dumps(changed))
-    run(*train, "--budget_minutes", "1", error="trained another config than --preset cpu_smoke --set "
-                                               "total_env_steps=2560 builds now: ppo.gamma differ")
-    (folder / "train.json").write_text(saved)
-    assert time_to_walk._changed_paths({"a": 1, "b": {"c": [1, 2]}, "old": 3, "max_minutes": 1},
-                                       {"a": 1, "b": {"c": (1, 3)}, "new": 4, "max_minutes": 2},
-                                       skip={"max_minutes"}) == ["b.c"]
     for entry in record["evaluations"].values():  # 0.1 s cannot cover 2.6 m
         assert 0.0 <= entry["commands"]["0.5,0.0"]["survival"] <= 1.0 and entry["walks"] is False
         assert entry["device"] == "cpu"
