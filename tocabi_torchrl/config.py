@@ -404,7 +404,7 @@ class RunConfig:
 
     preset: str = "default"
     """the training preset the other options change (PRESETS: cpu_smoke, default, model_based, reference, robust,
-    torque); on the command line it is read first, whatever its place"""
+    torque, torque_ideal); on the command line it is read first, whatever its place"""
     name: str = "ppo_walk"
     """run folder name under run_dir; an existing run is never overwritten (--resume it or pick a new name)"""
     run_dir: str = "runs"
@@ -869,9 +869,10 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
 
 
 #: Presets renamed since runs of theirs were recorded: the name then -> (the first date, ISO, on which it named
-#: another recipe, its name now). For reading records written before (benchmark pages, the library table); a saved
-#: run holds its whole config tree, so resuming or playing one never reads its preset's name. A date is a day: a run
-#: recorded on the rename's day counts as one of after it.
+#: another recipe, its name now). For reading records written before (benchmark pages, the library table). A run of
+#: this package's trainer saves its whole config tree, so resuming or playing one never reads its preset's name; the
+#: other libraries' recipes (recipes/train_*.py) save the name alone. A date is a day: a run recorded on the rename's
+#: day counts as one of after it.
 RENAMED_PRESETS: Mapping[str, tuple[str, str]] = MappingProxyType({"torque": ("2026-12-06", "torque_ideal")})
 
 

@@ -208,7 +208,8 @@ def library_table(docs: Path) -> list[str]:
         walks = f"{r['walks_minutes']:.1f}" if r.get("walks_minutes") else f"no (within {r['cap_minutes']:.0f})"
         stamp = Path(r["run"]).name.split("_")[-2]
         date = f"{stamp[:4]}-{stamp[4:6]}-{stamp[6:]}"
-        rows.append(f"| {r['library']} | {r['version']} | {_preset_then(r['preset'], date)} | {r['num_envs']:,} | "
+        ran = r.get("preset_then", r["preset"])  # a table call may have saved a renamed row under its name now
+        rows.append(f"| {r['library']} | {r['version']} | {_preset_then(ran, date)} | {r['num_envs']:,} | "
                     f"{_k(r['env_steps_per_s'])} | {walks} | {r['device']} | {date} |")
     return ["## Other RL libraries on the same task (one GPU per row, 30-minute cap)", "", *rows, "",
             "- command: `python -m lab.library_table --libraries LIB --preset PRESET --num_envs N` "

@@ -86,10 +86,11 @@ def train(library: str, num_envs: int, out: Path, args, used_s: float, budget_s:
         else:
             from tocabi_torchrl.config import preset_config
 
-            # 49,152 (a quarter of the presets' own rollouts) at most, and no more than the rollout at this env count.
-            steps = preset_config(args.preset).ppo.steps_per_env
+            # The preset's mini-batch, but no more than the rollout at this env count.
+            ppo = preset_config(args.preset).ppo
+            size = min(ppo.minibatch_size, ppo.steps_per_env * num_envs)
             cmd = [sys.executable, str(ROOT / "recipes/ppo_walk.py"), "--preset", args.preset,
-                   "--env.num_envs", str(num_envs), "--ppo.minibatch_size", str(min(49152, steps * num_envs)), *common]
+                   "--env.num_envs", str(num_envs), "--ppo.minibatch_size", str(size), *common]
     else:
         # The library recipes' --max_minutes caps the training time summed over --resume calls.
         cmd = [sys.executable, str(ROOT / f"recipes/train_{library}.py"), "--out", str(out), "--num_envs",
@@ -363,7 +364,14 @@ def load_rows(path: Path) -> list[dict]:
         missing = [k for k in ("library", "preset", "num_envs") if k not in row]
         if missing:
             raise ValueError(f"{path}: row {i} has no {', '.join(map(repr, missing))}")
-        rename_old_preset(row)
+    renamed = [i for i, row in enumerate(rows, 1) if rename_old_preset(row)]
+    for i in renamed:  # now keyed as a row of the preset's name now: saving would keep only one of two such rows
+        row = rows[i - 1]
+        twin = next((j for j, other in enumerate(rows, 1) if j != i and row_key(other) == row_key(row)), None)
+        if twin is not None:
+            raise ValueError(f"{path}: rows {min(i, twin)} and {max(i, twin)} are both {row_name(row)} (row {i} ran "
+                             f"as {row['preset_then']}, the preset's name before a rename); saving would keep one of "
+                             "them: remove one, or move it to another json")
     return rows
 
 

@@ -675,6 +675,11 @@ def test_rows_of_a_renamed_preset_read_as_its_name_now_and_keep_the_one_they_ran
     assert second["preset"] == "torque" and "preset_then" not in second
     assert first["commands"] == old["commands"]  # what was run, as it was run
     assert table.row_key(first) != table.row_key(second)
+    # The same row under both names is refused: saving would keep one of them.
+    ideal = {**row, "preset": "torque_ideal", "run": str(tmp_path / "runs" / "skrl_torque_ideal_4096_20261207_1")}
+    (tmp_path / "both.json").write_text(json.dumps([ideal, old]))
+    with pytest.raises(ValueError, match=r"rows 1 and 2 are both skrl torque_ideal 4096 \(row 2 ran as torque"):
+        table.load_rows(tmp_path / "both.json")
     table.report([first, second], tmp_path / "table.md")
     text = (tmp_path / "table.md").read_text()
     assert "| skrl | 2.1.1 | torque_ideal (run as torque) | 4,096 |" in text
