@@ -359,7 +359,8 @@ def test_training_clock_resumes_with_cumulative_time(tmp_path):
     frozen = clock.freeze()
     assert clock.elapsed == frozen
     write_resume(tmp_path, b"x", COUNTERS)
-    assert read_resume(tmp_path) == {**COUNTERS, "state": "resume/state_call1.pt"}
+    read = read_resume(tmp_path)
+    assert read == {**COUNTERS, "state": "resume/state_call1.pt", "written": read["written"]}
     with pytest.raises(FileExistsError, match="never overwritten"):
         write_resume(tmp_path, b"y", {"calls": 1})
     (tmp_path / "policy.pt").write_text("1")
@@ -845,3 +846,19 @@ def test_a_gait_test_the_recipes_do_not_know_or_a_standard_option_for_the_robust
                                          r"\(leave video_envs out, or pass test='standard'\)"):
         evaluate_actions(act, tmp_path, num_envs=1, device="cpu", video_envs=2, test="robust")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_resume_saved_before_a_preset_was_renamed_reads_its_recipes_name_now(tmp_path):
+    # resume.json keeps the preset's name only: one written before "torque" was renamed "torque_ideal" (no "written"
+    # day) ran the recipe now named torque_ideal, and a --resume must name that, not the new torque preset.
+    import io
+
+    buffer = io.BytesIO()
+    torch.save({"w": torch.zeros(2)}, buffer)
+    write_resume(tmp_path, buffer.getvalue(), {**COUNTERS, "settings": {"num_envs": 2, "preset": "torque"}})
+    saved = json.loads((tmp_path / "resume.json").read_text())
+    assert saved["written"] >= "2026-12-06" and read_resume(tmp_path)["settings"]["preset"] == "torque"
+    del saved["written"]  # as every call wrote it before
+    (tmp_path / "resume.json").write_text(json.dumps(saved))
+    assert read_resume(tmp_path)["settings"] == {"num_envs": 2, "preset": "torque_ideal"}
+    assert read_resume(tmp_path, torch_state=True)["settings"]["preset"] == "torque_ideal"

@@ -202,6 +202,7 @@ def read_resume(out: Path, torch_state: bool = False, keep_bytes: bool = False) 
             raise SystemExit(f"error: {path} lacks {name!r}, which every call writes; {fix}")
         if not ok(prior[name]):
             raise SystemExit(f"error: {path} has {name}={prior[name]!r}, which must be {kind}; {fix}")
+    _preset_now(prior)
     state = (out / prior["state"]).resolve()
     if state.parent != (out / "resume").resolve():
         raise SystemExit(f"error: {path} names {prior['state']!r} as its state file; a resume loads only a state this "
@@ -227,16 +228,30 @@ def read_resume(out: Path, torch_state: bool = False, keep_bytes: bool = False) 
     return {**prior, "state_bytes": data} if keep_bytes else prior
 
 
+def _preset_now(prior: dict) -> None:
+    """Read the saved settings' preset under its name now (``config.preset_now``), in place: a resume.json written
+    before a preset was renamed (one without ``written``, the day it was written) names the recipe it ran by its
+    name then, which may now name another recipe."""
+    from ..config import preset_now
+
+    preset, written = prior["settings"].get("preset"), prior.get("written", "")
+    if isinstance(preset, str):
+        prior["settings"]["preset"] = preset_now(preset, written if isinstance(written, str) else "")
+
+
 def write_resume(out: Path, state: bytes, counters: dict) -> Path:
     """Write the library's training state ``state`` as a new file (never replacing one) and then ``resume.json``
-    naming it, both atomically: a call killed in between leaves the previous resume point intact."""
+    naming it and the day it is written (UTC, ``written``), both atomically: a call killed in between leaves the
+    previous resume point intact."""
+    import datetime
     from ..atomic import atomic_write_bytes
 
     path = Path(out) / "resume" / f"state_call{int(counters['calls'])}.pt"
     if path.exists():
         raise FileExistsError(f"{path} exists; a resume state is never overwritten")
     atomic_write_bytes(path, state, replace=False)  # nor one that appears after the check above
-    write_json(Path(out) / "resume.json", {**counters, "state": str(path.relative_to(out))})
+    written = datetime.datetime.now(datetime.timezone.utc).date().isoformat()
+    write_json(Path(out) / "resume.json", {**counters, "state": str(path.relative_to(out)), "written": written})
     return path
 
 
