@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 from collections.abc import Callable
 
+from lab.library_table.table import run_date
 from tocabi_torchrl.config import preset_now
 
 #: The repository's docs/ folder (the page links relative to it).
@@ -206,8 +207,7 @@ def library_table(docs: Path) -> list[str]:
             "|---|---|---|---:|---:|---:|---|---|"]
     for r in sorted(d, key=lambda r: (r["preset"] != "default", r["library"], r["num_envs"])):
         walks = f"{r['walks_minutes']:.1f}" if r.get("walks_minutes") else f"no (within {r['cap_minutes']:.0f})"
-        stamp = Path(r["run"]).name.split("_")[-2]
-        date = f"{stamp[:4]}-{stamp[4:6]}-{stamp[6:]}"
+        date = run_date(r)
         ran = r.get("preset_then", r["preset"])  # a table call may have saved a renamed row under its name now
         rows.append(f"| {r['library']} | {r['version']} | {_preset_then(ran, date)} | {r['num_envs']:,} | "
                     f"{_k(r['env_steps_per_s'])} | {walks} | {r['device']} | {date} |")

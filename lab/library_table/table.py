@@ -375,16 +375,22 @@ def load_rows(path: Path) -> list[dict]:
     return rows
 
 
-def rename_old_preset(row: dict) -> bool:
-    """Give a row of a preset renamed since its run (``config.RENAMED_PRESETS``) the preset's name now, keeping the
-    name it ran under as ``preset_then`` (its commands keep it too); True if it was one. The run's date is its
-    folder's stamp (``<library>_<preset>_<envs>_<YYYYMMDD>_<HHMMSS>``)."""
-    from tocabi_torchrl.config import preset_now
-
+def run_date(row: dict) -> str | None:
+    """The day a row's run began (ISO, ``YYYY-MM-DD``), from its folder's stamp
+    (``<library>_<preset>_<envs>_<YYYYMMDD>_<HHMMSS>``); None for a folder named otherwise."""
     stamp = Path(str(row.get("run", ""))).name.split("_")[-2:-1]
     if not stamp or len(stamp[0]) != 8 or not stamp[0].isdigit():
-        return False
-    now = preset_now(row["preset"], f"{stamp[0][:4]}-{stamp[0][4:6]}-{stamp[0][6:]}")
+        return None
+    return f"{stamp[0][:4]}-{stamp[0][4:6]}-{stamp[0][6:]}"
+
+
+def rename_old_preset(row: dict) -> bool:
+    """Give a row of a preset renamed since its run (``config.RENAMED_PRESETS``, by :func:`run_date`) the preset's
+    name now, keeping the name it ran under as ``preset_then`` (its commands keep it too); True if it was one."""
+    from tocabi_torchrl.config import preset_now
+
+    date = run_date(row)
+    now = row["preset"] if date is None else preset_now(row["preset"], date)
     if now == row["preset"]:
         return False
     row["preset_then"], row["preset"] = row["preset"], now

@@ -16,8 +16,8 @@ copies the learner's actor into the collector's (on the training stream), and :m
 the side stream after everything queued on the training stream so far. What the update reads (the rollout's
 flattened copy: the trainer's is the update step's own buffer, ``MinibatchStep.keep``) is not written again before
 :meth:`finish`, and :meth:`launch`'s ``keep`` holds a reference until then, so the allocator cannot hand memory the
-side stream still reads to the next rollout. The losses come back through pinned memory (:class:`~.deferred_read.DeferredRead`,
-copied on the side stream): :meth:`finish` waits for that update alone, not for the rollout queued on the training
+side stream still reads to the next rollout. The losses come back through pinned memory
+(:class:`~.deferred_read.DeferredRead`, copied on the side stream): :meth:`finish` waits for that update alone, not for the rollout queued on the training
 stream since. On a CPU there is no stream: :meth:`launch` runs the update at once, in the same
 order, so a CPU run trains exactly as a GPU run would without the concurrency.
 
