@@ -848,6 +848,21 @@ def test_a_gait_test_the_recipes_do_not_know_or_a_standard_option_for_the_robust
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_policy_file_saved_before_a_preset_was_renamed_reads_its_recipes_name_now(tmp_path):
+    # policy.pt's metadata keeps the preset's name only: a file written before "torque" was renamed "torque_ideal"
+    # (no "written" day) trained the recipe now named torque_ideal, and its gait test must rebuild that task.
+    state = {"w": torch.zeros(2)}
+    path = save_policy(tmp_path / "policy.pt", "sb3", state, {"preset": "torque", "task": {}})
+    payload = torch.load(path, weights_only=True)
+    assert payload["written"] >= "2026-12-06" and load_policy(path, "sb3")[0]["preset"] == "torque"
+    del payload["written"]  # as every recipe wrote it before
+    torch.save(payload, tmp_path / "old.pt")
+    assert load_policy(tmp_path / "old.pt", "sb3")[0] == {"preset": "torque_ideal", "task": {}}
+    payload["meta"] = json.dumps({"preset": "default", "task": {}})  # a name never renamed reads as written
+    torch.save(payload, tmp_path / "old_default.pt")
+    assert load_policy(tmp_path / "old_default.pt", "sb3")[0]["preset"] == "default"
+
+
 def test_a_resume_saved_before_a_preset_was_renamed_reads_its_recipes_name_now(tmp_path):
     # resume.json keeps the preset's name only: one written before "torque" was renamed "torque_ideal" (no "written"
     # day) ran the recipe now named torque_ideal, and a --resume must name that, not the new torque preset.

@@ -3,11 +3,14 @@
 A library's own checkpoint can need unpickling to load (SB3's zip stores cloudpickled objects, and rsl_rl's runner
 unpickles its own file), which this package never does, so the recipes also write this file: plain tensors and
 JSON-able metadata, written atomically, read back with ``torch.load(weights_only=True)`` (no code runs on load).
-The evaluation rebuilds the library's network from ``meta`` and loads ``state_dict`` into it.
+The evaluation rebuilds the library's network from ``meta`` and loads ``state_dict`` into it. The file also holds
+the day it was written (``written``, UTC, ISO): ``meta``'s ``preset`` is read under the name that recipe has now
+(``config.preset_now``), so a policy of a preset renamed since is tested on the task it trained on.
 """
 
 from __future__ import annotations
 
+import datetime
 import io
 import json
 import os
@@ -16,6 +19,7 @@ from pathlib import Path
 import torch
 
 from ..atomic import atomic_write_bytes
+from ..config import preset_now
 from ..integrity import load_error_detail, zip_damage
 
 __all__ = ["FORMAT", "META_KINDS", "PolicyFileError", "action_bounds", "load_network", "load_policy", "require_meta",
@@ -34,7 +38,8 @@ def save_policy(path: str | os.PathLike, library: str, state_dict: dict, meta: d
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path} exists; choose another output folder (policies are never overwritten)")
-    payload = {"format": FORMAT, "library": library, "meta": json.dumps(meta),
+    written = datetime.datetime.now(datetime.timezone.utc).date().isoformat()
+    payload = {"format": FORMAT, "library": library, "meta": json.dumps(meta), "written": written,
                "state_dict": {k: v.detach().cpu() for k, v in state_dict.items()}}
     buffer = io.BytesIO()
     torch.save(payload, buffer)
@@ -44,8 +49,10 @@ def save_policy(path: str | os.PathLike, library: str, state_dict: dict, meta: d
 
 def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
     """``(meta, state_dict)`` of a :func:`save_policy` file trained with ``library``: ``meta`` a dict, ``state_dict``
-    {name: tensor}. Raises :class:`PolicyFileError` naming what is wrong (a missing or damaged file, another format
-    or library, a field that is missing or of the wrong kind)."""
+    {name: tensor}. A ``preset`` (text) in ``meta`` is given under its name now (``config.preset_now`` of the day
+    the file was written; a file without that day was written before any rename). Raises :class:`PolicyFileError`
+    naming what is wrong (a missing or damaged file, another format or library, a field that is missing or of the
+    wrong kind)."""
     path = Path(path)
     if not path.is_file():
         raise PolicyFileError(f"no policy file at {path}; the recipes write <out>/policy.pt")
@@ -77,6 +84,9 @@ def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
     if not (isinstance(state, dict) and all(isinstance(k, str) and isinstance(v, torch.Tensor)
                                             for k, v in state.items())):
         raise PolicyFileError(f"{broken}: its 'state_dict' is not a dict of named tensors")
+    written = payload.get("written", "")
+    if isinstance(meta.get("preset"), str):
+        meta["preset"] = preset_now(meta["preset"], written if isinstance(written, str) else "")
     return meta, state
 
 
