@@ -861,6 +861,10 @@ def test_a_policy_file_saved_before_a_preset_was_renamed_reads_its_recipes_name_
     payload["meta"] = json.dumps({"preset": "default", "task": {}})  # a name never renamed reads as written
     torch.save(payload, tmp_path / "old_default.pt")
     assert load_policy(tmp_path / "old_default.pt", "sb3")[0]["preset"] == "default"
+    for bad in ("6/12/2026", "2026-13-01", 20261206, None):  # not a day as save_policy writes it: refused, named
+        torch.save({**payload, "written": bad}, tmp_path / "bad.pt")
+        with pytest.raises(PolicyFileError, match=r"its 'written' is .*, not a day \(YYYY-MM-DD\)"):
+            load_policy(tmp_path / "bad.pt", "sb3")
 
 
 def test_a_resume_saved_before_a_preset_was_renamed_reads_its_recipes_name_now(tmp_path):

@@ -50,9 +50,9 @@ def save_policy(path: str | os.PathLike, library: str, state_dict: dict, meta: d
 def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
     """``(meta, state_dict)`` of a :func:`save_policy` file trained with ``library``: ``meta`` a dict, ``state_dict``
     {name: tensor}. A ``preset`` (text) in ``meta`` is given under its name now (``config.preset_now`` of the day
-    the file was written; a file without that day was written before any rename). Raises :class:`PolicyFileError`
-    naming what is wrong (a missing or damaged file, another format or library, a field that is missing or of the
-    wrong kind)."""
+    the file was written; a file without that day, written before 2026-12-06 when the field came, is read as older
+    than every rename). Raises :class:`PolicyFileError` naming what is wrong (a missing or damaged file, another
+    format or library, a field that is missing or of the wrong kind)."""
     path = Path(path)
     if not path.is_file():
         raise PolicyFileError(f"no policy file at {path}; the recipes write <out>/policy.pt")
@@ -84,10 +84,23 @@ def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
     if not (isinstance(state, dict) and all(isinstance(k, str) and isinstance(v, torch.Tensor)
                                             for k, v in state.items())):
         raise PolicyFileError(f"{broken}: its 'state_dict' is not a dict of named tensors")
-    written = payload.get("written", "")
+    written = payload.get("written", "")  # absent: a file from before the field, read as older than every rename
+    if written != "" and not _iso_day(written):
+        raise PolicyFileError(f"{broken}: its 'written' is {_shown(written)}, not a day (YYYY-MM-DD)")
     if isinstance(meta.get("preset"), str):
-        meta["preset"] = preset_now(meta["preset"], written if isinstance(written, str) else "")
+        meta["preset"] = preset_now(meta["preset"], written)
     return meta, state
+
+
+def _iso_day(value) -> bool:
+    """Whether ``value`` is a day as ``save_policy`` writes it: ISO text, ``YYYY-MM-DD``."""
+    if not isinstance(value, str) or len(value) != 10:
+        return False
+    try:
+        datetime.date.fromisoformat(value)
+    except ValueError:
+        return False
+    return True
 
 
 def _real(v) -> bool:
