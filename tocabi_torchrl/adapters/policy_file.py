@@ -23,7 +23,7 @@ from ..config import preset_now
 from ..integrity import load_error_detail, zip_damage
 
 __all__ = ["FORMAT", "META_KINDS", "PolicyFileError", "action_bounds", "load_network", "load_policy", "require_meta",
-           "save_policy"]
+           "save_policy", "utc_day"]
 
 FORMAT = "tocabi_torchrl.adapters.policy/1"
 
@@ -38,8 +38,7 @@ def save_policy(path: str | os.PathLike, library: str, state_dict: dict, meta: d
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path} exists; choose another output folder (policies are never overwritten)")
-    written = datetime.datetime.now(datetime.timezone.utc).date().isoformat()
-    payload = {"format": FORMAT, "library": library, "meta": json.dumps(meta), "written": written,
+    payload = {"format": FORMAT, "library": library, "meta": json.dumps(meta), "written": utc_day(),
                "state_dict": {k: v.detach().cpu() for k, v in state_dict.items()}}
     buffer = io.BytesIO()
     torch.save(payload, buffer)
@@ -90,6 +89,12 @@ def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
     if isinstance(meta.get("preset"), str):
         meta["preset"] = preset_now(meta["preset"], written)
     return meta, state
+
+
+def utc_day() -> str:
+    """Today in UTC as ISO text, ``YYYY-MM-DD``: the day a recipe's file is stamped with (``written``), which
+    ``config.preset_now`` compares with a rename's day."""
+    return datetime.datetime.now(datetime.timezone.utc).date().isoformat()
 
 
 def _iso_day(value) -> bool:

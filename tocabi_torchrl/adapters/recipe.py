@@ -243,15 +243,14 @@ def write_resume(out: Path, state: bytes, counters: dict) -> Path:
     """Write the library's training state ``state`` as a new file (never replacing one) and then ``resume.json``
     naming it and the day it is written (UTC, ``written``), both atomically: a call killed in between leaves the
     previous resume point intact."""
-    import datetime
     from ..atomic import atomic_write_bytes
+    from .policy_file import utc_day
 
     path = Path(out) / "resume" / f"state_call{int(counters['calls'])}.pt"
     if path.exists():
         raise FileExistsError(f"{path} exists; a resume state is never overwritten")
     atomic_write_bytes(path, state, replace=False)  # nor one that appears after the check above
-    written = datetime.datetime.now(datetime.timezone.utc).date().isoformat()
-    write_json(Path(out) / "resume.json", {**counters, "state": str(path.relative_to(out)), "written": written})
+    write_json(Path(out) / "resume.json", {**counters, "state": str(path.relative_to(out)), "written": utc_day()})
     return path
 
 
