@@ -220,10 +220,7 @@ class MinibatchStep:
 
     def __call__(self, mb: TensorDictBase) -> torch.Tensor:
         self._follow_graph_key()
-        device = _device_of(mb)
-        if not self.use_graph or self._capture.gave_up or not self._capture.capturer.supports(device):
-            return self._compute(mb)
-        return self._capture.run(device, mb)
+        return self._run(self._capture, self._compute, _device_of(mb), mb)
 
     def keep(self, flat: TensorDictBase) -> TensorDictBase:
         """Copy the rollout ``flat`` (``(n,)`` rows: the loss's keys) into :attr:`rows`, the step's own buffer, and
@@ -247,10 +244,13 @@ class MinibatchStep:
             raise ValueError(f"MinibatchStep.on_rows(idx): idx must be a 1-D int64 tensor of row indices, got "
                              f"{idx.dtype} of shape {tuple(idx.shape)}")
         self._follow_graph_key()
-        device = _device_of(self.rows)
-        if not self.use_graph or self._rows_capture.gave_up or not self._rows_capture.capturer.supports(device):
-            return self._compute_rows(idx)
-        return self._rows_capture.run(device, idx)
+        return self._run(self._rows_capture, self._compute_rows, _device_of(self.rows), idx)
+
+    def _run(self, capture: WarmCapture, compute, device, arg) -> torch.Tensor:
+        """``compute(arg)`` eagerly where no graph is wanted or possible on ``device``, else through ``capture``."""
+        if not self.use_graph or capture.gave_up or not capture.capturer.supports(device):
+            return compute(arg)
+        return capture.run(device, arg)
 
     def _follow_graph_key(self) -> None:
         key = getattr(self.loss_module, "graph_key", None)
