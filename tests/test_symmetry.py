@@ -28,10 +28,11 @@ from tocabi_torchrl.rl.symmetry import (
     mirror_qvel,
     obs_step_mirror_map,
 )
-from tocabi_torchrl.transforms.layouts import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT, TOCABILAB_HISTORY, ObsComponent
+from tocabi_torchrl.transforms.layouts import (OBS_LAYOUTS, REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT, TOCABILAB_HISTORY,
+                                               ObsComponent)
 from tocabi_torchrl.transforms.normalize import REFERENCE_OBS_MEAN, REFERENCE_OBS_VAR
 from tocabi_torchrl.transforms.privileged import PRIVILEGED_DIM, PRIVILEGED_MIRROR, PrivilegedState
-from tocabi_torchrl.transforms.settings import transform_config
+from tocabi_torchrl.transforms.settings import TransformSettings, transform_config
 
 # ------------------------------------------------------------------------------------------------------ the maps
 def test_mirror_joints_and_signs_follow_the_mjcf_axes():
@@ -164,18 +165,20 @@ def test_reference_walk_is_its_own_mirror_image_half_a_cycle_later():
 
 
 def _mirrored_pair_errors(model_path: str | None, mode: str, steps: int = 20,
-                          backend: str = "mujoco") -> dict[str, np.ndarray]:
+                          backend: str = "mujoco", observation: str = "reference") -> dict[str, np.ndarray]:
     """Two worlds: world 0 walks 15 steps of random actions; world 1 is then put in its mirror image (qpos, qvel,
     controls, clock half a cycle on, command vy flipped, last action mirrored; both worlds' solvers cleared alike by
     the reset), and both step ``steps`` more times, world 1 with the mirrored actions. Returns per step the max error
     of world 1's observation against the mirror of world 0's: raw per-step observation by block, the policy input
-    (from step 9 on, once the history holds only mirrored steps) and qpos."""
+    (from step 9 on, once the history holds only mirrored steps) and qpos. ``observation``: the per-step layout's
+    name (``transforms.observation``)."""
     torch.manual_seed(0)
-    env = make_env(2, "cpu", seed=3, backend=backend, control_mode=mode, model_path=model_path)
+    env = make_env(2, "cpu", seed=3, backend=backend, control_mode=mode, model_path=model_path,
+                   transforms=TransformSettings(observation=observation))
     base, sim = env.base_env, env.base_env.sim
-    obs_m = SignedPermutation(*obs_step_mirror_map())
+    obs_m = SignedPermutation(*obs_step_mirror_map(OBS_LAYOUTS[observation]))
     act_m = SignedPermutation(*action_mirror_map())
-    pin = make_policy_input_mirror(env, transform_config("reference"))
+    pin = make_policy_input_mirror(env, transform_config("reference", obs_layout=OBS_LAYOUTS[observation]))
 
     def action(n: int) -> torch.Tensor:
         a = torch.empty(n, 13)
@@ -199,6 +202,8 @@ def _mirrored_pair_errors(model_path: str | None, mode: str, steps: int = 20,
     base.applied_action[1] = act_m(base.applied_action[:1])[0]
     blocks = {"rpy": slice(0, 3), "joint_pos": slice(3, 15), "joint_vel": slice(15, 27), "phase": slice(27, 29),
               "command": slice(29, 31), "foot_force_z": slice(31, 33), "foot_moments": slice(33, 37)}
+    if observation == "base_vel":
+        blocks |= {"base_lin_vel": slice(37, 40), "base_ang_vel": slice(40, 43)}
     errors: dict[str, list[float]] = {k: [] for k in (*blocks, "policy_input", "qpos", "privileged")}
     priv_m, priv = SignedPermutation(*PRIVILEGED_MIRROR), PrivilegedState()
     for k in range(steps):
@@ -246,6 +251,18 @@ def test_physics_is_mirror_equivariant_on_a_symmetric_model(tmp_path, backend):
     errors = _mirrored_pair_errors(str(path), "torque", backend=backend)
     for name, bound in _SYMMETRIC_BOUNDS[backend].items():
         assert errors[name].max() <= bound, (name, errors[name])
+
+
+def test_the_pelvis_velocity_observation_mirrors_with_the_physics(tmp_path):
+    """The ``base_vel`` layout's mirror rules (linear velocity (x, -y, z), angular (-x, y, -z) in the pelvis frame)
+    against the physics: on the exactly symmetric model the mirrored world's pelvis velocities are the mirror of the
+    first world's to float64 rounding (C MuJoCo), and so is the whole 267-value policy input. A wrong sign is an
+    error the size of the velocity (0.1-1 m/s, rad/s) after 20 steps of random actions."""
+    path = tmp_path / "tocabi_symmetric.xml"
+    path.write_text(symmetric_spec().to_xml())
+    errors = _mirrored_pair_errors(str(path), "torque", observation="base_vel")
+    for name in ("base_lin_vel", "base_ang_vel", "rpy", "joint_vel", "qpos", "policy_input"):
+        assert errors[name].max() <= _SYMMETRIC_BOUNDS["mujoco"].get(name, 1e-6), (name, errors[name])
 
 
 def test_physics_of_the_authored_model_is_nearly_mirror_equivariant():

@@ -240,9 +240,10 @@ def test_the_statistics_length_error_says_what_leaving_them_none_gives():
                              obs_var=(1.0,) * n)
         return str(err.value)
 
-    assert message("running", 1, 36).endswith("pass 37 of each, or leave both None for the reference statistics "
-                                              "(normalization 'running' starts from them)")
-    assert message("fixed", 1, 36).endswith("pass 37 of each, or leave both None for the reference statistics")
+    assert message("running", 1, 36).endswith("pass 37 of each, or leave both None for the reference layout's "
+                                              "statistics (normalization 'running' starts from them)")
+    assert message("fixed", 1, 36).endswith("pass 37 of each, or leave both None for the reference layout's "
+                                            "statistics")
     assert message("running", 2, 37).endswith("pass 39 of each, or leave both None (normalization 'running' then "
                                               "starts from mean 0 and variance 1)")
     assert "leave both None" not in message("fixed", 2, 37)

@@ -694,6 +694,7 @@ EVAL_TESTS = GAIT_TESTS
 def field_choices() -> dict[str, tuple[str, ...]]:
     """The allowed values of each option that takes one of a few names (checked by ``validate``, listed by
     ``--help``), by path."""
+    from .transforms.layouts import OBS_LAYOUTS
     from .transforms.settings import HISTORIES, NORMALIZATIONS
     from .value_rules import PUSH_KINDS
 
@@ -701,6 +702,7 @@ def field_choices() -> dict[str, tuple[str, ...]]:
             "ppo.lr_schedule": LR_SCHEDULES, "ppo.std_mode": STD_MODES, "env.control.mode": CONTROL_MODES,
             "env.control.upper_body": UPPER_BODY_LAWS,
             "ppo.value_loss": ("l2", "smooth_l1", "l1"), "transforms.history": tuple(HISTORIES),
+            "transforms.observation": tuple(OBS_LAYOUTS),
             "ppo.activation": ("relu", "elu", "tanh", "silu"), "ppo.cuda_graph": ENV_GRAPH_MODES,
             "ppo.assist_target": ASSIST_TARGETS, "ppo.assist_lr_hold": ASSIST_LR_HOLDS,
             "ppo.kl_adapt_every": KL_ADAPT_MODES,

@@ -37,6 +37,9 @@ SIGNAL_DOCS: dict[str, dict[str, str]] = {
                    "source": "robot.foot_force_sensors [left, right] x (x, y, z)"},
     "foot_torque": {"unit": "N*m", "frame": "foot F/T sensor site frame",
                     "source": "robot.foot_torque_sensors [left, right] x (x, y, z)"},
+    "base_lin_vel": {"unit": "m/s", "frame": "base body (pelvis) frame",
+                     "source": "qvel[0:3] (world frame) rotated into the pelvis frame (a state estimator's)"},
+    "base_ang_vel": {"unit": "rad/s", "frame": "base body (pelvis) frame", "source": "qvel[3:6] (the IMU's gyro)"},
 }
 
 

@@ -71,6 +71,8 @@ def _component_map(component: ObsComponent, phase_harmonics: int) -> tuple[tuple
         "foot_force_z": ((1, 0), (1.0, 1.0)),  # [left, right]: swap feet
         "foot_torque_x": ((1, 0), (-1.0, -1.0)),  # a moment is an axial vector: its x component flips
         "foot_torque_y": ((1, 0), (1.0, 1.0)),
+        "base_lin_vel": ((0, 1, 2), (1.0, -1.0, 1.0)),  # pelvis frame: the sideways velocity flips
+        "base_ang_vel": ((0, 1, 2), (-1.0, 1.0, -1.0)),  # an axial vector: roll and yaw rates flip
     }
     if name not in rules:
         raise ValueError(f"no mirror rule for the observation block {name!r} (key {component.key!r}); the symmetry "

@@ -61,6 +61,8 @@ __all__ = [
     "TransformSettings",
     "RewardWeights",
     "HISTORIES",
+    "BASE_VEL_OBS_LAYOUT",
+    "OBS_LAYOUTS",
     "transform_config",
     "default_transforms",
 ]
@@ -71,6 +73,7 @@ __getattr__, __dir__ = lazy_names(globals(), {
     "history": ("REFERENCE_HISTORY", "TOCABILAB_HISTORY", "HistoryLayout", "ObsActionHistory"),
     "normalize": ("REFERENCE_OBS_MEAN", "REFERENCE_OBS_VAR", "FixedNormalization", "RunningNormalization"),
     "observation": ("REFERENCE_OBS_LAYOUT", "ObservationAssembly", "ObsComponent"),
+    "layouts": ("BASE_VEL_OBS_LAYOUT", "OBS_LAYOUTS"),
     "orientation": ("BaseEulerAngles", "quat_rotation_angle", "quat_to_rpy"),
     "phase": ("PhaseEncoding",),
     "presets": ("default_transforms",),

@@ -6,7 +6,9 @@ too."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import TYPE_CHECKING
 
 from tocabi_torchrl import robot
@@ -16,7 +18,9 @@ from tocabi_torchrl.value_rules import plain_number
 if TYPE_CHECKING:
     from tensordict.utils import NestedKey
 
-__all__ = ["ObsComponent", "REFERENCE_OBS_LAYOUT", "HistoryLayout", "REFERENCE_HISTORY", "TOCABILAB_HISTORY"]
+__all__ = ["ObsComponent", "REFERENCE_OBS_LAYOUT", "BASE_VEL_OBS_LAYOUT", "OBS_LAYOUTS", "NON_PHASE_VALUES",
+           "layout_name", "HistoryLayout",
+           "REFERENCE_HISTORY", "TOCABILAB_HISTORY"]
 
 _ALL = slice(None)
 
@@ -65,6 +69,28 @@ REFERENCE_OBS_LAYOUT: tuple[ObsComponent, ...] = (
     ObsComponent("foot_torque_x", "foot_torque", (_ALL, 0)),  # 33-34: Mx_L, Mx_R
     ObsComponent("foot_torque_y", "foot_torque", (_ALL, 1)),  # 35-36: My_L, My_R
 )
+
+#: The reference observation and the pelvis's velocity, 43 values: what the TOCABI lab's later walking policies sense
+#: beyond the reference's. Without it a policy cannot tell a slow sideways walk from walking straight (its history
+#: spans 32 ms); the IMU's gyro gives the angular velocity, a state estimator the linear one.
+BASE_VEL_OBS_LAYOUT: tuple[ObsComponent, ...] = (
+    *REFERENCE_OBS_LAYOUT,
+    ObsComponent("base_lin_vel", "base_lin_vel"),  # 37-39: pelvis linear velocity [m/s], pelvis frame
+    ObsComponent("base_ang_vel", "base_ang_vel"),  # 40-42: pelvis angular velocity [rad/s], pelvis frame
+)
+
+#: The per-step observations a run config names (``transforms.observation``).
+OBS_LAYOUTS: Mapping[str, tuple[ObsComponent, ...]] = MappingProxyType(
+    {"reference": REFERENCE_OBS_LAYOUT, "base_vel": BASE_VEL_OBS_LAYOUT})
+#: Values of each named layout other than the phase's sines and cosines (TOCABI's fixed-size signals): the reference's
+#: base rpy 3, leg joint positions and velocities 12 + 12, command 2, foot force z 2, foot torques x and y 2 + 2;
+#: ``base_vel`` adds the pelvis's linear and angular velocity, 3 + 3.
+NON_PHASE_VALUES: Mapping[str, int] = MappingProxyType({"reference": 35, "base_vel": 41})
+
+
+def layout_name(layout: tuple[ObsComponent, ...]) -> str | None:
+    """The name of ``layout`` in :data:`OBS_LAYOUTS`; None for a layout of one's own."""
+    return next((name for name, known in OBS_LAYOUTS.items() if tuple(layout) == known), None)
 
 
 @dataclass(frozen=True)

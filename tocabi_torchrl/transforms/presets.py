@@ -25,13 +25,9 @@ import copy
 from torchrl.envs.transforms import Compose, RewardSum, StepCounter, Transform
 
 from tocabi_torchrl.transforms.history import ObsActionHistory
-from tocabi_torchrl.transforms.normalize import (
-    REFERENCE_OBS_MEAN,
-    REFERENCE_OBS_VAR,
-    FixedNormalization,
-    RunningNormalization,
-)
-from tocabi_torchrl.transforms.observation import REFERENCE_OBS_LAYOUT, ObservationAssembly
+from tocabi_torchrl.transforms.layouts import layout_name
+from tocabi_torchrl.transforms.normalize import FIXED_STATISTICS, FixedNormalization, RunningNormalization
+from tocabi_torchrl.transforms.observation import ObservationAssembly
 from tocabi_torchrl.transforms.orientation import BaseEulerAngles
 from tocabi_torchrl.transforms.phase import PhaseEncoding
 from tocabi_torchrl.transforms.reward import TaskReward
@@ -46,14 +42,15 @@ __all__ = ["TransformConfig", "TransformSettings", "HISTORIES", "transform_confi
 def _normalization(cfg: TransformConfig) -> Transform | None:
     if cfg.obs_mean is not None:
         mean, var = cfg.obs_mean, cfg.obs_var
-    elif cfg.obs_layout == REFERENCE_OBS_LAYOUT and cfg.phase_harmonics == 1:
-        mean, var = REFERENCE_OBS_MEAN, REFERENCE_OBS_VAR
+    elif (name := layout_name(cfg.obs_layout)) is not None and cfg.phase_harmonics == 1:
+        mean, var = FIXED_STATISTICS[name]
     else:
-        mean = var = None  # a changed observation has no reference statistics
+        mean = var = None  # a layout of one's own, or more harmonics, has no statistics of ours
     if cfg.normalization == "fixed":
         if mean is None:
             raise ValueError(
-                "normalization='fixed' needs obs_mean/obs_var for a changed observation layout or phase_harmonics; "
+                "normalization='fixed' needs obs_mean/obs_var for an observation layout of one's own (not one of "
+                "layouts.OBS_LAYOUTS) or phase_harmonics other than 1; "
                 "pass them, or use normalization='running' or 'none'"
             )
         norm = FixedNormalization("obs_step", "obs_step_norm", mean=mean, var=var, clip=cfg.obs_clip)

@@ -16,8 +16,8 @@ from types import MappingProxyType
 
 from tocabi_torchrl.transforms._checks import check_positive_int
 from tocabi_torchrl.transforms.kick_relax_config import KickRelax
-from tocabi_torchrl.transforms.layouts import (REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT, TOCABILAB_HISTORY,
-                                               HistoryLayout, ObsComponent)
+from tocabi_torchrl.transforms.layouts import (NON_PHASE_VALUES, OBS_LAYOUTS, REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT,
+                                               TOCABILAB_HISTORY, HistoryLayout, ObsComponent, layout_name)
 from tocabi_torchrl.transforms.sensor_noise_config import SensorNoiseConfig
 from tocabi_torchrl.tree import check_field_types
 
@@ -138,12 +138,14 @@ class TransformConfig:
 
     def step_obs_size(self) -> int | None:
         """The number of per-step observation values (``obs_step``'s last dim, which ``obs_mean``/``obs_var`` hold
-        one statistic each for) where the config alone sets it: the reference ``obs_layout`` reads TOCABI's
-        fixed-size signals plus ``phase_harmonics`` sines and cosines (37 values with 1 harmonic); ``None`` for
-        another layout, whose size the env's signal shapes set."""
-        if self.obs_layout != REFERENCE_OBS_LAYOUT:
+        one statistic each for) where the config alone sets it: a named ``obs_layout`` (``layouts.OBS_LAYOUTS``)
+        reads TOCABI's fixed-size signals plus ``phase_harmonics`` sines and cosines (37 values for the reference's
+        with 1 harmonic, 43 for ``base_vel``'s); ``None`` for a layout of one's own, whose size the env's signal
+        shapes set."""
+        name = layout_name(self.obs_layout)
+        if name is None:
             return None
-        return _REFERENCE_NON_PHASE_VALUES + 2 * self.phase_harmonics
+        return NON_PHASE_VALUES[name] + 2 * self.phase_harmonics
 
     def _check_stats_length(self) -> None:
         # A wrong length passed here and failed only once the transforms met an env's observation spec, naming the
@@ -154,26 +156,22 @@ class TransformConfig:
                              "per per-step observation value")
         size = self.step_obs_size()
         if size is not None and n_mean != size:
-            # What None gives follows presets._normalization: the reference statistics exist for the reference
-            # layout with 1 harmonic only; 'running' starts from them there, and from mean 0, variance 1 otherwise.
+            # What None gives follows presets._normalization: our statistics exist for the named layouts with 1
+            # harmonic only; 'running' starts from them there, and from mean 0, variance 1 otherwise.
+            name = layout_name(self.obs_layout)
             if self.phase_harmonics == 1:
                 running = self.normalization == "running"
-                fallback = (", or leave both None for the reference statistics"
+                fallback = (f", or leave both None for the {name} layout's statistics"
                             + (" (normalization 'running' starts from them)" if running else ""))
             elif self.normalization == "running":
                 fallback = ", or leave both None (normalization 'running' then starts from mean 0 and variance 1)"
             else:
-                fallback = (f" (the reference statistics are for phase_harmonics=1, so normalization "
+                fallback = (f" (the {name} layout's statistics are for phase_harmonics=1, so normalization "
                             f"'{self.normalization}' needs them)")
             raise ValueError(
-                f"obs_mean/obs_var have {n_mean} values each but the per-step observation has {size} (the reference "
-                f"obs_layout: {_REFERENCE_NON_PHASE_VALUES} values + sin and cos of phase_harmonics="
+                f"obs_mean/obs_var have {n_mean} values each but the per-step observation has {size} (the {name} "
+                f"obs_layout: {NON_PHASE_VALUES[name]} values + sin and cos of phase_harmonics="
                 f"{self.phase_harmonics}); pass {size} of each{fallback}")
-
-
-#: The reference per-step observation's values other than the phase's sin and cos: base rpy 3, leg joint positions
-#: and velocities 12 + 12, command 2, foot force z 2, foot torques x and y 2 + 2.
-_REFERENCE_NON_PHASE_VALUES = 35
 
 
 def _section(value, kind: type, where: str, dicts: bool = True):
@@ -276,6 +274,9 @@ class TransformSettings:
     history: str = "reference"
     """observation + action history layout: reference (5 observations every 2 steps, 4 actions) or tocabilab (the
     last 5 observations and 4 actions)"""
+    observation: str = "reference"
+    """per-step observation: reference (37 values: pelvis roll, pitch, yaw, leg joints, phase, command, foot F/T) or
+    base_vel (those and the pelvis's linear and angular velocity in its own frame, 43 values)"""
     reward_weights: RewardWeights = field(default_factory=RewardWeights)
     """the weight of each reward term"""
     normalization: str = "fixed"
@@ -324,6 +325,8 @@ class TransformSettings:
         """Raise ``ValueError`` naming the first bad option and the accepted values."""
         if self.history not in HISTORIES:
             raise ValueError(f"unknown transforms.history {self.history!r}; choose one of {list(HISTORIES)}")
+        if self.observation not in OBS_LAYOUTS:
+            raise ValueError(f"unknown transforms.observation {self.observation!r}; choose one of {list(OBS_LAYOUTS)}")
         if self.normalization not in NORMALIZATIONS:
             raise ValueError(f"transforms.normalization must be one of {NORMALIZATIONS}, got {self.normalization!r}")
         self.reward_weight_map()
@@ -411,8 +414,9 @@ class TransformSettings:
         # (weights), and the robust preset's body_vel sharpness 8.0 back to 3.0 (scales).
         weights.update(overrides.pop("reward_weights", None) or {})
         scales.update(overrides.pop("reward_scales", None) or {})
-        values = dict(normalization=self.normalization, obs_clip=self.obs_clip,
-                      zero_reward_on_terminated=self.zero_reward_on_terminated, compile_reward=self.compile_reward,
+        values = dict(obs_layout=OBS_LAYOUTS[self.observation], normalization=self.normalization,
+                      obs_clip=self.obs_clip, zero_reward_on_terminated=self.zero_reward_on_terminated,
+                      compile_reward=self.compile_reward,
                       reward_weights=weights, max_episode_steps=None, sensor_noise=self.sensor_noise,
                       kick_relax=self.kick_relax, reward_scales=scales)
         if extra:
