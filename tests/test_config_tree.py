@@ -225,6 +225,17 @@ def test_the_shipped_robust_policy_was_trained_with_the_committed_robust_preset(
     assert state["env_steps"] < trained.total_env_steps and state["train_seconds"] <= 30 * 60
 
 
+def test_the_torque_record_that_walks_was_trained_with_the_committed_torque_preset():
+    # The run of docs/training/torque/h100_base_vel_seed0 set transforms.observation on the command line before the
+    # preset did: its env, transforms and PPO sections must be the preset's, else the record is of another recipe.
+    record = Path(__file__).resolve().parents[1] / "docs" / "training" / "torque" / "h100_base_vel_seed0"
+    trained, preset = config_from_dict(json.loads((record / "config.json").read_text())), preset_config("torque")
+    for section in ("env", "transforms", "ppo"):
+        assert to_dict(getattr(trained, section)) == to_dict(getattr(preset, section)), section
+    assert trained.preset == "torque" and trained.seed == preset.seed == 0
+    assert preset.transforms.observation == "base_vel"
+
+
 def test_a_tree_saved_before_the_renames_reads_by_the_new_names():
     # Checkpoints and config.json of schema 2 hold the history layout as transforms.preset and the weights as
     # "term=weight" entries: the loader's one rename step reads them.
