@@ -63,31 +63,57 @@ def test_runtime_never_imports_torch():
     assert result["survival"] == 1.0
 
 
-def _state(td) -> RobotState:
+def _state(td, velocities: bool = False) -> RobotState:
+    extra = ({"base_lin_vel": td["base_lin_vel"].numpy(), "base_ang_vel": td["base_ang_vel"].numpy()}
+             if velocities else {})
     return RobotState(base_quat=td["base_quat"].numpy(), joint_pos=td["joint_pos"].numpy(),
                       joint_vel=td["joint_vel"].numpy(), foot_force=td["foot_force"].numpy(),
-                      foot_torque=td["foot_torque"].numpy())
+                      foot_torque=td["foot_torque"].numpy(), **extra)
 
 
-@pytest.mark.parametrize("name", POLICIES)
-def test_runtime_reproduces_torchrl_observation_and_commands(name):
+@pytest.fixture(scope="module")
+def base_vel_policy(tmp_path_factory):
+    """A policy of the pelvis-velocity observation (``transforms.observation`` base_vel, the ``torque`` preset's),
+    trained two iterations on the CPU and exported: (checkpoint, contract)."""
+    from tocabi_torchrl.config import preset_config
+    from tocabi_torchrl.export.onnx_export import export_policy
+    from tocabi_torchrl.rl.trainer import train
+
+    root = tmp_path_factory.mktemp("base_vel")
+    cfg = preset_config("cpu_smoke", device="cpu", **{"transforms.observation": "base_vel", "env.num_envs": 4,
+                                                      "ppo.steps_per_env": 8, "ppo.minibatch_size": 16,
+                                                      "env.control.mode": "torque"},
+                        total_env_steps=64, run_dir=str(root), name="bv", progress_bar=False, eval_at_end=False)
+    train(cfg)
+    checkpoint = root / "bv" / "checkpoints" / "iter_000002.pt"
+    export_policy(checkpoint, root / "bv.onnx")
+    return checkpoint, root / "bv.json"
+
+
+@pytest.mark.parametrize("name", [*POLICIES, "base_vel"])
+def test_runtime_reproduces_torchrl_observation_and_commands(name, request):
     """On the states of a TorchRL rollout (C MuJoCo backend), the runtime's policy input equals the env's
-    ``observation`` and its leg commands and upper-body targets equal what the env wrote into ``ctrl``."""
+    ``observation`` and its leg commands and upper-body targets equal what the env wrote into ``ctrl``; for a
+    policy that observes the pelvis velocity too (``base_vel``), given in the state."""
     import torch
     from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
     from tocabi_torchrl.export import load_policy
     from tocabi_torchrl.evaluation.gait_test import _fixed_command
 
-    policy = load_policy(robot.asset_path("policies", f"tocabi_walk_{name}.pt"), num_envs=4,
-                         command=_fixed_command((0.5, 0.0)))
+    velocities = name == "base_vel"
+    checkpoint, contract = (request.getfixturevalue("base_vel_policy") if velocities else
+                            (robot.asset_path("policies", f"tocabi_walk_{name}.pt"), _contract(name)))
+    policy = load_policy(checkpoint, num_envs=4, command=_fixed_command((0.5, 0.0)))
     env, base = policy.env, policy.env.base_env
-    runtime = PolicyRuntime(_contract(name))
+    runtime = PolicyRuntime(contract)
+    if velocities:  # the contract reads the two signals, as the env's layout does
+        assert {"base_lin_vel", "base_ang_vel"} <= set(runtime.observation.signals)
     # Torque commands scale a ~1e-6 ONNX-vs-torch action difference by up to 333 N·m.
     leg_tol = 2e-3 if runtime.leg_kind == "torque" else 1e-5
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
-        cmd = runtime.reset(_state(td), (0.5, 0.0), init_row=base.init_row.numpy())
+        cmd = runtime.reset(_state(td, velocities), (0.5, 0.0), init_row=base.init_row.numpy())
         for _ in range(60):
             np.testing.assert_allclose(runtime.policy_input(), td["observation"].numpy(), atol=1e-4, rtol=0)
             td = env.step(policy.agent.actor(td))
@@ -96,7 +122,59 @@ def test_runtime_reproduces_torchrl_observation_and_commands(name):
             np.testing.assert_allclose(cmd.upper_targets, ctrl[:, 12:], atol=1e-5, rtol=0)
             np.testing.assert_allclose(cmd.reference, td["next", "ref_joint_pos"].numpy(), atol=1e-5, rtol=0)
             td = step_mdp(td)
-            cmd = runtime.step(_state(td))
+            cmd = runtime.step(_state(td, velocities))
+
+
+def test_a_velocity_policy_refuses_a_state_without_the_velocities(base_vel_policy):
+    _, contract = base_vel_policy
+    runtime = PolicyRuntime(contract)
+    state = RobotState(base_quat=np.tile([1.0, 0.0, 0.0, 0.0], (2, 1)), joint_pos=np.zeros((2, 33)),
+                       joint_vel=np.zeros((2, 33)), foot_force=np.zeros((2, 2, 3)), foot_torque=np.zeros((2, 2, 3)),
+                       base_ang_vel=np.zeros((2, 3)))
+    with pytest.raises(ContractError, match=r"RobotState\.base_lin_vel is None, but this policy observes it"):
+        runtime.reset(state, (0.5, 0.0))
+    state.base_lin_vel = np.zeros((2, 2))
+    with pytest.raises(ContractError, match=r"RobotState\.base_lin_vel has shape \(2, 2\), expected \(2, 3\)"):
+        runtime.reset(state, (0.5, 0.0))
+    state.base_lin_vel = np.full((2, 3), np.nan)
+    with pytest.raises(ContractError, match=r"RobotState\.base_lin_vel is not finite"):
+        runtime.reset(state, (0.5, 0.0))
+    state.base_lin_vel = np.zeros((2, 3))
+    assert runtime.reset(state, (0.5, 0.0)).action.shape == (2, 13)
+    # A policy of the reference observation never reads them: None is fine there.
+    state.base_lin_vel = state.base_ang_vel = None
+    assert PolicyRuntime(_contract("ppo")).reset(state, (0.5, 0.0)).action.shape == (2, 13)
+
+
+def test_the_sim_to_sim_driver_runs_a_velocity_policy(base_vel_policy):
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+    result = run_sim2sim(base_vel_policy[1], None, seconds=0.2, num_robots=2)
+    assert result.num_robots == 2 and result.seconds == pytest.approx(0.2)
+
+
+def test_the_driver_reads_the_pelvis_velocity_as_the_env_does():
+    """The sim2sim driver's state: linear velocity rotated from the world frame into the pelvis's, angular velocity as
+    MuJoCo's free joint gives it (the pelvis frame), the env's ``base_lin_vel``/``base_ang_vel`` definitions."""
+    import mujoco
+    import torch
+
+    from tocabi_torchrl.rotations import quat_rotate_inverse
+    from tocabi_torchrl.runtime.mujoco_driver import _state
+
+    m = mujoco.MjModel.from_xml_path(str(robot.asset_path("tocabi", "tocabi.xml")))
+    rng = np.random.default_rng(0)
+    datas = [mujoco.MjData(m) for _ in range(3)]
+    for d in datas:
+        q = rng.normal(size=4)
+        d.qpos[3:7] = q / np.linalg.norm(q)
+        d.qvel[:6] = rng.normal(size=6)
+    state = _state(m, datas, (np.arange(3), np.arange(3)))
+    quat = torch.tensor(np.stack([d.qpos[3:7] for d in datas]))
+    lin = quat_rotate_inverse(quat, torch.tensor(np.stack([d.qvel[:3] for d in datas]))).numpy()
+    np.testing.assert_allclose(state.base_lin_vel, lin, atol=1e-6)
+    np.testing.assert_allclose(state.base_ang_vel, np.stack([d.qvel[3:6] for d in datas]), atol=1e-6)
+    assert np.abs(state.base_lin_vel - np.stack([d.qvel[:3] for d in datas])).max() > 0.1  # rotated, not copied
 
 
 @pytest.mark.slow  # 16 robots x 2000 steps per side: ~40 s on 2 idle cores, 190-240 s on a loaded 2-core machine
@@ -259,20 +337,25 @@ def test_the_sim_to_sim_driver_holds_a_diverged_robots_last_finite_state():
     # robot among many: its rows are held at its last finite state, it is marked dead, and the others go on.
     from tocabi_torchrl.runtime.mujoco_driver import _hold_finite
 
-    def state(value):
+    def state(value, velocities=True):
+        vel = {"base_lin_vel": np.full((3, 3), value), "base_ang_vel": np.full((3, 3), value)} if velocities else {}
         return RobotState(base_quat=np.full((3, 4), value), joint_pos=np.full((3, 33), value),
                           joint_vel=np.full((3, 33), value), foot_force=np.full((3, 2, 3), value),
-                          foot_torque=np.full((3, 2, 3), value))
+                          foot_torque=np.full((3, 2, 3), value), **vel)
 
     held, new = state(1.0), state(2.0)
     new.joint_vel[1, 7] = np.nan
+    new.base_lin_vel[2, 0] = np.inf  # the pelvis velocity counts too
     out, finite = _hold_finite(new, held)
-    assert finite.tolist() == [True, False, True]
-    for name in ("base_quat", "joint_pos", "joint_vel", "foot_force", "foot_torque"):
+    assert finite.tolist() == [True, False, False]
+    for name in ("base_quat", "joint_pos", "joint_vel", "foot_force", "foot_torque", "base_lin_vel", "base_ang_vel"):
         rows = getattr(out, name)
-        assert np.isfinite(rows).all() and (rows[[0, 2]] == 2.0).all() and (rows[1] == 1.0).all()
+        assert np.isfinite(rows).all() and (rows[0] == 2.0).all() and (rows[1:] == 1.0).all()
     same, finite = _hold_finite(held, state(0.0))
     assert same is held and finite.all()
+    # A state without the velocities (a policy that does not read them) keeps them None.
+    out, finite = _hold_finite(state(2.0, velocities=False), state(1.0, velocities=False))
+    assert finite.all() and out.base_lin_vel is None
 
 
 def test_a_contract_resaved_with_a_byte_order_mark_or_as_utf16_is_named_so(tmp_path):
@@ -608,9 +691,9 @@ def test_a_refused_reset_leaves_the_running_episode_as_it_was():
 @pytest.mark.parametrize("change,message", [
     (_set("observation.entries.0.element", 999), r"entries\[0\].element is 999, not an element index in \[0, 3\)"),
     (_set("observation.entries.0.element", True), r"entries\[0\].element is True"),
-    (lambda d: (d["observation"]["signals"].update(base_lin_vel={"shape": [3]}),
-                d["observation"]["entries"][0].update(signal="base_lin_vel")),
-     "reads signal 'base_lin_vel', which this runtime cannot build"),
+    (lambda d: (d["observation"]["signals"].update(base_pos={"shape": [3]}),
+                d["observation"]["entries"][0].update(signal="base_pos")),
+     "reads signal 'base_pos', which this runtime cannot build"),
     (_set("observation.signals.joint_pos.shape", [12]), r"signals.joint_pos.shape is \[12\], but the runtime builds"),
     (_set("action.phase_rate.index", 40), "phase_rate.index is 40, but the 12 leg actions come first"),
     (lambda d: d["action"]["leg"].update(joint_range=[r[0] for r in d["action"]["leg"]["joint_range"]]),

@@ -107,7 +107,7 @@ _LEG_CENTER = {"pd": "nominal", "pd_reference": "reference"}
 #: The observation signals :class:`~tocabi_torchrl.runtime.policy.PolicyRuntime` builds; the contract's
 #: ``observation.signals`` may use only these.
 RUNTIME_SIGNALS: tuple[str, ...] = ("base_rpy", "joint_pos", "joint_vel", "phase_sin", "phase_cos", "command",
-                                    "foot_force", "foot_torque")
+                                    "foot_force", "foot_torque", "base_lin_vel", "base_ang_vel")
 
 _FLOAT32_MAX = 3.4028234663852886e38
 _F32_ROUND = struct.Struct("<f")
@@ -621,7 +621,8 @@ def _check_leg(act: dict, n_leg: int, source: str) -> None:
 def _signal_shapes(num_joints: int, harmonics: int) -> dict[str, list[int]]:
     """The (per-robot) shape of each signal as the runtime builds it."""
     return {"base_rpy": [3], "joint_pos": [num_joints], "joint_vel": [num_joints], "phase_sin": [harmonics],
-            "phase_cos": [harmonics], "command": [2], "foot_force": [2, 3], "foot_torque": [2, 3]}
+            "phase_cos": [harmonics], "command": [2], "foot_force": [2, 3], "foot_torque": [2, 3],
+            "base_lin_vel": [3], "base_ang_vel": [3]}
 
 
 def _check_observation(obs: dict, num_joints: int, source: str) -> None:

@@ -202,8 +202,11 @@ def _state(m: mujoco.MjModel, datas: list, sensors: tuple[np.ndarray, np.ndarray
     qvel = np.stack([d.qvel for d in datas]).astype(np.float32)
     sd = np.stack([d.sensordata for d in datas]).astype(np.float32)
     force, torque = sensors
+    # The free joint's linear velocity is in the world frame, its angular velocity in the pelvis's own.
+    lin = np.stack([_rotate_inverse(d.qpos[3:7], d.qvel[:3]) for d in datas]).astype(np.float32)
     return RobotState(base_quat=qpos[:, 3:7], joint_pos=qpos[:, 7:], joint_vel=qvel[:, 6:],
-                      foot_force=sd[:, force], foot_torque=sd[:, torque])
+                      foot_force=sd[:, force], foot_torque=sd[:, torque], base_lin_vel=lin,
+                      base_ang_vel=qvel[:, 3:6].copy())
 
 
 def _sensor_columns(m: mujoco.MjModel, names: list[str]) -> np.ndarray:
@@ -488,9 +491,7 @@ def _run(runtime: PolicyRuntime, model_path, seconds, num_robots, command, init_
         last = np.where(alive[:, None], pos, last)
         a = alive.astype(np.float64)
         knee_sq += a * ((state.joint_pos[:, knees] - cmd.reference[:, knees]) ** 2).mean(-1)
-        # base linear velocity in the base frame: R(q)ᵀ v
-        lin_vel = np.stack([_rotate_inverse(d.qpos[3:7], d.qvel[:3]) for d in datas])
-        vel_err += a * np.abs(lin_vel[:, 0] - vx)
+        vel_err += a * np.abs(state.base_lin_vel[:, 0].astype(np.float64) - vx)
         alive_steps += a
         cmd = runtime.step(state)
         if on_step is not None:
@@ -526,7 +527,7 @@ def _hold_finite(state: RobotState, held: RobotState) -> tuple[RobotState, np.nd
     """``state`` with each robot whose readings hold NaN or inf replaced by its ``held`` (last finite) rows, and the
     (N,) bool mask of the robots that were finite: the runtime refuses non-finite readings, as a real controller
     must, while here a diverged robot is only one fallen robot of many."""
-    names = [f.name for f in fields(RobotState)]
+    names = [f.name for f in fields(RobotState) if getattr(state, f.name) is not None]
     n = len(state.base_quat)
     finite = np.ones(n, dtype=bool)
     for name in names:

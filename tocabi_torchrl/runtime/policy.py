@@ -22,6 +22,9 @@ from .observation import History, ObservationBuilder, quat_to_rpy
 __all__ = ["Command", "PolicyRuntime", "RobotState", "resolve_onnx"]
 
 _F32 = np.float32
+#: The state's signals only some policies read (``transforms.observation`` base_vel), with what each is.
+_OPTIONAL_SIGNALS = {"base_lin_vel": "the pelvis linear velocity [m/s] in the pelvis frame",
+                     "base_ang_vel": "the pelvis angular velocity [rad/s] in the pelvis frame"}
 
 
 @dataclass
@@ -34,6 +37,9 @@ class RobotState:
         joint_vel: (N, J) joint velocities [rad/s].
         foot_force: (N, 2, 3) [left, right] foot F/T sensor forces [N] in the sensor site frame (loaded: z < 0).
         foot_torque: (N, 2, 3) [left, right] foot F/T sensor torques [N·m] in the sensor site frame.
+        base_lin_vel: (N, 3) pelvis linear velocity [m/s] in the pelvis frame (a state estimator's); needed only by a
+            policy whose contract reads it (``transforms.observation`` base_vel), else None.
+        base_ang_vel: (N, 3) pelvis angular velocity [rad/s] in the pelvis frame (the IMU's gyro); likewise.
     """
 
     base_quat: np.ndarray
@@ -41,6 +47,8 @@ class RobotState:
     joint_vel: np.ndarray
     foot_force: np.ndarray
     foot_torque: np.ndarray
+    base_lin_vel: np.ndarray | None = None
+    base_ang_vel: np.ndarray | None = None
 
 
 @dataclass
@@ -336,6 +344,13 @@ class PolicyRuntime:
         j = len(self.joint_names)
         shapes = {"base_quat": (4,), "joint_pos": (j,), "joint_vel": (j,), "foot_force": (2, 3),
                   "foot_torque": (2, 3)}
+        for name in _OPTIONAL_SIGNALS:
+            if name in self.observation.signals:  # only a policy that reads it needs it
+                if getattr(state, name, None) is None:
+                    raise ContractError(f"RobotState.{name} is None, but this policy observes it (its contract's "
+                                        f"observation reads {name!r}, {_OPTIONAL_SIGNALS[name]}): pass it, one row "
+                                        "per robot")
+                shapes[name] = (3,)
         if n is None:
             quat = np.shape(state.base_quat)
             if len(quat) != 2 or quat[0] < 1:
@@ -385,6 +400,9 @@ class PolicyRuntime:
             "foot_force": state.foot_force,
             "foot_torque": state.foot_torque,
         }
+        for name in _OPTIONAL_SIGNALS:
+            if name in self.observation.signals:
+                signals[name] = state.base_lin_vel if name == "base_lin_vel" else state.base_ang_vel
         if self.sensors is not None:
             signals = self._sensed(signals)
         return self.observation.normalize(self.observation.raw(signals))
