@@ -881,3 +881,8 @@ def test_a_resume_saved_before_a_preset_was_renamed_reads_its_recipes_name_now(t
     (tmp_path / "resume.json").write_text(json.dumps(saved))
     assert read_resume(tmp_path)["settings"] == {"num_envs": 2, "preset": "torque_ideal"}
     assert read_resume(tmp_path, torch_state=True)["settings"]["preset"] == "torque_ideal"
+    # A day that is not one (a hand edit) is refused by name, not read as "before every rename".
+    for bad in ("06.12.2026", "2026-13-01", 20261206, None):
+        (tmp_path / "resume.json").write_text(json.dumps({**saved, "written": bad}))
+        with pytest.raises(SystemExit, match=r"has written=.*, which must be the UTC day a call wrote it"):
+            read_resume(tmp_path)

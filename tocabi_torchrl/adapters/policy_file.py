@@ -23,7 +23,7 @@ from ..config import preset_now
 from ..integrity import load_error_detail, zip_damage
 
 __all__ = ["FORMAT", "META_KINDS", "PolicyFileError", "action_bounds", "load_network", "load_policy", "require_meta",
-           "save_policy", "utc_day"]
+           "save_policy", "utc_day", "iso_day"]
 
 FORMAT = "tocabi_torchrl.adapters.policy/1"
 
@@ -84,7 +84,7 @@ def load_policy(path: str | os.PathLike, library: str) -> tuple[dict, dict]:
                                             for k, v in state.items())):
         raise PolicyFileError(f"{broken}: its 'state_dict' is not a dict of named tensors")
     written = payload.get("written", "")  # absent: a file from before the field, read as older than every rename
-    if written != "" and not _iso_day(written):
+    if written != "" and not iso_day(written):
         raise PolicyFileError(f"{broken}: its 'written' is {_shown(written)}, not a day (YYYY-MM-DD)")
     if isinstance(meta.get("preset"), str):
         meta["preset"] = preset_now(meta["preset"], written)
@@ -97,7 +97,7 @@ def utc_day() -> str:
     return datetime.datetime.now(datetime.timezone.utc).date().isoformat()
 
 
-def _iso_day(value) -> bool:
+def iso_day(value) -> bool:
     """Whether ``value`` is a day as ``save_policy`` writes it: ISO text, ``YYYY-MM-DD``."""
     if not isinstance(value, str) or len(value) != 10:
         return False

@@ -202,6 +202,12 @@ def read_resume(out: Path, torch_state: bool = False, keep_bytes: bool = False) 
             raise SystemExit(f"error: {path} lacks {name!r}, which every call writes; {fix}")
         if not ok(prior[name]):
             raise SystemExit(f"error: {path} has {name}={prior[name]!r}, which must be {kind}; {fix}")
+    from .policy_file import iso_day
+
+    # Absent: a file from before the field, read as older than every rename; anything else must be the day it names.
+    if "written" in prior and not iso_day(prior["written"]):
+        raise SystemExit(f"error: {path} has written={prior['written']!r}, which must be the UTC day a call wrote it "
+                         f"(YYYY-MM-DD); {fix}")
     _preset_now(prior)
     state = (out / prior["state"]).resolve()
     if state.parent != (out / "resume").resolve():
@@ -234,9 +240,9 @@ def _preset_now(prior: dict) -> None:
     name then, which may now name another recipe."""
     from ..config import preset_now
 
-    preset, written = prior["settings"].get("preset"), prior.get("written", "")
+    preset = prior["settings"].get("preset")
     if isinstance(preset, str):
-        prior["settings"]["preset"] = preset_now(preset, written if isinstance(written, str) else "")
+        prior["settings"]["preset"] = preset_now(preset, prior.get("written", ""))
 
 
 def write_resume(out: Path, state: bytes, counters: dict) -> Path:
