@@ -171,15 +171,22 @@ def time_to_walk(docs: Path) -> list[str]:
             *rows, "", "Training commands (the first of each run):", "", *cmds, "",
             f"- report: [time_to_walk.json](benchmarks/time_to_walk.json), "
             f"[details and curves](benchmarks/time_to_walk.md); rendered by `{d['command'].split(' --runs')[0]}`",
-            "", *_robust_time_to_walk(docs)]
+            "", *_test_time_to_walk(docs, ROBUST_TIME_TO_WALK, _ROBUST_TEST), "",
+            *_test_time_to_walk(docs, TORQUE_TIME_TO_WALK, _DIVERSE_TEST)]
 
 
 #: The robust preset's time to walk under the robust gait test (docs/evaluation.md), one run's report.
 ROBUST_TIME_TO_WALK = "training/robust/h100_run23/time_to_walk_robust.json"
+#: The torque preset's time to walk under the robust gait test's unperturbed cases, one run's report.
+TORQUE_TIME_TO_WALK = "training/torque/h100_base_vel_seed0/time_to_walk_diverse.json"
+_ROBUST_TEST = "the robust gait test (diverse starts, changing commands, the `tocabi_lab` randomisation and kicks"
+_DIVERSE_TEST = ("the robust gait test's `nominal` and `commands` cases (diverse starts, changing commands; no "
+                 "randomisation, no kicks")
 
 
-def _robust_time_to_walk(docs: Path) -> list[str]:
-    d = _load(ROBUST_TIME_TO_WALK, docs)
+def _test_time_to_walk(docs: Path, rel: str, test: str) -> list[str]:
+    """One run's time to walk under ``test`` (words up to the robots per case), from its report ``rel``."""
+    d = _load(rel, docs)
     lines = []
     for r in d["records"]:
         ttw = r["time_to_walk"]
@@ -187,18 +194,16 @@ def _robust_time_to_walk(docs: Path) -> list[str]:
                  else f"not within its {r['train_seconds'] / 60:.1f} minutes")
         envs = r["config"]["env"]["num_envs"]
         robots = sorted({e["settings"]["num_envs"] for e in r["evaluations"].values()})
-        lines.append(f"Under the robust gait test (diverse starts, changing commands, the `tocabi_lab` randomisation "
-                     f"and kicks; {'/'.join(f'{n:,}' for n in robots)} robots per case; checkpoints from "
-                     f"{min(e['train_seconds'] for e in r['evaluations'].values()) / 60:.0f} training minutes on), "
+        lines.append(f"Under {test}; {'/'.join(f'{n:,}' for n in robots)} robots per case; checkpoints from "
+                     f"{min(e['train_seconds'] for e in r['evaluations'].values()) / 60:.1f} training minutes on), "
                      f"`{r['preset']}` on "
                      f"{r.get('gpus', 1)} x {r['gpu']} at {envs:,} envs first passes at {walks}"
                      + ("." if r.get("train_over_raw") is None else
                         f", training at {r['train_over_raw']:.2f}x raw mujoco-warp."))
         lines.append("")
         lines += [f"- training command: `{c}`" for c in r["commands"]]
-    md = ROBUST_TIME_TO_WALK.replace(".json", ".md")
-    return [*lines, f"- report: [{Path(ROBUST_TIME_TO_WALK).name}]({ROBUST_TIME_TO_WALK}), [table and curve]({md}), "
-                    f"rendered by `{d['command']}`"]
+    md = rel.replace(".json", ".md")
+    return [*lines, f"- report: [{Path(rel).name}]({rel}), [table and curve]({md}), rendered by `{d['command']}`"]
 
 
 def library_table(docs: Path) -> list[str]:
