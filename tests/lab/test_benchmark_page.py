@@ -232,9 +232,9 @@ def test_a_report_without_a_field_the_page_shows_is_named_not_a_key_error(tmp_pa
     import pytest
 
     page = _page_module()
-    robust = tmp_path / page.ROBUST_TIME_TO_WALK  # the section's other report, as committed
-    robust.parent.mkdir(parents=True)
-    shutil.copy(page.DOCS / page.ROBUST_TIME_TO_WALK, robust)
+    for report in (page.ROBUST_TIME_TO_WALK, page.TORQUE_TIME_TO_WALK):  # the section's other reports, as committed
+        ((tmp_path / report).parent).mkdir(parents=True)
+        shutil.copy(page.DOCS / report, tmp_path / report)
     record = {"preset": "torque", "gpu": "NVIDIA H200", "config": {"env": {"num_envs": 4096}}, "train_seconds": 600.0,
               "commands": ["python -m x"], "time_to_walk": None, "date": "2026-12-05"}
     path = tmp_path / "benchmarks/time_to_walk.json"
