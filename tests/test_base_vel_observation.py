@@ -42,7 +42,13 @@ def test_the_sensor_noise_leaves_the_velocity_columns_exact():
     IMU angles and F/T sensors, and the velocity columns stay the true state."""
     env = _env(sensor_noise=SensorNoiseConfig.tocabi_lab())
     td = env.reset()
+    torch.manual_seed(2)
+    for _ in range(4):
+        td["action"] = 0.3 * torch.randn(3, 13)
+        td = env.step(td)["next"]
+    assert td["base_lin_vel"].abs().max() > 1e-3 and td["base_ang_vel"].abs().max() > 1e-3  # moving
     assert torch.equal(td["obs_step"][:, 37:40], td["base_lin_vel"])
+    assert torch.equal(td["obs_step"][:, 40:43], td["base_ang_vel"])
     assert not torch.equal(td["obs_step"][:, 3:15], td["joint_pos"][:, :12])  # the encoder biases do reach theirs
 
 
@@ -51,7 +57,13 @@ def test_fixed_statistics_cover_the_43_values():
     norm = next(t for t in env.transform if isinstance(t, FixedNormalization))
     assert norm.loc.shape == (43,)
     assert torch.allclose(norm.loc, torch.tensor(BASE_VEL_OBS_MEAN, dtype=torch.float32))
-    assert BASE_VEL_OBS_MEAN[:37] == REFERENCE_OBS_MEAN and len(BASE_VEL_OBS_VAR) == 43
+    # What the policy's history receives: the velocity columns normalised by the added statistics.
+    td = env.reset()
+    td["action"] = torch.zeros(3, 13)
+    td = env.step(td)["next"]
+    mean, var = torch.tensor(BASE_VEL_OBS_MEAN[37:]), torch.tensor(BASE_VEL_OBS_VAR[37:])
+    expected = (td["obs_step"][:, 37:] - mean) / torch.sqrt(var + 1e-8)
+    torch.testing.assert_close(td["obs_step_norm"][:, 37:], expected)
     # Mirror-symmetric statistics: sideways velocity, roll and yaw rates have mean 0.
     assert [BASE_VEL_OBS_MEAN[i] for i in (38, 40, 42)] == [0.0, 0.0, 0.0]
     assert all(v > 0 and math.isfinite(v) for v in BASE_VEL_OBS_VAR[37:])

@@ -353,9 +353,12 @@ def test_the_sim_to_sim_driver_holds_a_diverged_robots_last_finite_state():
         assert np.isfinite(rows).all() and (rows[0] == 2.0).all() and (rows[1:] == 1.0).all()
     same, finite = _hold_finite(held, state(0.0))
     assert same is held and finite.all()
-    # A state without the velocities (a policy that does not read them) keeps them None.
-    out, finite = _hold_finite(state(2.0, velocities=False), state(1.0, velocities=False))
-    assert finite.all() and out.base_lin_vel is None
+    # A state without the velocities (a policy that does not read them) keeps them None, a diverged robot's too.
+    new = state(2.0, velocities=False)
+    new.foot_force[0, 0, 2] = np.nan
+    out, finite = _hold_finite(new, state(1.0, velocities=False))
+    assert finite.tolist() == [False, True, True] and out.base_lin_vel is None and out.base_ang_vel is None
+    assert (out.foot_force[0] == 1.0).all() and (out.foot_force[1:] == 2.0).all()
 
 
 def test_a_contract_resaved_with_a_byte_order_mark_or_as_utf16_is_named_so(tmp_path):

@@ -187,8 +187,9 @@ class PPOConfig:
     """the policy of a checkpoint (every gait test, play, viewer and export) is the trained actor's mean made
     left-right symmetric, ½·(f(o) + A·f(M·o)); training acts with f itself, so the run trains as without it"""
     #: Asymmetric actor-critic (transforms/privileged.py): the critic also reads ``privileged``, 12 values of true
-    #: state (pelvis velocities and height, foot loads, orientation) the policy does not see; the policy and its
-    #: export are unchanged. The env gets a PrivilegedState transform.
+    #: state (pelvis velocities and height, foot loads, orientation), beyond what the policy sees (with
+    #: transforms.observation base_vel the policy observes the velocities too); the policy and its export are
+    #: unchanged. The env gets a PrivilegedState transform.
     critic_privileged: bool = False
     """the critic also reads true pelvis velocity, height, orientation and foot loads (asymmetric actor-critic; the
     policy's input is unchanged)"""

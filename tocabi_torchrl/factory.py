@@ -34,8 +34,9 @@ def make_env(
     transforms: TransformSettings | None = None,
     **overrides,
 ) -> TransformedEnv:
-    """The walking task as the policy sees it: ``observation`` (num_envs, 237), ``reward`` (num_envs, 1),
-    ``("reward_terms", name)`` per term, ``step_count``, ``episode_reward`` and the env's raw signals.
+    """The walking task as the policy sees it: ``observation`` (num_envs, 237; 267 with ``transforms.observation``
+    base_vel, the ``torque`` preset's), ``reward`` (num_envs, 1), ``("reward_terms", name)`` per term,
+    ``step_count``, ``episode_reward`` and the env's raw signals.
 
     With no arguments this is the task of the ``default`` training preset (the env and transform sections of
     ``tocabi_torchrl.config.preset_tree("default")``), on CUDA.

@@ -197,7 +197,7 @@ def _test_time_to_walk(docs: Path, rel: str, test: str) -> list[str]:
         lines.append(f"Under {test}; {'/'.join(f'{n:,}' for n in robots)} robots per case; checkpoints from "
                      f"{min(e['train_seconds'] for e in r['evaluations'].values()) / 60:.1f} training minutes on), "
                      f"`{r['preset']}` on "
-                     f"{r.get('gpus', 1)} x {r['gpu']} at {envs:,} envs first passes at {walks}"
+                     f"{r.get('gpus', 1)} x {r['gpu']} at {envs:,} envs, trained {r['date']}, first passes at {walks}"
                      + ("." if r.get("train_over_raw") is None else
                         f", training at {r['train_over_raw']:.2f}x raw mujoco-warp."))
         lines.append("")

@@ -70,6 +70,8 @@ def _element_names(signal: str, shape: tuple[int, ...]) -> list[str]:
         return ["vx", "vy"]
     if signal in ("foot_force", "foot_torque") and shape == (2, 3):
         return [f"{s} {a}" for s in _SIDES for a in _AXES]
+    if signal in ("base_lin_vel", "base_ang_vel") and shape == (3,):
+        return list(_AXES)
     return [str(i) for i in range(size)]
 
 

@@ -2,8 +2,9 @@
 
 :func:`load_policy` is the one place that reads a checkpoint (through ``rl.checkpoint`` and ``rl.trainer``); every
 other function works on the :class:`LoadedPolicy` it returns. The ONNX graph maps the policy input ``observation``
-(batch, 237) (the normalised observation history, exactly what the TorchRL actor reads) to ``action`` (batch, 13),
-the Gaussian mean, unclipped; the contract says how to build the input and how to clip and apply the output.
+(batch, 237) (267 for the pelvis-velocity observation; the normalised observation history, exactly what the TorchRL
+actor reads) to ``action`` (batch, 13), the Gaussian mean, unclipped; the contract says how to build the input and how
+to clip and apply the output.
 
 :func:`export_policy` refuses (:class:`ExportError`) a checkpoint whose actor weights or transform statistics hold
 NaN or inf, and an ONNX graph whose output on representative inputs is not finite; everything it writes is

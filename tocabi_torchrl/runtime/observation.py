@@ -1,4 +1,5 @@
-"""The policy input from raw robot signals, per the contract: Euler angles, the 37 entries, normalisation, history.
+"""The policy input from raw robot signals, per the contract: Euler angles, the 37 (or 43) entries, normalisation,
+history.
 
 numpy only. Each function mirrors one TorchRL transform of ``tocabi_torchrl.transforms`` (named in its docstring);
 ``tests/test_runtime.py`` checks the result against the TorchRL env's ``observation`` on the same states.

@@ -360,9 +360,10 @@ class PolicyRuntime:
         for name, shape in shapes.items():
             value = np.asarray(getattr(state, name))
             if value.shape != (count, *shape):
-                raise ContractError(f"RobotState.{name} has shape {value.shape}, expected {(count, *shape)}: the "
-                                    f"contract's robot has {j} joints ({self.joint_names[0]}, …) and this runtime "
-                                    f"runs {count} robot(s)")
+                why = (f"the contract's robot has {j} joints ({self.joint_names[0]}, …) and " if name in
+                       ("joint_pos", "joint_vel") else "")
+                raise ContractError(f"RobotState.{name} has shape {value.shape}, expected {(count, *shape)}: "
+                                    f"{why}this runtime runs {count} robot(s)")
             if value.dtype.kind not in "iuf":  # strings, objects, complex or bools are no sensor readings
                 raise ContractError(f"RobotState.{name} has dtype {value.dtype}: pass real numbers (a float array)")
             # Checked in float32, the precision the observation is built in: 1e39 is finite in float64 only.
@@ -402,7 +403,7 @@ class PolicyRuntime:
         }
         for name in _OPTIONAL_SIGNALS:
             if name in self.observation.signals:
-                signals[name] = state.base_lin_vel if name == "base_lin_vel" else state.base_ang_vel
+                signals[name] = getattr(state, name)
         if self.sensors is not None:
             signals = self._sensed(signals)
         return self.observation.normalize(self.observation.raw(signals))

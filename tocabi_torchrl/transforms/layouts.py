@@ -71,8 +71,8 @@ REFERENCE_OBS_LAYOUT: tuple[ObsComponent, ...] = (
 )
 
 #: The reference observation and the pelvis's velocity, 43 values: what the TOCABI lab's later walking policies sense
-#: beyond the reference's. Without it a policy cannot tell a slow sideways walk from walking straight (its history
-#: spans 32 ms); the IMU's gyro gives the angular velocity, a state estimator the linear one.
+#: beyond the reference's. Nothing in the reference observation gives it directly, and its history spans 32 ms: a
+#: slow sideways walk goes unseen. The IMU's gyro gives the angular velocity, a state estimator the linear one.
 BASE_VEL_OBS_LAYOUT: tuple[ObsComponent, ...] = (
     *REFERENCE_OBS_LAYOUT,
     ObsComponent("base_lin_vel", "base_lin_vel"),  # 37-39: pelvis linear velocity [m/s], pelvis frame

@@ -7,7 +7,8 @@ reference's normalised observation to ~1e-6 relative.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
 
 import torch
 from tensordict import TensorDictBase
@@ -55,16 +56,16 @@ REFERENCE_OBS_VAR: tuple[float, ...] = (
 
 # The pelvis velocity that the ``base_vel`` layout adds (linear x, y, z [m/s], angular x, y, z [rad/s], pelvis frame):
 # the variances of the shipped robust policy's walk (40 robots at commands 0-0.5 m/s forward and ±0.15 m/s sideways,
-# 2.6 s each after 0.4 s, C MuJoCo), rounded, and a mean of 0 but for the forward speed (0.3 m/s there), so that
-# the mirror keeps the normalised sideways and turning values' signs.
+# 2.6 s each after 0.4 s, C MuJoCo: lab/analysis/velocity_statistics.py), rounded, and a mean of 0 but for the
+# forward speed (0.3 m/s there), so that the mirror keeps the normalised sideways and turning values' signs.
 _BASE_VEL_MEAN = (0.3, 0.0, 0.0, 0.0, 0.0, 0.0)
 _BASE_VEL_VAR = (0.025, 0.0125, 0.015, 0.16, 0.08, 0.24)
 #: Mean and variance of the 43 entries of the ``base_vel`` layout (the reference's 37, then the pelvis velocity).
 BASE_VEL_OBS_MEAN: tuple[float, ...] = REFERENCE_OBS_MEAN + _BASE_VEL_MEAN
 BASE_VEL_OBS_VAR: tuple[float, ...] = REFERENCE_OBS_VAR + _BASE_VEL_VAR
 #: The fixed statistics of each named layout (``layouts.OBS_LAYOUTS``) with one phase harmonic.
-FIXED_STATISTICS: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = {
-    "reference": (REFERENCE_OBS_MEAN, REFERENCE_OBS_VAR), "base_vel": (BASE_VEL_OBS_MEAN, BASE_VEL_OBS_VAR)}
+FIXED_STATISTICS: Mapping[str, tuple[tuple[float, ...], tuple[float, ...]]] = MappingProxyType({
+    "reference": (REFERENCE_OBS_MEAN, REFERENCE_OBS_VAR), "base_vel": (BASE_VEL_OBS_MEAN, BASE_VEL_OBS_VAR)})
 
 
 def _check_stats(mean: Sequence[float], var: Sequence[float], owner: str) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,4 +1,4 @@
-"""The critic's privileged input: true robot state the policy does not observe (``ppo.critic_privileged``).
+"""The critic's privileged input: true robot state, unperturbed by the sensor noise (``ppo.critic_privileged``).
 
 An asymmetric actor-critic: the policy acts on what the robot's sensors give, biased and noisy under randomisation,
 while the value function, used only in training, may read the simulator's state. Knowing the pelvis's true velocity,
