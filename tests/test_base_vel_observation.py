@@ -104,3 +104,34 @@ def test_a_training_run_saves_the_layout_and_its_policy_loads_with_it(tmp_path):
     td = policy.env.reset()
     assert td["observation"].shape == (2, 267)
     assert policy.agent.actor(td)["action"].shape == (2, 13)
+
+
+def test_the_velocity_noise_reaches_the_velocity_columns_within_its_bounds():
+    noise = SensorNoiseConfig(base_lin_vel_bias=0.05, base_lin_vel_noise_std=0.02, base_lin_vel_noise_clip=0.03,
+                              base_ang_vel_noise_std=0.1, base_ang_vel_noise_clip=0.2)
+    env = _env(sensor_noise=noise)
+    td = env.reset()
+    lin, ang = [], []
+    for _ in range(6):
+        td["action"] = torch.zeros(3, 13)
+        td = env.step(td)["next"]
+        lin.append(td["obs_step"][:, 37:40] - td["base_lin_vel"])
+        ang.append(td["obs_step"][:, 40:43] - td["base_ang_vel"])
+    lin, ang = torch.stack(lin), torch.stack(ang)
+    assert lin.abs().max() <= 0.05 + 0.03 + 1e-5 and ang.abs().max() <= 0.2 + 1e-5
+    assert lin.std(0).mean() > 1e-3 and ang.abs().max() > 0.01  # fresh every step, not a constant
+    # The reference observation reads no velocity: a velocity noise there is refused, naming the fix.
+    with pytest.raises(ValueError, match=r"SensorNoise perturbs \['base_lin_vel', 'base_ang_vel'\], which the "
+                                         r"observation layout does not read"):
+        make_env(num_envs=2, device="cpu", seed=0, transforms=TransformSettings(sensor_noise=noise)).reset()
+
+
+def test_the_robust_cases_keep_the_policys_own_velocity_noise():
+    from tocabi_torchrl.evaluation.robust import robust_case_config
+
+    cfg = preset_config("torque", **{"transforms.sensor_noise.base_lin_vel_noise_std": 0.02,
+                                     "transforms.sensor_noise.base_ang_vel_bias": 0.01})
+    noise = robust_case_config(cfg, 1.0).transforms.sensor_noise
+    assert noise.base_lin_vel_noise_std == 0.02 and noise.base_ang_vel_bias == 0.01
+    assert noise.joint_pos_bias == SensorNoiseConfig.tocabi_lab().joint_pos_bias  # the lab's set besides
+    assert robust_case_config(preset_config("torque"), 1.0).transforms.sensor_noise == SensorNoiseConfig.tocabi_lab()

@@ -716,3 +716,31 @@ def test_an_unusable_randomisation_is_one_error_line(name, randomize, message, t
                                      "--randomize", randomize])
     text = str(info.value.code)
     assert text.startswith("error: ") and message in text and "\n" not in text
+
+
+def test_the_pelvis_velocity_noise_round_trips_and_is_left_out_when_off(tmp_path):
+    """The velocity items are stated only when on (a contract without them reads as before, off), read back exactly,
+    and applied by the runtime's sensor model within their bounds."""
+    sensors = dataclasses.replace(rnd.TOCABI_LAB.sensors, base_lin_vel_bias=0.05, base_lin_vel_noise_std=0.02,
+                                  base_lin_vel_noise_clip=0.03, base_ang_vel_noise_std=0.1)
+    section = rnd.trained_under_section(dataclasses.replace(rnd.TOCABI_LAB, sensors=sensors), rnd.PushSettings(),
+                                        rnd.ROBUST_START, 0.0005, 104.5, (0, 0))
+    stated = json.loads(json.dumps(section))["sensor_noise"]
+    assert stated["base_lin_vel_bias"]["half_width"] == 0.05 and stated["base_ang_vel_noise"]["std"] == 0.1
+    assert "base_ang_vel_bias" not in stated  # off: left out
+    randomization, _, _ = rnd.from_contract(load_contract(_with_section(tmp_path, "torque", section)))
+    assert randomization.sensors == sensors
+    lab = json.loads(json.dumps(_lab_section(count=3, speed=(0.5, 1.0))))["sensor_noise"]
+    assert not set(lab) & set(rnd.OPTIONAL_SENSOR_ITEMS)  # off: left out, so the shipped contracts read as before
+    velocity_only = rnd.SensorSettings(**{k: v for k, v in dataclasses.asdict(sensors).items() if "base_" in k and
+                                          "_vel_" in k})
+    model = rnd.SensorModel(velocity_only, 33, np.random.default_rng(0))
+    model.reset(np.random.default_rng(1), 64)
+    zeros = {"base_lin_vel": np.zeros((64, 3), np.float32), "base_ang_vel": np.zeros((64, 3), np.float32),
+             "joint_pos": np.zeros((64, 33), np.float32)}
+    lin = np.stack([model(zeros)["base_lin_vel"] for _ in range(20)])
+    assert np.abs(lin).max() <= 0.05 + 0.03 + 1e-6
+    # The bias is constant within an episode, the noise is not: per robot and axis, the mean over the periods
+    # stays within the bias's half-width and the spread is the noise's.
+    assert np.abs(lin.mean(0)).max() <= 0.05 + 0.02 and 0.01 < lin.std(0).mean() < 0.03
+    assert np.abs(model(zeros)["base_ang_vel"]).max() > 0.1  # unclipped N(0, 0.1²) over 192 draws

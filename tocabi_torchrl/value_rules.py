@@ -15,7 +15,7 @@ from typing import Any
 __all__ = ["DELAY_APPLIED", "ENV_RULES", "FINITE", "MAX_SEED", "NON_NEGATIVE", "POSITIVE", "POSITIVE_INT",
            "PUSH_KINDS", "PUSH_SPEED", "DYNAMICS_OFF", "DYNAMICS_RANGES", "START_VEL_STD", "Range",
            "check_actuator_ranges", "check_dynamics_ranges", "check_push_settings", "check_sensor_noise",
-           "TRAINED_UNDER_RULES", "check_env_value", "check_seed", "plain_number", "positive_count",
+           "TRAINED_UNDER_RULES", "OPTIONAL_ITEMS", "check_env_value", "check_seed", "plain_number", "positive_count",
            "trained_under_problems"]
 
 
@@ -360,6 +360,10 @@ TRAINED_UNDER_RULES: dict[str, dict[str, dict[str, tuple[Range, str]]]] = {
         "base_rpy_bias": {"half_width": (RPY_BIAS, "one")},
         "foot_force_bias": {"half_width": (NON_NEGATIVE, "one")},
         "foot_torque_bias": {"half_width": (NON_NEGATIVE, "one")},
+        "base_lin_vel_bias": {"half_width": (NON_NEGATIVE, "one")},
+        "base_lin_vel_noise": {"std": (NON_NEGATIVE, "one"), "clip": (POSITIVE, "nullable")},
+        "base_ang_vel_bias": {"half_width": (NON_NEGATIVE, "one")},
+        "base_ang_vel_noise": {"std": (NON_NEGATIVE, "one"), "clip": (POSITIVE, "nullable")},
     },
     "pushes": {
         "pushes": {"count": (Range(low=1, high=64, integer=True), "one"), "window_s": (NON_NEGATIVE, "pair"),
@@ -371,6 +375,12 @@ TRAINED_UNDER_RULES: dict[str, dict[str, dict[str, tuple[Range, str]]]] = {
         "start_velocity": {"joint_std_radps": (START_VEL_STD, "one"), "base_std_mps": (START_VEL_STD, "one")},
     },
 }
+
+
+#: Items of a ``trained_under`` group that may be left out, read as "off": added after contracts were first written
+#: (the pelvis velocity's sensor noise), so a contract of before, or of a policy without them, states nothing of them.
+OPTIONAL_ITEMS: dict[str, tuple[str, ...]] = {
+    "sensor_noise": ("base_lin_vel_bias", "base_lin_vel_noise", "base_ang_vel_bias", "base_ang_vel_noise")}
 
 
 def trained_under_problems(section: Any, where: str = "trained_under") -> list[str]:
@@ -401,7 +411,7 @@ def trained_under_problems(section: Any, where: str = "trained_under") -> list[s
         if unknown:
             problems.append(f"{path} states {unknown}, which this reader cannot apply (it knows {sorted(items)})")
         for item, rules in items.items():
-            value = node.get(item, None)
+            value = node.get(item, "off" if item in OPTIONAL_ITEMS.get(group, ()) else None)
             if value == "off":
                 continue
             if not isinstance(value, dict):

@@ -210,8 +210,8 @@ def robust_case_config(cfg: RunConfig, push_speed: float, test: RobustTestConfig
     """``cfg`` with the TOCABI lab's uncertainty model switched on (:func:`tocabi_torchrl.randomize.tocabi_lab`:
     dynamics and the actuator delay and motor constant in the env section, sensor noise in the transform section)
     and ``test.push_count`` horizontal kicks of ``push_speed`` [m/s] (one 4 ms policy step each, of
-    ``test.push_kind``) at random times in ``test.push_window``. The one place the robust cases' randomisation is
-    made.
+    ``test.push_kind``) at random times in ``test.push_window``. The pelvis velocity's sensor noise, which the lab's
+    set does not have, is the policy's own training's. The one place the robust cases' randomisation is made.
 
     The lab's actuator model acts on torque commands; in the PD modes the legs are MuJoCo servos inside the physics,
     where it has no place (the env refuses it), so a PD-mode policy gets the rest of the set
@@ -219,8 +219,15 @@ def robust_case_config(cfg: RunConfig, push_speed: float, test: RobustTestConfig
     from ..envs.config import TORQUE_MODES
     from ..envs.pushes import PushConfig
     from ..randomize import tocabi_lab
+    from ..transforms.sensor_noise_config import SensorNoiseConfig
 
     lab = tocabi_lab(cfg)
+    # The lab's set has no pelvis-velocity noise; a policy that observes the velocity keeps its own training's (an
+    # estimator's error), so that it is not tested on a cleaner velocity than it trained with.
+    own = {f.name: getattr(cfg.transforms.sensor_noise, f.name) for f in dataclasses.fields(SensorNoiseConfig)
+           if f.name.startswith(("base_lin_vel_", "base_ang_vel_"))}
+    lab = dataclasses.replace(lab, transforms=dataclasses.replace(
+        lab.transforms, sensor_noise=dataclasses.replace(lab.transforms.sensor_noise, **own)))
     env = lab.env
     if env.control.mode not in TORQUE_MODES:
         env = dataclasses.replace(env, control=dataclasses.replace(env.control, actuators=cfg.env.control.actuators))

@@ -41,8 +41,8 @@ from dataclasses import dataclass, fields
 import mujoco
 import numpy as np
 
-from ..value_rules import (CALM_NEVER_S, DELAY_APPLIED, DYNAMICS_OFF, START_VEL_STD, check_actuator_ranges,
-                           check_dynamics_ranges, check_push_settings, check_sensor_noise)
+from ..value_rules import (CALM_NEVER_S, DELAY_APPLIED, DYNAMICS_OFF, OPTIONAL_ITEMS, START_VEL_STD,
+                           check_actuator_ranges, check_dynamics_ranges, check_push_settings, check_sensor_noise)
 
 __all__ = ["ROBUST_START", "STREAMS", "TOCABI_LAB", "ActuatorLayer", "ActuatorSettings", "DynamicsSettings",
            "PushSchedule", "PushSettings", "Randomization", "SensorModel", "SensorSettings", "StartVelocity",
@@ -124,11 +124,21 @@ class DynamicsSettings:
         return any(self.on(name) for name in self._OFF)
 
 
+#: The signals with a bias (``<signal>_bias``) and with per-period noise (``<signal>_noise_std``/``_clip``), and their
+#: units as a contract states them.
+BIASED = {"joint_pos": "rad", "base_rpy": "rad", "foot_force": "N", "foot_torque": "N*m", "base_lin_vel": "m/s",
+          "base_ang_vel": "rad/s"}
+NOISY = {"joint_pos": "rad", "joint_vel": "rad/s", "base_lin_vel": "m/s", "base_ang_vel": "rad/s"}
+#: The contract's sensor items that may be left out (then off): added with the pelvis-velocity observation.
+OPTIONAL_SENSOR_ITEMS = OPTIONAL_ITEMS["sensor_noise"]
+
+
 @dataclass(frozen=True)
 class SensorSettings:
     """Sensor biases (half-widths of U(±b), drawn per robot at reset) and per-period noise (σ, clip or None) on the
     observation's signals (``SensorNoiseConfig``'s fields): joint positions [rad], joint velocities [rad/s], base
-    roll/pitch/yaw [rad], foot forces [N], foot torques [N·m]. All 0: nothing."""
+    roll/pitch/yaw [rad], foot forces [N], foot torques [N·m], the pelvis's linear [m/s] and angular [rad/s]
+    velocity. All 0: nothing."""
 
     joint_pos_bias: float = 0.0
     joint_pos_noise_std: float = 0.0
@@ -138,6 +148,12 @@ class SensorSettings:
     base_rpy_bias: float = 0.0
     foot_force_bias: float = 0.0
     foot_torque_bias: float = 0.0
+    base_lin_vel_bias: float = 0.0
+    base_lin_vel_noise_std: float = 0.0
+    base_lin_vel_noise_clip: float | None = None
+    base_ang_vel_bias: float = 0.0
+    base_ang_vel_noise_std: float = 0.0
+    base_ang_vel_noise_clip: float | None = None
 
     def validate(self, prefix: str = "sensors.") -> None:
         """Raise ``ValueError`` naming the first bad value and what it takes (``SensorNoiseConfig.validate``'s
@@ -146,8 +162,7 @@ class SensorSettings:
 
     @property
     def enabled(self) -> bool:
-        return any(getattr(self, n) > 0 for n in ("joint_pos_bias", "joint_pos_noise_std", "joint_vel_noise_std",
-                                                  "base_rpy_bias", "foot_force_bias", "foot_torque_bias"))
+        return any(getattr(self, n) > 0 for n in (*(f"{s}_bias" for s in BIASED), *(f"{s}_noise_std" for s in NOISY)))
 
 
 @dataclass(frozen=True)
@@ -292,18 +307,21 @@ def trained_under_section(randomization: Randomization, pushes: PushSettings, st
     dynamics = {name: {"range": _pair(getattr(dyn, name)), "unit": unit, "draw": f"{draw}, {when}"}
                 if dyn.on(name) else "off" for name, (unit, draw) in units.items()}
     sensors = {}
-    for signal, unit in (("joint_pos", "rad"), ("base_rpy", "rad"), ("foot_force", "N"), ("foot_torque", "N*m")):
+    for signal, unit in BIASED.items():
         half = float(getattr(sen, f"{signal}_bias"))
         sensors[f"{signal}_bias"] = ({"half_width": half, "unit": unit,
                                       "draw": "U(-half_width, half_width) per robot and element at each reset, "
                                               "added to the observed signal"} if half > 0 else "off")
-    for signal, unit in (("joint_pos", "rad"), ("joint_vel", "rad/s")):
+    for signal, unit in NOISY.items():
         std, clip = float(getattr(sen, f"{signal}_noise_std")), getattr(sen, f"{signal}_noise_clip")
         sensors[f"{signal}_noise"] = ({"std": std, "clip": None if clip is None else float(clip), "unit": unit,
-                                       "draw": "N(0, std^2) per joint every control period, clipped to +-clip (null: "
-                                               "not clipped), added to the observed signal"} if std > 0 else "off")
+                                       "draw": "N(0, std^2) per element every control period, clipped to +-clip "
+                                               "(null: not clipped), added to the observed signal"}
+                                      if std > 0 else "off")
+    # The pelvis velocity's items are written only when on: a contract of a policy without them reads as before.
     sensors = {k: sensors[k] for k in ("joint_pos_bias", "joint_pos_noise", "joint_vel_noise", "base_rpy_bias",
-                                       "foot_force_bias", "foot_torque_bias")}
+                                       "foot_force_bias", "foot_torque_bias", *OPTIONAL_SENSOR_ITEMS)
+               if k not in OPTIONAL_SENSOR_ITEMS or sensors[k] != "off"}
     # Text, not an object: no reader applies it (a deployment's simulator keeps its own solver), it says how the
     # training's physics was cut short.
     solver = ({"solver": f"Newton iterations capped at {int(solver_iterations)} per physics substep in training "
@@ -358,10 +376,11 @@ def from_contract(contract: dict) -> tuple[Randomization, PushSettings, StartVel
         saturate=act["saturation"] != "off")
     dynamics = DynamicsSettings(**{name: pair(dyn[name], "range", off) for name, off in DynamicsSettings._OFF.items()})
     values = {}
-    for name in ("joint_pos_bias", "base_rpy_bias", "foot_force_bias", "foot_torque_bias"):
-        values[name] = 0.0 if sen[name] == "off" else float(sen[name]["half_width"])
-    for signal in ("joint_pos", "joint_vel"):
-        item = sen[f"{signal}_noise"]
+    for name in (f"{signal}_bias" for signal in BIASED):
+        item = sen.get(name, "off")  # an optional item left out is off
+        values[name] = 0.0 if item == "off" else float(item["half_width"])
+    for signal in NOISY:
+        item = sen.get(f"{signal}_noise", "off")
         if item != "off":
             values[f"{signal}_noise_std"], values[f"{signal}_noise_clip"] = float(item["std"]), item["clip"]
     push = section["pushes"]
@@ -484,7 +503,8 @@ class SensorModel:
     Attributes (after :meth:`reset`): ``biases`` {signal: (N, *shape)} float32 in the signal's unit.
     """
 
-    SHAPES = {"joint_pos": None, "base_rpy": (3,), "foot_force": (2, 3), "foot_torque": (2, 3)}
+    SHAPES = {"joint_pos": None, "base_rpy": (3,), "foot_force": (2, 3), "foot_torque": (2, 3), "base_lin_vel": (3,),
+              "base_ang_vel": (3,)}
 
     def __init__(self, settings: SensorSettings, num_joints: int, noise_rng: np.random.Generator):
         settings.validate()
@@ -508,7 +528,7 @@ class SensorModel:
                                  f"biases were drawn for {len(bias)} robot(s); call reset(rng, n) with this "
                                  "episode's robot count first")
             out[name] = value + bias
-        for name in ("joint_pos", "joint_vel"):
+        for name in NOISY:
             std, clip = float(getattr(self.settings, f"{name}_noise_std")), getattr(self.settings,
                                                                                    f"{name}_noise_clip")
             if std > 0:

@@ -5,17 +5,21 @@ period). :class:`SensorNoise` adds both to the per-step observation ``obs_step``
 :class:`~tocabi_torchrl.transforms.ObservationAssembly` and the normalisation, on the columns that the observation
 layout takes from each perturbed signal:
 
-=============== ============ ======== ================================================= =============================
-signal          shape        unit     per-world bias, drawn at each reset               per-step noise
-=============== ============ ======== ================================================= =============================
-``joint_pos``   (N, 33)      rad      U(±``joint_pos_bias``) per joint                  N(0, ``joint_pos_noise_std``)
-                                                                                        clipped at ±clip, per joint
-``joint_vel``   (N, 33)      rad/s    (none)                                            N(0, ``joint_vel_noise_std``)
-                                                                                        clipped at ±clip, per joint
-``base_rpy``    (N, 3)       rad      U(±``base_rpy_bias``) per roll, pitch, yaw axis    (none)
-``foot_force``  (N, 2, 3)    N        U(±``foot_force_bias``) per axis and foot          (none)
-``foot_torque`` (N, 2, 3)    N·m      U(±``foot_torque_bias``) per axis and foot         (none)
-=============== ============ ======== ================================================= =============================
+================ ========== ====== ================================================ =================================
+signal           shape      unit   per-world bias, drawn at each reset              per-step noise
+================ ========== ====== ================================================ =================================
+``joint_pos``    (N, 33)    rad    U(±``joint_pos_bias``) per joint                 N(0, ``joint_pos_noise_std``)
+                                                                                    clipped at ±clip, per joint
+``joint_vel``    (N, 33)    rad/s  (none)                                           N(0, ``joint_vel_noise_std``)
+                                                                                    clipped at ±clip, per joint
+``base_rpy``     (N, 3)     rad    U(±``base_rpy_bias``) per roll, pitch, yaw axis  (none)
+``foot_force``   (N, 2, 3)  N      U(±``foot_force_bias``) per axis and foot        (none)
+``foot_torque``  (N, 2, 3)  N·m    U(±``foot_torque_bias``) per axis and foot       (none)
+``base_lin_vel`` (N, 3)     m/s    U(±``base_lin_vel_bias``) per axis               N(0, ``base_lin_vel_noise_std``)
+                                                                                    clipped at ±clip, per axis
+``base_ang_vel`` (N, 3)     rad/s  U(±``base_ang_vel_bias``) per axis               N(0, ``base_ang_vel_noise_std``)
+                                                                                    clipped at ±clip, per axis
+================ ========== ====== ================================================ =================================
 
 Where the noise goes. ``ObservationAssembly`` only gathers signal elements into columns (and casts to float32,
 which the signals already are), so adding a value to a column of ``obs_step`` is exactly adding it to that signal

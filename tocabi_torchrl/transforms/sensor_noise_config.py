@@ -20,6 +20,10 @@ SENSORS: Mapping[str, tuple[int, ...]] = {
     "base_rpy": (3,),
     "foot_force": (2, 3),
     "foot_torque": (2, 3),
+    # Last: each signal's random streams follow its position here (sensor_noise.BIAS_STREAMS), so the ones above keep
+    # their numbers.
+    "base_lin_vel": (3,),
+    "base_ang_vel": (3,),
 }
 
 
@@ -38,6 +42,13 @@ class SensorNoiseConfig:
             at reset and added to the observed Euler angles.
         foot_force_bias: half-width [N] of the F/T force bias, U(±b) per world, foot and axis, drawn at reset.
         foot_torque_bias: half-width [N·m] of the F/T moment bias, U(±b) per world, foot and axis, drawn at reset.
+        base_lin_vel_bias: half-width [m/s] of the pelvis linear velocity's bias (a state estimator's offset), U(±b)
+            per world and axis, drawn at reset; read only by the ``base_vel`` observation.
+        base_lin_vel_noise_std: σ [m/s] of the noise added to the pelvis linear velocity every step.
+        base_lin_vel_noise_clip: that noise is clipped to ±clip [m/s]; None: not clipped.
+        base_ang_vel_bias: half-width [rad/s] of the gyro's bias, U(±b) per world and axis, drawn at reset.
+        base_ang_vel_noise_std: σ [rad/s] of the noise added to the pelvis angular velocity every step.
+        base_ang_vel_noise_clip: that noise is clipped to ±clip [rad/s]; None: not clipped.
     """
 
     joint_pos_bias: float = 0.0
@@ -48,6 +59,12 @@ class SensorNoiseConfig:
     base_rpy_bias: float = 0.0
     foot_force_bias: float = 0.0
     foot_torque_bias: float = 0.0
+    base_lin_vel_bias: float = 0.0
+    base_lin_vel_noise_std: float = 0.0
+    base_lin_vel_noise_clip: float | None = None
+    base_ang_vel_bias: float = 0.0
+    base_ang_vel_noise_std: float = 0.0
+    base_ang_vel_noise_clip: float | None = None
 
     def __post_init__(self):
         self.validate()
@@ -56,7 +73,8 @@ class SensorNoiseConfig:
     def tocabi_lab(cls) -> SensorNoiseConfig:
         """The TOCABI lab's numbers, as its real-robot training draws them: joint-position bias U(±π/100) rad,
         IMU bias U(±π/150) rad per axis, F/T bias U(±100) N and U(±10) N·m per axis and foot, and encoder noise
-        σ = 0.00016/3 rad clipped at ±0.00016 rad (3σ) every step. The joint velocities are left alone."""
+        σ = 0.00016/3 rad clipped at ±0.00016 rad (3σ) every step. The joint velocities are left alone, and so is the
+        pelvis velocity, which the lab's policies of that model did not observe."""
         return cls(joint_pos_bias=math.pi / 100, joint_pos_noise_std=0.00016 / 3, joint_pos_noise_clip=0.00016,
                    base_rpy_bias=math.pi / 150, foot_force_bias=100.0, foot_torque_bias=10.0)
 
