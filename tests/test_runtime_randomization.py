@@ -744,3 +744,11 @@ def test_the_pelvis_velocity_noise_round_trips_and_is_left_out_when_off(tmp_path
     # stays within the bias's half-width and the spread is the noise's.
     assert np.abs(lin.mean(0)).max() <= 0.05 + 0.02 and 0.01 < lin.std(0).mean() < 0.03
     assert np.abs(model(zeros)["base_ang_vel"]).max() > 0.1  # unclipped N(0, 0.1²) over 192 draws
+
+
+def test_a_velocity_noise_for_a_policy_that_does_not_observe_it_is_refused_by_name():
+    model = rnd.SensorModel(rnd.SensorSettings(base_lin_vel_noise_std=0.01), 33, np.random.default_rng(0))
+    model.reset(np.random.default_rng(1), 2)
+    with pytest.raises(ValueError, match=r"SensorModel perturbs \['base_lin_vel'\], which this policy does not "
+                                         r"observe .*set those ranges to 0"):
+        model({"joint_pos": np.zeros((2, 33), np.float32)})

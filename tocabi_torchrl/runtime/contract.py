@@ -1,10 +1,10 @@
 """The policy I/O contract: the JSON file written beside an exported ONNX policy, read and checked here.
 
 The contract says everything a controller needs to run the policy without the training stack: joint order, what each
-action means per control mode, timing, the observation entries (37; 43 with the pelvis velocity) and how they are normalised and stacked, the
-reference motion and the versions. ``docs/deploying.md`` describes it field by field. This module imports only the
-standard library and :mod:`tocabi_torchrl.value_rules` (itself standard library only), so a deployment can check a
-contract before loading anything else.
+action means per control mode, timing, the observation entries (37; 43 with the pelvis velocity) and how they are
+normalised and stacked, the reference motion and the versions. ``docs/deploying.md`` describes it field by field. This
+module imports only the standard library and :mod:`tocabi_torchrl.value_rules` (itself standard library only), so a
+deployment can check a contract before loading anything else.
 """
 
 from __future__ import annotations

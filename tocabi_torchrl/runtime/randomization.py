@@ -520,6 +520,11 @@ class SensorModel:
                 self.biases[name] = rng.uniform(-half, half, size=(n, *shape)).astype(np.float32)
 
     def __call__(self, signals: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        perturbed = [*self.biases, *(n for n in NOISY if getattr(self.settings, f"{n}_noise_std") > 0)]
+        unread = [n for n in perturbed if n not in signals]
+        if unread:  # a KeyError from deep inside otherwise; only a policy that observes a signal is given it
+            raise ValueError(f"SensorModel perturbs {unread}, which this policy does not observe (it is given "
+                             f"{sorted(signals)}); set those ranges to 0")
         out = dict(signals)
         for name, bias in self.biases.items():
             value = np.asarray(out[name], dtype=np.float32)

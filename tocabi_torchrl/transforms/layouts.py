@@ -19,8 +19,7 @@ if TYPE_CHECKING:
     from tensordict.utils import NestedKey
 
 __all__ = ["ObsComponent", "REFERENCE_OBS_LAYOUT", "BASE_VEL_OBS_LAYOUT", "OBS_LAYOUTS", "NON_PHASE_VALUES",
-           "layout_name", "HistoryLayout",
-           "REFERENCE_HISTORY", "TOCABILAB_HISTORY"]
+           "layout_name", "HistoryLayout", "REFERENCE_HISTORY", "TOCABILAB_HISTORY"]
 
 _ALL = slice(None)
 
