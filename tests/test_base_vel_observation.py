@@ -38,8 +38,8 @@ def test_the_last_six_columns_are_the_pelvis_velocity_and_the_first_37_the_refer
 
 
 def test_the_sensor_noise_leaves_the_velocity_columns_exact():
-    """No estimator error model for the pelvis velocity (yet): the TOCABI lab's set perturbs the joint encoders,
-    IMU angles and F/T sensors, and the velocity columns stay the true state."""
+    """The TOCABI lab's set perturbs the joint encoders, IMU angles and F/T sensors, not the pelvis velocity: its own
+    options (``base_lin_vel_*``, ``base_ang_vel_*``) are off there, and the velocity columns stay the true state."""
     env = _env(sensor_noise=SensorNoiseConfig.tocabi_lab())
     td = env.reset()
     torch.manual_seed(2)
@@ -120,6 +120,19 @@ def test_the_velocity_noise_reaches_the_velocity_columns_within_its_bounds():
     lin, ang = torch.stack(lin), torch.stack(ang)
     assert lin.abs().max() <= 0.05 + 0.03 + 1e-5 and ang.abs().max() <= 0.2 + 1e-5
     assert lin.std(0).mean() > 1e-3 and ang.abs().max() > 0.01  # fresh every step, not a constant
+    # A bias alone: constant within the episode, within ±b, and nothing else of the observation moves.
+    env, clean = _env(sensor_noise=SensorNoiseConfig(base_lin_vel_bias=0.05, base_ang_vel_bias=0.1)), _env()
+    td, ref = env.reset(), clean.reset()
+    offsets = []
+    for _ in range(4):
+        td["action"], ref["action"] = torch.zeros(3, 13), torch.zeros(3, 13)
+        td, ref = env.step(td)["next"], clean.step(ref)["next"]
+        assert torch.equal(td["obs_step"][:, :37], ref["obs_step"][:, :37])
+        offsets.append(td["obs_step"][:, 37:] - torch.cat((td["base_lin_vel"], td["base_ang_vel"]), -1))
+    offsets = torch.stack(offsets)
+    torch.testing.assert_close(offsets, offsets[:1].expand_as(offsets), atol=1e-6, rtol=0)
+    assert offsets[0, :, :3].abs().max() <= 0.05 and offsets[0, :, 3:].abs().max() <= 0.1
+    assert offsets[0].abs().min() > 0  # drawn, not zero
     # The reference observation reads no velocity: a velocity noise there is refused, naming the fix.
     with pytest.raises(ValueError, match=r"SensorNoise perturbs \['base_lin_vel', 'base_ang_vel'\], which the "
                                          r"observation layout does not read"):
@@ -127,11 +140,20 @@ def test_the_velocity_noise_reaches_the_velocity_columns_within_its_bounds():
 
 
 def test_the_robust_cases_keep_the_policys_own_velocity_noise():
-    from tocabi_torchrl.evaluation.robust import robust_case_config
+    """The pushed cases (one env per case, and the one batch env of every case) add the lab's set to the ideal
+    robot, whose config has no sensor noise: the velocity's noise must come from the policy's own training."""
+    from tocabi_torchrl.evaluation.robust import (RobustTestConfig, batch_config, case_config, randomization_applied,
+                                                  robust_case_config)
 
     cfg = preset_config("torque", **{"transforms.sensor_noise.base_lin_vel_noise_std": 0.02,
                                      "transforms.sensor_noise.base_ang_vel_bias": 0.01})
-    noise = robust_case_config(cfg, 1.0).transforms.sensor_noise
-    assert noise.base_lin_vel_noise_std == 0.02 and noise.base_ang_vel_bias == 0.01
-    assert noise.joint_pos_bias == SensorNoiseConfig.tocabi_lab().joint_pos_bias  # the lab's set besides
-    assert robust_case_config(preset_config("torque"), 1.0).transforms.sensor_noise == SensorNoiseConfig.tocabi_lab()
+    for built in (case_config(cfg, "robust_0.5"), case_config(cfg, "robust_1.0"), batch_config(cfg, RobustTestConfig()),
+                  robust_case_config(cfg, 1.0)):
+        noise = built.transforms.sensor_noise
+        assert noise.base_lin_vel_noise_std == 0.02 and noise.base_ang_vel_bias == 0.01
+        assert noise.joint_pos_bias == SensorNoiseConfig.tocabi_lab().joint_pos_bias  # the lab's set besides
+    assert case_config(cfg, "nominal").transforms.sensor_noise == SensorNoiseConfig()  # unpushed cases: none at all
+    assert "the pelvis velocity's sensor noise of the policy's training" in randomization_applied(cfg)
+    plain = preset_config("torque")
+    assert case_config(plain, "robust_1.0").transforms.sensor_noise == SensorNoiseConfig.tocabi_lab()
+    assert "pelvis velocity" not in randomization_applied(plain)

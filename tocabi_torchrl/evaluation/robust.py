@@ -206,12 +206,15 @@ class RobustTestConfig:
 
 
 # ------------------------------------------------------------------------------------------------ the cases' envs
-def robust_case_config(cfg: RunConfig, push_speed: float, test: RobustTestConfig = RobustTestConfig()) -> RunConfig:
+def robust_case_config(cfg: RunConfig, push_speed: float, test: RobustTestConfig = RobustTestConfig(),
+                       trained: RunConfig | None = None) -> RunConfig:
     """``cfg`` with the TOCABI lab's uncertainty model switched on (:func:`tocabi_torchrl.randomize.tocabi_lab`:
     dynamics and the actuator delay and motor constant in the env section, sensor noise in the transform section)
     and ``test.push_count`` horizontal kicks of ``push_speed`` [m/s] (one 4 ms policy step each, of
     ``test.push_kind``) at random times in ``test.push_window``. The pelvis velocity's sensor noise, which the lab's
-    set does not have, is the policy's own training's. The one place the robust cases' randomisation is made.
+    set does not have, is that of ``trained`` (the policy's own run config; default ``cfg``): a policy that observes
+    the velocity is not tested on a cleaner one than it trained with. The one place the robust cases' randomisation
+    is made.
 
     The lab's actuator model acts on torque commands; in the PD modes the legs are MuJoCo servos inside the physics,
     where it has no place (the env refuses it), so a PD-mode policy gets the rest of the set
@@ -222,9 +225,8 @@ def robust_case_config(cfg: RunConfig, push_speed: float, test: RobustTestConfig
     from ..transforms.sensor_noise_config import SensorNoiseConfig
 
     lab = tocabi_lab(cfg)
-    # The lab's set has no pelvis-velocity noise; a policy that observes the velocity keeps its own training's (an
-    # estimator's error), so that it is not tested on a cleaner velocity than it trained with.
-    own = {f.name: getattr(cfg.transforms.sensor_noise, f.name) for f in dataclasses.fields(SensorNoiseConfig)
+    trained_noise = (cfg if trained is None else trained).transforms.sensor_noise
+    own = {f.name: getattr(trained_noise, f.name) for f in dataclasses.fields(SensorNoiseConfig)
            if f.name.startswith(("base_lin_vel_", "base_ang_vel_"))}
     lab = dataclasses.replace(lab, transforms=dataclasses.replace(
         lab.transforms, sensor_noise=dataclasses.replace(lab.transforms.sensor_noise, **own)))
@@ -241,10 +243,14 @@ def randomization_applied(cfg: RunConfig) -> str:
     from ..envs.config import TORQUE_MODES
 
     mode = cfg.env.control.mode
+    noise = cfg.transforms.sensor_noise
+    kept = any(getattr(noise, f"{s}_bias") > 0 or getattr(noise, f"{s}_noise_std") > 0
+               for s in ("base_lin_vel", "base_ang_vel"))
+    own = "; the pelvis velocity's sensor noise of the policy's training" if kept else ""
     if mode in TORQUE_MODES:
-        return "tocabi_lab: dynamics, actuator delay and motor constant, sensor noise"
+        return f"tocabi_lab: dynamics, actuator delay and motor constant, sensor noise{own}"
     return (f"tocabi_lab without its actuator model (the {mode} mode's servos act inside the physics): dynamics, "
-            "sensor noise")
+            f"sensor noise{own}")
 
 
 def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig = RobustTestConfig()) -> RunConfig:
@@ -270,7 +276,8 @@ def case_config(cfg: RunConfig, case: str | RobustCase, test: RobustTestConfig =
     task = dataclasses.replace(task, max_episode_steps=max(int(task.max_episode_steps), steps + 1))
     env = dataclasses.replace(env, task=task, command=command)
     out = dataclasses.replace(nominal, seed=int(test.seed), env=env)
-    return robust_case_config(out, spec.push_speed, test) if spec.randomized else out
+    # The nominal config has no sensor noise: the policy's own velocity noise comes from cfg.
+    return robust_case_config(out, spec.push_speed, test, trained=cfg) if spec.randomized else out
 
 
 def case_env(cfg: RunConfig, case: str | RobustCase, device: torch.device, num_envs: int,
@@ -339,7 +346,7 @@ def batch_config(cfg: RunConfig, test: RobustTestConfig = RobustTestConfig()) ->
     base = RobustCase("batch", command=None, resample_every=redrawn.pop() if redrawn else 500)
     out = case_config(cfg, base, test)
     fastest = max(c.push_speed for c in specs)
-    return robust_case_config(out, fastest, test) if fastest > 0 else out
+    return robust_case_config(out, fastest, test, trained=cfg) if fastest > 0 else out
 
 
 def batch_key(test: RobustTestConfig, cfg: RunConfig, device: torch.device | str) -> tuple:

@@ -1,4 +1,5 @@
-"""Sensor biases and noise on what the policy observes: joint encoders, the IMU's Euler angles, the foot F/T sensors.
+"""Sensor biases and noise on what the policy observes: joint encoders, the IMU's Euler angles, the foot F/T sensors,
+and the pelvis velocity (a state estimator's and a gyro's) where the observation reads it.
 
 A real robot's sensors are offset (a calibration error, fixed over an episode) and noisy (fresh every control
 period). :class:`SensorNoise` adds both to the per-step observation ``obs_step`` (num_envs, D), between
