@@ -207,6 +207,8 @@ class PolicyRuntime:
             self.nominal = np.asarray(leg.get("nominal", [0.0] * self.num_legs), dtype=_F32)
         self.motion = self._load_motion(c["reference_motion"], motion)
         self.observation = ObservationBuilder(c["observation"])
+        # The state's optional signals this policy reads (its contract's observation), fixed for the runtime's life.
+        self._optional = tuple(name for name in _OPTIONAL_SIGNALS if name in self.observation.signals)
         hist = c["observation"]["history"]
         self.history = History(hist["obs_ages"], hist["action_ages"])
         self.time: np.ndarray | None = None  # (N,) float32 phase clock [s], kept modulo the motion period
@@ -344,13 +346,12 @@ class PolicyRuntime:
         j = len(self.joint_names)
         shapes = {"base_quat": (4,), "joint_pos": (j,), "joint_vel": (j,), "foot_force": (2, 3),
                   "foot_torque": (2, 3)}
-        for name in _OPTIONAL_SIGNALS:
-            if name in self.observation.signals:  # only a policy that reads it needs it
-                if getattr(state, name, None) is None:
-                    raise ContractError(f"RobotState.{name} is None, but this policy observes it (its contract's "
-                                        f"observation reads {name!r}, {_OPTIONAL_SIGNALS[name]}): pass it, one row "
-                                        "per robot")
-                shapes[name] = (3,)
+        for name in self._optional:  # only a policy that reads one needs it
+            if getattr(state, name, None) is None:
+                raise ContractError(f"RobotState.{name} is None, but this policy observes it (its contract's "
+                                    f"observation reads {name!r}, {_OPTIONAL_SIGNALS[name]}): pass it, one row per "
+                                    "robot")
+            shapes[name] = (3,)
         if n is None:
             quat = np.shape(state.base_quat)
             if len(quat) != 2 or quat[0] < 1:
@@ -401,9 +402,8 @@ class PolicyRuntime:
             "foot_force": state.foot_force,
             "foot_torque": state.foot_torque,
         }
-        for name in _OPTIONAL_SIGNALS:
-            if name in self.observation.signals:
-                signals[name] = getattr(state, name)
+        for name in self._optional:
+            signals[name] = getattr(state, name)
         if self.sensors is not None:
             signals = self._sensed(signals)
         return self.observation.normalize(self.observation.raw(signals))
