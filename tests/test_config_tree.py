@@ -225,14 +225,15 @@ def test_the_shipped_robust_policy_was_trained_with_the_committed_robust_preset(
     assert state["env_steps"] < trained.total_env_steps and state["train_seconds"] <= 30 * 60
 
 
-def test_the_torque_record_that_walks_was_trained_with_the_committed_torque_preset():
-    # The run of docs/training/torque/h100_base_vel_seed0 set transforms.observation on the command line before the
-    # preset did: its env, transforms and PPO sections must be the preset's, else the record is of another recipe.
-    record = Path(__file__).resolve().parents[1] / "docs" / "training" / "torque" / "h100_base_vel_seed0"
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_torque_records_that_walk_were_trained_with_the_committed_torque_preset(seed):
+    # The seed-0 run set transforms.observation on the command line before the preset did, the seed-1 run only its
+    # seed: the env, transforms and PPO sections of each must be the preset's, else the record is of another recipe.
+    record = Path(__file__).resolve().parents[1] / "docs" / "training" / "torque" / f"h100_base_vel_seed{seed}"
     trained, preset = config_from_dict(json.loads((record / "config.json").read_text())), preset_config("torque")
     for section in ("env", "transforms", "ppo"):
         assert to_dict(getattr(trained, section)) == to_dict(getattr(preset, section)), section
-    assert trained.preset == "torque" and trained.seed == preset.seed == 0
+    assert trained.preset == "torque" and trained.seed == seed and preset.seed == 0
     assert preset.transforms.observation == "base_vel"
 
 
