@@ -172,13 +172,16 @@ def time_to_walk(docs: Path) -> list[str]:
             f"- report: [time_to_walk.json](benchmarks/time_to_walk.json), "
             f"[details and curves](benchmarks/time_to_walk.md); rendered by `{d['command'].split(' --runs')[0]}`",
             "", *_test_time_to_walk(docs, ROBUST_TIME_TO_WALK, _ROBUST_TEST), "",
-            *_test_time_to_walk(docs, TORQUE_TIME_TO_WALK, _DIVERSE_TEST)]
+            *[line for rel in TORQUE_TIME_TO_WALK for line in (*_test_time_to_walk(docs, rel, _DIVERSE_TEST), "")][:-1]]
 
 
 #: The robust preset's time to walk under the robust gait test (docs/evaluation.md), one run's report.
 ROBUST_TIME_TO_WALK = "training/robust/h100_run23/time_to_walk_robust.json"
-#: The torque preset's time to walk under the robust gait test's unperturbed cases, one run's report.
-TORQUE_TIME_TO_WALK = "training/torque/h100_base_vel_seed0/time_to_walk_diverse.json"
+#: The torque preset's time to walk under the robust gait test's unperturbed cases, one run's report per seed.
+TORQUE_TIME_TO_WALK = ("training/torque/h100_base_vel_seed0/time_to_walk_diverse.json",
+                       "training/torque/h100_base_vel_seed1/time_to_walk_diverse.json")
+#: The section's reports of single runs, beside docs/benchmarks/time_to_walk.json.
+RUN_TIME_TO_WALK = (ROBUST_TIME_TO_WALK, *TORQUE_TIME_TO_WALK)
 _ROBUST_TEST = "the robust gait test (diverse starts, changing commands, the `tocabi_lab` randomisation and kicks"
 _DIVERSE_TEST = ("the robust gait test's `nominal` and `commands` cases (diverse starts, changing commands; no "
                  "randomisation, no kicks")
@@ -196,7 +199,7 @@ def _test_time_to_walk(docs: Path, rel: str, test: str) -> list[str]:
         robots = sorted({e["settings"]["num_envs"] for e in r["evaluations"].values()})
         lines.append(f"Under {test}; {'/'.join(f'{n:,}' for n in robots)} robots per case; checkpoints from "
                      f"{min(e['train_seconds'] for e in r['evaluations'].values()) / 60:.1f} training minutes on), "
-                     f"`{r['preset']}` on "
+                     f"`{r['preset']}` (seed {r['config']['seed']}) on "
                      f"{r.get('gpus', 1)} x {r['gpu']} at {envs:,} envs, trained {r['date']}, first passes at {walks}"
                      + ("." if r.get("train_over_raw") is None else
                         f", training at {r['train_over_raw']:.2f}x raw mujoco-warp."))
