@@ -837,8 +837,9 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # "base_vel"). Without the velocity its first from-scratch run (seed 0) stood and tracked its commands but walked
     # sideways after the diverse starts, drift p95 0.46-0.63 m at 12-15 minutes against the test's 0.30 m
     # (docs/training/torque/h100_seed0); with it, the same seed passed from its 11-minute mark, drift p95 0.08-0.11 m
-    # (docs/training/torque/h100_base_vel_seed0). Verdict: the robust gait test's diverse-start nominal and
-    # commands cases (evaluation/robust.py; docs/training.md).
+    # (docs/training/torque/h100_base_vel_seed0), and seed 1 from its 11.5-minute mark (h100_base_vel_seed1).
+    # Verdict: the robust gait test's diverse-start nominal and commands cases (evaluation/robust.py;
+    # docs/training.md).
     "torque": MappingProxyType({**_ROBUST, "ppo.matmul_precision": "high", "transforms.observation": "base_vel"}),
     # The robust recipe in full float32, as the runs of docs/training/robust/ trained: the twenty-third passed the
     # robust gait test's nominal and commands cases at its 12-minute mark (the first it tested) and every case from

@@ -172,7 +172,8 @@ def time_to_walk(docs: Path) -> list[str]:
             f"- report: [time_to_walk.json](benchmarks/time_to_walk.json), "
             f"[details and curves](benchmarks/time_to_walk.md); rendered by `{d['command'].split(' --runs')[0]}`",
             "", *_test_time_to_walk(docs, ROBUST_TIME_TO_WALK, _ROBUST_TEST), "",
-            *[line for rel in TORQUE_TIME_TO_WALK for line in (*_test_time_to_walk(docs, rel, _DIVERSE_TEST), "")][:-1]]
+            *[line for report in TORQUE_TIME_TO_WALK
+              for line in (*_test_time_to_walk(docs, report, _DIVERSE_TEST), "")][:-1]]
 
 
 #: The robust preset's time to walk under the robust gait test (docs/evaluation.md), one run's report.
