@@ -65,20 +65,25 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
 
             class RecordedOverlap(common.trainer.UpdateOverlap):
                 """The trainer's updates (inline or ``ppo.overlap_update``'s), with the spans they ran in on the side
-                stream, and the host's time in each launch (queuing the update) and each finish (waiting for it)."""
+                stream, the host's time in each launch (queuing the update) and each finish (waiting for it), and,
+                per launch, the host's time in each mini-batch call and what the CUDA caching allocator did."""
 
                 def __init__(self, *args, **kwargs):
                     super().__init__(*args, **kwargs)
-                    self.spans, self.launch_s, self.finish_s = [], [], []
+                    self.spans, self.launch_s, self.finish_s, self.calls, self.allocs = [], [], [], [], []
                     # Before any rollout or update: every later event of either stream comes after it.
                     self.origin = (torch.cuda.current_stream(self.device).record_event(
                         torch.cuda.Event(enable_timing=True)) if self.stream is not None else None)
                     overlaps.append(self)
 
                 def launch(self, *args, **kwargs):
+                    self.calls.append([])  # TimedStep fills it while this launch runs the update's mini-batches
+                    before = allocator_counts(self.device)
                     t = time.perf_counter()
                     super().launch(*args, **kwargs)
                     self.launch_s.append(time.perf_counter() - t)
+                    after = allocator_counts(self.device)
+                    self.allocs.append({k: after[k] - before[k] for k in after})
 
                 def finish(self):
                     t = time.perf_counter()
@@ -86,7 +91,24 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                     self.finish_s.append(time.perf_counter() - t)
                     return out
 
-            patches["UpdateOverlap"] = RecordedOverlap
+            class TimedStep(common.trainer.MinibatchStep):
+                """The trainer's mini-batch step, with the host's time in each call (queuing one mini-batch: with the
+                update captured, its replay) kept in the launch it belongs to."""
+
+                def on_rows(self, idx):
+                    return self._timed(super().on_rows, idx)
+
+                def __call__(self, mb):
+                    return self._timed(super().__call__, mb)
+
+                def _timed(self, call, arg):
+                    t = time.perf_counter()
+                    out = call(arg)
+                    if overlaps and overlaps[0].calls:
+                        overlaps[0].calls[-1].append(time.perf_counter() - t)
+                    return out
+
+            patches.update(UpdateOverlap=RecordedOverlap, MinibatchStep=TimedStep)
             cuda, update_stats = at.type == "cuda", common.trainer._update_stats
 
             def timed_update(*args, **kwargs):
@@ -147,18 +169,49 @@ def update_host_split(overlaps: list) -> dict[str, float]:
     queuing an update (with the overlap, on its side stream), ``update_finish_ms`` waiting for it once the next
     rollout is collected (inline: the read of its numbers) and, with the overlap, ``update_span_ms``: its GPU time from
     its start to its end on the side stream, time it waited beside the rollout included (the events have completed:
-    :func:`uncontended_ms` synchronised). Empty without updates."""
+    :func:`uncontended_ms` synchronised). Within each launch: ``update_calls`` mini-batch calls, the slowest one's
+    host time ``update_call_max_ms`` and ``update_calls_over_1ms`` (with the update captured a call only copies its
+    indices and launches a replay, microseconds), and on CUDA ``update_launch_<counter>``: what the caching allocator
+    did while the host queued it (:data:`ALLOCATOR_COUNTS`). Empty without updates."""
     if not overlaps:
         return {}
     o = overlaps[0]
 
     def median_ms(seconds: list[float]) -> float | None:
-        middle = seconds[1:-1] if len(seconds) > 2 else seconds
-        return 1e3 * statistics.median(middle) if middle else None
+        median = _median_middle(seconds)
+        return None if median is None else 1e3 * median
 
     out = {"update_launch_ms": median_ms(o.launch_s), "update_finish_ms": median_ms(o.finish_s),
            "update_span_ms": median_ms([a.elapsed_time(b) / 1e3 for a, b in o.spans])}
+    calls = getattr(o, "calls", [])
+    if any(calls):
+        # Within a launch: is the host held by every mini-batch call alike, or by a few (a blocking allocation)?
+        out.update(update_call_max_ms=median_ms([max(c, default=0.0) for c in calls]),
+                   update_calls_over_1ms=_median_middle([sum(t > 1e-3 for t in c) for c in calls]),
+                   update_calls=_median_middle([len(c) for c in calls]))
+    for key in sorted({k for a in getattr(o, "allocs", []) for k in a}):
+        out[f"update_launch_{key}"] = _median_middle([a.get(key, 0) for a in o.allocs])
     return {k: v for k, v in out.items() if v is not None}
+
+
+def _median_middle(values: list) -> float | None:
+    """The median of ``values`` without the first and the last (both kept when there are two or fewer)."""
+    middle = values[1:-1] if len(values) > 2 else values
+    return float(statistics.median(middle)) if middle else None
+
+
+#: The CUDA caching allocator's counters a launch is checked against (``torch.cuda.memory_stats``): cudaMalloc and
+#: cudaFree calls, retries after a failed allocation (the cache freed first) and synchronisations of every stream,
+#: each of which can hold the host while the GPU works.
+ALLOCATOR_COUNTS = ("num_device_alloc", "num_device_free", "num_alloc_retries", "num_sync_all_streams")
+
+
+def allocator_counts(device: torch.device) -> dict[str, int]:
+    """The allocator counters :data:`ALLOCATOR_COUNTS` now; empty off CUDA."""
+    if device.type != "cuda":
+        return {}
+    stats = torch.cuda.memory_stats(device)
+    return {k: int(stats.get(k, 0)) for k in ALLOCATOR_COUNTS}
 
 
 def uncontended_ms(physics: solver_load.Recorder, updates: list[tuple], origin=None) -> tuple[float, int]:

@@ -150,6 +150,14 @@ def test_the_host_split_takes_medians_without_the_first_and_the_last_update():
     assert train_throughput.update_host_split([inline]) == pytest.approx({"update_launch_ms": 2.0,
                                                                           "update_finish_ms": 1.0})
     assert train_throughput.update_host_split([]) == {}
+    # Per launch, the host's time in each mini-batch call and the allocator's counts: medians over the middle updates.
+    calls = [[0.05, 0.05], [1e-5, 0.2, 1e-5], [2e-5, 2e-5, 0.002], [0.3]]
+    allocs = [{"num_device_alloc": 9}, {"num_device_alloc": 2}, {"num_device_alloc": 4}, {"num_device_alloc": 0}]
+    traced = SimpleNamespace(launch_s=[1.0, 0.3, 0.01, 0.4], finish_s=[0.0] * 4, spans=[], calls=calls, allocs=allocs)
+    split = train_throughput.update_host_split([traced])
+    assert split["update_calls"] == 3 and split["update_calls_over_1ms"] == 1
+    assert split["update_call_max_ms"] == pytest.approx(101.0)  # the median of the middle updates' 200 and 2 ms
+    assert split["update_launch_num_device_alloc"] == 3
 
 
 def test_train_throughput_ceiling_times_the_physics_of_the_timed_iterations_in_place(tmp_path):
@@ -166,6 +174,10 @@ def test_train_throughput_ceiling_times_the_physics_of_the_timed_iterations_in_p
     # (update_host_split, below: three updates, so the medians are the second's).
     assert r["update_launch_ms"] > 0 and r["update_finish_ms"] >= 0
     assert "update_span_ms" not in r  # no side stream on the CPU
+    # Within each launch, every mini-batch call is timed: 4 mini-batches of the 64 frames (common.run_config takes a
+    # quarter) x 5 epochs; eager on the CPU, each call runs its step, so none is free. No CUDA allocator off CUDA.
+    assert r["update_calls"] == 20 and 0 < r["update_call_max_ms"] <= r["update_launch_ms"]
+    assert not [k for k in r if k.startswith("update_launch_num_")]
     assert r["ceiling_env_steps_per_s"] == pytest.approx(8e3 / r["physics_ms_per_policy_step"])
     # The physics is part of the training step: training cannot outrun it.
     assert 0 < r["ratio_train_over_ceiling"] < 1
