@@ -18,12 +18,14 @@ every robot N times at random times in 2-7 s (so ``--seconds`` must last past 7 
 ``--push_speed`` m/s in a random horizontal direction, within one control period (``--push_kind velocity``, the
 robust gait test's: the whole robot's velocity changes; ``force``: an impulse of the same momentum on the pelvis
 alone); ``--start_noise`` starts the robots with the robust gait test's N(0, 0.5 rad/s) joint and N(0, 0.1 m/s)
-pelvis velocities; ``--seed`` seeds every draw (docs/concepts/randomization.md, "Sim-to-sim with randomisation").
+pelvis velocities; ``--sensor FIELD=VALUE ...`` replaces sensor fields of the chosen set (an estimator's error on the
+pelvis velocity, say); ``--seed`` seeds every draw (docs/concepts/randomization.md, "Sim-to-sim with randomisation").
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -59,6 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--push_kind", choices=PUSH_KINDS, default="velocity",
                         help="velocity: every body's velocity changes by --push_speed (the robust gait test's kicks, "
                              "default); force: the same momentum as a force on the pelvis alone")
+    parser.add_argument("--sensor", nargs="+", default=[], metavar="FIELD=VALUE",
+                        help="sensor biases and noise set on top of --randomize's, by SensorSettings field "
+                             "(tocabi_torchrl/runtime/randomization.py), e.g. base_lin_vel_noise_std=0.0144 "
+                             "base_lin_vel_noise_clip=0.025: what a state estimator's error does to the policy "
+                             "(default: none)")
     parser.add_argument("--start_noise", action="store_true",
                         help="start with N(0, 0.5 rad/s) joint and N(0, 0.1 m/s) pelvis velocities (robust gait test)")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random draw (default: 0)")
@@ -73,8 +80,8 @@ if __name__ == "__main__":  # --help or a misspelt option answers before mujoco 
 from tocabi_torchrl.atomic import atomic_write_text  # noqa: E402
 from tocabi_torchrl.evaluation.output import json_safe  # noqa: E402
 from tocabi_torchrl.runtime import ContractError, PolicyRuntime  # noqa: E402
-from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim  # noqa: E402
-from tocabi_torchrl.runtime.randomization import ROBUST_START, PushSettings  # noqa: E402
+from tocabi_torchrl.runtime.mujoco_driver import resolve_randomization, run_sim2sim  # noqa: E402
+from tocabi_torchrl.runtime.randomization import ROBUST_START, PushSettings, SensorSettings  # noqa: E402
 from tocabi_torchrl.value_rules import MAX_SEED, PUSH_SPEED  # noqa: E402
 
 
@@ -110,6 +117,37 @@ def progress(args: argparse.Namespace, dt: float, draw=None):
     return bar, on_step
 
 
+def sensor_overrides(items: list[str]) -> dict[str, float | None]:
+    """``--sensor`` items ``FIELD=VALUE`` as SensorSettings fields; ``ValueError`` naming a malformed item, an unknown
+    field (with the known ones) or a value that is not a number (a clip also takes ``none``)."""
+    known = [f.name for f in dataclasses.fields(SensorSettings)]
+    out = {}
+    for item in items:
+        field, sep, text = item.partition("=")
+        if not sep or not field:
+            raise ValueError(f"--sensor {item!r}: give FIELD=VALUE, e.g. base_lin_vel_noise_std=0.0144")
+        if field not in known:
+            raise ValueError(f"--sensor {item!r}: no sensor field {field!r}; the fields are {', '.join(known)}")
+        if field.endswith("_clip") and text.strip().lower() == "none":
+            out[field] = None
+            continue
+        try:
+            out[field] = float(text)
+        except ValueError:
+            raise ValueError(f"--sensor {item!r}: {text!r} is not a number"
+                             + (" (or none: no clip)" if field.endswith("_clip") else "")) from None
+    return out
+
+
+def with_sensors(randomize: str, contract: dict, overrides: dict):
+    """The randomisation ``randomize`` names for a policy of ``contract``, its sensor settings replaced field by field
+    by ``overrides`` (``randomize`` itself when there are none)."""
+    if not overrides:
+        return randomize
+    chosen = resolve_randomization(randomize, contract)
+    return dataclasses.replace(chosen, sensors=dataclasses.replace(chosen.sensors, **overrides))
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -126,6 +164,10 @@ def main(argv: list[str] | None = None) -> dict:
                      f"{args.push_speed}{PUSH_SPEED.because(args.push_speed)}")
     parser.refuse_without(args, args.pushes > 0, "--pushes N", ("push_speed", "push_kind"))
     parser.refuse_without(args, args.viewer, "--viewer", ("viewer_host", "viewer_port"))
+    try:
+        sensors = sensor_overrides(args.sensor)
+    except ValueError as err:
+        parser.error(str(err))
     if not 0 <= args.seed <= MAX_SEED:
         parser.error(f"--seed must be an int in [0, 2**63 - 1], got {args.seed}")
     if args.out is not None and not args.out.strip():  # "--out $OUT" with OUT unset would write nothing
@@ -162,6 +204,7 @@ def main(argv: list[str] | None = None) -> dict:
         # The whole policy (contract, the .onnx that runs and its hash, onnxruntime, motion) is checked before a
         # page is served: a failure after the URL is printed would leave a page that never shows a robot.
         runtime = PolicyRuntime(args.contract, onnx=args.onnx)
+        randomize = with_sensors(args.randomize, runtime.contract, sensors)
         dt, draw = float(runtime.contract["timing"]["control_dt_s"]), None
         pushes = (PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed), kind=args.push_kind)
                   if args.pushes else None)
@@ -179,7 +222,7 @@ def main(argv: list[str] | None = None) -> dict:
         try:
             result = run_sim2sim(runtime, model, seconds=args.seconds, num_robots=args.num_robots,  # the one checked
                                  command=(args.vx, args.vy), remove_meshes=strip, seed=args.seed,
-                                 randomize=args.randomize, pushes=pushes,
+                                 randomize=randomize, pushes=pushes,
                                  start_velocity=ROBUST_START if args.start_noise else None,
                                  on_step=on_step).as_dict()
         except MemoryError:  # numpy's bare MemoryError named neither the option nor what to do
@@ -196,6 +239,8 @@ def main(argv: list[str] | None = None) -> dict:
         if server is not None:
             server.stop()
     result["model"] = str(args.model)
+    if sensors:  # the driver names a randomisation it was given as an object "custom": say which, and what changed
+        result["perturbations"].update(randomize=args.randomize, sensor=sensors)
     # Standard JSON, as the export writes: a metric of no robot (every one fell in the first period) is null, not the
     # NaN that strict JSON readers refuse.
     text = json.dumps(json_safe(result), indent=2, allow_nan=False)
