@@ -61,9 +61,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--push_kind", choices=PUSH_KINDS, default="velocity",
                         help="velocity: every body's velocity changes by --push_speed (the robust gait test's kicks, "
                              "default); force: the same momentum as a force on the pelvis alone")
-    parser.add_argument("--sensor", nargs="+", default=[], metavar="FIELD=VALUE",
-                        help="sensor biases and noise set on top of --randomize's, by SensorSettings field "
-                             "(tocabi_torchrl/runtime/randomization.py), e.g. base_lin_vel_noise_std=0.0144 "
+    parser.add_argument("--sensor", nargs="+", action="extend", default=[], metavar="FIELD=VALUE",
+                        help="sensor biases (half-widths of U(±b)) and noise (σ, clip or none) set on top of "
+                             "--randomize's, by SensorSettings field (tocabi_torchrl/runtime/randomization.py; rad, "
+                             "rad/s, N, N·m, m/s as the signal), e.g. base_lin_vel_noise_std=0.0144 "
                              "base_lin_vel_noise_clip=0.025: what a state estimator's error does to the policy "
                              "(default: none)")
     parser.add_argument("--start_noise", action="store_true",
@@ -119,7 +120,8 @@ def progress(args: argparse.Namespace, dt: float, draw=None):
 
 def sensor_overrides(items: list[str]) -> dict[str, float | None]:
     """``--sensor`` items ``FIELD=VALUE`` as SensorSettings fields; ``ValueError`` naming a malformed item, an unknown
-    field (with the known ones) or a value that is not a number (a clip also takes ``none``)."""
+    or repeated field, a value that is not a number (a clip also takes ``none``) or one the training config would
+    refuse (a negative or NaN bias or σ, a clip <= 0)."""
     known = [f.name for f in dataclasses.fields(SensorSettings)]
     out = {}
     for item in items:
@@ -128,6 +130,8 @@ def sensor_overrides(items: list[str]) -> dict[str, float | None]:
             raise ValueError(f"--sensor {item!r}: give FIELD=VALUE, e.g. base_lin_vel_noise_std=0.0144")
         if field not in known:
             raise ValueError(f"--sensor {item!r}: no sensor field {field!r}; the fields are {', '.join(known)}")
+        if field in out:  # the last would win unseen
+            raise ValueError(f"--sensor {item!r}: {field} is given twice; give each field once")
         if field.endswith("_clip") and text.strip().lower() == "none":
             out[field] = None
             continue
@@ -136,16 +140,25 @@ def sensor_overrides(items: list[str]) -> dict[str, float | None]:
         except ValueError:
             raise ValueError(f"--sensor {item!r}: {text!r} is not a number"
                              + (" (or none: no clip)" if field.endswith("_clip") else "")) from None
+    # Each field's rule stands alone, so the defaults with these fields show every bad value before a file is read.
+    SensorSettings(**out).validate(prefix="--sensor ")
     return out
 
 
 def with_sensors(randomize: str, contract: dict, overrides: dict):
     """The randomisation ``randomize`` names for a policy of ``contract``, its sensor settings replaced field by field
-    by ``overrides`` (``randomize`` itself when there are none)."""
+    by ``overrides`` (``randomize`` itself when there are none). ``ValueError`` for a clip given for a signal left
+    without noise: it would do nothing, yet be reported."""
     if not overrides:
         return randomize
     chosen = resolve_randomization(randomize, contract)
-    return dataclasses.replace(chosen, sensors=dataclasses.replace(chosen.sensors, **overrides))
+    sensors = dataclasses.replace(chosen.sensors, **overrides)
+    idle = [f for f in overrides if f.endswith("_noise_clip") and overrides[f] is not None
+            and getattr(sensors, f.replace("_clip", "_std")) == 0]
+    if idle:
+        raise ValueError(f"--sensor {idle[0]} clips a noise that is off in --randomize {randomize} and not set: give "
+                         f"{idle[0].replace('_clip', '_std')} too, or leave the clip out")
+    return dataclasses.replace(chosen, sensors=sensors)
 
 
 def main(argv: list[str] | None = None) -> dict:

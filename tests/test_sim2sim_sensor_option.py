@@ -21,10 +21,15 @@ needs_contract = pytest.mark.skipif(not CONTRACT.is_file(), reason="shipped poli
     ("pelvis_noise=0.1", "no sensor field 'pelvis_noise'; the fields are joint_pos_bias, "),
     ("joint_pos_bias=small", "'small' is not a number"),
     ("base_lin_vel_noise_clip=off", "'off' is not a number (or none: no clip)"),
+    ("base_lin_vel_noise_std=nan", "--sensor base_lin_vel_noise_std must be a finite number >= 0 (0 = off), got nan"),
+    ("joint_pos_bias=-0.1", "--sensor joint_pos_bias must be a finite number >= 0"),
+    ("base_ang_vel_noise_clip=0", "--sensor base_ang_vel_noise_clip must be a finite number > 0"),
+    ("joint_pos_bias=0.1 joint_pos_bias=0.2", "joint_pos_bias is given twice; give each field once"),
+    ("joint_pos_bias=0.1 --seed 1 --sensor joint_pos_bias=0.2", "joint_pos_bias is given twice"),
 ])
 def test_a_bad_sensor_item_is_refused_before_any_file_is_read(item, message, capsys, tmp_path):
     with pytest.raises(SystemExit) as info:
-        load_recipe("sim2sim").main(["--contract", str(tmp_path / "missing.json"), "--sensor", item])
+        load_recipe("sim2sim").main(["--contract", str(tmp_path / "missing.json"), "--sensor", *item.split()])
     assert info.value.code == 2 and message in capsys.readouterr().err
 
 
@@ -34,7 +39,9 @@ def test_sensor_items_change_the_set_field_by_field_and_the_metrics_say_so(capsy
     from tocabi_torchrl.runtime.randomization import Randomization, SensorSettings
 
     argv = ["--contract", str(CONTRACT), "--seconds", "0.2", "--num_robots", "2", "--seed", "5"]
-    given = load_recipe("sim2sim").main([*argv, "--sensor", "joint_pos_noise_std=0.01", "joint_pos_noise_clip=none"])
+    # Two --sensor options add up (the second does not replace the first).
+    given = load_recipe("sim2sim").main([*argv, "--sensor", "joint_pos_noise_std=0.01", "--vx", "0.5", "--sensor",
+                                         "joint_pos_noise_clip=none"])
     plain = load_recipe("sim2sim").main(argv)
     capsys.readouterr()
     # The run is the driver's with the nominal set's sensors so changed, and unlike the run without the option.
@@ -56,3 +63,13 @@ def test_noise_on_a_signal_the_policy_does_not_observe_is_one_error_line(capsys)
         load_recipe("sim2sim").main(["--contract", str(CONTRACT), "--seconds", "0.02", "--num_robots", "1",
                                      "--sensor", "base_lin_vel_noise_std=0.01"])
     assert "perturbs ['base_lin_vel'], which this policy does not observe" in str(info.value.code)
+
+
+@needs_contract
+def test_a_clip_of_a_noise_that_stays_off_is_refused(capsys):
+    # It would change nothing, yet the metrics would list it among the perturbations.
+    with pytest.raises(SystemExit) as info:
+        load_recipe("sim2sim").main(["--contract", str(CONTRACT), "--seconds", "0.02", "--num_robots", "1",
+                                     "--sensor", "joint_vel_noise_clip=0.1"])
+    assert ("--sensor joint_vel_noise_clip clips a noise that is off in --randomize none and not set: give "
+            "joint_vel_noise_std too" in str(info.value.code))

@@ -15,7 +15,8 @@ could reach were everything but the physics free; ``train / ceiling`` stands bes
 ``ppo.overlap_update`` only the steps that ran while no update ran beside them count (each update's span is recorded
 on its stream), so the ceiling is the physics alone. It needs the eager env step (at 4,096 envs and more the
 trainer's default), one rank. It also splits the host's time between two rollouts (:func:`update_host_split`): queuing
-the update, waiting for it, and, with the overlap, the update's GPU span on its side stream.
+the update, waiting for it, and, with the overlap, the update's GPU span on its side stream; within each launch,
+the host's time in each mini-batch call and what the CUDA caching allocator did.
 
     python -m lab.benchmarks.train_throughput --num_envs 4096 16384 --ceiling --name train_over_ceiling
 """
@@ -71,6 +72,7 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                 def __init__(self, *args, **kwargs):
                     super().__init__(*args, **kwargs)
                     self.spans, self.launch_s, self.finish_s, self.calls, self.allocs = [], [], [], [], []
+                    self.launching = False
                     # Before any rollout or update: every later event of either stream comes after it.
                     self.origin = (torch.cuda.current_stream(self.device).record_event(
                         torch.cuda.Event(enable_timing=True)) if self.stream is not None else None)
@@ -79,8 +81,11 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                 def launch(self, *args, **kwargs):
                     self.calls.append([])  # TimedStep fills it while this launch runs the update's mini-batches
                     before = allocator_counts(self.device)
-                    t = time.perf_counter()
-                    super().launch(*args, **kwargs)
+                    t, self.launching = time.perf_counter(), True
+                    try:
+                        super().launch(*args, **kwargs)
+                    finally:
+                        self.launching = False
                     self.launch_s.append(time.perf_counter() - t)
                     after = allocator_counts(self.device)
                     self.allocs.append({k: after[k] - before[k] for k in after})
@@ -104,7 +109,7 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                 def _timed(self, call, arg):
                     t = time.perf_counter()
                     out = call(arg)
-                    if overlaps and overlaps[0].calls:
+                    if overlaps and overlaps[0].launching:  # a call outside a launch is no part of one
                         overlaps[0].calls[-1].append(time.perf_counter() - t)
                     return out
 
