@@ -145,13 +145,20 @@ def sensor_overrides(items: list[str]) -> dict[str, float | None]:
     return out
 
 
-def with_sensors(randomize: str, contract: dict, overrides: dict):
-    """The randomisation ``randomize`` names for a policy of ``contract``, its sensor settings replaced field by field
-    by ``overrides`` (``randomize`` itself when there are none). ``ValueError`` for a clip given for a signal left
-    without noise: it would do nothing, yet be reported."""
+def with_sensors(randomize: str, runtime: PolicyRuntime, overrides: dict):
+    """The randomisation ``randomize`` names for ``runtime``'s policy, its sensor settings replaced field by field by
+    ``overrides`` (``randomize`` itself when there are none). ``ValueError``, before the run (and a viewer's page),
+    for a bias or noise on a signal the policy does not observe and for a clip given for a signal left without
+    noise: either would do nothing, yet be reported."""
     if not overrides:
         return randomize
-    chosen = resolve_randomization(randomize, contract)
+    observed = runtime.observation.signals
+    unread = [f for f, v in overrides.items() if not f.endswith("_clip") and v
+              and f.removesuffix("_noise_std").removesuffix("_bias") not in observed]
+    if unread:
+        raise ValueError(f"--sensor {unread[0]}: this policy does not observe that signal (it observes "
+                         f"{', '.join(sorted(observed))}); leave it out")
+    chosen = resolve_randomization(randomize, runtime.contract)
     sensors = dataclasses.replace(chosen.sensors, **overrides)
     idle = [f for f in overrides if f.endswith("_noise_clip") and overrides[f] is not None
             and getattr(sensors, f.replace("_clip", "_std")) == 0]
@@ -217,7 +224,7 @@ def main(argv: list[str] | None = None) -> dict:
         # The whole policy (contract, the .onnx that runs and its hash, onnxruntime, motion) is checked before a
         # page is served: a failure after the URL is printed would leave a page that never shows a robot.
         runtime = PolicyRuntime(args.contract, onnx=args.onnx)
-        randomize = with_sensors(args.randomize, runtime.contract, sensors)
+        randomize = with_sensors(args.randomize, runtime, sensors)
         dt, draw = float(runtime.contract["timing"]["control_dt_s"]), None
         pushes = (PushSettings(count=args.pushes, speed=(args.push_speed, args.push_speed), kind=args.push_kind)
                   if args.pushes else None)

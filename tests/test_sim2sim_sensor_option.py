@@ -62,7 +62,8 @@ def test_noise_on_a_signal_the_policy_does_not_observe_is_one_error_line(capsys)
     with pytest.raises(SystemExit) as info:
         load_recipe("sim2sim").main(["--contract", str(CONTRACT), "--seconds", "0.02", "--num_robots", "1",
                                      "--sensor", "base_lin_vel_noise_std=0.01"])
-    assert "perturbs ['base_lin_vel'], which this policy does not observe" in str(info.value.code)
+    assert ("--sensor base_lin_vel_noise_std: this policy does not observe that signal (it observes base_rpy, "
+            in str(info.value.code))
 
 
 @needs_contract
