@@ -57,20 +57,17 @@ def test_sensor_items_change_the_set_field_by_field_and_the_metrics_say_so(capsy
 
 
 @needs_contract
-def test_noise_on_a_signal_the_policy_does_not_observe_is_one_error_line(capsys):
+@pytest.mark.parametrize("item, message", [
     # This policy does not read the pelvis velocity: noise on it would change nothing and look like a result.
-    with pytest.raises(SystemExit) as info:
-        load_recipe("sim2sim").main(["--contract", str(CONTRACT), "--seconds", "0.02", "--num_robots", "1",
-                                     "--sensor", "base_lin_vel_noise_std=0.01"])
-    assert ("--sensor base_lin_vel_noise_std: this policy does not observe that signal (it observes base_rpy, "
-            in str(info.value.code))
-
-
-@needs_contract
-def test_a_clip_of_a_noise_that_stays_off_is_refused(capsys):
+    ("base_lin_vel_noise_std=0.01",
+     "--sensor base_lin_vel_noise_std: this policy does not observe that signal (it observes base_rpy, "),
     # It would change nothing, yet the metrics would list it among the perturbations.
+    ("joint_vel_noise_clip=0.1",
+     "--sensor joint_vel_noise_clip clips a noise that is off in --randomize none and not set: give "
+     "joint_vel_noise_std too"),
+])
+def test_a_sensor_item_that_would_change_nothing_is_one_error_line(item, message):
     with pytest.raises(SystemExit) as info:
         load_recipe("sim2sim").main(["--contract", str(CONTRACT), "--seconds", "0.02", "--num_robots", "1",
-                                     "--sensor", "joint_vel_noise_clip=0.1"])
-    assert ("--sensor joint_vel_noise_clip clips a noise that is off in --randomize none and not set: give "
-            "joint_vel_noise_std too" in str(info.value.code))
+                                     "--sensor", item])
+    assert message in str(info.value.code)
