@@ -16,7 +16,8 @@ could reach were everything but the physics free; ``train / ceiling`` stands bes
 on its stream), so the ceiling is the physics alone. It needs the eager env step (at 4,096 envs and more the
 trainer's default), one rank. It also splits the host's time between two rollouts (:func:`update_host_split`): queuing
 the update, waiting for it, and, with the overlap, the update's GPU span on its side stream; within each launch,
-the host's time in each mini-batch call and what the CUDA caching allocator did.
+the host's time in each mini-batch call, what the CUDA caching allocator did and how many rollout steps the GPU had
+still to run; and the device's time between two rollouts against that between two steps (:func:`rollout_gaps`).
 
     python -m lab.benchmarks.train_throughput --num_envs 4096 16384 --ceiling --name train_over_ceiling
 """
@@ -72,6 +73,9 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                 def __init__(self, *args, **kwargs):
                     super().__init__(*args, **kwargs)
                     self.spans, self.launch_s, self.finish_s, self.calls, self.allocs = [], [], [], [], []
+                    #: per launch once the physics is recorded: the recorded steps before it (where the next
+                    #: rollout's first step will be) and how many of them the GPU had not finished yet.
+                    self.boundaries, self.pending = [], []
                     self.launching = False
                     # Before any rollout or update: every later event of either stream comes after it.
                     self.origin = (torch.cuda.current_stream(self.device).record_event(
@@ -80,6 +84,9 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
 
                 def launch(self, *args, **kwargs):
                     self.calls.append([])  # TimedStep fills it while this launch runs the update's mini-batches
+                    if physics.spans:  # is the host ahead of the GPU as it starts to queue the update?
+                        self.boundaries.append(len(physics.spans))
+                        self.pending.append(steps_pending(physics.spans))
                     before = allocator_counts(self.device)
                     t, self.launching = time.perf_counter(), True
                     try:
@@ -161,7 +168,8 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                 record["update_ms_last"] = common.elapsed_ms(*update_marks[-1], at.type == "cuda")
             record.update(physics_ms_per_policy_step=ms, physics_steps_timed=alone,
                           physics_steps_recorded=len(physics.spans), ceiling_env_steps_per_s=top,
-                          ratio_train_over_ceiling=rate / top if rate else None, **update_host_split(overlaps))
+                          ratio_train_over_ceiling=rate / top if rate else None, **update_host_split(overlaps),
+                          **rollout_gaps(physics, overlaps[0].boundaries if overlaps else []))
     raw = common.raw_policy_steps_per_second(n, raw_steps, device) if raw_steps else None
     rate = record.get("train_env_steps_per_s")
     return {**record, "raw_policy_steps_per_s": raw,
@@ -176,8 +184,10 @@ def update_host_split(overlaps: list) -> dict[str, float]:
     its start to its end on the side stream, time it waited beside the rollout included (the events have completed:
     :func:`uncontended_ms` synchronised). Within each launch: ``update_calls`` mini-batch calls, the slowest one's
     host time ``update_call_max_ms`` and ``update_calls_over_1ms`` (with the update captured a call only copies its
-    indices and launches a replay, microseconds), and on CUDA ``update_launch_<counter>``: what the caching allocator
-    did while the host queued it (:data:`ALLOCATOR_COUNTS`). Empty without updates."""
+    indices and launches a replay, microseconds), on CUDA ``update_launch_<counter>``: what the caching allocator
+    did while the host queued it (:data:`ALLOCATOR_COUNTS`), and ``update_launch_steps_pending``: the rollout's
+    simulator steps the GPU had still to run as the host began (:func:`steps_pending`; 0 off CUDA; launches before
+    the physics is recorded are not counted). Empty without updates."""
     if not overlaps:
         return {}
     o = overlaps[0]
@@ -196,7 +206,33 @@ def update_host_split(overlaps: list) -> dict[str, float]:
                    update_calls=_median_middle([len(c) for c in calls]))
     for key in sorted({k for a in getattr(o, "allocs", []) for k in a}):
         out[f"update_launch_{key}"] = _median_middle([a.get(key, 0) for a in o.allocs])
+    out["update_launch_steps_pending"] = _median_middle(getattr(o, "pending", []))
     return {k: v for k, v in out.items() if v is not None}
+
+
+def steps_pending(spans: list[tuple], last: int = 64) -> int:
+    """How many of the ``last`` recorded simulator steps (``(start, end)`` marks of :func:`common.stamp`) the GPU has
+    not finished yet: how far ahead of the GPU the host is. Asks each end event without waiting for it; 0 off CUDA
+    (the host's clock marks a step once it has run)."""
+    return sum(1 for _, end in spans[-last:] if hasattr(end, "query") and not end.query())
+
+
+def rollout_gaps(physics: solver_load.Recorder, boundaries: list[int]) -> dict[str, float]:
+    """The device's time between two rollouts against its time between two steps of one, medians in ms:
+    ``rollout_gap_ms`` from the end of a rollout's last simulator step to the start of the next rollout's first
+    (``boundaries``: the index of each rollout's first recorded step), ``step_gap_ms`` between the steps within a
+    rollout (the policy, rewards, observations and resets). Had the GPU waited for the host while it queued the update,
+    the first would hold that wait; otherwise only the work queued between two rollouts on their stream (and, with the
+    update inline, the update). The marks must have completed (:func:`uncontended_ms` synchronised)."""
+    spans = physics.spans
+    cuts = {b for b in boundaries if 0 < b < len(spans)}
+
+    def gap(i: int) -> float:
+        return common.elapsed_ms(spans[i - 1][1], spans[i][0], physics.cuda)
+
+    out = {"rollout_gap_ms": [gap(i) for i in sorted(cuts)],
+           "step_gap_ms": [gap(i) for i in range(1, len(spans)) if i not in cuts]}
+    return {k: float(statistics.median(v)) for k, v in out.items() if v}
 
 
 def _median_middle(values: list) -> float | None:

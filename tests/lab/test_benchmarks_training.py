@@ -153,11 +153,39 @@ def test_the_host_split_takes_medians_without_the_first_and_the_last_update():
     # Per launch, the host's time in each mini-batch call and the allocator's counts: medians over the middle updates.
     calls = [[0.05, 0.05], [1e-5, 0.2, 1e-5], [2e-5, 2e-5, 0.002], [0.3]]
     allocs = [{"num_device_alloc": 9}, {"num_device_alloc": 2}, {"num_device_alloc": 4}, {"num_device_alloc": 0}]
-    traced = SimpleNamespace(launch_s=[1.0, 0.3, 0.01, 0.4], finish_s=[0.0] * 4, spans=[], calls=calls, allocs=allocs)
+    traced = SimpleNamespace(launch_s=[1.0, 0.3, 0.01, 0.4], finish_s=[0.0] * 4, spans=[], calls=calls, allocs=allocs,
+                             pending=[0, 3, 1, 2, 0])
     split = train_throughput.update_host_split([traced])
     assert split["update_calls"] == 3 and split["update_calls_over_1ms"] == 1
     assert split["update_call_max_ms"] == pytest.approx(101.0)  # the median of the middle updates' 200 and 2 ms
     assert split["update_launch_num_device_alloc"] == 3
+    assert split["update_launch_steps_pending"] == 2  # the median of the middle launches' 3, 1 and 2 steps
+
+
+class _Event(_Mark):
+    """A CUDA event's face: reached (the GPU ran past it) or not yet."""
+
+    def __init__(self, at, done=True):
+        super().__init__(at)
+        self.done = done
+
+    def query(self):
+        return self.done
+
+
+def test_the_steps_the_gpu_has_still_to_run_and_the_gaps_between_rollouts():
+    # Two rollouts of three steps on one clock (ms): within a rollout the steps are 1 ms apart, between the two 50 ms
+    # (the boundary: the second rollout starts at recorded step 3).
+    starts = [0.0, 3.0, 6.0, 58.0, 61.0, 64.0]
+    physics = SimpleNamespace(cuda=True, spans=[(_Event(t), _Event(t + 2.0)) for t in starts])
+    gaps = train_throughput.rollout_gaps(physics, [0, 3, 6])  # 0 and 6 bound nothing recorded on both sides
+    assert gaps == pytest.approx({"rollout_gap_ms": 50.0, "step_gap_ms": 1.0})
+    assert train_throughput.rollout_gaps(physics, []) == pytest.approx({"step_gap_ms": 1.0})
+    # The host is two steps ahead when the last two end events are not reached; host clocks never are.
+    physics.spans[-1][1].done = physics.spans[-2][1].done = False
+    assert train_throughput.steps_pending(physics.spans) == 2
+    assert train_throughput.steps_pending(physics.spans, last=1) == 1
+    assert train_throughput.steps_pending([(0.0, 0.001), (0.002, 0.003)]) == 0
 
 
 def test_train_throughput_ceiling_times_the_physics_of_the_timed_iterations_in_place(tmp_path):
@@ -178,6 +206,10 @@ def test_train_throughput_ceiling_times_the_physics_of_the_timed_iterations_in_p
     # quarter) x 5 epochs; eager on the CPU, each call runs its step, so none is free. No CUDA allocator off CUDA.
     assert r["update_calls"] == 20 and 0 < r["update_call_max_ms"] <= r["update_launch_ms"]
     assert not [k for k in r if k.startswith("update_launch_num_")]
+    # Host clocks mark a step once it has run: the host is never ahead of them. Between the two timed rollouts the
+    # update ran (on the CPU the launch runs it), so the gap there is longer than between two steps.
+    assert r["update_launch_steps_pending"] == 0
+    assert r["rollout_gap_ms"] > r["step_gap_ms"] > 0
     assert r["ceiling_env_steps_per_s"] == pytest.approx(8e3 / r["physics_ms_per_policy_step"])
     # The physics is part of the training step: training cannot outrun it.
     assert 0 < r["ratio_train_over_ceiling"] < 1
