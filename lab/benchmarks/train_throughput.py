@@ -68,13 +68,14 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
             class RecordedOverlap(common.trainer.UpdateOverlap):
                 """The trainer's updates (inline or ``ppo.overlap_update``'s), with the spans they ran in on the side
                 stream, the host's time in each launch (queuing the update) and each finish (waiting for it), and,
-                per launch, the host's time in each mini-batch call and what the CUDA caching allocator did."""
+                per launch, the host's time in each mini-batch call, what the CUDA caching allocator did and, once the
+                physics is recorded, where the next rollout's steps begin and how far the GPU was behind."""
 
                 def __init__(self, *args, **kwargs):
                     super().__init__(*args, **kwargs)
                     self.spans, self.launch_s, self.finish_s, self.calls, self.allocs = [], [], [], [], []
                     #: per launch once the physics is recorded: the recorded steps before it (where the next
-                    #: rollout's first step will be) and how many of them the GPU had not finished yet.
+                    #: rollout's first step will be) and how many of the last 64 the GPU had not finished yet.
                     self.boundaries, self.pending = [], []
                     self.launching = False
                     # Before any rollout or update: every later event of either stream comes after it.
