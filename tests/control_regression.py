@@ -19,7 +19,7 @@ CASES = {
     "pd": ("default", {"mode": "pd"}, None),
     "torque": ("reference", {}, None),
     "torque_assist": ("torque_ideal", {"torque_assist": True}, 0.4),
-    "model_based": ("model_based", {}, None),
+    "model_based": ("model_based_ideal", {}, None),
 }
 NUM_ENVS, STEPS, EPISODE_STEPS, SEED = 4, 24, 10, 3
 #: What is recorded after every step (the transformed env's keys under "next").

@@ -71,11 +71,12 @@ def test_fixed_statistics_cover_the_43_values():
 
 def test_the_config_names_the_layout_and_checks_it():
     assert field_choices()["transforms.observation"] == ("reference", "base_vel")
-    cfg = preset_config("torque")  # the preset for the real robot senses the pelvis velocity
-    assert cfg.transforms.transform_config().obs_layout == BASE_VEL_OBS_LAYOUT
-    assert config_from_dict(cfg.to_dict()) == cfg
+    for name in ("torque", "model_based"):  # the presets for the real robot sense the pelvis velocity
+        cfg = preset_config(name)
+        assert cfg.transforms.transform_config().obs_layout == BASE_VEL_OBS_LAYOUT, name
+        assert config_from_dict(cfg.to_dict()) == cfg
     # Every other preset keeps the reference's observation, the shipped policies' input.
-    for name in ("default", "robust", "torque_ideal", "model_based", "reference", "cpu_smoke"):
+    for name in ("default", "robust", "torque_ideal", "model_based_ideal", "reference", "cpu_smoke"):
         assert preset_config(name).transforms.transform_config().obs_layout == REFERENCE_OBS_LAYOUT, name
     with pytest.raises((ValueError, ConfigError), match=r"transforms\.observation.*'base_vel'"):
         preset_config("torque", **{"transforms.observation": "velocity"})

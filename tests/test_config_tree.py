@@ -21,6 +21,7 @@ from tocabi_torchrl.config import (
     RunConfig,
     config_from_dict,
     preset_config,
+    preset_now,
     preset_tree,
 )
 from tocabi_torchrl.envs import TocabiWalkConfig
@@ -52,7 +53,7 @@ FROZEN_PATHS = {
 }
 
 #: Presets added after the tree, so without a flat config of before it to match (their own tests build them).
-ADDED_AFTER_THE_TREE = {"model_based", "robust", "torque"}
+ADDED_AFTER_THE_TREE = {"model_based", "model_based_ideal", "robust", "torque"}
 #: Frozen presets renamed since: the name then -> the name now (the perfect-robot torque recipe, once "torque").
 RENAMED = {"torque": "torque_ideal"}
 
@@ -235,6 +236,24 @@ def test_the_torque_records_that_walk_were_trained_with_the_committed_torque_pre
         assert to_dict(getattr(trained, section)) == to_dict(getattr(preset, section)), section
     assert trained.preset == "torque" and trained.seed == seed and preset.seed == 0
     assert preset.transforms.observation == "base_vel"
+
+
+def test_the_model_based_record_that_walks_was_trained_with_the_committed_model_based_preset():
+    # The run set the preset's values on the command line over the robust preset (its saved preset is "robust"): the
+    # env, transforms and PPO sections must be the preset's, else the record is of another recipe.
+    record = Path(__file__).resolve().parents[1] / "docs" / "training" / "model_based" / "h100_robust_seed0"
+    trained = config_from_dict(json.loads((record / "config.json").read_text()))
+    preset = preset_config("model_based")
+    for section in ("env", "transforms", "ppo"):
+        assert to_dict(getattr(trained, section)) == to_dict(getattr(preset, section)), section
+    assert trained.preset == "robust" and trained.seed == 0 and preset.seed == 0
+    # The computed-torque law, with no torque assist: the feed-forward law is the prior.
+    assert preset.env.control.mode == "model_based" and preset.ppo.torque_assist == 0
+
+
+def test_records_of_the_model_based_preset_of_before_the_rename_read_as_model_based_ideal():
+    assert preset_now("model_based", "2026-12-05") == "model_based_ideal"
+    assert preset_now("model_based", "2026-12-06") == "model_based"
 
 
 def test_a_tree_saved_before_the_renames_reads_by_the_new_names():

@@ -306,12 +306,16 @@ def test_preset_round_trips_through_the_tree_a_tiny_run_and_its_checkpoint(tmp_p
     from tocabi_torchrl.rl.config import parse_args
     from tocabi_torchrl.rl.trainer import build_env, train
 
-    cfg = preset_config("model_based")
-    assert cfg.env.control.mode == "model_based" and cfg.ppo.torque_assist == 0.0
-    # The preset's residual has the PD-residual modes' authority: 0.5 rad of the robot's Kp per action unit.
-    assert cfg.env.control.mb_residual_gain == tuple(0.5 * float(k) for k in robot.LEG_KP)
+    # The robust recipe on the computed-torque law, and the perfect-robot recipe of before it.
+    cfg, ideal = preset_config("model_based"), preset_config("model_based_ideal")
+    for preset in (cfg, ideal):
+        assert preset.env.control.mode == "model_based" and preset.ppo.torque_assist == 0.0
+        # The residual has the PD-residual modes' authority: 0.5 rad of the robot's Kp per action unit.
+        assert preset.env.control.mb_residual_gain == tuple(0.5 * float(k) for k in robot.LEG_KP)
+        assert config_from_dict(json.loads(json.dumps(preset.to_dict()))) == preset
+    assert cfg.env.pushes.count == 16 and cfg.env.dynamics.enabled and cfg.transforms.sensor_noise.enabled
+    assert ideal.env.pushes.count == 0 and not ideal.env.dynamics.enabled and ideal.env.num_envs == 4096
     assert ControlConfig().mb_residual_gain == tuple(LIMITS)
-    assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
     parsed, _ = parse_args(["--preset", "model_based", "--env.control.mb_zeta", *["1.0"] * 12,
                             "--env.control.mb_ref_window", "0.004"])
     assert parsed.env.control.mb_zeta == (1.0,) * 12 and parsed.env.control.mb_ref_window == 0.004
@@ -320,7 +324,7 @@ def test_preset_round_trips_through_the_tree_a_tiny_run_and_its_checkpoint(tmp_p
                          "ppo.minibatch_size": 16},
                          total_env_steps=64, run_dir=str(tmp_path), name="mb", checkpoint_every=1, progress_bar=False,
                          eval_at_end=False, **{"ppo.actor_hidden": (16,), "ppo.critic_hidden": (16,),
-                                               "env.control.mb_zeta": (0.9,) * 12})
+                                               "env.control.mb_zeta": (0.9,) * 12, "ppo.push_ramp": (0, 64)})
     result = train(tiny)
     assert result.iterations == 2 and result.env_steps == 64
     path = tmp_path / "mb" / "checkpoints" / "latest.pt"

@@ -338,12 +338,12 @@ def test_shipped_policy_walks_on_the_cpu_backend(tmp_path):
     assert summary["knee_rms_rad"] < 0.15
 
 
-@pytest.mark.parametrize("name, mode", [("tocabi_walk_torque.pt", "torque"),
-                                        ("tocabi_walk_model_based.pt", "model_based")])
-def test_shipped_torque_level_policies_walk_on_the_cpu_backend(tmp_path, name, mode):
+@pytest.mark.parametrize("name, mode, now", [("tocabi_walk_torque.pt", "torque", "torque_ideal"),
+                                             ("tocabi_walk_model_based.pt", "model_based", "model_based_ideal")])
+def test_shipped_torque_level_policies_walk_on_the_cpu_backend(tmp_path, name, mode, now):
     """The committed torque-preset policy (12 leg torques + phase rate, no PD on the legs) and model_based-preset
     policy (12 residual leg torques on the computed-torque law + phase rate) walk forward at 0.5 m/s on C MuJoCo
-    (4 robots, 4 s)."""
+    (4 robots, 4 s). Both were trained with their preset's perfect-robot recipe, named ``now`` since."""
     from tocabi_torchrl.rl.checkpoint import config_from_checkpoint, read_checkpoint
     from tocabi_torchrl.evaluation.gait_test import evaluate_run
 
@@ -352,6 +352,7 @@ def test_shipped_torque_level_policies_walk_on_the_cpu_backend(tmp_path, name, m
         pytest.skip(f"shipped policy {name} not present")
     cfg = config_from_checkpoint(read_checkpoint(path))
     assert cfg.env.control.mode == mode and cfg.preset == mode
+    assert cfg.env.control == preset_config(now).env.control
     summary = evaluate_run(path, num_envs=4, device="cpu", seconds=4.0, command=(0.5, 0.0), video_envs=0,
                            out_dir=tmp_path, progress=False)
     assert summary["survival"] == 1.0

@@ -438,7 +438,8 @@ def test_the_replayed_update_step_takes_the_doubled_batch():
 def test_symmetry_is_off_in_every_preset_but_the_robust_recipe_and_not_resume_safe():
     assert field_choices()["ppo.symmetry"] == ("none", "augment", "equivariant")
     for name in PRESETS:  # the robust recipe mirrors its mini-batches for a gait without a sideways bias
-        assert preset_config(name).ppo.symmetry == ("augment" if name in ("robust", "torque") else "none"), name
+        robust_recipe = name in ("robust", "torque", "model_based")
+        assert preset_config(name).ppo.symmetry == ("augment" if robust_recipe else "none"), name
     assert "ppo.symmetry" not in RESUME_SAFE
     with pytest.raises(ValueError, match="ppo.symmetry must be one of"):
         preset_config("cpu_smoke", **{"ppo.symmetry": "mirror"})

@@ -17,9 +17,9 @@ encoder noise                        σ = 0.00016/3 rad, clipped ±0.00016 rad `
 ==================================== ======================================= ======================================
 
 Pushes are separate (``env.pushes``, a training curriculum and the robust gait test's kicks). Every piece is off in
-every preset but ``torque`` and ``robust``, which train with the whole set; :func:`tocabi_lab` switches all of them on
-in a run config or an env config (the sensor noise lives in the run config's transforms section, so an env config
-alone gets the env's share).
+every preset but ``torque``, ``robust`` and ``model_based``, which train with the whole set; :func:`tocabi_lab`
+switches all of them on in a run config or an env config (the sensor noise lives in the run config's transforms
+section, so an env config alone gets the env's share).
 
 >>> from tocabi_torchrl.config import preset_tree
 >>> cfg = tocabi_lab(preset_tree("torque_ideal"))
