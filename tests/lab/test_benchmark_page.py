@@ -282,3 +282,14 @@ def test_the_presets_cost_report_measured_the_committed_presets_step():
     stale = {path: (value, get_path(preset, path)) for path, value in measured.items()
              if get_path(preset, path) != value}
     assert not stale, f"{page.PRESET_COST} measured (value, preset's now): {stale}"
+
+
+def test_a_run_recorded_under_another_preset_is_named_with_the_recipe_it_trained():
+    # The model_based run set its recipe over the robust preset on the command line: the page must not present it
+    # as a run of the robust recipe.
+    page = _page_module()
+    first = page._test_time_to_walk(page.DOCS, page.MODEL_BASED_TIME_TO_WALK, page._DIVERSE_TEST)[0]
+    assert "`robust` (with the overrides below, the `model_based` preset's recipe; seed 0)" in first
+    assert "first passes at **9.5 min**" in first
+    torque = page._test_time_to_walk(page.DOCS, page.TORQUE_TIME_TO_WALK[0], page._DIVERSE_TEST)[0]
+    assert "`torque` (seed 0)" in torque
