@@ -9,8 +9,8 @@ user-defined leg controller: ``TocabiWalk(..., leg_controller=MyLaw())``. docs/c
 from .._lazy import lazy_names
 
 __all__ = ["Actuator", "ActuatorChain", "ActuatorConfig", "AssistedTorque", "ComputedTorqueResidual",
-           "ControlContext", "ControlInput", "Controller", "Delay", "DirectTorque", "Friction", "JointPD",
-           "MotorConstant", "PDHold", "Saturation", "clip_torque"]
+           "ControlContext", "ControlInput", "Controller", "Delay", "DirectTorque", "Friction", "HeldPD",
+           "JointPD", "MotorConstant", "PDHold", "Saturation", "clip_torque"]
 
 # Each name loads its submodule when first read: importing any submodule (a config dataclass for the run config
 # tree and --help) runs this file first, and must not load the torch, torchrl and mujoco-warp code of the others.
@@ -20,5 +20,5 @@ __getattr__, __dir__ = lazy_names(globals(), {
     "computed_torque": ("ComputedTorqueResidual",),
     "config": ("ActuatorConfig",),
     "joint_pd": ("JointPD", "PDHold"),
-    "torque": ("AssistedTorque", "DirectTorque", "clip_torque"),
+    "torque": ("AssistedTorque", "DirectTorque", "HeldPD", "clip_torque"),
 })

@@ -7,7 +7,7 @@ import torch
 from .base import ControlContext, ControlInput, Controller
 from .joint_pd import _finite, _vector
 
-__all__ = ["DirectTorque", "AssistedTorque", "clip_torque"]
+__all__ = ["DirectTorque", "AssistedTorque", "HeldPD", "clip_torque"]
 
 
 def clip_torque(tau: torch.Tensor, limits: torch.Tensor) -> torch.Tensor:
@@ -29,7 +29,20 @@ class DirectTorque(Controller):
         return inp.action * self._limits
 
 
-class AssistedTorque(Controller):
+class _SensedJoints:
+    """A PD at the policy rate that may read the joint positions the robot senses: ``q + q_offset``."""
+
+    def _init_offset(self, ctx: ControlContext) -> None:
+        #: (N, J) rad added to the measured joint positions the PD reads (the sensed encoder bias; 0 = true).
+        self.q_offset = torch.zeros(ctx.num_envs, len(ctx.joint_ids), dtype=torch.float32, device=ctx.device)
+
+    def set_q_offset(self, mask: torch.Tensor, offset: torch.Tensor) -> None:
+        """Worlds ``mask`` (N,) bool read their joint positions as ``q + offset`` ((N, J) rad) from now on (in place,
+        so a captured step follows it)."""
+        torch.where(mask.unsqueeze(-1), offset.to(self.q_offset.dtype), self.q_offset, out=self.q_offset)
+
+
+class AssistedTorque(_SensedJoints, Controller):
     """The torque preset's morph from PD residuals to torques (``env.control.torque_assist``):
     ``clip((1 − β)·a·limit + β·(kp·(q_ref + scale·a − q − b) − kv·q̇), ±limit)`` from the pre-step state.
 
@@ -61,13 +74,7 @@ class AssistedTorque(Controller):
         self._gain = self.gain(0.0).clone()  # (J,) N·m per unit action at assist_scale
         #: (N, J) the action-independent PD over the limits, from the last step's pre-step state.
         self.leg_assist = torch.zeros(n, j, dtype=torch.float32, device=dev)
-        #: (N, J) rad added to the measured joint positions the PD reads (the sensed encoder bias; 0 = true).
-        self.q_offset = torch.zeros(n, j, dtype=torch.float32, device=dev)
-
-    def set_q_offset(self, mask: torch.Tensor, offset: torch.Tensor) -> None:
-        """Worlds ``mask`` (N,) bool read their joint positions as ``q + offset`` ((N, J) rad) from now on (in place,
-        so a captured step follows it)."""
-        torch.where(mask.unsqueeze(-1), offset.to(self.q_offset.dtype), self.q_offset, out=self.q_offset)
+        self._init_offset(ctx)
 
     def gain(self, beta: float | torch.Tensor) -> torch.Tensor:
         """(J,) N·m per unit action at β: ``(1 − β)·limit + β·scale·kp``."""
@@ -90,3 +97,49 @@ class AssistedTorque(Controller):
 
     def signals(self) -> dict[str, torch.Tensor]:
         return {"leg_assist": self.leg_assist}
+
+
+class HeldPD(_SensedJoints, Controller):
+    """PD residuals on the reference walk, computed as torques at the policy rate (``env.control.mode``
+    ``"pd_held"``): ``clip(kp·(q_ref + scale·a − q − b) − kv·q̇, ±limit)`` from the pre-step state, held for the
+    step's substeps like a torque action, so the actuator layer (delay, motor constant, friction) acts on it.
+
+    The torque assist's law at β = 1 (:class:`AssistedTorque`), the action space the torque preset learns in before
+    its fade, as a law of its own that never fades: a ``pd_reference`` servo tracks the same target inside every
+    0.5 ms substep. ``b`` (:attr:`q_offset`, (N, J) rad) is each world's leg encoder bias: on by default, the law reads
+    the joint positions the robot senses (``TocabiWalk.sense_assist_joints``; the SensorNoise transform writes it),
+    as it would on the robot. The ``applied_action`` signal (observation history, torque rewards) is the applied
+    torque over the limits.
+
+    Args:
+        kp, kv: (J,) PD gains [N·m/rad], [N·m·s/rad]; scale: the residual range per unit action [rad].
+
+    >>> import torch
+    >>> from tocabi_torchrl.control import ControlContext, ControlInput, HeldPD
+    >>> law = HeldPD([100.0], [1.0], 0.5, action_dim=1)
+    >>> law.setup(ControlContext(num_envs=2, device=torch.device("cpu"), joint_ids=[0],
+    ...                          joint_range=torch.tensor([[-1.0, 1.0]]), torque_limits=torch.tensor([30.0])))
+    >>> q = torch.zeros(2, 1)
+    >>> law.compute(ControlInput(action=torch.tensor([[0.1], [1.0]]), q=q, qd=q, q_ref=q)).tolist()  # 5 N·m; clipped
+    [[5.0], [30.0]]
+    """
+
+    def __init__(self, kp, kv, scale: float, action_dim: int = 12):
+        self.kp, self.kv = kp, kv
+        self.scale = _finite(scale, "HeldPD scale [rad per action unit]")
+        self.action_dim = action_dim
+
+    def setup(self, ctx: ControlContext) -> None:
+        super().setup(ctx)
+        j, dev = len(ctx.joint_ids), ctx.device
+        self._limits = ctx.torque_limits
+        self._kp = _vector(self.kp, j, dev, "HeldPD kp [N·m/rad]", minimum=0.0)
+        self._kv = _vector(self.kv, j, dev, "HeldPD kv [N·m·s/rad]", minimum=0.0)
+        self._init_offset(ctx)
+
+    def compute(self, inp: ControlInput) -> torch.Tensor:
+        target = inp.q_ref + self.scale * inp.action
+        return clip_torque(self._kp * (target - inp.q - self.q_offset) - self._kv * inp.qd, self._limits)
+
+    def applied_action(self, inp: ControlInput, command: torch.Tensor) -> torch.Tensor:
+        return command / self._limits

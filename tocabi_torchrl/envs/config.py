@@ -21,10 +21,10 @@ __all__ = ["TocabiWalkConfig", "EnvSimConfig", "TaskConfig", "ControlConfig", "S
            "ENV_FLAT_PATHS", "CONTROL_MODES", "TORQUE_MODES", "UPPER_BODY_LAWS", "MB_OMEGA", "BACKENDS",
            "CPU_DEFAULT_BACKEND", "resolve_backend"]
 
-CONTROL_MODES = ("torque", "pd", "pd_reference", "model_based")
+CONTROL_MODES = ("torque", "pd", "pd_reference", "model_based", "pd_held")
 #: The modes whose leg actuators are torque motors (the env computes the torque); the others make them MuJoCo
 #: position servos.
-TORQUE_MODES = ("torque", "model_based")
+TORQUE_MODES = ("torque", "model_based", "pd_held")
 #: The upper body's control laws (``env.control.upper_body``): its servos hold the reference walk's pose.
 UPPER_BODY_LAWS = ("pd_hold",)
 #: Physics backends: mujoco-warp (``WarpSim``, GPU or warp's CPU device) or C MuJoCo on CPU threads (``MujocoSim``).
@@ -239,11 +239,15 @@ class ControlConfig:
         is the half-width of the central differences that give q̇_ref and q̈_ref. ``mb_residual_gain`` is g [N·m
         per action unit], per leg joint: by default the torque limits (as in torque mode); the ``model_based``
         preset gives it the PD-residual modes' authority, :data:`MB_RESIDUAL_GAIN_PD`.
+      - ``"pd_held"``: the ``pd_reference`` target tracked by a PD computed once per policy step from the pre-step
+        state and held as a torque, ``clip(pd_kp·(q_ref + pd_action_scale·a − q − b) − pd_kv·q̇, ±limit)``
+        (:class:`~tocabi_torchrl.control.HeldPD`): the torque assist's law at β = 1, without the fade. ``b`` is each
+        world's leg encoder bias (the law reads the positions the robot senses); the actuator layer acts on it.
     The upper body is held at the reference pose by MuJoCo position servos in every mode. The gains default to the
     robot controller's (:data:`PD_GAINS` ``"robot"``); in the torque modes no PD acts and they are unused. In
     ``model_based`` mode the leg entries of ``applied_action`` (observation history, torque rewards) and
     ``leg_torque`` are the applied torque (over the limits / in N·m), as with ``torque_assist``; the ``leg_feedforward``
-    signal is τ_ff.
+    signal is τ_ff. So are they in ``pd_held`` mode.
 
     ``torque_assist`` (torque mode only) is a training aid that morphs the action space: the leg torque is
     ``(1 − β)·a·limit + β·(pd_kp·(q_ref + pd_action_scale·a − q) − pd_kv·q̇)`` (clipped to the limits), so at β = 1
@@ -258,7 +262,8 @@ class ControlConfig:
 
     mode: str = "pd_reference"
     """what the 12 leg actions command: pd_reference (residuals on the reference walk's PD targets), pd (PD targets
-    around a fixed pose), torque, or model_based (residual torques on a computed-torque law)"""
+    around a fixed pose), torque, model_based (residual torques on a computed-torque law) or pd_held (pd_reference's
+    targets through a PD computed at the policy rate and held as a torque)"""
     pd_kp: tuple[float, ...] = PD_GAINS["robot"][0]
     """leg PD stiffness per joint [N·m/rad] (PD modes, torque assist); default: the robot's, TocabiLab used Kp/9"""
     pd_kv: tuple[float, ...] = PD_GAINS["robot"][1]

@@ -3,8 +3,8 @@ by :class:`~tocabi_torchrl.control.PDHold`, and ``env.control.actuators`` is the
 
 from __future__ import annotations
 
-from ..control import (ActuatorChain, AssistedTorque, ComputedTorqueResidual, Controller, DirectTorque, JointPD,
-                       PDHold)
+from ..control import (ActuatorChain, AssistedTorque, ComputedTorqueResidual, Controller, DirectTorque, HeldPD,
+                       JointPD, PDHold)
 from .config import ControlConfig
 from .model_based import ComputedTorque
 
@@ -17,6 +17,8 @@ def leg_law(control: ControlConfig) -> Controller:
         return AssistedTorque(control.pd_kp, control.pd_kv, control.pd_action_scale)
     if control.mode == "torque":
         return DirectTorque()
+    if control.mode == "pd_held":
+        return HeldPD(control.pd_kp, control.pd_kv, control.pd_action_scale)
     if control.mode == "model_based":
         def make_law(ctx):
             return ComputedTorque(control, ctx.motion, ctx.sim.mj_model, ctx.num_envs, ctx.device, ctx.dt)

@@ -313,8 +313,9 @@ class TocabiWalk(EnvBase):
         #: Counts changes of the Python-side settings a captured step reads (today: whether some world is ideal,
         #: :meth:`set_randomized_worlds`); ``SyncFreeResetEnv`` captures its step again when it moves.
         self.graph_settings = 0
-        #: Whether the torque assist's PD reads the sensed joint positions (:meth:`sense_assist_joints`).
-        self.assist_reads_sensed = False
+        #: Whether the legs' PD at the policy rate (the torque assist's, or ``pd_held``'s) reads the sensed joint
+        #: positions (:meth:`sense_assist_joints`): from the start in ``pd_held`` mode, whose law is the robot's own.
+        self.assist_reads_sensed = self.cfg.control.mode == "pd_held" and hasattr(self.leg_controller, "set_q_offset")
         self._init_buffers()
         #: The reduced reset pass (``env.sim.reset_pass="reduced"``, mujoco-warp only): the start states, one per
         #: start row of the reference motion, are registered with the simulator here.
@@ -645,8 +646,8 @@ class TocabiWalk(EnvBase):
         self.leg_controller.set_beta(float(scale))
 
     def sense_assist_joints(self, on: bool = True) -> None:
-        """Make the torque assist's PD read the leg joint positions the policy senses, biased encoders included
-        (``on``), or the true ones again.
+        """Make the torque assist's PD (or ``pd_held`` mode's) read the leg joint positions the policy senses, biased
+        encoders included (``on``), or the true ones again.
 
         The env's ``SensorNoise`` transform (``transforms.sensor_noise``), which draws each world's encoder bias at
         every reset, then writes the legs' part of it into the PD's offset too (``leg_controller.q_offset``, (N, 12)
@@ -672,9 +673,9 @@ class TocabiWalk(EnvBase):
         >>> tuple(offset.shape), bool(offset.abs().max() <= 3.1416 / 100), bool(offset.abs().sum() > 0)
         ((2, 12), True, True)
         """
-        if not self.cfg.control.torque_assist:
-            raise RuntimeError("sense_assist_joints needs an env built with torque_assist=True (torque mode): only the "
-                               "torque assist's PD reads joint positions")
+        if not hasattr(self.leg_controller, "set_q_offset"):
+            raise RuntimeError("sense_assist_joints needs an env built with torque_assist=True (torque mode) or in "
+                               "pd_held mode: only their PD at the policy rate reads joint positions")
         self.assist_reads_sensed = bool(on)
         if not on:
             self.leg_controller.set_q_offset(self._all, torch.zeros_like(self.leg_controller.q_offset))

@@ -201,8 +201,8 @@ def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, ou
     leg_ids = [model.joint(n).id for n in robot.JOINT_NAMES[:n_leg]]
     limits = [float(v) for v in robot.LEG_TORQUE_LIMITS]
     if cfg.control.mode not in ("torque", "pd", "pd_reference"):
-        # The runtime (numpy + onnxruntime, runtime/policy.py) has no computed-torque law yet: a contract would
-        # describe an action the deployed controller cannot apply.
+        # The runtime (numpy + onnxruntime, runtime/policy.py) has no computed-torque or held-PD law yet: a contract
+        # would describe an action the deployed controller cannot apply.
         raise ValueError(f"control mode {cfg.control.mode!r} cannot be exported yet: the contract and the torch-free "
                          "runtime describe only the torque, pd and pd_reference modes")
     if cfg.control.mode == "torque":
