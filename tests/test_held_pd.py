@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -113,3 +115,27 @@ def test_pd_held_policies_are_refused_by_the_export_by_name():
     policy = SimpleNamespace(env=SimpleNamespace(base_env=TocabiWalk(num_envs=1, device="cpu", control_mode="pd_held")))
     with pytest.raises(ValueError, match="control mode 'pd_held' cannot be exported yet"):
         build_contract(policy, "p.onnx", "0" * 64, "obs", "action", 17)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_gpu_pd_held_step_and_reset_never_sync():
+    # The law and its sensed offset (written by the SensorNoise transform at each reset) stay on the device.
+    from tocabi_torchrl import make_env
+    from tocabi_torchrl.envs import TocabiWalkConfig
+    from tocabi_torchrl.transforms import SensorNoiseConfig
+
+    cfg = TocabiWalkConfig()
+    cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode="pd_held"))
+    env = make_env(num_envs=64, device="cuda", config=cfg, sensor_noise=SensorNoiseConfig.tocabi_lab())
+    td = env.reset()
+    action = torch.zeros(64, 13, device="cuda")
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(3):
+            td["action"] = action
+            _, td = env.step_and_maybe_reset(td)
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    assert bool((env.base_env.leg_controller.q_offset != 0).any())
