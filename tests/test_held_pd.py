@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 import torch
 
@@ -100,8 +98,13 @@ def test_sensing_can_be_turned_off_and_other_modes_refuse_it():
 
     env = TocabiWalk(num_envs=2, device="cpu", control_mode="pd_held")
     assert env.assist_reads_sensed
+    settings = env.graph_settings
+    env.sense_assist_joints(True)  # no change: a captured step stays valid
+    assert env.graph_settings == settings
     env.sense_assist_joints(False)
     assert not env.assist_reads_sensed and bool((env.leg_controller.q_offset == 0).all())
+    # A captured masked reset holds the flag (SensorNoise reads it there): the env asks for a new capture.
+    assert env.graph_settings == settings + 1
     with pytest.raises(RuntimeError, match="torque_assist=True \\(torque mode\\) or in pd_held mode"):
         TocabiWalk(num_envs=1, device="cpu", control_mode="pd_reference").sense_assist_joints()
 
@@ -119,23 +122,23 @@ def test_pd_held_policies_are_refused_by_the_export_by_name():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_gpu_pd_held_step_and_reset_never_sync():
-    # The law and its sensed offset (written by the SensorNoise transform at each reset) stay on the device.
-    from tocabi_torchrl import make_env
-    from tocabi_torchrl.envs import TocabiWalkConfig
-    from tocabi_torchrl.transforms import SensorNoiseConfig
+@pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # a failed capture or an eager fallback fails the test
+def test_gpu_captured_pd_held_step_follows_the_sensed_bias_and_never_syncs():
+    """The captured step replays the eager one, the law and the sensed offset the SensorNoise transform writes at
+    each masked reset included (episodes of 4 steps: every world resets in the 12), with no host sync."""
+    from captured_vs_eager import assert_captured_equals_eager
 
-    cfg = TocabiWalkConfig()
-    cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode="pd_held"))
-    env = make_env(num_envs=64, device="cuda", config=cfg, sensor_noise=SensorNoiseConfig.tocabi_lab())
-    td = env.reset()
-    action = torch.zeros(64, 13, device="cuda")
-    torch.cuda.synchronize()
-    torch.cuda.set_sync_debug_mode("error")
-    try:
-        for _ in range(3):
-            td["action"] = action
-            _, td = env.step_and_maybe_reset(td)
-    finally:
-        torch.cuda.set_sync_debug_mode(0)
-    assert bool((env.base_env.leg_controller.q_offset != 0).any())
+    from tocabi_torchrl.transforms import SensorNoise, SensorNoiseConfig
+
+    envs = {}
+
+    def keep(i, eager, graphed):
+        envs.update(eager=eager, graphed=graphed)
+
+    assert_captured_equals_eager(dict(num_envs=64, device="cuda", seed=3, control_mode="pd_held", max_episode_steps=4,
+                                      sensor_noise=SensorNoiseConfig.tocabi_lab()),
+                                 ("leg_torque", "observation", "reward"), before_step=keep)
+    for env in envs.values():
+        noise = next(t for t in env.transform if isinstance(t, SensorNoise))
+        torch.testing.assert_close(env.base_env.leg_controller.q_offset, noise.biases["joint_pos"][:, :12],
+                                   rtol=0, atol=0)

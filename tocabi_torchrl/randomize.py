@@ -62,7 +62,7 @@ def tocabi_lab(cfg: Config) -> Config:
     """``cfg`` (a ``RunConfig``, or a ``TocabiWalkConfig``) with the TOCABI lab's uncertainty model switched on.
 
     The actuator stages act on torque commands only: the env config refuses them in the PD modes, so use it with a
-    torque-level control mode (``torque``, ``model_based``)."""
+    torque-level control mode (``torque``, ``model_based``, ``pd_held``)."""
     if dataclasses.is_dataclass(cfg) and hasattr(cfg, "env") and hasattr(cfg, "transforms"):
         return replace_paths(cfg, tocabi_lab_paths())
     return replace_paths(cfg, {path.removeprefix("env."): value

@@ -182,12 +182,14 @@ SIGNALS = SignalTable((
     Signal("command", (2,), _F32, "m/s", "commanded (vx, vy) in the pelvis frame, after this step's schedule update"),
     Signal("applied_action", (_LEG + 1,), _F32, "",
            "raw clipped action applied in the step that produced this state (zeros after a reset); with "
-           "`torque_assist` or in `model_based` mode, the 12 leg entries are the applied torque over the limits "
-           "(with `torque_assist`, equal to the action at β = 0)"),
+           "`torque_assist` or in `model_based` or `pd_held` mode, the 12 leg entries are the applied torque over the "
+           "limits (with `torque_assist`, equal to the action at β = 0)"),
     Signal("leg_torque", (_LEG,), _F32, "N·m",
            "leg torques commanded in that step (torque mode: action × limit; with `torque_assist=True`: "
            "(1 − β)·limit·a + β·PD(q_ref + pd_action_scale·a), clipped to the limits; model_based mode: "
-           "τ_ff + g·a (g = mb_residual_gain), clipped to the limits; PD mode: the PD output)"),
+           "τ_ff + g·a (g = mb_residual_gain), clipped to the limits; pd_held mode: "
+           "pd_kp·(q_ref + pd_action_scale·a − q − b) − pd_kv·q̇, b the sensed encoder bias, clipped to the limits; "
+           "PD mode: the PD output)"),
     Signal("episode_step", (1,), _I64, "", "policy steps since the env's last reset"),
     Signal("healthy", (1,), _BOOL, "",
            "the world's physics is numerically sound: finite qpos, qvel, qacc (warp) and sensors, no dropped "

@@ -239,15 +239,15 @@ class ControlConfig:
         is the half-width of the central differences that give q̇_ref and q̈_ref. ``mb_residual_gain`` is g [N·m
         per action unit], per leg joint: by default the torque limits (as in torque mode); the ``model_based``
         preset gives it the PD-residual modes' authority, :data:`MB_RESIDUAL_GAIN_PD`.
-      - ``"pd_held"``: the ``pd_reference`` target tracked by a PD computed once per policy step from the pre-step
-        state and held as a torque, ``clip(pd_kp·(q_ref + pd_action_scale·a − q − b) − pd_kv·q̇, ±limit)``
+      - ``"pd_held"``: the ``pd_reference`` target, unclipped, tracked by a PD computed once per policy step from the
+        pre-step state and held as a torque, ``clip(pd_kp·(q_ref + pd_action_scale·a − q − b) − pd_kv·q̇, ±limit)``
         (:class:`~tocabi_torchrl.control.HeldPD`): the torque assist's law at β = 1, without the fade. ``b`` is each
         world's leg encoder bias (the law reads the positions the robot senses); the actuator layer acts on it.
     The upper body is held at the reference pose by MuJoCo position servos in every mode. The gains default to the
-    robot controller's (:data:`PD_GAINS` ``"robot"``); in the torque modes no PD acts and they are unused. In
-    ``model_based`` mode the leg entries of ``applied_action`` (observation history, torque rewards) and
-    ``leg_torque`` are the applied torque (over the limits / in N·m), as with ``torque_assist``; the ``leg_feedforward``
-    signal is τ_ff. So are they in ``pd_held`` mode.
+    robot controller's (:data:`PD_GAINS` ``"robot"``); the PD modes, ``pd_held`` and ``torque_assist`` use them, the
+    ``torque`` and ``model_based`` modes do not. In ``model_based`` and ``pd_held`` mode the leg entries of
+    ``applied_action`` (observation history, torque rewards) and ``leg_torque`` are the applied torque (over the
+    limits / in N·m), as with ``torque_assist``; in ``model_based`` mode the ``leg_feedforward`` signal is τ_ff.
 
     ``torque_assist`` (torque mode only) is a training aid that morphs the action space: the leg torque is
     ``(1 − β)·a·limit + β·(pd_kp·(q_ref + pd_action_scale·a − q) − pd_kv·q̇)`` (clipped to the limits), so at β = 1
@@ -310,7 +310,7 @@ class ControlConfig:
                              "env.control.actuators at its defaults")
         if self.torque_assist and self.mode != "torque":
             raise ValueError(f"env.control.torque_assist needs control_mode='torque' (env.control.mode; the PD modes "
-                             f"already track with servos), got {self.mode!r}")
+                             f"already track with servos, and pd_held is the assist at β = 1), got {self.mode!r}")
         for name in ("mb_omega", "mb_zeta", "mb_residual_gain"):
             values = getattr(self, name)
             if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):

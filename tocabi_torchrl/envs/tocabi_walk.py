@@ -676,6 +676,9 @@ class TocabiWalk(EnvBase):
         if not hasattr(self.leg_controller, "set_q_offset"):
             raise RuntimeError("sense_assist_joints needs an env built with torque_assist=True (torque mode) or in "
                                "pd_held mode: only their PD at the policy rate reads joint positions")
+        if bool(on) != self.assist_reads_sensed:
+            # The SensorNoise transform reads the flag in the masked reset, which a captured step holds: capture again.
+            self.graph_settings += 1
         self.assist_reads_sensed = bool(on)
         if not on:
             self.leg_controller.set_q_offset(self._all, torch.zeros_like(self.leg_controller.q_offset))

@@ -129,9 +129,11 @@ def check_given_env(cfg: RunConfig, env: EnvBase) -> None:
         sensed = bool(cfg.ppo.assist_pd_sensed and base.cfg.control.torque_assist) or (
             base.cfg.control.mode == "pd_held")  # its law reads the sensed positions from the build on
         if base.assist_reads_sensed != sensed:
+            why = ("env.control.mode is pd_held, whose PD reads the sensed positions" if base.cfg.control.mode ==
+                   "pd_held" else f"cfg.ppo.assist_pd_sensed is {cfg.ppo.assist_pd_sensed}")
             raise ValueError(f"the env given to train() has its assist PD read the {'true' if sensed else 'sensed'} "
-                             f"joint positions, cfg.ppo.assist_pd_sensed is {cfg.ppo.assist_pd_sensed}: build the env "
-                             "with build_env(cfg, device, for_training=True), which sets it")
+                             f"joint positions, {why}: build the env with build_env(cfg, device, for_training=True), "
+                             "which sets it")
     privileged = "privileged" in env.observation_spec.keys()
     if privileged != cfg.ppo.critic_privileged:
         raise ValueError(f"the env given to train() {'gives' if privileged else 'has no'} 'privileged' (the "
