@@ -108,8 +108,8 @@ class HeldPD(_SensedJoints, Controller):
     its fade, as a law of its own that never fades: a ``pd_reference`` servo tracks the same target (clipped to the
     joint range there, not here) inside every 0.5 ms substep. ``b`` (:attr:`q_offset`, (N, J) rad) is each world's
     leg encoder bias: on by default, the law reads the joint positions the robot senses
-    (``TocabiWalk.sense_assist_joints``; the SensorNoise transform writes it), as it would on the robot. The ``applied_action`` signal (observation history, torque rewards) is the applied
-    torque over the limits.
+    (``TocabiWalk.sense_assist_joints``; the SensorNoise transform writes it), as it would on the robot. The
+    ``applied_action`` signal (observation history, torque rewards) is the applied torque over the limits.
 
     Args:
         kp, kv: (J,) PD gains [N·m/rad], [N·m·s/rad]; scale: the residual range per unit action [rad].
