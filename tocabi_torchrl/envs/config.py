@@ -291,6 +291,12 @@ class ControlConfig:
     #: The actuator layer between the legs' torque commands and the joints (ideal by default; torque modes only).
     actuators: ActuatorConfig = field(default_factory=ActuatorConfig)
 
+    @property
+    def pd_senses_joints(self) -> bool:
+        """Whether the legs' law is a PD that reads the sensed joint positions from the env's build on (``pd_held``:
+        the robot's own law); the torque assist's PD does so only when asked (``TocabiWalk.sense_assist_joints``)."""
+        return self.mode == "pd_held"
+
     def validate(self) -> None:
         check_field_types(self, "env.control.")  # as the task's: numbers stored as plain numbers, named by path
         if self.mode not in CONTROL_MODES:

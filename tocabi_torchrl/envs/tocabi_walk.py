@@ -315,7 +315,7 @@ class TocabiWalk(EnvBase):
         self.graph_settings = 0
         #: Whether the legs' PD at the policy rate (the torque assist's, or ``pd_held``'s) reads the sensed joint
         #: positions (:meth:`sense_assist_joints`): from the start in ``pd_held`` mode, whose law is the robot's own.
-        self.assist_reads_sensed = self.cfg.control.mode == "pd_held" and hasattr(self.leg_controller, "set_q_offset")
+        self.assist_reads_sensed = self.cfg.control.pd_senses_joints and hasattr(self.leg_controller, "set_q_offset")
         self._init_buffers()
         #: The reduced reset pass (``env.sim.reset_pass="reduced"``, mujoco-warp only): the start states, one per
         #: start row of the reference motion, are registered with the simulator here.

@@ -126,11 +126,11 @@ def check_given_env(cfg: RunConfig, env: EnvBase) -> None:
             raise ValueError(f"the env given to train() was seeded with {base._seed}, cfg.seed is {cfg.seed}: the run "
                              "saves cfg, so a resume or a repeat would draw other episodes; set seed in cfg, or build "
                              "the env with build_env(cfg, device, for_training=True)")
-        sensed = bool(cfg.ppo.assist_pd_sensed and base.cfg.control.torque_assist) or (
-            base.cfg.control.mode == "pd_held")  # its law reads the sensed positions from the build on
+        control = base.cfg.control
+        sensed = bool(cfg.ppo.assist_pd_sensed and control.torque_assist) or control.pd_senses_joints
         if base.assist_reads_sensed != sensed:
-            why = ("env.control.mode is pd_held, whose PD reads the sensed positions" if base.cfg.control.mode ==
-                   "pd_held" else f"cfg.ppo.assist_pd_sensed is {cfg.ppo.assist_pd_sensed}")
+            why = (f"env.control.mode is {control.mode}, whose PD reads the sensed positions"
+                   if control.pd_senses_joints else f"cfg.ppo.assist_pd_sensed is {cfg.ppo.assist_pd_sensed}")
             raise ValueError(f"the env given to train() has its assist PD read the {'true' if sensed else 'sensed'} "
                              f"joint positions, {why}: build the env with build_env(cfg, device, for_training=True), "
                              "which sets it")
