@@ -815,11 +815,14 @@ _ROBUST = {
     "ppo.desired_kl": 0.02, "ppo.assist_lr_max": 7.5e-5,
 }
 
-#: The robust recipe on the computed-torque law: every torque-assist option at its default (off).
+#: The robust recipe without the torque assist: every assist option at its default (off), for control laws that
+#: carry their own prior (model_based's feed-forward law).
+_ROBUST_NO_ASSIST = {path: value for path, value in _ROBUST.items()
+                     if path != "ppo.torque_assist" and not path.startswith("ppo.assist_")}
+
+#: The robust recipe on the computed-torque law.
 _MODEL_BASED = {
-    **{path: value for path, value in _ROBUST.items()
-       if path != "ppo.torque_assist" and not path.startswith("ppo.assist_")},
-    "env.control.mode": "model_based", "env.control.mb_residual_gain": MB_RESIDUAL_GAIN_PD,
+    **_ROBUST_NO_ASSIST, "env.control.mode": "model_based", "env.control.mb_residual_gain": MB_RESIDUAL_GAIN_PD,
     "ppo.matmul_precision": "high", "transforms.observation": "base_vel",
 }
 
