@@ -109,17 +109,6 @@ def test_sensing_can_be_turned_off_and_other_modes_refuse_it():
         TocabiWalk(num_envs=1, device="cpu", control_mode="pd_reference").sense_assist_joints()
 
 
-def test_pd_held_policies_are_refused_by_the_export_by_name():
-    from types import SimpleNamespace
-
-    from tocabi_torchrl.envs import TocabiWalk
-    from tocabi_torchrl.export.contract import build_contract
-
-    policy = SimpleNamespace(env=SimpleNamespace(base_env=TocabiWalk(num_envs=1, device="cpu", control_mode="pd_held")))
-    with pytest.raises(ValueError, match="control mode 'pd_held' cannot be exported yet"):
-        build_contract(policy, "p.onnx", "0" * 64, "obs", "action", 17)
-
-
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.filterwarnings("error:SyncFreeResetEnv")  # a failed capture or an eager fallback fails the test

@@ -71,30 +71,44 @@ def _state(td, velocities: bool = False) -> RobotState:
                       foot_torque=td["foot_torque"].numpy(), **extra)
 
 
-@pytest.fixture(scope="module")
-def base_vel_policy(tmp_path_factory):
-    """A policy of the pelvis-velocity observation (``transforms.observation`` base_vel, the ``torque`` preset's),
-    trained two iterations on the CPU and exported: (checkpoint, contract)."""
+def _small_exported_policy(root: Path, name: str, **overrides) -> tuple[Path, Path]:
+    """A ``cpu_smoke`` policy with ``overrides``, trained two iterations on the CPU and exported: (checkpoint,
+    contract)."""
     from tocabi_torchrl.config import preset_config
     from tocabi_torchrl.export.onnx_export import export_policy
     from tocabi_torchrl.rl.trainer import train
 
-    root = tmp_path_factory.mktemp("base_vel")
-    cfg = preset_config("cpu_smoke", device="cpu", **{"transforms.observation": "base_vel", "env.num_envs": 4,
-                                                      "ppo.steps_per_env": 8, "ppo.minibatch_size": 16,
-                                                      "env.control.mode": "torque"},
-                        total_env_steps=64, run_dir=str(root), name="bv", progress_bar=False, eval_at_end=False)
+    cfg = preset_config("cpu_smoke", device="cpu", **{"env.num_envs": 4, "ppo.steps_per_env": 8,
+                                                      "ppo.minibatch_size": 16, **overrides},
+                        total_env_steps=64, run_dir=str(root), name=name, progress_bar=False, eval_at_end=False)
     train(cfg)
-    checkpoint = root / "bv" / "checkpoints" / "iter_000002.pt"
-    export_policy(checkpoint, root / "bv.onnx")
-    return checkpoint, root / "bv.json"
+    checkpoint = root / name / "checkpoints" / "iter_000002.pt"
+    export_policy(checkpoint, root / f"{name}.onnx")
+    return checkpoint, root / f"{name}.json"
 
 
-@pytest.mark.parametrize("name", [*POLICIES, "base_vel"])
+@pytest.fixture(scope="module")
+def base_vel_policy(tmp_path_factory):
+    """A torque policy of the pelvis-velocity observation (``transforms.observation`` base_vel, the ``torque``
+    preset's): (checkpoint, contract)."""
+    return _small_exported_policy(tmp_path_factory.mktemp("base_vel"), "bv", **{
+        "transforms.observation": "base_vel", "env.control.mode": "torque"})
+
+
+@pytest.fixture(scope="module")
+def pd_held_policy(tmp_path_factory):
+    """A policy of the ``pd_held`` mode (the PD runs at the control rate and sends torques): (checkpoint,
+    contract)."""
+    return _small_exported_policy(tmp_path_factory.mktemp("pd_held"), "ph", **{"env.control.mode": "pd_held"})
+
+
+@pytest.mark.parametrize("name", [*POLICIES, "base_vel", "pd_held"])
 def test_runtime_reproduces_torchrl_observation_and_commands(name, request):
     """On the states of a TorchRL rollout (C MuJoCo backend), the runtime's policy input equals the env's
     ``observation`` and its leg commands and upper-body targets equal what the env wrote into ``ctrl``; for a
-    policy that observes the pelvis velocity too (``base_vel``), given in the state."""
+    policy that observes the pelvis velocity too (``base_vel``), given in the state; for a ``pd_held`` policy, the
+    PD's torques computed by the runtime from the state, and the history's leg actions their fraction of the
+    limits (the policy input holds them)."""
     import torch
     from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
@@ -102,7 +116,7 @@ def test_runtime_reproduces_torchrl_observation_and_commands(name, request):
     from tocabi_torchrl.evaluation.gait_test import _fixed_command
 
     velocities = name == "base_vel"
-    checkpoint, contract = (request.getfixturevalue("base_vel_policy") if velocities else
+    checkpoint, contract = (request.getfixturevalue(f"{name}_policy") if name in ("base_vel", "pd_held") else
                             (robot.asset_path("policies", f"tocabi_walk_{name}.pt"), _contract(name)))
     policy = load_policy(checkpoint, num_envs=4, command=_fixed_command((0.5, 0.0)))
     env, base = policy.env, policy.env.base_env
@@ -123,6 +137,22 @@ def test_runtime_reproduces_torchrl_observation_and_commands(name, request):
             np.testing.assert_allclose(cmd.reference, td["next", "ref_joint_pos"].numpy(), atol=1e-5, rtol=0)
             td = step_mdp(td)
             cmd = runtime.step(_state(td, velocities))
+
+
+def test_a_pd_held_contract_sends_torques_and_its_robots_take_the_actuator_layer(pd_held_policy):
+    """pd_held's contract commands torques with the robot's PD gains on the reference (no joint range: the target is
+    not clipped), and the sim-to-sim driver keeps its leg motors as motors, so the actuator layer applies."""
+    from tocabi_torchrl.envs.config import ControlConfig
+    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+
+    _, contract = pd_held_policy
+    leg = load_contract(contract)["action"]["leg"]
+    assert (leg["kind"], leg["center"]) == ("torque", "reference") and "joint_range" not in leg
+    assert leg["kp"] == list(ControlConfig().pd_kp) and leg["kv"] == list(ControlConfig().pd_kv)
+    runtime = PolicyRuntime(contract)
+    assert runtime.leg_kind == "torque"
+    result = run_sim2sim(runtime, seconds=0.1, num_robots=2, randomize="tocabi_lab")
+    assert result.seconds == pytest.approx(0.1)
 
 
 def test_a_velocity_policy_refuses_a_state_without_the_velocities(base_vel_policy):

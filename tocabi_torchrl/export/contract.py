@@ -200,14 +200,21 @@ def build_contract(policy, onnx_file: str, onnx_sha256: str, input_name: str, ou
     n_leg = robot.NUM_LEG_JOINTS
     leg_ids = [model.joint(n).id for n in robot.JOINT_NAMES[:n_leg]]
     limits = [float(v) for v in robot.LEG_TORQUE_LIMITS]
-    if cfg.control.mode not in ("torque", "pd", "pd_reference"):
-        # The runtime (numpy + onnxruntime, runtime/policy.py) has no computed-torque or held-PD law yet: a contract
-        # would describe an action the deployed controller cannot apply.
+    if cfg.control.mode not in ("torque", "pd", "pd_reference", "pd_held"):
+        # The runtime (numpy + onnxruntime, runtime/policy.py) has no computed-torque law yet: a contract would
+        # describe an action the deployed controller cannot apply.
         raise ValueError(f"control mode {cfg.control.mode!r} cannot be exported yet: the contract and the torch-free "
-                         "runtime describe only the torque, pd and pd_reference modes")
+                         "runtime describe only the torque, pd, pd_reference and pd_held modes")
     if cfg.control.mode == "torque":
         leg = {"kind": "torque", "torque_limits_nm": limits,
                "rule": "tau[j] = action[j] * torque_limits_nm[j], held for every physics substep"}
+    elif cfg.control.mode == "pd_held":
+        leg = {"kind": "torque", "kp": [float(v) for v in cfg.control.pd_kp],
+               "kv": [float(v) for v in cfg.control.pd_kv],
+               "action_scale": float(cfg.control.pd_action_scale), "torque_limits_nm": limits, "center": "reference",
+               "rule": "tau[j] = clip(kp*(reference[j] + action_scale*action[j] - q[j]) - kv*qdot[j], "
+                       "+-torque_limits_nm[j]) from the sensed q, qdot at the period's start, held for every physics "
+                       "substep; the history's leg actions are tau[j] / torque_limits_nm[j]"}
     else:
         leg = {"kind": "position", "kp": [float(v) for v in cfg.control.pd_kp],
                "kv": [float(v) for v in cfg.control.pd_kv],

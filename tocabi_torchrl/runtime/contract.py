@@ -93,16 +93,17 @@ _LEG_KEYS = {
     "torque": ("kind", "torque_limits_nm"),
     "pd": ("kind", "kp", "kv", "action_scale", "center", "nominal", "joint_range", "torque_limits_nm"),
     "pd_reference": ("kind", "kp", "kv", "action_scale", "center", "joint_range", "torque_limits_nm"),
+    "pd_held": ("kind", "kp", "kv", "action_scale", "center", "torque_limits_nm"),
 }
 #: ``action.leg.kind`` and ``action.leg.center`` each control mode implies (what the runtime computes from the mode).
-_LEG_KIND = {"torque": "torque", "pd": "position", "pd_reference": "position"}
+_LEG_KIND = {"torque": "torque", "pd": "position", "pd_reference": "position", "pd_held": "torque"}
 #: ``observation.normalization.kind`` as the export writes it: statistics fixed by the config, a run's running
 #: statistics as they were at export (the runtime never updates them), or none.
 NORMALIZATION_KINDS = ("fixed", "running (frozen at export)", "none")
 #: The keys an export writes into each ``observation.entries[i]`` and ``observation.signals.<name>``.
 _ENTRY_KEYS = {"index", "block", "signal", "element", "name", "unit", "frame"}
 _SIGNAL_KEYS = {"shape", "unit", "frame", "source"}
-_LEG_CENTER = {"pd": "nominal", "pd_reference": "reference"}
+_LEG_CENTER = {"pd": "nominal", "pd_reference": "reference", "pd_held": "reference"}
 
 #: The observation signals :class:`~tocabi_torchrl.runtime.policy.PolicyRuntime` builds; the contract's
 #: ``observation.signals`` may use only these.
@@ -739,6 +740,6 @@ def _check_trained_under(contract: dict, source: str) -> None:
                             f"{fix}")
     mode = contract["action"]["control_mode"]
     on = [k for k in ("delay", "motor_constant", "friction") if section["actuators"][k] != "off"]
-    if on and mode != "torque":
+    if on and contract["action"]["leg"]["kind"] != "torque":
         raise ContractError(f"{source}: trained_under.actuators states {on} for control mode {mode!r}, whose servos "
                             f"take no actuator stages (the training env refuses them); {fix}")

@@ -3,8 +3,8 @@
 Imports numpy, mujoco, the runtime and the numpy-only ``robot`` facts (no torch). The robot model is the authored
 ``assets/tocabi/tocabi.xml`` or any MJCF with the contract's joint, actuator, body and sensor names, e.g. the
 reference ``dyros_tocabi.xml`` with its mesh geoms removed (:func:`strip_meshes`). Actuators are set up from the
-contract: leg motors stay motors in torque mode and become position servos with the contract's gains in the PD
-modes; upper-body motors (the reference model has no servos) become position servos with ``upper_body.kp``/``kv``,
+contract: leg motors stay motors where the legs are commanded in torques (the torque and pd_held modes) and become
+position servos with the contract's gains in the PD modes; upper-body motors (the reference model has no servos) become position servos with ``upper_body.kp``/``kv``,
 force-limited to their ctrlrange.
 
 Each control period repeats the training env's simulator step (``sim/mujoco_backend.py``): ``substeps`` × ``mj_step``
@@ -110,8 +110,9 @@ def build_model(contract: dict, model_path: str | os.PathLike, remove_meshes: bo
                                        "the contract's robot.initial_qpos")
     if problem is not None:
         raise ValueError(problem)
-    # The control mode, not leg.kind, decides: it is what PolicyRuntime computes the leg commands from.
-    position = contract["action"]["control_mode"] != "torque"
+    # leg.kind: the contract's check holds it to what the control mode commands (pd_held's PD runs in the runtime
+    # and sends torques).
+    position = leg["kind"] == "position"
     motors = [n.replace("_Joint", "_Motor") for n in rob["joint_names"]]
     for i, name in enumerate(motors[: len(rob["leg_joint_names"])]):
         act = spec.actuator(name)
@@ -245,10 +246,10 @@ def resolve_randomization(randomize, contract: dict) -> rnd.Randomization:
     # Before anything is built: a negative motor constant or friction, a NaN bias or a negative clip ran as given.
     chosen.validate()
     mode = contract["action"]["control_mode"]
-    if chosen.actuators.enabled and mode != "torque":
+    if chosen.actuators.enabled and contract["action"]["leg"]["kind"] != "torque":
         raise ValueError(f"{name} has an actuator layer (delay, motor constant, friction), which acts on torque "
                          f"commands only, but this policy's control mode is {mode!r} (PD servos): use a torque "
-                         "policy, or randomise without the actuator layer")
+                         "policy (torque or pd_held), or randomise without the actuator layer")
     return chosen
 
 
@@ -414,7 +415,7 @@ def _run(runtime: PolicyRuntime, model_path, seconds, num_robots, command, init_
         init_rows = rows[np.arange(num_robots) % len(rows)]
     init_rows = runtime._check_init_row(init_rows, num_robots)  # before they index the motion below
     init_qpos = np.asarray(c["robot"]["initial_qpos"])
-    reset_leg = (np.zeros(n_leg) if c["action"]["control_mode"] == "torque"
+    reset_leg = (np.zeros(n_leg) if c["action"]["leg"]["kind"] == "torque"
                  else np.asarray(c["action"]["leg"].get("nominal", init_qpos[7 : 7 + n_leg])))
 
     # Randomisation and perturbations, drawn per robot at this (the episode's only) reset. With none of them the

@@ -198,13 +198,17 @@ class PolicyRuntime:
         self.rate_gain = float(act["phase_rate"]["gain"])
         self.mode = act["control_mode"]
         leg = act["leg"]
-        self.leg_kind = "torque" if self.mode == "torque" else "position"  # check_contract: == leg["kind"]
+        self.leg_kind = leg["kind"]  # check_contract: the mode's ("torque" or "position")
         self.torque_limits = np.asarray(leg["torque_limits_nm"], dtype=_F32)
         if self.mode != "torque":
             self.action_scale = _F32(leg["action_scale"])
+        if self.leg_kind == "position":
             rng = np.asarray(leg["joint_range"], dtype=_F32)
             self.range_low, self.range_high = rng[:, 0], rng[:, 1]
             self.nominal = np.asarray(leg.get("nominal", [0.0] * self.num_legs), dtype=_F32)
+        if self.mode == "pd_held":  # the PD runs here, at the control rate, on the sensed joints
+            self.kp = np.asarray(leg["kp"], dtype=_F32)
+            self.kv = np.asarray(leg["kv"], dtype=_F32)
         self.motion = self._load_motion(c["reference_motion"], motion)
         self.observation = ObservationBuilder(c["observation"])
         # The state's optional signals this policy reads (its contract's observation), fixed for the runtime's life.
@@ -215,6 +219,8 @@ class PolicyRuntime:
         self.init_row: np.ndarray | None = None  # (N,) int64 start row of each robot
         self.command: np.ndarray | None = None  # (N, 2) float32 velocity command [m/s]
         self._pending: np.ndarray | None = None  # the action of the running period
+        # What the history stores for it: the action, or in pd_held mode with the legs' torques over the limits.
+        self._applied: np.ndarray | None = None
 
     def _load_motion(self, spec: dict, motion) -> RuntimeMotion:
         if motion is None:
@@ -262,11 +268,11 @@ class PolicyRuntime:
         init_row = self._check_init_row(rows, n)
         command = self._check_command(command, n)
         time = np.zeros(n, dtype=_F32)
-        obs = self._observe(state, time, init_row, command)
+        obs, joints = self._observe(state, time, init_row, command)
         # Only now that everything passed: a refused reset must not restart the clock or change the robot count.
         self.init_row, self.time, self.command = init_row, time, command
         self.history.reset(obs, np.zeros((n, len(self.low)), dtype=_F32))
-        return self._act()
+        return self._act(joints)
 
     def step(self, state: RobotState, command=None) -> Command:
         """``state`` after one control period of the last command; returns the command for the next period.
@@ -281,10 +287,10 @@ class PolicyRuntime:
         command = self.command if command is None else self._check_command(command, self.num_robots)
         rate = _F32(1.0) + _F32(self.rate_gain) * self._pending[:, self.rate_index]
         time = np.remainder(self.time + self.dt * rate, _F32(self.motion.period)).astype(_F32)
-        obs = self._observe(state, time, self.init_row, command)
+        obs, joints = self._observe(state, time, self.init_row, command)
         self.time, self.command = time, command
-        self.history.push(obs, self._pending)
-        return self._act()
+        self.history.push(obs, self._applied)
+        return self._act(joints)
 
     def set_command(self, command) -> None:
         """Velocity command (vx, vy) [m/s], (N, 2) or (2,), used from the next observation on."""
@@ -387,9 +393,11 @@ class PolicyRuntime:
                                 "readings")
         return count
 
-    def _observe(self, state: RobotState, time: np.ndarray, init_row: np.ndarray, command: np.ndarray) -> np.ndarray:
+    def _observe(self, state: RobotState, time: np.ndarray, init_row: np.ndarray,
+                 command: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
         """(N, D) float32 normalised observation of ``state`` at clock ``time`` (N,) [s] from start rows
-        ``init_row`` (N,) under ``command`` (N, 2) [m/s]; the caller commits these only once this succeeded."""
+        ``init_row`` (N,) under ``command`` (N, 2) [m/s], and the joint positions [rad] and velocities [rad/s]
+        (N, J) it read (through ``sensors``, when set); the caller commits these only once this succeeded."""
         phase = self.motion.phase(time, init_row)
         sin, cos = self.observation.phase_features(phase)
         signals = {
@@ -406,7 +414,8 @@ class PolicyRuntime:
             signals[name] = getattr(state, name)
         if self.sensors is not None:
             signals = self._sensed(signals)
-        return self.observation.normalize(self.observation.raw(signals))
+        joints = (np.asarray(signals["joint_pos"], dtype=_F32), np.asarray(signals["joint_vel"], dtype=_F32))
+        return self.observation.normalize(self.observation.raw(signals)), joints
 
     def _sensed(self, signals: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The ``sensors`` callable's view of ``signals`` {name: (N, *shape)}: every signal back with its shape, as
@@ -434,7 +443,9 @@ class PolicyRuntime:
                                     "the sensors callable (its bias or noise); the policy is not run on them")
         return out
 
-    def _act(self) -> Command:
+    def _act(self, joints: tuple[np.ndarray, np.ndarray]) -> Command:
+        """The command for the period that starts at the state whose sensed joint positions and velocities (N, J)
+        are ``joints`` (read by the held PD of ``pd_held`` mode)."""
         obs = self.history.read()
         pol = self.contract["policy"]
         raw = self.session.run([pol["output_name"]], {pol["input_name"]: obs})[0].astype(_F32)
@@ -449,11 +460,19 @@ class PolicyRuntime:
                                 "weights?) or its input was; stop these robots and re-export the policy from a sound "
                                 "checkpoint (the episode has ended: reset() starts another)")
         action = np.clip(np.nan_to_num(raw, nan=0.0), self.low, self.high)
-        self._pending = action
+        self._pending = self._applied = action
         ref = self.motion.joint_targets(self.time, self.init_row)
         a_leg = action[:, : self.num_legs]
         if self.mode == "torque":
             leg = a_leg * self.torque_limits
+        elif self.mode == "pd_held":
+            # control.HeldPD: one torque per period from the state at its start, on the joints the robot senses.
+            q, qd = joints[0][:, : self.num_legs], joints[1][:, : self.num_legs]
+            target = ref[:, : self.num_legs] + self.action_scale * a_leg
+            tau = self.kp * (target - q) - self.kv * qd
+            leg = np.maximum(np.minimum(tau, self.torque_limits), -self.torque_limits)
+            self._applied = action.copy()
+            self._applied[:, : self.num_legs] = leg / self.torque_limits
         else:
             center = self.nominal if self.mode == "pd" else ref[:, : self.num_legs]
             leg = np.clip(center + self.action_scale * a_leg, self.range_low, self.range_high)
