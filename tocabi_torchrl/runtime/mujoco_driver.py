@@ -4,8 +4,8 @@ Imports numpy, mujoco, the runtime and the numpy-only ``robot`` facts (no torch)
 ``assets/tocabi/tocabi.xml`` or any MJCF with the contract's joint, actuator, body and sensor names, e.g. the
 reference ``dyros_tocabi.xml`` with its mesh geoms removed (:func:`strip_meshes`). Actuators are set up from the
 contract: leg motors stay motors where the legs are commanded in torques (the torque and pd_held modes) and become
-position servos with the contract's gains in the PD modes; upper-body motors (the reference model has no servos) become position servos with ``upper_body.kp``/``kv``,
-force-limited to their ctrlrange.
+position servos with the contract's gains in the PD modes; upper-body motors (the reference model has no servos)
+become position servos with ``upper_body.kp``/``kv``, force-limited to their ctrlrange.
 
 Each control period repeats the training env's simulator step (``sim/mujoco_backend.py``): ``substeps`` × ``mj_step``
 with the command held, then ``mj_forward`` with its constraint solution kept as the next warm start. Terminations are
