@@ -123,8 +123,10 @@ def test_runtime_reproduces_torchrl_observation_and_commands(name, request):
     runtime = PolicyRuntime(contract)
     if velocities:  # the contract reads the two signals, as the env's layout does
         assert {"base_lin_vel", "base_ang_vel"} <= set(runtime.observation.signals)
-    # Torque commands scale a ~1e-6 ONNX-vs-torch action difference by up to 333 N·m.
-    leg_tol = 2e-3 if runtime.leg_kind == "torque" else 1e-5
+    # Torque commands scale a ~1e-6 ONNX-vs-torch action difference by up to 333 N·m (the limits), pd_held's by
+    # up to kp·scale N·m (2,500 N·m per action unit).
+    gain = runtime.kp * runtime.action_scale if runtime.mode == "pd_held" else runtime.torque_limits
+    leg_tol = 6e-6 * float(gain.max()) if runtime.leg_kind == "torque" else 1e-5
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
         cmd = runtime.reset(_state(td, velocities), (0.5, 0.0), init_row=base.init_row.numpy())
@@ -142,17 +144,26 @@ def test_runtime_reproduces_torchrl_observation_and_commands(name, request):
 def test_a_pd_held_contract_sends_torques_and_its_robots_take_the_actuator_layer(pd_held_policy):
     """pd_held's contract commands torques with the robot's PD gains on the reference (no joint range: the target is
     not clipped), and the sim-to-sim driver keeps its leg motors as motors, so the actuator layer applies."""
+    import mujoco
+
     from tocabi_torchrl.envs.config import ControlConfig
-    from tocabi_torchrl.runtime.mujoco_driver import run_sim2sim
+    from tocabi_torchrl.runtime import randomization as rnd
+    from tocabi_torchrl.runtime.mujoco_driver import build_model, run_sim2sim
 
     _, contract = pd_held_policy
-    leg = load_contract(contract)["action"]["leg"]
+    loaded = load_contract(contract)
+    leg = loaded["action"]["leg"]
     assert (leg["kind"], leg["center"]) == ("torque", "reference") and "joint_range" not in leg
     assert leg["kp"] == list(ControlConfig().pd_kp) and leg["kv"] == list(ControlConfig().pd_kv)
     runtime = PolicyRuntime(contract)
     assert runtime.leg_kind == "torque"
-    result = run_sim2sim(runtime, seconds=0.1, num_robots=2, randomize="tocabi_lab")
-    assert result.seconds == pytest.approx(0.1)
+    model = build_model(loaded, robot.asset_path("tocabi", "tocabi.xml"))
+    legs = [model.actuator(n.replace("_Joint", "_Motor")).id for n in loaded["robot"]["leg_joint_names"]]
+    assert (model.actuator_biastype[legs] == mujoco.mjtBias.mjBIAS_NONE).all()  # motors, not position servos
+    # The actuator layer acts: delayed, rescaled torques walk the robots elsewhere than the nominal ones.
+    actuators_only = rnd.Randomization(actuators=rnd.TOCABI_LAB.actuators)
+    lab = run_sim2sim(runtime, seconds=0.2, num_robots=2, randomize=actuators_only)
+    assert lab.per_robot_forward_m != run_sim2sim(runtime, seconds=0.2, num_robots=2).per_robot_forward_m
 
 
 def test_a_velocity_policy_refuses_a_state_without_the_velocities(base_vel_policy):

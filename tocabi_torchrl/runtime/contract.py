@@ -331,7 +331,7 @@ def check_contract(contract, source: str = "contract") -> None:
     gains >= 0; the optional ``robot.actuator_names`` (one distinct name per joint) and ``policy.opset`` (an
     integer >= 1) when given. The optional ``trained_under`` section (what the policy was trained under; a contract
     without it states nothing and loads as before) by ``value_rules.trained_under_problems``, its delay in ms
-    against its substeps, and no actuator stages in the PD modes. Last, ``content_sha256`` (version 2 on) against
+    against its substeps, and no actuator stages for servo legs. Last, ``content_sha256`` (version 2 on) against
     the values it covers (:func:`content_sha256`): a value edited after export is refused, whatever it is."""
     if not isinstance(contract, dict):
         raise ContractError(f"{source}: a policy contract is a JSON object, got {type(contract).__name__}")
@@ -711,8 +711,8 @@ def _check_trained_under(contract: dict, source: str) -> None:
     """Raise :class:`ContractError` for a ``trained_under`` section (when the contract has one) that breaks
     ``value_rules.trained_under_problems``, whose delay in ms is not its substeps × ``timing.physics_dt_s`` or whose
     delay stride does not divide its range (``value_rules.delay_grid_problem``), whose delay is applied in a way this
-    reader does not know (``value_rules.DELAY_APPLIED``), or that states actuator stages for a
-    PD control mode (the training env refuses them there)."""
+    reader does not know (``value_rules.DELAY_APPLIED``), or that states actuator stages for
+    servo legs (``action.leg.kind`` position: the training env refuses them there)."""
     if "trained_under" not in contract:
         return
     section = contract["trained_under"]

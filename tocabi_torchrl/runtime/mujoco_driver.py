@@ -4,8 +4,8 @@ Imports numpy, mujoco, the runtime and the numpy-only ``robot`` facts (no torch)
 ``assets/tocabi/tocabi.xml`` or any MJCF with the contract's joint, actuator, body and sensor names, e.g. the
 reference ``dyros_tocabi.xml`` with its mesh geoms removed (:func:`strip_meshes`). Actuators are set up from the
 contract: leg motors stay motors where the legs are commanded in torques (the torque and pd_held modes) and become
-position servos with the contract's gains in the PD modes; upper-body motors (the reference model has no servos)
-become position servos with ``upper_body.kp``/``kv``, force-limited to their ctrlrange.
+position servos with the contract's gains in the servo modes (pd, pd_reference); upper-body motors (the reference
+model has no servos) become position servos with ``upper_body.kp``/``kv``, force-limited to their ctrlrange.
 
 Each control period repeats the training env's simulator step (``sim/mujoco_backend.py``): ``substeps`` × ``mj_step``
 with the command held, then ``mj_forward`` with its constraint solution kept as the next warm start. Terminations are
@@ -224,7 +224,7 @@ def resolve_randomization(randomize, contract: dict) -> rnd.Randomization:
     """The :class:`~tocabi_torchrl.runtime.randomization.Randomization` that ``randomize`` names (one of
     :data:`RANDOMIZE`, or an instance) for a policy with ``contract``. Raises ``ValueError`` saying what to use
     instead for an unknown name, ``"trained"`` with a contract that does not state what the policy was trained
-    under, actuator stages for a PD policy (the training env applies them to torque commands only), and an instance
+    under, actuator stages for a servo-mode policy (the training env applies them to torque commands only), and an instance
     whose values the training config would refuse (:meth:`~tocabi_torchrl.runtime.randomization.Randomization
     .validate`, naming the field)."""
     if isinstance(randomize, rnd.Randomization):
@@ -299,7 +299,7 @@ def run_sim2sim(contract_path: str | os.PathLike | PolicyRuntime, model_path: st
       ``"trained"`` (what the contract's ``trained_under`` section states), ``"tocabi_lab"``, or a
       :class:`~tocabi_torchrl.runtime.randomization.Randomization`. Actuator layer: the leg torques go through
       delay, motor constant, friction and saturation, written into ``ctrl`` substep by substep. Dynamics: one
-      ``MjModel`` copy per robot. Sensors: biases and noise on what the policy observes only.
+      ``MjModel`` copy per robot. Sensors: biases and noise on what the policy observes (and, in ``pd_held``, on what its PD reads).
     * ``pushes``: kicks through ``MjData.xfrc_applied`` (``PushSettings``: ``kind`` "force" on the pelvis,
       "velocity" on every body by the robot's own masses; None or count 0: none).
     * ``start_velocity``: start joint and pelvis velocities (``StartVelocity``, e.g. ``ROBUST_START``; None: at rest).

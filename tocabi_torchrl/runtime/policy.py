@@ -158,7 +158,8 @@ class PolicyRuntime:
         sensors: optional callable that maps the observation's signals ``{name: (N, *shape)}`` (in the contract's
             units) to the signals the policy observes, e.g. a simulation's sensor biases and noise
             (:class:`~tocabi_torchrl.runtime.randomization.SensorModel`). The state is checked before it runs, and what
-            it returns after: every signal in its shape, finite in float32.
+            it returns after: every signal in its shape, finite in float32. A ``pd_held`` policy's PD reads the
+            sensed joint positions and velocities too.
 
     Raises :class:`~tocabi_torchrl.runtime.contract.ContractError` for a bad contract, a missing or mismatched
     ONNX file (hash, input or output name and width) or motion, a robot state that is not a :class:`RobotState`
