@@ -224,8 +224,8 @@ def resolve_randomization(randomize, contract: dict) -> rnd.Randomization:
     """The :class:`~tocabi_torchrl.runtime.randomization.Randomization` that ``randomize`` names (one of
     :data:`RANDOMIZE`, or an instance) for a policy with ``contract``. Raises ``ValueError`` saying what to use
     instead for an unknown name, ``"trained"`` with a contract that does not state what the policy was trained
-    under, actuator stages for a servo-mode policy (the training env applies them to torque commands only), and an instance
-    whose values the training config would refuse (:meth:`~tocabi_torchrl.runtime.randomization.Randomization
+    under, actuator stages for a servo-mode policy (the training env applies them to torque commands only), and an
+    instance whose values the training config would refuse (:meth:`~tocabi_torchrl.runtime.randomization.Randomization
     .validate`, naming the field)."""
     if isinstance(randomize, rnd.Randomization):
         chosen, name = randomize, "the given randomisation"
@@ -299,7 +299,8 @@ def run_sim2sim(contract_path: str | os.PathLike | PolicyRuntime, model_path: st
       ``"trained"`` (what the contract's ``trained_under`` section states), ``"tocabi_lab"``, or a
       :class:`~tocabi_torchrl.runtime.randomization.Randomization`. Actuator layer: the leg torques go through
       delay, motor constant, friction and saturation, written into ``ctrl`` substep by substep. Dynamics: one
-      ``MjModel`` copy per robot. Sensors: biases and noise on what the policy observes (and, in ``pd_held``, on what its PD reads).
+      ``MjModel`` copy per robot. Sensors: biases and noise on what the policy observes (and, in ``pd_held``, on
+      what its PD reads).
     * ``pushes``: kicks through ``MjData.xfrc_applied`` (``PushSettings``: ``kind`` "force" on the pelvis,
       "velocity" on every body by the robot's own masses; None or count 0: none).
     * ``start_velocity``: start joint and pelvis velocities (``StartVelocity``, e.g. ``ROBUST_START``; None: at rest).
