@@ -29,12 +29,27 @@ class DirectTorque(Controller):
         return inp.action * self._limits
 
 
-class _SensedJoints:
-    """A PD at the policy rate that may read the joint positions the robot senses: ``q + q_offset``."""
+class _SensedPD:
+    """A PD at the policy rate, on the reference plus ``scale`` × the action, that may read the joint positions the
+    robot senses (``q + q_offset``); its torque over the limits is the ``applied_action``. The gains' and scale's
+    checks name the law's class."""
 
-    def _init_offset(self, ctx: ControlContext) -> None:
+    def __init__(self, kp, kv, scale: float, action_dim: int = 12):
+        self.kp, self.kv = kp, kv
+        self.scale = _finite(scale, f"{type(self).__name__} scale [rad per action unit]")
+        self.action_dim = action_dim
+
+    def _setup_pd(self, ctx: ControlContext) -> None:
+        """The limits and gains on the device, and a zero offset (call from ``setup``)."""
+        j, dev, name = len(ctx.joint_ids), ctx.device, type(self).__name__
+        self._limits = ctx.torque_limits
+        self._kp = _vector(self.kp, j, dev, f"{name} kp [N·m/rad]", minimum=0.0)
+        self._kv = _vector(self.kv, j, dev, f"{name} kv [N·m·s/rad]", minimum=0.0)
         #: (N, J) rad added to the measured joint positions the PD reads (the sensed encoder bias; 0 = true).
-        self.q_offset = torch.zeros(ctx.num_envs, len(ctx.joint_ids), dtype=torch.float32, device=ctx.device)
+        self.q_offset = torch.zeros(ctx.num_envs, j, dtype=torch.float32, device=dev)
+
+    def applied_action(self, inp: ControlInput, command: torch.Tensor) -> torch.Tensor:
+        return command / self._limits
 
     def set_q_offset(self, mask: torch.Tensor, offset: torch.Tensor) -> None:
         """Worlds ``mask`` (N,) bool read their joint positions as ``q + offset`` ((N, J) rad) from now on (in place,
@@ -42,7 +57,7 @@ class _SensedJoints:
         torch.where(mask.unsqueeze(-1), offset.to(self.q_offset.dtype), self.q_offset, out=self.q_offset)
 
 
-class AssistedTorque(_SensedJoints, Controller):
+class AssistedTorque(_SensedPD, Controller):
     """The torque preset's morph from PD residuals to torques (``env.control.torque_assist``):
     ``clip((1 − β)·a·limit + β·(kp·(q_ref + scale·a − q − b) − kv·q̇), ±limit)`` from the pre-step state.
 
@@ -58,23 +73,15 @@ class AssistedTorque(_SensedJoints, Controller):
         kp, kv: (J,) PD gains [N·m/rad], [N·m·s/rad]; scale: the residual range per unit action [rad].
     """
 
-    def __init__(self, kp, kv, scale: float, action_dim: int = 12):
-        self.kp, self.kv = kp, kv
-        self.scale = _finite(scale, "AssistedTorque scale [rad per action unit]")
-        self.action_dim = action_dim
-
     def setup(self, ctx: ControlContext) -> None:
         super().setup(ctx)
+        self._setup_pd(ctx)
         n, j, dev = ctx.num_envs, len(ctx.joint_ids), ctx.device
-        self._limits = ctx.torque_limits
-        self._kp = _vector(self.kp, j, dev, "AssistedTorque kp [N·m/rad]", minimum=0.0)
-        self._kv = _vector(self.kv, j, dev, "AssistedTorque kv [N·m·s/rad]", minimum=0.0)
         #: β, a 0-d float32 device scalar.
         self.assist_scale = torch.zeros((), dtype=torch.float32, device=dev)
         self._gain = self.gain(0.0).clone()  # (J,) N·m per unit action at assist_scale
         #: (N, J) the action-independent PD over the limits, from the last step's pre-step state.
         self.leg_assist = torch.zeros(n, j, dtype=torch.float32, device=dev)
-        self._init_offset(ctx)
 
     def gain(self, beta: float | torch.Tensor) -> torch.Tensor:
         """(J,) N·m per unit action at β: ``(1 − β)·limit + β·scale·kp``."""
@@ -89,9 +96,6 @@ class AssistedTorque(_SensedJoints, Controller):
         total = self._gain * inp.action + self.assist_scale * self.leg_assist * self._limits
         return clip_torque(total, self._limits)
 
-    def applied_action(self, inp: ControlInput, command: torch.Tensor) -> torch.Tensor:
-        return command / self._limits
-
     def reset(self, mask: torch.Tensor) -> None:
         self.leg_assist.masked_fill_(mask.unsqueeze(-1), 0.0)
 
@@ -99,7 +103,7 @@ class AssistedTorque(_SensedJoints, Controller):
         return {"leg_assist": self.leg_assist}
 
 
-class HeldPD(_SensedJoints, Controller):
+class HeldPD(_SensedPD, Controller):
     """PD residuals on the reference walk, computed as torques at the policy rate (``env.control.mode``
     ``"pd_held"``): ``clip(kp·(q_ref + scale·a − q − b) − kv·q̇, ±limit)`` from the pre-step state, held for the
     step's substeps like a torque action, so the actuator layer (delay, motor constant, friction) acts on it.
@@ -124,22 +128,10 @@ class HeldPD(_SensedJoints, Controller):
     [[5.0], [30.0]]
     """
 
-    def __init__(self, kp, kv, scale: float, action_dim: int = 12):
-        self.kp, self.kv = kp, kv
-        self.scale = _finite(scale, "HeldPD scale [rad per action unit]")
-        self.action_dim = action_dim
-
     def setup(self, ctx: ControlContext) -> None:
         super().setup(ctx)
-        j, dev = len(ctx.joint_ids), ctx.device
-        self._limits = ctx.torque_limits
-        self._kp = _vector(self.kp, j, dev, "HeldPD kp [N·m/rad]", minimum=0.0)
-        self._kv = _vector(self.kv, j, dev, "HeldPD kv [N·m·s/rad]", minimum=0.0)
-        self._init_offset(ctx)
+        self._setup_pd(ctx)
 
     def compute(self, inp: ControlInput) -> torch.Tensor:
         target = inp.q_ref + self.scale * inp.action
         return clip_torque(self._kp * (target - inp.q - self.q_offset) - self._kv * inp.qd, self._limits)
-
-    def applied_action(self, inp: ControlInput, command: torch.Tensor) -> torch.Tensor:
-        return command / self._limits
