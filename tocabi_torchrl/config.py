@@ -871,7 +871,7 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # on the computed-torque law with the PD-authority residual gain (model_based_ideal, below), without the torque
     # assist (the feed-forward law is the prior), with TF32 and the pelvis velocity observed as in the torque preset.
     # Its first from-scratch run (seed 0, H100) passed the robust gait test's diverse-start nominal and commands cases
-    # at its 8.5- to 10.5-minute marks, the ones it tested (docs/training/model_based/h100_robust_seed0).
+    # at its 7- to 10.5-minute marks, the ones it kept (docs/training/model_based/h100_robust_seed0).
     "model_based": MappingProxyType(_MODEL_BASED),
     # The model_based preset of before the uncertainty model, on a perfect robot (no randomisation, noise, delay or
     # kicks). Residual torque on a computed-torque law (env.control.mode "model_based", envs/model_based.py): the 12
