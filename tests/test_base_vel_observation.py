@@ -71,7 +71,7 @@ def test_fixed_statistics_cover_the_43_values():
 
 def test_the_config_names_the_layout_and_checks_it():
     assert field_choices()["transforms.observation"] == ("reference", "base_vel")
-    for name in ("torque", "model_based"):  # the presets for the real robot sense the pelvis velocity
+    for name in ("torque", "model_based", "pd"):  # the presets for the real robot sense the pelvis velocity
         cfg = preset_config(name)
         assert cfg.transforms.transform_config().obs_layout == BASE_VEL_OBS_LAYOUT, name
         assert config_from_dict(cfg.to_dict()) == cfg

@@ -53,7 +53,7 @@ FROZEN_PATHS = {
 }
 
 #: Presets added after the tree, so without a flat config of before it to match (their own tests build them).
-ADDED_AFTER_THE_TREE = {"model_based", "model_based_ideal", "robust", "torque"}
+ADDED_AFTER_THE_TREE = {"model_based", "model_based_ideal", "pd", "robust", "torque"}
 #: Frozen presets renamed since: the name then -> the name now (the perfect-robot torque recipe, once "torque").
 RENAMED = {"torque": "torque_ideal"}
 
@@ -249,6 +249,19 @@ def test_the_model_based_record_that_walks_was_trained_with_the_committed_model_
     assert trained.preset == "robust" and trained.seed == 0 and preset.seed == 0
     # The computed-torque law, with no torque assist: the feed-forward law is the prior.
     assert preset.env.control.mode == "model_based" and preset.ppo.torque_assist == 0
+
+
+def test_the_pd_record_that_walks_was_trained_with_the_committed_pd_preset():
+    # As the model_based record: the run set the preset's values over the robust preset on the command line.
+    record = Path(__file__).resolve().parents[1] / "docs" / "training" / "pd" / "h100_seed0"
+    trained = config_from_dict(json.loads((record / "config.json").read_text()))
+    preset = preset_config("pd")
+    for section in ("env", "transforms", "ppo"):
+        assert to_dict(getattr(trained, section)) == to_dict(getattr(preset, section)), section
+    assert trained.preset == "robust" and trained.seed == 0 and preset.seed == 0
+    # The robot's PD on sensed joints, held for the step; no torque assist; the KL rule before every mini-batch.
+    assert preset.env.control.mode == "pd_held" and preset.ppo.torque_assist == 0
+    assert preset.ppo.kl_adapt_every == "minibatch"
 
 
 def test_records_of_the_model_based_preset_of_before_the_rename_read_as_model_based_ideal():

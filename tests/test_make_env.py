@@ -289,7 +289,7 @@ def test_preset_is_the_training_preset_as_everywhere_else():
         assert weights(e) == want
     assert weights(e)["body_vel"] != 0.9  # the reference preset's reference weights, not the default's
     with pytest.raises(ValueError, match=r"unknown training preset 'banana'; choose one of \['cpu_smoke', 'default', "
-                                         r"'model_based', 'model_based_ideal', 'reference', 'robust', 'torque', "
+                                         r"'model_based', 'model_based_ideal', 'pd', 'reference', 'robust', 'torque', "
                                          r"'torque_ideal'\]"):
         make_env(num_envs=1, device="cpu", preset="banana")
     with pytest.raises(ValueError, match=r"'tocabilab' is a transforms history layout: pass "

@@ -738,7 +738,7 @@ def _no_capture_warning():
 def test_schedules_past_the_budget_are_named_with_their_values_and_the_budget():
     from tocabi_torchrl.config import schedule_past_budget
 
-    for name in ("default", "torque", "robust", "reference", "model_based", "model_based_ideal", "cpu_smoke"):
+    for name in ("default", "torque", "robust", "reference", "model_based", "model_based_ideal", "pd", "cpu_smoke"):
         assert schedule_past_budget(preset_config(name)) == [], name  # every preset's schedules fit its budget
     # The robust preset's fade ends at 120 M and its kicks reach full strength at 35 M env steps.
     found = schedule_past_budget(preset_config("robust", total_env_steps=20_000_000))

@@ -404,7 +404,7 @@ class RunConfig:
     the envs unless a name says otherwise."""
 
     preset: str = "default"
-    """the training preset the other options change (PRESETS: cpu_smoke, default, model_based, model_based_ideal,
+    """the training preset the other options change (PRESETS: cpu_smoke, default, model_based, model_based_ideal, pd,
     reference, robust, torque, torque_ideal); on the command line it is read first, whatever its place"""
     name: str = "ppo_walk"
     """run folder name under run_dir; an existing run is never overwritten (--resume it or pick a new name)"""
@@ -826,6 +826,12 @@ _MODEL_BASED = {
     "ppo.matmul_precision": "high", "transforms.observation": "base_vel",
 }
 
+#: The robust recipe on held leg PD (the robot's servo law on the joints it senses, its torque held for the step).
+_PD = {
+    **_ROBUST_NO_ASSIST, "env.control.mode": "pd_held", "ppo.matmul_precision": "high",
+    "transforms.observation": "base_vel", "ppo.kl_adapt_every": "minibatch",
+}
+
 PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # Residual imitation (pd_reference: leg servos with the robot's gains track the reference walk plus the policy's
     # correction), the velocity-tracking reward tripled (0.3 -> 0.9, so that following a 0.5 m/s command pays more
@@ -873,6 +879,18 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # Its first from-scratch run (seed 0, H100) passed the robust gait test's diverse-start nominal and commands cases
     # at its 7- to 10.5-minute marks, the ones it kept (docs/training/model_based/h100_robust_seed0).
     "model_based": MappingProxyType(_MODEL_BASED),
+    # The PD policy for the real robot: the robust recipe (as the model_based preset, above) in the default preset's
+    # action space, the reference walk plus 0.5 rad x the action as the legs' PD targets, with the PD run as on the
+    # robot (env.control.mode "pd_held", control/torque.py): once per 4 ms step, from the joint positions as the
+    # encoders read them (their biases included) and the joint velocities, its torque held for the step and passed
+    # through the actuator model (2-10 ms delay, motor constant 0.8-1.2), where the default preset's servos act inside
+    # every physics substep on the true joints (env.control.mode "pd", a servo about the nominal pose, is another law).
+    # No torque assist: the reference walk is the prior. The KL-adaptive learning rate acts before every mini-batch
+    # (ppo.kl_adapt_every "minibatch", rsl_rl's rule): with the rule once per iteration the first run in this mode
+    # broke in one update at 7 M env steps (KL 6,933 at a rate of 3.4e-3, docs/training/default/
+    # h100_robust_pd_held_run3). Its first from-scratch run with the rule (seed 0, H100) passed the robust gait test's
+    # diverse-start nominal and commands cases at its 5.5- and 6-minute marks (docs/training/pd/h100_seed0).
+    "pd": MappingProxyType(_PD),
     # The model_based preset of before the uncertainty model, on a perfect robot (no randomisation, noise, delay or
     # kicks). Residual torque on a computed-torque law (env.control.mode "model_based", envs/model_based.py): the 12
     # leg actions add g·a to τ_ff = M_LL·(q̈_ref + ω²·(q_ref − q) + 2ζω·(q̇_ref − q̇)) + c_L from the simulator's own

@@ -49,7 +49,7 @@ def make_env(
             defaults: the reference observation and rewards with the velocity term tripled).
         preset: a training preset, as on the command line and in the adapters' ``make_vec`` (``"default"``,
             ``"torque"``, ``"robust"``, ``"torque_ideal"``, ``"model_based"``, ``"model_based_ideal"``,
-            ``"reference"``, ``"cpu_smoke"``:
+            ``"pd"``, ``"reference"``, ``"cpu_smoke"``:
             :data:`tocabi_torchrl.config.PRESETS`):
             the env is built from that preset's env and transform sections (``num_envs`` defaults to the preset's),
             so it cannot be given with ``config``/``transforms``. The trainer's training aids are not part of a
