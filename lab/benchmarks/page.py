@@ -172,7 +172,7 @@ def time_to_walk(docs: Path) -> list[str]:
             f"- report: [time_to_walk.json](benchmarks/time_to_walk.json), "
             f"[details and curves](benchmarks/time_to_walk.md); rendered by `{d['command'].split(' --runs')[0]}`",
             "", *_test_time_to_walk(docs, ROBUST_TIME_TO_WALK, _ROBUST_TEST), "",
-            *[line for report in (*TORQUE_TIME_TO_WALK, MODEL_BASED_TIME_TO_WALK)
+            *[line for report in (*TORQUE_TIME_TO_WALK, MODEL_BASED_TIME_TO_WALK, PD_TIME_TO_WALK)
               for line in (*_test_time_to_walk(docs, report, _DIVERSE_TEST), "")][:-1]]
 
 
@@ -184,10 +184,13 @@ TORQUE_TIME_TO_WALK = ("training/torque/h100_base_vel_seed0/time_to_walk_diverse
 #: The model_based preset's, under the same cases. Its run set the preset's recipe on the command line over the
 #: ``robust`` preset, before the preset was that recipe (tests/test_config_tree.py checks the two agree).
 MODEL_BASED_TIME_TO_WALK = "training/model_based/h100_robust_seed0/time_to_walk_diverse.json"
+#: The pd preset's, under the same cases; its run too set the preset's recipe over the ``robust`` preset.
+PD_TIME_TO_WALK = "training/pd/h100_seed0/time_to_walk_diverse.json"
 #: What the page says of a run whose record names another preset than the one whose recipe it trained.
-RECIPE_NOTES = {MODEL_BASED_TIME_TO_WALK: "with the overrides below, the `model_based` preset's recipe"}
+RECIPE_NOTES = {MODEL_BASED_TIME_TO_WALK: "with the overrides below, the `model_based` preset's recipe",
+                PD_TIME_TO_WALK: "with the overrides below, the `pd` preset's recipe"}
 #: The section's reports of single runs, beside docs/benchmarks/time_to_walk.json.
-RUN_TIME_TO_WALK = (ROBUST_TIME_TO_WALK, *TORQUE_TIME_TO_WALK, MODEL_BASED_TIME_TO_WALK)
+RUN_TIME_TO_WALK = (ROBUST_TIME_TO_WALK, *TORQUE_TIME_TO_WALK, MODEL_BASED_TIME_TO_WALK, PD_TIME_TO_WALK)
 _ROBUST_TEST = "the robust gait test (diverse starts, changing commands, the `tocabi_lab` randomisation and kicks"
 _DIVERSE_TEST = ("the robust gait test's `nominal` and `commands` cases (diverse starts, changing commands; no "
                  "randomisation, no kicks")
