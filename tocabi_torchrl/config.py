@@ -881,15 +881,17 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     "model_based": MappingProxyType(_MODEL_BASED),
     # The PD policy for the real robot: the robust recipe (as the model_based preset, above) in the default preset's
     # action space, the reference walk plus 0.5 rad x the action as the legs' PD targets, with the PD run as on the
-    # robot (env.control.mode "pd_held", control/torque.py): once per 4 ms step, from the joint positions as the
-    # encoders read them (their biases included) and the joint velocities, its torque held for the step and passed
-    # through the actuator model (2-10 ms delay, motor constant 0.8-1.2), where the default preset's servos act inside
-    # every physics substep on the true joints (env.control.mode "pd", a servo about the nominal pose, is another law).
-    # No torque assist: the reference walk is the prior. The KL-adaptive learning rate acts before every mini-batch
-    # (ppo.kl_adapt_every "minibatch", rsl_rl's rule): with the rule once per iteration the first run in this mode
-    # broke in one update at 7 M env steps (KL 6,933 at a rate of 3.4e-3, docs/training/default/
-    # h100_robust_pd_held_run3). Its first from-scratch run with the rule (seed 0, H100) passed the robust gait test's
-    # diverse-start nominal and commands cases at its 5.5- and 6-minute marks (docs/training/pd/h100_seed0).
+    # robot (env.control.mode "pd_held", control/torque.py): once per 4 ms step, from the true joint positions plus
+    # each world's encoder bias (no encoder noise) and the true joint velocities, its torque held for the step and
+    # passed through the actuator model (2-10 ms delay, motor constant 0.8-1.2), where the default preset's servos act
+    # inside every physics substep on the true joints (env.control.mode "pd", a servo about the nominal pose, is
+    # another law). No torque assist: the reference walk is the prior. The KL-adaptive learning rate acts before every
+    # mini-batch (ppo.kl_adapt_every "minibatch", rsl_rl's rule): with the rule once per iteration the first run in
+    # this mode broke in one update at 7 M env steps (KL 6,933 at a rate of 3.4e-3,
+    # docs/training/default/h100_robust_pd_held_run3). Its first from-scratch run with the rule (seed 0, H100) passed
+    # the robust gait test's diverse-start nominal and commands cases at its 5.5- and 6-minute marks
+    # (docs/training/pd/h100_seed0). The per-mini-batch rule trains on one GPU (each rank's rate would follow its own
+    # KL): for several, set ppo.kl_adapt_every "iteration".
     "pd": MappingProxyType(_PD),
     # The model_based preset of before the uncertainty model, on a perfect robot (no randomisation, noise, delay or
     # kicks). Residual torque on a computed-torque law (env.control.mode "model_based", envs/model_based.py): the 12
