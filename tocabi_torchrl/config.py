@@ -889,7 +889,7 @@ PRESETS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
     # mini-batch (ppo.kl_adapt_every "minibatch", rsl_rl's rule): with the rule once per iteration the first run in
     # this mode broke in one update at 7 M env steps (KL 6,933 at a rate of 3.4e-3,
     # docs/training/default/h100_robust_pd_held_run3). Its first from-scratch run with the rule (seed 0, H100) passed
-    # the robust gait test's diverse-start nominal and commands cases at its 5.5- and 6-minute marks
+    # the robust gait test's diverse-start nominal and commands cases at each of its 4- to 6-minute marks
     # (docs/training/pd/h100_seed0). The per-mini-batch rule trains on one GPU (each rank's rate would follow its own
     # KL): for several, set ppo.kl_adapt_every "iteration".
     "pd": MappingProxyType(_PD),
