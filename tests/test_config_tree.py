@@ -238,30 +238,22 @@ def test_the_torque_records_that_walk_were_trained_with_the_committed_torque_pre
     assert preset.transforms.observation == "base_vel"
 
 
-def test_the_model_based_record_that_walks_was_trained_with_the_committed_model_based_preset():
-    # The run set the preset's values on the command line over the robust preset (its saved preset is "robust"): the
+@pytest.mark.parametrize("name, record, mode", [
+    ("model_based", "model_based/h100_robust_seed0", "model_based"),  # the feed-forward law is the prior
+    ("pd", "pd/h100_seed0", "pd_held"),  # the robot's PD on sensed joints, held for the step
+])
+def test_the_records_set_over_the_robust_preset_were_trained_with_their_committed_preset(name, record, mode):
+    # Each run set the preset's values on the command line over the robust preset (its saved preset is "robust"): the
     # env, transforms and PPO sections must be the preset's, else the record is of another recipe.
-    record = Path(__file__).resolve().parents[1] / "docs" / "training" / "model_based" / "h100_robust_seed0"
-    trained = config_from_dict(json.loads((record / "config.json").read_text()))
-    preset = preset_config("model_based")
+    folder = Path(__file__).resolve().parents[1] / "docs" / "training" / record
+    trained = config_from_dict(json.loads((folder / "config.json").read_text()))
+    preset = preset_config(name)
     for section in ("env", "transforms", "ppo"):
         assert to_dict(getattr(trained, section)) == to_dict(getattr(preset, section)), section
     assert trained.preset == "robust" and trained.seed == 0 and preset.seed == 0
-    # The computed-torque law, with no torque assist: the feed-forward law is the prior.
-    assert preset.env.control.mode == "model_based" and preset.ppo.torque_assist == 0
-
-
-def test_the_pd_record_that_walks_was_trained_with_the_committed_pd_preset():
-    # As the model_based record: the run set the preset's values over the robust preset on the command line.
-    record = Path(__file__).resolve().parents[1] / "docs" / "training" / "pd" / "h100_seed0"
-    trained = config_from_dict(json.loads((record / "config.json").read_text()))
-    preset = preset_config("pd")
-    for section in ("env", "transforms", "ppo"):
-        assert to_dict(getattr(trained, section)) == to_dict(getattr(preset, section)), section
-    assert trained.preset == "robust" and trained.seed == 0 and preset.seed == 0
-    # The robot's PD on sensed joints, held for the step; no torque assist; the KL rule before every mini-batch.
-    assert preset.env.control.mode == "pd_held" and preset.ppo.torque_assist == 0
-    assert preset.ppo.kl_adapt_every == "minibatch"
+    assert preset.env.control.mode == mode and preset.ppo.torque_assist == 0  # no torque assist
+    # The pd run's KL rule acts before every mini-batch: once per iteration, the first held-PD run broke.
+    assert preset.ppo.kl_adapt_every == ("minibatch" if name == "pd" else "iteration")
 
 
 def test_records_of_the_model_based_preset_of_before_the_rename_read_as_model_based_ideal():
