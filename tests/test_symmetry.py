@@ -438,7 +438,7 @@ def test_the_replayed_update_step_takes_the_doubled_batch():
 def test_symmetry_is_off_in_every_preset_but_the_robust_recipe_and_not_resume_safe():
     assert field_choices()["ppo.symmetry"] == ("none", "augment", "equivariant")
     for name in PRESETS:  # the robust recipe mirrors its mini-batches for a gait without a sideways bias
-        robust_recipe = name in ("robust", "torque", "model_based")
+        robust_recipe = name in ("robust", "torque", "model_based", "pd")
         assert preset_config(name).ppo.symmetry == ("augment" if robust_recipe else "none"), name
     assert "ppo.symmetry" not in RESUME_SAFE
     with pytest.raises(ValueError, match="ppo.symmetry must be one of"):
