@@ -826,7 +826,7 @@ _MODEL_BASED = {
     "ppo.matmul_precision": "high", "transforms.observation": "base_vel",
 }
 
-#: The robust recipe on held leg PD (the robot's servo law on the joints it senses, its torque held for the step).
+#: The robust recipe on held leg PD (the robot's PD law on its encoder-biased joints, its torque held for the step).
 _PD = {
     **_ROBUST_NO_ASSIST, "env.control.mode": "pd_held", "ppo.matmul_precision": "high",
     "transforms.observation": "base_vel", "ppo.kl_adapt_every": "minibatch",
