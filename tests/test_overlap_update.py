@@ -5,6 +5,7 @@ resumes as without it. On the CPU the order is the GPU's, without the concurrenc
 from __future__ import annotations
 
 import copy
+import threading
 
 import pytest
 import torch
@@ -38,7 +39,7 @@ def test_each_rollout_acts_with_the_actor_of_the_update_before_or_its_own(tmp_pa
         agents.append(build(*args, **kwargs))
         return agents[-1]
 
-    def recording(cfg, flat, step, info=None):
+    def recording(cfg, flat, step, info=None, order=None):
         kept.append(flat is step.rows)  # with the overlap the update steps on the rollout its step keeps
         actor = agents[0].actor
         if snapshots:
@@ -47,7 +48,7 @@ def test_each_rollout_acts_with_the_actor_of_the_update_before_or_its_own(tmp_pa
                         for name, a in (("before_previous", snapshots[-1]), ("learner", actor))}
             checks.append({name: torch.allclose(v, flat["action_log_prob"], atol=1e-4) for name, v in logp.items()})
         snapshots.append(copy.deepcopy(actor))
-        return losses(cfg, flat, step, info)
+        return losses(cfg, flat, step, info, order)
 
     monkeypatch.setattr(trainer, "build_agent", building)
     monkeypatch.setattr(trainer, "_update_losses", recording)
@@ -97,3 +98,120 @@ def test_update_overlap_refuses_to_race_an_update_in_flight():
     with pytest.raises(RuntimeError, match="call finish"):
         overlap.launch(lambda: torch.zeros(1), keep=None)
     assert overlap.finish() == ([0.0], None) and not overlap.in_flight
+
+
+@pytest.mark.parametrize("device", ["cpu", GPU])
+def test_an_update_queued_from_a_thread_returns_its_numbers_and_its_error(device):
+    # launch(threaded=True) queues the update from a host thread of its own on a GPU (on the CPU, with no stream, it
+    # runs at once): finish() hands back its numbers, or raises the error the thread met, after which a new update
+    # can be launched.
+    from tocabi_torchrl.rl.overlap import UpdateOverlap
+
+    overlap = UpdateOverlap(torch.device(device), torch.nn.Linear(2, 1).to(device))
+    threads = []
+
+    def update():
+        threads.append(threading.current_thread())
+        return torch.arange(3.0, device=device) * 2
+
+    overlap.launch(update, keep=None, threaded=True)
+    overlap.annotate("ctx")
+    assert overlap.finish() == ([0.0, 2.0, 4.0], "ctx")
+    assert (threads[0] is threading.main_thread()) == (device == "cpu")
+
+    def broken():
+        raise ValueError("a mini-batch of the wrong size")
+
+    if device == "cpu":  # the error comes at once
+        with pytest.raises(ValueError, match="wrong size"):
+            overlap.launch(broken, keep=None, threaded=True)
+    else:  # the error comes with the wait
+        overlap.launch(broken, keep=None, threaded=True)
+        with pytest.raises(ValueError, match="wrong size"):
+            overlap.finish()
+    assert not overlap.in_flight
+    overlap.launch(update, keep=None, threaded=True)
+    assert overlap.finish() == ([0.0, 2.0, 4.0], None)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_a_run_whose_updates_are_queued_from_a_thread_trains_exactly_as_one_queued_inline(tmp_path, monkeypatch):
+    # The thread changes when the host queues the update, not what runs on either stream nor in which order on each:
+    # the learner's parameters and the logged numbers are bit-identical. The mini-batch order is drawn on the
+    # trainer's thread, so the collector's random draws keep their order.
+    from tocabi_torchrl.rl import trainer
+    from tocabi_torchrl.rl.overlap import UpdateOverlap
+
+    launch, modes = UpdateOverlap.launch, []
+
+    def run(name, threaded):
+        def launching(self, update, keep, *, threaded=False):
+            modes.append((name, threaded))
+            return launch(self, update, keep, threaded=threaded and allow)
+
+        allow = threaded
+        monkeypatch.setattr(UpdateOverlap, "launch", launching)
+        result = trainer.train(_cfg(tmp_path, name, True, "cuda", **{"ppo.update_graph": True}))
+        return result.agent.actor.state_dict(), read_metrics(tmp_path / name)
+
+    inline, inline_rows = run("inline", False)
+    threaded, threaded_rows = run("threaded", True)
+    # The first update warms up and captures its graph on the trainer's thread; later ones replay it from a thread.
+    asked = [t for n, t in modes if n == "threaded"]
+    assert len(asked) == 4 and not asked[0] and any(asked[1:])
+    for key, value in inline.items():
+        torch.testing.assert_close(threaded[key], value, rtol=0, atol=0)
+    for a, b in zip(inline_rows, threaded_rows, strict=True):
+        assert {k: a[k] for k in ("loss_policy", "loss_value", "kl", "lr")} == \
+            {k: b[k] for k in ("loss_policy", "loss_value", "kl", "lr")}
+
+
+@pytest.mark.parametrize("device", ["cpu", GPU])
+def test_the_rollout_runs_on_a_stream_of_higher_priority_than_the_update(device):
+    # On a GPU, collecting() moves the block onto the overlap's collection stream, of CUDA's high priority, after the
+    # work queued before it; the update's stream has the low one. On the CPU (or asked not to) it changes nothing.
+    from tocabi_torchrl.rl.overlap import UpdateOverlap
+
+    overlap = UpdateOverlap(torch.device(device), torch.nn.Linear(2, 1).to(device))
+    x = torch.zeros(1000, device=device)
+    if device == "cpu":
+        assert overlap.collect_stream is None
+        with overlap.collecting():
+            x += 1
+    else:
+        assert overlap.collect_stream.priority < overlap.stream.priority
+        outer = torch.cuda.current_stream()
+        x.add_(1.0)  # queued on the outer stream: ordered before the block
+        with overlap.collecting():
+            assert torch.cuda.current_stream() == overlap.collect_stream
+            x.mul_(3.0)
+        assert torch.cuda.current_stream() == outer
+        same = UpdateOverlap(torch.device(device), torch.nn.Linear(2, 1).to(device), collect_first=False)
+        assert same.collect_stream is None
+    assert x.sum().item() == (1000.0 if device == "cpu" else 3000.0)
+
+
+def test_an_update_queued_late_reads_what_it_was_launched_with(tmp_path, monkeypatch):
+    # From a thread, the update may start after the trainer has gone on with the next rollout and let go of its own
+    # names for the rollout and the mini-batch order: the update must hold them itself. An overlap that runs each
+    # update only when it is waited for (a thread that starts as late as it can) trains exactly as the usual one.
+    from tocabi_torchrl.rl import trainer
+    from tocabi_torchrl.rl.overlap import UpdateOverlap
+
+    class LateOverlap(UpdateOverlap):
+        def launch(self, update, keep, *, threaded=False):
+            self.late = update
+            super().launch(lambda: torch.zeros(1), keep)  # in flight; run at finish()
+
+        def finish(self):
+            if not self.in_flight:
+                return None
+            _, context = super().finish()
+            return self.late().tolist(), context
+
+    usual = trainer.train(_cfg(tmp_path, "usual", True)).agent.actor.state_dict()
+    monkeypatch.setattr(trainer, "UpdateOverlap", LateOverlap)
+    late = trainer.train(_cfg(tmp_path, "late", True)).agent.actor.state_dict()
+    for key, value in usual.items():
+        torch.testing.assert_close(late[key], value, rtol=0, atol=0)

@@ -131,10 +131,12 @@ def test_a_loss_that_changes_its_operations_recaptures_the_rows_step():
     step.keep(_rollout(512, "cpu"))
     idx = torch.arange(128)
     for _ in range(4):
+        assert not step.replays()  # warm-up and capture: not to be queued from another thread
         step.on_rows(idx)
-    assert step._rows_capture.captured
+    assert step._rows_capture.captured and step.replays() and not step.replays(rows=False)
     plain.loss_module.graph_key = "another"  # what AssistAbsorbLoss.graph_key reports after a switch
     try:
+        assert not step.replays()  # the next call warms up again
         step.on_rows(idx)
         assert not step._rows_capture.captured
         for _ in range(3):
@@ -230,7 +232,7 @@ def test_the_masks_reach_the_loss():
 
 def test_update_graph_is_only_used_on_cuda():
     _, _, step = _setup("cpu", update_graph=True)
-    assert not step.use_graph and not step.captured
+    assert not step.use_graph and not step.captured and not step.replays()
     assert all(not isinstance(g["lr"], torch.Tensor) for g in step.optimizer.param_groups)
 
 

@@ -43,13 +43,13 @@ class Recorder:
         self._start = None
 
     def before(self) -> None:
-        if self.on:
-            self._start = common.stamp(self.cuda)
+        self._start = common.stamp(self.cuda) if self.on else None
 
     def after(self, data=None) -> None:
-        if not self.on:
+        if self._start is None:  # the step began before the recording did
             return
         self.spans.append((self._start, common.stamp(self.cuda)))
+        self._start = None
         import warp as wp
 
         for name in self.counts:  # device copies after the end mark: not part of the timed step
@@ -77,8 +77,9 @@ def recorded_trainer(recorder: Recorder, warmup: int):
     """The trainer with the simulator's step wrapped by ``recorder`` from the end of iteration ``warmup`` on; all put
     back on exit, also after an error."""
     trainer = common.trainer
-    # _update_losses: the update in either order (ppo.overlap_update launches it, which returns at once).
-    saved = {k: getattr(trainer, k) for k in ("make_collector", "_update_losses")}
+    # estimate_advantages: once per iteration, on the trainer's own thread, between a rollout and its update (the
+    # update itself may be queued from a thread of its own, ppo.overlap_update, while the next rollout steps).
+    saved = {k: getattr(trainer, k) for k in ("make_collector", "estimate_advantages")}
     done = {"iterations": 0}
     undo: list = []
     recorder.on = warmup == 0
@@ -90,14 +91,12 @@ def recorded_trainer(recorder: Recorder, warmup: int):
                            lambda: recorder.after(sim.wp_data if recorder.counts else None), undo)
         return saved["make_collector"](cfg, env, actor, *args, **kwargs)
 
-    def update(*args, **kwargs):
-        recorder.on = False  # the update's own work is not a policy step
-        stats = saved["_update_losses"](*args, **kwargs)
-        done["iterations"] += 1
+    def advantages(*args, **kwargs):
+        done["iterations"] += 1  # rollout `iterations` has ended: the next one is recorded from `warmup` on
         recorder.on = done["iterations"] >= warmup
-        return stats
+        return saved["estimate_advantages"](*args, **kwargs)
 
-    with common.trainer_patched({"make_collector": make_collector, "_update_losses": update}, undo):
+    with common.trainer_patched({"make_collector": make_collector, "estimate_advantages": advantages}, undo):
         yield
 
 

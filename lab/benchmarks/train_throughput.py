@@ -44,10 +44,11 @@ NAME = "train_throughput"
 
 
 def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str,
-            overrides: dict, ceiling: bool = False) -> dict | None:
+            overrides: dict, ceiling: bool = False, same_priority: bool = False) -> dict | None:
     """One env count in this process (one rank of a torchrun run): the steady rate after ``warmup`` iterations, the
     whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0.
-    ``ceiling``: also the simulator's own time per policy step over the same timed iterations (module docstring)."""
+    ``ceiling``: also the simulator's own time per policy step over the same timed iterations (module docstring).
+    ``same_priority``: with ``ppo.overlap_update``, the rollout's and the update's streams of one priority."""
     info = from_environment()
     device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides,
@@ -59,13 +60,21 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
         if info.is_main:  # the benchmark's own scratch run: start afresh
             shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
         physics, overlaps, update_marks = None, [], []
-        patches = {}
+        overlap_class = common.trainer.UpdateOverlap
+
+        class Overlap(overlap_class):
+            """The trainer's :class:`UpdateOverlap`, its two streams of one priority with ``same_priority``."""
+
+            def __init__(self, *args, **kwargs):
+                super().__init__(*args, **kwargs, collect_first=not same_priority)
+
+        patches = {"UpdateOverlap": Overlap}
         if ceiling:
             at = common.trainer.resolve_device(device)
             common.refuse_captured_env_step(f"{NAME} --ceiling", cfg, at, n)
             physics = solver_load.Recorder(at, counts=False)
 
-            class RecordedOverlap(common.trainer.UpdateOverlap):
+            class RecordedOverlap(Overlap):
                 """The trainer's updates (inline or ``ppo.overlap_update``'s), with the spans they ran in on the side
                 stream, the host's time in each launch (queuing the update) and each finish (waiting for it), and,
                 per launch, the host's time in each mini-batch call, what the CUDA caching allocator did and, once the
@@ -73,30 +82,38 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
 
                 def __init__(self, *args, **kwargs):
                     super().__init__(*args, **kwargs)
-                    self.spans, self.launch_s, self.finish_s, self.calls, self.allocs = [], [], [], [], []
+                    self.spans, self.launch_s, self.queue_s, self.calls, self.allocs = [], [], [], [], []
+                    self.finish_s, self.threaded = [], []
                     #: per launch once the physics is recorded: the recorded steps before it (where the next
                     #: rollout's first step will be) and how many of the last 64 the GPU had not finished yet.
                     self.boundaries, self.pending = [], []
-                    self.launching = False
+                    self.queuing = False
                     # Before any rollout or update: every later event of either stream comes after it.
                     self.origin = (torch.cuda.current_stream(self.device).record_event(
                         torch.cuda.Event(enable_timing=True)) if self.stream is not None else None)
                     overlaps.append(self)
 
-                def launch(self, *args, **kwargs):
-                    self.calls.append([])  # TimedStep fills it while this launch runs the update's mini-batches
+                def launch(self, update, keep, *, threaded=False):
                     if physics.spans:  # is the host ahead of the GPU as it starts to queue the update?
                         self.boundaries.append(len(physics.spans))
                         self.pending.append(steps_pending(physics.spans))
-                    before = allocator_counts(self.device)
-                    t, self.launching = time.perf_counter(), True
-                    try:
-                        super().launch(*args, **kwargs)
-                    finally:
-                        self.launching = False
+                    self.threaded.append(bool(threaded and self.stream is not None))
+
+                    def queued():  # on the thread that queues the update (this one, or launch's own)
+                        self.calls.append([])  # TimedStep fills it while the update's mini-batches are queued
+                        before = allocator_counts(self.device)
+                        t, self.queuing = time.perf_counter(), True
+                        try:
+                            return update()
+                        finally:
+                            self.queuing = False
+                            self.queue_s.append(time.perf_counter() - t)
+                            after = allocator_counts(self.device)
+                            self.allocs.append({k: after[k] - before[k] for k in after})
+
+                    t = time.perf_counter()
+                    super().launch(queued, keep, threaded=threaded)
                     self.launch_s.append(time.perf_counter() - t)
-                    after = allocator_counts(self.device)
-                    self.allocs.append({k: after[k] - before[k] for k in after})
 
                 def finish(self):
                     t = time.perf_counter()
@@ -117,7 +134,7 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                 def _timed(self, call, arg):
                     t = time.perf_counter()
                     out = call(arg)
-                    if overlaps and overlaps[0].launching:  # a call outside a launch is no part of one
+                    if overlaps and overlaps[0].queuing:  # a call outside an update's queuing is no part of one
                         overlaps[0].calls[-1].append(time.perf_counter() - t)
                     return out
 
@@ -180,13 +197,16 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
 def update_host_split(overlaps: list) -> dict[str, float]:
     """Where the host's time between two rollouts goes, as medians over the run's updates but the first (it captures
     the update's graph) and the last (the run's end reads it at once, with no rollout between): ``update_launch_ms``
-    queuing an update (with the overlap, on its side stream), ``update_finish_ms`` waiting for it once the next
+    in the trainer's call that launches an update (with the overlap, on its side stream), ``update_queue_ms`` queuing
+    it (the same time, unless ``update_launch_threaded``, 1 when the trainer queued it from a thread of its own while
+    it went on with the next rollout), ``update_finish_ms`` waiting for it once the next
     rollout is collected (inline: the read of its numbers) and, with the overlap, ``update_span_ms``: its GPU time from
     its start to its end on the side stream, time it waited beside the rollout included (the events have completed:
     :func:`uncontended_ms` synchronised). Within each launch: ``update_calls`` mini-batch calls, the slowest one's
     host time ``update_call_max_ms`` and ``update_calls_over_1ms`` (with the update captured a call only copies its
     indices and launches a replay, microseconds), on CUDA ``update_launch_<counter>``: what the caching allocator
-    did while the host queued it (:data:`ALLOCATOR_COUNTS`), and ``update_launch_steps_pending``: the rollout's
+    did while the host queued it (:data:`ALLOCATOR_COUNTS`; from a thread, also what the rollout's own thread did
+    meanwhile), and ``update_launch_steps_pending``: the rollout's
     simulator steps the GPU had still to run as the host began (:func:`steps_pending`; 0 off CUDA; launches before
     the physics is recorded are not counted). Empty without updates."""
     if not overlaps:
@@ -197,7 +217,9 @@ def update_host_split(overlaps: list) -> dict[str, float]:
         median = _median_middle(seconds)
         return None if median is None else 1e3 * median
 
-    out = {"update_launch_ms": median_ms(o.launch_s), "update_finish_ms": median_ms(o.finish_s),
+    out = {"update_launch_ms": median_ms(o.launch_s), "update_queue_ms": median_ms(getattr(o, "queue_s", [])),
+           "update_launch_threaded": _median_middle([float(t) for t in getattr(o, "threaded", [])]),
+           "update_finish_ms": median_ms(o.finish_s),
            "update_span_ms": median_ms([a.elapsed_time(b) / 1e3 for a, b in o.spans])}
     calls = getattr(o, "calls", [])
     if any(calls):
@@ -328,6 +350,9 @@ def main(argv=None) -> None:
     parser.add_argument("--ceiling", action="store_true",
                         help="also time the simulator's step in place during the timed iterations: the physics of "
                              "the states training visits, and train / that ceiling (eager env step, one rank)")
+    parser.add_argument("--same_priority", action="store_true",
+                        help="with ppo.overlap_update: the rollout's and the update's CUDA streams of one priority "
+                             "(the trainer gives the rollout's the higher one)")
     parser.add_argument("--child", action="store_true", help="measure one env count in this process (internal)")
     args = parser.parse_args(argv)
     if min(args.num_envs) < 1:
@@ -337,7 +362,7 @@ def main(argv=None) -> None:
     if args.child:
         with ending(from_environment()):  # every rank ends, also on a failure (NCCL: the process, here)
             record = measure(args.num_envs[0], args.iterations, args.warmup, args.raw_steps, args.device,
-                             args.run_dir, overrides, args.ceiling)
+                             args.run_dir, overrides, args.ceiling, args.same_priority)
             if record is not None:  # rank 0 of a torchrun run reports for all ranks
                 print("RESULT " + json.dumps(record), flush=True)  # what common.run_child reads
         return
@@ -348,7 +373,7 @@ def main(argv=None) -> None:
     if args.ceiling and (max(args.nproc) > 1 or not args.iterations):
         parser.error("--ceiling times the physics of one rank's timed training iterations: use --nproc 1 and "
                      "--iterations >= 1")
-    options += ["--ceiling"] if args.ceiling else []
+    options += (["--ceiling"] if args.ceiling else []) + (["--same_priority"] if args.same_priority else [])
     if max(args.nproc) > 1 and not args.iterations + args.warmup:
         parser.error("--nproc > 1 measures training: give --iterations or --warmup > 0")
     # Where any K > 1, every child starts under torchrun, the 1-rank one too, so that they share its

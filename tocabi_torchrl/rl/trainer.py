@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import inspect
 import math
 import signal
@@ -729,6 +730,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         if live is not None:
             live.publish(ctx["row"], metrics)
 
+    streams = contextlib.ExitStack()  # the rollouts on the overlap's high-priority stream, if it has one
+    streams.enter_context(overlap.collecting())
     try:
         for it, batch in enumerate(collector, start=start_iter + 1):
             t_collect = time.perf_counter()
@@ -788,11 +791,16 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 update_step.kl_rule.start_update()
             if ppo.overlap_update:
                 overlap.refresh()  # the next rollout acts with the learner as it is before this update
-            # On its side stream the update reads `flat` while the next rollout is collected: kept until it is done.
-            # On the training stream the stream's order protects it: nothing of this rollout's copy is kept.
-            overlap.launch(lambda: _update_stats(cfg, flat, update_step, agent.actor, info),
-                           keep=flat if ppo.overlap_update else None)
-            del work, flat
+            # Drawn here, on this thread, whether or not the update is queued from a thread of its own: the
+            # collector's draws (the exploration noise) then come in one order, run after run.
+            order = _minibatch_order(cfg, flat)
+            # On its side stream the update reads `flat` and `order` while the next rollout is collected: kept until
+            # it is done. On the training stream the stream's order protects them: nothing is kept.
+            # Bound now (a lambda would look `flat` up when the thread runs it, after the `del` below).
+            overlap.launch(functools.partial(_update_stats, cfg, flat, update_step, agent.actor, info, order),
+                           keep=(flat, order) if ppo.overlap_update else None,
+                           threaded=ppo.overlap_update and update_step.replays(rows=True) and not _env_capturing(env))
+            del work, flat, order
             if assist is not None:
                 env.base_env.set_torque_assist(beta_next)
             if pushes:
@@ -841,18 +849,21 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         if overlap.in_flight:  # the collector ran out: the last update's row
             settle(*_finished(overlap, update_step))
     finally:
-        env_graph = bool(getattr(env, "graph_captured", False))
-        if overlap.in_flight:  # an error: let the update end before anything is freed, and log its row
-            with contextlib.suppress(Exception):  # the error that got here is the one to report
-                settle(*_finished(overlap, update_step))
-            if overlap.in_flight:  # the row could not be written: the wait alone
-                with contextlib.suppress(Exception):
-                    overlap.finish()
-        collector.shutdown()
-        if logger is not None:
-            logger.close()
-        if live is not None:
-            live.close()
+        # Last, whatever fails before it: what follows on the caller's stream (an evaluation, a save) waits for the
+        # last rollout, and the caller's thread is back on its own stream.
+        with streams:
+            env_graph = bool(getattr(env, "graph_captured", False))
+            if overlap.in_flight:  # an error: let the update end before anything is freed, and log its row
+                with contextlib.suppress(Exception):  # the error that got here is the one to report
+                    settle(*_finished(overlap, update_step))
+                if overlap.in_flight:  # the row could not be written: the wait alone
+                    with contextlib.suppress(Exception):
+                        overlap.finish()
+            collector.shutdown()
+            if logger is not None:
+                logger.close()
+            if live is not None:
+                live.close()
     wall = time.perf_counter() - t_start
     done_steps = env_steps - run.start_env_steps
     return TrainResult(run_dir, it + shift, env_steps, wall, done_steps / max(wall, 1e-9), metrics, env_graph,
@@ -931,6 +942,14 @@ def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBas
     return [k for k in wanted if k in present]
 
 
+def _env_capturing(env) -> bool:
+    """Whether the env step is still to be captured as a CUDA graph (its warm-up and capture, on this thread, must not
+    meet an update queued from another). Checked at each launch: a setting that drops the capture later
+    (``invalidate_graph``: a seed, randomised worlds, the assist's sensed joints) must not change while an update is
+    in flight, as none does inside the training loop."""
+    return bool(getattr(env, "cuda_graph", False)) and not bool(getattr(env, "graph_captured", False))
+
+
 def _finished(overlap: UpdateOverlap, step: MinibatchStep) -> tuple[dict[str, float], dict]:
     """The in-flight update's :func:`_update_stats` by log name and its context, once it is done (a host wait for
     that update alone)."""
@@ -947,12 +966,12 @@ def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, dist_info
 
 
 def _update_stats(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, actor: ProbabilisticActor | None = None,
-                  dist_info: DistInfo | None = None) -> torch.Tensor:
+                  dist_info: DistInfo | None = None, order: list[torch.Tensor] | None = None) -> torch.Tensor:
     """The update (:func:`_update_losses`) and, given the ``actor``, what the trainer reads with its losses, as one
     float64 device tensor named by :func:`_stat_names`: the actor's mean std after it (the logged ``action_std``) and,
     with ``ppo.kl_adapt_every`` "minibatch", the learning rate the device-side rule left. One host read takes them
     all; float64 keeps each value as a read of its own would give it."""
-    losses = _update_losses(cfg, flat, step, dist_info).to(torch.float64)
+    losses = _update_losses(cfg, flat, step, dist_info, order).to(torch.float64)
     if actor is None:
         return losses
     after = [action_std(actor).mean()]
@@ -967,17 +986,22 @@ def _stat_names(step: MinibatchStep, with_actor: bool) -> list[str]:
     return [*(_STAT_NAMES.get(k, k) for k in step.stat_keys), *extra]
 
 
-def _update_losses(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep,
-                   dist_info: DistInfo | None = None) -> torch.Tensor:
-    """``epochs`` passes of shuffled mini-batches over the rollout. Returns the mean losses and KL
-    (``step.stat_keys``) as a device tensor (no host read), averaged over the ranks in a data-parallel run, so that
-    every rank adapts its learning rate alike."""
+def _minibatch_order(cfg: RunConfig, flat: TensorDictBase) -> list[torch.Tensor]:
+    """The update's row order: one random permutation of the rollout's ``n`` rows per epoch, ``(n,)`` int64 each,
+    on the rollout's device (queued on the current stream)."""
+    return [torch.randperm(flat.shape[0], device=flat.device) for _ in range(cfg.ppo.epochs)]
+
+
+def _update_losses(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, dist_info: DistInfo | None = None,
+                   order: list[torch.Tensor] | None = None) -> torch.Tensor:
+    """``epochs`` passes of shuffled mini-batches over the rollout, each in its permutation of ``order`` (drawn here
+    when None: :func:`_minibatch_order`). Returns the mean losses and KL (``step.stat_keys``) as a device tensor (no
+    host read), averaged over the ranks in a data-parallel run, so that every rank adapts its learning rate alike."""
     n, mb, epochs = flat.shape[0], cfg.ppo.minibatch_size, cfg.ppo.epochs
     num_mb = max(1, n // mb)
     kept = flat is step.rows  # the step gathers its mini-batches itself (MinibatchStep.keep)
     sums = None
-    for _ in range(epochs):
-        perm = torch.randperm(n, device=flat.device)
+    for perm in _minibatch_order(cfg, flat) if order is None else order:
         for k in range(num_mb):
             idx = perm[k * mb : (k + 1) * mb]
             stats = step.on_rows(idx) if kept else step(flat[idx])

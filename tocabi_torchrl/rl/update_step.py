@@ -218,6 +218,13 @@ class MinibatchStep:
         self.stat_keys = STAT_KEYS + tuple(k for k in EXTRA_STAT_KEYS if k in names)
         return torch.stack([losses[k].detach() for k in self.stat_keys])
 
+    def replays(self, rows: bool = True) -> bool:
+        """Whether the next mini-batch call (:meth:`on_rows` when ``rows``, else ``__call__``) replays a captured
+        graph, nothing to warm up or capture first: the host then runs no autograd and captures nothing, so the
+        update may be queued from a thread of its own (``UpdateOverlap.launch(threaded=True)``)."""
+        self._follow_graph_key()
+        return self.use_graph and (self._rows_capture if rows else self._capture).captured
+
     def __call__(self, mb: TensorDictBase) -> torch.Tensor:
         self._follow_graph_key()
         return self._run(self._capture, self._compute, _device_of(mb), mb)
