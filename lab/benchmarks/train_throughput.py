@@ -51,7 +51,7 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
     ``same_priority``: with ``ppo.overlap_update``, the rollout's and the update's streams of one priority."""
     info = from_environment()
     device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
-    record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides,
+    record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides, "same_priority": same_priority,
               "device_used_at_start_gib": common.device_used_gib(device),
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:

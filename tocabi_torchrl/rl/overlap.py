@@ -3,7 +3,8 @@
 mujoco-warp steps a few thousand worlds in kernels that leave most of a GPU's multiprocessors idle (its solver
 iterates every world in lockstep, one thread per world in many kernels), and the trainer's update, a few hundred
 matrix-product kernels per mini-batch, can fill them. :class:`UpdateOverlap` runs iteration k's update on a stream of
-its own and lets the host go on to collect rollout k+1 on the training stream, with a copy of the actor taken before
+its own and lets the host go on to collect rollout k+1 on the training stream (:meth:`UpdateOverlap.collecting`: a
+stream of high priority), with a copy of the actor taken before
 update k: each rollout is collected with the policy of one update before. PPO takes its ratio against the policy that
 acted (the rollout stores its log-probabilities), so every mini-batch's ratio, clip and approximate KL are measured
 from one update back: the clip's trust region sits there, and the KL the adaptive learning rate reads also holds
@@ -65,7 +66,8 @@ class UpdateOverlap:
             then never waits for the GPU's queue between two rollouts, and trains exactly as it reads at once.
         collect_first: with a side stream, collect on a stream of CUDA's high priority (:meth:`collecting`), so that
             wherever the physics and the update both wait for a multiprocessor, the physics' blocks go first.
-            False: both on streams of one priority (an ablation; the results are the same either way).
+            False: both on streams of one priority (an ablation: the numbers computed are the same, only the GPU's
+            order of blocks differs).
     """
 
     def __init__(self, device: torch.device, actor: torch.nn.Module, side_stream: bool = True,
@@ -95,7 +97,7 @@ class UpdateOverlap:
 
         The physics of a step is a chain of short kernels of a few blocks each, which waits whenever the update's
         wide matrix products hold the multiprocessors; CUDA's block scheduler gives the next free one to a waiting
-        block of the higher-priority stream first, so the update fills what the physics leaves idle."""
+        block of the higher-priority stream first, so the update is meant to fill what the physics leaves idle."""
         if self.collect_stream is None:
             yield
             return
@@ -186,7 +188,7 @@ class UpdateOverlap:
         queuing, _keep, context = self._pending
         if queuing is not None:
             if queuing.thread is not None:
-                if queuing.thread.ident is None:  # interrupted before it started: nothing was queued
+                if queuing.cancel_unless_begun():  # launch() was interrupted before the thread began: nothing queued
                     self._pending = None
                     return None
                 queuing.thread.join()
@@ -207,11 +209,23 @@ class _Queuing:
         self.thread: threading.Thread | None = None
         self.done: torch.cuda.Event | None = None
         self.error: BaseException | None = None
+        self._lock = threading.Lock()
+        self._began = self._cancelled = False
+
+    def cancel_unless_begun(self) -> bool:
+        """Make a :meth:`run` that has not begun return at once; whether it had not (nothing was queued)."""
+        with self._lock:
+            self._cancelled = not self._began
+            return self._cancelled
 
     def run(self) -> None:
+        with self._lock:  # a thread interrupted as it started may run after finish() gave up on it
+            if self._cancelled:
+                return
+            self._began = True
         try:
             self.done = self._overlap._queue(self._update, self._ready)
-        except BaseException as err:  # noqa: BLE001 - handed to the launching thread by join()/raise_error()
+        except BaseException as err:  # noqa: BLE001 - raised by finish() (threaded) or raise_error() (inline)
             self.error = err
         self._update = None  # what the closure holds (the rollout's rows) is the caller's `keep` from here on
 

@@ -221,7 +221,9 @@ class MinibatchStep:
     def replays(self, rows: bool = True) -> bool:
         """Whether the next mini-batch call (:meth:`on_rows` when ``rows``, else ``__call__``) replays a captured
         graph, nothing to warm up or capture first: the host then runs no autograd and captures nothing, so the
-        update may be queued from a thread of its own (``UpdateOverlap.launch(threaded=True)``)."""
+        update may be queued from a thread of its own (``UpdateOverlap.launch(threaded=True)``). That also needs the
+        captured loss to draw no random numbers (a replay would move the CUDA generator from that thread): PPO's
+        with an analytic entropy draws none."""
         self._follow_graph_key()
         return self.use_graph and (self._rows_capture if rows else self._capture).captured
 
