@@ -44,14 +44,17 @@ NAME = "train_throughput"
 
 
 def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str,
-            overrides: dict, ceiling: bool = False, same_priority: bool = False) -> dict | None:
+            overrides: dict, ceiling: bool = False, same_priority: bool = False,
+            compile_loss: bool = False) -> dict | None:
     """One env count in this process (one rank of a torchrun run): the steady rate after ``warmup`` iterations, the
     whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0.
     ``ceiling``: also the simulator's own time per policy step over the same timed iterations (module docstring).
-    ``same_priority``: with ``ppo.overlap_update``, the rollout's and the update's streams of one priority."""
+    ``same_priority``: with ``ppo.overlap_update``, the rollout's and the update's streams of one priority.
+    ``compile_loss``: the PPO loss wrapped in ``torch.compile`` (a probe: no config option does it)."""
     info = from_environment()
     device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides, "same_priority": same_priority,
+              "compile_loss": compile_loss,
               "device_used_at_start_gib": common.device_used_gib(device),
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:
@@ -69,6 +72,8 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                 super().__init__(*args, **kwargs, collect_first=not same_priority)
 
         patches = {"UpdateOverlap": Overlap}
+        if compile_loss:
+            patches["make_update_step"] = compiled_loss_step(common.trainer.make_update_step)
         if ceiling:
             at = common.trainer.resolve_device(device)
             common.refuse_captured_env_step(f"{NAME} --ceiling", cfg, at, n)
@@ -192,6 +197,19 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
     rate = record.get("train_env_steps_per_s")
     return {**record, "raw_policy_steps_per_s": raw,
             "ratio_train_over_raw": rate / (info.world_size * raw) if raw and rate else None}
+
+
+def compiled_loss_step(make_update_step):
+    """``make_update_step`` whose step computes its loss through ``torch.compile`` (static shapes: every mini-batch
+    has the same size). The first mini-batch steps, eager before the capture, compile it; a captured step replays
+    the compiled kernels like any others."""
+
+    def make(*args, **kwargs):
+        step = make_update_step(*args, **kwargs)
+        step.loss_module = torch.compile(step.loss_module, dynamic=False)
+        return step
+
+    return make
 
 
 def update_host_split(overlaps: list) -> dict[str, float]:
@@ -353,6 +371,9 @@ def main(argv=None) -> None:
     parser.add_argument("--same_priority", action="store_true",
                         help="with ppo.overlap_update: the rollout's and the update's CUDA streams of one priority "
                              "(the trainer gives the rollout's the higher one)")
+    parser.add_argument("--compile_loss", action="store_true",
+                        help="the PPO loss wrapped in torch.compile (a probe of the update's kernels; no config "
+                             "option does it)")
     parser.add_argument("--child", action="store_true", help="measure one env count in this process (internal)")
     args = parser.parse_args(argv)
     if min(args.num_envs) < 1:
@@ -362,7 +383,7 @@ def main(argv=None) -> None:
     if args.child:
         with ending(from_environment()):  # every rank ends, also on a failure (NCCL: the process, here)
             record = measure(args.num_envs[0], args.iterations, args.warmup, args.raw_steps, args.device,
-                             args.run_dir, overrides, args.ceiling, args.same_priority)
+                             args.run_dir, overrides, args.ceiling, args.same_priority, args.compile_loss)
             if record is not None:  # rank 0 of a torchrun run reports for all ranks
                 print("RESULT " + json.dumps(record), flush=True)  # what common.run_child reads
         return
@@ -374,6 +395,7 @@ def main(argv=None) -> None:
         parser.error("--ceiling times the physics of one rank's timed training iterations: use --nproc 1 and "
                      "--iterations >= 1")
     options += (["--ceiling"] if args.ceiling else []) + (["--same_priority"] if args.same_priority else [])
+    options += ["--compile_loss"] if args.compile_loss else []
     if max(args.nproc) > 1 and not args.iterations + args.warmup:
         parser.error("--nproc > 1 measures training: give --iterations or --warmup > 0")
     # Where any K > 1, every child starts under torchrun, the 1-rank one too, so that they share its

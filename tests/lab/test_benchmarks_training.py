@@ -105,6 +105,41 @@ def test_train_throughput_counts_the_whole_set_up_and_the_cores_of_the_timed_tra
     assert trainer.make_collector(None) == "collector"  # the trainer is itself again
 
 
+def test_train_throughput_compile_loss_compiles_the_steps_loss_in_the_child_only(tmp_path, monkeypatch):
+    import torch
+
+    from tocabi_torchrl.rl import trainer
+
+    loss, seen = torch.nn.Linear(2, 1), {}
+
+    def train(cfg):
+        seen["step"] = trainer.make_update_step(cfg)  # what the trainer builds its update with
+        trainer.make_collector(cfg, None, None, None, 0)
+        rows = [{"env_steps": str(64 * k), "wall_s": str(0.1 * k), "update_s": "0.01"} for k in (1, 2, 3)]
+        return SimpleNamespace(env_steps=192, wall_seconds=0.3, iterations=3, env_graph=False), rows
+
+    monkeypatch.setattr(trainer, "make_update_step", lambda cfg: SimpleNamespace(loss_module=loss))
+    monkeypatch.setattr(trainer, "make_collector", lambda *a, **k: "collector")
+    monkeypatch.setattr(common, "train", train)
+    for compiled in (True, False):
+        r = train_throughput.measure(8, 2, 1, 0, "cpu", str(tmp_path), {}, compile_loss=compiled)
+        module = seen["step"].loss_module
+        assert r["compile_loss"] is compiled
+        assert (module is not loss and module._orig_mod is loss) if compiled else module is loss
+        assert trainer.make_update_step("cfg").loss_module is loss  # the trainer's own again after the run
+    # The parent hands the flag to each child it starts.
+    children = []
+
+    def run_child(name, argv, nproc=None):
+        children.append(argv)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(common, "run_child", run_child)
+    with pytest.raises(SystemExit):
+        train_throughput.main(["--device", "cpu", "--num_envs", "8", "--compile_loss", "--out", str(tmp_path)])
+    assert "--compile_loss" in children[0]
+
+
 def test_train_throughput_ceiling_refuses_several_ranks_and_a_captured_env_step(tmp_path, capsys):
     with pytest.raises(SystemExit):
         train_throughput.main(["--device", "cpu", "--num_envs", "8", "--nproc", "2", "--ceiling"])
