@@ -2,8 +2,10 @@
 
 Trains a preset as the throughput benchmarks do (:func:`common.run_config`: ``--num_envs`` envs, the update inline,
 not overlapped) for four iterations and profiles the third update with ``torch.profiler``: by then the mini-batch
-step is captured (``ppo.update_graph``), so the profile holds what a training update replays. The report lists the
-update's total device time (the kernels' own times, summed) and the kernels and ops that take most of it.
+step is captured (``ppo.update_graph``), so the profile holds what a training update replays, with each
+mini-batch gathered outside the graph, as an update that is not overlapped gathers it. The report lists the
+update's total device time (its kernels' and copies' own times, summed, as the profiler's table sums them) and the
+kernels that take most of it.
 ``--compile_loss`` wraps the loss in ``torch.compile`` first (:func:`train_throughput.compiled_loss_step`)::
 
     python -m lab.benchmarks.update_profile --num_envs 16384 --set ppo.matmul_precision=high --name update_16k
@@ -31,7 +33,8 @@ PROFILED = 3
 def profile_update(n: int, device: str, overrides: dict, run_dir: str, compile_loss: bool = False,
                    rows: int = 25) -> dict:
     """Train ``PROFILED + 1`` iterations at ``n`` envs and profile update number ``PROFILED``: its total device time
-    (ms; the host's on a CPU), the number of mini-batch steps and the ``rows`` entries with the most own time."""
+    (ms: its kernels and copies; on a CPU the host's ops), the number of mini-batch steps and the ``rows`` kernels
+    (ops on a CPU) with the most own time."""
     from torch.profiler import ProfilerActivity, profile
 
     cfg = common.run_config(n, PROFILED + 1, overrides, run_dir, f"profile_{n}", device)
@@ -59,8 +62,15 @@ def profile_update(n: int, device: str, overrides: dict, run_dir: str, compile_l
         common.train(cfg)
     if "table" not in seen:
         raise RuntimeError(f"{NAME}: the run ended after {seen['calls']} updates, before update {PROFILED}")
-    own = (lambda e: e.self_device_time_total) if cuda else (lambda e: e.self_cpu_time_total)
-    entries = sorted(seen["table"], key=own, reverse=True)
+    if cuda:  # the kernels and copies themselves: an op's own device time repeats that of the kernels it launched
+        from torch.autograd import DeviceType
+
+        own = lambda e: e.self_device_time_total  # noqa: E731
+        entries = [e for e in seen["table"] if e.device_type == DeviceType.CUDA
+                   and not getattr(e, "is_user_annotation", False)]
+    else:
+        own, entries = (lambda e: e.self_cpu_time_total), list(seen["table"])  # noqa: E731
+    entries = sorted(entries, key=own, reverse=True)
     total_us = sum(own(e) for e in entries)
     per_epoch = max(1, n * cfg.ppo.steps_per_env // cfg.ppo.minibatch_size)
     return {"num_envs": n, "overrides": overrides, "compile_loss": compile_loss, "clock": "device" if cuda else "host",
