@@ -4,7 +4,7 @@ Trains a preset as the throughput benchmarks do (:func:`common.run_config`: ``--
 not overlapped) for four iterations and profiles the third update with ``torch.profiler``: by then the mini-batch
 step is captured (``ppo.update_graph``), so the profile holds what a training update replays, with each
 mini-batch gathered outside the graph, as an update that is not overlapped gathers it. The report lists the
-update's total device time (its kernels' and copies' own times, summed, as the profiler's table sums them) and the
+update's total GPU time (its kernels' and copies' own times, summed, as the profiler's table sums them) and the
 kernels that take most of it.
 ``--compile_loss`` wraps the loss in ``torch.compile`` first (:func:`train_throughput.compiled_loss_step`)::
 
@@ -32,7 +32,7 @@ PROFILED = 3
 
 def profile_update(n: int, device: str, overrides: dict, run_dir: str, compile_loss: bool = False,
                    rows: int = 25) -> dict:
-    """Train ``PROFILED + 1`` iterations at ``n`` envs and profile update number ``PROFILED``: its total device time
+    """Train ``PROFILED + 1`` iterations at ``n`` envs and profile update number ``PROFILED``: its total GPU time
     (ms: its kernels and copies; on a CPU the host's ops), the number of mini-batch steps and the ``rows`` kernels
     (ops on a CPU) with the most own time."""
     from torch.profiler import ProfilerActivity, profile
@@ -62,7 +62,7 @@ def profile_update(n: int, device: str, overrides: dict, run_dir: str, compile_l
         common.train(cfg)
     if "table" not in seen:
         raise RuntimeError(f"{NAME}: the run ended after {seen['calls']} updates, before update {PROFILED}")
-    if cuda:  # the kernels and copies themselves: an op's own device time repeats that of the kernels it launched
+    if cuda:  # the kernels and copies themselves: an op's own GPU time repeats that of the kernels it launched
         from torch.autograd import DeviceType
 
         own = lambda e: e.self_device_time_total  # noqa: E731
