@@ -395,6 +395,8 @@ def main(argv=None) -> None:
         parser.error("--ceiling times the physics of one rank's timed training iterations: use --nproc 1 and "
                      "--iterations >= 1")
     options += (["--ceiling"] if args.ceiling else []) + (["--same_priority"] if args.same_priority else [])
+    if args.compile_loss and not args.iterations + args.warmup:
+        parser.error("--compile_loss compiles the loss of training iterations: give --iterations or --warmup > 0")
     options += ["--compile_loss"] if args.compile_loss else []
     if max(args.nproc) > 1 and not args.iterations + args.warmup:
         parser.error("--nproc > 1 measures training: give --iterations or --warmup > 0")

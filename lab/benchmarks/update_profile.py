@@ -10,7 +10,7 @@ kernels that take most of it.
 
     python -m lab.benchmarks.update_profile --num_envs 16384 --set ppo.matmul_precision=high --name update_16k
     python -m lab.benchmarks.update_profile --num_envs 16384 --set ppo.matmul_precision=high --compile_loss \\
-        --name update_16k_compiled
+        --name update_16k_compiled_loss
 
 On a CPU (``--device cpu``, a smoke run) the times are the host's.
 """
@@ -41,7 +41,7 @@ def profile_update(n: int, device: str, overrides: dict, run_dir: str, compile_l
     if cfg.ppo.overlap_update:
         raise SystemExit(f"{NAME} profiles the update alone: leave ppo.overlap_update off")
     cuda = torch.device(device).type == "cuda"
-    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    sync = (lambda: torch.cuda.synchronize(device)) if cuda else (lambda: None)  # noqa: E731
     update_stats, seen = common.trainer._update_stats, {"calls": 0}
 
     def profiled(*args, **kwargs):
@@ -62,21 +62,28 @@ def profile_update(n: int, device: str, overrides: dict, run_dir: str, compile_l
         common.train(cfg)
     if "table" not in seen:
         raise RuntimeError(f"{NAME}: the run ended after {seen['calls']} updates, before update {PROFILED}")
-    if cuda:  # the kernels and copies themselves: an op's own GPU time repeats that of the kernels it launched
-        from torch.autograd import DeviceType
-
-        own = lambda e: e.self_device_time_total  # noqa: E731
-        entries = [e for e in seen["table"] if e.device_type == DeviceType.CUDA
-                   and not getattr(e, "is_user_annotation", False)]
-    else:
-        own, entries = (lambda e: e.self_cpu_time_total), list(seen["table"])  # noqa: E731
-    entries = sorted(entries, key=own, reverse=True)
-    total_us = sum(own(e) for e in entries)
+    entries = own_times(seen["table"], cuda)
+    total_us = sum(us for _, us in entries)
     per_epoch = max(1, n * cfg.ppo.steps_per_env // cfg.ppo.minibatch_size)
-    return {"num_envs": n, "overrides": overrides, "compile_loss": compile_loss, "clock": "device" if cuda else "host",
+    return {"num_envs": n, "overrides": overrides, "compile_loss": compile_loss, "clock": "GPU" if cuda else "host",
             "update_ms": total_us / 1e3, "minibatch_steps": cfg.ppo.epochs * per_epoch,
             "minibatch_size": cfg.ppo.minibatch_size,
-            "top": [{"name": e.key, "calls": e.count, "own_ms": own(e) / 1e3} for e in entries[:rows]]}
+            "top": [{"name": e.key, "calls": e.count, "own_ms": us / 1e3} for e, us in entries[:rows]]}
+
+
+def own_times(table, cuda: bool) -> list[tuple]:
+    """``(entry, own time in µs)`` of a profile's ``key_averages()``, most first. On a GPU the kernels and copies
+    alone, as the profiler's own table sums them: an op's own GPU time repeats that of the kernels it launched
+    (``aten::index`` and its index kernel), and a user annotation's spans the kernels inside it. On a CPU every op
+    with its own host time."""
+    if cuda:
+        from torch.autograd import DeviceType
+
+        pairs = [(e, e.self_device_time_total) for e in table
+                 if e.device_type == DeviceType.CUDA and not getattr(e, "is_user_annotation", False)]
+    else:
+        pairs = [(e, e.self_cpu_time_total) for e in table]
+    return sorted(pairs, key=lambda p: p[1], reverse=True)
 
 
 def render(data: dict, out: Path) -> str:

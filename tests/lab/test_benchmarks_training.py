@@ -138,6 +138,10 @@ def test_train_throughput_compile_loss_compiles_the_steps_loss_in_the_child_only
     with pytest.raises(SystemExit):
         train_throughput.main(["--device", "cpu", "--num_envs", "8", "--compile_loss", "--out", str(tmp_path)])
     assert "--compile_loss" in children[0]
+    with pytest.raises(SystemExit):  # no training iteration: nothing to compile
+        train_throughput.main(["--device", "cpu", "--num_envs", "8", "--compile_loss", "--iterations", "0",
+                               "--warmup", "0", "--out", str(tmp_path)])
+    assert len(children) == 1
 
 
 def test_train_throughput_ceiling_refuses_several_ranks_and_a_captured_env_step(tmp_path, capsys):
