@@ -766,8 +766,8 @@ def train_over_ceiling_variants(docs: Path) -> list[str]:
                          f"{d['meta']['gpu']}; [{path.name}]({TRAIN_OVER_CEILING_OVERLAP}/{path.name})).")
     if not lines:
         return []
-    return ["", "With options that no preset uses yet, measured the same way "
-            f"([details]({TRAIN_OVER_CEILING_OVERLAP}/README.md)):", "", *lines]
+    return ["", "With options that no preset uses yet, measured the same way, one run each (repeats, other GPUs and "
+            f"ablations: [details]({TRAIN_OVER_CEILING_OVERLAP}/README.md)):", "", *lines]
 
 
 def soak(docs: Path) -> list[str]:
