@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import mujoco_warp as mjw
 import warp as wp
 from tensordict import TensorDict
 from warp_cpu import warp_cpu_available
@@ -28,9 +29,17 @@ SIM_KEYS = ("qpos", "qvel", "ctrl", "sensordata", "xpos", "xquat", "foot_force",
             "applied_actuator_force", "mass_matrix", "qfrc_bias", "time")
 
 
+#: The solver's iteration-limit flags (not health flags): the full pass re-solves every untouched world from its warm
+#: start, the reduced one does not, so a re-solve whose line search stops at its limit flags a world in the full pass
+#: alone (seen on an AMD EPYC host: LS_ITERATIONS on one untouched world, every trajectory still bit-identical).
+SOLVER_LIMIT_BITS = int(mjw.OverflowType.ITERATIONS | mjw.OverflowType.LS_ITERATIONS)
+
+
 def _assert_sims_equal(a: WarpSim, b: WarpSim, when: str) -> None:
     for key in SIM_KEYS:
         x, y = getattr(a, key), getattr(b, key)
+        if key == "overflow":
+            x, y = x & ~SOLVER_LIMIT_BITS, y & ~SOLVER_LIMIT_BITS
         assert torch.equal(x, y), f"{when}: sim.{key} differs, max {(x.double() - y.double()).abs().max().item()}"
     x, y = wp.to_torch(a.wp_data.qacc_warmstart), wp.to_torch(b.wp_data.qacc_warmstart)
     assert torch.equal(x, y), f"{when}: qacc_warmstart differs"

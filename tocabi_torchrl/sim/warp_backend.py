@@ -442,8 +442,10 @@ class WarpSim(SimViews):
         forces and states) are not those of the start state: nothing here reads them, and the next step recomputes
         them. The untouched worlds keep the step's ``qacc``, which the full pass re-solves from their warm start: the
         two agree within the solver's tolerance (up to ~0.007 in the CPU tests), feed nothing (the warm start and every
-        trajectory are bit-identical), and only the health flag's finiteness check reads ``qacc``. Read only the
-        views of :class:`WarpSim` after a reset.
+        trajectory are bit-identical), and only the health flag's finiteness check reads ``qacc``. That re-solve can
+        also raise the solver's iteration-limit flags (``ITERATIONS``, ``LS_ITERATIONS``) in an untouched world's
+        ``overflow`` where the reduced pass does not; neither is a health flag. Read only the views of
+        :class:`WarpSim` after a reset.
         """
         if self.config.reset_pass != "reduced":
             raise ValueError(f"register_start_states needs SimConfig.reset_pass='reduced' (this simulator has "
