@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import mujoco_warp as mjw
 import pytest
 import torch
-import mujoco_warp as mjw
 import warp as wp
 from tensordict import TensorDict
 from warp_cpu import warp_cpu_available
