@@ -45,16 +45,18 @@ NAME = "train_throughput"
 
 def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str,
             overrides: dict, ceiling: bool = False, same_priority: bool = False,
-            compile_loss: bool = False) -> dict | None:
+            compile_loss: bool = False, compact_reset: int | None = None) -> dict | None:
     """One env count in this process (one rank of a torchrun run): the steady rate after ``warmup`` iterations, the
     whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0.
     ``ceiling``: also the simulator's own time per policy step over the same timed iterations (module docstring).
     ``same_priority``: with ``ppo.overlap_update``, the rollout's and the update's streams of one priority.
-    ``compile_loss``: the PPO loss wrapped in ``torch.compile`` (a probe: no config option does it)."""
+    ``compile_loss``: the PPO loss wrapped in ``torch.compile`` (a probe: no config option does it).
+    ``compact_reset``: the reduced reset pass's small ``Data`` holds this many worlds (0: the pass over every world)
+    instead of ``tocabi_torchrl.sim.config.compact_reset_capacity``'s count (None)."""
     info = from_environment()
     device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides, "same_priority": same_priority,
-              "compile_loss": compile_loss,
+              "compile_loss": compile_loss, "compact_reset": compact_reset,
               "device_used_at_start_gib": common.device_used_gib(device),
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:
@@ -155,9 +157,16 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
 
             if not cfg.ppo.overlap_update:  # beside the rollout the update is no part of the step (below)
                 patches["_update_stats"] = timed_update
+        undo = []
+        if compact_reset is not None:  # the simulator's rule, replaced while the run builds its env
+            from tocabi_torchrl.sim import warp_backend
+
+            rule = warp_backend.compact_reset_capacity
+            warp_backend.compact_reset_capacity = lambda _num_worlds: compact_reset
+            undo.append(lambda: setattr(warp_backend, "compact_reset_capacity", rule))
         # The physics is timed from the end of iteration max(warmup, 1) on: the iterations of the steady rate.
         with (solver_load.recorded_trainer(physics, max(warmup, 1)) if physics else contextlib.nullcontext(),
-              common.trainer_patched(patches, [])):
+              common.trainer_patched(patches, undo)):
             # train() builds the env, agent and collector, then starts its clock (result.wall_seconds): the CPU time
             # is read there, so that the cores busy are those of the timed training, not of the set-up before it.
             at_clock, make_collector = {}, common.trainer.make_collector
@@ -374,6 +383,9 @@ def main(argv=None) -> None:
     parser.add_argument("--compile_loss", action="store_true",
                         help="the PPO loss wrapped in torch.compile (a probe of the update's kernels; no config "
                              "option does it)")
+    parser.add_argument("--compact_reset", type=int, default=None,
+                        help="worlds the reduced reset pass's small Data holds (0: the pass over every world); "
+                             "default: the simulator's rule, tocabi_torchrl.sim.config.compact_reset_capacity")
     parser.add_argument("--child", action="store_true", help="measure one env count in this process (internal)")
     args = parser.parse_args(argv)
     if min(args.num_envs) < 1:
@@ -383,7 +395,8 @@ def main(argv=None) -> None:
     if args.child:
         with ending(from_environment()):  # every rank ends, also on a failure (NCCL: the process, here)
             record = measure(args.num_envs[0], args.iterations, args.warmup, args.raw_steps, args.device,
-                             args.run_dir, overrides, args.ceiling, args.same_priority, args.compile_loss)
+                             args.run_dir, overrides, args.ceiling, args.same_priority, args.compile_loss,
+                             args.compact_reset)
             if record is not None:  # rank 0 of a torchrun run reports for all ranks
                 print("RESULT " + json.dumps(record), flush=True)  # what common.run_child reads
         return
@@ -398,6 +411,9 @@ def main(argv=None) -> None:
     if args.compile_loss and not args.iterations + args.warmup:
         parser.error("--compile_loss compiles the loss of training iterations: give --iterations or --warmup > 0")
     options += ["--compile_loss"] if args.compile_loss else []
+    if args.compact_reset is not None and not 0 <= args.compact_reset < min(args.num_envs):
+        parser.error(f"--compact_reset takes a world count in [0, the smallest --num_envs), not {args.compact_reset}")
+    options += ["--compact_reset", str(args.compact_reset)] if args.compact_reset is not None else []
     if max(args.nproc) > 1 and not args.iterations + args.warmup:
         parser.error("--nproc > 1 measures training: give --iterations or --warmup > 0")
     # Where any K > 1, every child starts under torchrun, the 1-rank one too, so that they share its

@@ -144,6 +144,39 @@ def test_train_throughput_compile_loss_compiles_the_steps_loss_in_the_child_only
     assert len(children) == 1
 
 
+def test_train_throughput_compact_reset_sets_the_small_pass_of_the_childs_env(tmp_path, monkeypatch):
+    from tocabi_torchrl.rl import trainer
+    from tocabi_torchrl.sim import warp_backend
+
+    rule, seen = warp_backend.compact_reset_capacity, []
+
+    def train(cfg):
+        seen.append(warp_backend.compact_reset_capacity(16384))  # what the env the run builds would use
+        trainer.make_collector(cfg, None, None, None, 0)
+        rows = [{"env_steps": str(64 * k), "wall_s": str(0.1 * k), "update_s": "0.01"} for k in (1, 2, 3)]
+        return SimpleNamespace(env_steps=192, wall_seconds=0.3, iterations=3, env_graph=False), rows
+
+    monkeypatch.setattr(trainer, "make_collector", lambda *a, **k: "collector")
+    monkeypatch.setattr(common, "train", train)
+    for value in (0, 64, None):
+        r = train_throughput.measure(8, 2, 1, 0, "cpu", str(tmp_path), {}, compact_reset=value)
+        assert r["compact_reset"] == value and warp_backend.compact_reset_capacity is rule
+    assert seen == [0, 64, rule(16384)]
+    children = []
+
+    def run_child(name, argv, nproc=None):
+        children.append(argv)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(common, "run_child", run_child)
+    with pytest.raises(SystemExit):
+        train_throughput.main(["--device", "cpu", "--num_envs", "8", "--compact_reset", "2", "--out", str(tmp_path)])
+    assert children[0][-2:] == ["--compact_reset", "2"]
+    with pytest.raises(SystemExit):  # as many as the envs: not a small Data
+        train_throughput.main(["--device", "cpu", "--num_envs", "8", "--compact_reset", "8", "--out", str(tmp_path)])
+    assert len(children) == 1
+
+
 def test_train_throughput_ceiling_refuses_several_ranks_and_a_captured_env_step(tmp_path, capsys):
     with pytest.raises(SystemExit):
         train_throughput.main(["--device", "cpu", "--num_envs", "8", "--nproc", "2", "--ceiling"])

@@ -29,6 +29,15 @@ RESET_PASSES = ("full", "reduced")
 PER_WORLD_FIELDS = ("body_mass", "body_inertia", "body_subtreemass", "dof_damping", "dof_armature", "geom_friction")
 
 
+
+def compact_reset_capacity(num_worlds: int) -> int:
+    """How many reset worlds the reduced reset pass holds in its second, small ``Data``
+    (:class:`~tocabi_torchrl.sim.compact_reset.CompactResetPass`): 0, the pass over every world, below 8,192 worlds,
+    where it costs under a millisecond and the small pass plus its copies about as much; 256 from 8,192 on. A step
+    that resets more worlds runs the pass over every world (docs/benchmarks/reset_pass_cost/)."""
+    return 256 if num_worlds >= 8192 else 0
+
+
 def available_cores() -> int:
     """CPU cores this process may run on (its affinity mask, which container limits shrink; else the machine's)."""
     try:

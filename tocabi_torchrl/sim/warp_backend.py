@@ -29,7 +29,8 @@ import torch
 import warp as wp
 
 from .buffers import NJMAX, permanent_constraint_rows
-from .config import SimConfig
+from .compact_reset import CompactResetPass
+from .config import SimConfig, compact_reset_capacity
 from .contacts import ContactLayout, contact_layout
 from .graph import Recorded
 from .health import overflow_error
@@ -194,6 +195,7 @@ class WarpSim(SimViews):
         self._forward_graph = Recorded(self._forward_fn, self.wp_device, cfg.use_graph)
         self._start_states: _StartStates | None = None  # reset_pass="reduced": see register_start_states
         self._start_reset_graph: Recorded | None = None
+        self._compact: CompactResetPass | None = None  # the reduced pass over the reset worlds alone
 
     # ----------------------------------------------------------------------------------------------- construction
     def _alloc_buffers(self, mj: mujoco.MjModel) -> None:
@@ -351,12 +353,15 @@ class WarpSim(SimViews):
         """The ``reset_pass="reduced"`` reset (see :meth:`register_start_states`): no sensor, actuation, acceleration
         or solver stage over all worlds; the reset worlds get those results from the start-state table."""
         m, d, n, mask, s = self.wp_model, self.wp_data, self.num_worlds, self._reset_mask, self._start_states
-        self._write_reset_state()
         # What the next step's step2 reads besides its own stages: kinematics, com, inertia and its factorisation
         # (forward factorises in its acceleration stage, step2 does not), contacts, constraint rows, bias forces.
         # The untouched worlds keep their sensors, qacc, actuator forces and warm start from the step's forward pass.
-        mjw.fwd_position(m, d, factorize=True)
-        mjw.fwd_velocity(m, d)
+        if self._compact is None:
+            self._write_reset_state()
+            mjw.fwd_position(m, d, factorize=True)
+            mjw.fwd_velocity(m, d)
+        else:  # the same stages over the reset worlds alone, unless too many reset
+            self._compact.run(mask, self._write_reset_state)
         idx = s.index
         wp.launch(copy_start_rows, dim=n, inputs=[mask, idx, s.sensordata, d.sensordata])
         wp.launch(copy_start_rows, dim=n, inputs=[mask, idx, s.qacc, d.qacc])
@@ -417,7 +422,8 @@ class WarpSim(SimViews):
         self._reset_graph()
 
     def register_start_states(self, qpos: torch.Tensor, qvel: torch.Tensor, ctrl: torch.Tensor,
-                              set_fields: Callable[[int], None] | None = None) -> None:
+                              set_fields: Callable[[int], None] | None = None,
+                              compact: int | None = None) -> None:
         """Register the K start states :meth:`reset_to_start` may reset to (``reset_pass="reduced"`` only).
 
         Args:
@@ -427,6 +433,11 @@ class WarpSim(SimViews):
                 model fields of its start state k (:attr:`model_fields`, e.g. drawn masses) before that state's
                 full pass; a world reset to state k must then have those fields again (the caller writes them,
                 as before the full pass). Without per-world fields, leave it None.
+            compact: how many reset worlds the reduced pass runs its position and velocity stages over on a second,
+                small ``Data`` (:class:`~tocabi_torchrl.sim.compact_reset.CompactResetPass`; a reset of more worlds
+                runs them over every world); 0 for every world always; None (default) for
+                :func:`~tocabi_torchrl.sim.config.compact_reset_capacity` of the world count. Each world's physics
+                is the same either way.
 
         Runs the full reset of :meth:`reset` once per start state over all worlds (each with its own mocap
         positions and, with ``set_fields``, model fields) and keeps, per state and world, what the reduced reset
@@ -458,6 +469,15 @@ class WarpSim(SimViews):
         if set_fields is not None and not self.config.per_world_fields:
             raise ValueError("register_start_states: set_fields writes per-world model fields, but this simulator has "
                              "none (SimConfig.per_world_fields is empty); leave it None")
+        compact = compact_reset_capacity(self.num_worlds) if compact is None else compact
+        if isinstance(compact, bool) or not isinstance(compact, int) or not 0 <= compact < self.num_worlds:
+            raise ValueError(f"register_start_states: compact must be an int in [0, {self.num_worlds}) (reset worlds "
+                             f"the small pass holds; 0: the pass over every world), got {compact!r}")
+        if compact and self.config.sensors_every_substep:
+            # step2 would evaluate contact sensors over the contact buffer, where the reset worlds' unlinked old
+            # contacts still sit.
+            raise ValueError("register_start_states: compact > 0 needs SimConfig.sensors_every_substep=False; pass "
+                             "compact=0")
         if self._start_states is not None:
             raise ValueError("register_start_states was called already: a graph captured since may read the table, "
                              "so it is not replaced; build another simulator for other start states")
@@ -505,11 +525,20 @@ class WarpSim(SimViews):
                 rows=torch.zeros(n, dtype=torch.int64, device=dev),
                 **{name: wp.from_torch(v) for name, v in table.items()}, tables=table,
             )
+            if compact:
+                cfg = self.config
+                self._compact = CompactResetPass(self.mj_model, m, d, compact, cfg.nconmax, cfg.njmax,
+                                                 cfg.ccd_per_world, tuple(self._model_fields))
             # Compile and run the reduced reset once (all worlds into start state 0), then record it.
             self._fill_start_reset(torch.ones(n, dtype=torch.bool, device=dev), torch.zeros(n, dtype=torch.int64,
                                                                                             device=dev))
             wp.synchronize_device(self.wp_device)
             self._reset_to_start_fn()
+            if self._compact is not None:  # and world 0 alone, through the small Data (its branch compiled too)
+                self._fill_start_reset(torch.arange(n, device=dev) == 0, torch.zeros(n, dtype=torch.int64,
+                                                                                    device=dev))
+                wp.synchronize_device(self.wp_device)
+                self._reset_to_start_fn()
             wp.synchronize_device(self.wp_device)
         self._start_reset_graph = Recorded(self._reset_to_start_fn, self.wp_device, self.config.use_graph)
 

@@ -1,0 +1,211 @@
+"""The reduced reset pass over the reset worlds alone (``CompactResetPass``) against the pass over every world, on
+mujoco-warp's CPU device: every view, the warm start and the trajectories after resets are bit-identical, with
+resets that fit the small ``Data`` and resets of more worlds than it holds (the pass over every world then)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import warp as wp
+from test_reset_pass import N as POOL_WORLDS
+from test_reset_pass import _assert_sims_equal, _assert_tds_equal, _pool_env, _random_action, _step_both
+from warp_cpu import warp_cpu_available
+
+from tocabi_torchrl import robot
+from tocabi_torchrl.sim import SimConfig, WarpSim
+from tocabi_torchrl.sim import warp_backend
+from tocabi_torchrl.sim.compact_reset import CompactResetPass, traced_stages
+from tocabi_torchrl.sim.config import compact_reset_capacity
+
+pytestmark = pytest.mark.skipif(not warp_cpu_available(), reason="warp's CPU device is unavailable")
+
+N = 6
+
+
+@pytest.fixture(scope="module")
+def start_states():
+    """Standing at rest, lowered 3 mm into foot contact with leg torques, and moving with leg torques."""
+    g = torch.Generator().manual_seed(3)
+    qpos = torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32).repeat(3, 1)
+    qpos[1, 2] -= 0.003
+    qvel = torch.zeros(3, 39)
+    qvel[2, 6:] = 0.5 * torch.randn(33, generator=g)
+    ctrl = torch.zeros(3, 33)
+    ctrl[1:, robot.LEGS] = 40.0 * (2 * torch.rand(2, 12, generator=g) - 1)
+    ctrl[:, robot.UPPER_BODY] = qpos[:, 7:][:, robot.UPPER_BODY]
+    return qpos, qvel, ctrl
+
+
+def _pair(start_states, capacity=2, **config):
+    every = WarpSim(SimConfig(num_worlds=N, device="cpu", reset_pass="reduced", **config))
+    every.register_start_states(*start_states, compact=0)
+    compact = WarpSim(SimConfig(num_worlds=N, device="cpu", reset_pass="reduced", **config))
+    compact.register_start_states(*start_states, compact=capacity)
+    return every, compact
+
+
+def test_the_compacted_pass_matches_the_pass_over_every_world(start_states):
+    every, compact = _pair(start_states)
+    assert every._compact is None and compact._compact.capacity == 2
+    qpos = start_states[0]
+    g = torch.Generator().manual_seed(5)
+
+    def steps(k, when):
+        for t in range(k):
+            u = torch.zeros(N, 33)
+            u[:, robot.LEGS] = 60.0 * (2 * torch.rand(N, 12, generator=g) - 1)
+            u[:, robot.UPPER_BODY] = qpos[0, 7:][robot.UPPER_BODY] + 0.1 * torch.randn(N, 21, generator=g)
+            every.ctrl.copy_(u)
+            compact.ctrl.copy_(u)
+            every.step()
+            compact.step()
+            _assert_sims_equal(every, compact, f"{when}, step {t}")
+
+    steps(3, "after registering")
+    resets = (([1, 0, 0, 1, 0, 0], [1, 0, 0, 2, 0, 0]),  # two worlds, one of them world 0 (reset_data's count)
+              ([0, 1, 1, 1, 0, 1], [0, 2, 1, 0, 1, 1]),  # four: more than the small Data holds
+              ([0, 0, 1, 0, 0, 0], [1, 1, 1, 1, 1, 1]),  # one, into foot contact
+              ([0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0]))  # none
+    small_passes = 0
+    for mask, index in resets:
+        mask, index = torch.tensor(mask, dtype=torch.bool), torch.tensor(index)
+        before = compact.qpos.clone()
+        every.reset_to_start(mask, index)
+        compact.reset_to_start(mask, index)
+        small_passes += int(compact._compact._too_many.numpy()[0] == 0)
+        _assert_sims_equal(every, compact, f"reset {mask.tolist()}")
+        assert torch.equal(compact.qpos[~mask], before[~mask])
+        steps(4, f"after reset {mask.tolist()}")
+    assert small_passes == 3  # the four-world reset took the pass over every world
+
+
+def test_appended_contacts_that_do_not_fit_are_dropped_and_flag_their_world(start_states):
+    """A contact buffer one row short of full (as if the untouched worlds filled it): a reset into foot contact
+    appends one contact, drops the rest, flags its world (NARROWPHASE, a health flag), and the dropped contacts'
+    constraint rows point past every contact, where the solver skips them."""
+    import mujoco_warp as mjw
+
+    _, compact = _pair(start_states)
+    d = compact.wp_data
+    wp.to_torch(d.nacon).fill_(d.naconmax - 1)
+    mask = torch.tensor([False, True, False, False, False, False])
+    compact.reset_to_start(mask, torch.ones(N, dtype=torch.int64))
+    assert int(d.nacon.numpy()[0]) == d.naconmax
+    assert int(compact.overflow[1]) & int(mjw.OverflowType.NARROWPHASE) and not bool(compact.healthy[1])
+    assert bool(compact.healthy[~mask].all()) and not bool(compact.overflow[~mask].any())
+    nefc = int(d.nefc.numpy()[1])
+    ids, kinds = d.efc.id.numpy()[1, :nefc], d.efc.type.numpy()[1, :nefc]
+    contact_rows = ids[kinds >= 5]  # MuJoCo's contact row types
+    assert (contact_rows == d.naconmax - 1).any() and (contact_rows == d.naconmax).sum() > 0
+    # The next reset's world takes the same slot of the small Data, not its overflow bits.
+    again = torch.tensor([False, False, True, False, False, False])
+    compact.reset_to_start(again, torch.zeros(N, dtype=torch.int64))
+    assert int(compact.overflow[2]) == 0 and bool(compact.healthy[2])
+
+
+def test_per_world_model_fields_and_mocap_positions_are_those_of_each_reset_world(start_states):
+    """Per-world masses (a heavier robot in each world) and per-world obstacle positions reach the small pass."""
+    from tocabi_torchrl.envs.config import BoxObstacle
+    from tocabi_torchrl.envs.obstacles import add_obstacles
+
+    spec = robot.load_spec()
+    (name,) = add_obstacles(spec, [BoxObstacle(size=(0.5, 0.6, 0.004), pos=(0.0, 0.0))])
+    centres = torch.tensor([[0.0, 0.0, 0.002], [3.0, 0.0, 0.002]]).repeat(3, 1).numpy()  # under the feet: 0, 2, 4
+    sims = []
+    for capacity in (0, 3):
+        sim = WarpSim(SimConfig(num_worlds=N, device="cpu", reset_pass="reduced", per_world_fields=("body_mass",)),
+                      model=spec, mocap_pos={name: centres})
+        masses = sim.model_fields["body_mass"]
+
+        def set_fields(k, masses=masses):
+            masses.copy_(masses[:1].expand_as(masses) * (1.0 + 0.05 * torch.arange(N).unsqueeze(-1) + 0.01 * k))
+
+        sim.register_start_states(*start_states, set_fields=set_fields, compact=capacity)
+        sims.append(sim)
+    every, compact = sims
+    index = torch.tensor([0, 1, 2, 0, 1, 2])
+    for mask in ([0, 1, 1, 0, 0, 1], [1, 0, 0, 1, 1, 0]):
+        mask = torch.tensor(mask, dtype=torch.bool)
+        for sim in sims:  # each world keeps its own masses (of the last registered state): the same in both
+            sim.reset_to_start(mask, index)
+        _assert_sims_equal(every, compact, f"reset {mask.tolist()}")
+        assert compact.obstacle_contact[[0, 2, 4]].any(-1).all() and not compact.obstacle_contact[[1, 3, 5]].any()
+        for t in range(3):
+            every.step()
+            compact.step()
+            _assert_sims_equal(every, compact, f"step {t} after reset {mask.tolist()}")
+
+
+def test_the_training_env_with_a_start_pool_and_dynamics_is_unchanged(monkeypatch):
+    """The env as the robust presets build it (a start pool, per-world dynamics), its sync-free step resetting
+    worlds itself: with the small pass forced on, every output and sim view is that of the pass over every world."""
+    every = _pool_env("reduced")
+    monkeypatch.setattr(warp_backend, "compact_reset_capacity", lambda n: 2)
+    compact = _pool_env("reduced")
+    assert every.base_env.sim._compact is None and compact.base_env.sim._compact.capacity == 2
+    td_e, td_c = every.reset(), compact.reset()
+    _assert_tds_equal(td_e, td_c, "reset")
+    g = torch.Generator().manual_seed(11)
+    resets = 0
+    for t in range(16):
+        out, td_e, _, td_c = _step_both(every, compact, td_e, td_c, _random_action(g), f"step {t}")
+        resets += int(out["next", "done"].sum())
+    assert resets >= POOL_WORLDS
+
+
+def test_the_traced_stages_read_the_state_and_write_kinematics_and_constraint_rows():
+    import mujoco_warp as mjw
+
+    from tocabi_torchrl.sim import add_contact_sensors
+
+    mj = add_contact_sensors(robot.load_spec()).compile()
+    with wp.ScopedDevice("cpu"):
+        m = mjw.put_model(mj)
+        d = mjw.make_data(mj, nworld=2, nconmax=8, njmax=64)
+        reads, writes = traced_stages(m, d)
+    assert {"qpos", "qvel"} <= set(reads) and not {"xpos", "qLD", "efc.J"} & set(reads)
+    assert {"xpos", "xquat", "cinert", "crb", "M", "qLD", "efc.J", "efc.id", "nefc", "qfrc_bias", "cvel"} <= set(writes)
+    assert not {"qpos", "qvel", "ctrl", "sensordata", "qacc_warmstart"} & set(writes)
+
+
+def test_capacity_rule_and_refusals(start_states):
+    assert compact_reset_capacity(4096) == 0 and compact_reset_capacity(16384) == 256
+    sim = WarpSim(SimConfig(num_worlds=4, device="cpu", reset_pass="reduced"))
+    for bad in (-1, 4, 1.5, True):
+        with pytest.raises(ValueError, match=r"compact must be an int in \[0, 4\)"):
+            sim.register_start_states(*start_states, compact=bad)
+    substeps = WarpSim(SimConfig(num_worlds=4, device="cpu", reset_pass="reduced", sensors_every_substep=True))
+    with pytest.raises(ValueError, match="sensors_every_substep"):
+        substeps.register_start_states(*start_states, compact=2)
+    with pytest.raises(ValueError, match=r"capacity must be in \[1, 4\)"):
+        CompactResetPass(sim.mj_model, sim.wp_model, sim.wp_data, 4, 8, 64, 0)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_gpu_compacted_pass_matches_the_pass_over_every_world_and_never_syncs(start_states):
+    """On the GPU (recorded graphs, the branch a conditional node): resets that fit the small Data and one that does
+    not, each followed by steps, read nothing on the host and agree with the pass over every world (contacts come
+    in another order within a world there: float tolerance)."""
+    cuda = [t.cuda() for t in start_states]
+    sims = []
+    for capacity in (0, 2):
+        sim = WarpSim(SimConfig(num_worlds=N, device="cuda", reset_pass="reduced"))
+        sim.register_start_states(*cuda, compact=capacity)
+        sims.append(sim)
+    every, compact = sims
+    index = torch.tensor([1, 0, 2, 1, 0, 2], device="cuda")
+    for mask in ([1, 0, 0, 1, 0, 0], [0, 1, 1, 1, 0, 1], [0, 0, 1, 0, 0, 0]):
+        mask = torch.tensor(mask, dtype=torch.bool, device="cuda")
+        torch.cuda.set_sync_debug_mode("error")
+        try:
+            for sim in sims:
+                sim.reset_to_start(mask, index)
+                for _ in range(3):
+                    sim.step()
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+        for key in ("qpos", "qvel", "sensordata", "foot_force", "healthy"):
+            torch.testing.assert_close(getattr(compact, key), getattr(every, key), rtol=1e-3, atol=1e-3,
+                                       msg=lambda m, key=key, mask=mask: f"{key} after reset {mask.tolist()}: {m}")
+    assert int(compact._compact._too_many.numpy()[0]) == 0  # the last reset took the small Data

@@ -1,0 +1,341 @@
+"""The reduced reset pass's position and velocity stages over the worlds that reset alone.
+
+The reduced reset pass (``SimConfig.reset_pass="reduced"``) runs ``mujoco_warp.fwd_position`` and ``fwd_velocity``
+so that the reset worlds start their next step (``step2``, which reuses those stages) from a consistent state.
+mujoco-warp's kernels run over every world of a ``Data``, so over all N worlds that costs 2.5 ms per step at 16,384
+worlds on an H100, though a training step resets a few dozen (``docs/benchmarks/reset_pass_cost/``). Here the same
+two stages run on a second ``Data`` of ``capacity`` worlds, one per reset world, and their results go back into the
+big ``Data``:
+
+=====================  ======================================================================================
+step                   what moves
+=====================  ======================================================================================
+slots                  reset world ids into slots ``0..count-1`` (an atomic counter: no host read)
+gather                 every per-world array the two stages read before writing it, big row -> slot row; the
+                       per-world model fields (``SimConfig.per_world_fields``) into the small model's rows
+stages                 ``fwd_position(factorize=True)`` and ``fwd_velocity`` on the small ``Data``
+contact rows' ids      the small constraint rows' contact ids shifted by the big buffer's contact count
+scatter                every per-world array the stages write, slot row -> big row
+contacts               the reset worlds' old contacts unlinked from their constraint rows (``efc_address``
+                       -1); the new ones appended to the big buffer, their world ids mapped back
+=====================  ======================================================================================
+
+Which arrays are read and written is found by running the stages once with warp's launches traced (their
+``inputs``, ``outputs``, copies and fills), so the lists follow the installed mujoco-warp. When more worlds reset
+than ``capacity`` (the first steps of training, when untrained robots fall together), a conditional node
+(``wp.capture_if``) runs the stages over every world instead, as the reduced pass does. The untouched worlds keep
+what the step's closing forward pass computed for their unchanged state, which is what the pass over every world
+recomputes; contacts and constraint rows are per world in order, so each world's physics is unchanged, though the
+big contact buffer holds the reset worlds' contacts after the others (and their unlinked old ones before).
+Appended contacts that do not fit the buffer are dropped and flag the world ``NARROWPHASE`` (a health flag).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from collections.abc import Callable
+
+import mujoco
+import mujoco_warp as mjw
+import warp as wp
+
+__all__ = ["CompactResetPass", "traced_stages"]
+
+#: Constraint row types whose ``efc.id`` is a contact's index in the contact buffer (MuJoCo's numbering, which
+#: mujoco-warp's rows share).
+_CONTACT_ROWS = tuple(int(getattr(mujoco.mjtConstraint, f"mjCNSTR_CONTACT_{k}")) for k in
+                      ("FRICTIONLESS", "PYRAMIDAL", "ELLIPTIC"))
+
+
+@wp.kernel(enable_backward=False)
+def _fill_slots(mask: wp.array(dtype=wp.bool), capacity: int, count: wp.array(dtype=int),
+                slot_world: wp.array(dtype=int), too_many: wp.array(dtype=wp.int32)):
+    w = wp.tid()
+    if mask[w]:
+        s = wp.atomic_add(count, 0, 1)
+        if s < capacity:
+            slot_world[s] = w
+        if s == capacity:
+            too_many[0] = 1
+
+
+@wp.kernel(enable_backward=False)
+def _gather_i32(src: wp.array2d(dtype=wp.int32), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
+                dst: wp.array2d(dtype=wp.int32)):
+    s, j = wp.tid()
+    if s < count[0]:
+        dst[s, j] = src[slot_world[s], j]
+
+
+@wp.kernel(enable_backward=False)
+def _gather_u8(src: wp.array2d(dtype=wp.uint8), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
+               dst: wp.array2d(dtype=wp.uint8)):
+    s, j = wp.tid()
+    if s < count[0]:
+        dst[s, j] = src[slot_world[s], j]
+
+
+@wp.kernel(enable_backward=False)
+def _scatter_i32(src: wp.array2d(dtype=wp.int32), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
+                 dst: wp.array2d(dtype=wp.int32)):
+    s, j = wp.tid()
+    if s < count[0]:
+        dst[slot_world[s], j] = src[s, j]
+
+
+@wp.kernel(enable_backward=False)
+def _scatter_u8(src: wp.array2d(dtype=wp.uint8), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
+                dst: wp.array2d(dtype=wp.uint8)):
+    s, j = wp.tid()
+    if s < count[0]:
+        dst[slot_world[s], j] = src[s, j]
+
+
+@wp.kernel(enable_backward=False)
+def _number_contacts(worldid: wp.array(dtype=int), nacon: wp.array(dtype=int), count: wp.array(dtype=int),
+                     slot_world: wp.array(dtype=int), flag: int, total: wp.array(dtype=int),
+                     remap: wp.array(dtype=int), big_worldid: wp.array(dtype=int), overflow: wp.array(dtype=int)):
+    """Give each contact of an occupied slot its row in the big buffer (``remap``, -1 for the others): the next
+    free row, counted on from the big buffer's contact count in ``total``."""
+    i = wp.tid()
+    if i >= nacon[0]:
+        return
+    s = worldid[i]
+    remap[i] = -1
+    if s >= count[0]:  # a slot no reset world occupies this time: its contacts are stale
+        return
+    w = slot_world[s]
+    k = wp.atomic_add(total, 0, 1)
+    if k < big_worldid.shape[0]:
+        remap[i] = k
+        big_worldid[k] = w
+    else:  # the big buffer is full: the contact is dropped, and its slot says so (scattered to its world after)
+        wp.atomic_or(overflow, s, flag)
+
+
+@wp.kernel(enable_backward=False)
+def _append_contacts(src: wp.array2d(dtype=wp.int32), nacon: wp.array(dtype=int), remap: wp.array(dtype=int),
+                     dst: wp.array2d(dtype=wp.int32)):
+    i, j = wp.tid()
+    if i < nacon[0] and remap[i] >= 0:
+        dst[remap[i], j] = src[i, j]
+
+
+@wp.kernel(enable_backward=False)
+def _remap_contact_ids(count: wp.array(dtype=int), nefc: wp.array(dtype=int), efc_type: wp.array2d(dtype=int),
+                       remap: wp.array(dtype=int), kinds: wp.vec3i, dropped: int, efc_id: wp.array2d(dtype=int)):
+    s, r = wp.tid()
+    if s < count[0] and r < nefc[s]:
+        t = efc_type[s, r]
+        if t == kinds[0] or t == kinds[1] or t == kinds[2]:
+            k = remap[efc_id[s, r]]
+            # A dropped contact's rows point past every contact (the solver skips an id >= nacon).
+            efc_id[s, r] = wp.where(k >= 0, k, dropped)
+
+
+@wp.kernel(enable_backward=False)
+def _unlink_old_contacts(nacon: wp.array(dtype=int), worldid: wp.array(dtype=int), mask: wp.array(dtype=wp.bool),
+                         efc_address: wp.array2d(dtype=int)):
+    i, j = wp.tid()
+    if i < nacon[0] and mask[worldid[i]]:
+        efc_address[i, j] = -1
+
+
+@wp.kernel(enable_backward=False)
+def _clamp_count(total: wp.array(dtype=int), capacity: int, nacon: wp.array(dtype=int)):
+    nacon[0] = wp.min(total[0], capacity)
+
+
+def _rows(array: wp.array, rows: int) -> tuple[wp.array, bool]:
+    """``array`` (contiguous, leading dimension ``rows``) as a 2-D view of its memory: 32-bit words per row, or
+    bytes where a row's size is not a multiple of 4; the flag says which."""
+    if not array.is_contiguous:
+        raise ValueError(f"CompactResetPass copies whole rows of contiguous arrays; got strides {array.strides}")
+    width = array.size // rows * wp.types.type_size_in_bytes(array.dtype)
+    words = width % 4 == 0
+    view = wp.array(ptr=array.ptr, dtype=wp.int32 if words else wp.uint8,
+                    shape=(rows, width // 4 if words else width), device=array.device)
+    view._owner = array  # the view does not own its memory: keep the owner alive with it
+    return view, words
+
+
+@contextlib.contextmanager
+def _tracing(reads: list, writes: list):
+    """Note, in launch order, the arrays each warp launch lists as ``inputs`` (``reads``) and ``outputs``
+    (``writes``), and those that copies and fills write; restored on exit."""
+    originals = {"launch": wp.launch, "launch_tiled": wp.launch_tiled, "copy": wp.copy}
+    fills = {"zero_": wp.array.zero_, "fill_": wp.array.fill_}
+
+    def launch(inner):
+        def traced(kernel, *args, inputs=(), outputs=(), **kwargs):
+            reads.append([a for a in inputs if isinstance(a, wp.array)])
+            writes.append([a for a in outputs if isinstance(a, wp.array)])
+            return inner(kernel, *args, inputs=inputs, outputs=outputs, **kwargs)
+        return traced
+
+    def copy(dest, src, *args, **kwargs):
+        reads.append([src])
+        writes.append([dest])
+        return originals["copy"](dest, src, *args, **kwargs)
+
+    def fill(inner):
+        def traced(self, *args, **kwargs):
+            reads.append([])
+            writes.append([self])
+            return inner(self, *args, **kwargs)
+        return traced
+
+    wp.launch, wp.launch_tiled, wp.copy = launch(wp.launch), launch(wp.launch_tiled), copy
+    wp.array.zero_, wp.array.fill_ = fill(fills["zero_"]), fill(fills["fill_"])
+    try:
+        yield
+    finally:
+        wp.launch, wp.launch_tiled, wp.copy = originals["launch"], originals["launch_tiled"], originals["copy"]
+        wp.array.zero_, wp.array.fill_ = fills["zero_"], fills["fill_"]
+
+
+def per_world_arrays(data: mjw.Data, rows: int) -> dict[str, wp.array]:
+    """``{name: array}`` of the arrays of ``data`` and of its constraint rows (``efc.<name>``) with ``rows`` rows,
+    one per world (the contact buffer, one for all worlds, is not among them)."""
+    found = {}
+    for name, value in vars(data).items():
+        if isinstance(value, wp.array) and value.ndim >= 1 and value.shape[0] == rows and value.size > 0:
+            found[name] = value
+    for name, value in vars(data.efc).items():
+        if isinstance(value, wp.array) and value.ndim >= 1 and value.shape[0] == rows and value.size > 0:
+            found[f"efc.{name}"] = value
+    return found
+
+
+def traced_stages(model: mjw.Model, data: mjw.Data) -> tuple[list[str], list[str]]:
+    """Run ``fwd_position(factorize=True)`` and ``fwd_velocity`` on ``data`` once and return the names of its
+    per-world arrays (:func:`per_world_arrays`) that they read before writing them, and those they write."""
+    reads, writes = [], []
+    with _tracing(reads, writes):
+        _stages(model, data)
+    names = {id(a): name for name, a in per_world_arrays(data, data.nworld).items()}
+    read_first, written = [], []
+    for ins, outs in zip(reads, writes):
+        for a in ins:
+            name = names.get(id(a))
+            if name is not None and name not in written and name not in read_first:
+                read_first.append(name)
+        for a in outs:
+            name = names.get(id(a))
+            if name is not None and name not in written:
+                written.append(name)
+    return read_first, written
+
+
+def _stages(model: mjw.Model, data: mjw.Data) -> None:
+    mjw.fwd_position(model, data, factorize=True)
+    mjw.fwd_velocity(model, data)
+
+
+@dataclasses.dataclass
+class _Copy:
+    big: wp.array  # (N, width) view of the big Data's array
+    small: wp.array  # (capacity, width) view of the small Data's array
+    words: bool  # 32-bit words (True) or bytes
+
+
+class CompactResetPass:
+    """The reset pass's position and velocity stages for the flagged worlds, on a second ``Data`` of ``capacity``
+    worlds (the module's docstring says how). Build it before any graph records :meth:`run`; it runs the stages
+    once eagerly on the small ``Data`` (compiling nothing new: the same kernels).
+
+    Args:
+        mj: the compiled MuJoCo model the big ``Data`` was made from.
+        model: the big ``Data``'s mujoco-warp model (its per-world fields, ``(N, ...)`` rows, are gathered).
+        data: the big ``Data``, N worlds.
+        capacity: the most reset worlds one pass holds; more run the stages over every world.
+        nconmax, njmax, nccdmax: the big ``Data``'s per-world buffer sizes (``mujoco_warp.make_data``).
+        per_world_fields: names of ``model``'s fields with one row per world.
+    """
+
+    def __init__(self, mj, model: mjw.Model, data: mjw.Data, capacity: int, nconmax: int, njmax: int,
+                 nccdmax: int, per_world_fields: tuple[str, ...] = ()):
+        n = data.nworld
+        if not 0 < capacity < n:
+            raise ValueError(f"CompactResetPass capacity must be in [1, {n}) for {n} worlds, got {capacity}")
+        self.capacity, self.model, self.data = capacity, model, data
+        self.small = mjw.make_data(mj, nworld=capacity, nconmax=nconmax, njmax=njmax, nccdmax=nccdmax)
+        small_fields = {}
+        for name in per_world_fields:
+            big = getattr(model, name)
+            small_fields[name] = wp.empty((capacity, *big.shape[1:]), dtype=big.dtype)
+            wp.copy(small_fields[name], big, count=small_fields[name].size)
+        self.small_model = dataclasses.replace(model, **small_fields)
+        self._fields = [_Copy(*_pair(getattr(model, k), v, n, capacity)) for k, v in small_fields.items()]
+        reads, writes = traced_stages(self.small_model, self.small)
+        big_arrays, small_arrays = per_world_arrays(data, n), per_world_arrays(self.small, capacity)
+        missing = sorted(set(reads + writes) - set(big_arrays))
+        if missing:
+            raise ValueError(f"CompactResetPass: the big Data lacks the per-world arrays {missing} of the small one "
+                             "(another mujoco-warp layout?); use the pass over every world")
+        # The overflow bits are or-ed into (an output read as well): each slot starts from its reset world's bits,
+        # which reset_data cleared, not from those of the slot's last world; and they always go back.
+        reads += [] if "overflow" in reads else ["overflow"]
+        writes += [] if "overflow" in writes else ["overflow"]
+        #: names of the per-world arrays gathered before the stages and scattered after them
+        self.reads, self.writes = tuple(reads), tuple(writes)
+        self._gather = [_Copy(*_pair(big_arrays[k], small_arrays[k], n, capacity)) for k in reads]
+        self._scatter = [_Copy(*_pair(big_arrays[k], small_arrays[k], n, capacity)) for k in writes]
+        big_c, small_c = data.contact, self.small.contact
+        rows_big, rows_small = data.naconmax, self.small.naconmax
+        self._contacts = []
+        for name, value in vars(small_c).items():
+            if isinstance(value, wp.array) and value.shape[0] == rows_small and value.size > 0 and name != "worldid":
+                b, words_b = _rows(getattr(big_c, name), rows_big)
+                s, words_s = _rows(value, rows_small)
+                if not (words_b and words_s):
+                    raise ValueError(f"CompactResetPass: contact field {name!r} is not of 32-bit words")
+                self._contacts.append((s, b))
+        self._slot_world = wp.zeros(capacity, dtype=int)
+        self._count = wp.zeros(1, dtype=int)
+        self._too_many = wp.zeros(1, dtype=wp.int32)
+        self._total = wp.zeros(1, dtype=int)  # the big buffer's contact count before the reset, then as appended
+        self._remap = wp.zeros(self.small.naconmax, dtype=int)  # each small contact's row in the big buffer
+
+    def run(self, mask: wp.array, write_reset_state: Callable[[], None]) -> None:
+        """``write_reset_state()`` (which writes the reset worlds' state into the big ``Data``, e.g. with
+        ``mujoco_warp.reset_data``), then the two stages for the worlds ``mask`` (N,) bool flags: over the small
+        ``Data`` when at most ``capacity`` are flagged, else over every world. Warp launches only (recordable)."""
+        n, d = self.data.nworld, self.data
+        # reset_data zeroes the contact count when world 0 resets; the untouched worlds' contacts stay in their rows.
+        wp.copy(self._total, d.nacon)
+        write_reset_state()
+        self._count.zero_()
+        self._too_many.zero_()
+        wp.launch(_fill_slots, dim=n, inputs=[mask, self.capacity, self._count, self._slot_world, self._too_many])
+        wp.capture_if(self._too_many, on_true=lambda: _stages(self.model, d), on_false=lambda: self._compact(mask))
+
+    def _compact(self, mask: wp.array) -> None:
+        d, s, cap = self.data, self.small, self.capacity
+        slots, count = self._slot_world, self._count
+        for c in (*self._fields, *self._gather):
+            wp.launch(_gather_i32 if c.words else _gather_u8, dim=(cap, c.big.shape[1]),
+                      inputs=[c.big, slots, count], outputs=[c.small])
+        _stages(self.small_model, s)
+        wp.launch(_unlink_old_contacts, dim=d.contact.efc_address.shape,
+                  inputs=[self._total, d.contact.worldid, mask], outputs=[d.contact.efc_address])
+        wp.launch(_number_contacts, dim=s.naconmax,
+                  inputs=[s.contact.worldid, s.nacon, count, slots, int(mjw.OverflowType.NARROWPHASE)],
+                  outputs=[self._total, self._remap, d.contact.worldid, s.overflow])
+        for small_rows, big_rows in self._contacts:
+            wp.launch(_append_contacts, dim=small_rows.shape, inputs=[small_rows, s.nacon, self._remap],
+                      outputs=[big_rows])
+        wp.launch(_remap_contact_ids, dim=(cap, s.efc.id.shape[1]),
+                  inputs=[count, s.nefc, s.efc.type, self._remap, wp.vec3i(*_CONTACT_ROWS), d.naconmax],
+                  outputs=[s.efc.id])
+        for c in self._scatter:
+            wp.launch(_scatter_i32 if c.words else _scatter_u8, dim=(cap, c.big.shape[1]),
+                      inputs=[c.small, slots, count], outputs=[c.big])
+        wp.launch(_clamp_count, dim=1, inputs=[self._total, d.naconmax], outputs=[d.nacon])
+
+
+def _pair(big: wp.array, small: wp.array, n: int, capacity: int) -> tuple[wp.array, wp.array, bool]:
+    b, words = _rows(big, n)
+    s, _ = _rows(small, capacity)
+    return b, s, words
