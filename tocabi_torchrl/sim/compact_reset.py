@@ -23,7 +23,9 @@ contacts               the reset worlds' old contacts unlinked from their constr
 Which arrays are read and written is found by running the stages once with warp's launches traced (their
 ``inputs``, ``outputs``, copies and fills), so the lists follow the installed mujoco-warp. When more worlds reset
 than ``capacity`` (the first steps of training, when untrained robots fall together), a conditional node
-(``wp.capture_if``) runs the stages over every world instead, as the reduced pass does. The untouched worlds keep
+(``wp.capture_if``) runs the stages over every world instead, as the reduced pass does. A conditional node's body
+may not allocate memory, and mujoco-warp's stages make scratch arrays as they run: each branch keeps those of its
+first run and hands them out again (``_AllocationPool``). The untouched worlds keep
 what the step's closing forward pass computed for their unchanged state, which is what the pass over every world
 recomputes; contacts and constraint rows are per world in order, so each world's physics is unchanged, though the
 big contact buffer holds the reset worlds' contacts after the others (and their unlinked old ones before).
@@ -195,6 +197,65 @@ def _tracing(reads: list, writes: list):
         wp.array.zero_, wp.array.fill_ = fills["zero_"], fills["fill_"]
 
 
+class _AllocationPool:
+    """The arrays a branch of the pass allocates (mujoco-warp's stages make scratch arrays with ``wp.empty`` and
+    ``wp.zeros`` as they run), made on the branch's first run and handed out again, in the same order, on every
+    later run, zeroed where ``wp.zeros`` asked: a conditional node's body may not allocate memory (CUDA refuses a
+    body graph with allocation nodes). While :meth:`active` runs, warp's allocation functions are replaced, so run
+    nothing else of warp beside it."""
+
+    _POOLED = ("empty", "zeros")
+    _REFUSED = ("empty_like", "zeros_like", "ones", "full", "clone", "ones_like", "full_like")
+
+    def __init__(self, name: str):
+        self.name = name
+        self.arrays: list[tuple[wp.array, object, object]] | None = None  # (array, shape asked, dtype asked)
+
+    @contextlib.contextmanager
+    def active(self):
+        originals = {k: getattr(wp, k) for k in (*self._POOLED, *self._REFUSED)}
+        made, used = [], [0]
+
+        def pooled(kind):
+            def alloc(shape=0, dtype=float, *args, **kwargs):
+                shape = (shape,) if isinstance(shape, int) else tuple(shape)
+                if self.arrays is None:  # the first run: allocate, and keep
+                    array = originals[kind](shape, dtype, *args, **kwargs)
+                    made.append((array, shape, dtype))
+                    return array
+                k = used[0]
+                if k >= len(self.arrays) or self.arrays[k][1:] != (shape, dtype):
+                    raise RuntimeError(f"CompactResetPass ({self.name}): mujoco-warp's allocation {k} differs from its "
+                                       f"first run ({shape}, {dtype}); the pass cannot reuse its scratch arrays")
+                used[0] += 1
+                array = self.arrays[k][0]
+                if kind == "zeros":
+                    array.zero_()
+                return array
+            return alloc
+
+        def refused(kind):
+            def alloc(*args, **kwargs):
+                raise RuntimeError(f"CompactResetPass ({self.name}): mujoco-warp allocated with wp.{kind} in the reset "
+                                   "pass, which a conditional node cannot hold; use compact=0 with this mujoco-warp")
+            return alloc
+
+        for kind in self._POOLED:
+            setattr(wp, kind, pooled(kind))
+        for kind in self._REFUSED:
+            setattr(wp, kind, refused(kind))
+        try:
+            yield
+        finally:
+            for kind, fn in originals.items():
+                setattr(wp, kind, fn)
+        if self.arrays is None:
+            self.arrays = made
+        elif used[0] != len(self.arrays):
+            raise RuntimeError(f"CompactResetPass ({self.name}): mujoco-warp allocated {used[0]} arrays, its first run "
+                               f"{len(self.arrays)}; the pass cannot reuse its scratch arrays")
+
+
 def per_world_arrays(data: mjw.Data, rows: int) -> dict[str, wp.array]:
     """``{name: array}`` of the arrays of ``data`` and of its constraint rows (``efc.<name>``) with ``rows`` rows,
     one per world (the contact buffer, one for all worlds, is not among them)."""
@@ -292,6 +353,7 @@ class CompactResetPass:
                 if not (words_b and words_s):
                     raise ValueError(f"CompactResetPass: contact field {name!r} is not of 32-bit words")
                 self._contacts.append((s, b))
+        self._pools = (_AllocationPool("every world"), _AllocationPool("reset worlds"))
         self._slot_world = wp.zeros(capacity, dtype=int)
         self._count = wp.zeros(1, dtype=int)
         self._too_many = wp.zeros(1, dtype=wp.int32)
@@ -309,7 +371,11 @@ class CompactResetPass:
         self._count.zero_()
         self._too_many.zero_()
         wp.launch(_fill_slots, dim=n, inputs=[mask, self.capacity, self._count, self._slot_world, self._too_many])
-        wp.capture_if(self._too_many, on_true=lambda: _stages(self.model, d), on_false=lambda: self._compact(mask))
+        wp.capture_if(self._too_many, on_true=lambda: self._every_world(), on_false=lambda: self._compact(mask))
+
+    def _every_world(self) -> None:
+        with self._pools[0].active():
+            _stages(self.model, self.data)
 
     def _compact(self, mask: wp.array) -> None:
         d, s, cap = self.data, self.small, self.capacity
@@ -317,7 +383,8 @@ class CompactResetPass:
         for c in (*self._fields, *self._gather):
             wp.launch(_gather_i32 if c.words else _gather_u8, dim=(cap, c.big.shape[1]),
                       inputs=[c.big, slots, count], outputs=[c.small])
-        _stages(self.small_model, s)
+        with self._pools[1].active():
+            _stages(self.small_model, s)
         wp.launch(_unlink_old_contacts, dim=d.contact.efc_address.shape,
                   inputs=[self._total, d.contact.worldid, mask], outputs=[d.contact.efc_address])
         wp.launch(_number_contacts, dim=s.naconmax,
