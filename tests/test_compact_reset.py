@@ -1,6 +1,6 @@
 """The reduced reset pass over the reset worlds alone (``CompactResetPass``) against the pass over every world, on
 mujoco-warp's CPU device: every view, the warm start and the trajectories after resets are bit-identical, with
-resets that fit the small ``Data`` and resets of more worlds than it holds (the pass over every world then)."""
+resets that fit the small ``Data``, resets of more worlds than it holds (taken a chunk at a time) and of none."""
 
 from __future__ import annotations
 
@@ -66,17 +66,17 @@ def test_the_compacted_pass_matches_the_pass_over_every_world(start_states):
               ([0, 1, 1, 1, 0, 1], [0, 2, 1, 0, 1, 1]),  # four: more than the small Data holds
               ([0, 0, 1, 0, 0, 0], [1, 1, 1, 1, 1, 1]),  # one, into foot contact
               ([0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0]))  # none
-    small_passes = 0
+    chunks = []
     for mask, index in resets:
         mask, index = torch.tensor(mask, dtype=torch.bool), torch.tensor(index)
         before = compact.qpos.clone()
         every.reset_to_start(mask, index)
         compact.reset_to_start(mask, index)
-        small_passes += int(compact._compact._too_many.numpy()[0] == 0)
+        chunks.append(int(compact._compact._chunk.numpy()[0]))
         _assert_sims_equal(every, compact, f"reset {mask.tolist()}")
         assert torch.equal(compact.qpos[~mask], before[~mask])
         steps(4, f"after reset {mask.tolist()}")
-    assert small_passes == 3  # the four-world reset took the pass over every world
+    assert chunks == [1, 2, 1, 0]  # two worlds at a time; none resetting, no stage ran
 
 
 def test_appended_contacts_that_do_not_fit_are_dropped_and_flag_their_world(start_states):
@@ -184,8 +184,8 @@ def test_capacity_rule_and_refusals(start_states):
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_gpu_compacted_pass_matches_the_pass_over_every_world_and_never_syncs(start_states):
-    """On the GPU (recorded graphs, the branch a conditional node): resets that fit the small Data and one that does
-    not, each followed by steps, read nothing on the host and agree with the pass over every world (contacts come
+    """On the GPU (recorded graphs, the chunks a loop on the device): resets that fit the small Data and one that
+    does not, each followed by steps, read nothing on the host and agree with the pass over every world (contacts come
     in another order within a world there: float tolerance)."""
     cuda = [t.cuda() for t in start_states]
     sims = []
@@ -208,4 +208,4 @@ def test_gpu_compacted_pass_matches_the_pass_over_every_world_and_never_syncs(st
         for key in ("qpos", "qvel", "sensordata", "foot_force", "healthy"):
             torch.testing.assert_close(getattr(compact, key), getattr(every, key), rtol=1e-3, atol=1e-3,
                                        msg=lambda m, key=key, mask=mask: f"{key} after reset {mask.tolist()}: {m}")
-    assert int(compact._compact._too_many.numpy()[0]) == 0  # the last reset took the small Data
+    assert int(compact._compact._chunk.numpy()[0]) == 1  # the last reset took the small Data once

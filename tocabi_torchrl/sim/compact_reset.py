@@ -10,7 +10,7 @@ big ``Data``:
 =====================  ======================================================================================
 step                   what moves
 =====================  ======================================================================================
-slots                  reset world ids into slots ``0..count-1`` (an atomic counter: no host read)
+slots                  the next ``capacity`` reset world ids into slots (an atomic counter: no host read)
 gather                 every per-world array the two stages read before writing it, big row -> slot row; the
                        per-world model fields (``SimConfig.per_world_fields``) into the small model's rows
 stages                 ``fwd_position(factorize=True)`` and ``fwd_velocity`` on the small ``Data``
@@ -22,10 +22,10 @@ contacts               the reset worlds' old contacts unlinked from their constr
 
 Which arrays are read and written is found by running the stages once with warp's launches traced (their
 ``inputs``, ``outputs``, copies and fills), so the lists follow the installed mujoco-warp. When more worlds reset
-than ``capacity`` (the first steps of training, when untrained robots fall together), a conditional node
-(``wp.capture_if``) runs the stages over every world instead, as the reduced pass does. A conditional node's body
-may not allocate memory, and mujoco-warp's stages make scratch arrays as they run: each branch keeps those of its
-first run and hands them out again (``_AllocationPool``). The untouched worlds keep
+than ``capacity`` (the first steps of training, when untrained robots fall together), the small ``Data`` takes them
+``capacity`` at a time, in a loop on the device (``wp.capture_while``: no host read); none resetting, it runs no
+stage at all. A loop body may not allocate memory, and mujoco-warp's stages make scratch arrays as they run: the
+body keeps those of its first run and hands them out again (``_AllocationPool``), sized for the small ``Data``. The untouched worlds keep
 what the step's closing forward pass computed for their unchanged state, which is what the pass over every world
 recomputes; contacts and constraint rows are per world in order, so each world's physics is unchanged, though the
 big contact buffer holds the reset worlds' contacts after the others (and their unlinked old ones before).
@@ -51,15 +51,32 @@ _CONTACT_ROWS = tuple(int(getattr(mujoco.mjtConstraint, f"mjCNSTR_CONTACT_{k}"))
 
 
 @wp.kernel(enable_backward=False)
-def _fill_slots(mask: wp.array(dtype=wp.bool), capacity: int, count: wp.array(dtype=int),
-                slot_world: wp.array(dtype=int), too_many: wp.array(dtype=wp.int32)):
+def _rank_resets(mask: wp.array(dtype=wp.bool), count: wp.array(dtype=int), order: wp.array(dtype=int),
+                 more: wp.array(dtype=wp.int32)):
+    """List the flagged worlds in ``order[0:count]`` (in no particular order); ``more``: any at all."""
     w = wp.tid()
     if mask[w]:
-        s = wp.atomic_add(count, 0, 1)
-        if s < capacity:
-            slot_world[s] = w
-        if s == capacity:
-            too_many[0] = 1
+        order[wp.atomic_add(count, 0, 1)] = w
+        more[0] = 1
+
+
+@wp.kernel(enable_backward=False)
+def _next_chunk(order: wp.array(dtype=int), count: wp.array(dtype=int), chunk: wp.array(dtype=int),
+                capacity: int, slot_world: wp.array(dtype=int), in_chunk: wp.array(dtype=int)):
+    """The worlds of chunk ``chunk``: ``order[chunk * capacity:][:capacity]`` into the slots."""
+    s = wp.tid()
+    start = chunk[0] * capacity
+    if s == 0:
+        in_chunk[0] = wp.clamp(count[0] - start, 0, capacity)
+    if start + s < count[0]:
+        slot_world[s] = order[start + s]
+
+
+@wp.kernel(enable_backward=False)
+def _advance_chunk(count: wp.array(dtype=int), capacity: int, chunk: wp.array(dtype=int),
+                   more: wp.array(dtype=wp.int32)):
+    chunk[0] = chunk[0] + 1
+    more[0] = wp.where(chunk[0] * capacity < count[0], 1, 0)
 
 
 @wp.kernel(enable_backward=False)
@@ -310,7 +327,7 @@ class CompactResetPass:
         mj: the compiled MuJoCo model the big ``Data`` was made from.
         model: the big ``Data``'s mujoco-warp model (its per-world fields, ``(N, ...)`` rows, are gathered).
         data: the big ``Data``, N worlds.
-        capacity: the most reset worlds one pass holds; more run the stages over every world.
+        capacity: the most reset worlds the small ``Data`` holds; more go through it ``capacity`` at a time.
         nconmax, njmax, nccdmax: the big ``Data``'s per-world buffer sizes (``mujoco_warp.make_data``).
         per_world_fields: names of ``model``'s fields with one row per world.
     """
@@ -353,40 +370,42 @@ class CompactResetPass:
                 if not (words_b and words_s):
                     raise ValueError(f"CompactResetPass: contact field {name!r} is not of 32-bit words")
                 self._contacts.append((s, b))
-        self._pools = (_AllocationPool("every world"), _AllocationPool("reset worlds"))
-        self._slot_world = wp.zeros(capacity, dtype=int)
-        self._count = wp.zeros(1, dtype=int)
-        self._too_many = wp.zeros(1, dtype=wp.int32)
+        self._pool = _AllocationPool("reset worlds")
+        self._order = wp.zeros(n, dtype=int)  # the reset worlds, chunk after chunk
+        self._count = wp.zeros(1, dtype=int)  # how many reset
+        self._chunk = wp.zeros(1, dtype=int)  # the chunk in the small Data; after the pass, how many there were
+        self._more = wp.zeros(1, dtype=wp.int32)  # the loop's condition: a chunk is left
+        self._slot_world = wp.zeros(capacity, dtype=int)  # the world in each slot of this chunk
+        self._in_chunk = wp.zeros(1, dtype=int)  # how many slots this chunk fills
         self._total = wp.zeros(1, dtype=int)  # the big buffer's contact count before the reset, then as appended
         self._remap = wp.zeros(self.small.naconmax, dtype=int)  # each small contact's row in the big buffer
 
     def run(self, mask: wp.array, write_reset_state: Callable[[], None]) -> None:
         """``write_reset_state()`` (which writes the reset worlds' state into the big ``Data``, e.g. with
-        ``mujoco_warp.reset_data``), then the two stages for the worlds ``mask`` (N,) bool flags: over the small
-        ``Data`` when at most ``capacity`` are flagged, else over every world. Warp launches only (recordable)."""
+        ``mujoco_warp.reset_data``), then the two stages for the worlds ``mask`` (N,) bool flags, ``capacity`` of
+        them at a time on the small ``Data``. Warp launches only (recordable into a graph)."""
         n, d = self.data.nworld, self.data
         # reset_data zeroes the contact count when world 0 resets; the untouched worlds' contacts stay in their rows.
         wp.copy(self._total, d.nacon)
         write_reset_state()
-        self._count.zero_()
-        self._too_many.zero_()
-        wp.launch(_fill_slots, dim=n, inputs=[mask, self.capacity, self._count, self._slot_world, self._too_many])
-        wp.capture_if(self._too_many, on_true=lambda: self._every_world(), on_false=lambda: self._compact(mask))
+        for counter in (self._count, self._chunk, self._more):
+            counter.zero_()
+        wp.launch(_rank_resets, dim=n, inputs=[mask, self._count, self._order, self._more])
+        # The reset worlds' old contacts leave their constraint rows before any new one joins the buffer.
+        wp.launch(_unlink_old_contacts, dim=d.contact.efc_address.shape,
+                  inputs=[self._total, d.contact.worldid, mask], outputs=[d.contact.efc_address])
+        wp.capture_while(self._more, self._chunk_pass)
+        wp.launch(_clamp_count, dim=1, inputs=[self._total, d.naconmax], outputs=[d.nacon])
 
-    def _every_world(self) -> None:
-        with self._pools[0].active():
-            _stages(self.model, self.data)
-
-    def _compact(self, mask: wp.array) -> None:
+    def _chunk_pass(self) -> None:
         d, s, cap = self.data, self.small, self.capacity
-        slots, count = self._slot_world, self._count
+        slots, count = self._slot_world, self._in_chunk
+        wp.launch(_next_chunk, dim=cap, inputs=[self._order, self._count, self._chunk, cap], outputs=[slots, count])
         for c in (*self._fields, *self._gather):
             wp.launch(_gather_i32 if c.words else _gather_u8, dim=(cap, c.big.shape[1]),
                       inputs=[c.big, slots, count], outputs=[c.small])
-        with self._pools[1].active():
+        with self._pool.active():
             _stages(self.small_model, s)
-        wp.launch(_unlink_old_contacts, dim=d.contact.efc_address.shape,
-                  inputs=[self._total, d.contact.worldid, mask], outputs=[d.contact.efc_address])
         wp.launch(_number_contacts, dim=s.naconmax,
                   inputs=[s.contact.worldid, s.nacon, count, slots, int(mjw.OverflowType.NARROWPHASE)],
                   outputs=[self._total, self._remap, d.contact.worldid, s.overflow])
@@ -399,7 +418,7 @@ class CompactResetPass:
         for c in self._scatter:
             wp.launch(_scatter_i32 if c.words else _scatter_u8, dim=(cap, c.big.shape[1]),
                       inputs=[c.small, slots, count], outputs=[c.big])
-        wp.launch(_clamp_count, dim=1, inputs=[self._total, d.naconmax], outputs=[d.nacon])
+        wp.launch(_advance_chunk, dim=1, inputs=[self._count, cap], outputs=[self._chunk, self._more])
 
 
 def _pair(big: wp.array, small: wp.array, n: int, capacity: int) -> tuple[wp.array, wp.array, bool]:

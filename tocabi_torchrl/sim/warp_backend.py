@@ -360,7 +360,7 @@ class WarpSim(SimViews):
             self._write_reset_state()
             mjw.fwd_position(m, d, factorize=True)
             mjw.fwd_velocity(m, d)
-        else:  # the same stages over the reset worlds alone, unless too many reset
+        else:  # the same stages over the reset worlds alone
             self._compact.run(mask, self._write_reset_state)
         idx = s.index
         wp.launch(copy_start_rows, dim=n, inputs=[mask, idx, s.sensordata, d.sensordata])
@@ -433,9 +433,9 @@ class WarpSim(SimViews):
                 model fields of its start state k (:attr:`model_fields`, e.g. drawn masses) before that state's
                 full pass; a world reset to state k must then have those fields again (the caller writes them,
                 as before the full pass). Without per-world fields, leave it None.
-            compact: how many reset worlds the reduced pass runs its position and velocity stages over on a second,
-                small ``Data`` (:class:`~tocabi_torchrl.sim.compact_reset.CompactResetPass`; a reset of more worlds
-                runs them over every world); 0 for every world always; None (default) for
+            compact: how many reset worlds the reduced pass runs its position and velocity stages over at a time on
+                a second, small ``Data`` (:class:`~tocabi_torchrl.sim.compact_reset.CompactResetPass`; a reset of
+                more worlds takes several rounds); 0 for the stages over every world; None (default) for
                 :func:`~tocabi_torchrl.sim.config.compact_reset_capacity` of the world count. Each world's physics
                 is the same either way.
 
@@ -534,11 +534,6 @@ class WarpSim(SimViews):
                                                                                             device=dev))
             wp.synchronize_device(self.wp_device)
             self._reset_to_start_fn()
-            if self._compact is not None:  # and world 0 alone, through the small Data (its branch compiled too)
-                self._fill_start_reset(torch.arange(n, device=dev) == 0, torch.zeros(n, dtype=torch.int64,
-                                                                                    device=dev))
-                wp.synchronize_device(self.wp_device)
-                self._reset_to_start_fn()
             wp.synchronize_device(self.wp_device)
         self._start_reset_graph = Recorded(self._reset_to_start_fn, self.wp_device, self.config.use_graph)
 
