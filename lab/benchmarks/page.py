@@ -746,28 +746,37 @@ def train_over_ceiling(docs: Path) -> list[str]:
 #: The same measurement with the update overlapped and TF32, which the presets do not use yet: one report per env
 #: count, ``envs<N>.json``.
 TRAIN_OVER_CEILING_OVERLAP = "benchmarks/train_over_ceiling_overlap"
+#: Later runs of the same options, listed after those of their env count: the simulator's reset pass over the reset
+#: worlds alone (code at da9fc66).
+TRAIN_OVER_CEILING_NEWER = ("h100_da9fc66/envs4096_compact_loop.json", "h100_da9fc66/envs16384_compact_loop.json")
 
 
 def train_over_ceiling_variants(docs: Path) -> list[str]:
     """One line per result of the committed ``--ceiling`` reports in :data:`TRAIN_OVER_CEILING_OVERLAP` (the preset
     with options switched on by ``--set``), in env-count order, each against the target of its env count; a result
     without a training rate is left out."""
-    lines = []
-    reports = [p for p in (docs / TRAIN_OVER_CEILING_OVERLAP).glob("envs*.json")
-               if p.stem.removeprefix("envs").isdigit()]
-    for path in sorted(reports, key=lambda p: int(p.stem.removeprefix("envs"))):
+    found = []
+    folder = docs / TRAIN_OVER_CEILING_OVERLAP
+    reports = [p for p in folder.glob("envs*.json") if p.stem.removeprefix("envs").isdigit()]
+    reports += [folder / rel for rel in TRAIN_OVER_CEILING_NEWER if (folder / rel).is_file()]
+    for order, path in enumerate(reports):
         d = json.loads(path.read_text())
-        for r in (r for r in d["results"] if r.get("ratio_train_over_ceiling") is not None):
-            ratio, target = r["ratio_train_over_ceiling"], CEILING_TARGETS.get(r["num_envs"])
-            verdict = "" if target is None else f", {'meets' if ratio >= target else 'misses'} the target {target:g}"
-            lines.append(f"- {r['num_envs']:,} envs with {_set_items(r.get('overrides', {})) or 'no option'}: "
-                         f"**{ratio:.3f}** of the ceiling ({_k(r['train_env_steps_per_s'])} against "
-                         f"{_k(r['ceiling_env_steps_per_s'])} env-steps/s{verdict}; {d['meta']['date']}, "
-                         f"{d['meta']['gpu']}; [{path.name}]({TRAIN_OVER_CEILING_OVERLAP}/{path.name})).")
+        found += [(r["num_envs"], order, path, d, r) for r in d["results"]
+                  if r.get("ratio_train_over_ceiling") is not None]
+    lines = []
+    for _, _, path, d, r in sorted(found, key=lambda item: item[:2]):
+        ratio, target = r["ratio_train_over_ceiling"], CEILING_TARGETS.get(r["num_envs"])
+        verdict = "" if target is None else f", {'meets' if ratio >= target else 'misses'} the target {target:g}"
+        rel = path.relative_to(folder).as_posix()
+        lines.append(f"- {r['num_envs']:,} envs with {_set_items(r.get('overrides', {})) or 'no option'}: "
+                     f"**{ratio:.3f}** of the ceiling ({_k(r['train_env_steps_per_s'])} against "
+                     f"{_k(r['ceiling_env_steps_per_s'])} env-steps/s{verdict}; {d['meta']['date']}, "
+                     f"{d['meta']['gpu']}; [{rel}]({TRAIN_OVER_CEILING_OVERLAP}/{rel})).")
     if not lines:
         return []
     return ["", "With options that no preset uses yet, measured the same way, one run each (repeats, other GPUs and "
-            f"ablations: [details]({TRAIN_OVER_CEILING_OVERLAP}/README.md)):", "", *lines]
+            f"ablations: [details]({TRAIN_OVER_CEILING_OVERLAP}/README.md)); per env count, earlier code first:", "",
+            *lines]
 
 
 def soak(docs: Path) -> list[str]:
