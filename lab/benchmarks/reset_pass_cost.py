@@ -28,13 +28,14 @@ import argparse
 import torch
 
 from tocabi_torchrl import robot
+from tocabi_torchrl.sim.compact_reset import per_world_arrays
 
 from . import common
 
 NAME = "reset_pass_cost"
 
 
-def _standing_data(mj, m, num_worlds: int, mjw, wp):
+def _standing_data(mj, m, num_worlds: int, mjw):
     """A ``Data`` of ``num_worlds`` robots in the initial pose, a forward pass done (the feet touch the floor)."""
     from tocabi_torchrl.sim.buffers import NCONMAX, NJMAX
 
@@ -42,21 +43,6 @@ def _standing_data(mj, m, num_worlds: int, mjw, wp):
     d.qpos.assign(torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32).repeat(num_worlds, 1).numpy())
     mjw.forward(m, d)
     return d
-
-
-def per_world_arrays(data, num_worlds: int, prefix: str = "") -> dict:
-    """``{name: warp array}`` of every array of ``data`` (and of its constraint struct ``efc``) whose leading
-    dimension is ``num_worlds``: the rows a compacted pass would copy world by world."""
-    import warp as wp
-
-    found = {}
-    for name, value in vars(data).items():
-        if isinstance(value, wp.array):
-            if value.ndim >= 1 and value.shape[0] == num_worlds and value.size > 0:
-                found[prefix + name] = value
-        elif name == "efc":
-            found.update(per_world_arrays(value, num_worlds, prefix="efc."))
-    return found
 
 
 def measure(num_envs: int, subsets: list[int], steps: int, device: str) -> dict:
@@ -84,11 +70,11 @@ def measure(num_envs: int, subsets: list[int], steps: int, device: str) -> dict:
             graph = Recorded(body, wdev)
             return 1e3 / common.per_second(graph, steps, device, warmup=3)
 
-        big = _standing_data(mj, m, num_envs, mjw, wp)
+        big = _standing_data(mj, m, num_envs, mjw)
         result["pass_all_ms"] = pass_ms(big)
         big_arrays = per_world_arrays(big, num_envs)
         for r in subsets:
-            small = _standing_data(mj, m, r, mjw, wp)
+            small = _standing_data(mj, m, r, mjw)
             small_arrays = per_world_arrays(small, r)
             names = sorted(set(small_arrays) & set(big_arrays))
             pairs = [(wp.to_torch(big_arrays[k]), wp.to_torch(small_arrays[k])) for k in names]

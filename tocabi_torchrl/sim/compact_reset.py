@@ -14,29 +14,36 @@ slots                  the next ``capacity`` reset world ids into slots (an atom
 gather                 every per-world array the two stages read before writing it, big row -> slot row; the
                        per-world model fields (``SimConfig.per_world_fields``) into the small model's rows
 stages                 ``fwd_position(factorize=True)`` and ``fwd_velocity`` on the small ``Data``
-contact rows' ids      the small constraint rows' contact ids shifted by the big buffer's contact count
+contacts               the new ones into the big buffer's rows that ``reset_data`` emptied of the reset worlds'
+                       old contacts (dimension 0), then past its count; their world ids mapped back, the
+                       constraint rows' contact ids remapped
 scatter                every per-world array the stages write, slot row -> big row
-contacts               the reset worlds' old contacts unlinked from their constraint rows (``efc_address``
-                       -1); the new ones appended to the big buffer, their world ids mapped back
 =====================  ======================================================================================
 
 Which arrays are read and written is found by running the stages once with warp's launches traced (their
-``inputs``, ``outputs``, copies and fills), so the lists follow the installed mujoco-warp. When more worlds reset
-than ``capacity`` (the first steps of training, when untrained robots fall together), the small ``Data`` takes them
-``capacity`` at a time, in a loop on the device (``wp.capture_while``: no host read); none resetting, it runs no
-stage at all. A loop body may not allocate memory, and mujoco-warp's stages make scratch arrays as they run: the
-body keeps those of its first run and hands them out again (``_AllocationPool``), sized for the small ``Data``. The untouched worlds keep
-what the step's closing forward pass computed for their unchanged state, which is what the pass over every world
-recomputes; contacts and constraint rows are per world in order, so each world's physics is unchanged, though the
-big contact buffer holds the reset worlds' contacts after the others (and their unlinked old ones before).
-Appended contacts that do not fit the buffer are dropped and flag the world ``NARROWPHASE`` (a health flag).
+``inputs``, ``outputs``, copies and fills, matched to the arrays whose memory they point into), so the lists follow
+the installed mujoco-warp. When more worlds reset than ``capacity`` (the first steps of training, when untrained
+robots fall together), the small ``Data`` takes them ``capacity`` at a time, in a loop on the device
+(``wp.capture_while``: no host read once recorded into a graph); none resetting, it runs no stage at all. A loop body
+may not allocate memory, and mujoco-warp's stages make scratch arrays as they run: the body keeps those of its first
+run and hands them out again (``_AllocationPool``), sized for the small ``Data``.
+
+The untouched worlds keep what the step's closing forward pass computed for their unchanged state, which is what the
+pass over every world recomputes; constraint rows are per world, contacts are found from them, so each world's
+physics is unchanged (bit-identical on the CPU), though the big buffer holds its contacts in another order and the
+emptied rows it did not refill (inert: no world's constraint rows point at them) until the next step's collision.
+Where the big buffer is full, a new contact is dropped, its world flagged ``NARROWPHASE`` (a health flag) and its
+constraint rows made inert; where the small ``Data``'s own buffers overflow, its reset worlds are flagged.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import operator
+import threading
 from collections.abc import Callable
+from typing import Any
 
 import mujoco
 import mujoco_warp as mjw
@@ -48,6 +55,10 @@ __all__ = ["CompactResetPass", "traced_stages"]
 #: mujoco-warp's rows share).
 _CONTACT_ROWS = tuple(int(getattr(mujoco.mjtConstraint, f"mjCNSTR_CONTACT_{k}")) for k in
                       ("FRICTIONLESS", "PYRAMIDAL", "ELLIPTIC"))
+#: ``Data``'s counters of the contact buffer, one for all worlds (of shape (1,), like a per-world array of one world).
+_GLOBAL_COUNTS = ("nacon", "ncollision")
+#: What a dropped contact's rows become: a joint-limit row (no contact to read) with no force (``efc.D`` 0).
+_INERT_ROW = int(mujoco.mjtConstraint.mjCNSTR_LIMIT_JOINT)
 
 
 @wp.kernel(enable_backward=False)
@@ -80,43 +91,43 @@ def _advance_chunk(count: wp.array(dtype=int), capacity: int, chunk: wp.array(dt
 
 
 @wp.kernel(enable_backward=False)
-def _gather_i32(src: wp.array2d(dtype=wp.int32), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
-                dst: wp.array2d(dtype=wp.int32)):
+def _gather(src: wp.array2d(dtype=Any), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
+            dst: wp.array2d(dtype=Any)):
     s, j = wp.tid()
     if s < count[0]:
         dst[s, j] = src[slot_world[s], j]
 
 
 @wp.kernel(enable_backward=False)
-def _gather_u8(src: wp.array2d(dtype=wp.uint8), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
-               dst: wp.array2d(dtype=wp.uint8)):
-    s, j = wp.tid()
-    if s < count[0]:
-        dst[s, j] = src[slot_world[s], j]
-
-
-@wp.kernel(enable_backward=False)
-def _scatter_i32(src: wp.array2d(dtype=wp.int32), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
-                 dst: wp.array2d(dtype=wp.int32)):
+def _scatter(src: wp.array2d(dtype=Any), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
+             dst: wp.array2d(dtype=Any)):
     s, j = wp.tid()
     if s < count[0]:
         dst[slot_world[s], j] = src[s, j]
 
 
+for _word in (wp.int32, wp.uint8):  # rows of 32-bit words, or of bytes (see _rows)
+    for _kernel in (_gather, _scatter):
+        wp.overload(_kernel, {"src": wp.array2d(dtype=_word), "dst": wp.array2d(dtype=_word)})
+
+
 @wp.kernel(enable_backward=False)
-def _scatter_u8(src: wp.array2d(dtype=wp.uint8), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
-                dst: wp.array2d(dtype=wp.uint8)):
-    s, j = wp.tid()
-    if s < count[0]:
-        dst[slot_world[s], j] = src[s, j]
+def _free_rows(nacon: wp.array(dtype=int), dim: wp.array(dtype=int), nfree: wp.array(dtype=int),
+               free: wp.array(dtype=int)):
+    """List the big buffer's rows ``reset_data`` emptied (a contact of dimension 0: it clears the reset worlds'
+    contacts so), for the new contacts to take before any row past the count."""
+    i = wp.tid()
+    if i < nacon[0] and dim[i] == 0:
+        free[wp.atomic_add(nfree, 0, 1)] = i
 
 
 @wp.kernel(enable_backward=False)
 def _number_contacts(worldid: wp.array(dtype=int), nacon: wp.array(dtype=int), count: wp.array(dtype=int),
-                     slot_world: wp.array(dtype=int), flag: int, total: wp.array(dtype=int),
-                     remap: wp.array(dtype=int), big_worldid: wp.array(dtype=int), overflow: wp.array(dtype=int)):
-    """Give each contact of an occupied slot its row in the big buffer (``remap``, -1 for the others): the next
-    free row, counted on from the big buffer's contact count in ``total``."""
+                     slot_world: wp.array(dtype=int), free: wp.array(dtype=int), nfree: wp.array(dtype=int),
+                     flag: int, taken: wp.array(dtype=int), total: wp.array(dtype=int), remap: wp.array(dtype=int),
+                     big_worldid: wp.array(dtype=int), overflow: wp.array(dtype=int)):
+    """Give each contact of an occupied slot its row in the big buffer (``remap``, -1 for the others): an emptied
+    row while any is left, else the next row past the count ``total``."""
     i = wp.tid()
     if i >= nacon[0]:
         return
@@ -125,10 +136,15 @@ def _number_contacts(worldid: wp.array(dtype=int), nacon: wp.array(dtype=int), c
     if s >= count[0]:  # a slot no reset world occupies this time: its contacts are stale
         return
     w = slot_world[s]
-    k = wp.atomic_add(total, 0, 1)
-    if k < big_worldid.shape[0]:
-        remap[i] = k
-        big_worldid[k] = w
+    k = wp.atomic_add(taken, 0, 1)
+    row = int(0)
+    if k < nfree[0]:
+        row = free[k]
+    else:
+        row = wp.atomic_add(total, 0, 1)
+    if row < big_worldid.shape[0]:
+        remap[i] = row
+        big_worldid[row] = w
     else:  # the big buffer is full: the contact is dropped, and its slot says so (scattered to its world after)
         wp.atomic_or(overflow, s, flag)
 
@@ -142,28 +158,37 @@ def _append_contacts(src: wp.array2d(dtype=wp.int32), nacon: wp.array(dtype=int)
 
 
 @wp.kernel(enable_backward=False)
-def _remap_contact_ids(count: wp.array(dtype=int), nefc: wp.array(dtype=int), efc_type: wp.array2d(dtype=int),
-                       remap: wp.array(dtype=int), kinds: wp.vec3i, dropped: int, efc_id: wp.array2d(dtype=int)):
+def _remap_contact_ids(count: wp.array(dtype=int), nefc: wp.array(dtype=int), remap: wp.array(dtype=int),
+                       kinds: wp.vec3i, inert: int, efc_type: wp.array2d(dtype=int), efc_id: wp.array2d(dtype=int),
+                       efc_D: wp.array2d(dtype=float)):
     s, r = wp.tid()
     if s < count[0] and r < nefc[s]:
         t = efc_type[s, r]
         if t == kinds[0] or t == kinds[1] or t == kinds[2]:
             k = remap[efc_id[s, r]]
-            # A dropped contact's rows point past every contact (the solver skips an id >= nacon).
-            efc_id[s, r] = wp.where(k >= 0, k, dropped)
+            if k >= 0:
+                efc_id[s, r] = k
+            else:
+                # A dropped contact's rows would send the solver to a contact that is not there (its elliptic
+                # line search reads the contact without a bound check): rows of no contact and no force instead.
+                # The world is flagged (NARROWPHASE), so its episode ends.
+                efc_type[s, r] = inert
+                efc_id[s, r] = 0
+                efc_D[s, r] = 0.0
 
 
 @wp.kernel(enable_backward=False)
-def _unlink_old_contacts(nacon: wp.array(dtype=int), worldid: wp.array(dtype=int), mask: wp.array(dtype=wp.bool),
-                         efc_address: wp.array2d(dtype=int)):
-    i, j = wp.tid()
-    if i < nacon[0] and mask[worldid[i]]:
-        efc_address[i, j] = -1
-
-
-@wp.kernel(enable_backward=False)
-def _clamp_count(total: wp.array(dtype=int), capacity: int, nacon: wp.array(dtype=int)):
-    nacon[0] = wp.min(total[0], capacity)
+def _flag_small_overflow(nacon: wp.array(dtype=int), ncollision: wp.array(dtype=int), naconmax: int,
+                         count: wp.array(dtype=int), broadphase: int, narrowphase: int,
+                         overflow: wp.array(dtype=int)):
+    """The small ``Data``'s contact buffers are shared by its slots: where a chunk overflowed them, contacts of its
+    worlds are missing, and each occupied slot says so (as mujoco-warp's step flags every world)."""
+    s = wp.tid()
+    if s < count[0]:
+        if ncollision[0] > naconmax:
+            overflow[s] = overflow[s] | broadphase
+        if nacon[0] > naconmax:
+            overflow[s] = overflow[s] | narrowphase
 
 
 def _rows(array: wp.array, rows: int) -> tuple[wp.array, bool]:
@@ -226,24 +251,27 @@ class _AllocationPool:
 
     def __init__(self, name: str):
         self.name = name
-        self.arrays: list[tuple[wp.array, object, object]] | None = None  # (array, shape asked, dtype asked)
+        self.arrays: list[tuple[wp.array, tuple]] | None = None  # (array, what was asked for)
 
     @contextlib.contextmanager
     def active(self):
         originals = {k: getattr(wp, k) for k in (*self._POOLED, *self._REFUSED)}
-        made, used = [], [0]
+        made, used, here = [], [0], threading.get_ident()
 
         def pooled(kind):
             def alloc(shape=0, dtype=float, *args, **kwargs):
-                shape = (shape,) if isinstance(shape, int) else tuple(shape)
+                if threading.get_ident() != here:  # another thread's warp work is not the pass's
+                    return originals[kind](shape, dtype, *args, **kwargs)
+                shape = (operator.index(shape),) if not isinstance(shape, (tuple, list)) else tuple(shape)
+                key = (shape, dtype, args, tuple(sorted(kwargs.items(), key=lambda item: item[0])))
                 if self.arrays is None:  # the first run: allocate, and keep
                     array = originals[kind](shape, dtype, *args, **kwargs)
-                    made.append((array, shape, dtype))
+                    made.append((array, key))
                     return array
                 k = used[0]
-                if k >= len(self.arrays) or self.arrays[k][1:] != (shape, dtype):
-                    raise RuntimeError(f"CompactResetPass ({self.name}): mujoco-warp's allocation {k} differs from its "
-                                       f"first run ({shape}, {dtype}); the pass cannot reuse its scratch arrays")
+                if k >= len(self.arrays) or self.arrays[k][1] != key:
+                    raise RuntimeError(f"CompactResetPass ({self.name}): mujoco-warp's allocation {k} ({shape}, "
+                                       f"{dtype}) differs from its first run; the pass cannot reuse its scratch arrays")
                 used[0] += 1
                 array = self.arrays[k][0]
                 if kind == "zeros":
@@ -253,8 +281,11 @@ class _AllocationPool:
 
         def refused(kind):
             def alloc(*args, **kwargs):
+                if threading.get_ident() != here:
+                    return originals[kind](*args, **kwargs)
                 raise RuntimeError(f"CompactResetPass ({self.name}): mujoco-warp allocated with wp.{kind} in the reset "
-                                   "pass, which a conditional node cannot hold; use compact=0 with this mujoco-warp")
+                                   "pass, which a loop on the device cannot hold; build the simulator with "
+                                   "register_start_states(..., compact=0)")
             return alloc
 
         for kind in self._POOLED:
@@ -275,9 +306,11 @@ class _AllocationPool:
 
 def per_world_arrays(data: mjw.Data, rows: int) -> dict[str, wp.array]:
     """``{name: array}`` of the arrays of ``data`` and of its constraint rows (``efc.<name>``) with ``rows`` rows,
-    one per world (the contact buffer, one for all worlds, is not among them)."""
+    one per world (the contact buffer and its counters, one for all worlds, are not among them)."""
     found = {}
     for name, value in vars(data).items():
+        if name in _GLOBAL_COUNTS:
+            continue
         if isinstance(value, wp.array) and value.ndim >= 1 and value.shape[0] == rows and value.size > 0:
             found[name] = value
     for name, value in vars(data.efc).items():
@@ -292,15 +325,18 @@ def traced_stages(model: mjw.Model, data: mjw.Data) -> tuple[list[str], list[str
     reads, writes = [], []
     with _tracing(reads, writes):
         _stages(model, data)
-    names = {id(a): name for name, a in per_world_arrays(data, data.nworld).items()}
+    spans = [(a.ptr, a.ptr + a.size * wp.types.type_size_in_bytes(a.dtype), name)
+             for name, a in per_world_arrays(data, data.nworld).items()]
+
+    def owner(a: wp.array) -> str | None:  # a per-world array, or a view into one (a slice of its rows' columns)
+        return next((name for lo, hi, name in spans if a.ptr is not None and lo <= a.ptr < hi), None)
+
     read_first, written = [], []
     for ins, outs in zip(reads, writes):
-        for a in ins:
-            name = names.get(id(a))
+        for name in map(owner, ins):
             if name is not None and name not in written and name not in read_first:
                 read_first.append(name)
-        for a in outs:
-            name = names.get(id(a))
+        for name in map(owner, outs):
             if name is not None and name not in written:
                 written.append(name)
     return read_first, written
@@ -315,7 +351,6 @@ def _stages(model: mjw.Model, data: mjw.Data) -> None:
 class _Copy:
     big: wp.array  # (N, width) view of the big Data's array
     small: wp.array  # (capacity, width) view of the small Data's array
-    words: bool  # 32-bit words (True) or bytes
 
 
 class CompactResetPass:
@@ -355,7 +390,7 @@ class CompactResetPass:
         # The overflow bits are or-ed into (an output read as well): each slot starts from its reset world's bits,
         # which reset_data cleared, not from those of the slot's last world; and they always go back.
         reads += [] if "overflow" in reads else ["overflow"]
-        writes += [] if "overflow" in writes else ["overflow"]
+        writes += [name for name in ("overflow", "efc.type", "efc.id", "efc.D") if name not in writes]
         #: names of the per-world arrays gathered before the stages and scattered after them
         self.reads, self.writes = tuple(reads), tuple(writes)
         self._gather = [_Copy(*_pair(big_arrays[k], small_arrays[k], n, capacity)) for k in reads]
@@ -379,6 +414,9 @@ class CompactResetPass:
         self._in_chunk = wp.zeros(1, dtype=int)  # how many slots this chunk fills
         self._total = wp.zeros(1, dtype=int)  # the big buffer's contact count before the reset, then as appended
         self._remap = wp.zeros(self.small.naconmax, dtype=int)  # each small contact's row in the big buffer
+        self._free = wp.zeros(data.naconmax, dtype=int)  # the big buffer's emptied rows ...
+        self._nfree = wp.zeros(1, dtype=int)  # ... how many ...
+        self._taken = wp.zeros(1, dtype=int)  # ... and how many the new contacts took
 
     def run(self, mask: wp.array, write_reset_state: Callable[[], None]) -> None:
         """``write_reset_state()`` (which writes the reset worlds' state into the big ``Data``, e.g. with
@@ -391,37 +429,42 @@ class CompactResetPass:
         for counter in (self._count, self._chunk, self._more):
             counter.zero_()
         wp.launch(_rank_resets, dim=n, inputs=[mask, self._count, self._order, self._more])
-        # The reset worlds' old contacts leave their constraint rows before any new one joins the buffer.
-        wp.launch(_unlink_old_contacts, dim=d.contact.efc_address.shape,
-                  inputs=[self._total, d.contact.worldid, mask], outputs=[d.contact.efc_address])
+        # Resets without a step between them (env.reset() after the build's) refill the rows they emptied, so the
+        # count does not grow by every reset world's contacts each time.
+        self._nfree.zero_()
+        self._taken.zero_()
+        wp.launch(_free_rows, dim=d.naconmax, inputs=[self._total, d.contact.dim, self._nfree], outputs=[self._free])
         wp.capture_while(self._more, self._chunk_pass)
-        wp.launch(_clamp_count, dim=1, inputs=[self._total, d.naconmax], outputs=[d.nacon])
+        # Not clamped to the buffer: a count over it is mujoco-warp's sign of a full buffer, as after its collision.
+        wp.copy(d.nacon, self._total)
 
     def _chunk_pass(self) -> None:
         d, s, cap = self.data, self.small, self.capacity
         slots, count = self._slot_world, self._in_chunk
         wp.launch(_next_chunk, dim=cap, inputs=[self._order, self._count, self._chunk, cap], outputs=[slots, count])
         for c in (*self._fields, *self._gather):
-            wp.launch(_gather_i32 if c.words else _gather_u8, dim=(cap, c.big.shape[1]),
+            wp.launch(_gather, dim=(cap, c.big.shape[1]),
                       inputs=[c.big, slots, count], outputs=[c.small])
         with self._pool.active():
             _stages(self.small_model, s)
         wp.launch(_number_contacts, dim=s.naconmax,
-                  inputs=[s.contact.worldid, s.nacon, count, slots, int(mjw.OverflowType.NARROWPHASE)],
-                  outputs=[self._total, self._remap, d.contact.worldid, s.overflow])
+                  inputs=[s.contact.worldid, s.nacon, count, slots, self._free, self._nfree,
+                          int(mjw.OverflowType.NARROWPHASE)],
+                  outputs=[self._taken, self._total, self._remap, d.contact.worldid, s.overflow])
         for small_rows, big_rows in self._contacts:
             wp.launch(_append_contacts, dim=small_rows.shape, inputs=[small_rows, s.nacon, self._remap],
                       outputs=[big_rows])
+        wp.launch(_flag_small_overflow, dim=cap,
+                  inputs=[s.nacon, s.ncollision, s.naconmax, count, int(mjw.OverflowType.BROADPHASE),
+                          int(mjw.OverflowType.NARROWPHASE)], outputs=[s.overflow])
         wp.launch(_remap_contact_ids, dim=(cap, s.efc.id.shape[1]),
-                  inputs=[count, s.nefc, s.efc.type, self._remap, wp.vec3i(*_CONTACT_ROWS), d.naconmax],
-                  outputs=[s.efc.id])
+                  inputs=[count, s.nefc, self._remap, wp.vec3i(*_CONTACT_ROWS), _INERT_ROW],
+                  outputs=[s.efc.type, s.efc.id, s.efc.D])
         for c in self._scatter:
-            wp.launch(_scatter_i32 if c.words else _scatter_u8, dim=(cap, c.big.shape[1]),
+            wp.launch(_scatter, dim=(cap, c.big.shape[1]),
                       inputs=[c.small, slots, count], outputs=[c.big])
         wp.launch(_advance_chunk, dim=1, inputs=[self._count, cap], outputs=[self._chunk, self._more])
 
 
-def _pair(big: wp.array, small: wp.array, n: int, capacity: int) -> tuple[wp.array, wp.array, bool]:
-    b, words = _rows(big, n)
-    s, _ = _rows(small, capacity)
-    return b, s, words
+def _pair(big: wp.array, small: wp.array, n: int, capacity: int) -> tuple[wp.array, wp.array]:
+    return _rows(big, n)[0], _rows(small, capacity)[0]

@@ -29,13 +29,12 @@ RESET_PASSES = ("full", "reduced")
 PER_WORLD_FIELDS = ("body_mass", "body_inertia", "body_subtreemass", "dof_damping", "dof_armature", "geom_friction")
 
 
-
 def compact_reset_capacity(num_worlds: int) -> int:
     """How many reset worlds the reduced reset pass holds in its second, small ``Data``
     (:class:`~tocabi_torchrl.sim.compact_reset.CompactResetPass`): one in 64 from 4,096 worlds on (64 there, 256 at
-    16,384), where it took 0.75 and 1.9 ms off each training step on an H100; 0, the pass over every world, below,
-    where that pass costs about what the small one does. A step that resets more worlds takes them that many at a
-    time (docs/benchmarks/reset_pass_cost/)."""
+    16,384), where it took about 0.3 and 1.8 ms off each training step on an H100; 0, the pass over every world,
+    below, where that pass costs about what the small one does. A step that resets more worlds takes them that many
+    at a time (docs/benchmarks/reset_pass_cost/)."""
     return num_worlds // 64 if num_worlds >= 4096 else 0
 
 

@@ -436,8 +436,10 @@ class WarpSim(SimViews):
             compact: how many reset worlds the reduced pass runs its position and velocity stages over at a time on
                 a second, small ``Data`` (:class:`~tocabi_torchrl.sim.compact_reset.CompactResetPass`; a reset of
                 more worlds takes several rounds); 0 for the stages over every world; None (default) for
-                :func:`~tocabi_torchrl.sim.config.compact_reset_capacity` of the world count. Each world's physics
-                is the same either way.
+                :func:`~tocabi_torchrl.sim.config.compact_reset_capacity` of the world count (0 with
+                ``SimConfig.sensors_every_substep``, which it cannot serve). Each world's physics is the same either
+                way, but for a full contact buffer: there the small pass flags the reset worlds whose contacts did
+                not fit (``NARROWPHASE``), where the pass over every world drops any world's.
 
         Runs the full reset of :meth:`reset` once per start state over all worlds (each with its own mocap
         positions and, with ``set_fields``, model fields) and keeps, per state and world, what the reduced reset
@@ -469,7 +471,8 @@ class WarpSim(SimViews):
         if set_fields is not None and not self.config.per_world_fields:
             raise ValueError("register_start_states: set_fields writes per-world model fields, but this simulator has "
                              "none (SimConfig.per_world_fields is empty); leave it None")
-        compact = compact_reset_capacity(self.num_worlds) if compact is None else compact
+        if compact is None:  # the rule, where the small pass can stand in for the pass over every world
+            compact = 0 if self.config.sensors_every_substep else compact_reset_capacity(self.num_worlds)
         if isinstance(compact, bool) or not isinstance(compact, int) or not 0 <= compact < self.num_worlds:
             raise ValueError(f"register_start_states: compact must be an int in [0, {self.num_worlds}) (reset worlds "
                              f"the small pass holds; 0: the pass over every world), got {compact!r}")
@@ -550,7 +553,8 @@ class WarpSim(SimViews):
 
     def reset_to_start(self, mask: torch.Tensor, index: torch.Tensor) -> None:
         """Put each flagged world into registered start state ``index[w]`` with the reduced reset pass (see
-        :meth:`register_start_states`); the others stay bit-identical. Never syncs with the host.
+        :meth:`register_start_states`); the others stay bit-identical. Never syncs with the host once recorded
+        (``SimConfig.use_graph``; eagerly on a GPU, the small pass's loop reads its condition there each round).
 
         Args:
             mask: (N,) bool, True for the worlds to reset.
