@@ -9,7 +9,7 @@ import pytest
 import torch
 import warp as wp
 from test_reset_pass import N as POOL_WORLDS
-from test_reset_pass import _assert_sims_equal, _assert_tds_equal, _pool_env, _random_action, _step_both
+from test_reset_pass import _assert_sims_equal, _assert_tds_equal, _pool_env, _random_action, _step_both, _step_sims
 from warp_cpu import warp_cpu_available
 
 from tocabi_torchrl import robot
@@ -52,15 +52,7 @@ def test_the_compacted_pass_matches_the_pass_over_every_world(start_states):
     g = torch.Generator().manual_seed(5)
 
     def steps(k, when):
-        for t in range(k):
-            u = torch.zeros(N, 33)
-            u[:, robot.LEGS] = 60.0 * (2 * torch.rand(N, 12, generator=g) - 1)
-            u[:, robot.UPPER_BODY] = qpos[0, 7:][robot.UPPER_BODY] + 0.1 * torch.randn(N, 21, generator=g)
-            every.ctrl.copy_(u)
-            compact.ctrl.copy_(u)
-            every.step()
-            compact.step()
-            _assert_sims_equal(every, compact, f"{when}, step {t}")
+        _step_sims(every, compact, qpos[0], g, k, when)
 
     steps(3, "after registering")
     resets = (([1, 0, 0, 1, 0, 0], [1, 0, 0, 2, 0, 0]),  # two worlds, one of them world 0 (reset_data's count)

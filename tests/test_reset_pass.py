@@ -66,6 +66,21 @@ def _step_both(full, reduced, td_f, td_r, action: torch.Tensor, when: str):
     return out_f, td_f, out_r, td_r
 
 
+def _step_sims(a: WarpSim, b: WarpSim, pose: torch.Tensor, g: torch.Generator, k: int, when: str) -> None:
+    """``k`` steps of both simulators with the same random controls (leg torques, upper-body targets around the
+    start pose ``pose`` (nq,)), asserting after each that they are bit-identical."""
+    n = a.num_worlds
+    for t in range(k):
+        u = torch.zeros(n, 33)
+        u[:, robot.LEGS] = 60.0 * (2 * torch.rand(n, 12, generator=g) - 1)
+        u[:, robot.UPPER_BODY] = pose[7:][robot.UPPER_BODY] + 0.1 * torch.randn(n, 21, generator=g)
+        a.ctrl.copy_(u)
+        b.ctrl.copy_(u)
+        a.step()
+        b.step()
+        _assert_sims_equal(a, b, f"{when}, step {t}")
+
+
 def _random_action(g: torch.Generator) -> torch.Tensor:
     a = 2 * torch.rand(N, 13, generator=g) - 1
     a[:, 12] = a[:, 12].abs()
@@ -144,15 +159,7 @@ def test_sim_reduced_matches_full(start_states, sims):
         reduced.reset_to_start(mask, index)
 
     def steps(k, when):
-        for t in range(k):
-            u = torch.zeros(N, 33)
-            u[:, robot.LEGS] = 60.0 * (2 * torch.rand(N, 12, generator=g) - 1)
-            u[:, robot.UPPER_BODY] = qpos[0, 7:][robot.UPPER_BODY] + 0.1 * torch.randn(N, 21, generator=g)
-            full.ctrl.copy_(u)
-            reduced.ctrl.copy_(u)
-            full.step()
-            reduced.step()
-            _assert_sims_equal(full, reduced, f"{when}, step {t}")
+        _step_sims(full, reduced, qpos[0], g, k, when)
 
     reset(torch.ones(N, dtype=torch.bool), torch.tensor([0, 1, 2, 1]))
     _assert_sims_equal(full, reduced, "reset of all worlds")

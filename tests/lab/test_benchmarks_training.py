@@ -105,6 +105,18 @@ def test_train_throughput_counts_the_whole_set_up_and_the_cores_of_the_timed_tra
     assert trainer.make_collector(None) == "collector"  # the trainer is itself again
 
 
+def _children_started(monkeypatch) -> list:
+    """The argument lists of the children ``train_throughput.main`` starts, each start ending the parent at once."""
+    children = []
+
+    def run_child(name, argv, nproc=None):
+        children.append(argv)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(common, "run_child", run_child)
+    return children
+
+
 def test_train_throughput_compile_loss_compiles_the_steps_loss_in_the_child_only(tmp_path, monkeypatch):
     import torch
 
@@ -128,13 +140,7 @@ def test_train_throughput_compile_loss_compiles_the_steps_loss_in_the_child_only
         assert (module is not loss and module._orig_mod is loss) if compiled else module is loss
         assert trainer.make_update_step("cfg").loss_module is loss  # the trainer's own again after the run
     # The parent hands the flag to each child it starts.
-    children = []
-
-    def run_child(name, argv, nproc=None):
-        children.append(argv)
-        raise SystemExit(0)
-
-    monkeypatch.setattr(common, "run_child", run_child)
+    children = _children_started(monkeypatch)
     with pytest.raises(SystemExit):
         train_throughput.main(["--device", "cpu", "--num_envs", "8", "--compile_loss", "--out", str(tmp_path)])
     assert "--compile_loss" in children[0]
@@ -162,13 +168,7 @@ def test_train_throughput_compact_reset_sets_the_small_pass_of_the_childs_env(tm
         r = train_throughput.measure(8, 2, 1, 0, "cpu", str(tmp_path), {}, compact_reset=value)
         assert r["compact_reset"] == value and warp_backend.compact_reset_capacity is rule
     assert seen == [0, 64, rule(16384)]
-    children = []
-
-    def run_child(name, argv, nproc=None):
-        children.append(argv)
-        raise SystemExit(0)
-
-    monkeypatch.setattr(common, "run_child", run_child)
+    children = _children_started(monkeypatch)
     with pytest.raises(SystemExit):
         train_throughput.main(["--device", "cpu", "--num_envs", "8", "--compact_reset", "2", "--out", str(tmp_path)])
     assert children[0][-2:] == ["--compact_reset", "2"]
