@@ -33,7 +33,10 @@ pass over every world recomputes; constraint rows are per world, contacts are fo
 physics is unchanged (bit-identical on the CPU), though the big buffer holds its contacts in another order and the
 emptied rows it did not refill (inert: no world's constraint rows point at them) until the next step's collision.
 Where the big buffer is full, a new contact is dropped, its world flagged ``NARROWPHASE`` (a health flag) and its
-constraint rows made inert; where the small ``Data``'s own buffers overflow, its reset worlds are flagged.
+constraint rows made inert, and the buffer's count is left past its size, which flags every world (``derive`` and
+the next step read it), as an overflowing collision over every world does. Where the small ``Data``'s own buffers
+overflow, the reset worlds of that chunk are flagged (its unoccupied slots, holding earlier worlds' states, take room
+there too, so that can flag a chunk whose own contacts would have fit: rare, and a flag rather than a wrong state).
 """
 
 from __future__ import annotations
@@ -53,6 +56,9 @@ __all__ = ["CompactResetPass", "traced_stages"]
 
 #: Constraint row types whose ``efc.id`` is a contact's index in the contact buffer (MuJoCo's numbering, which
 #: mujoco-warp's rows share).
+#: Held while warp's module functions are replaced (``_tracing``, ``_AllocationPool.active``): the replacement is
+#: process-wide, so two simulators building or resetting eagerly in two threads would otherwise restore each other's.
+_PATCH_LOCK = threading.RLock()
 _CONTACT_ROWS = tuple(int(getattr(mujoco.mjtConstraint, f"mjCNSTR_CONTACT_{k}")) for k in
                       ("FRICTIONLESS", "PYRAMIDAL", "ELLIPTIC"))
 #: ``Data``'s counters of the contact buffer, one for all worlds (of shape (1,), like a per-world array of one world).
@@ -208,43 +214,45 @@ def _rows(array: wp.array, rows: int) -> tuple[wp.array, bool]:
 def _tracing(reads: list, writes: list):
     """Note, in launch order, the arrays each warp launch lists as ``inputs`` (``reads``) and ``outputs``
     (``writes``), and those that copies and fills write; restored on exit."""
-    originals = {"launch": wp.launch, "launch_tiled": wp.launch_tiled, "copy": wp.copy}
-    fills = {"zero_": wp.array.zero_, "fill_": wp.array.fill_}
+    with _PATCH_LOCK:  # from before the originals are read
+        originals = {"launch": wp.launch, "launch_tiled": wp.launch_tiled, "copy": wp.copy}
+        fills = {"zero_": wp.array.zero_, "fill_": wp.array.fill_}
 
-    def launch(inner):
-        def traced(kernel, *args, inputs=(), outputs=(), **kwargs):
-            reads.append([a for a in inputs if isinstance(a, wp.array)])
-            writes.append([a for a in outputs if isinstance(a, wp.array)])
-            return inner(kernel, *args, inputs=inputs, outputs=outputs, **kwargs)
-        return traced
+        def launch(inner):
+            def traced(kernel, *args, inputs=(), outputs=(), **kwargs):
+                reads.append([a for a in inputs if isinstance(a, wp.array)])
+                writes.append([a for a in outputs if isinstance(a, wp.array)])
+                return inner(kernel, *args, inputs=inputs, outputs=outputs, **kwargs)
+            return traced
 
-    def copy(dest, src, *args, **kwargs):
-        reads.append([src])
-        writes.append([dest])
-        return originals["copy"](dest, src, *args, **kwargs)
+        def copy(dest, src, *args, **kwargs):
+            reads.append([src])
+            writes.append([dest])
+            return originals["copy"](dest, src, *args, **kwargs)
 
-    def fill(inner):
-        def traced(self, *args, **kwargs):
-            reads.append([])
-            writes.append([self])
-            return inner(self, *args, **kwargs)
-        return traced
+        def fill(inner):
+            def traced(self, *args, **kwargs):
+                reads.append([])
+                writes.append([self])
+                return inner(self, *args, **kwargs)
+            return traced
 
-    wp.launch, wp.launch_tiled, wp.copy = launch(wp.launch), launch(wp.launch_tiled), copy
-    wp.array.zero_, wp.array.fill_ = fill(fills["zero_"]), fill(fills["fill_"])
-    try:
-        yield
-    finally:
-        wp.launch, wp.launch_tiled, wp.copy = originals["launch"], originals["launch_tiled"], originals["copy"]
-        wp.array.zero_, wp.array.fill_ = fills["zero_"], fills["fill_"]
+        wp.launch, wp.launch_tiled, wp.copy = launch(wp.launch), launch(wp.launch_tiled), copy
+        wp.array.zero_, wp.array.fill_ = fill(fills["zero_"]), fill(fills["fill_"])
+        try:
+            yield
+        finally:
+            wp.launch, wp.launch_tiled, wp.copy = originals["launch"], originals["launch_tiled"], originals["copy"]
+            wp.array.zero_, wp.array.fill_ = fills["zero_"], fills["fill_"]
 
 
 class _AllocationPool:
     """The arrays a branch of the pass allocates (mujoco-warp's stages make scratch arrays with ``wp.empty`` and
     ``wp.zeros`` as they run), made on the branch's first run and handed out again, in the same order, on every
-    later run, zeroed where ``wp.zeros`` asked: a conditional node's body may not allocate memory (CUDA refuses a
-    body graph with allocation nodes). While :meth:`active` runs, warp's allocation functions are replaced, so run
-    nothing else of warp beside it."""
+    later run, zeroed where ``wp.zeros`` asked: a loop body on the device (a conditional node) may not allocate
+    memory (CUDA refuses a body graph with allocation nodes). While :meth:`active` runs, warp's allocation functions
+    are replaced for the whole process: other threads' calls pass through to warp's own, and ``_PATCH_LOCK`` keeps
+    two replacements from overlapping."""
 
     _POOLED = ("empty", "zeros")
     _REFUSED = ("empty_like", "zeros_like", "ones", "full", "clone", "ones_like", "full_like")
@@ -255,48 +263,50 @@ class _AllocationPool:
 
     @contextlib.contextmanager
     def active(self):
-        originals = {k: getattr(wp, k) for k in (*self._POOLED, *self._REFUSED)}
-        made, used, here = [], [0], threading.get_ident()
+        with _PATCH_LOCK:  # from before the originals are read
+            originals = {k: getattr(wp, k) for k in (*self._POOLED, *self._REFUSED)}
+            made, used, here = [], [0], threading.get_ident()
 
-        def pooled(kind):
-            def alloc(shape=0, dtype=float, *args, **kwargs):
-                if threading.get_ident() != here:  # another thread's warp work is not the pass's
-                    return originals[kind](shape, dtype, *args, **kwargs)
-                shape = (operator.index(shape),) if not isinstance(shape, (tuple, list)) else tuple(shape)
-                key = (shape, dtype, args, tuple(sorted(kwargs.items(), key=lambda item: item[0])))
-                if self.arrays is None:  # the first run: allocate, and keep
-                    array = originals[kind](shape, dtype, *args, **kwargs)
-                    made.append((array, key))
+            def pooled(kind):
+                def alloc(shape=0, dtype=float, *args, **kwargs):
+                    if threading.get_ident() != here:  # another thread's warp work is not the pass's
+                        return originals[kind](shape, dtype, *args, **kwargs)
+                    shape = (operator.index(shape),) if not isinstance(shape, (tuple, list)) else tuple(shape)
+                    key = (shape, dtype, args, tuple(sorted(kwargs.items(), key=lambda item: item[0])))
+                    if self.arrays is None:  # the first run: allocate, and keep
+                        array = originals[kind](shape, dtype, *args, **kwargs)
+                        made.append((array, key))
+                        return array
+                    k = used[0]
+                    if k >= len(self.arrays) or self.arrays[k][1] != key:
+                        raise RuntimeError(f"CompactResetPass ({self.name}): mujoco-warp's allocation {k} "
+                                           f"({shape}, {dtype}) differs from its first run; the pass cannot reuse "
+                                           "its scratch arrays")
+                    used[0] += 1
+                    array = self.arrays[k][0]
+                    if kind == "zeros":
+                        array.zero_()
                     return array
-                k = used[0]
-                if k >= len(self.arrays) or self.arrays[k][1] != key:
-                    raise RuntimeError(f"CompactResetPass ({self.name}): mujoco-warp's allocation {k} ({shape}, "
-                                       f"{dtype}) differs from its first run; the pass cannot reuse its scratch arrays")
-                used[0] += 1
-                array = self.arrays[k][0]
-                if kind == "zeros":
-                    array.zero_()
-                return array
-            return alloc
+                return alloc
 
-        def refused(kind):
-            def alloc(*args, **kwargs):
-                if threading.get_ident() != here:
-                    return originals[kind](*args, **kwargs)
-                raise RuntimeError(f"CompactResetPass ({self.name}): mujoco-warp allocated with wp.{kind} in the reset "
-                                   "pass, which a loop on the device cannot hold; build the simulator with "
-                                   "register_start_states(..., compact=0)")
-            return alloc
+            def refused(kind):
+                def alloc(*args, **kwargs):
+                    if threading.get_ident() != here:
+                        return originals[kind](*args, **kwargs)
+                    raise RuntimeError(f"CompactResetPass ({self.name}): mujoco-warp allocated with wp.{kind} in "
+                                       "the reset pass, which a loop on the device cannot hold; build the simulator "
+                                       "with register_start_states(..., compact=0)")
+                return alloc
 
-        for kind in self._POOLED:
-            setattr(wp, kind, pooled(kind))
-        for kind in self._REFUSED:
-            setattr(wp, kind, refused(kind))
-        try:
-            yield
-        finally:
-            for kind, fn in originals.items():
-                setattr(wp, kind, fn)
+            for kind in self._POOLED:
+                setattr(wp, kind, pooled(kind))
+            for kind in self._REFUSED:
+                setattr(wp, kind, refused(kind))
+            try:
+                yield
+            finally:
+                for kind, fn in originals.items():
+                    setattr(wp, kind, fn)
         if self.arrays is None:
             self.arrays = made
         elif used[0] != len(self.arrays):

@@ -438,8 +438,9 @@ class WarpSim(SimViews):
                 more worlds takes several rounds); 0 for the stages over every world; None (default) for
                 :func:`~tocabi_torchrl.sim.config.compact_reset_capacity` of the world count (0 with
                 ``SimConfig.sensors_every_substep``, which it cannot serve). Each world's physics is the same either
-                way, but for a full contact buffer: there the small pass flags the reset worlds whose contacts did
-                not fit (``NARROWPHASE``), where the pass over every world drops any world's.
+                way, but for a full contact buffer: both then flag every world (``NARROWPHASE``), the small pass
+                after dropping the reset worlds' contacts that did not fit, the pass over every world after dropping
+                any world's.
 
         Runs the full reset of :meth:`reset` once per start state over all worlds (each with its own mocap
         positions and, with ``set_fields``, model fields) and keeps, per state and world, what the reduced reset
