@@ -19,6 +19,13 @@ and standing robots (``common.raw_policy_step``'s model and state), each recorde
 
 It answers one question: would the compacted pass (small pass + scatter) be cheaper than the pass over every world,
 and by how much per step.
+
+With ``--resets K ...`` it also times the simulator's reduced reset as built (``WarpSim.reset_to_start``, one start
+state, K worlds drawn at random flagged), once with the pass over every world (``compact=0``) and once with
+:class:`~tocabi_torchrl.sim.compact_reset.CompactResetPass` of ``--capacity`` worlds (default: the simulator's rule
+for the env count), so that resets of more worlds than it holds (its chunks one after another) are measured too:
+
+    python -m lab.benchmarks.reset_pass_cost --num_envs 16384 --subsets 256 --resets 0 16 64 256 1024 16384
 """
 
 from __future__ import annotations
@@ -103,6 +110,35 @@ def measure(num_envs: int, subsets: list[int], steps: int, device: str) -> dict:
     return result
 
 
+def measure_resets(num_envs: int, resets: list[int], capacity: int, steps: int, device: str) -> dict:
+    """ms per ``WarpSim.reset_to_start`` of K random worlds, for each K of ``resets``: over every world and with the
+    small pass of ``capacity`` worlds (one simulator at a time)."""
+    import gc
+
+    from tocabi_torchrl.sim import SimConfig, WarpSim
+
+    dev = torch.device(device)
+    g = torch.Generator().manual_seed(0)
+    masks = {}
+    for k in resets:
+        mask = torch.zeros(num_envs, dtype=torch.bool)
+        mask[torch.randperm(num_envs, generator=g)[:k]] = True
+        masks[k] = mask.to(dev)
+    index = torch.zeros(num_envs, dtype=torch.int64, device=dev)
+    qpos = torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32, device=dev).unsqueeze(0)
+    ms = {}
+    for held in (0, capacity):
+        sim = WarpSim(SimConfig(num_worlds=num_envs, device=device, reset_pass="reduced"))
+        sim.register_start_states(qpos, torch.zeros(1, sim.nv, device=dev), torch.zeros(1, sim.nu, device=dev),
+                                  compact=held)
+        ms[held] = {k: 1e3 / common.per_second(lambda k=k: sim.reset_to_start(masks[k], index), steps, device,
+                                               warmup=3) for k in resets}
+        del sim
+        gc.collect()
+    return {"capacity": capacity, "rows": [{"resets": k, "every_world_ms": ms[0][k], "small_pass_ms": ms[capacity][k]}
+                                           for k in resets]}
+
+
 def render(data: dict) -> str:
     r = data["result"]
     rows = [[f"{r['num_envs']:,} (every world)", f"{r['pass_all_ms']:.3f}", "", "", ""]]
@@ -116,6 +152,14 @@ def render(data: dict) -> str:
                          "small pass + copy [ms]", "saved per step [ms]"], rows)
     body += (f"\n\nPer world the copied arrays hold {s0['bytes_per_world'] / 1024:,.0f} KiB. Each time is one "
              f"recorded graph replayed {r['steps']} times after 3 warm-up replays, standing robots.\n")
+    sim = data.get("resets")
+    if sim:
+        rows = [[f"{row['resets']:,}", f"{row['every_world_ms']:.3f}", f"{row['small_pass_ms']:.3f}",
+                 f"{row['every_world_ms'] - row['small_pass_ms']:+.3f}"] for row in sim["rows"]]
+        body += ("\nThe simulator's reduced reset as built (`WarpSim.reset_to_start`, one start state, the flagged "
+                 f"worlds drawn at random), ms per reset, {r['steps']} after 3 warm-up:\n\n"
+                 + common.table(["worlds reset", "pass over every world [ms]",
+                                 f"small pass, {sim['capacity']:,} worlds at a time [ms]", "saved [ms]"], rows) + "\n")
     return common.page("The reset pass over the worlds that reset only: its cost", data, body)
 
 
@@ -125,6 +169,11 @@ def main(argv=None) -> int:
     parser.add_argument("--subsets", type=int, nargs="+", default=[64, 256, 1024],
                         help="sizes of the small Data: how many worlds a compacted pass would hold")
     parser.add_argument("--steps", type=int, default=50, help="graph replays timed per measurement")
+    parser.add_argument("--resets", type=int, nargs="*", default=[],
+                        help="also time the simulator's reset of this many random worlds, each count, over every world "
+                             "and with the small pass (none: skipped)")
+    parser.add_argument("--capacity", type=int, default=None,
+                        help="with --resets: the small pass's worlds (default: compact_reset_capacity of --num_envs)")
     parser.add_argument("--device", default="cuda", help="cuda, or cpu (warp's CPU device: no graphs, slow)")
     parser.add_argument("--out", default=None, help="report folder (default: docs/benchmarks, or runs/ on the CPU)")
     parser.add_argument("--name", default=NAME, help="report file name, without extension")
@@ -134,8 +183,16 @@ def main(argv=None) -> int:
     if bad or args.num_envs < 1 or args.steps < 1:
         parser.error(f"--num_envs and --steps must be >= 1 and every --subsets size in [1, --num_envs]; got "
                      f"num_envs={args.num_envs}, steps={args.steps}, subsets={args.subsets}")
+    from tocabi_torchrl.sim.config import compact_reset_capacity
+
+    capacity = compact_reset_capacity(args.num_envs) if args.capacity is None else args.capacity
+    if args.resets and (not 0 < capacity < args.num_envs or not all(0 <= k <= args.num_envs for k in args.resets)):
+        parser.error(f"--resets counts must be in [0, --num_envs] and --capacity in [1, --num_envs) (the rule gives "
+                     f"0 below 4,096 envs: pass --capacity); got resets={args.resets}, capacity={capacity}")
     data = {"meta": common.meta(NAME, argv, on=args.device),
             "result": measure(args.num_envs, args.subsets, args.steps, args.device)}
+    if args.resets:
+        data["resets"] = measure_resets(args.num_envs, args.resets, capacity, args.steps, args.device)
     print(common.publish(args.out or common.DOCS, args.name, data, lambda d, _path: render(d),
                          measured_on=args.device))
     return 0

@@ -44,3 +44,17 @@ def test_bad_sizes_are_refused_in_one_line(args, capsys):
     with pytest.raises(SystemExit) as err:
         reset_pass_cost.main(["--device", "cpu", "--num_envs", "8", *args])
     assert err.value.code == 2 and "--subsets size in [1, --num_envs]" in capsys.readouterr().err
+
+
+def test_resets_time_the_simulators_reset_both_ways_and_refuse_bad_counts(tmp_path, capsys):
+    reset_pass_cost.main(["--device", "cpu", "--num_envs", "6", "--subsets", "2", "--steps", "1", "--resets", "0",
+                          "6", "--capacity", "2", "--out", str(tmp_path), "--name", "rs"])
+    data = json.loads((tmp_path / "rs.json").read_text())
+    rows = data["resets"]["rows"]
+    assert data["resets"]["capacity"] == 2 and [r["resets"] for r in rows] == [0, 6]
+    assert all(r["every_world_ms"] > 0 and r["small_pass_ms"] > 0 for r in rows)
+    assert "small pass, 2 worlds at a time [ms]" in (tmp_path / "rs.md").read_text()
+    for bad in (["--resets", "7", "--capacity", "2"], ["--resets", "1"]):  # more than the envs; no rule below 4,096
+        with pytest.raises(SystemExit):
+            reset_pass_cost.main(["--device", "cpu", "--num_envs", "6", "--subsets", "2", *bad])
+        assert "--resets counts must be in [0, --num_envs]" in capsys.readouterr().err
