@@ -478,8 +478,8 @@ class WarpSim(SimViews):
             raise ValueError(f"register_start_states: compact must be an int in [0, {self.num_worlds}) (reset worlds "
                              f"the small pass holds; 0: the pass over every world), got {compact!r}")
         if compact and self.config.sensors_every_substep:
-            # step2 would evaluate contact sensors over the contact buffer, where the reset worlds' unlinked old
-            # contacts still sit.
+            # step2 would evaluate contact sensors over the contact buffer, where rows emptied of the reset worlds'
+            # old contacts still sit, and the small pass does not recompute the sensors.
             raise ValueError("register_start_states: compact > 0 needs SimConfig.sensors_every_substep=False; pass "
                              "compact=0")
         if self._start_states is not None:
