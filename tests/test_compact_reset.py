@@ -10,6 +10,7 @@ import torch
 import warp as wp
 from test_reset_pass import N as POOL_WORLDS
 from test_reset_pass import _assert_sims_equal, _assert_tds_equal, _pool_env, _random_action, _step_both, _step_sims
+from test_reset_pass import start_states  # noqa: F401 - the fixture: standing, in foot contact, moving
 from warp_cpu import warp_cpu_available
 
 from tocabi_torchrl import robot
@@ -21,20 +22,6 @@ from tocabi_torchrl.sim.config import compact_reset_capacity
 pytestmark = pytest.mark.skipif(not warp_cpu_available(), reason="warp's CPU device is unavailable")
 
 N = 6
-
-
-@pytest.fixture(scope="module")
-def start_states():
-    """Standing at rest, lowered 3 mm into foot contact with leg torques, and moving with leg torques."""
-    g = torch.Generator().manual_seed(3)
-    qpos = torch.as_tensor(robot.INIT_QPOS, dtype=torch.float32).repeat(3, 1)
-    qpos[1, 2] -= 0.003
-    qvel = torch.zeros(3, 39)
-    qvel[2, 6:] = 0.5 * torch.randn(33, generator=g)
-    ctrl = torch.zeros(3, 33)
-    ctrl[1:, robot.LEGS] = 40.0 * (2 * torch.rand(2, 12, generator=g) - 1)
-    ctrl[:, robot.UPPER_BODY] = qpos[:, 7:][:, robot.UPPER_BODY]
-    return qpos, qvel, ctrl
 
 
 def _pair(start_states, capacity=2, **config):
