@@ -45,18 +45,22 @@ NAME = "train_throughput"
 
 def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, run_dir: str,
             overrides: dict, ceiling: bool = False, same_priority: bool = False,
-            compile_loss: bool = False, compact_reset: int | None = None) -> dict | None:
+            compile_loss: bool = False, compact_reset: int | None = None,
+            update_sms: int | None = None) -> dict | None:
     """One env count in this process (one rank of a torchrun run): the steady rate after ``warmup`` iterations, the
     whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0.
     ``ceiling``: also the simulator's own time per policy step over the same timed iterations (module docstring).
     ``same_priority``: with ``ppo.overlap_update``, the rollout's and the update's streams of one priority.
     ``compile_loss``: the PPO loss wrapped in ``torch.compile`` (a probe: no config option does it).
     ``compact_reset``: the reduced reset pass's small ``Data`` holds this many worlds (0: the pass over every world)
-    instead of ``tocabi_torchrl.sim.config.compact_reset_capacity``'s count (None)."""
+    instead of ``tocabi_torchrl.sim.config.compact_reset_capacity``'s count (None).
+    ``update_sms``: with ``ppo.overlap_update``, the update's side stream is a stream of a CUDA green context of this
+    many multiprocessors (``torch.cuda.green_contexts``): the update's blocks run on those alone, and the physics'
+    blocks never wait for multiprocessors the update holds beyond them (a probe: no config option does it)."""
     info = from_environment()
     device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides, "same_priority": same_priority,
-              "compile_loss": compile_loss, "compact_reset": compact_reset,
+              "compile_loss": compile_loss, "compact_reset": compact_reset, "update_sms": update_sms,
               "device_used_at_start_gib": common.device_used_gib(device),
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:
@@ -68,10 +72,15 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
         overlap_class = common.trainer.UpdateOverlap
 
         class Overlap(overlap_class):
-            """The trainer's :class:`UpdateOverlap`, its two streams of one priority with ``same_priority``."""
+            """The trainer's :class:`UpdateOverlap`, its two streams of one priority with ``same_priority``, its side
+            stream a green context's with ``update_sms``."""
 
             def __init__(self, *args, **kwargs):
                 super().__init__(*args, **kwargs, collect_first=not same_priority)
+                if update_sms and self.stream is not None:
+                    self.green = torch.cuda.green_contexts.GreenContext.create(
+                        num_sms=update_sms, device_id=torch.device(self.device).index or 0)
+                    self.stream = self.green.Stream()
 
         patches = {"UpdateOverlap": Overlap}
         if compile_loss:
@@ -386,6 +395,9 @@ def main(argv=None) -> None:
     parser.add_argument("--compact_reset", type=int, default=None,
                         help="worlds the reduced reset pass's small Data holds (0: the pass over every world); "
                              "default: the simulator's rule, tocabi_torchrl.sim.config.compact_reset_capacity")
+    parser.add_argument("--update_sms", type=int, default=None,
+                        help="with ppo.overlap_update: run the update on a CUDA green context of this many "
+                             "multiprocessors (a probe; default: the update's stream may use all of them)")
     parser.add_argument("--child", action="store_true", help="measure one env count in this process (internal)")
     args = parser.parse_args(argv)
     if min(args.num_envs) < 1:
@@ -396,7 +408,7 @@ def main(argv=None) -> None:
         with ending(from_environment()):  # every rank ends, also on a failure (NCCL: the process, here)
             record = measure(args.num_envs[0], args.iterations, args.warmup, args.raw_steps, args.device,
                              args.run_dir, overrides, args.ceiling, args.same_priority, args.compile_loss,
-                             args.compact_reset)
+                             args.compact_reset, args.update_sms)
             if record is not None:  # rank 0 of a torchrun run reports for all ranks
                 print("RESULT " + json.dumps(record), flush=True)  # what common.run_child reads
         return
@@ -414,6 +426,9 @@ def main(argv=None) -> None:
     if args.compact_reset is not None and not 0 <= args.compact_reset < min(args.num_envs):
         parser.error(f"--compact_reset takes a world count in [0, the smallest --num_envs), not {args.compact_reset}")
     options += ["--compact_reset", str(args.compact_reset)] if args.compact_reset is not None else []
+    if args.update_sms is not None and args.update_sms < 1:
+        parser.error(f"--update_sms takes a multiprocessor count >= 1, not {args.update_sms}")
+    options += ["--update_sms", str(args.update_sms)] if args.update_sms is not None else []
     if max(args.nproc) > 1 and not args.iterations + args.warmup:
         parser.error("--nproc > 1 measures training: give --iterations or --warmup > 0")
     # Where any K > 1, every child starts under torchrun, the 1-rank one too, so that they share its
