@@ -35,6 +35,7 @@ from pathlib import Path
 
 import torch
 
+from tocabi_torchrl.cuda_graphs import CudaGraphCapture
 from tocabi_torchrl.rl.curves import steady_rate
 from tocabi_torchrl.rl.distributed import ending, from_environment, init_distributed
 
@@ -69,7 +70,24 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
         if info.is_main:  # the benchmark's own scratch run: start afresh
             shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
         physics, overlaps, update_marks = None, [], []
-        overlap_class = common.trainer.UpdateOverlap
+        overlap_class, step_class, patches = common.trainer.UpdateOverlap, common.trainer.MinibatchStep, {}
+        green = None
+        if update_sms and device.startswith("cuda"):
+            green = torch.cuda.green_contexts.GreenContext.create(num_sms=update_sms,
+                                                                  device_id=torch.device(device).index or 0)
+
+            class GreenCapture(CudaGraphCapture):
+                """Warm-up and capture on a stream of the green context: a graph captured on another stream
+                replays on all multiprocessors, whatever stream it is launched on."""
+
+                def side_stream(self, device):
+                    return green.Stream()
+
+            class GreenStep(step_class):
+                def __init__(self, *args, **kwargs):
+                    super().__init__(*args, **kwargs, capturer=GreenCapture())
+
+            step_class = patches["MinibatchStep"] = GreenStep
 
         class Overlap(overlap_class):
             """The trainer's :class:`UpdateOverlap`, its two streams of one priority with ``same_priority``, its side
@@ -77,12 +95,10 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
 
             def __init__(self, *args, **kwargs):
                 super().__init__(*args, **kwargs, collect_first=not same_priority)
-                if update_sms and self.stream is not None:
-                    self.green = torch.cuda.green_contexts.GreenContext.create(
-                        num_sms=update_sms, device_id=torch.device(self.device).index or 0)
-                    self.stream = self.green.Stream()
+                if green is not None and self.stream is not None:
+                    self.stream = green.Stream()
 
-        patches = {"UpdateOverlap": Overlap}
+        patches["UpdateOverlap"] = Overlap
         if compile_loss:
             patches["make_update_step"] = compiled_loss_step(common.trainer.make_update_step)
         if ceiling:
@@ -137,7 +153,7 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                     self.finish_s.append(time.perf_counter() - t)
                     return out
 
-            class TimedStep(common.trainer.MinibatchStep):
+            class TimedStep(step_class):
                 """The trainer's mini-batch step, with the host's time in each call (queuing one mini-batch: with the
                 update captured, its replay) kept in the launch it belongs to."""
 
