@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
 import json
 import os
 import shutil
@@ -75,6 +76,9 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
         if update_sms and device.startswith("cuda"):
             green = torch.cuda.green_contexts.GreenContext.create(num_sms=update_sms,
                                                                   device_id=torch.device(device).index or 0)
+            # Never destroyed: tensors the update's streams used are freed as the interpreter ends, and each free
+            # records an event on its stream, which fails once the context is gone.
+            ctypes.pythonapi.Py_IncRef(ctypes.py_object(green))
 
             class GreenCapture(CudaGraphCapture):
                 """Warm-up and capture on a stream of the green context: a graph captured on another stream
