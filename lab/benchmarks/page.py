@@ -748,7 +748,7 @@ def train_over_ceiling(docs: Path) -> list[str]:
 TRAIN_OVER_CEILING_OVERLAP = "benchmarks/train_over_ceiling_overlap"
 #: Later runs of the same options, listed after those of their env count: the simulator's reset pass over the reset
 #: worlds alone (code at da9fc66).
-TRAIN_OVER_CEILING_NEWER = ("h100_da9fc66/envs4096_compact_loop.json", "h100_da9fc66/envs16384_compact_loop.json")
+TRAIN_OVER_CEILING_NEWER = ("h100_558ec91/envs4096.json", "h100_fc5b42b/envs16384_sms0.json")
 
 
 def train_over_ceiling_variants(docs: Path) -> list[str]:
