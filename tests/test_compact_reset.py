@@ -16,7 +16,8 @@ from warp_cpu import warp_cpu_available
 from tocabi_torchrl import robot
 from tocabi_torchrl.sim import SimConfig, WarpSim
 from tocabi_torchrl.sim import warp_backend
-from tocabi_torchrl.sim.compact_reset import CompactResetPass, traced_stages
+from tocabi_torchrl.sim.compact_reset import (CompactResetPass, _gather_bytes, _gather_rows, _RowTable, _scatter_bytes,
+                                              _scatter_rows, traced_stages)
 from tocabi_torchrl.sim.config import compact_reset_capacity
 
 pytestmark = pytest.mark.skipif(not warp_cpu_available(), reason="warp's CPU device is unavailable")
@@ -174,6 +175,40 @@ def test_the_traced_stages_read_the_state_and_write_kinematics_and_constraint_ro
     assert {"qpos", "qvel"} <= set(reads) and not {"xpos", "qLD", "efc.J"} & set(reads)
     assert {"xpos", "xquat", "cinert", "crb", "M", "qLD", "efc.J", "efc.id", "nefc", "qfrc_bias", "cvel"} <= set(writes)
     assert not {"qpos", "qvel", "ctrl", "sensordata", "qacc_warmstart"} & set(writes)
+
+
+def test_row_tables_copy_every_pair_in_one_launch_and_byte_rows_apart():
+    """The fused copies: rows of several arrays of 32-bit words (float, int, a 3-vector) gathered into the slots and
+    scattered back in one launch each, a pair of 3-byte rows apart, the unoccupied slots untouched."""
+    rng = torch.Generator().manual_seed(0)
+    n, cap = 7, 3
+    with wp.ScopedDevice("cpu"):
+        big = [wp.from_torch(torch.randn(n, 5, generator=rng)),
+               wp.from_torch(torch.randint(-9, 9, (n,), generator=rng, dtype=torch.int32)),
+               wp.from_torch(torch.randn(n, 2, 3, generator=rng), dtype=wp.vec3),
+               wp.from_torch(torch.randint(0, 255, (n, 3), generator=rng, dtype=torch.uint8))]
+        small = [wp.zeros((cap, *a.shape[1:]), dtype=a.dtype) for a in big]
+        table = _RowTable(list(zip(big, small)), n, cap)
+        assert (len(table.bytes), table.columns) == (1, 5 + 1 + 6)
+        slots, count = wp.array([4, 0, 6], dtype=int), wp.array([2], dtype=int)  # the third slot unoccupied
+        table.launch(_gather_rows, cap, slots, count)
+        for b, sm in table.bytes:
+            wp.launch(_gather_bytes, dim=sm.shape, inputs=[b, slots, count], outputs=[sm])
+        for b, sm in zip(big, small):
+            got, want = sm.numpy(), b.numpy()
+            assert (got[:2] == want[[4, 0]]).all() and not got[2].any()
+        for sm in small:  # the stages' results, scattered back to worlds 4 and 0 only
+            sm.assign(sm.numpy() + 1)
+        before = [b.numpy().copy() for b in big]
+        table.launch(_scatter_rows, cap, slots, count)
+        for b, sm in table.bytes:
+            wp.launch(_scatter_bytes, dim=sm.shape, inputs=[sm, slots, count], outputs=[b])
+        for b, old in zip(big, before):
+            want = old.copy()
+            want[[4, 0]] += 1
+            assert (b.numpy() == want).all()
+        with pytest.raises(ValueError, match="not of 32-bit words"):
+            _RowTable(list(zip(big, small)), n, cap, words_only=True)
 
 
 def test_capacity_rule_and_refusals(start_states, monkeypatch):

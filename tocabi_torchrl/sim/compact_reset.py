@@ -22,7 +22,8 @@ scatter                every per-world array the stages write, slot row -> big r
 
 Which arrays are read and written is found by running the stages once with warp's launches traced (their
 ``inputs``, ``outputs``, copies and fills, matched to the arrays whose memory they point into), so the lists follow
-the installed mujoco-warp. When more worlds reset than ``capacity`` (the first steps of training, when untrained
+the installed mujoco-warp. Each of gather, contacts and scatter is one launch over all its arrays' rows side by side
+(``_RowTable``: the arrays' addresses and widths in a table on the device), not one per array. When more worlds reset than ``capacity`` (the first steps of training, when untrained
 robots fall together), the small ``Data`` takes them ``capacity`` at a time, in a loop on the device
 (``wp.capture_while``: no host read once recorded into a graph); none resetting, it runs no stage at all. A loop body
 may not allocate memory, and mujoco-warp's stages make scratch arrays as they run: the body keeps those of its first
@@ -50,6 +51,7 @@ from typing import Any
 
 import mujoco
 import mujoco_warp as mjw
+import numpy as np
 import warp as wp
 
 __all__ = ["CompactResetPass", "traced_stages"]
@@ -97,24 +99,62 @@ def _advance_chunk(count: wp.array(dtype=int), capacity: int, chunk: wp.array(dt
 
 
 @wp.kernel(enable_backward=False)
-def _gather(src: wp.array2d(dtype=Any), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
-            dst: wp.array2d(dtype=Any)):
+def _gather_rows(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint64), width: wp.array(dtype=int),
+                 big_rows: int, small_rows: int, column_of: wp.array(dtype=wp.vec2i), slot_world: wp.array(dtype=int),
+                 count: wp.array(dtype=int)):
+    """Row ``slot_world[s]`` of every big array into row ``s`` of its small one, for the occupied slots; one thread
+    per slot and 32-bit word of all the arrays' rows together (``column_of``: (array, column) of each word)."""
+    s, j = wp.tid()
+    if s < count[0]:
+        k = column_of[j][0]
+        c = column_of[j][1]
+        src = wp.array(ptr=big[k], shape=(big_rows, width[k]), dtype=wp.int32)
+        dst = wp.array(ptr=small[k], shape=(small_rows, width[k]), dtype=wp.int32)
+        dst[s, c] = src[slot_world[s], c]
+
+
+@wp.kernel(enable_backward=False)
+def _scatter_rows(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint64), width: wp.array(dtype=int),
+                  big_rows: int, small_rows: int, column_of: wp.array(dtype=wp.vec2i),
+                  slot_world: wp.array(dtype=int), count: wp.array(dtype=int)):
+    """Row ``s`` of every small array back into row ``slot_world[s]`` of its big one (as :func:`_gather_rows`)."""
+    s, j = wp.tid()
+    if s < count[0]:
+        k = column_of[j][0]
+        c = column_of[j][1]
+        src = wp.array(ptr=small[k], shape=(small_rows, width[k]), dtype=wp.int32)
+        dst = wp.array(ptr=big[k], shape=(big_rows, width[k]), dtype=wp.int32)
+        dst[slot_world[s], c] = src[s, c]
+
+
+@wp.kernel(enable_backward=False)
+def _append_rows(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint64), width: wp.array(dtype=int),
+                 big_rows: int, small_rows: int, column_of: wp.array(dtype=wp.vec2i), nacon: wp.array(dtype=int),
+                 remap: wp.array(dtype=int)):
+    """Row ``i`` of every small contact field into row ``remap[i]`` of the big one, for the contacts given a row."""
+    i, j = wp.tid()
+    if i < nacon[0] and remap[i] >= 0:
+        k = column_of[j][0]
+        c = column_of[j][1]
+        src = wp.array(ptr=small[k], shape=(small_rows, width[k]), dtype=wp.int32)
+        dst = wp.array(ptr=big[k], shape=(big_rows, width[k]), dtype=wp.int32)
+        dst[remap[i], c] = src[i, c]
+
+
+@wp.kernel(enable_backward=False)
+def _gather_bytes(src: wp.array2d(dtype=wp.uint8), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
+                  dst: wp.array2d(dtype=wp.uint8)):
     s, j = wp.tid()
     if s < count[0]:
         dst[s, j] = src[slot_world[s], j]
 
 
 @wp.kernel(enable_backward=False)
-def _scatter(src: wp.array2d(dtype=Any), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
-             dst: wp.array2d(dtype=Any)):
+def _scatter_bytes(src: wp.array2d(dtype=wp.uint8), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
+                   dst: wp.array2d(dtype=wp.uint8)):
     s, j = wp.tid()
     if s < count[0]:
         dst[slot_world[s], j] = src[s, j]
-
-
-for _word in (wp.int32, wp.uint8):  # rows of 32-bit words, or of bytes (see _rows)
-    for _kernel in (_gather, _scatter):
-        wp.overload(_kernel, {"src": wp.array2d(dtype=_word), "dst": wp.array2d(dtype=_word)})
 
 
 @wp.kernel(enable_backward=False)
@@ -153,14 +193,6 @@ def _number_contacts(worldid: wp.array(dtype=int), nacon: wp.array(dtype=int), c
         big_worldid[row] = w
     else:  # the big buffer is full: the contact is dropped, and its slot says so (scattered to its world after)
         wp.atomic_or(overflow, s, flag)
-
-
-@wp.kernel(enable_backward=False)
-def _append_contacts(src: wp.array2d(dtype=wp.int32), nacon: wp.array(dtype=int), remap: wp.array(dtype=int),
-                     dst: wp.array2d(dtype=wp.int32)):
-    i, j = wp.tid()
-    if i < nacon[0] and remap[i] >= 0:
-        dst[remap[i], j] = src[i, j]
 
 
 @wp.kernel(enable_backward=False)
@@ -357,10 +389,42 @@ def _stages(model: mjw.Model, data: mjw.Data) -> None:
     mjw.fwd_velocity(model, data)
 
 
-@dataclasses.dataclass
-class _Copy:
-    big: wp.array  # (N, width) view of the big Data's array
-    small: wp.array  # (capacity, width) view of the small Data's array
+class _RowTable:
+    """Whole rows of many array pairs, copied by one launch: each pair's two base addresses and row width in 32-bit
+    words, and each word's (pair, column) over all the pairs' rows side by side. A round launches three of these
+    (gather, contacts, scatter) instead of one copy per array (84 with mujoco-warp 4.0.0's TOCABI). Pairs whose rows
+    are not whole words are kept apart in :attr:`bytes` ((big, small) 2-D byte views, one launch each).
+
+    Args:
+        pairs: (big, small) arrays of one per-row layout: contiguous, ``big_rows`` and ``small_rows`` rows.
+        words_only: refuse a pair of byte rows (ValueError) instead of keeping it apart.
+    """
+
+    def __init__(self, pairs: list[tuple[wp.array, wp.array]], big_rows: int, small_rows: int,
+                 words_only: bool = False):
+        words, self.bytes = [], []
+        for big, small in pairs:
+            (b, in_words), (sm, _) = _rows(big, big_rows), _rows(small, small_rows)
+            if not in_words and words_only:
+                raise ValueError(f"CompactResetPass: rows of {b.shape[1]} bytes are not of 32-bit words")
+            (words if in_words else self.bytes).append((b, sm))
+        self._views = words  # they keep the arrays alive while the table holds their addresses
+        widths = np.array([b.shape[1] for b, _ in words], dtype=np.int32)
+        self.columns = int(widths.sum())  # 32-bit words per row, all pairs together
+        self.big_rows, self.small_rows = big_rows, small_rows
+        self.big = wp.array([b.ptr for b, _ in words], dtype=wp.uint64)
+        self.small = wp.array([sm.ptr for _, sm in words], dtype=wp.uint64)
+        self.width = wp.array(widths, dtype=int)
+        pair = np.repeat(np.arange(len(words), dtype=np.int32), widths)
+        column = np.arange(self.columns, dtype=np.int32) - np.repeat(np.cumsum(widths) - widths, widths)
+        self.column_of = wp.array(np.stack((pair, column), axis=-1), dtype=wp.vec2i)
+
+    def launch(self, kernel, rows: int, *inputs) -> None:
+        """``kernel`` (:func:`_gather_rows`, :func:`_scatter_rows` or :func:`_append_rows`) over ``rows`` rows of
+        every pair's words, with its trailing ``inputs``."""
+        if self.columns:
+            wp.launch(kernel, dim=(rows, self.columns), inputs=[self.big, self.small, self.width, self.big_rows,
+                                                                self.small_rows, self.column_of, *inputs])
 
 
 class CompactResetPass:
@@ -390,7 +454,6 @@ class CompactResetPass:
             small_fields[name] = wp.empty((capacity, *big.shape[1:]), dtype=big.dtype)
             wp.copy(small_fields[name], big, count=small_fields[name].size)
         self.small_model = dataclasses.replace(model, **small_fields)
-        self._fields = [_Copy(*_pair(getattr(model, k), v, n, capacity)) for k, v in small_fields.items()]
         reads, writes = traced_stages(self.small_model, self.small)
         big_arrays, small_arrays = per_world_arrays(data, n), per_world_arrays(self.small, capacity)
         missing = sorted(set(reads + writes) - set(big_arrays))
@@ -403,18 +466,13 @@ class CompactResetPass:
         writes += [name for name in ("overflow", "efc.type", "efc.id", "efc.D") if name not in writes]
         #: names of the per-world arrays gathered before the stages and scattered after them
         self.reads, self.writes = tuple(reads), tuple(writes)
-        self._gather = [_Copy(*_pair(big_arrays[k], small_arrays[k], n, capacity)) for k in reads]
-        self._scatter = [_Copy(*_pair(big_arrays[k], small_arrays[k], n, capacity)) for k in writes]
-        big_c, small_c = data.contact, self.small.contact
-        rows_big, rows_small = data.naconmax, self.small.naconmax
-        self._contacts = []
-        for name, value in vars(small_c).items():
-            if isinstance(value, wp.array) and value.shape[0] == rows_small and value.size > 0 and name != "worldid":
-                b, words_b = _rows(getattr(big_c, name), rows_big)
-                s, words_s = _rows(value, rows_small)
-                if not (words_b and words_s):
-                    raise ValueError(f"CompactResetPass: contact field {name!r} is not of 32-bit words")
-                self._contacts.append((s, b))
+        fields = [(getattr(model, k), v) for k, v in small_fields.items()]
+        self._gather = _RowTable(fields + [(big_arrays[k], small_arrays[k]) for k in reads], n, capacity)
+        self._scatter = _RowTable([(big_arrays[k], small_arrays[k]) for k in writes], n, capacity)
+        big_c, rows_small = data.contact, self.small.naconmax
+        self._contacts = _RowTable([(getattr(big_c, name), value) for name, value in vars(self.small.contact).items()
+                                    if isinstance(value, wp.array) and value.shape[0] == rows_small and value.size > 0
+                                    and name != "worldid"], data.naconmax, rows_small, words_only=True)
         self._pool = _AllocationPool("reset worlds")
         self._order = wp.zeros(n, dtype=int)  # the reset worlds, chunk after chunk
         self._count = wp.zeros(1, dtype=int)  # how many reset
@@ -452,29 +510,24 @@ class CompactResetPass:
         d, s, cap = self.data, self.small, self.capacity
         slots, count = self._slot_world, self._in_chunk
         wp.launch(_next_chunk, dim=cap, inputs=[self._order, self._count, self._chunk, cap], outputs=[slots, count])
-        for c in (*self._fields, *self._gather):
-            wp.launch(_gather, dim=(cap, c.big.shape[1]),
-                      inputs=[c.big, slots, count], outputs=[c.small])
+        self._gather.launch(_gather_rows, cap, slots, count)
+        for big, small in self._gather.bytes:
+            wp.launch(_gather_bytes, dim=small.shape, inputs=[big, slots, count], outputs=[small])
         with self._pool.active():
             _stages(self.small_model, s)
         wp.launch(_number_contacts, dim=s.naconmax,
                   inputs=[s.contact.worldid, s.nacon, count, slots, self._free, self._nfree,
                           int(mjw.OverflowType.NARROWPHASE)],
                   outputs=[self._taken, self._total, self._remap, d.contact.worldid, s.overflow])
-        for small_rows, big_rows in self._contacts:
-            wp.launch(_append_contacts, dim=small_rows.shape, inputs=[small_rows, s.nacon, self._remap],
-                      outputs=[big_rows])
+        self._contacts.launch(_append_rows, s.naconmax, s.nacon, self._remap)
         wp.launch(_flag_small_overflow, dim=cap,
                   inputs=[s.nacon, s.ncollision, s.naconmax, count, int(mjw.OverflowType.BROADPHASE),
                           int(mjw.OverflowType.NARROWPHASE)], outputs=[s.overflow])
         wp.launch(_remap_contact_ids, dim=(cap, s.efc.id.shape[1]),
                   inputs=[count, s.nefc, self._remap, wp.vec3i(*_CONTACT_ROWS), _INERT_ROW],
                   outputs=[s.efc.type, s.efc.id, s.efc.D])
-        for c in self._scatter:
-            wp.launch(_scatter, dim=(cap, c.big.shape[1]),
-                      inputs=[c.small, slots, count], outputs=[c.big])
+        self._scatter.launch(_scatter_rows, cap, slots, count)
+        for big, small in self._scatter.bytes:
+            wp.launch(_scatter_bytes, dim=small.shape, inputs=[small, slots, count], outputs=[big])
         wp.launch(_advance_chunk, dim=1, inputs=[self._count, cap], outputs=[self._chunk, self._more])
 
-
-def _pair(big: wp.array, small: wp.array, n: int, capacity: int) -> tuple[wp.array, wp.array]:
-    return _rows(big, n)[0], _rows(small, capacity)[0]
