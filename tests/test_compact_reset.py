@@ -188,7 +188,8 @@ def test_row_tables_copy_every_pair_in_one_launch_and_byte_rows_apart():
                wp.from_torch(torch.randn(n, 2, 3, generator=rng), dtype=wp.vec3),
                wp.from_torch(torch.randint(0, 255, (n, 3), generator=rng, dtype=torch.uint8))]
         small = [wp.zeros((cap, *a.shape[1:]), dtype=a.dtype) for a in big]
-        table = _RowTable(list(zip(big, small)), n, cap)
+        pairs = {str(k): pair for k, pair in enumerate(zip(big, small))}
+        table = _RowTable(pairs, n, cap)
         assert (len(table.bytes), table.columns) == (1, 5 + 1 + 6)
         slots, count = wp.array([4, 0, 6], dtype=int), wp.array([2], dtype=int)  # the third slot unoccupied
         table.launch(_gather_rows, cap, slots, count)
@@ -207,8 +208,10 @@ def test_row_tables_copy_every_pair_in_one_launch_and_byte_rows_apart():
             want = old.copy()
             want[[4, 0]] += 1
             assert (b.numpy() == want).all()
-        with pytest.raises(ValueError, match="not of 32-bit words"):
-            _RowTable(list(zip(big, small)), n, cap, words_only=True)
+        with pytest.raises(ValueError, match="'3' rows of 3 bytes are not of 32-bit words"):
+            _RowTable(pairs, n, cap, words_only=True)
+        with pytest.raises(ValueError, match="'wide' holds 6 words .* and 5 in the small one"):
+            _RowTable({"wide": (wp.zeros((n, 6), dtype=float), small[0])}, n, cap)
 
 
 def test_capacity_rule_and_refusals(start_states, monkeypatch):

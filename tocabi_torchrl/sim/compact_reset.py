@@ -23,8 +23,9 @@ scatter                every per-world array the stages write, slot row -> big r
 Which arrays are read and written is found by running the stages once with warp's launches traced (their
 ``inputs``, ``outputs``, copies and fills, matched to the arrays whose memory they point into), so the lists follow
 the installed mujoco-warp. Each of gather, contacts and scatter is one launch over all its arrays' rows side by side
-(``_RowTable``: the arrays' addresses and widths in a table on the device), not one per array. When more worlds reset than ``capacity`` (the first steps of training, when untrained
-robots fall together), the small ``Data`` takes them ``capacity`` at a time, in a loop on the device
+(``_RowTable``: the arrays' addresses and widths in a table on the device), not one per array. When more worlds
+reset than ``capacity`` (the first steps of training, when untrained robots fall together), the small ``Data``
+takes them ``capacity`` at a time, in a loop on the device
 (``wp.capture_while``: no host read once recorded into a graph); none resetting, it runs no stage at all. A loop body
 may not allocate memory, and mujoco-warp's stages make scratch arrays as they run: the body keeps those of its first
 run and hands them out again (``_AllocationPool``), sized for the small ``Data``.
@@ -47,7 +48,6 @@ import dataclasses
 import operator
 import threading
 from collections.abc import Callable
-from typing import Any
 
 import mujoco
 import mujoco_warp as mjw
@@ -98,19 +98,31 @@ def _advance_chunk(count: wp.array(dtype=int), capacity: int, chunk: wp.array(dt
     more[0] = wp.where(chunk[0] * capacity < count[0], 1, 0)
 
 
+@wp.func
+def _copy_word(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint64), width: wp.array(dtype=int),
+               big_rows: int, small_rows: int, column_of: wp.array(dtype=wp.vec2i), j: int, big_row: int,
+               small_row: int, to_big: bool):
+    """Word ``j`` of all the table's rows side by side (``column_of[j]``: its array pair and column) between row
+    ``big_row`` of the pair's big array and row ``small_row`` of its small one, in the direction ``to_big`` says."""
+    k = column_of[j][0]
+    c = column_of[j][1]
+    big_array = wp.array(ptr=big[k], shape=(big_rows, width[k]), dtype=wp.int32)
+    small_array = wp.array(ptr=small[k], shape=(small_rows, width[k]), dtype=wp.int32)
+    if to_big:
+        big_array[big_row, c] = small_array[small_row, c]
+    else:
+        small_array[small_row, c] = big_array[big_row, c]
+
+
 @wp.kernel(enable_backward=False)
 def _gather_rows(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint64), width: wp.array(dtype=int),
                  big_rows: int, small_rows: int, column_of: wp.array(dtype=wp.vec2i), slot_world: wp.array(dtype=int),
                  count: wp.array(dtype=int)):
     """Row ``slot_world[s]`` of every big array into row ``s`` of its small one, for the occupied slots; one thread
-    per slot and 32-bit word of all the arrays' rows together (``column_of``: (array, column) of each word)."""
+    per slot and 32-bit word of all the arrays' rows together."""
     s, j = wp.tid()
     if s < count[0]:
-        k = column_of[j][0]
-        c = column_of[j][1]
-        src = wp.array(ptr=big[k], shape=(big_rows, width[k]), dtype=wp.int32)
-        dst = wp.array(ptr=small[k], shape=(small_rows, width[k]), dtype=wp.int32)
-        dst[s, c] = src[slot_world[s], c]
+        _copy_word(big, small, width, big_rows, small_rows, column_of, j, slot_world[s], s, False)
 
 
 @wp.kernel(enable_backward=False)
@@ -120,11 +132,7 @@ def _scatter_rows(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint6
     """Row ``s`` of every small array back into row ``slot_world[s]`` of its big one (as :func:`_gather_rows`)."""
     s, j = wp.tid()
     if s < count[0]:
-        k = column_of[j][0]
-        c = column_of[j][1]
-        src = wp.array(ptr=small[k], shape=(small_rows, width[k]), dtype=wp.int32)
-        dst = wp.array(ptr=big[k], shape=(big_rows, width[k]), dtype=wp.int32)
-        dst[slot_world[s], c] = src[s, c]
+        _copy_word(big, small, width, big_rows, small_rows, column_of, j, slot_world[s], s, True)
 
 
 @wp.kernel(enable_backward=False)
@@ -134,11 +142,7 @@ def _append_rows(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint64
     """Row ``i`` of every small contact field into row ``remap[i]`` of the big one, for the contacts given a row."""
     i, j = wp.tid()
     if i < nacon[0] and remap[i] >= 0:
-        k = column_of[j][0]
-        c = column_of[j][1]
-        src = wp.array(ptr=small[k], shape=(small_rows, width[k]), dtype=wp.int32)
-        dst = wp.array(ptr=big[k], shape=(big_rows, width[k]), dtype=wp.int32)
-        dst[remap[i], c] = src[i, c]
+        _copy_word(big, small, width, big_rows, small_rows, column_of, j, remap[i], i, True)
 
 
 @wp.kernel(enable_backward=False)
@@ -396,28 +400,32 @@ class _RowTable:
     are not whole words are kept apart in :attr:`bytes` ((big, small) 2-D byte views, one launch each).
 
     Args:
-        pairs: (big, small) arrays of one per-row layout: contiguous, ``big_rows`` and ``small_rows`` rows.
+        pairs: name -> (big, small) arrays of one per-row layout: contiguous, ``big_rows`` and ``small_rows`` rows.
         words_only: refuse a pair of byte rows (ValueError) instead of keeping it apart.
     """
 
-    def __init__(self, pairs: list[tuple[wp.array, wp.array]], big_rows: int, small_rows: int,
+    def __init__(self, pairs: dict[str, tuple[wp.array, wp.array]], big_rows: int, small_rows: int,
                  words_only: bool = False):
         words, self.bytes = [], []
-        for big, small in pairs:
+        for name, (big, small) in pairs.items():
             (b, in_words), (sm, _) = _rows(big, big_rows), _rows(small, small_rows)
+            if b.shape[1] != sm.shape[1]:  # one width is read for both: a mismatch would copy past a row
+                raise ValueError(f"CompactResetPass: {name!r} holds {b.shape[1]} words (or bytes) per row in the big "
+                                 f"Data and {sm.shape[1]} in the small one")
             if not in_words and words_only:
-                raise ValueError(f"CompactResetPass: rows of {b.shape[1]} bytes are not of 32-bit words")
+                raise ValueError(f"CompactResetPass: {name!r} rows of {b.shape[1]} bytes are not of 32-bit words")
             (words if in_words else self.bytes).append((b, sm))
         self._views = words  # they keep the arrays alive while the table holds their addresses
         widths = np.array([b.shape[1] for b, _ in words], dtype=np.int32)
         self.columns = int(widths.sum())  # 32-bit words per row, all pairs together
         self.big_rows, self.small_rows = big_rows, small_rows
-        self.big = wp.array([b.ptr for b, _ in words], dtype=wp.uint64)
-        self.small = wp.array([sm.ptr for _, sm in words], dtype=wp.uint64)
-        self.width = wp.array(widths, dtype=int)
+        device = next(iter(pairs.values()))[0].device if pairs else None
+        self.big = wp.array([b.ptr for b, _ in words], dtype=wp.uint64, device=device)
+        self.small = wp.array([sm.ptr for _, sm in words], dtype=wp.uint64, device=device)
+        self.width = wp.array(widths, dtype=int, device=device)
         pair = np.repeat(np.arange(len(words), dtype=np.int32), widths)
         column = np.arange(self.columns, dtype=np.int32) - np.repeat(np.cumsum(widths) - widths, widths)
-        self.column_of = wp.array(np.stack((pair, column), axis=-1), dtype=wp.vec2i)
+        self.column_of = wp.array(np.stack((pair, column), axis=-1), dtype=wp.vec2i, device=device)
 
     def launch(self, kernel, rows: int, *inputs) -> None:
         """``kernel`` (:func:`_gather_rows`, :func:`_scatter_rows` or :func:`_append_rows`) over ``rows`` rows of
@@ -466,13 +474,14 @@ class CompactResetPass:
         writes += [name for name in ("overflow", "efc.type", "efc.id", "efc.D") if name not in writes]
         #: names of the per-world arrays gathered before the stages and scattered after them
         self.reads, self.writes = tuple(reads), tuple(writes)
-        fields = [(getattr(model, k), v) for k, v in small_fields.items()]
-        self._gather = _RowTable(fields + [(big_arrays[k], small_arrays[k]) for k in reads], n, capacity)
-        self._scatter = _RowTable([(big_arrays[k], small_arrays[k]) for k in writes], n, capacity)
+        fields = {f"model.{k}": (getattr(model, k), v) for k, v in small_fields.items()}
+        self._gather = _RowTable(fields | {k: (big_arrays[k], small_arrays[k]) for k in reads}, n, capacity)
+        self._scatter = _RowTable({k: (big_arrays[k], small_arrays[k]) for k in writes}, n, capacity)
         big_c, rows_small = data.contact, self.small.naconmax
-        self._contacts = _RowTable([(getattr(big_c, name), value) for name, value in vars(self.small.contact).items()
+        self._contacts = _RowTable({f"contact.{name}": (getattr(big_c, name), value)
+                                    for name, value in vars(self.small.contact).items()
                                     if isinstance(value, wp.array) and value.shape[0] == rows_small and value.size > 0
-                                    and name != "worldid"], data.naconmax, rows_small, words_only=True)
+                                    and name != "worldid"}, data.naconmax, rows_small, words_only=True)
         self._pool = _AllocationPool("reset worlds")
         self._order = wp.zeros(n, dtype=int)  # the reset worlds, chunk after chunk
         self._count = wp.zeros(1, dtype=int)  # how many reset
