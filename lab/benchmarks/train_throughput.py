@@ -62,7 +62,8 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
     info = from_environment()
     device = str(init_distributed(info, torch.device(device)))  # this rank's GPU, before anything touches cuda:0
     record = {"num_envs": n, "gpus": info.world_size, "overrides": overrides, "same_priority": same_priority,
-              "compile_loss": compile_loss, "compact_reset": compact_reset, "update_sms": update_sms,
+              "compile_loss": compile_loss, "compact_reset": compact_reset,
+              "update_sms": update_sms if device.startswith("cuda") else None,  # no green context off CUDA
               "device_used_at_start_gib": common.device_used_gib(device),
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:
@@ -73,6 +74,8 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
         physics, overlaps, update_marks = None, [], []
         overlap_class, step_class, patches = common.trainer.UpdateOverlap, common.trainer.MinibatchStep, {}
         green = None
+        if update_sms and not cfg.ppo.overlap_update:  # the inline update would run on those SMs alone
+            raise ValueError("--update_sms confines the overlapped update: set ppo.overlap_update=true as well")
         if update_sms and device.startswith("cuda"):
             green = torch.cuda.green_contexts.GreenContext.create(num_sms=update_sms,
                                                                   device_id=torch.device(device).index or 0)
