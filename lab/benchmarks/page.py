@@ -747,7 +747,7 @@ def train_over_ceiling(docs: Path) -> list[str]:
 #: count, ``envs<N>.json``.
 TRAIN_OVER_CEILING_OVERLAP = "benchmarks/train_over_ceiling_overlap"
 #: Later runs of the same options, listed after those of their env count: the simulator's reset pass over the reset
-#: worlds alone (code at da9fc66).
+#: worlds alone (library code at 558ec91 and fc5b42b, the same).
 TRAIN_OVER_CEILING_NEWER = ("h100_558ec91/envs4096.json", "h100_fc5b42b/envs16384_sms0.json")
 
 
