@@ -936,9 +936,22 @@ def estimate_advantages(estimator: SyncFreeGAE, batch: TensorDictBase) -> None:
     batch.set(NORM_MASK_KEY, batch.get(VALID_KEY))
 
 
+#: The next step's outcome, which a PPO loss lists among its inputs for its value estimator alone.
+_ESTIMATOR_OUTCOME = ("reward", "done", "terminated", "truncated")
+
+
 def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBase) -> list:
+    """The keys of ``batch`` the update reads: the loss's inputs, the return estimates and the masks. With GAE's
+    advantage and value target in the batch, TorchRL's PPO loss never runs its value estimator, so what it lists for
+    that alone is left out: the next step's outcome and the next step's network inputs (``("next", "observation")``
+    is as wide as the observation, and every mini-batch step would gather it). Other ``"next"`` keys a loss reads
+    itself stay (the torque assist's ``("next", "leg_assist")``)."""
     present = set(batch.keys(True, True))
     wanted = {*loss_module.in_keys, "advantage", "value_target", "state_value", VALID_KEY, NORM_MASK_KEY}
+    if {"advantage", "value_target"} <= present:
+        inputs = {k for k in wanted if not (isinstance(k, tuple) and k[0] == "next")}
+        wanted = {k for k in wanted if not (isinstance(k, tuple) and len(k) == 2 and k[0] == "next"
+                                            and (k[1] in inputs or k[1] in _ESTIMATOR_OUTCOME))}
     return [k for k in wanted if k in present]
 
 
