@@ -68,9 +68,10 @@ def test_the_update_gathers_no_next_step_inputs_and_computes_the_same():
 
 def test_next_step_keys_a_loss_reads_itself_stay_and_nothing_is_left_out_before_gae():
     loss = SimpleNamespace(in_keys=["observation", "action", ("next", "observation"), ("next", "reward"),
-                                    ("next", "leg_assist")])
+                                    ("next", "truncated"), ("next", "leg_assist")])
     batch = TensorDict({"observation": torch.zeros(2, 3), "action": torch.zeros(2, 1),
                         "next": {"observation": torch.zeros(2, 3), "reward": torch.zeros(2, 1),
+                                 "truncated": torch.zeros(2, 1, dtype=torch.bool),
                                  "leg_assist": torch.zeros(2, 12)}}, batch_size=[2])
     assert set(_loss_keys(loss, batch)) == set(loss.in_keys)  # no advantage yet: the estimator may still run
     batch["advantage"], batch["value_target"] = torch.zeros(2, 1), torch.zeros(2, 1)

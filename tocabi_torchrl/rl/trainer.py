@@ -944,8 +944,10 @@ def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBas
     """The keys of ``batch`` the update reads: the loss's inputs, the return estimates and the masks. With GAE's
     advantage and value target in the batch, TorchRL's PPO loss never runs its value estimator, so what it lists for
     that alone is left out: the next step's outcome and the next step's network inputs (``("next", "observation")``
-    is as wide as the observation, and every mini-batch step would gather it). Other ``"next"`` keys a loss reads
-    itself stay (the torque assist's ``("next", "leg_assist")``)."""
+    is as wide as the observation, and every mini-batch step would gather it). The rule goes by name: a ``"next"``
+    key is left out when it is the next version of an input the batch keeps (``("next", "observation")``) or the
+    next step's outcome (reward, done, terminated, truncated); others stay (the torque assist's
+    ``("next", "leg_assist")``), so a loss term that reads the next observation itself needs its own key."""
     present = set(batch.keys(True, True))
     wanted = {*loss_module.in_keys, "advantage", "value_target", "state_value", VALID_KEY, NORM_MASK_KEY}
     if {"advantage", "value_target"} <= present:
