@@ -233,3 +233,37 @@ def test_a_launch_interrupted_before_its_thread_began_queues_nothing():
     begun = _Queuing(overlap, lambda: "update", ready=None)
     begun.run()
     assert not begun.cancel_unless_begun() and queued == ["update"] and begun.done == "done"
+
+
+@pytest.mark.parametrize("overlap", [False, True])
+def test_an_overlapped_update_measures_from_the_policy_it_starts_from(tmp_path, monkeypatch, overlap):
+    # The decoupled objective (rollout_guard.GuardedClipPPOLoss.use_proximal): each frame's log-probability under the
+    # learner as the update starts, its scheduled std already set, sits beside the behaviour policy's; without the
+    # overlap the two are one policy and the batch holds no such entry.
+    from tocabi_torchrl.rl import trainer
+    from tocabi_torchrl.rl.rollout_guard import PROXIMAL_KEY
+
+    agents, checks = [], []
+    build, losses = trainer.build_agent, trainer._update_losses
+
+    def building(*args, **kwargs):
+        agents.append(build(*args, **kwargs))
+        return agents[-1]
+
+    def recording(cfg, flat, step, info=None, order=None):
+        if PROXIMAL_KEY not in flat.keys():
+            checks.append(None)
+        else:
+            with torch.no_grad():
+                learner = agents[0].actor.get_dist(flat.clone()).log_prob(flat["action"])
+            checks.append((torch.allclose(flat[PROXIMAL_KEY], learner, atol=1e-5),
+                           torch.allclose(flat[PROXIMAL_KEY], flat["action_log_prob"], atol=1e-4)))
+        return losses(cfg, flat, step, info, order)
+
+    monkeypatch.setattr(trainer, "build_agent", building)
+    monkeypatch.setattr(trainer, "_update_losses", recording)
+    result = trainer.train(_cfg(tmp_path, "proximal", overlap))  # the std schedule moves between updates
+    assert result.iterations == 4
+    # Never the policy that acted: the first rollout's std was the schedule's before its update, each later rollout
+    # acted with the learner of one update before.
+    assert checks == ([(True, False)] * 4 if overlap else [None] * 4)

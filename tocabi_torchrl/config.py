@@ -275,10 +275,12 @@ class PPOConfig:
     """on a GPU, capture each mini-batch step as a CUDA graph"""
     #: Run each PPO update on a side CUDA stream while the next rollout is collected, instead of between rollouts.
     #: mujoco-warp's kernels at a few thousand worlds leave most of a GPU idle, and the update (~6-14 % of a training
-    #: step at 4,096 envs) can fill it. The price: each rollout is collected with the policy of one update before;
-    #: PPO's ratio, clip and KL are taken against that policy (the rollout stores its log-probabilities), so the KL
-    #: the adaptive learning rate reads also holds the previous update's move and the rate falls more often. One
-    #: rank only; on a CPU the order is the same, without the concurrency (rl/overlap.py).
+    #: step at 4,096 envs) can fill it. The price: each rollout is collected with the policy of one update before.
+    #: So the update is decoupled PPO (rl/rollout_guard.GuardedClipPPOLoss.use_proximal): its ratio, clip and KL are
+    #: taken against the policy it starts from, the surrogate weighted by that policy over the one that acted.
+    #: (Against the policy that acted, a pd-preset run's KL held the previous update's move too and its adaptive
+    #: rate sat at the floor: docs/training/pd/h100_overlap_seed0.) One rank only; on a CPU the order is the same,
+    #: without the concurrency (rl/overlap.py).
     overlap_update: bool = False
     """update on a side stream while the next rollout is collected (the rollout's policy lags one update)"""
     #: Data-parallel runs (torchrun, several ranks): how the ranks' gradients are averaged before clipping.

@@ -5,11 +5,12 @@ iterates every world in lockstep, one thread per world in many kernels), and the
 matrix-product kernels per mini-batch, can fill them. :class:`UpdateOverlap` runs iteration k's update on a stream of
 its own and lets the host go on to collect rollout k+1 on the training stream (:meth:`UpdateOverlap.collecting`: a
 stream of high priority), with a copy of the actor taken before
-update k: each rollout is collected with the policy of one update before. PPO takes its ratio against the policy that
-acted (the rollout stores its log-probabilities), so every mini-batch's ratio, clip and approximate KL are measured
-from one update back: the clip's trust region sits there, and the KL the adaptive learning rate reads also holds
-the previous update's move (roughly twice an update's own), so that rule lowers the rate more often than without
-the overlap. Whether that costs time to walk is for a from-scratch run to show.
+update k: each rollout is collected with the policy of one update before. Measured against that policy (the
+rollout's stored log-probabilities), every mini-batch's ratio, clip and approximate KL would also hold the previous
+update's move, and the adaptive learning rate would fall for it (a pd-preset run sat at its floor,
+docs/training/pd/h100_overlap_seed0). So the trainer makes the update decoupled PPO
+(``GuardedClipPPOLoss.use_proximal``): before each update it stores each frame's log-probability under the policy
+the update starts from, and the ratio, clip and KL are taken from that one.
 
 Order, per iteration (host): :meth:`finish` waits for the previous update and hands back its losses; the trainer
 then reads the learner (GAE's critic, the teacher, the symmetry's statistics), sets its schedules, :meth:`refresh`

@@ -24,11 +24,14 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.objectives import ClipPPOLoss
 
-__all__ = ["VALID_KEY", "MAX_SAMPLE_Z", "guard_rollout", "mean_over_valid", "ratio_statistics",
+__all__ = ["VALID_KEY", "PROXIMAL_KEY", "MAX_SAMPLE_Z", "guard_rollout", "mean_over_valid", "ratio_statistics",
            "GuardedClipPPOLoss"]
 
 #: Key of the (…, 1) bool mask of usable frames written by :func:`guard_rollout`.
 VALID_KEY = "frame_valid"
+#: Key of each frame's log-probability (B,) of its action under the policy an update starts from, which a decoupled
+#: update (:meth:`GuardedClipPPOLoss.use_proximal`) measures its ratio, clip and KL from.
+PROXIMAL_KEY = "proximal_log_prob"
 #: A stored action further than this many standard deviations from the stored mean is no sample of the stored
 #: Gaussian (probability far below 1e-500): it came from a fault, not from the policy's distribution.
 MAX_SAMPLE_Z = 50.0
@@ -62,13 +65,60 @@ class GuardedClipPPOLoss(ClipPPOLoss):
     small std read as a KL far above ``desired_kl``, and the adaptive learning rate fell for frames the update never
     used. The per-frame values come from ``_log_weight`` (TorchRL 0.14's log-ratio), recorded as the loss runs. The
     mask is the entry ``loss_mask_key`` names (the trainer's :data:`VALID_KEY`); TorchRL's default ``"auto"``, which
-    names no one entry, leaves both statistics plain means over every frame, as before."""
+    names no one entry, leaves both statistics plain means over every frame, as before.
+
+    With :meth:`use_proximal` it is the decoupled objective of Hilton et al. (2021, "Batch size-invariance for policy
+    optimization"), which TorchRL's loss computes from the log-ratios its ``_log_weight`` returns: the ratio
+    r = π_θ / π_prox, its clip and the KL estimate are taken against the proximal policy, the one the update starts
+    from (each frame's log-probability under it in the batch entry :data:`PROXIMAL_KEY`), and the surrogate is
+    weighted by π_prox / π_behav, the policy that update starts from over the one that acted (the stored
+    ``sample_log_prob``). Where the two are the same it is PPO's own objective. For an update that runs beside the
+    next rollout (``ppo.overlap_update``), whose rollouts act with the policy of one update before: against the
+    policy that acted, every mini-batch's KL held the previous update's move too, and the adaptive learning rate sat
+    at its floor (docs/training/pd/h100_overlap_seed0)."""
 
     _frame_ratios: tuple | None = None
+    #: The batch entry of the proximal log-probabilities, or None for PPO's objective (:meth:`use_proximal`).
+    proximal_key: str | None = None
+
+    def use_proximal(self, key: str | None = PROXIMAL_KEY) -> None:
+        """Measure the ratio, clip and KL from the log-probabilities in the batch entry ``key`` (B,) (the decoupled
+        objective, see the class), listed among :attr:`in_keys`; None: PPO's own, from the policy that acted."""
+        self.proximal_key = key
+        self._in_keys = None  # listed again, with it
+
+    def _set_in_keys(self):
+        super()._set_in_keys()
+        if self.proximal_key is not None and self.proximal_key not in self._in_keys:
+            self._in_keys.append(self.proximal_key)
 
     def _log_weight(self, tensordict, adv_shape):
-        self._frame_ratios = out = super()._log_weight(tensordict, adv_shape)
+        if self.proximal_key is None:
+            out = super()._log_weight(tensordict, adv_shape)
+        else:
+            out = self._decoupled_log_weight(tensordict, adv_shape)
+        self._frame_ratios = out
         return out
+
+    def _decoupled_log_weight(self, tensordict, adv_shape):
+        """``(log_weight, dist, kl_approx, log_is_weight)`` as TorchRL 0.14's ``_log_weight`` returns them for a
+        proximal policy (its ``delay_actor``), the proximal log-probabilities read from the batch instead of
+        recomputed from target parameters: log(π_θ / π_prox), the distribution, log(π_prox / π_θ) and the
+        gradient-free log(π_prox / π_behav), each (B, 1)."""
+        behaviour = tensordict.get(self.tensor_keys.sample_log_prob).reshape(adv_shape)
+        proximal = tensordict.get(self.proximal_key).reshape(adv_shape)
+        if behaviour.requires_grad or proximal.requires_grad:
+            raise RuntimeError(f"the batch's stored log-probabilities ({self.tensor_keys.sample_log_prob!r}, "
+                               f"{self.proximal_key!r}) must not require grad")
+        log_prob, dist, is_composite = self._get_cur_log_prob(tensordict)
+        if is_composite:
+            raise NotImplementedError("GuardedClipPPOLoss.use_proximal: a composite action distribution is not "
+                                      "supported; use one Gaussian over the action vector")
+        log_weight = (log_prob.reshape(adv_shape) - proximal).unsqueeze(-1)
+        log_is_weight = (proximal - behaviour).unsqueeze(-1)
+        if self.max_importance_ratio is not None:  # as TorchRL caps π_θ / π_behav
+            log_is_weight = torch.minimum(log_is_weight, self.max_importance_ratio.log() - log_weight.detach())
+        return log_weight, dist, -log_weight, log_is_weight
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         self._frame_ratios = None

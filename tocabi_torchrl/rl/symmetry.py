@@ -42,7 +42,7 @@ from .. import robot
 from ..config import SYMMETRY_MODES
 from ..transforms.layouts import REFERENCE_HISTORY, REFERENCE_OBS_LAYOUT, HistoryLayout, ObsComponent
 from ..transforms.privileged import PRIVILEGED_MIRROR
-from .rollout_guard import mean_over_valid, ratio_statistics
+from .rollout_guard import PROXIMAL_KEY, mean_over_valid, ratio_statistics
 
 __all__ = ["SYMMETRY_MODES", "ACTION_DIM", "obs_step_mirror_map", "action_mirror_map", "policy_input_mirror_map",
            "SignedPermutation", "PolicyInputMirror", "mirror_qpos", "mirror_qvel", "SymmetryAugmentLoss",
@@ -349,9 +349,11 @@ def mirror_qvel(qvel: torch.Tensor) -> torch.Tensor:
 
 # ------------------------------------------------------------------------------------------------ PPO augmentation
 #: Per-frame values a mirrored frame shares with its original: the return estimates, the old policy's probability of
-#: the original action (rsl_rl's augmentation keeps it too) and the masks.
-_KEPT = ("advantage", "value_target", "state_value", "action_log_prob", "sample_log_prob", "frame_valid",
-         "shifted_valid", ("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "truncated"))
+#: the original action (rsl_rl's augmentation keeps it too; so is the proximal policy's, for a decoupled update) and
+#: the masks.
+_KEPT = ("advantage", "value_target", "state_value", "action_log_prob", "sample_log_prob", PROXIMAL_KEY,
+         "frame_valid", "shifted_valid", ("next", "reward"), ("next", "done"), ("next", "terminated"),
+         ("next", "truncated"))
 
 
 class SymmetryAugmentLoss(nn.Module):

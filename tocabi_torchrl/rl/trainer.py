@@ -42,7 +42,7 @@ from .interrupt import StopFlag, stop_on_signals
 from .logging import RunLogger, print_line, require_loggers
 from .overlap import UpdateOverlap
 from .networks import ConcatInputs, make_mlp
-from .rollout_guard import VALID_KEY, GuardedClipPPOLoss, guard_rollout
+from .rollout_guard import PROXIMAL_KEY, VALID_KEY, GuardedClipPPOLoss, guard_rollout
 from .run_dir import RunFolder, open_run
 from .std_schedule import StdSchedule
 from ..transforms.normalize import RunningNormalization
@@ -483,6 +483,10 @@ def make_loss(cfg: RunConfig, agent: Agent, env: EnvBase | None = None,
     )
     loss_module.set_keys(sample_log_prob="action_log_prob")
     loss_module.loss_mask_key = VALID_KEY  # see rollout_guard: broken frames add nothing to the losses
+    if ppo.overlap_update:
+        # Its rollouts act with the policy of one update before: ratio, clip and KL from the policy each update
+        # starts from, the surrogate weighted by that policy over the one that acted (rollout_guard).
+        loss_module.use_proximal(PROXIMAL_KEY)
     if ppo.symmetry == "augment":
         if env is None:
             raise ValueError("ppo.symmetry='augment' mirrors the policy input by the env's layout and normaliser: "
@@ -749,6 +753,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             work = batch.clone(False)
             masked = (~guard_rollout(work)).float().mean()  # frames with NaN/inf or impossible actions: out of the loss
             estimate_advantages(advantage, work)
+            if ppo.overlap_update:  # its room; filled once the policy this update starts from is set (below)
+                work.set(PROXIMAL_KEY, work.get("action_log_prob").clone())
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
             flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
             if ppo.overlap_update:
@@ -790,6 +796,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 update_step.kl_rule.set_enabled(not fading)
                 update_step.kl_rule.start_update()
             if ppo.overlap_update:
+                _fill_proximal(loss_module, flat)
                 overlap.refresh()  # the next rollout acts with the learner as it is before this update
             # Drawn here, on this thread, whether or not the update is queued from a thread of its own: the
             # collector's draws (the exploration noise) then come in one order, run after run.
@@ -955,6 +962,22 @@ def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBas
         wanted = {k for k in wanted if not (isinstance(k, tuple) and len(k) == 2 and k[0] == "next"
                                             and (k[1] in inputs or k[1] in _ESTIMATOR_OUTCOME))}
     return [k for k in wanted if k in present]
+
+
+def _fill_proximal(loss_module: torch.nn.Module, flat: TensorDictBase) -> None:
+    """Write each frame's log-probability (n,) of its action under the learner as this update starts (its std
+    schedule set) into ``flat``'s :data:`PROXIMAL_KEY`, in place, without gradients, :data:`_VALUE_CHUNK_FRAMES`
+    frames at a time: the proximal policy of the decoupled update (``GuardedClipPPOLoss.use_proximal``), computed
+    as the loss computes its own log-probabilities."""
+    ppo = loss_module
+    while not isinstance(ppo, GuardedClipPPOLoss):  # inside the symmetry's and the assist's losses
+        ppo = ppo.ppo_loss
+    out = flat.get(PROXIMAL_KEY)
+    with torch.no_grad():
+        for start in range(0, flat.shape[0], _VALUE_CHUNK_FRAMES):
+            part = flat[start : start + _VALUE_CHUNK_FRAMES].clone(False)  # the actor's outputs go to the copy
+            log_prob, _, _ = ppo._get_cur_log_prob(part)
+            out[start : start + part.shape[0]].copy_(log_prob.reshape(-1))
 
 
 def _env_capturing(env) -> bool:

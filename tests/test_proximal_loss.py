@@ -1,0 +1,94 @@
+"""The decoupled PPO objective of ``GuardedClipPPOLoss.use_proximal`` (rl/rollout_guard.py), which an update that
+runs beside the next rollout (``ppo.overlap_update``) trains with: ratio, clip and KL from the proximal policy (the one
+the update starts from), the surrogate weighted by the proximal over the behaviour policy."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
+
+from tocabi_torchrl.rl.rollout_guard import PROXIMAL_KEY, GuardedClipPPOLoss
+
+B, OBS, ACT, CLIP = 64, 3, 2, 0.2
+
+
+def _loss(seed=0):
+    torch.manual_seed(seed)
+    module = TensorDictModule(nn.Sequential(nn.Linear(OBS, 2 * ACT), NormalParamExtractor()),
+                              in_keys=["observation"], out_keys=["loc", "scale"])
+    actor = ProbabilisticActor(module, in_keys=["loc", "scale"], distribution_class=IndependentNormal,
+                               return_log_prob=True, log_prob_key="action_log_prob")
+    critic = ValueOperator(nn.Linear(OBS, 1), in_keys=["observation"])
+    loss = GuardedClipPPOLoss(actor, critic, clip_epsilon=CLIP, normalize_advantage=False)
+    loss.set_keys(sample_log_prob="action_log_prob")
+    return loss, actor
+
+
+def _batch(actor, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(B, OBS, generator=g)
+    with torch.no_grad():
+        dist = actor.get_dist(TensorDict(observation=obs, batch_size=[B]))
+        action = dist.mean + dist.stddev * torch.randn(B, ACT, generator=g)
+        log_prob = dist.log_prob(action)
+    return TensorDict(observation=obs, action=action, advantage=torch.randn(B, 1, generator=g),
+                      value_target=torch.randn(B, 1, generator=g), batch_size=[B]), log_prob
+
+
+def _grads(loss, td):
+    out = loss(td.clone())
+    (out["loss_objective"] + out["loss_critic"]).backward()
+    grads = [p.grad.clone() for p in loss.parameters() if p.grad is not None]
+    loss.zero_grad()
+    return out, grads
+
+
+def test_a_proximal_policy_equal_to_the_behaviour_policy_is_ppo_itself():
+    plain, actor = _loss()
+    td, log_prob = _batch(actor)
+    td.set("action_log_prob", log_prob + 0.3 * torch.randn(B))  # the policy that acted: not the learner
+    decoupled, _ = _loss()
+    decoupled.use_proximal()
+    assert PROXIMAL_KEY in decoupled.in_keys and PROXIMAL_KEY not in plain.in_keys
+    out_a, grads_a = _grads(plain, td)
+    out_b, grads_b = _grads(decoupled, td.clone().set(PROXIMAL_KEY, td["action_log_prob"].clone()))
+    for key in ("loss_objective", "loss_critic", "kl_approx", "clip_fraction"):
+        torch.testing.assert_close(out_b[key], out_a[key], rtol=0, atol=1e-7)
+    for a, b in zip(grads_a, grads_b, strict=True):
+        torch.testing.assert_close(b, a, rtol=0, atol=1e-7)
+
+
+def test_ratio_clip_and_kl_come_from_the_proximal_policy_the_weight_from_the_behaviour_policy():
+    loss, actor = _loss()
+    loss.use_proximal()
+    td, learner = _batch(actor)
+    g = torch.Generator().manual_seed(7)
+    proximal = learner + 0.1 * torch.randn(B, generator=g)  # the update's start, a little off the learner
+    behaviour = proximal + 0.5 * torch.randn(B, generator=g)  # one update further back
+    out = loss(td.clone().set("action_log_prob", behaviour).set(PROXIMAL_KEY, proximal))
+    adv = td["advantage"].squeeze(-1)
+    log_r = learner - proximal
+    weight = (proximal - behaviour).exp()
+    # TorchRL clamps log r at log(1 ± ε): ±0.182 and ±0.223 for ε = 0.2
+    gain = torch.minimum(log_r.exp() * weight * adv,
+                         log_r.clamp(torch.log1p(torch.tensor(-CLIP)), torch.log1p(torch.tensor(CLIP))).exp()
+                         * weight * adv)
+    torch.testing.assert_close(out["loss_objective"], -gain.mean(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(out["kl_approx"], (proximal - learner).mean(), rtol=1e-5, atol=1e-6)
+    outside = (log_r < torch.log1p(torch.tensor(-CLIP))) | (log_r > torch.log1p(torch.tensor(CLIP)))
+    torch.testing.assert_close(out["clip_fraction"], outside.float().mean())
+    # Against the behaviour policy (PPO's own objective) the KL would read the older move too.
+    assert abs(float(out["kl_approx"])) < float((behaviour - learner).abs().mean())
+
+
+def test_stored_log_probabilities_that_require_grad_are_refused():
+    loss, actor = _loss()
+    loss.use_proximal()
+    td, learner = _batch(actor)
+    td.set("action_log_prob", learner.clone()).set(PROXIMAL_KEY, learner.clone().requires_grad_())
+    with pytest.raises(RuntimeError, match="must not require grad"):
+        loss(td)
