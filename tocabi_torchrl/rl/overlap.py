@@ -134,9 +134,10 @@ class UpdateOverlap:
         ``threaded``: queue it from a host thread of its own and return at once. Queuing a few thousand captured
         kernels per mini-batch can block the host in CUDA's launch queue until the GPU has run most of the update
         (at 16,384 envs on an H100: 241 ms, during which the next rollout was not queued and the GPU ran no
-        physics); from a thread, the host queues the next rollout meanwhile. Only for an ``update`` that replays
-        captured graphs (no capture, no autograd, no random draws: the thread would race the collector for them);
-        ignored without a side stream.
+        physics); from a thread, the host queues the next rollout meanwhile. Only for an ``update`` that captures
+        nothing, records no autograd graph and draws no random numbers (the thread would race the collector for
+        them): replays of captured graphs, and eager work under ``torch.no_grad`` on modules the collector does not
+        run (the trainer's proximal log-probabilities); ignored without a side stream.
         """
         if self._pending is not None:
             raise RuntimeError("UpdateOverlap.launch() with an update in flight: call finish() first")

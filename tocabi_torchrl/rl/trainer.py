@@ -753,7 +753,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             work = batch.clone(False)
             masked = (~guard_rollout(work)).float().mean()  # frames with NaN/inf or impossible actions: out of the loss
             estimate_advantages(advantage, work)
-            if ppo.overlap_update:  # its room; filled once the policy this update starts from is set (below)
+            if ppo.overlap_update:  # its room; filled as the update starts, by the policy it starts from
                 work.set(PROXIMAL_KEY, work.get("action_log_prob").clone())
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
             flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
@@ -796,7 +796,6 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
                 update_step.kl_rule.set_enabled(not fading)
                 update_step.kl_rule.start_update()
             if ppo.overlap_update:
-                _fill_proximal(loss_module, flat)
                 overlap.refresh()  # the next rollout acts with the learner as it is before this update
             # Drawn here, on this thread, whether or not the update is queued from a thread of its own: the
             # collector's draws (the exploration noise) then come in one order, run after run.
@@ -804,7 +803,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             # On its side stream the update reads `flat` and `order` while the next rollout is collected: kept until
             # it is done. On the training stream the stream's order protects them: nothing is kept.
             # Bound now (a lambda would look `flat` up when the thread runs it, after the `del` below).
-            overlap.launch(functools.partial(_update_stats, cfg, flat, update_step, agent.actor, info, order),
+            # With the overlap the update first stores the proximal log-probabilities, on its own stream too.
+            overlap.launch(functools.partial(_update_stats, cfg, flat, update_step, agent.actor, info, order,
+                                             loss_module if ppo.overlap_update else None),
                            keep=(flat, order) if ppo.overlap_update else None,
                            threaded=ppo.overlap_update and update_step.replays(rows=True) and not _env_capturing(env))
             del work, flat, order
@@ -968,7 +969,8 @@ def _fill_proximal(loss_module: torch.nn.Module, flat: TensorDictBase) -> None:
     """Write each frame's log-probability (n,) of its action under the learner as this update starts (its std
     schedule set) into ``flat``'s :data:`PROXIMAL_KEY`, in place, without gradients, :data:`_VALUE_CHUNK_FRAMES`
     frames at a time: the proximal policy of the decoupled update (``GuardedClipPPOLoss.use_proximal``), computed
-    as the loss computes its own log-probabilities."""
+    as the loss computes its own log-probabilities. No random draw, no autograd, no host read: it may be queued from
+    the update's own host thread (``UpdateOverlap.launch``)."""
     ppo = loss_module
     while not isinstance(ppo, GuardedClipPPOLoss):  # inside the symmetry's and the assist's losses
         ppo = ppo.ppo_loss
@@ -1004,11 +1006,16 @@ def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, dist_info
 
 
 def _update_stats(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, actor: ProbabilisticActor | None = None,
-                  dist_info: DistInfo | None = None, order: list[torch.Tensor] | None = None) -> torch.Tensor:
+                  dist_info: DistInfo | None = None, order: list[torch.Tensor] | None = None,
+                  proximal: torch.nn.Module | None = None) -> torch.Tensor:
     """The update (:func:`_update_losses`) and, given the ``actor``, what the trainer reads with its losses, as one
     float64 device tensor named by :func:`_stat_names`: the actor's mean std after it (the logged ``action_std``) and,
     with ``ppo.kl_adapt_every`` "minibatch", the learning rate the device-side rule left. One host read takes them
-    all; float64 keeps each value as a read of its own would give it."""
+    all; float64 keeps each value as a read of its own would give it. Given the loss module as ``proximal`` (a
+    decoupled update, ``ppo.overlap_update``), it first fills ``flat``'s proximal log-probabilities
+    (:func:`_fill_proximal`), wherever the update runs: beside the next rollout, on the update's stream."""
+    if proximal is not None:
+        _fill_proximal(proximal, flat)
     losses = _update_losses(cfg, flat, step, dist_info, order).to(torch.float64)
     if actor is None:
         return losses
