@@ -235,11 +235,13 @@ def test_a_launch_interrupted_before_its_thread_began_queues_nothing():
     assert not begun.cancel_unless_begun() and queued == ["update"] and begun.done == "done"
 
 
+@pytest.mark.parametrize("device", ["cpu", GPU])
 @pytest.mark.parametrize("overlap", [False, True])
-def test_an_overlapped_update_measures_from_the_policy_it_starts_from(tmp_path, monkeypatch, overlap):
+def test_an_overlapped_update_measures_from_the_policy_it_starts_from(tmp_path, monkeypatch, overlap, device):
     # The decoupled objective (rollout_guard.GuardedClipPPOLoss.use_proximal): each frame's log-probability under the
     # learner as the update starts, its scheduled std already set, sits beside the behaviour policy's; without the
-    # overlap the two are one policy and the batch holds no such entry.
+    # overlap the two are one policy and the batch holds no such entry. On a GPU the update (and the fill) run on
+    # the side stream, queued from a thread once captured: read here, in the update, after the fill.
     from tocabi_torchrl.rl import trainer
     from tocabi_torchrl.rl.rollout_guard import PROXIMAL_KEY
 
@@ -262,7 +264,7 @@ def test_an_overlapped_update_measures_from_the_policy_it_starts_from(tmp_path, 
 
     monkeypatch.setattr(trainer, "build_agent", building)
     monkeypatch.setattr(trainer, "_update_losses", recording)
-    result = trainer.train(_cfg(tmp_path, "proximal", overlap))  # the std schedule moves between updates
+    result = trainer.train(_cfg(tmp_path, "proximal", overlap, device))  # the std schedule moves between updates
     assert result.iterations == 4
     # Never the policy that acted: the first rollout's std was the schedule's before its update, each later rollout
     # acted with the learner of one update before.

@@ -92,3 +92,14 @@ def test_stored_log_probabilities_that_require_grad_are_refused():
     td.set("action_log_prob", learner.clone()).set(PROXIMAL_KEY, learner.clone().requires_grad_())
     with pytest.raises(RuntimeError, match="must not require grad"):
         loss(td)
+
+
+def test_a_loss_with_its_own_proximal_policy_refuses_a_stored_one():
+    torch.manual_seed(0)
+    loss, actor = _loss()
+    delayed = GuardedClipPPOLoss(actor, ValueOperator(nn.Linear(OBS, 1), in_keys=["observation"]), delay_actor=True)
+    with pytest.raises(ValueError, match="delay_actor=True"):
+        delayed.use_proximal()
+    loss.use_proximal()
+    loss.use_proximal(None)  # back to PPO's own: the entry is no input any more
+    assert PROXIMAL_KEY not in loss.in_keys

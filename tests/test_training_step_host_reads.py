@@ -22,10 +22,10 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from tocabi_torchrl.rl import preset_config
 from tocabi_torchrl.rl.actors import gaussian_head
-from tocabi_torchrl.rl.rollout_guard import guard_rollout
+from tocabi_torchrl.rl.rollout_guard import PROXIMAL_KEY, guard_rollout
 from tocabi_torchrl.rl.symmetry import SymmetryAugmentLoss
-from tocabi_torchrl.rl.trainer import (_loss_keys, _update_losses, build_agent, build_env, estimate_advantages,
-                                       make_collector, make_loss, make_optimizer, make_update_step)
+from tocabi_torchrl.rl.trainer import (_fill_proximal, _loss_keys, _update_losses, build_agent, build_env,
+                                       estimate_advantages, make_collector, make_loss, make_optimizer, make_update_step)
 from tocabi_torchrl.rl.update_step import MinibatchStep
 
 N, T = 4, 6
@@ -41,6 +41,9 @@ OPTIONS = {
                                           "transforms.normalization": "running"},
     # The adaptive rate set inside the captured step (rl/update_step.MinibatchKLRule).
     "kl_adapt_every_minibatch": {"ppo.kl_adapt_every": "minibatch"},
+    # The decoupled update (the proximal log-probabilities filled before it), inside the symmetry's and the assist's
+    # losses.
+    "overlap_update": {"ppo.overlap_update": True},
 }
 
 
@@ -52,6 +55,8 @@ def _update_inputs(agent, base, loss_module, advantage, batch):
     work = batch.clone(False)
     guard_rollout(work)
     estimate_advantages(advantage, work)
+    if PROXIMAL_KEY in loss_module.in_keys:  # the decoupled update's room, filled by _fill_proximal
+        work.set(PROXIMAL_KEY, work.get("action_log_prob").clone())
     return work.select(*_loss_keys(loss_module, work)).reshape(-1)
 
 
@@ -88,6 +93,9 @@ def test_the_robust_training_step_reads_nothing_on_the_host(option):
     finally:
         collector.shutdown()
     flat = _update_inputs(agent, base, loss_module, advantage, batch)
+    if cfg.ppo.overlap_update:
+        with probe:
+            _fill_proximal(loss_module, flat)
     _update_losses(cfg, flat, step)  # three eager warm-up steps, the capture and a replay
     assert step.captured and "loss_absorb" in step.stat_keys
     augmented = any(isinstance(m, SymmetryAugmentLoss) for m in loss_module.modules())
@@ -192,6 +200,14 @@ def test_the_robust_training_step_never_syncs_on_cuda(option):
             torch.cuda.set_sync_debug_mode(0)
     assert bool(torch.stack(steps).any())
     flat = _update_inputs(agent, base, loss_module, advantage, batch)
+    if cfg.ppo.overlap_update:
+        _fill_proximal(loss_module, flat)  # its first call allocates; the checked one below must not sync
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("error")
+        try:
+            _fill_proximal(loss_module, flat)
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
     _update_losses(cfg, flat, step)  # eager warm-up steps, the capture and replays
     assert step.captured
     mbs = [flat[k * 96:(k + 1) * 96] for k in range(2)]

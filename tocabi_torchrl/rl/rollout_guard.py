@@ -84,6 +84,9 @@ class GuardedClipPPOLoss(ClipPPOLoss):
     def use_proximal(self, key: str | None = PROXIMAL_KEY) -> None:
         """Measure the ratio, clip and KL from the log-probabilities in the batch entry ``key`` (B,) (the decoupled
         objective, see the class), listed among :attr:`in_keys`; None: PPO's own, from the policy that acted."""
+        if key is not None and self.delay_actor:
+            raise ValueError("GuardedClipPPOLoss.use_proximal: this loss already has a proximal policy of its own "
+                             "(delay_actor=True, target parameters); use one or the other")
         self.proximal_key = key
         self._in_keys = None  # listed again, with it
 

@@ -753,8 +753,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             work = batch.clone(False)
             masked = (~guard_rollout(work)).float().mean()  # frames with NaN/inf or impossible actions: out of the loss
             estimate_advantages(advantage, work)
-            if ppo.overlap_update:  # its room; filled as the update starts, by the policy it starts from
-                work.set(PROXIMAL_KEY, work.get("action_log_prob").clone())
+            if ppo.overlap_update:  # its room (keep copies it apart); filled as the update starts (_fill_proximal)
+                work.set(PROXIMAL_KEY, work.get("action_log_prob"))
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
             flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
             if ppo.overlap_update:
@@ -805,7 +805,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             # Bound now (a lambda would look `flat` up when the thread runs it, after the `del` below).
             # With the overlap the update first stores the proximal log-probabilities, on its own stream too.
             overlap.launch(functools.partial(_update_stats, cfg, flat, update_step, agent.actor, info, order,
-                                             loss_module if ppo.overlap_update else None),
+                                             proximal_loss=loss_module if ppo.overlap_update else None),
                            keep=(flat, order) if ppo.overlap_update else None,
                            threaded=ppo.overlap_update and update_step.replays(rows=True) and not _env_capturing(env))
             del work, flat, order
@@ -970,10 +970,13 @@ def _fill_proximal(loss_module: torch.nn.Module, flat: TensorDictBase) -> None:
     schedule set) into ``flat``'s :data:`PROXIMAL_KEY`, in place, without gradients, :data:`_VALUE_CHUNK_FRAMES`
     frames at a time: the proximal policy of the decoupled update (``GuardedClipPPOLoss.use_proximal``), computed
     as the loss computes its own log-probabilities. No random draw, no autograd, no host read: it may be queued from
-    the update's own host thread (``UpdateOverlap.launch``)."""
-    ppo = loss_module
-    while not isinstance(ppo, GuardedClipPPOLoss):  # inside the symmetry's and the assist's losses
-        ppo = ppo.ppo_loss
+    the update's own host thread (``UpdateOverlap.launch``). The functional loss swaps the learner actor's parameters
+    in and out of the module as it runs (TorchRL's ``to_module``), which is safe there because nothing else runs the
+    learner actor while an update is in flight: the collector acts with the overlap's copy."""
+    ppo = next((m for m in loss_module.modules() if isinstance(m, GuardedClipPPOLoss)), None)
+    if ppo is None or ppo.proximal_key != PROXIMAL_KEY:
+        raise ValueError("_fill_proximal needs a loss whose GuardedClipPPOLoss reads the proximal log-probabilities "
+                         "(use_proximal, set by make_loss for ppo.overlap_update)")
     out = flat.get(PROXIMAL_KEY)
     with torch.no_grad():
         for start in range(0, flat.shape[0], _VALUE_CHUNK_FRAMES):
@@ -1007,15 +1010,15 @@ def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, dist_info
 
 def _update_stats(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, actor: ProbabilisticActor | None = None,
                   dist_info: DistInfo | None = None, order: list[torch.Tensor] | None = None,
-                  proximal: torch.nn.Module | None = None) -> torch.Tensor:
+                  proximal_loss: torch.nn.Module | None = None) -> torch.Tensor:
     """The update (:func:`_update_losses`) and, given the ``actor``, what the trainer reads with its losses, as one
     float64 device tensor named by :func:`_stat_names`: the actor's mean std after it (the logged ``action_std``) and,
     with ``ppo.kl_adapt_every`` "minibatch", the learning rate the device-side rule left. One host read takes them
-    all; float64 keeps each value as a read of its own would give it. Given the loss module as ``proximal`` (a
-    decoupled update, ``ppo.overlap_update``), it first fills ``flat``'s proximal log-probabilities
+    all; float64 keeps each value as a read of its own would give it. Given the loss module as ``proximal_loss``
+    (a decoupled update, ``ppo.overlap_update``), it first fills ``flat``'s proximal log-probabilities
     (:func:`_fill_proximal`), wherever the update runs: beside the next rollout, on the update's stream."""
-    if proximal is not None:
-        _fill_proximal(proximal, flat)
+    if proximal_loss is not None:
+        _fill_proximal(proximal_loss, flat)
     losses = _update_losses(cfg, flat, step, dist_info, order).to(torch.float64)
     if actor is None:
         return losses
