@@ -148,9 +148,9 @@ class PPOConfig:
     """KL target of the adaptive schedule"""
     #: "iteration" applies the rule once per update, from its mean KL: a run of too-large mini-batch steps goes on at
     #: the same rate to the update's end. "minibatch" applies it before every mini-batch step, from that mini-batch's
-    #: KL to the rollout's policy (rsl_rl's schedule, on the loss's KL estimate), so the rate falls within the update
-    #: that overshoots; it runs on the device inside the (captured) step, and one rank's KL would set one rank's
-    #: rate, so it trains on one GPU only.
+    #: KL to the rollout's policy (rsl_rl's schedule, on the loss's KL estimate; with overlap_update, to the policy the
+    #: update starts from), so the rate falls within the update that overshoots; it runs on the device inside the
+    #: (captured) step, and one rank's KL would set one rank's rate, so it trains on one GPU only.
     #: (The torque preset at 16,384 envs broke in one update of KL 4.3e4, docs/training/torque/h100_16k_run1.)
     kl_adapt_every: str = "iteration"
     """when the adaptive rule sets the learning rate: once per iteration from the update's mean KL, or before every

@@ -95,7 +95,8 @@ def adapt_lr(lr: float, kl: float, desired_kl: float, floor: float | None = None
 
 class MinibatchKLRule:
     """The adaptive rule of :func:`adapt_lr` applied on the device before every mini-batch step
-    (``ppo.kl_adapt_every="minibatch"``, rsl_rl's schedule): the step's KL to the rollout's policy, the loss's
+    (``ppo.kl_adapt_every="minibatch"``, rsl_rl's schedule): the step's KL to the rollout's policy (with
+    ``ppo.overlap_update``, to the policy the update starts from: the decoupled loss's), the loss's
     estimate ``kl_approx`` before the step (rsl_rl computes the Gaussians' KL), divides the rate by 1.5 above twice
     ``desired_kl`` and multiplies it by 1.5 below half of it, within [``floor``, 1e-2], in the tensor learning rate
     of every scheduled parameter group. Tensor operations only (no host read), so a captured step replays it.
