@@ -16,8 +16,7 @@ from warp_cpu import warp_cpu_available
 from tocabi_torchrl import robot
 from tocabi_torchrl.sim import SimConfig, WarpSim
 from tocabi_torchrl.sim import warp_backend
-from tocabi_torchrl.sim.compact_reset import (CompactResetPass, _gather_bytes, _gather_rows, _RowTable, _scatter_bytes,
-                                              _scatter_rows, traced_stages)
+from tocabi_torchrl.sim.compact_reset import CompactResetPass, _RowTable, traced_stages
 from tocabi_torchrl.sim.config import compact_reset_capacity
 
 pytestmark = pytest.mark.skipif(not warp_cpu_available(), reason="warp's CPU device is unavailable")
@@ -192,18 +191,14 @@ def test_row_tables_copy_every_pair_in_one_launch_and_byte_rows_apart():
         table = _RowTable(pairs, n, cap)
         assert (len(table.bytes), table.columns) == (1, 5 + 1 + 6)
         slots, count = wp.array([4, 0, 6], dtype=int), wp.array([2], dtype=int)  # the third slot unoccupied
-        table.launch(_gather_rows, cap, slots, count)
-        for b, sm in table.bytes:
-            wp.launch(_gather_bytes, dim=sm.shape, inputs=[b, slots, count], outputs=[sm])
+        table.copy_slots(slots, count, to_big=False)
         for b, sm in zip(big, small):
             got, want = sm.numpy(), b.numpy()
             assert (got[:2] == want[[4, 0]]).all() and not got[2].any()
         for sm in small:  # the stages' results, scattered back to worlds 4 and 0 only
             sm.assign(sm.numpy() + 1)
         before = [b.numpy().copy() for b in big]
-        table.launch(_scatter_rows, cap, slots, count)
-        for b, sm in table.bytes:
-            wp.launch(_scatter_bytes, dim=sm.shape, inputs=[sm, slots, count], outputs=[b])
+        table.copy_slots(slots, count, to_big=True)
         for b, old in zip(big, before):
             want = old.copy()
             want[[4, 0]] += 1

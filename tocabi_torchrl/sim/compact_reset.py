@@ -54,13 +54,15 @@ import mujoco_warp as mjw
 import numpy as np
 import warp as wp
 
+from .kernels import NARROWPHASE, contact_buffer_bits
+
 __all__ = ["CompactResetPass", "traced_stages"]
 
-#: Constraint row types whose ``efc.id`` is a contact's index in the contact buffer (MuJoCo's numbering, which
-#: mujoco-warp's rows share).
 #: Held while warp's module functions are replaced (``_tracing``, ``_AllocationPool.active``): the replacement is
 #: process-wide, so two simulators building or resetting eagerly in two threads would otherwise restore each other's.
 _PATCH_LOCK = threading.RLock()
+#: Constraint row types whose ``efc.id`` is a contact's index in the contact buffer (MuJoCo's numbering, which
+#: mujoco-warp's rows share).
 _CONTACT_ROWS = tuple(int(getattr(mujoco.mjtConstraint, f"mjCNSTR_CONTACT_{k}")) for k in
                       ("FRICTIONLESS", "PYRAMIDAL", "ELLIPTIC"))
 #: ``Data``'s counters of the contact buffer, one for all worlds (of shape (1,), like a per-world array of one world).
@@ -115,24 +117,15 @@ def _copy_word(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint64),
 
 
 @wp.kernel(enable_backward=False)
-def _gather_rows(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint64), width: wp.array(dtype=int),
-                 big_rows: int, small_rows: int, column_of: wp.array(dtype=wp.vec2i), slot_world: wp.array(dtype=int),
-                 count: wp.array(dtype=int)):
-    """Row ``slot_world[s]`` of every big array into row ``s`` of its small one, for the occupied slots; one thread
-    per slot and 32-bit word of all the arrays' rows together."""
+def _slot_rows(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint64), width: wp.array(dtype=int),
+               big_rows: int, small_rows: int, column_of: wp.array(dtype=wp.vec2i), slot_world: wp.array(dtype=int),
+               count: wp.array(dtype=int), to_big: bool):
+    """Between row ``slot_world[s]`` of every big array and row ``s`` of its small one, for the occupied slots: into
+    the slots (gather) or, ``to_big``, back to the worlds (scatter); one thread per slot and 32-bit word of all the
+    arrays' rows together."""
     s, j = wp.tid()
     if s < count[0]:
-        _copy_word(big, small, width, big_rows, small_rows, column_of, j, slot_world[s], s, False)
-
-
-@wp.kernel(enable_backward=False)
-def _scatter_rows(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint64), width: wp.array(dtype=int),
-                  big_rows: int, small_rows: int, column_of: wp.array(dtype=wp.vec2i),
-                  slot_world: wp.array(dtype=int), count: wp.array(dtype=int)):
-    """Row ``s`` of every small array back into row ``slot_world[s]`` of its big one (as :func:`_gather_rows`)."""
-    s, j = wp.tid()
-    if s < count[0]:
-        _copy_word(big, small, width, big_rows, small_rows, column_of, j, slot_world[s], s, True)
+        _copy_word(big, small, width, big_rows, small_rows, column_of, j, slot_world[s], s, to_big)
 
 
 @wp.kernel(enable_backward=False)
@@ -146,19 +139,15 @@ def _append_rows(big: wp.array(dtype=wp.uint64), small: wp.array(dtype=wp.uint64
 
 
 @wp.kernel(enable_backward=False)
-def _gather_bytes(src: wp.array2d(dtype=wp.uint8), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
-                  dst: wp.array2d(dtype=wp.uint8)):
+def _slot_bytes(big: wp.array2d(dtype=wp.uint8), small: wp.array2d(dtype=wp.uint8), slot_world: wp.array(dtype=int),
+                count: wp.array(dtype=int), to_big: bool):
+    """:func:`_slot_rows` for one pair of byte rows."""
     s, j = wp.tid()
     if s < count[0]:
-        dst[s, j] = src[slot_world[s], j]
-
-
-@wp.kernel(enable_backward=False)
-def _scatter_bytes(src: wp.array2d(dtype=wp.uint8), slot_world: wp.array(dtype=int), count: wp.array(dtype=int),
-                   dst: wp.array2d(dtype=wp.uint8)):
-    s, j = wp.tid()
-    if s < count[0]:
-        dst[slot_world[s], j] = src[s, j]
+        if to_big:
+            big[slot_world[s], j] = small[s, j]
+        else:
+            small[s, j] = big[slot_world[s], j]
 
 
 @wp.kernel(enable_backward=False)
@@ -174,7 +163,7 @@ def _free_rows(nacon: wp.array(dtype=int), dim: wp.array(dtype=int), nfree: wp.a
 @wp.kernel(enable_backward=False)
 def _number_contacts(worldid: wp.array(dtype=int), nacon: wp.array(dtype=int), count: wp.array(dtype=int),
                      slot_world: wp.array(dtype=int), free: wp.array(dtype=int), nfree: wp.array(dtype=int),
-                     flag: int, taken: wp.array(dtype=int), total: wp.array(dtype=int), remap: wp.array(dtype=int),
+                     taken: wp.array(dtype=int), total: wp.array(dtype=int), remap: wp.array(dtype=int),
                      big_worldid: wp.array(dtype=int), overflow: wp.array(dtype=int)):
     """Give each contact of an occupied slot its row in the big buffer (``remap``, -1 for the others): an emptied
     row while any is left, else the next row past the count ``total``."""
@@ -196,7 +185,7 @@ def _number_contacts(worldid: wp.array(dtype=int), nacon: wp.array(dtype=int), c
         remap[i] = row
         big_worldid[row] = w
     else:  # the big buffer is full: the contact is dropped, and its slot says so (scattered to its world after)
-        wp.atomic_or(overflow, s, flag)
+        wp.atomic_or(overflow, s, NARROWPHASE)
 
 
 @wp.kernel(enable_backward=False)
@@ -221,16 +210,12 @@ def _remap_contact_ids(count: wp.array(dtype=int), nefc: wp.array(dtype=int), re
 
 @wp.kernel(enable_backward=False)
 def _flag_small_overflow(nacon: wp.array(dtype=int), ncollision: wp.array(dtype=int), naconmax: int,
-                         count: wp.array(dtype=int), broadphase: int, narrowphase: int,
-                         overflow: wp.array(dtype=int)):
+                         count: wp.array(dtype=int), overflow: wp.array(dtype=int)):
     """The small ``Data``'s contact buffers are shared by its slots: where a chunk overflowed them, contacts of its
     worlds are missing, and each occupied slot says so (as mujoco-warp's step flags every world)."""
     s = wp.tid()
     if s < count[0]:
-        if ncollision[0] > naconmax:
-            overflow[s] = overflow[s] | broadphase
-        if nacon[0] > naconmax:
-            overflow[s] = overflow[s] | narrowphase
+        overflow[s] = overflow[s] | contact_buffer_bits(nacon[0], ncollision[0], naconmax)
 
 
 def _rows(array: wp.array, rows: int) -> tuple[wp.array, bool]:
@@ -283,9 +268,9 @@ def _tracing(reads: list, writes: list):
 
 
 class _AllocationPool:
-    """The arrays a branch of the pass allocates (mujoco-warp's stages make scratch arrays with ``wp.empty`` and
-    ``wp.zeros`` as they run), made on the branch's first run and handed out again, in the same order, on every
-    later run, zeroed where ``wp.zeros`` asked: a loop body on the device (a conditional node) may not allocate
+    """The arrays the pass's loop body allocates (mujoco-warp's stages make scratch arrays with ``wp.empty`` and
+    ``wp.zeros`` as they run), made on its first run and handed out again, in the same order, on every later run,
+    zeroed where ``wp.zeros`` asked: a loop body on the device (a conditional node) may not allocate
     memory (CUDA refuses a body graph with allocation nodes). While :meth:`active` runs, warp's allocation functions
     are replaced for the whole process: other threads' calls pass through to warp's own, and ``_PATCH_LOCK`` keeps
     two replacements from overlapping."""
@@ -428,11 +413,18 @@ class _RowTable:
         self.column_of = wp.array(np.stack((pair, column), axis=-1), dtype=wp.vec2i, device=device)
 
     def launch(self, kernel, rows: int, *inputs) -> None:
-        """``kernel`` (:func:`_gather_rows`, :func:`_scatter_rows` or :func:`_append_rows`) over ``rows`` rows of
-        every pair's words, with its trailing ``inputs``."""
+        """``kernel`` (:func:`_slot_rows` or :func:`_append_rows`) over ``rows`` rows of every pair's words, with its
+        trailing ``inputs``."""
         if self.columns:
             wp.launch(kernel, dim=(rows, self.columns), inputs=[self.big, self.small, self.width, self.big_rows,
                                                                 self.small_rows, self.column_of, *inputs])
+
+    def copy_slots(self, slot_world: wp.array, count: wp.array, to_big: bool) -> None:
+        """Every pair's rows between world ``slot_world[s]`` and slot ``s``, for the ``count[0]`` occupied slots:
+        into the slots, or back to the worlds with ``to_big``; the words in one launch, each byte pair in one."""
+        self.launch(_slot_rows, self.small_rows, slot_world, count, to_big)
+        for big, small in self.bytes:
+            wp.launch(_slot_bytes, dim=small.shape, inputs=[big, small, slot_world, count, to_big])
 
 
 class CompactResetPass:
@@ -519,24 +511,18 @@ class CompactResetPass:
         d, s, cap = self.data, self.small, self.capacity
         slots, count = self._slot_world, self._in_chunk
         wp.launch(_next_chunk, dim=cap, inputs=[self._order, self._count, self._chunk, cap], outputs=[slots, count])
-        self._gather.launch(_gather_rows, cap, slots, count)
-        for big, small in self._gather.bytes:
-            wp.launch(_gather_bytes, dim=small.shape, inputs=[big, slots, count], outputs=[small])
+        self._gather.copy_slots(slots, count, to_big=False)
         with self._pool.active():
             _stages(self.small_model, s)
         wp.launch(_number_contacts, dim=s.naconmax,
-                  inputs=[s.contact.worldid, s.nacon, count, slots, self._free, self._nfree,
-                          int(mjw.OverflowType.NARROWPHASE)],
+                  inputs=[s.contact.worldid, s.nacon, count, slots, self._free, self._nfree],
                   outputs=[self._taken, self._total, self._remap, d.contact.worldid, s.overflow])
         self._contacts.launch(_append_rows, s.naconmax, s.nacon, self._remap)
-        wp.launch(_flag_small_overflow, dim=cap,
-                  inputs=[s.nacon, s.ncollision, s.naconmax, count, int(mjw.OverflowType.BROADPHASE),
-                          int(mjw.OverflowType.NARROWPHASE)], outputs=[s.overflow])
+        wp.launch(_flag_small_overflow, dim=cap, inputs=[s.nacon, s.ncollision, s.naconmax, count],
+                  outputs=[s.overflow])
         wp.launch(_remap_contact_ids, dim=(cap, s.efc.id.shape[1]),
                   inputs=[count, s.nefc, self._remap, wp.vec3i(*_CONTACT_ROWS), _INERT_ROW],
                   outputs=[s.efc.type, s.efc.id, s.efc.D])
-        self._scatter.launch(_scatter_rows, cap, slots, count)
-        for big, small in self._scatter.bytes:
-            wp.launch(_scatter_bytes, dim=small.shape, inputs=[small, slots, count], outputs=[big])
+        self._scatter.copy_slots(slots, count, to_big=True)
         wp.launch(_advance_chunk, dim=1, inputs=[self._count, cap], outputs=[self._chunk, self._more])
 

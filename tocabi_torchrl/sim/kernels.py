@@ -10,11 +10,26 @@ import warp as wp
 
 from mujoco_warp import OverflowType
 
-__all__ = ["derive_signals", "write_reset_state", "copy_rows_where", "copy_start_rows", "or_start_overflow"]
+__all__ = ["derive_signals", "write_reset_state", "copy_rows_where", "copy_start_rows", "or_start_overflow",
+           "contact_buffer_bits", "NARROWPHASE"]
 
 _NEFC = int(OverflowType.NEFC)
 _BROADPHASE = int(OverflowType.BROADPHASE)
-_NARROWPHASE = int(OverflowType.NARROWPHASE)
+#: mujoco-warp's flag of a contact that did not fit the contact buffer.
+NARROWPHASE = int(OverflowType.NARROWPHASE)
+
+
+@wp.func
+def contact_buffer_bits(nacon: int, ncollision: int, naconmax: int) -> int:
+    """The overflow bits of a contact buffer of ``naconmax`` rows shared by the worlds: BROADPHASE where more
+    collision candidates than that were found, NARROWPHASE where more contacts (mujoco-warp leaves its counts past
+    the buffer then)."""
+    bits = int(0)
+    if ncollision > naconmax:
+        bits = bits | _BROADPHASE
+    if nacon > naconmax:
+        bits = bits | NARROWPHASE
+    return bits
 
 
 @wp.kernel(enable_backward=False)
@@ -53,11 +68,7 @@ def derive_signals(
     bits = int(overflow[w])
     if nefc[w] > njmax:
         bits = bits | _NEFC
-    if ncollision[0] > naconmax:
-        bits = bits | _BROADPHASE
-    if nacon[0] > naconmax:
-        bits = bits | _NARROWPHASE
-    overflow_out[w] = bits
+    overflow_out[w] = bits | contact_buffer_bits(nacon[0], ncollision[0], naconmax)
 
     # A NaN or inf anywhere in the state, its acceleration or a sensor makes the sum non-finite (C MuJoCo resets such a
     # world itself and warns; mujoco-warp keeps integrating it, so this flag is what stops it).
