@@ -22,9 +22,9 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from tocabi_torchrl.rl import preset_config
 from tocabi_torchrl.rl.actors import gaussian_head
-from tocabi_torchrl.rl.rollout_guard import PROXIMAL_KEY, guard_rollout
+from tocabi_torchrl.rl.rollout_guard import guard_rollout
 from tocabi_torchrl.rl.symmetry import SymmetryAugmentLoss
-from tocabi_torchrl.rl.trainer import (_fill_proximal, _loss_keys, _update_losses, build_agent, build_env,
+from tocabi_torchrl.rl.trainer import (_fill_proximal, _update_losses, _update_rows, build_agent, build_env,
                                        estimate_advantages, make_collector, make_loss, make_optimizer, make_update_step)
 from tocabi_torchrl.rl.update_step import MinibatchStep
 
@@ -55,9 +55,7 @@ def _update_inputs(agent, base, loss_module, advantage, batch):
     work = batch.clone(False)
     guard_rollout(work)
     estimate_advantages(advantage, work)
-    if PROXIMAL_KEY in loss_module.in_keys:  # the decoupled update's room, filled by _fill_proximal
-        work.set(PROXIMAL_KEY, work.get("action_log_prob").clone())
-    return work.select(*_loss_keys(loss_module, work)).reshape(-1)
+    return _update_rows(loss_module, work)
 
 
 @pytest.mark.parametrize("option", list(OPTIONS))

@@ -753,10 +753,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             work = batch.clone(False)
             masked = (~guard_rollout(work)).float().mean()  # frames with NaN/inf or impossible actions: out of the loss
             estimate_advantages(advantage, work)
-            if ppo.overlap_update:  # its room (keep copies it apart); filled as the update starts (_fill_proximal)
-                work.set(PROXIMAL_KEY, work.get("action_log_prob"))
             # Only what the loss reads: the rollout also holds every env signal, which each mini-batch would gather.
-            flat = work.select(*_loss_keys(loss_module, work)).reshape(-1)
+            flat = _update_rows(loss_module, work)
             if ppo.overlap_update:
                 # The update reads it on the side stream while the collector refills `batch`: its own memory, the
                 # step's, from which a captured step gathers each mini-batch inside its graph (MinibatchStep.keep).
@@ -901,7 +899,8 @@ def _stop_requests(time_up: bool, stop_signal: str | None, info: DistInfo,
     return time_up, (signal.Signals(signum).name if signum else None)
 
 
-#: Frames per critic call in GAE (bounds its activation memory).
+#: Frames per network call over a whole rollout (bounds its activation memory): the critic in GAE, the actor in
+#: _fill_proximal.
 _VALUE_CHUNK_FRAMES = 65536
 
 
@@ -965,6 +964,15 @@ def _loss_keys(loss_module: ClipPPOLoss | AssistAbsorbLoss, batch: TensorDictBas
     return [k for k in wanted if k in present]
 
 
+def _update_rows(loss_module: torch.nn.Module, work: TensorDictBase) -> TensorDictBase:
+    """The rollout ``work`` (num_envs, T), its advantages estimated, as the update reads it: the loss's keys
+    (:func:`_loss_keys`) as (num_envs * T,) rows, and for a decoupled loss (``use_proximal``) its
+    :data:`PROXIMAL_KEY` entry, the behaviour log-probabilities until :func:`_fill_proximal` overwrites them."""
+    if PROXIMAL_KEY in loss_module.in_keys:
+        work.set(PROXIMAL_KEY, work.get("action_log_prob").clone())
+    return work.select(*_loss_keys(loss_module, work)).reshape(-1)
+
+
 def _fill_proximal(loss_module: torch.nn.Module, flat: TensorDictBase) -> None:
     """Write each frame's log-probability (n,) of its action under the learner as this update starts (its std
     schedule set) into ``flat``'s :data:`PROXIMAL_KEY`, in place, without gradients, :data:`_VALUE_CHUNK_FRAMES`
@@ -980,7 +988,7 @@ def _fill_proximal(loss_module: torch.nn.Module, flat: TensorDictBase) -> None:
     out = flat.get(PROXIMAL_KEY)
     with torch.no_grad():
         for start in range(0, flat.shape[0], _VALUE_CHUNK_FRAMES):
-            part = flat[start : start + _VALUE_CHUNK_FRAMES].clone(False)  # the actor's outputs go to the copy
+            part = flat[start : start + _VALUE_CHUNK_FRAMES]  # a new TensorDict: the actor's outputs stay in it
             log_prob, _, _ = ppo._get_cur_log_prob(part)
             out[start : start + part.shape[0]].copy_(log_prob.reshape(-1))
 
