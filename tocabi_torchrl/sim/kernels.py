@@ -68,7 +68,8 @@ def derive_signals(
     bits = int(overflow[w])
     if nefc[w] > njmax:
         bits = bits | _NEFC
-    overflow_out[w] = bits | contact_buffer_bits(nacon[0], ncollision[0], naconmax)
+    bits = bits | contact_buffer_bits(nacon[0], ncollision[0], naconmax)
+    overflow_out[w] = bits
 
     # A NaN or inf anywhere in the state, its acceleration or a sensor makes the sum non-finite (C MuJoCo resets such a
     # world itself and warns; mujoco-warp keeps integrating it, so this flag is what stops it).
