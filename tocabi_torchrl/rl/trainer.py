@@ -803,7 +803,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             # Bound now (a lambda would look `flat` up when the thread runs it, after the `del` below).
             # With the overlap the update first stores the proximal log-probabilities, on its own stream too.
             overlap.launch(functools.partial(_update_stats, cfg, flat, update_step, agent.actor, info, order,
-                                             proximal_loss=loss_module if ppo.overlap_update else None),
+                                             loss_module if ppo.overlap_update else None),
                            keep=(flat, order) if ppo.overlap_update else None,
                            threaded=ppo.overlap_update and update_step.replays(rows=True) and not _env_capturing(env))
             del work, flat, order
