@@ -11,7 +11,7 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 
-from tocabi_torchrl.rl.rollout_guard import PROXIMAL_KEY, GuardedClipPPOLoss
+from tocabi_torchrl.rl.rollout_guard import PROXIMAL_KEY, GuardedClipPPOLoss, proximal_kl
 
 B, OBS, ACT, CLIP = 64, 3, 2, 0.2
 
@@ -56,10 +56,14 @@ def test_a_proximal_policy_equal_to_the_behaviour_policy_is_ppo_itself():
     assert PROXIMAL_KEY in decoupled.in_keys and PROXIMAL_KEY not in plain.in_keys
     out_a, grads_a = _grads(plain, td)
     out_b, grads_b = _grads(decoupled, td.clone().set(PROXIMAL_KEY, td["action_log_prob"].clone()))
-    for key in ("loss_objective", "loss_critic", "kl_approx", "clip_fraction"):
+    for key in ("loss_objective", "loss_critic", "clip_fraction"):
         torch.testing.assert_close(out_b[key], out_a[key], rtol=0, atol=1e-7)
     for a, b in zip(grads_a, grads_b, strict=True):
         torch.testing.assert_close(b, a, rtol=0, atol=1e-7)
+    # The KL estimate is another of the same mean: (r - 1) - log r where PPO's own reads -log r.
+    log_r = (log_prob - td["action_log_prob"]).unsqueeze(-1)
+    torch.testing.assert_close(out_a["kl_approx"], (-log_r).mean(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(out_b["kl_approx"], (log_r.exp() - 1 - log_r).mean(), rtol=1e-5, atol=1e-6)
 
 
 def test_ratio_clip_and_kl_come_from_the_proximal_policy_the_weight_from_the_behaviour_policy():
@@ -78,11 +82,9 @@ def test_ratio_clip_and_kl_come_from_the_proximal_policy_the_weight_from_the_beh
                          log_r.clamp(torch.log1p(torch.tensor(-CLIP)), torch.log1p(torch.tensor(CLIP))).exp()
                          * weight * adv)
     torch.testing.assert_close(out["loss_objective"], -gain.mean(), rtol=1e-5, atol=1e-6)
-    torch.testing.assert_close(out["kl_approx"], (proximal - learner).mean(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(out["kl_approx"], (weight * (log_r.exp() - 1 - log_r)).mean(), rtol=1e-5, atol=1e-6)
     outside = (log_r < torch.log1p(torch.tensor(-CLIP))) | (log_r > torch.log1p(torch.tensor(CLIP)))
     torch.testing.assert_close(out["clip_fraction"], outside.float().mean())
-    # Against the behaviour policy (PPO's own objective) the KL would read the older move too.
-    assert abs(float(out["kl_approx"])) < float((behaviour - learner).abs().mean())
 
 
 def test_stored_log_probabilities_that_require_grad_are_refused():
@@ -103,3 +105,32 @@ def test_a_loss_with_its_own_proximal_policy_refuses_a_stored_one():
     loss.use_proximal()
     loss.use_proximal(None)  # back to PPO's own: the entry is no input any more
     assert PROXIMAL_KEY not in loss.in_keys
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_the_kl_estimate_is_the_proximal_policys_kl_over_the_behaviour_policys_actions(sign):
+    """Gaussians of one std whose means step by d_prev (behaviour -> proximal) and then d (proximal -> learner), in
+    std units: KL(prox || learner) = |d|^2 / 2 per state. Over the behaviour policy's actions, log(π_prox / π_θ)
+    averages |d|^2 / 2 + d·d_prev (7x the KL when the moves align, below zero when they oppose); the estimate
+    must read the KL."""
+    g = torch.Generator().manual_seed(3)
+    n, dims = 400_000, 2
+    d, d_prev = torch.full((dims,), 0.1), sign * torch.full((dims,), 0.3)
+    z = torch.randn(n, dims, generator=g)  # behaviour's actions, mean 0, std 1
+    normal = torch.distributions.Normal
+
+    def log_prob(mean):
+        return normal(mean, 1.0).log_prob(z).sum(-1, keepdim=True)
+
+    behaviour, proximal, learner = log_prob(torch.zeros(dims)), log_prob(d_prev), log_prob(d_prev + d)
+    kl = float(d.square().sum() / 2)
+    plain = float((proximal - learner).mean())
+    assert abs(plain - (kl + sign * float(d @ d_prev.abs()))) < 0.1 * kl  # the cross term, 6x the KL
+    estimate = float(proximal_kl(learner - proximal, proximal - behaviour).mean())
+    assert abs(estimate - kl) < 0.1 * kl
+    assert bool((proximal_kl(learner - proximal, proximal - behaviour) >= 0).all())
+
+
+def test_the_kl_estimate_of_a_far_frame_stays_finite():
+    out = proximal_kl(torch.tensor([[500.0], [-500.0]]), torch.tensor([[300.0], [-300.0]]))
+    assert bool(torch.isfinite(out).all())
