@@ -11,7 +11,7 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 
-from tocabi_torchrl.rl.rollout_guard import PROXIMAL_KEY, GuardedClipPPOLoss, proximal_kl
+from tocabi_torchrl.rl.rollout_guard import BEHAVIOUR_ESS_KEY, PROXIMAL_KEY, GuardedClipPPOLoss, proximal_kl
 
 B, OBS, ACT, CLIP = 64, 3, 2, 0.2
 
@@ -58,6 +58,7 @@ def test_a_proximal_policy_equal_to_the_behaviour_policy_is_ppo_itself():
     out_b, grads_b = _grads(decoupled, td.clone().set(PROXIMAL_KEY, td["action_log_prob"].clone()))
     for key in ("loss_objective", "loss_critic", "clip_fraction"):
         torch.testing.assert_close(out_b[key], out_a[key], rtol=0, atol=1e-7)
+    assert BEHAVIOUR_ESS_KEY not in out_a.keys() and float(out_b[BEHAVIOUR_ESS_KEY]) == pytest.approx(1.0)
     for a, b in zip(grads_a, grads_b, strict=True):
         torch.testing.assert_close(b, a, rtol=0, atol=1e-7)
     # The KL estimate is another of the same mean: (r - 1) - log r where PPO's own reads -log r.
@@ -85,6 +86,8 @@ def test_ratio_clip_and_kl_come_from_the_proximal_policy_the_weight_from_the_beh
     torch.testing.assert_close(out["kl_approx"], (weight * (log_r.exp() - 1 - log_r)).mean(), rtol=1e-5, atol=1e-6)
     outside = (log_r < torch.log1p(torch.tensor(-CLIP))) | (log_r > torch.log1p(torch.tensor(CLIP)))
     torch.testing.assert_close(out["clip_fraction"], outside.float().mean())
+    torch.testing.assert_close(out[BEHAVIOUR_ESS_KEY], weight.mean() ** 2 / weight.square().mean())
+    assert float(out[BEHAVIOUR_ESS_KEY]) < 0.99  # spread weights count as fewer frames
 
 
 def test_stored_log_probabilities_that_require_grad_are_refused():
@@ -134,3 +137,12 @@ def test_the_kl_estimate_is_the_proximal_policys_kl_over_the_behaviour_policys_a
 def test_the_kl_estimate_of_a_far_frame_stays_finite():
     out = proximal_kl(torch.tensor([[500.0], [-500.0]]), torch.tensor([[300.0], [-300.0]]))
     assert bool(torch.isfinite(out).all())
+
+
+def test_the_effective_sample_size_leaves_out_masked_frames():
+    from tocabi_torchrl.rl.rollout_guard import VALID_KEY, behaviour_ess
+
+    log_w = torch.tensor([[0.0], [0.0], [80.0], [0.0]])  # a masked frame of a huge weight
+    td = TensorDict({VALID_KEY: torch.tensor([True, True, False, True])}, batch_size=[4])
+    assert float(behaviour_ess(log_w, td, VALID_KEY)) == pytest.approx(1.0)
+    assert float(behaviour_ess(log_w, td, None)) == pytest.approx(0.25)

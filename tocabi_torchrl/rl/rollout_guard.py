@@ -25,7 +25,7 @@ from tensordict import TensorDictBase
 from torchrl.objectives import ClipPPOLoss
 
 __all__ = ["VALID_KEY", "PROXIMAL_KEY", "MAX_SAMPLE_Z", "guard_rollout", "mean_over_valid", "ratio_statistics",
-           "proximal_kl", "GuardedClipPPOLoss"]
+           "proximal_kl", "behaviour_ess", "BEHAVIOUR_ESS_KEY", "GuardedClipPPOLoss"]
 
 #: Key of the (…, 1) bool mask of usable frames written by :func:`guard_rollout`.
 VALID_KEY = "frame_valid"
@@ -58,6 +58,9 @@ def ratio_statistics(log_weight: torch.Tensor, kl_approx: torch.Tensor, clip_bou
     return (mean_over_valid(kl_approx.detach().reshape(-1), td, mask_key), mean_over_valid(clipped, td, mask_key))
 
 
+#: The decoupled loss's output (and log name) of :func:`behaviour_ess`.
+BEHAVIOUR_ESS_KEY = "behaviour_ess"
+
 #: Bound on the log-ratios :func:`proximal_kl` exponentiates, so that a frame far off (a masked one) stays finite.
 _KL_LOG_RATIO_BOUND = 20.0
 
@@ -82,6 +85,29 @@ def proximal_kl(log_weight: torch.Tensor, log_is_weight: torch.Tensor) -> torch.
     log_r = log_weight.detach().clamp(-_KL_LOG_RATIO_BOUND, _KL_LOG_RATIO_BOUND)
     weight = log_is_weight.detach().clamp(max=_KL_LOG_RATIO_BOUND).exp()
     return weight * (torch.expm1(log_r) - log_r)
+
+
+def behaviour_ess(log_is_weight: torch.Tensor, td: TensorDictBase, mask_key: str | None) -> torch.Tensor:
+    """The effective sample size, as a fraction of the frames, of the decoupled surrogate's weights
+    w = π_prox / π_behav (``log_is_weight`` (B, 1)): (mean w)² / mean w², over the frames of ``td`` (B,) that
+    ``mask_key`` marks usable (:func:`mean_over_valid`), detached. 1 where every frame weighs alike (the proximal
+    policy is the one that acted); near 1/B where a few frames carry the mini-batch's gradient.
+
+    >>> import torch
+    >>> from tensordict import TensorDict
+    >>> td = TensorDict(batch_size=[4])
+    >>> float(behaviour_ess(torch.zeros(4, 1), td, None))
+    1.0
+    >>> float(behaviour_ess(torch.tensor([[0.0], [-50.0], [-50.0], [-50.0]]), td, None))  # one frame carries it
+    0.25
+    """
+    log_w = log_is_weight.detach().reshape(-1)
+    if mask_key is not None and mask_key in td.keys():
+        top = torch.where(td[mask_key].reshape(log_w.shape), log_w, float("-inf")).amax()
+    else:
+        top = log_w.amax()
+    w = (log_w - top).exp()  # scaled so that the largest usable weight is 1: no overflow, the ratio unchanged
+    return mean_over_valid(w, td, mask_key).square() / mean_over_valid(w.square(), td, mask_key).clamp_min(1e-30)
 
 
 class GuardedClipPPOLoss(ClipPPOLoss):
@@ -156,11 +182,13 @@ class GuardedClipPPOLoss(ClipPPOLoss):
         self._frame_ratios = None
         out = super().forward(tensordict)
         if self._frame_ratios is not None:
-            log_weight, _, kl_approx, _ = self._frame_ratios
+            log_weight, _, kl_approx, log_is_weight = self._frame_ratios
             self._frame_ratios = None  # the autograd graph it holds is not kept until the next step
             kl, clipped = ratio_statistics(log_weight, kl_approx, self._clip_bounds, tensordict, self.loss_mask_key)
             out.set("kl_approx", kl)
             out.set("clip_fraction", clipped)
+            if self.proximal_key is not None:
+                out.set(BEHAVIOUR_ESS_KEY, behaviour_ess(log_is_weight, tensordict, self.loss_mask_key))
         return out
 
 

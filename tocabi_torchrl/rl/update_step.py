@@ -24,14 +24,16 @@ from tensordict import TensorDictBase
 
 from ..config import ADAPTIVE_LR_RANGE
 from ..cuda_graphs import CUDA_GRAPHS, Capturer, WarmCapture
+from .rollout_guard import BEHAVIOUR_ESS_KEY
 
 __all__ = ["MinibatchStep", "MinibatchKLRule", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam",
            "optimizer_mode", "restore_optimizer_mode", "set_lr", "get_lr", "adapt_lr"]
 
 #: The loss outputs averaged into the update's log line, in this order.
 STAT_KEYS = ("loss_objective", "loss_critic", "kl_approx", "clip_fraction")
-#: Further loss outputs logged when the loss module returns them (after :data:`STAT_KEYS`).
-EXTRA_STAT_KEYS = ("loss_absorb", "loss_symmetry")
+#: Further loss outputs logged when the loss module returns them (after :data:`STAT_KEYS`): the assist's and the
+#: symmetry's loss terms, and the decoupled update's effective sample size (``GuardedClipPPOLoss.use_proximal``).
+EXTRA_STAT_KEYS = ("loss_absorb", "loss_symmetry", BEHAVIOUR_ESS_KEY)
 
 
 def make_capturable_adam(param_groups: list[dict], eps: float, device: torch.device) -> torch.optim.Adam:
@@ -216,7 +218,7 @@ class MinibatchStep:
         if self.kl_rule is not None:  # this step's rate, from the KL its mini-batch had before it
             self.kl_rule(losses["kl_approx"])
         self.optimizer.step()
-        self.stat_keys = STAT_KEYS + tuple(k for k in EXTRA_STAT_KEYS if k in names)
+        self.stat_keys = STAT_KEYS + tuple(k for k in EXTRA_STAT_KEYS if k in losses.keys())
         return torch.stack([losses[k].detach() for k in self.stat_keys])
 
     def replays(self, rows: bool = True) -> bool:
