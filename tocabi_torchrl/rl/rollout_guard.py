@@ -69,12 +69,14 @@ def proximal_kl(log_weight: torch.Tensor, log_is_weight: torch.Tensor) -> torch.
     """Per-frame estimates (B, 1) of KL(π_prox ‖ π_θ) from frames the behaviour policy acted in, detached:
     w·((r − 1) − log r), with r = π_θ / π_prox (``log_weight``) and w = π_prox / π_behav (``log_is_weight``).
 
-    Their mean is unbiased, and each is >= 0. PPO's own estimate, log(π_prox / π_θ), is unbiased only over the
-    proximal policy's own actions: over the behaviour policy's its mean gains a cross term between this update's move
-    and the one before, linear in each (for Gaussian means μ_θ − μ_prox and μ_prox − μ_behav, in std units, it
-    is their dot product, beside the KL's half squared norm), which early in an update is several times the KL itself
-    and can be negative. Where π_prox = π_behav it is the ``k3`` estimator of J. Schulman's "Approximating KL
-    divergence" (2020), as unbiased as PPO's own with a smaller variance.
+    In nats; ``log_weight`` and ``log_is_weight`` (B, 1). Their mean is unbiased (for log-ratios within
+    ±:data:`_KL_LOG_RATIO_BOUND`, where they are clamped), and each is >= 0. PPO's own estimate, log(π_prox / π_θ),
+    is unbiased only over the proximal policy's own actions: over the behaviour policy's its mean gains a cross term
+    between this update's move and the one before, linear in each (for Gaussian means μ_θ − μ_prox and
+    μ_prox − μ_behav, in std units, it is their dot product, beside the KL's half squared norm), which early in an
+    update is several times the KL itself and can be negative. Where π_prox = π_behav it is the ``k3`` estimator
+    of J. Schulman's "Approximating KL divergence" (2020), as unbiased as PPO's own and of a smaller variance for
+    nearby policies.
 
     >>> import torch
     >>> proximal_kl(torch.zeros(3, 1), torch.randn(3, 1))  # the update's start: no move yet
@@ -88,9 +90,11 @@ def proximal_kl(log_weight: torch.Tensor, log_is_weight: torch.Tensor) -> torch.
 
 
 def behaviour_ess(log_is_weight: torch.Tensor, td: TensorDictBase, mask_key: str | None) -> torch.Tensor:
-    """The effective sample size, as a fraction of the frames, of the decoupled surrogate's weights
-    w = π_prox / π_behav (``log_is_weight`` (B, 1)): (mean w)² / mean w², over the frames of ``td`` (B,) that
-    ``mask_key`` marks usable (:func:`mean_over_valid`), detached. 1 where every frame weighs alike (the proximal
+    """The effective sample size, as a fraction of the frames (a 0-d tensor), of the weights the decoupled surrogate
+    applies, w = π_prox / π_behav (``log_is_weight`` (B, 1); where ``max_importance_ratio`` caps them, the capped
+    ones): (mean w)² / mean w², over the frames of ``td`` (B,) that ``mask_key`` marks usable
+    (:func:`mean_over_valid`), detached; 0 where none is. TorchRL's own ``ESS`` output is of π_θ / π_behav, over every
+    frame. 1 where every frame weighs alike (the proximal
     policy is the one that acted); near 1/B where a few frames carry the mini-batch's gradient.
 
     >>> import torch
@@ -125,7 +129,8 @@ class GuardedClipPPOLoss(ClipPPOLoss):
     frame's log-probability under it in the batch entry :data:`PROXIMAL_KEY`), and the surrogate is weighted by
     π_prox / π_behav, the policy that update starts from over the one that acted (the stored ``sample_log_prob``).
     Where the two are the same it is PPO's own objective. The KL estimate is KL(π_prox ‖ π_θ), importance-weighted
-    over the behaviour policy's actions (:func:`proximal_kl`). For an update that runs beside the next rollout
+    over the behaviour policy's actions (:func:`proximal_kl`): another estimator than PPO's own even where the two
+    policies are one (the same mean, never negative). For an update that runs beside the next rollout
     (``ppo.overlap_update``), whose rollouts act with the policy of one update before: against the policy that acted,
     every mini-batch's KL held the previous update's move too, and the adaptive learning rate sat at its floor
     (docs/training/pd/h100_overlap_seed0); against the proximal policy but with PPO's own estimate, it sat there for a
@@ -158,10 +163,12 @@ class GuardedClipPPOLoss(ClipPPOLoss):
         return out
 
     def _decoupled_log_weight(self, tensordict, adv_shape):
-        """``(log_weight, dist, kl_approx, log_is_weight)`` as TorchRL 0.14's ``_log_weight`` returns them for a
-        proximal policy (its ``delay_actor``), the proximal log-probabilities read from the batch instead of
-        recomputed from target parameters: log(π_θ / π_prox), the distribution, log(π_prox / π_θ) and the
-        gradient-free log(π_prox / π_behav), each (B, 1)."""
+        """``(log_weight, dist, kl_approx, log_is_weight)`` in the places TorchRL 0.14's ``_log_weight`` returns
+        them for a proximal policy (its ``delay_actor``), the proximal log-probabilities read from the batch instead
+        of recomputed from target parameters: log(π_θ / π_prox), the distribution, the per-frame KL estimates of
+        :func:`proximal_kl` (from the uncapped weights) where TorchRL returns log(π_prox / π_θ), and the
+        gradient-free log(π_prox / π_behav), capped as TorchRL caps it where ``max_importance_ratio`` is set; each
+        (B, 1)."""
         behaviour = tensordict.get(self.tensor_keys.sample_log_prob).reshape(adv_shape)
         proximal = tensordict.get(self.proximal_key).reshape(adv_shape)
         if behaviour.requires_grad or proximal.requires_grad:
