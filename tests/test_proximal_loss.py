@@ -146,3 +146,30 @@ def test_the_effective_sample_size_leaves_out_masked_frames():
     td = TensorDict({VALID_KEY: torch.tensor([True, True, False, True])}, batch_size=[4])
     assert float(behaviour_ess(log_w, td, VALID_KEY)) == pytest.approx(1.0)
     assert float(behaviour_ess(log_w, td, None)) == pytest.approx(0.25)
+
+
+def test_a_capped_weight_lowers_the_behaviour_factor_where_the_whole_ratio_passes_the_cap():
+    cap = 1.3
+    loss, actor = _loss()
+    capped = GuardedClipPPOLoss(actor, loss.critic_network, clip_epsilon=CLIP, normalize_advantage=False,
+                                max_importance_ratio=cap)
+    capped.set_keys(sample_log_prob="action_log_prob")
+    capped.use_proximal()
+    td, learner = _batch(actor)
+    g = torch.Generator().manual_seed(11)
+    proximal = learner + 0.1 * torch.randn(B, generator=g)
+    behaviour = proximal - 0.8 * torch.rand(B, generator=g)  # π_prox / π_behav in [1, 2.2]: many pass the cap
+    out = capped(td.clone().set("action_log_prob", behaviour).set(PROXIMAL_KEY, proximal))
+    adv = td["advantage"].squeeze(-1)
+    log_r = learner - proximal
+    log_w = torch.minimum(proximal - behaviour, torch.log(torch.tensor(cap)) - log_r)
+    assert bool((log_w < proximal - behaviour).any())  # the cap bites somewhere
+    low, high = torch.log1p(torch.tensor(-CLIP)), torch.log1p(torch.tensor(CLIP))
+    gain = torch.minimum(log_r.exp() * log_w.exp() * adv, log_r.clamp(low, high).exp() * log_w.exp() * adv)
+    torch.testing.assert_close(out["loss_objective"], -gain.mean(), rtol=1e-5, atol=1e-6)
+    w = log_w.exp()
+    torch.testing.assert_close(out[BEHAVIOUR_ESS_KEY], w.mean() ** 2 / w.square().mean())
+    # The KL estimate keeps the uncapped weights (the cap would bias it).
+    w_all = (proximal - behaviour).exp()
+    torch.testing.assert_close(out["kl_approx"], (w_all * (log_r.exp() - 1 - log_r)).mean(), rtol=1e-5, atol=1e-6)
+
