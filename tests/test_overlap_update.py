@@ -12,6 +12,7 @@ import torch
 
 from tocabi_torchrl.rl import preset_config
 from tocabi_torchrl.rl.metrics_files import read_metrics
+from tocabi_torchrl.rl.rollout_guard import PROXIMAL_KEY
 
 
 def _cfg(tmp_path, name, overlap, device="cpu", **extra):
@@ -246,7 +247,6 @@ def test_an_overlapped_update_measures_from_the_policy_it_starts_from(tmp_path, 
     # overlap the two are one policy and the batch holds no such entry. On a GPU the update (and the fill) run on
     # the side stream, queued from a thread once captured: read here, in the update, after the fill.
     from tocabi_torchrl.rl import trainer
-    from tocabi_torchrl.rl.rollout_guard import PROXIMAL_KEY
 
     agents, checks = [], []
     build, losses = trainer.build_agent, trainer._update_losses
@@ -272,3 +272,29 @@ def test_an_overlapped_update_measures_from_the_policy_it_starts_from(tmp_path, 
     # Never the policy that acted: the first rollout's std was the schedule's before its update, each later rollout
     # acted with the learner of one update before.
     assert checks == ([(True, False)] * 4 if overlap else [None] * 4)
+
+
+def test_the_proximal_fill_leaves_the_process_wide_sampling_mode_alone(monkeypatch):
+    # tensordict's sampling mode (interaction_type) is one setting for the whole process, which a TensorDict
+    # module's get_dist sets and restores. The fill runs on the update's thread while the collector acts on the
+    # trainer's: through get_dist it raced the rollout and left some rollouts acting with the mean action.
+    from tensordict import TensorDict
+    from tensordict.nn import probabilistic
+
+    from tocabi_torchrl.rl.trainer import _fill_proximal, build_agent, make_loss
+
+    cfg = preset_config("cpu_smoke", device="cpu", **{"ppo.overlap_update": True})
+    agent = build_agent(cfg, 6, 13, torch.device("cpu"))
+    loss, _ = make_loss(cfg, agent)
+    n = 70_000  # more than one chunk
+    flat = TensorDict({"observation": torch.randn(n, 6), "action": torch.randn(n, 13),
+                       PROXIMAL_KEY: torch.zeros(n)}, batch_size=[n])
+    set_modes = []
+    manager = probabilistic._interaction_type
+    monkeypatch.setattr(manager, "set_mode", lambda mode: set_modes.append(mode))
+    _fill_proximal(loss, flat)
+    assert set_modes == []
+    with torch.no_grad():
+        expected = agent.actor.get_dist(flat.clone()).log_prob(flat["action"])
+    assert set_modes, "get_dist no longer sets the sampling mode: this test no longer guards anything"
+    torch.testing.assert_close(flat[PROXIMAL_KEY], expected, rtol=1e-5, atol=1e-5)

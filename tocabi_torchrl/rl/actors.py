@@ -18,7 +18,7 @@ from torchrl.modules import IndependentNormal, ProbabilisticActor
 
 from .networks import ACTION_OUT_GAIN, make_mlp
 
-__all__ = ["GaussianHead", "gaussian_head", "make_actor", "set_action_std", "action_std"]
+__all__ = ["GaussianHead", "gaussian_head", "gaussian_log_prob", "make_actor", "set_action_std", "action_std"]
 
 
 class GaussianHead(nn.Module):
@@ -76,6 +76,24 @@ def gaussian_head(actor: ProbabilisticActor) -> GaussianHead:
         if isinstance(m, GaussianHead):
             return m
     raise TypeError("actor has no GaussianHead; build it with tocabi_torchrl.rl.make_actor")
+
+
+def gaussian_log_prob(head: GaussianHead, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """(N,) log-probability [nats] of each ``action`` (N, act_dim) under ``head``'s Gaussian at ``obs`` (N, obs_dim),
+    as the actor's ``IndependentNormal`` gives it, in plain torch: no TensorDict module runs, so the process-wide
+    sampling mode that a TensorDict module's ``get_dist`` sets and restores is left alone (a thread may call it
+    while another collects), and no argument check reads the device.
+
+    >>> head = GaussianHead(torch.nn.Linear(3, 2), act_dim=2, init_std=0.5, learn_std=False)
+    >>> obs, action = torch.randn(4, 3), torch.randn(4, 2)
+    >>> loc, scale = head(obs)
+    >>> reference = torch.distributions.Normal(loc, scale).log_prob(action).sum(-1)
+    >>> torch.allclose(gaussian_log_prob(head, obs, action), reference)
+    True
+    """
+    loc, scale = head(obs)
+    z = (action - loc) / scale
+    return (-0.5 * z.square() - scale.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
 
 
 def set_action_std(actor: ProbabilisticActor, std: float) -> None:

@@ -135,9 +135,11 @@ class UpdateOverlap:
         kernels per mini-batch can block the host in CUDA's launch queue until the GPU has run most of the update
         (at 16,384 envs on an H100: 241 ms, during which the next rollout was not queued and the GPU ran no
         physics); from a thread, the host queues the next rollout meanwhile. Only for an ``update`` that captures
-        nothing, records no autograd graph and draws no random numbers (the thread would race the collector for
-        them): replays of captured graphs, and eager work under ``torch.no_grad`` on modules the collector does not
-        run (the trainer's proximal log-probabilities); ignored without a side stream.
+        nothing, records no autograd graph, draws no random numbers and changes no process-wide setting (the thread
+        would race the collector for them: tensordict's sampling mode, which a TensorDict module's ``get_dist`` or a
+        TorchRL loss's ``forward`` sets and restores, left rollouts acting without exploration): replays of captured
+        graphs, and plain torch under ``torch.no_grad`` on modules the collector does not run (the trainer's proximal
+        log-probabilities); ignored without a side stream.
         """
         if self._pending is not None:
             raise RuntimeError("UpdateOverlap.launch() with an update in flight: call finish() first")

@@ -27,7 +27,7 @@ from torchrl.objectives import ClipPPOLoss
 from .. import robot
 from ..cuda_graphs import plan_graphs
 from ..device import check_device
-from .actors import action_std, gaussian_head, make_actor, set_action_std
+from .actors import action_std, gaussian_head, gaussian_log_prob, make_actor, set_action_std
 from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 from .checkpoint import apply_checkpoint, config_from_checkpoint, save_checkpoint
 from .deferred_read import DeferredRead
@@ -976,21 +976,25 @@ def _update_rows(loss_module: torch.nn.Module, work: TensorDictBase) -> TensorDi
 def _fill_proximal(loss_module: torch.nn.Module, flat: TensorDictBase) -> None:
     """Write each frame's log-probability (n,) of its action under the learner as this update starts (its std
     schedule set) into ``flat``'s :data:`PROXIMAL_KEY`, in place, without gradients, :data:`_VALUE_CHUNK_FRAMES`
-    frames at a time: the proximal policy of the decoupled update (``GuardedClipPPOLoss.use_proximal``), computed
-    as the loss computes its own log-probabilities. No random draw, no autograd, no host read: it may be queued from
-    the update's own host thread (``UpdateOverlap.launch``). The functional loss swaps the learner actor's parameters
-    in and out of the module as it runs (TorchRL's ``to_module``), which is safe there because nothing else runs the
-    learner actor while an update is in flight: the collector acts with the overlap's copy."""
+    frames at a time: the proximal policy of the decoupled update (``GuardedClipPPOLoss.use_proximal``). No random
+    draw, no autograd, no host read, and no TensorDict module: it may be queued from the update's own host thread
+    (``UpdateOverlap.launch``) while the collector acts on this one. The actor's own ``get_dist`` would set and
+    restore tensordict's sampling mode, one setting for the whole process: from that thread it raced the rollout, and
+    left some rollouts acting with the mean action, without exploration (two pd-preset runs, whose logged
+    torque-change reward jumped between two levels from one logged iteration to the next). The learner's
+    :class:`~.actors.GaussianHead` computes it directly (:func:`~.actors.gaussian_log_prob`), with the parameters
+    the loss trains."""
     ppo = next((m for m in loss_module.modules() if isinstance(m, GuardedClipPPOLoss)), None)
     if ppo is None or ppo.proximal_key != PROXIMAL_KEY:
         raise ValueError("_fill_proximal needs a loss whose GuardedClipPPOLoss reads the proximal log-probabilities "
                          "(use_proximal, set by make_loss for ppo.overlap_update)")
-    out = flat.get(PROXIMAL_KEY)
+    head = gaussian_head(ppo.actor_network)
+    (obs_key,) = ppo.actor_network.in_keys  # make_actor's actor reads one entry
+    obs, action, out = flat.get(obs_key), flat.get(ppo.tensor_keys.action), flat.get(PROXIMAL_KEY)
     with torch.no_grad():
         for start in range(0, flat.shape[0], _VALUE_CHUNK_FRAMES):
-            part = flat[start : start + _VALUE_CHUNK_FRAMES]  # a new TensorDict: the actor's outputs stay in it
-            log_prob, _, _ = ppo._get_cur_log_prob(part)
-            out[start : start + part.shape[0]].copy_(log_prob.reshape(-1))
+            rows = slice(start, start + _VALUE_CHUNK_FRAMES)
+            out[rows].copy_(gaussian_log_prob(head, obs[rows], action[rows]).reshape(-1))
 
 
 def _env_capturing(env) -> bool:
