@@ -133,8 +133,7 @@ class GuardedClipPPOLoss(ClipPPOLoss):
     policies are one (the same mean, never negative). For an update that runs beside the next rollout
     (``ppo.overlap_update``), whose rollouts act with the policy of one update before: against the policy that acted,
     every mini-batch's KL held the previous update's move too, and the adaptive learning rate sat at its floor
-    (docs/training/pd/h100_overlap_seed0); against the proximal policy but with PPO's own estimate, it sat there for a
-    third of the run (docs/training/pd/h100_decoupled_seed0)."""
+    (docs/training/pd/h100_overlap_seed0)."""
 
     _frame_ratios: tuple | None = None
     #: The batch entry of the proximal log-probabilities, or None for PPO's objective (:meth:`use_proximal`).
