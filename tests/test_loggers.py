@@ -285,3 +285,22 @@ def test_wandb_wiring_with_a_stand_in_package(tmp_path, monkeypatch):
     assert [r["kl"] for r in read_metrics(tmp_path)] == ["0.5"]  # and the CSV, always
     run_logging.RunLogger(tmp_path, cfg, total_iterations=2, start_iteration=1).close()
     assert runs[1].kwargs["id"] == "new-id" and runs[1].kwargs["resume"] == "allow"
+
+
+def test_the_curves_draw_the_update_where_the_run_logged_it(tmp_path, monkeypatch):
+    from tocabi_torchrl.evaluation import plots
+    from tocabi_torchrl.rl import curves
+
+    figures = []
+    monkeypatch.setattr(plots, "save_figure", lambda fig, path, *a, **k: figures.append(fig) or path)
+    (tmp_path / "u.csv").write_text("iteration,env_steps,episode_return,episode_length,reward,lr,kl,clip_fraction,"
+                                    "behaviour_ess\n1,10,1,5,0.1,1e-3,0.02,0.3,0.9\n2,20,2,6,0.2,5e-4,0.03,0.2,0.8\n")
+    (tmp_path / "n.csv").write_text("iteration,env_steps,episode_return,episode_length,reward\n1,10,1,5,0.1\n")
+    curves.plot_curves(tmp_path / "u.csv", tmp_path / "u.png")
+    curves.plot_curves(tmp_path / "n.csv", tmp_path / "n.png")
+    with_update, without = figures
+    titles = [ax.get_title() for ax in with_update.axes]
+    assert "PPO update" in titles and "PPO update" not in [ax.get_title() for ax in without.axes]
+    panel = with_update.axes[titles.index("PPO update")]
+    labels = {line.get_label() for ax in with_update.axes for line in ax.get_lines()}
+    assert {"learning rate", "kl", "clip_fraction", "behaviour_ess"} <= labels and panel.get_yscale() == "log"

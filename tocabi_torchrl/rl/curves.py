@@ -1,5 +1,6 @@
 """Training curves from a run's metrics: return and episode length, and every reward term (TocabiLab's figs 4.2-4.3
-show the total and the imitation rewards).
+show the total and the imitation rewards), and, where the run logged them, the PPO update's learning rate, KL,
+clip fraction and the decoupled update's ``behaviour_ess``.
 
     python -m tocabi_torchrl.rl.curves runs/ppo_walk curves.png
     python -m tocabi_torchrl.rl.curves docs/training/walk_metrics.csv docs/training/walk_curves.png --overwrite
@@ -23,6 +24,9 @@ from .metrics_files import read_metrics
 __all__ = ["metric_columns", "plot_curves", "read_metrics", "steady_rate"]
 
 IMITATION_TERMS = ("qpos", "orientation", "foot_contact", "force_ref")
+#: The update's logged numbers the last panel draws on its right axis, where a run logged them (the learning rate,
+#: on its own logarithmic axis, is drawn beside them).
+UPDATE_TERMS = ("kl", "clip_fraction", "behaviour_ess")
 
 
 def metric_columns(path: str | Path) -> dict[str, list[float]]:
@@ -73,8 +77,9 @@ def _plot(ax, x: list[float], y: list[float], **kwargs) -> None:
 
 
 def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
-    """Plot episode return/length and the per-term rewards against env steps (millions); ``metrics``: what
-    :func:`read_metrics` reads (a run folder or a metrics file)."""
+    """Plot episode return/length, the per-term rewards and (where logged) the update's learning rate, KL, clip
+    fraction and ``behaviour_ess`` against env steps (millions); ``metrics``: what :func:`read_metrics` reads (a run
+    folder or a metrics file)."""
     from ..evaluation.plots import new_figure, save_figure  # its own canvas: the caller's matplotlib backend stays
 
     data = metric_columns(metrics)
@@ -84,8 +89,10 @@ def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
     finished = data.get("episodes_finished", [1.0] * len(steps))
     ep = [(x, r, n) for x, r, n, f in zip(steps, data["episode_return"], data["episode_length"], finished) if f > 0]
     ep_steps, ep_return, ep_length = (list(c) for c in zip(*ep)) if ep else ([], [], [])
-    fig = new_figure(figsize=(15, 4))
-    axes = fig.subplots(1, 3)
+    update = [k for k in UPDATE_TERMS if k in data]
+    panels = 4 if update or "lr" in data else 3
+    fig = new_figure(figsize=(5 * panels, 4))
+    axes = fig.subplots(1, panels)
     _plot(axes[0], ep_steps, ep_return, label="episode return")
     axes[0].set_ylabel("episode return")
     twin = axes[0].twinx()
@@ -105,6 +112,8 @@ def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
     axes[2].set_title("Reward per step: other terms")
     if axes[2].get_lines():  # an empty legend only warns
         axes[2].legend(fontsize=7, ncol=2)
+    if panels == 4:
+        _plot_update(axes[3], steps, data, update)
     for ax in axes:
         ax.set_xlabel("env steps [millions]")
         ax.grid(alpha=0.3)
@@ -112,6 +121,23 @@ def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
     return save_figure(fig, out, "Training curves", dpi=110)
+
+
+def _plot_update(ax, steps: list[float], data: dict[str, list[float]], update: list[str]) -> None:
+    """The update's panel: the learning rate on a logarithmic left axis, ``update`` (KL [nats], clip fraction,
+    effective sample size: all near [0, 1]) on the right."""
+    if "lr" in data:
+        _plot(ax, steps, data["lr"], color="k", label="learning rate")
+        if any(v > 0 for v in data["lr"] if math.isfinite(v)):
+            ax.set_yscale("log")
+        ax.set_ylabel("learning rate")
+    right = ax.twinx()
+    for key, color in zip(update, ("tab:red", "tab:blue", "tab:green"), strict=False):
+        _plot(right, steps, data[key], color=color, alpha=0.8, label=key)
+    right.set_ylabel("KL [nats], fractions")
+    lines = ax.get_lines() + right.get_lines()
+    ax.legend(lines, [line.get_label() for line in lines], fontsize=7)
+    ax.set_title("PPO update")
 
 
 def main(argv=None) -> None:
