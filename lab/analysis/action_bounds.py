@@ -54,7 +54,10 @@ def bound_statistics(loc: torch.Tensor, action: torch.Tensor, low: torch.Tensor,
 
 
 def measure(path: Path, case: str, num_envs: int, seconds: float, seed: int) -> dict:
-    """The action statistics of one checkpoint's policy over one case of the robust test."""
+    """The action statistics of one checkpoint's policy over one case of the robust test, ``num_envs`` robots for
+    ``seconds`` [s], each robot's frames until it fell: the checkpoint, the case and its settings, the control mode,
+    ``phase_rate`` (the last entry's :func:`bound_statistics`), the most of any leg entry's ``sampled_outside``
+    and ``mean_outside``, and ``entries`` (every entry's, legs first)."""
     test = robust.RobustTestConfig(num_envs=num_envs, seconds=seconds)
     _, cfg, env, agent = robust.checkpoint_case(path, case, "cpu", test)
     freeze_running_statistics(env)
@@ -62,13 +65,16 @@ def measure(path: Path, case: str, num_envs: int, seconds: float, seed: int) -> 
     low, high = spec.space.low[0], spec.space.high[0]
     torch.manual_seed(seed)
     locs, actions = [], []
+    alive = torch.ones(num_envs, dtype=torch.bool)  # a robot's frames after it fell are not the policy walking
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         td = env.reset()
         for _ in range(policy_steps(seconds, float(env.base_env.dt))):
             td = agent.actor(td)
-            locs.append(td["loc"].clone())
-            actions.append(td["action"].clone())
-            td = step_mdp(env.step(td))
+            locs.append(td["loc"][alive].clone())
+            actions.append(td["action"][alive].clone())
+            td = env.step(td)
+            alive &= ~td["next", "done"].reshape(-1)
+            td = step_mdp(td)
     stats = bound_statistics(torch.cat(locs), torch.cat(actions), low, high)
     legs = stats[:-1]
     return {"checkpoint": str(path), "case": case, "robots": num_envs, "seconds": seconds, "seed": seed,

@@ -92,8 +92,8 @@ def gaussian_log_prob(head: GaussianHead, obs: torch.Tensor, action: torch.Tenso
     True
     """
     loc, scale = head(obs)
-    z = (action - loc) / scale
-    return (-0.5 * z.square() - scale.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
+    # torch.distributions.Normal.log_prob's own expression, term for term: the same floats as the actor's.
+    return (-((action - loc) ** 2) / (2 * scale**2) - scale.log() - math.log(math.sqrt(2 * math.pi))).sum(-1)
 
 
 def set_action_std(actor: ProbabilisticActor, std: float) -> None:

@@ -126,17 +126,19 @@ def plot_curves(metrics: str | Path, out_png: str | Path) -> Path:
 def _plot_update(ax, steps: list[float], data: dict[str, list[float]], update: list[str]) -> None:
     """The update's panel: the learning rate on a logarithmic left axis, ``update`` (KL [nats], clip fraction,
     effective sample size: all near [0, 1]) on the right."""
+    top = ax
     if "lr" in data:
         _plot(ax, steps, data["lr"], color="k", label="learning rate")
         if any(v > 0 for v in data["lr"] if math.isfinite(v)):
-            ax.set_yscale("log")
+            ax.set_yscale("log", nonpositive="mask")  # a rate of 0 leaves a gap, not a drop to the axis
         ax.set_ylabel("learning rate")
-    right = ax.twinx()
-    for key, color in zip(update, ("tab:red", "tab:blue", "tab:green"), strict=False):
-        _plot(right, steps, data[key], color=color, alpha=0.8, label=key)
-    right.set_ylabel("KL [nats], fractions")
-    lines = ax.get_lines() + right.get_lines()
-    ax.legend(lines, [line.get_label() for line in lines], fontsize=7)
+    if update:
+        top = ax.twinx()
+        for key, color in zip(update, ("tab:red", "tab:blue", "tab:green"), strict=False):
+            _plot(top, steps, data[key], color=color, alpha=0.8, label=key)
+        top.set_ylabel("KL [nats], fractions")
+    lines = ax.get_lines() + (top.get_lines() if top is not ax else [])
+    top.legend(lines, [line.get_label() for line in lines], fontsize=7)  # on the axis drawn last: above its lines
     ax.set_title("PPO update")
 
 
