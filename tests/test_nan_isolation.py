@@ -208,3 +208,29 @@ def test_a_reward_term_that_returns_nan_is_said_not_trained_on_silently(tmp_path
     with pytest.raises(ValueError, match="reward term 'broken' returned NaN or inf in every env at the first step"):
         train(dataclasses.replace(cfg, name="nan2"), env=build_env(cfg, torch.device("cpu"), for_training=True,
                                                                    reward_terms=(*REFERENCE_TERM_NAMES, broken)))
+
+
+def test_the_logged_action_noise_reads_whether_a_rollout_explored():
+    # A rollout that acted with its mean action (no exploration) logs 0, Gaussian draws about sqrt(2/pi); a faulted
+    # world's non-finite action counts for nothing.
+    from tensordict import TensorDict
+
+    from tocabi_torchrl.rl.trainer import _episode_values
+
+    g = torch.Generator().manual_seed(0)
+    n, t, a = 64, 8, 13
+    loc, scale = torch.randn(n, t, a, generator=g), torch.full((n, t, a), 0.2)
+
+    def noise(action):
+        batch = TensorDict({"action": action, "loc": loc, "scale": scale,
+                            ("next", "done"): torch.zeros(n, t, 1, dtype=torch.bool),
+                            ("next", "terminated"): torch.zeros(n, t, 1, dtype=torch.bool),
+                            ("next", "reward"): torch.zeros(n, t, 1)}, batch_size=[n, t])
+        names, values = _episode_values(batch)
+        return float(values[names.index("action_noise_z")])
+
+    drawn = loc + scale * torch.randn(n, t, a, generator=g)
+    assert abs(noise(drawn) - (2 / math.pi) ** 0.5) < 0.02
+    assert noise(loc.clone()) == 0.0
+    drawn[0, 0, 0] = float("nan")
+    assert abs(noise(drawn) - (2 / math.pi) ** 0.5) < 0.02

@@ -269,6 +269,9 @@ def test_an_overlapped_update_measures_from_the_policy_it_starts_from(tmp_path, 
     monkeypatch.setattr(trainer, "_update_losses", recording)
     result = trainer.train(_cfg(tmp_path, "proximal", overlap, device))  # the std schedule moves between updates
     assert result.iterations == 4
+    # Every rollout explored: its actions are Gaussian draws around the mean (E|z| = 0.80), none the mean itself.
+    noise = [float(r["action_noise_z"]) for r in read_metrics(tmp_path / "proximal")]
+    assert len(noise) == 4 and all(0.7 < z < 0.9 for z in noise), noise
     # Never the policy that acted: the first rollout's std was the schedule's before its update, each later rollout
     # acted with the learner of one update before.
     assert checks == ([(True, False)] * 4 if overlap else [None] * 4)

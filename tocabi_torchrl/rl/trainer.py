@@ -366,7 +366,9 @@ def _episode_values(batch: TensorDictBase, dist_info: DistInfo | None = None,
     more) and ``episodes_finished`` is their total; the per-step means are averaged over the ranks (equal batch
     sizes, so that is exact). ``masked_frac``: the share of the rollout's frames
     :func:`~tocabi_torchrl.rl.rollout_guard.guard_rollout` left out of the update, a 0-d device tensor read with
-    the rest."""
+    the rest. ``action_noise_z``: the mean of |action − loc| / scale over the rollout's finite action entries,
+    √(2/π) ≈ 0.80 for the Gaussian's draws and 0 for a rollout that acted with its mean: the trace of a rollout that
+    did not explore (a thread that changed tensordict's process-wide sampling mode mid-rollout did that)."""
     done = batch["next", "done"].squeeze(-1)
     sums = {"episodes_finished": done.sum()}
     if ("next", "episode_reward") in batch.keys(True):
@@ -376,6 +378,10 @@ def _episode_values(batch: TensorDictBase, dist_info: DistInfo | None = None,
     means = {"terminated_frac": batch["next", "terminated"].float().mean(), "reward": batch["next", "reward"].mean()}
     if masked_frac is not None:
         means["masked_frac"] = masked_frac
+    if {"action", "loc", "scale"} <= set(batch.keys()):
+        z = ((batch["action"] - batch["loc"]) / batch["scale"]).abs()
+        finite = torch.isfinite(z)
+        means["action_noise_z"] = torch.where(finite, z, 0.0).sum() / finite.sum().clamp_min(1)
     if ("next", "reward_terms") in batch.keys(True):
         for key, value in batch["next", "reward_terms"].items():
             means[f"reward_terms/{key}"] = value.mean()
