@@ -20,7 +20,6 @@ Wrote docs/training/pd/h100_decoupled_kl_seed0/action_bounds.json (about 7 s per
 
 from __future__ import annotations
 
-import argparse
 import platform
 import time
 from pathlib import Path
@@ -32,7 +31,7 @@ from tocabi_torchrl.evaluation import robust
 from tocabi_torchrl.evaluation.record import policy_steps
 from tocabi_torchrl.transforms.normalize import freeze_running_statistics
 
-from lab.analysis.reports import check_paths, write_report
+from lab.analysis.reports import case_parser, check_paths, write_report
 
 
 def bound_statistics(loc: torch.Tensor, action: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> list[dict]:
@@ -84,11 +83,7 @@ def measure(path: Path, case: str, num_envs: int, seconds: float, seed: int) -> 
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", nargs="+", required=True, type=Path, help="checkpoints (.pt) to test")
-    p.add_argument("--case", default="nominal", choices=tuple(robust.CASES), help="a case of the robust test")
-    p.add_argument("--num_envs", type=int, default=16, help="robots")
-    p.add_argument("--seconds", type=float, default=2.0, help="length of the rollout [s]")
+    p = case_parser(__doc__, num_envs=16, seconds=2.0)
     p.add_argument("--seed", type=int, default=0, help="seed of the sampled actions")
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
     args = p.parse_args(argv)

@@ -33,7 +33,6 @@ on 2 cores)::
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
@@ -47,7 +46,7 @@ from tocabi_torchrl.evaluation.record import policy_steps
 from tocabi_torchrl.rotations import quat_to_rpy
 from tocabi_torchrl.transforms.normalize import freeze_running_statistics
 
-from lab.analysis.reports import check_paths, write_report
+from lab.analysis.reports import case_parser, check_paths, write_report
 
 #: Times [s] at which the displacement is read (the test's case lasts 8 s).
 MARKS_S = (0.5, 1.0, 2.0, 4.0, 8.0)
@@ -175,11 +174,8 @@ def cycle_mean_error(errors: list[torch.Tensor], alive: list[torch.Tensor]) -> d
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", nargs="+", required=True, type=Path, help="checkpoints (.pt) to test")
-    p.add_argument("--case", default="nominal", choices=tuple(robust.CASES), help="a case of the robust test")
-    p.add_argument("--num_envs", type=int, default=64, help="robots (the test asks 1,024 on a GPU)")
-    p.add_argument("--seconds", type=float, default=8.0, help="length of the case [s] (the test's: 8)")
+    p = case_parser(__doc__, num_envs=64, seconds=8.0, robots_help="robots (the test asks 1,024 on a GPU)",
+                    seconds_help="length of the case [s] (the test's: 8)")
     p.add_argument("--calm_start", action="store_true",
                    help="also each checkpoint with the robots starting still (no random start velocities): how much "
                         "of the drift is the start's")

@@ -19,7 +19,6 @@ Wrote docs/training/robust/h200_run8/policy_symmetry.json (about 40 s per checkp
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
@@ -33,7 +32,7 @@ from tocabi_torchrl.rl.actors import gaussian_head
 from tocabi_torchrl.rl.symmetry import SignedPermutation, action_mirror_map, make_policy_input_mirror
 from tocabi_torchrl.transforms.normalize import freeze_running_statistics
 
-from lab.analysis.reports import check_paths, write_report
+from lab.analysis.reports import case_parser, check_paths, write_report
 
 LEGS = robot.NUM_LEG_JOINTS
 
@@ -95,11 +94,7 @@ def measure(path: Path, case: str, num_envs: int, seconds: float) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", nargs="+", required=True, type=Path, help="checkpoints (.pt) to test")
-    p.add_argument("--case", default="nominal", choices=tuple(robust.CASES), help="a case of the robust test")
-    p.add_argument("--num_envs", type=int, default=16, help="robots")
-    p.add_argument("--seconds", type=float, default=2.0, help="length of the rollout [s]")
+    p = case_parser(__doc__, num_envs=16, seconds=2.0)
     p.add_argument("--out", type=Path, default=None, help="JSON to write (default: print only)")
     args = p.parse_args(argv)
     check_paths(p, args.checkpoint, args.out)

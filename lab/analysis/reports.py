@@ -35,6 +35,21 @@ def write_report(out: Path, script: str, argv: Sequence[str] | None, results: li
     print(f"wrote {written}")
 
 
+def case_parser(doc: str, num_envs: int, seconds: float, robots_help: str = "robots",
+                seconds_help: str = "length of the rollout [s]") -> argparse.ArgumentParser:
+    """The options of a script that rolls checkpoints out in one case of the robust test: ``--checkpoint`` (one or
+    more), ``--case``, ``--num_envs`` and ``--seconds`` (their defaults given); add the script's own and ``--out``,
+    then check the paths with :func:`check_paths`."""
+    from tocabi_torchrl.evaluation import robust
+
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--checkpoint", nargs="+", required=True, type=Path, help="checkpoints (.pt) to test")
+    parser.add_argument("--case", default="nominal", choices=tuple(robust.CASES), help="a case of the robust test")
+    parser.add_argument("--num_envs", type=int, default=num_envs, help=robots_help)
+    parser.add_argument("--seconds", type=float, default=seconds, help=seconds_help)
+    return parser
+
+
 def sim2sim_parser(doc: str, contract: Path, seed_help: str) -> argparse.ArgumentParser:
     """The options of a script that runs robots through the torch-free runtime: ``--contract``, ``--num_robots``,
     ``--seconds``, ``--seed`` and ``--out``; add the script's own, then read them with :func:`sim2sim_args`."""
