@@ -109,13 +109,21 @@ def test_the_curves_command_names_a_missing_path_or_a_csv_it_cannot_plot(tmp_pat
     assert (tmp_path / "knees.png").read_bytes().startswith(b"\x89PNG")
 
 
-def test_the_curves_show_a_value_that_has_no_neighbour_to_draw_a_line_to(tmp_path, monkeypatch):
-    # A line through one point draws nothing: a run of one logged iteration plotted three empty panels.
+@pytest.fixture
+def drawn_figures(monkeypatch):
+    """The figures ``rl.curves`` draws in the test, in order, instead of saved."""
     from tocabi_torchrl.evaluation import plots
-    from tocabi_torchrl.rl import curves
 
     figures = []
     monkeypatch.setattr(plots, "save_figure", lambda fig, path, *a, **k: figures.append(fig) or path)
+    return figures
+
+
+def test_the_curves_show_a_value_that_has_no_neighbour_to_draw_a_line_to(tmp_path, drawn_figures):
+    # A line through one point draws nothing: a run of one logged iteration plotted three empty panels.
+    from tocabi_torchrl.rl import curves
+
+    figures = drawn_figures
     (tmp_path / "m.csv").write_text("iteration,env_steps,episode_return,episode_length,reward,reward_terms/qpos\n"
                                     "1,10,1,5,0.1,0.3\n2,20,2,6,0.2,nan\n3,30,3,7,0.3,0.2\n")
     (tmp_path / "one.csv").write_text("iteration,env_steps,episode_return,episode_length,reward\n1,10,1,5,0.1\n")
@@ -287,12 +295,10 @@ def test_wandb_wiring_with_a_stand_in_package(tmp_path, monkeypatch):
     assert runs[1].kwargs["id"] == "new-id" and runs[1].kwargs["resume"] == "allow"
 
 
-def test_the_curves_draw_the_update_where_the_run_logged_it(tmp_path, monkeypatch):
-    from tocabi_torchrl.evaluation import plots
+def test_the_curves_draw_the_update_where_the_run_logged_it(tmp_path, drawn_figures):
     from tocabi_torchrl.rl import curves
 
-    figures = []
-    monkeypatch.setattr(plots, "save_figure", lambda fig, path, *a, **k: figures.append(fig) or path)
+    figures = drawn_figures
     (tmp_path / "u.csv").write_text("iteration,env_steps,episode_return,episode_length,reward,lr,kl,clip_fraction,"
                                     "behaviour_ess\n1,10,1,5,0.1,1e-3,0.02,0.3,0.9\n2,20,2,6,0.2,5e-4,0.03,0.2,0.8\n")
     (tmp_path / "n.csv").write_text("iteration,env_steps,episode_return,episode_length,reward\n1,10,1,5,0.1\n")

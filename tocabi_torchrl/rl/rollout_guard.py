@@ -93,9 +93,9 @@ def behaviour_ess(log_is_weight: torch.Tensor, td: TensorDictBase, mask_key: str
     """The effective sample size, as a fraction of the frames (a 0-d tensor), of the weights the decoupled surrogate
     applies, w = π_prox / π_behav (``log_is_weight`` (B, 1); where ``max_importance_ratio`` caps them, the capped
     ones): (mean w)² / mean w², over the frames of ``td`` (B,) that ``mask_key`` marks usable
-    (:func:`mean_over_valid`), detached; 0 where none is. TorchRL's own ``ESS`` output is of π_θ / π_behav, over every
-    frame. 1 where every frame weighs alike (the proximal
-    policy is the one that acted); near 1/B where a few frames carry the mini-batch's gradient.
+    (:func:`mean_over_valid`), detached; 0 where none is. 1 where every frame weighs alike (the proximal policy is
+    the one that acted); near 1/B where a few frames carry the mini-batch's gradient. TorchRL's own ``ESS`` output is
+    of π_θ / π_behav, over every frame.
 
     >>> import torch
     >>> from tensordict import TensorDict
