@@ -521,8 +521,7 @@ class TocabiWalk(EnvBase):
         a = torch.nan_to_num(action.to(torch.float32), nan=0.0).clamp(self._act_low, self._act_high)
 
         # Reference at the pre-step clock: targets for the whole step, row for force reference and stance.
-        row = self.motion.row_index(self.time, self.init_row)
-        q_ref = self.motion.joint_targets(self.time, self.init_row)
+        row, q_ref = self.motion.row_and_targets(self.time, self.init_row)
         self.command.update(self.episode_step)
         rate = 1.0 + self.cfg.task.phase_rate_gain * a[:, -1]
 
@@ -771,8 +770,7 @@ class TocabiWalk(EnvBase):
         if self.cycle_velocity is not None:
             self.cycle_velocity.reset(mask)
         # Upper-body servos start on the initial pose so the reset state's forward pass sees no PD transient.
-        row = self.motion.row_index(self.time, self.init_row)
-        q_ref = self.motion.joint_targets(self.time, self.init_row)
+        row, q_ref = self.motion.row_and_targets(self.time, self.init_row)
         torch.where(m, q_ref, self.ref_joint_pos, out=self.ref_joint_pos)
         torch.where(m, self.motion.force_reference(row), self.ref_foot_force, out=self.ref_foot_force)
         torch.where(mask, self.motion.stance_at(row), self.stance, out=self.stance)

@@ -158,6 +158,23 @@ class ReferenceMotion:
         """
         return self.interpolate(self.joint_pos, time, init_row)
 
+    def row_and_targets(self, time: torch.Tensor, init_row: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`row_index` and :meth:`joint_targets` from one read of the clock (the env step wants both, and on a
+        GPU every op of the step is a kernel).
+
+        Returns:
+            (num_envs,) int64 row index and (num_envs, 33) float32 joint targets [rad].
+
+        >>> import torch
+        >>> motion = ReferenceMotion.default()
+        >>> t, start = torch.tensor([0.0, 0.75]), torch.tensor([0, 100])
+        >>> row, q = motion.row_and_targets(t, start)
+        >>> torch.equal(row, motion.row_index(t, start)), torch.equal(q, motion.joint_targets(t, start))
+        (True, True)
+        """
+        idx, s = self._row_and_fraction(time, init_row)
+        return idx, self._blend(self.joint_pos, idx, s)
+
     def interpolate(self, table: torch.Tensor, time: torch.Tensor, init_row: torch.Tensor) -> torch.Tensor:
         """Any per-row table (R, k) read like the joint targets: the zero-velocity cubic between rows ``idx`` and
         ``idx + 1`` at each env's clock (:meth:`joint_targets` is this on :attr:`joint_pos`).
@@ -165,7 +182,11 @@ class ReferenceMotion:
         Returns:
             (num_envs, k) float32.
         """
-        idx, s = self._row_and_fraction(time, init_row)
+        return self._blend(table, *self._row_and_fraction(time, init_row))
+
+    @staticmethod
+    def _blend(table: torch.Tensor, idx: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        """(num_envs, k): rows ``idx`` and ``idx + 1`` of ``table`` joined by the zero-velocity cubic at ``s``."""
         q0 = table.index_select(0, idx)
         q1 = table.index_select(0, idx + 1)
         w = (s * s * (3.0 - 2.0 * s)).unsqueeze(-1)
