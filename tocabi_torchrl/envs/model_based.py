@@ -134,7 +134,9 @@ class ComputedTorque:
         self.block = DenseBlock(mj_model, dofs, num_worlds=num_envs, device=device)
         self.motion = motion
         vel, acc = motion.joint_derivatives(half_width)
-        self.ref_vel, self.ref_acc = vel[:, robot.LEGS].contiguous(), acc[:, robot.LEGS].contiguous()
+        #: (R, 24) the legs' reference velocity [rad/s] then acceleration [rad/s²] per row: one table, so that one
+        #: lookup (one row computation, two gathers) reads both every step.
+        self.ref_vel_acc = torch.cat((vel[:, robot.LEGS], acc[:, robot.LEGS]), dim=1)
         self.half_width = half_width
         #: (N, 12) N·m, the feed-forward torque of the last call (overwritten in place).
         self.torque = torch.zeros(num_envs, n_leg, dtype=f32, device=device)
@@ -143,9 +145,8 @@ class ComputedTorque:
                               rate: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(N, 12) q̇_ref [rad/s] and q̈_ref [rad/s²] at the pre-step clock, for phase rate ``rate`` (N,)."""
         r = rate.unsqueeze(-1)
-        vel = self.motion.interpolate(self.ref_vel, time, init_row) * r
-        acc = self.motion.interpolate(self.ref_acc, time, init_row) * (r * r)
-        return vel, acc
+        vel, acc = self.motion.interpolate(self.ref_vel_acc, time, init_row).split(robot.NUM_LEG_JOINTS, dim=1)
+        return vel * r, acc * (r * r)
 
     def __call__(self, sim, q_ref: torch.Tensor, time: torch.Tensor, init_row: torch.Tensor,
                  rate: torch.Tensor) -> torch.Tensor:
