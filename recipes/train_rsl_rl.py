@@ -10,8 +10,8 @@ gain 0.01, plain L2 value loss), and so do the learning rate and the std by defa
 follows the preset's KL rule (``--lr_schedule per_iteration``: towards a KL of 0.01, on the update's mean KL, once per
 iteration); rsl_rl's own rule (``adaptive``: the same target, checked before every mini-batch step) held it near 1e-4,
 the critic lagged and three rows of up to 22 minutes on one H200 did not walk, while this rule walked at 10
-(docs/other-libraries.md). The std by default (``--std scheduled``): the preset's schedule (from 0.2 down to 0.05 over the
-first half of the preset's env-step budget, then 0.05), set after each update from the env steps trained, not
+(docs/other-libraries.md). The std by default (``--std scheduled``): the preset's schedule (from 0.2 down to 0.05 over
+the first half of the preset's env-step budget, then 0.05), set after each update from the env steps trained, not
 learned. ``--std learned`` is rsl_rl's own way (a learned std starting at 0.2); on one H200 it fell to 0.03 and the
 policy had not walked after 22 minutes (docs/other-libraries.md). Writes rsl_rl's own logs and model_*.pt under
 <out>/rsl_rl, the policy as <out>/policy.pt (tensors only, tocabi_torchrl.adapters.policy_file) and the gait test
@@ -202,8 +202,8 @@ def main(argv=None) -> dict:
                          f"{prior['settings']}, given {settings}")
     calls = int(prior.get("calls", 0))
     # Each call logs to its own folder: rsl_rl's model_<it>.pt and event files of earlier calls stay as they were.
-    runner = OnPolicyRunner(env, cfg, log_dir=str(out / "rsl_rl" if calls == 0 else fresh_dir(out / f"rsl_rl_call{calls + 1}")),
-                            device=str(env.device))
+    log_dir = out / "rsl_rl" if calls == 0 else fresh_dir(out / f"rsl_rl_call{calls + 1}")
+    runner = OnPolicyRunner(env, cfg, log_dir=str(log_dir), device=str(env.device))
     # The preset's own networks start so (spec §10.3), rsl_rl's would not: PyTorch's default init gives first action
     # means far from 0, and the first rollouts fall instead of replaying the reference (a resumed call loads weights).
     init_orthogonal(runner.alg.actor.mlp, ACTION_OUT_GAIN)

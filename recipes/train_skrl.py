@@ -166,7 +166,8 @@ def main(argv=None) -> dict:
         entropy_loss_scale=0.0, value_loss_scale=1.0, time_limit_bootstrap=True,
         # Each call writes skrl's logs and checkpoints to its own experiment folder: skrl names its checkpoints by
         # the call's own timestep, which restarts at 0, so a shared folder would overwrite the earlier call's.
-        experiment={"directory": str(out / "skrl"), "experiment_name": "ppo" if calls == 0 else fresh_dir(out / "skrl" / f"ppo_call{calls + 1}").name,
+        experiment={"directory": str(out / "skrl"),
+                    "experiment_name": "ppo" if calls == 0 else fresh_dir(out / "skrl" / f"ppo_call{calls + 1}").name,
                     "write_interval": args.rollouts, "checkpoint_interval": 100 * args.rollouts})
     memory = RandomMemory(memory_size=args.rollouts, num_envs=env.num_envs, device=env.device)
     agent = time_limit_ppo()(models=models, memory=memory, observation_space=env.observation_space,

@@ -102,7 +102,8 @@ def base_parser(description: str, num_envs: int, iterations: int,
     ``presets``: the preset names ``--preset`` lists (``tocabi_torchrl.config.PRESETS``, which this module, imported
     by the config, cannot import itself)."""
     parser = RecipeParser(description=description)
-    parser.add_argument("--num_envs", type=int, default=num_envs, help=f"robots simulated at once (default: {num_envs})")
+    parser.add_argument("--num_envs", type=int, default=num_envs,
+                        help=f"robots simulated at once (default: {num_envs})")
     parser.add_argument("--device", default="auto", help="auto (CUDA if present, else cpu), cpu, cuda or cuda:N "
                         "(default: auto)")
     parser.add_argument("--iterations", type=int, default=iterations,

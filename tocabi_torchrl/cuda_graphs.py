@@ -183,7 +183,8 @@ class WarmCapture:
                  modes: Sequence[str] = ("joined",), capturer: Capturer = CUDA_GRAPHS,
                  warmup_option: str = "warmup"):
         if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 1:
-            raise ValueError(f"{name}: {warmup_option} must be an int >= 1 (eager calls before the capture), got {warmup!r}")
+            raise ValueError(f"{name}: {warmup_option} must be an int >= 1 (eager calls before the capture), "
+                             f"got {warmup!r}")
         self.name, self.what, self.eager, self.build = name, what, eager, build
         self.warmup, self.modes, self.capturer = warmup, tuple(modes), capturer
         self.replayer: Callable | None = None

@@ -63,10 +63,10 @@ def make_env(
             See :class:`~tocabi_torchrl.envs.autoreset.SyncFreeResetEnv` for what a capture freezes.
         overrides: env options as flat names (e.g. ``control_mode="pd"``, ``max_episode_steps=1000``, see
             ``envs.config.ENV_FLAT_PATHS``) or sections (``command=CommandConfig.reference()``), a user-defined
-            ``leg_controller`` (:class:`~tocabi_torchrl.control.Controller`, docs/concepts/controllers.md), and fields of
-            :class:`~tocabi_torchrl.transforms.TransformConfig` (e.g. ``reward_weights={"qpos": 0.5}``, which
-            re-weights the named terms on top of the settings' weights,
-            ``normalization="running"``, ``history=HistoryLayout(...)``); a name in neither raises.
+            ``leg_controller`` (:class:`~tocabi_torchrl.control.Controller`, docs/concepts/controllers.md), and fields
+            of :class:`~tocabi_torchrl.transforms.TransformConfig` (e.g. ``reward_weights={"qpos": 0.5}``, which
+            re-weights the named terms on top of the settings' weights, ``normalization="running"``,
+            ``history=HistoryLayout(...)``); a name in neither raises.
             ``reward_terms`` replaces every reward term, and a list that leaves out a term beyond the reference's
             that the transform settings switch on (the robust preset's ``heading`` and ``foot_gap``: its
             ``heading_weight``, ``foot_gap_weight``, ``cycle_vel_weight`` > 0) raises ``ValueError`` naming them,

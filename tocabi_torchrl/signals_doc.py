@@ -1,8 +1,8 @@
 """docs/concepts/env-and-signals.md's table, generated from the signal table (:mod:`tocabi_torchrl.signals`).
 
 ``python -m tocabi_torchrl.signals_doc`` rewrites the table between the two marker lines of
-docs/concepts/env-and-signals.md (the prose around it is edited by hand); ``--check`` only reports whether the file is current (exit status 1 if not), which
-``tests/test_signals.py`` also asserts.
+docs/concepts/env-and-signals.md (the prose around it is edited by hand); ``--check`` only reports whether the file is
+current (exit status 1 if not), which ``tests/test_signals.py`` also asserts.
 """
 
 from __future__ import annotations

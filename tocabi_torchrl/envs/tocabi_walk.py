@@ -1,9 +1,9 @@
 """TocabiWalk: the batched, GPU-native TorchRL environment of the TOCABI walking task.
 
-N TOCABI worlds step at once in mujoco-warp on ``device`` (or, with ``backend="mujoco"``, in C MuJoCo on CPU
-threads); every tensor this env reads or returns stays on ``device``. The
-env returns raw, physically named signals (``docs/concepts/env-and-signals.md``); the policy observation and the reward are composed
-from them by transforms (``tocabi_torchrl.transforms``, ``tocabi_torchrl.make_env``).
+N TOCABI worlds step at once in mujoco-warp on ``device`` (or, with ``backend="mujoco"``, in C MuJoCo on CPU threads);
+every tensor this env reads or returns stays on ``device``. The env returns raw, physically named signals
+(``docs/concepts/env-and-signals.md``); the policy observation and the reward are composed from them by transforms
+(``tocabi_torchrl.transforms``, ``tocabi_torchrl.make_env``).
 
 One step (spec §11): clip the action; look the reference targets up at the pre-step phase clock; update the
 velocity command; write leg commands and upper-body targets into the simulator's controls; run the physics (one
@@ -165,17 +165,17 @@ class TocabiWalk(EnvBase):
         seed: seed of the env's own torch generator (initial phase, commands) and of the obstacles' per-world jitter
             (drawn once, at build: see ``BoxObstacle.jitter``); None = a random seed.
         leg_controller: a :class:`~tocabi_torchrl.control.Controller` for the 12 leg joints that replaces the one
-            ``env.control.mode`` names (docs/concepts/controllers.md); it reads the action's first 12 entries. None = the
-            config's.
+            ``env.control.mode`` names (docs/concepts/controllers.md); it reads the action's first 12 entries. None =
+            the config's.
 
     Action (N, 13): 12 leg commands in [-1, 1] (torques as a fraction of the limits, or PD targets, see the
     config's ``control.mode``) and one phase-rate action in [0, 1]. Actions outside the bounds are clipped; NaN
     entries are treated as 0 (checking for them would need a host synchronisation).
 
-    Output keys and units: ``docs/concepts/env-and-signals.md``. ``done``/``terminated``/``truncated`` are (N, 1) bool; the reward of
-    the bare env is 0 (the task reward is the ``TaskReward`` transform). Resets follow TorchRL's ``"_reset"``
-    mask, (N, 1) bool on ``device``, and touch only the flagged worlds, without host synchronisation; a step before
-    the first reset raises ``RuntimeError``.
+    Output keys and units: ``docs/concepts/env-and-signals.md``. ``done``/``terminated``/``truncated`` are (N, 1) bool;
+    the reward of the bare env is 0 (the task reward is the ``TaskReward`` transform). Resets follow TorchRL's
+    ``"_reset"`` mask, (N, 1) bool on ``device``, and touch only the flagged worlds, without host synchronisation; a
+    step before the first reset raises ``RuntimeError``.
     """
 
     batch_locked = True

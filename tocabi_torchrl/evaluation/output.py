@@ -14,7 +14,8 @@ class OutputExistsError(RuntimeError):
 
 def check_results_folder(out_dir, names, replace: bool) -> None:
     """Before an evaluation builds anything: ``ValueError`` if ``out_dir`` is a file, :class:`OutputExistsError` if it
-    holds one of the evaluation's result files ``names`` and not ``replace``. ``out_dir`` None (a fresh folder) passes."""
+    holds one of the evaluation's result files ``names`` and not ``replace``. ``out_dir`` None (a fresh folder)
+    passes."""
     if out_dir is None:
         return
     out_dir = Path(out_dir)

@@ -22,8 +22,8 @@ from .. import robot
 from ..atomic import atomic_write_bytes
 from ..render_gl import offscreen_unavailable
 
-__all__ = ["CAMERA_POS", "SHADOW_BUDGET_S", "RenderingUnavailable", "free_camera", "label_image", "render_stills", "render_timelapse",
-           "render_video", "rendering_unavailable", "save_strip"]
+__all__ = ["CAMERA_POS", "SHADOW_BUDGET_S", "RenderingUnavailable", "free_camera", "label_image", "render_stills",
+           "render_timelapse", "render_video", "rendering_unavailable", "save_strip"]
 
 #: TocabiLab's camera for the gait figures [m], world frame: to the robot's left, ahead of the start, above.
 CAMERA_POS = (2.0, 6.0, 2.5)

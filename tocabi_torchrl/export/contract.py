@@ -24,7 +24,8 @@ __all__ = ["SIGNAL_DOCS", "ExportError", "build_contract", "config_sha256", "sha
 _SIDES = ("left", "right")
 _AXES = ("x", "y", "z")
 
-#: Unit, frame and source of every signal the observation may read (docs/concepts/env-and-signals.md has the env's side).
+#: Unit, frame and source of every signal the observation may read (docs/concepts/env-and-signals.md has the env's
+#: side).
 SIGNAL_DOCS: dict[str, dict[str, str]] = {
     "base_rpy": {"unit": "rad", "frame": "world; fixed-XYZ (roll, pitch, yaw) of the base body (pelvis) quaternion, "
                  "yaw = absolute heading", "source": "qpos[3:7] (w, x, y, z) -> Euler angles"},

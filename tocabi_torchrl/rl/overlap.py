@@ -1,27 +1,26 @@
 """The PPO update on a side CUDA stream while the next rollout is collected (``ppo.overlap_update``).
 
-mujoco-warp steps a few thousand worlds in kernels that leave most of a GPU's multiprocessors idle (its solver
-iterates every world in lockstep, one thread per world in many kernels), and the trainer's update, a few hundred
-matrix-product kernels per mini-batch, can fill them. :class:`UpdateOverlap` runs iteration k's update on a stream of
-its own and lets the host go on to collect rollout k+1 on the training stream (:meth:`UpdateOverlap.collecting`: a
-stream of high priority), with a copy of the actor taken before
-update k: each rollout is collected with the policy of one update before. Measured against that policy (the
-rollout's stored log-probabilities), every mini-batch's ratio, clip and approximate KL would also hold the previous
-update's move, and the adaptive learning rate would fall for it (a pd-preset run sat at its floor,
-docs/training/pd/h100_overlap_seed0). So the trainer makes the update decoupled PPO
-(``GuardedClipPPOLoss.use_proximal``): before each update it stores each frame's log-probability under the policy
-the update starts from, and the ratio, clip and KL are taken from that one.
+mujoco-warp steps a few thousand worlds in kernels that leave most of a GPU's multiprocessors idle (its solver iterates
+every world in lockstep, one thread per world in many kernels), and the trainer's update, a few hundred matrix-product
+kernels per mini-batch, can fill them. :class:`UpdateOverlap` runs iteration k's update on a stream of its own and lets
+the host go on to collect rollout k+1 on the training stream (:meth:`UpdateOverlap.collecting`: a stream of high
+priority), with a copy of the actor taken before update k: each rollout is collected with the policy of one update
+before. Measured against that policy (the rollout's stored log-probabilities), every mini-batch's ratio, clip and
+approximate KL would also hold the previous update's move, and the adaptive learning rate would fall for it (a pd-preset
+run sat at its floor, docs/training/pd/h100_overlap_seed0). So the trainer makes the update decoupled PPO
+(``GuardedClipPPOLoss.use_proximal``): before each update it stores each frame's log-probability under the policy the
+update starts from, and the ratio, clip and KL are taken from that one.
 
-Order, per iteration (host): :meth:`finish` waits for the previous update and hands back its losses; the trainer
-then reads the learner (GAE's critic, the teacher, the symmetry's statistics), sets its schedules, :meth:`refresh`
-copies the learner's actor into the collector's (on the training stream), and :meth:`launch` starts the update on
-the side stream after everything queued on the training stream so far. What the update reads (the rollout's
-flattened copy: the trainer's is the update step's own buffer, ``MinibatchStep.keep``) is not written again before
-:meth:`finish`, and :meth:`launch`'s ``keep`` holds a reference until then, so the allocator cannot hand memory the
-side stream still reads to the next rollout. The losses come back through pinned memory
-(:class:`~.deferred_read.DeferredRead`, copied on the side stream): :meth:`finish` waits for that update alone, not for the rollout queued on the training
-stream since. On a CPU there is no stream: :meth:`launch` runs the update at once, in the same
-order, so a CPU run trains exactly as a GPU run would without the concurrency.
+Order, per iteration (host): :meth:`finish` waits for the previous update and hands back its losses; the trainer then
+reads the learner (GAE's critic, the teacher, the symmetry's statistics), sets its schedules, :meth:`refresh` copies the
+learner's actor into the collector's (on the training stream), and :meth:`launch` starts the update on the side stream
+after everything queued on the training stream so far. What the update reads (the rollout's flattened copy: the
+trainer's is the update step's own buffer, ``MinibatchStep.keep``) is not written again before :meth:`finish`, and
+:meth:`launch`'s ``keep`` holds a reference until then, so the allocator cannot hand memory the side stream still reads
+to the next rollout. The losses come back through pinned memory (:class:`~.deferred_read.DeferredRead`, copied on the
+side stream): :meth:`finish` waits for that update alone, not for the rollout queued on the training stream since. On a
+CPU there is no stream: :meth:`launch` runs the update at once, in the same order, so a CPU run trains exactly as a GPU
+run would without the concurrency.
 
 >>> import torch
 >>> actor = torch.nn.Linear(2, 1)

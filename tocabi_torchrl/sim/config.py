@@ -1,4 +1,5 @@
-"""Configuration of the physics backends (:class:`~tocabi_torchrl.sim.WarpSim`, :class:`~tocabi_torchrl.sim.MujocoSim`)."""
+"""Configuration of the physics backends (:class:`~tocabi_torchrl.sim.WarpSim`,
+:class:`~tocabi_torchrl.sim.MujocoSim`)."""
 
 from __future__ import annotations
 

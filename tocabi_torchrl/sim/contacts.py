@@ -17,9 +17,10 @@ scene outside the robot: each subtree that hangs from the world body beside the 
 ``envs.obstacles``). Each such *scene root* gets the same three ground sensors (per foot, whole robot) and the allowed
 subtrees' ones, and the signals add its counts to the world body's, so a foot on an obstacle is foot contact and a
 forbidden body on it is forbidden ground contact. A model with scene roots has two more signal rows,
-``SCENE_SIGNAL_NAMES``: a foot touches a scene body (the env's ``obstacle_contact``). A model without them gets
-exactly the sensors and rows it had before scene roots were counted. The allowed subtrees are not written by hand: they are derived from ``robot.GROUND_FORBIDDEN_BODIES`` / ``robot.SELF_COLLISION_BODIES`` and the
-model's body tree, so the two lists stay the single source of truth.
+``SCENE_SIGNAL_NAMES``: a foot touches a scene body (the env's ``obstacle_contact``). A model without them gets exactly
+the sensors and rows it had before scene roots were counted. The allowed subtrees are not written by hand: they are
+derived from ``robot.GROUND_FORBIDDEN_BODIES`` / ``robot.SELF_COLLISION_BODIES`` and the model's body tree, so the two
+lists stay the single source of truth.
 
 ``found`` counts every matching contact, also beyond ``Option.contact_sensor_maxmatch`` (that limit only bounds the
 per-contact slots, which these sensors do not use), so the sums are exact.

@@ -20,11 +20,12 @@ warm start. Since that forward pass already computed the position and velocity s
 step's first substep is ``mj_step2``; the trajectory is bit-identical to ``mj_step`` × ``substeps`` after such a
 forward pass (``tests/test_sim_mujoco.py``).
 
-Per-world model fields (``SimConfig.per_world_fields``): each world then steps its own copy of the model (one copy:
-its substeps switch the copy's sensor flag off and back, as only that world's thread uses it), and :attr:`MujocoSim.model_fields` holds every world's row of those fields as float64
-tensors. A world whose rows changed since they were last taken gets them copied into its models before its next
-step, reset or forward pass (only that world's; the comparison is one vectorised check per field). Without the
-option every world reads the one compiled model, as before.
+Per-world model fields (``SimConfig.per_world_fields``): each world then steps its own copy of the model (one copy: its
+substeps switch the copy's sensor flag off and back, as only that world's thread uses it), and
+:attr:`MujocoSim.model_fields` holds every world's row of those fields as float64 tensors. A world whose rows changed
+since they were last taken gets them copied into its models before its next step, reset or forward pass (only that
+world's; the comparison is one vectorised check per field). Without the option every world reads the one compiled model,
+as before.
 
 Contact signals come from the same contact sensors and :class:`~tocabi_torchrl.sim.contacts.ContactLayout` sums as
 the warp backend. Health: finite qpos/qvel/sensordata and none of

@@ -1,4 +1,5 @@
-"""TorchRL transforms that turn ``TocabiWalk``'s raw signals (docs/concepts/env-and-signals.md) into the policy input and the reward.
+"""TorchRL transforms that turn ``TocabiWalk``'s raw signals (docs/concepts/env-and-signals.md) into the policy input
+and the reward.
 
 One module per job:
 
@@ -81,7 +82,11 @@ __getattr__, __dir__ = lazy_names(globals(), {
     "settings": ("HISTORIES", "RewardWeights", "TransformConfig", "TransformSettings", "transform_config"),
     "reward": ("TaskReward",),
     "kick_relax_config": ("KICK_RELAX_TERMS", "KickRelax"),
-    "reward_terms": ("REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern", "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "FootGap", "CycleVelTracking", "HeadingHold", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm", "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
+    "reward_terms": (
+        "REFERENCE_TERMS", "BodyVelTracking", "CallableTerm", "ContactForce", "ContactForceDiff", "FootContactPattern",
+        "ForceDiffThresholdPenalty", "ForceReference", "ForceThresholdPenalty", "FootGap", "CycleVelTracking",
+        "HeadingHold", "JointAccRegulation", "JointPosTracking", "JointVelRegulation", "NeckOrientation", "RewardTerm",
+        "TorqueDiffRegulation", "TorqueRegulation", "reference_terms"),
     "sensor_noise": ("SensorNoise",),
     "sensor_noise_config": ("SensorNoiseConfig",),
 })
