@@ -749,11 +749,13 @@ TRAIN_OVER_CEILING_OVERLAP = "benchmarks/train_over_ceiling_overlap"
 #: Later runs of the same options, listed after those of their env count: the simulator's reset pass over the reset
 #: worlds alone (library code at 558ec91 and fc5b42b, the same); its row copies fused and the update's smaller
 #: selection (086d9f3: both counts in one run, and one with two epochs a PPO update instead of five); the `pd`
-#: preset with the overlapped update (928dc1e: both counts in one run, and 16,384 with two epochs).
+#: preset with the overlapped update (928dc1e: both counts in one run, and 16,384 with two epochs); the default
+#: preset's options with two epochs, both counts in one run (f4759b2).
 TRAIN_OVER_CEILING_NEWER = ("h100_558ec91/envs4096.json", "h100_fc5b42b/envs16384_sms0.json",
                             "h100_086d9f3/envs16384_4096.json", "h100_086d9f3/envs16384_epochs2.json",
                             "h100_928dc1e/pd_overlap_envs16384_4096.json",
-                            "h100_928dc1e/pd_overlap_epochs2_envs16384.json")
+                            "h100_928dc1e/pd_overlap_epochs2_envs16384.json",
+                            "h100_f4759b2/envs16384_4096_epochs2.json")
 
 
 def train_over_ceiling_variants(docs: Path) -> list[str]:
