@@ -58,6 +58,8 @@ ENV_GRAPH_MODES = ("auto", "on", "off")
 GRAD_SYNCS = ("allreduce", "ddp")
 #: torch's float32 matrix-product precisions a run may train with (``ppo.matmul_precision``).
 MATMUL_PRECISIONS = ("highest", "high")
+#: The dtypes the PPO update's hidden layers may compute in (``ppo.update_dtype``).
+UPDATE_DTYPES = ("float32", "bfloat16")
 _GRAPH_ALIASES = {"true": "on", "yes": "on", "1": "on", "false": "off", "no": "off", "0": "off"}
 STD_MODES = ("scheduled", "learned")
 #: What the torque assist's absorbing loss copies into the actor (``ppo.assist_target``; rl/assist.py).
@@ -298,6 +300,18 @@ class PPOConfig:
     #: to every torch product in the process, the env's transforms included; C MuJoCo and mujoco-warp are untouched.
     matmul_precision: str = "highest"
     """float32 matrix products while training: highest (float32) or high (TF32 on GPUs)"""
+    #: The dtype the PPO update's hidden layers compute in: "float32", or "bfloat16" (torch.autocast around the
+    #: update's network passes, the proximal log-probabilities of ``overlap_update`` included). The output layers
+    #: (action mean, value), the distribution, the losses, the gradients and the optimiser stay float32
+    #: (rl/networks.OutputLinear). Half the bytes per activation: beside the rollout (``overlap_update``), the
+    #: update's memory traffic slows the physics. The rollout's own policy pass stays float32.
+    update_dtype: str = "float32"
+    """the PPO update's hidden layers in float32 or bfloat16 (output layers, loss and optimiser stay float32)"""
+    #: Compile the PPO loss with torch.compile (static shapes; the first mini-batch steps compile it, a few tens of
+    #: seconds once per run): its element-wise kernels fused, 29 % off the update's GPU time at 16,384 envs on an
+    #: H100 (docs/benchmarks/train_over_ceiling_overlap). Needs a C++ compiler on a CPU and Triton on a GPU.
+    compile_loss: bool = False
+    """compile the PPO loss with torch.compile (fused kernels; compiles during the first mini-batch steps)"""
     #: Keep every env signal (joint_pos, base_pos, ...) in the training rollout; off: only what PPO and the logs
     #: read (observation, reward, done flags, reward terms, episode counters), ~40 % less rollout memory.
     store_env_signals: bool = False
@@ -711,7 +725,8 @@ def field_choices() -> dict[str, tuple[str, ...]]:
             "ppo.kl_adapt_every": KL_ADAPT_MODES,
             "env.sim.backend": ("warp", "mujoco", "auto"),
             "env.sim.reset_pass": RESET_PASSES, "ppo.grad_sync": GRAD_SYNCS,
-            "ppo.matmul_precision": MATMUL_PRECISIONS, "eval_test": EVAL_TESTS, "ppo.symmetry": SYMMETRY_MODES}
+            "ppo.matmul_precision": MATMUL_PRECISIONS, "ppo.update_dtype": UPDATE_DTYPES, "eval_test": EVAL_TESTS,
+            "ppo.symmetry": SYMMETRY_MODES}
 
 
 def canonical_choices(cfg: RunConfig) -> RunConfig:

@@ -49,8 +49,8 @@ from ..transforms.normalize import RunningNormalization
 from ..transforms.privileged import PRIVILEGED_DIM, PrivilegedState
 from .symmetry import (SymmetryAugmentLoss, apply_checkpoint_policy, find_normalization, make_equivariant_mean,
                        make_symmetry_loss, refresh_statistics, set_equivariant_statistics)
-from .update_step import (MinibatchKLRule, MinibatchStep, adapt_lr, get_lr, make_capturable_adam, optimizer_mode,
-                          restore_optimizer_mode, set_lr)
+from .update_step import (AUTOCAST_DTYPES, MinibatchKLRule, MinibatchStep, adapt_lr, get_lr, make_capturable_adam,
+                          optimizer_mode, restore_optimizer_mode, set_lr, update_autocast)
 
 __all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer",
            "make_update_step", "training_keys", "train", "resolve_device", "float32_matmul_precision",
@@ -460,8 +460,13 @@ def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.
     if _minibatch_kl(cfg):
         kl_rule = MinibatchKLRule([g for g in optimizer.param_groups if not g.get("fixed")], cfg.ppo.desired_kl,
                                   cfg.ppo.lr_min, device)
+    if cfg.ppo.compile_loss:
+        # Static shapes: every mini-batch has the same size. The eager steps before the capture compile it; a
+        # captured step replays the compiled kernels like any others.
+        step_loss = torch.compile(step_loss, dynamic=False)
     return MinibatchStep(step_loss, optimizer, params, cfg.ppo.max_grad_norm,
-                         use_graph=plan_graphs(cfg, device).update, grad_sync=sync, kl_rule=kl_rule)
+                         use_graph=plan_graphs(cfg, device).update, grad_sync=sync, kl_rule=kl_rule,
+                         autocast_dtype=AUTOCAST_DTYPES[cfg.ppo.update_dtype])
 
 
 def make_loss(cfg: RunConfig, agent: Agent, env: EnvBase | None = None,
@@ -979,7 +984,8 @@ def _update_rows(loss_module: torch.nn.Module, work: TensorDictBase) -> TensorDi
     return work.select(*_loss_keys(loss_module, work)).reshape(-1)
 
 
-def _fill_proximal(loss_module: torch.nn.Module, flat: TensorDictBase) -> None:
+def _fill_proximal(loss_module: torch.nn.Module, flat: TensorDictBase, autocast_dtype: torch.dtype | None = None,
+                   ) -> None:
     """Write each frame's log-probability (n,) of its action under the learner as this update starts (its std
     schedule set) into ``flat``'s :data:`PROXIMAL_KEY`, in place, without gradients, :data:`_VALUE_CHUNK_FRAMES`
     frames at a time: the proximal policy of the decoupled update (``GuardedClipPPOLoss.use_proximal``). No random
@@ -989,7 +995,8 @@ def _fill_proximal(loss_module: torch.nn.Module, flat: TensorDictBase) -> None:
     left some rollouts acting with the mean action, without exploration (two pd-preset runs, whose logged
     torque-change reward jumped between two levels from one logged iteration to the next). The learner's
     :class:`~.actors.GaussianHead` computes it directly (:func:`~.actors.gaussian_log_prob`), with the parameters
-    the loss trains."""
+    the loss trains, autocast to ``autocast_dtype`` as the update's passes are (``ppo.update_dtype``), so that the
+    update's ratios start from 1 and not from bfloat16's rounding."""
     ppo = next((m for m in loss_module.modules() if isinstance(m, GuardedClipPPOLoss)), None)
     if ppo is None or ppo.proximal_key != PROXIMAL_KEY:
         raise ValueError("_fill_proximal needs a loss whose GuardedClipPPOLoss reads the proximal log-probabilities "
@@ -997,7 +1004,7 @@ def _fill_proximal(loss_module: torch.nn.Module, flat: TensorDictBase) -> None:
     head = gaussian_head(ppo.actor_network)
     (obs_key,) = ppo.actor_network.in_keys  # make_actor's actor reads one entry
     obs, action, out = flat.get(obs_key), flat.get(ppo.tensor_keys.action), flat.get(PROXIMAL_KEY)
-    with torch.no_grad():
+    with torch.no_grad(), update_autocast(autocast_dtype, obs.device):
         for start in range(0, flat.shape[0], _VALUE_CHUNK_FRAMES):
             rows = slice(start, start + _VALUE_CHUNK_FRAMES)
             out[rows].copy_(gaussian_log_prob(head, obs[rows], action[rows]).reshape(-1))
@@ -1036,7 +1043,7 @@ def _update_stats(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, act
     (a decoupled update, ``ppo.overlap_update``), it first fills ``flat``'s proximal log-probabilities
     (:func:`_fill_proximal`), wherever the update runs: beside the next rollout, on the update's stream."""
     if proximal_loss is not None:
-        _fill_proximal(proximal_loss, flat)
+        _fill_proximal(proximal_loss, flat, step.autocast_dtype)
     losses = _update_losses(cfg, flat, step, dist_info, order).to(torch.float64)
     if actor is None:
         return losses

@@ -19,6 +19,8 @@ gather and a copy per rollout key. An update overlapped with the next rollout (`
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 from tensordict import TensorDictBase
 
@@ -26,14 +28,30 @@ from ..config import ADAPTIVE_LR_RANGE
 from ..cuda_graphs import CUDA_GRAPHS, Capturer, WarmCapture
 from .rollout_guard import BEHAVIOUR_ESS_KEY
 
-__all__ = ["MinibatchStep", "MinibatchKLRule", "STAT_KEYS", "EXTRA_STAT_KEYS", "make_capturable_adam",
-           "optimizer_mode", "restore_optimizer_mode", "set_lr", "get_lr", "adapt_lr"]
+__all__ = ["MinibatchStep", "MinibatchKLRule", "update_autocast", "AUTOCAST_DTYPES", "STAT_KEYS", "EXTRA_STAT_KEYS",
+           "make_capturable_adam", "optimizer_mode", "restore_optimizer_mode", "set_lr", "get_lr", "adapt_lr"]
 
 #: The loss outputs averaged into the update's log line, in this order.
 STAT_KEYS = ("loss_objective", "loss_critic", "kl_approx", "clip_fraction")
 #: Further loss outputs logged when the loss module returns them (after :data:`STAT_KEYS`): the assist's and the
 #: symmetry's loss terms, and the decoupled update's effective sample size (``GuardedClipPPOLoss.use_proximal``).
 EXTRA_STAT_KEYS = ("loss_absorb", "loss_symmetry", BEHAVIOUR_ESS_KEY)
+#: ``ppo.update_dtype`` -> the dtype its network passes autocast to (None: no autocast, float32).
+AUTOCAST_DTYPES = {"float32": None, "bfloat16": torch.bfloat16}
+
+
+def update_autocast(dtype: torch.dtype | None, device: torch.device | None) -> contextlib.AbstractContextManager:
+    """``torch.autocast`` to ``dtype`` on ``device``'s type for the update's network passes, or no context for None
+    (float32, or no device known). The cast cache is off: a captured step must cast the weights inside its graph,
+    as they change with every optimiser step (torch's CUDA-graph notes ask for it).
+
+    >>> with update_autocast(torch.bfloat16, torch.device("cpu")):
+    ...     (torch.ones(2, 3) @ torch.ones(3, 4)).dtype
+    torch.bfloat16
+    """
+    if dtype is None or device is None:
+        return contextlib.nullcontext()
+    return torch.autocast(device.type, dtype=dtype, cache_enabled=False)
 
 
 def make_capturable_adam(param_groups: list[dict], eps: float, device: torch.device) -> torch.optim.Adam:
@@ -178,12 +196,16 @@ class MinibatchStep:
         kl_rule: a :class:`MinibatchKLRule` applied to the loss's ``kl_approx`` before the optimiser step (None: the
             trainer adapts the rate once per iteration, if at all).
         capturer: how to capture (:data:`~tocabi_torchrl.cuda_graphs.CUDA_GRAPHS`).
+        autocast_dtype: the dtype the loss's forward pass autocasts to (:func:`update_autocast`; ``ppo.update_dtype``),
+            None for float32. Backward, clipping and the optimiser step run outside it, on float32 parameters.
     """
 
     def __init__(self, loss_module, optimizer: torch.optim.Optimizer, params: list[torch.Tensor],
                  max_grad_norm: float, use_graph: bool = False, warmup: int = 3, grad_sync=None,
-                 capturer: Capturer = CUDA_GRAPHS, kl_rule: MinibatchKLRule | None = None):
+                 capturer: Capturer = CUDA_GRAPHS, kl_rule: MinibatchKLRule | None = None,
+                 autocast_dtype: torch.dtype | None = None):
         self.loss_module, self.optimizer, self.params = loss_module, optimizer, params
+        self.autocast_dtype = autocast_dtype
         self.kl_rule = kl_rule
         self.max_grad_norm = max_grad_norm
         self.use_graph = use_graph
@@ -207,7 +229,8 @@ class MinibatchStep:
         # Set to None, not zeroed: the first backward (the capture's, when captured) allocates them, in the graph's
         # pool; a replay overwrites its own, so inside a graph this is a no-op after the capture.
         self.optimizer.zero_grad(set_to_none=True)
-        losses = self.loss_module(mb)
+        with update_autocast(self.autocast_dtype, _device_of(mb)):
+            losses = self.loss_module(mb)
         # TorchRL's convention: the total is the sum of every "loss_*" output (objective, critic, entropy, extras).
         names = [k for k in losses.keys() if isinstance(k, str) and k.startswith("loss_")]
         total = sum(losses[k] for k in names)
