@@ -53,7 +53,7 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
     whole run's numbers, memory peaks, then the raw ceiling (only that with no iterations at all). None on ranks > 0.
     ``ceiling``: also the simulator's own time per policy step over the same timed iterations (module docstring).
     ``same_priority``: with ``ppo.overlap_update``, the rollout's and the update's streams of one priority.
-    ``compile_loss``: the PPO loss wrapped in ``torch.compile`` (a probe: no config option does it).
+    ``compile_loss``: the PPO loss wrapped in ``torch.compile`` (``ppo.compile_loss``, as ``--set`` would set it).
     ``compact_reset``: the reduced reset pass's small ``Data`` holds this many worlds (0: the pass over every world)
     instead of ``tocabi_torchrl.sim.config.compact_reset_capacity``'s count (None).
     ``update_sms``: with ``ppo.overlap_update``, the update's side stream is a stream of a CUDA green context of this
@@ -67,8 +67,8 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
               "device_used_at_start_gib": common.device_used_gib(device),
               "device_name": common.meta(NAME, None, device)["gpu"]}
     if iterations + warmup:
-        cfg = common.run_config(n, warmup + iterations, overrides, run_dir, f"train_{n}", device.split(":")[0],
-                                info.world_size)
+        cfg = common.run_config(n, warmup + iterations, {**overrides, **compile_override(compile_loss)}, run_dir,
+                                f"train_{n}", device.split(":")[0], info.world_size)
         if info.is_main:  # the benchmark's own scratch run: start afresh
             shutil.rmtree(Path(run_dir) / cfg.name, ignore_errors=True)
         physics, overlaps, update_marks = None, [], []
@@ -106,8 +106,6 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
                     self.stream = green.Stream()
 
         patches["UpdateOverlap"] = Overlap
-        if compile_loss:
-            patches["make_update_step"] = compiled_loss_step(common.trainer.make_update_step)
         if ceiling:
             at = common.trainer.resolve_device(device)
             common.refuse_captured_env_step(f"{NAME} --ceiling", cfg, at, n)
@@ -240,17 +238,10 @@ def measure(n: int, iterations: int, warmup: int, raw_steps: int, device: str, r
             "ratio_train_over_raw": rate / (info.world_size * raw) if raw and rate else None}
 
 
-def compiled_loss_step(make_update_step):
-    """``make_update_step`` whose step computes its loss through ``torch.compile`` (static shapes: every mini-batch
-    has the same size). The first mini-batch steps, eager before the capture, compile it; a captured step replays
-    the compiled kernels like any others."""
-
-    def make(*args, **kwargs):
-        step = make_update_step(*args, **kwargs)
-        step.loss_module = torch.compile(step.loss_module, dynamic=False)
-        return step
-
-    return make
+def compile_override(compile_loss: bool) -> dict[str, bool]:
+    """The ``--set`` entry of the ``--compile_loss`` flag: ``ppo.compile_loss`` on (:func:`make_update_step` compiles
+    the loss; the first mini-batch steps, eager before the capture, compile it), or nothing."""
+    return {"ppo.compile_loss": True} if compile_loss else {}
 
 
 def update_host_split(overlaps: list) -> dict[str, float]:

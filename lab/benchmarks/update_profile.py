@@ -6,7 +6,7 @@ step is captured (``ppo.update_graph``), so the profile holds what a training up
 mini-batch gathered outside the graph, as an update that is not overlapped gathers it. The report lists the
 update's total GPU time (its kernels' and copies' own times, summed, as the profiler's table sums them) and the
 kernels that take most of it.
-``--compile_loss`` wraps the loss in ``torch.compile`` first (:func:`train_throughput.compiled_loss_step`)::
+``--compile_loss`` wraps the loss in ``torch.compile`` first (``ppo.compile_loss``)::
 
     python -m lab.benchmarks.update_profile --num_envs 16384 --set ppo.matmul_precision=high --name update_16k
     python -m lab.benchmarks.update_profile --num_envs 16384 --set ppo.matmul_precision=high --compile_loss \\
@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from . import common
-from .train_throughput import compiled_loss_step
+from .train_throughput import compile_override
 
 NAME = "update_profile"
 #: The update profiled: the first captures the mini-batch step, the second is the first replayed in full.
@@ -37,7 +37,8 @@ def profile_update(n: int, device: str, overrides: dict, run_dir: str, compile_l
     (ops on a CPU) with the most own time."""
     from torch.profiler import ProfilerActivity, profile
 
-    cfg = common.run_config(n, PROFILED + 1, overrides, run_dir, f"profile_{n}", device)
+    cfg = common.run_config(n, PROFILED + 1, {**overrides, **compile_override(compile_loss)}, run_dir,
+                            f"profile_{n}", device)
     if cfg.ppo.overlap_update:
         raise SystemExit(f"{NAME} profiles the update alone: leave ppo.overlap_update off")
     cuda = torch.device(device).type == "cuda"
@@ -56,8 +57,6 @@ def profile_update(n: int, device: str, overrides: dict, run_dir: str, compile_l
         return out
 
     patches = {"_update_stats": profiled}
-    if compile_loss:
-        patches["make_update_step"] = compiled_loss_step(common.trainer.make_update_step)
     with common.trainer_patched(patches, []):
         common.train(cfg)
     if "table" not in seen:

@@ -117,28 +117,23 @@ def _children_started(monkeypatch) -> list:
     return children
 
 
-def test_train_throughput_compile_loss_compiles_the_steps_loss_in_the_child_only(tmp_path, monkeypatch):
-    import torch
-
+def test_train_throughput_compile_loss_sets_ppo_compile_loss_in_the_child(tmp_path, monkeypatch):
     from tocabi_torchrl.rl import trainer
 
-    loss, seen = torch.nn.Linear(2, 1), {}
+    seen = {}
 
     def train(cfg):
-        seen["step"] = trainer.make_update_step(cfg)  # what the trainer builds its update with
+        seen["compile_loss"] = cfg.ppo.compile_loss  # what the trainer builds its update step from
         trainer.make_collector(cfg, None, None, None, 0)
         rows = [{"env_steps": str(64 * k), "wall_s": str(0.1 * k), "update_s": "0.01"} for k in (1, 2, 3)]
         return SimpleNamespace(env_steps=192, wall_seconds=0.3, iterations=3, env_graph=False), rows
 
-    monkeypatch.setattr(trainer, "make_update_step", lambda cfg: SimpleNamespace(loss_module=loss))
     monkeypatch.setattr(trainer, "make_collector", lambda *a, **k: "collector")
     monkeypatch.setattr(common, "train", train)
     for compiled in (True, False):
         r = train_throughput.measure(8, 2, 1, 0, "cpu", str(tmp_path), {}, compile_loss=compiled)
-        module = seen["step"].loss_module
-        assert r["compile_loss"] is compiled
-        assert (module is not loss and module._orig_mod is loss) if compiled else module is loss
-        assert trainer.make_update_step("cfg").loss_module is loss  # the trainer's own again after the run
+        assert r["compile_loss"] is compiled and seen["compile_loss"] is compiled
+        assert r["overrides"] == {}  # the flag is recorded as such, not as a --set entry
     # The parent hands the flag to each child it starts.
     children = _children_started(monkeypatch)
     with pytest.raises(SystemExit):
