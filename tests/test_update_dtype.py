@@ -25,15 +25,15 @@ from tocabi_torchrl.rl.update_step import update_autocast
 OBS, ACT = 17, 5
 
 
-def _setup(**overrides):
+def _setup(device: str = "cpu", **overrides):
     cfg = preset_config("default", **{"env.num_envs": 64, "ppo.steps_per_env": 8, "ppo.minibatch_size": 128,
                                       "ppo.epochs": 2, "ppo.actor_hidden": (32, 16), "ppo.critic_hidden": (32, 16),
-                                      "ppo.update_graph": False, **overrides}, device="cpu")
+                                      "ppo.update_graph": False, **overrides}, device=device)
     torch.manual_seed(0)
-    agent = build_agent(cfg, OBS, ACT, torch.device("cpu"))
+    agent = build_agent(cfg, OBS, ACT, torch.device(device))
     loss_module, _ = make_loss(cfg, agent)
-    optimizer = make_optimizer(cfg, agent, torch.device("cpu"))
-    return cfg, agent, loss_module, make_update_step(cfg, loss_module, optimizer, torch.device("cpu"))
+    optimizer = make_optimizer(cfg, agent, torch.device(device))
+    return cfg, agent, loss_module, make_update_step(cfg, loss_module, optimizer, torch.device(device))
 
 
 def _rollout(n: int) -> TensorDict:
@@ -147,18 +147,6 @@ def test_a_compiled_loss_trains_as_the_eager_one():
     assert stats == pytest.approx(ref_stats, rel=1e-3, abs=1e-6)
 
 
-def _cuda_setup(update_graph: bool, compile_loss: bool):
-    cfg = preset_config("default", **{"env.num_envs": 64, "ppo.steps_per_env": 8, "ppo.minibatch_size": 128,
-                                      "ppo.epochs": 2, "ppo.actor_hidden": (32, 16), "ppo.critic_hidden": (32, 16),
-                                      "ppo.update_graph": update_graph, "ppo.update_dtype": "bfloat16",
-                                      "ppo.compile_loss": compile_loss}, device="cuda")
-    torch.manual_seed(0)
-    agent = build_agent(cfg, OBS, ACT, torch.device("cuda"))
-    loss_module, _ = make_loss(cfg, agent)
-    optimizer = make_optimizer(cfg, agent, torch.device("cuda"))
-    return cfg, agent, make_update_step(cfg, loss_module, optimizer, torch.device("cuda"))
-
-
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("compile_loss", [False, True], ids=["eager_loss", "compiled_loss"])
@@ -166,8 +154,9 @@ def test_a_captured_bfloat16_update_matches_its_eager_steps_without_syncs(compil
     """On CUDA the bfloat16 update (its loss compiled or not) is captured as the float32 one is: the graph that
     gathers its mini-batch from the kept rollout computes what the eager bfloat16 step computes, and replays without
     a host synchronisation."""
-    cfg, eager_agent, eager = _cuda_setup(update_graph=False, compile_loss=compile_loss)
-    _, graph_agent, graphed = _cuda_setup(update_graph=True, compile_loss=compile_loss)
+    options = {"ppo.update_dtype": "bfloat16", "ppo.compile_loss": compile_loss}
+    cfg, eager_agent, _, eager = _setup("cuda", **options)
+    _, graph_agent, _, graphed = _setup("cuda", **options, **{"ppo.update_graph": True})
     flat = _rollout(512).to("cuda")
     rows = graphed.keep(flat)
     for it in range(2):  # 8 steps: 3 eager warm-up steps, the capture, then replays
