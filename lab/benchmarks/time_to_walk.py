@@ -433,7 +433,8 @@ def _tested(records: list[dict], test: str) -> tuple[list[int], list[float]]:
 
 
 def render(data: dict, out: Path) -> str:
-    records, num = data["records"], lambda x, spec=",.0f": format(x, spec) if x else "-"
+    # A dash for a value not measured (None) alone: a survival of 0 is a result, not a blank.
+    records, num = data["records"], lambda x, spec=",.0f": "-" if x is None else format(x, spec)
     test = data.get("test", "standard")
     robust = test in TEST_CASES
     # The plots and the text say how long the tests ran: a CPU screen of 0.5 s once read "survival over 8 s".

@@ -306,6 +306,20 @@ def test_time_to_walk_eval_of_no_checkpoint_says_so(tmp_path, monkeypatch, capsy
     assert not (folder / "evals_robust.json").exists()
 
 
+def test_time_to_walk_report_shows_a_survival_of_zero_and_a_dash_for_a_command_not_run(tmp_path, monkeypatch):
+    # A checkpoint whose robots all fell at (0.7, 0.1) read "-" there, as if that command had not run.
+    monkeypatch.setattr(time_to_walk.common, "plot", lambda *args, **kwargs: None)
+    main = {"seconds": 8.0, "num_envs": 256, "survival": 1.0, "forward_distance_m": 3.0, "lateral_drift_m": 0.1,
+            "knee_rms_rad": 0.08}
+    commands = {"0.5,0.0": main, "0.7,0.1": {**main, "survival": 0.0}}
+    evaluation = {"train_seconds": 60.0, "env_steps": 100, "iteration": 1, "device": "cpu", "walks": False,
+                  "commands": commands}
+    record = {"preset": "default", "gpu": "cpu", "train_seconds": 60.0, "evaluations": {"wall_00060s": evaluation}}
+    text = time_to_walk.render({"command": "x", "records": [record]}, tmp_path)
+    row = next(line for line in text.splitlines() if line.startswith("| wall_00060s"))
+    assert row.split(" | ")[7:9] == ["-", "0.000"]  # (0.2, 0) not run, (0.7, 0.1) all fell
+
+
 def test_time_to_walk_report_says_how_long_and_on_how_many_robots_a_screen_tested(tmp_path, monkeypatch):
     # A CPU screen's report (eval --num_envs 4 --seconds 0.5) read "survival over 8 s" on its plots, and its text
     # gave the 8 s, 256-robot test as what its checkpoints had passed or not.
