@@ -755,7 +755,9 @@ TRAIN_OVER_CEILING_NEWER = ("h100_558ec91/envs4096.json", "h100_fc5b42b/envs1638
                             "h100_086d9f3/envs16384_4096.json", "h100_086d9f3/envs16384_epochs2.json",
                             "h100_928dc1e/pd_overlap_envs16384_4096.json",
                             "h100_928dc1e/pd_overlap_epochs2_envs16384.json",
-                            "h100_f4759b2/envs16384_4096_epochs2.json")
+                            "h100_f4759b2/envs16384_4096_epochs2.json",
+                            "h100_bf16/envs16384_4096_bf16_compiled.json",
+                            "h100_bf16/envs16384_bf16_compiled_r2.json")
 
 
 def train_over_ceiling_variants(docs: Path) -> list[str]:
