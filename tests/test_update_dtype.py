@@ -127,9 +127,15 @@ def test_the_output_layer_is_a_linear_with_the_same_state_dict():
     torch.testing.assert_close(net(x), plain(x), rtol=0, atol=0)
 
 
-def test_bad_update_dtypes_are_refused_by_name():
+def test_bad_update_dtypes_are_refused_by_name(monkeypatch):
     with pytest.raises(ValueError, match="ppo.update_dtype must be one of"):
         preset_config("default", **{"ppo.update_dtype": "float16"}).validate()
+    # A GPU without bfloat16 is named, with the fix, before anything is built on it.
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda: False)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "Tesla V100")
+    cfg = preset_config("default", **{"ppo.update_dtype": "bfloat16"})
+    with pytest.raises(ValueError, match="Tesla V100 does not support bfloat16.*set ppo.update_dtype=float32"):
+        make_update_step(cfg, None, None, torch.device("cuda"))
 
 
 def test_a_compiled_loss_trains_as_the_eager_one():

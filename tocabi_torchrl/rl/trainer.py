@@ -442,6 +442,9 @@ def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.
     :func:`~tocabi_torchrl.cuda_graphs.plan_graphs` says so);
     in a data-parallel run its gradients are averaged over the ranks before clipping (``cfg.ppo.grad_sync``: one
     all-reduce inside the step, or DDP around the loss)."""
+    if cfg.ppo.update_dtype == "bfloat16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
+        raise ValueError(f"ppo.update_dtype bfloat16: {torch.cuda.get_device_name(device)} does not support bfloat16 "
+                         "(it needs compute capability 8.0 or newer); set ppo.update_dtype=float32")
     params = [p for g in optimizer.param_groups for p in g["params"]]
     sync, step_loss = None, loss_module
     if dist_info is not None and dist_info.enabled:
