@@ -181,3 +181,27 @@ def test_a_captured_bfloat16_update_matches_its_eager_steps_without_syncs(compil
         torch.cuda.set_sync_debug_mode("default")
     eager(flat[idx])
     torch.testing.assert_close(_params(graph_agent), _params(eager_agent), rtol=1e-3, atol=1e-4)
+
+
+def test_compile_loss_without_a_compiler_is_refused_before_the_run_starts(tmp_path, monkeypatch):
+    # Without a C++ compiler torch.compile failed in the first mini-batch step, after the env was built and a
+    # rollout collected, with inductor's own trace; the refusal now names the option and the fix up front.
+    import shutil
+
+    from tocabi_torchrl.rl import trainer
+
+    monkeypatch.setenv("CXX", "no-such-c++")
+    real_which = shutil.which
+    monkeypatch.setattr(trainer.shutil, "which", lambda name: None if name == "no-such-c++" else real_which(name))
+    cfg = preset_config("cpu_smoke", **{"ppo.compile_loss": True, "run_dir": str(tmp_path), "name": "r"},
+                        device="cpu")
+    with pytest.raises(ValueError, match=r"ppo.compile_loss on the CPU needs a C\+\+ compiler .*'no-such-c\+\+'.*"
+                                         r"set ppo.compile_loss=false"):
+        trainer.train(cfg)
+    assert not (tmp_path / "r").exists()  # refused before the run folder was made
+    with pytest.raises(ValueError, match="needs a C"):  # make_update_step refuses it for its own callers too
+        _setup(**{"ppo.compile_loss": True})
+    monkeypatch.setattr(trainer.importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(ValueError, match="ppo.compile_loss needs Triton on a GPU.*pip install triton"):
+        trainer.check_compile_toolchain(torch.device("cuda"))
+    trainer.check_compile_toolchain(torch.device("meta"))  # nothing compiled for it, nothing to refuse

@@ -7,9 +7,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import importlib.util
 import inspect
 import math
+import os
+import shutil
 import signal
+import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -53,8 +57,8 @@ from .update_step import (AUTOCAST_DTYPES, MinibatchKLRule, MinibatchStep, adapt
                           optimizer_mode, restore_optimizer_mode, set_lr, update_autocast)
 
 __all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer",
-           "make_update_step", "training_keys", "train", "resolve_device", "float32_matmul_precision",
-           "TrainResult", "raised_before_training"]
+           "make_update_step", "check_compile_toolchain", "training_keys", "train", "resolve_device",
+           "float32_matmul_precision", "TrainResult", "raised_before_training"]
 
 #: The mask ClipPPOLoss's advantage normalisation reads (TorchRL 0.14: ``_standardize_advantage``).
 NORM_MASK_KEY = "shifted_valid"
@@ -436,6 +440,26 @@ def _minibatch_kl(cfg: RunConfig) -> bool:
     return cfg.ppo.lr_schedule == "adaptive" and cfg.ppo.kl_adapt_every == "minibatch"
 
 
+def check_compile_toolchain(device: torch.device) -> None:
+    """Refuse ``ppo.compile_loss`` where torch.compile cannot build the loss's kernels, before any env step: on a CPU
+    it compiles C++ with the compiler inductor looks for (``$CXX``, else g++; clang++ on macOS), on a GPU it writes
+    Triton kernels. Without them the first mini-batch step would fail minutes into the run with torch's own long
+    trace. Windows (MSVC, found differently) is left to torch.
+
+    >>> check_compile_toolchain(torch.device("meta"))  # neither a CPU nor a GPU: nothing is compiled for it
+    """
+    if device.type == "cuda":
+        if importlib.util.find_spec("triton") is None:
+            raise ValueError("ppo.compile_loss needs Triton on a GPU (torch.compile writes its kernels in it), and "
+                             "it is not installed: pip install triton, or set ppo.compile_loss=false")
+    elif device.type == "cpu" and sys.platform != "win32":
+        compiler = os.environ.get("CXX") or ("clang++" if sys.platform == "darwin" else "g++")
+        if shutil.which(compiler) is None:
+            raise ValueError(f"ppo.compile_loss on the CPU needs a C++ compiler (torch.compile builds the loss's "
+                             f"kernels with {compiler!r}, from $CXX or the default), and none was found on PATH: "
+                             "install one (e.g. apt install g++) or set CXX to it, or set ppo.compile_loss=false")
+
+
 def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.optim.Optimizer,
                      device: torch.device, dist_info: DistInfo | None = None) -> MinibatchStep:
     """The mini-batch step of :func:`train` (a CUDA graph after a few eager steps when
@@ -445,6 +469,8 @@ def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.
     if cfg.ppo.update_dtype == "bfloat16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
         raise ValueError(f"ppo.update_dtype bfloat16: {torch.cuda.get_device_name(device)} does not support bfloat16 "
                          "(it needs compute capability 8.0 or newer); set ppo.update_dtype=float32")
+    if cfg.ppo.compile_loss:
+        check_compile_toolchain(device)
     params = [p for g in optimizer.param_groups for p in g["params"]]
     sync, step_loss = None, loss_module
     if dist_info is not None and dist_info.enabled:
@@ -610,6 +636,8 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         raise ValueError(f"ppo.overlap_update runs on one rank; this run has {info.world_size}: set "
                          "ppo.overlap_update=false for a data-parallel run")
     device = init_distributed(info, resolve_device(cfg.device))
+    if cfg.ppo.compile_loss:  # before the run folder exists: make_update_step checks it again for its own callers
+        check_compile_toolchain(device)
     if run is None:
         # Rank 0 checks the loggers and the folder (refusing to overwrite an earlier run); the others write nothing and
         # only read the resumed checkpoint. Every rank learns whether rank 0 may go on, so none waits in a collective.
