@@ -16,6 +16,7 @@ from tocabi_torchrl.rl.trainer import (
     _fill_proximal,
     _update,
     build_agent,
+    decoupled_update,
     make_loss,
     make_optimizer,
     make_update_step,
@@ -48,6 +49,16 @@ def _rollout(n: int) -> TensorDict:
     }, batch_size=[n])
 
 
+def _acted(agent, flat: TensorDict) -> TensorDict:
+    """``flat`` as the agent's float32 rollout pass would have logged it: each action's log-probability under the
+    agent, and the decoupled update's proximal entry (the behaviour's, until ``_fill_proximal`` overwrites it)."""
+    with torch.no_grad():
+        logp = gaussian_log_prob(gaussian_head(agent.actor), flat.get("observation"), flat.get("action"))
+    flat.set("action_log_prob", logp.reshape(-1))
+    flat.set(PROXIMAL_KEY, logp.reshape(-1).clone())
+    return flat
+
+
 def _params(agent) -> torch.Tensor:
     return torch.cat([p.detach().flatten() for p in list(agent.actor.parameters()) + list(agent.critic.parameters())])
 
@@ -74,14 +85,14 @@ def test_a_bfloat16_update_runs_its_hidden_layers_in_bfloat16_and_keeps_float32_
     """With ppo.update_dtype bfloat16 the hidden layers compute in bfloat16 and the output layers in float32; the
     parameters and their gradients stay float32, the rollout's own pass stays float32, and one update moves the
     parameters as the float32 update does, up to bfloat16's rounding (not bit for bit)."""
-    cfg, agent, _, step = _setup(**{"ppo.update_dtype": "bfloat16"})
+    cfg, agent, loss_module, step = _setup(**{"ppo.update_dtype": "bfloat16"})
     _, ref_agent, _, ref_step = _setup()
     assert torch.equal(_params(agent), _params(ref_agent))
     before = _params(agent)
+    flat = _acted(agent, _rollout(512))
     seen = _linear_dtypes(agent)
-    flat = _rollout(512)
     torch.manual_seed(3)
-    stats = _update(cfg, flat, step)
+    stats = _update(cfg, flat, step, proximal_loss=loss_module)
     torch.manual_seed(3)
     ref_stats = _update(cfg, flat, ref_step)
     assert seen == {"hidden_out": {torch.bfloat16}, "output_in": {torch.bfloat16}, "output_out": {torch.float32}}
@@ -97,6 +108,28 @@ def test_a_bfloat16_update_runs_its_hidden_layers_in_bfloat16_and_keeps_float32_
     with torch.no_grad():
         agent.actor(TensorDict({"observation": torch.randn(4, OBS)}, batch_size=[4]))
     assert seen["hidden_out"] == {torch.float32} and seen["output_out"] == {torch.float32}
+
+
+def test_a_bfloat16_update_is_decoupled_so_its_ratios_start_from_one():
+    """The rollout acts in float32; bfloat16's rounding alone moves the log-probabilities, and PPO's ratio against the
+    policy that acted would start away from 1 (past the 0.2 clip on 30-59 % of the shipped torque policy's frames).
+    So a bfloat16 update is decoupled (decoupled_update), overlapped or not: its ratio and KL are taken against the
+    learner as the update computes it, and start at exactly 1 and 0."""
+    assert not decoupled_update(preset_config("default").ppo)
+    cfg, agent, loss_module, step = _setup(**{"ppo.update_dtype": "bfloat16"})
+    assert decoupled_update(cfg.ppo) and PROXIMAL_KEY in loss_module.in_keys
+    coupled, _ = make_loss(preset_config("default", device="cpu"), agent)  # PPO's own ratio, as before
+    assert PROXIMAL_KEY not in coupled.in_keys
+    with torch.no_grad():
+        # The actor's output layer scaled up to action means of ~0.7, as a trained policy's: its rounding then shows
+        # (a quarter of the coupled loss's frames start clipped).
+        gaussian_head(agent.actor).mean_net[-1].weight.mul_(100.0)
+        flat = _acted(agent, _rollout(2048))
+        _fill_proximal(loss_module, flat, step.autocast_dtype)
+        with update_autocast(step.autocast_dtype, torch.device("cpu")):
+            decoupled, plain = loss_module(flat), coupled(flat)
+    assert decoupled["kl_approx"].item() == 0.0 and decoupled["clip_fraction"].item() == 0.0
+    assert plain["kl_approx"].item() > 0.0 and plain["clip_fraction"].item() > 0.0
 
 
 def test_the_proximal_log_probabilities_follow_the_update_dtype():
@@ -205,3 +238,20 @@ def test_compile_loss_without_a_compiler_is_refused_before_the_run_starts(tmp_pa
     with pytest.raises(ValueError, match="ppo.compile_loss needs Triton on a GPU.*pip install triton"):
         trainer.check_compile_toolchain(torch.device("cuda"))
     trainer.check_compile_toolchain(torch.device("meta"))  # nothing compiled for it, nothing to refuse
+
+
+def test_the_rounding_analysis_finds_more_frames_past_the_clip_for_larger_action_means():
+    # lab/analysis/bf16_rounding.py's measure, on a network whose output layer is scaled as in the test above: a larger
+    # mean, more rounding, more frames a coupled update would start clipped; a smaller std, more too.
+    from lab.analysis.bf16_rounding import rounding
+
+    torch.manual_seed(0)
+    net, obs = make_mlp(OBS, (64, 64), ACT, "elu"), torch.randn(4096, OBS)
+    small = rounding(obs, net, [0.1, 0.05], 0.2, seed=0)
+    with torch.no_grad():
+        net[-1].weight.mul_(100.0)
+    large = rounding(obs, net, [0.1, 0.05], 0.2, seed=0)
+    assert small["frames"] == 4096 and small["action_dim"] == ACT
+    assert 0 < small["mean_abs_diff"] < large["mean_abs_diff"]
+    shares = [[s["share_past_clip"] for s in r["per_std"]] for r in (small, large)]
+    assert shares[0][0] <= shares[1][0] < shares[1][1] and 0 < shares[1][1] <= 1, shares

@@ -304,7 +304,10 @@ class PPOConfig:
     #: update's network passes, the proximal log-probabilities of ``overlap_update`` included). The output layers
     #: (action mean, value), the distribution, the losses, the gradients and the optimiser stay float32
     #: (rl/networks.OutputLinear). Half the bytes per activation: beside the rollout (``overlap_update``), the
-    #: update's memory traffic slows the physics. The rollout's own policy pass stays float32.
+    #: update's memory traffic slows the physics. The rollout's own policy pass stays float32, so a bfloat16 update
+    #: is decoupled PPO as ``overlap_update``'s is, overlapped or not (rl/trainer.decoupled_update): the rounding alone
+    #: starts the shipped torque policy's ratio past the clip on 30-59 % of its frames
+    #: (docs/training/bf16_rounding.json).
     update_dtype: str = "float32"
     """the PPO update's hidden layers in float32 or bfloat16 (output layers, loss and optimiser stay float32)"""
     #: Compile the PPO loss with torch.compile (static shapes; the first mini-batch steps compile it, a few tens of

@@ -36,7 +36,7 @@ from .assist import AssistAbsorbLoss, AssistSchedule, AssistTeacher
 from .checkpoint import apply_checkpoint, config_from_checkpoint, save_checkpoint
 from .deferred_read import DeferredRead
 from .gae import SyncFreeGAE
-from ..config import MAX_SEED, RunConfig, schedule_warning, wall_tag
+from ..config import MAX_SEED, PPOConfig, RunConfig, schedule_warning, wall_tag
 from ..envs.config import TocabiWalkConfig
 from ..tree import get_path, leaf_paths
 from ..value_rules import positive_count
@@ -57,8 +57,8 @@ from .update_step import (AUTOCAST_DTYPES, MinibatchKLRule, MinibatchStep, adapt
                           optimizer_mode, restore_optimizer_mode, set_lr, update_autocast)
 
 __all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer",
-           "make_update_step", "check_compile_toolchain", "training_keys", "train", "resolve_device",
-           "float32_matmul_precision", "TrainResult", "raised_before_training"]
+           "make_update_step", "check_compile_toolchain", "decoupled_update", "training_keys", "train",
+           "resolve_device", "float32_matmul_precision", "TrainResult", "raised_before_training"]
 
 #: The mask ClipPPOLoss's advantage normalisation reads (TorchRL 0.14: ``_standardize_advantage``).
 NORM_MASK_KEY = "shifted_valid"
@@ -498,6 +498,21 @@ def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.
                          autocast_dtype=AUTOCAST_DTYPES[cfg.ppo.update_dtype])
 
 
+def decoupled_update(ppo: PPOConfig) -> bool:
+    """Whether the PPO update is decoupled (``GuardedClipPPOLoss.use_proximal``): its ratio, clip and KL taken against
+    the learner as each update starts, computed as the update computes it, and its surrogate weighted by that policy
+    over the one that acted. So it is when the rollout acted with another policy (``ppo.overlap_update``: the one of
+    the update before) or computed its policy in another dtype (``ppo.update_dtype`` bfloat16: the rollout's pass is
+    float32, and bfloat16's rounding alone moved the PPO ratio of the shipped torque policy past the 0.2 clip on 30 %
+    of its own walk's frames at std 0.1, 59 % at 0.05: ``docs/training/bf16_rounding.json``).
+
+    >>> from tocabi_torchrl.config import PPOConfig
+    >>> decoupled_update(PPOConfig()), decoupled_update(PPOConfig(update_dtype="bfloat16"))
+    (False, True)
+    """
+    return ppo.overlap_update or ppo.update_dtype != "float32"
+
+
 def make_loss(cfg: RunConfig, agent: Agent, env: EnvBase | None = None,
               ) -> tuple[ClipPPOLoss | SymmetryAugmentLoss | AssistAbsorbLoss, SyncFreeGAE]:
     """The clipped PPO loss (in :class:`~tocabi_torchrl.rl.symmetry.SymmetryAugmentLoss` with ``cfg.ppo.symmetry``
@@ -523,9 +538,10 @@ def make_loss(cfg: RunConfig, agent: Agent, env: EnvBase | None = None,
     )
     loss_module.set_keys(sample_log_prob="action_log_prob")
     loss_module.loss_mask_key = VALID_KEY  # see rollout_guard: broken frames add nothing to the losses
-    if ppo.overlap_update:
-        # Its rollouts act with the policy of one update before: ratio, clip and KL from the policy each update
-        # starts from, the surrogate weighted by that policy over the one that acted (rollout_guard).
+    if decoupled_update(ppo):
+        # Its rollouts act with the policy of one update before, or the update computes it in another dtype: ratio,
+        # clip and KL from the policy each update starts from, as the update computes it, the surrogate weighted by
+        # that policy over the one that acted (rollout_guard).
         loss_module.use_proximal(PROXIMAL_KEY)
     if ppo.symmetry == "augment":
         if env is None:
@@ -843,9 +859,9 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
             # On its side stream the update reads `flat` and `order` while the next rollout is collected: kept until
             # it is done. On the training stream the stream's order protects them: nothing is kept.
             # Bound now (a lambda would look `flat` up when the thread runs it, after the `del` below).
-            # With the overlap the update first stores the proximal log-probabilities, on its own stream too.
+            # A decoupled update first stores the proximal log-probabilities (with the overlap, on its own stream).
             overlap.launch(functools.partial(_update_stats, cfg, flat, update_step, agent.actor, info, order,
-                                             loss_module if ppo.overlap_update else None),
+                                             loss_module if decoupled_update(ppo) else None),
                            keep=(flat, order) if ppo.overlap_update else None,
                            threaded=ppo.overlap_update and update_step.replays(rows=True) and not _env_capturing(env))
             del work, flat, order
@@ -1031,7 +1047,7 @@ def _fill_proximal(loss_module: torch.nn.Module, flat: TensorDictBase, autocast_
     ppo = next((m for m in loss_module.modules() if isinstance(m, GuardedClipPPOLoss)), None)
     if ppo is None or ppo.proximal_key != PROXIMAL_KEY:
         raise ValueError("_fill_proximal needs a loss whose GuardedClipPPOLoss reads the proximal log-probabilities "
-                         "(use_proximal, set by make_loss for ppo.overlap_update)")
+                         "(use_proximal, set by make_loss for a decoupled_update)")
     head = gaussian_head(ppo.actor_network)
     (obs_key,) = ppo.actor_network.in_keys  # make_actor's actor reads one entry
     obs, action, out = flat.get(obs_key), flat.get(ppo.tensor_keys.action), flat.get(PROXIMAL_KEY)
@@ -1057,10 +1073,13 @@ def _finished(overlap: UpdateOverlap, step: MinibatchStep) -> tuple[dict[str, fl
 
 
 def _update(cfg: RunConfig, flat: TensorDictBase, step: MinibatchStep, dist_info: DistInfo | None = None,
-            actor: ProbabilisticActor | None = None) -> dict[str, float]:
+            actor: ProbabilisticActor | None = None, proximal_loss: torch.nn.Module | None = None,
+            ) -> dict[str, float]:
     """:func:`_update_stats` read on the host at once, by log name: one update as a single call (the trainer itself
-    reads an update's numbers once the next rollout is queued, through :class:`UpdateOverlap`)."""
-    values = _update_stats(cfg, flat, step, actor, dist_info).tolist()  # first: the step's losses name themselves
+    reads an update's numbers once the next rollout is queued, through :class:`UpdateOverlap`). A decoupled update
+    (:func:`decoupled_update`) takes its loss module as ``proximal_loss``, and ``flat`` its :data:`PROXIMAL_KEY`."""
+    # First: the step's losses name themselves.
+    values = _update_stats(cfg, flat, step, actor, dist_info, proximal_loss=proximal_loss).tolist()
     return dict(zip(_stat_names(step, with_actor=actor is not None), values, strict=True))
 
 
