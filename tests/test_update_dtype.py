@@ -194,15 +194,15 @@ def test_a_captured_bfloat16_update_matches_its_eager_steps_without_syncs(compil
     gathers its mini-batch from the kept rollout computes what the eager bfloat16 step computes, and replays without
     a host synchronisation."""
     options = {"ppo.update_dtype": "bfloat16", "ppo.compile_loss": compile_loss}
-    cfg, eager_agent, _, eager = _setup("cuda", **options)
-    _, graph_agent, _, graphed = _setup("cuda", **options, **{"ppo.update_graph": True})
-    flat = _rollout(512).to("cuda")
+    cfg, eager_agent, eager_loss, eager = _setup("cuda", **options)
+    _, graph_agent, graph_loss, graphed = _setup("cuda", **options, **{"ppo.update_graph": True})
+    flat = _acted(eager_agent, _rollout(512).to("cuda"))
     rows = graphed.keep(flat)
     for it in range(2):  # 8 steps: 3 eager warm-up steps, the capture, then replays
         torch.manual_seed(10 + it)
-        stats_eager = _update(cfg, flat, eager)
+        stats_eager = _update(cfg, flat, eager, proximal_loss=eager_loss)
         torch.manual_seed(10 + it)
-        stats_graph = _update(cfg, rows, graphed)
+        stats_graph = _update(cfg, rows, graphed, proximal_loss=graph_loss)
         assert stats_graph == pytest.approx(stats_eager, rel=1e-3, abs=1e-5)
     assert graphed._rows_capture.captured
     idx = torch.randperm(flat.shape[0], device="cuda")[: cfg.ppo.minibatch_size]
