@@ -255,3 +255,5 @@ def test_the_rounding_analysis_finds_more_frames_past_the_clip_for_larger_action
     assert 0 < small["mean_abs_diff"] < large["mean_abs_diff"]
     shares = [[s["share_past_clip"] for s in r["per_std"]] for r in (small, large)]
     assert shares[0][0] <= shares[1][0] < shares[1][1] and 0 < shares[1][1] <= 1, shares
+    ess = [s["behaviour_ess"] for s in large["per_std"]]  # what the decoupled update's weights pay instead
+    assert 0 < ess[1] < ess[0] < 1, ess

@@ -7,7 +7,9 @@ as a ``ppo.update_dtype`` "bfloat16" update computes (``rl.update_step.update_au
 the output layer in float32). For each action std given, actions drawn around the float32 mean give the log-ratio
 of the two policies' likelihoods, the PPO ratio's start where the update compares against the policy that acted; the
 share of frames whose ratio starts past the checkpoint's clip (``ppo.clip_epsilon``) is what a coupled update would
-clip before it learned anything. Why a bfloat16 update is decoupled (``rl.trainer.decoupled_update``).
+clip before it learned anything: why a bfloat16 update is decoupled (``rl.trainer.decoupled_update``). What the
+decoupled update pays instead: its surrogate's weights π_prox / π_behav are those likelihood ratios, and their
+effective sample size (``rl.rollout_guard.behaviour_ess``, as the trainer logs it) is given too.
 
 Wrote docs/training/bf16_rounding.json (about a minute on 2 cores)::
 
@@ -24,11 +26,13 @@ import time
 from pathlib import Path
 
 import torch
+from tensordict import TensorDict
 from tensordict.nn import InteractionType, set_interaction_type
 from torchrl.envs.utils import step_mdp
 
 from tocabi_torchrl.evaluation.record import load_policy
 from tocabi_torchrl.rl.actors import gaussian_head
+from tocabi_torchrl.rl.rollout_guard import behaviour_ess
 from tocabi_torchrl.rl.update_step import update_autocast
 
 from lab.analysis.reports import check_paths, write_report
@@ -51,7 +55,8 @@ def walk_observations(checkpoint: Path, num_envs: int, steps: int) -> tuple[torc
 
 def rounding(obs: torch.Tensor, mean_net: torch.nn.Module, stds: list[float], clip: float, seed: int) -> dict:
     """The action means' bfloat16 - float32 difference [normalised action units] and, per std, the log-ratio of the
-    two Gaussian policies at actions drawn around the float32 mean."""
+    two Gaussian policies at actions drawn around the float32 mean: its spread, the share of frames past ``clip`` and
+    the effective sample size of its exponent."""
     with torch.no_grad():
         mean32 = mean_net(obs)
         with update_autocast(torch.bfloat16, obs.device):
@@ -60,12 +65,13 @@ def rounding(obs: torch.Tensor, mean_net: torch.nn.Module, stds: list[float], cl
     out = {"frames": obs.shape[0], "action_dim": mean32.shape[-1], "clip_epsilon": clip,
            "mean_abs_action_mean": mean32.abs().mean().item(), "mean_abs_diff": diff.mean().item(),
            "p99_abs_diff": diff.flatten().quantile(0.99).item(), "max_abs_diff": diff.max().item(), "per_std": []}
-    g = torch.Generator().manual_seed(seed)
+    g, frames = torch.Generator().manual_seed(seed), TensorDict(batch_size=[obs.shape[0]])
     for std in stds:
         action = mean32 + std * torch.randn(mean32.shape, generator=g)
         log_ratio = ((action - mean32) ** 2 - (action - mean16) ** 2).sum(-1) / (2 * std ** 2)
         out["per_std"].append({"std": std, "log_ratio_sd": log_ratio.std().item(),
-                               "share_past_clip": ((log_ratio.exp() - 1).abs() > clip).float().mean().item()})
+                               "share_past_clip": ((log_ratio.exp() - 1).abs() > clip).float().mean().item(),
+                               "behaviour_ess": float(behaviour_ess(log_ratio.unsqueeze(-1), frames, None))})
     return out
 
 
@@ -88,7 +94,7 @@ def main(argv: list[str] | None = None) -> None:
         row = {"checkpoint": str(checkpoint), **rounding(obs, mean_net, args.stds, clip, args.seed)}
         results.append(row)
         per_std = ", ".join(f"std {s['std']}: log-ratio sd {s['log_ratio_sd']:.3f}, past the clip "
-                            f"{s['share_past_clip']:.1%}" for s in row["per_std"])
+                            f"{s['share_past_clip']:.1%}, ESS {s['behaviour_ess']:.3f}" for s in row["per_std"])
         print(f"{checkpoint}: |bf16 - f32| mean {row['mean_abs_diff']:.1e}, p99 {row['p99_abs_diff']:.1e}; {per_std}")
     if args.out is not None:
         meta = {"date": time.strftime("%Y-%m-%d"), "hardware": f"CPU, {platform.machine()}",
