@@ -301,7 +301,7 @@ class PPOConfig:
     matmul_precision: str = "highest"
     """float32 matrix products while training: highest (float32) or high (TF32 on GPUs)"""
     #: The dtype the PPO update's hidden layers compute in: "float32", or "bfloat16" (torch.autocast around the
-    #: update's network passes, the proximal log-probabilities of ``overlap_update`` included). The output layers
+    #: update's network passes, the decoupled update's proximal log-probabilities included). The output layers
     #: (action mean, value), the distribution, the losses, the gradients and the optimiser stay float32
     #: (rl/networks.OutputLinear). Half the bytes per activation: beside the rollout (``overlap_update``), the
     #: update's memory traffic slows the physics. The rollout's own policy pass stays float32, so a bfloat16 update
