@@ -1,17 +1,18 @@
 """How far bfloat16's rounding moves a trained policy's action mean and PPO ratio (``ppo.update_dtype``).
 
-Rolls each checkpoint's policy out in its own training env on the CPU (``--num_envs`` robots, ``--steps`` policy
-steps, commands of 0.5 m/s forward, actions drawn as in training), keeps the observations its actor saw, and passes
-them through the actor's mean network twice: in float32, as a rollout acts, and under ``torch.autocast`` to bfloat16,
-as a ``ppo.update_dtype`` "bfloat16" update computes (``rl.update_step.update_autocast``: hidden layers in bfloat16,
-the output layer in float32). For each action std given, actions drawn around the float32 mean give the log-ratio
-of the two policies' likelihoods, the PPO ratio's start where the update compares against the policy that acted; the
-share of frames whose ratio starts past the checkpoint's clip (``ppo.clip_epsilon``) is what a coupled update would
-clip before it learned anything: why a bfloat16 update is decoupled (``rl.trainer.decoupled_update``). What the
-decoupled update pays instead: its surrogate's weights π_prox / π_behav are those likelihood ratios, and their
-effective sample size (``rl.rollout_guard.behaviour_ess``, as the trainer logs it) is given too.
+Rolls each checkpoint's policy out on the CPU in the env its checkpoint describes (``evaluation.record.load_policy``:
+``--num_envs`` robots, ``--steps`` policy steps, a command of 0.5 m/s forward, actions drawn as in training), keeps the
+observations its actor saw, and passes them through the actor's mean network twice: in float32, as a rollout acts, and
+under ``torch.autocast`` to bfloat16, as a ``ppo.update_dtype`` "bfloat16" update computes
+(``rl.update_step.update_autocast``: hidden layers in bfloat16, the output layer in float32). For each action std given,
+actions drawn around the float32 mean give the log-ratio of the two policies' likelihoods, the PPO ratio's start where
+the update compares against the policy that acted; the share of frames whose ratio starts past the checkpoint's clip
+(``ppo.clip_epsilon``) is what a coupled update would clip before it learned anything: why a bfloat16 update is
+decoupled (``rl.trainer.decoupled_update``). What the decoupled update pays instead: its surrogate's weights π_prox /
+π_behav are those likelihood ratios, and their effective sample size (``rl.rollout_guard.behaviour_ess``, as the trainer
+logs it) is given too.
 
-Wrote docs/training/bf16_rounding.json (about a minute on 2 cores)::
+Wrote docs/training/bf16_rounding.json (14 s on 2 cores)::
 
     PYTHONPATH=. python lab/analysis/bf16_rounding.py --checkpoint assets/policies/tocabi_walk_ppo.pt \\
         assets/policies/tocabi_walk_torque.pt assets/policies/tocabi_walk_robust.pt \\
