@@ -57,8 +57,8 @@ from .update_step import (AUTOCAST_DTYPES, MinibatchKLRule, MinibatchStep, adapt
                           optimizer_mode, restore_optimizer_mode, set_lr, update_autocast)
 
 __all__ = ["Agent", "build_agent", "build_env", "env_config", "make_collector", "make_loss", "make_optimizer",
-           "make_update_step", "check_compile_toolchain", "decoupled_update", "training_keys", "train",
-           "resolve_device", "float32_matmul_precision", "TrainResult", "raised_before_training"]
+           "make_update_step", "check_update_device", "check_compile_toolchain", "decoupled_update", "training_keys",
+           "train", "resolve_device", "float32_matmul_precision", "TrainResult", "raised_before_training"]
 
 #: The mask ClipPPOLoss's advantage normalisation reads (TorchRL 0.14: ``_standardize_advantage``).
 NORM_MASK_KEY = "shifted_valid"
@@ -460,17 +460,24 @@ def check_compile_toolchain(device: torch.device) -> None:
                              "install one (e.g. apt install g++) or set CXX to it, or set ppo.compile_loss=false")
 
 
+def check_update_device(cfg: RunConfig, device: torch.device) -> None:
+    """Refuse the update's compute options that ``device`` cannot run, naming the fix: ``ppo.update_dtype``
+    bfloat16 on a GPU without bfloat16, ``ppo.compile_loss`` without its compiler (:func:`check_compile_toolchain`).
+    :func:`train` checks before it opens the run folder, :func:`make_update_step` for its own callers."""
+    if cfg.ppo.update_dtype == "bfloat16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
+        raise ValueError(f"ppo.update_dtype bfloat16: {torch.cuda.get_device_name(device)} does not support bfloat16 "
+                         "(it needs compute capability 8.0 or newer); set ppo.update_dtype=float32")
+    if cfg.ppo.compile_loss:
+        check_compile_toolchain(device)
+
+
 def make_update_step(cfg: RunConfig, loss_module: ClipPPOLoss, optimizer: torch.optim.Optimizer,
                      device: torch.device, dist_info: DistInfo | None = None) -> MinibatchStep:
     """The mini-batch step of :func:`train` (a CUDA graph after a few eager steps when
     :func:`~tocabi_torchrl.cuda_graphs.plan_graphs` says so);
     in a data-parallel run its gradients are averaged over the ranks before clipping (``cfg.ppo.grad_sync``: one
     all-reduce inside the step, or DDP around the loss)."""
-    if cfg.ppo.update_dtype == "bfloat16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
-        raise ValueError(f"ppo.update_dtype bfloat16: {torch.cuda.get_device_name(device)} does not support bfloat16 "
-                         "(it needs compute capability 8.0 or newer); set ppo.update_dtype=float32")
-    if cfg.ppo.compile_loss:
-        check_compile_toolchain(device)
+    check_update_device(cfg, device)
     params = [p for g in optimizer.param_groups for p in g["params"]]
     sync, step_loss = None, loss_module
     if dist_info is not None and dist_info.enabled:
@@ -652,8 +659,7 @@ def _train(cfg: RunConfig, env: EnvBase | None, run: RunFolder | None, info: Dis
         raise ValueError(f"ppo.overlap_update runs on one rank; this run has {info.world_size}: set "
                          "ppo.overlap_update=false for a data-parallel run")
     device = init_distributed(info, resolve_device(cfg.device))
-    if cfg.ppo.compile_loss:  # before the run folder exists: make_update_step checks it again for its own callers
-        check_compile_toolchain(device)
+    check_update_device(cfg, device)  # before the run folder exists
     if run is None:
         # Rank 0 checks the loggers and the folder (refusing to overwrite an earlier run); the others write nothing and
         # only read the resumed checkpoint. Every rank learns whether rank 0 may go on, so none waits in a collective.
